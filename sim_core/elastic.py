@@ -1,0 +1,77 @@
+"""Elastic terms of a model: membrane + bending per sheet, Stable Neo-Hookean per solid.
+
+Builds the potentials from the model's current material parameters and maps global parameter
+names (``sheet.bending_stiffness``) onto each potential's own parameter names (``bending_stiffness``)
+for the adjoint.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.model import Model
+from sim_core.potentials.bending import DiscreteShellBending, plastic_update
+from sim_core.potentials.membrane import StVKMembrane
+from sim_core.potentials.neohookean import StableNeoHookean
+
+
+class ElasticTerms:
+    """The model's elastic potentials.
+
+    Args:
+        model: the scene model (rest shape ``x_rest`` and body materials are read once).
+    """
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        self.membranes: dict[str, StVKMembrane] = {}
+        self.solids: dict[str, StableNeoHookean] = {}
+        self.hinges: dict[str, np.ndarray] = {}
+        for b in model.bodies.values():
+            m = b.material
+            if b.kind == "sheet":
+                self.membranes[b.name] = StVKMembrane(
+                    b.triangles, model.x_rest, m["youngs_modulus"], m["poisson_ratio"], m["thickness"]
+                )
+                if b.hinges is not None and b.hinges.shape[0] > 0:
+                    self.hinges[b.name] = b.hinges
+            elif b.kind == "solid":
+                self.solids[b.name] = StableNeoHookean(b.tets, model.x_rest, m["youngs_modulus"], m["poisson_ratio"])
+
+    def bending(self, name: str, theta_bar: np.ndarray | None) -> DiscreteShellBending:
+        """Bending potential of sheet ``name`` with rest angles ``theta_bar`` (rad, shape ``(h,)``)."""
+        b = self.model.bodies[name]
+        return DiscreteShellBending(self.hinges[name], self.model.x_rest, b.material["bending_stiffness"], theta_bar)
+
+    def potentials(self, hinge_theta_bar: dict[str, np.ndarray]) -> list:
+        """All elastic potentials for one step, given the rest angles of the state."""
+        out: list = list(self.membranes.values()) + list(self.solids.values())
+        out += [self.bending(name, hinge_theta_bar.get(name)) for name in self.hinges]
+        return out
+
+    def parameter_terms(self, name: str, hinge_theta_bar: dict[str, np.ndarray]) -> list[tuple[object, str]]:
+        """Potentials that depend on global parameter ``name`` and their local parameter names."""
+        body, _, key = name.partition(".")
+        out: list[tuple[object, str]] = []
+        if body in self.membranes and key in ("youngs_modulus", "poisson_ratio", "thickness"):
+            out.append((self.membranes[body], key))
+        if body in self.hinges and key == "bending_stiffness":
+            out.append((self.bending(body, hinge_theta_bar.get(body)), key))
+        if body in self.solids and key in ("youngs_modulus", "poisson_ratio"):
+            out.append((self.solids[body], key))
+        return out
+
+    def plastic_update(self, x: np.ndarray, hinge_theta_bar: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Bending plasticity after a step (DESIGN.md): returns the new rest angles per sheet."""
+        out = {}
+        for name in self.hinges:
+            yield_angle = self.model.bodies[name].material.get("yield_angle", np.inf)
+            tb = hinge_theta_bar.get(name)
+            if tb is None:
+                tb = np.zeros(self.hinges[name].shape[0])
+            if np.isfinite(yield_angle):
+                theta = self.bending(name, tb).theta(x)
+                out[name] = plastic_update(theta, tb, yield_angle)
+            else:
+                out[name] = np.array(tb)
+        return out

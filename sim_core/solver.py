@@ -1,0 +1,292 @@
+"""Newton's method on the incremental potential (implicit Euler), with Dirichlet boundaries.
+
+One step minimises E(x) = inertia + gravity + damping + elastic + contact + friction
+(DESIGN.md "Time stepping"), then sets v = (x - x^n)/dt. Each iteration assembles the projected
+Hessian blocks of every potential into one sparse matrix, solves with a sparse direct solver
+(PARDISO by default), and backtracks along the Newton direction until the Armijo condition
+E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we do not). The step
+is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
+the contact candidate set of the iteration valid. A step that does not converge raises
+:class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from sim_core.contact_set import ContactSet
+from sim_core.control import Control
+from sim_core.effector import driven_positions, limit_pose_step
+from sim_core.elastic import ElasticTerms
+from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.linsolve import LinearSolver, make_linear_solver
+from sim_core.model import Model
+from sim_core.potentials.base import HessianBlocks, assemble_hessian
+from sim_core.potentials.damping import ViscousDamping
+from sim_core.potentials.gravity import GravityPotential
+from sim_core.potentials.inertia import InertiaPotential
+from sim_core.state import State
+
+
+@dataclass
+class SolverConfig:
+    """Newton settings.
+
+    Attributes:
+        tol_velocity: converged when ``max |dx_newton| / dt`` < this (m/s). ThinShellLab: 1e-7.
+        tol_force: or when the free-DoF gradient infinity norm is below this (N).
+        max_iterations: Newton iterations per step before failing.
+        armijo_c: sufficient-decrease constant.
+        max_backtracks: line-search halvings before failing.
+        max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
+        projection: PSD projection of element Hessians ("clamp", "abs", "none").
+        linear_solver: "pardiso" or "scipy".
+        dt_halvings_on_failure: retry a failed step with dt/2, dt/4 ... this many times (0 = raise).
+    """
+
+    tol_velocity: float = 1e-5
+    tol_force: float = 1e-9
+    max_iterations: int = 60
+    armijo_c: float = 1e-4
+    max_backtracks: int = 40
+    max_displacement: float | None = None
+    projection: str = "clamp"
+    linear_solver: str = "pardiso"
+    dt_halvings_on_failure: int = 0
+
+    def __post_init__(self) -> None:
+        if self.tol_velocity <= 0 or self.max_iterations < 1:
+            raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
+        if self.projection not in ("clamp", "abs", "none"):
+            raise ConfigError(f"solver projection must be clamp|abs|none, got {self.projection!r}")
+
+
+@dataclass
+class StepInfo:
+    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s)."""
+
+    iterations: int = 0
+    residual_velocity: float = 0.0
+    energy: float = 0.0
+    backtracks: int = 0
+    substeps: int = 1
+    limited_effectors: list[str] = field(default_factory=list)
+    time_assembly: float = 0.0
+    time_linear_solve: float = 0.0
+    time_total: float = 0.0
+
+
+class NewtonSolver:
+    """Implicit-Euler Newton solver (Model/State/Control/Solver seam as in NVIDIA Newton).
+
+    Args:
+        model: the scene model.
+        config: :class:`SolverConfig`.
+    """
+
+    def __init__(self, model: Model, config: SolverConfig | None = None) -> None:
+        self.model = model
+        self.config = config or SolverConfig()
+        self.linear_solver: LinearSolver = make_linear_solver(self.config.linear_solver)
+        self.contact = ContactSet(model)
+        self._revision = -1
+        self.notify_model_changed()
+        # Data of the last converged step, kept for the adjoint.
+        self.last_hessian: sp.csr_matrix | None = None
+        self.last_free_mask: np.ndarray | None = None
+
+    def notify_model_changed(self) -> None:
+        """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
+        self.elastic = ElasticTerms(self.model)
+        self.vertex_mass = self.model.vertex_mass()
+        self.contact = ContactSet(self.model)
+        self._revision = self.model.revision
+
+    # ------------------------------------------------------------------ step
+    def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> StepInfo:
+        """Advance ``state_in`` by ``dt`` into ``state_out`` (only ``state_out`` is written).
+
+        Raises:
+            SimulationDivergedError: Newton did not converge (after the configured dt halvings),
+                naming the step index and time.
+            ConfigError: invalid control (non-finite pose, unknown effector).
+        """
+        if self._revision != self.model.revision:
+            self.notify_model_changed()
+        control = control or Control()
+        for name in control.effector_pose_target:
+            if name not in self.model.effectors:
+                raise ConfigError(f"unknown effector {name!r} in control; known: {list(self.model.effectors)}")
+        if not dt > 0:
+            raise ConfigError(f"dt must be > 0, got {dt}")
+        t0 = time.perf_counter()
+        halvings = self.config.dt_halvings_on_failure
+        n_sub = 1
+        while True:
+            try:
+                info = self._step_substeps(state_in, state_out, control, dt, n_sub)
+                info.time_total = time.perf_counter() - t0
+                return info
+            except SimulationDivergedError:
+                if halvings <= 0:
+                    raise
+                halvings -= 1
+                n_sub *= 2
+
+    def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int) -> StepInfo:
+        s = state_in.copy()
+        total = StepInfo(substeps=n_sub)
+        for _ in range(n_sub):
+            nxt = s.copy()
+            info = self._single_step(s, nxt, control, dt / n_sub)
+            total.iterations += info.iterations
+            total.backtracks += info.backtracks
+            total.residual_velocity = info.residual_velocity
+            total.energy = info.energy
+            total.limited_effectors = sorted(set(total.limited_effectors) | set(info.limited_effectors))
+            total.time_assembly += info.time_assembly
+            total.time_linear_solve += info.time_linear_solve
+            s = nxt
+        _copy_state_into(s, state_out)
+        return total
+
+    def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
+        """Dirichlet data of the step: fixed-vertex mask, their target positions, new effector poses.
+
+        Returns:
+            ``(fixed (n,) bool, x_target (n,3), poses, openings, limited_effector_names)``.
+        """
+        model = self.model
+        fixed = model.vertex_fixed.copy()
+        x_target = state.x.copy()
+        poses, openings, limited = {}, {}, []
+        for name, eff in model.effectors.items():
+            pose = state.effector_pose[name]
+            target = control.effector_pose_target.get(name)
+            if target is not None:
+                pose, was_limited = limit_pose_step(pose, target, eff.max_translation_per_step, eff.max_rotation_per_step)
+                if was_limited:
+                    limited.append(name)
+            opening = float(control.gripper_target.get(name, state.gripper_opening.get(name, eff.initial_opening)))
+            poses[name] = pose
+            openings[name] = opening
+            fixed[eff.vertices] = True
+            x_target[eff.vertices] = driven_positions(eff, pose, opening)
+        return fixed, x_target, poses, openings, limited
+
+    def _single_step(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo:
+        cfg = self.config
+        model = self.model
+        info = StepInfo()
+        fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
+        free = np.repeat(~fixed, 3)
+        x_n = state_in.x
+        x = x_n.copy()
+        x[fixed] = x_target[fixed]
+        x_hat = x_n + dt * state_in.v
+        mass = self.vertex_mass
+        fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(mass, model.gravity)]
+        diag = fixed_terms[0].hessian_diagonal()
+        if model.damping > 0:
+            damp = ViscousDamping(mass, x_n, model.damping, dt)
+            fixed_terms.append(damp)
+            diag = diag + damp.hessian_diagonal()
+        fixed_terms += self.elastic.potentials(state_in.hinge_theta_bar)
+        memory = self.contact.begin_step(x_n, state_in.contact_memory)
+        friction = self.contact.friction(x_n, dt, memory)
+        if friction is not None:
+            fixed_terms.append(friction)
+        max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
+
+        def total(xx: np.ndarray, contact_terms: list) -> float:
+            return sum(p.energy(xx) for p in fixed_terms) + sum(p.energy(xx) for p in contact_terms)
+
+        converged = False
+        residual = np.inf
+        for it in range(1, cfg.max_iterations + 1):
+            ta = time.perf_counter()
+            contact_terms = self.contact.potentials(x, x_n, memory)
+            terms = fixed_terms + contact_terms
+            g = sum(p.gradient(x) for p in terms).reshape(-1)
+            g[~free] = 0.0
+            if not np.all(np.isfinite(g)):
+                raise SimulationDivergedError(
+                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
+                )
+            blocks: list[HessianBlocks] = [p.hessian(x, cfg.projection) for p in terms if not hasattr(p, "hessian_diagonal")]
+            H = _constrain(assemble_hessian(blocks, model.dof_count, diag), free)
+            info.time_assembly += time.perf_counter() - ta
+            tl = time.perf_counter()
+            self.linear_solver.factorize(H)
+            d = -self.linear_solver.solve(g)
+            info.time_linear_solve += time.perf_counter() - tl
+            d[~free] = 0.0
+            if not np.all(np.isfinite(d)):
+                raise SimulationDivergedError(
+                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): linear solve produced NaN at iteration {it}"
+                )
+            d3 = d.reshape(-1, 3)
+            step_max = float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
+            residual = step_max / dt
+            if residual < cfg.tol_velocity or float(np.max(np.abs(g))) < cfg.tol_force:
+                converged = True
+                info.iterations = it
+                break
+            alpha = min(1.0, max_disp / step_max) if step_max > 0 else 1.0
+            e0 = total(x, contact_terms)
+            slope = float(g @ d)
+            if slope >= 0:  # not a descent direction (should not happen with a PD matrix)
+                d = -g
+                d3 = d.reshape(-1, 3)
+                slope = float(g @ d)
+            for _ in range(cfg.max_backtracks):
+                x_new = x + alpha * d3
+                if total(x_new, contact_terms) <= e0 + cfg.armijo_c * alpha * slope:
+                    break
+                alpha *= 0.5
+                info.backtracks += 1
+            else:
+                raise SimulationDivergedError(
+                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): line search failed at Newton iteration {it} "
+                    f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
+                )
+            x = x_new
+        if not converged:
+            raise SimulationDivergedError(
+                f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton did not converge in "
+                f"{cfg.max_iterations} iterations (residual {residual:.3g} m/s > tol {cfg.tol_velocity:g})"
+            )
+        info.residual_velocity = residual
+        self.last_hessian = H
+        self.last_free_mask = free
+        contact_terms = self.contact.potentials(x, x_n, memory)
+        info.energy = total(x, contact_terms)
+        # ---- outputs
+        state_out.t = state_in.t + dt
+        state_out.step_index = state_in.step_index + 1
+        state_out.x = x
+        state_out.v = (x - x_n) / dt
+        state_out.effector_pose = {k: np.array(v) for k, v in poses.items()}
+        state_out.gripper_opening = dict(openings)
+        force = np.zeros_like(x)
+        for p in contact_terms + ([friction] if friction is not None else []):
+            force -= p.gradient(x)
+        state_out.contact_force = force
+        state_out.contact_memory = self.contact.end_step(x, memory)
+        state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
+        return info
+
+
+def _constrain(H: sp.csr_matrix, free: np.ndarray) -> sp.csr_matrix:
+    """Zero fixed rows/columns and put 1 on their diagonal: ``D H D + (I - D)``."""
+    D = sp.diags(free.astype(float))
+    return (D @ H @ D + sp.diags((~free).astype(float))).tocsr()
+
+
+def _copy_state_into(src: State, dst: State) -> None:
+    for k, v in vars(src).items():
+        setattr(dst, k, v)

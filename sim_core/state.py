@@ -1,0 +1,43 @@
+"""State: everything that changes from step to step (Newton-style ``model.state()``)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class State:
+    """Per-step simulation state.
+
+    Attributes:
+        t: simulated time in s.
+        x: vertex positions in m, shape ``(vertex_count, 3)``.
+        v: vertex velocities in m/s, shape ``(vertex_count, 3)``.
+        hinge_theta_bar: sheet name -> rest dihedral angles in rad, shape ``(hinge_count,)``
+            (changed by bending plasticity).
+        effector_pose: effector name -> pose ``[x y z qx qy qz qw]`` in ``world``.
+        gripper_opening: effector name -> finger opening in m.
+        contact_memory: collision side memory (see ``sim_core.collision``), or None before the
+            first step.
+        contact_force: contact + friction force ON each vertex at the end of the step, N,
+            shape ``(vertex_count, 3)``.
+        step_index: number of steps taken since the initial state.
+    """
+
+    t: float
+    x: np.ndarray
+    v: np.ndarray
+    hinge_theta_bar: dict[str, np.ndarray] = field(default_factory=dict)
+    effector_pose: dict[str, np.ndarray] = field(default_factory=dict)
+    gripper_opening: dict[str, float] = field(default_factory=dict)
+    contact_memory: Any = None
+    contact_force: np.ndarray | None = None
+    step_index: int = 0
+
+    def copy(self) -> "State":
+        """Deep copy (arrays and memory duplicated)."""
+        return copy.deepcopy(self)
