@@ -1,0 +1,138 @@
+"""Simulation: the facade that the ROS node, the CLI and system identification drive.
+
+It owns a Model, a NewtonSolver and the current State, and turns the state into observations
+(effector poses, tactile readings, sheet points) following INTERFACES.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from sim_core.control import Control
+from sim_core.model import Model
+from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
+from sim_core.state import State
+from sim_core.transforms import compose_poses
+
+
+class Observation(NamedTuple):
+    """What the simulator publishes at one instant.
+
+    Attributes:
+        t: time in s.
+        effector_pose: effector name -> ``[x y z qx qy qz qw]`` in ``world``.
+        tactile: sensor name -> ``sim_core.sensors.tactile.TactileReading``.
+        sheet_points: tracked sheet vertices in ``world``, m, shape ``(p, 3)`` (grid order).
+        sheet_triangles: triangles over ``sheet_points``, shape ``(t, 3)``.
+    """
+
+    t: float
+    effector_pose: dict[str, np.ndarray]
+    tactile: dict[str, Any]
+    sheet_points: np.ndarray
+    sheet_triangles: np.ndarray
+
+
+class Simulation:
+    """Model + solver + state.
+
+    Args:
+        model: the scene model.
+        dt: time step in s (default: the scene's ``dt`` in ``model.meta``, else 5 ms).
+        solver_config: Newton settings.
+    """
+
+    def __init__(self, model: Model, dt: float | None = None, solver_config: SolverConfig | None = None) -> None:
+        self.model = model
+        self.dt = float(dt if dt is not None else model.meta.get("dt", 0.005))
+        self.solver = NewtonSolver(model, solver_config)
+        self.state: State = model.state()
+        self.last_info: StepInfo | None = None
+
+    @classmethod
+    def from_scene(cls, scene: str | Path | dict, dt: float | None = None,
+                   solver_config: SolverConfig | None = None) -> "Simulation":
+        """Load a scene file (or dict) and build the simulation.
+
+        Raises:
+            ConfigError: invalid scene (the message names the file and key).
+        """
+        from sim_core.scenes import load_scene
+
+        return cls(load_scene(scene), dt=dt, solver_config=solver_config)
+
+    # ------------------------------------------------------------------ stepping
+    @property
+    def t(self) -> float:
+        """Current simulated time in s."""
+        return self.state.t
+
+    def step(self, control: Control | None = None) -> StepInfo:
+        """Advance one step of ``dt`` (the state is replaced only if the step succeeds)."""
+        out = self.state.copy()
+        info = self.solver.step(self.state, out, control, self.dt)
+        self.state = out
+        self.last_info = info
+        return info
+
+    def reset(self) -> None:
+        """Return to the initial state."""
+        self.state = self.model.state()
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def parameter_names(self) -> list[str]:
+        """Editable parameter names (see ``Model.parameter_names``)."""
+        return self.model.parameter_names
+
+    def get_parameter(self, name: str) -> float:
+        """Current value of a parameter."""
+        return self.model.get_parameter(name)
+
+    def set_parameter(self, name: str, value: float) -> None:
+        """Set a parameter; the solver rebuilds what depends on it before the next step."""
+        self.model.set_parameter(name, value)
+        self.solver.notify_model_changed()
+
+    @property
+    def effector_names(self) -> list[str]:
+        """Names of the effectors."""
+        return list(self.model.effectors)
+
+    @property
+    def sensor_names(self) -> list[str]:
+        """Names of the tactile sensors."""
+        return list(self.model.sensors)
+
+    # ------------------------------------------------------------------ observation
+    def sensor_pose(self, name: str, state: State | None = None) -> np.ndarray:
+        """Pose of sensor ``name``'s frame in ``world``: effector pose * mount."""
+        state = state or self.state
+        s = self.model.sensors[name]
+        return compose_poses(state.effector_pose[s.effector], s.mount)
+
+    def observe(self, render_image: bool = False, state: State | None = None) -> Observation:
+        """Observation of ``state`` (default: the current state)."""
+        from sim_core.sensors.tactile import read_tactile
+
+        state = state or self.state
+        tactile = {}
+        for name, s in self.model.sensors.items():
+            gel = self.model.bodies[s.gel_body]
+            tactile[name] = read_tactile(
+                s.spec, s.camera, s.embedding, state.x, s.contact_triangles, self.sensor_pose(name, state),
+                state.contact_force, gel.vertices, render_image=render_image,
+            )
+        sheet = self.model.bodies.get("sheet")
+        if sheet is not None:
+            pts = state.x[sheet.vertex_start : sheet.vertex_stop].copy()
+            tris = sheet.triangles - sheet.vertex_start
+        else:
+            pts, tris = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+        return Observation(
+            t=state.t, effector_pose={k: np.array(v) for k, v in state.effector_pose.items()},
+            tactile=tactile, sheet_points=pts, sheet_triangles=tris,
+        )
