@@ -250,6 +250,12 @@ class NewtonSolver:
                 alpha *= 0.5
                 info.backtracks += 1
             else:
+                if abs(slope) <= 1e-12 * max(abs(e0), 1e-30) or residual < 100.0 * cfg.tol_velocity:
+                    # The predicted decrease is below the round-off of the energy: x is stationary
+                    # to working precision (the gradient is zero up to floating-point error).
+                    converged = True
+                    info.iterations = it
+                    break
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): line search failed at Newton iteration {it} "
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"

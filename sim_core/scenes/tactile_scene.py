@@ -110,6 +110,7 @@ def build_tactile_scene(scene: dict) -> Model:
     """
     from sim_core.sensors.camera import PinholeCamera
     from sim_core.sensors.markers import embed_markers, marker_grid
+    from sim_core.sensors.tactile import TactileSensorSpec
 
     opts = simulation_options(scene)
     sheet = scene["sheet"]
@@ -157,12 +158,12 @@ def build_tactile_scene(scene: dict) -> Model:
         local_tris = body.triangles - body.vertex_start
         on_face = np.all(np.isclose(x_local[local_tris, 2], 0.0), axis=1)
         face = local_tris[on_face]
-        camera = PinholeCamera.from_dict(s["camera"])
+        camera = PinholeCamera.from_dict(s["camera"], where=f"sensors.{sname}.camera")
         markers = marker_grid(tuple(int(v) for v in s["marker_grid"]), pitch)
         embedding = embed_markers(markers, x_local, face)
         sensors[sname] = TactileSensorInstance(
             name=sname, effector=eff_name, gel_body=gel_name, mount=mount,
-            contact_triangles=face + body.vertex_start, spec=s, camera=camera, embedding=embedding,
+            contact_triangles=face + body.vertex_start, spec=TactileSensorSpec.from_dict(s, sname), camera=camera, embedding=embedding,
         )
     eps = opts["contact_eps"] if opts["contact_eps"] is not None else 0.5 * thickness
     contact = ContactSettings(stiffness=float(opts["contact_stiffness"]), eps=float(eps),

@@ -1,0 +1,176 @@
+"""Candidate contact pairs: spatial-hash broad phase plus topological and body exclusions.
+
+A candidate is a pair whose bounding boxes come within ``radius`` of each other (the query box is
+inflated by ``radius`` on every side); the narrow phase decides which candidates are active. Always
+excluded: a vertex and a triangle that contains it, two edges that share a vertex. Optionally
+(:class:`PairFilter`): body pairs that may not collide, and for pairs inside one body (self-contact)
+the pairs already closer than ``self_rest_distance`` in the rest configuration, so that
+topological neighbours of a sheet (which touch at rest, or would when a crease folds through
+180 degrees) never generate contact and a sheet at rest has zero contact energy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+from sim_core.collision.spatial_hash import SpatialHash
+from sim_core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class PairFilter:
+    """Which pairs may collide beyond the topological exclusions.
+
+    Attributes:
+        vertex_body: body id of every global vertex, shape ``(vertex_count,)`` int (a triangle or
+            edge belongs to the body of its first vertex).
+        body_pair_allowed: shape ``(body_count, body_count)`` bool, symmetric; ``[i, i]`` enables
+            self-contact of body i. None allows every pair.
+        x_rest: rest positions in m, shape ``(vertex_count, 3)``; needed when
+            ``self_rest_distance > 0``.
+        self_rest_distance: same-body pairs whose rest distance is below this (m) are excluded.
+    """
+
+    vertex_body: np.ndarray
+    body_pair_allowed: np.ndarray | None = None
+    x_rest: np.ndarray | None = None
+    self_rest_distance: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.self_rest_distance) and self.self_rest_distance >= 0):
+            raise ConfigError(f"PairFilter: self_rest_distance must be >= 0 (m), got {self.self_rest_distance}")
+        if self.self_rest_distance > 0 and self.x_rest is None:
+            raise ConfigError("PairFilter: self_rest_distance > 0 needs x_rest")
+        if self.body_pair_allowed is not None:
+            allowed = np.asarray(self.body_pair_allowed)
+            nb = int(np.max(self.vertex_body)) + 1 if len(self.vertex_body) else 0
+            if allowed.ndim != 2 or allowed.shape[0] != allowed.shape[1] or allowed.shape[0] < nb:
+                raise ConfigError(
+                    f"PairFilter: body_pair_allowed must be square with >= {nb} bodies, got shape {allowed.shape}"
+                )
+
+    def keep(self, body_a: np.ndarray, body_b: np.ndarray, rest_distance) -> np.ndarray:
+        """Mask of pairs to keep given the bodies of both sides and a lazy rest-distance function."""
+        keep = np.ones(body_a.shape[0], dtype=bool)
+        if self.body_pair_allowed is not None:
+            keep &= np.asarray(self.body_pair_allowed, dtype=bool)[body_a, body_b]
+        if self.self_rest_distance > 0:
+            same = keep & (body_a == body_b)
+            if np.any(same):
+                idx = np.flatnonzero(same)
+                keep[idx[rest_distance(idx) < self.self_rest_distance]] = False
+        return keep
+
+
+def auto_cell_size(box_min: np.ndarray, box_max: np.ndarray, radius: float) -> float:
+    """Cell size of the order of the mean inflated box: mean largest box extent + 2 radius (m)."""
+    ext = np.max(box_max - box_min, axis=1) if box_min.shape[0] else np.zeros(1)
+    return float(max(np.mean(ext) + 2.0 * radius, 1e-9))
+
+
+def _check(x: np.ndarray, radius: float) -> None:
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ConfigError(f"candidate search: x must have shape (n, 3), got {x.shape}")
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ConfigError(f"candidate search: radius must be finite and >= 0 (m), got {radius}")
+
+
+def vertex_triangle_candidates(
+    x: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    radius: float,
+    exclude: PairFilter | None = None,
+    cell_size: float | None = None,
+) -> np.ndarray:
+    """Vertex-triangle pairs whose bounding boxes are within ``radius``.
+
+    Args:
+        x: global positions in m, shape ``(n, 3)``.
+        vertices: global indices of the colliding vertices, shape ``(v,)``.
+        triangles: global vertex indices of the colliding triangles, shape ``(t, 3)``.
+        radius: query radius in m (contact eps plus a margin).
+        exclude: optional body / self-contact filter.
+        cell_size: hash cell size in m (default :func:`auto_cell_size`).
+
+    Returns:
+        int64 array ``(p, 2)``: ``[global vertex index, row of triangles]``, sorted.
+
+    Raises:
+        ConfigError: bad shapes or radius.
+    """
+    x = np.asarray(x, dtype=float)
+    _check(x, radius)
+    vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if vertices.size == 0 or triangles.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    tri_x = x[triangles]
+    t_min, t_max = tri_x.min(axis=1), tri_x.max(axis=1)
+    p = x[vertices]
+    h = cell_size or auto_cell_size(t_min, t_max, radius)
+    pairs = SpatialHash(t_min, t_max, h).query(p - radius, p + radius)
+    v = vertices[pairs[:, 0]]
+    tri = triangles[pairs[:, 1]]
+    keep = np.all(tri != v[:, None], axis=1)
+    v, t_idx, tri = v[keep], pairs[keep, 1], tri[keep]
+    if exclude is not None:
+        body = np.asarray(exclude.vertex_body)
+
+        def rest_distance(idx: np.ndarray) -> np.ndarray:
+            xr = np.asarray(exclude.x_rest, dtype=float)
+            return point_triangle_distance(xr[v[idx]], xr[tri[idx, 0]], xr[tri[idx, 1]], xr[tri[idx, 2]])
+
+        keep = exclude.keep(body[v], body[tri[:, 0]], rest_distance)
+        v, t_idx = v[keep], t_idx[keep]
+    out = np.stack([v, t_idx], axis=1)
+    return out[np.lexsort((out[:, 1], out[:, 0]))]
+
+
+def edge_edge_candidates(
+    x: np.ndarray,
+    edges: np.ndarray,
+    radius: float,
+    exclude: PairFilter | None = None,
+    cell_size: float | None = None,
+) -> np.ndarray:
+    """Edge-edge pairs whose bounding boxes are within ``radius``.
+
+    Args:
+        x: global positions in m, shape ``(n, 3)``.
+        edges: global vertex indices of the colliding edges, shape ``(e, 2)``.
+        radius: query radius in m.
+        exclude: optional body / self-contact filter.
+        cell_size: hash cell size in m (default :func:`auto_cell_size`).
+
+    Returns:
+        int64 array ``(p, 2)``: ``[row i of edges, row j of edges]`` with ``i < j``, sorted.
+
+    Raises:
+        ConfigError: bad shapes or radius.
+    """
+    x = np.asarray(x, dtype=float)
+    _check(x, radius)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    if edges.shape[0] < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    ex = x[edges]
+    e_min, e_max = ex.min(axis=1), ex.max(axis=1)
+    h = cell_size or auto_cell_size(e_min, e_max, radius)
+    pairs = SpatialHash(e_min, e_max, h).query(e_min - radius, e_max + radius)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    ea, eb = edges[pairs[:, 0]], edges[pairs[:, 1]]
+    share = (ea[:, 0] == eb[:, 0]) | (ea[:, 0] == eb[:, 1]) | (ea[:, 1] == eb[:, 0]) | (ea[:, 1] == eb[:, 1])
+    pairs, ea, eb = pairs[~share], ea[~share], eb[~share]
+    if exclude is not None:
+        body = np.asarray(exclude.vertex_body)
+
+        def rest_distance(idx: np.ndarray) -> np.ndarray:
+            xr = np.asarray(exclude.x_rest, dtype=float)
+            return edge_edge_distance(xr[ea[idx, 0]], xr[ea[idx, 1]], xr[eb[idx, 0]], xr[eb[idx, 1]])
+
+        pairs = pairs[exclude.keep(body[ea[:, 0]], body[eb[:, 0]], rest_distance)]
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]

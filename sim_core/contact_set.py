@@ -1,0 +1,142 @@
+"""The contact set of a model: which pairs are candidates, their side memory, friction, per step.
+
+Glue between :mod:`sim_core.collision` (broad phase, distances, side memory) and the contact and
+friction potentials, as the Newton solver uses them:
+
+- :meth:`ContactSet.begin_step` takes the side memory of the state at ``x^n``;
+- :meth:`ContactSet.potentials` returns the penalty potentials (vertex-triangle, edge-edge,
+  vertex-plane) for the candidate pairs near an iterate ``x``; a new pair gets the side its vertex
+  (edge) had at ``x^n``, a remembered pair keeps its remembered side, so a vertex that slipped
+  through a triangle during an iterate is pulled back to the side it came from;
+- :meth:`ContactSet.friction` freezes normal forces and tangent bases at ``x^n`` (lagged IPC friction,
+  Li et al. 2020) with the Coulomb coefficient of each pair's two bodies;
+- :meth:`ContactSet.end_step` stores the sides of the pairs active at the converged ``x^{n+1}``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.collision import (
+    CollisionMemory,
+    PairFilter,
+    edge_edge_candidates,
+    edge_edge_side,
+    point_triangle_side,
+    vertex_triangle_candidates,
+)
+from sim_core.model import Model
+from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
+from sim_core.potentials.friction import LaggedFriction
+
+
+class ContactSet:
+    """Per-model contact bookkeeping (see module docstring).
+
+    Args:
+        model: the model; reads surfaces, bodies, planes, contact settings and friction table.
+    """
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        c = model.contact
+        self.stiffness, self.eps = float(c.stiffness), float(c.eps)
+        self.radius = self.eps + float(c.candidate_margin)
+        bodies = list(model.bodies.values())
+        self.body_names = [b.name for b in bodies]
+        self.vertex_body = model.body_of_vertex()
+        self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
+        self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
+        self.surface_vertices = np.unique(self.triangles)
+        nb = len(bodies)
+        allowed = np.ones((nb, nb), dtype=bool)
+        for i, b in enumerate(bodies):
+            allowed[i, i] = b.kind == "sheet" and c.self_contact
+            for j, o in enumerate(bodies):
+                if b.kind == "frozen" and o.kind == "frozen":
+                    allowed[i, j] = False
+        self.filter = PairFilter(
+            vertex_body=self.vertex_body, body_pair_allowed=allowed, x_rest=model.x_rest,
+            self_rest_distance=max(2.0 * self.radius, 0.0),
+        )
+        movable = np.concatenate([b.vertices for b in bodies if b.kind != "frozen"] or [np.zeros(0, np.int64)])
+        movable = np.intersect1d(movable, np.concatenate([self.surface_vertices, _sheet_vertices(model)]))
+        self.planes = [
+            (name, PlaneContact(movable, p.normal, p.offset, self.stiffness, self.eps))
+            for name, p in model.planes.items()
+        ]
+        self.x_prev: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ per step
+    def begin_step(self, x_n: np.ndarray, memory: CollisionMemory | None) -> CollisionMemory:
+        """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
+        self.x_prev = np.asarray(x_n, dtype=float)
+        return memory.copy() if memory is not None else CollisionMemory()
+
+    def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
+        x_ref = self.x_prev if self.x_prev is not None else x
+        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
+        z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
+        vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
+        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
+        z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
+             if len(ee) else np.zeros((0, 4, 3)))
+        ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
+        return (
+            VertexTriangleContact(vt, self.triangles, vt_sides, self.stiffness, self.eps),
+            EdgeEdgeContact(ee, self.edges, ee_sides, self.stiffness, self.eps),
+        )
+
+    def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
+        """Contact potentials for the candidates near iterate ``x`` (planes included)."""
+        vt, ee = self._pairs(x, memory)
+        return [vt, ee] + [p for _, p in self.planes]
+
+    def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
+        """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
+        vt, ee = self._pairs(x_n, memory)
+        frames, mus = [], []
+        for pot, first, second in (
+            (vt, vt.pairs[:, 0], self.triangles[vt.pairs[:, 1], 0]),
+            (ee, self.edges[ee.pairs[:, 0], 0], self.edges[ee.pairs[:, 1], 0]),
+        ):
+            f = pot.contact_frames(x_n)
+            if len(f.lam):
+                frames.append(f)
+                mus.append(self._mu(first[f.pair_index], second[f.pair_index]))
+        for name, plane in self.planes:
+            f = plane.contact_frames(x_n)
+            if len(f.lam):
+                frames.append(f)
+                bodies = self.vertex_body[plane.vertices[f.pair_index]]
+                mus.append(np.array([self.model.friction_coefficient(self.body_names[b], name) for b in bodies]))
+        if not frames:
+            return None
+        mu = np.concatenate(mus)
+        if not np.any(mu > 0):
+            return None
+        all_frames = concatenate_frames(frames)
+        return LaggedFriction.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+
+    def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:
+        ba, bb = self.vertex_body[vertex_a], self.vertex_body[vertex_b]
+        table = np.zeros((len(self.body_names), len(self.body_names)))
+        for i, a in enumerate(self.body_names):
+            for j, b in enumerate(self.body_names):
+                table[i, j] = self.model.friction_coefficient(a, b)
+        return table[ba, bb]
+
+    def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:
+        """Remember the sides of the pairs active at the converged positions ``x``."""
+        vt, ee = self._pairs(x, memory)
+        out = memory.copy()
+        act = vt.active_mask(x) if len(vt.pairs) else np.zeros(0, bool)
+        out.vertex_triangle.update(vt.pairs[act], vt.sides[act])
+        act = ee.active_mask(x) if len(ee.pairs) else np.zeros(0, bool)
+        out.edge_edge.update(ee.pairs[act], ee.sides[act])
+        return out
+
+
+def _sheet_vertices(model: Model) -> np.ndarray:
+    parts = [b.vertices for b in model.bodies.values() if b.kind == "sheet"]
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)

@@ -1,0 +1,172 @@
+"""Tetrahedral meshes: structured boxes, rest volumes and the oriented boundary surface.
+
+Convention: a tet ``(i0, i1, i2, i3)`` is positively oriented when its signed volume
+``(x1 - x0) x (x2 - x0) . (x3 - x0) / 6`` is positive. Every function here produces and expects
+positively oriented tets.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Literal, NamedTuple, Sequence
+
+import numpy as np
+
+from sim_core.errors import ConfigError, MeshError
+from sim_core.mesh.validate import tet_signed_volumes, validate_tets
+
+TET_FACES_OUTWARD = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int64)
+"""Local vertex indices of the four faces of a positively oriented tet, ordered so that the
+right-hand normal points out of the tet (face ``f`` is opposite local vertex ``3 - f``)."""
+
+
+class TetMesh(NamedTuple):
+    """A tetrahedral mesh.
+
+    Attributes:
+        x: vertex positions in m, shape ``(n, 3)``, float64.
+        tets: vertex indices, shape ``(k, 4)``, int64, positive signed volume.
+    """
+
+    x: np.ndarray
+    tets: np.ndarray
+
+
+def _kuhn_cell_tets() -> np.ndarray:
+    """The 6 tets of the unit cube split along its main diagonal (Kuhn / Freudenthal).
+
+    For a permutation ``(p0, p1, p2)`` of the axes the tet is
+    ``(000, e_p0, e_p0 + e_p1, 111)``; its signed volume is the sign of the permutation / 6, so odd
+    permutations swap the middle vertices. Every square face is cut along the diagonal through its
+    (lowest, highest) corners, so translated copies share faces exactly.
+
+    Returns:
+        shape ``(6, 4, 3)`` integer corner offsets.
+    """
+    cells = []
+    for perm in itertools.permutations(range(3)):
+        e = np.eye(3, dtype=np.int64)
+        v1 = e[perm[0]]
+        v2 = v1 + e[perm[1]]
+        corners = [np.zeros(3, dtype=np.int64), v1, v2, np.ones(3, dtype=np.int64)]
+        if round(np.linalg.det(np.stack([e[p] for p in perm]))) < 0:
+            corners[1], corners[2] = corners[2], corners[1]
+        cells.append(np.stack(corners))
+    return np.stack(cells)
+
+
+def tet_box(
+    size: Sequence[float],
+    resolution: Sequence[int],
+    origin: Sequence[float] = (0.0, 0.0, 0.0),
+) -> TetMesh:
+    """A structured tetrahedral box, each hexahedral cell split into 6 tets along its diagonal.
+
+    Args:
+        size: edge lengths ``(Lx, Ly, Lz)`` in m, each > 0.
+        resolution: vertices per axis ``(nx, ny, nz)``, each >= 2.
+        origin: position of the minimum corner in m.
+
+    Returns:
+        :class:`TetMesh` with ``nx * ny * nz`` vertices (vertex ``(ix, iy, iz)`` at index
+        ``(iz * ny + iy) * nx + ix``) and ``6 (nx-1)(ny-1)(nz-1)`` positively oriented tets.
+
+    Raises:
+        ConfigError: non-positive size or resolution below 2.
+    """
+    size_arr = np.asarray(size, dtype=float)
+    res = np.asarray(resolution)
+    if size_arr.shape != (3,) or not np.all(np.isfinite(size_arr)) or np.any(size_arr <= 0):
+        raise ConfigError(f"tet_box size must be 3 positive lengths, got {size!r}")
+    if res.shape != (3,) or np.any(res != np.round(res)) or np.any(res < 2):
+        raise ConfigError(f"tet_box resolution must be 3 integers >= 2 (vertices per axis), got {resolution!r}")
+    nx, ny, nz = (int(r) for r in res)
+    axes = [np.linspace(0.0, size_arr[d], int(res[d])) + float(origin[d]) for d in range(3)]
+    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    x = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+
+    iz, iy, ix = np.meshgrid(np.arange(nz - 1), np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
+    base = np.stack([ix.ravel(), iy.ravel(), iz.ravel()], axis=1)  # (cells, 3)
+    corner = base[:, None, None, :] + _kuhn_cell_tets()[None]  # (cells, 6, 4, 3)
+    tets = (corner[..., 2] * ny + corner[..., 1]) * nx + corner[..., 0]
+    return TetMesh(x, tets.reshape(-1, 4).astype(np.int64))
+
+
+def tet_rest_volume(tets: np.ndarray, x: np.ndarray, where: str = "tet mesh") -> np.ndarray:
+    """Rest volumes of positively oriented tets.
+
+    Args:
+        tets: shape ``(k, 4)``.
+        x: rest positions in m, shape ``(n, 3)``.
+        where: name of the mesh for error messages.
+
+    Returns:
+        volumes in m^3, shape ``(k,)``, all > 0.
+
+    Raises:
+        MeshError: an inverted or degenerate tet (named by index), bad indices, non-finite vertices.
+    """
+    tets = validate_tets(x, tets, where)
+    return tet_signed_volumes(np.asarray(x, dtype=float), tets)
+
+
+def tet_boundary_triangles(tets: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
+    """Boundary faces of a tet mesh, oriented with outward normals.
+
+    A face is on the boundary when exactly one tet has it. Orientation is combinatorial
+    (:data:`TET_FACES_OUTWARD`) and relies on positively oriented tets; pass ``x`` to check that.
+
+    Args:
+        tets: shape ``(k, 4)``, positively oriented.
+        x: optional positions ``(n, 3)``; when given the tets are validated first.
+
+    Returns:
+        triangles, shape ``(f, 3)``, int64, ordered by (tet index, local face).
+
+    Raises:
+        MeshError: a face shared by more than two tets (non-manifold), or (with ``x``) an
+            inverted/degenerate tet.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    if x is not None:
+        tets = validate_tets(x, tets, "tet_boundary_triangles")
+    if tets.shape[0] == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    faces = tets[:, TET_FACES_OUTWARD].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    if np.any(counts > 2):
+        f = int(np.flatnonzero(counts[inverse] > 2)[0])
+        raise MeshError(
+            f"tet mesh is non-manifold: face {key[f].tolist()} of tet {f // 4} is shared by more than two tets"
+        )
+    return faces[counts[inverse] == 1]
+
+
+def box_face_vertices(
+    mesh: TetMesh, axis: int, side: Literal["min", "max"], rel_tol: float = 1e-9
+) -> np.ndarray:
+    """Indices of the vertices on one face of a mesh's axis-aligned bounding box.
+
+    Args:
+        mesh: any mesh with positions ``mesh.x`` of shape ``(n, 3)``.
+        axis: 0, 1 or 2 (x, y, z).
+        side: ``"min"`` or ``"max"`` face along ``axis``.
+        rel_tol: tolerance relative to the bounding-box extent along ``axis``.
+
+    Returns:
+        sorted vertex indices, shape ``(m,)``, int64.
+
+    Raises:
+        ConfigError: bad ``axis`` or ``side``.
+    """
+    if axis not in (0, 1, 2):
+        raise ConfigError(f"axis must be 0, 1 or 2, got {axis!r}")
+    if side not in ("min", "max"):
+        raise ConfigError(f"side must be 'min' or 'max', got {side!r}")
+    c = np.asarray(mesh.x, dtype=float)[:, axis]
+    lo, hi = float(c.min()), float(c.max())
+    tol = rel_tol * max(hi - lo, np.finfo(float).tiny)
+    target = lo if side == "min" else hi
+    return np.flatnonzero(np.abs(c - target) <= tol).astype(np.int64)

@@ -1,0 +1,329 @@
+"""Penalty contact with side memory: vertex-triangle, edge-edge and vertex-plane pairs.
+
+Energy per pair (DESIGN.md "Contact", ThinShellLab): ``E = k_c / 2 (d - eps)^2`` for ``d < eps``,
+0 otherwise (C1 at ``d = eps``), with ``k_c`` the penalty stiffness (N/m) and ``eps`` the contact
+offset (m). The distance ``d`` and its region-wise definition (signed along the remembered side
+in the face / interior region, unsigned elsewhere) are documented in
+:mod:`sim_core.collision.distances`. Derivatives: ``grad E = k_c (d - eps) grad d`` and
+``hess E = k_c (grad d grad d^T + (d - eps) hess d)``, the latter PSD-projected per pair.
+
+The potentials take *candidate* pairs (from :mod:`sim_core.collision.candidates`); pairs with
+``d >= eps`` contribute nothing, so the candidate set may be larger than the active set.
+:meth:`contact_frames` gives the normal force magnitude ``lam = k_c (eps - d)``, the unit normal (the
+direction of the force on the first side: the vertex, or edge a) and the barycentric weights of
+the closest points, which friction (:mod:`sim_core.potentials.friction`) and the wrench need.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from sim_core.collision.distances import (
+    DistanceDerivatives,
+    EdgeEdgeRegion,
+    PointTriangleRegion,
+    edge_edge_closest_points,
+    edge_edge_contact_distance,
+    point_triangle_closest_point,
+    point_triangle_contact_distance,
+)
+from sim_core.errors import ConfigError
+from sim_core.potentials.base import HessianBlocks, Projection, project_psd, scatter_gradient
+
+
+class ContactFrames(NamedTuple):
+    """Active contact pairs at one configuration, as friction and the wrench consume them.
+
+    Attributes:
+        vertices: global vertex indices per pair, shape ``(p, m)`` int64.
+        weights: closest-point weights, shape ``(p, m)``: the relative position of the first side
+            w.r.t. the second is ``sum_j weights[:, j] x[vertices[:, j]]`` (first side positive).
+        normal: unit contact normal, direction of the force on the first side, shape ``(p, 3)``.
+        lam: normal force magnitude ``k_c (eps - d)`` in N, shape ``(p,)``.
+        pair_index: row of each pair in the potential's pair list, shape ``(p,)``.
+    """
+
+    vertices: np.ndarray
+    weights: np.ndarray
+    normal: np.ndarray
+    lam: np.ndarray
+    pair_index: np.ndarray
+
+
+def _check_penalty(stiffness: float, eps: float, where: str) -> None:
+    if not (np.isfinite(stiffness) and stiffness > 0):
+        raise ConfigError(f"{where}: contact stiffness must be finite and > 0 (N/m), got {stiffness}")
+    if not (np.isfinite(eps) and eps > 0):
+        raise ConfigError(f"{where}: contact eps must be finite and > 0 (m), got {eps}")
+
+
+def _check_sides(sides: np.ndarray, count: int, where: str) -> np.ndarray:
+    sides = np.asarray(sides, dtype=float).reshape(-1)
+    if sides.shape[0] != count:
+        raise ConfigError(f"{where}: {count} pairs but {sides.shape[0]} sides")
+    if not np.all(np.abs(sides) == 1.0):
+        raise ConfigError(f"{where}: sides must be +1 or -1")
+    return sides
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+class _PairPenalty:
+    """Shared penalty algebra of the 4-vertex pair potentials."""
+
+    parameter_names: tuple[str, ...] = ("stiffness",)
+    vertices: np.ndarray
+    sides: np.ndarray
+    stiffness: float
+    eps: float
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        raise NotImplementedError
+
+    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
+        """Indices of the active pairs and their distance (with derivatives up to ``order``)."""
+        z = x[self.vertices]
+        d = self._distance(z, self.sides, 0).d
+        active = np.flatnonzero(d < self.eps)
+        if order == 0:
+            return active, DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
+        return active, self._distance(z[active], self.sides[active], order)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """Contact distance ``d`` of every pair in m, shape ``(p,)``."""
+        return self._distance(x[self.vertices], self.sides, 0).d
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Pairs with ``d < eps``, bool shape ``(p,)``."""
+        return self.distance(x) < self.eps
+
+    def energy(self, x: np.ndarray) -> float:
+        """Penalty energy in J."""
+        _, dd = self._evaluate(x, 0)
+        return float(0.5 * self.stiffness * np.sum((dd.d - self.eps) ** 2))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``."""
+        active, dd = self._evaluate(x, 1)
+        g = self.stiffness * (dd.d - self.eps)[:, None] * dd.grad
+        return scatter_gradient(x.shape[0], self.vertices[active], g)
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``."""
+        active, dd = self._evaluate(x, 2)
+        if active.size == 0:
+            return HessianBlocks.empty(4)
+        H = self.stiffness * (
+            dd.grad[:, :, None] * dd.grad[:, None, :] + (dd.d - self.eps)[:, None, None] * dd.hess
+        )
+        return HessianBlocks(self.vertices[active], project_psd(H, projection))
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/d(stiffness) = ``(d - eps) grad d`` in m, shape ``(n, 3)``."""
+        if name != "stiffness":
+            raise KeyError(name)
+        active, dd = self._evaluate(x, 1)
+        return scatter_gradient(x.shape[0], self.vertices[active], (dd.d - self.eps)[:, None] * dd.grad)
+
+
+class VertexTriangleContact(_PairPenalty):
+    """Penalty between vertices and triangles, normal oriented by the remembered side.
+
+    Args:
+        pairs: ``[global vertex, row of triangles]``, shape ``(p, 2)``.
+        triangles: global vertex indices, shape ``(t, 3)``.
+        sides: side of each vertex w.r.t. its triangle's normal ``(b - a) x (c - a)`` remembered
+            when the pair became active (+1 / -1), shape ``(p,)``.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: bad stiffness, eps, sides or shapes.
+    """
+
+    def __init__(self, pairs: np.ndarray, triangles: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+        where = "VertexTriangleContact"
+        _check_penalty(stiffness, eps, where)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        if pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= triangles.shape[0]):
+            raise ConfigError(f"{where}: triangle index out of range [0, {triangles.shape[0]})")
+        self.pairs = pairs
+        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.vertices = np.concatenate([pairs[:, :1], triangles[pairs[:, 1]]], axis=1)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return point_triangle_contact_distance(z, side, order)
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
+        z = x[self.vertices]
+        d = self._distance(z, self.sides, 0).d
+        act = np.flatnonzero(d < self.eps)
+        z = z[act]
+        bary, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+        q = np.einsum("kj,kjd->kd", bary, z[:, 1:])
+        face = region == PointTriangleRegion.FACE
+        normal = np.zeros((act.size, 3))
+        if np.any(~face):
+            normal[~face] = _unit(z[~face, 0] - q[~face])
+        if np.any(face):
+            n = np.cross(z[face, 2] - z[face, 1], z[face, 3] - z[face, 1])
+            normal[face] = self.sides[act][face, None] * _unit(n)
+        weights = np.concatenate([np.ones((act.size, 1)), -bary], axis=1)
+        lam = self.stiffness * (self.eps - d[act])
+        return ContactFrames(self.vertices[act], weights, normal, lam, act)
+
+
+class EdgeEdgeContact(_PairPenalty):
+    """Penalty between edges, normal oriented by the remembered side where it is defined.
+
+    Args:
+        pairs: ``[row i of edges, row j of edges]``, shape ``(p, 2)``.
+        edges: global vertex indices, shape ``(e, 2)``.
+        sides: remembered sign of ``((a1 - a0) x (b1 - b0)).(a0 - b0)`` (+1 / -1), shape ``(p,)``.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: bad stiffness, eps, sides or shapes.
+    """
+
+    def __init__(self, pairs: np.ndarray, edges: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+        where = "EdgeEdgeContact"
+        _check_penalty(stiffness, eps, where)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        if pairs.size and (pairs.min() < 0 or pairs.max() >= edges.shape[0]):
+            raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
+        self.pairs = pairs
+        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.vertices = np.concatenate([edges[pairs[:, 0]], edges[pairs[:, 1]]], axis=1)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return edge_edge_contact_distance(z, side, order)
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
+        z = x[self.vertices]
+        d = self._distance(z, self.sides, 0).d
+        act = np.flatnonzero(d < self.eps)
+        z = z[act]
+        s, t, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+        weights = np.stack([1 - s, s, -(1 - t), -t], axis=1)
+        rel = np.einsum("kj,kjd->kd", weights, z)
+        interior = region == EdgeEdgeRegion.INTERIOR
+        normal = np.zeros((act.size, 3))
+        if np.any(~interior):
+            normal[~interior] = _unit(rel[~interior])
+        if np.any(interior):
+            n = np.cross(z[interior, 1] - z[interior, 0], z[interior, 3] - z[interior, 2])
+            normal[interior] = self.sides[act][interior, None] * _unit(n)
+        lam = self.stiffness * (self.eps - d[act])
+        return ContactFrames(self.vertices[act], weights, normal, lam, act)
+
+
+class PlaneContact:
+    """Penalty between vertices and a fixed plane ``normal . x = offset`` (e.g. a table z = h).
+
+    ``d = normal . x_i - offset`` (signed; the plane's free side is along ``normal``),
+    ``E = k_c / 2 (d - eps)^2`` for ``d < eps``; the force on a vertex is ``k_c (eps - d) normal``.
+
+    Args:
+        vertices: global vertex indices, shape ``(v,)``.
+        normal: plane normal, shape ``(3,)`` (normalised here; must be non-zero).
+        offset: plane offset in m.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: zero/non-finite normal, bad stiffness or eps.
+    """
+
+    parameter_names: tuple[str, ...] = ("stiffness",)
+
+    def __init__(self, vertices: np.ndarray, normal: np.ndarray, offset: float, stiffness: float, eps: float):
+        _check_penalty(stiffness, eps, "PlaneContact")
+        normal = np.asarray(normal, dtype=float).reshape(3)
+        length = float(np.linalg.norm(normal))
+        if not (np.isfinite(length) and length > 0):
+            raise ConfigError(f"PlaneContact: normal must be finite and non-zero, got {normal.tolist()}")
+        if not np.isfinite(offset):
+            raise ConfigError(f"PlaneContact: offset must be finite, got {offset}")
+        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        self.normal = normal / length
+        self.offset = float(offset)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """Signed distance ``n . x - offset`` of every vertex in m, shape ``(v,)``."""
+        return x[self.vertices] @ self.normal - self.offset
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Vertices with ``d < eps``, bool shape ``(v,)``."""
+        return self.distance(x) < self.eps
+
+    def energy(self, x: np.ndarray) -> float:
+        """Penalty energy in J."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        return float(0.5 * self.stiffness * np.sum(gap * gap))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """``k_c (d - eps) n`` on active vertices, N, shape ``(n, 3)``."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        g = np.zeros_like(x, dtype=float)
+        np.add.at(g, self.vertices, self.stiffness * gap[:, None] * self.normal[None, :])
+        return g
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Blocks ``k_c n n^T`` (PSD) of the active vertices, shape ``(a, 3, 3)``."""
+        act = np.flatnonzero(self.active_mask(x))
+        blocks = np.broadcast_to(self.stiffness * np.outer(self.normal, self.normal), (act.size, 3, 3)).copy()
+        return HessianBlocks(self.vertices[act][:, None], blocks)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/d(stiffness) = ``(d - eps) n`` on active vertices, m, shape ``(n, 3)``."""
+        if name != "stiffness":
+            raise KeyError(name)
+        return self.gradient(x) / self.stiffness
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force ``k_c (eps - d)``, the plane normal and unit weights of the active vertices."""
+        d = self.distance(x)
+        act = np.flatnonzero(d < self.eps)
+        normal = np.broadcast_to(self.normal, (act.size, 3)).copy()
+        lam = self.stiffness * (self.eps - d[act])
+        return ContactFrames(self.vertices[act][:, None], np.ones((act.size, 1)), normal, lam, act)
+
+
+def concatenate_frames(frames: list[ContactFrames], width: int = 4) -> ContactFrames:
+    """Stack frames of several pair kinds, padding to ``width`` vertices with zero weights.
+
+    Padding repeats the pair's first vertex with weight 0, which adds nothing to any sum.
+    ``pair_index`` is kept per kind (not unique across kinds).
+    """
+    vs, ws = [], []
+    for f in frames:
+        pad = width - f.vertices.shape[1]
+        vs.append(np.concatenate([f.vertices, np.repeat(f.vertices[:, :1], pad, axis=1)], axis=1))
+        ws.append(np.concatenate([f.weights, np.zeros((f.weights.shape[0], pad))], axis=1))
+    if not frames:
+        return ContactFrames(
+            np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+        )
+    return ContactFrames(
+        np.concatenate(vs).astype(np.int64),
+        np.concatenate(ws),
+        np.concatenate([f.normal for f in frames]),
+        np.concatenate([f.lam for f in frames]),
+        np.concatenate([f.pair_index for f in frames]).astype(np.int64),
+    )

@@ -1,0 +1,475 @@
+"""Read thinshell recordings (rosbag2 MCAP directories or bare ``.mcap`` files) into NumPy series.
+
+``open_bag(path)`` reads every topic that plays a *role* (pose, pose_cmd, markers, wrench,
+sheet_points, image, clock; INTERFACES.md) into a :class:`Series` of integer-nanosecond stamps and
+float64 SI values, checks it, and returns them with the bag's topic table and its ``scene.yaml``.
+
+Topic of each role: ``<namespace>/<effector>/pose``, ``<namespace>/<effector>/pose_cmd``,
+``<namespace>/<sensor>/markers``, ``<namespace>/<sensor>/wrench``, ``<namespace>/sheet/points``,
+``<namespace>/<sensor>/image``, ``/clock``. Names are resolved in this order: the ``roles`` argument
+(role -> topic), the ``bag.topics`` overrides of ``config/sysid/default.yaml``, then the templates
+with ``bag.namespace`` and ``bag.effector`` / ``bag.sensor`` from that file, or, where those are
+null, the scene's only sensor and its effector, or ``ee`` / ``tactile``.
+
+Checks (errors are :class:`BagReadError`, one line naming the file or topic; repairs are
+:class:`BagWarning` through ``warnings`` and are also kept in ``BagContents.notes``):
+
+- missing path, unreadable / truncated / corrupt MCAP, fewer messages than ``metadata.yaml`` lists,
+  an empty bag -> error;
+- a role topic with another message type -> error; a markers cloud without ``x y z`` -> error;
+- samples with NaN/inf -> dropped with a warning giving the count; all samples non-finite -> error;
+- stamps out of order -> sorted (stable) with a warning; repeated stamps -> later copies dropped;
+- a measurement role (pose, pose_cmd, markers, wrench, sheet_points) absent or without messages ->
+  warning naming the topic; the series is simply missing from ``BagContents.series``.
+
+Stamps are header stamps (the time the quantity was true), log time for messages without header;
+``/clock`` is stamped with the clock value it carries.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from sim_core.errors import BagReadError, ConfigError
+from sim_core.scenes.scene_file import SceneFile, load_scene_file, load_yaml
+from sysid.bagio import codec
+from sysid.bagio.errors import BagWarning
+
+ROLES = ("pose", "pose_cmd", "markers", "wrench", "sheet_points", "image", "clock")
+MEASUREMENT_ROLES = ("pose", "pose_cmd", "markers", "wrench", "sheet_points")
+ROLE_MSGTYPES = {
+    "pose": codec.POSE_STAMPED, "pose_cmd": codec.POSE_STAMPED, "markers": codec.POINT_CLOUD2,
+    "wrench": codec.WRENCH_STAMPED, "sheet_points": codec.POINT_CLOUD2, "image": codec.IMAGE, "clock": codec.CLOCK,
+}
+ROLE_TEMPLATES = {
+    "pose": "{effector}/pose", "pose_cmd": "{effector}/pose_cmd", "markers": "{sensor}/markers",
+    "wrench": "{sensor}/wrench", "sheet_points": "sheet/points", "image": "{sensor}/image", "clock": "/clock",
+}
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "sysid" / "default.yaml"
+SCENE_FILENAME = "scene.yaml"
+_BAG_CONFIG_KEYS = ("namespace", "effector", "sensor", "topics")
+
+
+# ------------------------------------------------------------------------------------- records
+@dataclass(frozen=True)
+class TopicInfo:
+    """One topic of a bag: name, message type (``pkg/msg/Type``) and message count."""
+
+    topic: str
+    msgtype: str
+    message_count: int
+
+
+@dataclass(frozen=True)
+class Series:
+    """The samples of one role topic, sorted by stamp, non-finite samples removed.
+
+    Attributes:
+        role: role name (:data:`ROLES`).
+        topic: topic name.
+        msgtype: message type.
+        t_ns: stamps, int64 ns, shape ``(N,)``, strictly increasing.
+        values: float64 samples, shape ``(N, ...)``: pose ``(N, 7)`` [x y z qx qy qz qw];
+            wrench ``(N, 6)``; point clouds ``(N, p, len(field_names))``; image ``(N, h, w)`` uint8;
+            clock ``(N,)`` (the clock in s, equal to ``t_ns * 1e-9``).
+        field_names: point-cloud field names (column order of ``values``), else ``()``.
+        frame_id: header frame of the first sample (``""`` without header).
+        dropped_nonfinite: number of samples dropped for NaN/inf.
+        resorted: True when stamps were out of order in the file.
+    """
+
+    role: str
+    topic: str
+    msgtype: str
+    t_ns: np.ndarray
+    values: np.ndarray
+    field_names: tuple[str, ...] = ()
+    frame_id: str = ""
+    dropped_nonfinite: int = 0
+    resorted: bool = False
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def field(self, name: str) -> np.ndarray:
+        """Point-cloud field ``name`` as ``(N, p)``.
+
+        Raises:
+            KeyError: no such field (names the topic).
+        """
+        if name not in self.field_names:
+            raise KeyError(f"topic {self.topic} has no point field {name!r} (fields: {self.field_names})")
+        return self.values[..., self.field_names.index(name)]
+
+
+@dataclass(frozen=True)
+class BagContents:
+    """What :func:`open_bag` read.
+
+    Attributes:
+        path: the path given (bag directory or ``.mcap`` file), absolute.
+        mcap_path: the MCAP file read.
+        sha256: hex SHA-256 of the MCAP file.
+        topics: every topic in the bag, ``name -> TopicInfo``.
+        roles: role -> topic name used for this bag.
+        series: role -> :class:`Series` for every role topic present with usable samples.
+        missing_roles: roles whose topic is absent or empty.
+        scene: the ``scene.yaml`` beside the bag, parsed, or None.
+        scene_path: where it was read from, or None.
+        start_ns, end_ns: first and last stamp over all role series, ns.
+        notes: the warnings emitted while reading, as text.
+    """
+
+    path: Path
+    mcap_path: Path
+    sha256: str
+    topics: dict[str, TopicInfo]
+    roles: dict[str, str]
+    series: dict[str, Series]
+    missing_roles: tuple[str, ...]
+    scene: SceneFile | None
+    scene_path: Path | None
+    start_ns: int
+    end_ns: int
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def message_count(self) -> int:
+        """Messages in the bag over all topics."""
+        return sum(t.message_count for t in self.topics.values())
+
+
+# -------------------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class BagConfig:
+    """The ``bag:`` section of ``config/sysid/default.yaml``.
+
+    Attributes:
+        namespace: namespace of relative topic names (default ``/thinshell``).
+        effector, sensor: names for the role templates; ``None`` = from the scene, else ``ee`` / ``tactile``.
+        topics: role -> topic overrides (relative names are joined to ``namespace``).
+    """
+
+    namespace: str = "/thinshell"
+    effector: str | None = None
+    sensor: str | None = None
+    topics: dict[str, str] = field(default_factory=dict)
+
+
+def load_bag_config(path: str | Path | None = None) -> BagConfig:
+    """Read the ``bag:`` section of a sysid config file (other sections are left to their readers).
+
+    Args:
+        path: config file; default ``config/sysid/default.yaml`` of this checkout; when that file is
+            absent (installed package without config) the built-in defaults above are used.
+
+    Raises:
+        ConfigError: unreadable file, unknown key in ``bag`` (named), unknown role in ``bag.topics``.
+    """
+    if path is None:
+        if not DEFAULT_CONFIG_PATH.is_file():
+            return BagConfig()
+        path = DEFAULT_CONFIG_PATH
+    path = Path(path)
+    try:
+        data = load_yaml(path.read_text(encoding="utf-8")) or {}
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: cannot read sysid config ({err})") from err
+    section = data.get("bag") or {}
+    if not isinstance(section, Mapping):
+        raise ConfigError(f"{path}: bag must be a mapping")
+    unknown = [k for k in section if k not in _BAG_CONFIG_KEYS]
+    if unknown:
+        raise ConfigError(f"{path}: unknown key bag.{unknown[0]} (allowed: {', '.join(_BAG_CONFIG_KEYS)})")
+    topics = dict(section.get("topics") or {})
+    bad = [r for r in topics if r not in ROLES]
+    if bad:
+        raise ConfigError(f"{path}: unknown role bag.topics.{bad[0]} (roles: {', '.join(ROLES)})")
+    return BagConfig(namespace=str(section.get("namespace") or "/thinshell"), effector=section.get("effector"),
+                     sensor=section.get("sensor"), topics={k: str(v) for k, v in topics.items()})
+
+
+def _join(namespace: str, topic: str) -> str:
+    if topic.startswith("/"):
+        return topic
+    return "/" + "/".join(p for p in (namespace.strip("/"), topic.strip("/")) if p)
+
+
+def resolve_roles(config: BagConfig | None = None, scene: SceneFile | None = None,
+                  roles: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Topic name of every role (see the module docstring for the precedence).
+
+    Raises:
+        ConfigError: ``roles`` names an unknown role.
+    """
+    config = config or BagConfig()
+    effector, sensor = config.effector, config.sensor
+    if scene is not None and len(scene.sensors) == 1:
+        only = next(iter(scene.sensors.values()))
+        sensor = sensor or only.name
+        effector = effector or only.effector
+    effector, sensor = effector or "ee", sensor or "tactile"
+    out = {r: _join(config.namespace, ROLE_TEMPLATES[r].format(effector=effector, sensor=sensor)) for r in ROLES}
+    for source in (config.topics, roles or {}):
+        for role, topic in source.items():
+            if role not in ROLES:
+                raise ConfigError(f"unknown bag role {role!r} (roles: {', '.join(ROLES)})")
+            out[role] = _join(config.namespace, topic)
+    return out
+
+
+# ------------------------------------------------------------------------------- raw reading
+def _read_rosbags(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
+    """All connections, and ``(log_ns, message)`` of the wanted topics, via rosbags."""
+    from rosbags.rosbag2 import Reader
+
+    topics: dict[str, TopicInfo] = {}
+    msgs: dict[str, list[tuple[int, Any]]] = {}
+    with Reader(path) as reader:
+        for conn in reader.connections:
+            prev = topics.get(conn.topic)
+            count = conn.msgcount + (prev.message_count if prev else 0)
+            topics[conn.topic] = TopicInfo(conn.topic, conn.msgtype, count)
+        selected = [c for c in reader.connections if c.topic in wanted]
+        store = codec.typestore()
+        for conn, log_ns, raw in reader.messages(connections=selected):
+            msgs.setdefault(conn.topic, []).append((int(log_ns), store.deserialize_cdr(raw, conn.msgtype)))
+    return topics, msgs
+
+
+def _read_mcap_library(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
+    """Same as :func:`_read_rosbags` with the ``mcap`` reader and the ``mcap_ros2`` decoder."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    msgs: dict[str, list[tuple[int, Any]]] = {}
+    counts: dict[str, int] = {}
+    types: dict[str, str] = {}
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        if summary is not None:
+            for ch in summary.channels.values():
+                types[ch.topic] = codec.normalize_msgtype(summary.schemas[ch.schema_id].name)
+                counts.setdefault(ch.topic, 0)
+        for schema, channel, message, decoded in reader.iter_decoded_messages(topics=sorted(wanted)):
+            types[channel.topic] = codec.normalize_msgtype(schema.name)
+            msgs.setdefault(channel.topic, []).append((int(message.log_time), decoded))
+        if summary is not None and summary.statistics is not None:
+            for cid, n in summary.statistics.channel_message_counts.items():
+                counts[summary.channels[cid].topic] = counts.get(summary.channels[cid].topic, 0) + n
+    topics = {t: TopicInfo(t, types[t], counts.get(t, len(msgs.get(t, [])))) for t in types}
+    return topics, msgs
+
+
+def _metadata_counts(bag_dir: Path) -> dict[str, int] | None:
+    meta = bag_dir / "metadata.yaml"
+    if not meta.is_file():
+        return None
+    try:
+        info = load_yaml(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        return {t["topic_metadata"]["name"]: int(t["message_count"]) for t in info["topics_with_message_count"]}
+    except (KeyError, TypeError, ValueError) as err:
+        raise BagReadError(f"{meta}: unreadable rosbag2 metadata ({err})") from err
+
+
+def _locate(path: Path) -> tuple[Path, Path, Path | None]:
+    """``(mcap_path, directory holding scene.yaml, metadata dir or None)``."""
+    if not path.exists():
+        raise BagReadError(f"{path}: bag path does not exist")
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise BagReadError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) != 1:
+            raise BagReadError(f"{path}: expected one .mcap file in the bag directory, found {len(mcaps)}")
+        return mcaps[0], path, path
+    if path.suffix != ".mcap":
+        raise BagReadError(f"{path}: not a bag directory nor a .mcap file")
+    return path, path.parent, None
+
+
+def _read_raw(path: Path, mcap_path: Path, is_dir: bool, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict]:
+    errors = []
+    readers: list[tuple[str, Callable[..., Any], Path]] = [("rosbags", _read_rosbags, path)]
+    if not is_dir:
+        readers.append(("mcap", _read_mcap_library, mcap_path))
+    for name, read, target in readers:
+        try:
+            return read(target, wanted)
+        except Exception as err:  # noqa: BLE001 - any decoder failure means an unreadable file
+            errors.append(f"{name}: {type(err).__name__}: {' '.join(str(err).split())}")
+    raise BagReadError(f"{mcap_path}: corrupt or truncated MCAP file ({'; '.join(errors)})")
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------------ decoding
+def _decode(role: str, topic: str, items: list[tuple[int, Any]]) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], str]:
+    """Decode messages of one role into ``(t_ns, values, field_names, frame_id)`` (file order)."""
+    stamps: list[int] = []
+    rows: list[np.ndarray] = []
+    names: tuple[str, ...] = ()
+    frame = ""
+    if role in ("pose", "pose_cmd"):
+        for _, m in items:
+            t, v, frame = codec.parse_pose_stamped(m)
+            stamps.append(t)
+            rows.append(v)
+    elif role == "wrench":
+        for _, m in items:
+            t, v, frame = codec.parse_wrench_stamped(m)
+            stamps.append(t)
+            rows.append(v)
+    elif role in ("markers", "sheet_points"):
+        present = codec.cloud_field_names(items[0][1])
+        if not {"x", "y", "z"} <= set(present):
+            raise BagReadError(f"topic {topic}: point cloud fields are {present}; x y z are required")
+        names = ("x", "y", "z") + tuple(n for n in ("u", "v") if n in present and role == "markers")
+        width = None
+        for _, m in items:
+            try:
+                t, v, frame = codec.parse_point_cloud2(m, names)
+            except (KeyError, ValueError) as err:
+                raise BagReadError(f"topic {topic}: bad point cloud at stamp {codec.stamp_to_ns(m.header.stamp)} ns "
+                                   f"({err})") from err
+            if width is None:
+                width = v.shape[0]
+            elif v.shape[0] != width:
+                raise BagReadError(f"topic {topic}: point count changes from {width} to {v.shape[0]} at stamp {t} ns "
+                                   "(the point order must be fixed)")
+            stamps.append(t)
+            rows.append(v)
+    elif role == "image":
+        for _, m in items:
+            try:
+                t, img, frame = codec.parse_image_mono8(m)
+            except ValueError as err:
+                raise BagReadError(f"topic {topic}: {err}") from err
+            stamps.append(t)
+            rows.append(img)
+    elif role == "clock":
+        for _, m in items:
+            t = codec.parse_clock(m)
+            stamps.append(t)
+            rows.append(np.asarray(t * 1e-9))
+    else:
+        raise ValueError(f"unknown role {role!r}")
+    return np.asarray(stamps, dtype=np.int64), np.stack(rows), names, frame
+
+
+def _clean(role: str, topic: str, t_ns: np.ndarray, values: np.ndarray,
+           warn: Callable[[str], None]) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Drop non-finite samples, sort by stamp, drop repeated stamps."""
+    n = t_ns.shape[0]
+    finite = np.ones(n, dtype=bool) if values.dtype == np.uint8 else \
+        np.all(np.isfinite(values.reshape(n, -1)), axis=1)
+    dropped = int(n - finite.sum())
+    if dropped == n:
+        raise BagReadError(f"topic {topic}: all {n} samples contain NaN/inf")
+    if dropped:
+        warn(f"topic {topic}: dropped {dropped} of {n} samples containing NaN/inf")
+        t_ns, values = t_ns[finite], values[finite]
+    resorted = bool(np.any(np.diff(t_ns) < 0))
+    if resorted:
+        order = np.argsort(t_ns, kind="stable")
+        warn(f"topic {topic}: {int(np.sum(np.diff(t_ns) < 0))} stamps out of order; samples sorted by stamp")
+        t_ns, values = t_ns[order], values[order]
+    repeated = np.concatenate([[False], np.diff(t_ns) == 0])
+    if repeated.any():
+        warn(f"topic {topic}: dropped {int(repeated.sum())} samples with a repeated stamp (kept the first)")
+        t_ns, values = t_ns[~repeated], values[~repeated]
+    return t_ns, values, dropped, resorted
+
+
+# ------------------------------------------------------------------------------------- facade
+def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: BagConfig | str | Path | None = None,
+             skip_roles: tuple[str, ...] = (), scene: str | Path | SceneFile | None = None) -> BagContents:
+    """Open a recording and read its role topics.
+
+    Args:
+        path: rosbag2 directory (``metadata.yaml`` + one ``.mcap``) or a bare ``.mcap`` file.
+        roles: role -> topic overrides for this call (relative names join the namespace).
+        config: :class:`BagConfig`, a sysid config file, or None for ``config/sysid/default.yaml``.
+        skip_roles: roles not to decode (e.g. ``("image",)`` to save time).
+        scene: scene file (or parsed scene) to use instead of the ``scene.yaml`` beside the bag.
+
+    Returns:
+        :class:`BagContents`.
+
+    Raises:
+        BagReadError: see the module docstring (each message names the file or the topic).
+        ConfigError: invalid ``scene.yaml`` beside the bag, or invalid role overrides.
+    """
+    path = Path(path).absolute()
+    notes: list[str] = []
+
+    def warn(message: str) -> None:
+        notes.append(message)
+        warnings.warn(message, BagWarning, stacklevel=3)
+
+    mcap_path, scene_dir, meta_dir = _locate(path)
+    if scene is not None:
+        scene_path = Path(scene.source) if isinstance(scene, SceneFile) else Path(scene).absolute()
+        scene = load_scene_file(scene)
+    else:
+        scene_path = scene_dir / SCENE_FILENAME
+        scene = load_scene_file(scene_path) if scene_path.is_file() else None
+    if not isinstance(config, BagConfig):
+        config = load_bag_config(config)
+    role_topics = resolve_roles(config, scene, roles)
+    wanted = {t for r, t in role_topics.items() if r not in skip_roles}
+    topics, raw = _read_raw(path, mcap_path, meta_dir is not None, wanted)
+
+    if meta_dir is not None:
+        for topic, count in (_metadata_counts(meta_dir) or {}).items():
+            if topic in wanted and len(raw.get(topic, [])) != count:
+                raise BagReadError(f"{mcap_path}: truncated or inconsistent: metadata.yaml lists {count} messages on "
+                                   f"{topic}, the file holds {len(raw.get(topic, []))}")
+    if sum(t.message_count for t in topics.values()) == 0:
+        raise BagReadError(f"{path}: bag is empty (no messages)")
+
+    series: dict[str, Series] = {}
+    missing: list[str] = []
+    for role in ROLES:
+        topic = role_topics[role]
+        if role in skip_roles:
+            continue
+        info = topics.get(topic)
+        if info is not None and info.msgtype != ROLE_MSGTYPES[role]:
+            raise BagReadError(f"topic {topic} (role {role}) has type {info.msgtype}, expected {ROLE_MSGTYPES[role]} "
+                               f"in {path}")
+        items = raw.get(topic, [])
+        if not items:
+            missing.append(role)
+            if role in MEASUREMENT_ROLES:
+                state = "has no messages" if info is not None else "is missing"
+                warn(f"topic {topic} (role {role}) {state} in {path}; the evidence lacks that channel")
+            continue
+        t_ns, values, names, frame = _decode(role, topic, items)
+        t_ns, values, dropped, resorted = _clean(role, topic, t_ns, values, warn)
+        t_ns.setflags(write=False)
+        values.setflags(write=False)
+        series[role] = Series(role, topic, ROLE_MSGTYPES[role], t_ns, values, names, frame, dropped, resorted)
+
+    stamps = [s.t_ns for s in series.values()]
+    start = int(min(s[0] for s in stamps)) if stamps else 0
+    end = int(max(s[-1] for s in stamps)) if stamps else 0
+    return BagContents(
+        path=path, mcap_path=mcap_path, sha256=sha256_file(mcap_path), topics=topics, roles=role_topics,
+        series=series, missing_roles=tuple(missing), scene=scene, scene_path=scene_path if scene else None,
+        start_ns=start, end_ns=end, notes=tuple(notes),
+    )

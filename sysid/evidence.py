@@ -1,0 +1,354 @@
+"""The evidence bundle: a recording in SI units with integer-nanosecond stamps, ready for fitting.
+
+Fitting and diagnosis read an :class:`Evidence`; they never open a bag (ARCHITECTURE.md). A bundle
+holds one array per channel with its own stamps, the parsed scene, provenance (bag path and SHA-256
+of its MCAP file) and the white-noise level of every channel estimated from the data itself
+(:mod:`sysid.noise`). A channel the recording lacks is ``None``, listed in ``channels_missing``
+with the reason, and absent from ``t_ns`` and ``noise``.
+
+Channels (shapes; units):
+
+============== ==================== ===========================================================
+channel        array                meaning
+============== ==================== ===========================================================
+pose           ``(N, 7)``           measured effector pose x y z (m) qx qy qz qw, ``world``
+pose_cmd       ``(N, 7)``           commanded effector pose
+markers_xyz    ``(M, k, 3)``        marker positions in the sensor frame (m)
+markers_uv     ``(M, k, 2)``        marker pixels (px); same stamps as markers_xyz
+wrench         ``(W, 6)``           Fx Fy Fz (N) Tx Ty Tz (N m) on the gel, sensor frame
+sheet_points   ``(S, p, 3)``        tracked sheet points in ``world`` (m)
+image          ``(F, h, w)`` uint8  rendered / camera marker image (optional)
+============== ==================== ===========================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.errors import BagReadError
+from sim_core.scenes.scene_file import SceneFile
+from sysid.bagio.reader import BagConfig, BagContents, open_bag
+from sysid.noise import estimate_noise, noise_config
+
+CHANNELS = ("pose", "pose_cmd", "markers_xyz", "markers_uv", "wrench", "sheet_points", "image")
+CHANNEL_ROLE = {"pose": "pose", "pose_cmd": "pose_cmd", "markers_xyz": "markers", "markers_uv": "markers",
+                "wrench": "wrench", "sheet_points": "sheet_points", "image": "image"}
+POSE_CHANNELS = ("pose", "pose_cmd")
+
+
+@dataclass(frozen=True)
+class EvidenceSource:
+    """Provenance of an evidence bundle.
+
+    Attributes:
+        bag_path: bag directory or ``.mcap`` file read.
+        mcap_path: the MCAP file.
+        sha256: hex SHA-256 of the MCAP file.
+        scene_path: scene file used, or None.
+        topics: channel -> topic it came from.
+    """
+
+    bag_path: Path
+    mcap_path: Path
+    sha256: str
+    scene_path: Path | None
+    topics: dict[str, str]
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """One recording as per-channel arrays (see the module docstring for shapes and units).
+
+    Attributes:
+        source: :class:`EvidenceSource`.
+        scene: the parsed scene file, or None when the bag has none.
+        t_ns: channel -> stamps ``(n,)`` int64 ns, strictly increasing (present channels only).
+        pose, pose_cmd, markers_xyz, markers_uv, wrench, sheet_points, image: arrays or None.
+        clock_t_ns: ``/clock`` values (ns) when recorded, else None.
+        noise: channel -> estimated white-noise standard deviation per last axis (SI / px), e.g.
+            ``noise["markers_xyz"]`` is ``(3,)`` m and ``noise["wrench"]`` is ``(6,)`` N, N m.
+            No entry for the image.
+        channels_present: channels with data, in :data:`CHANNELS` order.
+        channels_missing: channel -> why it is absent (names the topic).
+        notes: warnings raised while reading (dropped samples, re-sorted stamps, missing topics).
+    """
+
+    source: EvidenceSource
+    scene: SceneFile | None
+    t_ns: dict[str, np.ndarray]
+    pose: np.ndarray | None = None
+    pose_cmd: np.ndarray | None = None
+    markers_xyz: np.ndarray | None = None
+    markers_uv: np.ndarray | None = None
+    wrench: np.ndarray | None = None
+    sheet_points: np.ndarray | None = None
+    image: np.ndarray | None = None
+    clock_t_ns: np.ndarray | None = None
+    noise: dict[str, np.ndarray] = field(default_factory=dict)
+    channels_present: tuple[str, ...] = ()
+    channels_missing: dict[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    def values(self, channel: str) -> np.ndarray:
+        """The array of ``channel``.
+
+        Raises:
+            KeyError: unknown channel, or a channel this recording lacks (message says why).
+        """
+        if channel not in CHANNELS:
+            raise KeyError(f"unknown evidence channel {channel!r} (channels: {', '.join(CHANNELS)})")
+        if channel not in self.channels_present:
+            raise KeyError(f"{self.source.bag_path}: no {channel} channel ({self.channels_missing.get(channel, '')})")
+        return getattr(self, channel)
+
+    @property
+    def start_ns(self) -> int:
+        """Earliest stamp over all channels, ns."""
+        return int(min(t[0] for t in self.t_ns.values()))
+
+    @property
+    def end_ns(self) -> int:
+        """Latest stamp over all channels, ns."""
+        return int(max(t[-1] for t in self.t_ns.values()))
+
+    def crop(self, start_ns: int, end_ns: int) -> "Evidence":
+        """The samples with ``start_ns <= t <= end_ns`` of every channel (noise estimates kept).
+
+        Raises:
+            ValueError: the window leaves a present channel without samples.
+        """
+        t_new: dict[str, np.ndarray] = {}
+        arrays: dict[str, Any] = {}
+        for ch in self.channels_present:
+            t = self.t_ns[ch]
+            keep = (t >= start_ns) & (t <= end_ns)
+            if not keep.any():
+                raise ValueError(f"window [{start_ns}, {end_ns}] ns holds no {ch} sample")
+            t_new[ch] = _frozen(t[keep])
+            arrays[ch] = _frozen(getattr(self, ch)[keep])
+        clock = self.clock_t_ns
+        if clock is not None:
+            clock = _frozen(clock[(clock >= start_ns) & (clock <= end_ns)])
+        return dataclasses.replace(self, t_ns=t_new, clock_t_ns=clock, **arrays)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly description: source, duration, sample counts, noise, missing channels."""
+        return {
+            "bag": str(self.source.bag_path), "sha256": self.source.sha256,
+            "scene": str(self.source.scene_path) if self.source.scene_path else None,
+            "duration_s": (self.end_ns - self.start_ns) * 1e-9,
+            "samples": {ch: int(self.t_ns[ch].shape[0]) for ch in self.channels_present},
+            "noise": {ch: [float(v) for v in s] for ch, s in self.noise.items()},
+            "channels_missing": dict(self.channels_missing), "notes": list(self.notes),
+        }
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _check_against_scene(bag: BagContents, scene: SceneFile) -> None:
+    """Point counts must match the scene (marker grid, sheet resolution)."""
+    sensors = [s for s in scene.sensors.values() if bag.roles["markers"].rstrip("/").endswith(f"{s.name}/markers")]
+    markers = bag.series.get("markers")
+    if markers is not None and sensors:
+        k = markers.values.shape[1]
+        if k != sensors[0].marker_count:
+            raise BagReadError(f"topic {markers.topic} has {k} points but sensor {sensors[0].name} of {scene.source} "
+                               f"has a {sensors[0].marker_grid[0]}x{sensors[0].marker_grid[1]} marker grid")
+    sheet = bag.series.get("sheet_points")
+    if sheet is not None:
+        p = sheet.values.shape[1]
+        nx, ny = scene.sheet.resolution
+        if p != nx * ny:
+            raise BagReadError(f"topic {sheet.topic} has {p} points but the sheet of {scene.source} has a "
+                               f"{nx}x{ny} grid")
+
+
+def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | None = None,
+                  roles: Mapping[str, str] | None = None, config: BagConfig | str | Path | None = None,
+                  include_image: bool = True) -> Evidence:
+    """Read a recording into an :class:`Evidence` bundle and estimate each channel's noise.
+
+    Args:
+        bag_path: rosbag2 directory or bare ``.mcap`` file.
+        scene_path: scene file overriding the ``scene.yaml`` beside the bag.
+        roles: role -> topic overrides (see :func:`sysid.bagio.open_bag`).
+        config: sysid config (``bag`` and ``noise`` sections); default ``config/sysid/default.yaml``.
+        include_image: decode the image topic when present.
+
+    Returns:
+        the bundle; arrays are read-only.
+
+    Raises:
+        BagReadError: unreadable bag (see :mod:`sysid.bagio.reader`), none of pose, markers, wrench,
+            sheet_points present, or point counts that contradict the scene.
+        ConfigError: invalid scene or config.
+    """
+    config_path = config if isinstance(config, (str, Path)) else None
+    bag = open_bag(bag_path, roles=roles, config=config, skip_roles=() if include_image else ("image",),
+                   scene=scene_path)
+    order = int(noise_config(config_path)["difference_order"])
+    scene = bag.scene
+    if scene is not None:
+        _check_against_scene(bag, scene)
+    outputs = ("pose", "markers", "wrench", "sheet_points")
+    if not any(r in bag.series for r in outputs):
+        raise BagReadError(f"{bag.path}: none of the topics {', '.join(bag.roles[r] for r in outputs)} has data; "
+                           "nothing to identify from")
+
+    t_ns: dict[str, np.ndarray] = {}
+    arrays: dict[str, np.ndarray] = {}
+    missing: dict[str, str] = {}
+    topics: dict[str, str] = {}
+    for ch in CHANNELS:
+        role = CHANNEL_ROLE[ch]
+        s = bag.series.get(role)
+        if s is None:
+            skipped = ch == "image" and not include_image
+            missing[ch] = "not decoded (include_image=False)" if skipped else f"topic {bag.roles[role]} not in the recording"
+            continue
+        if ch == "markers_xyz":
+            value = s.values[..., :3]
+        elif ch == "markers_uv":
+            if "u" not in s.field_names or "v" not in s.field_names:
+                missing[ch] = f"topic {s.topic} has no u v fields"
+                continue
+            value = s.values[..., [s.field_names.index("u"), s.field_names.index("v")]]
+        else:
+            value = s.values
+        t_ns[ch] = s.t_ns
+        arrays[ch] = _frozen(value)
+        topics[ch] = s.topic
+    noise = {}
+    for ch, value in arrays.items():
+        if ch != "image" and value.shape[0] > order:
+            noise[ch] = _frozen(estimate_noise(t_ns[ch], value, order))
+    clock = bag.series.get("clock")
+    present = tuple(ch for ch in CHANNELS if ch in arrays)
+    return Evidence(
+        source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics),
+        scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
+        channels_present=present, channels_missing=missing, notes=bag.notes, **arrays,
+    )
+
+
+# ---------------------------------------------------------------------------------- alignment
+def resample(t_ns_src: np.ndarray, values: np.ndarray, t_ns_dst: np.ndarray,
+             outside: Literal["raise", "clamp", "nan"] = "raise") -> np.ndarray:
+    """Linear interpolation of samples ``values (N, ...)`` at ``t_ns_src (N,)`` to ``t_ns_dst (D,)``.
+
+    Time is handled as int64 ns offsets from ``t_ns_src[0]`` before conversion to float, so long
+    (wall-clock) stamps lose no precision.
+
+    Args:
+        t_ns_src: source stamps, strictly increasing.
+        values: shape ``(N, ...)``; every trailing entry is interpolated independently.
+        t_ns_dst: target stamps, shape ``(D,)``.
+        outside: targets outside ``[t_src[0], t_src[-1]]``: ``"raise"``, ``"clamp"`` (hold the end
+            value) or ``"nan"``.
+
+    Returns:
+        float64 array ``(D, ...)``.
+
+    Raises:
+        ValueError: source stamps not strictly increasing, shape mismatch, or a target outside the
+            source span with ``outside="raise"``.
+    """
+    t_src = np.asarray(t_ns_src, dtype=np.int64)
+    t_dst = np.asarray(t_ns_dst, dtype=np.int64)
+    y = np.asarray(values, dtype=np.float64)
+    if t_src.ndim != 1 or y.shape[0] != t_src.shape[0] or t_src.shape[0] == 0:
+        raise ValueError(f"source stamps {t_src.shape} and values {y.shape} disagree along axis 0")
+    if np.any(np.diff(t_src) <= 0):
+        raise ValueError("source stamps must be strictly increasing")
+    if outside not in ("raise", "clamp", "nan"):
+        raise ValueError(f"outside must be raise|clamp|nan, got {outside!r}")
+    out_of_span = (t_dst < t_src[0]) | (t_dst > t_src[-1])
+    if outside == "raise" and out_of_span.any():
+        raise ValueError(f"{int(out_of_span.sum())} target stamps lie outside the source span "
+                         f"[{t_src[0]}, {t_src[-1]}] ns")
+    xs = (t_src - t_src[0]).astype(np.float64)
+    xd = (t_dst - t_src[0]).astype(np.float64)
+    if t_src.shape[0] == 1:
+        out = np.repeat(y[:1], t_dst.shape[0], axis=0)
+    else:
+        i = np.clip(np.searchsorted(xs, xd, side="right") - 1, 0, xs.shape[0] - 2)
+        w = np.clip((xd - xs[i]) / (xs[i + 1] - xs[i]), 0.0, 1.0).reshape(-1, *(1,) * (y.ndim - 1))
+        out = (1.0 - w) * y[i] + w * y[i + 1]
+    if outside == "nan" and out_of_span.any():
+        out[out_of_span] = np.nan
+    return out
+
+
+def resample_pose(t_ns_src: np.ndarray, pose: np.ndarray, t_ns_dst: np.ndarray,
+                  outside: Literal["raise", "clamp", "nan"] = "raise") -> np.ndarray:
+    """:func:`resample` for poses ``(N, 7)``: linear position, normalised-linear (nlerp) quaternion.
+
+    Consecutive quaternions are first put in the same hemisphere (q and -q are one rotation).
+    """
+    pose = np.array(pose, dtype=np.float64)
+    q = pose[:, 3:]
+    flip = np.concatenate([[1.0], np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))])
+    flip[flip == 0] = 1.0
+    pose[:, 3:] = q * np.cumprod(flip)[:, None]
+    out = resample(t_ns_src, pose, t_ns_dst, outside)
+    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
+    return out
+
+
+def common_time_base(evidence: Evidence, channels: Sequence[str] | None = None,
+                     period_ns: int | None = None) -> np.ndarray:
+    """A uniform stamp grid inside the span every listed channel covers.
+
+    Args:
+        evidence: the bundle.
+        channels: channels to cover (default: present channels except the image).
+        period_ns: grid step; default the largest median sampling period of those channels (the
+            slowest stream, so no channel is upsampled beyond its own rate).
+
+    Returns:
+        int64 stamps ``(D,)`` from the latest channel start, step ``period_ns``, not past the earliest end.
+
+    Raises:
+        KeyError: a channel is not present.
+        ValueError: the channels do not overlap in time.
+    """
+    channels = list(channels) if channels is not None else [c for c in evidence.channels_present if c != "image"]
+    for ch in channels:
+        if ch not in evidence.t_ns:
+            raise KeyError(f"{evidence.source.bag_path}: no {ch} channel ({evidence.channels_missing.get(ch, '')})")
+    start = max(int(evidence.t_ns[ch][0]) for ch in channels)
+    end = min(int(evidence.t_ns[ch][-1]) for ch in channels)
+    if end < start:
+        raise ValueError(f"channels {channels} do not overlap in time")
+    if period_ns is None:
+        period_ns = max(int(np.median(np.diff(evidence.t_ns[ch]))) if len(evidence.t_ns[ch]) > 1 else 1
+                        for ch in channels)
+    period_ns = int(period_ns)
+    if period_ns <= 0:
+        raise ValueError(f"period_ns must be positive, got {period_ns}")
+    return start + period_ns * np.arange((end - start) // period_ns + 1, dtype=np.int64)
+
+
+def align(evidence: Evidence, t_ns_dst: np.ndarray, channels: Sequence[str] | None = None,
+          outside: Literal["raise", "clamp", "nan"] = "raise") -> dict[str, np.ndarray]:
+    """Every listed channel resampled to ``t_ns_dst`` (poses by :func:`resample_pose`).
+
+    Returns:
+        channel -> ``(D, ...)`` float64 arrays.
+    """
+    channels = list(channels) if channels is not None else [c for c in evidence.channels_present if c != "image"]
+    out = {}
+    for ch in channels:
+        values = evidence.values(ch)
+        fn = resample_pose if ch in POSE_CHANNELS else resample
+        out[ch] = fn(evidence.t_ns[ch], values, t_ns_dst, outside)
+    return out

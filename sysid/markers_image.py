@@ -1,0 +1,376 @@
+"""Marker detection and tracking in tactile images (real GelSight-type frames or rendered ones).
+
+Pipeline of :func:`find_marker_blobs`:
+
+1. grey image, lightly smoothed (Gaussian, sigma ~ spacing / 20) against the gel's speckle;
+2. local background by a grey-level morphological closing with a disc wider than a marker
+   (dark spots smaller than the disc are filled in), so uneven illumination cancels;
+3. contrast ``d = background - image`` (markers positive), Otsu threshold, connected components;
+4. components touching the image border, specks and merged blobs (area far from the median) dropped;
+5. sub-pixel centre of each blob: the ``d``-weighted centroid over the blob grown by two pixels.
+
+:func:`detect_markers` then orders the blobs as the marker grid, ``i = iy * nx + ix`` (rows by image
+``v``, columns by ``u``), by labelling the lattice: the grid direction comes from the four-fold
+symmetric mean of nearest-neighbour directions, lattice vectors from the median neighbour steps, and
+integer coordinates spread from the centre by breadth-first search along accepted unit steps, each
+point carrying a local lattice basis so that mild rotation, perspective and indentation are tolerated.
+
+Pixel convention: OpenCV's (pixel (row i, column j) centred at ``(u, v) = (j, i)``).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from sim_core.errors import CalibrationError
+
+MIN_CONTRAST = 5.0
+"""Grey levels: below this peak marker contrast the image is taken to hold no markers."""
+
+STEP_TOLERANCE = 0.3
+"""Largest deviation (in lattice units) of a neighbour step from a unit lattice step."""
+
+
+class MarkerBlobs(NamedTuple):
+    """Unordered marker blobs found in one image.
+
+    Attributes:
+        uv: sub-pixel blob centres, shape ``(m, 2)``, px.
+        area: blob areas above the threshold, shape ``(m,)``, px^2.
+    """
+
+    uv: np.ndarray
+    area: np.ndarray
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Grey image as float32 from mono8/mono16 ``(h, w)``, BGR ``(h, w, 3)`` or BGRA ``(h, w, 4)``.
+
+    Raises:
+        CalibrationError: any other shape.
+    """
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 2:
+        return img.astype(np.float32)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(img, code).astype(np.float32)
+    raise CalibrationError(f"marker image must be mono (h, w) or BGR/BGRA (h, w, 3|4), got shape {img.shape}")
+
+
+def _odd(n: float) -> int:
+    k = max(3, int(round(n)))
+    return k if k % 2 == 1 else k + 1
+
+
+def find_marker_blobs(image: np.ndarray, spacing_px: float) -> MarkerBlobs:
+    """Dark round marker blobs of a tactile image, unordered (module docstring, steps 1-5).
+
+    Args:
+        image: mono or BGR/BGRA image (:func:`to_gray`).
+        spacing_px: approximate marker spacing, px; sets the smoothing, the background disc
+            (0.9 spacing) and the smallest accepted blob.
+
+    Returns:
+        the blobs; empty when the image has no marker contrast.
+
+    Raises:
+        CalibrationError: bad image shape or non-positive spacing.
+    """
+    if not spacing_px > 0:
+        raise CalibrationError(f"find_marker_blobs: spacing_px must be > 0, got {spacing_px!r}")
+    gray = to_gray(image)
+    H, W = gray.shape
+    sigma = max(0.5, spacing_px / 20.0)
+    smooth = cv2.GaussianBlur(gray, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+    k = _odd(0.9 * spacing_px)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, disc, borderType=cv2.BORDER_REFLECT)
+    contrast = np.maximum(background - smooth, 0.0)
+    peak = float(contrast.max()) if contrast.size else 0.0
+    empty = MarkerBlobs(np.zeros((0, 2)), np.zeros(0))
+    if peak < MIN_CONTRAST:
+        return empty
+    scaled = np.clip(contrast * (255.0 / peak), 0, 255).astype(np.uint8)
+    _, binary = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    x0, y0, w, h, area = (stats[1:, j] for j in range(5))
+    on_border = (x0 == 0) | (y0 == 0) | (x0 + w >= W) | (y0 + h >= H)
+    min_area = np.pi * (0.05 * spacing_px) ** 2
+    candidates = np.nonzero(~on_border & (area >= min_area))[0]
+    if candidates.size == 0:
+        return empty
+    median = float(np.median(area[candidates]))
+    keep = candidates[(area[candidates] >= 0.25 * median) & (area[candidates] <= 4.0 * median)]
+    grow = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
+    uv = np.zeros((keep.size, 2))
+    for n, c in enumerate(keep):
+        label = c + 1
+        ya, yb = max(y0[c] - 3, 0), min(y0[c] + h[c] + 3, H)
+        xa, xb = max(x0[c] - 3, 0), min(x0[c] + w[c] + 3, W)
+        region = labels[ya:yb, xa:xb]
+        mask = cv2.dilate((region == label).astype(np.uint8), grow, iterations=2).astype(bool)
+        mask &= (region == 0) | (region == label)
+        weight = contrast[ya:yb, xa:xb] * mask
+        vv, uu = np.mgrid[ya:yb, xa:xb]
+        total = float(weight.sum())
+        uv[n] = (float((weight * uu).sum()) / total, float((weight * vv).sum()) / total)
+    return MarkerBlobs(uv, area[keep].astype(float))
+
+
+def _lattice_basis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice vectors ``a`` (towards +u) and ``b`` (towards +v) from nearest-neighbour steps."""
+    tree = cKDTree(points)
+    dist, idx = tree.query(points, k=min(5, points.shape[0]))
+    steps, ok = [], []
+    for j in range(1, dist.shape[1]):
+        steps.append(points[idx[:, j]] - points)
+        ok.append(dist[:, j] < 1.25 * dist[:, 1])
+    steps_arr = np.concatenate(steps)[np.concatenate(ok)]
+    phi = np.arctan2(steps_arr[:, 1], steps_arr[:, 0])
+    theta0 = 0.25 * float(np.angle(np.sum(np.exp(4j * phi))))  # in (-pi/4, pi/4]
+    basis = []
+    for theta in (theta0, theta0 + 0.5 * np.pi):
+        e = np.array([np.cos(theta), np.sin(theta)])
+        along = steps_arr @ e
+        cos_angle = np.abs(along) / np.maximum(np.linalg.norm(steps_arr, axis=1), 1e-300)
+        sel = cos_angle > np.cos(np.deg2rad(30.0))
+        if not np.any(sel):
+            raise CalibrationError("detect_markers: cannot find the marker lattice directions")
+        oriented = steps_arr[sel] * np.sign(along[sel])[:, None]
+        basis.append(np.median(oriented, axis=0))
+    return basis[0], basis[1]
+
+
+def order_marker_grid(points: np.ndarray, expected_grid: tuple[int, int]) -> np.ndarray:
+    """Order unordered marker centres as the grid ``i = iy * nx + ix`` (module docstring).
+
+    Args:
+        points: marker centres, shape ``(nx * ny, 2)``, px.
+        expected_grid: ``(nx, ny)`` markers along image u (columns) and v (rows).
+
+    Returns:
+        the same points reordered, shape ``(nx * ny, 2)``.
+
+    Raises:
+        CalibrationError: wrong count, or the points do not form an ``nx`` x ``ny`` lattice.
+    """
+    nx, ny = (int(v) for v in expected_grid)
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    if pts.shape[0] != nx * ny:
+        raise CalibrationError(f"detect_markers: found {pts.shape[0]} markers, expected {nx} x {ny} = {nx * ny}")
+    if nx * ny == 1:
+        return pts.copy()
+    if min(nx, ny) == 1:  # a single row or column: sort along the principal axis
+        centred = pts - pts.mean(axis=0)
+        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+        towards = 0 if nx > 1 else 1  # a row runs towards +u, a column towards +v
+        axis = -axis if axis[towards] < 0 else axis
+        return pts[np.argsort(centred @ axis)]
+    a, b = _lattice_basis(pts)
+    tree = cKDTree(pts)
+    _, neighbours = tree.query(pts, k=min(9, pts.shape[0]))
+    coords = np.full((pts.shape[0], 2), np.iinfo(np.int64).min, dtype=np.int64)
+    local = np.zeros((pts.shape[0], 2, 2))
+    start = int(np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
+    coords[start] = (0, 0)
+    local[start] = (a, b)
+    queue = deque([start])
+    assigned = 1
+    while queue:
+        p = queue.popleft()
+        basis = local[p].T  # columns a_p, b_p
+        for q in neighbours[p, 1:]:
+            step = pts[q] - pts[p]
+            alpha_beta = np.linalg.solve(basis, step)
+            rounded = np.rint(alpha_beta)
+            if np.max(np.abs(alpha_beta - rounded)) > STEP_TOLERANCE or np.abs(rounded).sum() != 1:
+                continue
+            target = coords[p] + rounded.astype(np.int64)
+            if coords[q, 0] == np.iinfo(np.int64).min:
+                coords[q] = target
+                la, lb = local[p]
+                if rounded[0] != 0:
+                    la = 0.5 * (la + rounded[0] * step)
+                else:
+                    lb = 0.5 * (lb + rounded[1] * step)
+                local[q] = (la, lb)
+                queue.append(q)
+                assigned += 1
+            elif np.any(coords[q] != target):
+                raise CalibrationError(
+                    f"detect_markers: marker at ({pts[q, 0]:.1f}, {pts[q, 1]:.1f}) px is reached at lattice "
+                    f"positions {coords[q].tolist()} and {target.tolist()}: the markers do not form a grid"
+                )
+    if assigned != pts.shape[0]:
+        raise CalibrationError(
+            f"detect_markers: only {assigned} of {pts.shape[0]} markers connect to the grid by unit steps"
+        )
+    coords -= coords.min(axis=0)
+    extent = tuple(int(v) + 1 for v in coords.max(axis=0))
+    if extent != (nx, ny):
+        raise CalibrationError(
+            f"detect_markers: the markers form a {extent[0]} x {extent[1]} (columns x rows) lattice, "
+            f"expected {nx} x {ny}"
+        )
+    index = coords[:, 1] * nx + coords[:, 0]
+    if np.unique(index).size != index.size:
+        raise CalibrationError("detect_markers: two markers share one grid position")
+    ordered = np.empty_like(pts)
+    ordered[index] = pts
+    return ordered
+
+
+def default_spacing(image_shape: tuple[int, ...], expected_grid: tuple[int, int]) -> float:
+    """Marker spacing guess for a grid that fills the image: ``min(width / nx, height / ny)``, px."""
+    nx, ny = (int(v) for v in expected_grid)
+    return min(image_shape[1] / nx, image_shape[0] / ny)
+
+
+def detect_markers(
+    image: np.ndarray, expected_grid: tuple[int, int], spacing_px: float | None = None
+) -> np.ndarray:
+    """Find the markers of a tactile image and return them in grid order.
+
+    Args:
+        image: mono8/mono16, BGR or BGRA image.
+        expected_grid: ``(nx, ny)`` markers along image u (columns) and v (rows).
+        spacing_px: approximate marker spacing, px; default :func:`default_spacing`.
+
+    Returns:
+        marker centres ``(u, v)``, shape ``(nx * ny, 2)``, px, ordered ``i = iy * nx + ix``.
+
+    Raises:
+        CalibrationError: not exactly ``nx * ny`` markers found (the count is named), or they do not
+            form the expected grid.
+    """
+    nx, ny = (int(v) for v in expected_grid)
+    if nx < 1 or ny < 1:
+        raise CalibrationError(f"detect_markers: expected_grid must be positive, got {expected_grid!r}")
+    gray = to_gray(image)
+    spacing = float(spacing_px) if spacing_px is not None else default_spacing(gray.shape, (nx, ny))
+    blobs = find_marker_blobs(gray, spacing)
+    return order_marker_grid(blobs.uv, (nx, ny))
+
+
+class MarkerTracker:
+    """Frame-to-frame marker tracking with a fixed marker order.
+
+    The first frame is read with :func:`detect_markers` (or the order is given as ``initial_uv``);
+    later frames are matched one-to-one to the last known marker positions by minimum total distance
+    (Hungarian assignment, nearest neighbours) with a gate of ``max_displacement_px``. A marker without
+    a detection within the gate is reported as NaN for that frame; its search position is carried along
+    with the median motion of the matched markers, it is searched for again from there among the
+    unmatched detections, and in the next frames.
+
+    Args:
+        expected_grid: ``(nx, ny)``.
+        max_displacement_px: largest accepted motion of a marker between two frames, px (> 0).
+        initial_uv: optional ordered marker positions of the reference frame, shape ``(nx * ny, 2)``.
+        spacing_px: marker spacing for blob detection; default from the first frame.
+
+    Raises:
+        CalibrationError: invalid gate or initial positions of the wrong shape.
+    """
+
+    def __init__(
+        self,
+        expected_grid: tuple[int, int],
+        max_displacement_px: float,
+        initial_uv: np.ndarray | None = None,
+        spacing_px: float | None = None,
+    ) -> None:
+        self.expected_grid = (int(expected_grid[0]), int(expected_grid[1]))
+        if not max_displacement_px > 0:
+            raise CalibrationError(f"MarkerTracker: max_displacement_px must be > 0, got {max_displacement_px!r}")
+        self.max_displacement_px = float(max_displacement_px)
+        self.spacing_px = spacing_px
+        self.reference: np.ndarray | None = None
+        self.last_known: np.ndarray | None = None
+        if initial_uv is not None:
+            uv = np.asarray(initial_uv, dtype=float)
+            k = self.expected_grid[0] * self.expected_grid[1]
+            if uv.shape != (k, 2) or not np.all(np.isfinite(uv)):
+                raise CalibrationError(f"MarkerTracker: initial_uv must be finite with shape ({k}, 2), got {uv.shape}")
+            self._start(uv)
+
+    @property
+    def marker_count(self) -> int:
+        """Number of tracked markers ``nx * ny``."""
+        return self.expected_grid[0] * self.expected_grid[1]
+
+    def _start(self, uv: np.ndarray, image_shape: tuple[int, ...] | None = None) -> None:
+        self.reference = uv.copy()
+        self.last_known = uv.copy()
+        if self.spacing_px is None:
+            if uv.shape[0] > 1:
+                dist, _ = cKDTree(uv).query(uv, k=2)
+                self.spacing_px = float(np.median(dist[:, 1]))
+            elif image_shape is not None:
+                self.spacing_px = default_spacing(image_shape, self.expected_grid)
+            else:
+                raise CalibrationError("MarkerTracker: a single marker given by initial_uv needs spacing_px")
+
+    def update(self, image: np.ndarray) -> np.ndarray:
+        """Track the markers in the next image.
+
+        Returns:
+            marker positions ``(k, 2)`` px in the fixed order, NaN rows for markers lost in this frame.
+
+        Raises:
+            CalibrationError: on the first frame, when :func:`detect_markers` fails.
+        """
+        if self.last_known is None:
+            uv = detect_markers(image, self.expected_grid, self.spacing_px)
+            self._start(uv, np.asarray(image).shape)
+            return uv.copy()
+        blobs = find_marker_blobs(image, float(self.spacing_px))
+        return self.update_points(blobs.uv)
+
+    def update_points(self, detections: np.ndarray) -> np.ndarray:
+        """Match unordered detections ``(m, 2)`` px to the tracked markers (see the class docstring).
+
+        Returns:
+            marker positions ``(k, 2)`` px in the fixed order, NaN rows for unmatched markers.
+
+        Raises:
+            CalibrationError: called before the reference order is known.
+        """
+        if self.last_known is None:
+            raise CalibrationError("MarkerTracker: no reference frame yet (call update(image) or pass initial_uv)")
+        det = np.asarray(detections, dtype=float).reshape(-1, 2)
+        out = np.full((self.marker_count, 2), np.nan)
+        if det.shape[0] == 0:
+            return out
+        rows, cols = self._match(self.last_known, np.arange(self.marker_count), det, np.arange(det.shape[0]))
+        if rows.size:
+            # markers without a match move with the median motion of the matched ones, then are
+            # searched for again from there (occlusions, blobs merged for a frame)
+            shift = np.median(det[cols] - self.last_known[rows], axis=0)
+            lost = np.setdiff1d(np.arange(self.marker_count), rows)
+            free = np.setdiff1d(np.arange(det.shape[0]), cols)
+            self.last_known[lost] += shift
+            if lost.size and free.size:
+                r2, c2 = self._match(self.last_known[lost], lost, det[free], free)
+                rows, cols = np.concatenate([rows, r2]), np.concatenate([cols, c2])
+        out[rows] = det[cols]
+        self.last_known[rows] = det[cols]
+        return out
+
+    def _match(
+        self, known: np.ndarray, known_index: np.ndarray, det: np.ndarray, det_index: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One-to-one minimum-distance assignment within the gate; returns (marker, detection) indices."""
+        dist = np.linalg.norm(known[:, None, :] - det[None, :, :], axis=2)
+        gated = np.where(dist <= self.max_displacement_px, dist, 1e6 * (1.0 + self.max_displacement_px))
+        rows, cols = linear_sum_assignment(gated)
+        good = dist[rows, cols] <= self.max_displacement_px
+        return known_index[rows[good]], det_index[cols[good]]
