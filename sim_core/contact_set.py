@@ -66,6 +66,7 @@ class ContactSet:
             for name, p in model.planes.items()
         ]
         self.x_prev: np.ndarray | None = None
+        self.min_edge_sine = 0.1
 
     # ------------------------------------------------------------------ per step
     def begin_step(self, x_n: np.ndarray, memory: CollisionMemory | None) -> CollisionMemory:
@@ -81,6 +82,16 @@ class ContactSet:
         ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
         z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
              if len(ee) else np.zeros((0, 4, 3)))
+        if len(ee):
+            # Near-parallel edge pairs have no well-defined side (the cross product of their
+            # directions vanishes) and switch distance definitions as they rotate; their contact
+            # is carried by the vertex-triangle pairs of the same configuration, so they are left
+            # out (decided at x^n, so the set is fixed within the step).
+            da = x_ref[self.edges[ee[:, 0], 1]] - x_ref[self.edges[ee[:, 0], 0]]
+            db = x_ref[self.edges[ee[:, 1], 1]] - x_ref[self.edges[ee[:, 1], 0]]
+            sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
+            keep = sin > self.min_edge_sine
+            ee, z = ee[keep], z[keep]
         ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
         return (
             VertexTriangleContact(vt, self.triangles, vt_sides, self.stiffness, self.eps),

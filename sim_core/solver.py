@@ -66,6 +66,43 @@ class SolverConfig:
 
 
 @dataclass
+class StepRecord:
+    """Everything the adjoint needs of one converged step (kept as ``NewtonSolver.last_record``).
+
+    Attributes:
+        dt: step size in s.
+        x_prev: positions at the start ``x^n`` (m), shape ``(n, 3)``.
+        v_prev: velocities at the start ``v^n`` (m/s), shape ``(n, 3)``.
+        x: converged positions ``x^{n+1}``, shape ``(n, 3)``.
+        fixed: Dirichlet vertices of the step (static + effector-driven), shape ``(n,)`` bool.
+        x_target: prescribed positions of the fixed vertices, shape ``(n, 3)``.
+        effector_pose: effector poses reached at the end of the step (after rate limiting).
+        gripper_opening: finger openings of the step.
+        limited_effectors: effectors whose command was rate-limited this step (their pose is then
+            not differentiable w.r.t. the command in the usual sense).
+        terms: the potentials of the incremental potential at the converged step, in the order
+            inertia, gravity, [damping], elastic..., [friction], contact...
+        hinge_theta_bar: rest angles used during the step (per sheet).
+        hessian: the constrained projected Hessian at the last Newton iteration (CSR).
+        free_dofs: free DoF mask, shape ``(3 n,)`` bool.
+    """
+
+    dt: float
+    x_prev: np.ndarray
+    v_prev: np.ndarray
+    x: np.ndarray
+    fixed: np.ndarray
+    x_target: np.ndarray
+    effector_pose: dict
+    gripper_opening: dict
+    limited_effectors: list
+    terms: list
+    hinge_theta_bar: dict
+    hessian: sp.csr_matrix
+    free_dofs: np.ndarray
+
+
+@dataclass
 class StepInfo:
     """Diagnostics of one step: Newton iterations, final scaled residual, timings (s)."""
 
@@ -96,6 +133,7 @@ class NewtonSolver:
         self._revision = -1
         self.notify_model_changed()
         # Data of the last converged step, kept for the adjoint.
+        self.last_record: StepRecord | None = None
         self.last_hessian: sp.csr_matrix | None = None
         self.last_free_mask: np.ndarray | None = None
 
@@ -271,6 +309,12 @@ class NewtonSolver:
         self.last_free_mask = free
         contact_terms = self.contact.potentials(x, x_n, memory)
         info.energy = total(x, contact_terms)
+        self.last_record = StepRecord(
+            dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=fixed, x_target=x_target,
+            effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(openings),
+            limited_effectors=list(info.limited_effectors), terms=fixed_terms + contact_terms,
+            hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian=H, free_dofs=free,
+        )
         # ---- outputs
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1

@@ -1,0 +1,399 @@
+"""Scene schema ``kind: task``: ThinShellLab-style manipulation and inverse tasks as data.
+
+A task scene lists sheets (grids, optionally pre-folded into a hairpin), boxes (frozen tables or
+elastic blocks), effector-driven solids (a ThinShellLab dome sensor or a box-shaped tactile pad),
+planes, Coulomb coefficients per body pair and contact settings. Every key is validated; an unknown
+key raises :class:`ConfigError` naming the dotted key. Example: ``config/scenes/forming.yaml``.
+
+Top-level keys (all required unless marked optional)::
+
+    kind: task              version: 1             name: str
+    dt: s                   gravity: [gx, gy, gz]  damping: 1/s (optional, 0)
+    contact: {stiffness: N/m, eps: m, eps_v: m/s (optional), self_contact: bool (optional)}
+    sheets:    {name: SHEET, ...}
+    boxes:     {name: {size, resolution, origin, frozen: bool, material (if not frozen)}} (optional)
+    effectors: {name: EFFECTOR, ...} (optional)
+    planes:    {name: {normal, offset}} (optional)
+    friction:  [{pair: [a, b], mu: float}, ...] (optional)
+    task:      {type: manipulation|inverse, horizon: steps, identify: [parameter names] (optional)}
+
+SHEET: ``size, resolution, origin, thickness, density | areal_density, membrane, bending,
+yield_angle, clamped_edge`` and optional ``pattern``, ``initial_shape``, ``rest_angles``.
+
+* ``membrane: {model: stvk, youngs_modulus, poisson_ratio}`` or ThinShellLab's spring form
+  ``{model: spring, k_length, k_area}``. The spring form is recorded in
+  ``model.meta["membrane"][sheet]`` for :class:`sim_core.elastic.ElasticTerms`; the sheet's StVK
+  parameters are then a small-strain stand-in matching the spring network's response to uniform
+  in-plane dilation on a grid of spacing dx: ``E t / (1 - nu) = K_l (2 + sqrt 2) / dx + 4 K_a`` with
+  ``nu = 1/3`` (a triangulated spring grid's isotropic Poisson ratio).
+* ``bending: {bending_stiffness: D}`` (N m) or ``{k_bend_thinshelllab: K_b}``: ThinShellLab's energy
+  ``K_b dx^2 / 3 (theta - theta_bar)^2`` per hinge equals ours, ``(D / 2) 3 |e|^2 / (A1 + A2)
+  (theta - theta_bar)^2``, on an axis-aligned grid edge (|e| = dx, A1 + A2 = dx^2) when
+  ``D = 2 K_b dx^2 / 9``.
+* ``initial_shape: {kind: flat}`` or ``{kind: hairpin, bottom_start_column: R, curve_segments: n}``:
+  columns ``ix >= R`` stay flat, columns ``R - n < ix < R`` lie on a half circle of radius
+  ``r = dx / (2 sin(pi / (2 n)))`` (chords equal dx, so the fold is an isometry of the flat sheet;
+  ThinShellLab used arc length dx, which compresses the curved strip by 1.6 %), and columns
+  ``ix <= R - n`` run back at height ``2 r`` above the bottom layer.
+* ``rest_angles: flat | initial`` (default flat): rest dihedral angles 0 (ThinShellLab: the fold
+  springs back elastically) or those of the initial shape (a set crease). ``initial`` is stored in
+  ``model.meta["initial_hinge_theta_bar"]`` and applied by :func:`task_initial_state`.
+
+EFFECTOR: ``shape: dome`` with ``outer_radius, inner_radius, mesh: {ring_step, ring_count,
+layer_count}`` (mount = inner surface + base, as in ThinShellLab) or ``shape: pad`` with ``size:
+[gx, gy, gt], resolution: [nx, ny, nz]`` (box ``[-gx/2, gx/2] x [-gy/2, gy/2] x [-gt, 0]`` in the
+effector frame, mount = back face); plus ``material: {youngs_modulus, poisson_ratio, density}``,
+``initial_pose: [x y z qx qy qz qw]``, optional ``max_translation_per_step`` (m, 1e-3) and
+``max_rotation_per_step`` (rad, 0.02). The solid's body name is the effector's name.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from sim_core.builder import ModelBuilder
+from sim_core.errors import ConfigError
+from sim_core.mesh.dome import dome_shell
+from sim_core.mesh.sheet import grid_sheet
+from sim_core.mesh.tet import TetMesh, box_face_vertices, tet_box
+from sim_core.model import ContactSettings, Model
+from sim_core.potentials.bending import dihedral_angle
+from sim_core.state import State
+from sim_core.transforms import transform_points
+
+TASK_SCENE_VERSION = 1
+SPRING_STANDIN_POISSON_RATIO = 1.0 / 3.0
+
+_TOP = {"kind": True, "version": True, "name": True, "dt": True, "gravity": True, "contact": True, "sheets": True,
+        "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False}
+_CONTACT = {"stiffness": True, "eps": True, "eps_v": False, "self_contact": False}
+_SHEET = {"size": True, "resolution": True, "origin": True, "thickness": True, "membrane": True, "bending": True,
+          "yield_angle": True, "clamped_edge": True, "density": False, "areal_density": False, "pattern": False,
+          "initial_shape": False, "rest_angles": False}
+_BOX = {"size": True, "resolution": True, "origin": True, "frozen": True, "material": False}
+_SOLID_MATERIAL = {"youngs_modulus": True, "poisson_ratio": True, "density": True}
+_EFFECTOR = {"shape": True, "material": True, "initial_pose": True, "outer_radius": False, "inner_radius": False,
+             "mesh": False, "size": False, "resolution": False, "max_translation_per_step": False,
+             "max_rotation_per_step": False}
+_TASK = {"type": True, "horizon": True, "identify": False}
+
+
+# ----------------------------------------------------------------------------- validation helpers
+def _block(value: Any, where: str, keys: dict[str, bool]) -> dict:
+    """Check that ``value`` is a mapping with only ``keys`` and all required ones; returns it."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"task scene: {where} must be a mapping, got {type(value).__name__}")
+    for k in value:
+        if k not in keys:
+            raise ConfigError(f"task scene: unknown key {where}.{k} (known: {sorted(keys)})")
+    for k, required in keys.items():
+        if required and k not in value:
+            raise ConfigError(f"task scene: missing key {where}.{k}")
+    return value
+
+
+def _number(value: Any, where: str, positive: bool = False, nonneg: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"task scene: {where} must be a number, got {value!r}") from err
+    if not math.isfinite(v) and not (nonneg and v == math.inf):
+        raise ConfigError(f"task scene: {where} must be finite, got {value!r}")
+    if positive and not v > 0:
+        raise ConfigError(f"task scene: {where} must be > 0, got {v}")
+    if nonneg and not v >= 0:
+        raise ConfigError(f"task scene: {where} must be >= 0, got {v}")
+    return v
+
+
+def _vector(value: Any, n: int, where: str, positive: bool = False) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise ConfigError(f"task scene: {where} must be a list of {n} numbers, got {value!r}")
+    return np.array([_number(v, f"{where}[{i}]", positive=positive) for i, v in enumerate(value)])
+
+
+def _ints(value: Any, n: int, where: str, minimum: int) -> tuple[int, ...]:
+    vec = _vector(value, n, where)
+    if np.any(vec != np.round(vec)) or np.any(vec < minimum):
+        raise ConfigError(f"task scene: {where} must be {n} integers >= {minimum}, got {value!r}")
+    return tuple(int(v) for v in vec)
+
+
+# ----------------------------------------------------------------------------- geometry
+def hairpin_fold(x_flat: np.ndarray, grid_shape: tuple[int, int], bottom_start_column: int,
+                 curve_segments: int) -> tuple[np.ndarray, float]:
+    """Fold a flat grid sheet (normal +z) into a hairpin about a line parallel to y.
+
+    Args:
+        x_flat: flat grid positions in m, shape ``(nx * ny, 3)``, vertex ``(ix, iy)`` at ``iy * nx + ix``,
+            uniform spacing dx along x.
+        grid_shape: ``(nx, ny)``.
+        bottom_start_column: R, first column of the flat bottom layer (``1 <= R - n``, ``R <= nx - 1``).
+        curve_segments: n, number of grid segments on the half circle (>= 1).
+
+    Returns:
+        ``(x, r)``: folded positions, shape ``(nx * ny, 3)``, and the fold radius in m.
+
+    Raises:
+        ConfigError: columns out of range.
+    """
+    nx, ny = grid_shape
+    R, n = int(bottom_start_column), int(curve_segments)
+    if n < 1 or R - n < 0 or R > nx - 1:
+        raise ConfigError(f"hairpin: need curve_segments >= 1 and 0 <= R - n, R <= nx - 1; got R={R}, n={n}, nx={nx}")
+    x = np.array(x_flat, dtype=float)
+    u = x[:nx, 0] - x[0, 0]
+    dx = float(u[1] - u[0])
+    r = dx / (2.0 * math.sin(math.pi / (2 * n)))
+    cx, z0 = x[0, 0] + R * dx, x[0, 2]
+    col_x, col_z = np.empty(nx), np.empty(nx)
+    for ix in range(nx):
+        if ix >= R:
+            col_x[ix], col_z[ix] = x[0, 0] + ix * dx, z0
+        elif ix > R - n:
+            a = (R - ix) / n * math.pi
+            col_x[ix], col_z[ix] = cx - r * math.sin(a), z0 + r * (1.0 - math.cos(a))
+        else:
+            col_x[ix], col_z[ix] = cx + (R - n - ix) * dx, z0 + 2.0 * r
+    ix_of = np.arange(nx * ny) % nx
+    x[:, 0] = col_x[ix_of]
+    x[:, 2] = col_z[ix_of]
+    return x, r
+
+
+def _edge_vertices(nx: int, ny: int, edge: str, where: str) -> np.ndarray:
+    ix, iy = np.arange(nx * ny) % nx, np.arange(nx * ny) // nx
+    sel = {"none": np.zeros(nx * ny, bool), "x0": ix == 0, "x1": ix == nx - 1, "y0": iy == 0, "y1": iy == ny - 1}
+    if edge not in sel:
+        raise ConfigError(f"task scene: {where} must be none|x0|x1|y0|y1, got {edge!r}")
+    return np.flatnonzero(sel[edge])
+
+
+def _solid_material(value: Any, where: str) -> dict[str, float]:
+    m = _block(value, where, _SOLID_MATERIAL)
+    out = {k: _number(m[k], f"{where}.{k}", positive=k != "poisson_ratio") for k in _SOLID_MATERIAL}
+    if not -1.0 < out["poisson_ratio"] < 0.5:
+        raise ConfigError(f"task scene: {where}.poisson_ratio must be in (-1, 0.5), got {out['poisson_ratio']}")
+    return out
+
+
+# ----------------------------------------------------------------------------- sheets
+def _add_sheet(b: ModelBuilder, name: str, spec: Any, meta: dict) -> tuple[np.ndarray, np.ndarray]:
+    where = f"sheets.{name}"
+    s = _block(spec, where, _SHEET)
+    size = _vector(s["size"], 2, f"{where}.size", positive=True)
+    nx, ny = _ints(s["resolution"], 2, f"{where}.resolution", 2)
+    origin = _vector(s["origin"], 3, f"{where}.origin")
+    mesh = grid_sheet(tuple(size), (nx, ny), tuple(origin), s.get("pattern", "alternating"))
+    dx, dy = size[0] / (nx - 1), size[1] / (ny - 1)
+    t = _number(s["thickness"], f"{where}.thickness", positive=True)
+    if ("density" in s) == ("areal_density" in s):
+        raise ConfigError(f"task scene: {where} needs exactly one of density (kg/m^3) or areal_density (kg/m^2)")
+    rho = (_number(s["density"], f"{where}.density", positive=True) if "density" in s
+           else _number(s["areal_density"], f"{where}.areal_density", positive=True) / t)
+    mem = s["membrane"]
+    model_kind = mem.get("model") if isinstance(mem, dict) else None
+    if model_kind == "stvk":
+        mem = _block(mem, f"{where}.membrane", {"model": True, "youngs_modulus": True, "poisson_ratio": True})
+        E = _number(mem["youngs_modulus"], f"{where}.membrane.youngs_modulus", positive=True)
+        nu = _number(mem["poisson_ratio"], f"{where}.membrane.poisson_ratio")
+        if not -1.0 < nu < 0.5:
+            raise ConfigError(f"task scene: {where}.membrane.poisson_ratio must be in (-1, 0.5), got {nu}")
+    elif model_kind == "spring":
+        mem = _block(mem, f"{where}.membrane", {"model": True, "k_length": True, "k_area": True})
+        k_l = _number(mem["k_length"], f"{where}.membrane.k_length", positive=True)
+        k_a = _number(mem["k_area"], f"{where}.membrane.k_area", nonneg=True)
+        nu = SPRING_STANDIN_POISSON_RATIO
+        E = (k_l * (2.0 + math.sqrt(2.0)) / min(dx, dy) + 4.0 * k_a) * (1.0 - nu) / t
+        meta.setdefault("membrane", {})[name] = {"model": "spring", "k_length": k_l, "k_area": k_a}
+    else:
+        raise ConfigError(f"task scene: {where}.membrane.model must be stvk|spring, got {model_kind!r}")
+    bend = s["bending"]
+    if isinstance(bend, dict) and "k_bend_thinshelllab" in bend:
+        bend = _block(bend, f"{where}.bending", {"k_bend_thinshelllab": True})
+        D = 2.0 * _number(bend["k_bend_thinshelllab"], f"{where}.bending.k_bend_thinshelllab", nonneg=True) * dx * dy / 9.0
+    else:
+        bend = _block(bend, f"{where}.bending", {"bending_stiffness": True})
+        D = _number(bend["bending_stiffness"], f"{where}.bending.bending_stiffness", nonneg=True)
+    yield_angle = _number(s["yield_angle"], f"{where}.yield_angle", positive=True, nonneg=True)
+    shape = s.get("initial_shape", {"kind": "flat"})
+    kind = shape.get("kind") if isinstance(shape, dict) else None
+    if kind == "flat":
+        _block(shape, f"{where}.initial_shape", {"kind": True})
+        x0 = mesh.x
+    elif kind == "hairpin":
+        shape = _block(shape, f"{where}.initial_shape", {"kind": True, "bottom_start_column": True, "curve_segments": True})
+        x0, radius = hairpin_fold(mesh.x, (nx, ny), int(shape["bottom_start_column"]), int(shape["curve_segments"]))
+        meta.setdefault("fold_radius", {})[name] = radius
+    else:
+        raise ConfigError(f"task scene: {where}.initial_shape.kind must be flat|hairpin, got {kind!r}")
+    rest = s.get("rest_angles", "flat")
+    if rest not in ("flat", "initial"):
+        raise ConfigError(f"task scene: {where}.rest_angles must be flat|initial, got {rest!r}")
+    body = b.add_sheet(
+        name, mesh,
+        {"youngs_modulus": E, "poisson_ratio": nu, "thickness": t, "bending_stiffness": D, "density": rho,
+         "yield_angle": yield_angle},
+        fixed=_edge_vertices(nx, ny, s["clamped_edge"], f"{where}.clamped_edge"), grid_shape=(nx, ny),
+    )
+    if rest == "initial":
+        local = body.hinges - body.vertex_start
+        meta.setdefault("initial_hinge_theta_bar", {})[name] = dihedral_angle(x0[local])
+    return mesh.x, x0
+
+
+# ----------------------------------------------------------------------------- solids
+def _effector_solid(name: str, spec: dict, where: str) -> tuple[TetMesh, np.ndarray]:
+    shape = spec["shape"]
+    if shape == "dome":
+        for k in ("outer_radius", "inner_radius", "mesh"):
+            if k not in spec:
+                raise ConfigError(f"task scene: missing key {where}.{k} (shape dome)")
+        for k in ("size", "resolution"):
+            if k in spec:
+                raise ConfigError(f"task scene: key {where}.{k} does not apply to shape dome")
+        m = _block(spec["mesh"], f"{where}.mesh", {"ring_step": True, "ring_count": True, "layer_count": True})
+        dome = dome_shell(_number(spec["outer_radius"], f"{where}.outer_radius", positive=True),
+                          _number(spec["inner_radius"], f"{where}.inner_radius", positive=True),
+                          int(m["ring_step"]), int(m["ring_count"]), int(m["layer_count"]))
+        return dome.mesh, dome.mount_vertices
+    if shape == "pad":
+        for k in ("size", "resolution"):
+            if k not in spec:
+                raise ConfigError(f"task scene: missing key {where}.{k} (shape pad)")
+        for k in ("outer_radius", "inner_radius", "mesh"):
+            if k in spec:
+                raise ConfigError(f"task scene: key {where}.{k} does not apply to shape pad")
+        gx, gy, gt = _vector(spec["size"], 3, f"{where}.size", positive=True)
+        pad = tet_box((gx, gy, gt), _ints(spec["resolution"], 3, f"{where}.resolution", 2), (-gx / 2, -gy / 2, -gt))
+        return pad, box_face_vertices(pad, 2, "min")
+    raise ConfigError(f"task scene: {where}.shape must be dome|pad, got {shape!r}")
+
+
+# ----------------------------------------------------------------------------- public API
+def build_task_scene(scene: dict) -> Model:
+    """Build the Model of a ``kind: task`` scene dictionary (schema in the module docstring).
+
+    Args:
+        scene: the parsed YAML mapping.
+
+    Returns:
+        the Model. ``model.meta`` holds ``name``, ``dt``, ``task`` (type, horizon, identify),
+        ``sheet_grid`` per sheet, ``effector_bodies`` (effector -> body), and where used
+        ``membrane`` (spring form), ``fold_radius`` and ``initial_hinge_theta_bar``;
+        ``model.initial_x`` is set when a sheet starts folded.
+
+    Raises:
+        ConfigError: unknown or missing key (named as a dotted path), a bad value, or a mesh error.
+    """
+    _block(scene, "<top>", _TOP)
+    if scene["kind"] != "task":
+        raise ConfigError(f"task scene: kind must be 'task', got {scene['kind']!r}")
+    if scene["version"] != TASK_SCENE_VERSION:
+        raise ConfigError(f"task scene: version must be {TASK_SCENE_VERSION}, got {scene['version']!r}")
+    dt = _number(scene["dt"], "dt", positive=True)
+    gravity = _vector(scene["gravity"], 3, "gravity")
+    c = _block(scene["contact"], "contact", _CONTACT)
+    contact = ContactSettings(
+        stiffness=_number(c["stiffness"], "contact.stiffness", positive=True),
+        eps=_number(c["eps"], "contact.eps", positive=True),
+        eps_v=_number(c.get("eps_v", 0.01), "contact.eps_v", positive=True),
+        self_contact=bool(c.get("self_contact", True)),
+    )
+    meta: dict[str, Any] = {"name": str(scene["name"]), "dt": dt, "sheet_grid": {}, "effector_bodies": {}}
+    b = ModelBuilder()
+    initial_parts = []
+    sheets = scene["sheets"]
+    if not isinstance(sheets, dict) or not sheets:
+        raise ConfigError("task scene: sheets must be a non-empty mapping name -> sheet")
+    moved = False
+    for name, spec in sheets.items():
+        x_flat, x0 = _add_sheet(b, name, spec, meta)
+        meta["sheet_grid"][name] = tuple(int(v) for v in spec["resolution"])
+        initial_parts.append(x0)
+        moved |= not np.array_equal(x_flat, x0)
+    for name, spec in (scene.get("boxes") or {}).items():
+        where = f"boxes.{name}"
+        s = _block(spec, where, _BOX)
+        box = tet_box(tuple(_vector(s["size"], 3, f"{where}.size", positive=True)),
+                      _ints(s["resolution"], 3, f"{where}.resolution", 2), tuple(_vector(s["origin"], 3, f"{where}.origin")))
+        frozen = bool(s["frozen"])
+        if not frozen and "material" not in s:
+            raise ConfigError(f"task scene: missing key {where}.material (box not frozen)")
+        mat = _solid_material(s["material"], f"{where}.material") if "material" in s else None
+        b.add_solid(name, box, mat, frozen=frozen)
+        initial_parts.append(box.x)
+    for name, spec in (scene.get("effectors") or {}).items():
+        where = f"effectors.{name}"
+        s = _block(spec, where, _EFFECTOR)
+        local_mesh, mount = _effector_solid(name, s, where)
+        pose = _vector(s["initial_pose"], 7, f"{where}.initial_pose")
+        world = TetMesh(transform_points(pose, local_mesh.x), local_mesh.tets)
+        b.add_solid(name, world, _solid_material(s["material"], f"{where}.material"))
+        b.add_effector(name, name, mount, pose,
+                       _number(s.get("max_translation_per_step", 1e-3), f"{where}.max_translation_per_step", positive=True),
+                       _number(s.get("max_rotation_per_step", 0.02), f"{where}.max_rotation_per_step", positive=True))
+        meta["effector_bodies"][name] = name
+        initial_parts.append(world.x)
+    for name, spec in (scene.get("planes") or {}).items():
+        p = _block(spec, f"planes.{name}", {"normal": True, "offset": True})
+        b.add_plane(name, _vector(p["normal"], 3, f"planes.{name}.normal"), _number(p["offset"], f"planes.{name}.offset"))
+    friction = scene.get("friction") or []
+    if not isinstance(friction, list):
+        raise ConfigError("task scene: friction must be a list of {pair: [a, b], mu: value}")
+    for i, entry in enumerate(friction):
+        e = _block(entry, f"friction[{i}]", {"pair": True, "mu": True})
+        if not isinstance(e["pair"], (list, tuple)) or len(e["pair"]) != 2:
+            raise ConfigError(f"task scene: friction[{i}].pair must name two bodies/planes, got {e['pair']!r}")
+        b.set_friction(str(e["pair"][0]), str(e["pair"][1]), _number(e["mu"], f"friction[{i}].mu", nonneg=True))
+    task = _block(scene.get("task") or {"type": "manipulation", "horizon": 1}, "task", _TASK)
+    if task["type"] not in ("manipulation", "inverse"):
+        raise ConfigError(f"task scene: task.type must be manipulation|inverse, got {task['type']!r}")
+    meta["task"] = {"type": task["type"], "horizon": int(_number(task["horizon"], "task.horizon", positive=True)),
+                    "identify": [str(v) for v in task.get("identify", [])]}
+    model = b.finalize(gravity=gravity, contact=contact, damping=_number(scene.get("damping", 0.0), "damping", nonneg=True),
+                       meta=meta)
+    if moved:
+        model.initial_x = np.concatenate(initial_parts)
+    known = set(model.parameter_names)
+    for p in meta["task"]["identify"]:
+        if p not in known:
+            raise ConfigError(f"task scene: task.identify names unknown parameter {p!r}; known: {sorted(known)}")
+    return model
+
+
+def task_initial_state(model: Model) -> State:
+    """The initial state of a task scene: ``model.state()`` with the sheets' initial rest angles.
+
+    ``Model.state()`` starts every sheet with flat rest angles; a sheet with ``rest_angles: initial``
+    gets the dihedral angles of its initial shape (``model.meta["initial_hinge_theta_bar"]``).
+    """
+    state = model.state()
+    for name, theta_bar in model.meta.get("initial_hinge_theta_bar", {}).items():
+        state.hinge_theta_bar[name] = np.array(theta_bar, dtype=float)
+    return state
+
+
+def load_task_scene(path) -> Model:
+    """Read a ``kind: task`` YAML file and build its Model.
+
+    Raises:
+        ConfigError: missing file or YAML error (naming the file), or any error of :func:`build_task_scene`
+            (re-raised with the file name).
+    """
+    from pathlib import Path
+
+    import yaml
+
+    path = Path(path)
+    try:
+        scene = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"{path}: cannot read task scene ({err})") from err
+    try:
+        return build_task_scene(scene)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from err
