@@ -41,7 +41,8 @@ class ContactSet:
         self.model = model
         c = model.contact
         self.stiffness, self.eps = float(c.stiffness), float(c.eps)
-        self.radius = self.eps + float(c.candidate_margin)
+        self.margin = float(c.candidate_margin)
+        self.radius = self.eps + self.margin
         bodies = list(model.bodies.values())
         self.body_names = [b.name for b in bodies]
         self.vertex_body = model.body_of_vertex()
@@ -66,15 +67,33 @@ class ContactSet:
             for name, p in model.planes.items()
         ]
         self.x_prev: np.ndarray | None = None
+        self._cache = None
         self.min_edge_sine = 0.1
 
     # ------------------------------------------------------------------ per step
     def begin_step(self, x_n: np.ndarray, memory: CollisionMemory | None) -> CollisionMemory:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
+        self._cache = None
         return memory.copy() if memory is not None else CollisionMemory()
 
     def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
+        """Contact potentials over the candidate pairs valid at ``x``.
+
+        Candidates are searched with radius ``eps + margin`` and reused while no vertex has moved
+        more than ``margin / 2`` since the search: two elements then cannot have closed a gap larger
+        than ``margin``, so no pair outside the list can have come within ``eps``.
+        """
+        cache = getattr(self, "_cache", None)
+        if cache is not None and cache[0] is memory:
+            moved = float(np.max(np.abs(x - cache[1]))) if x.size else 0.0
+            if moved <= 0.5 * self.margin:
+                return cache[2]
+        pots = self._search(x, memory)
+        self._cache = (memory, np.array(x, copy=True), pots)
+        return pots
+
+    def _search(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
         x_ref = self.x_prev if self.x_prev is not None else x
         vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
         z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))

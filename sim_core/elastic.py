@@ -7,6 +7,8 @@ for the adjoint.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from sim_core.model import Model
@@ -27,6 +29,7 @@ class ElasticTerms:
         self.membranes: dict[str, StVKMembrane] = {}
         self.solids: dict[str, StableNeoHookean] = {}
         self.hinges: dict[str, np.ndarray] = {}
+        self._bending: dict[str, DiscreteShellBending] = {}
         for b in model.bodies.values():
             m = b.material
             if b.kind == "sheet":
@@ -39,9 +42,25 @@ class ElasticTerms:
                 self.solids[b.name] = StableNeoHookean(b.tets, model.x_rest, m["youngs_modulus"], m["poisson_ratio"])
 
     def bending(self, name: str, theta_bar: np.ndarray | None) -> DiscreteShellBending:
-        """Bending potential of sheet ``name`` with rest angles ``theta_bar`` (rad, shape ``(h,)``)."""
-        b = self.model.bodies[name]
-        return DiscreteShellBending(self.hinges[name], self.model.x_rest, b.material["bending_stiffness"], theta_bar)
+        """Bending potential of sheet ``name`` with rest angles ``theta_bar`` (rad, shape ``(h,)``).
+
+        The potential (rest weights, hinge arrays) is built once per sheet and its rest angles are
+        replaced per call, so the solver's cached sparsity pattern stays valid.
+        """
+        pot = self._bending.get(name)
+        if pot is None:
+            b = self.model.bodies[name]
+            pot = DiscreteShellBending(self.hinges[name], self.model.x_rest, b.material["bending_stiffness"], theta_bar)
+            self._bending[name] = pot
+            return pot
+        if theta_bar is None:
+            theta_bar = np.zeros(self.hinges[name].shape[0])
+        theta_bar = np.asarray(theta_bar, dtype=float)
+        if theta_bar.shape != pot.hinge_theta_bar.shape or not np.all(np.isfinite(theta_bar)):
+            raise ValueError(f"sheet {name!r}: rest angles must be finite with shape {pot.hinge_theta_bar.shape}")
+        clone = copy.copy(pot)
+        clone.hinge_theta_bar = theta_bar
+        return clone
 
     def potentials(self, hinge_theta_bar: dict[str, np.ndarray]) -> list:
         """All elastic potentials for one step, given the rest angles of the state."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from sim_core.assembly import HessianAssembler
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
@@ -142,6 +143,7 @@ class NewtonSolver:
         self.elastic = ElasticTerms(self.model)
         self.vertex_mass = self.model.vertex_mass()
         self.contact = ContactSet(self.model)
+        self.assembler = HessianAssembler(self.model.dof_count)
         self._revision = self.model.revision
 
     # ------------------------------------------------------------------ step
@@ -233,7 +235,8 @@ class NewtonSolver:
             damp = ViscousDamping(mass, x_n, model.damping, dt)
             fixed_terms.append(damp)
             diag = diag + damp.hessian_diagonal()
-        fixed_terms += self.elastic.potentials(state_in.hinge_theta_bar)
+        elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
+        fixed_terms += elastic_terms
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
@@ -255,8 +258,11 @@ class NewtonSolver:
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
                 )
-            blocks: list[HessianBlocks] = [p.hessian(x, cfg.projection) for p in terms if not hasattr(p, "hessian_diagonal")]
-            H = _constrain(assemble_hessian(blocks, model.dof_count, diag), free)
+            static = [p.hessian(x, cfg.projection) for p in elastic_terms]
+            dynamic = [p.hessian(x, cfg.projection) for p in contact_terms]
+            if friction is not None:
+                dynamic.append(friction.hessian(x, cfg.projection))
+            H = self.assembler.assemble(static, dynamic, diag, free)
             info.time_assembly += time.perf_counter() - ta
             tl = time.perf_counter()
             self.linear_solver.factorize(H)

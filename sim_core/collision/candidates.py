@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+from scipy.spatial import cKDTree
+
 from sim_core.collision.spatial_hash import SpatialHash
 from sim_core.errors import ConfigError
 
@@ -71,6 +73,44 @@ def auto_cell_size(box_min: np.ndarray, box_max: np.ndarray, radius: float) -> f
     return float(max(np.mean(ext) + 2.0 * radius, 1e-9))
 
 
+def box_pairs_kdtree(
+    a_min: np.ndarray, a_max: np.ndarray, b_min: np.ndarray | None, b_max: np.ndarray | None, radius: float
+) -> np.ndarray:
+    """Pairs of axis-aligned boxes that come within ``radius`` of each other (k-d tree broad phase).
+
+    Box centres go into SciPy's ``cKDTree`` (C); centre pairs closer than ``radius`` plus the two
+    largest half-diagonals are candidates, then the exact inflated-AABB overlap test filters them.
+    Same result as the spatial hash (:class:`SpatialHash`), with the search done in compiled code.
+
+    Args:
+        a_min, a_max: boxes of set A, shape ``(ka, 3)``.
+        b_min, b_max: boxes of set B, shape ``(kb, 3)``; None pairs A with itself (each unordered pair
+            once, ``i < j``).
+        radius: inflation in m.
+
+    Returns:
+        int64 ``(p, 2)`` of ``[index in A, index in B]``.
+    """
+    same = b_min is None
+    if same:
+        b_min, b_max = a_min, a_max
+    ca, cb = 0.5 * (a_min + a_max), 0.5 * (b_min + b_max)
+    ra = float(np.max(np.linalg.norm(a_max - a_min, axis=1))) * 0.5 if len(a_min) else 0.0
+    rb = float(np.max(np.linalg.norm(b_max - b_min, axis=1))) * 0.5 if len(b_min) else 0.0
+    reach = radius + ra + rb
+    ta = cKDTree(ca)
+    if same:
+        pairs = ta.query_pairs(reach, output_type="ndarray").astype(np.int64)
+    else:
+        pairs = ta.sparse_distance_matrix(cKDTree(cb), reach, output_type="ndarray")
+        pairs = np.stack([pairs["i"], pairs["j"]], axis=1).astype(np.int64)
+    if pairs.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    overlap = np.all((a_min[i] - radius <= b_max[j]) & (b_min[j] <= a_max[i] + radius), axis=1)
+    return pairs[overlap]
+
+
 def _check(x: np.ndarray, radius: float) -> None:
     if x.ndim != 2 or x.shape[1] != 3:
         raise ConfigError(f"candidate search: x must have shape (n, 3), got {x.shape}")
@@ -111,8 +151,10 @@ def vertex_triangle_candidates(
     tri_x = x[triangles]
     t_min, t_max = tri_x.min(axis=1), tri_x.max(axis=1)
     p = x[vertices]
-    h = cell_size or auto_cell_size(t_min, t_max, radius)
-    pairs = SpatialHash(t_min, t_max, h).query(p - radius, p + radius)
+    if cell_size is not None:
+        pairs = SpatialHash(t_min, t_max, cell_size).query(p - radius, p + radius)
+    else:
+        pairs = box_pairs_kdtree(p, p, t_min, t_max, radius)
     v = vertices[pairs[:, 0]]
     tri = triangles[pairs[:, 1]]
     keep = np.all(tri != v[:, None], axis=1)
@@ -159,9 +201,11 @@ def edge_edge_candidates(
         return np.zeros((0, 2), dtype=np.int64)
     ex = x[edges]
     e_min, e_max = ex.min(axis=1), ex.max(axis=1)
-    h = cell_size or auto_cell_size(e_min, e_max, radius)
-    pairs = SpatialHash(e_min, e_max, h).query(e_min - radius, e_max + radius)
-    pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    if cell_size is not None:
+        pairs = SpatialHash(e_min, e_max, cell_size).query(e_min - radius, e_max + radius)
+        pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    else:
+        pairs = box_pairs_kdtree(e_min, e_max, None, None, radius)
     ea, eb = edges[pairs[:, 0]], edges[pairs[:, 1]]
     share = (ea[:, 0] == eb[:, 0]) | (ea[:, 0] == eb[:, 1]) | (ea[:, 1] == eb[:, 0]) | (ea[:, 1] == eb[:, 1])
     pairs, ea, eb = pairs[~share], ea[~share], eb[~share]

@@ -81,7 +81,8 @@ def test_pressing_raises_normal_force_and_moves_markers(ros_context):
     assert spin_until(c.ex, lambda: c.got["mesh"], 5.0)  # 10 Hz of sim time
     assert c.got["points"] and c.got["mesh"][0].type == Marker.TRIANGLE_LIST
     stamps = {t for t, _ in c.got["pose"]}
-    assert {t for t, _ in c.got["wrench"]} & stamps and stamps <= set(clock)  # outputs stamped with sim time
+    assert {t for t, _ in c.got["wrench"]} & stamps  # outputs stamped with sim time: multiples of dt
+    assert all(t % 5_000_000 == 0 for t in stamps | set(clock))
     node.destroy_node()
 
 
@@ -184,5 +185,5 @@ def test_recording_holds_inputs_and_outputs(ros_context, tmp_path):
     t_clock = [t for _, t, _ in msgs["/clock"]]
     assert t_clock == sorted(t_clock) and t_clock[1] - t_clock[0] == 5_000_000
     fz = [m.wrench.force.z for _, _, m in msgs["/thinshell/tactile/wrench"]]
-    assert fz[0] == 0.0 and fz[-1] < -0.6
+    assert fz[0] == 0.0 and fz[-1] == pytest.approx(-0.3)  # 0.3 mm into the plane, k = 1000 N/m
     assert len(read_with_mcap(bag)["/thinshell/tactile/wrench"]) == len(fz)

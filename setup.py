@@ -1,0 +1,52 @@
+"""Packaging of thinshell: pip (``pip install -e .``) and ROS 2 ament_python (``colcon build``).
+
+Installs the Python packages ``sim_core``, ``sysid`` and ``thinshell_ros``, the ament resource-index
+marker, ``package.xml`` and every file under ``config/`` into ``share/thinshell`` so that
+``ament_index_python.get_package_share_directory("thinshell")`` finds the bundled scenes and node
+configurations, and the console scripts (also under ``lib/thinshell`` for ``ros2 run``, see
+``setup.cfg``).
+"""
+
+from __future__ import annotations
+
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "thinshell"
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def config_data_files() -> list[tuple[str, list[str]]]:
+    """``(install dir, [files])`` for every file under ``config/``, keeping the folder layout."""
+    groups: dict[str, list[str]] = {}
+    for path in sorted(glob(os.path.join("config", "**", "*"), recursive=True, root_dir=HERE)):
+        if os.path.isfile(os.path.join(HERE, path)):
+            groups.setdefault(os.path.join("share", PACKAGE, os.path.dirname(path)), []).append(path)
+    return sorted(groups.items())
+
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Differentiable thin-shell + tactile simulator with a ROS 2 bridge and system identification",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["sim_core", "sim_core.*", "sysid", "sysid.*", "thinshell_ros", "thinshell_ros.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        (os.path.join("share", PACKAGE), ["package.xml"]),
+        *config_data_files(),
+    ],
+    install_requires=["numpy", "scipy", "pyyaml"],
+    zip_safe=False,
+    entry_points={
+        "console_scripts": [
+            "thinshell = thinshell_ros.cli:main",
+            "thinshell-sim-node = thinshell_ros.sim_node:main",
+            "thinshell-sysid-node = thinshell_ros.sysid_node:main",
+            "sim_node = thinshell_ros.sim_node:main",
+        ],
+    },
+)

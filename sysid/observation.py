@@ -1,0 +1,419 @@
+"""Observation model of system identification: replay a recording's effector motion in the simulator.
+
+The recorded (measured) effector pose ``pose`` is resampled at the simulation step,
+``t_k = t_0 + k dt`` (k = 0 .. K), and fed as the kinematic target of step k (the effector reaches
+it at the end of the step; ``sim_core.effector`` rate-limits it). The simulator's state after step k
+is observed at ``t_k`` (markers in the sensor frame and their pixels, net wrench on the gel, sheet
+points in ``world``), and each observed stream is interpolated linearly in time to the stamps of the
+matching evidence channel (:meth:`ObservationModel.align`). The initial effector pose of the scene
+is replaced by the recorded pose at ``t_0`` so that the gel is built where the recording starts.
+
+Residuals are whitened per channel and axis by the white-noise level estimated from the recording
+(``Evidence.noise``, :mod:`sysid.noise`): ``r = (y_data - y_sim) / sigma``, so that weighted least
+squares with ``W = diag(1 / sigma^2)`` is ordinary least squares on ``r``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.control import Control
+from sim_core.errors import CalibrationError
+from sim_core.scenes.scene_file import SceneFile, load_scene_file
+from sysid.evidence import Evidence, resample_pose
+
+PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+"""Evidence channels the simulator predicts."""
+
+DEFAULT_FIT_CHANNELS = ("markers_xyz", "wrench", "sheet_points")
+"""Channels fitted by default: ``markers_uv`` is a function of ``markers_xyz`` (camera model) and
+would count the same measurement twice, so it is only fitted when ``markers_xyz`` is absent."""
+
+CHANNEL_UNITS = {"markers_xyz": "m", "markers_uv": "px", "wrench": "N | N m", "sheet_points": "m"}
+
+NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_points": 1e-7}
+"""Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
+would otherwise get an infinite weight."""
+
+
+class ObservationWarning(UserWarning):
+    """A channel cannot be fitted (absent from the recording, or not predictable)."""
+
+
+@dataclass(frozen=True)
+class SimTrace:
+    """Simulated observations at the simulation steps.
+
+    Attributes:
+        t_ns: step times ``(K + 1,)`` int64 ns (recording clock), ``t_ns[0]`` the initial state.
+        markers_xyz: ``(K + 1, k, 3)`` m, sensor frame.
+        markers_uv: ``(K + 1, k, 2)`` px.
+        wrench: ``(K + 1, 6)`` N, N m, on the gel in the sensor frame.
+        sheet_points: ``(K + 1, p, 3)`` m, world.
+        wall_time_s: time spent simulating.
+    """
+
+    t_ns: np.ndarray
+    markers_xyz: np.ndarray
+    markers_uv: np.ndarray
+    wrench: np.ndarray
+    sheet_points: np.ndarray
+    wall_time_s: float
+
+    def channel(self, name: str) -> np.ndarray:
+        """The per-step array of evidence channel ``name`` (one of :data:`PREDICTABLE_CHANNELS`)."""
+        if name not in PREDICTABLE_CHANNELS:
+            raise KeyError(f"channel {name!r} is not simulated (simulated: {', '.join(PREDICTABLE_CHANNELS)})")
+        return getattr(self, name)
+
+
+@dataclass(frozen=True)
+class _Interpolation:
+    """Linear interpolation from step times to stamps: ``y(t_j) = (1 - w_j) Y[i_j] + w_j Y[i_j + 1]``."""
+
+    index: np.ndarray
+    weight: np.ndarray
+
+    def apply(self, per_step: np.ndarray) -> np.ndarray:
+        w = self.weight.reshape(-1, *(1,) * (per_step.ndim - 1))
+        return (1.0 - w) * per_step[self.index] + w * per_step[self.index + 1]
+
+
+def _interpolation(t_steps: np.ndarray, t_dst: np.ndarray) -> _Interpolation:
+    xs = (t_steps - t_steps[0]).astype(np.float64)
+    xd = (t_dst - t_steps[0]).astype(np.float64)
+    i = np.clip(np.searchsorted(xs, xd, side="right") - 1, 0, xs.shape[0] - 2)
+    w = np.clip((xd - xs[i]) / (xs[i + 1] - xs[i]), 0.0, 1.0)
+    return _Interpolation(i.astype(np.int64), w)
+
+
+def scene_dict_for(evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
+                   simulation: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The scene used to simulate ``evidence``, as a plain dict.
+
+    Args:
+        evidence: the recording.
+        scene: overriding scene (path, mapping or :class:`SceneFile`); default the bag's ``scene.yaml``.
+        simulation: keys merged into the scene's optional ``simulation:`` block
+            (``sim_core.scenes.tactile_scene``), e.g. ``{"gel_resolution": [5, 4, 2]}``.
+
+    Raises:
+        CalibrationError: no scene given and the bag has none.
+        ConfigError: invalid scene (names the file and key).
+    """
+    if scene is None:
+        if evidence.scene is None:
+            raise CalibrationError(f"{evidence.source.bag_path}: the bag has no scene.yaml; pass a scene file")
+        parsed = evidence.scene
+    else:
+        parsed = load_scene_file(scene)
+    out = copy.deepcopy(parsed.to_dict())
+    if simulation:
+        block = dict(out.get("simulation") or {})
+        block.update(simulation)
+        out["simulation"] = block
+    load_scene_file(out)
+    return out
+
+
+class ObservationModel:
+    """Predict a recording's channels with the simulator driven by its recorded effector poses.
+
+    Args:
+        evidence: the recording (:func:`sysid.evidence.load_evidence`).
+        scene: scene overriding the bag's ``scene.yaml`` (path, mapping or :class:`SceneFile`).
+        dt: simulation step in s (the recording is replayed at this step).
+        t_max: use only the first ``t_max`` seconds of the recording (None: all of it).
+        channels: channels to fit (default :data:`DEFAULT_FIT_CHANNELS`, or ``markers_uv`` instead of
+            ``markers_xyz`` when only pixels were recorded). Channels absent from the recording are
+            dropped with an :class:`ObservationWarning`.
+        simulation: overrides of the scene's ``simulation:`` block.
+        noise: per-channel noise overrides ``{channel: sigma per axis}``; default ``evidence.noise``.
+
+    Attributes:
+        evidence: the (cropped) recording.
+        scene: the scene dict actually simulated.
+        sensor, effector: names of the tactile sensor and its effector.
+        channels: fitted channels, in residual order.
+        dropped: channel -> why it is not fitted.
+        sigma: channel -> per-axis noise level used for whitening.
+        step_times_ns: ``(K + 1,)`` simulation step times (recording clock).
+        controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
+
+    Raises:
+        CalibrationError: no pose channel, no fittable channel, bad ``dt`` / ``t_max``, or a sensor
+            that the scene does not define.
+    """
+
+    def __init__(self, evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
+                 dt: float = 0.01, t_max: float | None = None, channels: Sequence[str] | None = None,
+                 simulation: Mapping[str, Any] | None = None,
+                 noise: Mapping[str, Sequence[float]] | None = None) -> None:
+        bag = evidence.source.bag_path
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise CalibrationError(f"simulation dt must be a positive number of seconds, got {dt!r}")
+        if "pose" not in evidence.channels_present:
+            raise CalibrationError(f"{bag}: no effector pose ({evidence.channels_missing.get('pose', 'pose missing')}); "
+                                   "the effector motion cannot be replayed")
+        start = int(evidence.t_ns["pose"][0])
+        if t_max is not None:
+            if not (math.isfinite(t_max) and t_max > 0.0):
+                raise CalibrationError(f"t_max must be a positive number of seconds, got {t_max!r}")
+            try:
+                evidence = evidence.crop(start, start + int(round(t_max * 1e9)))
+            except ValueError as err:
+                raise CalibrationError(f"{bag}: t_max={t_max} s: {err}") from err
+        self.evidence = evidence
+        self.dt = float(dt)
+        self.t_max = t_max
+        self.scene = scene_dict_for(evidence, scene, simulation)
+        self.sensor, self.effector = self._pick_sensor()
+        self.scene["effectors"][self.effector]["initial_pose"] = [float(v) for v in evidence.pose[0]]
+        self._choose_channels(channels)
+        self.sigma = self._noise_levels(noise)
+        self._build_replay()
+        self._sim = None
+
+    # ------------------------------------------------------------------------------ set-up
+    def _pick_sensor(self) -> tuple[str, str]:
+        sensors = self.scene.get("sensors") or {}
+        if not sensors:
+            raise CalibrationError(f"{self.scene_source}: the scene defines no tactile sensor")
+        topic = self.evidence.source.topics.get("markers_xyz") or self.evidence.source.topics.get("wrench") or ""
+        name = next((n for n in sensors if topic.rstrip("/").endswith(f"{n}/markers") or
+                     topic.rstrip("/").endswith(f"{n}/wrench")), next(iter(sensors)))
+        effector = sensors[name]["effector"]
+        pose_topic = self.evidence.source.topics.get("pose", "")
+        if pose_topic and not pose_topic.rstrip("/").endswith(f"{effector}/pose"):
+            warnings.warn(f"pose topic {pose_topic} does not name effector {effector!r} of sensor {name!r}; "
+                          "replaying it on that effector", ObservationWarning, stacklevel=3)
+        return name, effector
+
+    @property
+    def scene_source(self) -> str:
+        """Where the scene came from (for messages)."""
+        src = self.evidence.source.scene_path
+        return str(src) if src is not None else str(self.evidence.source.bag_path)
+
+    def _choose_channels(self, channels: Sequence[str] | None) -> None:
+        present = self.evidence.channels_present
+        if channels is None:
+            wanted = list(DEFAULT_FIT_CHANNELS)
+            if "markers_xyz" not in present and "markers_uv" in present:
+                wanted[0] = "markers_uv"
+        else:
+            wanted = list(channels)
+        self.dropped: dict[str, str] = {}
+        chosen = []
+        for ch in wanted:
+            if ch not in PREDICTABLE_CHANNELS:
+                raise CalibrationError(f"channel {ch!r} cannot be fitted (fittable: {', '.join(PREDICTABLE_CHANNELS)})")
+            if ch not in present:
+                why = self.evidence.channels_missing.get(ch, f"{ch} not in the recording")
+                self.dropped[ch] = why
+                warnings.warn(f"{self.evidence.source.bag_path}: {why}; fitting without {ch}",
+                              ObservationWarning, stacklevel=3)
+                continue
+            chosen.append(ch)
+        if not chosen:
+            raise CalibrationError(f"{self.evidence.source.bag_path}: none of the channels {', '.join(wanted)} is in "
+                                   "the recording; nothing to fit")
+        self.channels = tuple(chosen)
+
+    def _noise_levels(self, noise: Mapping[str, Sequence[float]] | None) -> dict[str, np.ndarray]:
+        out = {}
+        for ch in PREDICTABLE_CHANNELS:
+            if ch not in self.evidence.channels_present:
+                continue
+            axes = self.evidence.values(ch).shape[-1]
+            if noise is not None and ch in noise:
+                s = np.asarray(noise[ch], dtype=float).reshape(-1)
+            elif ch in self.evidence.noise:
+                s = np.asarray(self.evidence.noise[ch], dtype=float)
+            else:
+                s = np.full(axes, np.nan)
+            if s.shape != (axes,):
+                raise CalibrationError(f"noise of {ch} must have {axes} entries, got {s.shape[0]}")
+            s = np.where(np.isfinite(s), s, NOISE_FLOOR[ch])
+            out[ch] = np.maximum(s, NOISE_FLOOR[ch])
+        return out
+
+    def _build_replay(self) -> None:
+        ev = self.evidence
+        t_pose = ev.t_ns["pose"]
+        t0 = int(t_pose[0])
+        t_end = max(int(ev.t_ns[ch][-1]) for ch in self.channels)
+        dt_ns = int(round(self.dt * 1e9))
+        steps = max(1, int(math.ceil((t_end - t0) / dt_ns)))
+        self.step_times_ns = t0 + dt_ns * np.arange(steps + 1, dtype=np.int64)
+        self.controls = resample_pose(t_pose, ev.pose, self.step_times_ns, outside="clamp")
+        self._interp = {}
+        for ch in PREDICTABLE_CHANNELS:
+            if ch in ev.channels_present:
+                t = ev.t_ns[ch]
+                keep = (t >= t0) & (t <= self.step_times_ns[-1])
+                if not keep.all():
+                    raise CalibrationError(f"{ev.source.bag_path}: {ch} has samples before the first pose stamp")
+                self._interp[ch] = _interpolation(self.step_times_ns, t)
+
+    # ------------------------------------------------------------------------------ simulation
+    @property
+    def step_count(self) -> int:
+        """Number of simulation steps K of one replay."""
+        return int(self.step_times_ns.shape[0] - 1)
+
+    def simulation(self):
+        """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``."""
+        if self._sim is None:
+            from sim_core.scenes import load_scene
+            from sim_core.simulation import Simulation
+
+            self._sim = Simulation(load_scene(self.scene), dt=self.dt)
+            self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
+        return self._sim
+
+    def parameter_value(self, name: str) -> float:
+        """Nominal (scene) value of parameter ``name``.
+
+        Raises:
+            ConfigError: unknown parameter (lists the known names).
+        """
+        self.simulation()
+        if name not in self._nominal:
+            self._sim.get_parameter(name)  # raises ConfigError listing the known names
+        return self._nominal[name]
+
+    def control(self, k: int) -> Control:
+        """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``."""
+        return Control({self.effector: self.controls[k].copy()})
+
+    def simulate(self, params: Mapping[str, float],
+                 on_step: Callable[[int, int], None] | None = None) -> SimTrace:
+        """Replay the recording with parameter values ``params`` and observe every step.
+
+        Args:
+            params: global parameter name -> value (``Model.set_parameter`` names); others keep
+                their scene values.
+            on_step: called as ``on_step(k, K)`` after step k.
+
+        Returns:
+            the :class:`SimTrace`.
+
+        Raises:
+            ConfigError: unknown parameter or a value outside its physical range.
+            SimulationDivergedError: the solver failed (names the step).
+        """
+        sim = self.simulation()
+        for name, nominal in self._nominal.items():
+            if name not in params and sim.get_parameter(name) != nominal:
+                sim.set_parameter(name, nominal)
+        for name, value in params.items():
+            sim.set_parameter(name, float(value))
+        sim.reset()
+        t_start = time.perf_counter()
+        K = self.step_count
+        obs = [self._observe(sim)]
+        for k in range(1, K + 1):
+            sim.step(self.control(k))
+            obs.append(self._observe(sim))
+            if on_step is not None:
+                on_step(k, K)
+        return SimTrace(
+            t_ns=self.step_times_ns.copy(),
+            markers_xyz=np.stack([o[0] for o in obs]), markers_uv=np.stack([o[1] for o in obs]),
+            wrench=np.stack([o[2] for o in obs]), sheet_points=np.stack([o[3] for o in obs]),
+            wall_time_s=time.perf_counter() - t_start,
+        )
+
+    def _observe(self, sim) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        o = sim.observe()
+        r = o.tactile[self.sensor]
+        return (np.asarray(r.markers_xyz, float), np.asarray(r.markers_uv, float), np.asarray(r.wrench, float),
+                np.asarray(o.sheet_points, float))
+
+    # ------------------------------------------------------------------------------ alignment
+    def align(self, channel: str, per_step: np.ndarray) -> np.ndarray:
+        """Interpolate a per-step array ``(K + 1, ...)`` to the stamps of evidence ``channel``.
+
+        Linear in the per-step values, so it also maps per-step derivatives ``(K + 1, ..., p)``.
+
+        Returns:
+            ``(n_stamps, ...)``.
+        """
+        per_step = np.asarray(per_step, dtype=float)
+        if per_step.shape[0] != self.step_times_ns.shape[0]:
+            raise ValueError(f"{channel}: expected {self.step_times_ns.shape[0]} steps, got {per_step.shape[0]}")
+        return self._interp[channel].apply(per_step)
+
+    def predict(self, trace: SimTrace) -> dict[str, np.ndarray]:
+        """Predictions aligned to every predictable channel the recording holds.
+
+        Returns:
+            channel -> array shaped like ``evidence.values(channel)``.
+        """
+        return {ch: self.align(ch, trace.channel(ch)) for ch in self._interp}
+
+    # ------------------------------------------------------------------------------ residuals
+    def data(self, channel: str) -> np.ndarray:
+        """Recorded values of ``channel`` (float64)."""
+        return np.asarray(self.evidence.values(channel), dtype=float)
+
+    @property
+    def residual_count(self) -> int:
+        """Length of the whitened residual vector."""
+        return int(sum(self.data(ch).size for ch in self.channels))
+
+    def residual_slices(self) -> dict[str, slice]:
+        """Channel -> its slice of the residual vector."""
+        out, i = {}, 0
+        for ch in self.channels:
+            n = self.data(ch).size
+            out[ch] = slice(i, i + n)
+            i += n
+        return out
+
+    def residuals(self, prediction: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Whitened residual ``r = (y_data - y_sim) / sigma`` over the fitted channels, ``(m,)``."""
+        return np.concatenate([((self.data(ch) - prediction[ch]) / self.sigma[ch]).reshape(-1)
+                               for ch in self.channels])
+
+    def whiten_derivative(self, channel: str, d_prediction: np.ndarray) -> np.ndarray:
+        """d r / d theta of one channel from the aligned prediction derivative ``(n, ..., axes, p)``.
+
+        Returns:
+            ``(n * ... * axes, p)`` (the sign of ``r = data - sim`` applied).
+        """
+        p = d_prediction.shape[-1]
+        return (-d_prediction / self.sigma[channel][:, None]).reshape(-1, p)
+
+    def channel_rms(self, prediction: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
+        """Per-channel RMS of ``data - prediction`` over every predictable channel present.
+
+        Returns:
+            channel -> ``{"rms", "per_axis", "whitened_rms", "unit", "fitted"}``; for the wrench
+            ``rms`` is over the force components (N) and ``torque_rms`` over the torques (N m).
+        """
+        out = {}
+        for ch in self._interp:
+            e = self.data(ch) - prediction[ch]
+            axes = e.reshape(-1, e.shape[-1])
+            per_axis = np.sqrt(np.mean(axes ** 2, axis=0))
+            entry: dict[str, Any] = {
+                "rms": float(np.sqrt(np.mean(e ** 2))), "per_axis": [float(v) for v in per_axis],
+                "whitened_rms": float(np.sqrt(np.mean((axes / self.sigma[ch]) ** 2))),
+                "unit": CHANNEL_UNITS[ch], "fitted": ch in self.channels,
+            }
+            if ch == "wrench":
+                entry["rms"] = float(np.sqrt(np.mean(axes[:, :3] ** 2)))
+                entry["torque_rms"] = float(np.sqrt(np.mean(axes[:, 3:] ** 2)))
+                entry["unit"] = "N"
+            out[ch] = entry
+        return out

@@ -1,0 +1,73 @@
+"""``thinshell bench``: a few Forming steps run, the JSON line parses, unsupported options fail clearly."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from thinshell_ros.bench import bench_main, process_start_time, scale_model
+
+REQUIRED = {"dofs", "steps_per_s", "newton_iters_mean", "linear_solve_share", "assembly_share", "cold_start_s"}
+
+
+def test_forming_bench_json_line(capsys):
+    assert bench_main(["forming", "--steps", "2", "--json"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1
+    r = json.loads(lines[0])
+    assert REQUIRED <= r.keys()
+    assert r["dofs"] == 1698 and r["steps"] == 2
+    assert r["steps_per_s"] > 0 and r["newton_iters_mean"] >= 1
+    assert 0 < r["assembly_share"] + r["linear_solve_share"] <= 1.0
+    assert r["cold_start_s"] >= r["forward_total_s"] / 2  # the first step is inside the cold start
+
+
+def test_forming_steps_move_the_dome_along_the_trajectory():
+    from sim_core.control import Control
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks import forming_benchmark_offsets, pose_targets
+    from thinshell_ros.bench import _default_scene
+
+    model = load_task_scene(_default_scene("forming"))
+    sim = Simulation(model)
+    sim.state = task_initial_state(model)
+    targets = pose_targets(model.effectors["dome"].initial_pose, forming_benchmark_offsets(3))
+    for k in range(3):
+        c = Control()
+        c.effector_pose_target["dome"] = targets[k]
+        sim.step(c)
+    assert np.allclose(sim.state.effector_pose["dome"], targets[2])
+    assert np.all(np.isfinite(sim.state.x))
+    table = model.bodies["table"].vertices
+    assert np.array_equal(sim.state.x[table], model.x_rest[table])  # frozen box does not move
+
+
+def test_unsupported_arch_and_backward_exit_2(capsys):
+    assert bench_main(["forming", "--arch", "cuda"]) == 2
+    assert "--arch cuda: not supported yet" in capsys.readouterr().err
+    try:
+        import sim_core.adjoint as adjoint  # noqa: F401
+        has_adjoint = hasattr(adjoint, "rollout_gradient")
+    except ImportError:
+        has_adjoint = False
+    if not has_adjoint:
+        assert bench_main(["forming", "--backward", "--steps", "1"]) == 2
+        assert "sim_core.adjoint.rollout_gradient" in capsys.readouterr().err
+
+
+def test_scale_model_sizes_and_small_case(capsys):
+    for target in (1_000, 10_000, 100_000):
+        assert abs(scale_model(target).dof_count - target) / target < 0.05
+    assert bench_main(["scale", "--steps", "1", "--max-dofs", "1000", "--json"]) == 0
+    cases = json.loads(capsys.readouterr().out)["cases"]
+    assert [c["target_dofs"] for c in cases] == [1000]
+    assert cases[0]["step_time_s"] > 0 and cases[0]["peak_rss_mib"] > 10
+
+
+def test_process_start_time_is_in_the_past():
+    import time
+
+    assert 0 <= time.time() - process_start_time() < 3600

@@ -1,0 +1,288 @@
+"""``thinshell bench``: speed benchmarks of the simulator (no ROS needed).
+
+* ``bench forming``: ThinShellLab's Forming scene (``config/scenes/forming.yaml``, 1698 DoF) driven
+  by the benchmark trajectory of DESIGN.md (49 steps); prints DoF, steps/s, Newton iterations per
+  step, the shares of assembly and linear solve, and the cold start (process start to the end of
+  the first step). ``--json`` prints one JSON line instead.
+* ``bench scale``: flat sheets of about 1k, 10k and 100k DoF under gravity, one edge clamped; time
+  per step and peak resident memory. ``--max-dofs`` skips the larger cases.
+* ``bench node`` / ``bench diagnose``: dispatched to ``thinshell_ros.bench_node.bench_node_main`` and
+  ``sysid.diagnose_bench.bench_diagnose_main``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+_IMPORT_TIME = time.time()
+SUPPORTED_ARCHS = ("cpu",)
+SCALE_TARGET_DOFS = (1_000, 10_000, 100_000)
+
+
+def process_start_time() -> float:
+    """Wall-clock time (s since the epoch) at which this process started.
+
+    Read from ``/proc/self/stat`` (start time in clock ticks after boot) and ``/proc/stat`` (boot
+    time); falls back to the time this module was imported where ``/proc`` is unavailable.
+    """
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        start_ticks = int(fields[19])  # field 22 of stat(5); fields[0] is field 3
+        btime = next(int(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines() if line.startswith("btime"))
+        return btime + start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return _IMPORT_TIME
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process so far, MiB (``getrusage``; KiB on Linux)."""
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / 1024.0 if sys.platform != "darwin" else kib / 2**20
+
+
+def _default_scene(name: str) -> Path:
+    from thinshell_ros.paths import bundled_scene
+
+    try:
+        return bundled_scene(name)
+    except OSError:  # ament_index raises when AMENT_PREFIX_PATH is unset: use the source tree
+        return Path(__file__).resolve().parents[1] / "config" / "scenes" / f"{name}.yaml"
+
+
+def _check_arch(arch: str) -> str | None:
+    if arch not in SUPPORTED_ARCHS:
+        return (f"--arch {arch}: not supported yet; the simulator runs on NumPy/SciPy on the CPU "
+                f"(supported: {', '.join(SUPPORTED_ARCHS)})")
+    return None
+
+
+# ------------------------------------------------------------------------------------ forming
+def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
+    """Step the Forming scene along the benchmark trajectory and time it.
+
+    Args:
+        scene: path of the Forming scene file.
+        steps: number of steps (1..49).
+        backward: also time a backward pass with ``sim_core.adjoint.rollout_gradient``.
+
+    Returns:
+        the result record (see :func:`bench_main` for its keys).
+
+    Raises:
+        ConfigError: bad scene or step count; ImportError: ``backward`` without ``sim_core.adjoint``.
+    """
+    from sim_core.control import Control
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+
+    t_build = time.perf_counter()
+    model = load_task_scene(scene)
+    sim = Simulation(model)
+    sim.state = task_initial_state(model)
+    build_s = time.perf_counter() - t_build
+    effector = next(iter(model.effectors))
+    targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
+    iterations, t_assembly, t_linear, step_times = [], 0.0, 0.0, []
+    states, controls = [sim.state], []
+    cold_start = None
+    for k in range(steps):
+        control = Control()
+        control.effector_pose_target[effector] = targets[k]
+        t0 = time.perf_counter()
+        info = sim.step(control)
+        step_times.append(time.perf_counter() - t0)
+        if cold_start is None:
+            cold_start = time.time() - process_start_time()
+        iterations.append(info.iterations)
+        t_assembly += info.time_assembly
+        t_linear += info.time_linear_solve
+        controls.append(control)
+        states.append(sim.state)
+    total = float(sum(step_times))
+    result = {
+        "bench": "forming",
+        "dofs": int(model.dof_count),
+        "vertices": int(model.vertex_count),
+        "steps": int(steps),
+        "steps_per_s": steps / total,
+        "step_time_mean_s": total / steps,
+        "newton_iters_mean": float(np.mean(iterations)),
+        "newton_iters_max": int(np.max(iterations)),
+        "assembly_share": t_assembly / total,
+        "linear_solve_share": t_linear / total,
+        "cold_start_s": float(cold_start),
+        "scene_build_s": build_s,
+        "forward_total_s": total,
+        "arch": "cpu",
+        "linear_solver": sim.solver.linear_solver.name,
+        "peak_rss_mib": peak_rss_mib(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+    }
+    if backward:
+        adjoint = importlib.import_module("sim_core.adjoint")
+        sheet = model.bodies["sheet"]
+        dl_dx = np.zeros_like(sim.state.x)
+        dl_dx[sheet.vertex_start : sheet.vertex_stop] = 1.0  # d(sum of sheet coordinates)/dx
+        t0 = time.perf_counter()
+        adjoint.rollout_gradient(sim, states, controls, dl_dx)
+        t_back = time.perf_counter() - t0
+        result["backward_total_s"] = t_back
+        result["backward_steps_per_s"] = steps / t_back
+    return result
+
+
+def _print_forming(r: dict) -> None:
+    print(f"thinshell bench forming ({r['arch']}, linear solver {r['linear_solver']}, Python {r['python']}, NumPy {r['numpy']})")
+    print(f"  DoF                      {r['dofs']} ({r['vertices']} vertices)")
+    print(f"  steps                    {r['steps']}")
+    print(f"  steps/s                  {r['steps_per_s']:.3f}  ({1e3 * r['step_time_mean_s']:.1f} ms/step)")
+    print(f"  Newton iterations/step   {r['newton_iters_mean']:.2f} (max {r['newton_iters_max']})")
+    print(f"  assembly share           {100 * r['assembly_share']:.1f} %")
+    print(f"  linear-solve share       {100 * r['linear_solve_share']:.1f} %")
+    print(f"  cold start               {r['cold_start_s']:.2f} s (process start to end of first step)")
+    print(f"  peak RSS                 {r['peak_rss_mib']:.0f} MiB")
+    if "backward_total_s" in r:
+        print(f"  backward                 {r['backward_steps_per_s']:.3f} steps/s ({r['backward_total_s']:.2f} s)")
+
+
+# ------------------------------------------------------------------------------------ scale
+def scale_model(target_dofs: int):
+    """A flat 0.1 m square paper-like sheet (StVK) with about ``target_dofs`` DoF, edge x0 clamped.
+
+    Returns:
+        the Model (gravity -9.81 z, self-contact on, dt 5 ms in ``meta``).
+    """
+    from sim_core.builder import ModelBuilder
+    from sim_core.mesh.sheet import grid_sheet
+
+    n = max(2, int(round(np.sqrt(target_dofs / 3.0))))
+    mesh = grid_sheet((0.1, 0.1), (n, n), (0.0, 0.0, 0.0))
+    b = ModelBuilder()
+    clamped = np.flatnonzero(np.arange(n * n) % n == 0)
+    b.add_sheet("sheet", mesh, {"youngs_modulus": 3.0e9, "poisson_ratio": 0.3, "thickness": 3.0e-4, "density": 700.0},
+                fixed=clamped, grid_shape=(n, n))
+    return b.finalize(gravity=(0.0, 0.0, -9.81), meta={"name": f"scale_{n}x{n}", "dt": 0.005})
+
+
+def run_scale(max_dofs: int, steps: int) -> list[dict]:
+    """Time ``steps`` steps of each scale case up to ``max_dofs`` DoF (cases in increasing size).
+
+    Returns:
+        one record per case: ``dofs``, ``step_time_s`` (mean), ``newton_iters_mean``, shares,
+        ``peak_rss_mib`` (process peak after the case; cases run smallest first).
+    """
+    from sim_core.simulation import Simulation
+
+    out = []
+    for target in SCALE_TARGET_DOFS:
+        if target > max_dofs:
+            continue
+        model = scale_model(target)
+        sim = Simulation(model)
+        times, iters, ta, tl = [], [], 0.0, 0.0
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            info = sim.step()
+            times.append(time.perf_counter() - t0)
+            iters.append(info.iterations)
+            ta += info.time_assembly
+            tl += info.time_linear_solve
+        total = float(sum(times))
+        out.append({"target_dofs": target, "dofs": int(model.dof_count), "steps": steps, "step_time_s": total / steps,
+                    "newton_iters_mean": float(np.mean(iters)), "assembly_share": ta / total,
+                    "linear_solve_share": tl / total, "peak_rss_mib": peak_rss_mib()})
+    return out
+
+
+# ------------------------------------------------------------------------------------ CLI
+def _delegate(module: str, func: str, argv: list[str], what: str) -> int:
+    try:
+        entry = getattr(importlib.import_module(module), func)
+    except (ImportError, AttributeError) as err:
+        print(f"thinshell bench {what}: not available in this installation ({module}.{func}: {err})", file=sys.stderr)
+        return 2
+    return int(entry(argv) or 0)
+
+
+def bench_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose}``; returns the exit code.
+
+    ``--json`` output of ``forming`` is one line with the keys ``dofs``, ``steps_per_s``,
+    ``newton_iters_mean``, ``newton_iters_max``, ``assembly_share``, ``linear_solve_share``,
+    ``cold_start_s``, ``scene_build_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
+    ``linear_solver``, ``peak_rss_mib``, ``python``, ``numpy`` (and ``backward_*`` with
+    ``--backward``); of ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
+
+    Exit codes: 0 success, 2 unsupported option (``--arch`` other than cpu, ``--backward`` without
+    ``sim_core.adjoint``) or missing sub-benchmark.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog="thinshell bench", description="speed benchmarks")
+    sub = parser.add_subparsers(dest="which", required=True)
+    p = sub.add_parser("forming", help="ThinShellLab Forming scene, 1698 DoF, benchmark trajectory")
+    p.add_argument("--arch", default="cpu", help="compute backend (only cpu today)")
+    p.add_argument("--json", action="store_true", help="print one JSON line")
+    p.add_argument("--steps", type=int, default=49, help="steps of the trajectory to run (1..49)")
+    p.add_argument("--backward", action="store_true", help="also time the backward pass (needs sim_core.adjoint)")
+    p.add_argument("--scene", default=None, help="scene file (default: the bundled forming.yaml)")
+    s = sub.add_parser("scale", help="flat sheets of ~1k, 10k, 100k DoF under gravity")
+    s.add_argument("--arch", default="cpu", help="compute backend (only cpu today)")
+    s.add_argument("--json", action="store_true", help="print one JSON line")
+    s.add_argument("--steps", type=int, default=3, help="steps per case")
+    s.add_argument("--max-dofs", type=int, default=20_000, help="skip cases above this DoF count (100000 runs all)")
+    sub.add_parser("node", help="ROS node benchmark", add_help=False)
+    sub.add_parser("diagnose", help="missing-physics diagnosis benchmark", add_help=False)
+    if argv and argv[0] in ("node", "diagnose"):
+        module, func = (("thinshell_ros.bench_node", "bench_node_main") if argv[0] == "node"
+                        else ("sysid.diagnose_bench", "bench_diagnose_main"))
+        return _delegate(module, func, argv[1:], argv[0])
+    ns = parser.parse_args(argv)
+    msg = _check_arch(ns.arch)
+    if msg:
+        print(f"thinshell bench {ns.which}: {msg}", file=sys.stderr)
+        return 2
+    if ns.which == "forming":
+        if ns.backward:
+            try:
+                adjoint = importlib.import_module("sim_core.adjoint")
+            except ImportError:
+                adjoint = None
+            if adjoint is None or not hasattr(adjoint, "rollout_gradient"):
+                print("thinshell bench forming: --backward needs sim_core.adjoint.rollout_gradient, "
+                      "which is not available in this installation", file=sys.stderr)
+                return 2
+        result = run_forming(ns.scene or _default_scene("forming"), ns.steps, ns.backward)
+        if ns.json:
+            print(json.dumps(result))
+        else:
+            _print_forming(result)
+        return 0
+    cases = run_scale(ns.max_dofs, ns.steps)
+    if ns.json:
+        print(json.dumps({"bench": "scale", "cases": cases}))
+    else:
+        print(f"thinshell bench scale (cpu, {ns.steps} steps per case, gravity, edge x0 clamped)")
+        print(f"  {'DoF':>8} {'ms/step':>10} {'Newton it':>10} {'assembly':>9} {'lin.solve':>9} {'peak RSS':>10}")
+        for c in cases:
+            print(f"  {c['dofs']:>8} {1e3 * c['step_time_s']:>10.1f} {c['newton_iters_mean']:>10.2f} "
+                  f"{100 * c['assembly_share']:>8.1f}% {100 * c['linear_solve_share']:>8.1f}% {c['peak_rss_mib']:>7.0f} MiB")
+        skipped = [t for t in SCALE_TARGET_DOFS if t > ns.max_dofs]
+        if skipped:
+            print(f"  (skipped cases of ~{', '.join(str(t) for t in skipped)} DoF; raise --max-dofs to run them)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(bench_main())

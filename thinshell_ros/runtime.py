@@ -1,0 +1,64 @@
+"""Process plumbing shared by the thinshell nodes: rclpy session, signals, spinning, QoS profiles.
+
+SIGINT and SIGTERM only set a stop flag (Python-level handlers, rclpy's own handlers are not
+installed), so a signal never raises inside a callback that is writing a bag; the spin loop returns
+within ``poll`` seconds and the caller closes its recording in ``finally``.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from contextlib import contextmanager
+from typing import Iterator, Sequence
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+
+# INTERFACES.md "QoS"
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
+                        durability=DurabilityPolicy.VOLATILE)
+# the profile rclpy's TimeSource subscribes /clock with (best-effort, keep-last 1)
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+# visualisation (RViz subscribes reliable by default)
+MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@contextmanager
+def ros_session(args: Sequence[str] | None = None) -> Iterator[threading.Event]:
+    """Initialise rclpy with ``args`` (``--ros-args ...`` are parsed) and yield a stop event.
+
+    SIGINT and SIGTERM set the event; the previous handlers are restored and the rclpy context is
+    shut down on exit.
+    """
+    stop = threading.Event()
+    rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.NO)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda signum, frame: stop.set())
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        rclpy.try_shutdown()
+
+
+def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05) -> None:
+    """Spin ``node`` until ``stop`` is set or the context is shut down (returns; never raises for that)."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        while not stop.is_set() and node.context.ok():
+            executor.spin_once(timeout_sec=poll)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.remove_node(node)
+        executor.shutdown(timeout_sec=0.0)

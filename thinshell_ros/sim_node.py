@@ -1,0 +1,371 @@
+"""The simulator node: a :class:`sim_core.simulation.Simulation` behind the INTERFACES.md topics.
+
+Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yaml``):
+
+- ``scene`` (str): scene file; default the bundled ``config/scenes/press_slide.yaml``.
+- ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
+  slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
+- ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
+  ``/clock`` is published after every step.
+- ``mesh_rate`` (Hz, sim time): rate of the ``sheet/mesh`` marker (0 = off).
+- ``namespace`` (str, default ``/thinshell``): prefix of every topic.
+- ``publish_image`` (bool): render and publish ``<sensor>/image``.
+- ``record`` (str): bag directory to record inputs and outputs into (empty: off);
+  ``record_force`` replaces an existing one.
+- ``command_timeout`` (s of sim time): commands older than this are stale (hold position); 0 = never.
+- every material parameter of the scene by its global name (``sheet.youngs_modulus``,
+  ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
+
+Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
+Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from typing import Any, Sequence
+
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Image, PointCloud2
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool, Trigger
+from visualization_msgs.msg import Marker
+
+from sim_core.errors import ConfigError, ThinShellError
+from thinshell_ros import conversions as cv
+from thinshell_ros.commands import CommandArbiter, CommandLimits, unknown_effector_topics
+from thinshell_ros.paths import bundled_scene
+from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS
+
+MODES = ("realtime", "fast", "stepped")
+
+
+class SimNode(Node):
+    """ROS 2 node stepping a Simulation and publishing its observations.
+
+    Args:
+        sim: an already built simulation (facade API of ``sim_core.simulation.Simulation``); default:
+            built from the ``scene`` parameter.
+        node_name: ROS node name.
+        **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
+
+    Raises:
+        ConfigError: invalid parameter (mode, rate, material value) or scene.
+    """
+
+    def __init__(self, sim: Any | None = None, node_name: str = "thinshell_sim", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        ro = ParameterDescriptor(read_only=True)
+        self.scene_path = str(self.declare_parameter("scene", "", ro).value) or (str(bundled_scene()) if sim is None else "")
+        self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
+        self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
+        self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
+        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell", ro).value).strip("/")
+        self.publish_image = bool(self.declare_parameter("publish_image", False).value)
+        record = str(self.declare_parameter("record", "", ro).value)
+        record_force = bool(self.declare_parameter("record_force", False, ro).value)
+        timeout = float(self.declare_parameter("command_timeout", 1.0, ro).value)
+        if self.mode not in MODES:
+            raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
+        if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
+            raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
+        if sim is None:
+            from sim_core.simulation import Simulation
+
+            sim = Simulation.from_scene(self.scene_path)
+        self.sim = sim
+        self.dt = float(sim.dt)
+        self._declare_material_parameters()
+
+        limits = {}
+        for name in sim.effector_names:
+            eff = getattr(getattr(sim, "model", None), "effectors", {}).get(name)
+            limits[name] = CommandLimits(
+                max_translation_per_step=float(getattr(eff, "max_translation_per_step", 1e-3)),
+                max_rotation_per_step=float(getattr(eff, "max_rotation_per_step", 0.02)),
+                timeout=timeout)
+        self.arbiter = CommandArbiter(limits)
+        self.paused = self.mode == "stepped"
+        self.rejected_commands = 0
+        self.failed_steps = 0
+        self._next_publish_t = 0.0
+        self._next_mesh_t = 0.0
+        self._warned_topics: set[str] = set()
+        self._steps = 0
+        self._wall0 = time.monotonic()
+        self._sim0 = sim.t
+
+        self.recorder = None
+        if record:
+            from thinshell_ros.recorder import BagRecorder
+
+            self.recorder = BagRecorder(record, scene=self.scene_path or None, force=record_force)
+            self.get_logger().info(f"recording into {record}")
+
+        ns = self.namespace
+        self._pub_pose = {e: self.create_publisher(PoseStamped, f"{ns}/{e}/pose", SENSOR_QOS) for e in sim.effector_names}
+        self._pub_markers = {s: self.create_publisher(PointCloud2, f"{ns}/{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{ns}/{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_image = {s: self.create_publisher(Image, f"{ns}/{s}/image", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_points = self.create_publisher(PointCloud2, f"{ns}/sheet/points", SENSOR_QOS)
+        self._pub_mesh = self.create_publisher(Marker, f"{ns}/sheet/mesh", MARKER_QOS)
+        self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
+        for e in sim.effector_names:
+            self.create_subscription(PoseStamped, f"{ns}/{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
+            self.create_subscription(TwistStamped, f"{ns}/{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
+            self.create_subscription(Float64, f"{ns}/{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(SetBool, "~/pause", self._on_pause)
+        self.create_service(Trigger, "~/step", self._on_step)
+        if self.mode != "stepped":
+            self.create_timer(self.dt if self.mode == "realtime" else 0.0, self._on_timer)
+        self.create_timer(0.2, self._clock_heartbeat)
+        self.create_timer(1.0, self._check_graph)
+        self.create_timer(5.0, self._log_progress)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.publish_outputs(force=True)
+        self.get_logger().info(
+            f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
+            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}")
+
+    # ------------------------------------------------------------------------------ parameters
+    def _declare_material_parameters(self) -> None:
+        self.material_names = list(self.sim.parameter_names)
+        for name in self.material_names:
+            current = float(self.sim.get_parameter(name))
+            desc = ParameterDescriptor(dynamic_typing=True, description=f"simulation parameter {name} (SI units)")
+            value = self.declare_parameter(name, current, desc).value
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f"parameter {name!r} must be a number, got {value!r}")
+            if float(value) != current:
+                self.sim.set_parameter(name, float(value))
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """Validate and apply material parameters atomically (all or none)."""
+        applied: list[tuple[str, float]] = []
+        try:
+            for p in params:
+                if p.name not in self.material_names:
+                    continue
+                if not isinstance(p.value, (int, float)) or isinstance(p.value, bool):
+                    raise ConfigError(f"parameter {p.name!r} must be a number, got {p.value!r}")
+                old = float(self.sim.get_parameter(p.name))
+                self.sim.set_parameter(p.name, float(p.value))
+                applied.append((p.name, old))
+                self.get_logger().info(f"parameter {p.name} = {float(p.value):g}")
+            for p in params:
+                if p.name == "publish_image":
+                    if not isinstance(p.value, bool):
+                        raise ConfigError(f"parameter 'publish_image' must be a bool, got {p.value!r}")
+                    self.publish_image = p.value
+        except (ThinShellError, ValueError) as err:
+            for name, old in reversed(applied):
+                self.sim.set_parameter(name, old)
+            self.get_logger().error(f"parameter change rejected: {err}")
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------------------ commands
+    def _reject(self, reason: str) -> None:
+        self.rejected_commands += 1
+        self.get_logger().error(reason)
+
+    def _record_input(self, topic: str, msg: Any) -> None:
+        if self.recorder is not None and not self.recorder.closed:
+            try:
+                self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
+            except ThinShellError as err:
+                self.get_logger().error(f"recording {topic}: {err}")
+
+    def _pose_callback(self, effector: str):
+        topic = f"{self.namespace}/{effector}/pose_cmd"
+
+        def on_pose(msg: PoseStamped) -> None:
+            try:
+                self._record_input(topic, msg)
+                res = self.arbiter.submit_pose(effector, cv.pose_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
+                if not res.accepted:
+                    self._reject(res.reason)
+            except Exception as err:  # noqa: BLE001 - never die on input
+                self._reject(f"{topic}: unusable message: {err}")
+        return on_pose
+
+    def _twist_callback(self, effector: str):
+        topic = f"{self.namespace}/{effector}/twist_cmd"
+
+        def on_twist(msg: TwistStamped) -> None:
+            try:
+                self._record_input(topic, msg)
+                res = self.arbiter.submit_twist(effector, cv.twist_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
+                if not res.accepted:
+                    self._reject(res.reason)
+            except Exception as err:  # noqa: BLE001
+                self._reject(f"{topic}: unusable message: {err}")
+        return on_twist
+
+    def _gripper_callback(self, effector: str):
+        topic = f"{self.namespace}/{effector}/gripper_cmd"
+
+        def on_gripper(msg: Float64) -> None:
+            try:
+                self._record_input(topic, msg)
+                res = self.arbiter.submit_gripper(effector, msg.data)
+                if not res.accepted:
+                    self._reject(res.reason)
+            except Exception as err:  # noqa: BLE001
+                self._reject(f"{topic}: unusable message: {err}")
+        return on_gripper
+
+    def _check_graph(self) -> None:
+        try:
+            topics = [name for name, _ in self.get_topic_names_and_types()]
+            for topic, effector in unknown_effector_topics(topics, self.namespace, self.sim.effector_names):
+                if topic not in self._warned_topics:
+                    self._warned_topics.add(topic)
+                    self.get_logger().warning(f"{topic}: the scene has no effector {effector!r} "
+                                              f"(effectors: {self.sim.effector_names}); its commands are ignored")
+        except Exception as err:  # noqa: BLE001
+            self.get_logger().error(f"graph check failed: {err}")
+
+    # ------------------------------------------------------------------------------ stepping
+    def advance(self) -> bool:
+        """One simulation step with the current commands, then publish; returns whether it succeeded."""
+        try:
+            targets = self.arbiter.step_targets(self.sim.t, self.dt, self._measured_poses())
+            for event in targets.events:
+                self.get_logger().warning(event)
+            control = self.sim.model.control()
+            control.effector_pose_target.update(targets.effector_pose_target)
+            control.gripper_target.update(targets.gripper_target)
+            self.sim.step(control)
+            self._steps += 1
+        except Exception as err:  # noqa: BLE001 - a failed step keeps the last state; the node lives on
+            self.failed_steps += 1
+            self.arbiter.hold()
+            self.get_logger().error(f"step at t={self.sim.t:.4f} s failed ({type(err).__name__}: {err}); "
+                                    "holding the effectors", throttle_duration_sec=1.0)
+            self.publish_outputs(force=True)
+            return False
+        self.publish_outputs()
+        return True
+
+    def _measured_poses(self) -> dict[str, Any]:
+        state = getattr(self.sim, "state", None)
+        if state is not None and getattr(state, "effector_pose", None):
+            return state.effector_pose
+        return self.sim.observe().effector_pose
+
+    def _clock_heartbeat(self) -> None:
+        """While paused (or stepped), keep ``/clock`` alive for sim-time clients (not recorded)."""
+        if self.paused:
+            self._pub_clock.publish(cv.clock_msg(cv.seconds_to_ns(self.sim.t)))
+
+    def _on_timer(self) -> None:
+        if not self.paused:
+            self.advance()
+
+    # ------------------------------------------------------------------------------ outputs
+    def _publish(self, pub: Any, msg: Any, t_ns: int) -> None:
+        pub.publish(msg)
+        if self.recorder is not None and not self.recorder.closed:
+            try:
+                self.recorder.write(pub.topic_name, msg, t_ns)
+            except ThinShellError as err:
+                self.get_logger().error(f"recording {pub.topic_name}: {err}", throttle_duration_sec=1.0)
+
+    def publish_outputs(self, force: bool = False) -> None:
+        """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output."""
+        t = float(self.sim.t)
+        t_ns = cv.seconds_to_ns(t)
+        try:
+            self._publish(self._pub_clock, cv.clock_msg(t_ns), t_ns)
+            due = force or self.rate <= 0 or t >= self._next_publish_t - 1e-9
+            if not due:
+                return
+            if self.rate > 0:
+                self._next_publish_t = t + 1.0 / self.rate
+            obs = self.sim.observe(render_image=self.publish_image) if self.publish_image else self.sim.observe()
+            for e, pose in obs.effector_pose.items():
+                self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
+            for s, reading in obs.tactile.items():
+                self._publish(self._pub_markers[s], cv.markers_to_msg(reading.markers_xyz, reading.markers_uv, t_ns, s), t_ns)
+                self._publish(self._pub_wrench[s], cv.wrench_to_msg(reading.wrench, t_ns, s), t_ns)
+                if self.publish_image and reading.image is not None:
+                    self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
+            if len(obs.sheet_points):
+                self._publish(self._pub_points, cv.points_to_msg(obs.sheet_points, t_ns, "world"), t_ns)
+                if self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9):
+                    self._next_mesh_t = t + 1.0 / self.mesh_rate
+                    self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns), t_ns)
+        except Exception as err:  # noqa: BLE001
+            self.get_logger().error(f"publishing at t={t:.4f} s failed: {err}", throttle_duration_sec=1.0)
+
+    def _log_progress(self) -> None:
+        wall = time.monotonic() - self._wall0
+        if wall > 0 and self._steps:
+            rtf = (self.sim.t - self._sim0) / wall
+            self.get_logger().info(f"t={self.sim.t:.3f} s, {self._steps} steps, real-time factor {rtf:.3g}")
+        self._wall0, self._sim0, self._steps = time.monotonic(), self.sim.t, 0
+
+    # ------------------------------------------------------------------------------ services
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            self.sim.reset()
+            self.arbiter.reset()
+            self._next_publish_t = self._next_mesh_t = 0.0
+            self.publish_outputs(force=True)
+            response.success, response.message = True, f"reset to t={self.sim.t:g} s"
+        except Exception as err:  # noqa: BLE001
+            response.success, response.message = False, f"reset failed: {err}"
+        return response
+
+    def _on_pause(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        self.paused = bool(request.data) if self.mode != "stepped" else True
+        response.success = self.mode != "stepped" or bool(request.data)
+        response.message = "paused" if self.paused else "running"
+        if self.mode == "stepped" and not request.data:
+            response.message = "stepped mode: use ~/step to advance"
+        return response
+
+    def _on_step(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        ok = self.advance()
+        response.success = ok
+        response.message = f"t={self.sim.t:.6f} s" if ok else f"step failed at t={self.sim.t:.6f} s (see log)"
+        return response
+
+    # ------------------------------------------------------------------------------ shutdown
+    def close(self) -> None:
+        """Close the recording (idempotent)."""
+        if self.recorder is not None and not self.recorder.closed:
+            counts = self.recorder.message_counts
+            self.recorder.close()
+            self.get_logger().info(f"recording closed: {sum(counts.values())} messages on {len(counts)} topics")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the node until SIGINT/SIGTERM; the recording (if any) is closed. Returns the exit code."""
+    from thinshell_ros.runtime import ros_session, spin_until_stopped
+
+    args = list(sys.argv) if argv is None else ["thinshell-sim-node", *argv]
+    with ros_session(args) as stop:
+        try:
+            node = SimNode()
+        except (ThinShellError, FileNotFoundError) as err:
+            print(f"thinshell sim node: error: {err}", file=sys.stderr)
+            return 1
+        try:
+            spin_until_stopped(node, stop)
+        finally:
+            node.close()
+            node.destroy_node()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
