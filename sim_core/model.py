@@ -269,8 +269,10 @@ class Model:
     def state(self) -> State:
         """A fresh initial state: rest (or initial) positions, zero velocity, initial effector poses."""
         x0 = self.x_rest if self.initial_x is None else self.initial_x
+        seeded = self.meta.get("initial_hinge_theta_bar", {})
         theta_bar = {
-            b.name: np.zeros(b.hinges.shape[0]) for b in self.bodies.values() if b.hinges is not None
+            b.name: np.array(seeded.get(b.name, np.zeros(b.hinges.shape[0])), dtype=float)
+            for b in self.bodies.values() if b.hinges is not None
         }
         return State(
             t=0.0,

@@ -1,0 +1,837 @@
+"""Differentiable rollouts: the linearisation of one implicit step and the reverse (adjoint) pass.
+
+Each step solves ``x^{n+1} = argmin_x E(x; x^n, v^n, theta_bar^n, u^n, p)`` with Dirichlet vertices
+(static clamps hold ``x^n``; effector-driven vertices follow ``driven_positions(pose^{n+1})``). At the
+converged minimum the free rows of the gradient vanish, ``g_f(x^{n+1}; ...) = 0``, so by the implicit
+function theorem (DESIGN.md "Backward")
+
+    dx_f = -H_ff^{-1} (dg_f/dp dp + dg_f/dx^n dx^n + dg_f/dv^n dv^n + dg_f/dtheta_bar dtheta_bar^n + H_fd dx_d),
+
+with H the EXACT Hessian at the converged ``x^{n+1}`` (element blocks with ``projection="none"``,
+inertia/damping diagonals; not the projected Newton matrix), factorised once per step; then
+``v^{n+1} = (x^{n+1} - x^n) / dt``. The reverse pass solves one system ``H_ff lambda = dL/dx_f`` per
+step with that factorisation and pulls ``-lambda`` back through every right-hand side above.
+
+What depends on what (and what is treated as constant):
+
+- inertia ``m/(2 dt^2)|x - x^n - dt v^n|^2``: ``x^n``, ``v^n`` and the masses (``density``,
+  ``thickness`` of sheets); gravity ``-m g.x``: the masses; damping ``c m/(2 dt)|x - x^n|^2``: ``x^n``,
+  ``c`` and the masses.
+- lagged friction (Li et al. 2020): besides ``x^n`` in the tangential displacement, the frozen normal
+  force ``lam = k_c (eps - d(x^n))``, the contact normal (hence the tangent projector ``I - n n^T``)
+  and the closest-point weights are functions of the pair's positions at ``x^n``; they are
+  differentiated exactly (first-order forward-mode jets of the same closed forms the contact
+  potentials use, per Voronoi region). ``lam`` is proportional to ``k_c`` (``contact.stiffness``).
+  The friction energy only depends on the projector, so the piecewise choice of tangent basis does
+  not enter.
+- bending plasticity ``theta_bar^{n+1} = theta - Y sign(theta - theta_bar^n)`` where
+  ``|theta - theta_bar^n| > Y`` (yielding branch: d/dx = dtheta/dx, d/dY = -sign), else
+  ``theta_bar^n`` (identity); theta_bar enters the bending gradient as ``-2 k_h dtheta/dx``.
+- non-differentiable, held fixed within a step: the contact pair set, the remembered sides, the
+  Voronoi regions of the closest points, the active/inactive state of each penalty (the derivative
+  is that of the branch the converged step is on), the yielding set.
+- effector commands: an unlimited command reaches the pose ``[t, q / |q|]`` (derivative through the
+  normalisation); a rate-limited command (``StepRecord.limited_effectors``) is differentiated
+  through :func:`~sim_core.effector.limit_pose_step` by central differences of that 7 -> 7 map
+  (it then also depends on the previous pose). A held effector (no target) keeps ``pose^n``.
+
+Steps retried with dt halving (``SolverConfig.dt_halvings_on_failure``) are not differentiable here
+(the record only holds the last sub-step): :func:`rollout` refuses them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from sim_core.collision import jets
+from sim_core.collision.distances import (
+    EdgeEdgeRegion,
+    PointTriangleRegion,
+    edge_edge_closest_points,
+    point_triangle_closest_point,
+)
+from sim_core.contact_set import ContactSet
+from sim_core.control import Control
+from sim_core.effector import driven_positions, limit_pose_step
+from sim_core.elastic import ElasticTerms
+from sim_core.errors import ConfigError, ThinShellError
+from sim_core.linsolve import make_linear_solver
+from sim_core.model import Model
+from sim_core.potentials.base import assemble_hessian, block_dof_indices, scatter_gradient
+from sim_core.potentials.bending import dihedral_angle, dihedral_angle_gradient
+from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
+from sim_core.potentials.friction import (
+    LaggedFriction,
+    smooth_friction_f1_over_x,
+    smooth_friction_f2_x_minus_f1_over_x3,
+)
+from sim_core.state import State
+from sim_core.transforms import quat_to_matrix
+
+LIMITED_POSE_FD_STEP = 1e-7
+"""Central-difference step (m, and quaternion units) for the Jacobian of a rate-limited command."""
+
+
+# ============================================================================ records
+@dataclass
+class Trajectory:
+    """A recorded rollout.
+
+    Attributes:
+        states: ``T + 1`` states (``states[0]`` the initial one), deep copies.
+        records: the solver's ``StepRecord`` of each step (``T``), or None when not recorded.
+        controls: the ``T`` controls that were applied (copies).
+        model_revision: ``Model.revision`` during the rollout (parameters must not change before
+            the gradient is taken).
+    """
+
+    states: list[State]
+    records: list | None
+    controls: list[Control]
+    model_revision: int
+
+    @property
+    def step_count(self) -> int:
+        """Number of steps ``T``."""
+        return len(self.controls)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Positions of every state, m, shape ``(T + 1, n, 3)``."""
+        return np.stack([s.x for s in self.states])
+
+
+@dataclass
+class Gradient:
+    """Derivatives of a scalar loss of a rollout.
+
+    Attributes:
+        controls: per step, effector name -> dL/d(commanded target pose ``[x y z qx qy qz qw]``),
+            shape ``(7,)`` (zeros for an effector without a target in that step's control).
+        gripper: per step, effector name -> dL/d(commanded finger opening) (0 when not commanded).
+        params: global parameter name -> dL/dp.
+        x0: dL/d(initial positions), shape ``(n, 3)``.
+        v0: dL/d(initial velocities), shape ``(n, 3)``.
+        initial_pose: effector name -> dL/d(initial effector pose), shape ``(7,)``.
+        theta_bar0: sheet name -> dL/d(initial rest angles), shape ``(h,)``.
+        loss: the loss value when a callback gave it, else None.
+    """
+
+    controls: list[dict[str, np.ndarray]]
+    gripper: list[dict[str, float]]
+    params: dict[str, float]
+    x0: np.ndarray
+    v0: np.ndarray
+    initial_pose: dict[str, np.ndarray] = field(default_factory=dict)
+    theta_bar0: dict[str, np.ndarray] = field(default_factory=dict)
+    loss: float | None = None
+
+
+def rollout(sim, controls: Sequence[Control | None], record: bool = True) -> Trajectory:
+    """Step a :class:`~sim_core.simulation.Simulation` from its current state through ``controls``.
+
+    Args:
+        sim: the simulation (its state advances; reset it first for a rollout from the start).
+        controls: one control per step (None = hold every effector).
+        record: keep the solver's ``StepRecord`` of every step (needed for gradients).
+
+    Returns:
+        the :class:`Trajectory`.
+
+    Raises:
+        ConfigError: a step was retried with a smaller dt (not differentiable; set
+            ``SolverConfig.dt_halvings_on_failure = 0``), naming the step.
+        SimulationDivergedError: from the solver.
+    """
+    states = [sim.state.copy()]
+    records = [] if record else None
+    applied = []
+    for i, c in enumerate(controls):
+        c = c.copy() if c is not None else Control()
+        info = sim.step(c)
+        if record:
+            if info.substeps != 1:
+                raise ConfigError(
+                    f"rollout step {i}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
+                    "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
+                )
+            records.append(sim.solver.last_record)
+        states.append(sim.state.copy())
+        applied.append(c)
+    return Trajectory(states=states, records=records, controls=applied, model_revision=sim.model.revision)
+
+
+# ============================================================================ lagged friction frames
+@dataclass
+class FrictionRows:
+    """The lagged friction pairs of one step with the derivatives of their frozen frames.
+
+    Attributes:
+        friction: the :class:`LaggedFriction` of the step (rebuilt from ``x^n`` and the side memory).
+        vertices: shape ``(k, 4)``; rows as in ``friction``.
+        body_pairs: per row, the unordered pair of body/plane names (for ``friction.<pair>``).
+        dlam: d lam / d z^n, shape ``(k, 12)`` (local DoF ``3 a + d`` of ``vertices[:, a]``).
+        normal, dnormal: unit normals ``(k, 3)`` and their derivatives ``(k, 3, 12)``.
+        weights, dweights: closest-point weights ``(k, 4)`` and derivatives ``(k, 4, 12)``.
+    """
+
+    friction: LaggedFriction
+    vertices: np.ndarray
+    body_pairs: list[frozenset]
+    dlam: np.ndarray
+    normal: np.ndarray
+    dnormal: np.ndarray
+    weights: np.ndarray
+    dweights: np.ndarray
+
+
+def _const(k: int, value) -> jets.Jet:
+    val = np.broadcast_to(np.asarray(value, dtype=float), (k,)).copy()
+    return jets.Jet(val, np.zeros((k, 12)), None, 1)
+
+
+def _vec_scale(u: jets.Jet, s: jets.Jet) -> jets.Jet:
+    """Vector jet times scalar jet."""
+    return jets.Jet(u.val * s.val[:, None], u.grad * s.val[:, None, None] + u.val[:, :, None] * s.grad[:, None, :],
+                    None, 1)
+
+
+def _unit(u: jets.Jet) -> tuple[jets.Jet, jets.Jet]:
+    length = jets.norm(u)
+    return _vec_scale(u, jets.reciprocal(length)), length
+
+
+def _divide(a: jets.Jet, b: jets.Jet) -> jets.Jet:
+    return jets.multiply(a, jets.reciprocal(b))
+
+
+def _variables(z: np.ndarray) -> list[jets.Jet]:
+    return [jets.variable(z[:, a], a, 12, 1) for a in range(4)]
+
+
+def _frame_out(k: int):
+    return (np.zeros(k), np.zeros((k, 12)), np.zeros((k, 3)), np.zeros((k, 3, 12)), np.zeros((k, 4)),
+            np.zeros((k, 4, 12)))
+
+
+def _store(out, mask, d: jets.Jet, n: jets.Jet, w: list[jets.Jet]) -> None:
+    dist, ddist, nrm, dnrm, wt, dwt = out
+    dist[mask], ddist[mask], nrm[mask], dnrm[mask] = d.val, d.grad, n.val, n.grad
+    wt[mask] = np.stack([c.val for c in w], axis=1)
+    dwt[mask] = np.stack([c.grad for c in w], axis=1)
+
+
+def vertex_triangle_frames(z: np.ndarray, side: np.ndarray):
+    """Contact distance, normal and weights of vertex-triangle pairs with derivatives (jets).
+
+    Mirrors :meth:`VertexTriangleContact.contact_frames` region by region (Ericson 2005, 5.1.5):
+    face: ``n = side * unit((b - a) x (c - a))``, ``d = n.(p - a)``, barycentrics of the projection;
+    edge: closest point ``q = a + s (b - a)`` with ``s = ab.ap / ab.ab`` (likewise bc, ca),
+    ``n = unit(p - q)``, ``d = |p - q|``; vertex: ``q`` the corner.
+
+    Args:
+        z: ``[p, a, b, c]`` per pair, shape ``(k, 4, 3)``.
+        side: remembered sides, shape ``(k,)``.
+
+    Returns:
+        ``(d (k,), dd (k,12), n (k,3), dn (k,3,12), w (k,4), dw (k,4,12))``, weights ``[1, -bary]``.
+    """
+    k = z.shape[0]
+    out = _frame_out(k)
+    if k == 0:
+        return out
+    _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+    R = PointTriangleRegion
+    for code in np.unique(region):
+        m = region == code
+        p, a, b, c = _variables(z[m])
+        km = int(m.sum())
+        one = _const(km, 1.0)
+        zero = _const(km, 0.0)
+        ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+        if code == R.FACE:
+            n, _ = _unit(jets.cross(ab, ac))
+            n = n.scaled(side[m])
+            d = jets.dot(n, ap)
+            d1, d2, d3, d4 = jets.dot(ab, ap), jets.dot(ac, ap), jets.dot(ab, bp), jets.dot(ac, bp)
+            d5, d6 = jets.dot(ab, cp), jets.dot(ac, cp)
+            vc = jets.multiply(d1, d4) - jets.multiply(d3, d2)
+            vb = jets.multiply(d5, d2) - jets.multiply(d1, d6)
+            va = jets.multiply(d3, d6) - jets.multiply(d5, d4)
+            total = va + vb + vc
+            bv, bw = _divide(vb, total), _divide(vc, total)
+            bary = [one - bv - bw, bv, bw]
+        else:
+            if code == R.EDGE_AB:
+                s = _divide(jets.dot(ab, ap), jets.dot(ab, ab))
+                bary = [one - s, s, zero]
+            elif code == R.EDGE_CA:
+                s = _divide(jets.dot(ac, ap), jets.dot(ac, ac))
+                bary = [one - s, zero, s]
+            elif code == R.EDGE_BC:
+                bc = c - b
+                s = _divide(jets.dot(bc, bp), jets.dot(bc, bc))
+                bary = [zero, one - s, s]
+            else:
+                corner = {R.VERTEX_A: 0, R.VERTEX_B: 1, R.VERTEX_C: 2}[R(code)]
+                bary = [one if i == corner else zero for i in range(3)]
+            q = _vec_scale(a, bary[0]) + _vec_scale(b, bary[1]) + _vec_scale(c, bary[2])
+            n, d = _unit(p - q)
+        _store(out, m, d, n, [one] + [x.scaled(-1.0) for x in bary])
+    return out
+
+
+def edge_edge_frames(z: np.ndarray, side: np.ndarray):
+    """Contact distance, normal and weights of edge-edge pairs with derivatives (jets).
+
+    Mirrors :meth:`EdgeEdgeContact.contact_frames` (Ericson 2005, 5.1.9): with ``ea = a1 - a0``,
+    ``eb = b1 - b0``, ``r = a0 - b0``: interior ``s = (B F - C E) / (A E - B^2)``, ``t = (B s + F) / E``,
+    ``n = side * unit(ea x eb)``, ``d = n.r``; an endpoint region fixes s or t to 0/1 and projects
+    the other (``t = (B s + F) / E`` or ``s = (B t - C) / A``), ``n = unit(rel)``, ``d = |rel|``.
+
+    Args:
+        z: ``[a0, a1, b0, b1]``, shape ``(k, 4, 3)``.
+        side: remembered sides, shape ``(k,)``.
+
+    Returns:
+        as :func:`vertex_triangle_frames`, weights ``[1 - s, s, -(1 - t), -t]``.
+    """
+    k = z.shape[0]
+    out = _frame_out(k)
+    if k == 0:
+        return out
+    s_val, t_val, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+    R = EdgeEdgeRegion
+    for code in np.unique(region):
+        m = region == code
+        a0, a1, b0, b1 = _variables(z[m])
+        km = int(m.sum())
+        one = _const(km, 1.0)
+        ea, eb, r = a1 - a0, b1 - b0, a0 - b0
+        A, E, B, C, F = jets.dot(ea, ea), jets.dot(eb, eb), jets.dot(ea, eb), jets.dot(ea, r), jets.dot(eb, r)
+        if code == R.INTERIOR:
+            den = jets.multiply(A, E) - jets.multiply(B, B)
+            s = _divide(jets.multiply(B, F) - jets.multiply(C, E), den)
+            t = _divide(jets.multiply(B, s) + F, E)
+        elif code in (R.A0_EDGE_B, R.A1_EDGE_B):
+            s = _const(km, 0.0 if code == R.A0_EDGE_B else 1.0)
+            t = _divide(jets.multiply(B, s) + F, E)
+        elif code in (R.B0_EDGE_A, R.B1_EDGE_A):
+            t = _const(km, 0.0 if code == R.B0_EDGE_A else 1.0)
+            s = _divide(jets.multiply(B, t) - C, A)
+        else:
+            s, t = _const(km, s_val[m]), _const(km, t_val[m])
+        w = [one - s, s, (one - t).scaled(-1.0), t.scaled(-1.0)]
+        if code == R.INTERIOR:
+            n, _ = _unit(jets.cross(ea, eb))
+            n = n.scaled(side[m])
+            d = jets.dot(n, r)
+        else:
+            rel = _vec_scale(a0, w[0]) + _vec_scale(a1, w[1]) + _vec_scale(b0, w[2]) + _vec_scale(b1, w[3])
+            n, d = _unit(rel)
+        _store(out, m, d, n, w)
+    return out
+
+
+def friction_rows(model: Model, contact: ContactSet, state: State, dt: float) -> FrictionRows | None:
+    """Rebuild the lagged friction of the step starting at ``state`` with frame derivatives.
+
+    Uses the same :class:`ContactSet` calls as the solver (pairs near ``x^n`` with the state's side
+    memory), then differentiates each row's frame with :func:`vertex_triangle_frames`,
+    :func:`edge_edge_frames` or the constant plane normal.
+
+    Returns:
+        None when the step had no friction term.
+
+    Raises:
+        ThinShellError: the rebuilt rows disagree with the contact set's friction (contract drift).
+    """
+    x_n = state.x
+    memory = contact.begin_step(x_n, state.contact_memory)
+    friction = contact.friction(x_n, dt, memory)
+    if friction is None:
+        return None
+    pots = contact.potentials(x_n, x_n, memory)
+    names = list(model.bodies)
+    body = model.body_of_vertex()
+    parts, pairs = [], []
+    k_c, eps = contact.stiffness, contact.eps
+    for pot in pots:
+        if isinstance(pot, (VertexTriangleContact, EdgeEdgeContact)):
+            if len(pot.pairs) == 0:
+                continue
+            act = np.flatnonzero(pot.distance(x_n) < pot.eps)
+            if act.size == 0:
+                continue
+            verts = pot.vertices[act]
+            fn = vertex_triangle_frames if isinstance(pot, VertexTriangleContact) else edge_edge_frames
+            d, dd, n, dn, w, dw = fn(x_n[verts], pot.sides[act])
+            parts.append((verts, k_c * (eps - d), -k_c * dd, n, dn, w, dw))
+            second = 1 if isinstance(pot, VertexTriangleContact) else 2
+            pairs += [frozenset((names[body[a]], names[body[b]])) for a, b in zip(verts[:, 0], verts[:, second])]
+    for pname, plane in contact.planes:
+        act = np.flatnonzero(plane.distance(x_n) < plane.eps)
+        if act.size == 0:
+            continue
+        v = plane.vertices[act]
+        k = v.size
+        dlam = np.zeros((k, 12))
+        dlam[:, :3] = -k_c * plane.normal
+        w = np.zeros((k, 4))
+        w[:, 0] = 1.0
+        parts.append((np.repeat(v[:, None], 4, axis=1), k_c * (eps - plane.distance(x_n)[act]), dlam,
+                      np.broadcast_to(plane.normal, (k, 3)).copy(), np.zeros((k, 3, 12)), w, np.zeros((k, 4, 12))))
+        pairs += [frozenset((names[body[i]], pname)) for i in v]
+    cat = [np.concatenate([p[j] for p in parts]) for j in range(7)]
+    verts, lam = cat[0], cat[1]
+    if verts.shape != friction.vertices.shape or not np.array_equal(verts, friction.vertices) or not np.allclose(
+        lam, friction.lam, rtol=1e-9, atol=1e-12 * max(1.0, float(np.max(np.abs(lam), initial=0.0)))
+    ):
+        raise ThinShellError(
+            "adjoint: the rebuilt lagged-friction rows do not match ContactSet.friction (pair order or normal "
+            "forces differ); sim_core/adjoint.py friction_rows must follow sim_core/contact_set.py"
+        )
+    return FrictionRows(friction, verts, pairs, cat[2], cat[3], cat[4], cat[5], cat[6])
+
+
+def friction_state_jacobian(rows: FrictionRows, x: np.ndarray) -> np.ndarray:
+    """d(friction gradient at x)/d(x^n) per row, shape ``(k, 12, 12)`` (rows: output DoF, cols: x^n DoF).
+
+    Per row: ``g_j = mu lam phi(y) w_j q`` with ``r = sum_i w_i (z_i - z^n_i)``, ``q = (I - n n^T) r``,
+    ``y = |q|``, ``phi = f1(y)/y``; differentiated through ``lam, n, w`` (frames at ``x^n``) and the
+    explicit ``-w_i`` of ``r``; ``dphi = ((f1' y - f1)/y^3) q.dq``.
+    """
+    fr = rows.friction
+    k = rows.vertices.shape[0]
+    mu, lam, n, w = fr.mu, fr.lam, rows.normal, rows.weights
+    dz = x[rows.vertices] - fr.x_prev[rows.vertices]  # (k, 4, 3)
+    r = np.einsum("ka,kad->kd", w, dz)
+    dr = np.einsum("kav,kad->kdv", rows.dweights, dz)
+    for a in range(4):
+        for d in range(3):
+            dr[:, d, 3 * a + d] -= w[:, a]
+    nr = np.einsum("kd,kd->k", n, r)
+    q = r - n * nr[:, None]
+    dnr = np.einsum("kdv,kd->kv", rows.dnormal, r) + np.einsum("kd,kdv->kv", n, dr)
+    dq = dr - rows.dnormal * nr[:, None, None] - n[:, :, None] * dnr[:, None, :]
+    y = np.linalg.norm(q, axis=1)
+    phi = smooth_friction_f1_over_x(y, fr.eps_u)
+    dphi = smooth_friction_f2_x_minus_f1_over_x3(y, fr.eps_u)[:, None] * np.einsum("kd,kdv->kv", q, dq)
+    s = (rows.dlam * phi[:, None] + lam[:, None] * dphi) * mu[:, None]  # (k, 12)
+    J = s[:, None, None, :] * w[:, :, None, None] * q[:, None, :, None]
+    J += (mu * lam * phi)[:, None, None, None] * (
+        rows.dweights[:, :, None, :] * q[:, None, :, None] + w[:, :, None, None] * dq[:, None, :, :]
+    )
+    return J.reshape(k, 12, 12)
+
+
+# ============================================================================ effector kinematics
+def rotation_derivative(q: np.ndarray) -> np.ndarray:
+    """dR/dq of :func:`~sim_core.transforms.quat_to_matrix` (a quadratic form), shape ``(4, 3, 3)``.
+
+    Exact: central differences of a quadratic polynomial carry no truncation error.
+    """
+    q = np.asarray(q, dtype=float)
+    out = np.empty((4, 3, 3))
+    for i in range(4):
+        e = np.zeros(4)
+        e[i] = 0.5
+        out[i] = quat_to_matrix(q + e) - quat_to_matrix(q - e)
+    return out
+
+
+def driven_jacobian(eff, pose: np.ndarray, opening: float) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives of :func:`~sim_core.effector.driven_positions`.
+
+    Returns:
+        ``(d x / d pose (k, 3, 7), d x / d opening (k, 3))`` for the ``k`` driven vertices.
+    """
+    local = np.array(eff.local_points, dtype=float)
+    d_open = np.zeros_like(local)
+    if eff.finger_sign is not None:
+        local = local + np.outer(eff.finger_sign * 0.5 * (opening - eff.initial_opening), eff.finger_axis)
+        d_open = np.outer(eff.finger_sign * 0.5, eff.finger_axis)
+    R = quat_to_matrix(pose[3:7])
+    dR = rotation_derivative(pose[3:7])
+    J = np.zeros((local.shape[0], 3, 7))
+    J[:, :, :3] = np.eye(3)
+    J[:, :, 3:] = np.einsum("qij,kj->kiq", dR, local)
+    return J, d_open @ R.T
+
+
+def command_jacobian(eff, current: np.ndarray, target: np.ndarray, limited: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of the reached pose w.r.t. the previous pose and the commanded target, ``(7, 7)`` each.
+
+    Unlimited: pose = ``[t, q / |q|]`` (exact). Limited: central differences of
+    :func:`~sim_core.effector.limit_pose_step` with step :data:`LIMITED_POSE_FD_STEP`.
+    """
+    target = np.asarray(target, dtype=float)
+    if not limited:
+        qn = np.linalg.norm(target[3:])
+        qh = target[3:] / qn
+        J = np.zeros((7, 7))
+        J[:3, :3] = np.eye(3)
+        J[3:, 3:] = (np.eye(4) - np.outer(qh, qh)) / qn
+        return np.zeros((7, 7)), J
+    h = LIMITED_POSE_FD_STEP
+    lim = (eff.max_translation_per_step, eff.max_rotation_per_step)
+    out = []
+    for which in (0, 1):
+        J = np.zeros((7, 7))
+        for i in range(7):
+            args_p = [np.array(current, dtype=float), target.copy()]
+            args_m = [np.array(current, dtype=float), target.copy()]
+            args_p[which][i] += h
+            args_m[which][i] -= h
+            J[:, i] = (limit_pose_step(*args_p, *lim)[0] - limit_pose_step(*args_m, *lim)[0]) / (2 * h)
+        out.append(J)
+    return out[0], out[1]
+
+
+# ============================================================================ parameters
+def _mass_parameter_body(model: Model, name: str) -> tuple[str, float] | None:
+    """Body whose masses scale linearly with parameter ``name`` (density, sheet thickness)."""
+    body, _, key = name.partition(".")
+    b = model.bodies.get(body)
+    if b is None:
+        return None
+    if key == "density" or (key == "thickness" and b.kind == "sheet"):
+        return body, model.get_parameter(name)
+    return None
+
+
+def check_parameters(model: Model, params: Sequence[str]) -> list[str]:
+    """Validate parameter names against ``model.parameter_names``.
+
+    Raises:
+        ConfigError: unknown name (the known names are listed).
+    """
+    known = model.parameter_names
+    for p in params:
+        if p not in known:
+            raise ConfigError(f"adjoint: unknown parameter {p!r}; known: {known}")
+    return list(params)
+
+
+# ============================================================================ one step
+class StepLinearization:
+    """The implicit-function-theorem linearisation of one converged step (module docstring).
+
+    Args:
+        model: the model (parameters as during the step).
+        record: the solver's ``StepRecord`` of the step.
+        state: the state the step started from (for the contact side memory of the friction frames).
+        elastic: ``ElasticTerms(model)``.
+        contact: a ``ContactSet(model)`` used to rebuild the friction frames.
+        vertex_mass: ``model.vertex_mass()``, shape ``(n,)``.
+        linear_solver: name for :func:`~sim_core.linsolve.make_linear_solver`.
+        factorize: factorise the exact free-DoF Hessian (False when only products are needed).
+    """
+
+    def __init__(self, model: Model, record, state: State, elastic: ElasticTerms, contact: ContactSet,
+                 vertex_mass: np.ndarray, linear_solver: str = "pardiso", factorize: bool = True) -> None:
+        self.model, self.record, self.elastic = model, record, elastic
+        self.dt = float(record.dt)
+        self.x, self.x_n = record.x, record.x_prev
+        n = self.x.shape[0]
+        self.n = n
+        self.mass = vertex_mass
+        self.free = np.asarray(record.free_dofs, dtype=bool)
+        diag = np.zeros(3 * n)
+        blocks = []
+        self.contact_terms = []
+        for p in record.terms:
+            if hasattr(p, "hessian_diagonal"):
+                diag += p.hessian_diagonal()
+            else:
+                blocks.append(p.hessian(self.x, "none"))
+            if isinstance(p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, LaggedFriction)):
+                self.contact_terms.append(p)
+        self.H = assemble_hessian(blocks, 3 * n, diag)
+        self.H_contact = assemble_hessian([p.hessian(self.x, "none") for p in self.contact_terms], 3 * n)
+        self.solver = None
+        if factorize:
+            D = sp.diags(self.free.astype(float))
+            Hc = (D @ self.H @ D + sp.diags((~self.free).astype(float))).tocsr()
+            self.solver = make_linear_solver(linear_solver)
+            self.solver.factorize(Hc)
+        self.friction = next((p for p in record.terms if isinstance(p, LaggedFriction)), None)
+        self.rows = friction_rows(model, contact, state, self.dt) if self.friction is not None else None
+        self.friction_J = friction_state_jacobian(self.rows, self.x) if self.rows is not None else None
+        # bending: per sheet, hinge stiffness, dtheta/dx at x^{n+1}, plastic yielding set.
+        self.bending = {}
+        for name in elastic.hinges:
+            tb = record.hinge_theta_bar.get(name)
+            pot = elastic.bending(name, tb)
+            X = self.x[pot.hinges]
+            theta = dihedral_angle(X)
+            Y = model.bodies[name].material.get("yield_angle", np.inf)
+            dev = theta - pot.hinge_theta_bar
+            yielding = np.abs(dev) > Y if np.isfinite(Y) else np.zeros(len(theta), bool)
+            self.bending[name] = (pot, dihedral_angle_gradient(X), yielding, np.sign(dev))
+        self.fixed = np.asarray(record.fixed, dtype=bool)
+        self.driven = np.zeros(n, bool)
+        for eff in model.effectors.values():
+            self.driven[eff.vertices] = True
+        self.static = self.fixed & ~self.driven
+
+    # ------------------------------------------------------------ solves
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``H_ff^{-1} b_f`` padded with zeros on fixed DoFs; ``b`` shape ``(3 n,)`` or ``(3 n, r)``."""
+        b = np.array(b, dtype=float)
+        b[~self.free] = 0.0
+        out = np.asarray(self.solver.solve(b)).reshape(b.shape)
+        out[~self.free] = 0.0
+        return out
+
+    # ------------------------------------------------------------ products with dg/d(state)
+    def _friction_apply(self, dxn: np.ndarray) -> np.ndarray:
+        """Friction part of (dg/dx^n) dx^n; dxn shape (n, 3, r) -> (n, 3, r)."""
+        out = np.zeros_like(dxn)
+        if self.friction_J is None:
+            return out
+        v = self.rows.vertices
+        local = dxn[v].reshape(v.shape[0], 12, -1)
+        prod = np.einsum("kuv,kvr->kur", self.friction_J, local).reshape(v.shape[0], 4, 3, -1)
+        np.add.at(out, v.reshape(-1), prod.reshape(-1, 3, dxn.shape[2]))
+        return out
+
+    def _friction_apply_T(self, w: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.n, 3))
+        if self.friction_J is None:
+            return out
+        v = self.rows.vertices
+        prod = np.einsum("kuv,ku->kv", self.friction_J, w[v].reshape(v.shape[0], 12))
+        np.add.at(out, v.reshape(-1), prod.reshape(-1, 3))
+        return out
+
+    def _xn_coefficient(self) -> np.ndarray:
+        """Diagonal part of dg/dx^n: ``-m/dt^2 - c m/dt`` per vertex, shape ``(n,)``."""
+        return -self.mass / self.dt**2 - self.model.damping * self.mass / self.dt
+
+    def state_rhs(self, dxn: np.ndarray, dvn: np.ndarray, dtb: dict[str, np.ndarray]) -> np.ndarray:
+        """``dg/dx^n dx^n + dg/dv^n dv^n + dg/dtheta_bar dtheta_bar`` for ``r`` tangents.
+
+        Args:
+            dxn, dvn: shape ``(n, 3, r)``; dtb: sheet -> ``(h, r)``.
+
+        Returns:
+            shape ``(n, 3, r)``.
+        """
+        out = self._xn_coefficient()[:, None, None] * dxn - (self.mass / self.dt)[:, None, None] * dvn
+        out += self._friction_apply(dxn)
+        for name, (pot, gt, _, _) in self.bending.items():
+            if name in dtb:
+                coef = -2.0 * pot.hinge_stiffness[:, None] * dtb[name]  # (h, r)
+                contrib = gt[:, :, :, None] * coef[:, None, None, :]
+                np.add.at(out, pot.hinges.reshape(-1), contrib.reshape(-1, 3, coef.shape[1]))
+        return out
+
+    def state_vjp(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Transpose of :meth:`state_rhs`: ``(w^T dg/dx^n, w^T dg/dv^n, {sheet: w^T dg/dtheta_bar})``."""
+        ax = self._xn_coefficient()[:, None] * w + self._friction_apply_T(w)
+        av = -(self.mass / self.dt)[:, None] * w
+        atb = {}
+        for name, (pot, gt, _, _) in self.bending.items():
+            atb[name] = -2.0 * pot.hinge_stiffness * np.einsum("hvd,hvd->h", gt, w[pot.hinges])
+        return ax, av, atb
+
+    def hessian_product(self, dx: np.ndarray) -> np.ndarray:
+        """Full (unconstrained) exact Hessian times ``dx``; shape ``(n, 3, r)`` in and out."""
+        r = dx.shape[2]
+        return (self.H @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
+
+    # ------------------------------------------------------------ parameters
+    def mass_gradient(self) -> np.ndarray:
+        """d(inertia + gravity + damping gradient)/d m_i per vertex, shape ``(n, 3)``."""
+        x_hat = self.x_n + self.dt * self.record.v_prev
+        return (self.x - x_hat) / self.dt**2 - self.model.gravity[None, :] + self.model.damping * (self.x - self.x_n) / self.dt
+
+    def parameter_rhs(self, name: str) -> np.ndarray:
+        """dg/dp of global parameter ``name`` at the converged step, shape ``(n, 3)``.
+
+        ``sheet.yield_angle`` does not enter the step's gradient (it acts through plasticity).
+        """
+        x = self.x
+        out = np.zeros((self.n, 3))
+        for pot, local in self.elastic.parameter_terms(name, self.record.hinge_theta_bar):
+            out += pot.parameter_gradient(x, local)
+        mb = _mass_parameter_body(self.model, name)
+        if mb is not None:
+            b = self.model.bodies[mb[0]]
+            sl = slice(b.vertex_start, b.vertex_stop)
+            out[sl] += (self.mass[sl] / mb[1])[:, None] * self.mass_gradient()[sl]
+        if name == "damping":
+            out += self.mass[:, None] * (x - self.x_n) / self.dt
+        return out + self.contact_parameter_rhs(name)
+
+    def contact_parameter_rhs(self, name: str) -> np.ndarray:
+        """The contact + friction part of :meth:`parameter_rhs` (for the contact-force tangent)."""
+        out = np.zeros((self.n, 3))
+        if name == "contact.stiffness":
+            for p in self.contact_terms:
+                if isinstance(p, LaggedFriction):
+                    out += p.gradient(self.x) / self.model.contact.stiffness
+                else:
+                    out += p.parameter_gradient(self.x, "stiffness")
+        if name.startswith("friction.") and self.rows is not None:
+            key = self.model._friction_key(name)
+            mask = np.array([pair == key for pair in self.rows.body_pairs])
+            if np.any(mask):
+                out += self.friction.mu_gradient(self.x, mask)
+        return out
+
+    def contact_force_tangent(self, dx_new: np.ndarray, dxn: np.ndarray, dparam: np.ndarray) -> np.ndarray:
+        """Tangent of the end-of-step contact + friction force ``f = -(g_contact + g_friction)(x^{n+1})``.
+
+        ``df = -(H_contact dx^{n+1} + dg_friction/dx^n dx^n + dg_contact/dp dp)``.
+
+        Args:
+            dx_new, dxn: tangents of ``x^{n+1}`` and ``x^n``, shape ``(n, 3, r)``.
+            dparam: ``dg_contact/dp`` columns times the parameter tangents, shape ``(n, 3, r)``.
+
+        Returns:
+            shape ``(n, 3, r)``, N per unit tangent.
+        """
+        r = dx_new.shape[2]
+        out = (self.H_contact @ dx_new.reshape(3 * self.n, r)).reshape(self.n, 3, r)
+        return -(out + self._friction_apply(dxn) + dparam)
+
+    # ------------------------------------------------------------ plasticity
+    def plastic_tangent(self, dx_new: np.ndarray, dtb: dict[str, np.ndarray], dyield: dict[str, np.ndarray]):
+        """Tangent of theta_bar^{n+1}: identity where elastic, ``dtheta.dx - sign dY`` where yielding.
+
+        Args:
+            dx_new: tangent of ``x^{n+1}``, ``(n, 3, r)``; dtb: sheet -> ``(h, r)``;
+            dyield: sheet -> ``(r,)`` tangent of the sheet's yield angle.
+        """
+        out = {}
+        for name, (pot, gt, yielding, sign) in self.bending.items():
+            new = np.array(dtb[name])
+            if np.any(yielding):
+                dtheta = np.einsum("hvd,hvdr->hr", gt[yielding], dx_new[pot.hinges[yielding]])
+                new[yielding] = dtheta - sign[yielding, None] * dyield.get(name, 0.0)
+            out[name] = new
+        return out
+
+
+def _dof_vertices(eff) -> np.ndarray:
+    return block_dof_indices(np.asarray(eff.vertices)[:, None]).reshape(-1)
+
+
+# ============================================================================ reverse mode
+def rollout_gradient(sim_or_model, trajectory: Trajectory,
+                     dL_dx: np.ndarray | Callable[[Trajectory], tuple[float, np.ndarray]],
+                     params: Sequence[str] = ()) -> Gradient:
+    """Reverse-mode derivative of a loss of the rollout's positions (adjoint method).
+
+    One linear solve per step with the factorisation of the exact Hessian at the converged step.
+
+    Args:
+        sim_or_model: the Simulation (its solver's linear solver is used) or the Model of the rollout.
+        trajectory: from :func:`rollout` with ``record=True``.
+        dL_dx: dL/dx of every state, shape ``(T + 1, n, 3)``, or a callback
+            ``loss(trajectory) -> (value, dL_dx)``.
+        params: global parameter names (``Model.parameter_names``) to differentiate.
+
+    Returns:
+        the :class:`Gradient`.
+
+    Raises:
+        ConfigError: no records, parameters changed since the rollout, unknown parameter, bad shape.
+    """
+    model, solver_name = _model_and_solver(sim_or_model)
+    _check_trajectory(model, trajectory)
+    params = check_parameters(model, params)
+    loss = None
+    if callable(dL_dx):
+        loss, dL_dx = dL_dx(trajectory)
+        loss = float(loss)
+    T, n = trajectory.step_count, model.vertex_count
+    dL_dx = np.asarray(dL_dx, dtype=float)
+    if dL_dx.shape != (T + 1, n, 3):
+        raise ConfigError(f"adjoint: dL_dx has shape {dL_dx.shape}, expected {(T + 1, n, 3)}")
+    elastic, contact, mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+    ax = dL_dx[T].copy()
+    av = np.zeros((n, 3))
+    atb = {name: np.zeros(len(model.bodies[name].hinges)) for name in elastic.hinges}
+    apose = {k: np.zeros(7) for k in model.effectors}
+    aopen = {k: 0.0 for k in model.effectors}
+    aparams = {p: 0.0 for p in params}
+    g_controls: list[dict] = [None] * T
+    g_gripper: list[dict] = [None] * T
+    for i in range(T - 1, -1, -1):
+        rec, state, control = trajectory.records[i], trajectory.states[i], trajectory.controls[i]
+        lin = StepLinearization(model, rec, state, elastic, contact, mass, solver_name)
+        dt = lin.dt
+        a_hat = ax + av / dt
+        ax_n = -av / dt
+        # plasticity of this step: theta_bar^{n+1}(x^{n+1}, theta_bar^n, Y)
+        atb_n = {}
+        for name, (pot, gt, yielding, sign) in lin.bending.items():
+            a = atb[name]
+            if np.any(yielding):
+                contrib = gt[yielding] * a[yielding, None, None]
+                np.add.at(a_hat, pot.hinges[yielding].reshape(-1), contrib.reshape(-1, 3))
+                yname = f"{name}.yield_angle"
+                if yname in aparams:
+                    aparams[yname] -= float(np.dot(sign[yielding], a[yielding]))
+            atb_n[name] = np.where(yielding, 0.0, a)
+        lam = lin.solve(a_hat.reshape(-1)).reshape(n, 3)
+        w = -lam
+        gx, gv, gtb = lin.state_vjp(w)
+        ax_n += gx
+        for name in atb_n:
+            atb_n[name] = atb_n[name] + gtb[name]
+        for p in params:
+            aparams[p] += float(np.sum(w * lin.parameter_rhs(p)))
+        a_fixed = a_hat + lin.hessian_product(w[:, :, None])[:, :, 0]
+        ax_n[lin.static] += a_fixed[lin.static]
+        # effectors: driven vertices -> reached pose -> command / previous pose
+        g_controls[i], g_gripper[i] = {}, {}
+        for name, eff in model.effectors.items():
+            pose = rec.effector_pose[name]
+            opening = rec.gripper_opening[name]
+            Jp, Jo = driven_jacobian(eff, pose, opening)
+            a_v = a_fixed[eff.vertices]
+            a_pose = apose[name] + np.einsum("kdq,kd->q", Jp, a_v)
+            a_open = aopen[name] + float(np.sum(Jo * a_v))
+            target = control.effector_pose_target.get(name)
+            if target is None:
+                g_controls[i][name] = np.zeros(7)
+                apose[name] = a_pose
+            else:
+                J_cur, J_tgt = command_jacobian(eff, state.effector_pose[name], target, name in rec.limited_effectors)
+                g_controls[i][name] = J_tgt.T @ a_pose
+                apose[name] = J_cur.T @ a_pose
+            if name in control.gripper_target:
+                g_gripper[i][name] = a_open
+                aopen[name] = 0.0
+            else:
+                g_gripper[i][name] = 0.0
+                aopen[name] = a_open
+        ax = ax_n + dL_dx[i]
+        av = gv
+        atb = atb_n
+    return Gradient(controls=g_controls, gripper=g_gripper, params=aparams, x0=ax, v0=av,
+                    initial_pose=apose, theta_bar0=atb, loss=loss)
+
+
+def _model_and_solver(sim_or_model) -> tuple[Model, str]:
+    if isinstance(sim_or_model, Model):
+        return sim_or_model, "pardiso"
+    return sim_or_model.model, sim_or_model.solver.config.linear_solver
+
+
+def _check_trajectory(model: Model, trajectory: Trajectory) -> None:
+    if trajectory.records is None:
+        raise ConfigError("adjoint: the trajectory has no step records; use rollout(..., record=True)")
+    if trajectory.model_revision != model.revision:
+        raise ConfigError(
+            f"adjoint: model parameters changed since the rollout (revision {trajectory.model_revision} -> "
+            f"{model.revision}); roll out again"
+        )

@@ -1,0 +1,626 @@
+"""Fit simulator parameters to a recording: weighted least squares on whitened residuals.
+
+Problem (SYSID.md "Fitting"): minimise ``C(theta) = 1/2 sum_i r_i(theta)^2`` with
+``r = (y_data - y_sim(theta)) / sigma`` over the fitted channels (:mod:`sysid.observation`), i.e.
+weighted least squares with ``W = diag(sigma^-2)`` and sigma the per-channel, per-axis noise level
+estimated from the recording.
+
+Coordinates: a positive scale parameter is searched in log space, ``u = ln(theta / theta_0)``
+(``theta_0`` the initial value, so ``u_0 = 0`` and a unit step is a factor e); a parameter that may
+be zero or is bounded on both sides (Poisson ratio, damping) is searched linearly,
+``u = (theta - theta_0) / s``.
+
+Local phase: ``scipy.optimize.least_squares`` (trust-region reflective, Branch, Coleman & Li 1999)
+with a pluggable Jacobian provider: ``"fd"`` (central finite differences over the parameters) or
+``"sensitivity"`` (forward sensitivities of ``sim_core.adjoint``). Optional global phase before it
+when the start may be poor: CMA-ES (Hansen 2016, the ``cma`` package) or a Latin-hypercube
+multi-start screening; the best point found starts the local phase.
+
+Uncertainty: Gauss-Newton covariance ``Cov(u) = (J^T W J)^-1 = (J_r^T J_r)^-1`` at the optimum
+(``J_r`` the Jacobian of the whitened residual); 1-sigma of a log parameter is ``theta sigma_u``
+(first order) and the correlation matrix is the same in both coordinates. It assumes white noise
+of the estimated level and a correct model; ``reduced_chi2`` > 1 says by how much that fails, and
+``sigma_scaled = sigma sqrt(reduced_chi2)`` is the usual inflated estimate.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Protocol, Sequence
+
+import numpy as np
+
+from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
+from sysid.observation import ObservationModel
+
+DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
+JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
+GLOBAL_METHODS = ("cma", "multistart")
+LOG_SPAN = math.log(1.0e3)
+"""Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
+
+
+# ====================================================================================== parameters
+@dataclass(frozen=True)
+class ParameterSpec:
+    """How one parameter is searched.
+
+    Attributes:
+        name: global parameter name (``Model.set_parameter``).
+        initial: start value theta_0.
+        log: search ``u = ln(theta / theta_0)``; else ``u = (theta - theta_0) / scale``.
+        lower, upper: bounds on theta.
+        scale: unit of the linear coordinate (1 for log parameters).
+    """
+
+    name: str
+    initial: float
+    log: bool
+    lower: float
+    upper: float
+    scale: float = 1.0
+
+    def to_value(self, u: float) -> float:
+        """theta(u)."""
+        return float(self.initial * math.exp(u)) if self.log else float(self.initial + self.scale * u)
+
+    def to_u(self, value: float) -> float:
+        """u(theta)."""
+        return math.log(value / self.initial) if self.log else (value - self.initial) / self.scale
+
+    @property
+    def u_bounds(self) -> tuple[float, float]:
+        """Bounds of u."""
+        if self.log:
+            return (math.log(self.lower / self.initial), math.log(self.upper / self.initial))
+        return ((self.lower - self.initial) / self.scale, (self.upper - self.initial) / self.scale)
+
+
+def parameter_spec(name: str, initial: float) -> ParameterSpec:
+    """The search coordinate of parameter ``name`` starting at ``initial``.
+
+    Positive scale parameters (moduli, stiffnesses, density, thickness, friction > 0): log, within a
+    factor 1000. Poisson ratios: linear in [0, 0.499], scale 0.05. Zero-start non-negative
+    parameters (damping, friction 0): linear in [0, inf), scale 1.
+
+    Raises:
+        CalibrationError: non-finite start (e.g. an infinite yield angle) or a negative one.
+    """
+    if not math.isfinite(initial):
+        raise CalibrationError(f"parameter {name} starts at {initial}; cannot fit a non-finite value")
+    if name.endswith("poisson_ratio"):
+        return ParameterSpec(name, initial, False, 0.0, 0.499, 0.05)
+    if initial < 0.0:
+        raise CalibrationError(f"parameter {name} starts at {initial} < 0")
+    if initial == 0.0:
+        return ParameterSpec(name, initial, False, 0.0, math.inf, 1.0)
+    return ParameterSpec(name, initial, True, initial / math.exp(LOG_SPAN), initial * math.exp(LOG_SPAN))
+
+
+# ====================================================================================== problem
+class _OutOfTime(Exception):
+    """The time budget is spent (internal: ends the current phase)."""
+
+
+_WORKER: dict[str, Any] = {}
+"""Per-process cache of the worker's FitProblem (set by the pool initializer; process-local)."""
+
+
+def _worker_init(problem: "FitProblem") -> None:
+    _WORKER["problem"] = problem
+
+
+def _worker_residual(u: np.ndarray) -> tuple[np.ndarray | None, float]:
+    problem: FitProblem = _WORKER["problem"]
+    t = time.perf_counter()
+    try:
+        r = problem.model.residuals(problem.model.predict(problem.model.simulate(problem.values(u))))
+    except SimulationDivergedError:
+        r = None
+    return r, time.perf_counter() - t
+
+
+@dataclass
+class Evaluation:
+    """One replay: coordinates, cost ``0.5 |r|^2`` (inf on failure), phase, time since start."""
+
+    u: np.ndarray
+    cost: float
+    phase: str
+    time_s: float
+
+
+class FitProblem:
+    """Residuals of an :class:`ObservationModel` as a function of the search coordinates u.
+
+    Args:
+        model: the observation model.
+        specs: one :class:`ParameterSpec` per fitted parameter.
+        workers: processes for batches of replays (finite differences, CMA populations); 1 = serial.
+        deadline: ``time.perf_counter()`` value after which optimisation phases stop (None: none).
+        on_eval: called with each :class:`Evaluation`.
+    """
+
+    def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
+                 deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None) -> None:
+        self.model = model
+        self.specs = tuple(specs)
+        self.names = tuple(s.name for s in specs)
+        b = np.array([s.u_bounds for s in specs], dtype=float).reshape(-1, 2)
+        self.bounds = (b[:, 0], b[:, 1])
+        self.workers = max(1, int(workers))
+        self.deadline = deadline
+        self.on_eval = on_eval
+        self.history: list[Evaluation] = []
+        self.sim_runs = 0
+        self.sim_time_s = 0.0
+        self.t_start = time.perf_counter()
+        self.best: tuple[float, np.ndarray, dict[str, np.ndarray] | None] | None = None
+        self._cache: dict[bytes, np.ndarray | None] = {}
+        self._pool: ProcessPoolExecutor | None = None
+
+    # ------------------------------------------------------------------------------ coordinates
+    def values(self, u: np.ndarray) -> dict[str, float]:
+        """Parameter values at ``u``."""
+        return {s.name: s.to_value(float(ui)) for s, ui in zip(self.specs, np.asarray(u, dtype=float))}
+
+    def u_of(self, values: Mapping[str, float]) -> np.ndarray:
+        """Coordinates of parameter ``values``."""
+        return np.array([s.to_u(float(values[s.name])) for s in self.specs])
+
+    # ------------------------------------------------------------------------------ evaluation
+    def _check_time(self, phase: str) -> None:
+        if self.deadline is not None and phase != "final" and time.perf_counter() > self.deadline:
+            raise _OutOfTime(phase)
+
+    def _record(self, u: np.ndarray, r: np.ndarray | None, phase: str, wall: float,
+                prediction: dict[str, np.ndarray] | None = None) -> None:
+        self.sim_runs += 1
+        self.sim_time_s += wall
+        cost = math.inf if r is None else 0.5 * float(r @ r)
+        ev = Evaluation(np.array(u, dtype=float), cost, phase, time.perf_counter() - self.t_start)
+        self.history.append(ev)
+        self._cache[np.asarray(u, dtype=float).tobytes()] = r
+        if r is not None and (self.best is None or cost < self.best[0]):
+            self.best = (cost, np.array(u, dtype=float), prediction)
+        if self.on_eval is not None:
+            self.on_eval(ev)
+
+    def best_prediction(self) -> dict[str, np.ndarray]:
+        """Aligned predictions at the best point (replayed again when it was evaluated in a worker).
+
+        Raises:
+            CalibrationError: nothing was evaluated successfully.
+        """
+        if self.best is None:
+            raise CalibrationError("no replay succeeded")
+        cost, u, prediction = self.best
+        if prediction is None:
+            prediction = self.model.predict(self.model.simulate(self.values(u)))
+            self.best = (cost, u, prediction)
+        return prediction
+
+    def residual(self, u: np.ndarray, phase: str = "local") -> np.ndarray | None:
+        """Whitened residual at ``u`` (None when the replay diverged); cached per u."""
+        u = np.asarray(u, dtype=float)
+        key = u.tobytes()
+        if key in self._cache:
+            return self._cache[key]
+        self._check_time(phase)
+        t = time.perf_counter()
+        try:
+            prediction = self.model.predict(self.model.simulate(self.values(u)))
+            r = self.model.residuals(prediction)
+        except SimulationDivergedError:
+            prediction, r = None, None
+        self._record(u, r, phase, time.perf_counter() - t, prediction)
+        return r
+
+    def evaluate_many(self, points: Sequence[np.ndarray], phase: str) -> list[np.ndarray | None]:
+        """Residuals at several points (in parallel when ``workers > 1``)."""
+        todo = [np.asarray(p, dtype=float) for p in points if np.asarray(p, dtype=float).tobytes() not in self._cache]
+        if self.workers > 1 and len(todo) > 1:
+            self._check_time(phase)
+            if self._pool is None:
+                import multiprocessing
+
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"),
+                                                 initializer=_worker_init, initargs=(self,))
+            for u, (r, wall) in zip(todo, self._pool.map(_worker_residual, todo)):
+                self._record(u, r, phase, wall)
+        return [self.residual(p, phase) for p in points]
+
+    def close(self) -> None:
+        """Shut the worker pool down."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.update(_pool=None, on_eval=None, _cache={}, history=[], best=None)
+        return state
+
+
+# ====================================================================================== Jacobians
+class JacobianProvider(Protocol):
+    """Computes ``J = d r / d u``, shape ``(m, p)``, of the whitened residual at coordinates ``u``."""
+
+    name: str
+
+    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray: ...
+
+
+class FiniteDifferenceJacobian:
+    """Central differences ``(r(u + h e_i) - r(u - h e_i)) / 2h`` in the search coordinates.
+
+    2p replays per Jacobian, batched through :meth:`FitProblem.evaluate_many`; one-sided at a bound
+    or where one side diverged.
+
+    Args:
+        step: h, > 0 (log units for positive parameters: 0.01 = 1 %).
+
+    Raises:
+        ConfigError: non-positive step.
+    """
+
+    name = "fd"
+
+    def __init__(self, step: float = 0.01) -> None:
+        if not step > 0.0:
+            raise ConfigError(f"finite-difference step must be > 0, got {step!r}")
+        self.step = float(step)
+
+    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
+        u = np.asarray(u, dtype=float)
+        lb, ub = problem.bounds
+        points, steps = [], []
+        for i in range(u.shape[0]):
+            hp, hm = min(self.step, ub[i] - u[i]), min(self.step, u[i] - lb[i])
+            up, um = u.copy(), u.copy()
+            up[i] += hp
+            um[i] -= hm
+            points += [up, um]
+            steps.append((hp, hm))
+        res = problem.evaluate_many(points, phase="jacobian")
+        cols = []
+        for i, (hp, hm) in enumerate(steps):
+            rp, rm = res[2 * i], res[2 * i + 1]
+            if rp is not None and rm is not None and hp + hm > 0.0:
+                cols.append((rp - rm) / (hp + hm))
+                continue
+            r0 = problem.residual(u, phase="jacobian")
+            if r0 is not None and rp is not None and hp > 0.0:
+                cols.append((rp - r0) / hp)
+            elif r0 is not None and rm is not None and hm > 0.0:
+                cols.append((r0 - rm) / hm)
+            else:
+                raise CalibrationError(f"finite-difference Jacobian: the simulation diverged on both sides of "
+                                       f"{problem.names[i]} = {problem.values(u)[problem.names[i]]:.6g}")
+        return np.stack(cols, axis=1)
+
+
+class SensitivityJacobian:
+    """Forward parameter sensitivities of ``sim_core.adjoint`` mapped to the whitened residual.
+
+    ``sim_core.adjoint.parameter_sensitivities(sim, controls, params)`` gives d(state)/d(theta) per
+    step; its observation helper maps them to d(observation)/d(theta) per step, which
+    :meth:`ObservationModel.align` interpolates to the stamps; the chain rule to u multiplies by
+    ``d theta / d u`` (theta for log coordinates, the scale otherwise).
+
+    Raises:
+        CalibrationError: ``sim_core.adjoint`` is missing or lacks the sensitivity API.
+    """
+
+    name = "sensitivity"
+
+    def __init__(self) -> None:
+        self.adjoint = load_adjoint()
+
+    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
+        raise CalibrationError("jacobian 'sensitivity': sim_core.adjoint is present but its observation mapping "
+                               "is not wired into sysid.fit yet; use --jacobian fd")
+
+
+def load_adjoint() -> Any:
+    """``sim_core.adjoint`` when it provides ``parameter_sensitivities``.
+
+    Raises:
+        CalibrationError: the module or the function is missing.
+    """
+    try:
+        mod = importlib.import_module("sim_core.adjoint")
+    except ImportError as err:
+        raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.adjoint, which is not available ({err}); "
+                               "use --jacobian fd") from err
+    if not hasattr(mod, "parameter_sensitivities"):
+        raise CalibrationError("jacobian 'sensitivity': sim_core.adjoint has no parameter_sensitivities(); "
+                               "use --jacobian fd")
+    return mod
+
+
+def make_jacobian(kind: str = "auto", fd_step: float = 0.01) -> JacobianProvider:
+    """A provider by name: ``"sensitivity"``, ``"fd"``, or ``"auto"`` (``"fd"`` until the
+    sensitivity mapping is wired in).
+
+    Raises:
+        ConfigError: unknown kind.
+        CalibrationError: ``"sensitivity"`` requested but unavailable.
+    """
+    if kind not in JACOBIAN_KINDS:
+        raise ConfigError(f"unknown jacobian provider {kind!r} (choose from {', '.join(JACOBIAN_KINDS)})")
+    if kind == "sensitivity":
+        return SensitivityJacobian()
+    return FiniteDifferenceJacobian(fd_step)
+
+
+# ====================================================================================== result
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit` (see :mod:`sysid.results` for its JSON form).
+
+    Attributes:
+        names: fitted parameter names, shape ``(p,)`` order of every matrix.
+        specs: their search coordinates.
+        initial, values: parameter values before / after.
+        sigma: 1-sigma (Gauss-Newton) per parameter in its units, or None when J^T J is singular or
+            was not computed; ``sigma_log``: 1-sigma of ln(theta) (log parameters).
+        sigma_scaled: ``sigma * sqrt(reduced_chi2)``.
+        covariance_u: ``(p, p)`` covariance of the coordinates u, or None.
+        correlation: ``(p, p)``, or None.
+        cost_initial, cost_final: ``0.5 |r|^2``.
+        reduced_chi2: ``|r|^2 / (m - p)`` at the optimum.
+        rms_initial, rms_final: per-channel RMS (:meth:`ObservationModel.channel_rms`).
+        prediction_initial, prediction_final: channel -> predicted array at the stamps.
+        history: every replay (:class:`Evaluation`).
+        iterations: accepted iterates of the local phase; nfev, njev: its function / Jacobian calls.
+        sim_runs, sim_time_s: replays and their total wall time; wall_time_s: whole fit.
+        status, message: ``converged`` | ``max_nfev`` | ``time_budget`` | ``failed`` and detail.
+        jacobian: provider name; global_phase: summary of the global phase or None.
+        channels, residual_count, step_count, dt: problem size.
+        warnings: messages raised during the fit.
+        model: the observation model (not serialised).
+    """
+
+    names: tuple[str, ...]
+    specs: tuple[ParameterSpec, ...]
+    initial: dict[str, float]
+    values: dict[str, float]
+    sigma: dict[str, float] | None
+    sigma_log: dict[str, float] | None
+    sigma_scaled: dict[str, float] | None
+    covariance_u: np.ndarray | None
+    correlation: np.ndarray | None
+    cost_initial: float
+    cost_final: float
+    reduced_chi2: float
+    rms_initial: dict[str, dict[str, Any]]
+    rms_final: dict[str, dict[str, Any]]
+    prediction_initial: dict[str, np.ndarray]
+    prediction_final: dict[str, np.ndarray]
+    history: list[Evaluation]
+    iterations: int
+    nfev: int
+    njev: int
+    sim_runs: int
+    sim_time_s: float
+    wall_time_s: float
+    status: str
+    message: str
+    jacobian: str
+    global_phase: dict[str, Any] | None
+    channels: tuple[str, ...]
+    residual_count: int
+    step_count: int
+    dt: float
+    warnings: list[str] = field(default_factory=list)
+    model: ObservationModel | None = None
+
+
+def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
+    """``(J^T J)^-1`` of a whitened Jacobian ``(m, p)`` (Gauss-Newton approximation of the inverse Hessian).
+
+    Returns:
+        ``(cov (p, p), note)``; cov is None (with the reason in note) when J^T J is singular to
+        ``rcond`` relative to its largest eigenvalue.
+    """
+    H = J.T @ J
+    w, V = np.linalg.eigh(H)
+    if w.size == 0 or w[-1] <= 0.0 or w[0] <= rcond * w[-1]:
+        return None, f"J^T W J is singular (eigenvalues {w.tolist()}): some parameters are not identifiable"
+    return (V / w) @ V.T, "ok"
+
+
+def _covariance_summary(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov: np.ndarray | None,
+                        chi2_red: float) -> tuple[dict | None, dict | None, dict | None, np.ndarray | None]:
+    if cov is None:
+        return None, None, None, None
+    su = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(su, su)
+    sigma, sigma_log, scaled = {}, {}, {}
+    for s, sd in zip(specs, su):
+        v = values[s.name]
+        sigma[s.name] = float(abs(v) * sd if s.log else s.scale * sd)
+        if s.log:
+            sigma_log[s.name] = float(sd)
+        scaled[s.name] = float(sigma[s.name] * math.sqrt(max(chi2_red, 0.0)))
+    return sigma, sigma_log, scaled, corr
+
+
+# ====================================================================================== global phase
+def _global_phase(problem: FitProblem, u0: np.ndarray, method: str, seed: int, max_evals: int | None,
+                  sigma0: float) -> dict[str, Any]:
+    lb, ub = problem.bounds
+    p = u0.shape[0]
+    start_best = problem.best[0] if problem.best is not None else math.inf
+    evals_before = problem.sim_runs
+    if method == "cma":
+        import cma
+
+        popsize = 4 + int(3 * math.log(p))
+        budget = max_evals if max_evals is not None else 6 * popsize
+        es = cma.CMAEvolutionStrategy(list(u0), sigma0, {
+            "bounds": [list(np.maximum(lb, -LOG_SPAN)), list(np.minimum(ub, LOG_SPAN))], "seed": int(seed) + 1,
+            "popsize": popsize, "maxfevals": budget, "verbose": -9})
+        generations = 0
+        try:
+            while not es.stop() and problem.sim_runs - evals_before + popsize <= budget:
+                X = [np.asarray(x, dtype=float) for x in es.ask()]
+                res = problem.evaluate_many(X, phase="global")
+                costs = [0.5 * float(r @ r) if r is not None else 1e300 for r in res]
+                es.tell([list(x) for x in X], costs)
+                generations += 1
+        except _OutOfTime:
+            pass
+        info = {"method": "cma", "popsize": popsize, "generations": generations, "sigma0": sigma0}
+    elif method == "multistart":
+        from scipy.stats import qmc
+
+        n = max_evals if max_evals is not None else 4 * (p + 1)
+        lo, hi = np.maximum(lb, u0 - 2.0 * sigma0), np.minimum(ub, u0 + 2.0 * sigma0)
+        starts = qmc.scale(qmc.LatinHypercube(d=p, seed=seed).random(n), lo, hi) if p else np.zeros((0, 0))
+        try:
+            problem.evaluate_many(list(starts), phase="global")
+        except _OutOfTime:
+            pass
+        info = {"method": "multistart", "points": int(n), "box_half_width": 2.0 * sigma0}
+    else:
+        raise ConfigError(f"unknown global method {method!r} (choose from {', '.join(GLOBAL_METHODS)})")
+    info.update(evaluations=problem.sim_runs - evals_before, best_cost_before=start_best,
+                best_cost_after=problem.best[0] if problem.best else math.inf,
+                best_values=problem.values(problem.best[1]) if problem.best else None)
+    return info
+
+
+# ====================================================================================== fit
+def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
+        initial: Mapping[str, float] | None = None, jacobian: str | JacobianProvider = "auto",
+        global_method: str | None = None, global_evals: int | None = None, global_sigma: float = 1.0,
+        max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
+        gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
+        on_eval: Callable[[Evaluation], None] | None = None) -> FitResult:
+    """Fit parameters ``params`` of ``model``'s scene to its recording.
+
+    Args:
+        model: the observation model (recording + scene + replay settings).
+        params: global parameter names (``Model.parameter_names``), default :data:`DEFAULT_PARAMETERS`.
+        initial: start values (default: the scene's nominal values).
+        jacobian: ``"auto"``, ``"fd"``, ``"sensitivity"`` or a provider object.
+        global_method: None, ``"cma"`` or ``"multistart"`` (global phase before the local one).
+        global_evals: replay budget of the global phase (default 6 CMA generations / 4(p+1) points).
+        global_sigma: initial CMA step / multi-start half-width / 2, in u units (1 = factor e).
+        max_time: wall-time budget in s; when spent, the best point so far is returned with
+            ``status="time_budget"``. The global phase gets at most half of it.
+        max_nfev: function evaluations of the local phase.
+        ftol, xtol, gtol: ``least_squares`` tolerances.
+        fd_step: finite-difference step in u.
+        workers: processes for batched replays.
+        seed: seed of the global phase.
+        on_eval: progress callback, called with each :class:`Evaluation`.
+
+    Returns:
+        the :class:`FitResult`.
+
+    Raises:
+        ConfigError: unknown parameter name / provider / global method.
+        CalibrationError: empty or duplicate parameter list, a non-finite start, the replay at the
+            start diverged, or the time budget ran out before the start was evaluated.
+    """
+    import warnings as _warnings
+
+    from scipy.optimize import least_squares
+
+    t0 = time.perf_counter()
+    names = tuple(params)
+    if not names:
+        raise CalibrationError("no parameters to fit")
+    if len(set(names)) != len(names):
+        raise CalibrationError(f"parameter list has duplicates: {', '.join(names)}")
+    start = {n: float(initial[n]) if initial and n in initial else model.parameter_value(n) for n in names}
+    specs = [parameter_spec(n, start[n]) for n in names]
+    provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
+    deadline = t0 + max_time if max_time is not None else None
+    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval)
+    notes: list[str] = [f"fitting without {ch}: {why}" for ch, why in model.dropped.items()]
+    with _warnings.catch_warnings(record=True) as caught:
+        _warnings.simplefilter("always")
+        try:
+            u0 = np.zeros(len(names))
+            r0 = problem.residual(u0, phase="initial")
+            if r0 is None:
+                raise CalibrationError(f"the replay diverged at the start values {start}")
+            cost0, prediction0 = problem.best[0], problem.best_prediction()
+            global_info = None
+            if global_method is not None:
+                problem.deadline = t0 + 0.5 * max_time if max_time is not None else None
+                global_info = _global_phase(problem, u0, global_method, seed, global_evals, global_sigma)
+            problem.deadline = deadline
+            u_start = problem.best[1].copy()
+            lb, ub = problem.bounds
+            fail_level = 10.0 * max(1.0, float(np.sqrt(np.mean(r0 ** 2))))
+            jac_at: dict[str, Any] = {}
+
+            def fun(u: np.ndarray) -> np.ndarray:
+                r = problem.residual(u, phase="local")
+                return np.full_like(r0, fail_level) if r is None else r
+
+            def jac(u: np.ndarray) -> np.ndarray:
+                J = provider(problem, u)
+                jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
+                return J
+
+            status, message, nfev = "failed", "", 0
+            try:
+                res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf", x_scale=1.0,
+                                    ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
+                status = "max_nfev" if res.status == 0 else "converged" if res.status > 0 else "failed"
+                message, nfev = str(res.message), int(res.nfev)
+            except _OutOfTime:
+                status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
+            prediction_best = problem.best_prediction()
+            cost_best, u_best = problem.best[0], problem.best[1]
+            njev = int(jac_at.get("count", 0))
+            if "u" in jac_at and np.array_equal(jac_at["u"], u_best):
+                J, jac_note = jac_at["J"], "ok"
+            elif status != "time_budget":
+                problem.deadline = None
+                J, jac_note = jac(u_best), "ok"
+            elif "J" in jac_at:
+                J, jac_note = jac_at["J"], "Jacobian of the last accepted iterate (time budget spent)"
+            else:
+                J, jac_note = None, "no Jacobian computed before the time budget ran out"
+        finally:
+            problem.close()
+    notes += [str(w.message) for w in caught]
+    m, p = model.residual_count, len(names)
+    chi2_red = 2.0 * cost_best / max(m - p, 1)
+    cov, cov_note = gauss_newton_covariance(J) if J is not None else (None, jac_note)
+    if cov_note != "ok":
+        notes.append(f"covariance: {cov_note}")
+    elif jac_note != "ok":
+        notes.append(f"covariance: {jac_note}")
+    values = problem.values(u_best)
+    sigma, sigma_log, scaled, corr = _covariance_summary(specs, values, cov, chi2_red)
+    return FitResult(
+        names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
+        sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
+        reduced_chi2=chi2_red, rms_initial=model.channel_rms(prediction0), rms_final=model.channel_rms(prediction_best),
+        prediction_initial=prediction0, prediction_final=prediction_best, history=problem.history,
+        iterations=max(njev - 1, 0), nfev=nfev, njev=njev, sim_runs=problem.sim_runs,
+        sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
+        jacobian=provider.name, global_phase=global_info, channels=model.channels,
+        residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
+    )
+
+
+def default_workers() -> int:
+    """Worker processes for batched replays: ``THINSHELL_SYSID_WORKERS`` or 1."""
+    try:
+        return max(1, int(os.environ.get("THINSHELL_SYSID_WORKERS", "1")))
+    except ValueError:
+        return 1
