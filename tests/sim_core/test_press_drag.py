@@ -1,0 +1,71 @@
+"""Press-and-drag: the gel presses a card onto the table and drags it 20 mm (issue: simulator core).
+
+Checks: no vertex crosses a surface (every contact pair's signed distance, with side memory,
+stays > 0, and the card's mid-surface stays above the table), the normal force on the gel is a
+push (F_z < 0 in the sensor frame), and friction bounds the tangential force by the gel-card
+Coulomb coefficient times the normal force (within 5 %).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_core.scenes.scene_file import load_yaml
+from sim_core.simulation import Simulation
+
+SCENE = Path(__file__).resolve().parents[2] / "config" / "scenes" / "press_slide.yaml"
+
+
+@pytest.fixture(scope="module")
+def press_drag_run():
+    scene = load_yaml(SCENE.read_text())
+    scene["sheet"]["clamped_edge"] = "none"
+    scene["effectors"]["ee"]["initial_pose"] = [0.05, 0.0, 0.0009, 1.0, 0.0, 0.0, 0.0]
+    scene["simulation"] = {"gel_resolution": [8, 6, 3]}
+    sim = Simulation.from_scene(scene)
+    pose0 = sim.state.effector_pose["ee"].copy()
+    control = sim.model.control()
+    readings, min_pair_distance, min_table_distance = [], [], []
+    depth = 0.0012  # contact face starts 0.45 mm above the card's top surface
+    n_press, n_drag = 12, 25
+    for i in range(n_press + n_drag):
+        target = pose0.copy()
+        target[2] -= depth * min(1.0, (i + 1) / n_press)
+        target[0] += 0.02 * max(0, i + 1 - n_press) / n_drag
+        control.effector_pose_target["ee"] = target
+        sim.step(control)
+        x = sim.state.x
+        vt, ee = sim.solver.contact._pairs(x, sim.state.contact_memory)
+        d = np.concatenate([vt.distance(x), ee.distance(x)])
+        min_pair_distance.append(d.min() if d.size else np.inf)
+        sheet = sim.model.bodies["sheet"]
+        min_table_distance.append(x[sheet.vertex_start:sheet.vertex_stop, 2].min())
+        readings.append(sim.observe().tactile["tactile"].wrench.copy())
+    return sim, np.array(readings), np.array(min_pair_distance), np.array(min_table_distance), n_press, pose0
+
+
+def test_nothing_tunnels(press_drag_run):
+    sim, _, pair_d, table_d, _, pose0 = press_drag_run
+    assert np.all(pair_d > 0.0), pair_d.min()
+    assert np.all(table_d > 0.0), table_d.min()
+    assert sim.state.effector_pose["ee"][0] - pose0[0] == pytest.approx(0.02, abs=1e-9)
+
+
+def test_normal_force_pushes_and_friction_bounds_tangential_force(press_drag_run):
+    sim, wrench, _, _, n_press, _ = press_drag_run
+    fz = wrench[:, 2]
+    assert fz[n_press - 1] < -0.5  # pressing: force ON the gel points out of the object, -z sensor
+    drag = wrench[n_press + 3:]
+    normal = -drag[:, 2]
+    tangential = np.linalg.norm(drag[:, :2], axis=1)
+    mu = sim.get_parameter("friction.gel_sheet")
+    assert np.all(normal > 0)
+    assert np.all(tangential <= 1.05 * mu * normal), (tangential / normal).max()
+    # The card is free (not clamped) and sticks to the gel (mu 0.8), so it slides on the table:
+    # the sliding card's friction saturates at the card-table coefficient.
+    mu_table = sim.get_parameter("friction.sheet_table")
+    ratio = tangential[5:] / normal[5:]
+    np.testing.assert_allclose(ratio, mu_table, rtol=0.05)
