@@ -24,9 +24,10 @@ What depends on what (and what is treated as constant):
   potentials use, per Voronoi region). ``lam`` is proportional to ``k_c`` (``contact.stiffness``).
   The friction energy only depends on the projector, so the piecewise choice of tangent basis does
   not enter.
-- bending plasticity ``theta_bar^{n+1} = theta - Y sign(theta - theta_bar^n)`` where
+- bending (hinge or Kirchhoff plate energy, both quadratic in ``theta - theta_bar``, see
+  :func:`theta_stiffness`) and bending plasticity ``theta_bar^{n+1} = theta - Y sign(theta - theta_bar^n)`` where
   ``|theta - theta_bar^n| > Y`` (yielding branch: d/dx = dtheta/dx, d/dY = -sign), else
-  ``theta_bar^n`` (identity); theta_bar enters the bending gradient as ``-2 k_h dtheta/dx``.
+  ``theta_bar^n`` (identity); theta_bar enters the bending gradient as ``-(dtheta/dx)^T A``.
 - non-differentiable, held fixed within a step: the contact pair set, the remembered sides, the
   Voronoi regions of the closest points, the active/inactive state of each penalty (the derivative
   is that of the branch the converged step is on), the yielding set.
@@ -59,7 +60,7 @@ from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, ThinShellError
-from sim_core.linsolve import make_linear_solver
+from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
 from sim_core.potentials.base import assemble_hessian, block_dof_indices, scatter_gradient
 from sim_core.potentials.bending import dihedral_angle, dihedral_angle_gradient
@@ -337,24 +338,24 @@ def edge_edge_frames(z: np.ndarray, side: np.ndarray):
     return out
 
 
-def friction_rows(model: Model, contact: ContactSet, state: State, dt: float) -> FrictionRows | None:
-    """Rebuild the lagged friction of the step starting at ``state`` with frame derivatives.
+def friction_rows(model: Model, contact: ContactSet, state: State, friction: LaggedFriction) -> FrictionRows:
+    """Identify the rows of a step's lagged friction and differentiate their frozen frames.
 
-    Uses the same :class:`ContactSet` calls as the solver (pairs near ``x^n`` with the state's side
-    memory), then differentiates each row's frame with :func:`vertex_triangle_frames`,
-    :func:`edge_edge_frames` or the constant plane normal.
+    Uses the same :class:`ContactSet` call as the solver (pairs near ``x^n`` with the state's side
+    memory) to recover each row's kind, remembered side and bodies, then differentiates each row's
+    frame with :func:`vertex_triangle_frames`, :func:`edge_edge_frames` or the constant plane normal.
 
-    Returns:
-        None when the step had no friction term.
+    Args:
+        model: the model.
+        contact: a ``ContactSet(model)`` (its per-step scratch is overwritten).
+        state: the state the step started from.
+        friction: the step's :class:`LaggedFriction` (from ``StepRecord.terms``).
 
     Raises:
         ThinShellError: the rebuilt rows disagree with the contact set's friction (contract drift).
     """
     x_n = state.x
     memory = contact.begin_step(x_n, state.contact_memory)
-    friction = contact.friction(x_n, dt, memory)
-    if friction is None:
-        return None
     pots = contact.potentials(x_n, x_n, memory)
     names = list(model.bodies)
     body = model.body_of_vertex()
@@ -386,6 +387,9 @@ def friction_rows(model: Model, contact: ContactSet, state: State, dt: float) ->
         parts.append((np.repeat(v[:, None], 4, axis=1), k_c * (eps - plane.distance(x_n)[act]), dlam,
                       np.broadcast_to(plane.normal, (k, 3)).copy(), np.zeros((k, 3, 12)), w, np.zeros((k, 4, 12))))
         pairs += [frozenset((names[body[i]], pname)) for i in v]
+    if not parts:
+        parts.append((np.zeros((0, 4), np.int64), np.zeros(0), np.zeros((0, 12)), np.zeros((0, 3)),
+                      np.zeros((0, 3, 12)), np.zeros((0, 4)), np.zeros((0, 4, 12))))
     cat = [np.concatenate([p[j] for p in parts]) for j in range(7)]
     verts, lam = cat[0], cat[1]
     if verts.shape != friction.vertices.shape or not np.array_equal(verts, friction.vertices) or not np.allclose(
@@ -492,6 +496,23 @@ def command_jacobian(eff, current: np.ndarray, target: np.ndarray, limited: bool
     return out[0], out[1]
 
 
+def theta_stiffness(pot) -> sp.csr_matrix:
+    """``A = d^2 E / dtheta^2`` of a bending energy quadratic in ``theta - theta_bar``, shape ``(h, h)``.
+
+    The bending gradient is ``(dtheta/dx)^T A (theta - theta_bar)``, so
+    ``d gradient / d theta_bar = -(dtheta/dx)^T A``. Hinge energy (``DiscreteShellBending``):
+    ``A = diag(2 k_h)``; Kirchhoff plate energy (``KirchhoffBending``, ``E = d^T M d``): ``A = 2 M``.
+
+    Raises:
+        ThinShellError: a bending potential of neither form.
+    """
+    if hasattr(pot, "hinge_stiffness_matrix"):
+        return sp.csr_matrix(2.0 * pot.hinge_stiffness_matrix)
+    if hasattr(pot, "hinge_stiffness"):
+        return sp.diags(2.0 * np.asarray(pot.hinge_stiffness)).tocsr()
+    raise ThinShellError(f"adjoint: bending potential {type(pot).__name__} exposes no hinge stiffness")
+
+
 # ============================================================================ parameters
 def _mass_parameter_body(model: Model, name: str) -> tuple[str, float] | None:
     """Body whose masses scale linearly with parameter ``name`` (density, sheet thickness)."""
@@ -528,12 +549,15 @@ class StepLinearization:
         elastic: ``ElasticTerms(model)``.
         contact: a ``ContactSet(model)`` used to rebuild the friction frames.
         vertex_mass: ``model.vertex_mass()``, shape ``(n,)``.
-        linear_solver: name for :func:`~sim_core.linsolve.make_linear_solver`.
+        linear_solver: a :class:`~sim_core.linsolve.LinearSolver` to (re)factorise, or a name for
+            :func:`~sim_core.linsolve.make_linear_solver` (creating one costs ~0.5 s with pypardiso:
+            pass one solver for a whole rollout).
         factorize: factorise the exact free-DoF Hessian (False when only products are needed).
     """
 
     def __init__(self, model: Model, record, state: State, elastic: ElasticTerms, contact: ContactSet,
-                 vertex_mass: np.ndarray, linear_solver: str = "pardiso", factorize: bool = True) -> None:
+                 vertex_mass: np.ndarray, linear_solver: LinearSolver | str = "pardiso",
+                 factorize: bool = True) -> None:
         self.model, self.record, self.elastic = model, record, elastic
         self.dt = float(record.dt)
         self.x, self.x_n = record.x, record.x_prev
@@ -557,10 +581,10 @@ class StepLinearization:
         if factorize:
             D = sp.diags(self.free.astype(float))
             Hc = (D @ self.H @ D + sp.diags((~self.free).astype(float))).tocsr()
-            self.solver = make_linear_solver(linear_solver)
+            self.solver = make_linear_solver(linear_solver) if isinstance(linear_solver, str) else linear_solver
             self.solver.factorize(Hc)
         self.friction = next((p for p in record.terms if isinstance(p, LaggedFriction)), None)
-        self.rows = friction_rows(model, contact, state, self.dt) if self.friction is not None else None
+        self.rows = friction_rows(model, contact, state, self.friction) if self.friction is not None else None
         self.friction_J = friction_state_jacobian(self.rows, self.x) if self.rows is not None else None
         # bending: per sheet, hinge stiffness, dtheta/dx at x^{n+1}, plastic yielding set.
         self.bending = {}
@@ -626,7 +650,7 @@ class StepLinearization:
         out += self._friction_apply(dxn)
         for name, (pot, gt, _, _) in self.bending.items():
             if name in dtb:
-                coef = -2.0 * pot.hinge_stiffness[:, None] * dtb[name]  # (h, r)
+                coef = -(theta_stiffness(pot) @ dtb[name])  # (h, r)
                 contrib = gt[:, :, :, None] * coef[:, None, None, :]
                 np.add.at(out, pot.hinges.reshape(-1), contrib.reshape(-1, 3, coef.shape[1]))
         return out
@@ -637,7 +661,7 @@ class StepLinearization:
         av = -(self.mass / self.dt)[:, None] * w
         atb = {}
         for name, (pot, gt, _, _) in self.bending.items():
-            atb[name] = -2.0 * pot.hinge_stiffness * np.einsum("hvd,hvd->h", gt, w[pot.hinges])
+            atb[name] = -(theta_stiffness(pot).T @ np.einsum("hvd,hvd->h", gt, w[pot.hinges]))
         return ax, av, atb
 
     def hessian_product(self, dx: np.ndarray) -> np.ndarray:
@@ -756,6 +780,7 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     if dL_dx.shape != (T + 1, n, 3):
         raise ConfigError(f"adjoint: dL_dx has shape {dL_dx.shape}, expected {(T + 1, n, 3)}")
     elastic, contact, mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+    linear_solver = make_linear_solver(solver_name)
     ax = dL_dx[T].copy()
     av = np.zeros((n, 3))
     atb = {name: np.zeros(len(model.bodies[name].hinges)) for name in elastic.hinges}
@@ -766,7 +791,7 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     g_gripper: list[dict] = [None] * T
     for i in range(T - 1, -1, -1):
         rec, state, control = trajectory.records[i], trajectory.states[i], trajectory.controls[i]
-        lin = StepLinearization(model, rec, state, elastic, contact, mass, solver_name)
+        lin = StepLinearization(model, rec, state, elastic, contact, mass, linear_solver)
         dt = lin.dt
         a_hat = ax + av / dt
         ax_n = -av / dt

@@ -3,6 +3,10 @@
 Builds the potentials from the model's current material parameters and maps global parameter
 names (``sheet.bending_stiffness``) onto each potential's own parameter names (``bending_stiffness``)
 for the adjoint.
+
+Sheet bending model: ``"kirchhoff"`` (default, :class:`KirchhoffBending`: plate energy with the
+sheet's Poisson ratio) or ``"hinge"`` (:class:`DiscreteShellBending`), from the constructor argument
+or else ``model.meta["bending_model"]`` (one name for all sheets, or a dict sheet name -> name).
 """
 
 from __future__ import annotations
@@ -12,7 +16,9 @@ import copy
 import numpy as np
 
 from sim_core.model import Model
+from sim_core.errors import ConfigError
 from sim_core.potentials.bending import DiscreteShellBending, plastic_update
+from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.potentials.membrane import StVKMembrane
 from sim_core.potentials.neohookean import StableNeoHookean
 
@@ -22,14 +28,23 @@ class ElasticTerms:
 
     Args:
         model: the scene model (rest shape ``x_rest`` and body materials are read once).
+        bending_model: ``"kirchhoff"`` or ``"hinge"`` for every sheet; ``None`` reads
+            ``model.meta.get("bending_model", "kirchhoff")`` (a name or a dict sheet -> name).
+
+    Raises:
+        ConfigError: unknown bending model name.
     """
 
-    def __init__(self, model: Model) -> None:
+    BENDING_MODELS = ("kirchhoff", "hinge")
+
+    def __init__(self, model: Model, bending_model: str | None = None) -> None:
         self.model = model
+        choice = model.meta.get("bending_model", "kirchhoff") if bending_model is None else bending_model
+        self.bending_model: dict[str, str] = {}
         self.membranes: dict[str, StVKMembrane] = {}
         self.solids: dict[str, StableNeoHookean] = {}
         self.hinges: dict[str, np.ndarray] = {}
-        self._bending: dict[str, DiscreteShellBending] = {}
+        self._bending: dict[str, KirchhoffBending | DiscreteShellBending] = {}
         for b in model.bodies.values():
             m = b.material
             if b.kind == "sheet":
@@ -38,10 +53,14 @@ class ElasticTerms:
                 )
                 if b.hinges is not None and b.hinges.shape[0] > 0:
                     self.hinges[b.name] = b.hinges
+                kind = choice.get(b.name, "kirchhoff") if isinstance(choice, dict) else choice
+                if kind not in self.BENDING_MODELS:
+                    raise ConfigError(f"sheet {b.name!r}: unknown bending_model {kind!r}; use one of {self.BENDING_MODELS}")
+                self.bending_model[b.name] = kind
             elif b.kind == "solid":
                 self.solids[b.name] = StableNeoHookean(b.tets, model.x_rest, m["youngs_modulus"], m["poisson_ratio"])
 
-    def bending(self, name: str, theta_bar: np.ndarray | None) -> DiscreteShellBending:
+    def bending(self, name: str, theta_bar: np.ndarray | None) -> KirchhoffBending | DiscreteShellBending:
         """Bending potential of sheet ``name`` with rest angles ``theta_bar`` (rad, shape ``(h,)``).
 
         The potential (rest weights, hinge arrays) is built once per sheet and its rest angles are
@@ -50,7 +69,12 @@ class ElasticTerms:
         pot = self._bending.get(name)
         if pot is None:
             b = self.model.bodies[name]
-            pot = DiscreteShellBending(self.hinges[name], self.model.x_rest, b.material["bending_stiffness"], theta_bar)
+            m = b.material
+            if self.bending_model[name] == "kirchhoff":
+                pot = KirchhoffBending(b.triangles, self.hinges[name], self.model.x_rest, m["bending_stiffness"],
+                                       m["poisson_ratio"], theta_bar)
+            else:
+                pot = DiscreteShellBending(self.hinges[name], self.model.x_rest, m["bending_stiffness"], theta_bar)
             self._bending[name] = pot
             return pot
         if theta_bar is None:
@@ -74,7 +98,7 @@ class ElasticTerms:
         out: list[tuple[object, str]] = []
         if body in self.membranes and key in ("youngs_modulus", "poisson_ratio", "thickness"):
             out.append((self.membranes[body], key))
-        if body in self.hinges and key == "bending_stiffness":
+        if body in self.hinges and key in self.bending(body, hinge_theta_bar.get(body)).parameter_names:
             out.append((self.bending(body, hinge_theta_bar.get(body)), key))
         if body in self.solids and key in ("youngs_modulus", "poisson_ratio"):
             out.append((self.solids[body], key))

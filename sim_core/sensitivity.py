@@ -23,6 +23,7 @@ from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError
+from sim_core.linsolve import make_linear_solver
 from sim_core.model import Model
 from sim_core.sensors.markers import marker_vertex_weights
 from sim_core.transforms import compose_poses, quat_to_matrix
@@ -55,6 +56,7 @@ def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, para
     _check_trajectory(model, trajectory)
     T, n, P = trajectory.step_count, model.vertex_count, len(params)
     elastic, contact, mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+    linear_solver = make_linear_solver(sim.solver.config.linear_solver)
     dX = np.zeros((T + 1, n, 3, P))
     dF = np.zeros((T + 1, n, 3, P)) if contact_force else None
     dv = np.zeros((n, 3, P))
@@ -66,7 +68,7 @@ def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, para
             dyield[name] = np.eye(P)[params.index(key)]
     for i in range(T):
         lin = StepLinearization(model, trajectory.records[i], trajectory.states[i], elastic, contact, mass,
-                                sim.solver.config.linear_solver)
+                                linear_solver)
         dxn = dX[i]
         rhs = lin.state_rhs(dxn, dv, dtb)
         for j, p in enumerate(params):

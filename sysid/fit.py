@@ -12,7 +12,7 @@ be zero or is bounded on both sides (Poisson ratio, damping) is searched linearl
 
 Local phase: ``scipy.optimize.least_squares`` (trust-region reflective, Branch, Coleman & Li 1999)
 with a pluggable Jacobian provider: ``"fd"`` (central finite differences over the parameters) or
-``"sensitivity"`` (forward sensitivities of ``sim_core.adjoint``). Optional global phase before it
+``"sensitivity"`` (forward sensitivities of ``sim_core.sensitivity``). Optional global phase before it
 when the start may be poor: CMA-ES (Hansen 2016, the ``cma`` package) or a Latin-hypercube
 multi-start screening; the best point found starts the local phase.
 
@@ -306,47 +306,74 @@ class FiniteDifferenceJacobian:
 
 
 class SensitivityJacobian:
-    """Forward parameter sensitivities of ``sim_core.adjoint`` mapped to the whitened residual.
+    """Forward parameter sensitivities of the simulator mapped to the whitened residual.
 
-    ``sim_core.adjoint.parameter_sensitivities(sim, controls, params)`` gives d(state)/d(theta) per
-    step; its observation helper maps them to d(observation)/d(theta) per step, which
-    :meth:`ObservationModel.align` interpolates to the stamps; the chain rule to u multiplies by
-    ``d theta / d u`` (theta for log coordinates, the scale otherwise).
+    ``sim_core.sensitivity.parameter_sensitivities`` propagates ``dX/dtheta`` (and the contact-force
+    tangents) through one recorded replay, ``observation_sensitivities`` maps them to
+    d(observation)/d(theta) per step, :meth:`ObservationModel.align` interpolates those to the stamps
+    (linear), and the chain rule to u multiplies by ``d theta / d u`` (theta for log coordinates, the
+    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. A replay that
+    the sensitivity code refuses (a step retried with a smaller dt is not differentiable) falls back
+    to finite differences for that Jacobian, with a warning.
 
     Raises:
-        CalibrationError: ``sim_core.adjoint`` is missing or lacks the sensitivity API.
+        CalibrationError: the sensitivity module is missing.
     """
 
     name = "sensitivity"
 
-    def __init__(self) -> None:
-        self.adjoint = load_adjoint()
+    def __init__(self, fd_step: float = 0.01) -> None:
+        self.module = load_sensitivity()
+        self.fallback = FiniteDifferenceJacobian(fd_step)
 
     def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
-        raise CalibrationError("jacobian 'sensitivity': sim_core.adjoint is present but its observation mapping "
-                               "is not wired into sysid.fit yet; use --jacobian fd")
+        import warnings as _warnings
+
+        model = problem.model
+        u = np.asarray(u, dtype=float)
+        values = problem.values(u)
+        t = time.perf_counter()
+        try:
+            sim = model.prepare(values)
+            traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), list(problem.names),
+                                                               contact_force=True)
+            obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
+        except ConfigError as err:
+            _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
+                           stacklevel=2)
+            return self.fallback(problem, u)
+        except SimulationDivergedError as err:
+            raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
+        problem.sim_runs += 1
+        problem.sim_time_s += time.perf_counter() - t
+        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs])
+        blocks = []
+        for ch in model.channels:
+            d = model.align(ch, obs[ch]) * dtheta_du
+            blocks.append(model.whiten_derivative(ch, d))
+        return np.concatenate(blocks, axis=0)
 
 
-def load_adjoint() -> Any:
-    """``sim_core.adjoint`` when it provides ``parameter_sensitivities``.
+def load_sensitivity() -> Any:
+    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities`` and ``observation_sensitivities``.
 
     Raises:
-        CalibrationError: the module or the function is missing.
+        CalibrationError: the module or a function is missing.
     """
     try:
-        mod = importlib.import_module("sim_core.adjoint")
+        mod = importlib.import_module("sim_core.sensitivity")
     except ImportError as err:
-        raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.adjoint, which is not available ({err}); "
+        raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.sensitivity, which is not available ({err}); "
                                "use --jacobian fd") from err
-    if not hasattr(mod, "parameter_sensitivities"):
-        raise CalibrationError("jacobian 'sensitivity': sim_core.adjoint has no parameter_sensitivities(); "
-                               "use --jacobian fd")
+    for fn in ("parameter_sensitivities", "observation_sensitivities"):
+        if not hasattr(mod, fn):
+            raise CalibrationError(f"jacobian 'sensitivity': sim_core.sensitivity has no {fn}(); use --jacobian fd")
     return mod
 
 
 def make_jacobian(kind: str = "auto", fd_step: float = 0.01) -> JacobianProvider:
-    """A provider by name: ``"sensitivity"``, ``"fd"``, or ``"auto"`` (``"fd"`` until the
-    sensitivity mapping is wired in).
+    """A provider by name: ``"sensitivity"``, ``"fd"``, or ``"auto"`` (sensitivity when
+    ``sim_core.sensitivity`` is importable, else finite differences).
 
     Raises:
         ConfigError: unknown kind.
@@ -355,7 +382,12 @@ def make_jacobian(kind: str = "auto", fd_step: float = 0.01) -> JacobianProvider
     if kind not in JACOBIAN_KINDS:
         raise ConfigError(f"unknown jacobian provider {kind!r} (choose from {', '.join(JACOBIAN_KINDS)})")
     if kind == "sensitivity":
-        return SensitivityJacobian()
+        return SensitivityJacobian(fd_step)
+    if kind == "auto":
+        try:
+            return SensitivityJacobian(fd_step)
+        except CalibrationError:
+            pass
     return FiniteDifferenceJacobian(fd_step)
 
 

@@ -291,6 +291,25 @@ class ObservationModel:
             self._sim.get_parameter(name)  # raises ConfigError listing the known names
         return self._nominal[name]
 
+    def prepare(self, params: Mapping[str, float]):
+        """The cached simulation with ``params`` set (others at their scene values), reset to t_0.
+
+        Raises:
+            ConfigError: unknown parameter or a value outside its physical range.
+        """
+        sim = self.simulation()
+        for name, nominal in self._nominal.items():
+            if name not in params and sim.get_parameter(name) != nominal:
+                sim.set_parameter(name, nominal)
+        for name, value in params.items():
+            sim.set_parameter(name, float(value))
+        sim.reset()
+        return sim
+
+    def controls_list(self) -> list[Control]:
+        """The K kinematic controls of one replay."""
+        return [self.control(k) for k in range(1, self.step_count + 1)]
+
     def control(self, k: int) -> Control:
         """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``."""
         return Control({self.effector: self.controls[k].copy()})
@@ -311,13 +330,7 @@ class ObservationModel:
             ConfigError: unknown parameter or a value outside its physical range.
             SimulationDivergedError: the solver failed (names the step).
         """
-        sim = self.simulation()
-        for name, nominal in self._nominal.items():
-            if name not in params and sim.get_parameter(name) != nominal:
-                sim.set_parameter(name, nominal)
-        for name, value in params.items():
-            sim.set_parameter(name, float(value))
-        sim.reset()
+        sim = self.prepare(params)
         t_start = time.perf_counter()
         K = self.step_count
         obs = [self._observe(sim)]

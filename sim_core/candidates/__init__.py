@@ -1,0 +1,38 @@
+"""Physics-level missing-physics candidates (SYSID.md "Candidate library").
+
+Each candidate adds one parameter ``beta`` whose value 0 switches it off, as an extra term of the
+incremental potential (and, for the viscoelastic gel, a state update after each step):
+
+| name | module | beta | extra settings (defaults) |
+|---|---|---|---|
+| ``stiction`` | :mod:`.stiction` | ``mu_s / mu_k - 1`` | ``stiction.slip_scale`` (2: eps_s / eps_u) |
+| ``gel_viscoelasticity`` | :mod:`.gel_viscoelasticity` | Maxwell / equilibrium stiffness | ``gel_viscoelasticity.tau`` (0.3 s) |
+| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (5 delta) |
+| ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
+
+:func:`candidate_terms` builds the terms of one step; :class:`~sim_core.candidates.hook.CandidateHook`
+does the same with caches and owns the post-step state update; :class:`CandidateNewtonSolver`
+is a :class:`~sim_core.solver.NewtonSolver` with the hook plugged in (the solver patch for the
+lead is ``docs/patches/solver_candidate_hook.diff``).
+"""
+
+from __future__ import annotations
+
+from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
+from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection, hinge_grain_cosine
+from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
+from sim_core.candidates.hook import (
+    CANDIDATE_NAMES,
+    CANDIDATE_SETTINGS,
+    CandidateHook,
+    CandidateNewtonSolver,
+    candidate_terms,
+    validate_candidate_parameters,
+)
+from sim_core.candidates.stiction import StictionFriction
+
+__all__ = [
+    "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "CANDIDATE_SETTINGS", "CandidateHook",
+    "CandidateNewtonSolver", "LaggedAdhesion", "MaxwellBranch", "StictionFriction", "adhesion_pairs",
+    "candidate_terms", "hinge_grain_cosine", "relax_state", "validate_candidate_parameters",
+]

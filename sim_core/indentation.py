@@ -1,0 +1,361 @@
+"""Quasi-static indentation of a gel by a rigid indenter: model building and depth sweeps.
+
+A gel (tetrahedral Stable Neo-Hookean solid, fixed on its back face) is pressed by a rigid
+indenter, a triangle surface whose every vertex is driven by one kinematic effector (so it is a
+rigid, displacement-controlled body, like the fixed node set of a CalculiX indenter). The indenter
+moves along -z in small increments with a large time step (inertia negligible), and after each
+increment the net contact + friction force on the indenter is read from ``State.contact_force``.
+
+Used to validate the gel against Hertz contact (:func:`hertz_force`) and to identify the gel modulus
+from measured depth / force pairs (``sysid.indentation_fit``). Geometry helpers build a graded gel
+block (fine near the contact, coarse away from it), a triangulated spherical cap, and split a
+CalculiX/Abaqus mesh (FEATS, Helmut et al. 2024) into gel and indenter by node sets.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from sim_core.builder import ModelBuilder
+from sim_core.control import Control
+from sim_core.errors import ConfigError, MeshError
+from sim_core.mesh.sheet import TriMesh
+from sim_core.mesh.tet import TetMesh, tet_box, tet_boundary_triangles
+from sim_core.model import ContactSettings, Model
+from sim_core.simulation import Simulation
+from sim_core.solver import SolverConfig
+
+GEL_BODY = "gel"
+INDENTER_BODY = "indenter"
+INDENTER_EFFECTOR = "indenter"
+
+_RIGID_SHEET_MATERIAL = {"youngs_modulus": 1.0e9, "poisson_ratio": 0.3, "thickness": 1.0e-3, "density": 0.0}
+"""Material of the indenter surface. Every indenter vertex is driven by the effector (Dirichlet),
+so these values enter no equation; the sheet body only carries the contact triangles."""
+
+
+# ---------------------------------------------------------------------------------- analytic
+def hertz_force(depth, radius: float, youngs_modulus: float, poisson_ratio: float) -> np.ndarray:
+    """Hertz normal force of a rigid sphere on an elastic half-space.
+
+    ``F = 4/3 E* sqrt(R) d^(3/2)`` with ``E* = E / (1 - nu^2)`` (rigid indenter; Johnson, *Contact
+    Mechanics*, 1985, eq. 4.22-4.23). Valid for contact radius ``a = sqrt(R d) << R`` and a body
+    large compared with ``a``.
+
+    Args:
+        depth: indentation depth(s) d in m (>= 0), scalar or array.
+        radius: sphere radius R in m.
+        youngs_modulus: E of the half-space in Pa.
+        poisson_ratio: nu of the half-space.
+
+    Returns:
+        force(s) in N, same shape as ``depth``.
+    """
+    d = np.clip(np.asarray(depth, dtype=float), 0.0, None)
+    e_star = youngs_modulus / (1.0 - poisson_ratio**2)
+    return 4.0 / 3.0 * e_star * np.sqrt(radius) * d**1.5
+
+
+# ---------------------------------------------------------------------------------- geometry
+def graded_axis(extent: float, h_fine: float, fine_extent: float, growth: float) -> np.ndarray:
+    """1-D coordinates from 0 to ``extent``: spacing ``h_fine`` up to ``fine_extent``, then geometric.
+
+    Beyond ``fine_extent`` each interval is ``growth`` times the previous one; the last interval is
+    merged into the one before when it would be shorter than half of that one, and the last
+    coordinate is snapped to ``extent``.
+
+    Args:
+        extent: length in m (> 0).
+        h_fine: spacing in the fine zone in m (> 0).
+        fine_extent: length of the fine zone in m (>= 0, clipped to ``extent``).
+        growth: ratio of consecutive intervals outside the fine zone (>= 1).
+
+    Returns:
+        increasing coordinates, shape ``(k,)``, ``k >= 2``, first 0 and last ``extent``.
+
+    Raises:
+        ConfigError: non-positive extent or spacing, growth below 1.
+    """
+    if not (extent > 0 and h_fine > 0 and fine_extent >= 0 and growth >= 1):
+        raise ConfigError(
+            f"graded_axis: need extent > 0, h_fine > 0, fine_extent >= 0, growth >= 1; got "
+            f"{extent}, {h_fine}, {fine_extent}, {growth}"
+        )
+    coords = [0.0]
+    h = h_fine
+    while coords[-1] < extent - 1e-12 * extent:
+        if coords[-1] >= fine_extent - 1e-12 * extent:
+            h *= growth
+        coords.append(min(coords[-1] + h, extent))
+    if len(coords) > 2 and coords[-1] - coords[-2] < 0.5 * (coords[-2] - coords[-3]):
+        del coords[-2]
+    coords[-1] = extent
+    return np.asarray(coords)
+
+
+def graded_gel_block(
+    half_width: float, depth: float, h_fine: float, fine_half_width: float, fine_depth: float, growth: float = 1.3
+) -> TetMesh:
+    """A gel block ``[-w, w]^2 x [-depth, 0]`` (top face at z = 0) refined around the top centre.
+
+    A structured Kuhn-split box (:func:`sim_core.mesh.tet.tet_box`) whose axes are mapped by
+    :func:`graded_axis` (symmetric in x and y about 0, z growing downwards from the top); a
+    monotone map of each axis keeps every tet positively oriented.
+
+    Args:
+        half_width: w in m.
+        depth: block thickness in m.
+        h_fine: element size near the contact in m.
+        fine_half_width: half width of the uniformly fine zone in x and y, m.
+        fine_depth: thickness of the uniformly fine layer under the top face, m.
+        growth: interval ratio outside the fine zone.
+
+    Returns:
+        :class:`TetMesh`.
+    """
+    half = graded_axis(half_width, h_fine, fine_half_width, growth)
+    xy = np.concatenate([-half[:0:-1], half])
+    z = -graded_axis(depth, h_fine, fine_depth, growth)[::-1]
+    index = tet_box((len(xy) - 1, len(xy) - 1, len(z) - 1), (len(xy), len(xy), len(z)))
+    ijk = np.rint(index.x).astype(np.int64)
+    x = np.stack([xy[ijk[:, 0]], xy[ijk[:, 1]], z[ijk[:, 2]]], axis=1)
+    return TetMesh(x, index.tets)
+
+
+def sphere_cap(radius: float, cap_radius: float, h: float) -> TriMesh:
+    """Triangulated lower cap of a sphere whose lowest point is the origin.
+
+    Vertices: the centre and rings of radius ``k h`` (``ceil(2 pi k)`` points each) up to
+    ``cap_radius``, lifted to ``z = R - sqrt(R^2 - r^2)``; triangles: Delaunay triangulation of the
+    planar points (nearly equilateral, edge ~ ``h``), oriented with normals pointing down (-z),
+    out of the sphere.
+
+    Args:
+        radius: sphere radius R in m.
+        cap_radius: planar radius of the cap in m (< R).
+        h: target edge length in m.
+
+    Returns:
+        :class:`TriMesh`.
+
+    Raises:
+        ConfigError: ``cap_radius >= radius`` or non-positive sizes.
+    """
+    if not (radius > 0 and 0 < cap_radius < radius and h > 0):
+        raise ConfigError(f"sphere_cap: need 0 < cap_radius < radius and h > 0, got {radius}, {cap_radius}, {h}")
+    rings = max(1, int(np.ceil(cap_radius / h)))
+    pts = [np.zeros((1, 2))]
+    for k in range(1, rings + 1):
+        r = cap_radius * k / rings
+        n = int(np.ceil(2.0 * np.pi * r / (cap_radius / rings)))
+        phi = 2.0 * np.pi * (np.arange(n) + 0.5 * (k % 2)) / n
+        pts.append(np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1))
+    xy = np.concatenate(pts)
+    tri = Delaunay(xy).simplices.astype(np.int64)
+    r2 = np.sum(xy**2, axis=1)
+    x = np.column_stack([xy, radius - np.sqrt(radius**2 - r2)])
+    normal_z = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])[:, 2]
+    tri[normal_z > 0] = tri[normal_z > 0][:, [0, 2, 1]]
+    return TriMesh(x, tri)
+
+
+def split_by_node_sets(mesh: TetMesh, node_sets: dict[str, np.ndarray]) -> dict[str, tuple[TetMesh, np.ndarray]]:
+    """Split a multi-body tet mesh into parts whose tets have all corners in one node set.
+
+    Args:
+        mesh: the whole mesh.
+        node_sets: part name -> vertex indices of ``mesh`` (e.g. from
+            :func:`sim_core.mesh.io.load_node_sets` with ``node_ids``).
+
+    Returns:
+        part name -> ``(TetMesh of the part, original vertex index of each part vertex (k,))``.
+
+    Raises:
+        MeshError: a part with no tet, naming the set.
+    """
+    out = {}
+    for name, nodes in node_sets.items():
+        inside = np.zeros(len(mesh.x), dtype=bool)
+        inside[np.asarray(nodes, dtype=np.int64)] = True
+        tets = mesh.tets[np.all(inside[mesh.tets], axis=1)]
+        if tets.shape[0] == 0:
+            raise MeshError(f"node set {name!r}: no tetrahedron has all four corners in the set")
+        used, compact = np.unique(tets, return_inverse=True)
+        out[name] = (TetMesh(mesh.x[used], compact.reshape(tets.shape).astype(np.int64)), used)
+    return out
+
+
+def surface_of(mesh: TetMesh) -> TriMesh:
+    """Boundary surface of a tet mesh as a compact :class:`TriMesh` (outward normals)."""
+    tris = tet_boundary_triangles(mesh.tets, mesh.x)
+    used, compact = np.unique(tris, return_inverse=True)
+    return TriMesh(mesh.x[used], compact.reshape(tris.shape).astype(np.int64))
+
+
+# ---------------------------------------------------------------------------------- model
+@dataclass
+class IndentationSetup:
+    """An indentation model and what a depth sweep needs to know about it.
+
+    Attributes:
+        model: the model (bodies ``gel`` and ``indenter``, effector ``indenter``).
+        gel_body: name of the gel body.
+        indenter_body: name of the indenter body.
+        effector: name of the effector driving every indenter vertex.
+        tip_vertex: global index of the gel surface vertex under the indenter's lowest point.
+        initial_gap: vertical distance from the indenter's lowest vertex to the gel surface below
+            it, minus the contact offset eps, at depth 0 (m; 0 = the offset surface just touches).
+        solver_config: Newton settings for the sweep.
+    """
+
+    model: Model
+    gel_body: str
+    indenter_body: str
+    effector: str
+    tip_vertex: int
+    initial_gap: float
+    solver_config: SolverConfig = field(default_factory=SolverConfig)
+
+    def simulation(self, dt: float = 1.0) -> Simulation:
+        """A fresh :class:`Simulation` of this setup (large ``dt``: quasi-static)."""
+        return Simulation(self.model, dt=dt, solver_config=self.solver_config)
+
+
+def build_indentation(
+    gel: TetMesh,
+    gel_fixed: np.ndarray,
+    indenter: TriMesh,
+    youngs_modulus: float,
+    poisson_ratio: float,
+    contact: ContactSettings,
+    friction: float = 0.0,
+    gel_density: float = 1000.0,
+    indenter_lift: float = 0.0,
+    solver_config: SolverConfig | None = None,
+) -> IndentationSetup:
+    """Build a gel + rigid indenter model, no gravity.
+
+    Args:
+        gel: gel tet mesh (m).
+        gel_fixed: local gel vertex indices (or mask) clamped (the back face).
+        indenter: indenter surface (m); the indenter is rigid (every vertex effector-driven).
+        youngs_modulus: gel E in Pa.
+        poisson_ratio: gel nu.
+        contact: penalty contact settings (stiffness k_c N/m, offset eps m, friction eps_v m/s).
+            ``self_contact`` must be False (the indenter surface is a sheet body).
+        friction: Coulomb coefficient gel-indenter.
+        gel_density: kg/m^3 (irrelevant for quasi-static sweeps with a large dt).
+        indenter_lift: z shift applied to the indenter before building, m.
+        solver_config: Newton settings (default: PARDISO, velocity tolerance 1e-9 m/s at dt = 1 s).
+
+    Returns:
+        :class:`IndentationSetup`.
+
+    Raises:
+        ConfigError: self contact enabled, indenter not above the gel, bad materials.
+    """
+    if contact.self_contact:
+        raise ConfigError("indentation: contact.self_contact must be False (the rigid indenter is a sheet body)")
+    ind_x = np.asarray(indenter.x, dtype=float) + np.array([0.0, 0.0, indenter_lift])
+    b = ModelBuilder()
+    b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,
+                                "density": gel_density}, fixed=gel_fixed)
+    b.add_sheet(INDENTER_BODY, TriMesh(ind_x, indenter.triangles), dict(_RIGID_SHEET_MATERIAL))
+    b.add_effector(INDENTER_EFFECTOR, INDENTER_BODY, np.arange(len(ind_x)), [0, 0, 0, 0, 0, 0, 1],
+                   max_translation_per_step=1.0)
+    if friction > 0:
+        b.set_friction(GEL_BODY, INDENTER_BODY, friction)
+    model = b.finalize(gravity=(0.0, 0.0, 0.0), contact=contact)
+    gel_b = model.bodies[GEL_BODY]
+    surface = np.unique(gel_b.triangles)
+    tip = ind_x[np.argmin(ind_x[:, 2])]
+    # the gel surface vertex nearest to the indenter's lowest point: the top vertex right below it
+    tip_vertex = int(surface[np.argmin(np.sum((model.x_rest[surface] - tip) ** 2, axis=1))])
+    gap = float(tip[2] - model.x_rest[tip_vertex, 2] - contact.eps)
+    if gap < -contact.eps:
+        raise ConfigError(f"indentation: the indenter starts {-gap:.3g} m inside the gel surface")
+    cfg = solver_config or SolverConfig(tol_velocity=1e-9, max_iterations=100)
+    return IndentationSetup(model, GEL_BODY, INDENTER_BODY, INDENTER_EFFECTOR, tip_vertex, gap, cfg)
+
+
+# ---------------------------------------------------------------------------------- sweep
+@dataclass
+class IndentationResult:
+    """Forces of a quasi-static depth sweep.
+
+    Attributes:
+        depth: prescribed indenter displacement along -z at each record, m, shape ``(k,)``.
+        force: normal (+z) force of the gel on the indenter, N, shape ``(k,)`` (>= 0 when pressing).
+        force_vector: net contact + friction force on the indenter, N, shape ``(k, 3)``.
+        surface_depth: downward displacement of the gel surface vertex under the tip, m, ``(k,)``.
+        steps: solver steps taken.
+        newton_iterations: total Newton iterations.
+        runtime: wall time of the sweep, s.
+    """
+
+    depth: np.ndarray
+    force: np.ndarray
+    force_vector: np.ndarray
+    surface_depth: np.ndarray
+    steps: int
+    newton_iterations: int
+    runtime: float
+
+
+def run_depth_sweep(
+    setup: IndentationSetup, depths, max_increment: float, dt: float = 1.0, youngs_modulus: float | None = None
+) -> IndentationResult:
+    """Press the indenter to each depth in turn (increasing), quasi-statically.
+
+    The indenter's effector pose is lowered by at most ``max_increment`` per step; the state after
+    the step that reaches each requested depth is recorded. With ``dt`` large the inertia term
+    ``m / dt^2`` is negligible against the gel stiffness, so each step is a static equilibrium.
+
+    Args:
+        setup: from :func:`build_indentation`.
+        depths: increasing displacements from the initial pose, m, shape ``(k,)``.
+        max_increment: largest displacement per step, m.
+        dt: time step, s.
+        youngs_modulus: if given, set ``gel.youngs_modulus`` (Pa) before the sweep.
+
+    Returns:
+        :class:`IndentationResult`.
+
+    Raises:
+        ConfigError: depths not increasing / non-positive increment.
+        SimulationDivergedError: a step did not converge (from the solver).
+    """
+    depths = np.asarray(depths, dtype=float).reshape(-1)
+    if depths.size == 0 or np.any(np.diff(depths) <= 0) or depths[0] <= 0 or not max_increment > 0:
+        raise ConfigError(f"depth sweep: depths must be positive and increasing and max_increment > 0, got "
+                          f"{depths.tolist()}, {max_increment}")
+    t0 = time.perf_counter()
+    if youngs_modulus is not None:
+        setup.model.set_parameter(f"{setup.gel_body}.youngs_modulus", youngs_modulus)
+    sim = setup.simulation(dt)
+    ind = setup.model.bodies[setup.indenter_body]
+    z_tip0 = sim.state.x[setup.tip_vertex, 2]
+    pose0 = sim.state.effector_pose[setup.effector].copy()
+    control = Control()
+    forces, surf = [], []
+    steps = iterations = 0
+    current = 0.0
+    for target in depths:
+        n = int(np.ceil((target - current) / max_increment - 1e-9))
+        for i in range(1, n + 1):
+            pose = pose0.copy()
+            pose[2] -= current + (target - current) * i / n
+            control.effector_pose_target[setup.effector] = pose
+            info = sim.step(control)
+            steps += 1
+            iterations += info.iterations
+        current = target
+        forces.append(sim.state.contact_force[ind.vertex_start : ind.vertex_stop].sum(axis=0))
+        surf.append(z_tip0 - sim.state.x[setup.tip_vertex, 2])
+    fv = np.asarray(forces)
+    return IndentationResult(depths, fv[:, 2].copy(), fv, np.asarray(surf), steps, iterations,
+                             time.perf_counter() - t0)

@@ -1,0 +1,193 @@
+"""``thinshell sysid``: fit material parameters of the simulator to a recorded bag.
+
+Usage::
+
+    thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
+                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [...]
+
+Reads the bag into an evidence bundle (:func:`sysid.evidence.load_evidence`), replays its effector
+poses in the simulator (:mod:`sysid.observation`), fits (:mod:`sysid.fit`) and writes ``fit.json``
+(:mod:`sysid.results`), PNG plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) into the
+output directory. The directory is filled in a hidden sibling and renamed into place at the end, so
+it never holds a half-written result; an existing one is refused unless ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import uuid
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+from sim_core.errors import ThinShellError
+
+PROG = "thinshell sysid"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``thinshell sysid``."""
+    from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS
+
+    p = argparse.ArgumentParser(prog=PROG, description="Fit simulator material parameters to a recorded bag.")
+    p.add_argument("bag", help="rosbag2 directory (or .mcap file) with scene.yaml")
+    p.add_argument("--scene", help="scene file overriding the bag's scene.yaml")
+    p.add_argument("--params", default=",".join(DEFAULT_PARAMETERS),
+                   help="comma-separated global parameter names (default: %(default)s)")
+    p.add_argument("--out", help="output directory (default: ./sysid_<bag name>)")
+    p.add_argument("--force", action="store_true", help="replace an existing output directory")
+    p.add_argument("--global", dest="global_search", action="store_true",
+                   help="global phase (CMA-ES by default) before the local least squares")
+    p.add_argument("--global-method", choices=GLOBAL_METHODS, default="cma", help="global phase method")
+    p.add_argument("--global-evals", type=int, help="replay budget of the global phase")
+    p.add_argument("--max-time", type=float, help="wall-time budget in s (best point so far is reported)")
+    p.add_argument("--max-nfev", type=int, default=30, help="function evaluations of the local phase")
+    p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
+    p.add_argument("--t-max", type=float, help="fit only the first T seconds of the recording")
+    p.add_argument("--jacobian", choices=JACOBIAN_KINDS, default="auto", help="Jacobian provider")
+    p.add_argument("--fd-step", type=float, default=0.01, help="finite-difference step (log units)")
+    p.add_argument("--channels", help="comma-separated channels to fit (markers_xyz, markers_uv, wrench, sheet_points)")
+    p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ (faster, coarser)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
+    p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _split(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _error(message: str) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _publish(staging: Path, out: Path, force: bool) -> None:
+    """Rename the finished ``staging`` directory to ``out`` (replacing it when ``force``)."""
+    trash = None
+    if out.exists() or out.is_symlink():
+        if not force:
+            raise FileExistsError(f"{out} appeared while fitting; the result is in {staging}")
+        trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+        os.replace(out, trash)
+    os.replace(staging, out)
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True) if trash.is_dir() else trash.unlink()
+
+
+class _Progress:
+    """Progress of the replays (tqdm on stderr): phase and best cost so far."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.bar = None
+        self.best = float("inf")
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(desc="sysid replays", unit="replay", file=sys.stderr, dynamic_ncols=True)
+
+    def __call__(self, ev) -> None:
+        self.best = min(self.best, ev.cost)
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{ev.phase} cost {ev.cost:.4g} best {self.best:.4g}", refresh=False)
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def sysid_main(argv: Sequence[str] | None = None) -> int:
+    """Run ``thinshell sysid`` with ``argv`` (default ``sys.argv[1:]``).
+
+    Returns:
+        0 on success; 2 for a usage error (missing bag, existing output without ``--force``, bad
+        option value); 1 for a thinshell error (unreadable bag, invalid scene, failed fit), each
+        reported as one line on stderr.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    bag = Path(args.bag)
+    if not bag.exists():
+        return _error(f"bag not found: {bag}")
+    out = Path(args.out) if args.out else Path.cwd() / f"sysid_{bag.resolve().name}"
+    if (out.exists() or out.is_symlink()) and not args.force:
+        return _error(f"output directory {out} exists (use --force to replace it)")
+    if args.t_max is not None and not args.t_max > 0:
+        return _error(f"--t-max must be > 0 s, got {args.t_max}")
+    if args.max_time is not None and not args.max_time > 0:
+        return _error(f"--max-time must be > 0 s, got {args.max_time}")
+    simulation = None
+    if args.gel_resolution:
+        try:
+            simulation = {"gel_resolution": [int(v) for v in _split(args.gel_resolution)]}
+        except ValueError:
+            return _error(f"--gel-resolution must be three integers NX,NY,NZ, got {args.gel_resolution!r}")
+    try:
+        return _run(args, argv, bag, out, simulation)
+    except ThinShellError as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 1
+
+
+def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simulation: dict | None) -> int:
+    from sysid.evidence import load_evidence
+    from sysid.fit import fit
+    from sysid.observation import ObservationModel
+    from sysid.report import write_report
+    from sysid.results import fit_document, provenance, write_fit_json
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        evidence = load_evidence(bag, scene_path=args.scene, include_image=False)
+        model = ObservationModel(evidence, scene=args.scene, dt=args.dt, t_max=args.t_max,
+                                 channels=_split(args.channels), simulation=simulation)
+    for w in caught:
+        print(f"{PROG}: warning: {w.message}", file=sys.stderr)
+    params = _split(args.params) or []
+    print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
+          f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
+    progress = _Progress(not args.quiet)
+    try:
+        result = fit(model, params, jacobian=args.jacobian, global_method=args.global_method if args.global_search else None,
+                     global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
+                     fd_step=args.fd_step, workers=args.workers, seed=args.seed, on_eval=progress)
+    finally:
+        progress.close()
+    result.warnings[:0] = [str(w.message) for w in caught]
+    doc = fit_document(result, provenance(evidence, args.seed, args.t_max, [PROG, *argv], args.scene))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
+    staging.mkdir()
+    try:
+        write_fit_json(staging / "fit.json", doc)
+        write_report(result, doc, staging)
+        _publish(staging, out, args.force)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    for name in result.names:
+        s = result.sigma[name] if result.sigma else None
+        print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
+              + (f" +- {s:.3g}" if s is not None else ""))
+    for ch, before in result.rms_initial.items():
+        print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
+    print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "
+          f"{result.wall_time_s:.1f} s")
+    print(f"report: {out / 'report.html'} (also report.md, fit.json)")
+    return 0
+
+
+def main() -> None:
+    """Console entry point (``python -m sysid.cli``)."""
+    sys.exit(sysid_main())
+
+
+if __name__ == "__main__":
+    main()

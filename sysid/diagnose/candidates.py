@@ -1,0 +1,355 @@
+"""The candidate library of the diagnosis: each missing effect k is a parameter beta_k, off at 0.
+
+A candidate gives its signature ``J_k = d y_sim / d beta`` at ``beta = 0`` on the channels it acts
+on (aligned to the evidence stamps, unwhitened, trailing axis = its q parameters) and a refit.
+
+Observation-level candidates act after the simulator and are implemented here exactly:
+
+- ``latency``: a stream is observed ``tau`` late, ``y_obs(t) = y(t - tau)``, so ``J = -dy/dt``
+  (central differences of the prediction over its stamps). Refit: shift the per-step prediction
+  and minimise the residual over tau (grid + bounded Brent).
+- ``lens_distortion``: radial ``k1`` of the tactile camera on the marker pixels,
+  ``J = d(u, v)/dk1 = (fx x_n r^2, fy y_n r^2)`` at the predicted marker positions
+  (:meth:`PinholeCamera.project_parameter_derivative`); the pixels are linear in k1, so the refit is
+  linear least squares.
+- ``force_bias``: offset + linear drift on each wrench axis, ``w + b0 + b1 (t - t_mid) / T``
+  (12 parameters, one joint test); linear.
+
+Physics-level candidates set a simulator parameter and take a secant signature from one extra
+rollout at a probe value ``beta_p``: ``J = (y(beta_p) - y(0)) / beta_p``. This is the derivative at
+0 for smooth effects (``damping``: mass-proportional damping, 1/s) and the only usable direction for
+threshold effects whose derivative at 0 vanishes (``bending_plasticity``: ``beta = 1 / yield_angle``,
+probe yield angle = half the largest hinge angle of the nominal rollout). Further physics
+candidates (stiction, gel viscoelasticity, adhesion, anisotropic bending) are taken from
+``sim_core.candidates.DIAGNOSIS_CANDIDATES`` when that module provides it:
+``{effect: {"parameter": name, "probe": value, "one_sided": bool}}`` with ``name`` a
+``Simulation`` parameter whose value 0 switches the effect off.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.sensors.camera import PinholeCamera
+
+EFFECTS = ("bending_plasticity", "anisotropic_bending", "damping", "stiction", "gel_viscoelasticity", "adhesion",
+           "latency", "lens_distortion", "force_bias")
+"""Effect vocabulary of SYSID.md."""
+
+STREAMS = {"markers_xyz": "tactile/markers", "markers_uv": "tactile/markers", "wrench": "tactile/wrench",
+           "sheet_points": "sheet/points"}
+"""Channel -> the stream (topic without namespace) it is recorded on."""
+
+LATENCY_BOUND_S = 0.2
+"""Largest |tau| searched by the latency refit, s."""
+
+
+@dataclass
+class DiagnosisContext:
+    """What every candidate needs: the recording, the nominal rollout and its prediction.
+
+    Attributes:
+        model: the ``sysid.observation.ObservationModel``.
+        params: nominal (fitted) parameter values used for the rollout.
+        trace: the nominal ``SimTrace`` (per simulation step).
+        prediction: channel -> nominal prediction at the evidence stamps (shape of the data).
+        channels: channels under test.
+    """
+
+    model: Any
+    params: dict[str, float]
+    trace: Any
+    prediction: dict[str, np.ndarray]
+    channels: tuple[str, ...]
+    _camera: PinholeCamera | None = field(default=None, repr=False)
+
+    def stamps_s(self, channel: str) -> np.ndarray:
+        """Evidence stamps of ``channel`` in s from the first pose stamp, ``(n,)``."""
+        t0 = int(self.model.step_times_ns[0])
+        return (np.asarray(self.model.evidence.t_ns[channel], dtype=np.int64) - t0) * 1e-9
+
+    @property
+    def camera(self) -> PinholeCamera:
+        """The tactile camera of the scene."""
+        if self._camera is None:
+            block = self.model.scene["sensors"][self.model.sensor]["camera"]
+            self._camera = PinholeCamera.from_dict(block, where=f"sensors.{self.model.sensor}.camera")
+        return self._camera
+
+    def shifted(self, channel: str, tau: float) -> np.ndarray:
+        """Prediction of ``channel`` observed ``tau`` s late: the per-step trace at ``t - tau`` (held at the ends)."""
+        ts = (self.model.step_times_ns - self.model.step_times_ns[0]) * 1e-9
+        per_step = np.asarray(self.trace.channel(channel), dtype=float)
+        flat = per_step.reshape(per_step.shape[0], -1)
+        t = self.stamps_s(channel) - tau
+        i = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.shape[0] - 2)
+        w = np.clip((t - ts[i]) / (ts[i + 1] - ts[i]), 0.0, 1.0)[:, None]
+        out = (1.0 - w) * flat[i] + w * flat[i + 1]
+        return out.reshape(t.shape[0], *per_step.shape[1:])
+
+
+@dataclass
+class Refit:
+    """A candidate's fitted parameters and the prediction they give.
+
+    Attributes:
+        beta: fitted beta, shape ``(q,)``.
+        params: named values for the report (``latency_s``, ``k1``, ``damping`` ...).
+        prediction: channel -> prediction (only the channels the candidate changes).
+        sim_params: simulator parameters to add to the nominal ones (physics candidates).
+    """
+
+    beta: np.ndarray
+    params: dict[str, float]
+    prediction: dict[str, np.ndarray]
+    sim_params: dict[str, float] = field(default_factory=dict)
+
+
+def time_derivative(t_s: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """dy/dt along axis 0 by central differences on (possibly uneven) stamps, one-sided at the ends.
+
+    Args:
+        t_s: ``(n,)`` s, increasing.
+        y: ``(n, ...)``.
+
+    Returns:
+        ``(n, ...)``, units of y per s.
+    """
+    return np.gradient(np.asarray(y, dtype=float), np.asarray(t_s, dtype=float), axis=0)
+
+
+# ====================================================================================== observation level
+class LatencyCandidate:
+    """A stream observed late by tau seconds (two-sided: a lead is a negative tau)."""
+
+    name = "latency"
+    level = "observation"
+    one_sided = False
+    acts_on = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+
+    def probe(self, ctx: DiagnosisContext) -> dict[str, float] | None:
+        """No rollout needed."""
+        return None
+
+    def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """``J = -dy/dt`` per channel, shape ``(n, ..., 1)`` (units of y per s)."""
+        return {ch: -time_derivative(ctx.stamps_s(ch), ctx.prediction[ch])[..., None]
+                for ch in ctx.channels if ch in self.acts_on}
+
+    def refit(self, ctx: DiagnosisContext, channels: Sequence[str], objective: Callable[[Mapping[str, np.ndarray]], float]
+              ) -> Refit:
+        """One tau for the stream of ``channels``, minimising ``objective(prediction)``."""
+        from scipy.optimize import minimize_scalar
+
+        def pred(tau: float) -> dict[str, np.ndarray]:
+            return {ch: ctx.shifted(ch, tau) for ch in channels}
+
+        grid = np.linspace(-LATENCY_BOUND_S, LATENCY_BOUND_S, 201)
+        costs = [objective(pred(float(t))) for t in grid]
+        i = int(np.argmin(costs))
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.shape[0] - 1)]
+        res = minimize_scalar(lambda t: objective(pred(float(t))), bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-5})
+        tau = float(res.x) if res.fun <= costs[i] else float(grid[i])
+        return Refit(np.array([tau]), {"latency_s": tau}, pred(tau))
+
+
+class LensDistortionCandidate:
+    """Radial distortion k1 of the tactile camera, on the marker pixels."""
+
+    name = "lens_distortion"
+    level = "observation"
+    one_sided = False
+    acts_on = ("markers_uv",)
+
+    def probe(self, ctx: DiagnosisContext) -> dict[str, float] | None:
+        """No rollout needed."""
+        return None
+
+    def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """``d(u, v)/dk1`` at the predicted marker positions, shape ``(n, k, 2, 1)`` px."""
+        if "markers_uv" not in ctx.channels or "markers_xyz" not in ctx.prediction:
+            return {}
+        xyz = ctx.prediction["markers_xyz"]
+        d = np.stack([ctx.camera.project_parameter_derivative(p, "k1") for p in xyz])
+        return {"markers_uv": d[..., None]}
+
+    def refit(self, ctx: DiagnosisContext, channels: Sequence[str], objective: Callable[[Mapping[str, np.ndarray]], float]
+              ) -> Refit:
+        """Exact: the pixels are linear in k1; k1 minimises the quadratic ``objective`` (3-point fit)."""
+        J = self.signature(ctx)["markers_uv"][..., 0]
+        uv0 = ctx.prediction["markers_uv"]
+        k1 = _quadratic_minimiser(lambda b: objective({"markers_uv": uv0 + b * J}), scale=1.0)
+        return Refit(np.array([k1]), {"k1": k1 + ctx.camera.k1}, {"markers_uv": uv0 + k1 * J})
+
+
+class ForceBiasCandidate:
+    """Offset and linear drift on every wrench axis (12 parameters, tested jointly)."""
+
+    name = "force_bias"
+    level = "observation"
+    one_sided = False
+    acts_on = ("wrench",)
+
+    def probe(self, ctx: DiagnosisContext) -> dict[str, float] | None:
+        """No rollout needed."""
+        return None
+
+    @staticmethod
+    def basis(t_s: np.ndarray) -> np.ndarray:
+        """``(n, 2)``: 1 and ``(t - t_mid) / T`` (T = span)."""
+        span = max(float(t_s[-1] - t_s[0]), 1e-9)
+        return np.stack([np.ones_like(t_s), (t_s - 0.5 * (t_s[0] + t_s[-1])) / span], axis=1)
+
+    def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """``(n, 6, 12)``: column ``2 a + j`` is basis j on axis a."""
+        if "wrench" not in ctx.channels:
+            return {}
+        B = self.basis(ctx.stamps_s("wrench"))
+        n = B.shape[0]
+        J = np.zeros((n, 6, 12))
+        for a in range(6):
+            J[:, a, 2 * a: 2 * a + 2] = B
+        return {"wrench": J}
+
+    def refit(self, ctx: DiagnosisContext, channels: Sequence[str], objective: Callable[[Mapping[str, np.ndarray]], float],
+              sigma: np.ndarray | None = None, rows: np.ndarray | None = None) -> Refit:
+        """Exact per-axis least squares of the residual on the basis (on ``rows`` when given)."""
+        t = ctx.stamps_s("wrench")
+        B = self.basis(t)
+        data = ctx.model.data("wrench")
+        resid = data - ctx.prediction["wrench"]
+        use = np.ones(t.shape[0], bool) if rows is None else rows
+        coef, *_ = np.linalg.lstsq(B[use], resid[use], rcond=None)  # (2, 6)
+        beta = coef.T.reshape(-1)
+        params = {}
+        for a, axis in enumerate(("fx", "fy", "fz", "tx", "ty", "tz")):
+            params[f"bias_{axis}"] = float(coef[0, a])
+            params[f"drift_{axis}"] = float(coef[1, a])
+        return Refit(beta, params, {"wrench": ctx.prediction["wrench"] + B @ coef})
+
+
+def _quadratic_minimiser(f: Callable[[float], float], scale: float) -> float:
+    """Minimiser of a function known to be quadratic, from three evaluations."""
+    f0, fp, fm = f(0.0), f(scale), f(-scale)
+    curv = (fp + fm - 2.0 * f0) / scale ** 2
+    if not curv > 0.0:
+        return 0.0
+    return float(-(fp - fm) / (2.0 * scale) / curv)
+
+
+# ====================================================================================== physics level
+class PhysicsParameterCandidate:
+    """An effect switched on by a simulator parameter; secant signature from one probe rollout.
+
+    Args:
+        name: effect name (SYSID.md vocabulary).
+        parameter: ``Simulation`` parameter name.
+        probe_beta: beta of the probe rollout (> 0).
+        one_sided: beta >= 0 only.
+        to_parameter: beta -> parameter value (default identity; plasticity: ``1 / beta``).
+        report_name: key of the fitted value in the report.
+    """
+
+    level = "physics"
+
+    def __init__(self, name: str, parameter: str, probe_beta: float, one_sided: bool = True,
+                 to_parameter: Callable[[float], float] | None = None, report_name: str | None = None) -> None:
+        if not (math.isfinite(probe_beta) and probe_beta > 0.0):
+            raise ValueError(f"candidate {name}: probe beta must be a positive number, got {probe_beta!r}")
+        self.name = name
+        self.parameter = parameter
+        self.probe_beta = float(probe_beta)
+        self.one_sided = one_sided
+        self.to_parameter = to_parameter or (lambda b: float(b))
+        self.report_name = report_name or parameter
+        self.acts_on = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+
+    def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
+        """Parameters of the probe rollout (nominal values plus the effect at ``probe_beta``)."""
+        return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta)}
+
+    def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
+                  ) -> dict[str, np.ndarray]:
+        """Secant ``(y(beta_p) - y(0)) / beta_p`` per tested channel, ``(n, ..., 1)``.
+
+        Raises:
+            ValueError: no probe prediction given.
+        """
+        if probe_prediction is None:
+            raise ValueError(f"candidate {self.name} needs the prediction of its probe rollout")
+        return {ch: ((probe_prediction[ch] - ctx.prediction[ch]) / self.probe_beta)[..., None]
+                for ch in ctx.channels if ch in probe_prediction}
+
+    def sim_parameters(self, beta: float) -> dict[str, float]:
+        """Simulator parameters for beta (clipped at 0 for one-sided effects)."""
+        b = max(beta, 0.0) if self.one_sided else beta
+        return {self.parameter: self.to_parameter(b) if b != 0.0 else self.to_parameter(0.0)}
+
+
+def _inverse(b: float) -> float:
+    return math.inf if b == 0.0 else 1.0 / b
+
+
+def max_hinge_angle(ctx: DiagnosisContext) -> float:
+    """Largest |dihedral angle| (rad) of the sheet over the nominal rollout (flat rest shape)."""
+    from sim_core.mesh.sheet import sheet_topology
+    from sim_core.potentials.bending import dihedral_angle
+    from sim_core.scenes.scene_file import load_scene_file
+
+    scene = load_scene_file(ctx.model.scene)
+    nx, ny = scene.sheet.resolution
+    pts = np.asarray(ctx.trace.sheet_points, dtype=float)
+    if pts.shape[1] != nx * ny:
+        return 0.0
+    from sim_core.mesh.sheet import grid_sheet
+
+    mesh = grid_sheet(scene.sheet.size, scene.sheet.resolution, scene.sheet.origin)
+    hinges = sheet_topology(mesh.triangles).hinges
+    step = max(1, pts.shape[0] // 100)
+    return float(max(np.max(np.abs(dihedral_angle(p[hinges]))) for p in pts[::step]))
+
+
+def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, Any]] | None = None,
+                       damping_probe: float = 2.0) -> list[Any]:
+    """The candidate library available for this scene.
+
+    Args:
+        ctx: diagnosis context (the plasticity probe needs the nominal rollout).
+        extra: additional physics candidates ``{effect: {"parameter", "probe", "one_sided"}}``
+            (default: ``sim_core.candidates.DIAGNOSIS_CANDIDATES`` when that module defines it).
+        damping_probe: probe of the mass-proportional damping, 1/s.
+
+    Returns:
+        candidate objects: latency, lens_distortion, force_bias, damping, bending_plasticity (when
+        the sheet bends at all), then the extra ones whose parameter the simulator knows.
+    """
+    out: list[Any] = [LatencyCandidate(), LensDistortionCandidate(), ForceBiasCandidate()]
+    names = set(ctx.model.simulation().parameter_names)
+    if "damping" in names and float(ctx.params.get("damping", ctx.model.parameter_value("damping"))) == 0.0:
+        out.append(PhysicsParameterCandidate("damping", "damping", damping_probe, True, report_name="damping_per_s"))
+    if "sheet.yield_angle" in names and not math.isfinite(float(ctx.params.get("sheet.yield_angle", ctx.model.parameter_value("sheet.yield_angle")))):
+        theta_max = max_hinge_angle(ctx)
+        if theta_max > 1e-3:
+            out.append(PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 2.0 / theta_max, True,
+                                                 to_parameter=_inverse, report_name="inverse_yield_angle_per_rad"))
+    if extra is None:
+        try:
+            extra = getattr(importlib.import_module("sim_core.candidates"), "DIAGNOSIS_CANDIDATES", None)
+        except ImportError:
+            extra = None
+    for effect, spec in (extra or {}).items():
+        if effect not in EFFECTS:
+            raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")
+        if spec["parameter"] in names and effect not in {c.name for c in out}:
+            out.append(PhysicsParameterCandidate(effect, spec["parameter"], float(spec["probe"]),
+                                                 bool(spec.get("one_sided", True))))
+    return out

@@ -1,0 +1,67 @@
+"""``thinshell diagnose BAG [BAG...]``: missing-physics diagnosis of recordings, JSON + report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from sim_core.errors import ThinShellError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Argument parser of ``thinshell diagnose``."""
+    p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
+    p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")
+    p.add_argument("--heldout", nargs="*", default=[], help="held-out recordings (default: held-out time blocks)")
+    p.add_argument("--json", type=Path, help="write the JSON report here")
+    p.add_argument("--out", type=Path, help="report directory (report.md, report.html, PNGs)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out directory / over --json")
+    p.add_argument("--workers", type=int, default=1, help="processes for independent replays")
+    p.add_argument("--ray-address", help="run the replays as Ray tasks on this cluster")
+    p.add_argument("--t-max", type=float, help="use only the first T_MAX s of each recording")
+    p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
+    p.add_argument("--params", nargs="*", default=[], help="parameters of the nominal fit (default: none, scene values)")
+    p.add_argument("--project", nargs="*", help="parameters projected out of the tests (default: --params)")
+    p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate (Holm)")
+    p.add_argument("--candidates", nargs="*", help="restrict the candidate library to these effects")
+    return p
+
+
+def diagnose_main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI; returns the exit status (0 ok, 2 usage / input error)."""
+    from sysid.diagnose.engine import Settings, run_diagnosis
+    from sysid.diagnose.report import write_report
+    from sysid.diagnose.schema import validate_report
+
+    args = build_parser().parse_args(argv)
+    if args.out is not None and args.out.exists() and any(args.out.iterdir()) and not args.force:
+        print(f"thinshell diagnose: output directory {args.out} is not empty (use --force)", file=sys.stderr)
+        return 2
+    if args.json is not None and args.json.exists() and not args.force:
+        print(f"thinshell diagnose: {args.json} exists (use --force)", file=sys.stderr)
+        return 2
+    settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
+                        ray_address=args.ray_address)
+    try:
+        doc, runs = run_diagnosis(args.bags, args.heldout, args.params, settings, args.project, args.candidates)
+        validate_report(doc)
+    except ThinShellError as err:
+        print(f"thinshell diagnose: {err}", file=sys.stderr)
+        return 2
+    text = json.dumps(doc, indent=2)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+    else:
+        print(text)
+    if args.out is not None:
+        write_report(doc, runs[0], args.out)
+    print(f"explained_by: {doc['explained_by']}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(diagnose_main())

@@ -1,0 +1,548 @@
+"""The diagnosis pipeline: fit, test every candidate, locate, name, refit, validate on held-out data.
+
+Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
+
+1. Nominal fit of ``params`` (``sysid.fit.fit``; skipped when ``params`` is empty), then one batch of
+   replays: the nominal rollout and one forward difference per fitted parameter (``J_theta``, in
+   log units), run in parallel.
+2. Signatures: observation-level ones from the nominal rollout (no replay); physics-level ones from
+   one probe replay each (second parallel batch).
+3. Score tests (:func:`sysid.diagnose.stats.score_test`: AR prewhitening, projection of
+   ``J_theta``, robust variance) for every candidate x tested channel; Holm over the family.
+4. Refit of every significant candidate (physics: the linearised estimate on the training rows,
+   then one verifying replay; observation: exact, no replay), on training rows; evaluation on
+   held-out bags (replayed at nominal and refitted parameters) or on held-out time blocks (every
+   other of ``2 * holdout_blocks`` equal blocks).
+5. Acceptance: ``delta_BIC > bic_threshold`` on the training rows AND lower held-out whitened RMS.
+   Confusable pairs are reported as ties unless a discriminating test resolves them (latency vs gel
+   viscoelasticity: one lag fits every channel of the stream). Accepted candidates are combined
+   (first order: the sum of their prediction changes) into the augmented model.
+6. ``explained_by``: accepted, strongest first; ``["unexplained"]`` when some candidate is
+   significant but none is accepted; ``[]`` when nothing is significant.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.errors import CalibrationError
+from sysid.diagnose import candidates as cands
+from sysid.diagnose import locate, stats
+from sysid.diagnose.parallel import replay_many
+
+CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelasticity"),
+              ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"))
+"""Pairs SYSID.md calls confusable (plasticity vs hysteresis: adhesion tack is the hysteresis here)."""
+
+RMS_KEYS = {"markers_uv": "markers_px", "markers_xyz": "markers_m", "wrench": "wrench_N",
+            "sheet_points": "sheet_points_m"}
+
+
+@dataclass
+class Settings:
+    """Diagnosis settings.
+
+    Attributes:
+        dt: simulation step, s.
+        t_max: use the first t_max s of each recording (None: all).
+        alpha: family-wise error rate of the Holm correction.
+        bic_threshold: delta-BIC needed to accept a refit.
+        holdout_blocks: held-out time blocks when no held-out bag is given.
+        fit_max_nfev: function evaluations of the nominal fit.
+        fd_step: log step of the J_theta forward differences.
+        workers: processes for independent replays; ray_address: Ray cluster instead.
+    """
+
+    dt: float = 0.01
+    t_max: float | None = None
+    alpha: float = 0.01
+    bic_threshold: float = 10.0
+    holdout_blocks: int = 4
+    fit_max_nfev: int = 8
+    fd_step: float = 0.05
+    workers: int = 1
+    ray_address: str | None = None
+
+
+# ====================================================================================== helpers
+def _whiten(model: Any, channel: str, a: np.ndarray) -> np.ndarray:
+    """Divide the last data axis by the channel noise; ``a`` is ``(T, ..., axes)`` or ``(T, ..., axes, q)``."""
+    s = model.sigma[channel]
+    data_ndim = model.data(channel).ndim
+    return a / s.reshape((-1,) + (1,) * (a.ndim - data_ndim)) if a.ndim > data_ndim else a / s
+
+
+def _residual(model: Any, channel: str, prediction: np.ndarray) -> np.ndarray:
+    return _whiten(model, channel, model.data(channel) - prediction)
+
+
+def _holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float]) -> np.ndarray:
+    """True on held-out rows: every other of ``2 * blocks`` equal time blocks (the odd ones)."""
+    a, b = span
+    k = np.clip(((t_s - a) / max(b - a, 1e-12) * 2 * blocks).astype(int), 0, 2 * blocks - 1)
+    return (k % 2) == 1
+
+
+def _rms_summary(model: Any, prediction: Mapping[str, np.ndarray]) -> dict[str, float]:
+    out = {}
+    for ch, key in RMS_KEYS.items():
+        if ch in prediction and ch in model.evidence.channels_present:
+            e = model.data(ch) - prediction[ch]
+            if ch == "wrench":
+                out["wrench_N"] = float(np.sqrt(np.mean(e[:, :3] ** 2)))
+                out["torque_Nm"] = float(np.sqrt(np.mean(e[:, 3:] ** 2)))
+            else:
+                out[key] = float(np.sqrt(np.mean(e ** 2)))
+    return out
+
+
+def _sse(model: Any, prediction: Mapping[str, np.ndarray], channels: Sequence[str],
+         rows: Mapping[str, np.ndarray] | None) -> tuple[float, int, int]:
+    """Whitened SSE over channels (rows selected), number of values and of time samples."""
+    sse, n, t = 0.0, 0, 0
+    for ch in channels:
+        r = _residual(model, ch, prediction[ch])
+        if rows is not None:
+            r = r[rows[ch]]
+        sse += float(np.sum(r ** 2))
+        n += r.size
+        t += r.shape[0]
+    return sse, n, t
+
+
+def _stream_channels(channel: str, tested: Sequence[str]) -> list[str]:
+    stream = cands.STREAMS[channel]
+    return [c for c in tested if cands.STREAMS[c] == stream]
+
+
+# ====================================================================================== one bag
+class BagDiagnosis:
+    """Diagnosis of one recording (construct, then :meth:`run`).
+
+    Args:
+        bag: recording path.
+        heldout: held-out recordings (paths).
+        params: parameters of the nominal fit (empty: the scene values are used, J_theta still
+            projects them out when ``project`` is given).
+        project: parameters whose directions are projected out of the tests (default ``params``).
+        settings: :class:`Settings`.
+        candidate_names: restrict the library to these effects (None: all available).
+    """
+
+    def __init__(self, bag: str | Path, heldout: Sequence[str | Path] = (), params: Sequence[str] = (),
+                 project: Sequence[str] | None = None, settings: Settings | None = None,
+                 candidate_names: Sequence[str] | None = None) -> None:
+        from sysid.evidence import load_evidence
+        from sysid.observation import PREDICTABLE_CHANNELS, ObservationModel
+
+        self.bag = str(bag)
+        self.settings = settings or Settings()
+        s = self.settings
+        self.evidence = load_evidence(bag, include_image=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max)
+        self.heldout = [str(h) for h in heldout]
+        self.params = tuple(params)
+        self.project = tuple(project) if project is not None else self.params
+        self.tested = tuple(c for c in PREDICTABLE_CHANNELS if c in self.model.evidence.channels_present)
+        self.candidate_names = None if candidate_names is None else tuple(candidate_names)
+        self.timings: dict[str, float] = {}
+        self.notes: list[str] = []
+
+    # ------------------------------------------------------------------------------ steps
+    def _nominal(self) -> dict[str, float]:
+        if not self.params:
+            return {}
+        from sysid.fit import fit
+
+        t = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = fit(self.model, self.params, max_nfev=self.settings.fit_max_nfev, workers=self.settings.workers)
+        self.timings["fit_s"] = time.perf_counter() - t
+        self.fit_result = res
+        return dict(res.values)
+
+    def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
+        t = time.perf_counter()
+        out = replay_many(self.model, sets, self.settings.workers, self.settings.ray_address)
+        self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
+        self.timings["replays"] = self.timings.get("replays", 0) + len(sets)
+        return out
+
+    def run(self) -> dict[str, Any]:
+        """Run the pipeline and return the report (the JSON contract of SYSID.md)."""
+        t_start = time.perf_counter()
+        s = self.settings
+        model = self.model
+        theta = self._nominal()
+        proj = [n for n in self.project]
+        base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
+        sets = [dict(theta)] + [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
+        replays = self._replays(sets)
+        if replays[0] is None:
+            raise CalibrationError(f"{self.bag}: the nominal replay diverged")
+        trace, pred0 = replays[0]
+        J_theta: dict[str, np.ndarray] = {}
+        for ch in self.tested:
+            cols = [(rep[1][ch] - pred0[ch]) / s.fd_step for rep in replays[1:] if rep is not None]
+            J_theta[ch] = np.stack(cols, axis=-1) if cols else np.zeros(pred0[ch].shape + (0,))
+        ctx = cands.DiagnosisContext(model, dict(theta), trace, pred0, self.tested)
+        library = cands.default_candidates(ctx)
+        if self.candidate_names is not None:
+            library = [c for c in library if c.name in self.candidate_names]
+        probes = [c for c in library if c.probe(ctx) is not None]
+        probe_out = dict(zip([c.name for c in probes], self._replays([c.probe(ctx) for c in probes])))
+
+        # ---- score tests
+        tests = []
+        signatures: dict[str, dict[str, np.ndarray]] = {}
+        for c in library:
+            if c.level == "physics" and probe_out.get(c.name) is None:
+                self.notes.append(f"{c.name}: probe replay diverged; not tested")
+                continue
+            sig = c.signature(ctx, probe_out[c.name][1] if c.level == "physics" else None)
+            signatures[c.name] = sig
+            for ch, J in sig.items():
+                r = _residual(model, ch, pred0[ch])
+                T = r.shape[0]
+                Jk = _whiten(model, ch, J).reshape(T, -1, J.shape[-1])
+                Jt = _whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
+                if not np.any(Jk):
+                    continue
+                try:
+                    res = stats.score_test(r.reshape(T, -1), Jk, Jt, one_sided=c.one_sided and Jk.shape[2] == 1)
+                except ValueError as err:
+                    self.notes.append(f"{c.name} on {ch}: {err}")
+                    continue
+                tests.append({"effect": c.name, "channel": ch, "result": res})
+        self._signatures = signatures
+        adjusted, reject = stats.holm([t["result"].p_value for t in tests], s.alpha) if tests else ([], [])
+        for t, a, rj in zip(tests, adjusted, reject):
+            t["p_adjusted"], t["significant"] = float(a), bool(rj)
+
+        # ---- refits of the significant candidates
+        by_name = {c.name: c for c in library}
+        significant = sorted({t["effect"] for t in tests if t["significant"]},
+                             key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
+        span = (0.0, float((model.step_times_ns[-1] - model.step_times_ns[0]) * 1e-9))
+        train = {ch: ~_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span) for ch in self.tested}
+        if self.heldout:
+            train = {ch: np.ones_like(v) for ch, v in train.items()}
+        refits = self._refit(ctx, [by_name[e] for e in significant], tests, J_theta, train, theta)
+
+        heldout_models = self._heldout_models() if self.heldout else []
+        decisions = self._decide(ctx, refits, train, heldout_models, theta)
+        accepted = [e for e in decisions["order"] if decisions[e]["accepted"]]
+        ties = self._ties(ctx, accepted, refits, tests)
+
+        # ---- augmented model (first order: sum of the accepted prediction changes)
+        final = {ch: pred0[ch].copy() for ch in self.tested}
+        refit_params: dict[str, float] = {}
+        for e in accepted:
+            for ch, p in refits[e].prediction.items():
+                if ch in final:
+                    final[ch] += p - pred0[ch]
+            refit_params.update({k: v for k, v in refits[e].params.items() if not isinstance(v, dict)})
+        mismatch_channels = sorted({t["channel"] for t in tests if t["significant"]})
+        eval_channels = mismatch_channels or list(model.channels)
+        ho_before, ho_after = self._heldout_rms(ctx, final, eval_channels, train, heldout_models, theta,
+                                                [refits[e] for e in accepted])
+
+        # ---- locate
+        focus = accepted[0] if accepted else (significant[0] if significant else None)
+        windows, markers = [], []
+        if focus is not None:
+            windows, markers = self._locate(ctx, refits[focus], [t["channel"] for t in tests
+                                                                  if t["effect"] == focus and t["significant"]])
+        detected = bool(significant)
+        explained = accepted if accepted else (["unexplained"] if detected else [])
+        report = {
+            "bag": self.bag,
+            "baseline": {"params": {n: float(v) for n, v in (theta or {n: model.parameter_value(n)
+                                                                         for n in self.project}).items()},
+                         "rms": _rms_summary(model, pred0),
+                         "fitted": bool(self.params),
+                         "whitened_rms": {ch: float(np.sqrt(np.mean(_residual(model, ch, pred0[ch]) ** 2)))
+                                          for ch in self.tested}},
+            "mismatch": {"detected": detected, "windows_s": [[round(a, 4), round(b, 4)] for a, b in windows],
+                         "channels": sorted({cands.STREAMS[c] for c in mismatch_channels}),
+                         "markers": markers, "evidence_channels": mismatch_channels},
+            "candidates": self._candidate_entries(tests, decisions, ties),
+            "explained_by": explained,
+            "refit": {"params": refit_params, "rms": _rms_summary(model, final),
+                      "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
+                      "heldout": "bags" if self.heldout else f"time blocks (every other of {2 * s.holdout_blocks})",
+                      "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
+            "extra": {"tests": [{"effect": t["effect"], "channel": t["channel"],
+                                 "statistic": float(t["result"].statistic), "dof": t["result"].dof,
+                                 "p_value": float(t["result"].p_value), "p_holm": t["p_adjusted"],
+                                 "significant": t["significant"], "classical_statistic": float(t["result"].classical),
+                                 "ar_order": t["result"].ar_order} for t in tests],
+                      "decisions": {e: {k: v for k, v in d.items() if k != "prediction"}
+                                    for e, d in decisions.items() if e != "order"},
+                      "ties": ties, "library": [c.name for c in library], "tested_channels": list(self.tested),
+                      "settings": {"dt": s.dt, "t_max": s.t_max, "alpha": s.alpha, "bic_threshold": s.bic_threshold,
+                                   "workers": s.workers}, "notes": self.notes,
+                      "timings_s": {**self.timings, "total_s": time.perf_counter() - t_start}},
+        }
+        self._arrays = {"prediction_before": pred0, "prediction_after": final, "windows": windows}
+        return report
+
+    # ------------------------------------------------------------------------------ refit
+    def _refit(self, ctx, chosen, tests, J_theta, train, theta) -> dict[str, cands.Refit]:
+        model = self.model
+        out: dict[str, cands.Refit] = {}
+        physics = []
+        for c in chosen:
+            chans = [t["channel"] for t in tests if t["effect"] == c.name and t["significant"]]
+            if c.level == "observation":
+                if c.name == "latency":
+                    best = max((t for t in tests if t["effect"] == "latency" and t["significant"]),
+                               key=lambda t: t["result"].statistic)
+                    chans = _stream_channels(best["channel"], self.tested)
+
+                def objective(pred, chans=chans):
+                    return sum(float(np.sum(_residual(model, ch, pred[ch])[train[ch]] ** 2)) for ch in pred
+                               if ch in chans)
+
+                if isinstance(c, cands.ForceBiasCandidate):
+                    out[c.name] = c.refit(ctx, chans, objective, rows=train["wrench"])
+                else:
+                    out[c.name] = c.refit(ctx, chans, objective)
+                if c.name == "latency":
+                    out[c.name].params["latency_by_channel_s"] = self._latency_by_channel(ctx, objective)
+            else:
+                physics.append(c)
+        if physics:
+            sets = []
+            for c in physics:
+                sig = self._signatures[c.name]
+                rows_r, rows_J = [], []
+                for ch in model.channels:
+                    tr = train[ch]
+                    T = int(tr.sum())
+                    rows_r.append(_residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
+                    Jk = _whiten(model, ch, sig[ch])[tr].reshape(T, -1)
+                    Jt = _whiten(model, ch, J_theta[ch])[tr].reshape(T * Jk.shape[1], -1)
+                    rows_J.append(np.concatenate([Jk.reshape(-1, 1), Jt], axis=1))
+                A, b = np.concatenate(rows_J), np.concatenate(rows_r)
+                sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+                beta = float(sol[0])
+                if c.one_sided:
+                    beta = max(beta, 0.0)
+                # the linearisation is only trusted up to a few probe sizes
+                beta = float(np.clip(beta, -4.0 * c.probe_beta, 4.0 * c.probe_beta))
+                # J_theta columns are per unit of ln(theta): a log step, limited to a factor e
+                dtheta = {n: theta.get(n, model.parameter_value(n)) * math.exp(float(np.clip(d, -1.0, 1.0)))
+                          for n, d in zip(self.project, sol[1:])}
+                params = {**theta, **dtheta, **c.sim_parameters(beta)}
+                sets.append(params)
+                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **{k: float(v) for k, v in dtheta.items()}},
+                                          {}, sim_params={**dtheta, **c.sim_parameters(beta)})
+            for c, rep in zip(physics, self._replays(sets)):
+                if rep is None:
+                    self.notes.append(f"{c.name}: refit replay diverged")
+                    out[c.name].prediction = dict(ctx.prediction)
+                else:
+                    out[c.name].prediction = rep[1]
+        return out
+
+    def _latency_by_channel(self, ctx, objective) -> dict[str, float]:
+        """Latency fitted per tested channel (the discriminating test against gel viscoelasticity)."""
+        lat = cands.LatencyCandidate()
+        out = {}
+        for ch in self.tested:
+            if ch == "sheet_points":
+                continue
+
+            def obj(pred, ch=ch):
+                return float(np.sum(_residual(self.model, ch, pred[ch]) ** 2))
+
+            out[ch] = float(lat.refit(ctx, [ch], obj).beta[0])
+        return out
+
+    # ------------------------------------------------------------------------------ decide
+    def _heldout_models(self) -> list:
+        from sysid.evidence import load_evidence
+        from sysid.observation import ObservationModel
+
+        out = []
+        for h in self.heldout:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                out.append(ObservationModel(load_evidence(h, include_image=False), dt=self.settings.dt,
+                                            t_max=self.settings.t_max))
+        return out
+
+    def _decide(self, ctx, refits, train, heldout_models, theta) -> dict[str, Any]:
+        s = self.settings
+        out: dict[str, Any] = {}
+        for e, rf in refits.items():
+            chans = [ch for ch in rf.prediction if ch in self.tested]
+            sse0, _, n = _sse(self.model, ctx.prediction, chans, train)
+            sse1, _, _ = _sse(self.model, {**ctx.prediction, **rf.prediction}, chans, train)
+            q = int(rf.beta.shape[0])
+            dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
+            lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
+            before, after = self._heldout_rms(ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models,
+                                              theta, [rf])
+            out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
+                      "heldout_rms_after": after, "params": rf.params,
+                      "accepted": bool(dbic > s.bic_threshold and after < before)}
+        out["order"] = sorted(refits, key=lambda e: -out[e]["delta_bic"])
+        return out
+
+    def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied) -> tuple[float, float]:
+        if not heldout_models:
+            rows = {ch: ~train[ch] for ch in channels}
+            s0, n0, _ = _sse(self.model, ctx.prediction, channels, rows)
+            s1, n1, _ = _sse(self.model, prediction, channels, rows)
+            return float(math.sqrt(s0 / max(n0, 1))), float(math.sqrt(s1 / max(n1, 1)))
+        tot0 = tot1 = 0.0
+        n_tot = 0
+        for hm in heldout_models:
+            sim_params = dict(theta)
+            for rf in applied:
+                sim_params.update(rf.sim_params)
+            reps = replay_many(hm, [theta, sim_params] if len(sim_params) > len(theta) else [theta],
+                               self.settings.workers, self.settings.ray_address)
+            if reps[0] is None:
+                continue
+            trace, p0 = reps[0]
+            p1 = reps[-1][1] if reps[-1] is not None else p0
+            hctx = cands.DiagnosisContext(hm, dict(theta), reps[-1][0] if reps[-1] is not None else trace, p1,
+                                          tuple(c for c in self.tested if c in hm.evidence.channels_present))
+            p1 = dict(p1)
+            for rf in applied:
+                self._apply_observation(hctx, rf, p1)
+            chans = [c for c in channels if c in hctx.channels]
+            s0, n0, _ = _sse(hm, p0, chans, None)
+            s1, _, _ = _sse(hm, p1, chans, None)
+            tot0, tot1, n_tot = tot0 + s0, tot1 + s1, n_tot + n0
+        return float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1)))
+
+    @staticmethod
+    def _apply_observation(hctx, rf: cands.Refit, pred: dict[str, np.ndarray]) -> None:
+        """Apply an observation-level refit (latency, k1, bias) to another recording's prediction."""
+        if "latency_s" in rf.params:
+            for ch in rf.prediction:
+                if ch in hctx.channels:
+                    pred[ch] = hctx.shifted(ch, float(rf.params["latency_s"]))
+        elif "k1" in rf.params and "markers_uv" in hctx.channels:
+            J = cands.LensDistortionCandidate().signature(hctx)["markers_uv"][..., 0]
+            pred["markers_uv"] = pred["markers_uv"] + float(rf.beta[0]) * J
+        elif "bias_fx" in rf.params and "wrench" in hctx.channels:
+            B = cands.ForceBiasCandidate.basis(hctx.stamps_s("wrench"))
+            pred["wrench"] = pred["wrench"] + B @ rf.beta.reshape(6, 2).T
+
+    def _ties(self, ctx, accepted, refits, tests) -> list[dict[str, Any]]:
+        out = []
+        for a, b in CONFUSABLE:
+            if a in refits and b in refits:
+                resolved_by = None
+                if "latency" in (a, b):
+                    per = refits["latency"].params.get("latency_by_channel_s", {})
+                    taus = [v for ch, v in per.items() if cands.STREAMS[ch].startswith("tactile")]
+                    period = 0.01
+                    if taus and (max(taus) - min(taus)) < max(period, 0.25 * abs(np.mean(taus))):
+                        resolved_by = "one lag fits every tactile channel"
+                        winner = "latency"
+                if resolved_by is None:
+                    out.append({"pair": [a, b], "resolved": False})
+                else:
+                    out.append({"pair": [a, b], "resolved": True, "winner": winner, "test": resolved_by})
+        return out
+
+    def _candidate_entries(self, tests, decisions, ties) -> list[dict[str, Any]]:
+        best: dict[str, dict] = {}
+        for t in tests:
+            e = t["effect"]
+            if e not in best or t["result"].statistic > best[e]["result"].statistic:
+                best[e] = t
+        entries = []
+        for e, t in sorted(best.items(), key=lambda kv: -kv[1]["result"].statistic):
+            entry = {"effect": e, "statistic": float(t["result"].statistic), "p_value": float(t["p_adjusted"]),
+                     "p_value_raw": float(t["result"].p_value), "channel": t["channel"], "dof": t["result"].dof,
+                     "significant": t["significant"]}
+            if e in decisions:
+                entry.update({k: decisions[e][k] for k in ("delta_bic", "accepted", "heldout_rms_before",
+                                                           "heldout_rms_after")})
+            tie = [x["pair"] for x in ties if e in x["pair"] and not x["resolved"]]
+            if tie:
+                entry["tie_with"] = [p for pair in tie for p in pair if p != e]
+            entries.append(entry)
+        return entries
+
+    # ------------------------------------------------------------------------------ locate
+    def _locate(self, ctx, rf: cands.Refit, channels: Sequence[str]) -> tuple[list[tuple[float, float]], list[int]]:
+        windows: list[tuple[float, float]] = []
+        markers: list[int] = []
+        energy_t, energy = None, None
+        for ch in channels:
+            if ch not in rf.prediction:
+                continue
+            r = _residual(self.model, ch, ctx.prediction[ch])
+            d = _whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])
+            e = locate.explained_energy(r, d)
+            t = ctx.stamps_s(ch)
+            if energy is None:
+                energy_t, energy = t, e
+            else:
+                energy = energy + np.interp(energy_t, t, e)
+            if ch in ("markers_xyz", "markers_uv") and not markers:
+                markers = locate.marker_attribution(r, d)
+        if energy is not None:
+            t0 = (self.model.step_times_ns[0] - self.evidence.t_ns["pose"][0]) * 1e-9
+            windows = [(a + t0, b + t0) for a, b in locate.windows_from_energy(energy_t, energy)]
+        return windows, markers
+
+
+# ====================================================================================== entry point
+def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = None,
+             params: Sequence[str] = (), workers: int = 1, ray_address: str | None = None,
+             dt: float = 0.01, t_max: float | None = None, alpha: float = 0.01,
+             project: Sequence[str] | None = None, candidates: Sequence[str] | None = None) -> dict[str, Any]:
+    """Diagnose recordings (SYSID.md "Diagnosis"); returns the JSON contract.
+
+    Args:
+        bags: recordings; the first is reported at the top level, the others under
+            ``extra.other_bags`` (each diagnosed on its own).
+        heldout: held-out recordings (default: held-out time blocks of each bag).
+        params: parameters of the nominal fit (empty: scene values, no fit).
+        workers: processes for independent replays.
+        ray_address: Ray cluster address (replays as Ray tasks).
+        dt: simulation step, s. t_max: first t_max s of each recording.
+        alpha: family-wise error rate. project: parameters projected out of the tests (default params).
+        candidates: restrict to these effects.
+
+    Raises:
+        CalibrationError: unreadable recording, diverged nominal replay, Ray requested but absent.
+    """
+    if not bags:
+        raise CalibrationError("diagnose needs at least one bag")
+    settings = Settings(dt=dt, t_max=t_max, alpha=alpha, workers=max(1, int(workers)), ray_address=ray_address)
+    return run_diagnosis(bags, heldout, params, settings, project, candidates)[0]
+
+
+def run_diagnosis(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None, params: Sequence[str],
+                  settings: Settings, project: Sequence[str] | None = None,
+                  candidates: Sequence[str] | None = None) -> tuple[dict[str, Any], list[BagDiagnosis]]:
+    """:func:`diagnose` that also returns the per-bag :class:`BagDiagnosis` objects (arrays for the report)."""
+    reports, runs = [], []
+    for bag in bags:
+        d = BagDiagnosis(bag, heldout or (), params, project, settings, candidates)
+        reports.append(d.run())
+        runs.append(d)
+    first = reports[0]
+    if len(reports) > 1:
+        first["extra"]["other_bags"] = reports[1:]
+    return first, runs

@@ -1,0 +1,76 @@
+"""Independent replays of one observation model, run serially, in processes or on a Ray cluster.
+
+Every candidate probe, finite-difference column and candidate refit is one replay of the recording
+with its own parameter values; they do not depend on each other, so they are mapped over a
+``concurrent.futures.ProcessPoolExecutor`` (fork start: the workers inherit the model) or, when a
+Ray address is given, over Ray tasks (``ray`` imported only then).
+"""
+
+from __future__ import annotations
+
+import copy
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.errors import CalibrationError, SimulationDivergedError
+
+_MODEL: dict[str, Any] = {}
+"""Per-process observation model of a pool worker (set by the pool initializer)."""
+
+
+def _init(model: Any) -> None:
+    _MODEL["model"] = model
+
+
+def _replay(model: Any, params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
+    try:
+        trace = model.simulate(dict(params))
+    except SimulationDivergedError:
+        return None
+    return trace, model.predict(trace)
+
+
+def _worker(params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
+    return _replay(_MODEL["model"], params)
+
+
+def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: int = 1,
+                ray_address: str | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
+    """Replay ``model`` once per parameter set.
+
+    Args:
+        model: ``sysid.observation.ObservationModel``.
+        param_sets: parameter dicts (``ObservationModel.simulate`` semantics).
+        workers: processes (1: in this process).
+        ray_address: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``); overrides workers.
+
+    Returns:
+        ``(trace, prediction)`` per set, None where the replay diverged.
+
+    Raises:
+        CalibrationError: a Ray address is given but ``ray`` is not installed.
+    """
+    sets = [dict(p) for p in param_sets]
+    if not sets:
+        return []
+    if ray_address:
+        try:
+            import ray
+        except ImportError as err:
+            raise CalibrationError(f"--ray-address {ray_address} given but the 'ray' package is not installed "
+                                   "(pip install 'ray[default]'), or drop --ray-address to use --workers") from err
+        if not ray.is_initialized():
+            ray.init(address=ray_address, ignore_reinit_error=True)
+        portable = copy.copy(model)
+        portable._sim = None  # the simulator is rebuilt on the worker
+        task = ray.remote(_replay)
+        ref = ray.put(portable)
+        return list(ray.get([task.remote(ref, p) for p in sets]))
+    if workers <= 1 or len(sets) == 1:
+        return [_replay(model, p) for p in sets]
+    ctx = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(min(workers, len(sets)), mp_context=ctx, initializer=_init, initargs=(model,)) as pool:
+        return list(pool.map(_worker, sets))

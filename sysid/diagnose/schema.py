@@ -1,0 +1,99 @@
+"""The JSON contract of ``thinshell diagnose`` (SYSID.md "Output contract") and its validation.
+
+Top-level keys exactly ``bag, baseline, mismatch, candidates, explained_by, refit`` plus an optional
+``extra``; each object holds at least the sub-keys of the contract (more keys are allowed inside
+the objects). ``explained_by`` is ``[]``, ``["unexplained"]`` or effect names of the vocabulary.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+from sim_core.errors import CalibrationError
+from sysid.diagnose.candidates import EFFECTS
+
+TOP_KEYS = ("bag", "baseline", "mismatch", "candidates", "explained_by", "refit")
+SUB_KEYS = {"baseline": ("params", "rms"), "mismatch": ("detected", "windows_s", "channels", "markers"),
+            "refit": ("params", "rms", "heldout_rms_before", "heldout_rms_after")}
+CANDIDATE_KEYS = ("effect", "statistic", "p_value")
+
+
+def _number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def validate_report(doc: Mapping[str, Any]) -> None:
+    """Check a diagnosis report against the contract.
+
+    Raises:
+        CalibrationError: the first violation, naming the key path.
+    """
+    def fail(msg: str) -> None:
+        raise CalibrationError(f"diagnosis report: {msg}")
+
+    if not isinstance(doc, Mapping):
+        fail(f"must be an object, got {type(doc).__name__}")
+    missing = [k for k in TOP_KEYS if k not in doc]
+    if missing:
+        fail(f"missing top-level key {missing[0]!r}")
+    unknown = sorted(set(doc) - set(TOP_KEYS) - {"extra"})
+    if unknown:
+        fail(f"unknown top-level key {unknown[0]!r} (extra keys belong under 'extra')")
+    if not isinstance(doc["bag"], str):
+        fail("'bag' must be a string")
+    for obj, keys in SUB_KEYS.items():
+        if not isinstance(doc[obj], Mapping):
+            fail(f"'{obj}' must be an object")
+        for k in keys:
+            if k not in doc[obj]:
+                fail(f"missing key '{obj}.{k}'")
+    for obj in ("baseline", "refit"):
+        for k in ("params", "rms"):
+            v = doc[obj][k]
+            if not isinstance(v, Mapping):
+                fail(f"'{obj}.{k}' must be an object")
+    for k in ("heldout_rms_before", "heldout_rms_after"):
+        v = doc["refit"][k]
+        if v is not None and not _number(v):
+            fail(f"'refit.{k}' must be a number or null, got {v!r}")
+    m = doc["mismatch"]
+    if not isinstance(m["detected"], bool):
+        fail("'mismatch.detected' must be true or false")
+    if not isinstance(m["windows_s"], list) or any(
+            not (isinstance(w, list) and len(w) == 2 and all(_number(x) for x in w) and w[0] <= w[1])
+            for w in m["windows_s"]):
+        fail("'mismatch.windows_s' must be a list of [start, end] pairs with start <= end")
+    if not isinstance(m["channels"], list) or not all(isinstance(c, str) for c in m["channels"]):
+        fail("'mismatch.channels' must be a list of strings")
+    if not isinstance(m["markers"], list) or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0
+                                                      for i in m["markers"]):
+        fail("'mismatch.markers' must be a list of non-negative integers")
+    if not isinstance(doc["candidates"], list):
+        fail("'candidates' must be a list")
+    for i, c in enumerate(doc["candidates"]):
+        if not isinstance(c, Mapping):
+            fail(f"'candidates[{i}]' must be an object")
+        for k in CANDIDATE_KEYS:
+            if k not in c:
+                fail(f"missing key 'candidates[{i}].{k}'")
+        if c["effect"] not in EFFECTS:
+            fail(f"'candidates[{i}].effect' = {c['effect']!r} is not in the vocabulary")
+        if not _number(c["statistic"]) or not math.isfinite(c["statistic"]):
+            fail(f"'candidates[{i}].statistic' must be a finite number")
+        if not _number(c["p_value"]) or not 0.0 <= c["p_value"] <= 1.0:
+            fail(f"'candidates[{i}].p_value' must be in [0, 1]")
+    ex = doc["explained_by"]
+    if not isinstance(ex, list):
+        fail("'explained_by' must be a list")
+    if ex == ["unexplained"]:
+        pass
+    elif any(e not in EFFECTS for e in ex):
+        bad = next(e for e in ex if e not in EFFECTS)
+        fail(f"'explained_by' holds {bad!r}: neither an effect of the vocabulary nor the lone 'unexplained'")
+    if len(set(ex)) != len(ex):
+        fail("'explained_by' repeats an effect")
+    if ex and ex != ["unexplained"] and not m["detected"]:
+        fail("'explained_by' names effects but 'mismatch.detected' is false")
+    if not ex and m["detected"]:
+        fail("'mismatch.detected' is true but 'explained_by' is empty (use [\"unexplained\"])")

@@ -1,0 +1,289 @@
+"""Statistics of the missing-physics diagnosis: score (Lagrange-multiplier) tests and model selection.
+
+Set-up (SYSID.md "Diagnosis"). The nominal fit leaves a whitened residual ``r = (y - y_sim) / sigma``
+(so ``W = I``). A candidate effect k with parameter ``beta`` (off at 0) has the signature
+``J_k = d y_sim / d beta / sigma`` at ``beta = 0``; the fitted parameters have ``J_theta``. With the
+projection ``P = I - J_theta (J_theta^T J_theta)^-1 J_theta^T`` (what the fitted parameters can
+absorb removed) the score statistic of Rao (1948) is
+
+    S_k = r^T P J_k (J_k^T P J_k)^-1 J_k^T P r          (= (r^T P J_k)^2 / (J_k^T P J_k) for one column),
+
+chi-square with ``q = columns of J_k`` degrees of freedom when the effect is absent and the residual
+is white with unit variance.
+
+Trajectory residuals are neither: they are serially correlated (model error is smooth in time) and
+correlated across the points of one sample (neighbouring markers share it). Two corrections:
+
+1. Prewhitening (Cochrane & Orcutt 1949; Hamilton 1994, ch. 8): a pooled AR(p) model of the residual
+   along time, order by BIC, coefficients by Levinson-Durbin on the autocovariance averaged over
+   series (``statsmodels.tsa.stattools.levinson_durbin``); the same filter ``A(L)`` is applied to
+   ``r``, ``J_theta`` and ``J_k``.
+2. A robust (sandwich) score test (White 1982; Wooldridge 1990): the score contributions are summed
+   over the series of each time sample, ``g_t = sum_s e_ts (P J_k)_ts`` (q,), and the score
+   ``U = sum_t g_t`` is normalised by the Newey-West (1987) long-run variance of ``g_t`` instead of
+   the white-noise variance: ``S = U^T V^-1 U``, asymptotically chi2(q) whatever the cross-sectional
+   correlation and the variance of the residual.
+
+Family-wise error over candidates x channels: Holm (1979). Model selection after the refit: Gaussian
+log-likelihood ratio ``LR = n log(SSE_0 / SSE_1)`` and ``delta_BIC = LR - q log n`` (Schwarz 1978),
+``n`` counted in time samples (conservative under cross-sectional correlation).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats as _st
+
+
+# ====================================================================================== AR prewhitening
+@dataclass(frozen=True)
+class ARFilter:
+    """Prewhitening filter ``e_t = x_t - sum_{i=1..p} a_i x_{t-i}`` along axis 0.
+
+    Attributes:
+        coefs: ``a``, shape ``(p,)`` (empty for p = 0).
+        innovation_variance: variance of e under the fitted model (units of x^2).
+        variance: variance of x (lag-0 autocovariance).
+    """
+
+    coefs: np.ndarray
+    innovation_variance: float
+    variance: float
+
+    @property
+    def order(self) -> int:
+        """p."""
+        return int(self.coefs.shape[0])
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Filter ``x`` of shape ``(T, ...)`` along time; the first p samples are dropped.
+
+        Returns:
+            shape ``(T - p, ...)``.
+        """
+        x = np.asarray(x, dtype=float)
+        p = self.order
+        out = x[p:].copy()
+        for i, a in enumerate(self.coefs, start=1):
+            out -= a * x[p - i: x.shape[0] - i]
+        return out
+
+
+def pooled_autocovariance(x: np.ndarray, max_lag: int) -> np.ndarray:
+    """Autocovariance along axis 0 averaged over every other axis (series are not demeaned: residuals).
+
+    Args:
+        x: shape ``(T, ...)``.
+        max_lag: largest lag, < T.
+
+    Returns:
+        shape ``(max_lag + 1,)``, biased estimator (divides by T), positive semi-definite.
+    """
+    x = np.asarray(x, dtype=float).reshape(x.shape[0], -1)
+    T = x.shape[0]
+    return np.array([np.sum(x[k:] * x[:T - k]) / (T * x.shape[1]) for k in range(max_lag + 1)])
+
+
+def fit_ar(x: np.ndarray, max_order: int = 8) -> ARFilter:
+    """Pooled AR(p) model of residual series ``x (T, ...)``, p in ``0..max_order`` by BIC.
+
+    ``BIC(p) = T log sigma_p^2 + p log T`` with the innovation variances sigma_p^2 of the
+    Levinson-Durbin recursion.
+
+    Raises:
+        ValueError: fewer than ``max_order + 2`` time samples, or an all-zero residual.
+    """
+    from statsmodels.tsa.stattools import levinson_durbin
+
+    x = np.asarray(x, dtype=float)
+    T = x.shape[0]
+    if T < max_order + 2:
+        raise ValueError(f"AR prewhitening needs more than {max_order + 1} time samples, got {T}")
+    acov = pooled_autocovariance(x, max_order)
+    if not acov[0] > 0.0:
+        raise ValueError("AR prewhitening: the residual is identically zero")
+    best_p, best_bic = 0, T * math.log(acov[0])
+    if max_order > 0:
+        res = levinson_durbin(acov, nlags=max_order, isacov=True)
+        sig = np.asarray(res.sigma, dtype=float)  # sig[p] = innovation variance of AR(p)
+        for p in range(1, max_order + 1):
+            if sig[p] <= 0.0:
+                break
+            bic = T * math.log(sig[p]) + p * math.log(T)
+            if bic < best_bic:
+                best_p, best_bic = p, bic
+        coefs = np.asarray(res.phi, dtype=float)[1:best_p + 1, best_p] if best_p else np.zeros(0)
+        innov = float(sig[best_p])
+    else:
+        coefs, innov = np.zeros(0), float(acov[0])
+    return ARFilter(np.asarray(coefs, dtype=float), innov, float(acov[0]))
+
+
+# ====================================================================================== projection
+def project_out(J_theta: np.ndarray | None, X: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    """``P X`` with ``P = I - J_theta J_theta^+`` (least-squares projection, rows flattened).
+
+    Args:
+        J_theta: shape ``(m, p)`` or None / ``p = 0`` (nothing to project).
+        X: shape ``(m,)`` or ``(m, q)``.
+
+    Returns:
+        same shape as X.
+    """
+    X = np.asarray(X, dtype=float)
+    if J_theta is None or J_theta.size == 0:
+        return X.copy()
+    J = np.asarray(J_theta, dtype=float).reshape(X.shape[0], -1)
+    coef, *_ = np.linalg.lstsq(J, X, rcond=rcond)
+    return X - J @ coef
+
+
+# ====================================================================================== score tests
+@dataclass(frozen=True)
+class ScoreResult:
+    """One score test.
+
+    Attributes:
+        statistic: S (chi2(dof) under the null).
+        dof: q.
+        p_value: upper tail (one-sided tests: of the signed root, 1 when the estimate has the wrong sign).
+        beta: one-step estimate of the candidate parameters ``(P J)^+ P r``, shape ``(q,)``.
+        classical: the white-noise statistic on the same (prewhitened, projected) quantities scaled
+            by the residual's innovation variance.
+        contributions: per-time score contributions ``g_t . (V^-1 U)``, shape ``(T',)``; they sum to S.
+        ar_order: order of the prewhitening filter (0: none).
+    """
+
+    statistic: float
+    dof: int
+    p_value: float
+    beta: np.ndarray
+    classical: float
+    contributions: np.ndarray
+    ar_order: int
+
+
+def newey_west(g: np.ndarray, lags: int) -> np.ndarray:
+    """Long-run covariance ``sum_{|l| <= L} (1 - |l|/(L+1)) Gamma_l`` of score terms ``g (T, q)`` (uncentred).
+
+    Newey & West (1987), Bartlett weights; positive semi-definite.
+    """
+    g = np.asarray(g, dtype=float).reshape(g.shape[0], -1)
+    V = g.T @ g
+    for lag in range(1, lags + 1):
+        w = 1.0 - lag / (lags + 1.0)
+        G = g[lag:].T @ g[:-lag]
+        V += w * (G + G.T)
+    return V
+
+
+def _p_value(S: float, dof: int, beta: np.ndarray, one_sided: bool) -> float:
+    if one_sided and dof == 1:
+        return float(_st.norm.sf(math.copysign(math.sqrt(max(S, 0.0)), beta[0]))) if beta[0] != 0 else 0.5
+    return float(_st.chi2.sf(S, dof))
+
+
+def score_test(r: np.ndarray, J_k: np.ndarray, J_theta: np.ndarray | None = None, *, one_sided: bool = False,
+               prewhiten: bool = True, robust: bool = True, max_ar_order: int = 8,
+               hac_lags: int | None = None) -> ScoreResult:
+    """Score test of a candidate on one channel.
+
+    Args:
+        r: whitened residual, shape ``(T, S)`` (time, series) or ``(T,)``.
+        J_k: whitened signature ``d y / d beta / sigma``, shape ``(T, S, q)`` (or ``(T, S)`` / ``(T,)``).
+        J_theta: whitened Jacobian of the fitted parameters, ``(T, S, p)`` or None.
+        one_sided: beta >= 0 only (q must be 1); the p-value is that of the signed root.
+        prewhiten: AR prewhitening (:func:`fit_ar`) of residual and Jacobians.
+        robust: sandwich variance of the time-aggregated score (else the white-noise variance
+            ``s^2 J^T P J`` with s^2 the innovation variance).
+        max_ar_order: largest AR order tried.
+        hac_lags: Newey-West lags (default ``floor(4 (T/100)^(2/9))``).
+
+    Returns:
+        :class:`ScoreResult`.
+
+    Raises:
+        ValueError: inconsistent shapes, one-sided with q > 1, or a signature that the fitted
+            parameters absorb completely (``J_k^T P J_k = 0``).
+    """
+    r = np.asarray(r, dtype=float)
+    T = r.shape[0]
+    r = r.reshape(T, -1)
+    S_ = r.shape[1]
+    J = np.asarray(J_k, dtype=float).reshape(T, S_, -1)
+    q = J.shape[2]
+    if one_sided and q != 1:
+        raise ValueError(f"a one-sided score test needs one parameter, got {q}")
+    Jt = None if J_theta is None else np.asarray(J_theta, dtype=float).reshape(T, S_, -1)
+    ar_order = 0
+    if prewhiten:
+        base = r if Jt is None or Jt.shape[2] == 0 else project_out(Jt.reshape(T * S_, -1), r.reshape(-1)).reshape(T, S_)
+        filt = fit_ar(base, max_order=min(max_ar_order, max(T // 10, 0)))
+        ar_order = filt.order
+        r, J = filt.apply(r), filt.apply(J)
+        Jt = None if Jt is None else filt.apply(Jt)
+        T = r.shape[0]
+    m = T * S_
+    Jt_flat = None if Jt is None else Jt.reshape(m, -1)
+    e = project_out(Jt_flat, r.reshape(m))
+    PJ = project_out(Jt_flat, J.reshape(m, q))
+    M = PJ.T @ PJ
+    scale = np.sqrt(np.diag(M))
+    if not np.all(scale > 1e-12 * max(1.0, float(np.sqrt(np.sum(J ** 2))))):
+        raise ValueError("the candidate's signature lies in the span of the fitted parameters' Jacobian "
+                         "(J_k^T P J_k = 0): the fit absorbs it, it cannot be tested")
+    U = PJ.T @ e
+    beta, *_ = np.linalg.lstsq(M, U, rcond=1e-12)
+    p_dof = 0 if Jt_flat is None else np.linalg.matrix_rank(Jt_flat)
+    s2 = float(e @ e) / max(m - p_dof, 1)
+    classical = float(U @ beta) / s2
+    if robust:
+        g = (e[:, None] * PJ).reshape(T, S_, q).sum(axis=1)
+        lags = hac_lags if hac_lags is not None else int(math.floor(4.0 * (T / 100.0) ** (2.0 / 9.0)))
+        V = newey_west(g, lags)
+        w, *_ = np.linalg.lstsq(V, U, rcond=1e-12)
+        statistic = float(U @ w)
+        contributions = g @ w
+    else:
+        statistic = classical
+        w = beta / s2
+        contributions = (e[:, None] * PJ).reshape(T, S_, q).sum(axis=1) @ w
+    statistic = max(statistic, 0.0)
+    return ScoreResult(statistic, q, _p_value(statistic, q, beta, one_sided), beta, classical,
+                       contributions, ar_order)
+
+
+# ====================================================================================== multiplicity
+def holm(p_values: np.ndarray | list[float], alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Holm's step-down correction of a family of p-values.
+
+    Args:
+        p_values: shape ``(n,)``.
+        alpha: family-wise error rate.
+
+    Returns:
+        ``(adjusted p-values (n,), reject (n,) bool)``; ``adjusted_i = max_{j <= rank i} min(1, (n - j) p_(j))``.
+    """
+    p = np.asarray(p_values, dtype=float).reshape(-1)
+    n = p.shape[0]
+    order = np.argsort(p, kind="stable")
+    adj_sorted = np.minimum(1.0, np.maximum.accumulate((n - np.arange(n)) * p[order]))
+    adjusted = np.empty(n)
+    adjusted[order] = adj_sorted
+    return adjusted, adjusted <= alpha
+
+
+# ====================================================================================== model selection
+def likelihood_ratio(sse_0: float, sse_1: float, n: int) -> float:
+    """Gaussian log-likelihood ratio statistic ``n log(SSE_0 / SSE_1)`` (variance profiled out)."""
+    if not (sse_0 > 0.0 and sse_1 > 0.0):
+        raise ValueError(f"sums of squares must be positive, got {sse_0}, {sse_1}")
+    return float(n * math.log(sse_0 / sse_1))
+
+
+def delta_bic(sse_0: float, sse_1: float, n: int, q: int) -> float:
+    """``BIC_0 - BIC_1 = n log(SSE_0/SSE_1) - q log n`` for q added parameters (> 10: strong evidence)."""
+    return likelihood_ratio(sse_0, sse_1, n) - q * math.log(n)

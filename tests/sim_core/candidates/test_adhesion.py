@@ -1,0 +1,73 @@
+"""Adhesion candidate: pairs, FD derivatives, tensile force up to the bond strength on lift-off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
+from sim_core.errors import ConfigError
+from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
+
+EPS, DELTA = 4e-4, 2.5e-4
+
+
+def _one_pair(height):
+    """Gel vertex 0 above the sheet triangle (1, 2, 3) in z = 0, at ``height``."""
+    x = np.array([[0.2e-2, 0.2e-2, height], [0, 0, 0], [1e-2, 0, 0], [0, 1e-2, 0]], dtype=float)
+    v, w, n = adhesion_pairs(x, np.array([0]), np.array([[1, 2, 3]]), EPS, 5 * DELTA)
+    return x, v, w, n
+
+
+def test_pairs_take_the_nearest_triangle_within_reach():
+    x, v, w, n = _one_pair(EPS + 2 * DELTA)
+    assert v.tolist() == [[0, 1, 2, 3]]
+    assert np.allclose(n, [[0, 0, 1]]) and np.allclose(w.sum(axis=1), 0.0)
+    assert _one_pair(EPS + 6 * DELTA)[1].shape == (0, 4)  # out of reach
+
+
+@pytest.mark.parametrize("opening", [0.5, 1.0, 3.0])
+def test_gradient_and_hessian_match_finite_differences(opening):
+    x, v, w, n = _one_pair(EPS + DELTA)
+    ad = LaggedAdhesion(v, w, n, EPS, beta=0.2, delta=DELTA)
+    rng = np.random.default_rng(3)
+    x = x.copy()
+    x[0, 2] = EPS + opening * DELTA
+    x += rng.normal(scale=1e-6, size=x.shape)
+    assert relative_error(ad.gradient(x), fd_gradient(ad.energy, x, h=1e-9)) < 1e-5
+    H = dense_hessian(ad.hessian(x, "none"), 4)
+    assert relative_error(H, fd_hessian(ad.gradient, x, h=1e-9)) < 1e-4
+    blocks = ad.hessian(x, "clamp").blocks
+    assert np.linalg.eigvalsh(blocks).min() > -1e-9 * max(np.abs(blocks).max(), 1.0)
+    h = 1e-6
+    fd = (LaggedAdhesion(v, w, n, EPS, 0.2 + h, DELTA).gradient(x) - LaggedAdhesion(v, w, n, EPS, 0.2 - h, DELTA).gradient(x)) / (2 * h)
+    assert relative_error(LaggedAdhesion(v, w, n, EPS, 0.0, DELTA).parameter_gradient(x, "beta"), fd) < 1e-8
+
+
+def test_tensile_force_on_lift_off_peaks_at_the_bond_strength():
+    x0, v, w, n = _one_pair(EPS)
+    beta = 0.25
+    ad = LaggedAdhesion(v, w, n, EPS, beta, DELTA)
+    heights = EPS + np.linspace(-1e-4, 8 * DELTA, 2001)
+    pull = []
+    for z in heights:
+        x = x0.copy()
+        x[0, 2] = z
+        pull.append(ad.gradient(x)[0, 2])  # dE/dz > 0: the bond pulls the gel vertex down, toward the sheet
+    pull = np.array(pull)
+    assert np.all(pull[heights <= EPS] == 0.0)  # pressed: no adhesion force
+    assert pull.max() == pytest.approx(beta, rel=1e-4)
+    assert heights[np.argmax(pull)] - EPS == pytest.approx(DELTA, rel=0.01)
+    assert pull[-1] < 0.02 * beta  # the bond has broken
+    # the sheet triangle feels the opposite force (momentum balance)
+    x = x0.copy()
+    x[0, 2] = EPS + DELTA
+    assert np.allclose(ad.gradient(x).sum(axis=0), 0.0, atol=1e-15)
+
+
+def test_rejects_negative_bond_strength():
+    _, v, w, n = _one_pair(EPS)
+    with pytest.raises(ConfigError, match="bond strength beta"):
+        LaggedAdhesion(v, w, n, EPS, -1.0, DELTA)
+    with pytest.raises(ConfigError, match="delta"):
+        LaggedAdhesion(v, w, n, EPS, 1.0, 0.0)

@@ -1,0 +1,88 @@
+"""Candidates in the Newton step (CandidateNewtonSolver): parameters, neutrality at beta = 0, signatures."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from sim_core.candidates import CandidateHook, CandidateNewtonSolver, candidate_terms, validate_candidate_parameters
+from sim_core.control import Control
+from sim_core.errors import ConfigError
+from sim_core.scenes import load_scene
+from sim_core.simulation import Simulation
+
+DT = 0.01
+SCENE = {
+    "version": 1, "name": "tiny_press", "dt": DT, "gravity": [0.0, 0.0, -9.81],
+    "table": {"height": 0.0, "friction": 0.3},
+    "sheet": {"size": [0.04, 0.03], "resolution": [5, 4], "thickness": 0.0003, "density": 700.0,
+              "origin": [0.0, -0.015, 0.00015], "clamped_edge": "x0",
+              "material": {"youngs_modulus": 3.0e9, "poisson_ratio": 0.3, "bending_stiffness": 0.008}},
+    "sensors": {"tactile": {
+        "effector": "ee", "gel_size": [0.0186, 0.0143, 0.004],
+        "gel_material": {"youngs_modulus": 3.0e5, "poisson_ratio": 0.45, "density": 1100.0},
+        "friction": 0.8, "marker_grid": [3, 3], "marker_pitch": 0.004,
+        "camera": {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240,
+                   "distance": 0.025}}},
+    "effectors": {"ee": {"initial_pose": [0.025, 0.0, 0.0012, 1.0, 0.0, 0.0, 0.0]}},
+    "simulation": {"gel_resolution": [3, 3, 2]},
+}
+
+
+def _press_and_hold(candidates, hold=6, lift=0):
+    """Press 0.25 mm past contact in 3 steps, hold, then optionally lift; returns Fz per step (N)."""
+    sim = Simulation(load_scene(copy.deepcopy(SCENE)), dt=DT)
+    if candidates is not None:
+        sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
+    pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+    path = [pose[2] - 0.00115 * k / 3 for k in range(1, 4)] + [pose[2] - 0.00115] * hold
+    path += [pose[2] - 0.00115 + 0.0002 * k for k in range(1, lift + 1)]
+    fz = []
+    for z in path:
+        target = pose.copy()
+        target[2] = z
+        sim.step(Control({"ee": target}))
+        fz.append(sim.observe().tactile["tactile"].wrench[2])
+    return np.array(fz), sim
+
+
+def test_parameter_validation_names_the_problem():
+    with pytest.raises(ConfigError, match="unknown candidate parameter 'latency'"):
+        validate_candidate_parameters({"latency": 0.1})
+    with pytest.raises(ConfigError, match="'stiction' must be >= 0"):
+        validate_candidate_parameters({"stiction": -0.2})
+    with pytest.raises(ConfigError, match="anisotropic_bending"):
+        CandidateHook({"anisotropic_bending": 1.5})
+    assert CandidateHook({"adhesion": 0.1}).setting("adhesion.reach") == pytest.approx(5 * 2.5e-4)
+
+
+def test_zero_betas_leave_the_rollout_unchanged_and_viscoelastic_force_relaxes():
+    base, _ = _press_and_hold(None)
+    off, sim = _press_and_hold({"gel_viscoelasticity": 0.0, "stiction": 0.0, "adhesion": 0.0,
+                                "anisotropic_bending": 0.0})
+    assert np.allclose(off, base, rtol=1e-6, atol=1e-9)
+    terms = candidate_terms(sim.model, sim.state, sim.state.x, DT, {"gel_viscoelasticity": 0.0, "adhesion": 0.0})
+    assert {type(t).__name__ for t in terms} == {"MaxwellBranch", "LaggedAdhesion"}
+    visco, sim = _press_and_hold({"gel_viscoelasticity": 1.0, "gel_viscoelasticity.tau": 0.05})
+    pressing = base[3:] < -0.05
+    assert pressing.all()
+    # stiffer at the end of the press, then the extra force relaxes towards the elastic one
+    assert visco[2] < base[2] * 1.2
+    excess = visco[3:] - base[3:]
+    assert np.all(np.diff(np.abs(excess)) < 0)
+    assert abs(excess[-1]) < 0.6 * abs(excess[0])  # series contact stiffness slows the relaxation
+    assert "gel_viscoelasticity" in sim.state.candidate_state
+
+
+def test_adhesion_pulls_on_lift_off():
+    """Pressing then lifting 0.2 mm per step: without bonds the gel comes free (Fz = 0); with bonds it
+    is pulled back (Fz > 0, tension) by the card it lifts, never beyond the bonds' total strength."""
+    beta = 0.05
+    base, _ = _press_and_hold(None, hold=1, lift=4)
+    tacky, sim = _press_and_hold({"adhesion": beta}, hold=1, lift=4)
+    assert base[-1] == pytest.approx(0.0, abs=1e-9)
+    assert np.all(tacky[-3:] > 0.01) and np.all(np.diff(tacky[-3:]) > 0)
+    face_vertices = np.unique(sim.model.sensors["tactile"].contact_triangles).size
+    assert tacky.max() < beta * face_vertices

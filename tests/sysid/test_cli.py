@@ -1,0 +1,90 @@
+"""``thinshell sysid`` end to end: outputs, atomic publication, refusal, error messages."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sysid.cli import sysid_main
+from sysid.report import PLOT_FILES
+from sysid.results import SECTION_KEYS, load_fit_json
+from tests.sysid.conftest import reference_bag
+from tests.sysid.simbag import PRESS_ONLY, make_recording
+
+FAST = ["--params", "gel.youngs_modulus", "--max-nfev", "1", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def press_bag(tmp_path_factory):
+    """A 4-step synthetic press whose scene.yaml states a gel modulus 2x the true one."""
+    return make_recording(tmp_path_factory.mktemp("cli") / "bag", segments=PRESS_ONLY, seed=4,
+                          nominal={"gel.youngs_modulus": 6.0e5})
+
+
+def test_reference_bag_truncated_runs_end_to_end(tmp_path, capsys):
+    bag = reference_bag("nominal_s101")
+    out = tmp_path / "fit_nominal"
+    rc = sysid_main([str(bag), "--out", str(out), "--t-max", "0.3", "--dt", "0.05", "--gel-resolution", "5,4,2", *FAST])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    doc = load_fit_json(out / "fit.json")
+    for section, keys in SECTION_KEYS.items():
+        assert set(keys) <= set(doc[section]), section
+    assert doc["provenance"]["bag_sha256"] and len(doc["provenance"]["bag_sha256"]) == 64
+    assert doc["provenance"]["t_max"] == 0.3 and doc["diagnostics"]["dt"] == 0.05
+    assert doc["diagnostics"]["step_count"] == 6
+    assert set(doc["metrics"]["rms_final"]) == {"markers_xyz", "markers_uv", "wrench", "sheet_points"}
+    for name in PLOT_FILES:
+        assert (out / name).stat().st_size > 1000, name
+    md = (out / "report.md").read_text()
+    assert "gel.youngs_modulus" in md and "wrench.png" in md
+    assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
+    assert f"report: {out / 'report.html'}" in captured.out
+    assert [p.name for p in tmp_path.iterdir()] == ["fit_nominal"]  # no staging directory left behind
+
+
+def test_existing_output_is_refused_without_force_and_replaced_with_it(press_bag, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("old")
+    rc = sysid_main([str(press_bag), "--out", str(out), *FAST])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"output directory {out} exists" in err and "--force" in err
+    assert (out / "keep.txt").read_text() == "old"
+    rc = sysid_main([str(press_bag), "--out", str(out), "--force", *FAST])
+    assert rc == 0
+    assert not (out / "keep.txt").exists()
+    doc = json.loads((out / "fit.json").read_text())
+    p = doc["fit"]["parameters"]["gel.youngs_modulus"]
+    assert p["initial"] == 6.0e5 and p["value"] < 6.0e5  # moved toward the true 3e5
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["out"]
+
+
+def test_missing_bag_is_one_line_naming_it(tmp_path, capsys):
+    missing = tmp_path / "no_such_bag"
+    rc = sysid_main([str(missing), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.strip().count("\n") == 0 and str(missing) in err and "not found" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bag_without_markers_fits_remaining_channels_with_warning(tmp_path, capsys):
+    bag = make_recording(tmp_path / "bag", segments=PRESS_ONLY[:1], seed=5, skip=("markers",))
+    out = tmp_path / "out"
+    rc = sysid_main([str(bag), "--out", str(out), *FAST])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "warning" in err and "tactile/markers" in err
+    doc = load_fit_json(out / "fit.json")
+    assert doc["diagnostics"]["channels"] == ["wrench", "sheet_points"]
+    assert any("markers" in w for w in doc["diagnostics"]["warnings"])
+    assert not (out / "marker_field.png").exists() and (out / "wrench.png").exists()
+
+
+def test_unknown_parameter_is_one_line_error(press_bag, tmp_path, capsys):
+    rc = sysid_main([str(press_bag), "--out", str(tmp_path / "o"), "--params", "gel.hardness", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "gel.hardness" in err and err.strip().count("\n") <= 1
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,194 @@
+"""Fitting: parameter recovery from recordings of this project's simulator, covariance, Jacobians."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from sim_core.errors import CalibrationError, ConfigError
+from sysid.evidence import load_evidence
+from sysid.fit import (
+    FiniteDifferenceJacobian,
+    FitProblem,
+    SensitivityJacobian,
+    fit,
+    gauss_newton_covariance,
+    make_jacobian,
+    parameter_spec,
+)
+from sysid.observation import ObservationModel, ObservationWarning
+from tests.sysid.simbag import DT, PRESS_ONLY, PRESS_SLIDE, TRUE_PARAMS, make_recording
+
+
+@pytest.fixture(scope="module")
+def press_bag(tmp_path_factory):
+    """A short noisy press recording (5 steps of 10 ms) made with the true parameters."""
+    return make_recording(tmp_path_factory.mktemp("press") / "bag", segments=PRESS_ONLY, seed=1)
+
+
+# ------------------------------------------------------------------------------------ recovery
+def test_recovers_gel_modulus_from_x3_start(press_bag):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    true = TRUE_PARAMS["gel.youngs_modulus"]
+    result = fit(model, ["gel.youngs_modulus"], initial={"gel.youngs_modulus": 3.0 * true}, jacobian="fd")
+    value = result.values["gel.youngs_modulus"]
+    assert abs(value / true - 1.0) < 0.05, value
+    assert result.status == "converged"
+    # white-noise level reached: reduced chi^2 about 1 after, far above before
+    m = result.residual_count - 1
+    assert result.reduced_chi2 < 1.5 < 2.0 * result.cost_initial / m
+    # the fitted model explains the force to about its noise level; the x3 start did not
+    assert result.rms_final["wrench"]["rms"] < 0.3 < result.rms_initial["wrench"]["rms"]
+    assert result.rms_final["wrench"]["whitened_rms"] < 2.0
+    # Gauss-Newton 1-sigma: finite, and the truth lies within 3 sigma
+    sigma = result.sigma["gel.youngs_modulus"]
+    assert 0.0 < sigma < 0.2 * true and abs(value - true) < 3.0 * max(sigma, 1e-3 * true)
+    assert result.correlation.shape == (1, 1) and result.correlation[0, 0] == pytest.approx(1.0)
+    assert result.channels == ("markers_xyz", "wrench", "sheet_points")
+    costs = [e.cost for e in result.history if e.phase in ("initial", "local")]
+    assert min(costs) == pytest.approx(result.cost_final)
+
+
+@pytest.mark.slow
+def test_recovers_three_parameters_from_poor_start(tmp_path):
+    bag = make_recording(tmp_path / "bag", segments=PRESS_SLIDE, seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(bag), dt=DT)
+    names = ["sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet"]
+    start = {n: TRUE_PARAMS[n] * f for n, f in zip(names, (3.0, 0.3, 3.0))}
+    result = fit(model, names, initial=start, jacobian="auto", max_nfev=40)
+    for n in names:
+        assert abs(result.values[n] / TRUE_PARAMS[n] - 1.0) < 0.05, (n, result.values[n])
+    assert result.correlation.shape == (3, 3)
+    assert np.allclose(np.diag(result.correlation), 1.0)
+
+
+# ------------------------------------------------------------------------------------ pieces
+def test_log_coordinates_round_trip_and_bounds():
+    spec = parameter_spec("gel.youngs_modulus", 3.0e5)
+    assert spec.log and spec.to_u(3.0e5) == 0.0
+    assert spec.to_value(math.log(2.0)) == pytest.approx(6.0e5)
+    lo, hi = spec.u_bounds
+    assert lo == pytest.approx(-math.log(1e3)) and hi == pytest.approx(math.log(1e3))
+    nu = parameter_spec("gel.poisson_ratio", 0.45)
+    assert not nu.log and nu.to_value(nu.to_u(0.3)) == pytest.approx(0.3) and nu.upper < 0.5
+    damping = parameter_spec("damping", 0.0)
+    assert not damping.log and damping.lower == 0.0
+    with pytest.raises(CalibrationError, match="sheet.yield_angle.*non-finite"):
+        parameter_spec("sheet.yield_angle", math.inf)
+
+
+def test_gauss_newton_covariance_of_linear_model():
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(200, 3))
+    cov, note = gauss_newton_covariance(J)
+    assert note == "ok"
+    assert np.allclose(cov @ (J.T @ J), np.eye(3), atol=1e-10)
+    # straight-line fit y = a + b t with unit noise: var(b) = 1 / sum (t - mean t)^2
+    t = np.linspace(0.0, 1.0, 50)
+    cov, _ = gauss_newton_covariance(np.stack([np.ones_like(t), t], axis=1))
+    assert cov[1, 1] == pytest.approx(1.0 / np.sum((t - t.mean()) ** 2))
+    singular, note = gauss_newton_covariance(np.stack([t, 2.0 * t], axis=1))
+    assert singular is None and "not identifiable" in note
+
+
+class _LinearProblem:
+    """r(u) = A u + b with bounds, the interface the finite-difference provider uses."""
+
+    def __init__(self, A, b, lower, upper):
+        self.A, self.b = A, b
+        self.bounds = (np.asarray(lower, float), np.asarray(upper, float))
+        self.names = tuple(f"p{i}" for i in range(A.shape[1]))
+        self.calls = 0
+
+    def values(self, u):
+        return dict(zip(self.names, u))
+
+    def residual(self, u, phase="local"):
+        self.calls += 1
+        return self.A @ u + self.b
+
+    def evaluate_many(self, points, phase):
+        return [self.residual(p, phase) for p in points]
+
+
+def test_finite_difference_jacobian_is_exact_for_linear_residuals_and_one_sided_at_bounds():
+    rng = np.random.default_rng(1)
+    A, b = rng.normal(size=(30, 3)), rng.normal(size=30)
+    prob = _LinearProblem(A, b, [-1.0, -1.0, 0.0], [1.0, 1.0, 1.0])
+    J = FiniteDifferenceJacobian(step=0.01)(prob, np.array([0.2, -0.3, 0.0]))  # third at its lower bound
+    assert np.allclose(J, A, atol=1e-10)
+    with pytest.raises(ConfigError, match="step must be > 0"):
+        FiniteDifferenceJacobian(step=0.0)
+
+
+def test_sensitivity_jacobian_matches_finite_differences(press_bag):
+    """Cross-check of the two providers on a contact replay (away from the optimum)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    names = ["gel.youngs_modulus", "friction.gel_sheet"]
+    problem = FitProblem(model, [parameter_spec(n, TRUE_PARAMS[n]) for n in names])
+    u = np.array([0.3, -0.2])
+    J_fd = FiniteDifferenceJacobian(step=1e-3)(problem, u)
+    J_s = SensitivityJacobian()(problem, u)
+    assert J_s.shape == J_fd.shape == (model.residual_count, 2)
+    for j in range(2):
+        err = np.linalg.norm(J_s[:, j] - J_fd[:, j]) / np.linalg.norm(J_fd[:, j])
+        assert err < 0.05, (names[j], err)
+
+
+def test_jacobian_provider_names():
+    assert make_jacobian("fd").name == "fd"
+    with pytest.raises(ConfigError, match="unknown jacobian provider 'adjoint'"):
+        make_jacobian("adjoint")
+
+
+def test_missing_markers_fits_remaining_channels_with_warning(tmp_path):
+    bag = make_recording(tmp_path / "bag", segments=PRESS_ONLY[:1], seed=3, skip=("markers",))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = ObservationModel(load_evidence(bag), dt=DT)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, ObservationWarning)]
+    assert any("tactile/markers" in m and "markers_xyz" in m for m in msgs), msgs
+    assert model.channels == ("wrench", "sheet_points")
+    result = fit(model, ["gel.youngs_modulus"], initial={"gel.youngs_modulus": 6.0e5}, max_nfev=2)
+    assert "markers_xyz" not in result.rms_final and result.channels == ("wrench", "sheet_points")
+    assert any("fitting without markers_xyz" in w for w in result.warnings)
+    assert result.cost_final < result.cost_initial
+
+
+def test_bad_inputs_are_named(press_bag):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev = load_evidence(press_bag)
+    with pytest.raises(CalibrationError, match="dt must be a positive"):
+        ObservationModel(ev, dt=0.0)
+    with pytest.raises(CalibrationError, match="channel 'image' cannot be fitted"):
+        ObservationModel(ev, dt=DT, channels=["image"])
+    model = ObservationModel(ev, dt=DT)
+    with pytest.raises(ConfigError, match="unknown parameter 'gel.stiffness'"):
+        fit(model, ["gel.stiffness"])
+    with pytest.raises(CalibrationError, match="duplicates"):
+        fit(model, ["gel.youngs_modulus", "gel.youngs_modulus"])
+
+
+def test_replay_alignment_matches_simulated_steps(press_bag):
+    """Stamps on the simulation grid get the simulated values; the first control is the recorded pose."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    trace = model.simulate(TRUE_PARAMS)
+    pred = model.predict(trace)
+    assert np.array_equal(model.evidence.t_ns["wrench"], trace.t_ns)
+    assert np.allclose(pred["wrench"], trace.wrench)
+    assert np.allclose(model.controls[0], model.evidence.pose[0])
+    # half-step stamps interpolate linearly
+    mid = model.align("wrench", trace.wrench)
+    assert mid.shape == model.evidence.wrench.shape

@@ -1,0 +1,131 @@
+"""The scripted commander (planning, scheduling, over DDS against a kinematic sim) and ``thinshell demo``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from sim_core.errors import ConfigError
+from sim_core.scenes.scene_file import load_scene_file, load_yaml
+from tests.thinshell_ros.conftest import REPO, spin_until
+from tests.thinshell_ros.fake_sim import HOME, FakeSimulation
+from thinshell_ros import conversions as cv
+from thinshell_ros.commander import CommandSchedule, CommanderNode, plan_from_observation
+from thinshell_ros.runtime import SENSOR_QOS
+from thinshell_ros.sim_node import SimNode
+from thinshell_ros.trajectory import Trajectory
+
+SCENE = REPO / "config" / "scenes" / "press_slide.yaml"
+
+
+def _scene(**sensor_overrides):
+    doc = load_yaml(SCENE.read_text())
+    doc["sensors"]["tactile"].update(sensor_overrides)
+    return load_scene_file(doc), doc
+
+
+def _flat_sheet(doc) -> np.ndarray:
+    sx, sy = np.meshgrid(np.linspace(0, 0.1, 5), np.linspace(-0.03, 0.03, 3))
+    return np.stack([sx.ravel(), sy.ravel(), np.full(sx.size, doc["sheet"]["origin"][2])], axis=1)
+
+
+def test_plan_presses_depth_below_the_sheet_top_slides_and_lifts():
+    scene, doc = _scene()
+    start = np.array(doc["effectors"]["ee"]["initial_pose"], float)
+    top = doc["sheet"]["origin"][2] + 0.5 * doc["sheet"]["thickness"]
+    traj = plan_from_observation(scene, start, _flat_sheet(doc), depth=1e-3, slide=0.01, approach_speed=0.02,
+                                 press_speed=0.005, slide_speed=0.02, hold=0.05)
+    assert traj.effector == "ee"
+    z = traj.poses[:, 2]
+    assert z.min() == pytest.approx(top - 1e-3, abs=1e-12)  # gel normal is world -z (quaternion (1,0,0,0))
+    assert traj.poses[:, 0].max() - start[0] == pytest.approx(0.01)
+    np.testing.assert_allclose(traj.poses[-1], np.r_[start[0] + 0.01, start[1:]], atol=1e-12)  # lifted back
+    np.testing.assert_allclose(traj.poses[:, 3:], np.tile(start[3:], (len(traj.t), 1)))  # orientation kept
+    # approach (start z - top at 0.02 m/s), press (1 mm at 5 mm/s), hold, slide (10 mm at 20 mm/s), lift
+    expected = (start[2] - top) / 0.02 + 0.2 + 0.05 + 0.5 + (start[2] - (top - 1e-3)) / 0.02
+    assert traj.duration == pytest.approx(expected)
+
+
+def test_plan_uses_the_sensor_mount_and_the_highest_sheet_point():
+    scene, doc = _scene(mount=[0.0, 0.0, -0.002, 0.0, 0.0, 0.0, 1.0])  # 2 mm along the effector's -z = world +z
+    start = np.array(doc["effectors"]["ee"]["initial_pose"], float)
+    pts = _flat_sheet(doc)
+    pts[7, 2] += 0.004  # a bump: the highest point decides first contact
+    traj = plan_from_observation(scene, start, pts, depth=5e-4)
+    top = pts[:, 2].max() + 0.5 * doc["sheet"]["thickness"]
+    assert traj.poses[:, 2].min() == pytest.approx(top - 5e-4 - 0.002, abs=1e-12)
+
+
+def test_plan_errors_name_the_problem():
+    scene, doc = _scene()
+    start = np.array(doc["effectors"]["ee"]["initial_pose"], float)
+    up = start.copy()
+    up[3:] = [0, 0, 0, 1]  # sensor z along world +z: faces away from the sheet
+    with pytest.raises(ConfigError, match="does not face down"):
+        plan_from_observation(scene, up, _flat_sheet(doc))
+    with pytest.raises(ConfigError, match="sheet point"):
+        plan_from_observation(scene, start, np.zeros((0, 3)))
+    with pytest.raises(ConfigError, match="no sensor 'left'"):
+        plan_from_observation(scene, start, _flat_sheet(doc), sensor="left")
+    with pytest.raises(ConfigError, match="non-finite"):
+        plan_from_observation(scene, np.r_[np.nan, start[1:]], _flat_sheet(doc))
+
+
+def test_schedule_publishes_at_its_rate_with_one_period_of_look_ahead():
+    poses = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (2, 1))
+    poses[1, 0] = 1.0
+    traj = Trajectory("ee", np.array([0.0, 1.0]), poses)  # x = t
+    sched = CommandSchedule(traj, t0=2.0, rate=100.0, settle=0.05)
+    ticks = 2.0 + 0.005 * np.arange(40)  # a clock at 200 Hz
+    sent = [(t, sched.due(t)) for t in ticks]
+    sent = [(t, p) for t, p in sent if p is not None]
+    assert len(sent) == 20  # every other tick
+    for t, p in sent:
+        assert p[0] == pytest.approx(t - 2.0 + 0.01)
+    assert sched.due(5.0)[0] == pytest.approx(1.0)  # a jump gives one command, held at the end
+    assert sched.due(5.001) is None
+    assert not sched.finished(3.04) and sched.finished(3.05)
+    assert sched.progress(2.525) == pytest.approx(0.5) and sched.progress(9.0) == 1.0
+    with pytest.raises(ConfigError, match="rate must be finite and > 0"):
+        CommandSchedule(traj, 0.0, rate=0.0)
+
+
+@pytest.mark.ros
+def test_commander_drives_the_sim_node_through_press_slide_lift(ros_context):
+    """Over DDS: the kinematic sim node follows the commander's plan (sim time from /clock)."""
+    sim = SimNode(sim=FakeSimulation(), context=ros_context,
+                  parameter_overrides=[Parameter("mode", value="fast"), Parameter("mesh_rate", value=0.0)])
+    cmd = CommanderNode(context=ros_context, parameter_overrides=[
+        Parameter("scene", value=str(SCENE)), Parameter("speed", value=0.1), Parameter("depth", value=1e-3),
+        Parameter("slide", value=0.01), Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+    poses = []
+    cmd.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.pose_from_msg(m)[1]),
+                            SENSOR_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(sim)
+    ex.add_node(cmd)
+    try:
+        assert spin_until(ex, cmd.done.is_set, 30.0), (cmd.progress(), cmd.sim_time)
+        assert cmd.schedule is not None and cmd.progress() == 1.0
+        # the fake sheet points lie at z = 0.3 mm; the scene's half thickness is 0.15 mm
+        top = 0.0003 + 0.00015
+        p = np.array(poses)
+        assert p[:, 2].min() == pytest.approx(top - 1e-3, abs=1e-4)
+        assert p[:, 0].max() == pytest.approx(HOME[0] + 0.01, abs=1e-4)
+        assert p[-1, 2] == pytest.approx(HOME[2], abs=2e-4) and p[-1, 0] == pytest.approx(HOME[0] + 0.01, abs=1e-4)
+        assert np.abs(np.diff(p[:, :3], axis=0)).max() <= 1e-3 + 1e-12  # never beyond the per-step limit
+        assert cmd.schedule.sent > 10
+    finally:
+        ex.shutdown(timeout_sec=0)
+        cmd.destroy_node()
+        sim.destroy_node()
+
+
+def test_commander_rejects_bad_parameters(ros_context):
+    with pytest.raises(ConfigError, match="'script' must be one of"):
+        CommanderNode(context=ros_context, parameter_overrides=[Parameter("script", value="wiggle")])
+    with pytest.raises(ConfigError, match="'speed' must be finite and > 0"):
+        CommanderNode(context=ros_context, parameter_overrides=[Parameter("speed", value=0.0)])

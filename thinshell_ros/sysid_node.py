@@ -1,0 +1,342 @@
+"""The system-identification node: fit material parameters to a bag on request, publish and apply them.
+
+Parameters (read at every fit request, so ``ros2 param set`` between fits takes effect):
+
+- ``bag`` (str): recording to fit (rosbag2 MCAP directory with ``scene.yaml``, INTERFACES.md).
+- ``params`` (str): comma-separated global parameter names (``sheet.bending_stiffness,...``);
+  empty: the fitter's defaults.
+- ``out`` (str): directory of the fit report; empty: a new ``./sysid_<bag name>_<timestamp>``.
+- ``force`` (bool): replace an existing report directory.
+- ``t_max`` (s), ``dt`` (s): fit only the first ``t_max`` s of the recording / replay at step ``dt``;
+  0 = the fitter's defaults.
+- ``fit_args`` (str): further ``thinshell sysid`` options, shell-quoted (``--max-nfev 5 --global``).
+- ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
+  ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
+- ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
+- ``namespace`` (str, default ``/thinshell``): prefix of the result topic.
+
+Service ``~/fit`` (std_srvs/Trigger) starts a fit in a worker thread and answers at once (the node
+keeps spinning); a second request while one runs is refused. When the fit ends, the fitted values
+are set on ``apply_to`` through its standard parameter service (``rcl_interfaces/srv/SetParameters``)
+when that is configured, and then one JSON document is published on ``<namespace>/sysid/result``
+(std_msgs/String, reliable, transient local: a late subscriber still gets the last result):
+``{"status": "ok" | "error", "bag", "params": {name: value}, "initial", "sigma", "fit_status",
+"message", "rms_final", "out", "report", "files", "wall_time_s", "apply_to",
+"applied": {name: bool} | null, "apply_message"}`` (``"error"`` instead of the fit keys on failure).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from sim_core.errors import ConfigError
+
+RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""QoS of ``sysid/result``: the last result is kept for subscribers that join later."""
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """One fit job, from the node's parameters at the time of the request.
+
+    Attributes:
+        bag: recording path.
+        params: global parameter names (empty: the fitter's defaults).
+        out: report directory (None: the fitter's default).
+        force: replace an existing report.
+        t_max: s of the recording to fit (None: all / the fitter's default).
+        dt: replay step in s (None: the fitter's default).
+        extra: further ``thinshell sysid`` options.
+    """
+
+    bag: Path
+    params: tuple[str, ...]
+    out: Path | None
+    force: bool
+    t_max: float | None
+    dt: float | None
+    extra: tuple[str, ...] = ()
+
+    def cli_args(self) -> list[str]:
+        """The ``thinshell sysid`` arguments of this request."""
+        args = [str(self.bag)]
+        if self.params:
+            args += ["--params", ",".join(self.params)]
+        if self.out is not None:
+            args += ["--out", str(self.out)]
+        if self.force:
+            args.append("--force")
+        if self.t_max is not None:
+            args += ["--t-max", repr(self.t_max)]
+        if self.dt is not None:
+            args += ["--dt", repr(self.dt)]
+        return [*args, *self.extra]
+
+
+def parse_params(text: str) -> tuple[str, ...]:
+    """``"a, b,c"`` -> ``("a", "b", "c")``; empty entries are dropped.
+
+    Raises:
+        ConfigError: a name appears twice.
+    """
+    names = tuple(p.strip() for p in text.split(",") if p.strip())
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"parameter 'params' lists {dup} more than once")
+    return names
+
+
+def default_out(bag: Path, now: float | None = None) -> Path:
+    """Report directory when ``out`` is empty: ``./sysid_<bag name>_<YYYYmmdd-HHMMSS>`` (never an existing one)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    out = Path.cwd() / f"sysid_{bag.resolve().name}_{stamp}"
+    k = 1
+    while out.exists():
+        k += 1
+        out = Path.cwd() / f"sysid_{bag.resolve().name}_{stamp}_{k}"
+    return out
+
+
+def run_sysid_cli(request: FitRequest) -> dict[str, Any]:
+    """Run the fitter (``thinshell sysid --quiet``, :func:`sysid.cli.sysid_main`) and summarise its ``fit.json``.
+
+    Returns:
+        the fit summary (:func:`summarise_fit`).
+
+    Raises:
+        RuntimeError: the fitter returned a non-zero exit code (its one-line reason is on stderr).
+        CalibrationError: it wrote no valid ``fit.json``.
+    """
+    from sysid.cli import sysid_main
+
+    if request.out is None:
+        request = dataclasses.replace(request, out=default_out(request.bag))
+    args = [*request.cli_args(), "--quiet"]
+    code = sysid_main(args)
+    if code != 0:
+        raise RuntimeError(f"thinshell sysid {' '.join(args)} exited with code {code} (reason on stderr)")
+    return summarise_fit(request.out)
+
+
+def summarise_fit(out: Path) -> dict[str, Any]:
+    """Fit summary from the report directory ``out`` written by ``thinshell sysid``.
+
+    Returns:
+        ``{"params": {name: value}, "initial": {name: value}, "sigma": {name: sigma | None},
+        "fit_status", "message", "rms_final": {channel: rms}, "out", "report", "files"}``.
+
+    Raises:
+        CalibrationError: missing or invalid ``out/fit.json`` (:func:`sysid.results.load_fit_json`).
+    """
+    from sysid.results import load_fit_json
+
+    out = Path(out)
+    doc = load_fit_json(out / "fit.json")
+    params = doc["fit"]["parameters"]
+    diag = doc["diagnostics"]
+    return {"params": {n: p["value"] for n, p in params.items()},
+            "initial": {n: p["initial"] for n, p in params.items()},
+            "sigma": {n: p["sigma"] for n, p in params.items()},
+            "fit_status": diag["status"], "message": diag["message"],
+            "rms_final": {ch: v.get("rms") for ch, v in (doc["metrics"]["rms_final"] or {}).items()},
+            "out": str(out), "report": str(out / "report.html"), "files": sorted(p.name for p in out.iterdir())}
+
+
+class SysidNode(Node):
+    """ROS 2 node running system identification on request (module docstring).
+
+    Args:
+        runner: ``FitRequest -> summary dict`` with at least ``params`` (name -> fitted value);
+            default :func:`run_sysid_cli`.
+        node_name: ROS node name.
+        **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
+    """
+
+    def __init__(self, runner: Callable[[FitRequest], dict[str, Any]] | None = None,
+                 node_name: str = "thinshell_sysid", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.runner = runner or run_sysid_cli
+        for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
+                              ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0)):
+            self.declare_parameter(name, default)
+        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
+        self.result_topic = f"{self.namespace}/sysid/result"
+        self._pub = self.create_publisher(String, self.result_topic, RESULT_QOS)
+        self._lock = threading.Lock()
+        self._worker: threading.Thread | None = None
+        self._started = 0.0
+        self._finished: dict[str, Any] | None = None
+        self._pending_apply: dict[str, Any] | None = None
+        self._set_param_clients: dict[str, Any] = {}
+        self.results: list[dict[str, Any]] = []
+        self.create_service(Trigger, "~/fit", self._on_fit)
+        self.create_timer(0.05, self._poll)
+        self.get_logger().info(f"sysid node: call {self.get_fully_qualified_name()}/fit; results on {self.result_topic}")
+
+    @property
+    def busy(self) -> bool:
+        """True while a fit (or the application of its result) is in progress."""
+        with self._lock:
+            return self._worker is not None
+
+    def _param(self, name: str) -> Any:
+        return self.get_parameter(name).value
+
+    def _request(self) -> FitRequest:
+        bag = str(self._param("bag")).strip()
+        if not bag:
+            raise ConfigError("parameter 'bag' is empty: set it to a recording (rosbag2 directory)")
+        if not Path(bag).exists():
+            raise ConfigError(f"parameter 'bag': {bag} does not exist")
+        t_max, dt = float(self._param("t_max")), float(self._param("dt"))
+        for key, value in (("t_max", t_max), ("dt", dt)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"parameter {key!r} must be >= 0 (0: the fitter's default), got {value}")
+        out = str(self._param("out")).strip()
+        try:
+            extra = tuple(shlex.split(str(self._param("fit_args"))))
+        except ValueError as err:
+            raise ConfigError(f"parameter 'fit_args' is not valid shell syntax: {err}") from err
+        return FitRequest(Path(bag), parse_params(str(self._param("params"))), Path(out) if out else None,
+                          bool(self._param("force")), t_max or None, dt or None, extra)
+
+    # ------------------------------------------------------------------------------ service
+    def _on_fit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._lock:
+            if self._worker is not None:
+                response.success = False
+                response.message = f"a fit is already running (for {time.monotonic() - self._started:.0f} s)"
+                return response
+            try:
+                job = self._request()
+            except ConfigError as err:
+                response.success, response.message = False, str(err)
+                return response
+            self._started = time.monotonic()
+            self._worker = threading.Thread(target=self._work, args=(job,), name="sysid-fit", daemon=True)
+            self._worker.start()
+        names = ",".join(job.params) or "default parameters"
+        response.success = True
+        response.message = f"fit started: {job.bag} ({names}); the result will be published on {self.result_topic}"
+        self.get_logger().info(response.message)
+        return response
+
+    def _work(self, job: FitRequest) -> None:
+        """Worker thread: run the fitter; the executor thread publishes and applies (``_poll``)."""
+        t0 = time.monotonic()
+        base = {"bag": str(job.bag), "apply_to": str(self._param("apply_to")) or None, "applied": None,
+                "apply_message": ""}
+        try:
+            summary = self.runner(job)
+            result = {"status": "ok", **base, **summary}
+        except Exception as err:  # noqa: BLE001 - any failure is reported on the topic, the node lives on
+            result = {"status": "error", **base, "error": f"{type(err).__name__}: {err}", "params": {}}
+        result["wall_time_s"] = round(time.monotonic() - t0, 3)
+        with self._lock:
+            self._finished = result
+
+    # ------------------------------------------------------------------------------ executor side
+    def _poll(self) -> None:
+        with self._lock:
+            result, self._finished = self._finished, None
+        if result is not None:
+            target = result["apply_to"]
+            if result["status"] == "ok" and target and result["params"]:
+                self._pending_apply = {"result": result, "deadline": time.monotonic() + float(self._param("apply_timeout"))}
+            else:
+                self._publish(result)
+        if self._pending_apply is not None:
+            self._try_apply()
+
+    def _client(self, target: str):
+        service = f"{target.rstrip('/')}/set_parameters"
+        if service not in self._set_param_clients:
+            self._set_param_clients[service] = self.create_client(SetParameters, service)
+        return self._set_param_clients[service]
+
+    def _try_apply(self) -> None:
+        pending = self._pending_apply
+        if pending.get("future") is not None:
+            return
+        result = pending["result"]
+        client = self._client(result["apply_to"])
+        if not client.service_is_ready():
+            if time.monotonic() > pending["deadline"]:
+                self._pending_apply = None
+                result["applied"] = {name: False for name in result["params"]}
+                result["apply_message"] = f"{client.srv_name} not available within {self._param('apply_timeout')} s"
+                self.get_logger().error(result["apply_message"])
+                self._publish(result)
+            return
+        names = list(result["params"])
+        request = SetParameters.Request()
+        request.parameters = [Parameter(n, Parameter.Type.DOUBLE, float(result["params"][n])).to_parameter_msg()
+                              for n in names]
+        future = client.call_async(request)
+        pending["future"] = future
+        future.add_done_callback(lambda fut: self._on_applied(fut, names, result))
+
+    def _on_applied(self, future: Any, names: list[str], result: dict[str, Any]) -> None:
+        self._pending_apply = None
+        try:
+            replies = future.result().results
+            result["applied"] = {n: bool(r.successful) for n, r in zip(names, replies)}
+            reasons = [f"{n}: {r.reason}" for n, r in zip(names, replies) if not r.successful]
+            result["apply_message"] = "; ".join(reasons) if reasons else f"set on {result['apply_to']}"
+        except Exception as err:  # noqa: BLE001
+            result["applied"] = {n: False for n in names}
+            result["apply_message"] = f"set_parameters failed: {err}"
+        log = self.get_logger().info if all(result["applied"].values()) else self.get_logger().error
+        log(f"apply to {result['apply_to']}: {result['apply_message']}")
+        self._publish(result)
+
+    def _publish(self, result: dict[str, Any]) -> None:
+        self.results.append(result)
+        self._pub.publish(String(data=json.dumps(result, default=float)))
+        if result["status"] == "ok":
+            values = ", ".join(f"{k}={v:.6g}" for k, v in result["params"].items())
+            self.get_logger().info(f"fit of {result['bag']} done in {result['wall_time_s']:.1f} s: {values}")
+        else:
+            self.get_logger().error(f"fit of {result['bag']} failed: {result['error']}")
+        with self._lock:
+            self._worker = None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the sysid node until SIGINT/SIGTERM; returns the exit code."""
+    from sim_core.errors import ThinShellError
+    from thinshell_ros.runtime import ros_session, spin_until_stopped
+
+    args = list(sys.argv) if argv is None else ["thinshell-sysid-node", *argv]
+    with ros_session(args) as stop:
+        try:
+            node = SysidNode()
+        except ThinShellError as err:
+            print(f"thinshell sysid node: error: {err}", file=sys.stderr)
+            return 1
+        try:
+            spin_until_stopped(node, stop)
+        finally:
+            node.destroy_node()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
