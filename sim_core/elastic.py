@@ -19,7 +19,7 @@ from sim_core.model import Model
 from sim_core.errors import ConfigError
 from sim_core.potentials.bending import DiscreteShellBending, plastic_update
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.potentials.membrane import StVKMembrane
+from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
 from sim_core.potentials.neohookean import StableNeoHookean
 
 
@@ -48,9 +48,16 @@ class ElasticTerms:
         for b in model.bodies.values():
             m = b.material
             if b.kind == "sheet":
-                self.membranes[b.name] = StVKMembrane(
-                    b.triangles, model.x_rest, m["youngs_modulus"], m["poisson_ratio"], m["thickness"]
-                )
+                form = model.meta.get("membrane", {}).get(b.name)
+                if form is not None and form.get("model") == "spring":
+                    # ThinShellLab's edge/area springs (task scenes that ask for them)
+                    self.membranes[b.name] = SpringMembrane(
+                        b.triangles, b.edges, model.x_rest, form["k_length"], form["k_area"]
+                    )
+                else:
+                    self.membranes[b.name] = StVKMembrane(
+                        b.triangles, model.x_rest, m["youngs_modulus"], m["poisson_ratio"], m["thickness"]
+                    )
                 if b.hinges is not None and b.hinges.shape[0] > 0:
                     self.hinges[b.name] = b.hinges
                 kind = choice.get(b.name, "kirchhoff") if isinstance(choice, dict) else choice
@@ -96,7 +103,7 @@ class ElasticTerms:
         """Potentials that depend on global parameter ``name`` and their local parameter names."""
         body, _, key = name.partition(".")
         out: list[tuple[object, str]] = []
-        if body in self.membranes and key in ("youngs_modulus", "poisson_ratio", "thickness"):
+        if body in self.membranes and key in self.membranes[body].parameter_names:
             out.append((self.membranes[body], key))
         if body in self.hinges and key in self.bending(body, hinge_theta_bar.get(body)).parameter_names:
             out.append((self.bending(body, hinge_theta_bar.get(body)), key))
