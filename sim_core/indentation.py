@@ -250,7 +250,8 @@ def build_indentation(
         friction: Coulomb coefficient gel-indenter.
         gel_density: kg/m^3 (irrelevant for quasi-static sweeps with a large dt).
         indenter_lift: z shift applied to the indenter before building, m.
-        solver_config: Newton settings (default: PARDISO, velocity tolerance 1e-9 m/s at dt = 1 s).
+        solver_config: Newton settings (default: PARDISO, max |dx| / dt < 1e-7 m/s, i.e. 0.1 um at
+            dt = 1 s, and absolute-value eigenvalue projection, which needs fewer iterations here).
 
     Returns:
         :class:`IndentationSetup`.
@@ -278,7 +279,7 @@ def build_indentation(
     gap = float(tip[2] - model.x_rest[tip_vertex, 2] - contact.eps)
     if gap < -contact.eps:
         raise ConfigError(f"indentation: the indenter starts {-gap:.3g} m inside the gel surface")
-    cfg = solver_config or SolverConfig(tol_velocity=1e-9, max_iterations=100)
+    cfg = solver_config or SolverConfig(tol_velocity=1e-7, max_iterations=100, projection="abs")
     return IndentationSetup(model, GEL_BODY, INDENTER_BODY, INDENTER_EFFECTOR, tip_vertex, gap, cfg)
 
 

@@ -163,6 +163,7 @@ class FitProblem:
         self.best: tuple[float, np.ndarray, dict[str, np.ndarray] | None] | None = None
         self._cache: dict[bytes, np.ndarray | None] = {}
         self._pool: ProcessPoolExecutor | None = None
+        self.last_failure = ""
 
     # ------------------------------------------------------------------------------ coordinates
     def values(self, u: np.ndarray) -> dict[str, float]:
@@ -216,8 +217,9 @@ class FitProblem:
         try:
             prediction = self.model.predict(self.model.simulate(self.values(u)))
             r = self.model.residuals(prediction)
-        except SimulationDivergedError:
+        except SimulationDivergedError as err:
             prediction, r = None, None
+            self.last_failure = str(err)
         self._record(u, r, phase, time.perf_counter() - t, prediction)
         return r
 
@@ -585,7 +587,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             u0 = np.zeros(len(names))
             r0 = problem.residual(u0, phase="initial")
             if r0 is None:
-                raise CalibrationError(f"the replay diverged at the start values {start}")
+                raise CalibrationError(f"the replay diverged at the start values {start}: {problem.last_failure} "
+                                       "(try a smaller --dt)")
             cost0, prediction0 = problem.best[0], problem.best_prediction()
             global_info = None
             if global_method is not None:

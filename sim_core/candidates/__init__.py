@@ -31,8 +31,18 @@ from sim_core.candidates.hook import (
 )
 from sim_core.candidates.stiction import StictionFriction
 
+DIAGNOSIS_CANDIDATES = {
+    "stiction": {"parameter": "candidate.stiction", "probe": 0.5, "one_sided": True},
+    "gel_viscoelasticity": {"parameter": "candidate.gel_viscoelasticity", "probe": 0.5, "one_sided": True},
+    "adhesion": {"parameter": "candidate.adhesion", "probe": 0.05, "one_sided": True},
+    "anisotropic_bending": {"parameter": "candidate.anisotropic_bending", "probe": 0.3, "one_sided": False},
+}
+"""What ``sysid.diagnose.candidates.default_candidates`` reads: effect -> global parameter name (once
+``Model.set_parameter`` routes ``candidate.<name>`` to the solver's :class:`CandidateHook`), probe
+value for the secant signature, and whether beta is one-sided (>= 0)."""
+
 __all__ = [
-    "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "CANDIDATE_SETTINGS", "CandidateHook",
+    "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "DIAGNOSIS_CANDIDATES", "CANDIDATE_SETTINGS", "CandidateHook",
     "CandidateNewtonSolver", "LaggedAdhesion", "MaxwellBranch", "StictionFriction", "adhesion_pairs",
     "candidate_terms", "hinge_grain_cosine", "relax_state", "validate_candidate_parameters",
 ]

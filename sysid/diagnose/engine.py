@@ -215,7 +215,8 @@ class BagDiagnosis:
                 r = _residual(model, ch, pred0[ch])
                 T = r.shape[0]
                 Jk = _whiten(model, ch, J).reshape(T, -1, J.shape[-1])
-                Jt = _whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
+                Jt = (_whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
+                      if J_theta[ch].shape[-1] else None)
                 if not np.any(Jk):
                     continue
                 try:

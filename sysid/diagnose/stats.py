@@ -220,7 +220,11 @@ def score_test(r: np.ndarray, J_k: np.ndarray, J_theta: np.ndarray | None = None
     Jt = None if J_theta is None else np.asarray(J_theta, dtype=float).reshape(T, S_, -1)
     ar_order = 0
     if prewhiten:
-        base = r if Jt is None or Jt.shape[2] == 0 else project_out(Jt.reshape(T * S_, -1), r.reshape(-1)).reshape(T, S_)
+        # AR model of the residual with the fitted AND the candidate directions removed (Cochrane-Orcutt on
+        # the full regression): fitted on r alone, a smooth effect would be taken for serial correlation
+        # and filtered away with it.
+        X = J.reshape(T * S_, q) if Jt is None else np.concatenate([Jt.reshape(T * S_, -1), J.reshape(T * S_, q)], 1)
+        base = project_out(X, r.reshape(-1)).reshape(T, S_)
         filt = fit_ar(base, max_order=min(max_ar_order, max(T // 10, 0)))
         ar_order = filt.order
         r, J = filt.apply(r), filt.apply(J)

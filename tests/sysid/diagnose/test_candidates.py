@@ -159,3 +159,13 @@ def test_contract_example_validates_and_violations_are_named():
         mutate(d)
         with pytest.raises(CalibrationError, match=msg):
             validate_report(d)
+
+
+def test_cli_refuses_a_non_empty_output_directory(tmp_path, capsys):
+    from sysid.diagnose_cli import diagnose_main
+
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "old.txt").write_text("x")
+    assert diagnose_main([str(tmp_path / "bag"), "--out", str(out)]) == 2
+    assert "not empty" in capsys.readouterr().err

@@ -1,0 +1,117 @@
+"""The Taichi runtime of the element kernels: one explicit, idempotent initialisation per process.
+
+Taichi keeps its runtime (arch, default float type, compiled kernels, allocated ndarrays) in
+process-global state, and ``ti.init`` may run only once before kernels are used. This module is the
+ONE place in thinshell that holds that state: :data:`_STATE` records the arch this process
+initialised Taichi with (``None`` until :func:`init_backend` is called). Nothing here calls
+``ti.init`` at import time; importing this module only imports ``taichi``. Machine-readable stdout
+(``bench --json``) stays clean: the import-time version banner is switched off through Taichi's
+``ENABLE_TAICHI_HEADER_PRINT`` variable (only when the user has not set it) and ``ti.init``'s
+start-up line is sent to stderr.
+
+Usage::
+
+    from sim_core.ti_backend import init_backend
+    arch = init_backend("cpu")          # or "cuda"; once per process, before any Taichi potential
+
+Kernels run in float64 (``default_fp=ti.f64``). The offline cache (compiled kernels kept on disk,
+Taichi's ``offline_cache`` option) makes the second process start without JIT work.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from dataclasses import dataclass
+
+from sim_core.errors import ConfigError
+
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
+import taichi as ti  # noqa: E402  (after the banner switch above)
+
+SUPPORTED_ARCHS: tuple[str, ...] = ("cpu", "cuda")
+"""Arch names accepted by :func:`init_backend`."""
+
+
+@dataclass
+class _BackendState:
+    """Process-global Taichi state (Taichi itself is process-global; see the module docstring).
+
+    Attributes:
+        arch: the arch Taichi was initialised with (``"cpu"`` or ``"cuda"``), ``None`` before.
+        offline_cache: whether the offline kernel cache is on.
+    """
+
+    arch: str | None = None
+    offline_cache: bool = True
+
+
+_STATE = _BackendState()
+"""The only module-level mutable state of the Taichi backend (one Taichi runtime per process)."""
+
+
+def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_dir: str | None = None) -> str:
+    """Initialise Taichi once for this process (float64 kernels) and return the arch in use.
+
+    Idempotent: a second call with the same arch returns at once. Taichi cannot switch arch while
+    kernels and ndarrays of the first arch are alive, so a call with another arch raises.
+
+    Args:
+        arch: ``"cpu"`` (LLVM x64/arm64, the default) or ``"cuda"``.
+        offline_cache: keep compiled kernels on disk between processes (Taichi ``offline_cache``).
+        offline_cache_dir: directory of the offline cache; ``None`` uses Taichi's default
+            (``~/.cache/taichi/ticache``).
+
+    Returns:
+        the arch actually used, ``"cpu"`` or ``"cuda"`` (Taichi never silently falls back here).
+
+    Raises:
+        ConfigError: unknown arch name; CUDA requested but not available on this machine (no
+            driver or no GPU); Taichi already initialised with a different arch.
+    """
+    if arch not in SUPPORTED_ARCHS:
+        raise ConfigError(f"init_backend: unknown Taichi arch {arch!r}; use one of {SUPPORTED_ARCHS}")
+    if _STATE.arch is not None:
+        if _STATE.arch != arch:
+            raise ConfigError(
+                f"init_backend: Taichi is already initialised with arch {_STATE.arch!r} in this process; "
+                f"cannot switch to {arch!r} (start a new process)"
+            )
+        return _STATE.arch
+    # fast_math off: LLVM fast-math may reassociate sums and assume no inf/NaN, which breaks the
+    # 1e-10 agreement with the NumPy reference and the inf-safe Jacobi rotations.
+    options = {"offline_cache": bool(offline_cache), "fast_math": False}
+    if offline_cache_dir is not None:
+        options["offline_cache_file_path"] = str(offline_cache_dir)
+    ti_arch = ti.cpu if arch == "cpu" else ti.cuda
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            ti.init(arch=ti_arch, default_fp=ti.f64, default_ip=ti.i32, enable_fallback=False,
+                    log_level=ti.WARN, **options)
+    except RuntimeError as err:
+        raise ConfigError(f"init_backend: Taichi arch {arch!r} is not available on this machine ({err})") from err
+    _STATE.arch = arch
+    _STATE.offline_cache = bool(offline_cache)
+    return arch
+
+
+def current_arch() -> str | None:
+    """The arch Taichi was initialised with in this process, or ``None`` before :func:`init_backend`."""
+    return _STATE.arch
+
+
+def require_backend(who: str) -> str:
+    """The current arch; raises if :func:`init_backend` has not been called.
+
+    Args:
+        who: name of the caller, used in the error message.
+
+    Raises:
+        ConfigError: Taichi not initialised yet.
+    """
+    if _STATE.arch is None:
+        raise ConfigError(
+            f"{who}: the Taichi backend is not initialised; call sim_core.ti_backend.init_backend(arch) first"
+        )
+    return _STATE.arch

@@ -1,0 +1,1 @@
+"""Taichi element kernels (arch cpu | cuda) of the hot elastic potentials."""

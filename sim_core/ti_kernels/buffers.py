@@ -1,0 +1,53 @@
+"""Device arrays of the Taichi potentials: allocated once per shape, filled with ``from_numpy``.
+
+A :class:`DeviceArray` wraps a ``ti.ndarray`` (device memory on CUDA, host memory on CPU). It is
+allocated when first needed and again only when the shape changes, so a potential that is called
+every Newton iteration moves data with ``from_numpy`` / ``to_numpy`` and never reallocates. Kernels
+take ndarrays as arguments (``ti.types.ndarray``), so they compile once per dtype and rank and are
+shared by every instance (no per-instance fields, no growth of Taichi's SNode trees).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.ti_backend import ti
+
+
+class DeviceArray:
+    """A ``ti.ndarray`` of fixed dtype, reallocated only when the requested shape changes.
+
+    Args:
+        dtype: ``ti.f64`` or ``ti.i32``.
+    """
+
+    def __init__(self, dtype) -> None:
+        self.dtype = dtype
+        self.array = None
+        self.shape: tuple[int, ...] | None = None
+
+    def ensure(self, shape: tuple[int, ...]):
+        """The ndarray with ``shape`` (allocated on first use or when the shape changed)."""
+        shape = tuple(int(s) for s in shape)
+        if self.shape != shape:
+            self.array = ti.ndarray(dtype=self.dtype, shape=shape)
+            self.shape = shape
+        return self.array
+
+    def upload(self, values: np.ndarray):
+        """Copy ``values`` (converted to the dtype, C order) into the ndarray; returns the ndarray."""
+        np_dtype = np.float64 if self.dtype == ti.f64 else np.int32
+        values = np.ascontiguousarray(values, dtype=np_dtype)
+        arr = self.ensure(values.shape)
+        arr.from_numpy(values)
+        return arr
+
+    def download(self) -> np.ndarray:
+        """The ndarray's contents as a new NumPy array."""
+        return self.array.to_numpy()
+
+
+def upload_constant(values: np.ndarray, dtype):
+    """A new ndarray holding ``values`` (rest-shape data uploaded once per potential)."""
+    buf = DeviceArray(dtype)
+    return buf.upload(values)

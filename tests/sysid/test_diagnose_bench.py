@@ -1,0 +1,113 @@
+"""The diagnosis benchmark: data-level effects, strengths and windows, scoring, and (slow) the whole run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sysid import diagnose_bench as db
+
+
+def _streams(n=101):
+    t = np.arange(n) * 10_000_000
+    rng = np.random.default_rng(0)
+    s = {"t_ns": t, "pose": np.zeros((n, 7)), "pose_cmd": np.zeros((n, 7)),
+         "markers_xyz": rng.normal(scale=1e-3, size=(n, 4, 3)),
+         "markers_uv": 160 + rng.normal(scale=30, size=(n, 4, 2)),
+         "wrench": np.zeros((n, 6)), "sheet_points": np.zeros((n, 5, 3))}
+    s["wrench"][:, 2] = np.sin(np.linspace(0, 3, n))
+    return s
+
+
+def test_latency_delays_the_tactile_streams_only():
+    s = _streams()
+    late = db.shift_latency(s, 0.05)
+    assert np.allclose(late["wrench"][5:, 2], s["wrench"][:-5, 2])
+    assert late["sheet_points"] is s["sheet_points"]
+
+
+def test_lens_distortion_is_radial_and_grows_like_r_cubed():
+    s = _streams()
+    s["markers_uv"] = np.array([[[160.0, 120.0], [190.0, 120.0], [220.0, 120.0], [160.0, 60.0]]] * 3)
+    d = db.distort_lens(s, 0.1)["markers_uv"][0] - s["markers_uv"][0]
+    assert np.allclose(d[0], 0.0)
+    assert d[2, 0] / d[1, 0] == pytest.approx(8.0)  # r doubles -> shift x 8
+    assert d[3, 0] == 0.0 and d[3, 1] < 0  # towards the centre's direction, radially
+
+
+def test_force_drift_touches_the_wrench_only_and_grows_slowly():
+    s = _streams()
+    b = db.drift_force(s, 0.4)
+    off = b["wrench"] - s["wrench"]
+    assert off[0, 2] == 0.0 and off[-1, 2] == pytest.approx(0.4)
+    assert np.all(np.diff(off[:, 2]) >= 0) and np.array_equal(b["markers_uv"], s["markers_uv"])
+
+
+def test_strength_and_window_of_a_known_change():
+    s = _streams()
+    a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in s.items()}
+    a["wrench"][40:61, 2] += 3 * db.NOISE["wrench"][2] * np.sqrt(6)  # whitened RMS over 6 axes = 3
+    strength, windows = db.effect_strength(a, s)
+    assert strength == pytest.approx(3.0)
+    assert windows == [(pytest.approx(0.40), pytest.approx(0.60))]
+
+
+def test_interval_iou():
+    assert db.interval_iou([(0, 1)], [(0, 1)]) == 1.0
+    assert db.interval_iou([(0, 1)], [(0.5, 1.5)]) == pytest.approx(1 / 3)
+    assert db.interval_iou([(0, 1), (0.5, 2)], [(0, 2)]) == 1.0
+    assert db.interval_iou([], [(0, 1)]) == 0.0
+
+
+def _recs():
+    mk = lambda name, label, lib, k, w: db.Recording(name, label, lib, k, k, 1.0, w)
+    return [mk("n0", "none", True, 0.0, []), mk("n1", "none", True, 0.0, []),
+            mk("lat2", "latency", True, 2.0, [(0.0, 1.0)]), mk("lat4", "latency", True, 4.0, [(0.0, 1.0)]),
+            mk("step4", "thickness_step", False, 4.0, [(0.5, 1.0)])]
+
+
+def test_score_of_an_oracle_and_of_a_silent_engine():
+    recs = _recs()
+    oracle = []
+    for r in recs:
+        name = [] if r.label == "none" else (["unexplained"] if not r.in_library else [r.label])
+        oracle.append({"mismatch": {"detected": bool(name), "windows_s": r.windows_s}, "explained_by": name,
+                       "refit": {"heldout_rms_before": 2.0, "heldout_rms_after": 0.5}})
+    res = db.score(recs, oracle)
+    assert res["top1_accuracy"]["2"]["accuracy"] == 1.0 and res["top1_accuracy"]["4"]["accuracy"] == 1.0
+    assert res["false_alarm_rate"] == 0.0 and res["window_iou_mean"] == 1.0
+    assert res["heldout_rms_reduction_mean"] == pytest.approx(0.75)
+    assert res["confusion"]["unexplained"]["unexplained"] == 1
+    silent = db.score(recs, [{"explained_by": [], "mismatch": {"detected": False}}] * len(recs))
+    assert silent["top1_accuracy"]["4"]["accuracy"] == 0.0 and silent["false_alarm_rate"] == 0.0
+    assert silent["confusion"]["latency"]["none"] == 2
+    alarmist = db.score(recs, [{"explained_by": ["damping"], "mismatch": {"detected": True}}] * len(recs))
+    assert alarmist["false_alarm_rate"] == 1.0
+    assert "confusion (rows: truth" in db.format_score(res)
+
+
+def test_missing_engine_is_reported(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(db, "generate_set", lambda out, **kw: _recs())
+    assert db.bench_diagnose_main(["--quick", "--out", str(tmp_path), "--engine", "no_such_module:diagnose"]) == 2
+    assert "cannot import the diagnosis engine" in capsys.readouterr().err
+
+
+def test_main_scores_with_a_given_engine(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(db, "generate_set", lambda out, **kw: _recs())
+    monkeypatch.setattr(db, "_engine", lambda spec: (lambda bags, **kw: {"explained_by": [], "mismatch": {}}))
+    assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path)]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["false_alarm_rate"] == 0.0 and doc["recordings"] == 5
+    assert json.loads((tmp_path / "labels.json").read_text())[2]["label"] == "latency"
+
+
+@pytest.mark.slow
+def test_quick_benchmark_end_to_end(tmp_path, capsys):
+    """Generates the quick set, runs the real diagnosis engine and prints the scores (minutes)."""
+    pytest.importorskip("sysid.diagnose.engine")
+    assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path)]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["recordings"] == 4
+    assert all(abs(l["strength"] - 4.0) < 2.0 for l in doc["labels"] if l["label"] != "none")

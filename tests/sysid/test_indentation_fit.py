@@ -1,0 +1,70 @@
+"""Young's modulus fit to indentation depth / force pairs (sysid.indentation_fit)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_core.errors import CalibrationError, ConfigError
+from sysid.indentation_fit import fit_youngs_modulus, load_indentation_config
+
+REPO = Path(__file__).resolve().parents[2]
+CONFIG = REPO / "config" / "sysid" / "feats_indentation.yaml"
+DEPTH = np.array([0.5, 1.0, 1.5, 2.0]) * 1e-3
+
+
+def test_fit_recovers_the_modulus_of_a_force_proportional_to_e():
+    g = 3e4 * DEPTH**1.6  # N per Pa
+    measured = 4.2e5 * g
+    calls = []
+
+    def simulate(E):
+        calls.append(E)
+        return E * g
+
+    fit = fit_youngs_modulus(simulate, measured, 0.475, 1e5)
+    assert fit.youngs_modulus == pytest.approx(4.2e5, rel=1e-9)
+    assert fit.mu == pytest.approx(4.2e5 / 2.95, rel=1e-9)
+    assert fit.c10 == pytest.approx(fit.mu / 2)
+    assert np.max(np.abs(fit.relative_error)) < 1e-9
+    assert len(calls) <= 3
+
+
+def test_fit_of_a_mildly_nonlinear_force_converges_to_the_least_squares_modulus():
+    g = DEPTH**1.5
+    measured = np.array([1.0, 2.9, 5.1, 8.2])
+
+    def simulate(E):
+        return E * g * (1.0 + 1e-7 * E)
+
+    fit = fit_youngs_modulus(simulate, measured, 0.45, 1e5, tol=1e-8, max_evaluations=30)
+    E = np.geomspace(fit.youngs_modulus * 0.99, fit.youngs_modulus * 1.01, 201)
+    objective = [np.sum((simulate(e) / measured - 1) ** 2) for e in E]
+    assert E[int(np.argmin(objective))] == pytest.approx(fit.youngs_modulus, rel=2e-4)
+
+
+def test_fit_rejects_bad_measurements_and_bad_simulations():
+    with pytest.raises(CalibrationError, match="measured forces must be finite and > 0"):
+        fit_youngs_modulus(lambda E: np.ones(2), [1.0, -2.0], 0.45, 1e5)
+    with pytest.raises(CalibrationError, match="returned forces"):
+        fit_youngs_modulus(lambda E: np.array([1.0, np.nan]), [1.0, 2.0], 0.45, 1e5)
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+def test_feats_config_holds_the_four_measurements_and_resolves_the_mesh():
+    cfg = load_indentation_config(CONFIG, REPO)
+    assert np.allclose(cfg.depth, DEPTH)
+    assert np.allclose(cfg.force, [1.6503, 5.9641, 13.5257, 23.2532])
+    assert cfg.reference_c10 == pytest.approx(72500.0)
+    assert cfg.mesh.is_file() and cfg.gel_fixed_set.is_file()
+
+
+def test_config_with_missing_data_folder_fails_naming_the_file(tmp_path):
+    with pytest.raises(ConfigError, match="key 'mesh': data file .* does not exist"):
+        load_indentation_config(CONFIG, tmp_path)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(CONFIG.read_text() + "surprise: 1\n")
+    with pytest.raises(ConfigError, match=r"unknown keys \['surprise'\]"):
+        load_indentation_config(bad, REPO)
