@@ -128,6 +128,9 @@ class Model:
         friction: Coulomb coefficients per unordered pair of body/plane names.
         damping: mass-proportional damping coefficient in 1/s (0 = off).
         initial_x: positions of the initial state (may differ from ``x_rest``), shape ``(n, 3)``.
+        candidates: parameters of optional missing-physics candidates (``sim_core.candidates``),
+            ``{"stiction": beta, "gel_viscoelasticity.tau": s, ...}``; empty = none active. Set
+            with ``set_parameter("candidate.<name>", value)``.
         revision: incremented by every parameter change.
         meta: free-form information from the scene file (name, dt, ...).
     """
@@ -143,6 +146,7 @@ class Model:
     friction: dict[frozenset, float] = field(default_factory=dict)
     damping: float = 0.0
     initial_x: np.ndarray | None = None
+    candidates: dict[str, float] = field(default_factory=dict)
     revision: int = 0
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -220,6 +224,17 @@ class Model:
         Raises:
             ConfigError: unknown name (the message lists the known names).
         """
+        if name.startswith("candidate."):
+            from sim_core.candidates.hook import CANDIDATE_SETTINGS
+
+            key = name.split(".", 1)[1]
+            if key in self.candidates:
+                return float(self.candidates[key])
+            if key in CANDIDATE_SETTINGS and CANDIDATE_SETTINGS[key] is not None:
+                return float(CANDIDATE_SETTINGS[key])
+            if key in _candidate_names():
+                return 0.0
+            raise ConfigError(f"unknown candidate parameter {name!r}; known: {sorted(_candidate_names())}")
         if name == "damping":
             return float(self.damping)
         if name == "contact.stiffness":
@@ -240,6 +255,14 @@ class Model:
         value = float(value)
         if not np.isfinite(value):
             raise ConfigError(f"parameter {name!r} must be finite, got {value}")
+        if name.startswith("candidate."):
+            from sim_core.candidates.hook import validate_candidate_parameters
+
+            trial = dict(self.candidates)
+            trial[name.split(".", 1)[1]] = value
+            self.candidates = dict(validate_candidate_parameters(trial))
+            self.revision += 1
+            return
         positive = not (name.endswith("poisson_ratio") or name == "damping" or name.startswith("friction.")
                         or name.endswith("yield_angle"))
         if positive and value <= 0:
@@ -287,3 +310,10 @@ class Model:
     def control(self) -> Control:
         """An empty control (every effector holds its pose)."""
         return Control()
+
+
+def _candidate_names() -> set[str]:
+    """Names of the physics-level candidates (``candidate.<name>`` parameters)."""
+    from sim_core.candidates.hook import CANDIDATE_NAMES
+
+    return set(CANDIDATE_NAMES)

@@ -136,6 +136,8 @@ class NewtonSolver:
         self.linear_solver: LinearSolver = make_linear_solver(self.config.linear_solver)
         self.contact = ContactSet(model)
         self._revision = -1
+        # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
+        self.candidate_hook = None
         self.notify_model_changed()
         # Data of the last converged step, kept for the adjoint.
         self.last_record: StepRecord | None = None
@@ -148,6 +150,12 @@ class NewtonSolver:
         self.vertex_mass = self.model.vertex_mass()
         self.contact = ContactSet(self.model)
         self.assembler = HessianAssembler(self.model.dof_count)
+        if self.model.candidates:
+            from sim_core.candidates.hook import CandidateHook
+
+            self.candidate_hook = CandidateHook(self.model.candidates)
+        else:
+            self.candidate_hook = None
         self._revision = self.model.revision
 
     # ------------------------------------------------------------------ step
@@ -245,6 +253,9 @@ class NewtonSolver:
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
             fixed_terms.append(friction)
+        cand_contact, cand_body = ([], []) if self.candidate_hook is None else self.candidate_hook.terms(
+            model, state_in, x_n, dt, self.elastic, friction)
+        fixed_terms += cand_contact + cand_body
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
         def total(xx: np.ndarray, contact_terms: list) -> float:
@@ -267,6 +278,7 @@ class NewtonSolver:
             dynamic = [p.hessian(x, cfg.projection) for p in contact_terms]
             if friction is not None:
                 dynamic.append(friction.hessian(x, cfg.projection))
+            dynamic += [p.hessian(x, cfg.projection) for p in cand_contact + cand_body]
             H = self.assembler.assemble(static, dynamic, diag, free)
             info.time_assembly += time.perf_counter() - ta
             tl = time.perf_counter()
@@ -340,11 +352,13 @@ class NewtonSolver:
         state_out.effector_pose = {k: np.array(v) for k, v in poses.items()}
         state_out.gripper_opening = dict(openings)
         force = np.zeros_like(x)
-        for p in contact_terms + ([friction] if friction is not None else []):
+        for p in contact_terms + ([friction] if friction is not None else []) + cand_contact:
             force -= p.gradient(x)
         state_out.contact_force = force
         state_out.contact_memory = self.contact.end_step(x, memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
+        if self.candidate_hook is not None:
+            state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
 
 

@@ -26,6 +26,8 @@ class State:
         contact_force: contact + friction force ON each vertex at the end of the step, N,
             shape ``(vertex_count, 3)``.
         step_index: number of steps taken since the initial state.
+        candidate_state: internal variables of optional missing-physics candidates
+            (``sim_core.candidates``; e.g. the gel's relaxed deformation), empty when none.
     """
 
     t: float
@@ -37,6 +39,7 @@ class State:
     contact_memory: Any = None
     contact_force: np.ndarray | None = None
     step_index: int = 0
+    candidate_state: dict = field(default_factory=dict)
 
     def copy(self) -> "State":
         """Deep copy (arrays and memory duplicated)."""
