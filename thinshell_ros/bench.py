@@ -6,6 +6,8 @@
   the first step). ``--json`` prints one JSON line instead.
 * ``bench scale``: flat sheets of about 1k, 10k and 100k DoF under gravity, one edge clamped; time
   per step and peak resident memory. ``--max-dofs`` skips the larger cases.
+* ``--arch``: ``numpy`` (NumPy reference potentials), ``cpu`` (default) or ``cuda`` (Taichi element
+  kernels of ``sim_core.ti_kernels`` after ``sim_core.ti_backend.init_backend``).
 * ``bench node`` / ``bench diagnose``: dispatched to ``thinshell_ros.bench_node.bench_node_main`` and
   ``sysid.diagnose_bench.bench_diagnose_main``.
 """
@@ -25,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 _IMPORT_TIME = time.time()
-SUPPORTED_ARCHS = ("cpu",)
+SUPPORTED_ARCHS = ("numpy", "cpu", "cuda")
+"""``numpy``: the NumPy reference potentials; ``cpu`` / ``cuda``: Taichi kernels on that arch."""
 SCALE_TARGET_DOFS = (1_000, 10_000, 100_000)
 
 
@@ -60,20 +63,40 @@ def _default_scene(name: str) -> Path:
 
 
 def _check_arch(arch: str) -> str | None:
+    """Validate ``--arch`` and, for ``cpu`` / ``cuda``, initialise Taichi; an error message or None."""
     if arch not in SUPPORTED_ARCHS:
-        return (f"--arch {arch}: not supported yet; the simulator runs on NumPy/SciPy on the CPU "
-                f"(supported: {', '.join(SUPPORTED_ARCHS)})")
+        return f"--arch {arch}: unknown backend (supported: {', '.join(SUPPORTED_ARCHS)})"
+    if arch == "numpy":
+        return None
+    from sim_core.errors import ConfigError
+    from sim_core.ti_backend import init_backend
+
+    try:
+        init_backend(arch)
+    except ConfigError as err:
+        return f"--arch {arch}: {err}"
     return None
 
 
+def _select_backend(sim, arch: str) -> list[str]:
+    """Put the simulation's elastic terms on the Taichi kernels for ``arch`` cpu/cuda; returns them."""
+    if arch == "numpy":
+        return []
+    from sim_core.ti_kernels import use_taichi_kernels
+
+    sim.model.meta["elastic_backend"] = "taichi"
+    return use_taichi_kernels(sim.solver.elastic)
+
+
 # ------------------------------------------------------------------------------------ forming
-def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
+def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str = "numpy") -> dict:
     """Step the Forming scene along the benchmark trajectory and time it.
 
     Args:
         scene: path of the Forming scene file.
         steps: number of steps (1..49).
         backward: also time a backward pass with ``sim_core.adjoint.rollout_gradient``.
+        arch: ``numpy`` or, after ``init_backend``, ``cpu`` / ``cuda`` (Taichi element kernels).
 
     Returns:
         the result record (see :func:`bench_main` for its keys).
@@ -89,12 +112,13 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
     t_build = time.perf_counter()
     model = load_task_scene(scene)
     sim = Simulation(model)
+    taichi_terms = _select_backend(sim, arch)
     sim.state = task_initial_state(model)
     build_s = time.perf_counter() - t_build
     effector = next(iter(model.effectors))
     targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
     iterations, t_assembly, t_linear, step_times = [], 0.0, 0.0, []
-    states, controls = [sim.state], []
+    states, controls, records = [sim.state.copy()], [], []
     cold_start = None
     for k in range(steps):
         control = Control()
@@ -108,7 +132,9 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
         t_assembly += info.time_assembly
         t_linear += info.time_linear_solve
         controls.append(control)
-        states.append(sim.state)
+        states.append(sim.state.copy())
+        if backward:
+            records.append(sim.solver.last_record)
     total = float(sum(step_times))
     result = {
         "bench": "forming",
@@ -124,7 +150,8 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
         "cold_start_s": float(cold_start),
         "scene_build_s": build_s,
         "forward_total_s": total,
-        "arch": "cpu",
+        "arch": arch,
+        "taichi_terms": taichi_terms,
         "linear_solver": sim.solver.linear_solver.name,
         "peak_rss_mib": peak_rss_mib(),
         "python": platform.python_version(),
@@ -133,10 +160,12 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False) -> dict:
     if backward:
         adjoint = importlib.import_module("sim_core.adjoint")
         sheet = model.bodies["sheet"]
-        dl_dx = np.zeros_like(sim.state.x)
-        dl_dx[sheet.vertex_start : sheet.vertex_stop] = 1.0  # d(sum of sheet coordinates)/dx
+        trajectory = adjoint.Trajectory(states=states, records=records, controls=controls,
+                                        model_revision=model.revision)
+        dl_dx = np.zeros((steps + 1,) + sim.state.x.shape)
+        dl_dx[-1, sheet.vertex_start : sheet.vertex_stop] = 1.0  # loss: sum of final sheet coordinates
         t0 = time.perf_counter()
-        adjoint.rollout_gradient(sim, states, controls, dl_dx)
+        adjoint.rollout_gradient(sim, trajectory, dl_dx)
         t_back = time.perf_counter() - t0
         result["backward_total_s"] = t_back
         result["backward_steps_per_s"] = steps / t_back
@@ -176,8 +205,10 @@ def scale_model(target_dofs: int):
     return b.finalize(gravity=(0.0, 0.0, -9.81), meta={"name": f"scale_{n}x{n}", "dt": 0.005})
 
 
-def run_scale(max_dofs: int, steps: int) -> list[dict]:
+def run_scale(max_dofs: int, steps: int, arch: str = "numpy") -> list[dict]:
     """Time ``steps`` steps of each scale case up to ``max_dofs`` DoF (cases in increasing size).
+
+    ``arch`` as :func:`run_forming`.
 
     Returns:
         one record per case: ``dofs``, ``step_time_s`` (mean), ``newton_iters_mean``, shares,
@@ -191,6 +222,7 @@ def run_scale(max_dofs: int, steps: int) -> list[dict]:
             continue
         model = scale_model(target)
         sim = Simulation(model)
+        _select_backend(sim, arch)
         times, iters, ta, tl = [], [], 0.0, 0.0
         for _ in range(steps):
             t0 = time.perf_counter()
@@ -222,23 +254,29 @@ def bench_main(argv: list[str] | None = None) -> int:
     ``--json`` output of ``forming`` is one line with the keys ``dofs``, ``steps_per_s``,
     ``newton_iters_mean``, ``newton_iters_max``, ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
-    ``linear_solver``, ``peak_rss_mib``, ``python``, ``numpy`` (and ``backward_*`` with
+    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``python``, ``numpy`` (and ``backward_*`` with
     ``--backward``); of ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
 
-    Exit codes: 0 success, 2 unsupported option (``--arch`` other than cpu, ``--backward`` without
-    ``sim_core.adjoint``) or missing sub-benchmark.
+    ``--arch``: ``numpy`` runs the NumPy reference potentials; ``cpu`` (default) and ``cuda``
+    initialise Taichi (:func:`sim_core.ti_backend.init_backend`) and run the StVK membrane and
+    Stable Neo-Hookean terms on Taichi kernels (``taichi_terms`` in the record lists them).
+
+    Exit codes: 0 success, 2 unsupported option (unknown ``--arch`` or an arch Taichi cannot start
+    on this machine, ``--backward`` without ``sim_core.adjoint``) or missing sub-benchmark.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="thinshell bench", description="speed benchmarks")
     sub = parser.add_subparsers(dest="which", required=True)
     p = sub.add_parser("forming", help="ThinShellLab Forming scene, 1698 DoF, benchmark trajectory")
-    p.add_argument("--arch", default="cpu", help="compute backend (only cpu today)")
+    p.add_argument("--arch", default="cpu",
+                   help="numpy (reference potentials) or cpu / cuda (Taichi element kernels); default cpu")
     p.add_argument("--json", action="store_true", help="print one JSON line")
     p.add_argument("--steps", type=int, default=49, help="steps of the trajectory to run (1..49)")
     p.add_argument("--backward", action="store_true", help="also time the backward pass (needs sim_core.adjoint)")
     p.add_argument("--scene", default=None, help="scene file (default: the bundled forming.yaml)")
     s = sub.add_parser("scale", help="flat sheets of ~1k, 10k, 100k DoF under gravity")
-    s.add_argument("--arch", default="cpu", help="compute backend (only cpu today)")
+    s.add_argument("--arch", default="cpu",
+                   help="numpy (reference potentials) or cpu / cuda (Taichi element kernels); default cpu")
     s.add_argument("--json", action="store_true", help="print one JSON line")
     s.add_argument("--steps", type=int, default=3, help="steps per case")
     s.add_argument("--max-dofs", type=int, default=20_000, help="skip cases above this DoF count (100000 runs all)")
@@ -263,17 +301,17 @@ def bench_main(argv: list[str] | None = None) -> int:
                 print("thinshell bench forming: --backward needs sim_core.adjoint.rollout_gradient, "
                       "which is not available in this installation", file=sys.stderr)
                 return 2
-        result = run_forming(ns.scene or _default_scene("forming"), ns.steps, ns.backward)
+        result = run_forming(ns.scene or _default_scene("forming"), ns.steps, ns.backward, ns.arch)
         if ns.json:
             print(json.dumps(result))
         else:
             _print_forming(result)
         return 0
-    cases = run_scale(ns.max_dofs, ns.steps)
+    cases = run_scale(ns.max_dofs, ns.steps, ns.arch)
     if ns.json:
         print(json.dumps({"bench": "scale", "cases": cases}))
     else:
-        print(f"thinshell bench scale (cpu, {ns.steps} steps per case, gravity, edge x0 clamped)")
+        print(f"thinshell bench scale ({ns.arch}, {ns.steps} steps per case, gravity, edge x0 clamped)")
         print(f"  {'DoF':>8} {'ms/step':>10} {'Newton it':>10} {'assembly':>9} {'lin.solve':>9} {'peak RSS':>10}")
         for c in cases:
             print(f"  {c['dofs']:>8} {1e3 * c['step_time_s']:>10.1f} {c['newton_iters_mean']:>10.2f} "

@@ -27,40 +27,53 @@ from rclpy.node import Node
 
 from sim_core.errors import ConfigError
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
-from sim_core.transforms import compose_poses
+from sim_core.transforms import compose_poses, quat_to_matrix
 from thinshell_ros.trajectory import SCRIPTED, Trajectory, scripted_trajectory
 
 DEFAULT_SCRIPT = "press_slide_lift"
 
 
 def plan_from_observation(scene: SceneFile, effector_pose: np.ndarray, sheet_points: np.ndarray,
-                          name: str = DEFAULT_SCRIPT, sensor: str | None = None, **kwargs: Any) -> Trajectory:
+                          name: str = DEFAULT_SCRIPT, sensor: str | None = None, *, depth: float = 1.0e-3,
+                          slide: float = 0.015, approach_speed: float = 0.02, press_speed: float = 0.005,
+                          slide_speed: float = 0.02, hold: float = 0.05, release: float = 5.0e-4) -> Trajectory:
     """Scripted trajectory from the measured effector pose and sheet points.
 
     The sensor frame is the effector pose composed with the sensor's ``mount`` (identity when the
     scene has none); the sheet top is the highest measured sheet point (mid-surface) plus half the
-    sheet thickness of the scene.
+    sheet thickness of the scene. ``press_slide`` is :func:`scripted_trajectory`'s (approach at
+    ``approach_speed`` until the gel touches the sheet top, press ``depth`` at ``press_speed``, hold,
+    slide along world +x at ``slide_speed``); ``press_slide_lift`` then releases the contact the way
+    it was made (back along the sensor normal by ``depth + release`` at ``press_speed``: pulling the
+    stuck gel off the card faster makes the implicit solver's line search fail) and lifts to the
+    start height at ``approach_speed``.
 
     Args:
         scene: the scene the simulator runs.
         effector_pose: measured effector pose ``(7,)`` ``[x y z qx qy qz qw]`` in ``world``.
         sheet_points: measured sheet points ``(p, 3)`` in ``world``, m.
-        name: scripted trajectory name (:data:`thinshell_ros.trajectory.SCRIPTED`).
+        name: ``press_slide`` or ``press_slide_lift``.
         sensor: tactile sensor name (None: the scene's first sensor).
-        **kwargs: passed to :func:`scripted_trajectory` (``depth``, ``slide``, speeds, ``hold``).
+        depth, slide, release: m.  approach_speed, press_speed, slide_speed: m/s (> 0).  hold: s.
 
     Returns:
         the trajectory of the sensor's effector, starting at ``t = 0``.
 
     Raises:
-        ConfigError: no sensor / unknown sensor, no sheet points, non-finite input, or a geometry
-            :func:`scripted_trajectory` rejects.
+        ConfigError: no sensor / unknown sensor, no sheet points, non-finite input, a speed <= 0, or
+            a geometry :func:`scripted_trajectory` rejects.
     """
     if not scene.sensors:
         raise ConfigError(f"{scene.source}: the commander needs a tactile sensor in the scene")
     sensor = sensor or next(iter(scene.sensors))
     if sensor not in scene.sensors:
         raise ConfigError(f"{scene.source}: no sensor {sensor!r} (sensors: {list(scene.sensors)})")
+    if name not in SCRIPTED:
+        raise ConfigError(f"unknown scripted trajectory {name!r} (known: {list(SCRIPTED)})")
+    speeds = {"approach_speed": approach_speed, "press_speed": press_speed, "slide_speed": slide_speed}
+    for key, value in speeds.items():
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{key} must be finite and > 0 m/s, got {value}")
     spec = scene.sensors[sensor]
     pose = np.asarray(effector_pose, dtype=float).reshape(7)
     points = np.asarray(sheet_points, dtype=float).reshape(-1, 3)
@@ -71,7 +84,22 @@ def plan_from_observation(scene: SceneFile, effector_pose: np.ndarray, sheet_poi
     mount = np.asarray(spec.mount if spec.mount is not None else (0, 0, 0, 0, 0, 0, 1), dtype=float)
     sensor_pose = compose_poses(pose, mount)
     top = float(points[:, 2].max()) + 0.5 * scene.sheet.thickness
-    return scripted_trajectory(name, pose, sensor_pose, top, effector=spec.effector, **kwargs)
+    base = scripted_trajectory("press_slide", pose, sensor_pose, top, depth=depth, slide=slide, hold=hold,
+                               effector=spec.effector, **speeds)
+    if name == "press_slide":
+        return base
+    n = quat_to_matrix(sensor_pose[3:7])[:, 2]
+    t, poses = list(base.t), list(base.poses)
+    released = poses[-1].copy()
+    released[:3] -= (depth + release) * n
+    t.append(t[-1] + (depth + release) / press_speed)
+    poses.append(released)
+    if pose[2] > released[2] + 1e-9:
+        lifted = released.copy()
+        lifted[2] = pose[2]
+        t.append(t[-1] + (pose[2] - released[2]) / approach_speed)
+        poses.append(lifted)
+    return Trajectory(spec.effector, np.asarray(t), np.asarray(poses))
 
 
 class CommandSchedule:
@@ -131,9 +159,10 @@ class CommanderNode(Node):
     """ROS 2 node publishing a scripted ``<effector>/pose_cmd`` in sim time.
 
     Parameters (``--ros-args -p name:=value``): ``scene`` (path; default the bundled scene),
-    ``script`` (``press_slide_lift`` | ``press_slide``), ``depth`` (m), ``slide`` (m),
-    ``speed`` (m/s of approach, slide and lift; the press runs at a quarter of it), ``hold`` (s),
-    ``rate`` (Hz of sim time; 0: one command per scene ``dt``), ``namespace`` (``/thinshell``).
+    ``script`` (``press_slide_lift`` | ``press_slide``), ``depth``, ``slide``, ``release`` (m),
+    ``approach_speed`` (also the lift), ``press_speed`` (also the release), ``slide_speed`` (m/s),
+    ``hold`` (s), ``rate`` (Hz of sim time; 0: one command per scene ``dt``), ``namespace``
+    (``/thinshell``). Geometry and speeds: :func:`plan_from_observation`.
 
     Args:
         node_name: ROS node name.
@@ -156,24 +185,21 @@ class CommanderNode(Node):
         self._cv = cv
         scene_path = str(self.declare_parameter("scene", "").value) or str(bundled_scene())
         self.script = str(self.declare_parameter("script", DEFAULT_SCRIPT).value)
-        depth = float(self.declare_parameter("depth", 1.0e-3).value)
-        slide = float(self.declare_parameter("slide", 0.015).value)
-        speed = float(self.declare_parameter("speed", 0.02).value)
-        hold = float(self.declare_parameter("hold", 0.05).value)
+        defaults = {"depth": 1.0e-3, "slide": 0.015, "release": 5.0e-4, "approach_speed": 0.02,
+                    "press_speed": 0.005, "slide_speed": 0.02, "hold": 0.05}
+        self.plan_kwargs = {k: float(self.declare_parameter(k, v).value) for k, v in defaults.items()}
         rate = float(self.declare_parameter("rate", 0.0).value)
         self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
         if self.script not in SCRIPTED:
             raise ConfigError(f"parameter 'script' must be one of {list(SCRIPTED)}, got {self.script!r}")
-        for key, value in (("depth", depth), ("slide", slide), ("speed", speed), ("hold", hold)):
-            if not (math.isfinite(value) and value >= 0) or (key == "speed" and value == 0):
-                raise ConfigError(f"parameter {key!r} must be finite and {'> 0' if key == 'speed' else '>= 0'}, "
-                                  f"got {value}")
+        for key, value in self.plan_kwargs.items():
+            positive = key.endswith("_speed")
+            if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                raise ConfigError(f"parameter {key!r} must be finite and {'> 0' if positive else '>= 0'}, got {value}")
         self.scene = load_scene_file(Path(scene_path))
         self.rate = rate if rate > 0 else 1.0 / self.scene.dt
         if not math.isfinite(self.rate):
             raise ConfigError(f"parameter 'rate' must be finite, got {rate}")
-        self.plan_kwargs = {"depth": depth, "slide": slide, "approach_speed": speed, "slide_speed": speed,
-                            "press_speed": 0.25 * speed, "hold": hold}
         if not self.scene.sensors:
             raise ConfigError(f"{scene_path}: the commander needs a tactile sensor in the scene")
         self.effector = next(iter(self.scene.sensors.values())).effector

@@ -40,7 +40,8 @@ class DemoSettings:
     """Knobs of one demo run.
 
     Attributes:
-        motion: commander parameters (``depth``, ``slide``, ``speed`` in m, m, m/s; ``hold`` s).
+        motion: commander parameters (:class:`thinshell_ros.commander.CommanderNode`: ``depth``,
+            ``slide``, ``release`` in m, ``approach_speed``, ``press_speed``, ``slide_speed`` in m/s, ``hold`` in s).
         sysid_args: ``thinshell sysid`` options besides the bag and ``--out``.
         start_timeout: s of wall time for the sim node to come up and the plan to be made.
         motion_timeout: s of wall time for the scripted motion.
@@ -53,12 +54,14 @@ class DemoSettings:
 
 
 FULL = DemoSettings(
-    motion={"depth": 1.0e-3, "slide": 0.015, "speed": 0.02, "hold": 0.05},
+    motion={"depth": 3.0e-4, "slide": 0.005, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
+            "slide_speed": 0.02, "hold": 0.05},
     # press (0.6-0.9 s) and the start of the slide of nominal_s101; the gel modulus sets the normal force
     sysid_args=("--params", "gel.youngs_modulus", "--t-max", "1.0", "--dt", "0.01", "--max-nfev", "6",
                 "--max-time", "150"))
 QUICK = DemoSettings(
-    motion={"depth": 5.0e-4, "slide": 0.003, "speed": 0.08, "hold": 0.01},
+    motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
+            "slide_speed": 0.02, "hold": 0.01},
     sysid_args=("--params", "gel.youngs_modulus", "--t-max", "0.2", "--dt", "0.02", "--max-nfev", "2",
                 "--gel-resolution", "3,3,2", "--max-time", "60"))
 

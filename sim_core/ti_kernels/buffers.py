@@ -25,6 +25,7 @@ class DeviceArray:
         self.dtype = dtype
         self.array = None
         self.shape: tuple[int, ...] | None = None
+        self._host: np.ndarray | None = None  # copy of the last uploaded values
 
     def ensure(self, shape: tuple[int, ...]):
         """The ndarray with ``shape`` (allocated on first use or when the shape changed)."""
@@ -32,14 +33,21 @@ class DeviceArray:
         if self.shape != shape:
             self.array = ti.ndarray(dtype=self.dtype, shape=shape)
             self.shape = shape
+            self._host = None
         return self.array
 
     def upload(self, values: np.ndarray):
-        """Copy ``values`` (converted to the dtype, C order) into the ndarray; returns the ndarray."""
+        """Copy ``values`` (converted to the dtype, C order) into the ndarray; returns the ndarray.
+
+        The copy is skipped when ``values`` equal the last upload (energy, gradient and Hessian of
+        one Newton iterate share one transfer).
+        """
         np_dtype = np.float64 if self.dtype == ti.f64 else np.int32
         values = np.ascontiguousarray(values, dtype=np_dtype)
         arr = self.ensure(values.shape)
-        arr.from_numpy(values)
+        if self._host is None or self._host.shape != values.shape or not np.array_equal(self._host, values):
+            arr.from_numpy(values)
+            self._host = values.copy()
         return arr
 
     def download(self) -> np.ndarray:

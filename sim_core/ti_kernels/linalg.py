@@ -77,11 +77,12 @@ def jacobi_eigh(A: ti.template(), Q: ti.template()):
     ``JACOBI_REL_TOL`` times the total.
     """
     n = ti.static(A.n)
-    for i, j in ti.static(ti.ndrange(n, n)):
-        Q[i, j] = 1.0 if i == j else 0.0
     total = 0.0
-    for i, j in ti.static(ti.ndrange(n, n)):
-        total += A[i, j] * A[i, j]
+    for i in range(n):
+        for j in range(n):
+            Q[i, j] = 0.0
+            total += A[i, j] * A[i, j]
+        Q[i, i] = 1.0
     for _sweep in range(JACOBI_MAX_SWEEPS):
         off = 0.0
         for p in range(n - 1):

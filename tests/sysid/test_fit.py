@@ -55,6 +55,7 @@ def test_recovers_gel_modulus_from_x3_start(press_bag):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)
 def test_recovers_three_parameters_from_poor_start(tmp_path):
     bag = make_recording(tmp_path / "bag", segments=PRESS_SLIDE, seed=2)
     with warnings.catch_warnings():

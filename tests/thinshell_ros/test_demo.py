@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
@@ -14,6 +16,7 @@ from tests.thinshell_ros.conftest import REPO, spin_until
 from tests.thinshell_ros.fake_sim import HOME, FakeSimulation
 from thinshell_ros import conversions as cv
 from thinshell_ros.commander import CommandSchedule, CommanderNode, plan_from_observation
+from thinshell_ros.demo import make_run_dir
 from thinshell_ros.runtime import SENSOR_QOS
 from thinshell_ros.sim_node import SimNode
 from thinshell_ros.trajectory import Trajectory
@@ -32,21 +35,23 @@ def _flat_sheet(doc) -> np.ndarray:
     return np.stack([sx.ravel(), sy.ravel(), np.full(sx.size, doc["sheet"]["origin"][2])], axis=1)
 
 
-def test_plan_presses_depth_below_the_sheet_top_slides_and_lifts():
+def test_plan_presses_depth_below_the_sheet_top_slides_releases_and_lifts():
     scene, doc = _scene()
     start = np.array(doc["effectors"]["ee"]["initial_pose"], float)
     top = doc["sheet"]["origin"][2] + 0.5 * doc["sheet"]["thickness"]
-    traj = plan_from_observation(scene, start, _flat_sheet(doc), depth=1e-3, slide=0.01, approach_speed=0.02,
-                                 press_speed=0.005, slide_speed=0.02, hold=0.05)
+    traj = plan_from_observation(scene, start, _flat_sheet(doc), depth=1e-3, slide=0.01, approach_speed=0.04,
+                                 press_speed=0.005, slide_speed=0.02, hold=0.05, release=5e-4)
     assert traj.effector == "ee"
-    z = traj.poses[:, 2]
-    assert z.min() == pytest.approx(top - 1e-3, abs=1e-12)  # gel normal is world -z (quaternion (1,0,0,0))
-    assert traj.poses[:, 0].max() - start[0] == pytest.approx(0.01)
-    np.testing.assert_allclose(traj.poses[-1], np.r_[start[0] + 0.01, start[1:]], atol=1e-12)  # lifted back
+    x0, z0 = start[0], start[2]
+    # the gel normal is world -z (quaternion (1,0,0,0)): touch, press, hold, slide, release, lift
+    expected_xz = [(x0, z0), (x0, top), (x0, top - 1e-3), (x0, top - 1e-3), (x0 + 0.01, top - 1e-3),
+                   (x0 + 0.01, top + 5e-4), (x0 + 0.01, z0)]
+    np.testing.assert_allclose(traj.poses[:, [0, 2]], expected_xz, atol=1e-12)
     np.testing.assert_allclose(traj.poses[:, 3:], np.tile(start[3:], (len(traj.t), 1)))  # orientation kept
-    # approach (start z - top at 0.02 m/s), press (1 mm at 5 mm/s), hold, slide (10 mm at 20 mm/s), lift
-    expected = (start[2] - top) / 0.02 + 0.2 + 0.05 + 0.5 + (start[2] - (top - 1e-3)) / 0.02
-    assert traj.duration == pytest.approx(expected)
+    durations = [(z0 - top) / 0.04, 1e-3 / 0.005, 0.05, 0.01 / 0.02, 1.5e-3 / 0.005, (z0 - top - 5e-4) / 0.04]
+    np.testing.assert_allclose(np.diff(traj.t), durations)
+    short = plan_from_observation(scene, start, _flat_sheet(doc), "press_slide", depth=1e-3, slide=0.01)
+    np.testing.assert_allclose(short.poses, traj.poses[:5], atol=1e-12)  # press_slide stops after the slide
 
 
 def test_plan_uses_the_sensor_mount_and_the_highest_sheet_point():
@@ -72,6 +77,10 @@ def test_plan_errors_name_the_problem():
         plan_from_observation(scene, start, _flat_sheet(doc), sensor="left")
     with pytest.raises(ConfigError, match="non-finite"):
         plan_from_observation(scene, np.r_[np.nan, start[1:]], _flat_sheet(doc))
+    with pytest.raises(ConfigError, match="press_speed must be finite and > 0"):
+        plan_from_observation(scene, start, _flat_sheet(doc), press_speed=0.0)
+    with pytest.raises(ConfigError, match="unknown scripted trajectory 'wiggle'"):
+        plan_from_observation(scene, start, _flat_sheet(doc), "wiggle")
 
 
 def test_schedule_publishes_at_its_rate_with_one_period_of_look_ahead():
@@ -99,8 +108,9 @@ def test_commander_drives_the_sim_node_through_press_slide_lift(ros_context):
     sim = SimNode(sim=FakeSimulation(), context=ros_context,
                   parameter_overrides=[Parameter("mode", value="fast"), Parameter("mesh_rate", value=0.0)])
     cmd = CommanderNode(context=ros_context, parameter_overrides=[
-        Parameter("scene", value=str(SCENE)), Parameter("speed", value=0.1), Parameter("depth", value=1e-3),
-        Parameter("slide", value=0.01), Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+        Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
+        Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
+        Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
     poses = []
     cmd.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.pose_from_msg(m)[1]),
                             SENSOR_QOS)
@@ -127,5 +137,36 @@ def test_commander_drives_the_sim_node_through_press_slide_lift(ros_context):
 def test_commander_rejects_bad_parameters(ros_context):
     with pytest.raises(ConfigError, match="'script' must be one of"):
         CommanderNode(context=ros_context, parameter_overrides=[Parameter("script", value="wiggle")])
-    with pytest.raises(ConfigError, match="'speed' must be finite and > 0"):
-        CommanderNode(context=ros_context, parameter_overrides=[Parameter("speed", value=0.0)])
+    with pytest.raises(ConfigError, match="'slide_speed' must be finite and > 0"):
+        CommanderNode(context=ros_context, parameter_overrides=[Parameter("slide_speed", value=0.0)])
+    with pytest.raises(ConfigError, match="'depth' must be finite and >= 0"):
+        CommanderNode(context=ros_context, parameter_overrides=[Parameter("depth", value=-1e-3)])
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
+    """``thinshell demo --quick`` end to end: sim node subprocess, commander over DDS, SIGINT, sysid."""
+    from sysid.bagio import open_bag
+    from sysid.results import load_fit_json
+    from thinshell_ros.demo import demo_main
+
+    assert demo_main(["--quick", "--out", tmp_path]) == 0
+    (run,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    bag = open_bag(run / "recorded_bag")
+    counts = {t: i.message_count for t, i in bag.topics.items()}
+    for topic in ("/thinshell/ee/pose_cmd", "/thinshell/ee/pose", "/thinshell/tactile/wrench",
+                  "/thinshell/tactile/markers", "/thinshell/sheet/points", "/clock"):
+        assert counts.get(topic, 0) > 10, counts
+    pose = bag.series["pose"].values
+    wrench = bag.series["wrench"].values
+    assert pose[:, 2].min() < pose[0, 2] - 3e-3  # pressed down onto the card ...
+    assert wrench[:, 2].min() < -0.05  # ... with a normal force ON the gel along -z of the sensor frame
+    assert pose[-1, 2] == pytest.approx(pose[0, 2], abs=2e-4) and pose[-1, 0] > pose[0, 0] + 5e-4  # slid, lifted
+    doc = load_fit_json(run / "sysid" / "fit.json")
+    assert set(doc["fit"]["parameters"]) == {"gel.youngs_modulus"}
+    assert {"report.html", "report.md"} <= {p.name for p in (run / "sysid").iterdir()}
+    summary = json.loads((run / "demo.json").read_text())
+    assert summary["message_counts"] == counts and summary["timings_s"]["total_s"] > 0
+    with pytest.raises(ConfigError, match="exists; use --force"):
+        make_run_dir(tmp_path, force=False, stamp=run.name)
