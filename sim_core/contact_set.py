@@ -19,6 +19,8 @@ import numpy as np
 
 from sim_core.collision import (
     CollisionMemory,
+    PointTriangleRegion,
+    point_triangle_closest_point,
     PairFilter,
     edge_edge_candidates,
     edge_edge_side,
@@ -45,6 +47,7 @@ class ContactSet:
         self.radius = self.eps + self.margin
         bodies = list(model.bodies.values())
         self.body_names = [b.name for b in bodies]
+        self.body_kind = np.array([b.kind for b in bodies])
         self.vertex_body = model.body_of_vertex()
         self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
         self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
@@ -88,14 +91,52 @@ class ContactSet:
         if cache is not None and cache[0] is memory:
             moved = float(np.max(np.abs(x - cache[1]))) if x.size else 0.0
             if moved <= 0.5 * self.margin:
-                return cache[2]
-        pots = self._search(x, memory)
-        self._cache = (memory, np.array(x, copy=True), pots)
+                vt, ee = cache[2]
+                return self._vertex_triangle(x, vt.pairs, cache[3]), self._edge_edge(x, ee.pairs)
+        pots, remembered = self._search(x, memory)
+        self._cache = (memory, np.array(x, copy=True), pots, remembered)
         return pots
 
-    def _search(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
+    def _vertex_triangle(self, x: np.ndarray, vt: np.ndarray, remembered: np.ndarray) -> VertexTriangleContact:
+        """Vertex-triangle penalty over pairs ``vt`` with the side memory applied in the face region.
+
+        A pair whose vertex projects inside its triangle (face region) keeps its remembered side
+        (``remembered``, +1/-1: from the state's memory, else the side at x^n), so a vertex that
+        slipped through is pulled back. Outside the face region the distance is unsigned and the
+        side is taken from the current geometry: remembering it there made a penetrated vertex
+        that slides into the face region jump from +delta to -delta, an energy discontinuity the
+        line search cannot cross (a vertex wrapping round a sheet's free edge is legitimate).
+        """
+        if not len(vt):
+            return VertexTriangleContact(vt, self.triangles, np.zeros(0), self.stiffness, self.eps)
+        tri = self.triangles[vt[:, 1]]
+        p, a, b, c = x[vt[:, 0]], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+        _, region = point_triangle_closest_point(p, a, b, c)
+        z = np.concatenate([p[:, None], a[:, None], b[:, None], c[:, None]], axis=1)
+        sides = np.where(region == PointTriangleRegion.FACE, remembered, point_triangle_side(z))
+        return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)
+
+    def _edge_edge(self, x: np.ndarray, ee: np.ndarray) -> EdgeEdgeContact:
+        """Edge-edge penalty over pairs ``ee`` with the sides the pairs have at ``x``.
+
+        Edge-edge sides are taken at the current iterate (every pair starts on its positive side,
+        so the energy is continuous there). Remembering them from x^n made a pair whose closest
+        points enter the segments' interior from outside switch from the unsigned to a
+        wrong-signed distance: an energy jump the line search cannot cross. Tunnelling is
+        prevented by the vertex-triangle side memory and the per-iteration displacement cap.
+        """
+        z_now = (np.concatenate([x[self.edges[ee[:, 0]]], x[self.edges[ee[:, 1]]]], axis=1)
+                 if len(ee) else np.zeros((0, 4, 3)))
+        sides = edge_edge_side(z_now) if len(ee) else np.zeros(0)
+        return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
+
+    def _search(self, x: np.ndarray, memory: CollisionMemory) -> tuple[tuple, np.ndarray]:
         x_ref = self.x_prev if self.x_prev is not None else x
         vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
+        if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
+            kv = self.body_kind[self.vertex_body[vt[:, 0]]]
+            kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
+            vt = vt[~((kv == "sheet") & (kt == "solid"))]
         z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
         vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
         ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
@@ -111,11 +152,7 @@ class ContactSet:
             sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
             keep = sin > self.min_edge_sine
             ee, z = ee[keep], z[keep]
-        ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
-        return (
-            VertexTriangleContact(vt, self.triangles, vt_sides, self.stiffness, self.eps),
-            EdgeEdgeContact(ee, self.edges, ee_sides, self.stiffness, self.eps),
-        )
+        return (self._vertex_triangle(x, vt, vt_sides), self._edge_edge(x, ee)), vt_sides
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
         """Contact potentials for the candidates near iterate ``x`` (planes included)."""

@@ -103,6 +103,11 @@ class ContactSettings:
         eps_v: friction velocity threshold in m/s (IPC mollifier).
         self_contact: whether sheets collide with themselves.
         candidate_margin: extra broad-phase radius in m beyond ``eps``.
+        sheet_vertices_vs_solids: also pair a sheet's vertices with elastomer (solid) surface
+            triangles. Off by default: the gel's denser surface samples the sheet (gel vertices
+            against sheet triangles, plus edge-edge pairs for the sheet's edges); testing both
+            directions between a coarse stiff card and a soft gel makes the card's vertices
+            indent the gel as point loads, and Newton's active set oscillates.
     """
 
     stiffness: float = 2.0e4
@@ -110,6 +115,7 @@ class ContactSettings:
     eps_v: float = 0.01
     self_contact: bool = True
     candidate_margin: float = 1.0e-3
+    sheet_vertices_vs_solids: bool = False
 
 
 @dataclass

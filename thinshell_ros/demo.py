@@ -58,7 +58,7 @@ FULL = DemoSettings(
             "slide_speed": 0.02, "hold": 0.05},
     # press (0.6-0.9 s) and the start of the slide of nominal_s101; the gel modulus sets the normal force
     sysid_args=("--params", "gel.youngs_modulus", "--t-max", "1.0", "--dt", "0.01", "--max-nfev", "6",
-                "--max-time", "150"))
+                "--max-time", "120"))
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.01},
