@@ -46,6 +46,10 @@ from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS
 MODES = ("realtime", "fast", "stepped")
 
 
+MAX_CONSECUTIVE_FAILURES = 3
+"""Failed steps in a row (with the effectors held) after which the node pauses itself."""
+
+
 class SimNode(Node):
     """ROS 2 node stepping a Simulation and publishing its observations.
 
@@ -94,6 +98,7 @@ class SimNode(Node):
         self.paused = self.mode == "stepped"
         self.rejected_commands = 0
         self.failed_steps = 0
+        self.consecutive_failures = 0
         self._next_publish_t = 0.0
         self._next_mesh_t = 0.0
         self._warned_topics: set[str] = set()
@@ -245,11 +250,18 @@ class SimNode(Node):
             control.gripper_target.update(targets.gripper_target)
             self.sim.step(control)
             self._steps += 1
+            self.consecutive_failures = 0
         except Exception as err:  # noqa: BLE001 - a failed step keeps the last state; the node lives on
             self.failed_steps += 1
+            self.consecutive_failures += 1
             self.arbiter.hold()
             self.get_logger().error(f"step at t={self.sim.t:.4f} s failed ({type(err).__name__}: {err}); "
                                     "holding the effectors", throttle_duration_sec=1.0)
+            if self.consecutive_failures >= MAX_CONSECUTIVE_FAILURES:
+                self.paused = True
+                self.get_logger().error(
+                    f"{self.consecutive_failures} consecutive steps failed even with the effectors held: "
+                    "simulation paused; call ~/reset (or ~/pause false to retry)")
             self.publish_outputs(force=True)
             return False
         self.publish_outputs()
@@ -318,6 +330,7 @@ class SimNode(Node):
         try:
             self.sim.reset()
             self.arbiter.reset()
+            self.consecutive_failures = 0
             self._next_publish_t = self._next_mesh_t = 0.0
             self.publish_outputs(force=True)
             response.success, response.message = True, f"reset to t={self.sim.t:g} s"

@@ -20,6 +20,7 @@ from tests.thinshell_ros.test_recorder import read_with_mcap, read_with_rosbags
 from thinshell_ros import conversions as cv
 from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
 from thinshell_ros.sim_node import SimNode
+from sim_core.errors import SimulationDivergedError
 
 pytestmark = pytest.mark.ros
 
@@ -187,3 +188,40 @@ def test_recording_holds_inputs_and_outputs(ros_context, tmp_path):
     fz = [m.wrench.force.z for _, _, m in msgs["/thinshell/tactile/wrench"]]
     assert fz[0] == 0.0 and fz[-1] == pytest.approx(-0.3)  # 0.3 mm into the plane, k = 1000 N/m
     assert len(read_with_mcap(bag)["/thinshell/tactile/wrench"]) == len(fz)
+
+
+class _StuckSimulation(FakeSimulation):
+    """Every step fails once the first one has (a state the solver cannot leave)."""
+
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        self.stuck = False
+
+    def step(self, control=None):
+        if self.stuck:
+            raise SimulationDivergedError(f"step at t = {self.t:.3f} s: still stuck")
+        try:
+            return super().step(control)
+        except SimulationDivergedError:
+            self.stuck = True
+            raise
+
+    def reset(self) -> None:
+        super().reset()
+        self.stuck = False
+
+
+def test_repeated_failures_pause_the_node_until_reset(ros_context):
+    from thinshell_ros.sim_node import MAX_CONSECUTIVE_FAILURES
+
+    node = _node(ros_context, sim=_StuckSimulation(fail_below=0.0035))
+    c = Client(ros_context, node)
+    c.send_pose(HOME + np.r_[0, 0, -0.002, 0, 0, 0, 0])
+    assert spin_until(c.ex, lambda: node.paused, 5.0)
+    assert node.consecutive_failures == MAX_CONSECUTIVE_FAILURES
+    failed = node.failed_steps
+    c.spin(0.3)
+    assert node.failed_steps == failed  # paused: no more retries of the hopeless step
+    response = node._on_reset(Trigger.Request(), Trigger.Response())
+    assert response.success and node.consecutive_failures == 0
+    node.destroy_node()
