@@ -18,7 +18,9 @@ and ``sysid.diagnose``:
 
 Strength: ``max over channels of the RMS of the whitened noise-free change inside the effect's
 window`` (window: samples where the change exceeds a quarter of its peak). Each effect is scaled,
-from one calibration rollout, to about 1, 2 and 4 and the strength actually reached is recorded.
+from one calibration rollout (plus one power-law correction when the response is nonlinear), to
+about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
+``thickness_step`` may stay below its target).
 Nominal recordings differ by their noise only. Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
@@ -619,6 +621,19 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
             m = spec.reference * k / s0 if s0 > 0 else spec.reference
             streams = run(m) if not math.isclose(m, spec.reference) else probe
             s, windows = effect_strength(streams, base)
+            if s > 0 and s0 > 0 and abs(s / k - 1.0) > 0.3 and not math.isclose(m, spec.reference):
+                # nonlinear response: one correction with the power law through the two rollouts
+                p = math.log(s / s0) / math.log(m / spec.reference)
+                if p > 0.2:
+                    m2 = m * (k / s) ** (1.0 / p)
+                    try:
+                        streams2 = run(m2)
+                    except Exception as err:  # a diverged rollout keeps the first try
+                        log(f"  x{k:g}: correction to magnitude {m2:.4g} failed ({err})")
+                    else:
+                        s2, w2 = effect_strength(streams2, base)
+                        if abs(s2 - k) < abs(s - k):
+                            m, streams, s, windows = m2, streams2, s2, w2
             recs.append(Recording(f"{spec.label}_x{k:g}", spec.label, spec.in_library, k, s, m, windows, streams=streams))
             log(f"  x{k:g}: magnitude {m:.4g}, strength {s:.2f}, windows {[(round(a, 2), round(b, 2)) for a, b in windows]}")
     for rec in recs:

@@ -45,6 +45,9 @@ STREAMS = {"markers_xyz": "tactile/markers", "markers_uv": "tactile/markers", "w
            "sheet_points": "sheet/points"}
 """Channel -> the stream (topic without namespace) it is recorded on."""
 
+PARAMETER_BOUNDS = {"candidate.anisotropic_bending": 0.95}
+"""Largest |beta| a refit may use, where the simulator limits it (anisotropy must stay below 1)."""
+
 LATENCY_BOUND_S = 0.2
 """Largest |tau| searched by the latency refit, s."""
 
@@ -271,6 +274,8 @@ class PhysicsParameterCandidate:
         self.one_sided = one_sided
         self.to_parameter = to_parameter or (lambda b: float(b))
         self.report_name = report_name or parameter
+        # refits trust the secant signature up to a few probe sizes, and stay inside the parameter's range
+        self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(parameter, math.inf))
         self.acts_on = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 
     def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
@@ -290,9 +295,11 @@ class PhysicsParameterCandidate:
                 for ch in ctx.channels if ch in probe_prediction}
 
     def sim_parameters(self, beta: float) -> dict[str, float]:
-        """Simulator parameters for beta (clipped at 0 for one-sided effects)."""
+        """Simulator parameters for beta (clipped at 0 for one-sided effects; ``{}`` when off)."""
         b = max(beta, 0.0) if self.one_sided else beta
-        return {self.parameter: self.to_parameter(b) if b != 0.0 else self.to_parameter(0.0)}
+        if b == 0.0:
+            return {}  # off: the nominal model (an infinite yield angle cannot be set, it is the default)
+        return {self.parameter: self.to_parameter(b)}
 
 
 def _inverse(b: float) -> float:
@@ -316,6 +323,18 @@ def max_hinge_angle(ctx: DiagnosisContext) -> float:
     hinges = sheet_topology(mesh.triangles).hinges
     step = max(1, pts.shape[0] // 100)
     return float(max(np.max(np.abs(dihedral_angle(p[hinges]))) for p in pts[::step]))
+
+
+def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
+    """Whether the simulator accepts parameter ``name`` (``candidate.<x>`` are not listed in
+    ``parameter_names`` but are readable through ``get_parameter``)."""
+    if name in names:
+        return True
+    try:
+        model.simulation().get_parameter(name)
+    except Exception:  # ConfigError: the simulator does not know this candidate
+        return False
+    return True
 
 
 def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, Any]] | None = None,
@@ -349,7 +368,7 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
     for effect, spec in (extra or {}).items():
         if effect not in EFFECTS:
             raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")
-        if spec["parameter"] in names and effect not in {c.name for c in out}:
+        if effect not in {c.name for c in out} and _known_parameter(ctx.model, spec["parameter"], names):
             out.append(PhysicsParameterCandidate(effect, spec["parameter"], float(spec["probe"]),
                                                  bool(spec.get("one_sided", True))))
     return out

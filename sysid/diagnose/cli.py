@@ -27,6 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--project", nargs="*", help="parameters projected out of the tests (default: --params)")
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate (Holm)")
     p.add_argument("--candidates", nargs="*", help="restrict the candidate library to these effects")
+    p.add_argument("--gel-resolution", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
+                   help="gel mesh resolution of the replays (coarser = faster; default: the scene's)")
+    p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the nominal fit")
     return p
 
 
@@ -44,7 +47,8 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         print(f"thinshell diagnose: {args.json} exists (use --force)", file=sys.stderr)
         return 2
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
-                        ray_address=args.ray_address)
+                        ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev,
+                        simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
     try:
         doc, runs = run_diagnosis(args.bags, args.heldout, args.params, settings, args.project, args.candidates)
         validate_report(doc)

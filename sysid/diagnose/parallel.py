@@ -9,6 +9,7 @@ Ray address is given, over Ray tasks (``ray`` imported only then).
 from __future__ import annotations
 
 import copy
+import math
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Mapping, Sequence
@@ -25,7 +26,35 @@ def _init(model: Any) -> None:
     _MODEL["model"] = model
 
 
+def _reset_candidates(model: Any) -> None:
+    """Switch every physics candidate off on the cached simulation.
+
+    ``ObservationModel.prepare`` resets only the parameters listed in ``Model.parameter_names``; the
+    ``candidate.<name>`` parameters are not among them, so a probe's beta would otherwise leak into
+    every later replay of the same (cached) simulation.
+
+    Likewise a non-finite nominal value (``sheet.yield_angle = inf``: no plasticity) cannot be
+    restored through ``Model.set_parameter``, which rejects non-finite values; it is written back
+    into the body's material directly.
+    """
+    sim = getattr(model, "_sim", None)
+    inner = getattr(sim, "model", None)
+    if inner is None:
+        return
+    if getattr(inner, "candidates", None):
+        inner.candidates = {}
+        inner.revision += 1
+    for name, nominal in (getattr(model, "_nominal", None) or {}).items():
+        if math.isfinite(nominal) or sim.get_parameter(name) == nominal:
+            continue
+        body, _, key = name.partition(".")
+        if body in inner.bodies and key in inner.bodies[body].material:
+            inner.bodies[body].material[key] = nominal
+            inner.revision += 1
+
+
 def _replay(model: Any, params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
+    _reset_candidates(model)
     try:
         trace = model.simulate(dict(params))
     except SimulationDivergedError:

@@ -21,7 +21,9 @@ correlated across the points of one sample (neighbouring markers share it). Two 
 2. A robust (sandwich) score test (White 1982; Wooldridge 1990): the score contributions are summed
    over the series of each time sample, ``g_t = sum_s e_ts (P J_k)_ts`` (q,), and the score
    ``U = sum_t g_t`` is normalised by the Newey-West (1987) long-run variance of ``g_t`` instead of
-   the white-noise variance: ``S = U^T V^-1 U``, asymptotically chi2(q) whatever the cross-sectional
+   the white-noise variance (``g_t`` formed with the residual left after the candidate's own
+   least-squares step, ``e - P J_k beta``: equal to the restricted one under the null, but it does
+   not count the effect itself as noise under the alternative -- a robust Wald form): ``S = U^T V^-1 U``, asymptotically chi2(q) whatever the cross-sectional
    correlation and the variance of the residual.
 
 Family-wise error over candidates x channels: Holm (1979). Model selection after the refit: Gaussian
@@ -245,12 +247,17 @@ def score_test(r: np.ndarray, J_k: np.ndarray, J_theta: np.ndarray | None = None
     s2 = float(e @ e) / max(m - p_dof, 1)
     classical = float(U @ beta) / s2
     if robust:
-        g = (e[:, None] * PJ).reshape(T, S_, q).sum(axis=1)
+        # Variance of the score from the residual left once the candidate is fitted (e - PJ beta): the
+        # same as from e under the null, but e itself carries the effect under the alternative and
+        # inflates V so that S could never exceed the number of time samples the effect spans.
+        e_alt = e - PJ @ beta
+        g = (e_alt[:, None] * PJ).reshape(T, S_, q).sum(axis=1)
         lags = hac_lags if hac_lags is not None else int(math.floor(4.0 * (T / 100.0) ** (2.0 / 9.0)))
-        V = newey_west(g, lags)
+        # small-sample (HC1-type) correction for the q + p directions fitted out of e_alt
+        V = newey_west(g, lags) * (T / max(T - q - p_dof - lags, 1))
         w, *_ = np.linalg.lstsq(V, U, rcond=1e-12)
         statistic = float(U @ w)
-        contributions = g @ w
+        contributions = (e[:, None] * PJ).reshape(T, S_, q).sum(axis=1) @ w
     else:
         statistic = classical
         w = beta / s2

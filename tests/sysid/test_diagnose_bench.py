@@ -110,4 +110,11 @@ def test_quick_benchmark_end_to_end(tmp_path, capsys):
     assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path)]) == 0
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert doc["recordings"] == 4
-    assert all(abs(l["strength"] - 4.0) < 2.0 for l in doc["labels"] if l["label"] != "none")
+    # in-library effects reach their target strength; thickness_step saturates (a stiffer far part of
+    # the card changes the recording only so much), so only its presence is asserted
+    assert all(abs(l["strength"] - 4.0) < 2.0 for l in doc["labels"] if l["in_library"] and l["label"] != "none")
+    assert all(l["strength"] > 0.5 for l in doc["labels"] if not l["in_library"])
+    # the engine names the in-library effects at 4 sigma and raises no alarm on the nominal recording
+    assert doc["confusion"]["latency"]["latency"] == 1
+    assert doc["confusion"]["gel_viscoelasticity"]["gel_viscoelasticity"] == 1
+    assert doc["false_alarm_rate"] == 0.0

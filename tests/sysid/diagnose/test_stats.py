@@ -128,3 +128,15 @@ def test_bic_and_likelihood_ratio():
     assert delta_bic(100.0, 100.0, 50, 1) < 0
     with pytest.raises(ValueError, match="positive"):
         likelihood_ratio(0.0, 1.0, 10)
+
+
+def test_strong_short_effect_is_not_capped_by_its_span():
+    """The score variance comes from the residual left after the candidate's step: a strong effect
+    on 8 of 120 samples gives a statistic far above 8 (a variance taken from the restricted residual
+    would count the effect as noise and cap S near the number of samples it spans)."""
+    rng = np.random.default_rng(5)
+    J_k = np.zeros((T, S, 1))
+    J_k[50:58, :, 0] = 1.0
+    r = 6.0 * J_k[..., 0] + rng.normal(size=(T, S))
+    res = score_test(r, J_k)
+    assert res.statistic > 100.0 and res.beta[0] == pytest.approx(6.0, abs=0.6)

@@ -1,0 +1,134 @@
+"""Engine pieces that need no replay: noise from the residual, pose denoising, effect size, the latency
+cross-correlation test, candidate switching and the reset of a cached simulation between replays."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from sim_core.errors import ConfigError
+from sysid.diagnose import engine
+from sysid.diagnose.candidates import PhysicsParameterCandidate, _inverse, _known_parameter
+from sysid.diagnose.parallel import _reset_candidates
+from tests.sysid.diagnose.test_candidates import _signal, make_ctx
+
+
+def _bare(model, **settings) -> engine.BagDiagnosis:
+    d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+    d.model, d.settings, d.notes = model, engine.Settings(**settings), []
+    d.tested = tuple(model.sigma)
+    return d
+
+
+def test_noise_from_residual_takes_the_white_part_and_ignores_a_smooth_error():
+    rng = np.random.default_rng(0)
+    T = 400
+    t = np.linspace(0.0, 2.0, T)
+    declared = np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])
+    smooth = 5.0 * declared * np.sin(2 * np.pi * 0.7 * t)[:, None]      # model error: 5 sigma, smooth
+    white = rng.normal(size=(T, 6)) * declared * np.array([2.0, 1.0, 1.0, 1.0, 1.0, 3.0])
+    data = smooth + white
+    model = SimpleNamespace(sigma={"wrench": declared.copy()}, data=lambda ch: data)
+    _bare(model)._noise_from_residual({"wrench": np.zeros((T, 6))})
+    ratio = model.sigma["wrench"] / declared
+    # axes 0 and 5 carry 2x and 3x the declared white noise; the others keep the declared level,
+    # and the 5-sigma smooth error is not taken for noise
+    assert ratio[0] == pytest.approx(2.0, rel=0.12) and ratio[5] == pytest.approx(3.0, rel=0.12)
+    assert np.all(ratio[1:5] < 1.15) and np.all(ratio >= 1.0)
+
+
+def _pose_model(noise_m=5e-6, seed=1):
+    rng = np.random.default_rng(seed)
+    t_ns = np.arange(0, 1_000_000_000, 5_000_000, dtype=np.int64)       # 200 Hz, 1 s
+    t = t_ns * 1e-9
+    cmd = np.zeros((t.shape[0], 7))
+    cmd[:, 6] = 1.0
+    cmd[:, 0] = np.interp(t, [0.0, 0.3, 0.6, 1.0], [0.0, 0.0, 0.006, 0.006])   # sharp corners
+    cmd[:, 2] = np.interp(t, [0.0, 0.2, 1.0], [0.001, -0.001, -0.001])
+    lag = 2e-4 * (1.0 - np.exp(-np.clip(t - 0.2, 0.0, None) / 0.05))        # smooth tracking error
+    truth = cmd.copy()
+    truth[:, 2] += lag
+    pose = truth.copy()
+    pose[:, :3] += rng.normal(size=(t.shape[0], 3)) * noise_m
+    steps = np.arange(0, 990_000_001, 10_000_000, dtype=np.int64)
+    ev = SimpleNamespace(channels_present=("pose", "pose_cmd"), t_ns={"pose": t_ns, "pose_cmd": t_ns},
+                         pose=pose, pose_cmd=cmd)
+    model = SimpleNamespace(evidence=ev, step_times_ns=steps, controls=None, scene={"effectors": {"ee": {}}},
+                            effector="ee", _sim=object(), sigma={})
+    return model, t_ns, truth, pose
+
+
+def test_denoised_controls_keep_the_command_corners_and_the_tracking_lag():
+    from sysid.evidence import resample_pose
+
+    model, t_ns, truth, pose = _pose_model()
+    _bare(model)._denoise_controls(model)
+    want = resample_pose(t_ns, truth, model.step_times_ns)
+    raw = resample_pose(t_ns, pose, model.step_times_ns)
+    err = np.sqrt(np.mean((model.controls[:, :3] - want[:, :3]) ** 2))
+    raw_err = np.sqrt(np.mean((raw[:, :3] - want[:, :3]) ** 2))
+    assert raw_err == pytest.approx(5e-6, rel=0.2)
+    assert err < 0.6 * raw_err                               # the noise is reduced ...
+    assert np.max(np.abs(model.controls[:, :3] - want[:, :3])) < 2.5e-5   # ... and no corner is rounded
+    assert model._sim is None and model.scene["effectors"]["ee"]["initial_pose"][0] == pytest.approx(0.0, abs=2e-5)
+
+
+def test_without_a_command_the_measured_poses_are_replayed():
+    model, *_ = _pose_model()
+    model.evidence.channels_present = ("pose",)
+    _bare(model)._denoise_controls(model)
+    assert model.controls is None
+
+
+def test_explained_fraction_is_relative_to_the_excess_over_noise():
+    assert engine._explained_fraction(2.0, 1.0) == pytest.approx(1.0)          # all of 4 - 1 removed
+    assert engine._explained_fraction(2.0, math.sqrt(2.5)) == pytest.approx(0.5)
+    assert engine._explained_fraction(1.0, 0.99) < 1.0                          # floor: 5 % of 1
+    assert engine._explained_fraction(1.5, 1.6) < 0.0
+
+
+def test_cross_correlation_lag_matches_a_delay_of_the_recording():
+    tau = 0.03
+    ctx0 = make_ctx()
+    xyz, wrench = _signal(ctx0.stamps_s("wrench") - tau)
+    data = {**ctx0.prediction, "wrench": wrench}
+    ctx = make_ctx(data=data)
+    d = _bare(ctx.model)
+    d.tested = ("wrench",)
+    lags = d._xcorr_lags(ctx, ["wrench"])
+    assert lags["wrench"] == pytest.approx(tau, abs=0.005)
+    same = make_ctx()
+    assert _bare(same.model)._xcorr_lags(same, ["wrench"])["wrench"] == pytest.approx(0.0, abs=0.003)
+
+
+def test_physics_candidate_off_means_no_parameter_and_unknown_candidates_are_skipped():
+    plastic = PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 2.0, True, to_parameter=_inverse)
+    assert plastic.sim_parameters(0.0) == {} and plastic.sim_parameters(-3.0) == {}
+    assert plastic.sim_parameters(4.0) == {"sheet.yield_angle": 0.25}
+    aniso = PhysicsParameterCandidate("anisotropic_bending", "candidate.anisotropic_bending", 0.3, False)
+    assert aniso.sim_parameters(-0.2) == {"candidate.anisotropic_bending": -0.2}
+    assert aniso.bound == pytest.approx(0.95) and plastic.bound == pytest.approx(8.0)   # |anisotropy| < 1
+
+    def get(name):
+        if name != "candidate.stiction":
+            raise ConfigError(f"unknown parameter {name!r}")
+        return 0.0
+
+    model = SimpleNamespace(simulation=lambda: SimpleNamespace(get_parameter=get))
+    assert _known_parameter(model, "candidate.stiction", set())
+    assert not _known_parameter(model, "candidate.magic", set())
+    assert _known_parameter(model, "damping", {"damping"})
+
+
+def test_reset_switches_candidates_off_and_restores_an_infinite_yield_angle():
+    material = {"yield_angle": 0.3, "bending_stiffness": 0.008}
+    inner = SimpleNamespace(candidates={"stiction": 0.5}, revision=3, bodies={"sheet": SimpleNamespace(material=material)})
+    sim = SimpleNamespace(model=inner, get_parameter=lambda n: material[n.split(".")[1]])
+    model = SimpleNamespace(_sim=sim, _nominal={"sheet.yield_angle": math.inf, "sheet.bending_stiffness": 0.008})
+    _reset_candidates(model)
+    assert inner.candidates == {} and math.isinf(material["yield_angle"]) and inner.revision == 5
+    _reset_candidates(model)                      # nothing to do: no revision bump
+    assert inner.revision == 5
