@@ -19,7 +19,9 @@ import numpy as np
 
 from sim_core.collision import (
     CollisionMemory,
+    EdgeEdgeRegion,
     PointTriangleRegion,
+    edge_edge_closest_points,
     point_triangle_closest_point,
     PairFilter,
     edge_edge_candidates,
@@ -92,7 +94,8 @@ class ContactSet:
             moved = float(np.max(np.abs(x - cache[1]))) if x.size else 0.0
             if moved <= 0.5 * self.margin:
                 vt, ee = cache[2]
-                return self._vertex_triangle(x, vt.pairs, cache[3]), self._edge_edge(x, ee.pairs)
+                vt_sides, ee_sides = cache[3]
+                return self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
         pots, remembered = self._search(x, memory)
         self._cache = (memory, np.array(x, copy=True), pots, remembered)
         return pots
@@ -116,18 +119,20 @@ class ContactSet:
         sides = np.where(region == PointTriangleRegion.FACE, remembered, point_triangle_side(z))
         return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)
 
-    def _edge_edge(self, x: np.ndarray, ee: np.ndarray) -> EdgeEdgeContact:
-        """Edge-edge penalty over pairs ``ee`` with the sides the pairs have at ``x``.
+    def _edge_edge(self, x: np.ndarray, ee: np.ndarray, remembered: np.ndarray) -> EdgeEdgeContact:
+        """Edge-edge penalty over pairs ``ee`` with the side memory applied in the interior region.
 
-        Edge-edge sides are taken at the current iterate (every pair starts on its positive side,
-        so the energy is continuous there). Remembering them from x^n made a pair whose closest
-        points enter the segments' interior from outside switch from the unsigned to a
-        wrong-signed distance: an energy jump the line search cannot cross. Tunnelling is
-        prevented by the vertex-triangle side memory and the per-iteration displacement cap.
+        As for vertex-triangle pairs: a pair whose closest points are interior to both segments
+        keeps its remembered side (``remembered``, +1/-1: from the state's memory, else the side at
+        x^n), so edges that crossed are pushed back apart. Elsewhere the distance is unsigned and
+        the side comes from the current geometry: remembering it there made a pair whose closest
+        points enter the segments' interior from outside jump from +delta to -delta.
         """
-        z_now = (np.concatenate([x[self.edges[ee[:, 0]]], x[self.edges[ee[:, 1]]]], axis=1)
-                 if len(ee) else np.zeros((0, 4, 3)))
-        sides = edge_edge_side(z_now) if len(ee) else np.zeros(0)
+        if not len(ee):
+            return EdgeEdgeContact(ee, self.edges, np.zeros(0), self.stiffness, self.eps)
+        z_now = np.concatenate([x[self.edges[ee[:, 0]]], x[self.edges[ee[:, 1]]]], axis=1)
+        _, _, region = edge_edge_closest_points(z_now[:, 0], z_now[:, 1], z_now[:, 2], z_now[:, 3])
+        sides = np.where(region == EdgeEdgeRegion.INTERIOR, remembered, edge_edge_side(z_now))
         return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
 
     def _search(self, x: np.ndarray, memory: CollisionMemory) -> tuple[tuple, np.ndarray]:
@@ -152,7 +157,9 @@ class ContactSet:
             sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
             keep = sin > self.min_edge_sine
             ee, z = ee[keep], z[keep]
-        return (self._vertex_triangle(x, vt, vt_sides), self._edge_edge(x, ee)), vt_sides
+        ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
+        return ((self._vertex_triangle(x, vt, vt_sides), self._edge_edge(x, ee, ee_sides)),
+                (vt_sides, ee_sides))
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
         """Contact potentials for the candidates near iterate ``x`` (planes included)."""

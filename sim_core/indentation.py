@@ -14,6 +14,8 @@ CalculiX/Abaqus mesh (FEATS, Helmut et al. 2024) into gel and indenter by node s
 
 from __future__ import annotations
 
+import dataclasses
+
 import time
 from dataclasses import dataclass, field
 
@@ -261,6 +263,9 @@ def build_indentation(
     """
     if contact.self_contact:
         raise ConfigError("indentation: contact.self_contact must be False (the rigid indenter is a sheet body)")
+    # the indenter is rigid and kinematic: its vertices must test the gel's triangles (the sphere's tip
+    # is a vertex), unlike a compliant sheet where the gel's denser surface samples the sheet
+    contact = dataclasses.replace(contact, sheet_vertices_vs_solids=True)
     ind_x = np.asarray(indenter.x, dtype=float) + np.array([0.0, 0.0, indenter_lift])
     b = ModelBuilder()
     b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,

@@ -433,7 +433,17 @@ class BagDiagnosis:
                                if ch in chans)
 
                 if isinstance(c, cands.ForceBiasCandidate):
-                    out[c.name] = c.refit(ctx, chans, objective, rows=train["wrench"])
+                    # a sensor bias is present without contact: fit it where the model predicts no
+                    # contact force, so that a contact-model gap (a wrong force only while pressing)
+                    # is not taken for a bias; it then has to explain the contact rows too
+                    f = _whiten(model, "wrench", ctx.prediction["wrench"])[:, :3]
+                    free = np.all(np.abs(f) < 3.0, axis=1) & train["wrench"]
+                    if int(free.sum()) >= 8:
+                        rows = free
+                    else:
+                        rows = train["wrench"]
+                        self.notes.append("force_bias: fewer than 8 contact-free samples; bias fitted on all rows")
+                    out[c.name] = c.refit(ctx, chans, objective, rows=rows)
                 else:
                     out[c.name] = c.refit(ctx, chans, objective)
                 if c.name == "latency":
