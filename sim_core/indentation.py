@@ -238,6 +238,7 @@ def build_indentation(
     gel_density: float = 1000.0,
     indenter_lift: float = 0.0,
     solver_config: SolverConfig | None = None,
+    indenter_vertices_vs_gel: bool = True,
 ) -> IndentationSetup:
     """Build a gel + rigid indenter model, no gravity.
 
@@ -254,6 +255,10 @@ def build_indentation(
         indenter_lift: z shift applied to the indenter before building, m.
         solver_config: Newton settings (default: PARDISO, max |dx| / dt < 1e-7 m/s, i.e. 0.1 um at
             dt = 1 s, and absolute-value eigenvalue projection, which needs fewer iterations here).
+        indenter_vertices_vs_gel: also pair the indenter's vertices with the gel's surface
+            triangles (needed when the indenter is coarser than the gel, e.g. a sphere cap whose tip
+            is one vertex; a gel surface finer than the indenter is sampled by its own vertices,
+            and testing both directions there makes Newton's active set chatter).
 
     Returns:
         :class:`IndentationSetup`.
@@ -263,9 +268,9 @@ def build_indentation(
     """
     if contact.self_contact:
         raise ConfigError("indentation: contact.self_contact must be False (the rigid indenter is a sheet body)")
-    # the indenter is rigid and kinematic: its vertices must test the gel's triangles (the sphere's tip
-    # is a vertex), unlike a compliant sheet where the gel's denser surface samples the sheet
-    contact = dataclasses.replace(contact, sheet_vertices_vs_solids=True)
+    # a coarse rigid indenter's vertices (the sphere's tip is one) must test the gel's triangles,
+    # unlike a compliant sheet that the gel's denser surface samples
+    contact = dataclasses.replace(contact, sheet_vertices_vs_solids=indenter_vertices_vs_gel)
     ind_x = np.asarray(indenter.x, dtype=float) + np.array([0.0, 0.0, indenter_lift])
     b = ModelBuilder()
     b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,

@@ -331,7 +331,8 @@ class NewtonSolver:
         if not converged:
             raise SimulationDivergedError(
                 f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton did not converge in "
-                f"{cfg.max_iterations} iterations (residual {residual:.3g} m/s > tol {cfg.tol_velocity:g})"
+                f"{cfg.max_iterations} iterations (residual {residual:.3g} m/s > tol {cfg.tol_velocity:g}; last "
+                f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
             )
         info.residual_velocity = residual
         self.last_hessian = H

@@ -15,7 +15,6 @@ it never holds a half-written result; an existing one is refused unless ``--forc
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 import uuid
@@ -66,19 +65,6 @@ def _split(text: str | None) -> list[str] | None:
 def _error(message: str) -> int:
     print(f"{PROG}: error: {message}", file=sys.stderr)
     return 2
-
-
-def _publish(staging: Path, out: Path, force: bool) -> None:
-    """Rename the finished ``staging`` directory to ``out`` (replacing it when ``force``)."""
-    trash = None
-    if out.exists() or out.is_symlink():
-        if not force:
-            raise FileExistsError(f"{out} appeared while fitting; the result is in {staging}")
-        trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-        os.replace(out, trash)
-    os.replace(staging, out)
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True) if trash.is_dir() else trash.unlink()
 
 
 class _Progress:
@@ -141,7 +127,7 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     from sysid.fit import fit
     from sysid.observation import ObservationModel
     from sysid.report import write_report
-    from sysid.results import fit_document, provenance, write_fit_json
+    from sysid.results import fit_document, provenance, publish_directory, write_fit_json
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -168,7 +154,7 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     try:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)
-        _publish(staging, out, args.force)
+        publish_directory(staging, out, args.force)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -189,3 +189,63 @@ def load_indentation_config(path: str | Path, repo_root: str | Path | None = Non
         files["indenter_volume_set"], float(raw["poisson_ratio"]), float(raw["friction"]), depth, force,
         float((raw.get("reference") or {}).get("c10_mpa", np.nan)) * 1e6, dict(raw.get("simulation") or {}),
     )
+
+
+def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadratic: str = "split"):
+    """The gel + rigid indenter model of an indentation data set (e.g. FEATS' CalculiX model).
+
+    Reads the mesh (quadratic tets split into 8 linear ones by default, so the gel keeps every node
+    of the model it was made for), separates gel and indenter by their node sets, clamps the gel's
+    fixed set and makes the indenter's surface a rigid, effector-driven body lowered along -z. The
+    indenter is lifted by the contact offset ``eps`` plus its initial penetration (if any), so that
+    depth 0 is first touch, as in the prescribed-displacement CalculiX model.
+
+    Args:
+        cfg: from :func:`load_indentation_config`.
+        youngs_modulus: gel E in Pa (changed later by :func:`sim_core.indentation.run_depth_sweep`).
+        quadratic: ``"split"`` or ``"corners"`` (see :func:`sim_core.mesh.io.read_mesh`).
+
+    Returns:
+        :class:`sim_core.indentation.IndentationSetup`.
+
+    Raises:
+        MeshError / ConfigError: unreadable mesh or node sets, a set with no tets (names the file).
+    """
+    from sim_core import indentation as ind
+    from sim_core.mesh import io
+    from sim_core.model import ContactSettings
+    from sim_core.solver import SolverConfig
+
+    mesh = io.read_mesh(cfg.mesh, scale=cfg.mesh_scale, quadratic=quadratic)
+    gel_nodes = _single_set(io.load_node_sets(cfg.gel_volume_set, mesh.node_ids), cfg.gel_volume_set)
+    fixed_nodes = _single_set(io.load_node_sets(cfg.gel_fixed_set, mesh.node_ids), cfg.gel_fixed_set)
+    indenter_nodes = _single_set(io.load_node_sets(cfg.indenter_volume_set, mesh.node_ids), cfg.indenter_volume_set)
+    parts = ind.split_by_node_sets(mesh.mesh, {"gel": gel_nodes, "indenter": indenter_nodes})
+    gel, gel_index = parts["gel"]
+    fixed = np.isin(gel_index, fixed_nodes)
+    if not fixed.any():
+        raise ConfigError(f"{cfg.gel_fixed_set}: no node of the fixed set belongs to the gel")
+    surface = ind.surface_of(parts["indenter"][0])
+    sim = cfg.simulation
+    eps = float(sim.get("contact_eps", 2e-5))
+    increment = float(sim.get("max_increment", 2.5e-4))
+    contact = ContactSettings(stiffness=float(sim.get("contact_stiffness", 1e5)), eps=eps,
+                              eps_v=float(sim.get("friction_eps_v", 1e-6)), self_contact=False,
+                              candidate_margin=increment + eps)
+    solver = SolverConfig(tol_velocity=float(sim.get("tol_velocity", 1e-7)), projection="abs",
+                          max_iterations=int(sim.get("max_iterations", 100)))
+    options = {"friction": cfg.friction, "solver_config": solver,
+               "indenter_vertices_vs_gel": bool(sim.get("indenter_vertices_vs_gel", True))}
+    probe = ind.build_indentation(gel, fixed, surface, youngs_modulus, cfg.poisson_ratio, contact, **options)
+    lift = max(0.0, -probe.initial_gap)
+    if lift == 0.0:
+        return probe
+    return ind.build_indentation(gel, fixed, surface, youngs_modulus, cfg.poisson_ratio, contact,
+                                 indenter_lift=lift, **options)
+
+
+def _single_set(sets: dict[str, np.ndarray], path: Path) -> np.ndarray:
+    """The node indices of a ``.nam`` file holding exactly one set (ConfigError naming the file)."""
+    if len(sets) != 1:
+        raise ConfigError(f"{path}: expected exactly one node set, found {sorted(sets)}")
+    return next(iter(sets.values()))

@@ -27,9 +27,12 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import os
 import platform
+import shutil
 import subprocess
 import sys
+import uuid
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -183,3 +186,31 @@ def load_fit_json(path: str | Path) -> dict[str, Any]:
         raise CalibrationError(f"{path}: not valid JSON ({err})") from err
     validate_fit_document(doc, str(path))
     return doc
+
+
+def publish_directory(staging: str | Path, out: str | Path, force: bool) -> Path:
+    """Rename the finished ``staging`` directory to ``out`` (atomic on one file system).
+
+    Args:
+        staging: a complete result directory, usually a hidden sibling of ``out``.
+        out: final location.
+        force: replace an existing ``out`` (moved aside first, then deleted).
+
+    Returns:
+        ``out``.
+
+    Raises:
+        FileExistsError: ``out`` exists (e.g. appeared while the work ran) and not ``force``;
+            the result stays in ``staging`` and the message says so.
+    """
+    staging, out = Path(staging), Path(out)
+    trash = None
+    if out.exists() or out.is_symlink():
+        if not force:
+            raise FileExistsError(f"{out} appeared while working; the result is in {staging}")
+        trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+        os.replace(out, trash)
+    os.replace(staging, out)
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True) if trash.is_dir() else trash.unlink()
+    return out

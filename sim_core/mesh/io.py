@@ -9,8 +9,10 @@ Formats:
   (``*NSET``, e.g. CalculiX ``.nam`` files) refer to;
 - TetGen ``.node`` / ``.ele`` pairs (https://wias-berlin.de/software/tetgen/fformats.html).
 
-Every reader keeps only corner nodes (quadratic tets ``tetra10``/``C3D10`` and triangles
-``triangle6`` are reduced to their first 4 / 3 nodes), drops unused nodes, compacts indices, orients
+Quadratic tets (``tetra10``/``C3D10``) are by default reduced to their 4 corners; with
+``quadratic="split"`` each becomes 8 linear tets on its corner and mid-side nodes
+(:func:`sim_core.mesh.tet.split_quadratic_tets`), which keeps the resolution the file was made for.
+Quadratic triangles (``triangle6``) are reduced to their corners. Every reader drops unused nodes, compacts indices, orients
 tets positively (a file whose tets all have negative volume is flipped as a whole; mixed signs are an
 error) and validates the result with :mod:`sim_core.mesh.validate`. A file with tets gives a
 :class:`TetMesh` (its triangles, usually boundary patches, are ignored); otherwise its triangles give
@@ -26,7 +28,7 @@ import numpy as np
 
 from sim_core.errors import ConfigError, MeshError
 from sim_core.mesh.sheet import TriMesh
-from sim_core.mesh.tet import TetMesh
+from sim_core.mesh.tet import TetMesh, split_quadratic_tets
 from sim_core.mesh.validate import tet_signed_volumes, validate_tets, validate_triangles
 
 MESHIO_SUFFIXES = (".msh", ".vtk", ".vtu", ".obj", ".stl", ".ply", ".off", ".mesh")
@@ -57,6 +59,7 @@ class _RawMesh(NamedTuple):
     labels: np.ndarray  # (N,) int64 node labels
     points: np.ndarray  # (N, 3)
     tets: np.ndarray  # (k, 4) labels of corner nodes
+    tets10: np.ndarray  # (m, 10) labels of the nodes of quadratic tets (not in ``tets``)
     triangles: np.ndarray  # (t, 3) labels of corner nodes
     cell_types: tuple[str, ...]  # every element type seen, for messages
 
@@ -136,13 +139,14 @@ def _parse_abaqus(path: Path) -> tuple[_RawMesh, dict[str, np.ndarray]]:
                     node_sets[set_name] += values
             except (ValueError, IndexError) as err:
                 raise MeshError(f"{path}:{line_number}: cannot parse {block} line {line!r}") from err
-    tet_types = tuple(_ABAQUS_TET_PREFIXES)
-    tets = [np.asarray(v, dtype=np.int64)[:, :4] for t, v in elements.items() if v and t.startswith(tet_types)]
+    tets = [np.asarray(v, dtype=np.int64)[:, :4] for t, v in elements.items() if v and t.startswith("C3D4")]
+    tets10 = [np.asarray(v, dtype=np.int64)[:, :10] for t, v in elements.items() if v and t.startswith("C3D10")]
     tris = [np.asarray(v, dtype=np.int64)[:, :3] for t, v in elements.items() if v and t in _ABAQUS_TRIANGLES]
     raw_mesh = _RawMesh(
         np.asarray(labels, dtype=np.int64),
         np.asarray(points, dtype=float).reshape(-1, 3),
         np.concatenate(tets) if tets else np.zeros((0, 4), dtype=np.int64),
+        np.concatenate(tets10) if tets10 else np.zeros((0, 10), dtype=np.int64),
         np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64),
         tuple(elements),
     )
@@ -183,7 +187,7 @@ def _parse_tetgen(path: Path) -> _RawMesh:
             f"{tet_count} tets, found {nodes.shape[0]} and {tets.shape[0]}"
         )
     no_triangles = np.zeros((0, 3), dtype=np.int64)
-    return _RawMesh(nodes[:, 0].astype(np.int64), nodes[:, 1:4], tets.reshape(-1, 4), no_triangles, ("tetra",))
+    return _RawMesh(nodes[:, 0].astype(np.int64), nodes[:, 1:4], tets.reshape(-1, 4), np.zeros((0, 10), dtype=np.int64), no_triangles, ("tetra",))
 
 
 def _parse_meshio(path: Path) -> _RawMesh:
@@ -194,10 +198,12 @@ def _parse_meshio(path: Path) -> _RawMesh:
         data = meshio.read(path)
     except (Exception, SystemExit) as err:  # meshio raises ReadError, ValueError, ...; sys.exit on some formats
         raise MeshError(f"cannot read mesh file {path} with meshio: {err}") from err
-    tets, tris = [], []
+    tets, tets10, tris = [], [], []
     for block in data.cells:
-        if block.type in ("tetra", "tetra10"):
+        if block.type == "tetra":
             tets.append(np.asarray(block.data, dtype=np.int64)[:, :4])
+        elif block.type == "tetra10":
+            tets10.append(np.asarray(block.data, dtype=np.int64)[:, :10])
         elif block.type in ("triangle", "triangle6"):
             tris.append(np.asarray(block.data, dtype=np.int64)[:, :3])
     points = np.asarray(data.points, dtype=float)
@@ -207,6 +213,7 @@ def _parse_meshio(path: Path) -> _RawMesh:
         np.arange(points.shape[0], dtype=np.int64),
         points,
         np.concatenate(tets) if tets else np.zeros((0, 4), dtype=np.int64),
+        np.concatenate(tets10) if tets10 else np.zeros((0, 10), dtype=np.int64),
         np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64),
         tuple(block.type for block in data.cells),
     )
@@ -236,12 +243,19 @@ def _labels_to_indices(labels: np.ndarray, query: np.ndarray, what: str) -> np.n
     return order[pos]
 
 
-def _build(raw: _RawMesh, path: Path, scale: float) -> MeshImport:
-    """Corner-only, compacted, oriented, validated mesh from parsed file contents."""
+def _build(raw: _RawMesh, path: Path, scale: float, quadratic: str = "corners") -> MeshImport:
+    """Compacted, oriented, validated mesh from parsed file contents (quadratic tets per ``quadratic``)."""
     if np.unique(raw.labels).size != raw.labels.size:
         raise MeshError(f"{path}: node labels are not unique")
-    use_tets = raw.tets.shape[0] > 0
-    cells = raw.tets if use_tets else raw.triangles
+    use_tets = raw.tets.shape[0] + raw.tets10.shape[0] > 0
+    if not use_tets:
+        cells = raw.triangles
+    elif quadratic == "split" and raw.tets10.shape[0]:
+        tet10 = _labels_to_indices(raw.labels, raw.tets10, f"{path}: tet")
+        split = split_quadratic_tets(raw.points, tet10)
+        cells = np.concatenate([raw.tets, raw.labels[split]])
+    else:
+        cells = np.concatenate([raw.tets, raw.tets10[:, :4]])
     if cells.shape[0] == 0:
         found = list(raw.cell_types) or "none"
         raise MeshError(f"{path} has no triangles or tetrahedra (element types found: {found})")
@@ -269,28 +283,32 @@ def _build(raw: _RawMesh, path: Path, scale: float) -> MeshImport:
     return MeshImport(TetMesh(x, validate_tets(x, cells, where)), node_ids)
 
 
-def read_mesh(path: str | Path, scale: float = 1.0) -> MeshImport:
+def read_mesh(path: str | Path, scale: float = 1.0, quadratic: str = "corners") -> MeshImport:
     """Read a triangle or tetrahedral mesh and the file's node labels.
 
     Args:
         path: mesh file (see module docstring for formats; for TetGen pass the ``.node`` or the
             ``.ele`` file of the pair).
         scale: factor applied to the coordinates (e.g. ``1e-3`` for a file in mm), > 0.
+        quadratic: ``"corners"`` (keep the 4 corners of a 10-node tet) or ``"split"`` (8 linear
+            tets on all 10 nodes).
 
     Returns:
         :class:`MeshImport` ``(mesh, node_ids)``.
 
     Raises:
-        ConfigError: missing file, unsupported suffix, bad ``scale``.
+        ConfigError: missing file, unsupported suffix, bad ``scale`` or ``quadratic``.
         MeshError: unreadable file, no triangles/tets, undefined node, inconsistent orientation,
             degenerate element, non-finite coordinate (messages name the file and element).
     """
     path = Path(path)
     if not (np.isfinite(scale) and scale > 0):
         raise ConfigError(f"mesh scale must be finite and > 0, got {scale!r} (for {path})")
+    if quadratic not in ("corners", "split"):
+        raise ConfigError(f"mesh {path}: quadratic must be 'corners' or 'split', got {quadratic!r}")
     suffix = path.suffix.lower()
     if suffix in TETGEN_SUFFIXES:
-        return _build(_parse_tetgen(path), path, float(scale))
+        return _build(_parse_tetgen(path), path, float(scale), quadratic)
     if not path.is_file():
         raise ConfigError(f"mesh file {path} does not exist")
     if suffix not in MESHIO_SUFFIXES + ABAQUS_SUFFIXES:
@@ -299,7 +317,7 @@ def read_mesh(path: str | Path, scale: float = 1.0) -> MeshImport:
             f"{sorted(set(MESHIO_SUFFIXES + ABAQUS_SUFFIXES + TETGEN_SUFFIXES))}"
         )
     raw = _parse_abaqus(path)[0] if _is_abaqus(path) else _parse_meshio(path)
-    return _build(raw, path, float(scale))
+    return _build(raw, path, float(scale), quadratic)
 
 
 def load_mesh(path: str | Path, scale: float = 1.0) -> TriMesh | TetMesh:

@@ -170,3 +170,57 @@ def box_face_vertices(
     tol = rel_tol * max(hi - lo, np.finfo(float).tiny)
     target = lo if side == "min" else hi
     return np.flatnonzero(np.abs(c - target) <= tol).astype(np.int64)
+
+
+# mid-side node slots of a 10-node tet (Abaqus C3D10 / VTK tetra10 order): 4 (0,1), 5 (1,2), 6 (2,0),
+# 7 (0,3), 8 (1,3), 9 (2,3)
+_CORNER_CHILDREN = np.array([[0, 4, 6, 7], [4, 1, 5, 8], [6, 5, 2, 9], [7, 8, 9, 3]])
+# the inner octahedron, split along one of its three diagonals (opposite mid-side pairs) into four
+# tets around it; ring = the other four mid-side nodes in cyclic order
+_OCTAHEDRON_SPLITS = (
+    ((4, 9), (6, 5, 8, 7)),  # diagonal (0,1)-(2,3)
+    ((6, 8), (4, 5, 9, 7)),  # diagonal (2,0)-(1,3)
+    ((7, 5), (4, 8, 9, 6)),  # diagonal (0,3)-(1,2)
+)
+
+
+def split_quadratic_tets(x: np.ndarray, tet10: np.ndarray) -> np.ndarray:
+    """Split each 10-node tet into 8 linear tets on its corner and mid-side nodes.
+
+    The standard red refinement (Bey 1995, "Tetrahedral grid refinement", Computing 55): four corner
+    tets and an inner octahedron cut along its shortest diagonal (best shape). Each child keeps
+    its parent's orientation. The linear tets use exactly the nodes of the quadratic mesh, so a
+    model made for quadratic elements (e.g. CalculiX C3D10) keeps its geometry and node sets with
+    twice the linear resolution instead of dropping the mid-side nodes.
+
+    Args:
+        x: node positions, shape ``(n, 3)``.
+        tet10: node indices, shape ``(k, 10)``, order: 4 corners, then mid-sides of edges
+            (0,1), (1,2), (2,0), (0,3), (1,3), (2,3) (Abaqus C3D10 = VTK tetra10).
+
+    Returns:
+        shape ``(8 k, 4)`` int64, children of tet ``e`` in rows ``8 e .. 8 e + 7``.
+
+    Raises:
+        MeshError: ``tet10`` not of shape ``(k, 10)`` or an index out of range.
+    """
+    tet10 = np.asarray(tet10, dtype=np.int64)
+    if tet10.ndim != 2 or tet10.shape[1] != 10:
+        raise MeshError(f"quadratic tets must have shape (k, 10), got {tet10.shape}")
+    if tet10.size and (tet10.min() < 0 or tet10.max() >= len(x)):
+        raise MeshError(f"quadratic tets reference node {int(tet10.max())} of {len(x)} nodes")
+    k = tet10.shape[0]
+    diag_len = np.stack([np.linalg.norm(x[tet10[:, a]] - x[tet10[:, b]], axis=1) for (a, b), _ in _OCTAHEDRON_SPLITS],
+                        axis=1)
+    choice = np.argmin(diag_len, axis=1) if k else np.zeros(0, dtype=np.int64)
+    octa = np.zeros((k, 4, 4), dtype=np.int64)
+    for c, ((a, b), ring) in enumerate(_OCTAHEDRON_SPLITS):
+        rows = choice == c
+        local = np.array([[a, b, ring[i], ring[(i + 1) % 4]] for i in range(4)])
+        octa[rows] = tet10[rows][:, local]
+    children = np.concatenate([tet10[:, _CORNER_CHILDREN], octa], axis=1)  # (k, 8, 4)
+    parent_sign = np.sign(tet_signed_volumes(x, tet10[:, :4]))
+    flat = children.reshape(-1, 4)
+    flip = np.sign(tet_signed_volumes(x, flat)) != np.repeat(parent_sign, 8)
+    flat[flip] = flat[flip][:, [0, 2, 1, 3]]
+    return flat

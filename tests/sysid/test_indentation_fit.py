@@ -68,3 +68,33 @@ def test_config_with_missing_data_folder_fails_naming_the_file(tmp_path):
     bad.write_text(CONFIG.read_text() + "surprise: 1\n")
     with pytest.raises(ConfigError, match=r"unknown keys \['surprise'\]"):
         load_indentation_config(bad, REPO)
+
+
+@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+def test_feats_setup_clamps_the_back_face_and_starts_at_first_touch():
+    from sysid.indentation_fit import build_indentation_setup
+
+    cfg = load_indentation_config(CONFIG, REPO)
+    setup = build_indentation_setup(cfg, 4e5, quadratic="corners")
+    gel = setup.model.bodies[setup.gel_body]
+    x = setup.model.x_rest[gel.vertex_start:gel.vertex_stop]
+    fixed = setup.model.vertex_fixed[gel.vertex_start:gel.vertex_stop]
+    assert fixed.any() and np.allclose(x[fixed, 2], -4e-3, atol=1e-9)  # the back face, z = -4 mm
+    assert 0.0 <= setup.initial_gap < 1e-5  # the indenter starts at the contact offset of the gel
+    split = build_indentation_setup(cfg, 4e5, quadratic="split")
+    assert len(split.model.bodies[split.gel_body].tets) == 8 * len(gel.tets)
+
+
+def test_indent_cli_refuses_existing_output_and_bad_values(tmp_path, capsys):
+    from sysid.indentation_cli import indent_main
+
+    out = tmp_path / "fit"
+    out.mkdir()
+    assert indent_main(["--out", str(out)]) == 2
+    assert "exists (use --force" in capsys.readouterr().err
+    assert indent_main(["--out", str(tmp_path / "new"), "--initial-modulus", "-1"]) == 2
+    assert "--initial-modulus" in capsys.readouterr().err
+    missing = tmp_path / "nope.yaml"
+    assert indent_main(["--config", str(missing), "--out", str(tmp_path / "new")]) == 1
+    assert "nope.yaml does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()

@@ -11,7 +11,8 @@ import pytest
 from sim_core.errors import ConfigError, MeshError
 from sim_core.mesh.io import load_mesh, load_node_sets, read_mesh
 from sim_core.mesh.sheet import TriMesh
-from sim_core.mesh.tet import TetMesh, tet_box, tet_boundary_triangles, tet_rest_volume
+from sim_core.mesh.tet import TetMesh, split_quadratic_tets, tet_box, tet_boundary_triangles, tet_rest_volume
+from sim_core.mesh.validate import tet_signed_volumes
 
 FEATS_DIR = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real" / "feats" / "calculix_templates"
 
@@ -223,3 +224,36 @@ def test_feats_calculix_gel_and_indenter() -> None:
     assert gel_hi[2] <= ind_lo[2]  # the indenter sits above the gel surface
     fixed = load_node_sets(FEATS_DIR / "gelsight_miniFixed.nam", result.node_ids)["Ngelsight_miniFixed"]
     assert np.all(np.isin(fixed, gel)) and np.allclose(mesh.x[fixed, 2], gel_lo[2])
+
+
+def test_split_quadratic_tets_tiles_each_parent_with_eight_positive_children() -> None:
+    rng = np.random.default_rng(3)
+    edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
+    for _ in range(10):
+        c = rng.normal(size=(4, 3))
+        x = np.vstack([c] + [(c[a] + c[b]) / 2 for a, b in edges])
+        parent = np.arange(10)[None]
+        children = split_quadratic_tets(x, parent)
+        v = tet_signed_volumes(x, children)
+        V = tet_signed_volumes(x, parent[:, :4])[0]
+        assert children.shape == (8, 4)
+        assert np.all(np.sign(v) == np.sign(V))  # orientation of the parent kept
+        assert v.sum() == pytest.approx(V, rel=1e-12)  # the children tile the parent
+        assert np.allclose(v, V / 8, rtol=1e-9)  # red refinement: eight children of equal volume
+        assert np.array_equal(np.unique(children), np.arange(10))
+    with pytest.raises(MeshError, match=r"shape \(k, 10\)"):
+        split_quadratic_tets(x, np.zeros((1, 4), dtype=int))
+
+
+def test_abaqus_quadratic_tets_split_into_linear_ones_keep_volume_and_node_sets(tmp_path: Path) -> None:
+    path = tmp_path / "two.inp"
+    path.write_text(ABAQUS_INP)
+    corners = read_mesh(path, scale=1e-3)
+    split = read_mesh(path, scale=1e-3, quadratic="split")
+    assert split.mesh.tets.shape == (16, 4)
+    assert split.node_ids.size > corners.node_ids.size  # mid-side nodes are vertices now
+    assert tet_rest_volume(split.mesh.tets, split.mesh.x).sum() == pytest.approx(
+        tet_rest_volume(corners.mesh.tets, corners.mesh.x).sum(), rel=1e-12)
+    assert load_node_sets(path, split.node_ids)["Ntop"].size == 3  # node 4 and mid-sides 14, 15
+    with pytest.raises(ConfigError, match="quadratic must be"):
+        read_mesh(path, quadratic="drop")
