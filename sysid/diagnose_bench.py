@@ -642,6 +642,27 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
     return recs
 
 
+def load_labelled_set(directory: Path) -> list[Recording]:
+    """The recordings of a set written by :func:`generate_set` (its ``labels.json``).
+
+    Raises:
+        FileNotFoundError: no ``labels.json`` or a listed recording missing (names the path).
+    """
+    directory = Path(directory)
+    index = directory / "labels.json"
+    if not index.is_file():
+        raise FileNotFoundError(f"{index}: no labels.json (write a set with --generate-only --out DIR)")
+    recs = []
+    for item in json.loads(index.read_text()):
+        path = directory / item["name"]
+        if not path.exists():
+            raise FileNotFoundError(f"{index}: recording {item['name']!r} not found at {path}")
+        recs.append(Recording(item["name"], item["label"], bool(item["in_library"]), float(item["target_strength"]),
+                              float(item["strength"]), float(item["magnitude"]),
+                              [tuple(w) for w in item["windows_s"]], path=path))
+    return recs
+
+
 # ============================================================================ scoring
 def top1(report: Mapping[str, Any]) -> str:
     """The first name of ``explained_by`` (``none`` when empty)."""
@@ -726,6 +747,11 @@ def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
     return getattr(importlib.import_module(module), name or "diagnose")
 
 
+def _diagnose_one(engine: str, path: str) -> Mapping[str, Any]:
+    """Diagnose one recording in a worker process (engine given as ``module:function``)."""
+    return _engine(engine)([path], dt=DT)
+
+
 def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     """``thinshell bench diagnose [--quick] [--json] [--out DIR] [--seed N] [--generate-only]``.
 
@@ -741,16 +767,34 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--effects", nargs="*", default=None, help="restrict to these labels")
     ap.add_argument("--engine", default="sysid.diagnose.engine:diagnose", help="module:function of the diagnosis")
     ap.add_argument("--generate-only", action="store_true", help="write the labelled set, do not diagnose")
+    ap.add_argument("--strengths", type=float, nargs="+", default=[1.0, 2.0, 4.0],
+                    help="target strengths in noise units (default: 1 2 4)")
+    ap.add_argument("--jobs", type=int, default=1, help="recordings diagnosed in parallel (processes)")
+    ap.add_argument("--labelled", type=Path, default=None,
+                    help="diagnose a set written earlier (its labels.json) instead of generating one")
     args = ap.parse_args(argv)
+    if args.jobs < 1 or any(not k > 0 for k in args.strengths):
+        print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
+        return 2
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
-    out = args.out or Path(tempfile.mkdtemp(prefix="thinshell_bench_diagnose_"))
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    recs = generate_set(out, quick=args.quick, seed=args.seed, nominal_count=args.nominal, effects=args.effects, log=log)
+    if args.labelled is not None:
+        out = args.labelled
+        try:
+            recs = load_labelled_set(out)
+        except FileNotFoundError as err:
+            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            return 2
+    else:
+        out = args.out or Path(tempfile.mkdtemp(prefix="thinshell_bench_diagnose_"))
+        out.mkdir(parents=True, exist_ok=True)
+        recs = generate_set(out, quick=args.quick, seed=args.seed, strengths=tuple(args.strengths),
+                            nominal_count=args.nominal, effects=args.effects, log=log)
     gen_s = time.perf_counter() - t0
     labels = [{"name": r.name, "label": r.label, "in_library": r.in_library, "target_strength": r.target_strength,
                "strength": r.strength, "magnitude": r.magnitude, "windows_s": r.windows_s} for r in recs]
-    (out / "labels.json").write_text(json.dumps(labels, indent=1))
+    if args.labelled is None:
+        (out / "labels.json").write_text(json.dumps(labels, indent=1))
     result: dict[str, Any] = {"out": str(out), "generation_s": round(gen_s, 1), "labels": labels}
     if not args.generate_only:
         try:
@@ -758,10 +802,18 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         except (ImportError, AttributeError) as err:
             print(f"thinshell bench diagnose: cannot import the diagnosis engine {args.engine!r}: {err}", file=sys.stderr)
             return 2
-        reports, t1 = [], time.perf_counter()
-        for r in recs:
-            log(f"diagnosing {r.name} ...")
-            reports.append(diagnose([str(r.path)], dt=DT))
+        t1 = time.perf_counter()
+        if args.jobs == 1:
+            reports = []
+            for r in recs:
+                log(f"diagnosing {r.name} ...")
+                reports.append(diagnose([str(r.path)], dt=DT))
+        else:
+            from concurrent.futures import ProcessPoolExecutor
+
+            log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
+            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+                reports = list(pool.map(_diagnose_one, [args.engine] * len(recs), [str(r.path) for r in recs]))
         result["diagnosis_s"] = round(time.perf_counter() - t1, 1)
         result.update(score(recs, reports))
     if args.json:

@@ -101,6 +101,14 @@ def test_main_scores_with_a_given_engine(tmp_path, capsys, monkeypatch):
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert doc["false_alarm_rate"] == 0.0 and doc["recordings"] == 5
     assert json.loads((tmp_path / "labels.json").read_text())[2]["label"] == "latency"
+    # the written set can be diagnosed again later (e.g. on another machine) from its labels.json
+    assert db.bench_diagnose_main(["--labelled", str(tmp_path), "--json"]) == 2
+    assert "not found" in capsys.readouterr().err
+    for item in json.loads((tmp_path / "labels.json").read_text()):
+        (tmp_path / item["name"]).mkdir()
+    assert db.bench_diagnose_main(["--labelled", str(tmp_path), "--json"]) == 0
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again["recordings"] == 5 and again["labels"] == doc["labels"]
 
 
 @pytest.mark.slow
