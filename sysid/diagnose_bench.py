@@ -42,6 +42,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from sim_core.errors import ThinShellError
+
 NS = "/thinshell"
 DT = 0.01
 NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
@@ -614,12 +616,23 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
         recs.append(Recording(f"nominal_{i}", "none", True, 0.0, 0.0, 0.0, [], streams=base))
     for spec in specs:
         run = (lambda m: spec.make(m)(base)) if spec.data else (lambda m: rollout(SCENE, targets, spec.make(m)))
-        probe = run(spec.reference)
+        try:
+            probe = run(spec.reference)
+        except ThinShellError as err:  # a rollout the simulator cannot finish leaves the effect out
+            log(f"{spec.label}: reference rollout failed, effect left out of the set ({err})")
+            continue
         s0, _ = effect_strength(probe, base)
         log(f"{spec.label}: reference magnitude {spec.reference:g} -> strength {s0:.2f}")
+        if not s0 > 0:  # invisible in this scenario: a recording labelled with it would be nominal
+            log(f"{spec.label}: no visible change at the reference magnitude, effect left out of the set")
+            continue
         for k in strengths:
             m = spec.reference * k / s0 if s0 > 0 else spec.reference
-            streams = run(m) if not math.isclose(m, spec.reference) else probe
+            try:
+                streams = run(m) if not math.isclose(m, spec.reference) else probe
+            except ThinShellError as err:
+                log(f"  x{k:g}: rollout at magnitude {m:.4g} failed, recording left out ({err})")
+                continue
             s, windows = effect_strength(streams, base)
             if s > 0 and s0 > 0 and abs(s / k - 1.0) > 0.3 and not math.isclose(m, spec.reference):
                 # nonlinear response: one correction with the power law through the two rollouts
@@ -747,6 +760,14 @@ def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
     return getattr(importlib.import_module(module), name or "diagnose")
 
 
+def _write_report(directory: Path, name: str, report: Mapping[str, Any]) -> None:
+    """Write one diagnosis as ``<directory>/<name>.json`` (temporary file, then rename)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    tmp = directory / f".{name}.json.tmp"
+    tmp.write_text(json.dumps(report, default=float))
+    tmp.replace(directory / f"{name}.json")
+
+
 def _diagnose_one(engine: str, path: str) -> Mapping[str, Any]:
     """Diagnose one recording in a worker process (engine given as ``module:function``)."""
     return _engine(engine)([path], dt=DT)
@@ -770,6 +791,8 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--strengths", type=float, nargs="+", default=[1.0, 2.0, 4.0],
                     help="target strengths in noise units (default: 1 2 4)")
     ap.add_argument("--jobs", type=int, default=1, help="recordings diagnosed in parallel (processes)")
+    ap.add_argument("--reports", type=Path, default=None,
+                    help="write each recording's diagnosis JSON here as soon as it is done")
     ap.add_argument("--labelled", type=Path, default=None,
                     help="diagnose a set written earlier (its labels.json) instead of generating one")
     args = ap.parse_args(argv)
@@ -808,12 +831,23 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
             for r in recs:
                 log(f"diagnosing {r.name} ...")
                 reports.append(diagnose([str(r.path)], dt=DT))
+                if args.reports is not None:
+                    _write_report(args.reports, r.name, reports[-1])
         else:
             from concurrent.futures import ProcessPoolExecutor
 
+            from concurrent.futures import as_completed
+
             log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
+            reports = [None] * len(recs)
             with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-                reports = list(pool.map(_diagnose_one, [args.engine] * len(recs), [str(r.path) for r in recs]))
+                futures = {pool.submit(_diagnose_one, args.engine, str(r.path)): i for i, r in enumerate(recs)}
+                for fut in as_completed(futures):
+                    i = futures[fut]
+                    reports[i] = fut.result()
+                    log(f"diagnosed {recs[i].name}: {top1(reports[i])}")
+                    if args.reports is not None:
+                        _write_report(args.reports, recs[i].name, reports[i])
         result["diagnosis_s"] = round(time.perf_counter() - t1, 1)
         result.update(score(recs, reports))
     if args.json:
