@@ -194,7 +194,8 @@ class LensDistortionCandidate:
 
 
 class ForceBiasCandidate:
-    """Offset and linear drift on every wrench axis (12 parameters, tested jointly)."""
+    """Offset and linear drift on the wrench axes (12 parameters tested jointly; the refit keeps the
+    axes whose own offset and drift are supported by the data)."""
 
     name = "force_bias"
     level = "observation"
@@ -232,7 +233,16 @@ class ForceBiasCandidate:
         resid = data - ctx.prediction["wrench"]
         use = np.ones(t.shape[0], bool) if rows is None else rows
         coef, *_ = np.linalg.lstsq(B[use], resid[use], rcond=None)  # (2, 6)
-        beta = coef.T.reshape(-1)
+        # keep an axis only where its own offset + drift pay for their two parameters (BIC per axis,
+        # Schwarz 1978): a bias on fz alone then counts 2 parameters, not 12
+        n = int(use.sum())
+        sse0 = np.sum(resid[use] ** 2, axis=0)
+        sse1 = np.sum((resid[use] - B[use] @ coef) ** 2, axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = n * np.log(np.where(sse1 > 0, sse0 / sse1, 1.0)) - 2.0 * math.log(max(n, 2))
+        keep = gain > 0.0
+        coef = np.where(keep[None, :], coef, 0.0)
+        beta = coef[:, keep].T.reshape(-1)
         params = {}
         for a, axis in enumerate(("fx", "fy", "fz", "tx", "ty", "tz")):
             params[f"bias_{axis}"] = float(coef[0, a])
@@ -277,6 +287,13 @@ class PhysicsParameterCandidate:
         # refits trust the secant signature up to a few probe sizes, and stay inside the parameter's range
         self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(parameter, math.inf))
         self.acts_on = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+
+    def shrink_probe(self, factor: float) -> None:
+        """Scale ``probe_beta`` (and the refit bound that follows it) by ``factor`` in (0, 1)."""
+        if not 0.0 < factor < 1.0:
+            raise ValueError(f"candidate {self.name}: shrink factor must be in (0, 1), got {factor!r}")
+        self.probe_beta *= factor
+        self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
 
     def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
         """Parameters of the probe rollout (nominal values plus the effect at ``probe_beta``)."""

@@ -303,6 +303,16 @@ class BagDiagnosis:
             library = [c for c in library if c.name in self.candidate_names]
         probes = [c for c in library if c.probe(ctx) is not None]
         probe_out = dict(zip([c.name for c in probes], self._replays([c.probe(ctx) for c in probes])))
+        # a probe the simulator cannot finish (e.g. a strong Maxwell branch at lift-off) is retried
+        # smaller: the secant signature only needs a change well above round-off
+        for _ in range(2):
+            retry = [c for c in probes if probe_out.get(c.name) is None and hasattr(c, "shrink_probe")]
+            if not retry:
+                break
+            for c in retry:
+                c.shrink_probe(0.25)
+                self.notes.append(f"{c.name}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
+            probe_out.update(zip([c.name for c in retry], self._replays([c.probe(ctx) for c in retry])))
         self._probe_out = probe_out
 
         # ---- score tests
