@@ -28,6 +28,7 @@ candidates (stiction, gel viscoelasticity, adhesion, anisotropic bending) are ta
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 from dataclasses import dataclass, field
@@ -319,6 +320,11 @@ class PhysicsParameterCandidate:
         return {self.parameter: self.to_parameter(b)}
 
 
+def yield_angle_for(beta: float, theta_max: float) -> float:
+    """Rest-angle yield threshold (rad) for exceedance ``beta = theta_max / theta_yield - 1 >= 0``."""
+    return theta_max / (1.0 + beta)
+
+
 def _inverse(b: float) -> float:
     return math.inf if b == 0.0 else 1.0 / b
 
@@ -375,8 +381,13 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
     if "sheet.yield_angle" in names and not math.isfinite(float(ctx.params.get("sheet.yield_angle", ctx.model.parameter_value("sheet.yield_angle")))):
         theta_max = max_hinge_angle(ctx)
         if theta_max > 1e-3:
-            out.append(PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 2.0 / theta_max, True,
-                                                 to_parameter=_inverse, report_name="inverse_yield_angle_per_rad"))
+            # beta = theta_max / theta_yield - 1: the effect starts at beta = 0 (yield at the largest
+            # bend of the nominal rollout) and grows with it, so the secant signature and the
+            # linearised refit stay on the side where the sheet yields; the probe (beta = 1) yields at
+            # half the largest bend
+            out.append(PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 1.0, True,
+                                                 to_parameter=functools.partial(yield_angle_for, theta_max=theta_max),
+                                                 report_name="yield_exceedance"))
     if extra is None:
         try:
             extra = getattr(importlib.import_module("sim_core.candidates"), "DIAGNOSIS_CANDIDATES", None)

@@ -494,7 +494,28 @@ class BagDiagnosis:
                     out[c.name].prediction = rep[1]
             if self.settings.secant:
                 self._secant(ctx, physics, out, train, theta)
+            for c in physics:
+                self._probe_if_better(ctx, c, out, train)
         return out
+
+    def _probe_if_better(self, ctx, c, out, train) -> None:
+        """Take the probe rollout as the refit when it fits the training rows better.
+
+        An effect with an onset (plastic yield, stiction breakaway) has no first-order signature
+        below the onset, so the linearised estimate can land where the effect does nothing (or
+        be clipped to 0) while the probe, already replayed, fits better than both the nominal
+        model and the estimate; the probe is then the better refit.
+        """
+        rf = out[c.name]
+        probe = self._probe_out.get(c.name)
+        if probe is None or float(rf.beta[0]) == c.probe_beta:
+            return
+        if self._train_sse(probe[1], train) < min(self._train_sse(ctx.prediction, train),
+                                                 self._train_sse(rf.prediction, train)):
+            rf.beta = np.array([c.probe_beta])
+            rf.params = {c.report_name: c.probe_beta}
+            rf.sim_params = c.sim_parameters(c.probe_beta)
+            rf.prediction = probe[1]
 
     def _train_sse(self, pred: Mapping[str, np.ndarray], train) -> float:
         return sum(float(np.sum(_residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in self.model.channels
