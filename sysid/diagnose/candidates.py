@@ -240,7 +240,8 @@ class ForceBiasCandidate:
         sse0 = np.sum(resid[use] ** 2, axis=0)
         sse1 = np.sum((resid[use] - B[use] @ coef) ** 2, axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            gain = n * np.log(np.where(sse1 > 0, sse0 / sse1, 1.0)) - 2.0 * math.log(max(n, 2))
+            ratio = np.where(sse1 > 0, sse0 / sse1, np.where(sse0 > 0, np.inf, 1.0))  # exact fit: keep
+            gain = n * np.log(ratio) - 2.0 * math.log(max(n, 2))
         keep = gain > 0.0
         coef = np.where(keep[None, :], coef, 0.0)
         beta = coef[:, keep].T.reshape(-1)
@@ -323,10 +324,6 @@ class PhysicsParameterCandidate:
 def yield_angle_for(beta: float, theta_max: float) -> float:
     """Rest-angle yield threshold (rad) for exceedance ``beta = theta_max / theta_yield - 1 >= 0``."""
     return theta_max / (1.0 + beta)
-
-
-def _inverse(b: float) -> float:
-    return math.inf if b == 0.0 else 1.0 / b
 
 
 def max_hinge_angle(ctx: DiagnosisContext) -> float:

@@ -87,6 +87,20 @@ def test_force_bias_signature_and_exact_refit():
     assert rf.params["bias_fz"] == pytest.approx(beta[4])
 
 
+def test_force_bias_refit_keeps_only_the_axes_that_carry_a_bias():
+    rng = np.random.default_rng(1)
+    ctx = make_ctx()
+    sigma = np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])
+    noisy = ctx.prediction["wrench"] + rng.normal(size=ctx.prediction["wrench"].shape) * sigma
+    noisy[:, 2] += 0.5  # a 0.5 N offset on fz only (2.5 sigma)
+    rf = ForceBiasCandidate().refit(make_ctx(data={**ctx.prediction, "wrench": noisy}), ["wrench"], objective=None)
+    assert rf.beta.shape == (2,)  # offset + drift of fz: 2 parameters for the BIC, not 12
+    assert rf.params["bias_fz"] == pytest.approx(0.5, abs=0.05)
+    assert all(rf.params[f"bias_{a}"] == 0.0 for a in ("fx", "fy", "tx", "ty", "tz"))
+    shift = rf.prediction["wrench"] - ctx.prediction["wrench"]
+    assert np.all(shift[:, [0, 1, 3, 4, 5]] == 0.0)
+
+
 def test_latency_of_40ms_recovered_by_cross_correlation_and_refit():
     rng = np.random.default_rng(0)
     ctx = make_ctx()

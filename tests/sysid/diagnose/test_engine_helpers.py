@@ -3,6 +3,7 @@ cross-correlation test, candidate switching and the reset of a cached simulation
 
 from __future__ import annotations
 
+import functools
 import math
 from types import SimpleNamespace
 
@@ -11,7 +12,7 @@ import pytest
 
 from sim_core.errors import ConfigError
 from sysid.diagnose import engine
-from sysid.diagnose.candidates import PhysicsParameterCandidate, _inverse, _known_parameter
+from sysid.diagnose.candidates import PhysicsParameterCandidate, _known_parameter, yield_angle_for
 from sysid.diagnose.parallel import _reset_candidates
 from tests.sysid.diagnose.test_candidates import _signal, make_ctx
 
@@ -105,12 +106,19 @@ def test_cross_correlation_lag_matches_a_delay_of_the_recording():
 
 
 def test_physics_candidate_off_means_no_parameter_and_unknown_candidates_are_skipped():
-    plastic = PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 2.0, True, to_parameter=_inverse)
+    # beta = theta_max / theta_yield - 1: yield at the largest bend at the onset, half of it at beta 1
+    plastic = PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 2.0, True,
+                                        to_parameter=functools.partial(yield_angle_for, theta_max=0.3))
     assert plastic.sim_parameters(0.0) == {} and plastic.sim_parameters(-3.0) == {}
-    assert plastic.sim_parameters(4.0) == {"sheet.yield_angle": 0.25}
+    assert plastic.sim_parameters(1e-9)["sheet.yield_angle"] == pytest.approx(0.3)
+    assert plastic.sim_parameters(1.0) == {"sheet.yield_angle": pytest.approx(0.15)}
     aniso = PhysicsParameterCandidate("anisotropic_bending", "candidate.anisotropic_bending", 0.3, False)
     assert aniso.sim_parameters(-0.2) == {"candidate.anisotropic_bending": -0.2}
     assert aniso.bound == pytest.approx(0.95) and plastic.bound == pytest.approx(8.0)   # |anisotropy| < 1
+    plastic.shrink_probe(0.25)  # a probe that diverged is retried smaller, and the refit bound follows
+    assert plastic.probe_beta == pytest.approx(0.5) and plastic.bound == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="shrink factor"):
+        plastic.shrink_probe(1.5)
 
     def get(name):
         if name != "candidate.stiction":
