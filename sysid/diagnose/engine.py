@@ -356,7 +356,11 @@ class BagDiagnosis:
         heldout_models = self._heldout_models() if self.heldout else []
         decisions = self._decide(ctx, refits, train, heldout_models, theta)
         self._decisions = decisions
-        accepted = [e for e in decisions["order"] if decisions[e]["accepted"]]
+        # an effect whose discriminating test confirmed it (latency: the cross-correlation lag of the
+        # recorded vs predicted rates matches the fitted delay) is named before the ones that only
+        # lower the residual; otherwise the order is by delta-BIC
+        accepted = sorted((e for e in decisions["order"] if decisions[e]["accepted"]),
+                          key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["delta_bic"]))
         # confusable pairs: one name wins only when a discriminating test resolves the pair
         ties = self._ties(ctx, accepted, refits, tests)
 
