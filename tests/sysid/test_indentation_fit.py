@@ -98,3 +98,26 @@ def test_indent_cli_refuses_existing_output_and_bad_values(tmp_path, capsys):
     assert indent_main(["--config", str(missing), "--out", str(tmp_path / "new")]) == 1
     assert "nope.yaml does not exist" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+def test_thinshell_indent_reproduces_the_four_real_forces(tmp_path):
+    """``thinshell indent`` on FEATS' real GelSight Mini measurements (corner mesh, ~3 min).
+
+    The four measured forces are reproduced within 10 % (measured -3.6/-3.4/-1.7/+8.0 %). The fitted
+    C10 (0.0486 MPa) is 33 % below FEATS' CalculiX value 0.0725 MPa: the corner-only linear tets
+    lock at nu 0.475 and are too stiff, so the issue's 20 % target is not met yet (see
+    docs/benchmarks.md); the test pins the current level so a regression shows.
+    """
+    import json
+
+    from sysid.indentation_cli import indent_main
+
+    out = tmp_path / "fit"
+    assert indent_main(["--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "indent_fit.json").read_text())
+    assert np.all(np.abs(doc["force_relative_error"]) < 0.10)
+    assert 0.6 < doc["c10_pa"] / doc["reference_c10_pa"] < 1.2
+    assert (out / "force_depth.png").stat().st_size > 0 and "C10" in (out / "report.md").read_text()
+    assert indent_main(["--out", str(out), "--quiet"]) == 2  # no overwrite without --force
