@@ -49,13 +49,12 @@ from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import locate, stats
 from sysid.diagnose.parallel import replay_many
+from sysid.diagnose.residuals import (explained_fraction, holdout_rows, residual, rms_summary, sse,
+                                      stream_channels, whiten)
 
 CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelasticity"),
               ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"))
 """Pairs SYSID.md calls confusable (plasticity vs hysteresis: adhesion tack is the hysteresis here)."""
-
-RMS_KEYS = {"markers_uv": "markers_px", "markers_xyz": "markers_m", "wrench": "wrench_N",
-            "sheet_points": "sheet_points_m"}
 
 
 @dataclass
@@ -104,67 +103,6 @@ class Settings:
     denoise_window: int = 11
     min_gain: float = 0.25
     simulation: dict[str, Any] | None = None
-
-
-# ====================================================================================== helpers
-def _whiten(model: Any, channel: str, a: np.ndarray) -> np.ndarray:
-    """Divide the last data axis by the channel noise; ``a`` is ``(T, ..., axes)`` or ``(T, ..., axes, q)``."""
-    s = model.sigma[channel]
-    data_ndim = model.data(channel).ndim
-    return a / s.reshape((-1,) + (1,) * (a.ndim - data_ndim)) if a.ndim > data_ndim else a / s
-
-
-def _residual(model: Any, channel: str, prediction: np.ndarray) -> np.ndarray:
-    return _whiten(model, channel, model.data(channel) - prediction)
-
-
-def _holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float]) -> np.ndarray:
-    """True on held-out rows: every other of ``2 * blocks`` equal time blocks (the odd ones)."""
-    a, b = span
-    k = np.clip(((t_s - a) / max(b - a, 1e-12) * 2 * blocks).astype(int), 0, 2 * blocks - 1)
-    return (k % 2) == 1
-
-
-def _rms_summary(model: Any, prediction: Mapping[str, np.ndarray]) -> dict[str, float]:
-    out = {}
-    for ch, key in RMS_KEYS.items():
-        if ch in prediction and ch in model.evidence.channels_present:
-            e = model.data(ch) - prediction[ch]
-            if ch == "wrench":
-                out["wrench_N"] = float(np.sqrt(np.mean(e[:, :3] ** 2)))
-                out["torque_Nm"] = float(np.sqrt(np.mean(e[:, 3:] ** 2)))
-            else:
-                out[key] = float(np.sqrt(np.mean(e ** 2)))
-    return out
-
-
-def _sse(model: Any, prediction: Mapping[str, np.ndarray], channels: Sequence[str],
-         rows: Mapping[str, np.ndarray] | None) -> tuple[float, int, int]:
-    """Whitened SSE over channels (rows selected), number of values and of time samples."""
-    sse, n, t = 0.0, 0, 0
-    for ch in channels:
-        r = _residual(model, ch, prediction[ch])
-        if rows is not None:
-            r = r[rows[ch]]
-        sse += float(np.sum(r ** 2))
-        n += r.size
-        t += r.shape[0]
-    return sse, n, t
-
-
-def _explained_fraction(before: float, after: float) -> float:
-    """Fraction of the excess energy ``rms^2 - 1`` (whitened) that a refit removes.
-
-    The excess is floored at 5 % of ``before^2`` so that an over-estimated noise level (excess <= 0)
-    does not make a tiny improvement look complete.
-    """
-    excess = max(before ** 2 - 1.0, 0.05 * before ** 2, 1e-12)
-    return float((before ** 2 - after ** 2) / excess)
-
-
-def _stream_channels(channel: str, tested: Sequence[str]) -> list[str]:
-    stream = cands.STREAMS[channel]
-    return [c for c in tested if cands.STREAMS[c] == stream]
 
 
 # ====================================================================================== one bag
@@ -325,10 +263,10 @@ class BagDiagnosis:
             sig = c.signature(ctx, probe_out[c.name][1] if c.level == "physics" else None)
             signatures[c.name] = sig
             for ch, J in sig.items():
-                r = _residual(model, ch, pred0[ch])
+                r = residual(model, ch, pred0[ch])
                 T = r.shape[0]
-                Jk = _whiten(model, ch, J).reshape(T, -1, J.shape[-1])
-                Jt = (_whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
+                Jk = whiten(model, ch, J).reshape(T, -1, J.shape[-1])
+                Jt = (whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
                       if J_theta[ch].shape[-1] else None)
                 if not np.any(Jk):
                     continue
@@ -348,7 +286,7 @@ class BagDiagnosis:
         significant = sorted({t["effect"] for t in tests if t["significant"]},
                              key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
         span = (0.0, float((model.step_times_ns[-1] - model.step_times_ns[0]) * 1e-9))
-        train = {ch: ~_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span) for ch in self.tested}
+        train = {ch: ~holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span) for ch in self.tested}
         if self.heldout:
             train = {ch: np.ones_like(v) for ch, v in train.items()}
         refits = self._refit(ctx, [by_name[e] for e in significant], tests, J_theta, train, theta)
@@ -385,7 +323,7 @@ class BagDiagnosis:
                                                                   if t["effect"] == focus and t["significant"]])
         # A significant score alone does not make a mismatch: the residual must also carry a
         # meaningful excess over the noise on a channel where a test fired (effect-size criterion).
-        excess = {ch: float(np.mean(_residual(model, ch, pred0[ch]) ** 2)) - 1.0 for ch in self.tested}
+        excess = {ch: float(np.mean(residual(model, ch, pred0[ch]) ** 2)) - 1.0 for ch in self.tested}
         loud = [ch for ch in mismatch_channels if excess[ch] > s.min_excess]
         detected = bool(accepted) or bool(loud)
         if not detected:
@@ -396,16 +334,16 @@ class BagDiagnosis:
             "bag": self.bag,
             "baseline": {"params": {n: float(v) for n, v in (theta or {n: model.parameter_value(n)
                                                                          for n in self.project}).items()},
-                         "rms": _rms_summary(model, pred0),
+                         "rms": rms_summary(model, pred0),
                          "fitted": bool(self.params),
-                         "whitened_rms": {ch: float(np.sqrt(np.mean(_residual(model, ch, pred0[ch]) ** 2)))
+                         "whitened_rms": {ch: float(np.sqrt(np.mean(residual(model, ch, pred0[ch]) ** 2)))
                                           for ch in self.tested}},
             "mismatch": {"detected": detected, "windows_s": [[round(a, 4), round(b, 4)] for a, b in windows],
                          "channels": sorted({cands.STREAMS[c] for c in mismatch_channels}),
                          "markers": markers, "evidence_channels": mismatch_channels},
             "candidates": self._candidate_entries(tests, decisions, ties),
             "explained_by": explained,
-            "refit": {"params": refit_params, "rms": _rms_summary(model, final),
+            "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
                       "heldout": "bags" if self.heldout else f"time blocks (every other of {2 * s.holdout_blocks})",
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
@@ -440,17 +378,17 @@ class BagDiagnosis:
                     # delays are fitted too and compared (``_ties``)
                     best = max((t for t in tests if t["effect"] == "latency" and t["significant"]),
                                key=lambda t: t["result"].statistic)
-                    chans = sorted(set(_stream_channels(best["channel"], self.tested)) | set(chans))
+                    chans = sorted(set(stream_channels(best["channel"], self.tested)) | set(chans))
 
                 def objective(pred, chans=chans):
-                    return sum(float(np.sum(_residual(model, ch, pred[ch])[train[ch]] ** 2)) for ch in pred
+                    return sum(float(np.sum(residual(model, ch, pred[ch])[train[ch]] ** 2)) for ch in pred
                                if ch in chans)
 
                 if isinstance(c, cands.ForceBiasCandidate):
                     # a sensor bias is present without contact: fit it where the model predicts no
                     # contact force, so that a contact-model gap (a wrong force only while pressing)
                     # is not taken for a bias; it then has to explain the contact rows too
-                    f = _whiten(model, "wrench", ctx.prediction["wrench"])[:, :3]
+                    f = whiten(model, "wrench", ctx.prediction["wrench"])[:, :3]
                     free = np.all(np.abs(f) < 3.0, axis=1) & train["wrench"]
                     if int(free.sum()) >= 8:
                         rows = free
@@ -472,9 +410,9 @@ class BagDiagnosis:
                 for ch in model.channels:
                     tr = train[ch]
                     T = int(tr.sum())
-                    rows_r.append(_residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
-                    Jk = _whiten(model, ch, sig[ch])[tr].reshape(T, -1)
-                    Jt = _whiten(model, ch, J_theta[ch])[tr].reshape(T * Jk.shape[1], -1)
+                    rows_r.append(residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
+                    Jk = whiten(model, ch, sig[ch])[tr].reshape(T, -1)
+                    Jt = whiten(model, ch, J_theta[ch])[tr].reshape(T * Jk.shape[1], -1)
                     rows_J.append(np.concatenate([Jk.reshape(-1, 1), Jt], axis=1))
                 A, b = np.concatenate(rows_J), np.concatenate(rows_r)
                 sol, *_ = np.linalg.lstsq(A, b, rcond=None)
@@ -522,7 +460,7 @@ class BagDiagnosis:
             rf.prediction = probe[1]
 
     def _train_sse(self, pred: Mapping[str, np.ndarray], train) -> float:
-        return sum(float(np.sum(_residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in self.model.channels
+        return sum(float(np.sum(residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in self.model.channels
                    if ch in pred)
 
     def _secant(self, ctx, physics, out, train, theta) -> None:
@@ -567,7 +505,7 @@ class BagDiagnosis:
                 continue
 
             def obj(pred, ch=ch):
-                return float(np.sum(_residual(self.model, ch, pred[ch]) ** 2))
+                return float(np.sum(residual(self.model, ch, pred[ch]) ** 2))
 
             out[ch] = float(lat.refit(ctx, [ch], obj).beta[0])
         return out
@@ -599,14 +537,14 @@ class BagDiagnosis:
         out: dict[str, Any] = {}
         for e, rf in refits.items():
             chans = [ch for ch in rf.prediction if ch in self.tested]
-            sse0, _, n = _sse(self.model, ctx.prediction, chans, train)
-            sse1, _, _ = _sse(self.model, {**ctx.prediction, **rf.prediction}, chans, train)
+            sse0, _, n = sse(self.model, ctx.prediction, chans, train)
+            sse1, _, _ = sse(self.model, {**ctx.prediction, **rf.prediction}, chans, train)
             q = int(rf.beta.shape[0])
             dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
             lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
             before, after = self._heldout_rms(ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models,
                                               theta, [rf])
-            frac = _explained_fraction(before, after)
+            frac = explained_fraction(before, after)
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
                       "heldout_rms_after": after, "explained_fraction": frac, "params": rf.params, "scale": 1.0,
                       "accepted": bool(dbic > s.bic_threshold and after < before and frac >= s.min_explained
@@ -638,21 +576,21 @@ class BagDiagnosis:
             # conditional on the accepted ones (linear in the scale of this candidate's change)
             num = den = 0.0
             for ch in chans:
-                r = _residual(self.model, ch, base[ch])[train[ch]]
-                d = _whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])[train[ch]]
+                r = residual(self.model, ch, base[ch])[train[ch]]
+                d = whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])[train[ch]]
                 num, den = num + float(np.sum(r * d)), den + float(np.sum(d * d))
             c = float(np.clip(num / den, 0.0, 1.5)) if den > 0 else 0.0
             cond = {ch: base[ch] + c * (rf.prediction[ch] - ctx.prediction[ch]) for ch in chans}
-            sse0, _, n = _sse(self.model, base, chans, train)
-            sse1, _, _ = _sse(self.model, {**base, **cond}, chans, train)
+            sse0, _, n = sse(self.model, base, chans, train)
+            sse1, _, _ = sse(self.model, {**base, **cond}, chans, train)
             dbic = stats.delta_bic(sse0, sse1, n, int(rf.beta.shape[0])) if sse0 > 0 and sse1 > 0 else 0.0
             ok = dbic > s.bic_threshold
             if not heldout_models:
                 rows = {ch: ~train[ch] for ch in chans}
-                h0, m0, _ = _sse(self.model, base, chans, rows)
-                h1, m1, _ = _sse(self.model, {**base, **cond}, chans, rows)
+                h0, m0, _ = sse(self.model, base, chans, rows)
+                h1, m1, _ = sse(self.model, {**base, **cond}, chans, rows)
                 b, a = math.sqrt(h0 / max(m0, 1)), math.sqrt(h1 / max(m1, 1))
-                frac = _explained_fraction(b, a)
+                frac = explained_fraction(b, a)
                 ok = ok and a < b and frac >= s.min_explained and b ** 2 - a ** 2 >= s.min_gain
                 out[e]["conditional_explained_fraction"] = frac
             out[e].update({"conditional_delta_bic": float(dbic), "scale": c, "accepted": bool(ok)})
@@ -672,7 +610,7 @@ class BagDiagnosis:
             period = float(np.median(np.diff(t)))
             rates = []
             for y in (ctx.prediction[ch], self.model.data(ch)):
-                d = _whiten(self.model, ch, cands.time_derivative(t, y)).reshape(t.shape[0], -1)
+                d = whiten(self.model, ch, cands.time_derivative(t, y)).reshape(t.shape[0], -1)
                 rates.append(np.apply_along_axis(lambda c: np.convolve(c, k, mode="same"), 0, d))
             try:
                 out[ch] = float(locate.xcorr_lag(rates[0], rates[1], period,
@@ -684,8 +622,8 @@ class BagDiagnosis:
     def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied) -> tuple[float, float]:
         if not heldout_models:
             rows = {ch: ~train[ch] for ch in channels}
-            s0, n0, _ = _sse(self.model, ctx.prediction, channels, rows)
-            s1, n1, _ = _sse(self.model, prediction, channels, rows)
+            s0, n0, _ = sse(self.model, ctx.prediction, channels, rows)
+            s1, n1, _ = sse(self.model, prediction, channels, rows)
             return float(math.sqrt(s0 / max(n0, 1))), float(math.sqrt(s1 / max(n1, 1)))
         tot0 = tot1 = 0.0
         n_tot = 0
@@ -706,8 +644,8 @@ class BagDiagnosis:
             for rf in applied:
                 self._apply_observation(hctx, rf, p1)
             chans = [c for c in channels if c in hctx.channels]
-            s0, n0, _ = _sse(hm, p0, chans, None)
-            s1, _, _ = _sse(hm, p1, chans, None)
+            s0, n0, _ = sse(hm, p0, chans, None)
+            s1, _, _ = sse(hm, p1, chans, None)
             tot0, tot1, n_tot = tot0 + s0, tot1 + s1, n_tot + n0
         return float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1)))
 
@@ -773,8 +711,8 @@ class BagDiagnosis:
         for ch in channels:
             if ch not in rf.prediction:
                 continue
-            r = _residual(self.model, ch, ctx.prediction[ch])
-            d = _whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])
+            r = residual(self.model, ch, ctx.prediction[ch])
+            d = whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])
             e = locate.explained_energy(r, d)
             t = ctx.stamps_s(ch)
             if energy is None:

@@ -12,6 +12,7 @@ import pytest
 
 from sim_core.errors import ConfigError
 from sysid.diagnose import engine
+from sysid.diagnose.residuals import explained_fraction
 from sysid.diagnose.candidates import PhysicsParameterCandidate, _known_parameter, yield_angle_for
 from sysid.diagnose.parallel import _reset_candidates
 from tests.sysid.diagnose.test_candidates import _signal, make_ctx
@@ -85,10 +86,10 @@ def test_without_a_command_the_measured_poses_are_replayed():
 
 
 def test_explained_fraction_is_relative_to_the_excess_over_noise():
-    assert engine._explained_fraction(2.0, 1.0) == pytest.approx(1.0)          # all of 4 - 1 removed
-    assert engine._explained_fraction(2.0, math.sqrt(2.5)) == pytest.approx(0.5)
-    assert engine._explained_fraction(1.0, 0.99) < 1.0                          # floor: 5 % of 1
-    assert engine._explained_fraction(1.5, 1.6) < 0.0
+    assert explained_fraction(2.0, 1.0) == pytest.approx(1.0)          # all of 4 - 1 removed
+    assert explained_fraction(2.0, math.sqrt(2.5)) == pytest.approx(0.5)
+    assert explained_fraction(1.0, 0.99) < 1.0                          # floor: 5 % of 1
+    assert explained_fraction(1.5, 1.6) < 0.0
 
 
 def test_cross_correlation_lag_matches_a_delay_of_the_recording():

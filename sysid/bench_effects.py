@@ -1,0 +1,332 @@
+"""Physics effects of the diagnosis benchmark (``thinshell bench diagnose``).
+
+Each effect is a solver hook with its own terms and rules, written independently of the candidate
+models of ``sim_core.candidates`` and ``sysid.diagnose`` (SYSID.md "Benchmark protocol"): a
+rate-dependent Perzyna-type yield instead of the library's instantaneous return, drag on the sheet
+only, a driver-level Stribeck law, a two-term Prony series for the gel instead of the finite-strain
+SLS, breakable point bonds with hysteresis, orthotropic hinges with the grain 15 degrees off x, and,
+outside the library, a thickness step (stiffer hinges on the far part of the card). The effect table
+and the generation of the labelled set live in :mod:`sysid.diagnose_bench`.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+class PhysicsEffect:
+    """Base of the hooks: no terms, no state; ``attach`` gives the simulation before the first step."""
+
+    def attach(self, sim: Any) -> None:
+        """Remember the simulation (model, initial state)."""
+        self.sim = sim
+
+    def contact_terms(self, model: Any, x_prev: np.ndarray, friction: Any) -> list:
+        """Extra contact-like potentials of a step (count in the wrench)."""
+        return []
+
+    def body_terms(self, model: Any, state: Any, elastic: Any) -> list:
+        """Extra body potentials of a step."""
+        return []
+
+    def update_state(self, model: Any, state_in: Any, x: np.ndarray, dt: float, elastic: Any) -> dict:
+        """Internal variables after a step, stored in ``State.candidate_state``."""
+        return dict(getattr(state_in, "candidate_state", None) or {})
+
+
+class _Quadratic:
+    """``E = 1/2 (x - x0)^T K (x - x0) + g0 . (x - x0)`` over element blocks (a generic helper)."""
+
+    parameter_names: tuple[str, ...] = ()
+
+    def __init__(self, vertices: np.ndarray, blocks: np.ndarray, x0: np.ndarray, g0: np.ndarray | None = None):
+        self.vertices, self.blocks, self.x0 = vertices, blocks, x0
+        self.g0 = np.zeros_like(x0) if g0 is None else g0
+
+    def _element_dx(self, x: np.ndarray) -> np.ndarray:
+        return (x - self.x0)[self.vertices].reshape(self.vertices.shape[0], -1)
+
+    def energy(self, x: np.ndarray) -> float:
+        d = self._element_dx(x)
+        return float(0.5 * np.einsum("ki,kij,kj->", d, self.blocks, d) + np.sum(self.g0 * (x - self.x0)))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        from sim_core.potentials.base import scatter_gradient
+
+        d = self._element_dx(x)
+        return scatter_gradient(x.shape[0], self.vertices, np.einsum("kij,kj->ki", self.blocks, d)) + self.g0
+
+    def hessian(self, x: np.ndarray, projection: str = "clamp"):
+        from sim_core.potentials.base import HessianBlocks
+
+        return HessianBlocks(self.vertices, self.blocks)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        raise KeyError(name)
+
+
+class SheetDrag(PhysicsEffect):
+    """Viscous drag ``-c m v`` on the sheet's vertices only (c in 1/s)."""
+
+    def __init__(self, c: float) -> None:
+        self.c = float(c)
+
+    def body_terms(self, model, state, elastic) -> list:
+        if getattr(self, "_vertices", None) is None:
+            self._vertices = model.bodies["sheet"].vertices[:, None]
+        k = self.c / self.sim.dt * model.vertex_mass()[self._vertices[:, 0]]
+        return [_Quadratic(self._vertices, k[:, None, None] * np.eye(3)[None], state.x.copy())]
+
+
+class PronyGel(PhysicsEffect):
+    """Two-term Prony series on the gel, small-strain linear branches with internal strains.
+
+    Branch i: ``E_i = sum_t V_t g_i [mu |eps - q_i|^2 + lam/2 tr(eps - q_i)^2]`` with ``eps = sym(F) - I``;
+    ``q_i <- q_i + (1 - exp(-dt/tau_i)) (eps - q_i)`` after each step.
+    """
+
+    def __init__(self, g: Sequence[float], tau: Sequence[float] = (0.05, 0.4)) -> None:
+        self.g, self.tau = [float(v) for v in g], [float(v) for v in tau]
+
+    def attach(self, sim) -> None:
+        super().attach(sim)
+        solid = next(iter(sim.solver.elastic.solids.values()))
+        self.solid = solid
+        material = sim.model.bodies[solid_name(sim.model)].material
+        E, nu = material["youngs_modulus"], material["poisson_ratio"]
+        mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+        # d eps_flat / d x_local = sym part of dF/dx: (k, 9, 12)
+        M = solid.tet_dvecF_dx
+        S = 0.5 * (M + M.reshape(-1, 3, 3, 12).transpose(0, 2, 1, 3).reshape(-1, 9, 12))
+        C = 2 * mu * np.eye(9) + lam * np.outer(np.eye(3).ravel(), np.eye(3).ravel())
+        self.S = S
+        self.K = solid.tet_rest_volume[:, None, None] * np.einsum("kai,ab,kbj->kij", S, C, S)
+        self.C = C
+
+    def strain(self, x: np.ndarray) -> np.ndarray:
+        F = self.solid.deformation_gradient(x)
+        return (0.5 * (F + np.swapaxes(F, 1, 2)) - np.eye(3)).reshape(-1, 9)
+
+    def body_terms(self, model, state, elastic) -> list:
+        out = []
+        q = (getattr(state, "candidate_state", None) or {}).get("prony", [np.zeros((self.K.shape[0], 9))] * 2)
+        from sim_core.potentials.base import scatter_gradient
+
+        x_rest = model.x_rest
+        for g, qi in zip(self.g, q):
+            # E = 1/2 V (eps - q) C (eps - q) with eps = S (x - x_rest) linear in x: a quadratic about
+            # x_rest with the linear term -V S^T C q.
+            lin = -np.einsum("k,kai,ab,kb->ki", self.solid.tet_rest_volume, self.S, self.C, qi)
+            g0 = scatter_gradient(x_rest.shape[0], self.solid.tets, g * lin)
+            out.append(_Quadratic(self.solid.tets, g * self.K, x_rest, g0))
+        return out
+
+    def update_state(self, model, state_in, x, dt, elastic) -> dict:
+        out = super().update_state(model, state_in, x, dt, elastic)
+        q = out.get("prony", [np.zeros((self.K.shape[0], 9))] * 2)
+        eps = self.strain(x)
+        out["prony"] = [qi + (-math.expm1(-dt / t)) * (eps - qi) for qi, t in zip(q, self.tau)]
+        return out
+
+
+def solid_name(model) -> str:
+    """Name of the (first) gel body."""
+    return next(b.name for b in model.bodies.values() if b.kind == "solid")
+
+
+class HingeStiffness(PhysicsEffect):
+    """Extra hinge bending ``sum_h c_h k_h (theta - theta_bar)^2`` with a per-hinge factor ``c_h``.
+
+    ``kind="orthotropic"``: ``c_h = a cos(2 (phi_h - 15 deg))`` (grain off the x axis);
+    ``kind="thickness_step"``: ``c_h = a`` on hinges whose rest midpoint lies in the far 40 % of the card.
+    """
+
+    def __init__(self, a: float, kind: str) -> None:
+        self.a, self.kind = float(a), kind
+
+    def attach(self, sim) -> None:
+        from sim_core.potentials.bending import DiscreteShellBending
+
+        super().attach(sim)
+        model = sim.model
+        hinges = sim.solver.elastic.hinges["sheet"]
+        self.bending = DiscreteShellBending(hinges, model.x_rest, model.bodies["sheet"].material["bending_stiffness"])
+        xr = model.x_rest
+        if self.kind == "orthotropic":
+            e = xr[hinges[:, 1]] - xr[hinges[:, 0]]
+            phi = np.arctan2(e[:, 1], e[:, 0]) - np.deg2rad(15.0)
+            c = self.a * np.cos(2 * phi)
+        else:
+            mid = 0.5 * (xr[hinges[:, 0], 0] + xr[hinges[:, 1], 0])
+            x0, x1 = xr[model.bodies["sheet"].vertices, 0].min(), xr[model.bodies["sheet"].vertices, 0].max()
+            c = self.a * (mid > x0 + 0.6 * (x1 - x0))
+        self.c = c
+
+    def body_terms(self, model, state, elastic) -> list:
+        b = copy.copy(self.bending)
+        b.hinge_theta_bar = np.asarray(state.hinge_theta_bar["sheet"], dtype=float)
+        return [_SignedHinges(b, self.c)]
+
+
+class _SignedHinges:
+    """``sum_h c_h k_h (theta - theta_bar)^2`` with factors ``c_h`` of either sign; blocks ``max(c_h, 0) P(H_h)``."""
+
+    parameter_names: tuple[str, ...] = ()
+
+    def __init__(self, bending, c: np.ndarray) -> None:
+        self.b, self.c = bending, c
+        self.vertices = bending.hinges
+
+    def energy(self, x):
+        d = self.b.theta(x) - self.b.hinge_theta_bar
+        return float(np.dot(self.c * self.b.hinge_stiffness, d * d))
+
+    def gradient(self, x):
+        return self.b._gradient_with(x, self.c * self.b.hinge_stiffness)
+
+    def hessian(self, x, projection="clamp"):
+        from sim_core.potentials.base import HessianBlocks
+
+        h = self.b.hessian(x, projection)
+        c = self.c if projection == "none" else np.maximum(self.c, 0.0)
+        return HessianBlocks(h.vertices, c[:, None, None] * h.blocks)
+
+    def parameter_gradient(self, x, name):
+        raise KeyError(name)
+
+
+class RatePlasticity(PhysicsEffect):
+    """Perzyna-type bending yield: ``theta_bar += f (1 - exp(-dt / t_p)) (|d| - y)_+ sign(d)``, ``d = theta - theta_bar``."""
+
+    def __init__(self, f: float, yield_angle: float = 0.05, t_p: float = 0.05) -> None:
+        self.f, self.y, self.t_p = float(f), float(yield_angle), float(t_p)
+
+    def update_state(self, model, state_in, x, dt, elastic) -> dict:
+        from sim_core.potentials.bending import dihedral_angle
+
+        out = super().update_state(model, state_in, x, dt, elastic)
+        hinges = elastic.hinges["sheet"]
+        tb = np.asarray(self.sim_state_theta_bar(state_in), dtype=float)
+        d = dihedral_angle(x[hinges]) - tb
+        tb = tb + self.f * (-math.expm1(-dt / self.t_p)) * np.maximum(np.abs(d) - self.y, 0.0) * np.sign(d)
+        out["rest_angles"] = tb
+        return out
+
+    @staticmethod
+    def sim_state_theta_bar(state):
+        return (getattr(state, "candidate_state", None) or {}).get("rest_angles", state.hinge_theta_bar["sheet"])
+
+    def body_terms(self, model, state, elastic) -> list:
+        # The rest angles live in candidate_state; the isotropic bending uses state.hinge_theta_bar,
+        # so hand the difference over as a correction: E(theta_bar_new) - E(theta_bar_old) is linear
+        # in theta and quadratic-free: -2 k (theta_bar_new - theta_bar_old) (theta - ...) -> use the
+        # exact difference through a second bending potential pair.
+        tb_new = self.sim_state_theta_bar(state)
+        tb_old = np.asarray(state.hinge_theta_bar["sheet"], dtype=float)
+        if np.allclose(tb_new, tb_old):
+            return []
+        return [_RestShift(elastic.bending("sheet", tb_new), elastic.bending("sheet", tb_old), elastic.hinges["sheet"])]
+
+
+class _RestShift:
+    """``E_new - E_old`` of the same bending potential with moved rest angles (Hessians cancel)."""
+
+    parameter_names: tuple[str, ...] = ()
+
+    def __init__(self, new, old, hinges: np.ndarray) -> None:
+        self.new, self.old, self.hinges = new, old, hinges
+
+    def energy(self, x):
+        return self.new.energy(x) - self.old.energy(x)
+
+    def gradient(self, x):
+        return self.new.gradient(x) - self.old.gradient(x)
+
+    def hessian(self, x, projection="clamp"):
+        from sim_core.potentials.base import HessianBlocks
+
+        return HessianBlocks(self.hinges, np.zeros((self.hinges.shape[0], 12, 12)))
+
+    def parameter_gradient(self, x, name):
+        raise KeyError(name)
+
+
+class BondAdhesion(PhysicsEffect):
+    """Point bonds: a gel contact-face vertex within the contact offset of the sheet bonds to the sheet
+    point below it (spring ``k_b``); a bond breaks for good when its force exceeds ``strength`` (N)."""
+
+    def __init__(self, strength: float, k_b: float = 400.0) -> None:
+        self.strength, self.k_b = float(strength), float(k_b)
+
+    _state: Any = None
+
+    def _bonds(self, state) -> dict:
+        return (getattr(state, "candidate_state", None) or {}).get("bonds", {})
+
+    def contact_terms(self, model, x_prev, friction) -> list:
+        from sim_core.potentials.base import scatter_gradient
+
+        bonds = self._bonds(self._state)
+        if not bonds:
+            return []
+        v = np.array([[g, *bond[0]] for g, bond in bonds.items()], dtype=np.int64)
+        w = np.array([[1.0, *(-np.asarray(bond[1]))] for bond in bonds.values()])
+        r0 = np.array([bond[2] for bond in bonds.values()])
+        # E = k_b / 2 |r - r0|^2 with r = sum_j w_j x_j and r0 the gap when the bond formed.
+        blocks = self.k_b * np.einsum("ka,kb,de->kadbe", w, w, np.eye(3)).reshape(len(v), 12, 12)
+        g0 = scatter_gradient(x_prev.shape[0], v, -self.k_b * w[:, :, None] * r0[:, None, :])
+        return [_Quadratic(v, blocks, np.zeros_like(x_prev), g0)]
+
+    def body_terms(self, model, state, elastic) -> list:
+        self._state = state
+        return []
+
+    def update_state(self, model, state_in, x, dt, elastic) -> dict:
+        from sim_core.candidates.adhesion import adhesion_pairs
+
+        out = super().update_state(model, state_in, x, dt, elastic)
+        bonds = dict(self._bonds(state_in))
+        broken = set(out.get("broken", ()))
+        for g, (tri, b, r0) in list(bonds.items()):
+            gap = x[g] - np.asarray(b) @ x[list(tri)] - np.asarray(r0)
+            if self.k_b * np.linalg.norm(gap) > self.strength:
+                del bonds[g]
+                broken.add(g)
+        face = np.unique(model.sensors["tactile"].contact_triangles)
+        sheet = model.bodies["sheet"].triangles
+        v, w, _ = adhesion_pairs(x, face, sheet, model.contact.eps, 1e-12)
+        for row, wr in zip(v, w):
+            g = int(row[0])
+            if g not in bonds and g not in broken:
+                b = -wr[1:]
+                bonds[g] = (tuple(int(t) for t in row[1:]), tuple(b), tuple(x[g] - b @ x[row[1:]]))
+        out["bonds"], out["broken"] = bonds, tuple(sorted(broken))
+        return out
+
+
+class StribeckFriction(PhysicsEffect):
+    """Driver-level stiction: before each step the gel-sheet coefficient is set to
+    ``mu_k (1 + a exp(-(v / v_s)^2))`` with v the previous step's gel-over-sheet slip speed."""
+
+    def __init__(self, a: float, v_s: float = 0.01) -> None:
+        self.a, self.v_s = float(a), float(v_s)
+
+    def attach(self, sim) -> None:
+        super().attach(sim)
+        self.key = next(k for k in sim.model.friction if k == frozenset(("sheet", solid_name(sim.model))))
+        self.mu_k = sim.model.friction[self.key]
+        self.face = np.unique(sim.model.sensors["tactile"].contact_triangles)
+        sim.model.friction[self.key] = self.mu_k * (1 + self.a)
+
+    def update_state(self, model, state_in, x, dt, elastic) -> dict:
+        out = super().update_state(model, state_in, x, dt, elastic)
+        sheet = model.bodies["sheet"].vertices
+        v_gel = (x[self.face] - state_in.x[self.face])[:, :2].mean(axis=0) / dt
+        near = sheet[np.linalg.norm(x[sheet, None, :2] - x[None, self.face, :2], axis=2).min(axis=1) < 4e-3]
+        v_sheet = (x[near] - state_in.x[near])[:, :2].mean(axis=0) / dt if near.size else np.zeros(2)
+        v = float(np.linalg.norm(v_gel - v_sheet))
+        model.friction[self.key] = self.mu_k * (1 + self.a * math.exp(-((v / self.v_s) ** 2)))
+        return out

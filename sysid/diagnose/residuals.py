@@ -1,0 +1,82 @@
+"""Residual arithmetic of the diagnosis: whitening, SSE, held-out rows, RMS summaries, effect size.
+
+Pure functions over an observation model (``sysid.observation.ObservationModel`` or anything with
+``data(channel)``, ``sigma`` and ``evidence.channels_present``) and channel -> prediction maps;
+:mod:`sysid.diagnose.engine` composes them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sysid.diagnose import candidates as cands
+
+RMS_KEYS = {"markers_uv": "markers_px", "markers_xyz": "markers_m", "wrench": "wrench_N",
+            "sheet_points": "sheet_points_m"}
+
+"""Report key of each channel's RMS (wrench is split into force and torque)."""
+
+
+def whiten(model: Any, channel: str, a: np.ndarray) -> np.ndarray:
+    """Divide the last data axis by the channel noise; ``a`` is ``(T, ..., axes)`` or ``(T, ..., axes, q)``."""
+    s = model.sigma[channel]
+    data_ndim = model.data(channel).ndim
+    return a / s.reshape((-1,) + (1,) * (a.ndim - data_ndim)) if a.ndim > data_ndim else a / s
+
+
+def residual(model: Any, channel: str, prediction: np.ndarray) -> np.ndarray:
+    """Whitened ``data - prediction`` of one channel, shape of the channel's data."""
+    return whiten(model, channel, model.data(channel) - prediction)
+
+
+def holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float]) -> np.ndarray:
+    """True on held-out rows: every other of ``2 * blocks`` equal time blocks (the odd ones)."""
+    a, b = span
+    k = np.clip(((t_s - a) / max(b - a, 1e-12) * 2 * blocks).astype(int), 0, 2 * blocks - 1)
+    return (k % 2) == 1
+
+
+def rms_summary(model: Any, prediction: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """RMS of ``data - prediction`` per channel in SI units / px (report keys of :data:`RMS_KEYS`)."""
+    out = {}
+    for ch, key in RMS_KEYS.items():
+        if ch in prediction and ch in model.evidence.channels_present:
+            e = model.data(ch) - prediction[ch]
+            if ch == "wrench":
+                out["wrench_N"] = float(np.sqrt(np.mean(e[:, :3] ** 2)))
+                out["torque_Nm"] = float(np.sqrt(np.mean(e[:, 3:] ** 2)))
+            else:
+                out[key] = float(np.sqrt(np.mean(e ** 2)))
+    return out
+
+
+def sse(model: Any, prediction: Mapping[str, np.ndarray], channels: Sequence[str],
+         rows: Mapping[str, np.ndarray] | None) -> tuple[float, int, int]:
+    """Whitened SSE over channels (rows selected), number of values and of time samples."""
+    sse, n, t = 0.0, 0, 0
+    for ch in channels:
+        r = residual(model, ch, prediction[ch])
+        if rows is not None:
+            r = r[rows[ch]]
+        sse += float(np.sum(r ** 2))
+        n += r.size
+        t += r.shape[0]
+    return sse, n, t
+
+
+def explained_fraction(before: float, after: float) -> float:
+    """Fraction of the excess energy ``rms^2 - 1`` (whitened) that a refit removes.
+
+    The excess is floored at 5 % of ``before^2`` so that an over-estimated noise level (excess <= 0)
+    does not make a tiny improvement look complete.
+    """
+    excess = max(before ** 2 - 1.0, 0.05 * before ** 2, 1e-12)
+    return float((before ** 2 - after ** 2) / excess)
+
+
+def stream_channels(channel: str, tested: Sequence[str]) -> list[str]:
+    """The tested channels that come from the same ROS topic as ``channel`` (e.g. markers xyz/uv)."""
+    stream = cands.STREAMS[channel]
+    return [c for c in tested if cands.STREAMS[c] == stream]
