@@ -12,6 +12,10 @@ from sysid.indentation_fit import fit_youngs_modulus, load_indentation_config
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "config" / "sysid" / "feats_indentation.yaml"
+FEATS = REPO.parent / "shared" / "data" / "real" / "feats"
+needs_feats = pytest.mark.skipif(
+    not FEATS.is_dir(),
+    reason=f"the real FEATS indentation data set is not at {FEATS} (the shared data checkout beside the repo)")
 DEPTH = np.array([0.5, 1.0, 1.5, 2.0]) * 1e-3
 
 
@@ -52,7 +56,7 @@ def test_fit_rejects_bad_measurements_and_bad_simulations():
         fit_youngs_modulus(lambda E: np.array([1.0, np.nan]), [1.0, 2.0], 0.45, 1e5)
 
 
-@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+@needs_feats
 def test_feats_config_holds_the_four_measurements_and_resolves_the_mesh():
     cfg = load_indentation_config(CONFIG, REPO)
     assert np.allclose(cfg.depth, DEPTH)
@@ -70,7 +74,7 @@ def test_config_with_missing_data_folder_fails_naming_the_file(tmp_path):
         load_indentation_config(bad, REPO)
 
 
-@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+@needs_feats
 def test_feats_setup_clamps_the_back_face_and_starts_at_first_touch():
     from sysid.indentation_fit import build_indentation_setup
 
@@ -101,7 +105,7 @@ def test_indent_cli_refuses_existing_output_and_bad_values(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "real" / "feats").is_dir(), reason="FEATS data absent")
+@needs_feats
 def test_thinshell_indent_reproduces_the_four_real_forces(tmp_path):
     """``thinshell indent`` on FEATS' real GelSight Mini measurements (corner mesh, ~3 min).
 
