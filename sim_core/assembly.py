@@ -64,15 +64,6 @@ class HessianAssembler:
         self._key: tuple | None = None
         self._pattern: _Pattern | None = None
 
-    def _same_vertices(self, static: Sequence[HessianBlocks]) -> bool:
-        """Whether ``static`` has the vertex arrays of the cached pattern by value (a potential may
-        return a new array with the same elements each call; rebuilding the pattern then would
-        cost a sort of every block entry per Newton iteration)."""
-        old = getattr(self, "_keep_alive", None)
-        if self._pattern is None or old is None or len(old) != len(static):
-            return False
-        return all(a.shape == b.vertices.shape and np.array_equal(a, b.vertices) for a, b in zip(old, static))
-
     def assemble(
         self,
         static: Sequence[HessianBlocks],
@@ -92,10 +83,10 @@ class HessianAssembler:
             CSR matrix ``(dof_count, dof_count)`` with sorted indices.
         """
         key = tuple((id(b.vertices), b.vertices.shape) for b in static)
-        if key != self._key and not self._same_vertices(static):
+        if key != self._key:
             self._pattern = _Pattern([b.vertices for b in static], self.dof_count)
+            self._key = key
             self._keep_alive = [b.vertices for b in static]
-        self._key = key
         pat = self._pattern
         vals = np.concatenate([b.blocks.reshape(-1) for b in static] + [np.asarray(diagonal, dtype=float)])
         data = np.bincount(pat.scatter, weights=vals, minlength=pat.nnz)

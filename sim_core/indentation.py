@@ -14,10 +14,8 @@ CalculiX/Abaqus mesh (FEATS, Helmut et al. 2024) into gel and indenter by node s
 
 from __future__ import annotations
 
-import dataclasses
-
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import Delaunay
@@ -270,7 +268,7 @@ def build_indentation(
         raise ConfigError("indentation: contact.self_contact must be False (the rigid indenter is a sheet body)")
     # a coarse rigid indenter's vertices (the sphere's tip is one) must test the gel's triangles,
     # unlike a compliant sheet that the gel's denser surface samples
-    contact = dataclasses.replace(contact, sheet_vertices_vs_solids=indenter_vertices_vs_gel)
+    contact = replace(contact, sheet_vertices_vs_solids=indenter_vertices_vs_gel)
     ind_x = np.asarray(indenter.x, dtype=float) + np.array([0.0, 0.0, indenter_lift])
     b = ModelBuilder()
     b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,

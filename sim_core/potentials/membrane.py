@@ -237,6 +237,10 @@ class SpringMembrane:
         if out.size:
             raise MeshError(f"SpringMembrane: edge {int(out[0])} {edges[out[0]].tolist()} has an index out of range")
         self.edges = edges
+        # Hessian block vertices: triangles, then each edge padded to 3 vertices (one array for the
+        # life of the potential, so the assembler's cached sparsity pattern is reused)
+        self._block_vertices = np.concatenate(
+            [self.triangles, np.stack([edges[:, 0], edges[:, 1], edges[:, 1]], axis=1)], axis=0)
         self.k_length, self.k_area = float(k_length), float(k_area)
         self.edge_rest_length = np.linalg.norm(x_rest[edges[:, 1]] - x_rest[edges[:, 0]], axis=1)
         if np.any(self.edge_rest_length <= 0):
@@ -323,10 +327,7 @@ class SpringMembrane:
         ht = g2[:, None, None] * np.einsum("ti,tj->tij", dAf, dAf) + g1[:, None, None] * d2A
         ht = project_psd_translation_free(ht, projection)
 
-        pad = np.stack([self.edges[:, 0], self.edges[:, 1], self.edges[:, 1]], axis=1)
-        return HessianBlocks(
-            np.concatenate([self.triangles, pad], axis=0), np.concatenate([ht, edge_blocks], axis=0)
-        )
+        return HessianBlocks(self._block_vertices, np.concatenate([ht, edge_blocks], axis=0))
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/dK for ``k_length`` or ``k_area`` (the energy is linear in each), shape ``(n, 3)``.
