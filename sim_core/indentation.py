@@ -234,7 +234,7 @@ def build_indentation(
     contact: ContactSettings,
     friction: float = 0.0,
     gel_density: float = 1000.0,
-    indenter_lift: float = 0.0,
+    indenter_lift: float | None = 0.0,
     solver_config: SolverConfig | None = None,
     indenter_vertices_vs_gel: bool = True,
 ) -> IndentationSetup:
@@ -250,7 +250,9 @@ def build_indentation(
             ``self_contact`` must be False (the indenter surface is a sheet body).
         friction: Coulomb coefficient gel-indenter.
         gel_density: kg/m^3 (irrelevant for quasi-static sweeps with a large dt).
-        indenter_lift: z shift applied to the indenter before building, m.
+        indenter_lift: z shift applied to the indenter before building, m; ``None``: just enough to
+            put the indenter's lowest point at the contact offset above the gel (depth 0 = first
+            touch, as in a prescribed-displacement FE model), 0 when it already starts above.
         solver_config: Newton settings (default: PARDISO, max |dx| / dt < 1e-7 m/s, i.e. 0.1 um at
             dt = 1 s, and absolute-value eigenvalue projection, which needs fewer iterations here).
         indenter_vertices_vs_gel: also pair the indenter's vertices with the gel's surface
@@ -269,7 +271,11 @@ def build_indentation(
     # a coarse rigid indenter's vertices (the sphere's tip is one) must test the gel's triangles,
     # unlike a compliant sheet that the gel's denser surface samples
     contact = replace(contact, sheet_vertices_vs_solids=indenter_vertices_vs_gel)
-    ind_x = np.asarray(indenter.x, dtype=float) + np.array([0.0, 0.0, indenter_lift])
+    ind_x = np.asarray(indenter.x, dtype=float)
+    if indenter_lift is None:
+        gel_surface = np.unique(tet_boundary_triangles(gel.tets))
+        indenter_lift = max(0.0, -_initial_gap(gel.x, gel_surface, ind_x, contact.eps)[0])
+    ind_x = ind_x + np.array([0.0, 0.0, indenter_lift])
     b = ModelBuilder()
     b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,
                                 "density": gel_density}, fixed=gel_fixed)
@@ -281,14 +287,19 @@ def build_indentation(
     model = b.finalize(gravity=(0.0, 0.0, 0.0), contact=contact)
     gel_b = model.bodies[GEL_BODY]
     surface = np.unique(gel_b.triangles)
-    tip = ind_x[np.argmin(ind_x[:, 2])]
-    # the gel surface vertex nearest to the indenter's lowest point: the top vertex right below it
-    tip_vertex = int(surface[np.argmin(np.sum((model.x_rest[surface] - tip) ** 2, axis=1))])
-    gap = float(tip[2] - model.x_rest[tip_vertex, 2] - contact.eps)
+    gap, tip_vertex = _initial_gap(model.x_rest, surface, ind_x, contact.eps)
     if gap < -contact.eps:
         raise ConfigError(f"indentation: the indenter starts {-gap:.3g} m inside the gel surface")
     cfg = solver_config or SolverConfig(tol_velocity=1e-7, max_iterations=100, projection="abs")
     return IndentationSetup(model, GEL_BODY, INDENTER_BODY, INDENTER_EFFECTOR, tip_vertex, gap, cfg)
+
+
+def _initial_gap(x: np.ndarray, surface: np.ndarray, indenter_x: np.ndarray, eps: float) -> tuple[float, int]:
+    """Gap (m) from the indenter's lowest point to the contact offset above the gel surface vertex
+    nearest to it (the top vertex right below it), and that vertex's index into ``x``."""
+    tip = indenter_x[np.argmin(indenter_x[:, 2])]
+    vertex = int(surface[np.argmin(np.sum((x[surface] - tip) ** 2, axis=1))])
+    return float(tip[2] - x[vertex, 2] - eps), vertex
 
 
 # ---------------------------------------------------------------------------------- sweep

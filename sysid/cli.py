@@ -15,9 +15,7 @@ it never holds a half-written result; an existing one is refused unless ``--forc
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-import uuid
 import warnings
 from pathlib import Path
 from typing import Sequence
@@ -127,7 +125,7 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     from sysid.fit import fit
     from sysid.observation import ObservationModel
     from sysid.report import write_report
-    from sysid.results import fit_document, provenance, publish_directory, write_fit_json
+    from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -148,16 +146,9 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
         progress.close()
     result.warnings[:0] = [str(w.message) for w in caught]
     doc = fit_document(result, provenance(evidence, args.seed, args.t_max, [PROG, *argv], args.scene))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
-    staging.mkdir()
-    try:
+    with staged_directory(out, args.force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)
-        publish_directory(staging, out, args.force)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"

@@ -16,10 +16,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
-import uuid
 from pathlib import Path
 from typing import Sequence
 
@@ -79,7 +77,7 @@ def _error(message: str) -> int:
 def _run(args: argparse.Namespace, argv: list[str], config: Path, out: Path) -> int:
     from sim_core.indentation import run_depth_sweep
     from sysid.indentation_fit import build_indentation_setup, fit_youngs_modulus, load_indentation_config
-    from sysid.results import git_revision, package_versions, publish_directory
+    from sysid.results import git_revision, package_versions, staged_directory
 
     cfg = load_indentation_config(config)
     t0 = time.perf_counter()
@@ -123,17 +121,10 @@ def _run(args: argparse.Namespace, argv: list[str], config: Path, out: Path) -> 
         "provenance": {"git_revision": git_revision()[0], "versions": package_versions(),
                        "command": [PROG, *argv], "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())},
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
-    staging.mkdir()
-    try:
+    with staged_directory(out, args.force) as staging:
         (staging / "indent_fit.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         _plot(doc, staging / "force_depth.png")
         (staging / "report.md").write_text(_markdown(doc), encoding="utf-8")
-        publish_directory(staging, out, args.force)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     print(f"  E = {fit.youngs_modulus:.5g} Pa (nu {fit.poisson_ratio}), C10 = {fit.c10 / 1e6:.4g} MPa"
           + (f" vs reference {cfg.reference_c10 / 1e6:.4g} MPa ({100 * doc['c10_relative_to_reference']:+.1f} %)"
              if doc["reference_c10_pa"] else ""))

@@ -191,11 +191,11 @@ def load_indentation_config(path: str | Path, repo_root: str | Path | None = Non
     )
 
 
-def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadratic: str = "split"):
+def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadratic: str = "corners"):
     """The gel + rigid indenter model of an indentation data set (e.g. FEATS' CalculiX model).
 
-    Reads the mesh (quadratic tets split into 8 linear ones by default, so the gel keeps every node
-    of the model it was made for), separates gel and indenter by their node sets, clamps the gel's
+    Reads the mesh (quadratic tets reduced to their corners, or split into 8 linear ones so that the
+    gel keeps every node of the model it was made for), separates gel and indenter by their node sets, clamps the gel's
     fixed set and makes the indenter's surface a rigid, effector-driven body lowered along -z. The
     indenter is lifted by the contact offset ``eps`` plus its initial penetration (if any), so that
     depth 0 is first touch, as in the prescribed-displacement CalculiX model.
@@ -203,7 +203,7 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
     Args:
         cfg: from :func:`load_indentation_config`.
         youngs_modulus: gel E in Pa (changed later by :func:`sim_core.indentation.run_depth_sweep`).
-        quadratic: ``"split"`` or ``"corners"`` (see :func:`sim_core.mesh.io.read_mesh`).
+        quadratic: ``"corners"`` or ``"split"`` (see :func:`sim_core.mesh.io.read_mesh`).
 
     Returns:
         :class:`sim_core.indentation.IndentationSetup`.
@@ -236,12 +236,8 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
                           max_iterations=int(sim.get("max_iterations", 100)))
     options = {"friction": cfg.friction, "solver_config": solver,
                "indenter_vertices_vs_gel": bool(sim.get("indenter_vertices_vs_gel", True))}
-    probe = ind.build_indentation(gel, fixed, surface, youngs_modulus, cfg.poisson_ratio, contact, **options)
-    lift = max(0.0, -probe.initial_gap)
-    if lift == 0.0:
-        return probe
     return ind.build_indentation(gel, fixed, surface, youngs_modulus, cfg.poisson_ratio, contact,
-                                 indenter_lift=lift, **options)
+                                 indenter_lift=None, **options)
 
 
 def _single_set(sets: dict[str, np.ndarray], path: Path) -> np.ndarray:

@@ -24,6 +24,7 @@ Infinite costs (failed replays) are written as null.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import math
@@ -35,7 +36,7 @@ import sys
 import uuid
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -188,29 +189,44 @@ def load_fit_json(path: str | Path) -> dict[str, Any]:
     return doc
 
 
-def publish_directory(staging: str | Path, out: str | Path, force: bool) -> Path:
-    """Rename the finished ``staging`` directory to ``out`` (atomic on one file system).
+@contextlib.contextmanager
+def staged_directory(out: str | Path, force: bool) -> Iterator[Path]:
+    """Fill a hidden sibling of ``out`` inside the ``with`` block, then rename it into place.
+
+    The result appears whole or not at all: on any exception the staging directory is removed and
+    ``out`` is left as it was.
 
     Args:
-        staging: a complete result directory, usually a hidden sibling of ``out``.
-        out: final location.
+        out: final result directory.
         force: replace an existing ``out`` (moved aside first, then deleted).
 
-    Returns:
-        ``out``.
+    Yields:
+        the staging directory (empty).
 
     Raises:
-        FileExistsError: ``out`` exists (e.g. appeared while the work ran) and not ``force``;
-            the result stays in ``staging`` and the message says so.
+        FileExistsError: ``out`` exists (e.g. appeared while the work ran) and not ``force``; the
+            staging directory is removed.
     """
-    staging, out = Path(staging), Path(out)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
+    staging.mkdir()
+    try:
+        yield staging
+        _publish_directory(staging, out, force)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+
+
+def _publish_directory(staging: Path, out: Path, force: bool) -> None:
+    """Rename ``staging`` to ``out`` (atomic on one file system), replacing ``out`` when ``force``."""
     trash = None
     if out.exists() or out.is_symlink():
         if not force:
-            raise FileExistsError(f"{out} appeared while working; the result is in {staging}")
+            raise FileExistsError(f"{out} appeared while working; the result is not written")
         trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
         os.replace(out, trash)
     os.replace(staging, out)
     if trash is not None:
         shutil.rmtree(trash, ignore_errors=True) if trash.is_dir() else trash.unlink()
-    return out
