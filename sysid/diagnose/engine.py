@@ -10,7 +10,8 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
 3. Score tests (:func:`sysid.diagnose.stats.score_test`: AR prewhitening, projection of
    ``J_theta``, robust variance) for every candidate x tested channel; Holm over the family.
 4. Refit of every significant candidate (physics: the linearised estimate on the training rows,
-   then one verifying replay; observation: exact, no replay), on training rows; evaluation on
+   then one verifying replay, one secant replay, and the probe when it fits better; a probe that
+   diverged is retried at a quarter of its size; observation: exact, no replay), on training rows; evaluation on
    held-out bags (replayed at nominal and refitted parameters) or on held-out time blocks (every
    other of ``2 * holdout_blocks`` equal blocks).
 5. Acceptance: ``delta_BIC > bic_threshold`` on the training rows AND lower held-out whitened RMS
@@ -23,7 +24,8 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    Confusable pairs are reported as ties unless a discriminating test resolves them (latency vs gel
    viscoelasticity: one lag fits every tactile channel and matches the cross-correlation lag).
    Accepted candidates are combined (first order: the sum of their scaled prediction changes).
-6. ``explained_by``: accepted, strongest first; ``["unexplained"]`` when a mismatch is detected
+6. ``explained_by``: accepted; those confirmed by a discriminating test first, then by delta-BIC;
+   ``["unexplained"]`` when a mismatch is detected
    (a significant test on a channel whose whitened excess exceeds ``min_excess``) but none is
    accepted; ``[]`` otherwise.
 
