@@ -59,6 +59,7 @@ from sim_core.model import Model
 from sim_core.potentials.base import assemble_hessian, block_dof_indices
 from sim_core.potentials.bending import dihedral_angle, dihedral_angle_gradient
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
+from sim_core.potentials.sphere_contact import SphereContact
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.state import State
 from sim_core.transforms import quat_to_matrix
@@ -295,7 +296,7 @@ class StepLinearization:
                 diag += p.hessian_diagonal()
             else:
                 blocks.append(p.hessian(self.x, "none"))
-            if isinstance(p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, LaggedFriction)):
+            if isinstance(p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction)):
                 self.contact_terms.append(p)
         self.H = assemble_hessian(blocks, 3 * n, diag)
         self.H_contact = assemble_hessian([p.hessian(self.x, "none") for p in self.contact_terms], 3 * n)

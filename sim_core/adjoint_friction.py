@@ -209,7 +209,8 @@ def friction_rows(model: Model, contact: ContactSet, state: State, friction: Lag
 
     Uses the same :class:`ContactSet` call as the solver (pairs near ``x^n`` with the state's side
     memory) to recover each row's kind, remembered side and bodies, then differentiates each row's
-    frame with :func:`vertex_triangle_frames`, :func:`edge_edge_frames` or the constant plane normal.
+    frame with :func:`vertex_triangle_frames`, :func:`edge_edge_frames`, the constant plane normal
+    or the radial normal of a rigid sphere (``dn/dx_i = (I - n n^T) / r = -dn/dc``).
 
     Args:
         model: the model.
@@ -253,6 +254,25 @@ def friction_rows(model: Model, contact: ContactSet, state: State, friction: Lag
         parts.append((np.repeat(v[:, None], 4, axis=1), k_c * (eps - plane.distance(x_n)[act]), dlam,
                       np.broadcast_to(plane.normal, (k, 3)).copy(), np.zeros((k, 3, 12)), w, np.zeros((k, 4, 12))))
         pairs += [frozenset((names[body[i]], pname)) for i in v]
+    for sname, sphere in contact.spheres:
+        act = np.flatnonzero(sphere.distance(x_n) < sphere.eps)
+        if act.size == 0:
+            continue
+        v = sphere.vertices[act]
+        k = v.size
+        rel = x_n[v] - x_n[sphere.center]
+        r = np.linalg.norm(rel, axis=1)
+        n = rel / r[:, None]
+        proj = (np.eye(3) - n[:, :, None] * n[:, None, :]) / r[:, None, None]  # dn/dx_i; dn/dc = -dn/dx_i
+        dlam = np.zeros((k, 12))
+        dlam[:, :3], dlam[:, 3:6] = -k_c * n, k_c * n
+        dn = np.zeros((k, 3, 12))
+        dn[:, :, :3], dn[:, :, 3:6] = proj, -proj
+        w = np.zeros((k, 4))
+        w[:, 0], w[:, 1] = 1.0, -1.0
+        verts = np.column_stack([v, np.full(k, sphere.center), v, v])  # padded as concatenate_frames does
+        parts.append((verts, k_c * (eps - (r - sphere.radius)), dlam, n, dn, w, np.zeros((k, 4, 12))))
+        pairs += [frozenset((names[body[i]], sname)) for i in v]
     if not parts:
         parts.append((np.zeros((0, 4), np.int64), np.zeros(0), np.zeros((0, 12)), np.zeros((0, 3)),
                       np.zeros((0, 3, 12)), np.zeros((0, 4)), np.zeros((0, 4, 12))))

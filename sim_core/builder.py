@@ -127,6 +127,36 @@ class ModelBuilder:
         self._append(body, mesh.x, mask)
         return body
 
+    def add_sphere(self, name: str, center, radius: float) -> Body:
+        """Add a rigid sphere (e.g. a spherical indenter), represented exactly by its centre.
+
+        The body has one vertex, the centre, always kinematic: fixed, or moved by an effector
+        (:meth:`add_effector` with ``local_vertices=[0]``). Other bodies' surface vertices touch it
+        through :class:`sim_core.potentials.sphere_contact.SphereContact` (smooth signed distance,
+        no facets); the contact force on the sphere is the force on its centre vertex.
+
+        Args:
+            name: body name.
+            center: centre position in m, shape ``(3,)``.
+            radius: radius R in m (> 0).
+
+        Raises:
+            ConfigError: duplicate name, non-finite centre, non-positive radius.
+        """
+        self._check_name(name)
+        c = np.asarray(center, dtype=float)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ConfigError(f"sphere {name!r}: center must be 3 finite numbers, got {center}")
+        if not (np.isfinite(radius) and radius > 0):
+            raise ConfigError(f"sphere {name!r}: radius must be finite and > 0 (m), got {radius}")
+        off = self._count
+        body = Body(
+            name=name, kind="sphere", vertex_start=off, vertex_stop=off + 1, triangles=np.zeros((0, 3), np.int64),
+            edges=np.zeros((0, 2), np.int64), material={"radius": float(radius)},
+        )
+        self._append(body, c[None, :], np.ones(1, dtype=bool))
+        return body
+
     def _append(self, body: Body, x: np.ndarray, fixed: np.ndarray) -> None:
         self._bodies[body.name] = body
         self._x.append(np.asarray(x, dtype=float))

@@ -32,6 +32,7 @@ from sim_core.collision import (
 from sim_core.model import Model
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
 from sim_core.potentials.friction import LaggedFriction
+from sim_core.potentials.sphere_contact import SphereContact
 
 
 class ContactSet:
@@ -70,6 +71,10 @@ class ContactSet:
         self.planes = [
             (name, PlaneContact(movable, p.normal, p.offset, self.stiffness, self.eps))
             for name, p in model.planes.items()
+        ]
+        self.spheres = [
+            (b.name, SphereContact(movable, b.vertex_start, b.material["radius"], self.stiffness, self.eps))
+            for b in bodies if b.kind == "sphere"
         ]
         self.x_prev: np.ndarray | None = None
         self._cache = None
@@ -162,9 +167,9 @@ class ContactSet:
                 (vt_sides, ee_sides))
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
-        """Contact potentials for the candidates near iterate ``x`` (planes included)."""
+        """Contact potentials for the candidates near iterate ``x`` (planes and spheres included)."""
         vt, ee = self._pairs(x, memory)
-        return [vt, ee] + [p for _, p in self.planes]
+        return [vt, ee] + [p for _, p in self.planes] + [p for _, p in self.spheres]
 
     def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
         """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
@@ -178,11 +183,11 @@ class ContactSet:
             if len(f.lam):
                 frames.append(f)
                 mus.append(self._mu(first[f.pair_index], second[f.pair_index]))
-        for name, plane in self.planes:
-            f = plane.contact_frames(x_n)
+        for name, obstacle in self.planes + self.spheres:
+            f = obstacle.contact_frames(x_n)
             if len(f.lam):
                 frames.append(f)
-                bodies = self.vertex_body[plane.vertices[f.pair_index]]
+                bodies = self.vertex_body[obstacle.vertices[f.pair_index]]
                 mus.append(np.array([self.model.friction_coefficient(self.body_names[b], name) for b in bodies]))
         if not frames:
             return None

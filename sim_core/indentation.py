@@ -1,8 +1,10 @@
 """Quasi-static indentation of a gel by a rigid indenter: model building and depth sweeps.
 
 A gel (tetrahedral Stable Neo-Hookean solid, fixed on its back face) is pressed by a rigid
-indenter, a triangle surface whose every vertex is driven by one kinematic effector (so it is a
-rigid, displacement-controlled body, like the fixed node set of a CalculiX indenter). The indenter
+indenter: either a triangle surface whose every vertex is driven by one kinematic effector (so it
+is a rigid, displacement-controlled body, like the fixed node set of a CalculiX indenter), or an
+exact sphere (:class:`RigidSphere`: centre vertex driven by the effector, smooth signed distance,
+:mod:`sim_core.potentials.sphere_contact`), which avoids the facets of a meshed sphere. The indenter
 moves along -z in small increments with a large time step (inertia negligible), and after each
 increment the net contact + friction force on the indenter is read from ``State.contact_force``.
 
@@ -36,6 +38,56 @@ INDENTER_EFFECTOR = "indenter"
 _RIGID_SHEET_MATERIAL = {"youngs_modulus": 1.0e9, "poisson_ratio": 0.3, "thickness": 1.0e-3, "density": 0.0}
 """Material of the indenter surface. Every indenter vertex is driven by the effector (Dirichlet),
 so these values enter no equation; the sheet body only carries the contact triangles."""
+
+
+@dataclass(frozen=True)
+class RigidSphere:
+    """An exact spherical indenter.
+
+    Attributes:
+        center: centre in m, shape ``(3,)``.
+        radius: radius in m.
+    """
+
+    center: np.ndarray
+    radius: float
+
+    @property
+    def lowest_point(self) -> np.ndarray:
+        """The sphere's lowest point (its tip when pressing along -z), m, shape ``(3,)``."""
+        return np.asarray(self.center, dtype=float) - np.array([0.0, 0.0, self.radius])
+
+
+def fit_sphere(points: np.ndarray) -> RigidSphere:
+    """Least-squares sphere through surface points (algebraic fit, then the mean radius).
+
+    Solves ``|p|^2 = 2 c . p + (R^2 - |c|^2)`` for ``c`` and the constant in the least-squares
+    sense (linear in the unknowns), then ``R`` = mean distance of the points to ``c``.
+
+    Args:
+        points: points on (part of) a sphere, m, shape ``(k, 3)``, ``k >= 4``, not coplanar.
+
+    Returns:
+        :class:`RigidSphere`.
+
+    Raises:
+        MeshError: fewer than 4 points, coplanar points, or points that deviate from the fitted
+            sphere by more than 1 % of its radius (not a sphere).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if p.shape[0] < 4:
+        raise MeshError(f"fit_sphere: need at least 4 points, got {p.shape[0]}")
+    a = np.column_stack([2.0 * p, np.ones(len(p))])
+    sol, _, rank, _ = np.linalg.lstsq(a, np.sum(p * p, axis=1), rcond=None)
+    if rank < 4:
+        raise MeshError("fit_sphere: the points are coplanar (no unique sphere)")
+    center = sol[:3]
+    dist = np.linalg.norm(p - center, axis=1)
+    radius = float(dist.mean())
+    worst = float(np.max(np.abs(dist - radius)))
+    if worst > 0.01 * radius:
+        raise MeshError(f"fit_sphere: points deviate {worst:.3g} m from the fitted sphere (R = {radius:.4g} m)")
+    return RigidSphere(center, radius)
 
 
 # ---------------------------------------------------------------------------------- analytic
@@ -228,7 +280,7 @@ class IndentationSetup:
 def build_indentation(
     gel: TetMesh,
     gel_fixed: np.ndarray,
-    indenter: TriMesh,
+    indenter: TriMesh | RigidSphere,
     youngs_modulus: float,
     poisson_ratio: float,
     contact: ContactSettings,
@@ -243,7 +295,8 @@ def build_indentation(
     Args:
         gel: gel tet mesh (m).
         gel_fixed: local gel vertex indices (or mask) clamped (the back face).
-        indenter: indenter surface (m); the indenter is rigid (every vertex effector-driven).
+        indenter: indenter surface (m; rigid: every vertex effector-driven), or an exact
+            :class:`RigidSphere` (its centre effector-driven).
         youngs_modulus: gel E in Pa.
         poisson_ratio: gel nu.
         contact: penalty contact settings (stiffness k_c N/m, offset eps m, friction eps_v m/s).
@@ -271,7 +324,8 @@ def build_indentation(
     # a coarse rigid indenter's vertices (the sphere's tip is one) must test the gel's triangles,
     # unlike a compliant sheet that the gel's denser surface samples
     contact = replace(contact, sheet_vertices_vs_solids=indenter_vertices_vs_gel)
-    ind_x = np.asarray(indenter.x, dtype=float)
+    sphere = isinstance(indenter, RigidSphere)
+    ind_x = indenter.lowest_point[None, :] if sphere else np.asarray(indenter.x, dtype=float)
     if indenter_lift is None:
         gel_surface = np.unique(tet_boundary_triangles(gel.tets))
         indenter_lift = max(0.0, -_initial_gap(gel.x, gel_surface, ind_x, contact.eps)[0])
@@ -279,9 +333,14 @@ def build_indentation(
     b = ModelBuilder()
     b.add_solid(GEL_BODY, gel, {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio,
                                 "density": gel_density}, fixed=gel_fixed)
-    b.add_sheet(INDENTER_BODY, TriMesh(ind_x, indenter.triangles), dict(_RIGID_SHEET_MATERIAL))
-    b.add_effector(INDENTER_EFFECTOR, INDENTER_BODY, np.arange(len(ind_x)), [0, 0, 0, 0, 0, 0, 1],
-                   max_translation_per_step=1.0)
+    if sphere:
+        b.add_sphere(INDENTER_BODY, np.asarray(indenter.center, dtype=float) + [0.0, 0.0, indenter_lift],
+                     indenter.radius)
+        driven = np.arange(1)
+    else:
+        b.add_sheet(INDENTER_BODY, TriMesh(ind_x, indenter.triangles), dict(_RIGID_SHEET_MATERIAL))
+        driven = np.arange(len(ind_x))
+    b.add_effector(INDENTER_EFFECTOR, INDENTER_BODY, driven, [0, 0, 0, 0, 0, 0, 1], max_translation_per_step=1.0)
     if friction > 0:
         b.set_friction(GEL_BODY, INDENTER_BODY, friction)
     model = b.finalize(gravity=(0.0, 0.0, 0.0), contact=contact)

@@ -26,7 +26,8 @@ class Body:
 
     Attributes:
         name: unique name (``sheet``, ``gel``, ``table_box`` ...).
-        kind: ``"sheet"`` (triangle shell), ``"solid"`` (tetrahedra) or ``"frozen"`` (all vertices fixed).
+        kind: ``"sheet"`` (triangle shell), ``"solid"`` (tetrahedra), ``"frozen"`` (all vertices fixed)
+            or ``"sphere"`` (a rigid sphere: one kinematic vertex, its centre; ``material["radius"]``).
         vertex_start, vertex_stop: global vertex range ``[start, stop)``.
         triangles: surface triangles, global indices, shape ``(t, 3)`` (a sheet's own triangles;
             a solid's outward boundary faces).
@@ -203,7 +204,7 @@ class Model:
         """Global names of the editable scalar parameters (``body.key``, ``friction.a_b``, ...)."""
         names = []
         for b in self.bodies.values():
-            if b.kind == "frozen":
+            if b.kind in ("frozen", "sphere"):
                 continue
             keys = SHEET_PARAMETERS if b.kind == "sheet" else SOLID_PARAMETERS
             names += [f"{b.name}.{k}" for k in keys if k in b.material]

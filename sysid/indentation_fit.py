@@ -196,7 +196,9 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
 
     Reads the mesh (quadratic tets reduced to their corners, or split into 8 linear ones so that the
     gel keeps every node of the model it was made for), separates gel and indenter by their node sets, clamps the gel's
-    fixed set and makes the indenter's surface a rigid, effector-driven body lowered along -z. The
+    fixed set and makes the indenter a rigid, effector-driven body lowered along -z: its surface
+    mesh, or (``simulation.indenter_geometry: sphere``) the exact sphere fitted to the lower half
+    of that surface (:func:`sim_core.indentation.fit_sphere`; smooth contact, no facets). The
     indenter is lifted by the contact offset ``eps`` plus its initial penetration (if any), so that
     depth 0 is first touch, as in the prescribed-displacement CalculiX model.
 
@@ -227,6 +229,15 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
         raise ConfigError(f"{cfg.gel_fixed_set}: no node of the fixed set belongs to the gel")
     surface = ind.surface_of(parts["indenter"][0])
     sim = cfg.simulation
+    geometry = sim.get("indenter_geometry", "mesh")
+    if geometry == "sphere":
+        # the contacting lower half of the indenter (FEATS: a hemisphere under a flat top)
+        z = surface.x[:, 2]
+        indenter = ind.fit_sphere(surface.x[z <= 0.5 * (z.min() + z.max())])
+    elif geometry == "mesh":
+        indenter = surface
+    else:
+        raise ConfigError(f"indentation config: simulation.indenter_geometry must be mesh|sphere, got {geometry!r}")
     eps = float(sim.get("contact_eps", 2e-5))
     increment = float(sim.get("max_increment", 2.5e-4))
     contact = ContactSettings(stiffness=float(sim.get("contact_stiffness", 1e5)), eps=eps,
@@ -236,7 +247,7 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
                           max_iterations=int(sim.get("max_iterations", 100)))
     options = {"friction": cfg.friction, "solver_config": solver,
                "indenter_vertices_vs_gel": bool(sim.get("indenter_vertices_vs_gel", True))}
-    return ind.build_indentation(gel, fixed, surface, youngs_modulus, cfg.poisson_ratio, contact,
+    return ind.build_indentation(gel, fixed, indenter, youngs_modulus, cfg.poisson_ratio, contact,
                                  indenter_lift=None, **options)
 
 
