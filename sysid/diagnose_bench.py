@@ -388,6 +388,14 @@ def interval_iou(a: Sequence[Sequence[float]], b: Sequence[Sequence[float]]) -> 
     return inter / union if union > 0 else 0.0
 
 
+def heldout_excess_reduction(before: float, after: float) -> float:
+    """``1 - e_after / e_before`` of the held-out *excess* RMS ``e = sqrt(max(rms^2 - 1, 0))`` (whitened,
+    the part above the noise; the noise floor 1 cannot be removed by any model). ``e_before`` is floored
+    at ``sqrt(0.05) rms_before`` (as :func:`sysid.diagnose.residuals.explained_fraction`)."""
+    e0 = math.sqrt(max(before ** 2 - 1.0, 0.05 * before ** 2))
+    return 1.0 - math.sqrt(max(after ** 2 - 1.0, 0.0)) / e0
+
+
 def score(recordings: Sequence[Recording], reports: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Confusion matrix, top-1 accuracy per strength, false alarms, window IoU, held-out RMS reduction."""
     truth = [r.label if r.in_library or r.label == "none" else "unexplained" for r in recordings]
@@ -404,7 +412,7 @@ def score(recordings: Sequence[Recording], reports: Sequence[Mapping[str, Any]])
                                   "mean_strength": float(np.mean([recordings[i].strength for i in idx]))}
     nominal = [i for i, r in enumerate(recordings) if r.label == "none"]
     alarms = [bool((reports[i].get("mismatch") or {}).get("detected")) or pred[i] != "none" for i in nominal]
-    ious, reductions = [], []
+    ious, reductions, excess_reductions = [], [], []
     for rec, rep in zip(recordings, reports):
         if rec.label == "none":
             continue
@@ -413,12 +421,14 @@ def score(recordings: Sequence[Recording], reports: Sequence[Mapping[str, Any]])
         before, after = refit.get("heldout_rms_before"), refit.get("heldout_rms_after")
         if before is not None and after is not None and before > 0 and top1(rep) not in ("none", "unexplained"):
             reductions.append(1.0 - float(after) / float(before))
+            excess_reductions.append(heldout_excess_reduction(float(before), float(after)))
     return {
         "recordings": len(recordings), "labels": labels, "confusion": confusion,
         "top1_accuracy": per_strength,
         "false_alarm_rate": float(np.mean(alarms)) if alarms else None,
         "window_iou_mean": float(np.mean(ious)) if ious else None,
         "heldout_rms_reduction_mean": float(np.mean(reductions)) if reductions else None,
+        "heldout_excess_reduction_mean": float(np.mean(excess_reductions)) if excess_reductions else None,
         "per_recording": [{"name": r.name, "truth": t, "top1": p, "strength": round(r.strength, 3)}
                           for r, t, p in zip(recordings, truth, pred)],
     }
@@ -433,7 +443,7 @@ def format_score(result: Mapping[str, Any]) -> str:
         lines.append(f"{t:<{w}}" + "".join(f"{result['confusion'][t][p]:>11}" for p in labels))
     for k, v in result["top1_accuracy"].items():
         lines.append(f"top-1 at x{k}: {v['accuracy']:.2f} ({v['count']} recordings, mean strength {v['mean_strength']:.2f})")
-    for key in ("false_alarm_rate", "window_iou_mean", "heldout_rms_reduction_mean"):
+    for key in ("false_alarm_rate", "window_iou_mean", "heldout_rms_reduction_mean", "heldout_excess_reduction_mean"):
         v = result[key]
         lines.append(f"{key}: {'n/a' if v is None else f'{v:.3f}'}")
     return "\n".join(lines)

@@ -297,6 +297,26 @@ class PhysicsParameterCandidate:
         self.probe_beta *= factor
         self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
 
+    def grow_probe(self, factor: float) -> bool:
+        """Scale ``probe_beta`` up by ``factor > 1`` (a probe too small to move the prediction above
+        the noise gives a signature of round-off); stays below 90 % of the parameter's bound.
+
+        Returns:
+            whether the probe changed.
+
+        Raises:
+            ValueError: ``factor <= 1``.
+        """
+        if not factor > 1.0:
+            raise ValueError(f"candidate {self.name}: grow factor must be > 1, got {factor!r}")
+        limit = 0.9 * PARAMETER_BOUNDS.get(self.parameter, math.inf)
+        new = min(self.probe_beta * factor, limit)
+        if not new > self.probe_beta:
+            return False
+        self.probe_beta = new
+        self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
+        return True
+
     def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
         """Parameters of the probe rollout (nominal values plus the effect at ``probe_beta``)."""
         return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta)}
@@ -368,12 +388,22 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
         damping_probe: probe of the mass-proportional damping, 1/s.
 
     Returns:
-        candidate objects: latency, lens_distortion, force_bias, damping, bending_plasticity (when
-        the sheet bends at all), then the extra ones whose parameter the simulator knows.
+        candidate objects: latency, lens_distortion, force_bias, damping (the global
+        mass-proportional one only when ``extra`` has no ``damping`` the simulator knows),
+        bending_plasticity (when the sheet bends at all), then the extra ones whose parameter the
+        simulator knows.
     """
     out: list[Any] = [LatencyCandidate(), LensDistortionCandidate(), ForceBiasCandidate()]
     names = set(ctx.model.simulation().parameter_names)
-    if "damping" in names and float(ctx.params.get("damping", ctx.model.parameter_value("damping"))) == 0.0:
+    if extra is None:
+        try:
+            extra = getattr(importlib.import_module("sim_core.candidates"), "DIAGNOSIS_CANDIDATES", None)
+        except ImportError:
+            extra = None
+    # the library's own damping (sheets only) replaces the global mass-proportional one when available
+    own_damping = "damping" in (extra or {}) and _known_parameter(ctx.model, extra["damping"]["parameter"], names)
+    if (not own_damping and "damping" in names
+            and float(ctx.params.get("damping", ctx.model.parameter_value("damping"))) == 0.0):
         out.append(PhysicsParameterCandidate("damping", "damping", damping_probe, True, report_name="damping_per_s"))
     if "sheet.yield_angle" in names and not math.isfinite(float(ctx.params.get("sheet.yield_angle", ctx.model.parameter_value("sheet.yield_angle")))):
         theta_max = max_hinge_angle(ctx)
@@ -385,11 +415,6 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
             out.append(PhysicsParameterCandidate("bending_plasticity", "sheet.yield_angle", 1.0, True,
                                                  to_parameter=functools.partial(yield_angle_for, theta_max=theta_max),
                                                  report_name="yield_exceedance"))
-    if extra is None:
-        try:
-            extra = getattr(importlib.import_module("sim_core.candidates"), "DIAGNOSIS_CANDIDATES", None)
-        except ImportError:
-            extra = None
     for effect, spec in (extra or {}).items():
         if effect not in EFFECTS:
             raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")

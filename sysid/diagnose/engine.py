@@ -51,8 +51,8 @@ from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import locate, stats
 from sysid.diagnose.parallel import replay_many
-from sysid.diagnose.residuals import (explained_fraction, holdout_rows, residual, rms_summary, sse,
-                                      stream_channels, whiten)
+from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, residual,
+                                      rms_summary, sse, stream_channels, whiten)
 
 CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelasticity"),
               ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"))
@@ -85,6 +85,9 @@ class Settings:
             replayed poses (:meth:`BagDiagnosis._denoise_controls`; 0 = replay the measured poses).
         min_gain: effect-size criterion in absolute terms: the held-out whitened energy per value
             ``rms_before^2 - rms_after^2`` must drop by at least this (noise variance units).
+        probe_target: whitened RMS change (noise units, strongest channel) a physics probe should
+            reach; a probe outside [1/4, 4] times it is rescaled (:meth:`BagDiagnosis._calibrate_probes`).
+        probe_max_growth: largest factor (up or down) of one probe rescaling round.
         secant: refine physics refits by one more replay at the minimiser of a parabola through
             the training SSE at beta = 0, the probe beta and the linearised estimate.
     """
@@ -105,6 +108,8 @@ class Settings:
     denoise_window: int = 11
     min_gain: float = 0.25
     simulation: dict[str, Any] | None = None
+    probe_target: float = 2.0
+    probe_max_growth: float = 1000.0
 
 
 # ====================================================================================== one bag
@@ -210,6 +215,56 @@ class BagDiagnosis:
             white = 1.4826 * mad / math.sqrt(2.0)
             model.sigma[ch] = np.maximum(model.sigma[ch], white)
 
+    def _probe_change(self, ctx, probe_prediction: Mapping[str, np.ndarray]) -> float:
+        """Largest whitened RMS (noise units) over the tested channels of a probe's prediction change."""
+        return max((float(np.sqrt(np.mean(whiten(self.model, ch, probe_prediction[ch] - ctx.prediction[ch]) ** 2)))
+                    for ch in self.tested if ch in probe_prediction), default=0.0)
+
+    def _calibrate_probes(self, ctx, probes, probe_out) -> None:
+        """Re-run probes whose prediction change is far from ``probe_target`` noise units.
+
+        The secant signature ``(y(beta_p) - y(0)) / beta_p`` is the derivative the score test and the
+        linearised refit need only when the probe is in the linear range and above round-off. A probe
+        that barely moves the simulation (mass-proportional damping of a few 1/s on a quasi-static
+        press: 1e-4 noise units) gives round-off, and the refit, bounded by a few probe sizes, cannot
+        reach an effect that is there; a probe that changes the prediction by tens of noise units
+        (an anisotropy of 0.3 that makes the card buckle differently) gives a secant unrelated to the
+        tangent at 0, and a refit several times too small. Probes outside ``[target / 4, 4 target]``
+        (strongest channel, whitened RMS) are rescaled towards ``target`` (linear response assumed; a
+        factor within ``[1 / probe_max_growth, probe_max_growth]`` per round, two rounds); a rescaled
+        probe that diverges leaves the previous one in place.
+        """
+        s = self.settings
+        for _ in range(2):
+            redo = []
+            for c in probes:
+                rep = probe_out.get(c.name)
+                if rep is None or not hasattr(c, "grow_probe"):
+                    continue
+                m = self._probe_change(ctx, rep[1])
+                old = (c.probe_beta, c.bound)
+                if m < 0.25 * s.probe_target:
+                    factor = s.probe_max_growth if m <= 0.0 else min(s.probe_target / m, s.probe_max_growth)
+                    changed = factor > 1.0 and c.grow_probe(factor)
+                elif m > 4.0 * s.probe_target:
+                    c.shrink_probe(max(s.probe_target / m, 1.0 / s.probe_max_growth))
+                    c.bound = old[1]  # the refit may still go as far as the first probe did
+                    changed = True
+                else:
+                    continue
+                if changed:
+                    redo.append((c, old))
+                    self.notes.append(f"{c.name}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
+                                      f"re-probed at beta {c.probe_beta:.3g}")
+            if not redo:
+                return
+            for (c, old), rep in zip(redo, self._replays([c.probe(ctx) for c, _ in redo])):
+                if rep is not None:
+                    probe_out[c.name] = rep
+                else:
+                    c.probe_beta, c.bound = old
+                    self.notes.append(f"{c.name}: rescaled probe diverged; the previous one is kept")
+
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
         out = replay_many(self.model, sets, self.settings.workers, self.settings.ray_address)
@@ -253,6 +308,7 @@ class BagDiagnosis:
                 c.shrink_probe(0.25)
                 self.notes.append(f"{c.name}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
             probe_out.update(zip([c.name for c in retry], self._replays([c.probe(ctx) for c in retry])))
+        self._calibrate_probes(ctx, probes, probe_out)
         self._probe_out = probe_out
 
         # ---- score tests
@@ -292,15 +348,24 @@ class BagDiagnosis:
         if self.heldout:
             train = {ch: np.ones_like(v) for ch, v in train.items()}
         refits = self._refit(ctx, [by_name[e] for e in significant], tests, J_theta, train, theta)
+        return self._conclude(ctx, library, tests, refits, train, theta, t_start)
 
+    def _conclude(self, ctx, library, tests, refits, train, theta, t_start: float) -> dict[str, Any]:
+        """Steps 5-7 (decide, combine, locate, report) from the tests and refits; no replay unless
+        held-out recordings are given."""
+        s = self.settings
+        model = self.model
+        pred0 = ctx.prediction
+        significant = sorted({t["effect"] for t in tests if t["significant"]},
+                             key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
         heldout_models = self._heldout_models() if self.heldout else []
         decisions = self._decide(ctx, refits, train, heldout_models, theta)
         self._decisions = decisions
         # an effect whose discriminating test confirmed it (latency: the cross-correlation lag of the
         # recorded vs predicted rates matches the fitted delay) is named before the ones that only
-        # lower the residual; otherwise the order is by delta-BIC
+        # lower the residual; otherwise the order is by held-out gain
         accepted = sorted((e for e in decisions["order"] if decisions[e]["accepted"]),
-                          key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["delta_bic"]))
+                          key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["heldout_gain"]))
         # confusable pairs: one name wins only when a discriminating test resolves the pair
         ties = self._ties(ctx, accepted, refits, tests)
 
@@ -528,12 +593,26 @@ class BagDiagnosis:
         return out
 
     def _decide(self, ctx, refits, train, heldout_models, theta) -> dict[str, Any]:
-        """Accept refits: delta-BIC, held-out improvement and the effect-size criterion, greedily.
+        """Accept refits by their held-out improvement, greedily (model comparison out of sample).
 
-        Every refit is first judged alone; they are then taken strongest (delta-BIC) first, and each
-        later one is judged again on what the already accepted ones leave (its prediction change
-        rescaled by least squares on the training rows, scale in [0, 1.5]), so that a candidate that
-        only soaks up part of the first effect is not named as a second one.
+        Each refit (fitted on the training rows) is tested on the held-out rows (or bags): a one-sided
+        held-out score test that the residual supports the refit's prediction change
+        (:func:`stats.heldout_test`, Newey-West variance), Holm over the refitted candidates. It is
+        accepted when that test rejects, the training SSE drops too, no channel's held-out fit is made
+        significantly worse (consistency: one parameter drives every channel the effect acts on), and
+        the refit removes at least ``min_explained`` of the held-out excess energy of its channels and
+        ``min_gain`` of their held-out mean square (effect sizes: a candidate that only correlates
+        with a larger gap, or with the small systematic mismatch that even a nominal recording has
+        and that a powerful test detects, is not named).
+        Latency must also pass its discriminating test (cross-correlation lag agrees with tau).
+        The in-sample delta-BIC is reported, not used: counted in time samples (about 24 training
+        samples here) its penalty ``q ln n`` and threshold demanded more than 2-sigma effects give.
+
+        Accepted candidates are then taken by held-out gain (whitened SSE removed, comparable across
+        candidates whatever channels they act on), and each later one is judged again on what the
+        already accepted ones leave: its prediction change rescaled by least squares on the training
+        rows (scale in [0, 1.5]) must pass the same held-out test and effect size, so that a
+        candidate that only soaks up part of the first effect is not named as a second one.
         """
         s = self.settings
         out: dict[str, Any] = {}
@@ -544,13 +623,22 @@ class BagDiagnosis:
             q = int(rf.beta.shape[0])
             dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
             lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
-            before, after = self._heldout_rms(ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models,
-                                              theta, [rf])
-            frac = explained_fraction(before, after)
+            before, after, (a, b), per_channel = self._heldout_rms(
+                ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models, theta, [rf], differential=True)
+            test = self._heldout_test(a, b, 0.0)
+            # consistency across channels: one parameter drives every channel the effect acts on, so a
+            # channel whose held-out fit the refit makes significantly worse (supported scale < 1/2)
+            # contradicts it -- e.g. a gel effect that fits the sheet by spoiling the markers
+            worse = {ch: self._heldout_test(ac, bc, 0.5) for ch, (ac, bc) in per_channel.items() if np.any(bc)}
+            p_worse, rej_worse = (stats.holm([t.p_below for t in worse.values()], s.alpha) if worse else ([], []))
+            contradicted = [ch for ch, rj in zip(worse, rej_worse) if rj]
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
-                      "heldout_rms_after": after, "explained_fraction": frac, "params": rf.params, "scale": 1.0,
-                      "accepted": bool(dbic > s.bic_threshold and after < before and frac >= s.min_explained
-                                       and before ** 2 - after ** 2 >= s.min_gain)}
+                      "heldout_rms_after": after, "explained_fraction": explained_fraction(before, after),
+                      "heldout_gain": float(np.sum(2.0 * a - b)), "heldout_scale": test.beta,
+                      "heldout_statistic": test.statistic, "heldout_p": test.p_value,
+                      "channel_scales": {ch: t.beta for ch, t in worse.items()},
+                      "contradicted_on": contradicted, "params": rf.params, "scale": 1.0,
+                      "train_improves": bool(sse1 < sse0)}
             if e == "latency":
                 # discriminating test: a delay of the stream shows as a cross-correlation lag between the
                 # recorded and the predicted rates of change that agrees with the refitted tau
@@ -560,8 +648,16 @@ class BagDiagnosis:
                 lag = float(np.median(list(lags.values()))) if lags else float("nan")
                 agree = bool(np.isfinite(lag) and abs(lag - tau) <= max(1.5 * period, 0.5 * abs(tau)))
                 out[e].update({"xcorr_lag_s": lags, "xcorr_agrees": agree})
-                out[e]["accepted"] = out[e]["accepted"] and agree
-        order = sorted(refits, key=lambda e: -out[e]["delta_bic"])
+        names = list(refits)
+        adjusted, reject = stats.holm([out[e]["heldout_p"] for e in names], s.alpha) if names else ([], [])
+        for e, a, rj in zip(names, adjusted, reject):
+            d = out[e]
+            d["heldout_p_holm"] = float(a)
+            d["accepted"] = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
+                                 and d["explained_fraction"] >= s.min_explained and d.get("xcorr_agrees", True)
+                                 and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain
+                                 and not d["contradicted_on"])
+        order = sorted(refits, key=lambda e: -out[e]["heldout_gain"])
         out["order"] = order
         base = {ch: ctx.prediction[ch].copy() for ch in self.tested}
         first = True
@@ -586,19 +682,31 @@ class BagDiagnosis:
             sse0, _, n = sse(self.model, base, chans, train)
             sse1, _, _ = sse(self.model, {**base, **cond}, chans, train)
             dbic = stats.delta_bic(sse0, sse1, n, int(rf.beta.shape[0])) if sse0 > 0 and sse1 > 0 else 0.0
-            ok = dbic > s.bic_threshold
-            if not heldout_models:
+            out[e].update({"conditional_delta_bic": float(dbic), "scale": c})
+            if heldout_models:
+                ok = dbic > s.bic_threshold
+            else:
                 rows = {ch: ~train[ch] for ch in chans}
                 h0, m0, _ = sse(self.model, base, chans, rows)
                 h1, m1, _ = sse(self.model, {**base, **cond}, chans, rows)
                 b, a = math.sqrt(h0 / max(m0, 1)), math.sqrt(h1 / max(m1, 1))
                 frac = explained_fraction(b, a)
-                ok = ok and a < b and frac >= s.min_explained and b ** 2 - a ** 2 >= s.min_gain
-                out[e]["conditional_explained_fraction"] = frac
-            out[e].update({"conditional_delta_bic": float(dbic), "scale": c, "accepted": bool(ok)})
+                test = self._heldout_test(*heldout_products(self.model, base, {**base, **cond}, chans, rows), 0.0)
+                ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained
+                          and b ** 2 - a ** 2 >= s.min_gain)
+                out[e].update({"conditional_explained_fraction": frac, "conditional_heldout_p": test.p_value})
+            out[e]["accepted"] = bool(ok)
             if ok:
                 base.update(cond)
         return out
+
+    def _heldout_test(self, a: np.ndarray, b: np.ndarray, beta0: float) -> stats.HeldoutResult:
+        """:func:`stats.heldout_test`, or a neutral result (both p-values 1) when it cannot be done."""
+        try:
+            return stats.heldout_test(a, b, beta0)
+        except ValueError as err:
+            self.notes.append(f"held-out test: {err}")
+            return stats.HeldoutResult(0.0, beta0, 0.0, 1.0, 1.0, int(np.size(a)))
 
     def _xcorr_lags(self, ctx, channels: Sequence[str]) -> dict[str, float]:
         """Per channel: lag (s) of the recorded rate of change behind the predicted one, from the peak of
@@ -621,14 +729,24 @@ class BagDiagnosis:
                 self.notes.append(f"xcorr lag on {ch}: {err}")
         return out
 
-    def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied) -> tuple[float, float]:
+    def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied,
+                     differential: bool = False) -> tuple:
+        """Held-out whitened RMS before/after over ``channels`` (held-out time blocks, or the held-out
+        bags replayed at nominal and refitted parameters); with ``differential`` also the per-time
+        products ``(a, b)`` of :func:`residuals.heldout_products` over all channels and per channel
+        (concatenated over bags)."""
         if not heldout_models:
             rows = {ch: ~train[ch] for ch in channels}
             s0, n0, _ = sse(self.model, ctx.prediction, channels, rows)
             s1, n1, _ = sse(self.model, prediction, channels, rows)
-            return float(math.sqrt(s0 / max(n0, 1))), float(math.sqrt(s1 / max(n1, 1)))
+            rms = (float(math.sqrt(s0 / max(n0, 1))), float(math.sqrt(s1 / max(n1, 1))))
+            if differential:
+                per = {ch: heldout_products(self.model, ctx.prediction, prediction, [ch], rows) for ch in channels}
+                return rms + (heldout_products(self.model, ctx.prediction, prediction, channels, rows), per)
+            return rms
         tot0 = tot1 = 0.0
         n_tot = 0
+        diffs = []
         for hm in heldout_models:
             hm.sigma.update({ch: v for ch, v in self.model.sigma.items() if ch in hm.sigma})
             sim_params = dict(theta)
@@ -649,7 +767,16 @@ class BagDiagnosis:
             s0, n0, _ = sse(hm, p0, chans, None)
             s1, _, _ = sse(hm, p1, chans, None)
             tot0, tot1, n_tot = tot0 + s0, tot1 + s1, n_tot + n0
-        return float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1)))
+            if differential:
+                diffs.append((heldout_products(hm, p0, p1, chans, None),
+                              {ch: heldout_products(hm, p0, p1, [ch], None) for ch in chans}))
+        rms = (float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1))))
+        if differential:
+            both = tuple(np.concatenate([d[0][i] for d in diffs]) if diffs else np.zeros(0) for i in (0, 1))
+            per = {ch: tuple(np.concatenate([d[1][ch][i] for d in diffs if ch in d[1]]) for i in (0, 1))
+                   for ch in channels if any(ch in d[1] for d in diffs)}
+            return rms + (both, per)
+        return rms
 
     @staticmethod
     def _apply_observation(hctx, rf: cands.Refit, pred: dict[str, np.ndarray]) -> None:
@@ -698,7 +825,7 @@ class BagDiagnosis:
                      "significant": t["significant"]}
             if e in decisions:
                 entry.update({k: decisions[e][k] for k in ("delta_bic", "accepted", "heldout_rms_before",
-                                                           "heldout_rms_after")})
+                                                           "heldout_rms_after", "heldout_gain", "heldout_p", "contradicted_on")})
             tie = [x["pair"] for x in ties if e in x["pair"] and not x["resolved"]]
             if tie:
                 entry["tie_with"] = [p for pair in tie for p in pair if p != e]

@@ -80,3 +80,40 @@ def stream_channels(channel: str, tested: Sequence[str]) -> list[str]:
     """The tested channels that come from the same ROS topic as ``channel`` (e.g. markers xyz/uv)."""
     stream = cands.STREAMS[channel]
     return [c for c in tested if cands.STREAMS[c] == stream]
+
+
+def heldout_products(model: Any, before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
+                     channels: Sequence[str], rows: Mapping[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per time sample, ``a_t = sum r_0 . delta`` and ``b_t = sum delta . delta`` (whitened), where
+    ``r_0`` is the residual of ``before`` and ``delta = after - before`` (the inputs of
+    :func:`sysid.diagnose.stats.heldout_test`).
+
+    Channels are summed onto the simulation steps their stamps fall in (``model.step_times_ns``), so
+    that streams with different stamps make one series; only steps with a selected row are kept.
+
+    Args:
+        model: observation model (``data``, ``sigma``, ``evidence.t_ns``, ``step_times_ns``).
+        before, after: channel -> prediction (a channel missing from ``after`` is unchanged).
+        channels: channels summed.
+        rows: channel -> bool rows to use (None: all).
+
+    Returns:
+        ``(a, b)``, each ``(T',)`` in noise units^2, in time order.
+    """
+    steps = np.asarray(model.step_times_ns)
+    a = np.zeros(steps.shape[0])
+    b = np.zeros(steps.shape[0])
+    used = np.zeros(steps.shape[0], dtype=bool)
+    for ch in channels:
+        if ch not in before:
+            continue
+        r0 = residual(model, ch, before[ch])
+        d = whiten(model, ch, after.get(ch, before[ch]) - before[ch])
+        at = np.sum((r0 * d).reshape(r0.shape[0], -1), axis=1)
+        bt = np.sum((d * d).reshape(d.shape[0], -1), axis=1)
+        idx = np.clip(np.searchsorted(steps, np.asarray(model.evidence.t_ns[ch]), side="left"), 0, steps.shape[0] - 1)
+        sel = np.ones(at.shape[0], dtype=bool) if rows is None else np.asarray(rows[ch], dtype=bool)
+        np.add.at(a, idx[sel], at[sel])
+        np.add.at(b, idx[sel], bt[sel])
+        used[idx[sel]] = True
+    return a[used], b[used]

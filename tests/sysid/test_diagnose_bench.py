@@ -126,3 +126,11 @@ def test_quick_benchmark_end_to_end(tmp_path, capsys):
     assert doc["confusion"]["latency"]["latency"] == 1
     assert doc["confusion"]["gel_viscoelasticity"]["gel_viscoelasticity"] == 1
     assert doc["false_alarm_rate"] == 0.0
+
+
+def test_heldout_excess_reduction_counts_the_part_above_the_noise():
+    from sysid.diagnose_bench import heldout_excess_reduction
+
+    assert heldout_excess_reduction(2.0, 1.0) == pytest.approx(1.0)
+    assert heldout_excess_reduction(2.0, 2.0) == pytest.approx(0.0)
+    assert 0.0 < heldout_excess_reduction(2.0, 1.5) < 1.0
