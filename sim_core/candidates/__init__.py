@@ -9,6 +9,7 @@ incremental potential (and, for the viscoelastic gel, a state update after each 
 | ``gel_viscoelasticity`` | :mod:`.gel_viscoelasticity` | Maxwell / equilibrium stiffness | ``gel_viscoelasticity.tau`` (0.3 s) |
 | ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (5 delta) |
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
+| ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
 
 :func:`candidate_terms` builds the terms of one step; :class:`~sim_core.candidates.hook.CandidateHook`
 does the same with caches and owns the post-step state update; :class:`CandidateNewtonSolver`
@@ -29,6 +30,7 @@ from sim_core.candidates.hook import (
     candidate_terms,
     validate_candidate_parameters,
 )
+from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
 from sim_core.candidates.stiction import StictionFriction
 
 DIAGNOSIS_CANDIDATES = {
@@ -36,6 +38,7 @@ DIAGNOSIS_CANDIDATES = {
     "gel_viscoelasticity": {"parameter": "candidate.gel_viscoelasticity", "probe": 0.5, "one_sided": True},
     "adhesion": {"parameter": "candidate.adhesion", "probe": 0.05, "one_sided": True},
     "anisotropic_bending": {"parameter": "candidate.anisotropic_bending", "probe": 0.3, "one_sided": False},
+    "damping": {"parameter": "candidate.damping", "probe": 100.0, "one_sided": True},
 }
 """What ``sysid.diagnose.candidates.default_candidates`` reads: effect -> global parameter name (once
 ``Model.set_parameter`` routes ``candidate.<name>`` to the solver's :class:`CandidateHook`), probe
@@ -43,6 +46,6 @@ value for the secant signature, and whether beta is one-sided (>= 0)."""
 
 __all__ = [
     "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "DIAGNOSIS_CANDIDATES", "CANDIDATE_SETTINGS", "CandidateHook",
-    "CandidateNewtonSolver", "LaggedAdhesion", "MaxwellBranch", "StictionFriction", "adhesion_pairs",
-    "candidate_terms", "hinge_grain_cosine", "relax_state", "validate_candidate_parameters",
+    "CandidateNewtonSolver", "LaggedAdhesion", "MaxwellBranch", "SheetDamping", "StictionFriction", "adhesion_pairs",
+    "candidate_terms", "hinge_grain_cosine", "relax_state", "sheet_vertices", "validate_candidate_parameters",
 ]

@@ -25,12 +25,13 @@ from sim_core.errors import ConfigError
 from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
+from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
 from sim_core.candidates.stiction import StictionFriction
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.bending import DiscreteShellBending
 from sim_core.solver import NewtonSolver, SolverConfig
 
-CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_bending")
+CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_bending", "damping")
 """Physics-level candidates (SYSID.md effect vocabulary)."""
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
@@ -58,7 +59,7 @@ def validate_candidate_parameters(params: Mapping[str, float] | None) -> dict[st
             raise ConfigError(f"candidate parameter {name!r} must be finite, got {value}")
         if name == "anisotropic_bending" and not abs(v) < 1.0:
             raise ConfigError(f"candidate parameter 'anisotropic_bending' must satisfy |beta| < 1, got {v}")
-        if name in ("stiction", "gel_viscoelasticity", "adhesion") and v < 0:
+        if name in ("stiction", "gel_viscoelasticity", "adhesion", "damping") and v < 0:
             raise ConfigError(f"candidate parameter {name!r} must be >= 0 (0 = off), got {v}")
         if name in CANDIDATE_SETTINGS and v <= 0:
             raise ConfigError(f"candidate setting {name!r} must be > 0, got {v}")
@@ -156,7 +157,14 @@ class CandidateHook:
             elastic: the solver's :class:`~sim_core.elastic.ElasticTerms`.
             friction: the step's lagged friction, or None.
         """
-        return self.contact_terms(model, x_prev, friction), self.body_terms(model, state, elastic)
+        return (self.contact_terms(model, x_prev, friction),
+                self.body_terms(model, state, elastic) + self.damping_terms(model, x_prev, dt))
+
+    def damping_terms(self, model, x_prev: np.ndarray, dt: float) -> list:
+        """The sheets' viscous drag (:class:`SheetDamping`) when ``damping`` is set."""
+        if "damping" not in self.params:
+            return []
+        return [SheetDamping(sheet_vertices(model), model.vertex_mass(), x_prev, self.params["damping"], dt)]
 
     def contact_terms(self, model, x_prev: np.ndarray, friction) -> list:
         """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``)."""
@@ -224,7 +232,8 @@ class _ElasticWithCandidates:
 
     def potentials(self, hinge_theta_bar):
         s = self._solver
-        extra = s.hook.body_terms(s.model, s._state_in, self._base) if s._state_in is not None else []
+        extra = [] if s._state_in is None else (s.hook.body_terms(s.model, s._state_in, self._base)
+                                                 + s.hook.damping_terms(s.model, s._state_in.x, s._dt))
         return self._base.potentials(hinge_theta_bar) + extra
 
 
@@ -272,7 +281,7 @@ class CandidateNewtonSolver(NewtonSolver):
 
     def __init__(self, model, config: SolverConfig | None = None, candidates: Mapping[str, float] | None = None):
         self.hook = CandidateHook(candidates)
-        self._state_in = None
+        self._state_in, self._dt = None, None
         super().__init__(model, config)
 
     def set_candidates(self, candidates: Mapping[str, float] | None) -> None:
@@ -286,7 +295,7 @@ class CandidateNewtonSolver(NewtonSolver):
         self.contact = _ContactWithCandidates(self.contact, self)
 
     def _single_step(self, state_in, state_out, control, dt):
-        self._state_in = state_in
+        self._state_in, self._dt = state_in, dt
         try:
             info = super()._single_step(state_in, state_out, control, dt)
         finally:
