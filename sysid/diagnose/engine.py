@@ -597,7 +597,8 @@ class BagDiagnosis:
 
         Each refit (fitted on the training rows) is tested on the held-out rows (or bags): a one-sided
         held-out score test that the residual supports the refit's prediction change
-        (:func:`stats.heldout_test`, Newey-West variance), Holm over the refitted candidates. It is
+        (:func:`stats.heldout_test`: the larger of the Newey-West and the conventional variance),
+        Holm over the refitted candidates. It is
         accepted when that test rejects, the training SSE drops too, no channel's held-out fit is made
         significantly worse (consistency: one parameter drives every channel the effect acts on), and
         the refit removes at least ``min_explained`` of the held-out excess energy of its channels and
@@ -623,13 +624,13 @@ class BagDiagnosis:
             q = int(rf.beta.shape[0])
             dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
             lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
-            before, after, (a, b), per_channel = self._heldout_rms(
+            before, after, (a, b, c2, nv), per_channel = self._heldout_rms(
                 ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models, theta, [rf], differential=True)
-            test = self._heldout_test(a, b, 0.0)
+            test = self._heldout_test((a, b, c2, nv), 0.0)
             # consistency across channels: one parameter drives every channel the effect acts on, so a
             # channel whose held-out fit the refit makes significantly worse (supported scale < 1/2)
             # contradicts it -- e.g. a gel effect that fits the sheet by spoiling the markers
-            worse = {ch: self._heldout_test(ac, bc, 0.5) for ch, (ac, bc) in per_channel.items() if np.any(bc)}
+            worse = {ch: self._heldout_test(prods, 0.5) for ch, prods in per_channel.items() if np.any(prods[1])}
             p_worse, rej_worse = (stats.holm([t.p_below for t in worse.values()], s.alpha) if worse else ([], []))
             contradicted = [ch for ch, rj in zip(worse, rej_worse) if rj]
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
@@ -691,7 +692,7 @@ class BagDiagnosis:
                 h1, m1, _ = sse(self.model, {**base, **cond}, chans, rows)
                 b, a = math.sqrt(h0 / max(m0, 1)), math.sqrt(h1 / max(m1, 1))
                 frac = explained_fraction(b, a)
-                test = self._heldout_test(*heldout_products(self.model, base, {**base, **cond}, chans, rows), 0.0)
+                test = self._heldout_test(heldout_products(self.model, base, {**base, **cond}, chans, rows), 0.0)
                 ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained
                           and b ** 2 - a ** 2 >= s.min_gain)
                 out[e].update({"conditional_explained_fraction": frac, "conditional_heldout_p": test.p_value})
@@ -700,10 +701,12 @@ class BagDiagnosis:
                 base.update(cond)
         return out
 
-    def _heldout_test(self, a: np.ndarray, b: np.ndarray, beta0: float) -> stats.HeldoutResult:
-        """:func:`stats.heldout_test`, or a neutral result (both p-values 1) when it cannot be done."""
+    def _heldout_test(self, products, beta0: float) -> stats.HeldoutResult:
+        """:func:`stats.heldout_test` of ``products = (a, b, c, n)``, or a neutral result (both
+        p-values 1) when it cannot be done."""
+        a, b, c, n = products
         try:
-            return stats.heldout_test(a, b, beta0)
+            return stats.heldout_test(a, b, beta0, c, n)
         except ValueError as err:
             self.notes.append(f"held-out test: {err}")
             return stats.HeldoutResult(0.0, beta0, 0.0, 1.0, 1.0, int(np.size(a)))
@@ -733,7 +736,7 @@ class BagDiagnosis:
                      differential: bool = False) -> tuple:
         """Held-out whitened RMS before/after over ``channels`` (held-out time blocks, or the held-out
         bags replayed at nominal and refitted parameters); with ``differential`` also the per-time
-        products ``(a, b)`` of :func:`residuals.heldout_products` over all channels and per channel
+        products ``(a, b, c, n)`` of :func:`residuals.heldout_products` over all channels and per channel
         (concatenated over bags)."""
         if not heldout_models:
             rows = {ch: ~train[ch] for ch in channels}
@@ -772,8 +775,8 @@ class BagDiagnosis:
                               {ch: heldout_products(hm, p0, p1, [ch], None) for ch in chans}))
         rms = (float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1))))
         if differential:
-            both = tuple(np.concatenate([d[0][i] for d in diffs]) if diffs else np.zeros(0) for i in (0, 1))
-            per = {ch: tuple(np.concatenate([d[1][ch][i] for d in diffs if ch in d[1]]) for i in (0, 1))
+            both = tuple(np.concatenate([d[0][i] for d in diffs]) if diffs else np.zeros(0) for i in range(4))
+            per = {ch: tuple(np.concatenate([d[1][ch][i] for d in diffs if ch in d[1]]) for i in range(4))
                    for ch in channels if any(ch in d[1] for d in diffs)}
             return rms + (both, per)
         return rms

@@ -83,10 +83,11 @@ def stream_channels(channel: str, tested: Sequence[str]) -> list[str]:
 
 
 def heldout_products(model: Any, before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
-                     channels: Sequence[str], rows: Mapping[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per time sample, ``a_t = sum r_0 . delta`` and ``b_t = sum delta . delta`` (whitened), where
-    ``r_0`` is the residual of ``before`` and ``delta = after - before`` (the inputs of
-    :func:`sysid.diagnose.stats.heldout_test`).
+                     channels: Sequence[str], rows: Mapping[str, np.ndarray] | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per time sample, ``a_t = sum r_0 . delta``, ``b_t = sum delta . delta``, ``c_t = sum r_0 . r_0``
+    and the number of values ``n_t`` (whitened), where ``r_0`` is the residual of ``before`` and
+    ``delta = after - before`` (the inputs of :func:`sysid.diagnose.stats.heldout_test`).
 
     Channels are summed onto the simulation steps their stamps fall in (``model.step_times_ns``), so
     that streams with different stamps make one series; only steps with a selected row are kept.
@@ -98,22 +99,22 @@ def heldout_products(model: Any, before: Mapping[str, np.ndarray], after: Mappin
         rows: channel -> bool rows to use (None: all).
 
     Returns:
-        ``(a, b)``, each ``(T',)`` in noise units^2, in time order.
+        ``(a, b, c, n)``, each ``(T',)`` (noise units^2; n a count), in time order.
     """
     steps = np.asarray(model.step_times_ns)
-    a = np.zeros(steps.shape[0])
-    b = np.zeros(steps.shape[0])
+    out = np.zeros((4, steps.shape[0]))
     used = np.zeros(steps.shape[0], dtype=bool)
     for ch in channels:
         if ch not in before:
             continue
         r0 = residual(model, ch, before[ch])
         d = whiten(model, ch, after.get(ch, before[ch]) - before[ch])
-        at = np.sum((r0 * d).reshape(r0.shape[0], -1), axis=1)
-        bt = np.sum((d * d).reshape(d.shape[0], -1), axis=1)
+        T = r0.shape[0]
+        per = np.stack([np.sum((r0 * d).reshape(T, -1), axis=1), np.sum((d * d).reshape(T, -1), axis=1),
+                        np.sum((r0 * r0).reshape(T, -1), axis=1), np.full(T, float(r0[0].size))])
         idx = np.clip(np.searchsorted(steps, np.asarray(model.evidence.t_ns[ch]), side="left"), 0, steps.shape[0] - 1)
-        sel = np.ones(at.shape[0], dtype=bool) if rows is None else np.asarray(rows[ch], dtype=bool)
-        np.add.at(a, idx[sel], at[sel])
-        np.add.at(b, idx[sel], bt[sel])
+        sel = np.ones(T, dtype=bool) if rows is None else np.asarray(rows[ch], dtype=bool)
+        for k in range(4):
+            np.add.at(out[k], idx[sel], per[k][sel])
         used[idx[sel]] = True
-    return a[used], b[used]
+    return out[0][used], out[1][used], out[2][used], out[3][used]

@@ -310,7 +310,7 @@ class HeldoutResult:
             (1: the refit's size is right; 0: the change does not help at all).
         beta0: the scale tested against.
         statistic: ``(sum r_0 . delta - beta0 sum delta . delta) / sqrt(V)`` (t-like).
-        p_value: one-sided, the held-out rows support a scale above ``beta0`` (Student t, effective dof).
+        p_value: one-sided, the held-out rows support a scale above ``beta0`` (Student t, ``T - 1`` dof).
         p_below: one-sided, the scale is below ``beta0``.
         samples: number of held-out time samples T.
     """
@@ -323,28 +323,35 @@ class HeldoutResult:
     samples: int
 
 
-def heldout_test(a: np.ndarray, b: np.ndarray, beta0: float = 0.0, hac_lags: int | None = None) -> HeldoutResult:
+def heldout_test(a: np.ndarray, b: np.ndarray, beta0: float = 0.0, c: np.ndarray | None = None,
+                 n: np.ndarray | None = None, hac_lags: int | None = None) -> HeldoutResult:
     """Score (Lagrange-multiplier) test, on held-out rows, of the direction a refit changed the prediction.
 
     With the whitened nominal residual ``r_0`` and the whitened prediction change ``delta`` of a refit
     fitted on the *training* rows (so ``delta`` is fixed with respect to the held-out noise), the
     held-out score is ``U = sum_t a_t`` with ``a_t = sum_s r_0,ts delta_ts`` (summed over the series
     of time sample t) and ``b_t = sum_s delta_ts^2``. Under ``beta = beta0`` (``r_0 = beta0 delta +
-    noise``), ``U - beta0 sum b_t`` has mean 0; its variance is the Newey-West (1987) long-run variance
-    of the per-time contributions ``a_t - beta_hat b_t`` (residual left by the fitted scale, White's
-    robust form, Bartlett weights, lags ``floor(4 (n/100)^(2/9))`` with n the effective number of
-    samples below, small-sample factor
-    ``T / (T - 1 - lags)``), so cross-sectional and serial correlation of the residual do not count
-    as evidence. Unlike the Diebold-Mariano test of the loss differential ``2 a_t - b_t``, the
-    deterministic heterogeneity of ``b_t`` (an effect concentrated in a few samples) does not enter
-    the variance, so an effect confined to one window keeps its power. The p-values are Student t
-    with Kish's effective number of samples ``(sum b_t)^2 / sum b_t^2`` minus one as dof, since
-    only the samples the change touches inform the variance.
+    noise``), ``U - beta0 sum b_t`` has mean 0. Its variance is the larger of
+
+    - the robust one: the Newey-West (1987) long-run variance of the per-time contributions
+      ``a_t - beta_hat b_t`` (residual left by the fitted scale, White's form; Bartlett weights,
+      lags ``floor(4 (T/100)^(2/9))``, small-sample factor ``T / (T - 1 - lags)``), so that
+      cross-sectional and serial correlation of the residual do not count as evidence;
+    - the conventional one ``s^2 sum b_t`` with ``s^2`` the per-value variance of the residual left
+      by the fitted scale (given ``c_t = sum_s r_0,ts^2`` and the value counts ``n_t``), which floors
+      the robust one where few samples carry the change (an effect at one motion onset: the robust
+      variance of a single term is no estimate at all). Taking the larger of the two standard errors
+      is the small-sample hedge of Angrist & Pischke (2009, sec. 8.2).
+
+    Unlike the Diebold-Mariano test of the loss differential ``2 a_t - b_t``, the deterministic
+    heterogeneity of ``b_t`` (an effect concentrated in a few samples) does not enter the variance,
+    so an effect confined to one window keeps its power. p-values: Student t, ``T - 1`` dof.
 
     Args:
         a, b: ``(T,)`` per-time sums above (``b >= 0``).
         beta0: scale under the null (0: the change explains nothing; 0.5: the change leaves the
             held-out fit as it was).
+        c, n: ``(T,)`` per-time residual sums of squares and value counts (both or neither).
 
     Raises:
         ValueError: shapes differ, fewer than 3 samples, or ``delta = 0``.
@@ -361,12 +368,12 @@ def heldout_test(a: np.ndarray, b: np.ndarray, beta0: float = 0.0, hac_lags: int
         raise ValueError("heldout_test: the refit does not change the held-out prediction")
     U = float(a.sum())
     beta = U / D
-    n_eff = D * D / float(np.sum(b * b))
-    lags = hac_lags if hac_lags is not None else int(math.floor(4.0 * (n_eff / 100.0) ** (2.0 / 9.0)))
+    lags = hac_lags if hac_lags is not None else int(math.floor(4.0 * (T / 100.0) ** (2.0 / 9.0)))
     V = float(newey_west((a - beta * b)[:, None], lags)[0, 0]) * T / max(T - 1 - lags, 1)
+    if c is not None and n is not None:
+        values = float(np.sum(n))
+        sse = float(np.sum(c)) - 2.0 * beta * U + beta * beta * D
+        V = max(V, max(sse, 0.0) / max(values - 1.0, 1.0) * D)
     num = U - beta0 * D
     stat = num / math.sqrt(V) if V > 0 else math.copysign(math.inf, num) if num else 0.0
-    # the variance is estimated from the samples the change touches: Kish's effective number
-    # ``(sum b)^2 / sum b^2`` sets the Student-t dof (an effect in 4 of 24 samples has about 3)
-    dof = max(n_eff - 1.0, 1.0)
-    return HeldoutResult(beta, beta0, float(stat), float(_st.t.sf(stat, dof)), float(_st.t.cdf(stat, dof)), T)
+    return HeldoutResult(beta, beta0, float(stat), float(_st.t.sf(stat, T - 1)), float(_st.t.cdf(stat, T - 1)), T)
