@@ -6,26 +6,35 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    replays: the nominal rollout and one forward difference per fitted parameter (``J_theta``, in
    log units), run in parallel.
 2. Signatures: observation-level ones from the nominal rollout (no replay); physics-level ones from
-   one probe replay each (second parallel batch).
+   one probe replay each (second parallel batch), rescaled and replayed again (at most two more
+   batches) when the probe moves the prediction by less than a quarter or more than four times
+   ``probe_target`` noise units (:meth:`BagDiagnosis._calibrate_probes`: a round-off secant or one
+   far outside the linear range is no derivative).
 3. Score tests (:func:`sysid.diagnose.stats.score_test`: AR prewhitening, projection of
    ``J_theta``, robust variance) for every candidate x tested channel; Holm over the family.
 4. Refit of every significant candidate (physics: the linearised estimate on the training rows,
    then one verifying replay, one secant replay, and the probe when it fits better; a probe that
-   diverged is retried at a quarter of its size; observation: exact, no replay), on training rows; evaluation on
-   held-out bags (replayed at nominal and refitted parameters) or on held-out time blocks (every
-   other of ``2 * holdout_blocks`` equal blocks).
-5. Acceptance: ``delta_BIC > bic_threshold`` on the training rows AND lower held-out whitened RMS
-   AND an effect size: the refit must remove at least ``min_explained`` of the held-out excess
-   energy ``rms^2 - 1`` and at least ``min_gain`` of it in absolute terms, so that a systematic gap
-   between the simulator and the recording, which many signatures correlate with, is not named as a
-   missing effect. Latency must also pass its discriminating test: the cross-correlation lag between
-   the recorded and the predicted rates of change agrees with the refitted delay. Candidates are
-   taken greedily (strongest delta-BIC first), each later one judged on what the accepted ones leave.
+   diverged is retried at a quarter of its size; observation: exact, no replay), on training rows;
+   evaluation on held-out bags (replayed at nominal and refitted parameters) or on held-out time
+   blocks (every other of ``2 * holdout_blocks`` equal blocks).
+5. Acceptance, out of sample: a one-sided held-out score test that the held-out residual supports
+   the refit's prediction change (:func:`sysid.diagnose.stats.heldout_test`; the larger of the
+   Newey-West and the conventional variance; Holm over the refitted candidates), the training SSE
+   drops, no channel's held-out fit is made significantly worse (one parameter drives every
+   channel the effect acts on), and two effect sizes: the refit removes at least ``min_explained``
+   of the held-out excess energy ``rms^2 - 1`` and at least ``min_gain`` of the held-out mean
+   square, so that a systematic gap between the simulator and the recording, which many signatures
+   correlate with and which even a nominal recording has, is not named as a missing effect.
+   Latency must also pass its discriminating test: the cross-correlation lag between the recorded
+   and the predicted rates of change agrees with the refitted delay. Candidates are taken greedily
+   (largest held-out gain first: whitened SSE removed, comparable whatever channels a candidate acts
+   on), each later one judged on what the accepted ones leave. The in-sample delta-BIC is
+   reported; it decides only the conditional step when held-out bags are given.
    Confusable pairs are reported as ties unless a discriminating test resolves them (latency vs gel
    viscoelasticity: one lag fits every tactile channel and matches the cross-correlation lag).
    Accepted candidates are combined (first order: the sum of their scaled prediction changes).
-6. ``explained_by``: accepted; those confirmed by a discriminating test first, then by delta-BIC;
-   ``["unexplained"]`` when a mismatch is detected
+6. ``explained_by``: accepted; those confirmed by a discriminating test first, then by held-out
+   gain; ``["unexplained"]`` when a mismatch is detected
    (a significant test on a channel whose whitened excess exceeds ``min_excess``) but none is
    accepted; ``[]`` otherwise.
 
@@ -67,7 +76,8 @@ class Settings:
         dt: simulation step, s.
         t_max: use the first t_max s of each recording (None: all).
         alpha: family-wise error rate of the Holm correction.
-        bic_threshold: delta-BIC needed to accept a refit.
+        bic_threshold: delta-BIC needed to accept a later candidate conditionally on the accepted
+            ones when held-out bags are given (otherwise acceptance is by the held-out test).
         holdout_blocks: held-out time blocks when no held-out bag is given.
         fit_max_nfev: function evaluations of the nominal fit.
         fd_step: log step of the J_theta forward differences.

@@ -141,3 +141,54 @@ def test_reset_switches_candidates_off_and_restores_an_infinite_yield_angle():
     assert inner.candidates == {} and math.isinf(material["yield_angle"]) and inner.revision == 5
     _reset_candidates(model)                      # nothing to do: no revision bump
     assert inner.revision == 5
+
+
+def _wrench_model(T=40, seed=0):
+    rng = np.random.default_rng(seed)
+    steps = np.arange(T, dtype=np.int64) * 10_000_000
+    sigma = np.full(6, 0.1)
+    data = rng.normal(size=(T, 6)) * sigma
+    model = SimpleNamespace(sigma={"wrench": sigma}, data=lambda ch: data, step_times_ns=steps,
+                            evidence=SimpleNamespace(t_ns={"wrench": steps}))
+    return model, data
+
+
+def test_probes_are_rescaled_towards_the_target_change():
+    model, _ = _wrench_model()
+    d = _bare(model)
+    base = np.zeros((40, 6))
+    ctx = SimpleNamespace(prediction={"wrench": base}, params={})
+    weak = PhysicsParameterCandidate("damping", "candidate.damping", 1.0)     # change 1e-4 noise units per beta
+    strong = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)  # change 40 noise units per beta
+    gain = {"damping": 1e-5, "stiction": 8.0}
+
+    def replay(sets):
+        out = []
+        for p in sets:
+            name = "damping" if "candidate.damping" in p else "stiction"
+            beta = p[f"candidate.{name}"]
+            out.append((None, {"wrench": base + gain[name] * beta}))
+        return out
+
+    d._replays = replay
+    probe_out = dict(zip(["damping", "stiction"], replay([weak.probe(ctx), strong.probe(ctx)])))
+    d._calibrate_probes(ctx, [weak, strong], probe_out)
+    for c in (weak, strong):
+        change = d._probe_change(ctx, probe_out[c.name][1])
+        assert 0.5 <= change <= 8.0, (c.name, change)
+    assert weak.probe_beta > 1.0 and strong.probe_beta < 0.5
+    assert strong.bound == pytest.approx(2.0)  # a shrunk probe keeps the first probe's refit range
+
+
+def test_heldout_products_sum_channels_per_time_sample():
+    from sysid.diagnose.residuals import heldout_products
+
+    model, data = _wrench_model(T=10)
+    before = {"wrench": np.zeros((10, 6))}
+    after = {"wrench": data * 0.5}
+    rows = {"wrench": np.arange(10) % 2 == 1}
+    a, b, c, n = heldout_products(model, before, after, ["wrench"], rows)
+    r = data / 0.1
+    assert a.shape == (5,) and np.allclose(a, np.sum(r[1::2] * 0.5 * r[1::2], axis=1))
+    assert np.allclose(b, np.sum((0.5 * r[1::2]) ** 2, axis=1)) and np.allclose(c, np.sum(r[1::2] ** 2, axis=1))
+    assert np.all(n == 6)
