@@ -249,7 +249,7 @@ def _delegate(module: str, func: str, argv: list[str], what: str) -> int:
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``thinshell bench {forming,scale,node,diagnose}``; returns the exit code.
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid}``; returns the exit code.
 
     ``--json`` output of ``forming`` is one line with the keys ``dofs``, ``steps_per_s``,
     ``newton_iters_mean``, ``newton_iters_max``, ``assembly_share``, ``linear_solve_share``,
@@ -282,9 +282,12 @@ def bench_main(argv: list[str] | None = None) -> int:
     s.add_argument("--max-dofs", type=int, default=20_000, help="skip cases above this DoF count (100000 runs all)")
     sub.add_parser("node", help="ROS node benchmark", add_help=False)
     sub.add_parser("diagnose", help="missing-physics diagnosis benchmark", add_help=False)
-    if argv and argv[0] in ("node", "diagnose"):
-        module, func = (("thinshell_ros.bench_node", "bench_node_main") if argv[0] == "node"
-                        else ("sysid.diagnose_bench", "bench_diagnose_main"))
+    sub.add_parser("sysid", help="3-parameter material fit on a whole recording", add_help=False)
+    delegated = {"node": ("thinshell_ros.bench_node", "bench_node_main"),
+                 "diagnose": ("sysid.diagnose_bench", "bench_diagnose_main"),
+                 "sysid": ("sysid.bench_fit", "bench_sysid_main")}
+    if argv and argv[0] in delegated:
+        module, func = delegated[argv[0]]
         return _delegate(module, func, argv[1:], argv[0])
     ns = parser.parse_args(argv)
     msg = _check_arch(ns.arch)
