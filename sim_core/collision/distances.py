@@ -228,6 +228,47 @@ def _signed_volume_distance(z: np.ndarray, side: np.ndarray, point_first: bool, 
     return jets.multiply(jets.dot(n, r), jets.reciprocal(jets.norm(n))).scaled(side)
 
 
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``u x v`` of ``(k, 3)`` arrays, written as :func:`jets.cross` forms its value."""
+    nxt, prv = [1, 2, 0], [2, 0, 1]
+    return u[:, nxt] * v[:, prv] - u[:, prv] * v[:, nxt]
+
+
+def _sum_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``u . v`` of ``(k, 3)`` arrays, summed as :func:`jets.dot` sums its value."""
+    return (u * v).sum(axis=1)
+
+
+def _distance_values(z: np.ndarray, side: np.ndarray, face: np.ndarray, point_first: bool,
+                     line: np.ndarray, line_slots: np.ndarray, corner: np.ndarray, corner_slots: np.ndarray) -> np.ndarray:
+    """Contact distance without derivatives (order 0), the same expressions as the jets' values.
+
+    Face / interior: ``side (n . r) / |n|``; point-line: ``sqrt(|(z_i - z_j) x e|^2 / |e|^2)``;
+    point-point ``|z_i - z_j|`` (see :func:`_signed_volume_distance`, :func:`_point_line`,
+    :func:`_point_point`); plain NumPy, about 5x faster than carrying value-only jets.
+    """
+    d = np.zeros(z.shape[0])
+    if np.any(face):
+        zf = z[face]
+        if point_first:
+            n, r = _cross(zf[:, 2] - zf[:, 1], zf[:, 3] - zf[:, 1]), zf[:, 0] - zf[:, 1]
+        else:
+            n, r = _cross(zf[:, 1] - zf[:, 0], zf[:, 3] - zf[:, 2]), zf[:, 0] - zf[:, 2]
+        d[face] = (_sum_dot(n, r) * (1.0 / np.sqrt(_sum_dot(n, n)))) * side[face]
+    if np.any(line):
+        rows = np.flatnonzero(line)
+        i, j, l = line_slots[:, 0], line_slots[:, 1], line_slots[:, 2]
+        a = z[rows, j]
+        e = z[rows, l] - a
+        c = _cross(z[rows, i] - a, e)
+        d[line] = np.sqrt(_sum_dot(c, c) * (1.0 / _sum_dot(e, e)))
+    if np.any(corner):
+        rows = np.flatnonzero(corner)
+        u = z[rows, corner_slots[:, 0]] - z[rows, corner_slots[:, 1]]
+        d[corner] = np.sqrt(_sum_dot(u, u))
+    return d
+
+
 def _assemble(k: int, parts: list[tuple[np.ndarray, Jet]], order: int) -> tuple:
     d = np.zeros(k)
     grad = np.zeros((k, 12)) if order >= 1 else None
@@ -283,8 +324,15 @@ def point_triangle_contact_distance(z: np.ndarray, side: np.ndarray, order: int 
     """
     k = z.shape[0]
     _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
-    parts = []
     face = region == PointTriangleRegion.FACE
+    if order == 0:
+        line = (region >= PointTriangleRegion.EDGE_AB) & (region <= PointTriangleRegion.EDGE_CA)
+        corner = region >= PointTriangleRegion.VERTEX_A
+        line_slots = np.concatenate([np.zeros((int(line.sum()), 1), np.int64), _table(region[line], _PT_LINE, 2)], axis=1)
+        corner_slots = np.stack([np.zeros(int(corner.sum()), np.int64), _table(region[corner], _PT_CORNER, 1)[:, 0]], axis=1)
+        d = _distance_values(z, side, face, True, line, line_slots, corner, corner_slots)
+        return DistanceDerivatives(d, None, None, region)
+    parts = []
     if np.any(face):
         parts.append((face, _signed_volume_distance(z[face], side[face], True, order)))
     line = (region >= PointTriangleRegion.EDGE_AB) & (region <= PointTriangleRegion.EDGE_CA)
@@ -311,8 +359,14 @@ def edge_edge_contact_distance(z: np.ndarray, side: np.ndarray, order: int = 0) 
     """
     k = z.shape[0]
     _, _, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
-    parts = []
     interior = region == EdgeEdgeRegion.INTERIOR
+    if order == 0:
+        line = (region >= EdgeEdgeRegion.A0_EDGE_B) & (region <= EdgeEdgeRegion.B1_EDGE_A)
+        corner = region >= EdgeEdgeRegion.A0_B0
+        d = _distance_values(z, side, interior, False, line, _table(region[line], _EE_LINE, 3),
+                             corner, _table(region[corner], _EE_CORNER, 2))
+        return DistanceDerivatives(d, None, None, region)
+    parts = []
     if np.any(interior):
         parts.append((interior, _signed_volume_distance(z[interior], side[interior], False, order)))
     line = (region >= EdgeEdgeRegion.A0_EDGE_B) & (region <= EdgeEdgeRegion.B1_EDGE_A)

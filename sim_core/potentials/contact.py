@@ -85,13 +85,25 @@ class _PairPenalty:
         raise NotImplementedError
 
     def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
-        """Indices of the active pairs and their distance (with derivatives up to ``order``)."""
+        """Indices of the active pairs and their distance (with derivatives up to ``order``).
+
+        Order >= 1 computes the Hessian too (the solver asks for the gradient and then the Hessian
+        at the same iterate); the last result is kept with a copy of ``x`` and reused while ``x``
+        is equal (energy, gradient and Hessian of one iterate share one evaluation).
+        """
+        cache = getattr(self, "_last", None)
+        if cache is not None and cache[0] >= order and cache[4] == self.eps and np.array_equal(cache[1], x):
+            return cache[2], cache[3]
         z = x[self.vertices]
         d = self._distance(z, self.sides, 0).d
         active = np.flatnonzero(d < self.eps)
         if order == 0:
-            return active, DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
-        return active, self._distance(z[active], self.sides[active], order)
+            dd = DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
+        else:
+            order = 2
+            dd = self._distance(z[active], self.sides[active], order)
+        self._last = (order, np.array(x, dtype=float, copy=True), active, dd, self.eps)
+        return active, dd
 
     def distance(self, x: np.ndarray) -> np.ndarray:
         """Contact distance ``d`` of every pair in m, shape ``(p,)``."""
