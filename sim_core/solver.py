@@ -280,8 +280,14 @@ class NewtonSolver:
         fixed_terms += cand_contact + cand_body
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
+        fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
+
         def total(xx: np.ndarray, contact_terms: list) -> float:
-            return sum(p.energy(xx) for p in fixed_terms) + sum(p.energy(xx) for p in contact_terms)
+            # fixed_terms do not change within the step: their energy at the accepted line-search
+            # point is the next iteration's e0 part (same array object, same value)
+            if fixed_energy[0] is not xx:
+                fixed_energy[:] = [xx, sum(p.energy(xx) for p in fixed_terms)]
+            return fixed_energy[1] + sum(p.energy(xx) for p in contact_terms)
 
         converged = False
         residual = np.inf
