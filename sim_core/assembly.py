@@ -94,8 +94,11 @@ class HessianAssembler:
         if self._union is not None and self._dynamic_keys is not None and np.array_equal(dyn_keys, self._dynamic_keys):
             return self._union
         n = self.dof_count
-        keys = np.union1d(pat.keys, dyn_keys)
-        static_slots = np.searchsorted(keys, pat.keys)
+        # merge two sorted unique key arrays in linear time (no re-sort of the static keys)
+        pos = np.minimum(np.searchsorted(pat.keys, dyn_keys), max(pat.keys.size - 1, 0))
+        extra = dyn_keys[pat.keys[pos] != dyn_keys] if pat.keys.size else dyn_keys
+        keys = np.insert(pat.keys, np.searchsorted(pat.keys, extra), extra)
+        static_slots = np.arange(pat.keys.size) + np.searchsorted(extra, pat.keys)
         dynamic_slots = np.searchsorted(keys, dyn_keys)
         rows = keys // n
         indptr = np.zeros(n + 1, dtype=np.int64)
