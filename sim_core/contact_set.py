@@ -22,7 +22,7 @@ from sim_core.collision import (
     EdgeEdgeRegion,
     PointTriangleRegion,
     edge_edge_closest_points,
-    point_triangle_closest_point,
+    point_triangle_region,
     PairFilter,
     edge_edge_candidates,
     edge_edge_side,
@@ -133,7 +133,7 @@ class ContactSet:
             return VertexTriangleContact(vt, self.triangles, np.zeros(0), self.stiffness, self.eps)
         tri = self.triangles[vt[:, 1]]
         p, a, b, c = x[vt[:, 0]], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-        _, region = point_triangle_closest_point(p, a, b, c)
+        region = point_triangle_region(p, a, b, c)
         z = np.concatenate([p[:, None], a[:, None], b[:, None], c[:, None]], axis=1)
         sides = np.where(region == PointTriangleRegion.FACE, remembered, point_triangle_side(z))
         return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)

@@ -83,6 +83,42 @@ def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("ki,ki->k", u, v)
 
 
+_PT_REGION_ORDER = tuple(int(r) for r in (
+    PointTriangleRegion.EDGE_BC, PointTriangleRegion.EDGE_CA, PointTriangleRegion.VERTEX_C,
+    PointTriangleRegion.EDGE_AB, PointTriangleRegion.VERTEX_B, PointTriangleRegion.VERTEX_A))
+"""Region codes in increasing priority of the Voronoi tests (a later test wins, as in Ericson's
+early returns): what :func:`_point_triangle_tests` assigns, in this order."""
+
+
+def _point_triangle_tests(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple:
+    """Ericson's dot products and the region codes of points vs triangles (all ``(k,)``)."""
+    ab, ac = b - a, c - a
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    tests = (
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),  # edge bc
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ca
+        (d6 >= 0) & (d5 <= d6),  # vertex c
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge ab
+        (d3 >= 0) & (d4 <= d3),  # vertex b
+        (d1 <= 0) & (d2 <= 0),  # vertex a
+    )
+    region = np.full(p.shape[0], int(PointTriangleRegion.FACE), dtype=np.int64)
+    for code, mask in zip(_PT_REGION_ORDER, tests):
+        region[mask] = code
+    return region, d1, d2, d3, d4, d5, d6, va, vb, vc
+
+
+def point_triangle_region(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """:class:`PointTriangleRegion` codes of the closest points, shape ``(k,)`` (no barycentrics)."""
+    return _point_triangle_tests(p, a, b, c)[0]
+
+
 def point_triangle_closest_point(
     p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -95,26 +131,8 @@ def point_triangle_closest_point(
         ``(bary, region)``: barycentric coordinates of the closest point ``q = bary @ [a, b, c]``,
         shape ``(k, 3)``; :class:`PointTriangleRegion` codes, shape ``(k,)``.
     """
-    ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    in_a = (d1 <= 0) & (d2 <= 0)
-    in_b = (d3 >= 0) & (d4 <= d3)
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    in_c = (d6 >= 0) & (d5 <= d6)
-    in_ca = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    in_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    region, d1, d2, d3, d4, d5, d6, va, vb, vc = _point_triangle_tests(p, a, b, c)
     R = PointTriangleRegion
-    region = np.select(
-        [in_a, in_b, in_ab, in_c, in_ca, in_bc],
-        [R.VERTEX_A, R.VERTEX_B, R.EDGE_AB, R.VERTEX_C, R.EDGE_CA, R.EDGE_BC],
-        default=R.FACE,
-    ).astype(np.int64)
     with np.errstate(divide="ignore", invalid="ignore"):
         v_ab = d1 / (d1 - d3)
         w_ca = d2 / (d2 - d6)
@@ -323,7 +341,7 @@ def point_triangle_contact_distance(z: np.ndarray, side: np.ndarray, order: int 
         :class:`DistanceDerivatives` with :class:`PointTriangleRegion` codes.
     """
     k = z.shape[0]
-    _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+    region = point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
     face = region == PointTriangleRegion.FACE
     if order == 0:
         line = (region >= PointTriangleRegion.EDGE_AB) & (region <= PointTriangleRegion.EDGE_CA)

@@ -177,3 +177,17 @@ def test_signed_distance_equals_unsigned_on_remembered_side():
     assert np.allclose(dd.d, point_triangle_distance(*z.transpose(1, 0, 2)), rtol=1e-10, atol=1e-15)
     dd_neg = point_triangle_contact_distance(z * np.array([1, 1, -1]), -np.ones(200), 0)
     assert np.allclose(dd_neg.d, dd.d, rtol=1e-10, atol=1e-15)
+
+
+def test_point_triangle_region_equals_the_closest_point_region():
+    # region-only classification (used by the contact distances) vs the full closest-point routine,
+    # including points exactly on a vertex and on an edge (ties between the Voronoi tests)
+    from sim_core.collision.distances import point_triangle_closest_point, point_triangle_region
+
+    rng = np.random.default_rng(11)
+    z = rng.normal(size=(4000, 4, 3))
+    z[:200, 0] = z[:200, 1]
+    z[200:400, 0] = 0.5 * (z[200:400, 2] + z[200:400, 3])
+    _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+    assert np.array_equal(point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]), region)
+    assert len(np.unique(region)) == 7
