@@ -98,9 +98,15 @@ class ContactSet:
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             vt, ee = cache[2]
             vt_sides, ee_sides = cache[3]
-            return self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
-        pots, remembered = self._search(x, memory, candidates)
-        self._cache = (memory, candidates, pots, remembered)
+            pots = self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
+        else:
+            pots, remembered = self._search(x, memory, candidates)
+            self._cache = (memory, candidates, pots, remembered)
+        # the previous iterate's potentials were last evaluated at the accepted line-search point,
+        # usually this x: reuse that evaluation where the pairs and sides are unchanged
+        for new, old in zip(pots, getattr(self, "_last_pots", ())):
+            new.inherit_evaluation(old)
+        self._last_pots = pots
         return pots
 
     def _candidate_pairs(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
