@@ -20,7 +20,10 @@ Near-parallel edges (``sin^2`` of the angle below ``PARALLEL_TOLERANCE``) are tr
 pairs (the line-line normal is undefined there); the distance then differs from the exact one by at
 most ``|e| sin(angle)``.
 
-Derivatives of the distance measures are exact (forward-mode jets, :mod:`sim_core.collision.jets`).
+Derivatives of the distance measures are exact, in closed form
+(:mod:`sim_core.collision.distance_derivatives`); the forward-mode jet versions
+(:func:`_point_point`, :func:`_point_line`, :func:`_signed_volume_distance`, with
+:mod:`sim_core.collision.jets`) are the reference the tests compare them with.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.collision import distance_derivatives as closed_form
 from sim_core.collision import jets
 from sim_core.collision.jets import Jet
 
@@ -352,15 +356,15 @@ def point_triangle_contact_distance(z: np.ndarray, side: np.ndarray, order: int 
         return DistanceDerivatives(d, None, None, region)
     parts = []
     if np.any(face):
-        parts.append((face, _signed_volume_distance(z[face], side[face], True, order)))
+        parts.append((face, closed_form.signed_volume(z[face], side[face], True, order)))
     line = (region >= PointTriangleRegion.EDGE_AB) & (region <= PointTriangleRegion.EDGE_CA)
     if np.any(line):
         s = _table(region[line], _PT_LINE, 2)
-        parts.append((line, _point_line(z[line], np.zeros(s.shape[0], np.int64), s[:, 0], s[:, 1], order)))
+        parts.append((line, closed_form.point_line(z[line], np.zeros(s.shape[0], np.int64), s[:, 0], s[:, 1], order)))
     corner = region >= PointTriangleRegion.VERTEX_A
     if np.any(corner):
         s = _table(region[corner], _PT_CORNER, 1)[:, 0]
-        parts.append((corner, _point_point(z[corner], np.zeros(s.shape[0], np.int64), s, order)))
+        parts.append((corner, closed_form.point_point(z[corner], np.zeros(s.shape[0], np.int64), s, order)))
     return DistanceDerivatives(*_assemble(k, parts, order), region)
 
 
@@ -386,15 +390,15 @@ def edge_edge_contact_distance(z: np.ndarray, side: np.ndarray, order: int = 0) 
         return DistanceDerivatives(d, None, None, region)
     parts = []
     if np.any(interior):
-        parts.append((interior, _signed_volume_distance(z[interior], side[interior], False, order)))
+        parts.append((interior, closed_form.signed_volume(z[interior], side[interior], False, order)))
     line = (region >= EdgeEdgeRegion.A0_EDGE_B) & (region <= EdgeEdgeRegion.B1_EDGE_A)
     if np.any(line):
         s = _table(region[line], _EE_LINE, 3)
-        parts.append((line, _point_line(z[line], s[:, 0], s[:, 1], s[:, 2], order)))
+        parts.append((line, closed_form.point_line(z[line], s[:, 0], s[:, 1], s[:, 2], order)))
     corner = region >= EdgeEdgeRegion.A0_B0
     if np.any(corner):
         s = _table(region[corner], _EE_CORNER, 2)
-        parts.append((corner, _point_point(z[corner], s[:, 0], s[:, 1], order)))
+        parts.append((corner, closed_form.point_point(z[corner], s[:, 0], s[:, 1], order)))
     return DistanceDerivatives(*_assemble(k, parts, order), region)
 
 
