@@ -135,9 +135,30 @@ class StableNeoHookean:
         p = np.asarray(x, dtype=float)[self.tets]  # (k, 4, 3)
         return np.einsum("kai,kaj->kij", p, self.tet_dFdx)
 
+    def _deformation(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`deformation_gradient` kept with ``x``: energy, gradient and Hessian of one
+        iterate (the line search's accepted point is the next iterate) share it and its invariants."""
+        kept = self.__dict__.get("_kept")
+        if kept is not None and kept[0] is self.tet_dFdx and np.array_equal(kept[1], x):
+            return kept[2]
+        F = self.deformation_gradient(x)
+        # keyed on tet_dFdx too: a copy with other dF/dx (the Maxwell branch) must not reuse it
+        self._kept = (self.tet_dFdx, np.array(x, dtype=float, copy=True), F, [])
+        return F
+
+    def _invariants(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(I_C, J, cof F)``, shapes ``(k,), (k,), (k, 3, 3)``; memoised for the kept ``F``."""
+        kept = self.__dict__.get("_kept")
+        memo = kept[3] if kept is not None and kept[2] is F else None
+        if memo:
+            return memo[0]
+        out = (np.einsum("kij,kij->k", F, F), np.linalg.det(F), _cofactor(F))
+        if memo is not None:
+            memo.append(out)
+        return out
+
     def _psi(self, F: np.ndarray, mu: float, lam: float) -> np.ndarray:
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
+        I_C, J, _ = self._invariants(F)
         alpha = 1.0 + 0.75 * mu / lam
         return (
             0.5 * mu * (I_C - 3.0)
@@ -151,9 +172,7 @@ class StableNeoHookean:
 
         ``P_mu = (1 - 1/(I_C + 1)) F - 3/4 cof F``, ``P_lam = (J - 1) cof F``.
         """
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
-        cof = _cofactor(F)
+        I_C, J, cof = self._invariants(F)
         P_mu = (1.0 - 1.0 / (I_C + 1.0))[:, None, None] * F - 0.75 * cof
         P_lam = (J - 1.0)[:, None, None] * cof
         return P_mu, P_lam
@@ -177,9 +196,7 @@ class StableNeoHookean:
         ``mu (1 - 1/(I_C+1)) I + 2 mu/(I_C+1)^2 F (x) F + lam cof (x) cof + lam (J - alpha) d2J/dF2``
         with ``d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn`` (Smith et al. 2018, eqs. 19-21).
         """
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
-        cof = _cofactor(F)
+        I_C, J, cof = self._invariants(F)
         eye9 = np.eye(9).reshape(3, 3, 3, 3)
         d2J = np.einsum("ikm,jln,tmn->tijkl", _LEVI_CIVITA, _LEVI_CIVITA, F, optimize=True)
         return (
@@ -239,13 +256,13 @@ class StableNeoHookean:
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """Energy ``sum_t V_t psi(F_t)`` in J at positions ``x`` ``(n, 3)`` (0 at rest)."""
-        F = self.deformation_gradient(x)
+        F = self._deformation(x)
         return float(np.dot(self.tet_rest_volume, self._psi(F, self.mu, self.lam)))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) (dF/dx)`` summed per vertex."""
         x = np.asarray(x, dtype=float)
-        return self._forces_from_pk1(x, self.first_piola(self.deformation_gradient(x)))
+        return self._forces_from_pk1(x, self.first_piola(self._deformation(x)))
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Per-tet 12x12 Hessian blocks in N/m.
@@ -258,7 +275,7 @@ class StableNeoHookean:
         Returns:
             :class:`HessianBlocks` with ``vertices = tets`` ``(k, 4)`` and blocks ``(k, 12, 12)``.
         """
-        F = self.deformation_gradient(x)
+        F = self._deformation(x)
         k = F.shape[0]
         M = self.tet_dvecF_dx
         if projection == "none":

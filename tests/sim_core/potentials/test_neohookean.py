@@ -203,3 +203,21 @@ def test_unknown_projection_raises() -> None:
     snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
     with pytest.raises(ValueError, match="projection"):
         snh.hessian(mesh.x, "flip")
+
+
+def test_kept_deformation_is_reused_only_at_equal_positions() -> None:
+    # energy, gradient and Hessian of one x share F and its invariants; an in-place change of x
+    # or a copy with other dF/dx (as the Maxwell branch makes) recomputes them
+    mesh = _small_block()
+    snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+    fresh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+    x = _deformed(mesh.x, 9)
+    e, g, h = snh.energy(x), snh.gradient(x), snh.hessian(x, "none").blocks
+    assert e == fresh.energy(x.copy())
+    assert np.array_equal(g, fresh.gradient(x.copy())) and np.array_equal(h, fresh.hessian(x.copy(), "none").blocks)
+    x[3] += 1e-4  # in place
+    assert snh.energy(x) == StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3).energy(x)
+    clone = object.__new__(StableNeoHookean)
+    clone.__dict__.update(snh.__dict__)
+    clone.tet_dFdx = 1.1 * snh.tet_dFdx
+    assert clone.energy(x) != snh.energy(x)
