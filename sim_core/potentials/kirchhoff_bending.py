@@ -297,7 +297,21 @@ class KirchhoffBending:
 
     def theta(self, x: np.ndarray) -> np.ndarray:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
-        return dihedral_angle(x[self.hinges])
+        return self._hinge_kinematics(x)[1].copy()
+
+    def _hinge_kinematics(self, x: np.ndarray, gradient: bool = False) -> tuple:
+        """``(X (h, 4, 3), theta (h,), dtheta/dx (h, 4, 3) or None)`` at ``x``, kept with a copy of
+        ``x`` so that energy, gradient and Hessian of one iterate share them (they do not depend on
+        the rest angles, which copies of this potential replace)."""
+        kept = self.__dict__.get("_kept")
+        if kept is None or kept[0] is not self.hinges or not np.array_equal(kept[1], x):
+            X = x[self.hinges]
+            kept = (self.hinges, np.array(x, dtype=float, copy=True), [X, dihedral_angle(X), None])
+            self._kept = kept
+        values = kept[2]
+        if gradient and values[2] is None:
+            values[2] = dihedral_angle_gradient(values[0])
+        return tuple(values)
 
     def _triangle_deviation(self, theta: np.ndarray) -> np.ndarray:
         """theta_T - theta_bar_T per triangle edge, 0 on boundary edges; shape ``(t, 3)``."""
@@ -311,14 +325,14 @@ class KirchhoffBending:
 
     def energy(self, x: np.ndarray) -> float:
         """Bending energy in J."""
-        d = self.theta(x) - self.hinge_theta_bar
+        d = self._hinge_kinematics(x)[1] - self.hinge_theta_bar
         return float(d @ (self.hinge_stiffness_matrix @ d))
 
     def _gradient_with(self, x: np.ndarray, hinge_matrix: sp.csr_matrix) -> np.ndarray:
-        X = x[self.hinges]
-        d = dihedral_angle(X) - self.hinge_theta_bar
+        _, theta, grad_h = self._hinge_kinematics(x, gradient=True)
+        d = theta - self.hinge_theta_bar
         g_theta = 2.0 * (hinge_matrix @ d)
-        return scatter_gradient(x.shape[0], self.hinges, g_theta[:, None, None] * dihedral_angle_gradient(X))
+        return scatter_gradient(x.shape[0], self.hinges, g_theta[:, None, None] * grad_h)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx = sum_h 2 (K_h d)_h dtheta_h/dx in N, shape ``(n, 3)``."""
@@ -333,11 +347,9 @@ class KirchhoffBending:
         :func:`~sim_core.potentials.base.project_psd` of each block).
         """
         t = self.triangles.shape[0]
-        X = x[self.hinges]
-        theta = dihedral_angle(X)
+        X, theta, grad_h = self._hinge_kinematics(x, gradient=True)  # grad_h (h, 4, 3)
         d = self._triangle_deviation(theta)
         g_theta = 2.0 * np.einsum("tkl,tl->tk", self.triangle_stiffness, d)  # dE_T/dtheta_k
-        grad_h = dihedral_angle_gradient(X)  # (h, 4, 3)
         hess_h = dihedral_angle_hessian(X)  # (h, 12, 12)
         G = np.zeros(t * 3 * 18)
         H = np.zeros(t * 18 * 18)
