@@ -44,6 +44,26 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _LEVI_CIVITA[_i, _k, _j] = -1.0
 
 
+def _d2J_gather() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Non-zeros of d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn in the row-major 9x9 layout.
+
+    Only ``i != k`` and ``j != l`` give a term, and then a single one, ``+-F_mn``: returns the flat
+    positions ``9 (3 i + j) + 3 k + l`` (36), the flat index ``3 m + n`` of F and the sign.
+    """
+    pos, src, sign = [], [], []
+    for i, j, k, l in np.ndindex(3, 3, 3, 3):
+        for m, n in np.ndindex(3, 3):
+            e = _LEVI_CIVITA[i, k, m] * _LEVI_CIVITA[j, l, n]
+            if e != 0.0:
+                pos.append(9 * (3 * i + j) + 3 * k + l)
+                src.append(3 * m + n)
+                sign.append(e)
+    return np.array(pos), np.array(src), np.array(sign)
+
+
+_D2J_POS, _D2J_SRC, _D2J_SIGN = _d2J_gather()
+
+
 def snh_lame_parameters(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
     """SNH Lamé parameters ``(mu, lam)`` in Pa whose linearisation has modulus ``E`` and ratio ``nu``.
 
@@ -197,14 +217,16 @@ class StableNeoHookean:
         with ``d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn`` (Smith et al. 2018, eqs. 19-21).
         """
         I_C, J, cof = self._invariants(F)
-        eye9 = np.eye(9).reshape(3, 3, 3, 3)
-        d2J = np.einsum("ikm,jln,tmn->tijkl", _LEVI_CIVITA, _LEVI_CIVITA, F, optimize=True)
-        return (
-            (self.mu * (1.0 - 1.0 / (I_C + 1.0)))[:, None, None, None, None] * eye9
-            + (2.0 * self.mu / (I_C + 1.0) ** 2)[:, None, None, None, None] * np.einsum("tij,tkl->tijkl", F, F)
-            + self.lam * np.einsum("tij,tkl->tijkl", cof, cof)
-            + (self.lam * (J - self.alpha))[:, None, None, None, None] * d2J
-        )
+        k = F.shape[0]
+        f, c = F.reshape(k, 9), cof.reshape(k, 9)
+        A = np.zeros((k, 9, 9))
+        A[:, np.arange(9), np.arange(9)] = (self.mu * (1.0 - 1.0 / (I_C + 1.0)))[:, None]
+        A += (2.0 * self.mu / (I_C + 1.0) ** 2)[:, None, None] * (f[:, :, None] * f[:, None, :])
+        A += self.lam * (c[:, :, None] * c[:, None, :])
+        A = A.reshape(k, 81)
+        # d2J has 36 non-zeros +-F_mn (see _d2J_gather): a gather instead of a 9x9x9 contraction
+        A[:, _D2J_POS] += (self.lam * (J - self.alpha))[:, None] * (_D2J_SIGN * f[:, _D2J_SRC])
+        return A.reshape(k, 3, 3, 3, 3)
 
     def d2psi_dF2_eigensystem(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Analytic eigen-decomposition of the 9x9 ``d2psi/dF2`` (Smith et al. 2018, section 4.2).
