@@ -1,10 +1,19 @@
-"""Sparse assembly of projected Hessian blocks with a cached sparsity pattern.
+"""Sparse assembly of Hessian blocks into the upper triangle of the constrained Newton matrix.
 
-The elastic potentials keep the same elements from step to step, so the map from their block
-entries to the non-zeros of the CSR matrix is computed once (sort + unique of the linear indices)
-and every later assembly is one ``np.bincount`` (no COO -> CSR conversion, no index sort). Contact
-and friction blocks change every iteration and are assembled by plain COO -> CSR and added.
-Dirichlet DoFs are eliminated by zeroing their rows and columns and putting 1 on the diagonal.
+The Newton matrix is ``D H D + (I - D)`` with ``D = diag(free)``: Dirichlet DoFs are eliminated by
+dropping their rows and columns and putting 1 on their diagonal. It is symmetric, so only its upper
+triangle (``row <= col``, full diagonal) is assembled, the input of the Cholesky solver
+(:class:`sim_core.linsolve.PardisoCholesky`).
+
+Patterns are cached as maps from block entries to CSR slots, so an assembly is a few
+``np.bincount`` calls (no COO -> CSR conversion, no index sort):
+
+* static blocks (elastic terms, the same elements every call, recognised by the identity of their
+  ``vertices`` arrays) + the diagonal: one map, rebuilt when the arrays or the free mask change;
+* dynamic blocks (contact, friction: the active pairs change): the sorted unique keys of their
+  kept entries are compared with the last call's; the union pattern with the static one and both
+  maps into it are rebuilt only when they differ (the active set is usually stable over the last
+  Newton iterations of a step, and the linear solver then also keeps its symbolic analysis).
 """
 
 from __future__ import annotations
@@ -14,46 +23,49 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from sim_core.potentials.base import HessianBlocks, assemble_hessian, block_dof_indices
+from sim_core.potentials.base import HessianBlocks, block_dof_indices
 
 
-class _Pattern:
-    """CSR pattern of a fixed list of element-vertex arrays plus the full diagonal."""
+def _block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column DoF of every entry of blocks over ``vertices`` ``(k, m)``, each ``(k (3m)^2,)``."""
+    dofs = block_dof_indices(vertices)
+    n = dofs.shape[1]
+    rows = np.repeat(dofs, n, axis=1).reshape(-1)
+    cols = np.tile(dofs, (1, n)).reshape(-1)
+    return rows, cols
 
-    def __init__(self, vertex_arrays: Sequence[np.ndarray], dof_count: int) -> None:
+
+class _StaticPattern:
+    """Upper-triangle pattern of fixed element-vertex arrays plus the full diagonal, for one free mask.
+
+    Attributes:
+        keys: sorted unique linear keys ``row * n + col`` of the kept entries, shape ``(nnz,)``.
+        entry_index: positions of the kept entries in the concatenated block values (blocks in
+            order, then the diagonal), shape ``(kept,)``.
+        slot: CSR slot of each kept entry, shape ``(kept,)``.
+        fixed_diag_slots: slots of the diagonal entries of fixed DoFs.
+    """
+
+    def __init__(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray, dof_count: int) -> None:
         rows, cols = [], []
         for v in vertex_arrays:
-            dofs = block_dof_indices(v)
-            n = dofs.shape[1]
-            rows.append(np.repeat(dofs, n, axis=1).reshape(-1))
-            cols.append(np.tile(dofs, (1, n)).reshape(-1))
+            r, c = _block_keys(v, dof_count)
+            rows.append(r)
+            cols.append(c)
         idx = np.arange(dof_count)
         rows.append(idx)
         cols.append(idx)
-        lin = np.concatenate(rows).astype(np.int64) * dof_count + np.concatenate(cols)
-        uniq, inverse = np.unique(lin, return_inverse=True)
-        self.scatter = inverse.astype(np.int64)
-        self.nnz = int(uniq.size)
-        self.row = uniq // dof_count
-        self.col = uniq % dof_count
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.row, minlength=dof_count))]).astype(np.int64)
-        self.indices = self.col.astype(np.int32 if dof_count < 2**31 else np.int64)
-        self.diag_slots = self.scatter[-dof_count:]
-        self.dof_count = dof_count
-        self._free_key: bytes | None = None
-
-    def fixed_entries(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Masks over the non-zeros: entries in a fixed row or column, and fixed diagonal slots."""
-        key = np.packbits(free).tobytes()
-        if key != self._free_key:
-            self._fixed = ~(free[self.row] & free[self.col])
-            self._fixed_diag = self.diag_slots[~free]
-            self._free_key = key
-        return self._fixed, self._fixed_diag
+        r = np.concatenate(rows).astype(np.int64)
+        c = np.concatenate(cols).astype(np.int64)
+        keep = ((r < c) & free[r] & free[c]) | (r == c)
+        self.entry_index = np.flatnonzero(keep)
+        self.keys, self.slot = np.unique(r[keep] * dof_count + c[keep], return_inverse=True)
+        diag_slots = np.searchsorted(self.keys, idx * dof_count + idx)
+        self.fixed_diag_slots = diag_slots[~free]
 
 
 class HessianAssembler:
-    """Assemble ``static`` blocks (cached pattern) + ``dynamic`` blocks + a diagonal into CSR.
+    """Assemble ``static`` blocks + ``dynamic`` blocks + a diagonal into the constrained upper triangle.
 
     Args:
         dof_count: ``3 * vertex_count``.
@@ -61,17 +73,49 @@ class HessianAssembler:
 
     def __init__(self, dof_count: int) -> None:
         self.dof_count = dof_count
-        self._key: tuple | None = None
-        self._pattern: _Pattern | None = None
+        self._static_key: tuple | None = None
+        self._static: _StaticPattern | None = None
+        self._keep_alive: list[np.ndarray] = []
+        self._dynamic_keys: np.ndarray | None = None
+        self._union: tuple | None = None
 
-    def assemble(
+    def _static_pattern(self, static: Sequence[HessianBlocks], free: np.ndarray) -> _StaticPattern:
+        key = (tuple((id(b.vertices), b.vertices.shape) for b in static), np.packbits(free).tobytes())
+        if key != self._static_key:
+            self._static = _StaticPattern([b.vertices for b in static], free, self.dof_count)
+            self._static_key = key
+            self._keep_alive = [b.vertices for b in static]  # ids stay unique while referenced
+            self._dynamic_keys = None
+            self._union = None
+        return self._static
+
+    def _union_pattern(self, pat: _StaticPattern, dyn_keys: np.ndarray) -> tuple:
+        """(static slots, dynamic unique keys -> slots, indptr, indices, nnz) of static U dynamic."""
+        if self._union is not None and self._dynamic_keys is not None and np.array_equal(dyn_keys, self._dynamic_keys):
+            return self._union
+        n = self.dof_count
+        # merge two sorted unique key arrays in linear time (no re-sort of the static keys)
+        pos = np.minimum(np.searchsorted(pat.keys, dyn_keys), max(pat.keys.size - 1, 0))
+        extra = dyn_keys[pat.keys[pos] != dyn_keys] if pat.keys.size else dyn_keys
+        keys = np.insert(pat.keys, np.searchsorted(pat.keys, extra), extra)
+        static_slots = np.arange(pat.keys.size) + np.searchsorted(extra, pat.keys)
+        dynamic_slots = np.searchsorted(keys, dyn_keys)
+        rows = keys // n
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+        indices = (keys % n).astype(np.int32)
+        self._dynamic_keys = dyn_keys
+        self._union = (static_slots, dynamic_slots, indptr, indices, keys.size)
+        return self._union
+
+    def assemble_upper(
         self,
         static: Sequence[HessianBlocks],
         dynamic: Sequence[HessianBlocks],
         diagonal: np.ndarray,
         free: np.ndarray,
     ) -> sp.csr_matrix:
-        """Constrained Hessian ``D H D + (I - D)`` with ``D = diag(free)``.
+        """Upper triangle (with the diagonal) of ``D H D + (I - D)``, ``D = diag(free)``.
 
         Args:
             static: blocks whose ``vertices`` arrays are the same objects every call (elastic terms).
@@ -80,24 +124,32 @@ class HessianAssembler:
             free: free-DoF mask, shape ``(dof_count,)`` bool.
 
         Returns:
-            CSR matrix ``(dof_count, dof_count)`` with sorted indices.
+            CSR matrix ``(dof_count, dof_count)`` with sorted indices, entries ``row <= col`` only.
         """
-        key = tuple((id(b.vertices), b.vertices.shape) for b in static)
-        if key != self._key:
-            self._pattern = _Pattern([b.vertices for b in static], self.dof_count)
-            self._key = key
-            self._keep_alive = [b.vertices for b in static]
-        pat = self._pattern
-        vals = np.concatenate([b.blocks.reshape(-1) for b in static] + [np.asarray(diagonal, dtype=float)])
-        data = np.bincount(pat.scatter, weights=vals, minlength=pat.nnz)
-        fixed, fixed_diag = pat.fixed_entries(free)
-        data[fixed] = 0.0
-        data[fixed_diag] = 1.0
-        H = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(self.dof_count, self.dof_count))
-        parts = [b for b in dynamic if b.blocks.shape[0]]
-        if parts:
-            C = assemble_hessian(parts, self.dof_count)
-            D = sp.diags(free.astype(float))
-            H = (H + D @ C @ D).tocsr()
-            H.sort_indices()
-        return H
+        n = self.dof_count
+        pat = self._static_pattern(static, free)
+        diagonal = np.asarray(diagonal, dtype=float)
+        vals = np.concatenate([b.blocks.reshape(-1) for b in static] + [diagonal])
+        static_data = np.bincount(pat.slot, weights=vals[pat.entry_index], minlength=pat.keys.size)
+        static_data[pat.fixed_diag_slots] = 1.0
+
+        dyn_r, dyn_c, dyn_v = [], [], []
+        for b in dynamic:
+            if b.blocks.shape[0] == 0:
+                continue
+            r, c = _block_keys(b.vertices, n)
+            keep = (r <= c) & free[r] & free[c]
+            dyn_r.append(r[keep])
+            dyn_c.append(c[keep])
+            dyn_v.append(b.blocks.reshape(-1)[keep])
+        if dyn_r:
+            lin = np.concatenate(dyn_r) * n + np.concatenate(dyn_c)
+            dyn_keys, dyn_slot = np.unique(lin, return_inverse=True)
+        else:
+            dyn_keys, dyn_slot = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        static_slots, dynamic_slots, indptr, indices, nnz = self._union_pattern(pat, dyn_keys)
+        data = np.zeros(nnz)
+        data[static_slots] = static_data
+        if dyn_v:
+            data += np.bincount(dynamic_slots[dyn_slot], weights=np.concatenate(dyn_v), minlength=nnz)
+        return sp.csr_matrix((data, indices, indptr), shape=(n, n))

@@ -22,7 +22,7 @@ from sim_core.collision import (
     EdgeEdgeRegion,
     PointTriangleRegion,
     edge_edge_closest_points,
-    point_triangle_closest_point,
+    point_triangle_region,
     PairFilter,
     edge_edge_candidates,
     edge_edge_side,
@@ -77,7 +77,8 @@ class ContactSet:
             for b in bodies if b.kind == "sphere"
         ]
         self.x_prev: np.ndarray | None = None
-        self._cache = None
+        self._cache = None  # (memory, candidates, potentials, sides) of the current step
+        self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self.min_edge_sine = 0.1
 
     # ------------------------------------------------------------------ per step
@@ -92,18 +93,42 @@ class ContactSet:
 
         Candidates are searched with radius ``eps + margin`` and reused while no vertex has moved
         more than ``margin / 2`` since the search: two elements then cannot have closed a gap larger
-        than ``margin``, so no pair outside the list can have come within ``eps``.
+        than ``margin``, so no pair outside the list can have come within ``eps``. The search
+        depends on positions only, so it is also reused across steps (the converged positions of
+        a step are the next step's ``x^n``); the sides and the near-parallel edge filter, which
+        depend on the step's memory and ``x^n``, are redone per step.
         """
+        candidates = self._candidate_pairs(x)
         cache = getattr(self, "_cache", None)
-        if cache is not None and cache[0] is memory:
-            moved = float(np.max(np.abs(x - cache[1]))) if x.size else 0.0
-            if moved <= 0.5 * self.margin:
-                vt, ee = cache[2]
-                vt_sides, ee_sides = cache[3]
-                return self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
-        pots, remembered = self._search(x, memory)
-        self._cache = (memory, np.array(x, copy=True), pots, remembered)
+        if cache is not None and cache[0] is memory and cache[1] is candidates:
+            vt, ee = cache[2]
+            vt_sides, ee_sides = cache[3]
+            pots = self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
+        else:
+            pots, remembered = self._search(x, memory, candidates)
+            self._cache = (memory, candidates, pots, remembered)
+        # the previous iterate's potentials were last evaluated at the accepted line-search point,
+        # usually this x: reuse that evaluation where the pairs and sides are unchanged
+        for new, old in zip(pots, getattr(self, "_last_pots", ())):
+            new.inherit_evaluation(old)
+        self._last_pots = pots
         return pots
+
+    def _candidate_pairs(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`)."""
+        found = self._candidates
+        if found is not None and found[0].shape == x.shape:
+            moved = float(np.max(np.abs(x - found[0]))) if x.size else 0.0
+            if moved <= 0.5 * self.margin:
+                return found
+        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
+        if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
+            kv = self.body_kind[self.vertex_body[vt[:, 0]]]
+            kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
+            vt = vt[~((kv == "sheet") & (kt == "solid"))]
+        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
+        self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
+        return self._candidates
 
     def _vertex_triangle(self, x: np.ndarray, vt: np.ndarray, remembered: np.ndarray) -> VertexTriangleContact:
         """Vertex-triangle penalty over pairs ``vt`` with the side memory applied in the face region.
@@ -119,7 +144,7 @@ class ContactSet:
             return VertexTriangleContact(vt, self.triangles, np.zeros(0), self.stiffness, self.eps)
         tri = self.triangles[vt[:, 1]]
         p, a, b, c = x[vt[:, 0]], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-        _, region = point_triangle_closest_point(p, a, b, c)
+        region = point_triangle_region(p, a, b, c)
         z = np.concatenate([p[:, None], a[:, None], b[:, None], c[:, None]], axis=1)
         sides = np.where(region == PointTriangleRegion.FACE, remembered, point_triangle_side(z))
         return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)
@@ -140,16 +165,11 @@ class ContactSet:
         sides = np.where(region == EdgeEdgeRegion.INTERIOR, remembered, edge_edge_side(z_now))
         return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
 
-    def _search(self, x: np.ndarray, memory: CollisionMemory) -> tuple[tuple, np.ndarray]:
+    def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         x_ref = self.x_prev if self.x_prev is not None else x
-        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
-        if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            kv = self.body_kind[self.vertex_body[vt[:, 0]]]
-            kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
-            vt = vt[~((kv == "sheet") & (kt == "solid"))]
+        _, vt, ee = candidates
         z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
         vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
-        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
         z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
              if len(ee) else np.zeros((0, 4, 3)))
         if len(ee):

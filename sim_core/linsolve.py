@@ -3,10 +3,16 @@
 PARDISO through ``pypardiso`` (Intel MKL) is the default; SciPy's SuperLU is the fallback when
 pypardiso is not importable (e.g. on aarch64) or when asked for by name. Both keep the last
 factorisation so the adjoint can reuse it (DESIGN.md "Backward").
+
+The Newton loop uses the symmetric variants (:class:`PardisoCholesky`, :class:`ScipySymmetric`,
+from :func:`make_symmetric_solver`): they take the upper triangle of a symmetric matrix, and the
+Cholesky one reports a matrix that is not positive definite instead of factorising it, which the
+solver uses to decide between the exact and the PSD-projected Hessian.
 """
 
 from __future__ import annotations
 
+import ctypes
 from typing import Protocol
 
 import numpy as np
@@ -72,6 +78,181 @@ class ScipySolver:
         if self._lu is None:
             raise SimulationDivergedError("linear solve requested before factorisation")
         return self._lu.solve(np.asarray(b, dtype=float))
+
+
+class SymmetricSolver(Protocol):
+    """Factorise a symmetric matrix given by its upper triangle; solve with the factorisation.
+
+    Attributes:
+        name: solver name reported by the benchmark.
+        detects_indefinite: True when :meth:`factorize` returns False for a matrix that is not
+            positive definite (a Cholesky factorisation); False when it factorises any
+            non-singular matrix and always returns True.
+    """
+
+    name: str
+    detects_indefinite: bool
+
+    def factorize(self, upper: sp.csr_matrix) -> bool:
+        """Factorise ``A = U + U^T - diag(U)`` from ``U`` (CSR, upper triangle with the full
+        diagonal, sorted indices, shape ``(n, n)``); False when ``A`` is not positive definite."""
+        ...
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve ``A x = b`` with the last successful factorisation; ``b`` shape ``(n,)``."""
+        ...
+
+
+def full_from_upper(upper: sp.csr_matrix) -> sp.csr_matrix:
+    """The symmetric matrix ``U + U^T - diag(U)`` of an upper triangle ``U`` (CSR, sorted)."""
+    strict = sp.triu(upper, k=1, format="csr")
+    full = (upper + strict.T).tocsr()
+    full.sort_indices()
+    return full
+
+
+class PardisoCholesky:
+    """PARDISO (MKL) sparse Cholesky, matrix type 2 (real symmetric positive definite).
+
+    Differences from :class:`PardisoSolver` (pypardiso's wrapper, general LU, matrix type 11):
+    only the upper triangle is factorised (about half the fill-in); the symbolic analysis
+    (phase 11: fill-reducing ordering) is redone only when the sparsity pattern changes, the
+    numerical factorisation (phase 22) runs every call; a matrix that is not positive definite
+    makes PARDISO stop with error -4 (non-positive pivot), reported as ``False``. MKL runs with
+    ``threads`` threads during the calls (thread-local setting, restored afterwards): the Newton
+    matrices of a few thousand DoFs factorise in about a millisecond, where extra threads cost
+    more than they give.
+
+    Args:
+        threads: MKL threads for PARDISO calls (>= 1).
+    """
+
+    name = "pardiso"
+    detects_indefinite = True
+    _NOT_POSITIVE_DEFINITE = -4
+
+    def __init__(self, threads: int = 1) -> None:
+        import pypardiso
+
+        lib = pypardiso.PyPardisoSolver().libmkl  # pypardiso locates MKL's runtime library
+        self._pardiso = lib.pardiso
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        self._pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p,
+                                  i32, i32, i32, i32, i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
+        self._pardiso.restype = None
+        self._set_threads = getattr(lib, "MKL_Set_Num_Threads_Local", None)
+        self.threads = int(threads)
+        self._pt = np.zeros(64, dtype=np.int64)  # PARDISO's opaque handle
+        self._iparm = np.zeros(64, dtype=np.int32)  # iparm[0] = 0: PARDISO defaults
+        self._perm = np.zeros(0, dtype=np.int32)
+        self._pattern: tuple[np.ndarray, np.ndarray] | None = None  # (indptr, indices) analysed
+        self._ia = self._ja = None
+        self._data: np.ndarray | None = None
+        self._n = 0
+        self._factorized = False
+
+    def _call(self, phase: int, data: np.ndarray, b: np.ndarray | None = None) -> tuple[int, np.ndarray | None]:
+        nrhs = 1
+        if b is None:
+            b_arr = np.zeros(self._n)
+        else:
+            b_arr = np.asfortranarray(b, dtype=float)
+            nrhs = 1 if b_arr.ndim == 1 else b_arr.shape[1]
+        x = np.zeros_like(b_arr)
+        err = ctypes.c_int32(0)
+        c = ctypes.c_int32
+        previous = self._set_threads(self.threads) if self._set_threads is not None else None
+        try:
+            self._pardiso(
+                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(c(1)), ctypes.byref(c(1)),
+                ctypes.byref(c(2)), ctypes.byref(c(phase)), ctypes.byref(c(self._n)), data.ctypes.data,
+                self._ia.ctypes.data_as(ctypes.POINTER(c)), self._ja.ctypes.data_as(ctypes.POINTER(c)),
+                self._perm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(nrhs)),
+                self._iparm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(0)), b_arr.ctypes.data,
+                x.ctypes.data, ctypes.byref(err),
+            )
+        finally:
+            if previous is not None:
+                self._set_threads(previous)
+        return int(err.value), (np.ascontiguousarray(x) if b is not None else None)
+
+    def factorize(self, upper: sp.csr_matrix) -> bool:
+        """Cholesky of the matrix whose upper triangle is ``upper``; False if not positive definite.
+
+        Raises:
+            SimulationDivergedError: any other PARDISO error (the code is in the message).
+        """
+        upper = sp.csr_matrix(upper)
+        upper.sort_indices()
+        data = np.ascontiguousarray(upper.data, dtype=float)
+        pattern = self._pattern
+        if pattern is None or not (np.array_equal(pattern[0], upper.indptr) and np.array_equal(pattern[1], upper.indices)):
+            self._n = upper.shape[0]
+            self._ia = (upper.indptr + 1).astype(np.int32)  # PARDISO's default is 1-based indexing
+            self._ja = (upper.indices + 1).astype(np.int32)
+            err, _ = self._call(11, data)
+            if err != 0:
+                self._pattern = None
+                raise SimulationDivergedError(f"PARDISO symbolic analysis failed with error {err}")
+            self._pattern = (upper.indptr.copy(), upper.indices.copy())
+        err, _ = self._call(22, data)
+        self._factorized = err == 0
+        if err == self._NOT_POSITIVE_DEFINITE:
+            return False
+        if err != 0:
+            self._pattern = None
+            raise SimulationDivergedError(f"PARDISO Cholesky factorisation failed with error {err}")
+        self._data = data
+        return True
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if not self._factorized:
+            raise SimulationDivergedError("linear solve requested without a successful factorisation")
+        err, x = self._call(33, self._data, np.asarray(b, dtype=float))
+        if err != 0:
+            raise SimulationDivergedError(f"PARDISO solve failed with error {err}")
+        return x.reshape(np.shape(b))
+
+    def __del__(self) -> None:
+        if getattr(self, "_pattern", None) is not None and self._ia is not None:
+            try:
+                self._call(-1, np.zeros(1))  # release PARDISO's internal memory
+            except Exception:  # noqa: BLE001 - interpreter shutdown: nothing left to release
+                pass
+
+
+class ScipySymmetric:
+    """:class:`SymmetricSolver` on SciPy's SuperLU (no definiteness test: always True)."""
+
+    name = "scipy"
+    detects_indefinite = False
+
+    def __init__(self) -> None:
+        self._lu = ScipySolver()
+
+    def factorize(self, upper: sp.csr_matrix) -> bool:
+        self._lu.factorize(full_from_upper(sp.csr_matrix(upper)))
+        return True
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._lu.solve(b)
+
+
+def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:
+    """Symmetric solver by name: ``"pardiso"`` (:class:`PardisoCholesky`, SciPy when pypardiso is
+    unavailable) or ``"scipy"`` (:class:`ScipySymmetric`).
+
+    Raises:
+        ConfigError: unknown name.
+    """
+    if name == "pardiso":
+        try:
+            return PardisoCholesky()
+        except (ImportError, OSError, AttributeError):
+            return ScipySymmetric()
+    if name == "scipy":
+        return ScipySymmetric()
+    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso' or 'scipy'")
 
 
 def make_linear_solver(name: str = "pardiso") -> LinearSolver:

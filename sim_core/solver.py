@@ -4,7 +4,10 @@ One step minimises E(x) = inertia + gravity + damping + elastic + contact + fric
 (DESIGN.md "Time stepping"), then sets v = (x - x^n)/dt. Each iteration assembles the projected
 Hessian blocks of every potential into one sparse matrix, solves with a sparse direct solver
 (PARDISO by default), and backtracks along the Newton direction until the Armijo condition
-E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we do not). The step
+E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we do not). The
+matrix is the exact Hessian whenever its Cholesky factorisation succeeds (it is then positive
+definite on the free DoFs and the Newton direction is a descent direction, with quadratic
+convergence near the solution), else the Hessian with PSD-projected element blocks. The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
 the contact candidate set of the iteration valid. A step that does not converge raises
 :class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured).
@@ -24,7 +27,7 @@ from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, SimulationDivergedError
-from sim_core.linsolve import LinearSolver, make_linear_solver
+from sim_core.linsolve import LinearSolver, SymmetricSolver, full_from_upper, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.potentials.base import HessianBlocks, assemble_hessian
 from sim_core.potentials.damping import ViscousDamping
@@ -48,6 +51,12 @@ class SolverConfig:
         max_backtracks: line-search halvings before failing.
         max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
         projection: PSD projection of element Hessians ("clamp", "abs", "none").
+        exact_hessian_first: each iteration, first factorise the exact (unprojected) Hessian and
+            use it if it is positive definite; assemble the ``projection`` one only when it is not.
+            Needs a solver that detects indefinite matrices (PARDISO's Cholesky); with SciPy, or
+            ``projection="none"``, the ``projection`` Hessian is always used. Per-element projection
+            discards negative curvature the neighbours would compensate, so projected Newton only
+            converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
         linear_solver: "pardiso" or "scipy".
         dt_halvings_on_failure: retry a failed step with dt/2, dt/4 ... this many times (0 = raise).
     """
@@ -60,6 +69,7 @@ class SolverConfig:
     max_backtracks: int = 40
     max_displacement: float | None = None
     projection: str = "clamp"
+    exact_hessian_first: bool = True
     linear_solver: str = "pardiso"
     dt_halvings_on_failure: int = 0
 
@@ -88,7 +98,8 @@ class StepRecord:
         terms: the potentials of the incremental potential at the converged step, in the order
             inertia, gravity, [damping], elastic..., [friction], contact...
         hinge_theta_bar: rest angles used during the step (per sheet).
-        hessian: the constrained projected Hessian at the last Newton iteration (CSR).
+        hessian: the constrained Newton matrix of the last iteration (CSR, symmetric): the exact
+            Hessian when it was positive definite, else the projected one.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
     """
 
@@ -109,7 +120,8 @@ class StepRecord:
 
 @dataclass
 class StepInfo:
-    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s)."""
+    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), and the
+    iterations whose Newton matrix had PSD-projected element blocks."""
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -120,6 +132,7 @@ class StepInfo:
     time_assembly: float = 0.0
     time_linear_solve: float = 0.0
     time_total: float = 0.0
+    projected_iterations: int = 0
 
 
 class NewtonSolver:
@@ -133,7 +146,8 @@ class NewtonSolver:
     def __init__(self, model: Model, config: SolverConfig | None = None) -> None:
         self.model = model
         self.config = config or SolverConfig()
-        self.linear_solver: LinearSolver = make_linear_solver(self.config.linear_solver)
+        self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
+        self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self.contact = ContactSet(model)
         self._revision = -1
         # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
@@ -202,6 +216,7 @@ class NewtonSolver:
             total.limited_effectors = sorted(set(total.limited_effectors) | set(info.limited_effectors))
             total.time_assembly += info.time_assembly
             total.time_linear_solve += info.time_linear_solve
+            total.projected_iterations += info.projected_iterations
             s = nxt
         _copy_state_into(s, state_out)
         return total
@@ -229,6 +244,13 @@ class NewtonSolver:
             fixed[eff.vertices] = True
             x_target[eff.vertices] = driven_positions(eff, pose, opening)
         return fixed, x_target, poses, openings, limited
+
+    def _projections(self) -> tuple[str, ...]:
+        """Element-Hessian projections to try in order each iteration (see ``exact_hessian_first``)."""
+        cfg = self.config
+        if cfg.exact_hessian_first and cfg.projection != "none" and self.linear_solver.detects_indefinite:
+            return ("none", cfg.projection)
+        return (cfg.projection,)
 
     def _single_step(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo:
         cfg = self.config
@@ -258,8 +280,14 @@ class NewtonSolver:
         fixed_terms += cand_contact + cand_body
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
+        fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
+
         def total(xx: np.ndarray, contact_terms: list) -> float:
-            return sum(p.energy(xx) for p in fixed_terms) + sum(p.energy(xx) for p in contact_terms)
+            # fixed_terms do not change within the step: their energy at the accepted line-search
+            # point is the next iteration's e0 part (same array object, same value)
+            if fixed_energy[0] is not xx:
+                fixed_energy[:] = [xx, sum(p.energy(xx) for p in fixed_terms)]
+            return fixed_energy[1] + sum(p.energy(xx) for p in contact_terms)
 
         converged = False
         residual = np.inf
@@ -274,17 +302,27 @@ class NewtonSolver:
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
                 )
-            static = [p.hessian(x, cfg.projection) for p in elastic_terms]
-            dynamic = [p.hessian(x, cfg.projection) for p in contact_terms]
-            if friction is not None:
-                dynamic.append(friction.hessian(x, cfg.projection))
-            dynamic += [p.hessian(x, cfg.projection) for p in cand_contact + cand_body]
-            H = self.assembler.assemble(static, dynamic, diag, free)
+            dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_contact + cand_body
             info.time_assembly += time.perf_counter() - ta
-            tl = time.perf_counter()
-            self.linear_solver.factorize(H)
-            d = -self.linear_solver.solve(g)
-            info.time_linear_solve += time.perf_counter() - tl
+            d = None
+            for projection in self._projections():
+                ta = time.perf_counter()
+                H = self.assembler.assemble_upper([p.hessian(x, projection) for p in elastic_terms],
+                                                  [p.hessian(x, projection) for p in dynamic_terms], diag, free)
+                tl = time.perf_counter()
+                info.time_assembly += tl - ta
+                if self.linear_solver.factorize(H):
+                    d = -self.linear_solver.solve(g)
+                    info.projected_iterations += projection != "none"
+                info.time_linear_solve += time.perf_counter() - tl
+                if d is not None:
+                    break
+            if d is None:  # projection="none" and not positive definite: general LU as before
+                tl = time.perf_counter()
+                self._general_solver = self._general_solver or make_linear_solver(cfg.linear_solver)
+                self._general_solver.factorize(full_from_upper(H))
+                d = -self._general_solver.solve(g)
+                info.time_linear_solve += time.perf_counter() - tl
             d[~free] = 0.0
             if not np.all(np.isfinite(d)):
                 raise SimulationDivergedError(
@@ -335,6 +373,7 @@ class NewtonSolver:
                 f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
             )
         info.residual_velocity = residual
+        H = full_from_upper(H)
         self.last_hessian = H
         self.last_free_mask = free
         contact_terms = self.contact.potentials(x, x_n, memory)

@@ -19,6 +19,7 @@ from sim_core.collision.distances import (
     point_triangle_closest_point,
     point_triangle_contact_distance,
     point_triangle_distance,
+    point_triangle_region,
     point_triangle_side,
 )
 from sim_core.collision.memory import (
@@ -45,6 +46,7 @@ __all__ = [
     "point_triangle_closest_point",
     "point_triangle_contact_distance",
     "point_triangle_distance",
+    "point_triangle_region",
     "point_triangle_side",
     "vertex_triangle_candidates",
     "vertex_triangle_pair_sides",

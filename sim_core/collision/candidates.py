@@ -78,8 +78,9 @@ def box_pairs_kdtree(
 ) -> np.ndarray:
     """Pairs of axis-aligned boxes that come within ``radius`` of each other (k-d tree broad phase).
 
-    Box centres go into SciPy's ``cKDTree`` (C); centre pairs closer than ``radius`` plus the two
-    largest half-diagonals are candidates, then the exact inflated-AABB overlap test filters them.
+    Box centres go into SciPy's ``cKDTree`` (C); centre pairs closer than ``sqrt(3) radius`` plus
+    the two largest half-diagonals are candidates (boxes inflated by ``radius`` per axis overlap up
+    to ``sqrt(3) radius`` apart), then the exact inflated-AABB overlap test filters them.
     Same result as the spatial hash (:class:`SpatialHash`), with the search done in compiled code.
 
     Args:
@@ -97,7 +98,7 @@ def box_pairs_kdtree(
     ca, cb = 0.5 * (a_min + a_max), 0.5 * (b_min + b_max)
     ra = float(np.max(np.linalg.norm(a_max - a_min, axis=1))) * 0.5 if len(a_min) else 0.0
     rb = float(np.max(np.linalg.norm(b_max - b_min, axis=1))) * 0.5 if len(b_min) else 0.0
-    reach = radius + ra + rb
+    reach = np.sqrt(3.0) * radius + ra + rb
     ta = cKDTree(ca)
     if same:
         pairs = ta.query_pairs(reach, output_type="ndarray").astype(np.int64)
@@ -109,6 +110,48 @@ def box_pairs_kdtree(
     i, j = pairs[:, 0], pairs[:, 1]
     overlap = np.all((a_min[i] - radius <= b_max[j]) & (b_min[j] <= a_max[i] + radius), axis=1)
     return pairs[overlap]
+
+
+def _grouped_box_pairs(
+    a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
+    b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
+    radius: float, allowed: np.ndarray,
+) -> np.ndarray:
+    """:func:`box_pairs_kdtree` run per allowed pair of bodies; the same pairs, in another order.
+
+    A k-d tree over all boxes at once searches with the largest boxes' reach (the long edges of one
+    body widen the search of every other) and returns pairs of bodies that may not touch (a solid's
+    own edges) only for them to be filtered out; per body pair, each search uses that pair's reach
+    and disallowed pairs are never formed.
+
+    Args:
+        a_min, a_max, a_body: boxes of set A ``(ka, 3)`` and the body of each ``(ka,)``.
+        b_min, b_max, b_body: the same for set B, or None to pair A with itself (``i < j``).
+        radius: inflation in m.
+        allowed: ``(bodies, bodies)`` bool, symmetric.
+
+    Returns:
+        int64 ``(p, 2)`` of ``[index in A, index in B]`` (``i < j`` when B is None).
+    """
+    same = b_min is None
+    if same:
+        b_min, b_max, b_body = a_min, a_max, a_body
+    groups_a = {int(k): np.flatnonzero(a_body == k) for k in np.unique(a_body)}
+    groups_b = groups_a if same else {int(k): np.flatnonzero(b_body == k) for k in np.unique(b_body)}
+    out = []
+    for ka, ia in groups_a.items():
+        for kb, ib in groups_b.items():
+            if not allowed[ka, kb] or (same and kb < ka):
+                continue
+            if same and ka == kb:
+                pairs = box_pairs_kdtree(a_min[ia], a_max[ia], None, None, radius)
+            else:
+                pairs = box_pairs_kdtree(a_min[ia], a_max[ia], b_min[ib], b_max[ib], radius)
+            pairs = np.stack([ia[pairs[:, 0]], ib[pairs[:, 1]]], axis=1)
+            if same:
+                pairs = np.sort(pairs, axis=1)
+            out.append(pairs)
+    return np.concatenate(out) if out else np.zeros((0, 2), dtype=np.int64)
 
 
 def _check(x: np.ndarray, radius: float) -> None:
@@ -153,6 +196,10 @@ def vertex_triangle_candidates(
     p = x[vertices]
     if cell_size is not None:
         pairs = SpatialHash(t_min, t_max, cell_size).query(p - radius, p + radius)
+    elif exclude is not None and exclude.body_pair_allowed is not None:
+        body = np.asarray(exclude.vertex_body)
+        pairs = _grouped_box_pairs(p, p, body[vertices], t_min, t_max, body[triangles[:, 0]], radius,
+                                   np.asarray(exclude.body_pair_allowed, dtype=bool))
     else:
         pairs = box_pairs_kdtree(p, p, t_min, t_max, radius)
     v = vertices[pairs[:, 0]]
@@ -204,6 +251,10 @@ def edge_edge_candidates(
     if cell_size is not None:
         pairs = SpatialHash(e_min, e_max, cell_size).query(e_min - radius, e_max + radius)
         pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    elif exclude is not None and exclude.body_pair_allowed is not None:
+        body = np.asarray(exclude.vertex_body)[edges[:, 0]]
+        pairs = _grouped_box_pairs(e_min, e_max, body, None, None, None, radius,
+                                   np.asarray(exclude.body_pair_allowed, dtype=bool))
     else:
         pairs = box_pairs_kdtree(e_min, e_max, None, None, radius)
     ea, eb = edges[pairs[:, 0]], edges[pairs[:, 1]]

@@ -85,13 +85,41 @@ class _PairPenalty:
         raise NotImplementedError
 
     def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
-        """Indices of the active pairs and their distance (with derivatives up to ``order``)."""
-        z = x[self.vertices]
-        d = self._distance(z, self.sides, 0).d
-        active = np.flatnonzero(d < self.eps)
-        if order == 0:
-            return active, DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
-        return active, self._distance(z[active], self.sides[active], order)
+        """Indices of the active pairs and their distance (with derivatives up to ``order``).
+
+        Order >= 1 computes the Hessian too (the solver asks for the gradient and then the Hessian
+        at the same iterate); the last result is kept with a copy of ``x`` and reused while ``x``
+        is equal (energy, gradient and Hessian of one iterate share one evaluation).
+        """
+        cache = getattr(self, "_last", None)
+        if cache is not None and cache[4] == self.eps and np.array_equal(cache[1], x):
+            if cache[0] >= order:
+                return cache[2], cache[3]
+            active = cache[2]  # order-0 result at this x: derivatives of its active pairs only
+        else:
+            d = self._distance(x[self.vertices], self.sides, 0).d
+            active = np.flatnonzero(d < self.eps)
+        if order == 0:  # (only reached through the else branch above, which sets d)
+            dd = DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
+        else:
+            order = 2
+            dd = self._distance(x[self.vertices[active]], self.sides[active], order)
+        self._last = (order, np.array(x, dtype=float, copy=True), active, dd, self.eps)
+        return active, dd
+
+    def inherit_evaluation(self, other: "_PairPenalty | None") -> None:
+        """Take over ``other``'s kept evaluation (:meth:`_evaluate`) if it is the same function.
+
+        Same class, pairs (vertex arrays), sides and eps define the same distances, so the result
+        kept for some ``x`` is valid here too (still matched against ``x`` on use). The contact set
+        passes the potential of the previous Newton iterate, whose last evaluation is the energy at
+        the accepted line-search point, the next iterate.
+        """
+        last = getattr(other, "_last", None)
+        if (last is not None and type(other) is type(self) and other.eps == self.eps
+                and other.vertices.shape == self.vertices.shape and np.array_equal(other.vertices, self.vertices)
+                and np.array_equal(other.sides, self.sides)):
+            self._last = last
 
     def distance(self, x: np.ndarray) -> np.ndarray:
         """Contact distance ``d`` of every pair in m, shape ``(p,)``."""

@@ -234,6 +234,8 @@ class KirchhoffBending:
         self.triangle_stiffness = (0.5 * D * self.triangle_rest_area)[:, None, None] * self.triangle_weight
         self.hinge_stiffness_matrix = self._hinge_matrix(self.triangle_stiffness)
 
+        self._hinge_scatter = self._hessian_scatter()
+
         # Hessian block vertices: the triangle + the neighbour opposite each edge (own vertex k on
         # a boundary edge k, whose rows stay zero).
         self.block_vertices = np.where(self._known, self.triangle_opposite, triangles)
@@ -266,6 +268,24 @@ class KirchhoffBending:
         Rt = np.swapaxes(R, 1, 2)
         return np.where(kk, Rt @ W @ R, 0.0), np.where(kk, Rt @ dW @ R, 0.0)
 
+    def _hessian_scatter(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per triangle edge k, where each hinge's derivatives go in the triangle's 18-DoF arrays.
+
+        Returns, for k = 0, 1, 2: ``rows`` (triangles with a hinge on edge k), ``hinge`` (that
+        hinge), ``grad_index`` ``(m, 12)`` flat positions in the ``(t, 3, 18)`` array of hinge-angle
+        gradients and ``hess_index`` ``(m, 144)`` flat positions in the ``(t, 18, 18)`` Hessian.
+        Within one k the positions are distinct, so a fancy-indexed ``+=`` accumulates correctly.
+        """
+        out = []
+        for k in range(3):
+            rows = np.flatnonzero(self._known[:, k])
+            slots = self._slots[rows, k]  # (m, 4) local vertex slot of each hinge vertex
+            dof = (3 * slots[:, :, None] + np.arange(3)).reshape(-1, 12)
+            grad_index = (rows[:, None] * 3 + k) * 18 + dof
+            hess_index = (rows[:, None, None] * 18 + dof[:, :, None]) * 18 + dof[:, None, :]
+            out.append((rows, self.triangle_hinge[rows, k], grad_index, hess_index.reshape(-1, 144)))
+        return out
+
     def _hinge_matrix(self, M: np.ndarray) -> sp.csr_matrix:
         """Sum per-triangle (3, 3) forms over the hinges of their edges -> sparse (h, h)."""
         h = self.hinges.shape[0]
@@ -277,7 +297,21 @@ class KirchhoffBending:
 
     def theta(self, x: np.ndarray) -> np.ndarray:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
-        return dihedral_angle(x[self.hinges])
+        return self._hinge_kinematics(x)[1].copy()
+
+    def _hinge_kinematics(self, x: np.ndarray, gradient: bool = False) -> tuple:
+        """``(X (h, 4, 3), theta (h,), dtheta/dx (h, 4, 3) or None)`` at ``x``, kept with a copy of
+        ``x`` so that energy, gradient and Hessian of one iterate share them (they do not depend on
+        the rest angles, which copies of this potential replace)."""
+        kept = self.__dict__.get("_kept")
+        if kept is None or kept[0] is not self.hinges or not np.array_equal(kept[1], x):
+            X = x[self.hinges]
+            kept = (self.hinges, np.array(x, dtype=float, copy=True), [X, dihedral_angle(X), None])
+            self._kept = kept
+        values = kept[2]
+        if gradient and values[2] is None:
+            values[2] = dihedral_angle_gradient(values[0])
+        return tuple(values)
 
     def _triangle_deviation(self, theta: np.ndarray) -> np.ndarray:
         """theta_T - theta_bar_T per triangle edge, 0 on boundary edges; shape ``(t, 3)``."""
@@ -291,14 +325,14 @@ class KirchhoffBending:
 
     def energy(self, x: np.ndarray) -> float:
         """Bending energy in J."""
-        d = self.theta(x) - self.hinge_theta_bar
+        d = self._hinge_kinematics(x)[1] - self.hinge_theta_bar
         return float(d @ (self.hinge_stiffness_matrix @ d))
 
     def _gradient_with(self, x: np.ndarray, hinge_matrix: sp.csr_matrix) -> np.ndarray:
-        X = x[self.hinges]
-        d = dihedral_angle(X) - self.hinge_theta_bar
+        _, theta, grad_h = self._hinge_kinematics(x, gradient=True)
+        d = theta - self.hinge_theta_bar
         g_theta = 2.0 * (hinge_matrix @ d)
-        return scatter_gradient(x.shape[0], self.hinges, g_theta[:, None, None] * dihedral_angle_gradient(X))
+        return scatter_gradient(x.shape[0], self.hinges, g_theta[:, None, None] * grad_h)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx = sum_h 2 (K_h d)_h dtheta_h/dx in N, shape ``(n, 3)``."""
@@ -313,22 +347,17 @@ class KirchhoffBending:
         :func:`~sim_core.potentials.base.project_psd` of each block).
         """
         t = self.triangles.shape[0]
-        X = x[self.hinges]
-        theta = dihedral_angle(X)
+        X, theta, grad_h = self._hinge_kinematics(x, gradient=True)  # grad_h (h, 4, 3)
         d = self._triangle_deviation(theta)
         g_theta = 2.0 * np.einsum("tkl,tl->tk", self.triangle_stiffness, d)  # dE_T/dtheta_k
-        grad_h = dihedral_angle_gradient(X)  # (h, 4, 3)
         hess_h = dihedral_angle_hessian(X)  # (h, 12, 12)
-        G = np.zeros((t, 3, 6, 3))
-        H = np.zeros((t, 18, 18))
-        for k in range(3):
-            rows = np.flatnonzero(self._known[:, k])
-            hk = self.triangle_hinge[rows, k]
-            slots = self._slots[rows, k]  # (m, 4)
-            G[rows[:, None], k, slots, :] = grad_h[hk]
-            dof = (3 * slots[:, :, None] + np.arange(3)).reshape(-1, 12)
-            H[rows[:, None, None], dof[:, :, None], dof[:, None, :]] += g_theta[rows, k, None, None] * hess_h[hk]
+        G = np.zeros(t * 3 * 18)
+        H = np.zeros(t * 18 * 18)
+        for k, (rows, hk, grad_index, hess_index) in enumerate(self._hinge_scatter):
+            G[grad_index] = grad_h[hk].reshape(-1, 12)
+            H[hess_index] += g_theta[rows, k, None] * hess_h[hk].reshape(-1, 144)
         G = G.reshape(t, 3, 18)
+        H = H.reshape(t, 18, 18)
         H += 2.0 * np.matmul(np.swapaxes(G, 1, 2), np.matmul(self.triangle_stiffness, G))
         return HessianBlocks(self.block_vertices, project_psd_translation_free(H, projection))
 

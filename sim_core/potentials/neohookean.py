@@ -44,6 +44,26 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _LEVI_CIVITA[_i, _k, _j] = -1.0
 
 
+def _d2J_gather() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Non-zeros of d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn in the row-major 9x9 layout.
+
+    Only ``i != k`` and ``j != l`` give a term, and then a single one, ``+-F_mn``: returns the flat
+    positions ``9 (3 i + j) + 3 k + l`` (36), the flat index ``3 m + n`` of F and the sign.
+    """
+    pos, src, sign = [], [], []
+    for i, j, k, l in np.ndindex(3, 3, 3, 3):
+        for m, n in np.ndindex(3, 3):
+            e = _LEVI_CIVITA[i, k, m] * _LEVI_CIVITA[j, l, n]
+            if e != 0.0:
+                pos.append(9 * (3 * i + j) + 3 * k + l)
+                src.append(3 * m + n)
+                sign.append(e)
+    return np.array(pos), np.array(src), np.array(sign)
+
+
+_D2J_POS, _D2J_SRC, _D2J_SIGN = _d2J_gather()
+
+
 def snh_lame_parameters(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
     """SNH Lamé parameters ``(mu, lam)`` in Pa whose linearisation has modulus ``E`` and ratio ``nu``.
 
@@ -135,9 +155,30 @@ class StableNeoHookean:
         p = np.asarray(x, dtype=float)[self.tets]  # (k, 4, 3)
         return np.einsum("kai,kaj->kij", p, self.tet_dFdx)
 
+    def _deformation(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`deformation_gradient` kept with ``x``: energy, gradient and Hessian of one
+        iterate (the line search's accepted point is the next iterate) share it and its invariants."""
+        kept = self.__dict__.get("_kept")
+        if kept is not None and kept[0] is self.tet_dFdx and np.array_equal(kept[1], x):
+            return kept[2]
+        F = self.deformation_gradient(x)
+        # keyed on tet_dFdx too: a copy with other dF/dx (the Maxwell branch) must not reuse it
+        self._kept = (self.tet_dFdx, np.array(x, dtype=float, copy=True), F, [])
+        return F
+
+    def _invariants(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(I_C, J, cof F)``, shapes ``(k,), (k,), (k, 3, 3)``; memoised for the kept ``F``."""
+        kept = self.__dict__.get("_kept")
+        memo = kept[3] if kept is not None and kept[2] is F else None
+        if memo:
+            return memo[0]
+        out = (np.einsum("kij,kij->k", F, F), np.linalg.det(F), _cofactor(F))
+        if memo is not None:
+            memo.append(out)
+        return out
+
     def _psi(self, F: np.ndarray, mu: float, lam: float) -> np.ndarray:
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
+        I_C, J, _ = self._invariants(F)
         alpha = 1.0 + 0.75 * mu / lam
         return (
             0.5 * mu * (I_C - 3.0)
@@ -151,9 +192,7 @@ class StableNeoHookean:
 
         ``P_mu = (1 - 1/(I_C + 1)) F - 3/4 cof F``, ``P_lam = (J - 1) cof F``.
         """
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
-        cof = _cofactor(F)
+        I_C, J, cof = self._invariants(F)
         P_mu = (1.0 - 1.0 / (I_C + 1.0))[:, None, None] * F - 0.75 * cof
         P_lam = (J - 1.0)[:, None, None] * cof
         return P_mu, P_lam
@@ -177,17 +216,17 @@ class StableNeoHookean:
         ``mu (1 - 1/(I_C+1)) I + 2 mu/(I_C+1)^2 F (x) F + lam cof (x) cof + lam (J - alpha) d2J/dF2``
         with ``d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn`` (Smith et al. 2018, eqs. 19-21).
         """
-        I_C = np.einsum("kij,kij->k", F, F)
-        J = np.linalg.det(F)
-        cof = _cofactor(F)
-        eye9 = np.eye(9).reshape(3, 3, 3, 3)
-        d2J = np.einsum("ikm,jln,tmn->tijkl", _LEVI_CIVITA, _LEVI_CIVITA, F, optimize=True)
-        return (
-            (self.mu * (1.0 - 1.0 / (I_C + 1.0)))[:, None, None, None, None] * eye9
-            + (2.0 * self.mu / (I_C + 1.0) ** 2)[:, None, None, None, None] * np.einsum("tij,tkl->tijkl", F, F)
-            + self.lam * np.einsum("tij,tkl->tijkl", cof, cof)
-            + (self.lam * (J - self.alpha))[:, None, None, None, None] * d2J
-        )
+        I_C, J, cof = self._invariants(F)
+        k = F.shape[0]
+        f, c = F.reshape(k, 9), cof.reshape(k, 9)
+        A = np.zeros((k, 9, 9))
+        A[:, np.arange(9), np.arange(9)] = (self.mu * (1.0 - 1.0 / (I_C + 1.0)))[:, None]
+        A += (2.0 * self.mu / (I_C + 1.0) ** 2)[:, None, None] * (f[:, :, None] * f[:, None, :])
+        A += self.lam * (c[:, :, None] * c[:, None, :])
+        A = A.reshape(k, 81)
+        # d2J has 36 non-zeros +-F_mn (see _d2J_gather): a gather instead of a 9x9x9 contraction
+        A[:, _D2J_POS] += (self.lam * (J - self.alpha))[:, None] * (_D2J_SIGN * f[:, _D2J_SRC])
+        return A.reshape(k, 3, 3, 3, 3)
 
     def d2psi_dF2_eigensystem(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Analytic eigen-decomposition of the 9x9 ``d2psi/dF2`` (Smith et al. 2018, section 4.2).
@@ -239,13 +278,13 @@ class StableNeoHookean:
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """Energy ``sum_t V_t psi(F_t)`` in J at positions ``x`` ``(n, 3)`` (0 at rest)."""
-        F = self.deformation_gradient(x)
+        F = self._deformation(x)
         return float(np.dot(self.tet_rest_volume, self._psi(F, self.mu, self.lam)))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``: ``V_t P(F_t) (dF/dx)`` summed per vertex."""
         x = np.asarray(x, dtype=float)
-        return self._forces_from_pk1(x, self.first_piola(self.deformation_gradient(x)))
+        return self._forces_from_pk1(x, self.first_piola(self._deformation(x)))
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Per-tet 12x12 Hessian blocks in N/m.
@@ -258,7 +297,7 @@ class StableNeoHookean:
         Returns:
             :class:`HessianBlocks` with ``vertices = tets`` ``(k, 4)`` and blocks ``(k, 12, 12)``.
         """
-        F = self.deformation_gradient(x)
+        F = self._deformation(x)
         k = F.shape[0]
         M = self.tet_dvecF_dx
         if projection == "none":

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim_core.collision.candidates import PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision.candidates import PairFilter, box_pairs_kdtree, edge_edge_candidates, vertex_triangle_candidates
 from sim_core.collision.distances import point_triangle_distance
 from sim_core.collision.memory import ContactMemory, edge_edge_pair_sides, vertex_triangle_pair_sides
 from sim_core.collision.spatial_hash import SpatialHash
@@ -92,6 +92,37 @@ def test_edge_edge_candidates_equal_brute_force(seed):
     }
     assert {tuple(p) for p in got} == expect and len(got) == len(expect) > 0
     assert np.all(got[:, 0] < got[:, 1])
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_edge_edge_candidates_with_body_filter_equal_brute_force(seed):
+    # the filtered search runs one k-d tree per allowed body pair
+    rng = np.random.default_rng(seed)
+    x, _, edges = _random_soup(rng)
+    body = (np.arange(x.shape[0]) % 3).astype(np.int64)
+    allowed = np.array([[True, True, False], [True, False, True], [False, True, True]])
+    filt = PairFilter(vertex_body=body, body_pair_allowed=allowed)
+    r = 0.001
+    got = edge_edge_candidates(x, edges, r, exclude=filt)
+    emin, emax = x[edges].min(axis=1), x[edges].max(axis=1)
+    ov = _overlap(emin - r, emax + r, emin, emax)
+    eb = body[edges[:, 0]]
+    expect = {
+        (int(i), int(j))
+        for i, j in np.argwhere(ov)
+        if i < j and not set(edges[i].tolist()) & set(edges[j].tolist()) and allowed[eb[i], eb[j]]
+    }
+    assert {tuple(p) for p in got} == expect and len(got) == len(expect) > 0
+    assert np.all(got[:, 0] < got[:, 1])
+
+
+def test_box_pairs_find_diagonal_overlaps_of_inflated_boxes():
+    # a point off a box's corner by 0.9 r on each axis: the inflated boxes overlap although the
+    # Euclidean distance (1.56 r) exceeds r
+    r = 0.01
+    lo, hi = np.zeros((1, 3)), np.full((1, 3), 0.001)
+    p = hi + 0.9 * r
+    assert box_pairs_kdtree(p, p, lo, hi, r).tolist() == [[0, 0]]
 
 
 def _grid_sheet(nx, ny, dx):

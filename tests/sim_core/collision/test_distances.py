@@ -177,3 +177,42 @@ def test_signed_distance_equals_unsigned_on_remembered_side():
     assert np.allclose(dd.d, point_triangle_distance(*z.transpose(1, 0, 2)), rtol=1e-10, atol=1e-15)
     dd_neg = point_triangle_contact_distance(z * np.array([1, 1, -1]), -np.ones(200), 0)
     assert np.allclose(dd_neg.d, dd.d, rtol=1e-10, atol=1e-15)
+
+
+def test_point_triangle_region_equals_the_closest_point_region():
+    # region-only classification (used by the contact distances) vs the full closest-point routine,
+    # including points exactly on a vertex and on an edge (ties between the Voronoi tests)
+    from sim_core.collision.distances import point_triangle_closest_point, point_triangle_region
+
+    rng = np.random.default_rng(11)
+    z = rng.normal(size=(4000, 4, 3))
+    z[:200, 0] = z[:200, 1]
+    z[200:400, 0] = 0.5 * (z[200:400, 2] + z[200:400, 3])
+    _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+    assert np.array_equal(point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]), region)
+    assert len(np.unique(region)) == 7
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_closed_form_distance_derivatives_equal_the_jets(seed):
+    # the closed-form primitives (used by the contact distances) against the forward-mode jet
+    # reference at random configurations: same values, derivatives to rounding
+    from sim_core.collision import distance_derivatives as closed
+    from sim_core.collision.distances import _point_line, _point_point, _signed_volume_distance
+
+    rng = np.random.default_rng(seed)
+    k = 300
+    z = rng.normal(size=(k, 4, 3)) * rng.uniform(1e-4, 1.0, size=(k, 1, 1))
+    side = np.where(rng.uniform(size=k) < 0.5, -1.0, 1.0)
+    slots = np.array([rng.permutation(4)[:3] for _ in range(k)])
+    cases = [
+        (closed.signed_volume(z, side, True, 2), _signed_volume_distance(z, side, True, 2)),
+        (closed.signed_volume(z, side, False, 2), _signed_volume_distance(z, side, False, 2)),
+        (closed.point_line(z, *slots.T, 2), _point_line(z, *slots.T, 2)),
+        (closed.point_point(z, slots[:, 0], slots[:, 1], 2), _point_point(z, slots[:, 0], slots[:, 1], 2)),
+    ]
+    for got, ref in cases:
+        assert np.array_equal(got.val, ref.val)
+        assert relative_error(got.grad, ref.grad) < 1e-12
+        assert relative_error(got.hess, ref.hess) < 1e-12
+    assert np.array_equal(closed.signed_volume(z, side, True, 1).grad, cases[0][0].grad)  # order 1: same gradient

@@ -185,3 +185,27 @@ def test_penalty_is_c1_at_face_edge_boundary_on_the_remembered_side():
         g.append(pot.gradient(x))
     assert relative_error(g[0], g[1]) < 1e-5
     assert np.isclose(pot.energy(np.concatenate([[[0.004, 1e-9, 2e-4]], TRI])), 0.5 * K * (2e-4 - EPS) ** 2)
+
+
+def test_kept_evaluation_is_reused_only_for_the_same_function():
+    # energy, gradient and Hessian of one x share one distance evaluation, also across a copy of the
+    # potential with the same pairs and sides (inherit_evaluation); other sides do not inherit
+    rng = np.random.default_rng(12)
+    regions = list(PointTriangleRegion)
+    x, tris, pairs = _vt_scene(rng, regions)
+    sides = np.ones(len(pairs))
+    fresh = VertexTriangleContact(pairs, tris, sides, K, EPS)
+    e, g, h = fresh.energy(x), fresh.gradient(x), fresh.hessian(x, "none").blocks
+    first = VertexTriangleContact(pairs, tris, sides, K, EPS)
+    first.energy(x)  # keeps the order-0 result
+    same = VertexTriangleContact(pairs, tris, sides.copy(), K, EPS)
+    same.inherit_evaluation(first)
+    assert same._last is first._last
+    assert same.energy(x) == e
+    assert np.array_equal(same.gradient(x), g) and np.array_equal(same.hessian(x, "none").blocks, h)
+    flipped = VertexTriangleContact(pairs, tris, -sides, K, EPS)
+    flipped.inherit_evaluation(first)
+    assert getattr(flipped, "_last", None) is None
+    # a kept result is only used at equal positions
+    x2 = x + 1e-6
+    assert same.energy(x2) == VertexTriangleContact(pairs, tris, sides, K, EPS).energy(x2)

@@ -249,3 +249,18 @@ def test_cantilever_tip_deflection_matches_euler_bernoulli(pattern):
     ratio_nu = _cantilever_tip_ratio(41, 5, NU, pattern) * (1.0 - NU**2)
     assert abs(ratio_nu - 1.0) < 0.05, ratio_nu
     assert ratio_nu < 1.0
+
+
+def test_kept_hinge_angles_are_reused_only_at_equal_positions():
+    # energy, gradient and Hessian of one x share the hinge angles and their gradients; an
+    # in-place change of x recomputes them, and theta() hands out a copy
+    mesh = small_sheet()
+    bend, fresh = _bending(mesh), _bending(mesh)
+    x = deformed_configurations(mesh, seed=4)["folded"].copy()
+    e, g, h = bend.energy(x), bend.gradient(x), bend.hessian(x, "none").blocks
+    assert e == fresh.energy(x.copy()) and np.array_equal(g, fresh.gradient(x.copy()))
+    assert np.array_equal(h, fresh.hessian(x.copy(), "none").blocks)
+    bend.theta(x)[:] = 0.0  # a caller's change does not reach the kept angles
+    assert bend.energy(x) == e
+    x[5] += 1e-4
+    assert bend.energy(x) == _bending(mesh).energy(x) != e

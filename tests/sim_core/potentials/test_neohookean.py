@@ -78,6 +78,27 @@ def test_projected_blocks_are_psd_and_match_numerical_projection(projection: str
     assert relative_error(blocks, reference) < 1e-9
 
 
+def test_d2psi_equals_the_levi_civita_formula() -> None:
+    # d2psi_dF2 gathers the 36 non-zeros of d2J; reference: the full eps_ikm eps_jln F_mn contraction
+    from sim_core.potentials.neohookean import _LEVI_CIVITA, _cofactor
+
+    mesh = _small_block()
+    snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+    rng = np.random.default_rng(8)
+    F = np.eye(3) + 0.4 * rng.standard_normal((30, 3, 3))
+    F[0], F[1] = np.diag([1.2, 0.8, -0.3]), 0.0
+    I_C = np.einsum("kij,kij->k", F, F)
+    J, cof = np.linalg.det(F), _cofactor(F)
+    d2J = np.einsum("ikm,jln,tmn->tijkl", _LEVI_CIVITA, _LEVI_CIVITA, F)
+    reference = (
+        (snh.mu * (1.0 - 1.0 / (I_C + 1.0)))[:, None, None, None, None] * np.eye(9).reshape(3, 3, 3, 3)
+        + (2.0 * snh.mu / (I_C + 1.0) ** 2)[:, None, None, None, None] * np.einsum("tij,tkl->tijkl", F, F)
+        + snh.lam * np.einsum("tij,tkl->tijkl", cof, cof)
+        + (snh.lam * (J - snh.alpha))[:, None, None, None, None] * d2J
+    )
+    assert np.array_equal(snh.d2psi_dF2(F), reference)
+
+
 def test_analytic_eigensystem_reconstructs_d2psi() -> None:
     mesh = _small_block()
     snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
@@ -203,3 +224,21 @@ def test_unknown_projection_raises() -> None:
     snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
     with pytest.raises(ValueError, match="projection"):
         snh.hessian(mesh.x, "flip")
+
+
+def test_kept_deformation_is_reused_only_at_equal_positions() -> None:
+    # energy, gradient and Hessian of one x share F and its invariants; an in-place change of x
+    # or a copy with other dF/dx (as the Maxwell branch makes) recomputes them
+    mesh = _small_block()
+    snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+    fresh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+    x = _deformed(mesh.x, 9)
+    e, g, h = snh.energy(x), snh.gradient(x), snh.hessian(x, "none").blocks
+    assert e == fresh.energy(x.copy())
+    assert np.array_equal(g, fresh.gradient(x.copy())) and np.array_equal(h, fresh.hessian(x.copy(), "none").blocks)
+    x[3] += 1e-4  # in place
+    assert snh.energy(x) == StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3).energy(x)
+    clone = object.__new__(StableNeoHookean)
+    clone.__dict__.update(snh.__dict__)
+    clone.tet_dFdx = 1.1 * snh.tet_dFdx
+    assert clone.energy(x) != snh.energy(x)
