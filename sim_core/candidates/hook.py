@@ -232,8 +232,12 @@ class _ElasticWithCandidates:
 
     def potentials(self, hinge_theta_bar):
         s = self._solver
-        extra = [] if s._state_in is None else (s.hook.body_terms(s.model, s._state_in, self._base)
-                                                 + s.hook.damping_terms(s.model, s._state_in.x, s._dt))
+        if s._state_in is None:
+            return self._base.potentials(hinge_theta_bar)
+        extra = s.hook.body_terms(s.model, s._state_in, self._base)
+        damping = getattr(s.hook, "damping_terms", None)  # other hooks (benchmark effects) may lack it
+        if damping is not None:
+            extra = extra + damping(s.model, s._state_in.x, s._dt)
         return self._base.potentials(hinge_theta_bar) + extra
 
 

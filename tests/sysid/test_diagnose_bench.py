@@ -134,3 +134,12 @@ def test_heldout_excess_reduction_counts_the_part_above_the_noise():
     assert heldout_excess_reduction(2.0, 1.0) == pytest.approx(1.0)
     assert heldout_excess_reduction(2.0, 2.0) == pytest.approx(0.0)
     assert 0.0 < heldout_excess_reduction(2.0, 1.5) < 1.0
+
+
+def test_benchmark_effect_hooks_run_in_the_candidate_solver():
+    # the benchmark's effects are hooks without the library's damping_terms (regression: a62d1bc)
+    from sysid.bench_effects import SheetDrag
+
+    targets = db.effector_targets(db.SCENE["effectors"]["ee"]["initial_pose"])[:3]
+    out = db.rollout(db.SCENE, targets, SheetDrag(10.0))
+    assert out["sheet_points"].shape[0] == 4 and np.all(np.isfinite(out["wrench"]))
