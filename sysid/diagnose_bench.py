@@ -436,7 +436,7 @@ def score(recordings: Sequence[Recording], reports: Sequence[Mapping[str, Any]])
 
 def format_score(result: Mapping[str, Any]) -> str:
     """Human-readable tables of :func:`score`."""
-    labels = result["labels"]
+    labels = list(result["confusion"])
     w = max(len(s) for s in labels) + 2
     lines = ["confusion (rows: truth, columns: top-1)", " " * w + "".join(f"{s[:10]:>11}" for s in labels)]
     for t in labels:
@@ -545,7 +545,10 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     if args.reports is not None:
                         _write_report(args.reports, recs[i].name, reports[i])
         result["diagnosis_s"] = round(time.perf_counter() - t1, 1)
-        result.update(score(recs, reports))
+        scored = score(recs, reports)
+        # keep the per-recording "labels" of the set; the score's label names go under "label_names"
+        scored["label_names"] = scored.pop("labels")
+        result.update(scored)
     if args.json:
         print(json.dumps(result, default=float))
     elif "confusion" in result:
