@@ -29,7 +29,7 @@ def plot_residuals(diagnosis: Any, out_dir: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sysid.diagnose.engine import _residual
+    from sysid.diagnose.residuals import residual
 
     arrays = diagnosis._arrays
     t0 = int(diagnosis.evidence.t_ns["pose"][0])
@@ -38,7 +38,7 @@ def plot_residuals(diagnosis: Any, out_dir: Path) -> list[Path]:
         t = (np.asarray(diagnosis.model.evidence.t_ns[ch]) - t0) * 1e-9
         fig, ax = plt.subplots(figsize=(8, 3))
         for key, label in (("prediction_before", "nominal fit"), ("prediction_after", "augmented refit")):
-            r = _residual(diagnosis.model, ch, arrays[key][ch]).reshape(t.shape[0], -1)
+            r = residual(diagnosis.model, ch, arrays[key][ch]).reshape(t.shape[0], -1)
             ax.plot(t, np.sqrt(np.mean(r ** 2, axis=1)), lw=1.0, label=label)
         for a, b in arrays["windows"]:
             ax.axvspan(a, b, color="tab:red", alpha=0.15)
