@@ -455,7 +455,8 @@ class BagDiagnosis:
                     # delays are fitted too and compared (``_ties``)
                     best = max((t for t in tests if t["effect"] == "latency" and t["significant"]),
                                key=lambda t: t["result"].statistic)
-                    chans = sorted(set(stream_channels(best["channel"], self.tested)) | set(chans))
+                    chans = self._latency_streams(ctx, train, best["channel"],
+                                                  sorted(set(stream_channels(best["channel"], self.tested)) | set(chans)))
 
                 def objective(pred, chans=chans):
                     return sum(float(np.sum(residual(model, ch, pred[ch])[train[ch]] ** 2)) for ch in pred
@@ -572,6 +573,45 @@ class BagDiagnosis:
             rf.params[c.report_name] = b2
             rf.sim_params = {**dtheta, **c.sim_parameters(b2)}
             rf.prediction = rep[1]
+
+    def _latency_streams(self, ctx, train, strongest: str, channels: Sequence[str]) -> list[str]:
+        """The channels that share one stream delay.
+
+        A latency is a property of a stream (one topic is stamped late), so a stream whose latency
+        test fired only because a model gap correlates with ``dy/dt`` must not be delayed with it.
+        Each stream's own delay is fitted on its training rows alone and checked against its own
+        cross-correlation lag (the discriminating test of :meth:`_decide`, per stream). The
+        reference is the confirmed stream whose delay removes most of its SSE (the strongest
+        stream when none is confirmed); streams whose own delay agrees with the reference's within
+        ``max(1.5 sample periods, half of it)`` share it, the others are left out (noted).
+        """
+        lat = cands.LatencyCandidate()
+        streams: dict[str, list[str]] = {}
+        for ch in channels:
+            streams.setdefault(cands.STREAMS[ch], []).append(ch)
+        taus, gains, confirmed = {}, {}, {}
+        for name, chs in streams.items():
+            def obj(pred, chs=chs):
+                return sum(float(np.sum(residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in chs)
+
+            rf = lat.refit(ctx, chs, obj)
+            taus[name] = float(rf.beta[0])
+            gains[name] = obj(ctx.prediction) - obj(rf.prediction)
+            period = float(np.median(np.diff(ctx.stamps_s(chs[0]))))
+            lags = list(self._xcorr_lags(ctx, chs).values())
+            lag = float(np.median(lags)) if lags else float("nan")
+            confirmed[name] = bool(np.isfinite(lag) and abs(lag - taus[name]) <= max(1.5 * period, 0.5 * abs(taus[name])))
+        good = [n for n in streams if confirmed[n]]
+        ref_name = max(good, key=lambda n: gains[n]) if good else cands.STREAMS[strongest]
+        ref = taus[ref_name]
+        period = float(np.median(np.diff(ctx.stamps_s(streams[ref_name][0]))))
+        keep = [name for name, tau in taus.items() if abs(tau - ref) <= max(1.5 * period, 0.5 * abs(ref))]
+        left = sorted(set(taus) - set(keep))
+        if left:
+            self.notes.append(f"latency: streams {left} left out of the delay (own delays "
+                              f"{ {n: round(taus[n], 4) for n in left} } s vs {round(ref, 4)} s on {ref_name}"
+                              f"{', confirmed by its cross-correlation lag' if good else ''})")
+        return sorted(ch for name in keep for ch in streams[name])
 
     def _latency_by_channel(self, ctx, objective) -> dict[str, float]:
         """Latency fitted per tested channel (the discriminating test against gel viscoelasticity)."""

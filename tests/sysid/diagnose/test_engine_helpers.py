@@ -192,3 +192,19 @@ def test_heldout_products_sum_channels_per_time_sample():
     assert a.shape == (5,) and np.allclose(a, np.sum(r[1::2] * 0.5 * r[1::2], axis=1))
     assert np.allclose(b, np.sum((0.5 * r[1::2]) ** 2, axis=1)) and np.allclose(c, np.sum(r[1::2] ** 2, axis=1))
     assert np.all(n == 6)
+
+
+def test_latency_is_shared_only_by_streams_whose_own_delay_agrees():
+    """The wrench stream is 30 ms late, the markers are on time: even when the markers' test is the
+    strongest, the delay is the wrench's (confirmed by its cross-correlation lag, largest SSE gain)
+    and the markers are left out of it, with a note."""
+    ctx0 = make_ctx()
+    _, wrench = _signal(ctx0.stamps_s("wrench") - 0.03)
+    ctx = make_ctx(data={**ctx0.prediction, "wrench": wrench})
+    d = _bare(ctx.model)
+    train = {ch: np.ones(ctx.stamps_s(ch).shape[0], dtype=bool) for ch in d.tested}
+    for strongest in ("markers_xyz", "wrench"):
+        d.notes = []
+        chans = d._latency_streams(ctx, train, strongest, ["markers_uv", "markers_xyz", "wrench"])
+        assert chans == ["wrench"], strongest
+        assert "tactile/markers" in d.notes[0] and "confirmed" in d.notes[0]
