@@ -144,10 +144,20 @@ class FitProblem:
         workers: processes for batches of replays (finite differences, CMA populations); 1 = serial.
         deadline: ``time.perf_counter()`` value after which optimisation phases stop (None: none).
         on_eval: called with each :class:`Evaluation`.
+        joint: optional ``joint(problem, u) -> (r, J, prediction)`` computing the whitened residual
+            ``(m,)``, its Jacobian ``(m, p)`` and the aligned prediction in one replay; used by the
+            serial evaluations of the ``initial`` and ``local`` phases (where a Jacobian is asked
+            for at almost every accepted point), the Jacobian kept for :meth:`cached_jacobian`.
+            Divergence gives ``r = None`` as in a plain replay.
     """
 
+    JOINT_PHASES = ("initial", "local")
+    JACOBIANS_KEPT = 2
+    """Jacobians of the most recent joint replays kept (plus the best point's); ``(m, p)`` each."""
+
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
-                 deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None) -> None:
+                 deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
+                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None) -> None:
         self.model = model
         self.specs = tuple(specs)
         self.names = tuple(s.name for s in specs)
@@ -162,6 +172,8 @@ class FitProblem:
         self.t_start = time.perf_counter()
         self.best: tuple[float, np.ndarray, dict[str, np.ndarray] | None] | None = None
         self._cache: dict[bytes, np.ndarray | None] = {}
+        self.joint = joint
+        self._jacobians: dict[bytes, np.ndarray] = {}
         self._pool: ProcessPoolExecutor | None = None
         self.last_failure = ""
 
@@ -214,6 +226,20 @@ class FitProblem:
             return self._cache[key]
         self._check_time(phase)
         t = time.perf_counter()
+        if self.joint is not None and phase in self.JOINT_PHASES:
+            try:
+                r, J, prediction = self.joint(self, u)
+            except SimulationDivergedError as err:
+                self.last_failure = str(err)
+                self._record(u, None, phase, time.perf_counter() - t)
+                return None
+            except ConfigError:  # the replay is not differentiable (e.g. dt halved): plain replay
+                pass
+            else:
+                self._record(u, r, phase, time.perf_counter() - t, prediction)
+                if J is not None:
+                    self._keep_jacobian(key, J)
+                return r
         try:
             prediction = self.model.predict(self.model.simulate(self.values(u)))
             r = self.model.residuals(prediction)
@@ -222,6 +248,19 @@ class FitProblem:
             self.last_failure = str(err)
         self._record(u, r, phase, time.perf_counter() - t, prediction)
         return r
+
+    def _keep_jacobian(self, key: bytes, J: np.ndarray) -> None:
+        self._jacobians.pop(key, None)
+        self._jacobians[key] = J
+        best = self.best[1].tobytes() if self.best is not None else None
+        recent = list(self._jacobians)[-self.JACOBIANS_KEPT:]
+        for k in list(self._jacobians):
+            if k not in recent and k != best:
+                del self._jacobians[k]
+
+    def cached_jacobian(self, u: np.ndarray) -> np.ndarray | None:
+        """The Jacobian a joint replay computed at ``u`` (one of the last few, or the best point's), or None."""
+        return self._jacobians.get(np.asarray(u, dtype=float).tobytes())
 
     def evaluate_many(self, points: Sequence[np.ndarray], phase: str) -> list[np.ndarray | None]:
         """Residuals at several points (in parallel when ``workers > 1``)."""
@@ -245,7 +284,7 @@ class FitProblem:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_pool=None, on_eval=None, _cache={}, history=[], best=None)
+        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None)
         return state
 
 
@@ -314,9 +353,12 @@ class SensitivityJacobian:
     tangents) through one recorded replay, ``observation_sensitivities`` maps them to
     d(observation)/d(theta) per step, :meth:`ObservationModel.align` interpolates those to the stamps
     (linear), and the chain rule to u multiplies by ``d theta / d u`` (theta for log coordinates, the
-    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. A replay that
-    the sensitivity code refuses (a step retried with a smaller dt is not differentiable) falls back
-    to finite differences for that Jacobian, with a warning.
+    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. In
+    :func:`fit` the local phase's replays are joint ones (:meth:`joint`): each computes the residual
+    and the Jacobian together, with the tangents solved by the Newton factorisation of every step,
+    so the Jacobian that ``least_squares`` then asks for at an accepted point costs no further
+    replay. A replay that the sensitivity code refuses (a step retried with a smaller dt is not
+    differentiable) falls back to finite differences for that Jacobian, with a warning.
 
     Raises:
         CalibrationError: the sensitivity module is missing.
@@ -331,15 +373,17 @@ class SensitivityJacobian:
     def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
         import warnings as _warnings
 
-        model = problem.model
         u = np.asarray(u, dtype=float)
+        J = problem.cached_jacobian(u)
+        if J is not None:
+            return J
+        model = problem.model
         values = problem.values(u)
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
             traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), list(problem.names),
                                                                contact_force=True)
-            obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
         except ConfigError as err:
             _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
                            stacklevel=2)
@@ -348,6 +392,33 @@ class SensitivityJacobian:
             raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
         problem.sim_runs += 1
         problem.sim_time_s += time.perf_counter() - t
+        return self._whitened(problem, values, sim, traj, dX, dF)
+
+    def joint(self, problem: FitProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Residual, Jacobian and prediction at ``u`` from one replay (``FitProblem(joint=...)``).
+
+        The tangents are solved step by step with the Newton factorisation of each step
+        (``sim_core.sensitivity.rollout_sensitivities``), so the Jacobian costs about a quarter of
+        a replay on top of it instead of a second replay.
+
+        Raises:
+            SimulationDivergedError: the replay diverged.
+            ConfigError: the replay is not differentiable (the caller replays without tangents).
+        """
+        model = problem.model
+        values = problem.values(u)
+        sim = model.prepare(values)
+        t = time.perf_counter()
+        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), list(problem.names),
+                                                         contact_force=True)
+        prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
+        return model.residuals(prediction), self._whitened(problem, values, sim, traj, dX, dF), prediction
+
+    def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
+                  dF: np.ndarray) -> np.ndarray:
+        """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
+        model = problem.model
+        obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
         dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs])
         blocks = []
         for ch in model.channels:
@@ -357,7 +428,8 @@ class SensitivityJacobian:
 
 
 def load_sensitivity() -> Any:
-    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities`` and ``observation_sensitivities``.
+    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities``, ``rollout_sensitivities``
+    and ``observation_sensitivities``.
 
     Raises:
         CalibrationError: the module or a function is missing.
@@ -367,7 +439,7 @@ def load_sensitivity() -> Any:
     except ImportError as err:
         raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.sensitivity, which is not available ({err}); "
                                "use --jacobian fd") from err
-    for fn in ("parameter_sensitivities", "observation_sensitivities"):
+    for fn in ("parameter_sensitivities", "rollout_sensitivities", "observation_sensitivities"):
         if not hasattr(mod, fn):
             raise CalibrationError(f"jacobian 'sensitivity': sim_core.sensitivity has no {fn}(); use --jacobian fd")
     return mod
@@ -579,7 +651,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     specs = [parameter_spec(n, start[n]) for n in names]
     provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
     deadline = t0 + max_time if max_time is not None else None
-    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval)
+    joint = getattr(provider, "joint", None)
+    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint)
     notes: list[str] = [f"fitting without {ch}: {why}" for ch, why in model.dropped.items()]
     with _warnings.catch_warnings(record=True) as caught:
         _warnings.simplefilter("always")

@@ -145,6 +145,35 @@ def test_sensitivity_jacobian_matches_finite_differences(press_bag):
         assert err < 0.05, (names[j], err)
 
 
+def test_joint_replay_gives_the_plain_residual_and_the_sensitivity_jacobian(press_bag):
+    """``FitProblem(joint=...)``: one replay for residual + Jacobian, equal to the separate ones."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    names = ["gel.youngs_modulus", "friction.gel_sheet"]
+    specs = [parameter_spec(n, TRUE_PARAMS[n]) for n in names]
+    provider = SensitivityJacobian()
+    u = np.array([0.3, -0.2])
+    plain = FitProblem(model, specs)
+    r_plain, J_plain = plain.residual(u), provider(plain, u)
+    assert plain.sim_runs == 2
+    joint = FitProblem(model, specs, joint=provider.joint)
+    r_joint = joint.residual(u, phase="local")
+    J_cached = joint.cached_jacobian(u)
+    assert joint.sim_runs == 1 and J_cached is not None
+    assert provider(joint, u) is J_cached and joint.sim_runs == 1
+    np.testing.assert_allclose(r_joint, r_plain, rtol=0, atol=1e-9 * np.abs(r_plain).max())
+    np.testing.assert_allclose(J_cached, J_plain, rtol=0, atol=1e-9 * np.abs(J_plain).max())
+    # other phases (global search, finite differences) replay without tangents
+    joint.residual(u + 0.1, phase="global")
+    assert joint.cached_jacobian(u + 0.1) is None
+    # only the last few Jacobians and the best point's are kept
+    for k in range(4):
+        joint.residual(u + 0.01 * (k + 1), phase="local")
+    assert len(joint._jacobians) <= FitProblem.JACOBIANS_KEPT + 1
+    assert joint.cached_jacobian(joint.best[1]) is not None
+
+
 def test_jacobian_provider_names():
     assert make_jacobian("fd").name == "fd"
     with pytest.raises(ConfigError, match="unknown jacobian provider 'adjoint'"):
