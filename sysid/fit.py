@@ -41,6 +41,9 @@ from sysid.observation import ObservationModel
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 GLOBAL_METHODS = ("cma", "multistart")
+STOP_SIGMA = 0.01
+"""Default stop fraction of :func:`fit`: the local phase ends once the Gauss-Newton step is below
+1 % of the 1-sigma uncertainty in every coordinate."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -105,6 +108,10 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
 # ====================================================================================== problem
 class _OutOfTime(Exception):
     """The time budget is spent (internal: ends the current phase)."""
+
+
+class _WithinNoise(Exception):
+    """The Gauss-Newton step at an accepted point is below the stop fraction of 1-sigma (internal)."""
 
 
 _WORKER: dict[str, Any] = {}
@@ -542,6 +549,16 @@ def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.nda
     return (V / w) @ V.T, "ok"
 
 
+def gauss_newton_step(J: np.ndarray, r: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray | None]:
+    """Gauss-Newton step ``delta = -(J^T J)^-1 J^T r`` of a whitened residual ``r (m,)`` with Jacobian
+    ``J (m, p)``, and the 1-sigma ``sqrt(diag (J^T J)^-1)`` of the coordinates (None when ``J^T J``
+    is singular to ``rcond``; the step is then the least-squares one)."""
+    cov, _ = gauss_newton_covariance(J, rcond)
+    if cov is None:
+        return np.linalg.lstsq(J, -r, rcond=None)[0], None
+    return -cov @ (J.T @ r), np.sqrt(np.diag(cov))
+
+
 def _covariance_summary(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov: np.ndarray | None,
                         chi2_red: float) -> tuple[dict | None, dict | None, dict | None, np.ndarray | None]:
     if cov is None:
@@ -609,7 +626,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         global_method: str | None = None, global_evals: int | None = None, global_sigma: float = 1.0,
         max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
-        on_eval: Callable[[Evaluation], None] | None = None) -> FitResult:
+        on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -628,6 +645,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         workers: processes for batched replays.
         seed: seed of the global phase.
         on_eval: progress callback, called with each :class:`Evaluation`.
+        stop_sigma: also stop the local phase at an accepted point whose Gauss-Newton step
+            (:func:`gauss_newton_step`) is below ``stop_sigma`` times the Gauss-Newton 1-sigma in
+            every coordinate: the optimum is then known to that fraction of its statistical
+            uncertainty, and further iterations (each a replay) cannot change the result beyond
+            it. None or 0: only the ``least_squares`` tolerances.
 
     Returns:
         the :class:`FitResult`.
@@ -680,9 +702,18 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             def jac(u: np.ndarray) -> np.ndarray:
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
+                r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
+                if stop_sigma and r is not None:
+                    step, sigma_u = gauss_newton_step(J, r)
+                    if sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
+                        inside = np.all(u + step >= lb) and np.all(u + step <= ub)
+                        if inside:
+                            jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
+                            raise _WithinNoise()
                 return J
 
             status, message, nfev = "failed", "", 0
+            jac_at["in_local"] = True
             try:
                 res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf", x_scale=1.0,
                                     ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
@@ -690,6 +721,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 message, nfev = str(res.message), int(res.nfev)
             except _OutOfTime:
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
+            except _WithinNoise:
+                status = "converged"
+                message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
+                           f"fraction {stop_sigma:g} of the 1-sigma uncertainty")
+                nfev = sum(e.phase == "local" for e in problem.history)
+            jac_at["in_local"] = False
             prediction_best = problem.best_prediction()
             cost_best, u_best = problem.best[0], problem.best[1]
             njev = int(jac_at.get("count", 0))

@@ -16,6 +16,7 @@ from sysid.fit import (
     SensitivityJacobian,
     fit,
     gauss_newton_covariance,
+    gauss_newton_step,
     make_jacobian,
     parameter_spec,
 )
@@ -172,6 +173,33 @@ def test_joint_replay_gives_the_plain_residual_and_the_sensitivity_jacobian(pres
         joint.residual(u + 0.01 * (k + 1), phase="local")
     assert len(joint._jacobians) <= FitProblem.JACOBIANS_KEPT + 1
     assert joint.cached_jacobian(joint.best[1]) is not None
+
+
+def test_gauss_newton_step_solves_linear_least_squares():
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(50, 3))
+    u_true = np.array([0.2, -0.1, 0.05])
+    r0 = -J @ u_true + 0.01 * rng.normal(size=50)  # r(u) = r0 + J u
+    step, sigma = gauss_newton_step(J, r0)
+    np.testing.assert_allclose(step, np.linalg.lstsq(J, -r0, rcond=None)[0], rtol=1e-12)
+    np.testing.assert_allclose(sigma, np.sqrt(np.diag(np.linalg.inv(J.T @ J))), rtol=1e-12)
+    step, sigma = gauss_newton_step(np.column_stack([J[:, 0], J[:, 0]]), r0)
+    assert sigma is None and step.shape == (2,)
+
+
+def test_stop_rule_ends_within_a_fraction_of_sigma(press_bag):
+    """The Gauss-Newton stop (default 0.01 sigma) gives the tolerance-only fit within 0.05 sigma."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    name = "gel.youngs_modulus"
+    start = {name: 3.0 * TRUE_PARAMS[name]}
+    strict = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None)
+    quick = fit(model, [name], initial=start, jacobian="sensitivity")
+    assert quick.status == strict.status == "converged"
+    assert quick.sim_runs <= strict.sim_runs
+    assert abs(quick.values[name] - strict.values[name]) < 0.05 * strict.sigma[name]
+    assert quick.sigma[name] == pytest.approx(strict.sigma[name], rel=0.05)
 
 
 def test_jacobian_provider_names():
