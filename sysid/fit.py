@@ -44,6 +44,9 @@ GLOBAL_METHODS = ("cma", "multistart")
 STOP_SIGMA = 0.01
 """Default stop fraction of :func:`fit`: the local phase ends once the Gauss-Newton step is below
 1 % of the 1-sigma uncertainty in every coordinate."""
+STOP_TRIAL_SIGMA = 0.25
+"""Default trial-step stop of :func:`fit`: the local phase ends when a trial step shorter than a
+quarter of 1-sigma in every coordinate does not lower the cost."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -626,7 +629,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         global_method: str | None = None, global_evals: int | None = None, global_sigma: float = 1.0,
         max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
-        on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA) -> FitResult:
+        on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
+        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -650,6 +654,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             every coordinate: the optimum is then known to that fraction of its statistical
             uncertainty, and further iterations (each a replay) cannot change the result beyond
             it. None or 0: only the ``least_squares`` tolerances.
+        stop_trial_sigma: also stop when a trial step from the last accepted point, shorter than
+            ``stop_trial_sigma`` times 1-sigma in every coordinate, does not lower the cost: the
+            cost is then flat to within the replay's numerical noise (Newton tolerance, contact
+            set changes) on a scale well inside the uncertainty, where the trust region would only
+            keep shrinking until ``xtol`` (one replay per halving). The accepted point is returned;
+            a continued search could only have moved within that step. None or 0: off.
 
     Returns:
         the :class:`FitResult`.
@@ -697,15 +707,22 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
 
             def fun(u: np.ndarray) -> np.ndarray:
                 r = problem.residual(u, phase="local")
+                sigma_u = jac_at.get("sigma_u")
+                if stop_trial_sigma and jac_at.get("in_local") and r is not None and sigma_u is not None:
+                    ratio = float(np.max(np.abs(u - jac_at["u"]) / sigma_u))
+                    if 0.5 * float(r @ r) >= jac_at["cost"] and ratio < stop_trial_sigma:
+                        jac_at["trial_in_sigma"] = ratio
+                        raise _WithinNoise()
                 return np.full_like(r0, fail_level) if r is None else r
 
             def jac(u: np.ndarray) -> np.ndarray:
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if stop_sigma and r is not None:
+                if (stop_sigma or stop_trial_sigma) and r is not None:
                     step, sigma_u = gauss_newton_step(J, r)
-                    if sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
+                    jac_at.update(sigma_u=sigma_u, cost=0.5 * float(r @ r))
+                    if stop_sigma and sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
                         inside = np.all(u + step >= lb) and np.all(u + step <= ub)
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
@@ -723,8 +740,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
             except _WithinNoise:
                 status = "converged"
-                message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
-                           f"fraction {stop_sigma:g} of the 1-sigma uncertainty")
+                if "trial_in_sigma" in jac_at:
+                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} sigma at most (below {stop_trial_sigma:g}) "
+                               "did not lower the cost: flat to within the replay's numerical noise")
+                else:
+                    message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
+                               f"fraction {stop_sigma:g} of the 1-sigma uncertainty")
                 nfev = sum(e.phase == "local" for e in problem.history)
             jac_at["in_local"] = False
             prediction_best = problem.best_prediction()
