@@ -276,11 +276,19 @@ class StepLinearization:
             :func:`~sim_core.linsolve.make_linear_solver` (creating one costs ~0.5 s with pypardiso:
             pass one solver for a whole rollout).
         factorize: factorise the exact free-DoF Hessian (False when only products are needed).
+        factorization: a solver that already holds the factorisation of the constrained exact
+            Hessian of this step (``NewtonSolver.last_factorization`` right after the step, when
+            ``record.hessian_exact``); used instead of factorising again.
+
+    The full Hessian ``H`` and its contact part ``H_contact`` are assembled on first use (the
+    forward tangents only need them for products with non-zero Dirichlet tangents and for the
+    contact-force tangent). When ``record.hessian_exact``, the record's Newton matrix is the
+    constrained exact Hessian and is factorised as it is, without assembling it again.
     """
 
     def __init__(self, model: Model, record, state: State, elastic: ElasticTerms, contact: ContactSet,
                  vertex_mass: np.ndarray, linear_solver: LinearSolver | str = "pardiso",
-                 factorize: bool = True) -> None:
+                 factorize: bool = True, factorization: LinearSolver | None = None) -> None:
         self.model, self.record, self.elastic = model, record, elastic
         self.dt = float(record.dt)
         self.x, self.x_n = record.x, record.x_prev
@@ -288,22 +296,17 @@ class StepLinearization:
         self.n = n
         self.mass = vertex_mass
         self.free = np.asarray(record.free_dofs, dtype=bool)
-        diag = np.zeros(3 * n)
-        blocks = []
-        self.contact_terms = []
-        for p in record.terms:
-            if hasattr(p, "hessian_diagonal"):
-                diag += p.hessian_diagonal()
+        self.contact_terms = [p for p in record.terms if isinstance(
+            p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction))]
+        self._H: sp.csr_matrix | None = None
+        self._H_contact: sp.csr_matrix | None = None
+        self.solver = factorization
+        if factorize and factorization is None:
+            if getattr(record, "hessian_exact", False):
+                Hc = sp.csr_matrix(record.hessian)
             else:
-                blocks.append(p.hessian(self.x, "none"))
-            if isinstance(p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction)):
-                self.contact_terms.append(p)
-        self.H = assemble_hessian(blocks, 3 * n, diag)
-        self.H_contact = assemble_hessian([p.hessian(self.x, "none") for p in self.contact_terms], 3 * n)
-        self.solver = None
-        if factorize:
-            D = sp.diags(self.free.astype(float))
-            Hc = (D @ self.H @ D + sp.diags((~self.free).astype(float))).tocsr()
+                D = sp.diags(self.free.astype(float))
+                Hc = (D @ self.H @ D + sp.diags((~self.free).astype(float))).tocsr()
             self.solver = make_linear_solver(linear_solver) if isinstance(linear_solver, str) else linear_solver
             self.solver.factorize(Hc)
         self.friction = next((p for p in record.terms if isinstance(p, LaggedFriction)), None)
@@ -325,6 +328,28 @@ class StepLinearization:
         for eff in model.effectors.values():
             self.driven[eff.vertices] = True
         self.static = self.fixed & ~self.driven
+
+    # ------------------------------------------------------------ matrices
+    @property
+    def H(self) -> sp.csr_matrix:
+        """Exact Hessian of the step's incremental potential at ``x^{n+1}``, ``(3 n, 3 n)`` CSR (all DoFs)."""
+        if self._H is None:
+            diag = np.zeros(3 * self.n)
+            blocks = []
+            for p in self.record.terms:
+                if hasattr(p, "hessian_diagonal"):
+                    diag += p.hessian_diagonal()
+                else:
+                    blocks.append(p.hessian(self.x, "none"))
+            self._H = assemble_hessian(blocks, 3 * self.n, diag)
+        return self._H
+
+    @property
+    def H_contact(self) -> sp.csr_matrix:
+        """Exact Hessian of the contact and friction terms alone, ``(3 n, 3 n)`` CSR."""
+        if self._H_contact is None:
+            self._H_contact = assemble_hessian([p.hessian(self.x, "none") for p in self.contact_terms], 3 * self.n)
+        return self._H_contact
 
     # ------------------------------------------------------------ solves
     def solve(self, b: np.ndarray) -> np.ndarray:

@@ -14,28 +14,97 @@ of ``x^n``). What is differentiated and what is held fixed is listed in :mod:`si
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-from sim_core.adjoint import StepLinearization, Trajectory, _check_trajectory, check_parameters, rollout
+from sim_core.adjoint import StepLinearization, Trajectory, _check_trajectory, check_parameters
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError
-from sim_core.linsolve import make_linear_solver
+from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
+from sim_core.state import State
 from sim_core.sensors.markers import marker_vertex_weights
 from sim_core.transforms import compose_poses, quat_to_matrix
+
+
+class TangentPropagation:
+    """Step-by-step forward tangents ``dX/dp`` (and optionally the contact-force tangents).
+
+    Holds the tangents of the current state (``dx``, ``dv``, ``dtheta_bar``) and advances them by
+    one converged step per :meth:`advance` call (module docstring for the equations).
+
+    Args:
+        model: the model (parameters as during the rollout).
+        params: checked global parameter names, ``P`` of them.
+        contact_force: also compute the tangent of each new state's ``contact_force``.
+
+    Attributes:
+        dx: tangent of the current positions, ``(n, 3, P)`` m per parameter unit.
+        dv: tangent of the current velocities, ``(n, 3, P)``.
+        dtb: sheet -> tangent of the rest angles, ``(h, P)``.
+    """
+
+    def __init__(self, model: Model, params: Sequence[str], contact_force: bool = False) -> None:
+        self.model, self.params, self.contact_force = model, list(params), contact_force
+        n, P = model.vertex_count, len(self.params)
+        self.elastic, self.contact, self.mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+        self.dx = np.zeros((n, 3, P))
+        self.dv = np.zeros((n, 3, P))
+        self.dtb = {name: np.zeros((len(model.bodies[name].hinges), P)) for name in self.elastic.hinges}
+        self.dyield = {}
+        for name in self.elastic.hinges:
+            key = f"{name}.yield_angle"
+            if key in self.params:
+                self.dyield[name] = np.eye(P)[self.params.index(key)]
+
+    def linearization(self, record, state: State, linear_solver: LinearSolver | str = "pardiso",
+                      factorization: LinearSolver | None = None) -> StepLinearization:
+        """The :class:`StepLinearization` of one step (``state``: the state it started from)."""
+        return StepLinearization(self.model, record, state, self.elastic, self.contact, self.mass, linear_solver,
+                                 factorization=factorization)
+
+    def advance(self, lin: StepLinearization) -> tuple[np.ndarray, np.ndarray | None]:
+        """Propagate the tangents through the step of ``lin``.
+
+        Returns:
+            ``(dx^{n+1} (n, 3, P), df^{n+1} (n, 3, P) or None)``; the held tangents advance too.
+        """
+        n, P = self.dx.shape[0], self.dx.shape[2]
+        dxn = self.dx
+        rhs = lin.state_rhs(dxn, self.dv, self.dtb)
+        for j, p in enumerate(self.params):
+            rhs[:, :, j] += lin.parameter_rhs(p)
+        dx_d = np.zeros_like(dxn)
+        dx_d[lin.static] = dxn[lin.static]
+        if np.any(dx_d):  # static clamps keep x^n: their tangent stays 0 from a zero start
+            rhs += lin.hessian_product(dx_d)
+        dx_new = -lin.solve(rhs.reshape(3 * n, P)).reshape(n, 3, P)
+        dx_new[lin.fixed] = dx_d[lin.fixed]
+        self.dv = (dx_new - dxn) / lin.dt
+        self.dtb = lin.plastic_tangent(dx_new, self.dtb, self.dyield)
+        self.dx = dx_new
+        df = None
+        if self.contact_force:
+            dpar = np.stack([lin.contact_parameter_rhs(p) for p in self.params], axis=2) if P else np.zeros((n, 3, 0))
+            df = lin.contact_force_tangent(dx_new, dxn, dpar)
+        return dx_new, df
 
 
 def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, params: Sequence[str],
                             trajectory: Trajectory | None = None, contact_force: bool = False):
     """Tangent propagation of ``dX/dp`` through a rollout.
 
+    Without ``trajectory`` the rollout and the tangents are computed in one pass
+    (:func:`rollout_sensitivities`: each step's tangents are solved with the Newton factorisation of
+    that step). With a recorded ``trajectory`` each step is linearised again from its record (the
+    record's exact Newton matrix is factorised as it is when it has one).
+
     Args:
         sim: the Simulation; when ``trajectory`` is None it is rolled out from its current state
-            through ``controls`` (see :func:`sim_core.adjoint.rollout`).
+            through ``controls``.
         controls: one control per step (ignored when ``trajectory`` is given).
         params: global parameter names (``Model.parameter_names``), ``P`` of them.
         trajectory: an already recorded rollout of ``sim`` (optional).
@@ -49,41 +118,87 @@ def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, para
     Raises:
         ConfigError: unknown parameter, trajectory without records or with stale parameters.
     """
+    if trajectory is None:
+        return rollout_sensitivities(sim, list(controls or []), params, contact_force=contact_force)
     model: Model = sim.model
     params = check_parameters(model, params)
-    if trajectory is None:
-        trajectory = rollout(sim, list(controls or []))
     _check_trajectory(model, trajectory)
     T, n, P = trajectory.step_count, model.vertex_count, len(params)
-    elastic, contact, mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+    tangents = TangentPropagation(model, params, contact_force)
     linear_solver = make_linear_solver(sim.solver.config.linear_solver)
     dX = np.zeros((T + 1, n, 3, P))
     dF = np.zeros((T + 1, n, 3, P)) if contact_force else None
-    dv = np.zeros((n, 3, P))
-    dtb = {name: np.zeros((len(model.bodies[name].hinges), P)) for name in elastic.hinges}
-    dyield = {}
-    for name in elastic.hinges:
-        key = f"{name}.yield_angle"
-        if key in params:
-            dyield[name] = np.eye(P)[params.index(key)]
     for i in range(T):
-        lin = StepLinearization(model, trajectory.records[i], trajectory.states[i], elastic, contact, mass,
-                                linear_solver)
-        dxn = dX[i]
-        rhs = lin.state_rhs(dxn, dv, dtb)
-        for j, p in enumerate(params):
-            rhs[:, :, j] += lin.parameter_rhs(p)
-        dx_d = np.zeros_like(dxn)
-        dx_d[lin.static] = dxn[lin.static]
-        rhs += lin.hessian_product(dx_d)
-        dx_new = -lin.solve(rhs.reshape(3 * n, P)).reshape(n, 3, P)
-        dx_new[lin.fixed] = dx_d[lin.fixed]
-        dX[i + 1] = dx_new
-        dv = (dx_new - dxn) / lin.dt
-        dtb = lin.plastic_tangent(dx_new, dtb, dyield)
+        lin = tangents.linearization(trajectory.records[i], trajectory.states[i], linear_solver)
+        dX[i + 1], df = tangents.advance(lin)
         if contact_force:
-            dpar = np.stack([lin.contact_parameter_rhs(p) for p in params], axis=2) if P else np.zeros((n, 3, 0))
-            dF[i + 1] = lin.contact_force_tangent(dx_new, dxn, dpar)
+            dF[i + 1] = df
+    if contact_force:
+        return trajectory, dX, dF
+    return trajectory, dX
+
+
+def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Sequence[str],
+                          contact_force: bool = False, record: bool = False,
+                          on_step: Callable[[int, int], None] | None = None):
+    """Roll out ``sim`` through ``controls`` and propagate ``dX/dp`` in the same pass.
+
+    After each step the tangents are solved with the factorisation the Newton solver already holds
+    (``NewtonSolver.last_factorization``: the constrained exact Hessian at the converged
+    positions, the matrix of the final Newton iteration); only when that iteration used a
+    PSD-projected matrix is the exact Hessian assembled and factorised again. The states and the
+    tangents are those of :func:`sim_core.adjoint.rollout` followed by :func:`parameter_sensitivities`
+    on the recorded trajectory, up to round-off.
+
+    Args:
+        sim: the Simulation, rolled out from its current state.
+        controls: one control per step (None = hold every effector).
+        params: global parameter names, ``P`` of them.
+        contact_force: also return the contact-force tangents.
+        record: keep the step records in the returned trajectory (memory: every step's potentials).
+        on_step: called as ``on_step(k, T)`` after step k.
+
+    Returns:
+        ``(trajectory, dX)`` or ``(trajectory, dX, dF)`` as :func:`parameter_sensitivities`; the
+        trajectory has ``records=None`` unless ``record``.
+
+    Raises:
+        ConfigError: unknown parameter; a step retried with a smaller dt (not differentiable).
+        SimulationDivergedError: from the solver.
+    """
+    model: Model = sim.model
+    params = check_parameters(model, params)
+    T, n, P = len(controls), model.vertex_count, len(params)
+    tangents = TangentPropagation(model, params, contact_force)
+    fallback = None
+    dX = np.zeros((T + 1, n, 3, P))
+    dF = np.zeros((T + 1, n, 3, P)) if contact_force else None
+    states = [sim.state.copy()]
+    records = [] if record else None
+    applied = []
+    for i, c in enumerate(controls):
+        c = c.copy() if c is not None else Control()
+        info = sim.step(c)
+        if info.substeps != 1:
+            raise ConfigError(
+                f"rollout step {i}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
+                "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
+            )
+        rec = sim.solver.last_record
+        factorization = sim.solver.last_factorization
+        if factorization is None:
+            fallback = fallback or make_linear_solver(sim.solver.config.linear_solver)
+        lin = tangents.linearization(rec, states[-1], fallback, factorization=factorization)
+        dX[i + 1], df = tangents.advance(lin)
+        if contact_force:
+            dF[i + 1] = df
+        if record:
+            records.append(rec)
+        states.append(sim.state.copy())
+        applied.append(c)
+        if on_step is not None:
+            on_step(i + 1, T)
+    trajectory = Trajectory(states=states, records=records, controls=applied, model_revision=model.revision)
     if contact_force:
         return trajectory, dX, dF
     return trajectory, dX

@@ -101,6 +101,8 @@ class StepRecord:
         hessian: the constrained Newton matrix of the last iteration (CSR, symmetric): the exact
             Hessian when it was positive definite, else the projected one.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
+        hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
+            of the implicit-function-theorem linearisation (:mod:`sim_core.adjoint`).
     """
 
     dt: float
@@ -116,6 +118,7 @@ class StepRecord:
     hinge_theta_bar: dict
     hessian: sp.csr_matrix
     free_dofs: np.ndarray
+    hessian_exact: bool = False
 
 
 @dataclass
@@ -157,6 +160,9 @@ class NewtonSolver:
         self.last_record: StepRecord | None = None
         self.last_hessian: sp.csr_matrix | None = None
         self.last_free_mask: np.ndarray | None = None
+        # Solver holding the factorisation of last_hessian when that is the exact Hessian (valid
+        # until the next step; forward sensitivities solve with it), else None.
+        self.last_factorization: LinearSolver | SymmetricSolver | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -305,6 +311,7 @@ class NewtonSolver:
             dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_contact + cand_body
             info.time_assembly += time.perf_counter() - ta
             d = None
+            factorization = self.linear_solver
             for projection in self._projections():
                 ta = time.perf_counter()
                 H = self.assembler.assemble_upper([p.hessian(x, projection) for p in elastic_terms],
@@ -322,6 +329,7 @@ class NewtonSolver:
                 self._general_solver = self._general_solver or make_linear_solver(cfg.linear_solver)
                 self._general_solver.factorize(full_from_upper(H))
                 d = -self._general_solver.solve(g)
+                factorization = self._general_solver
                 info.time_linear_solve += time.perf_counter() - tl
             d[~free] = 0.0
             if not np.all(np.isfinite(d)):
@@ -374,8 +382,10 @@ class NewtonSolver:
             )
         info.residual_velocity = residual
         H = full_from_upper(H)
+        exact = projection == "none"
         self.last_hessian = H
         self.last_free_mask = free
+        self.last_factorization = factorization if exact else None
         contact_terms = self.contact.potentials(x, x_n, memory)
         info.energy = total(x, contact_terms)
         self.last_record = StepRecord(
@@ -383,6 +393,7 @@ class NewtonSolver:
             effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(openings),
             limited_effectors=list(info.limited_effectors), terms=fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian=H, free_dofs=free,
+            hessian_exact=exact,
         )
         # ---- outputs
         state_out.t = state_in.t + dt

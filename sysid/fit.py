@@ -41,6 +41,12 @@ from sysid.observation import ObservationModel
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 GLOBAL_METHODS = ("cma", "multistart")
+STOP_SIGMA = 0.01
+"""Default stop fraction of :func:`fit`: the local phase ends once the Gauss-Newton step is below
+1 % of the 1-sigma uncertainty in every coordinate."""
+STOP_TRIAL_SIGMA = 0.25
+"""Default trial-step stop of :func:`fit`: the local phase ends when a trial step shorter than a
+quarter of 1-sigma in every coordinate does not lower the cost."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -107,6 +113,10 @@ class _OutOfTime(Exception):
     """The time budget is spent (internal: ends the current phase)."""
 
 
+class _WithinNoise(Exception):
+    """The Gauss-Newton step at an accepted point is below the stop fraction of 1-sigma (internal)."""
+
+
 _WORKER: dict[str, Any] = {}
 """Per-process cache of the worker's FitProblem (set by the pool initializer; process-local)."""
 
@@ -144,10 +154,20 @@ class FitProblem:
         workers: processes for batches of replays (finite differences, CMA populations); 1 = serial.
         deadline: ``time.perf_counter()`` value after which optimisation phases stop (None: none).
         on_eval: called with each :class:`Evaluation`.
+        joint: optional ``joint(problem, u) -> (r, J, prediction)`` computing the whitened residual
+            ``(m,)``, its Jacobian ``(m, p)`` and the aligned prediction in one replay; used by the
+            serial evaluations of the ``initial`` and ``local`` phases (where a Jacobian is asked
+            for at almost every accepted point), the Jacobian kept for :meth:`cached_jacobian`.
+            Divergence gives ``r = None`` as in a plain replay.
     """
 
+    JOINT_PHASES = ("initial", "local")
+    JACOBIANS_KEPT = 2
+    """Jacobians of the most recent joint replays kept (plus the best point's); ``(m, p)`` each."""
+
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
-                 deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None) -> None:
+                 deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
+                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None) -> None:
         self.model = model
         self.specs = tuple(specs)
         self.names = tuple(s.name for s in specs)
@@ -162,6 +182,8 @@ class FitProblem:
         self.t_start = time.perf_counter()
         self.best: tuple[float, np.ndarray, dict[str, np.ndarray] | None] | None = None
         self._cache: dict[bytes, np.ndarray | None] = {}
+        self.joint = joint
+        self._jacobians: dict[bytes, np.ndarray] = {}
         self._pool: ProcessPoolExecutor | None = None
         self.last_failure = ""
 
@@ -214,6 +236,20 @@ class FitProblem:
             return self._cache[key]
         self._check_time(phase)
         t = time.perf_counter()
+        if self.joint is not None and phase in self.JOINT_PHASES:
+            try:
+                r, J, prediction = self.joint(self, u)
+            except SimulationDivergedError as err:
+                self.last_failure = str(err)
+                self._record(u, None, phase, time.perf_counter() - t)
+                return None
+            except ConfigError:  # the replay is not differentiable (e.g. dt halved): plain replay
+                pass
+            else:
+                self._record(u, r, phase, time.perf_counter() - t, prediction)
+                if J is not None:
+                    self._keep_jacobian(key, J)
+                return r
         try:
             prediction = self.model.predict(self.model.simulate(self.values(u)))
             r = self.model.residuals(prediction)
@@ -222,6 +258,19 @@ class FitProblem:
             self.last_failure = str(err)
         self._record(u, r, phase, time.perf_counter() - t, prediction)
         return r
+
+    def _keep_jacobian(self, key: bytes, J: np.ndarray) -> None:
+        self._jacobians.pop(key, None)
+        self._jacobians[key] = J
+        best = self.best[1].tobytes() if self.best is not None else None
+        recent = list(self._jacobians)[-self.JACOBIANS_KEPT:]
+        for k in list(self._jacobians):
+            if k not in recent and k != best:
+                del self._jacobians[k]
+
+    def cached_jacobian(self, u: np.ndarray) -> np.ndarray | None:
+        """The Jacobian a joint replay computed at ``u`` (one of the last few, or the best point's), or None."""
+        return self._jacobians.get(np.asarray(u, dtype=float).tobytes())
 
     def evaluate_many(self, points: Sequence[np.ndarray], phase: str) -> list[np.ndarray | None]:
         """Residuals at several points (in parallel when ``workers > 1``)."""
@@ -245,7 +294,7 @@ class FitProblem:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_pool=None, on_eval=None, _cache={}, history=[], best=None)
+        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None)
         return state
 
 
@@ -314,9 +363,12 @@ class SensitivityJacobian:
     tangents) through one recorded replay, ``observation_sensitivities`` maps them to
     d(observation)/d(theta) per step, :meth:`ObservationModel.align` interpolates those to the stamps
     (linear), and the chain rule to u multiplies by ``d theta / d u`` (theta for log coordinates, the
-    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. A replay that
-    the sensitivity code refuses (a step retried with a smaller dt is not differentiable) falls back
-    to finite differences for that Jacobian, with a warning.
+    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. In
+    :func:`fit` the local phase's replays are joint ones (:meth:`joint`): each computes the residual
+    and the Jacobian together, with the tangents solved by the Newton factorisation of every step,
+    so the Jacobian that ``least_squares`` then asks for at an accepted point costs no further
+    replay. A replay that the sensitivity code refuses (a step retried with a smaller dt is not
+    differentiable) falls back to finite differences for that Jacobian, with a warning.
 
     Raises:
         CalibrationError: the sensitivity module is missing.
@@ -331,15 +383,17 @@ class SensitivityJacobian:
     def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
         import warnings as _warnings
 
-        model = problem.model
         u = np.asarray(u, dtype=float)
+        J = problem.cached_jacobian(u)
+        if J is not None:
+            return J
+        model = problem.model
         values = problem.values(u)
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
             traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), list(problem.names),
                                                                contact_force=True)
-            obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
         except ConfigError as err:
             _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
                            stacklevel=2)
@@ -348,6 +402,33 @@ class SensitivityJacobian:
             raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
         problem.sim_runs += 1
         problem.sim_time_s += time.perf_counter() - t
+        return self._whitened(problem, values, sim, traj, dX, dF)
+
+    def joint(self, problem: FitProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Residual, Jacobian and prediction at ``u`` from one replay (``FitProblem(joint=...)``).
+
+        The tangents are solved step by step with the Newton factorisation of each step
+        (``sim_core.sensitivity.rollout_sensitivities``), so the Jacobian costs about a quarter of
+        a replay on top of it instead of a second replay.
+
+        Raises:
+            SimulationDivergedError: the replay diverged.
+            ConfigError: the replay is not differentiable (the caller replays without tangents).
+        """
+        model = problem.model
+        values = problem.values(u)
+        sim = model.prepare(values)
+        t = time.perf_counter()
+        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), list(problem.names),
+                                                         contact_force=True)
+        prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
+        return model.residuals(prediction), self._whitened(problem, values, sim, traj, dX, dF), prediction
+
+    def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
+                  dF: np.ndarray) -> np.ndarray:
+        """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
+        model = problem.model
+        obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
         dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs])
         blocks = []
         for ch in model.channels:
@@ -357,7 +438,8 @@ class SensitivityJacobian:
 
 
 def load_sensitivity() -> Any:
-    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities`` and ``observation_sensitivities``.
+    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities``, ``rollout_sensitivities``
+    and ``observation_sensitivities``.
 
     Raises:
         CalibrationError: the module or a function is missing.
@@ -367,7 +449,7 @@ def load_sensitivity() -> Any:
     except ImportError as err:
         raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.sensitivity, which is not available ({err}); "
                                "use --jacobian fd") from err
-    for fn in ("parameter_sensitivities", "observation_sensitivities"):
+    for fn in ("parameter_sensitivities", "rollout_sensitivities", "observation_sensitivities"):
         if not hasattr(mod, fn):
             raise CalibrationError(f"jacobian 'sensitivity': sim_core.sensitivity has no {fn}(); use --jacobian fd")
     return mod
@@ -470,6 +552,16 @@ def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.nda
     return (V / w) @ V.T, "ok"
 
 
+def gauss_newton_step(J: np.ndarray, r: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray | None]:
+    """Gauss-Newton step ``delta = -(J^T J)^-1 J^T r`` of a whitened residual ``r (m,)`` with Jacobian
+    ``J (m, p)``, and the 1-sigma ``sqrt(diag (J^T J)^-1)`` of the coordinates (None when ``J^T J``
+    is singular to ``rcond``; the step is then the least-squares one)."""
+    cov, _ = gauss_newton_covariance(J, rcond)
+    if cov is None:
+        return np.linalg.lstsq(J, -r, rcond=None)[0], None
+    return -cov @ (J.T @ r), np.sqrt(np.diag(cov))
+
+
 def _covariance_summary(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov: np.ndarray | None,
                         chi2_red: float) -> tuple[dict | None, dict | None, dict | None, np.ndarray | None]:
     if cov is None:
@@ -537,7 +629,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         global_method: str | None = None, global_evals: int | None = None, global_sigma: float = 1.0,
         max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
-        on_eval: Callable[[Evaluation], None] | None = None) -> FitResult:
+        on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
+        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -556,6 +649,17 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         workers: processes for batched replays.
         seed: seed of the global phase.
         on_eval: progress callback, called with each :class:`Evaluation`.
+        stop_sigma: also stop the local phase at an accepted point whose Gauss-Newton step
+            (:func:`gauss_newton_step`) is below ``stop_sigma`` times the Gauss-Newton 1-sigma in
+            every coordinate: the optimum is then known to that fraction of its statistical
+            uncertainty, and further iterations (each a replay) cannot change the result beyond
+            it. None or 0: only the ``least_squares`` tolerances.
+        stop_trial_sigma: also stop when a trial step from the last accepted point, shorter than
+            ``stop_trial_sigma`` times 1-sigma in every coordinate, does not lower the cost: the
+            cost is then flat to within the replay's numerical noise (Newton tolerance, contact
+            set changes) on a scale well inside the uncertainty, where the trust region would only
+            keep shrinking until ``xtol`` (one replay per halving). The accepted point is returned;
+            a continued search could only have moved within that step. None or 0: off.
 
     Returns:
         the :class:`FitResult`.
@@ -579,7 +683,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     specs = [parameter_spec(n, start[n]) for n in names]
     provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
     deadline = t0 + max_time if max_time is not None else None
-    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval)
+    joint = getattr(provider, "joint", None)
+    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint)
     notes: list[str] = [f"fitting without {ch}: {why}" for ch, why in model.dropped.items()]
     with _warnings.catch_warnings(record=True) as caught:
         _warnings.simplefilter("always")
@@ -602,14 +707,30 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
 
             def fun(u: np.ndarray) -> np.ndarray:
                 r = problem.residual(u, phase="local")
+                sigma_u = jac_at.get("sigma_u")
+                if stop_trial_sigma and jac_at.get("in_local") and r is not None and sigma_u is not None:
+                    ratio = float(np.max(np.abs(u - jac_at["u"]) / sigma_u))
+                    if 0.5 * float(r @ r) >= jac_at["cost"] and ratio < stop_trial_sigma:
+                        jac_at["trial_in_sigma"] = ratio
+                        raise _WithinNoise()
                 return np.full_like(r0, fail_level) if r is None else r
 
             def jac(u: np.ndarray) -> np.ndarray:
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
+                r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
+                if (stop_sigma or stop_trial_sigma) and r is not None:
+                    step, sigma_u = gauss_newton_step(J, r)
+                    jac_at.update(sigma_u=sigma_u, cost=0.5 * float(r @ r))
+                    if stop_sigma and sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
+                        inside = np.all(u + step >= lb) and np.all(u + step <= ub)
+                        if inside:
+                            jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
+                            raise _WithinNoise()
                 return J
 
             status, message, nfev = "failed", "", 0
+            jac_at["in_local"] = True
             try:
                 res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf", x_scale=1.0,
                                     ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
@@ -617,6 +738,16 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 message, nfev = str(res.message), int(res.nfev)
             except _OutOfTime:
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
+            except _WithinNoise:
+                status = "converged"
+                if "trial_in_sigma" in jac_at:
+                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} sigma at most (below {stop_trial_sigma:g}) "
+                               "did not lower the cost: flat to within the replay's numerical noise")
+                else:
+                    message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
+                               f"fraction {stop_sigma:g} of the 1-sigma uncertainty")
+                nfev = sum(e.phase == "local" for e in problem.history)
+            jac_at["in_local"] = False
             prediction_best = problem.best_prediction()
             cost_best, u_best = problem.best[0], problem.best[1]
             njev = int(jac_at.get("count", 0))

@@ -339,15 +339,29 @@ class ObservationModel:
             obs.append(self._observe(sim))
             if on_step is not None:
                 on_step(k, K)
+        return self._trace(obs, time.perf_counter() - t_start)
+
+    def trace_of(self, sim, states: Sequence[Any], wall_time_s: float = 0.0) -> SimTrace:
+        """The :class:`SimTrace` of an already simulated replay: ``states`` are its ``K + 1`` states
+        (e.g. ``Trajectory.states`` of a rollout of :meth:`prepare`'d ``sim`` through :meth:`controls_list`).
+
+        Raises:
+            ValueError: not ``K + 1`` states.
+        """
+        if len(states) != self.step_count + 1:
+            raise ValueError(f"expected {self.step_count + 1} states, got {len(states)}")
+        return self._trace([self._observe(sim, s) for s in states], wall_time_s)
+
+    def _trace(self, obs: list, wall_time_s: float) -> SimTrace:
         return SimTrace(
             t_ns=self.step_times_ns.copy(),
             markers_xyz=np.stack([o[0] for o in obs]), markers_uv=np.stack([o[1] for o in obs]),
             wrench=np.stack([o[2] for o in obs]), sheet_points=np.stack([o[3] for o in obs]),
-            wall_time_s=time.perf_counter() - t_start,
+            wall_time_s=wall_time_s,
         )
 
-    def _observe(self, sim) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        o = sim.observe()
+    def _observe(self, sim, state=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        o = sim.observe(state=state)
         r = o.tactile[self.sensor]
         return (np.asarray(r.markers_xyz, float), np.asarray(r.markers_uv, float), np.asarray(r.wrench, float),
                 np.asarray(o.sheet_points, float))

@@ -16,6 +16,7 @@ from sysid.fit import (
     SensitivityJacobian,
     fit,
     gauss_newton_covariance,
+    gauss_newton_step,
     make_jacobian,
     parameter_spec,
 )
@@ -143,6 +144,68 @@ def test_sensitivity_jacobian_matches_finite_differences(press_bag):
     for j in range(2):
         err = np.linalg.norm(J_s[:, j] - J_fd[:, j]) / np.linalg.norm(J_fd[:, j])
         assert err < 0.05, (names[j], err)
+
+
+def test_joint_replay_gives_the_plain_residual_and_the_sensitivity_jacobian(press_bag):
+    """``FitProblem(joint=...)``: one replay for residual + Jacobian, equal to the separate ones."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    names = ["gel.youngs_modulus", "friction.gel_sheet"]
+    specs = [parameter_spec(n, TRUE_PARAMS[n]) for n in names]
+    provider = SensitivityJacobian()
+    u = np.array([0.3, -0.2])
+    plain = FitProblem(model, specs)
+    r_plain, J_plain = plain.residual(u), provider(plain, u)
+    assert plain.sim_runs == 2
+    joint = FitProblem(model, specs, joint=provider.joint)
+    r_joint = joint.residual(u, phase="local")
+    J_cached = joint.cached_jacobian(u)
+    assert joint.sim_runs == 1 and J_cached is not None
+    assert provider(joint, u) is J_cached and joint.sim_runs == 1
+    np.testing.assert_allclose(r_joint, r_plain, rtol=0, atol=1e-9 * np.abs(r_plain).max())
+    np.testing.assert_allclose(J_cached, J_plain, rtol=0, atol=1e-9 * np.abs(J_plain).max())
+    # other phases (global search, finite differences) replay without tangents
+    joint.residual(u + 0.1, phase="global")
+    assert joint.cached_jacobian(u + 0.1) is None
+    # only the last few Jacobians and the best point's are kept
+    for k in range(4):
+        joint.residual(u + 0.01 * (k + 1), phase="local")
+    assert len(joint._jacobians) <= FitProblem.JACOBIANS_KEPT + 1
+    assert joint.cached_jacobian(joint.best[1]) is not None
+
+
+def test_gauss_newton_step_solves_linear_least_squares():
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(50, 3))
+    u_true = np.array([0.2, -0.1, 0.05])
+    r0 = -J @ u_true + 0.01 * rng.normal(size=50)  # r(u) = r0 + J u
+    step, sigma = gauss_newton_step(J, r0)
+    np.testing.assert_allclose(step, np.linalg.lstsq(J, -r0, rcond=None)[0], rtol=1e-12)
+    np.testing.assert_allclose(sigma, np.sqrt(np.diag(np.linalg.inv(J.T @ J))), rtol=1e-12)
+    step, sigma = gauss_newton_step(np.column_stack([J[:, 0], J[:, 0]]), r0)
+    assert sigma is None and step.shape == (2,)
+
+
+def test_stop_rule_ends_within_a_fraction_of_sigma(press_bag):
+    """The Gauss-Newton stop (default 0.01 sigma) gives the tolerance-only fit within 0.05 sigma."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    name = "gel.youngs_modulus"
+    start = {name: 3.0 * TRUE_PARAMS[name]}
+    strict = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None)
+    quick = fit(model, [name], initial=start, jacobian="sensitivity")
+    assert quick.status == strict.status == "converged"
+    assert quick.sim_runs <= strict.sim_runs
+    assert abs(quick.values[name] - strict.values[name]) < 0.05 * strict.sigma[name]
+    assert quick.sigma[name] == pytest.approx(strict.sigma[name], rel=0.05)
+    # trial-step stop alone, with a threshold that any rejected trial meets: ends at the first one
+    trial = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=1e9)
+    assert trial.status == "converged" and "did not lower the cost" in trial.message
+    assert trial.sim_runs < strict.sim_runs
+    local = [e.cost for e in trial.history if e.phase in ("initial", "local")]
+    assert local[-1] >= min(local) == pytest.approx(trial.cost_final)
 
 
 def test_jacobian_provider_names():

@@ -1,0 +1,69 @@
+"""Forward tangents solved with each step's Newton factorisation during the rollout
+(:func:`sim_core.sensitivity.rollout_sensitivities`) vs the reference path that linearises every
+recorded step again (assembled exact Hessian, its own LU), on the press-slide card of
+``test_adjoint``; and the record's exact Newton matrix vs the assembled exact Hessian."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from sim_core.adjoint import StepLinearization, rollout
+from sim_core.contact_set import ContactSet
+from sim_core.elastic import ElasticTerms
+from sim_core.linsolve import make_linear_solver
+from sim_core.sensitivity import observation_sensitivities, parameter_sensitivities, rollout_sensitivities
+from sim_core.simulation import Simulation
+from sim_core.solver import SolverConfig
+from tests.sim_core.test_adjoint import CONFIG, PARAMS, _controls, _scene
+
+CONFIGS = {"exact_first": SolverConfig(tol_velocity=1e-9, tol_force=5e-8),
+           "projection_none": CONFIG}
+
+
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_joint_rollout_tangents_equal_recorded_linearisation(config):
+    sim_a = Simulation.from_scene(_scene(), solver_config=CONFIGS[config])
+    steps = []
+    traj_a, dX_a, dF_a = rollout_sensitivities(sim_a, _controls(), PARAMS, contact_force=True,
+                                               on_step=lambda k, T: steps.append((k, T)))
+    assert steps == [(k, 4) for k in range(1, 5)] and traj_a.records is None
+    sim_b = Simulation.from_scene(_scene(), solver_config=CONFIGS[config])
+    traj_b = rollout(sim_b, _controls())
+    # reference: re-assembled exact Hessian, general LU, every step
+    for rec in traj_b.records:
+        rec.hessian_exact = False
+    _, dX_b, dF_b = parameter_sensitivities(sim_b, None, PARAMS, trajectory=traj_b, contact_force=True)
+    np.testing.assert_array_equal(traj_a.x, traj_b.x)
+    for got, ref in ((dX_a, dX_b), (dF_a, dF_b)):
+        scale = np.abs(ref).reshape(-1, len(PARAMS)).max(axis=0)
+        assert np.all(scale > 0)
+        assert np.max(np.abs(got - ref).reshape(-1, len(PARAMS)) / scale) < 1e-8
+    obs_a = observation_sensitivities(sim_a.model, traj_a, dX_a, dF_a)
+    obs_b = observation_sensitivities(sim_b.model, traj_b, dX_b, dF_b)
+    for key in obs_b:
+        np.testing.assert_allclose(obs_a[key], obs_b[key], rtol=1e-7, atol=1e-9 * np.abs(obs_b[key]).max())
+
+
+def test_recorded_exact_newton_matrix_is_the_assembled_exact_hessian():
+    sim = Simulation.from_scene(_scene(), solver_config=SolverConfig(tol_velocity=1e-9, tol_force=5e-8))
+    traj = rollout(sim, _controls())
+    model = sim.model
+    assert any(rec.hessian_exact for rec in traj.records)
+    for rec, state in zip(traj.records, traj.states):
+        if not rec.hessian_exact:
+            continue
+        lin = StepLinearization(model, rec, state, ElasticTerms(model), ContactSet(model), model.vertex_mass(),
+                                make_linear_solver("pardiso"), factorize=False)
+        D = sp.diags(lin.free.astype(float))
+        assembled = (D @ lin.H @ D + sp.diags((~lin.free).astype(float))).toarray()
+        assert np.max(np.abs(rec.hessian.toarray() - assembled)) < 1e-12 * np.abs(assembled).max()
+        # the record's matrix factorised as it is solves like the re-assembled one
+        b = np.random.default_rng(1).normal(size=(3 * model.vertex_count, 2))
+        direct = StepLinearization(model, rec, state, ElasticTerms(model), ContactSet(model), model.vertex_mass())
+        ref = StepLinearization(model, dataclasses.replace(rec, hessian_exact=False), state, ElasticTerms(model),
+                                ContactSet(model), model.vertex_mass())
+        np.testing.assert_allclose(direct.solve(b), ref.solve(b), rtol=1e-9, atol=1e-12 * np.abs(ref.solve(b)).max())
