@@ -112,7 +112,7 @@ def test_indent_cli_refuses_existing_output_and_bad_values(tmp_path, capsys):
 @needs_feats
 def test_thinshell_indent_reproduces_the_four_real_forces(tmp_path):
     """``thinshell indent`` on FEATS' real GelSight Mini measurements (defaults: split mesh, 40k DoF,
-    exact spherical indenter, frictionless; ~15 min on 2 cores).
+    exact spherical indenter, frictionless; ~2.5 min on 2 cores).
 
     The issue's checks: the four measured forces within 10 % and C10 within 20 % of FEATS' CalculiX
     value 0.0725 MPa (measured: see docs/benchmarks.md).
