@@ -143,18 +143,30 @@ def rollout(sim, controls: Sequence[Control | None], record: bool = True) -> Tra
     records = [] if record else None
     applied = []
     for i, c in enumerate(controls):
-        c = c.copy() if c is not None else Control()
-        info = sim.step(c)
+        c = rollout_step(sim, c, i, differentiable=record)
         if record:
-            if info.substeps != 1:
-                raise ConfigError(
-                    f"rollout step {i}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
-                    "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
-                )
             records.append(sim.solver.last_record)
         states.append(sim.state.copy())
         applied.append(c)
     return Trajectory(states=states, records=records, controls=applied, model_revision=sim.model.revision)
+
+
+def rollout_step(sim, control: Control | None, index: int, differentiable: bool = True) -> Control:
+    """Advance ``sim`` one step of a rollout; returns the control applied (a copy; None = hold).
+
+    Raises:
+        ConfigError: ``differentiable`` and the solver halved dt (such a step has no implicit
+            derivative), naming the step ``index``.
+        SimulationDivergedError: from the solver.
+    """
+    c = control.copy() if control is not None else Control()
+    info = sim.step(c)
+    if differentiable and info.substeps != 1:
+        raise ConfigError(
+            f"rollout step {index}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
+            "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
+        )
+    return c
 
 
 def rotation_derivative(q: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ solver uses to decide between the exact and the PSD-projected Hessian.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 from typing import Protocol
 
@@ -215,10 +216,9 @@ class PardisoCholesky:
 
     def __del__(self) -> None:
         if getattr(self, "_pattern", None) is not None and self._ia is not None:
-            try:
-                self._call(-1, np.zeros(1))  # release PARDISO's internal memory
-            except Exception:  # noqa: BLE001 - interpreter shutdown: nothing left to release
-                pass
+            # release PARDISO's internal memory; at interpreter shutdown the library may be gone already
+            with contextlib.suppress(Exception):
+                self._call(-1, np.zeros(1))
 
 
 class ScipySymmetric:

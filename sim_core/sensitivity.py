@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from sim_core.adjoint import StepLinearization, Trajectory, _check_trajectory, check_parameters
+from sim_core.adjoint import StepLinearization, Trajectory, _check_trajectory, check_parameters, rollout_step
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
@@ -177,13 +177,7 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
     records = [] if record else None
     applied = []
     for i, c in enumerate(controls):
-        c = c.copy() if c is not None else Control()
-        info = sim.step(c)
-        if info.substeps != 1:
-            raise ConfigError(
-                f"rollout step {i}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
-                "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
-            )
+        c = rollout_step(sim, c, i)
         rec = sim.solver.last_record
         factorization = sim.solver.last_factorization
         if factorization is None:

@@ -236,20 +236,22 @@ class FitProblem:
             return self._cache[key]
         self._check_time(phase)
         t = time.perf_counter()
+        joint = None
         if self.joint is not None and phase in self.JOINT_PHASES:
             try:
-                r, J, prediction = self.joint(self, u)
+                joint = self.joint(self, u)
             except SimulationDivergedError as err:
                 self.last_failure = str(err)
                 self._record(u, None, phase, time.perf_counter() - t)
                 return None
-            except ConfigError:  # the replay is not differentiable (e.g. dt halved): plain replay
-                pass
-            else:
-                self._record(u, r, phase, time.perf_counter() - t, prediction)
-                if J is not None:
-                    self._keep_jacobian(key, J)
-                return r
+            except ConfigError:  # the replay is not differentiable (e.g. dt halved): plain replay below
+                joint = None
+        if joint is not None:
+            r, J, prediction = joint
+            self._record(u, r, phase, time.perf_counter() - t, prediction)
+            if J is not None:
+                self._keep_jacobian(key, J)
+            return r
         try:
             prediction = self.model.predict(self.model.simulate(self.values(u)))
             r = self.model.residuals(prediction)

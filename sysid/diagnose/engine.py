@@ -40,9 +40,9 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
 
 Two corrections of the data model come first. The replay is driven by the measured effector pose,
 whose noise propagates into every prediction (errors in variables): with ``pose_cmd`` recorded, the
-tracking error is smoothed and added to the command (:meth:`BagDiagnosis._denoise_controls`). The
+tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`). The
 noise levels are raised to the white part of the nominal residual, estimated from its first
-differences (:meth:`BagDiagnosis._noise_from_residual`).
+differences (:func:`sysid.diagnose.noise.raise_to_white_residual`).
 """
 
 from __future__ import annotations
@@ -58,8 +58,9 @@ import numpy as np
 
 from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
-from sysid.diagnose import locate, stats
+from sysid.diagnose import latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
+from sysid.diagnose.schema import candidate_entries
 from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, residual,
                                       rms_summary, sse, stream_channels, whiten)
 
@@ -90,9 +91,9 @@ class Settings:
         simulation: overrides of the scene's ``simulation:`` block for the replays (e.g.
             ``{"gel_resolution": [5, 4, 2]}`` for a coarse, fast gel).
         noise_from_residual: raise the declared noise to the white part of the nominal residual
-            (:meth:`BagDiagnosis._noise_from_residual`).
+            (:func:`sysid.diagnose.noise.raise_to_white_residual`).
         denoise_window: Savitzky-Golay window (pose samples) of the tracking-error smoothing of the
-            replayed poses (:meth:`BagDiagnosis._denoise_controls`; 0 = replay the measured poses).
+            replayed poses (:func:`sysid.diagnose.noise.denoise_controls`; 0 = replay the measured poses).
         min_gain: effect-size criterion in absolute terms: the held-out whitened energy per value
             ``rms_before^2 - rms_after^2`` must drop by at least this (noise variance units).
         probe_target: whitened RMS change (noise units, strongest channel) a physics probe should
@@ -151,7 +152,7 @@ class BagDiagnosis:
             self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation)
         self.notes: list[str] = []
         if s.denoise_window:
-            self._denoise_controls(self.model)
+            self._note(noise.denoise_controls(self.model, s.denoise_window))
         self.heldout = [str(h) for h in heldout]
         self.params = tuple(params)
         self.project = tuple(project) if project is not None else self.params
@@ -159,36 +160,9 @@ class BagDiagnosis:
         self.candidate_names = None if candidate_names is None else tuple(candidate_names)
         self.timings: dict[str, float] = {}
 
-    def _denoise_controls(self, model: Any) -> None:
-        """Replace the replayed effector positions by a denoised estimate (errors in variables).
-
-        The replay is driven by the *measured* effector pose; its noise (5 um) propagates through the
-        gel (a 2e4 N/m contact) and the stick/slip history into every predicted channel -- on a nominal
-        recording it alone left a whitened RMS of 1.1-1.6 in markers and wrench. When the commanded pose
-        is recorded, the tracking error ``pose - pose_cmd`` (smooth: an impedance response) is smoothed
-        with a Savitzky-Golay filter (order 2, ``denoise_window`` samples of the pose stream; Savitzky &
-        Golay 1964) and added back to the exact command, so the command's corners stay sharp.
-        Without ``pose_cmd`` the controls are left as recorded.
-        """
-        from scipy.signal import savgol_filter
-
-        from sysid.evidence import resample_pose
-
-        ev = model.evidence
-        if "pose_cmd" not in ev.channels_present or ev.pose_cmd is None:
-            return
-        w = int(self.settings.denoise_window) | 1
-        t_pose = np.asarray(ev.t_ns["pose"])
-        if t_pose.shape[0] < w + 2:
-            return
-        cmd = resample_pose(np.asarray(ev.t_ns["pose_cmd"]), ev.pose_cmd, t_pose, outside="clamp")
-        err = np.asarray(ev.pose, dtype=float)[:, :3] - cmd[:, :3]
-        smooth = np.array(ev.pose, dtype=float)
-        smooth[:, :3] = cmd[:, :3] + savgol_filter(err, w, 2, axis=0, mode="interp")
-        model.controls = resample_pose(t_pose, smooth, model.step_times_ns, outside="clamp")
-        model.scene["effectors"][model.effector]["initial_pose"] = [float(v) for v in model.controls[0]]
-        model._sim = None
-        self.notes.append(f"replayed effector positions denoised (pose_cmd + Savitzky-Golay({w}, 2) of the tracking error)")
+    def _note(self, note: str | None) -> None:
+        if note:
+            self.notes.append(note)
 
     # ------------------------------------------------------------------------------ steps
     def _nominal(self) -> dict[str, float]:
@@ -203,27 +177,6 @@ class BagDiagnosis:
         self.timings["fit_s"] = time.perf_counter() - t
         self.fit_result = res
         return dict(res.values)
-
-    def _noise_from_residual(self, pred0: Mapping[str, np.ndarray]) -> None:
-        """Raise each channel axis's noise level to the white part of the nominal residual.
-
-        The white part is estimated from first differences in time, robustly:
-        ``sigma_w = 1.4826 MAD(r_t - r_{t-1}) / sqrt(2)`` (a smooth model error cancels in the
-        differences; a sparse sharp one does not move the median). It holds the sensor noise plus the
-        noise the replay inherits from the *measured* effector poses it is driven by (errors in
-        variables: 5 um of pose noise moves a 2e4 N/m gel by 0.1 N), which the declared sensor noise
-        leaves out and which would otherwise read as a smooth-less but real excess.
-        """
-        model = self.model
-        for ch in self.tested:
-            r = model.data(ch) - pred0[ch]
-            axes = r.shape[-1]
-            d = np.diff(r.reshape(r.shape[0], -1, axes), axis=0).reshape(-1, axes)
-            if d.shape[0] < 8:
-                continue
-            mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-            white = 1.4826 * mad / math.sqrt(2.0)
-            model.sigma[ch] = np.maximum(model.sigma[ch], white)
 
     def _probe_change(self, ctx, probe_prediction: Mapping[str, np.ndarray]) -> float:
         """Largest whitened RMS (noise units) over the tested channels of a probe's prediction change."""
@@ -297,7 +250,7 @@ class BagDiagnosis:
         trace, pred0 = replays[0]
         self.declared_sigma = {ch: np.asarray(v, dtype=float).copy() for ch, v in model.sigma.items()}
         if s.noise_from_residual:
-            self._noise_from_residual(pred0)
+            noise.raise_to_white_residual(model, self.tested, pred0)
         J_theta: dict[str, np.ndarray] = {}
         for ch in self.tested:
             cols = [(rep[1][ch] - pred0[ch]) / s.fd_step for rep in replays[1:] if rep is not None]
@@ -396,8 +349,9 @@ class BagDiagnosis:
         focus = accepted[0] if accepted else (significant[0] if significant else None)
         windows, markers = [], []
         if focus is not None:
-            windows, markers = self._locate(ctx, refits[focus], [t["channel"] for t in tests
-                                                                  if t["effect"] == focus and t["significant"]])
+            t0 = (model.step_times_ns[0] - self.evidence.t_ns["pose"][0]) * 1e-9
+            windows, markers = locate.locate_refit(model, ctx, refits[focus], [t["channel"] for t in tests
+                                                   if t["effect"] == focus and t["significant"]], t0)
         # A significant score alone does not make a mismatch: the residual must also carry a
         # meaningful excess over the noise on a channel where a test fired (effect-size criterion).
         excess = {ch: float(np.mean(residual(model, ch, pred0[ch]) ** 2)) - 1.0 for ch in self.tested}
@@ -418,7 +372,7 @@ class BagDiagnosis:
             "mismatch": {"detected": detected, "windows_s": [[round(a, 4), round(b, 4)] for a, b in windows],
                          "channels": sorted({cands.STREAMS[c] for c in mismatch_channels}),
                          "markers": markers, "evidence_channels": mismatch_channels},
-            "candidates": self._candidate_entries(tests, decisions, ties),
+            "candidates": candidate_entries(tests, decisions, ties),
             "explained_by": explained,
             "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
@@ -455,8 +409,9 @@ class BagDiagnosis:
                     # delays are fitted too and compared (``_ties``)
                     best = max((t for t in tests if t["effect"] == "latency" and t["significant"]),
                                key=lambda t: t["result"].statistic)
-                    chans = self._latency_streams(ctx, train, best["channel"],
-                                                  sorted(set(stream_channels(best["channel"], self.tested)) | set(chans)))
+                    chans = latency.streams_sharing_delay(
+                        model, ctx, train, best["channel"],
+                        sorted(set(stream_channels(best["channel"], self.tested)) | set(chans)), self.notes)
 
                 def objective(pred, chans=chans):
                     return sum(float(np.sum(residual(model, ch, pred[ch])[train[ch]] ** 2)) for ch in pred
@@ -477,7 +432,7 @@ class BagDiagnosis:
                 else:
                     out[c.name] = c.refit(ctx, chans, objective)
                 if c.name == "latency":
-                    out[c.name].params["latency_by_channel_s"] = self._latency_by_channel(ctx, objective)
+                    out[c.name].params["latency_by_channel_s"] = latency.delay_by_channel(model, ctx, self.tested)
             else:
                 physics.append(c)
         if physics:
@@ -574,59 +529,6 @@ class BagDiagnosis:
             rf.sim_params = {**dtheta, **c.sim_parameters(b2)}
             rf.prediction = rep[1]
 
-    def _latency_streams(self, ctx, train, strongest: str, channels: Sequence[str]) -> list[str]:
-        """The channels that share one stream delay.
-
-        A latency is a property of a stream (one topic is stamped late), so a stream whose latency
-        test fired only because a model gap correlates with ``dy/dt`` must not be delayed with it.
-        Each stream's own delay is fitted on its training rows alone and checked against its own
-        cross-correlation lag (the discriminating test of :meth:`_decide`, per stream). The
-        reference is the confirmed stream whose delay removes most of its SSE (the strongest
-        stream when none is confirmed); streams whose own delay agrees with the reference's within
-        ``max(1.5 sample periods, half of it)`` share it, the others are left out (noted).
-        """
-        lat = cands.LatencyCandidate()
-        streams: dict[str, list[str]] = {}
-        for ch in channels:
-            streams.setdefault(cands.STREAMS[ch], []).append(ch)
-        taus, gains, confirmed = {}, {}, {}
-        for name, chs in streams.items():
-            def obj(pred, chs=chs):
-                return sum(float(np.sum(residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in chs)
-
-            rf = lat.refit(ctx, chs, obj)
-            taus[name] = float(rf.beta[0])
-            gains[name] = obj(ctx.prediction) - obj(rf.prediction)
-            period = float(np.median(np.diff(ctx.stamps_s(chs[0]))))
-            lags = list(self._xcorr_lags(ctx, chs).values())
-            lag = float(np.median(lags)) if lags else float("nan")
-            confirmed[name] = bool(np.isfinite(lag) and abs(lag - taus[name]) <= max(1.5 * period, 0.5 * abs(taus[name])))
-        good = [n for n in streams if confirmed[n]]
-        ref_name = max(good, key=lambda n: gains[n]) if good else cands.STREAMS[strongest]
-        ref = taus[ref_name]
-        period = float(np.median(np.diff(ctx.stamps_s(streams[ref_name][0]))))
-        keep = [name for name, tau in taus.items() if abs(tau - ref) <= max(1.5 * period, 0.5 * abs(ref))]
-        left = sorted(set(taus) - set(keep))
-        if left:
-            self.notes.append(f"latency: streams {left} left out of the delay (own delays "
-                              f"{ {n: round(taus[n], 4) for n in left} } s vs {round(ref, 4)} s on {ref_name}"
-                              f"{', confirmed by its cross-correlation lag' if good else ''})")
-        return sorted(ch for name in keep for ch in streams[name])
-
-    def _latency_by_channel(self, ctx, objective) -> dict[str, float]:
-        """Latency fitted per tested channel (the discriminating test against gel viscoelasticity)."""
-        lat = cands.LatencyCandidate()
-        out = {}
-        for ch in self.tested:
-            if ch == "sheet_points":
-                continue
-
-            def obj(pred, ch=ch):
-                return float(np.sum(residual(self.model, ch, pred[ch]) ** 2))
-
-            out[ch] = float(lat.refit(ctx, [ch], obj).beta[0])
-        return out
-
     # ------------------------------------------------------------------------------ decide
     def _heldout_models(self) -> list:
         from sysid.evidence import load_evidence
@@ -639,7 +541,7 @@ class BagDiagnosis:
                 out.append(ObservationModel(load_evidence(h, include_image=False), dt=self.settings.dt,
                                             t_max=self.settings.t_max, simulation=self.settings.simulation))
                 if self.settings.denoise_window:
-                    self._denoise_controls(out[-1])
+                    self._note(noise.denoise_controls(out[-1], self.settings.denoise_window))
         return out
 
     def _decide(self, ctx, refits, train, heldout_models, theta) -> dict[str, Any]:
@@ -693,11 +595,7 @@ class BagDiagnosis:
             if e == "latency":
                 # discriminating test: a delay of the stream shows as a cross-correlation lag between the
                 # recorded and the predicted rates of change that agrees with the refitted tau
-                lags = self._xcorr_lags(ctx, chans)
-                tau = float(rf.params["latency_s"])
-                period = float(np.median([np.median(np.diff(ctx.stamps_s(ch))) for ch in chans]))
-                lag = float(np.median(list(lags.values()))) if lags else float("nan")
-                agree = bool(np.isfinite(lag) and abs(lag - tau) <= max(1.5 * period, 0.5 * abs(tau)))
+                lags, agree = latency.xcorr_confirms(self.model, ctx, float(rf.params["latency_s"]), chans, self.notes)
                 out[e].update({"xcorr_lag_s": lags, "xcorr_agrees": agree})
         names = list(refits)
         adjusted, reject = stats.holm([out[e]["heldout_p"] for e in names], s.alpha) if names else ([], [])
@@ -760,27 +658,6 @@ class BagDiagnosis:
         except ValueError as err:
             self.notes.append(f"held-out test: {err}")
             return stats.HeldoutResult(0.0, beta0, 0.0, 1.0, 1.0, int(np.size(a)))
-
-    def _xcorr_lags(self, ctx, channels: Sequence[str]) -> dict[str, float]:
-        """Per channel: lag (s) of the recorded rate of change behind the predicted one, from the peak of
-        their cross-correlation (:func:`sysid.diagnose.locate.xcorr_lag`; whitened, [1, 2, 1]/4 smoothed)."""
-        out = {}
-        k = np.array([0.25, 0.5, 0.25])
-        for ch in channels:
-            t = ctx.stamps_s(ch)
-            if t.shape[0] < 12:
-                continue
-            period = float(np.median(np.diff(t)))
-            rates = []
-            for y in (ctx.prediction[ch], self.model.data(ch)):
-                d = whiten(self.model, ch, cands.time_derivative(t, y)).reshape(t.shape[0], -1)
-                rates.append(np.apply_along_axis(lambda c: np.convolve(c, k, mode="same"), 0, d))
-            try:
-                out[ch] = float(locate.xcorr_lag(rates[0], rates[1], period,
-                                                 min(cands.LATENCY_BOUND_S, 0.25 * (t[-1] - t[0]))))
-            except ValueError as err:
-                self.notes.append(f"xcorr lag on {ch}: {err}")
-        return out
 
     def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied,
                      differential: bool = False) -> tuple:
@@ -851,63 +728,14 @@ class BagDiagnosis:
             if a in refits and b in refits:
                 resolved_by = None
                 if "latency" in (a, b):
-                    per = refits["latency"].params.get("latency_by_channel_s", {})
-                    taus = [v for ch, v in per.items() if cands.STREAMS[ch].startswith("tactile")]
-                    period = 0.01
-                    xc = self._decisions.get("latency", {}).get("xcorr_agrees", True)
-                    if xc and taus and (max(taus) - min(taus)) < max(period, 0.25 * abs(np.mean(taus))):
-                        resolved_by = ("one lag fits every tactile channel and matches the cross-correlation "
-                                       "lag of recorded vs predicted rates")
-                        winner = "latency"
+                    resolved_by = latency.tie_resolution(refits["latency"].params.get("latency_by_channel_s", {}),
+                                                         self._decisions.get("latency", {}).get("xcorr_agrees", True))
+                    winner = "latency"
                 if resolved_by is None:
                     out.append({"pair": [a, b], "resolved": False})
                 else:
                     out.append({"pair": [a, b], "resolved": True, "winner": winner, "test": resolved_by})
         return out
-
-    def _candidate_entries(self, tests, decisions, ties) -> list[dict[str, Any]]:
-        best: dict[str, dict] = {}
-        for t in tests:
-            e = t["effect"]
-            if e not in best or t["result"].statistic > best[e]["result"].statistic:
-                best[e] = t
-        entries = []
-        for e, t in sorted(best.items(), key=lambda kv: -kv[1]["result"].statistic):
-            entry = {"effect": e, "statistic": float(t["result"].statistic), "p_value": float(t["p_adjusted"]),
-                     "p_value_raw": float(t["result"].p_value), "channel": t["channel"], "dof": t["result"].dof,
-                     "significant": t["significant"]}
-            if e in decisions:
-                entry.update({k: decisions[e][k] for k in ("delta_bic", "accepted", "heldout_rms_before",
-                                                           "heldout_rms_after", "heldout_gain", "heldout_p", "contradicted_on")})
-            tie = [x["pair"] for x in ties if e in x["pair"] and not x["resolved"]]
-            if tie:
-                entry["tie_with"] = [p for pair in tie for p in pair if p != e]
-            entries.append(entry)
-        return entries
-
-    # ------------------------------------------------------------------------------ locate
-    def _locate(self, ctx, rf: cands.Refit, channels: Sequence[str]) -> tuple[list[tuple[float, float]], list[int]]:
-        windows: list[tuple[float, float]] = []
-        markers: list[int] = []
-        energy_t, energy = None, None
-        for ch in channels:
-            if ch not in rf.prediction:
-                continue
-            r = residual(self.model, ch, ctx.prediction[ch])
-            d = whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])
-            e = locate.explained_energy(r, d)
-            t = ctx.stamps_s(ch)
-            if energy is None:
-                energy_t, energy = t, e
-            else:
-                energy = energy + np.interp(energy_t, t, e)
-            if ch in ("markers_xyz", "markers_uv") and not markers:
-                markers = locate.marker_attribution(r, d)
-        if energy is not None:
-            t0 = (self.model.step_times_ns[0] - self.evidence.t_ns["pose"][0]) * 1e-9
-            windows = [(a + t0, b + t0) for a, b in locate.windows_from_energy(energy_t, energy)]
-        return windows, markers
-
 
 # ====================================================================================== entry point
 def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = None,

@@ -15,8 +15,11 @@
 
 from __future__ import annotations
 
+from typing import Any, Sequence
+
 import numpy as np
 
+from sysid.diagnose.residuals import residual, whiten
 from sysid.noise import robust_scale
 
 
@@ -160,3 +163,36 @@ def xcorr_lag(reference: np.ndarray, delayed: np.ndarray, period_s: float, max_l
         if den < 0.0:
             frac = 0.5 * (c[i - 1] - c[i + 1]) / den
     return float((lags[i] + frac) * period_s)
+
+
+def locate_refit(model: Any, ctx: Any, refit: Any, channels: Sequence[str], t0: float
+                 ) -> tuple[list[tuple[float, float]], list[int]]:
+    """Windows and markers where a refit explains the residual.
+
+    Per channel in ``channels`` that the refit predicts: :func:`explained_energy` of the whitened
+    nominal residual by the whitened prediction change, summed over channels on the first one's
+    stamps; windows from :func:`windows_from_energy`, shifted by ``t0`` (s: replay start relative to
+    the recording's first pose); markers by :func:`marker_attribution` on the first marker channel.
+
+    Returns:
+        ``(windows [(start, end) in s], marker indices)``, both empty when no channel applies.
+    """
+    windows: list[tuple[float, float]] = []
+    markers: list[int] = []
+    energy_t, energy = None, None
+    for ch in channels:
+        if ch not in refit.prediction:
+            continue
+        r = residual(model, ch, ctx.prediction[ch])
+        d = whiten(model, ch, refit.prediction[ch] - ctx.prediction[ch])
+        e = explained_energy(r, d)
+        t = ctx.stamps_s(ch)
+        if energy is None:
+            energy_t, energy = t, e
+        else:
+            energy = energy + np.interp(energy_t, t, e)
+        if ch in ("markers_xyz", "markers_uv") and not markers:
+            markers = marker_attribution(r, d)
+    if energy is not None:
+        windows = [(a + t0, b + t0) for a, b in windows_from_energy(energy_t, energy)]
+    return windows, markers

@@ -97,3 +97,34 @@ def validate_report(doc: Mapping[str, Any]) -> None:
         fail("'explained_by' names effects but 'mismatch.detected' is false")
     if not ex and m["detected"]:
         fail("'mismatch.detected' is true but 'explained_by' is empty (use [\"unexplained\"])")
+
+
+def candidate_entries(tests: list[dict[str, Any]], decisions: Mapping[str, Any], ties: list[dict[str, Any]]
+                      ) -> list[dict[str, Any]]:
+    """The ``candidates`` list of the report: one entry per tested effect (its strongest test), by
+    decreasing statistic, with the acceptance figures of refitted ones and unresolved ties.
+
+    Args:
+        tests: score tests (``effect``, ``channel``, ``result`` with ``statistic``/``p_value``/``dof``,
+            ``p_adjusted``, ``significant``).
+        decisions: effect -> acceptance record of the refitted candidates.
+        ties: confusable pairs (``pair``, ``resolved``).
+    """
+    best: dict[str, dict] = {}
+    for t in tests:
+        e = t["effect"]
+        if e not in best or t["result"].statistic > best[e]["result"].statistic:
+            best[e] = t
+    entries = []
+    for e, t in sorted(best.items(), key=lambda kv: -kv[1]["result"].statistic):
+        entry = {"effect": e, "statistic": float(t["result"].statistic), "p_value": float(t["p_adjusted"]),
+                 "p_value_raw": float(t["result"].p_value), "channel": t["channel"], "dof": t["result"].dof,
+                 "significant": t["significant"]}
+        if e in decisions:
+            entry.update({k: decisions[e][k] for k in ("delta_bic", "accepted", "heldout_rms_before",
+                                                       "heldout_rms_after", "heldout_gain", "heldout_p", "contradicted_on")})
+        tie = [x["pair"] for x in ties if e in x["pair"] and not x["resolved"]]
+        if tie:
+            entry["tie_with"] = [p for pair in tie for p in pair if p != e]
+        entries.append(entry)
+    return entries

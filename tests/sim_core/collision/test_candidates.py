@@ -45,12 +45,17 @@ def test_spatial_hash_rejects_bad_cell_size():
         SpatialHash(np.zeros((1, 3)), np.ones((1, 3)), 0.0)
 
 
+def _three_bodies(x):
+    """Vertices dealt to 3 bodies in turn; pairs 0-2 and 1-1 excluded (no self contact of body 1)."""
+    body = (np.arange(x.shape[0]) % 3).astype(np.int64)
+    return body, np.array([[True, True, False], [True, False, True], [False, True, True]])
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_vertex_triangle_candidates_equal_brute_force(seed):
     rng = np.random.default_rng(seed)
     x, tris, _ = _random_soup(rng)
-    body = (np.arange(x.shape[0]) % 3).astype(np.int64)
-    allowed = np.array([[True, True, False], [True, False, True], [False, True, True]])
+    body, allowed = _three_bodies(x)
     filt = PairFilter(vertex_body=body, body_pair_allowed=allowed, x_rest=x + 0.001, self_rest_distance=0.004)
     verts = np.arange(0, x.shape[0], 2)
     r = 0.002
@@ -99,8 +104,7 @@ def test_edge_edge_candidates_with_body_filter_equal_brute_force(seed):
     # the filtered search runs one k-d tree per allowed body pair
     rng = np.random.default_rng(seed)
     x, _, edges = _random_soup(rng)
-    body = (np.arange(x.shape[0]) % 3).astype(np.int64)
-    allowed = np.array([[True, True, False], [True, False, True], [False, True, True]])
+    body, allowed = _three_bodies(x)
     filt = PairFilter(vertex_body=body, body_pair_allowed=allowed)
     r = 0.001
     got = edge_edge_candidates(x, edges, r, exclude=filt)

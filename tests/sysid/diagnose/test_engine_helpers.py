@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sim_core.errors import ConfigError
-from sysid.diagnose import engine
+from sysid.diagnose import engine, latency, noise
 from sysid.diagnose.residuals import explained_fraction
 from sysid.diagnose.candidates import PhysicsParameterCandidate, _known_parameter, yield_angle_for
 from sysid.diagnose.parallel import _reset_candidates
@@ -34,7 +34,7 @@ def test_noise_from_residual_takes_the_white_part_and_ignores_a_smooth_error():
     white = rng.normal(size=(T, 6)) * declared * np.array([2.0, 1.0, 1.0, 1.0, 1.0, 3.0])
     data = smooth + white
     model = SimpleNamespace(sigma={"wrench": declared.copy()}, data=lambda ch: data)
-    _bare(model)._noise_from_residual({"wrench": np.zeros((T, 6))})
+    noise.raise_to_white_residual(model, ("wrench",), {"wrench": np.zeros((T, 6))})
     ratio = model.sigma["wrench"] / declared
     # axes 0 and 5 carry 2x and 3x the declared white noise; the others keep the declared level,
     # and the 5-sigma smooth error is not taken for noise
@@ -67,7 +67,7 @@ def test_denoised_controls_keep_the_command_corners_and_the_tracking_lag():
     from sysid.evidence import resample_pose
 
     model, t_ns, truth, pose = _pose_model()
-    _bare(model)._denoise_controls(model)
+    noise.denoise_controls(model, engine.Settings().denoise_window)
     want = resample_pose(t_ns, truth, model.step_times_ns)
     raw = resample_pose(t_ns, pose, model.step_times_ns)
     err = np.sqrt(np.mean((model.controls[:, :3] - want[:, :3]) ** 2))
@@ -81,7 +81,7 @@ def test_denoised_controls_keep_the_command_corners_and_the_tracking_lag():
 def test_without_a_command_the_measured_poses_are_replayed():
     model, *_ = _pose_model()
     model.evidence.channels_present = ("pose",)
-    _bare(model)._denoise_controls(model)
+    noise.denoise_controls(model, engine.Settings().denoise_window)
     assert model.controls is None
 
 
@@ -100,10 +100,10 @@ def test_cross_correlation_lag_matches_a_delay_of_the_recording():
     ctx = make_ctx(data=data)
     d = _bare(ctx.model)
     d.tested = ("wrench",)
-    lags = d._xcorr_lags(ctx, ["wrench"])
+    lags = latency.xcorr_lags(d.model, ctx, ["wrench"], d.notes)
     assert lags["wrench"] == pytest.approx(tau, abs=0.005)
     same = make_ctx()
-    assert _bare(same.model)._xcorr_lags(same, ["wrench"])["wrench"] == pytest.approx(0.0, abs=0.003)
+    assert latency.xcorr_lags(same.model, same, ["wrench"], [])["wrench"] == pytest.approx(0.0, abs=0.003)
 
 
 def test_physics_candidate_off_means_no_parameter_and_unknown_candidates_are_skipped():
@@ -205,6 +205,6 @@ def test_latency_is_shared_only_by_streams_whose_own_delay_agrees():
     train = {ch: np.ones(ctx.stamps_s(ch).shape[0], dtype=bool) for ch in d.tested}
     for strongest in ("markers_xyz", "wrench"):
         d.notes = []
-        chans = d._latency_streams(ctx, train, strongest, ["markers_uv", "markers_xyz", "wrench"])
+        chans = latency.streams_sharing_delay(d.model, ctx, train, strongest, ["markers_uv", "markers_xyz", "wrench"], d.notes)
         assert chans == ["wrench"], strongest
         assert "tactile/markers" in d.notes[0] and "confirmed" in d.notes[0]
