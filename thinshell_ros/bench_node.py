@@ -43,7 +43,8 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         timeout: wall seconds to wait for the node's first output and for each probe.
 
     Returns:
-        dict with ``real_time_factor``, ``steps_per_second`` (from the /clock rate), ``latency_ms``
+        dict with ``real_time_factor``, ``steps_per_second`` (simulated time over the step dt, the
+        smallest /clock increment: robust to dropped best-effort /clock messages), ``latency_ms``
         (``median``, ``p95``, ``max``), ``probes``, ``lost``.
 
     Raises:
@@ -74,7 +75,12 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         rtf = steps_per_s = float("nan")
         if len(win) >= 2 and win[-1][0] > win[0][0]:
             rtf = (win[-1][1] - win[0][1]) * 1e-9 / (win[-1][0] - win[0][0])
-            steps_per_s = (len(win) - 1) / (win[-1][0] - win[0][0])
+            # /clock is best effort, keep-last 1: a busy client drops some, so count steps by sim
+            # time over the step dt (the smallest clock increment seen) rather than by messages
+            increments = np.diff([c[1] for c in win])
+            increments = increments[increments > 0]
+            if increments.size:
+                steps_per_s = rtf / (float(increments.min()) * 1e-9)
         base = poses[-1][1].copy()
         latencies, lost = [], 0
         for k in range(commands):
