@@ -27,6 +27,7 @@ from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.fused_elastic import FusedElastic
 from sim_core.linsolve import LinearSolver, SymmetricSolver, full_from_upper, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.potentials.base import HessianBlocks, assemble_hessian
@@ -170,6 +171,7 @@ class NewtonSolver:
         self.vertex_mass = self.model.vertex_mass()
         self.contact = ContactSet(self.model)
         self.assembler = HessianAssembler(self.model.dof_count)
+        self._fused: FusedElastic | None = None
         if self.model.candidates:
             from sim_core.candidates.hook import CandidateHook
 
@@ -258,6 +260,16 @@ class NewtonSolver:
             return ("none", cfg.projection)
         return (cfg.projection,)
 
+    def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray) -> FusedElastic | None:
+        """The step's fused elastic evaluator (Taichi kernels) bound to the assembler's static
+        pattern, when ``model.meta["elastic_backend"] == "taichi"`` and the exact Hessian is tried
+        first; else None (the reference potentials)."""
+        if self.model.meta.get("elastic_backend") != "taichi" or "none" not in self._projections():
+            return None
+        self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
+        self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
+        return self._fused
+
     def _single_step(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo:
         cfg = self.config
         model = self.model
@@ -277,6 +289,7 @@ class NewtonSolver:
             diag = diag + damp.hessian_diagonal()
         elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
         fixed_terms += elastic_terms
+        fused = self._fused_elastic(elastic_terms, x, free)
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
@@ -284,6 +297,9 @@ class NewtonSolver:
         cand_contact, cand_body = ([], []) if self.candidate_hook is None else self.candidate_hook.terms(
             model, state_in, x_n, dt, self.elastic, friction)
         fixed_terms += cand_contact + cand_body
+        # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms
+        loop_terms = fixed_terms if fused is None else (
+            [p for p in fixed_terms if not any(p is q for q in elastic_terms)] + [fused])
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
         fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
@@ -292,7 +308,7 @@ class NewtonSolver:
             # fixed_terms do not change within the step: their energy at the accepted line-search
             # point is the next iteration's e0 part (same array object, same value)
             if fixed_energy[0] is not xx:
-                fixed_energy[:] = [xx, sum(p.energy(xx) for p in fixed_terms)]
+                fixed_energy[:] = [xx, sum(p.energy(xx) for p in loop_terms)]
             return fixed_energy[1] + sum(p.energy(xx) for p in contact_terms)
 
         converged = False
@@ -301,7 +317,7 @@ class NewtonSolver:
         for it in range(1, cfg.max_iterations + 1):
             ta = time.perf_counter()
             contact_terms = self.contact.potentials(x, x_n, memory)
-            terms = fixed_terms + contact_terms
+            terms = loop_terms + contact_terms
             g = sum(p.gradient(x) for p in terms).reshape(-1)
             g[~free] = 0.0
             if not np.all(np.isfinite(g)):
@@ -314,8 +330,13 @@ class NewtonSolver:
             factorization = self.linear_solver
             for projection in self._projections():
                 ta = time.perf_counter()
-                H = self.assembler.assemble_upper([p.hessian(x, projection) for p in elastic_terms],
-                                                  [p.hessian(x, projection) for p in dynamic_terms], diag, free)
+                if fused is not None and projection == "none":
+                    H = self.assembler.assemble_upper_values(fused.pattern, fused.hessian_values(x),
+                                                             [p.hessian(x, projection) for p in dynamic_terms],
+                                                             diag, free)
+                else:
+                    H = self.assembler.assemble_upper([p.hessian(x, projection) for p in elastic_terms],
+                                                      [p.hessian(x, projection) for p in dynamic_terms], diag, free)
                 tl = time.perf_counter()
                 info.time_assembly += tl - ta
                 if self.linear_solver.factorize(H):

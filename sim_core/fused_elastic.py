@@ -1,0 +1,209 @@
+"""All elastic terms of a Newton iteration in one call: energy, gradient and exact Hessian values.
+
+The Newton loop needs, per iteration, the elastic energy, its gradient and its exact Hessian
+assembled into the upper triangle of the Newton matrix. Through the reference potentials that is
+three calls per potential, per-element blocks ``(k, 3m, 3m)`` and a ``bincount`` over every block
+entry (:meth:`sim_core.assembly.HessianAssembler.assemble_upper`). :class:`FusedElastic` instead
+launches one Taichi kernel per potential (``sim_core/ti_kernels/fused_*.py``) that computes energy,
+gradient and exact Hessian together and adds the Hessian entries straight into the values of the
+assembler's static pattern through precomputed slot maps
+(:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels.
+
+Potentials without a fused kernel (StVK membrane, hinge bending) are evaluated through their
+reference methods and added through the same slot maps, so any mix of elastic terms works. The
+PSD-projected Hessian is not fused: the solver assembles it from the reference potentials in the
+rare iterations where PARDISO's Cholesky refuses the exact matrix.
+
+Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from sim_core.assembly import StaticPattern
+
+
+def _fused_class(potential) -> type | None:
+    """The fused kernel class for ``potential`` or None (imports Taichi kernels on first use)."""
+    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.potentials.neohookean import StableNeoHookean
+
+    if isinstance(potential, StableNeoHookean):
+        from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
+
+        return FusedStableNeoHookean
+    if isinstance(potential, SpringMembrane):
+        from sim_core.ti_kernels.fused_spring_membrane import FusedSpringMembrane
+
+        return FusedSpringMembrane
+    if isinstance(potential, KirchhoffBending):
+        from sim_core.ti_kernels.fused_kirchhoff import FusedKirchhoffBending
+
+        return FusedKirchhoffBending
+    return None
+
+
+class _ReferencePart:
+    """A potential without a fused kernel: its reference energy/gradient/Hessian through the slot map."""
+
+    def __init__(self, potential) -> None:
+        self.potential = potential
+        self.vertices: np.ndarray | None = None  # block vertices: known after a first Hessian
+        self._slots: np.ndarray | None = None
+        self._pattern: StaticPattern | None = None
+
+    def accepts(self, potential) -> bool:
+        return type(potential) is type(self.potential)
+
+    def update(self, potential) -> None:
+        self.potential = potential
+
+    def bind(self, pattern: StaticPattern) -> None:
+        self._pattern = pattern
+        self._slots = None
+
+    def energy(self, x: np.ndarray) -> float:
+        return float(self.potential.energy(x))
+
+    def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        grad += self.potential.gradient(x)
+        blocks = self.potential.hessian(x, "none")
+        if self._slots is None or self._slots.shape != blocks.blocks.shape:
+            self._slots = self._pattern.slot_map(blocks.vertices)
+        keep = self._slots >= 0
+        values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
+        return float(self.potential.energy(x))
+
+
+class FusedElastic:
+    """Energy, gradient and exact Hessian values of a list of elastic potentials, fused per potential.
+
+    Build with :meth:`for_terms` once per step (cheap when the terms are those of the last step);
+    then per Newton iterate ``x``: :meth:`gradient` (runs the fused kernels, keeps energy and
+    Hessian values of ``x``), :meth:`hessian_values`, and :meth:`energy` for line-search points.
+    Follows the energy/gradient half of the potential contract (``sim_core.potentials.base``), so
+    the solver can sum it with the other terms.
+
+    Args:
+        potentials: the step's elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`).
+
+    Attributes:
+        vertex_arrays: the Hessian-block vertex array of each potential, in order (the static
+            pattern of the solver's assembler is built from these arrays).
+        pattern: the bound :class:`~sim_core.assembly.StaticPattern` (see :meth:`bind`).
+    """
+
+    parameter_names: tuple[str, ...] = ()
+
+    def __init__(self, potentials: Sequence) -> None:
+        self._parts = []
+        for p in potentials:
+            cls = _fused_class(p)
+            self._parts.append(cls(p) if cls is not None else _ReferencePart(p))
+        self.potentials = list(potentials)
+        self.vertex_arrays: list[np.ndarray] | None = None
+        self.pattern: StaticPattern | None = None
+        self._kept: tuple | None = None  # (x copy, energy, gradient, values)
+
+    @classmethod
+    def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
+        """``current`` updated to ``potentials`` (new rest angles) when it has the same elements, else a new one."""
+        if current is not None and len(current._parts) == len(potentials) and all(
+                part.accepts(p) for part, p in zip(current._parts, potentials)):
+            for part, p in zip(current._parts, potentials):
+                part.update(p)
+            current.potentials = list(potentials)
+            current._kept = None
+            return current
+        return cls(potentials)
+
+    def block_vertex_arrays(self, x: np.ndarray) -> list[np.ndarray]:
+        """The Hessian-block vertex arrays of the potentials (reference parts: from one Hessian at ``x``)."""
+        if self.vertex_arrays is None:
+            self.vertex_arrays = [part.vertices if not isinstance(part, _ReferencePart)
+                                  else part.potential.hessian(x, "none").vertices for part in self._parts]
+        return self.vertex_arrays
+
+    def bind(self, pattern: StaticPattern) -> None:
+        """Use ``pattern`` (built from :meth:`block_vertex_arrays` and the step's free mask) from now on."""
+        if pattern is not self.pattern:
+            for part in self._parts:
+                part.bind(pattern)
+            self.pattern = pattern
+            self._kept = None
+
+    def _evaluate(self, x: np.ndarray) -> tuple:
+        kept = self._kept
+        if kept is not None and np.array_equal(kept[0], x):
+            return kept
+        if self.pattern is None:
+            raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+        xc = np.ascontiguousarray(x, dtype=np.float64)
+        grad = np.zeros_like(xc)
+        values = np.zeros(self.pattern.keys.size)
+        energy = 0.0
+        for part in self._parts:
+            energy += part.evaluate(xc, grad, values)
+        self._kept = (xc.copy(), energy, grad, values)
+        return self._kept
+
+    def energy(self, x: np.ndarray) -> float:
+        """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""
+        kept = self._kept
+        if kept is not None and np.array_equal(kept[0], x):
+            return kept[1]
+        xc = np.ascontiguousarray(x, dtype=np.float64)
+        return float(sum(part.energy(xc) for part in self._parts))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too)."""
+        return self._evaluate(x)[2].copy()
+
+    def hessian_values(self, x: np.ndarray) -> np.ndarray:
+        """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``."""
+        return self._evaluate(x)[3]
+
+
+def compile_fused_kernels() -> float:
+    """JIT-compile (or load from Taichi's offline cache) every fused kernel now; returns seconds.
+
+    Taichi compiles a kernel on its first call; a Newton step would otherwise pay for it. This runs
+    each fused kernel once on a two-triangle sheet over a one-tet block (the kernels take
+    ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per size).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    import time
+
+    from sim_core.assembly import HessianAssembler
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
+    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.potentials.neohookean import StableNeoHookean
+    from sim_core.ti_backend import require_backend
+
+    require_backend("compile_fused_kernels")
+    t0 = time.perf_counter()
+    sheet = grid_sheet((0.01, 0.01), (2, 2), (0.0, 0.0, 0.0))
+    topology = sheet_topology(sheet.triangles)
+    edges, hinges = topology.edges, topology.hinges
+    tet = np.array([[0.0, 0.0, -0.01], [0.01, 0.0, -0.01], [0.0, 0.01, -0.01], [0.0, 0.0, 0.0]])
+    x_rest = np.concatenate([sheet.x, tet])
+    n = sheet.x.shape[0]
+    potentials = [
+        SpringMembrane(sheet.triangles, edges, x_rest, 1.0, 1.0),
+        StableNeoHookean(np.array([[n, n + 1, n + 2, n + 3]]), x_rest, 1e5, 0.3),
+        KirchhoffBending(sheet.triangles, hinges, x_rest, 1e-3, 0.3),
+    ]
+    fused = FusedElastic(potentials)
+    fused.bind(HessianAssembler(x_rest.size).static_pattern(fused.block_vertex_arrays(x_rest),
+                                                            np.ones(x_rest.size, bool)))
+    fused.gradient(x_rest)
+    fused._kept = None
+    fused.energy(x_rest)
+    return time.perf_counter() - t0

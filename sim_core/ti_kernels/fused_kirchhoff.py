@@ -1,0 +1,198 @@
+"""Discrete Kirchhoff plate bending in one Taichi kernel: energy, gradient and exact Hessian into CSR slots.
+
+The fused counterpart of :class:`sim_core.potentials.kirchhoff_bending.KirchhoffBending` (the
+reference and test oracle; shape operator of Grinspun, Gingold, Reisman, Zorin 2006) for the
+Newton loop. With ``d_T = theta_T - theta_bar_T`` (the hinges of triangle T's edges, 0 on boundary
+edges) and ``M_T = (D / 2) A_T W_T`` (``triangle_stiffness``)::
+
+    E = sum_T d_T^T M_T d_T,
+    dE/dtheta_h = sum_{T with h} 2 (M_T d_T)_h =: f_h,          dE/dx = sum_h f_h dtheta_h/dx,
+    H = sum_T 2 G_T^T M_T G_T + sum_h f_h d2theta_h/dx2,
+
+``G_T`` the 3 x 18 matrix of the hinge-angle gradients over the triangle's block vertices (its three
+vertices and the neighbour vertex opposite each edge). One launch, three serial loops: hinges
+(``theta``, ``dtheta/dx`` into a scratch array), triangles (energy, ``f_h``, the Gauss-Newton
+term through the triangle slot map), hinges again (forces and ``f_h d2theta/dx2`` through a hinge
+slot map; the closed-form ``d2theta`` of :func:`sim_core.ti_kernels.bending._theta_hessian`).
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels.bending import _dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian
+
+_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+_F64_3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+_I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+_I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+
+SCRATCH_COLUMNS = 14
+"""Per-hinge scratch: ``[theta, f_h, dtheta/dx (12)]``."""
+
+
+@ti.func
+def _triangle_deviation(scratch: ti.template(), theta_bar: ti.template(), tri_hinge: ti.template(), t: ti.i32):
+    """``d_T`` (3-vector, 0 on boundary edges) from the angles in ``scratch[:, 0]``."""
+    d = ti.Vector.zero(ti.f64, 3)
+    for k in ti.static(range(3)):
+        h = tri_hinge[t, k]
+        if h >= 0:
+            d[k] = scratch[h, 0] - theta_bar[h]
+    return d
+
+
+@ti.kernel
+def kirchhoff_energy(
+    x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
+) -> ti.f64:
+    """Energy ``sum_T d_T^T M_T d_T`` in J (``scratch`` (h, 14) is overwritten)."""
+    ti.loop_config(serialize=True)
+    for h in range(hinges.shape[0]):
+        x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
+        scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
+    energy = 0.0
+    ti.loop_config(serialize=True)
+    for t in range(tri_hinge.shape[0]):
+        d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
+        for k, l in ti.static(ti.ndrange(3, 3)):
+            energy += d[k] * stiffness[t, k, l] * d[l]
+    return energy
+
+
+@ti.kernel
+def kirchhoff_energy_gradient_hessian(
+    x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
+    tri_slots: _I32_3, hinge_slots: _I32_3, scratch: _F64_2, grad: _F64_2, values: _F64_1,
+) -> ti.f64:
+    """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``.
+
+    ``tri_local[t, k, a]``: local block vertex (0..5) of vertex ``a`` of the hinge on edge ``k``;
+    ``tri_slots`` (t, 18, 18) and ``hinge_slots`` (h, 12, 12): slot maps; ``scratch`` (h, 14).
+    """
+    ti.loop_config(serialize=True)
+    for h in range(hinges.shape[0]):
+        x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
+        scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
+        scratch[h, 1] = 0.0
+        g = _theta_gradient(x0, x1, x2, x3)
+        for r in ti.static(range(12)):
+            scratch[h, 2 + r] = g[r]
+    energy = 0.0
+    ti.loop_config(serialize=True)
+    for t in range(tri_hinge.shape[0]):
+        d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
+        M = ti.Matrix.zero(ti.f64, 3, 3)
+        for k, l in ti.static(ti.ndrange(3, 3)):
+            M[k, l] = stiffness[t, k, l]
+        Md = M @ d
+        energy += d.dot(Md)
+        G = ti.Matrix.zero(ti.f64, 3, 18)
+        for k in ti.static(range(3)):
+            h = tri_hinge[t, k]
+            if h >= 0:
+                scratch[h, 1] += 2.0 * Md[k]
+                for a in range(4):
+                    col = 3 * tri_local[t, k, a]
+                    for c in ti.static(range(3)):
+                        G[k, col + c] = scratch[h, 2 + 3 * a + c]
+        MG = 2.0 * (M @ G)
+        for A in range(6):
+            for B in range(A, 6):
+                for c, dd in ti.static(ti.ndrange(3, 3)):
+                    if A != B or ti.static(c <= dd):
+                        r = 3 * A + c
+                        s = 3 * B + dd
+                        val = G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s]
+                        k1 = tri_slots[t, r, s]
+                        if k1 >= 0:
+                            values[k1] += val
+                        if r != s:
+                            k2 = tri_slots[t, s, r]
+                            if k2 >= 0:
+                                values[k2] += val
+    ti.loop_config(serialize=True)
+    for h in range(hinges.shape[0]):
+        f = scratch[h, 1]
+        for a in ti.static(range(4)):
+            v = hinges[h, a]
+            for c in ti.static(range(3)):
+                grad[v, c] += f * scratch[h, 2 + 3 * a + c]
+        x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
+        Hh = _theta_hessian(x0, x1, x2, x3)
+        for r in range(12):
+            for s in range(r, 12):
+                val = f * Hh[r, s]
+                k1 = hinge_slots[h, r, s]
+                if k1 >= 0:
+                    values[k1] += val
+                if r != s:
+                    k2 = hinge_slots[h, s, r]
+                    if k2 >= 0:
+                        values[k2] += val
+    return energy
+
+
+class FusedKirchhoffBending:
+    """Fused Newton-loop evaluation of a :class:`KirchhoffBending` (module docstring).
+
+    The rest angles are read from the potential given to :meth:`update` (the solver's per-step
+    copy, :meth:`sim_core.elastic.ElasticTerms.bending`); everything else is fixed at construction.
+
+    Args:
+        potential: the reference potential.
+
+    Attributes:
+        vertices: the potential's Hessian-block vertex array ``block_vertices`` (t, 6).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+
+    def __init__(self, potential: KirchhoffBending) -> None:
+        require_backend("FusedKirchhoffBending")
+        self.potential = potential
+        self.vertices = potential.block_vertices
+        self._hinges = np.ascontiguousarray(potential.hinges, dtype=np.int32)
+        self._tri_hinge = np.ascontiguousarray(potential.triangle_hinge, dtype=np.int32)
+        # local block vertex of each hinge vertex; boundary edges (no hinge) are never read
+        self._tri_local = np.ascontiguousarray(np.maximum(potential._slots, 0), dtype=np.int32)
+        self._stiffness = np.ascontiguousarray(potential.triangle_stiffness, dtype=np.float64)
+        self._scratch = np.zeros((self._hinges.shape[0], SCRATCH_COLUMNS))
+        self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
+        self._tri_slots: np.ndarray | None = None
+        self._hinge_slots: np.ndarray | None = None
+
+    def accepts(self, potential) -> bool:
+        """Whether ``potential`` shares this kernel's elements and stiffness (rest angles may differ)."""
+        p = self.potential
+        return type(potential) is type(p) and potential.hinges is p.hinges and (
+            potential.triangle_stiffness is p.triangle_stiffness)
+
+    def update(self, potential: KirchhoffBending) -> None:
+        """Take the rest angles of ``potential`` (rad, ``(h,)``)."""
+        self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
+
+    def bind(self, pattern) -> None:
+        """Slot maps of the triangle blocks and of the hinge blocks in ``pattern``."""
+        self._tri_slots = pattern.slot_map(self.vertices)
+        self._hinge_slots = pattern.slot_map(self.potential.hinges)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy in J at positions ``x`` ``(n, 3)``."""
+        if self._hinges.shape[0] == 0:
+            return 0.0
+        return float(kirchhoff_energy(x, self._hinges, self._theta_bar, self._tri_hinge, self._stiffness,
+                                      self._scratch))
+
+    def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
+        if self._hinges.shape[0] == 0:
+            return 0.0
+        return float(kirchhoff_energy_gradient_hessian(
+            x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_slots,
+            self._hinge_slots, self._scratch, grad, values))

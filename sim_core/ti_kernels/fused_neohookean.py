@@ -1,0 +1,194 @@
+"""Stable Neo-Hookean tets in one Taichi kernel: energy, gradient and exact Hessian into CSR slots.
+
+The fused counterpart of :class:`sim_core.potentials.neohookean.StableNeoHookean` (the reference
+and test oracle) for the Newton loop: one launch per iteration computes, per tet,
+
+    psi = mu/2 (I_C - 3) + lam/2 (J - alpha)^2 - mu/2 log((I_C + 1) / 4) - 9 mu^2 / (32 lam),
+    P   = mu (1 - 1/(I_C + 1)) F + lam (J - alpha) cof F          (Smith, de Goes, Kim 2018, eq. 18),
+
+the energy ``V psi``, the vertex forces ``V P g_a`` (``g_a`` = row ``a`` of ``tet_dFdx``) and the
+exact (unprojected) 12x12 Hessian ``V M^T (d2psi/dF2) M``, added straight into the values of the
+solver's static sparsity pattern (:meth:`sim_core.assembly.StaticPattern.slot_map`). With
+``d2psi/dF_ci dF_dl = mu_t delta_cd delta_jl + beta F_cj F_dl + lam cof_cj cof_dl
++ lam (J - alpha) eps_cdm eps_jln F_mn`` (eqs. 19-21; ``mu_t = mu (1 - 1/(I_C+1))``,
+``beta = 2 mu / (I_C + 1)^2``) the vertex block of corners ``a, b`` and axes ``c, d`` is
+
+    H[3a+c, 3b+d] = V (mu_t delta_cd g_a.g_b + beta (g_a.F_c)(g_b.F_d) + lam (g_a.k_c)(g_b.k_d)
+                       + lam (J - alpha) eps_cdm F_m.(g_a x g_b)),
+
+``F_c`` and ``k_c`` the rows of ``F`` and ``cof F``. The PSD-projected Hessian stays with the
+reference potential (the solver projects only when PARDISO's Cholesky refuses the exact matrix).
+
+Loops are serial on the CPU (``ti.loop_config(serialize=True)``): the sums into shared vertices and
+slots are then in element order, so results are bitwise reproducible run to run.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.potentials.neohookean import StableNeoHookean
+from sim_core.ti_backend import require_backend, ti
+
+_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+_F64_3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+_I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+_I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+
+
+@ti.func
+def _tet_state(x: ti.template(), tets: ti.template(), dFdx: ti.template(), t: ti.i32):
+    """``(F, G)``: deformation gradient ``F_ij = sum_a x_{a,i} G_aj`` and ``G = dFdx[t]`` (4x3)."""
+    G = ti.Matrix.zero(ti.f64, 4, 3)
+    F = ti.Matrix.zero(ti.f64, 3, 3)
+    for a in ti.static(range(4)):
+        v = tets[t, a]
+        for j in ti.static(range(3)):
+            G[a, j] = dFdx[t, a, j]
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            F[i, j] += x[v, i] * G[a, j]
+    return F, G
+
+
+@ti.func
+def _cofactor(F):
+    """``cof F = dJ/dF``: column j is the cross product of the other two columns (in order)."""
+    c0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    c1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    c2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    k0 = c1.cross(c2)
+    k1 = c2.cross(c0)
+    k2 = c0.cross(c1)
+    return ti.Matrix([[k0[0], k1[0], k2[0]], [k0[1], k1[1], k2[1]], [k0[2], k1[2], k2[2]]], ti.f64)
+
+
+@ti.func
+def _psi(I_C, J, mu, lam, alpha):
+    return (0.5 * mu * (I_C - 3.0) + 0.5 * lam * (J - alpha) ** 2
+            - 0.5 * mu * ti.log((I_C + 1.0) / 4.0) - 9.0 * mu * mu / (32.0 * lam))
+
+
+@ti.kernel
+def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, lam: ti.f64) -> ti.f64:
+    """``sum_t V_t psi(F_t)`` in J."""
+    alpha = 1.0 + 0.75 * mu / lam
+    energy = 0.0
+    ti.loop_config(serialize=True)
+    for t in range(tets.shape[0]):
+        F, _ = _tet_state(x, tets, dFdx, t)
+        energy += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
+    return energy
+
+
+@ti.kernel
+def snh_energy_gradient_hessian(
+    x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, slots: _I32_3, mu: ti.f64, lam: ti.f64,
+    grad: _F64_2, values: _F64_1,
+) -> ti.f64:
+    """Energy (J, returned); adds the forces to ``grad`` (n, 3) in N and the exact Hessian entries
+    (N/m) to ``values`` at ``slots[t, r, s]`` (module docstring; -1 = not stored)."""
+    alpha = 1.0 + 0.75 * mu / lam
+    energy = 0.0
+    ti.loop_config(serialize=True)
+    for t in range(tets.shape[0]):
+        F, G = _tet_state(x, tets, dFdx, t)
+        I_C = (F * F).sum()
+        J = F.determinant()
+        cof = _cofactor(F)
+        V = vol[t]
+        energy += V * _psi(I_C, J, mu, lam, alpha)
+        mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
+        stretch = lam * (J - alpha)
+        P = mu_t * F + stretch * cof
+        GP = G @ P.transpose()  # GP[a, i] = (P g_a)_i
+        for a in ti.static(range(4)):
+            v = tets[t, a]
+            for i in ti.static(range(3)):
+                grad[v, i] += V * GP[a, i]
+        beta = 2.0 * mu / (I_C + 1.0) ** 2
+        GG = G @ G.transpose()  # (4, 4) g_a . g_b
+        GF = G @ F.transpose()  # GF[a, c] = g_a . F_c
+        GK = G @ cof.transpose()  # GK[a, c] = g_a . k_c
+        for a in range(4):
+            ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
+            for b in range(a, 4):
+                gb = ti.Vector([G[b, 0], G[b, 1], G[b, 2]])
+                w = ga.cross(gb)
+                Fw = F @ w  # Fw[m] = F_m . (g_a x g_b)
+                gg = ga.dot(gb)
+                for c, d in ti.static(ti.ndrange(3, 3)):
+                    if a != b or ti.static(c <= d):
+                        h = beta * GF[a, c] * GF[b, d] + lam * GK[a, c] * GK[b, d]
+                        if ti.static(c == d):
+                            h += mu_t * gg
+                        else:
+                            # eps_cdm with m the third index: +1 when d follows c cyclically
+                            h += ti.static(1.0 if d == (c + 1) % 3 else -1.0) * stretch * Fw[ti.static(3 - c - d)]
+                        h *= V
+                        r = 3 * a + c
+                        s = 3 * b + d
+                        k = slots[t, r, s]
+                        if k >= 0:
+                            values[k] += h
+                        if r != s:
+                            k2 = slots[t, s, r]
+                            if k2 >= 0:
+                                values[k2] += h
+    return energy
+
+
+class FusedStableNeoHookean:
+    """Fused Newton-loop evaluation of a :class:`StableNeoHookean` (module docstring).
+
+    Args:
+        potential: the reference potential (its tets, rest data and Lamé parameters are read once).
+
+    Attributes:
+        vertices: the potential's Hessian-block vertex array (its ``tets``, ``(k, 4)``), the array
+            the solver's static pattern is built from.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised (:func:`sim_core.ti_backend.init_backend`).
+    """
+
+    def __init__(self, potential: StableNeoHookean) -> None:
+        require_backend("FusedStableNeoHookean")
+        self.potential = potential
+        self.vertices = potential.tets
+        self._tets = np.ascontiguousarray(potential.tets, dtype=np.int32)
+        self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
+        self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
+        self._slots: np.ndarray | None = None
+
+    def accepts(self, potential) -> bool:
+        """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
+        return (potential is self.potential
+                or (type(potential) is type(self.potential) and potential.tets is self.potential.tets
+                    and potential.mu == self.potential.mu and potential.lam == self.potential.lam))
+
+    def update(self, potential) -> None:
+        """Nothing changes between steps (the rest shape and parameters are fixed)."""
+
+    def bind(self, pattern) -> None:
+        """Slot maps of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`)."""
+        self._slots = pattern.slot_map(self.vertices)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy in J at positions ``x`` ``(n, 3)``."""
+        if self._tets.shape[0] == 0:
+            return 0.0
+        p = self.potential
+        return float(snh_energy(x, self._tets, self._dFdx, self._vol, p.mu, p.lam))
+
+    def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.
+
+        ``x`` and ``grad`` must be C-contiguous float64; :meth:`bind` must have been called.
+        """
+        if self._tets.shape[0] == 0:
+            return 0.0
+        p = self.potential
+        return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._slots, p.mu, p.lam,
+                                                 grad, values))

@@ -1,0 +1,196 @@
+"""ThinShellLab's spring membrane in one Taichi kernel: energy, gradient and exact Hessian into CSR slots.
+
+The fused counterpart of :class:`sim_core.potentials.membrane.SpringMembrane` (the reference and
+test oracle; Wang et al., ICLR 2024, public code) for the Newton loop::
+
+    E = sum_edges K_l (1 - l / l0)^2 l0 + sum_triangles K_a (1 - A / A0)^2 A0.
+
+Edge ``(a, b)``, ``u = (x_b - x_a) / l``: ``f' = 2 K_l (l - l0) / l0``, ``f'' = 2 K_l / l0``, block
+``h3 = f'' u u^T + f' / l (I - u u^T)`` on ``[[+, -], [-, +]]``. Triangle, ``n = (x1 - x0) x (x2 - x0)``,
+``A = |n| / 2``, ``w_a = x_{a+2} - x_{a+1}`` (``dn/dx_a = [w_a]_x``): ``dA/dx_a = n_hat x w_a / 2``,
+``g' = 2 K_a (A - A0) / A0``, ``g'' = 2 K_a / A0``, and the 3x3 block ``(a, b)`` of the Hessian
+
+    g'' dA_a dA_b^T + g' / 2 ([w_a]_x^T (I - n_hat n_hat^T) [w_b]_x / |n| + Q_ab),
+    Q_{a, a+1} = -[n_hat]_x,  Q_{a+1, a} = [n_hat]_x,  0 otherwise.
+
+Entries go straight into the solver's static pattern values through
+:meth:`sim_core.assembly.StaticPattern.slot_map` of the potential's block vertices (triangles, then
+edges padded to ``[a, b, b]``). Serial loops on the CPU, as in
+:mod:`sim_core.ti_kernels.fused_neohookean` (reproducible sums).
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.potentials.membrane import SpringMembrane
+from sim_core.ti_backend import require_backend, ti
+
+_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+_I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+_I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+
+
+@ti.func
+def _vertex(x: ti.template(), v: ti.i32):
+    return ti.Vector([x[v, 0], x[v, 1], x[v, 2]])
+
+
+@ti.func
+def _cross_matrix(v):
+    """``[v]_x`` with ``[v]_x w = v x w``."""
+    return ti.Matrix([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], ti.f64)
+
+
+@ti.func
+def _add_upper(values: ti.template(), slots: ti.template(), e: ti.i32, r: ti.i32, s: ti.i32, h: ti.f64):
+    """Add the local upper entry ``(r, s)`` (``r <= s``) of a symmetric block through the slot map
+    (at ``[e, r, s]`` and, for ``r < s``, ``[e, s, r]``; -1 = not stored)."""
+    k = slots[e, r, s]
+    if k >= 0:
+        values[k] += h
+    if r != s:
+        k2 = slots[e, s, r]
+        if k2 >= 0:
+            values[k2] += h
+
+
+@ti.kernel
+def spring_membrane_energy(
+    x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, k_length: ti.f64, k_area: ti.f64,
+) -> ti.f64:
+    """Energy in J (module docstring)."""
+    energy = 0.0
+    ti.loop_config(serialize=True)
+    for e in range(edges.shape[0]):
+        l = (_vertex(x, edges[e, 1]) - _vertex(x, edges[e, 0])).norm()
+        energy += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
+    ti.loop_config(serialize=True)
+    for t in range(triangles.shape[0]):
+        x0 = _vertex(x, triangles[t, 0])
+        A = 0.5 * (_vertex(x, triangles[t, 1]) - x0).cross(_vertex(x, triangles[t, 2]) - x0).norm()
+        energy += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
+    return energy
+
+
+@ti.kernel
+def spring_membrane_energy_gradient_hessian(
+    x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, slots: _I32_3,
+    k_length: ti.f64, k_area: ti.f64, grad: _F64_2, values: _F64_1,
+) -> ti.f64:
+    """Energy (J, returned); adds the gradient (N) to ``grad`` (n, 3) and the exact Hessian (N/m)
+    to ``values`` through ``slots`` (rows: triangles, then edges)."""
+    energy = 0.0
+    t_count = triangles.shape[0]
+    ti.loop_config(serialize=True)
+    for e in range(edges.shape[0]):
+        va = edges[e, 0]
+        vb = edges[e, 1]
+        dx = _vertex(x, vb) - _vertex(x, va)
+        l = dx.norm()
+        l0 = length0[e]
+        energy += k_length * (1.0 - l / l0) ** 2 * l0
+        u = dx / l
+        f1 = 2.0 * k_length * (l - l0) / l0
+        f2 = 2.0 * k_length / l0
+        for i in ti.static(range(3)):
+            grad[vb, i] += f1 * u[i]
+            grad[va, i] -= f1 * u[i]
+        uu = u.outer_product(u)
+        h3 = f2 * uu + (f1 / l) * (ti.Matrix.identity(ti.f64, 3) - uu)
+        row = t_count + e
+        for c, d in ti.static(ti.ndrange(3, 3)):
+            if ti.static(c <= d):
+                _add_upper(values, slots, row, c, d, h3[c, d])
+                _add_upper(values, slots, row, 3 + c, 3 + d, h3[c, d])
+            _add_upper(values, slots, row, c, 3 + d, -h3[c, d])
+    ti.loop_config(serialize=True)
+    for t in range(t_count):
+        X0 = _vertex(x, triangles[t, 0])
+        X1 = _vertex(x, triangles[t, 1])
+        X2 = _vertex(x, triangles[t, 2])
+        n = (X1 - X0).cross(X2 - X0)
+        n_norm = n.norm()
+        n_hat = n / n_norm
+        A = 0.5 * n_norm
+        A0 = area0[t]
+        energy += k_area * (1.0 - A / A0) ** 2 * A0
+        g1 = 2.0 * k_area * (A - A0) / A0
+        g2 = 2.0 * k_area / A0
+        w0 = X2 - X1
+        w1 = X0 - X2
+        w2 = X1 - X0
+        d0 = 0.5 * n_hat.cross(w0)
+        d1 = 0.5 * n_hat.cross(w1)
+        d2 = 0.5 * n_hat.cross(w2)
+        for i in ti.static(range(3)):
+            grad[triangles[t, 0], i] += g1 * d0[i]
+            grad[triangles[t, 1], i] += g1 * d1[i]
+            grad[triangles[t, 2], i] += g1 * d2[i]
+        P = (ti.Matrix.identity(ti.f64, 3) - n_hat.outer_product(n_hat)) / n_norm
+        K = _cross_matrix(n_hat)
+        Wx = [_cross_matrix(w0), _cross_matrix(w1), _cross_matrix(w2)]
+        dA = [d0, d1, d2]
+        for a in ti.static(range(3)):
+            for b in ti.static(range(a, 3)):
+                B = g2 * dA[a].outer_product(dA[b]) + 0.5 * g1 * (Wx[a].transpose() @ P @ Wx[b])
+                if ti.static(b == (a + 1) % 3):
+                    B -= 0.5 * g1 * K
+                elif ti.static(a == (b + 1) % 3):
+                    B += 0.5 * g1 * K
+                for c, d in ti.static(ti.ndrange(3, 3)):
+                    if ti.static(a != b or c <= d):
+                        _add_upper(values, slots, t, 3 * a + c, 3 * b + d, B[c, d])
+    return energy
+
+
+class FusedSpringMembrane:
+    """Fused Newton-loop evaluation of a :class:`SpringMembrane` (module docstring).
+
+    Args:
+        potential: the reference potential (edges, triangles, rest lengths and areas read once).
+
+    Attributes:
+        vertices: the potential's Hessian-block vertex array (triangles, then padded edges).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+
+    def __init__(self, potential: SpringMembrane) -> None:
+        require_backend("FusedSpringMembrane")
+        self.potential = potential
+        self.vertices = potential._block_vertices
+        self._triangles = np.ascontiguousarray(potential.triangles, dtype=np.int32)
+        self._edges = np.ascontiguousarray(potential.edges, dtype=np.int32)
+        self._area0 = np.ascontiguousarray(potential.triangle_rest_area, dtype=np.float64)
+        self._length0 = np.ascontiguousarray(potential.edge_rest_length, dtype=np.float64)
+        self._slots: np.ndarray | None = None
+
+    def accepts(self, potential) -> bool:
+        """Whether ``potential`` is evaluated by this kernel as it stands (same elements, stiffnesses)."""
+        p = self.potential
+        return potential is p or (type(potential) is type(p) and potential._block_vertices is p._block_vertices
+                                  and potential.k_length == p.k_length and potential.k_area == p.k_area)
+
+    def update(self, potential) -> None:
+        """Nothing changes between steps."""
+
+    def bind(self, pattern) -> None:
+        """Slot maps of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`)."""
+        self._slots = pattern.slot_map(self.vertices)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy in J at positions ``x`` ``(n, 3)``."""
+        p = self.potential
+        return float(spring_membrane_energy(x, self._triangles, self._edges, self._area0, self._length0,
+                                            p.k_length, p.k_area))
+
+    def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
+        p = self.potential
+        return float(spring_membrane_energy_gradient_hessian(
+            x, self._triangles, self._edges, self._area0, self._length0, self._slots, p.k_length, p.k_area,
+            grad, values))
