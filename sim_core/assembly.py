@@ -126,6 +126,7 @@ class HessianAssembler:
         self._keep_alive: list[np.ndarray] = []
         self._dynamic_keys: np.ndarray | None = None
         self._union: tuple | None = None
+        self._dynamic_map: tuple | None = None  # (signature, entry index, entry slots, union)
 
     def static_pattern(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray) -> StaticPattern:
         """The cached pattern of the static element-vertex arrays (rebuilt when they or ``free`` change).
@@ -213,25 +214,38 @@ class HessianAssembler:
     def _merge_dynamic(
         self, pat: StaticPattern, static_data: np.ndarray, dynamic: Sequence[HessianBlocks], free: np.ndarray
     ) -> sp.csr_matrix:
-        """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks."""
+        """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks.
+
+        The map from the dynamic block entries to the union slots is kept with the blocks' vertex
+        arrays (by value): over the last Newton iterations of a step the active pairs repeat, and
+        the merge is then one gather and one ``bincount``.
+        """
         n = self.dof_count
-        dyn_r, dyn_c, dyn_v = [], [], []
-        for b in dynamic:
-            if b.blocks.shape[0] == 0:
-                continue
-            r, c = _block_keys(b.vertices, n)
-            keep = (r <= c) & free[r] & free[c]
-            dyn_r.append(r[keep])
-            dyn_c.append(c[keep])
-            dyn_v.append(b.blocks.reshape(-1)[keep])
-        if dyn_r:
-            lin = np.concatenate(dyn_r) * n + np.concatenate(dyn_c)
-            dyn_keys, dyn_slot = np.unique(lin, return_inverse=True)
-        else:
-            dyn_keys, dyn_slot = np.zeros(0, np.int64), np.zeros(0, np.int64)
-        static_slots, dynamic_slots, indptr, indices, nnz = self._union_pattern(pat, dyn_keys)
+        blocks = [b for b in dynamic if b.blocks.shape[0]]
+        signature = (pat, np.packbits(free).tobytes(), tuple((b.vertices.shape, b.vertices.tobytes()) for b in blocks))
+        cached = self._dynamic_map
+        if cached is None or cached[0] != signature:
+            dyn_r, dyn_c, dyn_keep = [], [], []
+            for b in blocks:
+                r, c = _block_keys(b.vertices, n)
+                keep = (r <= c) & free[r] & free[c]
+                dyn_r.append(r[keep])
+                dyn_c.append(c[keep])
+                dyn_keep.append(keep)
+            if blocks:
+                lin = np.concatenate(dyn_r) * n + np.concatenate(dyn_c)
+                dyn_keys, dyn_slot = np.unique(lin, return_inverse=True)
+                entry_index = np.flatnonzero(np.concatenate(dyn_keep))
+            else:
+                dyn_keys, dyn_slot = np.zeros(0, np.int64), np.zeros(0, np.int64)
+                entry_index = np.zeros(0, np.int64)
+            union = self._union_pattern(pat, dyn_keys)
+            cached = (signature, entry_index, union[1][dyn_slot], union)
+            self._dynamic_map = cached
+        _, entry_index, dynamic_entry_slots, (static_slots, _, indptr, indices, nnz) = cached
         data = np.zeros(nnz)
         data[static_slots] = static_data
-        if dyn_v:
-            data += np.bincount(dynamic_slots[dyn_slot], weights=np.concatenate(dyn_v), minlength=nnz)
+        if blocks:
+            values = np.concatenate([b.blocks.reshape(-1) for b in blocks])[entry_index]
+            data += np.bincount(dynamic_entry_slots, weights=values, minlength=nnz)
         return sp.csr_matrix((data, indices, indptr), shape=(n, n))

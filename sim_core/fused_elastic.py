@@ -168,12 +168,22 @@ class FusedElastic:
         return self._evaluate(x)[3]
 
 
-def compile_fused_kernels() -> float:
-    """JIT-compile (or load from Taichi's offline cache) every fused kernel now; returns seconds.
 
-    Taichi compiles a kernel on its first call; a Newton step would otherwise pay for it. This runs
-    each fused kernel once on a two-triangle sheet over a one-tet block (the kernels take
-    ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per size).
+def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clamp") -> float:
+    """JIT-compile (or load from Taichi's offline cache) the kernels a Newton step on ``potentials`` uses.
+
+    Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
+    this runs the fused kernels once at ``x`` and, for the potentials that are Taichi twins
+    (``sim_core.ti_kernels``), the ``projection`` Hessian of the projected fallback. Kernels take
+    ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
+
+    Args:
+        potentials: the elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`).
+        x: positions ``(n, 3)`` in m (the rest shape will do).
+        projection: the solver's PSD projection.
+
+    Returns:
+        seconds spent.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
@@ -181,29 +191,17 @@ def compile_fused_kernels() -> float:
     import time
 
     from sim_core.assembly import HessianAssembler
-    from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-    from sim_core.potentials.membrane import SpringMembrane
-    from sim_core.potentials.neohookean import StableNeoHookean
     from sim_core.ti_backend import require_backend
 
-    require_backend("compile_fused_kernels")
+    require_backend("compile_kernels")
     t0 = time.perf_counter()
-    sheet = grid_sheet((0.01, 0.01), (2, 2), (0.0, 0.0, 0.0))
-    topology = sheet_topology(sheet.triangles)
-    edges, hinges = topology.edges, topology.hinges
-    tet = np.array([[0.0, 0.0, -0.01], [0.01, 0.0, -0.01], [0.0, 0.01, -0.01], [0.0, 0.0, 0.0]])
-    x_rest = np.concatenate([sheet.x, tet])
-    n = sheet.x.shape[0]
-    potentials = [
-        SpringMembrane(sheet.triangles, edges, x_rest, 1.0, 1.0),
-        StableNeoHookean(np.array([[n, n + 1, n + 2, n + 3]]), x_rest, 1e5, 0.3),
-        KirchhoffBending(sheet.triangles, hinges, x_rest, 1e-3, 0.3),
-    ]
+    x = np.ascontiguousarray(x, dtype=np.float64)
     fused = FusedElastic(potentials)
-    fused.bind(HessianAssembler(x_rest.size).static_pattern(fused.block_vertex_arrays(x_rest),
-                                                            np.ones(x_rest.size, bool)))
-    fused.gradient(x_rest)
+    fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x), np.ones(x.size, bool)))
+    fused.gradient(x)
     fused._kept = None
-    fused.energy(x_rest)
+    fused.energy(x)
+    for p in potentials:
+        if type(p).__module__.startswith("sim_core.ti_kernels"):
+            p.hessian(x, projection)
     return time.perf_counter() - t0
