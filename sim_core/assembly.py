@@ -10,10 +10,13 @@ Patterns are cached as maps from block entries to CSR slots, so an assembly is a
 
 * static blocks (elastic terms, the same elements every call, recognised by the identity of their
   ``vertices`` arrays) + the diagonal: one map, rebuilt when the arrays or the free mask change;
-* dynamic blocks (contact, friction: the active pairs change): the sorted unique keys of their
-  kept entries are compared with the last call's; the union pattern with the static one and both
-  maps into it are rebuilt only when they differ (the active set is usually stable over the last
-  Newton iterations of a step, and the linear solver then also keeps its symbolic analysis).
+* dynamic blocks (contact, friction: the active pairs change): their entries are mapped into a
+  union pattern "static + recently used dynamic entries", which is rebuilt only when an entry
+  that is not in it appears; dynamic entries stay in it (as structural zeros) until they have been
+  unused for :data:`STICKY_ASSEMBLIES` assemblies. So the pattern, and with it the linear solver's
+  symbolic analysis, changes far less often than the active contact set (contacts that come and go
+  between Newton iterations). The entry -> slot map of the dynamic blocks is kept while their
+  vertex arrays repeat.
 
 Fused kernels (:mod:`sim_core.fused_elastic`) skip the per-element blocks: they get the static
 pattern (:meth:`HessianAssembler.static_pattern`) and its per-element slot maps
@@ -38,6 +41,11 @@ def _block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.nd
     rows = np.repeat(dofs, n, axis=1).reshape(-1)
     cols = np.tile(dofs, (1, n)).reshape(-1)
     return rows, cols
+
+
+STICKY_ASSEMBLIES = 50
+"""A dynamic entry leaves the union pattern after this many assemblies without it (about ten
+Forming steps): bounds the fill-in that contacts which moved on leave behind."""
 
 
 class StaticPattern:
@@ -112,6 +120,45 @@ class StaticPattern:
         return self.lookup(rows, cols).reshape(k, 3 * m, 3 * m)
 
 
+class _UnionPattern:
+    """The static pattern plus a set of dynamic keys, as CSR arrays.
+
+    Attributes:
+        pattern: the :class:`StaticPattern`.
+        dyn_keys: sorted unique dynamic keys ``row * n + col`` (some may also be static keys).
+        last_used: assembly counter of the last use of each dynamic key.
+        keys, static_slots, indptr, indices, nnz: the union's sorted keys, the slot of each static
+            key, and the CSR arrays.
+    """
+
+    def __init__(self, pattern: StaticPattern, dyn_keys: np.ndarray, dof_count: int) -> None:
+        n = dof_count
+        self.pattern = pattern
+        self.dyn_keys = dyn_keys
+        self.last_used = np.zeros(dyn_keys.size, dtype=np.int64)
+        static = pattern.keys
+        # merge two sorted unique key arrays in linear time (no re-sort of the static keys)
+        pos = np.minimum(np.searchsorted(static, dyn_keys), max(static.size - 1, 0))
+        extra = dyn_keys[static[pos] != dyn_keys] if static.size else dyn_keys
+        self.keys = np.insert(static, np.searchsorted(static, extra), extra)
+        self.static_slots = np.arange(static.size) + np.searchsorted(extra, static)
+        self.indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(self.keys // n, minlength=n), out=self.indptr[1:])
+        self.indices = (self.keys % n).astype(np.int32)
+        self.nnz = self.keys.size
+
+    def covers(self, lin: np.ndarray) -> bool:
+        """Whether every key of ``lin`` is one of :attr:`dyn_keys`."""
+        if not self.dyn_keys.size:
+            return lin.size == 0
+        pos = np.minimum(np.searchsorted(self.dyn_keys, lin), self.dyn_keys.size - 1)
+        return bool(np.all(self.dyn_keys[pos] == lin))
+
+    def recent(self, count: int) -> np.ndarray:
+        """Dynamic keys used within the last :data:`STICKY_ASSEMBLIES` assemblies before ``count``."""
+        return self.dyn_keys[self.last_used > count - STICKY_ASSEMBLIES]
+
+
 class HessianAssembler:
     """Assemble ``static`` blocks + ``dynamic`` blocks + a diagonal into the constrained upper triangle.
 
@@ -124,9 +171,9 @@ class HessianAssembler:
         self._static_key: tuple | None = None
         self._static: StaticPattern | None = None
         self._keep_alive: list[np.ndarray] = []
-        self._dynamic_keys: np.ndarray | None = None
-        self._union: tuple | None = None
-        self._dynamic_map: tuple | None = None  # (signature, entry index, entry slots, union)
+        self._union: _UnionPattern | None = None
+        self._dynamic_map: tuple | None = None  # (signature, entry index, entry slots, used keys, union)
+        self._assemblies = 0
 
     def static_pattern(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray) -> StaticPattern:
         """The cached pattern of the static element-vertex arrays (rebuilt when they or ``free`` change).
@@ -140,28 +187,9 @@ class HessianAssembler:
             self._static = StaticPattern(list(vertex_arrays), free, self.dof_count)
             self._static_key = key
             self._keep_alive = list(vertex_arrays)  # ids stay unique while referenced
-            self._dynamic_keys = None
             self._union = None
+            self._dynamic_map = None
         return self._static
-
-    def _union_pattern(self, pat: StaticPattern, dyn_keys: np.ndarray) -> tuple:
-        """(static slots, dynamic unique keys -> slots, indptr, indices, nnz) of static U dynamic."""
-        if self._union is not None and self._dynamic_keys is not None and np.array_equal(dyn_keys, self._dynamic_keys):
-            return self._union
-        n = self.dof_count
-        # merge two sorted unique key arrays in linear time (no re-sort of the static keys)
-        pos = np.minimum(np.searchsorted(pat.keys, dyn_keys), max(pat.keys.size - 1, 0))
-        extra = dyn_keys[pat.keys[pos] != dyn_keys] if pat.keys.size else dyn_keys
-        keys = np.insert(pat.keys, np.searchsorted(pat.keys, extra), extra)
-        static_slots = np.arange(pat.keys.size) + np.searchsorted(extra, pat.keys)
-        dynamic_slots = np.searchsorted(keys, dyn_keys)
-        rows = keys // n
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-        indices = (keys % n).astype(np.int32)
-        self._dynamic_keys = dyn_keys
-        self._union = (static_slots, dynamic_slots, indptr, indices, keys.size)
-        return self._union
 
     def assemble_upper(
         self,
@@ -221,31 +249,33 @@ class HessianAssembler:
         the merge is then one gather and one ``bincount``.
         """
         n = self.dof_count
+        self._assemblies += 1
         blocks = [b for b in dynamic if b.blocks.shape[0]]
         signature = (pat, np.packbits(free).tobytes(), tuple((b.vertices.shape, b.vertices.tobytes()) for b in blocks))
         cached = self._dynamic_map
         if cached is None or cached[0] != signature:
-            dyn_r, dyn_c, dyn_keep = [], [], []
+            lin, dyn_keep = [], []
             for b in blocks:
                 r, c = _block_keys(b.vertices, n)
                 keep = (r <= c) & free[r] & free[c]
-                dyn_r.append(r[keep])
-                dyn_c.append(c[keep])
+                lin.append(r[keep] * n + c[keep])
                 dyn_keep.append(keep)
-            if blocks:
-                lin = np.concatenate(dyn_r) * n + np.concatenate(dyn_c)
-                dyn_keys, dyn_slot = np.unique(lin, return_inverse=True)
-                entry_index = np.flatnonzero(np.concatenate(dyn_keep))
-            else:
-                dyn_keys, dyn_slot = np.zeros(0, np.int64), np.zeros(0, np.int64)
-                entry_index = np.zeros(0, np.int64)
-            union = self._union_pattern(pat, dyn_keys)
-            cached = (signature, entry_index, union[1][dyn_slot], union)
+            lin = np.concatenate(lin) if blocks else np.zeros(0, np.int64)
+            entry_index = np.flatnonzero(np.concatenate(dyn_keep)) if blocks else np.zeros(0, np.int64)
+            union = self._union
+            if union is None or union.pattern is not pat or not union.covers(lin):
+                kept = union.recent(self._assemblies) if union is not None and union.pattern is pat else lin[:0]
+                union = _UnionPattern(pat, np.union1d(kept, lin), n)
+                self._union = union
+            used = np.unique(np.searchsorted(union.dyn_keys, lin))
+            cached = (signature, entry_index, np.searchsorted(union.keys, lin), used, union)
             self._dynamic_map = cached
-        _, entry_index, dynamic_entry_slots, (static_slots, _, indptr, indices, nnz) = cached
-        data = np.zeros(nnz)
-        data[static_slots] = static_data
+        _, entry_index, dynamic_entry_slots, used, union = cached
+        union.last_used[used] = self._assemblies
+        data = np.zeros(union.nnz)
+        data[union.static_slots] = static_data
         if blocks:
             values = np.concatenate([b.blocks.reshape(-1) for b in blocks])[entry_index]
-            data += np.bincount(dynamic_entry_slots, weights=values, minlength=nnz)
+            data += np.bincount(dynamic_entry_slots, weights=values, minlength=union.nnz)
+        indices, indptr = union.indices, union.indptr
         return sp.csr_matrix((data, indices, indptr), shape=(n, n))

@@ -54,8 +54,9 @@ def test_upper_assembly_matches_reference_with_changing_dynamic_blocks_and_free_
 
 
 def test_cached_dynamic_map_and_static_values_path_match_reference():
-    """Equal dynamic vertex arrays (new objects, new values) reuse the cached map; the static part
-    given as slot values (fused kernels) equals the block path."""
+    """Equal dynamic vertex arrays (new objects, new values) reuse the cached map, a subset of the
+    dynamic entries reuses the union pattern; the static part given as slot values (fused kernels)
+    equals the block path."""
     rng = np.random.default_rng(2)
     n_v = 24
     static = [_random_blocks(rng, n_v, 20, 3)]
@@ -64,6 +65,7 @@ def test_cached_dynamic_map_and_static_values_path_match_reference():
     free = np.repeat(rng.uniform(size=n_v) > 0.25, 3)
     first = [_random_blocks(rng, n_v, 6, 4), HessianBlocks.empty(4), _random_blocks(rng, n_v, 3, 2)]
     for dynamic in (first, [HessianBlocks(d.vertices.copy(), -1.5 * d.blocks) for d in first],
+                    first[:1],  # a subset: the union pattern is kept (its other entries are zeros)
                     [_random_blocks(rng, n_v, 5, 4)], []):
         ref = _reference(static + dynamic, diag, free)
         U = asm.assemble_upper(static, dynamic, diag, free)
