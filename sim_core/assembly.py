@@ -129,6 +129,7 @@ class _UnionPattern:
         last_used: assembly counter of the last use of each dynamic key.
         keys, static_slots, indptr, indices, nnz: the union's sorted keys, the slot of each static
             key, and the CSR arrays.
+        dyn_slots: the slot of each dynamic key.
     """
 
     def __init__(self, pattern: StaticPattern, dyn_keys: np.ndarray, dof_count: int) -> None:
@@ -146,13 +147,14 @@ class _UnionPattern:
         np.cumsum(np.bincount(self.keys // n, minlength=n), out=self.indptr[1:])
         self.indices = (self.keys % n).astype(np.int32)
         self.nnz = self.keys.size
+        self.dyn_slots = np.searchsorted(self.keys, dyn_keys)
 
-    def covers(self, lin: np.ndarray) -> bool:
-        """Whether every key of ``lin`` is one of :attr:`dyn_keys`."""
+    def index(self, lin: np.ndarray) -> np.ndarray | None:
+        """Positions of the keys ``lin`` in :attr:`dyn_keys`, or None if one of them is not there."""
         if not self.dyn_keys.size:
-            return lin.size == 0
+            return None if lin.size else np.zeros(0, np.int64)
         pos = np.minimum(np.searchsorted(self.dyn_keys, lin), self.dyn_keys.size - 1)
-        return bool(np.all(self.dyn_keys[pos] == lin))
+        return pos if np.array_equal(self.dyn_keys[pos], lin) else None
 
     def recent(self, count: int) -> np.ndarray:
         """Dynamic keys used within the last :data:`STICKY_ASSEMBLIES` assemblies before ``count``."""
@@ -172,7 +174,8 @@ class HessianAssembler:
         self._static: StaticPattern | None = None
         self._keep_alive: list[np.ndarray] = []
         self._union: _UnionPattern | None = None
-        self._dynamic_map: tuple | None = None  # (signature, entry index, entry slots, used keys, union)
+        # per dynamic block set: (signature, kept entry index, kept keys, (union, slots, dyn-key index))
+        self._dynamic_map: list | None = None
         self._assemblies = 0
 
     def static_pattern(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray) -> StaticPattern:
@@ -244,38 +247,54 @@ class HessianAssembler:
     ) -> sp.csr_matrix:
         """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks.
 
-        The map from the dynamic block entries to the union slots is kept with the blocks' vertex
-        arrays (by value): over the last Newton iterations of a step the active pairs repeat, and
-        the merge is then one gather and one ``bincount``.
+        Per dynamic block set (by position in ``dynamic``), the kept entries and their keys are
+        kept with its vertex array (by value), and their slots with the union pattern: friction
+        pairs are fixed for a step, contact pairs often repeat between iterations, and the merge is
+        then one gather per block set and one ``bincount``.
         """
         n = self.dof_count
         self._assemblies += 1
         blocks = [b for b in dynamic if b.blocks.shape[0]]
-        signature = (pat, np.packbits(free).tobytes(), tuple((b.vertices.shape, b.vertices.tobytes()) for b in blocks))
-        cached = self._dynamic_map
-        if cached is None or cached[0] != signature:
-            lin, dyn_keep = [], []
-            for b in blocks:
-                r, c = _block_keys(b.vertices, n)
-                keep = (r <= c) & free[r] & free[c]
-                lin.append(r[keep] * n + c[keep])
-                dyn_keep.append(keep)
-            lin = np.concatenate(lin) if blocks else np.zeros(0, np.int64)
-            entry_index = np.flatnonzero(np.concatenate(dyn_keep)) if blocks else np.zeros(0, np.int64)
-            union = self._union
-            if union is None or union.pattern is not pat or not union.covers(lin):
-                kept = union.recent(self._assemblies) if union is not None and union.pattern is pat else lin[:0]
-                union = _UnionPattern(pat, np.union1d(kept, lin), n)
-                self._union = union
-            used = np.unique(np.searchsorted(union.dyn_keys, lin))
-            cached = (signature, entry_index, np.searchsorted(union.keys, lin), used, union)
-            self._dynamic_map = cached
-        _, entry_index, dynamic_entry_slots, used, union = cached
-        union.last_used[used] = self._assemblies
+        free_key = (pat, np.packbits(free).tobytes())
+        maps = self._dynamic_map if self._dynamic_map is not None else []
+        maps = maps[: len(blocks)]
+        for k, b in enumerate(blocks):
+            signature = (free_key, b.vertices.shape, b.vertices.tobytes())
+            if k < len(maps) and maps[k][0] == signature:
+                continue
+            r, c = _block_keys(b.vertices, n)
+            keep = (r <= c) & free[r] & free[c]
+            entry = (signature, np.flatnonzero(keep), r[keep] * n + c[keep], None)  # (.., index, keys, slots)
+            if k < len(maps):
+                maps[k] = entry
+            else:
+                maps.append(entry)
+        union = self._union
+        if union is not None and union.pattern is not pat:
+            union = None
+        for k, m in enumerate(maps):
+            if union is not None and (m[3] is None or m[3][0] is not union):
+                index = union.index(m[2])
+                if index is None:  # an entry outside the union: rebuild it below
+                    union = None
+                else:
+                    maps[k] = m[:3] + ((union, union.dyn_slots[index], index),)
+        if union is None:
+            old = self._union
+            kept = [old.recent(self._assemblies)] if old is not None and old.pattern is pat else []
+            union = _UnionPattern(pat, np.unique(np.concatenate(kept + [m[2] for m in maps] + [np.zeros(0, np.int64)])), n)
+            self._union = union
+            for k, m in enumerate(maps):
+                index = union.index(m[2])
+                maps[k] = m[:3] + ((union, union.dyn_slots[index], index),)
+        self._dynamic_map = maps
         data = np.zeros(union.nnz)
         data[union.static_slots] = static_data
         if blocks:
-            values = np.concatenate([b.blocks.reshape(-1) for b in blocks])[entry_index]
-            data += np.bincount(dynamic_entry_slots, weights=values, minlength=union.nnz)
+            for m in maps:
+                union.last_used[m[3][2]] = self._assemblies
+            slots = np.concatenate([m[3][1] for m in maps])
+            values = np.concatenate([b.blocks.reshape(-1)[m[1]] for b, m in zip(blocks, maps)])
+            data += np.bincount(slots, weights=values, minlength=union.nnz)
         indices, indptr = union.indices, union.indptr
         return sp.csr_matrix((data, indices, indptr), shape=(n, n))
