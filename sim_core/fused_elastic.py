@@ -9,7 +9,7 @@ gradient and exact Hessian together and adds the Hessian entries straight into t
 assembler's static pattern through precomputed slot maps
 (:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels.
 
-Potentials without a fused kernel (StVK membrane, hinge bending) are evaluated through their
+Potentials without a fused kernel (hinge bending) are evaluated through their
 reference methods and added through the same slot maps, so any mix of elastic terms works. The
 PSD-projected Hessian is not fused: the solver assembles it from the reference potentials in the
 rare iterations where PARDISO's Cholesky refuses the exact matrix.
@@ -29,7 +29,7 @@ from sim_core.assembly import StaticPattern
 def _fused_class(potential) -> type | None:
     """The fused kernel class for ``potential`` or None (imports Taichi kernels on first use)."""
     from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
     from sim_core.potentials.neohookean import StableNeoHookean
 
     if isinstance(potential, StableNeoHookean):
@@ -40,6 +40,10 @@ def _fused_class(potential) -> type | None:
         from sim_core.ti_kernels.fused_spring_membrane import FusedSpringMembrane
 
         return FusedSpringMembrane
+    if isinstance(potential, StVKMembrane):
+        from sim_core.ti_kernels.fused_stvk_membrane import FusedStVKMembrane
+
+        return FusedStVKMembrane
     if isinstance(potential, KirchhoffBending):
         from sim_core.ti_kernels.fused_kirchhoff import FusedKirchhoffBending
 

@@ -14,6 +14,7 @@ import pytest
 from sim_core.assembly import HessianAssembler
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
 from sim_core.mesh.tet import tet_box
+from sim_core.potentials.bending import DiscreteShellBending
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
 from sim_core.potentials.neohookean import StableNeoHookean
@@ -45,8 +46,11 @@ def _potentials(kind: str):
     elif kind == "kirchhoff":
         theta_bar = np.linspace(-0.3, 0.4, topo.hinges.shape[0])
         pot = KirchhoffBending(mesh.triangles, topo.hinges, mesh.x, 2e-3, 0.3, theta_bar)
+    elif kind == "stvk_membrane":
+        pot = StVKMembrane(mesh.triangles, mesh.x, 1e6, 0.3, 3e-4)
     else:
-        pot = StVKMembrane(mesh.triangles, mesh.x, 3e9, 0.3, 3e-4)  # no fused kernel: reference part
+        theta_bar = np.linspace(0.2, -0.1, topo.hinges.shape[0])
+        pot = DiscreteShellBending(topo.hinges, mesh.x, 2e-3, theta_bar)  # no fused kernel: reference part
     return pot, mesh.x, lambda seed: _deformed_sheet(mesh.x, seed)
 
 
@@ -59,7 +63,7 @@ def _fused(pot, x_rest: np.ndarray, free: np.ndarray):
     return fused, asm
 
 
-KINDS = ("snh", "spring_membrane", "kirchhoff", "stvk_reference_part")
+KINDS = ("snh", "spring_membrane", "kirchhoff", "stvk_membrane", "hinge_reference_part")
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -83,7 +87,7 @@ def test_fused_equals_reference(ti_cpu, kind):
         assert relative_error(H.data, H_ref.data) < 1e-12
 
 
-@pytest.mark.parametrize("kind", KINDS[:3])
+@pytest.mark.parametrize("kind", KINDS[:4])
 def test_fused_derivatives_match_finite_differences(ti_cpu, kind):
     pot, x_rest, deformed = _potentials(kind)
     if kind == "snh":  # a smaller block keeps the dense FD Hessian cheap
@@ -108,7 +112,8 @@ def test_mixed_terms_and_new_rest_angles(ti_cpu):
     membrane = SpringMembrane(mesh.triangles, topo.edges, mesh.x, 1000.0, 800.0)
     bending = KirchhoffBending(mesh.triangles, topo.hinges, mesh.x, 2e-3, 0.3)
     stvk = StVKMembrane(mesh.triangles, mesh.x, 3e9, 0.3, 3e-4)
-    terms = [membrane, stvk, bending]
+    hinge = DiscreteShellBending(topo.hinges, mesh.x, 1e-3)
+    terms = [membrane, stvk, bending, hinge]
     free = np.ones(mesh.x.size, bool)
     fused = FusedElastic.for_terms(None, terms)
     asm = HessianAssembler(mesh.x.size)
@@ -121,7 +126,7 @@ def test_mixed_terms_and_new_rest_angles(ti_cpu):
 
             bent = copy.copy(bending)
             bent.hinge_theta_bar = theta_bar
-            terms = [membrane, stvk, bent]
+            terms = [membrane, stvk, bent, hinge]
             same = FusedElastic.for_terms(fused, terms)
             assert same is fused  # same elements: kernels and slot maps kept, rest angles replaced
         assert fused.energy(x) == pytest.approx(sum(p.energy(x) for p in terms), rel=1e-12)
@@ -129,7 +134,7 @@ def test_mixed_terms_and_new_rest_angles(ti_cpu):
         H_ref = asm.assemble_upper([p.hessian(x, "none") for p in terms], [], diag, free)
         H = asm.assemble_upper_values(fused.pattern, fused.hessian_values(x), [], diag, free)
         assert relative_error(H.data, H_ref.data) < 1e-12
-    assert FusedElastic.for_terms(fused, [membrane, bending]) is not fused
+    assert FusedElastic.for_terms(fused, [membrane, stvk, bending]) is not fused
 
 
 def test_solver_steps_equal_reference_path(ti_cpu):
