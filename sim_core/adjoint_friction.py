@@ -237,7 +237,7 @@ def friction_rows(model: Model, contact: ContactSet, state: State, friction: Lag
                 continue
             verts = pot.vertices[act]
             fn = vertex_triangle_frames if isinstance(pot, VertexTriangleContact) else edge_edge_frames
-            d, dd, n, dn, w, dw = fn(x_n[verts], pot.sides[act])
+            d, dd, n, dn, w, dw = fn(x_n[verts], pot.resolved_sides(x_n)[act])
             parts.append((verts, k_c * (eps - d), -k_c * dd, n, dn, w, dw))
             second = 1 if isinstance(pot, VertexTriangleContact) else 2
             pairs += [frozenset((names[body[a]], names[body[b]])) for a, b in zip(verts[:, 0], verts[:, second])]

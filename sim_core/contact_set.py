@@ -5,12 +5,14 @@ friction potentials, as the Newton solver uses them:
 
 - :meth:`ContactSet.begin_step` takes the side memory of the state at ``x^n``;
 - :meth:`ContactSet.potentials` returns the penalty potentials (vertex-triangle, edge-edge,
-  vertex-plane) for the candidate pairs near an iterate ``x``; a new pair gets the side its vertex
-  (edge) had at ``x^n``, a remembered pair keeps its remembered side, so a vertex that slipped
-  through a triangle during an iterate is pulled back to the side it came from;
+  vertex-plane) for the candidate pairs near an iterate ``x``, with sides fixed for the whole
+  step (:meth:`ContactSet._step_sides`): a pair above the face (interior) at ``x^n`` keeps its
+  remembered side, or takes its side at ``x^n``, so a vertex that slipped through a triangle during
+  an iterate is pulled back to the side it came from; any other pair is unsigned;
 - :meth:`ContactSet.friction` freezes normal forces and tangent bases at ``x^n`` (lagged IPC friction,
   Li et al. 2020) with the Coulomb coefficient of each pair's two bodies;
-- :meth:`ContactSet.end_step` stores the sides of the pairs active at the converged ``x^{n+1}``.
+- :meth:`ContactSet.end_step` stores the sides of the pairs active above the face (interior) at the
+  converged ``x^{n+1}``.
 """
 
 from __future__ import annotations
@@ -103,7 +105,7 @@ class ContactSet:
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             vt, ee = cache[2]
             vt_sides, ee_sides = cache[3]
-            pots = self._vertex_triangle(x, vt.pairs, vt_sides), self._edge_edge(x, ee.pairs, ee_sides)
+            pots = self._vertex_triangle(vt.pairs, vt_sides), self._edge_edge(ee.pairs, ee_sides)
         else:
             pots, remembered = self._search(x, memory, candidates)
             self._cache = (memory, candidates, pots, remembered)
@@ -114,13 +116,28 @@ class ContactSet:
         self._last_pots = pots
         return pots
 
+    @property
+    def search_position(self) -> np.ndarray | None:
+        """Positions ``(n, 3)`` (m) of the last broad-phase search (None before the first one)."""
+        return None if self._candidates is None else self._candidates[0]
+
+    def covers(self, x_search: np.ndarray | None, x: np.ndarray) -> bool:
+        """Whether candidates searched at ``x_search`` still hold every pair within ``eps`` at ``x``.
+
+        True when no vertex has moved more than ``margin / 2`` (see :meth:`_pairs`). The Newton
+        line search evaluates trial points with the iterate's contact potentials only while this
+        holds; beyond it a pair missing from the list would make the trial energy too low (a
+        penetration the line search cannot see), and Newton then cycles between iterates.
+        """
+        if x_search is None or x_search.shape != x.shape:
+            return False
+        return x.size == 0 or float(np.max(np.abs(x - x_search))) <= 0.5 * self.margin
+
     def _candidate_pairs(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`)."""
         found = self._candidates
-        if found is not None and found[0].shape == x.shape:
-            moved = float(np.max(np.abs(x - found[0]))) if x.size else 0.0
-            if moved <= 0.5 * self.margin:
-                return found
+        if found is not None and self.covers(found[0], x):
+            return found
         vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             kv = self.body_kind[self.vertex_body[vt[:, 0]]]
@@ -130,46 +147,43 @@ class ContactSet:
         self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
         return self._candidates
 
-    def _vertex_triangle(self, x: np.ndarray, vt: np.ndarray, remembered: np.ndarray) -> VertexTriangleContact:
-        """Vertex-triangle penalty over pairs ``vt`` with the side memory applied in the face region.
-
-        A pair whose vertex projects inside its triangle (face region) keeps its remembered side
-        (``remembered``, +1/-1: from the state's memory, else the side at x^n), so a vertex that
-        slipped through is pulled back. Outside the face region the distance is unsigned and the
-        side is taken from the current geometry: remembering it there made a penetrated vertex
-        that slides into the face region jump from +delta to -delta, an energy discontinuity the
-        line search cannot cross (a vertex wrapping round a sheet's free edge is legitimate).
-        """
-        if not len(vt):
-            return VertexTriangleContact(vt, self.triangles, np.zeros(0), self.stiffness, self.eps)
-        tri = self.triangles[vt[:, 1]]
-        p, a, b, c = x[vt[:, 0]], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-        region = point_triangle_region(p, a, b, c)
-        z = np.concatenate([p[:, None], a[:, None], b[:, None], c[:, None]], axis=1)
-        sides = np.where(region == PointTriangleRegion.FACE, remembered, point_triangle_side(z))
+    def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray) -> VertexTriangleContact:
+        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`)."""
         return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)
 
-    def _edge_edge(self, x: np.ndarray, ee: np.ndarray, remembered: np.ndarray) -> EdgeEdgeContact:
-        """Edge-edge penalty over pairs ``ee`` with the side memory applied in the interior region.
-
-        As for vertex-triangle pairs: a pair whose closest points are interior to both segments
-        keeps its remembered side (``remembered``, +1/-1: from the state's memory, else the side at
-        x^n), so edges that crossed are pushed back apart. Elsewhere the distance is unsigned and
-        the side comes from the current geometry: remembering it there made a pair whose closest
-        points enter the segments' interior from outside jump from +delta to -delta.
-        """
-        if not len(ee):
-            return EdgeEdgeContact(ee, self.edges, np.zeros(0), self.stiffness, self.eps)
-        z_now = np.concatenate([x[self.edges[ee[:, 0]]], x[self.edges[ee[:, 1]]]], axis=1)
-        _, _, region = edge_edge_closest_points(z_now[:, 0], z_now[:, 1], z_now[:, 2], z_now[:, 3])
-        sides = np.where(region == EdgeEdgeRegion.INTERIOR, remembered, edge_edge_side(z_now))
+    def _edge_edge(self, ee: np.ndarray, sides: np.ndarray) -> EdgeEdgeContact:
+        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`)."""
         return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
+
+    @staticmethod
+    def _step_sides(z: np.ndarray, above: np.ndarray, remembered: np.ndarray) -> np.ndarray:
+        """Sides of the step, fixed for all its Newton iterates, shape ``(p,)``.
+
+        A pair above the face (vertex-triangle) or with both closest points interior (edge-edge)
+        at ``x^n`` (``above``) keeps its remembered side, so a vertex that slips through the face
+        during the step is pushed back to where it came from. Any other pair is unsigned (0): at
+        ``x^n`` it is beside its triangle or beyond an end of its edges, where the side of the
+        triangle's plane (of the line-line normal) does not tell which way it is approaching, and a
+        sheet may wrap round a free edge. Before, sides were re-derived at every Newton iterate from
+        its region; the energy then changed from iterate to iterate, and a pair that entered the
+        interior on the geometrically other side of the lines than at ``x^n`` jumped to
+        ``d = -2 eps``, which made Newton cycle (a sysid replay failed at t = 1.87 s).
+
+        Args:
+            z: pair positions at ``x^n``, shape ``(p, 4, 3)``.
+            above: pairs in the face / interior region at ``x^n``, shape ``(p,)`` bool.
+            remembered: the memory's side, else the side at ``x^n``, shape ``(p,)``.
+        """
+        return np.where(above, remembered, 0.0)
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
         vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
+        if len(vt):
+            above = point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]) == PointTriangleRegion.FACE
+            vt_sides = self._step_sides(z, above, vt_sides)
         z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
              if len(ee) else np.zeros((0, 4, 3)))
         if len(ee):
@@ -183,7 +197,10 @@ class ContactSet:
             keep = sin > self.min_edge_sine
             ee, z = ee[keep], z[keep]
         ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
-        return ((self._vertex_triangle(x, vt, vt_sides), self._edge_edge(x, ee, ee_sides)),
+        if len(ee):
+            _, _, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+            ee_sides = self._step_sides(z, region == EdgeEdgeRegion.INTERIOR, ee_sides)
+        return ((self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides)),
                 (vt_sides, ee_sides))
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
@@ -226,14 +243,29 @@ class ContactSet:
         return table[ba, bb]
 
     def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:
-        """Remember the sides of the pairs active at the converged positions ``x``."""
+        """Remember the sides of the pairs active at the converged positions ``x``.
+
+        Only pairs above the face (interior) are remembered: elsewhere a side has no meaning
+        (:meth:`_step_sides`); a remembered pair keeps its side while it stays so.
+        """
         vt, ee = self._pairs(x, memory)
         out = memory.copy()
-        act = vt.active_mask(x) if len(vt.pairs) else np.zeros(0, bool)
-        out.vertex_triangle.update(vt.pairs[act], vt.sides[act])
-        act = ee.active_mask(x) if len(ee.pairs) else np.zeros(0, bool)
-        out.edge_edge.update(ee.pairs[act], ee.sides[act])
+        for pot, mem, above in ((vt, out.vertex_triangle, self._above_face), (ee, out.edge_edge, self._interior)):
+            keep = pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool)
+            if np.any(keep):
+                keep[keep] = above(x[pot.vertices[keep]])
+            mem.update(pot.pairs[keep], pot.resolved_sides(x)[keep])
         return out
+
+    @staticmethod
+    def _above_face(z: np.ndarray) -> np.ndarray:
+        """Vertex-triangle pairs ``z`` (k, 4, 3) whose vertex is above the face, (k,) bool."""
+        return point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]) == PointTriangleRegion.FACE
+
+    @staticmethod
+    def _interior(z: np.ndarray) -> np.ndarray:
+        """Edge-edge pairs ``z`` (k, 4, 3) with both closest points interior, (k,) bool."""
+        return edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[2] == EdgeEdgeRegion.INTERIOR
 
 
 def _sheet_vertices(model: Model) -> np.ndarray:

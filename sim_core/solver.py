@@ -304,11 +304,15 @@ class NewtonSolver:
 
         fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
 
-        def total(xx: np.ndarray, contact_terms: list) -> float:
+        def total(xx: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
             # fixed_terms do not change within the step: their energy at the accepted line-search
             # point is the next iteration's e0 part (same array object, same value)
             if fixed_energy[0] is not xx:
                 fixed_energy[:] = [xx, sum(p.energy(xx) for p in loop_terms)]
+            if not self.contact.covers(x_search, xx):
+                # a trial point beyond the iterate's candidate list: search again, so that every
+                # trial point is measured with the same energy (no pair left out)
+                contact_terms = self.contact.potentials(xx, x_n, memory)
             return fixed_energy[1] + sum(p.energy(xx) for p in contact_terms)
 
         converged = False
@@ -317,6 +321,7 @@ class NewtonSolver:
         for it in range(1, cfg.max_iterations + 1):
             ta = time.perf_counter()
             contact_terms = self.contact.potentials(x, x_n, memory)
+            x_search = self.contact.search_position
             terms = loop_terms + contact_terms
             g = sum(p.gradient(x) for p in terms).reshape(-1)
             g[~free] = 0.0
@@ -371,7 +376,7 @@ class NewtonSolver:
                 info.iterations = it
                 break
             alpha = min(1.0, max_disp / step_max) if step_max > 0 else 1.0
-            e0 = total(x, contact_terms)
+            e0 = total(x, contact_terms, x_search)
             slope = float(g @ d)
             if slope >= 0:  # not a descent direction (should not happen with a PD matrix)
                 d = -g
@@ -379,7 +384,7 @@ class NewtonSolver:
                 slope = float(g @ d)
             for _ in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
-                if total(x_new, contact_terms) <= e0 + cfg.armijo_c * alpha * slope:
+                if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                     break
                 alpha *= 0.5
                 info.backtracks += 1
@@ -408,7 +413,7 @@ class NewtonSolver:
         self.last_free_mask = free
         self.last_factorization = factorization if exact else None
         contact_terms = self.contact.potentials(x, x_n, memory)
-        info.energy = total(x, contact_terms)
+        info.energy = total(x, contact_terms, self.contact.search_position)
         self.last_record = StepRecord(
             dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=fixed, x_target=x_target,
             effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(openings),

@@ -12,6 +12,13 @@ The potentials take *candidate* pairs (from :mod:`sim_core.collision.candidates`
 :meth:`contact_frames` gives the normal force magnitude ``lam = k_c (eps - d)``, the unit normal (the
 direction of the force on the first side: the vertex, or edge a) and the barycentric weights of
 the closest points, which friction (:mod:`sim_core.potentials.friction`) and the wrench need.
+
+Side 0 means *unsigned*: the pair has no remembered side (it was not above the face / interior
+when its step began, so the side of the plane through the triangle or of the line-line normal says
+nothing about which way it came from) and ``d`` is the Euclidean distance in every region, i.e. the
+side is that of the evaluated configuration itself. A side fixed per step for every pair makes the
+energy one function of ``x`` within a step; a side chosen from each Newton iterate did not, and
+Newton cycled (:mod:`sim_core.contact_set`).
 """
 
 from __future__ import annotations
@@ -26,8 +33,10 @@ from sim_core.collision.distances import (
     PointTriangleRegion,
     edge_edge_closest_points,
     edge_edge_contact_distance,
+    edge_edge_side,
     point_triangle_closest_point,
     point_triangle_contact_distance,
+    point_triangle_side,
 )
 from sim_core.errors import ConfigError
 from sim_core.potentials.base import HessianBlocks, Projection, project_psd, scatter_gradient
@@ -63,8 +72,8 @@ def _check_sides(sides: np.ndarray, count: int, where: str) -> np.ndarray:
     sides = np.asarray(sides, dtype=float).reshape(-1)
     if sides.shape[0] != count:
         raise ConfigError(f"{where}: {count} pairs but {sides.shape[0]} sides")
-    if not np.all(np.abs(sides) == 1.0):
-        raise ConfigError(f"{where}: sides must be +1 or -1")
+    if not np.all((np.abs(sides) == 1.0) | (sides == 0.0)):
+        raise ConfigError(f"{where}: sides must be +1 or -1 (0: unsigned)")
     return sides
 
 
@@ -83,6 +92,21 @@ class _PairPenalty:
 
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
         raise NotImplementedError
+
+    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _resolve(self, z: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """``side`` with the unsigned pairs (0) given the side of configuration ``z`` (k, 4, 3)."""
+        unsigned = side == 0.0
+        if not np.any(unsigned):
+            return side
+        return np.where(unsigned, self._geometric_side(z), side)
+
+    def resolved_sides(self, x: np.ndarray) -> np.ndarray:
+        """Side of every pair at positions ``x`` (n, 3) m: the fixed side, or for an unsigned pair the
+        side of ``x`` itself; +1 / -1, shape ``(p,)``."""
+        return self._resolve(x[self.vertices], self.sides)
 
     def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
         """Indices of the active pairs and their distance (with derivatives up to ``order``).
@@ -165,7 +189,7 @@ class VertexTriangleContact(_PairPenalty):
         pairs: ``[global vertex, row of triangles]``, shape ``(p, 2)``.
         triangles: global vertex indices, shape ``(t, 3)``.
         sides: side of each vertex w.r.t. its triangle's normal ``(b - a) x (c - a)`` remembered
-            when the pair became active (+1 / -1), shape ``(p,)``.
+            when the pair became active (+1 / -1; 0: unsigned, module docstring), shape ``(p,)``.
         stiffness: k_c in N/m (> 0).
         eps: contact offset in m (> 0).
 
@@ -187,7 +211,10 @@ class VertexTriangleContact(_PairPenalty):
         self.eps = float(eps)
 
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
-        return point_triangle_contact_distance(z, side, order)
+        return point_triangle_contact_distance(z, self._resolve(z, side), order)
+
+    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
+        return point_triangle_side(z)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
@@ -203,7 +230,7 @@ class VertexTriangleContact(_PairPenalty):
             normal[~face] = _unit(z[~face, 0] - q[~face])
         if np.any(face):
             n = np.cross(z[face, 2] - z[face, 1], z[face, 3] - z[face, 1])
-            normal[face] = self.sides[act][face, None] * _unit(n)
+            normal[face] = self._resolve(z[face], self.sides[act][face])[:, None] * _unit(n)
         weights = np.concatenate([np.ones((act.size, 1)), -bary], axis=1)
         lam = self.stiffness * (self.eps - d[act])
         return ContactFrames(self.vertices[act], weights, normal, lam, act)
@@ -215,7 +242,8 @@ class EdgeEdgeContact(_PairPenalty):
     Args:
         pairs: ``[row i of edges, row j of edges]``, shape ``(p, 2)``.
         edges: global vertex indices, shape ``(e, 2)``.
-        sides: remembered sign of ``((a1 - a0) x (b1 - b0)).(a0 - b0)`` (+1 / -1), shape ``(p,)``.
+        sides: remembered sign of ``((a1 - a0) x (b1 - b0)).(a0 - b0)`` (+1 / -1; 0: unsigned,
+            module docstring), shape ``(p,)``.
         stiffness: k_c in N/m (> 0).
         eps: contact offset in m (> 0).
 
@@ -237,7 +265,10 @@ class EdgeEdgeContact(_PairPenalty):
         self.eps = float(eps)
 
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
-        return edge_edge_contact_distance(z, side, order)
+        return edge_edge_contact_distance(z, self._resolve(z, side), order)
+
+    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
+        return edge_edge_side(z)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
@@ -254,7 +285,7 @@ class EdgeEdgeContact(_PairPenalty):
             normal[~interior] = _unit(rel[~interior])
         if np.any(interior):
             n = np.cross(z[interior, 1] - z[interior, 0], z[interior, 3] - z[interior, 2])
-            normal[interior] = self.sides[act][interior, None] * _unit(n)
+            normal[interior] = self._resolve(z[interior], self.sides[act][interior])[:, None] * _unit(n)
         lam = self.stiffness * (self.eps - d[act])
         return ContactFrames(self.vertices[act], weights, normal, lam, act)
 

@@ -57,7 +57,7 @@ def _vt_scene(rng, regions):
     return np.concatenate(xs), np.array(tris), np.array(pairs)
 
 
-@pytest.mark.parametrize("side", [1.0, -1.0])
+@pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
 def test_vertex_triangle_fd_every_region(side):
     rng = np.random.default_rng(10)
     regions = list(PointTriangleRegion)
@@ -77,6 +77,25 @@ def test_vertex_triangle_inactive_pairs_contribute_nothing():
     assert pot.contact_frames(x).lam.shape == (0,)
 
 
+def test_unsigned_pairs_measure_the_euclidean_distance_from_either_side():
+    """Side 0: d is the distance to the triangle (edge) whichever side the vertex (edge) is on."""
+    tris = np.array([[1, 2, 3]])
+    for z in (1e-4, -1e-4):
+        x = np.concatenate([[[0.003, 0.003, z]], TRI])
+        pot = VertexTriangleContact(np.array([[0, 0]]), tris, np.array([0.0]), K, EPS)
+        assert pot.distance(x)[0] == pytest.approx(1e-4)
+        assert -pot.gradient(x)[0, 2] == pytest.approx(np.sign(z) * K * (EPS - 1e-4))  # pushed away
+        assert pot.resolved_sides(x)[0] == np.sign(z)
+        frames = pot.contact_frames(x)
+        assert np.allclose(frames.normal[0], [0, 0, np.sign(z)])
+    edges = np.array([[0, 1], [2, 3]])
+    for z in (1e-4, -1e-4):
+        x = np.array([[0, 0, 0], [0.01, 0, 0], [0.005, -0.005, z], [0.005, 0.005, z]], dtype=float)
+        pot = EdgeEdgeContact(np.array([[0, 1]]), edges, np.array([0.0]), K, EPS)
+        assert pot.distance(x)[0] == pytest.approx(1e-4)
+        assert np.sign(-pot.gradient(x)[2, 2]) == np.sign(z)
+
+
 def test_side_memory_pushes_penetrated_vertex_back():
     """A vertex 0.1 mm below the triangle, remembered on the + side, is pushed up (back)."""
     x = np.concatenate([[[0.003, 0.003, -1e-4]], TRI])
@@ -92,7 +111,7 @@ def test_side_memory_pushes_penetrated_vertex_back():
     assert -pot_wrong.gradient(x)[0, 2] < 0.0
 
 
-@pytest.mark.parametrize("side", [1.0, -1.0])
+@pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
 def test_edge_edge_fd_generic_and_near_parallel(side):
     rng = np.random.default_rng(11)
     configs = [
@@ -163,7 +182,7 @@ def test_contact_frames_give_the_force_on_the_first_side():
     [
         (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [1.0], 0.0, EPS), "stiffness"),
         (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [1.0], K, np.nan), "eps"),
-        (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [0.0], K, EPS), r"\+1 or -1"),
+        (lambda: VertexTriangleContact([[0, 0]], [[1, 2, 3]], [0.5], K, EPS), r"\+1 or -1"),
         (lambda: VertexTriangleContact([[0, 4]], [[1, 2, 3]], [1.0], K, EPS), "triangle index"),
         (lambda: EdgeEdgeContact([[0, 1]], [[0, 1], [2, 3]], np.ones(2), K, EPS), "1 pairs but 2 sides"),
         (lambda: PlaneContact(np.arange(3), [0, 0, 0], 0.0, K, EPS), "normal"),
