@@ -107,12 +107,14 @@ def kirchhoff_energy_gradient_hessian(
                     if A != B or ti.static(c <= dd):
                         r = 3 * A + c
                         s = 3 * B + dd
-                        val = G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s]
                         k1 = tri_slots[t, r, s]
-                        if k1 >= 0:
-                            values[k1] += val
+                        k2 = -1
                         if r != s:
                             k2 = tri_slots[t, s, r]
+                        if k1 >= 0 or k2 >= 0:  # entries of fixed DoFs are not computed
+                            val = G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s]
+                            if k1 >= 0:
+                                values[k1] += val
                             if k2 >= 0:
                                 values[k2] += val
     ti.loop_config(serialize=True)

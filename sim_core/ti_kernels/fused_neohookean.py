@@ -120,20 +120,22 @@ def snh_energy_gradient_hessian(
                 gg = ga.dot(gb)
                 for c, d in ti.static(ti.ndrange(3, 3)):
                     if a != b or ti.static(c <= d):
-                        h = beta * GF[a, c] * GF[b, d] + lam * GK[a, c] * GK[b, d]
-                        if ti.static(c == d):
-                            h += mu_t * gg
-                        else:
-                            # eps_cdm with m the third index: +1 when d follows c cyclically
-                            h += ti.static(1.0 if d == (c + 1) % 3 else -1.0) * stretch * Fw[ti.static(3 - c - d)]
-                        h *= V
                         r = 3 * a + c
                         s = 3 * b + d
                         k = slots[t, r, s]
-                        if k >= 0:
-                            values[k] += h
+                        k2 = -1
                         if r != s:
                             k2 = slots[t, s, r]
+                        if k >= 0 or k2 >= 0:  # entries of fixed DoFs are not computed
+                            h = beta * GF[a, c] * GF[b, d] + lam * GK[a, c] * GK[b, d]
+                            if ti.static(c == d):
+                                h += mu_t * gg
+                            else:
+                                # eps_cdm with m the third index: +1 when d follows c cyclically
+                                h += ti.static(1.0 if d == (c + 1) % 3 else -1.0) * stretch * Fw[ti.static(3 - c - d)]
+                            h *= V
+                            if k >= 0:
+                                values[k] += h
                             if k2 >= 0:
                                 values[k2] += h
     return energy

@@ -91,17 +91,19 @@ def stvk_energy_gradient_hessian(
             for b in range(a, 3):
                 for d, e in ti.static(ti.ndrange(3, 3)):
                     if a != b or ti.static(d <= e):
-                        h = mu * Q[d, b] * Q[e, a] + mu * DD[a, b] * FF[d, e] + lam * Q[d, a] * Q[e, b]
-                        if ti.static(d == e):
-                            h += DSD[a, b]
-                        h *= w
                         r = 3 * a + d
                         s = 3 * b + e
                         k = slots[t, r, s]
-                        if k >= 0:
-                            values[k] += h
+                        k2 = -1
                         if r != s:
                             k2 = slots[t, s, r]
+                        if k >= 0 or k2 >= 0:  # entries of fixed DoFs are not computed
+                            h = mu * Q[d, b] * Q[e, a] + mu * DD[a, b] * FF[d, e] + lam * Q[d, a] * Q[e, b]
+                            if ti.static(d == e):
+                                h += DSD[a, b]
+                            h *= w
+                            if k >= 0:
+                                values[k] += h
                             if k2 >= 0:
                                 values[k2] += h
     return energy
