@@ -101,6 +101,17 @@ def current_arch() -> str | None:
     return _STATE.arch
 
 
+def serial_loops() -> bool:
+    """Whether element loops that sum into shared entries run serially (the fused kernels).
+
+    On the CPU they do: the sums are then in element order, so results are bitwise reproducible run
+    to run, and on a few cores parallel atomics were slower (see docs/benchmarks.md). On CUDA they
+    run in parallel (Taichi makes ``+=`` on global memory atomic there). Called at kernel
+    compile time (``ti.loop_config(serialize=ti.static(serial_loops()))``), after :func:`init_backend`.
+    """
+    return _STATE.arch != "cuda"
+
+
 def require_backend(who: str) -> str:
     """The current arch; raises if :func:`init_backend` has not been called.
 

@@ -10,7 +10,7 @@ edges) and ``M_T = (D / 2) A_T W_T`` (``triangle_stiffness``)::
     H = sum_T 2 G_T^T M_T G_T + sum_h f_h d2theta_h/dx2,
 
 ``G_T`` the 3 x 18 matrix of the hinge-angle gradients over the triangle's block vertices (its three
-vertices and the neighbour vertex opposite each edge). One launch, three serial loops: hinges
+vertices and the neighbour vertex opposite each edge). One launch, three loops: hinges
 (``theta``, ``dtheta/dx`` into a scratch array), triangles (energy, ``f_h``, the Gauss-Newton
 term through the triangle slot map), hinges again (forces and ``f_h d2theta/dx2`` through a hinge
 slot map; the closed-form ``d2theta`` of :func:`sim_core.ti_kernels.bending._theta_hessian`).
@@ -22,7 +22,7 @@ slot map; the closed-form ``d2theta`` of :func:`sim_core.ti_kernels.bending._the
 import numpy as np
 
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.bending import _dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -51,12 +51,12 @@ def kirchhoff_energy(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
 ) -> ti.f64:
     """Energy ``sum_T d_T^T M_T d_T`` in J (``scratch`` (h, 14) is overwritten)."""
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         for k, l in ti.static(ti.ndrange(3, 3)):
@@ -74,7 +74,7 @@ def kirchhoff_energy_gradient_hessian(
     ``tri_local[t, k, a]``: local block vertex (0..5) of vertex ``a`` of the hinge on edge ``k``;
     ``tri_slots`` (t, 18, 18) and ``hinge_slots`` (h, 12, 12): slot maps; ``scratch`` (h, 14).
     """
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
@@ -83,7 +83,7 @@ def kirchhoff_energy_gradient_hessian(
         for r in ti.static(range(12)):
             scratch[h, 2 + r] = g[r]
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         M = ti.Matrix.zero(ti.f64, 3, 3)
@@ -117,7 +117,7 @@ def kirchhoff_energy_gradient_hessian(
                                 values[k1] += val
                             if k2 >= 0:
                                 values[k2] += val
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         f = scratch[h, 1]
         for a in ti.static(range(4)):

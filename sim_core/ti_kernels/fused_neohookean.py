@@ -19,7 +19,7 @@ solver's static sparsity pattern (:meth:`sim_core.assembly.StaticPattern.slot_ma
 ``F_c`` and ``k_c`` the rows of ``F`` and ``cof F``. The PSD-projected Hessian stays with the
 reference potential (the solver projects only when PARDISO's Cholesky refuses the exact matrix).
 
-Loops are serial on the CPU (``ti.loop_config(serialize=True)``): the sums into shared vertices and
+Loops are serial on the CPU (``ti.loop_config(serialize=ti.static(serial_loops()))``): the sums into shared vertices and
 slots are then in element order, so results are bitwise reproducible run to run.
 """
 
@@ -29,7 +29,7 @@ slots are then in element order, so results are bitwise reproducible run to run.
 import numpy as np
 
 from sim_core.potentials.neohookean import StableNeoHookean
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
@@ -75,7 +75,7 @@ def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, l
     """``sum_t V_t psi(F_t)`` in J."""
     alpha = 1.0 + 0.75 * mu / lam
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, _ = _tet_state(x, tets, dFdx, t)
         energy += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
@@ -91,7 +91,7 @@ def snh_energy_gradient_hessian(
     (N/m) to ``values`` at ``slots[t, r, s]`` (module docstring; -1 = not stored)."""
     alpha = 1.0 + 0.75 * mu / lam
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, G = _tet_state(x, tets, dFdx, t)
         I_C = (F * F).sum()

@@ -15,7 +15,7 @@ Edge ``(a, b)``, ``u = (x_b - x_a) / l``: ``f' = 2 K_l (l - l0) / l0``, ``f'' = 
 
 Entries go straight into the solver's static pattern values through
 :meth:`sim_core.assembly.StaticPattern.slot_map` of the potential's block vertices (triangles, then
-edges padded to ``[a, b, b]``). Serial loops on the CPU, as in
+edges padded to ``[a, b, b]``). Serial loops on the CPU, parallel on CUDA, as in
 :mod:`sim_core.ti_kernels.fused_neohookean` (reproducible sums).
 """
 
@@ -25,7 +25,7 @@ edges padded to ``[a, b, b]``). Serial loops on the CPU, as in
 import numpy as np
 
 from sim_core.potentials.membrane import SpringMembrane
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
@@ -63,11 +63,11 @@ def spring_membrane_energy(
 ) -> ti.f64:
     """Energy in J (module docstring)."""
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
         l = (_vertex(x, edges[e, 1]) - _vertex(x, edges[e, 0])).norm()
         energy += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         x0 = _vertex(x, triangles[t, 0])
         A = 0.5 * (_vertex(x, triangles[t, 1]) - x0).cross(_vertex(x, triangles[t, 2]) - x0).norm()
@@ -84,7 +84,7 @@ def spring_membrane_energy_gradient_hessian(
     to ``values`` through ``slots`` (rows: triangles, then edges)."""
     energy = 0.0
     t_count = triangles.shape[0]
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
         va = edges[e, 0]
         vb = edges[e, 1]
@@ -106,7 +106,7 @@ def spring_membrane_energy_gradient_hessian(
                 _add_upper(values, slots, row, c, d, h3[c, d])
                 _add_upper(values, slots, row, 3 + c, 3 + d, h3[c, d])
             _add_upper(values, slots, row, c, 3 + d, -h3[c, d])
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(t_count):
         X0 = _vertex(x, triangles[t, 0])
         X1 = _vertex(x, triangles[t, 1])

@@ -11,7 +11,7 @@ and the weight ``w = thickness * rest area``::
 
 ``Q = F D^T`` (``Q_db = F_d . D_b``). Entries go straight into the solver's static pattern values
 through :meth:`sim_core.assembly.StaticPattern.slot_map` of the triangles. Serial loops on the CPU
-(reproducible sums), as in :mod:`sim_core.ti_kernels.fused_neohookean`.
+(reproducible sums), parallel on CUDA, as in :mod:`sim_core.ti_kernels.fused_neohookean`.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -20,7 +20,7 @@ through :meth:`sim_core.assembly.StaticPattern.slot_map` of the triangles. Seria
 import numpy as np
 
 from sim_core.potentials.membrane import StVKMembrane
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
@@ -57,7 +57,7 @@ def stvk_energy(x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F
                 lam: ti.f64) -> ti.f64:
     """Membrane energy in J."""
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, _ = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, _S = _stress(F, mu, lam)
@@ -72,7 +72,7 @@ def stvk_energy_gradient_hessian(
 ) -> ti.f64:
     """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``."""
     energy = 0.0
-    ti.loop_config(serialize=True)
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, D = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, S = _stress(F, mu, lam)
