@@ -7,7 +7,8 @@
 * ``bench scale``: flat sheets of about 1k, 10k and 100k DoF under gravity, one edge clamped; time
   per step and peak resident memory. ``--max-dofs`` skips the larger cases.
 * ``--arch``: ``numpy`` (NumPy reference potentials), ``cpu`` (default) or ``cuda`` (Taichi element
-  kernels of ``sim_core.ti_kernels`` after ``sim_core.ti_backend.init_backend``).
+  kernels of ``sim_core.ti_kernels`` after ``sim_core.ti_backend.init_backend``: the fused elastic
+  kernels of ``sim_core.fused_elastic`` in the Newton loop, compiled before the timed steps).
 * ``bench node`` / ``bench diagnose``: dispatched to ``thinshell_ros.bench_node.bench_node_main`` and
   ``sysid.diagnose_bench.bench_diagnose_main``.
 """
