@@ -52,31 +52,49 @@ def _fused_class(potential) -> type | None:
 
 
 class _ReferencePart:
-    """A potential without a fused kernel: its reference energy/gradient/Hessian through the slot map."""
+    """A potential without a fused kernel: its reference energy, gradient and exact Hessian blocks,
+    added to the static values through a slot map of its block vertices."""
+
+    ELEMENT_ARRAYS = ("triangles", "edges", "hinges", "tets")
+    """Element arrays a replacement potential must share (same objects) to reuse the slot map."""
 
     def __init__(self, potential) -> None:
         self.potential = potential
-        self.vertices: np.ndarray | None = None  # block vertices: known after a first Hessian
+        self.vertices: np.ndarray | None = None  # block vertices: set by FusedElastic.block_vertex_arrays
         self._slots: np.ndarray | None = None
         self._pattern: StaticPattern | None = None
 
     def accepts(self, potential) -> bool:
-        return type(potential) is type(self.potential)
+        """Same type and the same element arrays (rest angles and other parameters may differ)."""
+        p = self.potential
+        return type(potential) is type(p) and all(
+            getattr(potential, k, None) is getattr(p, k, None) for k in self.ELEMENT_ARRAYS)
 
     def update(self, potential) -> None:
+        """Evaluate ``potential`` from now on."""
         self.potential = potential
 
     def bind(self, pattern: StaticPattern) -> None:
+        """Use ``pattern``'s slots (the map is built at the next evaluation)."""
         self._pattern = pattern
         self._slots = None
 
     def energy(self, x: np.ndarray) -> float:
+        """The reference energy in J."""
         return float(self.potential.energy(x))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        """Energy (returned); adds the reference gradient to ``grad`` and the exact blocks to ``values``.
+
+        Raises:
+            RuntimeError: the potential's Hessian blocks are over another vertex array than the one
+                the pattern was built from.
+        """
         grad += self.potential.gradient(x)
         blocks = self.potential.hessian(x, "none")
-        if self._slots is None or self._slots.shape != blocks.blocks.shape:
+        if blocks.vertices is not self.vertices:
+            raise RuntimeError(f"FusedElastic: {type(self.potential).__name__} changed its Hessian-block vertex array")
+        if self._slots is None:
             self._slots = self._pattern.slot_map(blocks.vertices)
         keep = self._slots >= 0
         values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
@@ -128,8 +146,10 @@ class FusedElastic:
     def block_vertex_arrays(self, x: np.ndarray) -> list[np.ndarray]:
         """The Hessian-block vertex arrays of the potentials (reference parts: from one Hessian at ``x``)."""
         if self.vertex_arrays is None:
-            self.vertex_arrays = [part.vertices if not isinstance(part, _ReferencePart)
-                                  else part.potential.hessian(x, "none").vertices for part in self._parts]
+            for part in self._parts:
+                if isinstance(part, _ReferencePart):
+                    part.vertices = part.potential.hessian(x, "none").vertices
+            self.vertex_arrays = [part.vertices for part in self._parts]
         return self.vertex_arrays
 
     def bind(self, pattern: StaticPattern) -> None:
