@@ -108,7 +108,6 @@ def snh_energy_gradient_hessian(
             for i in ti.static(range(3)):
                 grad[v, i] += V * GP[a, i]
         beta = 2.0 * mu / (I_C + 1.0) ** 2
-        GG = G @ G.transpose()  # (4, 4) g_a . g_b
         GF = G @ F.transpose()  # GF[a, c] = g_a . F_c
         GK = G @ cof.transpose()  # GK[a, c] = g_a . k_c
         for a in range(4):
