@@ -726,7 +726,7 @@ class BagDiagnosis:
                                           tuple(c for c in self.tested if c in hm.evidence.channels_present))
             p1 = dict(p1)
             for rf in applied:
-                self._apply_observation(hctx, rf, p1)
+                cands.apply_observation_refit(hctx, rf, p1)
             chans = [c for c in channels if c in hctx.channels]
             s0, n0, _ = sse(hm, p0, chans, None)
             s1, _, _ = sse(hm, p1, chans, None)
@@ -741,20 +741,6 @@ class BagDiagnosis:
                    for ch in channels if any(ch in d[1] for d in diffs)}
             return rms + (both, per)
         return rms
-
-    @staticmethod
-    def _apply_observation(hctx, rf: cands.Refit, pred: dict[str, np.ndarray]) -> None:
-        """Apply an observation-level refit (latency, k1, bias) to another recording's prediction."""
-        if "latency_s" in rf.params:
-            for ch in rf.prediction:
-                if ch in hctx.channels:
-                    pred[ch] = hctx.shifted(ch, float(rf.params["latency_s"]))
-        elif "k1" in rf.params and "markers_uv" in hctx.channels:
-            J = cands.LensDistortionCandidate().signature(hctx)["markers_uv"][..., 0]
-            pred["markers_uv"] = pred["markers_uv"] + float(rf.beta[0]) * J
-        elif "bias_fx" in rf.params and "wrench" in hctx.channels:
-            B = cands.ForceBiasCandidate.basis(hctx.stamps_s("wrench"))
-            pred["wrench"] = pred["wrench"] + B @ rf.beta.reshape(6, 2).T
 
     def _ties(self, ctx, accepted, refits, tests) -> list[dict[str, Any]]:
         out = []
