@@ -5,7 +5,7 @@ changes are nearly collinear in a recording pass that criterion alike. In the be
 press-slide scene a thickness step of the card (an effect outside the library), the benchmark's
 own stiction law and the library's stiction candidate all delay the second breakaway and change
 how the card buckles in the long slide (noise-free cosine of the thickness step's change with the
-benchmark's stiction at twice the strength: 0.94; a 2 % static-friction excess of the library
+benchmark's stiction law at a = 0.2: 0.94; a 2 % static-friction excess of the library
 model explains 87 % of the thickness step's held-out excess). What stiction alone cannot do is
 move the centre of pressure.
 
@@ -15,10 +15,11 @@ exerts about the sensor follows from the force through the patch geometry, which
 shares with the recording, so the recorded wrench must support the refit's wrench change at one
 common scale on the force axes and on the moment axes:
 :func:`sysid.diagnose.stats.scale_equality_test` with the two columns "refit change on the force
-axes" and "refit change on the moment axes", on every sample where the refit changes the wrench
-(the refit fixed only the overall scale, which the test leaves free; eight time blocks). A mismatch whose moment does not
-follow its force (a shifted centre of pressure, i.e. a changed *normal* traction distribution, as a
-stiffer card under the gel gives: force scale 1.20, moment scale 0.41, p 5e-4) is not stiction.
+axes" and "refit change on the moment axes", on every sample where the refit changes the wrench (the
+refit fixed only the overall scale, which the test leaves free; eight time blocks). A mismatch whose
+moment does not follow its force (a shifted centre of pressure, i.e. a changed *normal* traction
+distribution, as a stiffer card under the gel gives: force scale 1.24, moment scale 0.46, p 0.007 on the
+benchmark's thickness step x4; true stiction p 0.22-0.56) is not stiction.
 """
 
 from __future__ import annotations
