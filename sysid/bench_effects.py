@@ -254,9 +254,53 @@ class _RestShift:
         raise KeyError(name)
 
 
+class _TensileBonds:
+    """Bonds that resist only opening along their normal, with a force capped at ``f_max`` (N):
+    ``E = sum psi(s_i)``, ``s_i = max(0, n_i . (r_i - r0_i))``, ``r_i = sum_j w_ij x_j``,
+    ``psi = k_b s^2 / 2`` up to ``s_b = f_max / k_b`` and ``f_max (s - s_b / 2)`` beyond (a cohesive
+    law with a plateau; the driver breaks the bond after the step). Shear is friction's business."""
+
+    parameter_names: tuple[str, ...] = ()
+
+    def __init__(self, vertices: np.ndarray, weights: np.ndarray, normal: np.ndarray, r0: np.ndarray, k_b: float,
+                 f_max: float):
+        self.vertices, self.weights, self.normal, self.r0 = vertices, weights, normal, r0
+        self.k_b, self.f_max = float(k_b), float(f_max)
+
+    def opening(self, x: np.ndarray) -> np.ndarray:
+        """Normal opening ``s`` of every bond in m, shape ``(b,)``."""
+        r = np.einsum("kj,kjd->kd", self.weights, x[self.vertices])
+        return np.maximum(np.einsum("kd,kd->k", self.normal, r - self.r0), 0.0)
+
+    def energy(self, x: np.ndarray) -> float:
+        s = self.opening(x)
+        s_b = self.f_max / self.k_b
+        return float(np.sum(np.where(s <= s_b, 0.5 * self.k_b * s * s, self.f_max * (s - 0.5 * s_b))))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        from sim_core.potentials.base import scatter_gradient
+
+        f = np.minimum(self.k_b * self.opening(x), self.f_max)
+        return scatter_gradient(x.shape[0], self.vertices, f[:, None, None] * self.weights[:, :, None] * self.normal[:, None, :])
+
+    def hessian(self, x: np.ndarray, projection: str = "clamp"):
+        from sim_core.potentials.base import HessianBlocks
+
+        s = self.opening(x)
+        on = ((s > 0) & (self.k_b * s < self.f_max)).astype(float) * self.k_b
+        blocks = np.einsum("k,ka,kb,kd,ke->kadbe", on, self.weights, self.weights, self.normal, self.normal)
+        return HessianBlocks(self.vertices, blocks.reshape(len(self.vertices), 12, 12))
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        raise KeyError(name)
+
+
 class BondAdhesion(PhysicsEffect):
     """Point bonds: a gel contact-face vertex within the contact offset of the sheet bonds to the sheet
-    point below it (spring ``k_b``); a bond breaks for good when its force exceeds ``strength`` (N)."""
+    point below it; the bond resists only opening along the sheet normal (spring ``k_b``, N/m, force
+    capped at ``strength`` N within a step) and breaks for good after a step that reached the cap. Shear is left to friction, so
+    the bonds survive the slides and act at lift-off (the candidate model is a different law: a
+    lagged tensile traction, :mod:`sim_core.candidates.adhesion`)."""
 
     def __init__(self, strength: float, k_b: float = 400.0) -> None:
         self.strength, self.k_b = float(strength), float(k_b)
@@ -266,19 +310,16 @@ class BondAdhesion(PhysicsEffect):
     def _bonds(self, state) -> dict:
         return (getattr(state, "candidate_state", None) or {}).get("bonds", {})
 
-    def contact_terms(self, model, x_prev, friction) -> list:
-        from sim_core.potentials.base import scatter_gradient
-
-        bonds = self._bonds(self._state)
-        if not bonds:
-            return []
+    def _terms(self, bonds: dict) -> _TensileBonds:
         v = np.array([[g, *bond[0]] for g, bond in bonds.items()], dtype=np.int64)
         w = np.array([[1.0, *(-np.asarray(bond[1]))] for bond in bonds.values()])
         r0 = np.array([bond[2] for bond in bonds.values()])
-        # E = k_b / 2 |r - r0|^2 with r = sum_j w_j x_j and r0 the gap when the bond formed.
-        blocks = self.k_b * np.einsum("ka,kb,de->kadbe", w, w, np.eye(3)).reshape(len(v), 12, 12)
-        g0 = scatter_gradient(x_prev.shape[0], v, -self.k_b * w[:, :, None] * r0[:, None, :])
-        return [_Quadratic(v, blocks, np.zeros_like(x_prev), g0)]
+        n = np.array([bond[3] for bond in bonds.values()])
+        return _TensileBonds(v, w, n, r0, self.k_b, self.strength)
+
+    def contact_terms(self, model, x_prev, friction) -> list:
+        bonds = self._bonds(self._state)
+        return [self._terms(bonds)] if bonds else []
 
     def body_terms(self, model, state, elastic) -> list:
         self._state = state
@@ -290,19 +331,22 @@ class BondAdhesion(PhysicsEffect):
         out = super().update_state(model, state_in, x, dt, elastic)
         bonds = dict(self._bonds(state_in))
         broken = set(out.get("broken", ()))
-        for g, (tri, b, r0) in list(bonds.items()):
-            gap = x[g] - np.asarray(b) @ x[list(tri)] - np.asarray(r0)
-            if self.k_b * np.linalg.norm(gap) > self.strength:
-                del bonds[g]
-                broken.add(g)
+        if bonds:
+            force = self.k_b * self._terms(bonds).opening(x)
+            for g, f in zip(list(bonds), force):
+                if f >= self.strength:
+                    del bonds[g]
+                    broken.add(g)
         face = np.unique(model.sensors["tactile"].contact_triangles)
         sheet = model.bodies["sheet"].triangles
-        v, w, _ = adhesion_pairs(x, face, sheet, model.contact.eps, 1e-12)
-        for row, wr in zip(v, w):
+        v, w, normal = adhesion_pairs(x, face, sheet, model.contact.eps, 1e-12)
+        for row, wr, nr in zip(v, w, normal):
             g = int(row[0])
             if g not in bonds and g not in broken:
                 b = -wr[1:]
-                bonds[g] = (tuple(int(t) for t in row[1:]), tuple(b), tuple(x[g] - b @ x[row[1:]]))
+                gap = x[g] - b @ x[row[1:]]
+                n = nr if float(nr @ gap) >= 0.0 else -nr  # from the sheet towards the gel vertex
+                bonds[g] = (tuple(int(t) for t in row[1:]), tuple(b), tuple(gap), tuple(n))
         out["bonds"], out["broken"] = bonds, tuple(sorted(broken))
         return out
 

@@ -181,7 +181,7 @@ EFFECTS: tuple[EffectSpec, ...] = (
     EffectSpec("damping", lambda m: SheetDrag(m), 20.0),
     EffectSpec("stiction", lambda m: StribeckFriction(m), 0.3),
     EffectSpec("gel_viscoelasticity", lambda m: PronyGel((0.6 * m, 0.4 * m)), 0.3),
-    EffectSpec("adhesion", lambda m: BondAdhesion(m), 0.05),
+    EffectSpec("adhesion", lambda m: BondAdhesion(m), 0.004),
     EffectSpec("anisotropic_bending", lambda m: HingeStiffness(m, "orthotropic"), 0.3),
     EffectSpec("thickness_step", lambda m: HingeStiffness(m, "thickness_step"), 1.0, in_library=False),
     EffectSpec("latency", lambda m: (lambda s: shift_latency(s, m)), 0.01, data=True),
@@ -320,19 +320,34 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
                 log(f"  x{k:g}: rollout at magnitude {m:.4g} failed, recording left out ({err})")
                 continue
             s, windows = effect_strength(streams, base)
-            if s > 0 and s0 > 0 and abs(s / k - 1.0) > 0.3 and not math.isclose(m, spec.reference):
-                # nonlinear response: one correction with the power law through the two rollouts
-                p = math.log(s / s0) / math.log(m / spec.reference)
-                if p > 0.2:
-                    m2 = m * (k / s) ** (1.0 / p)
-                    try:
-                        streams2 = run(m2)
-                    except Exception as err:  # a diverged rollout keeps the first try
-                        log(f"  x{k:g}: correction to magnitude {m2:.4g} failed ({err})")
-                    else:
-                        s2, w2 = effect_strength(streams2, base)
-                        if abs(s2 - k) < abs(s - k):
-                            m, streams, s, windows = m2, streams2, s2, w2
+            # nonlinear response (e.g. stiction, a threshold effect): up to four corrections by
+            # log-log interpolation between the closest rollouts below and above the target
+            # strength (regula falsi once bracketed), keeping the closest to the target
+            tried = [(spec.reference, s0), (m, s)]
+            for _ in range(4):
+                if not (s > 0 and abs(s / k - 1.0) > 0.3):
+                    break
+                below = [p for p in tried if 0 < p[1] < k]
+                above = [p for p in tried if p[1] > k]
+                if below and above:
+                    (m_a, s_a), (m_b, s_b) = max(below, key=lambda p: p[1]), min(above, key=lambda p: p[1])
+                else:
+                    (m_a, s_a), (m_b, s_b) = sorted(tried, key=lambda p: abs(math.log(p[1] / k)) if p[1] > 0 else 1e9)[:2]
+                if math.isclose(m_a, m_b) or s_a <= 0 or s_b <= 0 or math.isclose(s_a, s_b):
+                    break
+                slope = math.log(s_b / s_a) / math.log(m_b / m_a)
+                if not slope > 0.05:
+                    break
+                m2 = m_a * (k / s_a) ** (1.0 / slope)
+                try:
+                    streams2 = run(m2)
+                except Exception as err:  # a diverged rollout keeps the best try so far
+                    log(f"  x{k:g}: correction to magnitude {m2:.4g} failed ({err})")
+                    break
+                s2, w2 = effect_strength(streams2, base)
+                tried.append((m2, s2))
+                if abs(s2 - k) < abs(s - k):
+                    m, streams, s, windows = m2, streams2, s2, w2
             recs.append(Recording(f"{spec.label}_x{k:g}", spec.label, spec.in_library, k, s, m, windows, streams=streams))
             log(f"  x{k:g}: magnitude {m:.4g}, strength {s:.2f}, windows {[(round(a, 2), round(b, 2)) for a, b in windows]}")
     for rec in recs:

@@ -263,7 +263,9 @@ class _ContactWithCandidates:
         return FrictionWithStiction(friction, stiction[0]) if stiction else friction
 
     def potentials(self, x, x_n, memory):
-        return self._base.potentials(x, x_n, memory) + [t for t in self._extra if isinstance(t, LaggedAdhesion)]
+        # every contact-like term but stiction (which acts through friction): the library's adhesion
+        # and any other hook's terms (benchmark effects)
+        return self._base.potentials(x, x_n, memory) + [t for t in self._extra if not isinstance(t, StictionFriction)]
 
 
 class CandidateNewtonSolver(NewtonSolver):

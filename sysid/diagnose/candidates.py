@@ -252,6 +252,26 @@ class ForceBiasCandidate:
         return Refit(beta, params, {"wrench": ctx.prediction["wrench"] + B @ coef})
 
 
+def apply_observation_refit(hctx: DiagnosisContext, rf: Refit, pred: dict[str, np.ndarray]) -> None:
+    """Apply an observation-level refit (latency, k1, bias) to another recording's prediction, in place.
+
+    Args:
+        hctx: context of the other recording (its nominal trace and prediction).
+        rf: the refit (``latency_s``, ``k1`` or ``bias_*`` in its params).
+        pred: channel -> prediction of the other recording, updated.
+    """
+    if "latency_s" in rf.params:
+        for ch in rf.prediction:
+            if ch in hctx.channels:
+                pred[ch] = hctx.shifted(ch, float(rf.params["latency_s"]))
+    elif "k1" in rf.params and "markers_uv" in hctx.channels:
+        J = LensDistortionCandidate().signature(hctx)["markers_uv"][..., 0]
+        pred["markers_uv"] = pred["markers_uv"] + float(rf.beta[0]) * J
+    elif "bias_fx" in rf.params and "wrench" in hctx.channels:
+        B = ForceBiasCandidate.basis(hctx.stamps_s("wrench"))
+        pred["wrench"] = pred["wrench"] + B @ rf.beta.reshape(6, 2).T
+
+
 def _quadratic_minimiser(f: Callable[[float], float], scale: float) -> float:
     """Minimiser of a function known to be quadratic, from three evaluations."""
     f0, fp, fm = f(0.0), f(scale), f(-scale)

@@ -26,9 +26,14 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    square, so that a systematic gap between the simulator and the recording, which many signatures
    correlate with and which even a nominal recording has, is not named as a missing effect.
    Latency must also pass its discriminating test: the cross-correlation lag between the recorded
-   and the predicted rates of change agrees with the refitted delay. Candidates are taken greedily
+   and the predicted rates of change agrees with the refitted delay; stiction must pass its line of
+   action test: the recorded wrench supports its change at one scale on the force and on the moment
+   axes (:mod:`sysid.diagnose.discriminate`). Candidates are taken greedily
    (largest held-out gain first: whitened SSE removed, comparable whatever channels a candidate acts
-   on), each later one judged on what the accepted ones leave. The in-sample delta-BIC is
+   on), each later one judged on what the accepted ones leave; a candidate that explains the
+   mismatch but is refuted by its discriminating test is not named, yet stays in that sequence as a
+   description of the mismatch, so that a weaker candidate explaining part of the same pattern is not
+   named in its place (``["unexplained"]`` when nothing else explains more). The in-sample delta-BIC is
    reported; it decides only the conditional step when held-out bags are given.
    Confusable pairs are reported as ties unless a discriminating test resolves them (latency vs gel
    viscoelasticity: one lag fits every tactile channel and matches the cross-correlation lag).
@@ -58,15 +63,19 @@ import numpy as np
 
 from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
-from sysid.diagnose import latency, locate, noise, stats
+from sysid.diagnose import discriminate, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
 from sysid.diagnose.schema import candidate_entries
 from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, residual,
                                       rms_summary, sse, stream_channels, whiten)
 
 CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelasticity"),
-              ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"))
-"""Pairs SYSID.md calls confusable (plasticity vs hysteresis: adhesion tack is the hysteresis here)."""
+              ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"),
+              ("stiction", "anisotropic_bending"))
+"""Pairs SYSID.md calls confusable (plasticity vs hysteresis: adhesion tack is the hysteresis here), and
+stiction vs anisotropic bending: in a press-slide both change how the card buckles after the second
+breakaway (on the benchmark's stiction recording at strength 2.9 their refits remove the same held-out
+energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
 
 
 @dataclass
@@ -557,7 +566,9 @@ class BagDiagnosis:
         ``min_gain`` of their held-out mean square (effect sizes: a candidate that only correlates
         with a larger gap, or with the small systematic mismatch that even a nominal recording has
         and that a powerful test detects, is not named).
-        Latency must also pass its discriminating test (cross-correlation lag agrees with tau).
+        Latency must also pass its discriminating test (cross-correlation lag agrees with tau), stiction
+        its line of action test (:func:`discriminate.line_of_action`: the recorded wrench supports the
+        refit's change at one scale on the force and on the moment axes, level ``alpha``).
         The in-sample delta-BIC is reported, not used: counted in time samples (about 24 training
         samples here) its penalty ``q ln n`` and threshold demanded more than 2-sigma effects give.
 
@@ -565,7 +576,12 @@ class BagDiagnosis:
         candidates whatever channels they act on), and each later one is judged again on what the
         already accepted ones leave: its prediction change rescaled by least squares on the training
         rows (scale in [0, 1.5]) must pass the same held-out test and effect size, so that a
-        candidate that only soaks up part of the first effect is not named as a second one.
+        candidate that only soaks up part of the first effect is not named as a second one. A
+        candidate that passes every criterion but a discriminating test (``refuted_by``) is not named
+        but takes its place in this sequence: it describes the mismatch (in the benchmark, a 2 %
+        static-friction excess explains 87 % of a thickness step's held-out excess while moving the
+        moment at under half the scale the force needs), and an anisotropy that explains 67 % of the
+        same pattern is then judged on what it adds beyond it, not named in its place.
         """
         s = self.settings
         out: dict[str, Any] = {}
@@ -597,21 +613,42 @@ class BagDiagnosis:
                 # recorded and the predicted rates of change that agrees with the refitted tau
                 lags, agree = latency.xcorr_confirms(self.model, ctx, float(rf.params["latency_s"]), chans, self.notes)
                 out[e].update({"xcorr_lag_s": lags, "xcorr_agrees": agree})
+            if e in discriminate.LINE_OF_ACTION_EFFECTS and "wrench" in chans:
+                # discriminating test: a tangential contact traction moves force and moment together
+                loa = discriminate.line_of_action(self.model, ctx, rf.prediction)
+                if loa is not None:
+                    out[e].update({"force_moment_scales": [float(v) for v in loa.coefficients],
+                                   "line_of_action_statistic": loa.statistic, "line_of_action_p": loa.p_value})
         names = list(refits)
         adjusted, reject = stats.holm([out[e]["heldout_p"] for e in names], s.alpha) if names else ([], [])
         for e, a, rj in zip(names, adjusted, reject):
             d = out[e]
             d["heldout_p_holm"] = float(a)
-            d["accepted"] = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
-                                 and d["explained_fraction"] >= s.min_explained and d.get("xcorr_agrees", True)
-                                 and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain
-                                 and not d["contradicted_on"])
+            explains = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
+                            and d["explained_fraction"] >= s.min_explained
+                            and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain
+                            and not d["contradicted_on"])
+            refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
+                                              ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha)) if not ok]
+            d["accepted"] = explains and not refuted
+            if explains and refuted:
+                d["refuted_by"] = refuted
+                if "line_of_action" in refuted:
+                    f_s, m_s = d["force_moment_scales"]
+                    self.notes.append(f"{e}: explains {d['explained_fraction']:.0%} of the held-out excess, but the "
+                                      f"recorded wrench supports its change at scale {f_s:.2f} on the force and "
+                                      f"{m_s:.2f} on the moment axes (line of action, p {d['line_of_action_p']:.2g}): "
+                                      f"not a tangential contact traction, not named")
         order = sorted(refits, key=lambda e: -out[e]["heldout_gain"])
         out["order"] = order
         base = {ch: ctx.prediction[ch].copy() for ch in self.tested}
         first = True
         for e in order:
-            if not out[e]["accepted"]:
+            # a candidate that explains the mismatch but whose mechanism a discriminating test refutes
+            # is not named, yet it stays in the sequence as a description of the mismatch: a weaker
+            # candidate that only explains part of the same pattern is not named in its place
+            refuted = bool(out[e].get("refuted_by"))
+            if not (out[e]["accepted"] or refuted):
                 continue
             rf = refits[e]
             chans = [ch for ch in rf.prediction if ch in self.tested]
@@ -619,6 +656,7 @@ class BagDiagnosis:
                 first = False
                 for ch in chans:
                     base[ch] = base[ch] + rf.prediction[ch] - ctx.prediction[ch]
+                out[e]["accepted"] = not refuted
                 continue
             # conditional on the accepted ones (linear in the scale of this candidate's change)
             num = den = 0.0
@@ -644,7 +682,7 @@ class BagDiagnosis:
                 ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained
                           and b ** 2 - a ** 2 >= s.min_gain)
                 out[e].update({"conditional_explained_fraction": frac, "conditional_heldout_p": test.p_value})
-            out[e]["accepted"] = bool(ok)
+            out[e]["accepted"] = bool(ok) and not refuted
             if ok:
                 base.update(cond)
         return out
@@ -692,7 +730,7 @@ class BagDiagnosis:
                                           tuple(c for c in self.tested if c in hm.evidence.channels_present))
             p1 = dict(p1)
             for rf in applied:
-                self._apply_observation(hctx, rf, p1)
+                cands.apply_observation_refit(hctx, rf, p1)
             chans = [c for c in channels if c in hctx.channels]
             s0, n0, _ = sse(hm, p0, chans, None)
             s1, _, _ = sse(hm, p1, chans, None)
@@ -707,20 +745,6 @@ class BagDiagnosis:
                    for ch in channels if any(ch in d[1] for d in diffs)}
             return rms + (both, per)
         return rms
-
-    @staticmethod
-    def _apply_observation(hctx, rf: cands.Refit, pred: dict[str, np.ndarray]) -> None:
-        """Apply an observation-level refit (latency, k1, bias) to another recording's prediction."""
-        if "latency_s" in rf.params:
-            for ch in rf.prediction:
-                if ch in hctx.channels:
-                    pred[ch] = hctx.shifted(ch, float(rf.params["latency_s"]))
-        elif "k1" in rf.params and "markers_uv" in hctx.channels:
-            J = cands.LensDistortionCandidate().signature(hctx)["markers_uv"][..., 0]
-            pred["markers_uv"] = pred["markers_uv"] + float(rf.beta[0]) * J
-        elif "bias_fx" in rf.params and "wrench" in hctx.channels:
-            B = cands.ForceBiasCandidate.basis(hctx.stamps_s("wrench"))
-            pred["wrench"] = pred["wrench"] + B @ rf.beta.reshape(6, 2).T
 
     def _ties(self, ctx, accepted, refits, tests) -> list[dict[str, Any]]:
         out = []

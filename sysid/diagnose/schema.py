@@ -123,6 +123,8 @@ def candidate_entries(tests: list[dict[str, Any]], decisions: Mapping[str, Any],
         if e in decisions:
             entry.update({k: decisions[e][k] for k in ("delta_bic", "accepted", "heldout_rms_before",
                                                        "heldout_rms_after", "heldout_gain", "heldout_p", "contradicted_on")})
+            if decisions[e].get("refuted_by"):
+                entry["refuted_by"] = list(decisions[e]["refuted_by"])
         tie = [x["pair"] for x in ties if e in x["pair"] and not x["resolved"]]
         if tie:
             entry["tie_with"] = [p for pair in tie for p in pair if p != e]

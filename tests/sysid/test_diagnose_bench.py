@@ -143,3 +143,43 @@ def test_benchmark_effect_hooks_run_in_the_candidate_solver():
     targets = db.effector_targets(db.SCENE["effectors"]["ee"]["initial_pose"])[:3]
     out = db.rollout(db.SCENE, targets, SheetDrag(10.0))
     assert out["sheet_points"].shape[0] == 4 and np.all(np.isfinite(out["wrench"]))
+
+
+def test_tensile_bonds_fd_cap_and_no_shear():
+    """Bench adhesion bonds (code separate from the candidate): FD gradient/Hessian, the force is
+    capped at the bond strength, and sliding along the sheet loads no bond."""
+    from sysid.bench_effects import _TensileBonds
+    from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(scale=1e-3, size=(8, 3))
+    v = np.array([[0, 1, 2, 3], [4, 5, 6, 7]])
+    w = np.array([[1.0, -0.2, -0.3, -0.5], [1.0, -0.6, -0.1, -0.3]])
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])
+    r = np.einsum("kj,kjd->kd", w, x[v])
+    openings = np.array([2e-5, 2e-4])  # one below the cap (f_max / k_b = 1e-4 m), one above
+    bonds = _TensileBonds(v, w, n, r - openings[:, None] * n, k_b=400.0, f_max=0.04)
+    assert np.allclose(bonds.opening(x), openings)
+    g = bonds.gradient(x)
+    assert relative_error(g, fd_gradient(bonds.energy, x, h=1e-9)) < 1e-5
+    H = dense_hessian(bonds.hessian(x), 8)
+    assert relative_error(H, fd_hessian(bonds.gradient, x, h=1e-9)) < 1e-5
+    assert np.linalg.norm(g[4]) == pytest.approx(0.04)  # capped at f_max
+    assert np.linalg.norm(g[0]) == pytest.approx(400.0 * 2e-5)
+    slid = x.copy()
+    slid[0] += 1e-4 * np.array([1.0, 0.0, 0.0])  # along the sheet for bond 0
+    assert bonds.opening(slid)[0] == pytest.approx(2e-5)
+
+
+def test_bench_adhesion_acts_through_the_candidate_solver():
+    """A hook's contact terms reach the Newton step (they were dropped unless they were the
+    library's adhesion): on lift-off the bonds pull the sheet, so the wrench changes."""
+    from sysid.diagnose_bench import SCENE, effector_targets, rollout
+    from sysid.bench_effects import BondAdhesion
+
+    targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"])
+    base = rollout(SCENE, targets)
+    glued = rollout(SCENE, targets, BondAdhesion(0.004))
+    lift = slice(-6, None)
+    assert np.allclose(glued["wrench"][:3], base["wrench"][:3])
+    assert np.max(np.abs(glued["wrench"][lift, 2] - base["wrench"][lift, 2])) > 0.02

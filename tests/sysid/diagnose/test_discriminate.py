@@ -1,0 +1,161 @@
+"""Stiction's line of action test: calibration of the scale-equality test, its power on a shifted
+centre of pressure, and the engine's handling of a refuted candidate."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from sysid.diagnose import discriminate, engine
+from sysid.diagnose.candidates import DiagnosisContext, Refit
+from sysid.diagnose.stats import scale_equality_test
+
+SIGMA = np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])
+
+
+def _correlated_noise(rng, T, S, rho=0.6, common=0.5):
+    """AR(1) in time, with a factor common to the S series of a sample (as a wrench's axes share)."""
+    e = rng.normal(size=(T, S)) + common * rng.normal(size=(T, 1))
+    out = np.empty_like(e)
+    out[0] = e[0]
+    for t in range(1, T):
+        out[t] = rho * out[t - 1] + np.sqrt(1 - rho ** 2) * e[t]
+    return out
+
+
+def _wrench_change(T, start=0.3):
+    """A smooth whitened wrench change (T, 6) from ``start`` (fraction of the span): force and moment both move."""
+    t = np.linspace(0.0, 1.0, T)
+    shape = np.clip(t - start, 0.0, None) * 4.0 + (0.5 if start == 0.0 else 0.0)
+    return shape[:, None] * np.array([2.0, 0.3, 1.0, 0.4, 1.5, 0.2])[None]
+
+
+def _columns(d):
+    force = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    return np.stack([d * force, d * (1 - force)], axis=-1)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.6, 0.8])
+def test_scale_equality_is_calibrated_under_serial_and_cross_correlation(rho):
+    rng = np.random.default_rng(11)
+    T = 32  # about the samples of a benchmark recording where a refit changes the wrench
+    d = _wrench_change(T, start=0.0)
+    rejects = 0
+    n = 400
+    for _ in range(n):
+        r = 0.8 * d + _correlated_noise(rng, T, 6, rho=rho)  # one common scale: the null
+        rejects += scale_equality_test(r, _columns(d)).p_value < 0.05
+    # binomial(400, 0.05): sd 0.011 (a Newey-West variance gave 0.19 at rho 0.6 with 24 samples; block
+    # sums without prewhitening 0.11 at rho 0.6 and 0.21 at rho 0.8)
+    assert 0.01 <= rejects / n <= 0.08, rejects / n
+    if rho == 0.8:
+        unfiltered = sum(scale_equality_test(0.8 * d + _correlated_noise(rng, T, 6, rho=rho), _columns(d),
+                                             prewhiten=False).p_value < 0.05 for _ in range(n))
+        assert unfiltered / n > 0.12  # the correction matters
+
+
+def test_scale_equality_detects_a_moment_that_does_not_follow_the_force():
+    rng = np.random.default_rng(12)
+    T = 32
+    d = _wrench_change(T, start=0.0)
+    moment = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0])
+    hits = 0
+    for _ in range(100):
+        r = 1.2 * d - 0.75 * d * moment + _correlated_noise(rng, T, 6, rho=0.3)  # force scale 1.2, moment 0.45
+        res = scale_equality_test(r, _columns(d))
+        hits += res.p_value < 0.01
+    assert hits >= 50
+    assert res.coefficients == pytest.approx([1.2, 0.45], abs=0.25)
+    strong = 3.0 * d  # a larger change (the benchmark's thickness step moves the wrench by ~4 noise units)
+    hits = sum(scale_equality_test(1.2 * strong - 0.75 * strong * moment + _correlated_noise(rng, T, 6, rho=0.3),
+                                   _columns(strong)).p_value < 0.01 for _ in range(100))
+    assert hits >= 90
+
+
+def test_scale_equality_rejects_degenerate_input():
+    with pytest.raises(ValueError, match="at least 2 columns"):
+        scale_equality_test(np.zeros((10, 6)), np.ones((10, 6, 1)))
+    with pytest.raises(ValueError, match="at least 4 samples"):
+        scale_equality_test(np.zeros((3, 6)), np.ones((3, 6, 2)))
+    X = np.ones((10, 6, 2))
+    X[..., 1] = 0.0
+    with pytest.raises(ValueError, match="a column is zero"):
+        scale_equality_test(np.zeros((10, 6)), X)
+    with pytest.raises(ValueError, match="at least 2 blocks"):
+        scale_equality_test(np.zeros((10, 6)), np.ones((10, 6, 2)), blocks=1)
+
+
+def _wrench_ctx(data, pred0):
+    T = pred0.shape[0]
+    steps = np.arange(T, dtype=np.int64) * 10_000_000
+    model = SimpleNamespace(sigma={"wrench": SIGMA.copy()}, data=lambda ch: data, step_times_ns=steps,
+                            evidence=SimpleNamespace(t_ns={"wrench": steps}, channels_present=("wrench",)),
+                            channels=("wrench",))
+    trace = SimpleNamespace(channel=lambda ch: pred0)
+    return model, DiagnosisContext(model, {}, trace, {"wrench": pred0}, ("wrench",))
+
+
+def test_line_of_action_accepts_a_tangential_change_and_refutes_a_shifted_centre_of_pressure():
+    rng = np.random.default_rng(13)
+    T = 47
+    pred0 = np.zeros((T, 6))
+    change = 3.0 * _wrench_change(T) * SIGMA  # unwhitened
+    refit = {"wrench": pred0 + change}
+    noise = _correlated_noise(rng, T, 6, rho=0.3) * SIGMA
+    model, ctx = _wrench_ctx(pred0 + 1.1 * change + noise, pred0)
+    same = discriminate.line_of_action(model, ctx, refit)
+    assert same.p_value > 0.01 and same.coefficients == pytest.approx([1.1, 1.1], abs=0.15)
+    shifted = change * np.array([1.2, 1.2, 1.2, 0.45, 0.45, 0.45])
+    model, ctx = _wrench_ctx(pred0 + shifted + noise, pred0)
+    res = discriminate.line_of_action(model, ctx, refit)
+    assert res.p_value < 0.01 and res.coefficients == pytest.approx([1.2, 0.45], abs=0.15)
+    assert discriminate.line_of_action(model, ctx, {"markers_xyz": np.zeros((T, 4, 3))}) is None
+
+
+def _decide(data, pred0, refits, alpha=0.01):
+    model, ctx = _wrench_ctx(data, pred0)
+    d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+    d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(alpha=alpha), [], ("wrench",), []
+    T = pred0.shape[0]
+    train = {"wrench": np.arange(T) % 2 == 0}
+    return d._decide(ctx, refits, train, [], {}), d.notes
+
+
+def test_a_refuted_candidate_is_not_named_and_a_weaker_proxy_is_not_named_in_its_place():
+    rng = np.random.default_rng(14)
+    T = 47
+    pred0 = np.zeros((T, 6))
+    change = 3.0 * _wrench_change(T) * SIGMA
+    noise = _correlated_noise(rng, T, 6, rho=0.3, common=0.2) * SIGMA
+    # the recording: force changes as the stiction refit predicts, the moment at under half of it
+    data = pred0 + change * np.array([1.0, 1.0, 1.0, 0.45, 0.45, 0.45]) + noise
+    stiction = Refit(np.array([0.02]), {"candidate.stiction": 0.02}, {"wrench": pred0 + change},
+                     {"candidate.stiction": 0.02})
+    # a weaker candidate whose change is the force part only, at half: it explains part of the same pattern
+    proxy = change * np.array([0.5, 0.5, 0.5, 0.0, 0.0, 0.0])
+    aniso = Refit(np.array([0.05]), {"candidate.anisotropic_bending": 0.05}, {"wrench": pred0 + proxy},
+                  {"candidate.anisotropic_bending": 0.05})
+    out, notes = _decide(data, pred0, {"stiction": stiction, "anisotropic_bending": aniso})
+    assert out["stiction"]["refuted_by"] == ["line_of_action"] and not out["stiction"]["accepted"]
+    assert out["stiction"]["explained_fraction"] > 0.5  # it does describe the mismatch
+    assert out["stiction"]["heldout_gain"] > out["anisotropic_bending"]["heldout_gain"]
+    assert not out["anisotropic_bending"]["accepted"]
+    assert any("line of action" in n for n in notes)
+    # the same recording without the refuted candidate: the proxy alone would have been named
+    out, _ = _decide(data, pred0, {"anisotropic_bending": aniso})
+    assert out["anisotropic_bending"]["accepted"]
+
+
+def test_real_stiction_passes_the_line_of_action_test():
+    rng = np.random.default_rng(15)
+    T = 47
+    pred0 = np.zeros((T, 6))
+    change = 3.0 * _wrench_change(T) * SIGMA
+    noise = _correlated_noise(rng, T, 6, rho=0.3, common=0.2) * SIGMA
+    stiction = Refit(np.array([0.02]), {"candidate.stiction": 0.02}, {"wrench": pred0 + change},
+                     {"candidate.stiction": 0.02})
+    out, _ = _decide(pred0 + 1.1 * change + noise, pred0, {"stiction": stiction})
+    assert out["stiction"]["accepted"] and "refuted_by" not in out["stiction"]
+    assert out["stiction"]["line_of_action_p"] > 0.01
