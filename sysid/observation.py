@@ -137,6 +137,9 @@ class ObservationModel:
             dropped with an :class:`ObservationWarning`.
         simulation: overrides of the scene's ``simulation:`` block.
         noise: per-channel noise overrides ``{channel: sigma per axis}``; default ``evidence.noise``.
+        arch: elastic terms of the replays: ``"numpy"`` (reference potentials) or ``"cpu"`` /
+            ``"cuda"`` (the fused Taichi kernels of :mod:`sim_core.fused_elastic`, same values to
+            round-off; Taichi is initialised on first use, also in worker processes).
 
     Attributes:
         evidence: the (cropped) recording.
@@ -156,8 +159,11 @@ class ObservationModel:
     def __init__(self, evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
                  dt: float = 0.01, t_max: float | None = None, channels: Sequence[str] | None = None,
                  simulation: Mapping[str, Any] | None = None,
-                 noise: Mapping[str, Sequence[float]] | None = None) -> None:
+                 noise: Mapping[str, Sequence[float]] | None = None, arch: str = "numpy") -> None:
         bag = evidence.source.bag_path
+        if arch not in ("numpy", "cpu", "cuda"):
+            raise CalibrationError(f"arch must be numpy, cpu or cuda, got {arch!r}")
+        self.arch = arch
         if not (math.isfinite(dt) and dt > 0.0):
             raise CalibrationError(f"simulation dt must be a positive number of seconds, got {dt!r}")
         if "pose" not in evidence.channels_present:
@@ -276,7 +282,13 @@ class ObservationModel:
             from sim_core.scenes import load_scene
             from sim_core.simulation import Simulation
 
+            if self.arch != "numpy":
+                from sim_core.ti_backend import init_backend
+
+                init_backend(self.arch)  # idempotent; raises ConfigError naming the problem
             self._sim = Simulation(load_scene(self.scene), dt=self.dt)
+            if self.arch != "numpy":
+                self._sim.model.meta["elastic_backend"] = "taichi"
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
         return self._sim
 

@@ -175,6 +175,28 @@ def test_joint_replay_gives_the_plain_residual_and_the_sensitivity_jacobian(pres
     assert joint.cached_jacobian(joint.best[1]) is not None
 
 
+def test_fused_taichi_replay_equals_the_numpy_replay(press_bag):
+    """``arch="cpu"``: replays with the fused Taichi elastic kernels give the NumPy residual and
+    sensitivity Jacobian to round-off (what ``thinshell sysid`` uses by default)."""
+    names = ["gel.youngs_modulus", "friction.gel_sheet"]
+    specs = [parameter_spec(n, TRUE_PARAMS[n]) for n in names]
+    u = np.array([0.3, -0.2])
+    out = {}
+    for arch in ("numpy", "cpu"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = ObservationModel(load_evidence(press_bag), dt=DT, arch=arch)
+        provider = SensitivityJacobian()
+        out[arch] = provider.joint(FitProblem(model, specs, joint=provider.joint), u)[:2]
+        sim = model.simulation()
+        assert sim.model.meta.get("elastic_backend") == (None if arch == "numpy" else "taichi")
+        assert (sim.solver._fused is not None) == (arch == "cpu")  # the fused evaluator did the steps
+    for a, b in zip(out["numpy"], out["cpu"]):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-9 * np.abs(a).max())
+    with pytest.raises(CalibrationError, match="arch"):
+        ObservationModel(load_evidence(press_bag), dt=DT, arch="gpu")
+
+
 def test_gauss_newton_step_solves_linear_least_squares():
     rng = np.random.default_rng(3)
     J = rng.normal(size=(50, 3))
