@@ -27,7 +27,7 @@ PROG = "thinshell sysid"
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``thinshell sysid``."""
-    from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_SIGMA, STOP_TRIAL_SIGMA
+    from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 
     p = argparse.ArgumentParser(prog=PROG, description="Fit simulator material parameters to a recorded bag.")
     p.add_argument("bag", help="rosbag2 directory (or .mcap file) with scene.yaml")
@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-trial-sigma", type=float, default=STOP_TRIAL_SIGMA,
                    help="stop when a trial step below this fraction of 1-sigma in every parameter does not lower "
                         "the cost (0: off; default: %(default)s)")
+    p.add_argument("--stop-rms", type=float, default=STOP_RMS,
+                   help="stop when an accepted step lowered the whitened RMS by less than this fraction "
+                        "(default: %(default)s = 0.05 %%; 0: off)")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
     p.add_argument("--t-max", type=float, help="fit only the first T seconds of the recording")
     p.add_argument("--jacobian", choices=JACOBIAN_KINDS, default="auto", help="Jacobian provider")
@@ -151,7 +154,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
         result = fit(model, params, jacobian=args.jacobian, global_method=args.global_method if args.global_search else None,
                      global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                      fd_step=args.fd_step, workers=args.workers, seed=args.seed, on_eval=progress,
-                     stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None)
+                     stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
+                     stop_rms=args.stop_rms or None)
     finally:
         progress.close()
     result.warnings[:0] = [str(w.message) for w in caught]

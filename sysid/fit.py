@@ -47,6 +47,9 @@ STOP_SIGMA = 0.01
 STOP_TRIAL_SIGMA = 0.25
 """Default trial-step stop of :func:`fit`: the local phase ends when a trial step shorter than a
 quarter of 1-sigma in every coordinate does not lower the cost."""
+STOP_RMS = 5.0e-4
+"""Default RMS stop of :func:`fit`: the local phase ends at an accepted point that lowered the whitened
+RMS by less than 0.05 % from the previous accepted point."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -632,7 +635,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
-        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA) -> FitResult:
+        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -662,6 +665,15 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             set changes) on a scale well inside the uncertainty, where the trust region would only
             keep shrinking until ``xtol`` (one replay per halving). The accepted point is returned;
             a continued search could only have moved within that step. None or 0: off.
+        stop_rms: also stop at an accepted point whose whitened RMS is lower than the previous
+            accepted point's by less than this fraction (``1 - sqrt(S_k / S_k-1) < stop_rms`` with
+            ``S = r.r / 2``): a relative-decrease criterion measured on the replays, at the scale of
+            their numerical noise. On the bundled bag the cost of points within 0.3 sigma of each
+            other scatters by about 6e-4 of its value (Newton tolerance, contact set changes), the
+            statistical 1-sigma is not resolvable below that, and the 3-parameter fit spent its last
+            5 replays after an accepted step that lowered the RMS by 0.03 % (the values then moved by
+            less than 2e-5 relative). A Gauss-Newton *predicted* decrease is no guide there: at the
+            point before the last real gain (0.25 % RMS) it predicted 0.04 %. None or 0: off.
 
     Returns:
         the :class:`FitResult`.
@@ -721,13 +733,21 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if (stop_sigma or stop_trial_sigma) and r is not None:
+                if (stop_sigma or stop_trial_sigma or stop_rms) and r is not None:
                     step, sigma_u = gauss_newton_step(J, r)
-                    jac_at.update(sigma_u=sigma_u, cost=0.5 * float(r @ r))
+                    cost = 0.5 * float(r @ r)
+                    jac_at.update(sigma_u=sigma_u, cost=cost)
+                    inside = bool(np.all(u + step >= lb) and np.all(u + step <= ub))
                     if stop_sigma and sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
-                        inside = np.all(u + step >= lb) and np.all(u + step <= ub)
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
+                            raise _WithinNoise()
+                    previous = jac_at.get("accepted_cost")
+                    jac_at["accepted_cost"] = cost
+                    if stop_rms and previous is not None and previous > 0.0 and cost <= previous:
+                        gain = 1.0 - math.sqrt(cost / previous)
+                        if gain < stop_rms:
+                            jac_at["rms_gain"] = gain
                             raise _WithinNoise()
                 return J
 
@@ -742,7 +762,10 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
             except _WithinNoise:
                 status = "converged"
-                if "trial_in_sigma" in jac_at:
+                if "rms_gain" in jac_at:
+                    message = (f"the last accepted step lowered the RMS by {100 * jac_at['rms_gain']:.2g} %, below "
+                               f"the stop fraction {100 * stop_rms:g} % (the replays' numerical noise)")
+                elif "trial_in_sigma" in jac_at:
                     message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} sigma at most (below {stop_trial_sigma:g}) "
                                "did not lower the cost: flat to within the replay's numerical noise")
                 else:

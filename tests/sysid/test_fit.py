@@ -216,18 +216,27 @@ def test_stop_rule_ends_within_a_fraction_of_sigma(press_bag):
         model = ObservationModel(load_evidence(press_bag), dt=DT)
     name = "gel.youngs_modulus"
     start = {name: 3.0 * TRUE_PARAMS[name]}
-    strict = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None)
+    strict = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None,
+                 stop_rms=None)
     quick = fit(model, [name], initial=start, jacobian="sensitivity")
     assert quick.status == strict.status == "converged"
     assert quick.sim_runs <= strict.sim_runs
     assert abs(quick.values[name] - strict.values[name]) < 0.05 * strict.sigma[name]
     assert quick.sigma[name] == pytest.approx(strict.sigma[name], rel=0.05)
     # trial-step stop alone, with a threshold that any rejected trial meets: ends at the first one
-    trial = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=1e9)
+    trial = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=1e9,
+                stop_rms=None)
     assert trial.status == "converged" and "did not lower the cost" in trial.message
     assert trial.sim_runs < strict.sim_runs
     local = [e.cost for e in trial.history if e.phase in ("initial", "local")]
     assert local[-1] >= min(local) == pytest.approx(trial.cost_final)
+    # RMS stop alone, with a threshold that any accepted step meets: ends at the first accepted point
+    rms = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None,
+              stop_rms=1.0)
+    assert rms.status == "converged" and "lowered the RMS" in rms.message
+    costs = [e.cost for e in rms.history if e.phase in ("initial", "local")]
+    assert rms.sim_runs < strict.sim_runs and rms.cost_final == min(costs) < costs[0]
+    assert sum(c < costs[0] for c in costs) == 1  # stopped at the first point that lowered the cost
 
 
 def test_jacobian_provider_names():
