@@ -30,12 +30,9 @@ import numpy as np
 
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
 
-_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
-_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
-_F64_3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
-_I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
-_I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+_F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 
 
 @ti.func
@@ -50,18 +47,6 @@ def _tet_state(x: ti.template(), tets: ti.template(), dFdx: ti.template(), t: ti
         for i, j in ti.static(ti.ndrange(3, 3)):
             F[i, j] += x[v, i] * G[a, j]
     return F, G
-
-
-@ti.func
-def _cofactor(F):
-    """``cof F = dJ/dF``: column j is the cross product of the other two columns (in order)."""
-    c0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    c1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    c2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    k0 = c1.cross(c2)
-    k1 = c2.cross(c0)
-    k2 = c0.cross(c1)
-    return ti.Matrix([[k0[0], k1[0], k2[0]], [k0[1], k1[1], k2[1]], [k0[2], k1[2], k2[2]]], ti.f64)
 
 
 @ti.func
@@ -96,7 +81,7 @@ def snh_energy_gradient_hessian(
         F, G = _tet_state(x, tets, dFdx, t)
         I_C = (F * F).sum()
         J = F.determinant()
-        cof = _cofactor(F)
+        cof = linalg.cofactor(F)
         V = vol[t]
         energy += V * _psi(I_C, J, mu, lam, alpha)
         mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))

@@ -26,11 +26,9 @@ import numpy as np
 
 from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
 
-_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
-_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
-_I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
-_I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+_F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
 
 
 @ti.func

@@ -196,3 +196,23 @@ def project_psd_translation_free(H: ti.template(), code: ti.i32):
                     acc += T[i, k] * B[j, k]
                 H[i, j] = acc
                 H[j, i] = acc
+
+
+F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+F64_3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+"""Kernel argument types of the element kernels: float64 / int32 NumPy arrays of 1-3 dimensions."""
+
+
+@ti.func
+def cofactor(F):
+    """``cof F = dJ/dF`` of a 3x3 ``F``: column j is the cross product of the other two columns (in order)."""
+    c0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    c1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    c2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    k0 = c1.cross(c2)
+    k1 = c2.cross(c0)
+    k2 = c0.cross(c1)
+    return ti.Matrix([[k0[0], k1[0], k2[0]], [k0[1], k1[1], k2[1]], [k0[2], k1[2], k2[2]]], ti.f64)

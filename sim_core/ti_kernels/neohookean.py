@@ -24,7 +24,7 @@ from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, ti
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
-from sim_core.ti_kernels.linalg import filter_eigenvalue, jacobi_eigh, projection_code
+from sim_core.ti_kernels.linalg import cofactor, filter_eigenvalue, jacobi_eigh, projection_code
 
 _INV_SQRT2 = float(1.0 / np.sqrt(2.0))
 
@@ -38,18 +38,6 @@ def _tet_deformation_gradient(x: ti.types.ndarray(), tets: ti.types.ndarray(), d
         for i, j in ti.static(ti.ndrange(3, 3)):
             F[i, j] += x[v, i] * dFdx[t, a, j]
     return F
-
-
-@ti.func
-def _cofactor(F):
-    """``cof F = dJ/dF``: column j is the cross product of the other two columns (in order)."""
-    c0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    c1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    c2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    k0 = c1.cross(c2)
-    k1 = c2.cross(c0)
-    k2 = c0.cross(c1)
-    return ti.Matrix([[k0[0], k1[0], k2[0]], [k0[1], k1[1], k2[1]], [k0[2], k1[2], k2[2]]], ti.f64)
 
 
 @ti.func
@@ -127,7 +115,7 @@ def evaluate_snh_gradient(
         F = _tet_deformation_gradient(x, tets, dFdx, t)
         I_C = (F * F).sum()
         J = F.determinant()
-        P = mu * (1.0 - 1.0 / (I_C + 1.0)) * F + lam * (J - alpha) * _cofactor(F)
+        P = mu * (1.0 - 1.0 / (I_C + 1.0)) * F + lam * (J - alpha) * cofactor(F)
         for a in ti.static(range(4)):
             v = tets[t, a]
             for i in ti.static(range(3)):
