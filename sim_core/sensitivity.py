@@ -23,7 +23,7 @@ from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError
-from sim_core.linsolve import LinearSolver, make_linear_solver
+from sim_core.linsolve import LinearSolver
 from sim_core.model import Model
 from sim_core.state import State
 from sim_core.sensors.markers import marker_vertex_weights
@@ -125,7 +125,7 @@ def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, para
     _check_trajectory(model, trajectory)
     T, n, P = trajectory.step_count, model.vertex_count, len(params)
     tangents = TangentPropagation(model, params, contact_force)
-    linear_solver = make_linear_solver(sim.solver.config.linear_solver)
+    linear_solver = sim.solver.general_solver()
     dX = np.zeros((T + 1, n, 3, P))
     dF = np.zeros((T + 1, n, 3, P)) if contact_force else None
     for i in range(T):
@@ -181,7 +181,7 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
         rec = sim.solver.last_record
         factorization = sim.solver.last_factorization
         if factorization is None:
-            fallback = fallback or make_linear_solver(sim.solver.config.linear_solver)
+            fallback = fallback or sim.solver.general_solver()
         lin = tangents.linearization(rec, states[-1], fallback, factorization=factorization)
         dX[i + 1], df = tangents.advance(lin)
         if contact_force:

@@ -253,6 +253,13 @@ class NewtonSolver:
             x_target[eff.vertices] = driven_positions(eff, pose, opening)
         return fixed, x_target, poses, openings, limited
 
+    def general_solver(self) -> LinearSolver:
+        """The solver's LU solver (general square matrices), created on first use and kept: PARDISO's
+        set-up searches the disk for MKL (about 1 s), which each replay of a fit would repeat."""
+        if self._general_solver is None:
+            self._general_solver = make_linear_solver(self.config.linear_solver)
+        return self._general_solver
+
     def _projections(self) -> tuple[str, ...]:
         """Element-Hessian projections to try in order each iteration (see ``exact_hessian_first``)."""
         cfg = self.config
@@ -352,8 +359,7 @@ class NewtonSolver:
                     break
             if d is None:  # projection="none" and not positive definite: general LU as before
                 tl = time.perf_counter()
-                self._general_solver = self._general_solver or make_linear_solver(cfg.linear_solver)
-                self._general_solver.factorize(full_from_upper(H))
+                self.general_solver().factorize(full_from_upper(H))
                 d = -self._general_solver.solve(g)
                 factorization = self._general_solver
                 info.time_linear_solve += time.perf_counter() - tl
