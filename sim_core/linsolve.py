@@ -231,20 +231,39 @@ class PardisoCholesky:
 
 
 class ScipySymmetric:
-    """:class:`SymmetricSolver` on SciPy's SuperLU (no definiteness test: always True)."""
+    """:class:`SymmetricSolver` on SciPy's SuperLU with diagonal pivoting, which detects indefinite
+    matrices.
+
+    With ``diag_pivot_thresh=0`` and ``SymmetricMode`` SuperLU pivots on the diagonal of the
+    symmetrically permuted matrix (same row and column order), so ``P A P^T = L U`` with
+    ``U = D L^T``: an LDL^T factorisation whose pivots ``D`` have the signs of the eigenvalues of A
+    (Sylvester's law of inertia). ``A`` is positive definite iff every pivot is positive; a zero pivot
+    (singular matrix) or an off-diagonal pivot (no LDL^T) counts as "not positive definite". This
+    lets the Newton solver use the exact Hessian first without PARDISO (``exact_hessian_first``),
+    as it does with PARDISO's Cholesky.
+    """
 
     name = "scipy"
-    detects_indefinite = False
+    detects_indefinite = True
 
     def __init__(self) -> None:
-        self._lu = ScipySolver()
+        self._lu = None
 
     def factorize(self, upper: sp.csr_matrix) -> bool:
-        self._lu.factorize(full_from_upper(sp.csr_matrix(upper)))
+        A = sp.csc_matrix(full_from_upper(sp.csr_matrix(upper)))
+        try:
+            lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        except RuntimeError:  # exactly singular
+            return False
+        if not (np.array_equal(lu.perm_r, lu.perm_c) and np.all(lu.U.diagonal() > 0.0)):
+            return False
+        self._lu = lu
         return True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        return self._lu.solve(b)
+        if self._lu is None:
+            raise SimulationDivergedError("linear solve requested before factorisation")
+        return self._lu.solve(np.asarray(b, dtype=float))
 
 
 def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:

@@ -101,13 +101,23 @@ def test_pardiso_cholesky_solves_spd_and_reports_indefinite():
     np.testing.assert_allclose(good @ solver.solve(b), b, atol=1e-9)
 
 
-def test_scipy_symmetric_solver_uses_the_full_matrix():
+def test_scipy_symmetric_solver_uses_the_full_matrix_and_reports_indefinite():
+    """Diagonal-pivoting SuperLU: the pivots' signs are the inertia (Sylvester), like a Cholesky."""
     rng = np.random.default_rng(2)
-    A, _, _ = _spd_upper(rng, 30)
+    n = 30
+    A, w, _ = _spd_upper(rng, n)
     solver = ScipySymmetric()
-    b = rng.normal(size=30)
+    assert solver.detects_indefinite
+    b = rng.normal(size=n)
     assert solver.factorize(sp.triu(sp.csr_matrix(A), format="csr"))
     np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-9)
+    bad = A - (w[0] * (1.0 + 1e-6)) * np.eye(n)  # one slightly negative eigenvalue
+    assert not solver.factorize(sp.triu(sp.csr_matrix(bad), format="csr"))
+    assert not solver.factorize(sp.triu(sp.csr_matrix(A - w[3] * np.eye(n) - 1e-9 * np.eye(n)), format="csr"))
+    np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-9)  # the last good factorisation stays
+    good = A + 0.5 * np.eye(n)
+    assert solver.factorize(sp.triu(sp.csr_matrix(good), format="csr"))
+    np.testing.assert_allclose(good @ solver.solve(b), b, atol=1e-9)
 
 
 def test_exact_hessian_first_converges_to_the_projected_newton_state():
