@@ -385,6 +385,54 @@ def max_hinge_angle(ctx: DiagnosisContext) -> float:
     return float(max(np.max(np.abs(dihedral_angle(p[hinges]))) for p in pts[::step]))
 
 
+def sheet_drag_scale(sim_model: Any, dt: float) -> float:
+    """Drag coefficient (1/s) at which a sheet's drag is as stiff per step as its bending, ``c_ref``.
+
+    Implicit Euler turns the drag ``-c m v`` into a spring ``c m_i / dt`` (N/m) that pulls vertex i
+    back to where it was at the start of the step; the card's own restoring stiffness per vertex is
+    about ``D / A_v`` (Kirchhoff bending stiffness D in N m over the rest area per vertex A_v). In a
+    quasi-static press the drag changes the motion only where the two are comparable, so
+
+        c_ref = D dt / (m_v A_v),   m_v = sheet mass / vertex count, A_v = rest area / vertex count,
+
+    the smallest over the sheets (the most easily damped one). Far below ``c_ref`` the drag's change of
+    the prediction is round-off or a contact-state flip, not its smooth response (the benchmark card:
+    c_ref 3.4e5 1/s, a probe of 100 1/s moves the prediction by 1e-3 noise units).
+
+    Args:
+        sim_model: ``sim_core`` Model (bodies with ``kind``, ``vertices``, ``triangles``, ``material``;
+            ``x_rest``; ``vertex_mass()``).
+        dt: time step in s (> 0).
+
+    Returns:
+        ``c_ref`` in 1/s, or ``nan`` when there is no sheet with a positive bending stiffness and mass.
+    """
+    masses = sim_model.vertex_mass() if callable(getattr(sim_model, "vertex_mass", None)) else sim_model.vertex_mass
+    out = math.inf
+    for body in sim_model.bodies.values():
+        if body.kind != "sheet":
+            continue
+        ids = np.unique(np.asarray(body.vertices, dtype=np.int64).reshape(-1))
+        tri = np.asarray(body.triangles, dtype=np.int64)
+        if ids.size == 0 or tri.size == 0:
+            continue
+        x = np.asarray(sim_model.x_rest, dtype=float)
+        area = 0.5 * float(np.sum(np.linalg.norm(np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]),
+                                                 axis=1)))
+        D = float(body.material.get("bending_stiffness", 0.0))
+        m_v = float(np.sum(np.asarray(masses, dtype=float)[ids])) / ids.size
+        a_v = area / ids.size
+        if D > 0.0 and m_v > 0.0 and a_v > 0.0:
+            out = min(out, D * dt / (m_v * a_v))
+    return out if math.isfinite(out) else math.nan
+
+
+DRAG_PROBE_FRACTION = 0.1
+"""The damping candidate's first probe, as a fraction of :func:`sheet_drag_scale`: inside the regime
+where the drag acts smoothly, small enough to stay near the linear range (the probe calibration then
+rescales it towards its target change)."""
+
+
 def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
     """Whether the simulator accepts parameter ``name`` (``candidate.<x>`` are not listed in
     ``parameter_names`` but are readable through ``get_parameter``)."""
@@ -395,6 +443,20 @@ def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
     except Exception:  # ConfigError: the simulator does not know this candidate
         return False
     return True
+
+
+def _drag_scale_of(ctx: DiagnosisContext) -> float:
+    """:func:`sheet_drag_scale` of the context's simulator at its step, with fitted sheet bending
+    stiffness / density / thickness in ``ctx.params`` taken into account (``c_ref`` is proportional to
+    ``D / (density thickness)``); ``nan`` when not available."""
+    try:
+        c_ref = sheet_drag_scale(ctx.model.simulation().model, float(ctx.model.dt))
+        for name, power in (("sheet.bending_stiffness", 1.0), ("sheet.density", -1.0), ("sheet.thickness", -1.0)):
+            if name in ctx.params:
+                c_ref *= (float(ctx.params[name]) / float(ctx.model.parameter_value(name))) ** power
+        return float(c_ref)
+    except Exception:  # noqa: BLE001 -- a scene without a sheet or a simulator without these fields
+        return math.nan
 
 
 def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, Any]] | None = None,
@@ -439,6 +501,13 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
         if effect not in EFFECTS:
             raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")
         if effect not in {c.name for c in out} and _known_parameter(ctx.model, spec["parameter"], names):
-            out.append(PhysicsParameterCandidate(effect, spec["parameter"], float(spec["probe"]),
+            probe = float(spec["probe"])
+            if effect == "damping":
+                # the library's sheet drag: probe where the drag acts at all (sheet_drag_scale), not at
+                # a fixed value three decades below it, whose change is round-off or a contact flip
+                c_ref = _drag_scale_of(ctx)
+                if math.isfinite(c_ref) and c_ref > 0.0:
+                    probe = max(probe, DRAG_PROBE_FRACTION * c_ref)
+            out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
                                                  bool(spec.get("one_sided", True))))
     return out

@@ -208,3 +208,60 @@ def test_latency_is_shared_only_by_streams_whose_own_delay_agrees():
         chans = latency.streams_sharing_delay(d.model, ctx, train, strongest, ["markers_uv", "markers_xyz", "wrench"], d.notes)
         assert chans == ["wrench"], strongest
         assert "tactile/markers" in d.notes[0] and "confirmed" in d.notes[0]
+
+
+def _sheet_model(D=0.008, density=700.0, thickness=3e-4, size=(0.05, 0.03), resolution=(9, 5)):
+    """A bare sim_core Model with one grid sheet (lumped masses from the builder's rule)."""
+    from sim_core.mesh.sheet import grid_sheet
+
+    mesh = grid_sheet(size, resolution, (0.0, 0.0, 0.0))
+    n = mesh.x.shape[0]
+    area = size[0] * size[1]
+    body = SimpleNamespace(kind="sheet", vertices=np.arange(n), triangles=mesh.triangles,
+                           material={"bending_stiffness": D})
+    gel = SimpleNamespace(kind="solid", vertices=np.arange(n, n + 4), triangles=np.zeros((0, 3), int), material={})
+    masses = np.concatenate([np.full(n, density * thickness * area / n), np.full(4, 1.0)])
+    return SimpleNamespace(bodies={"sheet": body, "gel": gel}, x_rest=np.concatenate([mesh.x, np.zeros((4, 3))]),
+                           vertex_mass=lambda: masses)
+
+
+def test_sheet_drag_scale_is_bending_stiffness_per_vertex_over_mass_per_step():
+    """c_ref = D dt / (m_v A_v): the drag coefficient whose per-step spring c m_v / dt equals the
+    bending stiffness per vertex D / A_v (benchmark card: 3.4e5 1/s); it scales with D, dt and
+    1 / (density thickness) and ignores the gel."""
+    from sysid.diagnose.candidates import sheet_drag_scale
+
+    c = sheet_drag_scale(_sheet_model(), 0.01)
+    n = 45
+    m_v, a_v = 700.0 * 3e-4 * 0.05 * 0.03 / n, 0.05 * 0.03 / n
+    assert c == pytest.approx(0.008 * 0.01 / (m_v * a_v))
+    assert c == pytest.approx(3.43e5, rel=0.01)
+    assert sheet_drag_scale(_sheet_model(D=0.016), 0.01) == pytest.approx(2 * c)
+    assert sheet_drag_scale(_sheet_model(density=1400.0), 0.02) == pytest.approx(c)
+    assert math.isnan(sheet_drag_scale(_sheet_model(D=0.0), 0.01))
+
+
+def test_damping_probe_starts_where_the_drag_acts():
+    """The library's sheet drag is probed at a tenth of c_ref (not at the spec's 100 1/s, three decades
+    below where the drag moves a quasi-static card), and a fitted density moves it as 1 / density."""
+    from sysid.diagnose import candidates as cands
+
+    sim_model = _sheet_model()
+    names = ["sheet.bending_stiffness", "sheet.density", "sheet.thickness"]
+    scene_values = {"sheet.bending_stiffness": 0.008, "sheet.density": 700.0, "sheet.thickness": 3e-4}
+    obs = SimpleNamespace(dt=0.01, parameter_value=lambda n: scene_values[n],
+                          simulation=lambda: SimpleNamespace(parameter_names=names, model=sim_model,
+                                                             get_parameter=lambda n: 0.0))
+    spec = {"damping": {"parameter": "candidate.damping", "probe": 100.0, "one_sided": True}}
+    c_ref = cands.sheet_drag_scale(sim_model, 0.01)
+    lib = cands.default_candidates(cands.DiagnosisContext(obs, {}, None, {}, ()), extra=spec)
+    damping = next(c for c in lib if c.name == "damping")
+    assert damping.probe_beta == pytest.approx(cands.DRAG_PROBE_FRACTION * c_ref)
+    lib = cands.default_candidates(cands.DiagnosisContext(obs, {"sheet.density": 1400.0}, None, {}, ()), extra=spec)
+    assert next(c for c in lib if c.name == "damping").probe_beta == pytest.approx(0.5 * cands.DRAG_PROBE_FRACTION * c_ref)
+    # without a sheet the spec's probe stays
+    bare = SimpleNamespace(dt=0.01, parameter_value=lambda n: 1.0,
+                           simulation=lambda: SimpleNamespace(parameter_names=[], model=SimpleNamespace(bodies={}),
+                                                              get_parameter=lambda n: 0.0))
+    lib = cands.default_candidates(cands.DiagnosisContext(bare, {}, None, {}, ()), extra=spec)
+    assert next(c for c in lib if c.name == "damping").probe_beta == pytest.approx(100.0)
