@@ -297,11 +297,18 @@ class PhysicsParameterCandidate:
     level = "physics"
 
     def __init__(self, name: str, parameter: str, probe_beta: float, one_sided: bool = True,
-                 to_parameter: Callable[[float], float] | None = None, report_name: str | None = None) -> None:
+                 to_parameter: Callable[[float], float] | None = None, report_name: str | None = None,
+                 settings: Mapping[str, float] | None = None, family_size: int = 1) -> None:
         if not (math.isfinite(probe_beta) and probe_beta > 0.0):
             raise ValueError(f"candidate {name}: probe beta must be a positive number, got {probe_beta!r}")
+        if int(family_size) < 1:
+            raise ValueError(f"candidate {name}: family size must be >= 1, got {family_size!r}")
         self.name = name
         self.parameter = parameter
+        # fixed secondary simulator settings of this member of a family (e.g. a relaxation time), set
+        # with the effect whenever it is on; family_size = number of members tested for the effect
+        self.settings = {k: float(v) for k, v in (settings or {}).items()}
+        self.family_size = int(family_size)
         self.probe_beta = float(probe_beta)
         self.one_sided = one_sided
         self.to_parameter = to_parameter or (lambda b: float(b))
@@ -337,9 +344,16 @@ class PhysicsParameterCandidate:
         self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
         return True
 
+    @property
+    def key(self) -> str:
+        """Identifier of this member of its family: the effect name, plus its settings when it has any."""
+        if not self.settings:
+            return self.name
+        return self.name + "[" + ", ".join(f"{k.rsplit('.', 1)[-1]}={v:.3g}" for k, v in sorted(self.settings.items())) + "]"
+
     def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
         """Parameters of the probe rollout (nominal values plus the effect at ``probe_beta``)."""
-        return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta)}
+        return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta), **self.settings}
 
     def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
                   ) -> dict[str, np.ndarray]:
@@ -358,7 +372,7 @@ class PhysicsParameterCandidate:
         b = max(beta, 0.0) if self.one_sided else beta
         if b == 0.0:
             return {}  # off: the nominal model (an infinite yield angle cannot be set, it is the default)
-        return {self.parameter: self.to_parameter(b)}
+        return {self.parameter: self.to_parameter(b), **self.settings}
 
 
 def yield_angle_for(beta: float, theta_max: float) -> float:
@@ -427,6 +441,37 @@ def sheet_drag_scale(sim_model: Any, dt: float) -> float:
     return out if math.isfinite(out) else math.nan
 
 
+RELAXATION_GRID_RATIO = 3.0
+"""Spacing of the relaxation-time grid of the gel viscoelasticity candidate (factor between taus)."""
+
+RELAXATION_MIN_STEPS = 5
+"""Shortest relaxation time of the grid, in simulation steps (a shorter one is not resolved)."""
+
+
+def relaxation_times(dt: float, duration: float, ratio: float = RELAXATION_GRID_RATIO,
+                     min_steps: int = RELAXATION_MIN_STEPS) -> list[float]:
+    """Log-spaced relaxation times (s) a recording can resolve: from ``min_steps dt`` up to its duration.
+
+    A gel's relaxation time is not known beforehand, and the signature of a Maxwell branch depends on
+    it much more than on anything the nominal fit can absorb (on the benchmark's gel recording at
+    strength 2.6 the residual supports a branch with tau 0.1 s at one scale on the markers, pixels and
+    wrench -- 0.87, 0.90, 0.93 -- and one with tau 0.3 s at 0.56, 0.58, 0.13). The candidate is
+    therefore a family over ``tau_min, tau_min ratio, ...`` (the last one <= duration, at least one):
+    a discrete relaxation spectrum (Prony series, Park & Schapery 1999) of which the diagnosis tests
+    every member and keeps the best, Bonferroni-corrected for the size of the grid.
+
+    Raises:
+        ValueError: non-positive ``dt``, ``ratio <= 1`` or ``min_steps < 1``.
+    """
+    if not (dt > 0 and ratio > 1 and min_steps >= 1):
+        raise ValueError(f"relaxation_times: need dt > 0, ratio > 1, min_steps >= 1 (got {dt}, {ratio}, {min_steps})")
+    tau = min_steps * dt
+    out = [tau]
+    while out[-1] * ratio <= duration * (1 + 1e-9):
+        out.append(out[-1] * ratio)
+    return out
+
+
 DRAG_PROBE_FRACTION = 0.1
 """The damping candidate's first probe, as a fraction of :func:`sheet_drag_scale`: inside the regime
 where the drag acts smoothly, small enough to stay near the linear range (the probe calibration then
@@ -443,6 +488,16 @@ def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
     except Exception:  # ConfigError: the simulator does not know this candidate
         return False
     return True
+
+
+RELAXATION_SETTING = "candidate.gel_viscoelasticity.tau"
+"""Simulator setting of the gel candidate's relaxation time, s."""
+
+
+def _duration_s(ctx: DiagnosisContext) -> float:
+    """Span of the replayed steps in s."""
+    steps = np.asarray(ctx.model.step_times_ns, dtype=np.int64)
+    return float(steps[-1] - steps[0]) * 1e-9
 
 
 def _drag_scale_of(ctx: DiagnosisContext) -> float:
@@ -508,6 +563,12 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
                 c_ref = _drag_scale_of(ctx)
                 if math.isfinite(c_ref) and c_ref > 0.0:
                     probe = max(probe, DRAG_PROBE_FRACTION * c_ref)
+            if effect == "gel_viscoelasticity" and _known_parameter(ctx.model, RELAXATION_SETTING, names):
+                taus = relaxation_times(float(ctx.model.dt), _duration_s(ctx))
+                out.extend(PhysicsParameterCandidate(effect, spec["parameter"], probe, bool(spec.get("one_sided", True)),
+                                                     settings={RELAXATION_SETTING: tau}, family_size=len(taus))
+                           for tau in taus)
+                continue
             out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
                                                  bool(spec.get("one_sided", True))))
     return out

@@ -78,6 +78,11 @@ breakaway (on the benchmark's stiction recording at strength 2.9 their refits re
 energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
 
 
+def _key(c: Any) -> str:
+    """A library member's identifier (:attr:`PhysicsParameterCandidate.key`; the name for the others)."""
+    return getattr(c, "key", c.name)
+
+
 @dataclass
 class Settings:
     """Diagnosis settings.
@@ -210,7 +215,7 @@ class BagDiagnosis:
         for _ in range(2):
             redo = []
             for c in probes:
-                rep = probe_out.get(c.name)
+                rep = probe_out.get(_key(c))
                 if rep is None or not hasattr(c, "grow_probe"):
                     continue
                 m = self._probe_change(ctx, rep[1])
@@ -226,16 +231,52 @@ class BagDiagnosis:
                     continue
                 if changed:
                     redo.append((c, old))
-                    self.notes.append(f"{c.name}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
+                    self.notes.append(f"{_key(c)}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
                                       f"re-probed at beta {c.probe_beta:.3g}")
             if not redo:
                 return
             for (c, old), rep in zip(redo, self._replays([c.probe(ctx) for c, _ in redo])):
                 if rep is not None:
-                    probe_out[c.name] = rep
+                    probe_out[_key(c)] = rep
                 else:
                     c.probe_beta, c.bound = old
-                    self.notes.append(f"{c.name}: rescaled probe diverged; the previous one is kept")
+                    self.notes.append(f"{_key(c)}: rescaled probe diverged; the previous one is kept")
+
+    def _select_family_members(self, library: list, tests: list[dict[str, Any]]) -> tuple[list, list[dict[str, Any]]]:
+        """Keep one member per candidate family (the gel's Maxwell branch over a grid of relaxation times).
+
+        A family tests one effect with a nuisance setting that only exists under the alternative (the
+        relaxation time of a branch whose stiffness is 0 under the null; Davies 1987). Every member is
+        tested; the one with the largest statistic (over channels) is kept, and its p-values are
+        multiplied by the family size before Holm (Bonferroni over the members: the family-wise error
+        stays at ``alpha`` whichever member is picked). Members of other families: factor 1.
+
+        Returns:
+            the library with one member per effect, and the tests of the kept members with ``p_family``.
+        """
+        groups: dict[str, list] = {}
+        for c in library:
+            groups.setdefault(c.name, []).append(c)
+        keep = []
+        for name, members in groups.items():
+            if len(members) == 1:
+                keep.append(members[0])
+                continue
+            best = {_key(c): max((t["result"].statistic for t in tests if t["key"] == _key(c)), default=-math.inf)
+                    for c in members}
+            chosen = max(members, key=lambda c: best[_key(c)])
+            keep.append(chosen)
+            self.notes.append(f"{name}: {len(members)} members tested ("
+                              + ", ".join(f"{k} S {v:.3g}" for k, v in best.items())
+                              + f"); kept {_key(chosen)}, p-values x {len(members)}")
+        kept = {_key(c) for c in keep}
+        size = {_key(c): len(groups[c.name]) for c in keep}
+        out = []
+        for t in tests:
+            if t["key"] in kept:
+                t["p_family"] = min(1.0, size[t["key"]] * float(t["result"].p_value))
+                out.append(t)
+        return keep, out
 
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
@@ -269,29 +310,28 @@ class BagDiagnosis:
         if self.candidate_names is not None:
             library = [c for c in library if c.name in self.candidate_names]
         probes = [c for c in library if c.probe(ctx) is not None]
-        probe_out = dict(zip([c.name for c in probes], self._replays([c.probe(ctx) for c in probes])))
+        probe_out = dict(zip([_key(c) for c in probes], self._replays([c.probe(ctx) for c in probes])))
         # a probe the simulator cannot finish (e.g. a strong Maxwell branch at lift-off) is retried
         # smaller: the secant signature only needs a change well above round-off
         for _ in range(2):
-            retry = [c for c in probes if probe_out.get(c.name) is None and hasattr(c, "shrink_probe")]
+            retry = [c for c in probes if probe_out.get(_key(c)) is None and hasattr(c, "shrink_probe")]
             if not retry:
                 break
             for c in retry:
                 c.shrink_probe(0.25)
-                self.notes.append(f"{c.name}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
-            probe_out.update(zip([c.name for c in retry], self._replays([c.probe(ctx) for c in retry])))
+                self.notes.append(f"{_key(c)}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
+            probe_out.update(zip([_key(c) for c in retry], self._replays([c.probe(ctx) for c in retry])))
         self._calibrate_probes(ctx, probes, probe_out)
-        self._probe_out = probe_out
 
         # ---- score tests
         tests = []
         signatures: dict[str, dict[str, np.ndarray]] = {}
         for c in library:
-            if c.level == "physics" and probe_out.get(c.name) is None:
-                self.notes.append(f"{c.name}: probe replay diverged; not tested")
+            if c.level == "physics" and probe_out.get(_key(c)) is None:
+                self.notes.append(f"{_key(c)}: probe replay diverged; not tested")
                 continue
-            sig = c.signature(ctx, probe_out[c.name][1] if c.level == "physics" else None)
-            signatures[c.name] = sig
+            sig = c.signature(ctx, probe_out[_key(c)][1] if c.level == "physics" else None)
+            signatures[_key(c)] = sig
             for ch, J in sig.items():
                 r = residual(model, ch, pred0[ch])
                 T = r.shape[0]
@@ -305,9 +345,11 @@ class BagDiagnosis:
                 except ValueError as err:
                     self.notes.append(f"{c.name} on {ch}: {err}")
                     continue
-                tests.append({"effect": c.name, "channel": ch, "result": res})
-        self._signatures = signatures
-        adjusted, reject = stats.holm([t["result"].p_value for t in tests], s.alpha) if tests else ([], [])
+                tests.append({"effect": c.name, "key": _key(c), "channel": ch, "result": res})
+        library, tests = self._select_family_members(library, tests)
+        self._signatures = {c.name: signatures[_key(c)] for c in library if _key(c) in signatures}
+        self._probe_out = {c.name: probe_out[_key(c)] for c in library if _key(c) in probe_out}
+        adjusted, reject = (stats.holm([t["p_family"] for t in tests], s.alpha) if tests else ([], []))
         for t, a, rj in zip(tests, adjusted, reject):
             t["p_adjusted"], t["significant"] = float(a), bool(rj)
 
@@ -389,7 +431,8 @@ class BagDiagnosis:
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
             "extra": {"tests": [{"effect": t["effect"], "channel": t["channel"],
                                  "statistic": float(t["result"].statistic), "dof": t["result"].dof,
-                                 "p_value": float(t["result"].p_value), "p_holm": t["p_adjusted"],
+                                 "p_value": float(t["result"].p_value), "p_family": t["p_family"],
+                                 "p_holm": t["p_adjusted"], "member": t["key"],
                                  "significant": t["significant"], "classical_statistic": float(t["result"].classical),
                                  "ar_order": t["result"].ar_order} for t in tests],
                       "decisions": {e: {k: v for k, v in d.items() if k != "prediction"}
@@ -468,7 +511,8 @@ class BagDiagnosis:
                           for n, d in zip(self.project, sol[1:])}
                 params = {**theta, **dtheta, **c.sim_parameters(beta)}
                 sets.append(params)
-                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **{k: float(v) for k, v in dtheta.items()}},
+                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **c.settings,
+                                                             **{k: float(v) for k, v in dtheta.items()}},
                                           {}, sim_params={**dtheta, **c.sim_parameters(beta)})
             for c, rep in zip(physics, self._replays(sets)):
                 if rep is None:
@@ -497,7 +541,7 @@ class BagDiagnosis:
         if self._train_sse(probe[1], train) < min(self._train_sse(ctx.prediction, train),
                                                  self._train_sse(rf.prediction, train)):
             rf.beta = np.array([c.probe_beta])
-            rf.params = {c.report_name: c.probe_beta}
+            rf.params = {c.report_name: c.probe_beta, **c.settings}
             rf.sim_params = c.sim_parameters(c.probe_beta)
             rf.prediction = probe[1]
 
