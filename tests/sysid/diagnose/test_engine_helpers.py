@@ -265,3 +265,70 @@ def test_damping_probe_starts_where_the_drag_acts():
                                                               get_parameter=lambda n: 0.0))
     lib = cands.default_candidates(cands.DiagnosisContext(bare, {}, None, {}, ()), extra=spec)
     assert next(c for c in lib if c.name == "damping").probe_beta == pytest.approx(100.0)
+
+
+def test_relaxation_grid_spans_what_the_recording_resolves():
+    from sysid.diagnose.candidates import relaxation_times
+
+    assert relaxation_times(0.01, 0.46) == pytest.approx([0.05, 0.15, 0.45])
+    assert relaxation_times(0.01, 0.03) == pytest.approx([0.05])  # always at least one member
+    assert relaxation_times(0.005, 2.0, ratio=10.0) == pytest.approx([0.025, 0.25])
+    with pytest.raises(ValueError, match="ratio > 1"):
+        relaxation_times(0.01, 1.0, ratio=1.0)
+
+
+def test_family_members_carry_their_settings_only_when_on():
+    c = PhysicsParameterCandidate("gel_viscoelasticity", "candidate.gel_viscoelasticity", 0.5,
+                                  settings={"candidate.gel_viscoelasticity.tau": 0.05}, family_size=3)
+    assert c.key == "gel_viscoelasticity[tau=0.05]"
+    assert c.sim_parameters(0.0) == {}
+    assert c.sim_parameters(0.2) == {"candidate.gel_viscoelasticity": 0.2, "candidate.gel_viscoelasticity.tau": 0.05}
+    assert c.probe(SimpleNamespace(params={"gel.youngs_modulus": 1.0}))["candidate.gel_viscoelasticity.tau"] == 0.05
+    assert PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5).key == "stiction"
+    with pytest.raises(ValueError, match="family size"):
+        PhysicsParameterCandidate("x", "y", 1.0, family_size=0)
+
+
+def _test_entry(member, effect, statistic, p, channel="wrench"):
+    return {"effect": effect, "key": member, "channel": channel,
+            "result": SimpleNamespace(statistic=statistic, p_value=p)}
+
+
+def test_family_keeps_its_strongest_member_with_bonferroni_p_values():
+    members = [PhysicsParameterCandidate("gel_viscoelasticity", "candidate.gel_viscoelasticity", 0.5,
+                                         settings={"candidate.gel_viscoelasticity.tau": tau}, family_size=3)
+               for tau in (0.05, 0.15, 0.45)]
+    single = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)
+    tests = [_test_entry(members[0].key, "gel_viscoelasticity", 5.0, 0.02),
+             _test_entry(members[1].key, "gel_viscoelasticity", 30.0, 1e-6),
+             _test_entry(members[1].key, "gel_viscoelasticity", 2.0, 0.4, "markers_uv"),
+             _test_entry(members[2].key, "gel_viscoelasticity", 9.0, 0.003),
+             _test_entry("stiction", "stiction", 4.0, 0.04)]
+    d = _bare(SimpleNamespace(sigma={}))
+    lib, kept = d._select_family_members(members + [single], tests)
+    assert [c.key for c in lib] == [members[1].key, "stiction"]
+    assert [t["key"] for t in kept] == [members[1].key, members[1].key, "stiction"]
+    assert [t["p_family"] for t in kept] == pytest.approx([3e-6, 1.0, 0.04])
+    assert any("kept gel_viscoelasticity[tau=0.15]" in n for n in d.notes)
+
+
+def test_best_of_a_family_keeps_its_size_under_the_null():
+    """Pure white noise, three candidate signatures (decays of three time constants; the classical
+    variance, exact here, isolates the selection): picking the member with the
+    largest statistic rejects far more often than alpha unless its p-value is multiplied by the family
+    size; with the Bonferroni factor the family-wise rate stays at or below alpha."""
+    from sysid.diagnose import stats
+
+    rng = np.random.default_rng(11)
+    T, S, alpha, reps = 40, 6, 0.1, 400
+    t = np.linspace(0.0, 1.0, T)
+    sigs = [np.exp(-t / tau)[:, None] * rng.normal(size=(1, S)) + 0.05 * rng.normal(size=(T, S)) for tau in (0.05, 0.15, 0.45)]
+    raw = bonf = 0
+    for _ in range(reps):
+        r = rng.normal(size=(T, S))
+        ps = [stats.score_test(r, J[..., None], None, prewhiten=False, robust=False).p_value for J in sigs]
+        stat_best = int(np.argmin(ps))
+        raw += ps[stat_best] <= alpha
+        bonf += min(1.0, 3 * ps[stat_best]) <= alpha
+    assert raw / reps > 1.3 * alpha
+    assert bonf / reps <= alpha + 0.03
