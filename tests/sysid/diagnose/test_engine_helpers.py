@@ -242,8 +242,8 @@ def test_sheet_drag_scale_is_bending_stiffness_per_vertex_over_mass_per_step():
 
 
 def test_damping_probe_starts_where_the_drag_acts():
-    """The library's sheet drag is probed at a tenth of c_ref (not at the spec's 100 1/s, three decades
-    below where the drag moves a quasi-static card), and a fitted density moves it as 1 / density."""
+    """The library's sheet drag is probed at c_ref (not at the spec's 100 1/s, three decades below where
+    the drag moves a quasi-static card), and a fitted density moves it as 1 / density."""
     from sysid.diagnose import candidates as cands
 
     sim_model = _sheet_model()
