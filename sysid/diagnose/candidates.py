@@ -23,7 +23,11 @@ probe yield angle = half the largest hinge angle of the nominal rollout). Furthe
 candidates (stiction, gel viscoelasticity, adhesion, anisotropic bending) are taken from
 ``sim_core.candidates.DIAGNOSIS_CANDIDATES`` when that module provides it:
 ``{effect: {"parameter": name, "probe": value, "one_sided": bool}}`` with ``name`` a
-``Simulation`` parameter whose value 0 switches the effect off.
+``Simulation`` parameter whose value 0 switches the effect off. Two are adapted to the scene:
+the sheet drag (``damping``) is first probed at :func:`sheet_drag_scale` (the drag whose per-step
+spring matches the card's bending stiffness per vertex), and gel viscoelasticity is a family over
+the relaxation times the recording resolves (:func:`relaxation_times`; the engine keeps the member
+with the largest score, Bonferroni-corrected for the family size).
 """
 
 from __future__ import annotations
@@ -576,3 +580,51 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
             out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
                                                  bool(spec.get("one_sided", True))))
     return out
+
+
+# ====================================================================================== families
+def member_key(c: Any) -> str:
+    """A library member's identifier (:attr:`PhysicsParameterCandidate.key`; the name for the others)."""
+    return getattr(c, "key", c.name)
+
+
+def select_family_members(library: list, tests: list[dict[str, Any]], notes: list[str]) -> tuple[list, list[dict[str, Any]]]:
+    """Keep one member per candidate family (the gel's Maxwell branch over a grid of relaxation times).
+
+    A family tests one effect with a nuisance setting that only exists under the alternative (the
+    relaxation time of a branch whose stiffness is 0 under the null; Davies 1987). Every member is
+    tested; the one with the largest statistic (over channels) is kept, and its p-values are
+    multiplied by the family size before Holm (Bonferroni over the members: the family-wise error
+    stays at ``alpha`` whichever member is picked). Members of other families: factor 1.
+
+    Args:
+        library: candidates (several may share a name: the members of a family).
+        tests: score tests, each with ``effect``, ``key`` (:func:`member_key`) and ``result``.
+        notes: the report's notes (one line per family is appended).
+
+    Returns:
+        the library with one member per effect, and the tests of the kept members with ``p_family``.
+    """
+    groups: dict[str, list] = {}
+    for c in library:
+        groups.setdefault(c.name, []).append(c)
+    keep = []
+    for name, members in groups.items():
+        if len(members) == 1:
+            keep.append(members[0])
+            continue
+        best = {member_key(c): max((t["result"].statistic for t in tests if t["key"] == member_key(c)), default=-math.inf)
+                for c in members}
+        chosen = max(members, key=lambda c: best[member_key(c)])
+        keep.append(chosen)
+        notes.append(f"{name}: {len(members)} members tested ("
+                     + ", ".join(f"{k} S {v:.3g}" for k, v in best.items())
+                     + f"); kept {member_key(chosen)}, p-values x {len(members)}")
+    kept = {member_key(c) for c in keep}
+    size = {member_key(c): len(groups[c.name]) for c in keep}
+    out = []
+    for t in tests:
+        if t["key"] in kept:
+            t["p_family"] = min(1.0, size[t["key"]] * float(t["result"].p_value))
+            out.append(t)
+    return keep, out

@@ -11,7 +11,10 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    ``probe_target`` noise units (:meth:`BagDiagnosis._calibrate_probes`: a round-off secant or one
    far outside the linear range is no derivative).
 3. Score tests (:func:`sysid.diagnose.stats.score_test`: AR prewhitening, projection of
-   ``J_theta``, robust variance) for every candidate x tested channel; Holm over the family.
+   ``J_theta``, robust variance) for every candidate x tested channel; a candidate tested with
+   several members (gel viscoelasticity over a grid of relaxation times) keeps its strongest member,
+   with p-values multiplied by the number of members (:func:`candidates.select_family_members`);
+   Holm over the family.
 4. Refit of every significant candidate (physics: the linearised estimate on the training rows,
    then one verifying replay, one secant replay, and the probe when it fits better; a probe that
    diverged is retried at a quarter of its size; observation: exact, no replay), on training rows;
@@ -76,11 +79,6 @@ CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelastici
 stiction vs anisotropic bending: in a press-slide both change how the card buckles after the second
 breakaway (on the benchmark's stiction recording at strength 2.9 their refits remove the same held-out
 energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
-
-
-def _key(c: Any) -> str:
-    """A library member's identifier (:attr:`PhysicsParameterCandidate.key`; the name for the others)."""
-    return getattr(c, "key", c.name)
 
 
 @dataclass
@@ -215,7 +213,7 @@ class BagDiagnosis:
         for _ in range(2):
             redo = []
             for c in probes:
-                rep = probe_out.get(_key(c))
+                rep = probe_out.get(cands.member_key(c))
                 if rep is None or not hasattr(c, "grow_probe"):
                     continue
                 m = self._probe_change(ctx, rep[1])
@@ -231,52 +229,16 @@ class BagDiagnosis:
                     continue
                 if changed:
                     redo.append((c, old))
-                    self.notes.append(f"{_key(c)}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
+                    self.notes.append(f"{cands.member_key(c)}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
                                       f"re-probed at beta {c.probe_beta:.3g}")
             if not redo:
                 return
             for (c, old), rep in zip(redo, self._replays([c.probe(ctx) for c, _ in redo])):
                 if rep is not None:
-                    probe_out[_key(c)] = rep
+                    probe_out[cands.member_key(c)] = rep
                 else:
                     c.probe_beta, c.bound = old
-                    self.notes.append(f"{_key(c)}: rescaled probe diverged; the previous one is kept")
-
-    def _select_family_members(self, library: list, tests: list[dict[str, Any]]) -> tuple[list, list[dict[str, Any]]]:
-        """Keep one member per candidate family (the gel's Maxwell branch over a grid of relaxation times).
-
-        A family tests one effect with a nuisance setting that only exists under the alternative (the
-        relaxation time of a branch whose stiffness is 0 under the null; Davies 1987). Every member is
-        tested; the one with the largest statistic (over channels) is kept, and its p-values are
-        multiplied by the family size before Holm (Bonferroni over the members: the family-wise error
-        stays at ``alpha`` whichever member is picked). Members of other families: factor 1.
-
-        Returns:
-            the library with one member per effect, and the tests of the kept members with ``p_family``.
-        """
-        groups: dict[str, list] = {}
-        for c in library:
-            groups.setdefault(c.name, []).append(c)
-        keep = []
-        for name, members in groups.items():
-            if len(members) == 1:
-                keep.append(members[0])
-                continue
-            best = {_key(c): max((t["result"].statistic for t in tests if t["key"] == _key(c)), default=-math.inf)
-                    for c in members}
-            chosen = max(members, key=lambda c: best[_key(c)])
-            keep.append(chosen)
-            self.notes.append(f"{name}: {len(members)} members tested ("
-                              + ", ".join(f"{k} S {v:.3g}" for k, v in best.items())
-                              + f"); kept {_key(chosen)}, p-values x {len(members)}")
-        kept = {_key(c) for c in keep}
-        size = {_key(c): len(groups[c.name]) for c in keep}
-        out = []
-        for t in tests:
-            if t["key"] in kept:
-                t["p_family"] = min(1.0, size[t["key"]] * float(t["result"].p_value))
-                out.append(t)
-        return keep, out
+                    self.notes.append(f"{cands.member_key(c)}: rescaled probe diverged; the previous one is kept")
 
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
@@ -310,28 +272,28 @@ class BagDiagnosis:
         if self.candidate_names is not None:
             library = [c for c in library if c.name in self.candidate_names]
         probes = [c for c in library if c.probe(ctx) is not None]
-        probe_out = dict(zip([_key(c) for c in probes], self._replays([c.probe(ctx) for c in probes])))
+        probe_out = dict(zip([cands.member_key(c) for c in probes], self._replays([c.probe(ctx) for c in probes])))
         # a probe the simulator cannot finish (e.g. a strong Maxwell branch at lift-off) is retried
         # smaller: the secant signature only needs a change well above round-off
         for _ in range(2):
-            retry = [c for c in probes if probe_out.get(_key(c)) is None and hasattr(c, "shrink_probe")]
+            retry = [c for c in probes if probe_out.get(cands.member_key(c)) is None and hasattr(c, "shrink_probe")]
             if not retry:
                 break
             for c in retry:
                 c.shrink_probe(0.25)
-                self.notes.append(f"{_key(c)}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
-            probe_out.update(zip([_key(c) for c in retry], self._replays([c.probe(ctx) for c in retry])))
+                self.notes.append(f"{cands.member_key(c)}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
+            probe_out.update(zip([cands.member_key(c) for c in retry], self._replays([c.probe(ctx) for c in retry])))
         self._calibrate_probes(ctx, probes, probe_out)
 
         # ---- score tests
         tests = []
         signatures: dict[str, dict[str, np.ndarray]] = {}
         for c in library:
-            if c.level == "physics" and probe_out.get(_key(c)) is None:
-                self.notes.append(f"{_key(c)}: probe replay diverged; not tested")
+            if c.level == "physics" and probe_out.get(cands.member_key(c)) is None:
+                self.notes.append(f"{cands.member_key(c)}: probe replay diverged; not tested")
                 continue
-            sig = c.signature(ctx, probe_out[_key(c)][1] if c.level == "physics" else None)
-            signatures[_key(c)] = sig
+            sig = c.signature(ctx, probe_out[cands.member_key(c)][1] if c.level == "physics" else None)
+            signatures[cands.member_key(c)] = sig
             for ch, J in sig.items():
                 r = residual(model, ch, pred0[ch])
                 T = r.shape[0]
@@ -345,10 +307,10 @@ class BagDiagnosis:
                 except ValueError as err:
                     self.notes.append(f"{c.name} on {ch}: {err}")
                     continue
-                tests.append({"effect": c.name, "key": _key(c), "channel": ch, "result": res})
-        library, tests = self._select_family_members(library, tests)
-        self._signatures = {c.name: signatures[_key(c)] for c in library if _key(c) in signatures}
-        self._probe_out = {c.name: probe_out[_key(c)] for c in library if _key(c) in probe_out}
+                tests.append({"effect": c.name, "key": cands.member_key(c), "channel": ch, "result": res})
+        library, tests = cands.select_family_members(library, tests, self.notes)
+        self._signatures = {c.name: signatures[cands.member_key(c)] for c in library if cands.member_key(c) in signatures}
+        self._probe_out = {c.name: probe_out[cands.member_key(c)] for c in library if cands.member_key(c) in probe_out}
         adjusted, reject = (stats.holm([t["p_family"] for t in tests], s.alpha) if tests else ([], []))
         for t, a, rj in zip(tests, adjusted, reject):
             t["p_adjusted"], t["significant"] = float(a), bool(rj)

@@ -304,12 +304,14 @@ def test_family_keeps_its_strongest_member_with_bonferroni_p_values():
              _test_entry(members[1].key, "gel_viscoelasticity", 2.0, 0.4, "markers_uv"),
              _test_entry(members[2].key, "gel_viscoelasticity", 9.0, 0.003),
              _test_entry("stiction", "stiction", 4.0, 0.04)]
-    d = _bare(SimpleNamespace(sigma={}))
-    lib, kept = d._select_family_members(members + [single], tests)
+    from sysid.diagnose.candidates import select_family_members
+
+    notes = []
+    lib, kept = select_family_members(members + [single], tests, notes)
     assert [c.key for c in lib] == [members[1].key, "stiction"]
     assert [t["key"] for t in kept] == [members[1].key, members[1].key, "stiction"]
     assert [t["p_family"] for t in kept] == pytest.approx([3e-6, 1.0, 0.04])
-    assert any("kept gel_viscoelasticity[tau=0.15]" in n for n in d.notes)
+    assert any("kept gel_viscoelasticity[tau=0.15]" in n for n in notes)
 
 
 def test_best_of_a_family_keeps_its_size_under_the_null():
