@@ -23,7 +23,11 @@ probe yield angle = half the largest hinge angle of the nominal rollout). Furthe
 candidates (stiction, gel viscoelasticity, adhesion, anisotropic bending) are taken from
 ``sim_core.candidates.DIAGNOSIS_CANDIDATES`` when that module provides it:
 ``{effect: {"parameter": name, "probe": value, "one_sided": bool}}`` with ``name`` a
-``Simulation`` parameter whose value 0 switches the effect off.
+``Simulation`` parameter whose value 0 switches the effect off. Two are adapted to the scene:
+the sheet drag (``damping``) is first probed at :func:`sheet_drag_scale` (the drag whose per-step
+spring matches the card's bending stiffness per vertex), and gel viscoelasticity is a family over
+the relaxation times the recording resolves (:func:`relaxation_times`; the engine keeps the member
+with the largest score, Bonferroni-corrected for the family size).
 """
 
 from __future__ import annotations
@@ -297,11 +301,18 @@ class PhysicsParameterCandidate:
     level = "physics"
 
     def __init__(self, name: str, parameter: str, probe_beta: float, one_sided: bool = True,
-                 to_parameter: Callable[[float], float] | None = None, report_name: str | None = None) -> None:
+                 to_parameter: Callable[[float], float] | None = None, report_name: str | None = None,
+                 settings: Mapping[str, float] | None = None, family_size: int = 1) -> None:
         if not (math.isfinite(probe_beta) and probe_beta > 0.0):
             raise ValueError(f"candidate {name}: probe beta must be a positive number, got {probe_beta!r}")
+        if int(family_size) < 1:
+            raise ValueError(f"candidate {name}: family size must be >= 1, got {family_size!r}")
         self.name = name
         self.parameter = parameter
+        # fixed secondary simulator settings of this member of a family (e.g. a relaxation time), set
+        # with the effect whenever it is on; family_size = number of members tested for the effect
+        self.settings = {k: float(v) for k, v in (settings or {}).items()}
+        self.family_size = int(family_size)
         self.probe_beta = float(probe_beta)
         self.one_sided = one_sided
         self.to_parameter = to_parameter or (lambda b: float(b))
@@ -337,9 +348,16 @@ class PhysicsParameterCandidate:
         self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
         return True
 
+    @property
+    def key(self) -> str:
+        """Identifier of this member of its family: the effect name, plus its settings when it has any."""
+        if not self.settings:
+            return self.name
+        return self.name + "[" + ", ".join(f"{k.rsplit('.', 1)[-1]}={v:.3g}" for k, v in sorted(self.settings.items())) + "]"
+
     def probe(self, ctx: DiagnosisContext) -> dict[str, float]:
         """Parameters of the probe rollout (nominal values plus the effect at ``probe_beta``)."""
-        return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta)}
+        return {**ctx.params, self.parameter: self.to_parameter(self.probe_beta), **self.settings}
 
     def signature(self, ctx: DiagnosisContext, probe_prediction: Mapping[str, np.ndarray] | None = None
                   ) -> dict[str, np.ndarray]:
@@ -358,7 +376,7 @@ class PhysicsParameterCandidate:
         b = max(beta, 0.0) if self.one_sided else beta
         if b == 0.0:
             return {}  # off: the nominal model (an infinite yield angle cannot be set, it is the default)
-        return {self.parameter: self.to_parameter(b)}
+        return {self.parameter: self.to_parameter(b), **self.settings}
 
 
 def yield_angle_for(beta: float, theta_max: float) -> float:
@@ -385,6 +403,89 @@ def max_hinge_angle(ctx: DiagnosisContext) -> float:
     return float(max(np.max(np.abs(dihedral_angle(p[hinges]))) for p in pts[::step]))
 
 
+def sheet_drag_scale(sim_model: Any, dt: float) -> float:
+    """Drag coefficient (1/s) at which a sheet's drag is as stiff per step as its bending, ``c_ref``.
+
+    Implicit Euler turns the drag ``-c m v`` into a spring ``c m_i / dt`` (N/m) that pulls vertex i
+    back to where it was at the start of the step; the card's own restoring stiffness per vertex is
+    about ``D / A_v`` (Kirchhoff bending stiffness D in N m over the rest area per vertex A_v). In a
+    quasi-static press the drag changes the motion only where the two are comparable, so
+
+        c_ref = D dt / (m_v A_v),   m_v = sheet mass / vertex count, A_v = rest area / vertex count,
+
+    the smallest over the sheets (the most easily damped one). Far below ``c_ref`` the drag's change of
+    the prediction is round-off or a contact-state flip, not its smooth response (the benchmark card:
+    c_ref 3.4e5 1/s, a probe of 100 1/s moves the prediction by 1e-3 noise units).
+
+    Args:
+        sim_model: ``sim_core`` Model (bodies with ``kind``, ``vertices``, ``triangles``, ``material``;
+            ``x_rest``; ``vertex_mass()``).
+        dt: time step in s (> 0).
+
+    Returns:
+        ``c_ref`` in 1/s, or ``nan`` when there is no sheet with a positive bending stiffness and mass.
+    """
+    masses = sim_model.vertex_mass() if callable(getattr(sim_model, "vertex_mass", None)) else sim_model.vertex_mass
+    out = math.inf
+    for body in sim_model.bodies.values():
+        if body.kind != "sheet":
+            continue
+        ids = np.unique(np.asarray(body.vertices, dtype=np.int64).reshape(-1))
+        tri = np.asarray(body.triangles, dtype=np.int64)
+        if ids.size == 0 or tri.size == 0:
+            continue
+        x = np.asarray(sim_model.x_rest, dtype=float)
+        area = 0.5 * float(np.sum(np.linalg.norm(np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]]),
+                                                 axis=1)))
+        D = float(body.material.get("bending_stiffness", 0.0))
+        m_v = float(np.sum(np.asarray(masses, dtype=float)[ids])) / ids.size
+        a_v = area / ids.size
+        if D > 0.0 and m_v > 0.0 and a_v > 0.0:
+            out = min(out, D * dt / (m_v * a_v))
+    return out if math.isfinite(out) else math.nan
+
+
+RELAXATION_GRID_RATIO = 3.0
+"""Spacing of the relaxation-time grid of the gel viscoelasticity candidate (factor between taus)."""
+
+RELAXATION_MIN_STEPS = 5
+"""Shortest relaxation time of the grid, in simulation steps (a shorter one is not resolved)."""
+
+
+def relaxation_times(dt: float, duration: float, ratio: float = RELAXATION_GRID_RATIO,
+                     min_steps: int = RELAXATION_MIN_STEPS) -> list[float]:
+    """Log-spaced relaxation times (s) a recording can resolve: from ``min_steps dt`` up to its duration.
+
+    A gel's relaxation time is not known beforehand, and the signature of a Maxwell branch depends on
+    it much more than on anything the nominal fit can absorb (on the benchmark's gel recording at
+    strength 2.6 the residual supports a branch with tau 0.1 s at one scale on the markers, pixels and
+    wrench -- 0.87, 0.90, 0.93 -- and one with tau 0.3 s at 0.56, 0.58, 0.13). The candidate is
+    therefore a family over ``tau_min, tau_min ratio, ...`` (the last one <= duration, at least one):
+    a discrete relaxation spectrum (Prony series, Park & Schapery 1999) of which the diagnosis tests
+    every member and keeps the best, Bonferroni-corrected for the size of the grid.
+
+    Raises:
+        ValueError: non-positive ``dt``, ``ratio <= 1`` or ``min_steps < 1``.
+    """
+    if not (dt > 0 and ratio > 1 and min_steps >= 1):
+        raise ValueError(f"relaxation_times: need dt > 0, ratio > 1, min_steps >= 1 (got {dt}, {ratio}, {min_steps})")
+    tau = min_steps * dt
+    out = [tau]
+    while out[-1] * ratio <= duration * (1 + 1e-9):
+        out.append(out[-1] * ratio)
+    return out
+
+
+DRAG_PROBE_FRACTION = 1.0
+"""The damping candidate's first probe, as a fraction of :func:`sheet_drag_scale`. At ``c_ref`` the
+drag's smooth response is about the probe target (0.6-1.3 noise units on the benchmark card); a
+smaller probe is not more linear there but less reliable: below ``c_ref`` the change of a
+quasi-static press-slide can be dominated by one contact-state flip that any small drag triggers
+(benchmark damping x4, SciPy solver: at 1e4 and 3.4e4 1/s the change is 0.5-0.9 noise units with
+per-channel regression scales of mixed sign, -1.5 to 0.5; at 1e5-3.4e5 1/s one scale, 0.84-1.1,
+fits every channel). The probe calibration then rescales it towards its target change."""
+
+
 def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
     """Whether the simulator accepts parameter ``name`` (``candidate.<x>`` are not listed in
     ``parameter_names`` but are readable through ``get_parameter``)."""
@@ -395,6 +496,30 @@ def _known_parameter(model: Any, name: str, names: set[str]) -> bool:
     except Exception:  # ConfigError: the simulator does not know this candidate
         return False
     return True
+
+
+RELAXATION_SETTING = "candidate.gel_viscoelasticity.tau"
+"""Simulator setting of the gel candidate's relaxation time, s."""
+
+
+def _duration_s(ctx: DiagnosisContext) -> float:
+    """Span of the replayed steps in s."""
+    steps = np.asarray(ctx.model.step_times_ns, dtype=np.int64)
+    return float(steps[-1] - steps[0]) * 1e-9
+
+
+def _drag_scale_of(ctx: DiagnosisContext) -> float:
+    """:func:`sheet_drag_scale` of the context's simulator at its step, with fitted sheet bending
+    stiffness / density / thickness in ``ctx.params`` taken into account (``c_ref`` is proportional to
+    ``D / (density thickness)``); ``nan`` when not available."""
+    try:
+        c_ref = sheet_drag_scale(ctx.model.simulation().model, float(ctx.model.dt))
+        for name, power in (("sheet.bending_stiffness", 1.0), ("sheet.density", -1.0), ("sheet.thickness", -1.0)):
+            if name in ctx.params:
+                c_ref *= (float(ctx.params[name]) / float(ctx.model.parameter_value(name))) ** power
+        return float(c_ref)
+    except Exception:  # noqa: BLE001 -- a scene without a sheet or a simulator without these fields
+        return math.nan
 
 
 def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, Any]] | None = None,
@@ -439,6 +564,67 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
         if effect not in EFFECTS:
             raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")
         if effect not in {c.name for c in out} and _known_parameter(ctx.model, spec["parameter"], names):
-            out.append(PhysicsParameterCandidate(effect, spec["parameter"], float(spec["probe"]),
+            probe = float(spec["probe"])
+            if effect == "damping":
+                # the library's sheet drag: probe where the drag acts (sheet_drag_scale), not at a fixed
+                # value three decades below it, whose change is round-off or a contact-state flip
+                c_ref = _drag_scale_of(ctx)
+                if math.isfinite(c_ref) and c_ref > 0.0:
+                    probe = max(probe, DRAG_PROBE_FRACTION * c_ref)
+            if effect == "gel_viscoelasticity" and _known_parameter(ctx.model, RELAXATION_SETTING, names):
+                taus = relaxation_times(float(ctx.model.dt), _duration_s(ctx))
+                out.extend(PhysicsParameterCandidate(effect, spec["parameter"], probe, bool(spec.get("one_sided", True)),
+                                                     settings={RELAXATION_SETTING: tau}, family_size=len(taus))
+                           for tau in taus)
+                continue
+            out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
                                                  bool(spec.get("one_sided", True))))
     return out
+
+
+# ====================================================================================== families
+def member_key(c: Any) -> str:
+    """A library member's identifier (:attr:`PhysicsParameterCandidate.key`; the name for the others)."""
+    return getattr(c, "key", c.name)
+
+
+def select_family_members(library: list, tests: list[dict[str, Any]], notes: list[str]) -> tuple[list, list[dict[str, Any]]]:
+    """Keep one member per candidate family (the gel's Maxwell branch over a grid of relaxation times).
+
+    A family tests one effect with a nuisance setting that only exists under the alternative (the
+    relaxation time of a branch whose stiffness is 0 under the null; Davies 1987). Every member is
+    tested; the one with the largest statistic (over channels) is kept, and its p-values are
+    multiplied by the family size before Holm (Bonferroni over the members: the family-wise error
+    stays at ``alpha`` whichever member is picked). Members of other families: factor 1.
+
+    Args:
+        library: candidates (several may share a name: the members of a family).
+        tests: score tests, each with ``effect``, ``key`` (:func:`member_key`) and ``result``.
+        notes: the report's notes (one line per family is appended).
+
+    Returns:
+        the library with one member per effect, and the tests of the kept members with ``p_family``.
+    """
+    groups: dict[str, list] = {}
+    for c in library:
+        groups.setdefault(c.name, []).append(c)
+    keep = []
+    for name, members in groups.items():
+        if len(members) == 1:
+            keep.append(members[0])
+            continue
+        best = {member_key(c): max((t["result"].statistic for t in tests if t["key"] == member_key(c)), default=-math.inf)
+                for c in members}
+        chosen = max(members, key=lambda c: best[member_key(c)])
+        keep.append(chosen)
+        notes.append(f"{name}: {len(members)} members tested ("
+                     + ", ".join(f"{k} S {v:.3g}" for k, v in best.items())
+                     + f"); kept {member_key(chosen)}, p-values x {len(members)}")
+    kept = {member_key(c) for c in keep}
+    size = {member_key(c): len(groups[c.name]) for c in keep}
+    out = []
+    for t in tests:
+        if t["key"] in kept:
+            t["p_family"] = min(1.0, size[t["key"]] * float(t["result"].p_value))
+            out.append(t)
+    return keep, out

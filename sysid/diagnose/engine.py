@@ -11,7 +11,10 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    ``probe_target`` noise units (:meth:`BagDiagnosis._calibrate_probes`: a round-off secant or one
    far outside the linear range is no derivative).
 3. Score tests (:func:`sysid.diagnose.stats.score_test`: AR prewhitening, projection of
-   ``J_theta``, robust variance) for every candidate x tested channel; Holm over the family.
+   ``J_theta``, robust variance) for every candidate x tested channel; a candidate tested with
+   several members (gel viscoelasticity over a grid of relaxation times) keeps its strongest member,
+   with p-values multiplied by the number of members (:func:`candidates.select_family_members`);
+   Holm over the family.
 4. Refit of every significant candidate (physics: the linearised estimate on the training rows,
    then one verifying replay, one secant replay, and the probe when it fits better; a probe that
    diverged is retried at a quarter of its size; observation: exact, no replay), on training rows;
@@ -210,7 +213,7 @@ class BagDiagnosis:
         for _ in range(2):
             redo = []
             for c in probes:
-                rep = probe_out.get(c.name)
+                rep = probe_out.get(cands.member_key(c))
                 if rep is None or not hasattr(c, "grow_probe"):
                     continue
                 m = self._probe_change(ctx, rep[1])
@@ -226,16 +229,16 @@ class BagDiagnosis:
                     continue
                 if changed:
                     redo.append((c, old))
-                    self.notes.append(f"{c.name}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
+                    self.notes.append(f"{cands.member_key(c)}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
                                       f"re-probed at beta {c.probe_beta:.3g}")
             if not redo:
                 return
             for (c, old), rep in zip(redo, self._replays([c.probe(ctx) for c, _ in redo])):
                 if rep is not None:
-                    probe_out[c.name] = rep
+                    probe_out[cands.member_key(c)] = rep
                 else:
                     c.probe_beta, c.bound = old
-                    self.notes.append(f"{c.name}: rescaled probe diverged; the previous one is kept")
+                    self.notes.append(f"{cands.member_key(c)}: rescaled probe diverged; the previous one is kept")
 
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
@@ -269,29 +272,28 @@ class BagDiagnosis:
         if self.candidate_names is not None:
             library = [c for c in library if c.name in self.candidate_names]
         probes = [c for c in library if c.probe(ctx) is not None]
-        probe_out = dict(zip([c.name for c in probes], self._replays([c.probe(ctx) for c in probes])))
+        probe_out = dict(zip([cands.member_key(c) for c in probes], self._replays([c.probe(ctx) for c in probes])))
         # a probe the simulator cannot finish (e.g. a strong Maxwell branch at lift-off) is retried
         # smaller: the secant signature only needs a change well above round-off
         for _ in range(2):
-            retry = [c for c in probes if probe_out.get(c.name) is None and hasattr(c, "shrink_probe")]
+            retry = [c for c in probes if probe_out.get(cands.member_key(c)) is None and hasattr(c, "shrink_probe")]
             if not retry:
                 break
             for c in retry:
                 c.shrink_probe(0.25)
-                self.notes.append(f"{c.name}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
-            probe_out.update(zip([c.name for c in retry], self._replays([c.probe(ctx) for c in retry])))
+                self.notes.append(f"{cands.member_key(c)}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
+            probe_out.update(zip([cands.member_key(c) for c in retry], self._replays([c.probe(ctx) for c in retry])))
         self._calibrate_probes(ctx, probes, probe_out)
-        self._probe_out = probe_out
 
         # ---- score tests
         tests = []
         signatures: dict[str, dict[str, np.ndarray]] = {}
         for c in library:
-            if c.level == "physics" and probe_out.get(c.name) is None:
-                self.notes.append(f"{c.name}: probe replay diverged; not tested")
+            if c.level == "physics" and probe_out.get(cands.member_key(c)) is None:
+                self.notes.append(f"{cands.member_key(c)}: probe replay diverged; not tested")
                 continue
-            sig = c.signature(ctx, probe_out[c.name][1] if c.level == "physics" else None)
-            signatures[c.name] = sig
+            sig = c.signature(ctx, probe_out[cands.member_key(c)][1] if c.level == "physics" else None)
+            signatures[cands.member_key(c)] = sig
             for ch, J in sig.items():
                 r = residual(model, ch, pred0[ch])
                 T = r.shape[0]
@@ -305,9 +307,11 @@ class BagDiagnosis:
                 except ValueError as err:
                     self.notes.append(f"{c.name} on {ch}: {err}")
                     continue
-                tests.append({"effect": c.name, "channel": ch, "result": res})
-        self._signatures = signatures
-        adjusted, reject = stats.holm([t["result"].p_value for t in tests], s.alpha) if tests else ([], [])
+                tests.append({"effect": c.name, "key": cands.member_key(c), "channel": ch, "result": res})
+        library, tests = cands.select_family_members(library, tests, self.notes)
+        self._signatures = {c.name: signatures[cands.member_key(c)] for c in library if cands.member_key(c) in signatures}
+        self._probe_out = {c.name: probe_out[cands.member_key(c)] for c in library if cands.member_key(c) in probe_out}
+        adjusted, reject = (stats.holm([t["p_family"] for t in tests], s.alpha) if tests else ([], []))
         for t, a, rj in zip(tests, adjusted, reject):
             t["p_adjusted"], t["significant"] = float(a), bool(rj)
 
@@ -389,7 +393,8 @@ class BagDiagnosis:
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
             "extra": {"tests": [{"effect": t["effect"], "channel": t["channel"],
                                  "statistic": float(t["result"].statistic), "dof": t["result"].dof,
-                                 "p_value": float(t["result"].p_value), "p_holm": t["p_adjusted"],
+                                 "p_value": float(t["result"].p_value), "p_family": t["p_family"],
+                                 "p_holm": t["p_adjusted"], "member": t["key"],
                                  "significant": t["significant"], "classical_statistic": float(t["result"].classical),
                                  "ar_order": t["result"].ar_order} for t in tests],
                       "decisions": {e: {k: v for k, v in d.items() if k != "prediction"}
@@ -468,7 +473,8 @@ class BagDiagnosis:
                           for n, d in zip(self.project, sol[1:])}
                 params = {**theta, **dtheta, **c.sim_parameters(beta)}
                 sets.append(params)
-                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **{k: float(v) for k, v in dtheta.items()}},
+                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **c.settings,
+                                                             **{k: float(v) for k, v in dtheta.items()}},
                                           {}, sim_params={**dtheta, **c.sim_parameters(beta)})
             for c, rep in zip(physics, self._replays(sets)):
                 if rep is None:
@@ -497,7 +503,7 @@ class BagDiagnosis:
         if self._train_sse(probe[1], train) < min(self._train_sse(ctx.prediction, train),
                                                  self._train_sse(rf.prediction, train)):
             rf.beta = np.array([c.probe_beta])
-            rf.params = {c.report_name: c.probe_beta}
+            rf.params = {c.report_name: c.probe_beta, **c.settings}
             rf.sim_params = c.sim_parameters(c.probe_beta)
             rf.prediction = probe[1]
 

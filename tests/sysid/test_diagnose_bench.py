@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -183,3 +184,37 @@ def test_bench_adhesion_acts_through_the_candidate_solver():
     lift = slice(-6, None)
     assert np.allclose(glued["wrench"][:3], base["wrench"][:3])
     assert np.max(np.abs(glued["wrench"][lift, 2] - base["wrench"][lift, 2])) > 0.02
+
+
+def test_calibration_reaches_a_power_law_and_brackets_a_threshold():
+    """Calibration of the strength: a sublinear response (sheet drag: strength ~ m^0.6) is reached
+    within the tolerance; a threshold response (no change below m = 1, then strength 0.5 + 2 m) is
+    bisected towards the jump instead of crawling along the secant, and a try of strength 0 is never
+    taken as the closest one."""
+    from sysid.diagnose_bench import CALIBRATION_STEPS, CALIBRATION_TOLERANCE, next_magnitude, strength_error
+
+    def calibrate(response, k, m0):
+        tried = [(m0, response(m0))]
+        m = m0 * k / tried[0][1] if tried[0][1] > 0 else 2 * m0
+        tried.append((m, response(m)))
+        for _ in range(CALIBRATION_STEPS):
+            best = min(tried, key=lambda p: strength_error(p[1], k))
+            if strength_error(best[1], k) <= math.log1p(CALIBRATION_TOLERANCE):
+                break
+            m2 = next_magnitude(tried, k)
+            if m2 is None:
+                break
+            tried.append((m2, response(m2)))
+        return min(tried, key=lambda p: strength_error(p[1], k)), tried
+
+    (m, s), _ = calibrate(lambda m: m ** 0.6, 4.0, 1.0)
+    assert abs(s / 4.0 - 1.0) <= CALIBRATION_TOLERANCE
+    step = lambda m: 0.0 if m < 1.0 else 0.5 + 2.0 * m  # noqa: E731
+    (m, s), tried = calibrate(step, 3.0, 4.0)  # reference far above the jump
+    assert s > 0 and abs(s / 3.0 - 1.0) <= CALIBRATION_TOLERANCE
+    # below the jump: the next try doubles instead of dividing by a zero strength
+    assert next_magnitude([(0.5, 0.0)], 3.0) == pytest.approx(1.0)
+    # bracketed by a zero strength and a large one: geometric midpoint, not an end of the bracket
+    assert next_magnitude([(0.25, 0.0), (4.0, 8.5)], 3.0) == pytest.approx(1.0)
+    assert next_magnitude([(1.0, 1.0), (1.0 + 1e-9, 9.0)], 3.0) is None
+    assert strength_error(0.0, 1.0) == math.inf

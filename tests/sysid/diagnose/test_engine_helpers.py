@@ -208,3 +208,129 @@ def test_latency_is_shared_only_by_streams_whose_own_delay_agrees():
         chans = latency.streams_sharing_delay(d.model, ctx, train, strongest, ["markers_uv", "markers_xyz", "wrench"], d.notes)
         assert chans == ["wrench"], strongest
         assert "tactile/markers" in d.notes[0] and "confirmed" in d.notes[0]
+
+
+def _sheet_model(D=0.008, density=700.0, thickness=3e-4, size=(0.05, 0.03), resolution=(9, 5)):
+    """A bare sim_core Model with one grid sheet (lumped masses from the builder's rule)."""
+    from sim_core.mesh.sheet import grid_sheet
+
+    mesh = grid_sheet(size, resolution, (0.0, 0.0, 0.0))
+    n = mesh.x.shape[0]
+    area = size[0] * size[1]
+    body = SimpleNamespace(kind="sheet", vertices=np.arange(n), triangles=mesh.triangles,
+                           material={"bending_stiffness": D})
+    gel = SimpleNamespace(kind="solid", vertices=np.arange(n, n + 4), triangles=np.zeros((0, 3), int), material={})
+    masses = np.concatenate([np.full(n, density * thickness * area / n), np.full(4, 1.0)])
+    return SimpleNamespace(bodies={"sheet": body, "gel": gel}, x_rest=np.concatenate([mesh.x, np.zeros((4, 3))]),
+                           vertex_mass=lambda: masses)
+
+
+def test_sheet_drag_scale_is_bending_stiffness_per_vertex_over_mass_per_step():
+    """c_ref = D dt / (m_v A_v): the drag coefficient whose per-step spring c m_v / dt equals the
+    bending stiffness per vertex D / A_v (benchmark card: 3.4e5 1/s); it scales with D, dt and
+    1 / (density thickness) and ignores the gel."""
+    from sysid.diagnose.candidates import sheet_drag_scale
+
+    c = sheet_drag_scale(_sheet_model(), 0.01)
+    n = 45
+    m_v, a_v = 700.0 * 3e-4 * 0.05 * 0.03 / n, 0.05 * 0.03 / n
+    assert c == pytest.approx(0.008 * 0.01 / (m_v * a_v))
+    assert c == pytest.approx(3.43e5, rel=0.01)
+    assert sheet_drag_scale(_sheet_model(D=0.016), 0.01) == pytest.approx(2 * c)
+    assert sheet_drag_scale(_sheet_model(density=1400.0), 0.02) == pytest.approx(c)
+    assert math.isnan(sheet_drag_scale(_sheet_model(D=0.0), 0.01))
+
+
+def test_damping_probe_starts_where_the_drag_acts():
+    """The library's sheet drag is probed at c_ref (not at the spec's 100 1/s, three decades below where
+    the drag moves a quasi-static card), and a fitted density moves it as 1 / density."""
+    from sysid.diagnose import candidates as cands
+
+    sim_model = _sheet_model()
+    names = ["sheet.bending_stiffness", "sheet.density", "sheet.thickness"]
+    scene_values = {"sheet.bending_stiffness": 0.008, "sheet.density": 700.0, "sheet.thickness": 3e-4}
+    obs = SimpleNamespace(dt=0.01, parameter_value=lambda n: scene_values[n],
+                          simulation=lambda: SimpleNamespace(parameter_names=names, model=sim_model,
+                                                             get_parameter=lambda n: 0.0))
+    spec = {"damping": {"parameter": "candidate.damping", "probe": 100.0, "one_sided": True}}
+    c_ref = cands.sheet_drag_scale(sim_model, 0.01)
+    lib = cands.default_candidates(cands.DiagnosisContext(obs, {}, None, {}, ()), extra=spec)
+    damping = next(c for c in lib if c.name == "damping")
+    assert damping.probe_beta == pytest.approx(cands.DRAG_PROBE_FRACTION * c_ref)
+    lib = cands.default_candidates(cands.DiagnosisContext(obs, {"sheet.density": 1400.0}, None, {}, ()), extra=spec)
+    assert next(c for c in lib if c.name == "damping").probe_beta == pytest.approx(0.5 * cands.DRAG_PROBE_FRACTION * c_ref)
+    # without a sheet the spec's probe stays
+    bare = SimpleNamespace(dt=0.01, parameter_value=lambda n: 1.0,
+                           simulation=lambda: SimpleNamespace(parameter_names=[], model=SimpleNamespace(bodies={}),
+                                                              get_parameter=lambda n: 0.0))
+    lib = cands.default_candidates(cands.DiagnosisContext(bare, {}, None, {}, ()), extra=spec)
+    assert next(c for c in lib if c.name == "damping").probe_beta == pytest.approx(100.0)
+
+
+def test_relaxation_grid_spans_what_the_recording_resolves():
+    from sysid.diagnose.candidates import relaxation_times
+
+    assert relaxation_times(0.01, 0.46) == pytest.approx([0.05, 0.15, 0.45])
+    assert relaxation_times(0.01, 0.03) == pytest.approx([0.05])  # always at least one member
+    assert relaxation_times(0.005, 2.0, ratio=10.0) == pytest.approx([0.025, 0.25])
+    with pytest.raises(ValueError, match="ratio > 1"):
+        relaxation_times(0.01, 1.0, ratio=1.0)
+
+
+def test_family_members_carry_their_settings_only_when_on():
+    c = PhysicsParameterCandidate("gel_viscoelasticity", "candidate.gel_viscoelasticity", 0.5,
+                                  settings={"candidate.gel_viscoelasticity.tau": 0.05}, family_size=3)
+    assert c.key == "gel_viscoelasticity[tau=0.05]"
+    assert c.sim_parameters(0.0) == {}
+    assert c.sim_parameters(0.2) == {"candidate.gel_viscoelasticity": 0.2, "candidate.gel_viscoelasticity.tau": 0.05}
+    assert c.probe(SimpleNamespace(params={"gel.youngs_modulus": 1.0}))["candidate.gel_viscoelasticity.tau"] == 0.05
+    assert PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5).key == "stiction"
+    with pytest.raises(ValueError, match="family size"):
+        PhysicsParameterCandidate("x", "y", 1.0, family_size=0)
+
+
+def _test_entry(member, effect, statistic, p, channel="wrench"):
+    return {"effect": effect, "key": member, "channel": channel,
+            "result": SimpleNamespace(statistic=statistic, p_value=p)}
+
+
+def test_family_keeps_its_strongest_member_with_bonferroni_p_values():
+    members = [PhysicsParameterCandidate("gel_viscoelasticity", "candidate.gel_viscoelasticity", 0.5,
+                                         settings={"candidate.gel_viscoelasticity.tau": tau}, family_size=3)
+               for tau in (0.05, 0.15, 0.45)]
+    single = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)
+    tests = [_test_entry(members[0].key, "gel_viscoelasticity", 5.0, 0.02),
+             _test_entry(members[1].key, "gel_viscoelasticity", 30.0, 1e-6),
+             _test_entry(members[1].key, "gel_viscoelasticity", 2.0, 0.4, "markers_uv"),
+             _test_entry(members[2].key, "gel_viscoelasticity", 9.0, 0.003),
+             _test_entry("stiction", "stiction", 4.0, 0.04)]
+    from sysid.diagnose.candidates import select_family_members
+
+    notes = []
+    lib, kept = select_family_members(members + [single], tests, notes)
+    assert [c.key for c in lib] == [members[1].key, "stiction"]
+    assert [t["key"] for t in kept] == [members[1].key, members[1].key, "stiction"]
+    assert [t["p_family"] for t in kept] == pytest.approx([3e-6, 1.0, 0.04])
+    assert any("kept gel_viscoelasticity[tau=0.15]" in n for n in notes)
+
+
+def test_best_of_a_family_keeps_its_size_under_the_null():
+    """Pure white noise, three candidate signatures (decays of three time constants; the classical
+    variance, exact here, isolates the selection): picking the member with the
+    largest statistic rejects far more often than alpha unless its p-value is multiplied by the family
+    size; with the Bonferroni factor the family-wise rate stays at or below alpha."""
+    from sysid.diagnose import stats
+
+    rng = np.random.default_rng(11)
+    T, S, alpha, reps = 40, 6, 0.1, 400
+    t = np.linspace(0.0, 1.0, T)
+    sigs = [np.exp(-t / tau)[:, None] * rng.normal(size=(1, S)) + 0.05 * rng.normal(size=(T, S)) for tau in (0.05, 0.15, 0.45)]
+    raw = bonf = 0
+    for _ in range(reps):
+        r = rng.normal(size=(T, S))
+        ps = [stats.score_test(r, J[..., None], None, prewhiten=False, robust=False).p_value for J in sigs]
+        stat_best = int(np.argmin(ps))
+        raw += ps[stat_best] <= alpha
+        bonf += min(1.0, 3 * ps[stat_best]) <= alpha
+    assert raw / reps > 1.3 * alpha
+    assert bonf / reps <= alpha + 0.03
