@@ -334,3 +334,18 @@ def test_best_of_a_family_keeps_its_size_under_the_null():
         bonf += min(1.0, 3 * ps[stat_best]) <= alpha
     assert raw / reps > 1.3 * alpha
     assert bonf / reps <= alpha + 0.03
+
+
+def test_a_mismatch_needs_its_excess_on_the_held_out_part_too():
+    """In-sample excess with significant tests is declared only when the held-out blocks carry an
+    excess above the floor as well; an accepted candidate is always declared."""
+    from sysid.diagnose.engine import mismatch_declared
+
+    floor = 0.1
+    assert mismatch_declared(True, [], 0.9, floor)
+    assert not mismatch_declared(False, [], 2.0, floor)  # nothing loud in sample
+    assert not mismatch_declared(False, ["markers_xyz"], 0.995, floor)  # the benchmark's nominal_4
+    assert not mismatch_declared(False, ["markers_xyz"], 1.04, floor)  # 1.04^2 - 1 = 0.082 < 0.1
+    assert mismatch_declared(False, ["sheet_points"], 1.18, floor)  # thickness step x2: 0.39
+    assert mismatch_declared(False, ["wrench"], float("nan"), floor)  # no held-out part: in-sample only
+    assert mismatch_declared(False, ["wrench"], None, floor)
