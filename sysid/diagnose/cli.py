@@ -30,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gel-resolution", type=int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="gel mesh resolution of the replays (coarser = faster; default: the scene's)")
     p.add_argument("--fit-max-nfev", type=int, default=8, help="function evaluations of the nominal fit")
+    p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
+                   help="elastic terms of the replays: fused Taichi kernels on cpu/cuda (default: %(default)s; same "
+                        "values as numpy to round-off) or the NumPy reference")
     return p
 
 
@@ -47,7 +50,7 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         print(f"thinshell diagnose: {args.json} exists (use --force)", file=sys.stderr)
         return 2
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
-                        ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev,
+                        ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
                         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
     try:
         doc, runs = run_diagnosis(args.bags, args.heldout, args.params, settings, args.project, args.candidates)

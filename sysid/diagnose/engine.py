@@ -130,6 +130,8 @@ class Settings:
             whitened excess ``mean(r^2) - 1`` above this (significance alone is not enough).
         simulation: overrides of the scene's ``simulation:`` block for the replays (e.g.
             ``{"gel_resolution": [5, 4, 2]}`` for a coarse, fast gel).
+        arch: elastic terms of the replays (:class:`sysid.observation.ObservationModel`):
+            ``"numpy"`` or ``"cpu"`` / ``"cuda"`` (fused Taichi kernels, same values to round-off).
         noise_from_residual: raise the declared noise to the white part of the nominal residual
             (:func:`sysid.diagnose.noise.raise_to_white_residual`).
         denoise_window: Savitzky-Golay window (pose samples) of the tracking-error smoothing of the
@@ -159,6 +161,7 @@ class Settings:
     denoise_window: int = 11
     min_gain: float = 0.25
     simulation: dict[str, Any] | None = None
+    arch: str = "numpy"
     probe_target: float = 2.0
     probe_max_growth: float = 1000.0
 
@@ -189,7 +192,8 @@ class BagDiagnosis:
         self.evidence = load_evidence(bag, include_image=False)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation)
+            self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation,
+                                          arch=s.arch)
         self.notes: list[str] = []
         if s.denoise_window:
             self._note(noise.denoise_controls(self.model, s.denoise_window))
@@ -585,7 +589,8 @@ class BagDiagnosis:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 out.append(ObservationModel(load_evidence(h, include_image=False), dt=self.settings.dt,
-                                            t_max=self.settings.t_max, simulation=self.settings.simulation))
+                                            t_max=self.settings.t_max, simulation=self.settings.simulation,
+                                            arch=self.settings.arch))
                 if self.settings.denoise_window:
                     self._note(noise.denoise_controls(out[-1], self.settings.denoise_window))
         return out
@@ -803,7 +808,8 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
              params: Sequence[str] = (), workers: int = 1, ray_address: str | None = None,
              dt: float = 0.01, t_max: float | None = None, alpha: float = 0.01,
              project: Sequence[str] | None = None, candidates: Sequence[str] | None = None,
-             simulation: Mapping[str, Any] | None = None, fit_max_nfev: int = 8) -> dict[str, Any]:
+             simulation: Mapping[str, Any] | None = None, fit_max_nfev: int = 8,
+             arch: str = "numpy") -> dict[str, Any]:
     """Diagnose recordings (SYSID.md "Diagnosis"); returns the JSON contract.
 
     Args:
@@ -818,6 +824,7 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
         candidates: restrict to these effects.
         simulation: overrides of the scene's ``simulation:`` block (e.g. a coarse gel resolution).
         fit_max_nfev: function evaluations of the nominal fit (when ``params`` is given).
+        arch: elastic terms of the replays (``Settings.arch``).
 
     Raises:
         CalibrationError: unreadable recording, diverged nominal replay, Ray requested but absent.
@@ -825,7 +832,7 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
     if not bags:
         raise CalibrationError("diagnose needs at least one bag")
     settings = Settings(dt=dt, t_max=t_max, alpha=alpha, workers=max(1, int(workers)), ray_address=ray_address,
-                        simulation=None if simulation is None else dict(simulation), fit_max_nfev=int(fit_max_nfev))
+                        simulation=None if simulation is None else dict(simulation), fit_max_nfev=int(fit_max_nfev), arch=arch)
     return run_diagnosis(bags, heldout, params, settings, project, candidates)[0]
 
 

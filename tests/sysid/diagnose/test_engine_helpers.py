@@ -349,3 +349,18 @@ def test_a_mismatch_needs_its_excess_on_the_held_out_part_too():
     assert mismatch_declared(False, ["sheet_points"], 1.18, floor)  # thickness step x2: 0.39
     assert mismatch_declared(False, ["wrench"], float("nan"), floor)  # no held-out part: in-sample only
     assert mismatch_declared(False, ["wrench"], None, floor)
+
+
+def test_replay_arch_reaches_the_observation_model():
+    """``Settings.arch`` (``thinshell diagnose --arch``, default cpu) builds the replays on the fused
+    Taichi kernels; the engine API default stays numpy."""
+    from tests.sysid.conftest import reference_bag
+
+    bag = reference_bag("nominal_s101")
+    assert engine.Settings().arch == "numpy"
+    d = engine.BagDiagnosis(bag, settings=engine.Settings(arch="cpu", t_max=0.2))
+    assert d.model.arch == "cpu"
+    assert d.model.simulation().model.meta.get("elastic_backend") == "taichi"
+    from sysid.diagnose.cli import build_parser
+
+    assert build_parser().parse_args([str(bag)]).arch == "cpu"
