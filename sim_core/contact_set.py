@@ -156,7 +156,7 @@ class ContactSet:
         return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
 
     @staticmethod
-    def _step_sides(z: np.ndarray, above: np.ndarray, remembered: np.ndarray) -> np.ndarray:
+    def _step_sides(above: np.ndarray, remembered: np.ndarray) -> np.ndarray:
         """Sides of the step, fixed for all its Newton iterates, shape ``(p,)``.
 
         A pair above the face (vertex-triangle) or with both closest points interior (edge-edge)
@@ -170,7 +170,6 @@ class ContactSet:
         ``d = -2 eps``, which made Newton cycle (a sysid replay failed at t = 1.87 s).
 
         Args:
-            z: pair positions at ``x^n``, shape ``(p, 4, 3)``.
             above: pairs in the face / interior region at ``x^n``, shape ``(p,)`` bool.
             remembered: the memory's side, else the side at ``x^n``, shape ``(p,)``.
         """
@@ -182,8 +181,7 @@ class ContactSet:
         z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
         vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
         if len(vt):
-            above = point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]) == PointTriangleRegion.FACE
-            vt_sides = self._step_sides(z, above, vt_sides)
+            vt_sides = self._step_sides(self._above_face(z), vt_sides)
         z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
              if len(ee) else np.zeros((0, 4, 3)))
         if len(ee):
@@ -198,8 +196,7 @@ class ContactSet:
             ee, z = ee[keep], z[keep]
         ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
         if len(ee):
-            _, _, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
-            ee_sides = self._step_sides(z, region == EdgeEdgeRegion.INTERIOR, ee_sides)
+            ee_sides = self._step_sides(self._interior(z), ee_sides)
         return ((self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides)),
                 (vt_sides, ee_sides))
 

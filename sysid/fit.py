@@ -25,21 +25,21 @@ of the estimated level and a correct model; ``reduced_chi2`` > 1 says by how muc
 
 from __future__ import annotations
 
-import importlib
 import math
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
+from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
+                             SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import ObservationModel
 
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
-JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 GLOBAL_METHODS = ("cma", "multistart")
 STOP_SIGMA = 0.01
 """Default stop fraction of :func:`fit`: the local phase ends once the Gauss-Newton step is below
@@ -301,183 +301,6 @@ class FitProblem:
         state = dict(self.__dict__)
         state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None)
         return state
-
-
-# ====================================================================================== Jacobians
-class JacobianProvider(Protocol):
-    """Computes ``J = d r / d u``, shape ``(m, p)``, of the whitened residual at coordinates ``u``."""
-
-    name: str
-
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray: ...
-
-
-class FiniteDifferenceJacobian:
-    """Central differences ``(r(u + h e_i) - r(u - h e_i)) / 2h`` in the search coordinates.
-
-    2p replays per Jacobian, batched through :meth:`FitProblem.evaluate_many`; one-sided at a bound
-    or where one side diverged.
-
-    Args:
-        step: h, > 0 (log units for positive parameters: 0.01 = 1 %).
-
-    Raises:
-        ConfigError: non-positive step.
-    """
-
-    name = "fd"
-
-    def __init__(self, step: float = 0.01) -> None:
-        if not step > 0.0:
-            raise ConfigError(f"finite-difference step must be > 0, got {step!r}")
-        self.step = float(step)
-
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
-        u = np.asarray(u, dtype=float)
-        lb, ub = problem.bounds
-        points, steps = [], []
-        for i in range(u.shape[0]):
-            hp, hm = min(self.step, ub[i] - u[i]), min(self.step, u[i] - lb[i])
-            up, um = u.copy(), u.copy()
-            up[i] += hp
-            um[i] -= hm
-            points += [up, um]
-            steps.append((hp, hm))
-        res = problem.evaluate_many(points, phase="jacobian")
-        cols = []
-        for i, (hp, hm) in enumerate(steps):
-            rp, rm = res[2 * i], res[2 * i + 1]
-            if rp is not None and rm is not None and hp + hm > 0.0:
-                cols.append((rp - rm) / (hp + hm))
-                continue
-            r0 = problem.residual(u, phase="jacobian")
-            if r0 is not None and rp is not None and hp > 0.0:
-                cols.append((rp - r0) / hp)
-            elif r0 is not None and rm is not None and hm > 0.0:
-                cols.append((r0 - rm) / hm)
-            else:
-                raise CalibrationError(f"finite-difference Jacobian: the simulation diverged on both sides of "
-                                       f"{problem.names[i]} = {problem.values(u)[problem.names[i]]:.6g}")
-        return np.stack(cols, axis=1)
-
-
-class SensitivityJacobian:
-    """Forward parameter sensitivities of the simulator mapped to the whitened residual.
-
-    ``sim_core.sensitivity.parameter_sensitivities`` propagates ``dX/dtheta`` (and the contact-force
-    tangents) through one recorded replay, ``observation_sensitivities`` maps them to
-    d(observation)/d(theta) per step, :meth:`ObservationModel.align` interpolates those to the stamps
-    (linear), and the chain rule to u multiplies by ``d theta / d u`` (theta for log coordinates, the
-    scale otherwise). One replay plus p right-hand sides per step instead of 2p replays. In
-    :func:`fit` the local phase's replays are joint ones (:meth:`joint`): each computes the residual
-    and the Jacobian together, with the tangents solved by the Newton factorisation of every step,
-    so the Jacobian that ``least_squares`` then asks for at an accepted point costs no further
-    replay. A replay that the sensitivity code refuses (a step retried with a smaller dt is not
-    differentiable) falls back to finite differences for that Jacobian, with a warning.
-
-    Raises:
-        CalibrationError: the sensitivity module is missing.
-    """
-
-    name = "sensitivity"
-
-    def __init__(self, fd_step: float = 0.01) -> None:
-        self.module = load_sensitivity()
-        self.fallback = FiniteDifferenceJacobian(fd_step)
-
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
-        import warnings as _warnings
-
-        u = np.asarray(u, dtype=float)
-        J = problem.cached_jacobian(u)
-        if J is not None:
-            return J
-        model = problem.model
-        values = problem.values(u)
-        t = time.perf_counter()
-        try:
-            sim = model.prepare(values)
-            traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), list(problem.names),
-                                                               contact_force=True)
-        except ConfigError as err:
-            _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
-                           stacklevel=2)
-            return self.fallback(problem, u)
-        except SimulationDivergedError as err:
-            raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
-        problem.sim_runs += 1
-        problem.sim_time_s += time.perf_counter() - t
-        return self._whitened(problem, values, sim, traj, dX, dF)
-
-    def joint(self, problem: FitProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """Residual, Jacobian and prediction at ``u`` from one replay (``FitProblem(joint=...)``).
-
-        The tangents are solved step by step with the Newton factorisation of each step
-        (``sim_core.sensitivity.rollout_sensitivities``), so the Jacobian costs about a quarter of
-        a replay on top of it instead of a second replay.
-
-        Raises:
-            SimulationDivergedError: the replay diverged.
-            ConfigError: the replay is not differentiable (the caller replays without tangents).
-        """
-        model = problem.model
-        values = problem.values(u)
-        sim = model.prepare(values)
-        t = time.perf_counter()
-        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), list(problem.names),
-                                                         contact_force=True)
-        prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
-        return model.residuals(prediction), self._whitened(problem, values, sim, traj, dX, dF), prediction
-
-    def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
-                  dF: np.ndarray) -> np.ndarray:
-        """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
-        model = problem.model
-        obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
-        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs])
-        blocks = []
-        for ch in model.channels:
-            d = model.align(ch, obs[ch]) * dtheta_du
-            blocks.append(model.whiten_derivative(ch, d))
-        return np.concatenate(blocks, axis=0)
-
-
-def load_sensitivity() -> Any:
-    """``sim_core.sensitivity`` when it provides ``parameter_sensitivities``, ``rollout_sensitivities``
-    and ``observation_sensitivities``.
-
-    Raises:
-        CalibrationError: the module or a function is missing.
-    """
-    try:
-        mod = importlib.import_module("sim_core.sensitivity")
-    except ImportError as err:
-        raise CalibrationError(f"jacobian 'sensitivity' needs sim_core.sensitivity, which is not available ({err}); "
-                               "use --jacobian fd") from err
-    for fn in ("parameter_sensitivities", "rollout_sensitivities", "observation_sensitivities"):
-        if not hasattr(mod, fn):
-            raise CalibrationError(f"jacobian 'sensitivity': sim_core.sensitivity has no {fn}(); use --jacobian fd")
-    return mod
-
-
-def make_jacobian(kind: str = "auto", fd_step: float = 0.01) -> JacobianProvider:
-    """A provider by name: ``"sensitivity"``, ``"fd"``, or ``"auto"`` (sensitivity when
-    ``sim_core.sensitivity`` is importable, else finite differences).
-
-    Raises:
-        ConfigError: unknown kind.
-        CalibrationError: ``"sensitivity"`` requested but unavailable.
-    """
-    if kind not in JACOBIAN_KINDS:
-        raise ConfigError(f"unknown jacobian provider {kind!r} (choose from {', '.join(JACOBIAN_KINDS)})")
-    if kind == "sensitivity":
-        return SensitivityJacobian(fd_step)
-    if kind == "auto":
-        try:
-            return SensitivityJacobian(fd_step)
-        except CalibrationError:
-            pass
-    return FiniteDifferenceJacobian(fd_step)
 
 
 # ====================================================================================== result

@@ -93,8 +93,8 @@ class _PairPenalty:
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
         raise NotImplementedError
 
-    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+    _geometric_side: staticmethod
+    """Side of configurations ``z`` (k, 4, 3): ``point_triangle_side`` or ``edge_edge_side``."""
 
     def _resolve(self, z: np.ndarray, side: np.ndarray) -> np.ndarray:
         """``side`` with the unsigned pairs (0) given the side of configuration ``z`` (k, 4, 3)."""
@@ -213,8 +213,7 @@ class VertexTriangleContact(_PairPenalty):
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
         return point_triangle_contact_distance(z, self._resolve(z, side), order)
 
-    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
-        return point_triangle_side(z)
+    _geometric_side = staticmethod(point_triangle_side)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
@@ -267,8 +266,7 @@ class EdgeEdgeContact(_PairPenalty):
     def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
         return edge_edge_contact_distance(z, self._resolve(z, side), order)
 
-    def _geometric_side(self, z: np.ndarray) -> np.ndarray:
-        return edge_edge_side(z)
+    _geometric_side = staticmethod(edge_edge_side)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""

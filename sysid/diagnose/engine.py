@@ -58,7 +58,6 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -69,8 +68,9 @@ from sysid.diagnose import candidates as cands
 from sysid.diagnose import discriminate, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
 from sysid.diagnose.schema import candidate_entries
-from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, residual,
-                                      rms_summary, sse, stream_channels, whiten)
+from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, mismatch_declared,
+                                      residual, rms_summary, sse, stream_channels, whiten)
+from sysid.diagnose.settings import Settings
 
 CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelasticity"),
               ("bending_plasticity", "adhesion"), ("bending_plasticity", "anisotropic_bending"),
@@ -79,91 +79,6 @@ CONFUSABLE = (("latency", "gel_viscoelasticity"), ("damping", "gel_viscoelastici
 stiction vs anisotropic bending: in a press-slide both change how the card buckles after the second
 breakaway (on the benchmark's stiction recording at strength 2.9 their refits remove the same held-out
 energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
-
-
-def mismatch_declared(any_accepted: bool, loud: Sequence[str], heldout_rms_before: float | None,
-                      min_excess: float) -> bool:
-    """Whether a recording is reported as mismatched (a named effect or "unexplained").
-
-    A named (accepted) effect always is. Otherwise a significant test must sit on a channel whose
-    in-sample whitened excess ``mean(r^2) - 1`` exceeds ``min_excess`` (``loud``), *and* the
-    held-out part of the recording must carry that excess too: ``heldout_rms_before^2 - 1 >
-    min_excess`` (whitened RMS of the baseline on the held-out blocks or recordings, over the
-    mismatch channels). The held-out check is the out-of-sample confirmation of the effect size, as
-    for the candidates: on the benchmark a nominal recording whose score tests fired with 0.1 of
-    in-sample excess had a held-out RMS of 0.995 and was reported "unexplained".
-
-    Args:
-        any_accepted: some candidate was accepted.
-        loud: mismatch channels with in-sample excess above ``min_excess``.
-        heldout_rms_before: held-out whitened RMS of the baseline (noise units; None or NaN when
-            unknown, which skips the held-out check).
-        min_excess: the effect-size floor in excess mean square (noise units squared).
-    """
-    if any_accepted:
-        return True
-    if not loud:
-        return False
-    if heldout_rms_before is None or not math.isfinite(heldout_rms_before):
-        return True
-    return heldout_rms_before ** 2 - 1.0 > min_excess
-
-
-@dataclass
-class Settings:
-    """Diagnosis settings.
-
-    Attributes:
-        dt: simulation step, s.
-        t_max: use the first t_max s of each recording (None: all).
-        alpha: family-wise error rate of the Holm correction.
-        bic_threshold: delta-BIC needed to accept a later candidate conditionally on the accepted
-            ones when held-out bags are given (otherwise acceptance is by the held-out test).
-        holdout_blocks: held-out time blocks when no held-out bag is given.
-        fit_max_nfev: function evaluations of the nominal fit.
-        fd_step: log step of the J_theta forward differences.
-        workers: processes for independent replays; ray_address: Ray cluster instead.
-        min_explained: effect-size criterion: a refit is accepted only when it removes at least this
-            fraction of the held-out excess energy ``rms^2 - 1`` (whitened, noise units) on its
-            channels; a systematic model gap that a candidate merely correlates with fails it.
-        min_excess: a mismatch is declared only when a channel with a significant test carries a
-            whitened excess ``mean(r^2) - 1`` above this (significance alone is not enough).
-        simulation: overrides of the scene's ``simulation:`` block for the replays (e.g.
-            ``{"gel_resolution": [5, 4, 2]}`` for a coarse, fast gel).
-        arch: elastic terms of the replays (:class:`sysid.observation.ObservationModel`):
-            ``"numpy"`` or ``"cpu"`` / ``"cuda"`` (fused Taichi kernels, same values to round-off).
-        noise_from_residual: raise the declared noise to the white part of the nominal residual
-            (:func:`sysid.diagnose.noise.raise_to_white_residual`).
-        denoise_window: Savitzky-Golay window (pose samples) of the tracking-error smoothing of the
-            replayed poses (:func:`sysid.diagnose.noise.denoise_controls`; 0 = replay the measured poses).
-        min_gain: effect-size criterion in absolute terms: the held-out whitened energy per value
-            ``rms_before^2 - rms_after^2`` must drop by at least this (noise variance units).
-        probe_target: whitened RMS change (noise units, strongest channel) a physics probe should
-            reach; a probe outside [1/4, 4] times it is rescaled (:meth:`BagDiagnosis._calibrate_probes`).
-        probe_max_growth: largest factor (up or down) of one probe rescaling round.
-        secant: refine physics refits by one more replay at the minimiser of a parabola through
-            the training SSE at beta = 0, the probe beta and the linearised estimate.
-    """
-
-    dt: float = 0.01
-    t_max: float | None = None
-    alpha: float = 0.01
-    bic_threshold: float = 10.0
-    holdout_blocks: int = 4
-    fit_max_nfev: int = 8
-    fd_step: float = 0.05
-    workers: int = 1
-    ray_address: str | None = None
-    min_explained: float = 0.25
-    min_excess: float = 0.1
-    secant: bool = True
-    noise_from_residual: bool = True
-    denoise_window: int = 11
-    min_gain: float = 0.25
-    simulation: dict[str, Any] | None = None
-    arch: str = "numpy"
-    probe_target: float = 2.0
-    probe_max_growth: float = 1000.0
 
 
 # ====================================================================================== one bag

@@ -7,6 +7,7 @@ Pure functions over an observation model (``sysid.observation.ObservationModel``
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -118,3 +119,31 @@ def heldout_products(model: Any, before: Mapping[str, np.ndarray], after: Mappin
             np.add.at(out[k], idx[sel], per[k][sel])
         used[idx[sel]] = True
     return out[0][used], out[1][used], out[2][used], out[3][used]
+
+
+def mismatch_declared(any_accepted: bool, loud: Sequence[str], heldout_rms_before: float | None,
+                      min_excess: float) -> bool:
+    """Whether a recording is reported as mismatched (a named effect or "unexplained").
+
+    A named (accepted) effect always is. Otherwise a significant test must sit on a channel whose
+    in-sample whitened excess ``mean(r^2) - 1`` exceeds ``min_excess`` (``loud``), *and* the
+    held-out part of the recording must carry that excess too: ``heldout_rms_before^2 - 1 >
+    min_excess`` (whitened RMS of the baseline on the held-out blocks or recordings, over the
+    mismatch channels). The held-out check is the out-of-sample confirmation of the effect size, as
+    for the candidates: on the benchmark a nominal recording whose score tests fired with 0.1 of
+    in-sample excess had a held-out RMS of 0.995 and was reported "unexplained".
+
+    Args:
+        any_accepted: some candidate was accepted.
+        loud: mismatch channels with in-sample excess above ``min_excess``.
+        heldout_rms_before: held-out whitened RMS of the baseline (noise units; None or NaN when
+            unknown, which skips the held-out check).
+        min_excess: the effect-size floor in excess mean square (noise units squared).
+    """
+    if any_accepted:
+        return True
+    if not loud:
+        return False
+    if heldout_rms_before is None or not math.isfinite(heldout_rms_before):
+        return True
+    return heldout_rms_before ** 2 - 1.0 > min_excess

@@ -339,7 +339,7 @@ def test_best_of_a_family_keeps_its_size_under_the_null():
 def test_a_mismatch_needs_its_excess_on_the_held_out_part_too():
     """In-sample excess with significant tests is declared only when the held-out blocks carry an
     excess above the floor as well; an accepted candidate is always declared."""
-    from sysid.diagnose.engine import mismatch_declared
+    from sysid.diagnose.residuals import mismatch_declared
 
     floor = 0.1
     assert mismatch_declared(True, [], 0.9, floor)

@@ -1,0 +1,63 @@
+"""Settings of the missing-physics diagnosis (:mod:`sysid.diagnose.engine`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass
+class Settings:
+    """Diagnosis settings.
+
+    Attributes:
+        dt: simulation step, s.
+        t_max: use the first t_max s of each recording (None: all).
+        alpha: family-wise error rate of the Holm correction.
+        bic_threshold: delta-BIC needed to accept a later candidate conditionally on the accepted
+            ones when held-out bags are given (otherwise acceptance is by the held-out test).
+        holdout_blocks: held-out time blocks when no held-out bag is given.
+        fit_max_nfev: function evaluations of the nominal fit.
+        fd_step: log step of the J_theta forward differences.
+        workers: processes for independent replays; ray_address: Ray cluster instead.
+        min_explained: effect-size criterion: a refit is accepted only when it removes at least this
+            fraction of the held-out excess energy ``rms^2 - 1`` (whitened, noise units) on its
+            channels; a systematic model gap that a candidate merely correlates with fails it.
+        min_excess: a mismatch is declared only when a channel with a significant test carries a
+            whitened excess ``mean(r^2) - 1`` above this (significance alone is not enough).
+        simulation: overrides of the scene's ``simulation:`` block for the replays (e.g.
+            ``{"gel_resolution": [5, 4, 2]}`` for a coarse, fast gel).
+        arch: elastic terms of the replays (:class:`sysid.observation.ObservationModel`):
+            ``"numpy"`` or ``"cpu"`` / ``"cuda"`` (fused Taichi kernels, same values to round-off).
+        noise_from_residual: raise the declared noise to the white part of the nominal residual
+            (:func:`sysid.diagnose.noise.raise_to_white_residual`).
+        denoise_window: Savitzky-Golay window (pose samples) of the tracking-error smoothing of the
+            replayed poses (:func:`sysid.diagnose.noise.denoise_controls`; 0 = replay the measured poses).
+        min_gain: effect-size criterion in absolute terms: the held-out whitened energy per value
+            ``rms_before^2 - rms_after^2`` must drop by at least this (noise variance units).
+        probe_target: whitened RMS change (noise units, strongest channel) a physics probe should
+            reach; a probe outside [1/4, 4] times it is rescaled (:meth:`BagDiagnosis._calibrate_probes`).
+        probe_max_growth: largest factor (up or down) of one probe rescaling round.
+        secant: refine physics refits by one more replay at the minimiser of a parabola through
+            the training SSE at beta = 0, the probe beta and the linearised estimate.
+    """
+
+    dt: float = 0.01
+    t_max: float | None = None
+    alpha: float = 0.01
+    bic_threshold: float = 10.0
+    holdout_blocks: int = 4
+    fit_max_nfev: int = 8
+    fd_step: float = 0.05
+    workers: int = 1
+    ray_address: str | None = None
+    min_explained: float = 0.25
+    min_excess: float = 0.1
+    secant: bool = True
+    noise_from_residual: bool = True
+    denoise_window: int = 11
+    min_gain: float = 0.25
+    simulation: dict[str, Any] | None = None
+    arch: str = "numpy"
+    probe_target: float = 2.0
+    probe_max_growth: float = 1000.0
