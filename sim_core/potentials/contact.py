@@ -61,6 +61,11 @@ class ContactFrames(NamedTuple):
     pair_index: np.ndarray
 
 
+PREFILTER_RELATIVE_SLACK = 1.0e-6
+"""Relative margin on ``eps`` of the bounding-box prefilter (:meth:`_PairPenalty._maybe_active`): the
+distances carry round-off of order 1e-16 of the scene size, far below ``1e-6 eps``."""
+
+
 def _check_penalty(stiffness: float, eps: float, where: str) -> None:
     if not (np.isfinite(stiffness) and stiffness > 0):
         raise ConfigError(f"{where}: contact stiffness must be finite and > 0 (N/m), got {stiffness}")
@@ -121,15 +126,40 @@ class _PairPenalty:
                 return cache[2], cache[3]
             active = cache[2]  # order-0 result at this x: derivatives of its active pairs only
         else:
-            d = self._distance(x[self.vertices], self.sides, 0).d
-            active = np.flatnonzero(d < self.eps)
+            z = x[self.vertices]
+            near = np.flatnonzero(self._maybe_active(z))
+            d = self._distance(z[near], self.sides[near], 0).d
+            hit = d < self.eps
+            active, d = near[hit], d[hit]
         if order == 0:  # (only reached through the else branch above, which sets d)
-            dd = DistanceDerivatives(d[active], None, None, np.zeros(active.shape, np.int64))
+            dd = DistanceDerivatives(d, None, None, np.zeros(active.shape, np.int64))
         else:
             order = 2
             dd = self._distance(x[self.vertices[active]], self.sides[active], order)
         self._last = (order, np.array(x, dtype=float, copy=True), active, dd, self.eps)
         return active, dd
+
+    _first_slots: slice
+    """Local slots ``z[:, slots]`` of the first primitive (the vertex, or edge a)."""
+    _second_slots: slice
+    """Local slots of the second primitive (the triangle, or edge b)."""
+
+    def _maybe_active(self, z: np.ndarray) -> np.ndarray:
+        """Pairs that may have ``d < eps`` at configurations ``z`` (k, 4, 3): a cheap exact prefilter.
+
+        An unsigned pair's ``d`` is the Euclidean distance between its two primitives (module
+        docstring), which is at least the gap between their axis-aligned bounding boxes (the largest
+        per-axis separation); a pair whose gap exceeds ``eps`` (by more than round-off,
+        ``PREFILTER_RELATIVE_SLACK``) is inactive. A signed pair may have ``d < 0`` at any gap (a
+        vertex on the wrong side of its face), so it is always kept. Leaving out only inactive
+        pairs, the active pairs, their distances and their order are those of the full evaluation.
+
+        Returns:
+            bool ``(k,)``.
+        """
+        first, second = z[:, self._first_slots], z[:, self._second_slots]
+        gap = np.maximum(first.min(axis=1) - second.max(axis=1), second.min(axis=1) - first.max(axis=1)).max(axis=1)
+        return (self.sides != 0.0) | (gap <= self.eps * (1.0 + PREFILTER_RELATIVE_SLACK))
 
     def inherit_evaluation(self, other: "_PairPenalty | None") -> None:
         """Take over ``other``'s kept evaluation (:meth:`_evaluate`) if it is the same function.
@@ -214,6 +244,7 @@ class VertexTriangleContact(_PairPenalty):
         return point_triangle_contact_distance(z, self._resolve(z, side), order)
 
     _geometric_side = staticmethod(point_triangle_side)
+    _first_slots, _second_slots = slice(0, 1), slice(1, 4)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
@@ -267,6 +298,7 @@ class EdgeEdgeContact(_PairPenalty):
         return edge_edge_contact_distance(z, self._resolve(z, side), order)
 
     _geometric_side = staticmethod(edge_edge_side)
+    _first_slots, _second_slots = slice(0, 2), slice(2, 4)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
