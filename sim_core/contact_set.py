@@ -251,7 +251,7 @@ class ContactSet:
             keep = pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool)
             if np.any(keep):
                 keep[keep] = above(x[pot.vertices[keep]])
-            mem.update(pot.pairs[keep], pot.resolved_sides(x)[keep])
+            mem.update(pot.pairs[keep], pot.resolved_sides(x, keep))
         return out
 
     @staticmethod

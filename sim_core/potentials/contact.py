@@ -108,10 +108,13 @@ class _PairPenalty:
             return side
         return np.where(unsigned, self._geometric_side(z), side)
 
-    def resolved_sides(self, x: np.ndarray) -> np.ndarray:
-        """Side of every pair at positions ``x`` (n, 3) m: the fixed side, or for an unsigned pair the
-        side of ``x`` itself; +1 / -1, shape ``(p,)``."""
-        return self._resolve(x[self.vertices], self.sides)
+    def resolved_sides(self, x: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Side of every pair (or of the pairs ``rows``, int ``(r,)`` or bool ``(p,)``) at positions
+        ``x`` (n, 3) m: the fixed side, or for an unsigned pair the side of ``x`` itself; +1 / -1,
+        shape ``(p,)`` (``(r,)``)."""
+        if rows is None:
+            return self._resolve(x[self.vertices], self.sides)
+        return self._resolve(x[self.vertices[rows]], self.sides[rows])
 
     def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
         """Indices of the active pairs and their distance (with derivatives up to ``order``).
@@ -126,11 +129,7 @@ class _PairPenalty:
                 return cache[2], cache[3]
             active = cache[2]  # order-0 result at this x: derivatives of its active pairs only
         else:
-            z = x[self.vertices]
-            near = np.flatnonzero(self._maybe_active(z))
-            d = self._distance(z[near], self.sides[near], 0).d
-            hit = d < self.eps
-            active, d = near[hit], d[hit]
+            active, d = self._active_distances(x[self.vertices])
         if order == 0:  # (only reached through the else branch above, which sets d)
             dd = DistanceDerivatives(d, None, None, np.zeros(active.shape, np.int64))
         else:
@@ -161,6 +160,17 @@ class _PairPenalty:
         gap = np.maximum(first.min(axis=1) - second.max(axis=1), second.min(axis=1) - first.max(axis=1)).max(axis=1)
         return (self.sides != 0.0) | (gap <= self.eps * (1.0 + PREFILTER_RELATIVE_SLACK))
 
+    def _active_distances(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the active pairs (``d < eps``) of configurations ``z`` (p, 4, 3) and their ``d`` (m).
+
+        Measures only the pairs :meth:`_maybe_active` keeps; the result equals filtering the
+        distances of every pair. Returns int64 ``(a,)`` and float ``(a,)``.
+        """
+        near = np.flatnonzero(self._maybe_active(z))
+        d = self._distance(z[near], self.sides[near], 0).d
+        hit = d < self.eps
+        return near[hit], d[hit]
+
     def inherit_evaluation(self, other: "_PairPenalty | None") -> None:
         """Take over ``other``'s kept evaluation (:meth:`_evaluate`) if it is the same function.
 
@@ -181,7 +191,9 @@ class _PairPenalty:
 
     def active_mask(self, x: np.ndarray) -> np.ndarray:
         """Pairs with ``d < eps``, bool shape ``(p,)``."""
-        return self.distance(x) < self.eps
+        mask = np.zeros(self.vertices.shape[0], dtype=bool)
+        mask[self._active_distances(x[self.vertices])[0]] = True
+        return mask
 
     def energy(self, x: np.ndarray) -> float:
         """Penalty energy in J."""
@@ -249,8 +261,7 @@ class VertexTriangleContact(_PairPenalty):
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
         z = x[self.vertices]
-        d = self._distance(z, self.sides, 0).d
-        act = np.flatnonzero(d < self.eps)
+        act, d = self._active_distances(z)
         z = z[act]
         bary, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
         q = np.einsum("kj,kjd->kd", bary, z[:, 1:])
@@ -262,7 +273,7 @@ class VertexTriangleContact(_PairPenalty):
             n = np.cross(z[face, 2] - z[face, 1], z[face, 3] - z[face, 1])
             normal[face] = self._resolve(z[face], self.sides[act][face])[:, None] * _unit(n)
         weights = np.concatenate([np.ones((act.size, 1)), -bary], axis=1)
-        lam = self.stiffness * (self.eps - d[act])
+        lam = self.stiffness * (self.eps - d)
         return ContactFrames(self.vertices[act], weights, normal, lam, act)
 
 
@@ -303,8 +314,7 @@ class EdgeEdgeContact(_PairPenalty):
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
         z = x[self.vertices]
-        d = self._distance(z, self.sides, 0).d
-        act = np.flatnonzero(d < self.eps)
+        act, d = self._active_distances(z)
         z = z[act]
         s, t, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
         weights = np.stack([1 - s, s, -(1 - t), -t], axis=1)
@@ -316,7 +326,7 @@ class EdgeEdgeContact(_PairPenalty):
         if np.any(interior):
             n = np.cross(z[interior, 1] - z[interior, 0], z[interior, 3] - z[interior, 2])
             normal[interior] = self._resolve(z[interior], self.sides[act][interior])[:, None] * _unit(n)
-        lam = self.stiffness * (self.eps - d[act])
+        lam = self.stiffness * (self.eps - d)
         return ContactFrames(self.vertices[act], weights, normal, lam, act)
 
 

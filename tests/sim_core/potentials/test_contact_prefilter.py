@@ -55,3 +55,19 @@ def test_prefilter_keeps_signed_pairs_at_any_distance(kind):
     assert np.all(pot._maybe_active(x[pot.vertices]))
     unsigned, _ = _potential(kind, np.random.default_rng(3), 50, np.zeros(50))
     assert not np.all(unsigned._maybe_active(x[unsigned.vertices]))
+
+
+@pytest.mark.parametrize("kind", ["vt", "ee"])
+def test_active_mask_frames_and_sides_use_the_same_active_pairs(kind):
+    rng = np.random.default_rng(11)
+    count = 300
+    pot, x = _potential(kind, rng, count, rng.choice([-1.0, 0.0, 1.0], size=count))
+    d = pot.distance(x)
+    active = np.flatnonzero(d < EPS)
+    np.testing.assert_array_equal(pot.active_mask(x), d < EPS)
+    frames = pot.contact_frames(x)
+    np.testing.assert_array_equal(frames.pair_index, active)
+    np.testing.assert_array_equal(frames.lam, K * (EPS - d[active]))
+    mask = d < EPS
+    np.testing.assert_array_equal(pot.resolved_sides(x, mask), pot.resolved_sides(x)[mask])
+    np.testing.assert_array_equal(pot.resolved_sides(x, active), pot.resolved_sides(x)[active])
