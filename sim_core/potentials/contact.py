@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.collision.distance_bounds import edge_edge_may_touch, point_triangle_may_touch
 from sim_core.collision.distances import (
     DistanceDerivatives,
     EdgeEdgeRegion,
@@ -59,11 +60,6 @@ class ContactFrames(NamedTuple):
     normal: np.ndarray
     lam: np.ndarray
     pair_index: np.ndarray
-
-
-PREFILTER_RELATIVE_SLACK = 1.0e-6
-"""Relative margin on ``eps`` of the bounding-box prefilter (:meth:`_PairPenalty._maybe_active`): the
-distances carry round-off of order 1e-16 of the scene size, far below ``1e-6 eps``."""
 
 
 def _check_penalty(stiffness: float, eps: float, where: str) -> None:
@@ -138,35 +134,17 @@ class _PairPenalty:
         self._last = (order, np.array(x, dtype=float, copy=True), active, dd, self.eps)
         return active, dd
 
-    _first_slots: slice
-    """Local slots ``z[:, slots]`` of the first primitive (the vertex, or edge a)."""
-    _second_slots: slice
-    """Local slots of the second primitive (the triangle, or edge b)."""
-
-    def _maybe_active(self, z: np.ndarray) -> np.ndarray:
-        """Pairs that may have ``d < eps`` at configurations ``z`` (k, 4, 3): a cheap exact prefilter.
-
-        An unsigned pair's ``d`` is the Euclidean distance between its two primitives (module
-        docstring), which is at least the gap between their axis-aligned bounding boxes (the largest
-        per-axis separation); a pair whose gap exceeds ``eps`` (by more than round-off,
-        ``PREFILTER_RELATIVE_SLACK``) is inactive. A signed pair may have ``d < 0`` at any gap (a
-        vertex on the wrong side of its face), so it is always kept. Leaving out only inactive
-        pairs, the active pairs, their distances and their order are those of the full evaluation.
-
-        Returns:
-            bool ``(k,)``.
-        """
-        first, second = z[:, self._first_slots], z[:, self._second_slots]
-        gap = np.maximum(first.min(axis=1) - second.max(axis=1), second.min(axis=1) - first.max(axis=1)).max(axis=1)
-        return (self.sides != 0.0) | (gap <= self.eps * (1.0 + PREFILTER_RELATIVE_SLACK))
+    _may_touch: staticmethod
+    """Exact prefilter ``(z, side, eps) -> (k,) bool``: ``point_triangle_may_touch`` or
+    ``edge_edge_may_touch`` (:mod:`sim_core.collision.distance_bounds`)."""
 
     def _active_distances(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the active pairs (``d < eps``) of configurations ``z`` (p, 4, 3) and their ``d`` (m).
 
-        Measures only the pairs :meth:`_maybe_active` keeps; the result equals filtering the
+        Measures only the pairs the prefilter :attr:`_may_touch` keeps; the result equals filtering the
         distances of every pair. Returns int64 ``(a,)`` and float ``(a,)``.
         """
-        near = np.flatnonzero(self._maybe_active(z))
+        near = np.flatnonzero(self._may_touch(z, self.sides, self.eps))
         d = self._distance(z[near], self.sides[near], 0).d
         hit = d < self.eps
         return near[hit], d[hit]
@@ -256,7 +234,7 @@ class VertexTriangleContact(_PairPenalty):
         return point_triangle_contact_distance(z, self._resolve(z, side), order)
 
     _geometric_side = staticmethod(point_triangle_side)
-    _first_slots, _second_slots = slice(0, 1), slice(1, 4)
+    _may_touch = staticmethod(point_triangle_may_touch)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
@@ -309,7 +287,7 @@ class EdgeEdgeContact(_PairPenalty):
         return edge_edge_contact_distance(z, self._resolve(z, side), order)
 
     _geometric_side = staticmethod(edge_edge_side)
-    _first_slots, _second_slots = slice(0, 2), slice(2, 4)
+    _may_touch = staticmethod(edge_edge_may_touch)
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
