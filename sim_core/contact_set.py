@@ -147,13 +147,23 @@ class ContactSet:
         self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
         return self._candidates
 
+    def _pair_classes(self) -> tuple[type, type]:
+        """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
+        (:mod:`sim_core.ti_kernels.contact`) when the model's kernel backend
+        (``model.meta["elastic_backend"]``) is ``"taichi"``, else the NumPy reference."""
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
+
+            return TiVertexTriangleContact, TiEdgeEdgeContact
+        return VertexTriangleContact, EdgeEdgeContact
+
     def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray) -> VertexTriangleContact:
         """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`)."""
-        return VertexTriangleContact(vt, self.triangles, sides, self.stiffness, self.eps)
+        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps)
 
     def _edge_edge(self, ee: np.ndarray, sides: np.ndarray) -> EdgeEdgeContact:
         """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`)."""
-        return EdgeEdgeContact(ee, self.edges, sides, self.stiffness, self.eps)
+        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps)
 
     @staticmethod
     def _step_sides(above: np.ndarray, remembered: np.ndarray) -> np.ndarray:

@@ -198,7 +198,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
 
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x`` and, for the potentials that are Taichi twins
-    (``sim_core.ti_kernels``), the ``projection`` Hessian of the projected fallback. Kernels take
+    (``sim_core.ti_kernels``), the ``projection`` Hessian of the projected fallback, and the contact
+    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`). Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
     Args:
@@ -228,4 +229,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
+    from sim_core.ti_kernels import contact_distance
+
+    contact_distance.compile_kernels()
     return time.perf_counter() - t0
