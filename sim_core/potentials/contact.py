@@ -170,7 +170,7 @@ class _PairPenalty:
     def active_mask(self, x: np.ndarray) -> np.ndarray:
         """Pairs with ``d < eps``, bool shape ``(p,)``."""
         mask = np.zeros(self.vertices.shape[0], dtype=bool)
-        mask[self._active_distances(x[self.vertices])[0]] = True
+        mask[self._evaluate(x, 0)[0]] = True  # the kept evaluation of x when there is one
         return mask
 
     def energy(self, x: np.ndarray) -> float:
@@ -238,9 +238,9 @@ class VertexTriangleContact(_PairPenalty):
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
-        z = x[self.vertices]
-        act, d = self._active_distances(z)
-        z = z[act]
+        act, dd = self._evaluate(x, 0)  # the kept evaluation of x when there is one
+        d = dd.d
+        z = x[self.vertices[act]]
         bary, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
         q = np.einsum("kj,kjd->kd", bary, z[:, 1:])
         face = region == PointTriangleRegion.FACE
@@ -291,9 +291,9 @@ class EdgeEdgeContact(_PairPenalty):
 
     def contact_frames(self, x: np.ndarray) -> ContactFrames:
         """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
-        z = x[self.vertices]
-        act, d = self._active_distances(z)
-        z = z[act]
+        act, dd = self._evaluate(x, 0)  # the kept evaluation of x when there is one
+        d = dd.d
+        z = x[self.vertices[act]]
         s, t, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
         weights = np.stack([1 - s, s, -(1 - t), -t], axis=1)
         rel = np.einsum("kj,kjd->kd", weights, z)
