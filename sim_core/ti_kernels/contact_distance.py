@@ -21,8 +21,10 @@ closed-form first and second derivatives of :mod:`sim_core.collision.distance_de
 
 A side of 0 (unsigned pair) takes the side of the configuration itself (sign of ``n.r``, as
 ``point_triangle_side`` / ``edge_edge_side``), so the caller passes the potential's step sides as
-they are. Pairs are independent: one thread per pair, no shared sums. Results equal the NumPy
-reference to round-off (tests: 1e-12 relative).
+they are. Pairs are independent (no shared sums); the loops run serially on the CPU, where a few
+hundred pairs take microseconds and a parallel launch costs more than it saves (and waits for a
+second core), in parallel on CUDA. Results equal the NumPy reference to round-off (tests: 1e-12
+relative).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -31,7 +33,7 @@ reference to round-off (tests: 1e-12 relative).
 import numpy as np
 
 from sim_core.collision.distances import PARALLEL_TOLERANCE, DistanceDerivatives
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 
 _F64_1, _F64_2, _F64_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3
@@ -221,6 +223,7 @@ def _distance_value(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.t
 
 @ti.kernel
 def _values_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1):
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
         region[k], d[k] = _distance_value(z, k, side[k], point_first)
 
@@ -335,6 +338,7 @@ def _point_point_derivatives(z: ti.template(), k: ti.i32, i: ti.i32, j: ti.i32,
 @ti.kernel
 def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1,
                         grad: _F64_2, hess: _F64_3):
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
         for a in range(12):
             grad[k, a] = 0.0
