@@ -96,8 +96,8 @@ def box_pairs_kdtree(
     if same:
         b_min, b_max = a_min, a_max
     ca, cb = 0.5 * (a_min + a_max), 0.5 * (b_min + b_max)
-    ra = float(np.max(np.linalg.norm(a_max - a_min, axis=1))) * 0.5 if len(a_min) else 0.0
-    rb = float(np.max(np.linalg.norm(b_max - b_min, axis=1))) * 0.5 if len(b_min) else 0.0
+    ra = _max_half_diagonal(a_min, a_max)
+    rb = _max_half_diagonal(b_min, b_max)
     reach = np.sqrt(3.0) * radius + ra + rb
     ta = cKDTree(ca)
     if same:
@@ -108,8 +108,20 @@ def box_pairs_kdtree(
     if pairs.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
     i, j = pairs[:, 0], pairs[:, 1]
-    overlap = np.all((a_min[i] - radius <= b_max[j]) & (b_min[j] <= a_max[i] + radius), axis=1)
+    # the inflated-AABB test axis by axis on contiguous coordinate columns (a reduction over the
+    # short axis of (p, 3) arrays costs more than the comparisons)
+    overlap = np.ones(pairs.shape[0], dtype=bool)
+    for a_lo, a_hi, b_lo, b_hi in zip(a_min.T.copy(), a_max.T.copy(), b_min.T.copy(), b_max.T.copy()):
+        overlap &= (a_lo[i] - radius <= b_hi[j]) & (b_lo[j] <= a_hi[i] + radius)
     return pairs[overlap]
+
+
+def _max_half_diagonal(box_min: np.ndarray, box_max: np.ndarray) -> float:
+    """Largest half-diagonal of boxes ``(k, 3)`` in m (0 for none); element-wise, no short-axis reduction."""
+    if not len(box_min):
+        return 0.0
+    d = box_max - box_min
+    return 0.5 * float(np.sqrt(np.max(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])))
 
 
 def _grouped_box_pairs(
@@ -192,7 +204,8 @@ def vertex_triangle_candidates(
     if vertices.size == 0 or triangles.shape[0] == 0:
         return np.zeros((0, 2), dtype=np.int64)
     tri_x = x[triangles]
-    t_min, t_max = tri_x.min(axis=1), tri_x.max(axis=1)
+    t_min = np.minimum(np.minimum(tri_x[:, 0], tri_x[:, 1]), tri_x[:, 2])
+    t_max = np.maximum(np.maximum(tri_x[:, 0], tri_x[:, 1]), tri_x[:, 2])
     p = x[vertices]
     if cell_size is not None:
         pairs = SpatialHash(t_min, t_max, cell_size).query(p - radius, p + radius)
@@ -204,7 +217,7 @@ def vertex_triangle_candidates(
         pairs = box_pairs_kdtree(p, p, t_min, t_max, radius)
     v = vertices[pairs[:, 0]]
     tri = triangles[pairs[:, 1]]
-    keep = np.all(tri != v[:, None], axis=1)
+    keep = (tri[:, 0] != v) & (tri[:, 1] != v) & (tri[:, 2] != v)
     v, t_idx, tri = v[keep], pairs[keep, 1], tri[keep]
     if exclude is not None:
         body = np.asarray(exclude.vertex_body)
@@ -247,7 +260,7 @@ def edge_edge_candidates(
     if edges.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
     ex = x[edges]
-    e_min, e_max = ex.min(axis=1), ex.max(axis=1)
+    e_min, e_max = np.minimum(ex[:, 0], ex[:, 1]), np.maximum(ex[:, 0], ex[:, 1])
     if cell_size is not None:
         pairs = SpatialHash(e_min, e_max, cell_size).query(e_min - radius, e_max + radius)
         pairs = pairs[pairs[:, 0] < pairs[:, 1]]
