@@ -631,10 +631,12 @@ class BagDiagnosis(RefitRefinement):
         """Nested (encompassing) comparison of a confusable pair, both refitted and each acceptable
         alone: :meth:`_conditional` of b given a at its full refit, and of a given b. x "adds" to y
         when its change, rescaled on the training rows against what y leaves (scale > 0), is supported
-        on the held-out data by the one-sided held-out test at level ``alpha`` -- a significance test,
-        as the encompassing J-test is (Davidson & MacKinnon 1981), here judged out of sample; the
-        effect sizes ``min_gain`` / ``min_explained`` decide whether a mismatch is named at all, not
-        which of two mechanisms carries it (what is left once one is in is small by construction).
+        on the held-out data by the one-sided held-out test at level ``alpha`` (as the encompassing
+        J-test, Davidson & MacKinnon 1981, but judged out of sample) and removes at least
+        ``min_explained`` of the held-out excess y leaves (relative effect size: the held-out test
+        is blind to the scale, and a change rescaled to 1 % is significant yet adds nothing). The
+        absolute ``min_gain`` is not asked: what is left once one mechanism is in is small by
+        construction; it decides whether a mismatch is named at all, not which mechanism carries it.
         The pair is resolved when exactly one adds to the other: that mechanism explains what the
         other does and something the other cannot. None when either is not acceptable alone."""
         d = self._decisions
@@ -647,7 +649,8 @@ class BagDiagnosis(RefitRefinement):
                 if ch in base:
                     base[ch] = np.asarray(p).copy()
             _, _, fig = self._conditional(ctx, base, {y: 1.0}, x, refits[x], train, folds)
-            adds = bool(fig["scale"] > 0.0 and fig["heldout_p"] <= self.settings.alpha)
+            adds = bool(fig["scale"] > 0.0 and fig["heldout_p"] <= self.settings.alpha
+                        and fig["explained_fraction"] >= self.settings.min_explained)
             figs[f"{x}_given_{y}"] = {**{k: float(v) for k, v in fig.items()}, "adds": adds}
         adds_a, adds_b = figs[f"{a}_given_{b}"]["adds"], figs[f"{b}_given_{a}"]["adds"]
         winner = a if adds_a and not adds_b else b if adds_b and not adds_a else None

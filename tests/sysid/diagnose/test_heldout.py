@@ -90,3 +90,28 @@ def test_nested_heldout_comparison_resolves_a_confusable_pair_and_reports_its_st
     assert nested["stiction_given_anisotropic_bending"]["adds"]
     assert nested["stiction_given_anisotropic_bending"]["heldout_p"] < 0.01
     assert not nested["anisotropic_bending_given_stiction"]["adds"]
+
+
+def test_a_change_rescaled_to_almost_nothing_does_not_resolve_a_pair():
+    """The held-out test is blind to the scale: given the anisotropy, a stiction change that the
+    training recording supports at 3 % of its size can be significant on a held-out recording that
+    carries more of it, yet adds nothing at that scale. It must also remove min_explained of what
+    the anisotropy leaves, else it cannot win the pair."""
+    rng = np.random.default_rng(5)
+    pred0 = np.zeros((T, 6))
+    c, e = 3.0 * _wrench_change(T) * SIGMA, 3.0 * _second_change() * SIGMA
+    refits = {"anisotropic_bending": Refit(np.array([0.05]), {}, {"wrench": pred0 + c}, {}),
+              "stiction": Refit(np.array([0.02]), {}, {"wrench": pred0 + e}, {})}
+    model, ctx = _wrench_ctx(pred0 + c + 0.03 * e + rng.normal(size=(T, 6)) * SIGMA * 0.2, pred0)
+    hmodel, _ = _wrench_ctx(pred0 + c + 1.0 * e + rng.normal(size=(T, 6)) * SIGMA, pred0)
+    d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+    d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(alpha=0.01), [], ("wrench",), ["h"]
+    train = {"wrench": np.ones(T, dtype=bool)}
+    folds = [heldout.HeldoutFold(hmodel, {"wrench": pred0}, None,
+                                 {k: {"wrench": rf.prediction["wrench"] - pred0} for k, rf in refits.items()})]
+    d._decisions = {k: {"acceptable_alone": True} for k in refits}
+    tie = next(t for t in d._ties(ctx, ["anisotropic_bending"], refits, [], train, folds)
+               if set(t["pair"]) == {"stiction", "anisotropic_bending"})
+    given = tie["nested"]["stiction_given_anisotropic_bending"]
+    assert 0.0 < given["scale"] < 0.1 and given["heldout_p"] < 0.01  # significant, but tiny
+    assert not given["adds"] and tie.get("winner") != "stiction"
