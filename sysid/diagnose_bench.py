@@ -22,9 +22,10 @@ from one calibration rollout (plus one power-law correction when the response is
 about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
 ``thickness_step`` may stay below its target).
 Nominal recordings differ by their noise only. Each recording has a held-out companion
-(``heldout/<name>``: the same noise-free streams, i.e. the same effect at the same magnitude, with
-independent noise) that the diagnosis validates its refits on (``thinshell diagnose BAG --heldout
-COMPANION``), so an effect confined to one event is trained on the whole recording. Scores: confusion matrix of the top-1 name (``none``
+(``heldout/<name>``: the same effect at the same magnitude on a motion whose slides are
+:data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis validates its
+refits on (``thinshell diagnose BAG --heldout COMPANION``), so an effect confined to one event is
+trained on the whole recording and a refit must hold on a motion it was not fitted to. Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
 RMS reduction ``1 - after / before``.
@@ -77,6 +78,15 @@ SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0
 """Press, slide 2 mm (slip), press deeper, slide 4 mm (the card buckles), dwell 0.12 s, lift 1.2 mm."""
 
 CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+
+COMPANION_SLIDE_SCALE = 0.85
+"""The held-out companion's slides are this fraction of :data:`SEGMENTS`' (same presses, dwell, lift
+and duration): a refit must then hold on a motion it was not fitted to, not only on new noise."""
+
+
+def companion_segments(segments=SEGMENTS, slide_scale: float = COMPANION_SLIDE_SCALE) -> tuple:
+    """``segments`` with every horizontal displacement scaled by ``slide_scale`` (vertical ones kept)."""
+    return tuple(((dp[0] * slide_scale, dp[1] * slide_scale, dp[2]), n) for dp, n in segments)
 
 
 # ============================================================================ motion and rollouts
@@ -369,10 +379,10 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
         nominal_count: nominal recordings (noise only).
         effects: restrict to these labels.
         log: progress callback.
-        heldout: also write each recording's held-out companion (:func:`write_companion`: the same
-            noise-free streams, so the same effect at the same magnitude, with independent noise), so
-            that the diagnosis validates its refits on another recording; an effect confined to one
-            event (adhesion's single lift-off) cannot be validated on held-out time blocks.
+        heldout: also write each recording's held-out companion (:func:`add_companions`: the same
+            effect at the same magnitude on a motion with shorter slides, independent noise), so that
+            the diagnosis validates its refits on another recording; an effect confined to one event
+            (adhesion's single lift-off) cannot be validated on held-out time blocks.
     """
     rng = np.random.default_rng(seed)
     if quick:
@@ -426,37 +436,43 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
                     m, streams, s, windows = m2, streams2, s2, w2
             recs.append(Recording(f"{spec.label}_x{k:g}", spec.label, spec.in_library, k, s, m, windows, streams=streams))
             log(f"  x{k:g}: magnitude {m:.4g}, strength {s:.2f}, windows {[(round(a, 2), round(b, 2)) for a, b in windows]}")
-    crng = companion_rng(seed)
     for rec in recs:
         rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, rng))
-        if heldout:
-            write_companion(out_dir, rec, rec.streams, crng)
         rec.streams = {}
+    if heldout:
+        add_companions(out_dir, recs, seed=seed, log=log)
     return recs
 
 
 def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
                    log: Callable[[str], None] = lambda s: None) -> list[Recording]:
-    """Write held-out companions for a set written without them (e.g. by an older build).
+    """Write the held-out companion of every recording (also for a set written without them).
 
-    Each recording is simulated again at its labelled magnitude (the rollouts are deterministic, so the
-    noise-free streams are those of the set) and written with noise from :func:`companion_rng`.
+    Each effect is simulated at its recording's labelled magnitude on the companion motion
+    (:func:`companion_segments`: slides shortened to :data:`COMPANION_SLIDE_SCALE`), a nominal
+    recording's companion is the nominal rollout of that motion, and both get noise from
+    :func:`companion_rng`. A companion whose rollout fails is left out (that recording is then
+    validated on held-out time blocks).
 
     Raises:
         ValueError: a recording's label is not an effect of :data:`EFFECTS` (names it).
     """
     specs = {e.label: e for e in EFFECTS}
-    targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"])
+    targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], companion_segments())
     base = rollout(SCENE, targets)
     rng = companion_rng(seed)
     for rec in recs:
-        if rec.label == "none":
-            streams = base
-        elif rec.label in specs:
-            spec = specs[rec.label]
-            streams = spec.make(rec.magnitude)(base) if spec.data else rollout(SCENE, targets, spec.make(rec.magnitude))
-        else:
+        if rec.label != "none" and rec.label not in specs:
             raise ValueError(f"{rec.name}: label {rec.label!r} is not a benchmark effect")
+        spec = specs.get(rec.label)
+        try:
+            if spec is None:
+                streams = base
+            else:
+                streams = spec.make(rec.magnitude)(base) if spec.data else rollout(SCENE, targets, spec.make(rec.magnitude))
+        except ThinShellError as err:
+            log(f"{rec.name}: companion rollout failed, validated on held-out time blocks ({err})")
+            continue
         write_companion(directory, rec, streams, rng)
         log(f"{rec.name}: held-out companion written")
     return recs

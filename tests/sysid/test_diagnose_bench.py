@@ -258,3 +258,13 @@ def test_companion_noise_leaves_the_primary_noise_of_a_seed_unchanged():
     a, b = np.random.default_rng(3), db.companion_rng(3)
     assert not np.allclose(a.normal(size=5), b.normal(size=5))
     assert np.allclose(np.random.default_rng(3).normal(size=5), np.random.default_rng(3).normal(size=5))
+
+
+def test_companion_motion_shortens_the_slides_only():
+    seg = db.companion_segments(slide_scale=0.5)
+    assert [n for _, n in seg] == [n for _, n in db.SEGMENTS]
+    for (dp, _), (dp0, _) in zip(seg, db.SEGMENTS):
+        assert dp[0] == pytest.approx(0.5 * dp0[0]) and dp[2] == dp0[2]
+    start = db.SCENE["effectors"]["ee"]["initial_pose"]
+    a, b = db.effector_targets(start), db.effector_targets(start, db.companion_segments())
+    assert a.shape == b.shape and np.allclose(a[:, 2], b[:, 2]) and not np.allclose(a[:, 0], b[:, 0])
