@@ -21,11 +21,11 @@ window`` (window: samples where the change exceeds a quarter of its peak). Each 
 from one calibration rollout (plus one power-law correction when the response is nonlinear), to
 about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
 ``thickness_step`` may stay below its target).
-Nominal recordings differ by their noise only. Each recording has a held-out companion
-(``heldout/<name>``: the same effect at the same magnitude on a motion whose slides are
-:data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis validates its
-refits on (``thinshell diagnose BAG --heldout COMPANION``), so an effect confined to one event is
-trained on the whole recording and a refit must hold on a motion it was not fitted to. Scores: confusion matrix of the top-1 name (``none``
+Nominal recordings differ by their noise only. With ``--heldout-companions`` each recording also
+gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
+whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
+validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
+blocks; not the default: measured worse on the set (docs/benchmarks.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
 RMS reduction ``1 - after / before``.
@@ -368,7 +368,7 @@ def write_companion(out_dir: Path, rec: Recording, streams: dict, rng: np.random
 
 def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: Sequence[float] = (1.0, 2.0, 4.0),
                  nominal_count: int = 6, effects: Sequence[str] | None = None,
-                 log: Callable[[str], None] = lambda s: None, heldout: bool = True) -> list[Recording]:
+                 log: Callable[[str], None] = lambda s: None, heldout: bool = False) -> list[Recording]:
     """Simulate, perturb, add noise and write the labelled set (module docstring).
 
     Args:
@@ -633,8 +633,11 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="write each recording's diagnosis JSON here as soon as it is done")
     ap.add_argument("--labelled", type=Path, default=None,
                     help="diagnose a set written earlier (its labels.json) instead of generating one")
+    ap.add_argument("--heldout-companions", action="store_true",
+                    help="also write a held-out companion per recording (other motion, same effect) and "
+                         "validate on it (default: held-out time blocks; see docs/benchmarks.md 2026-11-22)")
     ap.add_argument("--no-heldout", action="store_true",
-                    help="write no held-out companions / ignore them (validate on held-out time blocks)")
+                    help="ignore the companions a labelled set lists (validate on held-out time blocks)")
     ap.add_argument("--add-heldout", action="store_true",
                     help="with --labelled: write held-out companions for a set that has none (seed --seed)")
     args = ap.parse_args(argv)
@@ -659,7 +662,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         out = args.out or Path(tempfile.mkdtemp(prefix="thinshell_bench_diagnose_"))
         out.mkdir(parents=True, exist_ok=True)
         recs = generate_set(out, quick=args.quick, seed=args.seed, strengths=tuple(args.strengths),
-                            nominal_count=args.nominal, effects=args.effects, log=log, heldout=not args.no_heldout)
+                            nominal_count=args.nominal, effects=args.effects, log=log, heldout=args.heldout_companions and not args.no_heldout)
     if args.no_heldout:
         for r in recs:
             r.heldout = []

@@ -222,9 +222,13 @@ def test_calibration_reaches_a_power_law_and_brackets_a_threshold():
 
 
 def test_each_recording_is_diagnosed_with_its_heldout_companion(tmp_path, capsys, monkeypatch):
-    """A generated set lists each recording's companion in labels.json; the engine receives it as
-    ``heldout`` (generated and re-read with --labelled); --no-heldout falls back to time blocks."""
+    """With --heldout-companions a generated set lists each recording's companion in labels.json; the
+    engine receives it as ``heldout`` (generated and re-read with --labelled); --no-heldout falls back
+    to time blocks."""
+    asked = []
+
     def recs_with_companions(out, **kw):
+        asked.append(kw["heldout"])
         recs = _recs()
         for r in recs:
             r.path = out / r.name
@@ -236,7 +240,8 @@ def test_each_recording_is_diagnosed_with_its_heldout_companion(tmp_path, capsys
     monkeypatch.setattr(db, "generate_set", recs_with_companions)
     monkeypatch.setattr(db, "_engine", lambda spec: (lambda bags, **kw: calls.append((bags, kw)) or
                                                      {"explained_by": [], "mismatch": {}}))
-    assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path)]) == 0
+    assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path), "--heldout-companions"]) == 0
+    assert asked == [True]  # opt-in: the default validates on held-out time blocks
     assert all(kw["heldout"] == [str(tmp_path / db.HELDOUT_DIR / Path(b[0]).name)] for b, kw in calls)
     labels = json.loads((tmp_path / "labels.json").read_text())
     assert labels[0]["heldout"] == [f"{db.HELDOUT_DIR}/n0"]
