@@ -21,7 +21,11 @@ window`` (window: samples where the change exceeds a quarter of its peak). Each 
 from one calibration rollout (plus one power-law correction when the response is nonlinear), to
 about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
 ``thickness_step`` may stay below its target).
-Nominal recordings differ by their noise only. Scores: confusion matrix of the top-1 name (``none``
+Nominal recordings differ by their noise only. With ``--heldout-companions`` each recording also
+gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
+whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
+validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
+blocks; not the default: measured worse on the set (docs/benchmarks.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
 RMS reduction ``1 - after / before``.
@@ -74,6 +78,15 @@ SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0
 """Press, slide 2 mm (slip), press deeper, slide 4 mm (the card buckles), dwell 0.12 s, lift 1.2 mm."""
 
 CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
+
+COMPANION_SLIDE_SCALE = 0.85
+"""The held-out companion's slides are this fraction of :data:`SEGMENTS`' (same presses, dwell, lift
+and duration): a refit must then hold on a motion it was not fitted to, not only on new noise."""
+
+
+def companion_segments(segments=SEGMENTS, slide_scale: float = COMPANION_SLIDE_SCALE) -> tuple:
+    """``segments`` with every horizontal displacement scaled by ``slide_scale`` (vertical ones kept)."""
+    return tuple(((dp[0] * slide_scale, dp[1] * slide_scale, dp[2]), n) for dp, n in segments)
 
 
 # ============================================================================ motion and rollouts
@@ -331,11 +344,31 @@ class Recording:
     windows_s: list[tuple[float, float]]
     path: Path | None = None
     streams: dict = field(default_factory=dict, repr=False)
+    heldout: list[Path] = field(default_factory=list)
+    """Companion recordings (same effect, same magnitude, independent noise) used as the held-out data."""
+
+
+HELDOUT_DIR = "heldout"
+"""Sub-directory of a set that holds the held-out companion of each recording (same name)."""
+
+
+def companion_rng(seed: int) -> np.random.Generator:
+    """Noise generator of the held-out companions: independent of the primary recordings' stream
+    (``default_rng(seed)``), so that adding companions leaves the primary recordings of a seed unchanged."""
+    return np.random.default_rng([seed, 1])
+
+
+def write_companion(out_dir: Path, rec: Recording, streams: dict, rng: np.random.Generator) -> Path:
+    """Write the held-out companion of ``rec``: its noise-free ``streams`` with new noise, as
+    ``out_dir/heldout/<name>``; appends the path to ``rec.heldout``."""
+    path = write_recording(Path(out_dir) / HELDOUT_DIR / rec.name, add_noise(streams, rng))
+    rec.heldout.append(path)
+    return path
 
 
 def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: Sequence[float] = (1.0, 2.0, 4.0),
                  nominal_count: int = 6, effects: Sequence[str] | None = None,
-                 log: Callable[[str], None] = lambda s: None) -> list[Recording]:
+                 log: Callable[[str], None] = lambda s: None, heldout: bool = False) -> list[Recording]:
     """Simulate, perturb, add noise and write the labelled set (module docstring).
 
     Args:
@@ -346,6 +379,10 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
         nominal_count: nominal recordings (noise only).
         effects: restrict to these labels.
         log: progress callback.
+        heldout: also write each recording's held-out companion (:func:`add_companions`: the same
+            effect at the same magnitude on a motion with shorter slides, independent noise), so that
+            the diagnosis validates its refits on another recording; an effect confined to one event
+            (adhesion's single lift-off) cannot be validated on held-out time blocks.
     """
     rng = np.random.default_rng(seed)
     if quick:
@@ -402,6 +439,42 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
     for rec in recs:
         rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, rng))
         rec.streams = {}
+    if heldout:
+        add_companions(out_dir, recs, seed=seed, log=log)
+    return recs
+
+
+def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
+                   log: Callable[[str], None] = lambda s: None) -> list[Recording]:
+    """Write the held-out companion of every recording (also for a set written without them).
+
+    Each effect is simulated at its recording's labelled magnitude on the companion motion
+    (:func:`companion_segments`: slides shortened to :data:`COMPANION_SLIDE_SCALE`), a nominal
+    recording's companion is the nominal rollout of that motion, and both get noise from
+    :func:`companion_rng`. A companion whose rollout fails is left out (that recording is then
+    validated on held-out time blocks).
+
+    Raises:
+        ValueError: a recording's label is not an effect of :data:`EFFECTS` (names it).
+    """
+    specs = {e.label: e for e in EFFECTS}
+    targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], companion_segments())
+    base = rollout(SCENE, targets)
+    rng = companion_rng(seed)
+    for rec in recs:
+        if rec.label != "none" and rec.label not in specs:
+            raise ValueError(f"{rec.name}: label {rec.label!r} is not a benchmark effect")
+        spec = specs.get(rec.label)
+        try:
+            if spec is None:
+                streams = base
+            else:
+                streams = spec.make(rec.magnitude)(base) if spec.data else rollout(SCENE, targets, spec.make(rec.magnitude))
+        except ThinShellError as err:
+            log(f"{rec.name}: companion rollout failed, validated on held-out time blocks ({err})")
+            continue
+        write_companion(directory, rec, streams, rng)
+        log(f"{rec.name}: held-out companion written")
     return recs
 
 
@@ -420,9 +493,13 @@ def load_labelled_set(directory: Path) -> list[Recording]:
         path = directory / item["name"]
         if not path.exists():
             raise FileNotFoundError(f"{index}: recording {item['name']!r} not found at {path}")
+        heldout = [directory / h for h in item.get("heldout", [])]
+        missing = [h for h in heldout if not h.exists()]
+        if missing:
+            raise FileNotFoundError(f"{index}: held-out companion of {item['name']!r} not found at {missing[0]}")
         recs.append(Recording(item["name"], item["label"], bool(item["in_library"]), float(item["target_strength"]),
                               float(item["strength"]), float(item["magnitude"]),
-                              [tuple(w) for w in item["windows_s"]], path=path))
+                              [tuple(w) for w in item["windows_s"]], path=path, heldout=heldout))
     return recs
 
 
@@ -528,9 +605,10 @@ def _write_report(directory: Path, name: str, report: Mapping[str, Any]) -> None
     tmp.replace(directory / f"{name}.json")
 
 
-def _diagnose_one(engine: str, path: str) -> Mapping[str, Any]:
-    """Diagnose one recording in a worker process (engine given as ``module:function``)."""
-    return _engine(engine)([path], dt=DT)
+def _diagnose_one(engine: str, path: str, heldout: Sequence[str] = ()) -> Mapping[str, Any]:
+    """Diagnose one recording in a worker process (engine given as ``module:function``), validated
+    on its held-out companions when it has any (else on held-out time blocks)."""
+    return _engine(engine)([path], dt=DT, **({"heldout": list(heldout)} if heldout else {}))
 
 
 def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
@@ -555,6 +633,13 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="write each recording's diagnosis JSON here as soon as it is done")
     ap.add_argument("--labelled", type=Path, default=None,
                     help="diagnose a set written earlier (its labels.json) instead of generating one")
+    ap.add_argument("--heldout-companions", action="store_true",
+                    help="also write a held-out companion per recording (other motion, same effect) and "
+                         "validate on it (default: held-out time blocks; see docs/benchmarks.md 2026-11-22)")
+    ap.add_argument("--no-heldout", action="store_true",
+                    help="ignore the companions a labelled set lists (validate on held-out time blocks)")
+    ap.add_argument("--add-heldout", action="store_true",
+                    help="with --labelled: write held-out companions for a set that has none (seed --seed)")
     args = ap.parse_args(argv)
     if args.jobs < 1 or any(not k > 0 for k in args.strengths):
         print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
@@ -568,15 +653,25 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         except FileNotFoundError as err:
             print(f"thinshell bench diagnose: {err}", file=sys.stderr)
             return 2
+        if args.add_heldout:
+            if any(r.heldout for r in recs) or (out / HELDOUT_DIR).exists():
+                print(f"thinshell bench diagnose: {out} already has held-out companions", file=sys.stderr)
+                return 2
+            add_companions(out, recs, seed=args.seed, log=log)
     else:
         out = args.out or Path(tempfile.mkdtemp(prefix="thinshell_bench_diagnose_"))
         out.mkdir(parents=True, exist_ok=True)
         recs = generate_set(out, quick=args.quick, seed=args.seed, strengths=tuple(args.strengths),
-                            nominal_count=args.nominal, effects=args.effects, log=log)
+                            nominal_count=args.nominal, effects=args.effects, log=log, heldout=args.heldout_companions and not args.no_heldout)
+    if args.no_heldout:
+        for r in recs:
+            r.heldout = []
     gen_s = time.perf_counter() - t0
     labels = [{"name": r.name, "label": r.label, "in_library": r.in_library, "target_strength": r.target_strength,
-               "strength": r.strength, "magnitude": r.magnitude, "windows_s": r.windows_s} for r in recs]
-    if args.labelled is None:
+               "strength": r.strength, "magnitude": r.magnitude, "windows_s": r.windows_s,
+               **({"heldout": [str(Path(h).relative_to(out)) for h in r.heldout]} if r.heldout else {})}
+              for r in recs]
+    if args.labelled is None or args.add_heldout:
         (out / "labels.json").write_text(json.dumps(labels, indent=1))
     result: dict[str, Any] = {"out": str(out), "generation_s": round(gen_s, 1), "labels": labels}
     if not args.generate_only:
@@ -590,7 +685,8 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
             reports = []
             for r in recs:
                 log(f"diagnosing {r.name} ...")
-                reports.append(diagnose([str(r.path)], dt=DT))
+                reports.append(diagnose([str(r.path)], dt=DT, **({"heldout": [str(h) for h in r.heldout]}
+                                                                 if r.heldout else {})))
                 if args.reports is not None:
                     _write_report(args.reports, r.name, reports[-1])
         else:
@@ -601,7 +697,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
             log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
             reports = [None] * len(recs)
             with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-                futures = {pool.submit(_diagnose_one, args.engine, str(r.path)): i for i, r in enumerate(recs)}
+                futures = {pool.submit(_diagnose_one, args.engine, str(r.path), [str(h) for h in r.heldout]): i for i, r in enumerate(recs)}
                 for fut in as_completed(futures):
                     i = futures[fut]
                     reports[i] = fut.result()

@@ -7,7 +7,7 @@ incremental potential (and, for the viscoelastic gel, a state update after each 
 |---|---|---|---|
 | ``stiction`` | :mod:`.stiction` | ``mu_s / mu_k - 1`` | ``stiction.slip_scale`` (2: eps_s / eps_u) |
 | ``gel_viscoelasticity`` | :mod:`.gel_viscoelasticity` | Maxwell / equilibrium stiffness | ``gel_viscoelasticity.tau`` (0.3 s) |
-| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (5 delta) |
+| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: in contact) |
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
 | ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
 

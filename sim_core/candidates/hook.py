@@ -36,7 +36,15 @@ CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_b
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
                       "adhesion.reach": None}
-"""Secondary settings and their defaults (``adhesion.reach`` None = 5 ``adhesion.delta``)."""
+"""Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION`` ``adhesion.delta``)."""
+
+ADHESION_REACH_FRACTION = 0.01
+"""Default reach of an adhesion pair, in units of ``adhesion.delta``: a bond forms only where the gel
+touches the sheet (opening at the start of the step at most 2.5 um beyond the contact offset with the
+default delta, i.e. in contact up to the solver's gap tolerance). A tacky interface adheres where it
+touches; with pairs formed up to 5 delta (1.25 mm) away, the candidate pulled a card that had buckled
+away from the gel and changed the buckling, a signature no adhesion has (benchmarks.md,
+2026-11-22)."""
 
 _STATE_KEY = "gel_viscoelasticity"
 
@@ -122,7 +130,7 @@ class CandidateHook:
         """Value of a secondary setting (default from :data:`CANDIDATE_SETTINGS`)."""
         v = self.params.get(name, CANDIDATE_SETTINGS[name])
         if name == "adhesion.reach" and v is None:
-            return 5.0 * self.setting("adhesion.delta")
+            return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
         return float(v)
 
     def _hinge_bending(self, model, name: str, hinges: np.ndarray, theta_bar) -> DiscreteShellBending:

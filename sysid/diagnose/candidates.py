@@ -272,8 +272,11 @@ def apply_observation_refit(hctx: DiagnosisContext, rf: Refit, pred: dict[str, n
         J = LensDistortionCandidate().signature(hctx)["markers_uv"][..., 0]
         pred["markers_uv"] = pred["markers_uv"] + float(rf.beta[0]) * J
     elif "bias_fx" in rf.params and "wrench" in hctx.channels:
+        # the refit's beta holds only the axes it kept; the params hold all six (0 where dropped)
+        axes = ("fx", "fy", "fz", "tx", "ty", "tz")
+        coef = np.array([[float(rf.params[f"bias_{a}"]) for a in axes], [float(rf.params[f"drift_{a}"]) for a in axes]])
         B = ForceBiasCandidate.basis(hctx.stamps_s("wrench"))
-        pred["wrench"] = pred["wrench"] + B @ rf.beta.reshape(6, 2).T
+        pred["wrench"] = pred["wrench"] + B @ coef
 
 
 def _quadratic_minimiser(f: Callable[[float], float], scale: float) -> float:

@@ -65,10 +65,11 @@ import numpy as np
 
 from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
-from sysid.diagnose import discriminate, latency, locate, noise, stats
+from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
+from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
-from sysid.diagnose.residuals import (explained_fraction, heldout_products, holdout_rows, mismatch_declared,
+from sysid.diagnose.residuals import (explained_fraction, holdout_rows, mismatch_declared,
                                       residual, rms_summary, sse, stream_channels, whiten)
 from sysid.diagnose.settings import Settings
 
@@ -82,7 +83,7 @@ energy to 0.3 %, and which is named first depends on the linear solver's round-o
 
 
 # ====================================================================================== one bag
-class BagDiagnosis:
+class BagDiagnosis(RefitRefinement):
     """Diagnosis of one recording (construct, then :meth:`run`).
 
     Args:
@@ -281,8 +282,8 @@ class BagDiagnosis:
         pred0 = ctx.prediction
         significant = sorted({t["effect"] for t in tests if t["significant"]},
                              key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
-        heldout_models = self._heldout_models() if self.heldout else []
-        decisions = self._decide(ctx, refits, train, heldout_models, theta)
+        folds = self._folds(ctx, train, theta, refits)
+        decisions = self._decide(ctx, refits, train, folds)
         self._decisions = decisions
         # an effect whose discriminating test confirmed it (latency: the cross-correlation lag of the
         # recorded vs predicted rates matches the fitted delay) is named before the ones that only
@@ -290,7 +291,17 @@ class BagDiagnosis:
         accepted = sorted((e for e in decisions["order"] if decisions[e]["accepted"]),
                           key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["heldout_gain"]))
         # confusable pairs: one name wins only when a discriminating test resolves the pair
-        ties = self._ties(ctx, accepted, refits, tests)
+        ties = self._ties(ctx, accepted, refits, tests, train, folds)
+        # a nested comparison that resolves a pair names the mechanism that encompasses the other
+        for tie in ties:
+            w = tie.get("winner") if tie.get("test") == "nested_heldout" else None
+            loser = next((x for x in tie["pair"] if x != w), None) if w else None
+            if w and w not in accepted and loser in accepted and not decisions[w].get("refuted_by"):
+                accepted[accepted.index(loser)] = w
+                decisions[w]["accepted"], decisions[loser]["accepted"] = True, False
+                decisions[w]["scale"] = 1.0
+                self.notes.append(f"{w} named in place of {loser}: it adds to {loser} on the held-out data and "
+                                  f"{loser} adds nothing to it (nested held-out comparison)")
 
         # ---- augmented model (first order: sum of the accepted prediction changes)
         final = {ch: pred0[ch].copy() for ch in self.tested}
@@ -302,8 +313,8 @@ class BagDiagnosis:
             refit_params.update({k: v for k, v in refits[e].params.items() if not isinstance(v, dict)})
         mismatch_channels = sorted({t["channel"] for t in tests if t["significant"]})
         eval_channels = mismatch_channels or list(model.channels)
-        ho_before, ho_after = self._heldout_rms(ctx, final, eval_channels, train, heldout_models, theta,
-                                                [refits[e] for e in accepted])
+        ho_before, ho_after, _, _ = heldout.evaluate(folds, {}, {e: decisions[e]["scale"] for e in accepted},
+                                                     eval_channels)
 
         # ---- locate
         focus = accepted[0] if accepted else (significant[0] if significant else None)
@@ -438,62 +449,6 @@ class BagDiagnosis:
                 self._probe_if_better(ctx, c, out, train)
         return out
 
-    def _probe_if_better(self, ctx, c, out, train) -> None:
-        """Take the probe rollout as the refit when it fits the training rows better.
-
-        An effect with an onset (plastic yield, stiction breakaway) has no first-order signature
-        below the onset, so the linearised estimate can land where the effect does nothing (or
-        be clipped to 0) while the probe, already replayed, fits better than both the nominal
-        model and the estimate; the probe is then the better refit.
-        """
-        rf = out[c.name]
-        probe = self._probe_out.get(c.name)
-        if probe is None or float(rf.beta[0]) == c.probe_beta:
-            return
-        if self._train_sse(probe[1], train) < min(self._train_sse(ctx.prediction, train),
-                                                 self._train_sse(rf.prediction, train)):
-            rf.beta = np.array([c.probe_beta])
-            rf.params = {c.report_name: c.probe_beta, **c.settings}
-            rf.sim_params = c.sim_parameters(c.probe_beta)
-            rf.prediction = probe[1]
-
-    def _train_sse(self, pred: Mapping[str, np.ndarray], train) -> float:
-        return sum(float(np.sum(residual(self.model, ch, pred[ch])[train[ch]] ** 2)) for ch in self.model.channels
-                   if ch in pred)
-
-    def _secant(self, ctx, physics, out, train, theta) -> None:
-        """One more replay per physics candidate at the minimiser of the parabola through the training
-        SSE at beta = 0 (nominal), the probe and the linearised estimate; the better of the two is kept."""
-        sets, which = [], []
-        for c in physics:
-            rf = out[c.name]
-            b1 = float(rf.beta[0])
-            probe = self._probe_out.get(c.name)
-            if probe is None or not rf.prediction or rf.prediction is ctx.prediction:
-                continue
-            xs = np.array([0.0, c.probe_beta, b1])
-            if np.min(np.abs(np.diff(np.sort(xs)))) < 1e-3 * c.probe_beta:
-                continue
-            ys = np.array([self._train_sse(ctx.prediction, train), self._train_sse(probe[1], train),
-                           self._train_sse(rf.prediction, train)])
-            a2, a1, _ = np.polyfit(xs, ys, 2)
-            if not a2 > 0.0:
-                continue
-            b2 = float(np.clip(-a1 / (2.0 * a2), 0.0 if c.one_sided else -c.bound, c.bound))
-            if b2 == 0.0 or abs(b2 - b1) < 0.1 * max(abs(b1), 1e-12):
-                continue
-            dtheta = {k: v for k, v in rf.sim_params.items() if k != c.parameter}
-            sets.append({**theta, **dtheta, **c.sim_parameters(b2)})
-            which.append((c, b2, ys[2], dtheta))
-        for (c, b2, sse1, dtheta), rep in zip(which, self._replays(sets) if sets else []):
-            if rep is None or self._train_sse(rep[1], train) >= sse1:
-                continue
-            rf = out[c.name]
-            rf.beta = np.array([b2])
-            rf.params[c.report_name] = b2
-            rf.sim_params = {**dtheta, **c.sim_parameters(b2)}
-            rf.prediction = rep[1]
-
     # ------------------------------------------------------------------------------ decide
     def _heldout_models(self) -> list:
         from sysid.evidence import load_evidence
@@ -510,7 +465,19 @@ class BagDiagnosis:
                     self._note(noise.denoise_controls(out[-1], self.settings.denoise_window))
         return out
 
-    def _decide(self, ctx, refits, train, heldout_models, theta) -> dict[str, Any]:
+    def _folds(self, ctx, train, theta, refits) -> list[heldout.HeldoutFold]:
+        """The held-out data: the held-out recordings (each replayed at the nominal and at every
+        physics refit's parameters) or, without them, the held-out time blocks of this recording."""
+        if not self.heldout:
+            return [heldout.block_fold(self.model, ctx.prediction, train, refits)]
+        t = time.perf_counter()
+        folds = heldout.bag_folds(self._heldout_models(), theta, refits, self.tested, self.model.sigma,
+                                  lambda m, sets: replay_many(m, sets, self.settings.workers, self.settings.ray_address),
+                                  cands.DiagnosisContext, cands.apply_observation_refit, self.notes)
+        self.timings["heldout_replays_s"] = time.perf_counter() - t
+        return folds
+
+    def _decide(self, ctx, refits, train, folds) -> dict[str, Any]:
         """Accept refits by their held-out improvement, greedily (model comparison out of sample).
 
         Each refit (fitted on the training rows) is tested on the held-out rows (or bags): a one-sided
@@ -549,8 +516,7 @@ class BagDiagnosis:
             q = int(rf.beta.shape[0])
             dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
             lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
-            before, after, (a, b, c2, nv), per_channel = self._heldout_rms(
-                ctx, {**ctx.prediction, **rf.prediction}, chans, train, heldout_models, theta, [rf], differential=True)
+            before, after, (a, b, c2, nv), per_channel = heldout.evaluate(folds, {}, {e: 1.0}, chans)
             test = self._heldout_test((a, b, c2, nv), 0.0)
             # consistency across channels: one parameter drives every channel the effect acts on, so a
             # channel whose held-out fit the refit makes significantly worse (supported scale < 1/2)
@@ -588,6 +554,7 @@ class BagDiagnosis:
             refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
                                               ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha)) if not ok]
             d["accepted"] = explains and not refuted
+            d["acceptable_alone"] = d["accepted"]
             if explains and refuted:
                 d["refuted_by"] = refuted
                 if "line_of_action" in refuted:
@@ -599,7 +566,7 @@ class BagDiagnosis:
         order = sorted(refits, key=lambda e: -out[e]["heldout_gain"])
         out["order"] = order
         base = {ch: ctx.prediction[ch].copy() for ch in self.tested}
-        first = True
+        base_scales: dict[str, float] = {}
         for e in order:
             # a candidate that explains the mismatch but whose mechanism a discriminating test refutes
             # is not named, yet it stays in the sequence as a description of the mismatch: a weaker
@@ -609,40 +576,85 @@ class BagDiagnosis:
                 continue
             rf = refits[e]
             chans = [ch for ch in rf.prediction if ch in self.tested]
-            if first:
-                first = False
+            if not base_scales:
                 for ch in chans:
                     base[ch] = base[ch] + rf.prediction[ch] - ctx.prediction[ch]
+                base_scales[e] = 1.0
                 out[e]["accepted"] = not refuted
                 continue
-            # conditional on the accepted ones (linear in the scale of this candidate's change)
-            num = den = 0.0
-            for ch in chans:
-                r = residual(self.model, ch, base[ch])[train[ch]]
-                d = whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])[train[ch]]
-                num, den = num + float(np.sum(r * d)), den + float(np.sum(d * d))
-            c = float(np.clip(num / den, 0.0, 1.5)) if den > 0 else 0.0
-            cond = {ch: base[ch] + c * (rf.prediction[ch] - ctx.prediction[ch]) for ch in chans}
-            sse0, _, n = sse(self.model, base, chans, train)
-            sse1, _, _ = sse(self.model, {**base, **cond}, chans, train)
-            dbic = stats.delta_bic(sse0, sse1, n, int(rf.beta.shape[0])) if sse0 > 0 and sse1 > 0 else 0.0
-            out[e].update({"conditional_delta_bic": float(dbic), "scale": c})
-            if heldout_models:
-                ok = dbic > s.bic_threshold
-            else:
-                rows = {ch: ~train[ch] for ch in chans}
-                h0, m0, _ = sse(self.model, base, chans, rows)
-                h1, m1, _ = sse(self.model, {**base, **cond}, chans, rows)
-                b, a = math.sqrt(h0 / max(m0, 1)), math.sqrt(h1 / max(m1, 1))
-                frac = explained_fraction(b, a)
-                test = self._heldout_test(heldout_products(self.model, base, {**base, **cond}, chans, rows), 0.0)
-                ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained
-                          and b ** 2 - a ** 2 >= s.min_gain)
-                out[e].update({"conditional_explained_fraction": frac, "conditional_heldout_p": test.p_value})
+            # conditional on the accepted ones, judged out of sample as the first one was
+            ok, cond, fig = self._conditional(ctx, base, base_scales, e, rf, train, folds)
+            out[e].update({"conditional_delta_bic": fig["delta_bic"], "scale": fig["scale"],
+                           "conditional_explained_fraction": fig["explained_fraction"],
+                           "conditional_heldout_p": fig["heldout_p"]})
             out[e]["accepted"] = bool(ok) and not refuted
             if ok:
                 base.update(cond)
+                base_scales[e] = fig["scale"]
         return out
+
+    def _conditional(self, ctx, base, base_scales, e, rf, train, folds) -> tuple[bool, dict, dict[str, float]]:
+        """Does candidate ``e`` explain anything beyond the combination ``base_scales`` (in-sample
+        prediction ``base``)?
+
+        Its prediction change is rescaled by least squares on the training rows against the residual
+        ``base`` leaves (scale clipped to [0, 1.5]); the rescaled change must then pass, on the held-out
+        time blocks or recordings, the one-sided held-out test (level ``alpha``), lower the held-out RMS,
+        remove ``min_explained`` of the held-out excess ``base`` leaves and ``min_gain`` of its mean
+        square (the criteria a single refit meets). The in-sample delta-BIC is reported.
+
+        Returns:
+            ``(ok, conditional prediction (channel -> array), figures: scale, delta_bic,
+            explained_fraction, heldout_p, heldout_rms_before, heldout_rms_after)``.
+        """
+        s = self.settings
+        chans = [ch for ch in rf.prediction if ch in self.tested]
+        num = den = 0.0
+        for ch in chans:
+            r = residual(self.model, ch, base[ch])[train[ch]]
+            d = whiten(self.model, ch, rf.prediction[ch] - ctx.prediction[ch])[train[ch]]
+            num, den = num + float(np.sum(r * d)), den + float(np.sum(d * d))
+        c = float(np.clip(num / den, 0.0, 1.5)) if den > 0 else 0.0
+        cond = {ch: base[ch] + c * (rf.prediction[ch] - ctx.prediction[ch]) for ch in chans}
+        sse0, _, n = sse(self.model, base, chans, train)
+        sse1, _, _ = sse(self.model, {**base, **cond}, chans, train)
+        dbic = stats.delta_bic(sse0, sse1, n, int(rf.beta.shape[0])) if sse0 > 0 and sse1 > 0 else 0.0
+        b, a, prods, _ = heldout.evaluate(folds, base_scales, {**base_scales, e: c}, chans)
+        frac = explained_fraction(b, a)
+        test = self._heldout_test(prods, 0.0)
+        ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained
+                  and b ** 2 - a ** 2 >= s.min_gain)
+        return ok, cond, {"scale": c, "delta_bic": float(dbic), "explained_fraction": frac,
+                          "heldout_p": float(test.p_value), "heldout_rms_before": b, "heldout_rms_after": a}
+
+    def _nested(self, ctx, refits, train, folds, a: str, b: str) -> dict[str, Any] | None:
+        """Nested (encompassing) comparison of a confusable pair, both refitted and each acceptable
+        alone: :meth:`_conditional` of b given a at its full refit, and of a given b. x "adds" to y
+        when its change, rescaled on the training rows against what y leaves (scale > 0), is supported
+        on the held-out data by the one-sided held-out test at level ``alpha`` (as the encompassing
+        J-test, Davidson & MacKinnon 1981, but judged out of sample) and removes at least
+        ``min_explained`` of the held-out excess y leaves (relative effect size: the held-out test
+        is blind to the scale, and a change rescaled to 1 % is significant yet adds nothing). The
+        absolute ``min_gain`` is not asked: what is left once one mechanism is in is small by
+        construction; it decides whether a mismatch is named at all, not which mechanism carries it.
+        The pair is resolved when exactly one adds to the other: that mechanism explains what the
+        other does and something the other cannot. None when either is not acceptable alone."""
+        d = self._decisions
+        if not (d.get(a, {}).get("acceptable_alone") and d.get(b, {}).get("acceptable_alone")):
+            return None
+        figs = {}
+        for x, y in ((a, b), (b, a)):
+            base = {ch: ctx.prediction[ch].copy() for ch in self.tested}
+            for ch, p in refits[y].prediction.items():
+                if ch in base:
+                    base[ch] = np.asarray(p).copy()
+            _, _, fig = self._conditional(ctx, base, {y: 1.0}, x, refits[x], train, folds)
+            adds = bool(fig["scale"] > 0.0 and fig["heldout_p"] <= self.settings.alpha
+                        and fig["explained_fraction"] >= self.settings.min_explained)
+            figs[f"{x}_given_{y}"] = {**{k: float(v) for k, v in fig.items()}, "adds": adds}
+        adds_a, adds_b = figs[f"{a}_given_{b}"]["adds"], figs[f"{b}_given_{a}"]["adds"]
+        winner = a if adds_a and not adds_b else b if adds_b and not adds_a else None
+        return {"winner": winner, "nested": figs}
 
     def _heldout_test(self, products, beta0: float) -> stats.HeldoutResult:
         """:func:`stats.heldout_test` of ``products = (a, b, c, n)``, or a neutral result (both
@@ -654,68 +666,27 @@ class BagDiagnosis:
             self.notes.append(f"held-out test: {err}")
             return stats.HeldoutResult(0.0, beta0, 0.0, 1.0, 1.0, int(np.size(a)))
 
-    def _heldout_rms(self, ctx, prediction, channels, train, heldout_models, theta, applied,
-                     differential: bool = False) -> tuple:
-        """Held-out whitened RMS before/after over ``channels`` (held-out time blocks, or the held-out
-        bags replayed at nominal and refitted parameters); with ``differential`` also the per-time
-        products ``(a, b, c, n)`` of :func:`residuals.heldout_products` over all channels and per channel
-        (concatenated over bags)."""
-        if not heldout_models:
-            rows = {ch: ~train[ch] for ch in channels}
-            s0, n0, _ = sse(self.model, ctx.prediction, channels, rows)
-            s1, n1, _ = sse(self.model, prediction, channels, rows)
-            rms = (float(math.sqrt(s0 / max(n0, 1))), float(math.sqrt(s1 / max(n1, 1))))
-            if differential:
-                per = {ch: heldout_products(self.model, ctx.prediction, prediction, [ch], rows) for ch in channels}
-                return rms + (heldout_products(self.model, ctx.prediction, prediction, channels, rows), per)
-            return rms
-        tot0 = tot1 = 0.0
-        n_tot = 0
-        diffs = []
-        for hm in heldout_models:
-            hm.sigma.update({ch: v for ch, v in self.model.sigma.items() if ch in hm.sigma})
-            sim_params = dict(theta)
-            for rf in applied:
-                sim_params.update(rf.sim_params)
-            reps = replay_many(hm, [theta, sim_params] if len(sim_params) > len(theta) else [theta],
-                               self.settings.workers, self.settings.ray_address)
-            if reps[0] is None:
-                continue
-            trace, p0 = reps[0]
-            p1 = reps[-1][1] if reps[-1] is not None else p0
-            hctx = cands.DiagnosisContext(hm, dict(theta), reps[-1][0] if reps[-1] is not None else trace, p1,
-                                          tuple(c for c in self.tested if c in hm.evidence.channels_present))
-            p1 = dict(p1)
-            for rf in applied:
-                cands.apply_observation_refit(hctx, rf, p1)
-            chans = [c for c in channels if c in hctx.channels]
-            s0, n0, _ = sse(hm, p0, chans, None)
-            s1, _, _ = sse(hm, p1, chans, None)
-            tot0, tot1, n_tot = tot0 + s0, tot1 + s1, n_tot + n0
-            if differential:
-                diffs.append((heldout_products(hm, p0, p1, chans, None),
-                              {ch: heldout_products(hm, p0, p1, [ch], None) for ch in chans}))
-        rms = (float(math.sqrt(tot0 / max(n_tot, 1))), float(math.sqrt(tot1 / max(n_tot, 1))))
-        if differential:
-            both = tuple(np.concatenate([d[0][i] for d in diffs]) if diffs else np.zeros(0) for i in range(4))
-            per = {ch: tuple(np.concatenate([d[1][ch][i] for d in diffs if ch in d[1]]) for i in range(4))
-                   for ch in channels if any(ch in d[1] for d in diffs)}
-            return rms + (both, per)
-        return rms
-
-    def _ties(self, ctx, accepted, refits, tests) -> list[dict[str, Any]]:
+    def _ties(self, ctx, accepted, refits, tests, train=None, folds=()) -> list[dict[str, Any]]:
+        """Confusable pairs that were both refitted: resolved by latency's cross-correlation test, or
+        by the nested held-out comparison (:meth:`_nested`, its figures reported under ``nested``)."""
         out = []
         for a, b in CONFUSABLE:
             if a in refits and b in refits:
-                resolved_by = None
+                resolved_by, winner, extra = None, None, {}
                 if "latency" in (a, b):
                     resolved_by = latency.tie_resolution(refits["latency"].params.get("latency_by_channel_s", {}),
                                                          self._decisions.get("latency", {}).get("xcorr_agrees", True))
                     winner = "latency"
+                elif folds and train is not None:
+                    nest = self._nested(ctx, refits, train, folds, a, b)
+                    if nest is not None:
+                        extra = {"nested": nest["nested"]}
+                        if nest["winner"] is not None:
+                            resolved_by, winner = "nested_heldout", nest["winner"]
                 if resolved_by is None:
-                    out.append({"pair": [a, b], "resolved": False})
+                    out.append({"pair": [a, b], "resolved": False, **extra})
                 else:
-                    out.append({"pair": [a, b], "resolved": True, "winner": winner, "test": resolved_by})
+                    out.append({"pair": [a, b], "resolved": True, "winner": winner, "test": resolved_by, **extra})
         return out
 
 # ====================================================================================== entry point

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -218,3 +219,57 @@ def test_calibration_reaches_a_power_law_and_brackets_a_threshold():
     assert next_magnitude([(0.25, 0.0), (4.0, 8.5)], 3.0) == pytest.approx(1.0)
     assert next_magnitude([(1.0, 1.0), (1.0 + 1e-9, 9.0)], 3.0) is None
     assert strength_error(0.0, 1.0) == math.inf
+
+
+def test_each_recording_is_diagnosed_with_its_heldout_companion(tmp_path, capsys, monkeypatch):
+    """With --heldout-companions a generated set lists each recording's companion in labels.json; the
+    engine receives it as ``heldout`` (generated and re-read with --labelled); --no-heldout falls back
+    to time blocks."""
+    asked = []
+
+    def recs_with_companions(out, **kw):
+        asked.append(kw["heldout"])
+        recs = _recs()
+        for r in recs:
+            r.path = out / r.name
+            r.heldout = [out / db.HELDOUT_DIR / r.name]
+            r.heldout[0].mkdir(parents=True)
+        return recs
+
+    calls = []
+    monkeypatch.setattr(db, "generate_set", recs_with_companions)
+    monkeypatch.setattr(db, "_engine", lambda spec: (lambda bags, **kw: calls.append((bags, kw)) or
+                                                     {"explained_by": [], "mismatch": {}}))
+    assert db.bench_diagnose_main(["--quick", "--json", "--out", str(tmp_path), "--heldout-companions"]) == 0
+    assert asked == [True]  # opt-in: the default validates on held-out time blocks
+    assert all(kw["heldout"] == [str(tmp_path / db.HELDOUT_DIR / Path(b[0]).name)] for b, kw in calls)
+    labels = json.loads((tmp_path / "labels.json").read_text())
+    assert labels[0]["heldout"] == [f"{db.HELDOUT_DIR}/n0"]
+    for item in labels:
+        (tmp_path / item["name"]).mkdir()
+    calls.clear()
+    assert db.bench_diagnose_main(["--labelled", str(tmp_path), "--json"]) == 0
+    assert len(calls) == 5 and all(kw["heldout"][0].endswith(Path(b[0]).name) for b, kw in calls)
+    calls.clear()
+    assert db.bench_diagnose_main(["--labelled", str(tmp_path), "--json", "--no-heldout"]) == 0
+    assert len(calls) == 5 and all("heldout" not in kw for _, kw in calls)
+    capsys.readouterr()
+    (tmp_path / db.HELDOUT_DIR / "n1").rmdir()
+    assert db.bench_diagnose_main(["--labelled", str(tmp_path), "--json"]) == 2
+    assert "held-out companion of 'n1' not found" in capsys.readouterr().err
+
+
+def test_companion_noise_leaves_the_primary_noise_of_a_seed_unchanged():
+    a, b = np.random.default_rng(3), db.companion_rng(3)
+    assert not np.allclose(a.normal(size=5), b.normal(size=5))
+    assert np.allclose(np.random.default_rng(3).normal(size=5), np.random.default_rng(3).normal(size=5))
+
+
+def test_companion_motion_shortens_the_slides_only():
+    seg = db.companion_segments(slide_scale=0.5)
+    assert [n for _, n in seg] == [n for _, n in db.SEGMENTS]
+    for (dp, _), (dp0, _) in zip(seg, db.SEGMENTS):
+        assert dp[0] == pytest.approx(0.5 * dp0[0]) and dp[2] == dp0[2]
+    start = db.SCENE["effectors"]["ee"]["initial_pose"]
+    a, b = db.effector_targets(start), db.effector_targets(start, db.companion_segments())
+    assert a.shape == b.shape and np.allclose(a[:, 2], b[:, 2]) and not np.allclose(a[:, 0], b[:, 0])

@@ -71,3 +71,14 @@ def test_rejects_negative_bond_strength():
         LaggedAdhesion(v, w, n, EPS, -1.0, DELTA)
     with pytest.raises(ConfigError, match="delta"):
         LaggedAdhesion(v, w, n, EPS, 1.0, 0.0)
+
+
+def test_default_reach_forms_bonds_only_in_contact():
+    """With the hook's default reach a gel vertex bonds only where it touches the sheet (within the
+    contact offset), not across a gap of a fraction of delta (the card buckled away from the gel)."""
+    from sim_core.candidates.hook import CandidateHook
+
+    reach = CandidateHook({"adhesion": 0.1}).setting("adhesion.reach")
+    for height, pairs in ((0.9 * EPS, 1), (EPS + 0.5 * DELTA, 0), (EPS + 2 * DELTA, 0)):
+        x = np.array([[0.2e-2, 0.2e-2, height], [0, 0, 0], [1e-2, 0, 0], [0, 1e-2, 0]], dtype=float)
+        assert adhesion_pairs(x, np.array([0]), np.array([[1, 2, 3]]), EPS, reach)[0].shape[0] == pairs, height

@@ -183,3 +183,22 @@ def test_cli_refuses_a_non_empty_output_directory(tmp_path, capsys):
     (out / "old.txt").write_text("x")
     assert diagnose_main([str(tmp_path / "bag"), "--out", str(out)]) == 2
     assert "not empty" in capsys.readouterr().err
+
+
+def test_force_bias_refit_applies_to_a_heldout_recording_when_some_axes_are_dropped():
+    """The refit keeps only the axes its data support (beta holds those); applied to another
+    recording the kept axes' offset and drift are added and the dropped axes are left unchanged."""
+    from types import SimpleNamespace
+
+    from sysid.diagnose.candidates import ForceBiasCandidate, Refit, apply_observation_refit
+
+    t = np.linspace(0.0, 1.0, 11)
+    params = {f"{k}_{a}": 0.0 for k in ("bias", "drift") for a in ("fx", "fy", "fz", "tx", "ty", "tz")}
+    params.update({"bias_fz": 0.3, "drift_fz": 0.1})
+    rf = Refit(np.array([0.3, 0.1]), params, {"wrench": np.zeros((11, 6))})
+    hctx = SimpleNamespace(channels=("wrench",), stamps_s=lambda ch: t)
+    pred = {"wrench": np.zeros((11, 6))}
+    apply_observation_refit(hctx, rf, pred)
+    B = ForceBiasCandidate.basis(t)
+    assert np.allclose(pred["wrench"][:, 2], 0.3 * B[:, 0] + 0.1 * B[:, 1])
+    assert np.allclose(np.delete(pred["wrench"], 2, axis=1), 0.0)

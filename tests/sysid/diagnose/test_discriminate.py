@@ -120,7 +120,8 @@ def _decide(data, pred0, refits, alpha=0.01):
     d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(alpha=alpha), [], ("wrench",), []
     T = pred0.shape[0]
     train = {"wrench": np.arange(T) % 2 == 0}
-    return d._decide(ctx, refits, train, [], {}), d.notes
+    folds = [engine.heldout.block_fold(model, ctx.prediction, train, refits)]
+    return d._decide(ctx, refits, train, folds), d.notes
 
 
 def test_a_refuted_candidate_is_not_named_and_a_weaker_proxy_is_not_named_in_its_place():

@@ -1,0 +1,152 @@
+"""Held-out evaluation of refits: one code path for held-out time blocks and held-out recordings.
+
+SYSID.md recipe step 6: a refit is accepted only when the held-out data improve. The held-out data
+are either the odd time blocks of the recording itself (:func:`block_fold`) or other recordings
+(:func:`bag_folds`, ``thinshell diagnose BAG --heldout BAG2 ...``: each is replayed once at the
+nominal parameters and once per physics refit). Either way a :class:`HeldoutFold` holds the nominal
+prediction of the held-out data and each refit's prediction *change* on it, so that a combination of
+refits at any scales is evaluated to first order (``before + sum_e scale_e change_e``), the same
+combination the report's in-sample augmented model uses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from sysid.diagnose.residuals import heldout_products, sse
+
+Products = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass
+class HeldoutFold:
+    """One held-out data set and the refits' prediction changes on it.
+
+    Attributes:
+        model: observation model of the data (``data``, ``sigma``, stamps).
+        before: channel -> prediction at the nominal parameters, shape of the channel's data.
+        rows: channel -> bool rows that are held out, ``(T_ch,)``; None: all rows.
+        changes: effect -> channel -> prediction change of its refit (same shapes as ``before``).
+    """
+
+    model: Any
+    before: dict[str, np.ndarray]
+    rows: dict[str, np.ndarray] | None
+    changes: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+    def predict(self, scales: Mapping[str, float], channels: Sequence[str]) -> dict[str, np.ndarray]:
+        """``before + sum_e scales[e] changes[e]`` on the fold's ``channels``."""
+        out = {ch: np.array(self.before[ch], dtype=float, copy=True) for ch in channels if ch in self.before}
+        for e, s in scales.items():
+            for ch, d in self.changes.get(e, {}).items():
+                if ch in out and s:
+                    out[ch] = out[ch] + s * d
+        return out
+
+
+def block_fold(model: Any, prediction: Mapping[str, np.ndarray], train: Mapping[str, np.ndarray],
+               refits: Mapping[str, Any]) -> HeldoutFold:
+    """The held-out time blocks of the recording itself (rows where ``train`` is False).
+
+    Args:
+        model: the recording's observation model.
+        prediction: channel -> nominal prediction.
+        train: channel -> bool training rows.
+        refits: effect -> refit (``prediction``: channel -> refitted prediction).
+    """
+    changes = {e: {ch: np.asarray(p) - prediction[ch] for ch, p in rf.prediction.items() if ch in prediction}
+               for e, rf in refits.items()}
+    return HeldoutFold(model, {ch: np.asarray(p) for ch, p in prediction.items()},
+                       {ch: ~np.asarray(v, dtype=bool) for ch, v in train.items()}, changes)
+
+
+def bag_folds(models: Sequence[Any], theta: Mapping[str, float], refits: Mapping[str, Any], tested: Sequence[str],
+              sigma: Mapping[str, np.ndarray], replay: Callable[[Any, list], list],
+              context: Callable[..., Any], apply_observation: Callable[[Any, Any, dict], None],
+              notes: list[str] | None = None) -> list[HeldoutFold]:
+    """Held-out recordings, each replayed at ``theta`` and at every physics refit's parameters.
+
+    Args:
+        models: observation models of the held-out recordings.
+        theta: nominal (fitted) simulator parameters.
+        refits: effect -> refit (``sim_params``, ``prediction`` channels, observation params).
+        tested: channels the diagnosis tests.
+        sigma: channel -> noise level of the primary recording (the held-out recordings are
+            whitened with it: same sensors).
+        replay: ``replay(model, parameter_sets) -> [(trace, prediction) | None]``.
+        context: ``context(model, theta, trace, prediction, channels)`` -> diagnosis context (for
+            observation-level refits: latency, lens, bias).
+        apply_observation: applies an observation-level refit to a prediction in place (no-op for
+            physics refits).
+        notes: receives a line for a recording or refit that cannot be replayed.
+
+    Returns:
+        One :class:`HeldoutFold` per recording whose nominal replay finished (rows None: all held out).
+        A refit whose replay diverges on a recording contributes no change there (noted).
+    """
+    out = []
+    names = list(refits)
+    for m in models:
+        m.sigma.update({ch: v for ch, v in sigma.items() if ch in m.sigma})
+        sets = [dict(theta)] + [{**theta, **(refits[e].sim_params or {})} for e in names]
+        physics = [i for i, s in enumerate(sets[1:]) if s != sets[0]]
+        reps = replay(m, [sets[0]] + [sets[1 + i] for i in physics])
+        if reps[0] is None:
+            if notes is not None:
+                notes.append("a held-out recording's nominal replay diverged; left out of the held-out data")
+            continue
+        trace, p0 = reps[0]
+        chans = tuple(c for c in tested if c in m.evidence.channels_present)
+        by_refit = dict(zip(physics, reps[1:]))
+        hctx = context(m, dict(theta), trace, p0, chans)
+        fold = HeldoutFold(m, {ch: np.asarray(p0[ch]) for ch in chans}, None)
+        for i, e in enumerate(names):
+            rep = by_refit.get(i, reps[0])
+            if rep is None:
+                if notes is not None:
+                    notes.append(f"{e}: refit replay diverged on a held-out recording; no change counted there")
+                rep = reps[0]
+            p1 = dict(rep[1])
+            apply_observation(hctx, refits[e], p1)
+            fold.changes[e] = {ch: np.asarray(p1[ch]) - fold.before[ch] for ch in refits[e].prediction if ch in chans}
+        out.append(fold)
+    return out
+
+
+def evaluate(folds: Sequence[HeldoutFold], base: Mapping[str, float], scales: Mapping[str, float],
+             channels: Sequence[str]) -> tuple[float, float, Products, dict[str, Products]]:
+    """Held-out whitened RMS of the ``base`` and ``scales`` combinations and the products of their difference.
+
+    Args:
+        folds: held-out data.
+        base, scales: effect -> scale of the combinations compared (``{}``: nominal).
+        channels: channels evaluated (each fold uses those it has).
+
+    Returns:
+        ``(rms_before, rms_after, (a, b, c, n), per_channel)``: RMS in noise units over all folds'
+        held-out values; the per-time products of :func:`residuals.heldout_products` (``before`` =
+        ``base``, ``after`` = ``scales``) concatenated over folds, over all channels and per channel.
+    """
+    s0 = s1 = 0.0
+    n = 0
+    both: list[Products] = []
+    per: dict[str, list[Products]] = {}
+    for f in folds:
+        chans = [ch for ch in channels if ch in f.before]
+        p0, p1 = f.predict(base, chans), f.predict(scales, chans)
+        a0, n0, _ = sse(f.model, p0, chans, f.rows)
+        a1, _, _ = sse(f.model, p1, chans, f.rows)
+        s0, s1, n = s0 + a0, s1 + a1, n + n0
+        both.append(heldout_products(f.model, p0, p1, chans, f.rows))
+        for ch in chans:
+            per.setdefault(ch, []).append(heldout_products(f.model, p0, p1, [ch], f.rows))
+
+    def cat(parts: list[Products]) -> Products:
+        return tuple(np.concatenate([p[i] for p in parts]) if parts else np.zeros(0) for i in range(4))
+
+    return (float(math.sqrt(s0 / max(n, 1))), float(math.sqrt(s1 / max(n, 1))), cat(both),
+            {ch: cat(v) for ch, v in per.items()})
