@@ -138,14 +138,26 @@ class ContactSet:
         found = self._candidates
         if found is not None and self.covers(found[0], x):
             return found
-        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
+        search = self._grouped_search()
+        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter,
+                                        grouped_search=search)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             kv = self.body_kind[self.vertex_body[vt[:, 0]]]
             kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
             vt = vt[~((kv == "sheet") & (kt == "solid"))]
-        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
+        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter, grouped_search=search)
         self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
         return self._candidates
+
+    def _grouped_search(self):
+        """The box-pair search of the broad phase: the Taichi sweep kernel
+        (:func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`, same pairs) when the model's
+        kernel backend is ``"taichi"``, else None (the k-d trees of :mod:`sim_core.collision.candidates`)."""
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.broad_phase import grouped_box_pairs
+
+            return grouped_box_pairs
+        return None
 
     def _pair_classes(self) -> tuple[type, type]:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
