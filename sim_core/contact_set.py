@@ -296,7 +296,10 @@ class ContactSet:
         if not np.any(mu > 0):
             return None
         all_frames = concatenate_frames(frames)
-        return LaggedFriction.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction_class = LaggedFriction
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
+        return friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
 
     def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:
         ba, bb = self.vertex_body[vertex_a], self.vertex_body[vertex_b]

@@ -125,3 +125,13 @@ def grouped_box_pairs(
             return np.sort(pairs, axis=1) if same else pairs
         out = np.empty((found, 2), dtype=np.int32)
         count[0] = 0
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the sweep kernel on two boxes.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    lo = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    grouped_box_pairs(lo, lo + 1.0, np.zeros(2, np.int32), None, None, None, 0.1, np.ones((1, 1), bool))
