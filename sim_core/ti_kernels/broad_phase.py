@@ -37,27 +37,41 @@ _F64_2, _I32_1, _I32_2 = linalg.F64_2, linalg.I32_1, linalg.I32_2
 
 
 @fast_kernel
-def _sweep_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, b_lo: _F64_2, b_hi: _F64_2, b_body: _I32_1,
-                 b_order: _I32_1, start: _I32_1, stop: _I32_1, allowed: _I32_2, radius: ti.f64, same: ti.i32,
-                 out: _I32_2, count: _I32_1):
+def _sweep_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, sorted_lo: _F64_2, sorted_hi: _F64_2,
+                 sorted_body: _I32_1, b_order: _I32_1, start: _I32_1, stop: _I32_1, allowed: _I32_2, radius: ti.f64,
+                 same: ti.i32, out: _I32_2, count: _I32_1):
     """``count[0]`` (set to 0 by the caller) += the number of overlapping allowed pairs; the first
-    ``out.shape[0]`` of them in ``out`` as ``[index in A, index in B]``."""
+    ``out.shape[0]`` of them in ``out`` as ``[index in A, index in B]``. ``sorted_*``: B's boxes in
+    sweep order, ``b_order``: their indices in B."""
     capacity = out.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(a_lo.shape[0]):
+        lo_i = ti.Vector([a_lo[i, 0], a_lo[i, 1], a_lo[i, 2]])
+        hi_i = ti.Vector([a_hi[i, 0], a_hi[i, 1], a_hi[i, 2]])
+        body_i = a_body[i]
         for s in range(start[i], stop[i]):
-            a, b = i, b_order[s]
-            if same != 0 and (a_body[b] < a_body[a] or (a_body[b] == a_body[a] and b < a)):
-                a, b = b, a  # the reference's side: the box of the lower body, then of the lower index
-            keep = allowed[a_body[a], b_body[b]] != 0
-            if keep:
+            j = b_order[s]
+            body_j = sorted_body[s]
+            # within one set, the reference's side: the box of the lower body, then of the lower index
+            swap = same != 0 and (body_j < body_i or (body_j == body_i and j < i))
+            keep = False
+            if swap:
+                keep = allowed[body_j, body_i] != 0
                 for d in ti.static(range(3)):
-                    keep = keep and (a_lo[a, d] - radius <= b_hi[b, d]) and (b_lo[b, d] <= a_hi[a, d] + radius)
+                    keep = keep and (sorted_lo[s, d] - radius <= hi_i[d]) and (lo_i[d] <= sorted_hi[s, d] + radius)
+            else:
+                keep = allowed[body_i, body_j] != 0
+                for d in ti.static(range(3)):
+                    keep = keep and (lo_i[d] - radius <= sorted_hi[s, d]) and (sorted_lo[s, d] <= hi_i[d] + radius)
             if keep:
                 k = ti.atomic_add(count[0], 1)
                 if k < capacity:
-                    out[k, 0] = a
-                    out[k, 1] = b
+                    if swap:
+                        out[k, 0] = j
+                        out[k, 1] = i
+                    else:
+                        out[k, 0] = i
+                        out[k, 1] = j
 
 
 def grouped_box_pairs(
@@ -112,13 +126,15 @@ def grouped_box_pairs(
         if best is None or scanned < best[0]:
             best = (scanned, order, start, stop)
     _, order, start, stop = best
-    start, stop, order = start.astype(np.int32), stop.astype(np.int32), order.astype(np.int32)
+    start, stop = start.astype(np.int32), stop.astype(np.int32)
+    sorted_lo, sorted_hi = np.ascontiguousarray(b_lo[order]), np.ascontiguousarray(b_hi[order])
+    sorted_body, order = np.ascontiguousarray(b_body[order]), order.astype(np.int32)
     allowed_i = np.ascontiguousarray(allowed, dtype=np.int32)
     out = np.empty((max(1024, 4 * (a_lo.shape[0] + b_lo.shape[0])), 2), dtype=np.int32)
     count = np.zeros(1, dtype=np.int32)
     while True:
-        _sweep_pairs(a_lo, a_hi, a_body, b_lo, b_hi, b_body, order, start, stop, allowed_i, float(radius),
-                     int(same), out, count)
+        _sweep_pairs(a_lo, a_hi, a_body, sorted_lo, sorted_hi, sorted_body, order, start, stop, allowed_i,
+                     float(radius), int(same), out, count)
         found = int(count[0])
         if found <= out.shape[0]:
             pairs = out[:found].astype(np.int64)
