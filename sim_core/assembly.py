@@ -143,8 +143,11 @@ class _UnionPattern:
         extra = dyn_keys[static[pos] != dyn_keys] if static.size else dyn_keys
         self.keys = np.insert(static, np.searchsorted(static, extra), extra)
         self.static_slots = np.arange(static.size) + np.searchsorted(extra, static)
-        self.indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(self.keys // n, minlength=n), out=self.indptr[1:])
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(self.keys // n, minlength=n), out=indptr[1:])
+        # int32 like the indices (SciPy stores them so anyway when they fit): the CSR matrix of each
+        # assembly is then built without converting and re-checking the index arrays
+        self.indptr = indptr.astype(np.int32) if self.keys.size < np.iinfo(np.int32).max else indptr
         self.indices = (self.keys % n).astype(np.int32)
         self.nnz = self.keys.size
         self.dyn_slots = np.searchsorted(self.keys, dyn_keys)

@@ -88,6 +88,7 @@ class ContactSet:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
+        self._step_table = None  # (memory, x^n, vt (pairs, sides), ee (pairs, (keep, sides))) of the step's last search
         return memory.copy() if memory is not None else CollisionMemory()
 
     def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
@@ -138,14 +139,26 @@ class ContactSet:
         found = self._candidates
         if found is not None and self.covers(found[0], x):
             return found
-        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter)
+        search = self._grouped_search()
+        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter,
+                                        grouped_search=search)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             kv = self.body_kind[self.vertex_body[vt[:, 0]]]
             kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
             vt = vt[~((kv == "sheet") & (kt == "solid"))]
-        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter)
+        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter, grouped_search=search)
         self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
         return self._candidates
+
+    def _grouped_search(self):
+        """The box-pair search of the broad phase: the Taichi sweep kernel
+        (:func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`, same pairs) when the model's
+        kernel backend is ``"taichi"``, else None (the k-d trees of :mod:`sim_core.collision.candidates`)."""
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.broad_phase import grouped_box_pairs
+
+            return grouped_box_pairs
+        return None
 
     def _pair_classes(self) -> tuple[type, type]:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
@@ -185,28 +198,72 @@ class ContactSet:
         """
         return np.where(above, remembered, 0.0)
 
+    def _vertex_triangle_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray) -> np.ndarray:
+        """Step sides (:meth:`_step_sides`) of vertex-triangle pairs ``vt`` ``(p, 2)`` at ``x_ref``, shape ``(p,)``."""
+        if not len(vt):
+            return memory.vertex_triangle.resolve(vt, np.zeros(0))
+        z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1)
+        return self._step_sides(self._above_face(z), memory.vertex_triangle.resolve(vt, point_triangle_side(z)))
+
+    def _edge_edge_sides(self, x_ref: np.ndarray, memory: CollisionMemory, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(keep, sides)`` of edge-edge pairs ``ee`` ``(p, 2)`` at ``x_ref``, shape ``(p,)`` each.
+
+        Near-parallel edge pairs have no well-defined side (the cross product of their directions
+        vanishes) and switch distance definitions as they rotate; their contact is carried by the
+        vertex-triangle pairs of the same configuration, so they are left out (``keep`` False,
+        side 0; decided at x^n, so the set is fixed within the step). ``sides``: the step sides
+        (:meth:`_step_sides`) of the kept pairs.
+        """
+        sides = np.zeros(len(ee))
+        if not len(ee):
+            return np.zeros(0, dtype=bool), sides
+        z = np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
+        da = x_ref[self.edges[ee[:, 0], 1]] - x_ref[self.edges[ee[:, 0], 0]]
+        db = x_ref[self.edges[ee[:, 1], 1]] - x_ref[self.edges[ee[:, 1], 0]]
+        sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
+        keep = sin > self.min_edge_sine
+        kept, z = ee[keep], z[keep]
+        kept_sides = memory.edge_edge.resolve(kept, edge_edge_side(z) if len(kept) else np.zeros(0))
+        if len(kept):
+            kept_sides = self._step_sides(self._interior(z), kept_sides)
+        sides[keep] = kept_sides
+        return keep, sides
+
+    @staticmethod
+    def _per_pair(old: tuple | None, pairs: np.ndarray, compute) -> tuple:
+        """``compute(pairs)`` (a tuple of per-pair arrays), taking the rows of pairs in ``old``
+        (``(old pairs, old arrays)`` of the same step) from there and computing only the others:
+        the per-pair results do not depend on which other pairs are in the list."""
+        if old is None or not len(old[0]) or not len(pairs):
+            return compute(pairs)
+        old_pairs, old_values = old
+        keys = (pairs[:, 0] << 32) | pairs[:, 1]
+        old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]  # sorted: candidate lists are sorted
+        pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+        found = old_keys[pos] == keys
+        if np.all(found):
+            return tuple(v[pos] for v in old_values)
+        fresh = compute(pairs[~found])
+        out = []
+        for v, f in zip(old_values, fresh):
+            merged = np.empty(len(pairs), dtype=v.dtype)
+            merged[found] = v[pos[found]]
+            merged[~found] = f
+            out.append(merged)
+        return tuple(out)
+
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
+        """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
+        step's previous candidate lists are taken from there (same values, computed once)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
-        z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1) if len(vt) else np.zeros((0, 4, 3))
-        vt_sides = memory.vertex_triangle.resolve(vt, point_triangle_side(z) if len(vt) else np.zeros(0))
-        if len(vt):
-            vt_sides = self._step_sides(self._above_face(z), vt_sides)
-        z = (np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
-             if len(ee) else np.zeros((0, 4, 3)))
-        if len(ee):
-            # Near-parallel edge pairs have no well-defined side (the cross product of their
-            # directions vanishes) and switch distance definitions as they rotate; their contact
-            # is carried by the vertex-triangle pairs of the same configuration, so they are left
-            # out (decided at x^n, so the set is fixed within the step).
-            da = x_ref[self.edges[ee[:, 0], 1]] - x_ref[self.edges[ee[:, 0], 0]]
-            db = x_ref[self.edges[ee[:, 1], 1]] - x_ref[self.edges[ee[:, 1], 0]]
-            sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
-            keep = sin > self.min_edge_sine
-            ee, z = ee[keep], z[keep]
-        ee_sides = memory.edge_edge.resolve(ee, edge_edge_side(z) if len(ee) else np.zeros(0))
-        if len(ee):
-            ee_sides = self._step_sides(self._interior(z), ee_sides)
+        table = getattr(self, "_step_table", None)
+        if table is None or table[0] is not memory or table[1] is not x_ref or self.x_prev is None:
+            table = (memory, x_ref, None, None)
+        (vt_sides,) = self._per_pair(table[2], vt, lambda p: (self._vertex_triangle_sides(x_ref, memory, p),))
+        keep, ee_sides = self._per_pair(table[3], ee, lambda p: self._edge_edge_sides(x_ref, memory, p))
+        self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
+        ee, ee_sides = ee[keep], ee_sides[keep]
         return ((self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides)),
                 (vt_sides, ee_sides))
 
@@ -239,7 +296,10 @@ class ContactSet:
         if not np.any(mu > 0):
             return None
         all_frames = concatenate_frames(frames)
-        return LaggedFriction.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction_class = LaggedFriction
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
+        return friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
 
     def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:
         ba, bb = self.vertex_body[vertex_a], self.vertex_body[vertex_b]

@@ -199,7 +199,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x`` and, for the potentials that are Taichi twins
     (``sim_core.ti_kernels``), the ``projection`` Hessian of the projected fallback, and the contact
-    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`). Kernels take
+    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
     Args:
@@ -229,7 +229,9 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
-    from sim_core.ti_kernels import contact_distance
+    from sim_core.ti_kernels import broad_phase, contact_distance, friction
 
     contact_distance.compile_kernels()
+    broad_phase.compile_kernels()
+    friction.compile_kernels()
     return time.perf_counter() - t0

@@ -180,6 +180,7 @@ def vertex_triangle_candidates(
     radius: float,
     exclude: PairFilter | None = None,
     cell_size: float | None = None,
+    grouped_search=None,
 ) -> np.ndarray:
     """Vertex-triangle pairs whose bounding boxes are within ``radius``.
 
@@ -190,6 +191,9 @@ def vertex_triangle_candidates(
         radius: query radius in m (contact eps plus a margin).
         exclude: optional body / self-contact filter.
         cell_size: hash cell size in m (default :func:`auto_cell_size`).
+        grouped_search: the search of box pairs of allowed bodies used with a body filter, a
+            function with the signature and result (as a set) of :func:`_grouped_box_pairs` (the
+            default), e.g. :func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`.
 
     Returns:
         int64 array ``(p, 2)``: ``[global vertex index, row of triangles]``, sorted.
@@ -211,8 +215,8 @@ def vertex_triangle_candidates(
         pairs = SpatialHash(t_min, t_max, cell_size).query(p - radius, p + radius)
     elif exclude is not None and exclude.body_pair_allowed is not None:
         body = np.asarray(exclude.vertex_body)
-        pairs = _grouped_box_pairs(p, p, body[vertices], t_min, t_max, body[triangles[:, 0]], radius,
-                                   np.asarray(exclude.body_pair_allowed, dtype=bool))
+        pairs = (grouped_search or _grouped_box_pairs)(p, p, body[vertices], t_min, t_max, body[triangles[:, 0]],
+                                                       radius, np.asarray(exclude.body_pair_allowed, dtype=bool))
     else:
         pairs = box_pairs_kdtree(p, p, t_min, t_max, radius)
     v = vertices[pairs[:, 0]]
@@ -238,6 +242,7 @@ def edge_edge_candidates(
     radius: float,
     exclude: PairFilter | None = None,
     cell_size: float | None = None,
+    grouped_search=None,
 ) -> np.ndarray:
     """Edge-edge pairs whose bounding boxes are within ``radius``.
 
@@ -247,6 +252,9 @@ def edge_edge_candidates(
         radius: query radius in m.
         exclude: optional body / self-contact filter.
         cell_size: hash cell size in m (default :func:`auto_cell_size`).
+        grouped_search: the search of box pairs of allowed bodies used with a body filter, a
+            function with the signature and result (as a set) of :func:`_grouped_box_pairs` (the
+            default), e.g. :func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`.
 
     Returns:
         int64 array ``(p, 2)``: ``[row i of edges, row j of edges]`` with ``i < j``, sorted.
@@ -266,8 +274,8 @@ def edge_edge_candidates(
         pairs = pairs[pairs[:, 0] < pairs[:, 1]]
     elif exclude is not None and exclude.body_pair_allowed is not None:
         body = np.asarray(exclude.vertex_body)[edges[:, 0]]
-        pairs = _grouped_box_pairs(e_min, e_max, body, None, None, None, radius,
-                                   np.asarray(exclude.body_pair_allowed, dtype=bool))
+        pairs = (grouped_search or _grouped_box_pairs)(e_min, e_max, body, None, None, None, radius,
+                                                       np.asarray(exclude.body_pair_allowed, dtype=bool))
     else:
         pairs = box_pairs_kdtree(e_min, e_max, None, None, radius)
     ea, eb = edges[pairs[:, 0]], edges[pairs[:, 1]]

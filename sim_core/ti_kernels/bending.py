@@ -22,6 +22,7 @@ import numpy as np
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.bending import DiscreteShellBending
 from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import project_psd_translation_free, projection_code
 
@@ -152,7 +153,7 @@ def _theta_hessian(x0, x1, x2, x3):
     return H
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_hinge_energy(
     x: ti.types.ndarray(), hinges: ti.types.ndarray(), stiffness: ti.types.ndarray(),
     theta_bar: ti.types.ndarray(), hinge_energy: ti.types.ndarray(),
@@ -164,7 +165,7 @@ def evaluate_hinge_energy(
         hinge_energy[h] = stiffness[h] * d * d
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_hinge_gradient(
     x: ti.types.ndarray(), hinges: ti.types.ndarray(), stiffness: ti.types.ndarray(),
     theta_bar: ti.types.ndarray(), grad: ti.types.ndarray(),
@@ -182,7 +183,7 @@ def evaluate_hinge_gradient(
                 ti.atomic_add(grad[hinges[h, a], i], f * g[3 * a + i])
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_hinge_hessian(
     x: ti.types.ndarray(), hinges: ti.types.ndarray(), stiffness: ti.types.ndarray(),
     theta_bar: ti.types.ndarray(), code: ti.i32, blocks: ti.types.ndarray(),

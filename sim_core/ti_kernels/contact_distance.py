@@ -34,6 +34,7 @@ import numpy as np
 
 from sim_core.collision.distances import PARALLEL_TOLERANCE, DistanceDerivatives
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
 
 _F64_1, _F64_2, _F64_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3
@@ -221,7 +222,7 @@ def _distance_value(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.t
     return region, d
 
 
-@ti.kernel
+@fast_kernel
 def _values_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1):
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
@@ -335,7 +336,7 @@ def _point_point_derivatives(z: ti.template(), k: ti.i32, i: ti.i32, j: ti.i32,
     return d
 
 
-@ti.kernel
+@fast_kernel
 def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1,
                         grad: _F64_2, hess: _F64_3):
     ti.loop_config(serialize=ti.static(serial_loops()))

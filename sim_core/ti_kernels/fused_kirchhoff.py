@@ -23,6 +23,7 @@ import numpy as np
 
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.bending import _dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian
 
@@ -43,7 +44,7 @@ def _triangle_deviation(scratch: ti.template(), theta_bar: ti.template(), tri_hi
     return d
 
 
-@ti.kernel
+@fast_kernel
 def kirchhoff_energy(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
 ) -> ti.f64:
@@ -61,7 +62,7 @@ def kirchhoff_energy(
     return energy
 
 
-@ti.kernel
+@fast_kernel
 def kirchhoff_energy_gradient_hessian(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
     tri_slots: _I32_3, hinge_slots: _I32_3, scratch: _F64_2, grad: _F64_2, values: _F64_1,

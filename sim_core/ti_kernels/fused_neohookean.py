@@ -30,6 +30,7 @@ import numpy as np
 
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -55,7 +56,7 @@ def _psi(I_C, J, mu, lam, alpha):
             - 0.5 * mu * ti.log((I_C + 1.0) / 4.0) - 9.0 * mu * mu / (32.0 * lam))
 
 
-@ti.kernel
+@fast_kernel
 def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, lam: ti.f64) -> ti.f64:
     """``sum_t V_t psi(F_t)`` in J."""
     alpha = 1.0 + 0.75 * mu / lam
@@ -67,7 +68,7 @@ def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, l
     return energy
 
 
-@ti.kernel
+@fast_kernel
 def snh_energy_gradient_hessian(
     x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, slots: _I32_3, mu: ti.f64, lam: ti.f64,
     grad: _F64_2, values: _F64_1,

@@ -26,6 +26,7 @@ import numpy as np
 
 from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
 
 _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
@@ -55,7 +56,7 @@ def _add_upper(values: ti.template(), slots: ti.template(), e: ti.i32, r: ti.i32
             values[k2] += h
 
 
-@ti.kernel
+@fast_kernel
 def spring_membrane_energy(
     x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, k_length: ti.f64, k_area: ti.f64,
 ) -> ti.f64:
@@ -73,7 +74,7 @@ def spring_membrane_energy(
     return energy
 
 
-@ti.kernel
+@fast_kernel
 def spring_membrane_energy_gradient_hessian(
     x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, slots: _I32_3,
     k_length: ti.f64, k_area: ti.f64, grad: _F64_2, values: _F64_1,

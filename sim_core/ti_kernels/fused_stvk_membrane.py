@@ -21,6 +21,7 @@ import numpy as np
 
 from sim_core.potentials.membrane import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -49,7 +50,7 @@ def _stress(F, mu, lam):
     return G, tr, S
 
 
-@ti.kernel
+@fast_kernel
 def stvk_energy(x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F64_1, mu: ti.f64,
                 lam: ti.f64) -> ti.f64:
     """Membrane energy in J."""
@@ -62,7 +63,7 @@ def stvk_energy(x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F
     return energy
 
 
-@ti.kernel
+@fast_kernel
 def stvk_energy_gradient_hessian(
     x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F64_1, slots: _I32_3, mu: ti.f64,
     lam: ti.f64, grad: _F64_2, values: _F64_1,

@@ -201,6 +201,7 @@ def project_psd_translation_free(H: ti.template(), code: ti.i32):
 F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
 F64_3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 I32_3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
 """Kernel argument types of the element kernels: float64 / int32 NumPy arrays of 1-3 dimensions."""

@@ -21,6 +21,7 @@ import numpy as np
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.membrane import StVKMembrane
 from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import project_psd_translation_free, projection_code
 
@@ -37,7 +38,7 @@ def _triangle_strain(x: ti.types.ndarray(), tris: ti.types.ndarray(), D: ti.type
     return F, G
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_stvk_energy(
     x: ti.types.ndarray(), tris: ti.types.ndarray(), D: ti.types.ndarray(), weight: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, tri_energy: ti.types.ndarray(),
@@ -49,7 +50,7 @@ def evaluate_stvk_energy(
         tri_energy[t] = weight[t] * (mu * (G * G).sum() + 0.5 * lam * trG * trG)
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_stvk_gradient(
     x: ti.types.ndarray(), tris: ti.types.ndarray(), D: ti.types.ndarray(), weight: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, grad: ti.types.ndarray(),
@@ -68,7 +69,7 @@ def evaluate_stvk_gradient(
                 ti.atomic_add(grad[v, d], weight[t] * (P[d, 0] * D[t, a, 0] + P[d, 1] * D[t, a, 1]))
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_stvk_hessian(
     x: ti.types.ndarray(), tris: ti.types.ndarray(), D: ti.types.ndarray(), weight: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, code: ti.i32, blocks: ti.types.ndarray(),

@@ -23,6 +23,7 @@ import numpy as np
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import cofactor, filter_eigenvalue, jacobi_eigh, projection_code
 
@@ -86,7 +87,7 @@ def _rotation_variant_svd(F):
     return U, sigma, V
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_snh_energy(
     x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, tet_energy: ti.types.ndarray(),
@@ -102,7 +103,7 @@ def evaluate_snh_energy(
         tet_energy[t] = vol[t] * psi
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_snh_gradient(
     x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, grad: ti.types.ndarray(),
@@ -125,7 +126,7 @@ def evaluate_snh_gradient(
                 ti.atomic_add(grad[v, i], vol[t] * acc)
 
 
-@ti.kernel
+@fast_kernel
 def evaluate_snh_hessian(
     x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, code: ti.i32, blocks: ti.types.ndarray(),

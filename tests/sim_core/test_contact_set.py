@@ -68,3 +68,24 @@ def test_pair_interior_at_step_start_keeps_its_side_and_is_remembered():
     ee = cs.potentials(far, far, memory)[1]
     beyond = [tuple(sorted(p)) for p, v in zip(ee.pairs.tolist(), ee.vertices) if {*v} == {0, 1, 3, 4}]
     assert beyond and not (set(beyond) & ee_pairs)
+
+
+def test_a_search_within_the_step_reuses_the_sides_of_known_pairs():
+    """Sides and kept edge pairs of a second candidate list of the step equal those of a fresh search."""
+    from sim_core.collision import CollisionMemory
+
+    rng = np.random.default_rng(4)
+    x0 = _two_triangles(0.2, 0.02)
+    cs = _contact_set(x0)
+    vt_all, ee_all = np.array([[v, t] for v in range(6) for t in range(2)]), np.array([[0, 5], [1, 4], [2, 6], [3, 7]])
+    ee_all = ee_all[(ee_all < len(cs.edges)).all(axis=1)]
+    memory = CollisionMemory()
+    cs.begin_step(x0 + rng.normal(scale=1e-3, size=x0.shape), memory)
+    first = (x0, vt_all[::2], ee_all[::2])
+    second = (x0, vt_all, ee_all)
+    cs._search(x0, memory, first)
+    reused = cs._search(x0, memory, second)[1]
+    cs._step_table = None
+    fresh = cs._search(x0, memory, second)[1]
+    for a, b in zip(reused, fresh):
+        np.testing.assert_array_equal(a, b)

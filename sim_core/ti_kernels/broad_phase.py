@@ -1,0 +1,153 @@
+"""Broad phase in one Taichi kernel: pairs of inflated boxes that overlap, by a sweep along one axis.
+
+The Taichi twin of :func:`sim_core.collision.candidates._grouped_box_pairs` (k-d trees per pair of
+bodies, the reference and test oracle): the same pairs, found by sort and sweep (Baraff 1992;
+Ericson, *Real-Time Collision Detection*, 2005, sec. 7.5.2). Boxes of set B are sorted by their
+lower bound on the sweep axis (of the three, the one that leaves the fewest boxes to scan); for each box
+``a`` of set A the boxes ``b`` whose lower bound lies in
+
+    [a_lo - radius - w_max - slack,  a_hi + radius + slack]      (sweep axis; w_max = widest B box)
+
+contain every ``b`` that can overlap ``a`` (found with ``searchsorted``; ``slack`` keeps rounding
+from narrowing the range); within one set, a pair is scanned once, from the box that comes first in
+the sweep order (the other lies in its range). The kernel scans these ranges and keeps the pairs of allowed bodies that
+pass the reference's exact inflated-box test, evaluated with the same floating-point operations per
+axis,
+
+    a_lo - radius <= b_hi  and  b_lo <= a_hi + radius,
+
+with ``a`` on the same side as in the reference (within one set: the box of the lower body, then
+of the lower index). The kept pairs are therefore exactly the reference's, in another order; the
+callers sort them (:func:`sim_core.collision.candidates.vertex_triangle_candidates`).
+
+Loops run serially on the CPU (pairs in scan order), in parallel on CUDA (order of the atomic
+counter); the output buffer grows and the kernel runs again when it was too small.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64_2, _I32_1, _I32_2 = linalg.F64_2, linalg.I32_1, linalg.I32_2
+
+
+@fast_kernel
+def _sweep_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, sorted_lo: _F64_2, sorted_hi: _F64_2,
+                 sorted_body: _I32_1, b_order: _I32_1, start: _I32_1, stop: _I32_1, allowed: _I32_2, radius: ti.f64,
+                 same: ti.i32, out: _I32_2, count: _I32_1):
+    """``count[0]`` (set to 0 by the caller) += the number of overlapping allowed pairs; the first
+    ``out.shape[0]`` of them in ``out`` as ``[index in A, index in B]``. ``sorted_*``: B's boxes in
+    sweep order, ``b_order``: their indices in B."""
+    capacity = out.shape[0]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(a_lo.shape[0]):
+        lo_i = ti.Vector([a_lo[i, 0], a_lo[i, 1], a_lo[i, 2]])
+        hi_i = ti.Vector([a_hi[i, 0], a_hi[i, 1], a_hi[i, 2]])
+        body_i = a_body[i]
+        for s in range(start[i], stop[i]):
+            j = b_order[s]
+            body_j = sorted_body[s]
+            # within one set, the reference's side: the box of the lower body, then of the lower index
+            swap = same != 0 and (body_j < body_i or (body_j == body_i and j < i))
+            keep = False
+            if swap:
+                keep = allowed[body_j, body_i] != 0
+                for d in ti.static(range(3)):
+                    keep = keep and (sorted_lo[s, d] - radius <= hi_i[d]) and (lo_i[d] <= sorted_hi[s, d] + radius)
+            else:
+                keep = allowed[body_i, body_j] != 0
+                for d in ti.static(range(3)):
+                    keep = keep and (lo_i[d] - radius <= sorted_hi[s, d]) and (sorted_lo[s, d] <= hi_i[d] + radius)
+            if keep:
+                k = ti.atomic_add(count[0], 1)
+                if k < capacity:
+                    if swap:
+                        out[k, 0] = j
+                        out[k, 1] = i
+                    else:
+                        out[k, 0] = i
+                        out[k, 1] = j
+
+
+def grouped_box_pairs(
+    a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
+    b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
+    radius: float, allowed: np.ndarray,
+) -> np.ndarray:
+    """The pairs of :func:`sim_core.collision.candidates._grouped_box_pairs`, by a sweep (module docstring).
+
+    Args:
+        a_min, a_max, a_body: boxes of set A ``(ka, 3)`` in m and the body of each ``(ka,)``.
+        b_min, b_max, b_body: the same for set B, or None to pair A with itself (each unordered pair
+            once, as ``[i, j]`` with ``i < j``).
+        radius: inflation in m.
+        allowed: ``(bodies, bodies)`` bool, symmetric.
+
+    Returns:
+        int64 ``(p, 2)`` of ``[index in A, index in B]``, rows unsorted (same set as the reference).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("broad-phase sweep kernel")
+    same = b_min is None
+    a_lo = np.ascontiguousarray(a_min, dtype=np.float64)
+    a_hi = np.ascontiguousarray(a_max, dtype=np.float64)
+    a_body = np.ascontiguousarray(a_body, dtype=np.int32)
+    if same:
+        b_lo, b_hi, b_body = a_lo, a_hi, a_body
+    else:
+        b_lo = np.ascontiguousarray(b_min, dtype=np.float64)
+        b_hi = np.ascontiguousarray(b_max, dtype=np.float64)
+        b_body = np.ascontiguousarray(b_body, dtype=np.int32)
+    if a_lo.shape[0] == 0 or b_lo.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    scale = max(float(np.max(np.abs(a_lo))), float(np.max(np.abs(a_hi))), float(np.max(np.abs(b_lo))),
+                float(np.max(np.abs(b_hi))), float(radius))
+    best = None
+    for axis in range(3):  # sweep along the axis with the fewest boxes to scan
+        key = b_lo[:, axis]
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        width = float(np.max(b_hi[:, axis] - b_lo[:, axis]))
+        slack = 1e-9 * (scale + width)
+        start = np.searchsorted(key, a_lo[:, axis] - radius - width - slack, side="left")
+        stop = np.searchsorted(key, a_hi[:, axis] + radius + slack, side="right")
+        if same:  # each unordered pair once: from the box that comes first in the sweep order
+            position = np.empty_like(order)
+            position[order] = np.arange(order.size)
+            start = np.maximum(start, position + 1)
+        scanned = int(np.sum(np.maximum(stop - start, 0)))
+        if best is None or scanned < best[0]:
+            best = (scanned, order, start, stop)
+    _, order, start, stop = best
+    start, stop = start.astype(np.int32), stop.astype(np.int32)
+    sorted_lo, sorted_hi = np.ascontiguousarray(b_lo[order]), np.ascontiguousarray(b_hi[order])
+    sorted_body, order = np.ascontiguousarray(b_body[order]), order.astype(np.int32)
+    allowed_i = np.ascontiguousarray(allowed, dtype=np.int32)
+    out = np.empty((max(1024, 4 * (a_lo.shape[0] + b_lo.shape[0])), 2), dtype=np.int32)
+    count = np.zeros(1, dtype=np.int32)
+    while True:
+        _sweep_pairs(a_lo, a_hi, a_body, sorted_lo, sorted_hi, sorted_body, order, start, stop, allowed_i,
+                     float(radius), int(same), out, count)
+        found = int(count[0])
+        if found <= out.shape[0]:
+            pairs = out[:found].astype(np.int64)
+            return np.sort(pairs, axis=1) if same else pairs
+        out = np.empty((found, 2), dtype=np.int32)
+        count[0] = 0
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the sweep kernel on two boxes.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    lo = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    grouped_box_pairs(lo, lo + 1.0, np.zeros(2, np.int32), None, None, None, 0.1, np.ones((1, 1), bool))

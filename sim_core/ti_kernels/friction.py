@@ -1,0 +1,186 @@
+"""Lagged IPC friction in Taichi kernels: energy, gradient and Hessian blocks of the frozen pairs.
+
+The Taichi twin of :class:`sim_core.potentials.friction.LaggedFriction` (the reference and test
+oracle; Li et al., "Incremental Potential Contact", SIGGRAPH 2020, eq. 14-15). Per pair ``k`` with
+block vertices ``j`` (weights ``w_kj``), tangent basis ``T_k`` (3 x 2) and ``c_k = mu_k lam_k`` (N):
+
+    u_k = T_k^T sum_j w_kj (x_j - x^n_j),   y_k = |u_k|,   E = sum_k c_k f0(y_k),
+    dE/dx_j = c_k (f1(y)/y) w_kj T_k u_k,
+    d2E/dx_a dx_b = c_k w_ka w_kb T_k [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T_k^T,
+
+with the mollifier ``f0`` of :func:`sim_core.potentials.friction.smooth_friction_f0` and the same
+piecewise forms of ``f1/y`` and ``(f1' y - f1)/y^3`` (``eps_u = eps_v dt``). A Forming step has
+about a hundred pairs: the NumPy reference spends its time in a dozen small array operations per
+call, each kernel here is one launch. Loops are serial on the CPU (the gradient sums into shared
+vertices in pair order), parallel on CUDA. Results equal the reference to round-off (tests:
+1e-12 relative).
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.potentials.base import HessianBlocks, Projection
+from sim_core.potentials.friction import LaggedFriction
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+
+
+@ti.func
+def _tangential_displacement(x: ti.template(), x_prev: ti.template(), vertices: ti.template(),
+                             weights: ti.template(), tangent: ti.template(), k: ti.i32):
+    """``u = T^T sum_j w_j (x_j - x^n_j)`` (2-vector, m) of pair ``k``."""
+    rel = ti.Vector.zero(ti.f64, 3)
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            rel[d] += weights[k, j] * (x[v, d] - x_prev[v, d])
+    u = ti.Vector.zero(ti.f64, 2)
+    for i in ti.static(range(2)):
+        for d in ti.static(range(3)):
+            u[i] += tangent[k, d, i] * rel[d]
+    return u
+
+
+@ti.func
+def _f0(y, eps_u):
+    r = y
+    if y < eps_u:
+        r = -(y ** 3) / (3.0 * eps_u ** 2) + y * y / eps_u + eps_u / 3.0
+    return r
+
+
+@ti.func
+def _f1_over_x(y, eps_u):
+    r = 0.0
+    if y < eps_u:
+        r = 2.0 / eps_u - y / eps_u ** 2
+    else:
+        r = 1.0 / ti.max(y, eps_u)
+    return r
+
+
+@ti.func
+def _f2_x_minus_f1_over_x3(y, eps_u):
+    r = 0.0
+    if y > 0.0:
+        if y < eps_u:
+            r = -1.0 / (eps_u ** 2 * y)
+        else:
+            r = -1.0 / y ** 3
+    return r
+
+
+@fast_kernel
+def friction_energy(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                    coefficient: _F64_1, eps_u: ti.f64) -> ti.f64:
+    """``sum_k c_k f0(|u_k|)`` in J."""
+    energy = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+        energy += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+    return energy
+
+
+@fast_kernel
+def friction_gradient(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                      coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2):
+    """Adds ``dE/dx`` (N) to ``grad`` (n, 3)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+        scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        tu = ti.Vector.zero(ti.f64, 3)
+        for d in ti.static(range(3)):
+            tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
+        for j in range(vertices.shape[1]):
+            v = vertices[k, j]
+            for d in ti.static(range(3)):
+                grad[v, d] += weights[k, j] * tu[d]
+
+
+@fast_kernel
+def friction_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                     coefficient: _F64_1, eps_u: ti.f64, blocks: _F64_3):
+    """Writes the pair blocks ``(p, 3m, 3m)`` in N/m (PSD by construction)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+        y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
+        f1x = _f1_over_x(y, eps_u)
+        f2 = _f2_x_minus_f1_over_x3(y, eps_u)
+        Hu = ti.Matrix.zero(ti.f64, 2, 2)
+        for i, j in ti.static(ti.ndrange(2, 2)):
+            Hu[i, j] = f2 * u[i] * u[j]
+            if ti.static(i == j):
+                Hu[i, j] += f1x
+        H3 = ti.Matrix.zero(ti.f64, 3, 3)
+        for d, e in ti.static(ti.ndrange(3, 3)):
+            acc = 0.0
+            for i, j in ti.static(ti.ndrange(2, 2)):
+                acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
+            H3[d, e] = acc * coefficient[k]
+        for a in range(vertices.shape[1]):
+            for b in range(vertices.shape[1]):
+                wab = weights[k, a] * weights[k, b]
+                for d, e in ti.static(ti.ndrange(3, 3)):
+                    blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
+
+
+class TiLaggedFriction(LaggedFriction):
+    """:class:`~sim_core.potentials.friction.LaggedFriction` with energy, gradient and Hessian on the
+    Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
+    :func:`sim_core.ti_backend.init_backend`)."""
+
+    def _kernel_arrays(self, x: np.ndarray) -> tuple:
+        arrays = getattr(self, "_arrays", None)
+        if arrays is None:
+            require_backend("TiLaggedFriction")
+            arrays = (np.ascontiguousarray(self.x_prev, dtype=np.float64),
+                      np.ascontiguousarray(self.vertices, dtype=np.int32),
+                      np.ascontiguousarray(self.weights, dtype=np.float64),
+                      np.ascontiguousarray(self.tangent, dtype=np.float64))
+            self._arrays = arrays
+        coefficient = np.ascontiguousarray(self.mu * self.lam, dtype=np.float64)  # mu may be edited
+        return (np.ascontiguousarray(x, dtype=np.float64),) + arrays + (coefficient,)
+
+    def energy(self, x: np.ndarray) -> float:
+        """Friction dissipation potential in J."""
+        if self.vertices.shape[0] == 0:
+            return 0.0
+        return float(friction_energy(*self._kernel_arrays(x), self.eps_u))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N (minus the friction force), shape ``(n, 3)``."""
+        grad = np.zeros((x.shape[0], 3))
+        if self.vertices.shape[0]:
+            friction_gradient(*self._kernel_arrays(x), self.eps_u, grad)
+        return grad
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-pair blocks ``(p, 3m, 3m)``, PSD by construction (``projection`` is not needed)."""
+        p, m = self.vertices.shape
+        if p == 0:
+            return HessianBlocks.empty(m)
+        blocks = np.empty((p, 3 * m, 3 * m))
+        friction_hessian(*self._kernel_arrays(x), self.eps_u, blocks)
+        return HessianBlocks(self.vertices, blocks)
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the three kernels on one pair.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.zeros((4, 3))
+    friction = TiLaggedFriction(np.arange(4)[None], np.array([[1.0, -0.5, -0.25, -0.25]]),
+                                np.eye(3)[None, :, :2], np.ones(1), 0.5, x, 0.01, 0.01)
+    friction.energy(x + 1e-4)
+    friction.gradient(x + 1e-4)
+    friction.hessian(x + 1e-4)

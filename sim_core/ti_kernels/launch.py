@@ -1,0 +1,180 @@
+"""Cheaper launches of compiled Taichi kernels: argument handling cached per call signature.
+
+A ``@ti.kernel`` call in Taichi 1.7 spends most of its time in Python before the compiled code
+runs: it re-derives the template key from every argument (``TaichiCallableTemplateMapper``),
+walks the annotations (``recursive_set_args``) and checks each NumPy array's size, about 75 us
+per call for the 7 to 9 array arguments of the fused and contact kernels, against about 30 us for
+the launch itself (2-core VM). A Newton step of the Forming scene makes ~50 such calls.
+
+:func:`fast_kernel` wraps a kernel so that the first call of each *call signature* (per argument:
+the dtype and rank of a NumPy array, the type of a scalar, the value of a template argument) goes
+through Taichi's own path, which compiles, validates and launches; it then records the compiled
+kernel and a plan of typed argument setters, and later calls with that signature fill the launch
+context directly (``set_arg_external_array_with_shape`` / ``set_arg_float`` / ``set_arg_int``,
+the calls Taichi's ``Kernel.launch_kernel`` makes) and launch the same compiled code. The results
+are those of the plain call: same compiled kernel, same argument values.
+
+Anything the plan does not cover takes Taichi's path every time: keyword arguments, arrays that
+are not C-contiguous NumPy arrays, ndarray annotations with a matrix/vector element type, struct,
+matrix or argpack arguments, kernels that print or return anything but one scalar, and any call
+after the Taichi program was re-initialised (the plans of the old program are dropped).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import numpy as np
+
+from sim_core.ti_backend import ti
+
+_ARRAY, _FLOAT, _INT, _UINT, _TEMPLATE = range(5)
+
+
+def _argument_kinds(primal) -> list[int] | None:
+    """Setter kind of each kernel argument, or None if some argument is not covered."""
+    from taichi.types import ndarray_type, primitive_types, template
+
+    kinds = []
+    for argument in primal.arguments:
+        anno = argument.annotation
+        if isinstance(anno, template):
+            kinds.append(_TEMPLATE)
+        elif isinstance(anno, ndarray_type.NdarrayType):
+            if not (anno.dtype is None or id(anno.dtype) in primitive_types.type_ids):
+                return None
+            kinds.append(_ARRAY)
+        elif id(anno) in primitive_types.real_type_ids:
+            kinds.append(_FLOAT)
+        elif id(anno) in primitive_types.integer_type_ids:
+            from taichi.lang.util import cook_dtype
+            from taichi.types.utils import is_signed
+
+            kinds.append(_INT if is_signed(cook_dtype(anno)) else _UINT)
+        else:
+            return None
+    return kinds
+
+
+def _return_getter(primal) -> Callable | None | bool:
+    """``None`` (no return value), a getter of the one scalar returned, or False (not covered)."""
+    from taichi.types import primitive_types
+
+    ret = primal.return_type
+    if ret is None:
+        return None
+    if len(ret) != 1:
+        return False
+    (dtype,) = ret
+    if dtype in primitive_types.real_types:
+        return lambda ctx: ctx.get_struct_ret_float((0,))
+    if dtype in primitive_types.integer_types:
+        from taichi.lang.util import cook_dtype
+        from taichi.types.utils import is_signed
+
+        if is_signed(cook_dtype(dtype)):
+            return lambda ctx: ctx.get_struct_ret_int((0,))
+        return lambda ctx: ctx.get_struct_ret_uint((0,))
+    return False
+
+
+class _Plan:
+    """A compiled kernel and its argument setters for one call signature."""
+
+    __slots__ = ("t_kernel", "slots", "ret")
+
+    def __init__(self, t_kernel, slots: list[tuple[int, int, int]], ret: Callable | None) -> None:
+        self.t_kernel = t_kernel
+        self.slots = slots  # (argument position, launch index, kind) of the non-template arguments
+        self.ret = ret
+
+
+class FastKernel:
+    """A Taichi kernel whose repeated calls skip Taichi's per-call argument analysis (module docstring).
+
+    Args:
+        kernel: a function decorated with ``@ti.kernel`` (not a class kernel).
+
+    Raises:
+        TypeError: ``kernel`` is not a Taichi kernel.
+    """
+
+    def __init__(self, kernel: Callable) -> None:
+        if not getattr(kernel, "_is_wrapped_kernel", False) or getattr(kernel, "_is_classkernel", False):
+            raise TypeError(f"FastKernel: {kernel!r} is not a plain @ti.kernel function")
+        functools.update_wrapper(self, kernel)
+        self.kernel = kernel
+        self._primal = kernel._primal
+        self._kinds = _argument_kinds(self._primal)
+        self._plans: dict[tuple, _Plan | None] = {}
+        self._prog = None
+
+    def _signature(self, args: tuple) -> tuple | None:
+        kinds = self._kinds
+        if kinds is None or len(args) != len(kinds):
+            return None
+        key = []
+        for arg, kind in zip(args, kinds):
+            if kind == _ARRAY:
+                if type(arg) is not np.ndarray or not arg.flags.c_contiguous:
+                    return None
+                key.append((arg.dtype.num, arg.ndim))
+            elif kind == _TEMPLATE:
+                if not isinstance(arg, (bool, int, float, str)):
+                    return None
+                key.append((type(arg), arg))
+            else:
+                key.append(type(arg))
+        return tuple(key)
+
+    def _make_plan(self, args: tuple) -> _Plan | None:
+        """The plan of ``args``' signature, built after Taichi's own call compiled and ran it."""
+        primal = self._primal
+        ret = _return_getter(primal)
+        if ret is False or primal.has_print:
+            return None
+        t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
+        slots, index = [], 0
+        for position, kind in enumerate(self._kinds):
+            if kind != _TEMPLATE:
+                slots.append((position, index, kind))
+                index += 1
+        return _Plan(t_kernel, slots, ret)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        from taichi.lang import impl
+
+        runtime = impl.get_runtime()
+        prog = runtime.prog
+        if prog is not self._prog:
+            self._plans.clear()
+            self._prog = prog
+        signature = None if kwargs else self._signature(args)
+        plan = self._plans.get(signature) if signature is not None else None
+        if plan is None:
+            result = self.kernel(*args, **kwargs)
+            if signature is not None and signature not in self._plans:
+                self._plans[signature] = self._make_plan(args)
+            return result
+        ctx = plan.t_kernel.make_launch_context()
+        for position, index, kind in plan.slots:
+            v = args[position]
+            if kind == _ARRAY:
+                ctx.set_arg_external_array_with_shape((index,), v.ctypes.data, v.nbytes, v.shape, 0)
+            elif kind == _FLOAT:
+                ctx.set_arg_float((index,), float(v))
+            elif kind == _INT:
+                ctx.set_arg_int((index,), int(v))
+            else:
+                ctx.set_arg_uint((index,), int(v))
+        prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), plan.t_kernel), ctx)
+        if plan.ret is None:
+            return None
+        runtime.sync()
+        return plan.ret(ctx)
+
+
+def fast_kernel(fn: Callable) -> FastKernel:
+    """``@fast_kernel`` in place of ``@ti.kernel``: a Taichi kernel with cached launch plans (module docstring)."""
+    return FastKernel(ti.kernel(fn))

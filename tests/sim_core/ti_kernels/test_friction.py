@@ -1,0 +1,114 @@
+"""The Taichi lagged friction equals the NumPy reference and passes its finite-difference checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.potentials.friction import LaggedFriction
+from tests.sim_core.potentials import test_friction as ref_tests
+from tests.sim_core.ti_kernels.conftest import relative_error
+from tests.support.fd import dense_hessian, fd_gradient, fd_hessian
+
+EPS_U = ref_tests.EPS_U
+
+
+def _twin(ref: LaggedFriction):
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+
+    return TiLaggedFriction(ref.vertices, ref.weights, ref.tangent, ref.lam, ref.mu, ref.x_prev, ref.eps_v, ref.dt)
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.3 * EPS_U, EPS_U, 20 * EPS_U])
+def test_energy_gradient_hessian_equal_the_reference(ti_cpu, scale):
+    rng = np.random.default_rng(31)
+    ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
+    tik = _twin(ref)
+    x = x_prev + rng.normal(scale=scale, size=x_prev.shape)
+    assert tik.energy(x) == pytest.approx(ref.energy(x), rel=1e-12)
+    assert relative_error(tik.gradient(x), ref.gradient(x)) < 1e-12
+    h_ti, h_ref = tik.hessian(x, "none"), ref.hessian(x, "none")
+    assert np.array_equal(h_ti.vertices, h_ref.vertices)
+    assert relative_error(h_ti.blocks, h_ref.blocks) < 1e-12
+
+
+def test_one_vertex_pairs_and_no_pairs(ti_cpu):
+    """Pairs against an obstacle (one block vertex, plane / sphere frames) and an empty set."""
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+
+    rng = np.random.default_rng(32)
+    n = 6
+    x_prev = rng.normal(size=(n, 3)) * 1e-3
+    tangent = np.repeat(np.eye(3)[None, :, :2], 3, axis=0)
+    ref = LaggedFriction(np.array([[0], [2], [5]]), np.ones((3, 1)), tangent, np.ones(3), 0.4, x_prev, 0.01, 5e-3)
+    tik = _twin(ref)
+    x = x_prev + rng.normal(scale=1e-4, size=x_prev.shape)
+    assert tik.energy(x) == pytest.approx(ref.energy(x), rel=1e-12)
+    assert relative_error(tik.gradient(x), ref.gradient(x)) < 1e-12
+    assert relative_error(tik.hessian(x).blocks, ref.hessian(x).blocks) < 1e-12
+    empty = TiLaggedFriction(np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 3, 2)), np.zeros(0), 0.5,
+                             x_prev, 0.01, 5e-3)
+    assert empty.energy(x) == 0.0
+    assert not np.any(empty.gradient(x))
+    assert empty.hessian(x).blocks.shape == (0, 12, 12)
+
+
+@pytest.mark.parametrize("scale, regime", [(0.3 * EPS_U, "mollified"), (20 * EPS_U, "sliding")])
+def test_finite_differences_psd_and_mu(ti_cpu, scale, regime):
+    rng = np.random.default_rng(20 if regime == "sliding" else 21)
+    ref, x_prev = ref_tests._random_friction(rng)
+    fr = _twin(ref)
+    for _ in range(3):
+        x = x_prev + rng.normal(scale=scale, size=x_prev.shape)
+        y = np.linalg.norm(fr.tangential_displacement(x), axis=1)
+        x_ok = np.all(y < 0.95 * EPS_U) if regime == "mollified" else np.all(y > 1.05 * EPS_U)
+        if x_ok:
+            break
+    assert x_ok
+    h = 1e-3 * scale
+    g = fr.gradient(x)
+    assert relative_error(g, fd_gradient(fr.energy, x, h=h)) < 1e-5
+    blocks = fr.hessian(x, "none")
+    assert relative_error(dense_hessian(blocks, x.shape[0]), fd_hessian(fr.gradient, x, h=h)) < 1e-5
+    assert np.min(np.linalg.eigvalsh(blocks.blocks)) > -1e-12 * np.max(np.abs(blocks.blocks))
+    mu0 = fr.mu.copy()
+    fr.mu = mu0 + 1e-6  # an edited coefficient is used at the next call
+    gp = fr.gradient(x)
+    fr.mu = mu0
+    assert relative_error(fr.parameter_gradient(x, "mu"), (gp - g) / 1e-6) < 1e-6
+
+
+def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
+    """Forming after a few steps of the benchmark trajectory: the same frozen pairs, the Taichi class."""
+    from sim_core.contact_set import ContactSet
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from thinshell_ros.bench import _default_scene, run_forming
+
+    states = []
+    import sim_core.simulation as simulation
+
+    step = simulation.Simulation.step
+
+    def recording_step(self, control):
+        info = step(self, control)
+        states.append((self.model, self.state.x.copy(), self.state.contact_memory))
+        return info
+
+    simulation.Simulation.step = recording_step
+    try:
+        run_forming(_default_scene("forming"), 12, arch="numpy")
+    finally:
+        simulation.Simulation.step = step
+    model, x, memory = states[-1]
+    ref = ContactSet(model).friction(x, 5e-3, memory)
+    model.meta["elastic_backend"] = "taichi"
+    try:
+        contact = ContactSet(model)
+        tik = contact.friction(x, 5e-3, contact.begin_step(x, memory))
+    finally:
+        model.meta.pop("elastic_backend")
+    assert type(ref) is LaggedFriction and type(tik) is TiLaggedFriction
+    np.testing.assert_array_equal(tik.vertices, ref.vertices)
+    np.testing.assert_array_equal(tik.lam, ref.lam)
+    x_new = x + 1e-5
+    assert tik.energy(x_new) == pytest.approx(ref.energy(x_new), rel=1e-12)

@@ -1,0 +1,91 @@
+"""Cached launch plans (sim_core/ti_kernels/launch.py) give the results of Taichi's own calls."""
+
+# No ``from __future__ import annotations``: Taichi reads kernel annotations as objects.
+
+import numpy as np
+import pytest
+
+from sim_core.ti_backend import ti
+
+_F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+def _kernels():
+    from sim_core.ti_kernels.launch import fast_kernel
+
+    @fast_kernel
+    def weighted_sum(x: _F64_2, w: _F64_1, idx: _I32_1, scale: ti.f64, shift: ti.i32, negate: ti.template(),
+                     out: _F64_1) -> ti.f64:
+        total = 0.0
+        ti.loop_config(serialize=True)
+        for k in range(idx.shape[0]):
+            v = scale * w[k] * x[idx[k] + shift, 1]
+            if ti.static(negate):
+                v = -v
+            out[k] += v
+            total += v
+        return total
+
+    @fast_kernel
+    def count_positive(x: _F64_1) -> ti.i32:
+        n = 0
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            if x[k] > 0:
+                n += 1
+        return n
+
+    return weighted_sum, count_positive
+
+
+def _reference(x, w, idx, scale, shift, negate):
+    v = scale * w * x[idx + shift, 1]
+    return -v if negate else v
+
+
+def test_repeated_calls_equal_the_numpy_reference(ti_cpu):
+    weighted_sum, count_positive = _kernels()
+    rng = np.random.default_rng(0)
+    for call in range(4):  # the first call of a signature goes through Taichi, later ones through the plan
+        for negate in (False, True):
+            n = 5 + 3 * call
+            x = rng.normal(size=(n + 2, 3))
+            w = rng.normal(size=n)
+            idx = rng.integers(0, n, size=n).astype(np.int32)
+            out = np.ones(n)
+            total = weighted_sum(x, w, idx, 1.5, 2, negate, out)
+            expected = _reference(x, w, idx, 1.5, 2, negate)
+            np.testing.assert_allclose(out, 1.0 + expected, rtol=0, atol=1e-14)
+            assert total == pytest.approx(float(np.sum(expected)), rel=1e-13, abs=1e-14)
+            assert count_positive(x[:, 0].copy()) == int(np.sum(x[:, 0] > 0))
+    assert len(weighted_sum._plans) == 2  # one plan per template value
+    assert all(plan is not None for plan in weighted_sum._plans.values())
+
+
+def test_arrays_that_are_not_c_contiguous_take_taichis_path(ti_cpu):
+    weighted_sum, _ = _kernels()
+    rng = np.random.default_rng(1)
+    x = np.asfortranarray(rng.normal(size=(8, 3)))
+    w, idx = rng.normal(size=4), np.arange(4, dtype=np.int32)
+    for _ in range(2):
+        out = np.zeros(4)
+        weighted_sum(x, w, idx, 2.0, 1, False, out)
+        np.testing.assert_allclose(out, _reference(x, w, idx, 2.0, 1, False), rtol=0, atol=1e-14)
+    assert not weighted_sum._plans  # no plan for a Fortran-ordered array
+
+
+def test_a_wrong_dtype_is_rejected_by_taichi_every_time(ti_cpu):
+    _, count_positive = _kernels()
+    count_positive(np.ones(3))
+    for _ in range(2):
+        with pytest.raises(Exception):
+            count_positive(np.ones(3, dtype=np.float32))
+
+
+def test_plain_functions_are_refused():
+    from sim_core.ti_kernels.launch import FastKernel
+
+    with pytest.raises(TypeError, match="not a plain @ti.kernel"):
+        FastKernel(lambda x: x)
