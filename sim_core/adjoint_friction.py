@@ -20,15 +20,16 @@ from sim_core.collision.distances import (
     edge_edge_closest_points,
     point_triangle_closest_point,
 )
-from sim_core.contact_set import ContactSet
+from sim_core.contact_set import ContactSet, FrictionRowSource
 from sim_core.errors import ThinShellError
 from sim_core.model import Model
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
+from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
 from sim_core.potentials.friction import (
     LaggedFriction,
     smooth_friction_f1_over_x,
     smooth_friction_f2_x_minus_f1_over_x3,
 )
+from sim_core.potentials.sphere_contact import SphereContact
 from sim_core.state import State
 
 
@@ -207,14 +208,18 @@ def edge_edge_frames(z: np.ndarray, side: np.ndarray):
 def friction_rows(model: Model, contact: ContactSet, state: State, friction: LaggedFriction) -> FrictionRows:
     """Identify the rows of a step's lagged friction and differentiate their frozen frames.
 
-    Uses the same :class:`ContactSet` call as the solver (pairs near ``x^n`` with the state's side
-    memory) to recover each row's kind, remembered side and bodies, then differentiates each row's
-    frame with :func:`vertex_triangle_frames`, :func:`edge_edge_frames`, the constant plane normal
-    or the radial normal of a rigid sphere (``dn/dx_i = (I - n n^T) / r = -dn/dc``).
+    Each row's kind, remembered side and bodies come from ``friction.row_sources``
+    (:class:`~sim_core.contact_set.FrictionRowSource`, recorded by :meth:`ContactSet.friction` from
+    the step's own potentials); a ``LaggedFriction`` without them (built elsewhere) is matched by
+    the same :class:`ContactSet` call as the solver's instead (pairs near ``x^n`` with the state's
+    side memory: a second broad phase and distance pass). Each row's frame is then differentiated
+    with :func:`vertex_triangle_frames`, :func:`edge_edge_frames`, the constant plane normal or the
+    radial normal of a rigid sphere (``dn/dx_i = (I - n n^T) / r = -dn/dc``).
 
     Args:
         model: the model.
-        contact: a ``ContactSet(model)`` (its per-step scratch is overwritten).
+        contact: a ``ContactSet(model)`` (its per-step scratch is overwritten; only used without
+            ``friction.row_sources``).
         state: the state the step started from.
         friction: the step's :class:`LaggedFriction` (from ``StepRecord.terms``).
 
@@ -222,57 +227,52 @@ def friction_rows(model: Model, contact: ContactSet, state: State, friction: Lag
         ThinShellError: the rebuilt rows disagree with the contact set's friction (contract drift).
     """
     x_n = state.x
-    memory = contact.begin_step(x_n, state.contact_memory)
-    pots = contact.potentials(x_n, x_n, memory)
+    sources = getattr(friction, "row_sources", None)
+    if sources is None:
+        sources = _search_row_sources(contact, x_n, state)
     names = list(model.bodies)
     body = model.body_of_vertex()
     parts, pairs = [], []
     k_c, eps = contact.stiffness, contact.eps
-    for pot in pots:
+    for obstacle, pot, rows in sources:
+        if rows.size == 0:
+            continue
         if isinstance(pot, (VertexTriangleContact, EdgeEdgeContact)):
-            if len(pot.pairs) == 0:
-                continue
-            act = np.flatnonzero(pot.distance(x_n) < pot.eps)
-            if act.size == 0:
-                continue
-            verts = pot.vertices[act]
+            verts = pot.vertices[rows]
             fn = vertex_triangle_frames if isinstance(pot, VertexTriangleContact) else edge_edge_frames
-            d, dd, n, dn, w, dw = fn(x_n[verts], pot.resolved_sides(x_n)[act])
+            d, dd, n, dn, w, dw = fn(x_n[verts], pot.resolved_sides(x_n, rows))
             parts.append((verts, k_c * (eps - d), -k_c * dd, n, dn, w, dw))
             second = 1 if isinstance(pot, VertexTriangleContact) else 2
-            pairs += [frozenset((names[body[a]], names[body[b]])) for a, b in zip(verts[:, 0], verts[:, second])]
-    for pname, plane in contact.planes:
-        act = np.flatnonzero(plane.distance(x_n) < plane.eps)
-        if act.size == 0:
-            continue
-        v = plane.vertices[act]
-        k = v.size
-        dlam = np.zeros((k, 12))
-        dlam[:, :3] = -k_c * plane.normal
-        w = np.zeros((k, 4))
-        w[:, 0] = 1.0
-        parts.append((np.repeat(v[:, None], 4, axis=1), k_c * (eps - plane.distance(x_n)[act]), dlam,
-                      np.broadcast_to(plane.normal, (k, 3)).copy(), np.zeros((k, 3, 12)), w, np.zeros((k, 4, 12))))
-        pairs += [frozenset((names[body[i]], pname)) for i in v]
-    for sname, sphere in contact.spheres:
-        act = np.flatnonzero(sphere.distance(x_n) < sphere.eps)
-        if act.size == 0:
-            continue
-        v = sphere.vertices[act]
-        k = v.size
-        rel = x_n[v] - x_n[sphere.center]
-        r = np.linalg.norm(rel, axis=1)
-        n = rel / r[:, None]
-        proj = (np.eye(3) - n[:, :, None] * n[:, None, :]) / r[:, None, None]  # dn/dx_i; dn/dc = -dn/dx_i
-        dlam = np.zeros((k, 12))
-        dlam[:, :3], dlam[:, 3:6] = -k_c * n, k_c * n
-        dn = np.zeros((k, 3, 12))
-        dn[:, :, :3], dn[:, :, 3:6] = proj, -proj
-        w = np.zeros((k, 4))
-        w[:, 0], w[:, 1] = 1.0, -1.0
-        verts = np.column_stack([v, np.full(k, sphere.center), v, v])  # padded as concatenate_frames does
-        parts.append((verts, k_c * (eps - (r - sphere.radius)), dlam, n, dn, w, np.zeros((k, 4, 12))))
-        pairs += [frozenset((names[body[i]], sname)) for i in v]
+            pairs += _body_pairs(names, body[verts[:, 0]], body[verts[:, second]])
+        elif isinstance(pot, PlaneContact):
+            v = pot.vertices[rows]
+            k = v.size
+            dlam = np.zeros((k, 12))
+            dlam[:, :3] = -k_c * pot.normal
+            w = np.zeros((k, 4))
+            w[:, 0] = 1.0
+            d = x_n[v] @ pot.normal - pot.offset
+            parts.append((np.repeat(v[:, None], 4, axis=1), k_c * (eps - d), dlam,
+                          np.broadcast_to(pot.normal, (k, 3)).copy(), np.zeros((k, 3, 12)), w, np.zeros((k, 4, 12))))
+            pairs += _obstacle_pairs(names, body[v], obstacle)
+        elif isinstance(pot, SphereContact):
+            v = pot.vertices[rows]
+            k = v.size
+            rel = x_n[v] - x_n[pot.center]
+            r = np.linalg.norm(rel, axis=1)
+            n = rel / r[:, None]
+            proj = (np.eye(3) - n[:, :, None] * n[:, None, :]) / r[:, None, None]  # dn/dx_i; dn/dc = -dn/dx_i
+            dlam = np.zeros((k, 12))
+            dlam[:, :3], dlam[:, 3:6] = -k_c * n, k_c * n
+            dn = np.zeros((k, 3, 12))
+            dn[:, :, :3], dn[:, :, 3:6] = proj, -proj
+            w = np.zeros((k, 4))
+            w[:, 0], w[:, 1] = 1.0, -1.0
+            verts = np.column_stack([v, np.full(k, pot.center), v, v])  # padded as concatenate_frames does
+            parts.append((verts, k_c * (eps - (r - pot.radius)), dlam, n, dn, w, np.zeros((k, 4, 12))))
+            pairs += _obstacle_pairs(names, body[v], obstacle)
+        else:
+            raise ThinShellError(f"adjoint: lagged-friction rows from an unknown contact term {type(pot).__name__}")
     if not parts:
         parts.append((np.zeros((0, 4), np.int64), np.zeros(0), np.zeros((0, 12)), np.zeros((0, 3)),
                       np.zeros((0, 3, 12)), np.zeros((0, 4)), np.zeros((0, 4, 12))))
@@ -286,6 +286,35 @@ def friction_rows(model: Model, contact: ContactSet, state: State, friction: Lag
             "forces differ); sim_core/adjoint.py friction_rows must follow sim_core/contact_set.py"
         )
     return FrictionRows(friction, verts, pairs, cat[2], cat[3], cat[4], cat[5], cat[6])
+
+
+def _search_row_sources(contact: ContactSet, x_n: np.ndarray, state: State) -> list[FrictionRowSource]:
+    """The row sources of ``ContactSet.friction`` at ``x^n``, found again (pairs, sides, active sets)."""
+    memory = contact.begin_step(x_n, state.contact_memory)
+    pots = contact.potentials(x_n, x_n, memory)
+    sources = [FrictionRowSource(None, pot, np.flatnonzero(pot.distance(x_n) < pot.eps))
+               for pot in pots if isinstance(pot, (VertexTriangleContact, EdgeEdgeContact)) and len(pot.pairs)]
+    for name, obstacle in contact.planes + contact.spheres:
+        sources.append(FrictionRowSource(name, obstacle, np.flatnonzero(obstacle.distance(x_n) < obstacle.eps)))
+    return sources
+
+
+def _body_pairs(names: list[str], body_a: np.ndarray, body_b: np.ndarray) -> list[frozenset]:
+    """Unordered body-name pairs of rows with body indices ``body_a``, ``body_b`` (shape ``(k,)``)."""
+    cache: dict[tuple[int, int], frozenset] = {}
+    out = []
+    for a, b in zip(body_a.tolist(), body_b.tolist()):
+        key = cache.get((a, b))
+        if key is None:
+            key = cache[(a, b)] = frozenset((names[a], names[b]))
+        out.append(key)
+    return out
+
+
+def _obstacle_pairs(names: list[str], bodies: np.ndarray, obstacle: str) -> list[frozenset]:
+    """``{body name, obstacle}`` per row with body indices ``bodies`` (shape ``(k,)``)."""
+    keys = {b: frozenset((names[b], obstacle)) for b in np.unique(bodies).tolist()}
+    return [keys[b] for b in bodies.tolist()]
 
 
 def friction_state_jacobian(rows: FrictionRows, x: np.ndarray) -> np.ndarray:

@@ -10,12 +10,15 @@ friction potentials, as the Newton solver uses them:
   remembered side, or takes its side at ``x^n``, so a vertex that slipped through a triangle during
   an iterate is pulled back to the side it came from; any other pair is unsigned;
 - :meth:`ContactSet.friction` freezes normal forces and tangent bases at ``x^n`` (lagged IPC friction,
-  Li et al. 2020) with the Coulomb coefficient of each pair's two bodies;
+  Li et al. 2020) with the Coulomb coefficient of each pair's two bodies, and records where its rows
+  come from (:class:`FrictionRowSource`, for the adjoint);
 - :meth:`ContactSet.end_step` stores the sides of the pairs active above the face (interior) at the
   converged ``x^{n+1}``.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,6 +38,23 @@ from sim_core.model import Model
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.sphere_contact import SphereContact
+
+
+class FrictionRowSource(NamedTuple):
+    """Where a run of consecutive rows of a :class:`LaggedFriction` built by :meth:`ContactSet.friction`
+    comes from (kept as ``LaggedFriction.row_sources``, in row order, so that the adjoint
+    differentiates the frozen frames without searching the pairs again).
+
+    Attributes:
+        obstacle: the plane / sphere body name, None for vertex-triangle and edge-edge pairs.
+        potential: the step's contact potential of the rows (``VertexTriangleContact``,
+            ``EdgeEdgeContact``, ``PlaneContact`` or ``SphereContact``; its sides fixed for the step).
+        pair_index: the rows' pair (vertex) indices in ``potential``, int64 shape ``(r,)``.
+    """
+
+    obstacle: str | None
+    potential: object
+    pair_index: np.ndarray
 
 
 class ContactSet:
@@ -275,7 +295,7 @@ class ContactSet:
     def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
         """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
         vt, ee = self._pairs(x_n, memory)
-        frames, mus = [], []
+        frames, mus, sources = [], [], []
         for pot, first, second in (
             (vt, vt.pairs[:, 0], self.triangles[vt.pairs[:, 1], 0]),
             (ee, self.edges[ee.pairs[:, 0], 0], self.edges[ee.pairs[:, 1], 0]),
@@ -284,12 +304,14 @@ class ContactSet:
             if len(f.lam):
                 frames.append(f)
                 mus.append(self._mu(first[f.pair_index], second[f.pair_index]))
+                sources.append(FrictionRowSource(None, pot, f.pair_index))
         for name, obstacle in self.planes + self.spheres:
             f = obstacle.contact_frames(x_n)
             if len(f.lam):
                 frames.append(f)
                 bodies = self.vertex_body[obstacle.vertices[f.pair_index]]
                 mus.append(np.array([self.model.friction_coefficient(self.body_names[b], name) for b in bodies]))
+                sources.append(FrictionRowSource(name, obstacle, f.pair_index))
         if not frames:
             return None
         mu = np.concatenate(mus)
@@ -299,7 +321,9 @@ class ContactSet:
         friction_class = LaggedFriction
         if self.model.meta.get("elastic_backend") == "taichi":
             from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
-        return friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
+        return friction
 
     def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:
         ba, bb = self.vertex_body[vertex_a], self.vertex_body[vertex_b]
