@@ -293,8 +293,9 @@ class StepLinearization:
             ``record.hessian_exact``); used instead of factorising again.
 
     The full Hessian ``H`` and its contact part ``H_contact`` are assembled on first use (the
-    forward tangents only need them for products with non-zero Dirichlet tangents and for the
-    contact-force tangent). When ``record.hessian_exact``, the record's Newton matrix is the
+    forward tangents only need them for products with non-zero Dirichlet tangents; the
+    contact-force tangent multiplies the contact terms' element blocks directly,
+    :meth:`contact_hessian_product`). When ``record.hessian_exact``, the record's Newton matrix is the
     constrained exact Hessian and is factorised as it is, without assembling it again.
     """
 
@@ -312,6 +313,8 @@ class StepLinearization:
             p, (VertexTriangleContact, EdgeEdgeContact, PlaneContact, SphereContact, LaggedFriction))]
         self._H: sp.csr_matrix | None = None
         self._H_contact: sp.csr_matrix | None = None
+        self._contact_rhs: dict[str, np.ndarray] = {}  # contact_parameter_rhs per parameter name
+        self._friction_product: tuple[np.ndarray, np.ndarray] | None = None  # (dxn, _friction_apply(dxn))
         self.solver = factorization
         if factorize and factorization is None:
             if getattr(record, "hessian_exact", False):
@@ -356,6 +359,22 @@ class StepLinearization:
             self._H = assemble_hessian(blocks, 3 * self.n, diag)
         return self._H
 
+    def contact_hessian_product(self, dx: np.ndarray) -> np.ndarray:
+        """``H_contact dx`` from the contact and friction terms' element blocks, without assembling
+        :attr:`H_contact` (the same sum up to round-off); ``dx`` shape ``(n, 3, r)`` in and out."""
+        if self._H_contact is not None:
+            r = dx.shape[2]
+            return (self._H_contact @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
+        out = np.zeros(dx.shape)
+        for p in self.contact_terms:
+            hb = p.hessian(self.x, "none")
+            k, m = hb.vertices.shape
+            if k == 0:
+                continue
+            prod = np.einsum("kuv,kvr->kur", hb.blocks, dx[hb.vertices].reshape(k, 3 * m, -1))
+            out += _scatter_vertex_rows(self.n, hb.vertices, prod.reshape(k, m, 3, -1))
+        return out
+
     @property
     def H_contact(self) -> sp.csr_matrix:
         """Exact Hessian of the contact and friction terms alone, ``(3 n, 3 n)`` CSR."""
@@ -374,14 +393,23 @@ class StepLinearization:
 
     # ------------------------------------------------------------ products with dg/d(state)
     def _friction_apply(self, dxn: np.ndarray) -> np.ndarray:
-        """Friction part of (dg/dx^n) dx^n; dxn shape (n, 3, r) -> (n, 3, r)."""
-        out = np.zeros_like(dxn)
+        """Friction part of (dg/dx^n) dx^n; dxn shape (n, 3, r) -> (n, 3, r).
+
+        The last product is kept with its argument: the forward tangents ask for it twice per step
+        with the same ``dx^n`` (:meth:`state_rhs`, :meth:`contact_force_tangent`). The result must
+        not be modified in place.
+        """
+        kept = self._friction_product
+        if kept is not None and kept[0] is dxn:
+            return kept[1]
         if self.friction_J is None:
-            return out
-        v = self.rows.vertices
-        local = dxn[v].reshape(v.shape[0], 12, -1)
-        prod = np.einsum("kuv,kvr->kur", self.friction_J, local).reshape(v.shape[0], 4, 3, -1)
-        np.add.at(out, v.reshape(-1), prod.reshape(-1, 3, dxn.shape[2]))
+            out = np.zeros_like(dxn)
+        else:
+            v = self.rows.vertices
+            local = dxn[v].reshape(v.shape[0], 12, -1)
+            prod = np.einsum("kuv,kvr->kur", self.friction_J, local).reshape(v.shape[0], 4, 3, -1)
+            out = _scatter_vertex_rows(self.n, v, prod)
+        self._friction_product = (dxn, out)
         return out
 
     def _friction_apply_T(self, w: np.ndarray) -> np.ndarray:
@@ -454,7 +482,17 @@ class StepLinearization:
         return out + self.contact_parameter_rhs(name)
 
     def contact_parameter_rhs(self, name: str) -> np.ndarray:
-        """The contact + friction part of :meth:`parameter_rhs` (for the contact-force tangent)."""
+        """The contact + friction part of :meth:`parameter_rhs` (for the contact-force tangent).
+
+        Kept per ``name`` (asked for by :meth:`parameter_rhs` and again for the contact-force
+        tangent); the returned array must not be modified in place.
+        """
+        kept = self._contact_rhs.get(name)
+        if kept is None:
+            kept = self._contact_rhs[name] = self._contact_parameter_rhs(name)
+        return kept
+
+    def _contact_parameter_rhs(self, name: str) -> np.ndarray:
         out = np.zeros((self.n, 3))
         if name == "contact.stiffness":
             for p in self.contact_terms:
@@ -481,9 +519,7 @@ class StepLinearization:
         Returns:
             shape ``(n, 3, r)``, N per unit tangent.
         """
-        r = dx_new.shape[2]
-        out = (self.H_contact @ dx_new.reshape(3 * self.n, r)).reshape(self.n, 3, r)
-        return -(out + self._friction_apply(dxn) + dparam)
+        return -(self.contact_hessian_product(dx_new) + self._friction_apply(dxn) + dparam)
 
     # ------------------------------------------------------------ plasticity
     def plastic_tangent(self, dx_new: np.ndarray, dtb: dict[str, np.ndarray], dyield: dict[str, np.ndarray]):
@@ -501,6 +537,24 @@ class StepLinearization:
                 new[yielding] = dtheta - sign[yielding, None] * dyield.get(name, 0.0)
             out[name] = new
         return out
+
+
+def _scatter_vertex_rows(vertex_count: int, vertices: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Sum per-element vertex rows into global rows: ``out[vertices[k, a]] += values[k, a]``.
+
+    Args:
+        vertex_count: n.
+        vertices: global vertex indices, shape ``(k, m)``.
+        values: shape ``(k, m, 3, r)``.
+
+    Returns:
+        shape ``(n, 3, r)`` (``np.bincount`` over flat indices, summed in element order as
+        ``np.add.at`` does).
+    """
+    k, m, _, r = values.shape
+    flat = (3 * r * vertices.astype(np.int64))[:, :, None, None] + np.arange(3 * r).reshape(1, 1, 3, r)
+    out = np.bincount(flat.reshape(-1), weights=values.reshape(-1), minlength=3 * r * vertex_count)
+    return out.reshape(vertex_count, 3, r)
 
 
 def _dof_vertices(eff) -> np.ndarray:

@@ -67,3 +67,34 @@ def test_recorded_exact_newton_matrix_is_the_assembled_exact_hessian():
         ref = StepLinearization(model, dataclasses.replace(rec, hessian_exact=False), state, ElasticTerms(model),
                                 ContactSet(model), model.vertex_mass())
         np.testing.assert_allclose(direct.solve(b), ref.solve(b), rtol=1e-9, atol=1e-12 * np.abs(ref.solve(b)).max())
+
+
+def test_contact_products_without_assembly_equal_the_assembled_ones():
+    """The contact-force tangent's blockwise ``H_contact dx`` and the kept friction / parameter
+    products equal the assembled matrix and fresh evaluations; a new argument is not served a
+    kept result."""
+    sim = Simulation.from_scene(_scene(), solver_config=CONFIG)
+    traj = rollout(sim, _controls())
+    model = sim.model
+    rng = np.random.default_rng(1)
+    checked = 0
+    for rec, state in zip(traj.records, traj.states):
+        lin = StepLinearization(model, rec, state, ElasticTerms(model), ContactSet(model), model.vertex_mass(),
+                                factorize=False)
+        if lin.friction is None:
+            continue
+        checked += 1
+        dx = rng.normal(size=(model.vertex_count, 3, 3))
+        blockwise = lin.contact_hessian_product(dx)
+        assembled = (lin.H_contact @ dx.reshape(-1, 3)).reshape(dx.shape)
+        np.testing.assert_allclose(blockwise, assembled, rtol=0, atol=1e-12 * np.abs(assembled).max())
+        first = lin._friction_apply(dx)
+        assert lin._friction_apply(dx) is first
+        other = lin._friction_apply(2.0 * dx)
+        np.testing.assert_allclose(other, 2.0 * first, rtol=1e-12, atol=1e-12 * np.abs(first).max())
+        a = lin.contact_parameter_rhs("friction.gel_sheet")
+        b = lin.contact_parameter_rhs("friction.sheet_table")
+        assert np.abs(a).max() > 0 and np.abs(b).max() > 0 and not np.allclose(a, b)
+        assert lin.contact_parameter_rhs("friction.gel_sheet") is a
+        np.testing.assert_array_equal(a, lin._contact_parameter_rhs("friction.gel_sheet"))
+    assert checked
