@@ -332,12 +332,15 @@ class StepLinearization:
         for name in elastic.hinges:
             tb = record.hinge_theta_bar.get(name)
             pot = elastic.bending(name, tb)
-            X = self.x[pot.hinges]
-            theta = dihedral_angle(X)
+            if hasattr(pot, "theta_gradient"):  # kept angles, shared with parameter_rhs (same pot)
+                theta, gt = pot.theta(self.x), pot.theta_gradient(self.x)
+            else:
+                X = self.x[pot.hinges]
+                theta, gt = dihedral_angle(X), dihedral_angle_gradient(X)
             Y = model.bodies[name].material.get("yield_angle", np.inf)
             dev = theta - pot.hinge_theta_bar
             yielding = np.abs(dev) > Y if np.isfinite(Y) else np.zeros(len(theta), bool)
-            self.bending[name] = (pot, dihedral_angle_gradient(X), yielding, np.sign(dev))
+            self.bending[name] = (pot, gt, yielding, np.sign(dev))
         self.fixed = np.asarray(record.fixed, dtype=bool)
         self.driven = np.zeros(n, bool)
         for eff in model.effectors.values():
@@ -470,7 +473,10 @@ class StepLinearization:
         """
         x = self.x
         out = np.zeros((self.n, 3))
+        body = name.partition(".")[0]
         for pot, local in self.elastic.parameter_terms(name, self.record.hinge_theta_bar):
+            if body in self.bending and type(pot) is type(self.bending[body][0]):
+                pot = self.bending[body][0]  # the step's bending term, same rest angles, kept kinematics
             out += pot.parameter_gradient(x, local)
         mb = _mass_parameter_body(self.model, name)
         if mb is not None:

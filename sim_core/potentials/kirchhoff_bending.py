@@ -233,6 +233,9 @@ class KirchhoffBending:
         self.triangle_weight, self._triangle_weight_dnu = self._weights(nu)
         self.triangle_stiffness = (0.5 * D * self.triangle_rest_area)[:, None, None] * self.triangle_weight
         self.hinge_stiffness_matrix = self._hinge_matrix(self.triangle_stiffness)
+        # d K_h / dp per parameter name, built on first use (constant: D and nu are fixed at
+        # construction; one dict shared by the copies that replace the rest angles)
+        self._parameter_matrices: dict[str, sp.csr_matrix] = {}
 
         self._hinge_scatter = self._hessian_scatter()
 
@@ -298,6 +301,11 @@ class KirchhoffBending:
     def theta(self, x: np.ndarray) -> np.ndarray:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
         return self._hinge_kinematics(x)[1].copy()
+
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` (1/m, over ``hinges``' vertices), at
+        ``x`` (n, 3); kept with the angles of ``x`` (:meth:`theta`, gradient and Hessian share them)."""
+        return self._hinge_kinematics(x, gradient=True)[2]
 
     def _hinge_kinematics(self, x: np.ndarray, gradient: bool = False) -> tuple:
         """``(X (h, 4, 3), theta (h,), dtheta/dx (h, 4, 3) or None)`` at ``x``, kept with a copy of
@@ -367,10 +375,13 @@ class KirchhoffBending:
         Raises:
             KeyError: ``name`` is not in :attr:`parameter_names`.
         """
-        if name == "bending_stiffness":
-            M = (0.5 * self.triangle_rest_area)[:, None, None] * self.triangle_weight
-        elif name == "poisson_ratio":
-            M = (0.5 * self.bending_stiffness * self.triangle_rest_area)[:, None, None] * self._triangle_weight_dnu
-        else:
-            raise KeyError(f"KirchhoffBending has no parameter {name!r}; known: {self.parameter_names}")
-        return self._gradient_with(x, self._hinge_matrix(M))
+        K = self._parameter_matrices.get(name)
+        if K is None:
+            if name == "bending_stiffness":
+                M = (0.5 * self.triangle_rest_area)[:, None, None] * self.triangle_weight
+            elif name == "poisson_ratio":
+                M = (0.5 * self.bending_stiffness * self.triangle_rest_area)[:, None, None] * self._triangle_weight_dnu
+            else:
+                raise KeyError(f"KirchhoffBending has no parameter {name!r}; known: {self.parameter_names}")
+            K = self._parameter_matrices[name] = self._hinge_matrix(M)
+        return self._gradient_with(x, K)

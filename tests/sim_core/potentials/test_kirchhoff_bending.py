@@ -264,3 +264,22 @@ def test_kept_hinge_angles_are_reused_only_at_equal_positions():
     assert bend.energy(x) == e
     x[5] += 1e-4
     assert bend.energy(x) == _bending(mesh).energy(x) != e
+
+
+def test_theta_gradient_and_kept_parameter_matrices():
+    # theta_gradient is dtheta/dx of the hinges at x; the parameter matrices kept on first use
+    # belong to the potential's own D and nu (a copy with new rest angles shares them, another
+    # potential does not), so a later call equals a fresh potential's
+    from sim_core.potentials.bending import dihedral_angle_gradient
+
+    mesh = small_sheet()
+    x = deformed_configurations(mesh, seed=8)["perturbed"]
+    bend = _bending(mesh)
+    np.testing.assert_array_equal(bend.theta_gradient(x), dihedral_angle_gradient(x[bend.hinges]))
+    first = {n: bend.parameter_gradient(x, n) for n in ("bending_stiffness", "poisson_ratio")}
+    stiffer = _bending(mesh, D=2 * D)
+    for name, g in first.items():
+        assert np.array_equal(bend.parameter_gradient(x, name), g)
+        assert np.array_equal(_bending(mesh).parameter_gradient(x, name), g)
+    np.testing.assert_allclose(stiffer.parameter_gradient(x, "poisson_ratio"), 2 * first["poisson_ratio"],
+                               rtol=1e-12, atol=1e-12 * np.abs(first["poisson_ratio"]).max())
