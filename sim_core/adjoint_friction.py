@@ -93,13 +93,28 @@ def _store(out, mask, d: jets.Jet, n: jets.Jet, w: list[jets.Jet]) -> None:
     dwt[mask] = np.stack([c.grad for c in w], axis=1)
 
 
+def _scatter_weights(k: int, slots: list[np.ndarray], parts: list[jets.Jet]) -> list[jets.Jet]:
+    """Per-slot weight jets ``[w_0 .. w_3]`` from jets ``parts[i]`` placed at local vertex ``slots[i]``
+    of each row (int shape ``(k,)``; the other slots get weight 0)."""
+    out = []
+    for a in range(4):
+        val, grad = np.zeros(k), np.zeros((k, 12))
+        for slot, part in zip(slots, parts):
+            m = slot == a
+            val[m] += part.val[m]
+            grad[m] += part.grad[m]
+        out.append(jets.Jet(val, grad, None, 1))
+    return out
+
+
 def vertex_triangle_frames(z: np.ndarray, side: np.ndarray):
     """Contact distance, normal and weights of vertex-triangle pairs with derivatives (jets).
 
     Mirrors :meth:`VertexTriangleContact.contact_frames` region by region (Ericson 2005, 5.1.5):
     face: ``n = side * unit((b - a) x (c - a))``, ``d = n.(p - a)``, barycentrics of the projection;
-    edge: closest point ``q = a + s (b - a)`` with ``s = ab.ap / ab.ab`` (likewise bc, ca),
-    ``n = unit(p - q)``, ``d = |p - q|``; vertex: ``q`` the corner.
+    edge: closest point ``q = u + s (v - u)`` on the edge ``(u, v)`` (ab, bc or ca) with
+    ``s = (v - u).(p - u) / |v - u|^2``, ``n = unit(p - q)``, ``d = |p - q|``; vertex: ``q`` the corner
+    (``s = 0``). The six edge and vertex regions are one batch (their corners picked per row).
 
     Args:
         z: ``[p, a, b, c]`` per pair, shape ``(k, 4, 3)``.
@@ -114,42 +129,47 @@ def vertex_triangle_frames(z: np.ndarray, side: np.ndarray):
         return out
     _, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
     R = PointTriangleRegion
-    for code in np.unique(region):
-        m = region == code
-        p, a, b, c = _variables(z[m])
-        km = int(m.sum())
+    face = region == R.FACE
+    if np.any(face):
+        p, a, b, c = _variables(z[face])
+        km = int(face.sum())
         one = _const(km, 1.0)
-        zero = _const(km, 0.0)
         ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-        if code == R.FACE:
-            n, _ = _unit(jets.cross(ab, ac))
-            n = n.scaled(side[m])
-            d = jets.dot(n, ap)
-            d1, d2, d3, d4 = jets.dot(ab, ap), jets.dot(ac, ap), jets.dot(ab, bp), jets.dot(ac, bp)
-            d5, d6 = jets.dot(ab, cp), jets.dot(ac, cp)
-            vc = jets.multiply(d1, d4) - jets.multiply(d3, d2)
-            vb = jets.multiply(d5, d2) - jets.multiply(d1, d6)
-            va = jets.multiply(d3, d6) - jets.multiply(d5, d4)
-            total = va + vb + vc
-            bv, bw = _divide(vb, total), _divide(vc, total)
-            bary = [one - bv - bw, bv, bw]
-        else:
-            if code == R.EDGE_AB:
-                s = _divide(jets.dot(ab, ap), jets.dot(ab, ab))
-                bary = [one - s, s, zero]
-            elif code == R.EDGE_CA:
-                s = _divide(jets.dot(ac, ap), jets.dot(ac, ac))
-                bary = [one - s, zero, s]
-            elif code == R.EDGE_BC:
-                bc = c - b
-                s = _divide(jets.dot(bc, bp), jets.dot(bc, bc))
-                bary = [zero, one - s, s]
-            else:
-                corner = {R.VERTEX_A: 0, R.VERTEX_B: 1, R.VERTEX_C: 2}[R(code)]
-                bary = [one if i == corner else zero for i in range(3)]
-            q = _vec_scale(a, bary[0]) + _vec_scale(b, bary[1]) + _vec_scale(c, bary[2])
-            n, d = _unit(p - q)
-        _store(out, m, d, n, [one] + [x.scaled(-1.0) for x in bary])
+        n, _ = _unit(jets.cross(ab, ac))
+        n = n.scaled(side[face])
+        d = jets.dot(n, ap)
+        d1, d2, d3, d4 = jets.dot(ab, ap), jets.dot(ac, ap), jets.dot(ab, bp), jets.dot(ac, bp)
+        d5, d6 = jets.dot(ab, cp), jets.dot(ac, cp)
+        vc = jets.multiply(d1, d4) - jets.multiply(d3, d2)
+        vb = jets.multiply(d5, d2) - jets.multiply(d1, d6)
+        va = jets.multiply(d3, d6) - jets.multiply(d5, d4)
+        total = va + vb + vc
+        bv, bw = _divide(vb, total), _divide(vc, total)
+        _store(out, face, d, n, [one, (one - bv - bw).scaled(-1.0), bv.scaled(-1.0), bw.scaled(-1.0)])
+    if np.all(face):
+        return out
+    rest = ~face
+    code = region[rest]
+    # per row: the edge (u, v) as local vertex slots 1..3 (a, b, c); vertex regions: the corner as u
+    u_slot = np.select([code == R.EDGE_AB, code == R.EDGE_BC, code == R.EDGE_CA, code == R.VERTEX_A,
+                        code == R.VERTEX_B], [1, 2, 1, 1, 2], 3)
+    v_slot = np.select([code == R.EDGE_AB, code == R.EDGE_BC, code == R.EDGE_CA, code == R.VERTEX_A,
+                        code == R.VERTEX_B], [2, 3, 3, 2, 3], 1)
+    vertex = code >= R.VERTEX_A
+    zr = z[rest]
+    km = zr.shape[0]
+    rows = np.arange(km)
+    p = jets.variable(zr[:, 0], 0, 12, 1)
+    u = jets.variable(zr[rows, u_slot], u_slot, 12, 1)
+    v = jets.variable(zr[rows, v_slot], v_slot, 12, 1)
+    one = _const(km, 1.0)
+    uv, up = v - u, p - u
+    s = _divide(jets.dot(uv, up), jets.dot(uv, uv))
+    s = jets.Jet(np.where(vertex, 0.0, s.val), np.where(vertex[:, None], 0.0, s.grad), None, 1)
+    q = _vec_scale(u, one - s) + _vec_scale(v, s)
+    n, d = _unit(p - q)
+    bary = _scatter_weights(km, [u_slot, v_slot], [one - s, s])
+    _store(out, rest, d, n, [one] + [bary[a].scaled(-1.0) for a in (1, 2, 3)])
     return out
 
 
@@ -160,6 +180,7 @@ def edge_edge_frames(z: np.ndarray, side: np.ndarray):
     ``eb = b1 - b0``, ``r = a0 - b0``: interior ``s = (B F - C E) / (A E - B^2)``, ``t = (B s + F) / E``,
     ``n = side * unit(ea x eb)``, ``d = n.r``; an endpoint region fixes s or t to 0/1 and projects
     the other (``t = (B s + F) / E`` or ``s = (B t - C) / A``), ``n = unit(rel)``, ``d = |rel|``.
+    The regions are batched as interior, s fixed, t fixed and both fixed.
 
     Args:
         z: ``[a0, a1, b0, b1]``, shape ``(k, 4, 3)``.
@@ -174,27 +195,34 @@ def edge_edge_frames(z: np.ndarray, side: np.ndarray):
         return out
     s_val, t_val, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
     R = EdgeEdgeRegion
-    for code in np.unique(region):
-        m = region == code
+    groups = (
+        ("interior", region == R.INTERIOR),
+        ("s_fixed", (region == R.A0_EDGE_B) | (region == R.A1_EDGE_B)),
+        ("t_fixed", (region == R.B0_EDGE_A) | (region == R.B1_EDGE_A)),
+        ("both_fixed", region >= R.A0_B0),
+    )
+    for kind, m in groups:
+        if not np.any(m):
+            continue
         a0, a1, b0, b1 = _variables(z[m])
         km = int(m.sum())
         one = _const(km, 1.0)
         ea, eb, r = a1 - a0, b1 - b0, a0 - b0
         A, E, B, C, F = jets.dot(ea, ea), jets.dot(eb, eb), jets.dot(ea, eb), jets.dot(ea, r), jets.dot(eb, r)
-        if code == R.INTERIOR:
+        if kind == "interior":
             den = jets.multiply(A, E) - jets.multiply(B, B)
             s = _divide(jets.multiply(B, F) - jets.multiply(C, E), den)
             t = _divide(jets.multiply(B, s) + F, E)
-        elif code in (R.A0_EDGE_B, R.A1_EDGE_B):
-            s = _const(km, 0.0 if code == R.A0_EDGE_B else 1.0)
+        elif kind == "s_fixed":
+            s = _const(km, np.where(region[m] == R.A0_EDGE_B, 0.0, 1.0))
             t = _divide(jets.multiply(B, s) + F, E)
-        elif code in (R.B0_EDGE_A, R.B1_EDGE_A):
-            t = _const(km, 0.0 if code == R.B0_EDGE_A else 1.0)
+        elif kind == "t_fixed":
+            t = _const(km, np.where(region[m] == R.B0_EDGE_A, 0.0, 1.0))
             s = _divide(jets.multiply(B, t) - C, A)
         else:
             s, t = _const(km, s_val[m]), _const(km, t_val[m])
         w = [one - s, s, (one - t).scaled(-1.0), t.scaled(-1.0)]
-        if code == R.INTERIOR:
+        if kind == "interior":
             n, _ = _unit(jets.cross(ea, eb))
             n = n.scaled(side[m])
             d = jets.dot(n, r)

@@ -79,3 +79,51 @@ def test_a_wrong_row_source_is_refused(steps):
     bad.row_sources = fr.row_sources[:i] + [s._replace(pair_index=wrong)] + fr.row_sources[i + 1:]
     with pytest.raises(ThinShellError, match="do not match ContactSet.friction"):
         friction_rows(model, ContactSet(model), state, bad)
+
+
+@pytest.mark.parametrize("kind", ["vertex_triangle", "edge_edge"])
+def test_frame_derivatives_match_finite_differences_in_every_region(kind):
+    """The batched regions (face / interior, edges and corners) give d, n, w whose derivatives
+    equal central differences, in every Voronoi region."""
+    from sim_core.adjoint_friction import edge_edge_frames, vertex_triangle_frames
+    from sim_core.collision.distances import edge_edge_closest_points, point_triangle_closest_point
+
+    def regions(z):
+        if kind == "vertex_triangle":
+            return point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[1]
+        return edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[2]
+
+    def closest_weights(z):
+        if kind == "vertex_triangle":
+            bary = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[0]
+            return np.concatenate([np.ones((len(z), 1)), -bary], axis=1)
+        s, t, _ = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+        return np.stack([1 - s, s, -(1 - t), -t], axis=1)
+
+    frames = vertex_triangle_frames if kind == "vertex_triangle" else edge_edge_frames
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=(600, 4, 3))
+    side = rng.choice([-1.0, 1.0], size=600)
+    region = regions(z)
+    assert set(np.unique(region)) == set(range(7 if kind == "vertex_triangle" else 9))
+    d, dd, n, dn, w, dw = frames(z, side)
+    # values: the closest points of the narrow phase, n d = the gap vector sum_j w_j z_j
+    np.testing.assert_allclose(w, closest_weights(z), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(n * d[:, None], np.einsum("kj,kjd->kd", w, z), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, rtol=0, atol=1e-12)
+    h = 1e-6
+    stable = np.ones(len(z), bool)
+    fd = [np.zeros_like(dd), np.zeros_like(dn), np.zeros_like(dw)]
+    for j in range(12):
+        e = np.zeros((4, 3))
+        e[j // 3, j % 3] = h
+        plus, minus = frames(z + e, side), frames(z - e, side)
+        stable &= (regions(z + e) == region) & (regions(z - e) == region)
+        fd[0][:, j] = (plus[0] - minus[0]) / (2 * h)
+        fd[1][:, :, j] = (plus[2] - minus[2]) / (2 * h)
+        fd[2][:, :, j] = (plus[4] - minus[4]) / (2 * h)
+    assert stable.mean() > 0.95
+    for got, ref in zip((dd, dn, dw), fd):
+        err = np.abs(got - ref)[stable].reshape(stable.sum(), -1).max(axis=1)
+        scale = np.maximum(1.0, np.abs(ref)[stable].reshape(stable.sum(), -1).max(axis=1))
+        assert np.max(err / scale) < 1e-5
