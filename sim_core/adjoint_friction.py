@@ -358,9 +358,7 @@ def friction_state_jacobian(rows: FrictionRows, x: np.ndarray) -> np.ndarray:
     dz = x[rows.vertices] - fr.x_prev[rows.vertices]  # (k, 4, 3)
     r = np.einsum("ka,kad->kd", w, dz)
     dr = np.einsum("kav,kad->kdv", rows.dweights, dz)
-    for a in range(4):
-        for d in range(3):
-            dr[:, d, 3 * a + d] -= w[:, a]
+    dr.reshape(k, 3, 4, 3)[...] -= w[:, None, :, None] * np.eye(3)[None, :, None, :]  # -w_a at (d, 3 a + d)
     nr = np.einsum("kd,kd->k", n, r)
     q = r - n * nr[:, None]
     dnr = np.einsum("kdv,kd->kv", rows.dnormal, r) + np.einsum("kd,kdv->kv", n, dr)
