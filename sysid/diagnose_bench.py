@@ -57,21 +57,27 @@ NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array(
          "sheet_points": np.array([50e-6] * 3)}
 """1-sigma white noise per channel axis (the reference bags' levels)."""
 
-SCENE: dict[str, Any] = {
-    "version": 1, "name": "bench_card_press_slide", "dt": DT, "gravity": [0.0, 0.0, -9.81],
-    "table": {"height": 0.0, "friction": 0.3},
-    "sheet": {"size": [0.05, 0.03], "resolution": [9, 5], "thickness": 0.0003, "density": 700.0,
-              "origin": [0.0, -0.015, 0.00015], "clamped_edge": "x0",
-              "material": {"youngs_modulus": 3.0e9, "poisson_ratio": 0.3, "bending_stiffness": 0.008}},
-    "sensors": {"tactile": {
-        "effector": "ee", "gel_size": [0.0186, 0.0143, 0.004],
-        "gel_material": {"youngs_modulus": 3.0e5, "poisson_ratio": 0.45, "density": 1100.0},
-        "friction": 0.8, "marker_grid": [4, 3], "marker_pitch": 0.004,
-        "camera": {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240,
-                   "distance": 0.025}}},
-    "effectors": {"ee": {"initial_pose": [0.035, 0.0, 0.0012, 1.0, 0.0, 0.0, 0.0]}},
-    "simulation": {"gel_resolution": [5, 4, 2]},
-}
+SCENE_PATH = Path(__file__).resolve().parents[1] / "config" / "scenes" / "bench_card.yaml"
+"""The benchmark's scene file (scene v1): a small card and a coarse tactile pad."""
+
+
+def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
+    """The benchmark scene as a dict (a fresh copy per call).
+
+    Raises:
+        ThinShellError: the file is missing or not YAML (named).
+    """
+    import yaml
+
+    from sim_core.scenes.scene_file import load_yaml
+
+    try:
+        return load_yaml(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ThinShellError(f"{path}: cannot read the benchmark scene ({err})") from err
+
+
+SCENE: dict[str, Any] = load_bench_scene()
 
 SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0001), 1),
             ((-0.004, 0.0, 0.0), 16), ((0.0, 0.0, 0.0), 12), ((0.0, 0.0, 0.0012), 6))

@@ -19,6 +19,7 @@ from sim_core.control import Control
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
+from sysid.diagnose_bench import load_bench_scene
 
 NS = "/thinshell"
 DT = 0.01
@@ -26,21 +27,9 @@ TRUE_PARAMS = {"sheet.bending_stiffness": 0.008, "gel.youngs_modulus": 3.0e5, "f
 NOISE = {"markers_xy": 15e-6, "markers_z": 20e-6, "uv": 0.15, "force_xy": 0.1, "force_z": 0.2, "torque": 4e-4,
          "pose": 5e-6, "sheet": 50e-6}
 
-CARD_SCENE = {
-    "version": 1, "name": "small_card_press_slide", "dt": DT, "gravity": [0.0, 0.0, -9.81],
-    "table": {"height": 0.0, "friction": 0.3},
-    "sheet": {"size": [0.05, 0.03], "resolution": [9, 5], "thickness": 0.0003, "density": 700.0,
-              "origin": [0.0, -0.015, 0.00015], "clamped_edge": "x0",
-              "material": {"youngs_modulus": 3.0e9, "poisson_ratio": 0.3, "bending_stiffness": 0.008}},
-    "sensors": {"tactile": {
-        "effector": "ee", "gel_size": [0.0186, 0.0143, 0.004],
-        "gel_material": {"youngs_modulus": 3.0e5, "poisson_ratio": 0.45, "density": 1100.0},
-        "friction": 0.8, "marker_grid": [4, 3], "marker_pitch": 0.004,
-        "camera": {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240,
-                   "distance": 0.025}}},
-    "effectors": {"ee": {"initial_pose": [0.035, 0.0, 0.0012, 1.0, 0.0, 0.0, 0.0]}},
-    "simulation": {"gel_resolution": [5, 4, 2]},
-}
+CARD_SCENE = {**load_bench_scene(), "name": "small_card_press_slide"}
+"""The benchmark's card scene (config/scenes/bench_card.yaml)."""
+
 
 PRESS_ONLY = (((0.0, 0.0, -0.00105), 3), ((0.0, 0.0, -0.0001), 1))
 """Segments ``(displacement (m), steps)`` of a short press (0.15 mm past first contact, then 0.25 mm)."""

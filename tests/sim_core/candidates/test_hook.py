@@ -13,23 +13,23 @@ from sim_core.errors import ConfigError
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
+from sysid.diagnose_bench import load_bench_scene
 
 DT = 0.01
-SCENE = {
-    "version": 1, "name": "tiny_press", "dt": DT, "gravity": [0.0, 0.0, -9.81],
-    "table": {"height": 0.0, "friction": 0.3},
-    "sheet": {"size": [0.04, 0.03], "resolution": [5, 4], "thickness": 0.0003, "density": 700.0,
-              "origin": [0.0, -0.015, 0.00015], "clamped_edge": "x0",
-              "material": {"youngs_modulus": 3.0e9, "poisson_ratio": 0.3, "bending_stiffness": 0.008}},
-    "sensors": {"tactile": {
-        "effector": "ee", "gel_size": [0.0186, 0.0143, 0.004],
-        "gel_material": {"youngs_modulus": 3.0e5, "poisson_ratio": 0.45, "density": 1100.0},
-        "friction": 0.8, "marker_grid": [3, 3], "marker_pitch": 0.004,
-        "camera": {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240,
-                   "distance": 0.025}}},
-    "effectors": {"ee": {"initial_pose": [0.025, 0.0, 0.0012, 1.0, 0.0, 0.0, 0.0]}},
-    "simulation": {"gel_resolution": [3, 3, 2]},
-}
+
+
+def _tiny_press_scene() -> dict:
+    """The benchmark card scene made smaller: 5 x 4 sheet vertices, 3 x 3 markers, 3 x 3 x 2 gel."""
+    scene = load_bench_scene()
+    scene["name"] = "tiny_press"
+    scene["sheet"].update(size=[0.04, 0.03], resolution=[5, 4])
+    scene["sensors"]["tactile"]["marker_grid"] = [3, 3]
+    scene["effectors"]["ee"]["initial_pose"] = [0.025, 0.0, 0.0012, 1.0, 0.0, 0.0, 0.0]
+    scene["simulation"]["gel_resolution"] = [3, 3, 2]
+    return scene
+
+
+SCENE = _tiny_press_scene()
 
 
 def _press_and_hold(candidates, hold=6, lift=0, tol_velocity=None):
