@@ -34,6 +34,7 @@ from sim_core.collision import (
     point_triangle_side,
     vertex_triangle_candidates,
 )
+from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
 from sim_core.potentials.friction import LaggedFriction
@@ -88,6 +89,8 @@ class ContactSet:
             vertex_body=self.vertex_body, body_pair_allowed=allowed, x_rest=model.x_rest,
             self_rest_distance=max(2.0 * self.radius, 0.0),
         )
+        # the rest-distance exclusion never changes: its close pairs, found once
+        self.rest_exclusion = RestExclusion(self.filter, self.surface_vertices, self.triangles, self.edges)
         movable = np.concatenate([b.vertices for b in bodies if b.kind != "frozen"] or [np.zeros(0, np.int64)])
         movable = np.intersect1d(movable, np.concatenate([self.surface_vertices, _sheet_vertices(model)]))
         self.planes = [
@@ -160,13 +163,15 @@ class ContactSet:
         if found is not None and self.covers(found[0], x):
             return found
         search = self._grouped_search()
+        rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
         vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter,
-                                        grouped_search=search)
+                                        grouped_search=search, rest_exclusion=rest)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             kv = self.body_kind[self.vertex_body[vt[:, 0]]]
             kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
             vt = vt[~((kv == "sheet") & (kt == "solid"))]
-        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter, grouped_search=search)
+        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter, grouped_search=search,
+                                  rest_exclusion=rest)
         self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
         return self._candidates
 

@@ -54,8 +54,11 @@ class PairFilter:
                     f"PairFilter: body_pair_allowed must be square with >= {nb} bodies, got shape {allowed.shape}"
                 )
 
-    def keep(self, body_a: np.ndarray, body_b: np.ndarray, rest_distance) -> np.ndarray:
-        """Mask of pairs to keep given the bodies of both sides and a lazy rest-distance function."""
+    def keep(self, body_a: np.ndarray, body_b: np.ndarray, rest_distance, rest_close=None) -> np.ndarray:
+        """Mask of pairs to keep given the bodies of both sides and a lazy rest-distance function
+        (``rest_distance(idx)`` in m of the pairs ``idx``), or, when given, a lazy verdict
+        ``rest_close(idx)`` (bool, whether the rest distance is below ``self_rest_distance``, e.g.
+        looked up in a :class:`sim_core.collision.rest_exclusion.RestExclusion`)."""
         keep = np.ones(body_a.shape[0], dtype=bool)
         if self.body_pair_allowed is not None:
             keep &= np.asarray(self.body_pair_allowed, dtype=bool)[body_a, body_b]
@@ -63,7 +66,8 @@ class PairFilter:
             same = keep & (body_a == body_b)
             if np.any(same):
                 idx = np.flatnonzero(same)
-                keep[idx[rest_distance(idx) < self.self_rest_distance]] = False
+                close = rest_close(idx) if rest_close is not None else rest_distance(idx) < self.self_rest_distance
+                keep[idx[close]] = False
         return keep
 
 
@@ -181,6 +185,7 @@ def vertex_triangle_candidates(
     exclude: PairFilter | None = None,
     cell_size: float | None = None,
     grouped_search=None,
+    rest_exclusion=None,
 ) -> np.ndarray:
     """Vertex-triangle pairs whose bounding boxes are within ``radius``.
 
@@ -194,6 +199,9 @@ def vertex_triangle_candidates(
         grouped_search: the search of box pairs of allowed bodies used with a body filter, a
             function with the signature and result (as a set) of :func:`_grouped_box_pairs` (the
             default), e.g. :func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`.
+        rest_exclusion: optional :class:`sim_core.collision.rest_exclusion.RestExclusion` of
+            ``exclude`` built for these same index arrays: the rest-distance exclusion is looked
+            up there instead of recomputed (same pairs).
 
     Returns:
         int64 array ``(p, 2)``: ``[global vertex index, row of triangles]``, sorted.
@@ -230,7 +238,9 @@ def vertex_triangle_candidates(
             xr = np.asarray(exclude.x_rest, dtype=float)
             return point_triangle_distance(xr[v[idx]], xr[tri[idx, 0]], xr[tri[idx, 1]], xr[tri[idx, 2]])
 
-        keep = exclude.keep(body[v], body[tri[:, 0]], rest_distance)
+        rest_close = None if rest_exclusion is None else (
+            lambda idx: rest_exclusion.vertex_triangle_close(v[idx], t_idx[idx]))
+        keep = exclude.keep(body[v], body[tri[:, 0]], rest_distance, rest_close)
         v, t_idx = v[keep], t_idx[keep]
     out = np.stack([v, t_idx], axis=1)
     return out[np.lexsort((out[:, 1], out[:, 0]))]
@@ -243,6 +253,7 @@ def edge_edge_candidates(
     exclude: PairFilter | None = None,
     cell_size: float | None = None,
     grouped_search=None,
+    rest_exclusion=None,
 ) -> np.ndarray:
     """Edge-edge pairs whose bounding boxes are within ``radius``.
 
@@ -255,6 +266,9 @@ def edge_edge_candidates(
         grouped_search: the search of box pairs of allowed bodies used with a body filter, a
             function with the signature and result (as a set) of :func:`_grouped_box_pairs` (the
             default), e.g. :func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`.
+        rest_exclusion: optional :class:`sim_core.collision.rest_exclusion.RestExclusion` of
+            ``exclude`` built for these same index arrays: the rest-distance exclusion is looked
+            up there instead of recomputed (same pairs).
 
     Returns:
         int64 array ``(p, 2)``: ``[row i of edges, row j of edges]`` with ``i < j``, sorted.
@@ -288,5 +302,7 @@ def edge_edge_candidates(
             xr = np.asarray(exclude.x_rest, dtype=float)
             return edge_edge_distance(xr[ea[idx, 0]], xr[ea[idx, 1]], xr[eb[idx, 0]], xr[eb[idx, 1]])
 
-        pairs = pairs[exclude.keep(body[ea[:, 0]], body[eb[:, 0]], rest_distance)]
+        rest_close = None if rest_exclusion is None else (
+            lambda idx: rest_exclusion.edge_edge_close(pairs[idx, 0], pairs[idx, 1]))
+        pairs = pairs[exclude.keep(body[ea[:, 0]], body[eb[:, 0]], rest_distance, rest_close)]
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]

@@ -1,0 +1,105 @@
+"""Same-body pairs closer than the self-contact rest distance, found once per model.
+
+:class:`PairFilter` excludes pairs of one body whose distance in the rest configuration is below
+``self_rest_distance`` (topological neighbours of a sheet). Rest positions never change, so the
+verdict of every pair is fixed: :class:`RestExclusion` searches the rest configuration once
+(k-d tree broad phase with radius ``self_rest_distance``, then the exact distance of
+:mod:`sim_core.collision.distances`, the same function and inputs as the per-search test) and keeps
+the close pairs as sorted integer keys; a candidate search then looks its pairs up
+(``searchsorted``) instead of recomputing their rest distances.
+
+Completeness: a pair at distance ``d < r`` has, on every axis, a gap between its bounding boxes of
+at most ``d``, so its boxes inflated by ``r`` overlap and the box search returns it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.collision.candidates import PairFilter, box_pairs_kdtree
+from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+
+
+def _keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """int64 keys ``a << 32 | b`` of pairs of non-negative indices below 2**31, shape ``(p,)``."""
+    return (np.asarray(a, dtype=np.int64) << 32) | np.asarray(b, dtype=np.int64)
+
+
+def _members(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Mask ``(p,)`` of ``keys`` found in ``sorted_keys``."""
+    if not len(sorted_keys) or not len(keys):
+        return np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
+
+
+class RestExclusion:
+    """The pairs of one body closer than ``pair_filter.self_rest_distance`` at rest.
+
+    Args:
+        pair_filter: the filter (``vertex_body``, ``body_pair_allowed``, ``x_rest``,
+            ``self_rest_distance``); with ``self_rest_distance == 0`` nothing is excluded.
+        vertices: global indices of the colliding vertices, shape ``(v,)``.
+        triangles: global vertex indices of the colliding triangles, shape ``(t, 3)``; the
+            vertex-triangle keys use rows of this array, as the candidate lists do.
+        edges: global vertex indices of the colliding edges, shape ``(e, 2)``; edge-edge keys use
+            rows of this array, ``i < j``.
+
+    Only bodies whose self-contact is allowed are searched (pairs of other bodies never reach the
+    rest-distance test).
+    """
+
+    def __init__(self, pair_filter: PairFilter, vertices: np.ndarray, triangles: np.ndarray,
+                 edges: np.ndarray) -> None:
+        self.pair_filter = pair_filter
+        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.vertex_triangle_keys = np.zeros(0, dtype=np.int64)
+        self.edge_edge_keys = np.zeros(0, dtype=np.int64)
+        r = float(pair_filter.self_rest_distance)
+        if r <= 0:
+            return
+        xr = np.asarray(pair_filter.x_rest, dtype=float)
+        body = np.asarray(pair_filter.vertex_body)
+        allowed = (np.ones((int(body.max()) + 1,) * 2, dtype=bool) if pair_filter.body_pair_allowed is None
+                   else np.asarray(pair_filter.body_pair_allowed, dtype=bool))
+        vt_keys, ee_keys = [], []
+        for k in np.unique(body):
+            if not allowed[k, k]:
+                continue
+            vs = self.vertices[body[self.vertices] == k]
+            ts = np.flatnonzero(body[self.triangles[:, 0]] == k)
+            es = np.flatnonzero(body[self.edges[:, 0]] == k)
+            if len(vs) and len(ts):
+                tri_x = xr[self.triangles[ts]]
+                pairs = box_pairs_kdtree(xr[vs], xr[vs], tri_x.min(axis=1), tri_x.max(axis=1), r)
+                v, t = vs[pairs[:, 0]], ts[pairs[:, 1]]
+                tri = self.triangles[t]
+                d = point_triangle_distance(xr[v], xr[tri[:, 0]], xr[tri[:, 1]], xr[tri[:, 2]])
+                vt_keys.append(_keys(v[d < r], t[d < r]))
+            if len(es) > 1:
+                ex = xr[self.edges[es]]
+                pairs = box_pairs_kdtree(ex.min(axis=1), ex.max(axis=1), None, None, r)
+                i, j = es[pairs[:, 0]], es[pairs[:, 1]]
+                i, j = np.minimum(i, j), np.maximum(i, j)
+                ea, eb = self.edges[i], self.edges[j]
+                d = edge_edge_distance(xr[ea[:, 0]], xr[ea[:, 1]], xr[eb[:, 0]], xr[eb[:, 1]])
+                ee_keys.append(_keys(i[d < r], j[d < r]))
+        if vt_keys:
+            self.vertex_triangle_keys = np.unique(np.concatenate(vt_keys))
+        if ee_keys:
+            self.edge_edge_keys = np.unique(np.concatenate(ee_keys))
+
+    def matches(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> bool:
+        """Whether this table was built for these vertex, triangle and edge arrays (same values)."""
+        return (np.array_equal(self.vertices, vertices) and np.array_equal(self.triangles, triangles)
+                and np.array_equal(self.edges, edges))
+
+    def vertex_triangle_close(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Mask ``(p,)``: pairs of global vertex ``v`` and triangle row ``t`` closer than the rest distance."""
+        return _members(self.vertex_triangle_keys, _keys(v, t))
+
+    def edge_edge_close(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Mask ``(p,)``: pairs of edge rows ``i < j`` closer than the rest distance."""
+        return _members(self.edge_edge_keys, _keys(i, j))

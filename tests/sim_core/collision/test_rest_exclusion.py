@@ -1,0 +1,67 @@
+"""RestExclusion: the rest-distance exclusion looked up from a table built once equals the
+per-search computation (same candidate lists), and the table holds exactly the close pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.collision.candidates import PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+from sim_core.collision.rest_exclusion import RestExclusion
+from tests.sim_core.collision.test_candidates import _grid_sheet, _random_soup, _three_bodies
+
+
+def _deformed(rng, x, scale):
+    return x + rng.normal(scale=scale, size=x.shape)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_candidates_with_rest_exclusion_equal_the_per_search_distances(seed):
+    rng = np.random.default_rng(seed)
+    x_rest, tris, edges = _random_soup(rng)
+    body, allowed = _three_bodies(x_rest)
+    filt = PairFilter(vertex_body=body, body_pair_allowed=allowed, x_rest=x_rest, self_rest_distance=0.004)
+    verts = np.unique(tris)
+    rest = RestExclusion(filt, verts, tris, edges)
+    assert rest.matches(verts, tris, edges)
+    assert len(rest.vertex_triangle_keys) and len(rest.edge_edge_keys)
+    for scale in (0.0, 0.002, 0.01):
+        x = _deformed(rng, x_rest, scale)
+        for radius in (0.002, 0.006):
+            ref = vertex_triangle_candidates(x, verts, tris, radius, filt)
+            got = vertex_triangle_candidates(x, verts, tris, radius, filt, rest_exclusion=rest)
+            np.testing.assert_array_equal(got, ref)
+            ref = edge_edge_candidates(x, edges, radius, filt)
+            got = edge_edge_candidates(x, edges, radius, filt, rest_exclusion=rest)
+            np.testing.assert_array_equal(got, ref)
+
+
+def test_table_holds_exactly_the_same_body_pairs_closer_than_the_rest_distance():
+    x_rest, tris, edges = _grid_sheet(9, 7, 0.002)
+    r = 0.0045
+    filt = PairFilter(vertex_body=np.zeros(len(x_rest), np.int64), body_pair_allowed=np.ones((1, 1), bool),
+                      x_rest=x_rest, self_rest_distance=r)
+    verts = np.arange(len(x_rest))
+    rest = RestExclusion(filt, verts, tris, edges)
+    # brute force over every vertex-triangle and edge-edge pair
+    v, t = (a.ravel() for a in np.meshgrid(verts, np.arange(len(tris)), indexing="ij"))
+    d = point_triangle_distance(x_rest[v], *(x_rest[tris[t, k]] for k in range(3)))
+    want = np.sort((v[d < r] << 32) | t[d < r])
+    np.testing.assert_array_equal(rest.vertex_triangle_keys, want)
+    i, j = np.triu_indices(len(edges), 1)
+    d = edge_edge_distance(x_rest[edges[i, 0]], x_rest[edges[i, 1]], x_rest[edges[j, 0]], x_rest[edges[j, 1]])
+    want = np.sort((i[d < r] << 32) | j[d < r])
+    np.testing.assert_array_equal(rest.edge_edge_keys, want)
+    assert rest.vertex_triangle_close(v[:5], t[:5]).dtype == bool
+
+
+def test_no_rest_distance_excludes_nothing_and_bodies_without_self_contact_are_skipped():
+    x_rest, tris, edges = _grid_sheet(5, 5, 0.002)
+    body = np.zeros(len(x_rest), np.int64)
+    none = RestExclusion(PairFilter(vertex_body=body), np.unique(tris), tris, edges)
+    assert not len(none.vertex_triangle_keys) and not len(none.edge_edge_keys)
+    no_self = RestExclusion(PairFilter(vertex_body=body, body_pair_allowed=np.zeros((1, 1), bool), x_rest=x_rest,
+                                       self_rest_distance=0.004), np.unique(tris), tris, edges)
+    assert not len(no_self.vertex_triangle_keys) and not len(no_self.edge_edge_keys)
+    assert not np.any(no_self.edge_edge_close(np.array([0, 1]), np.array([2, 3])))
