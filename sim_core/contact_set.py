@@ -127,16 +127,17 @@ class ContactSet:
         candidates = self._candidate_pairs(x)
         cache = getattr(self, "_cache", None)
         if cache is not None and cache[0] is memory and cache[1] is candidates:
-            vt, ee = cache[2]
-            vt_sides, ee_sides = cache[3]
-            pots = self._vertex_triangle(vt.pairs, vt_sides), self._edge_edge(ee.pairs, ee_sides)
+            # the step's potentials over these candidates (same pairs, sides and class): reused, not
+            # rebuilt; their kept evaluation is matched against x on use
+            pots = cache[2]
         else:
             pots, remembered = self._search(x, memory, candidates)
             self._cache = (memory, candidates, pots, remembered)
         # the previous iterate's potentials were last evaluated at the accepted line-search point,
         # usually this x: reuse that evaluation where the pairs and sides are unchanged
         for new, old in zip(pots, getattr(self, "_last_pots", ())):
-            new.inherit_evaluation(old)
+            if new is not old:
+                new.inherit_evaluation(old)
         self._last_pots = pots
         return pots
 

@@ -89,3 +89,25 @@ def test_a_search_within_the_step_reuses_the_sides_of_known_pairs():
     fresh = cs._search(x0, memory, second)[1]
     for a, b in zip(reused, fresh):
         np.testing.assert_array_equal(a, b)
+
+
+def test_iterates_covered_by_one_search_share_the_potentials_and_a_new_step_rebuilds_them():
+    """Within a step, iterates covered by the same candidate search get the same potential objects
+    (same pairs and sides; their kept evaluation is matched against x), with the energies of a
+    fresh contact set; the next step builds new ones."""
+    x_n = _two_triangles(0.005, 1e-4)
+    x = x_n.copy()
+    x[3:, 2] -= 2e-4
+    cs = _contact_set(x_n)
+    memory = cs.begin_step(x_n, None)
+    first = cs.potentials(x_n, x_n, memory)
+    assert cs.covers(cs.search_position, x)
+    second = cs.potentials(x, x_n, memory)
+    assert all(a is b for a, b in zip(first[:2], second[:2]))
+    fresh = _contact_set(x_n)
+    fresh_memory = fresh.begin_step(x_n, None)
+    for a, b in zip(second[:2], fresh.potentials(x, x_n, fresh_memory)[:2]):
+        assert a.energy(x) == b.energy(x) and a.energy(x_n) == b.energy(x_n)
+    assert second[1].energy(x) > 0.0
+    memory = cs.begin_step(x, cs.end_step(x, memory))
+    assert all(a is not b for a, b in zip(second[:2], cs.potentials(x, x, memory)[:2]))
