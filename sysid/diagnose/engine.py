@@ -155,14 +155,16 @@ class BagDiagnosis(RefitRefinement):
         tangent at 0, and a refit several times too small. Probes outside ``[target / 4, 4 target]``
         (strongest channel, whitened RMS) are rescaled towards ``target`` (linear response assumed; a
         factor within ``[1 / probe_max_growth, probe_max_growth]`` per round, two rounds); a rescaled
-        probe that diverges leaves the previous one in place.
+        probe that diverges leaves the previous one in place and is not rescaled again (replays are
+        deterministic: the second round would repeat the same rescale and the same divergence).
         """
         s = self.settings
+        diverged: set[str] = set()
         for _ in range(2):
             redo = []
             for c in probes:
                 rep = probe_out.get(cands.member_key(c))
-                if rep is None or not hasattr(c, "grow_probe"):
+                if rep is None or not hasattr(c, "grow_probe") or cands.member_key(c) in diverged:
                     continue
                 m = self._probe_change(ctx, rep[1])
                 old = (c.probe_beta, c.bound)
@@ -186,6 +188,7 @@ class BagDiagnosis(RefitRefinement):
                     probe_out[cands.member_key(c)] = rep
                 else:
                     c.probe_beta, c.bound = old
+                    diverged.add(cands.member_key(c))
                     self.notes.append(f"{cands.member_key(c)}: rescaled probe diverged; the previous one is kept")
 
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:

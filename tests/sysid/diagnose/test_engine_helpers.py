@@ -180,6 +180,30 @@ def test_probes_are_rescaled_towards_the_target_change():
     assert strong.bound == pytest.approx(2.0)  # a shrunk probe keeps the first probe's refit range
 
 
+
+def test_a_rescaled_probe_that_diverges_is_kept_and_not_replayed_again():
+    """A too-strong probe whose smaller rescale diverges keeps its first size; the second round does
+    not repeat that (deterministic) replay."""
+    model, _ = _wrench_model()
+    d = _bare(model)
+    base = np.zeros((40, 6))
+    ctx = SimpleNamespace(prediction={"wrench": base}, params={})
+    strong = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)  # 20 noise units at the probe
+    calls = []
+
+    def replay(sets):
+        calls.extend(p["candidate.stiction"] for p in sets)
+        return [None if p["candidate.stiction"] < 0.5 else (None, {"wrench": base + 8.0 * p["candidate.stiction"]})
+                for p in sets]
+
+    probe_out = {"stiction": replay([strong.probe(ctx)])[0]}
+    calls.clear()
+    d._replays = replay
+    d._calibrate_probes(ctx, [strong], probe_out)
+    assert len(calls) == 1                                  # one rescale tried, not one per round
+    assert strong.probe_beta == pytest.approx(0.5) and strong.bound == pytest.approx(2.0)
+    assert sum("rescaled probe diverged" in n for n in d.notes) == 1
+
 def test_heldout_products_sum_channels_per_time_sample():
     from sysid.diagnose.residuals import heldout_products
 
