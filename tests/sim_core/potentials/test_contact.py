@@ -111,9 +111,9 @@ def test_side_memory_pushes_penetrated_vertex_back():
     assert -pot_wrong.gradient(x)[0, 2] < 0.0
 
 
-@pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
-def test_edge_edge_fd_generic_and_near_parallel(side):
-    rng = np.random.default_rng(11)
+def edge_edge_fd_scene(rng) -> tuple[np.ndarray, int]:
+    """Four edge pairs (interior, point-edge, point-point, near-parallel closest points), each
+    randomly rotated and moved: positions ``(16, 3)`` m and the number of pairs (4)."""
     configs = [
         [[0, 0, 0], [0.01, 0, 0], [0.005, -0.005, 0.0002], [0.004, 0.005, 0.0003]],  # interior
         [[0, 0, 0], [0.01, 0, 0], [0.0102, -0.005, 0.0002], [0.0104, 0.005, 0.0001]],  # point-edge
@@ -124,7 +124,12 @@ def test_edge_edge_fd_generic_and_near_parallel(side):
     for c in configs:
         q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
         xs.append((np.array(c) + rng.normal(scale=1e-6, size=(4, 3))) @ q.T + rng.normal(size=3) * 0.1)
-    x = np.concatenate(xs)
+    return np.concatenate(xs), 4
+
+
+@pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
+def test_edge_edge_fd_generic_and_near_parallel(side):
+    x, _ = edge_edge_fd_scene(np.random.default_rng(11))
     edges = np.arange(16).reshape(8, 2)
     pairs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
     pot = EdgeEdgeContact(pairs, edges, np.full(4, side), K, EPS)

@@ -52,6 +52,13 @@ def test_mollifier_is_c1_and_matches_its_derivative():
 def test_friction_fd_and_psd(scale, regime):
     rng = np.random.default_rng(20 if regime == "sliding" else 21)
     fr, x_prev = _random_friction(rng)
+    check_friction_fd_psd_and_mu(fr, x_prev, rng, scale, regime, psd_tol=1e-9)
+
+
+def check_friction_fd_psd_and_mu(fr, x_prev, rng, scale, regime, psd_tol):
+    """Gradient and Hessian of ``fr`` against central differences at a random ``x`` near ``x_prev``
+    inside one regime (``"mollified"``: |u| < eps_u, ``"sliding"``: |u| > eps_u), PSD blocks (smallest
+    eigenvalue above ``-psd_tol`` times the largest entry) and d gradient / d mu."""
     for _ in range(3):
         x = x_prev + rng.normal(scale=scale, size=x_prev.shape)
         y = np.linalg.norm(fr.tangential_displacement(x), axis=1)
@@ -66,7 +73,7 @@ def test_friction_fd_and_psd(scale, regime):
     blocks = fr.hessian(x, "none")
     H = dense_hessian(blocks, x.shape[0])
     assert relative_error(H, fd_hessian(fr.gradient, x, h=h)) < 1e-5
-    assert np.min(np.linalg.eigvalsh(blocks.blocks)) > -1e-9 * np.max(np.abs(blocks.blocks))
+    assert np.min(np.linalg.eigvalsh(blocks.blocks)) > -psd_tol * np.max(np.abs(blocks.blocks))
     # d gradient / d mu with every pair's coefficient moving together
     mu0 = fr.mu.copy()
     fr.mu = mu0 + 1e-6

@@ -96,24 +96,10 @@ def test_taichi_edge_edge_contact_fd_and_reference(ti_cpu, side):
     ref_pot = EdgeEdgeContact(pairs, edges, sides, ref_tests.K, EPS)
     _assert_same(pot, ref_pot, x)
     # finite differences on the pairs of the reference FD test (one per region, near-parallel too)
-    x_fd, active = _edge_edge_fd_scene(np.random.default_rng(11))
+    x_fd, active = ref_tests.edge_edge_fd_scene(np.random.default_rng(11))
     edges = np.arange(16).reshape(8, 2)
     pairs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
     ref_tests._check_potential(TiEdgeEdgeContact(pairs, edges, np.full(4, side), ref_tests.K, EPS), x_fd, active)
-
-
-def _edge_edge_fd_scene(rng):
-    configs = [
-        [[0, 0, 0], [0.01, 0, 0], [0.005, -0.005, 0.0002], [0.004, 0.005, 0.0003]],  # interior
-        [[0, 0, 0], [0.01, 0, 0], [0.0102, -0.005, 0.0002], [0.0104, 0.005, 0.0001]],  # point-edge
-        [[0, 0, 0], [0.01, 0, 0], [0.0102, 0.0001, 0.0002], [0.02, 0.003, 0.001]],  # point-point
-        [[0, 0, 0], [0.01, 0, 0], [0.002, 0.0001, 0.0002], [0.012, 0.0001, 0.000201]],  # near-parallel
-    ]
-    xs = []
-    for c in configs:
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        xs.append((np.array(c) + rng.normal(scale=1e-6, size=(4, 3))) @ q.T + rng.normal(size=3) * 0.1)
-    return np.concatenate(xs), 4
 
 
 def _assert_same(pot, ref_pot, x):

@@ -8,7 +8,6 @@ import pytest
 from sim_core.potentials.friction import LaggedFriction
 from tests.sim_core.potentials import test_friction as ref_tests
 from tests.sim_core.ti_kernels.conftest import relative_error
-from tests.support.fd import dense_hessian, fd_gradient, fd_hessian
 
 EPS_U = ref_tests.EPS_U
 
@@ -57,25 +56,7 @@ def test_one_vertex_pairs_and_no_pairs(ti_cpu):
 def test_finite_differences_psd_and_mu(ti_cpu, scale, regime):
     rng = np.random.default_rng(20 if regime == "sliding" else 21)
     ref, x_prev = ref_tests._random_friction(rng)
-    fr = _twin(ref)
-    for _ in range(3):
-        x = x_prev + rng.normal(scale=scale, size=x_prev.shape)
-        y = np.linalg.norm(fr.tangential_displacement(x), axis=1)
-        x_ok = np.all(y < 0.95 * EPS_U) if regime == "mollified" else np.all(y > 1.05 * EPS_U)
-        if x_ok:
-            break
-    assert x_ok
-    h = 1e-3 * scale
-    g = fr.gradient(x)
-    assert relative_error(g, fd_gradient(fr.energy, x, h=h)) < 1e-5
-    blocks = fr.hessian(x, "none")
-    assert relative_error(dense_hessian(blocks, x.shape[0]), fd_hessian(fr.gradient, x, h=h)) < 1e-5
-    assert np.min(np.linalg.eigvalsh(blocks.blocks)) > -1e-12 * np.max(np.abs(blocks.blocks))
-    mu0 = fr.mu.copy()
-    fr.mu = mu0 + 1e-6  # an edited coefficient is used at the next call
-    gp = fr.gradient(x)
-    fr.mu = mu0
-    assert relative_error(fr.parameter_gradient(x, "mu"), (gp - g) / 1e-6) < 1e-6
+    ref_tests.check_friction_fd_psd_and_mu(_twin(ref), x_prev, rng, scale, regime, psd_tol=1e-12)
 
 
 def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
