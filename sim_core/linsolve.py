@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 from typing import Protocol
 
 import numpy as np
@@ -21,6 +22,22 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from sim_core.errors import ConfigError, SimulationDivergedError
+
+
+@functools.lru_cache(maxsize=1)
+def mkl_runtime() -> ctypes.CDLL:
+    """MKL's runtime library as pypardiso locates it, found once per process.
+
+    pypardiso looks for ``mkl_rt`` on every ``PyPardisoSolver()``; without a system MKL that is a
+    recursive glob over the environment's ``lib`` tree (~0.4 s), which every new solver (each
+    replay of a fit, each diagnosis probe) would pay again.
+
+    Raises:
+        ImportError: pypardiso is not installed or MKL's runtime library is not found.
+    """
+    import pypardiso
+
+    return pypardiso.PyPardisoSolver().libmkl
 
 
 class LinearSolver(Protocol):
@@ -133,9 +150,7 @@ class PardisoCholesky:
     _NOT_POSITIVE_DEFINITE = -4
 
     def __init__(self, threads: int = 1) -> None:
-        import pypardiso
-
-        lib = pypardiso.PyPardisoSolver().libmkl  # pypardiso locates MKL's runtime library
+        lib = mkl_runtime()
         self._pardiso = lib.pardiso
         i32 = ctypes.POINTER(ctypes.c_int32)
         self._pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p,
