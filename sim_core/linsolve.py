@@ -55,27 +55,57 @@ class LinearSolver(Protocol):
 
 
 class PardisoSolver:
-    """PARDISO (MKL) via pypardiso; matrix type 11 (real, structurally general)."""
+    """PARDISO (MKL) sparse LU, matrix type 11 (real, structurally general), for matrices that are
+    not positive definite (the exact Hessian's fallback, the adjoint's solves).
+
+    Called through ctypes like :class:`PardisoCholesky` (a :class:`PardisoHandle`) with PARDISO's
+    default settings for matrix type 11 (``iparm[0] = 0``: weighted matching, scaling, pivot
+    perturbation 1e-13, two steps of iterative refinement), the settings pypardiso's wrapper uses.
+    Unlike that wrapper it does not search the disk for MKL on every new solver (each replay of a
+    fit built one: ~1 s), and it redoes the symbolic analysis (phase 11) only when the sparsity
+    pattern changes; the numerical factorisation (phase 22) runs on every call.
+
+    Args:
+        threads: MKL threads for PARDISO calls (>= 1).
+
+    Raises:
+        ImportError: pypardiso is not installed or MKL's runtime library is not found.
+    """
 
     name = "pardiso"
 
-    def __init__(self) -> None:
-        import pypardiso
-
-        self._solver = pypardiso.PyPardisoSolver()
-        self._A: sp.csr_matrix | None = None
+    def __init__(self, threads: int = 1) -> None:
+        self._handle = PardisoHandle(matrix_type=11, threads=threads)
+        self._factorized = False
 
     def factorize(self, A: sp.csr_matrix) -> None:
-        A = sp.csr_matrix(A)
+        """LU-factorise the square sparse matrix ``A`` (shape ``(n, n)``, any sparse format).
+
+        Raises:
+            SimulationDivergedError: PARDISO reports an error (structurally singular matrix, ...).
+        """
+        A = sp.csr_matrix(A, dtype=float)
+        if A.shape[0] != A.shape[1]:
+            raise ValueError(f"PardisoSolver.factorize: matrix is not square, shape {A.shape}")
         A.sort_indices()
-        self._A = A
-        self._solver.factorize(A)
+        self._factorized = False
+        err = self._handle.factorize(A.indptr, A.indices, A.data)
+        if err != 0:
+            raise SimulationDivergedError(f"PARDISO LU factorisation failed with error {err}")
+        self._factorized = True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        if self._A is None:
+        """Solve ``A x = b`` with the last factorisation; ``b`` shape ``(n,)`` or ``(n, r)``.
+
+        Raises:
+            SimulationDivergedError: no factorisation, or PARDISO reports an error.
+        """
+        if not self._factorized:
             raise SimulationDivergedError("linear solve requested before factorisation")
-        x = self._solver.solve(self._A, np.ascontiguousarray(b, dtype=float))
-        return np.asarray(x).reshape(np.shape(b))
+        err, x = self._handle.solve(np.asarray(b, dtype=float))
+        if err != 0:
+            raise SimulationDivergedError(f"PARDISO solve failed with error {err}")
+        return x.reshape(np.shape(b))
 
 
 class ScipySolver:
@@ -129,10 +159,162 @@ def full_from_upper(upper: sp.csr_matrix) -> sp.csr_matrix:
     return full
 
 
+class SymmetricExpansion:
+    """:func:`full_from_upper` with the index map of the last sparsity pattern kept.
+
+    The full matrix's entries are copies of the upper triangle's (the strict upper part and its
+    transpose do not overlap), so for a known pattern the full CSR matrix is one gather
+    ``full.data = upper.data[source]``: the Newton matrices keep their pattern for many steps
+    (sticky union pattern of :mod:`sim_core.assembly`), where SciPy's ``triu`` + transpose + sum +
+    sort cost milliseconds per step. Values equal :func:`full_from_upper`'s exactly; entries stored
+    as explicit zeros in ``upper`` stay stored (SciPy's sum drops them).
+    """
+
+    def __init__(self) -> None:
+        self._pattern: tuple[np.ndarray, np.ndarray] | None = None
+        self._map: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # source, indptr, indices
+
+    def __call__(self, upper: sp.csr_matrix) -> sp.csr_matrix:
+        """The full symmetric matrix (CSR, sorted indices) of ``upper`` (CSR upper triangle with
+        sorted indices, shape ``(n, n)``).
+
+        Raises:
+            ValueError: ``upper`` has entries below the diagonal or is not square.
+        """
+        upper = sp.csr_matrix(upper)
+        if upper.shape[0] != upper.shape[1]:
+            raise ValueError(f"SymmetricExpansion: matrix is not square, shape {upper.shape}")
+        upper.sort_indices()
+        pattern = self._pattern
+        if pattern is None or not (np.array_equal(pattern[0], upper.indptr) and np.array_equal(pattern[1], upper.indices)):
+            self._map = self._index_map(upper)
+            self._pattern = (upper.indptr.copy(), upper.indices.copy())
+        source, indptr, indices = self._map
+        return sp.csr_matrix((upper.data[source], indices.copy(), indptr.copy()), shape=upper.shape)
+
+    @staticmethod
+    def _index_map(upper: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = upper.shape[0]
+        rows = np.repeat(np.arange(n), np.diff(upper.indptr))
+        cols = upper.indices
+        if np.any(cols < rows):
+            raise ValueError("SymmetricExpansion: the matrix has entries below the diagonal (not an upper triangle)")
+        slot = np.arange(cols.size)
+        strict = cols > rows
+        r = np.concatenate([rows, cols[strict]])
+        c = np.concatenate([cols, rows[strict]])
+        src = np.concatenate([slot, slot[strict]])
+        order = np.lexsort((c, r))
+        indptr = np.zeros(n + 1, dtype=upper.indptr.dtype)
+        np.cumsum(np.bincount(r, minlength=n), out=indptr[1:])
+        return src[order], indptr, c[order].astype(upper.indices.dtype)
+
+
+class PardisoHandle:
+    """One PARDISO instance (MKL, through ctypes): handle, settings, and the analysed pattern.
+
+    The symbolic analysis (phase 11: fill-reducing ordering) is redone only when the sparsity
+    pattern changes; :meth:`factorize` runs the numerical factorisation (phase 22), :meth:`solve`
+    the solve (phase 33). MKL runs with ``threads`` threads during the calls (thread-local setting,
+    restored afterwards). Indices are passed 1-based (PARDISO's default).
+
+    Args:
+        matrix_type: PARDISO's ``mtype`` (2: real symmetric positive definite, upper triangle
+            given; 11: real structurally general).
+        threads: MKL threads (>= 1).
+        iparm: PARDISO's settings (64 int32); None: all zero, i.e. PARDISO's defaults for
+            ``matrix_type``.
+
+    Raises:
+        ImportError: pypardiso is not installed or MKL's runtime library is not found.
+    """
+
+    def __init__(self, matrix_type: int, threads: int = 1, iparm: np.ndarray | None = None) -> None:
+        lib = mkl_runtime()
+        self._pardiso = lib.pardiso
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        self._pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p,
+                                  i32, i32, i32, i32, i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
+        self._pardiso.restype = None
+        self._set_threads = getattr(lib, "MKL_Set_Num_Threads_Local", None)
+        self.matrix_type = int(matrix_type)
+        self.threads = int(threads)
+        self._pt = np.zeros(64, dtype=np.int64)  # PARDISO's opaque handle
+        self.iparm = np.zeros(64, dtype=np.int32) if iparm is None else np.asarray(iparm, dtype=np.int32).copy()
+        self._perm = np.zeros(0, dtype=np.int32)
+        self._pattern: tuple[np.ndarray, np.ndarray] | None = None  # (indptr, indices) analysed
+        self._ia = self._ja = None
+        self._data: np.ndarray | None = None
+        self._n = 0
+
+    def _call(self, phase: int, data: np.ndarray, b: np.ndarray | None = None) -> tuple[int, np.ndarray | None]:
+        nrhs = 1
+        if b is None:
+            b_arr = np.zeros(self._n)
+        else:
+            b_arr = np.asfortranarray(b, dtype=float)
+            nrhs = 1 if b_arr.ndim == 1 else b_arr.shape[1]
+        x = np.zeros_like(b_arr)
+        err = ctypes.c_int32(0)
+        c = ctypes.c_int32
+        previous = self._set_threads(self.threads) if self._set_threads is not None else None
+        try:
+            self._pardiso(
+                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(c(1)), ctypes.byref(c(1)),
+                ctypes.byref(c(self.matrix_type)), ctypes.byref(c(phase)), ctypes.byref(c(self._n)), data.ctypes.data,
+                self._ia.ctypes.data_as(ctypes.POINTER(c)), self._ja.ctypes.data_as(ctypes.POINTER(c)),
+                self._perm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(nrhs)),
+                self.iparm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(0)), b_arr.ctypes.data,
+                x.ctypes.data, ctypes.byref(err),
+            )
+        finally:
+            if previous is not None:
+                self._set_threads(previous)
+        return int(err.value), (np.ascontiguousarray(x) if b is not None else None)
+
+    def factorize(self, indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> int:
+        """Analyse (when the pattern is new) and factorise the CSR matrix (sorted indices, shape
+        ``(n, n)`` with ``n = indptr.size - 1``); PARDISO's error code (0: success; the symbolic
+        analysis' errors as well)."""
+        data = np.ascontiguousarray(data, dtype=float)
+        pattern = self._pattern
+        self._data = None
+        if pattern is None or not (np.array_equal(pattern[0], indptr) and np.array_equal(pattern[1], indices)):
+            self._n = indptr.size - 1
+            self._ia = (indptr + 1).astype(np.int32)
+            self._ja = (indices + 1).astype(np.int32)
+            err, _ = self._call(11, data)
+            if err != 0:
+                self._pattern = None
+                return err
+            self._pattern = (indptr.copy(), indices.copy())
+        err, _ = self._call(22, data)
+        if err == 0:
+            self._data = data
+        return err
+
+    def forget_pattern(self) -> None:
+        """Force a new symbolic analysis at the next :meth:`factorize`."""
+        self._pattern = None
+
+    def solve(self, b: np.ndarray) -> tuple[int, np.ndarray | None]:
+        """Solve with the last successful factorisation, ``b`` shape ``(n,)`` or ``(n, r)``;
+        (error code, x). Error -100 (this class's own): no successful factorisation."""
+        if self._data is None:
+            return -100, None
+        return self._call(33, self._data, b)
+
+    def __del__(self) -> None:
+        if getattr(self, "_pattern", None) is not None and self._ia is not None:
+            # release PARDISO's internal memory; at interpreter shutdown the library may be gone already
+            with contextlib.suppress(Exception):
+                self._call(-1, np.zeros(1))
+
+
 class PardisoCholesky:
     """PARDISO (MKL) sparse Cholesky, matrix type 2 (real symmetric positive definite).
 
-    Differences from :class:`PardisoSolver` (pypardiso's wrapper, general LU, matrix type 11):
+    Differences from :class:`PardisoSolver` (general LU, matrix type 11):
     only the upper triangle is factorised (about half the fill-in); the symbolic analysis
     (phase 11: fill-reducing ordering) is redone only when the sparsity pattern changes, the
     numerical factorisation (phase 22) runs every call; a matrix that is not positive definite
@@ -150,56 +332,27 @@ class PardisoCholesky:
     _NOT_POSITIVE_DEFINITE = -4
 
     def __init__(self, threads: int = 1) -> None:
-        lib = mkl_runtime()
-        self._pardiso = lib.pardiso
-        i32 = ctypes.POINTER(ctypes.c_int32)
-        self._pardiso.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p,
-                                  i32, i32, i32, i32, i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
-        self._pardiso.restype = None
-        self._set_threads = getattr(lib, "MKL_Set_Num_Threads_Local", None)
-        self.threads = int(threads)
-        self._pt = np.zeros(64, dtype=np.int64)  # PARDISO's opaque handle
         # PARDISO's defaults for matrix type 2 (iparm[0] = 1: use these values), except iparm[7]:
         # no iterative refinement. The defaults refine twice per solve, which costs 2/3 of a solve
         # here and leaves the residual of these Newton systems at the same round-off (3e-11 with
         # and without on a Forming matrix).
-        self._iparm = np.zeros(64, dtype=np.int32)
-        self._iparm[0] = 1  # iparm supplied
-        self._iparm[1] = 2  # nested-dissection ordering (METIS), the default
-        self._iparm[7] = 0  # iterative refinement steps
-        self._iparm[9] = 8  # pivot perturbation 1e-8 (default; not used by a Cholesky)
-        self._iparm[17] = -1  # report the factor's non-zeros (default)
-        self._perm = np.zeros(0, dtype=np.int32)
-        self._pattern: tuple[np.ndarray, np.ndarray] | None = None  # (indptr, indices) analysed
-        self._ia = self._ja = None
-        self._data: np.ndarray | None = None
-        self._n = 0
+        iparm = np.zeros(64, dtype=np.int32)
+        iparm[0] = 1  # iparm supplied
+        iparm[1] = 2  # nested-dissection ordering (METIS), the default
+        iparm[7] = 0  # iterative refinement steps
+        iparm[9] = 8  # pivot perturbation 1e-8 (default; not used by a Cholesky)
+        iparm[17] = -1  # report the factor's non-zeros (default)
+        self._handle = PardisoHandle(matrix_type=2, threads=threads, iparm=iparm)
         self._factorized = False
 
-    def _call(self, phase: int, data: np.ndarray, b: np.ndarray | None = None) -> tuple[int, np.ndarray | None]:
-        nrhs = 1
-        if b is None:
-            b_arr = np.zeros(self._n)
-        else:
-            b_arr = np.asfortranarray(b, dtype=float)
-            nrhs = 1 if b_arr.ndim == 1 else b_arr.shape[1]
-        x = np.zeros_like(b_arr)
-        err = ctypes.c_int32(0)
-        c = ctypes.c_int32
-        previous = self._set_threads(self.threads) if self._set_threads is not None else None
-        try:
-            self._pardiso(
-                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(c(1)), ctypes.byref(c(1)),
-                ctypes.byref(c(2)), ctypes.byref(c(phase)), ctypes.byref(c(self._n)), data.ctypes.data,
-                self._ia.ctypes.data_as(ctypes.POINTER(c)), self._ja.ctypes.data_as(ctypes.POINTER(c)),
-                self._perm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(nrhs)),
-                self._iparm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(0)), b_arr.ctypes.data,
-                x.ctypes.data, ctypes.byref(err),
-            )
-        finally:
-            if previous is not None:
-                self._set_threads(previous)
-        return int(err.value), (np.ascontiguousarray(x) if b is not None else None)
+    @property
+    def threads(self) -> int:
+        """MKL threads used during PARDISO calls."""
+        return self._handle.threads
+
+    @threads.setter
+    def threads(self, value: int) -> None:
+        self._handle.threads = int(value)
 
     def factorize(self, upper: sp.csr_matrix) -> bool:
         """Cholesky of the matrix whose upper triangle is ``upper``; False if not positive definite.
@@ -209,40 +362,22 @@ class PardisoCholesky:
         """
         upper = sp.csr_matrix(upper)
         upper.sort_indices()
-        data = np.ascontiguousarray(upper.data, dtype=float)
-        pattern = self._pattern
-        if pattern is None or not (np.array_equal(pattern[0], upper.indptr) and np.array_equal(pattern[1], upper.indices)):
-            self._n = upper.shape[0]
-            self._ia = (upper.indptr + 1).astype(np.int32)  # PARDISO's default is 1-based indexing
-            self._ja = (upper.indices + 1).astype(np.int32)
-            err, _ = self._call(11, data)
-            if err != 0:
-                self._pattern = None
-                raise SimulationDivergedError(f"PARDISO symbolic analysis failed with error {err}")
-            self._pattern = (upper.indptr.copy(), upper.indices.copy())
-        err, _ = self._call(22, data)
+        err = self._handle.factorize(upper.indptr, upper.indices, upper.data)
         self._factorized = err == 0
         if err == self._NOT_POSITIVE_DEFINITE:
             return False
         if err != 0:
-            self._pattern = None
+            self._handle.forget_pattern()
             raise SimulationDivergedError(f"PARDISO Cholesky factorisation failed with error {err}")
-        self._data = data
         return True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         if not self._factorized:
             raise SimulationDivergedError("linear solve requested without a successful factorisation")
-        err, x = self._call(33, self._data, np.asarray(b, dtype=float))
+        err, x = self._handle.solve(np.asarray(b, dtype=float))
         if err != 0:
             raise SimulationDivergedError(f"PARDISO solve failed with error {err}")
         return x.reshape(np.shape(b))
-
-    def __del__(self) -> None:
-        if getattr(self, "_pattern", None) is not None and self._ia is not None:
-            # release PARDISO's internal memory; at interpreter shutdown the library may be gone already
-            with contextlib.suppress(Exception):
-                self._call(-1, np.zeros(1))
 
 
 class ScipySymmetric:
@@ -263,9 +398,10 @@ class ScipySymmetric:
 
     def __init__(self) -> None:
         self._lu = None
+        self._full_from_upper = SymmetricExpansion()
 
     def factorize(self, upper: sp.csr_matrix) -> bool:
-        A = sp.csc_matrix(full_from_upper(sp.csr_matrix(upper)))
+        A = sp.csc_matrix(self._full_from_upper(upper))
         try:
             lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         except RuntimeError:  # exactly singular
@@ -307,7 +443,7 @@ def make_linear_solver(name: str = "pardiso") -> LinearSolver:
     if name == "pardiso":
         try:
             return PardisoSolver()
-        except ImportError:
+        except (ImportError, OSError, AttributeError):
             return ScipySolver()
     if name == "scipy":
         return ScipySolver()

@@ -28,7 +28,7 @@ from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic
-from sim_core.linsolve import LinearSolver, SymmetricSolver, full_from_upper, make_linear_solver, make_symmetric_solver
+from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.potentials.base import HessianBlocks, assemble_hessian
 from sim_core.potentials.damping import ViscousDamping
@@ -152,6 +152,7 @@ class NewtonSolver:
         self.config = config or SolverConfig()
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
+        self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
         self.contact = ContactSet(model)
         self._revision = -1
         # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
@@ -359,7 +360,7 @@ class NewtonSolver:
                     break
             if d is None:  # projection="none" and not positive definite: general LU as before
                 tl = time.perf_counter()
-                self.general_solver().factorize(full_from_upper(H))
+                self.general_solver().factorize(self._full_from_upper(H))
                 d = -self._general_solver.solve(g)
                 factorization = self._general_solver
                 info.time_linear_solve += time.perf_counter() - tl
@@ -413,7 +414,7 @@ class NewtonSolver:
                 f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
             )
         info.residual_velocity = residual
-        H = full_from_upper(H)
+        H = self._full_from_upper(H)
         exact = projection == "none"
         self.last_hessian = H
         self.last_free_mask = free

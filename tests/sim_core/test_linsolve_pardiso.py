@@ -1,0 +1,97 @@
+"""PARDISO through ctypes (LU and Cholesky share one handle) and the cached upper -> full expansion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from sim_core.errors import SimulationDivergedError
+from sim_core.linsolve import PardisoCholesky, PardisoSolver, ScipySymmetric, SymmetricExpansion, full_from_upper
+
+pardiso = pytest.importorskip("pypardiso")
+
+
+def _random_upper(rng: np.random.Generator, n: int, density: float, explicit_zeros: int = 0) -> sp.csr_matrix:
+    A = sp.random(n, n, density=density, random_state=rng, format="csr")
+    U = sp.triu(A + A.T, format="csr") + sp.diags(rng.uniform(1.0, 2.0, n) * n)
+    U = sp.csr_matrix(U)
+    U.sort_indices()
+    if explicit_zeros:
+        off = np.flatnonzero(U.indices != np.repeat(np.arange(n), np.diff(U.indptr)))
+        U.data[rng.choice(off, size=min(explicit_zeros, off.size), replace=False)] = 0.0
+    return U
+
+
+def test_expansion_equals_full_from_upper_over_repeated_and_new_patterns():
+    rng = np.random.default_rng(3)
+    expand = SymmetricExpansion()
+    U = _random_upper(rng, 40, 0.1)
+    for k in range(6):
+        if k == 3:  # a new pattern
+            U = _random_upper(rng, 40, 0.15)
+        U = U.copy()
+        U.data = rng.normal(size=U.data.size)
+        full = expand(U)
+        ref = full_from_upper(U)
+        assert full.has_sorted_indices
+        np.testing.assert_array_equal(full.toarray(), ref.toarray())
+        np.testing.assert_array_equal(full.toarray(), full.toarray().T)
+
+
+def test_expansion_keeps_explicit_zeros_and_rejects_lower_entries():
+    rng = np.random.default_rng(4)
+    U = _random_upper(rng, 30, 0.2, explicit_zeros=5)
+    full = SymmetricExpansion()(U)
+    np.testing.assert_array_equal(full.toarray(), full_from_upper(U).toarray())
+    diag = np.count_nonzero(U.indices == np.repeat(np.arange(30), np.diff(U.indptr)))
+    assert full.nnz == 2 * U.nnz - diag  # every stored entry of U is stored in the full matrix
+    L = sp.csr_matrix(U.toarray().T)
+    with pytest.raises(ValueError, match="below the diagonal"):
+        SymmetricExpansion()(L)
+
+
+def test_lu_solves_general_and_indefinite_systems_with_pattern_reuse():
+    rng = np.random.default_rng(5)
+    n = 60
+    A = sp.random(n, n, density=0.08, random_state=rng, format="csr") + sp.diags(rng.uniform(-3, 3, n))
+    A = sp.csr_matrix(A + sp.eye(n) * 0.5)
+    solver = PardisoSolver()
+    for k in range(3):  # same pattern, new values: the symbolic analysis is reused
+        A = A.copy()
+        A.data = A.data * rng.uniform(0.5, 1.5, A.data.size)
+        solver.factorize(A)
+        b = rng.normal(size=(n, 2))
+        x = solver.solve(b)
+        assert x.shape == (n, 2)
+        assert np.linalg.norm(A @ x - b) <= 1e-9 * np.linalg.norm(b)
+        x1 = solver.solve(b[:, 0])
+        assert x1.shape == (n,)
+        np.testing.assert_allclose(x1, x[:, 0], rtol=1e-10, atol=1e-12)
+    # an indefinite symmetric matrix (where the Cholesky refuses), with a new pattern
+    U = _random_upper(rng, n, 0.1)
+    S = full_from_upper(U) - sp.eye(n) * 1.5 * n
+    assert not PardisoCholesky().factorize(sp.triu(S, format="csr"))
+    solver.factorize(S)
+    b = rng.normal(size=n)
+    assert np.linalg.norm(S @ solver.solve(b) - b) <= 1e-9 * np.linalg.norm(b)
+
+
+def test_lu_errors_are_clear():
+    solver = PardisoSolver()
+    with pytest.raises(SimulationDivergedError, match="before factorisation"):
+        solver.solve(np.ones(3))
+    with pytest.raises(ValueError, match="not square"):
+        solver.factorize(sp.csr_matrix(np.ones((2, 3))))
+
+
+def test_cholesky_and_scipy_symmetric_agree_after_expansion_cache():
+    rng = np.random.default_rng(6)
+    U = _random_upper(rng, 50, 0.1, explicit_zeros=4)
+    b = rng.normal(size=50)
+    ref = np.linalg.solve(full_from_upper(U).toarray(), b)
+    chol, lu_sym = PardisoCholesky(), ScipySymmetric()
+    for _ in range(2):
+        assert chol.factorize(U) and lu_sym.factorize(U)
+        np.testing.assert_allclose(chol.solve(b), ref, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(lu_sym.solve(b), ref, rtol=1e-9, atol=1e-12)
