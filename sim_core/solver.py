@@ -342,8 +342,10 @@ class NewtonSolver:
             factorization = self.linear_solver
             for projection in self._projections():
                 ta = time.perf_counter()
-                if fused is not None and projection == "none":
-                    H = self.assembler.assemble_upper_values(fused.pattern, fused.hessian_values(x),
+                if fused is not None:
+                    values = (fused.hessian_values(x) if projection == "none"
+                              else fused.projected_hessian_values(x, projection))
+                    H = self.assembler.assemble_upper_values(fused.pattern, values,
                                                              [p.hessian(x, projection) for p in dynamic_terms],
                                                              diag, free)
                 else:
