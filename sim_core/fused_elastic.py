@@ -109,8 +109,12 @@ class _ReferencePart:
 
         Raises:
             ValueError: unknown projection.
+            RuntimeError: the potential's Hessian blocks are over another vertex array than the one
+                the pattern was built from.
         """
         blocks = self.potential.hessian(x, projection)
+        if blocks.vertices is not self.vertices:
+            raise RuntimeError(f"FusedElastic: {type(self.potential).__name__} changed its Hessian-block vertex array")
         if self._slots is None:
             self._slots = self._pattern.slot_map(blocks.vertices)
         keep = self._slots >= 0
