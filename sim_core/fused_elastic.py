@@ -11,8 +11,12 @@ assembler's static pattern through precomputed slot maps
 
 Potentials without a fused kernel (hinge bending) are evaluated through their
 reference methods and added through the same slot maps, so any mix of elastic terms works. The
-PSD-projected Hessian is not fused: the solver assembles it from the reference potentials in the
-rare iterations where PARDISO's Cholesky refuses the exact matrix.
+PSD-projected Hessian, which the solver needs in the iterations where PARDISO's Cholesky refuses
+the exact matrix, goes into the same slots (:meth:`FusedElastic.projected_hessian_values`):
+Kirchhoff bending computes its exact per-triangle blocks in Taichi and eigen-decomposes only the
+blocks a Cholesky test does not prove definite (:mod:`sim_core.ti_kernels.block_projection`);
+Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of their Taichi twins
+(:mod:`sim_core.ti_kernels.neohookean`, :mod:`sim_core.ti_kernels.membrane`).
 
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
@@ -99,6 +103,22 @@ class _ReferencePart:
         keep = self._slots >= 0
         values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
         return float(self.potential.energy(x))
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+        """Add the reference ``projection`` Hessian blocks into ``values`` (slot map of :meth:`evaluate`).
+
+        Raises:
+            ValueError: unknown projection.
+            RuntimeError: the potential's Hessian blocks are over another vertex array than the one
+                the pattern was built from.
+        """
+        blocks = self.potential.hessian(x, projection)
+        if blocks.vertices is not self.vertices:
+            raise RuntimeError(f"FusedElastic: {type(self.potential).__name__} changed its Hessian-block vertex array")
+        if self._slots is None:
+            self._slots = self._pattern.slot_map(blocks.vertices)
+        keep = self._slots >= 0
+        values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
 
 
 class FusedElastic:
@@ -191,14 +211,41 @@ class FusedElastic:
         """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``."""
         return self._evaluate(x)[3]
 
+    def projected_hessian_values(self, x: np.ndarray, projection: str) -> np.ndarray:
+        """Hessian entries in N/m with PSD-projected element blocks, summed per slot of :attr:`pattern`.
+
+        Each potential's blocks are projected as its reference ``hessian(x, projection)`` does (the
+        same blocks to round-off): Kirchhoff bending through its per-triangle blocks and
+        :class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`, Stable Neo-Hookean
+        and StVK membranes through their Taichi twins, the others through the reference potential.
+
+        Args:
+            x: positions ``(n, 3)`` in m.
+            projection: "clamp" or "abs" ("none" gives the exact Hessian, element by element).
+
+        Returns:
+            a new array of shape ``(pattern.keys.size,)``.
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+            ValueError: unknown projection.
+        """
+        if self.pattern is None:
+            raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+        xc = np.ascontiguousarray(x, dtype=np.float64)
+        values = np.zeros(self.pattern.keys.size)
+        for part in self._parts:
+            part.add_projected(xc, projection, values)
+        return values
+
 
 
 def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clamp") -> float:
     """JIT-compile (or load from Taichi's offline cache) the kernels a Newton step on ``potentials`` uses.
 
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
-    this runs the fused kernels once at ``x`` and, for the potentials that are Taichi twins
-    (``sim_core.ti_kernels``), the ``projection`` Hessian of the projected fallback, and the contact
+    this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
+    fallback (and that of the potentials that are Taichi twins, ``sim_core.ti_kernels``), and the contact
     distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
@@ -226,6 +273,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     fused.gradient(x)
     fused._kept = None
     fused.energy(x)
+    if projection != "none":
+        fused.projected_hessian_values(x, projection)
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)

@@ -7,7 +7,10 @@ Hessian blocks of every potential into one sparse matrix, solves with a sparse d
 E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we do not). The
 matrix is the exact Hessian whenever its Cholesky factorisation succeeds (it is then positive
 definite on the free DoFs and the Newton direction is a descent direction, with quadratic
-convergence near the solution), else the Hessian with PSD-projected element blocks. The step
+convergence near the solution), else the Hessian with PSD-projected element blocks (on the fused
+Taichi path, ``elastic_backend = "taichi"``, the elastic part of both comes from
+:class:`~sim_core.fused_elastic.FusedElastic`: the exact values from the fused kernels, the
+projected ones from :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`). The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
 the contact candidate set of the iteration valid. A step that does not converge raises
 :class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured).
@@ -343,8 +346,10 @@ class NewtonSolver:
             factorization = self.linear_solver
             for projection in self._projections():
                 ta = time.perf_counter()
-                if fused is not None and projection == "none":
-                    H = self.assembler.assemble_upper_values(fused.pattern, fused.hessian_values(x),
+                if fused is not None:
+                    values = (fused.hessian_values(x) if projection == "none"
+                              else fused.projected_hessian_values(x, projection))
+                    H = self.assembler.assemble_upper_values(fused.pattern, values,
                                                              [p.hessian(x, projection) for p in dynamic_terms],
                                                              diag, free)
                 else:

@@ -25,6 +25,7 @@ from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.block_projection import TranslationFreeProjector
 from sim_core.ti_kernels.bending import _dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -137,6 +138,60 @@ def kirchhoff_energy_gradient_hessian(
     return energy
 
 
+@fast_kernel
+def kirchhoff_triangle_hessians(
+    x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
+    scratch: _F64_2, blocks: _F64_3,
+):
+    """The exact per-triangle Hessian blocks (N/m) of the reference, ``blocks`` (t, 18, 18) over the
+    triangle's block vertices::
+
+        H_T = 2 G_T^T M_T G_T + sum_{k: edge k has hinge h} 2 (M_T d_T)_k d2theta_h/dx2
+
+    (the reference's split of the Hessian between triangles; the fused kernel above sums the same
+    terms per hinge). ``scratch`` (h, 14) is overwritten.
+    """
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for h in range(hinges.shape[0]):
+        x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
+        scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
+        g = _theta_gradient(x0, x1, x2, x3)
+        for r in ti.static(range(12)):
+            scratch[h, 2 + r] = g[r]
+    for t in range(tri_hinge.shape[0]):
+        d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
+        M = ti.Matrix.zero(ti.f64, 3, 3)
+        for k, l in ti.static(ti.ndrange(3, 3)):
+            M[k, l] = stiffness[t, k, l]
+        Md = M @ d
+        G = ti.Matrix.zero(ti.f64, 3, 18)
+        for k in ti.static(range(3)):
+            h = tri_hinge[t, k]
+            if h >= 0:
+                for a in range(4):
+                    col = 3 * tri_local[t, k, a]
+                    for c in ti.static(range(3)):
+                        G[k, col + c] = scratch[h, 2 + 3 * a + c]
+        MG = 2.0 * (M @ G)
+        for r in range(18):
+            for s in range(r, 18):
+                val = G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s]
+                blocks[t, r, s] = val
+                blocks[t, s, r] = val
+        for k in ti.static(range(3)):
+            h = tri_hinge[t, k]
+            if h >= 0:
+                f = 2.0 * Md[k]
+                x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
+                Hh = _theta_hessian(x0, x1, x2, x3)
+                for a in range(4):
+                    ra = 3 * tri_local[t, k, a]
+                    for b in range(4):
+                        sb = 3 * tri_local[t, k, b]
+                        for c, e in ti.static(ti.ndrange(3, 3)):
+                            blocks[t, ra + c, sb + e] += f * Hh[3 * a + c, 3 * b + e]
+
+
 class FusedKirchhoffBending:
     """Fused Newton-loop evaluation of a :class:`KirchhoffBending` (module docstring).
 
@@ -166,6 +221,8 @@ class FusedKirchhoffBending:
         self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
         self._tri_slots: np.ndarray | None = None
         self._hinge_slots: np.ndarray | None = None
+        self._blocks = np.zeros((self._tri_hinge.shape[0], 18, 18))
+        self._projector = TranslationFreeProjector(6)
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` shares this kernel's elements and stiffness (rest angles may differ)."""
@@ -196,3 +253,23 @@ class FusedKirchhoffBending:
         return float(kirchhoff_energy_gradient_hessian(
             x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_slots,
             self._hinge_slots, self._scratch, grad, values))
+
+    def triangle_hessians(self, x: np.ndarray) -> np.ndarray:
+        """The exact per-triangle blocks ``(t, 18, 18)`` in N/m over ``vertices`` (the reference's
+        ``hessian(x, "none")`` blocks); a view of a buffer that the next call overwrites."""
+        if self._hinges.shape[0] == 0:
+            self._blocks[:] = 0.0
+            return self._blocks
+        kirchhoff_triangle_hessians(x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local,
+                                    self._stiffness, self._scratch, self._blocks)
+        return self._blocks
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+        """Add the ``projection`` ("none", "clamp", "abs") of the per-triangle blocks into ``values``
+        (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: batched LAPACK
+        eigen-decomposition in the translation-free 15-dimensional space).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        self._projector.add_projected(self.triangle_hessians(x), projection, self._tri_slots, values)

@@ -32,6 +32,9 @@ from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.linalg import projection_code
+from sim_core.ti_kernels.neohookean import evaluate_snh_hessian
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 
@@ -148,6 +151,7 @@ class FusedStableNeoHookean:
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
         self._slots: np.ndarray | None = None
+        self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
@@ -179,3 +183,20 @@ class FusedStableNeoHookean:
         p = self.potential
         return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._slots, p.mu, p.lam,
                                                  grad, values))
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+        """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic
+        eigensystem of d2psi/dF2 (Smith et al. 2018, section 4.2) of the Taichi twin
+        (:func:`sim_core.ti_kernels.neohookean.evaluate_snh_hessian`), the reference's projection.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = projection_code(projection)
+        if self._tets.shape[0] == 0:
+            return
+        if self._blocks is None:
+            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
+        p = self.potential
+        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, self._blocks)
+        add_blocks(self._blocks, self._slots, values)

@@ -28,6 +28,7 @@ from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.block_projection import add_blocks
 
 _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
 
@@ -193,3 +194,14 @@ class FusedSpringMembrane:
         return float(spring_membrane_energy_gradient_hessian(
             x, self._triangles, self._edges, self._area0, self._length0, self._slots, p.k_length, p.k_area,
             grad, values))
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+        """Add the reference potential's ``projection`` Hessian blocks
+        (:meth:`SpringMembrane.hessian`) into ``values``.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        blocks = self.potential.hessian(x, projection).blocks
+        if blocks.shape[0]:
+            add_blocks(np.ascontiguousarray(blocks, dtype=np.float64), self._slots, values)

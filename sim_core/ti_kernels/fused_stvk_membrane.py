@@ -23,6 +23,9 @@ from sim_core.potentials.membrane import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.linalg import projection_code
+from sim_core.ti_kernels.membrane import evaluate_stvk_hessian
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 
@@ -128,6 +131,7 @@ class FusedStVKMembrane:
         self._shape_gradient = np.ascontiguousarray(potential.triangle_shape_gradient, dtype=np.float64)
         self._weight = np.ascontiguousarray(potential.thickness * potential.triangle_rest_area, dtype=np.float64)
         self._slots: np.ndarray | None = None
+        self._blocks: np.ndarray | None = None  # projected blocks (t, 9, 9), allocated on first use
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
@@ -156,3 +160,21 @@ class FusedStVKMembrane:
         p = self.potential
         return float(stvk_energy_gradient_hessian(x, self._triangles, self._shape_gradient, self._weight,
                                                   self._slots, p.mu, p.lam, grad, values))
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+        """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the Taichi
+        twin's blocks (:func:`sim_core.ti_kernels.membrane.evaluate_stvk_hessian`, projected in the
+        translation-free subspace as the reference).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = projection_code(projection)
+        if self._triangles.shape[0] == 0:
+            return
+        if self._blocks is None:
+            self._blocks = np.zeros((self._triangles.shape[0], 9, 9))
+        p = self.potential
+        evaluate_stvk_hessian(x, self._triangles, self._shape_gradient, self._weight, p.mu, p.lam, code,
+                              self._blocks)
+        add_blocks(self._blocks, self._slots, values)

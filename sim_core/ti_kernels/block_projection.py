@@ -1,0 +1,142 @@
+"""PSD-projected element Hessians of the fused Newton path, added straight into CSR slot values.
+
+The Newton solver (:mod:`sim_core.solver`) falls back to the PSD-projected Hessian when PARDISO's
+Cholesky refuses the exact one. The projection is per element block, as in the reference
+potentials (:func:`sim_core.potentials.base.project_psd`, "clamp" of Teran et al. 2005 or "abs"),
+and for an energy that depends only on vertex differences it is done in the ``3 m - 3``
+dimensional complement of the rigid translations
+(:func:`sim_core.potentials.membrane.project_psd_translation_free`): with ``B = h (x) I_3``, ``h``
+the Helmert basis of :func:`sim_core.ti_kernels.linalg.helmert_basis` (``m x (m - 1)``, any
+orthonormal basis of the complement gives the same projection),
+
+    P(H) = B P(B^T H B) B^T.
+
+The work is split where each part is cheapest (measured, docs/benchmarks.md):
+
+* :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy):
+  ``B^T H B`` and ``B R B^T`` as stacked matrix products with a constant ``B`` (about 0.25 ms for
+  480 blocks of 18 x 18; a Taichi loop per element took 3 ms, and one large GEMM over the stacked
+  rows, 0.4 ms alone, took 25 ms inside a replay on the loaded 2-core VM: OpenBLAS threads it).
+* :func:`project_reduced_blocks` (NumPy): one batched ``numpy.linalg.eigh`` (LAPACK) and
+  ``Q f(w) Q^T`` only for the blocks with a negative eigenvalue (``f`` per projection). A Taichi
+  Jacobi eigen-solver was slower than LAPACK for the 15 x 15 reduced Kirchhoff blocks, and a
+  Cholesky test that skips the eigen-decomposition of definite blocks pays nothing there: at the
+  replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15.
+* :func:`add_blocks` (Taichi): the projected blocks added into the values of the solver's static
+  pattern through the per-element slot map (:meth:`sim_core.assembly.StaticPattern.slot_map`:
+  entry ``[e, r, s]`` is a slot or -1), in element order on the CPU (bitwise reproducible), with
+  no ``np.bincount`` over the block entries.
+
+The result equals the reference's projected blocks to round-off: the reference reconstructs every
+block of a batch in which some block has a negative eigenvalue, and returns the symmetrised block
+when none has; here a block is reconstructed only when it has a negative eigenvalue itself.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import functools
+
+import numpy as np
+
+from sim_core.ti_backend import serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64_1, _F64_3, _I32_3 = linalg.F64_1, linalg.F64_3, linalg.I32_3
+
+
+@functools.lru_cache(maxsize=8)
+def helmert_array(vertex_count: int) -> np.ndarray:
+    """:func:`~sim_core.ti_kernels.linalg.helmert_basis` as a C-contiguous float64 ``(m, m - 1)`` array."""
+    out = np.array(linalg.helmert_basis(vertex_count), dtype=np.float64).reshape(vertex_count, vertex_count - 1)
+    out.flags.writeable = False
+    return out
+
+
+@fast_kernel
+def add_blocks(blocks: _F64_3, slots: _I32_3, values: _F64_1):
+    """``values[slots[e, i, j]] += blocks[e, i, j]`` where the slot is >= 0 (the assembler's keep rule)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for e in range(blocks.shape[0]):
+        for i in range(blocks.shape[1]):
+            for j in range(blocks.shape[2]):
+                k = slots[e, i, j]
+                if k >= 0:
+                    values[k] += blocks[e, i, j]
+
+
+def project_reduced_blocks(blocks: np.ndarray, projection: str) -> np.ndarray:
+    """PSD projection of symmetric blocks; only blocks with a negative eigenvalue are rebuilt.
+
+    Args:
+        blocks: symmetric blocks, shape ``(k, n, n)`` (modified in place and returned).
+        projection: ``"clamp"`` (negative eigenvalues -> 0) or ``"abs"`` (-> their absolute value);
+            ``"none"`` returns ``blocks`` unchanged.
+
+    Returns:
+        ``blocks``, every block with a negative eigenvalue replaced by ``Q f(w) Q^T``
+        (``numpy.linalg.eigh``, LAPACK).
+
+    Raises:
+        ValueError: unknown projection (the reference's message).
+    """
+    code = linalg.projection_code(projection)
+    if code == 0 or blocks.shape[0] == 0:
+        return blocks
+    w, q = np.linalg.eigh(blocks)
+    negative = np.any(w < 0.0, axis=1)
+    if np.all(negative):
+        w = np.maximum(w, 0.0) if code == 1 else np.abs(w)
+        blocks[:] = np.matmul(q * w[:, None, :], np.swapaxes(q, 1, 2))
+    elif np.any(negative):
+        w, q = w[negative], q[negative]
+        w = np.maximum(w, 0.0) if code == 1 else np.abs(w)
+        blocks[negative] = np.matmul(q * w[:, None, :], np.swapaxes(q, 1, 2))
+    return blocks
+
+
+class TranslationFreeProjector:
+    """Projects translation-invariant element blocks and adds them into slot values (module docstring).
+
+    Args:
+        vertex_count: vertices per element ``m`` (blocks are ``3 m x 3 m``).
+    """
+
+    def __init__(self, vertex_count: int) -> None:
+        self.helmert = helmert_array(vertex_count)
+        self.basis = np.kron(self.helmert, np.eye(3))  # B, (3 m, 3 m - 3), orthonormal columns
+
+    def reduced(self, blocks: np.ndarray) -> np.ndarray:
+        """``B^T H B`` of every block ``H`` of ``blocks`` ``(k, 3 m, 3 m)``: ``(k, 3 m - 3, 3 m - 3)``."""
+        return np.matmul(np.matmul(self.basis.T, blocks), self.basis)
+
+    def expanded(self, reduced: np.ndarray) -> np.ndarray:
+        """``B R B^T`` of every block ``R`` of ``reduced`` ``(k, 3 m - 3, 3 m - 3)``: ``(k, 3 m, 3 m)``."""
+        return np.ascontiguousarray(np.matmul(np.matmul(self.basis, reduced), self.basis.T))
+
+    def project(self, blocks: np.ndarray, projection: str) -> np.ndarray:
+        """The ``projection`` of symmetric translation-invariant ``blocks`` ``(k, 3 m, 3 m)`` (N/m):
+        ``B P(B^T H B) B^T``, a new array.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        linalg.projection_code(projection)
+        if projection == "none" or blocks.shape[0] == 0:
+            return np.array(blocks, dtype=np.float64)
+        reduced = self.reduced(blocks)
+        reduced = 0.5 * (reduced + np.swapaxes(reduced, 1, 2))
+        return self.expanded(project_reduced_blocks(reduced, projection))
+
+    def add_projected(self, blocks: np.ndarray, projection: str, slots: np.ndarray, values: np.ndarray) -> None:
+        """Add the ``projection`` of ``blocks`` ``(k, 3 m, 3 m)`` (N/m) into ``values`` through ``slots``
+        (int32 ``(k, 3 m, 3 m)``, -1 = not stored).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        if blocks.shape[0] == 0:
+            linalg.projection_code(projection)
+            return
+        add_blocks(self.project(blocks, projection), slots, values)

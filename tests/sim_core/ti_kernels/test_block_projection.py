@@ -1,0 +1,205 @@
+"""PSD-projected element Hessians of the fused path equal the reference projection and are PSD.
+
+:mod:`sim_core.ti_kernels.block_projection` (translation-free reduction by GEMMs, batched
+LAPACK eigen-decomposition, slot-map assembly), the per-triangle
+Kirchhoff blocks of :func:`sim_core.ti_kernels.fused_kirchhoff.kirchhoff_triangle_hessians`, and
+:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values` for every elastic term, against
+:func:`sim_core.potentials.base.project_psd`, the reference potentials and finite differences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.assembly import HessianAssembler
+from sim_core.potentials.base import project_psd
+from sim_core.potentials.membrane import project_psd_translation_free
+from tests.sim_core.ti_kernels.test_fused_elastic import KINDS, _fused, _potentials
+from tests.support.fd import fd_gradient, fd_hessian, relative_error
+
+
+def _translation_invariant_blocks(k: int, m: int, seed: int, definite: int) -> np.ndarray:
+    """``k`` symmetric ``3 m x 3 m`` blocks with the translations in their null space; the first
+    ``definite`` are positive definite on the complement, the rest indefinite."""
+    from sim_core.ti_kernels.block_projection import helmert_array
+
+    rng = np.random.default_rng(seed)
+    B = np.kron(helmert_array(m), np.eye(3))
+    n = 3 * m - 3
+    out = []
+    for e in range(k):
+        A = rng.standard_normal((n, n))
+        R = A @ A.T + 0.1 * np.eye(n) if e < definite else A + A.T
+        out.append(B @ R @ B.T)
+    return np.array(out)
+
+
+def _dense_upper(upper) -> np.ndarray:
+    return (upper + upper.T).toarray() - np.diag(upper.diagonal())
+
+
+def test_reduction_and_expansion_are_the_basis_products(ti_cpu):
+    from sim_core.ti_kernels.block_projection import TranslationFreeProjector, helmert_array
+
+    blocks = _translation_invariant_blocks(9, 6, 0, definite=4)
+    projector = TranslationFreeProjector(6)
+    B = np.kron(helmert_array(6), np.eye(3))
+    assert np.allclose(B.T @ B, np.eye(15), atol=1e-15) and np.allclose(B.T @ np.tile(np.eye(3), (6, 1)), 0.0)
+    reduced = projector.reduced(blocks)
+    assert relative_error(reduced, B.T @ blocks @ B) < 1e-14
+    assert relative_error(projector.expanded(reduced), blocks) < 1e-14  # translations are in the null space
+
+
+@pytest.mark.parametrize("projection", ["clamp", "abs"])
+def test_projected_reduced_blocks_equal_reference(ti_cpu, projection):
+    from sim_core.ti_kernels.block_projection import project_reduced_blocks
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((12, 15, 15))
+    blocks = A + np.swapaxes(A, 1, 2)
+    blocks[:3] = A[:3] @ np.swapaxes(A[:3], 1, 2) + np.eye(15)  # definite
+    out = project_reduced_blocks(blocks.copy(), projection)
+    assert relative_error(out, project_psd(blocks, projection)) < 1e-13
+    assert np.array_equal(out[:3], blocks[:3])  # no negative eigenvalue: not rebuilt
+    assert np.linalg.eigvalsh(out).min() > -1e-12 * np.abs(out).max()
+    assert relative_error(project_reduced_blocks(blocks[3:].copy(), projection), project_psd(blocks[3:], projection)) < 1e-13
+    with pytest.raises(ValueError, match="unknown PSD projection"):
+        project_reduced_blocks(blocks.copy(), "flip")
+
+
+@pytest.mark.parametrize("projection", ["none", "clamp", "abs"])
+def test_projector_adds_the_reference_projection(ti_cpu, projection):
+    """Blocks with repeated vertices and fixed DoFs; the sum equals the reference blocks' assembly."""
+    from sim_core.ti_kernels.block_projection import TranslationFreeProjector
+
+    n_vertices = 10
+    rng = np.random.default_rng(4)
+    vertices = np.array([rng.choice(n_vertices, 6, replace=False) for _ in range(8)])
+    vertices[2, 5] = vertices[2, 4]  # a repeated vertex (boundary edge of a Kirchhoff triangle)
+    blocks = _translation_invariant_blocks(8, 6, 1, definite=3)
+    free = np.ones(3 * n_vertices, bool)
+    free[[0, 4, 29]] = False
+    asm = HessianAssembler(3 * n_vertices)
+    pattern = asm.static_pattern([vertices], free)
+    values = np.zeros(pattern.keys.size)
+    projector = TranslationFreeProjector(6)
+    projector.add_projected(blocks, projection, pattern.slot_map(vertices), values)
+    from sim_core.potentials.base import HessianBlocks
+
+    diag = np.ones(3 * n_vertices)
+    H = asm.assemble_upper_values(pattern, values, [], diag, free)
+    H_ref = asm.assemble_upper([HessianBlocks(vertices, project_psd_translation_free(blocks, projection))], [], diag,
+                               free)
+    assert relative_error(H.data, H_ref.data) < 1e-13
+    if projection != "none":
+        elastic = _dense_upper(asm.assemble_upper_values(pattern, values, [], np.zeros(3 * n_vertices), free))
+        assert np.linalg.eigvalsh(elastic).min() > -1e-12 * np.abs(elastic).max()
+
+
+def test_kirchhoff_triangle_blocks_equal_reference_and_finite_differences(ti_cpu):
+    pot, x_rest, deformed = _potentials("kirchhoff")
+    fused, _ = _fused(pot, x_rest, np.ones(x_rest.size, bool))
+    part = fused._parts[0]
+    for seed in (0, 1, 2):
+        x = np.ascontiguousarray(deformed(seed))
+        blocks = part.triangle_hessians(x)
+        assert relative_error(blocks, pot.hessian(x, "none").blocks) < 1e-12
+    # per triangle: the block is the Hessian of that triangle's energy d^T M d (FD of its gradient)
+    x = np.ascontiguousarray(deformed(5))
+    blocks = part.triangle_hessians(x).copy()
+    for t in (0, 5, 11):
+        verts = pot.block_vertices[t]
+        own = np.unique(verts)
+
+        def energy_t(y, t=t):
+            return pot.triangle_energy(y)[t]
+
+        def grad_t(y):
+            return fd_gradient(energy_t, y, h=1e-6)
+
+        H_fd = fd_hessian(lambda y: _local_gradient(pot, y, t), x, h=1e-7)
+        dofs = (3 * verts[:, None] + np.arange(3)).reshape(-1)
+        H_local = np.zeros((x.size, x.size))
+        np.add.at(H_local, (dofs[:, None], dofs[None, :]), blocks[t])
+        sel = (3 * own[:, None] + np.arange(3)).reshape(-1)
+        assert relative_error(H_local[np.ix_(sel, sel)], H_fd[np.ix_(sel, sel)]) < 1e-5
+        assert relative_error(_local_gradient(pot, x, t), grad_t(x)) < 1e-5
+
+
+def _local_gradient(pot, x: np.ndarray, t: int) -> np.ndarray:
+    """dE_T/dx of triangle ``t``'s energy ``d^T M d`` (sum_k 2 (M d)_k dtheta_k/dx), shape ``(n, 3)``."""
+    theta = pot.theta(x)
+    grad_h = pot.theta_gradient(x)
+    d = pot._triangle_deviation(theta)[t]
+    f = 2.0 * pot.triangle_stiffness[t] @ d
+    g = np.zeros_like(x)
+    for k in range(3):
+        h = pot.triangle_hinge[t, k]
+        if h >= 0:
+            np.add.at(g, pot.hinges[h], f[k] * grad_h[h])
+    return g
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("projection", ["clamp", "abs"])
+def test_fused_projected_hessian_equals_reference_and_is_psd(ti_cpu, kind, projection):
+    pot, x_rest, deformed = _potentials(kind)
+    n = x_rest.shape[0]
+    free = np.ones(3 * n, bool)
+    free[[0, 1, 2, 7, 3 * n - 1]] = False
+    fused, asm = _fused(pot, x_rest, free)
+    zero = np.zeros(3 * n)
+    for seed in (0, 1):
+        x = deformed(seed)
+        values = fused.projected_hessian_values(x, projection)
+        H = asm.assemble_upper_values(fused.pattern, values, [], zero, free)
+        H_ref = asm.assemble_upper([pot.hessian(x, projection)], [], zero, free)
+        assert np.array_equal(H.indptr, H_ref.indptr) and np.array_equal(H.indices, H_ref.indices)
+        assert relative_error(H.data, H_ref.data) < 1e-12
+        dense = _dense_upper(H)
+        assert np.linalg.eigvalsh(dense).min() > -1e-10 * np.abs(dense).max()
+        # the exact Hessian of these configurations is indefinite: the projection changed something
+        exact = _dense_upper(asm.assemble_upper_values(fused.pattern, fused.hessian_values(x), [], zero, free))
+        if kind != "spring_membrane":
+            assert np.linalg.eigvalsh(exact).min() < 0
+
+
+def test_projected_hessian_needs_bind_and_a_known_projection(ti_cpu):
+    from sim_core.fused_elastic import FusedElastic
+
+    pot, x_rest, deformed = _potentials("kirchhoff")
+    with pytest.raises(RuntimeError, match="bind"):
+        FusedElastic([pot]).projected_hessian_values(x_rest, "clamp")
+    fused, _ = _fused(pot, x_rest, np.ones(x_rest.size, bool))
+    with pytest.raises(ValueError, match="unknown PSD projection"):
+        fused.projected_hessian_values(deformed(0), "flip")
+
+
+def test_solver_projected_fallback_equals_reference_path(ti_cpu):
+    """Forming steps whose Newton loop falls back to the projected Hessian: the fused path
+    (projected values in the static slots) takes the same iterations to the same positions."""
+    from sim_core.control import Control
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+    from thinshell_ros.bench import _default_scene
+
+    runs = []
+    for backend in ("numpy", "taichi"):
+        model = load_task_scene(_default_scene("forming"))
+        model.meta["elastic_backend"] = backend
+        sim = Simulation(model)
+        sim.state = task_initial_state(model)
+        effector = next(iter(model.effectors))
+        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(49))
+        infos = []
+        for k in range(2):  # the bench trajectory's step 1 refuses the exact Hessian once
+            control = Control()
+            control.effector_pose_target[effector] = targets[k]
+            infos.append(sim.step(control))
+        runs.append((sim.state.x.copy(), [(i.iterations, i.projected_iterations) for i in infos]))
+    (x_ref, it_ref), (x_fused, it_fused) = runs
+    assert sum(p for _, p in it_ref) > 0
+    assert it_fused == it_ref
+    assert np.max(np.abs(x_fused - x_ref)) < 1e-12
