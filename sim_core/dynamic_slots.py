@@ -50,7 +50,7 @@ def block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.nda
     return rows, cols
 
 
-def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions in a sorted array after dropping and inserting items, by prefix sums (no search).
 
     Args:
@@ -58,9 +58,9 @@ def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray
         insert_at: ``np.searchsorted(old, new_items)`` of the sorted, distinct inserted items, ``(a,)``.
 
     Returns:
-        ``(trans, placed)``: new position of each old item (-1 for dropped ones) with one more
-        entry ``trans[N]`` = the new length, int64 ``(N + 1,)``; new position of each inserted
-        item, ``(a,)``.
+        ``(trans, placed, before)``: new position of each old item (-1 for dropped ones) with one
+        more entry ``trans[N]`` = the new length, int64 ``(N + 1,)``; new position of each inserted
+        item, ``(a,)``; number of kept old items before each old position, ``(N + 1,)``.
     """
     size = survive.size
     before = np.zeros(size + 1, dtype=np.int64)  # survivors before each old position
@@ -69,7 +69,7 @@ def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray
     trans = before + inserted
     trans[:size][~survive] = -1
     placed = before[insert_at] + np.arange(insert_at.size)
-    return trans, placed
+    return trans, placed, before
 
 
 class UnionPattern:
@@ -86,8 +86,7 @@ class UnionPattern:
     """
 
     def __init__(self, pattern: StaticPattern, keys: np.ndarray, static_slots: np.ndarray, dyn_keys: np.ndarray,
-                 dyn_slots: np.ndarray, built_at: int) -> None:
-        n = pattern.dof_count
+                 dyn_slots: np.ndarray, indptr: np.ndarray, indices: np.ndarray, built_at: int) -> None:
         self.pattern = pattern
         self.built_at = built_at
         self.keys = keys
@@ -96,12 +95,10 @@ class UnionPattern:
         self.dyn_slots = dyn_slots
         self.last_used = np.zeros(dyn_keys.size, dtype=np.int64)
         self.nnz = keys.size
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(keys // n, minlength=n), out=indptr[1:])
         # int32 like the indices (SciPy stores them so anyway when they fit): the CSR matrix of each
         # assembly is then built without converting and re-checking the index arrays
         self.indptr = indptr.astype(np.int32) if keys.size < np.iinfo(np.int32).max else indptr
-        self.indices = (keys % n).astype(np.int32)
+        self.indices = indices
 
     @classmethod
     def build(cls, pattern: StaticPattern, dyn_keys: np.ndarray, built_at: int) -> "UnionPattern":
@@ -111,7 +108,11 @@ class UnionPattern:
         extra = dyn_keys[static[pos] != dyn_keys] if static.size else dyn_keys
         keys = np.insert(static, np.searchsorted(static, extra), extra)
         static_slots = np.arange(static.size) + np.searchsorted(extra, static)
-        return cls(pattern, keys, static_slots, dyn_keys, np.searchsorted(keys, dyn_keys), built_at)
+        n = pattern.dof_count
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(keys // n, minlength=n), out=indptr[1:])
+        return cls(pattern, keys, static_slots, dyn_keys, np.searchsorted(keys, dyn_keys), indptr,
+                   (keys % n).astype(np.int32), built_at)
 
     def rebuilt(
         self, recent: np.ndarray, added: np.ndarray, built_at: int
@@ -129,7 +130,8 @@ class UnionPattern:
             index of each old one, ``(d + 1,)`` likewise.
         """
         static = self.pattern.keys
-        dyn_trans, dyn_placed = _translation(recent, np.searchsorted(self.dyn_keys, added))
+        n = self.pattern.dof_count
+        dyn_trans, dyn_placed, _ = _translation(recent, np.searchsorted(self.dyn_keys, added))
         dyn_keys = np.empty(dyn_trans[-1], dtype=np.int64)
         dyn_keys[dyn_trans[:-1][recent]] = self.dyn_keys[recent]
         dyn_keys[dyn_placed] = added
@@ -139,59 +141,94 @@ class UnionPattern:
         pos = np.minimum(np.searchsorted(static, added), max(static.size - 1, 0))
         is_static = static[pos] == added if static.size else np.zeros(added.size, dtype=bool)
         new = added[~is_static]
-        slot_trans, placed = _translation(survive, np.searchsorted(self.keys, new))
+        slot_trans, placed, before = _translation(survive, np.searchsorted(self.keys, new))
         keys = np.empty(slot_trans[-1], dtype=np.int64)
-        keys[slot_trans[:-1][survive]] = self.keys[survive]
+        kept_at = slot_trans[:-1][survive]
+        keys[kept_at] = self.keys[survive]
         keys[placed] = new
+        indices = np.empty(keys.size, dtype=np.int32)  # CSR arrays translated too (no key division)
+        indices[kept_at] = self.indices[survive]
+        indices[placed] = new % n
+        # row r starts after the kept old entries of rows < r and the new keys below r n
+        indptr = before[self.indptr] + np.searchsorted(new, np.arange(n + 1) * n)
         dyn_slots = np.empty(dyn_keys.size, dtype=np.int64)
         dyn_slots[dyn_trans[:-1][recent]] = slot_trans[self.dyn_slots[recent]]
         added_slots = np.empty(added.size, dtype=np.int64)
         added_slots[is_static] = slot_trans[self.static_slots[pos[is_static]]]
         added_slots[~is_static] = placed
         dyn_slots[dyn_placed] = added_slots
-        union = UnionPattern(self.pattern, keys, slot_trans[self.static_slots], dyn_keys, dyn_slots, built_at)
+        union = UnionPattern(self.pattern, keys, slot_trans[self.static_slots], dyn_keys, dyn_slots, indptr, indices,
+                             built_at)
         return union, slot_trans, dyn_trans
 
 
 class _ElementTable:
     """Elements of one dynamic block set seen so far, with the slots of their entries in one union.
 
+    Rows are appended (amortised, no re-sort of the row arrays); a sorted index of the element
+    identifiers finds them.
+
     Attributes:
-        m: vertices per element; ids: sorted element identifiers (vertex rows as bytes), ``(E,)``;
-        slots: CSR slot of each entry, ``(E, (3m)^2)``, the dummy slot ``nnz`` where not kept;
-        dyn: index of each entry's key in the union's ``dyn_keys``, ``(E, (3m)^2)``, dummy ``d``;
-        last: assembly counter of the last use of each element since the union was built, 0 if none.
+        m: vertices per element; size: element count ``E``;
+        slots: CSR slot of each entry, ``(E, (3m)^2)``, the dummy slot ``nnz`` where not kept (the key
+            of every other entry is one of the union's dynamic keys);
+        last: assembly counter of the last use of each element since the union was built, 0 if none,
+            ``(E,)``; call: (signature, union, rows, kept entries, their slots) of the last call.
     """
 
     def __init__(self, m: int) -> None:
-        q = (3 * m) ** 2
         self.m = m
-        self.ids = np.zeros(0, dtype=np.dtype((np.void, 8 * m)))
-        self.slots = np.zeros((0, q), dtype=np.int64)
-        self.dyn = np.zeros((0, q), dtype=np.int64)
-        self.last = np.zeros(0, dtype=np.int64)
-        self.call: tuple | None = None  # (vertex bytes, union, rows, kept entries, their slots) of the last call
+        self.size = 0
+        self._ids = np.zeros(0, dtype=np.dtype((np.void, 8 * m)))  # sorted
+        self._rows = np.zeros(0, dtype=np.int64)  # row of each sorted identifier
+        self._slots = np.zeros((0, (3 * m) ** 2), dtype=np.int64)
+        self._last = np.zeros(0, dtype=np.int64)
+        self.call: tuple | None = None
+
+    @property
+    def slots(self) -> np.ndarray:
+        return self._slots[: self.size]
+
+    @property
+    def last(self) -> np.ndarray:
+        return self._last[: self.size]
 
     def find(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Table rows of ``ids`` and whether each is there."""
-        if not self.ids.size:
+        """Rows of the elements ``ids`` and whether each is there (the row is arbitrary where not)."""
+        if not self.size:
             return np.zeros(ids.size, dtype=np.int64), np.zeros(ids.size, dtype=bool)
-        pos = np.minimum(np.searchsorted(self.ids, ids), self.ids.size - 1)
-        return pos, self.ids[pos] == ids
+        pos = np.minimum(np.searchsorted(self._ids, ids), self.size - 1)
+        return self._rows[pos], self._ids[pos] == ids
 
-    def add(self, ids: np.ndarray, slots: np.ndarray, dyn: np.ndarray) -> None:
-        """Insert new sorted unique element ``ids`` with their entry slots and key indices."""
-        at = np.searchsorted(self.ids, ids)
-        self.ids = np.insert(self.ids, at, ids)
-        self.slots = np.insert(self.slots, at, slots, axis=0)
-        self.dyn = np.insert(self.dyn, at, dyn, axis=0)
-        self.last = np.insert(self.last, at, 0)
+    def add(self, ids: np.ndarray, slots: np.ndarray) -> None:
+        """Append new sorted unique element ``ids`` with their entry slots ``(a, q)``."""
+        count = ids.size
+        if self.size + count > self._last.size:
+            capacity = max(2 * (self.size + count), 64)
+            for name in ("_slots", "_last"):
+                old = getattr(self, name)
+                grown = np.zeros((capacity,) + old.shape[1:], dtype=old.dtype)
+                grown[: self.size] = old[: self.size]
+                setattr(self, name, grown)
+        rows = np.arange(self.size, self.size + count)
+        self._slots[rows], self._last[rows] = slots, 0
+        at = np.searchsorted(self._ids, ids)
+        self._ids = np.insert(self._ids, at, ids)
+        self._rows = np.insert(self._rows, at, rows)
+        self.size += count
         self.call = None
 
-    def keep(self, rows: np.ndarray) -> None:
-        """Keep only the elements ``rows`` (bool ``(E,)``)."""
-        self.ids, self.slots, self.dyn, self.last = self.ids[rows], self.slots[rows], self.dyn[rows], self.last[rows]
+    def replace(self, keep: np.ndarray, slots: np.ndarray) -> np.ndarray:
+        """Keep only the elements ``keep`` (bool ``(E,)``), with new ``slots`` ``(E, q)``; returns the new
+        row of each old row (meaningless for dropped ones)."""
+        new_row = np.cumsum(keep) - 1
+        in_index = keep[self._rows]
+        self._ids = self._ids[in_index]
+        self._rows = new_row[self._rows[in_index]]
+        self._slots, self._last = slots[keep], self.last[keep]
+        self.size = self._last.size
         self.call = None
+        return new_row
 
 
 def _element_ids(vertices: np.ndarray) -> np.ndarray:
@@ -248,17 +285,17 @@ class DynamicMerge:
                 if not found.all():
                     new_ids, first = np.unique(ids[~found], return_index=True)
                     keys = self._kept_keys(b.vertices[~found][first], free)
-                    slots, dyn, complete = self._slots(union, keys)
-                    table.add(new_ids, slots, dyn)
-                    if not complete:
-                        pending.append((table, new_ids, keys, dyn))
+                    slots, absent = self._slots(union, keys)
+                    table.add(new_ids, slots)
+                    if absent.any():
+                        pending.append((table, new_ids, keys, absent))
                     pos, _ = table.find(ids)
             table.last[pos] = count
             signatures.append(signature)
             rows.append(pos)
         if pending:  # the tables were translated into the new union (and may have dropped elements)
-            union = self._rebuild(pending, count)
-            rows = [self._tables[j].find(_element_ids(b.vertices))[0] for j, b in enumerate(blocks)]
+            union, new_rows = self._rebuild(pending, count)
+            rows = [new_rows[j][pos] for j, pos in enumerate(rows)]  # this call's elements are all kept
         data = np.zeros(union.nnz)
         data[union.static_slots] = static_data
         if blocks:
@@ -283,21 +320,19 @@ class DynamicMerge:
         return np.where(keep, r * n + c, -1).reshape(vertices.shape[0], -1)
 
     @staticmethod
-    def _slots(union: UnionPattern, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Slots and dynamic-key indices of ``keys`` (``-1``: not kept) in ``union``; dummies where not
-        kept or not there; and whether every kept key is there."""
+    def _slots(union: UnionPattern, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of ``keys`` ``(k, q)`` (``-1``: not kept) in ``union``, the dummy ``nnz`` where not kept or
+        not a dynamic key of ``union``; and which kept keys are not (bool ``(k, q)``)."""
         d = union.dyn_keys.size
         kept = keys >= 0
         dyn = np.full(keys.shape, d, dtype=np.int64)
+        absent = kept.copy()
         if d:
             pos = np.minimum(np.searchsorted(union.dyn_keys, keys[kept]), d - 1)
             there = union.dyn_keys[pos] == keys[kept]
             dyn[kept] = np.where(there, pos, d)
-            complete = bool(there.all())
-        else:
-            complete = not kept.any()
-        slots = np.append(union.dyn_slots, union.nnz)[dyn]
-        return slots, dyn, complete
+            absent[kept] = ~there
+        return np.append(union.dyn_slots, union.nnz)[dyn], absent
 
     def _start(
         self, pat: StaticPattern, blocks: list[HessianBlocks], free: np.ndarray, free_bytes: bytes, count: int
@@ -312,10 +347,10 @@ class DynamicMerge:
     def _flush_table(self, table: _ElementTable) -> None:
         """Record the uses of ``table``'s elements in the union's ``last_used`` before it is dropped."""
         union = self.union
-        stamp = np.append(union.last_used, 0)
+        stamp = np.zeros(union.nnz + 1, dtype=np.int64)  # last use per slot
         used = table.last > 0
-        np.maximum.at(stamp, table.dyn[used], table.last[used][:, None])
-        union.last_used = stamp[:-1]
+        np.maximum.at(stamp, table.slots[used], table.last[used][:, None])
+        np.maximum(union.last_used, stamp[union.dyn_slots], out=union.last_used)
 
     def _flush(self) -> None:
         """Drop all element tables (free mask changed), keeping their uses."""
@@ -323,29 +358,34 @@ class DynamicMerge:
             self._flush_table(table)
         self._tables = {}
 
-    def _rebuild(self, pending: list, count: int) -> UnionPattern:
-        """Rebuild the union with this assembly's missing keys; translate the tables into it."""
+    def _rebuild(self, pending: list, count: int) -> tuple[UnionPattern, dict[int, np.ndarray]]:
+        """Rebuild the union with this assembly's missing keys; translate the tables into it.
+
+        Returns:
+            the new union; per table position, the new row of each old row.
+        """
         old = self.union
-        recent = np.append(old.last_used > count - STICKY_ASSEMBLIES, False)
+        used_slots = np.zeros(old.nnz + 1, dtype=bool)  # slots (each one key) of recently used elements
         for table in self._tables.values():
-            used = table.last > count - STICKY_ASSEMBLIES
-            recent[table.dyn[used]] = True
-        recent = recent[:-1]
-        missing = np.concatenate([keys[(keys >= 0) & (dyn == old.dyn_keys.size)] for _, _, keys, dyn in pending])
-        union, slot_trans, dyn_trans = old.rebuilt(recent, np.unique(missing), count)
+            used_slots[table.slots[table.last > count - STICKY_ASSEMBLIES]] = True
+        recent = (old.last_used > count - STICKY_ASSEMBLIES) | used_slots[old.dyn_slots]
+        missing = np.unique(np.concatenate([keys[absent] for _, _, keys, absent in pending]))
+        union, slot_trans, _ = old.rebuilt(recent, missing, count)
+        is_dyn = np.zeros(union.nnz + 2, dtype=bool)  # index -1 (a dropped slot) reads the last: False
+        is_dyn[union.dyn_slots] = True
+        is_dyn[union.nnz] = True  # the dummy
         pend = {id(t): (ids, keys) for t, ids, keys, _ in pending}
-        for table in self._tables.values():
-            table.slots = slot_trans[table.slots]
-            table.dyn = dyn_trans[table.dyn]
+        new_rows = {}
+        for j, table in self._tables.items():
+            slots = slot_trans[table.slots]
             if id(table) in pend:
                 ids, keys = pend[id(table)]
-                pos, _ = table.find(ids)
-                slots, dyn, _ = self._slots(union, keys)
-                table.slots[pos], table.dyn[pos] = slots, dyn
-            valid = (table.dyn >= 0).all(axis=1)  # every key still a dynamic key (then its slot is kept)
-            if table.ids.size > TABLE_ELEMENTS:
-                valid &= table.last > 0
-            table.keep(valid)
+                rows, _ = table.find(ids)
+                slots[rows] = self._slots(union, keys)[0]
+            keep = is_dyn[slots].all(axis=1)  # every key of the element still a dynamic key
+            if table.size > TABLE_ELEMENTS:
+                keep &= table.last > 0
+            new_rows[j] = table.replace(keep, slots)
             table.last[table.last != count] = 0
         self.union = union
-        return union
+        return union, new_rows
