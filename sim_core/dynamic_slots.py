@@ -65,7 +65,8 @@ def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray
     size = survive.size
     before = np.zeros(size + 1, dtype=np.int64)  # survivors before each old position
     np.cumsum(survive, out=before[1:])
-    inserted = np.cumsum(np.bincount(insert_at, minlength=size + 1))  # inserted items at or before
+    # inserted items at or before each old position: a step function, one run per gap between them
+    inserted = np.repeat(np.arange(insert_at.size + 1), np.diff(insert_at, prepend=0, append=size + 1))
     trans = before + inserted
     trans[:size][~survive] = -1
     placed = before[insert_at] + np.arange(insert_at.size)
