@@ -170,17 +170,17 @@ class _ElementTable:
     identifiers finds them.
 
     Attributes:
-        m: vertices per element; size: element count ``E``;
+        m: vertices per element (of ``vertex_count``); size: element count ``E``;
         slots: CSR slot of each entry, ``(E, (3m)^2)``, the dummy slot ``nnz`` where not kept (the key
             of every other entry is one of the union's dynamic keys);
         last: assembly counter of the last use of each element since the union was built, 0 if none,
             ``(E,)``; call: (signature, union, rows, kept entries, their slots) of the last call.
     """
 
-    def __init__(self, m: int) -> None:
+    def __init__(self, m: int, vertex_count: int) -> None:
         self.m = m
         self.size = 0
-        self._ids = np.zeros(0, dtype=np.dtype((np.void, 8 * m)))  # sorted
+        self._ids = _element_ids(np.zeros((0, m), dtype=np.int64), vertex_count)  # sorted
         self._rows = np.zeros(0, dtype=np.int64)  # row of each sorted identifier
         self._slots = np.zeros((0, (3 * m) ** 2), dtype=np.int64)
         self._last = np.zeros(0, dtype=np.int64)
@@ -232,10 +232,18 @@ class _ElementTable:
         return new_row
 
 
-def _element_ids(vertices: np.ndarray) -> np.ndarray:
-    """One comparable identifier (the row's bytes) per element of ``vertices`` ``(k, m)``."""
+def _element_ids(vertices: np.ndarray, vertex_count: int) -> np.ndarray:
+    """One comparable identifier per element of ``vertices`` ``(k, m)``: the vertex tuple as one int64
+    ``((v_0 N + v_1) N + ...)`` when ``N^m`` fits (``N = vertex_count``), else the row's bytes."""
     v = np.ascontiguousarray(vertices, dtype=np.int64)
-    return v.view(np.dtype((np.void, 8 * v.shape[1]))).reshape(-1)
+    m = v.shape[1]
+    if vertex_count ** m >= 2**62:
+        return v.view(np.dtype((np.void, 8 * m))).reshape(-1)
+    ids = v[:, 0].copy()
+    for a in range(1, m):
+        ids *= vertex_count
+        ids += v[:, a]
+    return ids
 
 
 class DynamicMerge:
@@ -276,12 +284,12 @@ class DynamicMerge:
             if table is None or table.m != m:
                 if table is not None:
                     self._flush_table(table)
-                table = self._tables[j] = _ElementTable(m)
+                table = self._tables[j] = _ElementTable(m, n // 3)
             signature = (b.vertices.shape, b.vertices.dtype.str, b.vertices.tobytes())
             if table.call is not None and table.call[0] == signature and table.call[1] is union:
                 pos = table.call[2]  # the same elements as the last call: the same rows
             else:
-                ids = _element_ids(b.vertices)
+                ids = _element_ids(b.vertices, n // 3)
                 pos, found = table.find(ids)
                 if not found.all():
                     new_ids, first = np.unique(ids[~found], return_index=True)

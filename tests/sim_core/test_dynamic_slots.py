@@ -99,33 +99,38 @@ def _contact_sequence(rng, vertex_count: int, calls: int):
         yield blocks
 
 
-@pytest.mark.parametrize("table_elements", [8192, 3])
-def test_cached_merge_equals_uncached_rule_over_call_sequences(monkeypatch, table_elements):
+@pytest.mark.parametrize("table_elements, vertex_scale", [(8192, 1), (3, 1), (8192, 1700)])
+def test_cached_merge_equals_uncached_rule_over_call_sequences(monkeypatch, table_elements, vertex_scale):
     """Bit-identical CSR on every call, the free mask changing under one static pattern, new static
     patterns, and more than STICKY_ASSEMBLIES calls (keys expire); a small table bound (pruning)
-    changes nothing."""
+    changes nothing, nor do vertex indices too large for one int64 element identifier (51,000
+    vertices: 51,000^4 > 2^62, the tables then compare vertex rows as bytes)."""
     monkeypatch.setattr(dynamic_slots, "TABLE_ELEMENTS", table_elements)
     rng = np.random.default_rng(7)
     n_v = 30
-    static = [_elements(rng, n_v, 25, 3)]
-    free = np.ones(3 * n_v, dtype=bool)
-    pat = StaticPattern(static, free, 3 * n_v)
-    cached, uncached = DynamicMerge(3 * n_v), _UncachedMerge(3 * n_v)
+    vertex_count = n_v * vertex_scale
+    static = [vertex_scale * _elements(rng, n_v, 25, 3)]
+    free = np.ones(3 * vertex_count, dtype=bool)
+    pat = StaticPattern(static, free, 3 * vertex_count)
+    cached, uncached = DynamicMerge(3 * vertex_count), _UncachedMerge(3 * vertex_count)
     rebuilds = 0
     last_indices = None
     for call, dynamic in enumerate(_contact_sequence(rng, n_v, 3 * STICKY_ASSEMBLIES)):
+        dynamic = [HessianBlocks(vertex_scale * b.vertices, b.blocks) for b in dynamic]
         if call in (40, 90):  # fixed vertices (a clamp), same static pattern object
-            free = np.repeat(rng.uniform(size=n_v) > 0.2, 3)
+            free = np.repeat(rng.uniform(size=vertex_count) > 0.2, 3)
         if call == 120:  # a new static pattern (rebuilt for a new free mask)
-            free = np.repeat(rng.uniform(size=n_v) > 0.3, 3)
-            pat = StaticPattern(static, free, 3 * n_v)
+            free = np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
+            pat = StaticPattern(static, free, 3 * vertex_count)
         static_data = rng.normal(size=pat.keys.size)
         U = cached.merge(pat, static_data, dynamic, free)
         _assert_same_csr(U, uncached.merge(pat, static_data, dynamic, free))
+        assert all(t._ids.dtype.kind == ("V" if vertex_count ** t.m >= 2**62 else "i") for t in cached._tables.values())
         if last_indices is not None and not np.array_equal(last_indices, U.indices):
             rebuilds += 1
         last_indices = U.indices
     assert rebuilds >= 5  # the sequence exercised rebuilds of the union pattern
+    assert any(t._ids.dtype.kind == "V" for t in cached._tables.values()) == (vertex_scale > 1)
 
 
 def test_keys_expire_only_after_sticky_assemblies():
@@ -137,7 +142,8 @@ def test_keys_expire_only_after_sticky_assemblies():
     pat = StaticPattern([np.array([[0, 1, 2]])], free, 3 * n_v)
     cached, uncached = DynamicMerge(3 * n_v), _UncachedMerge(3 * n_v)
     a, b = np.array([[3, 7]]), np.array([[4, 9]])
-    sequence = [[a]] * (STICKY_ASSEMBLIES + 5) + [[a, b]] + [[a]] * (STICKY_ASSEMBLIES - 1) + [[a, b], [np.array([[5, 10]])]]
+    sequence = ([[a]] * (STICKY_ASSEMBLIES + 5) + [[a, b]] + [[a]] * (STICKY_ASSEMBLIES - 1)
+                + [[a, b], [np.array([[5, 10]])]])
     sizes = []
     for sets in sequence:
         dynamic = [_blocks(rng, v) for v in sets]
@@ -165,8 +171,8 @@ def test_assembler_paths_equal_uncached_rule():
             free = np.repeat(rng.uniform(size=n_v) > 0.25, 3)
         U = asm.assemble_upper(static, dynamic, diag, free)
         pat = asm.static_pattern([b.vertices for b in static], free)
-        static_data = np.bincount(pat.slot, weights=np.concatenate([static[0].blocks.reshape(-1), diag])[pat.entry_index],
-                                  minlength=pat.keys.size)
+        entries = np.concatenate([static[0].blocks.reshape(-1), diag])[pat.entry_index]
+        static_data = np.bincount(pat.slot, weights=entries, minlength=pat.keys.size)
         static_data[pat.fixed_diag_slots] = 1.0
         _assert_same_csr(U, uncached.merge(pat, static_data, dynamic, free))
         slots = pat.slot_map(static[0].vertices)
