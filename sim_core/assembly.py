@@ -15,8 +15,8 @@ Patterns are cached as maps from block entries to CSR slots, so an assembly is a
   that is not in it appears; dynamic entries stay in it (as structural zeros) until they have been
   unused for :data:`STICKY_ASSEMBLIES` assemblies. So the pattern, and with it the linear solver's
   symbolic analysis, changes far less often than the active contact set (contacts that come and go
-  between Newton iterations). The entry -> slot map of the dynamic blocks is kept while their
-  vertex arrays repeat.
+  between Newton iterations). :mod:`sim_core.dynamic_slots` keeps the slots of the dynamic elements
+  seen so far, so a merge maps only new elements and a rebuild translates the old pattern.
 
 Fused kernels (:mod:`sim_core.fused_elastic`) skip the per-element blocks: they get the static
 pattern (:meth:`HessianAssembler.static_pattern`) and its per-element slot maps
@@ -31,21 +31,8 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from sim_core.potentials.base import HessianBlocks, block_dof_indices
-
-
-def _block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column DoF of every entry of blocks over ``vertices`` ``(k, m)``, each ``(k (3m)^2,)``."""
-    dofs = block_dof_indices(vertices)
-    n = dofs.shape[1]
-    rows = np.repeat(dofs, n, axis=1).reshape(-1)
-    cols = np.tile(dofs, (1, n)).reshape(-1)
-    return rows, cols
-
-
-STICKY_ASSEMBLIES = 50
-"""A dynamic entry leaves the union pattern after this many assemblies without it (about ten
-Forming steps): bounds the fill-in that contacts which moved on leave behind."""
+from sim_core.dynamic_slots import STICKY_ASSEMBLIES, DynamicMerge, block_keys  # noqa: F401 (documented here)
+from sim_core.potentials.base import HessianBlocks
 
 
 class StaticPattern:
@@ -68,7 +55,7 @@ class StaticPattern:
         self.free = free
         rows, cols = [], []
         for v in vertex_arrays:
-            r, c = _block_keys(v, dof_count)
+            r, c = block_keys(v, dof_count)
             rows.append(r)
             cols.append(c)
         idx = np.arange(dof_count)
@@ -115,53 +102,9 @@ class StaticPattern:
         at ``[e, s, r]`` (where those are >= 0): every global upper entry then receives its value once
         (twice where two local DoFs are the same global DoF, as the full block sum does).
         """
-        rows, cols = _block_keys(np.asarray(vertices), self.dof_count)
+        rows, cols = block_keys(np.asarray(vertices), self.dof_count)
         k, m = np.asarray(vertices).shape
         return self.lookup(rows, cols).reshape(k, 3 * m, 3 * m)
-
-
-class _UnionPattern:
-    """The static pattern plus a set of dynamic keys, as CSR arrays.
-
-    Attributes:
-        pattern: the :class:`StaticPattern`.
-        dyn_keys: sorted unique dynamic keys ``row * n + col`` (some may also be static keys).
-        last_used: assembly counter of the last use of each dynamic key.
-        keys, static_slots, indptr, indices, nnz: the union's sorted keys, the slot of each static
-            key, and the CSR arrays.
-        dyn_slots: the slot of each dynamic key.
-    """
-
-    def __init__(self, pattern: StaticPattern, dyn_keys: np.ndarray, dof_count: int) -> None:
-        n = dof_count
-        self.pattern = pattern
-        self.dyn_keys = dyn_keys
-        self.last_used = np.zeros(dyn_keys.size, dtype=np.int64)
-        static = pattern.keys
-        # merge two sorted unique key arrays in linear time (no re-sort of the static keys)
-        pos = np.minimum(np.searchsorted(static, dyn_keys), max(static.size - 1, 0))
-        extra = dyn_keys[static[pos] != dyn_keys] if static.size else dyn_keys
-        self.keys = np.insert(static, np.searchsorted(static, extra), extra)
-        self.static_slots = np.arange(static.size) + np.searchsorted(extra, static)
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(self.keys // n, minlength=n), out=indptr[1:])
-        # int32 like the indices (SciPy stores them so anyway when they fit): the CSR matrix of each
-        # assembly is then built without converting and re-checking the index arrays
-        self.indptr = indptr.astype(np.int32) if self.keys.size < np.iinfo(np.int32).max else indptr
-        self.indices = (self.keys % n).astype(np.int32)
-        self.nnz = self.keys.size
-        self.dyn_slots = np.searchsorted(self.keys, dyn_keys)
-
-    def index(self, lin: np.ndarray) -> np.ndarray | None:
-        """Positions of the keys ``lin`` in :attr:`dyn_keys`, or None if one of them is not there."""
-        if not self.dyn_keys.size:
-            return None if lin.size else np.zeros(0, np.int64)
-        pos = np.minimum(np.searchsorted(self.dyn_keys, lin), self.dyn_keys.size - 1)
-        return pos if np.array_equal(self.dyn_keys[pos], lin) else None
-
-    def recent(self, count: int) -> np.ndarray:
-        """Dynamic keys used within the last :data:`STICKY_ASSEMBLIES` assemblies before ``count``."""
-        return self.dyn_keys[self.last_used > count - STICKY_ASSEMBLIES]
 
 
 class HessianAssembler:
@@ -176,10 +119,7 @@ class HessianAssembler:
         self._static_key: tuple | None = None
         self._static: StaticPattern | None = None
         self._keep_alive: list[np.ndarray] = []
-        self._union: _UnionPattern | None = None
-        # per dynamic block set: (signature, kept entry index, kept keys, (union, slots, dyn-key index))
-        self._dynamic_map: list | None = None
-        self._assemblies = 0
+        self._dynamic = DynamicMerge(dof_count)
 
     def static_pattern(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray) -> StaticPattern:
         """The cached pattern of the static element-vertex arrays (rebuilt when they or ``free`` change).
@@ -193,8 +133,6 @@ class HessianAssembler:
             self._static = StaticPattern(list(vertex_arrays), free, self.dof_count)
             self._static_key = key
             self._keep_alive = list(vertex_arrays)  # ids stay unique while referenced
-            self._union = None
-            self._dynamic_map = None
         return self._static
 
     def assemble_upper(
@@ -248,56 +186,6 @@ class HessianAssembler:
     def _merge_dynamic(
         self, pat: StaticPattern, static_data: np.ndarray, dynamic: Sequence[HessianBlocks], free: np.ndarray
     ) -> sp.csr_matrix:
-        """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks.
-
-        Per dynamic block set (by position in ``dynamic``), the kept entries and their keys are
-        kept with its vertex array (by value), and their slots with the union pattern: friction
-        pairs are fixed for a step, contact pairs often repeat between iterations, and the merge is
-        then one gather per block set and one ``bincount``.
-        """
-        n = self.dof_count
-        self._assemblies += 1
-        blocks = [b for b in dynamic if b.blocks.shape[0]]
-        free_key = (pat, np.packbits(free).tobytes())
-        maps = self._dynamic_map if self._dynamic_map is not None else []
-        maps = maps[: len(blocks)]
-        for k, b in enumerate(blocks):
-            signature = (free_key, b.vertices.shape, b.vertices.tobytes())
-            if k < len(maps) and maps[k][0] == signature:
-                continue
-            r, c = _block_keys(b.vertices, n)
-            keep = (r <= c) & free[r] & free[c]
-            entry = (signature, np.flatnonzero(keep), r[keep] * n + c[keep], None)  # (.., index, keys, slots)
-            if k < len(maps):
-                maps[k] = entry
-            else:
-                maps.append(entry)
-        union = self._union
-        if union is not None and union.pattern is not pat:
-            union = None
-        for k, m in enumerate(maps):
-            if union is not None and (m[3] is None or m[3][0] is not union):
-                index = union.index(m[2])
-                if index is None:  # an entry outside the union: rebuild it below
-                    union = None
-                else:
-                    maps[k] = m[:3] + ((union, union.dyn_slots[index], index),)
-        if union is None:
-            old = self._union
-            kept = [old.recent(self._assemblies)] if old is not None and old.pattern is pat else []
-            union = _UnionPattern(pat, np.unique(np.concatenate(kept + [m[2] for m in maps] + [np.zeros(0, np.int64)])), n)
-            self._union = union
-            for k, m in enumerate(maps):
-                index = union.index(m[2])
-                maps[k] = m[:3] + ((union, union.dyn_slots[index], index),)
-        self._dynamic_map = maps
-        data = np.zeros(union.nnz)
-        data[union.static_slots] = static_data
-        if blocks:
-            for m in maps:
-                union.last_used[m[3][2]] = self._assemblies
-            slots = np.concatenate([m[3][1] for m in maps])
-            values = np.concatenate([b.blocks.reshape(-1)[m[1]] for b, m in zip(blocks, maps)])
-            data += np.bincount(slots, weights=values, minlength=union.nnz)
-        indices, indptr = union.indices, union.indptr
-        return sp.csr_matrix((data, indices, indptr), shape=(n, n))
+        """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks
+        (:meth:`sim_core.dynamic_slots.DynamicMerge.merge`)."""
+        return self._dynamic.merge(pat, static_data, dynamic, free)

@@ -89,6 +89,7 @@ def test_press_bad_input_and_sigint_recording(ros_env, tmp_path, client):
     try:
         cmd = node.create_publisher(PoseStamped, "/thinshell/ee/pose_cmd", COMMAND_QOS)
         assert spin_until(ex, lambda: proc.poll() is not None or (bool(got["clock"]) and bool(got["wrench"])
+                                                                  and bool(got["markers"])
                                                                   and cmd.get_subscription_count() > 0), START_TIMEOUT)
         assert proc.poll() is None, (tmp_path / "node.log").read_text()
         fz0 = got["wrench"][-1][1][2]

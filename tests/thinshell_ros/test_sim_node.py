@@ -69,8 +69,9 @@ def test_pressing_raises_normal_force_and_moves_markers(ros_context):
     node = _node(ros_context, publish_image=True)
     c = Client(ros_context, node)
     c.send_pose(HOME + np.r_[0, 0, -0.0045, 0, 0, 0, 0])  # 0.8 mm into the plane at z = 0.3 mm
-    assert spin_until(c.ex, lambda: c.got["wrench"] and c.got["wrench"][-1][1][2] < -0.79 and c.got["markers"][-1][1][0, 2]
-                      < -0.00079 and c.got["pose"][-1][1][2] < HOME[2] - 0.00449, 10.0)
+    assert spin_until(c.ex, lambda: c.got["wrench"] and c.got["markers"] and c.got["pose"]
+                      and c.got["wrench"][-1][1][2] < -0.79 and c.got["markers"][-1][1][0, 2] < -0.00079
+                      and c.got["pose"][-1][1][2] < HOME[2] - 0.00449, 10.0)
     _, z = c.got["pose"][-1]
     assert z[2] == pytest.approx(HOME[2] - 0.0045)
     assert c.got["markers"][-1][1][:, 2] == pytest.approx(-0.0008) and c.got["markers"][0][1][:, 2] == pytest.approx(0.0)
