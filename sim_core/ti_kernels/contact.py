@@ -3,9 +3,11 @@
 :class:`TiVertexTriangleContact` and :class:`TiEdgeEdgeContact` subclass the NumPy reference
 potentials of :mod:`sim_core.potentials.contact` and replace only the contact distance and its
 derivatives (:mod:`sim_core.ti_kernels.contact_distance`); the penalty algebra, side handling,
-contact frames and ``parameter_gradient`` stay the reference's. The distances and gradients equal
-the reference bit for bit, the distance Hessians to round-off (1e-15 relative). Every pair is
-measured by the kernel (no prefilter: the kernel is cheaper than the bounds).
+and ``parameter_gradient`` stay the reference's. The distances and gradients equal the reference
+bit for bit, the distance Hessians to round-off (1e-15 relative). Every pair is measured by the
+kernel (no prefilter: the kernel is cheaper than the bounds). The contact frames (friction's
+closest-point weights and normals) come from one launch of
+:func:`sim_core.ti_kernels.contact_setup.contact_frames` (equal to the reference to round-off).
 """
 
 from __future__ import annotations
@@ -13,8 +15,16 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.collision.distances import DistanceDerivatives
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
-from sim_core.ti_kernels import contact_distance
+from sim_core.potentials.contact import ContactFrames, EdgeEdgeContact, VertexTriangleContact
+from sim_core.ti_kernels import contact_distance, contact_setup
+
+
+def _frames(pot, x: np.ndarray, point_first: bool) -> ContactFrames:
+    """The reference ``contact_frames`` of ``pot`` with weights and normals from one kernel launch."""
+    act, dd = pot._evaluate(x, 0)  # the kept evaluation of x when there is one
+    vertices = pot.vertices[act]
+    weights, normal = contact_setup.contact_frames(x, vertices, pot.sides[act], point_first)
+    return ContactFrames(vertices, weights, normal, pot.stiffness * (pot.eps - dd.d), act)
 
 
 class TiVertexTriangleContact(VertexTriangleContact):
@@ -29,6 +39,11 @@ class TiVertexTriangleContact(VertexTriangleContact):
         active = np.flatnonzero(d < self.eps)
         return active, d[active]
 
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.potentials.contact.VertexTriangleContact.contact_frames`
+        (weights and normals from :func:`sim_core.ti_kernels.contact_setup.contact_frames`)."""
+        return _frames(self, x, True)
+
 
 class TiEdgeEdgeContact(EdgeEdgeContact):
     """:class:`~sim_core.potentials.contact.EdgeEdgeContact` on the Taichi distance kernels
@@ -41,3 +56,8 @@ class TiEdgeEdgeContact(EdgeEdgeContact):
         d = self._distance(z, self.sides, 0).d
         active = np.flatnonzero(d < self.eps)
         return active, d[active]
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.potentials.contact.EdgeEdgeContact.contact_frames`
+        (weights and normals from :func:`sim_core.ti_kernels.contact_setup.contact_frames`)."""
+        return _frames(self, x, False)

@@ -22,6 +22,7 @@ vertices in pair order), parallel on CUDA. Results equal the reference to round-
 import numpy as np
 
 from sim_core.potentials.base import HessianBlocks, Projection
+from sim_core.potentials.contact import ContactFrames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
@@ -136,6 +137,16 @@ class TiLaggedFriction(LaggedFriction):
     """:class:`~sim_core.potentials.friction.LaggedFriction` with energy, gradient and Hessian on the
     Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
     :func:`sim_core.ti_backend.init_backend`)."""
+
+    @classmethod
+    def from_frames(cls, frames: ContactFrames, mu: np.ndarray | float, x_prev: np.ndarray, eps_v: float,
+                    dt: float) -> "TiLaggedFriction":
+        """As the reference :meth:`~sim_core.potentials.friction.LaggedFriction.from_frames`, the
+        tangent bases from one launch of :func:`sim_core.ti_kernels.contact_setup.tangent_basis`
+        (equal to the reference's bit for bit)."""
+        from sim_core.ti_kernels.contact_setup import tangent_basis
+
+        return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
         arrays = getattr(self, "_arrays", None)
