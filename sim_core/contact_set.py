@@ -295,8 +295,12 @@ class ContactSet:
         keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         ee, ee_sides = ee[keep], ee_sides[keep]
-        return ((self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides)),
-                (vt_sides, ee_sides))
+        pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.contact_batch import PairBatch
+
+            PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
+        return pots, (vt_sides, ee_sides)
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
         """Contact potentials for the candidates near iterate ``x`` (planes and spheres included)."""

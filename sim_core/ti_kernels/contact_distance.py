@@ -352,23 +352,30 @@ def _point_point_derivatives(z: ti.template(), k: ti.i32, i: ti.i32, j: ti.i32,
     return d
 
 
+@ti.func
+def _pair_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.template(), d: ti.template(),
+                      region: ti.template(), grad: ti.template(), hess: ti.template()):
+    """Distance ``d[k]``, region ``region[k]``, gradient row ``grad[k]`` and Hessian ``hess[k]`` of pair ``k``."""
+    for a in range(12):
+        grad[k, a] = 0.0
+        for b in range(12):
+            hess[k, a, b] = 0.0
+    reg, kind, i, j, l = _region_and_slots(z, k, point_first)
+    region[k] = reg
+    if kind == 0:
+        d[k] = _plane_derivatives(z, k, side, point_first, grad, hess)
+    elif kind == 1:
+        d[k] = _point_line_derivatives(z, k, i, j, l, grad, hess)
+    else:
+        d[k] = _point_point_derivatives(z, k, i, j, grad, hess)
+
+
 @fast_kernel
 def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1,
                         grad: _F64_2, hess: _F64_3):
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
-        for a in range(12):
-            grad[k, a] = 0.0
-            for b in range(12):
-                hess[k, a, b] = 0.0
-        reg, kind, i, j, l = _region_and_slots(z, k, point_first)
-        region[k] = reg
-        if kind == 0:
-            d[k] = _plane_derivatives(z, k, side[k], point_first, grad, hess)
-        elif kind == 1:
-            d[k] = _point_line_derivatives(z, k, i, j, l, grad, hess)
-        else:
-            d[k] = _point_point_derivatives(z, k, i, j, grad, hess)
+        _pair_derivatives(z, k, side[k], point_first, d, region, grad, hess)
 
 
 def _contact_distance(z: np.ndarray, side: np.ndarray, order: int, point_first: bool) -> DistanceDerivatives:
