@@ -11,7 +11,9 @@ the active pairs ``d < eps``), and each potential keeps its part as its evaluati
 ``_last`` of :meth:`sim_core.potentials.contact._PairPenalty._evaluate`), so the second request
 finds it there.
 
-The kernel calls the same Taichi functions as the separate kernels, so every distance, gradient and
+When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
+point, the next Newton iterate), the derivatives are computed for their active pairs only. The
+kernel calls the same Taichi functions as the separate kernels, so every distance, gradient and
 Hessian equals theirs bit for bit (tests).
 """
 
@@ -31,31 +33,33 @@ _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _pair(x: ti.template(), vertices: ti.template(), k: ti.i32, side: ti.f64, eps: ti.f64,
-          point_first: ti.template(), derivatives: ti.template(), z: ti.template(), d: ti.template(),
-          region: ti.template(), grad: ti.template(), hess: ti.template()):
-    region[k], d[k] = cd._distance_value(z, k, side, point_first)
+def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.template(),
+          derivatives: ti.template(), d: ti.template(), region: ti.template(), grad: ti.template(),
+          hess: ti.template()):
+    region[i], d[i] = cd._distance_value(z, i, side, point_first)
     if ti.static(derivatives):
-        if d[k] < eps:
-            cd._pair_derivatives(z, k, side, point_first, d, region, grad, hess)
+        if d[i] < eps:
+            cd._pair_derivatives(z, i, side, point_first, d, region, grad, hess)
 
 
 @fast_kernel
-def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, split: ti.i32, eps_vt: ti.f64, eps_ee: ti.f64,
-                  derivatives: ti.template(), z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3):
-    """Pairs ``[0, split)`` vertex-triangle, the rest edge-edge: positions gathered into ``z``,
-    distance and region of every pair; with ``derivatives`` the gradient and Hessian rows of the
-    pairs with ``d < eps`` of their kind (the other rows are left as they are)."""
+def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, split: ti.i32, eps_vt: ti.f64,
+                  eps_ee: ti.f64, derivatives: ti.template(), z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2,
+                  hess: _F64_3):
+    """Pairs ``k = rows[i]`` (``k < split`` vertex-triangle, else edge-edge): positions gathered into
+    ``z[i]``, distance ``d[i]`` and region; with ``derivatives`` the gradient and Hessian rows ``i``
+    of the pairs with ``d < eps`` of their kind (the other rows are left as they are)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
+    for i in range(rows.shape[0]):
+        k = rows[i]
         for a in ti.static(range(4)):
             v = vertices[k, a]
             for c in ti.static(range(3)):
-                z[k, a, c] = x[v, c]
+                z[i, a, c] = x[v, c]
         if k < split:
-            _pair(x, vertices, k, side[k], eps_vt, True, derivatives, z, d, region, grad, hess)
+            _pair(z, i, side[k], eps_vt, True, derivatives, d, region, grad, hess)
         else:
-            _pair(x, vertices, k, side[k], eps_ee, False, derivatives, z, d, region, grad, hess)
+            _pair(z, i, side[k], eps_ee, False, derivatives, d, region, grad, hess)
 
 
 class PairBatch:
@@ -79,34 +83,51 @@ class PairBatch:
         self.split = int(vt.vertices.shape[0])
         self.vertices = np.ascontiguousarray(np.concatenate([vt.vertices, ee.vertices]), dtype=np.int32)
         self.sides = np.ascontiguousarray(np.concatenate([vt.sides, ee.sides]), dtype=np.float64)
-        self._none = (np.empty((0, 12)), np.empty((0, 12, 12)))
+        k = self.vertices.shape[0]
+        self._all = np.arange(k, dtype=np.int32)
+        # work arrays, reused by every evaluation (the potentials keep copies of their rows)
+        self._z, self._d, self._region = np.empty((k, 4, 3)), np.empty(k), np.empty(k, dtype=np.int32)
+        self._grad, self._hess = np.empty((k, 12)), np.empty((k, 12, 12))
         vt._batch = ee._batch = self
 
     def evaluate(self, x: np.ndarray, derivatives: bool) -> None:
         """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
         evaluation of ``x``: active pairs and distances, with ``derivatives`` also their gradients
-        ``(a, 12)`` and Hessians ``(a, 12, 12)`` (a potential that already keeps an evaluation of
-        ``x`` at least as complete keeps it)."""
-        k = self.vertices.shape[0]
-        d = np.empty(k)
-        region = np.empty(k, dtype=np.int32)
-        grad, hess = (np.empty((k, 12)), np.empty((k, 12, 12))) if derivatives else self._none
-        if k:
-            _batch_kernel(np.ascontiguousarray(x, dtype=np.float64), self.vertices, self.sides, self.split,
-                          float(self.vt.eps), float(self.ee.eps), bool(derivatives), np.empty((k, 4, 3)),
-                          d, region, grad, hess)
+        ``(a, 12)`` and Hessians ``(a, 12, 12)``. Derivatives after both kept the distances of ``x``
+        are computed for their active pairs only; a potential that already keeps an evaluation of
+        ``x`` at least as complete keeps it."""
+        pots = (self.vt, self.ee)
+        kept = [pot.kept_evaluation(x, 0) for pot in pots]
+        if derivatives and kept[0] is not None and kept[1] is not None:
+            rows = np.concatenate([kept[0][0], kept[1][0] + self.split]).astype(np.int32)
+            parts = (slice(0, len(kept[0][0])), slice(len(kept[0][0]), len(rows)))
+        else:
+            rows, kept = self._all, [None, None]
+            parts = (slice(0, self.split), slice(self.split, len(rows)))
+        m = len(rows)
+        d, region, grad, hess = self._d[:m], self._region[:m], self._grad[:m], self._hess[:m]
+        if not derivatives:
+            grad, hess = grad[:0], hess[:0]
+        if m:
+            _batch_kernel(np.ascontiguousarray(x, dtype=np.float64), self.vertices, self.sides, rows, self.split,
+                          float(self.vt.eps), float(self.ee.eps), bool(derivatives), self._z[:m], d, region,
+                          grad, hess)
         order = 2 if derivatives else 0
         x_kept = np.array(x, dtype=float, copy=True)
-        for pot, rows in ((self.vt, slice(0, self.split)), (self.ee, slice(self.split, k))):
+        for pot, part, known in zip(pots, parts, kept):
             if pot.kept_evaluation(x, order) is not None:
                 continue
-            dk = d[rows]
-            active = np.flatnonzero(dk < pot.eps)
+            dk = d[part]
+            if known is None:
+                active = np.flatnonzero(dk < pot.eps)
+                select = active
+            else:  # the rows are the known active pairs, in order
+                active, select = known[0], slice(None)
             if derivatives:
-                dd = DistanceDerivatives(dk[active], grad[rows][active], hess[rows][active],
-                                         region[rows][active].astype(np.int64))
+                dd = DistanceDerivatives(dk[select].copy(), grad[part][select].copy(), hess[part][select].copy(),
+                                         region[part][select].astype(np.int64))
             else:
-                dd = DistanceDerivatives(dk[active], None, None, np.zeros(active.shape, np.int64))
+                dd = DistanceDerivatives(dk[select].copy(), None, None, np.zeros(active.shape, np.int64))
             pot._last = (order, x_kept, active, dd, pot.eps)
 
 

@@ -37,12 +37,13 @@ def _potentials(count: int = 400, vt_rows: slice = slice(None), ee_rows: slice =
 
 
 def _launches(monkeypatch) -> list:
-    """Counts the batch kernel's launches (and fails on any separate distance launch)."""
+    """Records ``(derivatives, pairs evaluated)`` of each batch kernel launch (and fails on any
+    separate distance launch)."""
     from sim_core.ti_kernels import contact_batch, contact_distance
 
     calls = []
     kernel = contact_batch._batch_kernel
-    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append(a[6]), kernel(*a)))
+    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[7], len(a[3]))), kernel(*a)))
 
     def forbidden(*a):
         raise AssertionError("a separate distance kernel was launched")
@@ -66,19 +67,21 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
         assert pot.energy(x) == energy
         np.testing.assert_array_equal(pot.active_mask(x), mask)
         np.testing.assert_array_equal(pot.contact_frames(x).lam, lam)
-    assert calls == [False]  # values of both kinds at x: one launch
+    total = len(linked[0].pairs) + len(linked[1].pairs)
+    active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
+    assert 0 < active < total
+    assert calls == [(False, total)]  # values of both kinds at x: one launch
     for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
         np.testing.assert_array_equal(pot.gradient(x), grad)
         for h, h_ref in ((pot.hessian(x, "none"), h_none), (pot.hessian(x, "clamp"), h_clamp)):
             np.testing.assert_array_equal(h.vertices, h_ref.vertices)
             np.testing.assert_array_equal(h.blocks, h_ref.blocks)
-    assert calls == [False, True]  # derivatives of both at x: one more
-    assert sum(int(np.count_nonzero(p.active_mask(x))) for p in linked) > 0
+    assert calls == [(False, total), (True, active)]  # derivatives of the active pairs of both: one more
     # new positions: gradient first (values and derivatives in one launch), then the energy is kept
     for pot, (grad, energy) in zip(linked, expected_y):
         np.testing.assert_array_equal(pot.gradient(y), grad)
         assert pot.energy(y) == energy
-    assert calls == [False, True, True]
+    assert calls == [(False, total), (True, active), (True, total)]
 
 
 def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
