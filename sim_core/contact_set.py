@@ -168,12 +168,16 @@ class ContactSet:
 
     def _grouped_search(self):
         """The box-pair search of the broad phase: the Taichi sweep kernel
-        (:func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`, same pairs) when the model's
-        kernel backend is ``"taichi"``, else None (the k-d trees of :mod:`sim_core.collision.candidates`)."""
+        (:class:`sim_core.ti_kernels.broad_phase.SweepSearch`, same pairs as
+        :func:`~sim_core.ti_kernels.broad_phase.grouped_box_pairs`, keeping its sweep axis across this
+        contact set's searches) when the model's kernel backend is ``"taichi"``, else None (the k-d
+        trees of :mod:`sim_core.collision.candidates`)."""
         if self.model.meta.get("elastic_backend") == "taichi":
-            from sim_core.ti_kernels.broad_phase import grouped_box_pairs
+            if getattr(self, "_sweep_search", None) is None:
+                from sim_core.ti_kernels.broad_phase import SweepSearch
 
-            return grouped_box_pairs
+                self._sweep_search = SweepSearch()
+            return self._sweep_search
         return None
 
     def _pair_classes(self) -> tuple[type, type]:
