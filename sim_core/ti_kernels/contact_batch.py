@@ -83,11 +83,7 @@ class PairBatch:
         self.split = int(vt.vertices.shape[0])
         self.vertices = np.ascontiguousarray(np.concatenate([vt.vertices, ee.vertices]), dtype=np.int32)
         self.sides = np.ascontiguousarray(np.concatenate([vt.sides, ee.sides]), dtype=np.float64)
-        k = self.vertices.shape[0]
-        self._all = np.arange(k, dtype=np.int32)
-        # work arrays, reused by every evaluation (the potentials keep copies of their rows)
-        self._z, self._d, self._region = np.empty((k, 4, 3)), np.empty(k), np.empty(k, dtype=np.int32)
-        self._grad, self._hess = np.empty((k, 12)), np.empty((k, 12, 12))
+        self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
         vt._batch = ee._batch = self
 
     def evaluate(self, x: np.ndarray, derivatives: bool) -> None:
@@ -104,14 +100,15 @@ class PairBatch:
         else:
             rows, kept = self._all, [None, None]
             parts = (slice(0, self.split), slice(self.split, len(rows)))
+        # work arrays of this evaluation only (potentials kept for the adjoint must not hold them)
         m = len(rows)
-        d, region, grad, hess = self._d[:m], self._region[:m], self._grad[:m], self._hess[:m]
-        if not derivatives:
-            grad, hess = grad[:0], hess[:0]
+        d, region = np.empty(m), np.empty(m, dtype=np.int32)
+        rows_d = m if derivatives else 0
+        grad, hess = np.empty((rows_d, 12)), np.empty((rows_d, 12, 12))
         if m:
             _batch_kernel(np.ascontiguousarray(x, dtype=np.float64), self.vertices, self.sides, rows, self.split,
-                          float(self.vt.eps), float(self.ee.eps), bool(derivatives), self._z[:m], d, region,
-                          grad, hess)
+                          float(self.vt.eps), float(self.ee.eps), bool(derivatives), np.empty((m, 4, 3)), d,
+                          region, grad, hess)
         order = 2 if derivatives else 0
         x_kept = np.array(x, dtype=float, copy=True)
         for pot, part, known in zip(pots, parts, kept):
