@@ -22,18 +22,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim_core.collision import (
-    CollisionMemory,
-    EdgeEdgeRegion,
-    PointTriangleRegion,
-    edge_edge_closest_points,
-    point_triangle_region,
-    PairFilter,
-    edge_edge_candidates,
-    edge_edge_side,
-    point_triangle_side,
-    vertex_triangle_candidates,
-)
+from sim_core.collision import CollisionMemory, PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
@@ -178,12 +168,16 @@ class ContactSet:
 
     def _grouped_search(self):
         """The box-pair search of the broad phase: the Taichi sweep kernel
-        (:func:`sim_core.ti_kernels.broad_phase.grouped_box_pairs`, same pairs) when the model's
-        kernel backend is ``"taichi"``, else None (the k-d trees of :mod:`sim_core.collision.candidates`)."""
+        (:class:`sim_core.ti_kernels.broad_phase.SweepSearch`, same pairs as
+        :func:`~sim_core.ti_kernels.broad_phase.grouped_box_pairs`, keeping its sweep axis across this
+        contact set's searches) when the model's kernel backend is ``"taichi"``, else None (the k-d
+        trees of :mod:`sim_core.collision.candidates`)."""
         if self.model.meta.get("elastic_backend") == "taichi":
-            from sim_core.ti_kernels.broad_phase import grouped_box_pairs
+            if getattr(self, "_sweep_search", None) is None:
+                from sim_core.ti_kernels.broad_phase import SweepSearch
 
-            return grouped_box_pairs
+                self._sweep_search = SweepSearch()
+            return self._sweep_search
         return None
 
     def _pair_classes(self) -> tuple[type, type]:
@@ -224,55 +218,63 @@ class ContactSet:
         """
         return np.where(above, remembered, 0.0)
 
-    def _vertex_triangle_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray) -> np.ndarray:
-        """Step sides (:meth:`_step_sides`) of vertex-triangle pairs ``vt`` ``(p, 2)`` at ``x_ref``, shape ``(p,)``."""
-        if not len(vt):
-            return memory.vertex_triangle.resolve(vt, np.zeros(0))
-        z = np.concatenate([x_ref[vt[:, :1]], x_ref[self.triangles[vt[:, 1]]]], axis=1)
-        return self._step_sides(self._above_face(z), memory.vertex_triangle.resolve(vt, point_triangle_side(z)))
+    def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
+        """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
+        ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on the model's Taichi backend one
+        kernel launch for both kinds (:func:`sim_core.ti_kernels.contact_setup.pair_geometry`), else the
+        NumPy reference."""
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.contact_setup import pair_geometry as geometry
+        else:
+            geometry = pair_geometry
+        return geometry(x, vt_vertices, ee_vertices)
 
-    def _edge_edge_sides(self, x_ref: np.ndarray, memory: CollisionMemory, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(keep, sides)`` of edge-edge pairs ``ee`` ``(p, 2)`` at ``x_ref``, shape ``(p,)`` each.
+    def _pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(vt sides, ee keep, ee sides)`` of vertex-triangle pairs ``vt`` ``(p, 2)`` and edge-edge
+        pairs ``ee`` ``(q, 2)`` at ``x_ref``, shapes ``(p,)``, ``(q,)``, ``(q,)``.
 
-        Near-parallel edge pairs have no well-defined side (the cross product of their directions
-        vanishes) and switch distance definitions as they rotate; their contact is carried by the
-        vertex-triangle pairs of the same configuration, so they are left out (``keep`` False,
-        side 0; decided at x^n, so the set is fixed within the step). ``sides``: the step sides
-        (:meth:`_step_sides`) of the kept pairs.
+        ``vt sides``: the step sides (:meth:`_step_sides`). Near-parallel edge pairs have no
+        well-defined side (the cross product of their directions vanishes) and switch distance
+        definitions as they rotate; their contact is carried by the vertex-triangle pairs of the
+        same configuration, so they are left out (``keep`` False, side 0; decided at x^n, so the set
+        is fixed within the step). ``ee sides``: the step sides of the kept pairs.
         """
-        sides = np.zeros(len(ee))
-        if not len(ee):
-            return np.zeros(0, dtype=bool), sides
-        z = np.concatenate([x_ref[self.edges[ee[:, 0]]], x_ref[self.edges[ee[:, 1]]]], axis=1)
-        da = x_ref[self.edges[ee[:, 0], 1]] - x_ref[self.edges[ee[:, 0], 0]]
-        db = x_ref[self.edges[ee[:, 1], 1]] - x_ref[self.edges[ee[:, 1], 0]]
-        sin = np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
-        keep = sin > self.min_edge_sine
-        kept, z = ee[keep], z[keep]
-        kept_sides = memory.edge_edge.resolve(kept, edge_edge_side(z) if len(kept) else np.zeros(0))
-        if len(kept):
-            kept_sides = self._step_sides(self._interior(z), kept_sides)
-        sides[keep] = kept_sides
-        return keep, sides
+        vt_vertices = np.concatenate([vt[:, :1], self.triangles[vt[:, 1]]], axis=1)
+        ee_vertices = np.concatenate([self.edges[ee[:, 0]], self.edges[ee[:, 1]]], axis=1)
+        geo = self._pair_geometry(x_ref, vt_vertices, ee_vertices)
+        vt_sides = self._step_sides(geo.vt_above, memory.vertex_triangle.resolve(vt, geo.vt_side))
+        keep = geo.ee_sine > self.min_edge_sine
+        ee_sides = np.zeros(len(ee))
+        ee_sides[keep] = self._step_sides(geo.ee_interior[keep], memory.edge_edge.resolve(ee[keep], geo.ee_side[keep]))
+        return vt_sides, keep, ee_sides
 
     @staticmethod
-    def _per_pair(old: tuple | None, pairs: np.ndarray, compute) -> tuple:
-        """``compute(pairs)`` (a tuple of per-pair arrays), taking the rows of pairs in ``old``
-        (``(old pairs, old arrays)`` of the same step) from there and computing only the others:
-        the per-pair results do not depend on which other pairs are in the list."""
+    def _lookup(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pos, found)`` of ``pairs`` ``(p, 2)`` in ``old`` (``(old pairs, old arrays)`` of the same
+        step, sorted: candidate lists are sorted): rows ``pos`` of the old arrays hold the pairs
+        ``found`` (bool ``(p,)``)."""
         if old is None or not len(old[0]) or not len(pairs):
-            return compute(pairs)
-        old_pairs, old_values = old
+            return np.zeros(len(pairs), dtype=np.int64), np.zeros(len(pairs), dtype=bool)
+        old_pairs = old[0]
         keys = (pairs[:, 0] << 32) | pairs[:, 1]
-        old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]  # sorted: candidate lists are sorted
+        old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]
         pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-        found = old_keys[pos] == keys
+        return pos, old_keys[pos] == keys
+
+    @staticmethod
+    def _merge(old: tuple | None, pos: np.ndarray, found: np.ndarray, fresh: tuple) -> tuple:
+        """Per-pair arrays over a pair list: the rows ``found`` taken from ``old`` (:meth:`_lookup`),
+        the others from ``fresh`` (computed for the pairs not found, in order): the per-pair results
+        do not depend on which other pairs are in the list."""
+        if not np.any(found):
+            return fresh
+        old_values = old[1]
         if np.all(found):
             return tuple(v[pos] for v in old_values)
-        fresh = compute(pairs[~found])
         out = []
         for v, f in zip(old_values, fresh):
-            merged = np.empty(len(pairs), dtype=v.dtype)
+            merged = np.empty(len(found), dtype=v.dtype)
             merged[found] = v[pos[found]]
             merged[~found] = f
             out.append(merged)
@@ -280,18 +282,29 @@ class ContactSet:
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
-        step's previous candidate lists are taken from there (same values, computed once)."""
+        step's previous candidate lists are taken from there (same values, computed once), those of
+        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
         if table is None or table[0] is not memory or table[1] is not x_ref or self.x_prev is None:
             table = (memory, x_ref, None, None)
-        (vt_sides,) = self._per_pair(table[2], vt, lambda p: (self._vertex_triangle_sides(x_ref, memory, p),))
-        keep, ee_sides = self._per_pair(table[3], ee, lambda p: self._edge_edge_sides(x_ref, memory, p))
+        vt_pos, vt_found = self._lookup(table[2], vt)
+        ee_pos, ee_found = self._lookup(table[3], ee)
+        if np.all(vt_found) and np.all(ee_found):  # nothing new (an empty list included)
+            fresh = (np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0))
+        else:
+            fresh = self._pair_sides(x_ref, memory, vt[~vt_found], ee[~ee_found])
+        (vt_sides,) = self._merge(table[2], vt_pos, vt_found, fresh[:1])
+        keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         ee, ee_sides = ee[keep], ee_sides[keep]
-        return ((self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides)),
-                (vt_sides, ee_sides))
+        pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        if self.model.meta.get("elastic_backend") == "taichi":
+            from sim_core.ti_kernels.contact_batch import PairBatch
+
+            PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
+        return pots, (vt_sides, ee_sides)
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
         """Contact potentials for the candidates near iterate ``x`` (planes and spheres included)."""
@@ -347,22 +360,15 @@ class ContactSet:
         """
         vt, ee = self._pairs(x, memory)
         out = memory.copy()
-        for pot, mem, above in ((vt, out.vertex_triangle, self._above_face), (ee, out.edge_edge, self._interior)):
-            keep = pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool)
-            if np.any(keep):
-                keep[keep] = above(x[pot.vertices[keep]])
-            mem.update(pot.pairs[keep], pot.resolved_sides(x, keep))
+        vt_keep, ee_keep = (pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool) for pot in (vt, ee))
+        geo = self._pair_geometry(x, vt.vertices[vt_keep], ee.vertices[ee_keep])
+        for pot, mem, keep, above, geometric in ((vt, out.vertex_triangle, vt_keep, geo.vt_above, geo.vt_side),
+                                                 (ee, out.edge_edge, ee_keep, geo.ee_interior, geo.ee_side)):
+            rows = np.flatnonzero(keep)[above]
+            sides = pot.sides[rows]
+            # an unsigned pair takes the side of x itself (the potential's resolved_sides)
+            mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
         return out
-
-    @staticmethod
-    def _above_face(z: np.ndarray) -> np.ndarray:
-        """Vertex-triangle pairs ``z`` (k, 4, 3) whose vertex is above the face, (k,) bool."""
-        return point_triangle_region(z[:, 0], z[:, 1], z[:, 2], z[:, 3]) == PointTriangleRegion.FACE
-
-    @staticmethod
-    def _interior(z: np.ndarray) -> np.ndarray:
-        """Edge-edge pairs ``z`` (k, 4, 3) with both closest points interior, (k,) bool."""
-        return edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[2] == EdgeEdgeRegion.INTERIOR
 
 
 def _sheet_vertices(model: Model) -> np.ndarray:

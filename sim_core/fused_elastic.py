@@ -278,9 +278,11 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
-    from sim_core.ti_kernels import broad_phase, contact_distance, friction
+    from sim_core.ti_kernels import broad_phase, contact_batch, contact_distance, contact_setup, friction
 
     contact_distance.compile_kernels()
+    contact_batch.compile_kernels()
+    contact_setup.compile_kernels()
     broad_phase.compile_kernels()
     friction.compile_kernels()
     return time.perf_counter() - t0

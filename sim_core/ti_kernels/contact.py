@@ -3,9 +3,13 @@
 :class:`TiVertexTriangleContact` and :class:`TiEdgeEdgeContact` subclass the NumPy reference
 potentials of :mod:`sim_core.potentials.contact` and replace only the contact distance and its
 derivatives (:mod:`sim_core.ti_kernels.contact_distance`); the penalty algebra, side handling,
-contact frames and ``parameter_gradient`` stay the reference's. The distances and gradients equal
-the reference bit for bit, the distance Hessians to round-off (1e-15 relative). Every pair is
-measured by the kernel (no prefilter: the kernel is cheaper than the bounds).
+and ``parameter_gradient`` stay the reference's. The distances and gradients equal the reference
+bit for bit, the distance Hessians to round-off (1e-15 relative). Every pair is measured by the
+kernel (no prefilter: the kernel is cheaper than the bounds). The contact frames (friction's
+closest-point weights and normals) come from one launch of
+:func:`sim_core.ti_kernels.contact_setup.contact_frames` (equal to the reference to round-off).
+Linked by a :class:`~sim_core.ti_kernels.contact_batch.PairBatch`, a vertex-triangle and an edge-edge
+potential are evaluated together, one launch for both (same results).
 """
 
 from __future__ import annotations
@@ -13,11 +17,43 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.collision.distances import DistanceDerivatives
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
-from sim_core.ti_kernels import contact_distance
+from sim_core.potentials.contact import ContactFrames, EdgeEdgeContact, VertexTriangleContact
+from sim_core.ti_kernels import contact_distance, contact_setup
 
 
-class TiVertexTriangleContact(VertexTriangleContact):
+def _frames(pot, x: np.ndarray, point_first: bool) -> ContactFrames:
+    """The reference ``contact_frames`` of ``pot`` with weights and normals from one kernel launch."""
+    act, dd = pot._evaluate(x, 0)  # the kept evaluation of x when there is one
+    vertices = pot.vertices[act]
+    weights, normal = contact_setup.contact_frames(x, vertices, pot.sides[act], point_first)
+    return ContactFrames(vertices, weights, normal, pot.stiffness * (pot.eps - dd.d), act)
+
+
+class _Batched:
+    """Evaluation through a :class:`~sim_core.ti_kernels.contact_batch.PairBatch` when the potential
+    is linked to one (the contact set links its step's two pair potentials), else on its own."""
+
+    _batch = None
+
+    def kept_evaluation(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives] | None:
+        """The kept evaluation ``(active, distances)`` of positions ``x`` ``(n, 3)`` if it holds
+        derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
+        last = getattr(self, "_last", None)
+        if last is not None and last[0] >= order and last[4] == self.eps and np.array_equal(last[1], x):
+            return last[2], last[3]
+        return None
+
+    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
+        if self._batch is None:
+            return super()._evaluate(x, order)
+        kept = self.kept_evaluation(x, order)
+        if kept is None:
+            self._batch.evaluate(x, order > 0)
+            kept = self._last[2], self._last[3]
+        return kept
+
+
+class TiVertexTriangleContact(_Batched, VertexTriangleContact):
     """:class:`~sim_core.potentials.contact.VertexTriangleContact` on the Taichi distance kernels
     (same arguments and errors; needs :func:`sim_core.ti_backend.init_backend`)."""
 
@@ -29,8 +65,13 @@ class TiVertexTriangleContact(VertexTriangleContact):
         active = np.flatnonzero(d < self.eps)
         return active, d[active]
 
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.potentials.contact.VertexTriangleContact.contact_frames`
+        (weights and normals from :func:`sim_core.ti_kernels.contact_setup.contact_frames`)."""
+        return _frames(self, x, True)
 
-class TiEdgeEdgeContact(EdgeEdgeContact):
+
+class TiEdgeEdgeContact(_Batched, EdgeEdgeContact):
     """:class:`~sim_core.potentials.contact.EdgeEdgeContact` on the Taichi distance kernels
     (same arguments and errors; needs :func:`sim_core.ti_backend.init_backend`)."""
 
@@ -41,3 +82,8 @@ class TiEdgeEdgeContact(EdgeEdgeContact):
         d = self._distance(z, self.sides, 0).d
         active = np.flatnonzero(d < self.eps)
         return active, d[active]
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.potentials.contact.EdgeEdgeContact.contact_frames`
+        (weights and normals from :func:`sim_core.ti_kernels.contact_setup.contact_frames`)."""
+        return _frames(self, x, False)

@@ -80,8 +80,9 @@ def _clip01(a: ti.f64) -> ti.f64:
 
 
 @ti.func
-def _point_triangle_region(p, a, b, c) -> ti.i32:
-    """Ericson's tests in the reference's priority order (a later test wins)."""
+def _point_triangle_tests(p, a, b, c):
+    """Ericson's tests in the reference's priority order (a later test wins): the region code and
+    the dot products ``(region, d1, d2, d3, d4, d5, d6, va, vb, vc)`` (reference: ``_point_triangle_tests``)."""
     ab, ac = b - a, c - a
     ap, bp, cp = p - a, p - b, p - c
     d1, d2 = _dot(ab, ap), _dot(ac, ap)
@@ -103,12 +104,20 @@ def _point_triangle_region(p, a, b, c) -> ti.i32:
         region = _PT_VERTEX_B
     if d1 <= 0 and d2 <= 0:
         region = _PT_VERTEX_A
+    return region, d1, d2, d3, d4, d5, d6, va, vb, vc
+
+
+@ti.func
+def _point_triangle_region(p, a, b, c) -> ti.i32:
+    """Region code of the closest point of triangle ``a b c`` to ``p`` (:func:`_point_triangle_tests`)."""
+    region, _d1, _d2, _d3, _d4, _d5, _d6, _va, _vb, _vc = _point_triangle_tests(p, a, b, c)
     return region
 
 
 @ti.func
-def _edge_edge_region(a0, a1, b0, b1) -> ti.i32:
-    """Closest-feature code of two segments (reference: ``edge_edge_closest_points``)."""
+def _edge_edge_closest(a0, a1, b0, b1):
+    """``(s, t, region)``: closest points ``a0 + s (a1 - a0)`` and ``b0 + t (b1 - b0)`` of two segments
+    and their closest-feature code (reference: ``edge_edge_closest_points``)."""
     ea, eb, r = a1 - a0, b1 - b0, a0 - b0
     A, E = _dot(ea, ea), _dot(eb, eb)
     B, C, F = _dot(ea, eb), _dot(ea, r), _dot(eb, r)
@@ -142,6 +151,13 @@ def _edge_edge_region(a0, a1, b0, b1) -> ti.i32:
         region = _EE_B0_EDGE_A + t_end
     if region == _EE_INTERIOR and parallel:
         region = _EE_A0_EDGE_B
+    return s, t, region
+
+
+@ti.func
+def _edge_edge_region(a0, a1, b0, b1) -> ti.i32:
+    """Closest-feature code of two segments (:func:`_edge_edge_closest`)."""
+    _s, _t, region = _edge_edge_closest(a0, a1, b0, b1)
     return region
 
 
@@ -336,23 +352,30 @@ def _point_point_derivatives(z: ti.template(), k: ti.i32, i: ti.i32, j: ti.i32,
     return d
 
 
+@ti.func
+def _pair_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.template(), d: ti.template(),
+                      region: ti.template(), grad: ti.template(), hess: ti.template()):
+    """Distance ``d[k]``, region ``region[k]``, gradient row ``grad[k]`` and Hessian ``hess[k]`` of pair ``k``."""
+    for a in range(12):
+        grad[k, a] = 0.0
+        for b in range(12):
+            hess[k, a, b] = 0.0
+    reg, kind, i, j, l = _region_and_slots(z, k, point_first)
+    region[k] = reg
+    if kind == 0:
+        d[k] = _plane_derivatives(z, k, side, point_first, grad, hess)
+    elif kind == 1:
+        d[k] = _point_line_derivatives(z, k, i, j, l, grad, hess)
+    else:
+        d[k] = _point_point_derivatives(z, k, i, j, grad, hess)
+
+
 @fast_kernel
 def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1,
                         grad: _F64_2, hess: _F64_3):
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
-        for a in range(12):
-            grad[k, a] = 0.0
-            for b in range(12):
-                hess[k, a, b] = 0.0
-        reg, kind, i, j, l = _region_and_slots(z, k, point_first)
-        region[k] = reg
-        if kind == 0:
-            d[k] = _plane_derivatives(z, k, side[k], point_first, grad, hess)
-        elif kind == 1:
-            d[k] = _point_line_derivatives(z, k, i, j, l, grad, hess)
-        else:
-            d[k] = _point_point_derivatives(z, k, i, j, grad, hess)
+        _pair_derivatives(z, k, side[k], point_first, d, region, grad, hess)
 
 
 def _contact_distance(z: np.ndarray, side: np.ndarray, order: int, point_first: bool) -> DistanceDerivatives:

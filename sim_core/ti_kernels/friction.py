@@ -11,7 +11,7 @@ block vertices ``j`` (weights ``w_kj``), tangent basis ``T_k`` (3 x 2) and ``c_k
 with the mollifier ``f0`` of :func:`sim_core.potentials.friction.smooth_friction_f0` and the same
 piecewise forms of ``f1/y`` and ``(f1' y - f1)/y^3`` (``eps_u = eps_v dt``). A Forming step has
 about a hundred pairs: the NumPy reference spends its time in a dozen small array operations per
-call, each kernel here is one launch. Loops are serial on the CPU (the gradient sums into shared
+call, each kernel here is one launch (the gradient's launch computes the Hessian blocks too). Loops are serial on the CPU (the gradient sums into shared
 vertices in pair order), parallel on CUDA. Results equal the reference to round-off (tests:
 1e-12 relative).
 """
@@ -22,6 +22,7 @@ vertices in pair order), parallel on CUDA. Results equal the reference to round-
 import numpy as np
 
 from sim_core.potentials.base import HessianBlocks, Projection
+from sim_core.potentials.contact import ContactFrames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
@@ -87,21 +88,54 @@ def friction_energy(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2
     return energy
 
 
+@ti.func
+def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
+    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+    u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+    scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+    tu = ti.Vector.zero(ti.f64, 3)
+    for d in ti.static(range(3)):
+        tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            grad[v, d] += weights[k, j] * tu[d]
+
+
 @fast_kernel
 def friction_gradient(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
                       coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2):
     """Adds ``dE/dx`` (N) to ``grad`` (n, 3)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
-        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-        scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
-        tu = ti.Vector.zero(ti.f64, 3)
-        for d in ti.static(range(3)):
-            tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
-        for j in range(vertices.shape[1]):
-            v = vertices[k, j]
-            for d in ti.static(range(3)):
-                grad[v, d] += weights[k, j] * tu[d]
+        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+
+
+@ti.func
+def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
+    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m)."""
+    u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+    y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
+    f1x = _f1_over_x(y, eps_u)
+    f2 = _f2_x_minus_f1_over_x3(y, eps_u)
+    Hu = ti.Matrix.zero(ti.f64, 2, 2)
+    for i, j in ti.static(ti.ndrange(2, 2)):
+        Hu[i, j] = f2 * u[i] * u[j]
+        if ti.static(i == j):
+            Hu[i, j] += f1x
+    H3 = ti.Matrix.zero(ti.f64, 3, 3)
+    for d, e in ti.static(ti.ndrange(3, 3)):
+        acc = 0.0
+        for i, j in ti.static(ti.ndrange(2, 2)):
+            acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
+        H3[d, e] = acc * coefficient[k]
+    for a in range(vertices.shape[1]):
+        for b in range(vertices.shape[1]):
+            wab = weights[k, a] * weights[k, b]
+            for d, e in ti.static(ti.ndrange(3, 3)):
+                blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
 
 
 @fast_kernel
@@ -110,32 +144,34 @@ def friction_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
     """Writes the pair blocks ``(p, 3m, 3m)`` in N/m (PSD by construction)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
-        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-        y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
-        f1x = _f1_over_x(y, eps_u)
-        f2 = _f2_x_minus_f1_over_x3(y, eps_u)
-        Hu = ti.Matrix.zero(ti.f64, 2, 2)
-        for i, j in ti.static(ti.ndrange(2, 2)):
-            Hu[i, j] = f2 * u[i] * u[j]
-            if ti.static(i == j):
-                Hu[i, j] += f1x
-        H3 = ti.Matrix.zero(ti.f64, 3, 3)
-        for d, e in ti.static(ti.ndrange(3, 3)):
-            acc = 0.0
-            for i, j in ti.static(ti.ndrange(2, 2)):
-                acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
-            H3[d, e] = acc * coefficient[k]
-        for a in range(vertices.shape[1]):
-            for b in range(vertices.shape[1]):
-                wab = weights[k, a] * weights[k, b]
-                for d, e in ti.static(ti.ndrange(3, 3)):
-                    blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
+        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+
+
+@fast_kernel
+def friction_gradient_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                              coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2, blocks: _F64_3):
+    """:func:`friction_gradient` and :func:`friction_hessian` in one launch: adds ``dE/dx`` (N) to
+    ``grad`` (n, 3) and writes the pair blocks ``(p, 3m, 3m)`` (N/m)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
 
 
 class TiLaggedFriction(LaggedFriction):
     """:class:`~sim_core.potentials.friction.LaggedFriction` with energy, gradient and Hessian on the
     Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
     :func:`sim_core.ti_backend.init_backend`)."""
+
+    @classmethod
+    def from_frames(cls, frames: ContactFrames, mu: np.ndarray | float, x_prev: np.ndarray, eps_v: float,
+                    dt: float) -> "TiLaggedFriction":
+        """As the reference :meth:`~sim_core.potentials.friction.LaggedFriction.from_frames`, the
+        tangent bases from one launch of :func:`sim_core.ti_kernels.contact_setup.tangent_basis`
+        (equal to the reference's bit for bit)."""
+        from sim_core.ti_kernels.contact_setup import tangent_basis
+
+        return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
         arrays = getattr(self, "_arrays", None)
@@ -156,19 +192,33 @@ class TiLaggedFriction(LaggedFriction):
         return float(friction_energy(*self._kernel_arrays(x), self.eps_u))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N (minus the friction force), shape ``(n, 3)``."""
+        """dE/dx in N (minus the friction force), shape ``(n, 3)``.
+
+        The same launch computes the Hessian blocks at ``x`` (the Newton solver asks for them next),
+        kept for one :meth:`hessian` call at equal ``x``, coefficients and ``eps_u``.
+        """
         grad = np.zeros((x.shape[0], 3))
-        if self.vertices.shape[0]:
-            friction_gradient(*self._kernel_arrays(x), self.eps_u, grad)
+        p, m = self.vertices.shape
+        if p:
+            arrays = self._kernel_arrays(x)
+            blocks = np.empty((p, 3 * m, 3 * m))
+            friction_gradient_hessian(*arrays, self.eps_u, grad, blocks)
+            self._kept_hessian = (arrays[0].copy(), arrays[-1], self.eps_u, blocks)
         return grad
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Per-pair blocks ``(p, 3m, 3m)``, PSD by construction (``projection`` is not needed)."""
+        """Per-pair blocks ``(p, 3m, 3m)``, PSD by construction (``projection`` is not needed); the
+        blocks computed with the last :meth:`gradient` when that was at the same ``x`` and coefficients."""
         p, m = self.vertices.shape
         if p == 0:
             return HessianBlocks.empty(m)
+        arrays = self._kernel_arrays(x)
+        kept, self._kept_hessian = getattr(self, "_kept_hessian", None), None
+        if (kept is not None and kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0])
+                and np.array_equal(kept[1], arrays[-1])):
+            return HessianBlocks(self.vertices, kept[3])
         blocks = np.empty((p, 3 * m, 3 * m))
-        friction_hessian(*self._kernel_arrays(x), self.eps_u, blocks)
+        friction_hessian(*arrays, self.eps_u, blocks)
         return HessianBlocks(self.vertices, blocks)
 
 
@@ -183,4 +233,5 @@ def compile_kernels() -> None:
                                 np.eye(3)[None, :, :2], np.ones(1), 0.5, x, 0.01, 0.01)
     friction.energy(x + 1e-4)
     friction.gradient(x + 1e-4)
-    friction.hessian(x + 1e-4)
+    friction.hessian(x + 1e-4)  # the blocks kept by the gradient
+    friction.hessian(x + 1e-4)  # the Hessian kernel

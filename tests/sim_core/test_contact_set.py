@@ -111,3 +111,30 @@ def test_iterates_covered_by_one_search_share_the_potentials_and_a_new_step_rebu
     assert second[1].energy(x) > 0.0
     memory = cs.begin_step(x, cs.end_step(x, memory))
     assert all(a is not b for a, b in zip(second[:2], cs.potentials(x, x, memory)[:2]))
+
+
+@pytest.mark.parametrize("empty", ["vt", "ee"])
+def test_a_search_with_one_pair_kind_empty_and_every_pair_known_keeps_the_sides(empty):
+    """A second search of the step whose pairs are all known from the first (one kind with no pairs)
+    takes every side from there: the potentials equal the first search's, the empty kind stays empty."""
+    from sim_core.collision import CollisionMemory
+
+    x0 = _two_triangles(0.005, 1e-4)
+    cs = _contact_set(x0)
+    vt = np.array([[v, t] for v in range(6) for t in range(2) if cs.triangles[t, 0] // 3 != v // 3])
+    ee = np.array([[i, j] for i in range(len(cs.edges)) for j in range(i + 1, len(cs.edges))
+                   if cs.edges[i, 0] // 3 != cs.edges[j, 0] // 3])
+    vt, ee = (vt[:0], ee) if empty == "vt" else (vt, ee[:0])
+    memory = CollisionMemory()
+    cs.begin_step(x0, memory)
+    first, first_sides = cs._search(x0, memory, (x0, vt, ee))
+    again, again_sides = cs._search(x0, memory, (x0, vt, ee))
+    assert len(vt) + len(ee) > 0
+    for a, b in zip(first_sides, again_sides):
+        assert a.dtype == np.float64
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.pairs, b.pairs)
+        np.testing.assert_array_equal(a.sides, b.sides)
+    assert len((first[0] if empty == "vt" else first[1]).pairs) == 0
+    assert np.any(np.concatenate(first_sides) != 0)  # signed pairs (interior / above the face) too

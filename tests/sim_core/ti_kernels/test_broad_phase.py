@@ -98,3 +98,38 @@ def test_candidate_lists_of_a_crumpled_sheet_over_a_block(ti_cpu):
         assert len(vt_ref) > 0 and len(ee_ref) > 0
         np.testing.assert_array_equal(vt_new, vt_ref)
         np.testing.assert_array_equal(ee_new, ee_ref)
+
+
+def test_sweep_search_keeps_its_axis_between_choices_and_finds_the_same_pairs(ti_cpu, monkeypatch):
+    """Boxes spread along x (so x leaves the fewest to scan), then along z as they move: every search
+    gives the reference's pairs; the axis is chosen again (3 sorts) only every ``refresh`` searches of
+    a kind, the searches between sort once."""
+    from sim_core.errors import ConfigError
+    from sim_core.ti_kernels import broad_phase
+
+    rng = np.random.default_rng(40)
+    allowed = np.ones((2, 2), bool)
+    sorts = []
+    argsort = np.argsort
+    monkeypatch.setattr(broad_phase.np, "argsort", lambda *a, **k: (sorts.append(1), argsort(*a, **k))[1])
+    search = broad_phase.SweepSearch(refresh=3)
+    stretch = np.array([5.0, 0.2, 0.2])  # x the long axis
+    a_lo, b_lo = rng.uniform(0.0, 1.0, size=(300, 3)) * stretch, rng.uniform(0.0, 1.0, size=(200, 3)) * stretch
+    a_hi, b_hi = a_lo + 0.05, b_lo + 0.05
+    a_body, b_body = rng.integers(0, 2, 300), rng.integers(0, 2, 200)
+    axes, counts = [], []
+    for k in range(7):
+        if k == 4:  # the layout turns: now z is the long axis
+            a_lo, a_hi, b_lo, b_hi = (v[:, ::-1].copy() for v in (a_lo, a_hi, b_lo, b_hi))
+        for args in ((a_lo, a_hi, a_body, None, None, None), (a_lo, a_hi, a_body, b_lo, b_hi, b_body)):
+            sorts.clear()
+            pairs = search(*args, 0.01, allowed)
+            ref = candidates._grouped_box_pairs(*args, 0.01, allowed)
+            assert len(ref) > 0
+            np.testing.assert_array_equal(_sorted(pairs), _sorted(ref))
+            counts.append(len(sorts))
+        axes.append([search.axes[kind][0] for kind in sorted(search.axes)])
+    assert counts == [3, 3, 1, 1, 1, 1, 3, 3, 1, 1, 1, 1, 3, 3]
+    assert axes[:6] == [[0, 0]] * 6 and axes[6] == [2, 2]  # x kept through the turn, z after the next choice
+    with pytest.raises(ConfigError):
+        broad_phase.SweepSearch(refresh=0)

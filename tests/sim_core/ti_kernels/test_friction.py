@@ -93,3 +93,33 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
     np.testing.assert_array_equal(tik.lam, ref.lam)
     x_new = x + 1e-5
     assert tik.energy(x_new) == pytest.approx(ref.energy(x_new), rel=1e-12)
+
+
+def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu, monkeypatch):
+    """The gradient's launch also computes the blocks; the next hessian at the same x and
+    coefficients takes them (no launch), bit for bit the Hessian kernel's; an edited mu, another x
+    or a second call launch the Hessian kernel again."""
+    from sim_core.ti_kernels import friction as ti_friction
+
+    rng = np.random.default_rng(33)
+    ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
+    tik = _twin(ref)
+    x = x_prev + rng.normal(scale=0.5 * EPS_U, size=x_prev.shape)
+    fresh = tik.hessian(x).blocks  # the Hessian kernel alone
+    launches = []
+    kernel = ti_friction.friction_hessian
+    monkeypatch.setattr(ti_friction, "friction_hessian", lambda *a: (launches.append(1), kernel(*a)))
+    grad = tik.gradient(x)
+    assert relative_error(grad, ref.gradient(x)) < 1e-12
+    np.testing.assert_array_equal(tik.hessian(x).blocks, fresh)
+    assert launches == []
+    np.testing.assert_array_equal(tik.hessian(x).blocks, fresh)  # kept for one call only
+    assert launches == [1]
+    tik.gradient(x)
+    tik.mu = 2.0 * tik.mu
+    assert relative_error(tik.hessian(x).blocks, 2.0 * fresh) < 1e-15
+    assert launches == [1, 1]
+    tik.gradient(x)
+    y = x + 1e-3 * EPS_U
+    assert relative_error(tik.hessian(y).blocks, ref.hessian(y).blocks * 2.0) < 1e-12
+    assert launches == [1, 1, 1]

@@ -1,0 +1,95 @@
+"""A vertex-triangle and an edge-edge potential linked by a PairBatch give, bit for bit, what each
+gives on its own, with one kernel launch per new position for both."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
+
+K = 1.0e4
+
+
+def _potentials(count: int = 400, vt_rows: slice = slice(None), ee_rows: slice = slice(None)):
+    """Twin potential pairs over random pairs (every region, every side): one pair linked, one not."""
+    from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
+    from sim_core.ti_kernels.contact_batch import PairBatch
+
+    rng = np.random.default_rng(20)
+    z = np.concatenate([_random_pairs(rng, count), _near_parallel_edges(rng, count // 4)])
+    x = z.reshape(-1, 3)
+    quads = np.arange(x.shape[0]).reshape(-1, 4)
+    vt_pairs = np.stack([quads[:, 0], np.arange(len(quads))], axis=1)[vt_rows]
+    triangles = quads[:, 1:]
+    edges = np.arange(x.shape[0]).reshape(-1, 2)
+    ee_pairs = np.stack([np.arange(0, len(edges), 2), np.arange(1, len(edges), 2)], axis=1)[ee_rows]
+    vt_sides = rng.choice([-1.0, 0.0, 1.0], size=len(vt_pairs))
+    ee_sides = rng.choice([-1.0, 0.0, 1.0], size=len(ee_pairs))
+
+    def make():
+        return (TiVertexTriangleContact(vt_pairs, triangles, vt_sides, K, EPS),
+                TiEdgeEdgeContact(ee_pairs, edges, ee_sides, K, EPS))
+
+    linked, alone = make(), make()
+    PairBatch(*linked)
+    return x, linked, alone
+
+
+def _launches(monkeypatch) -> list:
+    """Records ``(derivatives, pairs evaluated)`` of each batch kernel launch (and fails on any
+    separate distance launch)."""
+    from sim_core.ti_kernels import contact_batch, contact_distance
+
+    calls = []
+    kernel = contact_batch._batch_kernel
+    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[7], len(a[3]))), kernel(*a)))
+
+    def forbidden(*a):
+        raise AssertionError("a separate distance kernel was launched")
+
+    monkeypatch.setattr(contact_distance, "_values_kernel", forbidden)
+    monkeypatch.setattr(contact_distance, "_derivatives_kernel", forbidden)
+    return calls
+
+
+@pytest.mark.parametrize("rows", [(slice(None), slice(None)), (slice(0, 0), slice(None)), (slice(None), slice(0, 0))])
+def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_position(ti_cpu, monkeypatch, rows):
+    x, linked, alone = _potentials(vt_rows=rows[0], ee_rows=rows[1])
+    y = x + 0.1 * EPS * np.random.default_rng(21).normal(size=x.shape)
+    expected = []
+    for pot in alone:  # separate kernels, before the launches are watched
+        expected.append((pot.energy(x), pot.active_mask(x), pot.gradient(x), pot.hessian(x, "none"),
+                         pot.hessian(x, "clamp"), pot.contact_frames(x).lam))
+    expected_y = [(pot.gradient(y), pot.energy(y)) for pot in alone]
+    calls = _launches(monkeypatch)
+    for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
+        assert pot.energy(x) == energy
+        np.testing.assert_array_equal(pot.active_mask(x), mask)
+        np.testing.assert_array_equal(pot.contact_frames(x).lam, lam)
+    total = len(linked[0].pairs) + len(linked[1].pairs)
+    active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
+    assert 0 < active < total
+    assert calls == [(False, total)]  # values of both kinds at x: one launch
+    for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
+        np.testing.assert_array_equal(pot.gradient(x), grad)
+        for h, h_ref in ((pot.hessian(x, "none"), h_none), (pot.hessian(x, "clamp"), h_clamp)):
+            np.testing.assert_array_equal(h.vertices, h_ref.vertices)
+            np.testing.assert_array_equal(h.blocks, h_ref.blocks)
+    assert calls == [(False, total), (True, active)]  # derivatives of the active pairs of both: one more
+    # new positions: gradient first (values and derivatives in one launch), then the energy is kept
+    for pot, (grad, energy) in zip(linked, expected_y):
+        np.testing.assert_array_equal(pot.gradient(y), grad)
+        assert pot.energy(y) == energy
+    assert calls == [(False, total), (True, active), (True, total)]
+
+
+def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
+    x, (vt, ee), _ = _potentials(100)
+    vt.gradient(x)  # both evaluated with derivatives at x
+    kept = vt._last
+    ee._last = None
+    ee.energy(x)  # a values-only launch for ee: vt keeps its derivatives
+    assert vt._last is kept and ee._last[0] == 0
+    assert vt.kept_evaluation(x, 2) is not None and ee.kept_evaluation(x, 1) is None
+    assert vt.kept_evaluation(x + 1e-9, 0) is None

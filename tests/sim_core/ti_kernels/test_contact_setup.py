@@ -1,0 +1,159 @@
+"""The contact set-up kernels (pair geometry, contact frames, tangent bases) equal the NumPy
+reference, the reference pair geometry means what it says, and the contact set takes the same
+sides, friction and side memory on the Taichi backend as on the NumPy reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.collision.distances import (
+    EdgeEdgeRegion,
+    PointTriangleRegion,
+    edge_edge_closest_points,
+    point_triangle_closest_point,
+)
+from sim_core.collision.pair_geometry import pair_geometry
+from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
+from sim_core.potentials.friction import tangent_basis
+from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
+
+
+def _batch(seed: int, count: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``(4 k, 3)`` of random 4-vertex pairs (near-parallel edge pairs included) and the
+    pairs' vertex indices ``(k, 4)``."""
+    rng = np.random.default_rng(seed)
+    z = np.concatenate([_random_pairs(rng, count), _near_parallel_edges(rng, count // 3)])
+    return z.reshape(-1, 3), np.arange(4 * z.shape[0]).reshape(-1, 4)
+
+
+def test_reference_pair_geometry_of_known_configurations():
+    tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    x = np.array([[0.2, 0.2, 0.1]] + tri + [[0.2, 0.2, -0.1]] + tri + [[2.0, 2.0, 0.1]] + tri)
+    vt = np.arange(12).reshape(3, 4)
+    # crossing edges, b above a; then parallel edges
+    x_ee = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.5], [0.0, 1.0, 0.5],
+                     [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.1, 0.0], [1.0, 0.1, 0.0]])
+    x = np.concatenate([x, x_ee])
+    ee = 12 + np.arange(8).reshape(2, 4)
+    geo = pair_geometry(x, vt, ee)
+    np.testing.assert_array_equal(geo.vt_above, [True, True, False])
+    np.testing.assert_array_equal(geo.vt_side, [1.0, -1.0, 1.0])
+    np.testing.assert_allclose(geo.ee_sine, [1.0, 0.0], atol=1e-15)
+    assert geo.ee_interior[0]
+    # (a1 - a0) x (b1 - b0) = +z (times 4), a0 - b0 = (-1, 1, -0.5): below
+    assert geo.ee_side[0] == -1.0
+    empty = pair_geometry(x, np.zeros((0, 4), np.int64), np.zeros((0, 4), np.int64))
+    assert all(a.shape == (0,) for a in empty)
+
+
+def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
+    from sim_core.ti_kernels.contact_setup import pair_geometry as ti_pair_geometry
+
+    x, vertices = _batch(3)
+    ref, tik = pair_geometry(x, vertices, vertices), ti_pair_geometry(x, vertices, vertices)
+    for name in ref._fields:
+        np.testing.assert_array_equal(getattr(tik, name), getattr(ref, name), err_msg=name)
+        assert getattr(tik, name).dtype == getattr(ref, name).dtype, name
+    # every outcome is exercised: above / beside, both sides, interior / not, kept / near-parallel
+    assert ref.vt_above.any() and not ref.vt_above.all() and ref.ee_interior.any() and not ref.ee_interior.all()
+    assert set(np.unique(ref.vt_side)) == set(np.unique(ref.ee_side)) == {-1.0, 1.0}
+    assert (ref.ee_sine < 0.1).any() and (ref.ee_sine > 0.1).any()
+    # the two kinds in one launch, any of them empty
+    only_vt = ti_pair_geometry(x, vertices[:5], np.zeros((0, 4), np.int64))
+    np.testing.assert_array_equal(only_vt.vt_side, ref.vt_side[:5])
+    assert only_vt.ee_side.shape == (0,)
+    only_ee = ti_pair_geometry(x, np.zeros((0, 4), np.int64), vertices[:5])
+    np.testing.assert_array_equal(only_ee.ee_sine, ref.ee_sine[:5])
+
+
+@pytest.mark.parametrize("point_first", [True, False])
+def test_contact_frames_kernel_equals_the_reference(ti_cpu, point_first):
+    from sim_core.ti_kernels.contact_setup import contact_frames
+
+    x, vertices = _batch(4)
+    rng = np.random.default_rng(5)
+    sides = rng.choice([-1.0, 0.0, 1.0], size=len(vertices))
+    # a reference potential with every pair active (eps beyond every distance) and these vertices
+    pairs, table = np.zeros((0, 2), np.int64), np.zeros((1, 3 if point_first else 2), np.int64)
+    ref = (VertexTriangleContact if point_first else EdgeEdgeContact)(pairs, table, np.zeros(0), 1.0, 1.0)
+    ref.vertices, ref.sides = vertices, sides
+    f = ref.contact_frames(x)
+    assert f.pair_index.size == len(vertices)
+    weights, normal = contact_frames(x, vertices, sides, point_first)
+    # the edge parameters of near-parallel edges (sine < 1e-2, left out of the contact set) are
+    # ill-conditioned: the round-off of the dot products is amplified there
+    kept = pair_geometry(x, vertices[:0], vertices).ee_sine > 1e-2 if not point_first else slice(None)
+    np.testing.assert_allclose(weights[kept], f.weights[kept], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(normal[kept], f.normal[kept], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(weights, f.weights, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(normal, f.normal, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-14)
+    z = x[vertices]
+    if point_first:  # every region, and the face normals oriented by the resolved side
+        region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[1]
+        assert set(np.unique(region)) == {int(r) for r in PointTriangleRegion}
+    else:
+        region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])[2]
+        assert set(np.unique(region)) == {int(r) for r in EdgeEdgeRegion}
+    empty_w, empty_n = contact_frames(x, np.zeros((0, 4), np.int64), np.zeros(0), point_first)
+    assert empty_w.shape == (0, 4) and empty_n.shape == (0, 3)
+
+
+def test_tangent_basis_kernel_equals_the_reference_and_is_orthonormal(ti_cpu):
+    from sim_core.ti_kernels.contact_setup import tangent_basis as ti_tangent_basis
+
+    rng = np.random.default_rng(6)
+    normal = rng.normal(size=(500, 3))
+    normal[:3] = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.6, 0.0, -0.8]]  # ties of argmin |n|
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    T = ti_tangent_basis(normal)
+    np.testing.assert_array_equal(T, tangent_basis(normal))
+    frame = np.concatenate([T, normal[:, :, None]], axis=2)
+    np.testing.assert_allclose(np.einsum("kdi,kdj->kij", frame, frame), np.broadcast_to(np.eye(3), (500, 3, 3)),
+                               atol=1e-14)
+    assert ti_tangent_basis(np.zeros((0, 3))).shape == (0, 3, 2)
+
+
+def _forming_contact(backend: str | None):
+    from sim_core.contact_set import ContactSet
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+    from thinshell_ros.bench import _default_scene
+
+    model = load_task_scene(_default_scene("forming"))
+    if backend is not None:
+        model.meta["elastic_backend"] = backend
+    return ContactSet(model), task_initial_state(model).x
+
+
+def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi_backend(ti_cpu):
+    """A pressed Forming state: the Taichi set-up keeps the same pairs and step sides, friction rows
+    (frames to round-off) and remembered sides as the NumPy reference."""
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+
+    results = []
+    for backend in ("numpy", "taichi"):
+        contact, x = _forming_contact(backend)
+        rng = np.random.default_rng(7)
+        # jitter the rest state by a fraction of eps so that pairs of every kind touch
+        x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
+        memory = contact.begin_step(x_n, None)
+        vt, ee = contact.potentials(x_n, x_n, memory)[:2]
+        friction = contact.friction(x_n, 0.01, memory)
+        x_end = x_n + 0.2 * contact.eps * rng.normal(size=x.shape)
+        end_memory = contact.end_step(x_end, memory)
+        results.append((vt, ee, friction, end_memory))
+    (vt, ee, fr, mem), (ti_vt, ti_ee, ti_fr, ti_mem) = results
+    assert type(ti_fr) is TiLaggedFriction
+    assert len(vt.pairs) and len(ee.pairs) and fr.vertices.shape[0] > 0
+    assert np.any(vt.sides != 0) and np.any(ee.sides != 0)  # signed pairs too
+    for a, b in ((ti_vt, vt), (ti_ee, ee)):
+        np.testing.assert_array_equal(a.pairs, b.pairs)
+        np.testing.assert_array_equal(a.sides, b.sides)
+    np.testing.assert_array_equal(ti_fr.vertices, fr.vertices)
+    np.testing.assert_array_equal(ti_fr.lam, fr.lam)
+    np.testing.assert_array_equal(ti_fr.mu, fr.mu)
+    np.testing.assert_allclose(ti_fr.weights, fr.weights, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ti_fr.tangent, fr.tangent, rtol=0, atol=1e-12)
+    assert ti_mem.vertex_triangle == mem.vertex_triangle and ti_mem.edge_edge == mem.edge_edge
+    assert len(mem.vertex_triangle) and len(mem.edge_edge)
