@@ -174,8 +174,9 @@ class CandidateHook:
             return []
         return [SheetDamping(sheet_vertices(model), model.vertex_mass(), x_prev, self.params["damping"], dt)]
 
-    def contact_terms(self, model, x_prev: np.ndarray, friction) -> list:
-        """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``)."""
+    def contact_terms(self, model, x_prev: np.ndarray, friction, state=None) -> list:
+        """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``); ``state``:
+        the state at the start of the step (unused here)."""
         p = self.params
         out: list = []
         if "stiction" in p and friction is not None:
@@ -266,7 +267,7 @@ class _ContactWithCandidates:
     def friction(self, x_n, dt, memory):
         friction = self._base.friction(x_n, dt, memory)
         s = self._solver
-        self._extra = s.hook.contact_terms(s.model, x_n, friction) if s._state_in is not None else []
+        self._extra = s.hook.contact_terms(s.model, x_n, friction, s._state_in) if s._state_in is not None else []
         stiction = [t for t in self._extra if isinstance(t, StictionFriction)]
         return FrictionWithStiction(friction, stiction[0]) if stiction else friction
 
