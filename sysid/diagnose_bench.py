@@ -1,8 +1,8 @@
 """``thinshell bench diagnose``: a labelled set of recordings with concealed effects, and its score.
 
-SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwell-lift followed by
-two taps (:data:`SEGMENTS`; coarse gel, dt 10 ms) and is written as a rosbag2 bag plus the
-*nominal* ``scene.yaml``; the effect is produced by code independent of the candidate models of ``sim_core.candidates`` and
+SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwell-lift (coarse
+gel, dt 10 ms) and is written as a rosbag2 bag plus the *nominal* ``scene.yaml``; the effect is
+produced by code independent of the candidate models of ``sim_core.candidates`` and
 ``sysid.diagnose``:
 
 - physics, through a solver hook (:class:`~sim_core.candidates.CandidateNewtonSolver`'s plumbing,
@@ -10,9 +10,9 @@ two taps (:data:`SEGMENTS`; coarse gel, dt 10 ms) and is written as a rosbag2 ba
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
-  linear branches, not the finite-strain SLS), ``adhesion`` (breakable point bonds that form on
-  contact, with hysteresis, and form again on the next touch), ``anisotropic_bending``
-  (orthotropic hinges with the grain 15 degrees off x) and, NOT in the library, ``thickness_step`` (the far 40 % of the card is thicker: stiffer hinges);
+  linear branches, not the finite-strain SLS), ``adhesion`` (breakable point bonds that form on contact,
+  with hysteresis, and form again on the next touch), ``anisotropic_bending`` (orthotropic hinges with the grain 15 degrees off x) and,
+  NOT in the library, ``thickness_step`` (the far 40 % of the card is thicker: stiffer hinges);
 - data, on the recorded streams: ``latency`` (tactile streams late by tau), ``lens_distortion``
   (radial k1 on the marker pixels), ``force_bias`` (slow offset drift on the wrench).
 
@@ -80,14 +80,8 @@ def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
 SCENE: dict[str, Any] = load_bench_scene()
 
 SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0001), 1),
-            ((-0.004, 0.0, 0.0), 16), ((0.0, 0.0, 0.0), 12), ((0.0, 0.0, 0.0012), 6),
-            ((0.0, 0.0, -0.0012), 6), ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0012), 6),
-            ((0.0, 0.0, -0.0012), 6), ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0012), 6))
-"""Press, slide 2 mm (slip), press deeper, slide 4 mm (the card buckles), dwell 0.12 s, lift 1.2 mm,
-then two taps on the flat card (press 1.2 mm, dwell 0.04 s, lift 1.2 mm). Every contact event
-(touch-down, lift-off) happens more than once, the taps alike, so that an effect carried by one kind
-of event (adhesion at lift-off) can be fitted on some occurrences and validated on another
-(held-out rows by contact events, ``sysid.diagnose.events``)."""
+            ((-0.004, 0.0, 0.0), 16), ((0.0, 0.0, 0.0), 12), ((0.0, 0.0, 0.0012), 6))
+"""Press, slide 2 mm (slip), press deeper, slide 4 mm (the card buckles), dwell 0.12 s, lift 1.2 mm."""
 
 CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 

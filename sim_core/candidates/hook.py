@@ -7,7 +7,7 @@
   adhesion) act between gel and sheet and count in ``State.contact_force`` (hence the wrench);
   ``body_like`` (the gel's Maxwell branch, the anisotropic bending part) do not.
 - ``hook.update_state(model, state_in, x, dt, elastic)`` -> the new ``State.candidate_state``
-  (viscoelastic relaxed states per gel), a dict of arrays.
+  (viscoelastic relaxed states per gel, the bonded gel vertices of adhesion), a dict of arrays.
 
 Candidate parameters are a dict ``{name: beta, setting: value}`` (see the package docstring); a
 candidate absent from the dict adds nothing, one present with ``beta = 0`` adds a term of zero
