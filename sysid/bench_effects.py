@@ -24,8 +24,8 @@ class PhysicsEffect:
         """Remember the simulation (model, initial state)."""
         self.sim = sim
 
-    def contact_terms(self, model: Any, x_prev: np.ndarray, friction: Any) -> list:
-        """Extra contact-like potentials of a step (count in the wrench)."""
+    def contact_terms(self, model: Any, x_prev: np.ndarray, friction: Any, state: Any = None) -> list:
+        """Extra contact-like potentials of a step (count in the wrench); ``state``: the step's start state."""
         return []
 
     def body_terms(self, model: Any, state: Any, elastic: Any) -> list:
@@ -296,16 +296,21 @@ class _TensileBonds:
 
 
 class BondAdhesion(PhysicsEffect):
-    """Point bonds: a gel contact-face vertex within the contact offset of the sheet bonds to the sheet
-    point below it; the bond resists only opening along the sheet normal (spring ``k_b``, N/m, force
-    capped at ``strength`` N within a step) and breaks for good after a step that reached the cap. Shear is left to friction, so
-    the bonds survive the slides and act at lift-off (the candidate model is a different law: a
-    lagged tensile traction, :mod:`sim_core.candidates.adhesion`)."""
+    """Point bonds of a tacky gel: a gel contact-face vertex within the contact offset of the sheet
+    bonds to the sheet point below it; the bond resists only opening along the sheet normal (spring
+    ``k_b``, N/m, force capped at ``strength`` N within a step) and breaks after a step that reached
+    the cap. A broken vertex does not bond again while it stays within the contact offset (hysteresis:
+    a peeled bond does not snap back), but it re-adheres on its next contact once it has left the
+    sheet (a tacky gel sticks on every touch; bonds that never re-formed made a second lift-off carry
+    nothing). Shear is left to friction, so the bonds survive the slides and act at lift-off (the
+    candidate model is a different law: a lagged tensile traction, :mod:`sim_core.candidates.adhesion`).
+
+    State (``State.candidate_state``): ``bonds`` gel vertex -> (sheet triangle vertices, barycentric
+    weights, gap at formation (m, (3,)), unit normal from the sheet towards the gel vertex);
+    ``broken`` the gel vertices whose bond broke and that have not yet left contact."""
 
     def __init__(self, strength: float, k_b: float = 400.0) -> None:
         self.strength, self.k_b = float(strength), float(k_b)
-
-    _state: Any = None
 
     def _bonds(self, state) -> dict:
         return (getattr(state, "candidate_state", None) or {}).get("bonds", {})
@@ -317,13 +322,9 @@ class BondAdhesion(PhysicsEffect):
         n = np.array([bond[3] for bond in bonds.values()])
         return _TensileBonds(v, w, n, r0, self.k_b, self.strength)
 
-    def contact_terms(self, model, x_prev, friction) -> list:
-        bonds = self._bonds(self._state)
+    def contact_terms(self, model, x_prev, friction, state=None) -> list:
+        bonds = self._bonds(state)
         return [self._terms(bonds)] if bonds else []
-
-    def body_terms(self, model, state, elastic) -> list:
-        self._state = state
-        return []
 
     def update_state(self, model, state_in, x, dt, elastic) -> dict:
         from sim_core.candidates.adhesion import adhesion_pairs
@@ -340,6 +341,7 @@ class BondAdhesion(PhysicsEffect):
         face = np.unique(model.sensors["tactile"].contact_triangles)
         sheet = model.bodies["sheet"].triangles
         v, w, normal = adhesion_pairs(x, face, sheet, model.contact.eps, 1e-12)
+        broken &= {int(g) for g in v[:, 0]}  # left contact: may bond again on the next touch
         for row, wr, nr in zip(v, w, normal):
             g = int(row[0])
             if g not in bonds and g not in broken:

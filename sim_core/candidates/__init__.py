@@ -1,13 +1,13 @@
 """Physics-level missing-physics candidates (SYSID.md "Candidate library").
 
 Each candidate adds one parameter ``beta`` whose value 0 switches it off, as an extra term of the
-incremental potential (and, for the viscoelastic gel, a state update after each step):
+incremental potential (and, for the viscoelastic gel and the adhesion bonds, a state update after each step):
 
 | name | module | beta | extra settings (defaults) |
 |---|---|---|---|
 | ``stiction`` | :mod:`.stiction` | ``mu_s / mu_k - 1`` | ``stiction.slip_scale`` (2: eps_s / eps_u) |
 | ``gel_viscoelasticity`` | :mod:`.gel_viscoelasticity` | Maxwell / equilibrium stiffness | ``gel_viscoelasticity.tau`` (0.3 s) |
-| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: in contact) |
+| ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: bonds form in contact), ``adhesion.release`` (5 delta: a bonded vertex keeps its pair up to it) |
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
 | ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
 
@@ -42,7 +42,8 @@ DIAGNOSIS_CANDIDATES = {
 }
 """What ``sysid.diagnose.candidates.default_candidates`` reads: effect -> global parameter name (once
 ``Model.set_parameter`` routes ``candidate.<name>`` to the solver's :class:`CandidateHook`), probe
-value for the secant signature, and whether beta is one-sided (>= 0)."""
+value for the secant signature (damping and adhesion: raised / set from the scene by
+``default_candidates``), and whether beta is one-sided (>= 0)."""
 
 __all__ = [
     "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "DIAGNOSIS_CANDIDATES", "CANDIDATE_SETTINGS", "CandidateHook",

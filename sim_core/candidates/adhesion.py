@@ -17,6 +17,16 @@ so the tensile force on lift-off ``beta r exp(1 - r)`` rises from 0, peaks at th
 separation ``e beta delta`` per pair. ``beta = 0`` is off. Hessian per pair
 ``phi''(s) (b (x) b) (x) n n^T`` with ``phi'' = (beta/delta)(1 - r) exp(1 - r)`` (rank one; the
 projection clamps / flips ``phi''`` past the peak).
+
+Bond memory (:func:`bonded_pairs`, :func:`bonded_after`): a gel vertex that touched the sheet
+(opening below the reach at the end of a step) stays bonded while its opening stays below the
+release opening (``ADHESION_RELEASE_FRACTION`` delta in the hook: the traction has fallen to 9 % of
+its peak and 96 % of the work of separation is spent, so dropping the pair is the end of the
+softening branch, not a jump); a bonded vertex gets its lagged pair at the next step although it is
+no longer in contact, so a tacky gel can carry a light card up for several steps, as a real one
+does. A vertex that was never in contact (or was released) forms no pair across a gap (the card
+that buckled away from the gel is not pulled). The set is the state ``candidate_state["adhesion"]``
+(sorted global gel vertex indices); it depends on positions only, not on ``beta``.
 """
 
 from __future__ import annotations
@@ -64,6 +74,38 @@ def adhesion_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles
     weights = np.concatenate([np.ones((keep.size, 1)), -bary[keep]], axis=1)
     normal = (p[keep] - q[keep]) / dist[keep, None]
     return vertices, weights, normal
+
+
+def bonded_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray, eps: float,
+                 reach: float, release: float, bonded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of the gel vertices in contact (opening below ``reach``) and of the bonded ones (below ``release``).
+
+    Args:
+        x_prev, gel_vertices, sheet_triangles, eps, reach: as :func:`adhesion_pairs`.
+        release: release opening in m (>= ``reach``): a bonded vertex keeps a pair up to it.
+        bonded: global indices of the bonded gel vertices (state; module docstring), shape ``(b,)``.
+
+    Returns:
+        ``(vertices (p, 4), weights (p, 4), normal (p, 3))`` as :func:`adhesion_pairs`.
+    """
+    v, w, n = adhesion_pairs(x_prev, gel_vertices, sheet_triangles, eps, max(reach, release))
+    if v.shape[0] == 0:
+        return v, w, n
+    s = np.einsum("kd,kd->k", np.einsum("kj,kjd->kd", w, x_prev[v]), n) - eps
+    keep = (s < reach) | (np.isin(v[:, 0], np.asarray(bonded, dtype=np.int64)) & (s < release))
+    return v[keep], w[keep], n[keep]
+
+
+def bonded_after(x: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray, eps: float,
+                 reach: float, release: float, bonded: np.ndarray) -> np.ndarray:
+    """The bonded gel vertices after a step that ended at ``x``: those in contact (opening below
+    ``reach``) and the previously ``bonded`` ones whose opening is still below ``release``.
+
+    Returns:
+        sorted global gel vertex indices, int64, shape ``(b',)``.
+    """
+    v, _, _ = bonded_pairs(x, gel_vertices, sheet_triangles, eps, reach, release, bonded)
+    return np.unique(v[:, 0]).astype(np.int64)
 
 
 class LaggedAdhesion:

@@ -7,7 +7,7 @@
   adhesion) act between gel and sheet and count in ``State.contact_force`` (hence the wrench);
   ``body_like`` (the gel's Maxwell branch, the anisotropic bending part) do not.
 - ``hook.update_state(model, state_in, x, dt, elastic)`` -> the new ``State.candidate_state``
-  (viscoelastic relaxed states per gel), a dict of arrays.
+  (viscoelastic relaxed states per gel, the bonded gel vertices of adhesion), a dict of arrays.
 
 Candidate parameters are a dict ``{name: beta, setting: value}`` (see the package docstring); a
 candidate absent from the dict adds nothing, one present with ``beta = 0`` adds a term of zero
@@ -22,7 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sim_core.errors import ConfigError
-from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
+from sim_core.candidates.adhesion import LaggedAdhesion, bonded_after, bonded_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
 from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
@@ -35,8 +35,14 @@ CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_b
 """Physics-level candidates (SYSID.md effect vocabulary)."""
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
-                      "adhesion.reach": None}
-"""Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION`` ``adhesion.delta``)."""
+                      "adhesion.reach": None, "adhesion.release": None}
+"""Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION``
+``adhesion.delta``, ``adhesion.release`` None = ``ADHESION_RELEASE_FRACTION`` ``adhesion.delta``)."""
+
+ADHESION_RELEASE_FRACTION = 5.0
+"""Default release opening of a bonded pair, in units of ``adhesion.delta``: at ``r = 5`` the
+exponential law's traction ``r exp(1 - r)`` is 9 % of its peak and 96 % of the work of separation is
+spent (:mod:`sim_core.candidates.adhesion`, bond memory)."""
 
 ADHESION_REACH_FRACTION = 0.01
 """Default reach of an adhesion pair, in units of ``adhesion.delta``: a bond forms only where the gel
@@ -47,6 +53,7 @@ away from the gel and changed the buckling, a signature no adhesion has (benchma
 2026-11-22)."""
 
 _STATE_KEY = "gel_viscoelasticity"
+_ADHESION_KEY = "adhesion"
 
 
 def validate_candidate_parameters(params: Mapping[str, float] | None) -> dict[str, float]:
@@ -131,6 +138,8 @@ class CandidateHook:
         v = self.params.get(name, CANDIDATE_SETTINGS[name])
         if name == "adhesion.reach" and v is None:
             return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
+        if name == "adhesion.release" and v is None:
+            return max(ADHESION_RELEASE_FRACTION * self.setting("adhesion.delta"), self.setting("adhesion.reach"))
         return float(v)
 
     def _hinge_bending(self, model, name: str, hinges: np.ndarray, theta_bar) -> DiscreteShellBending:
@@ -165,7 +174,7 @@ class CandidateHook:
             elastic: the solver's :class:`~sim_core.elastic.ElasticTerms`.
             friction: the step's lagged friction, or None.
         """
-        return (self.contact_terms(model, x_prev, friction),
+        return (self.contact_terms(model, x_prev, friction, state),
                 self.body_terms(model, state, elastic) + self.damping_terms(model, x_prev, dt))
 
     def damping_terms(self, model, x_prev: np.ndarray, dt: float) -> list:
@@ -174,17 +183,25 @@ class CandidateHook:
             return []
         return [SheetDamping(sheet_vertices(model), model.vertex_mass(), x_prev, self.params["damping"], dt)]
 
-    def contact_terms(self, model, x_prev: np.ndarray, friction) -> list:
-        """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``)."""
+    def contact_terms(self, model, x_prev: np.ndarray, friction, state=None) -> list:
+        """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``: gel vertices
+        in contact, and the bonded ones of ``state.candidate_state["adhesion"]`` up to the release
+        opening; :mod:`sim_core.candidates.adhesion`). ``state`` None: no bonded vertices."""
         p = self.params
         out: list = []
         if "stiction" in p and friction is not None:
             out.append(StictionFriction(friction, p["stiction"], self.setting("stiction.slip_scale")))
         if "adhesion" in p:
-            v, w, n = adhesion_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model),
-                                     model.contact.eps, self.setting("adhesion.reach"))
+            v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
+                                   self.setting("adhesion.reach"), self.setting("adhesion.release"),
+                                   self.bonded(state))
             out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta")))
         return out
+
+    @staticmethod
+    def bonded(state) -> np.ndarray:
+        """Bonded gel vertices of ``state`` (``candidate_state["adhesion"]``; none when absent), ``(b,)``."""
+        return np.asarray((getattr(state, "candidate_state", None) or {}).get(_ADHESION_KEY, ()), dtype=np.int64)
 
     def body_terms(self, model, state, elastic) -> list:
         """The gels' Maxwell branches and the sheets' anisotropic bending parts."""
@@ -200,8 +217,12 @@ class CandidateHook:
         return out
 
     def update_state(self, model, state_in, x: np.ndarray, dt: float, elastic) -> dict[str, Any]:
-        """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation)."""
+        """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation, adhesion bonds)."""
         out = dict(getattr(state_in, "candidate_state", None) or {})
+        if "adhesion" in self.params:
+            out[_ADHESION_KEY] = bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
+                                              self.setting("adhesion.reach"), self.setting("adhesion.release"),
+                                              self.bonded(state_in))
         if "gel_viscoelasticity" in self.params:
             Fr = self.relaxed_states(model, state_in, elastic)
             tau = self.setting("gel_viscoelasticity.tau")
@@ -266,7 +287,7 @@ class _ContactWithCandidates:
     def friction(self, x_n, dt, memory):
         friction = self._base.friction(x_n, dt, memory)
         s = self._solver
-        self._extra = s.hook.contact_terms(s.model, x_n, friction) if s._state_in is not None else []
+        self._extra = s.hook.contact_terms(s.model, x_n, friction, s._state_in) if s._state_in is not None else []
         stiction = [t for t in self._extra if isinstance(t, StictionFriction)]
         return FrictionWithStiction(friction, stiction[0]) if stiction else friction
 

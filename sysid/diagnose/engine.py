@@ -19,7 +19,8 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    then one verifying replay, one secant replay, and the probe when it fits better; a probe that
    diverged is retried at a quarter of its size; observation: exact, no replay), on training rows;
    evaluation on held-out bags (replayed at nominal and refitted parameters) or on held-out time
-   blocks (every other of ``2 * holdout_blocks`` equal blocks).
+   blocks (every other of ``2 * holdout_blocks`` equal blocks; the rows around a contact event that
+   occurs more than once alternate between training and held-out, :mod:`sysid.diagnose.events`).
 5. Acceptance, out of sample: a one-sided held-out score test that the held-out residual supports
    the refit's prediction change (:func:`sysid.diagnose.stats.heldout_test`; the larger of the
    Newey-West and the conventional variance; Holm over the refitted candidates), the training SSE
@@ -69,7 +70,8 @@ from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
 from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
-from sysid.diagnose.residuals import (explained_fraction, holdout_rows, mismatch_declared,
+from sysid.diagnose.events import contact_events, event_holdout_rows, heldout_label
+from sysid.diagnose.residuals import (explained_fraction, mismatch_declared,
                                       residual, rms_summary, sse, stream_channels, whiten)
 from sysid.diagnose.settings import Settings
 
@@ -271,7 +273,10 @@ class BagDiagnosis(RefitRefinement):
         significant = sorted({t["effect"] for t in tests if t["significant"]},
                              key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
         span = (0.0, float((model.step_times_ns[-1] - model.step_times_ns[0]) * 1e-9))
-        train = {ch: ~holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span) for ch in self.tested}
+        # held-out rows decided from the nominal replay before any refit (sysid.diagnose.events)
+        events = contact_events((ctx.trace.t_ns - model.step_times_ns[0]) * 1e-9, ctx.trace.wrench)
+        self._events = events
+        train = {ch: ~event_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span, events) for ch in self.tested}
         if self.heldout:
             train = {ch: np.ones_like(v) for ch, v in train.items()}
         refits = self._refit(ctx, [by_name[e] for e in significant], tests, J_theta, train, theta)
@@ -353,7 +358,7 @@ class BagDiagnosis(RefitRefinement):
             "explained_by": explained,
             "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
-                      "heldout": "bags" if self.heldout else f"time blocks (every other of {2 * s.holdout_blocks})",
+                      "heldout": "bags" if self.heldout else heldout_label(2 * s.holdout_blocks, getattr(self, "_events", [])),
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
             "extra": {"tests": [{"effect": t["effect"], "channel": t["channel"],
                                  "statistic": float(t["result"].statistic), "dof": t["result"].dof,

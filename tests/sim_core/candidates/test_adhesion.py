@@ -82,3 +82,30 @@ def test_default_reach_forms_bonds_only_in_contact():
     for height, pairs in ((0.9 * EPS, 1), (EPS + 0.5 * DELTA, 0), (EPS + 2 * DELTA, 0)):
         x = np.array([[0.2e-2, 0.2e-2, height], [0, 0, 0], [1e-2, 0, 0], [0, 1e-2, 0]], dtype=float)
         assert adhesion_pairs(x, np.array([0]), np.array([[1, 2, 3]]), EPS, reach)[0].shape[0] == pairs, height
+
+
+def test_bond_memory_keeps_a_touched_vertex_bonded_up_to_the_release_opening():
+    """A gel vertex that touched the sheet stays bonded (and keeps its lagged pair) while its opening
+    is below the release opening; one that never touched forms no pair across the same gap, and a
+    released one bonds again only on contact."""
+    from sim_core.candidates.adhesion import bonded_after, bonded_pairs
+
+    reach, release = 0.01 * DELTA, 5 * DELTA
+    gel, tri = np.array([0]), np.array([[1, 2, 3]])
+
+    def at(height):
+        return np.array([[0.2e-2, 0.2e-2, height], [0, 0, 0], [1e-2, 0, 0], [0, 1e-2, 0]], dtype=float)
+
+    none = np.zeros(0, np.int64)
+    bonded = bonded_after(at(0.9 * EPS), gel, tri, EPS, reach, release, none)  # in contact: bonds
+    assert bonded.tolist() == [0]
+    for opening in (0.5, 2.0, 4.9):
+        x = at(EPS + opening * DELTA)
+        assert bonded_pairs(x, gel, tri, EPS, reach, release, bonded)[0].tolist() == [[0, 1, 2, 3]]
+        assert bonded_pairs(x, gel, tri, EPS, reach, release, none)[0].shape == (0, 4)  # never touched
+        assert bonded_after(x, gel, tri, EPS, reach, release, bonded).tolist() == [0]
+    far = at(EPS + 5.1 * DELTA)
+    released = bonded_after(far, gel, tri, EPS, reach, release, bonded)
+    assert released.size == 0 and bonded_pairs(far, gel, tri, EPS, reach, release, bonded)[0].shape == (0, 4)
+    assert bonded_after(at(EPS + 2 * DELTA), gel, tri, EPS, reach, release, released).size == 0
+    assert bonded_after(at(0.95 * EPS), gel, tri, EPS, reach, release, released).tolist() == [0]

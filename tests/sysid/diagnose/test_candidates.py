@@ -202,3 +202,31 @@ def test_force_bias_refit_applies_to_a_heldout_recording_when_some_axes_are_drop
     B = ForceBiasCandidate.basis(t)
     assert np.allclose(pred["wrench"][:, 2], 0.3 * B[:, 0] + 0.1 * B[:, 1])
     assert np.allclose(np.delete(pred["wrench"], 2, axis=1), 0.0)
+
+
+def test_adhesion_probe_scale_is_the_sheet_weight_per_face_vertex():
+    """``adhesion_weight_scale``: g m_sheet / n_face (the per-pair strength at which the face's bonds
+    together bear the card); nan without gravity, sheet or contact face. On the benchmark card
+    (0.315 g, 20 face vertices) it is 0.155 mN, so the probe (4 weights) is 0.62 mN per pair."""
+    from types import SimpleNamespace
+
+    from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
+
+    masses = np.array([1e-4, 2e-4, 3e-4, 4e-4, 5.0, 5.0, 5.0, 5.0])
+    model = SimpleNamespace(vertex_mass=lambda: masses, gravity=np.array([0.0, 0.0, -9.81]),
+                            bodies={"sheet": SimpleNamespace(kind="sheet", vertices=np.arange(4)),
+                                    "gel": SimpleNamespace(kind="solid", vertices=np.arange(4, 8))},
+                            sensors={"tactile": SimpleNamespace(contact_triangles=np.array([[4, 5, 6], [5, 6, 7]]))})
+    assert adhesion_weight_scale(model) == pytest.approx(9.81 * 1e-3 / 4)
+    model.gravity = np.zeros(3)
+    assert np.isnan(adhesion_weight_scale(model))
+    model.gravity = np.array([0.0, 0.0, -9.81])
+    model.sensors = {}
+    assert np.isnan(adhesion_weight_scale(model))
+
+    from sim_core.scenes import load_scene
+    from sysid.diagnose_bench import load_bench_scene
+
+    w = adhesion_weight_scale(load_scene(load_bench_scene()))
+    assert w == pytest.approx(9.81 * 700.0 * 0.0003 * 0.05 * 0.03 / 20, rel=1e-6)
+    assert ADHESION_PROBE_WEIGHTS * w < 0.05 / 50  # far below the old fixed probe
