@@ -198,3 +198,63 @@ def test_a_diagnosis_gives_the_same_report_with_one_and_two_workers(t_max, names
     rounds = _diagnose(bag, 1, False, monkeypatch, names, t_max=t_max)
     assert pipelined["extra"]["timings_s"]["replays"] == rounds["extra"]["timings_s"]["replays"] >= replays
     assert _without_timings(pipelined) == _without_timings(rounds)
+
+
+def test_early_refits_only_for_candidates_significant_whatever_the_others_give():
+    """A single candidate is refitted from its own chain when p <= alpha / tests_bound; a family waits
+    for its last member, keeps the one with the largest statistic and multiplies its p by the family
+    size (as select_family_members and Holm would)."""
+    d = _wrench_bare(1)
+    d.settings.secant = False
+    ctx = SimpleNamespace(prediction={"wrench": np.zeros((40, 6))}, params={}, channels=("wrench",))
+    strong = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)
+    weak = PhysicsParameterCandidate("adhesion", "candidate.adhesion", 0.05)
+    fam = [PhysicsParameterCandidate("gel_viscoelasticity", "candidate.gel_viscoelasticity", 0.5,
+                                     settings={"candidate.gel_viscoelasticity.tau": tau}, family_size=2)
+           for tau in (0.1, 0.3)]
+    # statistic and p-value of each member's (single) test; bound 10 tests -> alpha / 10 = 1e-3
+    figures = {"stiction": (50.0, 1e-4), "adhesion": (9.0, 2e-3),
+               fam[0].key: (30.0, 4e-4), fam[1].key: (40.0, 3e-4)}
+
+    def tests(ctx_, c, sig, J_theta, notes):
+        stat, p = figures[c.key]
+        return [{"effect": c.name, "key": c.key, "channel": "wrench",
+                 "result": SimpleNamespace(statistic=stat, p_value=p)}]
+
+    refitted = []
+
+    def linearised(ctx_, c, sig, J_theta, train, theta):
+        refitted.append(c.key)
+        return {c.parameter: 1.0}, SimpleNamespace(beta=np.array([1.0]), prediction={}, params={}, sim_params={})
+
+    d._candidate_tests, d._linearised_refit = tests, linearised
+    d._probe_if_better = lambda *a, **k: None
+    spec = {"J_theta": {}, "train": {}, "theta": {}, "refits": {}, "family_probes": {}, "tests_bound": 10,
+            "members": {"stiction": [strong], "adhesion": [weak], "gel_viscoelasticity": fam}}
+    probe = (None, {"wrench": np.ones((40, 6))})
+    replays = []
+
+    def drive(c):
+        chain = d._speculative_refit(ctx, c, probe, spec)
+        try:
+            request = next(chain)
+            while True:
+                replays.append(request[1])
+                request = chain.send(probe)
+        except StopIteration:
+            pass
+
+    drive(strong)
+    drive(weak)                   # p 2e-3 > alpha / 10: waits for Holm over every test
+    drive(fam[0])                 # first member in: nothing yet
+    assert refitted == ["stiction"] and replays == ["refit"]
+    drive(fam[1])                 # last member: keeps tau 0.3 (S 40), p 2 x 3e-4 <= 1e-3
+    assert refitted == ["stiction", fam[1].key] and replays == ["refit", "refit"]
+    assert set(spec["refits"]) == {"stiction", "gel_viscoelasticity"}
+    assert spec["refits"]["gel_viscoelasticity"][0] == fam[1].key
+    # a family whose kept member's p times the family size exceeds alpha / bound waits
+    figures[fam[1].key] = (40.0, 6e-4)
+    spec["refits"].clear(), spec["family_probes"].clear(), refitted.clear()
+    drive(fam[1])
+    drive(fam[0])
+    assert refitted == [] and spec["refits"] == {}
