@@ -47,6 +47,13 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    (a significant test on a channel whose whitened excess exceeds ``min_excess``) but none is
    accepted; ``[]`` otherwise.
 
+The replays after the nominal one run as per-candidate chains (probe, retries, rescaled probes; a
+refit's verifying and secant replays) on a persistent pool of workers
+(:class:`sysid.diagnose.schedule.ReplayScheduler`): a chain's next replay is submitted as soon as its
+previous one returns, and a candidate whose test is significant whatever the others' is refitted
+while the other probes still run (:meth:`RefitRefinement._speculative_refit`). Each chain depends only
+on its own replays, so the report does not depend on the number of workers.
+
 Two corrections of the data model come first. The replay is driven by the measured effector pose,
 whose noise propagates into every prediction (errors in variables): with ``pose_cmd`` recorded, the
 tracking error is smoothed and added to the command (:func:`sysid.diagnose.noise.denoise_controls`). The
@@ -68,6 +75,7 @@ from sim_core.errors import CalibrationError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
+from sysid.diagnose.probing import ProbeCalibration
 from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
 from sysid.diagnose.events import contact_events, event_holdout_rows, heldout_label
@@ -85,7 +93,7 @@ energy to 0.3 %, and which is named first depends on the linear solver's round-o
 
 
 # ====================================================================================== one bag
-class BagDiagnosis(RefitRefinement):
+class BagDiagnosis(ProbeCalibration, RefitRefinement):
     """Diagnosis of one recording (construct, then :meth:`run`).
 
     Args:
@@ -97,6 +105,10 @@ class BagDiagnosis(RefitRefinement):
         settings: :class:`Settings`.
         candidate_names: restrict the library to these effects (None: all available).
     """
+
+    speculative_refits = True
+    """Refit a candidate whose test is significant whatever the others give as soon as its probe is
+    in (:meth:`RefitRefinement._speculative_refit`); the report is the same either way."""
 
     def __init__(self, bag: str | Path, heldout: Sequence[str | Path] = (), params: Sequence[str] = (),
                  project: Sequence[str] | None = None, settings: Settings | None = None,
@@ -140,68 +152,50 @@ class BagDiagnosis(RefitRefinement):
         self.fit_result = res
         return dict(res.values)
 
-    def _probe_change(self, ctx, probe_prediction: Mapping[str, np.ndarray]) -> float:
-        """Largest whitened RMS (noise units) over the tested channels of a probe's prediction change."""
-        return max((float(np.sqrt(np.mean(whiten(self.model, ch, probe_prediction[ch] - ctx.prediction[ch]) ** 2)))
-                    for ch in self.tested if ch in probe_prediction), default=0.0)
-
-    def _calibrate_probes(self, ctx, probes, probe_out) -> None:
-        """Re-run probes whose prediction change is far from ``probe_target`` noise units.
-
-        The secant signature ``(y(beta_p) - y(0)) / beta_p`` is the derivative the score test and the
-        linearised refit need only when the probe is in the linear range and above round-off. A probe
-        that barely moves the simulation (mass-proportional damping of a few 1/s on a quasi-static
-        press: 1e-4 noise units) gives round-off, and the refit, bounded by a few probe sizes, cannot
-        reach an effect that is there; a probe that changes the prediction by tens of noise units
-        (an anisotropy of 0.3 that makes the card buckle differently) gives a secant unrelated to the
-        tangent at 0, and a refit several times too small. Probes outside ``[target / 4, 4 target]``
-        (strongest channel, whitened RMS) are rescaled towards ``target`` (linear response assumed; a
-        factor within ``[1 / probe_max_growth, probe_max_growth]`` per round, two rounds); a rescaled
-        probe that diverges leaves the previous one in place and is not rescaled again (replays are
-        deterministic: the second round would repeat the same rescale and the same divergence).
-        """
-        s = self.settings
-        diverged: set[str] = set()
-        for _ in range(2):
-            redo = []
-            for c in probes:
-                rep = probe_out.get(cands.member_key(c))
-                if rep is None or not hasattr(c, "grow_probe") or cands.member_key(c) in diverged:
-                    continue
-                m = self._probe_change(ctx, rep[1])
-                old = (c.probe_beta, c.bound)
-                if m < 0.25 * s.probe_target:
-                    factor = s.probe_max_growth if m <= 0.0 else min(s.probe_target / m, s.probe_max_growth)
-                    changed = factor > 1.0 and c.grow_probe(factor)
-                elif m > 4.0 * s.probe_target:
-                    c.shrink_probe(max(s.probe_target / m, 1.0 / s.probe_max_growth))
-                    c.bound = old[1]  # the refit may still go as far as the first probe did
-                    changed = True
-                else:
-                    continue
-                if changed:
-                    redo.append((c, old))
-                    self.notes.append(f"{cands.member_key(c)}: probe change {m:.3g} noise units at beta {old[0]:.3g}; "
-                                      f"re-probed at beta {c.probe_beta:.3g}")
-            if not redo:
-                return
-            for (c, old), rep in zip(redo, self._replays([c.probe(ctx) for c, _ in redo])):
-                if rep is not None:
-                    probe_out[cands.member_key(c)] = rep
-                else:
-                    c.probe_beta, c.bound = old
-                    diverged.add(cands.member_key(c))
-                    self.notes.append(f"{cands.member_key(c)}: rescaled probe diverged; the previous one is kept")
-
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
-        out = replay_many(self.model, sets, self.settings.workers, self.settings.ray_address)
+        sched = getattr(self, "_scheduler", None)
+        out = (sched.batch(sets) if sched is not None
+               else replay_many(self.model, sets, self.settings.workers, self.settings.ray_address))
         self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
         self.timings["replays"] = self.timings.get("replays", 0) + len(sets)
         return out
 
+    def _run_chains(self, chains: Sequence, phase: str) -> list:
+        """Run replay chains (:mod:`sysid.diagnose.schedule`) on the scheduler; times the phase."""
+        t = time.perf_counter()
+        sched = getattr(self, "_scheduler", None)
+        if sched is None:
+            from sysid.diagnose.schedule import run_in_rounds
+
+            out = run_in_rounds(chains, self._replays)
+        else:
+            n0 = sched.replays
+            out = sched.run(chains, phase)
+            self.timings["replays"] = self.timings.get("replays", 0) + sched.replays - n0
+            self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
+        self.timings[f"{phase}_s"] = self.timings.get(f"{phase}_s", 0.0) + time.perf_counter() - t
+        return out
+
     def run(self) -> dict[str, Any]:
-        """Run the pipeline and return the report (the JSON contract of SYSID.md)."""
+        """Run the pipeline and return the report (the JSON contract of SYSID.md).
+
+        The replays go through one :class:`~sysid.diagnose.schedule.ReplayScheduler` (persistent
+        worker processes, pipelined replay chains), shut down when the pipeline ends or fails.
+        """
+        from sysid.diagnose.schedule import ReplayScheduler
+
+        self._scheduler = ReplayScheduler(self.model, self.settings.workers, self.settings.ray_address)
+        try:
+            report = self._run_pipeline()
+            report["extra"]["timings_s"]["replay_sim_s"] = self._scheduler.sim_s
+            self.replay_log = list(self._scheduler.log)
+            return report
+        finally:
+            self._scheduler.close()
+            self._scheduler = None
+
+    def _run_pipeline(self) -> dict[str, Any]:
         t_start = time.perf_counter()
         s = self.settings
         model = self.model
@@ -209,7 +203,10 @@ class BagDiagnosis(RefitRefinement):
         proj = [n for n in self.project]
         base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
         sets = [dict(theta)] + [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
+        t, cpu = time.perf_counter(), time.process_time()
         replays = self._replays(sets)
+        self.timings["nominal_s"] = time.perf_counter() - t
+        self.timings["nominal_cpu_s"] = time.process_time() - cpu
         if replays[0] is None:
             raise CalibrationError(f"{self.bag}: the nominal replay diverged")
         trace, pred0 = replays[0]
@@ -225,18 +222,23 @@ class BagDiagnosis(RefitRefinement):
         if self.candidate_names is not None:
             library = [c for c in library if c.name in self.candidate_names]
         probes = [c for c in library if c.probe(ctx) is not None]
-        probe_out = dict(zip([cands.member_key(c) for c in probes], self._replays([c.probe(ctx) for c in probes])))
-        # a probe the simulator cannot finish (e.g. a strong Maxwell branch at lift-off) is retried
-        # smaller: the secant signature only needs a change well above round-off
-        for _ in range(2):
-            retry = [c for c in probes if probe_out.get(cands.member_key(c)) is None and hasattr(c, "shrink_probe")]
-            if not retry:
-                break
-            for c in retry:
-                c.shrink_probe(0.25)
-                self.notes.append(f"{cands.member_key(c)}: probe replay diverged; retried at beta {c.probe_beta:.3g}")
-            probe_out.update(zip([cands.member_key(c) for c in retry], self._replays([c.probe(ctx) for c in retry])))
-        self._calibrate_probes(ctx, probes, probe_out)
+        span = (0.0, float((model.step_times_ns[-1] - model.step_times_ns[0]) * 1e-9))
+        # held-out rows decided from the nominal replay before any refit (sysid.diagnose.events)
+        events = contact_events((ctx.trace.t_ns - model.step_times_ns[0]) * 1e-9, ctx.trace.wrench)
+        self._events = events
+        train = {ch: ~event_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span, events) for ch in self.tested}
+        if self.heldout:
+            train = {ch: np.ones_like(v) for ch, v in train.items()}
+        # a candidate whose test is significant whatever the others' (Holm) is refitted as soon as its
+        # probe is in, while the other probes still run (refine.RefitRefinement._speculative_refit)
+        members: dict[str, list] = {}
+        for c in library:
+            members.setdefault(c.name, []).append(c)
+        self._speculation = {"J_theta": J_theta, "train": train, "theta": theta, "refits": {}, "members": members,
+                             "family_probes": {}, "tests_bound": len(members) * len(self.tested)}
+        if not self.speculative_refits:
+            self._speculation = None
+        probe_out = self._probe_all(ctx, probes)
 
         # ---- score tests
         tests = []
@@ -247,20 +249,7 @@ class BagDiagnosis(RefitRefinement):
                 continue
             sig = c.signature(ctx, probe_out[cands.member_key(c)][1] if c.level == "physics" else None)
             signatures[cands.member_key(c)] = sig
-            for ch, J in sig.items():
-                r = residual(model, ch, pred0[ch])
-                T = r.shape[0]
-                Jk = whiten(model, ch, J).reshape(T, -1, J.shape[-1])
-                Jt = (whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
-                      if J_theta[ch].shape[-1] else None)
-                if not np.any(Jk):
-                    continue
-                try:
-                    res = stats.score_test(r.reshape(T, -1), Jk, Jt, one_sided=c.one_sided and Jk.shape[2] == 1)
-                except ValueError as err:
-                    self.notes.append(f"{c.name} on {ch}: {err}")
-                    continue
-                tests.append({"effect": c.name, "key": cands.member_key(c), "channel": ch, "result": res})
+            tests.extend(self._candidate_tests(ctx, c, sig, J_theta, self.notes))
         library, tests = cands.select_family_members(library, tests, self.notes)
         self._signatures = {c.name: signatures[cands.member_key(c)] for c in library if cands.member_key(c) in signatures}
         self._probe_out = {c.name: probe_out[cands.member_key(c)] for c in library if cands.member_key(c) in probe_out}
@@ -272,15 +261,30 @@ class BagDiagnosis(RefitRefinement):
         by_name = {c.name: c for c in library}
         significant = sorted({t["effect"] for t in tests if t["significant"]},
                              key=lambda e: -max(t["result"].statistic for t in tests if t["effect"] == e))
-        span = (0.0, float((model.step_times_ns[-1] - model.step_times_ns[0]) * 1e-9))
-        # held-out rows decided from the nominal replay before any refit (sysid.diagnose.events)
-        events = contact_events((ctx.trace.t_ns - model.step_times_ns[0]) * 1e-9, ctx.trace.wrench)
-        self._events = events
-        train = {ch: ~event_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span, events) for ch in self.tested}
-        if self.heldout:
-            train = {ch: np.ones_like(v) for ch, v in train.items()}
         refits = self._refit(ctx, [by_name[e] for e in significant], tests, J_theta, train, theta)
         return self._conclude(ctx, library, tests, refits, train, theta, t_start)
+
+    def _candidate_tests(self, ctx, c, sig, J_theta, notes: list[str]) -> list[dict[str, Any]]:
+        """Score tests of candidate ``c`` with signature ``sig`` on every channel it acts on
+        (:func:`stats.score_test` of the nominal residual, ``J_theta`` projected out); a test that
+        cannot be done is noted in ``notes`` and skipped."""
+        model, pred0 = self.model, ctx.prediction
+        out = []
+        for ch, J in sig.items():
+            r = residual(model, ch, pred0[ch])
+            T = r.shape[0]
+            Jk = whiten(model, ch, J).reshape(T, -1, J.shape[-1])
+            Jt = (whiten(model, ch, J_theta[ch]).reshape(T, -1, J_theta[ch].shape[-1])
+                  if J_theta[ch].shape[-1] else None)
+            if not np.any(Jk):
+                continue
+            try:
+                res = stats.score_test(r.reshape(T, -1), Jk, Jt, one_sided=c.one_sided and Jk.shape[2] == 1)
+            except ValueError as err:
+                notes.append(f"{c.name} on {ch}: {err}")
+                continue
+            out.append({"effect": c.name, "key": cands.member_key(c), "channel": ch, "result": res})
+        return out
 
     def _conclude(self, ctx, library, tests, refits, train, theta, t_start: float) -> dict[str, Any]:
         """Steps 5-7 (decide, combine, locate, report) from the tests and refits; no replay unless
@@ -419,42 +423,19 @@ class BagDiagnosis(RefitRefinement):
             else:
                 physics.append(c)
         if physics:
-            sets = []
-            for c in physics:
-                sig = self._signatures[c.name]
-                rows_r, rows_J = [], []
-                for ch in model.channels:
-                    tr = train[ch]
-                    T = int(tr.sum())
-                    rows_r.append(residual(model, ch, ctx.prediction[ch])[tr].reshape(-1))
-                    Jk = whiten(model, ch, sig[ch])[tr].reshape(T, -1)
-                    Jt = whiten(model, ch, J_theta[ch])[tr].reshape(T * Jk.shape[1], -1)
-                    rows_J.append(np.concatenate([Jk.reshape(-1, 1), Jt], axis=1))
-                A, b = np.concatenate(rows_J), np.concatenate(rows_r)
-                sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-                beta = float(sol[0])
-                if c.one_sided:
-                    beta = max(beta, 0.0)
-                # the linearisation is only trusted up to a few probe sizes
-                beta = float(np.clip(beta, -c.bound, c.bound))
-                # J_theta columns are per unit of ln(theta): a log step, limited to a factor e
-                dtheta = {n: theta.get(n, model.parameter_value(n)) * math.exp(float(np.clip(d, -1.0, 1.0)))
-                          for n, d in zip(self.project, sol[1:])}
-                params = {**theta, **dtheta, **c.sim_parameters(beta)}
-                sets.append(params)
-                out[c.name] = cands.Refit(np.array([beta]), {c.report_name: beta, **c.settings,
-                                                             **{k: float(v) for k, v in dtheta.items()}},
-                                          {}, sim_params={**dtheta, **c.sim_parameters(beta)})
-            for c, rep in zip(physics, self._replays(sets)):
-                if rep is None:
-                    self.notes.append(f"{c.name}: refit replay diverged")
-                    out[c.name].prediction = dict(ctx.prediction)
-                else:
-                    out[c.name].prediction = rep[1]
-            if self.settings.secant:
-                self._secant(ctx, physics, out, train, theta)
-            for c in physics:
-                self._probe_if_better(ctx, c, out, train)
+            spec = (getattr(self, "_speculation", None) or {}).get("refits", {})
+            notes: list = []
+            chains = []
+            for i, c in enumerate(physics):
+                if spec.get(c.name, ("",))[0] == cands.member_key(c):
+                    # refitted while the other probes ran: the same replays, done
+                    _, out[c.name], texts = spec[c.name]
+                    notes.extend(((0, 0, i), text) for text in texts)
+                    continue
+                params, out[c.name] = self._linearised_refit(ctx, c, self._signatures[c.name], J_theta, train, theta)
+                chains.append(self._refit_chain(ctx, c, params, out, train, theta, i, notes))
+            self._run_chains(chains, "refits")
+            self._merge_notes(notes)
         return out
 
     # ------------------------------------------------------------------------------ decide

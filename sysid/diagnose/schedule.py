@@ -1,0 +1,246 @@
+"""Pipelined replays: sequential chains of dependent replays, run concurrently on a persistent pool.
+
+The diagnosis replays come in short dependent chains, one per candidate: a probe, a retry when it
+diverged, up to two rescaled probes (each sized from the previous one's prediction change); a refit's
+verifying replay, then its secant replay. Chains of different candidates are independent. Run in
+barrier batches (every candidate's first probe, then every retry, ...), a batch of ``n`` replays on
+``w`` workers costs ``ceil(n / w)`` replay times, and a chain waits for the slowest replay of each
+batch. :class:`ReplayScheduler` instead keeps ``w`` forked worker processes alive for the whole
+diagnosis (the observation model, its cached simulation and the Taichi kernels stay built between
+replays) and submits a chain's next replay as soon as its previous one returns, so the workers stay
+busy until the last chain ends.
+
+A chain is a generator: it yields one parameter dict (``ObservationModel.simulate`` semantics), or
+``(parameters, tag)`` with a tag naming the replay's role for the log, receives the replay's
+``(trace, prediction)`` or None (diverged), and returns its result. A chain's
+result depends only on its own replays, and replays are deterministic, so the results do not depend
+on the number of workers nor on the order in which replays finish.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Callable, Generator, Mapping, Sequence
+
+from sim_core.errors import CalibrationError
+from sysid.diagnose import parallel
+
+Replay = Any
+"""``(trace, prediction)`` of one replay, or None when it diverged."""
+
+Chain = Generator[Mapping[str, float], Replay, Any]
+"""A generator that yields parameter sets, receives their replays and returns its result."""
+
+
+def _start(chain: Chain) -> tuple[bool, Any]:
+    """``(True, next request)`` or ``(False, result)`` of a chain that has not run yet."""
+    try:
+        return True, next(chain)
+    except StopIteration as stop:
+        return False, stop.value
+
+
+def _advance(chain: Chain, replay: Replay) -> tuple[bool, Any]:
+    """Send ``replay`` into ``chain``: ``(True, next request)`` or ``(False, result)``."""
+    try:
+        return True, chain.send(replay)
+    except StopIteration as stop:
+        return False, stop.value
+
+
+def _request(value: Any) -> tuple[dict[str, float], str]:
+    """``(parameters, tag)`` of what a chain yielded (a parameter dict, or a ``(dict, tag)`` pair)."""
+    if isinstance(value, tuple):
+        params, tag = value
+        return dict(params), str(tag)
+    return dict(value), ""
+
+
+def run_in_rounds(chains: Sequence[Chain], batch: Callable[[list[dict[str, float]]], list[Replay]]) -> list[Any]:
+    """Run ``chains`` by rounds: every pending request of a round in one call of ``batch``.
+
+    For one worker (in-process replays) and for Ray (one batch of tasks per round); the number of
+    rounds is the length of the longest chain.
+
+    Args:
+        chains: generators (module docstring).
+        batch: replays a list of parameter sets, returns one :data:`Replay` per set, in order.
+
+    Returns:
+        each chain's result, in the order of ``chains``.
+    """
+    results: list[Any] = [None] * len(chains)
+    pending: dict[int, dict[str, float]] = {}
+    for i, ch in enumerate(chains):
+        more, value = _start(ch)
+        if more:
+            pending[i] = _request(value)[0]
+        else:
+            results[i] = value
+    while pending:
+        order = sorted(pending)
+        outs = batch([pending[i] for i in order])
+        pending = {}
+        for i, rep in zip(order, outs):
+            more, value = _advance(chains[i], rep)
+            if more:
+                pending[i] = _request(value)[0]
+            else:
+                results[i] = value
+    return results
+
+
+class ReplayScheduler:
+    """Replays of one observation model on a persistent pool of forked workers (module docstring).
+
+    The pool is forked at the first :meth:`run` with more than one worker: the workers keep the model
+    as it is then (its simulation, alignment and controls; only those enter a replay) and reuse its
+    cached simulation for every later replay. Close it with :meth:`close` (or use as a context
+    manager).
+
+    Args:
+        model: ``sysid.observation.ObservationModel``.
+        workers: processes (1: replays in this process, by rounds).
+        ray_address: Ray cluster address: replays as Ray tasks, by rounds (overrides ``workers``).
+
+    Attributes:
+        replays: replays run so far.
+        sim_s: summed simulation wall time of the finished replays, s (``SimTrace.wall_time_s``).
+        log: one record per pooled replay, in finishing order: ``{"label", "chain", "step", "tag",
+            "cpu_s", "diverged"}``
+            (``cpu_s``: the worker's CPU time for it, all its threads; the work the scheduling packs
+            onto the workers, independent of other load on the machine).
+    """
+
+    def __init__(self, model: Any, workers: int = 1, ray_address: str | None = None) -> None:
+        self.model = model
+        self.workers = max(1, int(workers))
+        self.ray_address = ray_address
+        self.replays = 0
+        self.sim_s = 0.0
+        self.log: list[dict[str, Any]] = []
+        self._pool: ProcessPoolExecutor | None = None
+
+    @property
+    def pooled(self) -> bool:
+        """Whether replays go to the persistent process pool (``workers > 1``, no Ray)."""
+        return self.workers > 1 and not self.ray_address
+
+    def batch(self, sets: Sequence[Mapping[str, float]]) -> list[Replay]:
+        """Replay independent parameter sets (:func:`parallel.replay_many` semantics, on the pool)."""
+        if not self.pooled or (self._pool is None and len(sets) <= 1):
+            # one replay before the pool exists runs here: the workers forked later inherit its
+            # built simulation and compiled kernels
+            out = parallel.replay_many(self.model, sets, self.workers, self.ray_address)
+            self.replays += len(out)
+            self._account(out)
+            return out
+
+        def one(params: Mapping[str, float]) -> Chain:
+            return (yield params)
+
+        return self.run([one(p) for p in sets])
+
+    def run(self, chains: Sequence[Chain], label: str = "") -> list[Any]:
+        """Run ``chains`` concurrently; returns each chain's result in the order of ``chains``.
+
+        ``label`` tags the replays in :attr:`log`.
+
+        Raises:
+            CalibrationError: a replay failed in a worker with anything but a divergence (the
+                message names the parameter set and the error), or a worker process died.
+        """
+        if not self.pooled:
+            def counted(sets: list[dict[str, float]]) -> list[Replay]:
+                self.replays += len(sets)
+                return self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address))
+
+            return run_in_rounds(chains, counted)
+        pool = self._ensure_pool()
+        results: list[Any] = [None] * len(chains)
+        running: dict[Future, tuple[int, dict[str, float], str]] = {}
+        pending: dict[int, tuple[dict[str, float], str]] = {}  # chain -> its next request, not submitted
+        steps = [0] * len(chains)
+
+        def fill() -> None:
+            # at most one replay per worker in flight; a chain's later replays before other chains'
+            # first ones (the longest chains are on the critical path), then by chain order
+            while pending and len(running) < self.workers:
+                i = min(pending, key=lambda j: (-steps[j], j))
+                p, tag = pending.pop(i)
+                running[pool.submit(_timed_worker, p)] = (i, p, tag)
+                self.replays += 1
+
+        try:
+            for i, ch in enumerate(chains):
+                more, value = _start(ch)
+                if more:
+                    pending[i] = _request(value)
+                else:
+                    results[i] = value
+            fill()
+            while running:
+                done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+                for fut in sorted(done, key=lambda f: running[f][0]):
+                    i, p, tag = running.pop(fut)
+                    try:
+                        rep, cpu_s = fut.result()
+                    except BrokenProcessPool as err:
+                        raise CalibrationError(f"a replay worker process died while replaying {_short(p)} "
+                                               f"(out of memory or a crash in native code): {err}") from err
+                    except Exception as err:  # noqa: BLE001 - re-raised with the parameter set named
+                        raise CalibrationError(f"replay of {_short(p)} failed in a worker process: "
+                                               f"{type(err).__name__}: {err}") from err
+                    self._account([rep])
+                    self.log.append({"label": label, "chain": i, "step": steps[i], "tag": tag, "cpu_s": cpu_s,
+                                     "diverged": rep is None})
+                    steps[i] += 1
+                    more, value = _advance(chains[i], rep)
+                    if more:
+                        pending[i] = _request(value)
+                    else:
+                        results[i] = value
+                fill()
+        except BaseException:
+            self.close(cancel=True)
+            raise
+        return results
+
+    def _account(self, reps: list[Replay]) -> list[Replay]:
+        self.sim_s += sum(float(getattr(r[0], "wall_time_s", 0.0) or 0.0) for r in reps if r is not None)
+        return reps
+
+    def _ensure_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            ctx = multiprocessing.get_context("fork")
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=parallel._init,
+                                             initargs=(self.model,))
+        return self._pool
+
+    def close(self, cancel: bool = False) -> None:
+        """Shut the worker processes down (``cancel``: drop queued replays first)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=cancel)
+            self._pool = None
+
+    def __enter__(self) -> "ReplayScheduler":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close(cancel=exc[0] is not None)
+
+
+def _timed_worker(params: Mapping[str, float]) -> tuple[Replay, float]:
+    """A pool worker's replay and the CPU time it took (s, all threads of the worker process)."""
+    t = time.process_time()
+    rep = parallel._worker(params)
+    return rep, time.process_time() - t
+
+
+def _short(params: Mapping[str, float]) -> str:
+    """The parameter set of a replay for an error message (candidate parameters first)."""
+    items = sorted(params.items(), key=lambda kv: (not kv[0].startswith("candidate."), kv[0]))
+    return "{" + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v!r}" for k, v in items) + "}"
