@@ -718,7 +718,11 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
 
             log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
             reports = [None] * len(recs)
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            import multiprocessing
+
+            # spawned, not forked: this process may have run Taichi (generating the set), and a kernel a
+            # forked child compiles hangs it (Taichi's compile thread pool does not survive fork)
+            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = {pool.submit(_diagnose_one, args.engine, str(r.path), [str(h) for h in r.heldout]): i for i, r in enumerate(recs)}
                 for fut in as_completed(futures):
                     i = futures[fut]

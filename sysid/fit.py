@@ -285,6 +285,11 @@ class FitProblem:
             if self._pool is None:
                 import multiprocessing
 
+                # the forked workers inherit compiled kernels; one a child compiles itself hangs it
+                # (Taichi's compile thread pool does not survive fork): ObservationModel.compile_kernels
+                warm = getattr(self.model, "compile_kernels", None)
+                if callable(warm):
+                    warm()
                 self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"),
                                                  initializer=_worker_init, initargs=(self,))
             for u, (r, wall) in zip(todo, self._pool.map(_worker_residual, todo)):

@@ -292,6 +292,27 @@ class ObservationModel:
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
         return self._sim
 
+    def compile_kernels(self) -> float:
+        """JIT-compile, in this process, the Taichi kernels a replay calls; seconds (0 for ``numpy``).
+
+        Processes forked from this one (the parallel replays of ``sysid.diagnose``) inherit the
+        compiled kernels. A kernel that a forked child has to compile itself, because the parent never
+        ran it and Taichi's offline cache does not hold it yet, hangs the child: Taichi's compile thread
+        pool does not survive ``fork``. So pools call this before they fork
+        (:func:`sim_core.fused_elastic.compile_kernels`: fused elastic terms, the projected fallback,
+        contact, broad-phase and friction kernels).
+
+        Raises:
+            ConfigError: the Taichi backend cannot be initialised for ``arch``.
+        """
+        if self.arch == "numpy":
+            return 0.0
+        from sim_core.fused_elastic import compile_kernels
+
+        sim = self.simulation()
+        return compile_kernels(sim.solver.elastic.potentials(sim.state.hinge_theta_bar), sim.state.x,
+                               sim.solver.config.projection)
+
     def parameter_value(self, name: str) -> float:
         """Nominal (scene) value of parameter ``name``.
 

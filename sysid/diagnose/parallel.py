@@ -53,6 +53,16 @@ def _reset_candidates(model: Any) -> None:
             inner.revision += 1
 
 
+def compile_before_fork(model: Any) -> None:
+    """Compile the model's Taichi kernels in this process before worker processes are forked from it
+    (``ObservationModel.compile_kernels``; a kernel first compiled inside a forked child hangs it:
+    Taichi's compile thread pool does not survive ``fork``). Models without that method are left as
+    they are."""
+    warm = getattr(model, "compile_kernels", None)
+    if callable(warm):
+        warm()
+
+
 def _replay(model: Any, params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
     _reset_candidates(model)
     try:
@@ -100,6 +110,7 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
         return list(ray.get([task.remote(ref, p) for p in sets]))
     if workers <= 1 or len(sets) == 1:
         return [_replay(model, p) for p in sets]
+    compile_before_fork(model)
     ctx = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(min(workers, len(sets)), mp_context=ctx, initializer=_init, initargs=(model,)) as pool:
         return list(pool.map(_worker, sets))

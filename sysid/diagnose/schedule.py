@@ -215,6 +215,7 @@ class ReplayScheduler:
 
     def _ensure_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
+            parallel.compile_before_fork(self.model)
             ctx = multiprocessing.get_context("fork")
             self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=parallel._init,
                                              initargs=(self.model,))

@@ -258,3 +258,34 @@ def test_early_refits_only_for_candidates_significant_whatever_the_others_give()
     drive(fam[1])
     drive(fam[0])
     assert refitted == [] and spec["refits"] == {}
+
+
+class CompilingModel(FakeModel):
+    """:class:`FakeModel` whose replays need a "kernel" compiled in the process before the fork:
+    a child that would compile it itself raises (Taichi hangs there instead)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.compiled_in = None
+
+    def compile_kernels(self) -> float:
+        self.compiled_in = os.getpid()
+        return 0.0
+
+    def simulate(self, params):
+        if self.compiled_in is None:
+            raise RuntimeError("kernel compiled inside a forked worker")
+        return super().simulate(params)
+
+
+def test_pools_compile_the_kernels_before_they_fork():
+    from sysid.diagnose.parallel import replay_many
+
+    model = CompilingModel()
+    with ReplayScheduler(model, 2) as sched:
+        assert sched.run([_halving(x, n) for x, n in ((4.0, 2), (2.0, 2), (1.0, 2))]) == [[4.0, 2.0], [2.0, 1.0], [1.0, 0.5]]
+    assert model.compiled_in == os.getpid()
+    model = CompilingModel()
+    out = replay_many(model, [{"x": 1.0}, {"x": 2.0}], workers=2)
+    assert [rep[1]["pid"] != os.getpid() for rep in out] == [True, True]  # replayed in the workers
+    assert model.compiled_in == os.getpid()
