@@ -10,8 +10,9 @@ SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwel
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
-  linear branches, not the finite-strain SLS), ``adhesion`` (breakable point bonds that form on
-  contact, with hysteresis, and form again on the next touch), ``anisotropic_bending``
+  linear branches, not the finite-strain SLS), ``adhesion`` (cohesive-zone point bonds that form on
+  contact: Needleman's polynomial traction-separation law with irreversible damage, no re-healing
+  in contact, formed again on the next touch), ``anisotropic_bending``
   (orthotropic hinges with the grain 15 degrees off x) and, NOT in the library, ``thickness_step`` (the far 40 % of the card is thicker: stiffer hinges);
 - data, on the recorded streams: ``latency`` (tactile streams late by tau), ``lens_distortion``
   (radial k1 on the marker pixels), ``force_bias`` (slow offset drift on the wrench).
