@@ -21,7 +21,7 @@ import numpy as np
 
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.bending import DiscreteShellBending
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import project_psd_translation_free, projection_code
@@ -159,6 +159,7 @@ def evaluate_hinge_energy(
     theta_bar: ti.types.ndarray(), hinge_energy: ti.types.ndarray(),
 ):
     """``hinge_energy[h] = k_h (theta_h - theta_bar_h)^2`` (J)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
@@ -171,8 +172,10 @@ def evaluate_hinge_gradient(
     theta_bar: ti.types.ndarray(), grad: ti.types.ndarray(),
 ):
     """``grad[v] += 2 k_h (theta - theta_bar) dtheta/dx_v`` (N); ``grad`` zeroed first."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for v, d in ti.ndrange(grad.shape[0], 3):
         grad[v, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
@@ -189,6 +192,7 @@ def evaluate_hinge_hessian(
     theta_bar: ti.types.ndarray(), code: ti.i32, blocks: ti.types.ndarray(),
 ):
     """``blocks[h] = 2 k_h (g g^T + (theta - theta_bar) d2theta)`` (12x12, N/m), projected."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]

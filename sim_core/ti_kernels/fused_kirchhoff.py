@@ -158,6 +158,7 @@ def kirchhoff_triangle_hessians(
         g = _theta_gradient(x0, x1, x2, x3)
         for r in ti.static(range(12)):
             scratch[h, 2 + r] = g[r]
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         M = ti.Matrix.zero(ti.f64, 3, 3)

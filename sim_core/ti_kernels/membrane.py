@@ -20,7 +20,7 @@ import numpy as np
 
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.membrane import StVKMembrane
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import project_psd_translation_free, projection_code
@@ -44,6 +44,7 @@ def evaluate_stvk_energy(
     mu: ti.f64, lam: ti.f64, tri_energy: ti.types.ndarray(),
 ):
     """``tri_energy[t] = w_t (mu G:G + lam/2 tr(G)^2)`` (J)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tris.shape[0]):
         F, G = _triangle_strain(x, tris, D, t)
         trG = G[0, 0] + G[1, 1]
@@ -56,8 +57,10 @@ def evaluate_stvk_gradient(
     mu: ti.f64, lam: ti.f64, grad: ti.types.ndarray(),
 ):
     """``grad[v] += w_t P D_a`` for every corner ``a`` at vertex ``v`` (N); ``grad`` zeroed first."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for v, d in ti.ndrange(grad.shape[0], 3):
         grad[v, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tris.shape[0]):
         F, G = _triangle_strain(x, tris, D, t)
         trG = G[0, 0] + G[1, 1]
@@ -75,6 +78,7 @@ def evaluate_stvk_hessian(
     mu: ti.f64, lam: ti.f64, code: ti.i32, blocks: ti.types.ndarray(),
 ):
     """``blocks[t]``: the 9x9 Hessian of triangle ``t`` (local DoF ``3 a + d``, N/m), projected."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tris.shape[0]):
         F, G = _triangle_strain(x, tris, D, t)
         trG = G[0, 0] + G[1, 1]

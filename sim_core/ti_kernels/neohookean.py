@@ -22,7 +22,7 @@ import numpy as np
 
 from sim_core.potentials.base import HessianBlocks, Projection
 from sim_core.potentials.neohookean import StableNeoHookean
-from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
 from sim_core.ti_kernels.linalg import cofactor, filter_eigenvalue, jacobi_eigh, projection_code
@@ -94,6 +94,7 @@ def evaluate_snh_energy(
 ):
     """``tet_energy[t] = V_t psi(F_t)`` (J)."""
     alpha = 1.0 + 0.75 * mu / lam
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tets.shape[0]):
         F = _tet_deformation_gradient(x, tets, dFdx, t)
         I_C = (F * F).sum()
@@ -110,8 +111,10 @@ def evaluate_snh_gradient(
 ):
     """``grad[v] += V_t P(F_t) g_a`` for every tet corner ``a`` at vertex ``v`` (N); ``grad`` zeroed first."""
     alpha = 1.0 + 0.75 * mu / lam
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for v, d in ti.ndrange(grad.shape[0], 3):
         grad[v, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tets.shape[0]):
         F = _tet_deformation_gradient(x, tets, dFdx, t)
         I_C = (F * F).sum()
@@ -133,6 +136,7 @@ def evaluate_snh_hessian(
 ):
     """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) from the analytic eigensystem."""
     alpha = 1.0 + 0.75 * mu / lam
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tets.shape[0]):
         F = _tet_deformation_gradient(x, tets, dFdx, t)
         U, sigma, V = _rotation_variant_svd(F)
