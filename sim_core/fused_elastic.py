@@ -96,13 +96,17 @@ class _ReferencePart:
         """
         grad += self.potential.gradient(x)
         blocks = self.potential.hessian(x, "none")
+        self._add_blocks(blocks, values)
+        return float(self.potential.energy(x))
+
+    def _add_blocks(self, blocks, values: np.ndarray) -> None:
+        """Sum ``blocks`` (the potential's ``HessianBlocks``) into the pattern's slot ``values``."""
         if blocks.vertices is not self.vertices:
             raise RuntimeError(f"FusedElastic: {type(self.potential).__name__} changed its Hessian-block vertex array")
         if self._slots is None:
             self._slots = self._pattern.slot_map(blocks.vertices)
         keep = self._slots >= 0
         values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
-        return float(self.potential.energy(x))
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
         """Add the reference ``projection`` Hessian blocks into ``values`` (slot map of :meth:`evaluate`).
@@ -113,12 +117,7 @@ class _ReferencePart:
                 the pattern was built from.
         """
         blocks = self.potential.hessian(x, projection)
-        if blocks.vertices is not self.vertices:
-            raise RuntimeError(f"FusedElastic: {type(self.potential).__name__} changed its Hessian-block vertex array")
-        if self._slots is None:
-            self._slots = self._pattern.slot_map(blocks.vertices)
-        keep = self._slots >= 0
-        values += np.bincount(self._slots[keep], weights=blocks.blocks[keep], minlength=values.size)
+        self._add_blocks(blocks, values)
 
 
 class FusedElastic:

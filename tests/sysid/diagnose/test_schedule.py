@@ -236,13 +236,13 @@ def test_early_refits_only_for_candidates_significant_whatever_the_others_give()
 
     def drive(c):
         chain = d._speculative_refit(ctx, c, probe, spec)
-        try:
-            request = next(chain)
-            while True:
-                replays.append(request[1])
+        request = next(chain, None)
+        while request is not None:
+            replays.append(request[1])
+            try:
                 request = chain.send(probe)
-        except StopIteration:
-            pass
+            except StopIteration:
+                return
 
     drive(strong)
     drive(weak)                   # p 2e-3 > alpha / 10: waits for Holm over every test
