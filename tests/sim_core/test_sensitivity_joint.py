@@ -20,10 +20,8 @@ from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from tests.sim_core.test_adjoint import CONFIG, PARAMS, _controls, _scene
 
-# rate_stopping off: the recorded matrix is then the Hessian at the record's x (with it on, the
-# matrix of the iterate before the last Newton update; see test_rate_stopping_tangents_...)
-CONFIGS = {"exact_first": SolverConfig(tol_velocity=1e-9, tol_force=5e-8, rate_stopping=False),
-           "projection_none": dataclasses.replace(CONFIG, rate_stopping=False)}
+CONFIGS = {"exact_first": SolverConfig(tol_velocity=1e-9, tol_force=5e-8),
+           "projection_none": CONFIG}
 
 
 @pytest.mark.parametrize("config", sorted(CONFIGS))
@@ -51,11 +49,10 @@ def test_joint_rollout_tangents_equal_recorded_linearisation(config):
 
 
 def test_rate_stopping_tangents_match_the_recorded_linearisation_to_the_newton_tolerance():
-    """With rate stopping (the default) a step may end on a Newton update whose matrix is not
+    """With rate stopping (opt-in) a step may end on a Newton update whose matrix is not
     re-assembled: the tangents solved with that matrix differ from those of the Hessian at the
     final x by the size of the last update only (here < 1e-5 relative at tol 1e-9 m/s)."""
-    config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8)
-    assert config.rate_stopping
+    config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8, rate_stopping=True)
     sim_a = Simulation.from_scene(_scene(), solver_config=config)
     traj_a, dX_a, _ = rollout_sensitivities(sim_a, _controls(), PARAMS, contact_force=True)
     sim_b = Simulation.from_scene(_scene(), solver_config=config)
@@ -70,8 +67,7 @@ def test_rate_stopping_tangents_match_the_recorded_linearisation_to_the_newton_t
 
 
 def test_recorded_exact_newton_matrix_is_the_assembled_exact_hessian():
-    sim = Simulation.from_scene(_scene(), solver_config=SolverConfig(tol_velocity=1e-9, tol_force=5e-8,
-                                                                     rate_stopping=False))
+    sim = Simulation.from_scene(_scene(), solver_config=SolverConfig(tol_velocity=1e-9, tol_force=5e-8))
     traj = rollout(sim, _controls())
     model = sim.model
     assert any(rec.hessian_exact for rec in traj.records)
