@@ -105,28 +105,6 @@ def test_a_single_replay_before_the_pool_runs_in_this_process():
         assert rep[1]["pid"] == os.getpid() and sched._pool is None
 
 
-def test_a_prefetched_replay_runs_beside_the_first_batch_and_is_taken_by_a_later_chain():
-    """Prefetch: the nominal batch's idle worker replays a later chain's first request; that chain
-    takes the replay (no second one), with the same results as without prefetching; a prefetched set
-    no chain asks for is only counted; the prefetch needs a pool (one worker: ignored)."""
-    chains = lambda: [_halving(40.0, 2), _halving(6.0, 1)]  # noqa: E731 - two fresh chains per run
-    with ReplayScheduler(FakeModel(), 2) as sched:
-        (nominal,) = sched.batch([{"x": 50.0}], prefetch=[{"x": 6.0}, {"x": 40.0}, {"x": 99.0}])
-        # one worker was left idle by the batch: only the first prefetch set was submitted
-        assert sched.replays == 2 and list(sched._prefetched) == [(("x", 6.0),)]
-        assert sched.run(chains()) == [[40.0, 20.0], [6.0]]
-        assert sched.replays == 4 and not sched._prefetched
-        # the prefetched replay ran while the nominal one did (its worker had run nothing before)
-        assert nominal[1]["count"] == 1
-    with ReplayScheduler(FakeModel(), 2) as sched:
-        sched.batch([{"x": 5.0}], prefetch=[{"x": 7.0}])
-        assert sched.run(chains()) == [[40.0, 20.0], [6.0]]
-        assert sched.replays == 5  # 1 + the unused prefetch + 3
-    with ReplayScheduler(FakeModel(), 1) as sched:
-        sched.batch([{"x": 5.0}], prefetch=[{"x": 6.0}])
-        assert sched.replays == 1 and sched._pool is None
-
-
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_worker_error_names_the_parameter_set(workers):
     expect = (ValueError, CalibrationError)[workers - 1]
