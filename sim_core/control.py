@@ -15,14 +15,21 @@ class Control:
         effector_pose_target: effector name -> target pose ``[x y z qx qy qz qw]`` in ``world``
             (m, unit quaternion). A missing name holds the current pose.
         gripper_target: effector name -> finger opening target in m (two-finger effectors only).
+        position_guess: optional solver hint, not a command: positions ``(n, 3)`` in m to start the
+            step's Newton iterations from (free vertices; fixed and driven vertices still start
+            at their targets), e.g. the same step of a replay at nearby parameters. The step
+            converges to the same tolerance from any start; a start close to the solution saves
+            iterations. None: start from the step's initial positions.
     """
 
     effector_pose_target: dict[str, np.ndarray] = field(default_factory=dict)
     gripper_target: dict[str, float] = field(default_factory=dict)
+    position_guess: np.ndarray | None = None
 
     def copy(self) -> "Control":
-        """Deep copy."""
+        """Deep copy (the position guess is shared: it is read, never written)."""
         return Control(
             {k: np.array(v, dtype=float) for k, v in self.effector_pose_target.items()},
             dict(self.gripper_target),
+            self.position_guess,
         )

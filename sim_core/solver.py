@@ -217,12 +217,18 @@ class NewtonSolver:
                 raise ConfigError(f"unknown effector {name!r} in control; known: {list(self.model.effectors)}")
         if not dt > 0:
             raise ConfigError(f"dt must be > 0, got {dt}")
+        guess = control.position_guess
+        if guess is not None:
+            guess = np.asarray(guess, dtype=float)
+            if guess.shape != state_in.x.shape or not np.all(np.isfinite(guess)):
+                raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
+                                  f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
         halvings = self.config.dt_halvings_on_failure
         n_sub = 1
         while True:
             try:
-                info = self._step_substeps(state_in, state_out, control, dt, n_sub)
+                info = self._step_substeps(state_in, state_out, control, dt, n_sub, guess if n_sub == 1 else None)
                 info.time_total = time.perf_counter() - t0
                 return info
             except SimulationDivergedError:
@@ -231,12 +237,13 @@ class NewtonSolver:
                 halvings -= 1
                 n_sub *= 2
 
-    def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int) -> StepInfo:
+    def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int,
+                       guess: np.ndarray | None = None) -> StepInfo:
         s = state_in.copy()
         total = StepInfo(substeps=n_sub)
         for _ in range(n_sub):
             nxt = s.copy()
-            info = self._single_step(s, nxt, control, dt / n_sub)
+            info = self._single_step(s, nxt, control, dt / n_sub, guess)
             total.iterations += info.iterations
             total.backtracks += info.backtracks
             total.residual_velocity = info.residual_velocity
@@ -297,14 +304,15 @@ class NewtonSolver:
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         return self._fused
 
-    def _single_step(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo:
+    def _single_step(self, state_in: State, state_out: State, control: Control, dt: float,
+                     guess: np.ndarray | None = None) -> StepInfo:
         cfg = self.config
         model = self.model
         info = StepInfo()
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
         free = np.repeat(~fixed, 3)
         x_n = state_in.x
-        x = x_n.copy()
+        x = x_n.copy() if guess is None else guess.copy()
         x[fixed] = x_target[fixed]
         x_hat = x_n + dt * state_in.v
         mass = self.vertex_mass

@@ -59,6 +59,9 @@ class SimTrace:
         wrench: ``(K + 1, 6)`` N, N m, on the gel in the sensor frame.
         sheet_points: ``(K + 1, p, 3)`` m, world.
         wall_time_s: time spent simulating.
+        positions: ``(K + 1, n, 3)`` m, every vertex of the simulation per step, when the replay
+            was asked to keep them (``ObservationModel.simulate(keep_positions=True)``; the warm
+            start of later replays, :attr:`ObservationModel.warm_start`), else None.
     """
 
     t_ns: np.ndarray
@@ -67,6 +70,7 @@ class SimTrace:
     wrench: np.ndarray
     sheet_points: np.ndarray
     wall_time_s: float
+    positions: np.ndarray | None = None
 
     def channel(self, name: str) -> np.ndarray:
         """The per-step array of evidence channel ``name`` (one of :data:`PREDICTABLE_CHANNELS`)."""
@@ -150,6 +154,12 @@ class ObservationModel:
         sigma: channel -> per-axis noise level used for whitening.
         step_times_ns: ``(K + 1,)`` simulation step times (recording clock).
         controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
+        warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
+            parameters (``SimTrace.positions``): every replay then starts the Newton solve of step
+            k from row k (``Control.position_guess``) instead of from step k - 1's solution. Each
+            step still converges to the solver's tolerance; a start within a few noise units of the
+            solution takes about half the Newton iterations. Forked replay workers inherit it.
+            Replays whose result must not depend on another one (the nominal) are run with it None.
 
     Raises:
         CalibrationError: no pose channel, no fittable channel, bad ``dt`` / ``t_max``, or a sensor
@@ -187,6 +197,7 @@ class ObservationModel:
         self.sigma = self._noise_levels(noise)
         self._build_replay()
         self._sim = None
+        self.warm_start: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:
@@ -339,40 +350,63 @@ class ObservationModel:
         sim.reset()
         return sim
 
-    def controls_list(self) -> list[Control]:
-        """The K kinematic controls of one replay."""
-        return [self.control(k) for k in range(1, self.step_count + 1)]
+    def controls_list(self, guess: np.ndarray | None = None) -> list[Control]:
+        """The K kinematic controls of one replay, with the Newton start of each step from
+        ``guess`` ``(K + 1, n, 3)`` (default :attr:`warm_start`; see :meth:`control`).
 
-    def control(self, k: int) -> Control:
-        """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``."""
-        return Control({self.effector: self.controls[k].copy()})
+        Raises:
+            CalibrationError: ``guess`` is not ``K + 1`` position arrays.
+        """
+        guess = self._checked_guess(guess)
+        return [self.control(k, guess) for k in range(1, self.step_count + 1)]
+
+    def control(self, k: int, guess: np.ndarray | None = None) -> Control:
+        """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``; with ``guess``
+        ``(K + 1, n, 3)``, row ``k`` is the step's Newton start (``Control.position_guess``)."""
+        return Control({self.effector: self.controls[k].copy()}, position_guess=None if guess is None else guess[k])
+
+    def _checked_guess(self, guess: np.ndarray | None) -> np.ndarray | None:
+        guess = self.warm_start if guess is None else guess
+        if guess is not None and (np.ndim(guess) != 3 or len(guess) != self.step_count + 1):
+            raise CalibrationError(f"warm start: expected {self.step_count + 1} position arrays (n, 3), "
+                                   f"got shape {np.shape(guess)}")
+        return guess
 
     def simulate(self, params: Mapping[str, float],
-                 on_step: Callable[[int, int], None] | None = None) -> SimTrace:
+                 on_step: Callable[[int, int], None] | None = None, keep_positions: bool = False) -> SimTrace:
         """Replay the recording with parameter values ``params`` and observe every step.
+
+        Each step's Newton solve starts from :attr:`warm_start` when it is set.
 
         Args:
             params: global parameter name -> value (``Model.set_parameter`` names); others keep
                 their scene values.
             on_step: called as ``on_step(k, K)`` after step k.
+            keep_positions: also return every vertex position (``SimTrace.positions``).
 
         Returns:
             the :class:`SimTrace`.
 
         Raises:
-            ConfigError: unknown parameter or a value outside its physical range.
+            ConfigError: unknown parameter or a value outside its physical range; a warm start
+                of the wrong vertex count.
+            CalibrationError: a warm start of the wrong step count.
             SimulationDivergedError: the solver failed (names the step).
         """
+        guess = self._checked_guess(None)
         sim = self.prepare(params)
         t_start = time.perf_counter()
         K = self.step_count
         obs = [self._observe(sim)]
+        positions = [sim.state.x.copy()] if keep_positions else None
         for k in range(1, K + 1):
-            sim.step(self.control(k))
+            sim.step(self.control(k, guess))
             obs.append(self._observe(sim))
+            if positions is not None:
+                positions.append(sim.state.x.copy())
             if on_step is not None:
                 on_step(k, K)
-        return self._trace(obs, time.perf_counter() - t_start)
+        return self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
 
     def trace_of(self, sim, states: Sequence[Any], wall_time_s: float = 0.0) -> SimTrace:
         """The :class:`SimTrace` of an already simulated replay: ``states`` are its ``K + 1`` states
@@ -385,12 +419,12 @@ class ObservationModel:
             raise ValueError(f"expected {self.step_count + 1} states, got {len(states)}")
         return self._trace([self._observe(sim, s) for s in states], wall_time_s)
 
-    def _trace(self, obs: list, wall_time_s: float) -> SimTrace:
+    def _trace(self, obs: list, wall_time_s: float, positions: np.ndarray | None = None) -> SimTrace:
         return SimTrace(
             t_ns=self.step_times_ns.copy(),
             markers_xyz=np.stack([o[0] for o in obs]), markers_uv=np.stack([o[1] for o in obs]),
             wrench=np.stack([o[2] for o in obs]), sheet_points=np.stack([o[3] for o in obs]),
-            wall_time_s=wall_time_s,
+            wall_time_s=wall_time_s, positions=positions,
         )
 
     def _observe(self, sim, state=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -71,7 +71,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sim_core.errors import CalibrationError
+from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
@@ -152,6 +152,29 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         self.fit_result = res
         return dict(res.values)
 
+    def _nominal_replay(self, theta: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]]:
+        """The nominal replay, in this process (the replay workers are forked after it and inherit
+        its built simulation and compiled kernels); its vertex positions become the model's warm
+        start (``ObservationModel.warm_start``) of every later replay when ``settings.warm_start``.
+
+        Raises:
+            CalibrationError: the nominal replay diverged.
+        """
+        from sysid.diagnose.parallel import _reset_candidates
+
+        t = time.perf_counter()
+        self.model.warm_start = None
+        _reset_candidates(self.model)
+        try:
+            trace = self.model.simulate(dict(theta), keep_positions=self.settings.warm_start)
+        except SimulationDivergedError as err:
+            raise CalibrationError(f"{self.bag}: the nominal replay diverged: {err}") from err
+        if self.settings.warm_start:
+            self.model.warm_start = trace.positions
+        self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
+        self.timings["replays"] = self.timings.get("replays", 0) + 1
+        return trace, self.model.predict(trace)
+
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
         sched = getattr(self, "_scheduler", None)
@@ -202,14 +225,13 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         theta = self._nominal()
         proj = [n for n in self.project]
         base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
-        sets = [dict(theta)] + [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
+        sets = [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
         t, cpu = time.perf_counter(), time.process_time()
-        replays = self._replays(sets)
+        nominal = self._nominal_replay(theta)
+        replays = [nominal] + (self._replays(sets) if sets else [])
         self.timings["nominal_s"] = time.perf_counter() - t
         self.timings["nominal_cpu_s"] = time.process_time() - cpu
-        if replays[0] is None:
-            raise CalibrationError(f"{self.bag}: the nominal replay diverged")
-        trace, pred0 = replays[0]
+        trace, pred0 = nominal
         self.declared_sigma = {ch: np.asarray(v, dtype=float).copy() for ch, v in model.sigma.items()}
         if s.noise_from_residual:
             noise.raise_to_white_residual(model, self.tested, pred0)

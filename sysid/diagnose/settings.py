@@ -40,6 +40,10 @@ class Settings:
         probe_max_growth: largest factor (up or down) of one probe rescaling round.
         secant: refine physics refits by one more replay at the minimiser of a parabola through
             the training SSE at beta = 0, the probe beta and the linearised estimate.
+        warm_start: start every replay after the nominal one, step by step, from the nominal
+            replay's vertex positions (``ObservationModel.warm_start``): probes and refits move
+            the prediction by a few noise units, so their Newton solves start close to the
+            solution and take about half the iterations.
     """
 
     dt: float = 0.01
@@ -61,3 +65,4 @@ class Settings:
     arch: str = "numpy"
     probe_target: float = 2.0
     probe_max_growth: float = 1000.0
+    warm_start: bool = True
