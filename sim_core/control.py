@@ -18,8 +18,9 @@ class Control:
         position_guess: optional solver hint, not a command: positions ``(n, 3)`` in m to start the
             step's Newton iterations from (free vertices; fixed and driven vertices still start
             at their targets), e.g. the same step of a replay at nearby parameters. The step
-            converges to the same tolerance from any start; a start close to the solution saves
-            iterations. None: start from the step's initial positions.
+            converges to the same tolerance from any start, and takes at least one Newton
+            correction from the guess (the result is never the guess itself); a start close to the
+            solution saves iterations. None: start from the step's initial positions.
     """
 
     effector_pose_target: dict[str, np.ndarray] = field(default_factory=dict)

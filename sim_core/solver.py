@@ -408,9 +408,16 @@ class NewtonSolver:
                 and residual > 0.9 * history[-1 - cfg.stall_iterations]
             )
             if residual < cfg.tol_velocity or float(np.max(np.abs(g))) < cfg.tol_force or stalled:
-                converged = True
-                info.iterations = it
-                break
+                if not (guess is not None and it == 1):
+                    converged = True
+                    info.iterations = it
+                    break
+                # a guess already within the tolerance: take its Newton correction (no line search:
+                # a step this small is in the quadratic region) and test again, so that the result
+                # is the guess corrected to second order, not the guess itself (which would tie
+                # nearby replays to the one the guess came from: finite differences would vanish)
+                x = x + d3
+                continue
             alpha = min(1.0, max_disp / step_max) if step_max > 0 else 1.0
             e0 = total(x, contact_terms, x_search)
             slope = float(g @ d)

@@ -161,7 +161,14 @@ class FitProblem:
             ``(m,)``, its Jacobian ``(m, p)`` and the aligned prediction in one replay; used by the
             serial evaluations of the ``initial`` and ``local`` phases (where a Jacobian is asked
             for at almost every accepted point), the Jacobian kept for :meth:`cached_jacobian`.
-            Divergence gives ``r = None`` as in a plain replay.
+            Divergence gives ``r = None`` as in a plain replay. It may set :attr:`last_positions`.
+        warm_start: start the Newton solves of every serial replay from the vertex positions of
+            the best replay so far (``ObservationModel.warm_start``), step by step: nearby
+            parameters give nearby trajectories, so each step starts close to its solution.
+
+    Attributes:
+        last_positions: vertex positions ``(K + 1, n, 3)`` of the last serial replay (None when
+            it diverged or did not keep them).
     """
 
     JOINT_PHASES = ("initial", "local")
@@ -170,8 +177,10 @@ class FitProblem:
 
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
                  deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
-                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None) -> None:
+                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False) -> None:
         self.model = model
+        self.warm_start = bool(warm_start)
+        self.last_positions: np.ndarray | None = None
         self.specs = tuple(specs)
         self.names = tuple(s.name for s in specs)
         b = np.array([s.u_bounds for s in specs], dtype=float).reshape(-1, 2)
@@ -214,6 +223,9 @@ class FitProblem:
         self._cache[np.asarray(u, dtype=float).tobytes()] = r
         if r is not None and (self.best is None or cost < self.best[0]):
             self.best = (cost, np.array(u, dtype=float), prediction)
+            if self.warm_start and self.last_positions is not None:
+                self.model.warm_start = self.last_positions
+        self.last_positions = None
         if self.on_eval is not None:
             self.on_eval(ev)
 
@@ -256,8 +268,10 @@ class FitProblem:
                 self._keep_jacobian(key, J)
             return r
         try:
-            prediction = self.model.predict(self.model.simulate(self.values(u)))
+            trace = self.model.simulate(self.values(u), keep_positions=self.warm_start)
+            prediction = self.model.predict(trace)
             r = self.model.residuals(prediction)
+            self.last_positions = trace.positions
         except SimulationDivergedError as err:
             prediction, r = None, None
             self.last_failure = str(err)
@@ -304,7 +318,8 @@ class FitProblem:
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None)
+        state.update(_pool=None, on_eval=None, _cache={}, _jacobians={}, history=[], best=None, joint=None,
+                     last_positions=None)
         return state
 
 
@@ -463,7 +478,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         max_time: float | None = None, max_nfev: int = 30, ftol: float = 1e-6, xtol: float = 1e-5,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
-        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS) -> FitResult:
+        stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
+        warm_start: bool = True) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -502,6 +518,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             5 replays after an accepted step that lowered the RMS by 0.03 % (the values then moved by
             less than 2e-5 relative). A Gauss-Newton *predicted* decrease is no guide there: at the
             point before the last real gain (0.25 % RMS) it predicted 0.04 %. None or 0: off.
+        warm_start: start the Newton solves of the local phase's replays from the best replay so
+            far (:class:`FitProblem` ``warm_start``); each step still converges to the solver's
+            tolerance. The global phase's replays start cold.
 
     Returns:
         the :class:`FitResult`.
@@ -526,7 +545,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
     deadline = t0 + max_time if max_time is not None else None
     joint = getattr(provider, "joint", None)
-    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint)
+    problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
+                         warm_start=warm_start)
+    saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None
     notes: list[str] = [f"fitting without {ch}: {why}" for ch, why in model.dropped.items()]
     with _warnings.catch_warnings(record=True) as caught:
         _warnings.simplefilter("always")
@@ -540,6 +561,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             global_info = None
             if global_method is not None:
                 problem.deadline = t0 + 0.5 * max_time if max_time is not None else None
+                model.warm_start = None  # forked workers replay far-apart points: cold
                 global_info = _global_phase(problem, u0, global_method, seed, global_evals, global_sigma)
             problem.deadline = deadline
             u_start = problem.best[1].copy()
@@ -615,6 +637,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J, jac_note = None, "no Jacobian computed before the time budget ran out"
         finally:
             problem.close()
+            model.warm_start = saved_warm_start
     notes += [str(w.message) for w in caught]
     m, p = model.residual_count, len(names)
     chi2_red = 2.0 * cost_best / max(m - p, 1)

@@ -33,9 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
                    help="elastic terms of the replays: fused Taichi kernels on cpu/cuda (default: %(default)s; same "
                         "values as numpy to round-off) or the NumPy reference")
-    p.add_argument("--cold-start", action="store_true",
-                   help="start every replay's Newton solves from the previous step, not from the nominal replay "
-                        "(slower; the default warm start converges to the same tolerance)")
+    p.add_argument("--warm-start", action="store_true",
+                   help="start every replay's Newton solves from the nominal replay's positions (fewer iterations; "
+                        "fails more often with non-convex candidates)")
     return p
 
 
@@ -54,7 +54,7 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         return 2
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
                         ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
-                        warm_start=not args.cold_start,
+                        warm_start=args.warm_start,
                         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
     try:
         doc, runs = run_diagnosis(args.bags, args.heldout, args.params, settings, args.project, args.candidates)

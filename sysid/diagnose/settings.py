@@ -41,9 +41,10 @@ class Settings:
         secant: refine physics refits by one more replay at the minimiser of a parabola through
             the training SSE at beta = 0, the probe beta and the linearised estimate.
         warm_start: start every replay after the nominal one, step by step, from the nominal
-            replay's vertex positions (``ObservationModel.warm_start``): probes and refits move
-            the prediction by a few noise units, so their Newton solves start close to the
-            solution and take about half the iterations.
+            replay's vertex positions (``ObservationModel.warm_start``). Off by default: with the
+            candidates' non-convex terms (stiction's bump, adhesion's bonds) Newton from the
+            nominal solution often fails where it converges from the previous step (latency_s103:
+            13 of 26 replays diverged, and the report changed; docs/benchmarks.md, 2026-11-22).
     """
 
     dt: float = 0.01
@@ -65,4 +66,4 @@ class Settings:
     arch: str = "numpy"
     probe_target: float = 2.0
     probe_max_growth: float = 1000.0
-    warm_start: bool = True
+    warm_start: bool = False

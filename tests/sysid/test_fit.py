@@ -210,28 +210,29 @@ def test_gauss_newton_step_solves_linear_least_squares():
 
 
 def test_stop_rule_ends_within_a_fraction_of_sigma(press_bag):
-    """The Gauss-Newton stop (default 0.01 sigma) gives the tolerance-only fit within 0.05 sigma."""
+    """The Gauss-Newton stop (default 0.01 sigma) gives the tolerance-only fit within 0.05 sigma
+    (cold-started replays: the path, with its rejected trial, is that of the stop rules alone)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = ObservationModel(load_evidence(press_bag), dt=DT)
     name = "gel.youngs_modulus"
     start = {name: 3.0 * TRUE_PARAMS[name]}
-    strict = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None,
+    strict = fit(model, [name], initial=start, jacobian="sensitivity", warm_start=False, stop_sigma=None, stop_trial_sigma=None,
                  stop_rms=None)
-    quick = fit(model, [name], initial=start, jacobian="sensitivity")
+    quick = fit(model, [name], initial=start, jacobian="sensitivity", warm_start=False)
     assert quick.status == strict.status == "converged"
     assert quick.sim_runs <= strict.sim_runs
     assert abs(quick.values[name] - strict.values[name]) < 0.05 * strict.sigma[name]
     assert quick.sigma[name] == pytest.approx(strict.sigma[name], rel=0.05)
     # trial-step stop alone, with a threshold that any rejected trial meets: ends at the first one
-    trial = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=1e9,
+    trial = fit(model, [name], initial=start, jacobian="sensitivity", warm_start=False, stop_sigma=None, stop_trial_sigma=1e9,
                 stop_rms=None)
     assert trial.status == "converged" and "did not lower the cost" in trial.message
     assert trial.sim_runs < strict.sim_runs
     local = [e.cost for e in trial.history if e.phase in ("initial", "local")]
     assert local[-1] >= min(local) == pytest.approx(trial.cost_final)
     # RMS stop alone, with a threshold that any accepted step meets: ends at the first accepted point
-    rms = fit(model, [name], initial=start, jacobian="sensitivity", stop_sigma=None, stop_trial_sigma=None,
+    rms = fit(model, [name], initial=start, jacobian="sensitivity", warm_start=False, stop_sigma=None, stop_trial_sigma=None,
               stop_rms=1.0)
     assert rms.status == "converged" and "lowered the RMS" in rms.message
     costs = [e.cost for e in rms.history if e.phase in ("initial", "local")]
@@ -287,3 +288,42 @@ def test_replay_alignment_matches_simulated_steps(press_bag):
     # half-step stamps interpolate linearly
     mid = model.align("wrench", trace.wrench)
     assert mid.shape == model.evidence.wrench.shape
+
+
+def test_warm_start_replays_from_the_best_replay_with_fewer_newton_iterations(press_bag, monkeypatch):
+    """FitProblem(warm_start=True): the best replay's vertex positions become the model's warm start;
+    a replay at nearby parameters then converges with fewer Newton iterations to a residual within
+    the solver tolerance's reach of the cold one; fit() leaves the model's warm start as it found it."""
+    import sim_core.solver as solver
+
+    iterations = []
+    step = solver.NewtonSolver._single_step
+
+    def counted(self, *args, **kwargs):
+        info = step(self, *args, **kwargs)
+        iterations.append(info.iterations)
+        return info
+
+    monkeypatch.setattr(solver.NewtonSolver, "_single_step", counted)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    specs = [parameter_spec("gel.youngs_modulus", 3.0 * TRUE_PARAMS["gel.youngs_modulus"])]
+    problem = FitProblem(model, specs, warm_start=True)
+    assert model.warm_start is None
+    problem.residual(np.zeros(1), phase="initial")
+    assert model.warm_start is not None and model.warm_start.shape == (model.step_count + 1, *model.simulation().state.x.shape)
+    iterations.clear()
+    warm = problem.residual(np.array([-0.05]))
+    warm_iterations = sum(iterations)
+    model.warm_start = None
+    iterations.clear()
+    cold = FitProblem(model, specs).residual(np.array([-0.05]))
+    assert warm_iterations < sum(iterations)
+    assert abs(float(warm @ warm) / float(cold @ cold) - 1.0) < 1e-3
+    # fit() restores the model's warm start after its own replays
+    model.warm_start = None
+    fit(model, ["gel.youngs_modulus"], jacobian="fd", max_nfev=2)
+    assert model.warm_start is None
+    with pytest.raises(CalibrationError, match="warm start: expected"):
+        model.controls_list(np.zeros((2, 3, 3)))
