@@ -243,7 +243,7 @@ class NewtonSolver:
         total = StepInfo(substeps=n_sub)
         for _ in range(n_sub):
             nxt = s.copy()
-            info = self._single_step(s, nxt, control, dt / n_sub, guess)
+            info = self._single_step(s, nxt, control, dt / n_sub, guess=guess)
             total.iterations += info.iterations
             total.backtracks += info.backtracks
             total.residual_velocity = info.residual_velocity

@@ -329,10 +329,10 @@ class CandidateNewtonSolver(NewtonSolver):
         self.elastic = _ElasticWithCandidates(self.elastic, self)
         self.contact = _ContactWithCandidates(self.contact, self)
 
-    def _single_step(self, state_in, state_out, control, dt):
+    def _single_step(self, state_in, state_out, control, dt, guess=None):
         self._state_in, self._dt = state_in, dt
         try:
-            info = super()._single_step(state_in, state_out, control, dt)
+            info = super()._single_step(state_in, state_out, control, dt, guess=guess)
         finally:
             self._state_in = None
         state_out.candidate_state = self.hook.update_state(self.model, state_in, state_out.x, dt, self.elastic._base)
