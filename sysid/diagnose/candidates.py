@@ -591,8 +591,8 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
     Returns:
         candidate objects: latency, lens_distortion, force_bias, damping (the global
         mass-proportional one only when ``extra`` has no ``damping`` the simulator knows),
-        bending_plasticity (when the sheet bends at all), then the extra ones whose parameter the
-        simulator knows.
+        bending_plasticity (when the sheet bends at all in the nominal rollout; left out while
+        ``ctx.trace`` is None), then the extra ones whose parameter the simulator knows.
     """
     out: list[Any] = [LatencyCandidate(), LensDistortionCandidate(), ForceBiasCandidate()]
     names = set(ctx.model.simulation().parameter_names)
@@ -606,7 +606,8 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
     if (not own_damping and "damping" in names
             and float(ctx.params.get("damping", ctx.model.parameter_value("damping"))) == 0.0):
         out.append(PhysicsParameterCandidate("damping", "damping", damping_probe, True, report_name="damping_per_s"))
-    if "sheet.yield_angle" in names and not math.isfinite(float(ctx.params.get("sheet.yield_angle", ctx.model.parameter_value("sheet.yield_angle")))):
+    if (ctx.trace is not None and "sheet.yield_angle" in names
+            and not math.isfinite(float(ctx.params.get("sheet.yield_angle", ctx.model.parameter_value("sheet.yield_angle"))))):
         theta_max = max_hinge_angle(ctx)
         if theta_max > 1e-3:
             # beta = theta_max / theta_yield - 1: the effect starts at beta = 0 (yield at the largest
@@ -642,6 +643,29 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
             out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
                                                  bool(spec.get("one_sided", True))))
     return out
+
+
+def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Sequence[str],
+                        names: Sequence[str] | None = None) -> list[dict[str, float]]:
+    """Probe parameter sets known before the nominal rollout, in library order.
+
+    Every physics candidate's probe except bending plasticity's (sized from the nominal rollout's
+    largest bend) depends only on the scene and the nominal parameters, so these replays can run
+    while the nominal one does (:meth:`sysid.diagnose.schedule.ReplayScheduler.run` ``prefetch``).
+    They are the very parameter sets :func:`default_candidates` gives once the rollout is in.
+
+    Args:
+        model: the ``sysid.observation.ObservationModel``.
+        params: nominal (fitted) parameter values.
+        channels: channels under test.
+        names: restrict to these effects (None: all).
+
+    Returns:
+        one ``Model.set_parameter`` dict per probe.
+    """
+    ctx = DiagnosisContext(model, dict(params), None, {}, tuple(channels))
+    library = [c for c in default_candidates(ctx) if names is None or c.name in names]
+    return [p for p in (c.probe(ctx) for c in library) if p is not None]
 
 
 # ====================================================================================== families

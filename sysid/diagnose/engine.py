@@ -47,7 +47,9 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    (a significant test on a channel whose whitened excess exceeds ``min_excess``) but none is
    accepted; ``[]`` otherwise.
 
-The replays after the nominal one run as per-candidate chains (probe, retries, rescaled probes; a
+The probes that do not depend on the nominal rollout (all but bending plasticity's) may start on
+the workers the nominal replay leaves idle (prefetch). The replays after the nominal one run as
+per-candidate chains (probe, retries, rescaled probes; a
 refit's verifying and secant replays) on a persistent pool of workers
 (:class:`sysid.diagnose.schedule.ReplayScheduler`): a chain's next replay is submitted as soon as its
 previous one returns, and a candidate whose test is significant whatever the others' is refitted
@@ -178,10 +180,12 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
         sched = getattr(self, "_scheduler", None)
+        n0 = sched.replays if sched is not None else 0
         out = (sched.batch(sets) if sched is not None
                else replay_many(self.model, sets, self.settings.workers, self.settings.ray_address))
         self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
-        self.timings["replays"] = self.timings.get("replays", 0) + len(sets)
+        ran = sched.replays - n0 if sched is not None else len(sets)
+        self.timings["replays"] = self.timings.get("replays", 0) + ran
         return out
 
     def _run_chains(self, chains: Sequence, phase: str) -> list:
@@ -227,6 +231,11 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
         sets = [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
         t, cpu = time.perf_counter(), time.process_time()
+        if not s.warm_start and getattr(self, "_scheduler", None) is not None:
+            # the probes that do not need the nominal rollout start on the workers it leaves idle
+            # (cold like every replay here; with the warm start they would need its positions)
+            self.timings["replays"] = self.timings.get("replays", 0) + self._scheduler.prefetch(
+                cands.rollout_free_probes(model, theta, self.tested, self.candidate_names))
         nominal = self._nominal_replay(theta)
         replays = [nominal] + (self._replays(sets) if sets else [])
         self.timings["nominal_s"] = time.perf_counter() - t

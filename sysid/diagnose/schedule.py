@@ -8,7 +8,9 @@ barrier batches (every candidate's first probe, then every retry, ...), a batch 
 batch. :class:`ReplayScheduler` instead keeps ``w`` forked worker processes alive for the whole
 diagnosis (the observation model, its cached simulation and the Taichi kernels stay built between
 replays) and submits a chain's next replay as soon as its previous one returns, so the workers stay
-busy until the last chain ends.
+busy until the last chain ends. Replays whose parameters are known ahead of their chain (the
+probes that do not depend on the nominal rollout) can be *prefetched* on the workers the nominal
+replay leaves idle; a chain that later asks for the same parameter set takes that replay.
 
 A chain is a generator: it yields one parameter dict (``ObservationModel.simulate`` semantics), or
 ``(parameters, tag)`` with a tag naming the replay's role for the log, receives the replay's
@@ -123,6 +125,7 @@ class ReplayScheduler:
         self.sim_s = 0.0
         self.log: list[dict[str, Any]] = []
         self._pool: ProcessPoolExecutor | None = None
+        self._prefetched: dict[tuple, Future] = {}  # parameter-set key -> replay submitted ahead of its chain
 
     @property
     def pooled(self) -> bool:
@@ -144,10 +147,37 @@ class ReplayScheduler:
 
         return self.run([one(p) for p in sets])
 
+    def prefetch(self, sets: Sequence[Mapping[str, float]], reserve: int = 1) -> int:
+        """Start replays of parameter sets a later chain is expected to ask for.
+
+        Forks the pool if needed (after compiling the kernels) and submits the first of ``sets``,
+        as many as there are workers beyond ``reserve`` and beyond those still busy with earlier
+        prefetches (``reserve``: cores this process keeps busy meanwhile, e.g. with the nominal
+        replay). A later :meth:`run` whose chain asks for one of these exact sets takes its replay
+        instead of submitting it again: the results are those without prefetching. Nothing happens
+        without a pool (one worker, Ray).
+
+        Returns:
+            the number of replays submitted.
+        """
+        if not self.pooled:
+            return 0
+        pool = self._ensure_pool()
+        submitted = 0
+        for p in sets:
+            if self._prefetch_in_flight() >= self.workers - reserve:
+                break
+            if _key(p) not in self._prefetched:
+                self._prefetched[_key(p)] = pool.submit(_timed_worker, dict(p))
+                self.replays += 1
+                submitted += 1
+        return submitted
+
     def run(self, chains: Sequence[Chain], label: str = "") -> list[Any]:
         """Run ``chains`` concurrently; returns each chain's result in the order of ``chains``.
 
-        ``label`` tags the replays in :attr:`log`.
+        ``label`` tags the replays in :attr:`log`. A request whose exact parameter set was
+        prefetched (:meth:`prefetch`) takes that replay.
 
         Raises:
             CalibrationError: a replay failed in a worker with anything but a divergence (the
@@ -166,9 +196,13 @@ class ReplayScheduler:
         steps = [0] * len(chains)
 
         def fill() -> None:
+            # requests replayed ahead (prefetch) are taken first: they need no worker
+            for i in [j for j in pending if _key(pending[j][0]) in self._prefetched]:
+                p, tag = pending.pop(i)
+                running[self._prefetched.pop(_key(p))] = (i, p, tag)
             # at most one replay per worker in flight; a chain's later replays before other chains'
             # first ones (the longest chains are on the critical path), then by chain order
-            while pending and len(running) < self.workers:
+            while pending and len(running) + self._prefetch_in_flight() < self.workers:
                 i = min(pending, key=lambda j: (-steps[j], j))
                 p, tag = pending.pop(i)
                 running[pool.submit(_timed_worker, p)] = (i, p, tag)
@@ -209,6 +243,10 @@ class ReplayScheduler:
             raise
         return results
 
+    def _prefetch_in_flight(self) -> int:
+        """Prefetched replays not yet taken by a chain that still occupy a worker."""
+        return sum(not f.done() for f in self._prefetched.values())
+
     def _account(self, reps: list[Replay]) -> list[Replay]:
         self.sim_s += sum(float(getattr(r[0], "wall_time_s", 0.0) or 0.0) for r in reps if r is not None)
         return reps
@@ -226,6 +264,7 @@ class ReplayScheduler:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=cancel)
             self._pool = None
+        self._prefetched.clear()
 
     def __enter__(self) -> "ReplayScheduler":
         return self
@@ -239,6 +278,11 @@ def _timed_worker(params: Mapping[str, float]) -> tuple[Replay, float]:
     t = time.process_time()
     rep = parallel._worker(params)
     return rep, time.process_time() - t
+
+
+def _key(params: Mapping[str, float]) -> tuple:
+    """Hashable identity of a parameter set (same names and values: the same replay)."""
+    return tuple(sorted((str(k), v) for k, v in params.items()))
 
 
 def _short(params: Mapping[str, float]) -> str:

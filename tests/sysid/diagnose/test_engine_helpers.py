@@ -388,3 +388,21 @@ def test_replay_arch_reaches_the_observation_model():
     from sysid.diagnose.cli import build_parser
 
     assert build_parser().parse_args([str(bag)]).arch == "cpu"
+
+
+def test_rollout_free_probes_are_the_library_probes_except_plasticity():
+    """The probes prefetched while the nominal replay runs are exactly the parameter sets the library
+    built from the nominal rollout asks for, bending plasticity's (sized from that rollout) aside."""
+    from sysid.diagnose import candidates as cands
+    from tests.sysid.conftest import reference_bag
+
+    d = engine.BagDiagnosis(reference_bag("latency_s103"), settings=engine.Settings(arch="cpu", t_max=0.3))
+    trace = d.model.simulate({})
+    ctx = cands.DiagnosisContext(d.model, {}, trace, d.model.predict(trace), d.tested)
+    library = cands.default_candidates(ctx)
+    early = cands.rollout_free_probes(d.model, {}, d.tested)
+    later = [c.probe(ctx) for c in library if c.name != "bending_plasticity" and c.probe(ctx) is not None]
+    assert early == later and len(early) >= 6
+    assert {"stiction", "gel_viscoelasticity", "adhesion"} <= {c.name for c in library}
+    assert cands.rollout_free_probes(d.model, {}, d.tested, ("stiction",)) == [
+        c.probe(ctx) for c in library if c.name == "stiction"]

@@ -105,6 +105,35 @@ def test_a_single_replay_before_the_pool_runs_in_this_process():
         assert rep[1]["pid"] == os.getpid() and sched._pool is None
 
 
+def test_a_prefetched_replay_is_taken_by_the_chain_that_asks_for_it():
+    """Prefetch: with one of two workers reserved (for this process's nominal replay), one set is
+    replayed ahead on the pool; the chain asking for it takes that replay (no second one), with the
+    same results as without prefetching; a prefetched set no chain asks for is only counted; without
+    a pool (one worker) nothing is prefetched."""
+    chains = lambda: [_halving(40.0, 2), _halving(6.0, 1)]  # noqa: E731 - two fresh chains per run
+    with ReplayScheduler(FakeModel(), 2) as sched:
+        assert sched.prefetch([{"x": 6.0}, {"x": 40.0}, {"x": 99.0}]) == 1
+        assert sched.replays == 1 and list(sched._prefetched) == [(("x", 6.0),)]
+        replays = []
+
+        def watching(name, xs):
+            for x in xs:
+                replays.append((yield {"x": x}))
+            return name
+
+        assert sched.run(chains()) == [[40.0, 20.0], [6.0]]
+        assert sched.replays == 3 and not sched._prefetched
+        assert sched.run([watching("again", [6.0])]) == ["again"] and sched.replays == 4
+        assert replays[0][1]["pid"] != os.getpid()
+    with ReplayScheduler(FakeModel(), 2) as sched:
+        assert sched.prefetch([{"x": 7.0}]) == 1
+        assert sched.run(chains()) == [[40.0, 20.0], [6.0]]
+        assert sched.replays == 4  # the unused prefetch + 3
+    with ReplayScheduler(FakeModel(), 1) as sched:
+        assert sched.prefetch([{"x": 6.0}]) == 0
+        assert sched.replays == 0 and sched._pool is None
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_worker_error_names_the_parameter_set(workers):
     expect = (ValueError, CalibrationError)[workers - 1]
