@@ -51,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-rms", type=float, default=STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
                         "(default: %(default)s = 0.05 %%; 0: off)")
+    p.add_argument("--cold-start", action="store_true",
+                   help="start every replay's Newton solves from the previous step (default: from the best replay "
+                        "so far, which converges to the same tolerance in fewer iterations)")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
     p.add_argument("--t-max", type=float, help="fit only the first T seconds of the recording")
     p.add_argument("--jacobian", choices=JACOBIAN_KINDS, default="auto", help="Jacobian provider")
@@ -155,7 +158,7 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
                      global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                      fd_step=args.fd_step, workers=args.workers, seed=args.seed, on_eval=progress,
                      stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
-                     stop_rms=args.stop_rms or None)
+                     stop_rms=args.stop_rms or None, warm_start=not args.cold_start)
     finally:
         progress.close()
     result.warnings[:0] = [str(w.message) for w in caught]
