@@ -26,6 +26,7 @@ after the Taichi program was re-initialised (the plans of the old program are dr
 from __future__ import annotations
 
 import functools
+import threading
 from typing import Any, Callable
 
 import numpy as np
@@ -90,10 +91,12 @@ class _Plan:
     argument buffer at each launch (``cpu::KernelLauncher::launch_llvm_kernel``), so a slot that
     gets the same NumPy array object again (same buffer, same shape) needs no new
     ``set_arg_external_array_with_shape``, which is most of a launch's Python cost (about 4 us per
-    array). Other archs copy external arrays to the device per launch and get a new context each call.
+    array). Other archs copy external arrays to the device per launch, and calls from another thread
+    than the one that made the context (a fit's worker thread beside a node's) could interleave
+    their bindings, so those get a new context each call.
     """
 
-    __slots__ = ("t_kernel", "slots", "ret", "compiled", "ctx", "bound")
+    __slots__ = ("t_kernel", "slots", "ret", "compiled", "ctx", "bound", "thread")
 
     def __init__(self, t_kernel, slots: list[tuple[int, int, int]], ret: Callable | None) -> None:
         self.t_kernel = t_kernel
@@ -102,6 +105,7 @@ class _Plan:
         self.compiled = None  # the compiled kernel data (the program's cache entry), set on first launch
         self.ctx = None  # the reused launch context (CPU only)
         self.bound: list = [None] * len(slots)  # per slot: (array, shape) last bound to ctx
+        self.thread: int | None = None  # the thread that owns ctx
 
 
 class FastKernel:
@@ -177,9 +181,10 @@ class FastKernel:
             plan.compiled = compiled
             if _host_arch(runtime):
                 plan.ctx = plan.t_kernel.make_launch_context()
+                plan.thread = threading.get_ident()
         ctx = plan.ctx
         bound = plan.bound
-        if ctx is None:
+        if ctx is None or plan.thread != threading.get_ident():
             ctx = plan.t_kernel.make_launch_context()
             bound = None
         for n, (position, index, kind) in enumerate(plan.slots):
