@@ -7,7 +7,9 @@ entry (:meth:`sim_core.assembly.HessianAssembler.assemble_upper`). :class:`Fused
 launches one Taichi kernel per potential (``sim_core/ti_kernels/fused_*.py``) that computes energy,
 gradient and exact Hessian together and adds the Hessian entries straight into the values of the
 assembler's static pattern through precomputed slot maps
-(:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels.
+(:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels,
+or the fused ones (:meth:`FusedElastic.evaluate`) at a first trial point that, once accepted, is the
+next iterate (its gradient and Hessian are then read from the kept evaluation).
 
 Potentials without a fused kernel (hinge bending) are evaluated through their
 reference methods and added through the same slot maps, so any mix of elastic terms works. The
@@ -193,6 +195,17 @@ class FusedElastic:
             energy += part.evaluate(xc, grad, values)
         self._kept = (xc.copy(), energy, grad, values)
         return self._kept
+
+    def evaluate(self, x: np.ndarray) -> None:
+        """Run the fused kernels at ``x`` ``(n, 3)`` (m) and keep energy, gradient and Hessian values:
+        the next :meth:`energy`, :meth:`gradient` and :meth:`hessian_values` at equal positions read
+        them (the Newton line search evaluates a trial point this way when, once accepted, it is the
+        next iterate, whose gradient and Hessian are needed).
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+        """
+        self._evaluate(x)
 
     def energy(self, x: np.ndarray) -> float:
         """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""

@@ -424,8 +424,14 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             full_step = alpha == 1.0
-            for _ in range(cfg.max_backtracks):
+            # the elastic terms' energy, gradient and Hessian at the first trial point in one fused
+            # evaluation when, once accepted (backtracks are rare), it is the next iterate
+            prefetch = fused is not None and not (
+                cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity))
+            for backtrack in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
+                if prefetch and backtrack == 0:
+                    fused.evaluate(x_new)
                 if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                     break
                 alpha *= 0.5
@@ -443,13 +449,12 @@ class NewtonSolver:
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
                 )
             x = x_new
-            if cfg.rate_stopping and full_step and len(history) > 1:
+            if cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity):
                 theta = residual / history[-2]
-                if theta < 1.0 and theta / (1.0 - theta) * residual < cfg.tol_velocity:
-                    residual *= theta / (1.0 - theta)  # the estimated remaining error
-                    converged = True
-                    info.iterations = it
-                    break
+                residual *= theta / (1.0 - theta)  # the estimated remaining error
+                converged = True
+                info.iterations = it
+                break
         if not converged:
             raise SimulationDivergedError(
                 f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton did not converge in "
@@ -485,6 +490,15 @@ class NewtonSolver:
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
+
+
+def _rate_stops(history: list[float], tol_velocity: float) -> bool:
+    """Whether a full Newton update with scaled size ``history[-1]`` (m/s) after one of size
+    ``history[-2]`` ends the step under ``SolverConfig.rate_stopping``: its estimated remaining
+    error ``theta / (1 - theta) * history[-1]``, ``theta = history[-1] / history[-2] < 1``, is below
+    ``tol_velocity``."""
+    theta = history[-1] / history[-2]
+    return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity
 
 
 def _constrain(H: sp.csr_matrix, free: np.ndarray) -> sp.csr_matrix:
