@@ -161,16 +161,31 @@ class ContactSet:
         x_search = self._search_position(x)
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
-        vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius, self.filter,
-                                        grouped_search=search, rest_exclusion=rest)
+        if search is not None and rest is not None:  # the exclusions inside the sweep kernel, same lists
+            sweep = self._sweep_candidates(search)
+            vt, ee = sweep.vertex_triangle(x_search, self.radius), sweep.edge_edge(x_search, self.radius)
+        else:
+            vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
+                                            self.filter, grouped_search=search, rest_exclusion=rest)
+            ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
+                                      rest_exclusion=rest)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            kv = self.body_kind[self.vertex_body[vt[:, 0]]]
-            kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
-            vt = vt[~((kv == "sheet") & (kt == "solid"))]
-        ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
-                                  rest_exclusion=rest)
+            sheet = self.body_kind == "sheet"
+            solid = self.body_kind == "solid"
+            vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
         self._candidates = (x_search, vt, ee)
         return self._candidates
+
+    def _sweep_candidates(self, search):
+        """The :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` of this contact set's
+        elements on ``search`` (made on first use)."""
+        sweep = getattr(self, "_sweep_lists", None)
+        if sweep is None or sweep.search is not search:
+            from sim_core.ti_kernels.sweep_candidates import SweepCandidates
+
+            sweep = self._sweep_lists = SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
+                                                        self.rest_exclusion, search)
+        return sweep
 
     def _search_position(self, x: np.ndarray) -> np.ndarray:
         """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array

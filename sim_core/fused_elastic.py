@@ -258,7 +258,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
     fallback (and that of the potentials that are Taichi twins, ``sim_core.ti_kernels``), and the contact
-    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase and friction kernels. Kernels take
+    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase (and its candidate-list
+    kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
     Args:
@@ -290,11 +291,13 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
-    from sim_core.ti_kernels import broad_phase, contact_batch, contact_distance, contact_setup, friction
+    from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
+                                     sweep_candidates)
 
     contact_distance.compile_kernels()
     contact_batch.compile_kernels()
     contact_setup.compile_kernels()
     broad_phase.compile_kernels()
+    sweep_candidates.compile_kernels()
     friction.compile_kernels()
     return time.perf_counter() - t0
