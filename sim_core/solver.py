@@ -424,14 +424,16 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             full_step = alpha == 1.0
-            # the elastic terms' energy, gradient and Hessian at the first trial point in one fused
-            # evaluation when, once accepted (backtracks are rare), it is the next iterate
+            # the elastic terms' (and the Taichi friction's) energy, gradient and Hessian at the first
+            # trial point in one evaluation when, once accepted (backtracks are rare), it is the next iterate
             prefetch = fused is not None and not (
                 cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity))
             for backtrack in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
                 if prefetch and backtrack == 0:
                     fused.evaluate(x_new)
+                    if friction is not None and hasattr(friction, "evaluate"):
+                        friction.evaluate(x_new)
                 if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                     break
                 alpha *= 0.5

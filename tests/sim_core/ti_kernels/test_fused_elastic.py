@@ -210,10 +210,12 @@ def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
 
 def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     """Forming steps whose line searches evaluate the first trial point with the fused kernels
-    (energy, gradient and Hessian, ``FusedElastic.evaluate``) equal those with energy-only trial
-    evaluations bit for bit, with the same iterations, and launch fewer energy-only kernels."""
+    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.evaluate``) equal
+    those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
+    energy-only kernels."""
     from sim_core.control import Control
     from sim_core.fused_elastic import FusedElastic
+    from sim_core.ti_kernels.friction import TiLaggedFriction
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
@@ -232,6 +234,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         monkeypatch.setattr(FusedElastic, "energy", counted)
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
+            monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
         model = load_task_scene(_default_scene("forming"))
         model.meta["elastic_backend"] = "taichi"
         sim = Simulation(model)
