@@ -95,6 +95,9 @@ class ContactSet:
         self._cache = None  # (memory, candidates, potentials, sides) of the current step
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self.min_edge_sine = 0.1
+        # searches look ahead along the step's motion (see _search_position)
+        self.lookahead = 0.5
+        self.lookahead_cap = 0.25
 
     # ------------------------------------------------------------------ per step
     def begin_step(self, x_n: np.ndarray, memory: CollisionMemory | None) -> CollisionMemory:
@@ -112,7 +115,9 @@ class ContactSet:
         than ``margin``, so no pair outside the list can have come within ``eps``. The search
         depends on positions only, so it is also reused across steps (the converged positions of
         a step are the next step's ``x^n``); the sides and the near-parallel edge filter, which
-        depend on the step's memory and ``x^n``, are redone per step.
+        depend on the step's memory and ``x^n``, are redone per step. The search is done at a point
+        a little ahead of ``x`` along the step's motion (:meth:`_search_position`), so that it
+        usually covers the next step's first iterates too.
         """
         candidates = self._candidate_pairs(x)
         cache = getattr(self, "_cache", None)
@@ -153,18 +158,57 @@ class ContactSet:
         found = self._candidates
         if found is not None and self.covers(found[0], x):
             return found
+        x_search = self._search_position(x)
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
-        vt = vertex_triangle_candidates(x, self.surface_vertices, self.triangles, self.radius, self.filter,
-                                        grouped_search=search, rest_exclusion=rest)
+        if search is not None and rest is not None:  # the exclusions inside the sweep kernel, same lists
+            sweep = self._sweep_candidates(search)
+            vt, ee = sweep.vertex_triangle(x_search, self.radius), sweep.edge_edge(x_search, self.radius)
+        else:
+            vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
+                                            self.filter, grouped_search=search, rest_exclusion=rest)
+            ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
+                                      rest_exclusion=rest)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            kv = self.body_kind[self.vertex_body[vt[:, 0]]]
-            kt = self.body_kind[self.vertex_body[self.triangles[vt[:, 1], 0]]]
-            vt = vt[~((kv == "sheet") & (kt == "solid"))]
-        ee = edge_edge_candidates(x, self.edges, self.radius, self.filter, grouped_search=search,
-                                  rest_exclusion=rest)
-        self._candidates = (np.array(x, dtype=float, copy=True), vt, ee)
+            sheet = self.body_kind == "sheet"
+            solid = self.body_kind == "solid"
+            vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
+        self._candidates = (x_search, vt, ee)
         return self._candidates
+
+    def _sweep_candidates(self, search):
+        """The :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` of this contact set's
+        elements on ``search`` (made on first use)."""
+        sweep = getattr(self, "_sweep_lists", None)
+        if sweep is None or sweep.search is not search:
+            from sim_core.ti_kernels.sweep_candidates import SweepCandidates
+
+            sweep = self._sweep_lists = SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
+                                                        self.rest_exclusion, search)
+        return sweep
+
+    def _search_position(self, x: np.ndarray) -> np.ndarray:
+        """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array
+        ``x + clip(lookahead * (x - x^n), -c, c)`` per coordinate, ``c = lookahead_cap * margin``.
+
+        Any search position whose list covers ``x`` is exact (:meth:`covers` is checked at every
+        evaluated point, and a point it refuses is searched again), so the position only decides
+        how often a search is needed. A search is needed when the iterates have moved ``margin / 2``
+        from the last one, typically at the first trial point of a step (Forming: 0.6 mm of sheet
+        motion per step against 0.5 mm). The rest of the step stays near that point and the next
+        step moves on in about the same direction, so searching half the step's motion so far
+        ahead (at most ``margin / 4`` per coordinate, leaving ``margin / 4`` for the rest of this
+        step) lets one search serve the next step's first iterates too (Forming: 1.18 -> 0.6
+        searches per step). ``x`` itself is always covered (``lookahead_cap <= 0.5``); with no
+        step started (``x^n`` unknown) or ``lookahead = 0`` the search is at ``x``.
+        """
+        x = np.array(x, dtype=float, copy=True)
+        if not (0.0 <= self.lookahead_cap <= 0.5):
+            raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
+        if self.x_prev is None or self.x_prev.shape != x.shape or self.lookahead == 0.0:
+            return x
+        cap = self.lookahead_cap * self.margin
+        return x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
 
     def _grouped_search(self):
         """The box-pair search of the broad phase: the Taichi sweep kernel

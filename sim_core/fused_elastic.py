@@ -7,7 +7,9 @@ entry (:meth:`sim_core.assembly.HessianAssembler.assemble_upper`). :class:`Fused
 launches one Taichi kernel per potential (``sim_core/ti_kernels/fused_*.py``) that computes energy,
 gradient and exact Hessian together and adds the Hessian entries straight into the values of the
 assembler's static pattern through precomputed slot maps
-(:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels.
+(:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels,
+or the fused ones (:meth:`FusedElastic.evaluate`) at a first trial point that, once accepted, is the
+next iterate (its gradient and Hessian are then read from the kept evaluation).
 
 Potentials without a fused kernel (hinge bending) are evaluated through their
 reference methods and added through the same slot maps, so any mix of elastic terms works. The
@@ -194,6 +196,17 @@ class FusedElastic:
         self._kept = (xc.copy(), energy, grad, values)
         return self._kept
 
+    def evaluate(self, x: np.ndarray) -> None:
+        """Run the fused kernels at ``x`` ``(n, 3)`` (m) and keep energy, gradient and Hessian values:
+        the next :meth:`energy`, :meth:`gradient` and :meth:`hessian_values` at equal positions read
+        them (the Newton line search evaluates a trial point this way when, once accepted, it is the
+        next iterate, whose gradient and Hessian are needed).
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+        """
+        self._evaluate(x)
+
     def energy(self, x: np.ndarray) -> float:
         """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""
         kept = self._kept
@@ -245,7 +258,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
     fallback (and that of the potentials that are Taichi twins, ``sim_core.ti_kernels``), and the contact
-    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase and friction kernels. Kernels take
+    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase (and its candidate-list
+    kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
     Args:
@@ -277,11 +291,13 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
-    from sim_core.ti_kernels import broad_phase, contact_batch, contact_distance, contact_setup, friction
+    from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
+                                     sweep_candidates)
 
     contact_distance.compile_kernels()
     contact_batch.compile_kernels()
     contact_setup.compile_kernels()
     broad_phase.compile_kernels()
+    sweep_candidates.compile_kernels()
     friction.compile_kernels()
     return time.perf_counter() - t0

@@ -116,13 +116,17 @@ class StepRecord:
         terms: the potentials of the incremental potential at the converged step, in the order
             inertia, gravity, [damping], elastic..., [friction], contact...
         hinge_theta_bar: rest angles used during the step (per sheet).
-        hessian: the constrained Newton matrix of the last iteration (CSR, symmetric): the exact
-            Hessian when it was positive definite, else the projected one. It is assembled at the
-            last Newton iterate, which is ``x`` except when ``SolverConfig.rate_stopping`` ended
-            the step on an update: then at ``x - dx_k``, within the Newton tolerance of ``x``.
+        hessian_upper: the upper triangle (CSR, sorted indices, ``(3 n, 3 n)``) of the constrained
+            Newton matrix of the last iteration: the exact Hessian when it was positive definite,
+            else the projected one. It is assembled at the last Newton iterate, which is ``x``
+            except when ``SolverConfig.rate_stopping`` ended the step on an update: then at
+            ``x - dx_k``, within the Newton tolerance of ``x``. The full symmetric matrix is
+            :attr:`hessian`.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
         hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
             of the implicit-function-theorem linearisation (:mod:`sim_core.adjoint`).
+        expansion: the :class:`~sim_core.linsolve.SymmetricExpansion` that builds :attr:`hessian`
+            (the solver's, which keeps the index map of the current pattern); None: a new one.
     """
 
     dt: float
@@ -136,9 +140,21 @@ class StepRecord:
     limited_effectors: list
     terms: list
     hinge_theta_bar: dict
-    hessian: sp.csr_matrix
+    hessian_upper: sp.csr_matrix
     free_dofs: np.ndarray
     hessian_exact: bool = False
+    expansion: SymmetricExpansion | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def hessian(self) -> sp.csr_matrix:
+        """The constrained Newton matrix of the last iteration (CSR, symmetric, sorted indices,
+        ``(3 n, 3 n)``; see ``hessian_upper``), expanded from the upper triangle on first use and
+        kept: a forward rollout never needs it, only the adjoint does."""
+        full = self.__dict__.get("_hessian")
+        if full is None:
+            full = (self.expansion or SymmetricExpansion())(self.hessian_upper)
+            self.__dict__["_hessian"] = full
+        return full
 
 
 @dataclass
@@ -179,11 +195,15 @@ class NewtonSolver:
         self.notify_model_changed()
         # Data of the last converged step, kept for the adjoint.
         self.last_record: StepRecord | None = None
-        self.last_hessian: sp.csr_matrix | None = None
         self.last_free_mask: np.ndarray | None = None
         # Solver holding the factorisation of last_hessian when that is the exact Hessian (valid
         # until the next step; forward sensitivities solve with it), else None.
         self.last_factorization: LinearSolver | SymmetricSolver | None = None
+
+    @property
+    def last_hessian(self) -> sp.csr_matrix | None:
+        """The last converged step's Newton matrix (``last_record.hessian``; None before the first step)."""
+        return None if self.last_record is None else self.last_record.hessian
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -426,8 +446,16 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             full_step = alpha == 1.0
-            for _ in range(cfg.max_backtracks):
+            # the elastic terms' (and the Taichi friction's) energy, gradient and Hessian at the first
+            # trial point in one evaluation when, once accepted (backtracks are rare), it is the next iterate
+            prefetch = fused is not None and not (
+                cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity))
+            for backtrack in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
+                if prefetch and backtrack == 0:
+                    fused.evaluate(x_new)
+                    if friction is not None and hasattr(friction, "evaluate"):
+                        friction.evaluate(x_new)
                 if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                     break
                 alpha *= 0.5
@@ -445,13 +473,12 @@ class NewtonSolver:
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
                 )
             x = x_new
-            if cfg.rate_stopping and full_step and len(history) > 1:
+            if cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity):
                 theta = residual / history[-2]
-                if theta < 1.0 and theta / (1.0 - theta) * residual < cfg.tol_velocity:
-                    residual *= theta / (1.0 - theta)  # the estimated remaining error
-                    converged = True
-                    info.iterations = it
-                    break
+                residual *= theta / (1.0 - theta)  # the estimated remaining error
+                converged = True
+                info.iterations = it
+                break
         if not converged:
             raise SimulationDivergedError(
                 f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton did not converge in "
@@ -459,9 +486,7 @@ class NewtonSolver:
                 f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
             )
         info.residual_velocity = residual
-        H = self._full_from_upper(H)
         exact = projection == "none"
-        self.last_hessian = H
         self.last_free_mask = free
         self.last_factorization = factorization if exact else None
         contact_terms = self.contact.potentials(x, x_n, memory)
@@ -470,8 +495,8 @@ class NewtonSolver:
             dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=fixed, x_target=x_target,
             effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(openings),
             limited_effectors=list(info.limited_effectors), terms=fixed_terms + contact_terms,
-            hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian=H, free_dofs=free,
-            hessian_exact=exact,
+            hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H, free_dofs=free,
+            hessian_exact=exact, expansion=self._full_from_upper,
         )
         # ---- outputs
         state_out.t = state_in.t + dt
@@ -489,6 +514,15 @@ class NewtonSolver:
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
+
+
+def _rate_stops(history: list[float], tol_velocity: float) -> bool:
+    """Whether a full Newton update with scaled size ``history[-1]`` (m/s) after one of size
+    ``history[-2]`` ends the step under ``SolverConfig.rate_stopping``: its estimated remaining
+    error ``theta / (1 - theta) * history[-1]``, ``theta = history[-1] / history[-2] < 1``, is below
+    ``tol_velocity``."""
+    theta = history[-1] / history[-2]
+    return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity
 
 
 def _constrain(H: sp.csr_matrix, free: np.ndarray) -> sp.csr_matrix:

@@ -121,12 +121,16 @@ def scatter_gradient(vertex_count: int, vertices: np.ndarray, element_grad: np.n
 
     Returns:
         shape ``(vertex_count, 3)``.
+
+    One ``np.bincount`` over the flattened DoF indices (the sums of ``np.add.at`` in the same
+    order, bit for bit, at a third of its cost for the few hundred rows of a contact potential).
     """
     k, m = vertices.shape
-    g = np.zeros((vertex_count, 3))
-    if k:
-        np.add.at(g, vertices.reshape(-1), np.asarray(element_grad).reshape(k * m, 3))
-    return g
+    if not k:
+        return np.zeros((vertex_count, 3))
+    dofs = (np.asarray(vertices, dtype=np.int64).reshape(-1, 1) * 3 + np.arange(3)).reshape(-1)
+    weights = np.asarray(element_grad, dtype=float).reshape(-1)
+    return np.bincount(dofs, weights=weights, minlength=3 * vertex_count).reshape(vertex_count, 3)
 
 
 def assemble_hessian(

@@ -27,6 +27,8 @@ counter); the output buffer grows and the kernel runs again when it was too smal
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
 # objects (string annotations are rejected).
 
+from typing import NamedTuple
+
 import numpy as np
 
 from sim_core.errors import ConfigError
@@ -124,21 +126,47 @@ class SweepSearch:
     def __call__(self, a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray, b_min: np.ndarray | None,
                  b_max: np.ndarray | None, b_body: np.ndarray | None, radius: float, allowed: np.ndarray) -> np.ndarray:
         """As :func:`grouped_box_pairs` (same arguments, result and errors)."""
+        plan = self.plan(a_min, a_max, a_body, b_min, b_max, b_body, radius)
+        return np.zeros((0, 2), dtype=np.int64) if plan is None else _launch(plan, allowed, radius)
+
+    def plan(self, a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray, b_min: np.ndarray | None,
+             b_max: np.ndarray | None, b_body: np.ndarray | None, radius: float) -> "SweepPlan | None":
+        """The :class:`SweepPlan` of a search (arguments as :func:`grouped_box_pairs`), along the kind's
+        kept axis (chosen again every ``refresh``-th search); None when a set is empty."""
         kind = (b_min is None, len(a_min), -1 if b_min is None else len(b_min))
         axis, uses = self.axes.get(kind, (None, 0))
         candidates = (0, 1, 2) if axis is None or uses >= self.refresh else (axis,)
-        pairs, chosen = _sweep(a_min, a_max, a_body, b_min, b_max, b_body, radius, allowed, candidates)
-        self.axes[kind] = (chosen, 1 if len(candidates) > 1 else uses + 1)
-        return pairs
+        plan = _plan(a_min, a_max, a_body, b_min, b_max, b_body, radius, candidates)
+        if plan is not None:
+            self.axes[kind] = (plan.axis, 1 if len(candidates) > 1 else uses + 1)
+        return plan
 
 
-def _sweep(
+class SweepPlan(NamedTuple):
+    """The kernel arrays of one sweep (:func:`_plan`): A's boxes and bodies, B's boxes and bodies in
+    sweep order with their indices in B (``order``), the scan range ``[start, stop)`` of each A box,
+    whether A is paired with itself, and the sweep axis."""
+
+    a_lo: np.ndarray
+    a_hi: np.ndarray
+    a_body: np.ndarray
+    sorted_lo: np.ndarray
+    sorted_hi: np.ndarray
+    sorted_body: np.ndarray
+    order: np.ndarray
+    start: np.ndarray
+    stop: np.ndarray
+    same: bool
+    axis: int
+
+
+def _plan(
     a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
     b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
-    radius: float, allowed: np.ndarray, axes: tuple[int, ...],
-) -> tuple[np.ndarray, int | None]:
-    """``(pairs, axis)``: the pairs of :func:`grouped_box_pairs`, swept along the one of ``axes``
-    that leaves the fewest boxes to scan (None when a set is empty); arguments as there."""
+    radius: float, axes: tuple[int, ...],
+) -> SweepPlan | None:
+    """The sweep of :func:`grouped_box_pairs` (arguments as there) along the one of ``axes`` that
+    leaves the fewest boxes to scan; None when a set is empty."""
     require_backend("broad-phase sweep kernel")
     same = b_min is None
     a_lo = np.ascontiguousarray(a_min, dtype=np.float64)
@@ -151,7 +179,7 @@ def _sweep(
         b_hi = np.ascontiguousarray(b_max, dtype=np.float64)
         b_body = np.ascontiguousarray(b_body, dtype=np.int32)
     if a_lo.shape[0] == 0 or b_lo.shape[0] == 0:
-        return np.zeros((0, 2), dtype=np.int64), None
+        return None
     scale = max(float(np.max(np.abs(a_lo))), float(np.max(np.abs(a_hi))), float(np.max(np.abs(b_lo))),
                 float(np.max(np.abs(b_hi))), float(radius))
     best = None
@@ -171,21 +199,38 @@ def _sweep(
         if best is None or scanned < best[0]:
             best = (scanned, order, start, stop, axis)
     _, order, start, stop, axis = best
-    start, stop = start.astype(np.int32), stop.astype(np.int32)
-    sorted_lo, sorted_hi = np.ascontiguousarray(b_lo[order]), np.ascontiguousarray(b_hi[order])
-    sorted_body, order = np.ascontiguousarray(b_body[order]), order.astype(np.int32)
+    return SweepPlan(a_lo, a_hi, a_body, np.ascontiguousarray(b_lo[order]), np.ascontiguousarray(b_hi[order]),
+                     np.ascontiguousarray(b_body[order]), order.astype(np.int32), start.astype(np.int32),
+                     stop.astype(np.int32), same, axis)
+
+
+def _launch(plan: SweepPlan, allowed: np.ndarray, radius: float) -> np.ndarray:
+    """The pairs of ``plan`` (:func:`_sweep_pairs`; the output buffer grows until they fit)."""
     allowed_i = np.ascontiguousarray(allowed, dtype=np.int32)
-    out = np.empty((max(1024, 4 * (a_lo.shape[0] + b_lo.shape[0])), 2), dtype=np.int32)
+    out = np.empty((max(1024, 4 * (plan.a_lo.shape[0] + plan.order.shape[0])), 2), dtype=np.int32)
     count = np.zeros(1, dtype=np.int32)
     while True:
-        _sweep_pairs(a_lo, a_hi, a_body, sorted_lo, sorted_hi, sorted_body, order, start, stop, allowed_i,
-                     float(radius), int(same), out, count)
+        _sweep_pairs(plan.a_lo, plan.a_hi, plan.a_body, plan.sorted_lo, plan.sorted_hi, plan.sorted_body,
+                     plan.order, plan.start, plan.stop, allowed_i, float(radius), int(plan.same), out, count)
         found = int(count[0])
         if found <= out.shape[0]:
             pairs = out[:found].astype(np.int64)
-            return (np.sort(pairs, axis=1) if same else pairs), axis
+            return np.sort(pairs, axis=1) if plan.same else pairs
         out = np.empty((found, 2), dtype=np.int32)
         count[0] = 0
+
+
+def _sweep(
+    a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
+    b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
+    radius: float, allowed: np.ndarray, axes: tuple[int, ...],
+) -> tuple[np.ndarray, int | None]:
+    """``(pairs, axis)``: the pairs of :func:`grouped_box_pairs`, swept along the one of ``axes``
+    that leaves the fewest boxes to scan (None when a set is empty); arguments as there."""
+    plan = _plan(a_min, a_max, a_body, b_min, b_max, b_body, radius, axes)
+    if plan is None:
+        return np.zeros((0, 2), dtype=np.int64), None
+    return _launch(plan, allowed, radius), plan.axis
 
 
 def compile_kernels() -> None:

@@ -158,6 +158,21 @@ def friction_gradient_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weigh
         _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
 
 
+@fast_kernel
+def friction_energy_gradient_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                                     coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2, blocks: _F64_3) -> ti.f64:
+    """:func:`friction_energy` (returned, J; the same sum in the same order),
+    :func:`friction_gradient_hessian`'s gradient (added to ``grad``) and blocks in one launch."""
+    energy = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+        energy += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+    return energy
+
+
 class TiLaggedFriction(LaggedFriction):
     """:class:`~sim_core.potentials.friction.LaggedFriction` with energy, gradient and Hessian on the
     Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
@@ -185,11 +200,37 @@ class TiLaggedFriction(LaggedFriction):
         coefficient = np.ascontiguousarray(self.mu * self.lam, dtype=np.float64)  # mu may be edited
         return (np.ascontiguousarray(x, dtype=np.float64),) + arrays + (coefficient,)
 
+    def evaluate(self, x: np.ndarray) -> None:
+        """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept for
+        :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
+        ``x``, coefficients and ``eps_u``; the next :meth:`gradient` call drops them (the Newton
+        line search evaluates a trial point this way when, once accepted, it is the next iterate)."""
+        p, m = self.vertices.shape
+        if not p:
+            return
+        arrays = self._kernel_arrays(x)
+        grad = np.zeros((x.shape[0], 3))
+        blocks = np.empty((p, 3 * m, 3 * m))
+        energy = float(friction_energy_gradient_hessian(*arrays, self.eps_u, grad, blocks))
+        self._kept_all = (arrays[0].copy(), arrays[-1], self.eps_u, energy, grad, blocks)
+
+    def _kept(self, arrays: tuple) -> tuple | None:
+        """The :meth:`evaluate` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
+        kept = getattr(self, "_kept_all", None)
+        if (kept is not None and kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0])
+                and np.array_equal(kept[1], arrays[-1])):
+            return kept
+        return None
+
     def energy(self, x: np.ndarray) -> float:
         """Friction dissipation potential in J."""
         if self.vertices.shape[0] == 0:
             return 0.0
-        return float(friction_energy(*self._kernel_arrays(x), self.eps_u))
+        arrays = self._kernel_arrays(x)
+        kept = self._kept(arrays)
+        if kept is not None:
+            return kept[3]
+        return float(friction_energy(*arrays, self.eps_u))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
@@ -201,6 +242,11 @@ class TiLaggedFriction(LaggedFriction):
         p, m = self.vertices.shape
         if p:
             arrays = self._kernel_arrays(x)
+            kept = self._kept(arrays)
+            self._kept_all = None  # consumed (a step's friction is kept in its record: hold no arrays)
+            if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
+                self._kept_hessian = (kept[0], kept[1], kept[2], kept[5])
+                return kept[4].copy()
             blocks = np.empty((p, 3 * m, 3 * m))
             friction_gradient_hessian(*arrays, self.eps_u, grad, blocks)
             self._kept_hessian = (arrays[0].copy(), arrays[-1], self.eps_u, blocks)
@@ -235,3 +281,4 @@ def compile_kernels() -> None:
     friction.gradient(x + 1e-4)
     friction.hessian(x + 1e-4)  # the blocks kept by the gradient
     friction.hessian(x + 1e-4)  # the Hessian kernel
+    friction.evaluate(x + 2e-4)  # energy, gradient and Hessian in one launch

@@ -138,3 +138,96 @@ def test_a_search_with_one_pair_kind_empty_and_every_pair_known_keeps_the_sides(
         np.testing.assert_array_equal(a.sides, b.sides)
     assert len((first[0] if empty == "vt" else first[1]).pairs) == 0
     assert np.any(np.concatenate(first_sides) != 0)  # signed pairs (interior / above the face) too
+
+
+def _brute_force_close_pairs(cs: ContactSet, x: np.ndarray, eps: float) -> tuple[set, set]:
+    """Every vertex-triangle and edge-edge pair the filter allows that is closer than ``eps`` at ``x``,
+    by measuring all pairs (no broad phase)."""
+    from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+
+    body, xr = cs.vertex_body, cs.model.x_rest
+    vt = np.array([(v, t) for v in cs.surface_vertices for t in range(len(cs.triangles))
+                   if v not in cs.triangles[t]], dtype=np.int64)
+    tri = cs.triangles[vt[:, 1]]
+    d = point_triangle_distance(x[vt[:, 0]], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+    rest = lambda idx: point_triangle_distance(xr[vt[idx, 0]], xr[tri[idx, 0]], xr[tri[idx, 1]], xr[tri[idx, 2]])
+    keep = cs.filter.keep(body[vt[:, 0]], body[tri[:, 0]], rest)
+    close_vt = {tuple(p) for p in vt[keep & (d < eps)].tolist()}
+    e = cs.edges
+    ee = np.array([(i, j) for i in range(len(e)) for j in range(i + 1, len(e)) if not set(e[i]) & set(e[j])],
+                  dtype=np.int64)
+    ea, eb = e[ee[:, 0]], e[ee[:, 1]]
+    d = edge_edge_distance(x[ea[:, 0]], x[ea[:, 1]], x[eb[:, 0]], x[eb[:, 1]])
+    rest = lambda idx: edge_edge_distance(xr[ea[idx, 0]], xr[ea[idx, 1]], xr[eb[idx, 0]], xr[eb[idx, 1]])
+    keep = cs.filter.keep(body[ea[:, 0]], body[eb[:, 0]], rest)
+    close_ee = {tuple(p) for p in ee[keep & (d < eps)].tolist()}
+    return close_vt, close_ee
+
+
+def test_searches_ahead_of_the_motion_never_miss_a_close_pair():
+    """Two sheets closing on each other by up to 0.9 margin per step, with the iterates of a step
+    spread around the step's end point: the candidate search runs ahead of the step's motion
+    (ContactSet._search_position) and is reused while it covers the iterate; every pair a brute-force
+    measurement of all pairs finds within eps at an iterate is in that iterate's candidate list,
+    the look-ahead needs fewer searches than searching at the iterate itself, and the search position
+    always covers the iterate it was made for."""
+    from sim_core.mesh.sheet import grid_sheet
+
+    def build(lookahead: float) -> ContactSet:
+        builder = ModelBuilder()
+        builder.add_sheet("a", grid_sheet((0.01, 0.01), (5, 5)), MATERIAL)
+        builder.add_sheet("b", grid_sheet((0.01, 0.01), (5, 5), origin=(0.001, 0.0005, 0.004)), MATERIAL)
+        cs = ContactSet(builder.finalize(contact=ContactSettings(eps=EPS, candidate_margin=1e-3)))
+        cs.lookahead = lookahead
+        return cs
+
+    searches = {}
+    for lookahead in (0.0, 0.5):
+        cs = build(lookahead)
+        rng = np.random.default_rng(11)
+        x_n = cs.model.x_rest.copy()
+        memory, count, checked = None, 0, 0
+        last = None
+        for step in range(14):
+            memory = cs.begin_step(x_n, memory)
+            motion = np.zeros_like(x_n)
+            motion[25:, 2] = -0.9 * cs.margin * (1.0 - step / 20.0)  # sheet b descends onto a
+            x_end = x_n + motion + rng.normal(scale=0.05 * cs.margin, size=x_n.shape)
+            for k in range(3):  # iterates spread around the step's end point
+                x = x_end + rng.normal(scale=0.05 * cs.margin, size=x_n.shape) / (k + 1)
+                vt, ee = cs.potentials(x, x_n, memory)[:2]
+                if cs._candidates is not last:
+                    count, last = count + 1, cs._candidates
+                    assert cs.covers(cs.search_position, x)
+                close_vt, close_ee = _brute_force_close_pairs(cs, x, cs.eps)
+                candidates_vt = {tuple(p) for p in cs._candidates[1].tolist()}
+                candidates_ee = {tuple(p) for p in cs._candidates[2].tolist()}
+                assert close_vt <= candidates_vt and close_ee <= candidates_ee
+                checked += len(close_vt) + len(close_ee)
+            memory = cs.end_step(x, memory)
+            x_n = x
+        assert checked > 0  # the sheets came into contact
+        searches[lookahead] = count
+    assert searches[0.5] < searches[0.0]
+
+
+def test_the_search_position_is_ahead_of_the_motion_and_covers_its_point():
+    """``x + clip(lookahead (x - x^n), +-lookahead_cap margin)`` per coordinate; at x^n, before any
+    step, or with lookahead 0 the search is at x; a cap above margin / 2 is refused."""
+    x_n = _two_triangles(0.005, 1e-4)
+    cs = _contact_set(x_n)
+    x = x_n.copy()
+    assert np.array_equal(cs._search_position(x), x)  # no step started
+    cs.begin_step(x_n, None)
+    x[0, 2] += 2e-4  # a small move: half of it ahead
+    x[1, 0] -= 5e-3  # a large one: capped
+    ahead = cs._search_position(x)
+    assert ahead[0, 2] == pytest.approx(x[0, 2] + 1e-4, abs=1e-15)
+    assert ahead[1, 0] == pytest.approx(x[1, 0] - 0.25 * cs.margin, abs=1e-15)
+    np.testing.assert_array_equal(np.delete(ahead, [0, 1], axis=0), np.delete(x, [0, 1], axis=0))
+    assert cs.covers(ahead, x)
+    cs.lookahead = 0.0
+    assert np.array_equal(cs._search_position(x), x)
+    cs.lookahead, cs.lookahead_cap = 0.5, 0.6
+    with pytest.raises(ValueError, match="lookahead_cap"):
+        cs._search_position(x)

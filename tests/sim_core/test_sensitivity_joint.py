@@ -116,3 +116,23 @@ def test_contact_products_without_assembly_equal_the_assembled_ones():
         assert lin.contact_parameter_rhs("friction.gel_sheet") is a
         np.testing.assert_array_equal(a, lin._contact_parameter_rhs("friction.gel_sheet"))
     assert checked
+
+
+def test_record_newton_matrix_expanded_on_use_equals_a_fresh_expansion():
+    """A record keeps the upper triangle and expands it on first use: after the whole rollout
+    (later steps assembled and expanded other matrices with the solver's shared expansion), every
+    record's full matrix equals SciPy's expansion of its own upper triangle, is symmetric, and is
+    kept (the same object on the next use); the solver's last_hessian is the last record's."""
+    from sim_core.linsolve import full_from_upper
+
+    sim = Simulation.from_scene(_scene(), solver_config=SolverConfig(tol_velocity=1e-9, tol_force=5e-8))
+    traj = rollout(sim, _controls())
+    assert len(traj.records) == 4
+    for rec in reversed(traj.records):  # out of step order: the shared index map is rebuilt as needed
+        assert "_hessian" not in rec.__dict__
+        full = rec.hessian
+        ref = full_from_upper(rec.hessian_upper)
+        assert full.shape == ref.shape and abs(full - ref).max() == 0.0
+        assert abs(full - full.T).max() == 0.0
+        assert rec.hessian is full
+    assert sim.solver.last_hessian is traj.records[-1].hessian

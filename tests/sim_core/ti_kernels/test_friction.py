@@ -123,3 +123,38 @@ def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu,
     y = x + 1e-3 * EPS_U
     assert relative_error(tik.hessian(y).blocks, ref.hessian(y).blocks * 2.0) < 1e-12
     assert launches == [1, 1, 1]
+
+
+def test_evaluate_keeps_the_values_of_the_separate_kernels(ti_cpu, monkeypatch):
+    """``evaluate(x)`` (one launch) keeps energy, gradient and blocks that equal the energy kernel's
+    and the gradient-Hessian kernel's bit for bit; energy, gradient and the following hessian at an
+    equal x read them (no other launch); an edited mu or another x launches the separate kernels."""
+    from sim_core.ti_kernels import friction as ti_friction
+
+    rng = np.random.default_rng(35)
+    ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
+    fresh, kept = _twin(ref), _twin(ref)
+    x = x_prev + rng.normal(scale=0.7 * EPS_U, size=x_prev.shape)
+    energy, grad = fresh.energy(x), fresh.gradient(x)
+    blocks = fresh.hessian(x).blocks
+    kept.evaluate(x)
+    launches = []
+    for name in ("friction_energy", "friction_gradient_hessian", "friction_hessian"):
+        kernel = getattr(ti_friction, name)
+        monkeypatch.setattr(ti_friction, name, lambda *a, kernel=kernel, name=name: (launches.append(name), kernel(*a))[1])
+    assert kept.energy(x.copy()) == energy
+    np.testing.assert_array_equal(kept.gradient(x.copy()), grad)
+    np.testing.assert_array_equal(kept.hessian(x.copy()).blocks, blocks)
+    assert launches == []
+    assert getattr(kept, "_kept_all", None) is None  # dropped by the gradient call
+    kept.evaluate(x)
+    y = x + 0.1 * EPS_U
+    assert kept.energy(y) == fresh.energy(y)
+    assert launches == ["friction_energy", "friction_energy"]
+    kept.mu = 2.0 * kept.mu
+    assert kept.energy(x) == pytest.approx(2.0 * energy, rel=1e-14)
+    assert launches[-1] == "friction_energy"
+    empty = ti_friction.TiLaggedFriction(np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 3, 2)), np.zeros(0),
+                                         0.5, x_prev, 0.01, 0.01)
+    empty.evaluate(x)
+    assert empty.energy(x) == 0.0 and not np.any(empty.gradient(x))

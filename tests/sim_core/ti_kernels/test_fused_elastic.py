@@ -178,3 +178,76 @@ def test_compile_kernels_runs_every_fused_kernel(ti_cpu):
         KirchhoffBending(mesh.triangles, topo.hinges, x_rest, 1e-3, 0.3),
     ]
     assert compile_kernels(potentials, x_rest) >= 0.0
+
+
+def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
+    """``evaluate(x)`` keeps what ``energy``, ``gradient`` and ``hessian_values`` then read at ``x``
+    (a copy of ``x`` as well): equal to a second evaluator's fresh calls, the energy bit for bit to
+    the energy-only kernels; another ``x`` is evaluated afresh."""
+    mesh, topo = _sheet()
+    n = mesh.x.shape[0]
+    free = np.ones(3 * n, dtype=bool)
+    free[:3] = False
+    terms = [SpringMembrane(mesh.triangles, topo.edges, mesh.x, 1.0, 1.0),
+             KirchhoffBending(mesh.triangles, topo.hinges, mesh.x, 1e-3, 0.3)]
+    from sim_core.fused_elastic import FusedElastic
+
+    pair = []
+    for _ in range(2):
+        fused = FusedElastic(terms)
+        fused.bind(HessianAssembler(3 * n).static_pattern(fused.block_vertex_arrays(mesh.x), free))
+        pair.append(fused)
+    kept, fresh = pair
+    x = _deformed_sheet(mesh.x, 3)
+    kept.evaluate(x)
+    energy_only = fresh.energy(x)  # energy-only kernels (nothing kept yet)
+    assert kept.energy(x.copy()) == energy_only
+    np.testing.assert_array_equal(kept.gradient(x.copy()), fresh.gradient(x))
+    np.testing.assert_array_equal(kept.hessian_values(x.copy()), fresh.hessian_values(x))
+    y = _deformed_sheet(mesh.x, 4)
+    assert kept.energy(y) == fresh.energy(y) != energy_only
+
+
+def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
+    """Forming steps whose line searches evaluate the first trial point with the fused kernels
+    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.evaluate``) equal
+    those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
+    energy-only kernels."""
+    from sim_core.control import Control
+    from sim_core.fused_elastic import FusedElastic
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+    from thinshell_ros.bench import _default_scene
+
+    energy = FusedElastic.energy
+    runs = []
+    for prefetch in (True, False):
+        calls = {"energy": 0}
+
+        def counted(self, x, calls=calls):
+            kept = self._kept
+            calls["energy"] += not (kept is not None and np.array_equal(kept[0], x))
+            return energy(self, x)
+
+        monkeypatch.setattr(FusedElastic, "energy", counted)
+        if not prefetch:
+            monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
+            monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
+        model = load_task_scene(_default_scene("forming"))
+        model.meta["elastic_backend"] = "taichi"
+        sim = Simulation(model)
+        sim.state = task_initial_state(model)
+        effector = next(iter(model.effectors))
+        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(6))
+        iterations = []
+        for k in range(6):
+            control = Control()
+            control.effector_pose_target[effector] = targets[k]
+            iterations.append(sim.step(control).iterations)
+        runs.append((sim.state.x.copy(), iterations, calls["energy"]))
+    (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
+    assert it_on == it_off and sum(it_on) > 6
+    np.testing.assert_array_equal(x_on, x_off)
+    assert e_on < e_off

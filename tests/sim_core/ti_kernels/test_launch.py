@@ -89,3 +89,64 @@ def test_plain_functions_are_refused():
 
     with pytest.raises(TypeError, match="not a plain @ti.kernel"):
         FastKernel(lambda x: x)
+
+
+def test_a_reused_launch_context_sees_each_calls_arrays(ti_cpu):
+    """On the CPU a plan keeps its launch context and rebinds only the array slots whose argument
+    is another array object: the same objects modified in place, one argument swapped for another
+    array and back, and arrays of another length all give the NumPy reference."""
+    weighted_sum, count_positive = _kernels()
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(12, 3))
+    w = rng.normal(size=6)
+    idx = rng.integers(0, 8, size=6).astype(np.int32)
+    for call in range(3):
+        x[:] = rng.normal(size=x.shape)  # same objects, new contents
+        w[:] = rng.normal(size=w.shape)
+        out = np.zeros(6)
+        total = weighted_sum(x, w, idx, 0.5 + call, 1, False, out)
+        expected = _reference(x, w, idx, 0.5 + call, 1, False)
+        np.testing.assert_allclose(out, expected, rtol=0, atol=1e-14)
+        assert total == pytest.approx(float(np.sum(expected)), rel=1e-13, abs=1e-14)
+    plan = next(p for p in weighted_sum._plans.values())
+    assert plan.ctx is not None and plan.compiled is not None
+    # another index array while x and w stay bound, then the first one again
+    idx2 = rng.integers(0, 8, size=6).astype(np.int32)
+    for ids in (idx2, idx, idx2):
+        out = np.zeros(6)
+        weighted_sum(x, w, ids, 2.0, 3, False, out)
+        np.testing.assert_allclose(out, _reference(x, w, ids, 2.0, 3, False), rtol=0, atol=1e-14)
+    # a shorter vector of the same dtype through the same plan
+    v = rng.normal(size=9)
+    for n in (9, 4, 9):
+        assert count_positive(v[:n].copy()) == int(np.sum(v[:n] > 0))
+
+
+def test_calls_from_another_thread_get_their_own_context(ti_cpu):
+    """A plan's reused context belongs to the thread that made it; another thread's calls bind a
+    fresh context (same results) and leave the owner's bindings as they were."""
+    import threading
+
+    weighted_sum, _ = _kernels()
+    rng = np.random.default_rng(3)
+    x, w, idx = rng.normal(size=(10, 3)), rng.normal(size=5), np.arange(5, dtype=np.int32)
+    for _ in range(2):
+        weighted_sum(x, w, idx, 1.0, 0, False, np.zeros(5))
+    plan = next(p for p in weighted_sum._plans.values())
+    bound = [b if b is None else b[0] for b in plan.bound]
+    results = {}
+
+    def other():
+        x2, w2 = rng.normal(size=(10, 3)), rng.normal(size=5)
+        out = np.zeros(5)
+        weighted_sum(x2, w2, idx, 1.0, 2, False, out)
+        results["other"] = (out, _reference(x2, w2, idx, 1.0, 2, False))
+
+    t = threading.Thread(target=other)
+    t.start()
+    t.join()
+    np.testing.assert_allclose(results["other"][0], results["other"][1], rtol=0, atol=1e-14)
+    assert [b if b is None else b[0] for b in plan.bound] == bound
+    out = np.zeros(5)
+    weighted_sum(x, w, idx, 1.0, 0, False, out)
+    np.testing.assert_allclose(out, _reference(x, w, idx, 1.0, 0, False), rtol=0, atol=1e-14)
