@@ -55,7 +55,7 @@ class RefitRefinement:
 
     def _refit_chain(self, ctx, c, params, out, train, theta, index: int, notes: list, probe=None):
         """Replays of one physics refit: the verifying replay at the linearised estimate ``params``,
-        then the secant replay (:meth:`_secant_chain`) and the probe (default ``_probe_out[c.name]``)
+        then, when it did not diverge, the secant replay (:meth:`_secant_chain`) and the probe (default ``_probe_out[c.name]``)
         when it fits better (:meth:`_probe_if_better`). A replay chain (:mod:`sysid.diagnose.schedule`);
         updates ``out[c.name]`` in place, notes ``((0, 0, index), text)`` to ``notes``."""
         rep = yield params, "refit"
@@ -64,7 +64,8 @@ class RefitRefinement:
             out[c.name].prediction = dict(ctx.prediction)
         else:
             out[c.name].prediction = rep[1]
-        if self.settings.secant:
+        if self.settings.secant and rep is not None:
+            # a diverged refit has no training SSE at its beta: no parabola through it
             yield from self._secant_chain(ctx, c, out, train, theta, probe)
         self._probe_if_better(ctx, c, out, train, probe)
 

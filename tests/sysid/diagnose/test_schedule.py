@@ -318,3 +318,36 @@ def test_pools_compile_the_kernels_before_they_fork():
     out = replay_many(model, [{"x": 1.0}, {"x": 2.0}], workers=2)
     assert [rep[1]["pid"] != os.getpid() for rep in out] == [True, True]  # replayed in the workers
     assert model.compiled_in == os.getpid()
+
+
+def test_a_refit_whose_replay_diverged_asks_for_no_secant_replay():
+    """The secant parabola needs the training SSE at the refitted beta: after a diverged refit
+    replay the chain ends (it used to replay a secant point from the nominal SSE put in its place);
+    after one that replays, the parabola's minimiser is replayed."""
+    from sysid.diagnose import candidates as cands
+
+    d = _wrench_bare(1)
+    d._probe_out = {}
+    d.model.channels = ("wrench",)
+    c = PhysicsParameterCandidate("stiction", "candidate.stiction", 0.5)
+    ones = np.ones((40, 6))
+    ctx = SimpleNamespace(prediction={"wrench": ones}, params={})
+    probe = (None, {"wrench": 0.0 * ones})  # the data (zeros) exactly: SSE 0 at the probe beta
+    train = {"wrench": np.ones(40, bool)}
+
+    def chain(refit_replay):
+        out = {c.name: cands.Refit(np.array([0.9]), {"stiction": 0.9}, {}, {"candidate.stiction": 0.9})}
+        notes = []
+        gen = d._refit_chain(ctx, c, {"candidate.stiction": 0.9}, out, train, {}, 0, notes, probe)
+        requests = [next(gen)]
+        try:
+            requests.append(gen.send(refit_replay))
+            gen.send(None)
+        except StopIteration:
+            pass
+        return [tag for _, tag in requests], notes
+
+    tags, notes = chain(None)
+    assert tags == ["refit"] and notes == [((0, 0, 0), "stiction: refit replay diverged")]
+    tags, notes = chain((None, {"wrench": 0.6 * ones}))
+    assert tags == ["refit", "secant"] and notes == []
