@@ -198,7 +198,7 @@ class ContactSet:
         motion per step against 0.5 mm). The rest of the step stays near that point and the next
         step moves on in about the same direction, so searching half the step's motion so far
         ahead (at most ``margin / 4`` per coordinate, leaving ``margin / 4`` for the rest of this
-        step) lets one search serve the next step's first iterates too (Forming: 1.18 -> 0.6
+        step) lets one search serve the next step's first iterates too (Forming: 1.18 -> 1.04
         searches per step). ``x`` itself is always covered (``lookahead_cap <= 0.5``); with no
         step started (``x^n`` unknown) or ``lookahead = 0`` the search is at ``x``.
         """

@@ -446,10 +446,11 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             full_step = alpha == 1.0
+            # rate stopping ends the step on this update if it is taken in full
+            rate_stop = cfg.rate_stopping and len(history) > 1 and _rate_stops(history, cfg.tol_velocity)
             # the elastic terms' (and the Taichi friction's) energy, gradient and Hessian at the first
             # trial point in one evaluation when, once accepted (backtracks are rare), it is the next iterate
-            prefetch = fused is not None and not (
-                cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity))
+            prefetch = fused is not None and not (full_step and rate_stop)
             for backtrack in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
                 if prefetch and backtrack == 0:
@@ -473,7 +474,7 @@ class NewtonSolver:
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
                 )
             x = x_new
-            if cfg.rate_stopping and full_step and len(history) > 1 and _rate_stops(history, cfg.tol_velocity):
+            if rate_stop and full_step:
                 theta = residual / history[-2]
                 residual *= theta / (1.0 - theta)  # the estimated remaining error
                 converged = True

@@ -143,7 +143,8 @@ class SensitivityJacobian:
         t = time.perf_counter()
         traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), list(problem.names),
                                                          contact_force=True)
-        problem.last_positions = np.stack([s.x for s in traj.states])
+        if getattr(problem, "warm_start", False):  # the start of the next replays (FitProblem)
+            problem.last_positions = np.stack([s.x for s in traj.states])
         prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
         return model.residuals(prediction), self._whitened(problem, values, sim, traj, dX, dF), prediction
 

@@ -651,7 +651,7 @@ def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Seque
 
     Every physics candidate's probe except bending plasticity's (sized from the nominal rollout's
     largest bend) depends only on the scene and the nominal parameters, so these replays can run
-    while the nominal one does (:meth:`sysid.diagnose.schedule.ReplayScheduler.run` ``prefetch``).
+    while the nominal one does (:meth:`sysid.diagnose.schedule.ReplayScheduler.prefetch`).
     They are the very parameter sets :func:`default_candidates` gives once the rollout is in.
 
     Args:

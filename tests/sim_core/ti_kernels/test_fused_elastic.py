@@ -137,27 +137,34 @@ def test_mixed_terms_and_new_rest_angles(ti_cpu):
     assert FusedElastic.for_terms(fused, [membrane, stvk, bending]) is not fused
 
 
-def test_solver_steps_equal_reference_path(ti_cpu):
-    """Forming steps with ``elastic_backend = "taichi"`` (fused kernels) equal the NumPy path."""
+def _forming_steps(backend: str, steps: int):
+    """The Forming scene on elastic backend ``backend`` stepped ``steps`` times along the benchmark
+    trajectory; returns ``(simulation, Newton iterations of each step)``."""
     from sim_core.control import Control
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
     from thinshell_ros.bench import _default_scene
 
+    model = load_task_scene(_default_scene("forming"))
+    model.meta["elastic_backend"] = backend
+    sim = Simulation(model)
+    sim.state = task_initial_state(model)
+    effector = next(iter(model.effectors))
+    targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
+    iterations = []
+    for k in range(steps):
+        control = Control()
+        control.effector_pose_target[effector] = targets[k]
+        iterations.append(sim.step(control).iterations)
+    return sim, iterations
+
+
+def test_solver_steps_equal_reference_path(ti_cpu):
+    """Forming steps with ``elastic_backend = "taichi"`` (fused kernels) equal the NumPy path."""
     runs = []
     for backend in ("numpy", "taichi"):
-        model = load_task_scene(_default_scene("forming"))
-        model.meta["elastic_backend"] = backend
-        sim = Simulation(model)
-        sim.state = task_initial_state(model)
-        effector = next(iter(model.effectors))
-        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(4))
-        iterations = []
-        for k in range(4):
-            control = Control()
-            control.effector_pose_target[effector] = targets[k]
-            iterations.append(sim.step(control).iterations)
+        sim, iterations = _forming_steps(backend, 4)
         runs.append((sim.state.x.copy(), iterations, sim.solver.last_record.hessian_exact))
     (x_ref, it_ref, exact_ref), (x_fused, it_fused, exact_fused) = runs
     assert it_fused == it_ref and exact_fused == exact_ref
@@ -213,13 +220,8 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.evaluate``) equal
     those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
     energy-only kernels."""
-    from sim_core.control import Control
     from sim_core.fused_elastic import FusedElastic
     from sim_core.ti_kernels.friction import TiLaggedFriction
-    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.simulation import Simulation
-    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene
 
     energy = FusedElastic.energy
     runs = []
@@ -235,17 +237,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
             monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
-        model = load_task_scene(_default_scene("forming"))
-        model.meta["elastic_backend"] = "taichi"
-        sim = Simulation(model)
-        sim.state = task_initial_state(model)
-        effector = next(iter(model.effectors))
-        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(6))
-        iterations = []
-        for k in range(6):
-            control = Control()
-            control.effector_pose_target[effector] = targets[k]
-            iterations.append(sim.step(control).iterations)
+        sim, iterations = _forming_steps("taichi", 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
     assert it_on == it_off and sum(it_on) > 6

@@ -13,7 +13,7 @@ import pytest
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.diagnose import engine
 from sysid.diagnose.candidates import PhysicsParameterCandidate
-from sysid.diagnose.schedule import ReplayScheduler, run_in_rounds
+from sysid.diagnose.schedule import ReplayScheduler, _advance, _start, run_in_rounds
 
 
 class FakeModel:
@@ -339,13 +339,12 @@ def test_a_refit_whose_replay_diverged_asks_for_no_secant_replay():
         out = {c.name: cands.Refit(np.array([0.9]), {"stiction": 0.9}, {}, {"candidate.stiction": 0.9})}
         notes = []
         gen = d._refit_chain(ctx, c, {"candidate.stiction": 0.9}, out, train, {}, 0, notes, probe)
-        requests = [next(gen)]
-        try:
-            requests.append(gen.send(refit_replay))
-            gen.send(None)
-        except StopIteration:
-            pass
-        return [tag for _, tag in requests], notes
+        replies, tags = iter([refit_replay, None]), []
+        more, request = _start(gen)
+        while more:
+            tags.append(request[1])
+            more, request = _advance(gen, next(replies))
+        return tags, notes
 
     tags, notes = chain(None)
     assert tags == ["refit"] and notes == [((0, 0, 0), "stiction: refit replay diverged")]
