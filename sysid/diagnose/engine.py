@@ -216,6 +216,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         try:
             report = self._run_pipeline()
             report["extra"]["timings_s"]["replay_sim_s"] = self._scheduler.sim_s
+            report["extra"]["timings_s"]["replays_reused"] = self._scheduler.reused
             self.replay_log = list(self._scheduler.log)
             return report
         finally:
@@ -237,6 +238,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             self.timings["replays"] = self.timings.get("replays", 0) + self._scheduler.prefetch(
                 cands.rollout_free_probes(model, theta, self.tested, self.candidate_names))
         nominal = self._nominal_replay(theta)
+        if getattr(self, "_scheduler", None) is not None and not s.warm_start:
+            self._scheduler.remember(theta, nominal)  # e.g. a refit whose strength clips to 0 asks for it
         replays = [nominal] + (self._replays(sets) if sets else [])
         self.timings["nominal_s"] = time.perf_counter() - t
         self.timings["nominal_cpu_s"] = time.process_time() - cpu

@@ -30,6 +30,9 @@ from typing import Any, Callable, Generator, Mapping, Sequence
 from sim_core.errors import CalibrationError
 from sysid.diagnose import parallel
 
+_UNKNOWN = object()
+"""Marker of a parameter set not replayed yet (a diverged replay is None)."""
+
 Replay = Any
 """``(trace, prediction)`` of one replay, or None when it diverged."""
 
@@ -108,8 +111,14 @@ class ReplayScheduler:
         workers: processes (1: replays in this process, by rounds).
         ray_address: Ray cluster address: replays as Ray tasks, by rounds (overrides ``workers``).
 
+    Replays are deterministic, so a parameter set is simulated once per scheduler: a request for a
+    set already replayed (or handed in with :meth:`remember`, e.g. the nominal replay run in this
+    process) is answered with that replay without simulating again. A one-sided candidate whose
+    linearised refit clips its strength to 0 asks for exactly the nominal set, for instance.
+
     Attributes:
         replays: replays run so far.
+        reused: requests answered with an earlier replay of the same parameter set.
         sim_s: summed simulation wall time of the finished replays, s (``SimTrace.wall_time_s``).
         log: one record per pooled replay, in finishing order: ``{"label", "chain", "step", "tag",
             "cpu_s", "diverged"}``
@@ -122,25 +131,35 @@ class ReplayScheduler:
         self.workers = max(1, int(workers))
         self.ray_address = ray_address
         self.replays = 0
+        self.reused = 0
         self.sim_s = 0.0
         self.log: list[dict[str, Any]] = []
         self._pool: ProcessPoolExecutor | None = None
         self._prefetched: dict[tuple, Future] = {}  # parameter-set key -> replay submitted ahead of its chain
+        self._known: dict[tuple, Replay] = {}  # parameter-set key -> its replay (deterministic: reused)
 
     @property
     def pooled(self) -> bool:
         """Whether replays go to the persistent process pool (``workers > 1``, no Ray)."""
         return self.workers > 1 and not self.ray_address
 
+    def remember(self, params: Mapping[str, float], replay: Replay) -> None:
+        """Record ``replay`` as the replay of ``params`` (one run elsewhere, e.g. in this process):
+        later requests for exactly this set take it."""
+        self._known[_key(params)] = replay
+
     def batch(self, sets: Sequence[Mapping[str, float]]) -> list[Replay]:
         """Replay independent parameter sets (:func:`parallel.replay_many` semantics, on the pool)."""
         if not self.pooled or (self._pool is None and len(sets) <= 1):
             # one replay before the pool exists runs here: the workers forked later inherit its
             # built simulation and compiled kernels
-            out = parallel.replay_many(self.model, sets, self.workers, self.ray_address)
-            self.replays += len(out)
-            self._account(out)
-            return out
+            todo = [p for p in sets if _key(p) not in self._known]
+            for p, rep in zip(todo, parallel.replay_many(self.model, todo, self.workers, self.ray_address)):
+                self._known[_key(p)] = rep
+            self.replays += len(todo)
+            self.reused += len(sets) - len(todo)
+            self._account([self._known[_key(p)] for p in todo])
+            return [self._known[_key(p)] for p in sets]
 
         def one(params: Mapping[str, float]) -> Chain:
             return (yield params)
@@ -167,7 +186,7 @@ class ReplayScheduler:
         for p in sets:
             if self._prefetch_in_flight() >= self.workers - reserve:
                 break
-            if _key(p) not in self._prefetched:
+            if _key(p) not in self._prefetched and _key(p) not in self._known:
                 self._prefetched[_key(p)] = pool.submit(_timed_worker, dict(p))
                 self.replays += 1
                 submitted += 1
@@ -177,16 +196,20 @@ class ReplayScheduler:
         """Run ``chains`` concurrently; returns each chain's result in the order of ``chains``.
 
         ``label`` tags the replays in :attr:`log`. A request whose exact parameter set was
-        prefetched (:meth:`prefetch`) takes that replay.
+        prefetched (:meth:`prefetch`) takes that replay; one already replayed (or remembered) is
+        answered with it at once.
 
         Raises:
             CalibrationError: a replay failed in a worker with anything but a divergence (the
                 message names the parameter set and the error), or a worker process died.
         """
+        chains = [self._reusing(ch) for ch in chains]
         if not self.pooled:
             def counted(sets: list[dict[str, float]]) -> list[Replay]:
                 self.replays += len(sets)
-                return self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address))
+                out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address))
+                self._known.update((_key(p), rep) for p, rep in zip(sets, out))
+                return out
 
             return run_in_rounds(chains, counted)
         pool = self._ensure_pool()
@@ -229,6 +252,7 @@ class ReplayScheduler:
                         raise CalibrationError(f"replay of {_short(p)} failed in a worker process: "
                                                f"{type(err).__name__}: {err}") from err
                     self._account([rep])
+                    self._known[_key(p)] = rep
                     self.log.append({"label": label, "chain": i, "step": steps[i], "tag": tag, "cpu_s": cpu_s,
                                      "diverged": rep is None})
                     steps[i] += 1
@@ -242,6 +266,19 @@ class ReplayScheduler:
             self.close(cancel=True)
             raise
         return results
+
+    def _reusing(self, chain: Chain) -> Chain:
+        """``chain`` with its requests for already replayed parameter sets answered here."""
+        more, value = _start(chain)
+        while more:
+            known = self._known.get(_key(_request(value)[0]), _UNKNOWN)
+            if known is _UNKNOWN:
+                replay = yield value
+            else:
+                self.reused += 1
+                replay = known
+            more, value = _advance(chain, replay)
+        return value
 
     def _prefetch_in_flight(self) -> int:
         """Prefetched replays not yet taken by a chain that still occupy a worker."""

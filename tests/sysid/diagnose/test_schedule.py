@@ -83,7 +83,7 @@ def test_a_chain_is_fed_as_soon_as_its_replay_returns():
         return name
 
     with ReplayScheduler(FakeModel(), 2) as sched:
-        assert sched.run([chain("slow", [300.0]), chain("fast", [1.0, 1.0, 1.0])]) == ["slow", "fast"]
+        assert sched.run([chain("slow", [300.0]), chain("fast", [1.0, 2.0, 3.0])]) == ["slow", "fast"]
     assert [o[0] for o in order] == ["fast", "fast", "fast", "slow"]
     assert sched.replays == 4
 
@@ -123,7 +123,7 @@ def test_a_prefetched_replay_is_taken_by_the_chain_that_asks_for_it():
 
         assert sched.run(chains()) == [[40.0, 20.0], [6.0]]
         assert sched.replays == 3 and not sched._prefetched
-        assert sched.run([watching("again", [6.0])]) == ["again"] and sched.replays == 4
+        assert sched.run([watching("new", [3.0])]) == ["new"] and sched.replays == 4
         assert replays[0][1]["pid"] != os.getpid()
     with ReplayScheduler(FakeModel(), 2) as sched:
         assert sched.prefetch([{"x": 7.0}]) == 1
@@ -132,6 +132,32 @@ def test_a_prefetched_replay_is_taken_by_the_chain_that_asks_for_it():
     with ReplayScheduler(FakeModel(), 1) as sched:
         assert sched.prefetch([{"x": 6.0}]) == 0
         assert sched.replays == 0 and sched._pool is None
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_parameter_set_is_replayed_once(workers):
+    """Replays are deterministic: a set asked for again (by the same or another chain, in a later
+    run, or by batch) and a set handed in with remember() are answered without a replay, with the
+    very replay (diverged ones too)."""
+    seen = []
+
+    def chain(xs):
+        for x in xs:
+            seen.append((yield {"x": x}))
+        return len(seen)
+
+    with ReplayScheduler(FakeModel(), workers) as sched:
+        nominal = (SimpleNamespace(pid=-1, count=0), {"pid": -1, "count": 0})
+        sched.remember({"x": 0.0}, nominal)
+        sched.run([chain([1.0, -2.0, 1.0, 0.0])])
+        assert sched.replays == 2 and sched.reused == 2
+        assert seen[2] is seen[0] and seen[1] is None and seen[3] is nominal
+        sched.run([chain([-2.0, 4.0])])
+        assert seen[4] is None and sched.replays == 3 and sched.reused == 3
+        again = sched.batch([{"x": 4.0}, {"x": 0.0}, {"x": 5.0}])
+        assert again[0] is seen[5] and again[1] is nominal and again[2][1]["count"] >= 1
+        assert sched.replays == 4 and sched.reused == 5
+        assert len(sched.log) == (0 if workers == 1 else 4)  # the pool logs its replays (one worker: none)
 
 
 @pytest.mark.parametrize("workers", [1, 2])
