@@ -16,6 +16,7 @@ squares with ``W = diag(1 / sigma^2)`` is ordinary least squares on ``r``.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 import warnings
@@ -62,6 +63,9 @@ class SimTrace:
         positions: ``(K + 1, n, 3)`` m, every vertex of the simulation per step, when the replay
             was asked to keep them (``ObservationModel.simulate(keep_positions=True)``; the warm
             start of later replays, :attr:`ObservationModel.warm_start`), else None.
+        states: the ``K + 1`` simulation states (``sim_core.state.State``) when the replay was
+            asked to keep them (``ObservationModel.simulate(keep_states=True)``; the starts of
+            :class:`Resume`), else None.
     """
 
     t_ns: np.ndarray
@@ -71,12 +75,40 @@ class SimTrace:
     sheet_points: np.ndarray
     wall_time_s: float
     positions: np.ndarray | None = None
+    states: list | None = None
+
+    def head(self, step: int) -> "SimTrace":
+        """The observations of steps ``0..step`` (no positions, no states; same wall time)."""
+        k = int(step) + 1
+        return SimTrace(self.t_ns[:k].copy(), self.markers_xyz[:k].copy(), self.markers_uv[:k].copy(),
+                        self.wrench[:k].copy(), self.sheet_points[:k].copy(), self.wall_time_s)
 
     def channel(self, name: str) -> np.ndarray:
         """The per-step array of evidence channel ``name`` (one of :data:`PREDICTABLE_CHANNELS`)."""
         if name not in PREDICTABLE_CHANNELS:
             raise KeyError(f"channel {name!r} is not simulated (simulated: {', '.join(PREDICTABLE_CHANNELS)})")
         return getattr(self, name)
+
+
+@dataclass(frozen=True)
+class Resume:
+    """Start of a replay that is known to equal another one up to step ``step``.
+
+    A replay whose parameters change the simulation only from some step on (a plastic yield
+    angle above every dihedral angle reached before it: ``sysid.diagnose.resume``) runs the same
+    steps as the replay it differs from until then; :meth:`ObservationModel.simulate` then takes
+    that replay's observations of steps ``0..step`` and its state at ``step`` and simulates the
+    steps after it only.
+
+    Attributes:
+        step: last step taken from the other replay (0 <= step <= K).
+        state: its simulation state after that step (``sim_core.state.State``; copied on use).
+        prefix: its observations of steps ``0..step`` at least (:meth:`SimTrace.head`).
+    """
+
+    step: int
+    state: Any
+    prefix: SimTrace
 
 
 @dataclass(frozen=True)
@@ -373,7 +405,8 @@ class ObservationModel:
         return guess
 
     def simulate(self, params: Mapping[str, float],
-                 on_step: Callable[[int, int], None] | None = None, keep_positions: bool = False) -> SimTrace:
+                 on_step: Callable[[int, int], None] | None = None, keep_positions: bool = False,
+                 keep_states: bool = False, resume: Resume | None = None) -> SimTrace:
         """Replay the recording with parameter values ``params`` and observe every step.
 
         Each step's Newton solve starts from :attr:`warm_start` when it is set.
@@ -383,6 +416,10 @@ class ObservationModel:
                 their scene values.
             on_step: called as ``on_step(k, K)`` after step k.
             keep_positions: also return every vertex position (``SimTrace.positions``).
+            keep_states: also return every simulation state (``SimTrace.states``).
+            resume: take steps ``0..resume.step`` from another replay known to be the same until
+                then (:class:`Resume`) and simulate the later ones only; not with
+                ``keep_positions`` or ``keep_states``.
 
         Returns:
             the :class:`SimTrace`.
@@ -390,23 +427,53 @@ class ObservationModel:
         Raises:
             ConfigError: unknown parameter or a value outside its physical range; a warm start
                 of the wrong vertex count.
-            CalibrationError: a warm start of the wrong step count.
+            CalibrationError: a warm start of the wrong step count; a resume step outside
+                ``0..K``, a resume state of another step or vertex count, a prefix too short, or
+                a resume with ``keep_positions``/``keep_states``.
             SimulationDivergedError: the solver failed (names the step).
         """
         guess = self._checked_guess(None)
         sim = self.prepare(params)
         t_start = time.perf_counter()
         K = self.step_count
-        obs = [self._observe(sim)]
+        start = 0 if resume is None else self._checked_resume(resume, keep_positions or keep_states, sim)
+        if resume is None:
+            obs = [self._observe(sim)]
+        else:
+            sim.state = resume.state.copy()
+            p = resume.prefix
+            obs = [(p.markers_xyz[k], p.markers_uv[k], p.wrench[k], p.sheet_points[k]) for k in range(start + 1)]
         positions = [sim.state.x.copy()] if keep_positions else None
-        for k in range(1, K + 1):
+        states = [sim.state.copy()] if keep_states else None
+        for k in range(start + 1, K + 1):
             sim.step(self.control(k, guess))
             obs.append(self._observe(sim))
             if positions is not None:
                 positions.append(sim.state.x.copy())
+            if states is not None:
+                states.append(sim.state.copy())
             if on_step is not None:
                 on_step(k, K)
-        return self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
+        trace = self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
+        return trace if states is None else dataclasses.replace(trace, states=states)
+
+    def _checked_resume(self, resume: Resume, keeping: bool, sim) -> int:
+        """``resume.step`` after checking the resume against this model (see :meth:`simulate`)."""
+        K, k = self.step_count, int(resume.step)
+        problem = None
+        if keeping:
+            problem = "cannot keep positions or states of a resumed replay"
+        elif not 0 <= k <= K:
+            problem = f"step {k} is outside 0..{K}"
+        elif int(getattr(resume.state, "step_index", -1)) != k:
+            problem = f"the state is of step {getattr(resume.state, 'step_index', None)}, not {k}"
+        elif np.shape(resume.state.x) != np.shape(sim.state.x):
+            problem = f"the state has {np.shape(resume.state.x)[0]} vertices, the simulation {np.shape(sim.state.x)[0]}"
+        elif resume.prefix.markers_xyz.shape[0] < k + 1:
+            problem = f"the prefix has {resume.prefix.markers_xyz.shape[0]} steps, {k + 1} needed"
+        if problem is not None:
+            raise CalibrationError(f"resumed replay of {self.evidence.source.bag_path}: {problem}")
+        return k
 
     def trace_of(self, sim, states: Sequence[Any], wall_time_s: float = 0.0) -> SimTrace:
         """The :class:`SimTrace` of an already simulated replay: ``states`` are its ``K + 1`` states

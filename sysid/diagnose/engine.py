@@ -77,6 +77,7 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
+from sysid.diagnose.resume import NominalResume, hinge_angle_history
 from sysid.diagnose.probing import ProbeCalibration
 from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
@@ -168,7 +169,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         self.model.warm_start = None
         _reset_candidates(self.model)
         try:
-            trace = self.model.simulate(dict(theta), keep_positions=self.settings.warm_start)
+            trace = self.model.simulate(dict(theta), keep_positions=self.settings.warm_start, keep_states=True)
         except SimulationDivergedError as err:
             raise CalibrationError(f"{self.bag}: the nominal replay diverged: {err}") from err
         if self.settings.warm_start:
@@ -238,8 +239,12 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             self.timings["replays"] = self.timings.get("replays", 0) + self._scheduler.prefetch(
                 cands.rollout_free_probes(model, theta, self.tested, self.candidate_names))
         nominal = self._nominal_replay(theta)
-        if getattr(self, "_scheduler", None) is not None and not s.warm_start:
-            self._scheduler.remember(theta, nominal)  # e.g. a refit whose strength clips to 0 asks for it
+        if getattr(self, "_scheduler", None) is not None:
+            if not s.warm_start:
+                self._scheduler.remember(theta, nominal)  # e.g. a refit whose strength clips to 0 asks for it
+            angles = hinge_angle_history(model, nominal[0])
+            if angles is not None:  # plasticity replays start where the nominal sheet first bends enough
+                self._scheduler.resume = NominalResume(theta, nominal[0], angles)
         replays = [nominal] + (self._replays(sets) if sets else [])
         self.timings["nominal_s"] = time.perf_counter() - t
         self.timings["nominal_cpu_s"] = time.process_time() - cpu

@@ -63,21 +63,22 @@ def compile_before_fork(model: Any) -> None:
         warm()
 
 
-def _replay(model: Any, params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
+def _replay(model: Any, params: Mapping[str, float], resume: Any = None) -> tuple[Any, dict[str, np.ndarray]] | None:
     _reset_candidates(model)
     try:
-        trace = model.simulate(dict(params))
+        trace = model.simulate(dict(params)) if resume is None else model.simulate(dict(params), resume=resume)
     except SimulationDivergedError:
         return None
     return trace, model.predict(trace)
 
 
-def _worker(params: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]] | None:
-    return _replay(_MODEL["model"], params)
+def _worker(params: Mapping[str, float], resume: Any = None) -> tuple[Any, dict[str, np.ndarray]] | None:
+    return _replay(_MODEL["model"], params, resume)
 
 
 def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: int = 1,
-                ray_address: str | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
+                ray_address: str | None = None,
+                resumes: Sequence[Any] | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
     """Replay ``model`` once per parameter set.
 
     Args:
@@ -85,6 +86,8 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
         param_sets: parameter dicts (``ObservationModel.simulate`` semantics).
         workers: processes (1: in this process).
         ray_address: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``); overrides workers.
+        resumes: per set, None or a ``sysid.observation.Resume`` to start that replay from
+            (``ObservationModel.simulate(resume=...)``); default: none.
 
     Returns:
         ``(trace, prediction)`` per set, None where the replay diverged.
@@ -95,6 +98,9 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
     sets = [dict(p) for p in param_sets]
     if not sets:
         return []
+    resumes = list(resumes) if resumes is not None else [None] * len(sets)
+    if len(resumes) != len(sets):
+        raise ValueError(f"replay_many: {len(resumes)} resumes for {len(sets)} parameter sets")
     if ray_address:
         try:
             import ray
@@ -107,10 +113,10 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
         portable._sim = None  # the simulator is rebuilt on the worker
         task = ray.remote(_replay)
         ref = ray.put(portable)
-        return list(ray.get([task.remote(ref, p) for p in sets]))
+        return list(ray.get([task.remote(ref, p, r) for p, r in zip(sets, resumes)]))
     if workers <= 1 or len(sets) == 1:
-        return [_replay(model, p) for p in sets]
+        return [_replay(model, p, r) for p, r in zip(sets, resumes)]
     compile_before_fork(model)
     ctx = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(min(workers, len(sets)), mp_context=ctx, initializer=_init, initargs=(model,)) as pool:
-        return list(pool.map(_worker, sets))
+        return list(pool.map(_worker, sets, resumes))

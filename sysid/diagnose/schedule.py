@@ -116,9 +116,14 @@ class ReplayScheduler:
     process) is answered with that replay without simulating again. A one-sided candidate whose
     linearised refit clips its strength to 0 asks for exactly the nominal set, for instance.
 
+    A replay known to equal the nominal one up to some step starts from there when
+    :attr:`resume` says so (set once the nominal replay is in; :mod:`sysid.diagnose.resume`).
+
     Attributes:
         replays: replays run so far.
         reused: requests answered with an earlier replay of the same parameter set.
+        resume: None, or a callable ``params -> Resume | None`` giving the start of a replay
+            (``sysid.observation.Resume``; None: from the initial state).
         sim_s: summed simulation wall time of the finished replays, s (``SimTrace.wall_time_s``).
         log: one record per pooled replay, in finishing order: ``{"label", "chain", "step", "tag",
             "cpu_s", "diverged"}``
@@ -132,6 +137,7 @@ class ReplayScheduler:
         self.ray_address = ray_address
         self.replays = 0
         self.reused = 0
+        self.resume: Callable[[Mapping[str, float]], Any] | None = None
         self.sim_s = 0.0
         self.log: list[dict[str, Any]] = []
         self._pool: ProcessPoolExecutor | None = None
@@ -154,7 +160,8 @@ class ReplayScheduler:
             # one replay before the pool exists runs here: the workers forked later inherit its
             # built simulation and compiled kernels
             todo = [p for p in sets if _key(p) not in self._known]
-            for p, rep in zip(todo, parallel.replay_many(self.model, todo, self.workers, self.ray_address)):
+            for p, rep in zip(todo, parallel.replay_many(self.model, todo, self.workers, self.ray_address,
+                                                         [self._resume_of(p) for p in todo])):
                 self._known[_key(p)] = rep
             self.replays += len(todo)
             self.reused += len(sets) - len(todo)
@@ -187,7 +194,7 @@ class ReplayScheduler:
             if self._prefetch_in_flight() >= self.workers - reserve:
                 break
             if _key(p) not in self._prefetched and _key(p) not in self._known:
-                self._prefetched[_key(p)] = pool.submit(_timed_worker, dict(p))
+                self._prefetched[_key(p)] = pool.submit(_timed_worker, dict(p), self._resume_of(p))
                 self.replays += 1
                 submitted += 1
         return submitted
@@ -207,7 +214,8 @@ class ReplayScheduler:
         if not self.pooled:
             def counted(sets: list[dict[str, float]]) -> list[Replay]:
                 self.replays += len(sets)
-                out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address))
+                out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address,
+                                                         [self._resume_of(p) for p in sets]))
                 self._known.update((_key(p), rep) for p, rep in zip(sets, out))
                 return out
 
@@ -228,7 +236,7 @@ class ReplayScheduler:
             while pending and len(running) + self._prefetch_in_flight() < self.workers:
                 i = min(pending, key=lambda j: (-steps[j], j))
                 p, tag = pending.pop(i)
-                running[pool.submit(_timed_worker, p)] = (i, p, tag)
+                running[pool.submit(_timed_worker, p, self._resume_of(p))] = (i, p, tag)
                 self.replays += 1
 
         try:
@@ -266,6 +274,10 @@ class ReplayScheduler:
             self.close(cancel=True)
             raise
         return results
+
+    def _resume_of(self, params: Mapping[str, float]) -> Any:
+        """The start of the replay of ``params`` (:attr:`resume`), None: the initial state."""
+        return None if self.resume is None else self.resume(params)
 
     def _reusing(self, chain: Chain) -> Chain:
         """``chain`` with its requests for already replayed parameter sets answered here."""
@@ -310,10 +322,11 @@ class ReplayScheduler:
         self.close(cancel=exc[0] is not None)
 
 
-def _timed_worker(params: Mapping[str, float]) -> tuple[Replay, float]:
-    """A pool worker's replay and the CPU time it took (s, all threads of the worker process)."""
+def _timed_worker(params: Mapping[str, float], resume: Any = None) -> tuple[Replay, float]:
+    """A pool worker's replay (from ``resume`` when given) and the CPU time it took (s, all threads
+    of the worker process)."""
     t = time.process_time()
-    rep = parallel._worker(params)
+    rep = parallel._worker(params, resume)
     return rep, time.process_time() - t
 
 

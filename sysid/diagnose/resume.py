@@ -1,0 +1,110 @@
+"""Replays that start from the nominal replay's state: the steps before an effect can act are the nominal's.
+
+Bending plasticity changes a sheet only when a dihedral angle leaves its elastic range: the rest
+angle ``theta_bar`` moves where ``|theta - theta_bar| > theta_yield`` (:func:`sim_core.potentials.
+bending.plastic_update`; the yield angle enters nothing else). With a flat rest shape, a replay that
+differs from the nominal one only in ``sheet.yield_angle`` therefore takes exactly the nominal
+replay's steps until the first step whose largest ``|theta|`` exceeds its yield angle; those steps
+are not simulated again (:class:`~sysid.observation.Resume`). On a press-and-slide recording the
+sheet reaches half its largest bend about half-way (``latency_s103``: step 198 of 384), so each
+replay of the plasticity probe chain costs about half a replay.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import numpy as np
+
+from sysid.observation import Resume, SimTrace
+
+YIELD_PARAMETER = "sheet.yield_angle"
+"""The simulator parameter of bending plasticity (rad; inf: elastic)."""
+
+MARGIN_STEPS = 2
+"""Steps taken from the nominal replay stop this many steps before the first one whose largest
+dihedral angle exceeds the yield angle (the angles here are computed from the observed sheet points,
+the solver's from its own vertex positions: equal up to round-off)."""
+
+
+def hinge_angle_history(model: Any, trace: SimTrace) -> np.ndarray | None:
+    """Largest ``|theta|`` (rad) over the sheet's hinges at every step of ``trace``, ``(K + 1,)``.
+
+    Args:
+        model: the ``sysid.observation.ObservationModel`` of the replay (its scene's sheet grid).
+        trace: a replay with ``sheet_points`` ``(K + 1, nx * ny, 3)``.
+
+    Returns:
+        the angles, or None when the scene has no grid sheet matching the sheet points.
+    """
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
+    from sim_core.potentials.bending import dihedral_angle
+    from sim_core.scenes.scene_file import load_scene_file
+
+    scene = load_scene_file(model.scene)
+    sheet = getattr(scene, "sheet", None)
+    if sheet is None:
+        return None
+    pts = np.asarray(trace.sheet_points, dtype=float)
+    nx, ny = sheet.resolution
+    if pts.ndim != 3 or pts.shape[1] != nx * ny:
+        return None
+    hinges = sheet_topology(grid_sheet(sheet.size, sheet.resolution, sheet.origin).triangles).hinges
+    if hinges.shape[0] == 0:
+        return None
+    return np.array([float(np.max(np.abs(dihedral_angle(p[hinges])))) for p in pts])
+
+
+class NominalResume:
+    """Start of a diagnosis replay from the nominal replay (``ReplayScheduler.resume``).
+
+    Args:
+        theta: the nominal parameter set of the nominal replay.
+        trace: the nominal replay, with its states (``ObservationModel.simulate(keep_states=True)``).
+        angles: :func:`hinge_angle_history` of ``trace``.
+
+    Raises:
+        ValueError: the trace has no states, or ``angles`` does not have one value per step.
+    """
+
+    def __init__(self, theta: Mapping[str, float], trace: SimTrace, angles: np.ndarray) -> None:
+        if trace.states is None:
+            raise ValueError("NominalResume: the nominal trace has no states (simulate(keep_states=True))")
+        angles = np.asarray(angles, dtype=float)
+        if angles.shape != (len(trace.states),):
+            raise ValueError(f"NominalResume: {angles.shape} angles for {len(trace.states)} steps")
+        self.theta = dict(theta)
+        self.trace = trace
+        self.angles = angles
+        # the criterion holds for a nominal replay whose sheets stay elastic from a flat rest shape
+        rest = trace.states[0].hinge_theta_bar
+        self.enabled = (not math.isfinite(float(self.theta.get(YIELD_PARAMETER, math.inf)))
+                        and all(not np.any(np.asarray(tb)) for tb in rest.values()))
+
+    def start_step(self, params: Mapping[str, float]) -> int:
+        """Last step of the nominal replay that the replay of ``params`` shares (0: none).
+
+        Only a set that differs from the nominal one in the yield angle alone (finite, >= 0) shares
+        steps, when the nominal sheets are elastic (no finite yield angle) from a flat rest shape: those before the first step whose largest angle exceeds it, less
+        :data:`MARGIN_STEPS` (all of them when the angles never exceed it).
+        """
+        if not self.enabled:
+            return 0
+        keys = set(params) | set(self.theta)
+        if {k for k in keys if params.get(k) != self.theta.get(k)} != {YIELD_PARAMETER}:
+            return 0
+        y = float(params[YIELD_PARAMETER])
+        if not (math.isfinite(y) and y >= 0.0):
+            return 0
+        over = np.flatnonzero(self.angles > y * (1.0 - 1e-9))
+        K = self.angles.size - 1
+        first = int(over[0]) if over.size else K + 1 + MARGIN_STEPS
+        return max(0, min(K, first - MARGIN_STEPS - 1))
+
+    def __call__(self, params: Mapping[str, float]) -> Resume | None:
+        """The :class:`~sysid.observation.Resume` of the replay of ``params``, None: from the start."""
+        k = self.start_step(params)
+        if k <= 0:
+            return None
+        return Resume(k, self.trace.states[k], self.trace.head(k))

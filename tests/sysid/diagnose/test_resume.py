@@ -1,0 +1,111 @@
+"""Replays resumed from the nominal replay (sysid.diagnose.resume, ObservationModel.simulate(resume=)):
+a plasticity replay shares the nominal steps before its yield angle is first exceeded, and the
+resumed replay equals the full one."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from sim_core.errors import CalibrationError
+from sysid.diagnose.resume import MARGIN_STEPS, NominalResume, hinge_angle_history
+from sysid.diagnose.schedule import ReplayScheduler
+from sysid.observation import Resume, SimTrace
+
+
+def _trace(K: int, theta_bar: float = 0.0) -> SimTrace:
+    states = [SimpleNamespace(step_index=k, hinge_theta_bar={"sheet": np.full(4, theta_bar)}) for k in range(K + 1)]
+    z = np.zeros((K + 1, 2, 3))
+    return SimTrace(np.arange(K + 1), z, z[..., :2], np.zeros((K + 1, 6)), z, 0.0, states=states)
+
+
+def test_start_step_only_for_a_yield_angle_change_and_before_the_first_exceedance():
+    angles = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.5, 0.4, 0.3])  # K = 8
+    r = NominalResume({"sheet.bending_stiffness": 1.0}, _trace(8), angles)
+    nominal = {"sheet.bending_stiffness": 1.0}
+    # exceeded first at step 4 (0.4 > 0.35): steps 0..3 are shared, less the margin
+    assert r.start_step({**nominal, "sheet.yield_angle": 0.35}) == 3 - MARGIN_STEPS
+    res = r({**nominal, "sheet.yield_angle": 0.35})
+    assert isinstance(res, Resume) and res.step == 3 - MARGIN_STEPS and res.state is r.trace.states[res.step]
+    assert res.prefix.markers_xyz.shape[0] == res.step + 1
+    # never exceeded: every step is the nominal one
+    assert r.start_step({**nominal, "sheet.yield_angle": 0.6}) == 8
+    # anything else changed as well, or instead, or a yield angle that is not a finite angle: from the start
+    assert r.start_step({**nominal, "sheet.yield_angle": 0.35, "candidate.stiction": 0.1}) == 0
+    assert r.start_step({"sheet.bending_stiffness": 1.1, "sheet.yield_angle": 0.35}) == 0
+    assert r.start_step({"sheet.yield_angle": 0.35}) == 0
+    assert r.start_step(nominal) == 0 and r(nominal) is None
+    assert r.start_step({**nominal, "sheet.yield_angle": math.inf}) == 0
+    # exceeded at once: nothing to share
+    assert r.start_step({**nominal, "sheet.yield_angle": 0.05}) == 0
+    # a plastic nominal sheet, or one bent at rest: the criterion does not hold
+    assert NominalResume({"sheet.yield_angle": 0.5}, _trace(8), angles).start_step({"sheet.yield_angle": 0.35}) == 0
+    assert NominalResume({}, _trace(8, theta_bar=0.1), angles).start_step({"sheet.yield_angle": 0.35}) == 0
+    with pytest.raises(ValueError, match="angles"):
+        NominalResume({}, _trace(8), angles[:-1])
+    with pytest.raises(ValueError, match="states"):
+        NominalResume({}, SimTrace(np.arange(2), *(np.zeros((2, 1, 3)),) * 2, np.zeros((2, 6)), np.zeros((2, 1, 3)), 0.0),
+                      np.zeros(2))
+
+
+class ResumingModel:
+    """A replay is ``y = x``; records the resume it was given."""
+
+    def simulate(self, params, resume=None):
+        return SimpleNamespace(x=params["x"], resume=None if resume is None else resume.step)
+
+    def predict(self, trace):
+        return {"x": trace.x, "resume": trace.resume}
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_scheduler_hands_each_replay_its_resume(workers):
+    with ReplayScheduler(ResumingModel(), workers) as sched:
+        sched.resume = lambda p: Resume(int(p["x"]), None, None) if p["x"] > 1 else None
+
+        def chain(xs):
+            got = []
+            for x in xs:
+                got.append((yield {"x": x})[1]["resume"])
+            return got
+
+        assert sched.run([chain([1.0, 3.0]), chain([2.0])]) == [[None, 3], [2]]
+        assert [r[1]["resume"] for r in sched.batch([{"x": 5.0}])] == [5]
+
+
+def test_a_resumed_plasticity_replay_equals_the_full_one():
+    """latency_s103 for 2.2 s: the sheet first bends past half its largest angle late in the press;
+    the replay at that yield angle resumed from the nominal state differs from the full replay by
+    round-off only (the plastic effect itself moves the markers by a good fraction of a pixel) and
+    simulates only the steps after the shared ones."""
+    from sysid.diagnose.engine import BagDiagnosis
+    from sysid.diagnose.settings import Settings
+    from tests.sysid.conftest import reference_bag
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = BagDiagnosis(reference_bag("latency_s103"), settings=Settings(arch="cpu", workers=1, t_max=2.2)).model
+    nominal = model.simulate({}, keep_states=True)
+    angles = hinge_angle_history(model, nominal)
+    params = {"sheet.yield_angle": 0.5 * float(angles.max())}
+    resume = NominalResume({}, nominal, angles)(params)
+    K = model.step_count
+    assert resume is not None and K // 2 < resume.step < K
+    full = model.simulate(params)
+    steps = []
+    resumed = model.simulate(params, resume=resume, on_step=lambda k, n: steps.append(k))
+    assert steps == list(range(resume.step + 1, K + 1))
+    moved = np.abs(full.markers_uv - nominal.markers_uv).max()
+    assert moved > 0.05
+    for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
+        a, b = getattr(full, ch), getattr(resumed, ch)
+        assert a.shape == b.shape
+        assert np.abs(a - b).max() <= 1e-9 * max(np.abs(a).max(), 1e-12), ch
+    with pytest.raises(CalibrationError, match="state is of step"):
+        model.simulate(params, resume=Resume(resume.step + 1, resume.state, nominal))
+    with pytest.raises(CalibrationError, match="cannot keep"):
+        model.simulate(params, resume=resume, keep_positions=True)
