@@ -33,7 +33,7 @@ _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.template(),
+def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.i32,
           derivatives: ti.template(), d: ti.template(), region: ti.template(), grad: ti.template(),
           hess: ti.template()):
     region[i], d[i] = cd._distance_value(z, i, side, point_first)
@@ -56,10 +56,12 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, split
             v = vertices[k, a]
             for c in ti.static(range(3)):
                 z[i, a, c] = x[v, c]
+        point_first = 0
+        eps = eps_ee
         if k < split:
-            _pair(z, i, side[k], eps_vt, True, derivatives, d, region, grad, hess)
-        else:
-            _pair(z, i, side[k], eps_ee, False, derivatives, d, region, grad, hess)
+            point_first = 1
+            eps = eps_vt
+        _pair(z, i, side[k], eps, point_first, derivatives, d, region, grad, hess)  # inlined once, both kinds
 
 
 class PairBatch:
