@@ -1,4 +1,4 @@
-"""A cheaper Taichi frontend: source-position messages memoised per AST node position.
+"""A cheaper Taichi frontend: source positions and function sources memoised.
 
 Taichi 1.7 builds every kernel's IR by walking the Python AST of the kernel and of each ``ti.func``
 it inlines (``ast_transformer_utils.Builder.__call__``). Before it builds *each* expression or
@@ -15,6 +15,12 @@ process is returned from a dictionary. The message depends only on the key used 
 function's line offset and indentation, its name, the node's type, start and end line and column,
 the first line of a compound statement's body, and the source lines quoted), so every message,
 debug info and compile error stays character for character what Taichi produces (test).
+
+:func:`memoize_function_sources` does the same for the source of each kernel and ``ti.func``:
+Taichi reads it again (``inspect.getsourcelines``, which tokenises the file from the function's
+first line) at every compilation of a kernel and at every inlining of a ``ti.func`` (about 1000
+times for the Forming kernels). The memo is keyed by the Python function object and returns a copy
+of the lines Taichi read the first time.
 """
 
 from __future__ import annotations
@@ -70,4 +76,45 @@ def memoize_source_positions() -> bool:
     get_pos_info.__doc__ = "Taichi's ``get_pos_info``, memoised (sim_core.ti_frontend)."
     setattr(get_pos_info, _WRAPPED_FLAG, True)
     context.get_pos_info = get_pos_info
+    return True
+
+
+def memoize_function_sources() -> bool:
+    """Memoise the source lines and file of each Taichi kernel / ``ti.func`` (module docstring).
+
+    Patches the ``getsourcelines`` and ``getsourcefile`` that ``taichi.lang.kernel_impl`` calls
+    (Taichi 1.7.x only; idempotent). A function's source is read once per process: edits to a
+    source file while the process runs are not seen (as kernels already compiled are not rebuilt).
+
+    Returns:
+        True when the memoised functions are installed (now or by an earlier call), False otherwise.
+    """
+    import taichi
+    from taichi.lang import kernel_impl
+
+    lines_of, file_of = getattr(kernel_impl, "getsourcelines", None), getattr(kernel_impl, "getsourcefile", None)
+    if lines_of is None or file_of is None or tuple(taichi.__version__)[:2] != (1, 7):
+        return False
+    if getattr(lines_of, _WRAPPED_FLAG, False):
+        return True
+    lines: dict = {}
+    files: dict = {}
+
+    def getsourcelines(obj):
+        if obj not in lines:
+            src, start = lines_of(obj)
+            lines[obj] = (tuple(src), start)
+        src, start = lines[obj]
+        return list(src), start
+
+    def getsourcefile(obj):
+        if obj not in files:
+            files[obj] = file_of(obj)
+        return files[obj]
+
+    for fn, original in ((getsourcelines, lines_of), (getsourcefile, file_of)):
+        fn.__wrapped__ = original
+        setattr(fn, _WRAPPED_FLAG, True)
+    kernel_impl.getsourcelines = getsourcelines
+    kernel_impl.getsourcefile = getsourcefile
     return True

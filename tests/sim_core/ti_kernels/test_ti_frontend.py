@@ -76,3 +76,20 @@ def test_compile_error_still_names_file_line_and_source(ti_cpu):
     message = str(err.value)
     assert f'test_ti_frontend.py", line {expected}, in broken_probe' in message
     assert "out[i] = undefined_name_of_the_probe" in message and "^^^" in message
+
+
+def test_memoized_function_sources_equal_inspects(ti_cpu):
+    from taichi.lang import kernel_impl
+
+    from sim_core.ti_frontend import memoize_function_sources
+    from sim_core.ti_kernels import bending
+
+    assert memoize_function_sources() is True  # installed by init_backend; idempotent
+    lines_of, file_of = kernel_impl.getsourcelines, kernel_impl.getsourcefile
+    assert hasattr(lines_of, "__wrapped__") and hasattr(file_of, "__wrapped__")
+    fn = bending._theta_hessian.func.func  # the Python function of a ti.func (decorated -> Func -> function)
+    first, again = lines_of(fn), lines_of(fn)
+    assert first == lines_of.__wrapped__(fn) and again == first
+    assert first[0] is not again[0]  # a fresh list each time (the caller may change it)
+    assert first[0][1].lstrip().startswith("def _theta_hessian(")
+    assert file_of(fn) == file_of.__wrapped__(fn) == bending.__file__
