@@ -266,7 +266,7 @@ def _plane_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: t
     """Signed plane / line-line distance of pair ``k`` (returned); sets ``grad[k]`` and adds the Hessian
     to ``hess[k]`` (module docstring). The derivatives over ``(u, v, r)`` map to the four vertices
     through the rows of ``_PLANE_MAP`` / ``_LINES_MAP`` (``C``, 3x4): ``block_ab = sum_pq C_pa C_qb H_pq``,
-    in runtime loops (zero coefficients add exact zeros)."""
+    in runtime loops over the nonzero coefficients (the gradient's sum adds the zero terms: exact zeros)."""
     u, v, r = _plane_vectors(z, k, point_first)
     n = _cross(u, v)
     s = _resolved_side(side, n, r)
