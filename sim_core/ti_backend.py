@@ -15,7 +15,10 @@ Usage::
     arch = init_backend("cpu")          # or "cuda"; once per process, before any Taichi potential
 
 Kernels run in float64 (``default_fp=ti.f64``). The offline cache (compiled kernels kept on disk,
-Taichi's ``offline_cache`` option) makes the second process start without JIT work.
+Taichi's ``offline_cache`` option) makes the second process start without LLVM work; the Python
+frontend (the AST walk that builds each kernel's IR and cache key) still runs, made cheaper by
+:func:`sim_core.ti_frontend.memoize_source_positions` and
+:func:`~sim_core.ti_frontend.memoize_function_sources`, which :func:`init_backend` installs.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import sys
 from dataclasses import dataclass
 
 from sim_core.errors import ConfigError
+from sim_core.ti_frontend import memoize_function_sources, memoize_source_positions
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 import taichi as ti  # noqa: E402  (after the banner switch above)
@@ -54,6 +58,8 @@ _STATE = _BackendState()
 def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_dir: str | None = None) -> str:
     """Initialise Taichi once for this process (float64 kernels) and return the arch in use.
 
+    Also memoises Taichi's per-node source-position messages and function sources
+    (:mod:`sim_core.ti_frontend`; the same IR and messages, less frontend time).
     Idempotent: a second call with the same arch returns at once. Taichi cannot switch arch while
     kernels and ndarrays of the first arch are alive, so a call with another arch raises.
 
@@ -93,6 +99,8 @@ def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_di
         raise ConfigError(f"init_backend: Taichi arch {arch!r} is not available on this machine ({err})") from err
     _STATE.arch = arch
     _STATE.offline_cache = bool(offline_cache)
+    memoize_source_positions()
+    memoize_function_sources()
     return arch
 
 

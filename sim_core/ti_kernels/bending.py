@@ -24,7 +24,7 @@ from sim_core.potentials.bending import DiscreteShellBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
-from sim_core.ti_kernels.linalg import project_psd_translation_free, projection_code
+from sim_core.ti_kernels.linalg import matmul, project_psd_translation_free, projection_code
 
 
 @ti.func
@@ -83,7 +83,7 @@ def _d_projection_coefficient(xp, xq, p: ti.template(), q: ti.template(), e, le)
     e_hat = e / le
     base = d / le - (c / le) * e_hat  # times de/dx_w = sign_e[w] I, sign_e = (-1, 1, 0, 0)
     out = ti.Vector.zero(ti.f64, 12)
-    for i in ti.static(range(3)):
+    for i in range(3):
         out[i] = -base[i]
         out[3 + i] = base[i]
         out[3 * p + i] += e[i] / le
@@ -112,12 +112,12 @@ def _theta_hessian(x0, x1, x2, x3):
     r01 = _d_projection_coefficient(x2, x0, 2, 0, e, le)
     r10 = _d_projection_coefficient(x3, x1, 3, 1, e, le)
     r11 = _d_projection_coefficient(x3, x0, 3, 0, e, le)
-    for k in ti.static(range(12)):
+    for k in range(12):
         dC0[0, k] = r00[k]
         dC0[1, k] = -r01[k]
         dC1[0, k] = r10[k]
         dC1[1, k] = -r11[k]
-    for i in ti.static(range(3)):
+    for i in range(3):
         dC0[2, i] = -e_hat[i]
         dC0[2, 3 + i] = e_hat[i]
         dC1[3, i] = -e_hat[i]
@@ -127,7 +127,7 @@ def _theta_hessian(x0, x1, x2, x3):
     dn1 = ti.Matrix.zero(ti.f64, 3, 12)
     a0, a1, a2 = _cross_matrix(x2 - x1), _cross_matrix(x0 - x2), _cross_matrix(x1 - x0)
     b0, b1, b3 = _cross_matrix(x1 - x3), _cross_matrix(x3 - x0), _cross_matrix(x0 - x1)
-    for i, j in ti.static(ti.ndrange(3, 3)):
+    for i, j in ti.ndrange(3, 3):
         dn0[i, j] = a0[i, j]
         dn0[i, 3 + j] = a1[i, j]
         dn0[i, 6 + j] = a2[i, j]
@@ -137,8 +137,8 @@ def _theta_hessian(x0, x1, x2, x3):
     eye = ti.Matrix.identity(ti.f64, 3)
     P0 = (eye - 2.0 * n0.outer_product(n0) / q0) / q0
     P1 = (eye - 2.0 * n1.outer_product(n1) / q1) / q1
-    dm0 = P0 @ dn0
-    dm1 = P1 @ dn1
+    dm0 = matmul(P0, dn0)
+    dm1 = matmul(P1, dn1)
     H = ti.Matrix.zero(ti.f64, 12, 12)
     for v in range(4):
         for i in range(3):

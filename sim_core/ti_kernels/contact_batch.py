@@ -33,22 +33,23 @@ _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.template(),
-          derivatives: ti.template(), d: ti.template(), region: ti.template(), grad: ti.template(),
+def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.i32,
+          derivatives: ti.i32, d: ti.template(), region: ti.template(), grad: ti.template(),
           hess: ti.template()):
     region[i], d[i] = cd._distance_value(z, i, side, point_first)
-    if ti.static(derivatives):
+    if derivatives:
         if d[i] < eps:
             cd._pair_derivatives(z, i, side, point_first, d, region, grad, hess)
 
 
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, split: ti.i32, eps_vt: ti.f64,
-                  eps_ee: ti.f64, derivatives: ti.template(), z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2,
+                  eps_ee: ti.f64, derivatives: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2,
                   hess: _F64_3):
     """Pairs ``k = rows[i]`` (``k < split`` vertex-triangle, else edge-edge): positions gathered into
     ``z[i]``, distance ``d[i]`` and region; with ``derivatives`` the gradient and Hessian rows ``i``
-    of the pairs with ``d < eps`` of their kind (the other rows are left as they are)."""
+    of the pairs with ``d < eps`` of their kind (the other rows are left as they are). ``derivatives``
+    (0 or 1) and the pair kind are runtime values: one compiled kernel for every request."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(rows.shape[0]):
         k = rows[i]
@@ -56,10 +57,12 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, split
             v = vertices[k, a]
             for c in ti.static(range(3)):
                 z[i, a, c] = x[v, c]
+        point_first = 0
+        eps = eps_ee
         if k < split:
-            _pair(z, i, side[k], eps_vt, True, derivatives, d, region, grad, hess)
-        else:
-            _pair(z, i, side[k], eps_ee, False, derivatives, d, region, grad, hess)
+            point_first = 1
+            eps = eps_vt
+        _pair(z, i, side[k], eps, point_first, derivatives, d, region, grad, hess)  # inlined once, both kinds
 
 
 class PairBatch:
@@ -107,7 +110,7 @@ class PairBatch:
         grad, hess = np.empty((rows_d, 12)), np.empty((rows_d, 12, 12))
         if m:
             _batch_kernel(np.ascontiguousarray(x, dtype=np.float64), self.vertices, self.sides, rows, self.split,
-                          float(self.vt.eps), float(self.ee.eps), bool(derivatives), np.empty((m, 4, 3)), d,
+                          float(self.vt.eps), float(self.ee.eps), int(bool(derivatives)), np.empty((m, 4, 3)), d,
                           region, grad, hess)
         order = 2 if derivatives else 0
         x_kept = np.array(x, dtype=float, copy=True)
@@ -129,7 +132,7 @@ class PairBatch:
 
 
 def compile_kernels() -> None:
-    """JIT-compile (or load from Taichi's offline cache) the kernel, with and without derivatives.
+    """JIT-compile (or load from Taichi's offline cache) the kernel; runs it without and with derivatives.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.

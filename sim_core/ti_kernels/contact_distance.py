@@ -25,6 +25,12 @@ they are. Pairs are independent (no shared sums); the loops run serially on the 
 hundred pairs take microseconds and a parallel launch costs more than it saves (and waits for a
 second core), in parallel on CUDA. Results equal the NumPy reference to round-off (tests: 1e-12
 relative).
+
+Compile time: the pair kind (``point_first``: vertex-triangle 1, edge-edge 0) is a runtime
+argument, so one compiled kernel serves both kinds, and the 3x3 products and the map of the
+``(u, v, r)`` derivatives to the vertices are runtime loops (:func:`sim_core.ti_kernels.linalg.matmul`)
+rather than unrolled expressions: Taichi's Python frontend builds every kernel in every process
+(the offline cache skips only LLVM), and its time grows with the number of unrolled expressions.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -36,6 +42,7 @@ from sim_core.collision.distances import PARALLEL_TOLERANCE, DistanceDerivatives
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.linalg import matmul
 
 _F64_1, _F64_2, _F64_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -162,12 +169,12 @@ def _edge_edge_region(a0, a1, b0, b1) -> ti.i32:
 
 
 @ti.func
-def _plane_vectors(z: ti.template(), k: ti.i32, point_first: ti.template()):
-    """``(u, v, r)`` of the plane (``point_first``) or line-line distance of pair ``k``."""
+def _plane_vectors(z: ti.template(), k: ti.i32, point_first: ti.i32):
+    """``(u, v, r)`` of the plane (``point_first`` 1) or line-line distance (0) of pair ``k``."""
     u = ti.Vector([0.0, 0.0, 0.0], ti.f64)
     v = ti.Vector([0.0, 0.0, 0.0], ti.f64)
     r = ti.Vector([0.0, 0.0, 0.0], ti.f64)
-    if ti.static(point_first):
+    if point_first:
         z1 = _z(z, k, 1)
         u, v, r = _z(z, k, 2) - z1, _z(z, k, 3) - z1, _z(z, k, 0) - z1
     else:
@@ -177,12 +184,13 @@ def _plane_vectors(z: ti.template(), k: ti.i32, point_first: ti.template()):
 
 
 @ti.func
-def _region_and_slots(z: ti.template(), k: ti.i32, point_first: ti.template()):
+def _region_and_slots(z: ti.template(), k: ti.i32, point_first: ti.i32):
     """Region code and its local slots ``(kind, i, j, l)``: kind 0 plane / lines, 1 point-line
-    (``z_i`` to the line ``z_j z_l``), 2 point-point (``z_i``, ``z_j``)."""
+    (``z_i`` to the line ``z_j z_l``), 2 point-point (``z_i``, ``z_j``). ``point_first``: 1 for a
+    vertex-triangle pair (``PointTriangleRegion`` codes), 0 for an edge-edge pair."""
     kind, i, j, l = 0, 0, 0, 0
     region = 0
-    if ti.static(point_first):
+    if point_first:
         region = _point_triangle_region(_z(z, k, 0), _z(z, k, 1), _z(z, k, 2), _z(z, k, 3))
         if region == _PT_EDGE_AB:
             kind, j, l = 1, 1, 2
@@ -220,7 +228,7 @@ def _resolved_side(side: ti.f64, n, r) -> ti.f64:
 
 
 @ti.func
-def _distance_value(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.template()):
+def _distance_value(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.i32):
     region, kind, i, j, l = _region_and_slots(z, k, point_first)
     d = 0.0
     if kind == 0:
@@ -239,7 +247,7 @@ def _distance_value(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.t
 
 
 @fast_kernel
-def _values_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1):
+def _values_kernel(z: _F64_3, side: _F64_1, point_first: ti.i32, d: _F64_1, region: _I32_1):
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
         region[k], d[k] = _distance_value(z, k, side[k], point_first)
@@ -247,13 +255,18 @@ def _values_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_
 
 @ti.func
 def _add_block(hess: ti.template(), k: ti.i32, a: ti.i32, b: ti.i32, block):
-    for p, q in ti.static(ti.ndrange(3, 3)):
+    """``hess[k]`` block ``(a, b)`` (3x3) ``+= block`` (a runtime loop: inlined 13 times per kernel)."""
+    for p, q in ti.ndrange(3, 3):
         hess[k, 3 * a + p, 3 * b + q] += block[p, q]
 
 
 @ti.func
-def _plane_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.template(),
+def _plane_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.i32,
                        grad: ti.template(), hess: ti.template()) -> ti.f64:
+    """Signed plane / line-line distance of pair ``k`` (returned); sets ``grad[k]`` and adds the Hessian
+    to ``hess[k]`` (module docstring). The derivatives over ``(u, v, r)`` map to the four vertices
+    through the rows of ``_PLANE_MAP`` / ``_LINES_MAP`` (``C``, 3x4): ``block_ab = sum_pq C_pa C_qb H_pq``,
+    in runtime loops over the nonzero coefficients (the gradient's sum adds the zero terms: exact zeros)."""
     u, v, r = _plane_vectors(z, k, point_first)
     n = _cross(u, v)
     s = _resolved_side(side, n, r)
@@ -263,36 +276,49 @@ def _plane_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: t
     m = n / N
     mr = _dot(m, r)
     h_n = (r - mr * m) / N
-    g = [_cross(v, h_n) * s, -_cross(u, h_n) * s, m * s]  # over (u, v, r)
+    g = ti.Matrix.rows([_cross(v, h_n) * s, -_cross(u, h_n) * s, m * s])  # rows over (u, v, r)
     eye = ti.Matrix.identity(ti.f64, 3)
     mm = m.outer_product(m)
     h_rn = (eye - mm) / N
     h_nn = (3.0 * mr * mm - mr * eye - r.outer_product(m) - m.outer_product(r)) / (N * N)
     Ju, Jv = -_skew(v), _skew(u)
-    H_uu = Ju.transpose() @ h_nn @ Ju
-    H_vv = Jv.transpose() @ h_nn @ Jv
-    H_uv = Ju.transpose() @ h_nn @ Jv - _skew(h_n)
-    H_ru, H_rv = h_rn @ Ju, h_rn @ Jv
-    zero = ti.Matrix.zero(ti.f64, 3, 3)
-    H = [[H_uu, H_uv, H_ru.transpose()], [H_uv.transpose(), H_vv, H_rv.transpose()], [H_ru, H_rv, zero]]
-    coeff = ti.static(_PLANE_MAP if point_first else _LINES_MAP)
-    for a in ti.static(range(4)):
-        ga = ti.Vector([0.0, 0.0, 0.0], ti.f64)
-        for p in ti.static(range(3)):
-            if ti.static(coeff[p][a] != 0.0):
-                ga += coeff[p][a] * g[p]
-        for c in ti.static(range(3)):
-            grad[k, 3 * a + c] = ga[c]
-        for b in ti.static(range(4)):
+    JuT = Ju.transpose()
+    H_uu = matmul(matmul(JuT, h_nn), Ju)
+    H_vv = matmul(matmul(Jv.transpose(), h_nn), Jv)
+    H_uv = matmul(matmul(JuT, h_nn), Jv) - _skew(h_n)
+    H_ru, H_rv = matmul(h_rn, Ju), matmul(h_rn, Jv)
+    H = ti.Matrix.zero(ti.f64, 9, 9)  # blocks (p, q) over (u, v, r)
+    for i, j in ti.ndrange(3, 3):
+        H[i, j] = H_uu[i, j]
+        H[i, 3 + j] = H_uv[i, j]
+        H[i, 6 + j] = H_ru[j, i]
+        H[3 + i, j] = H_uv[j, i]
+        H[3 + i, 3 + j] = H_vv[i, j]
+        H[3 + i, 6 + j] = H_rv[j, i]
+        H[6 + i, j] = H_ru[i, j]
+        H[6 + i, 3 + j] = H_rv[i, j]
+    C = ti.Matrix(_LINES_MAP, ti.f64)
+    if point_first:
+        C = ti.Matrix(_PLANE_MAP, ti.f64)
+    for a in range(4):
+        for c in range(3):
+            ga = 0.0
+            for p in range(3):
+                ga += C[p, a] * g[p, c]
+            grad[k, 3 * a + c] = ga
+        for b in range(4):
             block = ti.Matrix.zero(ti.f64, 3, 3)
-            for p in ti.static(range(3)):
-                if ti.static(coeff[p][a] != 0.0):
+            for p in range(3):
+                if C[p, a] != 0.0:
                     inner = ti.Matrix.zero(ti.f64, 3, 3)
-                    for q in ti.static(range(3)):
-                        if ti.static(coeff[q][b] != 0.0):
-                            inner += coeff[q][b] * H[p][q]
-                    block += coeff[p][a] * inner
-            _add_block(hess, k, a, b, block * s)
+                    for q in range(3):
+                        if C[q, b] != 0.0:
+                            for i, j in ti.static(ti.ndrange(3, 3)):
+                                inner[i, j] += C[q, b] * H[3 * p + i, 3 * q + j]
+                    for i, j in ti.static(ti.ndrange(3, 3)):
+                        block[i, j] += C[p, a] * inner[i, j]
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                hess[k, 3 * a + i, 3 * b + j] += block[i, j] * s
     return d
 
 
@@ -353,7 +379,7 @@ def _point_point_derivatives(z: ti.template(), k: ti.i32, i: ti.i32, j: ti.i32,
 
 
 @ti.func
-def _pair_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.template(), d: ti.template(),
+def _pair_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti.i32, d: ti.template(),
                       region: ti.template(), grad: ti.template(), hess: ti.template()):
     """Distance ``d[k]``, region ``region[k]``, gradient row ``grad[k]`` and Hessian ``hess[k]`` of pair ``k``."""
     for a in range(12):
@@ -371,7 +397,7 @@ def _pair_derivatives(z: ti.template(), k: ti.i32, side: ti.f64, point_first: ti
 
 
 @fast_kernel
-def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.template(), d: _F64_1, region: _I32_1,
+def _derivatives_kernel(z: _F64_3, side: _F64_1, point_first: ti.i32, d: _F64_1, region: _I32_1,
                         grad: _F64_2, hess: _F64_3):
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(z.shape[0]):
@@ -390,11 +416,11 @@ def _contact_distance(z: np.ndarray, side: np.ndarray, order: int, point_first: 
         hess = np.zeros((0, 12, 12)) if order >= 2 else None
         return DistanceDerivatives(d, grad, hess, region.astype(np.int64))
     if order == 0:
-        _values_kernel(z, side, point_first, d, region)
+        _values_kernel(z, side, int(point_first), d, region)
         return DistanceDerivatives(d, None, None, region.astype(np.int64))
     grad = np.empty((k, 12))
     hess = np.empty((k, 12, 12))
-    _derivatives_kernel(z, side, point_first, d, region, grad, hess)
+    _derivatives_kernel(z, side, int(point_first), d, region, grad, hess)
     return DistanceDerivatives(d, grad, hess if order >= 2 else None, region.astype(np.int64))
 
 

@@ -11,7 +11,11 @@ Edge ``(a, b)``, ``u = (x_b - x_a) / l``: ``f' = 2 K_l (l - l0) / l0``, ``f'' = 
 ``g' = 2 K_a (A - A0) / A0``, ``g'' = 2 K_a / A0``, and the 3x3 block ``(a, b)`` of the Hessian
 
     g'' dA_a dA_b^T + g' / 2 ([w_a]_x^T (I - n_hat n_hat^T) [w_b]_x / |n| + Q_ab),
-    Q_{a, a+1} = -[n_hat]_x,  Q_{a+1, a} = [n_hat]_x,  0 otherwise.
+    Q_{a, a+1} = -[n_hat]_x,  Q_{a+1, a} = [n_hat]_x,  0 otherwise,
+
+evaluated with ``[w_a]_x^T (I - n_hat n_hat^T) [w_b]_x = (w_a . w_b) I - w_b w_a^T - 4 dA_a dA_b^T``
+(``[a]_x^T [b]_x = (a . b) I - b a^T`` and ``[w]_x^T n_hat = n_hat x w = 2 dA``), which spares the
+two 3x3 products per block (less compile and run time).
 
 Entries go straight into the solver's static pattern values through
 :meth:`sim_core.assembly.StaticPattern.slot_map` of the potential's block vertices (triangles, then
@@ -129,13 +133,16 @@ def spring_membrane_energy_gradient_hessian(
             grad[triangles[t, 0], i] += g1 * d0[i]
             grad[triangles[t, 1], i] += g1 * d1[i]
             grad[triangles[t, 2], i] += g1 * d2[i]
-        P = (ti.Matrix.identity(ti.f64, 3) - n_hat.outer_product(n_hat)) / n_norm
         K = _cross_matrix(n_hat)
-        Wx = [_cross_matrix(w0), _cross_matrix(w1), _cross_matrix(w2)]
+        W = [w0, w1, w2]
         dA = [d0, d1, d2]
+        c1 = 0.5 * g1 / n_norm
         for a in ti.static(range(3)):
             for b in ti.static(range(a, 3)):
-                B = g2 * dA[a].outer_product(dA[b]) + 0.5 * g1 * (Wx[a].transpose() @ P @ Wx[b])
+                # [w_a]_x^T (I - n_hat n_hat^T) [w_b]_x = (w_a . w_b) I - w_b w_a^T - 4 dA_a dA_b^T
+                ab = dA[a].outer_product(dA[b])
+                B = g2 * ab + c1 * (W[a].dot(W[b]) * ti.Matrix.identity(ti.f64, 3) - W[b].outer_product(W[a])
+                                    - 4.0 * ab)
                 if ti.static(b == (a + 1) % 3):
                     B -= 0.5 * g1 * K
                 elif ti.static(a == (b + 1) % 3):

@@ -217,3 +217,20 @@ def cofactor(F):
     k1 = c2.cross(c0)
     k2 = c0.cross(c1)
     return ti.Matrix([[k0[0], k1[0], k2[0]], [k0[1], k1[1], k2[1]], [k0[2], k1[2], k2[2]]], ti.f64)
+
+
+@ti.func
+def matmul(a: ti.template(), b: ti.template()):
+    """``a @ b`` of local matrices (``a`` n x m, ``b`` m x p) with runtime loops.
+
+    The same sums in the same order as Taichi's ``@`` (``0 + a_i0 b_0j + a_i1 b_1j + ...``), so the
+    same values, but the frontend builds one loop body instead of ``n p m`` unrolled products (the
+    kernel's Python-side compile time grows with the number of unrolled expressions).
+    """
+    c = ti.Matrix.zero(ti.f64, a.n, b.m)
+    for i, j in ti.ndrange(a.n, b.m):
+        acc = 0.0
+        for k in range(a.m):
+            acc += a[i, k] * b[k, j]
+        c[i, j] = acc
+    return c

@@ -25,7 +25,7 @@ from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.buffers import DeviceArray, upload_constant
-from sim_core.ti_kernels.linalg import cofactor, filter_eigenvalue, jacobi_eigh, projection_code
+from sim_core.ti_kernels.linalg import cofactor, filter_eigenvalue, jacobi_eigh, matmul, projection_code
 
 _INV_SQRT2 = float(1.0 / np.sqrt(2.0))
 
@@ -44,7 +44,7 @@ def _tet_deformation_gradient(x: ti.types.ndarray(), tets: ti.types.ndarray(), d
 @ti.func
 def _rotation_variant_svd(F):
     """``F = U diag(sigma) V^T`` with ``det U = det V = +1``, ``sigma_0 >= sigma_1 >= |sigma_2|``."""
-    C = F.transpose() @ F
+    C = matmul(F.transpose(), F)
     V = ti.Matrix.zero(ti.f64, 3, 3)
     jacobi_eigh(C, V)
     lam = ti.Vector([C[0, 0], C[1, 1], C[2, 2]])
@@ -62,7 +62,7 @@ def _rotation_variant_svd(F):
     if V.determinant() < 0.0:
         for k in ti.static(range(3)):
             V[k, 2] = -V[k, 2]
-    B = F @ V
+    B = matmul(F, V)
     b0 = ti.Vector([B[0, 0], B[1, 0], B[2, 0]])
     b1 = ti.Vector([B[0, 1], B[1, 1], B[2, 1]])
     b2 = ti.Vector([B[0, 2], B[1, 2], B[2, 2]])
