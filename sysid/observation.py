@@ -436,10 +436,10 @@ class ObservationModel:
         sim = self.prepare(params)
         t_start = time.perf_counter()
         K = self.step_count
-        start = 0 if resume is None else self._checked_resume(resume, keep_positions or keep_states, sim)
         if resume is None:
-            obs = [self._observe(sim)]
+            start, obs = 0, [self._observe(sim)]
         else:
+            start = self._checked_resume(resume, keep_positions or keep_states, sim)
             sim.state = resume.state.copy()
             p = resume.prefix
             obs = [(p.markers_xyz[k], p.markers_uv[k], p.wrench[k], p.sheet_points[k]) for k in range(start + 1)]

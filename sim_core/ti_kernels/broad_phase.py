@@ -49,8 +49,7 @@ def _sweep_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, sorted_lo: _F64_2, 
     capacity = out.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(a_lo.shape[0]):
-        lo_i = ti.Vector([a_lo[i, 0], a_lo[i, 1], a_lo[i, 2]])
-        hi_i = ti.Vector([a_hi[i, 0], a_hi[i, 1], a_hi[i, 2]])
+        lo_i, hi_i = linalg.row3(a_lo, i), linalg.row3(a_hi, i)
         body_i = a_body[i]
         for s in range(start[i], stop[i]):
             j = b_order[s]

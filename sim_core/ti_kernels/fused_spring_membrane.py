@@ -38,11 +38,6 @@ _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linal
 
 
 @ti.func
-def _vertex(x: ti.template(), v: ti.i32):
-    return ti.Vector([x[v, 0], x[v, 1], x[v, 2]])
-
-
-@ti.func
 def _cross_matrix(v):
     """``[v]_x`` with ``[v]_x w = v x w``."""
     return ti.Matrix([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], ti.f64)
@@ -69,12 +64,12 @@ def spring_membrane_energy(
     energy = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
-        l = (_vertex(x, edges[e, 1]) - _vertex(x, edges[e, 0])).norm()
+        l = (linalg.row3(x, edges[e, 1]) - linalg.row3(x, edges[e, 0])).norm()
         energy += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
-        x0 = _vertex(x, triangles[t, 0])
-        A = 0.5 * (_vertex(x, triangles[t, 1]) - x0).cross(_vertex(x, triangles[t, 2]) - x0).norm()
+        x0 = linalg.row3(x, triangles[t, 0])
+        A = 0.5 * (linalg.row3(x, triangles[t, 1]) - x0).cross(linalg.row3(x, triangles[t, 2]) - x0).norm()
         energy += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
     return energy
 
@@ -92,7 +87,7 @@ def spring_membrane_energy_gradient_hessian(
     for e in range(edges.shape[0]):
         va = edges[e, 0]
         vb = edges[e, 1]
-        dx = _vertex(x, vb) - _vertex(x, va)
+        dx = linalg.row3(x, vb) - linalg.row3(x, va)
         l = dx.norm()
         l0 = length0[e]
         energy += k_length * (1.0 - l / l0) ** 2 * l0
@@ -112,9 +107,9 @@ def spring_membrane_energy_gradient_hessian(
             _add_upper(values, slots, row, c, 3 + d, -h3[c, d])
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(t_count):
-        X0 = _vertex(x, triangles[t, 0])
-        X1 = _vertex(x, triangles[t, 1])
-        X2 = _vertex(x, triangles[t, 2])
+        X0 = linalg.row3(x, triangles[t, 0])
+        X1 = linalg.row3(x, triangles[t, 1])
+        X2 = linalg.row3(x, triangles[t, 2])
         n = (X1 - X0).cross(X2 - X0)
         n_norm = n.norm()
         n_hat = n / n_norm

@@ -220,6 +220,12 @@ def cofactor(F):
 
 
 @ti.func
+def row3(a: ti.template(), i: ti.i32):
+    """Row ``i`` of an ``(n, 3)`` array as a 3-vector (a vertex position, a box corner)."""
+    return ti.Vector([a[i, 0], a[i, 1], a[i, 2]])
+
+
+@ti.func
 def matmul(a: ti.template(), b: ti.template()):
     """``a @ b`` of local matrices (``a`` n x m, ``b`` m x p) with runtime loops.
 

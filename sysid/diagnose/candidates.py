@@ -387,23 +387,41 @@ def yield_angle_for(beta: float, theta_max: float) -> float:
     return theta_max / (1.0 + beta)
 
 
-def max_hinge_angle(ctx: DiagnosisContext) -> float:
-    """Largest |dihedral angle| (rad) of the sheet over the nominal rollout (flat rest shape)."""
-    from sim_core.mesh.sheet import sheet_topology
+def hinge_angle_history(model: Any, sheet_points: np.ndarray, stride: int = 1) -> np.ndarray | None:
+    """Largest ``|theta|`` (rad) over the sheet's hinges at every ``stride``-th step of a replay.
+
+    Args:
+        model: the ``sysid.observation.ObservationModel`` of the replay (its scene's sheet grid).
+        sheet_points: the replay's ``SimTrace.sheet_points`` ``(K + 1, nx * ny, 3)`` in m.
+        stride: step stride (>= 1).
+
+    Returns:
+        the angles ``(ceil((K + 1) / stride),)``, or None when the scene has no grid sheet with
+        hinges matching the sheet points.
+    """
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.potentials.bending import dihedral_angle
     from sim_core.scenes.scene_file import load_scene_file
 
-    scene = load_scene_file(ctx.model.scene)
-    nx, ny = scene.sheet.resolution
-    pts = np.asarray(ctx.trace.sheet_points, dtype=float)
-    if pts.shape[1] != nx * ny:
-        return 0.0
-    from sim_core.mesh.sheet import grid_sheet
+    sheet = getattr(load_scene_file(model.scene), "sheet", None)
+    if sheet is None:
+        return None
+    pts = np.asarray(sheet_points, dtype=float)
+    nx, ny = sheet.resolution
+    if pts.ndim != 3 or pts.shape[1] != nx * ny:
+        return None
+    hinges = sheet_topology(grid_sheet(sheet.size, sheet.resolution, sheet.origin).triangles).hinges
+    if hinges.shape[0] == 0:
+        return None
+    return np.array([float(np.max(np.abs(dihedral_angle(p[hinges])))) for p in pts[::stride]])
 
-    mesh = grid_sheet(scene.sheet.size, scene.sheet.resolution, scene.sheet.origin)
-    hinges = sheet_topology(mesh.triangles).hinges
-    step = max(1, pts.shape[0] // 100)
-    return float(max(np.max(np.abs(dihedral_angle(p[hinges]))) for p in pts[::step]))
+
+def max_hinge_angle(ctx: DiagnosisContext) -> float:
+    """Largest |dihedral angle| (rad) of the sheet over the nominal rollout (flat rest shape;
+    about 100 steps sampled)."""
+    pts = np.asarray(ctx.trace.sheet_points, dtype=float)
+    angles = hinge_angle_history(ctx.model, pts, max(1, pts.shape[0] // 100))
+    return 0.0 if angles is None else float(angles.max())
 
 
 def sheet_drag_scale(sim_model: Any, dt: float) -> float:

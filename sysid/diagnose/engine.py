@@ -77,7 +77,7 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.diagnose import candidates as cands
 from sysid.diagnose import discriminate, heldout, latency, locate, noise, stats
 from sysid.diagnose.parallel import replay_many
-from sysid.diagnose.resume import NominalResume, hinge_angle_history
+from sysid.diagnose.resume import NominalResume
 from sysid.diagnose.probing import ProbeCalibration
 from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
@@ -242,7 +242,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         if getattr(self, "_scheduler", None) is not None:
             if not s.warm_start:
                 self._scheduler.remember(theta, nominal)  # e.g. a refit whose strength clips to 0 asks for it
-            angles = hinge_angle_history(model, nominal[0])
+            angles = cands.hinge_angle_history(model, nominal[0].sheet_points)
             if angles is not None:  # plasticity replays start where the nominal sheet first bends enough
                 self._scheduler.resume = NominalResume(theta, nominal[0], angles)
         replays = [nominal] + (self._replays(sets) if sets else [])

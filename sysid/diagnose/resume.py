@@ -6,14 +6,15 @@ bending.plastic_update`; the yield angle enters nothing else). With a flat rest 
 differs from the nominal one only in ``sheet.yield_angle`` therefore takes exactly the nominal
 replay's steps until the first step whose largest ``|theta|`` exceeds its yield angle; those steps
 are not simulated again (:class:`~sysid.observation.Resume`). On a press-and-slide recording the
-sheet reaches half its largest bend about half-way (``latency_s103``: step 198 of 384), so each
-replay of the plasticity probe chain costs about half a replay.
+sheet reaches half its largest bend about half-way (``latency_s103``: step 198 of 384); as the
+early approach steps are the cheap ones, each replay of the plasticity chain saves about a third of
+a replay's time.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -28,41 +29,14 @@ dihedral angle exceeds the yield angle (the angles here are computed from the ob
 the solver's from its own vertex positions: equal up to round-off)."""
 
 
-def hinge_angle_history(model: Any, trace: SimTrace) -> np.ndarray | None:
-    """Largest ``|theta|`` (rad) over the sheet's hinges at every step of ``trace``, ``(K + 1,)``.
-
-    Args:
-        model: the ``sysid.observation.ObservationModel`` of the replay (its scene's sheet grid).
-        trace: a replay with ``sheet_points`` ``(K + 1, nx * ny, 3)``.
-
-    Returns:
-        the angles, or None when the scene has no grid sheet matching the sheet points.
-    """
-    from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.potentials.bending import dihedral_angle
-    from sim_core.scenes.scene_file import load_scene_file
-
-    scene = load_scene_file(model.scene)
-    sheet = getattr(scene, "sheet", None)
-    if sheet is None:
-        return None
-    pts = np.asarray(trace.sheet_points, dtype=float)
-    nx, ny = sheet.resolution
-    if pts.ndim != 3 or pts.shape[1] != nx * ny:
-        return None
-    hinges = sheet_topology(grid_sheet(sheet.size, sheet.resolution, sheet.origin).triangles).hinges
-    if hinges.shape[0] == 0:
-        return None
-    return np.array([float(np.max(np.abs(dihedral_angle(p[hinges])))) for p in pts])
-
-
 class NominalResume:
     """Start of a diagnosis replay from the nominal replay (``ReplayScheduler.resume``).
 
     Args:
         theta: the nominal parameter set of the nominal replay.
         trace: the nominal replay, with its states (``ObservationModel.simulate(keep_states=True)``).
-        angles: :func:`hinge_angle_history` of ``trace``.
+        angles: the largest dihedral angle per step of ``trace``
+            (:func:`sysid.diagnose.candidates.hinge_angle_history`).
 
     Raises:
         ValueError: the trace has no states, or ``angles`` does not have one value per step.

@@ -160,12 +160,8 @@ class ReplayScheduler:
             # one replay before the pool exists runs here: the workers forked later inherit its
             # built simulation and compiled kernels
             todo = [p for p in sets if _key(p) not in self._known]
-            for p, rep in zip(todo, parallel.replay_many(self.model, todo, self.workers, self.ray_address,
-                                                         [self._resume_of(p) for p in todo])):
-                self._known[_key(p)] = rep
-            self.replays += len(todo)
+            self._replay_here(todo)
             self.reused += len(sets) - len(todo)
-            self._account([self._known[_key(p)] for p in todo])
             return [self._known[_key(p)] for p in sets]
 
         def one(params: Mapping[str, float]) -> Chain:
@@ -212,14 +208,7 @@ class ReplayScheduler:
         """
         chains = [self._reusing(ch) for ch in chains]
         if not self.pooled:
-            def counted(sets: list[dict[str, float]]) -> list[Replay]:
-                self.replays += len(sets)
-                out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address,
-                                                         [self._resume_of(p) for p in sets]))
-                self._known.update((_key(p), rep) for p, rep in zip(sets, out))
-                return out
-
-            return run_in_rounds(chains, counted)
+            return run_in_rounds(chains, self._replay_here)
         pool = self._ensure_pool()
         results: list[Any] = [None] * len(chains)
         running: dict[Future, tuple[int, dict[str, float], str]] = {}
@@ -274,6 +263,15 @@ class ReplayScheduler:
             self.close(cancel=True)
             raise
         return results
+
+    def _replay_here(self, sets: Sequence[Mapping[str, float]]) -> list[Replay]:
+        """Replay ``sets`` without the pool (in this process, or as Ray tasks), counted, accounted
+        and recorded as known."""
+        out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address,
+                                                 [self._resume_of(p) for p in sets]))
+        self.replays += len(sets)
+        self._known.update((_key(p), rep) for p, rep in zip(sets, out))
+        return out
 
     def _resume_of(self, params: Mapping[str, float]) -> Any:
         """The start of the replay of ``params`` (:attr:`resume`), None: the initial state."""

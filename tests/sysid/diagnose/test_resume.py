@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from sim_core.errors import CalibrationError
-from sysid.diagnose.resume import MARGIN_STEPS, NominalResume, hinge_angle_history
+from sysid.diagnose.candidates import hinge_angle_history
+from sysid.diagnose.resume import MARGIN_STEPS, NominalResume
 from sysid.diagnose.schedule import ReplayScheduler
 from sysid.observation import Resume, SimTrace
 
@@ -90,7 +91,7 @@ def test_a_resumed_plasticity_replay_equals_the_full_one():
         warnings.simplefilter("ignore")
         model = BagDiagnosis(reference_bag("latency_s103"), settings=Settings(arch="cpu", workers=1, t_max=2.2)).model
     nominal = model.simulate({}, keep_states=True)
-    angles = hinge_angle_history(model, nominal)
+    angles = hinge_angle_history(model, nominal.sheet_points)
     params = {"sheet.yield_angle": 0.5 * float(angles.max())}
     resume = NominalResume({}, nominal, angles)(params)
     K = model.step_count
