@@ -46,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop once the Gauss-Newton step is below this fraction of 1-sigma in every parameter "
                         "(0: least-squares tolerances only; default: %(default)s)")
     p.add_argument("--stop-trial-sigma", type=float, default=STOP_TRIAL_SIGMA,
-                   help="stop when a trial step below this fraction of 1-sigma in every parameter does not lower "
-                        "the cost (0: off; default: %(default)s)")
+                   help="stop when a trial step below this many scaled 1-sigma (sigma_scaled) in every parameter "
+                        "does not lower the cost (0: off; default: %(default)s)")
     p.add_argument("--stop-rms", type=float, default=STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
                         "(default: %(default)s = 0.05 %%; 0: off)")
