@@ -57,6 +57,14 @@ def _fused_class(potential) -> type | None:
     return None
 
 
+def _fused_form(potential):
+    """The potential a part evaluates for ``potential``: its ``elastic_equivalent()`` when it has one
+    (a candidate term equal to an elastic potential, e.g. the gel's Maxwell branch, a Stable
+    Neo-Hookean on its relaxed rest state: :mod:`sim_core.candidates.gel_viscoelasticity`), else itself."""
+    equivalent = getattr(potential, "elastic_equivalent", None)
+    return potential if equivalent is None else equivalent()
+
+
 class _ReferencePart:
     """A potential without a fused kernel: its reference energy, gradient and exact Hessian blocks,
     added to the static values through a slot map of its block vertices."""
@@ -132,7 +140,8 @@ class FusedElastic:
     the solver can sum it with the other terms.
 
     Args:
-        potentials: the step's elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`).
+        potentials: the step's elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`),
+            and candidate terms with an ``elastic_equivalent()`` (evaluated as that potential).
 
     Attributes:
         vertex_arrays: the Hessian-block vertex array of each potential, in order (the static
@@ -145,8 +154,9 @@ class FusedElastic:
     def __init__(self, potentials: Sequence) -> None:
         self._parts = []
         for p in potentials:
-            cls = _fused_class(p)
-            self._parts.append(cls(p) if cls is not None else _ReferencePart(p))
+            q = _fused_form(p)
+            cls = _fused_class(q)
+            self._parts.append(cls(q) if cls is not None else _ReferencePart(q))
         self.potentials = list(potentials)
         self.vertex_arrays: list[np.ndarray] | None = None
         self.pattern: StaticPattern | None = None
@@ -155,10 +165,11 @@ class FusedElastic:
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
         """``current`` updated to ``potentials`` (new rest angles) when it has the same elements, else a new one."""
+        forms = [_fused_form(p) for p in potentials]
         if current is not None and len(current._parts) == len(potentials) and all(
-                part.accepts(p) for part, p in zip(current._parts, potentials)):
-            for part, p in zip(current._parts, potentials):
-                part.update(p)
+                part.accepts(q) for part, q in zip(current._parts, forms)):
+            for part, q in zip(current._parts, forms):
+                part.update(q)
             current.potentials = list(potentials)
             current._kept = None
             return current

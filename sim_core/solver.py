@@ -344,7 +344,6 @@ class NewtonSolver:
             diag = diag + damp.hessian_diagonal()
         elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
         fixed_terms += elastic_terms
-        fused = self._fused_elastic(elastic_terms, x, free)
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
@@ -352,9 +351,16 @@ class NewtonSolver:
         cand_contact, cand_body = ([], []) if self.candidate_hook is None else self.candidate_hook.terms(
             model, state_in, x_n, dt, self.elastic, friction)
         fixed_terms += cand_contact + cand_body
+        # body terms equal to an elastic potential (elastic_equivalent(): the gel's Maxwell branch is a
+        # Stable Neo-Hookean on its relaxed rest state) join the fused kernels with the elastic terms
+        fusable = [p for p in cand_body if hasattr(p, "elastic_equivalent")]
+        fused = self._fused_elastic(elastic_terms + fusable, x, free)
+        if fused is None:
+            fusable = []
         # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms
         loop_terms = fixed_terms if fused is None else (
-            [p for p in fixed_terms if not any(p is q for q in elastic_terms)] + [fused])
+            [p for p in fixed_terms if not any(p is q for q in elastic_terms + fusable)] + [fused])
+        cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fusable)]
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
         fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
@@ -384,7 +390,7 @@ class NewtonSolver:
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
                 )
-            dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_contact + cand_body
+            dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_dynamic
             info.time_assembly += time.perf_counter() - ta
             d = None
             factorization = self.linear_solver

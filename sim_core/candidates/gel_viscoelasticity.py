@@ -70,6 +70,21 @@ class MaxwellBranch:
         branch.tet_dFdx = np.einsum("tal,tlj->taj", solid.tet_dFdx, Fr_inv)
         branch.tet_dvecF_dx = np.einsum("ic,taj->tijac", np.eye(3), branch.tet_dFdx).reshape(k, 9, 12)
         self.branch = branch
+        self._equivalent: StableNeoHookean | None = None
+
+    def elastic_equivalent(self) -> StableNeoHookean:
+        """The branch as one :class:`StableNeoHookean` with the same energy, gradient and Hessian (exact
+        and PSD-projected, ``beta >= 0``): the branch potential with rest volumes ``beta V_t``. The
+        solver evaluates it in the fused Stable Neo-Hookean kernel with the gel's own term
+        (:mod:`sim_core.fused_elastic`) instead of through this class's NumPy methods and the dynamic
+        Hessian merge or a reference part; the same elements, so the same sparsity pattern. Built once
+        per branch."""
+        if self._equivalent is None:
+            eq = object.__new__(StableNeoHookean)
+            eq.__dict__.update(self.branch.__dict__)
+            eq.tet_rest_volume = self.beta * self.branch.tet_rest_volume
+            self._equivalent = eq
+        return self._equivalent
 
     def elastic_deformation(self, x: np.ndarray) -> np.ndarray:
         """``F_e = F F_r^{-1}`` per tet, shape ``(k, 3, 3)``."""

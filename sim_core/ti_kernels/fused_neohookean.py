@@ -160,7 +160,15 @@ class FusedStableNeoHookean:
                     and potential.mu == self.potential.mu and potential.lam == self.potential.lam))
 
     def update(self, potential) -> None:
-        """Nothing changes between steps (the rest shape and parameters are fixed)."""
+        """Take ``potential``'s rest data (``tet_dFdx``, ``tet_rest_volume``) when it is another object
+        (an accepted one: same tets and Lame parameters). The gel's own potential is the same object
+        every step (nothing to do); a Maxwell branch (:mod:`sim_core.candidates.gel_viscoelasticity`) is
+        a new one per step, with its relaxed rest state."""
+        if potential is self.potential:
+            return
+        self.potential = potential
+        self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
+        self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
 
     def bind(self, pattern) -> None:
         """Slot maps of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`)."""

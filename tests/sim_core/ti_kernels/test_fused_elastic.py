@@ -243,3 +243,106 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     assert it_on == it_off and sum(it_on) > 6
     np.testing.assert_array_equal(x_on, x_off)
     assert e_on < e_off
+
+
+def _maxwell_branch(beta: float, seed: int = 5, gel=None):
+    """A Maxwell branch with a random relaxed state on ``gel`` (``_potentials("snh")``, new if None)."""
+    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+
+    pot, x_rest, deformed = _potentials("snh") if gel is None else gel
+    rng = np.random.default_rng(seed)
+    Fr = np.eye(3) + rng.normal(scale=0.05, size=(pot.tets.shape[0], 3, 3))
+    return MaxwellBranch(pot, Fr, beta), pot, x_rest, deformed
+
+
+def test_maxwell_branch_elastic_equivalent_equals_the_branch():
+    """The branch's Stable Neo-Hookean equivalent (rest volumes beta V) has its energy, gradient and
+    exact and projected Hessian blocks."""
+    branch, _, _, deformed = _maxwell_branch(0.7)
+    eq = branch.elastic_equivalent()
+    assert eq is branch.elastic_equivalent()  # built once
+    x = deformed(3)
+    assert eq.energy(x) == pytest.approx(branch.energy(x), rel=1e-12)
+    assert relative_error(eq.gradient(x), branch.gradient(x)) < 1e-12
+    for projection in ("none", "clamp"):
+        a, b = eq.hessian(x, projection), branch.hessian(x, projection)
+        assert np.array_equal(a.vertices, b.vertices)
+        assert relative_error(a.blocks, b.blocks) < 1e-12
+
+
+def test_fused_kernel_takes_a_new_branch_each_step(ti_cpu):
+    """One fused part follows the step's branch (new relaxed state, new object) through ``for_terms``:
+    energy, gradient and Hessian values equal a fresh evaluator's, for the exact and projected Hessian."""
+    from sim_core.fused_elastic import FusedElastic
+
+    gel = _potentials("snh")
+    first, pot, x_rest, deformed = _maxwell_branch(0.4, seed=1, gel=gel)
+    second, _, _, _ = _maxwell_branch(0.9, seed=2, gel=gel)
+    free = np.ones(x_rest.size, dtype=bool)
+    free[:6] = False
+    kept, _ = _fused(pot, x_rest, free)  # the gel alone: a different part list, rebuilt below
+    kept = FusedElastic.for_terms(kept, [pot, first.elastic_equivalent()])
+    kept.bind(HessianAssembler(x_rest.size).static_pattern(kept.block_vertex_arrays(x_rest), free))
+    x = deformed(7)
+    kept.gradient(x)
+    reused = FusedElastic.for_terms(kept, [pot, second.elastic_equivalent()])
+    assert reused is kept  # same elements and parameters: the parts follow the new branch
+    fresh = FusedElastic([pot, second.elastic_equivalent()])
+    fresh.bind(kept.pattern)
+    assert kept.energy(x) == pytest.approx(fresh.energy(x), rel=1e-13)
+    assert kept.energy(x) == pytest.approx(pot.energy(x) + second.energy(x), rel=1e-12)
+    assert np.array_equal(kept.gradient(x), fresh.gradient(x))
+    assert np.array_equal(kept.hessian_values(x), fresh.hessian_values(x))
+    assert np.array_equal(kept.projected_hessian_values(x, "clamp"), fresh.projected_hessian_values(x, "clamp"))
+
+
+@pytest.mark.parametrize("route", ["model_candidates", "candidate_solver"])
+def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
+    """A press with the gel viscoelasticity candidate on the fused path (branch in the fused Stable
+    Neo-Hookean kernel) equals the same steps with the branch evaluated by its NumPy methods (a
+    dynamic Hessian term when set as model candidates, as the diagnosis replays do; a reference part
+    of the fused evaluator under ``CandidateNewtonSolver``), and the relaxation state follows."""
+    import copy
+
+    from sim_core.candidates import CandidateNewtonSolver
+    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+    from sim_core.control import Control
+    from sim_core.scenes import load_scene
+    from sim_core.simulation import Simulation
+    from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
+    from tests.sim_core.candidates.test_hook import SCENE
+
+    params = {"gel_viscoelasticity": 1.5, "gel_viscoelasticity.tau": 0.03}
+
+    def press(fuse: bool):
+        if not fuse:
+            monkeypatch.delattr(MaxwellBranch, "elastic_equivalent")
+        model = load_scene(copy.deepcopy(SCENE))
+        model.meta["elastic_backend"] = "taichi"
+        sim = Simulation(model, dt=0.01)
+        if route == "candidate_solver":
+            sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, params)
+        else:
+            for name, value in params.items():
+                sim.set_parameter(f"candidate.{name}", value)
+        pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+        iterations = []
+        for z in [pose[2] - 0.0004 * k for k in range(1, 5)]:
+            target = pose.copy()
+            target[2] = z
+            iterations.append(sim.step(Control({"ee": target})).iterations)
+        monkeypatch.undo()
+        kinds = [type(part).__name__ for part in sim.solver._fused._parts]
+        return sim, iterations, kinds
+
+    fused, it_fused, kinds_fused = press(True)
+    plain, it_plain, kinds_plain = press(False)
+    assert kinds_fused.count(FusedStableNeoHookean.__name__) == 2  # the gel and its branch
+    assert kinds_plain.count(FusedStableNeoHookean.__name__) == 1
+    assert it_fused == it_plain
+    assert np.max(np.abs(fused.state.x - plain.state.x)) < 1e-12
+    Fr_f = fused.state.candidate_state["gel_viscoelasticity"]
+    Fr_p = plain.state.candidate_state["gel_viscoelasticity"]
+    for name in Fr_f:
+        assert np.max(np.abs(Fr_f[name] - Fr_p[name])) < 1e-10
+        assert np.max(np.abs(Fr_f[name] - np.eye(3))) > 1e-4  # the branch did relax: it was active
