@@ -73,8 +73,7 @@ class AnisotropicBendingCorrection:
 
     def energy(self, x: np.ndarray) -> float:
         """Extra bending energy in J (may be negative; the sheet's total is not)."""
-        d = self.bending.theta(x) - self.bending.hinge_theta_bar
-        return float(self.beta * np.dot(self.hinge_cos2phi * self.bending.hinge_stiffness, d * d))
+        return self.bending._energy_with(x, self.beta * self.hinge_cos2phi * self.bending.hinge_stiffness)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``."""

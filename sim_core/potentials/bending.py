@@ -269,10 +269,15 @@ class DiscreteShellBending:
 
     def energy(self, x: np.ndarray) -> float:
         """Bending energy in J."""
+        return self._energy_with(x, self.hinge_stiffness)
+
+    def _energy_with(self, x: np.ndarray, stiffness: np.ndarray) -> float:
+        """``sum_h stiffness_h (theta_h - theta_bar_h)^2`` in J (``stiffness`` ``(h,)`` in J/rad^2, any sign)."""
         d = self.theta(x) - self.hinge_theta_bar
-        return float(np.dot(self.hinge_stiffness, d * d))
+        return float(np.dot(stiffness, d * d))
 
     def _gradient_with(self, x: np.ndarray, stiffness: np.ndarray) -> np.ndarray:
+        """The gradient of :meth:`_energy_with`, N, shape ``(n, 3)``."""
         X = x[self.hinges]
         d = dihedral_angle(X) - self.hinge_theta_bar
         g = (2.0 * stiffness * d)[:, None, None] * dihedral_angle_gradient(X)
