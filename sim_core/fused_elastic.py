@@ -54,7 +54,19 @@ def _fused_class(potential) -> type | None:
         from sim_core.ti_kernels.fused_kirchhoff import FusedKirchhoffBending
 
         return FusedKirchhoffBending
+    from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
+
+    if isinstance(potential, AnisotropicBendingCorrection):
+        from sim_core.ti_kernels.fused_hinge import FusedAnisotropicBending
+
+        return FusedAnisotropicBending
     return None
+
+
+def fusable(potential) -> bool:
+    """Whether a fused part evaluates ``potential`` (an elastic potential with a fused kernel, or a
+    candidate term with one or with an ``elastic_equivalent()`` that has one)."""
+    return _fused_class(_fused_form(potential)) is not None
 
 
 def _fused_form(potential):
@@ -303,8 +315,9 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
     from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
-                                     sweep_candidates)
+                                     fused_hinge, sweep_candidates)
 
+    fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
     contact_distance.compile_kernels()
     contact_batch.compile_kernels()
     contact_setup.compile_kernels()

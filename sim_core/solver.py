@@ -30,7 +30,7 @@ from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, SimulationDivergedError
-from sim_core.fused_elastic import FusedElastic
+from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.potentials.base import HessianBlocks, assemble_hessian
@@ -314,11 +314,16 @@ class NewtonSolver:
             return ("none", cfg.projection)
         return (cfg.projection,)
 
+    def _fused_path(self) -> bool:
+        """Whether the elastic terms go through :class:`FusedElastic` (``model.meta["elastic_backend"]``
+        is ``"taichi"`` and the exact Hessian is tried first)."""
+        return self.model.meta.get("elastic_backend") == "taichi" and "none" in self._projections()
+
     def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray) -> FusedElastic | None:
         """The step's fused elastic evaluator (Taichi kernels) bound to the assembler's static
         pattern, when ``model.meta["elastic_backend"] == "taichi"`` and the exact Hessian is tried
         first; else None (the reference potentials)."""
-        if self.model.meta.get("elastic_backend") != "taichi" or "none" not in self._projections():
+        if not self._fused_path():
             return None
         self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
@@ -351,16 +356,14 @@ class NewtonSolver:
         cand_contact, cand_body = ([], []) if self.candidate_hook is None else self.candidate_hook.terms(
             model, state_in, x_n, dt, self.elastic, friction)
         fixed_terms += cand_contact + cand_body
-        # body terms equal to an elastic potential (elastic_equivalent(): the gel's Maxwell branch is a
-        # Stable Neo-Hookean on its relaxed rest state) join the fused kernels with the elastic terms
-        fusable = [p for p in cand_body if hasattr(p, "elastic_equivalent")]
-        fused = self._fused_elastic(elastic_terms + fusable, x, free)
-        if fused is None:
-            fusable = []
+        # body terms with a fused part (the sheets' anisotropic bending; the gels' Maxwell branches, a
+        # Stable Neo-Hookean on their relaxed rest state) join the fused kernels with the elastic terms
+        fused_body = [p for p in cand_body if fusable(p)] if self._fused_path() else []
+        fused = self._fused_elastic(elastic_terms + fused_body, x, free)
         # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms
         loop_terms = fixed_terms if fused is None else (
-            [p for p in fixed_terms if not any(p is q for q in elastic_terms + fusable)] + [fused])
-        cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fusable)]
+            [p for p in fixed_terms if not any(p is q for q in elastic_terms + fused_body)] + [fused])
+        cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fused_body)]
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 
         fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call

@@ -48,6 +48,12 @@ def _potentials(kind: str):
         pot = KirchhoffBending(mesh.triangles, topo.hinges, mesh.x, 2e-3, 0.3, theta_bar)
     elif kind == "stvk_membrane":
         pot = StVKMembrane(mesh.triangles, mesh.x, 1e6, 0.3, 3e-4)
+    elif kind == "anisotropic_bending":  # candidate term: hinge weights beta cos(2 phi) k of both signs
+        from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
+
+        theta_bar = np.linspace(0.2, -0.1, topo.hinges.shape[0])
+        pot = AnisotropicBendingCorrection(DiscreteShellBending(topo.hinges, mesh.x, 2e-3, theta_bar), mesh.x, 0.4)
+        assert pot.hinge_cos2phi.min() < -0.5 and pot.hinge_cos2phi.max() > 0.5
     else:
         theta_bar = np.linspace(0.2, -0.1, topo.hinges.shape[0])
         pot = DiscreteShellBending(topo.hinges, mesh.x, 2e-3, theta_bar)  # no fused kernel: reference part
@@ -63,7 +69,7 @@ def _fused(pot, x_rest: np.ndarray, free: np.ndarray):
     return fused, asm
 
 
-KINDS = ("snh", "spring_membrane", "kirchhoff", "stvk_membrane", "hinge_reference_part")
+KINDS = ("snh", "spring_membrane", "kirchhoff", "stvk_membrane", "anisotropic_bending", "hinge_reference_part")
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -87,7 +93,7 @@ def test_fused_equals_reference(ti_cpu, kind):
         assert relative_error(H.data, H_ref.data) < 1e-12
 
 
-@pytest.mark.parametrize("kind", KINDS[:4])
+@pytest.mark.parametrize("kind", KINDS[:5])
 def test_fused_derivatives_match_finite_differences(ti_cpu, kind):
     pot, x_rest, deformed = _potentials(kind)
     if kind == "snh":  # a smaller block keeps the dense FD Hessian cheap
@@ -255,6 +261,31 @@ def _maxwell_branch(beta: float, seed: int = 5, gel=None):
     return MaxwellBranch(pot, Fr, beta), pot, x_rest, deformed
 
 
+def test_fused_anisotropic_bending_projected_blocks_are_the_candidates(ti_cpu):
+    """The fallback's projected Hessian of the fused anisotropic part is the candidate's own
+    (``max(c_h, 0) P(H_h)``), and the part follows a new step's term (new rest angles)."""
+    import copy
+
+    from sim_core.fused_elastic import FusedElastic
+
+    pot, x_rest, deformed = _potentials("anisotropic_bending")
+    free = np.ones(x_rest.size, bool)
+    free[:4] = False
+    fused, asm = _fused(pot, x_rest, free)
+    x = deformed(4)
+    diag = np.zeros(x_rest.size)
+    for projection in ("clamp", "abs"):
+        H_ref = asm.assemble_upper([pot.hessian(x, projection)], [], diag, free)
+        H = asm.assemble_upper_values(fused.pattern, fused.projected_hessian_values(x, projection), [], diag, free)
+        assert relative_error(H.data, H_ref.data) < 1e-12
+    bending = copy.copy(pot.bending)
+    bending.hinge_theta_bar = pot.bending.hinge_theta_bar + 0.05
+    later = type(pot)(bending, x_rest, pot.beta)
+    assert FusedElastic.for_terms(fused, [later]) is fused
+    assert fused.energy(x) == pytest.approx(later.energy(x), rel=1e-12)
+    assert relative_error(fused.gradient(x), later.gradient(x)) < 1e-12
+
+
 def test_maxwell_branch_elastic_equivalent_equals_the_branch():
     """The branch's Stable Neo-Hookean equivalent (rest volumes beta V) has its energy, gradient and
     exact and projected Hessian blocks."""
@@ -346,3 +377,48 @@ def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     for name in Fr_f:
         assert np.max(np.abs(Fr_f[name] - Fr_p[name])) < 1e-10
         assert np.max(np.abs(Fr_f[name] - np.eye(3))) > 1e-4  # the branch did relax: it was active
+
+
+def test_solver_fuses_the_anisotropic_bending_candidate(ti_cpu, monkeypatch):
+    """A press with the anisotropic bending candidate set as model candidates (the diagnosis replays'
+    route): the fused hinge part equals the candidate's NumPy blocks merged as a dynamic term."""
+    import copy
+
+    import sim_core.solver as solver_module
+    from sim_core.control import Control
+    from sim_core.scenes import load_scene
+    from sim_core.simulation import Simulation
+    from sim_core.ti_kernels.fused_hinge import FusedAnisotropicBending
+    from tests.sim_core.candidates.test_hook import SCENE
+
+    def press(fuse: bool):
+        if not fuse:
+            monkeypatch.setattr(solver_module, "fusable", lambda p: False)
+        model = load_scene(copy.deepcopy(SCENE))
+        model.meta["elastic_backend"] = "taichi"
+        sim = Simulation(model, dt=0.01)
+        sim.set_parameter("candidate.anisotropic_bending", -0.6)
+        pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+        iterations = []
+        for z in [pose[2] - 0.0005 * k for k in range(1, 5)]:
+            target = pose.copy()
+            target[2] = z
+            iterations.append(sim.step(Control({"ee": target})).iterations)
+        monkeypatch.undo()
+        return sim, iterations, [type(part) for part in sim.solver._fused._parts]
+
+    fused, it_fused, parts_fused = press(True)
+    plain, it_plain, parts_plain = press(False)
+    assert parts_fused.count(FusedAnisotropicBending) == 1 and FusedAnisotropicBending not in parts_plain
+    assert it_fused == it_plain
+    assert np.max(np.abs(fused.state.x - plain.state.x)) < 1e-12
+    # the candidate acts: the same press without it ends elsewhere
+    model = load_scene(copy.deepcopy(SCENE))
+    model.meta["elastic_backend"] = "taichi"
+    off = Simulation(model, dt=0.01)
+    pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+    for z in [pose[2] - 0.0005 * k for k in range(1, 5)]:
+        target = pose.copy()
+        target[2] = z
+        off.step(Control({"ee": target}))
+    assert np.max(np.abs(off.state.x - fused.state.x)) > 1e-9
