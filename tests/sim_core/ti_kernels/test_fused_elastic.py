@@ -327,49 +327,54 @@ def test_fused_kernel_takes_a_new_branch_each_step(ti_cpu):
     assert np.array_equal(kept.projected_hessian_values(x, "clamp"), fresh.projected_hessian_values(x, "clamp"))
 
 
+def _fused_candidate_press(candidates: dict, route: str = "model_candidates", depth: float = 0.0004):
+    """The tiny press scene of the candidate tests on the fused path, pressed ``depth`` m per step for
+    4 steps with ``candidates`` set as model candidates (the diagnosis replays' route) or through
+    :class:`~sim_core.candidates.CandidateNewtonSolver` (``route="candidate_solver"``).
+
+    Returns:
+        ``(simulation, Newton iterations per step, types of the fused evaluator's parts)``.
+    """
+    import copy
+
+    from sim_core.candidates import CandidateNewtonSolver
+    from sim_core.control import Control
+    from sim_core.scenes import load_scene
+    from sim_core.simulation import Simulation
+    from tests.sim_core.candidates.test_hook import SCENE
+
+    model = load_scene(copy.deepcopy(SCENE))
+    model.meta["elastic_backend"] = "taichi"
+    sim = Simulation(model, dt=0.01)
+    if route == "candidate_solver":
+        sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
+    else:
+        for name, value in candidates.items():
+            sim.set_parameter(f"candidate.{name}", value)
+    pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+    iterations = []
+    for k in range(1, 5):
+        target = pose.copy()
+        target[2] = pose[2] - depth * k
+        iterations.append(sim.step(Control({"ee": target})).iterations)
+    return sim, iterations, [type(part) for part in sim.solver._fused._parts]
+
+
 @pytest.mark.parametrize("route", ["model_candidates", "candidate_solver"])
 def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     """A press with the gel viscoelasticity candidate on the fused path (branch in the fused Stable
     Neo-Hookean kernel) equals the same steps with the branch evaluated by its NumPy methods (a
     dynamic Hessian term when set as model candidates, as the diagnosis replays do; a reference part
     of the fused evaluator under ``CandidateNewtonSolver``), and the relaxation state follows."""
-    import copy
-
-    from sim_core.candidates import CandidateNewtonSolver
     from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
-    from sim_core.control import Control
-    from sim_core.scenes import load_scene
-    from sim_core.simulation import Simulation
     from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
-    from tests.sim_core.candidates.test_hook import SCENE
 
     params = {"gel_viscoelasticity": 1.5, "gel_viscoelasticity.tau": 0.03}
-
-    def press(fuse: bool):
-        if not fuse:
-            monkeypatch.delattr(MaxwellBranch, "elastic_equivalent")
-        model = load_scene(copy.deepcopy(SCENE))
-        model.meta["elastic_backend"] = "taichi"
-        sim = Simulation(model, dt=0.01)
-        if route == "candidate_solver":
-            sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, params)
-        else:
-            for name, value in params.items():
-                sim.set_parameter(f"candidate.{name}", value)
-        pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
-        iterations = []
-        for z in [pose[2] - 0.0004 * k for k in range(1, 5)]:
-            target = pose.copy()
-            target[2] = z
-            iterations.append(sim.step(Control({"ee": target})).iterations)
-        monkeypatch.undo()
-        kinds = [type(part).__name__ for part in sim.solver._fused._parts]
-        return sim, iterations, kinds
-
-    fused, it_fused, kinds_fused = press(True)
-    plain, it_plain, kinds_plain = press(False)
-    assert kinds_fused.count(FusedStableNeoHookean.__name__) == 2  # the gel and its branch
-    assert kinds_plain.count(FusedStableNeoHookean.__name__) == 1
+    fused, it_fused, parts_fused = _fused_candidate_press(params, route)
+    monkeypatch.delattr(MaxwellBranch, "elastic_equivalent")
+    plain, it_plain, parts_plain = _fused_candidate_press(params, route)
+    assert parts_fused.count(FusedStableNeoHookean) == 2  # the gel and its branch
+    assert parts_plain.count(FusedStableNeoHookean) == 1
     assert it_fused == it_plain
     assert np.max(np.abs(fused.state.x - plain.state.x)) < 1e-12
     Fr_f = fused.state.candidate_state["gel_viscoelasticity"]
@@ -382,43 +387,15 @@ def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
 def test_solver_fuses_the_anisotropic_bending_candidate(ti_cpu, monkeypatch):
     """A press with the anisotropic bending candidate set as model candidates (the diagnosis replays'
     route): the fused hinge part equals the candidate's NumPy blocks merged as a dynamic term."""
-    import copy
-
     import sim_core.solver as solver_module
-    from sim_core.control import Control
-    from sim_core.scenes import load_scene
-    from sim_core.simulation import Simulation
     from sim_core.ti_kernels.fused_hinge import FusedAnisotropicBending
-    from tests.sim_core.candidates.test_hook import SCENE
 
-    def press(fuse: bool):
-        if not fuse:
-            monkeypatch.setattr(solver_module, "fusable", lambda p: False)
-        model = load_scene(copy.deepcopy(SCENE))
-        model.meta["elastic_backend"] = "taichi"
-        sim = Simulation(model, dt=0.01)
-        sim.set_parameter("candidate.anisotropic_bending", -0.6)
-        pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
-        iterations = []
-        for z in [pose[2] - 0.0005 * k for k in range(1, 5)]:
-            target = pose.copy()
-            target[2] = z
-            iterations.append(sim.step(Control({"ee": target})).iterations)
-        monkeypatch.undo()
-        return sim, iterations, [type(part) for part in sim.solver._fused._parts]
-
-    fused, it_fused, parts_fused = press(True)
-    plain, it_plain, parts_plain = press(False)
+    params = {"anisotropic_bending": -0.6}
+    fused, it_fused, parts_fused = _fused_candidate_press(params, depth=0.0005)
+    off, _, _ = _fused_candidate_press({}, depth=0.0005)
+    monkeypatch.setattr(solver_module, "fusable", lambda p: False)
+    plain, it_plain, parts_plain = _fused_candidate_press(params, depth=0.0005)
     assert parts_fused.count(FusedAnisotropicBending) == 1 and FusedAnisotropicBending not in parts_plain
     assert it_fused == it_plain
     assert np.max(np.abs(fused.state.x - plain.state.x)) < 1e-12
-    # the candidate acts: the same press without it ends elsewhere
-    model = load_scene(copy.deepcopy(SCENE))
-    model.meta["elastic_backend"] = "taichi"
-    off = Simulation(model, dt=0.01)
-    pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
-    for z in [pose[2] - 0.0005 * k for k in range(1, 5)]:
-        target = pose.copy()
-        target[2] = z
-        off.step(Control({"ee": target}))
-    assert np.max(np.abs(off.state.x - fused.state.x)) > 1e-9
+    assert np.max(np.abs(off.state.x - fused.state.x)) > 1e-9  # the candidate acts
