@@ -299,13 +299,18 @@ class PhysicsParameterCandidate:
         one_sided: beta >= 0 only.
         to_parameter: beta -> parameter value (default identity; plasticity: ``1 / beta``).
         report_name: key of the fitted value in the report.
+        scaled_probe: the probe is a fixed fraction of a scale estimated from the scene (the sheet
+            drag or weight scale), not a value whose effect size is known: its first replay is the
+            least likely to land in the probe target, so its chain is started first
+            (:func:`start_rank`).
     """
 
     level = "physics"
 
     def __init__(self, name: str, parameter: str, probe_beta: float, one_sided: bool = True,
                  to_parameter: Callable[[float], float] | None = None, report_name: str | None = None,
-                 settings: Mapping[str, float] | None = None, family_size: int = 1) -> None:
+                 settings: Mapping[str, float] | None = None, family_size: int = 1,
+                 scaled_probe: bool = False) -> None:
         if not (math.isfinite(probe_beta) and probe_beta > 0.0):
             raise ValueError(f"candidate {name}: probe beta must be a positive number, got {probe_beta!r}")
         if int(family_size) < 1:
@@ -316,6 +321,7 @@ class PhysicsParameterCandidate:
         # with the effect whenever it is on; family_size = number of members tested for the effect
         self.settings = {k: float(v) for k, v in (settings or {}).items()}
         self.family_size = int(family_size)
+        self.scaled_probe = bool(scaled_probe)
         self.probe_beta = float(probe_beta)
         self.one_sided = one_sided
         self.to_parameter = to_parameter or (lambda b: float(b))
@@ -640,18 +646,21 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
             raise ValueError(f"candidate {effect!r} is not in the effect vocabulary ({', '.join(EFFECTS)})")
         if effect not in {c.name for c in out} and _known_parameter(ctx.model, spec["parameter"], names):
             probe = float(spec["probe"])
+            scaled = False
             if effect == "damping":
                 # the library's sheet drag: probe where the drag acts (sheet_drag_scale), not at a fixed
                 # value three decades below it, whose change is round-off or a contact-state flip
                 c_ref = _drag_scale_of(ctx)
                 if math.isfinite(c_ref) and c_ref > 0.0:
                     probe = max(probe, DRAG_PROBE_FRACTION * c_ref)
+                    scaled = True
             if effect == "adhesion":
                 # probe where the bonds carry the sheet (adhesion_weight_scale), not at a fixed strength
                 # hundreds of sheet weights above it
                 w = _weight_scale_of(ctx)
                 if math.isfinite(w) and w > 0.0:
                     probe = ADHESION_PROBE_WEIGHTS * w
+                    scaled = True
             if effect == "gel_viscoelasticity" and _known_parameter(ctx.model, RELAXATION_SETTING, names):
                 taus = relaxation_times(float(ctx.model.dt), _duration_s(ctx))
                 out.extend(PhysicsParameterCandidate(effect, spec["parameter"], probe, bool(spec.get("one_sided", True)),
@@ -659,13 +668,33 @@ def default_candidates(ctx: DiagnosisContext, extra: Mapping[str, Mapping[str, A
                            for tau in taus)
                 continue
             out.append(PhysicsParameterCandidate(effect, spec["parameter"], probe,
-                                                 bool(spec.get("one_sided", True))))
+                                                 bool(spec.get("one_sided", True)), scaled_probe=scaled))
     return out
+
+
+def start_rank(c: Any, index: int) -> tuple[int, int]:
+    """Start order of a candidate's replay chain among those of the library (lower first).
+
+    Probes sized from a scene scale (:attr:`PhysicsParameterCandidate.scaled_probe`) come first, then
+    the others in library order: a scaled probe's prediction change is known only to a decade or two
+    (latency_s103: damping's first probe moved the prediction by 68 noise units against a target of 2,
+    and its chain took four replays in a row), and a long chain started last leaves one worker alone
+    at the end of the probe phase (docs/benchmarks.md, session 10). Only when replays start changes;
+    what each chain returns does not.
+
+    Args:
+        c: a library member.
+        index: its position in the library.
+
+    Returns:
+        ``(0 for a scaled probe else 1, index)``.
+    """
+    return (0 if getattr(c, "scaled_probe", False) else 1, int(index))
 
 
 def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Sequence[str],
                         names: Sequence[str] | None = None) -> list[dict[str, float]]:
-    """Probe parameter sets known before the nominal rollout, in library order.
+    """Probe parameter sets known before the nominal rollout, in chain start order (:func:`start_rank`).
 
     Every physics candidate's probe except bending plasticity's (sized from the nominal rollout's
     largest bend) depends only on the scene and the nominal parameters, so these replays can run
@@ -683,7 +712,8 @@ def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Seque
     """
     ctx = DiagnosisContext(model, dict(params), None, {}, tuple(channels))
     library = [c for c in default_candidates(ctx) if names is None or c.name in names]
-    return [p for p in (c.probe(ctx) for c in library) if p is not None]
+    ranked = [c for _, c in sorted((start_rank(c, i), c) for i, c in enumerate(library))]
+    return [p for p in (c.probe(ctx) for c in ranked) if p is not None]
 
 
 # ====================================================================================== families

@@ -189,8 +189,10 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         self.timings["replays"] = self.timings.get("replays", 0) + ran
         return out
 
-    def _run_chains(self, chains: Sequence, phase: str) -> list:
-        """Run replay chains (:mod:`sysid.diagnose.schedule`) on the scheduler; times the phase."""
+    def _run_chains(self, chains: Sequence, phase: str, priority: Sequence[Any] | None = None) -> list:
+        """Run replay chains (:mod:`sysid.diagnose.schedule`) on the scheduler; times the phase.
+        ``priority``: :meth:`~sysid.diagnose.schedule.ReplayScheduler.run`'s start order (pool only;
+        by rounds every chain's next replay is in the same batch)."""
         t = time.perf_counter()
         sched = getattr(self, "_scheduler", None)
         if sched is None:
@@ -199,7 +201,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             out = run_in_rounds(chains, self._replays)
         else:
             n0 = sched.replays
-            out = sched.run(chains, phase)
+            out = sched.run(chains, phase, priority)
             self.timings["replays"] = self.timings.get("replays", 0) + sched.replays - n0
             self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
         self.timings[f"{phase}_s"] = self.timings.get(f"{phase}_s", 0.0) + time.perf_counter() - t

@@ -114,7 +114,8 @@ class ProbeCalibration:
             member key -> the probe's ``(trace, prediction)``, None where it diverged.
         """
         notes: list = []
-        reps = self._run_chains([self._probe_chain(ctx, c, i, notes) for i, c in enumerate(probes)], "probes")
+        reps = self._run_chains([self._probe_chain(ctx, c, i, notes) for i, c in enumerate(probes)], "probes",
+                                [cands.start_rank(c, i) for i, c in enumerate(probes)])
         self._merge_notes(notes)
         return dict(zip([cands.member_key(c) for c in probes], reps))
 

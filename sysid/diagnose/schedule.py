@@ -195,17 +195,24 @@ class ReplayScheduler:
                 submitted += 1
         return submitted
 
-    def run(self, chains: Sequence[Chain], label: str = "") -> list[Any]:
+    def run(self, chains: Sequence[Chain], label: str = "", priority: Sequence[Any] | None = None) -> list[Any]:
         """Run ``chains`` concurrently; returns each chain's result in the order of ``chains``.
 
         ``label`` tags the replays in :attr:`log`. A request whose exact parameter set was
         prefetched (:meth:`prefetch`) takes that replay; one already replayed (or remembered) is
-        answered with it at once.
+        answered with it at once. A free worker takes the pending request of the chain with the
+        most replays done (the longest chains are on the critical path), then the lowest
+        ``priority`` (comparable values, default: the chain's index; give the chains expected to run longest a lower
+        value, so that they do not start last and leave one worker alone at the end), then the
+        lowest index. The order changes when replays run, never what they return.
 
         Raises:
             CalibrationError: a replay failed in a worker with anything but a divergence (the
                 message names the parameter set and the error), or a worker process died.
         """
+        if priority is not None and len(priority) != len(chains):
+            raise ValueError(f"ReplayScheduler.run: {len(priority)} priorities for {len(chains)} chains")
+        rank = list(range(len(chains))) if priority is None else list(priority)
         chains = [self._reusing(ch) for ch in chains]
         if not self.pooled:
             return run_in_rounds(chains, self._replay_here)
@@ -221,9 +228,9 @@ class ReplayScheduler:
                 p, tag = pending.pop(i)
                 running[self._prefetched.pop(_key(p))] = (i, p, tag)
             # at most one replay per worker in flight; a chain's later replays before other chains'
-            # first ones (the longest chains are on the critical path), then by chain order
+            # first ones (the longest chains are on the critical path), then by priority and order
             while pending and len(running) + self._prefetch_in_flight() < self.workers:
-                i = min(pending, key=lambda j: (-steps[j], j))
+                i = min(pending, key=lambda j: (-steps[j], rank[j], j))
                 p, tag = pending.pop(i)
                 running[pool.submit(_timed_worker, p, self._resume_of(p))] = (i, p, tag)
                 self.replays += 1

@@ -401,8 +401,13 @@ def test_rollout_free_probes_are_the_library_probes_except_plasticity():
     ctx = cands.DiagnosisContext(d.model, {}, trace, d.model.predict(trace), d.tested)
     library = cands.default_candidates(ctx)
     early = cands.rollout_free_probes(d.model, {}, d.tested)
-    later = [c.probe(ctx) for c in library if c.name != "bending_plasticity" and c.probe(ctx) is not None]
+    ranked = [c for _, c in sorted((cands.start_rank(c, i), c) for i, c in enumerate(library))]
+    later = [c.probe(ctx) for c in ranked if c.name != "bending_plasticity" and c.probe(ctx) is not None]
     assert early == later and len(early) >= 6
+    # the probes sized from a scene scale (sheet drag, card weight) start first
+    scaled = [c.name for c in ranked if getattr(c, "scaled_probe", False)]
+    assert set(scaled) == {"damping", "adhesion"} & {c.name for c in library}
+    assert [c.name for c in ranked[:len(scaled)]] == scaled
     assert {"stiction", "gel_viscoelasticity", "adhesion"} <= {c.name for c in library}
     assert cands.rollout_free_probes(d.model, {}, d.tested, ("stiction",)) == [
         c.probe(ctx) for c in library if c.name == "stiction"]

@@ -88,6 +88,23 @@ def test_a_chain_is_fed_as_soon_as_its_replay_returns():
     assert sched.replays == 4
 
 
+def test_priority_orders_the_first_replays_but_not_the_results():
+    """Two workers, three equal one-replay chains: the two of lowest priority start at once, the third
+    only when one of them returns (so it finishes last); results are as without priorities."""
+
+    def chains():
+        return [_halving(60.0 + 1e-6 * k, 1) for k in range(3)]
+
+    with ReplayScheduler(FakeModel(), 2) as sched:
+        plain = sched.run(chains())
+    assert sched.log[-1]["chain"] == 2
+    with ReplayScheduler(FakeModel(), 2) as sched:
+        assert sched.run(chains(), priority=[(1, 0), (0, 1), (0, 2)]) == plain
+    assert sched.log[-1]["chain"] == 0
+    with ReplayScheduler(FakeModel(), 2) as sched, pytest.raises(ValueError, match="2 priorities for 3 chains"):
+        sched.run(chains(), priority=[0, 1])
+
+
 def test_workers_persist_between_runs_and_keep_their_state():
     with ReplayScheduler(FakeModel(), 2) as sched:
         first = sched.batch([{"x": 5.0}, {"x": 5.0}, {"x": 5.0}, {"x": 5.0}])
