@@ -144,7 +144,7 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        evidence = load_evidence(bag, scene_path=args.scene, include_image=False)
+        evidence = load_evidence(bag, scene_path=args.scene, include_image="auto")
         model = ObservationModel(evidence, scene=args.scene, dt=args.dt, t_max=args.t_max,
                                  channels=_split(args.channels), simulation=simulation, arch=args.arch)
     for w in caught:

@@ -14,7 +14,7 @@ channel        array                meaning
 pose           ``(N, 7)``           measured effector pose x y z (m) qx qy qz qw, ``world``
 pose_cmd       ``(N, 7)``           commanded effector pose
 markers_xyz    ``(M, k, 3)``        marker positions in the sensor frame (m)
-markers_uv     ``(M, k, 2)``        marker pixels (px); same stamps as markers_xyz
+markers_uv     ``(M, k, 2)``        marker pixels (px); markers_xyz's stamps, or the images' (read off them)
 wrench         ``(W, 6)``           Fx Fy Fz (N) Tx Ty Tz (N m) on the gel, sensor frame
 sheet_points   ``(S, p, 3)``        tracked sheet points in ``world`` (m)
 image          ``(F, h, w)`` uint8  rendered / camera marker image (optional)
@@ -24,6 +24,7 @@ image          ``(F, h, w)`` uint8  rendered / camera marker image (optional)
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence
@@ -174,7 +175,7 @@ def _check_against_scene(bag: BagContents, scene: SceneFile) -> None:
 
 def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | None = None,
                   roles: Mapping[str, str] | None = None, config: BagConfig | str | Path | None = None,
-                  include_image: bool = True) -> Evidence:
+                  include_image: bool | Literal["auto"] = True) -> Evidence:
     """Read a recording into an :class:`Evidence` bundle and estimate each channel's noise.
 
     Args:
@@ -182,7 +183,10 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         scene_path: scene file overriding the ``scene.yaml`` beside the bag.
         roles: role -> topic overrides (see :func:`sysid.bagio.open_bag`).
         config: sysid config (``bag`` and ``noise`` sections); default ``config/sysid/default.yaml``.
-        include_image: decode the image topic when present.
+        include_image: decode the image topic when present (True), never (False), or only when the
+            recording has no markers topic (``"auto"``: the image stream is then the marker source).
+            When the image is decoded and there is no markers topic, ``markers_uv`` is read off the
+            frames (:func:`markers_from_images`).
 
     Returns:
         the bundle; arrays are read-only.
@@ -193,8 +197,15 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         ConfigError: invalid scene or config.
     """
     config_path = config if isinstance(config, (str, Path)) else None
-    bag = open_bag(bag_path, roles=roles, config=config, skip_roles=() if include_image else ("image",),
+    auto = include_image == "auto"
+    bag = open_bag(bag_path, roles=roles, config=config, skip_roles=() if include_image is True else ("image",),
                    scene=scene_path)
+    if auto and "markers" not in bag.series and bag.roles["image"] in bag.topics:
+        # no markers topic: the camera frames are the marker source (a real sensor's image stream);
+        # the first reading already warned about everything this one would
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            bag = open_bag(bag_path, roles=roles, config=config, scene=scene_path)
     order = int(noise_config(config_path)["difference_order"])
     scene = bag.scene
     if scene is not None:
@@ -212,8 +223,9 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         role = CHANNEL_ROLE[ch]
         s = bag.series.get(role)
         if s is None:
-            skipped = ch == "image" and not include_image
-            missing[ch] = "not decoded (include_image=False)" if skipped else f"topic {bag.roles[role]} not in the recording"
+            skipped = ch == "image" and include_image is not True and bag.roles[role] in bag.topics
+            missing[ch] = (f"not decoded (include_image={include_image!r})" if skipped
+                           else f"topic {bag.roles[role]} not in the recording")
             continue
         if ch == "markers_xyz":
             value = s.values[..., :3]
@@ -227,6 +239,13 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         t_ns[ch] = s.t_ns
         arrays[ch] = _frozen(value)
         topics[ch] = s.topic
+    notes = list(bag.notes)
+    if "markers_uv" not in arrays and "image" in bag.series and scene is not None:
+        decoded = markers_from_images(bag.series["image"].t_ns, arrays["image"], scene, bag.roles["image"], notes)
+        if decoded is not None:
+            t_ns["markers_uv"], arrays["markers_uv"] = decoded[0], _frozen(decoded[1])
+            topics["markers_uv"] = bag.roles["image"]
+            missing.pop("markers_uv", None)
     noise = {}
     for ch, value in arrays.items():
         if ch != "image" and value.shape[0] > order:
@@ -236,8 +255,59 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
     return Evidence(
         source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
-        channels_present=present, channels_missing=missing, notes=bag.notes, **arrays,
+        channels_present=present, channels_missing=missing, notes=tuple(notes), **arrays,
     )
+
+
+def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, topic: str,
+                        notes: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``markers_uv`` channel read off a tactile image stream (OpenCV blob detection and
+    frame-to-frame tracking in the fixed marker order, :func:`sysid.markers_image.track_marker_stream`).
+
+    The sensor is the scene's sensor whose name the topic ends with (``<sensor>/image``), or the
+    scene's only sensor; its ``marker_grid`` is the expected grid. Frames in which a marker was lost
+    are dropped (as NaN samples of a topic are), and counted in a note.
+
+    Args:
+        t_ns: frame stamps ``(F,)`` ns.
+        images: frames ``(F, h, w)`` uint8.
+        scene: the recording's scene.
+        topic: the image topic (for the sensor and the messages).
+        notes: the bundle's notes; what was done (or why nothing could be) is appended.
+
+    Returns:
+        ``(stamps (M,), uv (M, k, 2) px)`` of the frames with every marker found, or None (with a
+        :class:`~sysid.bagio.BagWarning` naming the topic) when the markers cannot be read: no
+        matching sensor, the first frame does not show the grid, or fewer than two frames remain.
+    """
+    from sim_core.errors import CalibrationError
+    from sysid.bagio import BagWarning
+    from sysid.markers_image import track_marker_stream
+
+    def give_up(why: str) -> None:
+        message = f"topic {topic}: no markers decoded from the images ({why}); the evidence lacks markers_uv"
+        notes.append(message)
+        warnings.warn(message, BagWarning, stacklevel=3)
+
+    sensors = list(scene.sensors.values())
+    named = [s for s in sensors if topic.rstrip("/").endswith(f"/{s.name}/image") or topic == f"{s.name}/image"]
+    sensor = named[0] if named else (sensors[0] if len(sensors) == 1 else None)
+    if sensor is None:
+        give_up(f"no sensor of {scene.source} matches the topic")
+        return None
+    try:
+        uv = track_marker_stream(images, tuple(sensor.marker_grid))
+    except CalibrationError as err:
+        give_up(str(err))
+        return None
+    complete = np.all(np.isfinite(uv), axis=(1, 2))
+    if int(complete.sum()) < 2:
+        give_up(f"only {int(complete.sum())} of {uv.shape[0]} frames show every marker")
+        return None
+    notes.append(f"topic {topic}: markers_uv decoded from {uv.shape[0]} images ({sensor.marker_grid[0]}x"
+                 f"{sensor.marker_grid[1]} grid of sensor {sensor.name})"
+                 + (f"; {int((~complete).sum())} frames with a lost marker dropped" if not complete.all() else ""))
+    return np.asarray(t_ns)[complete], uv[complete]
 
 
 # ---------------------------------------------------------------------------------- alignment

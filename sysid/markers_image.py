@@ -374,3 +374,43 @@ class MarkerTracker:
         rows, cols = linear_sum_assignment(gated)
         good = dist[rows, cols] <= self.max_displacement_px
         return known_index[rows[good]], det_index[cols[good]]
+
+
+def track_marker_stream(images: np.ndarray, expected_grid: tuple[int, int],
+                        gate_fraction: float = 0.4) -> np.ndarray:
+    """Marker pixels of every frame of an image stream, in the fixed grid order.
+
+    The first frame is read with :func:`detect_markers` (every marker must be visible there); the
+    others are followed with a :class:`MarkerTracker` whose gate is ``gate_fraction`` times the
+    median marker spacing of the first frame (a marker moving farther than that between two frames
+    cannot be told from its neighbour).
+
+    Args:
+        images: frames ``(F, h, w)`` (or ``(F, h, w, 3|4)``), uint8/uint16.
+        expected_grid: ``(nx, ny)`` markers along image u (columns) and v (rows).
+        gate_fraction: tracking gate as a fraction of the marker spacing, in (0, 0.5].
+
+    Returns:
+        ``(F, nx * ny, 2)`` px, ``i = iy * nx + ix``; NaN rows where a marker was lost in a frame.
+
+    Raises:
+        CalibrationError: no frames, a bad ``gate_fraction``, or the first frame does not show the
+            expected grid (the count found is named).
+    """
+    frames = np.asarray(images)
+    if frames.ndim < 3 or frames.shape[0] == 0:
+        raise CalibrationError(f"track_marker_stream: need frames (F, h, w), got shape {frames.shape}")
+    if not 0.0 < gate_fraction <= 0.5:
+        raise CalibrationError(f"track_marker_stream: gate_fraction must be in (0, 0.5], got {gate_fraction!r}")
+    uv0 = detect_markers(frames[0], expected_grid)
+    if uv0.shape[0] > 1:
+        dist, _ = cKDTree(uv0).query(uv0, k=2)
+        spacing = float(np.median(dist[:, 1]))
+    else:
+        spacing = default_spacing(frames[0].shape, expected_grid)
+    tracker = MarkerTracker(expected_grid, gate_fraction * spacing, initial_uv=uv0, spacing_px=spacing)
+    out = np.empty((frames.shape[0],) + uv0.shape)
+    out[0] = uv0
+    for f in range(1, frames.shape[0]):
+        out[f] = tracker.update(frames[f])
+    return out

@@ -122,7 +122,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         self.bag = str(bag)
         self.settings = settings or Settings()
         s = self.settings
-        self.evidence = load_evidence(bag, include_image=False)
+        self.evidence = load_evidence(bag, include_image="auto")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation,
@@ -488,7 +488,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         for h in self.heldout:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                out.append(ObservationModel(load_evidence(h, include_image=False), dt=self.settings.dt,
+                out.append(ObservationModel(load_evidence(h, include_image="auto"), dt=self.settings.dt,
                                             t_max=self.settings.t_max, simulation=self.settings.simulation,
                                             arch=self.settings.arch))
                 if self.settings.denoise_window:
