@@ -13,7 +13,8 @@ setup: $(STAMP)
 $(STAMP): requirements.txt setup.py package.xml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade --quiet pip
-	$(PY) -m pip install --quiet --progress-bar on -r requirements.txt
+	@echo "thinshell: installing the dependencies into $(VENV) (first run only; about 1-3 min with a warm pip cache)"
+	$(PY) -m pip install --progress-bar on -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps -e .
 	@touch $(STAMP)
 
