@@ -417,6 +417,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                                            "used": np.asarray(model.sigma[ch]).tolist()} for ch in self.tested},
                       "ties": ties, "library": [c.name for c in library], "tested_channels": list(self.tested),
                       "settings": {"dt": s.dt, "t_max": s.t_max, "alpha": s.alpha, "bic_threshold": s.bic_threshold,
+                                   "min_explained": s.min_explained, "min_gain": s.min_gain,
                                    "workers": s.workers}, "notes": self.notes,
                       "timings_s": {**self.timings, "total_s": time.perf_counter() - t_start}},
         }

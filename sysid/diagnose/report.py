@@ -68,6 +68,7 @@ def _markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     for c in doc["candidates"]:
         lines.append(f"| {c['effect']} | {c['statistic']:.4g} | {c['p_value']:.3g} | {c.get('channel', '')} | "
                      f"{c.get('delta_bic', float('nan')):.4g} | {c.get('accepted', '')} |")
+    lines += ["", "## Why", ""] + why_lines(doc)
     b, r = doc["baseline"], doc["refit"]
     lines += ["", "## Parameters and RMS", "", f"- baseline parameters: `{json.dumps(b['params'])}`",
               f"- baseline RMS: `{json.dumps(b['rms'])}`", f"- refit parameters: `{json.dumps(r['params'])}`",
@@ -76,6 +77,89 @@ def _markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
               f"{r['heldout_rms_after']:.4g} ({r.get('heldout', '')})", ""]
     lines += ["## Residuals", ""] + [f"![{p.stem}]({p.name})" for p in images]
     return "\n".join(lines) + "\n"
+
+
+def why_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The reasons behind the verdict, one Markdown bullet per candidate, from the JSON contract.
+
+    For every effect of the library: accepted (with its evidence), or the first tests it failed, in
+    the order the diagnosis applies them (SYSID.md steps 3-6: score test after Holm, a refit that
+    lowers the training residual, no tested channel moved away from the recording, held-out
+    improvement, effect size, delta-BIC); then the unresolved ties. This is where a report that says
+    "unexplained" explains its confusion: which effects came close and what ruled each one out.
+
+    Args:
+        doc: the report of :func:`sysid.diagnose.engine.diagnose` (``extra.tests``,
+            ``extra.decisions``, ``extra.ties``, ``extra.settings``, ``extra.library`` are read when present).
+
+    Returns:
+        Markdown lines.
+    """
+    extra = doc.get("extra", {})
+    settings = extra.get("settings", {})
+    alpha = float(settings.get("alpha", 0.01))
+    bic = float(settings.get("bic_threshold", 10.0))
+    floor = settings.get("min_explained")
+    tests = extra.get("tests", [])
+    decisions = extra.get("decisions", {})
+    library = extra.get("library") or sorted({t["effect"] for t in tests} | set(decisions))
+    out: list[str] = []
+    for effect in library:
+        own = [t for t in tests if t.get("effect") == effect]
+        best = min(own, key=lambda t: t.get("p_holm", 1.0), default=None)
+        d = decisions.get(effect)
+        if d is not None and d.get("accepted"):
+            out.append(f"- **{effect}: accepted.** Refit {json.dumps(d.get('params', {}))}; delta-BIC "
+                       f"{d.get('delta_bic', float('nan')):.4g}; held-out RMS {d.get('heldout_rms_before', float('nan')):.4g}"
+                       f" -> {d.get('heldout_rms_after', float('nan')):.4g} (p {d.get('heldout_p', float('nan')):.3g}), "
+                       f"{100 * d.get('explained_fraction', float('nan')):.0f} % of the held-out excess explained.")
+            continue
+        if best is None:
+            out.append(f"- {effect}: not tested (no signature on the tested channels, or its probe diverged; see the notes).")
+            continue
+        significant = [t["channel"] for t in own if t.get("significant")]
+        if not significant:
+            white = ""
+            if best.get("classical_statistic") is not None and best.get("ar_order"):
+                # serially correlated residuals (an engine or model gap) inflate the white-noise score
+                white = (f"; S = {best['statistic']:.3g} after AR({best['ar_order']}) prewhitening of the residual, "
+                         f"{best['classical_statistic']:.3g} without")
+            out.append(f"- {effect}: score test not significant (smallest Holm-adjusted p {best.get('p_holm', 1.0):.3g} "
+                       f"on {best.get('channel', '?')}, alpha {alpha:g}{white}): the residual does not look like its "
+                       "signature.")
+            continue
+        why = []
+        if d is None:
+            why.append("significant on " + ", ".join(significant) + " but not refitted")
+        else:
+            if not d.get("train_improves", True):
+                why.append("its refit does not lower the training residual")
+            if d.get("contradicted_on"):
+                why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
+            p_h = d.get("heldout_p_holm", d.get("heldout_p"))
+            if p_h is not None and p_h > alpha:
+                why.append(f"no held-out improvement (held-out RMS {d.get('heldout_rms_before', float('nan')):.4g} -> "
+                           f"{d.get('heldout_rms_after', float('nan')):.4g}, p {p_h:.3g})")
+            frac = d.get("explained_fraction")
+            if floor is not None and frac is not None and frac < float(floor):
+                why.append(f"explains {100 * frac:.0f} % of the held-out excess (at least {100 * float(floor):.0f} % needed)")
+            if d.get("delta_bic") is not None and d["delta_bic"] < bic:
+                why.append(f"delta-BIC {d['delta_bic']:.4g} < {bic:g}")
+            if not why:
+                why.append("not accepted conditionally on the effects accepted before it")
+        out.append(f"- {effect}: significant on {', '.join(significant)} (Holm p {best.get('p_holm', 1.0):.3g}), "
+                   f"rejected: {'; '.join(why)}.")
+    for tie in extra.get("ties", []):
+        pair = " / ".join(tie.get("pair", []))
+        out.append(f"- tie {pair}: {'resolved' if tie.get('resolved') else 'not resolved by a discriminating test'}"
+                   + (f" ({tie['reason']})" if tie.get("reason") else "") + ".")
+    if doc.get("explained_by") == ["unexplained"]:
+        out.append("- **Verdict unexplained:** the mismatch above is significant, but no library effect passes every "
+                   "test; the missing physics is outside the library, or the recording's engine differs from this "
+                   "model in a way no single candidate reproduces.")
+    elif not doc.get("explained_by"):
+        out.append("- **Nothing detected:** no significant mismatch after the multiple-testing correction.")
+    return out
 
 
 def write_report(doc: Mapping[str, Any], diagnosis: Any, out_dir: str | Path) -> list[Path]:
