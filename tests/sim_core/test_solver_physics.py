@@ -114,6 +114,43 @@ def test_nonconverging_step_names_the_step():
         sim.step()
 
 
+def test_a_failed_step_is_retried_with_halved_dt(monkeypatch):
+    """SolverConfig.dt_halvings_on_failure: a step whose Newton solve fails is redone as 2, 4, ...
+    substeps of dt/2, dt/4, ...; the result is those substeps (here: free fall in 4 quarter steps,
+    equal to a simulation at dt/4), and once the halvings are used up the failure is raised."""
+
+    def sim(dt, halvings=0):
+        b = ModelBuilder()
+        b.add_sheet("sheet", grid_sheet((0.02, 0.01), (3, 2), (0, 0, 1.0)), _sheet_material(1e-3))
+        return Simulation(b.finalize(gravity=(0, 0, -G)), dt=dt,
+                          solver_config=SolverConfig(tol_velocity=1e-10, dt_halvings_on_failure=halvings))
+
+    def failing_above(s, dt_max):
+        single = s.solver._single_step
+
+        def step(state_in, state_out, control, dt, guess=None):
+            if dt > dt_max:
+                raise SimulationDivergedError(f"step {state_in.step_index}: Newton did not converge (dt {dt:g})")
+            return single(state_in, state_out, control, dt, guess=guess)
+
+        monkeypatch.setattr(s.solver, "_single_step", step)
+        return s
+
+    retried = failing_above(sim(0.01, halvings=2), 0.004)
+    info = retried.step()
+    assert info.substeps == 4 and retried.state.t == pytest.approx(0.01)
+    reference = sim(0.0025)
+    for _ in range(4):
+        reference.step()
+    np.testing.assert_allclose(retried.state.x, reference.state.x, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(retried.state.v, reference.state.v, rtol=0, atol=1e-12)
+    too_few = failing_above(sim(0.01, halvings=1), 0.004)
+    x0 = too_few.state.x.copy()
+    with pytest.raises(SimulationDivergedError, match=r"dt 0.005"):
+        too_few.step()
+    np.testing.assert_array_equal(too_few.state.x, x0)  # the state is kept when the step fails
+
+
 def test_unknown_effector_in_control_is_rejected():
     b = ModelBuilder()
     b.add_sheet("sheet", grid_sheet((0.02, 0.01), (3, 2), (0, 0, 1.0)), _sheet_material(1e-3))
