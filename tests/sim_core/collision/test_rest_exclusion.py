@@ -65,3 +65,20 @@ def test_no_rest_distance_excludes_nothing_and_bodies_without_self_contact_are_s
                                        self_rest_distance=0.004), np.unique(tris), tris, edges)
     assert not len(no_self.vertex_triangle_keys) and not len(no_self.edge_edge_keys)
     assert not np.any(no_self.edge_edge_close(np.array([0, 1]), np.array([2, 3])))
+
+
+def test_batched_distances_give_the_same_table():
+    """The candidate pairs are measured in batches (bounded memory on large sheets); any batch size
+    gives the same keys as one batch."""
+    x_rest, tris, edges = _grid_sheet(9, 7, 0.002)
+    filt = PairFilter(vertex_body=np.zeros(len(x_rest), np.int64), body_pair_allowed=np.ones((1, 1), bool),
+                      x_rest=x_rest, self_rest_distance=0.0045)
+    verts = np.arange(len(x_rest))
+    whole = RestExclusion(filt, verts, tris, edges, chunk=1 << 30)
+    for chunk in (1, 7, 100):
+        part = RestExclusion(filt, verts, tris, edges, chunk=chunk)
+        np.testing.assert_array_equal(part.vertex_triangle_keys, whole.vertex_triangle_keys)
+        np.testing.assert_array_equal(part.edge_edge_keys, whole.edge_edge_keys)
+    assert len(whole.vertex_triangle_keys) > 100 and len(whole.edge_edge_keys) > 100
+    with pytest.raises(ValueError, match="chunk must be >= 1"):
+        RestExclusion(filt, verts, tris, edges, chunk=0)
