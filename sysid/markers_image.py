@@ -261,6 +261,15 @@ def detect_markers(
     return order_marker_grid(blobs.uv, (nx, ny))
 
 
+def marker_spacing(uv: np.ndarray, image_shape: tuple[int, ...] | None, expected_grid: tuple[int, int]) -> float:
+    """Marker spacing, px: the median nearest-neighbour distance of ``uv (k, 2)``; for a single marker,
+    :func:`default_spacing` of ``image_shape``."""
+    if uv.shape[0] > 1:
+        dist, _ = cKDTree(uv).query(uv, k=2)
+        return float(np.median(dist[:, 1]))
+    return default_spacing(image_shape, expected_grid)
+
+
 class MarkerTracker:
     """Frame-to-frame marker tracking with a fixed marker order.
 
@@ -311,13 +320,9 @@ class MarkerTracker:
         self.reference = uv.copy()
         self.last_known = uv.copy()
         if self.spacing_px is None:
-            if uv.shape[0] > 1:
-                dist, _ = cKDTree(uv).query(uv, k=2)
-                self.spacing_px = float(np.median(dist[:, 1]))
-            elif image_shape is not None:
-                self.spacing_px = default_spacing(image_shape, self.expected_grid)
-            else:
+            if uv.shape[0] <= 1 and image_shape is None:
                 raise CalibrationError("MarkerTracker: a single marker given by initial_uv needs spacing_px")
+            self.spacing_px = marker_spacing(uv, image_shape, self.expected_grid)
 
     def update(self, image: np.ndarray) -> np.ndarray:
         """Track the markers in the next image.
@@ -403,11 +408,7 @@ def track_marker_stream(images: np.ndarray, expected_grid: tuple[int, int],
     if not 0.0 < gate_fraction <= 0.5:
         raise CalibrationError(f"track_marker_stream: gate_fraction must be in (0, 0.5], got {gate_fraction!r}")
     uv0 = detect_markers(frames[0], expected_grid)
-    if uv0.shape[0] > 1:
-        dist, _ = cKDTree(uv0).query(uv0, k=2)
-        spacing = float(np.median(dist[:, 1]))
-    else:
-        spacing = default_spacing(frames[0].shape, expected_grid)
+    spacing = marker_spacing(uv0, frames[0].shape, expected_grid)
     tracker = MarkerTracker(expected_grid, gate_fraction * spacing, initial_uv=uv0, spacing_px=spacing)
     out = np.empty((frames.shape[0],) + uv0.shape)
     out[0] = uv0

@@ -25,6 +25,12 @@ def _keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (np.asarray(a, dtype=np.int64) << 32) | np.asarray(b, dtype=np.int64)
 
 
+def _batches(pairs: np.ndarray, size: int):
+    """Consecutive row slices of ``pairs`` with at most ``size`` rows each."""
+    for start in range(0, len(pairs), size):
+        yield pairs[start:start + size]
+
+
 def _members(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Mask ``(p,)`` of ``keys`` found in ``sorted_keys``."""
     if not len(sorted_keys) or not len(keys):
@@ -56,7 +62,8 @@ class RestExclusion:
 
     def __init__(self, pair_filter: PairFilter, vertices: np.ndarray, triangles: np.ndarray,
                  edges: np.ndarray, chunk: int = 1 << 18) -> None:
-        if int(chunk) < 1:
+        chunk = int(chunk)
+        if chunk < 1:
             raise ValueError(f"RestExclusion: chunk must be >= 1, got {chunk!r}")
         self.pair_filter = pair_filter
         self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
@@ -81,8 +88,7 @@ class RestExclusion:
             if len(vs) and len(ts):
                 tri_x = xr[self.triangles[ts]]
                 all_pairs = box_pairs_kdtree(xr[vs], xr[vs], tri_x.min(axis=1), tri_x.max(axis=1), r)
-                for start in range(0, len(all_pairs), int(chunk)):
-                    pairs = all_pairs[start:start + int(chunk)]
+                for pairs in _batches(all_pairs, chunk):
                     v, t = vs[pairs[:, 0]], ts[pairs[:, 1]]
                     tri = self.triangles[t]
                     d = point_triangle_distance(xr[v], xr[tri[:, 0]], xr[tri[:, 1]], xr[tri[:, 2]])
@@ -90,8 +96,7 @@ class RestExclusion:
             if len(es) > 1:
                 ex = xr[self.edges[es]]
                 all_pairs = box_pairs_kdtree(ex.min(axis=1), ex.max(axis=1), None, None, r)
-                for start in range(0, len(all_pairs), int(chunk)):
-                    pairs = all_pairs[start:start + int(chunk)]
+                for pairs in _batches(all_pairs, chunk):
                     i, j = es[pairs[:, 0]], es[pairs[:, 1]]
                     i, j = np.minimum(i, j), np.maximum(i, j)
                     ea, eb = self.edges[i], self.edges[j]

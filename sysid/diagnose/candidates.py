@@ -692,6 +692,11 @@ def start_rank(c: Any, index: int) -> tuple[int, int]:
     return (0 if getattr(c, "scaled_probe", False) else 1, int(index))
 
 
+def in_start_order(library: Sequence[Any]) -> list[Any]:
+    """``library`` sorted by :func:`start_rank` (scaled probes first, then library order)."""
+    return [library[i] for i in sorted(range(len(library)), key=lambda i: start_rank(library[i], i))]
+
+
 def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Sequence[str],
                         names: Sequence[str] | None = None) -> list[dict[str, float]]:
     """Probe parameter sets known before the nominal rollout, in chain start order (:func:`start_rank`).
@@ -712,8 +717,7 @@ def rollout_free_probes(model: Any, params: Mapping[str, float], channels: Seque
     """
     ctx = DiagnosisContext(model, dict(params), None, {}, tuple(channels))
     library = [c for c in default_candidates(ctx) if names is None or c.name in names]
-    ranked = [c for _, c in sorted((start_rank(c, i), c) for i, c in enumerate(library))]
-    return [p for p in (c.probe(ctx) for c in ranked) if p is not None]
+    return [p for p in (c.probe(ctx) for c in in_start_order(library)) if p is not None]
 
 
 # ====================================================================================== families

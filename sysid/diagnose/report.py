@@ -128,25 +128,7 @@ def why_lines(doc: Mapping[str, Any]) -> list[str]:
                        f"on {best.get('channel', '?')}, alpha {alpha:g}{white}): the residual does not look like its "
                        "signature.")
             continue
-        why = []
-        if d is None:
-            why.append("significant on " + ", ".join(significant) + " but not refitted")
-        else:
-            if not d.get("train_improves", True):
-                why.append("its refit does not lower the training residual")
-            if d.get("contradicted_on"):
-                why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
-            p_h = d.get("heldout_p_holm", d.get("heldout_p"))
-            if p_h is not None and p_h > alpha:
-                why.append(f"no held-out improvement (held-out RMS {d.get('heldout_rms_before', float('nan')):.4g} -> "
-                           f"{d.get('heldout_rms_after', float('nan')):.4g}, p {p_h:.3g})")
-            frac = d.get("explained_fraction")
-            if floor is not None and frac is not None and frac < float(floor):
-                why.append(f"explains {100 * frac:.0f} % of the held-out excess (at least {100 * float(floor):.0f} % needed)")
-            if d.get("delta_bic") is not None and d["delta_bic"] < bic:
-                why.append(f"delta-BIC {d['delta_bic']:.4g} < {bic:g}")
-            if not why:
-                why.append("not accepted conditionally on the effects accepted before it")
+        why = _rejections(d, alpha, bic, floor)
         out.append(f"- {effect}: significant on {', '.join(significant)} (Holm p {best.get('p_holm', 1.0):.3g}), "
                    f"rejected: {'; '.join(why)}.")
     for tie in extra.get("ties", []):
@@ -160,6 +142,27 @@ def why_lines(doc: Mapping[str, Any]) -> list[str]:
     elif not doc.get("explained_by"):
         out.append("- **Nothing detected:** no significant mismatch after the multiple-testing correction.")
     return out
+
+
+def _rejections(d: Mapping[str, Any] | None, alpha: float, bic: float, floor: Any) -> list[str]:
+    """Why a significant candidate's refit (decision ``d``, None: not refitted) was not accepted."""
+    if d is None:
+        return ["not refitted"]
+    why = []
+    if not d.get("train_improves", True):
+        why.append("its refit does not lower the training residual")
+    if d.get("contradicted_on"):
+        why.append("its refit moves " + ", ".join(d["contradicted_on"]) + " away from the recording")
+    p_h = d.get("heldout_p_holm", d.get("heldout_p"))
+    if p_h is not None and p_h > alpha:
+        why.append(f"no held-out improvement (held-out RMS {d.get('heldout_rms_before', float('nan')):.4g} -> "
+                   f"{d.get('heldout_rms_after', float('nan')):.4g}, p {p_h:.3g})")
+    frac = d.get("explained_fraction")
+    if floor is not None and frac is not None and frac < float(floor):
+        why.append(f"explains {100 * frac:.0f} % of the held-out excess (at least {100 * float(floor):.0f} % needed)")
+    if d.get("delta_bic") is not None and d["delta_bic"] < bic:
+        why.append(f"delta-BIC {d['delta_bic']:.4g} < {bic:g}")
+    return why or ["not accepted conditionally on the effects accepted before it"]
 
 
 def write_report(doc: Mapping[str, Any], diagnosis: Any, out_dir: str | Path) -> list[Path]:

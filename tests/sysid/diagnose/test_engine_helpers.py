@@ -401,7 +401,7 @@ def test_rollout_free_probes_are_the_library_probes_except_plasticity():
     ctx = cands.DiagnosisContext(d.model, {}, trace, d.model.predict(trace), d.tested)
     library = cands.default_candidates(ctx)
     early = cands.rollout_free_probes(d.model, {}, d.tested)
-    ranked = [c for _, c in sorted((cands.start_rank(c, i), c) for i, c in enumerate(library))]
+    ranked = cands.in_start_order(library)
     later = [c.probe(ctx) for c in ranked if c.name != "bending_plasticity" and c.probe(ctx) is not None]
     assert early == later and len(early) >= 6
     # the probes sized from a scene scale (sheet drag, card weight) start first
