@@ -5,7 +5,7 @@
   step, the shares of assembly and linear solve, and the cold start (process start to the end of
   the first step). ``--json`` prints one JSON line instead.
 * ``bench scale``: flat sheets of about 1k, 10k and 100k DoF under gravity, one edge clamped; time
-  per step and peak resident memory. ``--max-dofs`` skips the larger cases.
+  per step and peak resident memory; all three by default, ``--max-dofs`` skips the larger cases.
 * ``--arch``: ``numpy`` (NumPy reference potentials), ``cpu`` (default) or ``cuda`` (Taichi element
   kernels of ``sim_core.ti_kernels`` after ``sim_core.ti_backend.init_backend``: the fused elastic
   kernels of ``sim_core.fused_elastic`` in the Newton loop, compiled before the timed steps).
@@ -300,7 +300,9 @@ def bench_main(argv: list[str] | None = None) -> int:
                    help="numpy (reference potentials) or cpu / cuda (Taichi element kernels); default cpu")
     s.add_argument("--json", action="store_true", help="print one JSON line")
     s.add_argument("--steps", type=int, default=3, help="steps per case")
-    s.add_argument("--max-dofs", type=int, default=20_000, help="skip cases above this DoF count (100000 runs all)")
+    s.add_argument("--max-dofs", type=int, default=max(SCALE_TARGET_DOFS),
+                   help="skip cases above this DoF count (default: run all, 1k, 10k and 100k; the 100k case "
+                        "takes about a minute and 3 GB)")
     sub.add_parser("node", help="ROS node benchmark", add_help=False)
     sub.add_parser("diagnose", help="missing-physics diagnosis benchmark", add_help=False)
     sub.add_parser("sysid", help="3-parameter material fit on a whole recording", add_help=False)
