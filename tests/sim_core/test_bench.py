@@ -79,3 +79,24 @@ def test_process_start_time_is_in_the_past():
     import time
 
     assert 0 <= time.time() - process_start_time() < 3600
+
+
+def test_repeat_reports_the_median_run_and_the_first_runs_cold_start(capsys):
+    from thinshell_ros.bench import repeat_forming
+
+    runs = [{"steps_per_s": v, "step_time_mean_s": 1 / v, "forward_total_s": 2 / v, "assembly_share": 0.1 * k,
+             "linear_solve_share": 0.2, "cold_start_s": 9.0 - k, "jit_s": 5.0 - k, "peak_rss_mib": 100.0 + k}
+            for k, v in enumerate([30.0, 50.0, 40.0, 20.0])]
+    r = repeat_forming(runs)
+    assert r["repeat"] == 4 and r["steps_per_s_runs"] == [30.0, 50.0, 40.0, 20.0]
+    assert r["steps_per_s"] == 30.0 and r["step_time_mean_s"] == 1 / 30.0  # lower middle of 20, 30, 40, 50
+    assert r["assembly_share"] == 0.0 and r["steps_per_s_best"] == 50.0
+    assert r["cold_start_s"] == 9.0 and r["jit_s"] == 5.0 and r["peak_rss_mib"] == 103.0
+    with pytest.raises(ValueError, match="no runs"):
+        repeat_forming([])
+    assert bench_main(["forming", "--steps", "2", "--repeat", "2", "--json"]) == 0
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert line["repeat"] == 2 and len(line["steps_per_s_runs"]) == 2
+    assert line["steps_per_s"] in line["steps_per_s_runs"]
+    assert bench_main(["forming", "--steps", "2", "--repeat", "0"]) == 2
+    assert "--repeat must be >= 1" in capsys.readouterr().err
