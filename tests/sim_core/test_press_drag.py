@@ -3,7 +3,8 @@
 Checks: no vertex crosses a surface (every contact pair's signed distance, with side memory,
 stays > 0, and the card's mid-surface stays above the table), the normal force on the gel is a
 push (F_z < 0 in the sensor frame), and friction bounds the tangential force by the gel-card
-Coulomb coefficient times the normal force (within 5 %).
+Coulomb coefficient times the normal force (within 5 %). With the card clamped (the scene's own
+x0 clamp) the gel slides over it and the ratio saturates at the gel-card coefficient.
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ def test_sliding_gel_friction_saturates_at_mu_gel_sheet(clamped_drag_run):
     force to <= mu * normal (within 5 %)"). The card is clamped, so the dragged gel's contact face
     slides over it (face speed along x > 10 eps_v = 0.1 m/s while the card moves < 1 mm/s) after the
     gel's elastic shear has built up: there |F_t| / (mu_gel_sheet N) of the sensor wrench is 1 within
-    5 % (measured 0.96 .. 1.03), it never exceeds 1.05 at any step, and N > 20 N."""
+    5 % (measured 0.976 .. 1.027 over 21 sliding steps), it never exceeds 1.05 at any step, and N > 20 N."""
     sim, wrench, face_speed, sheet_speed, n_press = clamped_drag_run
     mu = sim.get_parameter("friction.gel_sheet")
     normal = -wrench[:, 2]
