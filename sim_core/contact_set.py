@@ -12,6 +12,9 @@ friction potentials, as the Newton solver uses them:
 - :meth:`ContactSet.friction` freezes normal forces and tangent bases at ``x^n`` (lagged IPC friction,
   Li et al. 2020) with the Coulomb coefficient of each pair's two bodies, and records where its rows
   come from (:class:`FrictionRowSource`, for the adjoint);
+- :meth:`ContactSet.release_stale_sides` drops, for the rest of the step, the side of a pair that
+  has gone round its partner (beside the face / beyond an edge's end with the other geometric
+  side): the solver calls it when its line search finds no decrease;
 - :meth:`ContactSet.end_step` stores the sides of the pairs active above the face (interior) at the
   converged ``x^{n+1}``.
 """
@@ -105,6 +108,7 @@ class ContactSet:
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
         self._step_table = None  # (memory, x^n, vt (pairs, sides), ee (pairs, (keep, sides))) of the step's last search
+        self._released = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))  # sorted pair keys (vt, ee)
         return memory.copy() if memory is not None else CollisionMemory()
 
     def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
@@ -342,6 +346,7 @@ class ContactSet:
         (vt_sides,) = self._merge(table[2], vt_pos, vt_found, fresh[:1])
         keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
+        vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee, ee_sides = ee[keep], ee_sides[keep]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
         if self.model.meta.get("elastic_backend") == "taichi":
@@ -349,6 +354,55 @@ class ContactSet:
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
         return pots, (vt_sides, ee_sides)
+
+    def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:
+        """``sides`` ``(p,)`` of ``pairs`` ``(p, 2)`` with the step's released pairs of ``kind`` (0
+        vertex-triangle, 1 edge-edge; :meth:`release_stale_sides`) unsigned (a copy when any is)."""
+        released = getattr(self, "_released", None)
+        if released is None or not len(released[kind]) or not len(pairs):
+            return sides
+        out = np.array(sides, dtype=float, copy=True)
+        out[np.isin(_pair_keys(pairs), released[kind])] = 0.0
+        return out
+
+    def release_stale_sides(self, x: np.ndarray, memory: CollisionMemory) -> int:
+        """Unsign, for the rest of the step, the pairs whose side has gone stale at iterate ``x``.
+
+        A side is kept from ``x^n`` so that a vertex that slips through a face during the step is
+        pushed back (:meth:`_step_sides`). But a pair can also get to the other geometric side
+        without crossing: a vertex round a triangle's free edge, or an edge past the end of the
+        other, where the lines of the two edges cross beyond an end (easy for edge pairs; the
+        distance is unsigned there). Such a pair sits beside its face (beyond an edge's end) with
+        the other geometric side; were it to enter the face (interior) region, its distance would
+        jump from ``+delta`` to ``-delta``: a step in the energy. When Newton converges onto that
+        border, no step along the Newton direction decreases the energy and the line search fails
+        (folding.yaml, dome held on the fold: a dome edge and a sheet edge 0.61 mm apart, an energy
+        step of 5.1 mJ). Releasing those sides removes the step where Newton stands and changes
+        nothing at ``x`` itself: there the pairs are beside their face, where the distance is
+        unsigned anyway. Pairs above their face (interior) keep their sides, whatever the
+        geometry: that is a penetration the side must undo. Released pairs stay unsigned for the
+        rest of the step (also through later candidate searches), so the energy changes at most
+        once per pair and a step cannot cycle through releases.
+
+        Args:
+            x: the current Newton iterate, shape ``(n, 3)`` (m).
+            memory: the step's side memory (as given to :meth:`potentials`).
+
+        Returns:
+            the number of pairs released now (0: nothing stale, the failure has another cause).
+        """
+        vt, ee = self._pairs(x, memory)
+        sided = [np.flatnonzero(pot.sides != 0.0) for pot in (vt, ee)]
+        geo = self._pair_geometry(x, vt.vertices[sided[0]], ee.vertices[sided[1]])
+        stale = [sided[0][~geo.vt_above & (geo.vt_side != vt.sides[sided[0]])],
+                 sided[1][~geo.ee_interior & (geo.ee_side != ee.sides[sided[1]])]]
+        count = sum(len(rows) for rows in stale)
+        if count:
+            released = getattr(self, "_released", (np.zeros(0, dtype=np.int64),) * 2)
+            self._released = tuple(np.union1d(keys, _pair_keys(pot.pairs[rows]))
+                                   for keys, pot, rows in zip(released, (vt, ee), stale))
+            self._cache = None  # the next potentials() builds the pairs again, with these sides at 0
+        return count
 
     def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
         """Contact potentials for the candidates near iterate ``x`` (planes and spheres included)."""
@@ -413,6 +467,12 @@ class ContactSet:
             # an unsigned pair takes the side of x itself (the potential's resolved_sides)
             mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
         return out
+
+
+def _pair_keys(pairs: np.ndarray) -> np.ndarray:
+    """One int64 key per pair ``(p, 2)`` (both indices < 2**31), the candidate lists' sort order."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    return (pairs[:, 0] << 32) | pairs[:, 1]
 
 
 def _sheet_vertices(model: Model) -> np.ndarray:

@@ -159,8 +159,9 @@ class StepRecord:
 
 @dataclass
 class StepInfo:
-    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), and the
-    iterations whose Newton matrix had PSD-projected element blocks."""
+    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), the
+    iterations whose Newton matrix had PSD-projected element blocks, and the contact pairs whose
+    side was released after a failed line search (:meth:`ContactSet.release_stale_sides`)."""
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -172,6 +173,7 @@ class StepInfo:
     time_linear_solve: float = 0.0
     time_total: float = 0.0
     projected_iterations: int = 0
+    released_sides: int = 0
 
 
 class NewtonSolver:
@@ -272,6 +274,7 @@ class NewtonSolver:
             total.time_assembly += info.time_assembly
             total.time_linear_solve += info.time_linear_solve
             total.projected_iterations += info.projected_iterations
+            total.released_sides += info.released_sides
             s = nxt
         _copy_state_into(s, state_out)
         return total
@@ -478,6 +481,13 @@ class NewtonSolver:
                     converged = True
                     info.iterations = it
                     break
+                released = self.contact.release_stale_sides(x, memory)
+                if released:
+                    # a pair gone round its partner kept a side that puts a step in the energy where
+                    # x stands (ContactSet.release_stale_sides); unsigned, the energy at x is the same
+                    # and the next iteration's Newton direction can descend
+                    info.released_sides += released
+                    continue
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): line search failed at Newton iteration {it} "
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"

@@ -231,3 +231,46 @@ def test_the_search_position_is_ahead_of_the_motion_and_covers_its_point():
     cs.lookahead, cs.lookahead_cap = 0.5, 0.6
     with pytest.raises(ValueError, match="lookahead_cap"):
         cs._search_position(x)
+
+
+def test_a_side_gone_stale_beyond_an_edge_end_is_released_for_the_rest_of_the_step():
+    """Edge b above the middle of edge a at x^n (interior: the pair keeps the side +1 for the step).
+    At the iterate x, b has moved beyond the end of a and below the line of a: the lines crossed
+    beyond a's end, not the edges. Entering the interior again from there, the pair's distance
+    would jump from +0.1 mm to -0.1 mm (a step in the energy that stalled Newton on folding.yaml).
+    release_stale_sides unsigns it: the energy at x is unchanged, back in the interior the distance
+    is +0.1 mm, later searches of the step keep it unsigned, and the next step signs it afresh."""
+    x_n = _two_triangles(0.005, 1e-4)
+    x_round = _two_triangles(0.0103, -1e-4)  # beyond a1, on the other side of the lines
+    x_back = _two_triangles(0.005, -1e-4)  # interior again, below
+    cs = _contact_set(x_n)
+    memory = cs.begin_step(x_n, None)
+    before = [p.energy(x_round) for p in cs.potentials(x_round, x_n, memory)]
+    assert _distance_in_step(cs, x_back, memory) == pytest.approx(-1e-4)
+    assert cs.release_stale_sides(x_round, memory) >= 1
+    assert [p.energy(x_round) for p in cs.potentials(x_round, x_n, memory)] == pytest.approx(before, abs=1e-18)
+    assert _distance_in_step(cs, x_back, memory) == pytest.approx(1e-4)
+    cs._candidates = None  # a new broad-phase search within the step: still unsigned
+    assert _distance_in_step(cs, x_back, memory) == pytest.approx(1e-4)
+    assert cs.release_stale_sides(x_round, memory) == 0  # nothing more to release
+    assert _edge_pair_distance(cs, x_back, x_n) == pytest.approx(-1e-4)  # a new step: signed again
+
+
+def test_a_penetrating_pair_in_the_interior_keeps_its_side():
+    """Edge b pushed through the middle of edge a (interior, other geometric side) is a crossing
+    the side must undo: release_stale_sides leaves it signed (d = -0.1 mm)."""
+    x_n = _two_triangles(0.005, 1e-4)
+    x = _two_triangles(0.005, -1e-4)
+    cs = _contact_set(x_n)
+    memory = cs.begin_step(x_n, None)
+    assert cs.release_stale_sides(x, memory) == 0
+    assert _distance_in_step(cs, x, memory) == pytest.approx(-1e-4)
+
+
+def _distance_in_step(cs: ContactSet, x: np.ndarray, memory) -> float:
+    """Contact distance (m) of the a0-a1 / b0-b1 edge pair at ``x`` within the current step."""
+    ee = cs.potentials(x, cs.x_prev, memory)[1]
+    rows = [i for i, v in enumerate(ee.vertices) if {*v[:2]} == {0, 1} and {*v[2:]} == {3, 4}
+            or {*v[:2]} == {3, 4} and {*v[2:]} == {0, 1}]
+    assert len(rows) == 1
+    return float(ee.distance(x)[rows[0]])
