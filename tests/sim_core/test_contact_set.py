@@ -231,3 +231,36 @@ def test_the_search_position_is_ahead_of_the_motion_and_covers_its_point():
     cs.lookahead, cs.lookahead_cap = 0.5, 0.6
     with pytest.raises(ValueError, match="lookahead_cap"):
         cs._search_position(x)
+
+
+def _forming_model_deformed(seed: int):
+    """The Forming scene (hairpin sheet with self contact, frozen table box, dome gel) at its initial
+    state with every vertex jittered by 0.3 mm: sheet layers, gel and table within the search radius."""
+    from pathlib import Path
+
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+
+    model = load_task_scene(Path(__file__).resolve().parents[2] / "config" / "scenes" / "forming.yaml")
+    x = task_initial_state(model).x + np.random.default_rng(seed).normal(scale=3e-4, size=(model.vertex_count, 3))
+    return model, x
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_every_broad_phase_gives_the_same_candidate_lists_on_the_numpy_path(seed):
+    """NumPy backend: the spatial hash (the default) and the k-d trees give identical sorted lists;
+    ``sweep`` runs its reference there; an unknown name is refused."""
+    from sim_core.errors import ConfigError
+
+    model, x = _forming_model_deformed(seed)
+    assert ContactSet(model).broad_phase == "spatial_hash"
+    lists = {}
+    for name in ("spatial_hash", "sweep", "kdtree"):
+        cs = ContactSet(model, broad_phase=name)
+        _, vt, ee = cs._candidate_pairs(x)
+        lists[name] = (vt, ee)
+        assert len(vt) > 50 and len(ee) > 50
+    for name in ("spatial_hash", "sweep"):
+        np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
+        np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
+    with pytest.raises(ConfigError, match="broad_phase.*'bvh'"):
+        ContactSet(model, broad_phase="bvh")

@@ -139,3 +139,66 @@ def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
     sheet = grid_sheet((0.01, 0.01), (3, 3))
     compile_kernels([SpringMembrane(sheet.triangles, sheet_topology(sheet.triangles)[0], sheet.x, 1.0, 1.0)], sheet.x)
     assert calls == [1]
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cpu, seed):
+    """Forming's sheet + gel + table model, deformed, on the Taichi backend: the hash kernel (the
+    default), the sweep and the k-d trees give the same sorted lists over successive searches."""
+    from tests.sim_core.test_contact_set import _forming_model_deformed
+    from sim_core.contact_set import ContactSet
+
+    model, x = _forming_model_deformed(seed)
+    model.meta["elastic_backend"] = "taichi"
+    sets = {name: ContactSet(model, broad_phase=name) for name in ("spatial_hash", "sweep", "kdtree")}
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        lists = {name: cs._candidate_pairs(x)[1:] for name, cs in sets.items()}
+        for name in ("spatial_hash", "sweep"):
+            np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
+            np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
+        assert len(lists["kdtree"][0]) > 50 and len(lists["kdtree"][1]) > 50
+        x = x + rng.normal(scale=1e-3, size=x.shape)  # beyond margin / 2: searched again
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    assert isinstance(sets["spatial_hash"]._candidate_lists(None), HashCandidates)
+
+
+def test_forming_trajectory_is_the_same_with_every_broad_phase(ti_cpu):
+    """Six steps of the Forming benchmark on the Taichi CPU backend with each broad phase: the
+    same Newton iterations and positions (to round-off: the candidate lists are identical)."""
+    from pathlib import Path
+
+    import yaml
+
+    from sim_core.control import Control
+    from sim_core.scenes.task_scene import build_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+    from sim_core.ti_kernels import use_taichi_kernels
+
+    scene_path = Path(__file__).resolve().parents[3] / "config" / "scenes" / "forming.yaml"
+    runs = {}
+    for name in ("spatial_hash", "sweep", "kdtree"):
+        scene = yaml.safe_load(scene_path.read_text())
+        scene["contact"]["broad_phase"] = name
+        model = build_task_scene(scene)
+        sim = Simulation(model)
+        model.meta["elastic_backend"] = "taichi"
+        use_taichi_kernels(sim.solver.elastic)
+        sim.state = task_initial_state(model)
+        effector = next(iter(model.effectors))
+        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(6))
+        iterations = []
+        for target in targets[:6]:
+            control = Control()
+            control.effector_pose_target[effector] = target
+            iterations.append(sim.step(control).iterations)
+        runs[name] = (iterations, sim.state.x.copy(), sim.state.contact_force.copy())
+    ref_iterations, ref_x, ref_force = runs["kdtree"]
+    assert np.max(np.abs(ref_force)) > 0  # the dome presses the sheet: contact is exercised
+    for name in ("spatial_hash", "sweep"):
+        iterations, x, force = runs[name]
+        assert iterations == ref_iterations
+        np.testing.assert_allclose(x, ref_x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(force, ref_force, rtol=0, atol=1e-9 * np.max(np.abs(ref_force)))
