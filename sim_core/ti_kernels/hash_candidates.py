@@ -5,7 +5,8 @@
 the pairs that share a vertex and the same-body pairs closer than the self-contact rest distance
 (looked up in a :class:`~sim_core.collision.rest_exclusion.RestExclusion`), and sort the rest.
 :class:`HashCandidates` finds the box pairs with the spatial hash of
-:mod:`sim_core.ti_kernels.hash_grid` (one launch per list), whose kernel applies both exclusions
+:mod:`sim_core.ti_kernels.hash_grid` (one launch per list; the kernel reads the positions and the elements' vertices and
+forms the boxes itself), whose kernel applies both exclusions
 before writing a pair (shared vertices by comparing the elements' vertex indices, the rest distance
 by a binary search of the pair's key in the sorted keys of the rest exclusion) and applies the body
 filter as the ``allowed`` matrix. The lists therefore equal the reference's; the twin of
@@ -67,15 +68,10 @@ class HashCandidates:
         Raises:
             ConfigError: the Taichi backend is not initialised, or ``x`` is not finite.
         """
-        x = np.asarray(x, dtype=float)
         if self.vertices.size == 0 or self.triangles.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
-        tri_x = x[self.triangles]
-        t_min = np.minimum(np.minimum(tri_x[:, 0], tri_x[:, 1]), tri_x[:, 2])
-        t_max = np.maximum(np.maximum(tri_x[:, 0], tri_x[:, 1]), tri_x[:, 2])
-        p = x[self.vertices]
-        return self.vt_grid.pairs(p, p, self._vertex_body, self._vertex_elements, self._vertex_keys, t_min, t_max,
-                                  self._triangle_body, self._triangle_elements, self.allowed, self._vt_rest, radius)
+        return self.vt_grid.pairs(x, self._vertex_elements, self._vertex_body, self._vertex_keys,
+                                  self._triangle_elements, self._triangle_body, self.allowed, self._vt_rest, radius)
 
     def edge_edge(self, x: np.ndarray, radius: float) -> np.ndarray:
         """``[edge row i, edge row j]`` pairs (``i < j``) within ``radius`` (m) at ``x`` ``(n, 3)`` (m),
@@ -84,13 +80,10 @@ class HashCandidates:
         Raises:
             ConfigError: the Taichi backend is not initialised, or ``x`` is not finite.
         """
-        x = np.asarray(x, dtype=float)
         if self.edges.shape[0] < 2:
             return np.zeros((0, 2), dtype=np.int64)
-        ex = x[self.edges]
-        e_min, e_max = np.minimum(ex[:, 0], ex[:, 1]), np.maximum(ex[:, 0], ex[:, 1])
-        return self.ee_grid.pairs(e_min, e_max, self._edge_body, self._edge_elements, self._edge_keys, None, None,
-                                  None, None, self.allowed, self._ee_rest, radius)
+        return self.ee_grid.pairs(x, self._edge_elements, self._edge_body, self._edge_keys, None, None, self.allowed,
+                                  self._ee_rest, radius)
 
 
 def compile_kernels() -> None:

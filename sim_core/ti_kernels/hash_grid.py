@@ -77,6 +77,26 @@ def _bucket(c0: ti.i32, c1: ti.i32, c2: ti.i32, mask: ti.i64) -> ti.i32:
 
 
 @ti.func
+def _element_box(x: ti.template(), vertices: ti.template(), i: ti.i32):
+    """``(lo, hi, finite)``: the corners of element ``i``'s box (min / max over its vertices, exact)
+    and whether all its coordinates are finite."""
+    v = vertices[i, 0]
+    lo = ti.Vector([x[v, 0], x[v, 1], x[v, 2]], dt=ti.f64)
+    hi = lo
+    for u in range(1, vertices.shape[1]):
+        w = vertices[i, u]
+        for d in ti.static(range(3)):
+            lo[d] = ti.min(lo[d], x[w, d])
+            hi[d] = ti.max(hi[d], x[w, d])
+    finite = True
+    for u in range(vertices.shape[1]):
+        w = vertices[i, u]
+        for d in ti.static(range(3)):
+            finite = finite and ti.abs(x[w, d]) <= 1e300
+    return lo, hi, finite
+
+
+@ti.func
 def _shares_vertex(a_vertices: ti.template(), i: ti.i32, b_vertices: ti.template(), j: ti.i32) -> ti.i32:
     """1 if element ``i`` of A and element ``j`` of B have a vertex in common."""
     shared = 0
@@ -105,36 +125,48 @@ def _is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
 
 
 @fast_kernel
-def _hash_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_vertices: _I32_2, a_key: _I32_1, b_lo: _F64_2,
-                b_hi: _F64_2, b_body: _I32_1, b_vertices: _I32_2, allowed: _I32_2, rest_keys: _I64_1, radius: ti.f64,
-                same: ti.i32, bucket_start: _I32_1, bucket_fill: _I32_1, entry_item: _I32_1, entry_cell: _I64_1,
-                scale: _F64_1, out: _I32_2, count: _I32_1):
-    """``count[0]`` (set to 0 by the caller) += the number of kept pairs; the first ``out.shape[0]``
+def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_vertices: _I32_2, b_body: _I32_1,
+                allowed: _I32_2, rest_keys: _I64_1, radius: ti.f64,
+                cell_scale: ti.f64, same: ti.i32, bucket_start: _I32_1, bucket_fill: _I32_1, entry_item: _I32_1,
+                entry_cell: _I64_1, body_box: _F64_2, scale: _F64_1, out: _I32_2, count: _I32_1):
+    """Pairs of elements (rows of ``a_vertices`` and ``b_vertices``: vertex indices into ``x``) whose
+    boxes (the min / max of their vertices' positions) overlap when A's are inflated by ``radius``.
+
+    ``count[0]`` (set to 0 by the caller) += the number of kept pairs; the first ``out.shape[0]``
     of them in ``out`` as ``[first, second]``: ``[a_key[i], j]`` between two sets, ``[min, max]`` of
     the two indices within one (module docstring). ``count[1]``: the entries needed (none are
     written and no pair is searched when ``entry_item`` is shorter); ``count[2]``: 1 when a
-    coordinate is not finite (nothing searched). ``scale``: scratch, ``[cell size, 1 / cell size,
-    sum of box widths, widest box, largest |coordinate|]``. ``bucket_fill.shape[0]``: the table size
-    (a power of 2), ``bucket_start``: one longer."""
-    na, nb = a_lo.shape[0], b_lo.shape[0]
+    coordinate is not finite (nothing searched). Buckets are per hashed cell and body of B
+    (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
+    a box visits only the entries of the bodies it may touch, and of those only within the cell range
+    of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
+    ``scale``: scratch, ``[cell size, 1 / cell size, sum of box widths, widest box, largest
+    |coordinate|]``; the mean-width term of the cell size is multiplied by ``cell_scale``."""
+    na, nb = a_vertices.shape[0], b_vertices.shape[0]
+    bodies = body_box.shape[0]
     buckets = bucket_fill.shape[0]
-    mask = ti.cast(buckets - 1, ti.i64)
+    mask = ti.cast(buckets // bodies - 1, ti.i64)
     capacity, entry_capacity = out.shape[0], entry_item.shape[0]
-    # 1. cell size (sums in box order on the CPU)
+    # 1. cell size and the bodies' bounding boxes (sums in box order on the CPU)
     for _ in range(1):
         for k in ti.static(range(2, 5)):
             scale[k] = 0.0
         count[_ENTRIES] = 0
         count[_BAD] = 0
+        for k in range(bodies):
+            for d in ti.static(range(3)):
+                body_box[k, d] = ti.math.inf
+                body_box[k, 3 + d] = -ti.math.inf
     ti.loop_config(serialize=ti.static(serial_loops()))
     for j in range(nb):
-        width, reach, finite = 0.0, 0.0, True
+        b_lo, b_hi, finite = _element_box(x, b_vertices, j)
+        width, reach = 0.0, 0.0
+        body_j = b_body[j]
         for d in ti.static(range(3)):
-            # False for NaN / inf (and a box with lo > hi)
-            finite = finite and b_hi[j, d] - b_lo[j, d] >= 0.0 and ti.abs(b_lo[j, d]) <= 1e300 and ti.abs(
-                b_hi[j, d]) <= 1e300
-            width = ti.max(width, b_hi[j, d] - b_lo[j, d])
-            reach = ti.max(reach, ti.max(ti.abs(b_lo[j, d]), ti.abs(b_hi[j, d])))
+            width = ti.max(width, b_hi[d] - b_lo[d])
+            reach = ti.max(reach, ti.max(ti.abs(b_lo[d]), ti.abs(b_hi[d])))
+            ti.atomic_min(body_box[body_j, d], b_lo[d])
+            ti.atomic_max(body_box[body_j, 3 + d], b_hi[d])
         if not finite:
             count[_BAD] = 1
         ti.atomic_add(scale[2], width)
@@ -142,20 +174,20 @@ def _hash_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_vertices: _I32_2, 
         ti.atomic_max(scale[4], reach)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(na):
-        reach, finite = 0.0, True
+        a_lo, a_hi, finite = _element_box(x, a_vertices, i)
+        reach = 0.0
         for d in ti.static(range(3)):
-            finite = finite and a_hi[i, d] - a_lo[i, d] >= 0.0 and ti.abs(a_lo[i, d]) <= 1e300 and ti.abs(
-                a_hi[i, d]) <= 1e300
-            reach = ti.max(reach, ti.max(ti.abs(a_lo[i, d]), ti.abs(a_hi[i, d])))
+            reach = ti.max(reach, ti.max(ti.abs(a_lo[d]), ti.abs(a_hi[d])))
         if not finite:
             count[_BAD] = 1
         ti.atomic_max(scale[4], reach)
     for _ in range(1):
-        cell = ti.max(ti.max(scale[2] / ti.max(nb, 1) + 2.0 * radius, (scale[3] + 2.0 * radius) / _WIDEST_CELLS),
+        cell = ti.max(ti.max(cell_scale * (scale[2] / ti.max(nb, 1) + 2.0 * radius),
+                             (scale[3] + 2.0 * radius) / _WIDEST_CELLS),
                       ti.max((scale[4] + radius) / _CELL_LIMIT, 1e-300))
         scale[0] = cell
         scale[1] = 1.0 / cell
-    # 2. counting sort of B's boxes into the buckets of their cells
+    # 2. counting sort of B's boxes into the buckets (cell, body) of their cells
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(buckets + 1):
         bucket_start[h] = 0
@@ -163,12 +195,14 @@ def _hash_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_vertices: _I32_2, 
     for j in range(nb):
         if count[_BAD] == 0:
             inv = scale[1]
-            l0, l1, l2 = _cell_of(b_lo[j, 0], inv), _cell_of(b_lo[j, 1], inv), _cell_of(b_lo[j, 2], inv)
-            u0, u1, u2 = _cell_of(b_hi[j, 0], inv), _cell_of(b_hi[j, 1], inv), _cell_of(b_hi[j, 2], inv)
+            body_j = b_body[j]
+            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
+            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
             for c0 in range(l0, u0 + 1):
                 for c1 in range(l1, u1 + 1):
                     for c2 in range(l2, u2 + 1):
-                        ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) + 1], 1)
+                        ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
     for _ in range(1):  # prefix sum (one thread)
         total = 0
         for h in range(buckets):
@@ -182,59 +216,70 @@ def _hash_pairs(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_vertices: _I32_2, 
     for j in range(nb):
         if count[_BAD] == 0 and count[_ENTRIES] <= entry_capacity:
             inv = scale[1]
-            l0, l1, l2 = _cell_of(b_lo[j, 0], inv), _cell_of(b_lo[j, 1], inv), _cell_of(b_lo[j, 2], inv)
-            u0, u1, u2 = _cell_of(b_hi[j, 0], inv), _cell_of(b_hi[j, 1], inv), _cell_of(b_hi[j, 2], inv)
+            body_j = b_body[j]
+            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
+            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
             for c0 in range(l0, u0 + 1):
                 for c1 in range(l1, u1 + 1):
                     for c2 in range(l2, u2 + 1):
-                        slot = ti.atomic_add(bucket_fill[_bucket(c0, c1, c2, mask)], 1)
+                        slot = ti.atomic_add(bucket_fill[_bucket(c0, c1, c2, mask) * bodies + body_j], 1)
                         entry_item[slot] = j
                         entry_cell[slot] = _cell_key(c0, c1, c2)
-    # 3. each box of A visits the cells of its inflated box
+    # 3. each box of A visits, per body it may touch, the cells of its inflated box within the body's box
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(na):
         if count[_BAD] == 0 and count[_ENTRIES] <= entry_capacity:
             inv = scale[1]
-            q_lo = ti.Vector([a_lo[i, 0] - radius, a_lo[i, 1] - radius, a_lo[i, 2] - radius], dt=ti.f64)
-            q_hi = ti.Vector([a_hi[i, 0] + radius, a_hi[i, 1] + radius, a_hi[i, 2] + radius], dt=ti.f64)
+            a_lo, a_hi, _ = _element_box(x, a_vertices, i)
+            q_lo = a_lo - radius
+            q_hi = a_hi + radius
             body_i = a_body[i]
-            for c0 in range(_cell_of(q_lo[0], inv), _cell_of(q_hi[0], inv) + 1):
-                for c1 in range(_cell_of(q_lo[1], inv), _cell_of(q_hi[1], inv) + 1):
-                    for c2 in range(_cell_of(q_lo[2], inv), _cell_of(q_hi[2], inv) + 1):
-                        key = _cell_key(c0, c1, c2)
-                        b = _bucket(c0, c1, c2, mask)
-                        for s in range(bucket_start[b], bucket_start[b + 1]):
-                            if entry_cell[s] != key:
-                                continue
-                            j = entry_item[s]
-                            body_j = b_body[j]
-                            # within one set, from the box of the lower body, then of the lower index
-                            if same != 0 and (body_j < body_i or (body_j == body_i and j <= i)):
-                                continue
-                            if allowed[body_i, body_j] == 0:
-                                continue
-                            keep = True
-                            for d in ti.static(range(3)):
-                                keep = keep and (q_lo[d] <= b_hi[j, d]) and (b_lo[j, d] <= q_hi[d])
-                            if not keep:
-                                continue
-                            # the cell of the intersection's lower corner only
-                            keep = _cell_of(ti.max(q_lo[0], b_lo[j, 0]), inv) == c0
-                            keep = keep and _cell_of(ti.max(q_lo[1], b_lo[j, 1]), inv) == c1
-                            keep = keep and _cell_of(ti.max(q_lo[2], b_lo[j, 2]), inv) == c2
-                            if keep:
-                                keep = _shares_vertex(a_vertices, i, b_vertices, j) == 0
-                            first, second = a_key[i], j
-                            if same != 0:
-                                first, second = ti.min(i, j), ti.max(i, j)
-                            if keep and body_i == body_j:
-                                pair_key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
-                                keep = _is_rest_close(rest_keys, pair_key) == 0
-                            if keep:
-                                k = ti.atomic_add(count[_PAIRS], 1)
-                                if k < capacity:
-                                    out[k, 0] = first
-                                    out[k, 1] = second
+            for kb in range(bodies):
+                if allowed[body_i, kb] == 0 or (same != 0 and kb < body_i):
+                    continue
+                # cells of the query within the cells of body kb's box (its pairs' corners lie there)
+                lo_c = ti.Vector([0, 0, 0])
+                hi_c = ti.Vector([-1, -1, -1])
+                if body_box[kb, 0] <= body_box[kb, 3]:  # the body has boxes
+                    for d in ti.static(range(3)):
+                        lo_c[d] = ti.max(_cell_of(q_lo[d], inv), _cell_of(body_box[kb, d], inv))
+                        hi_c[d] = ti.min(_cell_of(q_hi[d], inv), _cell_of(body_box[kb, 3 + d], inv))
+                for c0 in range(lo_c[0], hi_c[0] + 1):
+                    for c1 in range(lo_c[1], hi_c[1] + 1):
+                        for c2 in range(lo_c[2], hi_c[2] + 1):
+                            key = _cell_key(c0, c1, c2)
+                            b = _bucket(c0, c1, c2, mask) * bodies + kb
+                            for s in range(bucket_start[b], bucket_start[b + 1]):
+                                if entry_cell[s] != key:
+                                    continue
+                                j = entry_item[s]
+                                b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+                                # within one body of one set, from the box of the lower index
+                                if same != 0 and kb == body_i and j <= i:
+                                    continue
+                                keep = True
+                                for d in ti.static(range(3)):
+                                    keep = keep and (q_lo[d] <= b_hi[d]) and (b_lo[d] <= q_hi[d])
+                                if not keep:
+                                    continue
+                                # the cell of the intersection's lower corner only
+                                keep = _cell_of(ti.max(q_lo[0], b_lo[0]), inv) == c0
+                                keep = keep and _cell_of(ti.max(q_lo[1], b_lo[1]), inv) == c1
+                                keep = keep and _cell_of(ti.max(q_lo[2], b_lo[2]), inv) == c2
+                                if keep:
+                                    keep = _shares_vertex(a_vertices, i, b_vertices, j) == 0
+                                first, second = a_key[i], j
+                                if same != 0:
+                                    first, second = ti.min(i, j), ti.max(i, j)
+                                if keep and body_i == kb:
+                                    pair_key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
+                                    keep = _is_rest_close(rest_keys, pair_key) == 0
+                                if keep:
+                                    k = ti.atomic_add(count[_PAIRS], 1)
+                                    if k < capacity:
+                                        out[k, 0] = first
+                                        out[k, 1] = second
 
 
 def sorted_pairs(out: np.ndarray) -> np.ndarray:
@@ -256,53 +301,60 @@ class HashGrid:
     bound to the compiled kernel once (:mod:`sim_core.ti_kernels.launch`).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, cell_scale: float = 1.0) -> None:
         self.bucket_start = self.bucket_fill = np.zeros(0, dtype=np.int32)
         self.entry_item = np.zeros(0, dtype=np.int32)
         self.entry_cell = np.zeros(0, dtype=np.int64)
         self.out = np.zeros((0, 2), dtype=np.int32)
+        self.body_box = np.zeros((0, 6), dtype=np.float64)
         self.scale = np.zeros(5, dtype=np.float64)
+        self.cell_scale = cell_scale
         self.count = np.zeros(3, dtype=np.int32)
         self.cell_size = float("nan")  # of the last search (m)
 
-    def pairs(self, a_lo: np.ndarray, a_hi: np.ndarray, a_body: np.ndarray, a_vertices: np.ndarray,
-              a_key: np.ndarray, b_lo: np.ndarray | None, b_hi: np.ndarray | None, b_body: np.ndarray | None,
-              b_vertices: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray, radius: float) -> np.ndarray:
-        """The kept pairs (module docstring), int64 ``(p, 2)``, sorted.
+    def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
+              b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
+              radius: float) -> np.ndarray:
+        """The kept pairs of elements (module docstring), int64 ``(p, 2)``, sorted.
 
         Args:
-            a_lo, a_hi: boxes of set A in m, float64 C-contiguous ``(ka, 3)``.
-            a_body: body of each A box, int32 ``(ka,)``.
-            a_vertices: vertices of each A element, int32 ``(ka, m)`` (distinct from B's: no exclusion).
-            a_key: first column of a pair with A box ``i`` (between two sets), int32 ``(ka,)``.
-            b_lo, b_hi, b_body, b_vertices: the same for set B, or None to pair A with itself
-                (pairs ``[i, j]`` with ``i < j``).
+            x: positions in m, float64 ``(n, 3)``.
+            a_vertices: vertex indices (rows of ``x``) of each element of set A, int32 ``(ka, m)``; its
+                box spans them.
+            a_body: body of each A element, int32 ``(ka,)``.
+            a_key: first column of a pair with A element ``i`` (between two sets), int32 ``(ka,)``.
+            b_vertices, b_body: the same for set B, or None to pair A with itself (pairs ``[i, j]``
+                with ``i < j``).
             allowed: ``(bodies, bodies)`` int32, symmetric.
             rest_keys: sorted int64 keys of excluded same-body pairs, non-empty.
             radius: inflation in m (finite, >= 0).
 
         Raises:
-            ConfigError: the Taichi backend is not initialised, or a box coordinate is NaN or infinite.
+            ConfigError: the Taichi backend is not initialised, or a coordinate is NaN or infinite.
         """
         require_backend("spatial-hash broad-phase kernel")
-        same = b_lo is None
+        same = b_vertices is None
         if same:
-            b_lo, b_hi, b_body, b_vertices = a_lo, a_hi, a_body, a_vertices
-        if a_lo.shape[0] == 0 or b_lo.shape[0] == 0:
+            b_vertices, b_body = a_vertices, a_body
+        if a_vertices.shape[0] == 0 or b_vertices.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
-        buckets = _power_of_two(2 * b_lo.shape[0])
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        bodies = allowed.shape[0]
+        buckets = _power_of_two(2 * b_vertices.shape[0]) * bodies
+        if self.body_box.shape[0] != bodies:
+            self.body_box = np.zeros((bodies, 6), dtype=np.float64)
         if self.bucket_fill.shape[0] != buckets:
             self.bucket_fill = np.zeros(buckets, dtype=np.int32)
             self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
-        if self.entry_item.shape[0] < 4 * b_lo.shape[0]:
-            self._grow_entries(8 * b_lo.shape[0])
+        if self.entry_item.shape[0] < 4 * b_vertices.shape[0]:
+            self._grow_entries(8 * b_vertices.shape[0])
         if self.out.shape[0] < 1024:
-            self.out = np.empty((max(1024, 2 * (a_lo.shape[0] + b_lo.shape[0])), 2), dtype=np.int32)
+            self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + b_vertices.shape[0])), 2), dtype=np.int32)
         while True:
             self.count[_PAIRS] = 0
-            _hash_pairs(a_lo, a_hi, a_body, a_vertices, a_key, b_lo, b_hi, b_body, b_vertices, allowed, rest_keys,
-                        float(radius), int(same), self.bucket_start, self.bucket_fill, self.entry_item,
-                        self.entry_cell, self.scale, self.out, self.count)
+            _hash_pairs(x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
+                        self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
+                        self.entry_cell, self.body_box, self.scale, self.out, self.count)
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             self.cell_size = float(self.scale[0])
@@ -332,23 +384,29 @@ class HashSearch:
 
     def __call__(self, a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray, b_min: np.ndarray | None,
                  b_max: np.ndarray | None, b_body: np.ndarray | None, radius: float, allowed: np.ndarray) -> np.ndarray:
-        """As :func:`grouped_box_pairs` (same arguments, result and errors)."""
+        """As :func:`grouped_box_pairs` (same arguments, result and errors).
+
+        Each box is an element of two points, its corners: rows ``[lo_i, hi_i]`` of one position
+        array (the min / max of the two is the box again), no two boxes sharing a point.
+        """
         same = b_min is None
         grid = self.grids.setdefault(same, HashGrid())
-        a_lo = np.ascontiguousarray(a_min, dtype=np.float64)
-        a_hi = np.ascontiguousarray(a_max, dtype=np.float64)
-        a_body = np.ascontiguousarray(a_body, dtype=np.int32)
-        # distinct negative "vertices" of every box: no shared-vertex exclusion
-        a_none = -1 - np.arange(a_lo.shape[0], dtype=np.int32)[:, None]
-        a_key = np.arange(a_lo.shape[0], dtype=np.int32)
+        na = len(a_min)
         allowed = np.ascontiguousarray(allowed, dtype=np.int32)
+        a_body = np.ascontiguousarray(a_body, dtype=np.int32)
+        a_key = np.arange(na, dtype=np.int32)
         if same:
-            return grid.pairs(a_lo, a_hi, a_body, a_none, a_key, None, None, None, None, allowed, _NO_REST, radius)
-        b_lo = np.ascontiguousarray(b_min, dtype=np.float64)
-        b_hi = np.ascontiguousarray(b_max, dtype=np.float64)
-        b_none = -1 - a_lo.shape[0] - np.arange(b_lo.shape[0], dtype=np.int32)[:, None]
-        return grid.pairs(a_lo, a_hi, a_body, a_none, a_key, b_lo, b_hi, np.ascontiguousarray(b_body, dtype=np.int32),
-                          b_none, allowed, _NO_REST, radius)
+            x = np.concatenate([np.asarray(a_min, dtype=np.float64).reshape(-1, 3),
+                                np.asarray(a_max, dtype=np.float64).reshape(-1, 3)])
+            a_vertices = np.stack([a_key, a_key + na], axis=1)
+            return grid.pairs(x, a_vertices, a_body, a_key, None, None, allowed, _NO_REST, radius)
+        nb = len(b_min)
+        x = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in (a_min, a_max, b_min, b_max)])
+        a_vertices = np.stack([a_key, a_key + na], axis=1)
+        b_rows = 2 * na + np.arange(nb, dtype=np.int32)
+        b_vertices = np.stack([b_rows, b_rows + nb], axis=1)
+        return grid.pairs(x, a_vertices, a_body, a_key, b_vertices, np.ascontiguousarray(b_body, dtype=np.int32),
+                          allowed, _NO_REST, radius)
 
 
 def grouped_box_pairs(
