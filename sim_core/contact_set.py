@@ -28,7 +28,7 @@ import numpy as np
 from sim_core.collision import CollisionMemory, PairFilter, edge_edge_candidates, vertex_triangle_candidates
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.model import Model
+from sim_core.model import Model, check_broad_phase
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.sphere_contact import SphereContact
@@ -56,11 +56,18 @@ class ContactSet:
 
     Args:
         model: the model; reads surfaces, bodies, planes, contact settings and friction table.
+        broad_phase: the box-pair search (``spatial_hash``, ``sweep`` or ``kdtree``: same candidate
+            lists, see :class:`sim_core.model.ContactSettings`); None takes ``model.contact.broad_phase``.
+
+    Raises:
+        ConfigError: an unknown ``broad_phase``.
     """
 
-    def __init__(self, model: Model) -> None:
+    def __init__(self, model: Model, broad_phase: str | None = None) -> None:
         self.model = model
         c = model.contact
+        self.broad_phase = check_broad_phase(c.broad_phase if broad_phase is None else broad_phase,
+                                             "ContactSet broad_phase")
         self.stiffness, self.eps = float(c.stiffness), float(c.eps)
         self.margin = float(c.candidate_margin)
         self.radius = self.eps + self.margin
@@ -165,9 +172,9 @@ class ContactSet:
         x_search = self._search_position(x)
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
-        if search is not None and rest is not None:  # the exclusions inside the sweep kernel, same lists
-            sweep = self._sweep_candidates(search)
-            vt, ee = sweep.vertex_triangle(x_search, self.radius), sweep.edge_edge(x_search, self.radius)
+        lists = self._candidate_lists(search) if rest is not None else None
+        if lists is not None:  # the exclusions inside the hash / sweep kernel, same lists
+            vt, ee = lists.vertex_triangle(x_search, self.radius), lists.edge_edge(x_search, self.radius)
         else:
             vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
                                             self.filter, grouped_search=search, rest_exclusion=rest)
@@ -180,16 +187,26 @@ class ContactSet:
         self._candidates = (x_search, vt, ee)
         return self._candidates
 
-    def _sweep_candidates(self, search):
-        """The :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` of this contact set's
-        elements on ``search`` (made on first use)."""
-        sweep = getattr(self, "_sweep_lists", None)
-        if sweep is None or sweep.search is not search:
+    def _candidate_lists(self, search):
+        """On the Taichi backend, the candidate lists of this contact set's elements with the
+        exclusions in the kernel (made on first use): :class:`sim_core.ti_kernels.hash_candidates.HashCandidates`
+        (``spatial_hash``) or :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` on
+        ``search`` (``sweep``); None otherwise (NumPy backend, ``kdtree``)."""
+        if self.model.meta.get("elastic_backend") != "taichi" or self.broad_phase == "kdtree":
+            return None
+        lists = getattr(self, "_lists", None)
+        if self.broad_phase == "spatial_hash":
+            if lists is None or lists[0] != "spatial_hash":
+                from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+                self._lists = ("spatial_hash", HashCandidates(self.surface_vertices, self.triangles, self.edges,
+                                                              self.filter, self.rest_exclusion))
+        elif lists is None or lists[0] != "sweep" or lists[1].search is not search:
             from sim_core.ti_kernels.sweep_candidates import SweepCandidates
 
-            sweep = self._sweep_lists = SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
-                                                        self.rest_exclusion, search)
-        return sweep
+            self._lists = ("sweep", SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
+                                                    self.rest_exclusion, search))
+        return self._lists[1]
 
     def _search_position(self, x: np.ndarray) -> np.ndarray:
         """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array
@@ -215,12 +232,25 @@ class ContactSet:
         return x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
 
     def _grouped_search(self):
-        """The box-pair search of the broad phase: the Taichi sweep kernel
-        (:class:`sim_core.ti_kernels.broad_phase.SweepSearch`, same pairs as
-        :func:`~sim_core.ti_kernels.broad_phase.grouped_box_pairs`, keeping its sweep axis across this
-        contact set's searches) when the model's kernel backend is ``"taichi"``, else None (the k-d
-        trees of :mod:`sim_core.collision.candidates`)."""
-        if self.model.meta.get("elastic_backend") == "taichi":
+        """The box-pair search of the broad phase (``self.broad_phase``; all give the same pairs):
+        ``spatial_hash``: the Taichi hash kernel (:class:`sim_core.ti_kernels.hash_grid.HashSearch`)
+        when the model's kernel backend is ``"taichi"``, else NumPy spatial hashes per body pair
+        (:func:`sim_core.collision.candidates.grouped_box_pairs_hash`); ``sweep``: the Taichi sweep
+        kernel (:class:`sim_core.ti_kernels.broad_phase.SweepSearch`, keeping its sweep axis across this
+        contact set's searches) on the Taichi backend; else, and for ``kdtree``, None (the k-d trees of
+        :mod:`sim_core.collision.candidates`)."""
+        taichi = self.model.meta.get("elastic_backend") == "taichi"
+        if self.broad_phase == "spatial_hash":
+            if not taichi:
+                from sim_core.collision.candidates import grouped_box_pairs_hash
+
+                return grouped_box_pairs_hash
+            if getattr(self, "_hash_search", None) is None:
+                from sim_core.ti_kernels.hash_grid import HashSearch
+
+                self._hash_search = HashSearch()
+            return self._hash_search
+        if self.broad_phase == "sweep" and taichi:
             if getattr(self, "_sweep_search", None) is None:
                 from sim_core.ti_kernels.broad_phase import SweepSearch
 

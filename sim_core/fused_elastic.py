@@ -315,7 +315,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
     from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
-                                     fused_hinge, sweep_candidates)
+                                     fused_hinge, hash_candidates, sweep_candidates)
 
     fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
     contact_distance.compile_kernels()
@@ -323,5 +323,6 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     contact_setup.compile_kernels()
     broad_phase.compile_kernels()
     sweep_candidates.compile_kernels()
+    hash_candidates.compile_kernels()
     friction.compile_kernels()
     return time.perf_counter() - t0

@@ -18,6 +18,8 @@ from sim_core.state import State
 
 SHEET_PARAMETERS = ("youngs_modulus", "poisson_ratio", "thickness", "bending_stiffness", "density", "yield_angle")
 SOLID_PARAMETERS = ("youngs_modulus", "poisson_ratio", "density")
+BROAD_PHASES = ("spatial_hash", "sweep", "kdtree")
+"""Broad-phase searches of the contact set (``ContactSettings.broad_phase``; all give the same pairs)."""
 
 
 @dataclass
@@ -94,6 +96,17 @@ class Plane:
     offset: float
 
 
+def check_broad_phase(name: str, where: str) -> str:
+    """``name`` if it is one of :data:`BROAD_PHASES`.
+
+    Raises:
+        ConfigError: naming ``where`` (the key) and the accepted values.
+    """
+    if name not in BROAD_PHASES:
+        raise ConfigError(f"{where}: unknown broad phase {name!r}; use one of {', '.join(BROAD_PHASES)}")
+    return name
+
+
 @dataclass
 class ContactSettings:
     """Penalty contact and friction settings (DESIGN.md "Contact", "Friction").
@@ -109,6 +122,15 @@ class ContactSettings:
             against sheet triangles, plus edge-edge pairs for the sheet's edges); testing both
             directions between a coarse stiff card and a soft gel makes the card's vertices
             indent the gel as point loads, and Newton's active set oscillates.
+        broad_phase: the box-pair search of the candidates (:data:`BROAD_PHASES`, same pairs):
+            ``spatial_hash`` (default; Teschner et al. 2003: the Taichi kernel
+            :mod:`sim_core.ti_kernels.hash_grid` on the Taichi backend,
+            :class:`sim_core.collision.spatial_hash.SpatialHash` on the NumPy one), ``sweep`` (sort
+            and sweep, :mod:`sim_core.ti_kernels.broad_phase`; on the NumPy backend its reference,
+            the k-d trees) or ``kdtree`` (SciPy k-d trees per body pair, the reference).
+
+    Raises:
+        ConfigError: an unknown ``broad_phase``.
     """
 
     stiffness: float = 2.0e4
@@ -117,6 +139,10 @@ class ContactSettings:
     self_contact: bool = True
     candidate_margin: float = 1.0e-3
     sheet_vertices_vs_solids: bool = False
+    broad_phase: str = "spatial_hash"
+
+    def __post_init__(self) -> None:
+        check_broad_phase(self.broad_phase, "contact.broad_phase")
 
 
 @dataclass

@@ -18,7 +18,7 @@ import numpy as np
 from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
 from scipy.spatial import cKDTree
 
-from sim_core.collision.spatial_hash import SpatialHash
+from sim_core.collision.spatial_hash import SpatialHash, hash_cell_size
 from sim_core.errors import ConfigError
 
 
@@ -120,6 +120,35 @@ def box_pairs_kdtree(
     return pairs[overlap]
 
 
+def box_pairs_hash(
+    a_min: np.ndarray, a_max: np.ndarray, b_min: np.ndarray | None, b_max: np.ndarray | None, radius: float
+) -> np.ndarray:
+    """:func:`box_pairs_kdtree`'s pairs by a :class:`SpatialHash` over set B (cell size
+    :func:`~sim_core.collision.spatial_hash.hash_cell_size`), queried with A's boxes inflated by
+    ``radius``: the same exact inflated-box test (``a_min - radius <= b_max`` and
+    ``b_min <= a_max + radius``, same operands); within one set, pairs ``i < j`` (tested from ``i``).
+
+    Args and returns: as :func:`box_pairs_kdtree`, rows sorted by A then B index.
+
+    Raises:
+        ConfigError: a box coordinate is NaN or infinite.
+    """
+    same = b_min is None
+    if same:
+        b_min, b_max = a_min, a_max
+    if not len(a_min) or not len(b_min):
+        return np.zeros((0, 2), dtype=np.int64)
+    q_min, q_max = a_min - radius, a_max + radius
+    reach = max(float(np.max(np.abs(q_min))), float(np.max(np.abs(q_max))), float(np.max(np.abs(b_min))),
+                float(np.max(np.abs(b_max))))
+    if not np.isfinite(reach) or not (np.all(np.isfinite(b_max)) and np.all(np.isfinite(a_max))):
+        raise ConfigError("spatial hash: bounding boxes contain NaN or infinite coordinates")
+    pairs = SpatialHash(b_min, b_max, hash_cell_size(b_min, b_max, reach, radius)).query(q_min, q_max)
+    if same:
+        pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
 def _max_half_diagonal(box_min: np.ndarray, box_max: np.ndarray) -> float:
     """Largest half-diagonal of boxes ``(k, 3)`` in m (0 for none); element-wise, no short-axis reduction."""
     if not len(box_min):
@@ -131,9 +160,9 @@ def _max_half_diagonal(box_min: np.ndarray, box_max: np.ndarray) -> float:
 def _grouped_box_pairs(
     a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
     b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
-    radius: float, allowed: np.ndarray,
+    radius: float, allowed: np.ndarray, box_pairs=box_pairs_kdtree,
 ) -> np.ndarray:
-    """:func:`box_pairs_kdtree` run per allowed pair of bodies; the same pairs, in another order.
+    """:func:`box_pairs_kdtree` (or ``box_pairs``) run per allowed pair of bodies; the same pairs, in another order.
 
     A k-d tree over all boxes at once searches with the largest boxes' reach (the long edges of one
     body widen the search of every other) and returns pairs of bodies that may not touch (a solid's
@@ -145,6 +174,8 @@ def _grouped_box_pairs(
         b_min, b_max, b_body: the same for set B, or None to pair A with itself (``i < j``).
         radius: inflation in m.
         allowed: ``(bodies, bodies)`` bool, symmetric.
+        box_pairs: the search of one body pair, :func:`box_pairs_kdtree` (default) or
+            :func:`box_pairs_hash` (same signature and pairs).
 
     Returns:
         int64 ``(p, 2)`` of ``[index in A, index in B]`` (``i < j`` when B is None).
@@ -160,14 +191,24 @@ def _grouped_box_pairs(
             if not allowed[ka, kb] or (same and kb < ka):
                 continue
             if same and ka == kb:
-                pairs = box_pairs_kdtree(a_min[ia], a_max[ia], None, None, radius)
+                pairs = box_pairs(a_min[ia], a_max[ia], None, None, radius)
             else:
-                pairs = box_pairs_kdtree(a_min[ia], a_max[ia], b_min[ib], b_max[ib], radius)
+                pairs = box_pairs(a_min[ia], a_max[ia], b_min[ib], b_max[ib], radius)
             pairs = np.stack([ia[pairs[:, 0]], ib[pairs[:, 1]]], axis=1)
             if same:
                 pairs = np.sort(pairs, axis=1)
             out.append(pairs)
     return np.concatenate(out) if out else np.zeros((0, 2), dtype=np.int64)
+
+
+def grouped_box_pairs_hash(
+    a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
+    b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
+    radius: float, allowed: np.ndarray,
+) -> np.ndarray:
+    """:func:`_grouped_box_pairs` with a spatial hash per pair of bodies (:func:`box_pairs_hash`):
+    the NumPy path's default broad phase; same arguments, pairs and errors (NaN: ``ConfigError``)."""
+    return _grouped_box_pairs(a_min, a_max, a_body, b_min, b_max, b_body, radius, allowed, box_pairs_hash)
 
 
 def _check(x: np.ndarray, radius: float) -> None:

@@ -17,6 +17,23 @@ import numpy as np
 from sim_core.errors import ConfigError
 
 _OFFSET = 1 << 20  # cell coordinates are packed as 21-bit unsigned fields of one int64 key
+_CELL_LIMIT = float(1 << 18)  # hash_cell_size keeps |cell index| <= 2^18 + 1
+_WIDEST_CELLS = 256.0  # hash_cell_size: the widest box overlaps at most 257 cells per axis
+
+
+def hash_cell_size(box_min: np.ndarray, box_max: np.ndarray, reach: float, radius: float) -> float:
+    """Cell size of a hash over boxes ``(k, 3)`` (m) queried with boxes inflated by ``radius`` (m).
+
+    ``max(mean_k max_d w_kd + 2 radius, (w_max + 2 radius) / 256, (reach + radius) / 2^18)`` with
+    box widths ``w``: about one inflated box per cell, at most 257 cells per axis for the widest box,
+    and cell indices within 2^18 + 1 for coordinates up to ``reach`` (the largest |coordinate| of all
+    boxes, queries included), so that zero-size boxes and a zero radius still give a usable grid.
+    The rule of the Taichi kernel :mod:`sim_core.ti_kernels.hash_grid`.
+    """
+    width = np.max(box_max - box_min, axis=1) if len(box_min) else np.zeros(1)
+    cell = max(float(np.mean(width)) + 2.0 * radius, (float(np.max(width)) + 2.0 * radius) / _WIDEST_CELLS,
+               (float(reach) + radius) / _CELL_LIMIT)
+    return cell if cell > 0.0 else 1.0
 
 
 def _cell_keys(cells: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
       max_translation_per_step: 0.001   # m
       max_rotation_per_step: 0.02       # rad
       self_contact: true
+      broad_phase: spatial_hash    # or sweep | kdtree (same pairs)
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from sim_core.builder import ModelBuilder
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import tet_box
-from sim_core.model import ContactSettings, Model
+from sim_core.model import ContactSettings, Model, check_broad_phase
 from sim_core.transforms import compose_poses, transform_points
 
 SIMULATION_KEYS = {
@@ -44,6 +45,7 @@ SIMULATION_KEYS = {
     "max_translation_per_step": 1.0e-3,
     "max_rotation_per_step": 0.02,
     "self_contact": True,
+    "broad_phase": "spatial_hash",
 }
 
 
@@ -167,7 +169,8 @@ def build_tactile_scene(scene: dict) -> Model:
         )
     eps = opts["contact_eps"] if opts["contact_eps"] is not None else 0.5 * thickness
     contact = ContactSettings(stiffness=float(opts["contact_stiffness"]), eps=float(eps),
-                              self_contact=bool(opts["self_contact"]))
+                              self_contact=bool(opts["self_contact"]),
+                              broad_phase=check_broad_phase(opts["broad_phase"], "simulation.broad_phase"))
     model = b.finalize(gravity=scene.get("gravity", (0, 0, -9.81)), contact=contact, damping=float(opts["damping"]),
                        meta={"name": scene.get("name", ""), "dt": float(scene["dt"]), "sheet_grid": (nx, ny)})
     model.sensors = sensors

@@ -9,7 +9,8 @@ Top-level keys (all required unless marked optional)::
 
     kind: task              version: 1             name: str
     dt: s                   gravity: [gx, gy, gz]  damping: 1/s (optional, 0)
-    contact: {stiffness: N/m, eps: m, eps_v: m/s (optional), self_contact: bool (optional)}
+    contact: {stiffness: N/m, eps: m, eps_v: m/s (optional), self_contact: bool (optional),
+              broad_phase: spatial_hash | sweep | kdtree (optional, spatial_hash)}
     sheets:    {name: SHEET, ...}
     boxes:     {name: {size, resolution, origin, frozen: bool, material (if not frozen)}} (optional)
     effectors: {name: EFFECTOR, ...} (optional)
@@ -59,7 +60,7 @@ from sim_core.errors import ConfigError
 from sim_core.mesh.dome import dome_shell
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import TetMesh, box_face_vertices, tet_box
-from sim_core.model import ContactSettings, Model
+from sim_core.model import ContactSettings, Model, check_broad_phase
 from sim_core.potentials.bending import dihedral_angle
 from sim_core.state import State
 from sim_core.transforms import transform_points
@@ -69,7 +70,7 @@ SPRING_STANDIN_POISSON_RATIO = 1.0 / 3.0
 
 _TOP = {"kind": True, "version": True, "name": True, "dt": True, "gravity": True, "contact": True, "sheets": True,
         "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False}
-_CONTACT = {"stiffness": True, "eps": True, "eps_v": False, "self_contact": False}
+_CONTACT = {"stiffness": True, "eps": True, "eps_v": False, "self_contact": False, "broad_phase": False}
 _SHEET = {"size": True, "resolution": True, "origin": True, "thickness": True, "membrane": True, "bending": True,
           "yield_angle": True, "clamped_edge": True, "density": False, "areal_density": False, "pattern": False,
           "initial_shape": False, "rest_angles": False}
@@ -302,6 +303,7 @@ def build_task_scene(scene: dict) -> Model:
         eps=_number(c["eps"], "contact.eps", positive=True),
         eps_v=_number(c.get("eps_v", 0.01), "contact.eps_v", positive=True),
         self_contact=bool(c.get("self_contact", True)),
+        broad_phase=check_broad_phase(c.get("broad_phase", "spatial_hash"), "contact.broad_phase"),
     )
     meta: dict[str, Any] = {"name": str(scene["name"]), "dt": dt, "sheet_grid": {}, "effector_bodies": {}}
     b = ModelBuilder()

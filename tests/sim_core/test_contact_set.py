@@ -274,3 +274,36 @@ def _distance_in_step(cs: ContactSet, x: np.ndarray, memory) -> float:
             or {*v[:2]} == {3, 4} and {*v[2:]} == {0, 1}]
     assert len(rows) == 1
     return float(ee.distance(x)[rows[0]])
+
+
+def _forming_model_deformed(seed: int):
+    """The Forming scene (hairpin sheet with self contact, frozen table box, dome gel) at its initial
+    state with every vertex jittered by 0.3 mm: sheet layers, gel and table within the search radius."""
+    from pathlib import Path
+
+    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+
+    model = load_task_scene(Path(__file__).resolve().parents[2] / "config" / "scenes" / "forming.yaml")
+    x = task_initial_state(model).x + np.random.default_rng(seed).normal(scale=3e-4, size=(model.vertex_count, 3))
+    return model, x
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_every_broad_phase_gives_the_same_candidate_lists_on_the_numpy_path(seed):
+    """NumPy backend: the spatial hash (the default) and the k-d trees give identical sorted lists;
+    ``sweep`` runs its reference there; an unknown name is refused."""
+    from sim_core.errors import ConfigError
+
+    model, x = _forming_model_deformed(seed)
+    assert ContactSet(model).broad_phase == "spatial_hash"
+    lists = {}
+    for name in ("spatial_hash", "sweep", "kdtree"):
+        cs = ContactSet(model, broad_phase=name)
+        _, vt, ee = cs._candidate_pairs(x)
+        lists[name] = (vt, ee)
+        assert len(vt) > 50 and len(ee) > 50
+    for name in ("spatial_hash", "sweep"):
+        np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
+        np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
+    with pytest.raises(ConfigError, match="broad_phase.*'bvh'"):
+        ContactSet(model, broad_phase="bvh")

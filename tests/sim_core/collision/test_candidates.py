@@ -229,3 +229,39 @@ def test_pair_sides_come_from_memory_or_the_reference_positions():
     s = edge_edge_pair_sides(xe, np.array([[0, 1]]), edges)
     xe_flip = xe * np.array([1, 1, -1])
     assert edge_edge_pair_sides(xe_flip, np.array([[0, 1]]), edges).tolist() == (-s).tolist()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grouped_spatial_hash_equals_the_grouped_kdtree(seed):
+    """The NumPy path's default broad phase (a SpatialHash per allowed body pair): the k-d tree
+    reference's pairs on random boxes of interleaved bodies, within one set and between two, with
+    and without inflation, zero-size boxes included."""
+    from sim_core.collision.candidates import _grouped_box_pairs, grouped_box_pairs_hash
+
+    rng = np.random.default_rng(seed)
+    allowed = rng.random((3, 3)) < 0.7
+    allowed |= allowed.T
+    a_lo = rng.uniform(0.0, 1.0, (300, 3))
+    a_hi = a_lo + rng.uniform(0.0, 0.05, (300, 3)) * (rng.random((300, 1)) < 0.8)  # a fifth zero-size
+    b_lo = rng.uniform(0.0, 1.0, (200, 3))
+    b_hi = b_lo + rng.uniform(0.0, 0.05, (200, 3))
+    a_body, b_body = rng.integers(0, 3, 300), rng.integers(0, 3, 200)
+    for args in ((a_lo, a_hi, a_body, None, None, None), (a_lo, a_lo, a_body, b_lo, b_hi, b_body)):
+        for radius in (0.0, 0.02):
+            ref = _grouped_box_pairs(*args, radius, allowed)
+            new = grouped_box_pairs_hash(*args, radius, allowed)
+            assert len(ref) > 0 or radius == 0.0
+            np.testing.assert_array_equal(new[np.lexsort(new.T[::-1])], ref[np.lexsort(ref.T[::-1])])
+
+
+def test_spatial_hash_box_pairs_of_points_empty_sets_and_nan():
+    from sim_core.collision.candidates import box_pairs_hash
+
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    np.testing.assert_array_equal(box_pairs_hash(points, points, None, None, 0.0), [[0, 1]])
+    np.testing.assert_array_equal(box_pairs_hash(points, points, None, None, 1e-3), [[0, 1], [0, 2], [1, 2]])
+    assert box_pairs_hash(points[:0], points[:0], points, points, 0.1).shape == (0, 2)
+    bad = points.copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(ConfigError, match="NaN or infinite"):
+        box_pairs_hash(bad, bad, None, None, 0.1)

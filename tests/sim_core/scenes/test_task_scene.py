@@ -164,3 +164,18 @@ def test_rewards():
     assert folding_reward(tb, hinges, 16, {7: 1.0, 8: -1.0}) == pytest.approx(-0.3 - 0.2)
     with pytest.raises(ConfigError, match="column 3 has no crease"):
         folding_reward(tb, hinges, 16, {3: 1.0})
+
+
+@pytest.mark.parametrize("name", ["spatial_hash", "sweep", "kdtree"])
+def test_contact_broad_phase_is_parsed(name):
+    scene = _scene("forming")
+    assert build_task_scene(scene).contact.broad_phase == "spatial_hash"  # the default
+    scene["contact"]["broad_phase"] = name
+    assert build_task_scene(scene).contact.broad_phase == name
+
+
+def test_an_unknown_broad_phase_is_rejected_by_key():
+    scene = _scene("forming")
+    scene["contact"]["broad_phase"] = "octree"
+    with pytest.raises(ConfigError, match=r"contact\.broad_phase: unknown broad phase 'octree'.*spatial_hash"):
+        build_task_scene(scene)

@@ -1,0 +1,103 @@
+"""The contact set's candidate lists from the spatial-hash kernel, with the pair exclusions inside it.
+
+:func:`sim_core.collision.candidates.vertex_triangle_candidates` and
+:func:`~sim_core.collision.candidates.edge_edge_candidates` find box pairs and then drop, in NumPy,
+the pairs that share a vertex and the same-body pairs closer than the self-contact rest distance
+(looked up in a :class:`~sim_core.collision.rest_exclusion.RestExclusion`), and sort the rest.
+:class:`HashCandidates` finds the box pairs with the spatial hash of
+:mod:`sim_core.ti_kernels.hash_grid` (one launch per list; the kernel reads the positions and the elements' vertices and
+forms the boxes itself), whose kernel applies both exclusions
+before writing a pair (shared vertices by comparing the elements' vertex indices, the rest distance
+by a binary search of the pair's key in the sorted keys of the rest exclusion) and applies the body
+filter as the ``allowed`` matrix. The lists therefore equal the reference's; the twin of
+:class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` (same interface and lists).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.collision.candidates import PairFilter
+from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.errors import ConfigError
+from sim_core.ti_kernels.hash_grid import HashGrid
+
+
+class HashCandidates:
+    """Vertex-triangle and edge-edge candidate lists of fixed elements by a spatial hash.
+
+    Args:
+        vertices: global indices of the colliding vertices, shape ``(v,)``.
+        triangles: global vertex indices of the colliding triangles, shape ``(t, 3)``.
+        edges: global vertex indices of the colliding edges, shape ``(e, 2)``.
+        pair_filter: the body / self-contact filter; needs ``body_pair_allowed``.
+        rest_exclusion: the filter's :class:`RestExclusion` built for these same arrays.
+
+    Raises:
+        ConfigError: no body-pair table in the filter, or a rest exclusion of another filter.
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
+                 rest_exclusion: RestExclusion) -> None:
+        if pair_filter.body_pair_allowed is None:
+            raise ConfigError("HashCandidates: the pair filter needs a body_pair_allowed table")
+        if rest_exclusion.pair_filter is not pair_filter:
+            raise ConfigError("HashCandidates: the rest exclusion was built for another pair filter")
+        body = np.asarray(pair_filter.vertex_body)
+        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.allowed = np.ascontiguousarray(pair_filter.body_pair_allowed, dtype=np.int32)
+        self._vertex_body = body[self.vertices].astype(np.int32)
+        self._triangle_body = body[self.triangles[:, 0]].astype(np.int32)
+        self._edge_body = body[self.edges[:, 0]].astype(np.int32)
+        self._vertex_elements = np.ascontiguousarray(self.vertices[:, None], dtype=np.int32)
+        self._vertex_keys = np.ascontiguousarray(self.vertices, dtype=np.int32)
+        self._triangle_elements = np.ascontiguousarray(self.triangles, dtype=np.int32)
+        self._edge_elements = np.ascontiguousarray(self.edges, dtype=np.int32)
+        self._edge_keys = np.arange(self.edges.shape[0], dtype=np.int32)
+        # keys are >= 0: a -1 in front keeps the array sorted and non-empty and matches no pair
+        self._vt_rest = np.concatenate([[-1], rest_exclusion.vertex_triangle_keys]).astype(np.int64)
+        self._ee_rest = np.concatenate([[-1], rest_exclusion.edge_edge_keys]).astype(np.int64)
+        self.vt_grid, self.ee_grid = HashGrid(), HashGrid()
+
+    def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:
+        """``[global vertex, triangle row]`` pairs within ``radius`` (m) at ``x`` ``(n, 3)`` (m), int64
+        ``(p, 2)``, sorted: :func:`sim_core.collision.candidates.vertex_triangle_candidates`'s list.
+
+        Raises:
+            ConfigError: the Taichi backend is not initialised, or ``x`` is not finite.
+        """
+        if self.vertices.size == 0 or self.triangles.shape[0] == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        return self.vt_grid.pairs(x, self._vertex_elements, self._vertex_body, self._vertex_keys,
+                                  self._triangle_elements, self._triangle_body, self.allowed, self._vt_rest, radius)
+
+    def edge_edge(self, x: np.ndarray, radius: float) -> np.ndarray:
+        """``[edge row i, edge row j]`` pairs (``i < j``) within ``radius`` (m) at ``x`` ``(n, 3)`` (m),
+        int64 ``(p, 2)``, sorted: :func:`sim_core.collision.candidates.edge_edge_candidates`'s list.
+
+        Raises:
+            ConfigError: the Taichi backend is not initialised, or ``x`` is not finite.
+        """
+        if self.edges.shape[0] < 2:
+            return np.zeros((0, 2), dtype=np.int64)
+        return self.ee_grid.pairs(x, self._edge_elements, self._edge_body, self._edge_keys, None, None, self.allowed,
+                                  self._ee_rest, radius)
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the kernel on two small sheets' lists.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.1], [1.0, 0.0, 0.1],
+                  [0.0, 1.0, 0.1]])
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    edges = np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]])
+    pair_filter = PairFilter(vertex_body=np.array([0, 0, 0, 1, 1, 1]), body_pair_allowed=np.ones((2, 2), bool))
+    rest = RestExclusion(pair_filter, np.arange(6), triangles, edges)
+    candidates = HashCandidates(np.arange(6), triangles, edges, pair_filter, rest)
+    candidates.vertex_triangle(x, 0.2)
+    candidates.edge_edge(x, 0.2)

@@ -1,0 +1,442 @@
+"""Broad phase in one Taichi kernel: pairs of inflated boxes that overlap, by a spatial hash.
+
+The Taichi twin of :class:`sim_core.collision.spatial_hash.SpatialHash` inside the grouped search of
+:func:`sim_core.collision.candidates._grouped_box_pairs` (k-d trees per pair of bodies, the reference
+and test oracle): the same pairs, found on a uniform grid whose cells are hashed into a table
+(Teschner et al., "Optimized Spatial Hashing for Collision Detection of Deformable Objects", VMV
+2003: bucket ``(c_x p1 xor c_y p2 xor c_z p3) mod m`` with ``p1, p2, p3 = 73856093, 19349663,
+83492791``). One launch of :func:`_hash_pairs` runs, as consecutive loops:
+
+1. the cell size ``h = max(mean_b max_d (b_hi - b_lo)_d + 2 radius, widest / 256, max |coordinate| / 2^18)``
+   (about one inflated box per cell; the second bound keeps the cells of the widest box below 257
+   per axis, the third keeps cell indices far inside the 21-bit fields of the cell keys);
+2. a counting sort of the boxes of set B into the buckets of the cells they overlap (count per
+   bucket, prefix sum into ``bucket_start``, scatter of ``(box, cell key)`` entries);
+3. for each box ``a`` of set A, inflated by ``radius``, a visit of the cells it overlaps: the
+   entries of the cell (its bucket, entries of other cells of the bucket skipped by their key) are
+   pairs when their bodies may touch and the reference's exact inflated-box test holds,
+
+       a_lo - radius <= b_hi  and  b_lo <= a_hi + radius      (per axis, same operands),
+
+   and a pair is reported only from the cell of the lower corner of the boxes' intersection
+   ``max(a_lo - radius, b_lo)``, which both boxes overlap, so each pair once (cells are
+   ``floor(v / h)``; rounding is monotone, so the corner's cell lies in both boxes' cell ranges).
+
+Within one set (A paired with itself) a pair is tested from the box of the lower body, then of the
+lower index, as the reference does. The kernel also applies the candidate exclusions of
+:mod:`sim_core.ti_kernels.hash_candidates` when given element vertices and rest keys: pairs of
+elements that share a vertex, and same-body pairs whose key ``first << 32 | second`` is in the
+sorted rest-distance keys. The pairs are therefore exactly the reference's; they are returned
+sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort).
+
+Loops run serially on the CPU (entries and pairs in box order), in parallel on CUDA (atomic
+counters; the sort makes the result the same). The entry and output buffers are kept by a
+:class:`HashGrid` between searches; when one was too small the kernel reports the size needed and
+runs again on a larger one.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.errors import ConfigError
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
+_I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
+
+_KEY_OFFSET = 1 << 20  # cell indices are packed as 21-bit unsigned fields of one int64 key
+_CELL_LIMIT = float(1 << 18)  # the cell size keeps |cell index| <= 2^18 + 1
+_WIDEST_CELLS = 256.0  # the widest box overlaps at most 257 cells per axis
+_P1, _P2, _P3 = 73856093, 19349663, 83492791  # Teschner et al. 2003
+# count: [0] pairs found, [1] entries needed, [2] 1 if a coordinate is not finite
+_PAIRS, _ENTRIES, _BAD = 0, 1, 2
+
+
+@ti.func
+def _cell_of(v: ti.f64, inv_cell: ti.f64) -> ti.i32:
+    """Cell index ``floor(v / h)`` along one axis (``v * (1 / h)``: monotone in ``v``)."""
+    return ti.cast(ti.floor(v * inv_cell), ti.i32)
+
+
+@ti.func
+def _cell_key(c0: ti.i32, c1: ti.i32, c2: ti.i32) -> ti.i64:
+    """The cell's int64 key: three 21-bit fields (as :mod:`sim_core.collision.spatial_hash`)."""
+    return (ti.cast(c0 + _KEY_OFFSET, ti.i64) << 42) | (ti.cast(c1 + _KEY_OFFSET, ti.i64) << 21) | ti.cast(
+        c2 + _KEY_OFFSET, ti.i64)
+
+
+@ti.func
+def _bucket(c0: ti.i32, c1: ti.i32, c2: ti.i32, mask: ti.i64) -> ti.i32:
+    """Teschner et al.'s hash of a cell, ``(c0 p1 xor c1 p2 xor c2 p3) mod m`` for ``m = mask + 1`` (a power of 2)."""
+    h = (ti.cast(c0, ti.i64) * _P1) ^ (ti.cast(c1, ti.i64) * _P2) ^ (ti.cast(c2, ti.i64) * _P3)
+    return ti.cast(h & mask, ti.i32)
+
+
+@ti.func
+def _element_box(x: ti.template(), vertices: ti.template(), i: ti.i32):
+    """``(lo, hi, finite)``: the corners of element ``i``'s box (min / max over its vertices, exact)
+    and whether all its coordinates are finite."""
+    v = vertices[i, 0]
+    lo = ti.Vector([x[v, 0], x[v, 1], x[v, 2]], dt=ti.f64)
+    hi = lo
+    for u in range(1, vertices.shape[1]):
+        w = vertices[i, u]
+        for d in ti.static(range(3)):
+            lo[d] = ti.min(lo[d], x[w, d])
+            hi[d] = ti.max(hi[d], x[w, d])
+    finite = True
+    for u in range(vertices.shape[1]):
+        w = vertices[i, u]
+        for d in ti.static(range(3)):
+            finite = finite and ti.abs(x[w, d]) <= 1e300
+    return lo, hi, finite
+
+
+@ti.func
+def _shares_vertex(a_vertices: ti.template(), i: ti.i32, b_vertices: ti.template(), j: ti.i32) -> ti.i32:
+    """1 if element ``i`` of A and element ``j`` of B have a vertex in common."""
+    shared = 0
+    for u in range(a_vertices.shape[1]):
+        for w in range(b_vertices.shape[1]):
+            if a_vertices[i, u] == b_vertices[j, w]:
+                shared = 1
+    return shared
+
+
+@ti.func
+def _is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
+    """1 if ``key`` is in the sorted ``rest_keys`` (binary search)."""
+    lo, hi = 0, rest_keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if rest_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    found = 0
+    if lo < rest_keys.shape[0]:
+        if rest_keys[lo] == key:
+            found = 1
+    return found
+
+
+@fast_kernel
+def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_vertices: _I32_2, b_body: _I32_1,
+                allowed: _I32_2, rest_keys: _I64_1, radius: ti.f64,
+                cell_scale: ti.f64, same: ti.i32, bucket_start: _I32_1, bucket_fill: _I32_1, entry_item: _I32_1,
+                entry_cell: _I64_1, body_box: _F64_2, scale: _F64_1, out: _I32_2, count: _I32_1):
+    """Pairs of elements (rows of ``a_vertices`` and ``b_vertices``: vertex indices into ``x``) whose
+    boxes (the min / max of their vertices' positions) overlap when A's are inflated by ``radius``.
+
+    ``count[0]`` (set to 0 by the caller) += the number of kept pairs; the first ``out.shape[0]``
+    of them in ``out`` as ``[first, second]``: ``[a_key[i], j]`` between two sets, ``[min, max]`` of
+    the two indices within one (module docstring). ``count[1]``: the entries needed (none are
+    written and no pair is searched when ``entry_item`` is shorter); ``count[2]``: 1 when a
+    coordinate is not finite (nothing searched). Buckets are per hashed cell and body of B
+    (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
+    a box visits only the entries of the bodies it may touch, and of those only within the cell range
+    of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
+    ``scale``: scratch, ``[cell size, 1 / cell size, sum of box widths, widest box, largest
+    |coordinate|]``; the mean-width term of the cell size is multiplied by ``cell_scale``."""
+    na, nb = a_vertices.shape[0], b_vertices.shape[0]
+    bodies = body_box.shape[0]
+    buckets = bucket_fill.shape[0]
+    mask = ti.cast(buckets // bodies - 1, ti.i64)
+    capacity, entry_capacity = out.shape[0], entry_item.shape[0]
+    # 1. cell size and the bodies' bounding boxes (sums in box order on the CPU)
+    for _ in range(1):
+        for k in ti.static(range(2, 5)):
+            scale[k] = 0.0
+        count[_ENTRIES] = 0
+        count[_BAD] = 0
+        for k in range(bodies):
+            for d in ti.static(range(3)):
+                body_box[k, d] = ti.math.inf
+                body_box[k, 3 + d] = -ti.math.inf
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(nb):
+        b_lo, b_hi, finite = _element_box(x, b_vertices, j)
+        width, reach = 0.0, 0.0
+        body_j = b_body[j]
+        for d in ti.static(range(3)):
+            width = ti.max(width, b_hi[d] - b_lo[d])
+            reach = ti.max(reach, ti.max(ti.abs(b_lo[d]), ti.abs(b_hi[d])))
+            ti.atomic_min(body_box[body_j, d], b_lo[d])
+            ti.atomic_max(body_box[body_j, 3 + d], b_hi[d])
+        if not finite:
+            count[_BAD] = 1
+        ti.atomic_add(scale[2], width)
+        ti.atomic_max(scale[3], width)
+        ti.atomic_max(scale[4], reach)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(na):
+        a_lo, a_hi, finite = _element_box(x, a_vertices, i)
+        reach = 0.0
+        for d in ti.static(range(3)):
+            reach = ti.max(reach, ti.max(ti.abs(a_lo[d]), ti.abs(a_hi[d])))
+        if not finite:
+            count[_BAD] = 1
+        ti.atomic_max(scale[4], reach)
+    for _ in range(1):
+        cell = ti.max(ti.max(cell_scale * (scale[2] / ti.max(nb, 1) + 2.0 * radius),
+                             (scale[3] + 2.0 * radius) / _WIDEST_CELLS),
+                      ti.max((scale[4] + radius) / _CELL_LIMIT, 1e-300))
+        scale[0] = cell
+        scale[1] = 1.0 / cell
+    # 2. counting sort of B's boxes into the buckets (cell, body) of their cells
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for h in range(buckets + 1):
+        bucket_start[h] = 0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(nb):
+        if count[_BAD] == 0:
+            inv = scale[1]
+            body_j = b_body[j]
+            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
+            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
+            for c0 in range(l0, u0 + 1):
+                for c1 in range(l1, u1 + 1):
+                    for c2 in range(l2, u2 + 1):
+                        ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
+    for _ in range(1):  # prefix sum (one thread)
+        total = 0
+        for h in range(buckets):
+            total += bucket_start[h + 1]
+            bucket_start[h + 1] = total
+        count[_ENTRIES] = total
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for h in range(buckets):
+        bucket_fill[h] = bucket_start[h]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(nb):
+        if count[_BAD] == 0 and count[_ENTRIES] <= entry_capacity:
+            inv = scale[1]
+            body_j = b_body[j]
+            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
+            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
+            for c0 in range(l0, u0 + 1):
+                for c1 in range(l1, u1 + 1):
+                    for c2 in range(l2, u2 + 1):
+                        slot = ti.atomic_add(bucket_fill[_bucket(c0, c1, c2, mask) * bodies + body_j], 1)
+                        entry_item[slot] = j
+                        entry_cell[slot] = _cell_key(c0, c1, c2)
+    # 3. each box of A visits, per body it may touch, the cells of its inflated box within the body's box
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(na):
+        if count[_BAD] == 0 and count[_ENTRIES] <= entry_capacity:
+            inv = scale[1]
+            a_lo, a_hi, _ = _element_box(x, a_vertices, i)
+            q_lo = a_lo - radius
+            q_hi = a_hi + radius
+            body_i = a_body[i]
+            for kb in range(bodies):
+                if allowed[body_i, kb] == 0 or (same != 0 and kb < body_i):
+                    continue
+                # cells of the query within the cells of body kb's box (its pairs' corners lie there)
+                lo_c = ti.Vector([0, 0, 0])
+                hi_c = ti.Vector([-1, -1, -1])
+                if body_box[kb, 0] <= body_box[kb, 3]:  # the body has boxes
+                    for d in ti.static(range(3)):
+                        lo_c[d] = ti.max(_cell_of(q_lo[d], inv), _cell_of(body_box[kb, d], inv))
+                        hi_c[d] = ti.min(_cell_of(q_hi[d], inv), _cell_of(body_box[kb, 3 + d], inv))
+                for c0 in range(lo_c[0], hi_c[0] + 1):
+                    for c1 in range(lo_c[1], hi_c[1] + 1):
+                        for c2 in range(lo_c[2], hi_c[2] + 1):
+                            key = _cell_key(c0, c1, c2)
+                            b = _bucket(c0, c1, c2, mask) * bodies + kb
+                            for s in range(bucket_start[b], bucket_start[b + 1]):
+                                if entry_cell[s] != key:
+                                    continue
+                                j = entry_item[s]
+                                b_lo, b_hi, _ = _element_box(x, b_vertices, j)
+                                # within one body of one set, from the box of the lower index
+                                if same != 0 and kb == body_i and j <= i:
+                                    continue
+                                keep = True
+                                for d in ti.static(range(3)):
+                                    keep = keep and (q_lo[d] <= b_hi[d]) and (b_lo[d] <= q_hi[d])
+                                if not keep:
+                                    continue
+                                # the cell of the intersection's lower corner only
+                                keep = _cell_of(ti.max(q_lo[0], b_lo[0]), inv) == c0
+                                keep = keep and _cell_of(ti.max(q_lo[1], b_lo[1]), inv) == c1
+                                keep = keep and _cell_of(ti.max(q_lo[2], b_lo[2]), inv) == c2
+                                if keep:
+                                    keep = _shares_vertex(a_vertices, i, b_vertices, j) == 0
+                                first, second = a_key[i], j
+                                if same != 0:
+                                    first, second = ti.min(i, j), ti.max(i, j)
+                                if keep and body_i == kb:
+                                    pair_key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
+                                    keep = _is_rest_close(rest_keys, pair_key) == 0
+                                if keep:
+                                    k = ti.atomic_add(count[_PAIRS], 1)
+                                    if k < capacity:
+                                        out[k, 0] = first
+                                        out[k, 1] = second
+
+
+def sorted_pairs(out: np.ndarray) -> np.ndarray:
+    """int64 ``(p, 2)`` rows of ``out`` sorted by first, then second column (one sort of int64 keys)."""
+    keys = (out[:, 0].astype(np.int64) << 32) | out[:, 1].astype(np.int64)
+    keys.sort()
+    return np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+
+
+def _power_of_two(n: int) -> int:
+    return 1 << max(4, int(n - 1).bit_length())
+
+
+class HashGrid:
+    """The buffers of :func:`_hash_pairs` for one kind of search, kept (and grown) between searches.
+
+    Each search needs a bucket table (a power of 2, about twice the boxes of set B), the entries of
+    B's boxes (one per overlapped cell) and the output pairs; kept as the same arrays, they are
+    bound to the compiled kernel once (:mod:`sim_core.ti_kernels.launch`).
+    """
+
+    def __init__(self, cell_scale: float = 1.0) -> None:
+        self.bucket_start = self.bucket_fill = np.zeros(0, dtype=np.int32)
+        self.entry_item = np.zeros(0, dtype=np.int32)
+        self.entry_cell = np.zeros(0, dtype=np.int64)
+        self.out = np.zeros((0, 2), dtype=np.int32)
+        self.body_box = np.zeros((0, 6), dtype=np.float64)
+        self.scale = np.zeros(5, dtype=np.float64)
+        self.cell_scale = cell_scale
+        self.count = np.zeros(3, dtype=np.int32)
+        self.cell_size = float("nan")  # of the last search (m)
+
+    def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
+              b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
+              radius: float) -> np.ndarray:
+        """The kept pairs of elements (module docstring), int64 ``(p, 2)``, sorted.
+
+        Args:
+            x: positions in m, float64 ``(n, 3)``.
+            a_vertices: vertex indices (rows of ``x``) of each element of set A, int32 ``(ka, m)``; its
+                box spans them.
+            a_body: body of each A element, int32 ``(ka,)``.
+            a_key: first column of a pair with A element ``i`` (between two sets), int32 ``(ka,)``.
+            b_vertices, b_body: the same for set B, or None to pair A with itself (pairs ``[i, j]``
+                with ``i < j``).
+            allowed: ``(bodies, bodies)`` int32, symmetric.
+            rest_keys: sorted int64 keys of excluded same-body pairs, non-empty.
+            radius: inflation in m (finite, >= 0).
+
+        Raises:
+            ConfigError: the Taichi backend is not initialised, or a coordinate is NaN or infinite.
+        """
+        require_backend("spatial-hash broad-phase kernel")
+        same = b_vertices is None
+        if same:
+            b_vertices, b_body = a_vertices, a_body
+        if a_vertices.shape[0] == 0 or b_vertices.shape[0] == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        bodies = allowed.shape[0]
+        buckets = _power_of_two(2 * b_vertices.shape[0]) * bodies
+        if self.body_box.shape[0] != bodies:
+            self.body_box = np.zeros((bodies, 6), dtype=np.float64)
+        if self.bucket_fill.shape[0] != buckets:
+            self.bucket_fill = np.zeros(buckets, dtype=np.int32)
+            self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
+        if self.entry_item.shape[0] < 4 * b_vertices.shape[0]:
+            self._grow_entries(8 * b_vertices.shape[0])
+        if self.out.shape[0] < 1024:
+            self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + b_vertices.shape[0])), 2), dtype=np.int32)
+        while True:
+            self.count[_PAIRS] = 0
+            _hash_pairs(x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
+                        self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
+                        self.entry_cell, self.body_box, self.scale, self.out, self.count)
+            if self.count[_BAD]:
+                raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
+            self.cell_size = float(self.scale[0])
+            entries, found = int(self.count[_ENTRIES]), int(self.count[_PAIRS])
+            if entries > self.entry_item.shape[0]:
+                self._grow_entries(entries + entries // 4)
+                continue
+            if found > self.out.shape[0]:
+                self.out = np.empty((found + found // 4, 2), dtype=np.int32)
+                continue
+            return sorted_pairs(self.out[:found])
+
+    def _grow_entries(self, size: int) -> None:
+        self.entry_item = np.zeros(size, dtype=np.int32)
+        self.entry_cell = np.zeros(size, dtype=np.int64)
+
+
+_NO_REST = np.full(1, -1, dtype=np.int64)  # matches no pair key (keys are >= 0)
+
+
+class HashSearch:
+    """:func:`grouped_box_pairs` on kept buffers (one :class:`HashGrid` per kind of search): the
+    callable the candidate functions of :mod:`sim_core.collision.candidates` take as ``grouped_search``."""
+
+    def __init__(self) -> None:
+        self.grids: dict[bool, HashGrid] = {}
+
+    def __call__(self, a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray, b_min: np.ndarray | None,
+                 b_max: np.ndarray | None, b_body: np.ndarray | None, radius: float, allowed: np.ndarray) -> np.ndarray:
+        """As :func:`grouped_box_pairs` (same arguments, result and errors).
+
+        Each box is an element of two points, its corners: rows ``[lo_i, hi_i]`` of one position
+        array (the min / max of the two is the box again), no two boxes sharing a point.
+        """
+        same = b_min is None
+        grid = self.grids.setdefault(same, HashGrid())
+        na = len(a_min)
+        allowed = np.ascontiguousarray(allowed, dtype=np.int32)
+        a_body = np.ascontiguousarray(a_body, dtype=np.int32)
+        a_key = np.arange(na, dtype=np.int32)
+        if same:
+            x = np.concatenate([np.asarray(a_min, dtype=np.float64).reshape(-1, 3),
+                                np.asarray(a_max, dtype=np.float64).reshape(-1, 3)])
+            a_vertices = np.stack([a_key, a_key + na], axis=1)
+            return grid.pairs(x, a_vertices, a_body, a_key, None, None, allowed, _NO_REST, radius)
+        nb = len(b_min)
+        x = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in (a_min, a_max, b_min, b_max)])
+        a_vertices = np.stack([a_key, a_key + na], axis=1)
+        b_rows = 2 * na + np.arange(nb, dtype=np.int32)
+        b_vertices = np.stack([b_rows, b_rows + nb], axis=1)
+        return grid.pairs(x, a_vertices, a_body, a_key, b_vertices, np.ascontiguousarray(b_body, dtype=np.int32),
+                          allowed, _NO_REST, radius)
+
+
+def grouped_box_pairs(
+    a_min: np.ndarray, a_max: np.ndarray, a_body: np.ndarray,
+    b_min: np.ndarray | None, b_max: np.ndarray | None, b_body: np.ndarray | None,
+    radius: float, allowed: np.ndarray,
+) -> np.ndarray:
+    """The pairs of :func:`sim_core.collision.candidates._grouped_box_pairs`, by a spatial hash (module docstring).
+
+    Args:
+        a_min, a_max, a_body: boxes of set A ``(ka, 3)`` in m and the body of each ``(ka,)``.
+        b_min, b_max, b_body: the same for set B, or None to pair A with itself (each unordered pair
+            once, as ``[i, j]`` with ``i < j``).
+        radius: inflation in m.
+        allowed: ``(bodies, bodies)`` bool, symmetric.
+
+    Returns:
+        int64 ``(p, 2)`` of ``[index in A, index in B]``, sorted (same set as the reference).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised, or a box coordinate is NaN or infinite.
+    """
+    return HashSearch()(a_min, a_max, a_body, b_min, b_max, b_body, radius, allowed)
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the hash kernel on two boxes.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    lo = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    grouped_box_pairs(lo, lo + 1.0, np.zeros(2, np.int32), None, None, None, 0.1, np.ones((1, 1), bool))

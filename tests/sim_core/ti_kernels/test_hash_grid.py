@@ -1,0 +1,204 @@
+"""The Taichi spatial-hash broad phase finds exactly the k-d tree reference's box pairs and lists."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.collision import candidates
+from sim_core.collision.candidates import PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.errors import ConfigError
+from tests.sim_core.ti_kernels.test_sweep_candidates import _scene
+
+
+def _sorted(pairs: np.ndarray) -> np.ndarray:
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def _boxes(rng, count, spread, size):
+    lo = rng.uniform(0.0, spread, size=(count, 3))
+    return lo, lo + rng.uniform(0.0, size, size=(count, 3))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_same_pairs_as_the_grouped_kdtree_on_random_boxes(ti_cpu, seed):
+    """Random boxes of interleaved bodies with a random body filter, within one set and between two
+    (degenerate point boxes included), with and without inflation: the reference's pairs, sorted."""
+    from sim_core.ti_kernels.hash_grid import HashSearch, grouped_box_pairs
+
+    rng = np.random.default_rng(seed)
+    bodies = 3
+    allowed = rng.random((bodies, bodies)) < 0.7
+    allowed |= allowed.T
+    a_lo, a_hi = _boxes(rng, 300, 1.0, 0.05 * (seed + 1))
+    b_lo, b_hi = _boxes(rng, 200, 1.0, 0.05)
+    a_body = rng.integers(0, bodies, 300)
+    b_body = rng.integers(0, bodies, 200)
+    search = HashSearch()  # kept buffers across searches of different sizes
+    for args in ((a_lo, a_hi, a_body, None, None, None), (a_lo, a_lo, a_body, b_lo, b_hi, b_body),
+                 (a_lo[:50], a_hi[:50], a_body[:50], None, None, None)):
+        for radius in (0.0, 0.02):
+            ref = _sorted(candidates._grouped_box_pairs(*args, radius, allowed))
+            assert len(ref) > 0 or radius == 0.0 or len(args[0]) < 100
+            np.testing.assert_array_equal(grouped_box_pairs(*args, radius, allowed), ref)
+            np.testing.assert_array_equal(search(*args, radius, allowed), ref)
+
+
+def test_touching_zero_size_and_empty_boxes(ti_cpu):
+    """Boxes exactly ``radius`` apart are pairs, a hair further apart are not; zero-size boxes (all of
+    them: the cell size then comes from the scene's extent) pair only at coinciding or inflated
+    overlap; an empty set gives no pairs; many pairs outgrow the first output buffer."""
+    from sim_core.ti_kernels.hash_grid import grouped_box_pairs
+
+    allowed = np.ones((1, 1), bool)
+    lo = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [3.0, 0.0, 0.0], [4.5000001, 0.0, 0.0]])
+    np.testing.assert_array_equal(grouped_box_pairs(lo, lo + 1.0, np.zeros(4, int), None, None, None, 0.5, allowed),
+                                  [[0, 1], [1, 2]])
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    body = np.zeros(4, int)
+    np.testing.assert_array_equal(grouped_box_pairs(points, points, body, None, None, None, 0.0, allowed), [[0, 1]])
+    np.testing.assert_array_equal(grouped_box_pairs(points, points, body, None, None, None, 1e-3, allowed),
+                                  [[0, 1], [0, 2], [1, 2]])
+    for radius in (0.0, 5e-4, 3.0):
+        ref = candidates._grouped_box_pairs(points, points, body, points[:2], points[:2], body[:2], radius, allowed)
+        np.testing.assert_array_equal(grouped_box_pairs(points, points, body, points[:2], points[:2], body[:2],
+                                                        radius, allowed), _sorted(ref))
+    empty = np.zeros((0, 3))
+    assert grouped_box_pairs(empty, empty, np.zeros(0, int), None, None, None, 0.1, allowed).shape == (0, 2)
+    assert grouped_box_pairs(lo, lo, body, empty, empty, np.zeros(0, int), 0.1, allowed).shape == (0, 2)
+    rng = np.random.default_rng(3)
+    lo = rng.uniform(0.0, 0.1, size=(100, 3))
+    pairs = grouped_box_pairs(lo, lo + 0.5, np.zeros(100, int), None, None, None, 0.0, allowed)
+    assert len(pairs) == 4950
+
+
+def test_nan_coordinates_are_refused(ti_cpu):
+    from sim_core.ti_kernels.hash_grid import grouped_box_pairs
+
+    lo = np.array([[0.0, 0.0, 0.0], [1.0, np.nan, 0.0]])
+    allowed = np.ones((1, 1), bool)
+    with pytest.raises(ConfigError, match="NaN or infinite"):
+        grouped_box_pairs(lo, lo + 1.0, np.zeros(2, int), None, None, None, 0.1, allowed)
+    with pytest.raises(ConfigError, match="NaN or infinite"):
+        grouped_box_pairs(lo[:1], lo[:1] + 1.0, np.zeros(1, int), lo, lo + 1.0, np.zeros(2, int), 0.1, allowed)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_lists_equal_the_reference_lists(ti_cpu, seed):
+    """Crumpled sheet (self contact, rest-distance exclusion), floor and cap with a body filter:
+    the same sorted int64 lists as the k-d tree reference with its NumPy exclusions, over several
+    radii and successive searches, with vertex and triangle subsets."""
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    x, vertices, triangles, edges, pair_filter = _scene(seed)
+    rng = np.random.default_rng(100 + seed)
+    for subset in (slice(None), slice(0, 144 + 36)):
+        v = vertices[subset]
+        t = triangles[(triangles < (len(vertices) if subset == slice(None) else 180)).all(axis=1)]
+        rest = RestExclusion(pair_filter, v, t, edges)
+        lists = HashCandidates(v, t, edges, pair_filter, rest)
+        for step, radius in enumerate((0.0, 0.0005, 0.002, 0.002, 0.0005)):
+            y = x + rng.normal(scale=1e-4, size=x.shape) * step
+            vt_ref = vertex_triangle_candidates(y, v, t, radius, pair_filter, rest_exclusion=rest)
+            ee_ref = edge_edge_candidates(y, edges, radius, pair_filter, rest_exclusion=rest)
+            vt, ee = lists.vertex_triangle(y, radius), lists.edge_edge(y, radius)
+            assert vt.dtype == ee.dtype == np.int64
+            np.testing.assert_array_equal(vt, vt_ref)
+            np.testing.assert_array_equal(ee, ee_ref)
+            if radius > 0.001:
+                assert len(vt_ref) > 100 and len(ee_ref) > 100
+    y = x.copy()
+    y[7, 1] = np.nan
+    with pytest.raises(ConfigError, match="NaN or infinite"):
+        lists.edge_edge(y, 0.001)
+
+
+def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_cpu):
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    x, vertices, triangles, edges, pair_filter = _scene(0)
+    no_table = PairFilter(vertex_body=pair_filter.vertex_body)
+    with pytest.raises(ConfigError, match="body_pair_allowed"):
+        HashCandidates(vertices, triangles, edges, no_table, RestExclusion(no_table, vertices, triangles, edges))
+    with pytest.raises(ConfigError, match="another pair filter"):
+        HashCandidates(vertices, triangles, edges, pair_filter, RestExclusion(no_table, vertices, triangles, edges))
+
+
+def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
+    """``fused_elastic.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
+    from sim_core.fused_elastic import compile_kernels
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
+    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.ti_kernels import hash_candidates, hash_grid
+
+    hash_candidates.compile_kernels()
+    assert any(plan is not None for plan in hash_grid._hash_pairs._plans.values())
+    calls = []
+    monkeypatch.setattr(hash_candidates, "compile_kernels", lambda: calls.append(1))
+    sheet = grid_sheet((0.01, 0.01), (3, 3))
+    compile_kernels([SpringMembrane(sheet.triangles, sheet_topology(sheet.triangles)[0], sheet.x, 1.0, 1.0)], sheet.x)
+    assert calls == [1]
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cpu, seed):
+    """Forming's sheet + gel + table model, deformed, on the Taichi backend: the hash kernel (the
+    default), the sweep and the k-d trees give the same sorted lists over successive searches."""
+    from tests.sim_core.test_contact_set import _forming_model_deformed
+    from sim_core.contact_set import ContactSet
+
+    model, x = _forming_model_deformed(seed)
+    model.meta["elastic_backend"] = "taichi"
+    sets = {name: ContactSet(model, broad_phase=name) for name in ("spatial_hash", "sweep", "kdtree")}
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        lists = {name: cs._candidate_pairs(x)[1:] for name, cs in sets.items()}
+        for name in ("spatial_hash", "sweep"):
+            np.testing.assert_array_equal(lists[name][0], lists["kdtree"][0])
+            np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
+        assert len(lists["kdtree"][0]) > 50 and len(lists["kdtree"][1]) > 50
+        x = x + rng.normal(scale=1e-3, size=x.shape)  # beyond margin / 2: searched again
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    assert isinstance(sets["spatial_hash"]._candidate_lists(None), HashCandidates)
+
+
+def test_forming_trajectory_is_the_same_with_every_broad_phase(ti_cpu):
+    """Six steps of the Forming benchmark on the Taichi CPU backend with each broad phase: the
+    same Newton iterations and positions (to round-off: the candidate lists are identical)."""
+    from pathlib import Path
+
+    import yaml
+
+    from sim_core.control import Control
+    from sim_core.scenes.task_scene import build_task_scene, task_initial_state
+    from sim_core.simulation import Simulation
+    from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+    from sim_core.ti_kernels import use_taichi_kernels
+
+    scene_path = Path(__file__).resolve().parents[3] / "config" / "scenes" / "forming.yaml"
+    runs = {}
+    for name in ("spatial_hash", "sweep", "kdtree"):
+        scene = yaml.safe_load(scene_path.read_text())
+        scene["contact"]["broad_phase"] = name
+        model = build_task_scene(scene)
+        sim = Simulation(model)
+        model.meta["elastic_backend"] = "taichi"
+        use_taichi_kernels(sim.solver.elastic)
+        sim.state = task_initial_state(model)
+        effector = next(iter(model.effectors))
+        targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(6))
+        iterations = []
+        for target in targets[:6]:
+            control = Control()
+            control.effector_pose_target[effector] = target
+            iterations.append(sim.step(control).iterations)
+        runs[name] = (iterations, sim.state.x.copy(), sim.state.contact_force.copy())
+    ref_iterations, ref_x, ref_force = runs["kdtree"]
+    assert np.max(np.abs(ref_force)) > 0  # the dome presses the sheet: contact is exercised
+    for name in ("spatial_hash", "sweep"):
+        iterations, x, force = runs[name]
+        assert iterations == ref_iterations
+        np.testing.assert_allclose(x, ref_x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(force, ref_force, rtol=0, atol=1e-9 * np.max(np.abs(ref_force)))
