@@ -27,37 +27,10 @@ from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.broad_phase import SweepSearch
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.pair_filters import is_rest_close, shares_vertex
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
-
-
-@ti.func
-def _shares_vertex(a_vertices: ti.template(), i: ti.i32, b_vertices: ti.template(), j: ti.i32) -> ti.i32:
-    """1 if element ``i`` of A and element ``j`` of B have a vertex in common."""
-    shared = 0
-    for u in range(a_vertices.shape[1]):
-        for w in range(b_vertices.shape[1]):
-            if a_vertices[i, u] == b_vertices[j, w]:
-                shared = 1
-    return shared
-
-
-@ti.func
-def _is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
-    """1 if ``key`` is in the sorted ``rest_keys`` (binary search)."""
-    lo, hi = 0, rest_keys.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if rest_keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    found = 0
-    if lo < rest_keys.shape[0]:
-        if rest_keys[lo] == key:
-            found = 1
-    return found
 
 
 @fast_kernel
@@ -123,13 +96,13 @@ def _sweep_candidates(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_position: _I
                     for d in ti.static(range(3)):
                         keep = keep and (lo_i[d] - radius <= sorted_hi[s, d]) and (sorted_lo[s, d] <= hi_i[d] + radius)
                 if keep:
-                    keep = _shares_vertex(a_vertices, i, b_vertices, j) == 0
+                    keep = shares_vertex(a_vertices, i, b_vertices, j) == 0
                 first, second = a_key[i], j
                 if same != 0:
                     first, second = ti.min(i, j), ti.max(i, j)
                 if keep and body_i == kb:
                     key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
-                    keep = _is_rest_close(rest_keys, key) == 0
+                    keep = is_rest_close(rest_keys, key) == 0
                 if keep:
                     k = ti.atomic_add(count[0], 1)
                     if k < capacity:
