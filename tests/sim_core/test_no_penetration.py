@@ -138,14 +138,16 @@ def test_sheet_on_a_tet_box_table_pressed_and_dragged_never_crosses_the_box():
     assert slid > 0.015, slid
 
 
-def _fold_onto_itself(sim: Simulation, steps: int, on_step, depth: float = 0.0125, ramp: int = 25) -> None:
+def _fold_onto_itself(sim: Simulation, steps: int, on_step, depth: float = 0.0125, ramp: int = 25,
+                      drag: float = 0.0) -> None:
     """Folding scene: the dome over the hairpin's bend moves down ``depth`` (default 12.5 mm) in
     ``ramp`` steps (the top layer starts 13.3 mm above the bottom one and sags under the dome),
-    then holds."""
+    then holds, or drags the fold ``drag`` m along +x over the remaining steps."""
     pose0 = sim.state.effector_pose["dome"].copy()
     control = Control()
     for i in range(steps):
         target = pose0.copy()
+        target[0] += drag * max(0.0, (i + 1 - ramp) / (steps - ramp))
         target[2] -= depth * min(1.0, (i + 1) / ramp)
         control.effector_pose_target["dome"] = target
         x_n = sim.state.x.copy()
@@ -205,13 +207,15 @@ def test_without_self_contact_the_same_fold_crosses():
     assert s["min_signed_distance"] < 0.0 and s["intersections"] > 0, s
 
 
-@pytest.mark.parametrize("depth, ramp", [(0.0125, 25), (0.0135, 20)])
-def test_sheet_held_folded_onto_itself_keeps_converging(depth, ramp):
+@pytest.mark.parametrize("depth, ramp, steps, drag", [(0.0125, 25, 40, 0.0), (0.0135, 20, 40, 0.0),
+                                                      (0.0125, 25, 65, 0.015)])
+def test_sheet_held_folded_onto_itself_keeps_converging(depth, ramp, steps, drag):
     """The dome pressed into the folded sheet (12.5 mm in 25 steps, or 13.5 mm in 20) and held
-    for the rest of 40 steps: every Newton step converges and no self pair crosses.
+    for the rest of 40 steps, or pressed 12.5 mm and then dragging the fold 15 mm along +x over 40
+    more steps: every Newton step converges, within 40 iterations, and no self pair crosses.
 
-    Regression: both motions failed before with "line search failed ... (no decrease along the
-    Newton direction)" (steps 27 and 18-20), dt halvings or not. A dome edge and a sheet edge
+    Regression: all three motions failed before with "line search failed ... (no decrease along the
+    Newton direction)" (steps 27, 18-20 and 27), dt halvings or not. A dome edge and a sheet edge
     0.81 mm apart at the step's start kept the side of their line-line normal; within the step the
     lines crossed beyond an end of the sheet edge, and the pair's contact distance would have
     jumped from +0.61 to -0.61 mm on re-entering the interior region: an energy step of 5.1 mJ at
@@ -222,14 +226,16 @@ def test_sheet_held_folded_onto_itself_keeps_converging(depth, ramp):
     sim = Simulation(model)
     sim.state = task_initial_state(model)
     audit = CrossingAudit(model, [("sheet", "sheet")])
-    released = []
+    released, iterations = [], []
 
     def on_step(x_n, sim):
         audit.step(x_n, sim.state.x)
         released.append(sim.last_info.released_sides)
+        iterations.append(sim.last_info.iterations)
 
-    _fold_onto_itself(sim, 40, on_step, depth, ramp)
+    _fold_onto_itself(sim, steps, on_step, depth, ramp, drag)
     s = audit.summary()
     assert s["min_signed_distance"] > 0.0 and s["intersections"] == 0, s
     assert s["max_active_pairs"] > 0, s
     assert sum(released) > 0, released
+    assert max(iterations) <= 40, iterations  # stale sides released early (SolverConfig.stale_side_backtracks)

@@ -5,7 +5,8 @@ bodies it is given (a body with itself: self-contact, with the contact set's res
 exclusion), and checks each step ``x^n -> x^{n+1}`` of a rollout with its own bookkeeping:
 
 * signed distance: a pair in the face region (vertex-triangle) or with both closest points interior
-  (edge-edge) at ``x^n`` and within ``reach`` of it takes its geometric side at ``x^n``
+  (edge-edge, not near-parallel: sine of the angle >= 0.1 at both ends of the step) at ``x^n`` and
+  within ``reach`` of it takes its geometric side at ``x^n``
   (:func:`~sim_core.collision.distances.point_triangle_side` / ``edge_edge_side``), and its contact
   distance at ``x^{n+1}`` (:func:`~sim_core.collision.distances.point_triangle_contact_distance` /
   ``edge_edge_contact_distance``, the contact potentials' distance) must stay > 0. A primitive that
@@ -132,8 +133,13 @@ class CrossingAudit:
             side = np.where(sided, point_triangle_side(z_n), point_triangle_side(z))
             d = point_triangle_contact_distance(z, side).d
         else:
+            # near-parallel edges have no side (the cross product of their directions is noise): the
+            # contact set leaves them to the vertex-triangle pairs (ContactSet.min_edge_sine), and so
+            # does the audit (two parallel grid edges 6.7 mm apart in a flat sheet read -6.7 mm once
+            # their cross product changed sign); a real crossing still shows as a piercing
             at_n = edge_edge_contact_distance(z_n, np.ones(len(z_n)))
-            sided = (at_n.region == EdgeEdgeRegion.INTERIOR) & (np.abs(at_n.d) < reach)
+            sided = ((at_n.region == EdgeEdgeRegion.INTERIOR) & (np.abs(at_n.d) < reach)
+                     & (_edge_sine(z_n) >= MIN_EDGE_SINE) & (_edge_sine(z) >= MIN_EDGE_SINE))
             side = np.where(sided, edge_edge_side(z_n), edge_edge_side(z))
             d = edge_edge_contact_distance(z, side).d
         return d, sided
@@ -167,6 +173,17 @@ class CrossingAudit:
             "intersections": sum(s.intersections for s in h),
             "active_steps": sum(s.active_pairs > 0 for s in h),
         }
+
+
+MIN_EDGE_SINE = 0.1
+"""Edge pairs with a smaller sine of their angle have no side in the audit (the contact set's
+``min_edge_sine``)."""
+
+
+def _edge_sine(z: np.ndarray) -> np.ndarray:
+    """Sine of the angle between the edges of ``[a0, a1, b0, b1]`` configurations ``(k, 4, 3)``."""
+    da, db = z[:, 1] - z[:, 0], z[:, 3] - z[:, 2]
+    return np.linalg.norm(np.cross(da, db), axis=1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
 
 
 def segment_triangle_intersections(x: np.ndarray, edge_triangle: np.ndarray) -> np.ndarray:
