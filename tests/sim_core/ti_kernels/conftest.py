@@ -1,17 +1,24 @@
-"""Shared fixtures of the Taichi kernel tests: one CPU Taichi runtime per test process."""
+"""Shared fixtures of the Taichi kernel tests: one Taichi runtime per test process, on the CPU
+unless ``THINSHELL_TEST_ARCH=cuda`` asks for the GPU (on a machine with one; tests that compare
+with the CPU's serial sums bit for bit then differ by round-off, by design)."""
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 import pytest
 
+TEST_ARCH = os.environ.get("THINSHELL_TEST_ARCH", "cpu")
+
 
 @pytest.fixture(scope="session")
 def ti_cpu() -> str:
-    """Initialise Taichi on the CPU (float64, offline cache on) once; returns the arch."""
+    """Initialise Taichi (float64, offline cache on) once, on ``TEST_ARCH`` (default the CPU);
+    returns the arch."""
     from sim_core.ti_backend import init_backend
 
-    return init_backend("cpu")
+    return init_backend(TEST_ARCH)
 
 
 def relative_error(a: np.ndarray, b: np.ndarray) -> float:
