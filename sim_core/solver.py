@@ -33,7 +33,6 @@ from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
-from sim_core.potentials.base import HessianBlocks, assemble_hessian
 from sim_core.potentials.damping import ViscousDamping
 from sim_core.potentials.gravity import GravityPotential
 from sim_core.potentials.inertia import InertiaPotential

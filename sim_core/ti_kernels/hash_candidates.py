@@ -19,11 +19,11 @@ import numpy as np
 
 from sim_core.collision.candidates import PairFilter
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.errors import ConfigError
 from sim_core.ti_kernels.hash_grid import HashGrid
+from sim_core.ti_kernels.pair_filters import CandidateElements
 
 
-class HashCandidates:
+class HashCandidates(CandidateElements):
     """Vertex-triangle and edge-edge candidate lists of fixed elements by a spatial hash.
 
     Args:
@@ -39,26 +39,7 @@ class HashCandidates:
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
                  rest_exclusion: RestExclusion) -> None:
-        if pair_filter.body_pair_allowed is None:
-            raise ConfigError("HashCandidates: the pair filter needs a body_pair_allowed table")
-        if rest_exclusion.pair_filter is not pair_filter:
-            raise ConfigError("HashCandidates: the rest exclusion was built for another pair filter")
-        body = np.asarray(pair_filter.vertex_body)
-        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
-        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-        self.allowed = np.ascontiguousarray(pair_filter.body_pair_allowed, dtype=np.int32)
-        self._vertex_body = body[self.vertices].astype(np.int32)
-        self._triangle_body = body[self.triangles[:, 0]].astype(np.int32)
-        self._edge_body = body[self.edges[:, 0]].astype(np.int32)
-        self._vertex_elements = np.ascontiguousarray(self.vertices[:, None], dtype=np.int32)
-        self._vertex_keys = np.ascontiguousarray(self.vertices, dtype=np.int32)
-        self._triangle_elements = np.ascontiguousarray(self.triangles, dtype=np.int32)
-        self._edge_elements = np.ascontiguousarray(self.edges, dtype=np.int32)
-        self._edge_keys = np.arange(self.edges.shape[0], dtype=np.int32)
-        # keys are >= 0: a -1 in front keeps the array sorted and non-empty and matches no pair
-        self._vt_rest = np.concatenate([[-1], rest_exclusion.vertex_triangle_keys]).astype(np.int64)
-        self._ee_rest = np.concatenate([[-1], rest_exclusion.edge_edge_keys]).astype(np.int64)
+        super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion)
         self.vt_grid, self.ee_grid = HashGrid(), HashGrid()
 
     def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:

@@ -44,7 +44,7 @@ from sim_core.errors import ConfigError
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.pair_filters import is_rest_close, shares_vertex
+from sim_core.ti_kernels.pair_filters import kept_pair
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
@@ -121,6 +121,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     mask = ti.cast(buckets // bodies - 1, ti.i64)
     capacity, entry_capacity = out.shape[0], entry_item.shape[0]
     # 1. cell size and the bodies' bounding boxes (sums in box order on the CPU)
+    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):
         for k in ti.static(range(2, 5)):
             scale[k] = 0.0
@@ -154,6 +155,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
         if not finite:
             count[_BAD] = 1
         ti.atomic_max(scale[4], reach)
+    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):
         cell = ti.max(ti.max(cell_scale * (scale[2] / ti.max(nb, 1) + 2.0 * radius),
                              (scale[3] + 2.0 * radius) / _WIDEST_CELLS),
@@ -176,6 +178,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 for c1 in range(l1, u1 + 1):
                     for c2 in range(l2, u2 + 1):
                         ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
+    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):  # prefix sum (one thread)
         total = 0
         for h in range(buckets):
@@ -240,14 +243,11 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                                 keep = _cell_of(ti.max(q_lo[0], b_lo[0]), inv) == c0
                                 keep = keep and _cell_of(ti.max(q_lo[1], b_lo[1]), inv) == c1
                                 keep = keep and _cell_of(ti.max(q_lo[2], b_lo[2]), inv) == c2
-                                if keep:
-                                    keep = shares_vertex(a_vertices, i, b_vertices, j) == 0
-                                first, second = a_key[i], j
-                                if same != 0:
-                                    first, second = ti.min(i, j), ti.max(i, j)
-                                if keep and body_i == kb:
-                                    pair_key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
-                                    keep = is_rest_close(rest_keys, pair_key) == 0
+                                same_body = ti.cast(body_i == kb, ti.i32)
+                                pair = kept_pair(a_vertices, a_key, i, b_vertices, j, same, same_body, rest_keys,
+                                                 ti.cast(keep, ti.i32))
+                                keep = pair[0] != 0
+                                first, second = pair[1], pair[2]
                                 if keep:
                                     k = ti.atomic_add(count[_PAIRS], 1)
                                     if k < capacity:

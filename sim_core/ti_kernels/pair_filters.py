@@ -1,12 +1,58 @@
 """Element-pair filters shared by the broad-phase kernels (:mod:`sim_core.ti_kernels.sweep_candidates`,
 :mod:`sim_core.ti_kernels.hash_grid`): pairs of elements that share a vertex, and pairs in the
 contact set's rest-distance exclusion (:class:`sim_core.collision.rest_exclusion.RestExclusion`,
-sorted int64 keys ``first << 32 | second``), are not contact candidates.
+sorted int64 keys ``first << 32 | second``), are not contact candidates. :class:`CandidateElements`
+holds the element tables both candidate-list classes pass to their kernels.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads ti.func annotations as objects.
 
+import numpy as np
+
+from sim_core.collision.candidates import PairFilter
+from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.errors import ConfigError
 from sim_core.ti_backend import ti
+
+
+class CandidateElements:
+    """The colliding elements of a contact set as the broad-phase kernels read them (int32 tables).
+
+    Args:
+        vertices: global indices of the colliding vertices, shape ``(v,)``.
+        triangles: global vertex indices of the colliding triangles, shape ``(t, 3)``.
+        edges: global vertex indices of the colliding edges, shape ``(e, 2)``.
+        pair_filter: the body / self-contact filter; needs ``body_pair_allowed``.
+        rest_exclusion: the filter's :class:`RestExclusion` built for these same arrays.
+
+    Raises:
+        ConfigError: no body-pair table in the filter, or a rest exclusion of another filter (the
+            message names the subclass).
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
+                 rest_exclusion: RestExclusion) -> None:
+        who = type(self).__name__
+        if pair_filter.body_pair_allowed is None:
+            raise ConfigError(f"{who}: the pair filter needs a body_pair_allowed table")
+        if rest_exclusion.pair_filter is not pair_filter:
+            raise ConfigError(f"{who}: the rest exclusion was built for another pair filter")
+        body = np.asarray(pair_filter.vertex_body)
+        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        self.allowed = np.ascontiguousarray(pair_filter.body_pair_allowed, dtype=np.int32)
+        self._vertex_body = body[self.vertices].astype(np.int32)
+        self._triangle_body = body[self.triangles[:, 0]].astype(np.int32)
+        self._edge_body = body[self.edges[:, 0]].astype(np.int32)
+        self._vertex_elements = np.ascontiguousarray(self.vertices[:, None], dtype=np.int32)
+        self._vertex_keys = np.ascontiguousarray(self.vertices, dtype=np.int32)
+        self._triangle_elements = np.ascontiguousarray(self.triangles, dtype=np.int32)
+        self._edge_elements = np.ascontiguousarray(self.edges, dtype=np.int32)
+        self._edge_keys = np.arange(self.edges.shape[0], dtype=np.int32)
+        # keys are >= 0: a -1 in front keeps the array sorted and non-empty and matches no pair
+        self._vt_rest = np.concatenate([[-1], rest_exclusion.vertex_triangle_keys]).astype(np.int64)
+        self._ee_rest = np.concatenate([[-1], rest_exclusion.edge_edge_keys]).astype(np.int64)
 
 
 @ti.func
@@ -35,3 +81,20 @@ def is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
         if rest_keys[lo] == key:
             found = 1
     return found
+
+
+@ti.func
+def kept_pair(a_vertices: ti.template(), a_key: ti.template(), i: ti.i32, b_vertices: ti.template(), j: ti.i32,
+              same: ti.i32, same_body: ti.i32, rest_keys: ti.template(), keep: ti.i32):
+    """``[keep, first, second]`` (int32 3-vector) of the box pair ``(i, j)`` whose boxes overlap when
+    ``keep`` is 1: the pair as the lists hold it (``[a_key[i], j]``, or ``[min, max]`` of a set with
+    itself, ``same``) and whether it survives the shared-vertex test and, for two elements of one
+    body (``same_body``), the rest-distance exclusion."""
+    if keep != 0:
+        keep = 1 - shares_vertex(a_vertices, i, b_vertices, j)
+    first, second = a_key[i], j
+    if same != 0:
+        first, second = ti.min(i, j), ti.max(i, j)
+    if keep != 0 and same_body != 0:
+        keep = 1 - is_rest_close(rest_keys, (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64))
+    return ti.Vector([keep, first, second], dt=ti.i32)

@@ -22,12 +22,11 @@ import numpy as np
 
 from sim_core.collision.candidates import PairFilter
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.errors import ConfigError
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.broad_phase import SweepSearch
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.pair_filters import is_rest_close, shares_vertex
+from sim_core.ti_kernels.pair_filters import CandidateElements, kept_pair
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
@@ -95,14 +94,10 @@ def _sweep_candidates(a_lo: _F64_2, a_hi: _F64_2, a_body: _I32_1, a_position: _I
                 else:
                     for d in ti.static(range(3)):
                         keep = keep and (lo_i[d] - radius <= sorted_hi[s, d]) and (sorted_lo[s, d] <= hi_i[d] + radius)
-                if keep:
-                    keep = shares_vertex(a_vertices, i, b_vertices, j) == 0
-                first, second = a_key[i], j
-                if same != 0:
-                    first, second = ti.min(i, j), ti.max(i, j)
-                if keep and body_i == kb:
-                    key = (ti.cast(first, ti.i64) << 32) | ti.cast(second, ti.i64)
-                    keep = is_rest_close(rest_keys, key) == 0
+                pair = kept_pair(a_vertices, a_key, i, b_vertices, j, same, ti.cast(body_i == kb, ti.i32), rest_keys,
+                                 ti.cast(keep, ti.i32))
+                keep = pair[0] != 0
+                first, second = pair[1], pair[2]
                 if keep:
                     k = ti.atomic_add(count[0], 1)
                     if k < capacity:
@@ -118,7 +113,7 @@ def _sorted_pairs(out: np.ndarray) -> np.ndarray:
     return np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
 
 
-class SweepCandidates:
+class SweepCandidates(CandidateElements):
     """Vertex-triangle and edge-edge candidate lists of fixed elements, exclusions in the kernel.
 
     Args:
@@ -135,27 +130,8 @@ class SweepCandidates:
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
                  rest_exclusion: RestExclusion, search: SweepSearch) -> None:
-        if pair_filter.body_pair_allowed is None:
-            raise ConfigError("SweepCandidates: the pair filter needs a body_pair_allowed table")
-        if rest_exclusion.pair_filter is not pair_filter:
-            raise ConfigError("SweepCandidates: the rest exclusion was built for another pair filter")
-        body = np.asarray(pair_filter.vertex_body)
-        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
-        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion)
         self.search = search
-        self.allowed = np.ascontiguousarray(pair_filter.body_pair_allowed, dtype=np.int32)
-        self._vertex_body = body[self.vertices].astype(np.int32)
-        self._triangle_body = body[self.triangles[:, 0]].astype(np.int32)
-        self._edge_body = body[self.edges[:, 0]].astype(np.int32)
-        self._vertex_elements = np.ascontiguousarray(self.vertices[:, None], dtype=np.int32)
-        self._vertex_keys = np.ascontiguousarray(self.vertices, dtype=np.int32)
-        self._triangle_elements = np.ascontiguousarray(self.triangles, dtype=np.int32)
-        self._edge_elements = np.ascontiguousarray(self.edges, dtype=np.int32)
-        self._edge_keys = np.arange(self.edges.shape[0], dtype=np.int32)
-        # keys are >= 0: a -1 in front keeps the array sorted and non-empty and matches no pair
-        self._vt_rest = np.concatenate([[-1], rest_exclusion.vertex_triangle_keys]).astype(np.int64)
-        self._ee_rest = np.concatenate([[-1], rest_exclusion.edge_edge_keys]).astype(np.int64)
 
     def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:
         """``[global vertex, triangle row]`` pairs within ``radius`` (m) at ``x`` ``(n, 3)`` (m), int64
