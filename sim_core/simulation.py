@@ -79,8 +79,10 @@ class Simulation:
         return info
 
     def reset(self) -> None:
-        """Return to the initial state."""
+        """Return to the initial state, with the solver's step-to-step caches cleared
+        (:meth:`NewtonSolver.reset_caches`): the same controls then give the same steps bit for bit."""
         self.state = self.model.state()
+        self.solver.reset_caches()
 
     # ------------------------------------------------------------------ parameters
     @property

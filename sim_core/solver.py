@@ -215,6 +215,21 @@ class NewtonSolver:
         """The last converged step's Newton matrix (``last_record.hessian``; None before the first step)."""
         return None if self.last_record is None else self.last_record.hessian
 
+    def reset_caches(self) -> None:
+        """Forget what steps carry to the next besides the state: the contact set's candidate lists
+        and search state, the Newton matrix's union pattern (dynamic entries are kept until unused
+        for 50 assemblies, so the pattern, PARDISO's ordering and the rounding of the solve depend
+        on the steps before) and the last step's record. A rollout from a given state then gives
+        the same result bit for bit whatever ran before it (the simulation's ``reset``, the sim
+        node's ``~/reset``). The material terms (and their kernel backend) are kept.
+        """
+        self.contact = ContactSet(self.model)
+        self.assembler = HessianAssembler(self.model.dof_count)
+        self._fused = None
+        self.last_record = None
+        self.last_free_mask = None
+        self.last_factorization = None
+
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
