@@ -20,7 +20,7 @@ import numpy as np
 from sim_core.collision.candidates import PairFilter
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.ti_kernels.hash_grid import HashGrid
-from sim_core.ti_kernels.pair_filters import CandidateElements
+from sim_core.ti_kernels.pair_filters import CandidateElements, compile_candidate_kernels
 
 
 class HashCandidates(CandidateElements):
@@ -73,12 +73,4 @@ def compile_kernels() -> None:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.1], [1.0, 0.0, 0.1],
-                  [0.0, 1.0, 0.1]])
-    triangles = np.array([[0, 1, 2], [3, 4, 5]])
-    edges = np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]])
-    pair_filter = PairFilter(vertex_body=np.array([0, 0, 0, 1, 1, 1]), body_pair_allowed=np.ones((2, 2), bool))
-    rest = RestExclusion(pair_filter, np.arange(6), triangles, edges)
-    candidates = HashCandidates(np.arange(6), triangles, edges, pair_filter, rest)
-    candidates.vertex_triangle(x, 0.2)
-    candidates.edge_edge(x, 0.2)
+    compile_candidate_kernels(HashCandidates)

@@ -15,6 +15,25 @@ from sim_core.errors import ConfigError
 from sim_core.ti_backend import ti
 
 
+def compile_candidate_kernels(make) -> None:
+    """JIT-compile (or load from Taichi's offline cache) a candidate-list kernel on two small sheets:
+    ``make(vertices, triangles, edges, pair_filter, rest_exclusion)`` returns the candidate-list
+    object (a :class:`CandidateElements`), whose two lists are then computed once.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.1], [1.0, 0.0, 0.1],
+                  [0.0, 1.0, 0.1]])
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    edges = np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]])
+    pair_filter = PairFilter(vertex_body=np.array([0, 0, 0, 1, 1, 1]), body_pair_allowed=np.ones((2, 2), bool))
+    candidates = make(np.arange(6), triangles, edges, pair_filter, RestExclusion(pair_filter, np.arange(6), triangles,
+                                                                                 edges))
+    candidates.vertex_triangle(x, 0.2)
+    candidates.edge_edge(x, 0.2)
+
+
 class CandidateElements:
     """The colliding elements of a contact set as the broad-phase kernels read them (int32 tables).
 

@@ -26,7 +26,7 @@ from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.broad_phase import SweepSearch
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.pair_filters import CandidateElements, kept_pair
+from sim_core.ti_kernels.pair_filters import CandidateElements, compile_candidate_kernels, kept_pair
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
@@ -250,12 +250,4 @@ def compile_kernels() -> None:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.1], [1.0, 0.0, 0.1],
-                  [0.0, 1.0, 0.1]])
-    triangles = np.array([[0, 1, 2], [3, 4, 5]])
-    edges = np.array([[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]])
-    pair_filter = PairFilter(vertex_body=np.array([0, 0, 0, 1, 1, 1]), body_pair_allowed=np.ones((2, 2), bool))
-    rest = RestExclusion(pair_filter, np.arange(6), triangles, edges)
-    candidates = SweepCandidates(np.arange(6), triangles, edges, pair_filter, rest, SweepSearch())
-    candidates.vertex_triangle(x, 0.2)
-    candidates.edge_edge(x, 0.2)
+    compile_candidate_kernels(lambda *lists: SweepCandidates(*lists, SweepSearch()))
