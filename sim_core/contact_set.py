@@ -103,6 +103,7 @@ class ContactSet:
         ]
         self.x_prev: np.ndarray | None = None
         self._cache = None  # (memory, candidates, potentials, sides) of the current step
+        self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self.min_edge_sine = 0.1
         # searches look ahead along the step's motion (see _search_position)
@@ -115,7 +116,7 @@ class ContactSet:
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
         self._step_table = None  # (memory, x^n, vt (pairs, sides), ee (pairs, (keep, sides))) of the step's last search
-        self._released = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))  # sorted pair keys (vt, ee)
+        self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
     def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
@@ -388,8 +389,8 @@ class ContactSet:
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:
         """``sides`` ``(p,)`` of ``pairs`` ``(p, 2)`` with the step's released pairs of ``kind`` (0
         vertex-triangle, 1 edge-edge; :meth:`release_stale_sides`) unsigned (a copy when any is)."""
-        released = getattr(self, "_released", None)
-        if released is None or not len(released[kind]) or not len(pairs):
+        released = self._released
+        if not len(released[kind]) or not len(pairs):
             return sides
         out = np.array(sides, dtype=float, copy=True)
         out[np.isin(_pair_keys(pairs), released[kind])] = 0.0
@@ -428,9 +429,8 @@ class ContactSet:
                  sided[1][~geo.ee_interior & (geo.ee_side != ee.sides[sided[1]])]]
         count = sum(len(rows) for rows in stale)
         if count:
-            released = getattr(self, "_released", (np.zeros(0, dtype=np.int64),) * 2)
             self._released = tuple(np.union1d(keys, _pair_keys(pot.pairs[rows]))
-                                   for keys, pot, rows in zip(released, (vt, ee), stale))
+                                   for keys, pot, rows in zip(self._released, (vt, ee), stale))
             self._cache = None  # the next potentials() builds the pairs again, with these sides at 0
         return count
 
@@ -497,6 +497,9 @@ class ContactSet:
             # an unsigned pair takes the side of x itself (the potential's resolved_sides)
             mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
         return out
+
+
+_NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
 def _pair_keys(pairs: np.ndarray) -> np.ndarray:

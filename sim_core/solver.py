@@ -169,7 +169,7 @@ class StepRecord:
 class StepInfo:
     """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), the
     iterations whose Newton matrix had PSD-projected element blocks, and the contact pairs whose
-    side was released after a failed line search (:meth:`ContactSet.release_stale_sides`)."""
+    side was released after a failed or very short line search (:meth:`ContactSet.release_stale_sides`)."""
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -223,20 +223,22 @@ class NewtonSolver:
         the same result bit for bit whatever ran before it (the simulation's ``reset``, the sim
         node's ``~/reset``). The material terms (and their kernel backend) are kept.
         """
-        self.contact = ContactSet(self.model)
-        self.assembler = HessianAssembler(self.model.dof_count)
-        self._fused = None
+        self._new_caches()
         self.last_record = None
         self.last_free_mask = None
         self.last_factorization = None
+
+    def _new_caches(self) -> None:
+        """Fresh contact set, assembler (union pattern) and fused-evaluator slot."""
+        self.contact = ContactSet(self.model)
+        self.assembler = HessianAssembler(self.model.dof_count)
+        self._fused: FusedElastic | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
         self.vertex_mass = self.model.vertex_mass()
-        self.contact = ContactSet(self.model)
-        self.assembler = HessianAssembler(self.model.dof_count)
-        self._fused: FusedElastic | None = None
+        self._new_caches()
         if self.model.candidates:
             from sim_core.candidates.hook import CandidateHook
 

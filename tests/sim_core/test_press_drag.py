@@ -16,6 +16,7 @@ import pytest
 
 from sim_core.scenes.scene_file import load_yaml
 from sim_core.simulation import Simulation
+from tests.support.press_scenes import press_and_drag
 
 SCENE = Path(__file__).resolve().parents[2] / "config" / "scenes" / "press_slide.yaml"
 
@@ -81,22 +82,18 @@ def clamped_drag_run():
     scene["effectors"]["ee"]["initial_pose"] = [0.05, 0.0, 0.0009, 1.0, 0.0, 0.0, 0.0]
     scene["simulation"] = {"gel_resolution": [8, 6, 3]}
     sim = Simulation.from_scene(scene)
-    pose0 = sim.state.effector_pose["ee"].copy()
-    control = sim.model.control()
     gel = sim.model.bodies[sim.model.sensors["tactile"].gel_body]
     face = gel.vertices[np.isclose(sim.state.x[gel.vertices, 2], sim.state.x[gel.vertices, 2].min())]
     sheet = sim.model.bodies["sheet"]
     wrench, face_speed, sheet_speed = [], [], []
-    depth, n_press, n_drag = 0.0012, 12, 25
-    for i in range(n_press + n_drag):
-        target = pose0.copy()
-        target[2] -= depth * min(1.0, (i + 1) / n_press)
-        target[0] += 0.02 * max(0, i + 1 - n_press) / n_drag
-        control.effector_pose_target["ee"] = target
-        sim.step(control)
+
+    def on_step(x_n, sim):
         wrench.append(sim.observe().tactile["tactile"].wrench.copy())
         face_speed.append(sim.state.v[face, 0].mean())
         sheet_speed.append(np.abs(sim.state.v[sheet.vertex_start:sheet.vertex_stop, 0]).max())
+
+    n_press = 12
+    press_and_drag(sim, "ee", 0.0012, 0.02, n_press, 25, on_step)
     return sim, np.array(wrench), np.array(face_speed), np.array(sheet_speed), n_press
 
 

@@ -9,16 +9,8 @@ from sim_core.collision import candidates
 from sim_core.collision.candidates import PairFilter, edge_edge_candidates, vertex_triangle_candidates
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.errors import ConfigError
+from tests.sim_core.ti_kernels.test_broad_phase import _boxes, _sorted
 from tests.sim_core.ti_kernels.test_sweep_candidates import _scene
-
-
-def _sorted(pairs: np.ndarray) -> np.ndarray:
-    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
-
-
-def _boxes(rng, count, spread, size):
-    lo = rng.uniform(0.0, spread, size=(count, 3))
-    return lo, lo + rng.uniform(0.0, size, size=(count, 3))
 
 
 @pytest.mark.parametrize("seed", range(6))
