@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from sim_core.collision import candidates
-from sim_core.collision.candidates import PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision.candidates import PairFilter
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.errors import ConfigError
 from tests.sim_core.ti_kernels.test_broad_phase import _boxes, _sorted
-from tests.sim_core.ti_kernels.test_sweep_candidates import _scene
+from tests.sim_core.ti_kernels.test_sweep_candidates import _scene, assert_lists_equal_the_reference
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -83,23 +83,7 @@ def test_lists_equal_the_reference_lists(ti_cpu, seed):
     radii and successive searches, with vertex and triangle subsets."""
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 
-    x, vertices, triangles, edges, pair_filter = _scene(seed)
-    rng = np.random.default_rng(100 + seed)
-    for subset in (slice(None), slice(0, 144 + 36)):
-        v = vertices[subset]
-        t = triangles[(triangles < (len(vertices) if subset == slice(None) else 180)).all(axis=1)]
-        rest = RestExclusion(pair_filter, v, t, edges)
-        lists = HashCandidates(v, t, edges, pair_filter, rest)
-        for step, radius in enumerate((0.0, 0.0005, 0.002, 0.002, 0.0005)):
-            y = x + rng.normal(scale=1e-4, size=x.shape) * step
-            vt_ref = vertex_triangle_candidates(y, v, t, radius, pair_filter, rest_exclusion=rest)
-            ee_ref = edge_edge_candidates(y, edges, radius, pair_filter, rest_exclusion=rest)
-            vt, ee = lists.vertex_triangle(y, radius), lists.edge_edge(y, radius)
-            assert vt.dtype == ee.dtype == np.int64
-            np.testing.assert_array_equal(vt, vt_ref)
-            np.testing.assert_array_equal(ee, ee_ref)
-            if radius > 0.001:
-                assert len(vt_ref) > 100 and len(ee_ref) > 100
+    x, lists = assert_lists_equal_the_reference(seed, HashCandidates)
     y = x.copy()
     y[7, 1] = np.nan
     with pytest.raises(ConfigError, match="NaN or infinite"):

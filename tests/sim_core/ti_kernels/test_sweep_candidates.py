@@ -42,13 +42,22 @@ def test_lists_equal_the_reference_lists(ti_cpu, seed):
     from sim_core.ti_kernels.broad_phase import SweepSearch
     from sim_core.ti_kernels.sweep_candidates import SweepCandidates
 
+    assert_lists_equal_the_reference(seed, lambda v, t, e, f, rest: SweepCandidates(v, t, e, f, rest,
+                                                                               SweepSearch(refresh=2)))
+
+
+def assert_lists_equal_the_reference(seed: int, make):
+    """Assert that ``make(vertices, triangles, edges, pair_filter, rest_exclusion)``'s lists equal the
+    k-d tree reference's (sorted int64) on :func:`_scene` over several radii and successive searches,
+    for all elements and for a subset without the cap's vertices and triangles; returns the scene's
+    positions and the last candidate-list object."""
     x, vertices, triangles, edges, pair_filter = _scene(seed)
     rng = np.random.default_rng(100 + seed)
     for subset in (slice(None), slice(0, 144 + 36)):  # all, and no cap vertices/triangles in the lists
         v = vertices[subset]
         t = triangles[(triangles < (len(vertices) if subset == slice(None) else 180)).all(axis=1)]
         rest = RestExclusion(pair_filter, v, t, edges)
-        lists = SweepCandidates(v, t, edges, pair_filter, rest, SweepSearch(refresh=2))
+        lists = make(v, t, edges, pair_filter, rest)
         for step, radius in enumerate((0.0, 0.0005, 0.002, 0.002, 0.0005)):
             y = x + rng.normal(scale=1e-4, size=x.shape) * step
             vt_ref = vertex_triangle_candidates(y, v, t, radius, pair_filter, rest_exclusion=rest)
@@ -59,6 +68,7 @@ def test_lists_equal_the_reference_lists(ti_cpu, seed):
             np.testing.assert_array_equal(ee, ee_ref)
             if radius > 0.001:
                 assert len(vt_ref) > 100 and len(ee_ref) > 100
+    return x, lists
 
 
 def test_boxes_exactly_radius_apart_and_an_output_buffer_that_grows(ti_cpu):
