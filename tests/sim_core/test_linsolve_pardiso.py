@@ -95,3 +95,77 @@ def test_cholesky_and_scipy_symmetric_agree_after_expansion_cache():
         assert chol.factorize(U) and lu_sym.factorize(U)
         np.testing.assert_allclose(chol.solve(b), ref, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(lu_sym.solve(b), ref, rtol=1e-9, atol=1e-12)
+
+
+def _constrained(U: sp.csr_matrix, fixed: np.ndarray) -> sp.csr_matrix:
+    """``U`` with the rows and columns of ``fixed`` replaced by the identity (as the Newton matrix)."""
+    D = sp.diags((~fixed).astype(float))
+    C = sp.csr_matrix(sp.triu(D @ U @ D) + sp.diags(fixed.astype(float)))
+    C.sort_indices()
+    return C
+
+
+def test_cholesky_splits_off_identity_rows_with_the_whole_matrix_solution():
+    """The Cholesky factorises only the DoFs that are not decoupled identity rows, and its solution
+    equals, bit for bit, PARDISO's of the whole matrix (the whole matrix factorised by a handle of
+    its own); right-hand sides with one or several columns."""
+    from sim_core.linsolve import IdentityRows, PardisoHandle
+
+    rng = np.random.default_rng(11)
+    n = 90
+    U = _random_upper(rng, n, 0.06)
+    fixed = np.zeros(n, dtype=bool)
+    fixed[rng.choice(n, size=35, replace=False)] = True
+    C = _constrained(U, fixed)
+    split = IdentityRows(C.indptr, C.indices, C.data)
+    np.testing.assert_array_equal(split.identity, fixed)
+    assert split.kept.size == n - 35
+    solver = PardisoCholesky()
+    assert solver.factorize(C)
+    whole = PardisoHandle(matrix_type=2, iparm=solver._handle.iparm)
+    assert whole.factorize(C.indptr, C.indices, C.data) == 0
+    for b in (rng.normal(size=n), rng.normal(size=(n, 3))):
+        x = solver.solve(b)
+        assert x.shape == b.shape
+        err, ref = whole.solve(b)
+        assert err == 0
+        np.testing.assert_array_equal(x, ref.reshape(b.shape))
+        np.testing.assert_array_equal(x[fixed], b[fixed])  # x_i = b_i exactly
+    A = full_from_upper(C).toarray()
+    np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-10)
+
+
+def test_identity_rows_follow_values_and_pattern_changes():
+    """A decoupled DoF whose diagonal is not 1 (a free vertex touching nothing) stays in the system
+    (a later matrix where an identity row's diagonal is not 1 gets a new split); a new pattern gets
+    a new split; a matrix that is all identity needs no factorisation; an indefinite reduced block
+    is reported."""
+    rng = np.random.default_rng(12)
+    n = 40
+    U = _random_upper(rng, n, 0.1)
+    fixed = np.zeros(n, dtype=bool)
+    fixed[:10] = True
+    C = _constrained(U, fixed)
+    C.data[C.indptr[0]] = 4.0  # row 0: decoupled, diagonal 4
+    solver = PardisoCholesky()
+    assert solver.factorize(C)
+    assert solver._split.kept.size == 31 and not solver._split.identity[0]
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(full_from_upper(C).toarray() @ solver.solve(b), b, atol=1e-10)
+    assert solver.solve(b)[0] == pytest.approx(b[0] / 4.0, rel=1e-15)
+    C2 = C.copy()
+    C2.data[C2.indptr[0]] = 1.0
+    C2.data[C2.indptr[5]] = 2.0  # an identity row no more
+    assert solver.factorize(C2)
+    assert solver._split.kept.size == 31 and solver._split.identity[0] and not solver._split.identity[5]
+    np.testing.assert_allclose(full_from_upper(C2).toarray() @ solver.solve(b), b, atol=1e-10)
+    I = sp.csr_matrix(sp.eye(n))
+    assert solver.factorize(I)
+    np.testing.assert_array_equal(solver.solve(b), b)
+    with pytest.raises(ValueError, match="right-hand side has 5 rows"):
+        solver.solve(np.ones(5))
+    N = C2.copy()
+    N.data[N.indptr[20]] = -50.0 * n  # a free DoF's diagonal made negative: not positive definite
+    assert not solver.factorize(N)
+    with pytest.raises(SimulationDivergedError, match="without a successful factorisation"):
+        solver.solve(b)
