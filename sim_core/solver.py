@@ -485,8 +485,9 @@ class NewtonSolver:
             full_step = alpha == 1.0
             # rate stopping ends the step on this update if it is taken in full
             rate_stop = cfg.rate_stopping and len(history) > 1 and _rate_stops(history, cfg.tol_velocity)
-            # the elastic terms' (and the Taichi friction's) energy, gradient and Hessian at the first
-            # trial point in one evaluation when, once accepted (backtracks are rare), it is the next iterate
+            # the elastic terms' (and the Taichi friction's and the pair contacts') energy, gradient and
+            # Hessian at the first trial point in one evaluation when, once accepted (backtracks are
+            # rare), it is the next iterate
             prefetch = fused is not None and not (full_step and rate_stop)
             for backtrack in range(cfg.max_backtracks):
                 x_new = x + alpha * d3
@@ -494,6 +495,10 @@ class NewtonSolver:
                     fused.evaluate(x_new)
                     if friction is not None and hasattr(friction, "evaluate"):
                         friction.evaluate(x_new)
+                    if self.contact.covers(x_search, x_new):  # else total() searches again: new pairs
+                        for p in contact_terms:
+                            if hasattr(p, "keep_derivatives"):
+                                p.keep_derivatives(x_new)
                 if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                     break
                 alpha *= 0.5
