@@ -305,9 +305,10 @@ class DynamicMerge:
         if pending:  # the tables were translated into the new union (and may have dropped elements)
             union, new_rows = self._rebuild(pending, count)
             rows = [new_rows[j][pos] for j, pos in enumerate(rows)]  # this call's elements are all kept
-        data = np.zeros(union.nnz)
-        data[union.static_slots] = static_data
-        if blocks:
+        if not blocks:
+            data = np.zeros(union.nnz)
+            data[union.static_slots] = static_data
+        else:
             slots, values = [], []
             for j, b in enumerate(blocks):
                 table = self._tables[j]
@@ -318,7 +319,9 @@ class DynamicMerge:
                     call = table.call = (signatures[j], union, rows[j], kept, flat[kept])
                 slots.append(call[4])
                 values.append(b.blocks.reshape(-1)[call[3]])
-            data += np.bincount(np.concatenate(slots), weights=np.concatenate(values), minlength=union.nnz)
+            # dynamic sums first, then the static value added: the same s + D per slot (addition commutes)
+            data = np.bincount(np.concatenate(slots), weights=np.concatenate(values), minlength=union.nnz)
+            data[union.static_slots] += static_data
         return sp.csr_matrix((data, union.indices, union.indptr), shape=(n, n))
 
     def _kept_keys(self, vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
