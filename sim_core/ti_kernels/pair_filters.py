@@ -87,8 +87,8 @@ def shares_vertex(a_vertices: ti.template(), i: ti.i32, b_vertices: ti.template(
 
 @ti.func
 def is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
-    """1 if ``key`` is in the sorted ``rest_keys`` (non-empty, first key below every pair key): a
-    binary search without branches on the keys (the range halves by a select)."""
+    """1 if ``key`` is in the sorted, non-empty ``rest_keys``: a binary search without branches on
+    the keys (the last key ``<= key`` found by halving the range with a select)."""
     base, size = 0, rest_keys.shape[0]
     while size > 1:
         half = size // 2
