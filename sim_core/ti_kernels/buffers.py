@@ -5,9 +5,13 @@ allocated when first needed and again only when the shape changes, so a potentia
 every Newton iteration moves data with ``from_numpy`` / ``to_numpy`` and never reallocates. Kernels
 take ndarrays as arguments (``ti.types.ndarray``), so they compile once per dtype and rank and are
 shared by every instance (no per-instance fields, no growth of Taichi's SNode trees).
+:class:`LaunchArrays` keeps host (NumPy) arrays for kernels that take NumPy arrays, so that their
+launches find the arrays they were bound to.
 """
 
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 
@@ -59,3 +63,32 @@ def upload_constant(values: np.ndarray, dtype):
     """A new ndarray holding ``values`` (rest-shape data uploaded once per potential)."""
     buf = DeviceArray(dtype)
     return buf.upload(values)
+
+
+class LaunchArrays(threading.local):
+    """NumPy arrays kept for a module's kernel launches, per thread, grown but never shrunk.
+
+    A kernel launched with the same array objects as at its last launch re-binds none of them
+    (:mod:`sim_core.ti_kernels.launch`; a re-bind costs ~5-10 us of Python per array). Functions
+    whose callers pass new arrays at every call copy them into kept arrays instead (a copy of a few
+    thousand entries costs ~1 us) and pass the row count as a scalar; the kernel's outputs are
+    kept arrays too, copied out. One set per thread: concurrent calls from two threads never share
+    an array.
+    """
+
+    def rows(self, name: str, rows: int, tail: tuple[int, ...] = (), dtype=np.float64) -> np.ndarray:
+        """The kept array ``name``, shape ``(capacity, *tail)`` with ``capacity >= rows`` (replaced
+        by one twice as long, at least, when it has fewer rows)."""
+        array = self.__dict__.get(name)
+        if array is None or array.shape[0] < rows:
+            capacity = max(rows, 16, 2 * array.shape[0] if array is not None else 0)
+            array = self.__dict__[name] = np.zeros((capacity,) + tuple(tail), dtype=dtype)
+        return array
+
+    def copy_of(self, name: str, values: np.ndarray) -> np.ndarray:
+        """The kept float64 array ``name`` of ``values``' shape, holding a copy of ``values``."""
+        array = self.__dict__.get(name)
+        if array is None or array.shape != np.shape(values):
+            array = self.__dict__[name] = np.empty(np.shape(values))
+        np.copyto(array, values)
+        return array

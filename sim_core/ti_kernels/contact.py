@@ -4,12 +4,13 @@
 potentials of :mod:`sim_core.potentials.contact` and replace only the contact distance and its
 derivatives (:mod:`sim_core.ti_kernels.contact_distance`); the penalty algebra, side handling,
 and ``parameter_gradient`` stay the reference's. The distances and gradients equal the reference
-bit for bit, the distance Hessians to round-off (1e-15 relative). Every pair is measured by the
-kernel (no prefilter: the kernel is cheaper than the bounds). The contact frames (friction's
+bit for bit, the distance Hessians to round-off (1e-15 relative). On its own, every pair is
+measured by the kernel (no NumPy prefilter: the kernel is cheaper than the NumPy bounds). The contact frames (friction's
 closest-point weights and normals) come from one launch of
 :func:`sim_core.ti_kernels.contact_setup.contact_frames` (equal to the reference to round-off).
 Linked by a :class:`~sim_core.ti_kernels.contact_batch.PairBatch`, a vertex-triangle and an edge-edge
-potential are evaluated together, one launch for both (same results).
+potential are evaluated together, one launch for both, with the distance bounds inside the kernel
+(same results).
 """
 
 from __future__ import annotations

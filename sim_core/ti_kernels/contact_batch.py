@@ -9,7 +9,11 @@ new positions ``x`` evaluates both in one launch of :func:`_batch_kernel` (the p
 gathered in the kernel; the distance of every pair; with derivatives, the gradient and Hessian of
 the active pairs ``d < eps``), and each potential keeps its part as its evaluation of ``x`` (the
 ``_last`` of :meth:`sim_core.potentials.contact._PairPenalty._evaluate`), so the second request
-finds it there.
+finds it there. Before measuring a pair, the kernel applies the exact prefilter of
+:mod:`sim_core.collision.distance_bounds` (box gap, plane / line-line bound, same margins): about
+two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
+(they are never active, so the active pairs and their values are unchanged). The kernel's arrays
+are kept by the batch (bound to the compiled kernel once, positions copied in).
 
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
@@ -22,10 +26,12 @@ Hessian equals theirs bit for bit (tests).
 
 import numpy as np
 
+from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.contact_setup import _vertex
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -33,36 +39,64 @@ _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _pair(z: ti.template(), i: ti.i32, side: ti.f64, eps: ti.f64, point_first: ti.i32,
-          derivatives: ti.i32, d: ti.template(), region: ti.template(), grad: ti.template(),
-          hess: ti.template()):
-    region[i], d[i] = cd._distance_value(z, i, side, point_first)
-    if derivatives:
-        if d[i] < eps:
-            cd._pair_derivatives(z, i, side, point_first, d, region, grad, hess)
+def _may_touch(z0, z1, z2, z3, side: ti.f64, eps: ti.f64, point_first: ti.i32) -> ti.i32:
+    """0 when pair ``[z0, z1, z2, z3]`` (``[p, a, b, c]`` with ``point_first``, else ``[a0, a1, b0, b1]``)
+    is farther than ``eps`` for certain: the box and plane bounds of
+    :mod:`sim_core.collision.distance_bounds` (same tests and margins, one pair)."""
+    limit = eps * (1.0 + RELATIVE_SLACK)
+    # the first primitive's points z0 (and z1 for an edge), the second's z2, z3 (and z1 for a triangle)
+    w, y = z1, z1
+    u, v, r = z2 - z1, z3 - z1, z0 - z1
+    if point_first:
+        w = z0
+    else:
+        y = z2
+        u, v, r = z1 - z0, z3 - z2, z0 - z2
+    a_lo, a_hi = ti.min(z0, w), ti.max(z0, w)
+    b_lo, b_hi = ti.min(ti.min(z2, z3), y), ti.max(ti.max(z2, z3), y)
+    gap = ti.max(a_lo - b_hi, b_lo - a_hi)
+    box_far = gap[0] > limit or gap[1] > limit or gap[2] > limit
+    n = cd._cross(u, v)
+    nn = cd._dot(n, n)
+    usable = nn >= MIN_SINE_SQUARED * cd._dot(u, u) * cd._dot(v, v)
+    h = 0.0
+    if usable:
+        h = cd._dot(n, r) / ti.sqrt(nn)
+    far = usable and side * h > limit
+    if side == 0.0:
+        far = box_far or (usable and ti.abs(h) > limit)
+    return ti.cast(not far, ti.i32)
 
 
 @fast_kernel
-def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, split: ti.i32, eps_vt: ti.f64,
-                  eps_ee: ti.f64, derivatives: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2,
-                  hess: _F64_3):
-    """Pairs ``k = rows[i]`` (``k < split`` vertex-triangle, else edge-edge): positions gathered into
-    ``z[i]``, distance ``d[i]`` and region; with ``derivatives`` the gradient and Hessian rows ``i``
-    of the pairs with ``d < eps`` of their kind (the other rows are left as they are). ``derivatives``
-    (0 or 1) and the pair kind are runtime values: one compiled kernel for every request."""
+def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
+                  eps_vt: ti.f64, eps_ee: ti.f64, derivatives: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1,
+                  grad: _F64_2, hess: _F64_3):
+    """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
+    ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the gradient and
+    Hessian rows ``i`` of the pairs with ``d < eps`` of their kind (the other rows are left as they
+    are). A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
+    (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
+    pair kind are runtime values: one compiled kernel for every request."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for i in range(rows.shape[0]):
+    for i in range(count):
         k = rows[i]
-        for a in ti.static(range(4)):
-            v = vertices[k, a]
-            for c in ti.static(range(3)):
-                z[i, a, c] = x[v, c]
         point_first = 0
         eps = eps_ee
         if k < split:
             point_first = 1
             eps = eps_vt
-        _pair(z, i, side[k], eps, point_first, derivatives, d, region, grad, hess)  # inlined once, both kinds
+        p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                          _vertex(x, vertices, k, 3))
+        if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
+            for c in ti.static(range(3)):
+                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
+            region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
+            if derivatives:
+                if d[i] < eps:
+                    cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
+        else:
+            region[i], d[i] = -1, ti.math.inf
 
 
 class PairBatch:
@@ -87,6 +121,13 @@ class PairBatch:
         self.vertices = np.ascontiguousarray(np.concatenate([vt.vertices, ee.vertices]), dtype=np.int32)
         self.sides = np.ascontiguousarray(np.concatenate([vt.sides, ee.sides]), dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
+        # the kernel's arrays, kept (bound to the compiled kernel once, :mod:`sim_core.ti_kernels.launch`):
+        # positions, rows, and per row the gathered pair, distance, region, gradient and Hessian
+        p = self.vertices.shape[0]
+        self._x = np.zeros((0, 3))
+        self._rows = np.zeros(p, dtype=np.int32)
+        self._z, self._d, self._region = np.empty((p, 4, 3)), np.empty(p), np.empty(p, dtype=np.int32)
+        self._grad, self._hess = np.empty((p, 12)), np.empty((p, 12, 12))
         vt._batch = ee._batch = self
 
     def evaluate(self, x: np.ndarray, derivatives: bool) -> None:
@@ -98,20 +139,20 @@ class PairBatch:
         pots = (self.vt, self.ee)
         kept = [pot.kept_evaluation(x, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
-            rows = np.concatenate([kept[0][0], kept[1][0] + self.split]).astype(np.int32)
+            rows = np.concatenate([kept[0][0], kept[1][0] + self.split])
             parts = (slice(0, len(kept[0][0])), slice(len(kept[0][0]), len(rows)))
         else:
             rows, kept = self._all, [None, None]
             parts = (slice(0, self.split), slice(self.split, len(rows)))
-        # work arrays of this evaluation only (potentials kept for the adjoint must not hold them)
         m = len(rows)
-        d, region = np.empty(m), np.empty(m, dtype=np.int32)
-        rows_d = m if derivatives else 0
-        grad, hess = np.empty((rows_d, 12)), np.empty((rows_d, 12, 12))
+        d, region, grad, hess = self._d, self._region, self._grad, self._hess
         if m:
-            _batch_kernel(np.ascontiguousarray(x, dtype=np.float64), self.vertices, self.sides, rows, self.split,
-                          float(self.vt.eps), float(self.ee.eps), int(bool(derivatives)), np.empty((m, 4, 3)), d,
-                          region, grad, hess)
+            self._rows[:m] = rows
+            if self._x.shape != x.shape:
+                self._x = np.empty(x.shape)
+            np.copyto(self._x, x)
+            _batch_kernel(self._x, self.vertices, self.sides, self._rows, m, self.split, float(self.vt.eps),
+                          float(self.ee.eps), int(bool(derivatives)), self._z, d, region, grad, hess)
         order = 2 if derivatives else 0
         x_kept = np.array(x, dtype=float, copy=True)
         for pot, part, known in zip(pots, parts, kept):
@@ -123,6 +164,7 @@ class PairBatch:
                 select = active
             else:  # the rows are the known active pairs, in order
                 active, select = known[0], slice(None)
+            # copies: the kernel's arrays are overwritten by the next evaluation
             if derivatives:
                 dd = DistanceDerivatives(dk[select].copy(), grad[part][select].copy(), hess[part][select].copy(),
                                          region[part][select].astype(np.int64))

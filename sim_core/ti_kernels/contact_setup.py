@@ -15,7 +15,10 @@ candidate search), each one launch over its pairs instead of a few dozen small a
 
 The regions reuse the Voronoi tests of :mod:`sim_core.ti_kernels.contact_distance`; every
 expression is the reference's in the same order (sums left to right), so the results equal the
-reference bit for bit (tests). Loops are serial on the CPU, parallel on CUDA, as there.
+reference bit for bit (tests). Loops are serial on the CPU, parallel on CUDA, as there. The
+callers pass new arrays at every call; the functions copy them into per-thread kept arrays
+(:class:`~sim_core.ti_kernels.buffers.LaunchArrays`, row counts as scalars) and the results out of
+them, so a launch re-binds no array.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -27,6 +30,7 @@ from sim_core.collision.pair_geometry import PairGeometry
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import LaunchArrays
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -46,15 +50,16 @@ def _unit(v):
 
 
 @fast_kernel
-def _geometry_kernel(x: _F64_2, vt: _I32_2, ee: _I32_2, vt_above: _I32_1, vt_side: _F64_1,
+def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, vt_above: _I32_1, vt_side: _F64_1,
                      ee_sine: _F64_1, ee_interior: _I32_1, ee_side: _F64_1):
+    """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (kept arrays, :data:`_ARRAYS`)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vt.shape[0]):
+    for k in range(vt_count):
         p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
         vt_above[k] = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 1, 0)
         vt_side[k] = cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(ee.shape[0]):
+    for k in range(ee_count):
         a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
         ea, eb = a1 - a0, b1 - b0
         n = cd._cross(ea, eb)
@@ -63,8 +68,16 @@ def _geometry_kernel(x: _F64_2, vt: _I32_2, ee: _I32_2, vt_above: _I32_1, vt_sid
         ee_side[k] = cd._resolved_side(0.0, n, a0 - b0)
 
 
-def _indices(vertices: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.asarray(vertices).reshape(-1, 4), dtype=np.int32)
+_ARRAYS = LaunchArrays()
+"""The kernels' arrays (inputs copied in, outputs copied out): launches re-bind none."""
+
+
+def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
+    """The kept int32 array ``name`` ``(capacity, 4)`` whose first rows hold ``vertices`` ``(k, 4)``."""
+    vertices = np.asarray(vertices).reshape(-1, 4)
+    kept = _ARRAYS.rows(name, len(vertices), (4,), np.int32)
+    kept[:len(vertices)] = vertices
+    return kept
 
 
 def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
@@ -82,13 +95,14 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
         ConfigError: the Taichi backend is not initialised.
     """
     require_backend("contact set-up kernels")
-    vt, ee = _indices(vt_vertices), _indices(ee_vertices)
-    p, q = vt.shape[0], ee.shape[0]
-    above, vt_side = np.zeros(p, dtype=np.int32), np.empty(p)
-    sine, interior, ee_side = np.empty(q), np.zeros(q, dtype=np.int32), np.empty(q)
+    vt, ee = _kept_indices("vt", vt_vertices), _kept_indices("ee", ee_vertices)
+    p, q = len(vt_vertices), len(ee_vertices)
+    above, vt_side = _ARRAYS.rows("above", p, (), np.int32), _ARRAYS.rows("vt_side", p)
+    sine, interior, ee_side = _ARRAYS.rows("sine", q), _ARRAYS.rows("interior", q, (), np.int32), _ARRAYS.rows("ee_side", q)
     if p or q:
-        _geometry_kernel(np.ascontiguousarray(x, dtype=np.float64), vt, ee, above, vt_side, sine, interior, ee_side)
-    return PairGeometry(above.astype(bool), vt_side, sine, interior.astype(bool), ee_side)
+        _geometry_kernel(_ARRAYS.copy_of("x", x), vt, p, ee, q, above, vt_side, sine, interior, ee_side)
+    return PairGeometry(above[:p].astype(bool), vt_side[:p].copy(), sine[:q].copy(), interior[:q].astype(bool),
+                        ee_side[:q].copy())
 
 
 @ti.func
@@ -145,10 +159,11 @@ def _edge_edge_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side:
 
 
 @fast_kernel
-def _frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, point_first: ti.template(),
+def _frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, point_first: ti.template(),
                    weights: _F64_2, normal: _F64_2):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
+    for k in range(count):
         if ti.static(point_first):
             _point_triangle_frame(x, vertices, k, side[k], weights, normal)
         else:
@@ -176,19 +191,22 @@ def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point
         ConfigError: the Taichi backend is not initialised.
     """
     require_backend("contact set-up kernels")
-    vertices = _indices(vertices)
-    k = vertices.shape[0]
-    weights, normal = np.empty((k, 4)), np.empty((k, 3))
-    if k:
-        _frames_kernel(np.ascontiguousarray(x, dtype=np.float64), vertices,
-                       np.ascontiguousarray(sides, dtype=np.float64).reshape(-1), bool(point_first), weights, normal)
-    return weights, normal
+    k = len(vertices)
+    if not k:
+        return np.empty((0, 4)), np.empty((0, 3))
+    side = _ARRAYS.rows("side", k)
+    side[:k] = np.reshape(sides, -1)
+    weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
+    _frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, bool(point_first), weights,
+                   normal)
+    return weights[:k].copy(), normal[:k].copy()
 
 
 @fast_kernel
-def _tangent_kernel(normal: _F64_2, tangent: _F64_3):
+def _tangent_kernel(normal: _F64_2, count: ti.i32, tangent: _F64_3):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(normal.shape[0]):
+    for k in range(count):
         n = ti.Vector([normal[k, 0], normal[k, 1], normal[k, 2]], ti.f64)
         axis = 0  # the first coordinate axis of least |n_i| (np.argmin)
         if ti.abs(n[1]) < ti.abs(n[0]):
@@ -213,11 +231,14 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
         ConfigError: the Taichi backend is not initialised.
     """
     require_backend("contact set-up kernels")
-    normal = np.ascontiguousarray(normal, dtype=np.float64).reshape(-1, 3)
-    tangent = np.empty((normal.shape[0], 3, 2))
-    if normal.shape[0]:
-        _tangent_kernel(normal, tangent)
-    return tangent
+    normal = np.reshape(normal, (-1, 3))
+    k = len(normal)
+    if not k:
+        return np.empty((0, 3, 2))
+    kept, tangent = _ARRAYS.rows("normal_in", k, (3,)), _ARRAYS.rows("tangent", k, (3, 2))
+    kept[:k] = normal
+    _tangent_kernel(kept, k, tangent)
+    return tangent[:k].copy()
 
 
 def compile_kernels() -> None:

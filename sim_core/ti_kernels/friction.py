@@ -11,9 +11,12 @@ block vertices ``j`` (weights ``w_kj``), tangent basis ``T_k`` (3 x 2) and ``c_k
 with the mollifier ``f0`` of :func:`sim_core.potentials.friction.smooth_friction_f0` and the same
 piecewise forms of ``f1/y`` and ``(f1' y - f1)/y^3`` (``eps_u = eps_v dt``). A Forming step has
 about a hundred pairs: the NumPy reference spends its time in a dozen small array operations per
-call, each kernel here is one launch (the gradient's launch computes the Hessian blocks too). Loops are serial on the CPU (the gradient sums into shared
-vertices in pair order), parallel on CUDA. Results equal the reference to round-off (tests:
-1e-12 relative).
+call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
+wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
+keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
+only the output arrays (:mod:`sim_core.ti_kernels.launch`). Loops are serial on the CPU (the
+energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
+round-off (tests: 1e-12 relative).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -76,18 +79,6 @@ def _f2_x_minus_f1_over_x3(y, eps_u):
     return r
 
 
-@fast_kernel
-def friction_energy(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                    coefficient: _F64_1, eps_u: ti.f64) -> ti.f64:
-    """``sum_k c_k f0(|u_k|)`` in J."""
-    energy = 0.0
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
-        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-        energy += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
-    return energy
-
-
 @ti.func
 def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
                    tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
@@ -101,15 +92,6 @@ def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.templat
         v = vertices[k, j]
         for d in ti.static(range(3)):
             grad[v, d] += weights[k, j] * tu[d]
-
-
-@fast_kernel
-def friction_gradient(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                      coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2):
-    """Adds ``dE/dx`` (N) to ``grad`` (n, 3)."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
-        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
 
 
 @ti.func
@@ -138,39 +120,30 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
                 blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
 
 
-@fast_kernel
-def friction_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                     coefficient: _F64_1, eps_u: ti.f64, blocks: _F64_3):
-    """Writes the pair blocks ``(p, 3m, 3m)`` in N/m (PSD by construction)."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
-        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+_ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
+_NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
+_NO_BLOCKS = np.zeros((0, 0, 0))
 
 
 @fast_kernel
-def friction_gradient_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                              coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2, blocks: _F64_3):
-    """:func:`friction_gradient` and :func:`friction_hessian` in one launch: adds ``dE/dx`` (N) to
-    ``grad`` (n, 3) and writes the pair blocks ``(p, 3m, 3m)`` (N/m)."""
+def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, energy: _F64_1, grad: _F64_2,
+                     blocks: _F64_3):
+    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
+    kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
+    ``_GRADIENT`` adds ``dE/dx`` (N) to ``grad`` ``(n, 3)``, ``_HESSIAN`` writes the pair blocks
+    ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written to an array rather than
+    returned: a launch then needs no synchronisation for a return value."""
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
-        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
-        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
-
-
-@fast_kernel
-def friction_energy_gradient_hessian(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                                     coefficient: _F64_1, eps_u: ti.f64, grad: _F64_2, blocks: _F64_3) -> ti.f64:
-    """:func:`friction_energy` (returned, J; the same sum in the same order),
-    :func:`friction_gradient_hessian`'s gradient (added to ``grad``) and blocks in one launch."""
-    energy = 0.0
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
-        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-        energy += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
-        _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
-        _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
-    return energy
+        if want & _ENERGY:
+            u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+            energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        if want & _GRADIENT:
+            _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+        if want & _HESSIAN:
+            _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
 
 
 class TiLaggedFriction(LaggedFriction):
@@ -189,16 +162,28 @@ class TiLaggedFriction(LaggedFriction):
         return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
+        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; ``x`` and
+        the coefficients, ``mu`` may be edited, are copied into kept arrays)."""
         arrays = getattr(self, "_arrays", None)
-        if arrays is None:
+        if arrays is None or arrays[0].shape != x.shape:
             require_backend("TiLaggedFriction")
-            arrays = (np.ascontiguousarray(self.x_prev, dtype=np.float64),
+            arrays = (np.empty(x.shape),
+                      np.ascontiguousarray(self.x_prev, dtype=np.float64),
                       np.ascontiguousarray(self.vertices, dtype=np.int32),
                       np.ascontiguousarray(self.weights, dtype=np.float64),
-                      np.ascontiguousarray(self.tangent, dtype=np.float64))
-            self._arrays = arrays
-        coefficient = np.ascontiguousarray(self.mu * self.lam, dtype=np.float64)  # mu may be edited
-        return (np.ascontiguousarray(x, dtype=np.float64),) + arrays + (coefficient,)
+                      np.ascontiguousarray(self.tangent, dtype=np.float64),
+                      np.empty(self.vertices.shape[0]))
+            self._arrays, self._energy = arrays, np.zeros(1)
+        np.copyto(arrays[0], x)
+        np.multiply(self.mu, self.lam, out=arrays[-1])
+        return arrays
+
+    def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
+                blocks: np.ndarray = _NO_BLOCKS) -> float:
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`); the energy
+        (J) when ``want`` asks for it."""
+        _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
+        return float(self._energy[0])
 
     def evaluate(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept for
@@ -211,8 +196,8 @@ class TiLaggedFriction(LaggedFriction):
         arrays = self._kernel_arrays(x)
         grad = np.zeros((x.shape[0], 3))
         blocks = np.empty((p, 3 * m, 3 * m))
-        energy = float(friction_energy_gradient_hessian(*arrays, self.eps_u, grad, blocks))
-        self._kept_all = (arrays[0].copy(), arrays[-1], self.eps_u, energy, grad, blocks)
+        energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
+        self._kept_all = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks)
 
     def _kept(self, arrays: tuple) -> tuple | None:
         """The :meth:`evaluate` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
@@ -230,7 +215,7 @@ class TiLaggedFriction(LaggedFriction):
         kept = self._kept(arrays)
         if kept is not None:
             return kept[3]
-        return float(friction_energy(*arrays, self.eps_u))
+        return self._launch(arrays, _ENERGY)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
@@ -248,8 +233,8 @@ class TiLaggedFriction(LaggedFriction):
                 self._kept_hessian = (kept[0], kept[1], kept[2], kept[5])
                 return kept[4].copy()
             blocks = np.empty((p, 3 * m, 3 * m))
-            friction_gradient_hessian(*arrays, self.eps_u, grad, blocks)
-            self._kept_hessian = (arrays[0].copy(), arrays[-1], self.eps_u, blocks)
+            self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
+            self._kept_hessian = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks)
         return grad
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
@@ -264,12 +249,12 @@ class TiLaggedFriction(LaggedFriction):
                 and np.array_equal(kept[1], arrays[-1])):
             return HessianBlocks(self.vertices, kept[3])
         blocks = np.empty((p, 3 * m, 3 * m))
-        friction_hessian(*arrays, self.eps_u, blocks)
+        self._launch(arrays, _HESSIAN, blocks=blocks)
         return HessianBlocks(self.vertices, blocks)
 
 
 def compile_kernels() -> None:
-    """JIT-compile (or load from Taichi's offline cache) the three kernels on one pair.
+    """JIT-compile (or load from Taichi's offline cache) the kernel on one pair (every request).
 
     Raises:
         ConfigError: the Taichi backend is not initialised.

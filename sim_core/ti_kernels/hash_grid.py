@@ -43,7 +43,7 @@ import numpy as np
 from sim_core.errors import ConfigError
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
@@ -97,11 +97,25 @@ def _element_box(x: ti.template(), vertices: ti.template(), i: ti.i32):
     return lo, hi, finite
 
 
+@ti.func
+def _cells(v, inv_cell: ti.f64):
+    """The cell indices of point ``v`` (3 int32)."""
+    return ti.Vector([_cell_of(v[0], inv_cell), _cell_of(v[1], inv_cell), _cell_of(v[2], inv_cell)])
+
+
+@ti.func
+def _stored_box(box: ti.template(), j: ti.i32):
+    """``(lo, hi)``: the corners of box ``j`` as stored in ``box`` ``(nb, 6)``."""
+    return (ti.Vector([box[j, 0], box[j, 1], box[j, 2]], dt=ti.f64),
+            ti.Vector([box[j, 3], box[j, 4], box[j, 5]], dt=ti.f64))
+
+
 @fast_kernel
 def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_vertices: _I32_2, b_body: _I32_1,
                 allowed: _I32_2, rest_keys: _I64_1, radius: ti.f64,
                 cell_scale: ti.f64, same: ti.i32, bucket_start: _I32_1, bucket_fill: _I32_1, entry_item: _I32_1,
-                entry_cell: _I64_1, body_box: _F64_2, scale: _F64_1, out: _I32_2, count: _I32_1):
+                entry_cell: _I64_1, entry_lower: _I32_1, box: _F64_2, body_box: _F64_2, scale: _F64_1, out: _I32_2,
+                count: _I32_1):
     """Pairs of elements (rows of ``a_vertices`` and ``b_vertices``: vertex indices into ``x``) whose
     boxes (the min / max of their vertices' positions) overlap when A's are inflated by ``radius``.
 
@@ -113,8 +127,15 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
     a box visits only the entries of the bodies it may touch, and of those only within the cell range
     of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
-    ``scale``: scratch, ``[cell size, 1 / cell size, sum of box widths, widest box, largest
-    |coordinate|]``; the mean-width term of the cell size is multiplied by ``cell_scale``."""
+    Scratch ``box`` ``(nb, 6)``: B's boxes (lower, upper corner); ``entry_lower`` (as ``entry_item``):
+    bit ``d`` set when the entry's cell is its box's lowest along axis ``d``. ``scale``: scratch,
+    ``[cell size, 1 / cell size, sum of box widths, widest box, largest |coordinate|]``; the
+    mean-width term of the cell size is multiplied by ``cell_scale``.
+
+    The lower-corner rule is tested on cell indices before the boxes are read: ``floor`` is monotone,
+    so the cell of ``max(q_lo, b_lo)`` is ``max(cell(q_lo), cell(b_lo))`` per axis, which is the
+    visited cell ``c`` (``cell(q_lo) <= c`` and ``cell(b_lo) <= c`` for every visited entry) exactly
+    when, on each axis with ``cell(q_lo) < c``, ``c`` is the lowest cell of B's box."""
     na, nb = a_vertices.shape[0], b_vertices.shape[0]
     bodies = body_box.shape[0]
     buckets = bucket_fill.shape[0]
@@ -137,6 +158,8 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
         width, reach = 0.0, 0.0
         body_j = b_body[j]
         for d in ti.static(range(3)):
+            box[j, d] = b_lo[d]
+            box[j, 3 + d] = b_hi[d]
             width = ti.max(width, b_hi[d] - b_lo[d])
             reach = ti.max(reach, ti.max(ti.abs(b_lo[d]), ti.abs(b_hi[d])))
             ti.atomic_min(body_box[body_j, d], b_lo[d])
@@ -148,13 +171,14 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
         ti.atomic_max(scale[4], reach)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(na):
-        a_lo, a_hi, finite = _element_box(x, a_vertices, i)
-        reach = 0.0
-        for d in ti.static(range(3)):
-            reach = ti.max(reach, ti.max(ti.abs(a_lo[d]), ti.abs(a_hi[d])))
-        if not finite:
-            count[_BAD] = 1
-        ti.atomic_max(scale[4], reach)
+        if same == 0:  # (within one set the loop above saw these boxes)
+            a_lo, a_hi, finite = _element_box(x, a_vertices, i)
+            reach = 0.0
+            for d in ti.static(range(3)):
+                reach = ti.max(reach, ti.max(ti.abs(a_lo[d]), ti.abs(a_hi[d])))
+            if not finite:
+                count[_BAD] = 1
+            ti.atomic_max(scale[4], reach)
     ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):
         cell = ti.max(ti.max(cell_scale * (scale[2] / ti.max(nb, 1) + 2.0 * radius),
@@ -169,14 +193,12 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     ti.loop_config(serialize=ti.static(serial_loops()))
     for j in range(nb):
         if count[_BAD] == 0:
-            inv = scale[1]
             body_j = b_body[j]
-            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
-            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
-            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
-            for c0 in range(l0, u0 + 1):
-                for c1 in range(l1, u1 + 1):
-                    for c2 in range(l2, u2 + 1):
+            b_lo, b_hi = _stored_box(box, j)
+            lo, hi = _cells(b_lo, scale[1]), _cells(b_hi, scale[1])
+            for c0 in range(lo[0], hi[0] + 1):
+                for c1 in range(lo[1], hi[1] + 1):
+                    for c2 in range(lo[2], hi[2] + 1):
                         ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
     ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):  # prefix sum (one thread)
@@ -191,17 +213,17 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     ti.loop_config(serialize=ti.static(serial_loops()))
     for j in range(nb):
         if count[_BAD] == 0 and count[_ENTRIES] <= entry_capacity:
-            inv = scale[1]
             body_j = b_body[j]
-            b_lo, b_hi, _ = _element_box(x, b_vertices, j)
-            l0, l1, l2 = _cell_of(b_lo[0], inv), _cell_of(b_lo[1], inv), _cell_of(b_lo[2], inv)
-            u0, u1, u2 = _cell_of(b_hi[0], inv), _cell_of(b_hi[1], inv), _cell_of(b_hi[2], inv)
-            for c0 in range(l0, u0 + 1):
-                for c1 in range(l1, u1 + 1):
-                    for c2 in range(l2, u2 + 1):
+            b_lo, b_hi = _stored_box(box, j)
+            lo, hi = _cells(b_lo, scale[1]), _cells(b_hi, scale[1])
+            for c0 in range(lo[0], hi[0] + 1):
+                for c1 in range(lo[1], hi[1] + 1):
+                    for c2 in range(lo[2], hi[2] + 1):
                         slot = ti.atomic_add(bucket_fill[_bucket(c0, c1, c2, mask) * bodies + body_j], 1)
                         entry_item[slot] = j
                         entry_cell[slot] = _cell_key(c0, c1, c2)
+                        entry_lower[slot] = (ti.cast(c0 == lo[0], ti.i32) | (ti.cast(c1 == lo[1], ti.i32) << 1)
+                                             | (ti.cast(c2 == lo[2], ti.i32) << 2))
     # 3. each box of A visits, per body it may touch, the cells of its inflated box within the body's box
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(na):
@@ -210,6 +232,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
             a_lo, a_hi, _ = _element_box(x, a_vertices, i)
             q_lo = a_lo - radius
             q_hi = a_hi + radius
+            q_cell = _cells(q_lo, inv)
             body_i = a_body[i]
             for kb in range(bodies):
                 if allowed[body_i, kb] == 0 or (same != 0 and kb < body_i):
@@ -219,40 +242,35 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 hi_c = ti.Vector([-1, -1, -1])
                 if body_box[kb, 0] <= body_box[kb, 3]:  # the body has boxes
                     for d in ti.static(range(3)):
-                        lo_c[d] = ti.max(_cell_of(q_lo[d], inv), _cell_of(body_box[kb, d], inv))
+                        lo_c[d] = ti.max(q_cell[d], _cell_of(body_box[kb, d], inv))
                         hi_c[d] = ti.min(_cell_of(q_hi[d], inv), _cell_of(body_box[kb, 3 + d], inv))
+                same_body = ti.cast(body_i == kb, ti.i32)
                 for c0 in range(lo_c[0], hi_c[0] + 1):
                     for c1 in range(lo_c[1], hi_c[1] + 1):
                         for c2 in range(lo_c[2], hi_c[2] + 1):
                             key = _cell_key(c0, c1, c2)
+                            # the lower-corner rule: lowest cell of B's box on the axes where the query's is lower
+                            need = (ti.cast(c0 > q_cell[0], ti.i32) | (ti.cast(c1 > q_cell[1], ti.i32) << 1)
+                                    | (ti.cast(c2 > q_cell[2], ti.i32) << 2))
                             b = _bucket(c0, c1, c2, mask) * bodies + kb
                             for s in range(bucket_start[b], bucket_start[b + 1]):
-                                if entry_cell[s] != key:
+                                if entry_cell[s] != key or (entry_lower[s] & need) != need:
                                     continue
                                 j = entry_item[s]
-                                b_lo, b_hi, _ = _element_box(x, b_vertices, j)
                                 # within one body of one set, from the box of the lower index
-                                if same != 0 and kb == body_i and j <= i:
+                                if same_body != 0 and same != 0 and j <= i:
                                     continue
+                                b_lo, b_hi = _stored_box(box, j)
                                 keep = True
                                 for d in ti.static(range(3)):
                                     keep = keep and (q_lo[d] <= b_hi[d]) and (b_lo[d] <= q_hi[d])
-                                if not keep:
-                                    continue
-                                # the cell of the intersection's lower corner only
-                                keep = _cell_of(ti.max(q_lo[0], b_lo[0]), inv) == c0
-                                keep = keep and _cell_of(ti.max(q_lo[1], b_lo[1]), inv) == c1
-                                keep = keep and _cell_of(ti.max(q_lo[2], b_lo[2]), inv) == c2
-                                same_body = ti.cast(body_i == kb, ti.i32)
                                 pair = kept_pair(a_vertices, a_key, i, b_vertices, j, same, same_body, rest_keys,
                                                  ti.cast(keep, ti.i32))
-                                keep = pair[0] != 0
-                                first, second = pair[1], pair[2]
-                                if keep:
+                                if pair[0] != 0:
                                     k = ti.atomic_add(count[_PAIRS], 1)
                                     if k < capacity:
-                                        out[k, 0] = first
-                                        out[k, 1] = second
+                                        out[k, 0] = pair[1]
+                                        out[k, 1] = pair[2]
 
 
 def sorted_pairs(out: np.ndarray) -> np.ndarray:
@@ -270,14 +288,20 @@ class HashGrid:
     """The buffers of :func:`_hash_pairs` for one kind of search, kept (and grown) between searches.
 
     Each search needs a bucket table (a power of 2, about twice the boxes of set B), the entries of
-    B's boxes (one per overlapped cell) and the output pairs; kept as the same arrays, they are
-    bound to the compiled kernel once (:mod:`sim_core.ti_kernels.launch`).
+    B's boxes (one per overlapped cell), B's boxes and the output pairs; kept as the same arrays, and
+    the positions copied into a kept array, they are bound to the compiled kernel once: each grid
+    launches through its own :class:`~sim_core.ti_kernels.launch.FastKernel` of the one compiled
+    kernel, whose launch plan keeps its arrays bound (:mod:`sim_core.ti_kernels.launch`), so the
+    contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
     """
 
     def __init__(self, cell_scale: float = 1.0) -> None:
+        self._launch = FastKernel(_hash_pairs.kernel)
+        self.x = np.zeros((0, 3), dtype=np.float64)
         self.bucket_start = self.bucket_fill = np.zeros(0, dtype=np.int32)
-        self.entry_item = np.zeros(0, dtype=np.int32)
+        self.entry_item = self.entry_lower = np.zeros(0, dtype=np.int32)
         self.entry_cell = np.zeros(0, dtype=np.int64)
+        self.box = np.zeros((0, 6), dtype=np.float64)
         self.out = np.zeros((0, 2), dtype=np.int32)
         self.body_box = np.zeros((0, 6), dtype=np.float64)
         self.scale = np.zeros(5, dtype=np.float64)
@@ -311,23 +335,28 @@ class HashGrid:
             b_vertices, b_body = a_vertices, a_body
         if a_vertices.shape[0] == 0 or b_vertices.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
-        x = np.ascontiguousarray(x, dtype=np.float64)
+        if self.x.shape != np.shape(x):
+            self.x = np.empty(np.shape(x), dtype=np.float64)
+        np.copyto(self.x, x)
+        nb = b_vertices.shape[0]
         bodies = allowed.shape[0]
-        buckets = _power_of_two(2 * b_vertices.shape[0]) * bodies
+        buckets = _power_of_two(2 * nb) * bodies
         if self.body_box.shape[0] != bodies:
             self.body_box = np.zeros((bodies, 6), dtype=np.float64)
         if self.bucket_fill.shape[0] != buckets:
             self.bucket_fill = np.zeros(buckets, dtype=np.int32)
             self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
-        if self.entry_item.shape[0] < 4 * b_vertices.shape[0]:
-            self._grow_entries(8 * b_vertices.shape[0])
+        if self.box.shape[0] != nb:
+            self.box = np.zeros((nb, 6), dtype=np.float64)
+        if self.entry_item.shape[0] < 4 * nb:
+            self._grow_entries(8 * nb)
         if self.out.shape[0] < 1024:
-            self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + b_vertices.shape[0])), 2), dtype=np.int32)
+            self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + nb)), 2), dtype=np.int32)
         while True:
             self.count[_PAIRS] = 0
-            _hash_pairs(x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
-                        self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
-                        self.entry_cell, self.body_box, self.scale, self.out, self.count)
+            self._launch(self.x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
+                         self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
+                         self.entry_cell, self.entry_lower, self.box, self.body_box, self.scale, self.out, self.count)
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             self.cell_size = float(self.scale[0])
@@ -342,6 +371,7 @@ class HashGrid:
 
     def _grow_entries(self, size: int) -> None:
         self.entry_item = np.zeros(size, dtype=np.int32)
+        self.entry_lower = np.zeros(size, dtype=np.int32)
         self.entry_cell = np.zeros(size, dtype=np.int64)
 
 

@@ -87,19 +87,14 @@ def shares_vertex(a_vertices: ti.template(), i: ti.i32, b_vertices: ti.template(
 
 @ti.func
 def is_rest_close(rest_keys: ti.template(), key: ti.i64) -> ti.i32:
-    """1 if ``key`` is in the sorted ``rest_keys`` (binary search)."""
-    lo, hi = 0, rest_keys.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if rest_keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    found = 0
-    if lo < rest_keys.shape[0]:
-        if rest_keys[lo] == key:
-            found = 1
-    return found
+    """1 if ``key`` is in the sorted, non-empty ``rest_keys``: a binary search without branches on
+    the keys (the last key ``<= key`` found by halving the range with a select)."""
+    base, size = 0, rest_keys.shape[0]
+    while size > 1:
+        half = size // 2
+        base = ti.select(rest_keys[base + half] <= key, base + half, base)
+        size -= half
+    return ti.cast(rest_keys[base] == key, ti.i32)
 
 
 @ti.func

@@ -43,7 +43,7 @@ def _launches(monkeypatch) -> list:
 
     calls = []
     kernel = contact_batch._batch_kernel
-    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[7], len(a[3]))), kernel(*a)))
+    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[8], a[4])), kernel(*a)))
 
     def forbidden(*a):
         raise AssertionError("a separate distance kernel was launched")
@@ -71,6 +71,8 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
     active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
     assert 0 < active < total
     assert calls == [(False, total)]  # values of both kinds at x: one launch
+    ruled_out = np.count_nonzero(linked[0]._batch._region[:total] == -1)  # by the kernel's distance bounds
+    assert 0 < ruled_out < total - active
     for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
         np.testing.assert_array_equal(pot.gradient(x), grad)
         for h, h_ref in ((pot.hessian(x, "none"), h_none), (pot.hessian(x, "clamp"), h_clamp)):

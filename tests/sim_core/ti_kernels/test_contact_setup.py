@@ -100,6 +100,25 @@ def test_contact_frames_kernel_equals_the_reference(ti_cpu, point_first):
     assert empty_w.shape == (0, 4) and empty_n.shape == (0, 3)
 
 
+def test_kept_launch_arrays_give_each_call_its_own_results(ti_cpu):
+    """The set-up functions copy into kept arrays (longer than a later call's pairs) and out of them:
+    a shorter call after a longer one, and other positions, give what fresh arrays give."""
+    from sim_core.ti_kernels import contact_setup
+
+    x, vertices = _batch(4, 300)
+    geometry = contact_setup.pair_geometry(x, vertices, vertices)
+    frames = contact_setup.contact_frames(x, vertices, np.ones(len(vertices)), True)
+    tangents = contact_setup.tangent_basis(frames[1])
+    y, short = 2.0 * x, vertices[:7]
+    for name, value in zip(geometry._fields, contact_setup.pair_geometry(y, short, short[:3])):
+        np.testing.assert_array_equal(value, getattr(pair_geometry(y, short, short[:3]), name), err_msg=name)
+    weights, normal = contact_setup.contact_frames(y, short, -np.ones(7), False)
+    assert weights.shape == (7, 4) and normal.shape == (7, 3)
+    np.testing.assert_array_equal(contact_setup.tangent_basis(normal), tangent_basis(normal))
+    np.testing.assert_array_equal(contact_setup.tangent_basis(frames[1]), tangents)  # earlier results unchanged
+    assert frames[0].shape == (len(vertices), 4) and not np.shares_memory(frames[1], normal)
+
+
 def test_tangent_basis_kernel_equals_the_reference_and_is_orthonormal(ti_cpu):
     from sim_core.ti_kernels.contact_setup import tangent_basis as ti_tangent_basis
 

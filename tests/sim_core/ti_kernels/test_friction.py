@@ -97,18 +97,19 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
 
 def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu, monkeypatch):
     """The gradient's launch also computes the blocks; the next hessian at the same x and
-    coefficients takes them (no launch), bit for bit the Hessian kernel's; an edited mu, another x
-    or a second call launch the Hessian kernel again."""
+    coefficients takes them (no launch), bit for bit a Hessian-only launch's; an edited mu, another x
+    or a second call launch a Hessian-only request again."""
     from sim_core.ti_kernels import friction as ti_friction
 
     rng = np.random.default_rng(33)
     ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
     tik = _twin(ref)
     x = x_prev + rng.normal(scale=0.5 * EPS_U, size=x_prev.shape)
-    fresh = tik.hessian(x).blocks  # the Hessian kernel alone
+    fresh = tik.hessian(x).blocks  # a Hessian-only launch
     launches = []
-    kernel = ti_friction.friction_hessian
-    monkeypatch.setattr(ti_friction, "friction_hessian", lambda *a: (launches.append(1), kernel(*a)))
+    kernel = ti_friction._friction_kernel
+    monkeypatch.setattr(ti_friction, "_friction_kernel",
+                        lambda *a: (launches.append(1) if a[7] == ti_friction._HESSIAN else None, kernel(*a)))
     grad = tik.gradient(x)
     assert relative_error(grad, ref.gradient(x)) < 1e-12
     np.testing.assert_array_equal(tik.hessian(x).blocks, fresh)
@@ -125,10 +126,10 @@ def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu,
     assert launches == [1, 1, 1]
 
 
-def test_evaluate_keeps_the_values_of_the_separate_kernels(ti_cpu, monkeypatch):
-    """``evaluate(x)`` (one launch) keeps energy, gradient and blocks that equal the energy kernel's
-    and the gradient-Hessian kernel's bit for bit; energy, gradient and the following hessian at an
-    equal x read them (no other launch); an edited mu or another x launches the separate kernels."""
+def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch):
+    """``evaluate(x)`` (one launch) keeps energy, gradient and blocks that equal the energy-only launch's
+    and the gradient-Hessian launch's bit for bit; energy, gradient and the following hessian at an
+    equal x read them (no other launch); an edited mu or another x launches the separate requests."""
     from sim_core.ti_kernels import friction as ti_friction
 
     rng = np.random.default_rng(35)
@@ -139,9 +140,8 @@ def test_evaluate_keeps_the_values_of_the_separate_kernels(ti_cpu, monkeypatch):
     blocks = fresh.hessian(x).blocks
     kept.evaluate(x)
     launches = []
-    for name in ("friction_energy", "friction_gradient_hessian", "friction_hessian"):
-        kernel = getattr(ti_friction, name)
-        monkeypatch.setattr(ti_friction, name, lambda *a, kernel=kernel, name=name: (launches.append(name), kernel(*a))[1])
+    kernel = ti_friction._friction_kernel
+    monkeypatch.setattr(ti_friction, "_friction_kernel", lambda *a: (launches.append(a[7]), kernel(*a))[1])
     assert kept.energy(x.copy()) == energy
     np.testing.assert_array_equal(kept.gradient(x.copy()), grad)
     np.testing.assert_array_equal(kept.hessian(x.copy()).blocks, blocks)
@@ -150,10 +150,11 @@ def test_evaluate_keeps_the_values_of_the_separate_kernels(ti_cpu, monkeypatch):
     kept.evaluate(x)
     y = x + 0.1 * EPS_U
     assert kept.energy(y) == fresh.energy(y)
-    assert launches == ["friction_energy", "friction_energy"]
+    everything = ti_friction._ENERGY | ti_friction._GRADIENT | ti_friction._HESSIAN
+    assert launches == [everything, ti_friction._ENERGY, ti_friction._ENERGY]
     kept.mu = 2.0 * kept.mu
     assert kept.energy(x) == pytest.approx(2.0 * energy, rel=1e-14)
-    assert launches[-1] == "friction_energy"
+    assert launches[-1] == ti_friction._ENERGY
     empty = ti_friction.TiLaggedFriction(np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 3, 2)), np.zeros(0),
                                          0.5, x_prev, 0.01, 0.01)
     empty.evaluate(x)

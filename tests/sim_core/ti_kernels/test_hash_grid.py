@@ -109,7 +109,7 @@ def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
     from sim_core.ti_kernels import hash_candidates, hash_grid
 
     hash_candidates.compile_kernels()
-    assert any(plan is not None for plan in hash_grid._hash_pairs._plans.values())
+    assert hash_grid._hash_pairs._primal.compiled_kernels  # the grids launch it through plans of their own
     calls = []
     monkeypatch.setattr(hash_candidates, "compile_kernels", lambda: calls.append(1))
     sheet = grid_sheet((0.01, 0.01), (3, 3))
