@@ -72,6 +72,27 @@ def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, l
     return energy
 
 
+@ti.func
+def _add_entry(values: ti.template(), upper: ti.template(), t, a, b, c: ti.template(), d: ti.template(),
+               bGF: ti.template(), GF: ti.template(), lGK: ti.template(), GK: ti.template(), mgg,
+               sFw: ti.template(), V):
+    """Add ``H[3a+c, 3b+d]`` (module docstring) through the packed slot table, if it is stored:
+    ``(beta (g_a.F_c)(g_b.F_d) + lam (g_a.k_c)(g_b.k_d) + [c = d] mgg + eps_cdm sFw_m) V`` with
+    ``mgg = mu_t g_a.g_b``, ``sFw = lam (J - alpha) F (g_a x g_b)`` (the local matrices by reference:
+    a ``ti.func`` copies its other arguments)."""
+    slot = upper[t, upper_index(12, 3 * a + c, 3 * b + d)]
+    if slot != -1:  # entries of fixed DoFs are not computed
+        h = bGF[a, c] * GF[b, d] + lGK[a, c] * GK[b, d]
+        if ti.static(c == d):
+            h += mgg
+        elif ti.static(d == (c + 1) % 3):  # eps_cdm = +1, m the third index
+            h += sFw[ti.static(3 - c - d)]
+        else:
+            h -= sFw[ti.static(3 - c - d)]
+        h *= V
+        add_upper_entry(values, slot, h)
+
+
 @fast_kernel
 def snh_energy_gradient_hessian(
     x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, upper: _I32_2, mu: ti.f64, lam: ti.f64,
@@ -112,24 +133,19 @@ def snh_energy_gradient_hessian(
         for a in range(4):
             if free[a] == 1:
                 ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
-                for b in range(a, 4):
+                # the diagonal block: g_a x g_a = 0, its twist term adds zeros (no cross product)
+                mgg_aa = mu_t * ga.dot(ga)
+                no_twist = ti.Vector.zero(ti.f64, 3)
+                for c, d in ti.static(ti.ndrange(3, 3)):
+                    if ti.static(c <= d):
+                        _add_entry(values, upper, t, a, a, c, d, bGF, GF, lGK, GK, mgg_aa, no_twist, V)
+                for b in range(a + 1, 4):
                     if free[b] == 1:
                         gb = ti.Vector([G[b, 0], G[b, 1], G[b, 2]])
                         sFw = stretch * (F @ ga.cross(gb))  # lam (J - alpha) F_m . (g_a x g_b)
                         mgg = mu_t * ga.dot(gb)
                         for c, d in ti.static(ti.ndrange(3, 3)):
-                            if a != b or ti.static(c <= d):
-                                slot = upper[t, upper_index(12, 3 * a + c, 3 * b + d)]
-                                if slot != -1:  # entries of fixed DoFs are not computed
-                                    h = bGF[a, c] * GF[b, d] + lGK[a, c] * GK[b, d]
-                                    if ti.static(c == d):
-                                        h += mgg
-                                    elif ti.static(d == (c + 1) % 3):  # eps_cdm = +1, m the third index
-                                        h += sFw[ti.static(3 - c - d)]
-                                    else:
-                                        h -= sFw[ti.static(3 - c - d)]
-                                    h *= V
-                                    add_upper_entry(values, slot, h)
+                            _add_entry(values, upper, t, a, b, c, d, bGF, GF, lGK, GK, mgg, sFw, V)
     return energy
 
 
