@@ -60,6 +60,16 @@ def _twice_product(M, G):
     return MG
 
 
+@ti.func
+def _add_gauss_newton_entry(values: ti.template(), tri_upper: ti.template(), t, r, s, G: ti.template(),
+                            MG: ti.template()):
+    """Add ``(G^T (2 M G))[r, s]`` through the triangle's packed slot table, if it is stored (``G`` and
+    ``MG`` by reference: a ``ti.func`` copies its other arguments)."""
+    slot = tri_upper[t, upper_index(18, r, s)]
+    if slot != -1:  # entries of fixed DoFs are not computed
+        add_upper_entry(values, slot, G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s])
+
+
 @fast_kernel
 def kirchhoff_energy(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
@@ -122,16 +132,13 @@ def kirchhoff_energy_gradient_hessian(
         MG = _twice_product(M, G)
         for A in range(6):
             if has_hinge[A] == 1:
-                for B in range(A, 6):
+                for c, dd in ti.static(ti.ndrange(3, 3)):
+                    if ti.static(c <= dd):
+                        _add_gauss_newton_entry(values, tri_upper, t, 3 * A + c, 3 * A + dd, G, MG)
+                for B in range(A + 1, 6):
                     if has_hinge[B] == 1:
                         for c, dd in ti.static(ti.ndrange(3, 3)):
-                            if A != B or ti.static(c <= dd):
-                                r = 3 * A + c
-                                s = 3 * B + dd
-                                slot = tri_upper[t, upper_index(18, r, s)]
-                                if slot != -1:  # entries of fixed DoFs are not computed
-                                    add_upper_entry(values, slot,
-                                                    G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s])
+                            _add_gauss_newton_entry(values, tri_upper, t, 3 * A + c, 3 * B + dd, G, MG)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         f = scratch[h, 1]
