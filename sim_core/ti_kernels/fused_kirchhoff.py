@@ -98,8 +98,8 @@ def kirchhoff_energy_gradient_hessian(
     ``tri_local[t, k, a]``: local block vertex (0..5) of vertex ``a`` of the hinge on edge ``k``;
     ``tri_upper`` (t, 171) and ``hinge_upper`` (h, 78): the packed upper slot tables of the triangle
     and hinge blocks (:func:`~sim_core.ti_kernels.block_projection.upper_slot_table`); ``scratch`` (h, 14).
-    The block vertex opposite a boundary edge (a repeat of a triangle vertex) has no hinge and its
-    rows of ``G_T`` are zero: its entries are skipped.
+    The block vertex opposite a boundary edge (a repeat of a triangle vertex) is in no hinge and its
+    columns of ``G_T`` are zero: its entries are skipped.
     """
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
