@@ -30,6 +30,13 @@ The work is split where each part is cheapest (measured, docs/benchmarks.md):
 The result equals the reference's projected blocks to round-off: the reference reconstructs every
 block of a batch in which some block has a negative eigenvalue, and returns the symmetrised block
 when none has; here a block is reconstructed only when it has a negative eigenvalue itself.
+
+The fused kernels (``sim_core/ti_kernels/fused_*.py``), which compute the local upper triangle
+``r <= s`` of each symmetric element block, read their slots from :func:`upper_slot_table`: the
+slot map folded onto its upper triangle and packed, one int32 per entry (:func:`upper_index`,
+:func:`add_upper_entry`), in place of the two entries ``[e, r, s]`` and ``[e, s, r]`` of the full
+map and their two tests. Half the memory, one load and one well-predicted test per entry, and the
+same sums in the same order (bitwise the same values).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -64,6 +71,45 @@ def add_blocks(blocks: _F64_3, slots: _I32_3, values: _F64_1):
                 k = slots[e, i, j]
                 if k >= 0:
                     values[k] += blocks[e, i, j]
+
+
+def upper_slot_table(slots: np.ndarray) -> np.ndarray:
+    """The slot map ``slots`` (int32 ``(k, n, n)``, :meth:`sim_core.assembly.StaticPattern.slot_map`)
+    folded onto the local upper triangles: int32 ``(k, n (n + 1) / 2)``, entry
+    ``[e, upper_index(n, r, s)]`` for ``r <= s`` (row-major).
+
+    A local upper entry ``(r, s)`` goes to ``slots[e, r, s]`` and, for ``r < s``, to
+    ``slots[e, s, r]`` (the assembler's rule). At most one of the two is kept, unless local DoFs
+    ``r`` and ``s`` are the same global DoF (an element with a repeated vertex); both are then the
+    same diagonal slot, which receives the value twice. So the packed entry is that slot (>= 0),
+    -1 (not stored: a fixed DoF, or the lower triangle of the global matrix), or ``-2 - slot`` (the
+    value goes twice into ``slot``), as :func:`add_upper_entry` reads it.
+    """
+    k, n, _ = slots.shape
+    rows, cols = np.triu_indices(n)
+    upper = slots[:, rows, cols]
+    lower = np.where(rows != cols, slots[:, cols, rows], -1)
+    packed = np.where(upper >= 0, upper, lower)
+    packed = np.where((upper >= 0) & (lower >= 0), -2 - upper, packed)
+    return np.ascontiguousarray(packed, dtype=np.int32)
+
+
+@ti.func
+def upper_index(n: ti.template(), r, s):
+    """Position of the local upper entry ``(r, s)``, ``r <= s``, of an ``n x n`` block in the rows of
+    :func:`upper_slot_table` (row-major; a constant for compile-time ``r``, ``s``)."""
+    return r * n - r * (r - 1) // 2 + s - r
+
+
+@ti.func
+def add_upper_entry(values: ti.template(), slot: ti.i32, value: ti.f64):
+    """Add ``value`` at a packed slot of :func:`upper_slot_table`: once for ``slot >= 0``, twice at
+    ``-2 - slot`` for ``slot <= -2`` (two adds, as the full map's two entries), nothing for -1."""
+    if slot >= 0:
+        values[slot] += value
+    elif slot <= -2:
+        values[-2 - slot] += value
+        values[-2 - slot] += value
 
 
 def project_reduced_blocks(blocks: np.ndarray, projection: str) -> np.ndarray:

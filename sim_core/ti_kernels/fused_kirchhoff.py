@@ -12,8 +12,10 @@ edges) and ``M_T = (D / 2) A_T W_T`` (``triangle_stiffness``)::
 ``G_T`` the 3 x 18 matrix of the hinge-angle gradients over the triangle's block vertices (its three
 vertices and the neighbour vertex opposite each edge). One launch, three loops: hinges
 (``theta``, ``dtheta/dx`` into a scratch array), triangles (energy, ``f_h``, the Gauss-Newton
-term through the triangle slot map), hinges again (forces and ``f_h d2theta/dx2`` through a hinge
-slot map; the closed-form ``d2theta`` of :func:`sim_core.ti_kernels.bending._theta_hessian`).
+term through the triangle slot table), hinges again (forces and ``f_h d2theta/dx2`` through a hinge
+slot table; the closed-form ``d2theta`` of :func:`sim_core.ti_kernels.bending._theta_hessian_unsymmetrized`,
+symmetrised per entry). The slot tables are the packed upper triangles of the slot maps
+(:func:`sim_core.ti_kernels.block_projection.upper_slot_table`): one slot per computed entry.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -25,8 +27,10 @@ from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import TranslationFreeProjector
-from sim_core.ti_kernels.bending import _dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian
+from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, upper_index,
+                                                  upper_slot_table)
+from sim_core.ti_kernels.bending import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
+                                         _theta_hessian_unsymmetrized)
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 
@@ -56,6 +60,16 @@ def _twice_product(M, G):
     return MG
 
 
+@ti.func
+def _add_gauss_newton_entry(values: ti.template(), tri_upper: ti.template(), t, r, s, G: ti.template(),
+                            MG: ti.template()):
+    """Add ``(G^T (2 M G))[r, s]`` through the triangle's packed slot table, if it is stored (``G`` and
+    ``MG`` by reference: a ``ti.func`` copies its other arguments)."""
+    slot = tri_upper[t, upper_index(18, r, s)]
+    if slot != -1:  # entries of fixed DoFs are not computed
+        add_upper_entry(values, slot, G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s])
+
+
 @fast_kernel
 def kirchhoff_energy(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
@@ -77,12 +91,15 @@ def kirchhoff_energy(
 @fast_kernel
 def kirchhoff_energy_gradient_hessian(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
-    tri_slots: _I32_3, hinge_slots: _I32_3, scratch: _F64_2, grad: _F64_2, values: _F64_1,
+    tri_upper: _I32_2, hinge_upper: _I32_2, scratch: _F64_2, grad: _F64_2, values: _F64_1,
 ) -> ti.f64:
     """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``.
 
     ``tri_local[t, k, a]``: local block vertex (0..5) of vertex ``a`` of the hinge on edge ``k``;
-    ``tri_slots`` (t, 18, 18) and ``hinge_slots`` (h, 12, 12): slot maps; ``scratch`` (h, 14).
+    ``tri_upper`` (t, 171) and ``hinge_upper`` (h, 78): the packed upper slot tables of the triangle
+    and hinge blocks (:func:`~sim_core.ti_kernels.block_projection.upper_slot_table`); ``scratch`` (h, 14).
+    The block vertex opposite a boundary edge (a repeat of a triangle vertex) is in no hinge and its
+    columns of ``G_T`` are zero: its entries are skipped.
     """
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
@@ -102,9 +119,11 @@ def kirchhoff_energy_gradient_hessian(
         Md = M @ d
         energy += d.dot(Md)
         G = ti.Matrix.zero(ti.f64, 3, 18)
+        has_hinge = ti.Vector([1, 1, 1, 0, 0, 0])  # per block vertex: in some hinge of the triangle
         for k in ti.static(range(3)):
             h = tri_hinge[t, k]
             if h >= 0:
+                has_hinge[3 + k] = 1
                 scratch[h, 1] += 2.0 * Md[k]
                 for a in range(4):
                     col = 3 * tri_local[t, k, a]
@@ -112,21 +131,14 @@ def kirchhoff_energy_gradient_hessian(
                         G[k, col + c] = scratch[h, 2 + 3 * a + c]
         MG = _twice_product(M, G)
         for A in range(6):
-            for B in range(A, 6):
+            if has_hinge[A] == 1:
                 for c, dd in ti.static(ti.ndrange(3, 3)):
-                    if A != B or ti.static(c <= dd):
-                        r = 3 * A + c
-                        s = 3 * B + dd
-                        k1 = tri_slots[t, r, s]
-                        k2 = -1
-                        if r != s:
-                            k2 = tri_slots[t, s, r]
-                        if k1 >= 0 or k2 >= 0:  # entries of fixed DoFs are not computed
-                            val = G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s]
-                            if k1 >= 0:
-                                values[k1] += val
-                            if k2 >= 0:
-                                values[k2] += val
+                    if ti.static(c <= dd):
+                        _add_gauss_newton_entry(values, tri_upper, t, 3 * A + c, 3 * A + dd, G, MG)
+                for B in range(A + 1, 6):
+                    if has_hinge[B] == 1:
+                        for c, dd in ti.static(ti.ndrange(3, 3)):
+                            _add_gauss_newton_entry(values, tri_upper, t, 3 * A + c, 3 * B + dd, G, MG)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         f = scratch[h, 1]
@@ -135,17 +147,14 @@ def kirchhoff_energy_gradient_hessian(
             for c in ti.static(range(3)):
                 grad[v, c] += f * scratch[h, 2 + 3 * a + c]
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
-        Hh = _theta_hessian(x0, x1, x2, x3)
+        H = _theta_hessian_unsymmetrized(x0, x1, x2, x3)
+        u = 0
         for r in range(12):
-            for s in range(r, 12):
-                val = f * Hh[r, s]
-                k1 = hinge_slots[h, r, s]
-                if k1 >= 0:
-                    values[k1] += val
-                if r != s:
-                    k2 = hinge_slots[h, s, r]
-                    if k2 >= 0:
-                        values[k2] += val
+            add_upper_entry(values, hinge_upper[h, u], f * H[r, r])
+            u += 1
+            for s in range(r + 1, 12):
+                add_upper_entry(values, hinge_upper[h, u], f * (0.5 * (H[r, s] + H[s, r])))  # symmetrised
+                u += 1
     return energy
 
 
@@ -232,7 +241,8 @@ class FusedKirchhoffBending:
         self._scratch = np.zeros((self._hinges.shape[0], SCRATCH_COLUMNS))
         self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
         self._tri_slots: np.ndarray | None = None
-        self._hinge_slots: np.ndarray | None = None
+        self._tri_upper: np.ndarray | None = None
+        self._hinge_upper: np.ndarray | None = None
         self._blocks = np.zeros((self._tri_hinge.shape[0], 18, 18))
         self._projector = TranslationFreeProjector(6)
 
@@ -247,9 +257,11 @@ class FusedKirchhoffBending:
         self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
 
     def bind(self, pattern) -> None:
-        """Slot maps of the triangle blocks and of the hinge blocks in ``pattern``."""
+        """Slot maps of the triangle blocks (full, for the projected blocks, and packed upper) and of
+        the hinge blocks (packed upper) in ``pattern``."""
         self._tri_slots = pattern.slot_map(self.vertices)
-        self._hinge_slots = pattern.slot_map(self.potential.hinges)
+        self._tri_upper = upper_slot_table(self._tri_slots)
+        self._hinge_upper = upper_slot_table(pattern.slot_map(self.potential.hinges))
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""
@@ -263,8 +275,8 @@ class FusedKirchhoffBending:
         if self._hinges.shape[0] == 0:
             return 0.0
         return float(kirchhoff_energy_gradient_hessian(
-            x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_slots,
-            self._hinge_slots, self._scratch, grad, values))
+            x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_upper,
+            self._hinge_upper, self._scratch, grad, values))
 
     def triangle_hessians(self, x: np.ndarray) -> np.ndarray:
         """The exact per-triangle blocks ``(t, 18, 18)`` in N/m over ``vertices`` (the reference's

@@ -8,7 +8,8 @@ and test oracle) for the Newton loop: one launch per iteration computes, per tet
 
 the energy ``V psi``, the vertex forces ``V P g_a`` (``g_a`` = row ``a`` of ``tet_dFdx``) and the
 exact (unprojected) 12x12 Hessian ``V M^T (d2psi/dF2) M``, added straight into the values of the
-solver's static sparsity pattern (:meth:`sim_core.assembly.StaticPattern.slot_map`). With
+solver's static sparsity pattern (:meth:`sim_core.assembly.StaticPattern.slot_map`, packed by
+:func:`sim_core.ti_kernels.block_projection.upper_slot_table`). With
 ``d2psi/dF_ci dF_dl = mu_t delta_cd delta_jl + beta F_cj F_dl + lam cof_cj cof_dl
 + lam (J - alpha) eps_cdm eps_jln F_mn`` (eqs. 19-21; ``mu_t = mu (1 - 1/(I_C+1))``,
 ``beta = 2 mu / (I_C + 1)^2``) the vertex block of corners ``a, b`` and axes ``c, d`` is
@@ -32,7 +33,7 @@ from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index, upper_slot_table
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.neohookean import evaluate_snh_hessian
 
@@ -71,13 +72,36 @@ def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, l
     return energy
 
 
+@ti.func
+def _add_entry(values: ti.template(), upper: ti.template(), t, a, b, c: ti.template(), d: ti.template(),
+               bGF: ti.template(), GF: ti.template(), lGK: ti.template(), GK: ti.template(), mgg,
+               sFw: ti.template(), V):
+    """Add ``H[3a+c, 3b+d]`` (module docstring) through the packed slot table, if it is stored:
+    ``(beta (g_a.F_c)(g_b.F_d) + lam (g_a.k_c)(g_b.k_d) + [c = d] mgg + eps_cdm sFw_m) V`` with
+    ``mgg = mu_t g_a.g_b``, ``sFw = lam (J - alpha) F (g_a x g_b)`` (the local matrices by reference:
+    a ``ti.func`` copies its other arguments)."""
+    slot = upper[t, upper_index(12, 3 * a + c, 3 * b + d)]
+    if slot != -1:  # entries of fixed DoFs are not computed
+        h = bGF[a, c] * GF[b, d] + lGK[a, c] * GK[b, d]
+        if ti.static(c == d):
+            h += mgg
+        elif ti.static(d == (c + 1) % 3):  # eps_cdm = +1, m the third index
+            h += sFw[ti.static(3 - c - d)]
+        else:
+            h -= sFw[ti.static(3 - c - d)]
+        h *= V
+        add_upper_entry(values, slot, h)
+
+
 @fast_kernel
 def snh_energy_gradient_hessian(
-    x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, slots: _I32_3, mu: ti.f64, lam: ti.f64,
+    x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, upper: _I32_2, mu: ti.f64, lam: ti.f64,
     grad: _F64_2, values: _F64_1,
 ) -> ti.f64:
     """Energy (J, returned); adds the forces to ``grad`` (n, 3) in N and the exact Hessian entries
-    (N/m) to ``values`` at ``slots[t, r, s]`` (module docstring; -1 = not stored)."""
+    (N/m) to ``values`` through the packed upper slot table ``upper`` (t, 78)
+    (:func:`~sim_core.ti_kernels.block_projection.upper_slot_table`; module docstring). Corners
+    without a free DoF are skipped (their entries are not stored)."""
     alpha = 1.0 + 0.75 * mu / lam
     energy = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
@@ -99,33 +123,29 @@ def snh_energy_gradient_hessian(
         beta = 2.0 * mu / (I_C + 1.0) ** 2
         GF = G @ F.transpose()  # GF[a, c] = g_a . F_c
         GK = G @ cof.transpose()  # GK[a, c] = g_a . k_c
+        bGF = beta * GF  # the left factors of the entries' products, formed once per tet
+        lGK = lam * GK
+        free = ti.Vector.zero(ti.i32, 4)  # per corner: has a free DoF (a stored diagonal entry)
+        for a in ti.static(range(4)):
+            for c in ti.static(range(3)):
+                if upper[t, upper_index(12, 3 * a + c, 3 * a + c)] != -1:
+                    free[a] = 1
         for a in range(4):
-            ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
-            for b in range(a, 4):
-                gb = ti.Vector([G[b, 0], G[b, 1], G[b, 2]])
-                w = ga.cross(gb)
-                Fw = F @ w  # Fw[m] = F_m . (g_a x g_b)
-                gg = ga.dot(gb)
+            if free[a] == 1:
+                ga = ti.Vector([G[a, 0], G[a, 1], G[a, 2]])
+                # the diagonal block: g_a x g_a = 0, its twist term adds zeros (no cross product)
+                mgg_aa = mu_t * ga.dot(ga)
+                no_twist = ti.Vector.zero(ti.f64, 3)
                 for c, d in ti.static(ti.ndrange(3, 3)):
-                    if a != b or ti.static(c <= d):
-                        r = 3 * a + c
-                        s = 3 * b + d
-                        k = slots[t, r, s]
-                        k2 = -1
-                        if r != s:
-                            k2 = slots[t, s, r]
-                        if k >= 0 or k2 >= 0:  # entries of fixed DoFs are not computed
-                            h = beta * GF[a, c] * GF[b, d] + lam * GK[a, c] * GK[b, d]
-                            if ti.static(c == d):
-                                h += mu_t * gg
-                            else:
-                                # eps_cdm with m the third index: +1 when d follows c cyclically
-                                h += ti.static(1.0 if d == (c + 1) % 3 else -1.0) * stretch * Fw[ti.static(3 - c - d)]
-                            h *= V
-                            if k >= 0:
-                                values[k] += h
-                            if k2 >= 0:
-                                values[k2] += h
+                    if ti.static(c <= d):
+                        _add_entry(values, upper, t, a, a, c, d, bGF, GF, lGK, GK, mgg_aa, no_twist, V)
+                for b in range(a + 1, 4):
+                    if free[b] == 1:
+                        gb = ti.Vector([G[b, 0], G[b, 1], G[b, 2]])
+                        sFw = stretch * (F @ ga.cross(gb))  # lam (J - alpha) F_m . (g_a x g_b)
+                        mgg = mu_t * ga.dot(gb)
+                        for c, d in ti.static(ti.ndrange(3, 3)):
+                            _add_entry(values, upper, t, a, b, c, d, bGF, GF, lGK, GK, mgg, sFw, V)
     return energy
 
 
@@ -151,6 +171,7 @@ class FusedStableNeoHookean:
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
         self._slots: np.ndarray | None = None
+        self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
 
     def accepts(self, potential) -> bool:
@@ -171,8 +192,10 @@ class FusedStableNeoHookean:
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
 
     def bind(self, pattern) -> None:
-        """Slot maps of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`)."""
+        """Slot map of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`; full, for the
+        projected blocks, and packed upper, for the exact ones)."""
         self._slots = pattern.slot_map(self.vertices)
+        self._upper = upper_slot_table(self._slots)
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""
@@ -189,7 +212,7 @@ class FusedStableNeoHookean:
         if self._tets.shape[0] == 0:
             return 0.0
         p = self.potential
-        return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._slots, p.mu, p.lam,
+        return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._upper, p.mu, p.lam,
                                                  grad, values))
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:

@@ -19,8 +19,9 @@ two 3x3 products per block (less compile and run time).
 
 Entries go straight into the solver's static pattern values through
 :meth:`sim_core.assembly.StaticPattern.slot_map` of the potential's block vertices (triangles, then
-edges padded to ``[a, b, b]``). Serial loops on the CPU, parallel on CUDA, as in
-:mod:`sim_core.ti_kernels.fused_neohookean` (reproducible sums).
+edges padded to ``[a, b, b]``), packed by :func:`sim_core.ti_kernels.block_projection.upper_slot_table`.
+Serial loops on the CPU, parallel on CUDA, as in :mod:`sim_core.ti_kernels.fused_neohookean`
+(reproducible sums).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
@@ -32,28 +33,15 @@ from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index, upper_slot_table
 
-_F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
+_F64_1, _F64_2, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_2
 
 
 @ti.func
 def _cross_matrix(v):
     """``[v]_x`` with ``[v]_x w = v x w``."""
     return ti.Matrix([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], ti.f64)
-
-
-@ti.func
-def _add_upper(values: ti.template(), slots: ti.template(), e: ti.i32, r: ti.i32, s: ti.i32, h: ti.f64):
-    """Add the local upper entry ``(r, s)`` (``r <= s``) of a symmetric block through the slot map
-    (at ``[e, r, s]`` and, for ``r < s``, ``[e, s, r]``; -1 = not stored)."""
-    k = slots[e, r, s]
-    if k >= 0:
-        values[k] += h
-    if r != s:
-        k2 = slots[e, s, r]
-        if k2 >= 0:
-            values[k2] += h
 
 
 @fast_kernel
@@ -76,11 +64,12 @@ def spring_membrane_energy(
 
 @fast_kernel
 def spring_membrane_energy_gradient_hessian(
-    x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, slots: _I32_3,
+    x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, upper: _I32_2,
     k_length: ti.f64, k_area: ti.f64, grad: _F64_2, values: _F64_1,
 ) -> ti.f64:
     """Energy (J, returned); adds the gradient (N) to ``grad`` (n, 3) and the exact Hessian (N/m)
-    to ``values`` through ``slots`` (rows: triangles, then edges)."""
+    to ``values`` through the packed upper slot table ``upper`` (rows: triangles, then edges; 45
+    entries of the 9x9 blocks, :func:`~sim_core.ti_kernels.block_projection.upper_slot_table`)."""
     energy = 0.0
     t_count = triangles.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
@@ -102,9 +91,9 @@ def spring_membrane_energy_gradient_hessian(
         row = t_count + e
         for c, d in ti.static(ti.ndrange(3, 3)):
             if ti.static(c <= d):
-                _add_upper(values, slots, row, c, d, h3[c, d])
-                _add_upper(values, slots, row, 3 + c, 3 + d, h3[c, d])
-            _add_upper(values, slots, row, c, 3 + d, -h3[c, d])
+                add_upper_entry(values, upper[row, upper_index(9, c, d)], h3[c, d])
+                add_upper_entry(values, upper[row, upper_index(9, 3 + c, 3 + d)], h3[c, d])
+            add_upper_entry(values, upper[row, upper_index(9, c, 3 + d)], -h3[c, d])
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(t_count):
         X0 = linalg.row3(x, triangles[t, 0])
@@ -144,7 +133,7 @@ def spring_membrane_energy_gradient_hessian(
                     B += 0.5 * g1 * K
                 for c, d in ti.static(ti.ndrange(3, 3)):
                     if ti.static(a != b or c <= d):
-                        _add_upper(values, slots, t, 3 * a + c, 3 * b + d, B[c, d])
+                        add_upper_entry(values, upper[t, upper_index(9, 3 * a + c, 3 * b + d)], B[c, d])
     return energy
 
 
@@ -170,6 +159,7 @@ class FusedSpringMembrane:
         self._area0 = np.ascontiguousarray(potential.triangle_rest_area, dtype=np.float64)
         self._length0 = np.ascontiguousarray(potential.edge_rest_length, dtype=np.float64)
         self._slots: np.ndarray | None = None
+        self._upper: np.ndarray | None = None
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, stiffnesses)."""
@@ -181,8 +171,10 @@ class FusedSpringMembrane:
         """Nothing changes between steps."""
 
     def bind(self, pattern) -> None:
-        """Slot maps of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`)."""
+        """Slot map of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`; full, for the
+        projected blocks, and packed upper, for the exact ones)."""
         self._slots = pattern.slot_map(self.vertices)
+        self._upper = upper_slot_table(self._slots)
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""
@@ -194,7 +186,7 @@ class FusedSpringMembrane:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
         p = self.potential
         return float(spring_membrane_energy_gradient_hessian(
-            x, self._triangles, self._edges, self._area0, self._length0, self._slots, p.k_length, p.k_area,
+            x, self._triangles, self._edges, self._area0, self._length0, self._upper, p.k_length, p.k_area,
             grad, values))
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
