@@ -87,8 +87,15 @@ class LaunchArrays(threading.local):
 
     def copy_of(self, name: str, values: np.ndarray) -> np.ndarray:
         """The kept float64 array ``name`` of ``values``' shape, holding a copy of ``values``."""
-        array = self.__dict__.get(name)
-        if array is None or array.shape != np.shape(values):
-            array = self.__dict__[name] = np.empty(np.shape(values))
-        np.copyto(array, values)
+        array = self.__dict__[name] = copy_into(self.__dict__.get(name), values)
         return array
+
+
+def copy_into(kept: np.ndarray | None, values: np.ndarray) -> np.ndarray:
+    """``values`` copied into the float64 array ``kept`` (a new one when ``kept`` is None or of another
+    shape); returns the array holding the copy. A kernel argument passed through a kept array is the
+    same array object at every launch, so it is bound once (:mod:`sim_core.ti_kernels.launch`)."""
+    if kept is None or kept.shape != np.shape(values):
+        kept = np.empty(np.shape(values))
+    np.copyto(kept, values)
+    return kept

@@ -31,6 +31,7 @@ from sim_core.collision.distances import DistanceDerivatives
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import copy_into
 from sim_core.ti_kernels.contact_setup import _vertex
 from sim_core.ti_kernels.launch import fast_kernel
 
@@ -148,9 +149,7 @@ class PairBatch:
         d, region, grad, hess = self._d, self._region, self._grad, self._hess
         if m:
             self._rows[:m] = rows
-            if self._x.shape != x.shape:
-                self._x = np.empty(x.shape)
-            np.copyto(self._x, x)
+            self._x = copy_into(self._x, x)
             _batch_kernel(self._x, self.vertices, self.sides, self._rows, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), int(bool(derivatives)), self._z, d, region, grad, hess)
         order = 2 if derivatives else 0

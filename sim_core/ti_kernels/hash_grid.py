@@ -43,6 +43,7 @@ import numpy as np
 from sim_core.errors import ConfigError
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import copy_into
 from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
 
@@ -335,9 +336,7 @@ class HashGrid:
             b_vertices, b_body = a_vertices, a_body
         if a_vertices.shape[0] == 0 or b_vertices.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
-        if self.x.shape != np.shape(x):
-            self.x = np.empty(np.shape(x), dtype=np.float64)
-        np.copyto(self.x, x)
+        self.x = copy_into(self.x, x)
         nb = b_vertices.shape[0]
         bodies = allowed.shape[0]
         buckets = _power_of_two(2 * nb) * bodies
