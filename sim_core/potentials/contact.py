@@ -82,6 +82,66 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
+_F64 = np.dtype(np.float64)
+
+
+def positions_key(x: np.ndarray) -> tuple:
+    """``(shape, bytes)`` of positions ``x`` as float64 in C order: equal keys are bitwise equal positions.
+
+    The kept evaluations of the pair potentials are matched by this key (a copy of ``x`` compared
+    with ``np.array_equal`` cost four times as much; bitwise equality is the stricter test).
+    """
+    if type(x) is not np.ndarray or x.dtype is not _F64:
+        x = np.asarray(x, dtype=np.float64)
+    return x.shape, x.tobytes()
+
+
+class PairEvaluation:
+    """An evaluation of a pair potential kept for the positions it was made at (:meth:`_PairPenalty._evaluate`).
+
+    Distances depend on the pairs, sides, ``eps`` and positions only, so an evaluation is shared by
+    the potentials of the same function (:meth:`_PairPenalty.inherit_evaluation`); what depends on
+    the stiffness (energy, gradient) is kept with the stiffness it was computed for.
+
+    Args:
+        order: 0 (distances only) or 2 (with distance gradients and Hessians).
+        key: :func:`positions_key` of the positions.
+        active: rows of the active pairs (``d < eps``), int64 ``(a,)``.
+        dd: their distances (m) and derivatives.
+        eps: the contact offset of the evaluation (m).
+    """
+
+    __slots__ = ("order", "key", "active", "dd", "eps", "_vertices", "_energy", "_gradient")
+
+    def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float) -> None:
+        self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
+        self._vertices = self._energy = self._gradient = None
+
+    def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
+        """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential
+        sharing this evaluation), int64 ``(a, 4)``, kept."""
+        if self._vertices is None:
+            self._vertices = vertices[self.active]
+        return self._vertices
+
+    def energy(self, stiffness: float) -> float:
+        """``k_c / 2 sum (d - eps)^2`` in J (kept per stiffness ``k_c``, N/m)."""
+        kept = self._energy
+        if kept is None or kept[0] != stiffness:
+            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self.dd.d - self.eps) ** 2)))
+        return kept[1]
+
+    def gradient(self, stiffness: float, vertices: np.ndarray) -> np.ndarray:
+        """``dE/dx = k_c (d - eps) grad d`` summed into a new ``(n, 3)`` array (N), ``n`` the row count
+        of the positions (kept per stiffness, returned as a copy)."""
+        kept = self._gradient
+        if kept is None or kept[0] != stiffness:
+            dd = self.dd
+            g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
+            kept = self._gradient = (stiffness, scatter_gradient(self.key[0][0], self.active_vertices(vertices), g))
+        return kept[1].copy()
+
+
 class _PairPenalty:
     """Shared penalty algebra of the 4-vertex pair potentials."""
 
@@ -112,27 +172,42 @@ class _PairPenalty:
             return self._resolve(x[self.vertices], self.sides)
         return self._resolve(x[self.vertices[rows]], self.sides[rows])
 
-    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
-        """Indices of the active pairs and their distance (with derivatives up to ``order``).
+    def _kept(self, key: tuple, order: int) -> "PairEvaluation | None":
+        """The kept evaluation if it was made at positions ``key`` (:func:`positions_key`) with this
+        ``eps`` and holds derivatives up to ``order``, else None."""
+        last = getattr(self, "_last", None)
+        if last is not None and last.order >= order and last.eps == self.eps and last.key == key:
+            return last
+        return None
 
-        Order >= 1 computes the Hessian too (the solver asks for the gradient and then the Hessian
-        at the same iterate); the last result is kept with a copy of ``x`` and reused while ``x``
-        is equal (energy, gradient and Hessian of one iterate share one evaluation).
-        """
-        cache = getattr(self, "_last", None)
-        if cache is not None and cache[4] == self.eps and np.array_equal(cache[1], x):
-            if cache[0] >= order:
-                return cache[2], cache[3]
-            active = cache[2]  # order-0 result at this x: derivatives of its active pairs only
+    def _evaluation(self, x: np.ndarray, order: int) -> "PairEvaluation":
+        """The evaluation of positions ``x`` with distance derivatives up to ``order`` (:meth:`_evaluate`)."""
+        key = positions_key(x)
+        kept = self._kept(key, order)
+        if kept is not None:
+            return kept
+        kept = self._kept(key, 0)
+        if kept is not None:
+            active = kept.active  # order-0 result at this x: derivatives of its active pairs only
         else:
             active, d = self._active_distances(x[self.vertices])
-        if order == 0:  # (only reached through the else branch above, which sets d)
+        if order == 0:  # (only reached without a kept evaluation, which sets d)
             dd = DistanceDerivatives(d, None, None, np.zeros(active.shape, np.int64))
         else:
             order = 2
             dd = self._distance(x[self.vertices[active]], self.sides[active], order)
-        self._last = (order, np.array(x, dtype=float, copy=True), active, dd, self.eps)
-        return active, dd
+        self._last = PairEvaluation(order, key, active, dd, self.eps)
+        return self._last
+
+    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
+        """Indices of the active pairs and their distance (with derivatives up to ``order``).
+
+        Order >= 1 computes the Hessian too (the solver asks for the gradient and then the Hessian
+        at the same iterate); the last result is kept (a :class:`PairEvaluation`) and reused while
+        ``x`` is bitwise equal (energy, gradient and Hessian of one iterate share one evaluation).
+        """
+        evaluation = self._evaluation(x, order)
+        return evaluation.active, evaluation.dd
 
     _may_touch: staticmethod
     """Exact prefilter ``(z, side, eps) -> (k,) bool``: ``point_triangle_may_touch`` or
@@ -181,24 +256,22 @@ class _PairPenalty:
 
     def energy(self, x: np.ndarray) -> float:
         """Penalty energy in J."""
-        _, dd = self._evaluate(x, 0)
-        return float(0.5 * self.stiffness * np.sum((dd.d - self.eps) ** 2))
+        return self._evaluation(x, 0).energy(self.stiffness)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``."""
-        active, dd = self._evaluate(x, 1)
-        g = self.stiffness * (dd.d - self.eps)[:, None] * dd.grad
-        return scatter_gradient(x.shape[0], self.vertices[active], g)
+        return self._evaluation(x, 1).gradient(self.stiffness, self.vertices)
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``."""
-        active, dd = self._evaluate(x, 2)
+        evaluation = self._evaluation(x, 2)
+        active, dd = evaluation.active, evaluation.dd
         if active.size == 0:
             return HessianBlocks.empty(4)
         H = np.multiply(dd.grad[:, :, None], dd.grad[:, None, :])  # in place below: the same sums, fewer temporaries
         H += (dd.d - self.eps)[:, None, None] * dd.hess
         H *= self.stiffness
-        return HessianBlocks(self.vertices[active], project_psd(H, projection))
+        return HessianBlocks(evaluation.active_vertices(self.vertices), project_psd(H, projection))
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/d(stiffness) = ``(d - eps) grad d`` in m, shape ``(n, 3)``."""

@@ -18,7 +18,13 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.collision.distances import DistanceDerivatives
-from sim_core.potentials.contact import ContactFrames, EdgeEdgeContact, VertexTriangleContact
+from sim_core.potentials.contact import (
+    ContactFrames,
+    EdgeEdgeContact,
+    PairEvaluation,
+    VertexTriangleContact,
+    positions_key,
+)
 from sim_core.ti_kernels import contact_distance, contact_setup
 
 
@@ -39,18 +45,17 @@ class _Batched:
     def kept_evaluation(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives] | None:
         """The kept evaluation ``(active, distances)`` of positions ``x`` ``(n, 3)`` if it holds
         derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
-        last = getattr(self, "_last", None)
-        if last is not None and last[0] >= order and last[4] == self.eps and np.array_equal(last[1], x):
-            return last[2], last[3]
-        return None
+        kept = self._kept(positions_key(x), order)
+        return None if kept is None else (kept.active, kept.dd)
 
-    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
+    def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
         if self._batch is None:
-            return super()._evaluate(x, order)
-        kept = self.kept_evaluation(x, order)
+            return super()._evaluation(x, order)
+        key = positions_key(x)
+        kept = self._kept(key, order)
         if kept is None:
-            self._batch.evaluate(x, order > 0)
-            kept = self._last[2], self._last[3]
+            self._batch.evaluate(x, order > 0, key)
+            kept = self._last
         return kept
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
+from sim_core.potentials.contact import PairEvaluation, positions_key
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
@@ -131,17 +132,20 @@ class PairBatch:
         self._grad, self._hess = np.empty((p, 12)), np.empty((p, 12, 12))
         vt._batch = ee._batch = self
 
-    def evaluate(self, x: np.ndarray, derivatives: bool) -> None:
+    def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
         """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
         evaluation of ``x``: active pairs and distances, with ``derivatives`` also their gradients
         ``(a, 12)`` and Hessians ``(a, 12, 12)``. Derivatives after both kept the distances of ``x``
         are computed for their active pairs only; a potential that already keeps an evaluation of
-        ``x`` at least as complete keeps it."""
+        ``x`` at least as complete keeps it. ``key``: :func:`~sim_core.potentials.contact.positions_key`
+        of ``x`` when the caller has it."""
+        if key is None:
+            key = positions_key(x)
         pots = (self.vt, self.ee)
-        kept = [pot.kept_evaluation(x, 0) for pot in pots]
+        kept = [pot._kept(key, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
-            rows = np.concatenate([kept[0][0], kept[1][0] + self.split])
-            parts = (slice(0, len(kept[0][0])), slice(len(kept[0][0]), len(rows)))
+            rows = np.concatenate([kept[0].active, kept[1].active + self.split])
+            parts = (slice(0, len(kept[0].active)), slice(len(kept[0].active), len(rows)))
         else:
             rows, kept = self._all, [None, None]
             parts = (slice(0, self.split), slice(self.split, len(rows)))
@@ -153,23 +157,24 @@ class PairBatch:
             _batch_kernel(self._x, self.vertices, self.sides, self._rows, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), int(bool(derivatives)), self._z, d, region, grad, hess)
         order = 2 if derivatives else 0
-        x_kept = np.array(x, dtype=float, copy=True)
         for pot, part, known in zip(pots, parts, kept):
-            if pot.kept_evaluation(x, order) is not None:
+            if pot._kept(key, order) is not None:
                 continue
-            dk = d[part]
             if known is None:
-                active = np.flatnonzero(dk < pot.eps)
-                select = active
+                active = np.flatnonzero(d[part] < pot.eps)
+                rows = active + part.start  # rows of the kernel's arrays (fancy indexing: copies)
             else:  # the rows are the known active pairs, in order
-                active, select = known[0], slice(None)
+                active, rows = known.active, part
             # copies: the kernel's arrays are overwritten by the next evaluation
+            dk = d[rows].copy() if known is not None else d[rows]
             if derivatives:
-                dd = DistanceDerivatives(dk[select].copy(), grad[part][select].copy(), hess[part][select].copy(),
-                                         region[part][select].astype(np.int64))
+                if known is not None:
+                    dd = DistanceDerivatives(dk, grad[rows].copy(), hess[rows].copy(), region[rows].astype(np.int64))
+                else:
+                    dd = DistanceDerivatives(dk, grad[rows], hess[rows], region[rows].astype(np.int64))
             else:
-                dd = DistanceDerivatives(dk[select].copy(), None, None, np.zeros(active.shape, np.int64))
-            pot._last = (order, x_kept, active, dd, pot.eps)
+                dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
+            pot._last = PairEvaluation(order, key, active, dd, pot.eps)
 
 
 def compile_kernels() -> None:

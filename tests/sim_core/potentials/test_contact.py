@@ -233,3 +233,31 @@ def test_kept_evaluation_is_reused_only_for_the_same_function():
     # a kept result is only used at equal positions
     x2 = x + 1e-6
     assert same.energy(x2) == VertexTriangleContact(pairs, tris, sides, K, EPS).energy(x2)
+
+
+def test_kept_evaluation_is_matched_bitwise_and_its_stiffness_terms_per_stiffness():
+    # equal positions in another array reuse the evaluation; positions changed in place, or of
+    # another dtype, do not; the energy and gradient follow a changed stiffness; a returned gradient
+    # is the caller's (changing it leaves the kept one as it was)
+    from sim_core.potentials.contact import positions_key
+
+    rng = np.random.default_rng(13)
+    x, tris, pairs = _vt_scene(rng, list(PointTriangleRegion))
+    pot = VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS)
+    g = pot.gradient(x)
+    kept = pot._last
+    assert pot.energy(x.copy()) > 0.0 and pot._last is kept
+    assert positions_key(x) == positions_key(x.copy()) != positions_key(x.astype(np.float32))
+    assert positions_key(x.tolist()) == positions_key(x)
+    y = x.copy()
+    y[0, 2] += 1e-7  # in place: another key, a new evaluation
+    assert positions_key(y) != positions_key(x)
+    assert pot.energy(y) == VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS).energy(y)
+    assert pot._last is not kept
+    pot.gradient(x)[:] = 0.0
+    np.testing.assert_array_equal(pot.gradient(x), g)
+    e = pot.energy(x)
+    pot.stiffness = 2.0 * K
+    assert pot.energy(x) == VertexTriangleContact(pairs, tris, np.ones(len(pairs)), 2.0 * K, EPS).energy(x) != e
+    np.testing.assert_array_equal(pot.gradient(x),
+                                  VertexTriangleContact(pairs, tris, np.ones(len(pairs)), 2.0 * K, EPS).gradient(x))

@@ -92,6 +92,6 @@ def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
     kept = vt._last
     ee._last = None
     ee.energy(x)  # a values-only launch for ee: vt keeps its derivatives
-    assert vt._last is kept and ee._last[0] == 0
+    assert vt._last is kept and ee._last.order == 0
     assert vt.kept_evaluation(x, 2) is not None and ee.kept_evaluation(x, 1) is None
     assert vt.kept_evaluation(x + 1e-9, 0) is None
