@@ -150,3 +150,27 @@ def test_calls_from_another_thread_get_their_own_context(ti_cpu):
     out = np.zeros(5)
     weighted_sum(x, w, idx, 1.0, 0, False, out)
     np.testing.assert_allclose(out, _reference(x, w, idx, 1.0, 0, False), rtol=0, atol=1e-14)
+
+
+def test_repeated_scalars_and_arrays_changed_in_place(ti_cpu):
+    """A plan sets a scalar again only when it changed (a zero float always: its sign matters), and
+    an array whose dtype was changed in place is checked again (Taichi's path rejects it)."""
+    weighted_sum, count_positive = _kernels()
+    rng = np.random.default_rng(4)
+    x, w, idx = rng.normal(size=(10, 3)), rng.normal(size=5), np.arange(5, dtype=np.int32)
+    for scale in (1.5, 1.5, -0.0, 0.0, -0.0, 2.5, 2.5):
+        out = np.full(5, -0.0)  # -0.0 + v keeps the sign of a zero v
+        weighted_sum(x, w, idx, scale, 1, False, out)
+        expected = np.full(5, -0.0) + _reference(x, w, idx, scale, 1, False)
+        np.testing.assert_array_equal(out, expected)
+        np.testing.assert_array_equal(np.signbit(out), np.signbit(expected))
+    for shift in (0, 0, 2, 0):
+        out = np.zeros(5)
+        weighted_sum(x, w, idx, 1.0, shift, False, out)
+        np.testing.assert_array_equal(out, _reference(x, w, idx, 1.0, shift, False))
+    v = rng.normal(size=6)
+    for _ in range(3):
+        assert count_positive(v) == int(np.sum(v > 0))
+    v.dtype = np.int64  # same object and shape, another dtype
+    with pytest.raises(Exception):
+        count_positive(v)
