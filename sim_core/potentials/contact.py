@@ -101,20 +101,27 @@ class PairEvaluation:
 
     Distances depend on the pairs, sides, ``eps`` and positions only, so an evaluation is shared by
     the potentials of the same function (:meth:`_PairPenalty.inherit_evaluation`); what depends on
-    the stiffness (energy, gradient) is kept with the stiffness it was computed for.
+    the stiffness (energy, gradient, penalty Hessian) is kept with the stiffness it was computed for.
 
     Args:
-        order: 0 (distances only) or 2 (with distance gradients and Hessians).
+        order: 0 (distances only) or 2 (with distance gradients, and distance Hessians or penalty
+            Hessian blocks).
         key: :func:`positions_key` of the positions.
         active: rows of the active pairs (``d < eps``), int64 ``(a,)``.
-        dd: their distances (m) and derivatives.
+        dd: their distances (m) and derivatives; ``dd.hess`` None when ``hessian_blocks`` are given.
         eps: the contact offset of the evaluation (m).
+        hessian_blocks: None, or ``(k_c, blocks)``: the penalty Hessians
+            ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs for stiffness ``k_c``
+            (N/m), ``(a, 12, 12)``, made with the distances (the batch kernel of
+            :mod:`sim_core.ti_kernels.contact_batch`).
     """
 
-    __slots__ = ("order", "key", "active", "dd", "eps", "_vertices", "_energy", "_gradient")
+    __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
 
-    def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float) -> None:
+    def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float,
+                 hessian_blocks: tuple[float, np.ndarray] | None = None) -> None:
         self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
+        self.hessian_blocks = hessian_blocks
         self._vertices = self._energy = self._gradient = None
 
     def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
@@ -123,6 +130,11 @@ class PairEvaluation:
         if self._vertices is None:
             self._vertices = vertices[self.active]
         return self._vertices
+
+    def holds_hessian(self, stiffness: float) -> bool:
+        """Whether :meth:`penalty_hessian` can give the Hessians for ``stiffness`` (N/m)."""
+        blocks = self.hessian_blocks
+        return self.dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
 
     def energy(self, stiffness: float) -> float:
         """``k_c / 2 sum (d - eps)^2`` in J (kept per stiffness ``k_c``, N/m)."""
@@ -140,6 +152,24 @@ class PairEvaluation:
             g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
             kept = self._gradient = (stiffness, scatter_gradient(self.key[0][0], self.active_vertices(vertices), g))
         return kept[1].copy()
+
+    def penalty_hessian(self, stiffness: float) -> np.ndarray:
+        """New blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
+        (J/m^2): a copy of the kept ``hessian_blocks`` when made for ``stiffness``, else from ``dd``.
+
+        Raises:
+            ValueError: neither is available (see :meth:`holds_hessian`).
+        """
+        blocks = self.hessian_blocks
+        if blocks is not None and blocks[0] == stiffness:
+            return blocks[1].copy()
+        dd = self.dd
+        if dd.hess is None:
+            raise ValueError(f"PairEvaluation: no distance Hessians, and no penalty Hessians for stiffness {stiffness}")
+        H = np.multiply(dd.grad[:, :, None], dd.grad[:, None, :])  # in place below: the same sums, fewer temporaries
+        H += (dd.d - self.eps)[:, None, None] * dd.hess
+        H *= stiffness
+        return H
 
 
 class _PairPenalty:
@@ -174,9 +204,11 @@ class _PairPenalty:
 
     def _kept(self, key: tuple, order: int) -> "PairEvaluation | None":
         """The kept evaluation if it was made at positions ``key`` (:func:`positions_key`) with this
-        ``eps`` and holds derivatives up to ``order``, else None."""
+        ``eps`` and holds derivatives up to ``order`` (order 2: with the Hessians of this stiffness,
+        :meth:`PairEvaluation.holds_hessian`), else None."""
         last = getattr(self, "_last", None)
-        if last is not None and last.order >= order and last.eps == self.eps and last.key == key:
+        if (last is not None and last.order >= order and last.eps == self.eps and last.key == key
+                and (order < 2 or last.holds_hessian(self.stiffness))):
             return last
         return None
 
@@ -265,12 +297,9 @@ class _PairPenalty:
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``."""
         evaluation = self._evaluation(x, 2)
-        active, dd = evaluation.active, evaluation.dd
-        if active.size == 0:
+        if evaluation.active.size == 0:
             return HessianBlocks.empty(4)
-        H = np.multiply(dd.grad[:, :, None], dd.grad[:, None, :])  # in place below: the same sums, fewer temporaries
-        H += (dd.d - self.eps)[:, None, None] * dd.hess
-        H *= self.stiffness
+        H = evaluation.penalty_hessian(self.stiffness)
         return HessianBlocks(evaluation.active_vertices(self.vertices), project_psd(H, projection))
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:

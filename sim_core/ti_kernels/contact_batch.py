@@ -6,10 +6,16 @@ separately, each potential launches the distance kernels of :mod:`sim_core.ti_ke
 once or twice per request (values of every pair, then derivatives of the active ones) after a NumPy
 gather of the pair positions. A :class:`PairBatch` links the two potentials: the first request at
 new positions ``x`` evaluates both in one launch of :func:`_batch_kernel` (the pair positions
-gathered in the kernel; the distance of every pair; with derivatives, the gradient and Hessian of
-the active pairs ``d < eps``), and each potential keeps its part as its evaluation of ``x`` (the
-``_last`` of :meth:`sim_core.potentials.contact._PairPenalty._evaluate`), so the second request
-finds it there. Before measuring a pair, the kernel applies the exact prefilter of
+gathered in the kernel; the distance of every pair; with derivatives, the distance gradient and the
+penalty Hessian ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs ``d < eps``), and
+each potential keeps its part as its evaluation of ``x`` (a
+:class:`~sim_core.potentials.contact.PairEvaluation`, the ``_last`` of
+:meth:`sim_core.potentials.contact._PairPenalty._evaluate`), so the second request finds it there.
+The penalty Hessian is made in the kernel from the distance Hessian it has just computed (the
+reference's operations in its order: the same blocks bit for bit), so that neither the distance
+Hessians are copied out nor the blocks built in NumPy (about 30 us of NumPy per Forming iterate,
+for ~17 us more kernel time); it is kept with the stiffness it was made for (another stiffness
+evaluates again). Before measuring a pair, the kernel applies the exact prefilter of
 :mod:`sim_core.collision.distance_bounds` (box gap, plane / line-line bound, same margins): about
 two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
 (they are never active, so the active pairs and their values are unchanged). The kernel's arrays
@@ -70,24 +76,34 @@ def _may_touch(z0, z1, z2, z3, side: ti.f64, eps: ti.f64, point_first: ti.i32) -
     return ti.cast(not far, ti.i32)
 
 
+@ti.func
+def _penalty_hessian(i: ti.i32, gap: ti.f64, stiffness: ti.f64, grad: ti.template(), hess: ti.template()):
+    """Row ``i`` of ``hess``, a distance Hessian, replaced by the penalty Hessian
+    ``k_c (grad d grad d^T + (d - eps) hess d)`` (``gap = d - eps``), the reference's operations in its order."""
+    for a in range(12):
+        for b in range(12):
+            hess[i, a, b] = (grad[i, a] * grad[i, b] + gap * hess[i, a, b]) * stiffness
+
+
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
-                  eps_vt: ti.f64, eps_ee: ti.f64, derivatives: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1,
-                  grad: _F64_2, hess: _F64_3):
+                  eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
+                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3):
     """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
-    ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the gradient and
-    Hessian rows ``i`` of the pairs with ``d < eps`` of their kind (the other rows are left as they
-    are). A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
+    ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the distance gradient
+    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
+    ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
+    as they are). A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
     pair kind are runtime values: one compiled kernel for every request."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
         k = rows[i]
         point_first = 0
-        eps = eps_ee
+        eps, stiffness = eps_ee, stiffness_ee
         if k < split:
             point_first = 1
-            eps = eps_vt
+            eps, stiffness = eps_vt, stiffness_vt
         p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
                           _vertex(x, vertices, k, 3))
         if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
@@ -97,6 +113,7 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
             if derivatives:
                 if d[i] < eps:
                     cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
+                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
         else:
             region[i], d[i] = -1, ti.math.inf
 
@@ -151,13 +168,15 @@ class PairBatch:
             parts = (slice(0, self.split), slice(self.split, len(rows)))
         m = len(rows)
         d, region, grad, hess = self._d, self._region, self._grad, self._hess
+        stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
         if m:
             self._rows[:m] = rows
             self._x = copy_into(self._x, x)
             _batch_kernel(self._x, self.vertices, self.sides, self._rows, m, self.split, float(self.vt.eps),
-                          float(self.ee.eps), int(bool(derivatives)), self._z, d, region, grad, hess)
+                          float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), self._z, d,
+                          region, grad, hess)
         order = 2 if derivatives else 0
-        for pot, part, known in zip(pots, parts, kept):
+        for pot, part, known, stiffness in zip(pots, parts, kept, stiffnesses):
             if pot._kept(key, order) is not None:
                 continue
             if known is None:
@@ -168,13 +187,12 @@ class PairBatch:
             # copies: the kernel's arrays are overwritten by the next evaluation
             dk = d[rows].copy() if known is not None else d[rows]
             if derivatives:
-                if known is not None:
-                    dd = DistanceDerivatives(dk, grad[rows].copy(), hess[rows].copy(), region[rows].astype(np.int64))
-                else:
-                    dd = DistanceDerivatives(dk, grad[rows], hess[rows], region[rows].astype(np.int64))
+                g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
+                dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
+                pot._last = PairEvaluation(order, key, active, dd, pot.eps, (stiffness, h))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
-            pot._last = PairEvaluation(order, key, active, dd, pot.eps)
+                pot._last = PairEvaluation(order, key, active, dd, pot.eps)
 
 
 def compile_kernels() -> None:

@@ -43,7 +43,7 @@ def _launches(monkeypatch) -> list:
 
     calls = []
     kernel = contact_batch._batch_kernel
-    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[8], a[4])), kernel(*a)))
+    monkeypatch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[10], a[4])), kernel(*a)))
 
     def forbidden(*a):
         raise AssertionError("a separate distance kernel was launched")
@@ -95,3 +95,24 @@ def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
     assert vt._last is kept and ee._last.order == 0
     assert vt.kept_evaluation(x, 2) is not None and ee.kept_evaluation(x, 1) is None
     assert vt.kept_evaluation(x + 1e-9, 0) is None
+
+
+def test_penalty_hessians_follow_a_changed_stiffness(ti_cpu, monkeypatch):
+    """The kernel makes the penalty Hessians with the stiffness of the request; after a change of
+    stiffness the Hessian is evaluated again, equal bit for bit to the separate potential's."""
+    x, linked, alone = _potentials(200)
+    for pot in linked:
+        pot.hessian(x, "none")
+    expected = []
+    for ref in alone:  # separate kernels, before the launches are watched
+        ref.stiffness = 3.0 * K
+        expected.append((ref.hessian(x, "none"), ref.gradient(x), ref.energy(x)))
+    calls = _launches(monkeypatch)
+    for pot, (h_ref, g_ref, e_ref) in zip(linked, expected):
+        pot.stiffness = 3.0 * K
+        h = pot.hessian(x, "none")
+        np.testing.assert_array_equal(h.vertices, h_ref.vertices)
+        np.testing.assert_array_equal(h.blocks, h_ref.blocks)
+        np.testing.assert_array_equal(pot.gradient(x), g_ref)
+        assert pot.energy(x) == e_ref
+    assert [derivatives for derivatives, _ in calls] == [True, True]  # one per stiffness change
