@@ -163,7 +163,11 @@ class ContactSet:
         """
         if x_search is None or x_search.shape != x.shape:
             return False
-        return x.size == 0 or float(np.max(np.abs(x - x_search))) <= 0.5 * self.margin
+        if x.size == 0:
+            return True
+        moved = x - x_search
+        np.abs(moved, out=moved)
+        return bool(np.maximum.reduce(moved, axis=None) <= 0.5 * self.margin)  # NaN: False
 
     def _candidate_pairs(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`)."""
