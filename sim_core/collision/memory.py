@@ -9,8 +9,6 @@ are vectorised ``searchsorted`` calls.
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from sim_core.collision.distances import edge_edge_side, point_triangle_side
@@ -95,8 +93,10 @@ class ContactMemory:
         self._keys, self._sides = keys, signs
 
     def copy(self) -> "ContactMemory":
-        """Independent copy (a State holds its own memory)."""
-        return copy.deepcopy(self)
+        """Independent copy (a State holds its own memory): the key and side arrays duplicated."""
+        out = object.__new__(type(self))  # no __init__ (its empty arrays), no copy.copy (3 us)
+        out.kind, out._keys, out._sides = self.kind, self._keys.copy(), self._sides.copy()
+        return out
 
     def __eq__(self, other: object) -> bool:
         return (
@@ -119,8 +119,10 @@ class CollisionMemory:
         self.edge_edge = ContactMemory("edge_edge")
 
     def copy(self) -> "CollisionMemory":
-        """Independent copy."""
-        return copy.deepcopy(self)
+        """Independent copy (each kind's memory copied)."""
+        out = object.__new__(type(self))
+        out.vertex_triangle, out.edge_edge = self.vertex_triangle.copy(), self.edge_edge.copy()
+        return out
 
 
 def vertex_triangle_pair_sides(
