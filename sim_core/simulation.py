@@ -78,6 +78,11 @@ class Simulation:
         self.last_info = info
         return info
 
+    def warm_up(self) -> None:
+        """Build the solver's per-model structures for the current state before the first step
+        (:meth:`NewtonSolver.warm_up`), so that the first step takes about as long as the others."""
+        self.solver.warm_up(self.state)
+
     def reset(self) -> None:
         """Return to the initial state, with the solver's step-to-step caches cleared
         (:meth:`NewtonSolver.reset_caches`): the same controls then give the same steps bit for bit."""

@@ -284,6 +284,24 @@ class NewtonSolver:
                 halvings -= 1
                 n_sub *= 2
 
+    def warm_up(self, state: State, control: Control | None = None) -> None:
+        """Build, before the first step from ``state``, the per-model structures that step would build
+        before its first Newton iteration and later steps reuse: on the fused path (``_fused_path``) the
+        fused elastic evaluator bound to the assembler's static sparsity pattern of the state's Dirichlet
+        mask with ``control`` (:meth:`_fused_elastic`; Forming: about 30 ms). Steps give the same results
+        with or without it (the step finds the evaluator and pattern built); a missing-physics candidate
+        body term with a fused part changes the pattern, which its first step then builds as before.
+
+        Raises:
+            ConfigError: invalid control (:meth:`boundary`).
+        """
+        if self._revision != self.model.revision:
+            self.notify_model_changed()
+        if not self._fused_path():
+            return
+        fixed = self.boundary(state, control or Control())[0]
+        self._fused_elastic(self.elastic.potentials(state.hinge_theta_bar), state.x, np.repeat(~fixed, 3))
+
     def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int,
                        guess: np.ndarray | None = None) -> StepInfo:
         s = state_in.copy()

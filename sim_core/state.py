@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from sim_core.collision.memory import CollisionMemory
+
 
 @dataclass
 class State:
@@ -42,5 +44,27 @@ class State:
     candidate_state: dict = field(default_factory=dict)
 
     def copy(self) -> "State":
-        """Deep copy (arrays and memory duplicated)."""
-        return copy.deepcopy(self)
+        """Deep copy: an independent state (arrays, dicts of arrays and the contact memory duplicated).
+
+        The fields are duplicated one by one (:func:`_duplicate`) rather than by ``copy.deepcopy``,
+        which walks every object through its memo (50-70 us a state, against about 8 us; the Newton
+        solver copies states per step). Aliasing between fields is not preserved.
+        """
+        out = object.__new__(type(self))  # same class, no __init__
+        out.__dict__.update({name: _duplicate(value) for name, value in self.__dict__.items()})
+        return out
+
+
+def _duplicate(value: Any) -> Any:
+    """An independent copy of a state field: arrays copied, dicts duplicated value by value, the contact
+    memory through :meth:`~sim_core.collision.memory.CollisionMemory.copy`, anything else through
+    ``copy.deepcopy``."""
+    if isinstance(value, np.ndarray):
+        return value.copy(order="K")
+    if type(value) is dict:
+        return {k: _duplicate(v) for k, v in value.items()}
+    if value is None or isinstance(value, (float, int, str, bool)):
+        return value
+    if isinstance(value, CollisionMemory):
+        return value.copy()
+    return copy.deepcopy(value)

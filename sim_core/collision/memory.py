@@ -9,8 +9,6 @@ are vectorised ``searchsorted`` calls.
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from sim_core.collision.distances import edge_edge_side, point_triangle_side
@@ -55,12 +53,24 @@ class ContactMemory:
         Returns:
             ``(sides, found)``: shape ``(p,)`` each; ``sides`` is 0 where ``found`` is False.
         """
-        keys = _pack(pairs)
-        if not len(self):
-            return np.zeros(keys.shape[0]), np.zeros(keys.shape[0], dtype=bool)
-        pos = np.minimum(np.searchsorted(self._keys, keys), len(self) - 1)
-        found = self._keys[pos] == keys
-        sides = np.where(found, self._sides[pos], 0.0)
+        return self._lookup_keys(_pack(pairs))
+
+    def _lookup_keys(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`lookup` of packed pair keys ``(p,)``. Sorted unique keys (a candidate list: hundreds
+        of pairs against a few dozen remembered ones) place the remembered keys among them, others
+        are searched one by one among the remembered keys; the same result."""
+        m, p = len(self), keys.shape[0]
+        if not m or not p:
+            return np.zeros(p), np.zeros(p, dtype=bool)
+        if p > 1 and not np.all(keys[1:] > keys[:-1]):
+            pos = np.minimum(np.searchsorted(self._keys, keys), m - 1)
+            found = self._keys[pos] == keys
+            return np.where(found, self._sides[pos], 0.0), found
+        at = np.minimum(np.searchsorted(keys, self._keys), p - 1)
+        hit = keys[at] == self._keys
+        sides, found = np.zeros(p), np.zeros(p, dtype=bool)
+        sides[at[hit]] = self._sides[hit]
+        found[at[hit]] = True
         return sides, found
 
     def resolve(self, pairs: np.ndarray, current_sides: np.ndarray) -> np.ndarray:
@@ -87,16 +97,20 @@ class ContactMemory:
             )
         if not np.all(np.abs(signs) == 1.0):
             raise ConfigError(f"ContactMemory[{self.kind}]: signs must be +1 or -1")
-        signs = self.resolve(active_pairs, signs)
-        order = np.argsort(keys, kind="stable")
-        keys, signs = keys[order], signs[order]
-        if keys.size > 1 and np.any(keys[1:] == keys[:-1]):
-            raise ConfigError(f"ContactMemory[{self.kind}]: duplicate pairs in update")
+        remembered, found = self._lookup_keys(keys)
+        signs = np.where(found, remembered, signs)
+        if keys.size > 1 and not np.all(keys[1:] > keys[:-1]):  # else sorted and unique already
+            order = np.argsort(keys, kind="stable")
+            keys, signs = keys[order], signs[order]
+            if np.any(keys[1:] == keys[:-1]):
+                raise ConfigError(f"ContactMemory[{self.kind}]: duplicate pairs in update")
         self._keys, self._sides = keys, signs
 
     def copy(self) -> "ContactMemory":
-        """Independent copy (a State holds its own memory)."""
-        return copy.deepcopy(self)
+        """Independent copy (a State holds its own memory): the key and side arrays duplicated."""
+        out = object.__new__(type(self))  # no __init__ (its empty arrays), no copy.copy (3 us)
+        out.kind, out._keys, out._sides = self.kind, self._keys.copy(), self._sides.copy()
+        return out
 
     def __eq__(self, other: object) -> bool:
         return (
@@ -119,8 +133,10 @@ class CollisionMemory:
         self.edge_edge = ContactMemory("edge_edge")
 
     def copy(self) -> "CollisionMemory":
-        """Independent copy."""
-        return copy.deepcopy(self)
+        """Independent copy (each kind's memory copied)."""
+        out = object.__new__(type(self))
+        out.vertex_triangle, out.edge_edge = self.vertex_triangle.copy(), self.edge_edge.copy()
+        return out
 
 
 def vertex_triangle_pair_sides(

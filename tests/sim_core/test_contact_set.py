@@ -307,3 +307,31 @@ def test_every_broad_phase_gives_the_same_candidate_lists_on_the_numpy_path(seed
         np.testing.assert_array_equal(lists[name][1], lists["kdtree"][1])
     with pytest.raises(ConfigError, match="broad_phase.*'bvh'"):
         ContactSet(model, broad_phase="bvh")
+
+
+def test_friction_coefficients_are_those_of_each_pairs_two_bodies_and_follow_edits():
+    """Each friction row's mu is ``model.friction_coefficient`` of the bodies on the pair's two sides,
+    also after ``model.friction`` is edited between steps (as the generated friction effects do)."""
+    model, x = _forming_model_deformed(0)
+    cs = ContactSet(model)
+    body_names = list(model.bodies)
+    body = model.body_of_vertex()
+
+    def expected(friction) -> np.ndarray:
+        out = []
+        for source in friction.row_sources:
+            vertices = source.potential.vertices[source.pair_index]
+            second = 1 if source.potential is cs._pairs(x, memory)[0] else 2
+            out += [model.friction_coefficient(body_names[body[a]], body_names[body[b]])
+                    for a, b in zip(vertices[:, 0], vertices[:, second])]
+        return np.array(out)
+
+    for scale in (1.0, 0.5):
+        for i, a in enumerate(body_names):  # a different coefficient for every body pair
+            for j, b in enumerate(body_names[i:]):
+                model.friction[frozenset((a, b))] = scale * (0.1 + 0.1 * i + 0.03 * j)
+        memory = cs.begin_step(x, None)
+        friction = cs.friction(x, 0.005, memory)
+        assert all(s.obstacle is None for s in friction.row_sources) and len(friction.mu) > 10
+        np.testing.assert_array_equal(friction.mu, expected(friction))
+        assert np.all(friction.mu != 0.1 * scale)  # no pair within one body (its coefficient is 0.1 here)
