@@ -18,8 +18,9 @@ for ~17 us more kernel time); it is kept with the stiffness it was made for (ano
 evaluates again). Before measuring a pair, the kernel applies the exact prefilter of
 :mod:`sim_core.collision.distance_bounds` (box gap, plane / line-line bound, same margins): about
 two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
-(they are never active, so the active pairs and their values are unchanged). The kernel's arrays
-are kept by the batch (bound to the compiled kernel once, positions copied in).
+(they are never active, so the active pairs and their values are unchanged). The kernel's work
+arrays are kept per thread and shared by all batches (:data:`_ARRAYS`; bound to the compiled kernel
+once, positions copied in).
 
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
@@ -38,7 +39,7 @@ from sim_core.potentials.contact import PairEvaluation, positions_key
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import copy_into
+from sim_core.ti_kernels.buffers import LaunchArrays
 from sim_core.ti_kernels.contact_setup import _vertex
 from sim_core.ti_kernels.launch import fast_kernel
 
@@ -118,6 +119,21 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
             region[i], d[i] = -1, ti.math.inf
 
 
+_ARRAYS = LaunchArrays()
+"""The batch kernel's work arrays, per thread (:class:`~sim_core.ti_kernels.buffers.LaunchArrays`):
+shared by every :class:`PairBatch` (an evaluation copies its rows out), so a step's new batch binds
+no new arrays and writes into pages already mapped (fresh ``(p, 12, 12)`` arrays per batch cost
+page faults at the first launches)."""
+
+
+def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The batch kernel's kept output arrays with at least ``rows`` rows, for the calling thread:
+    distance ``(>= rows,)``, region int32 ``(>= rows,)``, gradient ``(>= rows, 12)`` and Hessian
+    ``(>= rows, 12, 12)`` (rows ``i`` of a launch's pairs ``i``; overwritten by the next launch)."""
+    return (_ARRAYS.rows("d", rows), _ARRAYS.rows("region", rows, (), np.int32), _ARRAYS.rows("grad", rows, (12,)),
+            _ARRAYS.rows("hess", rows, (12, 12)))
+
+
 class PairBatch:
     """Evaluates a vertex-triangle and an edge-edge pair potential in one launch (module docstring).
 
@@ -140,13 +156,6 @@ class PairBatch:
         self.vertices = np.ascontiguousarray(np.concatenate([vt.vertices, ee.vertices]), dtype=np.int32)
         self.sides = np.ascontiguousarray(np.concatenate([vt.sides, ee.sides]), dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
-        # the kernel's arrays, kept (bound to the compiled kernel once, :mod:`sim_core.ti_kernels.launch`):
-        # positions, rows, and per row the gathered pair, distance, region, gradient and Hessian
-        p = self.vertices.shape[0]
-        self._x = np.zeros((0, 3))
-        self._rows = np.zeros(p, dtype=np.int32)
-        self._z, self._d, self._region = np.empty((p, 4, 3)), np.empty(p), np.empty(p, dtype=np.int32)
-        self._grad, self._hess = np.empty((p, 12)), np.empty((p, 12, 12))
         vt._batch = ee._batch = self
 
     def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
@@ -167,14 +176,14 @@ class PairBatch:
             rows, kept = self._all, [None, None]
             parts = (slice(0, self.split), slice(self.split, len(rows)))
         m = len(rows)
-        d, region, grad, hess = self._d, self._region, self._grad, self._hess
+        d, region, grad, hess = work_arrays(m)
         stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
         if m:
-            self._rows[:m] = rows
-            self._x = copy_into(self._x, x)
-            _batch_kernel(self._x, self.vertices, self.sides, self._rows, m, self.split, float(self.vt.eps),
-                          float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), self._z, d,
-                          region, grad, hess)
+            kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
+            kept_rows[:m] = rows
+            _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows, m, self.split,
+                          float(self.vt.eps), float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)),
+                          _ARRAYS.rows("z", m, (4, 3)), d, region, grad, hess)
         order = 2 if derivatives else 0
         for pot, part, known, stiffness in zip(pots, parts, kept, stiffnesses):
             if pot._kept(key, order) is not None:

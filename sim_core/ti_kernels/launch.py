@@ -28,6 +28,7 @@ after the Taichi program was re-initialised (the plans of the old program are dr
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import threading
 from typing import Any, Callable
@@ -160,7 +161,7 @@ class _Plan:
                     return _MISMATCH
                 if bound is not None:
                     bound[n] = (v, v.shape, v.dtype, v.strides)
-                ctx.set_arg_external_array_with_shape((index,), v.ctypes.data, v.nbytes, v.shape, 0)
+                ctx.set_arg_external_array_with_shape((index,), _data_pointer(v), v.nbytes, v.shape, 0)
                 continue
             if not checked and type(v) is not expected:
                 return _MISMATCH
@@ -261,6 +262,18 @@ class FastKernel:
             return result
         self._last_plan = plan
         return plan.launch(runtime, args, checked=True)
+
+
+def _data_pointer(array: np.ndarray) -> int:
+    """Address of the first element of a C-contiguous ``array`` (``array.ctypes.data``, which builds a
+    ctypes helper object, ~3 us; through the buffer protocol ~0.8 us where the array is writable and
+    not empty)."""
+    if array.nbytes:
+        try:
+            return ctypes.addressof(ctypes.c_char.from_buffer(array))
+        except TypeError:  # a read-only array
+            pass
+    return array.ctypes.data
 
 
 def _host_arch(runtime) -> bool:

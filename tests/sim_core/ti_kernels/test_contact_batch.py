@@ -71,7 +71,9 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
     active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
     assert 0 < active < total
     assert calls == [(False, total)]  # values of both kinds at x: one launch
-    ruled_out = np.count_nonzero(linked[0]._batch._region[:total] == -1)  # by the kernel's distance bounds
+    from sim_core.ti_kernels import contact_batch
+
+    ruled_out = np.count_nonzero(contact_batch.work_arrays(total)[1][:total] == -1)  # by the kernel's distance bounds
     assert 0 < ruled_out < total - active
     for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
         np.testing.assert_array_equal(pot.gradient(x), grad)
@@ -116,3 +118,20 @@ def test_penalty_hessians_follow_a_changed_stiffness(ti_cpu, monkeypatch):
         np.testing.assert_array_equal(pot.gradient(x), g_ref)
         assert pot.energy(x) == e_ref
     assert [derivatives for derivatives, _ in calls] == [True, True]  # one per stiffness change
+
+
+def test_batches_sharing_the_work_arrays_keep_their_own_results(ti_cpu):
+    """Every batch launches on the same kept work arrays; each evaluation copies its rows out, so a
+    batch evaluated after another (more pairs, then fewer) leaves the first one's results as they were."""
+    x, linked, alone = _potentials(300)
+    y, small, small_alone = _potentials(40)
+    expected = [(ref.gradient(x), ref.hessian(x, "none").blocks) for ref in alone]
+    expected_small = [(ref.gradient(y), ref.hessian(y, "none").blocks) for ref in small_alone]
+    for pot in linked:
+        pot.hessian(x, "none")
+    for pot in small:
+        pot.hessian(y, "none")
+    for pots, exp, xx in ((linked, expected, x), (small, expected_small, y)):
+        for pot, (g, h) in zip(pots, exp):
+            np.testing.assert_array_equal(pot.gradient(xx), g)
+            np.testing.assert_array_equal(pot.hessian(xx, "none").blocks, h)

@@ -174,3 +174,24 @@ def test_repeated_scalars_and_arrays_changed_in_place(ti_cpu):
     v.dtype = np.int64  # same object and shape, another dtype
     with pytest.raises(Exception):
         count_positive(v)
+
+
+def test_data_pointer_is_the_arrays_address():
+    from sim_core.ti_kernels.launch import _data_pointer
+
+    a = np.arange(24.0).reshape(4, 6)
+    read_only = a.copy()
+    read_only.flags.writeable = False
+    for v in (a, a[1:], a[:0], read_only, np.zeros(0, dtype=np.int32)):
+        assert _data_pointer(v) == v.ctypes.data
+
+
+def test_read_only_and_offset_arrays_are_bound_at_their_address(ti_cpu):
+    weighted_sum, _ = _kernels()
+    rng = np.random.default_rng(5)
+    x, w, idx = rng.normal(size=(12, 3)), rng.normal(size=8), np.arange(5, dtype=np.int32)
+    x.flags.writeable = False
+    for w_view in (w[3:], w[1:6], w[3:]):  # views with an offset, C-contiguous
+        out = np.zeros(5)
+        weighted_sum(x, w_view, idx, 1.0, 0, False, out)
+        np.testing.assert_array_equal(out, _reference(x, w_view, idx, 1.0, 0, False))
