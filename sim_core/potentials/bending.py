@@ -61,10 +61,21 @@ def dihedral_angle(X: np.ndarray) -> np.ndarray:
     """
     x0, x1, x2, x3 = X[:, 0], X[:, 1], X[:, 2], X[:, 3]
     e = x1 - x0
-    n0 = np.cross(e, x2 - x0)
-    n1 = np.cross(x3 - x0, e)
+    n0 = _cross(e, x2 - x0)
+    n1 = _cross(x3 - x0, e)
     e_hat = e / np.linalg.norm(e, axis=1)[:, None]
-    return np.arctan2(_dot(np.cross(n1, n0), e_hat), _dot(n0, n1))
+    return np.arctan2(_dot(_cross(n1, n0), e_hat), _dot(n0, n1))
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``u x v`` of ``(h, 3)`` arrays: ``np.cross``'s products and differences into a new C-ordered
+    array (the same values and layout, so the same sums after it) without its axis handling
+    (about 25 in place of 60 us on 300 rows)."""
+    out = np.empty((u.shape[0], 3))
+    np.subtract(u[:, 1] * v[:, 2], u[:, 2] * v[:, 1], out=out[:, 0])
+    np.subtract(u[:, 2] * v[:, 0], u[:, 0] * v[:, 2], out=out[:, 1])
+    np.subtract(u[:, 0] * v[:, 1], u[:, 1] * v[:, 0], out=out[:, 2])
+    return out
 
 
 def _theta_gradient_parts(X: np.ndarray):

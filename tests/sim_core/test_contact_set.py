@@ -335,3 +335,29 @@ def test_friction_coefficients_are_those_of_each_pairs_two_bodies_and_follow_edi
         assert all(s.obstacle is None for s in friction.row_sources) and len(friction.mu) > 10
         np.testing.assert_array_equal(friction.mu, expected(friction))
         assert np.all(friction.mu != 0.1 * scale)  # no pair within one body (its coefficient is 0.1 here)
+
+
+def test_a_step_starting_where_the_last_ended_reuses_its_geometry_with_the_same_sides(monkeypatch):
+    """end_step measures every candidate pair at the converged positions; the next step, starting
+    there with the same candidate lists, takes its sides from that measurement (no geometry of its
+    own) and gets the sides and kept edge pairs of a contact set that measures them again."""
+    model, x_n = _forming_model_deformed(1)
+    x = x_n + np.random.default_rng(5).normal(scale=5e-5, size=x_n.shape)
+    cs, fresh = ContactSet(model), ContactSet(model)
+    memory = cs.begin_step(x_n, None)
+    cs.potentials(x, x_n, memory)
+    memory = cs.end_step(x, memory)
+    lists = cs._candidates
+    calls = []
+    measure = ContactSet._pair_geometry
+    monkeypatch.setattr(ContactSet, "_pair_geometry", lambda self, *a: (calls.append(self), measure(self, *a))[1])
+    pots = cs.potentials(x, x, cs.begin_step(x, memory))
+    assert cs._candidates is lists and cs not in calls
+    fresh.begin_step(x, None)
+    fresh._candidates = lists  # the same lists, their sides measured again
+    fresh_pots = fresh.potentials(x, x, fresh.begin_step(x, memory))
+    assert fresh in calls
+    for a, b in zip(pots[:2], fresh_pots[:2]):
+        np.testing.assert_array_equal(a.pairs, b.pairs)
+        np.testing.assert_array_equal(a.sides, b.sides)
+    assert np.any(pots[1].sides != 0) and len(pots[0].pairs) and len(pots[1].pairs)

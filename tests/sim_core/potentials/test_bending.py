@@ -245,3 +245,20 @@ def test_constructor_validation():
     assert not set(pair[0]) & {hinges[4, 3]}
     with pytest.raises(MeshError, match=re.escape(f"hinge 1 {hinges[4].tolist()} is degenerate")):
         DiscreteShellBending(pair, x, D)
+
+
+def test_dihedral_angle_equals_the_np_cross_formula_bit_for_bit():
+    """The row cross product of ``dihedral_angle`` gives the values of the ``np.cross`` form."""
+    from sim_core.potentials.bending import _dot, dihedral_angle
+
+    rng = np.random.default_rng(11)
+    for count in (1, 2, 7, 293, 1000):
+        X = rng.normal(size=(count, 4, 3)) * rng.uniform(1e-4, 1.0)
+        X[0, 3] = X[0, 2]  # a flat hinge among them
+        x0, x1, x2, x3 = X[:, 0], X[:, 1], X[:, 2], X[:, 3]
+        e = x1 - x0
+        n0, n1 = np.cross(e, x2 - x0), np.cross(x3 - x0, e)
+        expected = np.arctan2(_dot(np.cross(n1, n0), e / np.linalg.norm(e, axis=1)[:, None]), _dot(n0, n1))
+        theta = dihedral_angle(X)
+        assert theta.dtype == np.float64 and theta.shape == (count,)
+        np.testing.assert_array_equal(theta, expected)
