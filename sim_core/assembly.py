@@ -178,10 +178,7 @@ class HessianAssembler:
         """
         if pattern is not self._static:
             raise ValueError("assemble_upper_values: pattern is not this assembler's current static pattern")
-        static_data = np.array(static_values, dtype=float)
-        static_data[pattern.diag_slots] += diagonal
-        static_data[pattern.fixed_diag_slots] = 1.0
-        return self._merge_dynamic(pattern, static_data, dynamic, free)
+        return self._dynamic.merge_values(pattern, static_values, diagonal, dynamic, free)
 
     def _merge_dynamic(
         self, pat: StaticPattern, static_data: np.ndarray, dynamic: Sequence[HessianBlocks], free: np.ndarray

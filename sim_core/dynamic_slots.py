@@ -22,6 +22,7 @@ pattern into the new one with prefix sums instead of sorting and searching all k
 
 from __future__ import annotations
 
+import copy
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -100,6 +101,50 @@ class UnionPattern:
         # assembly is then built without converting and re-checking the index arrays
         self.indptr = indptr.astype(np.int32) if keys.size < np.iinfo(np.int32).max else indptr
         self.indices = indices
+        self._template: sp.csr_matrix | None = None
+        self._static_mask: np.ndarray | None = None
+        self._diagonal: tuple[np.ndarray, np.ndarray] | None = None
+
+    def expand(self, static_data: np.ndarray) -> np.ndarray:
+        """Static values ``(pattern.keys.size,)`` in this union's layout: a new ``(nnz,)`` array, 0 in the
+        dynamic-only slots (the static slots are increasing: one boolean-mask copy)."""
+        if self._static_mask is None:
+            self._static_mask = np.zeros(self.nnz, dtype=bool)
+            self._static_mask[self.static_slots] = True
+        expanded = np.zeros(self.nnz)
+        expanded[self._static_mask] = static_data
+        return expanded
+
+    def diagonal_slots(self) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of every DoF's diagonal entry ``(n,)`` and of the fixed DoFs' (the static pattern's
+        ``diag_slots`` and ``fixed_diag_slots`` in this union)."""
+        if self._diagonal is None:
+            self._diagonal = (self.static_slots[self.pattern.diag_slots], self.static_slots[self.pattern.fixed_diag_slots])
+        return self._diagonal
+
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The CSR matrix ``(n, n)`` of values ``data`` ``(nnz,)`` in this pattern (sorted indices).
+
+        SciPy's ``csr_matrix((data, indices, indptr))`` scans the index arrays on every call (their
+        dtype and bounds); a pattern's matrices are instead shallow copies of one matrix built (and
+        checked) once, with ``data`` put in. They share the index arrays, which are read-only (an
+        in-place change of one matrix's pattern raises instead of changing the others'), and
+        identical objects from one assembly to the next let the linear solver recognise the pattern
+        without comparing it (:class:`sim_core.linsolve.IdentityRows`).
+        """
+        template = self._template
+        if template is None:
+            n = self.pattern.dof_count
+            template = sp.csr_matrix((np.zeros(self.nnz), self.indices, self.indptr), shape=(n, n))
+            template.has_sorted_indices = True  # keys are sorted and unique
+            template.indices.flags.writeable = False
+            template.indptr.flags.writeable = False
+            self._template = template
+        if data.shape != (self.nnz,):
+            raise ValueError(f"UnionPattern.matrix: {data.shape[0]} values for {self.nnz} slots")
+        matrix = copy.copy(template)
+        matrix.data = data
+        return matrix
 
     @classmethod
     def build(cls, pattern: StaticPattern, dyn_keys: np.ndarray, built_at: int) -> "UnionPattern":
@@ -174,7 +219,7 @@ class _ElementTable:
         slots: CSR slot of each entry, ``(E, (3m)^2)``, the dummy slot ``nnz`` where not kept (the key
             of every other entry is one of the union's dynamic keys);
         last: assembly counter of the last use of each element since the union was built, 0 if none,
-            ``(E,)``; call: (signature, union, rows, kept entries, their slots) of the last call.
+            ``(E,)``; call: (signature, union, rows) of the last call (:meth:`DynamicMerge._place`).
     """
 
     def __init__(self, m: int, vertex_count: int) -> None:
@@ -185,6 +230,7 @@ class _ElementTable:
         self._slots = np.zeros((0, (3 * m) ** 2), dtype=np.int64)
         self._last = np.zeros(0, dtype=np.int64)
         self.call: tuple | None = None
+        self._gathered: tuple | None = None  # (call, kept entries, their slots) of gathered()
 
     @property
     def slots(self) -> np.ndarray:
@@ -193,6 +239,17 @@ class _ElementTable:
     @property
     def last(self) -> np.ndarray:
         return self._last[: self.size]
+
+    def gathered(self, dummy: int) -> tuple[np.ndarray, np.ndarray]:
+        """The kept entries of the last call's elements (``call``'s rows), as positions in their
+        flattened blocks ``(a,)``, and their slots ``(a,)`` (entries whose slot is ``dummy`` are not
+        kept); one tuple per call tuple (the same object while ``call`` is)."""
+        cached = self._gathered
+        if cached is None or cached[0] is not self.call:
+            flat = self.slots[self.call[2]].reshape(-1)
+            kept = np.flatnonzero(flat != dummy)
+            cached = self._gathered = (self.call, (kept, flat[kept]))
+        return cached[1]
 
     def find(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the elements ``ids`` and whether each is there (the row is arbitrary where not)."""
@@ -259,12 +316,59 @@ class DynamicMerge:
         self._tables: dict[int, _ElementTable] = {}
         self._free_bytes: bytes | None = None
         self._assemblies = 0
+        self._slots_cache: tuple | None = None  # (gathered tuples, their slots concatenated) of _sum
 
     def merge(
         self, pat: StaticPattern, static_data: np.ndarray, dynamic: Sequence[HessianBlocks], free: np.ndarray
     ) -> sp.csr_matrix:
         """CSR upper triangle ``(n, n)`` of the static values (``pat``'s slots, ``(pat.keys.size,)``)
         plus the kept entries of the ``dynamic`` blocks (``free``: bool ``(n,)`` free-DoF mask)."""
+        union, blocks, _ = self._place(pat, dynamic, free)
+        return union.matrix(self._sum(union, blocks, union.expand(static_data)))
+
+    def merge_values(
+        self, pat: StaticPattern, static_values: np.ndarray, diagonal: np.ndarray, dynamic: Sequence[HessianBlocks],
+        free: np.ndarray,
+    ) -> sp.csr_matrix:
+        """:meth:`merge` of the static data ``static_values`` plus ``diagonal`` on the DoFs' diagonal
+        slots, then 1 on the fixed DoFs' (:meth:`sim_core.assembly.HessianAssembler.assemble_upper_values`),
+        without forming that static data in ``pat``'s slots: the same values bit for bit.
+
+        Args:
+            pat: the static pattern; static_values: its values ``(pat.keys.size,)`` (not modified);
+            diagonal: extra diagonal ``(n,)``; dynamic, free: as :meth:`merge`.
+        """
+        union, blocks, _ = self._place(pat, dynamic, free)
+        static = union.expand(static_values)
+        diagonal_slots, fixed_slots = union.diagonal_slots()
+        static[diagonal_slots] += diagonal
+        static[fixed_slots] = 1.0
+        return union.matrix(self._sum(union, blocks, static))
+
+    def _sum(self, union: UnionPattern, blocks: list[HessianBlocks], static: np.ndarray) -> np.ndarray:
+        """The union's values ``(nnz,)``: one ``np.bincount`` of the kept entries of ``blocks`` (placed by
+        :meth:`_place`) in block-set, element, entry order, plus the static values in the union's
+        layout ``static`` (``(nnz,)``, 0 in the dynamic-only slots; reused as the result); ``static``
+        itself when there are no blocks."""
+        if not blocks:
+            return static
+        gathered = [self._tables[j].gathered(union.nnz) for j in range(len(blocks))]
+        cached = self._slots_cache
+        if cached is None or len(cached[0]) != len(gathered) or any(a is not b for a, b in zip(cached[0], gathered)):
+            cached = self._slots_cache = (gathered, np.concatenate([g[1] for g in gathered]))
+        values = np.concatenate([b.blocks.reshape(-1)[g[0]] for b, g in zip(blocks, gathered)])
+        data = np.bincount(cached[1], weights=values, minlength=union.nnz)
+        # dynamic sums first, then the static value added: the same D + s per slot as adding s into the
+        # slots (0 + s in the static-only slots; 0 + 0 in the dynamic-only ones)
+        data += static
+        return data
+
+    def _place(
+        self, pat: StaticPattern, dynamic: Sequence[HessianBlocks], free: np.ndarray
+    ) -> tuple[UnionPattern, list[HessianBlocks], list[np.ndarray]]:
+        """This assembly's union pattern (rebuilt if needed), its non-empty dynamic block sets and, per
+        set ``j``, the row of each of its elements in element table ``j`` (whose ``call`` is then
+        ``(signature, union, rows)`` of this set)."""
         n = self.dof_count
         self._assemblies += 1
         count = self._assemblies
@@ -305,24 +409,12 @@ class DynamicMerge:
         if pending:  # the tables were translated into the new union (and may have dropped elements)
             union, new_rows = self._rebuild(pending, count)
             rows = [new_rows[j][pos] for j, pos in enumerate(rows)]  # this call's elements are all kept
-        if not blocks:
-            data = np.zeros(union.nnz)
-            data[union.static_slots] = static_data
-        else:
-            slots, values = [], []
-            for j, b in enumerate(blocks):
-                table = self._tables[j]
-                call = table.call
-                if call is None or call[0] != signatures[j] or call[1] is not union:
-                    flat = table.slots[rows[j]].reshape(-1)
-                    kept = np.flatnonzero(flat != union.nnz)
-                    call = table.call = (signatures[j], union, rows[j], kept, flat[kept])
-                slots.append(call[4])
-                values.append(b.blocks.reshape(-1)[call[3]])
-            # dynamic sums first, then the static value added: the same s + D per slot (addition commutes)
-            data = np.bincount(np.concatenate(slots), weights=np.concatenate(values), minlength=union.nnz)
-            data[union.static_slots] += static_data
-        return sp.csr_matrix((data, union.indices, union.indptr), shape=(n, n))
+        for j in range(len(blocks)):
+            table = self._tables[j]
+            call = table.call
+            if call is None or call[0] != signatures[j] or call[1] is not union:
+                table.call = (signatures[j], union, rows[j])
+        return union, blocks, rows
 
     def _kept_keys(self, vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
         """Keys ``row * n + col`` of the entries of blocks over ``vertices``, -1 where not kept, ``(k, q)``."""

@@ -242,30 +242,36 @@ class PardisoHandle:
         self._pt = np.zeros(64, dtype=np.int64)  # PARDISO's opaque handle
         self.iparm = np.zeros(64, dtype=np.int32) if iparm is None else np.asarray(iparm, dtype=np.int32).copy()
         self._perm = np.zeros(0, dtype=np.int32)
-        self._pattern: tuple[np.ndarray, np.ndarray] | None = None  # (indptr, indices) analysed
+        # (indptr, indices) analysed (copies), and the arrays of the last call
+        self._pattern: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._ia = self._ja = None
         self._data: np.ndarray | None = None
         self._n = 0
+        # the call's constant arguments as ctypes objects, made once (about 40 us a call otherwise)
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        self._pt_p = self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64))
+        self._iparm_p = self.iparm.ctypes.data_as(i32)
+        self._perm_p = self._perm.ctypes.data_as(i32)
+        self._one = ctypes.byref(ctypes.c_int32(1))
+        self._zero = ctypes.byref(ctypes.c_int32(0))
+        self._ia_p = self._ja_p = None
+        self._scratch = np.zeros(0)  # b and x of the analysis and factorisation phases (not read)
 
     def _call(self, phase: int, data: np.ndarray, b: np.ndarray | None = None) -> tuple[int, np.ndarray | None]:
-        nrhs = 1
-        if b is None:
-            b_arr = np.zeros(self._n)
+        if b is None:  # analysis / factorisation: PARDISO reads neither b nor x
+            b_arr, x, nrhs = self._scratch, self._scratch, 1
         else:
             b_arr = np.asfortranarray(b, dtype=float)
             nrhs = 1 if b_arr.ndim == 1 else b_arr.shape[1]
-        x = np.zeros_like(b_arr)
+            x = np.empty_like(b_arr)  # written in full by the solve
         err = ctypes.c_int32(0)
         c = ctypes.c_int32
         previous = self._set_threads(self.threads) if self._set_threads is not None else None
         try:
             self._pardiso(
-                self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(c(1)), ctypes.byref(c(1)),
-                ctypes.byref(c(self.matrix_type)), ctypes.byref(c(phase)), ctypes.byref(c(self._n)), data.ctypes.data,
-                self._ia.ctypes.data_as(ctypes.POINTER(c)), self._ja.ctypes.data_as(ctypes.POINTER(c)),
-                self._perm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(nrhs)),
-                self.iparm.ctypes.data_as(ctypes.POINTER(c)), ctypes.byref(c(0)), b_arr.ctypes.data,
-                x.ctypes.data, ctypes.byref(err),
+                self._pt_p, self._one, self._one, ctypes.byref(c(self.matrix_type)), ctypes.byref(c(phase)),
+                ctypes.byref(c(self._n)), data.ctypes.data, self._ia_p, self._ja_p, self._perm_p, ctypes.byref(c(nrhs)),
+                self._iparm_p, self._zero, b_arr.ctypes.data, x.ctypes.data, ctypes.byref(err),
             )
         finally:
             if previous is not None:
@@ -275,19 +281,32 @@ class PardisoHandle:
     def factorize(self, indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> int:
         """Analyse (when the pattern is new) and factorise the CSR matrix (sorted indices, shape
         ``(n, n)`` with ``n = indptr.size - 1``); PARDISO's error code (0: success; the symbolic
-        analysis' errors as well)."""
+        analysis' errors as well).
+
+        The pattern counts as the analysed one when the arrays are equal to it, or are the very
+        arrays of the last call and read-only (as :class:`IdentityRows` passes them: no comparison).
+        """
         data = np.ascontiguousarray(data, dtype=float)
         pattern = self._pattern
         self._data = None
-        if pattern is None or not (np.array_equal(pattern[0], indptr) and np.array_equal(pattern[1], indices)):
+        same = pattern is not None and (
+            (pattern[2] is indptr and pattern[3] is indices and not indptr.flags.writeable
+             and not indices.flags.writeable)
+            or (np.array_equal(pattern[0], indptr) and np.array_equal(pattern[1], indices)))
+        if not same:
             self._n = indptr.size - 1
             self._ia = (indptr + 1).astype(np.int32)
             self._ja = (indices + 1).astype(np.int32)
+            self._ia_p = self._ia.ctypes.data_as(ctypes.POINTER(ctypes.c_int32))
+            self._ja_p = self._ja.ctypes.data_as(ctypes.POINTER(ctypes.c_int32))
+            self._scratch = np.zeros(self._n)
             err, _ = self._call(11, data)
             if err != 0:
                 self._pattern = None
                 return err
-            self._pattern = (indptr.copy(), indices.copy())
+            self._pattern = (indptr.copy(), indices.copy(), indptr, indices)
+        else:
+            self._pattern = (pattern[0], pattern[1], indptr, indices)
         err, _ = self._call(22, data)
         if err == 0:
             self._data = data
@@ -347,6 +366,8 @@ class IdentityRows:
         self.indptr = np.zeros(self.kept.size + 1, dtype=np.int64)
         np.cumsum(np.diff(indptr)[self.kept], out=self.indptr[1:])
         self.indices = new_index[indices[self.slots]]
+        for reduced in (self.indptr, self.indices):  # the same read-only objects every factorisation:
+            reduced.flags.writeable = False  # PardisoHandle then knows the pattern without comparing it
         self._pattern = (indptr, indices)
         self._unit_slots = diagonal[candidates[rows[diagonal]]]  # the identity rows' diagonal entries
 
@@ -419,8 +440,9 @@ class PardisoCholesky:
         Raises:
             SimulationDivergedError: any other PARDISO error (the code is in the message).
         """
-        upper = sp.csr_matrix(upper)
-        upper.sort_indices()
+        if not (sp.issparse(upper) and upper.format == "csr"):
+            upper = sp.csr_matrix(upper)
+        upper.sort_indices()  # a no-op for the assembler's matrices (flagged sorted)
         split = self._split
         if split is None or not split.matches(upper.indptr, upper.indices, upper.data):
             split = self._split = IdentityRows(upper.indptr, upper.indices, upper.data)

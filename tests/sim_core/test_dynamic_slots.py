@@ -206,3 +206,32 @@ def test_element_with_only_static_keys_that_left_the_dynamic_set():
         _assert_same_csr(U, uncached.merge(pat, static_data, dynamic, free))
         sizes.append(U.nnz)
     assert sizes[-1] < sizes[-2]  # the pair (9, 10) left the pattern at the last call's rebuild
+
+
+def test_matrices_of_one_union_share_read_only_sorted_index_arrays():
+    """Merges under one union pattern return matrices with their own values but the same index
+    arrays, read-only (an in-place change of one matrix's pattern raises) and flagged sorted; SciPy's
+    own checks on such a matrix pass, and a rebuilt union gives new arrays."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(13)
+    n_v = 10
+    free = np.ones(3 * n_v, dtype=bool)
+    pat = StaticPattern([np.array([[0, 1, 2], [2, 3, 4]])], free, 3 * n_v)
+    merge = DynamicMerge(3 * n_v)
+    pair = np.array([[5, 6]])
+    first = merge.merge(pat, rng.normal(size=pat.keys.size), [_blocks(rng, pair)], free)
+    second = merge.merge(pat, rng.normal(size=pat.keys.size), [_blocks(rng, pair)], free)
+    assert first.indices is second.indices and first.indptr is second.indptr
+    assert not np.shares_memory(first.data, second.data) and not np.array_equal(first.data, second.data)
+    assert first.has_sorted_indices and first.has_canonical_format
+    with pytest.raises(ValueError, match="read-only"):
+        first.indices[0] = 1
+    checked = sp.csr_matrix((second.data.copy(), second.indices.copy(), second.indptr.copy()), shape=second.shape)
+    checked.check_format(full_check=True)
+    assert checked.has_sorted_indices
+    np.testing.assert_array_equal((second - checked).toarray(), 0.0)
+    third = merge.merge(pat, rng.normal(size=pat.keys.size), [_blocks(rng, np.array([[7, 9]]))], free)  # new keys
+    assert third.indices is not second.indices and third.nnz > second.nnz
+    with pytest.raises(ValueError, match="3 values for"):
+        merge.union.matrix(np.zeros(3))

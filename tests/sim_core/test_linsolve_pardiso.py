@@ -169,3 +169,79 @@ def test_identity_rows_follow_values_and_pattern_changes():
     assert not solver.factorize(N)
     with pytest.raises(SimulationDivergedError, match="without a successful factorisation"):
         solver.solve(b)
+
+
+def test_handle_reanalyses_only_new_patterns_and_trusts_only_read_only_arrays():
+    """The symbolic analysis (phase 11) runs for a new pattern only: the same read-only arrays again
+    are taken without comparison, equal arrays (other objects, or writeable ones, which could have
+    changed in place) are compared; a changed pattern, even in the same writeable arrays, is analysed
+    again. Every factorisation solves as a fresh handle's does, bit for bit."""
+    from sim_core.linsolve import PardisoHandle
+
+    rng = np.random.default_rng(21)
+    n = 60
+    iparm = PardisoCholesky()._handle.iparm
+    C = _random_upper(rng, n, 0.08)
+    C = sp.csr_matrix(C + sp.diags(np.full(n, 2.0 * n)))  # positive definite
+    C.sort_indices()
+    handle = PardisoHandle(matrix_type=2, iparm=iparm)
+    phases = []
+    call = handle._call
+
+    def counted(phase, data, b=None):
+        if phase != 33:
+            phases.append(phase)
+        return call(phase, data, b)
+
+    handle._call = counted
+    b = rng.normal(size=n)
+
+    def check(indptr, indices, data):
+        assert handle.factorize(indptr, indices, data) == 0
+        fresh = PardisoHandle(matrix_type=2, iparm=iparm)
+        assert fresh.factorize(indptr.copy(), indices.copy(), data) == 0
+        assert handle.solve(b)[1].tobytes() == fresh.solve(b)[1].tobytes()
+
+    indptr, indices = C.indptr.copy(), C.indices.copy()
+    indptr.flags.writeable = indices.flags.writeable = False
+    check(indptr, indices, C.data)
+    check(indptr, indices, 2.0 * C.data)  # the same read-only arrays: no analysis
+    check(C.indptr.copy(), C.indices.copy(), C.data)  # equal writeable copies: compared, no analysis
+    assert phases == [11, 22, 22, 22]
+    mutable_ptr, mutable_ind = C.indptr.copy(), C.indices.copy()
+    check(mutable_ptr, mutable_ind, C.data)
+    D = _random_upper(rng, n, 0.12)
+    D = sp.csr_matrix(D + sp.diags(np.full(n, 2.0 * n)))
+    D.sort_indices()
+    if D.indices.size == mutable_ind.size:  # same sizes: change the writeable arrays in place
+        mutable_ptr[:], mutable_ind[:] = D.indptr, D.indices
+        check(mutable_ptr, mutable_ind, D.data)
+    else:
+        check(D.indptr, D.indices, D.data)
+    assert phases == [11, 22, 22, 22, 22, 11, 22]
+
+
+def test_cholesky_reuses_the_split_of_a_shared_read_only_pattern():
+    """Matrices that share one read-only pattern (as the assembler's do) keep one identity-row split
+    and one analysis; their solutions equal those of copies with fresh writeable arrays."""
+    rng = np.random.default_rng(22)
+    n = 50
+    U = _random_upper(rng, n, 0.1)
+    fixed = np.zeros(n, dtype=bool)
+    fixed[rng.choice(n, size=12, replace=False)] = True
+    C = _constrained(sp.csr_matrix(U + sp.diags(np.full(n, 2.0 * n))), fixed)
+    C.indices.flags.writeable = C.indptr.flags.writeable = False
+    solver, reference = PardisoCholesky(), PardisoCholesky()
+    b = rng.normal(size=n)
+    splits = set()
+    for scale in (1.0, 1.5, 3.0):
+        data = C.data * scale
+        data[C.indptr[:-1][fixed]] = 1.0  # the identity rows (their diagonal only) stay 1
+        M = sp.csr_matrix((data, C.indices, C.indptr), shape=C.shape)
+        assert solver.factorize(M)
+        splits.add(id(solver._split))
+        R = sp.csr_matrix((M.data.copy(), M.indices.copy(), M.indptr.copy()), shape=M.shape)
+        assert reference.factorize(R)
+        assert solver.solve(b).tobytes() == reference.solve(b).tobytes()
+    assert len(splits) == 1
+    assert not solver._split.indptr.flags.writeable and not solver._split.indices.flags.writeable
