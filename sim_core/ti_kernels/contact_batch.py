@@ -153,8 +153,8 @@ class PairBatch:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
         self.split = int(vt.vertices.shape[0])
-        self.vertices = np.ascontiguousarray(np.concatenate([vt.vertices, ee.vertices]), dtype=np.int32)
-        self.sides = np.ascontiguousarray(np.concatenate([vt.sides, ee.sides]), dtype=np.float64)
+        self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
+        self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
         vt._batch = ee._batch = self
 
