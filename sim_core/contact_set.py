@@ -476,6 +476,9 @@ class ContactSet:
     def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
         """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
         vt, ee = self._pairs(x_n, memory)
+        obstacle_frames = [(name, obstacle, obstacle.contact_frames(x_n)) for name, obstacle in self.planes + self.spheres]
+        if self.model.meta.get("elastic_backend") == "taichi" and not any(len(f.lam) for *_, f in obstacle_frames):
+            return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
         # a pair's vertices: [p, a, b, c] / [a0, a1, b0, b1]; column 0 and ``second`` are on its two sides
         for pot, second in ((vt, 1), (ee, 2)):
@@ -484,8 +487,7 @@ class ContactSet:
                 frames.append(f)
                 mus.append(self._mu(f.vertices[:, 0], f.vertices[:, second]))
                 sources.append(FrictionRowSource(None, pot, f.pair_index))
-        for name, obstacle in self.planes + self.spheres:
-            f = obstacle.contact_frames(x_n)
+        for name, obstacle, f in obstacle_frames:
             if len(f.lam):
                 frames.append(f)
                 bodies = self.vertex_body[obstacle.vertices[f.pair_index]]
@@ -502,6 +504,33 @@ class ContactSet:
             from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
+        return friction
+
+    def _pair_friction(self, x_n: np.ndarray, dt: float, vt: VertexTriangleContact, ee: EdgeEdgeContact
+                       ) -> LaggedFriction | None:
+        """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
+        bases of the active pairs of both kinds from one launch
+        (:func:`sim_core.ti_kernels.contact_setup.friction_frames`; the values of the pair potentials'
+        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
+        from sim_core.ti_kernels.contact_setup import friction_frames
+        from sim_core.ti_kernels.friction import TiLaggedFriction
+
+        pots = (vt, ee)
+        rows = [pot.active_distances(x_n) for pot in pots]
+        split = len(rows[0][0])
+        vertices = np.concatenate([pot.vertices[active] for pot, (active, _) in zip(pots, rows)])
+        if not len(vertices):
+            return None
+        # column 0 and the second side's column (1 for [p, a, b, c], 2 for [a0, a1, b0, b1]): its two sides
+        mu = self._mu(vertices[:, 0], np.concatenate([vertices[:split, 1], vertices[split:, 2]]))
+        if not np.any(mu > 0):
+            return None
+        sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
+        weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
+        lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
+        friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
+        friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
+                                if len(active)]
         return friction
 
     def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:

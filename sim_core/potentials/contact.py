@@ -270,6 +270,12 @@ class _PairPenalty:
                 and np.array_equal(other.sides, self.sides)):
             self._last = last
 
+    def active_distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the active pairs (``d < eps``) at positions ``x`` ``(n, 3)`` and their distances (m):
+        int64 ``(a,)`` and float ``(a,)`` (the kept evaluation of ``x`` when there is one)."""
+        active, dd = self._evaluate(x, 0)
+        return active, dd.d
+
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Evaluate the pairs at positions ``x`` ``(n, 3)`` with distance derivatives and keep the result
         (:meth:`_evaluate`): the energy, gradient and Hessian at ``x`` then reuse it. The solver calls

@@ -11,7 +11,9 @@ candidate search), each one launch over its pairs instead of a few dozen small a
   :meth:`~sim_core.potentials.contact.EdgeEdgeContact.contact_frames` (Ericson 2005, sec. 5.1.5 and
   5.1.9: closest points; the normal is the oriented face / line-line normal in the face / interior
   region, the unit closest-point direction elsewhere);
-* :func:`tangent_basis`: :func:`sim_core.potentials.friction.tangent_basis`.
+* :func:`tangent_basis`: :func:`sim_core.potentials.friction.tangent_basis`;
+* :func:`friction_frames`: the frames of both pair kinds and their tangent bases in one launch
+  (what :meth:`sim_core.contact_set.ContactSet.friction` freezes of its pairs).
 
 The regions reuse the Voronoi tests of :mod:`sim_core.ti_kernels.contact_distance`; every
 expression is the reference's in the same order (sums left to right), so the results equal the
@@ -202,24 +204,44 @@ def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point
     return weights[:k].copy(), normal[:k].copy()
 
 
+@ti.func
+def _tangent_frame(normal: ti.template(), k: ti.i32, tangent: ti.template()):
+    """Tangent basis row ``k`` of unit normal row ``k`` (:func:`tangent_basis`)."""
+    n = ti.Vector([normal[k, 0], normal[k, 1], normal[k, 2]], ti.f64)
+    axis = 0  # the first coordinate axis of least |n_i| (np.argmin)
+    if ti.abs(n[1]) < ti.abs(n[0]):
+        axis = 1
+    if ti.abs(n[2]) < ti.abs(n[axis]):
+        axis = 2
+    e = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+    e[axis] = 1.0
+    t1 = _unit(cd._cross(n, e))
+    t2 = cd._cross(n, t1)
+    for d in ti.static(range(3)):
+        tangent[k, d, 0] = t1[d]
+        tangent[k, d, 1] = t2[d]
+
+
 @fast_kernel
 def _tangent_kernel(normal: _F64_2, count: ti.i32, tangent: _F64_3):
     """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(count):
-        n = ti.Vector([normal[k, 0], normal[k, 1], normal[k, 2]], ti.f64)
-        axis = 0  # the first coordinate axis of least |n_i| (np.argmin)
-        if ti.abs(n[1]) < ti.abs(n[0]):
-            axis = 1
-        if ti.abs(n[2]) < ti.abs(n[axis]):
-            axis = 2
-        e = ti.Vector([0.0, 0.0, 0.0], ti.f64)
-        e[axis] = 1.0
-        t1 = _unit(cd._cross(n, e))
-        t2 = cd._cross(n, t1)
-        for d in ti.static(range(3)):
-            tangent[k, d, 0] = t1[d]
-            tangent[k, d, 1] = t2[d]
+        _tangent_frame(normal, k, tangent)
+
+
+@fast_kernel
+def _friction_frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, split: ti.i32,
+                            weights: _F64_2, normal: _F64_2, tangent: _F64_3):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`): vertex-triangle pairs below ``split``,
+    edge-edge pairs from there; frame, then tangent basis."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(count):
+        if k < split:
+            _point_triangle_frame(x, vertices, k, side[k], weights, normal)
+        else:
+            _edge_edge_frame(x, vertices, k, side[k], weights, normal)
+        _tangent_frame(normal, k, tangent)
 
 
 def tangent_basis(normal: np.ndarray) -> np.ndarray:
@@ -241,6 +263,38 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
     return tangent[:k].copy()
 
 
+def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest-point weights, unit normals and tangent bases of vertex-triangle and edge-edge pairs in
+    one launch: :func:`contact_frames` of each kind, then :func:`tangent_basis` of the normals (the same
+    values bit for bit), what lagged friction freezes of its pairs.
+
+    Args:
+        x: positions, shape ``(n, 3)`` (m).
+        vertices: the first ``split`` rows ``[p, a, b, c]`` (vertex-triangle), the others
+            ``[a0, a1, b0, b1]`` (edge-edge), global vertex indices, shape ``(k, 4)``.
+        sides: the pairs' step sides (+1 / -1, 0 unsigned), shape ``(k,)``.
+        split: number of vertex-triangle rows, ``0 <= split <= k``.
+
+    Returns:
+        ``(weights (k, 4), normal (k, 3), tangent (k, 3, 2))``.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("contact set-up kernels")
+    k = len(vertices)
+    if not k:
+        return np.empty((0, 4)), np.empty((0, 3)), np.empty((0, 3, 2))
+    side = _ARRAYS.rows("side", k)
+    side[:k] = np.reshape(sides, -1)
+    weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
+    tangent = _ARRAYS.rows("tangent", k, (3, 2))
+    _friction_frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, int(split), weights,
+                            normal, tangent)
+    return weights[:k].copy(), normal[:k].copy(), tangent[:k].copy()
+
+
 def compile_kernels() -> None:
     """JIT-compile (or load from Taichi's offline cache) the kernels on one pair each.
 
@@ -253,3 +307,4 @@ def compile_kernels() -> None:
     for point_first in (True, False):
         contact_frames(x, pair, np.ones(1), point_first)
     tangent_basis(np.array([[0.0, 0.0, 1.0]]))
+    friction_frames(x, np.concatenate([pair, pair]), np.ones(2), 1)

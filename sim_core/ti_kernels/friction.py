@@ -202,10 +202,7 @@ class TiLaggedFriction(LaggedFriction):
     def _kept(self, arrays: tuple) -> tuple | None:
         """The :meth:`evaluate` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
         kept = getattr(self, "_kept_all", None)
-        if (kept is not None and kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0])
-                and np.array_equal(kept[1], arrays[-1])):
-            return kept
-        return None
+        return kept if kept is not None and self._matches(kept, arrays) else None
 
     def energy(self, x: np.ndarray) -> float:
         """Friction dissipation potential in J."""
@@ -221,21 +218,34 @@ class TiLaggedFriction(LaggedFriction):
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
 
         The same launch computes the Hessian blocks at ``x`` (the Newton solver asks for them next),
-        kept for one :meth:`hessian` call at equal ``x``, coefficients and ``eps_u``.
+        kept for one :meth:`hessian` call at equal ``x``, coefficients and ``eps_u``. The gradient is
+        kept too, for one more :meth:`gradient` call at equal ``x`` (the solver's contact force at the
+        converged positions, where its last iteration took the gradient): that call returns it and
+        keeps nothing, so a step's friction, kept in its record, holds no arrays.
         """
         grad = np.zeros((x.shape[0], 3))
         p, m = self.vertices.shape
         if p:
             arrays = self._kernel_arrays(x)
+            again, self._kept_gradient = getattr(self, "_kept_gradient", None), None
+            if again is not None and self._matches(again, arrays):
+                return again[3]
             kept = self._kept(arrays)
             self._kept_all = None  # consumed (a step's friction is kept in its record: hold no arrays)
             if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
                 self._kept_hessian = (kept[0], kept[1], kept[2], kept[5])
+                self._kept_gradient = (kept[0], kept[1], kept[2], kept[4])
                 return kept[4].copy()
             blocks = np.empty((p, 3 * m, 3 * m))
             self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
             self._kept_hessian = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks)
+            self._kept_gradient = self._kept_hessian[:3] + (grad.copy(),)
         return grad
+
+    def _matches(self, kept: tuple, arrays: tuple) -> bool:
+        """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and
+        coefficients and the current ``eps_u``."""
+        return kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0]) and np.array_equal(kept[1], arrays[-1])
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Per-pair blocks ``(p, 3m, 3m)``, PSD by construction (``projection`` is not needed); the
@@ -245,8 +255,7 @@ class TiLaggedFriction(LaggedFriction):
             return HessianBlocks.empty(m)
         arrays = self._kernel_arrays(x)
         kept, self._kept_hessian = getattr(self, "_kept_hessian", None), None
-        if (kept is not None and kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0])
-                and np.array_equal(kept[1], arrays[-1])):
+        if kept is not None and self._matches(kept, arrays):
             return HessianBlocks(self.vertices, kept[3])
         blocks = np.empty((p, 3 * m, 3 * m))
         self._launch(arrays, _HESSIAN, blocks=blocks)

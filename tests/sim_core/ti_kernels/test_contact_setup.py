@@ -176,3 +176,51 @@ def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi
     np.testing.assert_allclose(ti_fr.tangent, fr.tangent, rtol=0, atol=1e-12)
     assert ti_mem.vertex_triangle == mem.vertex_triangle and ti_mem.edge_edge == mem.edge_edge
     assert len(mem.vertex_triangle) and len(mem.edge_edge)
+
+
+def test_friction_frames_equal_the_frames_of_each_kind_and_their_tangents_bit_for_bit(ti_cpu):
+    """One launch over vertex-triangle rows then edge-edge rows gives what contact_frames of each kind
+    and tangent_basis give, bit for bit (every split, the empty list too)."""
+    from sim_core.ti_kernels import contact_setup
+
+    x, vertices = _batch(8, 400)
+    sides = np.random.default_rng(9).choice([-1.0, 0.0, 1.0], size=len(vertices))
+    for split in (0, 1, 137, len(vertices)):
+        weights, normal, tangent = contact_setup.friction_frames(x, vertices, sides, split)
+        parts = [contact_setup.contact_frames(x, vertices[:split], sides[:split], True),
+                 contact_setup.contact_frames(x, vertices[split:], sides[split:], False)]
+        np.testing.assert_array_equal(weights, np.concatenate([w for w, _ in parts]))
+        np.testing.assert_array_equal(normal, np.concatenate([n for _, n in parts]))
+        np.testing.assert_array_equal(tangent, contact_setup.tangent_basis(normal))
+    empty = contact_setup.friction_frames(x, vertices[:0], sides[:0], 0)
+    assert [a.shape for a in empty] == [(0, 4), (0, 3), (0, 3, 2)]
+
+
+def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potentials(ti_cpu):
+    """On the Taichi backend the contact set builds its friction from one set-up launch: the rows, row
+    sources, normal forces, coefficients, frames and tangents of the pair potentials' contact_frames
+    and the Taichi tangent bases, bit for bit."""
+    from sim_core.potentials.contact import concatenate_frames
+    from sim_core.ti_kernels.friction import TiLaggedFriction
+
+    contact, x = _forming_contact("taichi")
+    x_n = x + 0.4 * contact.eps * np.random.default_rng(7).normal(size=x.shape)
+    memory = contact.begin_step(x_n, None)
+    friction = contact.friction(x_n, 0.01, memory)
+    vt, ee = contact.potentials(x_n, x_n, memory)[:2]
+    frames = [pot.contact_frames(x_n) for pot in (vt, ee)]
+    assert all(len(f.lam) for f in frames)
+    ref = TiLaggedFriction.from_frames(concatenate_frames(frames), friction.mu, x_n, contact.model.contact.eps_v, 0.01)
+    for name in ("vertices", "weights", "tangent", "lam", "x_prev"):
+        np.testing.assert_array_equal(getattr(friction, name), getattr(ref, name), err_msg=name)
+    assert friction.eps_u == ref.eps_u
+    assert [s.potential for s in friction.row_sources] == [vt, ee]
+    for source, f in zip(friction.row_sources, frames):
+        assert source.obstacle is None
+        np.testing.assert_array_equal(source.pair_index, f.pair_index)
+    bodies = contact.vertex_body
+    names = contact.body_names
+    second = np.concatenate([frames[0].vertices[:, 1], frames[1].vertices[:, 2]])
+    expected_mu = [contact.model.friction_coefficient(names[bodies[a]], names[bodies[b]])
+                   for a, b in zip(friction.vertices[:, 0], second)]
+    np.testing.assert_array_equal(friction.mu, expected_mu)

@@ -159,3 +159,32 @@ def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch)
                                          0.5, x_prev, 0.01, 0.01)
     empty.evaluate(x)
     assert empty.energy(x) == 0.0 and not np.any(empty.gradient(x))
+
+
+def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti_cpu, monkeypatch):
+    """A gradient request at the x (coefficients, eps_u) of the previous one returns that gradient
+    without a launch and keeps nothing; another x, an edited mu or a third request launch again."""
+    from sim_core.ti_kernels import friction as ti_friction
+
+    rng = np.random.default_rng(37)
+    ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
+    x = x_prev + rng.normal(scale=0.6 * EPS_U, size=x_prev.shape)
+    launches = []
+    kernel = ti_friction._friction_kernel
+    monkeypatch.setattr(ti_friction, "_friction_kernel", lambda *a: (launches.append(a[7]), kernel(*a))[1])
+    for first in ("gradient", "evaluate"):
+        tik = _twin(ref)
+        launches.clear()
+        if first == "evaluate":
+            tik.evaluate(x)
+        grad = tik.gradient(x)
+        grad[0] = 1e9  # the caller's array: the kept one is another
+        again = tik.gradient(x.copy())
+        assert relative_error(again, ref.gradient(x)) < 1e-12 and len(launches) == 1
+        assert getattr(tik, "_kept_gradient", None) is None
+        np.testing.assert_array_equal(tik.gradient(x), again)
+        assert len(launches) == 2
+    tik.mu = 2.0 * tik.mu
+    assert relative_error(tik.gradient(x), 2.0 * ref.gradient(x)) < 1e-12 and len(launches) == 3
+    y = x + 0.1 * EPS_U
+    assert relative_error(tik.gradient(y), 2.0 * ref.gradient(y)) < 1e-12 and len(launches) == 4
