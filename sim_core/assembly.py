@@ -33,6 +33,7 @@ import scipy.sparse as sp
 
 from sim_core.dynamic_slots import STICKY_ASSEMBLIES, DynamicMerge, block_keys  # noqa: F401 (documented here)
 from sim_core.potentials.base import HessianBlocks
+from sim_core.unique import sorted_unique
 
 
 class StaticPattern:
@@ -65,7 +66,7 @@ class StaticPattern:
         c = np.concatenate(cols).astype(np.int64)
         keep = ((r < c) & free[r] & free[c]) | (r == c)
         self.entry_index = np.flatnonzero(keep)
-        self.keys, self.slot = np.unique(r[keep] * dof_count + c[keep], return_inverse=True)
+        self.keys, self.slot = sorted_unique(r[keep] * dof_count + c[keep], return_inverse=True)
         self.diag_slots = np.searchsorted(self.keys, idx * dof_count + idx)
         self.fixed_diag_slots = self.diag_slots[~free]
 

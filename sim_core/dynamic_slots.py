@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.potentials.base import HessianBlocks, block_dof_indices
+from sim_core.unique import sorted_unique
 
 if TYPE_CHECKING:
     from sim_core.assembly import StaticPattern
@@ -66,8 +67,8 @@ def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray
     size = survive.size
     before = np.zeros(size + 1, dtype=np.int64)  # survivors before each old position
     np.cumsum(survive, out=before[1:])
-    # inserted items at or before each old position: a step function, one run per gap between them
-    inserted = np.repeat(np.arange(insert_at.size + 1), np.diff(insert_at, prepend=0, append=size + 1))
+    # inserted items at or before each old position: a step function, the prefix sums of their counts
+    inserted = np.cumsum(np.bincount(insert_at, minlength=size + 1))
     trans = before + inserted
     trans[:size][~survive] = -1
     placed = before[insert_at] + np.arange(insert_at.size)
@@ -108,12 +109,16 @@ class UnionPattern:
     def expand(self, static_data: np.ndarray) -> np.ndarray:
         """Static values ``(pattern.keys.size,)`` in this union's layout: a new ``(nnz,)`` array, 0 in the
         dynamic-only slots (the static slots are increasing: one boolean-mask copy)."""
+        expanded = np.zeros(self.nnz)
+        expanded[self.static_mask()] = static_data
+        return expanded
+
+    def static_mask(self) -> np.ndarray:
+        """Which slots hold a static key, bool ``(nnz,)`` (made on first use, then kept)."""
         if self._static_mask is None:
             self._static_mask = np.zeros(self.nnz, dtype=bool)
             self._static_mask[self.static_slots] = True
-        expanded = np.zeros(self.nnz)
-        expanded[self._static_mask] = static_data
-        return expanded
+        return self._static_mask
 
     def diagonal_slots(self) -> tuple[np.ndarray, np.ndarray]:
         """Slots of every DoF's diagonal entry ``(n,)`` and of the fixed DoFs' (the static pattern's
@@ -181,8 +186,7 @@ class UnionPattern:
         dyn_keys = np.empty(dyn_trans[-1], dtype=np.int64)
         dyn_keys[dyn_trans[:-1][recent]] = self.dyn_keys[recent]
         dyn_keys[dyn_placed] = added
-        survive = np.zeros(self.nnz, dtype=bool)
-        survive[self.static_slots] = True
+        survive = self.static_mask().copy()
         survive[self.dyn_slots[recent]] = True
         pos = np.minimum(np.searchsorted(static, added), max(static.size - 1, 0))
         is_static = static[pos] == added if static.size else np.zeros(added.size, dtype=bool)
@@ -396,7 +400,7 @@ class DynamicMerge:
                 ids = _element_ids(b.vertices, n // 3)
                 pos, found = table.find(ids)
                 if not found.all():
-                    new_ids, first = np.unique(ids[~found], return_index=True)
+                    new_ids, first = sorted_unique(ids[~found], return_index=True)
                     keys = self._kept_keys(b.vertices[~found][first], free)
                     slots, absent = self._slots(union, keys)
                     table.add(new_ids, slots)
@@ -445,7 +449,7 @@ class DynamicMerge:
         self._tables = {}
         self._free_bytes = free_bytes
         keys = [self._kept_keys(b.vertices, free).reshape(-1) for b in blocks]
-        dyn_keys = np.unique(np.concatenate(keys + [np.zeros(0, np.int64)]))
+        dyn_keys = sorted_unique(np.concatenate(keys + [np.zeros(0, np.int64)]))
         self.union = UnionPattern.build(pat, dyn_keys[dyn_keys >= 0], count)
 
     def _flush_table(self, table: _ElementTable) -> None:
@@ -473,7 +477,7 @@ class DynamicMerge:
         for table in self._tables.values():
             used_slots[table.slots[table.last > count - STICKY_ASSEMBLIES]] = True
         recent = (old.last_used > count - STICKY_ASSEMBLIES) | used_slots[old.dyn_slots]
-        missing = np.unique(np.concatenate([keys[absent] for _, _, keys, absent in pending]))
+        missing = sorted_unique(np.concatenate([keys[absent] for _, _, keys, absent in pending]))
         union, slot_trans, _ = old.rebuilt(recent, missing, count)
         is_dyn = np.zeros(union.nnz + 2, dtype=bool)  # index -1 (a dropped slot) reads the last: False
         is_dyn[union.dyn_slots] = True

@@ -1,0 +1,40 @@
+"""``sim_core.unique.sorted_unique`` returns exactly ``np.unique``'s results."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.unique import sorted_unique
+
+
+def _arrays(rng):
+    yield np.zeros(0, dtype=np.int64)
+    yield np.array([5], dtype=np.int64)
+    yield rng.integers(-3, 4, size=200)  # many repeats, negative values (the -1 of unkept keys)
+    yield rng.integers(0, 2**40, size=3000)  # mostly distinct
+    yield np.where(rng.uniform(size=5000) < 0.8, -1, rng.integers(0, 3_000_000, size=5000))
+    yield rng.normal(size=100).round(1)
+    rows = rng.integers(0, 4, size=(300, 4)).astype(np.int64)  # element rows compared as bytes
+    yield rows.view(np.dtype((np.void, 32))).reshape(-1)
+
+
+@pytest.mark.parametrize("return_index, return_inverse", [(False, False), (True, False), (False, True), (True, True)])
+def test_sorted_unique_equals_numpy_unique(return_index, return_inverse):
+    rng = np.random.default_rng(4)
+    for values in _arrays(rng):
+        got = sorted_unique(values, return_index=return_index, return_inverse=return_inverse)
+        ref = np.unique(values, return_index=return_index, return_inverse=return_inverse)
+        if not (return_index or return_inverse):
+            got, ref = (got,), (ref,)
+        assert len(got) == len(ref)
+        for a, b in zip(got, ref):
+            assert a.dtype == b.dtype or a.dtype.kind == b.dtype.kind == "i"
+            np.testing.assert_array_equal(a, b)
+        if return_inverse:
+            np.testing.assert_array_equal(got[0][got[-1]], values)
+
+
+def test_sorted_unique_rejects_arrays_that_are_not_one_dimensional():
+    with pytest.raises(ValueError, match="must be 1-D, got shape \\(2, 3\\)"):
+        sorted_unique(np.zeros((2, 3)))
