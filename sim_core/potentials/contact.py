@@ -114,15 +114,19 @@ class PairEvaluation:
             ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs for stiffness ``k_c``
             (N/m), ``(a, 12, 12)``, made with the distances (the batch kernel of
             :mod:`sim_core.ti_kernels.contact_batch`).
+        gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, ``(n, 3)``
+            (N), summed as :meth:`gradient` sums it (the batch kernel).
     """
 
     __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
 
     def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float,
-                 hessian_blocks: tuple[float, np.ndarray] | None = None) -> None:
+                 hessian_blocks: tuple[float, np.ndarray] | None = None,
+                 gradient: tuple[float, np.ndarray] | None = None) -> None:
         self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
         self.hessian_blocks = hessian_blocks
-        self._vertices = self._energy = self._gradient = None
+        self._gradient = gradient
+        self._vertices = self._energy = None
 
     def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
         """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential

@@ -6,16 +6,18 @@ separately, each potential launches the distance kernels of :mod:`sim_core.ti_ke
 once or twice per request (values of every pair, then derivatives of the active ones) after a NumPy
 gather of the pair positions. A :class:`PairBatch` links the two potentials: the first request at
 new positions ``x`` evaluates both in one launch of :func:`_batch_kernel` (the pair positions
-gathered in the kernel; the distance of every pair; with derivatives, the distance gradient and the
-penalty Hessian ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs ``d < eps``), and
+gathered in the kernel; the distance of every pair; with derivatives, the distance gradient, the
+penalty Hessian ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs ``d < eps`` and the
+penalty gradient ``k_c (d - eps) grad d`` summed per vertex), and
 each potential keeps its part as its evaluation of ``x`` (a
 :class:`~sim_core.potentials.contact.PairEvaluation`, the ``_last`` of
 :meth:`sim_core.potentials.contact._PairPenalty._evaluate`), so the second request finds it there.
-The penalty Hessian is made in the kernel from the distance Hessian it has just computed (the
-reference's operations in its order: the same blocks bit for bit), so that neither the distance
-Hessians are copied out nor the blocks built in NumPy (about 30 us of NumPy per Forming iterate,
-for ~17 us more kernel time); it is kept with the stiffness it was made for (another stiffness
-evaluates again). Before measuring a pair, the kernel applies the exact prefilter of
+The penalty Hessian is made in the kernel from the distance Hessian it has just computed, and the
+penalty gradient summed there in pair order (the reference's operations in its order: the same
+blocks and sums bit for bit), so that neither the distance Hessians are copied out nor the blocks
+and the gradient built in NumPy (about 30 + 15 us of NumPy per potential and Forming iterate, for
+~17 us more kernel time); both are kept with the stiffness they were made for (another stiffness
+evaluates the Hessian again, and sums the gradient in NumPy from the kept distance gradients). Before measuring a pair, the kernel applies the exact prefilter of
 :mod:`sim_core.collision.distance_bounds` (box gap, plane / line-line bound, same margins): about
 two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
 (they are never active, so the active pairs and their values are unchanged). The kernel's work
@@ -86,25 +88,45 @@ def _penalty_hessian(i: ti.i32, gap: ti.f64, stiffness: ti.f64, grad: ti.templat
             hess[i, a, b] = (grad[i, a] * grad[i, b] + gap * hess[i, a, b]) * stiffness
 
 
+@ti.func
+def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti.i32, vertices: ti.template(),
+                              grad: ti.template(), gradients: ti.template()):
+    """``gradients[first_row + v] += scale * grad d`` over the vertices ``v`` of pair ``k`` (its distance
+    gradient in row ``i`` of ``grad``, ``scale = k_c (d - eps)``): the sums of the reference's
+    ``scatter_gradient`` (one ``np.bincount`` in pair, vertex, axis order) when pairs come in order."""
+    for a in range(4):
+        row = first_row + vertices[k, a]
+        for c in ti.static(range(3)):
+            gradients[row, c] += scale * grad[i, 3 * a + c]
+
+
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
-                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3):
+                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2):
     """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
     ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the distance gradient
     row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
     ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
-    as they are). A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
+    as they are), and their penalty gradients ``k_c (d - eps) grad d`` summed per vertex into
+    ``gradients`` (``(2 n, 3)``: rows ``v`` for the vertex-triangle pairs, ``n + v`` for the edge-edge
+    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`_scatter_penalty_gradient`).
+    A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
     pair kind are runtime values: one compiled kernel for every request."""
+    n = x.shape[0]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 2 * n):
+        for c in ti.static(range(3)):
+            gradients[j, c] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
         k = rows[i]
         point_first = 0
-        eps, stiffness = eps_ee, stiffness_ee
+        eps, stiffness, first_row = eps_ee, stiffness_ee, n
         if k < split:
             point_first = 1
-            eps, stiffness = eps_vt, stiffness_vt
+            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
         p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
                           _vertex(x, vertices, k, 3))
         if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
@@ -115,6 +137,7 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
                 if d[i] < eps:
                     cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
                     _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
+                    _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
         else:
             region[i], d[i] = -1, ti.math.inf
 
@@ -178,14 +201,18 @@ class PairBatch:
         m = len(rows)
         d, region, grad, hess = work_arrays(m)
         stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
+        n = x.shape[0]
+        gradients = _ARRAYS.rows("gradients", 2 * n, (3,))
         if m:
             kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
             kept_rows[:m] = rows
             _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows, m, self.split,
                           float(self.vt.eps), float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)),
-                          _ARRAYS.rows("z", m, (4, 3)), d, region, grad, hess)
+                          _ARRAYS.rows("z", m, (4, 3)), d, region, grad, hess, gradients)
+        else:
+            gradients[: 2 * n] = 0.0
         order = 2 if derivatives else 0
-        for pot, part, known, stiffness in zip(pots, parts, kept, stiffnesses):
+        for kind, (pot, part, known, stiffness) in enumerate(zip(pots, parts, kept, stiffnesses)):
             if pot._kept(key, order) is not None:
                 continue
             if known is None:
@@ -198,7 +225,8 @@ class PairBatch:
             if derivatives:
                 g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
-                pot._last = PairEvaluation(order, key, active, dd, pot.eps, (stiffness, h))
+                pot._last = PairEvaluation(order, key, active, dd, pot.eps, (stiffness, h),
+                                           (stiffness, gradients[kind * n:(kind + 1) * n].copy()))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 pot._last = PairEvaluation(order, key, active, dd, pot.eps)

@@ -118,6 +118,12 @@ def test_penalty_hessians_follow_a_changed_stiffness(ti_cpu, monkeypatch):
         np.testing.assert_array_equal(pot.gradient(x), g_ref)
         assert pot.energy(x) == e_ref
     assert [derivatives for derivatives, _ in calls] == [True, True]  # one per stiffness change
+    # the gradient and energy of another stiffness come from the kept distances, with no launch
+    for pot, (_, g_ref, e_ref) in zip(linked, expected):
+        pot.stiffness = 6.0 * K
+        np.testing.assert_array_equal(pot.gradient(x), 2.0 * g_ref)  # (exact: a power-of-two factor)
+        assert pot.energy(x) == 2.0 * e_ref
+    assert len(calls) == 2
 
 
 def test_batches_sharing_the_work_arrays_keep_their_own_results(ti_cpu):
