@@ -25,7 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim_core.collision import CollisionMemory, PairFilter, edge_edge_candidates, vertex_triangle_candidates
+from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
+                                vertex_triangle_candidates)
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model, check_broad_phase
@@ -282,7 +283,7 @@ class ContactSet:
         return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps)
 
     @staticmethod
-    def _step_sides(above: np.ndarray, remembered: np.ndarray) -> np.ndarray:
+    def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory) -> np.ndarray:
         """Sides of the step, fixed for all its Newton iterates, shape ``(p,)``.
 
         A pair above the face (vertex-triangle) or with both closest points interior (edge-edge)
@@ -297,9 +298,14 @@ class ContactSet:
 
         Args:
             above: pairs in the face / interior region at ``x^n``, shape ``(p,)`` bool.
-            remembered: the memory's side, else the side at ``x^n``, shape ``(p,)``.
+            pairs: the pairs, shape ``(p, 2)`` (sorted, as the candidate lists: the memory's fast lookup).
+            geometric: their side at ``x^n``, shape ``(p,)``, taken where ``memory`` has none.
+            memory: the side memory of the pairs' kind (only the pairs ``above`` are looked up).
         """
-        return np.where(above, remembered, 0.0)
+        sides = np.zeros(len(above))
+        rows = np.flatnonzero(above)
+        sides[rows] = memory.resolve(pairs[rows], geometric[rows])
+        return sides
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
         """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
@@ -356,10 +362,9 @@ class ContactSet:
         is fixed within the step). ``ee sides``: the step sides of the kept pairs.
         """
         geo = self._candidate_geometry(x_ref, vt, ee)
-        vt_sides = self._step_sides(geo.vt_above, memory.vertex_triangle.resolve(vt, geo.vt_side))
+        vt_sides = self._step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle)
         keep = geo.ee_sine > self.min_edge_sine
-        ee_sides = np.zeros(len(ee))
-        ee_sides[keep] = self._step_sides(geo.ee_interior[keep], memory.edge_edge.resolve(ee[keep], geo.ee_side[keep]))
+        ee_sides = self._step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge)
         return vt_sides, keep, ee_sides
 
     @staticmethod
