@@ -77,6 +77,12 @@ def _fused_form(potential):
     return potential if equivalent is None else equivalent()
 
 
+def _same_positions(kept: np.ndarray, x: np.ndarray) -> bool:
+    """Whether ``x`` holds the kept positions bit for bit (same shape and bytes as the kept float64
+    copy; a comparison of bytes, a fraction of ``np.array_equal``'s time for these arrays)."""
+    return kept.shape == np.shape(x) and kept.tobytes() == np.asarray(x, dtype=np.float64).tobytes()
+
+
 class _ReferencePart:
     """A potential without a fused kernel: its reference energy, gradient and exact Hessian blocks,
     added to the static values through a slot map of its block vertices."""
@@ -206,7 +212,7 @@ class FusedElastic:
 
     def _evaluate(self, x: np.ndarray) -> tuple:
         kept = self._kept
-        if kept is not None and np.array_equal(kept[0], x):
+        if kept is not None and _same_positions(kept[0], x):
             return kept
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
@@ -233,7 +239,7 @@ class FusedElastic:
     def energy(self, x: np.ndarray) -> float:
         """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""
         kept = self._kept
-        if kept is not None and np.array_equal(kept[0], x):
+        if kept is not None and _same_positions(kept[0], x):
             return kept[1]
         xc = np.ascontiguousarray(x, dtype=np.float64)
         return float(sum(part.energy(xc) for part in self._parts))
