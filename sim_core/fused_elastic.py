@@ -178,7 +178,8 @@ class FusedElastic:
         self.potentials = list(potentials)
         self.vertex_arrays: list[np.ndarray] | None = None
         self.pattern: StaticPattern | None = None
-        self._kept: tuple | None = None  # (x copy, energy, gradient, values)
+        self._kept: tuple | None = None  # (x copy, energy, gradient, values): the evaluation buffers
+        self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -216,14 +217,26 @@ class FusedElastic:
             return kept
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
-        xc = np.ascontiguousarray(x, dtype=np.float64)
-        grad = np.zeros_like(xc)
-        values = np.zeros(self.pattern.keys.size)
+        self._kept = None
+        xc, grad, values = self._evaluation_buffers(np.shape(x))
+        np.copyto(xc, x)
+        grad.fill(0.0)
+        values.fill(0.0)
         energy = 0.0
         for part in self._parts:
             energy += part.evaluate(xc, grad, values)
-        self._kept = (xc.copy(), energy, grad, values)
+        self._kept = (xc, energy, grad, values)
         return self._kept
+
+    def _evaluation_buffers(self, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The positions ``shape``, gradient ``shape`` and Hessian-value ``(pattern.keys.size,)`` arrays
+        the kernels read and add into, float64, kept from one evaluation to the next (the kernels'
+        launches then bind no new arrays: :mod:`sim_core.ti_kernels.launch`); new ones when the
+        shapes change."""
+        buffers = self._buffers
+        if buffers is None or buffers[0].shape != shape or buffers[2].size != self.pattern.keys.size:
+            buffers = self._buffers = (np.zeros(shape), np.zeros(shape), np.zeros(self.pattern.keys.size))
+        return buffers
 
     def evaluate(self, x: np.ndarray) -> None:
         """Run the fused kernels at ``x`` ``(n, 3)`` (m) and keep energy, gradient and Hessian values:
@@ -249,7 +262,8 @@ class FusedElastic:
         return self._evaluate(x)[2].copy()
 
     def hessian_values(self, x: np.ndarray) -> np.ndarray:
-        """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``."""
+        """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``
+        (the kept array: the next evaluation at other positions overwrites it)."""
         return self._evaluate(x)[3]
 
     def projected_hessian_values(self, x: np.ndarray, projection: str) -> np.ndarray:
