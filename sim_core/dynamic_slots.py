@@ -104,12 +104,16 @@ class UnionPattern:
         self.indices = indices
         self._template: sp.csr_matrix | None = None
         self._static_mask: np.ndarray | None = None
+        self._expanded: np.ndarray | None = None  # expand()'s array
         self._diagonal: tuple[np.ndarray, np.ndarray] | None = None
 
     def expand(self, static_data: np.ndarray) -> np.ndarray:
-        """Static values ``(pattern.keys.size,)`` in this union's layout: a new ``(nnz,)`` array, 0 in the
-        dynamic-only slots (the static slots are increasing: one boolean-mask copy)."""
-        expanded = np.zeros(self.nnz)
+        """Static values ``(pattern.keys.size,)`` in this union's layout, ``(nnz,)``, 0 in the dynamic-only
+        slots (the static slots are increasing: one boolean-mask copy). The array is kept: the next call
+        overwrites it (its dynamic-only slots stay 0 as long as callers write static slots only)."""
+        expanded = self._expanded
+        if expanded is None:
+            expanded = self._expanded = np.zeros(self.nnz)
         expanded[self.static_mask()] = static_data
         return expanded
 
@@ -350,12 +354,12 @@ class DynamicMerge:
         return union.matrix(self._sum(union, blocks, static))
 
     def _sum(self, union: UnionPattern, blocks: list[HessianBlocks], static: np.ndarray) -> np.ndarray:
-        """The union's values ``(nnz,)``: one ``np.bincount`` of the kept entries of ``blocks`` (placed by
-        :meth:`_place`) in block-set, element, entry order, plus the static values in the union's
-        layout ``static`` (``(nnz,)``, 0 in the dynamic-only slots; reused as the result); ``static``
-        itself when there are no blocks."""
+        """The union's values, a new ``(nnz,)`` array: one ``np.bincount`` of the kept entries of ``blocks``
+        (placed by :meth:`_place`) in block-set, element, entry order, plus the static values in the
+        union's layout ``static`` (``(nnz,)``, 0 in the dynamic-only slots; :meth:`UnionPattern.expand`);
+        a copy of ``static`` when there are no blocks."""
         if not blocks:
-            return static
+            return static.copy()
         gathered = [self._tables[j].gathered(union.nnz) for j in range(len(blocks))]
         cached = self._slots_cache
         if cached is None or len(cached[0]) != len(gathered) or any(a is not b for a, b in zip(cached[0], gathered)):
