@@ -238,7 +238,7 @@ class _ElementTable:
         self._slots = np.zeros((0, (3 * m) ** 2), dtype=np.int64)
         self._last = np.zeros(0, dtype=np.int64)
         self.call: tuple | None = None
-        self._gathered: tuple | None = None  # (call, kept entries, their slots) of gathered()
+        self._gathered: tuple | None = None  # (call, (kept entries, their slots)) of gathered()
 
     @property
     def slots(self) -> np.ndarray:
@@ -331,7 +331,7 @@ class DynamicMerge:
     ) -> sp.csr_matrix:
         """CSR upper triangle ``(n, n)`` of the static values (``pat``'s slots, ``(pat.keys.size,)``)
         plus the kept entries of the ``dynamic`` blocks (``free``: bool ``(n,)`` free-DoF mask)."""
-        union, blocks, _ = self._place(pat, dynamic, free)
+        union, blocks = self._place(pat, dynamic, free)
         return union.matrix(self._sum(union, blocks, union.expand(static_data)))
 
     def merge_values(
@@ -346,7 +346,7 @@ class DynamicMerge:
             pat: the static pattern; static_values: its values ``(pat.keys.size,)`` (not modified);
             diagonal: extra diagonal ``(n,)``; dynamic, free: as :meth:`merge`.
         """
-        union, blocks, _ = self._place(pat, dynamic, free)
+        union, blocks = self._place(pat, dynamic, free)
         static = union.expand(static_values)
         diagonal_slots, fixed_slots = union.diagonal_slots()
         static[diagonal_slots] += diagonal
@@ -373,10 +373,10 @@ class DynamicMerge:
 
     def _place(
         self, pat: StaticPattern, dynamic: Sequence[HessianBlocks], free: np.ndarray
-    ) -> tuple[UnionPattern, list[HessianBlocks], list[np.ndarray]]:
-        """This assembly's union pattern (rebuilt if needed), its non-empty dynamic block sets and, per
-        set ``j``, the row of each of its elements in element table ``j`` (whose ``call`` is then
-        ``(signature, union, rows)`` of this set)."""
+    ) -> tuple[UnionPattern, list[HessianBlocks]]:
+        """This assembly's union pattern (rebuilt if needed) and its non-empty dynamic block sets; the
+        ``call`` of element table ``j`` is then ``(signature, union, rows)`` of set ``j``, ``rows`` the
+        row of each of its elements in the table."""
         n = self.dof_count
         self._assemblies += 1
         count = self._assemblies
@@ -422,7 +422,7 @@ class DynamicMerge:
             call = table.call
             if call is None or call[0] != signatures[j] or call[1] is not union:
                 table.call = (signatures[j], union, rows[j])
-        return union, blocks, rows
+        return union, blocks
 
     def _kept_keys(self, vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
         """Keys ``row * n + col`` of the entries of blocks over ``vertices``, -1 where not kept, ``(k, q)``."""
