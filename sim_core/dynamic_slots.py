@@ -104,12 +104,16 @@ class UnionPattern:
         self.indices = indices
         self._template: sp.csr_matrix | None = None
         self._static_mask: np.ndarray | None = None
+        self._expanded: np.ndarray | None = None  # expand()'s array
         self._diagonal: tuple[np.ndarray, np.ndarray] | None = None
 
     def expand(self, static_data: np.ndarray) -> np.ndarray:
-        """Static values ``(pattern.keys.size,)`` in this union's layout: a new ``(nnz,)`` array, 0 in the
-        dynamic-only slots (the static slots are increasing: one boolean-mask copy)."""
-        expanded = np.zeros(self.nnz)
+        """Static values ``(pattern.keys.size,)`` in this union's layout, ``(nnz,)``, 0 in the dynamic-only
+        slots (the static slots are increasing: one boolean-mask copy). The array is kept: the next call
+        overwrites it (its dynamic-only slots stay 0 as long as callers write static slots only)."""
+        expanded = self._expanded
+        if expanded is None:
+            expanded = self._expanded = np.zeros(self.nnz)
         expanded[self.static_mask()] = static_data
         return expanded
 
@@ -234,7 +238,7 @@ class _ElementTable:
         self._slots = np.zeros((0, (3 * m) ** 2), dtype=np.int64)
         self._last = np.zeros(0, dtype=np.int64)
         self.call: tuple | None = None
-        self._gathered: tuple | None = None  # (call, kept entries, their slots) of gathered()
+        self._gathered: tuple | None = None  # (call, (kept entries, their slots)) of gathered()
 
     @property
     def slots(self) -> np.ndarray:
@@ -327,7 +331,7 @@ class DynamicMerge:
     ) -> sp.csr_matrix:
         """CSR upper triangle ``(n, n)`` of the static values (``pat``'s slots, ``(pat.keys.size,)``)
         plus the kept entries of the ``dynamic`` blocks (``free``: bool ``(n,)`` free-DoF mask)."""
-        union, blocks, _ = self._place(pat, dynamic, free)
+        union, blocks = self._place(pat, dynamic, free)
         return union.matrix(self._sum(union, blocks, union.expand(static_data)))
 
     def merge_values(
@@ -342,7 +346,7 @@ class DynamicMerge:
             pat: the static pattern; static_values: its values ``(pat.keys.size,)`` (not modified);
             diagonal: extra diagonal ``(n,)``; dynamic, free: as :meth:`merge`.
         """
-        union, blocks, _ = self._place(pat, dynamic, free)
+        union, blocks = self._place(pat, dynamic, free)
         static = union.expand(static_values)
         diagonal_slots, fixed_slots = union.diagonal_slots()
         static[diagonal_slots] += diagonal
@@ -350,12 +354,12 @@ class DynamicMerge:
         return union.matrix(self._sum(union, blocks, static))
 
     def _sum(self, union: UnionPattern, blocks: list[HessianBlocks], static: np.ndarray) -> np.ndarray:
-        """The union's values ``(nnz,)``: one ``np.bincount`` of the kept entries of ``blocks`` (placed by
-        :meth:`_place`) in block-set, element, entry order, plus the static values in the union's
-        layout ``static`` (``(nnz,)``, 0 in the dynamic-only slots; reused as the result); ``static``
-        itself when there are no blocks."""
+        """The union's values, a new ``(nnz,)`` array: one ``np.bincount`` of the kept entries of ``blocks``
+        (placed by :meth:`_place`) in block-set, element, entry order, plus the static values in the
+        union's layout ``static`` (``(nnz,)``, 0 in the dynamic-only slots; :meth:`UnionPattern.expand`);
+        a copy of ``static`` when there are no blocks."""
         if not blocks:
-            return static
+            return static.copy()
         gathered = [self._tables[j].gathered(union.nnz) for j in range(len(blocks))]
         cached = self._slots_cache
         if cached is None or len(cached[0]) != len(gathered) or any(a is not b for a, b in zip(cached[0], gathered)):
@@ -369,10 +373,10 @@ class DynamicMerge:
 
     def _place(
         self, pat: StaticPattern, dynamic: Sequence[HessianBlocks], free: np.ndarray
-    ) -> tuple[UnionPattern, list[HessianBlocks], list[np.ndarray]]:
-        """This assembly's union pattern (rebuilt if needed), its non-empty dynamic block sets and, per
-        set ``j``, the row of each of its elements in element table ``j`` (whose ``call`` is then
-        ``(signature, union, rows)`` of this set)."""
+    ) -> tuple[UnionPattern, list[HessianBlocks]]:
+        """This assembly's union pattern (rebuilt if needed) and its non-empty dynamic block sets; the
+        ``call`` of element table ``j`` is then ``(signature, union, rows)`` of set ``j``, ``rows`` the
+        row of each of its elements in the table."""
         n = self.dof_count
         self._assemblies += 1
         count = self._assemblies
@@ -418,7 +422,7 @@ class DynamicMerge:
             call = table.call
             if call is None or call[0] != signatures[j] or call[1] is not union:
                 table.call = (signatures[j], union, rows[j])
-        return union, blocks, rows
+        return union, blocks
 
     def _kept_keys(self, vertices: np.ndarray, free: np.ndarray) -> np.ndarray:
         """Keys ``row * n + col`` of the entries of blocks over ``vertices``, -1 where not kept, ``(k, q)``."""

@@ -370,6 +370,17 @@ class IdentityRows:
             reduced.flags.writeable = False  # PardisoHandle then knows the pattern without comparing it
         self._pattern = (indptr, indices)
         self._unit_slots = diagonal[candidates[rows[diagonal]]]  # the identity rows' diagonal entries
+        self._reduced: np.ndarray | None = None  # reduced_data()'s array
+
+    def reduced_data(self, data: np.ndarray) -> np.ndarray:
+        """The values of the reduced matrix, ``data[slots]`` ``(nnz_r,)`` (float64), gathered into an array
+        kept by this split: the next call overwrites it."""
+        reduced = self._reduced
+        if reduced is None:
+            reduced = self._reduced = np.empty(self.slots.size)
+        # mode "clip": the slots are in range by construction, and take() then writes out directly
+        np.take(np.asarray(data, dtype=np.float64), self.slots, out=reduced, mode="clip")
+        return reduced
 
     def matches(self, indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> bool:
         """Whether this split holds for the matrix ``(indptr, indices, data)``: the same pattern
@@ -451,7 +462,7 @@ class PardisoCholesky:
         if split.kept.size == 0:  # the identity: nothing to factorise
             self._factorized = True
             return True
-        err = self._handle.factorize(split.indptr, split.indices, upper.data[split.slots])
+        err = self._handle.factorize(split.indptr, split.indices, split.reduced_data(upper.data))
         self._factorized = err == 0
         if err == self._NOT_POSITIVE_DEFINITE:
             return False

@@ -26,14 +26,19 @@ class GravityPotential:
         self.gravity = np.asarray(gravity, dtype=float).reshape(3)
         if not np.all(np.isfinite(self.gravity)):
             raise ConfigError(f"gravity must be finite, got {self.gravity.tolist()}")
+        self._gradient: np.ndarray | None = None  # the constant gradient, once computed
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J."""
         return float(-np.sum(self.vertex_mass[:, None] * x * self.gravity[None, :]))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """``-m g`` per vertex, shape ``(n, 3)``."""
-        return -self.vertex_mass[:, None] * self.gravity[None, :] * np.ones_like(x)
+        """``-m g`` per vertex, shape ``(n, 3)`` (a new array; the constant is computed on the first call
+        for ``x``'s shape and dtype and copied afterwards)."""
+        kept = self._gradient
+        if kept is None or kept.shape != np.shape(x) or kept.dtype != np.result_type(self.vertex_mass, x):
+            kept = self._gradient = -self.vertex_mass[:, None] * self.gravity[None, :] * np.ones_like(x)
+        return kept.copy()
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Zero (the energy is linear)."""

@@ -231,6 +231,8 @@ def test_matrices_of_one_union_share_read_only_sorted_index_arrays():
     checked.check_format(full_check=True)
     assert checked.has_sorted_indices
     np.testing.assert_array_equal((second - checked).toarray(), 0.0)
+    empty = [merge.merge(pat, rng.normal(size=pat.keys.size), [], free) for _ in range(2)]  # static values only
+    assert not np.shares_memory(empty[0].data, empty[1].data) and not np.array_equal(empty[0].data, empty[1].data)
     third = merge.merge(pat, rng.normal(size=pat.keys.size), [_blocks(rng, np.array([[7, 9]]))], free)  # new keys
     assert third.indices is not second.indices and third.nnz > second.nnz
     with pytest.raises(ValueError, match="3 values for"):

@@ -66,3 +66,18 @@ def test_invalid_values_are_named():
         InertiaPotential(-MASS, X_PREV, DT)
     with pytest.raises(ConfigError, match="gravity must be finite"):
         GravityPotential(MASS, np.array([0.0, np.nan, -9.81]))
+
+
+def test_gravity_gradient_is_a_new_array_of_the_formula_every_call():
+    """The constant gradient is computed once and copied: each call returns a new array equal, bit for
+    bit, to ``-m g`` times ones of ``x``'s shape (a caller may modify its array in place)."""
+    gravity = GravityPotential(MASS, np.array([0.0, 0.3, -9.81]))
+    x = X_PREV + 1e-3
+    reference = -MASS[:, None] * gravity.gravity[None, :] * np.ones_like(x)
+    first = gravity.gradient(x)
+    first += 1.0
+    second = gravity.gradient(x + 0.5)
+    assert second.tobytes() == reference.tobytes() and not np.shares_memory(first, second)
+    assert gravity.parameter_gradient(x, "mass_scale").tobytes() == reference.tobytes()
+    with pytest.raises(ValueError):  # another shape is computed for that shape (and fails to broadcast)
+        gravity.gradient(np.zeros((N + 1, 3)))
