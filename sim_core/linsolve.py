@@ -136,10 +136,13 @@ class SymmetricSolver(Protocol):
         detects_indefinite: True when :meth:`factorize` returns False for a matrix that is not
             positive definite (a Cholesky factorisation); False when it factorises any
             non-singular matrix and always returns True.
+        factorizations: calls of :meth:`factorize` so far (the Newton solver's chord start checks
+            that the factorisation it kept is still the solver's).
     """
 
     name: str
     detects_indefinite: bool
+    factorizations: int
 
     def factorize(self, upper: sp.csr_matrix) -> bool:
         """Factorise ``A = U + U^T - diag(U)`` from ``U`` (CSR, upper triangle with the full
@@ -435,6 +438,7 @@ class PardisoCholesky:
         self._factorized = False
         self._split: IdentityRows | None = None  # identity rows of the last pattern
         self._n = 0
+        self.factorizations = 0
 
     @property
     def threads(self) -> int:
@@ -451,6 +455,7 @@ class PardisoCholesky:
         Raises:
             SimulationDivergedError: any other PARDISO error (the code is in the message).
         """
+        self.factorizations += 1
         if not (sp.issparse(upper) and upper.format == "csr"):
             upper = sp.csr_matrix(upper)
         upper.sort_indices()  # a no-op for the assembler's matrices (flagged sorted)
@@ -506,8 +511,10 @@ class ScipySymmetric:
     def __init__(self) -> None:
         self._lu = None
         self._full_from_upper = SymmetricExpansion()
+        self.factorizations = 0
 
     def factorize(self, upper: sp.csr_matrix) -> bool:
+        self.factorizations += 1
         A = sp.csc_matrix(self._full_from_upper(upper))
         try:
             lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
