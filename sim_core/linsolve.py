@@ -136,8 +136,7 @@ class SymmetricSolver(Protocol):
         detects_indefinite: True when :meth:`factorize` returns False for a matrix that is not
             positive definite (a Cholesky factorisation); False when it factorises any
             non-singular matrix and always returns True.
-        factorizations: calls of :meth:`factorize` so far (the Newton solver's chord start checks
-            that the factorisation it kept is still the solver's).
+        factorizations: calls of :meth:`factorize` so far.
     """
 
     name: str

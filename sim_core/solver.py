@@ -74,28 +74,6 @@ class SolverConfig:
             bench's generated damping and stiction effects lost their graded strengths, and
             its naming accuracy fell from 1.0 / 1.0 to 0.6 / 0.7 at 2 / 4 sigma;
             docs/benchmarks.md, 2026-11-22).
-        chord_start: the first Newton iteration of a step that starts where the solver's last step
-            ended (positions equal bit for bit, same dt, same fixed DoFs, that step's matrix
-            factorised positive definite and not factorised since) solves with that step's last
-            Newton matrix instead of assembling and factorising a new one: a simplified-Newton
-            (chord) start, as implicit integrators keep the iteration matrix across steps (Hairer &
-            Wanner, Solving ODEs II, Sec. IV.8; Deuflhard, Newton Methods for Nonlinear Problems,
-            2004, Sec. 2.1.4). The matrix differs from the new iterate's by the prescribed motion of
-            the fixed DoFs and the new step's lagged friction, so the step is nearly the Newton
-            step; every later iteration, and the convergence test, use the exact Newton matrix as
-            before (a chord update below 10 x ``tol_velocity`` is not applied: that iterate gets its
-            Newton update, so the stopping rule is the same; a failed line search along a chord
-            update falls back to the Newton update too). Forming: 4.94 -> 4.04 factorisations per
-            step (5.04 iterations counting the chord ones; docs/benchmarks.md, 2026-11-23). It is
-            counted in ``StepInfo.chord_iterations``. A rollout after :meth:`NewtonSolver.reset_caches`
-            starts without it. Off by default (opt-in, like ``rate_stopping``): a step's result
-            then depends on the step before it within the Newton tolerance (~1e-7 m apart), which
-            breaks what needs a step to depend on its start state alone: a diagnosis replay
-            resumed from a checkpoint no longer equals the full one bit for bit, and finite
-            differences over replays (system identification's Jacobians) pick up that history
-            noise (the sysid node's live fit missed its target); a folded-sheet no-penetration
-            audit needed up to 46 iterations in a step (40 allowed), and the press-drag friction
-            cone test went 0.14 % over its 0.1 % bound (docs/benchmarks.md, 2026-11-23).
         dt_halvings_on_failure: retry a failed step with dt/2, dt/4 ... this many times (0 = raise).
         stale_side_backtracks: after a line search that needed this many halvings, release the
             contact sides gone stale at the new iterate (:meth:`ContactSet.release_stale_sides`,
@@ -116,7 +94,6 @@ class SolverConfig:
     exact_hessian_first: bool = True
     linear_solver: str = "pardiso"
     rate_stopping: bool = False
-    chord_start: bool = False
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
 
@@ -193,9 +170,8 @@ class StepInfo:
     """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), the
     iterations whose Newton matrix had PSD-projected element blocks, the contact pairs whose
     side was released after a failed or very short line search (:meth:`ContactSet.release_stale_sides`),
-    the iterations that solved with the previous step's matrix (``SolverConfig.chord_start``;
-    included in ``iterations``), and the Newton matrices factorised (a not positive definite exact
-    Hessian and its projected fallback count two)."""
+    and the Newton matrices factorised (a not positive definite exact Hessian and its projected
+    fallback count two)."""
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -208,7 +184,6 @@ class StepInfo:
     time_total: float = 0.0
     projected_iterations: int = 0
     released_sides: int = 0
-    chord_iterations: int = 0
     factorizations: int = 0
 
 
@@ -261,7 +236,6 @@ class NewtonSolver:
         self.contact = ContactSet(self.model)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
-        self._chord: tuple | None = None  # what a chord start needs to match (SolverConfig.chord_start)
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -347,7 +321,6 @@ class NewtonSolver:
             total.time_linear_solve += info.time_linear_solve
             total.projected_iterations += info.projected_iterations
             total.released_sides += info.released_sides
-            total.chord_iterations += info.chord_iterations
             total.factorizations += info.factorizations
             s = nxt
         _copy_state_into(s, state_out)
@@ -383,14 +356,6 @@ class NewtonSolver:
         if self._general_solver is None:
             self._general_solver = make_linear_solver(self.config.linear_solver)
         return self._general_solver
-
-    def _chord_matches(self, key: tuple, x_n: np.ndarray) -> bool:
-        """Whether a step from ``x_n`` with ``key`` (dt, fixed-DoF mask, linear solver) may start with the
-        last step's factorisation (``SolverConfig.chord_start``): that step ended at ``x_n`` bit for bit
-        with the same key, and the linear solver has factorised nothing since."""
-        kept = self._chord
-        return (kept is not None and kept[0] == key and kept[1] == x_n.tobytes()
-                and kept[2] == getattr(self.linear_solver, "factorizations", None))
 
     def _projections(self) -> tuple[str, ...]:
         """Element-Hessian projections to try in order each iteration (see ``exact_hessian_first``)."""
@@ -467,9 +432,6 @@ class NewtonSolver:
         converged = False
         residual = np.inf
         history: list[float] = []
-        chord_key = (dt, free.tobytes(), id(self.linear_solver))
-        chord = guess is None and cfg.chord_start and self._chord_matches(chord_key, x_n)
-        self._chord = None
         for it in range(1, cfg.max_iterations + 1):
             ta = time.perf_counter()
             contact_terms = self.contact.potentials(x, x_n, memory)
@@ -485,14 +447,7 @@ class NewtonSolver:
             info.time_assembly += time.perf_counter() - ta
             d = None
             factorization = self.linear_solver
-            chord_step = chord
-            chord = False
-            if chord_step:  # the previous step's factorisation (SolverConfig.chord_start)
-                tl = time.perf_counter()
-                d = -self.linear_solver.solve(g)
-                info.time_linear_solve += time.perf_counter() - tl
-                info.chord_iterations += 1
-            for projection in (() if chord_step else self._projections()):
+            for projection in self._projections():
                 ta = time.perf_counter()
                 if fused is not None:
                     values = (fused.hessian_values(x) if projection == "none"
@@ -533,10 +488,6 @@ class NewtonSolver:
                 and residual < 10.0 * cfg.tol_velocity
                 and residual > 0.9 * history[-1 - cfg.stall_iterations]
             )
-            if chord_step and residual < 10.0 * cfg.tol_velocity:
-                # near the solution already: this iterate gets its Newton update and the usual test
-                history.pop()
-                continue
             if residual < cfg.tol_velocity or float(np.max(np.abs(g))) < cfg.tol_force or stalled:
                 if not (guess is not None and it == 1):
                     converged = True
@@ -578,9 +529,6 @@ class NewtonSolver:
                 info.backtracks += 1
                 full_step = False
             else:
-                if chord_step:  # no decrease along the chord update: take the Newton update here
-                    history.pop()
-                    continue
                 if abs(slope) <= 1e-12 * max(abs(e0), 1e-30) or residual < 100.0 * cfg.tol_velocity:
                     # The predicted decrease is below the round-off of the energy: x is stationary
                     # to working precision (the gradient is zero up to floating-point error).
@@ -619,8 +567,6 @@ class NewtonSolver:
         exact = projection == "none"
         self.last_free_mask = free
         self.last_factorization = factorization if exact else None
-        if factorization is self.linear_solver:  # factorised positive definite (a symmetric solver's success)
-            self._chord = (chord_key, x.tobytes(), getattr(self.linear_solver, "factorizations", None))
         contact_terms = self.contact.potentials(x, x_n, memory)
         info.energy = total(x, contact_terms, self.contact.search_position)
         self.last_record = StepRecord(

@@ -136,7 +136,7 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
     build_s = time.perf_counter() - t_build - jit_s
     effector = next(iter(model.effectors))
     targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
-    iterations, factorizations, chords, t_assembly, t_linear, step_times = [], [], [], 0.0, 0.0, []
+    iterations, factorizations, t_assembly, t_linear, step_times = [], [], 0.0, 0.0, []
     states, controls, records = [sim.state.copy()], [], []
     cold_start = None
     for k in range(steps):
@@ -149,7 +149,6 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
             cold_start = time.time() - process_start_time()
         iterations.append(info.iterations)
         factorizations.append(info.factorizations)
-        chords.append(info.chord_iterations)
         t_assembly += info.time_assembly
         t_linear += info.time_linear_solve
         controls.append(control)
@@ -167,7 +166,6 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         "newton_iters_mean": float(np.mean(iterations)),
         "newton_iters_max": int(np.max(iterations)),
         "factorizations_mean": float(np.mean(factorizations)),
-        "chord_iters_mean": float(np.mean(chords)),
         "assembly_share": t_assembly / total,
         "linear_solve_share": t_linear / total,
         "cold_start_s": float(cold_start),
@@ -229,7 +227,7 @@ def _print_forming(r: dict) -> None:
         print(f"    median of {r['repeat']} runs: " + ", ".join(f"{v:.1f}" for v in r["steps_per_s_runs"])
               + f" (best {r['steps_per_s_best']:.1f})")
     print(f"  Newton iterations/step   {r['newton_iters_mean']:.2f} (max {r['newton_iters_max']}; "
-          f"{r['chord_iters_mean']:.2f} chord start, {r['factorizations_mean']:.2f} factorisations)")
+          f"{r['factorizations_mean']:.2f} factorisations)")
     print(f"  assembly share           {100 * r['assembly_share']:.1f} %")
     print(f"  linear-solve share       {100 * r['linear_solve_share']:.1f} %")
     print(f"  cold start               {r['cold_start_s']:.2f} s (process start to end of first step; "
@@ -306,8 +304,8 @@ def bench_main(argv: list[str] | None = None) -> int:
     """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid}``; returns the exit code.
 
     ``--json`` output of ``forming`` is one line with the keys ``dofs``, ``steps_per_s``,
-    ``newton_iters_mean``, ``newton_iters_max``, ``factorizations_mean``, ``chord_iters_mean``
-    (per step: Newton matrices factorised, chord-start iterations, ``SolverConfig.chord_start``),
+    ``newton_iters_mean``, ``newton_iters_max``, ``factorizations_mean``
+    (Newton matrices factorised per step, a projected fallback's failed exact one included),
     ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``jit_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
     ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``python``, ``numpy`` (and ``backward_*`` with
