@@ -31,29 +31,19 @@ _PARENT: dict = {}  # the simulation built in the parent, inherited by the forke
 def _forming_steps(steps: int) -> tuple[np.ndarray, list[int]]:
     """Final positions (m) and Newton iterations of ``steps`` Forming benchmark steps of the parent's
     simulation (Taichi path), from its initial state."""
-    from sim_core.control import Control
     from sim_core.scenes.task_scene import task_initial_state
-    from sim_core.tasks import forming_benchmark_offsets, pose_targets
+    from tests.support.forming import step_benchmark_trajectory
 
     sim = _PARENT["sim"]
     sim.state = task_initial_state(sim.model)
-    targets = pose_targets(sim.model.effectors["dome"].initial_pose, forming_benchmark_offsets(steps))
-    iterations = []
-    for k in range(steps):
-        control = Control()
-        control.effector_pose_target["dome"] = targets[k]
-        iterations.append(sim.step(control).iterations)
+    iterations = step_benchmark_trajectory(sim, steps)
     return sim.state.x.copy(), iterations
 
 
 def test_forming_steps_in_a_forked_worker_equal_the_parents(ti_cpu):
-    from thinshell_ros.bench import _default_scene, _select_backend
+    from tests.support.forming import forming_simulation
 
-    from sim_core.scenes.task_scene import load_task_scene
-    from sim_core.simulation import Simulation
-
-    sim = Simulation(load_task_scene(_default_scene("forming")))
-    _select_backend(sim, "cpu")
+    sim = forming_simulation()
     _PARENT["sim"] = sim
     _forming_steps(3)  # compiles (or loads) every kernel of a step, then forks
     with multiprocessing.get_context("fork").Pool(1) as pool:

@@ -10,13 +10,9 @@ import numpy as np
 def _forming(steps: int, monkeypatch, prefetch: bool) -> tuple[np.ndarray, list[int], list[tuple]]:
     """Final positions (m), Newton iterations per step and the batch kernel's launches
     ``(derivatives, pairs)`` of ``steps`` Forming benchmark steps on the Taichi path."""
-    from sim_core.control import Control
     from sim_core.potentials.contact import _PairPenalty
-    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.simulation import Simulation
-    from sim_core.tasks import forming_benchmark_offsets, pose_targets
     from sim_core.ti_kernels import contact_batch
-    from thinshell_ros.bench import _default_scene, _select_backend
+    from tests.support.forming import forming_simulation, step_benchmark_trajectory
 
     with monkeypatch.context() as patch:
         if not prefetch:
@@ -24,16 +20,8 @@ def _forming(steps: int, monkeypatch, prefetch: bool) -> tuple[np.ndarray, list[
         calls = []
         kernel = contact_batch._batch_kernel
         patch.setattr(contact_batch, "_batch_kernel", lambda *a: (calls.append((a[7], len(a[3]))), kernel(*a)))
-        model = load_task_scene(_default_scene("forming"))
-        sim = Simulation(model)
-        _select_backend(sim, "cpu")
-        sim.state = task_initial_state(model)
-        targets = pose_targets(model.effectors["dome"].initial_pose, forming_benchmark_offsets(steps))
-        iterations = []
-        for k in range(steps):
-            control = Control()
-            control.effector_pose_target["dome"] = targets[k]
-            iterations.append(sim.step(control).iterations)
+        sim = forming_simulation()
+        iterations = step_benchmark_trajectory(sim, steps)
         return sim.state.x.copy(), iterations, calls
 
 

@@ -10,28 +10,14 @@ def _forming(steps: int, warm_up: bool, monkeypatch) -> tuple[np.ndarray, list[i
     """Final positions (m), Newton iterations per step and the static patterns built during the steps
     of ``steps`` Forming benchmark steps on the Taichi path."""
     from sim_core import assembly
-    from sim_core.control import Control
-    from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.simulation import Simulation
-    from sim_core.tasks import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene, _select_backend
+    from tests.support.forming import forming_simulation, step_benchmark_trajectory
 
-    model = load_task_scene(_default_scene("forming"))
-    sim = Simulation(model)
-    _select_backend(sim, "cpu")
-    sim.state = task_initial_state(model)
-    if warm_up:
-        sim.warm_up()
+    sim = forming_simulation(warm_up)
     built = []
     with monkeypatch.context() as patch:
         init = assembly.StaticPattern.__init__
         patch.setattr(assembly.StaticPattern, "__init__", lambda self, *a: (built.append(1), init(self, *a))[1])
-        targets = pose_targets(model.effectors["dome"].initial_pose, forming_benchmark_offsets(steps))
-        iterations = []
-        for k in range(steps):
-            control = Control()
-            control.effector_pose_target["dome"] = targets[k]
-            iterations.append(sim.step(control).iterations)
+        iterations = step_benchmark_trajectory(sim, steps)
     return sim.state.x.copy(), iterations, len(built)
 
 
