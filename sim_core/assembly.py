@@ -159,7 +159,7 @@ class HessianAssembler:
         vals = np.concatenate([b.blocks.reshape(-1) for b in static] + [diagonal])
         static_data = np.bincount(pat.slot, weights=vals[pat.entry_index], minlength=pat.keys.size)
         static_data[pat.fixed_diag_slots] = 1.0
-        return self._merge_dynamic(pat, static_data, dynamic, free)
+        return self._dynamic.merge(pat, static_data, dynamic, free)
 
     def assemble_upper_values(
         self,
@@ -180,10 +180,3 @@ class HessianAssembler:
         if pattern is not self._static:
             raise ValueError("assemble_upper_values: pattern is not this assembler's current static pattern")
         return self._dynamic.merge_values(pattern, static_values, diagonal, dynamic, free)
-
-    def _merge_dynamic(
-        self, pat: StaticPattern, static_data: np.ndarray, dynamic: Sequence[HessianBlocks], free: np.ndarray
-    ) -> sp.csr_matrix:
-        """The CSR upper triangle of the static values in ``pat``'s slots plus the dynamic blocks
-        (:meth:`sim_core.dynamic_slots.DynamicMerge.merge`)."""
-        return self._dynamic.merge(pat, static_data, dynamic, free)

@@ -30,7 +30,8 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model, check_broad_phase
-from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames
+from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
+                                        edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.sphere_contact import SphereContact
 
@@ -321,9 +322,7 @@ class ContactSet:
     def _pair_vertices(self, vt: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global vertices ``[p, a, b, c]`` ``(p, 4)`` of vertex-triangle pairs ``vt`` ``(p, 2)`` and
         ``[a0, a1, b0, b1]`` ``(q, 4)`` of edge-edge pairs ``ee`` ``(q, 2)``."""
-        # np.take: row gathers 5x faster than fancy indexing with a column of the pair array
-        return (np.concatenate([vt[:, :1], np.take(self.triangles, vt[:, 1], axis=0)], axis=1),
-                np.concatenate([np.take(self.edges, ee[:, 0], axis=0), np.take(self.edges, ee[:, 1], axis=0)], axis=1))
+        return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
     def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> PairGeometry:
         """:meth:`_pair_geometry` of vertex-triangle pairs ``vt`` ``(p, 2)`` and edge-edge pairs ``ee``

@@ -30,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.assembly import StaticPattern
+from sim_core.potentials.base import positions_key
 
 
 def _fused_class(potential) -> type | None:
@@ -75,12 +76,6 @@ def _fused_form(potential):
     Neo-Hookean on its relaxed rest state: :mod:`sim_core.candidates.gel_viscoelasticity`), else itself."""
     equivalent = getattr(potential, "elastic_equivalent", None)
     return potential if equivalent is None else equivalent()
-
-
-def _same_positions(kept: np.ndarray, x: np.ndarray) -> bool:
-    """Whether ``x`` holds the kept positions bit for bit (same shape and bytes as the kept float64
-    copy; a comparison of bytes, a fraction of ``np.array_equal``'s time for these arrays)."""
-    return kept.shape == np.shape(x) and kept.tobytes() == np.asarray(x, dtype=np.float64).tobytes()
 
 
 class _ReferencePart:
@@ -178,7 +173,7 @@ class FusedElastic:
         self.potentials = list(potentials)
         self.vertex_arrays: list[np.ndarray] | None = None
         self.pattern: StaticPattern | None = None
-        self._kept: tuple | None = None  # (x copy, energy, gradient, values): the evaluation buffers
+        self._kept: tuple | None = None  # (positions_key(x), energy, gradient, values): the evaluation buffers
         self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
@@ -213,7 +208,8 @@ class FusedElastic:
 
     def _evaluate(self, x: np.ndarray) -> tuple:
         kept = self._kept
-        if kept is not None and _same_positions(kept[0], x):
+        key = positions_key(x)
+        if kept is not None and kept[0] == key:
             return kept
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
@@ -225,7 +221,7 @@ class FusedElastic:
         energy = 0.0
         for part in self._parts:
             energy += part.evaluate(xc, grad, values)
-        self._kept = (xc, energy, grad, values)
+        self._kept = (key, energy, grad, values)
         return self._kept
 
     def _evaluation_buffers(self, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -252,7 +248,7 @@ class FusedElastic:
     def energy(self, x: np.ndarray) -> float:
         """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""
         kept = self._kept
-        if kept is not None and _same_positions(kept[0], x):
+        if kept is not None and kept[0] == positions_key(x):
             return kept[1]
         xc = np.ascontiguousarray(x, dtype=np.float64)
         return float(sum(part.energy(xc) for part in self._parts))

@@ -40,7 +40,7 @@ from sim_core.collision.distances import (
     point_triangle_side,
 )
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection, project_psd, scatter_gradient
+from sim_core.potentials.base import HessianBlocks, Projection, positions_key, project_psd, scatter_gradient
 
 
 class ContactFrames(NamedTuple):
@@ -82,18 +82,17 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-_F64 = np.dtype(np.float64)
+def vertex_triangle_vertices(pairs: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Global vertices ``[p, a, b, c]`` ``(k, 4)`` of vertex-triangle pairs ``(vertex, triangle)`` ``(k, 2)``
+    over ``triangles`` ``(t, 3)`` (``np.take`` of rows: several times faster than fancy indexing by a
+    strided index column)."""
+    return np.concatenate([pairs[:, :1], np.take(triangles, pairs[:, 1], axis=0)], axis=1)
 
 
-def positions_key(x: np.ndarray) -> tuple:
-    """``(shape, bytes)`` of positions ``x`` as float64 in C order: equal keys are bitwise equal positions.
-
-    The kept evaluations of the pair potentials are matched by this key (a copy of ``x`` compared
-    with ``np.array_equal`` cost four times as much; bitwise equality is the stricter test).
-    """
-    if type(x) is not np.ndarray or x.dtype is not _F64:
-        x = np.asarray(x, dtype=np.float64)
-    return x.shape, x.tobytes()
+def edge_edge_vertices(pairs: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Global vertices ``[a0, a1, b0, b1]`` ``(k, 4)`` of edge-edge pairs ``(edge, edge)`` ``(k, 2)`` over
+    ``edges`` ``(e, 2)`` (one ``np.take`` of rows; fancy indexing by index columns costs ~15x more)."""
+    return np.take(edges, pairs, axis=0).reshape(-1, 4)
 
 
 class PairEvaluation:
@@ -344,8 +343,7 @@ class VertexTriangleContact(_PairPenalty):
             raise ConfigError(f"{where}: triangle index out of range [0, {triangles.shape[0]})")
         self.pairs = pairs
         self.sides = _check_sides(sides, pairs.shape[0], where)
-        # np.take: a row gather by a strided index column, several times faster than fancy indexing
-        self.vertices = np.concatenate([pairs[:, :1], np.take(triangles, pairs[:, 1], axis=0)], axis=1)
+        self.vertices = vertex_triangle_vertices(pairs, triangles)
         self.stiffness = float(stiffness)
         self.eps = float(eps)
 
@@ -398,8 +396,7 @@ class EdgeEdgeContact(_PairPenalty):
             raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
         self.pairs = pairs
         self.sides = _check_sides(sides, pairs.shape[0], where)
-        # [edges[i], edges[j]] per pair: one np.take of rows (fancy indexing by index columns costs ~15x more)
-        self.vertices = np.take(edges, pairs, axis=0).reshape(-1, 4)
+        self.vertices = edge_edge_vertices(pairs, edges)
         self.stiffness = float(stiffness)
         self.eps = float(eps)
 

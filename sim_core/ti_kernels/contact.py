@@ -18,13 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.collision.distances import DistanceDerivatives
-from sim_core.potentials.contact import (
-    ContactFrames,
-    EdgeEdgeContact,
-    PairEvaluation,
-    VertexTriangleContact,
-    positions_key,
-)
+from sim_core.potentials.base import positions_key
+from sim_core.potentials.contact import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
 from sim_core.ti_kernels import contact_distance, contact_setup
 
 

@@ -37,7 +37,8 @@ import numpy as np
 
 from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
-from sim_core.potentials.contact import PairEvaluation, positions_key
+from sim_core.potentials.base import positions_key
+from sim_core.potentials.contact import PairEvaluation
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import contact_distance as cd
 from sim_core.ti_kernels import linalg
@@ -186,7 +187,7 @@ class PairBatch:
         evaluation of ``x``: active pairs and distances, with ``derivatives`` also their gradients
         ``(a, 12)`` and Hessians ``(a, 12, 12)``. Derivatives after both kept the distances of ``x``
         are computed for their active pairs only; a potential that already keeps an evaluation of
-        ``x`` at least as complete keeps it. ``key``: :func:`~sim_core.potentials.contact.positions_key`
+        ``x`` at least as complete keeps it. ``key``: :func:`~sim_core.potentials.base.positions_key`
         of ``x`` when the caller has it."""
         if key is None:
             key = positions_key(x)

@@ -268,11 +268,8 @@ def _data_pointer(array: np.ndarray) -> int:
     """Address of the first element of a C-contiguous ``array`` (``array.ctypes.data``, which builds a
     ctypes helper object, ~3 us; through the buffer protocol ~0.8 us where the array is writable and
     not empty)."""
-    if array.nbytes:
-        try:
-            return ctypes.addressof(ctypes.c_char.from_buffer(array))
-        except TypeError:  # a read-only array
-            pass
+    if array.nbytes and array.flags.writeable:  # from_buffer refuses a read-only buffer
+        return ctypes.addressof(ctypes.c_char.from_buffer(array))
     return array.ctypes.data
 
 
