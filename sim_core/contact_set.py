@@ -588,3 +588,23 @@ def _pair_keys(pairs: np.ndarray) -> np.ndarray:
 def _sheet_vertices(model: Model) -> np.ndarray:
     parts = [b.vertices for b in model.bodies.values() if b.kind == "sheet"]
     return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+
+def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
+    """The touching contacts of the penalty potentials ``terms`` (as :meth:`ContactSet.potentials`
+    returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
+    (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
+    a term is not such a penalty (no ``active_mask``: a missing-physics candidate's adhesion, say).
+    Two iterates with equal results have the same penalty terms switched on, so the contact part of
+    the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
+    if not all(hasattr(p, "active_mask") for p in terms):
+        return None
+    return [p.vertices[p.active_mask(x)] for p in terms]
+
+
+def same_active_contacts(a: list[np.ndarray] | None, b: list[np.ndarray] | None) -> bool:
+    """Whether two :func:`active_contacts` results name the same contacts in the same order (False
+    when either is None)."""
+    if a is None or b is None or len(a) != len(b):
+        return False
+    return all(u.shape == v.shape and np.array_equal(u, v) for u, v in zip(a, b))

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
-from sim_core.contact_set import ContactSet
+from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
@@ -34,6 +34,7 @@ from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.potentials.damping import ViscousDamping
+from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.gravity import GravityPotential
 from sim_core.potentials.inertia import InertiaPotential
 from sim_core.state import State
@@ -74,6 +75,23 @@ class SolverConfig:
             bench's generated damping and stiction effects lost their graded strengths, and
             its naming accuracy fell from 1.0 / 1.0 to 0.6 / 0.7 at 2 / 4 sigma;
             docs/benchmarks.md, 2026-11-22).
+        simplified_newton_check: also stop at an iterate ``x_k`` whose simplified Newton correction
+            ``H(x_{k-1})^{-1} g(x_k)`` (the last factorisation, one extra solve) has scaled size
+            below this fraction of ``tol_velocity`` (Deuflhard, Newton Methods for Nonlinear
+            Problems, 2004, Sec. 2.1.2: the simplified correction estimates the error of ``x_k``
+            as the ordinary one does). It saves the assembly and factorisation that only test
+            convergence (Forming: a step takes about four Newton updates and a fifth, tiny one
+            that is not applied). The test runs only after an iteration that factorised the
+            exact Hessian and took its full step, when the same contacts touch at ``x_{k-1}``
+            and ``x_k`` (:func:`sim_core.contact_set.active_contacts`) and the model has no
+            candidate terms: a contact switching on or off between the two iterates changes the
+            matrix, and the simplified correction then underestimates (Forming: up to 28x). In
+            the stick zone the lagged friction's stiffness ``mu lam f1(y)/y`` varies by up to 2x
+            with ``y``, hence the factor 0.5 (Forming, 49 steps: the simplified correction lay
+            between 0.4 and 1.0 times the ordinary one wherever the contacts were unchanged).
+            ``x_k`` is then the step's result; the kept Newton matrix is the one at ``x_{k-1}``
+            (``StepRecord.hessian_exact`` False: the adjoint assembles the exact Hessian at
+            ``x``). 0 turns it off.
         dt_halvings_on_failure: retry a failed step with dt/2, dt/4 ... this many times (0 = raise).
         stale_side_backtracks: after a line search that needed this many halvings, release the
             contact sides gone stale at the new iterate (:meth:`ContactSet.release_stale_sides`,
@@ -96,6 +114,7 @@ class SolverConfig:
     rate_stopping: bool = False
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
+    simplified_newton_check: float = 0.5
 
     def __post_init__(self) -> None:
         if self.tol_velocity <= 0 or self.max_iterations < 1:
@@ -127,8 +146,9 @@ class StepRecord:
         hessian_upper: the upper triangle (CSR, sorted indices, ``(3 n, 3 n)``) of the constrained
             Newton matrix of the last iteration: the exact Hessian when it was positive definite,
             else the projected one. It is assembled at the last Newton iterate, which is ``x``
-            except when ``SolverConfig.rate_stopping`` ended the step on an update: then at
-            ``x - dx_k``, within the Newton tolerance of ``x``. The full symmetric matrix is
+            except when ``SolverConfig.rate_stopping`` ended the step on an update, or the
+            simplified Newton test (``SolverConfig.simplified_newton_check``) ended it: then at the
+            iterate before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
             :attr:`hessian`.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
         hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
@@ -170,8 +190,9 @@ class StepInfo:
     """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), the
     iterations whose Newton matrix had PSD-projected element blocks, the contact pairs whose
     side was released after a failed or very short line search (:meth:`ContactSet.release_stale_sides`),
-    and the Newton matrices factorised (a not positive definite exact Hessian and its projected
-    fallback count two)."""
+    the Newton matrices factorised (a not positive definite exact Hessian and its projected
+    fallback count two), and the (sub-)steps that the simplified Newton test ended (their last
+    iteration factorised nothing; ``SolverConfig.simplified_newton_check``)."""
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -185,6 +206,7 @@ class StepInfo:
     projected_iterations: int = 0
     released_sides: int = 0
     factorizations: int = 0
+    simplified_stops: int = 0
 
 
 class NewtonSolver:
@@ -322,6 +344,7 @@ class NewtonSolver:
             total.projected_iterations += info.projected_iterations
             total.released_sides += info.released_sides
             total.factorizations += info.factorizations
+            total.simplified_stops += info.simplified_stops
             s = nxt
         _copy_state_into(s, state_out)
         return total
@@ -432,6 +455,13 @@ class NewtonSolver:
         converged = False
         residual = np.inf
         history: list[float] = []
+        # the simplified Newton test (SolverConfig.simplified_newton_check): only with the library's
+        # penalty contacts and lagged friction (a candidate's adhesion or stiction may switch within a
+        # step), and only after an iteration that factorised the exact Hessian and took its full step
+        simplified = (cfg.simplified_newton_check > 0 and not (cand_contact or cand_body)
+                      and (friction is None or isinstance(friction, LaggedFriction)))
+        simplified_ok = False
+        active_before = None
         for it in range(1, cfg.max_iterations + 1):
             ta = time.perf_counter()
             contact_terms = self.contact.potentials(x, x_n, memory)
@@ -444,7 +474,21 @@ class NewtonSolver:
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
                 )
             dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_dynamic
+            active = active_contacts(contact_terms, x) if simplified else None
             info.time_assembly += time.perf_counter() - ta
+            if simplified_ok and same_active_contacts(active, active_before):
+                tl = time.perf_counter()
+                d_bar = self.linear_solver.solve(g)
+                d_bar[~free] = 0.0
+                residual_bar = float(np.max(np.linalg.norm(d_bar.reshape(-1, 3), axis=1))) / dt
+                info.time_linear_solve += time.perf_counter() - tl
+                if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
+                    residual = residual_bar
+                    converged = True
+                    info.iterations = it
+                    info.simplified_stops = 1
+                    break
+            active_before = active
             d = None
             factorization = self.linear_solver
             for projection in self._projections():
@@ -547,6 +591,8 @@ class NewtonSolver:
                     f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
                 )
             x = x_new
+            simplified_ok = (simplified and full_step and projection == "none"
+                             and factorization is self.linear_solver)
             if backtrack >= cfg.stale_side_backtracks:
                 # a line search this short may be Newton creeping up to a step in the energy from a
                 # stale side (ContactSet.release_stale_sides); nothing changes when there is none
@@ -564,7 +610,8 @@ class NewtonSolver:
                 f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
             )
         info.residual_velocity = residual
-        exact = projection == "none"
+        # a step ended by the simplified Newton test has the matrix of the iterate before x
+        exact = projection == "none" and not info.simplified_stops
         self.last_free_mask = free
         self.last_factorization = factorization if exact else None
         contact_terms = self.contact.potentials(x, x_n, memory)
