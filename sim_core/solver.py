@@ -474,9 +474,9 @@ class NewtonSolver:
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
                 )
             dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_dynamic
-            active = active_contacts(contact_terms, x) if simplified else None
             info.time_assembly += time.perf_counter() - ta
-            if simplified_ok and same_active_contacts(active, active_before):
+            if (simplified_ok and active_before is not None
+                    and same_active_contacts(active_contacts(contact_terms, x), active_before)):
                 tl = time.perf_counter()
                 d_bar = self.linear_solver.solve(g)
                 d_bar[~free] = 0.0
@@ -488,7 +488,7 @@ class NewtonSolver:
                     info.iterations = it
                     info.simplified_stops = 1
                     break
-            active_before = active
+            active_before = None
             d = None
             factorization = self.linear_solver
             for projection in self._projections():
@@ -527,6 +527,10 @@ class NewtonSolver:
             step_max = float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
             residual = step_max / dt
             history.append(residual)
+            if simplified and residual < _SIMPLIFIED_FROM * cfg.tol_velocity:
+                # the contacts touching at x, for the simplified test at the next iterate (the test
+                # follows only an update this close to the tolerance: no other ended a Forming step)
+                active_before = active_contacts(contact_terms, x)
             stalled = (
                 len(history) > cfg.stall_iterations
                 and residual < 10.0 * cfg.tol_velocity
@@ -585,6 +589,7 @@ class NewtonSolver:
                     # x stands (ContactSet.release_stale_sides); unsigned, the energy at x is the same
                     # and the next iteration's Newton direction can descend
                     info.released_sides += released
+                    simplified_ok = False  # x did not move, its energy did: no test at the next iteration
                     continue
                 raise SimulationDivergedError(
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): line search failed at Newton iteration {it} "
@@ -639,6 +644,13 @@ class NewtonSolver:
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
+
+
+_SIMPLIFIED_FROM = 100.0
+"""The simplified Newton test (``SolverConfig.simplified_newton_check``) runs only after a Newton
+update below this multiple of ``tol_velocity``: from a larger one Newton does not reach the
+tolerance in one more update (Forming, 49 steps: the update before the converged iterate was at most
+28 ``tol_velocity``), and the test's solve would be wasted."""
 
 
 def _rate_stops(history: list[float], tol_velocity: float) -> bool:
