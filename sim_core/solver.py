@@ -527,9 +527,7 @@ class NewtonSolver:
             step_max = float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
             residual = step_max / dt
             history.append(residual)
-            if simplified and residual < _SIMPLIFIED_FROM * cfg.tol_velocity:
-                # the contacts touching at x, for the simplified test at the next iterate (the test
-                # follows only an update this close to the tolerance: no other ended a Forming step)
+            if simplified:  # the contacts touching at x, for the simplified test at the next iterate
                 active_before = active_contacts(contact_terms, x)
             stalled = (
                 len(history) > cfg.stall_iterations
@@ -644,13 +642,6 @@ class NewtonSolver:
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
-
-
-_SIMPLIFIED_FROM = 100.0
-"""The simplified Newton test (``SolverConfig.simplified_newton_check``) runs only after a Newton
-update below this multiple of ``tol_velocity``: from a larger one Newton does not reach the
-tolerance in one more update (Forming, 49 steps: the update before the converged iterate was at most
-28 ``tol_velocity``), and the test's solve would be wasted."""
 
 
 def _rate_stops(history: list[float], tol_velocity: float) -> bool:
