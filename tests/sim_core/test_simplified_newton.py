@@ -54,7 +54,7 @@ def test_simplified_stops_reach_the_ordinary_result_with_fewer_factorisations(ru
         assert info.factorizations == info.iterations - info.simplified_stops + info.projected_iterations
         assert info.residual_velocity < SolverConfig().tol_velocity
         if info.simplified_stops:
-            assert info.residual_velocity < 0.5 * SolverConfig().tol_velocity
+            assert info.residual_velocity < SolverConfig().simplified_newton_check * SolverConfig().tol_velocity
     assert sum(i.factorizations for i in infos) < sum(i.factorizations for i in ref_infos)
     for x, x_ref in zip(states, ref_states):
         assert np.max(np.abs(x - x_ref)) < tol_dx
@@ -72,7 +72,7 @@ def test_simplified_stop_keeps_no_exact_factorisation_and_the_tangents_stay_exac
     it is not offered as the exact Hessian at ``x`` (``hessian_exact`` False, no
     ``last_factorization``), so the sensitivities assemble the Hessian at ``x`` and equal those of
     the re-linearised recorded trajectory."""
-    config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8, simplified_newton_check=0.5)
+    config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8)
     sim = Simulation.from_scene(_scene(), solver_config=config)
     infos = _recording_infos(sim)
     held = []
