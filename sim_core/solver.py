@@ -482,7 +482,7 @@ class NewtonSolver:
                 tl = time.perf_counter()
                 d_bar = self.linear_solver.solve(g)
                 d_bar[~free] = 0.0
-                residual_bar = float(np.max(np.linalg.norm(d_bar.reshape(-1, 3), axis=1))) / dt
+                residual_bar = _largest_move(d_bar) / dt
                 info.time_linear_solve += time.perf_counter() - tl
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
                     residual = residual_bar
@@ -526,11 +526,9 @@ class NewtonSolver:
                     f"step {state_in.step_index} (t = {state_in.t:.6g} s): linear solve produced NaN at iteration {it}"
                 )
             d3 = d.reshape(-1, 3)
-            step_max = float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
+            step_max = _largest_move(d)
             residual = step_max / dt
             history.append(residual)
-            if simplified:  # the contacts touching at x, for the simplified test at the next iterate
-                active_before = active_contacts(contact_terms, x)
             stalled = (
                 len(history) > cfg.stall_iterations
                 and residual < 10.0 * cfg.tol_velocity
@@ -547,6 +545,10 @@ class NewtonSolver:
                 # nearby replays to the one the guess came from: finite differences would vanish)
                 x = x + d3
                 continue
+            if simplified and projection == "none" and factorization is self.linear_solver:
+                # the contacts touching at x, for the simplified test at the next iterate (which needs
+                # this iteration's exact factorisation)
+                active_before = active_contacts(contact_terms, x)
             alpha = min(1.0, max_disp / step_max) if step_max > 0 else 1.0
             e0 = total(x, contact_terms, x_search)
             slope = float(g @ d)
@@ -644,6 +646,13 @@ class NewtonSolver:
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
         return info
+
+
+def _largest_move(d: np.ndarray) -> float:
+    """The largest vertex displacement ``max_i |d_i|`` (m) of a Newton update ``d`` ``(3 n,)``; 0 when
+    there are no DoFs."""
+    d3 = d.reshape(-1, 3)
+    return float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
 
 
 def _rate_stops(history: list[float], tol_velocity: float) -> bool:
