@@ -1,7 +1,13 @@
 # thinshell: two commands on a fresh machine.
 #   make demo   set up (venv + install) and run the main job on the bundled scene and bag
 #   make test   set up and run the whole test suite
-PYTHON ?= python3
+# The venv's interpreter: the distribution's /usr/bin/python3.11 where there is one, else python3
+# (`make setup PYTHON=...` picks another). Debian's is linked statically against libpython; a
+# shared-library build (pyenv's, `--enable-shared`) runs the Newton loop's Python glue about 10 %
+# slower (Forming bench, docs/benchmarks.md 2026-11-23). Where it cannot make a venv (no venv
+# module), set-up falls back to python3.
+SYSTEM_PYTHON := $(wildcard /usr/bin/python3.11)
+PYTHON ?= $(if $(SYSTEM_PYTHON),$(SYSTEM_PYTHON),python3)
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
@@ -11,7 +17,7 @@ STAMP  := $(VENV)/.installed
 setup: $(STAMP)
 
 $(STAMP): requirements.txt setup.py package.xml
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || { echo "thinshell: $(PYTHON) cannot make a venv; using python3"; rm -rf $(VENV); python3 -m venv $(VENV); }
 	$(PY) -m pip install --upgrade --quiet pip
 	@echo "thinshell: installing the dependencies into $(VENV) (first run only; about 1-3 min with a warm pip cache)"
 	$(PY) -m pip install --progress-bar on -r requirements.txt

@@ -177,6 +177,8 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         "linear_solver": sim.solver.linear_solver.name,
         "peak_rss_mib": peak_rss_mib(),
         "python": platform.python_version(),
+        # the interpreter binary: its build (static or shared libpython) moves the bench by ~10 %
+        "python_executable": os.path.realpath(sys.executable),
         "numpy": np.__version__,
     }
     if backward:
@@ -308,8 +310,9 @@ def bench_main(argv: list[str] | None = None) -> int:
     (Newton matrices factorised per step, a projected fallback's failed exact one included),
     ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``jit_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
-    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``python``, ``numpy`` (and ``backward_*`` with
-    ``--backward``); of ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
+    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``python``, ``python_executable`` (the
+    interpreter binary, symlinks resolved), ``numpy`` (and ``backward_*`` with ``--backward``); of
+    ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
 
     ``--arch``: ``numpy`` runs the NumPy reference potentials; ``cpu`` (default) and ``cuda``
     initialise Taichi (:func:`sim_core.ti_backend.init_backend`): the Newton loop evaluates the

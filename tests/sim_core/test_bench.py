@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -22,6 +24,9 @@ def test_forming_bench_json_line(capsys):
     assert r["steps_per_s"] > 0 and r["newton_iters_mean"] >= 1
     assert 0 < r["assembly_share"] + r["linear_solve_share"] <= 1.0
     assert r["cold_start_s"] >= r["forward_total_s"] / 2  # the first step is inside the cold start
+    # the record names the interpreter binary that ran it (its build moves the figures)
+    assert os.path.isfile(r["python_executable"]) and not os.path.islink(r["python_executable"])
+    assert os.path.samefile(r["python_executable"], sys.executable)
 
 
 def test_forming_steps_move_the_dome_along_the_trajectory():
