@@ -257,11 +257,11 @@ class ContactSet:
         how often a search is needed. A search is needed when the iterates have moved so far from
         the last one that a gap may have closed by ``margin`` (a sheet's own spread of motion, or a
         body against another), typically at the first trial point of a step (Forming: 0.6 mm of
-        sheet motion per step against a margin of 1 mm). The rest of the step stays near that point and the next
-        step moves on in about the same direction, so searching half the step's motion so far
-        ahead (at most ``margin / 4`` per coordinate, leaving ``margin / 4`` for the rest of this
-        step) lets one search serve the next step's first iterates too (Forming: 1.18 -> 1.04
-        searches per step). ``x`` itself is always covered (``lookahead_cap <= 0.5``); with no
+        sheet motion per step against a margin of 1 mm). The rest of the step stays near that
+        point and the next step moves on in about the same direction, so searching half the step's
+        motion so far ahead (at most ``margin / 4`` per coordinate, leaving ``margin / 4`` for the
+        rest of this step) lets one search serve the next step's first iterates too (Forming: 1.18
+        -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always covered (``lookahead_cap <= 0.5``); with no
         step started (``x^n`` unknown) or ``lookahead = 0`` the search is at ``x``.
         """
         x = np.array(x, dtype=float, copy=True)
