@@ -199,8 +199,8 @@ class ContactSet:
             return True
         high = np.maximum.reduceat(moved, starts, axis=0)  # (bodies, 3): per body and axis
         low = np.minimum.reduceat(moved, starts, axis=0)
-        closing = np.max(high[:, None, :] - low[None, :, :], axis=2)  # A's top moving up to B's bottom
-        closing = np.maximum(closing, closing.T)
+        # [A, B]: A's top moving up to B's bottom; the allowed pairs are symmetric, so [B, A] is read too
+        closing = np.max(high[:, None, :] - low[None, :, :], axis=2)
         pairs = self._segment_pairs
         return bool(not pairs.any() or np.max(closing[pairs]) <= self.margin)  # NaN: False
 
@@ -261,8 +261,9 @@ class ContactSet:
         point and the next step moves on in about the same direction, so searching half the step's
         motion so far ahead (at most ``margin / 4`` per coordinate, leaving ``margin / 4`` for the
         rest of this step) lets one search serve the next step's first iterates too (Forming: 1.18
-        -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always covered (``lookahead_cap <= 0.5``); with no
-        step started (``x^n`` unknown) or ``lookahead = 0`` the search is at ``x``.
+        -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always
+        covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
+        ``lookahead = 0`` the search is at ``x``.
         """
         x = np.array(x, dtype=float, copy=True)
         if not (0.0 <= self.lookahead_cap <= 0.5):
