@@ -33,6 +33,10 @@ from sim_core.assembly import StaticPattern
 from sim_core.potentials.base import positions_key
 
 
+OFFLOAD_MIN_ELEMENTS = 256
+"""A part with fewer elements is not worth a worker's round trip (tens of microseconds)."""
+
+
 def _fused_class(potential) -> type | None:
     """The fused kernel class for ``potential`` or None (imports Taichi kernels on first use)."""
     from sim_core.potentials.kirchhoff_bending import KirchhoffBending
@@ -175,6 +179,8 @@ class FusedElastic:
         self.pattern: StaticPattern | None = None
         self._kept: tuple | None = None  # (positions_key(x), energy, gradient, values): the evaluation buffers
         self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.offload = None  # an ElasticWorker (sim_core.elastic_worker), set by the solver; None: all here
+        self._offload_buffers: tuple[np.ndarray, np.ndarray] | None = None  # the offloaded part's, when local
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -218,11 +224,56 @@ class FusedElastic:
         np.copyto(xc, x)
         grad.fill(0.0)
         values.fill(0.0)
+        remote = self.offloaded_part()
         energy = 0.0
-        for part in self._parts:
-            energy += part.evaluate(xc, grad, values)
+        if remote is None:
+            for part in self._parts:
+                energy += part.evaluate(xc, grad, values)
+        else:
+            energy = self._evaluate_offloaded(remote, xc, grad, values)
         self._kept = (key, energy, grad, values)
         return self._kept
+
+    def offloaded_part(self):
+        """The part evaluated apart (in :attr:`offload`'s worker when it is up): with a worker set, the
+        part with an ``offload_recipe`` and the most elements (at least :data:`OFFLOAD_MIN_ELEMENTS`),
+        when there are other parts to evaluate meanwhile; else None. Depends on the configuration
+        only, not on the worker's state, so results do not either (:meth:`_evaluate_offloaded`)."""
+        if self.offload is None or len(self._parts) < 2:
+            return None
+        parts = [p for p in self._parts
+                 if hasattr(p, "offload_recipe") and p.element_count >= OFFLOAD_MIN_ELEMENTS]
+        return max(parts, key=lambda p: p.element_count) if parts else None
+
+    def _evaluate_offloaded(self, remote, xc: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+        """Energy (J); the gradient and Hessian values of all parts added into ``grad`` and ``values``
+        (zeroed), with ``remote`` evaluated into separate zeroed buffers, by the worker while this
+        process evaluates the other parts, or here when the worker is not up (or fails), and added
+        after them; the energies summed in part order. Where no other part touches ``remote``'s
+        vertices (a gel beside a sheet) the sums are those of :meth:`_evaluate`'s loop bit for bit."""
+        started = self.offload.begin(remote.offload_recipe(), xc, values.size)
+        energies = []
+        try:
+            for part in self._parts:
+                energies.append(None if part is remote else part.evaluate(xc, grad, values))
+        finally:
+            result = self.offload.finish() if started else None
+        if result is None:
+            buffers = self._offload_buffers
+            if buffers is None or buffers[0].shape != grad.shape or buffers[1].size != values.size:
+                buffers = self._offload_buffers = (np.zeros(grad.shape), np.zeros(values.size))
+            remote_grad, remote_values = buffers
+            remote_grad.fill(0.0)
+            remote_values.fill(0.0)
+            remote_energy = remote.evaluate(xc, remote_grad, remote_values)
+        else:
+            remote_energy, remote_grad, remote_values = result
+        grad += remote_grad
+        values += remote_values
+        energy = 0.0
+        for e in energies:
+            energy += remote_energy if e is None else e
+        return energy
 
     def _evaluation_buffers(self, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The positions ``shape``, gradient ``shape`` and Hessian-value ``(pattern.keys.size,)`` arrays

@@ -229,6 +229,8 @@ class NewtonSolver:
         self._revision = -1
         # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
         self.candidate_hook = None
+        # Optional worker process for the largest fused elastic term (sim_core.elastic_worker), None = off.
+        self.elastic_worker = None
         self.notify_model_changed()
         # Data of the last converged step, kept for the adjoint.
         self.last_record: StepRecord | None = None
@@ -400,8 +402,12 @@ class NewtonSolver:
         first; else None (the reference potentials)."""
         if not self._fused_path():
             return None
+        from sim_core.ti_backend import current_arch
+
         self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
+        # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)
+        self._fused.offload = self.elastic_worker if current_arch() == "cpu" else None
         return self._fused
 
     def _single_step(self, state_in: State, state_out: State, control: Control, dt: float,

@@ -107,7 +107,8 @@ def _compile_kernels(sim, arch: str) -> float:
 
 
 # ------------------------------------------------------------------------------------ forming
-def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str = "numpy") -> dict:
+def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str = "numpy",
+                elastic_worker=None) -> dict:
     """Step the Forming scene along the benchmark trajectory and time it.
 
     Args:
@@ -115,6 +116,8 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         steps: number of steps (1..49).
         backward: also time a backward pass with ``sim_core.adjoint.rollout_gradient``.
         arch: ``numpy`` or, after ``init_backend``, ``cpu`` / ``cuda`` (Taichi element kernels).
+        elastic_worker: a :class:`sim_core.elastic_worker.ElasticWorker` for the solver (``cpu``
+            only; the steps start once it is ready, its start-up counted in ``jit_s``), or None.
 
     Returns:
         the result record (see :func:`bench_main` for its keys).
@@ -132,7 +135,12 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
     sim = Simulation(model)
     taichi_terms = _select_backend(sim, arch)
     sim.state = task_initial_state(model)
+    sim.solver.elastic_worker = elastic_worker
     jit_s = _compile_kernels(sim, arch)
+    if elastic_worker is not None:
+        t_ready = time.perf_counter()
+        elastic_worker.wait_ready()
+        jit_s += time.perf_counter() - t_ready
     build_s = time.perf_counter() - t_build - jit_s
     effector = next(iter(model.effectors))
     targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
@@ -176,6 +184,9 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         "taichi_terms": taichi_terms,
         "linear_solver": sim.solver.linear_solver.name,
         "peak_rss_mib": peak_rss_mib(),
+        # the worker process of the gel's elastic term (sim_core.elastic_worker): used, and its memory
+        "elastic_worker": bool(elastic_worker is not None and elastic_worker.ready),
+        "worker_peak_rss_mib": None if elastic_worker is None else elastic_worker.peak_rss_mib(),
         "python": platform.python_version(),
         # the interpreter binary: its build (static or shared libpython) moves the bench by ~10 %
         "python_executable": os.path.realpath(sys.executable),
@@ -215,8 +226,11 @@ def repeat_forming(runs: list[dict]) -> dict:
     out = dict(runs[0])
     for key in ("steps_per_s", "step_time_mean_s", "forward_total_s", "assembly_share", "linear_solve_share"):
         out[key] = median[key]
+    worker_rss = [r["worker_peak_rss_mib"] for r in runs if r.get("worker_peak_rss_mib") is not None]
     out.update(repeat=len(runs), steps_per_s_runs=rates, steps_per_s_best=max(rates),
-               peak_rss_mib=max(r["peak_rss_mib"] for r in runs))
+               peak_rss_mib=max(r["peak_rss_mib"] for r in runs),
+               elastic_worker=all(r.get("elastic_worker", False) for r in runs),
+               worker_peak_rss_mib=max(worker_rss) if worker_rss else None)
     return out
 
 
@@ -235,6 +249,10 @@ def _print_forming(r: dict) -> None:
     print(f"  cold start               {r['cold_start_s']:.2f} s (process start to end of first step; "
           f"Taichi JIT {r['jit_s']:.2f} s)")
     print(f"  peak RSS                 {r['peak_rss_mib']:.0f} MiB")
+    if r.get("elastic_worker"):
+        print(f"  elastic worker           on (gel term in a second process, peak RSS {r['worker_peak_rss_mib'] or 0:.0f} MiB)")
+    else:
+        print("  elastic worker           off")
     if "backward_total_s" in r:
         print(f"  backward                 {r['backward_steps_per_s']:.3f} steps/s ({r['backward_total_s']:.2f} s)")
 
@@ -310,7 +328,9 @@ def bench_main(argv: list[str] | None = None) -> int:
     (Newton matrices factorised per step, a projected fallback's failed exact one included),
     ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``jit_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
-    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``python``, ``python_executable`` (the
+    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``elastic_worker`` (the gel's term ran in a
+    worker process, :mod:`sim_core.elastic_worker`), ``worker_peak_rss_mib`` (that process's peak
+    RSS, or null), ``python``, ``python_executable`` (the
     interpreter binary, symlinks resolved), ``numpy`` (and ``backward_*`` with ``--backward``); of
     ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
 
@@ -334,6 +354,9 @@ def bench_main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=49, help="steps of the trajectory to run (1..49)")
     p.add_argument("--backward", action="store_true", help="also time the backward pass (needs sim_core.adjoint)")
     p.add_argument("--scene", default=None, help="scene file (default: the bundled forming.yaml)")
+    p.add_argument("--no-elastic-worker", action="store_true",
+                   help="evaluate every elastic term in this process (default with --arch cpu: the gel's Stable "
+                        "Neo-Hookean term in a worker process, concurrently with the sheet's terms)")
     p.add_argument("--repeat", type=int, default=1,
                    help="run the trajectory this many times in one process and report the median steps/s "
                         "(a shared VM's speed varies run to run); cold start and JIT are the first run's")
@@ -373,7 +396,17 @@ def bench_main(argv: list[str] | None = None) -> int:
             print(f"thinshell bench forming: --repeat must be >= 1, got {ns.repeat}", file=sys.stderr)
             return 2
         scene = ns.scene or _default_scene("forming")
-        result = repeat_forming([run_forming(scene, ns.steps, ns.backward, ns.arch) for _ in range(ns.repeat)])
+        worker = None
+        if ns.arch == "cpu" and not ns.no_elastic_worker:
+            from sim_core.elastic_worker import ElasticWorker
+
+            worker = ElasticWorker()  # starts now: its Taichi start overlaps this process's
+        try:
+            result = repeat_forming([run_forming(scene, ns.steps, ns.backward, ns.arch, worker)
+                                     for _ in range(ns.repeat)])
+        finally:
+            if worker is not None:
+                worker.close()
         if ns.json:
             print(json.dumps(result))
         else:

@@ -149,6 +149,35 @@ def snh_energy_gradient_hessian(
     return energy
 
 
+def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """:meth:`FusedStableNeoHookean.evaluate` from its :meth:`~FusedStableNeoHookean.offload_recipe`
+    arguments ``(tets, dFdx, vol, upper, mu, lam)``: energy in J (returned), the gradient (N) added
+    to ``grad`` ``(n, 3)`` and the exact Hessian (N/m) to ``values`` (the function an
+    :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same arrays, so the
+    same values bit for bit)."""
+    tets, dFdx, vol, upper, mu, lam = args
+    if tets.shape[0] == 0:
+        return 0.0
+    return float(snh_energy_gradient_hessian(x, tets, dFdx, vol, upper, mu, lam, grad, values))
+
+
+def compile_remote_kernel() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the kernel of :func:`remote_evaluate`, on one
+    tet (an :class:`~sim_core.elastic_worker.ElasticWorker` does this before it reports ready).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("compile_remote_kernel")
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    dFdx = np.zeros((1, 4, 3))
+    dFdx[0, 1:] = np.eye(3)
+    dFdx[0, 0] = -1.0
+    upper = np.arange(78, dtype=np.int32)[None]
+    args = (np.arange(4, dtype=np.int32)[None], dFdx, np.full(1, 1.0 / 6.0), upper, 1.0, 1.0)
+    remote_evaluate(args, x, np.zeros((4, 3)), np.zeros(78))
+
+
 class FusedStableNeoHookean:
     """Fused Newton-loop evaluation of a :class:`StableNeoHookean` (module docstring).
 
@@ -214,6 +243,20 @@ class FusedStableNeoHookean:
         p = self.potential
         return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._upper, p.mu, p.lam,
                                                  grad, values))
+
+    @property
+    def element_count(self) -> int:
+        """Tets evaluated (the cost measure :class:`~sim_core.fused_elastic.FusedElastic` uses to choose
+        the term it offloads)."""
+        return int(self._tets.shape[0])
+
+    def offload_recipe(self) -> tuple[str, tuple]:
+        """``(target, args)`` of :meth:`evaluate` for an :class:`~sim_core.elastic_worker.ElasticWorker`:
+        :func:`remote_evaluate` and ``(tets, dFdx, vol, upper, mu, lam)`` (the kept arrays: a new
+        object whenever they change, so the worker is reconfigured). :meth:`bind` must have been called."""
+        p = self.potential
+        return f"{__name__}:remote_evaluate", (self._tets, self._dFdx, self._vol, self._upper, float(p.mu),
+                                               float(p.lam))
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic

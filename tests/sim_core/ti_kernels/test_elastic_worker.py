@@ -1,0 +1,165 @@
+"""The elastic worker process (sim_core.elastic_worker): the same results as one process, bit for bit,
+whether the worker is up, busy, reconfigured or gone; it shuts down cleanly."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from sim_core.assembly import HessianAssembler
+from tests.support.forming import forming_simulation, step_benchmark_trajectory
+
+
+@pytest.fixture(scope="module")
+def worker(ti_cpu):
+    """One worker for the module's tests (a start costs seconds), ready."""
+    if ti_cpu != "cpu":
+        pytest.skip("the elastic worker runs beside the CPU backend only")
+    from sim_core.elastic_worker import ElasticWorker
+
+    w = ElasticWorker()
+    assert w.wait_ready(), f"the worker did not start: {w.failure}"
+    yield w
+    w.close()
+
+
+def _forming_rollout(steps: int, worker=None, edit=None):
+    """Final positions and Newton iterations of ``steps`` Forming steps (``edit(sim)`` after step 2)."""
+    sim = forming_simulation(warm_up=True)
+    sim.solver.elastic_worker = worker
+    iterations = step_benchmark_trajectory(sim, 2)
+    if edit is not None:
+        edit(sim)
+    iterations += step_benchmark_trajectory(sim, steps - 2)
+    return sim.state.x.copy(), iterations
+
+
+def test_forming_with_the_worker_equals_one_process_bit_for_bit(worker):
+    """The gel's term evaluated in the worker (every evaluation of the run) gives the same states and
+    iterations as the single-process loop; a Young's modulus edit reconfigures the worker."""
+    before = worker.evaluations
+
+    def stiffer(sim):
+        sim.set_parameter("dome.youngs_modulus", 4.5e5)
+
+    x_one, it_one = _forming_rollout(6, None, stiffer)
+    x_two, it_two = _forming_rollout(6, worker, stiffer)
+    assert worker.failure is None
+    assert worker.evaluations - before >= sum(it_two)  # at least one per iteration, all in the worker
+    assert it_one == it_two
+    np.testing.assert_array_equal(x_two, x_one)
+    x_soft, _ = _forming_rollout(6, worker)  # the edit mattered (the worker did not keep the old modulus)
+    assert np.max(np.abs(x_soft - x_one)) > 1e-9
+
+
+def _overlapping_terms():
+    """A gel and a Maxwell branch on the same tets (parts sharing every vertex), a pattern and positions."""
+    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+    from sim_core.fused_elastic import FusedElastic
+    from sim_core.mesh.tet import tet_box
+    from sim_core.potentials.neohookean import StableNeoHookean
+
+    mesh = tet_box((0.01, 0.01, 0.01), (3, 3, 3), (0.0, 0.0, 0.0))
+    gel = StableNeoHookean(mesh.tets, mesh.x, 3e5, 0.45)
+    rng = np.random.default_rng(3)
+    branch = MaxwellBranch(gel, np.eye(3) + rng.normal(scale=0.05, size=(gel.tets.shape[0], 3, 3)), 0.6)
+    terms = [gel, branch.elastic_equivalent()]
+    free = np.ones(mesh.x.size, dtype=bool)
+    free[:6] = False
+    fused = FusedElastic(terms)
+    pattern = HessianAssembler(mesh.x.size).static_pattern(fused.block_vertex_arrays(mesh.x), free)
+    x = mesh.x + 1e-3 * rng.standard_normal(mesh.x.shape)
+    return terms, pattern, x
+
+
+def _evaluation(terms, pattern, x, offload):
+    from sim_core.fused_elastic import FusedElastic
+
+    fused = FusedElastic(terms)
+    fused.bind(pattern)
+    fused.offload = offload
+    return fused.energy(x), fused.gradient(x), fused.hessian_values(x).copy(), fused
+
+
+def test_offloaded_sums_do_not_depend_on_where_the_term_ran(worker, monkeypatch):
+    """Parts that share vertices: the offloaded part's sums are added after the others', the same
+    whether the worker evaluated it or this process did (a worker that is not ready); they equal the
+    single-process loop's to round-off."""
+    import sim_core.fused_elastic as fe
+    from sim_core.elastic_worker import ElasticWorker
+
+    monkeypatch.setattr(fe, "OFFLOAD_MIN_ELEMENTS", 1)
+    terms, pattern, x = _overlapping_terms()
+    before = worker.evaluations
+    e_w, g_w, h_w, fused = _evaluation(terms, pattern, x, worker)
+    assert fused.offloaded_part() is not None and worker.evaluations == before + 1
+    not_ready = ElasticWorker(python="/bin/false")  # exits at once: never ready
+    e_l, g_l, h_l, _ = _evaluation(terms, pattern, x, not_ready)
+    assert not not_ready.wait_ready(10.0) and "exited" in not_ready.failure
+    assert e_w == e_l
+    np.testing.assert_array_equal(g_w, g_l)
+    np.testing.assert_array_equal(h_w, h_l)
+    e_1, g_1, h_1, single = _evaluation(terms, pattern, x, None)
+    assert single.offloaded_part() is None
+    assert e_w == pytest.approx(e_1, rel=1e-14)
+    np.testing.assert_allclose(g_w, g_1, rtol=0, atol=1e-12 * np.max(np.abs(g_1)))
+    np.testing.assert_allclose(h_w, h_1, rtol=0, atol=1e-12 * np.max(np.abs(h_1)))
+
+
+def test_a_dead_worker_is_given_up_and_the_run_goes_on(ti_cpu, caplog):
+    """The worker killed mid-run: a warning names the failure, the term is evaluated here from then on,
+    and the run ends with the single-process states bit for bit; the worker is not used again."""
+    if ti_cpu != "cpu":
+        pytest.skip("the elastic worker runs beside the CPU backend only")
+    from sim_core.elastic_worker import ElasticWorker
+
+    doomed = ElasticWorker()
+    assert doomed.wait_ready()
+
+    def kill(sim):
+        os.kill(doomed.pid, signal.SIGKILL)
+
+    with caplog.at_level(logging.WARNING, logger="sim_core.elastic_worker"):
+        x_two, it_two = _forming_rollout(5, doomed, kill)
+    assert doomed.failure is not None and not doomed.ready
+    assert any("given up" in r.getMessage() for r in caplog.records)
+    x_one, it_one = _forming_rollout(5, None, lambda sim: None)
+    assert it_two == it_one
+    np.testing.assert_array_equal(x_two, x_one)
+    assert doomed.begin(("x:y", ()), x_one, 1) is False
+
+
+def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
+    """close() stops the process; the shared region's file is gone once configured."""
+    if ti_cpu != "cpu":
+        pytest.skip("the elastic worker runs beside the CPU backend only")
+    from sim_core.elastic_worker import ElasticWorker
+    from sim_core.ti_kernels.fused_neohookean import remote_evaluate
+
+    w = ElasticWorker()
+    assert w.wait_ready()
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.2]])
+    dFdx = np.zeros((1, 4, 3))
+    dFdx[0, 1:] = np.eye(3)
+    dFdx[0, 0] = -1.0
+    args = (np.arange(4, dtype=np.int32)[None], dFdx, np.full(1, 1.0 / 6.0), np.arange(78, dtype=np.int32)[None],
+            2.0, 3.0)
+    assert w.begin((f"{remote_evaluate.__module__}:remote_evaluate", args), x, 78)
+    energy, grad, values = w.finish()
+    g, v = np.zeros((4, 3)), np.zeros(78)
+    assert energy == remote_evaluate(args, x, g, v) and energy > 0.0
+    np.testing.assert_array_equal(grad, g)
+    np.testing.assert_array_equal(values, v)
+    assert w.peak_rss_mib() > 10.0
+    shm = "/dev/shm" if os.path.isdir("/dev/shm") else None
+    if shm:
+        assert not [f for f in os.listdir(shm) if f.startswith("thinshell-worker-")]
+    pid = w.pid
+    w.close()
+    assert not w.ready and w.failure == "closed"
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
