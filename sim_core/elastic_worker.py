@@ -65,9 +65,11 @@ START_TIMEOUT_S = 120.0
 REPLY_TIMEOUT_S = 60.0
 """Seconds the parent waits for a configuration or an evaluation before it gives the worker up."""
 
-SPIN_FLAGS = platform.machine().lower() in ("x86_64", "amd64")
+SPIN_FLAGS = (platform.machine().lower() in ("x86_64", "amd64")
+              and os.environ.get("THINSHELL_WORKER_SIGNAL", "flags") != "socket")
 """Whether requests and replies are signalled by busy-waiting on the shared flags (x86: stores
-are seen in program order) instead of socket messages."""
+are seen in program order) instead of socket messages (elsewhere, or with the environment variable
+``THINSHELL_WORKER_SIGNAL=socket``, which the worker inherits)."""
 
 _REQUEST, _DONE, _STATUS, _IDLE = range(4)
 _FLAG_BYTES = 32
@@ -160,7 +162,7 @@ class ElasticWorker:
         self._recipe: tuple | None = None  # (target, args) of the configuration
         self._sequence = 0
         self.evaluations = 0  # evaluations done by the worker
-        self._finalizer = weakref.finalize(self, _shut_down, self._process, self._conn, parent)
+        self._finalizer = weakref.finalize(self, _shut_down, self._process, self._conn, parent, self._pid)
 
     # -------------------------------------------------------------------------------- state
     @property
@@ -257,7 +259,7 @@ class ElasticWorker:
             else:
                 self._send(("evaluate", self._sequence))
             return True
-        except WorkerError as err:
+        except (WorkerError, OSError) as err:  # OSError: no shared memory could be made
             self._fail(str(err))
             self._lock.release()
             return False
@@ -355,8 +357,16 @@ class ElasticWorker:
         self._finalizer()
 
 
-def _shut_down(process: subprocess.Popen, conn: Connection, sock: socket.socket) -> None:
-    """Stop the worker: a stop message, then terminate / kill if it does not exit (finalizer: no self)."""
+def _shut_down(process: subprocess.Popen, conn: Connection, sock: socket.socket, owner: int) -> None:
+    """Stop the worker: a stop message, then kill if it does not exit (finalizer: no self). In a forked
+    child of the owner (a diagnosis replay worker) only this process's copies of the sockets close."""
+    if os.getpid() != owner:
+        for closable in (conn, sock):
+            try:
+                closable.close()
+            except OSError:
+                pass
+        return
     try:
         conn.send(("stop",))
     except (OSError, ValueError):

@@ -217,6 +217,13 @@ class NewtonSolver:
     Args:
         model: the scene model.
         config: :class:`SolverConfig`.
+
+    Attributes:
+        candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
+        elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
+            fused elastic term (the gel's) in a second process while this one evaluates the others, on
+            the fused CPU path; None (default) = everything here. The results are the same either way
+            where the term's vertices are its own (:meth:`FusedElastic._evaluate_offloaded`).
     """
 
     def __init__(self, model: Model, config: SolverConfig | None = None) -> None:

@@ -27,6 +27,8 @@ def test_forming_bench_json_line(capsys):
     # the record names the interpreter binary that ran it (its build moves the figures)
     assert os.path.isfile(r["python_executable"]) and not os.path.islink(r["python_executable"])
     assert os.path.samefile(r["python_executable"], sys.executable)
+    # the gel's term ran in the worker process, which reports its own memory
+    assert r["elastic_worker"] is True and r["worker_peak_rss_mib"] > 10.0
 
 
 def test_forming_steps_move_the_dome_along_the_trajectory():
@@ -99,9 +101,10 @@ def test_repeat_reports_the_median_run_and_the_first_runs_cold_start(capsys):
     assert r["cold_start_s"] == 9.0 and r["jit_s"] == 5.0 and r["peak_rss_mib"] == 103.0
     with pytest.raises(ValueError, match="no runs"):
         repeat_forming([])
-    assert bench_main(["forming", "--steps", "2", "--repeat", "2", "--json"]) == 0
+    assert bench_main(["forming", "--steps", "2", "--repeat", "2", "--json", "--no-elastic-worker"]) == 0
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert line["repeat"] == 2 and len(line["steps_per_s_runs"]) == 2
+    assert line["elastic_worker"] is False and line["worker_peak_rss_mib"] is None
     assert line["steps_per_s"] in line["steps_per_s_runs"]
     assert bench_main(["forming", "--steps", "2", "--repeat", "0"]) == 2
     assert "--repeat must be >= 1" in capsys.readouterr().err

@@ -163,3 +163,24 @@ def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
     assert not w.ready and w.failure == "closed"
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_socket_signalling_gives_the_same_results(ti_cpu, monkeypatch):
+    """Requests and replies as socket messages (the path of machines without x86's store order,
+    forced by ``THINSHELL_WORKER_SIGNAL=socket``): the same Forming states as one process."""
+    if ti_cpu != "cpu":
+        pytest.skip("the elastic worker runs beside the CPU backend only")
+    import sim_core.elastic_worker as ew
+
+    monkeypatch.setenv("THINSHELL_WORKER_SIGNAL", "socket")
+    monkeypatch.setattr(ew, "SPIN_FLAGS", False)
+    w = ew.ElasticWorker()
+    try:
+        assert w.wait_ready()
+        x_two, it_two = _forming_rollout(4, w)
+        assert w.failure is None and w.evaluations >= sum(it_two)
+    finally:
+        w.close()
+    x_one, it_one = _forming_rollout(4, None)
+    assert it_two == it_one
+    np.testing.assert_array_equal(x_two, x_one)
