@@ -245,7 +245,10 @@ class ElasticWorker:
             True when the worker took the request (call :meth:`finish`); False when it is not ready,
             failed, or busy with another thread's request: evaluate locally.
         """
-        if os.getpid() != self._pid or not self.ready or not self._lock.acquire(blocking=False):
+        if os.getpid() != self._pid or not self._lock.acquire(blocking=False):
+            return False
+        if not self.ready:
+            self._lock.release()
             return False
         try:
             self._configure(recipe, x.shape[0], value_count)
@@ -259,8 +262,8 @@ class ElasticWorker:
             else:
                 self._send(("evaluate", self._sequence))
             return True
-        except (WorkerError, OSError) as err:  # OSError: no shared memory could be made
-            self._fail(str(err))
+        except Exception as err:  # noqa: BLE001 (WorkerError; OSError: no shared memory; a recipe that does not pickle)
+            self._fail(f"{type(err).__name__}: {err}")
             self._lock.release()
             return False
 
