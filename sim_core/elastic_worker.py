@@ -294,9 +294,9 @@ class ElasticWorker:
         """Send ``recipe`` (and a new region for other sizes) unless it is the configured one."""
         known = self._recipe
         region = self._region
-        if (known is not None and region is not None and region.n == n and region.nv == nv
-                and known[0] == recipe[0] and len(known[1]) == len(recipe[1])
-                and all(a is b or (not isinstance(a, np.ndarray) and a == b) for a, b in zip(known[1], recipe[1]))):
+        if known is not None and region is not None and region.n == n and region.nv == nv and (
+                known is recipe or (known[0] == recipe[0] and len(known[1]) == len(recipe[1]) and all(
+                    a is b or (not isinstance(a, np.ndarray) and a == b) for a, b in zip(known[1], recipe[1])))):
             return
         path = None
         if region is None or region.n != n or region.nv != nv:

@@ -202,6 +202,7 @@ class FusedStableNeoHookean:
         self._slots: np.ndarray | None = None
         self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
+        self._recipe: tuple | None = None  # the last offload_recipe()
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
@@ -255,8 +256,11 @@ class FusedStableNeoHookean:
         :func:`remote_evaluate` and ``(tets, dFdx, vol, upper, mu, lam)`` (the kept arrays: a new
         object whenever they change, so the worker is reconfigured). :meth:`bind` must have been called."""
         p = self.potential
-        return f"{__name__}:remote_evaluate", (self._tets, self._dFdx, self._vol, self._upper, float(p.mu),
-                                               float(p.lam))
+        args = (self._tets, self._dFdx, self._vol, self._upper, float(p.mu), float(p.lam))
+        kept = self._recipe
+        if kept is None or any(a is not b and (isinstance(a, np.ndarray) or a != b) for a, b in zip(kept[1], args)):
+            kept = self._recipe = (f"{__name__}:remote_evaluate", args)
+        return kept  # the same object while nothing changed: the worker's configuration check is one `is`
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic
