@@ -9,14 +9,20 @@ fused term that supports it (a Stable Neo-Hookean gel: :meth:`offload_recipe`), 
 other terms in the meantime. On Forming the gel's 1125 tets (about 0.4 ms per evaluation) then
 overlap the sheet's membrane and bending (about 0.45 ms).
 
+What the worker runs is a :class:`Recipe`: fused parts' ``offload_recipe()`` (a function and its
+arguments each), summed in order, one of them optionally apart (into zeroed buffers added after
+the others, the sums :class:`~sim_core.fused_elastic.FusedElastic` makes). The worker keeps up to
+:data:`SLOTS` recipes, so that the Newton loop's usual requests (the gel's term; all terms at a
+step's first iterate; the gel's projected Hessian) need no new configuration.
+
 Protocol. Positions, gradient, Hessian values and energy are exchanged through one shared memory
 region (a file mapped by both processes, unlinked once both have it): ``int64`` flags
-``[request, done, status, idle]`` then ``float64`` ``x (n, 3)``, ``grad (n, 3)``,
+``[request, done, status, idle, slot]`` then ``float64`` ``x (n, 3)``, ``grad (n, 3)``,
 ``values (nv,)``, ``energy``. Control messages (configure, wake, stop, stats) go over a socket pair
 as :class:`multiprocessing.connection.Connection` messages. To evaluate, the parent writes ``x``
-and increments ``request``; the worker, busy-waiting on ``request`` for :data:`SPIN_SECONDS` after
-its last evaluation, zeroes ``grad`` and ``values``, runs the kernel, writes the energy and
-``status`` and sets ``done``. The busy-waits need stores to become visible in program order (x86's
+and the slot and increments ``request``; the worker, busy-waiting on ``request`` for
+:data:`SPIN_SECONDS` after its last evaluation, zeroes ``grad`` and ``values``, runs the slot's
+recipe, writes the energy and ``status`` and sets ``done``. The busy-waits need stores to become visible in program order (x86's
 total store order); on other machines each request and reply is a socket message instead. After
 :data:`SPIN_SECONDS` without a request the worker blocks on the socket (at most
 :data:`IDLE_POLL_SECONDS` at a time), with ``idle`` set, and the parent sends a wake message.
@@ -45,7 +51,7 @@ import time
 import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -71,8 +77,76 @@ SPIN_FLAGS = (platform.machine().lower() in ("x86_64", "amd64")
 are seen in program order) instead of socket messages (elsewhere, or with the environment variable
 ``THINSHELL_WORKER_SIGNAL=socket``, which the worker inherits)."""
 
-_REQUEST, _DONE, _STATUS, _IDLE = range(4)
-_FLAG_BYTES = 32
+SLOTS = 4
+"""Recipes a worker keeps configured (the least recently used one is replaced)."""
+
+_REQUEST, _DONE, _STATUS, _IDLE, _SLOT = range(5)
+_FLAG_BYTES = 64
+
+
+class Recipe(NamedTuple):
+    """What a worker evaluates: ``parts`` ``((target, args), ...)``, each ``target`` a
+    ``"module:function"`` called as ``function(args, x, grad, values) -> energy`` (adding into
+    ``grad`` and ``values``), in order, the energies summed in order from 0.0; part ``apart``
+    (an index, or None) is evaluated into zeroed buffers that are added after the others.
+    Arrays in ``args`` are compared by identity when a worker checks whether a recipe is the one it
+    has (a recipe's arrays must not be changed in place)."""
+
+    parts: tuple
+    apart: int | None = None
+
+
+def same_recipe(a: Recipe | None, b: Recipe) -> bool:
+    """Whether ``a`` and ``b`` evaluate the same: the same object, or the same targets, ``apart`` and
+    arguments (arrays the same objects, other values equal)."""
+    if a is b:
+        return True
+    if a is None or a.apart != b.apart or len(a.parts) != len(b.parts):
+        return False
+    for pa, pb in zip(a.parts, b.parts):
+        if pa is pb:
+            continue
+        (ta, xa), (tb, xb) = pa, pb
+        if ta != tb or len(xa) != len(xb):
+            return False
+        if not all(u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v)
+                   for u, v in zip(xa, xb)):
+            return False
+    return True
+
+
+def part_recipe(kept: tuple | None, target: str, args: tuple) -> tuple:
+    """A part's ``(target, args)``: ``kept`` (the part's last one) when it has the same target and
+    arguments (arrays the same objects, other values equal), else a new tuple. Keeping the object
+    makes the worker's check for a configured recipe one identity test."""
+    if kept is not None and kept[0] == target and len(kept[1]) == len(args) and all(
+            u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v)
+            for u, v in zip(kept[1], args)):
+        return kept
+    return (target, args)
+
+
+def run_recipe(functions: list[Callable], args: list[tuple], apart: int | None, x: np.ndarray, grad: np.ndarray,
+               values: np.ndarray, scratch: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+    """Evaluate a recipe's parts (``functions[i](args[i], ...)``) at ``x`` into zeroed ``grad`` ``(n, 3)``
+    and ``values`` ``(nv,)``: energy in J, summed in part order; part ``apart`` into ``scratch``
+    (zeroed here) added after the others."""
+    grad.fill(0.0)
+    values.fill(0.0)
+    energies = []
+    for i, (function, a) in enumerate(zip(functions, args)):
+        energies.append(None if i == apart else function(a, x, grad, values))
+    if apart is not None:
+        g, v = scratch
+        g.fill(0.0)
+        v.fill(0.0)
+        energies[apart] = functions[apart](args[apart], x, g, v)
+        grad += g
+        values += v
+    energy = 0.0
+    for e in energies:
+        energy += e
+    return energy
 
 
 class WorkerError(RuntimeError):
@@ -92,7 +166,7 @@ class _Region:
         self.buffer = buffer
         self.n, self.nv = n, nv
         floats, _ = _layout(n, nv)
-        self.flags = np.ndarray((4,), dtype=np.int64, buffer=buffer)
+        self.flags = np.ndarray((5,), dtype=np.int64, buffer=buffer)
         data = np.ndarray((floats,), dtype=np.float64, buffer=buffer, offset=_FLAG_BYTES)
         self.x = data[: 3 * n].reshape(n, 3)
         self.grad = data[3 * n: 6 * n].reshape(n, 3)
@@ -148,20 +222,24 @@ class ElasticWorker:
         try:
             self._process = subprocess.Popen(
                 [python or sys.executable, "-m", "sim_core.elastic_worker", str(child.fileno())],
-                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env)
+                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env,
+                cwd=root)  # `-m` puts the working directory first on sys.path: this sim_core, not another
         finally:
             child.close()
         parent.setblocking(True)
         self._socket = parent
         self._conn = Connection(os.dup(parent.fileno()))
         self._pid = os.getpid()  # a forked child of the parent must not use the worker
-        self._lock = threading.Lock()
+        self._guard = threading.Lock()  # held while a thread starts, finishes or drains a request
+        self._owner: int | None = None  # the thread whose request the worker has (begun, not finished)
         self._ready = False
         self._broken: str | None = None
         self._region: _Region | None = None
-        self._recipe: tuple | None = None  # (target, args) of the configuration
+        self._slots: list[Recipe | None] = [None] * SLOTS  # the recipes the worker has, per slot
+        self._slot_used = [0] * SLOTS  # request number of each slot's last use
         self._sequence = 0
         self.evaluations = 0  # evaluations done by the worker
+        self.configurations = 0  # recipes sent to the worker
         self._finalizer = weakref.finalize(self, _shut_down, self._process, self._conn, parent, self._pid)
 
     # -------------------------------------------------------------------------------- state
@@ -209,18 +287,16 @@ class ElasticWorker:
         return self.ready
 
     def peak_rss_mib(self) -> float | None:
-        """The worker's peak resident memory in MiB (None when it is not up)."""
-        if not self.ready or not self._lock.acquire(blocking=False):
-            return None
-        try:
-            self._send(("stats",))
-            message = self._reply("stats")
-            return float(message[1])
-        except WorkerError as err:
-            self._fail(str(err))
-            return None
-        finally:
-            self._lock.release()
+        """The worker's peak resident memory in MiB (None when it is not up or busy)."""
+        with self._guard:
+            if self._owner is not None or not self.ready:
+                return None
+            try:
+                self._send(("stats",))
+                return float(self._reply("stats")[1])
+            except WorkerError as err:
+                self._fail(str(err))
+                return None
 
     def close(self) -> None:
         """Stop the worker process and release the shared memory (idempotent)."""
@@ -232,45 +308,55 @@ class ElasticWorker:
             self._region = None
 
     # -------------------------------------------------------------------------------- evaluation
-    def begin(self, recipe: tuple[str, tuple], x: np.ndarray, value_count: int) -> bool:
-        """Start evaluating ``recipe`` at positions ``x`` ``(n, 3)`` into ``value_count`` Hessian values.
-
-        ``recipe``: ``(target, args)``, ``target`` a ``"module:function"`` called in the worker as
-        ``function(args, x, grad, values) -> energy`` on zeroed ``grad`` and ``values`` (a fused
-        part's :meth:`offload_recipe`); the worker is reconfigured (``args`` sent) when ``target``
-        or any of ``args`` differs from the last call's (arrays compared by identity: a recipe's
-        arrays must not be changed in place).
+    def begin(self, recipe: Recipe, x: np.ndarray, value_count: int) -> bool:
+        """Start evaluating ``recipe`` (:class:`Recipe`) at positions ``x`` ``(n, 3)`` into ``value_count``
+        Hessian values; the worker is configured with it first unless one of its slots has it
+        (:func:`same_recipe`). A request of this thread that was begun and never finished is
+        waited for and dropped first.
 
         Returns:
             True when the worker took the request (call :meth:`finish`); False when it is not ready,
-            failed, or busy with another thread's request: evaluate locally.
+            failed, or has another thread's request: evaluate locally.
         """
-        if os.getpid() != self._pid or not self._lock.acquire(blocking=False):
-            return False
-        if not self.ready:
-            self._lock.release()
-            return False
-        try:
-            self._configure(recipe, x.shape[0], value_count)
-            region = self._region
-            np.copyto(region.x, x)
-            self._sequence += 1
-            if SPIN_FLAGS:
-                region.flags[_REQUEST] = self._sequence
-                if region.flags[_IDLE]:
-                    self._send(("wake",))
-            else:
-                self._send(("evaluate", self._sequence))
+        me = threading.get_ident()
+        with self._guard:
+            if os.getpid() != self._pid or (self._owner is not None and self._owner != me):
+                return False
+            if self._owner is not None:
+                self._wait(drop=True)
+            if not self.ready:
+                return False
+            try:
+                slot = self._configure(recipe, x.shape[0], value_count)
+                region = self._region
+                np.copyto(region.x, x)
+                self._sequence += 1
+                self._slot_used[slot] = self._sequence
+                region.flags[_SLOT] = slot
+                if SPIN_FLAGS:
+                    region.flags[_REQUEST] = self._sequence
+                    if region.flags[_IDLE]:
+                        self._send(("wake",))
+                else:
+                    self._send(("evaluate", self._sequence))
+            except Exception as err:  # noqa: BLE001 (WorkerError; OSError: no shared memory; a recipe that does not pickle)
+                self._fail(f"{type(err).__name__}: {err}")
+                return False
+            self._owner = me
             return True
-        except Exception as err:  # noqa: BLE001 (WorkerError; OSError: no shared memory; a recipe that does not pickle)
-            self._fail(f"{type(err).__name__}: {err}")
-            self._lock.release()
-            return False
 
     def finish(self) -> tuple[float, np.ndarray, np.ndarray] | None:
-        """Wait for the request of :meth:`begin`: ``(energy J, grad (n, 3) N, values (nv,) N/m)``, the
-        arrays views of the shared memory valid until the next :meth:`begin`; None when the worker
-        failed (logged; evaluate locally)."""
+        """Wait for this thread's request of :meth:`begin`: ``(energy J, grad (n, 3) N, values (nv,) N/m)``,
+        the arrays views of the shared memory valid until the next :meth:`begin`; None when the
+        worker failed (logged; evaluate locally) or this thread has no request."""
+        with self._guard:
+            if self._owner != threading.get_ident():
+                return None
+            return self._wait(drop=False)
+
+    # -------------------------------------------------------------------------------- internals
+    def _wait(self, drop: bool) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """Wait for the outstanding request (the guard held); its result, or None (failed, or ``drop``)."""
         try:
             region = self._region
             if SPIN_FLAGS:
@@ -280,24 +366,18 @@ class ElasticWorker:
                 if message[1] != self._sequence:
                     raise WorkerError(f"reply to request {message[1]}, expected {self._sequence}")
             if region.flags[_STATUS] != 0:
-                raise WorkerError("the worker's kernel raised (see its stderr)")
+                raise WorkerError("the worker's evaluation raised (see its stderr)")
             self.evaluations += 1
-            return float(region.energy[0]), region.grad, region.values
+            return None if drop else (float(region.energy[0]), region.grad, region.values)
         except WorkerError as err:
             self._fail(str(err))
             return None
         finally:
-            self._lock.release()
+            self._owner = None
 
-    # -------------------------------------------------------------------------------- internals
-    def _configure(self, recipe: tuple[str, tuple], n: int, nv: int) -> None:
-        """Send ``recipe`` (and a new region for other sizes) unless it is the configured one."""
-        known = self._recipe
+    def _configure(self, recipe: Recipe, n: int, nv: int) -> int:
+        """The slot holding ``recipe``, after sending it (and a new region for other sizes) if none does."""
         region = self._region
-        if known is not None and region is not None and region.n == n and region.nv == nv and (
-                known is recipe or (known[0] == recipe[0] and len(known[1]) == len(recipe[1]) and all(
-                    a is b or (not isinstance(a, np.ndarray) and a == b) for a, b in zip(known[1], recipe[1])))):
-            return
         path = None
         if region is None or region.n != n or region.nv != nv:
             _, size = _layout(n, nv)
@@ -310,15 +390,24 @@ class ElasticWorker:
             if region is not None:
                 region.close()
             region = self._region = _Region(buffer, n, nv)
-            self._recipe = None
+            self._slots = [None] * SLOTS  # recipes index values of a pattern: configure them again
+        else:
+            for slot, known in enumerate(self._slots):
+                if known is not None and same_recipe(known, recipe):
+                    return slot
+        slot = min(range(SLOTS), key=lambda k: self._slot_used[k])
+        self._slots[slot] = None
         try:
-            self._send(("configure", path, n, nv, recipe[0], pickle.dumps(recipe[1], protocol=pickle.HIGHEST_PROTOCOL),
+            self._send(("configure", slot, path, n, nv, [t for t, _ in recipe.parts],
+                        pickle.dumps([a for _, a in recipe.parts], protocol=pickle.HIGHEST_PROTOCOL), recipe.apart,
                         int(region.flags[_REQUEST])))
             self._reply("configured")
+            self.configurations += 1
         finally:
             if path is not None:
                 os.unlink(path)  # both processes have it mapped (or the worker failed): no file left behind
-        self._recipe = recipe
+        self._slots[slot] = recipe
+        return slot
 
     def _spin_until_done(self, region: _Region) -> None:
         sequence = self._sequence
@@ -388,22 +477,23 @@ def _shut_down(process: subprocess.Popen, conn: Connection, sock: socket.socket,
 
 # ------------------------------------------------------------------------------------------ worker
 class _Server:
-    """The worker side: one configuration at a time, requests from the flags or the socket."""
+    """The worker side: up to :data:`SLOTS` configured recipes, requests from the flags or the socket."""
 
     def __init__(self, conn: Connection) -> None:
         self.conn = conn
         self.region: _Region | None = None
-        self.function: Callable | None = None
-        self.args: Any = None
+        self.slots: dict[int, tuple[list[Callable], list[tuple], int | None]] = {}
+        self.scratch: tuple[np.ndarray, np.ndarray] | None = None  # the apart part's buffers
         self.seen = 0
         self.last = time.perf_counter()
 
     def evaluate(self, sequence: int) -> None:
         region = self.region
         try:
-            region.grad.fill(0.0)
-            region.values.fill(0.0)
-            region.energy[0] = self.function(self.args, region.x, region.grad, region.values)
+            functions, args, apart = self.slots[int(region.flags[_SLOT])]
+            if apart is not None and (self.scratch is None or self.scratch[1].size != region.nv):
+                self.scratch = (np.zeros((region.n, 3)), np.zeros(region.nv))
+            region.energy[0] = run_recipe(functions, args, apart, region.x, region.grad, region.values, self.scratch)
             region.flags[_STATUS] = 0
         except Exception:  # reported through the status flag; the parent falls back
             LOG.exception("elastic worker: evaluation failed")
@@ -418,14 +508,14 @@ class _Server:
         if kind == "stop":
             return False
         if kind == "configure":
-            _, path, n, nv, target, args, request = message
             try:
+                _, slot, path, n, nv, targets, args, apart, request = message
                 if path is not None:
                     if self.region is not None:
                         self.region.close()
                     self.region = _Region.open(path, n, nv)
-                self.function = _resolve(target)
-                self.args = pickle.loads(args)
+                    self.slots = {}
+                self.slots[slot] = ([_resolve(t) for t in targets], pickle.loads(args), apart)
                 self.seen = request
                 self.conn.send(("configured",))
             except Exception as err:  # noqa: BLE001 (reported to the parent, which falls back)
@@ -444,7 +534,7 @@ class _Server:
         spins = 0
         while True:
             region = self.region
-            if SPIN_FLAGS and region is not None and self.function is not None:
+            if SPIN_FLAGS and region is not None and self.slots:
                 request = int(region.flags[_REQUEST])
                 if request != self.seen:
                     self.evaluate(request)
@@ -473,9 +563,9 @@ class _Server:
 
 def _warm_kernels() -> None:
     """Load (or compile) the kernels a worker may run, on a single tet."""
-    from sim_core.ti_kernels.fused_neohookean import compile_remote_kernel
+    from sim_core.fused_elastic import compile_offload_kernels
 
-    compile_remote_kernel()
+    compile_offload_kernels()
 
 
 def main(argv: list[str] | None = None) -> int:

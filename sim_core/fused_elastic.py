@@ -30,6 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.assembly import StaticPattern
+from sim_core.elastic_worker import Recipe
 from sim_core.potentials.base import positions_key
 
 
@@ -181,6 +182,8 @@ class FusedElastic:
         self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.offload = None  # an ElasticWorker (sim_core.elastic_worker), set by the solver; None: all here
         self._offload_buffers: tuple[np.ndarray, np.ndarray] | None = None  # the offloaded part's, when local
+        self._recipes: dict[str, Recipe] = {}  # the last worker recipes ("part", "all", "projected")
+        self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -188,6 +191,7 @@ class FusedElastic:
         forms = [_fused_form(p) for p in potentials]
         if current is not None and len(current._parts) == len(potentials) and all(
                 part.accepts(q) for part, q in zip(current._parts, forms)):
+            current._drop_pending()
             for part, q in zip(current._parts, forms):
                 part.update(q)
             current.potentials = list(potentials)
@@ -207,6 +211,7 @@ class FusedElastic:
     def bind(self, pattern: StaticPattern) -> None:
         """Use ``pattern`` (built from :meth:`block_vertex_arrays` and the step's free mask) from now on."""
         if pattern is not self.pattern:
+            self._drop_pending()
             for part in self._parts:
                 part.bind(pattern)
             self.pattern = pattern
@@ -221,6 +226,16 @@ class FusedElastic:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
         self._kept = None
         xc, grad, values = self._evaluation_buffers(np.shape(x))
+        pending, self._pending = self._pending, None
+        if pending is not None:  # every part evaluated in the worker since start()
+            result = self.offload.finish()
+            if pending == key and result is not None:
+                energy, remote_grad, remote_values = result
+                np.copyto(xc, x)
+                np.copyto(grad, remote_grad)
+                np.copyto(values, remote_values)
+                self._kept = (key, energy, grad, values)
+                return self._kept
         np.copyto(xc, x)
         grad.fill(0.0)
         values.fill(0.0)
@@ -245,13 +260,56 @@ class FusedElastic:
                  if hasattr(p, "offload_recipe") and p.element_count >= OFFLOAD_MIN_ELEMENTS]
         return max(parts, key=lambda p: p.element_count) if parts else None
 
+    def start(self, x: np.ndarray) -> None:
+        """Begin evaluating every part at ``x`` ``(n, 3)`` in :attr:`offload`'s worker, when it is up
+        and every part has an ``offload_recipe`` (else nothing happens); the next evaluation at equal
+        positions takes the result. The solver calls this with a step's first iterate, whose
+        evaluation then runs while it sets up the step's contact and friction terms. The sums are
+        those of :meth:`_evaluate` (the offloaded part apart, added after the others), so results do
+        not depend on whether it ran.
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+        """
+        if self.offload is None or self._pending is not None:
+            return
+        if self.pattern is None:
+            raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+        if not all(hasattr(p, "offload_recipe") for p in self._parts):
+            return
+        key = positions_key(x)
+        if self._kept is not None and self._kept[0] == key:
+            return
+        remote = self.offloaded_part()
+        apart = None if remote is None else next(i for i, p in enumerate(self._parts) if p is remote)
+        recipe = self._recipe("all", tuple(p.offload_recipe() for p in self._parts), apart)
+        xc, _, values = self._evaluation_buffers(np.shape(x))
+        np.copyto(xc, x)
+        if self.offload.begin(recipe, xc, values.size):
+            self._pending = key
+
+    def _drop_pending(self) -> None:
+        """Wait for and drop the result of a :meth:`start` not taken."""
+        if self._pending is not None:
+            self._pending = None
+            self.offload.finish()
+
+    def _recipe(self, name: str, parts: tuple, apart: int | None) -> Recipe:
+        """The kept :class:`~sim_core.elastic_worker.Recipe` ``name`` when its parts are the same objects
+        (the parts keep theirs while nothing changes), else a new one: the worker recognises it by identity."""
+        kept = self._recipes.get(name)
+        if kept is None or kept.apart != apart or len(kept.parts) != len(parts) or any(
+                a is not b for a, b in zip(kept.parts, parts)):
+            kept = self._recipes[name] = Recipe(parts, apart)
+        return kept
+
     def _evaluate_offloaded(self, remote, xc: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy (J); the gradient and Hessian values of all parts added into ``grad`` and ``values``
         (zeroed), with ``remote`` evaluated into separate zeroed buffers, by the worker while this
         process evaluates the other parts, or here when the worker is not up (or fails), and added
         after them; the energies summed in part order. Where no other part touches ``remote``'s
         vertices (a gel beside a sheet) the sums are those of :meth:`_evaluate`'s loop bit for bit."""
-        started = self.offload.begin(remote.offload_recipe(), xc, values.size)
+        started = self.offload.begin(self._recipe("part", (remote.offload_recipe(),), None), xc, values.size)
         energies = []
         try:
             for part in self._parts:
@@ -336,8 +394,27 @@ class FusedElastic:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
         xc = np.ascontiguousarray(x, dtype=np.float64)
         values = np.zeros(self.pattern.keys.size)
-        for part in self._parts:
-            part.add_projected(xc, projection, values)
+        remote = self.offloaded_part()
+        if remote is None or not hasattr(remote, "offload_projected_recipe"):
+            for part in self._parts:
+                part.add_projected(xc, projection, values)
+            return values
+        # the offloaded part's projected blocks apart (in the worker meanwhile), added after the others'
+        recipe = self._recipe("projected", (remote.offload_projected_recipe(projection),), None)
+        self._drop_pending()
+        started = self.offload.begin(recipe, xc, values.size)
+        try:
+            for part in self._parts:
+                if part is not remote:
+                    part.add_projected(xc, projection, values)
+        finally:
+            result = self.offload.finish() if started else None
+        if result is None:
+            remote_values = np.zeros(values.size)
+            remote.add_projected(xc, projection, remote_values)
+        else:
+            remote_values = result[2]
+        values += remote_values
         return values
 
 
@@ -392,4 +469,42 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     sweep_candidates.compile_kernels()
     hash_candidates.compile_kernels()
     friction.compile_kernels()
+    return time.perf_counter() - t0
+
+
+def compile_offload_kernels() -> float:
+    """JIT-compile (or load from Taichi's offline cache) the kernels an
+    :class:`~sim_core.elastic_worker.ElasticWorker` may run (the parts with an ``offload_recipe``:
+    spring membrane, Kirchhoff bending and Stable Neo-Hookean, the last also projected), on a small
+    sheet and tet box; seconds spent (the worker does this before it reports ready).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
+    from sim_core.mesh.tet import tet_box
+    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.potentials.neohookean import StableNeoHookean
+
+    sheet = grid_sheet((0.02, 0.02), (3, 3), (0.0, 0.0, 0.0))
+    topo = sheet_topology(sheet.triangles)
+    box = tet_box((0.01, 0.01, 0.01), (2, 2, 2), (0.0, 0.0, 0.02))
+    x = np.concatenate([sheet.x, box.x])
+    tets = box.tets + sheet.x.shape[0]
+    terms = [SpringMembrane(sheet.triangles, topo.edges, sheet.x, 1000.0, 800.0),
+             KirchhoffBending(sheet.triangles, topo.hinges, sheet.x, 2e-3, 0.3, np.zeros(topo.hinges.shape[0])),
+             StableNeoHookean(tets, x, 3e5, 0.45)]
+    import time
+
+    from sim_core.assembly import HessianAssembler
+    from sim_core.ti_backend import require_backend
+
+    require_backend("compile_offload_kernels")
+    t0 = time.perf_counter()
+    fused = FusedElastic(terms)
+    fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x), np.ones(x.size, bool)))
+    fused.gradient(x)
+    for projection in ("clamp", "abs"):
+        fused.projected_hessian_values(x, projection)
     return time.perf_counter() - t0

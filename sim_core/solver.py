@@ -437,6 +437,13 @@ class NewtonSolver:
             diag = diag + damp.hessian_diagonal()
         elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
         fixed_terms += elastic_terms
+        fused = None
+        if self.candidate_hook is None and self.elastic_worker is not None:
+            # the fused terms are the elastic terms: the worker evaluates them at the first iterate
+            # (FusedElastic.start) while the contact and friction terms are set up
+            fused = self._fused_elastic(elastic_terms, x, free)
+            if fused is not None:
+                fused.start(x)
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
@@ -447,7 +454,8 @@ class NewtonSolver:
         # body terms with a fused part (the sheets' anisotropic bending; the gels' Maxwell branches, a
         # Stable Neo-Hookean on their relaxed rest state) join the fused kernels with the elastic terms
         fused_body = [p for p in cand_body if fusable(p)] if self._fused_path() else []
-        fused = self._fused_elastic(elastic_terms + fused_body, x, free)
+        if fused is None:
+            fused = self._fused_elastic(elastic_terms + fused_body, x, free)
         # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms,
         # and no gravity term in zero gravity (its energy and gradient are zeros: the sums are the same)
         idle = [fixed_terms[1]] if not np.any(model.gravity) else []

@@ -23,6 +23,7 @@ symmetrised per entry). The slot tables are the packed upper triangles of the sl
 
 import numpy as np
 
+from sim_core.elastic_worker import part_recipe
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
@@ -213,6 +214,17 @@ def kirchhoff_triangle_hessians(
                             blocks[t, ra + c, sb + e] += f * Hh[3 * a + c, 3 * b + e]
 
 
+def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """:meth:`FusedKirchhoffBending.evaluate` from its :meth:`~FusedKirchhoffBending.offload_recipe`
+    arguments ``(hinges, theta_bar, tri_hinge, tri_local, stiffness, tri_upper, hinge_upper, scratch)``
+    (the function an :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same
+    arrays, ``scratch`` the worker's own copy)."""
+    hinges = args[0]
+    if hinges.shape[0] == 0:
+        return 0.0
+    return float(kirchhoff_energy_gradient_hessian(x, *args, grad, values))
+
+
 class FusedKirchhoffBending:
     """Fused Newton-loop evaluation of a :class:`KirchhoffBending` (module docstring).
 
@@ -239,7 +251,7 @@ class FusedKirchhoffBending:
         self._tri_local = np.ascontiguousarray(np.maximum(potential._slots, 0), dtype=np.int32)
         self._stiffness = np.ascontiguousarray(potential.triangle_stiffness, dtype=np.float64)
         self._scratch = np.zeros((self._hinges.shape[0], SCRATCH_COLUMNS))
-        self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
+        self._theta_bar = np.array(potential.hinge_theta_bar, dtype=np.float64, order="C")  # own copy
         self._tri_slots: np.ndarray | None = None
         self._tri_upper: np.ndarray | None = None
         self._hinge_upper: np.ndarray | None = None
@@ -253,8 +265,24 @@ class FusedKirchhoffBending:
             potential.triangle_stiffness is p.triangle_stiffness)
 
     def update(self, potential: KirchhoffBending) -> None:
-        """Take the rest angles of ``potential`` (rad, ``(h,)``)."""
-        self._theta_bar = np.ascontiguousarray(potential.hinge_theta_bar, dtype=np.float64)
+        """Take the rest angles of ``potential`` (rad, ``(h,)``); the kept array when they are equal (a
+        step's new copy of unchanged angles), so that an :meth:`offload_recipe` stays the same."""
+        theta_bar = np.asarray(potential.hinge_theta_bar, dtype=np.float64)
+        if not (theta_bar.shape == self._theta_bar.shape and np.array_equal(theta_bar, self._theta_bar)):
+            self._theta_bar = np.array(theta_bar, dtype=np.float64, order="C")  # own copy: never changed in place
+
+    @property
+    def element_count(self) -> int:
+        """Triangles evaluated (:meth:`sim_core.fused_elastic.FusedElastic.offloaded_part`'s cost measure)."""
+        return int(self._tri_hinge.shape[0])
+
+    def offload_recipe(self) -> tuple[str, tuple]:
+        """``(target, args)`` of :meth:`evaluate` for an :class:`~sim_core.elastic_worker.ElasticWorker`
+        (:func:`remote_evaluate`); the same object while nothing changed. :meth:`bind` must have been called."""
+        args = (self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_upper,
+                self._hinge_upper, self._scratch)
+        self._recipe = part_recipe(getattr(self, "_recipe", None), f"{__name__}:remote_evaluate", args)
+        return self._recipe
 
     def bind(self, pattern) -> None:
         """Slot maps of the triangle blocks (full, for the projected blocks, and packed upper) and of

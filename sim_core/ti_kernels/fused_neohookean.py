@@ -29,6 +29,7 @@ slots are then in element order, so results are bitwise reproducible run to run.
 
 import numpy as np
 
+from sim_core.elastic_worker import part_recipe
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
@@ -161,21 +162,19 @@ def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.nda
     return float(snh_energy_gradient_hessian(x, tets, dFdx, vol, upper, mu, lam, grad, values))
 
 
-def compile_remote_kernel() -> None:
-    """JIT-compile (or load from Taichi's offline cache) the kernel of :func:`remote_evaluate`, on one
-    tet (an :class:`~sim_core.elastic_worker.ElasticWorker` does this before it reports ready).
-
-    Raises:
-        ConfigError: the Taichi backend is not initialised.
-    """
-    require_backend("compile_remote_kernel")
-    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    dFdx = np.zeros((1, 4, 3))
-    dFdx[0, 1:] = np.eye(3)
-    dFdx[0, 0] = -1.0
-    upper = np.arange(78, dtype=np.int32)[None]
-    args = (np.arange(4, dtype=np.int32)[None], dFdx, np.full(1, 1.0 / 6.0), upper, 1.0, 1.0)
-    remote_evaluate(args, x, np.zeros((4, 3)), np.zeros(78))
+def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """:meth:`FusedStableNeoHookean.add_projected` from its
+    :meth:`~FusedStableNeoHookean.offload_projected_recipe` arguments ``(tets, dFdx, vol, slots, mu,
+    lam, projection code, [blocks])``: the projected Hessian blocks (N/m) added into ``values``
+    (``grad`` untouched; the block buffer is made on first use and kept in the list); returns 0.0."""
+    tets, dFdx, vol, slots, mu, lam, code, kept = args
+    if tets.shape[0] == 0:
+        return 0.0
+    if kept[0] is None:
+        kept[0] = np.zeros((tets.shape[0], 12, 12))
+    evaluate_snh_hessian(x, tets, dFdx, vol, mu, lam, code, kept[0])
+    add_blocks(kept[0], slots, values)
+    return 0.0
 
 
 class FusedStableNeoHookean:
@@ -203,6 +202,8 @@ class FusedStableNeoHookean:
         self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
         self._recipe: tuple | None = None  # the last offload_recipe()
+        self._projected_core: tuple | None = None  # the last offload_projected_recipe()'s arguments, and it
+        self._projected_recipe: tuple | None = None
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
@@ -257,10 +258,24 @@ class FusedStableNeoHookean:
         object whenever they change, so the worker is reconfigured). :meth:`bind` must have been called."""
         p = self.potential
         args = (self._tets, self._dFdx, self._vol, self._upper, float(p.mu), float(p.lam))
-        kept = self._recipe
-        if kept is None or any(a is not b and (isinstance(a, np.ndarray) or a != b) for a, b in zip(kept[1], args)):
-            kept = self._recipe = (f"{__name__}:remote_evaluate", args)
-        return kept  # the same object while nothing changed: the worker's configuration check is one `is`
+        self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
+        return self._recipe
+
+    def offload_projected_recipe(self, projection: str) -> tuple[str, tuple]:
+        """``(target, args)`` of :meth:`add_projected` for an :class:`~sim_core.elastic_worker.ElasticWorker`:
+        :func:`remote_add_projected` and ``(tets, dFdx, vol, slots, mu, lam, projection code, [blocks])``
+        (the last a list holding the worker's block buffer).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        p = self.potential
+        args = (self._tets, self._dFdx, self._vol, self._slots, float(p.mu), float(p.lam), projection_code(projection))
+        core = part_recipe(self._projected_core, f"{__name__}:remote_add_projected", args)
+        if core is not self._projected_core:
+            self._projected_core = core
+            self._projected_recipe = (core[0], core[1] + ([None],))
+        return self._projected_recipe
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic

@@ -36,6 +36,7 @@ Serial loops on the CPU, parallel on CUDA, as in :mod:`sim_core.ti_kernels.fused
 
 import numpy as np
 
+from sim_core.elastic_worker import part_recipe
 from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel
@@ -203,6 +204,15 @@ def spring_membrane_triangle_blocks(x: _F64_2, triangles: _I32_2, area0: _F64_1,
                     blocks[t, 3 * b + d, 3 * a + c] = B[c, d]
 
 
+def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
+    """:meth:`FusedSpringMembrane.evaluate` from its :meth:`~FusedSpringMembrane.offload_recipe` arguments
+    ``(triangles, edges, area0, length0, upper, k_length, k_area)`` (the function an
+    :class:`~sim_core.elastic_worker.ElasticWorker` runs; the same kernel on the same arrays)."""
+    triangles, edges, area0, length0, upper, k_length, k_area = args
+    return float(spring_membrane_energy_gradient_hessian(x, triangles, edges, area0, length0, upper, k_length, k_area,
+                                                         grad, values))
+
+
 class FusedSpringMembrane:
     """Fused Newton-loop evaluation of a :class:`SpringMembrane` (module docstring).
 
@@ -256,6 +266,20 @@ class FusedSpringMembrane:
         return float(spring_membrane_energy_gradient_hessian(
             x, self._triangles, self._edges, self._area0, self._length0, self._upper, p.k_length, p.k_area,
             grad, values))
+
+    @property
+    def element_count(self) -> int:
+        """Triangles evaluated (:meth:`sim_core.fused_elastic.FusedElastic.offloaded_part`'s cost measure)."""
+        return int(self._triangles.shape[0])
+
+    def offload_recipe(self) -> tuple[str, tuple]:
+        """``(target, args)`` of :meth:`evaluate` for an :class:`~sim_core.elastic_worker.ElasticWorker`
+        (:func:`remote_evaluate`); the same object while nothing changed. :meth:`bind` must have been called."""
+        p = self.potential
+        args = (self._triangles, self._edges, self._area0, self._length0, self._upper, float(p.k_length),
+                float(p.k_area))
+        self._recipe = part_recipe(getattr(self, "_recipe", None), f"{__name__}:remote_evaluate", args)
+        return self._recipe
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the reference's

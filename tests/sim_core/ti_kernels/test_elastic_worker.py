@@ -41,7 +41,7 @@ def _forming_rollout(steps: int, worker=None, edit=None):
 def test_forming_with_the_worker_equals_one_process_bit_for_bit(worker):
     """The gel's term evaluated in the worker (every evaluation of the run) gives the same states and
     iterations as the single-process loop; a Young's modulus edit reconfigures the worker."""
-    before = worker.evaluations
+    before, configured = worker.evaluations, worker.configurations
 
     def stiffer(sim):
         sim.set_parameter("dome.youngs_modulus", 4.5e5)
@@ -50,6 +50,9 @@ def test_forming_with_the_worker_equals_one_process_bit_for_bit(worker):
     x_two, it_two = _forming_rollout(6, worker, stiffer)
     assert worker.failure is None
     assert worker.evaluations - before >= sum(it_two)  # at least one per iteration, all in the worker
+    # the gel's term, all terms at a step's first iterate, the gel's projected Hessian: configured once
+    # each, and again after the edit (new Lame parameters), not every step
+    assert 3 <= worker.configurations - configured <= 6
     assert it_one == it_two
     np.testing.assert_array_equal(x_two, x_one)
     x_soft, _ = _forming_rollout(6, worker)  # the edit mattered (the worker did not keep the old modulus)
@@ -130,14 +133,16 @@ def test_a_dead_worker_is_given_up_and_the_run_goes_on(ti_cpu, caplog):
     x_one, it_one = _forming_rollout(5, None, lambda sim: None)
     assert it_two == it_one
     np.testing.assert_array_equal(x_two, x_one)
-    assert doomed.begin(("x:y", ()), x_one, 1) is False
+    from sim_core.elastic_worker import Recipe
+
+    assert doomed.begin(Recipe((("x:y", ()),)), x_one, 1) is False
 
 
 def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
     """close() stops the process; the shared region's file is gone once configured."""
     if ti_cpu != "cpu":
         pytest.skip("the elastic worker runs beside the CPU backend only")
-    from sim_core.elastic_worker import ElasticWorker
+    from sim_core.elastic_worker import ElasticWorker, Recipe
     from sim_core.ti_kernels.fused_neohookean import remote_evaluate
 
     w = ElasticWorker()
@@ -148,7 +153,7 @@ def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
     dFdx[0, 0] = -1.0
     args = (np.arange(4, dtype=np.int32)[None], dFdx, np.full(1, 1.0 / 6.0), np.arange(78, dtype=np.int32)[None],
             2.0, 3.0)
-    assert w.begin((f"{remote_evaluate.__module__}:remote_evaluate", args), x, 78)
+    assert w.begin(Recipe(((f"{remote_evaluate.__module__}:remote_evaluate", args),)), x, 78)
     energy, grad, values = w.finish()
     g, v = np.zeros((4, 3)), np.zeros(78)
     assert energy == remote_evaluate(args, x, g, v) and energy > 0.0
