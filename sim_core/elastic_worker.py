@@ -1,13 +1,14 @@
-"""A second process that evaluates one fused elastic term while the Newton loop evaluates the others.
+"""A second process that evaluates fused elastic terms while the Newton loop does other work.
 
 Taichi's CPU kernel launches hold Python's GIL, and its parallel loops (atomic adds on a few cores)
 ran the fused kernels about twice as slow as the serial ones on the 2-core machine
 (docs/benchmarks.md), so one process uses one core. Two processes do run side by side at full
 speed. :class:`ElasticWorker` starts a worker process (``python -m sim_core.elastic_worker``)
 with its own Taichi runtime; :class:`sim_core.fused_elastic.FusedElastic` hands it the largest
-fused term that supports it (a Stable Neo-Hookean gel: :meth:`offload_recipe`), and evaluates the
+fused term that supports it (a Stable Neo-Hookean gel: its ``offload_recipe()``), and evaluates the
 other terms in the meantime. On Forming the gel's 1125 tets (about 0.4 ms per evaluation) then
-overlap the sheet's membrane and bending (about 0.45 ms).
+overlap the sheet's membrane and bending (about 0.45 ms); at a step's first iterate the worker
+evaluates every term while the solver sets up the contact and friction terms.
 
 What the worker runs is a :class:`Recipe`: fused parts' ``offload_recipe()`` (a function and its
 arguments each), summed in order, one of them optionally apart (into zeroed buffers added after
@@ -22,8 +23,9 @@ region (a file mapped by both processes, unlinked once both have it): ``int64`` 
 as :class:`multiprocessing.connection.Connection` messages. To evaluate, the parent writes ``x``
 and the slot and increments ``request``; the worker, busy-waiting on ``request`` for
 :data:`SPIN_SECONDS` after its last evaluation, zeroes ``grad`` and ``values``, runs the slot's
-recipe, writes the energy and ``status`` and sets ``done``. The busy-waits need stores to become visible in program order (x86's
-total store order); on other machines each request and reply is a socket message instead. After
+recipe, writes the energy and ``status`` and sets ``done``. The busy-waits need stores to become
+visible in program order (x86's total store order); on other machines each request and reply is a
+socket message instead. After
 :data:`SPIN_SECONDS` without a request the worker blocks on the socket (at most
 :data:`IDLE_POLL_SECONDS` at a time), with ``idle`` set, and the parent sends a wake message.
 
@@ -198,14 +200,17 @@ def _resolve(target: str) -> Callable:
 
 # ------------------------------------------------------------------------------------------ parent
 class ElasticWorker:
-    """A worker process that evaluates one fused elastic term concurrently (module docstring).
+    """A worker process that evaluates fused elastic terms concurrently (module docstring).
 
     Starting it returns at once; :attr:`ready` turns True when the worker has started Taichi and
-    loaded its kernel (seconds; the parent evaluates the term itself until then). Use it from one
-    thread at a time per evaluation (:meth:`begin` / :meth:`finish`; another thread's ``begin``
-    during an evaluation gets False). Several solvers may share one worker (it reconfigures when
-    the term changes). The process ends with :meth:`close`, when the object is collected, or at
+    loaded its kernels (seconds; the parent evaluates everything itself until then). One request
+    at a time (:meth:`begin` / :meth:`finish`; another thread's ``begin`` while one is out gets
+    False). Several solvers may share one worker (it is configured with their recipes as they come,
+    :data:`SLOTS` kept). The process ends with :meth:`close`, when the object is collected, or at
     interpreter exit.
+
+    Attributes:
+        evaluations: requests the worker completed; configurations: recipes sent to it.
 
     Args:
         python: interpreter of the worker (default: this one, ``sys.executable``).
