@@ -481,12 +481,18 @@ def compile_offload_kernels() -> float:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
+    import time
+
+    from sim_core.assembly import HessianAssembler
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.mesh.tet import tet_box
     from sim_core.potentials.kirchhoff_bending import KirchhoffBending
     from sim_core.potentials.membrane import SpringMembrane
     from sim_core.potentials.neohookean import StableNeoHookean
+    from sim_core.ti_backend import require_backend
 
+    require_backend("compile_offload_kernels")
+    t0 = time.perf_counter()
     sheet = grid_sheet((0.02, 0.02), (3, 3), (0.0, 0.0, 0.0))
     topo = sheet_topology(sheet.triangles)
     box = tet_box((0.01, 0.01, 0.01), (2, 2, 2), (0.0, 0.0, 0.02))
@@ -495,13 +501,6 @@ def compile_offload_kernels() -> float:
     terms = [SpringMembrane(sheet.triangles, topo.edges, sheet.x, 1000.0, 800.0),
              KirchhoffBending(sheet.triangles, topo.hinges, sheet.x, 2e-3, 0.3, np.zeros(topo.hinges.shape[0])),
              StableNeoHookean(tets, x, 3e5, 0.45)]
-    import time
-
-    from sim_core.assembly import HessianAssembler
-    from sim_core.ti_backend import require_backend
-
-    require_backend("compile_offload_kernels")
-    t0 = time.perf_counter()
     fused = FusedElastic(terms)
     fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x), np.ones(x.size, bool)))
     fused.gradient(x)
