@@ -189,3 +189,75 @@ def test_socket_signalling_gives_the_same_results(ti_cpu, monkeypatch):
     x_one, it_one = _forming_rollout(4, None)
     assert it_two == it_one
     np.testing.assert_array_equal(x_two, x_one)
+
+
+def _add_scaled(args, x, grad, values):
+    """A recipe function for the tests: adds ``args[0] * x`` to ``grad`` and ``args[0]`` to ``values``."""
+    grad += args[0] * x
+    values += args[0]
+    return float(args[0])
+
+
+def test_run_recipe_sums_in_part_order_with_one_part_apart():
+    """The worker's sums: parts in order into the buffers, the part apart into zeroed scratch added
+    after them, the energies summed in part order."""
+    from sim_core.elastic_worker import run_recipe
+
+    x = np.arange(6.0).reshape(2, 3) / 7.0
+    grad, values = np.full((2, 3), 9.0), np.full(4, 9.0)  # zeroed by run_recipe
+    scratch = (np.full((2, 3), 5.0), np.full(4, 5.0))
+    args = [(0.1,), (1e-17,), (0.3,)]
+    energy = run_recipe([_add_scaled] * 3, args, 1, x, grad, values, scratch)
+    assert energy == (0.0 + 0.1) + 1e-17 + 0.3
+    np.testing.assert_array_equal(grad, (0.1 * x + 0.3 * x) + 1e-17 * x)
+    np.testing.assert_array_equal(values, np.full(4, (0.1 + 0.3) + 1e-17))
+    run_recipe([_add_scaled] * 3, args, None, x, grad, values)
+    np.testing.assert_array_equal(values, np.full(4, (0.1 + 1e-17) + 0.3))
+
+
+def test_recipes_are_the_same_when_their_arrays_are_the_same_objects():
+    """Recipe identity: arrays by object (an in-place change is not looked for), other values by value."""
+    from sim_core.elastic_worker import Recipe, part_recipe, same_recipe
+
+    a, b = np.zeros(3), np.zeros(3)
+    first = part_recipe(None, "m:f", (a, 1.0))
+    assert part_recipe(first, "m:f", (a, 1.0)) is first
+    assert part_recipe(first, "m:f", (b, 1.0)) is not first  # an equal but other array
+    assert part_recipe(first, "m:f", (a, 2.0)) is not first
+    assert part_recipe(first, "m:g", (a, 1.0)) is not first
+    r = Recipe((first,), None)
+    assert same_recipe(r, Recipe((("m:f", (a, 1.0)),), None))
+    assert not same_recipe(r, Recipe((("m:f", (a, 1.0)),), 0))
+    assert not same_recipe(r, Recipe((("m:f", (b, 1.0)),), None))
+    assert not same_recipe(None, r)
+
+
+def test_start_evaluates_every_part_in_the_worker(worker, monkeypatch):
+    """``FusedElastic.start``: one request evaluates all parts in the worker, the next evaluation at
+    the same positions runs no kernel here, and the sums are those of the split evaluation (the gel's
+    part apart), bit for bit; at other positions the result is dropped."""
+    import sim_core.fused_elastic as fe
+    from sim_core.fused_elastic import FusedElastic
+    from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
+
+    monkeypatch.setattr(fe, "OFFLOAD_MIN_ELEMENTS", 1)
+    terms, pattern, x = _overlapping_terms()
+    e_split, g_split, h_split, _ = _evaluation(terms, pattern, x, worker)
+    local = []
+    evaluate = FusedStableNeoHookean.evaluate
+    monkeypatch.setattr(FusedStableNeoHookean, "evaluate", lambda self, *a: local.append(1) or evaluate(self, *a))
+    fused = FusedElastic(terms)
+    fused.bind(pattern)
+    fused.offload = worker
+    before = worker.evaluations
+    fused.start(x)
+    g = fused.gradient(x)
+    assert worker.evaluations == before + 1 and not local
+    assert fused.energy(x) == e_split
+    np.testing.assert_array_equal(g, g_split)
+    np.testing.assert_array_equal(fused.hessian_values(x), h_split)
+    fused.start(x + 1e-4)
+    y = x + 2e-4
+    g_y = fused.gradient(y)  # not the started positions: evaluated anew (split), the start dropped
+    _, g_ref, _, _ = _evaluation(terms, pattern, y, None)
+    np.testing.assert_allclose(g_y, g_ref, rtol=0, atol=1e-12 * np.max(np.abs(g_ref)))
