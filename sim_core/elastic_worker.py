@@ -553,6 +553,7 @@ class _Server:
             message = self.conn.recv()
             if message[0] != "wake" and not self.handle(message):
                 return
+            self.last = time.perf_counter()  # a request usually follows: busy-wait for it again
 
     def _wait_idle(self, region: _Region) -> bool:
         """Block on the socket for at most :data:`IDLE_POLL_SECONDS` with the idle flag set; whether a
