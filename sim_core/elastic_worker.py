@@ -192,6 +192,17 @@ class _Region:
             pass
 
 
+def _region_file() -> tuple[int, str]:
+    """A new file for a shared region, ``(fd, path)``: in ``/dev/shm`` (memory) where it can be made,
+    else in the temporary directory (the page cache keeps it in memory as well)."""
+    if os.path.isdir("/dev/shm"):
+        try:
+            return tempfile.mkstemp(prefix="thinshell-worker-", dir="/dev/shm")
+        except OSError:
+            pass
+    return tempfile.mkstemp(prefix="thinshell-worker-")
+
+
 def _resolve(target: str) -> Callable:
     """The function ``module:name`` of a recipe."""
     module, _, name = target.partition(":")
@@ -386,7 +397,7 @@ class ElasticWorker:
         path = None
         if region is None or region.n != n or region.nv != nv:
             _, size = _layout(n, nv)
-            fd, path = tempfile.mkstemp(prefix="thinshell-worker-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+            fd, path = _region_file()
             try:
                 os.ftruncate(fd, size)
                 buffer = mmap.mmap(fd, size)
