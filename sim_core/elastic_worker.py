@@ -38,6 +38,7 @@ is shut down, and the term is evaluated in the parent from then on.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import mmap
@@ -98,34 +99,31 @@ class Recipe(NamedTuple):
     apart: int | None = None
 
 
+def _same_part(a: tuple, b: tuple) -> bool:
+    """Whether two parts ``(target, args)`` are the same: the same object, or the same target and
+    arguments (arrays the same objects, other values equal)."""
+    if a is b:
+        return True
+    (ta, xa), (tb, xb) = a, b
+    return ta == tb and len(xa) == len(xb) and all(
+        u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v) for u, v in zip(xa, xb))
+
+
 def same_recipe(a: Recipe | None, b: Recipe) -> bool:
     """Whether ``a`` and ``b`` evaluate the same: the same object, or the same targets, ``apart`` and
     arguments (arrays the same objects, other values equal)."""
     if a is b:
         return True
-    if a is None or a.apart != b.apart or len(a.parts) != len(b.parts):
-        return False
-    for pa, pb in zip(a.parts, b.parts):
-        if pa is pb:
-            continue
-        (ta, xa), (tb, xb) = pa, pb
-        if ta != tb or len(xa) != len(xb):
-            return False
-        if not all(u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v)
-                   for u, v in zip(xa, xb)):
-            return False
-    return True
+    return (a is not None and a.apart == b.apart and len(a.parts) == len(b.parts)
+            and all(_same_part(pa, pb) for pa, pb in zip(a.parts, b.parts)))
 
 
 def part_recipe(kept: tuple | None, target: str, args: tuple) -> tuple:
     """A part's ``(target, args)``: ``kept`` (the part's last one) when it has the same target and
     arguments (arrays the same objects, other values equal), else a new tuple. Keeping the object
     makes the worker's check for a configured recipe one identity test."""
-    if kept is not None and kept[0] == target and len(kept[1]) == len(args) and all(
-            u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v)
-            for u, v in zip(kept[1], args)):
-        return kept
-    return (target, args)
+    part = (target, args)
+    return kept if kept is not None and _same_part(kept, part) else part
 
 
 def run_recipe(functions: list[Callable], args: list[tuple], apart: int | None, x: np.ndarray, grad: np.ndarray,
@@ -186,20 +184,16 @@ class _Region:
     def close(self) -> None:
         """Drop the arrays and unmap (later use of the arrays is an error, not a crash)."""
         self.flags = self.x = self.grad = self.values = self.energy = None
-        try:
+        with contextlib.suppress(BufferError):  # an array view still exported somewhere: the GC unmaps it
             self.buffer.close()
-        except BufferError:  # an array view still exported somewhere: leave the map to the GC
-            pass
 
 
 def _region_file() -> tuple[int, str]:
     """A new file for a shared region, ``(fd, path)``: in ``/dev/shm`` (memory) where it can be made,
     else in the temporary directory (the page cache keeps it in memory as well)."""
     if os.path.isdir("/dev/shm"):
-        try:
+        with contextlib.suppress(OSError):
             return tempfile.mkstemp(prefix="thinshell-worker-", dir="/dev/shm")
-        except OSError:
-            pass
     return tempfile.mkstemp(prefix="thinshell-worker-")
 
 
@@ -243,8 +237,7 @@ class ElasticWorker:
         finally:
             child.close()
         parent.setblocking(True)
-        self._socket = parent
-        self._conn = Connection(os.dup(parent.fileno()))
+        self._conn = Connection(parent.detach())  # the connection owns the descriptor from now on
         self._pid = os.getpid()  # a forked child of the parent must not use the worker
         self._guard = threading.Lock()  # held while a thread starts, finishes or drains a request
         self._owner: int | None = None  # the thread whose request the worker has (begun, not finished)
@@ -256,7 +249,7 @@ class ElasticWorker:
         self._sequence = 0
         self.evaluations = 0  # evaluations done by the worker
         self.configurations = 0  # recipes sent to the worker
-        self._finalizer = weakref.finalize(self, _shut_down, self._process, self._conn, parent, self._pid)
+        self._finalizer = weakref.finalize(self, _shut_down, self._process, self._conn, self._pid)
 
     # -------------------------------------------------------------------------------- state
     @property
@@ -465,30 +458,19 @@ class ElasticWorker:
         self._finalizer()
 
 
-def _shut_down(process: subprocess.Popen, conn: Connection, sock: socket.socket, owner: int) -> None:
+def _shut_down(process: subprocess.Popen, conn: Connection, owner: int) -> None:
     """Stop the worker: a stop message, then kill if it does not exit (finalizer: no self). In a forked
-    child of the owner (a diagnosis replay worker) only this process's copies of the sockets close."""
-    if os.getpid() != owner:
-        for closable in (conn, sock):
-            try:
-                closable.close()
-            except OSError:
-                pass
-        return
-    try:
-        conn.send(("stop",))
-    except (OSError, ValueError):
-        pass
-    try:
-        process.wait(timeout=5.0)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait(timeout=5.0)
-    for closable in (conn, sock):
+    child of the owner (a diagnosis replay worker) only this process's copy of the socket closes."""
+    if os.getpid() == owner:
+        with contextlib.suppress(OSError, ValueError):  # gone already
+            conn.send(("stop",))
         try:
-            closable.close()
-        except OSError:
-            pass
+            process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=5.0)
+    with contextlib.suppress(OSError):
+        conn.close()
 
 
 # ------------------------------------------------------------------------------------------ worker

@@ -458,9 +458,9 @@ class NewtonSolver:
             fused = self._fused_elastic(elastic_terms + fused_body, x, free)
         # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms,
         # and no gravity term in zero gravity (its energy and gradient are zeros: the sums are the same)
-        idle = [fixed_terms[1]] if not np.any(model.gravity) else []
-        loop_terms = ([p for p in fixed_terms if not any(p is q for q in idle)] if fused is None else
-                      [p for p in fixed_terms if not any(p is q for q in elastic_terms + fused_body + idle)] + [fused])
+        replaced = (elastic_terms + fused_body if fused is not None else []) + (
+            [fixed_terms[1]] if not np.any(model.gravity) else [])
+        loop_terms = [p for p in fixed_terms if not any(p is q for q in replaced)] + ([fused] if fused is not None else [])
         cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fused_body)]
         max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
 

@@ -24,8 +24,12 @@ import resource
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from sim_core.elastic_worker import ElasticWorker
 
 _IMPORT_TIME = time.time()
 SUPPORTED_ARCHS = ("numpy", "cpu", "cuda")
@@ -108,7 +112,7 @@ def _compile_kernels(sim, arch: str) -> float:
 
 # ------------------------------------------------------------------------------------ forming
 def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str = "numpy",
-                elastic_worker=None) -> dict:
+                elastic_worker: ElasticWorker | None = None) -> dict:
     """Step the Forming scene along the benchmark trajectory and time it.
 
     Args:

@@ -257,6 +257,7 @@ class FusedKirchhoffBending:
         self._hinge_upper: np.ndarray | None = None
         self._blocks = np.zeros((self._tri_hinge.shape[0], 18, 18))
         self._projector = TranslationFreeProjector(6)
+        self._recipe: tuple | None = None  # the last offload_recipe()
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` shares this kernel's elements and stiffness (rest angles may differ)."""
@@ -281,7 +282,7 @@ class FusedKirchhoffBending:
         (:func:`remote_evaluate`); the same object while nothing changed. :meth:`bind` must have been called."""
         args = (self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_upper,
                 self._hinge_upper, self._scratch)
-        self._recipe = part_recipe(getattr(self, "_recipe", None), f"{__name__}:remote_evaluate", args)
+        self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
         return self._recipe
 
     def bind(self, pattern) -> None:

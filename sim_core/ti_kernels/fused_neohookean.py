@@ -165,15 +165,14 @@ def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.nda
 def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
     """:meth:`FusedStableNeoHookean.add_projected` from its
     :meth:`~FusedStableNeoHookean.offload_projected_recipe` arguments ``(tets, dFdx, vol, slots, mu,
-    lam, projection code, [blocks])``: the projected Hessian blocks (N/m) added into ``values``
-    (``grad`` untouched; the block buffer is made on first use and kept in the list); returns 0.0."""
-    tets, dFdx, vol, slots, mu, lam, code, kept = args
+    lam, projection code)``: the projected Hessian blocks (N/m) added into ``values`` (``grad``
+    untouched); returns 0.0."""
+    tets, dFdx, vol, slots, mu, lam, code = args
     if tets.shape[0] == 0:
         return 0.0
-    if kept[0] is None:
-        kept[0] = np.zeros((tets.shape[0], 12, 12))
-    evaluate_snh_hessian(x, tets, dFdx, vol, mu, lam, code, kept[0])
-    add_blocks(kept[0], slots, values)
+    blocks = np.zeros((tets.shape[0], 12, 12))
+    evaluate_snh_hessian(x, tets, dFdx, vol, mu, lam, code, blocks)
+    add_blocks(blocks, slots, values)
     return 0.0
 
 
@@ -202,8 +201,7 @@ class FusedStableNeoHookean:
         self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
         self._recipe: tuple | None = None  # the last offload_recipe()
-        self._projected_core: tuple | None = None  # the last offload_projected_recipe()'s arguments, and it
-        self._projected_recipe: tuple | None = None
+        self._projected_recipe: tuple | None = None  # the last offload_projected_recipe()
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, parameters)."""
@@ -263,18 +261,15 @@ class FusedStableNeoHookean:
 
     def offload_projected_recipe(self, projection: str) -> tuple[str, tuple]:
         """``(target, args)`` of :meth:`add_projected` for an :class:`~sim_core.elastic_worker.ElasticWorker`:
-        :func:`remote_add_projected` and ``(tets, dFdx, vol, slots, mu, lam, projection code, [blocks])``
-        (the last a list holding the worker's block buffer).
+        :func:`remote_add_projected` and ``(tets, dFdx, vol, slots, mu, lam, projection code)``; the
+        same object while nothing changed.
 
         Raises:
             ValueError: unknown projection.
         """
         p = self.potential
         args = (self._tets, self._dFdx, self._vol, self._slots, float(p.mu), float(p.lam), projection_code(projection))
-        core = part_recipe(self._projected_core, f"{__name__}:remote_add_projected", args)
-        if core is not self._projected_core:
-            self._projected_core = core
-            self._projected_recipe = (core[0], core[1] + ([None],))
+        self._projected_recipe = part_recipe(self._projected_recipe, f"{__name__}:remote_add_projected", args)
         return self._projected_recipe
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:

@@ -238,6 +238,7 @@ class FusedSpringMembrane:
         self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # triangle blocks of the projected Hessian, (t, 9, 9)
         self._projector = TranslationFreeProjector(3)
+        self._recipe: tuple | None = None  # the last offload_recipe()
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, stiffnesses)."""
@@ -278,7 +279,7 @@ class FusedSpringMembrane:
         p = self.potential
         args = (self._triangles, self._edges, self._area0, self._length0, self._upper, float(p.k_length),
                 float(p.k_area))
-        self._recipe = part_recipe(getattr(self, "_recipe", None), f"{__name__}:remote_evaluate", args)
+        self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
         return self._recipe
 
     def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:

@@ -15,10 +15,18 @@ from tests.support.forming import forming_simulation, step_benchmark_trajectory
 
 
 @pytest.fixture(scope="module")
-def worker(ti_cpu):
-    """One worker for the module's tests (a start costs seconds), ready."""
+def cpu_arch(ti_cpu):
+    """The tests' Taichi arch, which must be the CPU: the solver hands terms to an elastic worker only
+    beside CPU kernels (the worker runs Taichi's CPU backend, and CUDA kernels sum in another order),
+    so under ``TEST_ARCH=cuda`` there is nothing of the worker's to test."""
     if ti_cpu != "cpu":
-        pytest.skip("the elastic worker runs beside the CPU backend only")
+        pytest.skip(f"TEST_ARCH={ti_cpu}: the elastic worker is used beside Taichi's CPU kernels only")
+    return ti_cpu
+
+
+@pytest.fixture(scope="module")
+def worker(cpu_arch):
+    """One worker for the module's tests (a start costs seconds), ready."""
     from sim_core.elastic_worker import ElasticWorker
 
     w = ElasticWorker()
@@ -113,11 +121,9 @@ def test_offloaded_sums_do_not_depend_on_where_the_term_ran(worker, monkeypatch)
     np.testing.assert_allclose(h_w, h_1, rtol=0, atol=1e-12 * np.max(np.abs(h_1)))
 
 
-def test_a_dead_worker_is_given_up_and_the_run_goes_on(ti_cpu, caplog):
+def test_a_dead_worker_is_given_up_and_the_run_goes_on(cpu_arch, caplog):
     """The worker killed mid-run: a warning names the failure, the term is evaluated here from then on,
     and the run ends with the single-process states bit for bit; the worker is not used again."""
-    if ti_cpu != "cpu":
-        pytest.skip("the elastic worker runs beside the CPU backend only")
     from sim_core.elastic_worker import ElasticWorker
 
     doomed = ElasticWorker()
@@ -138,10 +144,8 @@ def test_a_dead_worker_is_given_up_and_the_run_goes_on(ti_cpu, caplog):
     assert doomed.begin(Recipe((("x:y", ()),)), x_one, 1) is False
 
 
-def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
+def test_close_ends_the_process_and_leaves_no_file(cpu_arch):
     """close() stops the process; the shared region's file is gone once configured."""
-    if ti_cpu != "cpu":
-        pytest.skip("the elastic worker runs beside the CPU backend only")
     from sim_core.elastic_worker import ElasticWorker, Recipe
     from sim_core.ti_kernels.fused_neohookean import remote_evaluate
 
@@ -170,11 +174,9 @@ def test_close_ends_the_process_and_leaves_no_file(ti_cpu):
         os.kill(pid, 0)
 
 
-def test_socket_signalling_gives_the_same_results(ti_cpu, monkeypatch):
+def test_socket_signalling_gives_the_same_results(cpu_arch, monkeypatch):
     """Requests and replies as socket messages (the path of machines without x86's store order,
     forced by ``THINSHELL_WORKER_SIGNAL=socket``): the same Forming states as one process."""
-    if ti_cpu != "cpu":
-        pytest.skip("the elastic worker runs beside the CPU backend only")
     import sim_core.elastic_worker as ew
 
     monkeypatch.setenv("THINSHELL_WORKER_SIGNAL", "socket")
