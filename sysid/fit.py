@@ -95,7 +95,8 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
     """The search coordinate of parameter ``name`` starting at ``initial``.
 
     Positive scale parameters (moduli, stiffnesses, density, thickness, friction > 0): log, within a
-    factor 1000. Poisson ratios: linear in [0, 0.499], scale 0.05. Zero-start non-negative
+    factor 1000. Poisson ratios: linear in [0, 0.499], scale 0.05. The sensor's normal offset
+    (``sensor.normal_offset``, m): linear within 1 mm of its start, scale 50 um. Zero-start non-negative
     parameters (damping, friction 0): linear in [0, inf), scale 1.
 
     Raises:
@@ -105,6 +106,8 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
         raise CalibrationError(f"parameter {name} starts at {initial}; cannot fit a non-finite value")
     if name.endswith("poisson_ratio"):
         return ParameterSpec(name, initial, False, 0.0, 0.499, 0.05)
+    if name == "sensor.normal_offset":
+        return ParameterSpec(name, initial, False, initial - 1.0e-3, initial + 1.0e-3, 5.0e-5)
     if initial < 0.0:
         raise CalibrationError(f"parameter {name} starts at {initial} < 0")
     if initial == 0.0:

@@ -111,10 +111,11 @@ class SensitivityJacobian:
             return J
         model = problem.model
         values = problem.values(u)
+        names, other = self._split(problem)
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
-            traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), list(problem.names),
+            traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), names,
                                                                contact_force=True)
         except ConfigError as err:
             _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
@@ -124,7 +125,41 @@ class SensitivityJacobian:
             raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
         problem.sim_runs += 1
         problem.sim_time_s += time.perf_counter() - t
-        return self._whitened(problem, values, sim, traj, dX, dF)
+        J = self._whitened(problem, values, sim, traj, dX, dF)
+        return self._with_difference_columns(problem, u, J, other, None)
+
+    def _split(self, problem: FitProblem) -> tuple[list[str], list[int]]:
+        """Names with simulator sensitivities, and the indices of the replay (sensor) parameters,
+        whose columns are forward differences (:data:`sysid.observation.SENSOR_PARAMETERS`)."""
+        from sysid.observation import SENSOR_PARAMETERS
+
+        names = [n for n in problem.names if n not in SENSOR_PARAMETERS]
+        other = [i for i, n in enumerate(problem.names) if n in SENSOR_PARAMETERS]
+        return names, other
+
+    def _with_difference_columns(self, problem: FitProblem, u: np.ndarray, J: np.ndarray, other: list[int],
+                                 r0: np.ndarray | None) -> np.ndarray:
+        """``J`` ``(m, p - len(other))`` completed with forward-difference columns at ``other``."""
+        if not other:
+            return J
+        lb, ub = problem.bounds
+        points, steps = [], []
+        for i in other:
+            h = self.fallback.step if u[i] + self.fallback.step <= ub[i] else -self.fallback.step
+            du = u.copy()
+            du[i] += h
+            points.append(du)
+            steps.append(h)
+        r0 = problem.residual(u, phase="jacobian") if r0 is None else r0
+        res = problem.evaluate_many(points, phase="jacobian")
+        full = np.zeros((J.shape[0], len(problem.names)))
+        mine = [i for i in range(len(problem.names)) if i not in other]
+        full[:, mine] = J
+        for i, h, r in zip(other, steps, res):
+            if r is None or r0 is None:
+                raise CalibrationError(f"finite-difference Jacobian: the replay diverged at {problem.names[i]} + {h}")
+            full[:, i] = (r - r0) / h
+        return full
 
     def joint(self, problem: FitProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Residual, Jacobian and prediction at ``u`` from one replay (``FitProblem(joint=...)``).
@@ -139,24 +174,34 @@ class SensitivityJacobian:
         """
         model = problem.model
         values = problem.values(u)
+        names, other = self._split(problem)
         sim = model.prepare(values)
         t = time.perf_counter()
-        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), list(problem.names),
+        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names,
                                                          contact_force=True)
         if getattr(problem, "warm_start", False):  # the start of the next replays (FitProblem)
             problem.last_positions = np.stack([s.x for s in traj.states])
         prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
-        return model.residuals(prediction), self._whitened(problem, values, sim, traj, dX, dF), prediction
+        r = model.residuals(prediction)
+        J = self._with_difference_columns(problem, np.asarray(u, float), self._whitened(problem, values, sim, traj, dX, dF),
+                                          other, r)
+        return r, J, prediction
 
     def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
                   dF: np.ndarray) -> np.ndarray:
         """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
         model = problem.model
+        from sysid.observation import SENSOR_PARAMETERS
+
         obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
-        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs])
+        dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs
+                              if s.name not in SENSOR_PARAMETERS])
+        cal = getattr(model, "sensor_calibration", None)
         blocks = []
         for ch in model.channels:
             d = model.align(ch, obs[ch]) * dtheta_du
+            if cal is not None:
+                d = cal.derivative(ch, d)
             blocks.append(model.whiten_derivative(ch, d))
         return np.concatenate(blocks, axis=0)
 

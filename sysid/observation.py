@@ -40,6 +40,11 @@ would count the same measurement twice, so it is only fitted when ``markers_xyz`
 
 CHANNEL_UNITS = {"markers_xyz": "m", "markers_uv": "px", "wrench": "N | N m", "sheet_points": "m"}
 
+SENSOR_PARAMETERS = ("sensor.normal_offset",)
+"""Replay parameters of the sensor mount that are not ``Model`` parameters: ``sensor.normal_offset``
+(m) moves the replayed effector along the sensor normal (+ = into the contact), i.e. it corrects where
+contact begins for an error of the mount or of the effector's height calibration."""
+
 NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_points": 1e-7}
 """Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
 would otherwise get an infinite weight."""
@@ -230,6 +235,10 @@ class ObservationModel:
         self._build_replay()
         self._sim = None
         self.warm_start: np.ndarray | None = None
+        self.normal_offset = 0.0
+        self.nominal_normal_offset = 0.0
+        self.sensor_calibration = None
+        self.marker_rest: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:
@@ -362,6 +371,8 @@ class ObservationModel:
         Raises:
             ConfigError: unknown parameter (lists the known names).
         """
+        if name in SENSOR_PARAMETERS:
+            return float(self.nominal_normal_offset)
         self.simulation()
         if name not in self._nominal:
             self._sim.get_parameter(name)  # raises ConfigError listing the known names
@@ -374,11 +385,13 @@ class ObservationModel:
             ConfigError: unknown parameter or a value outside its physical range.
         """
         sim = self.simulation()
+        self.normal_offset = float(params.get("sensor.normal_offset", self.nominal_normal_offset))
         for name, nominal in self._nominal.items():
             if name not in params and sim.get_parameter(name) != nominal:
                 sim.set_parameter(name, nominal)
         for name, value in params.items():
-            sim.set_parameter(name, float(value))
+            if name not in SENSOR_PARAMETERS:
+                sim.set_parameter(name, float(value))
         sim.reset()
         return sim
 
@@ -395,7 +408,17 @@ class ObservationModel:
     def control(self, k: int, guess: np.ndarray | None = None) -> Control:
         """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``; with ``guess``
         ``(K + 1, n, 3)``, row ``k`` is the step's Newton start (``Control.position_guess``)."""
-        return Control({self.effector: self.controls[k].copy()}, position_guess=None if guess is None else guess[k])
+        pose = self.controls[k].copy()
+        if self.normal_offset:
+            pose[:3] += self.normal_offset * self._sensor_normal(pose)
+        return Control({self.effector: pose}, position_guess=None if guess is None else guess[k])
+
+    def _sensor_normal(self, pose: np.ndarray) -> np.ndarray:
+        """World direction ``(3,)`` of the sensor's +z (out of the gel) at effector pose ``pose``."""
+        from sim_core.transforms import quat_to_matrix
+
+        mount = self.simulation().model.sensors[self.sensor].mount
+        return quat_to_matrix(pose[3:7]) @ quat_to_matrix(mount[3:7]) @ np.array([0.0, 0.0, 1.0])
 
     def _checked_guess(self, guess: np.ndarray | None) -> np.ndarray | None:
         guess = self.warm_start if guess is None else guess
@@ -515,11 +538,19 @@ class ObservationModel:
         return self._interp[channel].apply(per_step)
 
     def predict(self, trace: SimTrace) -> dict[str, np.ndarray]:
-        """Predictions aligned to every predictable channel the recording holds.
+        """Predictions aligned to every predictable channel the recording holds, through the
+        sensor calibration (:attr:`sensor_calibration`, :mod:`sysid.calibration`) when one is set.
 
         Returns:
             channel -> array shaped like ``evidence.values(channel)``.
         """
+        raw = self.predict_raw(trace)
+        if self.sensor_calibration is None:
+            return raw
+        return self.sensor_calibration.apply(raw, self.marker_rest)
+
+    def predict_raw(self, trace: SimTrace) -> dict[str, np.ndarray]:
+        """The simulator's predictions aligned to the recording, without the sensor calibration."""
         return {ch: self.align(ch, trace.channel(ch)) for ch in self._interp}
 
     # ------------------------------------------------------------------------------ residuals

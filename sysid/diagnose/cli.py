@@ -23,7 +23,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", help="run the replays as Ray tasks on this cluster")
     p.add_argument("--t-max", type=float, help="use only the first T_MAX s of each recording")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
-    p.add_argument("--params", nargs="*", default=[], help="parameters of the nominal fit (default: none, scene values)")
+    p.add_argument("--params", nargs="*", default=[],
+                   help="simulator parameters of the calibration (default: sysid.calibration.CALIBRATION_PARAMETERS: "
+                        "gel modulus and Poisson ratio, gel-sheet friction, sheet bending stiffness, sensor normal offset)")
+    p.add_argument("--no-calibrate", action="store_true",
+                   help="diagnose against the scene values and the scene's sensor calibration (no calibration)")
     p.add_argument("--project", nargs="*", help="parameters projected out of the tests (default: --params)")
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate (Holm)")
     p.add_argument("--candidates", nargs="*", help="restrict the candidate library to these effects")
@@ -54,6 +58,7 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         return 2
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
                         ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
+                        calibrate=not args.no_calibrate,
                         warm_start=args.warm_start,
                         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
     try:

@@ -95,6 +95,16 @@ breakaway (on the benchmark's stiction recording at strength 2.9 their refits re
 energy to 0.3 %, and which is named first depends on the linear solver's round-off)."""
 
 
+def _stepped(name: str, value: float, fd_step: float) -> float:
+    """``value`` of parameter ``name`` moved by one J_theta step: a factor ``exp(fd_step)``, or for
+    the sensor's normal offset (m, may be 0) ``fd_step`` times 0.4 mm (20 um at the default 0.05)."""
+    from sysid.observation import SENSOR_PARAMETERS
+
+    if name in SENSOR_PARAMETERS:
+        return value + 4.0e-4 * fd_step
+    return value * math.exp(fd_step)
+
+
 # ====================================================================================== one bag
 class BagDiagnosis(ProbeCalibration, RefitRefinement):
     """Diagnosis of one recording (construct, then :meth:`run`).
@@ -143,17 +153,27 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
 
     # ------------------------------------------------------------------------------ steps
     def _nominal(self) -> dict[str, float]:
-        if not self.params:
+        """Calibrate the replay to the recording (:func:`sysid.calibration.calibrate`: the sensor
+        calibration and the simulator parameters ``params``, by default
+        :data:`~sysid.calibration.CALIBRATION_PARAMETERS`) and return the fitted parameters;
+        without calibration (``settings.calibrate`` False and no ``params``) the scene values."""
+        if not self.params and not self.settings.calibrate:
             return {}
-        from sysid.fit import fit
+        from sysid.calibration import CALIBRATION_PARAMETERS, calibrate
 
+        if not self.params:
+            self.params = tuple(CALIBRATION_PARAMETERS)
+            if not self.project:
+                self.project = self.params
         t = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = fit(self.model, self.params, max_nfev=self.settings.fit_max_nfev, workers=self.settings.workers)
+            cal = calibrate(self.model, self.params, max_nfev=self.settings.fit_max_nfev,
+                            workers=self.settings.workers)
         self.timings["fit_s"] = time.perf_counter() - t
-        self.fit_result = res
-        return dict(res.values)
+        self.calibration = cal
+        self.fit_result = cal.fit
+        return dict(cal.params)
 
     def _nominal_replay(self, theta: Mapping[str, float]) -> tuple[Any, dict[str, np.ndarray]]:
         """The nominal replay, in this process (the replay workers are forked after it and inherit
@@ -233,7 +253,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         theta = self._nominal()
         proj = [n for n in self.project]
         base_values = {n: theta.get(n, model.parameter_value(n)) for n in proj}
-        sets = [{**theta, n: base_values[n] * math.exp(s.fd_step)} for n in proj]
+        sets = [{**theta, n: _stepped(n, base_values[n], s.fd_step)} for n in proj]
         t, cpu = time.perf_counter(), time.process_time()
         if not s.warm_start and getattr(self, "_scheduler", None) is not None:
             # the probes that do not need the nominal rollout start on the workers it leaves idle
@@ -394,6 +414,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                                                                          for n in self.project}).items()},
                          "rms": rms_summary(model, pred0),
                          "fitted": bool(self.params),
+                         "calibration": (self.calibration.summary() if getattr(self, "calibration", None) is not None
+                                         else None),
                          "whitened_rms": {ch: float(np.sqrt(np.mean(residual(model, ch, pred0[ch]) ** 2)))
                                           for ch in self.tested}},
             "mismatch": {"detected": detected, "windows_s": [[round(a, 4), round(b, 4)] for a, b in windows],

@@ -45,6 +45,9 @@ class Settings:
             candidates' non-convex terms (stiction's bump, adhesion's bonds) Newton from the
             nominal solution often fails where it converges from the previous step (latency_s103:
             13 of 26 replays diverged, and the report changed; docs/benchmarks.md, 2026-11-22).
+        calibrate: calibrate the replay before diagnosing (:func:`sysid.calibration.calibrate`:
+            the sensor calibration and, when no ``params`` are given,
+            :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values.
     """
 
     dt: float = 0.01
@@ -67,3 +70,4 @@ class Settings:
     probe_target: float = 2.0
     probe_max_growth: float = 1000.0
     warm_start: bool = False
+    calibrate: bool = True
