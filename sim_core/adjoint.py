@@ -487,7 +487,13 @@ class StepLinearization:
         """dg/dp of global parameter ``name`` at the converged step, shape ``(n, 3)``.
 
         ``sheet.yield_angle`` does not enter the step's gradient (it acts through plasticity).
+
+        Raises:
+            ConfigError: ``contact.eps_v`` (the friction mollifier's width enters the lagged
+                friction's frame, not a gradient term here: no derivative is provided).
         """
+        if name == "contact.eps_v":
+            raise ConfigError("no adjoint derivative with respect to contact.eps_v (use finite differences)")
         x = self.x
         out = np.zeros((self.n, 3))
         body = name.partition(".")[0]

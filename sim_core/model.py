@@ -235,7 +235,7 @@ class Model:
             keys = SHEET_PARAMETERS if b.kind == "sheet" else SOLID_PARAMETERS
             names += [f"{b.name}.{k}" for k in keys if k in b.material]
         names += [f"friction.{self._pair_name(p)}" for p in self.friction]
-        names += ["contact.stiffness", "damping"]
+        names += ["contact.stiffness", "contact.eps_v", "damping"]
         return names
 
     @staticmethod
@@ -272,6 +272,8 @@ class Model:
             return float(self.damping)
         if name == "contact.stiffness":
             return float(self.contact.stiffness)
+        if name == "contact.eps_v":
+            return float(self.contact.eps_v)
         if name.startswith("friction."):
             return float(self.friction[self._friction_key(name)])
         body, _, key = name.partition(".")
@@ -308,6 +310,8 @@ class Model:
             self.damping = value
         elif name == "contact.stiffness":
             self.contact.stiffness = value
+        elif name == "contact.eps_v":
+            self.contact.eps_v = value
         elif name.startswith("friction."):
             self.friction[self._friction_key(name)] = value
         else:

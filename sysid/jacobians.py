@@ -19,6 +19,11 @@ if TYPE_CHECKING:
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
+DIFFERENCE_PARAMETERS = ("sensor.normal_offset", "contact.eps_v")
+"""Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
+replay's sensor offset (not a simulator parameter) and the friction mollifier width (no adjoint
+derivative)."""
+
 
 # ====================================================================================== Jacobians
 class JacobianProvider(Protocol):
@@ -129,12 +134,10 @@ class SensitivityJacobian:
         return self._with_difference_columns(problem, u, J, other, None)
 
     def _split(self, problem: FitProblem) -> tuple[list[str], list[int]]:
-        """Names with simulator sensitivities, and the indices of the replay (sensor) parameters,
-        whose columns are forward differences (:data:`sysid.observation.SENSOR_PARAMETERS`)."""
-        from sysid.observation import SENSOR_PARAMETERS
-
-        names = [n for n in problem.names if n not in SENSOR_PARAMETERS]
-        other = [i for i, n in enumerate(problem.names) if n in SENSOR_PARAMETERS]
+        """Names with simulator sensitivities, and the indices of the parameters without them,
+        whose columns are forward differences (:data:`DIFFERENCE_PARAMETERS`)."""
+        names = [n for n in problem.names if n not in DIFFERENCE_PARAMETERS]
+        other = [i for i, n in enumerate(problem.names) if n in DIFFERENCE_PARAMETERS]
         return names, other
 
     def _with_difference_columns(self, problem: FitProblem, u: np.ndarray, J: np.ndarray, other: list[int],
@@ -156,8 +159,14 @@ class SensitivityJacobian:
         mine = [i for i in range(len(problem.names)) if i not in other]
         full[:, mine] = J
         for i, h, r in zip(other, steps, res):
+            if r is None and r0 is not None:  # the other side
+                h = -h
+                du = u.copy()
+                du[i] += h
+                r = problem.residual(du, phase="jacobian")
             if r is None or r0 is None:
-                raise CalibrationError(f"finite-difference Jacobian: the replay diverged at {problem.names[i]} + {h}")
+                raise CalibrationError(f"finite-difference Jacobian: the replay diverged on both sides of "
+                                       f"{problem.names[i]} = {problem.values(u)[problem.names[i]]:.6g}")
             full[:, i] = (r - r0) / h
         return full
 
@@ -191,11 +200,9 @@ class SensitivityJacobian:
                   dF: np.ndarray) -> np.ndarray:
         """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
         model = problem.model
-        from sysid.observation import SENSOR_PARAMETERS
-
         obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
         dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs
-                              if s.name not in SENSOR_PARAMETERS])
+                              if s.name not in DIFFERENCE_PARAMETERS])
         cal = getattr(model, "sensor_calibration", None)
         blocks = []
         for ch in model.channels:

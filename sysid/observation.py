@@ -45,6 +45,11 @@ SENSOR_PARAMETERS = ("sensor.normal_offset",)
 (m) moves the replayed effector along the sensor normal (+ = into the contact), i.e. it corrects where
 contact begins for an error of the mount or of the effector's height calibration."""
 
+REPLAY_DT_HALVINGS = 3
+"""A replay step whose Newton solve fails is retried with dt/2, dt/4 and dt/8 before the replay is given
+up (``SolverConfig.dt_halvings_on_failure``): one hard step (a contact switching under a fast
+motion) then costs a few substeps instead of the whole recording."""
+
 NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_points": 1e-7}
 """Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
 would otherwise get an infinite weight."""
@@ -333,12 +338,14 @@ class ObservationModel:
         if self._sim is None:
             from sim_core.scenes import load_scene
             from sim_core.simulation import Simulation
+            from sim_core.solver import SolverConfig
 
             if self.arch != "numpy":
                 from sim_core.ti_backend import init_backend
 
                 init_backend(self.arch)  # idempotent; raises ConfigError naming the problem
-            self._sim = Simulation(load_scene(self.scene), dt=self.dt)
+            self._sim = Simulation(load_scene(self.scene), dt=self.dt,
+                                   solver_config=SolverConfig(dt_halvings_on_failure=REPLAY_DT_HALVINGS))
             if self.arch != "numpy":
                 self._sim.model.meta["elastic_backend"] = "taichi"
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}

@@ -748,7 +748,7 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
              dt: float = 0.01, t_max: float | None = None, alpha: float = 0.01,
              project: Sequence[str] | None = None, candidates: Sequence[str] | None = None,
              simulation: Mapping[str, Any] | None = None, fit_max_nfev: int = 8,
-             arch: str = "numpy") -> dict[str, Any]:
+             arch: str = "numpy", calibrate: bool = False) -> dict[str, Any]:
     """Diagnose recordings (SYSID.md "Diagnosis"); returns the JSON contract.
 
     Args:
@@ -764,6 +764,7 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
         simulation: overrides of the scene's ``simulation:`` block (e.g. a coarse gel resolution).
         fit_max_nfev: function evaluations of the nominal fit (when ``params`` is given).
         arch: elastic terms of the replays (``Settings.arch``).
+        calibrate: calibrate each replay first (``Settings.calibrate``).
 
     Raises:
         CalibrationError: unreadable recording, diverged nominal replay, Ray requested but absent.
@@ -771,7 +772,8 @@ def diagnose(bags: Sequence[str | Path], heldout: Sequence[str | Path] | None = 
     if not bags:
         raise CalibrationError("diagnose needs at least one bag")
     settings = Settings(dt=dt, t_max=t_max, alpha=alpha, workers=max(1, int(workers)), ray_address=ray_address,
-                        simulation=None if simulation is None else dict(simulation), fit_max_nfev=int(fit_max_nfev), arch=arch)
+                        simulation=None if simulation is None else dict(simulation), fit_max_nfev=int(fit_max_nfev), arch=arch,
+                        calibrate=bool(calibrate))
     return run_diagnosis(bags, heldout, params, settings, project, candidates)[0]
 
 

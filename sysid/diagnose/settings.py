@@ -47,7 +47,9 @@ class Settings:
             13 of 26 replays diverged, and the report changed; docs/benchmarks.md, 2026-11-22).
         calibrate: calibrate the replay before diagnosing (:func:`sysid.calibration.calibrate`:
             the sensor calibration and, when no ``params`` are given,
-            :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values.
+            :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values. Off in the
+            library (the own-simulator benchmark's recordings are made by the nominal scene); on by
+            default in ``thinshell diagnose`` (``--no-calibrate`` turns it off).
     """
 
     dt: float = 0.01
@@ -70,4 +72,4 @@ class Settings:
     probe_target: float = 2.0
     probe_max_growth: float = 1000.0
     warm_start: bool = False
-    calibrate: bool = True
+    calibrate: bool = False
