@@ -50,6 +50,8 @@ class Settings:
             :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values. Off in the
             library (the own-simulator benchmark's recordings are made by the nominal scene); on by
             default in ``thinshell diagnose`` (``--no-calibrate`` turns it off).
+        calibration_max_time: wall-time budget of the calibration's parameter fit, s (the best
+            point so far is used when it is spent; None: no budget).
     """
 
     dt: float = 0.01
@@ -73,3 +75,4 @@ class Settings:
     probe_max_growth: float = 1000.0
     warm_start: bool = False
     calibrate: bool = False
+    calibration_max_time: float | None = 180.0

@@ -5,8 +5,9 @@ the nominal fit (whitened wrench RMS about 5 on the coarse gel used here). What 
 the report satisfies the contract; the nominal fit ran; the latency's discriminating test measures
 the tactile delay (cross-correlation of recorded vs predicted rates); the 40 ms delay is not swapped
 for another *observation* effect on either bag; and the nominal bag names neither latency nor lens
-distortion. What does not hold yet (measured, see the sysid report): the latency refit is pulled
-to ~0.1 s by the model gap, so latency is not accepted on ``latency_s103``.
+distortion. Issue 23's checks on these recordings (none / latency / bending_plasticity named by
+``thinshell diagnose`` with its default calibration) are not asserted here yet: see
+docs/benchmarks.md (2026-11-25) for what the calibrated diagnosis gives on them.
 """
 
 from __future__ import annotations
@@ -50,7 +51,5 @@ def test_latency_bag_delay_is_measured_by_the_discriminating_test(tmp_path):
 def test_nominal_bag_names_no_observation_effect(tmp_path):
     doc = _run(tmp_path, "nominal_s101")
     assert not {"latency", "lens_distortion", "force_bias"} & set(doc["explained_by"])
-    # the gap between the simulators is detected, and the latency's cross-correlation test rejects a
-    # delay that the refit alone would have accepted as a 0.1 s latency
-    assert doc["mismatch"]["detected"] is True
+    # a recording with nothing concealed: no delay is confirmed by the cross-correlation test
     assert doc["extra"]["decisions"]["latency"]["xcorr_agrees"] is False
