@@ -288,6 +288,48 @@ class StepInfo:
 
 
 @dataclass
+class StepTotals:
+    """How the steps since the last reset ended, summed over their :class:`StepInfo` (what a replay
+    reports: :attr:`sim_core.simulation.Simulation.step_totals`).
+
+    Attributes:
+        steps: steps taken.
+        substeps: substeps they were taken in (``steps`` when none was retried).
+        retries: failed attempts redone with halved substeps, over all steps.
+        retried_steps: steps that needed at least one retry.
+        relaxed_steps: steps accepted above the strict tolerance (``not StepInfo.converged_strict``).
+        relaxed_accepts, stalled_accepts, line_search_failures: summed as in :class:`StepInfo`.
+        largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
+        first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
+    """
+
+    steps: int = 0
+    substeps: int = 0
+    retries: int = 0
+    retried_steps: int = 0
+    relaxed_steps: int = 0
+    relaxed_accepts: int = 0
+    stalled_accepts: int = 0
+    line_search_failures: int = 0
+    largest_accepted_tolerance: float = 0.0
+    first_relaxed_step: int | None = None
+
+    def add(self, info: StepInfo, step_index: int) -> None:
+        """Count the step that started at ``step_index`` and ended as ``info``."""
+        self.steps += 1
+        self.substeps += info.substeps
+        self.retries += info.retries
+        self.retried_steps += info.retries > 0
+        self.relaxed_steps += not info.converged_strict
+        self.relaxed_accepts += info.relaxed_accepts
+        self.stalled_accepts += info.stalled_accepts
+        self.line_search_failures += info.line_search_failures
+        self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
+        if info.needs_attention and self.first_relaxed_step is None:
+            self.first_relaxed_step = int(step_index)
+
+
+@dataclass
 class _StepTerms:
     """The incremental potential of one step, set up once before its Newton iterations
     (:meth:`NewtonSolver._set_up_step`).
