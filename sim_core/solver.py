@@ -8,7 +8,7 @@ E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we d
 matrix is the exact Hessian whenever its Cholesky factorisation succeeds (it is then positive
 definite on the free DoFs and the Newton direction is a descent direction, with quadratic
 convergence near the solution), else the Hessian with PSD-projected element blocks (on the fused
-Taichi path, ``elastic_backend = "taichi"``, the elastic part of both comes from
+Taichi path, ``SolverConfig.backend`` ``taichi-cpu`` or ``taichi-cuda``, the elastic part of both comes from
 :class:`~sim_core.fused_elastic.FusedElastic`: the exact values from the fused kernels, the
 projected ones from :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`). The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
+from sim_core.backend import check_backend, resolve_backend, uses_taichi
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
@@ -73,6 +74,11 @@ class SolverConfig:
             discards negative curvature the neighbours would compensate, so projected Newton only
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
         linear_solver: "pardiso" or "scipy".
+        backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
+            the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
+            fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
+            fastest available; the sim node's and the command-line tools' default). Resolved once,
+            when the solver is built (:attr:`NewtonSolver.backend`), which initialises Taichi.
         rate_stopping: also stop after a full (``alpha = 1``) Newton step ``dx_k`` whose estimated
             remaining error ``theta / (1 - theta) * |dx_k| / dt`` is below ``tol_velocity``, with
             the contraction rate ``theta = |dx_k| / |dx_{k-1}|`` (Hairer & Wanner, Solving ODEs
@@ -131,12 +137,14 @@ class SolverConfig:
     projection: str = "clamp"
     exact_hessian_first: bool = True
     linear_solver: str = "pardiso"
+    backend: str = "numpy"
     rate_stopping: bool = False
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
 
     def __post_init__(self) -> None:
+        check_backend(self.backend, "solver backend")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
         if self.stale_side_backtracks < 1:
@@ -390,7 +398,13 @@ class NewtonSolver:
         model: the scene model.
         config: :class:`SolverConfig`.
 
+    Raises:
+        ConfigError: ``config.backend`` cannot start here (:func:`sim_core.backend.resolve_backend`).
+
     Attributes:
+        backend: the concrete backend of ``config.backend`` (``numpy``, ``taichi-cpu`` or
+            ``taichi-cuda``), resolved once at construction.
+        taichi_terms: the elastic terms running as Taichi twins (``"<body>:<class>"``), empty on ``numpy``.
         candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
         elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
             fused elastic term (the gel's) in a second process while this one evaluates the others, on
@@ -401,10 +415,12 @@ class NewtonSolver:
     def __init__(self, model: Model, config: SolverConfig | None = None) -> None:
         self.model = model
         self.config = config or SolverConfig()
+        self.backend = resolve_backend(self.config.backend)
+        self.taichi_terms: list[str] = []
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
-        self.contact = ContactSet(model)
+        self.contact = ContactSet(model, backend=self.backend)
         self._revision = -1
         # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
         self.candidate_hook = None
@@ -438,13 +454,17 @@ class NewtonSolver:
 
     def _new_caches(self) -> None:
         """Fresh contact set, assembler (union pattern) and fused-evaluator slot."""
-        self.contact = ContactSet(self.model)
+        self.contact = ContactSet(self.model, backend=self.backend)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
+        if uses_taichi(self.backend):
+            from sim_core.ti_kernels import use_taichi_kernels  # Taichi only on a Taichi backend
+
+            self.taichi_terms = use_taichi_kernels(self.elastic)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         if self.model.candidates:
@@ -583,22 +603,20 @@ class NewtonSolver:
         return (cfg.projection,)
 
     def _fused_path(self) -> bool:
-        """Whether the elastic terms go through :class:`FusedElastic` (``model.meta["elastic_backend"]``
-        is ``"taichi"`` and the exact Hessian is tried first)."""
-        return self.model.meta.get("elastic_backend") == "taichi" and "none" in self._projections()
+        """Whether the elastic terms go through :class:`FusedElastic` (a Taichi :attr:`backend`, and the
+        exact Hessian is tried first)."""
+        return uses_taichi(self.backend) and "none" in self._projections()
 
     def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray) -> FusedElastic | None:
         """The step's fused elastic evaluator (Taichi kernels) bound to the assembler's static
-        pattern, when ``model.meta["elastic_backend"] == "taichi"`` and the exact Hessian is tried
-        first; else None (the reference potentials)."""
+        pattern, on a Taichi :attr:`backend` when the exact Hessian is tried first; else None (the
+        reference potentials)."""
         if not self._fused_path():
             return None
-        from sim_core.ti_backend import current_arch
-
         self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)
-        self._fused.offload = self.elastic_worker if current_arch() == "cpu" else None
+        self._fused.offload = self.elastic_worker if self.backend == "taichi-cpu" else None
         return self._fused
 
     def _single_step(self, state_in: State, state_out: State, control: Control, dt: float,

@@ -328,18 +328,14 @@ class ObservationModel:
         """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, retrying a failed
         step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its ``step_totals``)."""
         if self._sim is None:
+            from sim_core.backend import backend_of_arch
             from sim_core.scenes import load_scene
             from sim_core.simulation import Simulation
             from sim_core.solver import SolverConfig
 
-            if self.arch != "numpy":
-                from sim_core.ti_backend import init_backend
-
-                init_backend(self.arch)  # idempotent; raises ConfigError naming the problem
-            self._sim = Simulation(load_scene(self.scene), dt=self.dt,
-                                   solver_config=SolverConfig(dt_halvings_on_failure=REPLAY_DT_HALVINGS))
-            if self.arch != "numpy":
-                self._sim.model.meta["elastic_backend"] = "taichi"
+            # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
+            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
+            self._sim = Simulation(load_scene(self.scene), dt=self.dt, solver_config=config)
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
         return self._sim
 
