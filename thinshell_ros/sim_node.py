@@ -3,6 +3,10 @@
 Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yaml``):
 
 - ``scene`` (str): scene file; default the bundled ``config/scenes/press_slide.yaml``.
+- ``backend`` (str): the solver backend (``SolverConfig.backend``, :mod:`sim_core.backend`):
+  ``auto`` (default: the fastest available, Taichi's CUDA or CPU kernels, else NumPy), ``numpy``,
+  ``taichi-cpu``, ``taichi-cuda`` (``thinshell bench forming --arch cpu`` measures ``taichi-cpu``).
+  Not used when the node is given a built simulation (its solver's backend stands).
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
@@ -45,8 +49,9 @@ from std_msgs.msg import Float64
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker
 
+from sim_core.backend import BACKEND_CHOICES, check_backend
 from sim_core.errors import ConfigError, ThinShellError
-from sim_core.solver import StepInfo
+from sim_core.solver import NewtonSolver, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
@@ -112,13 +117,17 @@ class SimNode(Node):
         **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
 
     Raises:
-        ConfigError: invalid parameter (mode, rate, material value) or scene.
+        ConfigError: invalid parameter (mode, rate, backend, material value) or scene; a backend that
+            cannot start here.
     """
 
     def __init__(self, sim: Any | None = None, node_name: str = "thinshell_sim", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         ro = ParameterDescriptor(read_only=True)
         self.scene_path = str(self.declare_parameter("scene", "", ro).value) or (str(bundled_scene()) if sim is None else "")
+        backend = self.declare_parameter("backend", "auto", ParameterDescriptor(
+            read_only=True, description=f"solver backend, one of {', '.join(BACKEND_CHOICES)} (auto: the fastest "
+                                        "available); ignored when the node is given a built simulation")).value
         self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
         self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
         self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
@@ -131,10 +140,12 @@ class SimNode(Node):
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
+        check_backend(backend, "node parameter 'backend'")
         if sim is None:
             from sim_core.simulation import Simulation
+            from sim_core.solver import SolverConfig
 
-            sim = Simulation.from_scene(self.scene_path)
+            sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(backend=backend))
         self.sim = sim
         self.dt = float(sim.dt)
         self._declare_material_parameters()
@@ -192,6 +203,7 @@ class SimNode(Node):
         self.publish_outputs(force=True)
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
+            f"backend {self._solver_backend()}, "
             f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}")
 
     # ------------------------------------------------------------------------------ parameters
@@ -326,6 +338,11 @@ class SimNode(Node):
             self._report_step(t, info)
         self.publish_outputs()
         return True
+
+    def _solver_backend(self) -> str:
+        """The concrete backend of the simulation's solver, ``"<given>"`` for a stand-in without one."""
+        solver = getattr(self.sim, "solver", None)
+        return str(solver.backend) if isinstance(solver, NewtonSolver) else "<given>"
 
     @property
     def _status_name(self) -> str:
