@@ -640,7 +640,7 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     Raises:
         ConfigError: no records, parameters changed since the rollout, unknown parameter, bad shape.
     """
-    model, solver_name = _model_and_solver(sim_or_model)
+    model, solver_name, backend = _model_and_solver(sim_or_model)
     _check_trajectory(model, trajectory)
     params = check_parameters(model, params)
     loss = None
@@ -651,7 +651,7 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     dL_dx = np.asarray(dL_dx, dtype=float)
     if dL_dx.shape != (T + 1, n, 3):
         raise ConfigError(f"adjoint: dL_dx has shape {dL_dx.shape}, expected {(T + 1, n, 3)}")
-    elastic, contact, mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+    elastic, contact, mass = ElasticTerms(model), ContactSet(model, backend=backend), model.vertex_mass()
     linear_solver = make_linear_solver(solver_name)
     ax = dL_dx[T].copy()
     av = np.zeros((n, 3))
@@ -718,10 +718,12 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
                     initial_pose=apose, theta_bar0=atb, loss=loss)
 
 
-def _model_and_solver(sim_or_model) -> tuple[Model, str]:
+def _model_and_solver(sim_or_model) -> tuple[Model, str, str]:
+    """The model, the linear solver's name and the concrete backend of a Simulation (a Model: its
+    defaults, ``pardiso`` and ``numpy``)."""
     if isinstance(sim_or_model, Model):
-        return sim_or_model, "pardiso"
-    return sim_or_model.model, sim_or_model.solver.config.linear_solver
+        return sim_or_model, "pardiso", "numpy"
+    return sim_or_model.model, sim_or_model.solver.config.linear_solver, sim_or_model.solver.backend
 
 
 def _check_trajectory(model: Model, trajectory: Trajectory) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
                                 vertex_triangle_candidates)
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
+from sim_core.backend import uses_taichi
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model, check_broad_phase
 from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
@@ -60,13 +61,20 @@ class ContactSet:
         model: the model; reads surfaces, bodies, planes, contact settings and friction table.
         broad_phase: the box-pair search (``spatial_hash``, ``sweep`` or ``kdtree``: same candidate
             lists, see :class:`sim_core.model.ContactSettings`); None takes ``model.contact.broad_phase``.
+        backend: the solver's concrete backend (:data:`sim_core.backend.BACKENDS`; ``NewtonSolver.backend``):
+            the Taichi contact, friction and broad-phase kernels on ``taichi-cpu`` / ``taichi-cuda``
+            (Taichi initialised for it), the NumPy reference on ``numpy``.
+
+    Attributes:
+        taichi: whether this contact set runs the Taichi kernels (``backend`` is a Taichi one).
 
     Raises:
-        ConfigError: an unknown ``broad_phase``.
+        ConfigError: an unknown ``broad_phase`` or ``backend``.
     """
 
-    def __init__(self, model: Model, broad_phase: str | None = None) -> None:
+    def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy") -> None:
         self.model = model
+        self.taichi = uses_taichi(backend)
         c = model.contact
         self.broad_phase = check_broad_phase(c.broad_phase if broad_phase is None else broad_phase,
                                              "ContactSet broad_phase")
@@ -232,7 +240,7 @@ class ContactSet:
         exclusions in the kernel (made on first use): :class:`sim_core.ti_kernels.hash_candidates.HashCandidates`
         (``spatial_hash``) or :class:`sim_core.ti_kernels.sweep_candidates.SweepCandidates` on
         ``search`` (``sweep``); None otherwise (NumPy backend, ``kdtree``)."""
-        if self.model.meta.get("elastic_backend") != "taichi" or self.broad_phase == "kdtree":
+        if not self.taichi or self.broad_phase == "kdtree":
             return None
         lists = getattr(self, "_lists", None)
         if self.broad_phase == "spatial_hash":
@@ -276,14 +284,13 @@ class ContactSet:
     def _grouped_search(self):
         """The box-pair search of the broad phase (``self.broad_phase``; all give the same pairs):
         ``spatial_hash``: the Taichi hash kernel (:class:`sim_core.ti_kernels.hash_grid.HashSearch`)
-        when the model's kernel backend is ``"taichi"``, else NumPy spatial hashes per body pair
+        on a Taichi backend (:attr:`taichi`), else NumPy spatial hashes per body pair
         (:func:`sim_core.collision.candidates.grouped_box_pairs_hash`); ``sweep``: the Taichi sweep
         kernel (:class:`sim_core.ti_kernels.broad_phase.SweepSearch`, keeping its sweep axis across this
         contact set's searches) on the Taichi backend; else, and for ``kdtree``, None (the k-d trees of
         :mod:`sim_core.collision.candidates`)."""
-        taichi = self.model.meta.get("elastic_backend") == "taichi"
         if self.broad_phase == "spatial_hash":
-            if not taichi:
+            if not self.taichi:
                 from sim_core.collision.candidates import grouped_box_pairs_hash
 
                 return grouped_box_pairs_hash
@@ -292,7 +299,7 @@ class ContactSet:
 
                 self._hash_search = HashSearch()
             return self._hash_search
-        if self.broad_phase == "sweep" and taichi:
+        if self.broad_phase == "sweep" and self.taichi:
             if getattr(self, "_sweep_search", None) is None:
                 from sim_core.ti_kernels.broad_phase import SweepSearch
 
@@ -302,9 +309,8 @@ class ContactSet:
 
     def _pair_classes(self) -> tuple[type, type]:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
-        (:mod:`sim_core.ti_kernels.contact`) when the model's kernel backend
-        (``model.meta["elastic_backend"]``) is ``"taichi"``, else the NumPy reference."""
-        if self.model.meta.get("elastic_backend") == "taichi":
+        (:mod:`sim_core.ti_kernels.contact`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
+        if self.taichi:
             from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
 
             return TiVertexTriangleContact, TiEdgeEdgeContact
@@ -345,10 +351,10 @@ class ContactSet:
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
         """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
-        ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on the model's Taichi backend one
+        ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on a Taichi backend one
         kernel launch for both kinds (:func:`sim_core.ti_kernels.contact_setup.pair_geometry`), else the
         NumPy reference."""
-        if self.model.meta.get("elastic_backend") == "taichi":
+        if self.taichi:
             from sim_core.ti_kernels.contact_setup import pair_geometry as geometry
         else:
             geometry = pair_geometry
@@ -453,7 +459,7 @@ class ContactSet:
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee, ee_sides = ee[keep], ee_sides[keep]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
-        if self.model.meta.get("elastic_backend") == "taichi":
+        if self.taichi:
             from sim_core.ti_kernels.contact_batch import PairBatch
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
@@ -516,7 +522,7 @@ class ContactSet:
         """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
         vt, ee = self._pairs(x_n, memory)
         obstacle_frames = [(name, obstacle, obstacle.contact_frames(x_n)) for name, obstacle in self.planes + self.spheres]
-        if self.model.meta.get("elastic_backend") == "taichi" and not any(len(f.lam) for *_, f in obstacle_frames):
+        if self.taichi and not any(len(f.lam) for *_, f in obstacle_frames):
             return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
         # a pair's vertices: [p, a, b, c] / [a0, a1, b0, b1]; column 0 and ``second`` are on its two sides
@@ -539,7 +545,7 @@ class ContactSet:
             return None
         all_frames = concatenate_frames(frames)
         friction_class = LaggedFriction
-        if self.model.meta.get("elastic_backend") == "taichi":
+        if self.taichi:
             from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)

@@ -23,16 +23,14 @@ pattern into the new one with prefix sums instead of sorting and searching all k
 from __future__ import annotations
 
 import copy
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
-from sim_core.potentials.base import HessianBlocks, block_dof_indices
+from sim_core.potentials.base import HessianBlocks
+from sim_core.static_pattern import StaticPattern, block_keys  # noqa: F401 (block_keys: this module's too)
 from sim_core.unique import sorted_unique
-
-if TYPE_CHECKING:
-    from sim_core.assembly import StaticPattern
 
 STICKY_ASSEMBLIES = 50
 """A dynamic entry leaves the union pattern after this many assemblies without it (about ten
@@ -41,15 +39,6 @@ Forming steps): bounds the fill-in that contacts which moved on leave behind."""
 TABLE_ELEMENTS = 8192
 """An element table holding more elements than this drops those unused since the last rebuild of
 the union pattern (a cache bound only: it does not change any result)."""
-
-
-def block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column DoF of every entry of blocks over ``vertices`` ``(k, m)``, each ``(k (3m)^2,)``."""
-    dofs = block_dof_indices(vertices)
-    n = dofs.shape[1]
-    rows = np.repeat(dofs, n, axis=1).reshape(-1)
-    cols = np.tile(dofs, (1, n)).reshape(-1)
-    return rows, cols
 
 
 def _translation(survive: np.ndarray, insert_at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

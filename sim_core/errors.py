@@ -21,7 +21,23 @@ class MeshError(ConfigError):
 
 
 class SimulationDivergedError(ThinShellError):
-    """A Newton solve did not converge (or produced NaN) at a given time step."""
+    """A Newton solve did not converge (or produced NaN) at a given time step.
+
+    Args:
+        message: what failed, naming the step and time.
+        step_index: index of the step that failed (``State.step_index`` at its start), None when
+            the error is not tied to a step (a linear solver's own failure before its caller adds it).
+        t: simulated time at the start of that step, s, or None.
+    """
+
+    def __init__(self, message: str, step_index: int | None = None, t: float | None = None) -> None:
+        super().__init__(message)
+        self.step_index = step_index
+        self.t = t
+
+    def __reduce__(self):
+        """Pickle with the step and time (replay workers send their errors to the parent process)."""
+        return type(self), (str(self), self.step_index, self.t)
 
 
 class BagReadError(ThinShellError):

@@ -40,6 +40,8 @@ class TangentPropagation:
         model: the model (parameters as during the rollout).
         params: checked global parameter names, ``P`` of them.
         contact_force: also compute the tangent of each new state's ``contact_force``.
+        backend: the rollout solver's concrete backend (``NewtonSolver.backend``), for the contact set
+            that rebuilds friction rows (:class:`~sim_core.contact_set.ContactSet`).
 
     Attributes:
         dx: tangent of the current positions, ``(n, 3, P)`` m per parameter unit.
@@ -47,10 +49,11 @@ class TangentPropagation:
         dtb: sheet -> tangent of the rest angles, ``(h, P)``.
     """
 
-    def __init__(self, model: Model, params: Sequence[str], contact_force: bool = False) -> None:
+    def __init__(self, model: Model, params: Sequence[str], contact_force: bool = False, backend: str = "numpy") -> None:
         self.model, self.params, self.contact_force = model, list(params), contact_force
         n, P = model.vertex_count, len(self.params)
-        self.elastic, self.contact, self.mass = ElasticTerms(model), ContactSet(model), model.vertex_mass()
+        self.elastic, self.contact = ElasticTerms(model), ContactSet(model, backend=backend)
+        self.mass = model.vertex_mass()
         self.dx = np.zeros((n, 3, P))
         self.dv = np.zeros((n, 3, P))
         self.dtb = {name: np.zeros((len(model.bodies[name].hinges), P)) for name in self.elastic.hinges}
@@ -124,7 +127,7 @@ def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, para
     params = check_parameters(model, params)
     _check_trajectory(model, trajectory)
     T, n, P = trajectory.step_count, model.vertex_count, len(params)
-    tangents = TangentPropagation(model, params, contact_force)
+    tangents = TangentPropagation(model, params, contact_force, backend=sim.solver.backend)
     linear_solver = sim.solver.general_solver()
     dX = np.zeros((T + 1, n, 3, P))
     dF = np.zeros((T + 1, n, 3, P)) if contact_force else None
@@ -169,7 +172,7 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
     model: Model = sim.model
     params = check_parameters(model, params)
     T, n, P = len(controls), model.vertex_count, len(params)
-    tangents = TangentPropagation(model, params, contact_force)
+    tangents = TangentPropagation(model, params, contact_force, backend=sim.solver.backend)
     fallback = None
     dX = np.zeros((T + 1, n, 3, P))
     dF = np.zeros((T + 1, n, 3, P)) if contact_force else None

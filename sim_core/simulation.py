@@ -13,7 +13,7 @@ import numpy as np
 
 from sim_core.control import Control
 from sim_core.model import Model
-from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
+from sim_core.solver import NewtonSolver, SolverConfig, StepInfo, StepTotals
 from sim_core.state import State
 from sim_core.transforms import compose_poses
 
@@ -43,6 +43,11 @@ class Simulation:
         model: the scene model.
         dt: time step in s (default: the scene's ``dt`` in ``model.meta``, else 5 ms).
         solver_config: Newton settings.
+
+    Attributes:
+        last_info: the :class:`StepInfo` of the last step (None before one).
+        step_totals: how the steps since construction or the last :meth:`reset` ended
+            (:class:`StepTotals`: substep retries, relaxed acceptances).
     """
 
     def __init__(self, model: Model, dt: float | None = None, solver_config: SolverConfig | None = None) -> None:
@@ -51,6 +56,7 @@ class Simulation:
         self.solver = NewtonSolver(model, solver_config)
         self.state: State = model.state()
         self.last_info: StepInfo | None = None
+        self.step_totals = StepTotals()
 
     @classmethod
     def from_scene(cls, scene: str | Path | dict, dt: float | None = None,
@@ -74,6 +80,7 @@ class Simulation:
         """Advance one step of ``dt`` (the state is replaced only if the step succeeds)."""
         out = self.state.copy()
         info = self.solver.step(self.state, out, control, self.dt)
+        self.step_totals.add(info, self.state.step_index)
         self.state = out
         self.last_info = info
         return info
@@ -85,9 +92,11 @@ class Simulation:
 
     def reset(self) -> None:
         """Return to the initial state, with the solver's step-to-step caches cleared
-        (:meth:`NewtonSolver.reset_caches`): the same controls then give the same steps bit for bit."""
+        (:meth:`NewtonSolver.reset_caches`): the same controls then give the same steps bit for bit.
+        :attr:`step_totals` start again from zero."""
         self.state = self.model.state()
         self.solver.reset_caches()
+        self.step_totals = StepTotals()
 
     # ------------------------------------------------------------------ parameters
     @property

@@ -8,7 +8,7 @@ E(x + a d) <= E(x) + c a g.d holds (ThinShellLab accepted energy increases; we d
 matrix is the exact Hessian whenever its Cholesky factorisation succeeds (it is then positive
 definite on the free DoFs and the Newton direction is a descent direction, with quadratic
 convergence near the solution), else the Hessian with PSD-projected element blocks (on the fused
-Taichi path, ``elastic_backend = "taichi"``, the elastic part of both comes from
+Taichi path, ``SolverConfig.backend`` ``taichi-cpu`` or ``taichi-cuda``, the elastic part of both comes from
 :class:`~sim_core.fused_elastic.FusedElastic`: the exact values from the fused kernels, the
 projected ones from :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`). The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
+from sim_core.backend import check_backend, resolve_backend, uses_taichi
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
@@ -47,8 +48,19 @@ class SolverConfig:
     Attributes:
         tol_velocity: converged when ``max |dx_newton| / dt`` < this (m/s); 1e-4 m/s = 0.5 um per
             5 ms step, well below marker noise. Gradient checks use 1e-9. ThinShellLab: 1e-7.
-        stall_iterations: accept a step whose residual is below 10 x ``tol_velocity`` and has not
-            dropped by 10 % over this many iterations (round-off-limited; counted in StepInfo).
+        stall_iterations: accept (relaxed, counted in ``StepInfo.stalled_accepts``) a step whose
+            residual is below ``stall_tolerance_factor * tol_velocity`` and has not dropped by 10 %
+            over this many iterations (round-off-limited).
+        stall_tolerance_factor: the relaxed tolerance of a stalled step, as a multiple of
+            ``tol_velocity`` (>= 1; 1 never accepts a stalled step).
+        line_search_tolerance_factor: a step whose line search fails (``max_backtracks`` halvings
+            without sufficient decrease) is accepted (relaxed, counted in
+            ``StepInfo.relaxed_accepts``) when its residual is below this multiple of
+            ``tol_velocity`` (>= 1; 1 never accepts on the residual).
+        stationary_slope_rtol: a step whose line search fails is also accepted (relaxed, counted)
+            when the predicted decrease ``|g.d|`` is below this fraction of ``|E|``: x is then
+            stationary to working precision (the gradient is zero up to floating-point error).
+            0 never accepts on this test.
         tol_force: or when the free-DoF gradient infinity norm is below this (N).
         max_iterations: Newton iterations per step before failing.
         armijo_c: sufficient-decrease constant.
@@ -62,6 +74,11 @@ class SolverConfig:
             discards negative curvature the neighbours would compensate, so projected Newton only
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
         linear_solver: "pardiso" or "scipy".
+        backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
+            the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
+            fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
+            fastest available; the sim node's and the command-line tools' default). Resolved once,
+            when the solver is built (:attr:`NewtonSolver.backend`), which initialises Taichi.
         rate_stopping: also stop after a full (``alpha = 1``) Newton step ``dx_k`` whose estimated
             remaining error ``theta / (1 - theta) * |dx_k| / dt`` is below ``tol_velocity``, with
             the contraction rate ``theta = |dx_k| / |dx_{k-1}|`` (Hairer & Wanner, Solving ODEs
@@ -94,7 +111,11 @@ class SolverConfig:
             it at (the same states bit for bit). ``x_k`` is the step's result; the kept Newton
             matrix is the one at ``x_{k-1}`` (``StepRecord.hessian_exact`` False: the adjoint
             assembles the exact Hessian at ``x``). 0 turns it off.
-        dt_halvings_on_failure: retry a failed step with dt/2, dt/4 ... this many times (0 = raise).
+        dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
+            is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many
+            times, so the smallest substep is ``dt / 2**dt_halvings_on_failure``; the step raises
+            only when that one fails too. 0: a failure raises at once. The retries are counted in
+            ``StepInfo.retries`` and ``StepInfo.substeps``.
         stale_side_backtracks: after a line search that needed this many halvings, release the
             contact sides gone stale at the new iterate (:meth:`ContactSet.release_stale_sides`,
             which a failed line search always tries). Newton creeping up to a step in the energy
@@ -107,24 +128,37 @@ class SolverConfig:
     tol_force: float = 1e-9
     max_iterations: int = 60
     stall_iterations: int = 4
+    stall_tolerance_factor: float = 10.0
+    line_search_tolerance_factor: float = 100.0
+    stationary_slope_rtol: float = 1e-12
     armijo_c: float = 1e-4
     max_backtracks: int = 40
     max_displacement: float | None = None
     projection: str = "clamp"
     exact_hessian_first: bool = True
     linear_solver: str = "pardiso"
+    backend: str = "numpy"
     rate_stopping: bool = False
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
 
     def __post_init__(self) -> None:
+        check_backend(self.backend, "solver backend")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
         if self.stale_side_backtracks < 1:
             raise ConfigError(f"solver stale_side_backtracks must be >= 1, got {self.stale_side_backtracks}")
         if self.projection not in ("clamp", "abs", "none"):
             raise ConfigError(f"solver projection must be clamp|abs|none, got {self.projection!r}")
+        for name in ("stall_tolerance_factor", "line_search_tolerance_factor"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 1.0):
+                raise ConfigError(f"solver {name} must be a finite number >= 1, got {value!r}")
+        if not (np.isfinite(self.stationary_slope_rtol) and self.stationary_slope_rtol >= 0.0):
+            raise ConfigError(f"solver stationary_slope_rtol must be a finite number >= 0, got {self.stationary_slope_rtol!r}")
+        if self.dt_halvings_on_failure < 0:
+            raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")
 
 
 @dataclass
@@ -187,14 +221,52 @@ class StepRecord:
         return full
 
 
+STRICT_STOPS: tuple[str, ...] = ("velocity", "force", "simplified", "rate")
+"""Stopping tests that accept a step at the strict tolerances: the Newton update below
+``tol_velocity`` (``"velocity"``), the gradient below ``tol_force`` (``"force"``), the simplified
+Newton correction below ``simplified_newton_check * tol_velocity`` (``"simplified"``), the rate
+estimate of the remaining error below ``tol_velocity`` (``"rate"``)."""
+
+RELAXED_STOPS: tuple[str, ...] = ("stalled", "line_search_relaxed", "line_search_roundoff")
+"""Stopping tests that accept a step above ``tol_velocity`` (``StepInfo.relaxed_accepts``): a stalled
+residual below ``stall_tolerance_factor * tol_velocity``; after a failed line search, a residual below
+``line_search_tolerance_factor * tol_velocity`` or a predicted decrease below ``stationary_slope_rtol * |E|``."""
+
+
 @dataclass
 class StepInfo:
-    """Diagnostics of one step: Newton iterations, final scaled residual, timings (s), the
-    iterations whose Newton matrix had PSD-projected element blocks, the contact pairs whose
-    side was released after a failed or very short line search (:meth:`ContactSet.release_stale_sides`),
-    the Newton matrices factorised (a not positive definite exact Hessian and its projected
-    fallback count two), and the (sub-)steps that the simplified Newton test ended (their last
-    iteration factorised nothing; ``SolverConfig.simplified_newton_check``)."""
+    """How one step ended. For a step taken as several substeps (``SolverConfig.dt_halvings_on_failure``)
+    the counts and times are summed over its substeps, the residual and energy are the last substep's.
+
+    Attributes:
+        iterations: Newton iterations.
+        residual_velocity: the accepted iterate's scaled Newton update ``max_i |dx_i| / dt``, m/s
+            (for ``stop_reason == "rate"`` the estimated remaining error).
+        energy: the incremental potential at the result, J.
+        backtracks: line-search halvings.
+        substeps: substeps the step was finally taken in (1, or ``2**retries``).
+        retries: failed attempts redone with halved substeps (``SolverConfig.dt_halvings_on_failure``).
+        limited_effectors: effectors whose command was rate-limited.
+        time_assembly, time_linear_solve, time_total: s.
+        projected_iterations: iterations whose Newton matrix had PSD-projected element blocks.
+        released_sides: contact pairs whose side was released after a failed or very short line search
+            (:meth:`ContactSet.release_stale_sides`).
+        factorizations: Newton matrices factorised (a not positive definite exact Hessian and its
+            projected fallback count two).
+        simplified_stops: (sub-)steps that the simplified Newton test ended (their last iteration
+            factorised nothing; ``SolverConfig.simplified_newton_check``).
+        stop_reason: the test that accepted the step (:data:`STRICT_STOPS` or :data:`RELAXED_STOPS`;
+            over substeps, the last relaxed one, else the last substep's).
+        converged_strict: every (sub-)step was accepted by a strict test (:data:`STRICT_STOPS`).
+        accepted_tolerance: the residual bound (m/s) the step was accepted under: ``tol_velocity`` for a
+            strict test, ``stall_tolerance_factor * tol_velocity`` for a stalled step,
+            ``line_search_tolerance_factor * tol_velocity`` after a failed line search, inf after a failed
+            line search accepted on the round-off test alone; over substeps the largest.
+        relaxed_accepts: (sub-)steps accepted by a relaxed test (:data:`RELAXED_STOPS`).
+        stalled_accepts: of those, the stalled ones.
+        line_search_failures: line searches that found no sufficient decrease in ``max_backtracks``
+            halvings (accepted relaxed, followed by a released contact side, or raised).
+    """
 
     iterations: int = 0
     residual_velocity: float = 0.0
@@ -209,6 +281,114 @@ class StepInfo:
     released_sides: int = 0
     factorizations: int = 0
     simplified_stops: int = 0
+    retries: int = 0
+    stop_reason: str = ""
+    converged_strict: bool = True
+    accepted_tolerance: float = 0.0
+    relaxed_accepts: int = 0
+    stalled_accepts: int = 0
+    line_search_failures: int = 0
+
+    @property
+    def needs_attention(self) -> bool:
+        """Whether the step was accepted above the strict tolerance or needed substep retries."""
+        return not self.converged_strict or self.retries > 0
+
+
+@dataclass
+class StepTotals:
+    """How the steps since the last reset ended, summed over their :class:`StepInfo` (what a replay
+    reports: :attr:`sim_core.simulation.Simulation.step_totals`).
+
+    Attributes:
+        steps: steps taken.
+        substeps: substeps they were taken in (``steps`` when none was retried).
+        retries: failed attempts redone with halved substeps, over all steps.
+        retried_steps: steps that needed at least one retry.
+        relaxed_steps: steps accepted above the strict tolerance (``not StepInfo.converged_strict``).
+        relaxed_accepts, stalled_accepts, line_search_failures: summed as in :class:`StepInfo`.
+        largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
+        first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
+    """
+
+    steps: int = 0
+    substeps: int = 0
+    retries: int = 0
+    retried_steps: int = 0
+    relaxed_steps: int = 0
+    relaxed_accepts: int = 0
+    stalled_accepts: int = 0
+    line_search_failures: int = 0
+    largest_accepted_tolerance: float = 0.0
+    first_relaxed_step: int | None = None
+
+    def add(self, info: StepInfo, step_index: int) -> None:
+        """Count the step that started at ``step_index`` and ended as ``info``."""
+        self.steps += 1
+        self.substeps += info.substeps
+        self.retries += info.retries
+        self.retried_steps += info.retries > 0
+        self.relaxed_steps += not info.converged_strict
+        self.relaxed_accepts += info.relaxed_accepts
+        self.stalled_accepts += info.stalled_accepts
+        self.line_search_failures += info.line_search_failures
+        self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
+        if info.needs_attention and self.first_relaxed_step is None:
+            self.first_relaxed_step = int(step_index)
+
+
+@dataclass
+class _StepTerms:
+    """The incremental potential of one step, set up once before its Newton iterations
+    (:meth:`NewtonSolver._set_up_step`).
+
+    Attributes:
+        state_in: the state at the start of the step.
+        dt: step size, s.
+        fixed: Dirichlet vertices (static + effector-driven), shape ``(n,)`` bool.
+        free: free DoFs, shape ``(3 n,)`` bool.
+        x_target: prescribed positions of the fixed vertices, m, shape ``(n, 3)``.
+        poses, openings: effector poses and finger openings reached at the end of the step.
+        x_n: positions at the start, m, shape ``(n, 3)``.
+        diag: diagonal of the inertia (+ damping) Hessian, the assembler's ``diag`` argument.
+        fixed_terms: the potentials that do not change within the step (inertia, gravity,
+            [damping], elastic..., [friction], candidates...; :attr:`StepRecord.terms` without contacts).
+        elastic_terms: the elastic potentials of the step.
+        fused: the fused elastic evaluator of the Taichi path, or None.
+        loop_terms: the terms the Newton loop evaluates besides contacts (``fused`` in place of
+            the terms it covers).
+        friction: the step's lagged friction, or None.
+        cand_contact: candidate contact-like terms (their forces count in ``contact_force``).
+        dynamic_terms: the non-contact terms assembled into the dynamic pattern each iteration
+            ([friction] + candidate terms without a fused part).
+        memory: the contact memory of the step (:meth:`ContactSet.begin_step`).
+        max_displacement: cap on any vertex's move per iteration, m.
+        simplified: whether the simplified Newton test may end the step.
+        loop_energy_x, loop_energy: the positions array object the loop terms' energy (J) was last
+            evaluated at, and that energy.
+    """
+
+    state_in: State
+    dt: float
+    fixed: np.ndarray
+    free: np.ndarray
+    x_target: np.ndarray
+    poses: dict
+    openings: dict
+    x_n: np.ndarray
+    diag: np.ndarray
+    fixed_terms: list
+    elastic_terms: list
+    fused: FusedElastic | None
+    loop_terms: list
+    friction: object | None
+    cand_contact: list
+    dynamic_terms: list
+    memory: object
+    max_displacement: float
+    simplified: bool
+    loop_energy_x: np.ndarray | None = None
+    loop_energy: float = 0.0
 
 
 class NewtonSolver:
@@ -218,7 +398,13 @@ class NewtonSolver:
         model: the scene model.
         config: :class:`SolverConfig`.
 
+    Raises:
+        ConfigError: ``config.backend`` cannot start here (:func:`sim_core.backend.resolve_backend`).
+
     Attributes:
+        backend: the concrete backend of ``config.backend`` (``numpy``, ``taichi-cpu`` or
+            ``taichi-cuda``), resolved once at construction.
+        taichi_terms: the elastic terms running as Taichi twins (``"<body>:<class>"``), empty on ``numpy``.
         candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
         elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
             fused elastic term (the gel's) in a second process while this one evaluates the others, on
@@ -229,10 +415,12 @@ class NewtonSolver:
     def __init__(self, model: Model, config: SolverConfig | None = None) -> None:
         self.model = model
         self.config = config or SolverConfig()
+        self.backend = resolve_backend(self.config.backend)
+        self.taichi_terms: list[str] = []
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
-        self.contact = ContactSet(model)
+        self.contact = ContactSet(model, backend=self.backend)
         self._revision = -1
         # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
         self.candidate_hook = None
@@ -266,13 +454,17 @@ class NewtonSolver:
 
     def _new_caches(self) -> None:
         """Fresh contact set, assembler (union pattern) and fused-evaluator slot."""
-        self.contact = ContactSet(self.model)
+        self.contact = ContactSet(self.model, backend=self.backend)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
+        if uses_taichi(self.backend):
+            from sim_core.ti_kernels import use_taichi_kernels  # Taichi only on a Taichi backend
+
+            self.taichi_terms = use_taichi_kernels(self.elastic)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         if self.model.candidates:
@@ -307,18 +499,25 @@ class NewtonSolver:
                 raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
-        halvings = self.config.dt_halvings_on_failure
-        n_sub = 1
+        retries = 0
         while True:
+            n_sub = 2 ** retries
             try:
                 info = self._step_substeps(state_in, state_out, control, dt, n_sub, guess if n_sub == 1 else None)
-                info.time_total = time.perf_counter() - t0
-                return info
-            except SimulationDivergedError:
-                if halvings <= 0:
+            except SimulationDivergedError as err:
+                if retries < self.config.dt_halvings_on_failure:
+                    retries += 1
+                    continue
+                if retries == 0:
                     raise
-                halvings -= 1
-                n_sub *= 2
+                raise SimulationDivergedError(
+                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton failed at dt = {dt:g} s and at "
+                    f"every substep down to dt/{n_sub} = {dt / n_sub:.3g} s ({retries} retries, "
+                    f"SolverConfig.dt_halvings_on_failure exhausted); last failure: {err}",
+                    step_index=state_in.step_index, t=state_in.t) from err
+            info.retries = retries
+            info.time_total = time.perf_counter() - t0
+            return info
 
     def warm_up(self, state: State, control: Control | None = None) -> None:
         """Build, before the first step from ``state``, the per-model structures that step would build
@@ -340,23 +539,28 @@ class NewtonSolver:
 
     def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int,
                        guess: np.ndarray | None = None) -> StepInfo:
+        """The step of ``dt`` from ``state_in`` as ``n_sub`` substeps of ``dt / n_sub`` into ``state_out``
+        (written only when every substep succeeds); their :class:`StepInfo` summed. Every substep
+        keeps the step's index (so that a failure names it); ``state_out`` gets index + 1 and time
+        ``t + dt``."""
         s = state_in.copy()
         total = StepInfo(substeps=n_sub)
         for _ in range(n_sub):
             nxt = s.copy()
             info = self._single_step(s, nxt, control, dt / n_sub, guess=guess)
-            total.iterations += info.iterations
-            total.backtracks += info.backtracks
+            nxt.step_index = state_in.step_index
+            for name in _SUMMED_COUNTS:
+                setattr(total, name, getattr(total, name) + getattr(info, name))
             total.residual_velocity = info.residual_velocity
             total.energy = info.energy
             total.limited_effectors = sorted(set(total.limited_effectors) | set(info.limited_effectors))
-            total.time_assembly += info.time_assembly
-            total.time_linear_solve += info.time_linear_solve
-            total.projected_iterations += info.projected_iterations
-            total.released_sides += info.released_sides
-            total.factorizations += info.factorizations
-            total.simplified_stops += info.simplified_stops
+            if total.converged_strict or not info.converged_strict:
+                total.stop_reason = info.stop_reason
+            total.converged_strict = total.converged_strict and info.converged_strict
+            total.accepted_tolerance = max(total.accepted_tolerance, info.accepted_tolerance)
             s = nxt
+        s.step_index = state_in.step_index + 1
+        s.t = state_in.t + dt
         _copy_state_into(s, state_out)
         return total
 
@@ -399,29 +603,47 @@ class NewtonSolver:
         return (cfg.projection,)
 
     def _fused_path(self) -> bool:
-        """Whether the elastic terms go through :class:`FusedElastic` (``model.meta["elastic_backend"]``
-        is ``"taichi"`` and the exact Hessian is tried first)."""
-        return self.model.meta.get("elastic_backend") == "taichi" and "none" in self._projections()
+        """Whether the elastic terms go through :class:`FusedElastic` (a Taichi :attr:`backend`, and the
+        exact Hessian is tried first)."""
+        return uses_taichi(self.backend) and "none" in self._projections()
 
     def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray) -> FusedElastic | None:
         """The step's fused elastic evaluator (Taichi kernels) bound to the assembler's static
-        pattern, when ``model.meta["elastic_backend"] == "taichi"`` and the exact Hessian is tried
-        first; else None (the reference potentials)."""
+        pattern, on a Taichi :attr:`backend` when the exact Hessian is tried first; else None (the
+        reference potentials)."""
         if not self._fused_path():
             return None
-        from sim_core.ti_backend import current_arch
-
         self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)
-        self._fused.offload = self.elastic_worker if current_arch() == "cpu" else None
+        self._fused.offload = self.elastic_worker if self.backend == "taichi-cpu" else None
         return self._fused
 
     def _single_step(self, state_in: State, state_out: State, control: Control, dt: float,
                      guess: np.ndarray | None = None) -> StepInfo:
+        """One implicit-Euler step of ``dt`` from ``state_in`` into ``state_out`` (no dt halving).
+
+        Sets up the step's incremental potential (:meth:`_set_up_step`), runs the Newton iterations
+        (:meth:`_newton_iterations`) and writes the outputs (:meth:`_finish_step`).
+
+        Raises:
+            SimulationDivergedError: non-finite gradient or Newton update, a line search that failed
+                with no relaxed acceptance and no stale contact side to release, or no convergence in
+                ``max_iterations`` (the message names the step index and time).
+        """
+        info = StepInfo()
+        step, x = self._set_up_step(state_in, control, dt, guess, info)
+        x, H, projection, factorization = self._newton_iterations(step, x, guess is not None, info)
+        self._finish_step(step, x, H, projection, factorization, state_out, info)
+        return info
+
+    # -------------------------------------------------------------- the parts of one step
+    def _set_up_step(self, state_in: State, control: Control, dt: float, guess: np.ndarray | None,
+                     info: StepInfo) -> tuple[_StepTerms, np.ndarray]:
+        """The step's Dirichlet data and the terms of its incremental potential, and the first iterate
+        (``guess`` or ``x^n``, with the fixed vertices at their targets), shape ``(n, 3)``."""
         cfg = self.config
         model = self.model
-        info = StepInfo()
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
         free = np.repeat(~fixed, 3)
         x_n = state_in.x
@@ -462,153 +684,97 @@ class NewtonSolver:
             [fixed_terms[1]] if not np.any(model.gravity) else [])
         loop_terms = [p for p in fixed_terms if not any(p is q for q in replaced)] + ([fused] if fused is not None else [])
         cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fused_body)]
-        max_disp = cfg.max_displacement or (0.5 * model.contact.eps + 2e-3)
-
-        fixed_energy: list = [None, 0.0]  # (positions, energy of fixed_terms there) of the last call
-
-        def total(xx: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
-            # fixed_terms do not change within the step: their energy at the accepted line-search
-            # point is the next iteration's e0 part (same array object, same value)
-            if fixed_energy[0] is not xx:
-                fixed_energy[:] = [xx, sum(p.energy(xx) for p in loop_terms)]
-            if not self.contact.covers(x_search, xx):
-                # a trial point beyond the iterate's candidate list: search again, so that every
-                # trial point is measured with the same energy (no pair left out)
-                contact_terms = self.contact.potentials(xx, x_n, memory)
-            return fixed_energy[1] + sum(p.energy(xx) for p in contact_terms)
-
-        converged = False
-        residual = np.inf
-        history: list[float] = []
         # the simplified Newton test (SolverConfig.simplified_newton_check): only with the library's
         # penalty contacts and lagged friction (a candidate's adhesion or stiction may switch within a
-        # step), and only after an iteration that factorised the exact Hessian and took its full step
+        # step)
         simplified = (cfg.simplified_newton_check > 0 and not (cand_contact or cand_body)
                       and (friction is None or isinstance(friction, LaggedFriction)))
+        step = _StepTerms(
+            state_in=state_in, dt=dt, fixed=fixed, free=free, x_target=x_target, poses=poses, openings=openings,
+            x_n=x_n, diag=diag, fixed_terms=fixed_terms, elastic_terms=elastic_terms, fused=fused,
+            loop_terms=loop_terms, friction=friction, cand_contact=cand_contact,
+            dynamic_terms=([friction] if friction is not None else []) + cand_dynamic, memory=memory,
+            max_displacement=cfg.max_displacement or (0.5 * model.contact.eps + 2e-3), simplified=simplified,
+        )
+        return step, x
+
+    def _newton_iterations(self, step: _StepTerms, x: np.ndarray, guessed: bool,
+                           info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
+        """Newton iterations from ``x`` until a stopping test accepts an iterate (:meth:`_stop_reason`,
+        the simplified Newton test, rate stopping, or a failed line search at a relaxed tolerance).
+
+        Records in ``info`` the iterations, the residual, how the step ended (``stop_reason``,
+        ``accepted_tolerance``, ``converged_strict``) and the line-search and relaxed-acceptance counts.
+
+        Returns:
+            ``(x, H, projection, factorization)``: the accepted positions ``(n, 3)`` in m, the
+            upper triangle of the last Newton matrix, its element-Hessian projection and the solver
+            holding its factorisation.
+
+        Raises:
+            SimulationDivergedError: see :meth:`_single_step`.
+        """
+        cfg = self.config
+        dt = step.dt
+        residual = np.inf
+        history: list[float] = []  # scaled Newton update sizes (m/s), one per iteration
+        # the simplified Newton test runs only after an iteration that factorised the exact Hessian and
+        # took its full step (simplified_ok), at the same touching contacts (active_before)
         simplified_ok = False
         active_before = None
+        H, projection, factorization = None, cfg.projection, self.linear_solver
         for it in range(1, cfg.max_iterations + 1):
-            ta = time.perf_counter()
-            contact_terms = self.contact.potentials(x, x_n, memory)
-            x_search = self.contact.search_position
-            terms = loop_terms + contact_terms
-            g = sum(p.gradient(x) for p in terms).reshape(-1)
-            g[~free] = 0.0
-            if not np.all(np.isfinite(g)):
-                raise SimulationDivergedError(
-                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): non-finite gradient at Newton iteration {it}"
-                )
-            dynamic_terms = contact_terms + ([friction] if friction is not None else []) + cand_dynamic
-            info.time_assembly += time.perf_counter() - ta
+            contact_terms, x_search, g = self._gradient(step, x, it, info)
             if (simplified_ok and active_before is not None
                     and same_active_contacts(active_contacts(contact_terms, x), active_before)):
-                tl = time.perf_counter()
-                d_bar = self.linear_solver.solve(g)
-                d_bar[~free] = 0.0
-                residual_bar = _largest_move(d_bar) / dt
-                info.time_linear_solve += time.perf_counter() - tl
+                residual_bar = self._simplified_correction(step, g, info)
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
-                    residual = residual_bar
-                    converged = True
-                    info.iterations = it
                     info.simplified_stops = 1
-                    break
+                    self._accept(info, it, residual_bar, "simplified")
+                    return x, H, projection, factorization
             active_before = None
-            d = None
-            factorization = self.linear_solver
-            for projection in self._projections():
-                ta = time.perf_counter()
-                if fused is not None:
-                    values = (fused.hessian_values(x) if projection == "none"
-                              else fused.projected_hessian_values(x, projection))
-                    H = self.assembler.assemble_upper_values(fused.pattern, values,
-                                                             [p.hessian(x, projection) for p in dynamic_terms],
-                                                             diag, free)
-                else:
-                    H = self.assembler.assemble_upper([p.hessian(x, projection) for p in elastic_terms],
-                                                      [p.hessian(x, projection) for p in dynamic_terms], diag, free)
-                tl = time.perf_counter()
-                info.time_assembly += tl - ta
-                info.factorizations += 1
-                if self.linear_solver.factorize(H):
-                    d = -self.linear_solver.solve(g)
-                    info.projected_iterations += projection != "none"
-                info.time_linear_solve += time.perf_counter() - tl
-                if d is not None:
-                    break
-            if d is None:  # projection="none" and not positive definite: general LU as before
-                tl = time.perf_counter()
-                info.factorizations += 1
-                self.general_solver().factorize(self._full_from_upper(H))
-                d = -self._general_solver.solve(g)
-                factorization = self._general_solver
-                info.time_linear_solve += time.perf_counter() - tl
-            d[~free] = 0.0
-            if not np.all(np.isfinite(d)):
-                raise SimulationDivergedError(
-                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): linear solve produced NaN at iteration {it}"
-                )
+            d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
             d3 = d.reshape(-1, 3)
             step_max = _largest_move(d)
             residual = step_max / dt
             history.append(residual)
-            stalled = (
-                len(history) > cfg.stall_iterations
-                and residual < 10.0 * cfg.tol_velocity
-                and residual > 0.9 * history[-1 - cfg.stall_iterations]
-            )
-            if residual < cfg.tol_velocity or float(np.max(np.abs(g))) < cfg.tol_force or stalled:
-                if not (guess is not None and it == 1):
-                    converged = True
-                    info.iterations = it
-                    break
+            reason = self._stop_reason(residual, g, history)
+            if reason is not None:
+                if not (guessed and it == 1):
+                    self._accept(info, it, residual, reason)
+                    return x, H, projection, factorization
                 # a guess already within the tolerance: take its Newton correction (no line search:
                 # a step this small is in the quadratic region) and test again, so that the result
                 # is the guess corrected to second order, not the guess itself (which would tie
                 # nearby replays to the one the guess came from: finite differences would vanish)
                 x = x + d3
                 continue
-            if simplified and projection == "none" and factorization is self.linear_solver:
+            if step.simplified and projection == "none" and factorization is self.linear_solver:
                 # the contacts touching at x, for the simplified test at the next iterate (which needs
                 # this iteration's exact factorisation)
                 active_before = active_contacts(contact_terms, x)
-            alpha = min(1.0, max_disp / step_max) if step_max > 0 else 1.0
-            e0 = total(x, contact_terms, x_search)
+            alpha = min(1.0, step.max_displacement / step_max) if step_max > 0 else 1.0
+            e0 = self._energy(step, x, contact_terms, x_search)
             slope = float(g @ d)
             if slope >= 0:  # not a descent direction (should not happen with a PD matrix)
                 d = -g
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
-            full_step = alpha == 1.0
             # rate stopping ends the step on this update if it is taken in full
             rate_stop = cfg.rate_stopping and len(history) > 1 and _rate_stops(history, cfg.tol_velocity)
             # the elastic terms' (and the Taichi friction's and the pair contacts') energy, gradient and
             # Hessian at the first trial point in one evaluation when, once accepted (backtracks are
             # rare), it is the next iterate
-            prefetch = fused is not None and not (full_step and rate_stop)
-            for backtrack in range(cfg.max_backtracks):
-                x_new = x + alpha * d3
-                if prefetch and backtrack == 0:
-                    fused.evaluate(x_new)
-                    if friction is not None and hasattr(friction, "evaluate"):
-                        friction.evaluate(x_new)
-                    if self.contact.covers(x_search, x_new):  # else total() searches again: new pairs
-                        for p in contact_terms:
-                            if hasattr(p, "keep_derivatives"):
-                                p.keep_derivatives(x_new)
-                if total(x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
-                    break
-                alpha *= 0.5
-                info.backtracks += 1
-                full_step = False
-            else:
-                if abs(slope) <= 1e-12 * max(abs(e0), 1e-30) or residual < 100.0 * cfg.tol_velocity:
-                    # The predicted decrease is below the round-off of the energy: x is stationary
-                    # to working precision (the gradient is zero up to floating-point error).
-                    converged = True
-                    info.iterations = it
-                    break
-                released = self.contact.release_stale_sides(x, memory)
+            prefetch = step.fused is not None and not (alpha == 1.0 and rate_stop)
+            x_new, backtracks = self._line_search(step, x, d3, alpha, e0, slope, contact_terms, x_search,
+                                                  prefetch, info)
+            if x_new is None:
+                info.line_search_failures += 1
+                reason = self._line_search_failure_acceptance(slope, e0, residual)
+                if reason is not None:
+                    self._accept(info, it, residual, reason)
+                    return x, H, projection, factorization
+                released = self.contact.release_stale_sides(x, step.memory)
                 if released:
                     # a pair gone round its partner kept a side that puts a step in the energy where
                     # x stands (ContactSet.release_stale_sides); unsigned, the energy at x is the same
@@ -616,59 +782,243 @@ class NewtonSolver:
                     info.released_sides += released
                     simplified_ok = False  # x did not move, its energy did: no test at the next iteration
                     continue
-                raise SimulationDivergedError(
-                    f"step {state_in.step_index} (t = {state_in.t:.6g} s): line search failed at Newton iteration {it} "
-                    f"(no decrease along the Newton direction; residual {residual:.3g} m/s)"
-                )
+                raise self._diverged(step, f"line search failed at Newton iteration {it} (no decrease along "
+                                           f"the Newton direction; residual {residual:.3g} m/s)")
             x = x_new
-            simplified_ok = (simplified and full_step and projection == "none"
+            full_step = alpha == 1.0 and backtracks == 0
+            simplified_ok = (step.simplified and full_step and projection == "none"
                              and factorization is self.linear_solver)
-            if backtrack >= cfg.stale_side_backtracks:
+            if backtracks >= cfg.stale_side_backtracks:
                 # a line search this short may be Newton creeping up to a step in the energy from a
                 # stale side (ContactSet.release_stale_sides); nothing changes when there is none
-                info.released_sides += self.contact.release_stale_sides(x, memory)
+                info.released_sides += self.contact.release_stale_sides(x, step.memory)
             if rate_stop and full_step:
                 theta = residual / history[-2]
-                residual *= theta / (1.0 - theta)  # the estimated remaining error
-                converged = True
-                info.iterations = it
+                self._accept(info, it, residual * (theta / (1.0 - theta)), "rate")  # the estimated remaining error
+                return x, H, projection, factorization
+        raise self._diverged(
+            step, f"Newton did not converge in {cfg.max_iterations} iterations (residual {residual:.3g} m/s > "
+                  f"tol {cfg.tol_velocity:g}; last residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; "
+                  f"{info.backtracks} backtracks)")
+
+    def _gradient(self, step: _StepTerms, x: np.ndarray, it: int,
+                  info: StepInfo) -> tuple[list, np.ndarray | None, np.ndarray]:
+        """The contact potentials at ``x``, the position their candidate search was made at, and the
+        free-DoF gradient of the incremental potential at ``x`` (J/m, shape ``(3 n,)``, zero on fixed
+        DoFs).
+
+        Raises:
+            SimulationDivergedError: the gradient is not finite.
+        """
+        ta = time.perf_counter()
+        contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        x_search = self.contact.search_position
+        g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
+        g[~step.free] = 0.0
+        if not np.all(np.isfinite(g)):
+            raise self._diverged(step, f"non-finite gradient at Newton iteration {it}")
+        info.time_assembly += time.perf_counter() - ta
+        return contact_terms, x_search, g
+
+    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> float:
+        """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
+        last factorisation (``SolverConfig.simplified_newton_check``)."""
+        tl = time.perf_counter()
+        d_bar = self.linear_solver.solve(g)
+        d_bar[~step.free] = 0.0
+        info.time_linear_solve += time.perf_counter() - tl
+        return _largest_move(d_bar) / step.dt
+
+    def _assemble_hessian(self, step: _StepTerms, x: np.ndarray, projection: str,
+                          dynamic_terms: list) -> sp.csr_matrix:
+        """Upper triangle (CSR) of the constrained Newton matrix at ``x`` with element Hessians
+        projected by ``projection`` ("none": exact)."""
+        fused = step.fused
+        if fused is not None:
+            values = (fused.hessian_values(x) if projection == "none"
+                      else fused.projected_hessian_values(x, projection))
+            return self.assembler.assemble_upper_values(fused.pattern, values,
+                                                        [p.hessian(x, projection) for p in dynamic_terms],
+                                                        step.diag, step.free)
+        return self.assembler.assemble_upper([p.hessian(x, projection) for p in step.elastic_terms],
+                                             [p.hessian(x, projection) for p in dynamic_terms], step.diag, step.free)
+
+    def _newton_direction(self, step: _StepTerms, x: np.ndarray, g: np.ndarray, contact_terms: list, it: int,
+                          info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
+        """The Newton update ``d = -H^{-1} g`` (m, shape ``(3 n,)``, zero on fixed DoFs): the exact
+        Hessian when it factorises as positive definite, else the projected one (:meth:`_projections`),
+        else (``projection="none"``, indefinite) the general LU.
+
+        Returns:
+            ``(d, H, projection, factorization)``: the update, the upper triangle of the matrix it
+            solved with, that matrix's projection and the solver holding its factorisation.
+
+        Raises:
+            SimulationDivergedError: the update is not finite.
+        """
+        dynamic_terms = contact_terms + step.dynamic_terms
+        d = None
+        factorization = self.linear_solver
+        for projection in self._projections():
+            ta = time.perf_counter()
+            H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            tl = time.perf_counter()
+            info.time_assembly += tl - ta
+            info.factorizations += 1
+            if self.linear_solver.factorize(H):
+                d = -self.linear_solver.solve(g)
+                info.projected_iterations += projection != "none"
+            info.time_linear_solve += time.perf_counter() - tl
+            if d is not None:
                 break
-        if not converged:
-            raise SimulationDivergedError(
-                f"step {state_in.step_index} (t = {state_in.t:.6g} s): Newton did not converge in "
-                f"{cfg.max_iterations} iterations (residual {residual:.3g} m/s > tol {cfg.tol_velocity:g}; last "
-                f"residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; {info.backtracks} backtracks)"
-            )
+        if d is None:  # projection="none" and not positive definite: the general LU
+            tl = time.perf_counter()
+            info.factorizations += 1
+            factorization = self.general_solver()
+            factorization.factorize(self._full_from_upper(H))
+            d = -factorization.solve(g)
+            info.time_linear_solve += time.perf_counter() - tl
+        d[~step.free] = 0.0
+        if not np.all(np.isfinite(d)):
+            raise self._diverged(step, f"linear solve produced NaN at iteration {it}")
+        return d, H, projection, factorization
+
+    def _energy(self, step: _StepTerms, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
+        """The incremental potential at ``x`` (J): the loop terms' energy, kept for the same array
+        object (the accepted line-search point is the next iteration's ``e0``), plus the contacts'."""
+        if step.loop_energy_x is not x:
+            step.loop_energy_x, step.loop_energy = x, sum(p.energy(x) for p in step.loop_terms)
+        if not self.contact.covers(x_search, x):
+            # a trial point beyond the iterate's candidate list: search again, so that every
+            # trial point is measured with the same energy (no pair left out)
+            contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        return step.loop_energy + sum(p.energy(x) for p in contact_terms)
+
+    def _line_search(self, step: _StepTerms, x: np.ndarray, d3: np.ndarray, alpha: float, e0: float, slope: float,
+                     contact_terms: list, x_search: np.ndarray | None, prefetch: bool,
+                     info: StepInfo) -> tuple[np.ndarray | None, int]:
+        """Backtracking (halving) line search from ``alpha`` along ``d3`` ``(n, 3)`` until the Armijo
+        condition ``E(x + a d) <= E(x) + c a g.d`` holds (``c = armijo_c``, ``slope = g.d``).
+
+        ``prefetch``: evaluate the fused elastic terms, the Taichi friction and the pair contacts with
+        their derivatives at the first trial point.
+
+        Returns:
+            ``(x_new, backtracks)``: the accepted point ``(n, 3)`` and the halvings it took, or
+            ``(None, max_backtracks)`` when ``max_backtracks`` halvings found no decrease.
+        """
+        cfg = self.config
+        for backtrack in range(cfg.max_backtracks):
+            x_new = x + alpha * d3
+            if prefetch and backtrack == 0:
+                step.fused.evaluate(x_new)
+                if step.friction is not None and hasattr(step.friction, "evaluate"):
+                    step.friction.evaluate(x_new)
+                if self.contact.covers(x_search, x_new):  # else _energy searches again: new pairs
+                    for p in contact_terms:
+                        if hasattr(p, "keep_derivatives"):
+                            p.keep_derivatives(x_new)
+            if self._energy(step, x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
+                return x_new, backtrack
+            alpha *= 0.5
+            info.backtracks += 1
+        return None, cfg.max_backtracks
+
+    def _stop_reason(self, residual: float, g: np.ndarray, history: list[float]) -> str | None:
+        """The convergence test of an iterate with Newton update of scaled size ``residual`` (m/s) and
+        free-DoF gradient ``g`` (J/m): ``"velocity"`` (``residual < tol_velocity``), ``"force"``
+        (``max |g| < tol_force``), ``"stalled"`` (relaxed: ``residual`` below ``stall_tolerance_factor
+        * tol_velocity`` and not 10 % below the residual ``stall_iterations`` iterations earlier), or
+        None (not converged)."""
+        cfg = self.config
+        if residual < cfg.tol_velocity:
+            return "velocity"
+        if float(np.max(np.abs(g))) < cfg.tol_force:
+            return "force"
+        if (len(history) > cfg.stall_iterations and residual < cfg.stall_tolerance_factor * cfg.tol_velocity
+                and residual > 0.9 * history[-1 - cfg.stall_iterations]):
+            return "stalled"
+        return None
+
+    def _line_search_failure_acceptance(self, slope: float, e0: float, residual: float) -> str | None:
+        """Whether an iterate whose line search failed is accepted (relaxed): ``"line_search_roundoff"``
+        when the predicted decrease ``|g.d|`` is below ``stationary_slope_rtol * |E|`` (x is stationary
+        to working precision), ``"line_search_relaxed"`` when ``residual`` (m/s) is below
+        ``line_search_tolerance_factor * tol_velocity``; else None."""
+        cfg = self.config
+        if abs(slope) <= cfg.stationary_slope_rtol * max(abs(e0), 1e-30):
+            return "line_search_roundoff"
+        if residual < cfg.line_search_tolerance_factor * cfg.tol_velocity:
+            return "line_search_relaxed"
+        return None
+
+    def _accept(self, info: StepInfo, it: int, residual: float, reason: str) -> None:
+        """Record in ``info`` that iteration ``it`` ended the step with ``residual`` (m/s) by the stopping
+        test ``reason`` (:data:`STRICT_STOPS` or a relaxed one, which is counted)."""
+        cfg = self.config
+        info.iterations = it
         info.residual_velocity = residual
+        info.stop_reason = reason
+        info.converged_strict = reason in STRICT_STOPS
+        if reason in STRICT_STOPS:
+            info.accepted_tolerance = cfg.tol_velocity
+            return
+        info.relaxed_accepts += 1
+        if reason == "stalled":
+            info.stalled_accepts += 1
+            info.accepted_tolerance = cfg.stall_tolerance_factor * cfg.tol_velocity
+        elif reason == "line_search_relaxed":
+            info.accepted_tolerance = cfg.line_search_tolerance_factor * cfg.tol_velocity
+        else:  # the round-off test bounds the predicted energy decrease, not the residual
+            info.accepted_tolerance = np.inf
+
+    @staticmethod
+    def _diverged(step: _StepTerms, what: str) -> SimulationDivergedError:
+        """A :class:`SimulationDivergedError` naming the step index and time of ``step``."""
+        state = step.state_in
+        return SimulationDivergedError(f"step {state.step_index} (t = {state.t:.6g} s): {what}",
+                                       step_index=state.step_index, t=state.t)
+
+    def _finish_step(self, step: _StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
+                     factorization: LinearSolver | SymmetricSolver, state_out: State, info: StepInfo) -> None:
+        """Write the step's outputs at the accepted positions ``x`` ``(n, 3)`` into ``state_out``, its
+        energy into ``info``, and keep the adjoint's :class:`StepRecord` and factorisation."""
+        model = self.model
+        state_in, dt, x_n = step.state_in, step.dt, step.x_n
         # a step ended by the simplified Newton test has the matrix of the iterate before x
         exact = projection == "none" and not info.simplified_stops
-        self.last_free_mask = free
+        self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
-        contact_terms = self.contact.potentials(x, x_n, memory)
-        info.energy = total(x, contact_terms, self.contact.search_position)
+        contact_terms = self.contact.potentials(x, x_n, step.memory)
+        info.energy = self._energy(step, x, contact_terms, self.contact.search_position)
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=fixed, x_target=x_target,
-            effector_pose={k: np.array(v) for k, v in poses.items()}, gripper_opening=dict(openings),
-            limited_effectors=list(info.limited_effectors), terms=fixed_terms + contact_terms,
-            hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H, free_dofs=free,
-            hessian_exact=exact, expansion=self._full_from_upper,
+            dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
+            x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
+            gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
+            terms=step.fixed_terms + contact_terms,
+            hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
+            free_dofs=step.free, hessian_exact=exact, expansion=self._full_from_upper,
         )
-        # ---- outputs
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
         state_out.v = (x - x_n) / dt
-        state_out.effector_pose = {k: np.array(v) for k, v in poses.items()}
-        state_out.gripper_opening = dict(openings)
+        state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
+        state_out.gripper_opening = dict(step.openings)
         force = np.zeros_like(x)
-        for p in contact_terms + ([friction] if friction is not None else []) + cand_contact:
+        for p in contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact:
             force -= p.gradient(x)
         state_out.contact_force = force
-        state_out.contact_memory = self.contact.end_step(x, memory)
+        state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
         if self.candidate_hook is not None:
             state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
-        return info
+
+
+_SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
+                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
+                  "line_search_failures")
+"""The :class:`StepInfo` fields summed over the substeps of a step."""
 
 
 def _largest_move(d: np.ndarray) -> float:
@@ -685,12 +1035,6 @@ def _rate_stops(history: list[float], tol_velocity: float) -> bool:
     ``tol_velocity``."""
     theta = history[-1] / history[-2]
     return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity
-
-
-def _constrain(H: sp.csr_matrix, free: np.ndarray) -> sp.csr_matrix:
-    """Zero fixed rows/columns and put 1 on their diagonal: ``D H D + (I - D)``."""
-    D = sp.diags(free.astype(float))
-    return (D @ H @ D + sp.diags((~free).astype(float))).tocsr()
 
 
 def _copy_state_into(src: State, dst: State) -> None:

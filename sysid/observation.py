@@ -45,14 +45,14 @@ SENSOR_PARAMETERS = ("sensor.normal_offset",)
 (m) moves the replayed effector along the sensor normal (+ = into the contact), i.e. it corrects where
 contact begins for an error of the mount or of the effector's height calibration."""
 
-REPLAY_DT_HALVINGS = 3
-"""A replay step whose Newton solve fails is retried with dt/2, dt/4 and dt/8 before the replay is given
-up (``SolverConfig.dt_halvings_on_failure``): one hard step (a contact switching under a fast
-motion) then costs a few substeps instead of the whole recording."""
-
 NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_points": 1e-7}
 """Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
 would otherwise get an infinite weight."""
+
+
+REPLAY_DT_HALVINGS = 4
+"""Substep retries of a replay step whose Newton solve fails (``SolverConfig.dt_halvings_on_failure``):
+dt/2, dt/4, ... down to dt/16 before the replay gives up; ``Simulation.step_totals`` counts them."""
 
 
 class ObservationWarning(UserWarning):
@@ -334,20 +334,17 @@ class ObservationModel:
         return int(self.step_times_ns.shape[0] - 1)
 
     def simulation(self):
-        """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``."""
+        """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, retrying a failed
+        step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its ``step_totals``)."""
         if self._sim is None:
+            from sim_core.backend import backend_of_arch
             from sim_core.scenes import load_scene
             from sim_core.simulation import Simulation
             from sim_core.solver import SolverConfig
 
-            if self.arch != "numpy":
-                from sim_core.ti_backend import init_backend
-
-                init_backend(self.arch)  # idempotent; raises ConfigError naming the problem
-            self._sim = Simulation(load_scene(self.scene), dt=self.dt,
-                                   solver_config=SolverConfig(dt_halvings_on_failure=REPLAY_DT_HALVINGS))
-            if self.arch != "numpy":
-                self._sim.model.meta["elastic_backend"] = "taichi"
+            # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
+            config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
+            self._sim = Simulation(load_scene(self.scene), dt=self.dt, solver_config=config)
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
         return self._sim
 

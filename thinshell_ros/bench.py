@@ -6,9 +6,10 @@
   the first step). ``--json`` prints one JSON line instead.
 * ``bench scale``: flat sheets of about 1k, 10k and 100k DoF under gravity, one edge clamped; time
   per step and peak resident memory; all three by default, ``--max-dofs`` skips the larger cases.
-* ``--arch``: ``numpy`` (NumPy reference potentials), ``cpu`` (default) or ``cuda`` (Taichi element
-  kernels of ``sim_core.ti_kernels`` after ``sim_core.ti_backend.init_backend``: the fused elastic
-  kernels of ``sim_core.fused_elastic`` in the Newton loop, compiled before the timed steps).
+* ``--arch``: ``numpy``, ``cpu`` (default) or ``cuda``: the solver backend ``numpy``, ``taichi-cpu``
+  or ``taichi-cuda`` (``SolverConfig.backend``, :mod:`sim_core.backend`; the Taichi ones run the fused
+  elastic kernels of ``sim_core.fused_elastic`` in the Newton loop, compiled before the timed steps).
+  The sim node runs the same backends (its ``backend`` parameter).
 * ``bench node`` / ``bench diagnose``: dispatched to ``thinshell_ros.bench_node.bench_node_main`` and
   ``sysid.diagnose_bench.bench_diagnose_main``.
 """
@@ -68,29 +69,33 @@ def _default_scene(name: str) -> Path:
 
 
 def _check_arch(arch: str) -> str | None:
-    """Validate ``--arch`` and, for ``cpu`` / ``cuda``, initialise Taichi; an error message or None."""
+    """Validate ``--arch`` and start its backend (:func:`sim_core.backend.resolve_backend`: Taichi
+    initialised for ``cpu`` / ``cuda``); an error message or None."""
     if arch not in SUPPORTED_ARCHS:
         return f"--arch {arch}: unknown backend (supported: {', '.join(SUPPORTED_ARCHS)})"
-    if arch == "numpy":
-        return None
+    from sim_core.backend import backend_of_arch, resolve_backend
     from sim_core.errors import ConfigError
-    from sim_core.ti_backend import init_backend
 
     try:
-        init_backend(arch)
+        resolve_backend(backend_of_arch(arch))
     except ConfigError as err:
         return f"--arch {arch}: {err}"
     return None
 
 
-def _select_backend(sim, arch: str) -> list[str]:
-    """Put the simulation's elastic terms on the Taichi kernels for ``arch`` cpu/cuda; returns them."""
-    if arch == "numpy":
-        return []
-    from sim_core.ti_kernels import use_taichi_kernels
+def bench_simulation(model, arch: str):
+    """The :class:`sim_core.simulation.Simulation` of ``model`` on the backend of ``arch`` (``numpy``,
+    ``cpu``, ``cuda``: ``SolverConfig.backend`` ``numpy``, ``taichi-cpu``, ``taichi-cuda``), the
+    solver's other settings at their defaults (what the sim node runs with ``backend`` set alike).
 
-    sim.model.meta["elastic_backend"] = "taichi"
-    return use_taichi_kernels(sim.solver.elastic)
+    Raises:
+        ConfigError: unknown arch, or a Taichi arch that cannot start here.
+    """
+    from sim_core.backend import backend_of_arch
+    from sim_core.simulation import Simulation
+    from sim_core.solver import SolverConfig
+
+    return Simulation(model, solver_config=SolverConfig(backend=backend_of_arch(arch)))
 
 
 def _compile_kernels(sim, arch: str) -> float:
@@ -131,13 +136,12 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
     """
     from sim_core.control import Control
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.simulation import Simulation
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
 
     t_build = time.perf_counter()
     model = load_task_scene(scene)
-    sim = Simulation(model)
-    taichi_terms = _select_backend(sim, arch)
+    sim = bench_simulation(model, arch)
+    taichi_terms = list(sim.solver.taichi_terms)
     sim.state = task_initial_state(model)
     sim.solver.elastic_worker = elastic_worker
     jit_s = _compile_kernels(sim, arch)
@@ -185,6 +189,7 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         "jit_s": jit_s,
         "forward_total_s": total,
         "arch": arch,
+        "backend": sim.solver.backend,
         "taichi_terms": taichi_terms,
         "linear_solver": sim.solver.linear_solver.name,
         "peak_rss_mib": peak_rss_mib(),
@@ -289,15 +294,12 @@ def run_scale(max_dofs: int, steps: int, arch: str = "numpy") -> list[dict]:
         one record per case: ``dofs``, ``step_time_s`` (mean), ``newton_iters_mean``, shares,
         ``peak_rss_mib`` (process peak after the case; cases run smallest first).
     """
-    from sim_core.simulation import Simulation
-
     out = []
     for target in SCALE_TARGET_DOFS:
         if target > max_dofs:
             continue
         model = scale_model(target)
-        sim = Simulation(model)
-        _select_backend(sim, arch)
+        sim = bench_simulation(model, arch)
         _compile_kernels(sim, arch)  # JIT outside the timed steps
         times, iters, ta, tl = [], [], 0.0, 0.0
         for _ in range(steps):
@@ -332,14 +334,14 @@ def bench_main(argv: list[str] | None = None) -> int:
     (Newton matrices factorised per step, a projected fallback's failed exact one included),
     ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``jit_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
-    ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``elastic_worker`` (the gel's term ran in a
+    ``backend`` (``SolverConfig.backend`` of ``arch``), ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``elastic_worker`` (the gel's term ran in a
     worker process, :mod:`sim_core.elastic_worker`), ``worker_peak_rss_mib`` (that process's peak
     RSS, or null), ``python``, ``python_executable`` (the
     interpreter binary, symlinks resolved), ``numpy`` (and ``backward_*`` with ``--backward``); of
     ``scale`` one line ``{"bench": "scale", "cases": [...]}``.
 
-    ``--arch``: ``numpy`` runs the NumPy reference potentials; ``cpu`` (default) and ``cuda``
-    initialise Taichi (:func:`sim_core.ti_backend.init_backend`): the Newton loop evaluates the
+    ``--arch``: ``numpy`` runs the NumPy reference potentials (backend ``numpy``); ``cpu`` (default)
+    and ``cuda`` run the backends ``taichi-cpu`` / ``taichi-cuda`` (:mod:`sim_core.backend`): the Newton loop evaluates the
     elastic terms with the fused kernels of :mod:`sim_core.fused_elastic` (energy, gradient and exact
     Hessian in one launch per potential), and the StVK membrane and Stable Neo-Hookean terms of the
     projected fallback run on their Taichi twins (``taichi_terms`` lists them). The kernels are

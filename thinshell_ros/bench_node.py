@@ -26,6 +26,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
+from sim_core.backend import BACKEND_CHOICES
 from thinshell_ros import conversions as cv
 from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
 
@@ -111,7 +112,7 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
 
 
 def bench_node_main(argv: Sequence[str]) -> int:
-    """``thinshell bench node [--scene S] [--mode realtime|fast] [--window s] [--commands N] [--json]``.
+    """``thinshell bench node [--scene S] [--mode realtime|fast] [--backend B] [--window s] [--commands N] [--json]``.
 
     Starts the sim node in a subprocess on ``ROS_DOMAIN_ID`` (default: derived from the pid, so as not
     to disturb a live graph), measures it and prints a summary (one JSON line with ``--json``).
@@ -121,6 +122,8 @@ def bench_node_main(argv: Sequence[str]) -> int:
     parser = argparse.ArgumentParser(prog="thinshell bench node", description=bench_node_main.__doc__.split("\n")[0])
     parser.add_argument("--scene", default="", help="scene file (default: the bundled press_slide scene)")
     parser.add_argument("--mode", choices=("realtime", "fast"), default="realtime")
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default="auto",
+                        help="the node's solver backend (its 'backend' parameter; default auto, as the node's)")
     parser.add_argument("--window", type=float, default=3.0, help="wall seconds for the real-time factor")
     parser.add_argument("--commands", type=int, default=20, help="latency probes")
     parser.add_argument("--timeout", type=float, default=120.0, help="wall seconds to wait for the node")
@@ -130,7 +133,7 @@ def bench_node_main(argv: Sequence[str]) -> int:
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"mode:={args.mode}",
-           "-p", "rate:=0.0", "-p", "mesh_rate:=0.0"]
+           "-p", "rate:=0.0", "-p", "mesh_rate:=0.0", "-p", f"backend:={args.backend}"]
     if args.scene:
         cmd += ["-p", f"scene:={args.scene}"]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -145,7 +148,7 @@ def bench_node_main(argv: Sequence[str]) -> int:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
-    result = {"bench": "node", "mode": args.mode, **result}
+    result = {"bench": "node", "mode": args.mode, "backend": args.backend, **result}
     if args.json:
         print(json.dumps(result))
     else:

@@ -3,6 +3,10 @@
 Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yaml``):
 
 - ``scene`` (str): scene file; default the bundled ``config/scenes/press_slide.yaml``.
+- ``backend`` (str): the solver backend (``SolverConfig.backend``, :mod:`sim_core.backend`):
+  ``auto`` (default: the fastest available, Taichi's CUDA or CPU kernels, else NumPy), ``numpy``,
+  ``taichi-cpu``, ``taichi-cuda`` (``thinshell bench forming --arch cpu`` measures ``taichi-cpu``).
+  Not used when the node is given a built simulation (its solver's backend stands).
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
@@ -18,6 +22,13 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
+
+Solver diagnostics: a step accepted above the solver's strict tolerance (``StepInfo.converged_strict``
+false: a stalled residual or a failed line search accepted at a relaxed tolerance) or taken in
+retried substeps (``StepInfo.retries``) is logged as a warning and published as a ``WARN``
+``diagnostic_msgs/DiagnosticStatus`` on ``/diagnostics`` (the ROS diagnostics convention); a failed
+step as ``ERROR``; the next strictly converged step after either as ``OK``. The status is named
+``<node name>: solver`` and its values say how the step ended (:func:`solver_status`).
 """
 
 from __future__ import annotations
@@ -27,6 +38,7 @@ import sys
 import time
 from typing import Any, Sequence
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
@@ -37,7 +49,9 @@ from std_msgs.msg import Float64
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker
 
+from sim_core.backend import BACKEND_CHOICES, check_backend
 from sim_core.errors import ConfigError, ThinShellError
+from sim_core.solver import NewtonSolver, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
@@ -48,6 +62,49 @@ MODES = ("realtime", "fast", "stepped")
 
 MAX_CONSECUTIVE_FAILURES = 3
 """Failed steps in a row (with the effectors held) after which the node pauses itself."""
+
+DIAGNOSTICS_TOPIC = "/diagnostics"
+"""Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
+
+
+def solver_status(name: str, t: float, info: StepInfo | None = None, error: str | None = None) -> DiagnosticStatus:
+    """The solver's diagnostic status for the step that started at sim time ``t`` (s).
+
+    Args:
+        name: status name.
+        t: sim time at the start of the step, s.
+        info: how the step ended (None for a failed step).
+        error: the failure's message (``ERROR`` status), or None.
+
+    Returns:
+        ``ERROR`` with ``error``; ``WARN`` when ``info.needs_attention`` (accepted above the strict
+        tolerance or retried in substeps); else ``OK``. Values: ``t``, and from ``info`` the stopping
+        test, residual, accepted tolerance, iterations, substeps, retries, relaxed acceptances,
+        stalled acceptances and line-search failures.
+    """
+    status = DiagnosticStatus(name=name, hardware_id="thinshell")
+    values = {"t": f"{t:.6f}"}
+    if error is not None:
+        status.level, status.message = DiagnosticStatus.ERROR, f"step failed: {error}"
+    else:
+        if not info.converged_strict:
+            status.level = DiagnosticStatus.WARN
+            status.message = (f"step accepted at a relaxed tolerance ({info.stop_reason}, "
+                              f"{info.accepted_tolerance:g} m/s)")
+        elif info.retries:
+            status.level = DiagnosticStatus.WARN
+            status.message = f"step converged after {info.retries} substep retries ({info.substeps} substeps)"
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "converged"
+        values.update({
+            "stop_reason": info.stop_reason, "residual_velocity": f"{info.residual_velocity:.6g}",
+            "accepted_tolerance": f"{info.accepted_tolerance:.6g}", "iterations": str(info.iterations),
+            "substeps": str(info.substeps), "retries": str(info.retries),
+            "relaxed_accepts": str(info.relaxed_accepts), "stalled_accepts": str(info.stalled_accepts),
+            "line_search_failures": str(info.line_search_failures),
+        })
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    return status
 
 
 class SimNode(Node):
@@ -60,13 +117,17 @@ class SimNode(Node):
         **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
 
     Raises:
-        ConfigError: invalid parameter (mode, rate, material value) or scene.
+        ConfigError: invalid parameter (mode, rate, backend, material value) or scene; a backend that
+            cannot start here.
     """
 
     def __init__(self, sim: Any | None = None, node_name: str = "thinshell_sim", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         ro = ParameterDescriptor(read_only=True)
         self.scene_path = str(self.declare_parameter("scene", "", ro).value) or (str(bundled_scene()) if sim is None else "")
+        backend = self.declare_parameter("backend", "auto", ParameterDescriptor(
+            read_only=True, description=f"solver backend, one of {', '.join(BACKEND_CHOICES)} (auto: the fastest "
+                                        "available); ignored when the node is given a built simulation")).value
         self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
         self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
         self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
@@ -79,10 +140,12 @@ class SimNode(Node):
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
+        check_backend(backend, "node parameter 'backend'")
         if sim is None:
             from sim_core.simulation import Simulation
+            from sim_core.solver import SolverConfig
 
-            sim = Simulation.from_scene(self.scene_path)
+            sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(backend=backend))
         self.sim = sim
         self.dt = float(sim.dt)
         self._declare_material_parameters()
@@ -99,6 +162,8 @@ class SimNode(Node):
         self.rejected_commands = 0
         self.failed_steps = 0
         self.consecutive_failures = 0
+        self.relaxed_steps = 0  # steps accepted above the strict tolerance or retried in substeps
+        self._solver_status_level = DiagnosticStatus.OK
         self._next_publish_t = 0.0
         self._next_mesh_t = 0.0
         self._warned_topics: set[str] = set()
@@ -121,6 +186,7 @@ class SimNode(Node):
         self._pub_points = self.create_publisher(PointCloud2, f"{ns}/sheet/points", SENSOR_QOS)
         self._pub_mesh = self.create_publisher(Marker, f"{ns}/sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         for e in sim.effector_names:
             self.create_subscription(PoseStamped, f"{ns}/{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
             self.create_subscription(TwistStamped, f"{ns}/{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
@@ -137,6 +203,7 @@ class SimNode(Node):
         self.publish_outputs(force=True)
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
+            f"backend {self._solver_backend()}, "
             f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}")
 
     # ------------------------------------------------------------------------------ parameters
@@ -248,7 +315,8 @@ class SimNode(Node):
             control = self.sim.model.control()
             control.effector_pose_target.update(targets.effector_pose_target)
             control.gripper_target.update(targets.gripper_target)
-            self.sim.step(control)
+            t = float(self.sim.t)
+            info = self.sim.step(control)
             self._steps += 1
             self.consecutive_failures = 0
         except Exception as err:  # noqa: BLE001 - a failed step keeps the last state; the node lives on
@@ -257,6 +325,8 @@ class SimNode(Node):
             self.arbiter.hold()
             self.get_logger().error(f"step at t={self.sim.t:.4f} s failed ({type(err).__name__}: {err}); "
                                     "holding the effectors", throttle_duration_sec=1.0)
+            self._publish_solver_status(solver_status(self._status_name, float(self.sim.t),
+                                                      error=f"{type(err).__name__}: {err}"))
             if self.consecutive_failures >= MAX_CONSECUTIVE_FAILURES:
                 self.paused = True
                 self.get_logger().error(
@@ -264,8 +334,41 @@ class SimNode(Node):
                     "simulation paused; call ~/reset (or ~/pause false to retry)")
             self.publish_outputs(force=True)
             return False
+        if isinstance(info, StepInfo):
+            self._report_step(t, info)
         self.publish_outputs()
         return True
+
+    def _solver_backend(self) -> str:
+        """The concrete backend of the simulation's solver, ``"<given>"`` for a stand-in without one."""
+        solver = getattr(self.sim, "solver", None)
+        return str(solver.backend) if isinstance(solver, NewtonSolver) else "<given>"
+
+    @property
+    def _status_name(self) -> str:
+        return f"{self.get_name()}: solver"
+
+    def _report_step(self, t: float, info: StepInfo) -> None:
+        """Warn about and publish a step that was not strictly converged or needed substep retries;
+        publish ``OK`` on the first strict step after one."""
+        if info.needs_attention:
+            self.relaxed_steps += 1
+            status = solver_status(self._status_name, t, info)
+            self.get_logger().warning(f"step at t={t:.4f} s: {status.message} (residual "
+                                      f"{info.residual_velocity:.3g} m/s, {info.iterations} iterations)",
+                                      throttle_duration_sec=1.0)
+            self._publish_solver_status(status)
+        elif self._solver_status_level != DiagnosticStatus.OK:
+            self._publish_solver_status(solver_status(self._status_name, t, info))
+
+    def _publish_solver_status(self, status: DiagnosticStatus) -> None:
+        self._solver_status_level = status.level
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = cv.stamp_from_ns(cv.seconds_to_ns(self.sim.t))
+        try:
+            self._pub_diagnostics.publish(msg)
+        except Exception as err:  # noqa: BLE001 - a diagnostic never stops the node
+            self.get_logger().error(f"publishing {DIAGNOSTICS_TOPIC} failed: {err}", throttle_duration_sec=1.0)
 
     def _measured_poses(self) -> dict[str, Any]:
         state = getattr(self.sim, "state", None)

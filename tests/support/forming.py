@@ -5,16 +5,14 @@ from __future__ import annotations
 
 
 def forming_simulation(warm_up: bool = False):
-    """A :class:`sim_core.simulation.Simulation` of ``config/scenes/forming.yaml`` with the elastic
-    terms on the Taichi kernels (the backend must be initialised), at the task's initial state;
+    """A :class:`sim_core.simulation.Simulation` of ``config/scenes/forming.yaml`` on the ``taichi-cpu``
+    backend (the bench's ``--arch cpu``), at the task's initial state;
     ``warm_up``: call :meth:`Simulation.warm_up` first."""
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.simulation import Simulation
-    from thinshell_ros.bench import _default_scene, _select_backend
+    from thinshell_ros.bench import _default_scene, bench_simulation
 
     model = load_task_scene(_default_scene("forming"))
-    sim = Simulation(model)
-    _select_backend(sim, "cpu")
+    sim = bench_simulation(model, "cpu")
     sim.state = task_initial_state(model)
     if warm_up:
         sim.warm_up()

@@ -185,11 +185,12 @@ def test_solver_projected_fallback_equals_reference_path(ti_cpu):
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
     from thinshell_ros.bench import _default_scene
 
+    from sim_core.solver import SolverConfig
+
     runs = []
-    for backend in ("numpy", "taichi"):
+    for backend in ("numpy", "taichi-cpu"):
         model = load_task_scene(_default_scene("forming"))
-        model.meta["elastic_backend"] = backend
-        sim = Simulation(model)
+        sim = Simulation(model, solver_config=SolverConfig(backend=backend))
         sim.state = task_initial_state(model)
         effector = next(iter(model.effectors))
         targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(49))

@@ -132,8 +132,7 @@ def test_contact_set_uses_the_kernels_on_the_taichi_backend(ti_cpu):
     memory = contact.begin_step(x, None)
     vt, ee = contact.potentials(x, x, memory)[:2]
     assert type(vt) is VertexTriangleContact and type(ee) is EdgeEdgeContact
-    model.meta["elastic_backend"] = "taichi"
-    contact = ContactSet(model)
+    contact = ContactSet(model, backend="taichi-cpu")
     memory = contact.begin_step(x, None)
     ti_vt, ti_ee = contact.potentials(x, x, memory)[:2]
     assert type(ti_vt) is TiVertexTriangleContact and type(ti_ee) is TiEdgeEdgeContact

@@ -134,15 +134,13 @@ def test_tangent_basis_kernel_equals_the_reference_and_is_orthonormal(ti_cpu):
     assert ti_tangent_basis(np.zeros((0, 3))).shape == (0, 3, 2)
 
 
-def _forming_contact(backend: str | None):
+def _forming_contact(backend: str):
     from sim_core.contact_set import ContactSet
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from thinshell_ros.bench import _default_scene
 
     model = load_task_scene(_default_scene("forming"))
-    if backend is not None:
-        model.meta["elastic_backend"] = backend
-    return ContactSet(model), task_initial_state(model).x
+    return ContactSet(model, backend=backend), task_initial_state(model).x
 
 
 def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi_backend(ti_cpu):
@@ -151,7 +149,7 @@ def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi
     from sim_core.ti_kernels.friction import TiLaggedFriction
 
     results = []
-    for backend in ("numpy", "taichi"):
+    for backend in ("numpy", "taichi-cpu"):
         contact, x = _forming_contact(backend)
         rng = np.random.default_rng(7)
         # jitter the rest state by a fraction of eps so that pairs of every kind touch
@@ -203,7 +201,7 @@ def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potential
     from sim_core.potentials.contact import concatenate_frames
     from sim_core.ti_kernels.friction import TiLaggedFriction
 
-    contact, x = _forming_contact("taichi")
+    contact, x = _forming_contact("taichi-cpu")
     x_n = x + 0.4 * contact.eps * np.random.default_rng(7).normal(size=x.shape)
     memory = contact.begin_step(x_n, None)
     friction = contact.friction(x_n, 0.01, memory)

@@ -144,17 +144,17 @@ def test_mixed_terms_and_new_rest_angles(ti_cpu):
 
 
 def _forming_steps(backend: str, steps: int):
-    """The Forming scene on elastic backend ``backend`` stepped ``steps`` times along the benchmark
+    """The Forming scene on solver backend ``backend`` stepped ``steps`` times along the benchmark
     trajectory; returns ``(simulation, Newton iterations of each step)``."""
     from sim_core.control import Control
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
+    from sim_core.solver import SolverConfig
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
     from thinshell_ros.bench import _default_scene
 
     model = load_task_scene(_default_scene("forming"))
-    model.meta["elastic_backend"] = backend
-    sim = Simulation(model)
+    sim = Simulation(model, solver_config=SolverConfig(backend=backend))
     sim.state = task_initial_state(model)
     effector = next(iter(model.effectors))
     targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(steps))
@@ -167,9 +167,9 @@ def _forming_steps(backend: str, steps: int):
 
 
 def test_solver_steps_equal_reference_path(ti_cpu):
-    """Forming steps with ``elastic_backend = "taichi"`` (fused kernels) equal the NumPy path."""
+    """Forming steps on the ``taichi-cpu`` backend (fused kernels) equal the NumPy path."""
     runs = []
-    for backend in ("numpy", "taichi"):
+    for backend in ("numpy", "taichi-cpu"):
         sim, iterations = _forming_steps(backend, 4)
         runs.append((sim.state.x.copy(), iterations, sim.solver.last_record.hessian_exact))
     (x_ref, it_ref, exact_ref), (x_fused, it_fused, exact_fused) = runs
@@ -244,7 +244,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
             monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
-        sim, iterations = _forming_steps("taichi", 6)
+        sim, iterations = _forming_steps("taichi-cpu", 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
     assert it_on == it_off and sum(it_on) > 6
@@ -344,9 +344,10 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
     from sim_core.simulation import Simulation
     from tests.sim_core.candidates.test_hook import SCENE
 
+    from sim_core.solver import SolverConfig
+
     model = load_scene(copy.deepcopy(SCENE))
-    model.meta["elastic_backend"] = "taichi"
-    sim = Simulation(model, dt=0.01)
+    sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend="taichi-cpu"))
     if route == "candidate_solver":
         sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
     else:

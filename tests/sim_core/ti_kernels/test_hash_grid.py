@@ -125,8 +125,7 @@ def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cp
     from sim_core.contact_set import ContactSet
 
     model, x = _forming_model_deformed(seed)
-    model.meta["elastic_backend"] = "taichi"
-    sets = {name: ContactSet(model, broad_phase=name) for name in ("spatial_hash", "sweep", "kdtree")}
+    sets = {name: ContactSet(model, broad_phase=name, backend="taichi-cpu") for name in ("spatial_hash", "sweep", "kdtree")}
     rng = np.random.default_rng(seed)
     for _ in range(3):
         lists = {name: cs._candidate_pairs(x)[1:] for name, cs in sets.items()}
@@ -150,8 +149,8 @@ def test_forming_trajectory_is_the_same_with_every_broad_phase(ti_cpu):
     from sim_core.control import Control
     from sim_core.scenes.task_scene import build_task_scene, task_initial_state
     from sim_core.simulation import Simulation
+    from sim_core.solver import SolverConfig
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
-    from sim_core.ti_kernels import use_taichi_kernels
 
     scene_path = Path(__file__).resolve().parents[3] / "config" / "scenes" / "forming.yaml"
     runs = {}
@@ -159,9 +158,7 @@ def test_forming_trajectory_is_the_same_with_every_broad_phase(ti_cpu):
         scene = yaml.safe_load(scene_path.read_text())
         scene["contact"]["broad_phase"] = name
         model = build_task_scene(scene)
-        sim = Simulation(model)
-        model.meta["elastic_backend"] = "taichi"
-        use_taichi_kernels(sim.solver.elastic)
+        sim = Simulation(model, solver_config=SolverConfig(backend="taichi-cpu"))
         sim.state = task_initial_state(model)
         effector = next(iter(model.effectors))
         targets = pose_targets(model.effectors[effector].initial_pose, forming_benchmark_offsets(6))

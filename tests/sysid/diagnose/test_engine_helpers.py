@@ -384,7 +384,7 @@ def test_replay_arch_reaches_the_observation_model():
     assert engine.Settings().arch == "numpy"
     d = engine.BagDiagnosis(bag, settings=engine.Settings(arch="cpu", t_max=0.2))
     assert d.model.arch == "cpu"
-    assert d.model.simulation().model.meta.get("elastic_backend") == "taichi"
+    assert d.model.simulation().solver.backend == "taichi-cpu"
     from sysid.diagnose.cli import build_parser
 
     assert build_parser().parse_args([str(bag)]).arch == "cpu"
