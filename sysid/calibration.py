@@ -28,6 +28,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from sim_core.errors import CalibrationError, SimulationDivergedError
+from sysid.fit import fit
+
 GAIN_BOUNDS = (0.5, 2.0)
 """Range of a fitted gain or marker scale (-)."""
 
@@ -222,7 +225,8 @@ class CalibrationResult:
                                "whitened_rms_before": dict(self.whitened_rms_before),
                                "whitened_rms_after": dict(self.whitened_rms_after)}
         if self.fit is not None:
-            out["sigma"] = {k: float(v) for k, v in getattr(self.fit, "sigma", {}).items()}
+            sigma = getattr(self.fit, "sigma", None) or {}
+            out["sigma"] = {k: (None if v is None else float(v)) for k, v in sigma.items()}
             out["status"] = getattr(self.fit, "status", None)
         return out
 
@@ -272,10 +276,6 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     Raises:
         CalibrationError: the replay at the scene values diverged.
     """
-    from sim_core.errors import SimulationDivergedError
-    from sim_core.errors import CalibrationError
-    from sysid.fit import fit
-
     channels = [ch for ch in model.sigma]
     model.sensor_calibration = None
     model.nominal_normal_offset = 0.0

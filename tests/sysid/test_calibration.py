@@ -63,3 +63,24 @@ def test_derivative_matches_finite_difference_of_apply():
     dm = rng.normal(size=(5, 4, 3, 1)) * 1e-5
     fd = (scale_markers(xyz + h * dm[..., 0] / 1e-5, rest, 0.9, 1.3) - scale_markers(xyz, rest, 0.9, 1.3)) / h * 1e-5
     np.testing.assert_allclose(cal.derivative("markers_xyz", dm)[..., 0], fd, rtol=1e-6, atol=1e-12)
+
+
+def test_calibrate_lowers_the_weighted_cost_and_sets_the_model(tmp_path):
+    """End to end on the bundled recording (short, coarse gel): calibration never raises the cost."""
+    from sysid.calibration import calibrate
+    from sysid.evidence import load_evidence
+    from sysid.observation import ObservationModel
+    from tests.sysid.conftest import reference_bag
+
+    ev = load_evidence(reference_bag("nominal_s101"))
+    model = ObservationModel(ev, dt=0.01, t_max=1.2, simulation={"gel_resolution": [4, 3, 2]}, arch="cpu")
+    result = calibrate(model, ("gel.youngs_modulus", "sensor.normal_offset"), max_nfev=3)
+    assert model.sensor_calibration is result.sensor
+    assert model.nominal_normal_offset == result.params["sensor.normal_offset"]
+
+    def cost(rms):
+        return sum(rms[ch] ** 2 * model.data(ch).size for ch in model.channels)
+
+    assert cost(result.whitened_rms_after) < cost(result.whitened_rms_before)
+    summary = result.summary()
+    assert set(summary) >= {"params", "sensor", "whitened_rms_before", "whitened_rms_after"}
