@@ -404,7 +404,6 @@ class NewtonSolver:
     Attributes:
         backend: the concrete backend of ``config.backend`` (``numpy``, ``taichi-cpu`` or
             ``taichi-cuda``), resolved once at construction.
-        taichi_terms: the elastic terms running as Taichi twins (``"<body>:<class>"``), empty on ``numpy``.
         candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
         elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
             fused elastic term (the gel's) in a second process while this one evaluates the others, on
@@ -416,7 +415,6 @@ class NewtonSolver:
         self.model = model
         self.config = config or SolverConfig()
         self.backend = resolve_backend(self.config.backend)
-        self.taichi_terms: list[str] = []
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
@@ -461,10 +459,6 @@ class NewtonSolver:
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
-        if uses_taichi(self.backend):
-            from sim_core.ti_kernels import use_taichi_kernels  # Taichi only on a Taichi backend
-
-            self.taichi_terms = use_taichi_kernels(self.elastic)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         if self.model.candidates:
