@@ -3,11 +3,13 @@
 Backends:
 
 - ``"numpy"``: the NumPy reference potentials and contact set (no Taichi).
-- ``"taichi-cpu"``: the fused Taichi elastic kernels (:class:`sim_core.fused_elastic.FusedElastic`),
-  the Taichi twins of the StVK membranes and Stable Neo-Hookean solids
-  (:func:`sim_core.ti_kernels.use_taichi_kernels`) and the Taichi contact, friction and broad-phase
+- ``"taichi-cpu"``: the fused Taichi elastic kernels of the Newton loop
+  (:class:`sim_core.fused_elastic.FusedElastic`) and the Taichi contact, friction and broad-phase
   kernels of :class:`sim_core.contact_set.ContactSet`, on Taichi's CPU backend (serial element loops:
-  results reproducible bit for bit).
+  results reproducible bit for bit, and safe in forked replay workers). The elastic potentials
+  themselves stay the NumPy reference (the adjoint and sensitivities use them); their Taichi twins
+  (:func:`sim_core.ti_kernels.use_taichi_kernels`) are not part of a backend (their loops are parallel,
+  which a forked worker cannot run).
 - ``"taichi-cuda"``: the same kernels on CUDA (parallel element loops: sums in a varying order).
 - ``"auto"``: the fastest available, resolved by :func:`resolve_backend`: ``taichi-cuda`` when
   Taichi starts on CUDA, else ``taichi-cpu`` when Taichi imports, else ``numpy``; in a process whose

@@ -19,13 +19,13 @@ the contact candidate set of the iteration valid. A step that does not converge 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
-from sim_core.backend import check_backend, resolve_backend, uses_taichi
+from sim_core.backend import resolve_backend, uses_taichi
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
@@ -38,303 +38,11 @@ from sim_core.potentials.damping import ViscousDamping
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.gravity import GravityPotential
 from sim_core.potentials.inertia import InertiaPotential
+from sim_core.solver_config import SolverConfig
 from sim_core.state import State
+from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 
-
-@dataclass
-class SolverConfig:
-    """Newton settings.
-
-    Attributes:
-        tol_velocity: converged when ``max |dx_newton| / dt`` < this (m/s); 1e-4 m/s = 0.5 um per
-            5 ms step, well below marker noise. Gradient checks use 1e-9. ThinShellLab: 1e-7.
-        stall_iterations: accept (relaxed, counted in ``StepInfo.stalled_accepts``) a step whose
-            residual is below ``stall_tolerance_factor * tol_velocity`` and has not dropped by 10 %
-            over this many iterations (round-off-limited).
-        stall_tolerance_factor: the relaxed tolerance of a stalled step, as a multiple of
-            ``tol_velocity`` (>= 1; 1 never accepts a stalled step).
-        line_search_tolerance_factor: a step whose line search fails (``max_backtracks`` halvings
-            without sufficient decrease) is accepted (relaxed, counted in
-            ``StepInfo.relaxed_accepts``) when its residual is below this multiple of
-            ``tol_velocity`` (>= 1; 1 never accepts on the residual).
-        stationary_slope_rtol: a step whose line search fails is also accepted (relaxed, counted)
-            when the predicted decrease ``|g.d|`` is below this fraction of ``|E|``: x is then
-            stationary to working precision (the gradient is zero up to floating-point error).
-            0 never accepts on this test.
-        tol_force: or when the free-DoF gradient infinity norm is below this (N).
-        max_iterations: Newton iterations per step before failing.
-        armijo_c: sufficient-decrease constant.
-        max_backtracks: line-search halvings before failing.
-        max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
-        projection: PSD projection of element Hessians ("clamp", "abs", "none").
-        exact_hessian_first: each iteration, first factorise the exact (unprojected) Hessian and
-            use it if it is positive definite; assemble the ``projection`` one only when it is not.
-            Needs a solver that detects indefinite matrices (PARDISO's Cholesky); with SciPy, or
-            ``projection="none"``, the ``projection`` Hessian is always used. Per-element projection
-            discards negative curvature the neighbours would compensate, so projected Newton only
-            converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
-        linear_solver: "pardiso" or "scipy".
-        backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
-            the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
-            fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
-            fastest available; the sim node's and the command-line tools' default). Resolved once,
-            when the solver is built (:attr:`NewtonSolver.backend`), which initialises Taichi.
-        rate_stopping: also stop after a full (``alpha = 1``) Newton step ``dx_k`` whose estimated
-            remaining error ``theta / (1 - theta) * |dx_k| / dt`` is below ``tol_velocity``, with
-            the contraction rate ``theta = |dx_k| / |dx_{k-1}|`` (Hairer & Wanner, Solving ODEs
-            II, Sec. IV.8, eq. 8.10-8.11). It saves the last factorisation of a step that
-            converges (super)linearly (Forming: 4.94 -> 3.92 iterations per step); the Newton
-            matrix kept for the adjoint is then the one of the iterate before that last step,
-            within ``|dx_k|`` of the solution. Off by default: the default test stops on an
-            update it does not apply, whose size is usually far below ``tol_velocity``, while
-            this one stops with an error close to the tolerance; on contact scenes at a
-            stick/slip or lift-off threshold that looser solution flips events (the diagnosis
-            bench's generated damping and stiction effects lost their graded strengths, and
-            its naming accuracy fell from 1.0 / 1.0 to 0.6 / 0.7 at 2 / 4 sigma;
-            docs/benchmarks.md, 2026-11-22).
-        simplified_newton_check: also stop at an iterate ``x_k`` whose simplified Newton correction
-            ``H(x_{k-1})^{-1} g(x_k)`` (the last factorisation, one extra solve) has scaled size
-            below this fraction of ``tol_velocity`` (Deuflhard, Newton Methods for Nonlinear
-            Problems, 2004, Sec. 2.1: the simplified correction estimates the error of ``x_k`` as
-            the ordinary one does). It saves the assembly and factorisation that only test
-            convergence (Forming: a step takes about four Newton updates and a fifth, tiny one
-            that is not applied). The test runs only after an iteration that factorised the
-            exact Hessian and took its full step, when the same contacts touch at ``x_{k-1}``
-            and ``x_k`` (:func:`sim_core.contact_set.active_contacts`) and the model has no
-            candidate terms: a contact switching on or off between the two iterates changes the
-            matrix, and the simplified correction then underestimates the ordinary one (Forming:
-            by up to 28x). With the same contacts it underestimated by up to 3.6x (Forming, 49
-            steps, every iteration after the first; the lagged friction's stiffness
-            ``mu lam f1(y)/y`` in the stick zone alone varies by 2x with ``y``), hence the
-            factor 0.25: a step it ends is within the tolerance for an underestimate of up to 4x.
-            On Forming it ends 31 of the 49 steps, each at the iterate the ordinary test ends
-            it at (the same states bit for bit). ``x_k`` is the step's result; the kept Newton
-            matrix is the one at ``x_{k-1}`` (``StepRecord.hessian_exact`` False: the adjoint
-            assembles the exact Hessian at ``x``). 0 turns it off.
-        dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
-            is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many
-            times, so the smallest substep is ``dt / 2**dt_halvings_on_failure``; the step raises
-            only when that one fails too. 0: a failure raises at once. The retries are counted in
-            ``StepInfo.retries`` and ``StepInfo.substeps``.
-        stale_side_backtracks: after a line search that needed this many halvings, release the
-            contact sides gone stale at the new iterate (:meth:`ContactSet.release_stale_sides`,
-            which a failed line search always tries). Newton creeping up to a step in the energy
-            takes ever shorter steps for ~20 iterations before its line search fails outright
-            (folding.yaml, dome dragging the fold: 53 iterations in one step; 10 halvings make it
-            21 iterations). Where no side is stale this changes nothing.
-    """
-
-    tol_velocity: float = 1e-4
-    tol_force: float = 1e-9
-    max_iterations: int = 60
-    stall_iterations: int = 4
-    stall_tolerance_factor: float = 10.0
-    line_search_tolerance_factor: float = 100.0
-    stationary_slope_rtol: float = 1e-12
-    armijo_c: float = 1e-4
-    max_backtracks: int = 40
-    max_displacement: float | None = None
-    projection: str = "clamp"
-    exact_hessian_first: bool = True
-    linear_solver: str = "pardiso"
-    backend: str = "numpy"
-    rate_stopping: bool = False
-    dt_halvings_on_failure: int = 0
-    stale_side_backtracks: int = 10
-    simplified_newton_check: float = 0.25
-
-    def __post_init__(self) -> None:
-        check_backend(self.backend, "solver backend")
-        if self.tol_velocity <= 0 or self.max_iterations < 1:
-            raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
-        if self.stale_side_backtracks < 1:
-            raise ConfigError(f"solver stale_side_backtracks must be >= 1, got {self.stale_side_backtracks}")
-        if self.projection not in ("clamp", "abs", "none"):
-            raise ConfigError(f"solver projection must be clamp|abs|none, got {self.projection!r}")
-        for name in ("stall_tolerance_factor", "line_search_tolerance_factor"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 1.0):
-                raise ConfigError(f"solver {name} must be a finite number >= 1, got {value!r}")
-        if not (np.isfinite(self.stationary_slope_rtol) and self.stationary_slope_rtol >= 0.0):
-            raise ConfigError(f"solver stationary_slope_rtol must be a finite number >= 0, got {self.stationary_slope_rtol!r}")
-        if self.dt_halvings_on_failure < 0:
-            raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")
-
-
-@dataclass
-class StepRecord:
-    """Everything the adjoint needs of one converged step (kept as ``NewtonSolver.last_record``).
-
-    Attributes:
-        dt: step size in s.
-        x_prev: positions at the start ``x^n`` (m), shape ``(n, 3)``.
-        v_prev: velocities at the start ``v^n`` (m/s), shape ``(n, 3)``.
-        x: converged positions ``x^{n+1}``, shape ``(n, 3)``.
-        fixed: Dirichlet vertices of the step (static + effector-driven), shape ``(n,)`` bool.
-        x_target: prescribed positions of the fixed vertices, shape ``(n, 3)``.
-        effector_pose: effector poses reached at the end of the step (after rate limiting).
-        gripper_opening: finger openings of the step.
-        limited_effectors: effectors whose command was rate-limited this step (their pose is then
-            not differentiable w.r.t. the command in the usual sense).
-        terms: the potentials of the incremental potential at the converged step, in the order
-            inertia, gravity, [damping], elastic..., [friction], contact...
-        hinge_theta_bar: rest angles used during the step (per sheet).
-        hessian_upper: the upper triangle (CSR, sorted indices, ``(3 n, 3 n)``) of the constrained
-            Newton matrix of the last iteration: the exact Hessian when it was positive definite,
-            else the projected one. It is assembled at the last Newton iterate, which is ``x``
-            except when ``SolverConfig.rate_stopping`` ended the step on an update, or the
-            simplified Newton test (``SolverConfig.simplified_newton_check``) ended it: then at the
-            iterate before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
-            :attr:`hessian`.
-        free_dofs: free DoF mask, shape ``(3 n,)`` bool.
-        hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
-            of the implicit-function-theorem linearisation (:mod:`sim_core.adjoint`).
-        expansion: the :class:`~sim_core.linsolve.SymmetricExpansion` that builds :attr:`hessian`
-            (the solver's, which keeps the index map of the current pattern); None: a new one.
-    """
-
-    dt: float
-    x_prev: np.ndarray
-    v_prev: np.ndarray
-    x: np.ndarray
-    fixed: np.ndarray
-    x_target: np.ndarray
-    effector_pose: dict
-    gripper_opening: dict
-    limited_effectors: list
-    terms: list
-    hinge_theta_bar: dict
-    hessian_upper: sp.csr_matrix
-    free_dofs: np.ndarray
-    hessian_exact: bool = False
-    expansion: SymmetricExpansion | None = field(default=None, repr=False, compare=False)
-
-    @property
-    def hessian(self) -> sp.csr_matrix:
-        """The constrained Newton matrix of the last iteration (CSR, symmetric, sorted indices,
-        ``(3 n, 3 n)``; see ``hessian_upper``), expanded from the upper triangle on first use and
-        kept: a forward rollout never needs it, only the adjoint does."""
-        full = self.__dict__.get("_hessian")
-        if full is None:
-            full = (self.expansion or SymmetricExpansion())(self.hessian_upper)
-            self.__dict__["_hessian"] = full
-        return full
-
-
-STRICT_STOPS: tuple[str, ...] = ("velocity", "force", "simplified", "rate")
-"""Stopping tests that accept a step at the strict tolerances: the Newton update below
-``tol_velocity`` (``"velocity"``), the gradient below ``tol_force`` (``"force"``), the simplified
-Newton correction below ``simplified_newton_check * tol_velocity`` (``"simplified"``), the rate
-estimate of the remaining error below ``tol_velocity`` (``"rate"``)."""
-
-RELAXED_STOPS: tuple[str, ...] = ("stalled", "line_search_relaxed", "line_search_roundoff")
-"""Stopping tests that accept a step above ``tol_velocity`` (``StepInfo.relaxed_accepts``): a stalled
-residual below ``stall_tolerance_factor * tol_velocity``; after a failed line search, a residual below
-``line_search_tolerance_factor * tol_velocity`` or a predicted decrease below ``stationary_slope_rtol * |E|``."""
-
-
-@dataclass
-class StepInfo:
-    """How one step ended. For a step taken as several substeps (``SolverConfig.dt_halvings_on_failure``)
-    the counts and times are summed over its substeps, the residual and energy are the last substep's.
-
-    Attributes:
-        iterations: Newton iterations.
-        residual_velocity: the accepted iterate's scaled Newton update ``max_i |dx_i| / dt``, m/s
-            (for ``stop_reason == "rate"`` the estimated remaining error).
-        energy: the incremental potential at the result, J.
-        backtracks: line-search halvings.
-        substeps: substeps the step was finally taken in (1, or ``2**retries``).
-        retries: failed attempts redone with halved substeps (``SolverConfig.dt_halvings_on_failure``).
-        limited_effectors: effectors whose command was rate-limited.
-        time_assembly, time_linear_solve, time_total: s.
-        projected_iterations: iterations whose Newton matrix had PSD-projected element blocks.
-        released_sides: contact pairs whose side was released after a failed or very short line search
-            (:meth:`ContactSet.release_stale_sides`).
-        factorizations: Newton matrices factorised (a not positive definite exact Hessian and its
-            projected fallback count two).
-        simplified_stops: (sub-)steps that the simplified Newton test ended (their last iteration
-            factorised nothing; ``SolverConfig.simplified_newton_check``).
-        stop_reason: the test that accepted the step (:data:`STRICT_STOPS` or :data:`RELAXED_STOPS`;
-            over substeps, the last relaxed one, else the last substep's).
-        converged_strict: every (sub-)step was accepted by a strict test (:data:`STRICT_STOPS`).
-        accepted_tolerance: the residual bound (m/s) the step was accepted under: ``tol_velocity`` for a
-            strict test, ``stall_tolerance_factor * tol_velocity`` for a stalled step,
-            ``line_search_tolerance_factor * tol_velocity`` after a failed line search, inf after a failed
-            line search accepted on the round-off test alone; over substeps the largest.
-        relaxed_accepts: (sub-)steps accepted by a relaxed test (:data:`RELAXED_STOPS`).
-        stalled_accepts: of those, the stalled ones.
-        line_search_failures: line searches that found no sufficient decrease in ``max_backtracks``
-            halvings (accepted relaxed, followed by a released contact side, or raised).
-    """
-
-    iterations: int = 0
-    residual_velocity: float = 0.0
-    energy: float = 0.0
-    backtracks: int = 0
-    substeps: int = 1
-    limited_effectors: list[str] = field(default_factory=list)
-    time_assembly: float = 0.0
-    time_linear_solve: float = 0.0
-    time_total: float = 0.0
-    projected_iterations: int = 0
-    released_sides: int = 0
-    factorizations: int = 0
-    simplified_stops: int = 0
-    retries: int = 0
-    stop_reason: str = ""
-    converged_strict: bool = True
-    accepted_tolerance: float = 0.0
-    relaxed_accepts: int = 0
-    stalled_accepts: int = 0
-    line_search_failures: int = 0
-
-    @property
-    def needs_attention(self) -> bool:
-        """Whether the step was accepted above the strict tolerance or needed substep retries."""
-        return not self.converged_strict or self.retries > 0
-
-
-@dataclass
-class StepTotals:
-    """How the steps since the last reset ended, summed over their :class:`StepInfo` (what a replay
-    reports: :attr:`sim_core.simulation.Simulation.step_totals`).
-
-    Attributes:
-        steps: steps taken.
-        substeps: substeps they were taken in (``steps`` when none was retried).
-        retries: failed attempts redone with halved substeps, over all steps.
-        retried_steps: steps that needed at least one retry.
-        relaxed_steps: steps accepted above the strict tolerance (``not StepInfo.converged_strict``).
-        relaxed_accepts, stalled_accepts, line_search_failures: summed as in :class:`StepInfo`.
-        largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
-        first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
-    """
-
-    steps: int = 0
-    substeps: int = 0
-    retries: int = 0
-    retried_steps: int = 0
-    relaxed_steps: int = 0
-    relaxed_accepts: int = 0
-    stalled_accepts: int = 0
-    line_search_failures: int = 0
-    largest_accepted_tolerance: float = 0.0
-    first_relaxed_step: int | None = None
-
-    def add(self, info: StepInfo, step_index: int) -> None:
-        """Count the step that started at ``step_index`` and ended as ``info``."""
-        self.steps += 1
-        self.substeps += info.substeps
-        self.retries += info.retries
-        self.retried_steps += info.retries > 0
-        self.relaxed_steps += not info.converged_strict
-        self.relaxed_accepts += info.relaxed_accepts
-        self.stalled_accepts += info.stalled_accepts
-        self.line_search_failures += info.line_search_failures
-        self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
-        if info.needs_attention and self.first_relaxed_step is None:
-            self.first_relaxed_step = int(step_index)
+__all__ = ["NewtonSolver", "SolverConfig", "StepInfo", "StepRecord", "StepTotals", "STRICT_STOPS", "RELAXED_STOPS"]
 
 
 @dataclass
@@ -404,7 +112,6 @@ class NewtonSolver:
     Attributes:
         backend: the concrete backend of ``config.backend`` (``numpy``, ``taichi-cpu`` or
             ``taichi-cuda``), resolved once at construction.
-        taichi_terms: the elastic terms running as Taichi twins (``"<body>:<class>"``), empty on ``numpy``.
         candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
         elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
             fused elastic term (the gel's) in a second process while this one evaluates the others, on
@@ -416,7 +123,6 @@ class NewtonSolver:
         self.model = model
         self.config = config or SolverConfig()
         self.backend = resolve_backend(self.config.backend)
-        self.taichi_terms: list[str] = []
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
@@ -461,10 +167,6 @@ class NewtonSolver:
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
         self.elastic = ElasticTerms(self.model)
-        if uses_taichi(self.backend):
-            from sim_core.ti_kernels import use_taichi_kernels  # Taichi only on a Taichi backend
-
-            self.taichi_terms = use_taichi_kernels(self.elastic)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         if self.model.candidates:

@@ -141,7 +141,6 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
     t_build = time.perf_counter()
     model = load_task_scene(scene)
     sim = bench_simulation(model, arch)
-    taichi_terms = list(sim.solver.taichi_terms)
     sim.state = task_initial_state(model)
     sim.solver.elastic_worker = elastic_worker
     jit_s = _compile_kernels(sim, arch)
@@ -190,7 +189,7 @@ def run_forming(scene: str | Path, steps: int, backward: bool = False, arch: str
         "forward_total_s": total,
         "arch": arch,
         "backend": sim.solver.backend,
-        "taichi_terms": taichi_terms,
+        "taichi_terms": [],  # kept in the schema; no elastic potential is swapped for its Taichi twin
         "linear_solver": sim.solver.linear_solver.name,
         "peak_rss_mib": peak_rss_mib(),
         # the worker process of the gel's elastic term (sim_core.elastic_worker): used, and its memory
@@ -334,7 +333,8 @@ def bench_main(argv: list[str] | None = None) -> int:
     (Newton matrices factorised per step, a projected fallback's failed exact one included),
     ``assembly_share``, ``linear_solve_share``,
     ``cold_start_s``, ``scene_build_s``, ``jit_s``, ``forward_total_s``, ``steps``, ``vertices``, ``arch``,
-    ``backend`` (``SolverConfig.backend`` of ``arch``), ``taichi_terms``, ``linear_solver``, ``peak_rss_mib``, ``elastic_worker`` (the gel's term ran in a
+    ``backend`` (``SolverConfig.backend`` of ``arch``), ``taichi_terms`` (always empty: the solver's
+    elastic potentials are the NumPy ones on every backend, the fused kernels evaluate them in the Newton loop), ``linear_solver``, ``peak_rss_mib``, ``elastic_worker`` (the gel's term ran in a
     worker process, :mod:`sim_core.elastic_worker`), ``worker_peak_rss_mib`` (that process's peak
     RSS, or null), ``python``, ``python_executable`` (the
     interpreter binary, symlinks resolved), ``numpy`` (and ``backward_*`` with ``--backward``); of
@@ -343,8 +343,7 @@ def bench_main(argv: list[str] | None = None) -> int:
     ``--arch``: ``numpy`` runs the NumPy reference potentials (backend ``numpy``); ``cpu`` (default)
     and ``cuda`` run the backends ``taichi-cpu`` / ``taichi-cuda`` (:mod:`sim_core.backend`): the Newton loop evaluates the
     elastic terms with the fused kernels of :mod:`sim_core.fused_elastic` (energy, gradient and exact
-    Hessian in one launch per potential), and the StVK membrane and Stable Neo-Hookean terms of the
-    projected fallback run on their Taichi twins (``taichi_terms`` lists them). The kernels are
+    Hessian in one launch per potential, and the projected fallback's values). The kernels are
     compiled before the timed steps (``jit_s``; included in ``cold_start_s``).
 
     Exit codes: 0 success, 2 unsupported option (unknown ``--arch`` or an arch Taichi cannot start

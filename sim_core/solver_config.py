@@ -1,0 +1,130 @@
+"""Settings of the Newton solver (:class:`sim_core.solver.NewtonSolver`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_core.backend import check_backend
+from sim_core.errors import ConfigError
+
+
+@dataclass
+class SolverConfig:
+    """Newton settings.
+
+    Attributes:
+        tol_velocity: converged when ``max |dx_newton| / dt`` < this (m/s); 1e-4 m/s = 0.5 um per
+            5 ms step, well below marker noise. Gradient checks use 1e-9. ThinShellLab: 1e-7.
+        stall_iterations: accept (relaxed, counted in ``StepInfo.stalled_accepts``) a step whose
+            residual is below ``stall_tolerance_factor * tol_velocity`` and has not dropped by 10 %
+            over this many iterations (round-off-limited).
+        stall_tolerance_factor: the relaxed tolerance of a stalled step, as a multiple of
+            ``tol_velocity`` (>= 1; 1 never accepts a stalled step).
+        line_search_tolerance_factor: a step whose line search fails (``max_backtracks`` halvings
+            without sufficient decrease) is accepted (relaxed, counted in
+            ``StepInfo.relaxed_accepts``) when its residual is below this multiple of
+            ``tol_velocity`` (>= 1; 1 never accepts on the residual).
+        stationary_slope_rtol: a step whose line search fails is also accepted (relaxed, counted)
+            when the predicted decrease ``|g.d|`` is below this fraction of ``|E|``: x is then
+            stationary to working precision (the gradient is zero up to floating-point error).
+            0 never accepts on this test.
+        tol_force: or when the free-DoF gradient infinity norm is below this (N).
+        max_iterations: Newton iterations per step before failing.
+        armijo_c: sufficient-decrease constant.
+        max_backtracks: line-search halvings before failing.
+        max_displacement: cap on any vertex's move per iteration, m (None: 0.5 * contact eps + 2 mm).
+        projection: PSD projection of element Hessians ("clamp", "abs", "none").
+        exact_hessian_first: each iteration, first factorise the exact (unprojected) Hessian and
+            use it if it is positive definite; assemble the ``projection`` one only when it is not.
+            Needs a solver that detects indefinite matrices (PARDISO's Cholesky); with SciPy, or
+            ``projection="none"``, the ``projection`` Hessian is always used. Per-element projection
+            discards negative curvature the neighbours would compensate, so projected Newton only
+            converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
+        linear_solver: "pardiso" or "scipy".
+        backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
+            the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
+            fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
+            fastest available; the sim node's and the command-line tools' default). Resolved once,
+            when the solver is built (:attr:`NewtonSolver.backend`), which initialises Taichi.
+        rate_stopping: also stop after a full (``alpha = 1``) Newton step ``dx_k`` whose estimated
+            remaining error ``theta / (1 - theta) * |dx_k| / dt`` is below ``tol_velocity``, with
+            the contraction rate ``theta = |dx_k| / |dx_{k-1}|`` (Hairer & Wanner, Solving ODEs
+            II, Sec. IV.8, eq. 8.10-8.11). It saves the last factorisation of a step that
+            converges (super)linearly (Forming: 4.94 -> 3.92 iterations per step); the Newton
+            matrix kept for the adjoint is then the one of the iterate before that last step,
+            within ``|dx_k|`` of the solution. Off by default: the default test stops on an
+            update it does not apply, whose size is usually far below ``tol_velocity``, while
+            this one stops with an error close to the tolerance; on contact scenes at a
+            stick/slip or lift-off threshold that looser solution flips events (the diagnosis
+            bench's generated damping and stiction effects lost their graded strengths, and
+            its naming accuracy fell from 1.0 / 1.0 to 0.6 / 0.7 at 2 / 4 sigma;
+            docs/benchmarks.md, 2026-11-22).
+        simplified_newton_check: also stop at an iterate ``x_k`` whose simplified Newton correction
+            ``H(x_{k-1})^{-1} g(x_k)`` (the last factorisation, one extra solve) has scaled size
+            below this fraction of ``tol_velocity`` (Deuflhard, Newton Methods for Nonlinear
+            Problems, 2004, Sec. 2.1: the simplified correction estimates the error of ``x_k`` as
+            the ordinary one does). It saves the assembly and factorisation that only test
+            convergence (Forming: a step takes about four Newton updates and a fifth, tiny one
+            that is not applied). The test runs only after an iteration that factorised the
+            exact Hessian and took its full step, when the same contacts touch at ``x_{k-1}``
+            and ``x_k`` (:func:`sim_core.contact_set.active_contacts`) and the model has no
+            candidate terms: a contact switching on or off between the two iterates changes the
+            matrix, and the simplified correction then underestimates the ordinary one (Forming:
+            by up to 28x). With the same contacts it underestimated by up to 3.6x (Forming, 49
+            steps, every iteration after the first; the lagged friction's stiffness
+            ``mu lam f1(y)/y`` in the stick zone alone varies by 2x with ``y``), hence the
+            factor 0.25: a step it ends is within the tolerance for an underestimate of up to 4x.
+            On Forming it ends 31 of the 49 steps, each at the iterate the ordinary test ends
+            it at (the same states bit for bit). ``x_k`` is the step's result; the kept Newton
+            matrix is the one at ``x_{k-1}`` (``StepRecord.hessian_exact`` False: the adjoint
+            assembles the exact Hessian at ``x``). 0 turns it off.
+        dt_halvings_on_failure: a step whose Newton solve fails (:class:`SimulationDivergedError`)
+            is redone from its start as 2, 4, ... substeps of dt/2, dt/4, ..., at most this many
+            times, so the smallest substep is ``dt / 2**dt_halvings_on_failure``; the step raises
+            only when that one fails too. 0: a failure raises at once. The retries are counted in
+            ``StepInfo.retries`` and ``StepInfo.substeps``.
+        stale_side_backtracks: after a line search that needed this many halvings, release the
+            contact sides gone stale at the new iterate (:meth:`ContactSet.release_stale_sides`,
+            which a failed line search always tries). Newton creeping up to a step in the energy
+            takes ever shorter steps for ~20 iterations before its line search fails outright
+            (folding.yaml, dome dragging the fold: 53 iterations in one step; 10 halvings make it
+            21 iterations). Where no side is stale this changes nothing.
+    """
+
+    tol_velocity: float = 1e-4
+    tol_force: float = 1e-9
+    max_iterations: int = 60
+    stall_iterations: int = 4
+    stall_tolerance_factor: float = 10.0
+    line_search_tolerance_factor: float = 100.0
+    stationary_slope_rtol: float = 1e-12
+    armijo_c: float = 1e-4
+    max_backtracks: int = 40
+    max_displacement: float | None = None
+    projection: str = "clamp"
+    exact_hessian_first: bool = True
+    linear_solver: str = "pardiso"
+    backend: str = "numpy"
+    rate_stopping: bool = False
+    dt_halvings_on_failure: int = 0
+    stale_side_backtracks: int = 10
+    simplified_newton_check: float = 0.25
+
+    def __post_init__(self) -> None:
+        check_backend(self.backend, "solver backend")
+        if self.tol_velocity <= 0 or self.max_iterations < 1:
+            raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
+        if self.stale_side_backtracks < 1:
+            raise ConfigError(f"solver stale_side_backtracks must be >= 1, got {self.stale_side_backtracks}")
+        if self.projection not in ("clamp", "abs", "none"):
+            raise ConfigError(f"solver projection must be clamp|abs|none, got {self.projection!r}")
+        for name in ("stall_tolerance_factor", "line_search_tolerance_factor"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 1.0):
+                raise ConfigError(f"solver {name} must be a finite number >= 1, got {value!r}")
+        if not (np.isfinite(self.stationary_slope_rtol) and self.stationary_slope_rtol >= 0.0):
+            raise ConfigError(f"solver stationary_slope_rtol must be a finite number >= 0, got {self.stationary_slope_rtol!r}")
+        if self.dt_halvings_on_failure < 0:
+            raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")
