@@ -127,12 +127,13 @@ def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
     return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
 
 
-def _affine(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """Least-squares ``(f, c)`` of ``b ~ f a + c`` (flattened)."""
+def _affine(a: np.ndarray, b: np.ndarray) -> tuple[float, float] | None:
+    """Least-squares ``(f, c)`` of ``b ~ f a + c`` (flattened); None with fewer than three finite
+    samples or no spread in ``a`` (the line is not determined)."""
     a, b = a.reshape(-1), b.reshape(-1)
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 3 or np.ptp(a[ok]) == 0.0:
-        raise ValueError("too few distinct samples")
+        return None
     A = np.stack([a[ok], np.ones(int(ok.sum()))], axis=1)
     (f, c), *_ = np.linalg.lstsq(A, b[ok], rcond=None)
     return float(f), float(c)
@@ -154,7 +155,9 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
         fit_camera: fit the camera intrinsics (else keep ``nominal``'s).
 
     Returns:
-        the fitted :class:`SensorCalibration`.
+        the fitted :class:`SensorCalibration`; an intrinsic pair (f, c) that the rows do not determine
+        (fewer than three samples, markers that never move) or whose focal length leaves
+        :data:`GAIN_BOUNDS` times the scene's keeps the scene's values.
     """
     def pick(ch: str, arr: np.ndarray) -> np.ndarray:
         return arr if rows is None or ch not in rows else arr[rows[ch]]
@@ -179,14 +182,12 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
             xyz = pick("markers_uv", xyz)
             uv = pick("markers_uv", data["markers_uv"])
             w = xyz[..., 2] + nominal.distance
-            try:
-                fields["fx"], fields["cx"] = _affine(xyz[..., 0] / w, uv[..., 0])
-                fields["fy"], fields["cy"] = _affine(xyz[..., 1] / w, uv[..., 1])
-            except ValueError:
-                pass
-            for key, ref in (("fx", nominal.fx), ("fy", nominal.fy)):
-                if not (GAIN_BOUNDS[0] * ref <= fields[key] <= GAIN_BOUNDS[1] * ref):
-                    fields[key] = ref
+            for axis, (f_key, c_key) in enumerate((("fx", "cx"), ("fy", "cy"))):
+                line = _affine(xyz[..., axis] / w, uv[..., axis])
+                ref = getattr(nominal, f_key)
+                # an undetermined line or a focal length off by more than the gain bounds keeps the scene's
+                if line is not None and GAIN_BOUNDS[0] * ref <= line[0] <= GAIN_BOUNDS[1] * ref:
+                    fields[f_key], fields[c_key] = line
     return SensorCalibration(**fields)
 
 
@@ -209,7 +210,6 @@ class CalibrationResult:
         whitened_rms_before, whitened_rms_after: channel -> whitened RMS (noise units) of the
             replay at the scene values with the scene's sensor calibration, and after calibration.
         fit: the :class:`sysid.fit.FitResult` of the simulator parameters (None if not fitted).
-        notes: what was left out and why.
     """
 
     params: dict[str, float]
@@ -217,7 +217,6 @@ class CalibrationResult:
     whitened_rms_before: dict[str, float]
     whitened_rms_after: dict[str, float]
     fit: Any = None
-    notes: list[str] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (parameters, sensor calibration, whitened RMS before and after)."""
@@ -289,7 +288,6 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     data = {ch: model.data(ch) for ch in raw}
     nominal = nominal_sensor_calibration(model)
     model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
-    notes: list[str] = []
     values: dict[str, float] = {}
     result = None
     if params:
@@ -300,4 +298,4 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         raw = model.predict_raw(trace)
         model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
     after = whitened_rms(model, model.sensor_calibration.apply(raw, model.marker_rest), channels)
-    return CalibrationResult(values, model.sensor_calibration, before, after, result, notes)
+    return CalibrationResult(values, model.sensor_calibration, before, after, result)

@@ -84,3 +84,17 @@ def test_calibrate_lowers_the_weighted_cost_and_sets_the_model(tmp_path):
     assert cost(result.whitened_rms_after) < cost(result.whitened_rms_before)
     summary = result.summary()
     assert set(summary) >= {"params", "sensor", "whitened_rms_before", "whitened_rms_after"}
+
+
+def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
+    nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
+    still = np.zeros((10, 1, 3))  # one marker that never moves: no spread, the line is undetermined
+    data = {"markers_xyz": still, "markers_uv": np.full((10, 1, 2), 150.0)}
+    fitted = fit_sensor_calibration(data, {}, {}, None, nominal)
+    assert (fitted.fx, fitted.cx, fitted.fy, fitted.cy) == (300.0, 160.0, 300.0, 120.0)
+    rng = np.random.default_rng(3)
+    rest, xyz, _ = _synthetic(rng)
+    far = SensorCalibration(fx=900.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)  # fx x3: outside the bounds
+    fitted = fit_sensor_calibration({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
+    assert fitted.fx == 300.0 and fitted.cx == 160.0
+    assert fitted.fy == pytest.approx(300.0) and fitted.cy == pytest.approx(120.0)
