@@ -37,7 +37,7 @@ import numpy as np
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
-from sysid.observation import ObservationModel
+from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 GLOBAL_METHODS = ("cma", "multistart")
@@ -106,7 +106,7 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
         raise CalibrationError(f"parameter {name} starts at {initial}; cannot fit a non-finite value")
     if name.endswith("poisson_ratio"):
         return ParameterSpec(name, initial, False, 0.0, 0.499, 0.05)
-    if name == "sensor.normal_offset":
+    if name in SENSOR_PARAMETERS:
         return ParameterSpec(name, initial, False, initial - 1.0e-3, initial + 1.0e-3, 5.0e-5)
     if initial < 0.0:
         raise CalibrationError(f"parameter {name} starts at {initial} < 0")

@@ -13,13 +13,14 @@ from typing import TYPE_CHECKING, Any, Mapping, Protocol
 import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
+from sysid.observation import SENSOR_PARAMETERS
 
 if TYPE_CHECKING:
     from sysid.fit import FitProblem
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
-DIFFERENCE_PARAMETERS = ("sensor.normal_offset", "contact.eps_v")
+DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v")
 """Parameters whose Jacobian columns the sensitivity provider takes by forward differences: the
 replay's sensor offset (not a simulator parameter) and the friction mollifier width (no adjoint
 derivative)."""
