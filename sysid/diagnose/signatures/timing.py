@@ -87,7 +87,10 @@ def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
     return float(r @ r), c
 
 
-def _signal(rec: Recording) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float] | None:
+def timing_signal(rec: Recording) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The signal the timing tests read: ``(channel, t (n,) s, recorded (n,), predicted (n,), sigma)``:
+    the compressive normal force (N) when the wrench is recorded and predicted, else the mean marker
+    depth (m); None without either."""
     if rec.predicted("wrench"):
         t = rec.t["wrench"]
         return ("wrench", t, normal_force(rec.data["wrench"]), normal_force(rec.prediction["wrench"]),
@@ -109,7 +112,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         ``events`` (one dict per event: time, direction, window, whitened SSE at tau = 0, best delay
         and its SSE, best first-order tau / fraction and its SSE) and the summed SSEs.
     """
-    sig = _signal(rec)
+    sig = timing_signal(rec)
     if sig is None:
         return None
     channel, t, y, yp, sigma = sig
