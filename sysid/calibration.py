@@ -117,12 +117,19 @@ def scale_markers(xyz: np.ndarray, rest: np.ndarray, s_xy: float, s_z: float) ->
     return rest + (np.asarray(xyz, float) - rest) * scale
 
 
+MIN_GAIN_INFORMATION = 100.0
+"""Whitened energy ``sum (pred / sigma)^2`` a prediction needs before a gain is fitted to it: the
+gain's standard error is ``1 / sqrt`` of it (0.1 here). Below, the recording does not determine the
+gain (no contact, markers that do not move) and the scene's value 1 is kept."""
+
+
 def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
-    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2), bounded."""
+    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2), bounded;
+    1 when the prediction carries less than :data:`MIN_GAIN_INFORMATION`."""
     d = data / sigma
     p = pred / sigma
     den = float(np.sum(p * p))
-    if den <= 0.0 or not math.isfinite(den):
+    if not math.isfinite(den) or den < MIN_GAIN_INFORMATION:
         return 1.0
     return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
 

@@ -669,6 +669,8 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         return 2
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
+    if args.labelled is not None and (args.labelled / "labels.yaml").is_file():
+        return _reference_main(args)
     if args.labelled is not None:
         out = args.labelled
         try:
@@ -742,6 +744,21 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         print(format_score(result))
     else:
         print(f"wrote {len(recs)} recordings to {out} (labels.json)")
+    return 0
+
+
+def _reference_main(args: argparse.Namespace) -> int:
+    """``--labelled DIR`` on a reference set (``labels.yaml``): :mod:`sysid.diagnose.reference_bench`."""
+    from sysid.diagnose.reference_bench import bench_reference, format_reference
+    from sysid.diagnose.signature_engine import SignatureSettings
+
+    log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
+    try:
+        result = bench_reference(args.labelled, SignatureSettings(dt=DT), log=log)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(result, default=float) if args.json else format_reference(result))
     return 0
 
 

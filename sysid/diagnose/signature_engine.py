@@ -26,6 +26,7 @@ still leaves a structured gap many times the noise, and every candidate can abso
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -329,7 +330,8 @@ def _baseline_block(p: Prepared) -> dict[str, Any]:
 
 
 def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings: SignatureSettings | None = None,
-                 baseline_prepared: Sequence[Prepared] | None = None) -> tuple[dict[str, Any], Prepared]:
+                 baseline_prepared: Sequence[Prepared] | None = None,
+                 prepared: Prepared | None = None) -> tuple[dict[str, Any], Prepared]:
     """Diagnose one recording (SYSID.md output contract; engine details under ``extra``).
 
     Args:
@@ -337,6 +339,7 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
         baselines: recordings declared normal for this cell (calibrate the null).
         settings: :class:`SignatureSettings`.
         baseline_prepared: already prepared baselines (skips re-reading them).
+        prepared: ``bag`` already prepared by :func:`prepare` with these settings.
 
     Returns:
         ``(report, prepared)``.
@@ -346,7 +349,13 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
     """
     settings = settings or SignatureSettings()
     t0 = time.monotonic()
-    p = prepare(bag, settings)
+    if prepared is not None:
+        # decisions set flags on the results: start from undecided copies
+        p = Prepared(prepared.bag, prepared.model, prepared.calibration, prepared.prediction, prepared.recording,
+                     {e: dataclasses.replace(r, detected=False, threshold={}, reason=r.reason if not r.applicable else "")
+                      for e, r in prepared.results.items()}, prepared.wall_s, list(prepared.notes))
+    else:
+        p = prepare(bag, settings)
     base = list(baseline_prepared) if baseline_prepared is not None else [prepare(b, settings) for b in baselines]
     th: Thresholds = default_thresholds(p.recording)
     if base:
@@ -384,8 +393,18 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
                   "ties": decision.ties, "contact_properties": decision.contact_properties,
                   "null": {"source": "baseline" if base else "default", "baselines": [str(b.bag) for b in base],
                            "statistic": th.statistic, "effect_size": th.effect_size},
-                  "notes": p.notes, "wall_time_s": time.monotonic() - t0,
+                  "notes": p.notes, "wall_time_s": time.monotonic() - t0 + (p.wall_s if prepared is not None else 0.0),
                   "settings": {"dt": settings.dt, "t_max": settings.t_max, "arch": settings.arch,
                                "calibrate": settings.calibrate}},
     }
     return doc, p
+
+
+def diagnose(bags: Sequence[str | Path], dt: float = 0.01, heldout: Sequence[str | Path] | None = None,
+             **kwargs: Any) -> dict[str, Any]:
+    """``thinshell bench diagnose --engine sysid.diagnose.signature_engine:diagnose`` entry: the report
+    of the first recording (``heldout`` recordings are not used: the engine holds out events and
+    time blocks of the recording itself)."""
+    del heldout
+    doc, _ = diagnose_one(bags[0], settings=SignatureSettings(dt=dt, **kwargs))
+    return doc
