@@ -217,6 +217,7 @@ class CalibrationResult:
         whitened_rms_before, whitened_rms_after: channel -> whitened RMS (noise units) of the
             replay at the scene values with the scene's sensor calibration, and after calibration.
         fit: the :class:`sysid.fit.FitResult` of the simulator parameters (None if not fitted).
+        prediction: channel -> the calibrated prediction at ``params`` (aligned to the recording).
     """
 
     params: dict[str, float]
@@ -224,6 +225,7 @@ class CalibrationResult:
     whitened_rms_before: dict[str, float]
     whitened_rms_after: dict[str, float]
     fit: Any = None
+    prediction: dict[str, np.ndarray] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (parameters, sensor calibration, whitened RMS before and after)."""
@@ -304,5 +306,6 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         trace = model.simulate(values)
         raw = model.predict_raw(trace)
         model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
-    after = whitened_rms(model, model.sensor_calibration.apply(raw, model.marker_rest), channels)
-    return CalibrationResult(values, model.sensor_calibration, before, after, result)
+    calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
+    after = whitened_rms(model, calibrated, channels)
+    return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated))

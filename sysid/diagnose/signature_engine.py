@@ -144,12 +144,7 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                         max_time=settings.calibration_max_time)
     except SimulationDivergedError as err:
         raise CalibrationError(f"{bag}: the calibration's replay diverged: {err}") from err
-    try:
-        trace = model.simulate(cal.params)
-    except SimulationDivergedError as err:
-        notes.append(f"the calibrated replay diverged ({err}); the scene values are used")
-        trace = model.simulate({})
-    prediction = {ch: np.asarray(v, dtype=float) for ch, v in model.predict(trace).items()}
+    prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
     rec = recording_of(model, prediction)
     results = run_signature_tests(rec)
     return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
