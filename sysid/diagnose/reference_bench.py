@@ -18,7 +18,7 @@ from typing import Any, Callable
 import yaml
 
 from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare
-from sysid.diagnose_bench import Recording, format_score, score
+from sysid.diagnose.scoring import Recording, format_score, score
 
 VARIANT_EFFECT = {"nominal": "none", "plastic": "bending_plasticity", "latency": "latency", "damped": "damping",
                   "stiction": "stiction", "lens": "lens_distortion", "force_bias": "force_bias",
