@@ -217,7 +217,7 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
     for eff in infeasible.contact_effectors:
         if eff not in model.effectors:
             raise ConfigError(f"infeasible.contact_effectors: unknown effector {eff!r}")
-    true_parameters = {}
+    true_parameters = {name: model.get_parameter(name) for name in identify}  # default: the scene's values
     for name, value in (d.get("true_parameters") or {}).items():
         model.get_parameter(str(name))
         true_parameters[str(name)] = _num(value, f"true_parameters.{name}")
