@@ -59,7 +59,7 @@ def test_tactile_markers_move_when_the_gel_touches():
     for _ in range(4):
         obs, *_ = env.step(close)
     n_sheet = 3 * 4
-    markers0, markers = obs0[n_sheet:n_sheet + 2 * 8 * 3], obs[n_sheet:n_sheet + 2 * 8 * 3]
+    markers0, markers = obs0[n_sheet:n_sheet + 8 * 3], obs[n_sheet:n_sheet + 8 * 3]
     assert np.allclose(markers0, 0.0, atol=1e-9)
     assert np.max(np.abs(markers)) > 1e-6
 
