@@ -107,6 +107,16 @@ def test_actions_outside_bounds_are_rejected_naming_step_and_column():
     a[1, 3] = 1.0
     with pytest.raises(ConfigError, match=r"action\[1\]\[3\]"):
         rollout(t, a)
+    clipped = rollout(t, a, clip=True)  # rotation clipped to its per-step bound
+    from sim_core.transforms import quat_multiply, quat_to_rotvec
+
+    q0, q2 = clipped.effector_poses["dome"][0, 3:], clipped.effector_poses["dome"][2, 3:]
+    rel = quat_to_rotvec(quat_multiply(q2, np.r_[-q0[:3], q0[3]]))
+    assert clipped.steps_done == 2 and clipped.infeasible is None
+    np.testing.assert_allclose(rel, [t.action_high[3], 0.0, 0.0], atol=1e-9)
+    a[0, 0] = np.nan
+    with pytest.raises(ConfigError, match=r"action\[0\]\[0\]"):
+        rollout(t, a, clip=True)
 
 
 def test_apply_action_composes_rotation_in_world_frame():
