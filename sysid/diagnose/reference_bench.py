@@ -99,7 +99,11 @@ def format_reference(result: dict[str, Any]) -> str:
     lines.append(format_score(result["baseline_loo"]))
     lines.append("== per recording ==")
     for name, rep in result["reports"].items():
-        lines.append(f"{name}: alone {rep['alone']}, baselines {rep['baseline_loo']}, "
-                     f"held-out RMS {rep['heldout_rms_before']} -> {rep['heldout_rms_after']}, {rep['wall_s']:.0f} s")
+        rms = ", ".join(f"{ch} {rep['scene_rms'].get(ch, float('nan')):.2f} -> {v:.2f}"
+                        for ch, v in rep["calibrated_rms"].items())
+        ho = ("n/a" if rep["heldout_rms_before"] is None else f"{rep['heldout_rms_before']:.3g}") + " -> " + \
+            ("n/a" if rep["heldout_rms_after"] is None else f"{rep['heldout_rms_after']:.3g}")
+        lines.append(f"{name}: alone {rep['alone']}, baselines {rep['baseline_loo']}; held-out RMS {ho}; "
+                     f"calibration (whitened RMS) {rms}; {rep['wall_s']:.0f} s")
     lines.append(f"wall time {result['wall_s']:.0f} s")
     return "\n".join(lines)
