@@ -592,6 +592,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 return np.full_like(r0, fail_level) if r is None else r
 
             def jac(u: np.ndarray) -> np.ndarray:
+                if jac_at.get("in_local"):
+                    problem._check_time("local")  # a Jacobian costs a replay per parameter: not past the budget
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
