@@ -155,6 +155,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     params = _split(args.params) or []
     print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
           f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
+    for name in params:
+        model.parameter_value(name)  # an unknown name fails here, before any replay
     sensor = None
     if not args.no_sensor_calibration:
         from sysid.calibration import calibrate
