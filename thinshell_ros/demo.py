@@ -180,7 +180,8 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     node = executor = None
     try:
         node = CommanderNode(context=ctx, parameter_overrides=[
-            Parameter("scene", value=str(scene)), *(Parameter(k, value=float(v)) for k, v in settings.motion.items())])
+            Parameter("scene", value=str(scene)), Parameter("use_sim_time", value=True),
+            *(Parameter(k, value=float(v)) for k, v in settings.motion.items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         with _progress(console) as progress:

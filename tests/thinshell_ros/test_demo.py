@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -110,7 +111,7 @@ def test_commander_drives_the_sim_node_through_press_slide_lift(ros_context):
     cmd = CommanderNode(context=ros_context, parameter_overrides=[
         Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
         Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
-        Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+        Parameter("hold", value=0.02), Parameter("rate", value=100.0), Parameter("use_sim_time", value=True)])
     poses = []
     cmd.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.pose_from_msg(m)[1]),
                             SENSOR_QOS)
@@ -170,3 +171,31 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert summary["message_counts"] == counts and summary["timings_s"]["total_s"] > 0
     with pytest.raises(ConfigError, match="exists; use --force"):
         make_run_dir(tmp_path, force=False, stamp=run.name)
+
+
+@pytest.mark.ros
+def test_commander_runs_on_wall_time_without_clock(ros_context):
+    """Over DDS against a robot that publishes no /clock: the commander plans and completes on wall time."""
+    from tests.thinshell_ros.wall_robot import WallRobot
+
+    robot = WallRobot(ros_context)
+    cmd = CommanderNode(context=ros_context, parameter_overrides=[
+        Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
+        Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
+        Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(robot)
+    ex.add_node(cmd)
+    try:
+        assert robot.count_publishers("/clock") == 0
+        t0 = time.monotonic()
+        assert spin_until(ex, cmd.done.is_set, 15.0), (cmd.progress(), cmd.sim_time)
+        assert cmd.schedule is not None and cmd.progress() == 1.0 and cmd.schedule.sent > 10
+        # wall time: the motion took about its planned duration
+        assert time.monotonic() - t0 >= cmd.schedule.end - cmd.schedule.t0 - 0.05
+        assert not robot.rejected
+        assert spin_until(ex, lambda: abs(robot.sim.state.effector_pose["ee"][0] - HOME[0] - 0.01) < 1e-4, 2.0)
+    finally:
+        ex.shutdown(timeout_sec=0)
+        cmd.destroy_node()
+        robot.destroy_node()
