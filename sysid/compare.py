@@ -2,7 +2,7 @@
 
 Usage::
 
-    thinshell compare BAG --scene S [--scene-nominal S0] --out DIR [--force] [--t-max T] [--dt DT]
+    thinshell compare BAG --scene S [--scene-nominal S0] [--label NAME] --out DIR [--force] [--t-max T] [--dt DT]
                           [--arch cpu|numpy] [--gel-resolution NX,NY,NZ]
 
 Every scene replays the recording's effector motion (the recorded effector poses, kinematically, as
@@ -240,6 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag", help="rosbag2 directory (or .mcap file)")
     p.add_argument("--scene", required=True, help="scene under test (e.g. the fitted scene of thinshell sysid --write-scene)")
     p.add_argument("--scene-nominal", help="nominal scene (default: the bag's scene.yaml)")
+    p.add_argument("--label", default="scene", help="name of --scene in the report (e.g. fitted; default: %(default)s)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--force", action="store_true", help="replace an existing output directory")
     p.add_argument("--dt", type=float, default=0.01, help="replay step in s (default: %(default)s)")
@@ -273,7 +274,9 @@ def compare_main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            cmp = compare_recording(args.bag, [("scene", args.scene), ("nominal", args.scene_nominal)], dt=args.dt,
+            if args.label == "nominal":
+                raise ThinShellError("--label must differ from 'nominal'")
+            cmp = compare_recording(args.bag, [(args.label, args.scene), ("nominal", args.scene_nominal)], dt=args.dt,
                                     t_max=args.t_max, arch=args.arch, simulation=simulation)
         for w in caught:
             print(f"{PROG}: warning: {w.message}", file=sys.stderr)

@@ -93,6 +93,38 @@ def scene_keys_for(scene: Mapping[str, Any], name: str) -> list[tuple[str, ...]]
     raise ConfigError(f"parameter {name!r} has no scene key; it cannot be written into a fitted scene")
 
 
+def scene_with_values(scene: Mapping[str, Any], values: Mapping[str, float], *,
+                      sensor: str | None = None) -> dict[str, Any]:
+    """A copy of ``scene`` (without any ``fitted:`` record) with global parameters set in its keys.
+
+    Args:
+        scene: scene v1 as a plain dict.
+        values: global parameter name -> value (SI units); mapping in the module docstring.
+        sensor: the sensor whose mount ``sensor.normal_offset`` moves (default: the first).
+
+    Raises:
+        ConfigError: a parameter without a scene key, or a non-finite value.
+    """
+    doc = copy.deepcopy(dict(scene))
+    doc.pop("fitted", None)
+    sensors = list((doc.get("sensors") or {}).keys())
+    for name, value in values.items():
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"fitted value of {name!r} is not finite: {value}")
+        if name == "sensor.normal_offset":
+            s = sensor or (sensors[0] if sensors else None)
+            if s is None:
+                raise ConfigError("sensor.normal_offset: the scene has no sensor")
+            mount = np.asarray(doc["sensors"][s].get("mount") or [0, 0, 0, 0, 0, 0, 1], dtype=float)
+            mount[:3] += value * quat_to_matrix(mount[3:7])[:, 2]
+            doc["sensors"][s]["mount"] = [float(v) for v in mount]
+            continue
+        for path in scene_keys_for(doc, name):
+            _set(doc, path, value)
+    return doc
+
+
 def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
                           sigma: Mapping[str, float] | None = None, *, sensor: str | None = None,
                           record: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -114,23 +146,7 @@ def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
     """
     from sim_core.scenes import load_scene
 
-    doc = copy.deepcopy(dict(scene))
-    doc.pop("fitted", None)
-    sensors = list((doc.get("sensors") or {}).keys())
-    for name, value in values.items():
-        value = float(value)
-        if not math.isfinite(value):
-            raise ConfigError(f"fitted value of {name!r} is not finite: {value}")
-        if name == "sensor.normal_offset":
-            s = sensor or (sensors[0] if sensors else None)
-            if s is None:
-                raise ConfigError("sensor.normal_offset: the scene has no sensor")
-            mount = np.asarray(doc["sensors"][s].get("mount") or [0, 0, 0, 0, 0, 0, 1], dtype=float)
-            mount[:3] += value * quat_to_matrix(mount[3:7])[:, 2]
-            doc["sensors"][s]["mount"] = [float(v) for v in mount]
-            continue
-        for path in scene_keys_for(doc, name):
-            _set(doc, path, value)
+    doc = scene_with_values(scene, values, sensor=sensor)
     effects = sorted({n.split(".", 1)[1].split(".")[0] for n in values if n.startswith("candidate.")})
     fitted: dict[str, Any] = {"params": {k: float(v) for k, v in values.items()},
                               "sigma": {k: (None if sigma is None or sigma.get(k) is None else float(sigma[k]))

@@ -1,17 +1,25 @@
-"""``thinshell demo`` (what ``make demo`` runs): the whole pipeline once, with progress shown throughout.
+"""``thinshell demo`` (what ``make demo`` runs): the sim-to-real loop once, over real DDS, with progress.
 
-1. Start the simulator node (``thinshell-sim-node``, a subprocess, ``fast`` mode by default) on the
-   bundled scene, recording its inputs and outputs into ``<run>/recorded_bag`` (its ``record``
-   parameter).
-2. Drive it over DDS with the scripted commander (:mod:`thinshell_ros.commander`: press, slide,
-   lift, planned from the measured effector pose and sheet), in sim time; then stop the node with
-   SIGINT so that it closes the bag, and read the bag back (:func:`sysid.bagio.open_bag`).
-3. Fit material parameters to the bundled recording ``bags/nominal_s101`` with ``thinshell sysid``
-   (a short window and a coarse replay step keep it to a couple of minutes on two cores).
-4. Print where everything is; ``<run>/demo.json`` keeps the timings, message counts and fit summary.
+1. **Robot**: the simulator node (``thinshell-sim-node``, a subprocess, ``fast`` mode) on a *hidden*
+   scene: the bundled scene with other material values and one concealed effect
+   (:mod:`thinshell_ros.demo_loop`: :data:`~thinshell_ros.demo_loop.HIDDEN`,
+   :data:`~thinshell_ros.demo_loop.CONCEALED`), driven over DDS by the scripted commander (press,
+   slide, lift, planned from the measured pose and sheet) and recorded into ``<run>/recorded_bag``;
+   the recording states the nominal scene (as a real cell's would).
+2. **Fit**: ``thinshell sysid`` on that recording, starting from the nominal scene, with
+   ``--write-scene <run>/fitted_scene.yaml`` (fitted values, sigma, the modelled effect's term).
+3. **Trajectory**: a press-slide-lift of its own (deeper and longer than the identification motion)
+   planned from the recording's start, written as ``<run>/trajectory.yaml`` (the trajectory format
+   the optimiser writes; the demo deploys this scripted one).
+4. **Deploy**: the robot again, driven by the deploy node (limits, abort; sim time from the robot's
+   ``/clock``), recorded into ``<run>/deployed_bag``.
+5. **Compare**: ``thinshell compare`` replays the deployed run in the fitted and in the nominal scene:
+   RMS per channel, overlay plots, ``<run>/compare/report.html``.
 
-``<run>`` is ``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten
-without ``--force``. ``--quick`` shortens every stage (used by the tests).
+``<run>/report.md`` links every step and reveals the hidden values; ``<run>/demo.json`` keeps the
+timings, message counts, fit summary, deploy status and the comparison. ``<run>`` is
+``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten without
+``--force``. ``--quick`` shortens every stage (used by the tests).
 """
 
 from __future__ import annotations
@@ -42,13 +50,17 @@ class DemoSettings:
     Attributes:
         motion: commander parameters (:class:`thinshell_ros.commander.CommanderNode`: ``depth``,
             ``slide``, ``release`` in m, ``approach_speed``, ``press_speed``, ``slide_speed`` in m/s, ``hold`` in s).
-        sysid_args: ``thinshell sysid`` options besides the bag and ``--out``.
+        sysid_args: ``thinshell sysid`` options besides the bag, ``--scene``, ``--write-scene`` and ``--out``.
+        deploy_motion: the deployed press-slide-lift (same keys as ``motion``).
+        compare_args: ``thinshell compare`` options besides the bag, scenes and ``--out``.
         start_timeout: s of wall time for the sim node to come up and the plan to be made.
         motion_timeout: s of wall time for the scripted motion.
     """
 
     motion: dict[str, float]
     sysid_args: tuple[str, ...]
+    deploy_motion: dict[str, float] = field(default_factory=dict)
+    compare_args: tuple[str, ...] = ()
     start_timeout: float = 120.0
     motion_timeout: float = 600.0
 
@@ -56,14 +68,20 @@ class DemoSettings:
 FULL = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.005, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.05},
-    # press (0.6-0.9 s) and the start of the slide of nominal_s101; the gel modulus sets the normal force
-    sysid_args=("--params", "gel.youngs_modulus", "--t-max", "1.0", "--dt", "0.01", "--max-nfev", "6",
-                "--max-time", "120"))
+    # the identification motion's press sets the gel modulus; its hold and release the Maxwell branch
+    sysid_args=("--params", "gel.youngs_modulus,candidate.gel_viscoelasticity", "--dt", "0.01", "--max-nfev", "8",
+                "--max-time", "180"),
+    deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
+                   "slide_speed": 0.02, "hold": 0.1},
+    compare_args=("--dt", "0.01"))
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.01},
-    sysid_args=("--params", "gel.youngs_modulus", "--t-max", "0.2", "--dt", "0.02", "--max-nfev", "2",
-                "--gel-resolution", "3,3,2", "--max-time", "60"))
+    sysid_args=("--params", "gel.youngs_modulus", "--dt", "0.02", "--max-nfev", "2",
+                "--gel-resolution", "3,3,2", "--max-time", "60"),
+    deploy_motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
+                   "slide_speed": 0.02, "hold": 0.01},
+    compare_args=("--dt", "0.02", "--gel-resolution", "3,3,2"))
 
 
 @dataclass
@@ -77,6 +95,10 @@ class DemoResult:
         sysid_out: the fit report directory.
         fit: :func:`thinshell_ros.sysid_node.summarise_fit` of the report.
         timings: stage -> wall seconds.
+        hidden_scene: the robot's hidden scene; fitted_scene: sysid's fitted scene.
+        trajectory: the deployed trajectory file; deployed_bag: the deployed run's recording.
+        deploy: the deploy node's final status.
+        compare_out: the comparison report directory; comparison: its ``compare.json``.
     """
 
     run_dir: Path
@@ -85,6 +107,13 @@ class DemoResult:
     sysid_out: Path | None = None
     fit: dict[str, Any] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    hidden_scene: Path | None = None
+    fitted_scene: Path | None = None
+    trajectory: Path | None = None
+    deployed_bag: Path | None = None
+    deploy: dict[str, Any] | None = None
+    compare_out: Path | None = None
+    comparison: dict[str, Any] | None = None
 
 
 def bundled_bag(name: str = DEFAULT_BAG) -> Path:
@@ -150,8 +179,9 @@ def _tail(path: Path, n: int = 2000) -> str:
 
 
 def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: str, console: Any,
-                         result: DemoResult) -> None:
-    """Stages 1-2: sim node subprocess recording into ``result.recorded_bag``, commander, SIGINT, read back.
+                         result: DemoResult, record_scene: Path | None = None) -> None:
+    """Stage 1: sim node subprocess on ``scene`` recording into ``result.recorded_bag`` (stating
+    ``record_scene``, default ``scene``), commander, SIGINT, read back.
 
     Raises:
         ThinShellError: the node died, did not come up, or the motion timed out (the node log is quoted).
@@ -169,8 +199,9 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     repo = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={scene}",
-           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}"]
-    console.print(f"[bold]1/3 simulator[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
+           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}",
+           "-p", f"record_scene:={record_scene or scene}"]
+    console.print(f"[bold]1/5 robot[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
                   f"recording into {result.recorded_bag} (log {log_path})")
     t0 = time.monotonic()
     ctx = Context()
@@ -180,7 +211,7 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     node = executor = None
     try:
         node = CommanderNode(context=ctx, parameter_overrides=[
-            Parameter("scene", value=str(scene)), Parameter("use_sim_time", value=True),
+            Parameter("scene", value=str(record_scene or scene)), Parameter("use_sim_time", value=True),
             *(Parameter(k, value=float(v)) for k, v in settings.motion.items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
@@ -250,8 +281,10 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
                   + (f"; notes: {'; '.join(contents.notes)}" if contents.notes else ""))
 
 
-def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, result: DemoResult) -> None:
-    """Stage 3: ``thinshell sysid`` on ``bag`` into ``<run>/sysid``.
+def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, result: DemoResult,
+                    nominal: Path | None = None) -> None:
+    """Stage 2: ``thinshell sysid`` on ``bag`` (from the ``nominal`` scene when given) into ``<run>/sysid``,
+    writing ``<run>/fitted_scene.yaml``.
 
     Raises:
         ThinShellError: the fitter failed (its reason is on stderr).
@@ -261,8 +294,11 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     from thinshell_ros.sysid_node import summarise_fit
 
     out = run / "sysid"
-    args = [str(bag), *settings.sysid_args, "--out", str(out)]
-    console.print(f"[bold]3/3 system identification[/bold]: thinshell sysid {' '.join(args)}")
+    result.fitted_scene = run / "fitted_scene.yaml"
+    args = [str(bag), *settings.sysid_args, "--out", str(out), "--write-scene", str(result.fitted_scene)]
+    if nominal is not None:
+        args += ["--scene", str(nominal)]
+    console.print(f"[bold]2/5 fit[/bold]: thinshell sysid {' '.join(args)}")
     t0 = time.monotonic()
     code = sysid_main(args)
     result.timings["sysid_s"] = time.monotonic() - t0
@@ -270,6 +306,74 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
         raise ThinShellError(f"thinshell sysid exited with code {code}")
     result.sysid_out = out
     result.fit = summarise_fit(out)
+
+
+def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult) -> None:
+    """Stages 3-5: trajectory file, deployment on the robot (recorded), comparison fitted vs nominal.
+
+    Raises:
+        ThinShellError: a stage failed.
+    """
+    from sysid.compare import compare_main
+
+    from thinshell_ros.demo_loop import deploy_trajectory_from_bag, rms_table, run_deploy_stage
+
+    result.trajectory = deploy_trajectory_from_bag(result.recorded_bag, nominal, run / "trajectory.yaml",
+                                                   settings.deploy_motion)
+    console.print(f"[bold]3/5 trajectory[/bold]: {result.trajectory} (scripted press-slide-lift from the recording's start)")
+    result.deployed_bag = run / "deployed_bag"
+    console.print(f"[bold]4/5 deploy[/bold]: thinshell-deploy-node on the robot (sim time), recording into "
+                  f"{result.deployed_bag}")
+    t0 = time.monotonic()
+    result.deploy = run_deploy_stage(result.hidden_scene, nominal, result.trajectory, result.deployed_bag,
+                                     run / "robot_deploy.log", settings.motion_timeout, console)
+    result.timings["deploy_s"] = time.monotonic() - t0
+    if result.deploy["state"] != "completed":
+        raise ThinShellError(f"the deployment {result.deploy['state']}: {result.deploy['reason']}")
+    result.compare_out = run / "compare"
+    args = [str(result.deployed_bag), "--scene", str(result.fitted_scene), "--scene-nominal", str(nominal),
+            "--label", "fitted", "--out", str(result.compare_out), *settings.compare_args]
+    console.print(f"[bold]5/5 compare[/bold]: thinshell compare {' '.join(args)}")
+    t0 = time.monotonic()
+    code = compare_main(args)
+    result.timings["compare_s"] = time.monotonic() - t0
+    if code != 0:
+        raise ThinShellError(f"thinshell compare exited with code {code}")
+    doc = json.loads((result.compare_out / "compare.json").read_text())
+    result.comparison = {"rms": rms_table(doc), "better": doc["better"]}
+
+
+def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) -> Path:
+    """``<run>/report.md``: every step with links, the hidden truth, fit and comparison figures."""
+    rel = lambda p: os.path.relpath(p, run) if p is not None else "-"  # noqa: E731
+    fit = result.fit or {}
+    lines = ["# thinshell demo: fit -> deploy -> record -> compare", "",
+             f"1. Robot (hidden scene [{rel(result.hidden_scene)}]({rel(result.hidden_scene)})) driven by the "
+             f"commander, recorded: [{rel(result.recorded_bag)}]({rel(result.recorded_bag)})",
+             f"2. Fit: [sysid report]({rel(result.sysid_out)}/report.html), fitted scene "
+             f"[{rel(result.fitted_scene)}]({rel(result.fitted_scene)})",
+             f"3. Trajectory: [{rel(result.trajectory)}]({rel(result.trajectory)})",
+             f"4. Deployed on the robot: {(result.deploy or {}).get('state')} "
+             f"({(result.deploy or {}).get('reason')}), recorded: [{rel(result.deployed_bag)}]({rel(result.deployed_bag)})",
+             f"5. Comparison: [compare report]({rel(result.compare_out)}/report.html)", "",
+             "## Fit vs hidden truth", "", "| parameter | nominal | fitted | sigma | hidden |", "|---|---|---|---|---|"]
+    for name, value in fit.get("params", {}).items():
+        sigma = fit.get("sigma", {}).get(name)
+        lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
+                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {hidden.get(name, '-')} |")
+    hidden_only = [n for n in hidden if n not in fit.get("params", {})]
+    if hidden_only:
+        lines += ["", "Hidden but not fitted: " + ", ".join(f"{n} = {hidden[n]}" for n in hidden_only)]
+    if result.comparison:
+        lines += ["", "## Deployed run: prediction RMS (recording - simulation)", "",
+                  "| channel | fitted scene | nominal scene | fitted / nominal |", "|---|---|---|---|"]
+        for ch, v in result.comparison["rms"].items():
+            lines.append(f"| {ch} | {v['fitted']:.4g} | {v['nominal']:.4g} | {v['fitted'] / v['nominal']:.3f} |")
+    lines += ["", "Task reward: not measured (the deployed motion is the scripted press-slide-lift, not a task "
+              "trajectory of thinshell optimise).", ""]
+    path = run / "report.md"
+    path.write_text("\n".join(lines))
+    return path
 
 
 def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "fast", scene: Path | None = None,
@@ -280,49 +384,64 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
         out: parent of the run directory.
         force: replace an existing run directory of the same time stamp.
         quick: the short settings (:data:`QUICK`) instead of :data:`FULL`.
-        mode: sim node mode, ``fast`` or ``realtime``.
-        scene: scene for the simulator (default the bundled one).
-        bag: recording to fit (default the bundled ``bags/nominal_s101``).
+        mode: the robot's sim node mode in the identification run, ``fast`` or ``realtime``.
+        scene: the nominal scene (default the bundled one); the robot runs it with hidden values.
+        bag: recording to fit instead of the robot's identification run.
         console: a ``rich.console.Console`` (default: a new one on stdout).
 
     Raises:
         ConfigError: bad mode, missing scene / bag, existing run directory without ``force``.
         ThinShellError: a stage failed.
     """
+    from thinshell_ros.demo_loop import CONCEALED, HIDDEN, write_hidden_scene
+
     if mode not in ("fast", "realtime"):
         raise ConfigError(f"--mode must be fast or realtime, got {mode!r}")
     settings = QUICK if quick else FULL
     scene = Path(scene) if scene else bundled_scene()
     if not scene.is_file():
         raise ConfigError(f"scene {scene} not found")
-    bag = Path(bag) if bag else bundled_bag()
-    if not bag.exists():
+    if bag is not None and not Path(bag).exists():
         raise ConfigError(f"bag {bag} not found")
     console = console or _console()
     t0 = time.monotonic()
     run = make_run_dir(Path(out), force)
     result = DemoResult(run_dir=run, recorded_bag=run / "recorded_bag")
+    result.hidden_scene = write_hidden_scene(scene, run / "robot_hidden_scene.yaml")
     console.rule(f"thinshell demo{' --quick' if quick else ''}: {run}")
-    run_simulation_stage(run, settings, scene, mode, console, result)
-    console.print(f"[bold]2/3 recording[/bold] closed: {result.recorded_bag}")
-    run_sysid_stage(run, settings, bag, console, result)
+    run_simulation_stage(run, settings, result.hidden_scene, mode, console, result, record_scene=scene)
+    run_sysid_stage(run, settings, Path(bag) if bag else result.recorded_bag, console, result, nominal=scene)
+    run_loop_stages(run, settings, scene, console, result)
     result.timings["total_s"] = time.monotonic() - t0
-    summary = {"run_dir": str(run), "quick": quick, "mode": mode, "scene": str(scene), "sysid_bag": str(bag),
-               "recorded_bag": str(result.recorded_bag), "message_counts": result.message_counts,
-               "sysid_out": str(result.sysid_out), "fit": result.fit,
+    hidden = {**HIDDEN, **CONCEALED}
+    report = write_run_report(run, result, hidden)
+    summary = {"run_dir": str(run), "quick": quick, "mode": mode, "scene": str(scene),
+               "hidden": hidden, "hidden_scene": str(result.hidden_scene),
+               "sysid_bag": str(bag or result.recorded_bag), "recorded_bag": str(result.recorded_bag),
+               "message_counts": result.message_counts, "sysid_out": str(result.sysid_out), "fit": result.fit,
+               "fitted_scene": str(result.fitted_scene), "trajectory": str(result.trajectory),
+               "deployed_bag": str(result.deployed_bag), "deploy": result.deploy,
+               "compare_out": str(result.compare_out), "comparison": result.comparison, "report": str(report),
                "timings_s": {k: round(v, 2) for k, v in result.timings.items()}}
     (run / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.rule("done")
     for name, value in (result.fit or {}).get("params", {}).items():
         sigma = result.fit["sigma"].get(name)
         console.print(f"  fitted {name} = {value:.6g}" + (f" +- {sigma:.3g}" if sigma is not None else "")
-                      + f" (nominal {result.fit['initial'][name]:.6g})")
+                      + f" (nominal {result.fit['initial'][name]:.6g}, hidden {hidden.get(name, '-')})")
+    for ch, v in (result.comparison or {}).get("rms", {}).items():
+        console.print(f"  deployed run, RMS {ch}: fitted {v['fitted']:.4g}, nominal {v['nominal']:.4g}")
     console.print(f"  recorded bag:  {result.recorded_bag}")
     console.print(f"  sysid report:  {result.sysid_out / 'report.html'} (also report.md, fit.json, plots)")
+    console.print(f"  fitted scene:  {result.fitted_scene}")
+    console.print(f"  deployed bag:  {result.deployed_bag}")
+    console.print(f"  comparison:    {result.compare_out / 'report.html'}")
+    console.print(f"  report:        {report}")
     console.print(f"  summary:       {run / 'demo.json'}")
     console.print(f"  wall time:     {result.timings['total_s']:.1f} s "
-                  f"(sim {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
-                  f"sysid {result.timings.get('sysid_s', 0):.1f} s)")
+                  f"(robot {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
+                  f"sysid {result.timings.get('sysid_s', 0):.1f} s, deploy {result.timings.get('deploy_s', 0):.1f} s, "
+                  f"compare {result.timings.get('compare_s', 0):.1f} s)")
     return result
 
 
@@ -331,14 +450,16 @@ def demo_main(argv: Sequence[str]) -> int:
 
     Returns the exit code (0 on success).
     """
-    parser = argparse.ArgumentParser(prog="thinshell demo", description="the main job: sim node + scripted "
-                                     "commander + recording, then sysid on the bundled bag")
+    parser = argparse.ArgumentParser(prog="thinshell demo", description="the main job: a hidden-scene robot (sim "
+                                     "node) recorded, fitted (sysid --write-scene), a trajectory deployed on it and "
+                                     "recorded, the fitted and nominal scenes compared on the deployed run")
     parser.add_argument("--out", default="demo_out", help="parent of the timestamped run directory (default demo_out)")
     parser.add_argument("--force", action="store_true", help="replace an existing run directory")
     parser.add_argument("--quick", action="store_true", help="shorter motion and fit (a smoke test)")
     parser.add_argument("--mode", default="fast", choices=("fast", "realtime"), help="sim node mode")
-    parser.add_argument("--scene", default=None, help="scene for the sim node (default: the bundled press_slide)")
-    parser.add_argument("--bag", default=None, help=f"recording to fit (default: bags/{DEFAULT_BAG})")
+    parser.add_argument("--scene", default=None, help="nominal scene (default: the bundled press_slide)")
+    parser.add_argument("--bag", default=None, help="recording to fit instead of the robot's identification run "
+                                                   f"(e.g. bags/{DEFAULT_BAG})")
     args = parser.parse_args([str(a) for a in argv])
     run_demo(Path(args.out), force=args.force, quick=args.quick, mode=args.mode,
              scene=Path(args.scene) if args.scene else None, bag=Path(args.bag) if args.bag else None)

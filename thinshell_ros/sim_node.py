@@ -15,7 +15,9 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - ``namespace`` (str, default ``/thinshell``): prefix of every topic.
 - ``publish_image`` (bool): render and publish ``<sensor>/image``.
 - ``record`` (str): bag directory to record inputs and outputs into (empty: off);
-  ``record_force`` replaces an existing one.
+  ``record_force`` replaces an existing one; ``record_scene`` (str) is the scene written beside the
+  recording as ``scene.yaml`` (default: ``scene``; a "robot" run with hidden values states the
+  nominal scene, as a real cell's recording would).
 - ``command_timeout`` (s of sim time): commands older than this are stale (hold position); 0 = never.
 - ``workspace_min``, ``workspace_max`` (``[x, y, z]`` m in ``world``): the box every effector
   position command must lie in; a pose command outside is rejected like one with NaN or a zero
@@ -145,6 +147,7 @@ class SimNode(Node):
         self.publish_image = bool(self.declare_parameter("publish_image", False).value)
         record = str(self.declare_parameter("record", "", ro).value)
         record_force = bool(self.declare_parameter("record_force", False, ro).value)
+        record_scene = str(self.declare_parameter("record_scene", "", ro).value)
         timeout = float(self.declare_parameter("command_timeout", 1.0, ro).value)
         ws_min = list(self.declare_parameter("workspace_min", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             read_only=True, description="[x, y, z] lower corner of the allowed effector positions, m in world "
@@ -194,7 +197,7 @@ class SimNode(Node):
         if record:
             from thinshell_ros.recorder import BagRecorder
 
-            self.recorder = BagRecorder(record, scene=self.scene_path or None, force=record_force)
+            self.recorder = BagRecorder(record, scene=record_scene or self.scene_path or None, force=record_force)
             self.get_logger().info(f"recording into {record}")
 
         ns = self.namespace
