@@ -147,7 +147,8 @@ def test_commander_rejects_bad_parameters(ros_context):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
-    """``thinshell demo --quick`` end to end: sim node subprocess, commander over DDS, SIGINT, sysid."""
+    """``thinshell demo --quick`` end to end: hidden robot (sim node subprocess) + commander over DDS, SIGINT,
+    sysid with the fitted scene, trajectory file, deploy node on the robot (recorded), comparison."""
     from sysid.bagio import open_bag
     from sysid.results import load_fit_json
     from thinshell_ros.demo import demo_main
@@ -169,6 +170,24 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert {"report.html", "report.md"} <= {p.name for p in (run / "sysid").iterdir()}
     summary = json.loads((run / "demo.json").read_text())
     assert summary["message_counts"] == counts and summary["timings_s"]["total_s"] > 0
+    # the loop: the recording states the nominal scene, the robot ran the hidden one
+    from sim_core.scenes.scene_file import load_scene_file
+    from sim_core.simulation import Simulation
+    from sim_core.trajectory_file import read_trajectory
+
+    assert load_scene_file(run / "recorded_bag" / "scene.yaml").sensors["tactile"].gel_material.youngs_modulus == 3.0e5
+    hidden = Simulation.from_scene(run / "robot_hidden_scene.yaml")
+    assert hidden.get_parameter("gel.youngs_modulus") == summary["hidden"]["gel.youngs_modulus"] != 3.0e5
+    assert hidden.model.candidates  # the concealed effect
+    fitted = Simulation.from_scene(run / "fitted_scene.yaml")
+    assert fitted.get_parameter("gel.youngs_modulus") == pytest.approx(summary["fit"]["params"]["gel.youngs_modulus"])
+    assert read_trajectory(run / "trajectory.yaml").effectors == ["ee"]
+    assert summary["deploy"]["state"] == "completed" and summary["deploy"]["published"] > 10
+    deployed = open_bag(run / "deployed_bag")
+    assert deployed.series["pose_cmd"].values.shape[0] == summary["deploy"]["published"]
+    assert deployed.series["wrench"].values[:, 2].min() < -0.05  # the deployed press touched the card
+    assert set(summary["comparison"]["rms"]["wrench"]) == {"fitted", "nominal"}
+    assert (run / "compare" / "report.html").is_file() and (run / "report.md").is_file()
     with pytest.raises(ConfigError, match="exists; use --force"):
         make_run_dir(tmp_path, force=False, stamp=run.name)
 
