@@ -36,8 +36,20 @@ CONCEALED = {"candidate.gel_viscoelasticity": 0.4}
 """The concealed effect: a Maxwell branch in the gel (stiffness ratio 0.4, relaxation time 0.3 s)."""
 
 
+SENSOR_NOISE = {"markers": 15e-6, "pixels": 0.15, "force": 0.15, "torque": 4e-4, "points": 10e-6}
+"""Standard deviations of the robot's measurement noise (sim node ``noise_*``), about those of the
+bundled recording ``bags/nominal_s101``."""
+
 WRENCH_LIMIT = 40.0
 """N: the deploy node's wrench limit on the demo robot (its stiffer gel presses the card with about 20 N)."""
+
+
+def robot_noise_args(seed: int) -> list[str]:
+    """``--ros-args`` ``-p`` pairs of the robot's measurement noise (:data:`SENSOR_NOISE`)."""
+    args = []
+    for key, sigma in SENSOR_NOISE.items():
+        args += ["-p", f"noise_{key}:={sigma!r}"]
+    return [*args, "-p", f"noise_seed:={seed}"]
 
 
 def write_hidden_scene(nominal: Path, path: Path, hidden: Mapping[str, float] = HIDDEN,
@@ -108,7 +120,8 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     repo = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={hidden_scene}",
-           "-p", "mode:=fast", "-p", "mesh_rate:=0.0", "-p", f"record:={bag}", "-p", f"record_scene:={nominal}"]
+           "-p", "mode:=fast", "-p", "mesh_rate:=0.0", "-p", f"record:={bag}", "-p", f"record_scene:={nominal}",
+           *robot_noise_args(seed=2)]
     t0 = time.monotonic()
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)

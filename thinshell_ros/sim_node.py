@@ -24,6 +24,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   quaternion (logged, the last valid command stays), a twist stops at the boundary. Default (both
   empty): the bounding box of the effectors' initial positions and the sheet, grown by
   ``workspace_margin`` (m, default 0.1) on every side. ``workspace_margin < 0`` with no box: no limit.
+- ``noise_markers`` (m), ``noise_pixels`` (px), ``noise_force`` (N), ``noise_torque`` (N m),
+  ``noise_points`` (m), ``noise_seed``: standard deviations of white Gaussian noise added to the
+  published (and recorded) marker positions, marker pixels, wrench and sheet points, per axis, as a
+  real sensor's; default 0 (exact outputs). The effector pose stays exact.
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
@@ -148,6 +152,13 @@ class SimNode(Node):
         record = str(self.declare_parameter("record", "", ro).value)
         record_force = bool(self.declare_parameter("record_force", False, ro).value)
         record_scene = str(self.declare_parameter("record_scene", "", ro).value)
+        self.noise = {key: float(self.declare_parameter(f"noise_{key}", 0.0, ParameterDescriptor(
+            read_only=True, description=f"std of the Gaussian noise added to the published {what}")).value)
+            for key, what in (("markers", "marker positions, m"), ("pixels", "marker pixels, px"),
+                              ("force", "forces, N"), ("torque", "torques, N m"), ("points", "sheet points, m"))}
+        if not all(math.isfinite(v) and v >= 0 for v in self.noise.values()):
+            raise ConfigError(f"noise parameters must be finite and >= 0, got {self.noise}")
+        self._rng = np.random.default_rng(int(self.declare_parameter("noise_seed", 0, ro).value))
         timeout = float(self.declare_parameter("command_timeout", 1.0, ro).value)
         ws_min = list(self.declare_parameter("workspace_min", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
             read_only=True, description="[x, y, z] lower corner of the allowed effector positions, m in world "
@@ -433,6 +444,12 @@ class SimNode(Node):
             except ThinShellError as err:
                 self.get_logger().error(f"recording {pub.topic_name}: {err}", throttle_duration_sec=1.0)
 
+    def _noisy(self, values: Any, key: str) -> np.ndarray:
+        """``values`` plus white Gaussian noise of the ``noise_<key>`` standard deviation (0: unchanged)."""
+        values = np.asarray(values, dtype=float)
+        sigma = self.noise[key]
+        return values if sigma == 0 else values + self._rng.normal(0.0, sigma, values.shape)
+
     def publish_outputs(self, force: bool = False) -> None:
         """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output."""
         t = float(self.sim.t)
@@ -448,12 +465,16 @@ class SimNode(Node):
             for e, pose in obs.effector_pose.items():
                 self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
             for s, reading in obs.tactile.items():
-                self._publish(self._pub_markers[s], cv.markers_to_msg(reading.markers_xyz, reading.markers_uv, t_ns, s), t_ns)
-                self._publish(self._pub_wrench[s], cv.wrench_to_msg(reading.wrench, t_ns, s), t_ns)
+                xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
+                wrench = np.asarray(reading.wrench, dtype=float)
+                wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
+                self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
+                self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
                 if self.publish_image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
             if len(obs.sheet_points):
-                self._publish(self._pub_points, cv.points_to_msg(obs.sheet_points, t_ns, "world"), t_ns)
+                self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns, "world"),
+                              t_ns)
                 if self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9):
                     self._next_mesh_t = t + 1.0 / self.mesh_rate
                     self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns), t_ns)

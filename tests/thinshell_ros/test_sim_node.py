@@ -142,6 +142,23 @@ def test_pose_outside_the_workspace_is_rejected_like_nan(ros_context):
         _node(ros_context, workspace_min=[0.0, 0.0, 0.0], workspace_max=[0.07, 0.0, 0.01])
 
 
+def test_measurement_noise_is_white_with_the_declared_sigma(ros_context):
+    node = _node(ros_context, noise_force=0.2, noise_markers=1e-5, noise_seed=3)
+    c = Client(ros_context, node)
+    assert spin_until(c.ex, lambda: len(c.got["wrench"]) > 300 and len(c.got["markers"]) > 5, 10.0)
+    f = np.array([w for _, w in c.got["wrench"]])
+    assert np.std(f[:, :3]) == pytest.approx(0.2, rel=0.1) and abs(np.mean(f[:, :3])) < 0.05  # no contact: F = 0
+    assert np.all(f[:, 3:] == 0.0)  # noise_torque = 0
+    xyz = np.array([m[1][:, :3] for m in c.got["markers"]])
+    assert np.std(xyz[..., 2]) == pytest.approx(1e-5, rel=0.2)
+    assert np.array_equal(c.got["pose"][-1][1], HOME)  # the pose stays exact
+    node.destroy_node()
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="noise parameters must be finite and >= 0"):
+        _node(ros_context, noise_pixels=-1.0)
+
+
 def test_failed_step_holds_and_keeps_publishing(ros_context):
     node = _node(ros_context, sim=FakeSimulation(fail_below=0.0035))
     c = Client(ros_context, node)
