@@ -184,7 +184,9 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert read_trajectory(run / "trajectory.yaml").effectors == ["ee"]
     assert summary["deploy"]["state"] == "completed" and summary["deploy"]["published"] > 10
     deployed = open_bag(run / "deployed_bag")
-    assert deployed.series["pose_cmd"].values.shape[0] == summary["deploy"]["published"]
+    # the robot records the commands it took: keep-last-1 command QoS (INTERFACES.md) lets a newer command
+    # replace one not yet taken while a step runs
+    assert 0.5 * summary["deploy"]["published"] <= len(deployed.series["pose_cmd"]) <= summary["deploy"]["published"]
     assert deployed.series["wrench"].values[:, 2].min() < -0.05  # the deployed press touched the card
     assert set(summary["comparison"]["rms"]["wrench"]) == {"fitted", "nominal"}
     assert (run / "compare" / "report.html").is_file() and (run / "report.md").is_file()
