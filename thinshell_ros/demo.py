@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -38,6 +37,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
+from thinshell_ros.demo_loop import log_tail, stop_process
 from thinshell_ros.paths import bundled_scene, config_dir
 
 DEFAULT_BAG = "nominal_s101"
@@ -157,28 +157,6 @@ def _progress(console):
                     TimeElapsedColumn(), console=console, transient=False)
 
 
-def _stop_process(proc: subprocess.Popen, timeout: float = 60.0) -> int:
-    """SIGINT (the node closes its bag), then SIGTERM, then SIGKILL; returns the exit code."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if proc.poll() is not None:
-            break
-        proc.send_signal(sig)
-        try:
-            return proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            continue
-    if proc.poll() is None:
-        proc.kill()
-    return proc.wait()
-
-
-def _tail(path: Path, n: int = 2000) -> str:
-    try:
-        return path.read_text(errors="replace")[-n:]
-    except OSError:
-        return ""
-
-
 def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: str, console: Any,
                          result: DemoResult, record_scene: Path | None = None,
                          extra_args: Sequence[str] = ()) -> None:
@@ -223,10 +201,10 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             deadline = time.monotonic() + settings.start_timeout
             while node.schedule is None and not node.done.is_set():
                 if proc.poll() is not None:
-                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{_tail(log_path)}")
+                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{log_tail(log_path)}")
                 if time.monotonic() > deadline:
                     raise ThinShellError(f"the sim node did not come up within {settings.start_timeout:.0f} s:\n"
-                                         f"{_tail(log_path)}")
+                                         f"{log_tail(log_path)}")
                 executor.spin_once(timeout_sec=0.05)
                 progress.update(start, info=f"sim t = {node.sim_time or 0.0:.3f} s")
             progress.update(start, total=1, completed=1, info="plan made")
@@ -239,7 +217,7 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             t1 = time.monotonic()
             while not node.done.is_set():
                 if proc.poll() is not None:
-                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{_tail(log_path)}")
+                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{log_tail(log_path)}")
                 if time.monotonic() > deadline:
                     raise ThinShellError(f"the motion did not finish within {settings.motion_timeout:.0f} s")
                 executor.spin_once(timeout_sec=0.05)
@@ -250,19 +228,19 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             result.timings["motion_sim_s"] = sched.end - sched.t0
             stop = progress.add_task("stopping the sim node (SIGINT)", total=None, info="")
             t2 = time.monotonic()
-            code = _stop_process(proc)
+            code = stop_process(proc)
             progress.update(stop, total=1, completed=1, info=f"exit code {code}")
             result.timings["sim_stop_s"] = time.monotonic() - t2
     finally:
         if proc.poll() is None:
-            _stop_process(proc)
+            stop_process(proc)
         if executor is not None:
             executor.shutdown(timeout_sec=0)
         if node is not None:
             node.destroy_node()
         ctx.try_shutdown()
     if code != 0:
-        raise ThinShellError(f"the sim node exited with code {code}:\n{_tail(log_path)}")
+        raise ThinShellError(f"the sim node exited with code {code}:\n{log_tail(log_path)}")
 
     from sysid.bagio import open_bag
 

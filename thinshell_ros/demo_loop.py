@@ -10,6 +10,7 @@ report only.
 - :func:`deploy_trajectory_from_bag`: a press-slide-lift planned from the first measured pose and sheet
   of a recording, written as a trajectory file (``docs/trajectory_format.md``): the motion the demo
   deploys until the optimiser (``thinshell optimise``) writes one.
+- :func:`stop_process`, :func:`log_tail`: the robot subprocess's end and its log.
 - :func:`run_deploy_stage`: the robot again, driven by the deploy node (sim time: the robot's
   ``/clock``), recording the deployed run.
 """
@@ -17,6 +18,7 @@ report only.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -42,6 +44,29 @@ bundled recording ``bags/nominal_s101``."""
 
 WRENCH_LIMIT = 40.0
 """N: the deploy node's wrench limit on the demo robot (its stiffer gel presses the card with about 20 N)."""
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 60.0) -> int:
+    """SIGINT (the node closes its bag), then SIGTERM, then SIGKILL; returns the exit code."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if proc.poll() is not None:
+            break
+        proc.send_signal(sig)
+        try:
+            return proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            continue
+    if proc.poll() is None:
+        proc.kill()
+    return proc.wait()
+
+
+def log_tail(path: Path, n: int = 2000) -> str:
+    """The last ``n`` characters of a log file ("" when unreadable)."""
+    try:
+        return path.read_text(errors="replace")[-n:]
+    except OSError:
+        return ""
 
 
 def robot_noise_args(seed: int) -> list[str]:
@@ -113,7 +138,6 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
-    from thinshell_ros.demo import _stop_process, _tail
     from thinshell_ros.deploy_node import DeployNode
 
     env = dict(os.environ)
@@ -137,23 +161,23 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
         deadline = time.monotonic() + timeout
         while not node.done.is_set():
             if proc.poll() is not None:
-                raise ThinShellError(f"the robot (sim node) exited with code {proc.returncode}:\n{_tail(log_path)}")
+                raise ThinShellError(f"the robot (sim node) exited with code {proc.returncode}:\n{log_tail(log_path)}")
             if time.monotonic() > deadline:
                 node.abort(f"demo timeout {timeout:.0f} s")
                 raise ThinShellError(f"the deployment did not finish within {timeout:.0f} s ({node.status()})")
             executor.spin_once(timeout_sec=0.05)
         status = node.status()
-        code = _stop_process(proc)
+        code = stop_process(proc)
     finally:
         if proc.poll() is None:
-            _stop_process(proc)
+            stop_process(proc)
         if executor is not None:
             executor.shutdown(timeout_sec=0)
         if node is not None:
             node.destroy_node()
         ctx.try_shutdown()
     if code != 0 and status["state"] == "completed":
-        raise ThinShellError(f"the robot (sim node) exited with code {code}:\n{_tail(log_path)}")
+        raise ThinShellError(f"the robot (sim node) exited with code {code}:\n{log_tail(log_path)}")
     status["wall_s"] = time.monotonic() - t0
     console.print(f"  deploy {status['state']}: {status['reason']}")
     return status
