@@ -166,7 +166,8 @@ class CommanderNode(Node):
     ``script`` (``press_slide_lift`` | ``press_slide``), ``depth``, ``slide``, ``release`` (m),
     ``approach_speed`` (also the lift), ``press_speed`` (also the release), ``slide_speed`` (m/s),
     ``hold`` (s), ``rate`` (Hz of the node's clock; 0: one command per scene ``dt``), ``namespace``
-    (``/thinshell``), ``use_sim_time`` (ticks from ``/clock``; else a wall-time timer). Geometry and speeds: :func:`plan_from_observation`.
+    (``/thinshell``; a node given a ROS namespace, ``-r __ns:=/robot``, uses relative topic names in it:
+    :func:`thinshell_ros.runtime.topic_namespace`), ``use_sim_time`` (ticks from ``/clock``; else a wall-time timer). Geometry and speeds: :func:`plan_from_observation`.
 
     Args:
         node_name: ROS node name.
@@ -183,7 +184,7 @@ class CommanderNode(Node):
 
         from thinshell_ros import conversions as cv
         from thinshell_ros.paths import bundled_scene
-        from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
+        from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, topic_namespace
 
         super().__init__(node_name, **kwargs)
         self._cv = cv
@@ -193,7 +194,7 @@ class CommanderNode(Node):
                     "press_speed": 0.005, "slide_speed": 0.02, "hold": 0.05}
         self.plan_kwargs = {k: float(self.declare_parameter(k, v).value) for k, v in defaults.items()}
         rate = float(self.declare_parameter("rate", 0.0).value)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
         if self.script not in SCRIPTED:
             raise ConfigError(f"parameter 'script' must be one of {list(SCRIPTED)}, got {self.script!r}")
         for key, value in self.plan_kwargs.items():
@@ -213,9 +214,9 @@ class CommanderNode(Node):
         self._pose: np.ndarray | None = None
         self._points: np.ndarray | None = None
         ns = self.namespace
-        self._pub = self.create_publisher(PoseStamped, f"{ns}/{self.effector}/pose_cmd", COMMAND_QOS)
-        self.create_subscription(PoseStamped, f"{ns}/{self.effector}/pose", self._on_pose, SENSOR_QOS)
-        self.create_subscription(PointCloud2, f"{ns}/sheet/points", self._on_points, SENSOR_QOS)
+        self._pub = self.create_publisher(PoseStamped, f"{prefix}{self.effector}/pose_cmd", COMMAND_QOS)
+        self.create_subscription(PoseStamped, f"{prefix}{self.effector}/pose", self._on_pose, SENSOR_QOS)
+        self.create_subscription(PointCloud2, f"{prefix}sheet/points", self._on_points, SENSOR_QOS)
         if bool(self.get_parameter("use_sim_time").value):
             self.create_subscription(Clock, "/clock", self._on_clock, CLOCK_QOS)
         else:

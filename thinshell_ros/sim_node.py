@@ -12,7 +12,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
 - ``mesh_rate`` (Hz, sim time): rate of the ``sheet/mesh`` marker (0 = off).
-- ``namespace`` (str, default ``/thinshell``): prefix of every topic.
+- ``namespace`` (str, default ``/thinshell``): prefix of every topic while the node runs in the root
+  namespace; a node given a ROS namespace (``--ros-args -r __ns:=/robot``) creates its topics with
+  relative names in it instead (:func:`thinshell_ros.runtime.topic_namespace`), which also follow
+  remapping rules. Services stay private (``~/reset``).
 - ``publish_image`` (bool): render and publish ``<sensor>/image``.
 - ``record`` (str): bag directory to record inputs and outputs into (empty: off);
   ``record_force`` replaces an existing one; ``record_scene`` (str) is the scene written beside the
@@ -68,7 +71,7 @@ from sim_core.solver import NewtonSolver, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
-from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS
+from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, topic_namespace
 
 MODES = ("realtime", "fast", "stepped")
 
@@ -147,7 +150,7 @@ class SimNode(Node):
         self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
         self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
         self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell", ro).value).strip("/")
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell", ro).value))
         self.publish_image = bool(self.declare_parameter("publish_image", False).value)
         record = str(self.declare_parameter("record", "", ro).value)
         record_force = bool(self.declare_parameter("record_force", False, ro).value)
@@ -211,19 +214,18 @@ class SimNode(Node):
             self.recorder = BagRecorder(record, scene=record_scene or self.scene_path or None, force=record_force)
             self.get_logger().info(f"recording into {record}")
 
-        ns = self.namespace
-        self._pub_pose = {e: self.create_publisher(PoseStamped, f"{ns}/{e}/pose", SENSOR_QOS) for e in sim.effector_names}
-        self._pub_markers = {s: self.create_publisher(PointCloud2, f"{ns}/{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{ns}/{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_image = {s: self.create_publisher(Image, f"{ns}/{s}/image", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_points = self.create_publisher(PointCloud2, f"{ns}/sheet/points", SENSOR_QOS)
-        self._pub_mesh = self.create_publisher(Marker, f"{ns}/sheet/mesh", MARKER_QOS)
+        self._pub_pose = {e: self.create_publisher(PoseStamped, f"{prefix}{e}/pose", SENSOR_QOS) for e in sim.effector_names}
+        self._pub_markers = {s: self.create_publisher(PointCloud2, f"{prefix}{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{prefix}{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_image = {s: self.create_publisher(Image, f"{prefix}{s}/image", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_points = self.create_publisher(PointCloud2, f"{prefix}sheet/points", SENSOR_QOS)
+        self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         for e in sim.effector_names:
-            self.create_subscription(PoseStamped, f"{ns}/{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
-            self.create_subscription(TwistStamped, f"{ns}/{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
-            self.create_subscription(Float64, f"{ns}/{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
+            self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
+            self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
+            self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
@@ -237,7 +239,7 @@ class SimNode(Node):
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
             f"backend {self._solver_backend()}, "
-            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}, workspace "
+            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {self.namespace}, workspace "
             f"{self.workspace.describe() if self.workspace else 'unlimited'}")
 
     def _workspace(self, low: list[float], high: list[float], margin: float) -> Workspace | None:

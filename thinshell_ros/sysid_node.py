@@ -15,7 +15,8 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
 - ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
-- ``namespace`` (str, default ``/thinshell``): prefix of the result topic.
+- ``namespace`` (str, default ``/thinshell``): prefix of the result topic in the root namespace (a node
+  given a ROS namespace publishes ``sysid/result`` relative to it: :func:`thinshell_ros.runtime.topic_namespace`).
 
 Service ``~/fit`` (std_srvs/Trigger) starts a fit in a worker thread and answers at once (the node
 keeps spinning); a second request while one runs is refused. When the fit ends, the fitted values
@@ -48,6 +49,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from sim_core.errors import ConfigError
+from thinshell_ros.runtime import topic_namespace
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -185,9 +187,9 @@ class SysidNode(Node):
                               ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0),
                               ("write_scene", "")):
             self.declare_parameter(name, default)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
-        self.result_topic = f"{self.namespace}/sysid/result"
-        self._pub = self.create_publisher(String, self.result_topic, RESULT_QOS)
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
+        self._pub = self.create_publisher(String, f"{prefix}sysid/result", RESULT_QOS)
+        self.result_topic = self._pub.topic_name
         self._lock = threading.Lock()
         self._worker: threading.Thread | None = None
         self._started = 0.0

@@ -195,12 +195,15 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
 
 
 @pytest.mark.ros
-def test_commander_runs_on_wall_time_without_clock(ros_context):
-    """Over DDS against a robot that publishes no /clock: the commander plans and completes on wall time."""
+@pytest.mark.parametrize("namespace", [None, "/cell2"])
+def test_commander_runs_on_wall_time_without_clock(ros_context, namespace):
+    """Over DDS against a robot that publishes no /clock: the commander plans and completes on wall time
+    (in the default /thinshell topics, or in the ROS namespace it is started in)."""
     from tests.thinshell_ros.wall_robot import WallRobot
 
-    robot = WallRobot(ros_context)
-    cmd = CommanderNode(context=ros_context, parameter_overrides=[
+    robot = WallRobot(ros_context, namespace=namespace or "/thinshell")
+    cmd = CommanderNode(context=ros_context, cli_args=["--ros-args", "-r", f"__ns:={namespace}"] if namespace else None,
+                        parameter_overrides=[
         Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
         Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
         Parameter("hold", value=0.02), Parameter("rate", value=100.0)])

@@ -159,6 +159,29 @@ def test_measurement_noise_is_white_with_the_declared_sigma(ros_context):
         _node(ros_context, noise_pixels=-1.0)
 
 
+def test_topics_follow_the_ros_namespace_and_remapping(ros_context):
+    node = SimNode(sim=FakeSimulation(), context=ros_context, cli_args=[
+        "--ros-args", "-r", "__ns:=/robot", "-r", "tactile/wrench:=force_torque"],
+        parameter_overrides=[Parameter("mode", value="fast")])
+    assert node.namespace == "/robot"
+    names = {n for n, _ in node.get_publisher_names_and_types_by_node("thinshell_sim", "/robot")}
+    assert {"/robot/ee/pose", "/robot/force_torque", "/robot/sheet/points", "/clock"} <= names
+    assert not any(n.startswith("/thinshell/") for n in names)
+    c = Node("client_ns", context=ros_context)
+    got = []
+    c.create_subscription(WrenchStamped, "/robot/force_torque", lambda m: got.append(m), SENSOR_QOS)
+    cmd = c.create_publisher(PoseStamped, "/robot/ee/pose_cmd", COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    ex.add_node(c)
+    assert spin_until(ex, lambda: got and cmd.get_subscription_count() > 0, 5.0)
+    cmd.publish(cv.pose_to_msg(HOME + np.r_[0.002, 0, 0, 0, 0, 0, 0], 0))
+    assert spin_until(ex, lambda: abs(node.sim.state.effector_pose["ee"][0] - HOME[0] - 0.002) < 1e-12, 5.0)
+    ex.shutdown(timeout_sec=0)
+    c.destroy_node()
+    node.destroy_node()
+
+
 def test_failed_step_holds_and_keeps_publishing(ros_context):
     node = _node(ros_context, sim=FakeSimulation(fail_below=0.0035))
     c = Client(ros_context, node)
