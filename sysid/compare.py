@@ -11,7 +11,8 @@ the recording holds (markers ``xyz`` and pixels, wrench, sheet points). For each
 report gives the RMS of recording minus prediction (SI units; the wrench over the forces, N) and the
 whitened RMS (in units of the recording's noise level, comparable across channels). ``--scene`` is the
 scene under test (e.g. ``thinshell sysid --write-scene``'s fitted scene); the nominal one is
-``--scene-nominal`` or, by default, the bag's own ``scene.yaml``.
+``--scene-nominal`` or, by default, the bag's own ``scene.yaml``. A fitted scene's sensor calibration
+(``fitted.sensor_calibration``, :mod:`sysid.fitted_scene`) is applied to its predictions, as the fit did.
 
 Outputs in ``DIR`` (filled in a hidden sibling and renamed into place; an existing ``DIR`` is refused
 without ``--force``): ``compare.json`` (``rms``: scene -> channel -> entry, ``better``: channel ->
@@ -89,6 +90,7 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         SimulationDivergedError: a replay failed (names the step).
     """
     from sysid.evidence import load_evidence
+    from sysid.fitted_scene import sensor_calibration_of
     from sysid.observation import ObservationModel
 
     evidence = load_evidence(bag, include_image="auto")
@@ -96,7 +98,13 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
     for label, scene in scenes:
         model = ObservationModel(evidence, scene=scene, dt=dt, t_max=t_max, simulation=simulation, arch=arch)
         t0 = time.perf_counter()
-        prediction = model.predict(model.simulate({}))
+        trace = model.simulate({})
+        calibration = sensor_calibration_of(model.scene)
+        if calibration is not None:  # a fitted scene's sensor calibration (thinshell sysid --write-scene)
+            raw = model.predict_raw(trace)
+            model.marker_rest = np.asarray(raw["markers_xyz"][0], dtype=float) if "markers_xyz" in raw else None
+            model.sensor_calibration = calibration
+        prediction = model.predict(trace)
         out.wall_time_s[label] = time.perf_counter() - t0
         out.labels.append(label)
         out.scenes[label] = None if scene is None else str(scene)

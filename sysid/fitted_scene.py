@@ -10,6 +10,7 @@ fitted global parameter put into the scene key that sets it (:data:`SCENE_KEYS`)
       initial: {gel.youngs_modulus: 3.0e5}
       effects: [stiction]                        # modelled missing physics (candidate.* parameters)
       bag: /abs/path/to/bag   bag_sha256: ...   rms: {markers_xyz: 1.2e-5, ...}   status: converged
+      sensor_calibration: {force_gain: 1.02, fx: 301.2, ...}   # when the fit was judged through one
 
 Parameter -> scene key: ``sheet.youngs_modulus | poisson_ratio | bending_stiffness`` ->
 ``sheet.material.*``; ``sheet.density`` -> ``sheet.density``; ``<gel body>.youngs_modulus |
@@ -20,6 +21,12 @@ poisson_ratio | density`` -> ``sensors.<s>.gel_material.*``; ``friction.<gel bod
 -> ``simulation.candidates.<name>`` (the effect's term); ``sensor.normal_offset`` -> the sensor's
 ``mount`` moved by that offset along its +z (the replay's shift of the effector along the sensor
 normal, made permanent). A parameter with no scene key (``contact.eps_v``) is refused.
+
+The sensor calibration that ``thinshell sysid`` fits in closed form before the parameters (wrench
+gains, marker scales, camera intrinsics: :mod:`sysid.calibration`) acts on the predictions, not on the
+physics; it is recorded as ``fitted.sensor_calibration`` and applied by the tools that predict a
+recording (``thinshell compare``: :func:`sensor_calibration_of`). ``Simulation.from_scene`` and the
+sim node simulate the raw sensor with the scene's camera.
 
 :func:`fitted_scene_document` checks its own work: the scene it returns is built and every fitted
 Model parameter read back must equal the fitted value.
@@ -210,4 +217,24 @@ def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = N
     record = {"initial": {k: float(v) for k, v in result.initial.items()}, "status": result.status,
               "rms": rms, "channels": list(result.channels), "dt": float(result.dt), "t_max": t_max,
               "bag": str(evidence.source.bag_path), "bag_sha256": evidence.source.sha256}
+    if model.sensor_calibration is not None:
+        # the fit was judged through this sensor calibration (thinshell sysid's default): it is part of the fit
+        record["sensor_calibration"] = model.sensor_calibration.as_dict()
     return fitted_scene_document(model.scene, result.values, result.sigma, sensor=model.sensor, record=record)
+
+
+def sensor_calibration_of(scene: Mapping[str, Any]):
+    """The :class:`sysid.calibration.SensorCalibration` a fitted scene records, or None.
+
+    Raises:
+        ConfigError: a ``fitted.sensor_calibration`` with unknown or non-numeric entries.
+    """
+    from sysid.calibration import SensorCalibration
+
+    block = (scene.get("fitted") or {}).get("sensor_calibration")
+    if block is None:
+        return None
+    try:
+        return SensorCalibration(**{k: float(v) for k, v in dict(block).items()})
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"fitted.sensor_calibration: {err}") from err

@@ -89,6 +89,28 @@ def test_effect_and_mapping(press_bag):
         Simulation.from_scene({**doc, "simulation": {"candidates": {"warp_drive": 1.0}}})
 
 
+def test_cli_scene_with_the_sensor_calibration_reproduces_the_fit_in_compare(press_bag, tmp_path, capsys):
+    """thinshell sysid (sensor calibration on, its default) -> fitted scene -> thinshell compare on the same
+    recording: the fitted scene's RMS per channel is the fit's final RMS."""
+    import json
+
+    from sysid.compare import compare_main
+    from sysid.results import load_fit_json
+
+    scene = tmp_path / "fitted.yaml"
+    assert sysid_main([str(press_bag), "--out", str(tmp_path / "fit"), "--params", "gel.youngs_modulus",
+                       "--max-nfev", "1", "--quiet", "--dt", str(DT), "--write-scene", str(scene)]) == 0
+    fitted = load_scene_file(scene).fitted
+    assert set(fitted["sensor_calibration"]) >= {"force_gain", "marker_scale_z", "fx"}
+    fit_rms = load_fit_json(tmp_path / "fit" / "fit.json")["metrics"]["rms_final"]
+    assert compare_main([str(press_bag), "--scene", str(scene), "--label", "fitted", "--out", str(tmp_path / "cmp"),
+                         "--dt", str(DT), "--arch", "numpy"]) == 0
+    cmp = json.loads((tmp_path / "cmp" / "compare.json").read_text())["rms"]
+    for ch, entry in fit_rms.items():
+        assert cmp["fitted"][ch]["rms"] == pytest.approx(entry["rms"], rel=0.02), ch
+    capsys.readouterr()
+
+
 def test_cli_writes_the_scene_and_refuses_to_overwrite(press_bag, tmp_path, capsys):
     scene = tmp_path / "fitted.yaml"
     args = [str(press_bag), "--out", str(tmp_path / "fit"), "--params", "gel.youngs_modulus", "--max-nfev", "1",
