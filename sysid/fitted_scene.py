@@ -8,7 +8,8 @@ fitted global parameter put into the scene key that sets it (:data:`SCENE_KEYS`)
       params: {gel.youngs_modulus: 2.7e5}        # the fitted values (also in the scene's keys)
       sigma: {gel.youngs_modulus: 3.1e3}         # 1-sigma (Gauss-Newton), null when not computed
       initial: {gel.youngs_modulus: 3.0e5}
-      effects: [stiction]                        # modelled missing physics (candidate.* parameters)
+      effects: [stiction]                        # modelled missing physics: fitted candidate.* parameters and
+                                                 # the candidate terms the scene carries (simulation.candidates)
       bag: /abs/path/to/bag   bag_sha256: ...   rms: {markers_xyz: 1.2e-5, ...}   status: converged
       sensor_calibration: {force_gain: 1.02, fx: 301.2, ...}   # when the fit was judged through one
 
@@ -154,7 +155,9 @@ def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
     from sim_core.scenes import load_scene
 
     doc = scene_with_values(scene, values, sensor=sensor)
-    effects = sorted({n.split(".", 1)[1].split(".")[0] for n in values if n.startswith("candidate.")})
+    # modelled effects: fitted candidate terms, and those the scene already carried (e.g. from a diagnosis)
+    carried = {k for k, v in ((doc.get("simulation") or {}).get("candidates") or {}).items() if "." not in k and v}
+    effects = sorted(carried | {n.split(".", 1)[1].split(".")[0] for n in values if n.startswith("candidate.")})
     fitted: dict[str, Any] = {"params": {k: float(v) for k, v in values.items()},
                               "sigma": {k: (None if sigma is None or sigma.get(k) is None else float(sigma[k]))
                                         for k in values},

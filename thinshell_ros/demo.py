@@ -51,6 +51,7 @@ class DemoSettings:
         motion: commander parameters (:class:`thinshell_ros.commander.CommanderNode`: ``depth``,
             ``slide``, ``release`` in m, ``approach_speed``, ``press_speed``, ``slide_speed`` in m/s, ``hold`` in s).
         sysid_args: ``thinshell sysid`` options besides the bag, ``--scene``, ``--write-scene`` and ``--out``.
+        diagnose_args: ``thinshell diagnose`` options besides the bag and ``--json`` (None: no diagnosis).
         deploy_motion: the deployed press-slide-lift (same keys as ``motion``).
         compare_args: ``thinshell compare`` options besides the bag, scenes and ``--out``.
         start_timeout: s of wall time for the sim node to come up and the plan to be made.
@@ -59,6 +60,7 @@ class DemoSettings:
 
     motion: dict[str, float]
     sysid_args: tuple[str, ...]
+    diagnose_args: tuple[str, ...] | None = None
     deploy_motion: dict[str, float] = field(default_factory=dict)
     compare_args: tuple[str, ...] = ()
     start_timeout: float = 120.0
@@ -68,10 +70,14 @@ class DemoSettings:
 FULL = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.005, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.05},
-    # the press sets the gel modulus, the slide the gel-sheet friction; the concealed viscoelastic branch
-    # is not modelled (no diagnosis stage yet): the fitted modulus absorbs part of it
+    # the press sets the gel modulus, the slide the gel-sheet friction (the diagnosed effect held at its
+    # diagnosis value)
     sysid_args=("--params", "gel.youngs_modulus,friction.gel_sheet", "--dt", "0.01", "--max-nfev", "8",
                 "--max-time", "180"),
+    # score tests of three candidate effects against the calibrated nominal; the named effect's refitted
+    # term goes into the scene the fit starts from
+    diagnose_args=("--engine", "score", "--params", "gel.youngs_modulus", "friction.gel_sheet", "--candidates",
+                   "stiction", "gel_viscoelasticity", "adhesion", "--workers", "2"),
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
     compare_args=("--dt", "0.01"))
@@ -97,6 +103,8 @@ class DemoResult:
         fit: :func:`thinshell_ros.sysid_node.summarise_fit` of the report.
         timings: stage -> wall seconds.
         hidden_scene: the robot's hidden scene; fitted_scene: sysid's fitted scene.
+        diagnosis: ``explained_by`` and the named effects' terms of ``thinshell diagnose``, or None;
+            diagnosed_scene: the nominal scene with those terms (where the fit starts), or None.
         trajectory: the deployed trajectory file; deployed_bag: the deployed run's recording.
         deploy: the deploy node's final status.
         compare_out: the comparison report directory; comparison: its ``compare.json``.
@@ -109,6 +117,8 @@ class DemoResult:
     fit: dict[str, Any] | None = None
     timings: dict[str, float] = field(default_factory=dict)
     hidden_scene: Path | None = None
+    diagnosis: dict[str, Any] | None = None
+    diagnosed_scene: Path | None = None
     fitted_scene: Path | None = None
     trajectory: Path | None = None
     deployed_bag: Path | None = None
@@ -182,7 +192,7 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={scene}",
            "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}",
            "-p", f"record_scene:={record_scene or scene}", *extra_args]
-    console.print(f"[bold]1/5 robot[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
+    console.print(f"[bold]1/6 robot[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
                   f"recording into {result.recorded_bag} (log {log_path})")
     t0 = time.monotonic()
     ctx = Context()
@@ -279,7 +289,7 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     args = [str(bag), *settings.sysid_args, "--out", str(out), "--write-scene", str(result.fitted_scene)]
     if nominal is not None:
         args += ["--scene", str(nominal)]
-    console.print(f"[bold]2/5 fit[/bold]: thinshell sysid {' '.join(args)}")
+    console.print(f"[bold]3/6 fit[/bold]: thinshell sysid {' '.join(args)}")
     t0 = time.monotonic()
     code = sysid_main(args)
     result.timings["sysid_s"] = time.monotonic() - t0
@@ -287,6 +297,47 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
         raise ThinShellError(f"thinshell sysid exited with code {code}")
     result.sysid_out = out
     result.fit = summarise_fit(out)
+
+
+def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Path, console: Any,
+                       result: DemoResult) -> Path:
+    """Stage 2a: ``thinshell diagnose`` on ``bag``; the named effects' refitted terms are written into a copy
+    of ``nominal`` (``<run>/diagnosed_scene.yaml``), the scene the fit starts from.
+
+    Returns:
+        the scene the fit starts from (``nominal`` when nothing was named).
+
+    Raises:
+        ThinShellError: the diagnosis failed.
+    """
+    from sim_core.scenes.scene_file import load_yaml
+    from sysid.diagnose.cli import diagnose_main
+    from sysid.fitted_scene import scene_with_values
+
+    import yaml
+
+    out = run / "diagnosis.json"
+    args = [str(bag), *settings.diagnose_args, "--json", str(out)]
+    console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
+    t0 = time.monotonic()
+    code = diagnose_main(args)
+    result.timings["diagnose_s"] = time.monotonic() - t0
+    if code != 0:
+        raise ThinShellError(f"thinshell diagnose exited with code {code}")
+    doc = json.loads(out.read_text())
+    named = list(doc.get("explained_by") or [])
+    refit = (doc.get("refit") or {}).get("params") or {}
+    terms = {k: float(v) for k, v in refit.items() if any(k == f"candidate.{e}" or k.startswith(f"candidate.{e}.")
+                                                         for e in named)}
+    result.diagnosis = {"explained_by": named, "terms": terms, "json": str(out)}
+    console.print(f"  explained by: {named or 'nothing'}" + (f"; terms {terms}" if terms else ""))
+    if not terms:
+        return nominal
+    scene_doc = scene_with_values(load_yaml(Path(nominal).read_text()), terms)
+    result.diagnosed_scene = run / "diagnosed_scene.yaml"
+    result.diagnosed_scene.write_text("# the nominal scene with the effects thinshell diagnose named (diagnosis.json)\n"
+                                      + yaml.safe_dump(scene_doc, sort_keys=False, default_flow_style=None, width=120))
+    return result.diagnosed_scene
 
 
 def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult) -> None:
@@ -301,9 +352,9 @@ def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: A
 
     result.trajectory = deploy_trajectory_from_bag(result.recorded_bag, nominal, run / "trajectory.yaml",
                                                    settings.deploy_motion)
-    console.print(f"[bold]3/5 trajectory[/bold]: {result.trajectory} (scripted press-slide-lift from the recording's start)")
+    console.print(f"[bold]4/6 trajectory[/bold]: {result.trajectory} (scripted press-slide-lift from the recording's start)")
     result.deployed_bag = run / "deployed_bag"
-    console.print(f"[bold]4/5 deploy[/bold]: thinshell-deploy-node on the robot (sim time), recording into "
+    console.print(f"[bold]5/6 deploy[/bold]: thinshell-deploy-node on the robot (sim time), recording into "
                   f"{result.deployed_bag}")
     t0 = time.monotonic()
     result.deploy = run_deploy_stage(result.hidden_scene, nominal, result.trajectory, result.deployed_bag,
@@ -314,7 +365,7 @@ def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: A
     result.compare_out = run / "compare"
     args = [str(result.deployed_bag), "--scene", str(result.fitted_scene), "--scene-nominal", str(nominal),
             "--label", "fitted", "--out", str(result.compare_out), *settings.compare_args]
-    console.print(f"[bold]5/5 compare[/bold]: thinshell compare {' '.join(args)}")
+    console.print(f"[bold]6/6 compare[/bold]: thinshell compare {' '.join(args)}")
     t0 = time.monotonic()
     code = compare_main(args)
     result.timings["compare_s"] = time.monotonic() - t0
@@ -331,18 +382,26 @@ def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) ->
     lines = ["# thinshell demo: fit -> deploy -> record -> compare", "",
              f"1. Robot (hidden scene [{rel(result.hidden_scene)}]({rel(result.hidden_scene)})) driven by the "
              f"commander, recorded: [{rel(result.recorded_bag)}]({rel(result.recorded_bag)})",
-             f"2. Fit: [sysid report]({rel(result.sysid_out)}/report.html), fitted scene "
+             (f"2. Diagnosis: explained by {result.diagnosis['explained_by'] or 'nothing'} "
+              f"([{rel(result.diagnosis['json'])}]({rel(result.diagnosis['json'])}))"
+              + (f", terms {result.diagnosis['terms']} written into [{rel(result.diagnosed_scene)}]"
+                 f"({rel(result.diagnosed_scene)})" if result.diagnosed_scene else "")
+              if result.diagnosis else "2. Diagnosis: not run (--quick)"),
+             f"3. Fit: [sysid report]({rel(result.sysid_out)}/report.html), fitted scene "
              f"[{rel(result.fitted_scene)}]({rel(result.fitted_scene)})",
-             f"3. Trajectory: [{rel(result.trajectory)}]({rel(result.trajectory)})",
-             f"4. Deployed on the robot: {(result.deploy or {}).get('state')} "
+             f"4. Trajectory: [{rel(result.trajectory)}]({rel(result.trajectory)})",
+             f"5. Deployed on the robot: {(result.deploy or {}).get('state')} "
              f"({(result.deploy or {}).get('reason')}), recorded: [{rel(result.deployed_bag)}]({rel(result.deployed_bag)})",
-             f"5. Comparison: [compare report]({rel(result.compare_out)}/report.html)", "",
+             f"6. Comparison: [compare report]({rel(result.compare_out)}/report.html)", "",
              "## Fit vs hidden truth", "", "| parameter | nominal | fitted | sigma | hidden |", "|---|---|---|---|---|"]
     for name, value in fit.get("params", {}).items():
         sigma = fit.get("sigma", {}).get(name)
         lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
                      f"{'-' if sigma is None else f'{sigma:.2g}'} | {hidden.get(name, '-')} |")
-    hidden_only = [n for n in hidden if n not in fit.get("params", {})]
+    for name, value in ((result.diagnosis or {}).get("terms") or {}).items():
+        lines.append(f"| {name} (diagnosed) | 0 | {value:.4g} | - | {hidden.get(name, '-')} |")
+    modelled = set(fit.get("params", {})) | set(((result.diagnosis or {}).get("terms") or {}))
+    hidden_only = [n for n in hidden if n not in modelled]
     if hidden_only:
         lines += ["", "Hidden but not fitted: " + ", ".join(f"{n} = {hidden[n]}" for n in hidden_only)]
     if result.comparison:
@@ -392,13 +451,18 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     console.rule(f"thinshell demo{' --quick' if quick else ''}: {run}")
     run_simulation_stage(run, settings, result.hidden_scene, mode, console, result, record_scene=scene,
                          extra_args=robot_noise_args(seed=1))
-    run_sysid_stage(run, settings, Path(bag) if bag else result.recorded_bag, console, result, nominal=scene)
+    fit_bag = Path(bag) if bag else result.recorded_bag
+    start = scene
+    if settings.diagnose_args is not None:
+        start = run_diagnose_stage(run, settings, fit_bag, scene, console, result)
+    run_sysid_stage(run, settings, fit_bag, console, result, nominal=start)
     run_loop_stages(run, settings, scene, console, result)
     result.timings["total_s"] = time.monotonic() - t0
     hidden = {**HIDDEN, **CONCEALED}
     report = write_run_report(run, result, hidden)
     summary = {"run_dir": str(run), "quick": quick, "mode": mode, "scene": str(scene),
-               "hidden": hidden, "hidden_scene": str(result.hidden_scene),
+               "hidden": hidden, "hidden_scene": str(result.hidden_scene), "diagnosis": result.diagnosis,
+               "diagnosed_scene": str(result.diagnosed_scene) if result.diagnosed_scene else None,
                "sysid_bag": str(bag or result.recorded_bag), "recorded_bag": str(result.recorded_bag),
                "message_counts": result.message_counts, "sysid_out": str(result.sysid_out), "fit": result.fit,
                "fitted_scene": str(result.fitted_scene), "trajectory": str(result.trajectory),
