@@ -72,8 +72,10 @@ FULL = DemoSettings(
             "slide_speed": 0.02, "hold": 0.05},
     # the press sets the gel modulus, the slide the gel-sheet friction (the diagnosed effect held at its
     # diagnosis value)
+    # the robot's sensor is the scene's (no gain or intrinsics error): --no-sensor-calibration keeps the fit
+    # from explaining physics with sensor gains
     sysid_args=("--params", "gel.youngs_modulus,friction.gel_sheet", "--dt", "0.01", "--max-nfev", "8",
-                "--max-time", "180"),
+                "--max-time", "180", "--no-sensor-calibration"),
     # score tests of three candidate effects against the calibrated nominal; the named effect's refitted
     # term goes into the scene the fit starts from
     diagnose_args=("--engine", "score", "--params", "gel.youngs_modulus", "friction.gel_sheet", "--candidates",

@@ -34,7 +34,7 @@ from sim_core.errors import ThinShellError
 HIDDEN = {"gel.youngs_modulus": 4.5e5, "friction.gel_sheet": 0.6}
 """Material values of the "robot" (the nominal press_slide scene has 3.0e5 Pa and 0.8)."""
 
-CONCEALED = {"candidate.gel_viscoelasticity": 0.4}
+CONCEALED = {"candidate.gel_viscoelasticity": 0.4, "candidate.gel_viscoelasticity.tau": 0.3}
 """The concealed effect: a Maxwell branch in the gel (stiffness ratio 0.4, relaxation time 0.3 s)."""
 
 
