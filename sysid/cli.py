@@ -161,6 +161,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     params = _split(args.params) or []
     print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
           f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
+    for name in params:  # an unknown name fails here, in one line, before the sensor calibration's replay
+        model.parameter_value(name)
     sensor = None
     if not args.no_sensor_calibration:
         from sysid.calibration import calibrate
