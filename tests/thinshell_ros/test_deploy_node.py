@@ -283,3 +283,50 @@ def test_namespace_follows_ros_remapping(ros_context):
         assert spin_until(ex, lambda: abs(robot.sim.state.effector_pose["ee"][0] - HOME[0] - 0.005) < 1e-9, 1.0)
     finally:
         _close(ex, node, robot)
+
+
+def test_gripper_commands_and_declared_parameter_ranges(ros_context):
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.exceptions import InvalidParameterValueException
+    from std_msgs.msg import Float64
+
+    traj = _line(duration=0.3, n=4)
+    traj.gripper = {"ee": np.array([0.02, 0.015, 0.01, 0.005])}
+    robot = WallRobot(ros_context)
+    node = DeployNode(trajectory=traj, context=ros_context)
+    grips = []
+    probe = Node("grip_probe", context=ros_context)
+    probe.create_subscription(Float64, "/thinshell/ee/gripper_cmd", lambda m: grips.append(m.data), COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    for n in (robot, node, probe):
+        ex.add_node(n)
+    try:
+        assert spin_until(ex, node.done.is_set, 5.0) and node.state == "completed", node.reason
+        spin_until(ex, lambda: len(grips) >= node.published, 1.0)
+        assert len(grips) == node.published and grips[0] == pytest.approx(0.02) and grips[-1] == pytest.approx(0.005)
+        assert np.all(np.diff(grips) <= 1e-12)  # interpolated between the waypoints, closing
+        desc = node.describe_parameter("rate")
+        assert desc.type == ParameterType.PARAMETER_DOUBLE and "Hz" in desc.description
+        assert (desc.floating_point_range[0].from_value, desc.floating_point_range[0].to_value) == (1.0, 1000.0)
+        assert "N" in node.describe_parameter("wrench_limit").description
+    finally:
+        _close(ex, node, probe, robot)
+    with pytest.raises(InvalidParameterValueException):
+        DeployNode(trajectory=_line(), node_name="bad_rate", context=ros_context,
+                   parameter_overrides=[Parameter("rate", value=5000.0)])
+
+
+def test_thinshell_deploy_cli_dry_run_and_refusal(ros_env, tmp_path):
+    good = write_trajectory(tmp_path / "good.yaml", _line())
+    fast = _line()
+    fast.t = fast.t * 0.01  # 0.5 m/s
+    bad = write_trajectory(tmp_path / "fast.yaml", fast)
+    cmd = [PYTHON, "-m", "thinshell_ros.cli", "deploy"]
+    ok = subprocess.run([*cmd, str(good), "--dry-run"], cwd=REPO, env=ros_env, capture_output=True, text=True,
+                        timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    assert "dry run: trajectory within the limits" in ok.stderr + ok.stdout
+    refused = subprocess.run([*cmd, str(bad), "--dry-run", "--ros-args", "-p", "max_linear_speed:=0.1"], cwd=REPO,
+                             env=ros_env, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 1
+    assert "waypoint 1 (t=0.001 s), effector 'ee': linear speed 0.5 m/s" in refused.stderr + refused.stdout
