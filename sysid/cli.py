@@ -3,12 +3,13 @@
 Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
-                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [...]
+                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
 
 Reads the bag into an evidence bundle (:func:`sysid.evidence.load_evidence`), replays its effector
 poses in the simulator (:mod:`sysid.observation`), fits (:mod:`sysid.fit`) and writes ``fit.json``
 (:mod:`sysid.results`), PNG plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) into the
-output directory. The directory is filled in a hidden sibling and renamed into place at the end, so
+output directory; ``--write-scene`` also writes the fitted scene (:mod:`sysid.fitted_scene`: the
+bag's scene with the fitted values, their uncertainty and any modelled effect). The directory is filled in a hidden sibling and renamed into place at the end, so
 it never holds a half-written result; an existing one is refused unless ``--force``.
 """
 
@@ -35,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", default=",".join(DEFAULT_PARAMETERS),
                    help="comma-separated global parameter names (default: %(default)s)")
     p.add_argument("--out", help="output directory (default: ./sysid_<bag name>)")
-    p.add_argument("--force", action="store_true", help="replace an existing output directory")
+    p.add_argument("--force", action="store_true", help="replace an existing output directory (and --write-scene file)")
+    p.add_argument("--write-scene", metavar="SCENE_YAML",
+                   help="also write the scene with the fitted values, their sigma and any modelled effect "
+                        "(loadable by thinshell sim, the sim node and thinshell compare)")
     p.add_argument("--global", dest="global_search", action="store_true",
                    help="global phase (CMA-ES by default) before the local least squares")
     p.add_argument("--global-method", choices=GLOBAL_METHODS, default="cma", help="global phase method")
@@ -121,6 +125,8 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out) if args.out else Path.cwd() / f"sysid_{bag.resolve().name}"
     if (out.exists() or out.is_symlink()) and not args.force:
         return _error(f"output directory {out} exists (use --force to replace it)")
+    if args.write_scene and Path(args.write_scene).exists() and not args.force:
+        return _error(f"scene file {args.write_scene} exists (use --force to replace it)")
     if args.t_max is not None and not args.t_max > 0:
         return _error(f"--t-max must be > 0 s, got {args.t_max}")
     if args.max_time is not None and not args.max_time > 0:
@@ -155,8 +161,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     params = _split(args.params) or []
     print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
           f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
-    for name in params:
-        model.parameter_value(name)  # an unknown name fails here, before any replay
+    for name in params:  # an unknown name fails here, in one line, before the sensor calibration's replay
+        model.parameter_value(name)
     sensor = None
     if not args.no_sensor_calibration:
         from sysid.calibration import calibrate
@@ -186,9 +192,18 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     doc = fit_document(result, provenance(evidence, args.seed, args.t_max, [PROG, *argv], args.scene))
     if sensor is not None:
         doc["diagnostics"]["sensor_calibration"] = sensor.summary()
+    scene_doc = None
+    if args.write_scene:
+        from sysid.fitted_scene import fitted_scene_from_result
+
+        scene_doc = fitted_scene_from_result(result, evidence, args.t_max)  # checked before anything is written
     with staged_directory(out, args.force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)
+    if scene_doc is not None:
+        from sysid.fitted_scene import write_fitted_scene
+
+        print(f"fitted scene: {write_fitted_scene(args.write_scene, scene_doc, force=args.force)}")
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"

@@ -10,10 +10,13 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 - ``t_max`` (s), ``dt`` (s): fit only the first ``t_max`` s of the recording / replay at step ``dt``;
   0 = the fitter's defaults.
 - ``fit_args`` (str): further ``thinshell sysid`` options, shell-quoted (``--max-nfev 5 --global``).
+- ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;
+  replaced only with ``force``); empty: none. The result's ``scene`` names it.
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
 - ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
-- ``namespace`` (str, default ``/thinshell``): prefix of the result topic.
+- ``namespace`` (str, default ``/thinshell``): prefix of the result topic in the root namespace (a node
+  given a ROS namespace publishes ``sysid/result`` relative to it: :func:`thinshell_ros.runtime.topic_namespace`).
 
 Service ``~/fit`` (std_srvs/Trigger) starts a fit in a worker thread and answers at once (the node
 keeps spinning); a second request while one runs is refused. When the fit ends, the fitted values
@@ -21,7 +24,7 @@ are set on ``apply_to`` through its standard parameter service (``rcl_interfaces
 when that is configured, and then one JSON document is published on ``<namespace>/sysid/result``
 (std_msgs/String, reliable, transient local: a late subscriber still gets the last result):
 ``{"status": "ok" | "error", "bag", "params": {name: value}, "initial", "sigma", "fit_status",
-"message", "rms_final", "out", "report", "files", "wall_time_s", "apply_to",
+"message", "rms_final", "out", "report", "files", "scene", "wall_time_s", "apply_to",
 "applied": {name: bool} | null, "apply_message"}`` (``"error"`` instead of the fit keys on failure).
 """
 
@@ -46,6 +49,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from sim_core.errors import ConfigError
+from thinshell_ros.runtime import topic_namespace
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -64,6 +68,7 @@ class FitRequest:
         t_max: s of the recording to fit (None: all / the fitter's default).
         dt: replay step in s (None: the fitter's default).
         extra: further ``thinshell sysid`` options.
+        write_scene: fitted scene file to write (None: none).
     """
 
     bag: Path
@@ -73,6 +78,7 @@ class FitRequest:
     t_max: float | None
     dt: float | None
     extra: tuple[str, ...] = ()
+    write_scene: Path | None = None
 
     def cli_args(self) -> list[str]:
         """The ``thinshell sysid`` arguments of this request."""
@@ -87,6 +93,8 @@ class FitRequest:
             args += ["--t-max", repr(self.t_max)]
         if self.dt is not None:
             args += ["--dt", repr(self.dt)]
+        if self.write_scene is not None:
+            args += ["--write-scene", str(self.write_scene)]
         return [*args, *self.extra]
 
 
@@ -132,7 +140,9 @@ def run_sysid_cli(request: FitRequest) -> dict[str, Any]:
     code = sysid_main(args)
     if code != 0:
         raise RuntimeError(f"thinshell sysid {' '.join(args)} exited with code {code} (reason on stderr)")
-    return summarise_fit(request.out)
+    summary = summarise_fit(request.out)
+    summary["scene"] = str(request.write_scene) if request.write_scene is not None else None
+    return summary
 
 
 def summarise_fit(out: Path) -> dict[str, Any]:
@@ -174,11 +184,12 @@ class SysidNode(Node):
         super().__init__(node_name, **kwargs)
         self.runner = runner or run_sysid_cli
         for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
-                              ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0)):
+                              ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0),
+                              ("write_scene", "")):
             self.declare_parameter(name, default)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
-        self.result_topic = f"{self.namespace}/sysid/result"
-        self._pub = self.create_publisher(String, self.result_topic, RESULT_QOS)
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
+        self._pub = self.create_publisher(String, f"{prefix}sysid/result", RESULT_QOS)
+        self.result_topic = self._pub.topic_name
         self._lock = threading.Lock()
         self._worker: threading.Thread | None = None
         self._started = 0.0
@@ -214,8 +225,9 @@ class SysidNode(Node):
             extra = tuple(shlex.split(str(self._param("fit_args"))))
         except ValueError as err:
             raise ConfigError(f"parameter 'fit_args' is not valid shell syntax: {err}") from err
+        scene = str(self._param("write_scene")).strip()
         return FitRequest(Path(bag), parse_params(str(self._param("params"))), Path(out) if out else None,
-                          bool(self._param("force")), t_max or None, dt or None, extra)
+                          bool(self._param("force")), t_max or None, dt or None, extra, Path(scene) if scene else None)
 
     # ------------------------------------------------------------------------------ service
     def _on_fit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -159,7 +159,7 @@ def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy
     out = tmp_path / "fit"
     h = Harness(ros_context, run_sysid_cli, sim=sim, bag=str(heavy_card_bag), params="sheet.density",
                 out=str(out), t_max=0.04, dt=0.01, fit_args="--max-nfev 2 --gel-resolution 3,3,2",
-                apply_to="/thinshell_sim")
+                apply_to="/thinshell_sim", write_scene=str(tmp_path / "fitted.yaml"))
     try:
         assert h.fit().success
         assert spin_until(h.ex, lambda: bool(h.node.results), 120.0), "fit did not finish"
@@ -172,5 +172,7 @@ def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy
         assert h.sim.get_parameter("sheet.density").value == pytest.approx(rho)
         assert sim.get_parameter("sheet.density") == pytest.approx(rho)
         assert {"fit.json", "report.html", "report.md"} <= set(result["files"]) and result["out"] == str(out)
+        assert result["scene"] == str(tmp_path / "fitted.yaml")  # the fitted scene, loadable, with the value
+        assert Simulation.from_scene(result["scene"]).get_parameter("sheet.density") == pytest.approx(rho)
     finally:
         h.close()
