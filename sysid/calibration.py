@@ -218,6 +218,8 @@ class CalibrationResult:
             replay at the scene values with the scene's sensor calibration, and after calibration.
         fit: the :class:`sysid.fit.FitResult` of the simulator parameters (None if not fitted).
         prediction: channel -> the calibrated prediction at ``params`` (aligned to the recording).
+        replay_totals: ``{"scene_values": ..., "calibrated": ...}``: how the two replays' steps ended
+            (``StepTotals`` as a dict: steps, substep retries, relaxed acceptances).
     """
 
     params: dict[str, float]
@@ -226,6 +228,7 @@ class CalibrationResult:
     whitened_rms_after: dict[str, float]
     fit: Any = None
     prediction: dict[str, np.ndarray] | None = None
+    replay_totals: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (parameters, sensor calibration, whitened RMS before and after)."""
@@ -236,6 +239,8 @@ class CalibrationResult:
             sigma = getattr(self.fit, "sigma", None) or {}
             out["sigma"] = {k: (None if v is None else float(v)) for k, v in sigma.items()}
             out["status"] = getattr(self.fit, "status", None)
+        if self.replay_totals is not None:
+            out["replay"] = self.replay_totals
         return out
 
 
@@ -292,6 +297,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     except SimulationDivergedError as err:
         raise CalibrationError(f"{model.evidence.source.bag_path}: the replay at the scene values diverged: {err}") from err
     raw = model.predict_raw(trace)
+    totals = {"scene_values": _totals(trace)}
     before = whitened_rms(model, raw, channels)
     model.marker_rest = np.asarray(raw["markers_xyz"][0], dtype=float) if "markers_xyz" in raw else None
     data = {ch: model.data(ch) for ch in raw}
@@ -305,7 +311,15 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         model.nominal_normal_offset = float(values.get("sensor.normal_offset", 0.0))
         trace = model.simulate(values)
         raw = model.predict_raw(trace)
+        totals["calibrated"] = _totals(trace)
         model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
     calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
     after = whitened_rms(model, calibrated, channels)
-    return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated))
+    totals.setdefault("calibrated", totals["scene_values"])
+    return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals)
+
+
+def _totals(trace) -> dict[str, Any] | None:
+    """A replay's ``StepTotals`` as a JSON-ready dict (None when the trace has none)."""
+    t = getattr(trace, "step_totals", None)
+    return None if t is None else {k: v for k, v in asdict(t).items()}

@@ -76,6 +76,8 @@ class SimTrace:
         states: the ``K + 1`` simulation states (``sim_core.state.State``) when the replay was
             asked to keep them (``ObservationModel.simulate(keep_states=True)``; the starts of
             :class:`Resume`), else None.
+        step_totals: how the replay's steps ended (``sim_core.step_info.StepTotals``: substep
+            retries, relaxed acceptances), or None when not recorded.
     """
 
     t_ns: np.ndarray
@@ -86,6 +88,7 @@ class SimTrace:
     wall_time_s: float
     positions: np.ndarray | None = None
     states: list | None = None
+    step_totals: Any = None
 
     def head(self, step: int) -> "SimTrace":
         """The observations of steps ``0..step`` (no positions, no states; same wall time)."""
@@ -485,6 +488,7 @@ class ObservationModel:
             if on_step is not None:
                 on_step(k, K)
         trace = self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
+        trace = dataclasses.replace(trace, step_totals=dataclasses.replace(sim.step_totals))
         return trace if states is None else dataclasses.replace(trace, states=states)
 
     def _checked_resume(self, resume: Resume, keeping: bool, sim) -> int:

@@ -86,6 +86,7 @@ def bench_reference(directory: str | Path, settings: SignatureSettings | None = 
                                  "scene_rms": a["baseline"]["whitened_rms_before"],
                                  "heldout_rms_before": a["refit"]["heldout_rms_before"],
                                  "heldout_rms_after": a["refit"]["heldout_rms_after"],
+                                 "replay": a["baseline"]["calibration"].get("replay"),
                                  "wall_s": a["extra"]["wall_time_s"]}
                         for r, a, b in zip(recs, alone, loo)},
             "wall_s": time.perf_counter() - t0}
@@ -103,7 +104,9 @@ def format_reference(result: dict[str, Any]) -> str:
                         for ch, v in rep["calibrated_rms"].items())
         ho = ("n/a" if rep["heldout_rms_before"] is None else f"{rep['heldout_rms_before']:.3g}") + " -> " + \
             ("n/a" if rep["heldout_rms_after"] is None else f"{rep['heldout_rms_after']:.3g}")
+        replay = (rep.get("replay") or {}).get("scene_values") or {}
         lines.append(f"{name}: alone {rep['alone']}, baselines {rep['baseline_loo']}; held-out RMS {ho}; "
-                     f"calibration (whitened RMS) {rms}; {rep['wall_s']:.0f} s")
+                     f"calibration (whitened RMS) {rms}; replay at the scene values: {replay.get('steps')} steps, "
+                     f"{replay.get('retries')} substep retries, {replay.get('relaxed_steps')} relaxed; {rep['wall_s']:.0f} s")
     lines.append(f"wall time {result['wall_s']:.0f} s")
     return "\n".join(lines)
