@@ -23,12 +23,13 @@ scene with the lower whitened RMS, provenance), ``wrench.png``, ``markers.png``,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import html
 import json
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -53,6 +54,8 @@ class Comparison:
         predictions: label -> channel -> prediction shaped like the recording's channel.
         rms: label -> channel -> ``ObservationModel.channel_rms`` entry.
         wall_time_s: label -> replay wall time, s.
+        replay: label -> how the replay's steps ended (``StepTotals`` as a dict: steps, substep
+            retries, relaxed acceptances).
     """
 
     bag: Path
@@ -62,6 +65,7 @@ class Comparison:
     predictions: dict[str, dict[str, np.ndarray]]
     rms: dict[str, dict[str, dict[str, Any]]]
     wall_time_s: dict[str, float]
+    replay: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def better(self) -> dict[str, str]:
         """Channel -> label of the scene with the lowest whitened RMS (``tie`` when equal to 1e-9)."""
@@ -111,6 +115,8 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         out.models[label] = model
         out.predictions[label] = prediction
         out.rms[label] = model.channel_rms(prediction)
+        if trace.step_totals is not None:
+            out.replay[label] = dataclasses.asdict(trace.step_totals)
     return out
 
 
@@ -192,7 +198,7 @@ def comparison_document(cmp: Comparison, argv: Sequence[str], dt: float, t_max: 
     ev = cmp.models[cmp.labels[0]].evidence
     return {"schema": "thinshell-compare/1", "bag": str(ev.source.bag_path), "bag_sha256": ev.source.sha256,
             "scenes": cmp.scenes, "dt": dt, "t_max": t_max, "rms": cmp.rms, "better": cmp.better(),
-            "wall_time_s": cmp.wall_time_s, "command": [PROG, *argv]}
+            "wall_time_s": cmp.wall_time_s, "replay": cmp.replay, "command": [PROG, *argv]}
 
 
 def _table(doc: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
@@ -300,5 +306,8 @@ def compare_main(argv: Sequence[str] | None = None) -> int:
         print(line)
     for r in rows:
         print("  " + ", ".join(f"{h} {c}" for h, c in zip(header, r)))
+    for label, totals in doc["replay"].items():
+        print(f"  replay {label}: {totals['steps']} steps to the end, {totals['retries']} substep retries "
+              f"({totals['retried_steps']} steps retried), {totals['relaxed_steps']} accepted at a relaxed tolerance")
     print(f"report: {out / 'report.html'} (also report.md, compare.json)")
     return 0
