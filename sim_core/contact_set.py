@@ -31,6 +31,7 @@ from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.backend import uses_taichi
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model, check_broad_phase
+from sim_core.potentials.base import PenaltyContact
 from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
                                         edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.potentials.friction import LaggedFriction
@@ -635,10 +636,11 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     """The touching contacts of the penalty potentials ``terms`` (as :meth:`ContactSet.potentials`
     returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
     (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
-    a term is not such a penalty (no ``active_mask``: a missing-physics candidate's adhesion, say).
+    a term is not a :class:`~sim_core.potentials.base.PenaltyContact` (a missing-physics candidate's
+    adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
-    if not all(hasattr(p, "active_mask") for p in terms):
+    if not all(isinstance(p, PenaltyContact) for p in terms):
         return None
     return [p.vertices[p.active_mask(x)] for p in terms]
 

@@ -34,6 +34,7 @@ from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
+from sim_core.potentials.base import KeepsDerivatives
 from sim_core.potentials.damping import ViscousDamping
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.gravity import GravityPotential
@@ -614,11 +615,11 @@ class NewtonSolver:
             x_new = x + alpha * d3
             if prefetch and backtrack == 0:
                 step.fused.evaluate(x_new)
-                if step.friction is not None and hasattr(step.friction, "evaluate"):
-                    step.friction.evaluate(x_new)
+                if isinstance(step.friction, KeepsDerivatives):
+                    step.friction.keep_derivatives(x_new)
                 if self.contact.covers(x_search, x_new):  # else _energy searches again: new pairs
                     for p in contact_terms:
-                        if hasattr(p, "keep_derivatives"):
+                        if isinstance(p, KeepsDerivatives):
                             p.keep_derivatives(x_new)
             if self._energy(step, x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                 return x_new, backtrack

@@ -171,8 +171,7 @@ def test_there_is_no_import_cycle():
 KNOWN_CYCLES_THROUGH_FUNCTION_LEVEL_IMPORTS = [
     ["sim_core.candidates.hook", "sim_core.contact_set", "sim_core.effector", "sim_core.elastic", "sim_core.model",
      "sim_core.solver"],
-    ["sim_core.elastic_worker", "sim_core.fused_elastic", "sim_core.ti_kernels.fused_kirchhoff",
-     "sim_core.ti_kernels.fused_neohookean", "sim_core.ti_kernels.fused_spring_membrane"],
+    ["sim_core.elastic_worker", "sim_core.fused_elastic"],
     ["sysid.fit", "sysid.jacobians"],
 ]
 """The cycles that function-level (and ``TYPE_CHECKING``) imports still close (issue 24, item 4: to be

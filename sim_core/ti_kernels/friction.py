@@ -185,7 +185,7 @@ class TiLaggedFriction(LaggedFriction):
         _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
         return float(self._energy[0])
 
-    def evaluate(self, x: np.ndarray) -> None:
+    def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept for
         :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
         ``x``, coefficients and ``eps_u``; the next :meth:`gradient` call drops them (the Newton
@@ -200,7 +200,7 @@ class TiLaggedFriction(LaggedFriction):
         self._kept_all = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks)
 
     def _kept(self, arrays: tuple) -> tuple | None:
-        """The :meth:`evaluate` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
+        """The :meth:`keep_derivatives` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
         kept = getattr(self, "_kept_all", None)
         return kept if kept is not None and self._matches(kept, arrays) else None
 
@@ -275,4 +275,4 @@ def compile_kernels() -> None:
     friction.gradient(x + 1e-4)
     friction.hessian(x + 1e-4)  # the blocks kept by the gradient
     friction.hessian(x + 1e-4)  # the Hessian kernel
-    friction.evaluate(x + 2e-4)  # energy, gradient and Hessian in one launch
+    friction.keep_derivatives(x + 2e-4)  # energy, gradient and Hessian in one launch

@@ -223,7 +223,7 @@ def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
 
 def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     """Forming steps whose line searches evaluate the first trial point with the fused kernels
-    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.evaluate``) equal
+    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.keep_derivatives``) equal
     those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
     energy-only kernels."""
     from sim_core.fused_elastic import FusedElastic
@@ -243,7 +243,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         monkeypatch.setattr(FusedElastic, "energy", counted)
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
-            monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
+            monkeypatch.setattr(TiLaggedFriction, "keep_derivatives", lambda self, x: None)
         sim, iterations = _forming_steps("taichi-cpu", 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
@@ -368,12 +368,12 @@ def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     Neo-Hookean kernel) equals the same steps with the branch evaluated by its NumPy methods (a
     dynamic Hessian term when set as model candidates, as the diagnosis replays do; a reference part
     of the fused evaluator under ``CandidateNewtonSolver``), and the relaxation state follows."""
-    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+    import sim_core.fused_elastic as fused_elastic
     from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
 
     params = {"gel_viscoelasticity": 1.5, "gel_viscoelasticity.tau": 0.03}
     fused, it_fused, parts_fused = _fused_candidate_press(params, route)
-    monkeypatch.delattr(MaxwellBranch, "elastic_equivalent")
+    monkeypatch.setattr(fused_elastic, "_fused_form", lambda potential: potential)  # no elastic equivalent
     plain, it_plain, parts_plain = _fused_candidate_press(params, route)
     assert parts_fused.count(FusedStableNeoHookean) == 2  # the gel and its branch
     assert parts_plain.count(FusedStableNeoHookean) == 1
