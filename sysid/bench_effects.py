@@ -24,6 +24,12 @@ class PhysicsEffect:
         """Remember the simulation (model, initial state)."""
         self.sim = sim
 
+    def terms(self, model: Any, state: Any, x_prev: np.ndarray, dt: float, elastic: Any,
+              friction: Any) -> tuple[list, list]:
+        """``(contact_like, body_like)`` potentials of a step (the solver's
+        :class:`~sim_core.candidates.hook.StepHook` contract)."""
+        return self.contact_terms(model, x_prev, friction, state), self.body_terms(model, state, elastic)
+
     def contact_terms(self, model: Any, x_prev: np.ndarray, friction: Any, state: Any = None) -> list:
         """Extra contact-like potentials of a step (count in the wrench); ``state``: the step's start state."""
         return []

@@ -5,8 +5,8 @@ SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwel
 *nominal* ``scene.yaml``; the effect is produced by code independent of the candidate models of ``sim_core.candidates`` and
 ``sysid.diagnose``:
 
-- physics, through a solver hook (:class:`~sim_core.candidates.CandidateNewtonSolver`'s plumbing,
-  with the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
+- physics, through a solver hook (:class:`~sim_core.candidates.hook.StepHook`, given to the solver
+  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
@@ -122,24 +122,22 @@ def rollout(scene: Mapping[str, Any], targets: np.ndarray, hook: Any | None = No
     Args:
         scene: scene dict.
         targets: effector targets ``(K, 7)``.
-        hook: effect hook (``contact_terms`` / ``body_terms`` / ``update_state``, see
-            :class:`PhysicsEffect`), or None for the nominal model.
+        hook: effect hook (a :class:`~sim_core.candidates.hook.StepHook`: ``terms`` /
+            ``update_state``, see :class:`~sysid.bench_effects.PhysicsEffect`), or None for the
+            nominal model.
 
     Returns:
         ``t_ns (K+1,)``, ``pose``, ``pose_cmd`` ``(K+1, 7)``, ``markers_xyz``, ``markers_uv``,
         ``wrench (K+1, 6)``, ``sheet_points``.
     """
-    from sim_core.candidates import CandidateNewtonSolver
     from sim_core.control import Control
     from sim_core.scenes import load_scene
     from sim_core.simulation import Simulation
 
     sim = Simulation(load_scene(copy.deepcopy(dict(scene))), dt=DT)
     if hook is not None:
-        solver = CandidateNewtonSolver(sim.model, sim.solver.config)
-        solver.hook = hook
         hook.attach(sim)
-        sim.solver = solver
+        sim.solver.set_hook(hook)
     rows = []
 
     def observe() -> None:

@@ -331,14 +331,14 @@ def test_fused_kernel_takes_a_new_branch_each_step(ti_cpu):
 def _fused_candidate_press(candidates: dict, route: str = "model_candidates", depth: float = 0.0004):
     """The tiny press scene of the candidate tests on the fused path, pressed ``depth`` m per step for
     4 steps with ``candidates`` set as model candidates (the diagnosis replays' route) or through
-    :class:`~sim_core.candidates.CandidateNewtonSolver` (``route="candidate_solver"``).
+     a :class:`~sim_core.candidates.CandidateHook` given to the solver (``route="hook"``).
 
     Returns:
         ``(simulation, Newton iterations per step, types of the fused evaluator's parts)``.
     """
     import copy
 
-    from sim_core.candidates import CandidateNewtonSolver
+    from sim_core.candidates import CandidateHook
     from sim_core.control import Control
     from sim_core.scenes import load_scene
     from sim_core.simulation import Simulation
@@ -348,8 +348,8 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
 
     model = load_scene(copy.deepcopy(SCENE))
     sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend="taichi-cpu"))
-    if route == "candidate_solver":
-        sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
+    if route == "hook":
+        sim.solver.set_hook(CandidateHook(candidates))
     else:
         for name, value in candidates.items():
             sim.set_parameter(f"candidate.{name}", value)
@@ -362,12 +362,12 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
     return sim, iterations, [type(part) for part in sim.solver._fused._parts]
 
 
-@pytest.mark.parametrize("route", ["model_candidates", "candidate_solver"])
+@pytest.mark.parametrize("route", ["model_candidates", "hook"])
 def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     """A press with the gel viscoelasticity candidate on the fused path (branch in the fused Stable
     Neo-Hookean kernel) equals the same steps with the branch evaluated by its NumPy methods (a
-    dynamic Hessian term when set as model candidates, as the diagnosis replays do; a reference part
-    of the fused evaluator under ``CandidateNewtonSolver``), and the relaxation state follows."""
+    dynamic Hessian term), whether set as model candidates (as the diagnosis replays do) or given as
+    a hook, and the relaxation state follows."""
     import sim_core.fused_elastic as fused_elastic
     from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
 
