@@ -31,7 +31,7 @@ from typing import Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from sim_core.assembly import StaticPattern
-from sim_core.elastic_worker import Recipe
+from sim_core.worker_recipe import Recipe
 from sim_core.potentials.base import ElasticEquivalent, positions_key
 
 

@@ -15,7 +15,6 @@ incremental potential (and, for the viscoelastic gel and the adhesion bonds, a s
 post-step state update; it is a :class:`~sim_core.candidates.hook.StepHook`, the one way terms are
 added to :class:`~sim_core.solver.NewtonSolver`'s step (the solver builds it from the model's
 ``candidate.<name>`` parameters, or takes another hook: ``NewtonSolver(..., hook=...)``).
-:func:`sim_core.candidates.terms.candidate_terms` builds the terms of one step from scratch.
 """
 
 from __future__ import annotations

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from sim_core.candidates import CandidateHook, validate_candidate_parameters
-from sim_core.candidates.terms import candidate_terms
+from sim_core.contact_set import ContactSet
 from sim_core.control import Control
+from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
@@ -32,6 +33,16 @@ def _tiny_press_scene() -> dict:
 
 
 SCENE = _tiny_press_scene()
+
+
+def candidate_terms(model, state, x_prev: np.ndarray, dt: float, params) -> list:
+    """All candidate potentials of one step built from scratch (fresh elastic terms and contact set,
+    the lagged friction at ``x_prev``), contact-like first."""
+    contact = ContactSet(model)
+    memory = contact.begin_step(x_prev, state.contact_memory)
+    friction = contact.friction(x_prev, dt, memory)
+    contact_like, body_like = CandidateHook(params).terms(model, state, x_prev, dt, ElasticTerms(model), friction)
+    return contact_like + body_like
 
 
 def _press_and_hold(candidates, hold=6, lift=0, tol_velocity=None):
