@@ -45,6 +45,7 @@ import mmap
 import os
 import pickle
 import platform
+import resource
 import socket
 import subprocess
 import sys
@@ -486,8 +487,6 @@ class _Server:
             self.evaluate(message[1])
             self.conn.send(("done", message[1]))
         elif kind == "stats":
-            import resource
-
             self.conn.send(("stats", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0))
         return True
 
@@ -534,6 +533,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     conn = Connection(int(argv[0]))
     try:
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.ti_backend import init_backend
 
         init_backend("cpu")

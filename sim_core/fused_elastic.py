@@ -26,13 +26,19 @@ Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 from __future__ import annotations
 
 import importlib
+import time
 from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from sim_core.assembly import StaticPattern
-from sim_core.worker_recipe import Recipe
+from sim_core.assembly import HessianAssembler, StaticPattern
+from sim_core.mesh.sheet import grid_sheet, sheet_topology
+from sim_core.mesh.tet import tet_box
 from sim_core.potentials.base import ElasticEquivalent, positions_key
+from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+from sim_core.potentials.membrane import SpringMembrane
+from sim_core.potentials.neohookean import StableNeoHookean
+from sim_core.worker_recipe import Recipe
 
 
 OFFLOAD_MIN_ELEMENTS = 256
@@ -458,9 +464,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    import time
-
-    from sim_core.assembly import HessianAssembler
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_backend import require_backend
 
     require_backend("compile_kernels")
@@ -476,6 +480,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
                                      fused_hinge, hash_candidates, sweep_candidates)
 
@@ -499,14 +504,7 @@ def compile_offload_kernels() -> float:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    import time
-
-    from sim_core.assembly import HessianAssembler
-    from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.mesh.tet import tet_box
-    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-    from sim_core.potentials.membrane import SpringMembrane
-    from sim_core.potentials.neohookean import StableNeoHookean
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_backend import require_backend
 
     require_backend("compile_offload_kernels")

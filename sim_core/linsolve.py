@@ -35,7 +35,7 @@ def mkl_runtime() -> ctypes.CDLL:
     Raises:
         ImportError: pypardiso is not installed or MKL's runtime library is not found.
     """
-    import pypardiso
+    import pypardiso  # optional heavy dependency: MKL PARDISO, loaded on first use
 
     return pypardiso.PyPardisoSolver().libmkl
 

@@ -54,7 +54,7 @@ def memoize_source_positions() -> bool:
     Returns:
         True when the memoised method is installed (now or by an earlier call), False otherwise.
     """
-    import taichi
+    import taichi  # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from taichi.lang.ast import ast_transformer_utils
 
     context = getattr(ast_transformer_utils, "ASTTransformerContext", None)
@@ -89,7 +89,7 @@ def memoize_function_sources() -> bool:
     Returns:
         True when the memoised functions are installed (now or by an earlier call), False otherwise.
     """
-    import taichi
+    import taichi  # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from taichi.lang import kernel_impl
 
     lines_of, file_of = getattr(kernel_impl, "getsourcelines", None), getattr(kernel_impl, "getsourcefile", None)

@@ -21,14 +21,17 @@ from pathlib import Path
 from typing import Sequence
 
 from sim_core.errors import ThinShellError
+from sysid.evidence import load_evidence
+from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, fit
+from sysid.observation import ObservationModel
+from sysid.report import write_report
+from sysid.results import fit_document, provenance, staged_directory, write_fit_json
 
 PROG = "thinshell sysid"
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``thinshell sysid``."""
-    from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
-
     p = argparse.ArgumentParser(prog=PROG, description="Fit simulator material parameters to a recorded bag.")
     p.add_argument("bag", help="rosbag2 directory (or .mcap file) with scene.yaml")
     p.add_argument("--scene", help="scene file overriding the bag's scene.yaml")
@@ -87,7 +90,7 @@ class _Progress:
         self.bar = None
         self.best = float("inf")
         if enabled:
-            from tqdm import tqdm
+            from tqdm import tqdm  # optional dependency: tqdm, for progress bars only
 
             self.bar = tqdm(desc="sysid replays", unit="replay", file=sys.stderr, dynamic_ncols=True)
 
@@ -136,12 +139,6 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simulation: dict | None) -> int:
-    from sysid.evidence import load_evidence
-    from sysid.fit import fit
-    from sysid.observation import ObservationModel
-    from sysid.report import write_report
-    from sysid.results import fit_document, provenance, staged_directory, write_fit_json
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         evidence = load_evidence(bag, scene_path=args.scene, include_image="auto")

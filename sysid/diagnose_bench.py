@@ -36,18 +36,27 @@ from __future__ import annotations
 
 import argparse
 import copy
+import importlib
 import json
 import math
+import multiprocessing
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+import yaml
 
+from sim_core.control import Control
 from sim_core.errors import ThinShellError
+from sim_core.scenes import load_scene
+from sim_core.scenes.scene_file import load_yaml
+from sim_core.simulation import Simulation
+from sysid.bagio import BagWriter
 from sysid.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
 
@@ -68,10 +77,6 @@ def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
     Raises:
         ThinShellError: the file is missing or not YAML (named).
     """
-    import yaml
-
-    from sim_core.scenes.scene_file import load_yaml
-
     try:
         return load_yaml(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as err:
@@ -130,10 +135,6 @@ def rollout(scene: Mapping[str, Any], targets: np.ndarray, hook: Any | None = No
         ``t_ns (K+1,)``, ``pose``, ``pose_cmd`` ``(K+1, 7)``, ``markers_xyz``, ``markers_uv``,
         ``wrench (K+1, 6)``, ``sheet_points``.
     """
-    from sim_core.control import Control
-    from sim_core.scenes import load_scene
-    from sim_core.simulation import Simulation
-
     sim = Simulation(load_scene(copy.deepcopy(dict(scene))), dt=DT)
     if hook is not None:
         hook.attach(sim)
@@ -330,8 +331,6 @@ def add_noise(streams: dict, rng: np.random.Generator) -> dict:
 
 def write_recording(out_dir: Path, streams: dict, scene: Mapping[str, Any] = SCENE) -> Path:
     """Write streams as a rosbag2 MCAP bag plus the nominal ``scene.yaml`` (INTERFACES.md topics)."""
-    from sysid.bagio import BagWriter
-
     with BagWriter(out_dir, scene=dict(scene)) as bag:
         for i, t in enumerate(streams["t_ns"]):
             t = int(t)
@@ -612,8 +611,6 @@ def format_score(result: Mapping[str, Any]) -> str:
 
 
 def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
-    import importlib
-
     module, _, name = spec.partition(":")
     return getattr(importlib.import_module(module), name or "diagnose")
 
@@ -711,14 +708,8 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                 if args.reports is not None:
                     _write_report(args.reports, r.name, reports[-1])
         else:
-            from concurrent.futures import ProcessPoolExecutor
-
-            from concurrent.futures import as_completed
-
             log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
             reports = [None] * len(recs)
-            import multiprocessing
-
             # spawned, not forked: this process may have run Taichi (generating the set), and a kernel a
             # forked child compiles hangs it (Taichi's compile thread pool does not survive fork)
             with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:

@@ -31,8 +31,9 @@ from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 
-from sim_core.errors import BagReadError
+from sim_core.errors import BagReadError, CalibrationError
 from sim_core.scenes.scene_file import SceneFile
+from sysid.bagio import BagWarning
 from sysid.bagio.reader import BagConfig, BagContents, open_bag
 from sysid.noise import estimate_noise, noise_config
 
@@ -280,8 +281,7 @@ def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, 
         :class:`~sysid.bagio.BagWarning` naming the topic) when the markers cannot be read: no
         matching sensor, the first frame does not show the grid, or fewer than two frames remain.
     """
-    from sim_core.errors import CalibrationError
-    from sysid.bagio import BagWarning
+    # optional heavy dependency: OpenCV (through markers_image), for images only
     from sysid.markers_image import track_marker_stream
 
     def give_up(why: str) -> None:

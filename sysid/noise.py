@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from sim_core.errors import ConfigError
+from sim_core.scenes.scene_file import load_yaml
+from sysid.bagio.reader import DEFAULT_CONFIG_PATH
 
 MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
 
@@ -104,9 +106,6 @@ def noise_config(path: str | Path | None = None) -> dict:
     Raises:
         ConfigError: unknown key or bad value (named with the file).
     """
-    from sim_core.scenes.scene_file import load_yaml
-    from sysid.bagio.reader import DEFAULT_CONFIG_PATH
-
     out = {"difference_order": 2}
     path = Path(path) if path is not None else DEFAULT_CONFIG_PATH
     if not path.is_file():

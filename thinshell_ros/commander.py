@@ -25,9 +25,12 @@ from typing import Any, Sequence
 import numpy as np
 from rclpy.node import Node
 
-from sim_core.errors import ConfigError
+from sim_core.errors import ConfigError, ThinShellError
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.transforms import compose_poses, quat_to_matrix
+from thinshell_ros import conversions as cv
+from thinshell_ros.paths import bundled_scene
+from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, ros_session, spin_until_stopped
 from thinshell_ros.trajectory import SCRIPTED, Trajectory, scripted_trajectory
 
 DEFAULT_SCRIPT = "press_slide_lift"
@@ -173,13 +176,9 @@ class CommanderNode(Node):
     """
 
     def __init__(self, node_name: str = "thinshell_commander", **kwargs: Any) -> None:
-        from geometry_msgs.msg import PoseStamped
+        from geometry_msgs.msg import PoseStamped  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import PointCloud2
-
-        from thinshell_ros import conversions as cv
-        from thinshell_ros.paths import bundled_scene
-        from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
 
         super().__init__(node_name, **kwargs)
         self._cv = cv
@@ -260,9 +259,6 @@ class CommanderNode(Node):
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the commander until its motion is done or SIGINT/SIGTERM; returns the exit code."""
-    from sim_core.errors import ThinShellError
-    from thinshell_ros.runtime import ros_session, spin_until_stopped
-
     args = list(sys.argv) if argv is None else ["thinshell-commander", *argv]
     with ros_session(args) as stop:
         try:

@@ -30,6 +30,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
+from sysid.bagio import open_bag
+from sysid.cli import sysid_main
 from thinshell_ros.paths import bundled_scene, config_dir
 
 DEFAULT_BAG = "nominal_s101"
@@ -115,12 +117,13 @@ def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:
 
 
 def _console():
-    from rich.console import Console
+    from rich.console import Console  # optional dependency: rich, for terminal output only
 
     return Console(highlight=False)
 
 
 def _progress(console):
+    # optional dependency: rich, for terminal output only
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
@@ -156,12 +159,13 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     Raises:
         ThinShellError: the node died, did not come up, or the motion timed out (the node log is quoted).
     """
-    import rclpy
+    import rclpy  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
+    # optional heavy dependency: ROS 2 nodes (rclpy), for ROS commands only
     from thinshell_ros.commander import CommanderNode
 
     log_path = run / "sim_node.log"
@@ -229,13 +233,11 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     if code != 0:
         raise ThinShellError(f"the sim node exited with code {code}:\n{_tail(log_path)}")
 
-    from sysid.bagio import open_bag
-
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
         contents = open_bag(result.recorded_bag)
     result.message_counts = {t: info.message_count for t, info in sorted(contents.topics.items())}
-    from rich.table import Table
+    from rich.table import Table  # optional dependency: rich, for terminal output only
 
     table = Table(title=f"recorded bag {result.recorded_bag}", show_edge=False)
     table.add_column("topic")
@@ -255,8 +257,7 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     Raises:
         ThinShellError: the fitter failed (its reason is on stderr).
     """
-    from sysid.cli import sysid_main
-
+    # optional heavy dependency: ROS 2 nodes (rclpy), for ROS commands only
     from thinshell_ros.sysid_node import summarise_fit
 
     out = run / "sysid"

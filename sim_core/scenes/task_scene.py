@@ -51,9 +51,11 @@ effector frame, mount = back face); plus ``material: {youngs_modulus, poisson_ra
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from sim_core.builder import ModelBuilder
 from sim_core.errors import ConfigError
@@ -386,10 +388,6 @@ def load_task_scene(path) -> Model:
         ConfigError: missing file or YAML error (naming the file), or any error of :func:`build_task_scene`
             (re-raised with the file name).
     """
-    from pathlib import Path
-
-    import yaml
-
     path = Path(path)
     try:
         scene = yaml.safe_load(path.read_text())

@@ -29,6 +29,7 @@ from sim_core.potentials.contact import ContactFrames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.contact_setup import tangent_basis
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -157,8 +158,6 @@ class TiLaggedFriction(LaggedFriction):
         """As the reference :meth:`~sim_core.potentials.friction.LaggedFriction.from_frames`, the
         tangent bases from one launch of :func:`sim_core.ti_kernels.contact_setup.tangent_basis`
         (equal to the reference's bit for bit)."""
-        from sim_core.ti_kernels.contact_setup import tangent_basis
-
         return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:

@@ -227,7 +227,7 @@ def resolve_roles(config: BagConfig | None = None, scene: SceneFile | None = Non
 # ------------------------------------------------------------------------------- raw reading
 def _read_rosbags(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
     """All connections, and ``(log_ns, message)`` of the wanted topics, via rosbags."""
-    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2 import Reader  # optional heavy dependency: bag libraries, loaded on first use
 
     topics: dict[str, TopicInfo] = {}
     msgs: dict[str, list[tuple[int, Any]]] = {}
@@ -245,7 +245,7 @@ def _read_rosbags(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], d
 
 def _read_mcap_library(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
     """Same as :func:`_read_rosbags` with the ``mcap`` reader and the ``mcap_ros2`` decoder."""
-    from mcap.reader import make_reader
+    from mcap.reader import make_reader  # optional heavy dependency: bag libraries, loaded on first use
     from mcap_ros2.decoder import DecoderFactory
 
     msgs: dict[str, list[tuple[int, Any]]] = {}
