@@ -57,6 +57,7 @@ from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import load_yaml
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
+from sysid.data import BENCH_SCENE, data_file
 from sysid.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
 
@@ -67,8 +68,9 @@ NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array(
          "sheet_points": np.array([50e-6] * 3)}
 """1-sigma white noise per channel axis (the reference bags' levels)."""
 
-SCENE_PATH = Path(__file__).resolve().parents[1] / "config" / "scenes" / "bench_card.yaml"
-"""The benchmark's scene file (scene v1): a small card and a coarse tactile pad."""
+SCENE_PATH = data_file(BENCH_SCENE)
+"""The benchmark's scene file (scene v1, packaged ``sysid/data/bench_card.yaml``): a small card and a
+coarse tactile pad."""
 
 
 def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:

@@ -183,7 +183,7 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         bag_path: rosbag2 directory or bare ``.mcap`` file.
         scene_path: scene file overriding the ``scene.yaml`` beside the bag.
         roles: role -> topic overrides (see :func:`sysid.bagio.open_bag`).
-        config: sysid config (``bag`` and ``noise`` sections); default ``config/sysid/default.yaml``.
+        config: sysid config (``bag`` and ``noise`` sections); default the packaged ``sysid/data/default.yaml``.
         include_image: decode the image topic when present (True), never (False), or only when the
             recording has no markers topic (``"auto"``: the image stream is then the marker source).
             When the image is decoded and there is no markers topic, ``markers_uv`` is read off the

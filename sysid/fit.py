@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-import os
 import time
 import warnings as _warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -666,11 +665,3 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
     )
-
-
-def default_workers() -> int:
-    """Worker processes for batched replays: ``THINSHELL_SYSID_WORKERS`` or 1."""
-    try:
-        return max(1, int(os.environ.get("THINSHELL_SYSID_WORKERS", "1")))
-    except ValueError:
-        return 1

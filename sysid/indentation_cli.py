@@ -2,7 +2,7 @@
 
 Usage::
 
-    thinshell indent [--config config/sysid/feats_indentation.yaml] [--out DIR] [--force]
+    thinshell indent [--config FILE (default: the packaged FEATS config)] [--out DIR] [--force]
                      [--quadratic split|corners] [--friction MU] [--initial-modulus PA]
                      [--max-evaluations N]
 
@@ -26,11 +26,13 @@ import numpy as np
 
 from sim_core.errors import ThinShellError
 from sim_core.indentation import run_depth_sweep
+from sysid.data import FEATS_INDENTATION, data_file
 from sysid.indentation_fit import build_indentation_setup, fit_youngs_modulus, load_indentation_config
 from sysid.results import git_revision, package_versions, staged_directory
 
 PROG = "thinshell indent"
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "sysid" / "feats_indentation.yaml"
+DEFAULT_CONFIG = data_file(FEATS_INDENTATION)
+"""The FEATS data set's config (packaged ``sysid/data/feats_indentation.yaml``)."""
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -124,7 +124,7 @@ def fit_youngs_modulus(
 
 @dataclass
 class IndentationConfig:
-    """The FEATS indentation data set (``config/sysid/feats_indentation.yaml``), paths resolved.
+    """The FEATS indentation data set (packaged ``sysid/data/feats_indentation.yaml``), paths resolved.
 
     Attributes:
         mesh: Abaqus/CalculiX mesh file holding gel and indenter.
@@ -151,12 +151,12 @@ class IndentationConfig:
     simulation: dict
 
 
-def load_indentation_config(path: str | Path, repo_root: str | Path | None = None) -> IndentationConfig:
-    """Read an indentation-fit YAML; data paths are relative to ``repo_root / data_root``.
+def load_indentation_config(path: str | Path, base: str | Path | None = None) -> IndentationConfig:
+    """Read an indentation-fit YAML; data paths are relative to ``base / data_root``.
 
     Args:
         path: the YAML file.
-        repo_root: repository root (default: the folder two levels above this module).
+        base: the folder a relative ``data_root`` is resolved against (default: the YAML file's folder).
 
     Returns:
         :class:`IndentationConfig`.
@@ -173,7 +173,7 @@ def load_indentation_config(path: str | Path, repo_root: str | Path | None = Non
     missing = sorted(CONFIG_KEYS - set(raw) - {"simulation", "reference"})
     if unknown or missing:
         raise ConfigError(f"{path}: unknown keys {unknown} / missing keys {missing}")
-    root = Path(repo_root) if repo_root is not None else Path(__file__).resolve().parents[1]
+    root = Path(base) if base is not None else path.resolve().parent
     data_root = (root / raw["data_root"]).resolve()
     files = {}
     for key in ("mesh", "gel_volume_set", "gel_fixed_set", "indenter_volume_set"):

@@ -4,12 +4,15 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 
 - ``bag`` (str): recording to fit (rosbag2 MCAP directory with ``scene.yaml``, INTERFACES.md).
 - ``params`` (str): comma-separated global parameter names (``sheet.bending_stiffness,...``);
-  empty: the fitter's defaults.
+  empty: the fitter's defaults (:data:`sysid.fit.DEFAULT_PARAMETERS`).
 - ``out`` (str): directory of the fit report; empty: a new ``./sysid_<bag name>_<timestamp>``.
 - ``force`` (bool): replace an existing report directory.
 - ``t_max`` (s), ``dt`` (s): fit only the first ``t_max`` s of the recording / replay at step ``dt``;
   0 = the fitter's defaults.
-- ``fit_args`` (str): further ``thinshell sysid`` options, shell-quoted (``--max-nfev 5 --global``).
+- ``max_nfev`` (int, 30), ``max_time`` (s, 0 = no budget), ``global_search`` (bool: CMA-ES before the
+  local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``workers`` (int),
+  ``arch`` (``cpu`` | ``cuda`` | ``numpy``): the fitter's settings
+  (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
 - ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
@@ -27,9 +30,7 @@ when that is configured, and then one JSON document is published on ``<namespace
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import shlex
 import math
 import sys
 import threading
@@ -46,6 +47,8 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from sim_core.errors import ConfigError
+from sysid.fit_recording import FitOptions, fit_recording
+from sysid.results import load_fit_json
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -58,36 +61,15 @@ class FitRequest:
 
     Attributes:
         bag: recording path.
-        params: global parameter names (empty: the fitter's defaults).
-        out: report directory (None: the fitter's default).
+        out: report directory (None: a new ``./sysid_<bag name>_<timestamp>``, :func:`default_out`).
         force: replace an existing report.
-        t_max: s of the recording to fit (None: all / the fitter's default).
-        dt: replay step in s (None: the fitter's default).
-        extra: further ``thinshell sysid`` options.
+        options: the fit's settings (:class:`sysid.fit_recording.FitOptions`).
     """
 
     bag: Path
-    params: tuple[str, ...]
     out: Path | None
     force: bool
-    t_max: float | None
-    dt: float | None
-    extra: tuple[str, ...] = ()
-
-    def cli_args(self) -> list[str]:
-        """The ``thinshell sysid`` arguments of this request."""
-        args = [str(self.bag)]
-        if self.params:
-            args += ["--params", ",".join(self.params)]
-        if self.out is not None:
-            args += ["--out", str(self.out)]
-        if self.force:
-            args.append("--force")
-        if self.t_max is not None:
-            args += ["--t-max", repr(self.t_max)]
-        if self.dt is not None:
-            args += ["--dt", repr(self.dt)]
-        return [*args, *self.extra]
+    options: FitOptions
 
 
 def parse_params(text: str) -> tuple[str, ...]:
@@ -114,25 +96,21 @@ def default_out(bag: Path, now: float | None = None) -> Path:
     return out
 
 
-def run_sysid_cli(request: FitRequest) -> dict[str, Any]:
-    """Run the fitter (``thinshell sysid --quiet``, :func:`sysid.cli.sysid_main`) and summarise its ``fit.json``.
+def run_fit(request: FitRequest) -> dict[str, Any]:
+    """Run the fitter (:func:`sysid.fit_recording.fit_recording`, what ``thinshell sysid`` runs) and
+    summarise its ``fit.json``.
 
     Returns:
         the fit summary (:func:`summarise_fit`).
 
     Raises:
-        RuntimeError: the fitter returned a non-zero exit code (its one-line reason is on stderr).
-        CalibrationError: it wrote no valid ``fit.json``.
+        ThinShellError: the fit failed (unreadable bag, invalid scene, diverged replay, existing
+            report directory without ``force``, ...); CalibrationError: no valid ``fit.json``.
     """
-    from sysid.cli import sysid_main
-
-    if request.out is None:
-        request = dataclasses.replace(request, out=default_out(request.bag))
-    args = [*request.cli_args(), "--quiet"]
-    code = sysid_main(args)
-    if code != 0:
-        raise RuntimeError(f"thinshell sysid {' '.join(args)} exited with code {code} (reason on stderr)")
-    return summarise_fit(request.out)
+    out = request.out if request.out is not None else default_out(request.bag)
+    fit_recording(request.bag, out, request.options, force=request.force,
+                  command=["thinshell-sysid-node", str(request.bag), repr(request.options)])
+    return summarise_fit(out)
 
 
 def summarise_fit(out: Path) -> dict[str, Any]:
@@ -145,8 +123,6 @@ def summarise_fit(out: Path) -> dict[str, Any]:
     Raises:
         CalibrationError: missing or invalid ``out/fit.json`` (:func:`sysid.results.load_fit_json`).
     """
-    from sysid.results import load_fit_json
-
     out = Path(out)
     doc = load_fit_json(out / "fit.json")
     params = doc["fit"]["parameters"]
@@ -164,7 +140,7 @@ class SysidNode(Node):
 
     Args:
         runner: ``FitRequest -> summary dict`` with at least ``params`` (name -> fitted value);
-            default :func:`run_sysid_cli`.
+            default :func:`run_fit`.
         node_name: ROS node name.
         **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
     """
@@ -172,9 +148,11 @@ class SysidNode(Node):
     def __init__(self, runner: Callable[[FitRequest], dict[str, Any]] | None = None,
                  node_name: str = "thinshell_sysid", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self.runner = runner or run_sysid_cli
+        self.runner = runner or run_fit
         for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
-                              ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0)):
+                              ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
+                              ("global_search", False), ("gel_resolution", ""), ("workers", 1),
+                              ("arch", FitOptions.arch), ("apply_to", ""), ("apply_timeout", 10.0)):
             self.declare_parameter(name, default)
         self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
         self.result_topic = f"{self.namespace}/sysid/result"
@@ -205,17 +183,24 @@ class SysidNode(Node):
             raise ConfigError("parameter 'bag' is empty: set it to a recording (rosbag2 directory)")
         if not Path(bag).exists():
             raise ConfigError(f"parameter 'bag': {bag} does not exist")
-        t_max, dt = float(self._param("t_max")), float(self._param("dt"))
-        for key, value in (("t_max", t_max), ("dt", dt)):
+        t_max, dt, max_time = (float(self._param(k)) for k in ("t_max", "dt", "max_time"))
+        for key, value in (("t_max", t_max), ("dt", dt), ("max_time", max_time)):
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"parameter {key!r} must be >= 0 (0: the fitter's default), got {value}")
-        out = str(self._param("out")).strip()
+        resolution = str(self._param("gel_resolution")).strip()
         try:
-            extra = tuple(shlex.split(str(self._param("fit_args"))))
+            gel_resolution = tuple(int(v) for v in resolution.split(",")) if resolution else None
         except ValueError as err:
-            raise ConfigError(f"parameter 'fit_args' is not valid shell syntax: {err}") from err
-        return FitRequest(Path(bag), parse_params(str(self._param("params"))), Path(out) if out else None,
-                          bool(self._param("force")), t_max or None, dt or None, extra)
+            raise ConfigError(f"parameter 'gel_resolution' must be NX,NY,NZ (integers), got {resolution!r}") from err
+        params = parse_params(str(self._param("params")))
+        defaults = FitOptions()
+        options = FitOptions(params=params or defaults.params, dt=dt or defaults.dt, t_max=t_max or None,
+                             max_nfev=int(self._param("max_nfev")), max_time=max_time or None,
+                             global_method="cma" if self._param("global_search") else None,
+                             gel_resolution=gel_resolution, workers=int(self._param("workers")),
+                             arch=str(self._param("arch")))
+        out = str(self._param("out")).strip()
+        return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options)
 
     # ------------------------------------------------------------------------------ service
     def _on_fit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -232,7 +217,7 @@ class SysidNode(Node):
             self._started = time.monotonic()
             self._worker = threading.Thread(target=self._work, args=(job,), name="sysid-fit", daemon=True)
             self._worker.start()
-        names = ",".join(job.params) or "default parameters"
+        names = ",".join(job.options.params)
         response.success = True
         response.message = f"fit started: {job.bag} ({names}); the result will be published on {self.result_topic}"
         self.get_logger().info(response.message)
