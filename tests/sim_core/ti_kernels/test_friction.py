@@ -63,7 +63,8 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
     """Forming after a few steps of the benchmark trajectory: the same frozen pairs, the Taichi class."""
     from sim_core.contact_set import ContactSet
     from sim_core.ti_kernels.friction import TiLaggedFriction
-    from thinshell_ros.bench import _default_scene, run_forming
+    from sim_core.bench.forming import run_forming
+    from thinshell_ros.paths import bundled_scene
 
     states = []
     import sim_core.simulation as simulation
@@ -77,7 +78,7 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
 
     simulation.Simulation.step = recording_step
     try:
-        run_forming(_default_scene("forming"), 12, arch="numpy")
+        run_forming(bundled_scene("forming"), 12, arch="numpy")
     finally:
         simulation.Simulation.step = step
     model, x, memory = states[-1]

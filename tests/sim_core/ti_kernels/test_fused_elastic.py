@@ -151,9 +151,9 @@ def _forming_steps(backend: str, steps: int):
     from sim_core.simulation import Simulation
     from sim_core.solver import SolverConfig
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = Simulation(model, solver_config=SolverConfig(backend=backend))
     sim.state = task_initial_state(model)
     effector = next(iter(model.effectors))
