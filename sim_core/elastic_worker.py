@@ -2,7 +2,7 @@
 
 Taichi's CPU kernel launches hold Python's GIL, and its parallel loops (atomic adds on a few cores)
 ran the fused kernels about twice as slow as the serial ones on the 2-core machine
-(docs/benchmarks.md), so one process uses one core. Two processes do run side by side at full
+(docs/benchmarks_log.md), so one process uses one core. Two processes do run side by side at full
 speed. :class:`ElasticWorker` starts a worker process (``python -m sim_core.elastic_worker``)
 with its own Taichi runtime; :class:`sim_core.fused_elastic.FusedElastic` hands it the largest
 fused term that supports it (a Stable Neo-Hookean gel: its ``offload_recipe()``), and evaluates the

@@ -260,7 +260,7 @@ surface, ``delta_c ~ sqrt(G h / E)`` (Kendall 1971; Shull, Mater. Sci. Eng. R 36
 bench gel's ``E = 0.3 MPa``, ``h = 4 mm`` and the tack energy ``G ~ 1 J/m^2`` of a weakly dissipative
 silicone gel at mm/s: 115 um. (The interface-scale ``G / E ~ 10 um`` was tried first: the 0.2 mm
 lift steps then skip the whole cohesive zone in one step and the response is set by the buckling
-branch the card takes, not monotone in the magnitude; docs/benchmarks.md, 2026-11-22.)"""
+branch the card takes, not monotone in the magnitude; docs/benchmarks_log.md, 2026-11-22.)"""
 
 
 class _CohesiveBonds:

@@ -4,7 +4,7 @@ Runs ``thinshell sysid`` in-process on a bag (default: the bundled ``bags/nomina
 press-slide recording made by an independent engine) with the three default parameters (bending
 stiffness, gel modulus, gel-sheet friction) over the whole recording, into a temporary output
 directory (or ``--out``), and prints the wall time with the fit's own figures. Results are recorded
-by hand in ``docs/benchmarks.md``.
+by hand in ``docs/benchmarks_log.md``.
 
 Usage::
 

@@ -26,7 +26,7 @@ Nominal recordings differ by their noise only. With ``--heldout-companions`` eac
 gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
 whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
 validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
-blocks; not the default: measured worse on the set (docs/benchmarks.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
+blocks; not the default: measured worse on the set (docs/benchmarks_log.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
 RMS reduction ``1 - after / before``.
@@ -94,7 +94,7 @@ SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0
 Two taps on the flat card after the lift (every contact event then happens more than once, so
 that adhesion at lift-off can be fitted on one and validated on another, ``sysid.diagnose.events``)
 were tried on the 36-recording set and dropped: top-1 at 2 sigma fell from 0.9 to 0.4 and a
-nominal recording was flagged (docs/benchmarks.md, 2026-11-22)."""
+nominal recording was flagged (docs/benchmarks_log.md, 2026-11-22)."""
 
 CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 
@@ -655,7 +655,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="diagnose a set written earlier (its labels.json) instead of generating one")
     ap.add_argument("--heldout-companions", action="store_true",
                     help="also write a held-out companion per recording (other motion, same effect) and "
-                         "validate on it (default: held-out time blocks; see docs/benchmarks.md 2026-11-22)")
+                         "validate on it (default: held-out time blocks; see docs/benchmarks_log.md 2026-11-22)")
     ap.add_argument("--no-heldout", action="store_true",
                     help="ignore the companions a labelled set lists (validate on held-out time blocks)")
     ap.add_argument("--add-heldout", action="store_true",

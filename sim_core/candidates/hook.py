@@ -45,7 +45,7 @@ ADHESION_REACH_FRACTION = 0.01
 touches the sheet (opening at the start of the step at most 2.5 um beyond the contact offset with the
 default delta, i.e. in contact up to the solver's gap tolerance). A tacky interface adheres where it
 touches; with pairs formed up to 5 delta (1.25 mm) away, the candidate pulled a card that had buckled
-away from the gel and changed the buckling, a signature no adhesion has (benchmarks.md,
+away from the gel and changed the buckling, a signature no adhesion has (benchmarks_log.md,
 2026-11-22)."""
 
 _STATE_KEY = "gel_viscoelasticity"

@@ -116,7 +116,7 @@ def test_thinshell_indent_reproduces_the_four_real_forces(tmp_path):
     exact spherical indenter, frictionless; ~2.5 min on 2 cores).
 
     The issue's checks: the four measured forces within 10 % and C10 within 20 % of FEATS' CalculiX
-    value 0.0725 MPa (measured: see docs/benchmarks.md).
+    value 0.0725 MPa (measured: see docs/benchmarks_log.md).
     """
     import json
 
