@@ -57,7 +57,6 @@ from sim_core.errors import ConfigError, ThinShellError
 from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
 from sim_core.potentials.base import ConstantDiagonalHessian, HingeBending, assemble_hessian, block_dof_indices
-from sim_core.potentials.bending import dihedral_angle, dihedral_angle_gradient
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
 from sim_core.potentials.sphere_contact import SphereContact
 from sim_core.potentials.friction import (
@@ -351,12 +350,8 @@ class StepLinearization:
         self.bending = {}
         for name in elastic.hinges:
             tb = record.hinge_theta_bar.get(name)
-            pot = elastic.bending(name, tb)
-            if hasattr(pot, "theta_gradient"):  # kept angles, shared with parameter_rhs (same pot)
-                theta, gt = pot.theta(self.x), pot.theta_gradient(self.x)
-            else:
-                X = self.x[pot.hinges]
-                theta, gt = dihedral_angle(X), dihedral_angle_gradient(X)
+            pot = _hinge_bending(elastic.bending(name, tb))
+            theta, gt = pot.theta(self.x), pot.theta_gradient(self.x)  # Kirchhoff: kept angles, shared
             Y = model.bodies[name].material.get("yield_angle", np.inf)
             dev = theta - pot.hinge_theta_bar
             yielding = np.abs(dev) > Y if np.isfinite(Y) else np.zeros(len(theta), bool)

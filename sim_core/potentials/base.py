@@ -126,6 +126,10 @@ class HingeBending(Protocol):
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``."""
         ...
 
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` in 1/m."""
+        ...
+
     def theta_stiffness(self) -> sp.csr_matrix:
         """``A = dE/dtheta dtheta`` = ``2 K_h`` in J/rad^2, sparse ``(h, h)``."""
         ...

@@ -279,6 +279,10 @@ class DiscreteShellBending:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
         return dihedral_angle(x[self.hinges])
 
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` (1/m, over ``hinges``' vertices), at ``x`` ``(n, 3)``."""
+        return dihedral_angle_gradient(x[self.hinges])
+
     def theta_stiffness(self) -> sp.csr_matrix:
         """``A = d^2E/dtheta^2 = diag(2 hinge_stiffness)`` in J/rad^2, sparse ``(h, h)``."""
         return sp.diags(2.0 * np.asarray(self.hinge_stiffness)).tocsr()
