@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-sensor-calibration", action="store_true",
+                   help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
+                        "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
     return p
 
 
@@ -151,8 +154,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       global_method=args.global_method if args.global_search else None,
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
-                      stop_rms=args.stop_rms or None, warm_start=not args.cold_start, workers=args.workers,
-                      seed=args.seed)
+                      stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
+                      sensor_calibration=not args.no_sensor_calibration, workers=args.workers, seed=args.seed)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -162,10 +165,14 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
         print(f"{PROG}: {bag}: fitting {', '.join(options.params)} on {', '.join(model.channels)} "
               f"({model.step_count} steps of {options.dt} s, {model.residual_count} residuals)", file=sys.stderr)
 
+    def calibrated(sensor) -> None:
+        print(f"{PROG}: sensor calibration: " + ", ".join(f"{k} {v:.4g}" for k, v in sensor.sensor.as_dict().items()),
+              file=sys.stderr)
+
     progress = _Progress(not args.quiet)
     try:
         outcome = fit_recording(bag, out, options, force=args.force, command=[PROG, *argv], on_eval=progress,
-                                on_model=announce)
+                                on_model=announce, on_calibration=calibrated)
     finally:
         progress.close()
     result = outcome.result

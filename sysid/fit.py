@@ -275,7 +275,10 @@ class FitProblem:
                 self._keep_jacobian(key, J)
             return r
         try:
-            trace = self.model.simulate(self.values(u), keep_positions=self.warm_start)
+            # the budget is checked at every replay step too: a hard trial point (many Newton
+            # iterations per step) cannot hold the fit past its deadline
+            on_step = None if self.deadline is None or phase == "final" else (lambda k, K: self._check_time(phase))
+            trace = self.model.simulate(self.values(u), keep_positions=self.warm_start, on_step=on_step)
             prediction = self.model.predict(trace)
             r = self.model.residuals(prediction)
             self.last_positions = trace.positions
@@ -584,6 +587,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 return np.full_like(r0, fail_level) if r is None else r
 
             def jac(u: np.ndarray) -> np.ndarray:
+                if jac_at.get("in_local"):
+                    problem._check_time("local")  # a Jacobian costs a replay per parameter: not past the budget
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None

@@ -1,11 +1,13 @@
-"""Fit a recording end to end: evidence, observation model, fit, ``fit.json`` and report.
+"""Fit a recording end to end: evidence, observation model, sensor calibration, fit, ``fit.json`` and report.
 
 What ``thinshell sysid`` (:mod:`sysid.cli`) and the sysid node (``thinshell_ros.sysid_node``) both
 run: the bag is read into an evidence bundle (:func:`sysid.evidence.load_evidence`), its effector
-poses are replayed in the simulator (:class:`sysid.observation.ObservationModel`), the parameters are
-fitted (:func:`sysid.fit.fit`) and ``fit.json`` (:mod:`sysid.results`), the plots, ``report.md``
-and ``report.html`` (:mod:`sysid.report`) are written into the output directory, which appears whole
-or not at all.
+poses are replayed in the simulator (:class:`sysid.observation.ObservationModel`), the sensor is
+calibrated in closed form as ``thinshell diagnose`` does (:func:`sysid.calibration.calibrate`: wrench
+gains, marker scales, camera intrinsics; the fit is then judged against the calibrated prediction),
+the parameters are fitted (:func:`sysid.fit.fit`) and ``fit.json`` (:mod:`sysid.results`), the
+plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) are written into the output
+directory, which appears whole or not at all.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
+from sysid.calibration import CalibrationResult, calibrate
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
 from sysid.observation import ObservationModel
@@ -44,6 +47,8 @@ class FitOptions:
         max_nfev: function evaluations of the local phase.
         stop_sigma, stop_trial_sigma, stop_rms: stopping rules of :func:`sysid.fit.fit` (None: off).
         warm_start: start each replay's Newton solves from the best replay so far.
+        sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
+            the scene's sensor calibration).
         workers: processes for batched replays.
         seed: seed of the global phase.
     """
@@ -65,6 +70,7 @@ class FitOptions:
     stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
     stop_rms: float | None = STOP_RMS
     warm_start: bool = True
+    sensor_calibration: bool = True
     workers: int = 1
     seed: int = 0
 
@@ -102,17 +108,20 @@ class FitOutcome:
         document: the ``fit.json`` document.
         out: the result directory (``fit.json``, ``report.md``, ``report.html``, plots).
         warnings: what reading the bag and building the model warned about.
+        sensor: the sensor calibration (None with ``sensor_calibration=False``).
     """
 
     result: FitResult
     document: dict
     out: Path
     warnings: tuple[str, ...]
+    sensor: CalibrationResult | None = None
 
 
 def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOptions(), *, force: bool = False,
                   command: Sequence[str] | None = None, on_eval: Callable[[Evaluation], None] | None = None,
-                  on_model: Callable[[ObservationModel, tuple[str, ...]], None] | None = None) -> FitOutcome:
+                  on_model: Callable[[ObservationModel, tuple[str, ...]], None] | None = None,
+                  on_calibration: Callable[[CalibrationResult], None] | None = None) -> FitOutcome:
     """Fit ``options.params`` to the recording ``bag`` and write the result directory ``out``.
 
     Args:
@@ -124,6 +133,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         on_eval: called after every replay with its :class:`sysid.fit.Evaluation`.
         on_model: called with the observation model and the warnings of reading the bag before the
             fit starts (the CLI prints them).
+        on_calibration: called with the sensor calibration before the fit starts.
 
     Returns:
         :class:`FitOutcome`.
@@ -148,15 +158,27 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     notes = tuple(str(w.message) for w in caught)
     if on_model is not None:
         on_model(model, notes)
+    sensor = None
+    if options.sensor_calibration:
+        sensor = calibrate(model, params=())
+        if on_calibration is not None:
+            on_calibration(sensor)
     result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start)
     result.warnings[:0] = list(notes)
+    for ch, before in result.rms_initial.items():
+        if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
+            result.warnings.append(f"the fit does not improve channel {ch}: RMS {before['rms']:.4g} -> "
+                                   f"{result.rms_final[ch]['rms']:.4g} {before['unit']} (the fitted "
+                                   "parameters cannot follow it; weigh or drop it with --channels)")
     command = list(command) if command is not None else ["sysid.fit_recording", str(bag), repr(options)]
     doc = fit_document(result, provenance(evidence, options.seed, options.t_max, command, options.scene))
+    if sensor is not None:
+        doc["diagnostics"]["sensor_calibration"] = sensor.summary()
     with staged_directory(out, force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)
-    return FitOutcome(result, doc, out, notes)
+    return FitOutcome(result, doc, out, notes, sensor)

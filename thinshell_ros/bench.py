@@ -5,6 +5,8 @@
 * ``bench node``: the sim node's stepping rate and latency through DDS (:mod:`thinshell_ros.bench_node`).
 * ``bench diagnose``: the missing-physics diagnosis on a labelled set (:mod:`sysid.diagnose_bench`).
 * ``bench sysid``: a 3-parameter fit on a whole recording (:mod:`sysid.bench_fit`).
+* ``bench tasks``: the ten ThinShellLab tasks' reference trajectories, rewards vs Table A
+  (:mod:`sim_core.tasks.bench`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import argparse
 import sys
 
 from sim_core.bench.cli import bench_forming_main, bench_scale_main
+from sim_core.tasks.bench import bench_tasks_main
 from thinshell_ros.paths import bundled_scene
 
 BENCHMARKS = {
@@ -21,11 +24,12 @@ BENCHMARKS = {
     "node": "the sim node through DDS: real-time factor and command-to-output latency",
     "diagnose": "missing-physics diagnosis benchmark",
     "sysid": "3-parameter material fit on a whole recording",
+    "tasks": "the ten ThinShellLab tasks: reference trajectories' rewards vs Table A",
 }
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid} [ARGS]``; returns the exit
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks} [ARGS]``; returns the exit
     code of the benchmark (see each one's ``--help``; 2 for an unknown benchmark)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="thinshell bench", description="benchmarks")
@@ -40,6 +44,8 @@ def bench_main(argv: list[str] | None = None) -> int:
         return bench_forming_main(rest, default_scene=lambda: bundled_scene("forming"))
     if which == "scale":
         return bench_scale_main(rest)
+    if which == "tasks":
+        return bench_tasks_main(rest)
     if which == "node":
         # optional heavy dependency: ROS 2 (rclpy), for the node benchmark only
         from thinshell_ros.bench_node import bench_node_main

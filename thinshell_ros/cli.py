@@ -21,7 +21,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "sysid": ("sysid.cli", "sysid_main", "fit material parameters to a recorded bag"),
     "indent": ("sysid.indentation_cli", "indent_main", "fit the gel modulus to indentation depth/force measurements (FEATS)"),
     "diagnose": ("sysid.diagnose_cli", "diagnose_main", "find, name and model missing physics in recorded bags"),
-    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose"),
+    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks"),
 }
 
 

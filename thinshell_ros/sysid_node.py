@@ -11,7 +11,7 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
   0 = the fitter's defaults.
 - ``max_nfev`` (int, 30), ``max_time`` (s, 0 = no budget), ``global_search`` (bool: CMA-ES before the
   local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``workers`` (int),
-  ``arch`` (``cpu`` | ``cuda`` | ``numpy``): the fitter's settings
+  ``arch`` (``cpu`` | ``cuda`` | ``numpy``), ``sensor_calibration`` (bool, true): the fitter's settings
   (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
@@ -152,7 +152,8 @@ class SysidNode(Node):
         for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
                               ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
                               ("global_search", False), ("gel_resolution", ""), ("workers", 1),
-                              ("arch", FitOptions.arch), ("apply_to", ""), ("apply_timeout", 10.0)):
+                              ("arch", FitOptions.arch), ("sensor_calibration", FitOptions.sensor_calibration),
+                              ("apply_to", ""), ("apply_timeout", 10.0)):
             self.declare_parameter(name, default)
         self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
         self.result_topic = f"{self.namespace}/sysid/result"
@@ -198,7 +199,8 @@ class SysidNode(Node):
                              max_nfev=int(self._param("max_nfev")), max_time=max_time or None,
                              global_method="cma" if self._param("global_search") else None,
                              gel_resolution=gel_resolution, workers=int(self._param("workers")),
-                             arch=str(self._param("arch")))
+                             arch=str(self._param("arch")),
+                             sensor_calibration=bool(self._param("sensor_calibration")))
         out = str(self._param("out")).strip()
         return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options)
 
