@@ -139,7 +139,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         :class:`FitOutcome`.
 
     Raises:
-        ConfigError: ``bag`` does not exist; ``out`` exists and not ``force``.
+        ConfigError: ``bag`` does not exist; ``out`` exists and not ``force``; an unknown parameter name.
         ThinShellError: unreadable bag, invalid scene, failed fit (:class:`~sim_core.errors.BagReadError`,
             :class:`~sim_core.errors.CalibrationError`, ...).
     """
@@ -156,6 +156,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
+    for name in options.params:  # an unknown name fails here, before the calibration's replay
+        model.parameter_value(name)
     if on_model is not None:
         on_model(model, notes)
     sensor = None
