@@ -105,9 +105,11 @@ def _signatures_main(args: argparse.Namespace) -> int:
     from sysid.diagnose.signature_report import write_signature_report
     from sysid.results import staged_directory
 
-    if args.heldout:
-        print("thinshell diagnose: --heldout is not used by the signatures engine (held-out events and time blocks "
-              "of each recording are); use --engine score", file=sys.stderr)
+    score_only = [flag for flag, given in (("--heldout", args.heldout), ("--candidates", args.candidates),
+                                           ("--project", args.project), ("--warm-start", args.warm_start)) if given]
+    if score_only:
+        print(f"thinshell diagnose: {score_only[0]} belongs to --engine score (the signatures engine holds out "
+              "events and time blocks of each recording and runs every signature test)", file=sys.stderr)
         return 2
     settings = SignatureSettings(
         dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,

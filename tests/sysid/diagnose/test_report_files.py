@@ -14,7 +14,7 @@ BAG = Path(__file__).resolve().parents[3] / "bags" / "nominal_s101"
 
 def test_short_diagnosis_writes_contract_json_report_and_residual_plots(tmp_path):
     out, js = tmp_path / "report", tmp_path / "diagnosis.json"
-    code = diagnose_main([str(BAG), "--t-max", "0.3", "--candidates", "latency", "force_bias",
+    code = diagnose_main([str(BAG), "--engine", "score", "--t-max", "0.3", "--candidates", "latency", "force_bias",
                           "--gel-resolution", "3", "3", "2", "--out", str(out), "--json", str(js)])
     assert code == 0
     doc = json.loads(js.read_text())
