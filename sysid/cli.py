@@ -3,12 +3,14 @@
 Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
-                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [...]
+                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
 poses are replayed in the simulator, the parameters are fitted and ``fit.json``, PNG plots,
-``report.md`` and ``report.html`` are written into the output directory. The directory is filled in a hidden sibling and renamed into place at the end, so
+``report.md`` and ``report.html`` are written into the output directory; ``--write-scene`` also
+writes the fitted scene (:mod:`sysid.fitted_scene`: the bag's scene with the fitted values, their
+uncertainty and any modelled effect). The directory is filled in a hidden sibling and renamed into place at the end, so
 it never holds a half-written result; an existing one is refused unless ``--force``.
 """
 
@@ -34,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", default=",".join(DEFAULT_PARAMETERS),
                    help="comma-separated global parameter names (default: %(default)s)")
     p.add_argument("--out", help="output directory (default: ./sysid_<bag name>)")
-    p.add_argument("--force", action="store_true", help="replace an existing output directory")
+    p.add_argument("--force", action="store_true", help="replace an existing output directory (and --write-scene file)")
+    p.add_argument("--write-scene", metavar="SCENE_YAML",
+                   help="also write the scene with the fitted values, their sigma and any modelled effect "
+                        "(loadable by thinshell sim, the sim node and thinshell compare)")
     p.add_argument("--global", dest="global_search", action="store_true",
                    help="global phase (CMA-ES by default) before the local least squares")
     p.add_argument("--global-method", choices=GLOBAL_METHODS, default="cma", help="global phase method")
@@ -120,6 +125,8 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out) if args.out else Path.cwd() / f"sysid_{bag.resolve().name}"
     if (out.exists() or out.is_symlink()) and not args.force:
         return _error(f"output directory {out} exists (use --force to replace it)")
+    if args.write_scene and Path(args.write_scene).exists() and not args.force:
+        return _error(f"scene file {args.write_scene} exists (use --force to replace it)")
     if args.t_max is not None and not args.t_max > 0:
         return _error(f"--t-max must be > 0 s, got {args.t_max}")
     if args.max_time is not None and not args.max_time > 0:
@@ -172,10 +179,13 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     progress = _Progress(not args.quiet)
     try:
         outcome = fit_recording(bag, out, options, force=args.force, command=[PROG, *argv], on_eval=progress,
-                                on_model=announce, on_calibration=calibrated)
+                                on_model=announce, on_calibration=calibrated,
+                                write_scene=args.write_scene or None)
     finally:
         progress.close()
     result = outcome.result
+    if outcome.scene is not None:
+        print(f"fitted scene: {outcome.scene}")
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"

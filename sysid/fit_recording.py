@@ -7,7 +7,9 @@ calibrated in closed form as ``thinshell diagnose`` does (:func:`sysid.calibrati
 gains, marker scales, camera intrinsics; the fit is then judged against the calibrated prediction),
 the parameters are fitted (:func:`sysid.fit.fit`) and ``fit.json`` (:mod:`sysid.results`), the
 plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) are written into the output
-directory, which appears whole or not at all.
+directory, which appears whole or not at all. On request the fitted scene is written too
+(:mod:`sysid.fitted_scene`: the bag's scene with the fitted values, their uncertainty and any
+modelled effect).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from sim_core.errors import ConfigError
 from sysid.calibration import CalibrationResult, calibrate
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
+from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
 from sysid.results import fit_document, provenance, staged_directory, write_fit_json
@@ -109,6 +112,7 @@ class FitOutcome:
         out: the result directory (``fit.json``, ``report.md``, ``report.html``, plots).
         warnings: what reading the bag and building the model warned about.
         sensor: the sensor calibration (None with ``sensor_calibration=False``).
+        scene: the fitted scene file written (None without ``write_scene``).
     """
 
     result: FitResult
@@ -116,12 +120,14 @@ class FitOutcome:
     out: Path
     warnings: tuple[str, ...]
     sensor: CalibrationResult | None = None
+    scene: Path | None = None
 
 
 def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOptions(), *, force: bool = False,
                   command: Sequence[str] | None = None, on_eval: Callable[[Evaluation], None] | None = None,
                   on_model: Callable[[ObservationModel, tuple[str, ...]], None] | None = None,
-                  on_calibration: Callable[[CalibrationResult], None] | None = None) -> FitOutcome:
+                  on_calibration: Callable[[CalibrationResult], None] | None = None,
+                  write_scene: str | Path | None = None) -> FitOutcome:
     """Fit ``options.params`` to the recording ``bag`` and write the result directory ``out``.
 
     Args:
@@ -134,12 +140,15 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         on_model: called with the observation model and the warnings of reading the bag before the
             fit starts (the CLI prints them).
         on_calibration: called with the sensor calibration before the fit starts.
+        write_scene: also write the fitted scene (:func:`sysid.fitted_scene.fitted_scene_from_result`)
+            to this YAML file, after the result directory (None: no scene file).
 
     Returns:
         :class:`FitOutcome`.
 
     Raises:
-        ConfigError: ``bag`` does not exist; ``out`` exists and not ``force``; an unknown parameter name.
+        ConfigError: ``bag`` does not exist; ``out`` or ``write_scene`` exists and not ``force``; an
+            unknown parameter name; a fitted value the scene has no key for.
         ThinShellError: unreadable bag, invalid scene, failed fit (:class:`~sim_core.errors.BagReadError`,
             :class:`~sim_core.errors.CalibrationError`, ...).
     """
@@ -148,6 +157,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         raise ConfigError(f"bag not found: {bag}")
     if (out.exists() or out.is_symlink()) and not force:
         raise ConfigError(f"output directory {out} exists (use --force / force=True to replace it)")
+    if write_scene is not None and Path(write_scene).exists() and not force:
+        raise ConfigError(f"scene file {write_scene} exists (use --force / force=True to replace it)")
     simulation = None if options.gel_resolution is None else {"gel_resolution": [int(n) for n in options.gel_resolution]}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -180,7 +191,10 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     doc = fit_document(result, provenance(evidence, options.seed, options.t_max, command, options.scene))
     if sensor is not None:
         doc["diagnostics"]["sensor_calibration"] = sensor.summary()
+    # the fitted scene is built (and checked) before anything is written
+    scene_doc = None if write_scene is None else fitted_scene_from_result(result, evidence, options.t_max)
     with staged_directory(out, force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)
-    return FitOutcome(result, doc, out, notes, sensor)
+    scene = None if scene_doc is None else write_fitted_scene(write_scene, scene_doc, force=force)
+    return FitOutcome(result, doc, out, notes, sensor, scene)

@@ -379,7 +379,10 @@ class ObservationModel:
             return float(self.nominal_normal_offset)
         self.simulation()
         if name not in self._nominal:
-            self._sim.get_parameter(name)  # raises ConfigError listing the known names
+            value = float(self._sim.get_parameter(name))  # raises ConfigError listing the known names
+            # a missing-physics term (candidate.<name>): its scene value (0 when the scene has none) is
+            # its nominal from now on, so prepare() resets it for replays that do not set it
+            self._nominal[name] = value
         return self._nominal[name]
 
     def prepare(self, params: Mapping[str, float]):

@@ -1,13 +1,17 @@
-"""A scripted commander: press, slide and lift the tactile sensor over DDS, in sim time.
+"""A scripted commander: press, slide and lift the tactile sensor over DDS, on the robot's clock (wall or sim time).
 
 The commander is a client of the simulator node (INTERFACES.md): it waits for the first measured
 ``<effector>/pose`` and ``sheet/points``, plans a scripted trajectory from that geometry
 (:func:`thinshell_ros.trajectory.scripted_trajectory`: approach along the sensor's outward normal
 until the gel touches the top of the sheet, press ``depth`` further, hold, slide ``slide`` along
 world +x, lift back to the start height), and publishes ``<effector>/pose_cmd`` at a fixed rate of
-*sim* time, driven by ``/clock``: at every clock tick ``t`` at or past the next publication time it
-sends the trajectory's pose at ``t - t0 + 1/rate`` (one period of look-ahead, as the simulator
-moves towards the latest target during the next period). ``t0`` is the sim time the plan was made.
+the node's clock: at every tick ``t`` at or past the next publication time it sends the trajectory's
+pose at ``t - t0 + 1/rate`` (one period of look-ahead, as the simulator moves towards the latest
+target during the next period). ``t0`` is the clock reading the plan was made at.
+
+The clock is the ROS one: with ``use_sim_time`` the ticks are the ``/clock`` messages (sim time, as
+the simulator steps: fast or slow); without it (a real cell, which publishes no ``/clock``) a steady
+timer at ``rate`` reads wall time, and the commander never waits for a ``/clock``.
 
 Pure parts (planning, scheduling) are free of rclpy: :func:`plan_from_observation`,
 :class:`CommandSchedule`. :class:`CommanderNode` wires them to topics; :func:`main` runs it
@@ -23,6 +27,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from rclpy.clock import Clock as RosClock, ClockType
 from rclpy.node import Node
 
 from sim_core.errors import ConfigError, ThinShellError
@@ -30,7 +35,7 @@ from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.transforms import compose_poses, quat_to_matrix
 from thinshell_ros import conversions as cv
 from thinshell_ros.paths import bundled_scene
-from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, ros_session, spin_until_stopped
+from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, ros_session, spin_until_stopped, topic_namespace
 from thinshell_ros.trajectory import SCRIPTED, Trajectory, scripted_trajectory
 
 DEFAULT_SCRIPT = "press_slide_lift"
@@ -159,13 +164,14 @@ class CommandSchedule:
 
 
 class CommanderNode(Node):
-    """ROS 2 node publishing a scripted ``<effector>/pose_cmd`` in sim time.
+    """ROS 2 node publishing a scripted ``<effector>/pose_cmd`` on its clock (``/clock`` with ``use_sim_time``, else wall time).
 
     Parameters (``--ros-args -p name:=value``): ``scene`` (path; default the bundled scene),
     ``script`` (``press_slide_lift`` | ``press_slide``), ``depth``, ``slide``, ``release`` (m),
     ``approach_speed`` (also the lift), ``press_speed`` (also the release), ``slide_speed`` (m/s),
-    ``hold`` (s), ``rate`` (Hz of sim time; 0: one command per scene ``dt``), ``namespace``
-    (``/thinshell``). Geometry and speeds: :func:`plan_from_observation`.
+    ``hold`` (s), ``rate`` (Hz of the node's clock; 0: one command per scene ``dt``), ``namespace``
+    (``/thinshell``; a node given a ROS namespace, ``-r __ns:=/robot``, uses relative topic names in it:
+    :func:`thinshell_ros.runtime.topic_namespace`), ``use_sim_time`` (ticks from ``/clock``; else a wall-time timer). Geometry and speeds: :func:`plan_from_observation`.
 
     Args:
         node_name: ROS node name.
@@ -188,7 +194,7 @@ class CommanderNode(Node):
                     "press_speed": 0.005, "slide_speed": 0.02, "hold": 0.05}
         self.plan_kwargs = {k: float(self.declare_parameter(k, v).value) for k, v in defaults.items()}
         rate = float(self.declare_parameter("rate", 0.0).value)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
         if self.script not in SCRIPTED:
             raise ConfigError(f"parameter 'script' must be one of {list(SCRIPTED)}, got {self.script!r}")
         for key, value in self.plan_kwargs.items():
@@ -208,10 +214,13 @@ class CommanderNode(Node):
         self._pose: np.ndarray | None = None
         self._points: np.ndarray | None = None
         ns = self.namespace
-        self._pub = self.create_publisher(PoseStamped, f"{ns}/{self.effector}/pose_cmd", COMMAND_QOS)
-        self.create_subscription(PoseStamped, f"{ns}/{self.effector}/pose", self._on_pose, SENSOR_QOS)
-        self.create_subscription(PointCloud2, f"{ns}/sheet/points", self._on_points, SENSOR_QOS)
-        self.create_subscription(Clock, "/clock", self._on_clock, CLOCK_QOS)
+        self._pub = self.create_publisher(PoseStamped, f"{prefix}{self.effector}/pose_cmd", COMMAND_QOS)
+        self.create_subscription(PoseStamped, f"{prefix}{self.effector}/pose", self._on_pose, SENSOR_QOS)
+        self.create_subscription(PointCloud2, f"{prefix}sheet/points", self._on_points, SENSOR_QOS)
+        if bool(self.get_parameter("use_sim_time").value):
+            self.create_subscription(Clock, "/clock", self._on_clock, CLOCK_QOS)
+        else:
+            self.create_timer(1.0 / self.rate, self._on_wall_tick, clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"commander: {self.script} for {self.effector!r} at {self.rate:g} Hz of sim time, "
                                f"scene {scene_path}; waiting for {ns}/{self.effector}/pose and {ns}/sheet/points")
 
@@ -233,7 +242,13 @@ class CommanderNode(Node):
         self._points = self._cv.cloud_from_msg(msg, self._cv.POINT_FIELDS)[1]
 
     def _on_clock(self, msg: Any) -> None:
-        t = self._cv.clock_from_msg(msg) * 1e-9
+        self._tick(self._cv.clock_from_msg(msg) * 1e-9)
+
+    def _on_wall_tick(self) -> None:
+        self._tick(self.get_clock().now().nanoseconds * 1e-9)
+
+    def _tick(self, t: float) -> None:
+        """Plan on the first tick with a measured pose and sheet, then publish what is due at clock ``t`` (s)."""
         self.sim_time = t
         if self.done.is_set():
             return

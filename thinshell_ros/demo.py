@@ -1,17 +1,25 @@
-"""``thinshell demo`` (what ``make demo`` runs): the whole pipeline once, with progress shown throughout.
+"""``thinshell demo`` (what ``make demo`` runs): the sim-to-real loop once, over real DDS, with progress.
 
-1. Start the simulator node (``thinshell-sim-node``, a subprocess, ``fast`` mode by default) on the
-   bundled scene, recording its inputs and outputs into ``<run>/recorded_bag`` (its ``record``
-   parameter).
-2. Drive it over DDS with the scripted commander (:mod:`thinshell_ros.commander`: press, slide,
-   lift, planned from the measured effector pose and sheet), in sim time; then stop the node with
-   SIGINT so that it closes the bag, and read the bag back (:func:`sysid.bagio.open_bag`).
-3. Fit material parameters to the bundled recording ``bags/nominal_s101`` with ``thinshell sysid``
-   (a short window and a coarse replay step keep it to a couple of minutes on two cores).
-4. Print where everything is; ``<run>/demo.json`` keeps the timings, message counts and fit summary.
+1. **Robot**: the simulator node (``thinshell-sim-node``, a subprocess, ``fast`` mode) on a *hidden*
+   scene: the bundled scene with other material values and one concealed effect
+   (:mod:`thinshell_ros.demo_loop`: :data:`~thinshell_ros.demo_loop.HIDDEN`,
+   :data:`~thinshell_ros.demo_loop.CONCEALED`), driven over DDS by the scripted commander (press,
+   slide, lift, planned from the measured pose and sheet) and recorded into ``<run>/recorded_bag``;
+   the recording states the nominal scene (as a real cell's would).
+2. **Fit**: ``thinshell sysid`` on that recording, starting from the nominal scene, with
+   ``--write-scene <run>/fitted_scene.yaml`` (fitted values, sigma, the modelled effect's term).
+3. **Trajectory**: a press-slide-lift of its own (deeper and longer than the identification motion)
+   planned from the recording's start, written as ``<run>/trajectory.yaml`` (the trajectory format
+   the optimiser writes; the demo deploys this scripted one).
+4. **Deploy**: the robot again, driven by the deploy node (limits, abort; sim time from the robot's
+   ``/clock``), recorded into ``<run>/deployed_bag``.
+5. **Compare**: ``thinshell compare`` replays the deployed run in the fitted and in the nominal scene:
+   RMS per channel, overlay plots, ``<run>/compare/report.html``.
 
-``<run>`` is ``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten
-without ``--force``. ``--quick`` shortens every stage (used by the tests).
+``<run>/report.md`` links every step and reveals the hidden values; ``<run>/demo.json`` keeps the
+timings, message counts, fit summary, deploy status and the comparison. ``<run>`` is
+``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten without
+``--force``. ``--quick`` shortens every stage (used by the tests).
 """
 
 from __future__ import annotations
@@ -20,7 +28,6 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -29,9 +36,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import yaml
+
 from sim_core.errors import ConfigError, ThinShellError
+from sim_core.scenes.scene_file import load_yaml
 from sysid.bagio import open_bag
 from sysid.cli import sysid_main
+from sysid.compare import compare_main
+from sysid.diagnose.cli import diagnose_main
+from sysid.fitted_scene import scene_with_values
+from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
+                                     robot_noise_args, run_deploy_stage, stop_process, write_hidden_scene)
 from thinshell_ros.paths import bundled_scene, config_dir
 
 DEFAULT_BAG = "nominal_s101"
@@ -44,13 +59,19 @@ class DemoSettings:
     Attributes:
         motion: commander parameters (:class:`thinshell_ros.commander.CommanderNode`: ``depth``,
             ``slide``, ``release`` in m, ``approach_speed``, ``press_speed``, ``slide_speed`` in m/s, ``hold`` in s).
-        sysid_args: ``thinshell sysid`` options besides the bag and ``--out``.
+        sysid_args: ``thinshell sysid`` options besides the bag, ``--scene``, ``--write-scene`` and ``--out``.
+        diagnose_args: ``thinshell diagnose`` options besides the bag and ``--json`` (None: no diagnosis).
+        deploy_motion: the deployed press-slide-lift (same keys as ``motion``).
+        compare_args: ``thinshell compare`` options besides the bag, scenes and ``--out``.
         start_timeout: s of wall time for the sim node to come up and the plan to be made.
         motion_timeout: s of wall time for the scripted motion.
     """
 
     motion: dict[str, float]
     sysid_args: tuple[str, ...]
+    diagnose_args: tuple[str, ...] | None = None
+    deploy_motion: dict[str, float] = field(default_factory=dict)
+    compare_args: tuple[str, ...] = ()
     start_timeout: float = 120.0
     motion_timeout: float = 600.0
 
@@ -58,14 +79,27 @@ class DemoSettings:
 FULL = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.005, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.05},
-    # press (0.6-0.9 s) and the start of the slide of nominal_s101; the gel modulus sets the normal force
-    sysid_args=("--params", "gel.youngs_modulus", "--t-max", "1.0", "--dt", "0.01", "--max-nfev", "6",
-                "--max-time", "120"))
+    # the press sets the gel modulus, the slide the gel-sheet friction (the diagnosed effect held at its
+    # diagnosis value)
+    # the robot's sensor is the scene's (no gain or intrinsics error): --no-sensor-calibration keeps the fit
+    # from explaining physics with sensor gains
+    sysid_args=("--params", "gel.youngs_modulus,friction.gel_sheet", "--dt", "0.01", "--max-nfev", "8",
+                "--max-time", "180", "--no-sensor-calibration"),
+    # score tests of three candidate effects against the calibrated nominal; the named effect's refitted
+    # term goes into the scene the fit starts from
+    diagnose_args=("--engine", "score", "--params", "gel.youngs_modulus", "friction.gel_sheet", "--candidates",
+                   "stiction", "gel_viscoelasticity", "adhesion", "--workers", "2"),
+    deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
+                   "slide_speed": 0.02, "hold": 0.1},
+    compare_args=("--dt", "0.01"))
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.01},
-    sysid_args=("--params", "gel.youngs_modulus", "--t-max", "0.2", "--dt", "0.02", "--max-nfev", "2",
-                "--gel-resolution", "3,3,2", "--max-time", "60"))
+    sysid_args=("--params", "gel.youngs_modulus", "--dt", "0.02", "--max-nfev", "2",
+                "--gel-resolution", "3,3,2", "--max-time", "60"),
+    deploy_motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
+                   "slide_speed": 0.02, "hold": 0.01},
+    compare_args=("--dt", "0.02", "--gel-resolution", "3,3,2"))
 
 
 @dataclass
@@ -79,6 +113,12 @@ class DemoResult:
         sysid_out: the fit report directory.
         fit: :func:`thinshell_ros.sysid_node.summarise_fit` of the report.
         timings: stage -> wall seconds.
+        hidden_scene: the robot's hidden scene; fitted_scene: sysid's fitted scene.
+        diagnosis: ``explained_by`` and the named effects' terms of ``thinshell diagnose``, or None;
+            diagnosed_scene: the nominal scene with those terms (where the fit starts), or None.
+        trajectory: the deployed trajectory file; deployed_bag: the deployed run's recording.
+        deploy: the deploy node's final status.
+        compare_out: the comparison report directory; comparison: its ``compare.json``.
     """
 
     run_dir: Path
@@ -87,6 +127,15 @@ class DemoResult:
     sysid_out: Path | None = None
     fit: dict[str, Any] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    hidden_scene: Path | None = None
+    diagnosis: dict[str, Any] | None = None
+    diagnosed_scene: Path | None = None
+    fitted_scene: Path | None = None
+    trajectory: Path | None = None
+    deployed_bag: Path | None = None
+    deploy: dict[str, Any] | None = None
+    compare_out: Path | None = None
+    comparison: dict[str, Any] | None = None
 
 
 def bundled_bag(name: str = DEFAULT_BAG) -> Path:
@@ -130,31 +179,12 @@ def _progress(console):
                     TimeElapsedColumn(), console=console, transient=False)
 
 
-def _stop_process(proc: subprocess.Popen, timeout: float = 60.0) -> int:
-    """SIGINT (the node closes its bag), then SIGTERM, then SIGKILL; returns the exit code."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if proc.poll() is not None:
-            break
-        proc.send_signal(sig)
-        try:
-            return proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            continue
-    if proc.poll() is None:
-        proc.kill()
-    return proc.wait()
-
-
-def _tail(path: Path, n: int = 2000) -> str:
-    try:
-        return path.read_text(errors="replace")[-n:]
-    except OSError:
-        return ""
-
-
 def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: str, console: Any,
-                         result: DemoResult) -> None:
-    """Stages 1-2: sim node subprocess recording into ``result.recorded_bag``, commander, SIGINT, read back.
+                         result: DemoResult, record_scene: Path | None = None,
+                         extra_args: Sequence[str] = ()) -> None:
+    """Stage 1: sim node subprocess on ``scene`` recording into ``result.recorded_bag`` (stating
+    ``record_scene``, default ``scene``; ``extra_args``: further ``--ros-args`` of the node), commander,
+    SIGINT, read back.
 
     Raises:
         ThinShellError: the node died, did not come up, or the motion timed out (the node log is quoted).
@@ -173,8 +203,9 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     repo = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={scene}",
-           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}"]
-    console.print(f"[bold]1/3 simulator[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
+           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}",
+           "-p", f"record_scene:={record_scene or scene}", *extra_args]
+    console.print(f"[bold]1/6 robot[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
                   f"recording into {result.recorded_bag} (log {log_path})")
     t0 = time.monotonic()
     ctx = Context()
@@ -184,7 +215,8 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     node = executor = None
     try:
         node = CommanderNode(context=ctx, parameter_overrides=[
-            Parameter("scene", value=str(scene)), *(Parameter(k, value=float(v)) for k, v in settings.motion.items())])
+            Parameter("scene", value=str(record_scene or scene)), Parameter("use_sim_time", value=True),
+            *(Parameter(k, value=float(v)) for k, v in settings.motion.items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         with _progress(console) as progress:
@@ -192,10 +224,10 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             deadline = time.monotonic() + settings.start_timeout
             while node.schedule is None and not node.done.is_set():
                 if proc.poll() is not None:
-                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{_tail(log_path)}")
+                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{log_tail(log_path)}")
                 if time.monotonic() > deadline:
                     raise ThinShellError(f"the sim node did not come up within {settings.start_timeout:.0f} s:\n"
-                                         f"{_tail(log_path)}")
+                                         f"{log_tail(log_path)}")
                 executor.spin_once(timeout_sec=0.05)
                 progress.update(start, info=f"sim t = {node.sim_time or 0.0:.3f} s")
             progress.update(start, total=1, completed=1, info="plan made")
@@ -208,7 +240,7 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             t1 = time.monotonic()
             while not node.done.is_set():
                 if proc.poll() is not None:
-                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{_tail(log_path)}")
+                    raise ThinShellError(f"the sim node exited with code {proc.returncode}:\n{log_tail(log_path)}")
                 if time.monotonic() > deadline:
                     raise ThinShellError(f"the motion did not finish within {settings.motion_timeout:.0f} s")
                 executor.spin_once(timeout_sec=0.05)
@@ -219,19 +251,19 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
             result.timings["motion_sim_s"] = sched.end - sched.t0
             stop = progress.add_task("stopping the sim node (SIGINT)", total=None, info="")
             t2 = time.monotonic()
-            code = _stop_process(proc)
+            code = stop_process(proc)
             progress.update(stop, total=1, completed=1, info=f"exit code {code}")
             result.timings["sim_stop_s"] = time.monotonic() - t2
     finally:
         if proc.poll() is None:
-            _stop_process(proc)
+            stop_process(proc)
         if executor is not None:
             executor.shutdown(timeout_sec=0)
         if node is not None:
             node.destroy_node()
         ctx.try_shutdown()
     if code != 0:
-        raise ThinShellError(f"the sim node exited with code {code}:\n{_tail(log_path)}")
+        raise ThinShellError(f"the sim node exited with code {code}:\n{log_tail(log_path)}")
 
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
@@ -251,8 +283,10 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
                   + (f"; notes: {'; '.join(contents.notes)}" if contents.notes else ""))
 
 
-def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, result: DemoResult) -> None:
-    """Stage 3: ``thinshell sysid`` on ``bag`` into ``<run>/sysid``.
+def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, result: DemoResult,
+                    nominal: Path | None = None) -> None:
+    """Stage 2: ``thinshell sysid`` on ``bag`` (from the ``nominal`` scene when given) into ``<run>/sysid``,
+    writing ``<run>/fitted_scene.yaml``.
 
     Raises:
         ThinShellError: the fitter failed (its reason is on stderr).
@@ -261,8 +295,11 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     from thinshell_ros.sysid_node import summarise_fit
 
     out = run / "sysid"
-    args = [str(bag), *settings.sysid_args, "--out", str(out)]
-    console.print(f"[bold]3/3 system identification[/bold]: thinshell sysid {' '.join(args)}")
+    result.fitted_scene = run / "fitted_scene.yaml"
+    args = [str(bag), *settings.sysid_args, "--out", str(out), "--write-scene", str(result.fitted_scene)]
+    if nominal is not None:
+        args += ["--scene", str(nominal)]
+    console.print(f"[bold]3/6 fit[/bold]: thinshell sysid {' '.join(args)}")
     t0 = time.monotonic()
     code = sysid_main(args)
     result.timings["sysid_s"] = time.monotonic() - t0
@@ -270,6 +307,113 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
         raise ThinShellError(f"thinshell sysid exited with code {code}")
     result.sysid_out = out
     result.fit = summarise_fit(out)
+
+
+def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Path, console: Any,
+                       result: DemoResult) -> Path:
+    """Stage 2a: ``thinshell diagnose`` on ``bag``; the named effects' refitted terms are written into a copy
+    of ``nominal`` (``<run>/diagnosed_scene.yaml``), the scene the fit starts from.
+
+    Returns:
+        the scene the fit starts from (``nominal`` when nothing was named).
+
+    Raises:
+        ThinShellError: the diagnosis failed.
+    """
+    out = run / "diagnosis.json"
+    args = [str(bag), *settings.diagnose_args, "--json", str(out)]
+    console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
+    t0 = time.monotonic()
+    code = diagnose_main(args)
+    result.timings["diagnose_s"] = time.monotonic() - t0
+    if code != 0:
+        raise ThinShellError(f"thinshell diagnose exited with code {code}")
+    doc = json.loads(out.read_text())
+    named = list(doc.get("explained_by") or [])
+    refit = (doc.get("refit") or {}).get("params") or {}
+    terms = {k: float(v) for k, v in refit.items() if any(k == f"candidate.{e}" or k.startswith(f"candidate.{e}.")
+                                                         for e in named)}
+    result.diagnosis = {"explained_by": named, "terms": terms, "json": str(out)}
+    console.print(f"  explained by: {named or 'nothing'}" + (f"; terms {terms}" if terms else ""))
+    if not terms:
+        return nominal
+    scene_doc = scene_with_values(load_yaml(Path(nominal).read_text()), terms)
+    result.diagnosed_scene = run / "diagnosed_scene.yaml"
+    result.diagnosed_scene.write_text("# the nominal scene with the effects thinshell diagnose named (diagnosis.json)\n"
+                                      + yaml.safe_dump(scene_doc, sort_keys=False, default_flow_style=None, width=120))
+    return result.diagnosed_scene
+
+
+def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult) -> None:
+    """Stages 3-5: trajectory file, deployment on the robot (recorded), comparison fitted vs nominal.
+
+    Raises:
+        ThinShellError: a stage failed.
+    """
+    result.trajectory = deploy_trajectory_from_bag(result.recorded_bag, nominal, run / "trajectory.yaml",
+                                                   settings.deploy_motion)
+    console.print(f"[bold]4/6 trajectory[/bold]: {result.trajectory} (scripted press-slide-lift from the recording's start)")
+    result.deployed_bag = run / "deployed_bag"
+    console.print(f"[bold]5/6 deploy[/bold]: thinshell-deploy-node on the robot (sim time), recording into "
+                  f"{result.deployed_bag}")
+    t0 = time.monotonic()
+    result.deploy = run_deploy_stage(result.hidden_scene, nominal, result.trajectory, result.deployed_bag,
+                                     run / "robot_deploy.log", settings.motion_timeout, console)
+    result.timings["deploy_s"] = time.monotonic() - t0
+    if result.deploy["state"] != "completed":
+        raise ThinShellError(f"the deployment {result.deploy['state']}: {result.deploy['reason']}")
+    result.compare_out = run / "compare"
+    args = [str(result.deployed_bag), "--scene", str(result.fitted_scene), "--scene-nominal", str(nominal),
+            "--label", "fitted", "--out", str(result.compare_out), *settings.compare_args]
+    console.print(f"[bold]6/6 compare[/bold]: thinshell compare {' '.join(args)}")
+    t0 = time.monotonic()
+    code = compare_main(args)
+    result.timings["compare_s"] = time.monotonic() - t0
+    if code != 0:
+        raise ThinShellError(f"thinshell compare exited with code {code}")
+    doc = json.loads((result.compare_out / "compare.json").read_text())
+    result.comparison = {"rms": rms_table(doc), "better": doc["better"]}
+
+
+def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) -> Path:
+    """``<run>/report.md``: every step with links, the hidden truth, fit and comparison figures."""
+    rel = lambda p: os.path.relpath(p, run) if p is not None else "-"  # noqa: E731
+    fit = result.fit or {}
+    lines = ["# thinshell demo: fit -> deploy -> record -> compare", "",
+             f"1. Robot (hidden scene [{rel(result.hidden_scene)}]({rel(result.hidden_scene)})) driven by the "
+             f"commander, recorded: [{rel(result.recorded_bag)}]({rel(result.recorded_bag)})",
+             (f"2. Diagnosis: explained by {result.diagnosis['explained_by'] or 'nothing'} "
+              f"([{rel(result.diagnosis['json'])}]({rel(result.diagnosis['json'])}))"
+              + (f", terms {result.diagnosis['terms']} written into [{rel(result.diagnosed_scene)}]"
+                 f"({rel(result.diagnosed_scene)})" if result.diagnosed_scene else "")
+              if result.diagnosis else "2. Diagnosis: not run (--quick)"),
+             f"3. Fit: [sysid report]({rel(result.sysid_out)}/report.html), fitted scene "
+             f"[{rel(result.fitted_scene)}]({rel(result.fitted_scene)})",
+             f"4. Trajectory: [{rel(result.trajectory)}]({rel(result.trajectory)})",
+             f"5. Deployed on the robot: {(result.deploy or {}).get('state')} "
+             f"({(result.deploy or {}).get('reason')}), recorded: [{rel(result.deployed_bag)}]({rel(result.deployed_bag)})",
+             f"6. Comparison: [compare report]({rel(result.compare_out)}/report.html)", "",
+             "## Fit vs hidden truth", "", "| parameter | nominal | fitted | sigma | hidden |", "|---|---|---|---|---|"]
+    for name, value in fit.get("params", {}).items():
+        sigma = fit.get("sigma", {}).get(name)
+        lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
+                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {hidden.get(name, '-')} |")
+    for name, value in ((result.diagnosis or {}).get("terms") or {}).items():
+        lines.append(f"| {name} (diagnosed) | 0 | {value:.4g} | - | {hidden.get(name, '-')} |")
+    modelled = set(fit.get("params", {})) | set(((result.diagnosis or {}).get("terms") or {}))
+    hidden_only = [n for n in hidden if n not in modelled]
+    if hidden_only:
+        lines += ["", "Hidden but not fitted: " + ", ".join(f"{n} = {hidden[n]}" for n in hidden_only)]
+    if result.comparison:
+        lines += ["", "## Deployed run: prediction RMS (recording - simulation)", "",
+                  "| channel | fitted scene | nominal scene | fitted / nominal |", "|---|---|---|---|"]
+        for ch, v in result.comparison["rms"].items():
+            lines.append(f"| {ch} | {v['fitted']:.4g} | {v['nominal']:.4g} | {v['fitted'] / v['nominal']:.3f} |")
+    lines += ["", "Task reward: not measured (the deployed motion is the scripted press-slide-lift, not a task "
+              "trajectory of thinshell optimise).", ""]
+    path = run / "report.md"
+    path.write_text("\n".join(lines))
+    return path
 
 
 def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "fast", scene: Path | None = None,
@@ -280,9 +424,9 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
         out: parent of the run directory.
         force: replace an existing run directory of the same time stamp.
         quick: the short settings (:data:`QUICK`) instead of :data:`FULL`.
-        mode: sim node mode, ``fast`` or ``realtime``.
-        scene: scene for the simulator (default the bundled one).
-        bag: recording to fit (default the bundled ``bags/nominal_s101``).
+        mode: the robot's sim node mode in the identification run, ``fast`` or ``realtime``.
+        scene: the nominal scene (default the bundled one); the robot runs it with hidden values.
+        bag: recording to fit instead of the robot's identification run.
         console: a ``rich.console.Console`` (default: a new one on stdout).
 
     Raises:
@@ -295,34 +439,53 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     scene = Path(scene) if scene else bundled_scene()
     if not scene.is_file():
         raise ConfigError(f"scene {scene} not found")
-    bag = Path(bag) if bag else bundled_bag()
-    if not bag.exists():
+    if bag is not None and not Path(bag).exists():
         raise ConfigError(f"bag {bag} not found")
     console = console or _console()
     t0 = time.monotonic()
     run = make_run_dir(Path(out), force)
     result = DemoResult(run_dir=run, recorded_bag=run / "recorded_bag")
+    result.hidden_scene = write_hidden_scene(scene, run / "robot_hidden_scene.yaml")
     console.rule(f"thinshell demo{' --quick' if quick else ''}: {run}")
-    run_simulation_stage(run, settings, scene, mode, console, result)
-    console.print(f"[bold]2/3 recording[/bold] closed: {result.recorded_bag}")
-    run_sysid_stage(run, settings, bag, console, result)
+    run_simulation_stage(run, settings, result.hidden_scene, mode, console, result, record_scene=scene,
+                         extra_args=robot_noise_args(seed=1))
+    fit_bag = Path(bag) if bag else result.recorded_bag
+    start = scene
+    if settings.diagnose_args is not None:
+        start = run_diagnose_stage(run, settings, fit_bag, scene, console, result)
+    run_sysid_stage(run, settings, fit_bag, console, result, nominal=start)
+    run_loop_stages(run, settings, scene, console, result)
     result.timings["total_s"] = time.monotonic() - t0
-    summary = {"run_dir": str(run), "quick": quick, "mode": mode, "scene": str(scene), "sysid_bag": str(bag),
-               "recorded_bag": str(result.recorded_bag), "message_counts": result.message_counts,
-               "sysid_out": str(result.sysid_out), "fit": result.fit,
+    hidden = {**HIDDEN, **CONCEALED}
+    report = write_run_report(run, result, hidden)
+    summary = {"run_dir": str(run), "quick": quick, "mode": mode, "scene": str(scene),
+               "hidden": hidden, "hidden_scene": str(result.hidden_scene), "diagnosis": result.diagnosis,
+               "diagnosed_scene": str(result.diagnosed_scene) if result.diagnosed_scene else None,
+               "sysid_bag": str(bag or result.recorded_bag), "recorded_bag": str(result.recorded_bag),
+               "message_counts": result.message_counts, "sysid_out": str(result.sysid_out), "fit": result.fit,
+               "fitted_scene": str(result.fitted_scene), "trajectory": str(result.trajectory),
+               "deployed_bag": str(result.deployed_bag), "deploy": result.deploy,
+               "compare_out": str(result.compare_out), "comparison": result.comparison, "report": str(report),
                "timings_s": {k: round(v, 2) for k, v in result.timings.items()}}
     (run / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.rule("done")
     for name, value in (result.fit or {}).get("params", {}).items():
         sigma = result.fit["sigma"].get(name)
         console.print(f"  fitted {name} = {value:.6g}" + (f" +- {sigma:.3g}" if sigma is not None else "")
-                      + f" (nominal {result.fit['initial'][name]:.6g})")
+                      + f" (nominal {result.fit['initial'][name]:.6g}, hidden {hidden.get(name, '-')})")
+    for ch, v in (result.comparison or {}).get("rms", {}).items():
+        console.print(f"  deployed run, RMS {ch}: fitted {v['fitted']:.4g}, nominal {v['nominal']:.4g}")
     console.print(f"  recorded bag:  {result.recorded_bag}")
     console.print(f"  sysid report:  {result.sysid_out / 'report.html'} (also report.md, fit.json, plots)")
+    console.print(f"  fitted scene:  {result.fitted_scene}")
+    console.print(f"  deployed bag:  {result.deployed_bag}")
+    console.print(f"  comparison:    {result.compare_out / 'report.html'}")
+    console.print(f"  report:        {report}")
     console.print(f"  summary:       {run / 'demo.json'}")
     console.print(f"  wall time:     {result.timings['total_s']:.1f} s "
-                  f"(sim {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
-                  f"sysid {result.timings.get('sysid_s', 0):.1f} s)")
+                  f"(robot {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
+                  f"sysid {result.timings.get('sysid_s', 0):.1f} s, deploy {result.timings.get('deploy_s', 0):.1f} s, "
+                  f"compare {result.timings.get('compare_s', 0):.1f} s)")
     return result
 
 
@@ -331,14 +494,16 @@ def demo_main(argv: Sequence[str]) -> int:
 
     Returns the exit code (0 on success).
     """
-    parser = argparse.ArgumentParser(prog="thinshell demo", description="the main job: sim node + scripted "
-                                     "commander + recording, then sysid on the bundled bag")
+    parser = argparse.ArgumentParser(prog="thinshell demo", description="the main job: a hidden-scene robot (sim "
+                                     "node) recorded, fitted (sysid --write-scene), a trajectory deployed on it and "
+                                     "recorded, the fitted and nominal scenes compared on the deployed run")
     parser.add_argument("--out", default="demo_out", help="parent of the timestamped run directory (default demo_out)")
     parser.add_argument("--force", action="store_true", help="replace an existing run directory")
     parser.add_argument("--quick", action="store_true", help="shorter motion and fit (a smoke test)")
     parser.add_argument("--mode", default="fast", choices=("fast", "realtime"), help="sim node mode")
-    parser.add_argument("--scene", default=None, help="scene for the sim node (default: the bundled press_slide)")
-    parser.add_argument("--bag", default=None, help=f"recording to fit (default: bags/{DEFAULT_BAG})")
+    parser.add_argument("--scene", default=None, help="nominal scene (default: the bundled press_slide)")
+    parser.add_argument("--bag", default=None, help="recording to fit instead of the robot's identification run "
+                                                   f"(e.g. bags/{DEFAULT_BAG})")
     args = parser.parse_args([str(a) for a in argv])
     run_demo(Path(args.out), force=args.force, quick=args.quick, mode=args.mode,
              scene=Path(args.scene) if args.scene else None, bag=Path(args.bag) if args.bag else None)

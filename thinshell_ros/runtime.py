@@ -62,3 +62,20 @@ def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05) ->
     finally:
         executor.remove_node(node)
         executor.shutdown(timeout_sec=0.0)
+
+
+def topic_namespace(node: Node, namespace_parameter: str) -> tuple[str, str]:
+    """``(namespace, prefix)`` of a thinshell node's topics.
+
+    A node given a ROS namespace (``--ros-args -r __ns:=/robot``, or the constructor's ``namespace``)
+    creates its topics with relative names (``prefix`` ``""``): they resolve in that namespace and
+    follow remapping rules written with relative or absolute names. A node in the root namespace keeps
+    the thinshell default: absolute names under ``namespace_parameter`` (``/thinshell``), prefix
+    ``"/thinshell/"``. ``namespace`` is where the topics end up, either way.
+    """
+    ns = node.get_namespace()
+    if ns not in ("", "/"):
+        return ns.rstrip("/"), ""
+    ns = "/" + namespace_parameter.strip("/")
+    return ns, ns.rstrip("/") + "/"
+

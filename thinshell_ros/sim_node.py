@@ -12,11 +12,25 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
 - ``mesh_rate`` (Hz, sim time): rate of the ``sheet/mesh`` marker (0 = off).
-- ``namespace`` (str, default ``/thinshell``): prefix of every topic.
+- ``namespace`` (str, default ``/thinshell``): prefix of every topic while the node runs in the root
+  namespace; a node given a ROS namespace (``--ros-args -r __ns:=/robot``) creates its topics with
+  relative names in it instead (:func:`thinshell_ros.runtime.topic_namespace`), which also follow
+  remapping rules. Services stay private (``~/reset``).
 - ``publish_image`` (bool): render and publish ``<sensor>/image``.
 - ``record`` (str): bag directory to record inputs and outputs into (empty: off);
-  ``record_force`` replaces an existing one.
+  ``record_force`` replaces an existing one; ``record_scene`` (str) is the scene written beside the
+  recording as ``scene.yaml`` (default: ``scene``; a "robot" run with hidden values states the
+  nominal scene, as a real cell's recording would).
 - ``command_timeout`` (s of sim time): commands older than this are stale (hold position); 0 = never.
+- ``workspace_min``, ``workspace_max`` (``[x, y, z]`` m in ``world``): the box every effector
+  position command must lie in; a pose command outside is rejected like one with NaN or a zero
+  quaternion (logged, the last valid command stays), a twist stops at the boundary. Default (both
+  empty): the bounding box of the effectors' initial positions and the sheet, grown by
+  ``workspace_margin`` (m, default 0.1) on every side. ``workspace_margin < 0`` with no box: no limit.
+- ``noise_markers`` (m), ``noise_pixels`` (px), ``noise_force`` (N), ``noise_torque`` (N m),
+  ``noise_points`` (m), ``noise_seed``: standard deviations of white Gaussian noise added to the
+  published (and recorded) marker positions, marker pixels, wrench and sheet points, per axis, as a
+  real sensor's; default 0 (exact outputs). The effector pose stays exact.
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
@@ -38,6 +52,8 @@ import sys
 import time
 from typing import Any, Sequence
 
+import numpy as np
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -54,12 +70,16 @@ from sim_core.errors import ConfigError, ThinShellError
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
-from thinshell_ros.commands import CommandArbiter, CommandLimits, unknown_effector_topics
+from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, ros_session, spin_until_stopped
+from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, ros_session, spin_until_stopped,
+                                   topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
+
+DEFAULT_WORKSPACE_MARGIN = 0.1
+"""m around the scene's bounding box (effector start positions and sheet) of the default workspace."""
 
 
 MAX_CONSECUTIVE_FAILURES = 3
@@ -133,11 +153,27 @@ class SimNode(Node):
         self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
         self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
         self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell", ro).value).strip("/")
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell", ro).value))
         self.publish_image = bool(self.declare_parameter("publish_image", False).value)
         record = str(self.declare_parameter("record", "", ro).value)
         record_force = bool(self.declare_parameter("record_force", False, ro).value)
+        record_scene = str(self.declare_parameter("record_scene", "", ro).value)
+        self.noise = {key: float(self.declare_parameter(f"noise_{key}", 0.0, ParameterDescriptor(
+            read_only=True, description=f"std of the Gaussian noise added to the published {what}")).value)
+            for key, what in (("markers", "marker positions, m"), ("pixels", "marker pixels, px"),
+                              ("force", "forces, N"), ("torque", "torques, N m"), ("points", "sheet points, m"))}
+        if not all(math.isfinite(v) and v >= 0 for v in self.noise.values()):
+            raise ConfigError(f"noise parameters must be finite and >= 0, got {self.noise}")
+        self._rng = np.random.default_rng(int(self.declare_parameter("noise_seed", 0, ro).value))
         timeout = float(self.declare_parameter("command_timeout", 1.0, ro).value)
+        ws_min = list(self.declare_parameter("workspace_min", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            read_only=True, description="[x, y, z] lower corner of the allowed effector positions, m in world "
+                                        "(empty: the scene's bounding box grown by workspace_margin)")).value or [])
+        ws_max = list(self.declare_parameter("workspace_max", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            read_only=True, description="[x, y, z] upper corner of the allowed effector positions, m in world")).value or [])
+        ws_margin = float(self.declare_parameter("workspace_margin", DEFAULT_WORKSPACE_MARGIN, ParameterDescriptor(
+            read_only=True, description="m added on every side of the scene's bounding box when no workspace_min/max "
+                                        "is given; < 0: no workspace limit")).value)
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
@@ -149,13 +185,14 @@ class SimNode(Node):
         self.dt = float(sim.dt)
         self._declare_material_parameters()
 
+        self.workspace = self._workspace(ws_min, ws_max, ws_margin)
         limits = {}
         for name in sim.effector_names:
             eff = getattr(getattr(sim, "model", None), "effectors", {}).get(name)
             limits[name] = CommandLimits(
                 max_translation_per_step=float(getattr(eff, "max_translation_per_step", 1e-3)),
                 max_rotation_per_step=float(getattr(eff, "max_rotation_per_step", 0.02)),
-                timeout=timeout)
+                timeout=timeout, workspace=self.workspace)
         self.arbiter = CommandArbiter(limits)
         self.paused = self.mode == "stepped"
         self.rejected_commands = 0
@@ -172,22 +209,21 @@ class SimNode(Node):
 
         self.recorder = None
         if record:
-            self.recorder = BagRecorder(record, scene=self.scene_path or None, force=record_force)
+            self.recorder = BagRecorder(record, scene=record_scene or self.scene_path or None, force=record_force)
             self.get_logger().info(f"recording into {record}")
 
-        ns = self.namespace
-        self._pub_pose = {e: self.create_publisher(PoseStamped, f"{ns}/{e}/pose", SENSOR_QOS) for e in sim.effector_names}
-        self._pub_markers = {s: self.create_publisher(PointCloud2, f"{ns}/{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{ns}/{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_image = {s: self.create_publisher(Image, f"{ns}/{s}/image", SENSOR_QOS) for s in sim.sensor_names}
-        self._pub_points = self.create_publisher(PointCloud2, f"{ns}/sheet/points", SENSOR_QOS)
-        self._pub_mesh = self.create_publisher(Marker, f"{ns}/sheet/mesh", MARKER_QOS)
+        self._pub_pose = {e: self.create_publisher(PoseStamped, f"{prefix}{e}/pose", SENSOR_QOS) for e in sim.effector_names}
+        self._pub_markers = {s: self.create_publisher(PointCloud2, f"{prefix}{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{prefix}{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_image = {s: self.create_publisher(Image, f"{prefix}{s}/image", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_points = self.create_publisher(PointCloud2, f"{prefix}sheet/points", SENSOR_QOS)
+        self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         for e in sim.effector_names:
-            self.create_subscription(PoseStamped, f"{ns}/{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
-            self.create_subscription(TwistStamped, f"{ns}/{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
-            self.create_subscription(Float64, f"{ns}/{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
+            self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
+            self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
+            self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
@@ -201,7 +237,24 @@ class SimNode(Node):
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
             f"backend {self._solver_backend()}, "
-            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}")
+            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {self.namespace}, workspace "
+            f"{self.workspace.describe() if self.workspace else 'unlimited'}")
+
+    def _workspace(self, low: list[float], high: list[float], margin: float) -> Workspace | None:
+        """The declared workspace, or the scene's bounding box grown by ``margin`` (module docstring)."""
+        if low or high:
+            try:
+                return Workspace(tuple(low), tuple(high))
+            except ValueError as err:
+                raise ConfigError(f"parameters 'workspace_min'/'workspace_max': {err}") from err
+        if not math.isfinite(margin):
+            raise ConfigError(f"parameter 'workspace_margin' must be finite, got {margin}")
+        if margin < 0:
+            return None
+        obs = self.sim.observe()
+        pts = [np.asarray(p, dtype=float)[:3] for p in obs.effector_pose.values()]
+        pts = np.vstack([np.asarray(pts).reshape(-1, 3), np.asarray(obs.sheet_points, dtype=float).reshape(-1, 3)])
+        return Workspace(tuple(pts.min(axis=0) - margin), tuple(pts.max(axis=0) + margin))
 
     # ------------------------------------------------------------------------------ parameters
     def _declare_material_parameters(self) -> None:
@@ -391,6 +444,12 @@ class SimNode(Node):
             except ThinShellError as err:
                 self.get_logger().error(f"recording {pub.topic_name}: {err}", throttle_duration_sec=1.0)
 
+    def _noisy(self, values: Any, key: str) -> np.ndarray:
+        """``values`` plus white Gaussian noise of the ``noise_<key>`` standard deviation (0: unchanged)."""
+        values = np.asarray(values, dtype=float)
+        sigma = self.noise[key]
+        return values if sigma == 0 else values + self._rng.normal(0.0, sigma, values.shape)
+
     def publish_outputs(self, force: bool = False) -> None:
         """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output."""
         t = float(self.sim.t)
@@ -406,12 +465,16 @@ class SimNode(Node):
             for e, pose in obs.effector_pose.items():
                 self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
             for s, reading in obs.tactile.items():
-                self._publish(self._pub_markers[s], cv.markers_to_msg(reading.markers_xyz, reading.markers_uv, t_ns, s), t_ns)
-                self._publish(self._pub_wrench[s], cv.wrench_to_msg(reading.wrench, t_ns, s), t_ns)
+                xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
+                wrench = np.asarray(reading.wrench, dtype=float)
+                wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
+                self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
+                self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
                 if self.publish_image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
             if len(obs.sheet_points):
-                self._publish(self._pub_points, cv.points_to_msg(obs.sheet_points, t_ns, "world"), t_ns)
+                self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns, "world"),
+                              t_ns)
                 if self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9):
                     self._next_mesh_t = t + 1.0 / self.mesh_rate
                     self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns), t_ns)

@@ -13,10 +13,13 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
   local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``workers`` (int),
   ``arch`` (``cpu`` | ``cuda`` | ``numpy``), ``sensor_calibration`` (bool, true): the fitter's settings
   (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
+- ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;
+  replaced only with ``force``); empty: none. The result's ``scene`` names it.
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
 - ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
-- ``namespace`` (str, default ``/thinshell``): prefix of the result topic.
+- ``namespace`` (str, default ``/thinshell``): prefix of the result topic in the root namespace (a node
+  given a ROS namespace publishes ``sysid/result`` relative to it: :func:`thinshell_ros.runtime.topic_namespace`).
 
 Service ``~/fit`` (std_srvs/Trigger) starts a fit in a worker thread and answers at once (the node
 keeps spinning); a second request while one runs is refused. When the fit ends, the fitted values
@@ -24,7 +27,7 @@ are set on ``apply_to`` through its standard parameter service (``rcl_interfaces
 when that is configured, and then one JSON document is published on ``<namespace>/sysid/result``
 (std_msgs/String, reliable, transient local: a late subscriber still gets the last result):
 ``{"status": "ok" | "error", "bag", "params": {name: value}, "initial", "sigma", "fit_status",
-"message", "rms_final", "out", "report", "files", "wall_time_s", "apply_to",
+"message", "rms_final", "out", "report", "files", "scene", "wall_time_s", "apply_to",
 "applied": {name: bool} | null, "apply_message"}`` (``"error"`` instead of the fit keys on failure).
 """
 
@@ -49,6 +52,7 @@ from std_srvs.srv import Trigger
 from sim_core.errors import ConfigError
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.results import load_fit_json
+from thinshell_ros.runtime import topic_namespace
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -64,12 +68,14 @@ class FitRequest:
         out: report directory (None: a new ``./sysid_<bag name>_<timestamp>``, :func:`default_out`).
         force: replace an existing report.
         options: the fit's settings (:class:`sysid.fit_recording.FitOptions`).
+        write_scene: fitted scene file to write (None: none).
     """
 
     bag: Path
     out: Path | None
     force: bool
     options: FitOptions
+    write_scene: Path | None = None
 
 
 def parse_params(text: str) -> tuple[str, ...]:
@@ -108,9 +114,12 @@ def run_fit(request: FitRequest) -> dict[str, Any]:
             report directory without ``force``, ...); CalibrationError: no valid ``fit.json``.
     """
     out = request.out if request.out is not None else default_out(request.bag)
-    fit_recording(request.bag, out, request.options, force=request.force,
-                  command=["thinshell-sysid-node", str(request.bag), repr(request.options)])
-    return summarise_fit(out)
+    outcome = fit_recording(request.bag, out, request.options, force=request.force,
+                            command=["thinshell-sysid-node", str(request.bag), repr(request.options)],
+                            write_scene=request.write_scene)
+    summary = summarise_fit(out)
+    summary["scene"] = str(outcome.scene) if outcome.scene is not None else None
+    return summary
 
 
 def summarise_fit(out: Path) -> dict[str, Any]:
@@ -153,11 +162,11 @@ class SysidNode(Node):
                               ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
                               ("global_search", False), ("gel_resolution", ""), ("workers", 1),
                               ("arch", FitOptions.arch), ("sensor_calibration", FitOptions.sensor_calibration),
-                              ("apply_to", ""), ("apply_timeout", 10.0)):
+                              ("apply_to", ""), ("apply_timeout", 10.0), ("write_scene", "")):
             self.declare_parameter(name, default)
-        self.namespace = "/" + str(self.declare_parameter("namespace", "/thinshell").value).strip("/")
-        self.result_topic = f"{self.namespace}/sysid/result"
-        self._pub = self.create_publisher(String, self.result_topic, RESULT_QOS)
+        self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
+        self._pub = self.create_publisher(String, f"{prefix}sysid/result", RESULT_QOS)
+        self.result_topic = self._pub.topic_name
         self._lock = threading.Lock()
         self._worker: threading.Thread | None = None
         self._started = 0.0
@@ -202,7 +211,9 @@ class SysidNode(Node):
                              arch=str(self._param("arch")),
                              sensor_calibration=bool(self._param("sensor_calibration")))
         out = str(self._param("out")).strip()
-        return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options)
+        scene = str(self._param("write_scene")).strip()
+        return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options,
+                          Path(scene) if scene else None)
 
     # ------------------------------------------------------------------------------ service
     def _on_fit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.trajectory_file import read_trajectory
 from sim_core.transforms import quat_from_rotvec, quat_multiply, quat_to_matrix, quat_to_rotvec
 
 SCRIPTED = ("press_slide", "press_slide_lift")
@@ -100,8 +101,18 @@ def _validated(effector: str | None, t: Any, poses: Any, gripper: Any, where: st
     return Trajectory(effector, t, poses, gripper)
 
 
+def _from_trajectory_file(path: Path) -> Trajectory:
+    """A one-effector ``thinshell-trajectory`` file (``docs/trajectory_format.md``) as a :class:`Trajectory`."""
+    traj = read_trajectory(path)
+    if len(traj.effectors) != 1:
+        raise ConfigError(f"{path}: a headless run plays one effector; the file has {traj.effectors}")
+    (effector,) = traj.effectors
+    return Trajectory(effector, traj.t, traj.poses[effector], traj.gripper.get(effector))
+
+
 def load_trajectory(path: str | Path) -> Trajectory:
-    """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) trajectory file (module docstring).
+    """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) trajectory file (module docstring), or a
+    one-effector ``thinshell-trajectory`` file (``docs/trajectory_format.md``, what ``thinshell deploy`` plays).
 
     Raises:
         ConfigError: missing file, unknown keys, bad values (the message names the file).
@@ -131,6 +142,8 @@ def load_trajectory(path: str | Path) -> Trajectory:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: invalid YAML ({err})") from err
+    if isinstance(doc, dict) and doc.get("format") == "thinshell-trajectory":
+        return _from_trajectory_file(path)
     if not isinstance(doc, dict) or doc.get("version") != 1:
         raise ConfigError(f"{path}: trajectory must be a mapping with 'version: 1'")
     unknown = set(doc) - {"version", "effector", "waypoints"}

@@ -159,6 +159,9 @@ class SceneFile:
         sensors: ``name -> SensorSpec`` in file order.
         effectors: ``name -> EffectorSpec`` in file order.
         simulation: the builder's optional extension block, verbatim (``None`` when absent).
+        fitted: what ``thinshell sysid --write-scene`` fitted into this scene (``params``, ``sigma``,
+            ``bag``, ``effects``, ...), verbatim, for the record (the values themselves are in the
+            scene's keys); ``None`` when absent.
         source: the file it came from (``"<dict>"`` for an in-memory scene); not serialised.
     """
 
@@ -171,6 +174,7 @@ class SceneFile:
     sensors: dict[str, SensorSpec]
     effectors: dict[str, EffectorSpec]
     simulation: dict[str, Any] | None = None
+    fitted: dict[str, Any] | None = None
     source: str = field(default="<dict>", compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -215,6 +219,8 @@ class SceneFile:
             out["sensors"][n] = s_d
         if self.simulation is not None:
             out["simulation"] = dict(self.simulation)
+        if self.fitted is not None:
+            out["fitted"] = dict(self.fitted)
         return out
 
 
@@ -358,7 +364,7 @@ def load_scene_file(scene: str | Path | Mapping[str, Any] | SceneFile) -> SceneF
     if data["version"] != SCENE_FILE_VERSION or isinstance(data["version"], bool):
         raise ConfigError(f"{source}: version is {data['version']!r}; this reader understands version {SCENE_FILE_VERSION}")
     top = _Checker(source, data, "", ("version", "name", "dt", "gravity", "table", "sheet", "sensors", "effectors",
-                                      "simulation"), optional=("simulation",))
+                                      "simulation", "fitted"), optional=("simulation", "fitted"))
     table_c = _Checker(source, top.raw("table"), "table.", ("height", "friction"))
     table = TableSpec(height=table_c.number("height"), friction=table_c.number("friction", low=0.0, strict_low=False))
     sheet = _sheet(source, top.raw("sheet"))
@@ -369,12 +375,18 @@ def load_scene_file(scene: str | Path | Mapping[str, Any] | SceneFile) -> SceneF
         if not isinstance(top.raw("simulation"), Mapping):
             top.fail(f"simulation must be a mapping, got {top.raw('simulation')!r}")
         simulation = dict(top.raw("simulation"))
+    fitted = None
+    if top.has("fitted"):
+        if not isinstance(top.raw("fitted"), Mapping):
+            top.fail(f"fitted must be a mapping (what sysid fitted: params, sigma, bag, effects), got {top.raw('fitted')!r}")
+        fitted = dict(top.raw("fitted"))
     name = data["name"]
     if not isinstance(name, str):
         name = top.fail(f"name must be a string, got {name!r}")
     return SceneFile(
         version=SCENE_FILE_VERSION, name=name, dt=top.number("dt", low=0.0), gravity=top.numbers("gravity", 3),
-        table=table, sheet=sheet, sensors=sensors, effectors=effectors, simulation=simulation, source=source,
+        table=table, sheet=sheet, sensors=sensors, effectors=effectors, simulation=simulation, fitted=fitted,
+        source=source,
     )
 
 

@@ -20,6 +20,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
       max_rotation_per_step: 0.02       # rad
       self_contact: true
       broad_phase: spatial_hash    # or sweep | kdtree (same pairs)
+      candidates: {stiction: 0.4}  # missing-physics terms (sim_core.candidates): name -> beta, setting -> value
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from sim_core.builder import ModelBuilder
+from sim_core.candidates.parameters import validate_candidate_parameters
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import tet_box
@@ -49,6 +51,7 @@ SIMULATION_KEYS = {
     "max_rotation_per_step": 0.02,
     "self_contact": True,
     "broad_phase": "spatial_hash",
+    "candidates": None,
 }
 
 
@@ -173,4 +176,11 @@ def build_tactile_scene(scene: dict) -> Model:
     model = b.finalize(gravity=scene.get("gravity", (0, 0, -9.81)), contact=contact, damping=float(opts["damping"]),
                        meta={"name": scene.get("name", ""), "dt": float(scene["dt"]), "sheet_grid": (nx, ny)})
     model.sensors = sensors
+    if opts["candidates"]:
+        if not isinstance(opts["candidates"], dict):
+            raise ConfigError(f"scene: simulation.candidates must be a mapping of name -> value, got {opts['candidates']!r}")
+        try:
+            model.candidates = dict(validate_candidate_parameters(opts["candidates"]))
+        except ConfigError as err:
+            raise ConfigError(f"scene: simulation.candidates: {err}") from err
     return model

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -110,7 +111,7 @@ def test_commander_drives_the_sim_node_through_press_slide_lift(ros_context):
     cmd = CommanderNode(context=ros_context, parameter_overrides=[
         Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
         Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
-        Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+        Parameter("hold", value=0.02), Parameter("rate", value=100.0), Parameter("use_sim_time", value=True)])
     poses = []
     cmd.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.pose_from_msg(m)[1]),
                             SENSOR_QOS)
@@ -146,7 +147,8 @@ def test_commander_rejects_bad_parameters(ros_context):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
-    """``thinshell demo --quick`` end to end: sim node subprocess, commander over DDS, SIGINT, sysid."""
+    """``thinshell demo --quick`` end to end: hidden robot (sim node subprocess) + commander over DDS, SIGINT,
+    sysid with the fitted scene, trajectory file, deploy node on the robot (recorded), comparison."""
     from sysid.bagio import open_bag
     from sysid.results import load_fit_json
     from thinshell_ros.demo import demo_main
@@ -168,5 +170,56 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert {"report.html", "report.md"} <= {p.name for p in (run / "sysid").iterdir()}
     summary = json.loads((run / "demo.json").read_text())
     assert summary["message_counts"] == counts and summary["timings_s"]["total_s"] > 0
+    # the loop: the recording states the nominal scene, the robot ran the hidden one
+    from sim_core.scenes.scene_file import load_scene_file
+    from sim_core.simulation import Simulation
+    from sim_core.trajectory_file import read_trajectory
+
+    assert load_scene_file(run / "recorded_bag" / "scene.yaml").sensors["tactile"].gel_material.youngs_modulus == 3.0e5
+    hidden = Simulation.from_scene(run / "robot_hidden_scene.yaml")
+    assert hidden.get_parameter("gel.youngs_modulus") == summary["hidden"]["gel.youngs_modulus"] != 3.0e5
+    assert hidden.model.candidates  # the concealed effect
+    fitted = Simulation.from_scene(run / "fitted_scene.yaml")
+    assert fitted.get_parameter("gel.youngs_modulus") == pytest.approx(summary["fit"]["params"]["gel.youngs_modulus"])
+    assert read_trajectory(run / "trajectory.yaml").effectors == ["ee"]
+    assert summary["deploy"]["state"] == "completed" and summary["deploy"]["published"] > 10
+    deployed = open_bag(run / "deployed_bag")
+    # the robot records the commands it took: keep-last-1 command QoS (INTERFACES.md) lets a newer command
+    # replace one not yet taken while a step runs
+    assert 0.5 * summary["deploy"]["published"] <= len(deployed.series["pose_cmd"]) <= summary["deploy"]["published"]
+    assert deployed.series["wrench"].values[:, 2].min() < -0.05  # the deployed press touched the card
+    assert set(summary["comparison"]["rms"]["wrench"]) == {"fitted", "nominal"}
+    assert (run / "compare" / "report.html").is_file() and (run / "report.md").is_file()
     with pytest.raises(ConfigError, match="exists; use --force"):
         make_run_dir(tmp_path, force=False, stamp=run.name)
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("namespace", [None, "/cell2"])
+def test_commander_runs_on_wall_time_without_clock(ros_context, namespace):
+    """Over DDS against a robot that publishes no /clock: the commander plans and completes on wall time
+    (in the default /thinshell topics, or in the ROS namespace it is started in)."""
+    from tests.thinshell_ros.wall_robot import WallRobot
+
+    robot = WallRobot(ros_context, namespace=namespace or "/thinshell")
+    cmd = CommanderNode(context=ros_context, cli_args=["--ros-args", "-r", f"__ns:={namespace}"] if namespace else None,
+                        parameter_overrides=[
+        Parameter("scene", value=str(SCENE)), Parameter("approach_speed", value=0.1), Parameter("depth", value=1e-3),
+        Parameter("press_speed", value=0.05), Parameter("slide_speed", value=0.1), Parameter("slide", value=0.01),
+        Parameter("hold", value=0.02), Parameter("rate", value=100.0)])
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(robot)
+    ex.add_node(cmd)
+    try:
+        assert robot.count_publishers("/clock") == 0
+        t0 = time.monotonic()
+        assert spin_until(ex, cmd.done.is_set, 15.0), (cmd.progress(), cmd.sim_time)
+        assert cmd.schedule is not None and cmd.progress() == 1.0 and cmd.schedule.sent > 10
+        # wall time: the motion took about its planned duration
+        assert time.monotonic() - t0 >= cmd.schedule.end - cmd.schedule.t0 - 0.05
+        assert not robot.rejected
+        assert spin_until(ex, lambda: abs(robot.sim.state.effector_pose["ee"][0] - HOME[0] - 0.01) < 1e-4, 2.0)
+    finally:
+        ex.shutdown(timeout_sec=0)
+        cmd.destroy_node()
+        robot.destroy_node()

@@ -32,6 +32,16 @@ def test_yaml_and_csv_trajectories_agree_and_interpolate(tmp_path):
     np.testing.assert_allclose(mid[:3], [0.025, 0.0, 0.0075])
     rel = quat_to_rotvec(quat_multiply(mid[3:], DOWN * np.r_[-1, -1, -1, 1]))
     np.testing.assert_allclose(rel, [0, 0, 0.1], atol=1e-12)  # slerp: a quarter of the rotation
+    # the same motion as a thinshell-trajectory file (what thinshell deploy plays) samples the same
+    from sim_core.trajectory_file import Trajectory as TrajectoryFile, write_trajectory
+
+    c = load_trajectory(write_trajectory(tmp_path / "c.yaml", TrajectoryFile(t=a.t, poses={"ee": a.poses})))
+    assert c.effector == "ee"
+    for t in (0.0, 0.25, 0.5, 1.0):
+        np.testing.assert_allclose(c.sample(t), a.sample(t), atol=1e-15)
+    two = TrajectoryFile(t=a.t, poses={"ee": a.poses, "ee2": a.poses})
+    with pytest.raises(ConfigError, match="plays one effector"):
+        load_trajectory(write_trajectory(tmp_path / "two.yaml", two))
 
 
 def test_trajectory_errors_name_the_problem(tmp_path):

@@ -106,10 +106,79 @@ def test_bad_input_is_rejected_and_node_keeps_publishing(ros_context):
     assert len(c.got["clock"]) > n_clock + 10
     assert np.array_equal(c.got["pose"][-1][1], HOME)
     # a huge jump is approached at the limit, never teleported
-    c.send_pose(HOME + np.r_[5.0, 0, 0, 0, 0, 0, 0])
+    c.send_pose(HOME + np.r_[0.05, 0, 0, 0, 0, 0, 0])
     c.spin(0.3)
     xs = [p[1][0] for p in c.got["pose"]]
     assert np.diff(xs).max() <= 1e-3 + 1e-12 and xs[-1] > HOME[0]
+    node.destroy_node()
+
+
+def test_pose_outside_the_workspace_is_rejected_like_nan(ros_context):
+    # default workspace: effector start + sheet bounding box grown by 0.1 m
+    node = _node(ros_context)
+    assert node.workspace.low == pytest.approx((-0.1, -0.13, -0.0997)) and node.workspace.high == pytest.approx((0.2, 0.13, 0.104))
+    c = Client(ros_context, node)
+    c.send_pose(HOME + np.r_[1e9, 0, 0, 0, 0, 0, 0])
+    assert spin_until(c.ex, lambda: node.rejected_commands == 1, 5.0)
+    c.spin(0.2)
+    assert np.array_equal(c.got["pose"][-1][1], HOME)  # the effector did not move towards it
+    node.destroy_node()
+    # a declared box
+    node = _node(ros_context, workspace_min=[0.0, -0.01, 0.0], workspace_max=[0.07, 0.01, 0.01])
+    logged = []
+    node.get_logger().error = lambda msg, **kw: logged.append(msg)
+    c = Client(ros_context, node)
+    c.send_pose(HOME + np.r_[0.02, 0, 0, 0, 0, 0, 0])
+    c.spin(0.1)
+    c.send_pose(HOME + np.r_[0.005, 0, 0, 0, 0, 0, 0])
+    assert spin_until(c.ex, lambda: c.got["pose"] and c.got["pose"][-1][1][0] == pytest.approx(0.065), 5.0)
+    assert node.rejected_commands == 1
+    assert "ee/pose_cmd rejected: position [0.08, 0.0, 0.004] m is outside the workspace [0.0, -0.01, 0.0] .. " \
+           "[0.07, 0.01, 0.01] m" in logged[0]
+    node.destroy_node()
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="workspace_min.*low < high"):
+        _node(ros_context, workspace_min=[0.0, 0.0, 0.0], workspace_max=[0.07, 0.0, 0.01])
+
+
+def test_measurement_noise_is_white_with_the_declared_sigma(ros_context):
+    node = _node(ros_context, noise_force=0.2, noise_markers=1e-5, noise_seed=3)
+    c = Client(ros_context, node)
+    assert spin_until(c.ex, lambda: len(c.got["wrench"]) > 300 and len(c.got["markers"]) > 5, 10.0)
+    f = np.array([w for _, w in c.got["wrench"]])
+    assert np.std(f[:, :3]) == pytest.approx(0.2, rel=0.1) and abs(np.mean(f[:, :3])) < 0.05  # no contact: F = 0
+    assert np.all(f[:, 3:] == 0.0)  # noise_torque = 0
+    xyz = np.array([m[1][:, :3] for m in c.got["markers"]])
+    assert np.std(xyz[..., 2]) == pytest.approx(1e-5, rel=0.2)
+    assert np.array_equal(c.got["pose"][-1][1], HOME)  # the pose stays exact
+    node.destroy_node()
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="noise parameters must be finite and >= 0"):
+        _node(ros_context, noise_pixels=-1.0)
+
+
+def test_topics_follow_the_ros_namespace_and_remapping(ros_context):
+    node = SimNode(sim=FakeSimulation(), context=ros_context, cli_args=[
+        "--ros-args", "-r", "__ns:=/robot", "-r", "tactile/wrench:=force_torque"],
+        parameter_overrides=[Parameter("mode", value="fast")])
+    assert node.namespace == "/robot"
+    names = {n for n, _ in node.get_publisher_names_and_types_by_node("thinshell_sim", "/robot")}
+    assert {"/robot/ee/pose", "/robot/force_torque", "/robot/sheet/points", "/clock"} <= names
+    assert not any(n.startswith("/thinshell/") for n in names)
+    c = Node("client_ns", context=ros_context)
+    got = []
+    c.create_subscription(WrenchStamped, "/robot/force_torque", lambda m: got.append(m), SENSOR_QOS)
+    cmd = c.create_publisher(PoseStamped, "/robot/ee/pose_cmd", COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    ex.add_node(c)
+    assert spin_until(ex, lambda: got and cmd.get_subscription_count() > 0, 5.0)
+    cmd.publish(cv.pose_to_msg(HOME + np.r_[0.002, 0, 0, 0, 0, 0, 0], 0))
+    assert spin_until(ex, lambda: abs(node.sim.state.effector_pose["ee"][0] - HOME[0] - 0.002) < 1e-12, 5.0)
+    ex.shutdown(timeout_sec=0)
+    c.destroy_node()
     node.destroy_node()
 
 

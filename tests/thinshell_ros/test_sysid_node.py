@@ -154,7 +154,7 @@ def heavy_card_bag(tmp_path_factory):
 
 
 def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy_card_bag, tmp_path):
-    """The real fitter (``thinshell sysid``) through ~/fit: the density moves from the nominal 700 towards
+    """The real fitter (:func:`sysid.fit_recording.fit_recording`) through ~/fit: the density moves from the nominal 700 towards
     the recording's 1000, the result arrives on the latched topic, and the sim node takes the value."""
     from sim_core.simulation import Simulation
     from thinshell_ros.paths import bundled_scene
@@ -164,7 +164,7 @@ def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy
     out = tmp_path / "fit"
     h = Harness(ros_context, run_fit, sim=sim, bag=str(heavy_card_bag), params="sheet.density",
                 out=str(out), t_max=0.04, dt=0.01, max_nfev=2, gel_resolution="3,3,2",
-                apply_to="/thinshell_sim")
+                apply_to="/thinshell_sim", write_scene=str(tmp_path / "fitted.yaml"))
     try:
         assert h.fit().success
         assert spin_until(h.ex, lambda: bool(h.node.results), 120.0), "fit did not finish"
@@ -177,5 +177,7 @@ def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy
         assert h.sim.get_parameter("sheet.density").value == pytest.approx(rho)
         assert sim.get_parameter("sheet.density") == pytest.approx(rho)
         assert {"fit.json", "report.html", "report.md"} <= set(result["files"]) and result["out"] == str(out)
+        assert result["scene"] == str(tmp_path / "fitted.yaml")  # the fitted scene, loadable, with the value
+        assert Simulation.from_scene(result["scene"]).get_parameter("sheet.density") == pytest.approx(rho)
     finally:
         h.close()

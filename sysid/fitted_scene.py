@@ -1,0 +1,241 @@
+"""The fitted scene: a recording's scene with the values sysid fitted, loadable like any scene.
+
+``thinshell sysid BAG --write-scene fitted.yaml`` (and the sysid node's ``write_scene``) write the scene
+the fit simulated (the bag's ``scene.yaml`` or ``--scene``, with its ``simulation:`` overrides) with every
+fitted global parameter put into the scene key that sets it (:data:`SCENE_KEYS`), plus a record::
+
+    fitted:
+      params: {gel.youngs_modulus: 2.7e5}        # the fitted values (also in the scene's keys)
+      sigma: {gel.youngs_modulus: 3.1e3}         # 1-sigma (Gauss-Newton), null when not computed
+      initial: {gel.youngs_modulus: 3.0e5}
+      effects: [stiction]                        # modelled missing physics: fitted candidate.* parameters and
+                                                 # the candidate terms the scene carries (simulation.candidates)
+      bag: /abs/path/to/bag   bag_sha256: ...   rms: {markers_xyz: 1.2e-5, ...}   status: converged
+      sensor_calibration: {force_gain: 1.02, fx: 301.2, ...}   # when the fit was judged through one
+
+Parameter -> scene key: ``sheet.youngs_modulus | poisson_ratio | bending_stiffness`` ->
+``sheet.material.*``; ``sheet.density`` -> ``sheet.density``; ``<gel body>.youngs_modulus |
+poisson_ratio | density`` -> ``sensors.<s>.gel_material.*``; ``friction.<gel body>_sheet`` ->
+``sensors.<s>.friction``; ``friction.sheet_table`` / ``friction.<gel>_table`` -> ``table.friction``
+(one value for both pairs); ``contact.stiffness`` -> ``simulation.contact_stiffness``; ``damping`` ->
+``simulation.damping``; ``sheet.yield_angle`` -> ``simulation.sheet_yield_angle``; ``candidate.<name>``
+-> ``simulation.candidates.<name>`` (the effect's term); ``sensor.normal_offset`` -> the sensor's
+``mount`` moved by that offset along its +z (the replay's shift of the effector along the sensor
+normal, made permanent). A parameter with no scene key (``contact.eps_v``) is refused.
+
+The sensor calibration that ``thinshell sysid`` fits in closed form before the parameters (wrench
+gains, marker scales, camera intrinsics: :mod:`sysid.calibration`) acts on the predictions, not on the
+physics; it is recorded as ``fitted.sensor_calibration`` and applied by the tools that predict a
+recording (``thinshell compare``: :func:`sensor_calibration_of`). ``Simulation.from_scene`` and the
+sim node simulate the raw sensor with the scene's camera.
+
+:func:`fitted_scene_document` checks its own work: the scene it returns is built and every fitted
+Model parameter read back must equal the fitted value.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from sim_core.errors import ConfigError
+from sim_core.scenes import load_scene
+from sim_core.transforms import quat_to_matrix
+from sysid.calibration import SensorCalibration
+
+_SHEET_MATERIAL = ("youngs_modulus", "poisson_ratio", "bending_stiffness")
+_GEL_MATERIAL = ("youngs_modulus", "poisson_ratio", "density")
+
+
+def _gel_body(sensor_names: Sequence[str], index: int) -> str:
+    """The gel body name of the ``index``-th sensor (``sim_core.scenes.tactile_scene``: ``gel``, ``gel_<s>``)."""
+    return "gel" if index == 0 else f"gel_{sensor_names[index]}"
+
+
+def _set(doc: dict, path: Sequence[str], value: Any) -> None:
+    node = doc
+    for key in path[:-1]:
+        node = node.setdefault(key, {})
+        if node is None:
+            raise ConfigError(f"scene key {'.'.join(path)} cannot be set")
+    node[path[-1]] = value
+
+
+def scene_keys_for(scene: Mapping[str, Any], name: str) -> list[tuple[str, ...]]:
+    """The scene keys (dotted paths as tuples) that set global parameter ``name``.
+
+    Raises:
+        ConfigError: a parameter no scene key sets.
+    """
+    sensors = list((scene.get("sensors") or {}).keys())
+    gels = {_gel_body(sensors, i): s for i, s in enumerate(sensors)}
+    body, _, key = name.partition(".")
+    if body == "sheet" and key in _SHEET_MATERIAL:
+        return [("sheet", "material", key)]
+    if name == "sheet.density":
+        return [("sheet", "density")]
+    if name == "sheet.yield_angle":
+        return [("simulation", "sheet_yield_angle")]
+    if body in gels and key in _GEL_MATERIAL:
+        return [("sensors", gels[body], "gel_material", key)]
+    if name == "contact.stiffness":
+        return [("simulation", "contact_stiffness")]
+    if name == "damping":
+        return [("simulation", "damping")]
+    if body == "candidate" and key:
+        return [("simulation", "candidates", key)]
+    if body == "friction":
+        a_b = key
+        for gel, s in gels.items():
+            if a_b in (f"{gel}_sheet", f"sheet_{gel}"):
+                return [("sensors", s, "friction")]
+            if a_b in (f"{gel}_table", f"table_{gel}"):
+                return [("table", "friction")]
+        if a_b in ("sheet_table", "table_sheet"):
+            return [("table", "friction")]
+    raise ConfigError(f"parameter {name!r} has no scene key; it cannot be written into a fitted scene")
+
+
+def scene_with_values(scene: Mapping[str, Any], values: Mapping[str, float], *,
+                      sensor: str | None = None) -> dict[str, Any]:
+    """A copy of ``scene`` (without any ``fitted:`` record) with global parameters set in its keys.
+
+    Args:
+        scene: scene v1 as a plain dict.
+        values: global parameter name -> value (SI units); mapping in the module docstring.
+        sensor: the sensor whose mount ``sensor.normal_offset`` moves (default: the first).
+
+    Raises:
+        ConfigError: a parameter without a scene key, or a non-finite value.
+    """
+    doc = copy.deepcopy(dict(scene))
+    doc.pop("fitted", None)
+    sensors = list((doc.get("sensors") or {}).keys())
+    for name, value in values.items():
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"fitted value of {name!r} is not finite: {value}")
+        if name == "sensor.normal_offset":
+            s = sensor or (sensors[0] if sensors else None)
+            if s is None:
+                raise ConfigError("sensor.normal_offset: the scene has no sensor")
+            mount = np.asarray(doc["sensors"][s].get("mount") or [0, 0, 0, 0, 0, 0, 1], dtype=float)
+            mount[:3] += value * quat_to_matrix(mount[3:7])[:, 2]
+            doc["sensors"][s]["mount"] = [float(v) for v in mount]
+            continue
+        for path in scene_keys_for(doc, name):
+            _set(doc, path, value)
+    return doc
+
+
+def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
+                          sigma: Mapping[str, float] | None = None, *, sensor: str | None = None,
+                          record: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The scene with the fitted values and the ``fitted:`` record (module docstring).
+
+    Args:
+        scene: the scene the fit simulated (scene v1 as a plain dict).
+        values: fitted global parameter values (SI units).
+        sigma: their 1-sigma, or None.
+        sensor: the sensor whose mount ``sensor.normal_offset`` moves (default: the first).
+        record: further entries of ``fitted:`` (``bag``, ``bag_sha256``, ``rms``, ``initial``, ``status``, ...).
+
+    Returns:
+        the new scene document (the input is not modified).
+
+    Raises:
+        ConfigError: a parameter without a scene key, a non-finite value, or a scene that does not
+            read back the fitted values.
+    """
+    doc = scene_with_values(scene, values, sensor=sensor)
+    # modelled effects: fitted candidate terms, and those the scene already carried (e.g. from a diagnosis)
+    carried = {k for k, v in ((doc.get("simulation") or {}).get("candidates") or {}).items() if "." not in k and v}
+    effects = sorted(carried | {n.split(".", 1)[1].split(".")[0] for n in values if n.startswith("candidate.")})
+    fitted: dict[str, Any] = {"params": {k: float(v) for k, v in values.items()},
+                              "sigma": {k: (None if sigma is None or sigma.get(k) is None else float(sigma[k]))
+                                        for k in values},
+                              "effects": effects}
+    fitted.update(_plain(dict(record or {})))
+    doc["fitted"] = fitted
+    model = load_scene(doc)
+    for name, value in values.items():
+        if name == "sensor.normal_offset":
+            continue
+        got = float(model.get_parameter(name))
+        if not math.isclose(got, float(value), rel_tol=1e-12, abs_tol=1e-300):
+            raise ConfigError(f"fitted scene: {name} reads back {got!r}, not the fitted {float(value)!r}")
+    return doc
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write_fitted_scene(path: str | Path, doc: Mapping[str, Any], *, force: bool = False) -> Path:
+    """Write a fitted scene document atomically (temporary file + rename).
+
+    Raises:
+        ConfigError: the file exists and ``force`` is false.
+    """
+    path = Path(path)
+    if path.exists() and not force:
+        raise ConfigError(f"{path}: exists (use --force to replace it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = ("# thinshell scene with the values fitted by thinshell sysid (see fitted:); sysid/fitted_scene.py\n"
+            + yaml.safe_dump(_plain(dict(doc)), sort_keys=False, default_flow_style=None, width=120))
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = None) -> dict[str, Any]:
+    """The fitted scene of a :class:`sysid.fit.FitResult` on ``evidence`` (the scene its model simulated).
+
+    Raises:
+        ConfigError: see :func:`fitted_scene_document`.
+    """
+    model = result.model
+    rms = {ch: float(v["rms"]) for ch, v in result.rms_final.items()}
+    record = {"initial": {k: float(v) for k, v in result.initial.items()}, "status": result.status,
+              "rms": rms, "channels": list(result.channels), "dt": float(result.dt), "t_max": t_max,
+              "bag": str(evidence.source.bag_path), "bag_sha256": evidence.source.sha256}
+    if model.sensor_calibration is not None:
+        # the fit was judged through this sensor calibration (thinshell sysid's default): it is part of the fit
+        record["sensor_calibration"] = model.sensor_calibration.as_dict()
+    return fitted_scene_document(model.scene, result.values, result.sigma, sensor=model.sensor, record=record)
+
+
+def sensor_calibration_of(scene: Mapping[str, Any]):
+    """The :class:`sysid.calibration.SensorCalibration` a fitted scene records, or None.
+
+    Raises:
+        ConfigError: a ``fitted.sensor_calibration`` with unknown or non-numeric entries.
+    """
+    block = (scene.get("fitted") or {}).get("sensor_calibration")
+    if block is None:
+        return None
+    try:
+        return SensorCalibration(**{k: float(v) for k, v in dict(block).items()})
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"fitted.sensor_calibration: {err}") from err
