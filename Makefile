@@ -4,7 +4,7 @@
 # The venv's interpreter: the distribution's /usr/bin/python3.11 where there is one, else python3
 # (`make setup PYTHON=...` picks another). Debian's is linked statically against libpython; a
 # shared-library build (pyenv's, `--enable-shared`) runs the Newton loop's Python glue about 10 %
-# slower (Forming bench, docs/benchmarks.md 2026-11-23). Where it cannot make a venv (no venv
+# slower (Forming bench, docs/benchmarks_log.md 2026-11-23). Where it cannot make a venv (no venv
 # module), set-up falls back to python3.
 SYSTEM_PYTHON := $(wildcard /usr/bin/python3.11)
 PYTHON ?= $(if $(SYSTEM_PYTHON),$(SYSTEM_PYTHON),python3)

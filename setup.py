@@ -34,6 +34,7 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["sim_core", "sim_core.*", "sysid", "sysid.*", "thinshell_ros", "thinshell_ros.*"]),
+    package_data={"sysid.data": ["*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         (os.path.join("share", PACKAGE), ["package.xml"]),

@@ -56,8 +56,7 @@ from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError, ThinShellError
 from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
-from sim_core.potentials.base import assemble_hessian, block_dof_indices
-from sim_core.potentials.bending import dihedral_angle, dihedral_angle_gradient
+from sim_core.potentials.base import ConstantDiagonalHessian, HingeBending, assemble_hessian, block_dof_indices
 from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
 from sim_core.potentials.sphere_contact import SphereContact
 from sim_core.potentials.friction import (
@@ -243,13 +242,9 @@ def theta_stiffness(pot) -> sp.csr_matrix:
     ``A = diag(2 k_h)``; Kirchhoff plate energy (``KirchhoffBending``, ``E = d^T M d``): ``A = 2 M``.
 
     Raises:
-        ThinShellError: a bending potential of neither form.
+        ThinShellError: a bending potential that is not a :class:`~sim_core.potentials.base.HingeBending`.
     """
-    if hasattr(pot, "hinge_stiffness_matrix"):
-        return sp.csr_matrix(2.0 * pot.hinge_stiffness_matrix)
-    if hasattr(pot, "hinge_stiffness"):
-        return sp.diags(2.0 * np.asarray(pot.hinge_stiffness)).tocsr()
-    raise ThinShellError(f"adjoint: bending potential {type(pot).__name__} exposes no hinge stiffness")
+    return _hinge_bending(pot).theta_stiffness()
 
 
 def _theta_stiffness_product(pot, v: np.ndarray) -> np.ndarray:
@@ -257,9 +252,19 @@ def _theta_stiffness_product(pot, v: np.ndarray) -> np.ndarray:
 
     Equal to ``theta_stiffness(pot) @ v`` bit for bit (doubling is exact).
     """
-    if hasattr(pot, "hinge_stiffness_matrix"):
-        return 2.0 * (pot.hinge_stiffness_matrix @ v)
-    return theta_stiffness(pot) @ v
+    return _hinge_bending(pot).theta_stiffness_product(v)
+
+
+def _hinge_bending(pot) -> HingeBending:
+    """``pot`` if it declares :class:`~sim_core.potentials.base.HingeBending`.
+
+    Raises:
+        ThinShellError: it does not.
+    """
+    if not isinstance(pot, HingeBending):
+        raise ThinShellError(f"adjoint: bending potential {type(pot).__name__} is not a HingeBending "
+                             "(no theta_stiffness)")
+    return pot
 
 
 # ============================================================================ parameters
@@ -345,12 +350,8 @@ class StepLinearization:
         self.bending = {}
         for name in elastic.hinges:
             tb = record.hinge_theta_bar.get(name)
-            pot = elastic.bending(name, tb)
-            if hasattr(pot, "theta_gradient"):  # kept angles, shared with parameter_rhs (same pot)
-                theta, gt = pot.theta(self.x), pot.theta_gradient(self.x)
-            else:
-                X = self.x[pot.hinges]
-                theta, gt = dihedral_angle(X), dihedral_angle_gradient(X)
+            pot = _hinge_bending(elastic.bending(name, tb))
+            theta, gt = pot.theta(self.x), pot.theta_gradient(self.x)  # Kirchhoff: kept angles, shared
             Y = model.bodies[name].material.get("yield_angle", np.inf)
             dev = theta - pot.hinge_theta_bar
             yielding = np.abs(dev) > Y if np.isfinite(Y) else np.zeros(len(theta), bool)
@@ -369,7 +370,7 @@ class StepLinearization:
             diag = np.zeros(3 * self.n)
             blocks = []
             for p in self.record.terms:
-                if hasattr(p, "hessian_diagonal"):
+                if isinstance(p, ConstantDiagonalHessian):
                     diag += p.hessian_diagonal()
                 else:
                     blocks.append(p.hessian(self.x, "none"))

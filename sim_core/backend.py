@@ -94,6 +94,7 @@ def _fastest_available() -> str:
     """``"auto"``: the backend of an already initialised Taichi runtime, else ``taichi-cuda``, else
     ``taichi-cpu``, else ``numpy`` (Taichi not installed)."""
     try:
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.ti_backend import current_arch, init_backend
     except ImportError:
         return "numpy"

@@ -25,12 +25,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.backend import uses_taichi
 from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
                                 vertex_triangle_candidates)
+from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
-from sim_core.backend import uses_taichi
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.model import Model, check_broad_phase
+from sim_core.potentials.base import PenaltyContact
 from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
                                         edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.potentials.friction import LaggedFriction
@@ -245,11 +247,13 @@ class ContactSet:
         lists = getattr(self, "_lists", None)
         if self.broad_phase == "spatial_hash":
             if lists is None or lists[0] != "spatial_hash":
+                # optional heavy dependency: Taichi, loaded on a Taichi backend only
                 from sim_core.ti_kernels.hash_candidates import HashCandidates
 
                 self._lists = ("spatial_hash", HashCandidates(self.surface_vertices, self.triangles, self.edges,
                                                               self.filter, self.rest_exclusion))
         elif lists is None or lists[0] != "sweep" or lists[1].search is not search:
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.sweep_candidates import SweepCandidates
 
             self._lists = ("sweep", SweepCandidates(self.surface_vertices, self.triangles, self.edges, self.filter,
@@ -291,16 +295,16 @@ class ContactSet:
         :mod:`sim_core.collision.candidates`)."""
         if self.broad_phase == "spatial_hash":
             if not self.taichi:
-                from sim_core.collision.candidates import grouped_box_pairs_hash
-
                 return grouped_box_pairs_hash
             if getattr(self, "_hash_search", None) is None:
+                # optional heavy dependency: Taichi, loaded on a Taichi backend only
                 from sim_core.ti_kernels.hash_grid import HashSearch
 
                 self._hash_search = HashSearch()
             return self._hash_search
         if self.broad_phase == "sweep" and self.taichi:
             if getattr(self, "_sweep_search", None) is None:
+                # optional heavy dependency: Taichi, loaded on a Taichi backend only
                 from sim_core.ti_kernels.broad_phase import SweepSearch
 
                 self._sweep_search = SweepSearch()
@@ -311,6 +315,7 @@ class ContactSet:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
         (:mod:`sim_core.ti_kernels.contact`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
         if self.taichi:
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
 
             return TiVertexTriangleContact, TiEdgeEdgeContact
@@ -355,6 +360,7 @@ class ContactSet:
         kernel launch for both kinds (:func:`sim_core.ti_kernels.contact_setup.pair_geometry`), else the
         NumPy reference."""
         if self.taichi:
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.contact_setup import pair_geometry as geometry
         else:
             geometry = pair_geometry
@@ -460,6 +466,7 @@ class ContactSet:
         ee, ee_sides = ee[keep], ee_sides[keep]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
         if self.taichi:
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.contact_batch import PairBatch
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
@@ -546,6 +553,7 @@ class ContactSet:
         all_frames = concatenate_frames(frames)
         friction_class = LaggedFriction
         if self.taichi:
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
@@ -557,6 +565,7 @@ class ContactSet:
         bases of the active pairs of both kinds from one launch
         (:func:`sim_core.ti_kernels.contact_setup.friction_frames`; the values of the pair potentials'
         ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.ti_kernels.contact_setup import friction_frames
         from sim_core.ti_kernels.friction import TiLaggedFriction
 
@@ -635,10 +644,11 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     """The touching contacts of the penalty potentials ``terms`` (as :meth:`ContactSet.potentials`
     returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
     (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
-    a term is not such a penalty (no ``active_mask``: a missing-physics candidate's adhesion, say).
+    a term is not a :class:`~sim_core.potentials.base.PenaltyContact` (a missing-physics candidate's
+    adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
-    if not all(hasattr(p, "active_mask") for p in terms):
+    if not all(isinstance(p, PenaltyContact) for p in terms):
         return None
     return [p.vertices[p.active_mask(x)] for p in terms]
 

@@ -2,7 +2,7 @@
 
 Taichi's CPU kernel launches hold Python's GIL, and its parallel loops (atomic adds on a few cores)
 ran the fused kernels about twice as slow as the serial ones on the 2-core machine
-(docs/benchmarks.md), so one process uses one core. Two processes do run side by side at full
+(docs/benchmarks_log.md), so one process uses one core. Two processes do run side by side at full
 speed. :class:`ElasticWorker` starts a worker process (``python -m sim_core.elastic_worker``)
 with its own Taichi runtime; :class:`sim_core.fused_elastic.FusedElastic` hands it the largest
 fused term that supports it (a Stable Neo-Hookean gel: its ``offload_recipe()``), and evaluates the
@@ -24,8 +24,8 @@ as :class:`multiprocessing.connection.Connection` messages. To evaluate, the par
 and the slot and increments ``request``; the worker, busy-waiting on ``request`` for
 :data:`SPIN_SECONDS` after its last evaluation, zeroes ``grad`` and ``values``, runs the slot's
 recipe, writes the energy and ``status`` and sets ``done``. The busy-waits need stores to become
-visible in program order (x86's total store order); on other machines each request and reply is a
-socket message instead. After
+visible in program order (x86's total store order); on other machines, or with
+``ElasticWorker(signal="socket")``, each request and reply is a socket message instead. After
 :data:`SPIN_SECONDS` without a request the worker blocks on the socket (at most
 :data:`IDLE_POLL_SECONDS` at a time), with ``idle`` set, and the parent sends a wake message.
 
@@ -45,6 +45,7 @@ import mmap
 import os
 import pickle
 import platform
+import resource
 import socket
 import subprocess
 import sys
@@ -54,9 +55,13 @@ import time
 import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
+
+from sim_core.errors import ConfigError
+from sim_core.fused_elastic import compile_offload_kernels
+from sim_core.worker_recipe import Recipe, part_recipe, same_recipe  # noqa: F401 (re-exported)
 
 LOG = logging.getLogger(__name__)
 
@@ -74,56 +79,33 @@ START_TIMEOUT_S = 120.0
 REPLY_TIMEOUT_S = 60.0
 """Seconds the parent waits for a configuration or an evaluation before it gives the worker up."""
 
-SPIN_FLAGS = (platform.machine().lower() in ("x86_64", "amd64")
-              and os.environ.get("THINSHELL_WORKER_SIGNAL", "flags") != "socket")
-"""Whether requests and replies are signalled by busy-waiting on the shared flags (x86: stores
-are seen in program order) instead of socket messages (elsewhere, or with the environment variable
-``THINSHELL_WORKER_SIGNAL=socket``, which the worker inherits)."""
+SIGNALS = ("auto", "flags", "socket")
+"""How requests and replies are signalled: ``flags`` (busy-waiting on the shared flags; needs stores
+seen in program order, as on x86), ``socket`` (a socket message each), ``auto`` (flags on x86, else
+socket)."""
+
+FLAGS_SAFE = platform.machine().lower() in ("x86_64", "amd64")
+"""Whether this machine keeps stores in program order (x86's total store order)."""
+
+
+def resolve_signal(signal: str) -> str:
+    """The concrete signalling of ``signal`` (:data:`SIGNALS`): ``flags`` or ``socket``.
+
+    Raises:
+        ConfigError: unknown name, or ``flags`` on a machine without x86's store order.
+    """
+    if signal not in SIGNALS:
+        raise ConfigError(f"ElasticWorker: unknown signal {signal!r}; use one of {SIGNALS}")
+    if signal == "flags" and not FLAGS_SAFE:
+        raise ConfigError(f"ElasticWorker: signal 'flags' needs x86's store order; this is {platform.machine()}")
+    return ("flags" if FLAGS_SAFE else "socket") if signal == "auto" else signal
+
 
 SLOTS = 4
 """Recipes a worker keeps configured (the least recently used one is replaced)."""
 
 _REQUEST, _DONE, _STATUS, _IDLE, _SLOT = range(5)
 _FLAG_BYTES = 64
-
-
-class Recipe(NamedTuple):
-    """What a worker evaluates: ``parts`` ``((target, args), ...)``, each ``target`` a
-    ``"module:function"`` called as ``function(args, x, grad, values) -> energy`` (adding into
-    ``grad`` and ``values``), in order, the energies summed in order from 0.0; part ``apart``
-    (an index, or None) is evaluated into zeroed buffers that are added after the others.
-    Arrays in ``args`` are compared by identity when a worker checks whether a recipe is the one it
-    has (a recipe's arrays must not be changed in place)."""
-
-    parts: tuple
-    apart: int | None = None
-
-
-def _same_part(a: tuple, b: tuple) -> bool:
-    """Whether two parts ``(target, args)`` are the same: the same object, or the same target and
-    arguments (arrays the same objects, other values equal)."""
-    if a is b:
-        return True
-    (ta, xa), (tb, xb) = a, b
-    return ta == tb and len(xa) == len(xb) and all(
-        u is v or (not isinstance(u, np.ndarray) and not isinstance(v, np.ndarray) and u == v) for u, v in zip(xa, xb))
-
-
-def same_recipe(a: Recipe | None, b: Recipe) -> bool:
-    """Whether ``a`` and ``b`` evaluate the same: the same object, or the same targets, ``apart`` and
-    arguments (arrays the same objects, other values equal)."""
-    if a is b:
-        return True
-    return (a is not None and a.apart == b.apart and len(a.parts) == len(b.parts)
-            and all(_same_part(pa, pb) for pa, pb in zip(a.parts, b.parts)))
-
-
-def part_recipe(kept: tuple | None, target: str, args: tuple) -> tuple:
-    """A part's ``(target, args)``: ``kept`` (the part's last one) when it has the same target and
-    arguments (arrays the same objects, other values equal), else a new tuple. Keeping the object
-    makes the worker's check for a configured recipe one identity test."""
-    part = (target, args)
-    return kept if kept is not None and _same_part(kept, part) else part
 
 
 def run_recipe(functions: list[Callable], args: list[tuple], apart: int | None, x: np.ndarray, grad: np.ndarray,
@@ -219,19 +201,23 @@ class ElasticWorker:
 
     Args:
         python: interpreter of the worker (default: this one, ``sys.executable``).
+        signal: how requests and replies are signalled (:data:`SIGNALS`; default ``auto``).
 
     Raises:
         OSError: the process cannot be started.
+        ConfigError: bad ``signal`` (:func:`resolve_signal`).
     """
 
-    def __init__(self, python: str | None = None) -> None:
+    def __init__(self, python: str | None = None, signal: str = "auto") -> None:
+        self.signal = resolve_signal(signal)
+        self._spin = self.signal == "flags"
         parent, child = socket.socketpair()
         root = str(Path(__file__).resolve().parents[1])  # the directory holding sim_core
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         try:
             self._process = subprocess.Popen(
-                [python or sys.executable, "-m", "sim_core.elastic_worker", str(child.fileno())],
+                [python or sys.executable, "-m", "sim_core.elastic_worker", str(child.fileno()), self.signal],
                 pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env,
                 cwd=root)  # `-m` puts the working directory first on sys.path: this sim_core, not another
         finally:
@@ -342,7 +328,7 @@ class ElasticWorker:
                 self._sequence += 1
                 self._slot_used[slot] = self._sequence
                 region.flags[_SLOT] = slot
-                if SPIN_FLAGS:
+                if self._spin:
                     region.flags[_REQUEST] = self._sequence
                     if region.flags[_IDLE]:
                         self._send(("wake",))
@@ -368,7 +354,7 @@ class ElasticWorker:
         """Wait for the outstanding request (the guard held); its result, or None (failed, or ``drop``)."""
         try:
             region = self._region
-            if SPIN_FLAGS:
+            if self._spin:
                 self._spin_until_done(region)
             else:
                 message = self._reply("done")
@@ -477,8 +463,9 @@ def _shut_down(process: subprocess.Popen, conn: Connection, owner: int) -> None:
 class _Server:
     """The worker side: up to :data:`SLOTS` configured recipes, requests from the flags or the socket."""
 
-    def __init__(self, conn: Connection) -> None:
+    def __init__(self, conn: Connection, spin: bool) -> None:
         self.conn = conn
+        self.spin = spin  # requests come as flags (busy-waited), else as socket messages
         self.region: _Region | None = None
         self.slots: dict[int, tuple[list[Callable], list[tuple], int | None]] = {}
         self.scratch: tuple[np.ndarray, np.ndarray] | None = None  # the apart part's buffers
@@ -522,8 +509,6 @@ class _Server:
             self.evaluate(message[1])
             self.conn.send(("done", message[1]))
         elif kind == "stats":
-            import resource
-
             self.conn.send(("stats", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0))
         return True
 
@@ -532,7 +517,7 @@ class _Server:
         spins = 0
         while True:
             region = self.region
-            if SPIN_FLAGS and region is not None and self.slots:
+            if self.spin and region is not None and self.slots:
                 request = int(region.flags[_REQUEST])
                 if request != self.seen:
                     self.evaluate(request)
@@ -562,16 +547,17 @@ class _Server:
 
 def _warm_kernels() -> None:
     """Load (or compile) the kernels a worker may run, on a single tet."""
-    from sim_core.fused_elastic import compile_offload_kernels
-
     compile_offload_kernels()
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The worker process: ``python -m sim_core.elastic_worker FD`` (``FD``: its end of the socket pair)."""
+    """The worker process: ``python -m sim_core.elastic_worker FD SIGNAL`` (``FD``: its end of the socket
+    pair; ``SIGNAL``: ``flags`` or ``socket``, as :func:`resolve_signal` gives it)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     conn = Connection(int(argv[0]))
+    spin = resolve_signal(argv[1] if len(argv) > 1 else "auto") == "flags"
     try:
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
         from sim_core.ti_backend import init_backend
 
         init_backend("cpu")
@@ -581,7 +567,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     conn.send(("ready",))
     try:
-        _Server(conn).run()
+        _Server(conn, spin).run()
     except (EOFError, OSError):  # the parent is gone
         return 0
     return 0

@@ -25,47 +25,70 @@ Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 
 from __future__ import annotations
 
-from typing import Sequence
+import importlib
+import time
+from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from sim_core.assembly import StaticPattern
-from sim_core.elastic_worker import Recipe
-from sim_core.potentials.base import positions_key
+from sim_core.assembly import HessianAssembler, StaticPattern
+from sim_core.mesh.sheet import grid_sheet, sheet_topology
+from sim_core.mesh.tet import tet_box
+from sim_core.potentials.base import ElasticEquivalent, positions_key
+from sim_core.potentials.kirchhoff_bending import KirchhoffBending
+from sim_core.potentials.membrane import SpringMembrane
+from sim_core.potentials.neohookean import StableNeoHookean
+from sim_core.worker_recipe import Recipe
 
 
 OFFLOAD_MIN_ELEMENTS = 256
 """A part with fewer elements is not worth a worker's round trip (tens of microseconds)."""
 
 
+FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {
+    ("sim_core.potentials.neohookean", "StableNeoHookean"):
+        ("sim_core.ti_kernels.fused_neohookean", "FusedStableNeoHookean"),
+    ("sim_core.potentials.membrane", "SpringMembrane"):
+        ("sim_core.ti_kernels.fused_spring_membrane", "FusedSpringMembrane"),
+    ("sim_core.potentials.membrane", "StVKMembrane"):
+        ("sim_core.ti_kernels.fused_stvk_membrane", "FusedStVKMembrane"),
+    ("sim_core.potentials.kirchhoff_bending", "KirchhoffBending"):
+        ("sim_core.ti_kernels.fused_kirchhoff", "FusedKirchhoffBending"),
+    ("sim_core.candidates.anisotropic_bending", "AnisotropicBendingCorrection"):
+        ("sim_core.ti_kernels.fused_hinge", "FusedAnisotropicBending"),
+}
+"""The registry of fused kernels: potential class -> fused part class, both as (module, name).
+A potential's class or its nearest registered base class selects the part; the Taichi modules
+are imported on first use (importing Taichi is optional and heavy)."""
+
+
+@runtime_checkable
+class Offloadable(Protocol):
+    """A fused part that :class:`~sim_core.elastic_worker.ElasticWorker` can evaluate."""
+
+    element_count: int
+
+    def offload_recipe(self) -> tuple[str, tuple]:
+        """``(kernel name, arguments)`` of its fused evaluation, for the worker."""
+        ...
+
+
+@runtime_checkable
+class OffloadableProjected(Protocol):
+    """A fused part whose PSD-projected Hessian the worker can evaluate."""
+
+    def offload_projected_recipe(self, projection: str) -> tuple[str, tuple]:
+        """``(kernel name, arguments)`` of its projected-Hessian evaluation, for the worker."""
+        ...
+
+
 def _fused_class(potential) -> type | None:
-    """The fused kernel class for ``potential`` or None (imports Taichi kernels on first use)."""
-    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-    from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
-    from sim_core.potentials.neohookean import StableNeoHookean
-
-    if isinstance(potential, StableNeoHookean):
-        from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
-
-        return FusedStableNeoHookean
-    if isinstance(potential, SpringMembrane):
-        from sim_core.ti_kernels.fused_spring_membrane import FusedSpringMembrane
-
-        return FusedSpringMembrane
-    if isinstance(potential, StVKMembrane):
-        from sim_core.ti_kernels.fused_stvk_membrane import FusedStVKMembrane
-
-        return FusedStVKMembrane
-    if isinstance(potential, KirchhoffBending):
-        from sim_core.ti_kernels.fused_kirchhoff import FusedKirchhoffBending
-
-        return FusedKirchhoffBending
-    from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
-
-    if isinstance(potential, AnisotropicBendingCorrection):
-        from sim_core.ti_kernels.fused_hinge import FusedAnisotropicBending
-
-        return FusedAnisotropicBending
+    """The fused part class registered (:data:`FUSED_KERNELS`) for ``potential``'s class or its
+    nearest registered base class, or None."""
+    for cls in type(potential).__mro__:
+        entry = FUSED_KERNELS.get((cls.__module__, cls.__qualname__))
+        if entry is not None:
+            return getattr(importlib.import_module(entry[0]), entry[1])
     return None
 
 
@@ -76,11 +99,11 @@ def fusable(potential) -> bool:
 
 
 def _fused_form(potential):
-    """The potential a part evaluates for ``potential``: its ``elastic_equivalent()`` when it has one
-    (a candidate term equal to an elastic potential, e.g. the gel's Maxwell branch, a Stable
-    Neo-Hookean on its relaxed rest state: :mod:`sim_core.candidates.gel_viscoelasticity`), else itself."""
-    equivalent = getattr(potential, "elastic_equivalent", None)
-    return potential if equivalent is None else equivalent()
+    """The potential a part evaluates for ``potential``: its ``elastic_equivalent()`` when it is an
+    :class:`~sim_core.potentials.base.ElasticEquivalent` (a candidate term equal to an elastic
+    potential, e.g. the gel's Maxwell branch, a Stable Neo-Hookean on its relaxed rest state:
+    :mod:`sim_core.candidates.gel_viscoelasticity`), else itself."""
+    return potential.elastic_equivalent() if isinstance(potential, ElasticEquivalent) else potential
 
 
 class _ReferencePart:
@@ -175,6 +198,7 @@ class FusedElastic:
             q = _fused_form(p)
             cls = _fused_class(q)
             self._parts.append(cls(q) if cls is not None else _ReferencePart(q))
+        self._offloadable = [isinstance(p, Offloadable) for p in self._parts]
         self.potentials = list(potentials)
         self.vertex_arrays: list[np.ndarray] | None = None
         self.pattern: StaticPattern | None = None
@@ -256,8 +280,8 @@ class FusedElastic:
         only, not on the worker's state, so results do not either (:meth:`_evaluate_offloaded`)."""
         if self.offload is None or len(self._parts) < 2:
             return None
-        parts = [p for p in self._parts
-                 if hasattr(p, "offload_recipe") and p.element_count >= OFFLOAD_MIN_ELEMENTS]
+        parts = [p for p, able in zip(self._parts, self._offloadable)
+                 if able and p.element_count >= OFFLOAD_MIN_ELEMENTS]
         return max(parts, key=lambda p: p.element_count) if parts else None
 
     def start(self, x: np.ndarray) -> None:
@@ -275,7 +299,7 @@ class FusedElastic:
             return
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
-        if not all(hasattr(p, "offload_recipe") for p in self._parts):
+        if not all(self._offloadable):
             return
         key = positions_key(x)
         if self._kept is not None and self._kept[0] == key:
@@ -395,7 +419,7 @@ class FusedElastic:
         xc = np.ascontiguousarray(x, dtype=np.float64)
         values = np.zeros(self.pattern.keys.size)
         remote = self.offloaded_part()
-        if remote is None or not hasattr(remote, "offload_projected_recipe"):
+        if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
                 part.add_projected(xc, projection, values)
             return values
@@ -440,9 +464,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    import time
-
-    from sim_core.assembly import HessianAssembler
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_backend import require_backend
 
     require_backend("compile_kernels")
@@ -458,6 +480,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     for p in potentials:
         if type(p).__module__.startswith("sim_core.ti_kernels"):
             p.hessian(x, projection)
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
                                      fused_hinge, hash_candidates, sweep_candidates)
 
@@ -481,14 +504,7 @@ def compile_offload_kernels() -> float:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    import time
-
-    from sim_core.assembly import HessianAssembler
-    from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.mesh.tet import tet_box
-    from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-    from sim_core.potentials.membrane import SpringMembrane
-    from sim_core.potentials.neohookean import StableNeoHookean
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_backend import require_backend
 
     require_backend("compile_offload_kernels")

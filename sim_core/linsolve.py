@@ -35,7 +35,7 @@ def mkl_runtime() -> ctypes.CDLL:
     Raises:
         ImportError: pypardiso is not installed or MKL's runtime library is not found.
     """
-    import pypardiso
+    import pypardiso  # optional heavy dependency: MKL PARDISO, loaded on first use
 
     return pypardiso.PyPardisoSolver().libmkl
 
@@ -426,7 +426,7 @@ class PardisoCholesky:
         # and without on a Forming matrix). And iparm[1]: minimum-degree ordering instead of METIS
         # nested dissection. On 31 Newton matrices of a sheet-gel replay (n 1539) it gives 9 % less
         # fill, 16 % less factorisation time (0.91 vs 1.08 ms) and 14 % less analysis + factorisation
-        # (4.0 vs 4.7 ms); on Forming's (n 1698) the same times within 4 % (docs/benchmarks.md).
+        # (4.0 vs 4.7 ms); on Forming's (n 1698) the same times within 4 % (docs/benchmarks_log.md).
         iparm = np.zeros(64, dtype=np.int32)
         iparm[0] = 1  # iparm supplied
         iparm[1] = 0  # minimum-degree ordering (METIS nested dissection, 2, is PARDISO's default)

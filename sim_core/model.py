@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
 from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.state import State
@@ -262,8 +263,6 @@ class Model:
             ConfigError: unknown name (the message lists the known names).
         """
         if name.startswith("candidate."):
-            from sim_core.candidates.hook import CANDIDATE_SETTINGS
-
             key = name.split(".", 1)[1]
             if key in self.candidates:
                 return float(self.candidates[key])
@@ -295,8 +294,6 @@ class Model:
         if not np.isfinite(value):
             raise ConfigError(f"parameter {name!r} must be finite, got {value}")
         if name.startswith("candidate."):
-            from sim_core.candidates.hook import validate_candidate_parameters
-
             trial = dict(self.candidates)
             trial[name.split(".", 1)[1]] = value
             self.candidates = dict(validate_candidate_parameters(trial))
@@ -355,6 +352,4 @@ class Model:
 
 def _candidate_names() -> set[str]:
     """Names of the physics-level candidates (``candidate.<name>`` parameters)."""
-    from sim_core.candidates.hook import CANDIDATE_NAMES
-
     return set(CANDIDATE_NAMES)

@@ -13,6 +13,8 @@ import numpy as np
 
 from sim_core.control import Control
 from sim_core.model import Model
+from sim_core.scenes import load_scene
+from sim_core.sensors.tactile import read_tactile
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo, StepTotals
 from sim_core.state import State
 from sim_core.transforms import compose_poses
@@ -66,8 +68,6 @@ class Simulation:
         Raises:
             ConfigError: invalid scene (the message names the file and key).
         """
-        from sim_core.scenes import load_scene
-
         return cls(load_scene(scene), dt=dt, solver_config=solver_config)
 
     # ------------------------------------------------------------------ stepping
@@ -132,8 +132,6 @@ class Simulation:
 
     def observe(self, render_image: bool = False, state: State | None = None) -> Observation:
         """Observation of ``state`` (default: the current state)."""
-        from sim_core.sensors.tactile import read_tactile
-
         state = state or self.state
         tactile = {}
         for name, s in self.model.sensors.items():

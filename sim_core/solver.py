@@ -26,6 +26,7 @@ import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
 from sim_core.backend import resolve_backend, uses_taichi
+from sim_core.candidates.hook import CandidateHook, StepHook
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
@@ -34,6 +35,7 @@ from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
+from sim_core.potentials.base import KeepsDerivatives
 from sim_core.potentials.damping import ViscousDamping
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.potentials.gravity import GravityPotential
@@ -105,21 +107,29 @@ class NewtonSolver:
     Args:
         model: the scene model.
         config: :class:`SolverConfig`.
+        hook: extra terms of each step and the state update after it
+            (:class:`~sim_core.candidates.hook.StepHook`; e.g. the diagnosis benchmark's effects);
+            None: the model's ``candidate.<name>`` parameters, if any, through a
+            :class:`~sim_core.candidates.hook.CandidateHook`.
 
     Raises:
-        ConfigError: ``config.backend`` cannot start here (:func:`sim_core.backend.resolve_backend`).
+        ConfigError: ``config.backend`` cannot start here (:func:`sim_core.backend.resolve_backend`);
+            a ``hook`` that is not a :class:`~sim_core.candidates.hook.StepHook`; a ``hook`` on a
+            model with candidate parameters (:meth:`set_hook`).
 
     Attributes:
         backend: the concrete backend of ``config.backend`` (``numpy``, ``taichi-cpu`` or
             ``taichi-cuda``), resolved once at construction.
-        candidate_hook: missing-physics candidate terms (:mod:`sim_core.candidates`), None = off.
+        step_hook: the hook the step calls: ``hook``, else a
+            :class:`~sim_core.candidates.hook.CandidateHook` of the model's candidate parameters, else
+            None (no extra terms).
         elastic_worker: an :class:`~sim_core.elastic_worker.ElasticWorker` that evaluates the largest
             fused elastic term (the gel's) in a second process while this one evaluates the others, on
             the fused CPU path; None (default) = everything here. The results are the same either way
             where the term's vertices are its own (:meth:`FusedElastic._evaluate_offloaded`).
     """
 
-    def __init__(self, model: Model, config: SolverConfig | None = None) -> None:
+    def __init__(self, model: Model, config: SolverConfig | None = None, hook: StepHook | None = None) -> None:
         self.model = model
         self.config = config or SolverConfig()
         self.backend = resolve_backend(self.config.backend)
@@ -128,8 +138,8 @@ class NewtonSolver:
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
         self.contact = ContactSet(model, backend=self.backend)
         self._revision = -1
-        # Optional missing-physics candidates (sim_core.candidates.CandidateHook), None = off.
-        self.candidate_hook = None
+        self._hook = _checked_hook(hook)
+        self.step_hook: StepHook | None = None
         # Optional worker process for the largest fused elastic term (sim_core.elastic_worker), None = off.
         self.elastic_worker = None
         self.notify_model_changed()
@@ -169,13 +179,31 @@ class NewtonSolver:
         self.elastic = ElasticTerms(self.model)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
-        if self.model.candidates:
-            from sim_core.candidates.hook import CandidateHook
-
-            self.candidate_hook = CandidateHook(self.model.candidates)
-        else:
-            self.candidate_hook = None
+        self.step_hook = self._resolve_hook()
         self._revision = self.model.revision
+
+    def set_hook(self, hook: StepHook | None) -> None:
+        """Use ``hook`` for the extra terms of the next steps (None: the model's candidates, if any).
+
+        Raises:
+            ConfigError: ``hook`` is not a :class:`~sim_core.candidates.hook.StepHook`, or the model
+                has candidate parameters (one source of extra terms at a time).
+        """
+        self._hook = _checked_hook(hook)
+        self.step_hook = self._resolve_hook()
+
+    def _resolve_hook(self) -> StepHook | None:
+        """The explicit hook, else a :class:`CandidateHook` of the model's candidates, else None.
+
+        Raises:
+            ConfigError: both an explicit hook and candidate parameters.
+        """
+        if self._hook is not None:
+            if self.model.candidates:
+                raise ConfigError(f"NewtonSolver: a step hook ({type(self._hook).__name__}) and the model's candidate "
+                                  f"parameters {sorted(self.model.candidates)} are both set; use one of them")
+            return self._hook
+        return CandidateHook(self.model.candidates) if self.model.candidates else None
 
     # ------------------------------------------------------------------ step
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> StepInfo:
@@ -363,7 +391,7 @@ class NewtonSolver:
         elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
         fixed_terms += elastic_terms
         fused = None
-        if self.candidate_hook is None and self.elastic_worker is not None:
+        if self.step_hook is None and self.elastic_worker is not None:
             # the fused terms are the elastic terms: the worker evaluates them at the first iterate
             # (FusedElastic.start) while the contact and friction terms are set up
             fused = self._fused_elastic(elastic_terms, x, free)
@@ -373,7 +401,7 @@ class NewtonSolver:
         friction = self.contact.friction(x_n, dt, memory)
         if friction is not None:
             fixed_terms.append(friction)
-        cand_contact, cand_body = ([], []) if self.candidate_hook is None else self.candidate_hook.terms(
+        cand_contact, cand_body = ([], []) if self.step_hook is None else self.step_hook.terms(
             model, state_in, x_n, dt, self.elastic, friction)
         fixed_terms += cand_contact + cand_body
         # body terms with a fused part (the sheets' anisotropic bending; the gels' Maxwell branches, a
@@ -615,11 +643,11 @@ class NewtonSolver:
             x_new = x + alpha * d3
             if prefetch and backtrack == 0:
                 step.fused.evaluate(x_new)
-                if step.friction is not None and hasattr(step.friction, "evaluate"):
-                    step.friction.evaluate(x_new)
+                if isinstance(step.friction, KeepsDerivatives):
+                    step.friction.keep_derivatives(x_new)
                 if self.contact.covers(x_search, x_new):  # else _energy searches again: new pairs
                     for p in contact_terms:
-                        if hasattr(p, "keep_derivatives"):
+                        if isinstance(p, KeepsDerivatives):
                             p.keep_derivatives(x_new)
             if self._energy(step, x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                 return x_new, backtrack
@@ -714,8 +742,20 @@ class NewtonSolver:
         state_out.contact_force = force
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
-        if self.candidate_hook is not None:
-            state_out.candidate_state = self.candidate_hook.update_state(model, state_in, x, dt, self.elastic)
+        if self.step_hook is not None:
+            state_out.candidate_state = self.step_hook.update_state(model, state_in, x, dt, self.elastic)
+
+
+def _checked_hook(hook: StepHook | None) -> StepHook | None:
+    """``hook`` if it is None or a :class:`StepHook`.
+
+    Raises:
+        ConfigError: it is neither (names its type and the missing methods).
+    """
+    if hook is None or isinstance(hook, StepHook):
+        return hook
+    missing = [m for m in ("terms", "update_state") if not callable(getattr(hook, m, None))]
+    raise ConfigError(f"NewtonSolver: hook {type(hook).__name__} is not a StepHook (missing {', '.join(missing)})")
 
 
 _SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",

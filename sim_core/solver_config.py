@@ -60,7 +60,7 @@ class SolverConfig:
             stick/slip or lift-off threshold that looser solution flips events (the diagnosis
             bench's generated damping and stiction effects lost their graded strengths, and
             its naming accuracy fell from 1.0 / 1.0 to 0.6 / 0.7 at 2 / 4 sigma;
-            docs/benchmarks.md, 2026-11-22).
+            docs/benchmarks_log.md, 2026-11-22).
         simplified_newton_check: also stop at an iterate ``x_k`` whose simplified Newton correction
             ``H(x_{k-1})^{-1} g(x_k)`` (the last factorisation, one extra solve) has scaled size
             below this fraction of ``tol_velocity`` (Deuflhard, Newton Methods for Nonlinear

@@ -113,7 +113,7 @@ def serial_loops() -> bool:
     """Whether element loops that sum into shared entries run serially (the fused kernels).
 
     On the CPU they do: the sums are then in element order, so results are bitwise reproducible run
-    to run, and on a few cores parallel atomics were slower (see docs/benchmarks.md). On CUDA they
+    to run, and on a few cores parallel atomics were slower (see docs/benchmarks_log.md). On CUDA they
     run in parallel (Taichi makes ``+=`` on global memory atomic there). Called at kernel
     compile time (``ti.loop_config(serialize=ti.static(serial_loops()))``), after :func:`init_backend`.
     """

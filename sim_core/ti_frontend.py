@@ -7,7 +7,7 @@ file, line, source line and a ``^^^`` hint, each run through ``textwrap.TextWrap
 pushes it onto the runtime's debug-info stack, from where it is attached to the IR as the
 statement's debug info and quoted in compile errors. Static unrolling and repeated inlining of a
 ``ti.func`` visit the same node many times, and the text wrapping is most of the frontend time:
-about 6 of 10.7 s for the kernels of the Forming bench (docs/benchmarks.md), every process, with
+about 6 of 10.7 s for the kernels of the Forming bench (docs/benchmarks_log.md), every process, with
 Taichi's offline cache warm (the cache skips LLVM, not the AST walk, which produces the cache key).
 
 :func:`memoize_source_positions` wraps that method so that a position already formatted in this
@@ -54,7 +54,7 @@ def memoize_source_positions() -> bool:
     Returns:
         True when the memoised method is installed (now or by an earlier call), False otherwise.
     """
-    import taichi
+    import taichi  # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from taichi.lang.ast import ast_transformer_utils
 
     context = getattr(ast_transformer_utils, "ASTTransformerContext", None)
@@ -89,7 +89,7 @@ def memoize_function_sources() -> bool:
     Returns:
         True when the memoised functions are installed (now or by an earlier call), False otherwise.
     """
-    import taichi
+    import taichi  # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from taichi.lang import kernel_impl
 
     lines_of, file_of = getattr(kernel_impl, "getsourcelines", None), getattr(kernel_impl, "getsourcefile", None)

@@ -17,12 +17,22 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from sim_core.candidates.adhesion import adhesion_pairs
+from sim_core.potentials.base import HessianBlocks, scatter_gradient
+from sim_core.potentials.bending import DiscreteShellBending, dihedral_angle
+
 class PhysicsEffect:
     """Base of the hooks: no terms, no state; ``attach`` gives the simulation before the first step."""
 
     def attach(self, sim: Any) -> None:
         """Remember the simulation (model, initial state)."""
         self.sim = sim
+
+    def terms(self, model: Any, state: Any, x_prev: np.ndarray, dt: float, elastic: Any,
+              friction: Any) -> tuple[list, list]:
+        """``(contact_like, body_like)`` potentials of a step (the solver's
+        :class:`~sim_core.candidates.hook.StepHook` contract)."""
+        return self.contact_terms(model, x_prev, friction, state), self.body_terms(model, state, elastic)
 
     def contact_terms(self, model: Any, x_prev: np.ndarray, friction: Any, state: Any = None) -> list:
         """Extra contact-like potentials of a step (count in the wrench); ``state``: the step's start state."""
@@ -54,14 +64,10 @@ class _Quadratic:
         return float(0.5 * np.einsum("ki,kij,kj->", d, self.blocks, d) + np.sum(self.g0 * (x - self.x0)))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        from sim_core.potentials.base import scatter_gradient
-
         d = self._element_dx(x)
         return scatter_gradient(x.shape[0], self.vertices, np.einsum("kij,kj->ki", self.blocks, d)) + self.g0
 
     def hessian(self, x: np.ndarray, projection: str = "clamp"):
-        from sim_core.potentials.base import HessianBlocks
-
         return HessianBlocks(self.vertices, self.blocks)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
@@ -113,7 +119,6 @@ class PronyGel(PhysicsEffect):
     def body_terms(self, model, state, elastic) -> list:
         out = []
         q = (getattr(state, "candidate_state", None) or {}).get("prony", [np.zeros((self.K.shape[0], 9))] * 2)
-        from sim_core.potentials.base import scatter_gradient
 
         x_rest = model.x_rest
         for g, qi in zip(self.g, q):
@@ -148,8 +153,6 @@ class HingeStiffness(PhysicsEffect):
         self.a, self.kind = float(a), kind
 
     def attach(self, sim) -> None:
-        from sim_core.potentials.bending import DiscreteShellBending
-
         super().attach(sim)
         model = sim.model
         hinges = sim.solver.elastic.hinges["sheet"]
@@ -188,8 +191,6 @@ class _SignedHinges:
         return self.b._gradient_with(x, self.c * self.b.hinge_stiffness)
 
     def hessian(self, x, projection="clamp"):
-        from sim_core.potentials.base import HessianBlocks
-
         h = self.b.hessian(x, projection)
         c = self.c if projection == "none" else np.maximum(self.c, 0.0)
         return HessianBlocks(h.vertices, c[:, None, None] * h.blocks)
@@ -205,8 +206,6 @@ class RatePlasticity(PhysicsEffect):
         self.f, self.y, self.t_p = float(f), float(yield_angle), float(t_p)
 
     def update_state(self, model, state_in, x, dt, elastic) -> dict:
-        from sim_core.potentials.bending import dihedral_angle
-
         out = super().update_state(model, state_in, x, dt, elastic)
         hinges = elastic.hinges["sheet"]
         tb = np.asarray(self.sim_state_theta_bar(state_in), dtype=float)
@@ -246,8 +245,6 @@ class _RestShift:
         return self.new.gradient(x) - self.old.gradient(x)
 
     def hessian(self, x, projection="clamp"):
-        from sim_core.potentials.base import HessianBlocks
-
         return HessianBlocks(self.hinges, np.zeros((self.hinges.shape[0], 12, 12)))
 
     def parameter_gradient(self, x, name):
@@ -263,7 +260,7 @@ surface, ``delta_c ~ sqrt(G h / E)`` (Kendall 1971; Shull, Mater. Sci. Eng. R 36
 bench gel's ``E = 0.3 MPa``, ``h = 4 mm`` and the tack energy ``G ~ 1 J/m^2`` of a weakly dissipative
 silicone gel at mm/s: 115 um. (The interface-scale ``G / E ~ 10 um`` was tried first: the 0.2 mm
 lift steps then skip the whole cohesive zone in one step and the response is set by the buckling
-branch the card takes, not monotone in the magnitude; docs/benchmarks.md, 2026-11-22.)"""
+branch the card takes, not monotone in the magnitude; docs/benchmarks_log.md, 2026-11-22.)"""
 
 
 class _CohesiveBonds:
@@ -325,8 +322,6 @@ class _CohesiveBonds:
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``: ``T(s) w_j n`` (the bond pulls the gel vertex back)."""
-        from sim_core.potentials.base import scatter_gradient
-
         f = self._law(self.opening(x))[1]
         return scatter_gradient(x.shape[0], self.vertices, f[:, None, None] * self.weights[:, :, None] * self.normal[:, None, :])
 
@@ -338,8 +333,6 @@ class _CohesiveBonds:
         Raises:
             ValueError: unknown ``projection``.
         """
-        from sim_core.potentials.base import HessianBlocks
-
         if projection not in ("none", "clamp", "abs"):
             raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
         s = self.opening(x)
@@ -393,8 +386,6 @@ class BondAdhesion(PhysicsEffect):
         return [self._terms(bonds)] if bonds else []
 
     def update_state(self, model, state_in, x, dt, elastic) -> dict:
-        from sim_core.candidates.adhesion import adhesion_pairs
-
         out = super().update_state(model, state_in, x, dt, elastic)
         bonds = dict(self._bonds(state_in))
         broken = set(out.get("broken", ()))

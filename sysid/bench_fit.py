@@ -4,7 +4,7 @@ Runs ``thinshell sysid`` in-process on a bag (default: the bundled ``bags/nomina
 press-slide recording made by an independent engine) with the three default parameters (bending
 stiffness, gel modulus, gel-sheet friction) over the whole recording, into a temporary output
 directory (or ``--out``), and prints the wall time with the fit's own figures. Results are recorded
-by hand in ``docs/benchmarks.md``.
+by hand in ``docs/benchmarks_log.md``.
 
 Usage::
 
@@ -17,12 +17,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
+
+from sysid.cli import sysid_main
 
 DEFAULT_BAG = Path(__file__).resolve().parents[1] / "bags" / "nominal_s101"
 DEFAULT_PARAMS = "sheet.bending_stiffness,gel.youngs_modulus,friction.gel_sheet"
@@ -49,8 +52,6 @@ def bench_sysid_main(argv: Sequence[str] | None = None) -> int:
     ``iterations``, ``sim_runs``, ``status``, ``values`` {name: [initial, fitted]}, ``rms``
     {channel: [before, after]}, ``python``, ``machine``.
     """
-    from sysid.cli import sysid_main
-
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     with tempfile.TemporaryDirectory(prefix="thinshell_bench_sysid_") as tmp:
         out = Path(args.out) if args.out else Path(tmp) / "fit"
@@ -90,6 +91,4 @@ def bench_sysid_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _cpus() -> int:
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -5,11 +5,12 @@ Usage::
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
                         [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
 
-Reads the bag into an evidence bundle (:func:`sysid.evidence.load_evidence`), replays its effector
-poses in the simulator (:mod:`sysid.observation`), fits (:mod:`sysid.fit`) and writes ``fit.json``
-(:mod:`sysid.results`), PNG plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) into the
-output directory; ``--write-scene`` also writes the fitted scene (:mod:`sysid.fitted_scene`: the
-bag's scene with the fitted values, their uncertainty and any modelled effect). The directory is filled in a hidden sibling and renamed into place at the end, so
+Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
+:func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
+poses are replayed in the simulator, the parameters are fitted and ``fit.json``, PNG plots,
+``report.md`` and ``report.html`` are written into the output directory; ``--write-scene`` also
+writes the fitted scene (:mod:`sysid.fitted_scene`: the bag's scene with the fitted values, their
+uncertainty and any modelled effect). The directory is filled in a hidden sibling and renamed into place at the end, so
 it never holds a half-written result; an existing one is refused unless ``--force``.
 """
 
@@ -17,19 +18,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 from typing import Sequence
 
-from sim_core.errors import ThinShellError
+from sim_core.errors import ConfigError, ThinShellError
+from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
+from sysid.fit_recording import FitOptions, fit_recording
 
 PROG = "thinshell sysid"
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``thinshell sysid``."""
-    from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
-
     p = argparse.ArgumentParser(prog=PROG, description="Fit simulator material parameters to a recorded bag.")
     p.add_argument("bag", help="rosbag2 directory (or .mcap file) with scene.yaml")
     p.add_argument("--scene", help="scene file overriding the bag's scene.yaml")
@@ -94,7 +94,7 @@ class _Progress:
         self.bar = None
         self.best = float("inf")
         if enabled:
-            from tqdm import tqdm
+            from tqdm import tqdm  # optional dependency: tqdm, for progress bars only
 
             self.bar = tqdm(desc="sysid replays", unit="replay", file=sys.stderr, dynamic_ncols=True)
 
@@ -131,79 +131,61 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
         return _error(f"--t-max must be > 0 s, got {args.t_max}")
     if args.max_time is not None and not args.max_time > 0:
         return _error(f"--max-time must be > 0 s, got {args.max_time}")
-    simulation = None
-    if args.gel_resolution:
-        try:
-            simulation = {"gel_resolution": [int(v) for v in _split(args.gel_resolution)]}
-        except ValueError:
-            return _error(f"--gel-resolution must be three integers NX,NY,NZ, got {args.gel_resolution!r}")
     try:
-        return _run(args, argv, bag, out, simulation)
+        options = fit_options(args)
+    except ValueError:
+        return _error(f"--gel-resolution must be three integers NX,NY,NZ, got {args.gel_resolution!r}")
+    except ConfigError as err:
+        return _error(str(err))
+    try:
+        return _run(args, argv, bag, out, options)
     except ThinShellError as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 1
 
 
-def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simulation: dict | None) -> int:
-    from sysid.evidence import load_evidence
-    from sysid.fit import fit
-    from sysid.observation import ObservationModel
-    from sysid.report import write_report
-    from sysid.results import fit_document, provenance, staged_directory, write_fit_json
+def fit_options(args: argparse.Namespace) -> FitOptions:
+    """The :class:`~sysid.fit_recording.FitOptions` of parsed ``thinshell sysid`` arguments.
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        evidence = load_evidence(bag, scene_path=args.scene, include_image="auto")
-        model = ObservationModel(evidence, scene=args.scene, dt=args.dt, t_max=args.t_max,
-                                 channels=_split(args.channels), simulation=simulation, arch=args.arch)
-    for w in caught:
-        print(f"{PROG}: warning: {w.message}", file=sys.stderr)
-    params = _split(args.params) or []
-    print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
-          f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
-    for name in params:  # an unknown name fails here, in one line, before the sensor calibration's replay
-        model.parameter_value(name)
-    sensor = None
-    if not args.no_sensor_calibration:
-        from sysid.calibration import calibrate
+    Raises:
+        ValueError: ``--gel-resolution`` is not three integers.
+        ConfigError: an option value :class:`~sysid.fit_recording.FitOptions` refuses.
+    """
+    resolution = None if not args.gel_resolution else tuple(int(v) for v in _split(args.gel_resolution))
+    if resolution is not None and len(resolution) != 3:
+        raise ValueError(args.gel_resolution)
+    channels = _split(args.channels)
+    return FitOptions(params=tuple(_split(args.params) or ()), scene=args.scene, dt=args.dt, t_max=args.t_max,
+                      channels=None if channels is None else tuple(channels), gel_resolution=resolution,
+                      arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
+                      global_method=args.global_method if args.global_search else None,
+                      global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
+                      stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
+                      stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
+                      sensor_calibration=not args.no_sensor_calibration, workers=args.workers, seed=args.seed)
 
-        # the same sensor calibration as thinshell diagnose (sysid.calibration): one replay at the
-        # scene values, the gains / scales / intrinsics fitted in closed form; the fit is then judged
-        # against the calibrated prediction
-        sensor = calibrate(model, params=())
+
+def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
+    def announce(model, notes: tuple[str, ...]) -> None:
+        for note in notes:
+            print(f"{PROG}: warning: {note}", file=sys.stderr)
+        print(f"{PROG}: {bag}: fitting {', '.join(options.params)} on {', '.join(model.channels)} "
+              f"({model.step_count} steps of {options.dt} s, {model.residual_count} residuals)", file=sys.stderr)
+
+    def calibrated(sensor) -> None:
         print(f"{PROG}: sensor calibration: " + ", ".join(f"{k} {v:.4g}" for k, v in sensor.sensor.as_dict().items()),
               file=sys.stderr)
+
     progress = _Progress(not args.quiet)
     try:
-        result = fit(model, params, jacobian=args.jacobian, global_method=args.global_method if args.global_search else None,
-                     global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
-                     fd_step=args.fd_step, workers=args.workers, seed=args.seed, on_eval=progress,
-                     stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
-                     stop_rms=args.stop_rms or None, warm_start=not args.cold_start)
+        outcome = fit_recording(bag, out, options, force=args.force, command=[PROG, *argv], on_eval=progress,
+                                on_model=announce, on_calibration=calibrated,
+                                write_scene=args.write_scene or None)
     finally:
         progress.close()
-    result.warnings[:0] = [str(w.message) for w in caught]
-    worse = [ch for ch, before in result.rms_initial.items()
-             if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]]
-    for ch in worse:
-        result.warnings.append(f"the fit does not improve channel {ch}: RMS {result.rms_initial[ch]['rms']:.4g} -> "
-                               f"{result.rms_final[ch]['rms']:.4g} {result.rms_initial[ch]['unit']} (the fitted "
-                               "parameters cannot follow it; weigh or drop it with --channels)")
-    doc = fit_document(result, provenance(evidence, args.seed, args.t_max, [PROG, *argv], args.scene))
-    if sensor is not None:
-        doc["diagnostics"]["sensor_calibration"] = sensor.summary()
-    scene_doc = None
-    if args.write_scene:
-        from sysid.fitted_scene import fitted_scene_from_result
-
-        scene_doc = fitted_scene_from_result(result, evidence, args.t_max)  # checked before anything is written
-    with staged_directory(out, args.force) as staging:
-        write_fit_json(staging / "fit.json", doc)
-        write_report(result, doc, staging)
-    if scene_doc is not None:
-        from sysid.fitted_scene import write_fitted_scene
-
-        print(f"fitted scene: {write_fitted_scene(args.write_scene, scene_doc, force=args.force)}")
+    result = outcome.result
+    if outcome.scene is not None:
+        print(f"fitted scene: {outcome.scene}")
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"

@@ -36,6 +36,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from sim_core.errors import ThinShellError
+from sysid.evidence import load_evidence
+from sysid.fitted_scene import sensor_calibration_of
+from sysid.observation import ObservationModel
+from sysid.results import staged_directory
 
 PROG = "thinshell compare"
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
@@ -93,10 +97,6 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         BagReadError: unreadable bag. ConfigError: invalid scene. CalibrationError: nothing to compare.
         SimulationDivergedError: a replay failed (names the step).
     """
-    from sysid.evidence import load_evidence
-    from sysid.fitted_scene import sensor_calibration_of
-    from sysid.observation import ObservationModel
-
     evidence = load_evidence(bag, include_image="auto")
     out = Comparison(Path(bag), [], {}, {}, {}, {}, {})
     for label, scene in scenes:
@@ -122,10 +122,10 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
 
 # ----------------------------------------------------------------------------------- plots
 def _pyplot():
-    import matplotlib
+    import matplotlib  # optional dependency: matplotlib, for plots only
 
     matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional dependency: matplotlib, for plots only
 
     return plt
 
@@ -266,8 +266,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def compare_main(argv: Sequence[str] | None = None) -> int:
     """Run ``thinshell compare``; 0 on success, 2 for a usage error, 1 for a thinshell error (one line)."""
-    from sysid.results import staged_directory
-
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     out = Path(args.out)

@@ -5,8 +5,8 @@ SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwel
 *nominal* ``scene.yaml``; the effect is produced by code independent of the candidate models of ``sim_core.candidates`` and
 ``sysid.diagnose``:
 
-- physics, through a solver hook (:class:`~sim_core.candidates.CandidateNewtonSolver`'s plumbing,
-  with the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
+- physics, through a solver hook (:class:`~sim_core.candidates.hook.StepHook`, given to the solver
+  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
@@ -26,7 +26,7 @@ Nominal recordings differ by their noise only. With ``--heldout-companions`` eac
 gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
 whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
 validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
-blocks; not the default: measured worse on the set (docs/benchmarks.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
+blocks; not the default: measured worse on the set (docs/benchmarks_log.md, 2026-11-22). Scores: confusion matrix of the top-1 name (``none``
 when nothing is reported), top-1 accuracy per strength (``unexplained`` is the right answer for
 ``thickness_step``), false-alarm rate on nominal recordings, IoU of the located windows, held-out
 RMS reduction ``1 - after / before``.
@@ -36,24 +36,34 @@ from __future__ import annotations
 
 import argparse
 import copy
+import importlib
 import json
 import math
+import multiprocessing
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+import yaml
 
+from sim_core.control import Control
 from sim_core.errors import ThinShellError
-from sysid.diagnose.reference_bench import bench_reference, format_reference
-from sysid.diagnose.signature_engine import SignatureSettings
-from sysid.diagnose.scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
-                                    top1)
+from sim_core.scenes import load_scene
+from sim_core.scenes.scene_file import load_yaml
+from sim_core.simulation import Simulation
+from sysid.bagio import BagWriter
 from sysid.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
+from sysid.data import BENCH_SCENE, data_file
+from sysid.diagnose.reference_bench import bench_reference, format_reference
+from sysid.diagnose.scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
+                                    top1)
+from sysid.diagnose.signature_engine import SignatureSettings
 
 NS = "/thinshell"
 DT = 0.01
@@ -62,8 +72,9 @@ NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array(
          "sheet_points": np.array([50e-6] * 3)}
 """1-sigma white noise per channel axis (the reference bags' levels)."""
 
-SCENE_PATH = Path(__file__).resolve().parents[1] / "config" / "scenes" / "bench_card.yaml"
-"""The benchmark's scene file (scene v1): a small card and a coarse tactile pad."""
+SCENE_PATH = data_file(BENCH_SCENE)
+"""The benchmark's scene file (scene v1, packaged ``sysid/data/bench_card.yaml``): a small card and a
+coarse tactile pad."""
 
 
 def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
@@ -72,10 +83,6 @@ def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
     Raises:
         ThinShellError: the file is missing or not YAML (named).
     """
-    import yaml
-
-    from sim_core.scenes.scene_file import load_yaml
-
     try:
         return load_yaml(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as err:
@@ -91,7 +98,7 @@ SEGMENTS = (((0.0, 0.0, -0.00105), 3), ((-0.002, 0.0, 0.0), 8), ((0.0, 0.0, -0.0
 Two taps on the flat card after the lift (every contact event then happens more than once, so
 that adhesion at lift-off can be fitted on one and validated on another, ``sysid.diagnose.events``)
 were tried on the 36-recording set and dropped: top-1 at 2 sigma fell from 0.9 to 0.4 and a
-nominal recording was flagged (docs/benchmarks.md, 2026-11-22)."""
+nominal recording was flagged (docs/benchmarks_log.md, 2026-11-22)."""
 
 CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 
@@ -126,24 +133,18 @@ def rollout(scene: Mapping[str, Any], targets: np.ndarray, hook: Any | None = No
     Args:
         scene: scene dict.
         targets: effector targets ``(K, 7)``.
-        hook: effect hook (``contact_terms`` / ``body_terms`` / ``update_state``, see
-            :class:`PhysicsEffect`), or None for the nominal model.
+        hook: effect hook (a :class:`~sim_core.candidates.hook.StepHook`: ``terms`` /
+            ``update_state``, see :class:`~sysid.bench_effects.PhysicsEffect`), or None for the
+            nominal model.
 
     Returns:
         ``t_ns (K+1,)``, ``pose``, ``pose_cmd`` ``(K+1, 7)``, ``markers_xyz``, ``markers_uv``,
         ``wrench (K+1, 6)``, ``sheet_points``.
     """
-    from sim_core.candidates import CandidateNewtonSolver
-    from sim_core.control import Control
-    from sim_core.scenes import load_scene
-    from sim_core.simulation import Simulation
-
     sim = Simulation(load_scene(copy.deepcopy(dict(scene))), dt=DT)
     if hook is not None:
-        solver = CandidateNewtonSolver(sim.model, sim.solver.config)
-        solver.hook = hook
         hook.attach(sim)
-        sim.solver = solver
+        sim.solver.set_hook(hook)
     rows = []
 
     def observe() -> None:
@@ -336,8 +337,6 @@ def add_noise(streams: dict, rng: np.random.Generator) -> dict:
 
 def write_recording(out_dir: Path, streams: dict, scene: Mapping[str, Any] = SCENE) -> Path:
     """Write streams as a rosbag2 MCAP bag plus the nominal ``scene.yaml`` (INTERFACES.md topics)."""
-    from sysid.bagio import BagWriter
-
     with BagWriter(out_dir, scene=dict(scene)) as bag:
         for i, t in enumerate(streams["t_ns"]):
             t = int(t)
@@ -514,8 +513,6 @@ def load_labelled_set(directory: Path) -> list[Recording]:
 
 
 def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
-    import importlib
-
     module, _, name = spec.partition(":")
     return getattr(importlib.import_module(module), name or "diagnose")
 
@@ -558,7 +555,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="diagnose a set written earlier (its labels.json) instead of generating one")
     ap.add_argument("--heldout-companions", action="store_true",
                     help="also write a held-out companion per recording (other motion, same effect) and "
-                         "validate on it (default: held-out time blocks; see docs/benchmarks.md 2026-11-22)")
+                         "validate on it (default: held-out time blocks; see docs/benchmarks_log.md 2026-11-22)")
     ap.add_argument("--no-heldout", action="store_true",
                     help="ignore the companions a labelled set lists (validate on held-out time blocks)")
     ap.add_argument("--add-heldout", action="store_true",
@@ -615,14 +612,8 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                 if args.reports is not None:
                     _write_report(args.reports, r.name, reports[-1])
         else:
-            from concurrent.futures import ProcessPoolExecutor
-
-            from concurrent.futures import as_completed
-
             log(f"diagnosing {len(recs)} recordings, {args.jobs} at a time ...")
             reports = [None] * len(recs)
-            import multiprocessing
-
             # spawned, not forked: this process may have run Taichi (generating the set), and a kernel a
             # forked child compiles hangs it (Taichi's compile thread pool does not survive fork)
             with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:

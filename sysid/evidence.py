@@ -31,8 +31,9 @@ from typing import Any, Literal, Mapping, Sequence
 
 import numpy as np
 
-from sim_core.errors import BagReadError
+from sim_core.errors import BagReadError, CalibrationError
 from sim_core.scenes.scene_file import SceneFile
+from sysid.bagio import BagWarning
 from sysid.bagio.reader import BagConfig, BagContents, open_bag
 from sysid.noise import estimate_noise, noise_config
 
@@ -182,7 +183,7 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         bag_path: rosbag2 directory or bare ``.mcap`` file.
         scene_path: scene file overriding the ``scene.yaml`` beside the bag.
         roles: role -> topic overrides (see :func:`sysid.bagio.open_bag`).
-        config: sysid config (``bag`` and ``noise`` sections); default ``config/sysid/default.yaml``.
+        config: sysid config (``bag`` and ``noise`` sections); default the packaged ``sysid/data/default.yaml``.
         include_image: decode the image topic when present (True), never (False), or only when the
             recording has no markers topic (``"auto"``: the image stream is then the marker source).
             When the image is decoded and there is no markers topic, ``markers_uv`` is read off the
@@ -280,8 +281,7 @@ def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, 
         :class:`~sysid.bagio.BagWarning` naming the topic) when the markers cannot be read: no
         matching sensor, the first frame does not show the grid, or fewer than two frames remain.
     """
-    from sim_core.errors import CalibrationError
-    from sysid.bagio import BagWarning
+    # optional heavy dependency: OpenCV (through markers_image), for images only
     from sysid.markers_image import track_marker_stream
 
     def give_up(why: str) -> None:

@@ -26,13 +26,16 @@ of the estimated level and a correct model; ``reduced_chi2`` > 1 says by how muc
 from __future__ import annotations
 
 import math
-import os
+import multiprocessing
 import time
+import warnings as _warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
@@ -304,8 +307,6 @@ class FitProblem:
         if self.workers > 1 and len(todo) > 1:
             self._check_time(phase)
             if self._pool is None:
-                import multiprocessing
-
                 # the forked workers inherit compiled kernels; one a child compiles itself hangs it
                 # (Taichi's compile thread pool does not survive fork): ObservationModel.compile_kernels
                 warm = getattr(self.model, "compile_kernels", None)
@@ -441,7 +442,7 @@ def _global_phase(problem: FitProblem, u0: np.ndarray, method: str, seed: int, m
     start_best = problem.best[0] if problem.best is not None else math.inf
     evals_before = problem.sim_runs
     if method == "cma":
-        import cma
+        import cma  # optional dependency: cma, for the CMA-ES optimiser only
 
         popsize = 4 + int(3 * math.log(p))
         budget = max_evals if max_evals is not None else 6 * popsize
@@ -460,8 +461,6 @@ def _global_phase(problem: FitProblem, u0: np.ndarray, method: str, seed: int, m
             pass
         info = {"method": "cma", "popsize": popsize, "generations": generations, "sigma0": sigma0}
     elif method == "multistart":
-        from scipy.stats import qmc
-
         n = max_evals if max_evals is not None else 4 * (p + 1)
         lo, hi = np.maximum(lb, u0 - 2.0 * sigma0), np.minimum(ub, u0 + 2.0 * sigma0)
         starts = qmc.scale(qmc.LatinHypercube(d=p, seed=seed).random(n), lo, hi) if p else np.zeros((0, 0))
@@ -542,10 +541,6 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         CalibrationError: empty or duplicate parameter list, a non-finite start, the replay at the
             start diverged, or the time budget ran out before the start was evaluated.
     """
-    import warnings as _warnings
-
-    from scipy.optimize import least_squares
-
     t0 = time.perf_counter()
     names = tuple(params)
     if not names:
@@ -675,11 +670,3 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
     )
-
-
-def default_workers() -> int:
-    """Worker processes for batched replays: ``THINSHELL_SYSID_WORKERS`` or 1."""
-    try:
-        return max(1, int(os.environ.get("THINSHELL_SYSID_WORKERS", "1")))
-    except ValueError:
-        return 1

@@ -46,7 +46,9 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.scenes import load_scene
 from sim_core.transforms import quat_to_matrix
+from sysid.calibration import SensorCalibration
 
 _SHEET_MATERIAL = ("youngs_modulus", "poisson_ratio", "bending_stiffness")
 _GEL_MATERIAL = ("youngs_modulus", "poisson_ratio", "density")
@@ -152,8 +154,6 @@ def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
         ConfigError: a parameter without a scene key, a non-finite value, or a scene that does not
             read back the fitted values.
     """
-    from sim_core.scenes import load_scene
-
     doc = scene_with_values(scene, values, sensor=sensor)
     # modelled effects: fitted candidate terms, and those the scene already carried (e.g. from a diagnosis)
     carried = {k for k, v in ((doc.get("simulation") or {}).get("candidates") or {}).items() if "." not in k and v}
@@ -232,8 +232,6 @@ def sensor_calibration_of(scene: Mapping[str, Any]):
     Raises:
         ConfigError: a ``fitted.sensor_calibration`` with unknown or non-numeric entries.
     """
-    from sysid.calibration import SensorCalibration
-
     block = (scene.get("fitted") or {}).get("sensor_calibration")
     if block is None:
         return None

@@ -2,7 +2,7 @@
 
 Usage::
 
-    thinshell indent [--config config/sysid/feats_indentation.yaml] [--out DIR] [--force]
+    thinshell indent [--config FILE (default: the packaged FEATS config)] [--out DIR] [--force]
                      [--quadratic split|corners] [--friction MU] [--initial-modulus PA]
                      [--max-evaluations N]
 
@@ -25,9 +25,14 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.errors import ThinShellError
+from sim_core.indentation import run_depth_sweep
+from sysid.data import FEATS_INDENTATION, data_file
+from sysid.indentation_fit import build_indentation_setup, fit_youngs_modulus, load_indentation_config
+from sysid.results import git_revision, package_versions, staged_directory
 
 PROG = "thinshell indent"
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "sysid" / "feats_indentation.yaml"
+DEFAULT_CONFIG = data_file(FEATS_INDENTATION)
+"""The FEATS data set's config (packaged ``sysid/data/feats_indentation.yaml``)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,10 +85,6 @@ def _error(message: str) -> int:
 
 
 def _run(args: argparse.Namespace, argv: list[str], config: Path, out: Path) -> int:
-    from sim_core.indentation import run_depth_sweep
-    from sysid.indentation_fit import build_indentation_setup, fit_youngs_modulus, load_indentation_config
-    from sysid.results import git_revision, package_versions, staged_directory
-
     cfg = load_indentation_config(config)
     if args.friction is not None:
         cfg.friction = float(args.friction)
@@ -151,10 +152,10 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 def _plot(doc: dict, path: Path) -> Path:
     """Measured vs fitted force over depth (and the first sweep, at the initial modulus)."""
-    import matplotlib
+    import matplotlib  # optional heavy dependency: matplotlib, for plots only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional heavy dependency: matplotlib, for plots only
 
     d = 1e3 * np.asarray(doc["depth_m"])
     fig, ax = plt.subplots(figsize=(5, 3.6))

@@ -23,7 +23,12 @@ from typing import Callable
 
 import numpy as np
 
+from sim_core import indentation as ind
 from sim_core.errors import CalibrationError, ConfigError
+from sim_core.mesh import io
+from sim_core.model import ContactSettings
+from sim_core.scenes.scene_file import load_yaml
+from sim_core.solver import SolverConfig
 
 CONFIG_KEYS = {
     "version", "data_root", "mesh", "mesh_scale", "gel_volume_set", "gel_fixed_set", "indenter_volume_set",
@@ -119,7 +124,7 @@ def fit_youngs_modulus(
 
 @dataclass
 class IndentationConfig:
-    """The FEATS indentation data set (``config/sysid/feats_indentation.yaml``), paths resolved.
+    """The FEATS indentation data set (packaged ``sysid/data/feats_indentation.yaml``), paths resolved.
 
     Attributes:
         mesh: Abaqus/CalculiX mesh file holding gel and indenter.
@@ -146,12 +151,12 @@ class IndentationConfig:
     simulation: dict
 
 
-def load_indentation_config(path: str | Path, repo_root: str | Path | None = None) -> IndentationConfig:
-    """Read an indentation-fit YAML; data paths are relative to ``repo_root / data_root``.
+def load_indentation_config(path: str | Path, base: str | Path | None = None) -> IndentationConfig:
+    """Read an indentation-fit YAML; data paths are relative to ``base / data_root``.
 
     Args:
         path: the YAML file.
-        repo_root: repository root (default: the folder two levels above this module).
+        base: the folder a relative ``data_root`` is resolved against (default: the YAML file's folder).
 
     Returns:
         :class:`IndentationConfig`.
@@ -160,8 +165,6 @@ def load_indentation_config(path: str | Path, repo_root: str | Path | None = Non
         ConfigError: missing file, unknown or missing key, mismatched measurement lengths, or a data
             file that does not exist (the message names the file and the key).
     """
-    from sim_core.scenes.scene_file import load_yaml
-
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"indentation config {path} does not exist")
@@ -170,7 +173,7 @@ def load_indentation_config(path: str | Path, repo_root: str | Path | None = Non
     missing = sorted(CONFIG_KEYS - set(raw) - {"simulation", "reference"})
     if unknown or missing:
         raise ConfigError(f"{path}: unknown keys {unknown} / missing keys {missing}")
-    root = Path(repo_root) if repo_root is not None else Path(__file__).resolve().parents[1]
+    root = Path(base) if base is not None else path.resolve().parent
     data_root = (root / raw["data_root"]).resolve()
     files = {}
     for key in ("mesh", "gel_volume_set", "gel_fixed_set", "indenter_volume_set"):
@@ -213,11 +216,6 @@ def build_indentation_setup(cfg: IndentationConfig, youngs_modulus: float, quadr
     Raises:
         MeshError / ConfigError: unreadable mesh or node sets, a set with no tets (names the file).
     """
-    from sim_core import indentation as ind
-    from sim_core.mesh import io
-    from sim_core.model import ContactSettings
-    from sim_core.solver import SolverConfig
-
     mesh = io.read_mesh(cfg.mesh, scale=cfg.mesh_scale, quadratic=quadratic)
     gel_nodes = _single_set(io.load_node_sets(cfg.gel_volume_set, mesh.node_ids), cfg.gel_volume_set)
     fixed_nodes = _single_set(io.load_node_sets(cfg.gel_fixed_set, mesh.node_ids), cfg.gel_fixed_set)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import time
+import warnings as _warnings
 from typing import TYPE_CHECKING, Any, Mapping, Protocol
 
 import numpy as np
@@ -109,8 +110,6 @@ class SensitivityJacobian:
         self.fallback = FiniteDifferenceJacobian(fd_step)
 
     def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
-        import warnings as _warnings
-
         u = np.asarray(u, dtype=float)
         J = problem.cached_jacobian(u)
         if J is not None:

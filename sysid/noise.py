@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from sim_core.errors import ConfigError
+from sim_core.scenes.scene_file import load_yaml
+from sysid.data import DEFAULT_CONFIG, data_file
 
 MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
 
@@ -96,22 +98,18 @@ def estimate_noise(t_ns: np.ndarray, values: np.ndarray, order: int = 2) -> np.n
 
 
 def noise_config(path: str | Path | None = None) -> dict:
-    """The ``noise:`` section of a sysid config file (``config/sysid/default.yaml`` by default).
+    """The ``noise:`` section of a sysid config file (the packaged ``sysid/data/default.yaml`` by default).
 
     Returns:
         ``{"difference_order": int}``.
 
     Raises:
-        ConfigError: unknown key or bad value (named with the file).
+        ConfigError: missing file (the packaged default included), unknown key or bad value (named
+            with the file).
     """
-    from sim_core.scenes.scene_file import load_yaml
-    from sysid.bagio.reader import DEFAULT_CONFIG_PATH
-
     out = {"difference_order": 2}
-    path = Path(path) if path is not None else DEFAULT_CONFIG_PATH
+    path = Path(path) if path is not None else data_file(DEFAULT_CONFIG)
     if not path.is_file():
-        if path == DEFAULT_CONFIG_PATH:
-            return out
         raise ConfigError(f"{path}: sysid config file does not exist")
     section = (load_yaml(path.read_text(encoding="utf-8")) or {}).get("noise") or {}
     unknown = [k for k in section if k not in out]

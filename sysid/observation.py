@@ -26,9 +26,15 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from sim_core.backend import backend_of_arch
 from sim_core.control import Control
 from sim_core.errors import CalibrationError
+from sim_core.fused_elastic import compile_kernels
+from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
+from sim_core.simulation import Simulation
+from sim_core.solver import SolverConfig
+from sim_core.transforms import quat_to_matrix
 from sysid.evidence import Evidence, resample_pose
 
 PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
@@ -340,11 +346,6 @@ class ObservationModel:
         """The (cached) ``sim_core.simulation.Simulation`` of the scene at step ``dt``, retrying a failed
         step in substeps (:data:`REPLAY_DT_HALVINGS`; counted in its ``step_totals``)."""
         if self._sim is None:
-            from sim_core.backend import backend_of_arch
-            from sim_core.scenes import load_scene
-            from sim_core.simulation import Simulation
-            from sim_core.solver import SolverConfig
-
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
             config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
             self._sim = Simulation(load_scene(self.scene), dt=self.dt, solver_config=config)
@@ -366,7 +367,6 @@ class ObservationModel:
         """
         if self.arch == "numpy":
             return 0.0
-        from sim_core.fused_elastic import compile_kernels
 
         sim = self.simulation()
         return compile_kernels(sim.solver.elastic.potentials(sim.state.hinge_theta_bar), sim.state.x,
@@ -425,8 +425,6 @@ class ObservationModel:
 
     def _sensor_normal(self, pose: np.ndarray) -> np.ndarray:
         """World direction ``(3,)`` of the sensor's +z (out of the gel) at effector pose ``pose``."""
-        from sim_core.transforms import quat_to_matrix
-
         mount = self.simulation().model.sensors[self.sensor].mount
         return quat_to_matrix(pose[3:7]) @ quat_to_matrix(mount[3:7]) @ np.array([0.0, 0.0, 1.0])
 

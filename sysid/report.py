@@ -24,10 +24,10 @@ COLORS = {"data": "0.45", "initial": "tab:orange", "final": "tab:blue"}
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # optional heavy dependency: matplotlib, for plots only
 
     matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional heavy dependency: matplotlib, for plots only
 
     return plt
 

@@ -3,8 +3,9 @@ the layers of STYLE.md (sim_core <- sysid <- thinshell_ros): sim_core imports ne
 libraries nor the packages above it, sysid does not import thinshell_ros, only ``sysid.bagio`` opens
 bags (rosbags / mcap), at any level of a module (function-level imports included).
 
-Function-level imports still close three cycles (:data:`KNOWN_CYCLES_THROUGH_FUNCTION_LEVEL_IMPORTS`);
-a new one fails the tests.
+Function-level imports close no cycle either (imports under ``if TYPE_CHECKING:``, never executed,
+are not counted). ``tests/test_import_linter.py`` checks the same rules with import-linter
+(``.importlinter``), which also forbids cycles between sibling packages.
 
 A module-level import is one executed when the module is imported: in the module body, also inside
 ``if`` / ``try`` / ``with`` blocks and class bodies, but not inside functions and not under
@@ -51,9 +52,12 @@ def _is_type_checking(test: ast.expr) -> bool:
 
 
 def _import_nodes(tree: ast.Module, module_level: bool) -> list[ast.Import | ast.ImportFrom]:
-    """The import statements of a module: all of them, or only those run at import time."""
+    """The import statements of a module: all of them but those under ``if TYPE_CHECKING:`` (never
+    executed), or only those run at import time."""
     if not module_level:
-        return [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+        typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If) and _is_type_checking(block.test)
+                       for stmt in block.body for n in ast.walk(stmt)}
+        return [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) and id(n) not in typing_only]
     out: list[ast.Import | ast.ImportFrom] = []
 
     def visit(nodes: list[ast.stmt]) -> None:
@@ -168,22 +172,11 @@ def test_there_is_no_import_cycle():
     assert not cycles, "import cycles (module-level imports):\n" + "\n".join(" <-> ".join(c) for c in cycles)
 
 
-KNOWN_CYCLES_THROUGH_FUNCTION_LEVEL_IMPORTS = [
-    ["sim_core.candidates.hook", "sim_core.contact_set", "sim_core.effector", "sim_core.elastic", "sim_core.model",
-     "sim_core.solver"],
-    ["sim_core.elastic_worker", "sim_core.fused_elastic", "sim_core.ti_kernels.fused_kirchhoff",
-     "sim_core.ti_kernels.fused_neohookean", "sim_core.ti_kernels.fused_spring_membrane"],
-    ["sysid.fit", "sysid.jacobians"],
-]
-"""The cycles that function-level (and ``TYPE_CHECKING``) imports still close (issue 24, item 4: to be
-broken; a function-level import should remain only for an optional heavy dependency)."""
-
-
-def test_no_new_cycle_through_function_level_imports():
-    """Counting every import, the cycles are the known ones: a new one fails, and so does a known one
-    broken without being struck from the list."""
+def test_no_cycle_through_function_level_imports():
+    """Counting every executed import (function-level ones included, ``TYPE_CHECKING`` ones not),
+    there is no cycle either."""
     cycles = import_cycles(import_graph(module_level=False))
-    assert cycles == KNOWN_CYCLES_THROUGH_FUNCTION_LEVEL_IMPORTS, "\n".join(" <-> ".join(c) for c in cycles)
+    assert not cycles, "import cycles (all imports):\n" + "\n".join(" <-> ".join(c) for c in cycles)
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))

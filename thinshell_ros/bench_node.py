@@ -117,7 +117,7 @@ def bench_node_main(argv: Sequence[str]) -> int:
     Starts the sim node in a subprocess on ``ROS_DOMAIN_ID`` (default: derived from the pid, so as not
     to disturb a live graph), measures it and prints a summary (one JSON line with ``--json``).
     """
-    import rclpy
+    import rclpy  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
 
     parser = argparse.ArgumentParser(prog="thinshell bench node", description=bench_node_main.__doc__.split("\n")[0])
     parser.add_argument("--scene", default="", help="scene file (default: the bundled press_slide scene)")

@@ -11,6 +11,8 @@ import argparse
 import importlib
 import sys
 
+from sim_core.errors import ThinShellError
+
 # subcommand -> (module, function, help). Functions take ``argv: list[str]`` and return an exit code.
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "demo": ("thinshell_ros.demo", "demo_main", "the main job: sim node + scripted commander + recording, then sysid on the bundled bag"),
@@ -41,7 +43,6 @@ def main(argv: list[str] | None = None) -> int:
     except (ImportError, AttributeError) as err:
         print(f"thinshell {ns.command}: not available in this installation ({err})", file=sys.stderr)
         return 2
-    from sim_core.errors import ThinShellError
 
     try:
         return int(entry(argv[1:]) or 0)

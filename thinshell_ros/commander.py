@@ -27,11 +27,15 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from rclpy.clock import Clock as RosClock, ClockType
 from rclpy.node import Node
 
-from sim_core.errors import ConfigError
+from sim_core.errors import ConfigError, ThinShellError
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.transforms import compose_poses, quat_to_matrix
+from thinshell_ros import conversions as cv
+from thinshell_ros.paths import bundled_scene
+from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, ros_session, spin_until_stopped, topic_namespace
 from thinshell_ros.trajectory import SCRIPTED, Trajectory, scripted_trajectory
 
 DEFAULT_SCRIPT = "press_slide_lift"
@@ -178,13 +182,9 @@ class CommanderNode(Node):
     """
 
     def __init__(self, node_name: str = "thinshell_commander", **kwargs: Any) -> None:
-        from geometry_msgs.msg import PoseStamped
+        from geometry_msgs.msg import PoseStamped  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import PointCloud2
-
-        from thinshell_ros import conversions as cv
-        from thinshell_ros.paths import bundled_scene
-        from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS, topic_namespace
 
         super().__init__(node_name, **kwargs)
         self._cv = cv
@@ -220,8 +220,6 @@ class CommanderNode(Node):
         if bool(self.get_parameter("use_sim_time").value):
             self.create_subscription(Clock, "/clock", self._on_clock, CLOCK_QOS)
         else:
-            from rclpy.clock import Clock as RosClock, ClockType
-
             self.create_timer(1.0 / self.rate, self._on_wall_tick, clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"commander: {self.script} for {self.effector!r} at {self.rate:g} Hz of sim time, "
                                f"scene {scene_path}; waiting for {ns}/{self.effector}/pose and {ns}/sheet/points")
@@ -276,9 +274,6 @@ class CommanderNode(Node):
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the commander until its motion is done or SIGINT/SIGTERM; returns the exit code."""
-    from sim_core.errors import ThinShellError
-    from thinshell_ros.runtime import ros_session, spin_until_stopped
-
     args = list(sys.argv) if argv is None else ["thinshell-commander", *argv]
     with ros_session(args) as stop:
         try:

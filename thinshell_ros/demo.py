@@ -36,8 +36,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+import yaml
+
 from sim_core.errors import ConfigError, ThinShellError
-from thinshell_ros.demo_loop import log_tail, stop_process
+from sim_core.scenes.scene_file import load_yaml
+from sysid.bagio import open_bag
+from sysid.cli import sysid_main
+from sysid.compare import compare_main
+from sysid.diagnose.cli import diagnose_main
+from sysid.fitted_scene import scene_with_values
+from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
+                                     robot_noise_args, run_deploy_stage, stop_process, write_hidden_scene)
 from thinshell_ros.paths import bundled_scene, config_dir
 
 DEFAULT_BAG = "nominal_s101"
@@ -157,12 +166,13 @@ def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:
 
 
 def _console():
-    from rich.console import Console
+    from rich.console import Console  # optional dependency: rich, for terminal output only
 
     return Console(highlight=False)
 
 
 def _progress(console):
+    # optional dependency: rich, for terminal output only
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
@@ -179,12 +189,13 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     Raises:
         ThinShellError: the node died, did not come up, or the motion timed out (the node log is quoted).
     """
-    import rclpy
+    import rclpy  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
+    # optional heavy dependency: ROS 2 nodes (rclpy), for ROS commands only
     from thinshell_ros.commander import CommanderNode
 
     log_path = run / "sim_node.log"
@@ -254,13 +265,11 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     if code != 0:
         raise ThinShellError(f"the sim node exited with code {code}:\n{log_tail(log_path)}")
 
-    from sysid.bagio import open_bag
-
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
         contents = open_bag(result.recorded_bag)
     result.message_counts = {t: info.message_count for t, info in sorted(contents.topics.items())}
-    from rich.table import Table
+    from rich.table import Table  # optional dependency: rich, for terminal output only
 
     table = Table(title=f"recorded bag {result.recorded_bag}", show_edge=False)
     table.add_column("topic")
@@ -282,8 +291,7 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     Raises:
         ThinShellError: the fitter failed (its reason is on stderr).
     """
-    from sysid.cli import sysid_main
-
+    # optional heavy dependency: ROS 2 nodes (rclpy), for ROS commands only
     from thinshell_ros.sysid_node import summarise_fit
 
     out = run / "sysid"
@@ -312,12 +320,6 @@ def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Pa
     Raises:
         ThinShellError: the diagnosis failed.
     """
-    from sim_core.scenes.scene_file import load_yaml
-    from sysid.diagnose.cli import diagnose_main
-    from sysid.fitted_scene import scene_with_values
-
-    import yaml
-
     out = run / "diagnosis.json"
     args = [str(bag), *settings.diagnose_args, "--json", str(out)]
     console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
@@ -348,10 +350,6 @@ def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: A
     Raises:
         ThinShellError: a stage failed.
     """
-    from sysid.compare import compare_main
-
-    from thinshell_ros.demo_loop import deploy_trajectory_from_bag, rms_table, run_deploy_stage
-
     result.trajectory = deploy_trajectory_from_bag(result.recorded_bag, nominal, run / "trajectory.yaml",
                                                    settings.deploy_motion)
     console.print(f"[bold]4/6 trajectory[/bold]: {result.trajectory} (scripted press-slide-lift from the recording's start)")
@@ -435,8 +433,6 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
         ConfigError: bad mode, missing scene / bag, existing run directory without ``force``.
         ThinShellError: a stage failed.
     """
-    from thinshell_ros.demo_loop import CONCEALED, HIDDEN, robot_noise_args, write_hidden_scene
-
     if mode not in ("fast", "realtime"):
         raise ConfigError(f"--mode must be fast or realtime, got {mode!r}")
     settings = QUICK if quick else FULL

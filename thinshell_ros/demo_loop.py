@@ -30,6 +30,10 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ThinShellError
+from sim_core.scenes.scene_file import load_scene_file, load_yaml
+from sim_core.trajectory_file import Trajectory, write_trajectory
+from sysid.bagio import open_bag
+from sysid.fitted_scene import scene_with_values
 
 HIDDEN = {"gel.youngs_modulus": 4.5e5, "friction.gel_sheet": 0.6}
 """Material values of the "robot" (the nominal press_slide scene has 3.0e5 Pa and 0.8)."""
@@ -80,9 +84,6 @@ def robot_noise_args(seed: int) -> list[str]:
 def write_hidden_scene(nominal: Path, path: Path, hidden: Mapping[str, float] = HIDDEN,
                        concealed: Mapping[str, float] = CONCEALED) -> Path:
     """The nominal scene with the hidden values and the concealed effect, written to ``path``."""
-    from sim_core.scenes.scene_file import load_yaml
-    from sysid.fitted_scene import scene_with_values
-
     doc = scene_with_values(load_yaml(Path(nominal).read_text()), {**hidden, **concealed})
     doc["name"] = f"{doc.get('name', 'scene')} (hidden robot)"
     path.write_text("# the demo robot's hidden scene (thinshell_ros/demo_loop.py)\n"
@@ -102,10 +103,7 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
     Raises:
         ThinShellError: unreadable bag, or a motion that cannot be planned.
     """
-    from sim_core.scenes.scene_file import load_scene_file
-    from sim_core.trajectory_file import Trajectory, write_trajectory
-    from sysid.bagio import open_bag
-    from thinshell_ros.commander import plan_from_observation
+    from thinshell_ros.commander import plan_from_observation  # optional heavy dependency: ROS 2 (rclpy)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -132,7 +130,7 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     Raises:
         ThinShellError: the robot did not start or exited, or the deployment did not end in ``timeout`` s.
     """
-    import rclpy
+    import rclpy  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter

@@ -30,6 +30,7 @@ same transitions go to the log.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import threading
@@ -52,7 +53,7 @@ from thinshell_ros import conversions as cv
 from thinshell_ros.commands import Workspace
 from thinshell_ros.deploy_plan import (DeployLimits, DeploySchedule, SafetyMonitor, approach_trajectory,
                                        check_trajectory, start_pose_error, trajectory_from_bag)
-from thinshell_ros.runtime import COMMAND_QOS, SENSOR_QOS
+from thinshell_ros.runtime import COMMAND_QOS, SENSOR_QOS, ros_session, spin_until_stopped
 
 DEFAULT_NAMESPACE = "/thinshell"
 STATES = ("waiting", "running", "completed", "aborted", "refused")
@@ -328,8 +329,6 @@ def deploy_main(argv: Sequence[str] | None = None) -> int:
     Other node parameters go after ``--ros-args`` (``-p wrench_limit:=5.0``, ``-r __ns:=/robot``).
     Returns 0 when the motion completed, 1 when it was refused or aborted.
     """
-    import argparse
-
     argv = list(sys.argv[1:] if argv is None else argv)
     ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
     own = argv[:len(argv) - len(ros_args)]
@@ -354,8 +353,6 @@ def deploy_main(argv: Sequence[str] | None = None) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the deploy node until the motion ends or SIGINT/SIGTERM; 0 when it completed."""
-    from thinshell_ros.runtime import ros_session, spin_until_stopped
-
     args = list(sys.argv) if argv is None else list(argv)
     with ros_session(args) as stop:
         try:

@@ -32,6 +32,7 @@ import numpy as np
 from sim_core.errors import ConfigError
 from sim_core.trajectory_file import Trajectory, validate_trajectory
 from sim_core.transforms import quat_multiply, quat_to_rotvec
+from sysid.bagio import open_bag
 from thinshell_ros.commands import Workspace
 
 _CONJ = np.array([-1.0, -1.0, -1.0, 1.0])
@@ -291,8 +292,6 @@ def trajectory_from_bag(path: str | Path) -> Trajectory:
     Raises:
         BagReadError: unreadable bag. ConfigError: no ``pose_cmd`` messages, or bad poses (named).
     """
-    from sysid.bagio import open_bag
-
     bag = open_bag(path, skip_roles=("image", "markers", "sheet_points", "wrench", "clock", "pose"))
     series = bag.series.get("pose_cmd")
     if series is None or len(series) == 0:

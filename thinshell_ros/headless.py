@@ -16,8 +16,9 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-
 from sim_core.errors import ConfigError
+from sim_core.simulation import Simulation
+from sysid.bagio import BagWriter
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.trajectory import SCRIPTED, Trajectory, load_trajectory, scripted_trajectory
 
@@ -121,9 +122,6 @@ def sim_main(argv: Sequence[str]) -> int:
     ``T`` is a YAML/CSV trajectory file or a scripted name (``press_slide``, ``press_slide_lift``).
     Returns the exit code.
     """
-    from sim_core.simulation import Simulation
-    from sysid.bagio import BagWriter
-
     parser = argparse.ArgumentParser(prog="thinshell sim", description="simulate a trajectory headless (no DDS) "
                                      "and write a rosbag2 MCAP bag with scene.yaml")
     parser.add_argument("--scene", default=None, help="scene file (default: the bundled press_slide scene)")

@@ -19,6 +19,7 @@ def config_dir() -> Path:
         FileNotFoundError: neither exists.
     """
     try:
+        # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
         try:

@@ -23,6 +23,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 
 from sim_core.errors import ConfigError
+from sysid.bagio import BagWriter
+from thinshell_ros.runtime import ros_session, spin_until_stopped
 
 # topic suffix (relative to the namespace) -> ROS type, INTERFACES.md "Topics"
 EFFECTOR_TOPICS = {
@@ -93,8 +95,6 @@ class BagRecorder:
 
     def __init__(self, out_dir: str | Path, scene: str | Path | Mapping[str, Any] | None = None,
                  force: bool = False) -> None:
-        from sysid.bagio import BagWriter
-
         self.out_dir = Path(out_dir)
         self._writer = BagWriter(out_dir, scene=scene, force=force)
 
@@ -204,9 +204,7 @@ def record_main(argv: Sequence[str]) -> int:
     Arguments after ``--ros-args`` go to rclpy (e.g. ``-p use_sim_time:=true``). Records until
     SIGINT/SIGTERM (or ``--duration`` seconds), then closes the bag. Returns the exit code.
     """
-    from rclpy.utilities import remove_ros_args
-
-    from thinshell_ros.runtime import ros_session, spin_until_stopped
+    from rclpy.utilities import remove_ros_args  # optional heavy dependency: ROS 2 (rclpy), for ROS commands only
 
     argv = list(argv)
     parser = argparse.ArgumentParser(prog="thinshell record", description=record_main.__doc__.split("\n")[0])

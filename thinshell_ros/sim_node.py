@@ -67,11 +67,14 @@ from visualization_msgs.msg import Marker
 
 from sim_core.backend import BACKEND_CHOICES, check_backend
 from sim_core.errors import ConfigError, ThinShellError
-from sim_core.solver import NewtonSolver, StepInfo
+from sim_core.simulation import Simulation
+from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
-from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, topic_namespace
+from thinshell_ros.recorder import BagRecorder
+from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, ros_session, spin_until_stopped,
+                                   topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
 
@@ -177,9 +180,6 @@ class SimNode(Node):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
         check_backend(backend, "node parameter 'backend'")
         if sim is None:
-            from sim_core.simulation import Simulation
-            from sim_core.solver import SolverConfig
-
             sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(backend=backend))
         self.sim = sim
         self.dt = float(sim.dt)
@@ -209,8 +209,6 @@ class SimNode(Node):
 
         self.recorder = None
         if record:
-            from thinshell_ros.recorder import BagRecorder
-
             self.recorder = BagRecorder(record, scene=record_scene or self.scene_path or None, force=record_force)
             self.get_logger().info(f"recording into {record}")
 
@@ -528,8 +526,6 @@ class SimNode(Node):
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM; the recording (if any) is closed. Returns the exit code."""
-    from thinshell_ros.runtime import ros_session, spin_until_stopped
-
     args = list(sys.argv) if argv is None else ["thinshell-sim-node", *argv]
     with ros_session(args) as stop:
         try:

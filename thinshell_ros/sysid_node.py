@@ -4,12 +4,15 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 
 - ``bag`` (str): recording to fit (rosbag2 MCAP directory with ``scene.yaml``, INTERFACES.md).
 - ``params`` (str): comma-separated global parameter names (``sheet.bending_stiffness,...``);
-  empty: the fitter's defaults.
+  empty: the fitter's defaults (:data:`sysid.fit.DEFAULT_PARAMETERS`).
 - ``out`` (str): directory of the fit report; empty: a new ``./sysid_<bag name>_<timestamp>``.
 - ``force`` (bool): replace an existing report directory.
 - ``t_max`` (s), ``dt`` (s): fit only the first ``t_max`` s of the recording / replay at step ``dt``;
   0 = the fitter's defaults.
-- ``fit_args`` (str): further ``thinshell sysid`` options, shell-quoted (``--max-nfev 5 --global``).
+- ``max_nfev`` (int, 30), ``max_time`` (s, 0 = no budget), ``global_search`` (bool: CMA-ES before the
+  local least squares), ``gel_resolution`` (str ``NX,NY,NZ``, empty = the scene's), ``workers`` (int),
+  ``arch`` (``cpu`` | ``cuda`` | ``numpy``), ``sensor_calibration`` (bool, true): the fitter's settings
+  (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;
   replaced only with ``force``); empty: none. The result's ``scene`` names it.
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
@@ -30,9 +33,7 @@ when that is configured, and then one JSON document is published on ``<namespace
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import shlex
 import math
 import sys
 import threading
@@ -49,6 +50,8 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from sim_core.errors import ConfigError
+from sysid.fit_recording import FitOptions, fit_recording
+from sysid.results import load_fit_json
 from thinshell_ros.runtime import topic_namespace
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -62,40 +65,17 @@ class FitRequest:
 
     Attributes:
         bag: recording path.
-        params: global parameter names (empty: the fitter's defaults).
-        out: report directory (None: the fitter's default).
+        out: report directory (None: a new ``./sysid_<bag name>_<timestamp>``, :func:`default_out`).
         force: replace an existing report.
-        t_max: s of the recording to fit (None: all / the fitter's default).
-        dt: replay step in s (None: the fitter's default).
-        extra: further ``thinshell sysid`` options.
+        options: the fit's settings (:class:`sysid.fit_recording.FitOptions`).
         write_scene: fitted scene file to write (None: none).
     """
 
     bag: Path
-    params: tuple[str, ...]
     out: Path | None
     force: bool
-    t_max: float | None
-    dt: float | None
-    extra: tuple[str, ...] = ()
+    options: FitOptions
     write_scene: Path | None = None
-
-    def cli_args(self) -> list[str]:
-        """The ``thinshell sysid`` arguments of this request."""
-        args = [str(self.bag)]
-        if self.params:
-            args += ["--params", ",".join(self.params)]
-        if self.out is not None:
-            args += ["--out", str(self.out)]
-        if self.force:
-            args.append("--force")
-        if self.t_max is not None:
-            args += ["--t-max", repr(self.t_max)]
-        if self.dt is not None:
-            args += ["--dt", repr(self.dt)]
-        if self.write_scene is not None:
-            args += ["--write-scene", str(self.write_scene)]
-        return [*args, *self.extra]
 
 
 def parse_params(text: str) -> tuple[str, ...]:
@@ -122,26 +102,23 @@ def default_out(bag: Path, now: float | None = None) -> Path:
     return out
 
 
-def run_sysid_cli(request: FitRequest) -> dict[str, Any]:
-    """Run the fitter (``thinshell sysid --quiet``, :func:`sysid.cli.sysid_main`) and summarise its ``fit.json``.
+def run_fit(request: FitRequest) -> dict[str, Any]:
+    """Run the fitter (:func:`sysid.fit_recording.fit_recording`, what ``thinshell sysid`` runs) and
+    summarise its ``fit.json``.
 
     Returns:
         the fit summary (:func:`summarise_fit`).
 
     Raises:
-        RuntimeError: the fitter returned a non-zero exit code (its one-line reason is on stderr).
-        CalibrationError: it wrote no valid ``fit.json``.
+        ThinShellError: the fit failed (unreadable bag, invalid scene, diverged replay, existing
+            report directory without ``force``, ...); CalibrationError: no valid ``fit.json``.
     """
-    from sysid.cli import sysid_main
-
-    if request.out is None:
-        request = dataclasses.replace(request, out=default_out(request.bag))
-    args = [*request.cli_args(), "--quiet"]
-    code = sysid_main(args)
-    if code != 0:
-        raise RuntimeError(f"thinshell sysid {' '.join(args)} exited with code {code} (reason on stderr)")
-    summary = summarise_fit(request.out)
-    summary["scene"] = str(request.write_scene) if request.write_scene is not None else None
+    out = request.out if request.out is not None else default_out(request.bag)
+    outcome = fit_recording(request.bag, out, request.options, force=request.force,
+                            command=["thinshell-sysid-node", str(request.bag), repr(request.options)],
+                            write_scene=request.write_scene)
+    summary = summarise_fit(out)
+    summary["scene"] = str(outcome.scene) if outcome.scene is not None else None
     return summary
 
 
@@ -155,8 +132,6 @@ def summarise_fit(out: Path) -> dict[str, Any]:
     Raises:
         CalibrationError: missing or invalid ``out/fit.json`` (:func:`sysid.results.load_fit_json`).
     """
-    from sysid.results import load_fit_json
-
     out = Path(out)
     doc = load_fit_json(out / "fit.json")
     params = doc["fit"]["parameters"]
@@ -174,7 +149,7 @@ class SysidNode(Node):
 
     Args:
         runner: ``FitRequest -> summary dict`` with at least ``params`` (name -> fitted value);
-            default :func:`run_sysid_cli`.
+            default :func:`run_fit`.
         node_name: ROS node name.
         **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
     """
@@ -182,10 +157,12 @@ class SysidNode(Node):
     def __init__(self, runner: Callable[[FitRequest], dict[str, Any]] | None = None,
                  node_name: str = "thinshell_sysid", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self.runner = runner or run_sysid_cli
+        self.runner = runner or run_fit
         for name, default in (("bag", ""), ("params", ""), ("out", ""), ("force", False), ("t_max", 0.0),
-                              ("dt", 0.0), ("fit_args", ""), ("apply_to", ""), ("apply_timeout", 10.0),
-                              ("write_scene", "")):
+                              ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
+                              ("global_search", False), ("gel_resolution", ""), ("workers", 1),
+                              ("arch", FitOptions.arch), ("sensor_calibration", FitOptions.sensor_calibration),
+                              ("apply_to", ""), ("apply_timeout", 10.0), ("write_scene", "")):
             self.declare_parameter(name, default)
         self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
         self._pub = self.create_publisher(String, f"{prefix}sysid/result", RESULT_QOS)
@@ -216,18 +193,27 @@ class SysidNode(Node):
             raise ConfigError("parameter 'bag' is empty: set it to a recording (rosbag2 directory)")
         if not Path(bag).exists():
             raise ConfigError(f"parameter 'bag': {bag} does not exist")
-        t_max, dt = float(self._param("t_max")), float(self._param("dt"))
-        for key, value in (("t_max", t_max), ("dt", dt)):
+        t_max, dt, max_time = (float(self._param(k)) for k in ("t_max", "dt", "max_time"))
+        for key, value in (("t_max", t_max), ("dt", dt), ("max_time", max_time)):
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"parameter {key!r} must be >= 0 (0: the fitter's default), got {value}")
-        out = str(self._param("out")).strip()
+        resolution = str(self._param("gel_resolution")).strip()
         try:
-            extra = tuple(shlex.split(str(self._param("fit_args"))))
+            gel_resolution = tuple(int(v) for v in resolution.split(",")) if resolution else None
         except ValueError as err:
-            raise ConfigError(f"parameter 'fit_args' is not valid shell syntax: {err}") from err
+            raise ConfigError(f"parameter 'gel_resolution' must be NX,NY,NZ (integers), got {resolution!r}") from err
+        params = parse_params(str(self._param("params")))
+        defaults = FitOptions()
+        options = FitOptions(params=params or defaults.params, dt=dt or defaults.dt, t_max=t_max or None,
+                             max_nfev=int(self._param("max_nfev")), max_time=max_time or None,
+                             global_method="cma" if self._param("global_search") else None,
+                             gel_resolution=gel_resolution, workers=int(self._param("workers")),
+                             arch=str(self._param("arch")),
+                             sensor_calibration=bool(self._param("sensor_calibration")))
+        out = str(self._param("out")).strip()
         scene = str(self._param("write_scene")).strip()
-        return FitRequest(Path(bag), parse_params(str(self._param("params"))), Path(out) if out else None,
-                          bool(self._param("force")), t_max or None, dt or None, extra, Path(scene) if scene else None)
+        return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options,
+                          Path(scene) if scene else None)
 
     # ------------------------------------------------------------------------------ service
     def _on_fit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -244,7 +230,7 @@ class SysidNode(Node):
             self._started = time.monotonic()
             self._worker = threading.Thread(target=self._work, args=(job,), name="sysid-fit", daemon=True)
             self._worker.start()
-        names = ",".join(job.params) or "default parameters"
+        names = ",".join(job.options.params)
         response.success = True
         response.message = f"fit started: {job.bag} ({names}); the result will be published on {self.result_topic}"
         self.get_logger().info(response.message)

@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.trajectory_file import read_trajectory
 from sim_core.transforms import quat_from_rotvec, quat_multiply, quat_to_matrix, quat_to_rotvec
 
 SCRIPTED = ("press_slide", "press_slide_lift")
@@ -102,8 +103,6 @@ def _validated(effector: str | None, t: Any, poses: Any, gripper: Any, where: st
 
 def _from_trajectory_file(path: Path) -> Trajectory:
     """A one-effector ``thinshell-trajectory`` file (``docs/trajectory_format.md``) as a :class:`Trajectory`."""
-    from sim_core.trajectory_file import read_trajectory
-
     traj = read_trajectory(path)
     if len(traj.effectors) != 1:
         raise ConfigError(f"{path}: a headless run plays one effector; the file has {traj.effectors}")

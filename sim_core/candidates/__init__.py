@@ -11,10 +11,10 @@ incremental potential (and, for the viscoelastic gel and the adhesion bonds, a s
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
 | ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
 
-:func:`candidate_terms` builds the terms of one step; :class:`~sim_core.candidates.hook.CandidateHook`
-does the same with caches and owns the post-step state update; :class:`CandidateNewtonSolver`
-is a :class:`~sim_core.solver.NewtonSolver` with the hook plugged in (the solver patch for the
-lead is ``docs/patches/solver_candidate_hook.diff``).
+:class:`~sim_core.candidates.hook.CandidateHook` builds the terms of each step and owns the
+post-step state update; it is a :class:`~sim_core.candidates.hook.StepHook`, the one way terms are
+added to :class:`~sim_core.solver.NewtonSolver`'s step (the solver builds it from the model's
+``candidate.<name>`` parameters, or takes another hook: ``NewtonSolver(..., hook=...)``).
 """
 
 from __future__ import annotations
@@ -22,14 +22,8 @@ from __future__ import annotations
 from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection, hinge_grain_cosine
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
-from sim_core.candidates.hook import (
-    CANDIDATE_NAMES,
-    CANDIDATE_SETTINGS,
-    CandidateHook,
-    CandidateNewtonSolver,
-    candidate_terms,
-    validate_candidate_parameters,
-)
+from sim_core.candidates.hook import CandidateHook, StepHook
+from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
 from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
 from sim_core.candidates.stiction import StictionFriction
 
@@ -47,6 +41,6 @@ value for the secant signature (damping and adhesion: raised / set from the scen
 
 __all__ = [
     "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "DIAGNOSIS_CANDIDATES", "CANDIDATE_SETTINGS", "CandidateHook",
-    "CandidateNewtonSolver", "LaggedAdhesion", "MaxwellBranch", "SheetDamping", "StictionFriction", "adhesion_pairs",
-    "candidate_terms", "hinge_grain_cosine", "relax_state", "sheet_vertices", "validate_candidate_parameters",
+    "LaggedAdhesion", "MaxwellBranch", "SheetDamping", "StepHook", "StictionFriction", "adhesion_pairs",
+    "hinge_grain_cosine", "relax_state", "sheet_vertices", "validate_candidate_parameters",
 ]

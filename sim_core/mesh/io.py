@@ -192,7 +192,7 @@ def _parse_tetgen(path: Path) -> _RawMesh:
 
 def _parse_meshio(path: Path) -> _RawMesh:
     """Any meshio-readable file; point labels are the 0-based point indices."""
-    import meshio
+    import meshio  # optional dependency: meshio, for mesh files only
 
     try:
         data = meshio.read(path)

@@ -72,6 +72,89 @@ class Potential(Protocol):
         ...
 
 
+# ---------------------------------------------------------------------------- optional capabilities
+# What some potentials provide beyond :class:`Potential`. Callers test for a capability with
+# ``isinstance(term, <Protocol>)``; the test ``tests/sim_core/potentials/test_contract.py`` checks
+# that every potential class meets :class:`Potential` and lists the capabilities each one declares.
+
+
+@runtime_checkable
+class ConstantDiagonalHessian(Protocol):
+    """A potential whose Hessian is a constant diagonal (inertia, viscous damping): the solver adds
+    :meth:`hessian_diagonal` to the Newton matrix's diagonal instead of assembling blocks."""
+
+    def hessian_diagonal(self) -> np.ndarray:
+        """The Hessian's diagonal, shape ``(3 vertex_count,)`` in N/m (global DoF order)."""
+        ...
+
+
+@runtime_checkable
+class PenaltyContact(Protocol):
+    """A penalty contact potential that switches on below its contact offset: its touching entries
+    are ``vertices[active_mask(x)]`` (pairs ``(a, 4)``, or vertices ``(a,)`` against a plane or a
+    sphere). The solver compares the active sets of two iterates
+    (:func:`sim_core.contact_set.active_contacts`)."""
+
+    vertices: np.ndarray
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Whether each entry is within the contact offset at ``x`` ``(vertex_count, 3)``: ``(k,)`` bool."""
+        ...
+
+
+@runtime_checkable
+class KeepsDerivatives(Protocol):
+    """A potential that can evaluate energy, gradient and Hessian at once ahead of time: the line
+    search calls :meth:`keep_derivatives` at a trial point that, once accepted, is the next
+    iterate, whose gradient and Hessian are then read from the kept evaluation."""
+
+    def keep_derivatives(self, x: np.ndarray) -> None:
+        """Evaluate and keep the energy, gradient and Hessian at ``x`` ``(vertex_count, 3)`` m."""
+        ...
+
+
+@runtime_checkable
+class HingeBending(Protocol):
+    """A bending energy of the dihedral angles of hinges, ``E = d^T K_h d`` with
+    ``d = theta - theta_bar`` (diagonal ``K_h`` for discrete-shell bending, coupled for Kirchhoff
+    plates); the adjoint differentiates through the rest angles ``theta_bar`` (bending plasticity)."""
+
+    hinges: np.ndarray
+    hinge_theta_bar: np.ndarray
+
+    def theta(self, x: np.ndarray) -> np.ndarray:
+        """Signed dihedral angle of every hinge in rad, shape ``(h,)``."""
+        ...
+
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` in 1/m."""
+        ...
+
+    def theta_stiffness(self) -> sp.csr_matrix:
+        """``A = dE/dtheta dtheta`` = ``2 K_h`` in J/rad^2, sparse ``(h, h)``."""
+        ...
+
+    def theta_stiffness_product(self, v: np.ndarray) -> np.ndarray:
+        """``A v`` for ``v`` of shape ``(h, r)``, equal to ``theta_stiffness() @ v`` bit for bit."""
+        ...
+
+
+@runtime_checkable
+class ElasticEquivalent(Protocol):
+    """A term equal to an elastic potential on another rest state (the gel's Maxwell branch: a
+    Stable Neo-Hookean on its relaxed rest shape), which the fused elastic kernels evaluate
+    through :meth:`elastic_equivalent` (:mod:`sim_core.fused_elastic`)."""
+
+    def elastic_equivalent(self) -> Potential:
+        """The elastic potential this term equals now."""
+        ...
+
+
+CAPABILITIES: tuple[type, ...] = (
+    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent)
+"""The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
+
+
 def project_psd(blocks: np.ndarray, projection: Projection = "clamp") -> np.ndarray:
     """Project symmetric element Hessians onto the positive semi-definite cone.
 

@@ -35,6 +35,7 @@ dm_i = (I - 2 n_hat_i n_hat_i^T) dn_i / |n_i|^2 and dn_i linear in dx), evaluate
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from sim_core.errors import ConfigError, MeshError
 from sim_core.mesh.validate import validate_vertices
@@ -277,6 +278,18 @@ class DiscreteShellBending:
     def theta(self, x: np.ndarray) -> np.ndarray:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
         return dihedral_angle(x[self.hinges])
+
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` (1/m, over ``hinges``' vertices), at ``x`` ``(n, 3)``."""
+        return dihedral_angle_gradient(x[self.hinges])
+
+    def theta_stiffness(self) -> sp.csr_matrix:
+        """``A = d^2E/dtheta^2 = diag(2 hinge_stiffness)`` in J/rad^2, sparse ``(h, h)``."""
+        return sp.diags(2.0 * np.asarray(self.hinge_stiffness)).tocsr()
+
+    def theta_stiffness_product(self, v: np.ndarray) -> np.ndarray:
+        """``A v`` (:meth:`theta_stiffness`) for ``v`` of shape ``(h, r)``."""
+        return self.theta_stiffness() @ v
 
     def energy(self, x: np.ndarray) -> float:
         """Bending energy in J."""

@@ -302,6 +302,15 @@ class KirchhoffBending:
         """Signed dihedral angle of every hinge in rad, shape ``(h,)``; ``x`` shape ``(n, 3)``."""
         return self._hinge_kinematics(x)[1].copy()
 
+    def theta_stiffness(self) -> sp.csr_matrix:
+        """``A = d^2E/dtheta^2 = 2 K_h`` (:attr:`hinge_stiffness_matrix`) in J/rad^2, sparse ``(h, h)``."""
+        return sp.csr_matrix(2.0 * self.hinge_stiffness_matrix)
+
+    def theta_stiffness_product(self, v: np.ndarray) -> np.ndarray:
+        """``A v`` (:meth:`theta_stiffness`) for ``v`` of shape ``(h, r)``, without copying ``K_h``
+        (equal to ``theta_stiffness() @ v`` bit for bit: doubling is exact)."""
+        return 2.0 * (self.hinge_stiffness_matrix @ v)
+
     def theta_gradient(self, x: np.ndarray) -> np.ndarray:
         """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` (1/m, over ``hinges``' vertices), at
         ``x`` (n, 3); kept with the angles of ``x`` (:meth:`theta`, gradient and Hessian share them)."""

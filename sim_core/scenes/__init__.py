@@ -12,6 +12,9 @@ from pathlib import Path
 
 from sim_core.errors import ConfigError
 from sim_core.model import Model
+from sim_core.scenes.scene_file import load_scene_file, load_yaml
+from sim_core.scenes.tactile_scene import build_tactile_scene
+from sim_core.scenes.task_scene import build_task_scene
 
 
 def load_scene(scene: str | Path | dict) -> Model:
@@ -20,9 +23,6 @@ def load_scene(scene: str | Path | dict) -> Model:
     Raises:
         ConfigError: missing file, YAML error, unknown key, wrong version (message names file and key).
     """
-    from sim_core.scenes.scene_file import load_scene_file, load_yaml
-    from sim_core.scenes.tactile_scene import build_tactile_scene
-
     raw = scene
     base_dir = None
     if not isinstance(scene, dict):
@@ -32,8 +32,6 @@ def load_scene(scene: str | Path | dict) -> Model:
         raw = load_yaml(path.read_text())
         base_dir = path.parent
     if isinstance(raw, dict) and raw.get("kind") == "task":
-        from sim_core.scenes.task_scene import build_task_scene
-
         return build_task_scene(raw, base_dir)
     parsed = load_scene_file(scene)
     return build_tactile_scene(parsed.to_dict())

@@ -31,10 +31,14 @@ from typing import Any
 import numpy as np
 
 from sim_core.builder import ModelBuilder
+from sim_core.candidates.parameters import validate_candidate_parameters
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import tet_box
 from sim_core.model import ContactSettings, Model, check_broad_phase
+from sim_core.sensors.camera import PinholeCamera
+from sim_core.sensors.markers import embed_markers, marker_grid
+from sim_core.sensors.tactile import TactileSensorSpec
 from sim_core.transforms import compose_poses, transform_points
 
 SIMULATION_KEYS = {
@@ -112,10 +116,6 @@ def build_tactile_scene(scene: dict) -> Model:
         the Model; ``model.sensors`` holds :class:`TactileSensorInstance` objects and
         ``model.meta`` the scene name, dt and the sheet grid shape.
     """
-    from sim_core.sensors.camera import PinholeCamera
-    from sim_core.sensors.markers import embed_markers, marker_grid
-    from sim_core.sensors.tactile import TactileSensorSpec
-
     opts = simulation_options(scene)
     sheet = scene["sheet"]
     nx, ny = (int(v) for v in sheet["resolution"])
@@ -177,8 +177,6 @@ def build_tactile_scene(scene: dict) -> Model:
                        meta={"name": scene.get("name", ""), "dt": float(scene["dt"]), "sheet_grid": (nx, ny)})
     model.sensors = sensors
     if opts["candidates"]:
-        from sim_core.candidates.hook import validate_candidate_parameters
-
         if not isinstance(opts["candidates"], dict):
             raise ConfigError(f"scene: simulation.candidates must be a mapping of name -> value, got {opts['candidates']!r}")
         try:

@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from sim_core.builder import ModelBuilder
 from sim_core.errors import ConfigError
@@ -483,8 +484,6 @@ def load_task_scene(path) -> Model:
         ConfigError: missing file or YAML error (naming the file), or any error of :func:`build_task_scene`
             (re-raised with the file name).
     """
-    import yaml
-
     path = Path(path)
     try:
         scene = yaml.safe_load(path.read_text())

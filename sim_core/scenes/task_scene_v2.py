@@ -32,6 +32,7 @@ import numpy as np
 
 from sim_core.builder import ModelBuilder
 from sim_core.errors import ConfigError, MeshError
+from sim_core.mesh.io import load_mesh
 from sim_core.mesh.sheet import TriMesh
 from sim_core.mesh.tet import TetMesh, tet_box
 from sim_core.transforms import quat_from_rotvec, quat_to_matrix
@@ -243,8 +244,6 @@ def load_mesh_object(spec: dict, where: str, base_dir: Path | None) -> TriMesh |
         ConfigError: missing file, or a kind that does not match the file's elements.
         MeshError: a degenerate or unreadable mesh; the message names the file and the element.
     """
-    from sim_core.mesh.io import load_mesh
-
     path = Path(str(spec["file"]))
     if not path.is_absolute() and base_dir is not None:
         path = base_dir / path

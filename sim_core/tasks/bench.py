@@ -11,6 +11,8 @@ import argparse
 import json
 import sys
 
+from sim_core.errors import ConfigError
+from sim_core.scenes.task_scene import build_task_scene
 from sim_core.tasks.registry import load_task, task_names
 from sim_core.tasks.rollout import rollout
 
@@ -27,13 +29,10 @@ def bench_task_reference(name: str, backend: str = "numpy") -> dict:
     Raises:
         ConfigError: unknown task, a task without a reference trajectory.
     """
-    from sim_core.errors import ConfigError
-
     task = load_task(name)
     if task.reference_actions is None:
         raise ConfigError(f"task {task.name} has no reference trajectory")
     res = rollout(task, task.reference_actions, task.true_parameters or None, backend=backend)
-    from sim_core.scenes.task_scene import build_task_scene
 
     return {
         "task": task.name, "kind": task.kind, "reward": res.reward, "units": task.reward_units,

@@ -23,9 +23,10 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 from gymnasium import spaces
+import numpy as np
 
+from sim_core.errors import ConfigError
 from sim_core.tasks.registry import TASK_NAMES, load_task
 from sim_core.tasks.rollout import TaskEpisode
 from sim_core.tasks.spec import TaskSpec
@@ -59,8 +60,6 @@ class ThinShellTaskEnv(gym.Env):
     def __init__(self, task: TaskSpec | str, horizon: int | None = None, backend: str = "numpy",
                  render_mode: str | None = None, sheet_samples: int = 64, marker_count: int = 16,
                  infeasible_penalty: float = 1.0) -> None:
-        from sim_core.errors import ConfigError
-
         self.task = task if isinstance(task, TaskSpec) else load_task(task)
         self.horizon = int(horizon or self.task.horizon)
         if not 1 <= self.horizon <= self.task.horizon:
@@ -127,6 +126,7 @@ class ThinShellTaskEnv(gym.Env):
         when ``render_mode`` is None."""
         if self.render_mode is None:
             return None
+        # optional heavy dependency: matplotlib, for plots only
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 

@@ -30,7 +30,10 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.scenes.task_scene import build_task_scene
+from sim_core.tasks.rollout import TaskEpisode
 from sim_core.tasks.spec import ACTION_KINDS, Infeasibility, TaskSpec
+from sim_core.tasks.task_rewards import REWARD_UNITS, build_reward
 
 TASK_FORMAT = "thinshell-task"
 TASK_VERSION = 1
@@ -193,8 +196,6 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
         ConfigError: an unknown or missing key (dotted), a bad value, a scene error, a reference outside
             the action bounds.
     """
-    from sim_core.scenes.task_scene import build_task_scene
-
     d = _keys(doc, "<task>", _TOP)
     if d["format"] != TASK_FORMAT or d["version"] != TASK_VERSION:
         raise ConfigError(f"format/version must be {TASK_FORMAT}/{TASK_VERSION}, got {d['format']!r}/{d['version']!r}")
@@ -234,8 +235,6 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
     holder: dict[str, TaskSpec] = {}
 
     def reference_final():
-        from sim_core.tasks.rollout import TaskEpisode
-
         task = holder["task"]
         ep = TaskEpisode(task, task.true_parameters or None)
         for row in task.reference_actions:
@@ -245,8 +244,6 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
         return ep.sim.state
 
     rw = _keys(d["reward"], "reward", {"name": True, "params": True})
-    from sim_core.tasks.task_rewards import REWARD_UNITS, build_reward
-
     reward = build_reward(str(rw["name"]), rw["params"], "reward", reference_final if reference is not None else None)
     task = TaskSpec(
         name=str(d["name"]), kind=kind, scene=scene, horizon=horizon, dt=float(model.meta["dt"]), action_layout=layout,

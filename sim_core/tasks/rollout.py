@@ -18,6 +18,7 @@ import numpy as np
 
 from sim_core.control import Control
 from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.scenes.task_scene import build_task_scene, task_initial_state
 from sim_core.simulation import Simulation
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
@@ -69,8 +70,6 @@ def build_task_simulation(task: TaskSpec, params: dict[str, float] | None = None
     Raises:
         ConfigError: an unknown parameter or an out-of-range value.
     """
-    from sim_core.scenes.task_scene import build_task_scene, task_initial_state
-
     model = build_task_scene(copy.deepcopy(task.scene))
     for name, value in (params or {}).items():
         model.set_parameter(name, value)

@@ -15,6 +15,8 @@ from __future__ import annotations
 import importlib
 
 from sim_core.errors import ConfigError
+from sim_core.potentials.membrane import StVKMembrane
+from sim_core.potentials.neohookean import StableNeoHookean
 
 ELASTIC_BACKENDS: tuple[str, ...] = ("numpy", "taichi")
 """Names accepted by ``backend``."""
@@ -74,8 +76,7 @@ def use_taichi_kernels(elastic) -> list[str]:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    from sim_core.potentials.membrane import StVKMembrane
-    from sim_core.potentials.neohookean import StableNeoHookean
+    # optional heavy dependency: Taichi, loaded on a Taichi backend only
     from sim_core.ti_kernels.membrane import TiStVKMembrane
     from sim_core.ti_kernels.neohookean import TiStableNeoHookean
 

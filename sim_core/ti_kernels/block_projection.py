@@ -11,7 +11,7 @@ orthonormal basis of the complement gives the same projection),
 
     P(H) = B P(B^T H B) B^T.
 
-The work is split where each part is cheapest (measured, docs/benchmarks.md):
+The work is split where each part is cheapest (measured, docs/benchmarks_log.md):
 
 * :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy):
   ``B^T H B`` and ``B R B^T`` as stacked matrix products with a constant ``B`` (about 0.25 ms for

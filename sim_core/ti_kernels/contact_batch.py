@@ -40,9 +40,9 @@ from sim_core.collision.distances import DistanceDerivatives
 from sim_core.potentials.base import positions_key
 from sim_core.potentials.contact import PairEvaluation
 from sim_core.ti_backend import require_backend, serial_loops, ti
-from sim_core.ti_kernels import contact_distance as cd
-from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels import contact_distance as cd, linalg
 from sim_core.ti_kernels.buffers import LaunchArrays
+from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.ti_kernels.contact_setup import _vertex
 from sim_core.ti_kernels.launch import fast_kernel
 
@@ -239,8 +239,6 @@ def compile_kernels() -> None:
     Raises:
         ConfigError: the Taichi backend is not initialised.
     """
-    from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
-
     x = np.array([[0.0, 0.0, 1.0e-3], [0.0, 0.0, 0.0], [1.0e-2, 0.0, 0.0], [0.0, 1.0e-2, 0.0]])
     vt = TiVertexTriangleContact(np.array([[0, 0]]), np.array([[1, 2, 3]]), np.ones(1), 1.0, 2.0e-3)
     ee = TiEdgeEdgeContact(np.array([[0, 1]]), np.array([[0, 1], [2, 3]]), np.ones(1), 1.0, 2.0e-3)

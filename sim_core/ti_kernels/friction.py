@@ -29,6 +29,7 @@ from sim_core.potentials.contact import ContactFrames
 from sim_core.potentials.friction import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.contact_setup import tangent_basis
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -157,8 +158,6 @@ class TiLaggedFriction(LaggedFriction):
         """As the reference :meth:`~sim_core.potentials.friction.LaggedFriction.from_frames`, the
         tangent bases from one launch of :func:`sim_core.ti_kernels.contact_setup.tangent_basis`
         (equal to the reference's bit for bit)."""
-        from sim_core.ti_kernels.contact_setup import tangent_basis
-
         return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
@@ -185,7 +184,7 @@ class TiLaggedFriction(LaggedFriction):
         _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
         return float(self._energy[0])
 
-    def evaluate(self, x: np.ndarray) -> None:
+    def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept for
         :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
         ``x``, coefficients and ``eps_u``; the next :meth:`gradient` call drops them (the Newton
@@ -200,7 +199,7 @@ class TiLaggedFriction(LaggedFriction):
         self._kept_all = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks)
 
     def _kept(self, arrays: tuple) -> tuple | None:
-        """The :meth:`evaluate` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
+        """The :meth:`keep_derivatives` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
         kept = getattr(self, "_kept_all", None)
         return kept if kept is not None and self._matches(kept, arrays) else None
 
@@ -275,4 +274,4 @@ def compile_kernels() -> None:
     friction.gradient(x + 1e-4)
     friction.hessian(x + 1e-4)  # the blocks kept by the gradient
     friction.hessian(x + 1e-4)  # the Hessian kernel
-    friction.evaluate(x + 2e-4)  # energy, gradient and Hessian in one launch
+    friction.keep_derivatives(x + 2e-4)  # energy, gradient and Hessian in one launch

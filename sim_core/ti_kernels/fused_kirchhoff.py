@@ -23,7 +23,7 @@ symmetrised per entry). The slot tables are the packed upper triangles of the sl
 
 import numpy as np
 
-from sim_core.elastic_worker import part_recipe
+from sim_core.worker_recipe import part_recipe
 from sim_core.potentials.kirchhoff_bending import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel

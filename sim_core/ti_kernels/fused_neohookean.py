@@ -29,7 +29,7 @@ slots are then in element order, so results are bitwise reproducible run to run.
 
 import numpy as np
 
-from sim_core.elastic_worker import part_recipe
+from sim_core.worker_recipe import part_recipe
 from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel

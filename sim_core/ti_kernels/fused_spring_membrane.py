@@ -36,7 +36,7 @@ Serial loops on the CPU, parallel on CUDA, as in :mod:`sim_core.ti_kernels.fused
 
 import numpy as np
 
-from sim_core.elastic_worker import part_recipe
+from sim_core.worker_recipe import part_recipe
 from sim_core.potentials.membrane import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels.launch import fast_kernel

@@ -34,8 +34,11 @@ import threading
 from typing import Any, Callable
 
 import numpy as np
+from taichi.lang.util import cook_dtype
+from taichi.types import ndarray_type, primitive_types, template
+from taichi.types.utils import is_signed
 
-from sim_core.ti_backend import ti
+from sim_core.ti_backend import ti  # first: Taichi through ti_backend, which silences its import banner
 
 _runtime = ti.lang.impl.get_runtime  # (taichi is imported through ti_backend, which silences its banner)
 
@@ -44,8 +47,6 @@ _ARRAY, _FLOAT, _INT, _UINT, _TEMPLATE = range(5)
 
 def _argument_kinds(primal) -> list[int] | None:
     """Setter kind of each kernel argument, or None if some argument is not covered."""
-    from taichi.types import ndarray_type, primitive_types, template
-
     kinds = []
     for argument in primal.arguments:
         anno = argument.annotation
@@ -58,9 +59,6 @@ def _argument_kinds(primal) -> list[int] | None:
         elif id(anno) in primitive_types.real_type_ids:
             kinds.append(_FLOAT)
         elif id(anno) in primitive_types.integer_type_ids:
-            from taichi.lang.util import cook_dtype
-            from taichi.types.utils import is_signed
-
             kinds.append(_INT if is_signed(cook_dtype(anno)) else _UINT)
         else:
             return None
@@ -69,8 +67,6 @@ def _argument_kinds(primal) -> list[int] | None:
 
 def _return_getter(primal) -> Callable | None | bool:
     """``None`` (no return value), a getter of the one scalar returned, or False (not covered)."""
-    from taichi.types import primitive_types
-
     ret = primal.return_type
     if ret is None:
         return None
@@ -80,9 +76,6 @@ def _return_getter(primal) -> Callable | None | bool:
     if dtype in primitive_types.real_types:
         return lambda ctx: ctx.get_struct_ret_float((0,))
     if dtype in primitive_types.integer_types:
-        from taichi.lang.util import cook_dtype
-        from taichi.types.utils import is_signed
-
         if is_signed(cook_dtype(dtype)):
             return lambda ctx: ctx.get_struct_ret_int((0,))
         return lambda ctx: ctx.get_struct_ret_uint((0,))

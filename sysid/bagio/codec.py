@@ -34,7 +34,7 @@ _POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "
 @lru_cache(maxsize=1)
 def typestore() -> Any:
     """The ROS 2 Jazzy type store of ``rosbags`` (built once, cached)."""
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_typestore  # optional heavy dependency: bag libraries, loaded on first use
 
     return get_typestore(Stores.ROS2_JAZZY)
 

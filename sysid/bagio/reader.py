@@ -7,7 +7,7 @@ float64 SI values, checks it, and returns them with the bag's topic table and it
 Topic of each role: ``<namespace>/<effector>/pose``, ``<namespace>/<effector>/pose_cmd``,
 ``<namespace>/<sensor>/markers``, ``<namespace>/<sensor>/wrench``, ``<namespace>/sheet/points``,
 ``<namespace>/<sensor>/image``, ``/clock``. Names are resolved in this order: the ``roles`` argument
-(role -> topic), the ``bag.topics`` overrides of ``config/sysid/default.yaml``, then the templates
+(role -> topic), the ``bag.topics`` overrides of ``sysid/data/default.yaml``, then the templates
 with ``bag.namespace`` and ``bag.effector`` / ``bag.sensor`` from that file, or, where those are
 null, the scene's only sensor and its effector, or ``ee`` / ``tactile``.
 
@@ -40,6 +40,7 @@ from sim_core.errors import BagReadError, ConfigError
 from sim_core.scenes.scene_file import SceneFile, load_scene_file, load_yaml
 from sysid.bagio import codec
 from sysid.bagio.errors import BagWarning
+from sysid.data import DEFAULT_CONFIG, data_file
 
 ROLES = ("pose", "pose_cmd", "markers", "wrench", "sheet_points", "image", "clock")
 MEASUREMENT_ROLES = ("pose", "pose_cmd", "markers", "wrench", "sheet_points")
@@ -51,7 +52,6 @@ ROLE_TEMPLATES = {
     "pose": "{effector}/pose", "pose_cmd": "{effector}/pose_cmd", "markers": "{sensor}/markers",
     "wrench": "{sensor}/wrench", "sheet_points": "sheet/points", "image": "{sensor}/image", "clock": "/clock",
 }
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "sysid" / "default.yaml"
 SCENE_FILENAME = "scene.yaml"
 _BAG_CONFIG_KEYS = ("namespace", "effector", "sensor", "topics")
 
@@ -148,7 +148,7 @@ class BagContents:
 # -------------------------------------------------------------------------------------- config
 @dataclass(frozen=True)
 class BagConfig:
-    """The ``bag:`` section of ``config/sysid/default.yaml``.
+    """The ``bag:`` section of ``sysid/data/default.yaml``.
 
     Attributes:
         namespace: namespace of relative topic names (default ``/thinshell``).
@@ -166,17 +166,14 @@ def load_bag_config(path: str | Path | None = None) -> BagConfig:
     """Read the ``bag:`` section of a sysid config file (other sections are left to their readers).
 
     Args:
-        path: config file; default ``config/sysid/default.yaml`` of this checkout; when that file is
-            absent (installed package without config) the built-in defaults above are used.
+        path: config file; default the packaged ``sysid/data/default.yaml``
+            (:func:`sysid.data.data_file`).
 
     Raises:
-        ConfigError: unreadable file, unknown key in ``bag`` (named), unknown role in ``bag.topics``.
+        ConfigError: unreadable or missing file (the packaged default included), unknown key in
+            ``bag`` (named), unknown role in ``bag.topics``.
     """
-    if path is None:
-        if not DEFAULT_CONFIG_PATH.is_file():
-            return BagConfig()
-        path = DEFAULT_CONFIG_PATH
-    path = Path(path)
+    path = data_file(DEFAULT_CONFIG) if path is None else Path(path)
     try:
         data = load_yaml(path.read_text(encoding="utf-8")) or {}
     except (OSError, ValueError) as err:
@@ -227,7 +224,7 @@ def resolve_roles(config: BagConfig | None = None, scene: SceneFile | None = Non
 # ------------------------------------------------------------------------------- raw reading
 def _read_rosbags(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
     """All connections, and ``(log_ns, message)`` of the wanted topics, via rosbags."""
-    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2 import Reader  # optional heavy dependency: bag libraries, loaded on first use
 
     topics: dict[str, TopicInfo] = {}
     msgs: dict[str, list[tuple[int, Any]]] = {}
@@ -245,7 +242,7 @@ def _read_rosbags(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], d
 
 def _read_mcap_library(path: Path, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict[str, list[tuple[int, Any]]]]:
     """Same as :func:`_read_rosbags` with the ``mcap`` reader and the ``mcap_ros2`` decoder."""
-    from mcap.reader import make_reader
+    from mcap.reader import make_reader  # optional heavy dependency: bag libraries, loaded on first use
     from mcap_ros2.decoder import DecoderFactory
 
     msgs: dict[str, list[tuple[int, Any]]] = {}
@@ -403,7 +400,7 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
     Args:
         path: rosbag2 directory (``metadata.yaml`` + one ``.mcap``) or a bare ``.mcap`` file.
         roles: role -> topic overrides for this call (relative names join the namespace).
-        config: :class:`BagConfig`, a sysid config file, or None for ``config/sysid/default.yaml``.
+        config: :class:`BagConfig`, a sysid config file, or None for ``sysid/data/default.yaml``.
         skip_roles: roles not to decode (e.g. ``("image",)`` to save time).
         scene: scene file (or parsed scene) to use instead of the ``scene.yaml`` beside the bag.
 

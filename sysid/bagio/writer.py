@@ -30,6 +30,7 @@ SCENE_FILENAME = "scene.yaml"
 
 
 def _qos(depth: int, reliable: bool) -> Any:
+    # optional heavy dependency: bag libraries, loaded on first use
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
     zero = QosTime(0, 0)
@@ -105,6 +106,7 @@ class BagWriter:
         self._busy = False
         self._close_requested = False
         self._state = "open"
+        # optional heavy dependency: bag libraries, loaded on first use
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         self._staging.mkdir(parents=True)

@@ -9,7 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from thinshell_ros.bench import bench_main, process_start_time, scale_model
+from sim_core.bench.process import process_start_time
+from sim_core.bench.scale import scale_model
+from thinshell_ros.bench import bench_main
 
 REQUIRED = {"dofs", "steps_per_s", "newton_iters_mean", "linear_solve_share", "assembly_share", "cold_start_s"}
 
@@ -36,9 +38,9 @@ def test_forming_steps_move_the_dome_along_the_trajectory():
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
     from sim_core.tasks import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = Simulation(model)
     sim.state = task_initial_state(model)
     targets = pose_targets(model.effectors["dome"].initial_pose, forming_benchmark_offsets(3))
@@ -89,7 +91,7 @@ def test_process_start_time_is_in_the_past():
 
 
 def test_repeat_reports_the_median_run_and_the_first_runs_cold_start(capsys):
-    from thinshell_ros.bench import repeat_forming
+    from sim_core.bench.forming import repeat_forming
 
     runs = [{"steps_per_s": v, "step_time_mean_s": 1 / v, "forward_total_s": 2 / v, "assembly_share": 0.1 * k,
              "linear_solve_share": 0.2, "cold_start_s": 9.0 - k, "jit_s": 5.0 - k, "peak_rss_mib": 100.0 + k}

@@ -12,7 +12,7 @@ sliding at constant depth. Two exact statements separate a defect from physics:
   change that grows linearly in ``mu`` (lagged-friction normal component, a tilted tangent basis)
   would be a defect.
 
-Measured (docs/benchmarks.md, issue 23): 0.00 % at mu = 0, +1.9 % at mu = 0.3 and +17 % at mu = 0.8 on
+Measured (docs/benchmarks_log.md, issue 23): 0.00 % at mu = 0, +1.9 % at mu = 0.3 and +17 % at mu = 0.8 on
 the 10 x 8 x 3 gel (ratio 7.9 for (0.8/0.3)^2 = 7.1): the rise is the Stable Neo-Hookean gel's
 shear-normal coupling at shear strains of 0.2-0.6, not a friction defect. On the reference press-and-
 slide replays the remaining rise comes from the card under the pad wrinkling ahead of it (1.5 mm

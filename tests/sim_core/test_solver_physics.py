@@ -198,12 +198,12 @@ def test_reset_repeats_a_rollout_bit_for_bit_whatever_ran_before():
     ``reset`` (:meth:`NewtonSolver.reset_caches`) the rollout equals the first bit for bit with the
     same iterations. Without it the repeated rollout differed by ~1e-17 m: the contact set's
     candidate lists and the Newton matrix's union pattern carried the first rollout's history."""
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.tasks import forming_benchmark_offsets, pose_targets
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = Simulation(model)
     targets = pose_targets(model.effectors["dome"].initial_pose, forming_benchmark_offsets(4))
 

@@ -9,9 +9,10 @@ def forming_simulation(warm_up: bool = False):
     backend (the bench's ``--arch cpu``), at the task's initial state;
     ``warm_up``: call :meth:`Simulation.warm_up` first."""
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from thinshell_ros.bench import _default_scene, bench_simulation
+    from sim_core.bench.forming import bench_simulation
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = bench_simulation(model, "cpu")
     sim.state = task_initial_state(model)
     if warm_up:

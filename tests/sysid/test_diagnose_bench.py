@@ -209,7 +209,7 @@ def test_cohesive_law_peak_softening_fracture_energy_and_damage():
 def test_bench_adhesion_signature_grows_with_the_peak_traction():
     """Below the magnitude at which the bonds carry the card away, the bench adhesion's recorded
     signature (the generator's whitened strength) grows monotonically and smoothly with the peak
-    traction (measured 0.016 / 0.027 / 0.060 at 0.5 / 0.75 / 1.1 mN, docs/benchmarks.md)."""
+    traction (measured 0.016 / 0.027 / 0.060 at 0.5 / 0.75 / 1.1 mN, docs/benchmarks_log.md)."""
     from sysid.diagnose_bench import SCENE, effect_strength, effector_targets, rollout
     from sysid.bench_effects import BondAdhesion
 

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from sim_core.errors import CalibrationError, ConfigError
+from sysid.data import FEATS_INDENTATION, data_file
 from sysid.indentation_fit import fit_youngs_modulus, load_indentation_config
 
 REPO = Path(__file__).resolve().parents[2]
-CONFIG = REPO / "config" / "sysid" / "feats_indentation.yaml"
+CONFIG = data_file(FEATS_INDENTATION)
 FEATS = REPO.parent / "shared" / "data" / "real" / "feats"
 needs_feats = pytest.mark.skipif(
     not FEATS.is_dir(),
@@ -58,7 +59,7 @@ def test_fit_rejects_bad_measurements_and_bad_simulations():
 
 @needs_feats
 def test_feats_config_holds_the_four_measurements_and_resolves_the_mesh():
-    cfg = load_indentation_config(CONFIG, REPO)
+    cfg = load_indentation_config(CONFIG)
     assert np.allclose(cfg.depth, DEPTH)
     assert np.allclose(cfg.force, [1.6503, 5.9641, 13.5257, 23.2532])
     assert cfg.reference_c10 == pytest.approx(72500.0)
@@ -71,14 +72,14 @@ def test_config_with_missing_data_folder_fails_naming_the_file(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text(CONFIG.read_text() + "surprise: 1\n")
     with pytest.raises(ConfigError, match=r"unknown keys \['surprise'\]"):
-        load_indentation_config(bad, REPO)
+        load_indentation_config(bad)
 
 
 @needs_feats
 def test_feats_setup_clamps_the_back_face_and_starts_at_first_touch():
     from sysid.indentation_fit import build_indentation_setup
 
-    cfg = load_indentation_config(CONFIG, REPO)
+    cfg = load_indentation_config(CONFIG)
     setup = build_indentation_setup(cfg, 4e5, quadratic="corners")
     gel = setup.model.bodies[setup.gel_body]
     x = setup.model.x_rest[gel.vertex_start:gel.vertex_stop]
@@ -115,7 +116,7 @@ def test_thinshell_indent_reproduces_the_four_real_forces(tmp_path):
     exact spherical indenter, frictionless; ~2.5 min on 2 cores).
 
     The issue's checks: the four measured forces within 10 % and C10 within 20 % of FEATS' CalculiX
-    value 0.0725 MPa (measured: see docs/benchmarks.md).
+    value 0.0725 MPa (measured: see docs/benchmarks_log.md).
     """
     import json
 

@@ -42,6 +42,11 @@ def test_colcon_build_installs_package(tmp_path):
                          cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert Path(out.stdout.strip()) == share / "config" / "scenes" / "press_slide.yaml"
+    # sysid's packaged data comes with the installed package (importlib.resources)
+    out = subprocess.run([PYTHON, "-c", "from sysid.data import data_file; print(data_file('default.yaml'))"],
+                         cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert Path(out.stdout.strip()) == site / "sysid" / "data" / "default.yaml"
     out = subprocess.run([str(prefix / "lib" / "thinshell" / "thinshell"), "--help"], env=run_env,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "usage: thinshell" in out.stdout, out.stderr

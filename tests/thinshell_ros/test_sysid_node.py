@@ -16,6 +16,7 @@ from sim_core.errors import ConfigError
 from tests.thinshell_ros.conftest import spin_until
 from tests.thinshell_ros.fake_sim import FakeSimulation
 from thinshell_ros.sim_node import SimNode
+from sysid.fit_recording import FitOptions
 from thinshell_ros.sysid_node import RESULT_QOS, FitRequest, SysidNode, parse_params
 
 pytestmark = pytest.mark.ros
@@ -79,9 +80,8 @@ def test_fit_result_is_latched_and_applied_to_the_sim_node(ros_context, tmp_path
         assert result["status"] == "ok" and result["params"] == {"contact.stiffness": 2500.0}
         assert result["applied"] == {"contact.stiffness": True} and result["apply_to"] == "/thinshell_sim"
         job = seen[0]
-        assert job.params == ("contact.stiffness",) and job.t_max == 0.5 and job.dt is None
-        assert job.cli_args() == [str(tmp_path), "--params", "contact.stiffness", "--out", str(tmp_path / "rep"),
-                                  "--t-max", "0.5"]
+        assert job.bag == tmp_path and job.out == tmp_path / "rep" and not job.force
+        assert job.options == FitOptions(params=("contact.stiffness",), t_max=0.5)  # the fitter's defaults else
         assert not h.node.busy
     finally:
         h.close()
@@ -123,6 +123,11 @@ def test_missing_target_times_out_and_bad_requests_are_refused(ros_context, tmp_
         assert "/nobody/set_parameters not available" in h.node.results[0]["apply_message"]
         h.node.set_parameters([Parameter("bag", value=""), Parameter("params", value="a,b,a")])
         assert "'bag' is empty" in h.fit().message
+        h.node.set_parameters([Parameter("bag", value=str(tmp_path)), Parameter("params", value=""),
+                               Parameter("gel_resolution", value="3,x,2")])
+        assert "'gel_resolution' must be NX,NY,NZ" in h.fit().message
+        h.node.set_parameters([Parameter("gel_resolution", value="3,3"), Parameter("max_nfev", value=0)])
+        assert "FitOptions: max_nfev must be >= 1" in h.fit().message
     finally:
         h.close()
     with pytest.raises(ConfigError, match=r"lists \['a'\] more than once"):
@@ -149,16 +154,16 @@ def heavy_card_bag(tmp_path_factory):
 
 
 def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy_card_bag, tmp_path):
-    """The real fitter (``thinshell sysid``) through ~/fit: the density moves from the nominal 700 towards
+    """The real fitter (:func:`sysid.fit_recording.fit_recording`) through ~/fit: the density moves from the nominal 700 towards
     the recording's 1000, the result arrives on the latched topic, and the sim node takes the value."""
     from sim_core.simulation import Simulation
     from thinshell_ros.paths import bundled_scene
-    from thinshell_ros.sysid_node import run_sysid_cli
+    from thinshell_ros.sysid_node import run_fit
 
     sim = Simulation.from_scene(bundled_scene())
     out = tmp_path / "fit"
-    h = Harness(ros_context, run_sysid_cli, sim=sim, bag=str(heavy_card_bag), params="sheet.density",
-                out=str(out), t_max=0.04, dt=0.01, fit_args="--max-nfev 2 --gel-resolution 3,3,2",
+    h = Harness(ros_context, run_fit, sim=sim, bag=str(heavy_card_bag), params="sheet.density",
+                out=str(out), t_max=0.04, dt=0.01, max_nfev=2, gel_resolution="3,3,2",
                 apply_to="/thinshell_sim", write_scene=str(tmp_path / "fitted.yaml"))
     try:
         assert h.fit().success

@@ -1,4 +1,5 @@
-"""Candidates in the Newton step (CandidateNewtonSolver): parameters, neutrality at beta = 0, signatures."""
+"""Candidates in the Newton step (a CandidateHook given to the solver): parameters, neutrality at beta = 0,
+signatures; the solver's one hook path."""
 
 from __future__ import annotations
 
@@ -7,12 +8,14 @@ import copy
 import numpy as np
 import pytest
 
-from sim_core.candidates import CandidateHook, CandidateNewtonSolver, candidate_terms, validate_candidate_parameters
+from sim_core.candidates import CandidateHook, validate_candidate_parameters
+from sim_core.contact_set import ContactSet
 from sim_core.control import Control
+from sim_core.elastic import ElasticTerms
 from sim_core.errors import ConfigError
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
-from sim_core.solver import SolverConfig
+from sim_core.solver import NewtonSolver, SolverConfig
 from sysid.diagnose_bench import load_bench_scene
 
 DT = 0.01
@@ -32,6 +35,16 @@ def _tiny_press_scene() -> dict:
 SCENE = _tiny_press_scene()
 
 
+def candidate_terms(model, state, x_prev: np.ndarray, dt: float, params) -> list:
+    """All candidate potentials of one step built from scratch (fresh elastic terms and contact set,
+    the lagged friction at ``x_prev``), contact-like first."""
+    contact = ContactSet(model)
+    memory = contact.begin_step(x_prev, state.contact_memory)
+    friction = contact.friction(x_prev, dt, memory)
+    contact_like, body_like = CandidateHook(params).terms(model, state, x_prev, dt, ElasticTerms(model), friction)
+    return contact_like + body_like
+
+
 def _press_and_hold(candidates, hold=6, lift=0, tol_velocity=None):
     """Press 0.25 mm past contact in 3 steps, hold, then optionally lift; returns Fz per step (N).
 
@@ -40,7 +53,7 @@ def _press_and_hold(candidates, hold=6, lift=0, tol_velocity=None):
     config = None if tol_velocity is None else SolverConfig(tol_velocity=tol_velocity)
     sim = Simulation(load_scene(copy.deepcopy(SCENE)), dt=DT, solver_config=config)
     if candidates is not None:
-        sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
+        sim.solver.set_hook(CandidateHook(candidates))
     pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
     path = [pose[2] - 0.00115 * k / 3 for k in range(1, 4)] + [pose[2] - 0.00115] * hold
     path += [pose[2] - 0.00115 + 0.0002 * k for k in range(1, lift + 1)]
@@ -114,3 +127,24 @@ def test_adhesion_bonds_carry_the_card_while_the_gel_rises():
     face = set(np.unique(sim.model.sensors["tactile"].contact_triangles).tolist())
     bonded = set(sim.state.candidate_state["adhesion"].tolist())
     assert bonded and bonded <= face
+
+
+def test_one_hook_path_model_candidates_and_a_given_hook_step_alike():
+    """The model's candidate parameters and the same CandidateHook given to the solver take the one
+    path of the step: the same states bit for bit; both at once, or a hook without the StepHook
+    methods, are refused with a message naming them."""
+    params = {"stiction": 0.5, "gel_viscoelasticity": 1.0, "gel_viscoelasticity.tau": 0.05}
+    _, by_hook = _press_and_hold(params, hold=1)
+    sim = Simulation(load_scene(copy.deepcopy(SCENE)), dt=DT)
+    for name, value in params.items():
+        sim.set_parameter(f"candidate.{name}", value)
+    pose = np.array(SCENE["effectors"]["ee"]["initial_pose"], dtype=float)
+    for z in [pose[2] - 0.00115 * k / 3 for k in range(1, 4)] + [pose[2] - 0.00115]:
+        target = pose.copy()
+        target[2] = z
+        sim.step(Control({"ee": target}))
+    np.testing.assert_array_equal(sim.state.x, by_hook.state.x)
+    with pytest.raises(ConfigError, match=r"a step hook \(CandidateHook\) and the model's candidate parameters"):
+        sim.solver.set_hook(CandidateHook({"stiction": 0.1}))
+    with pytest.raises(ConfigError, match="hook object is not a StepHook .missing terms, update_state"):
+        NewtonSolver(sim.model, hook=object())

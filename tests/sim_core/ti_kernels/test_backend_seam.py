@@ -13,9 +13,9 @@ from sim_core.solver import SolverConfig
 
 def _forming_model():
     from sim_core.scenes.task_scene import load_task_scene
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    return load_task_scene(_default_scene("forming"))
+    return load_task_scene(bundled_scene("forming"))
 
 
 def test_the_solver_backend_reaches_the_fused_path_and_the_contact_set(ti_cpu):

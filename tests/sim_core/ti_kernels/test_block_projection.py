@@ -183,13 +183,13 @@ def test_solver_projected_fallback_equals_reference_path(ti_cpu):
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
     from sim_core.solver import SolverConfig
 
     runs = []
     for backend in ("numpy", "taichi-cpu"):
-        model = load_task_scene(_default_scene("forming"))
+        model = load_task_scene(bundled_scene("forming"))
         sim = Simulation(model, solver_config=SolverConfig(backend=backend))
         sim.state = task_initial_state(model)
         effector = next(iter(model.effectors))

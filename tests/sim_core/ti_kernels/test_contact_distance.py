@@ -124,9 +124,9 @@ def test_contact_set_uses_the_kernels_on_the_taichi_backend(ti_cpu):
     from sim_core.contact_set import ContactSet
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     x = task_initial_state(model).x
     contact = ContactSet(model)
     memory = contact.begin_step(x, None)

@@ -137,9 +137,9 @@ def test_tangent_basis_kernel_equals_the_reference_and_is_orthonormal(ti_cpu):
 def _forming_contact(backend: str):
     from sim_core.contact_set import ContactSet
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     return ContactSet(model, backend=backend), task_initial_state(model).x
 
 

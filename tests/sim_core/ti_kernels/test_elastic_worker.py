@@ -176,12 +176,15 @@ def test_close_ends_the_process_and_leaves_no_file(cpu_arch):
 
 def test_socket_signalling_gives_the_same_results(cpu_arch, monkeypatch):
     """Requests and replies as socket messages (the path of machines without x86's store order,
-    forced by ``THINSHELL_WORKER_SIGNAL=socket``): the same Forming states as one process."""
+    chosen with ``signal="socket"``): the same Forming states as one process; a bad signal name is
+    refused."""
     import sim_core.elastic_worker as ew
+    from sim_core.errors import ConfigError
 
-    monkeypatch.setenv("THINSHELL_WORKER_SIGNAL", "socket")
-    monkeypatch.setattr(ew, "SPIN_FLAGS", False)
-    w = ew.ElasticWorker()
+    with pytest.raises(ConfigError, match="unknown signal 'carrier-pigeon'"):
+        ew.ElasticWorker(signal="carrier-pigeon")
+    w = ew.ElasticWorker(signal="socket")
+    assert w.signal == "socket"
     try:
         assert w.wait_ready()
         x_two, it_two = _forming_rollout(4, w)

@@ -63,7 +63,8 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
     """Forming after a few steps of the benchmark trajectory: the same frozen pairs, the Taichi class."""
     from sim_core.contact_set import ContactSet
     from sim_core.ti_kernels.friction import TiLaggedFriction
-    from thinshell_ros.bench import _default_scene, run_forming
+    from sim_core.bench.forming import run_forming
+    from thinshell_ros.paths import bundled_scene
 
     states = []
     import sim_core.simulation as simulation
@@ -77,7 +78,7 @@ def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
 
     simulation.Simulation.step = recording_step
     try:
-        run_forming(_default_scene("forming"), 12, arch="numpy")
+        run_forming(bundled_scene("forming"), 12, arch="numpy")
     finally:
         simulation.Simulation.step = step
     model, x, memory = states[-1]
@@ -122,8 +123,8 @@ def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu,
     assert launches == [1, 1, 1]
 
 
-def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch):
-    """``evaluate(x)`` (one launch) keeps energy, gradient and blocks that equal the energy-only launch's
+def test_keep_derivatives_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch):
+    """``keep_derivatives(x)`` (one launch) keeps energy, gradient and blocks that equal the energy-only launch's
     and the gradient-Hessian launch's bit for bit; energy, gradient and the following hessian at an
     equal x read them (no other launch); an edited mu or another x launches the separate requests."""
     from sim_core.ti_kernels import friction as ti_friction
@@ -134,7 +135,7 @@ def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch)
     x = x_prev + rng.normal(scale=0.7 * EPS_U, size=x_prev.shape)
     energy, grad = fresh.energy(x), fresh.gradient(x)
     blocks = fresh.hessian(x).blocks
-    kept.evaluate(x)
+    kept.keep_derivatives(x)
     launches = []
     kernel = ti_friction._friction_kernel
     monkeypatch.setattr(ti_friction, "_friction_kernel", lambda *a: (launches.append(a[7]), kernel(*a))[1])
@@ -143,7 +144,7 @@ def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch)
     np.testing.assert_array_equal(kept.hessian(x.copy()).blocks, blocks)
     assert launches == []
     assert getattr(kept, "_kept_all", None) is None  # dropped by the gradient call
-    kept.evaluate(x)
+    kept.keep_derivatives(x)
     y = x + 0.1 * EPS_U
     assert kept.energy(y) == fresh.energy(y)
     everything = ti_friction._ENERGY | ti_friction._GRADIENT | ti_friction._HESSIAN
@@ -153,7 +154,7 @@ def test_evaluate_keeps_the_values_of_the_separate_requests(ti_cpu, monkeypatch)
     assert launches[-1] == ti_friction._ENERGY
     empty = ti_friction.TiLaggedFriction(np.zeros((0, 4), int), np.zeros((0, 4)), np.zeros((0, 3, 2)), np.zeros(0),
                                          0.5, x_prev, 0.01, 0.01)
-    empty.evaluate(x)
+    empty.keep_derivatives(x)
     assert empty.energy(x) == 0.0 and not np.any(empty.gradient(x))
 
 
@@ -168,11 +169,11 @@ def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti
     launches = []
     kernel = ti_friction._friction_kernel
     monkeypatch.setattr(ti_friction, "_friction_kernel", lambda *a: (launches.append(a[7]), kernel(*a))[1])
-    for first in ("gradient", "evaluate"):
+    for first in ("gradient", "keep_derivatives"):
         tik = _twin(ref)
         launches.clear()
-        if first == "evaluate":
-            tik.evaluate(x)
+        if first == "keep_derivatives":
+            tik.keep_derivatives(x)
         grad = tik.gradient(x)
         grad[0] = 1e9  # the caller's array: the kept one is another
         again = tik.gradient(x.copy())

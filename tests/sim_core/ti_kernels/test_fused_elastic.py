@@ -151,9 +151,9 @@ def _forming_steps(backend: str, steps: int):
     from sim_core.simulation import Simulation
     from sim_core.solver import SolverConfig
     from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = Simulation(model, solver_config=SolverConfig(backend=backend))
     sim.state = task_initial_state(model)
     effector = next(iter(model.effectors))
@@ -223,7 +223,7 @@ def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
 
 def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     """Forming steps whose line searches evaluate the first trial point with the fused kernels
-    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.evaluate``) equal
+    (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.keep_derivatives``) equal
     those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
     energy-only kernels."""
     from sim_core.fused_elastic import FusedElastic
@@ -243,7 +243,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         monkeypatch.setattr(FusedElastic, "energy", counted)
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
-            monkeypatch.setattr(TiLaggedFriction, "evaluate", lambda self, x: None)
+            monkeypatch.setattr(TiLaggedFriction, "keep_derivatives", lambda self, x: None)
         sim, iterations = _forming_steps("taichi-cpu", 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
@@ -331,14 +331,14 @@ def test_fused_kernel_takes_a_new_branch_each_step(ti_cpu):
 def _fused_candidate_press(candidates: dict, route: str = "model_candidates", depth: float = 0.0004):
     """The tiny press scene of the candidate tests on the fused path, pressed ``depth`` m per step for
     4 steps with ``candidates`` set as model candidates (the diagnosis replays' route) or through
-    :class:`~sim_core.candidates.CandidateNewtonSolver` (``route="candidate_solver"``).
+     a :class:`~sim_core.candidates.CandidateHook` given to the solver (``route="hook"``).
 
     Returns:
         ``(simulation, Newton iterations per step, types of the fused evaluator's parts)``.
     """
     import copy
 
-    from sim_core.candidates import CandidateNewtonSolver
+    from sim_core.candidates import CandidateHook
     from sim_core.control import Control
     from sim_core.scenes import load_scene
     from sim_core.simulation import Simulation
@@ -348,8 +348,8 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
 
     model = load_scene(copy.deepcopy(SCENE))
     sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend="taichi-cpu"))
-    if route == "candidate_solver":
-        sim.solver = CandidateNewtonSolver(sim.model, sim.solver.config, candidates)
+    if route == "hook":
+        sim.solver.set_hook(CandidateHook(candidates))
     else:
         for name, value in candidates.items():
             sim.set_parameter(f"candidate.{name}", value)
@@ -362,18 +362,18 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
     return sim, iterations, [type(part) for part in sim.solver._fused._parts]
 
 
-@pytest.mark.parametrize("route", ["model_candidates", "candidate_solver"])
+@pytest.mark.parametrize("route", ["model_candidates", "hook"])
 def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     """A press with the gel viscoelasticity candidate on the fused path (branch in the fused Stable
     Neo-Hookean kernel) equals the same steps with the branch evaluated by its NumPy methods (a
-    dynamic Hessian term when set as model candidates, as the diagnosis replays do; a reference part
-    of the fused evaluator under ``CandidateNewtonSolver``), and the relaxation state follows."""
-    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+    dynamic Hessian term), whether set as model candidates (as the diagnosis replays do) or given as
+    a hook, and the relaxation state follows."""
+    import sim_core.fused_elastic as fused_elastic
     from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
 
     params = {"gel_viscoelasticity": 1.5, "gel_viscoelasticity.tau": 0.03}
     fused, it_fused, parts_fused = _fused_candidate_press(params, route)
-    monkeypatch.delattr(MaxwellBranch, "elastic_equivalent")
+    monkeypatch.setattr(fused_elastic, "_fused_form", lambda potential: potential)  # no elastic equivalent
     plain, it_plain, parts_plain = _fused_candidate_press(params, route)
     assert parts_fused.count(FusedStableNeoHookean) == 2  # the gel and its branch
     assert parts_plain.count(FusedStableNeoHookean) == 1

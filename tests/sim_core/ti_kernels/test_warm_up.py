@@ -32,9 +32,9 @@ def test_warm_up_gives_the_same_steps_and_the_first_builds_no_pattern(ti_cpu, mo
 def test_warm_up_on_the_numpy_path_does_nothing():
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
     from sim_core.simulation import Simulation
-    from thinshell_ros.bench import _default_scene
+    from thinshell_ros.paths import bundled_scene
 
-    model = load_task_scene(_default_scene("forming"))
+    model = load_task_scene(bundled_scene("forming"))
     sim = Simulation(model)
     sim.state = task_initial_state(model)
     sim.warm_up()

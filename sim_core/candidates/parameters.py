@@ -1,0 +1,45 @@
+"""The names, settings and valid ranges of the missing-physics candidates' parameters (the
+``candidate.<name>`` parameters of :meth:`sim_core.model.Model.set_parameter`)."""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from sim_core.errors import ConfigError
+
+CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_bending", "damping")
+"""Physics-level candidates (SYSID.md effect vocabulary)."""
+
+CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
+                      "adhesion.reach": None, "adhesion.release": None}
+"""Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION``
+``adhesion.delta``, ``adhesion.release`` None = ``ADHESION_RELEASE_FRACTION`` ``adhesion.delta``;
+:meth:`sim_core.candidates.hook.CandidateHook.setting`)."""
+
+
+def validate_candidate_parameters(params: Mapping[str, float] | None) -> dict[str, float]:
+    """Check names and ranges; returns a plain dict.
+
+    Raises:
+        ConfigError: unknown name (lists the known ones), non-finite value, negative beta of a
+            one-sided candidate, ``|anisotropic_bending| >= 1``, non-positive setting.
+    """
+    out: dict[str, float] = {}
+    for name, value in (params or {}).items():
+        if name not in CANDIDATE_NAMES and name not in CANDIDATE_SETTINGS:
+            raise ConfigError(f"unknown candidate parameter {name!r}; known: {list(CANDIDATE_NAMES) + list(CANDIDATE_SETTINGS)}")
+        if value is None and name in CANDIDATE_SETTINGS:
+            continue
+        v = float(value)
+        if not np.isfinite(v):
+            raise ConfigError(f"candidate parameter {name!r} must be finite, got {value}")
+        if name == "anisotropic_bending" and not abs(v) < 1.0:
+            raise ConfigError(f"candidate parameter 'anisotropic_bending' must satisfy |beta| < 1, got {v}")
+        if name in ("stiction", "gel_viscoelasticity", "adhesion", "damping") and v < 0:
+            raise ConfigError(f"candidate parameter {name!r} must be >= 0 (0 = off), got {v}")
+        if name in CANDIDATE_SETTINGS and v <= 0:
+            raise ConfigError(f"candidate setting {name!r} must be > 0, got {v}")
+        out[name] = v
+    return out

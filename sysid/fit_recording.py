@@ -1,0 +1,200 @@
+"""Fit a recording end to end: evidence, observation model, sensor calibration, fit, ``fit.json`` and report.
+
+What ``thinshell sysid`` (:mod:`sysid.cli`) and the sysid node (``thinshell_ros.sysid_node``) both
+run: the bag is read into an evidence bundle (:func:`sysid.evidence.load_evidence`), its effector
+poses are replayed in the simulator (:class:`sysid.observation.ObservationModel`), the sensor is
+calibrated in closed form as ``thinshell diagnose`` does (:func:`sysid.calibration.calibrate`: wrench
+gains, marker scales, camera intrinsics; the fit is then judged against the calibrated prediction),
+the parameters are fitted (:func:`sysid.fit.fit`) and ``fit.json`` (:mod:`sysid.results`), the
+plots, ``report.md`` and ``report.html`` (:mod:`sysid.report`) are written into the output
+directory, which appears whole or not at all. On request the fitted scene is written too
+(:mod:`sysid.fitted_scene`: the bag's scene with the fitted values, their uncertainty and any
+modelled effect).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+from sim_core.errors import ConfigError
+from sysid.calibration import CalibrationResult, calibrate
+from sysid.evidence import load_evidence
+from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
+from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
+from sysid.observation import ObservationModel
+from sysid.report import write_report
+from sysid.results import fit_document, provenance, staged_directory, write_fit_json
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """The settings of one fit (the options of ``thinshell sysid``; see :func:`sysid.fit.fit`).
+
+    Attributes:
+        params: global parameter names (default :data:`sysid.fit.DEFAULT_PARAMETERS`).
+        scene: scene file overriding the bag's ``scene.yaml``, or None.
+        dt: replay step in s.
+        t_max: fit only the first ``t_max`` s of the recording (None: all).
+        channels: channels to fit (None: all the recording has).
+        gel_resolution: gel tet resolution ``(NX, NY, NZ)`` overriding the scene's, or None.
+        arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
+        jacobian: Jacobian provider (``auto``, ``sensitivity``, ``fd``).
+        fd_step: finite-difference step in log units.
+        global_method: global phase before the local least squares (``cma``, ...), None: none.
+        global_evals: replay budget of the global phase (None: its default).
+        max_time: wall-time budget in s (None: none).
+        max_nfev: function evaluations of the local phase.
+        stop_sigma, stop_trial_sigma, stop_rms: stopping rules of :func:`sysid.fit.fit` (None: off).
+        warm_start: start each replay's Newton solves from the best replay so far.
+        sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
+            the scene's sensor calibration).
+        workers: processes for batched replays.
+        seed: seed of the global phase.
+    """
+
+    params: tuple[str, ...] = DEFAULT_PARAMETERS
+    scene: str | None = None
+    dt: float = 0.01
+    t_max: float | None = None
+    channels: tuple[str, ...] | None = None
+    gel_resolution: tuple[int, int, int] | None = None
+    arch: str = "cpu"
+    jacobian: str = "auto"
+    fd_step: float = 0.01
+    global_method: str | None = None
+    global_evals: int | None = None
+    max_time: float | None = None
+    max_nfev: int = 30
+    stop_sigma: float | None = STOP_SIGMA
+    stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
+    stop_rms: float | None = STOP_RMS
+    warm_start: bool = True
+    sensor_calibration: bool = True
+    workers: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Validate the values that the fit would otherwise take silently.
+
+        Raises:
+            ConfigError: empty parameter list, non-positive ``dt`` / ``t_max`` / ``max_time`` /
+                ``max_nfev`` / ``workers``, a gel resolution that is not three positive integers.
+        """
+        if not self.params:
+            raise ConfigError("FitOptions: no parameters to fit")
+        for name in ("dt", "t_max", "max_time"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ConfigError(f"FitOptions: {name} must be > 0 s, got {value}")
+        for name in ("max_nfev", "workers"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
+        if self.gel_resolution is not None and (len(self.gel_resolution) != 3
+                                                or any(int(n) < 1 for n in self.gel_resolution)):
+            raise ConfigError(f"FitOptions: gel_resolution must be three positive integers, got {self.gel_resolution}")
+
+    def replace(self, **changes) -> "FitOptions":
+        """A copy with ``changes`` (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class FitOutcome:
+    """What :func:`fit_recording` produced.
+
+    Attributes:
+        result: the fit (:class:`sysid.fit.FitResult`).
+        document: the ``fit.json`` document.
+        out: the result directory (``fit.json``, ``report.md``, ``report.html``, plots).
+        warnings: what reading the bag and building the model warned about.
+        sensor: the sensor calibration (None with ``sensor_calibration=False``).
+        scene: the fitted scene file written (None without ``write_scene``).
+    """
+
+    result: FitResult
+    document: dict
+    out: Path
+    warnings: tuple[str, ...]
+    sensor: CalibrationResult | None = None
+    scene: Path | None = None
+
+
+def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOptions(), *, force: bool = False,
+                  command: Sequence[str] | None = None, on_eval: Callable[[Evaluation], None] | None = None,
+                  on_model: Callable[[ObservationModel, tuple[str, ...]], None] | None = None,
+                  on_calibration: Callable[[CalibrationResult], None] | None = None,
+                  write_scene: str | Path | None = None) -> FitOutcome:
+    """Fit ``options.params`` to the recording ``bag`` and write the result directory ``out``.
+
+    Args:
+        bag: rosbag2 directory (or ``.mcap`` file) with its ``scene.yaml``.
+        out: result directory, filled in a hidden sibling and renamed into place at the end.
+        options: :class:`FitOptions`.
+        force: replace an existing ``out``.
+        command: the command line recorded in the provenance (default: this call's description).
+        on_eval: called after every replay with its :class:`sysid.fit.Evaluation`.
+        on_model: called with the observation model and the warnings of reading the bag before the
+            fit starts (the CLI prints them).
+        on_calibration: called with the sensor calibration before the fit starts.
+        write_scene: also write the fitted scene (:func:`sysid.fitted_scene.fitted_scene_from_result`)
+            to this YAML file, after the result directory (None: no scene file).
+
+    Returns:
+        :class:`FitOutcome`.
+
+    Raises:
+        ConfigError: ``bag`` does not exist; ``out`` or ``write_scene`` exists and not ``force``; an
+            unknown parameter name; a fitted value the scene has no key for.
+        ThinShellError: unreadable bag, invalid scene, failed fit (:class:`~sim_core.errors.BagReadError`,
+            :class:`~sim_core.errors.CalibrationError`, ...).
+    """
+    bag, out = Path(bag), Path(out)
+    if not bag.exists():
+        raise ConfigError(f"bag not found: {bag}")
+    if (out.exists() or out.is_symlink()) and not force:
+        raise ConfigError(f"output directory {out} exists (use --force / force=True to replace it)")
+    if write_scene is not None and Path(write_scene).exists() and not force:
+        raise ConfigError(f"scene file {write_scene} exists (use --force / force=True to replace it)")
+    simulation = None if options.gel_resolution is None else {"gel_resolution": [int(n) for n in options.gel_resolution]}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        evidence = load_evidence(bag, scene_path=options.scene, include_image="auto")
+        model = ObservationModel(evidence, scene=options.scene, dt=options.dt, t_max=options.t_max,
+                                 channels=None if options.channels is None else list(options.channels),
+                                 simulation=simulation, arch=options.arch)
+    notes = tuple(str(w.message) for w in caught)
+    for name in options.params:  # an unknown name fails here, before the calibration's replay
+        model.parameter_value(name)
+    if on_model is not None:
+        on_model(model, notes)
+    sensor = None
+    if options.sensor_calibration:
+        sensor = calibrate(model, params=())
+        if on_calibration is not None:
+            on_calibration(sensor)
+    result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,
+                 global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
+                 fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
+                 stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
+                 stop_rms=options.stop_rms, warm_start=options.warm_start)
+    result.warnings[:0] = list(notes)
+    for ch, before in result.rms_initial.items():
+        if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
+            result.warnings.append(f"the fit does not improve channel {ch}: RMS {before['rms']:.4g} -> "
+                                   f"{result.rms_final[ch]['rms']:.4g} {before['unit']} (the fitted "
+                                   "parameters cannot follow it; weigh or drop it with --channels)")
+    command = list(command) if command is not None else ["sysid.fit_recording", str(bag), repr(options)]
+    doc = fit_document(result, provenance(evidence, options.seed, options.t_max, command, options.scene))
+    if sensor is not None:
+        doc["diagnostics"]["sensor_calibration"] = sensor.summary()
+    # the fitted scene is built (and checked) before anything is written
+    scene_doc = None if write_scene is None else fitted_scene_from_result(result, evidence, options.t_max)
+    with staged_directory(out, force) as staging:
+        write_fit_json(staging / "fit.json", doc)
+        write_report(result, doc, staging)
+    scene = None if scene_doc is None else write_fitted_scene(write_scene, scene_doc, force=force)
+    return FitOutcome(result, doc, out, notes, sensor, scene)
