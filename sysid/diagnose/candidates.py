@@ -484,7 +484,7 @@ def adhesion_weight_scale(sim_model: Any) -> float:
     bending); far above that the card follows the gel whatever the strength, and only the pull on the
     gel (wrench, markers) still grows with it. The fixed probe of 0.05 N per pair (330 card weights on
     the benchmark's 20 face vertices) made the linearised refit land on the probe itself, which pulled
-    the gel 20 times harder than the recording showed (docs/benchmarks.md, 2026-11-22).
+    the gel 20 times harder than the recording showed (docs/benchmarks_log.md, 2026-11-22).
 
         w = g m_sheets / n_face,
 
@@ -679,7 +679,7 @@ def start_rank(c: Any, index: int) -> tuple[int, int]:
     the others in library order: a scaled probe's prediction change is known only to a decade or two
     (latency_s103: damping's first probe moved the prediction by 68 noise units against a target of 2,
     and its chain took four replays in a row), and a long chain started last leaves one worker alone
-    at the end of the probe phase (docs/benchmarks.md, session 10). Only when replays start changes;
+    at the end of the probe phase (docs/benchmarks_log.md, session 10). Only when replays start changes;
     what each chain returns does not.
 
     Args:

@@ -4,7 +4,7 @@ SYSID.md recipe step 6 validates a refit on held-out time segments: every other 
 equal time blocks (:func:`sysid.diagnose.residuals.holdout_rows`). An effect that acts only at a few
 contact events (adhesion at lift-off) then lands wholly in training or wholly in held-out blocks,
 depending on where the events fall, and no refit can be both fitted and validated on it
-(docs/benchmarks.md, 2026-11-22: the bench's single lift-off lay in the last, held-out block).
+(docs/benchmarks_log.md, 2026-11-22: the bench's single lift-off lay in the last, held-out block).
 
 The rule here is decided from the nominal replay before any candidate is tested, and is the same for
 every effect: the gel is in contact while the nominal contact force exceeds

@@ -44,7 +44,7 @@ class Settings:
             replay's vertex positions (``ObservationModel.warm_start``). Off by default: with the
             candidates' non-convex terms (stiction's bump, adhesion's bonds) Newton from the
             nominal solution often fails where it converges from the previous step (latency_s103:
-            13 of 26 replays diverged, and the report changed; docs/benchmarks.md, 2026-11-22).
+            13 of 26 replays diverged, and the report changed; docs/benchmarks_log.md, 2026-11-22).
         calibrate: calibrate the replay before diagnosing (:func:`sysid.calibration.calibrate`:
             the sensor calibration and, when no ``params`` are given,
             :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values. Off in the
