@@ -48,9 +48,11 @@ def forming_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=49, help="steps of the trajectory to run (1..49)")
     p.add_argument("--backward", action="store_true", help="also time the backward pass (sim_core.adjoint)")
     p.add_argument("--scene", default=None, help="scene file (default: the bundled forming.yaml)")
-    p.add_argument("--no-elastic-worker", action="store_true",
-                   help="evaluate every elastic term in this process (default with --arch cpu: the gel's Stable "
-                        "Neo-Hookean term in a worker process, concurrently with the sheet's terms)")
+    p.add_argument("--elastic-worker", action="store_true",
+                   help="with --arch cpu: evaluate the gel's Stable Neo-Hookean term in a worker process, "
+                        "concurrently with the sheet's terms (default off, as the sim node and the tools run: "
+                        "it needs an idle second core; +10-23 %% on an idle 2-core VM, 3.3x slower on a loaded one, "
+                        "docs/benchmarks.md)")
     p.add_argument("--repeat", type=int, default=1,
                    help="run the trajectory this many times in one process and report the median steps/s "
                         "(a shared VM's speed varies run to run); cold start and JIT are the first run's")
@@ -105,7 +107,7 @@ def bench_forming_main(argv: Sequence[str], default_scene: Callable[[], Path]) -
         return 2
     scene = ns.scene or default_scene()
     worker = None
-    if ns.arch == "cpu" and not ns.no_elastic_worker:
+    if ns.arch == "cpu" and ns.elastic_worker:
         worker = ElasticWorker()  # starts now: its Taichi start overlaps this process's
     try:
         result = repeat_forming([run_forming(scene, ns.steps, ns.backward, ns.arch, worker)

@@ -17,7 +17,7 @@ REQUIRED = {"dofs", "steps_per_s", "newton_iters_mean", "linear_solve_share", "a
 
 
 def test_forming_bench_json_line(capsys):
-    assert bench_main(["forming", "--steps", "2", "--json"]) == 0
+    assert bench_main(["forming", "--steps", "2", "--json", "--elastic-worker"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1
     r = json.loads(lines[0])
@@ -103,7 +103,7 @@ def test_repeat_reports_the_median_run_and_the_first_runs_cold_start(capsys):
     assert r["cold_start_s"] == 9.0 and r["jit_s"] == 5.0 and r["peak_rss_mib"] == 103.0
     with pytest.raises(ValueError, match="no runs"):
         repeat_forming([])
-    assert bench_main(["forming", "--steps", "2", "--repeat", "2", "--json", "--no-elastic-worker"]) == 0
+    assert bench_main(["forming", "--steps", "2", "--repeat", "2", "--json"]) == 0
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert line["repeat"] == 2 and len(line["steps_per_s_runs"]) == 2
     assert line["elastic_worker"] is False and line["worker_peak_rss_mib"] is None
