@@ -1,0 +1,311 @@
+"""Episode-budgeted optimisers: CMA-ES, gradient ascent with Adam through the adjoint, and the hybrid.
+
+* ``cma``: CMA-ES (Hansen 2016) through the ``cma`` package, ask/tell, box bounds, per-task
+  population and step size; candidates are ranked by the episode score (ThinShellLab's fitness,
+  :mod:`sim_core.optim.episode`: infeasible or early-stopped episodes are penalised as the
+  original). One generation costs ``population`` episodes.
+* ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
+  reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
+  infeasible episode returns to the best point found and halves the learning rate. Adam's
+  epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
+  epsilon would swamp small gradients).
+* ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
+  gradient steps from the best candidate.
+
+A :class:`SearchSpace` says what is searched (per-step actions of a manipulation task, material
+parameters of an inverse task) in two coordinate systems: the CMA-ES one (control points,
+:mod:`sim_core.optim.actions`) and the gradient one (every per-step action). The whole optimiser
+state (:class:`SearchState`, including the CMA-ES object) pickles, so a run resumes from a
+checkpoint exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+
+from sim_core.errors import ConfigError
+from sim_core.optim.actions import ControlPointDecoder
+from sim_core.optim.episode import Episode, EpisodeResult
+
+METHODS = ("cma", "gd", "hybrid")
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS_FRACTION = 1e-8
+DEFAULT_LEARNING_RATE = 0.5
+"""Adam step in gradient coordinates (for actions: control-point units, 0.5 = 3e-5 m per step)."""
+DEFAULT_HYBRID_FRACTION = 0.8
+CHECKPOINT_VERSION = 1
+
+
+class SearchSpace(Protocol):
+    """What an optimiser searches (see the module docstring)."""
+
+    def cma_start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x0, low, high)`` of the CMA-ES coordinates."""
+
+    def cma_evaluate(self, points: Sequence[np.ndarray]) -> list[EpisodeResult]:
+        """One episode per point."""
+
+    def gd_start(self, cma_point: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(y0, low, high)`` of the gradient coordinates, starting from a CMA-ES point (None: the zero start)."""
+
+    def gd_gradient(self, y: np.ndarray) -> tuple[EpisodeResult, np.ndarray]:
+        """The episode at ``y`` and d score / d y (zeros when infeasible)."""
+
+    def candidate(self, phase: str, point: np.ndarray) -> Any:
+        """What a point means (per-step actions, parameter values), kept as the best candidate."""
+
+
+@dataclass
+class ActionSpace:
+    """Per-step actions of a manipulation task.
+
+    CMA-ES searches the control points of ``decoder``; gradient ascent searches every step's action
+    in control-point units, ``y = actions / units`` (shape ``(T * action_dim,)``).
+
+    Args:
+        decoder: the control-point decoder of the task.
+        evaluator: batch evaluator (serial or Ray) of the task at the decoder's horizon.
+        episode: the in-process episode for gradients (built on first use when None).
+        task: the task (for the in-process episode).
+    """
+
+    decoder: ControlPointDecoder
+    evaluator: Any
+    task: Any
+    episode: Episode | None = None
+
+    def cma_start(self):
+        low, high = self.decoder.bounds()
+        return np.zeros(self.decoder.dim), low, high
+
+    def cma_evaluate(self, points):
+        return self.evaluator.evaluate([self.decoder.decode(z) for z in points])
+
+    def gd_start(self, cma_point):
+        d = self.decoder
+        y0 = (np.zeros((d.horizon, d.action_dim)) if cma_point is None else d.decode(cma_point) / d.units).reshape(-1)
+        return y0, np.tile(d.low / d.units, d.horizon), np.tile(d.high / d.units, d.horizon)
+
+    def actions(self, y: np.ndarray) -> np.ndarray:
+        """Per-step actions of gradient coordinates ``y``, shape ``(T, action_dim)``."""
+        d = self.decoder
+        return np.clip(np.asarray(y).reshape(d.horizon, d.action_dim) * d.units, d.low, d.high)
+
+    def gd_gradient(self, y):
+        if self.episode is None:
+            self.episode = Episode(self.task, self.decoder.horizon)
+        res, da, _ = self.episode.reward_gradient(self.actions(y))
+        return res.summary(), (da * self.decoder.units).reshape(-1)
+
+    def candidate(self, phase, point):
+        return self.decoder.decode(point) if phase == "cma" else self.actions(point)
+
+
+@dataclass
+class EpisodeLog:
+    """One episode of an optimisation run: index (1-based), phase, reward, score, feasibility."""
+
+    episode: int
+    phase: str
+    reward: float
+    score: float
+    infeasible: str | None
+
+
+@dataclass
+class SearchState:
+    """Everything an optimisation run needs to continue (pickled into the checkpoint).
+
+    Attributes:
+        method: ``cma`` | ``gd`` | ``hybrid``.
+        episodes: episode budget.
+        seed: random seed (CMA-ES gets ``seed + 1``: the ``cma`` package treats 0 as "random").
+        sigma, population: CMA-ES step size (coordinate units) and population.
+        learning_rate, hybrid_fraction: Adam step and the CMA-ES share of a hybrid run.
+        phase: ``cma`` | ``gd`` | ``done``.
+        history: one :class:`EpisodeLog` per episode.
+        best_score, best_reward, best_candidate, best_phase, best_point: the best episode so far
+            (score ranks; candidate as :meth:`SearchSpace.candidate`).
+        es: the ``cma.CMAEvolutionStrategy`` while in the CMA-ES phase.
+        adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
+        meta: free description of the problem (task name, horizon, ...) checked on resume.
+    """
+
+    method: str
+    episodes: int
+    seed: int
+    sigma: float
+    population: int
+    learning_rate: float = DEFAULT_LEARNING_RATE
+    hybrid_fraction: float = DEFAULT_HYBRID_FRACTION
+    phase: str = "cma"
+    history: list[EpisodeLog] = field(default_factory=list)
+    best_score: float = -math.inf
+    best_reward: float = math.nan
+    best_candidate: Any = None
+    best_phase: str | None = None
+    best_point: np.ndarray | None = None
+    best_cma_point: np.ndarray | None = None
+    es: Any = None
+    adam: dict | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def episodes_done(self) -> int:
+        """Episodes evaluated so far."""
+        return len(self.history)
+
+    @property
+    def done(self) -> bool:
+        """The budget is spent (or the search stopped)."""
+        return self.phase == "done" or self.episodes_done >= self.episodes
+
+
+def new_state(method: str, episodes: int, *, seed: int = 0, sigma: float = 1.0, population: int = 8,
+              learning_rate: float = DEFAULT_LEARNING_RATE, hybrid_fraction: float = DEFAULT_HYBRID_FRACTION,
+              meta: dict | None = None) -> SearchState:
+    """A fresh :class:`SearchState`.
+
+    Raises:
+        ConfigError: unknown method or non-positive budget / sigma / population / learning rate, or a
+            hybrid fraction outside (0, 1).
+    """
+    if method not in METHODS:
+        raise ConfigError(f"optimiser: method must be one of {METHODS}, got {method!r}")
+    if int(episodes) < 1 or sigma <= 0 or int(population) < 2 or learning_rate <= 0:
+        raise ConfigError(f"optimiser: episodes >= 1, sigma > 0, population >= 2, learning rate > 0 required; got "
+                          f"{episodes}, {sigma}, {population}, {learning_rate}")
+    if not 0.0 < hybrid_fraction < 1.0:
+        raise ConfigError(f"optimiser: hybrid fraction must be in (0, 1), got {hybrid_fraction}")
+    return SearchState(method, int(episodes), int(seed), float(sigma), int(population), float(learning_rate),
+                       float(hybrid_fraction), phase="gd" if method == "gd" else "cma", meta=dict(meta or {}))
+
+
+def _cma_budget(state: SearchState) -> int:
+    if state.method == "cma":
+        return state.episodes
+    return max(state.population, int(round(state.hybrid_fraction * state.episodes)))
+
+
+def _record(state: SearchState, phase: str, results: Sequence[EpisodeResult], points: Sequence[np.ndarray]) -> list[EpisodeLog]:
+    logs = []
+    for res, point in zip(results, points):
+        log = EpisodeLog(state.episodes_done + 1, phase, float(res.reward), float(res.score), res.infeasible)
+        state.history.append(log)
+        logs.append(log)
+        if res.score > state.best_score:
+            state.best_score, state.best_reward = float(res.score), float(res.reward)
+            state.best_phase, state.best_point = phase, np.array(point, dtype=float)
+            if phase == "cma":
+                state.best_cma_point = np.array(point, dtype=float)
+    return logs
+
+
+def _cma_generation(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    import cma
+
+    if state.es is None:
+        x0, low, high = space.cma_start()
+        opts = {"popsize": state.population, "bounds": [list(low), list(high)], "seed": state.seed + 1,
+                "verbose": -9, "verb_log": 0, "verb_disp": 0}
+        state.es = cma.CMAEvolutionStrategy(list(x0), state.sigma, opts)
+    points = [np.asarray(p, dtype=float) for p in state.es.ask()]
+    results = space.cma_evaluate(points)
+    state.es.tell(points, [-r.score for r in results])
+    return _record(state, "cma", results, points)
+
+
+def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    if state.adam is None:
+        y0, low, high = space.gd_start(state.best_cma_point)
+        state.adam = {"y": y0, "low": low, "high": high, "m": np.zeros_like(y0), "v": np.zeros_like(y0), "t": 0,
+                      "lr": state.learning_rate, "eps": None, "best_y": y0.copy(), "best_score": -math.inf}
+    a = state.adam
+    y = a["y"].copy()
+    res, g = space.gd_gradient(y)
+    logs = _record(state, "gd", [res], [y])
+    if not res.feasible:
+        a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
+        a["m"][:], a["v"][:] = 0.0, 0.0
+        return logs
+    if res.score > a["best_score"]:
+        a["best_score"], a["best_y"] = res.score, y.copy()
+    if a["eps"] is None:
+        a["eps"] = ADAM_EPS_FRACTION * max(float(np.sqrt(np.mean(g**2))), np.finfo(float).tiny)
+    b1, b2 = ADAM_BETAS
+    a["t"] += 1
+    a["m"] = b1 * a["m"] + (1 - b1) * g
+    a["v"] = b2 * a["v"] + (1 - b2) * g**2
+    m_hat, v_hat = a["m"] / (1 - b1 ** a["t"]), a["v"] / (1 - b2 ** a["t"])
+    a["y"] = np.clip(y + a["lr"] * m_hat / (np.sqrt(v_hat) + a["eps"]), a["low"], a["high"])
+    return logs
+
+
+def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    """One batch: a CMA-ES generation or one gradient step (the phase switches as the budget says).
+
+    Returns:
+        the episodes of the batch (empty when the run is done).
+    """
+    if state.done:
+        state.phase = "done"
+        return []
+    if state.phase == "cma":
+        left = _cma_budget(state) - state.episodes_done
+        if left >= state.population or state.episodes_done == 0:
+            return _cma_generation(state, space)
+        if state.method == "cma":
+            state.phase = "done"
+            return []
+        state.phase, state.es = "gd", None
+    return _gd_step(state, space)
+
+
+def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchState, list[EpisodeLog]], None] | None = None) -> SearchState:
+    """Run :func:`step` until the budget is spent, calling ``on_batch(state, logs)`` after each batch
+    (progress bars, checkpoints).
+
+    Returns:
+        ``state`` (advanced in place).
+    """
+    while not state.done:
+        logs = step(state, space)
+        if not logs:
+            break
+        if on_batch is not None:
+            on_batch(state, logs)
+    state.phase = "done" if state.episodes_done >= state.episodes else state.phase
+    if state.best_phase is not None:
+        state.best_candidate = space.candidate(state.best_phase, state.best_point)
+    return state
+
+
+def save_checkpoint(path: str | Path, state: SearchState) -> Path:
+    """Pickle ``state`` to ``path`` atomically (a temporary file renamed over it)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(pickle.dumps({"version": CHECKPOINT_VERSION, "state": state}))
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> SearchState:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises:
+        ConfigError: missing or unreadable file, or another checkpoint version (naming the file).
+    """
+    path = Path(path)
+    try:
+        data = pickle.loads(path.read_bytes())
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError) as err:
+        raise ConfigError(f"{path}: cannot read optimiser checkpoint ({err})") from err
+    if not isinstance(data, dict) or data.get("version") != CHECKPOINT_VERSION:
+        raise ConfigError(f"{path}: not a version-{CHECKPOINT_VERSION} optimiser checkpoint")
+    return data["state"]

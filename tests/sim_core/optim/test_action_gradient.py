@@ -1,0 +1,71 @@
+"""The adjoint gradient of a task reward w.r.t. every per-step action (sim_core.optim.episode)
+against central finite differences of the rollout, on Forming and Folding (short horizons)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.optim.actions import ControlPointDecoder, actions_to_controls, commanded_targets
+from sim_core.optim.episode import Episode
+from sim_core.solver_config import SolverConfig
+from tests.sim_core.optim.task_support import folding_task, forming_task
+
+TIGHT = SolverConfig(tol_velocity=1e-9, tol_force=5e-8, projection="none", dt_halvings_on_failure=0)
+
+
+def _actions(task, seed, press):
+    """Random actions within 40 % of the bounds, pressing down by at least ``press`` m per step
+    (Folding's dome must reach the fold to act on it)."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-0.4, 0.4, size=(task.horizon, task.action_dim)) * task.action_high
+    a[:, 2] = -np.abs(a[:, 2]) * (1 - press / 1e-3) - press
+    return a
+
+
+@pytest.mark.parametrize("make, press, entries", [
+    (forming_task, 0.0, [(0, 0), (0, 2), (1, 4), (2, 1), (2, 3), (2, 5)]),
+    (folding_task, 6e-4, [(0, 0), (0, 2), (1, 3), (2, 2), (2, 4), (1, 5)]),
+])
+def test_reward_gradient_matches_central_differences(make, press, entries):
+    task = make(horizon=3)
+    ep = Episode(task, solver_config=TIGHT)
+    a = _actions(task, 3, press)
+    res, grad, _ = ep.reward_gradient(a)
+    assert res.feasible and np.isfinite(res.reward)
+    assert np.abs(grad).max() > 0.0
+    for i, j in entries:
+        h = 1e-6 if j < 3 else 1e-5
+        up, down = a.copy(), a.copy()
+        up[i, j] += h
+        down[i, j] -= h
+        fd = (ep.run(up).reward - ep.run(down).reward) / (2 * h)
+        scale = np.abs(grad).max()
+        assert grad[i, j] == pytest.approx(fd, rel=2e-3, abs=2e-4 * scale), (i, j, grad[i, j], fd)
+
+
+def test_targets_accumulate_increments():
+    task = forming_task(horizon=3)
+    a = np.zeros((3, 6))
+    a[:, 0] = 1e-4
+    a[1, 5] = 0.1  # 0.1 rad about z in step 1
+    p0 = np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 1.0])
+    poses, _ = commanded_targets(a, task.action_layout, {"dome": p0}, {})
+    np.testing.assert_allclose(poses["dome"][:, 0], [1e-4, 2e-4, 3e-4])
+    np.testing.assert_allclose(poses["dome"][2, 3:], [0.0, 0.0, np.sin(0.05), np.cos(0.05)])
+    c = actions_to_controls(a, task.action_layout, {"dome": p0}, {})
+    assert len(c) == 3 and np.allclose(c[2].effector_pose_target["dome"], poses["dome"][2])
+
+
+def test_control_points_decode_piecewise_constant_in_original_units():
+    task = forming_task(horizon=5, control_points=2)
+    d = ControlPointDecoder.for_task(task)
+    z = np.zeros(d.dim)
+    z[0], z[6 + 2] = 1.0, -100.0  # 1 unit of x at point 0; far below the z bound at point 1
+    a = d.decode(z)
+    assert a.shape == (5, 6)
+    np.testing.assert_allclose(a[:3, 0], 0.0003 / 5)  # steps 0-2: control point 0
+    np.testing.assert_allclose(a[3:, 0], 0.0)
+    np.testing.assert_allclose(a[3:, 2], -1e-3)  # clipped to the per-step bound
+    low, high = d.bounds()
+    np.testing.assert_allclose(high[:3], 1e-3 / (0.0003 / 5))
