@@ -65,8 +65,10 @@ class SearchSpace(Protocol):
 class ActionSpace:
     """Per-step actions of a manipulation task.
 
-    CMA-ES searches the control points of ``decoder``; gradient ascent searches every step's action
-    in control-point units, ``y = actions / units`` (shape ``(T * action_dim,)``).
+    CMA-ES searches the control points of ``decoder`` from zero (the zero trajectory, as the
+    original); gradient ascent searches every step's action in control-point units,
+    ``y = actions / units`` (shape ``(T * action_dim,)``), from the best CMA-ES point (hybrid), else
+    from the task's ``reference_actions`` (:func:`reference_start`), else from zero.
 
     Args:
         decoder: the control-point decoder of the task.
@@ -89,7 +91,13 @@ class ActionSpace:
 
     def gd_start(self, cma_point):
         d = self.decoder
-        y0 = (np.zeros((d.horizon, d.action_dim)) if cma_point is None else d.decode(cma_point) / d.units).reshape(-1)
+        if cma_point is not None:
+            start = d.decode(cma_point)
+        elif getattr(self.task, "reference_actions", None) is not None:
+            start = reference_start(self.task, d)
+        else:
+            start = np.zeros((d.horizon, d.action_dim))
+        y0 = (start / d.units).reshape(-1)
         return y0, np.tile(d.low / d.units, d.horizon), np.tile(d.high / d.units, d.horizon)
 
     def actions(self, y: np.ndarray) -> np.ndarray:
@@ -105,6 +113,24 @@ class ActionSpace:
 
     def candidate(self, phase, point):
         return self.decoder.decode(point) if phase == "cma" else self.actions(point)
+
+
+def reference_start(task, decoder: ControlPointDecoder) -> np.ndarray:
+    """The task's human-designed actions cut (or padded with zeros) to the decoder's horizon and
+    clipped to the bounds, shape ``(T, action_dim)``: the gradient method's start when there is no
+    CMA-ES point (ThinShellLab's trajectory optimisation starts from the human trajectory).
+
+    Raises:
+        ConfigError: reference actions of the wrong width.
+    """
+    ref = np.asarray(task.reference_actions, dtype=float)
+    if ref.ndim != 2 or ref.shape[1] != decoder.action_dim:
+        raise ConfigError(f"task {getattr(task, 'name', '?')}: reference_actions have shape {ref.shape}, "
+                          f"expected (steps, {decoder.action_dim})")
+    out = np.zeros((decoder.horizon, decoder.action_dim))
+    k = min(decoder.horizon, ref.shape[0])
+    out[:k] = ref[:k]
+    return np.clip(out, decoder.low, decoder.high)
 
 
 @dataclass

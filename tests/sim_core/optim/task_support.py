@@ -102,5 +102,8 @@ def folding_task(horizon: int = 4, control_points: int = 2) -> Task:
     model = build_task_scene(sc)
     b = model.bodies["sheet"]
     low, high = _bounds()
+    reference = np.zeros((horizon, 6))
+    reference[:, 2] = -5e-4  # press the fold (ThinShellLab's folding trajectories start by pressing down)
     return Task("Folding-L", "manipulation", sc, horizon, 0.005, (("dome", "pose"),), low, high, control_points,
-                2.5, 6, 2, FoldingReward(np.asarray(b.hinges) - b.vertex_start, sc["sheets"]["sheet"]["resolution"][0]))
+                2.5, 6, 2, FoldingReward(np.asarray(b.hinges) - b.vertex_start, sc["sheets"]["sheet"]["resolution"][0]),
+                reference_actions=reference)
