@@ -24,14 +24,16 @@ def load_scene(scene: str | Path | dict) -> Model:
     from sim_core.scenes.tactile_scene import build_tactile_scene
 
     raw = scene
+    base_dir = None
     if not isinstance(scene, dict):
         path = Path(scene)
         if not path.is_file():
             raise ConfigError(f"{path}: scene file not found")
         raw = load_yaml(path.read_text())
+        base_dir = path.parent
     if isinstance(raw, dict) and raw.get("kind") == "task":
         from sim_core.scenes.task_scene import build_task_scene
 
-        return build_task_scene(raw)
+        return build_task_scene(raw, base_dir)
     parsed = load_scene_file(scene)
     return build_tactile_scene(parsed.to_dict())

@@ -7,7 +7,7 @@ key raises :class:`ConfigError` naming the dotted key. Example: ``config/scenes/
 
 Top-level keys (all required unless marked optional)::
 
-    kind: task              version: 1             name: str
+    kind: task              version: 1 | 2         name: str
     dt: s                   gravity: [gx, gy, gz]  damping: 1/s (optional, 0)
     contact: {stiffness: N/m, eps: m, eps_v: m/s (optional), self_contact: bool (optional),
               broad_phase: spatial_hash | sweep | kdtree (optional, spatial_hash)}
@@ -46,11 +46,16 @@ layer_count}`` (mount = inner surface + base, as in ThinShellLab) or ``shape: pa
 effector frame, mount = back face); plus ``material: {youngs_modulus, poisson_ratio, density}``,
 ``initial_pose: [x y z qx qy qz qw]``, optional ``max_translation_per_step`` (m, 1e-3) and
 ``max_rotation_per_step`` (rad, 0.02). The solid's body name is the effector's name.
+
+Version 2 adds gripper effectors, rigid effectors, ``blocks``, ``meshes``, arched boxes, pinned
+vertex sets and creases (:mod:`sim_core.scenes.task_scene_v2`; all documented in
+``docs/scene_schema.md``); a version-1 file that uses one of these keys is rejected with a hint.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,10 +67,13 @@ from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import TetMesh, box_face_vertices, tet_box
 from sim_core.model import ContactSettings, Model, check_broad_phase
 from sim_core.potentials.bending import dihedral_angle
+from sim_core.scenes import task_scene_v2 as v2
 from sim_core.state import State
 from sim_core.transforms import transform_points
 
-TASK_SCENE_VERSION = 1
+TASK_SCENE_VERSION = 2
+"""The newest version; version-1 files load unchanged (:data:`TASK_SCENE_VERSIONS`)."""
+TASK_SCENE_VERSIONS = (1, 2)
 SPRING_STANDIN_POISSON_RATIO = 1.0 / 3.0
 
 _TOP = {"kind": True, "version": True, "name": True, "dt": True, "gravity": True, "contact": True, "sheets": True,
@@ -80,16 +88,24 @@ _EFFECTOR = {"shape": True, "material": True, "initial_pose": True, "outer_radiu
              "mesh": False, "size": False, "resolution": False, "max_translation_per_step": False,
              "max_rotation_per_step": False}
 _TASK = {"type": True, "horizon": True, "identify": False}
+# keys that version 2 adds (sim_core.scenes.task_scene_v2)
+_TOP_V2 = {**_TOP, "blocks": False, "meshes": False}
+_SHEET_V2 = {**_SHEET, "pinned": False, "creases": False}
+_BOX_V2 = {**_BOX, "arch_height": False}
+_EFFECTOR_V2 = {**_EFFECTOR, "finger": False, "opening": False, "axis": False, "rigid": False}
 
 
 # ----------------------------------------------------------------------------- validation helpers
-def _block(value: Any, where: str, keys: dict[str, bool]) -> dict:
-    """Check that ``value`` is a mapping with only ``keys`` and all required ones; returns it."""
+def _block(value: Any, where: str, keys: dict[str, bool], v2_keys: dict[str, bool] | None = None) -> dict:
+    """Check that ``value`` is a mapping with only ``keys`` and all required ones; returns it.
+
+    ``v2_keys``: the keys of version 2, named in the error of a version-1 file that uses one."""
     if not isinstance(value, dict):
         raise ConfigError(f"task scene: {where} must be a mapping, got {type(value).__name__}")
     for k in value:
         if k not in keys:
-            raise ConfigError(f"task scene: unknown key {where}.{k} (known: {sorted(keys)})")
+            hint = " (a version-2 key: set version: 2)" if v2_keys is not None and k in v2_keys else ""
+            raise ConfigError(f"task scene: unknown key {where}.{k}{hint} (known: {sorted(keys)})")
     for k, required in keys.items():
         if required and k not in value:
             raise ConfigError(f"task scene: missing key {where}.{k}")
@@ -182,9 +198,9 @@ def _solid_material(value: Any, where: str) -> dict[str, float]:
 
 
 # ----------------------------------------------------------------------------- sheets
-def _add_sheet(b: ModelBuilder, name: str, spec: Any, meta: dict) -> tuple[np.ndarray, np.ndarray]:
+def _add_sheet(b: ModelBuilder, name: str, spec: Any, meta: dict, version: int = 1) -> tuple[np.ndarray, np.ndarray]:
     where = f"sheets.{name}"
-    s = _block(spec, where, _SHEET)
+    s = _block(spec, where, _SHEET_V2 if version >= 2 else _SHEET, _SHEET_V2)
     size = _vector(s["size"], 2, f"{where}.size", positive=True)
     nx, ny = _ints(s["resolution"], 2, f"{where}.resolution", 2)
     origin = _vector(s["origin"], 3, f"{where}.origin")
@@ -234,15 +250,21 @@ def _add_sheet(b: ModelBuilder, name: str, spec: Any, meta: dict) -> tuple[np.nd
     rest = s.get("rest_angles", "flat")
     if rest not in ("flat", "initial"):
         raise ConfigError(f"task scene: {where}.rest_angles must be flat|initial, got {rest!r}")
+    fixed = _edge_vertices(nx, ny, s["clamped_edge"], f"{where}.clamped_edge")
+    if "pinned" in s:
+        fixed = np.union1d(fixed, v2.pinned_vertices(s["pinned"], x0, (nx, ny), f"{where}.pinned", _edge_vertices))
     body = b.add_sheet(
         name, mesh,
         {"youngs_modulus": E, "poisson_ratio": nu, "thickness": t, "bending_stiffness": D, "density": rho,
          "yield_angle": yield_angle},
-        fixed=_edge_vertices(nx, ny, s["clamped_edge"], f"{where}.clamped_edge"), grid_shape=(nx, ny),
+        fixed=fixed, grid_shape=(nx, ny),
     )
-    if rest == "initial":
-        local = body.hinges - body.vertex_start
-        meta.setdefault("initial_hinge_theta_bar", {})[name] = dihedral_angle(x0[local])
+    local = body.hinges - body.vertex_start
+    theta_bar = dihedral_angle(x0[local]) if rest == "initial" else np.zeros(local.shape[0])
+    if "creases" in s:
+        theta_bar = v2.crease_rest_angles(s["creases"], local, nx, theta_bar, f"{where}.creases")
+    if rest == "initial" or "creases" in s:
+        meta.setdefault("initial_hinge_theta_bar", {})[name] = theta_bar
     return mesh.x, x0
 
 
@@ -275,26 +297,33 @@ def _effector_solid(name: str, spec: dict, where: str) -> tuple[TetMesh, np.ndar
 
 
 # ----------------------------------------------------------------------------- public API
-def build_task_scene(scene: dict) -> Model:
-    """Build the Model of a ``kind: task`` scene dictionary (schema in the module docstring).
+def build_task_scene(scene: dict, base_dir: Path | None = None) -> Model:
+    """Build the Model of a ``kind: task`` scene dictionary (schema in the module docstring and, for
+    version 2, :mod:`sim_core.scenes.task_scene_v2` and ``docs/scene_schema.md``).
 
     Args:
         scene: the parsed YAML mapping.
+        base_dir: directory that relative ``meshes.*.file`` paths are resolved against (default: the
+            working directory).
 
     Returns:
         the Model. ``model.meta`` holds ``name``, ``dt``, ``task`` (type, horizon, identify),
-        ``sheet_grid`` per sheet, ``effector_bodies`` (effector -> body), and where used
+        ``sheet_grid`` per sheet, ``effector_bodies`` (effector -> body), ``tactile_effectors``
+        (effectors whose solid deforms: not rigid), ``version``, and where used
         ``membrane`` (spring form), ``fold_radius`` and ``initial_hinge_theta_bar``;
         ``model.initial_x`` is set when a sheet starts folded.
 
     Raises:
         ConfigError: unknown or missing key (named as a dotted path), a bad value, or a mesh error.
     """
-    _block(scene, "<top>", _TOP)
+    if not isinstance(scene, dict):
+        raise ConfigError(f"task scene: the document must be a mapping, got {type(scene).__name__}")
+    version = scene.get("version")
+    if version not in TASK_SCENE_VERSIONS:
+        raise ConfigError(f"task scene: version must be one of {TASK_SCENE_VERSIONS}, got {version!r}")
+    _block(scene, "<top>", _TOP_V2 if version >= 2 else _TOP, _TOP_V2)
     if scene["kind"] != "task":
         raise ConfigError(f"task scene: kind must be 'task', got {scene['kind']!r}")
-    if scene["version"] != TASK_SCENE_VERSION:
-        raise ConfigError(f"task scene: version must be {TASK_SCENE_VERSION}, got {scene['version']!r}")
     dt = _number(scene["dt"], "dt", positive=True)
     gravity = _vector(scene["gravity"], 3, "gravity")
     c = _block(scene["contact"], "contact", _CONTACT)
@@ -305,7 +334,8 @@ def build_task_scene(scene: dict) -> Model:
         self_contact=bool(c.get("self_contact", True)),
         broad_phase=check_broad_phase(c.get("broad_phase", "spatial_hash"), "contact.broad_phase"),
     )
-    meta: dict[str, Any] = {"name": str(scene["name"]), "dt": dt, "sheet_grid": {}, "effector_bodies": {}}
+    meta: dict[str, Any] = {"name": str(scene["name"]), "dt": dt, "sheet_grid": {}, "effector_bodies": {},
+                            "tactile_effectors": [], "version": int(version)}
     b = ModelBuilder()
     initial_parts = []
     sheets = scene["sheets"]
@@ -313,32 +343,62 @@ def build_task_scene(scene: dict) -> Model:
         raise ConfigError("task scene: sheets must be a non-empty mapping name -> sheet")
     moved = False
     for name, spec in sheets.items():
-        x_flat, x0 = _add_sheet(b, name, spec, meta)
+        x_flat, x0 = _add_sheet(b, name, spec, meta, version)
         meta["sheet_grid"][name] = tuple(int(v) for v in spec["resolution"])
         initial_parts.append(x0)
         moved |= not np.array_equal(x_flat, x0)
     for name, spec in (scene.get("boxes") or {}).items():
         where = f"boxes.{name}"
-        s = _block(spec, where, _BOX)
+        s = _block(spec, where, _BOX_V2 if version >= 2 else _BOX, _BOX_V2)
         box = tet_box(tuple(_vector(s["size"], 3, f"{where}.size", positive=True)),
                       _ints(s["resolution"], 3, f"{where}.resolution", 2), tuple(_vector(s["origin"], 3, f"{where}.origin")))
+        if "arch_height" in s:
+            box = TetMesh(v2.arch(box.x, _number(s["arch_height"], f"{where}.arch_height")), box.tets)
+            moved = True
         frozen = bool(s["frozen"])
         if not frozen and "material" not in s:
             raise ConfigError(f"task scene: missing key {where}.material (box not frozen)")
         mat = _solid_material(s["material"], f"{where}.material") if "material" in s else None
         b.add_solid(name, box, mat, frozen=frozen)
         initial_parts.append(box.x)
+    for name, spec in (scene.get("blocks") or {}).items():
+        where = f"blocks.{name}"
+        s = _block(spec, where, v2.BLOCK_KEYS)
+        initial_parts.append(v2.add_block(b, name, s, where, _number, _vector, _ints))
+    for name, spec in (scene.get("meshes") or {}).items():
+        initial_parts.append(_add_mesh_object(b, name, spec, base_dir))
     for name, spec in (scene.get("effectors") or {}).items():
         where = f"effectors.{name}"
-        s = _block(spec, where, _EFFECTOR)
-        local_mesh, mount = _effector_solid(name, s, where)
+        s = _block(spec, where, _EFFECTOR_V2 if version >= 2 else _EFFECTOR, _EFFECTOR_V2)
+        finger_sign, axis, opening = None, (1.0, 0.0, 0.0), 0.0
+        rigid = bool(s.get("rigid", False))
+        if s["shape"] == "gripper":
+            if version < 2:
+                raise ConfigError(f"task scene: {where}.shape gripper needs version: 2")
+            for k in v2.GRIPPER_KEYS:
+                if k not in s:
+                    raise ConfigError(f"task scene: missing key {where}.{k} (shape gripper)")
+            if "rigid" in s:
+                raise ConfigError(f"task scene: {where}.rigid: set finger.rigid for a gripper")
+            local_mesh, mount, finger_sign, axis, opening, rigid = v2.gripper_solid(
+                s, where, lambda f, w: _effector_solid(name, f, w), _block)
+        else:
+            for k in ("finger", "opening", "axis"):
+                if k in s:
+                    raise ConfigError(f"task scene: key {where}.{k} applies to shape gripper only")
+            local_mesh, mount = _effector_solid(name, s, where)
+            if rigid:
+                mount = np.arange(local_mesh.x.shape[0])
         pose = _vector(s["initial_pose"], 7, f"{where}.initial_pose")
         world = TetMesh(transform_points(pose, local_mesh.x), local_mesh.tets)
         b.add_solid(name, world, _solid_material(s["material"], f"{where}.material"))
         b.add_effector(name, name, mount, pose,
                        _number(s.get("max_translation_per_step", 1e-3), f"{where}.max_translation_per_step", positive=True),
-                       _number(s.get("max_rotation_per_step", 0.02), f"{where}.max_rotation_per_step", positive=True))
+                       _number(s.get("max_rotation_per_step", 0.02), f"{where}.max_rotation_per_step", positive=True),
+                       finger_sign=finger_sign, finger_axis=axis, initial_opening=opening)
         meta["effector_bodies"][name] = name
+        if not rigid:
+            meta["tactile_effectors"].append(name)
         initial_parts.append(world.x)
     for name, spec in (scene.get("planes") or {}).items():
         p = _block(spec, f"planes.{name}", {"normal": True, "offset": True})
@@ -367,6 +427,30 @@ def build_task_scene(scene: dict) -> Model:
     return model
 
 
+def _add_mesh_object(b: ModelBuilder, name: str, spec: Any, base_dir: Path | None) -> np.ndarray:
+    """Add a ``meshes`` entry (version 2); returns its initial positions ``(n, 3)``."""
+    where = f"meshes.{name}"
+    s = _block(spec, where, v2.MESH_KEYS)
+    kind = s["kind"]
+    if kind not in ("sheet", "solid", "frozen"):
+        raise ConfigError(f"task scene: {where}.kind must be sheet|solid|frozen, got {kind!r}")
+    mesh = v2.load_mesh_object(s, where, base_dir)
+    pinned = None
+    if "pinned" in s:
+        pinned = v2.pinned_vertices(s["pinned"], mesh.x, None, f"{where}.pinned", _edge_vertices)
+    if kind == "sheet":
+        m = _block(s.get("material"), f"{where}.material", v2.SHEET_MESH_MATERIAL)
+        mat = {k: _number(v, f"{where}.material.{k}", positive=k != "poisson_ratio") for k, v in m.items()}
+        b.add_sheet(name, mesh, mat, fixed=pinned)
+    elif kind == "solid":
+        b.add_solid(name, mesh, _solid_material(s.get("material"), f"{where}.material"), fixed=pinned)
+    else:
+        if "material" in s:
+            raise ConfigError(f"task scene: key {where}.material does not apply to kind frozen")
+        b.add_solid(name, mesh, None, frozen=True)
+    return mesh.x
+
+
 def task_initial_state(model: Model) -> State:
     """The initial state of a task scene: ``model.state()`` with the sheets' initial rest angles.
 
@@ -386,8 +470,6 @@ def load_task_scene(path) -> Model:
         ConfigError: missing file or YAML error (naming the file), or any error of :func:`build_task_scene`
             (re-raised with the file name).
     """
-    from pathlib import Path
-
     import yaml
 
     path = Path(path)
@@ -396,6 +478,6 @@ def load_task_scene(path) -> Model:
     except (OSError, yaml.YAMLError) as err:
         raise ConfigError(f"{path}: cannot read task scene ({err})") from err
     try:
-        return build_task_scene(scene)
+        return build_task_scene(scene, path.parent)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from err

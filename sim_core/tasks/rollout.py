@@ -1,0 +1,235 @@
+"""Rollouts of a task: a scene, a sequence of per-step actions, the reward of the final state.
+
+An episode starts at the scene's initial state, applies one action row before each step
+(:func:`sim_core.tasks.spec.apply_action`: commanded poses and openings accumulate the increments)
+and stops early when the state becomes infeasible, as ThinShellLab's ``check_early_stop``
+(``code/task_scene/Scene_folding.py``, ``Scene_pick.py``): a solver failure or non-finite positions,
+a contact force component above ``max_force_N`` on an effector, or (after ``contact_after_step``
+steps) an effector whose net contact force is below ``min_contact_force_N``.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sim_core.control import Control
+from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.simulation import Simulation
+from sim_core.solver_config import SolverConfig
+from sim_core.state import State
+from sim_core.step_info import StepInfo
+from sim_core.tasks.spec import TaskSpec, apply_action
+
+
+@dataclass
+class RolloutResult:
+    """What one rollout did.
+
+    Attributes:
+        reward: the task's reward of the last state reached (also when infeasible), in the task's units.
+        steps_done: steps completed (``<= horizon``).
+        infeasible: why the rollout stopped early, or None when it ran all its actions feasibly.
+        states: the states ``0 .. steps_done`` when asked for (``keep_states``), else None.
+        effector_poses: effector -> poses ``[x y z qx qy qz qw]``, shape ``(steps_done + 1, 7)``.
+        gripper: effector -> finger opening in m, shape ``(steps_done + 1,)`` (effectors with fingers).
+        step_infos: the solver's :class:`StepInfo` of each completed step.
+        wrench: effector -> net contact wrench on its body ``[fx fy fz tx ty tz]`` (N, N m; world axes,
+            torque about the effector frame's origin), shape ``(steps_done + 1, 6)``.
+        sim_time_s: wall-clock seconds spent stepping.
+    """
+
+    reward: float
+    steps_done: int
+    infeasible: str | None
+    states: list[State] | None
+    effector_poses: dict[str, np.ndarray]
+    gripper: dict[str, np.ndarray]
+    step_infos: list[StepInfo] = field(default_factory=list)
+    wrench: dict[str, np.ndarray] = field(default_factory=dict)
+    sim_time_s: float = 0.0
+
+
+def build_task_simulation(task: TaskSpec, params: dict[str, float] | None = None, backend: str = "numpy",
+                          solver_config: SolverConfig | None = None) -> Simulation:
+    """A Simulation of the task's scene at its initial state, with parameters overridden.
+
+    Args:
+        task: the task.
+        params: global parameter name -> value (``Model.parameter_names``), applied after building.
+        backend: solver backend (:mod:`sim_core.backend`) when ``solver_config`` is None.
+        solver_config: full solver settings (its backend wins).
+
+    Returns:
+        the Simulation (``dt`` = the task's).
+
+    Raises:
+        ConfigError: an unknown parameter or an out-of-range value.
+    """
+    from sim_core.scenes.task_scene import build_task_scene, task_initial_state
+
+    model = build_task_scene(copy.deepcopy(task.scene))
+    for name, value in (params or {}).items():
+        model.set_parameter(name, value)
+    sim = Simulation(model, dt=task.dt, solver_config=solver_config or SolverConfig(backend=backend))
+    sim.state = task_initial_state(model)
+    return sim
+
+
+def effector_wrench(sim: Simulation, state: State, effector: str) -> np.ndarray:
+    """Net contact wrench on an effector's body: ``[sum f, sum (x - p) x f]``.
+
+    Args:
+        sim: the simulation.
+        state: a state with ``contact_force``.
+        effector: effector name (its body is ``model.meta["effector_bodies"][effector]``).
+
+    Returns:
+        ``[fx fy fz tx ty tz]`` in N and N m, world axes, torque about the effector frame's origin ``p``.
+    """
+    body = sim.model.bodies[sim.model.meta.get("effector_bodies", {}).get(effector, effector)]
+    f = np.zeros((0, 3)) if state.contact_force is None else state.contact_force[body.vertex_start:body.vertex_stop]
+    r = state.x[body.vertex_start:body.vertex_stop] - state.effector_pose[effector][:3]
+    return np.concatenate([f.sum(axis=0), np.cross(r, f).sum(axis=0)])
+
+
+class TaskEpisode:
+    """One episode of a task, stepped action row by action row (used by :func:`rollout` and the
+    Gymnasium environments).
+
+    Args:
+        task: the task.
+        params: parameter overrides (see :func:`build_task_simulation`).
+        backend: solver backend.
+        solver_config: full solver settings, or None.
+
+    Attributes:
+        sim: the Simulation.
+        pose_targets: effector -> commanded pose.
+        gripper_targets: effector -> commanded opening (m), effectors with fingers.
+        infeasible: why the episode stopped, or None.
+    """
+
+    def __init__(self, task: TaskSpec, params: dict[str, float] | None = None, backend: str = "numpy",
+                 solver_config: SolverConfig | None = None) -> None:
+        self.task = task
+        self.sim = build_task_simulation(task, params, backend, solver_config)
+        self._initial = self.sim.state.copy()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the initial state (solver caches cleared)."""
+        self.sim.solver.reset_caches()
+        self.sim.state = self._initial.copy()
+        self.pose_targets = {k: np.array(v) for k, v in self.sim.state.effector_pose.items()}
+        self.gripper_targets = {k: float(v) for k, v in self.sim.state.gripper_opening.items()
+                                if self.sim.model.effectors[k].finger_sign is not None}
+        self.infeasible: str | None = None
+        self.steps_done = 0
+
+    def wrenches(self, state: State | None = None) -> dict[str, np.ndarray]:
+        """Effector -> net contact wrench (:func:`effector_wrench`) of ``state`` (default: current)."""
+        state = state or self.sim.state
+        return {name: effector_wrench(self.sim, state, name) for name in self.sim.model.effectors}
+
+    def step(self, row: np.ndarray) -> StepInfo | None:
+        """Apply one action row and advance one step.
+
+        Returns:
+            the solver's StepInfo, or None when the step failed (``infeasible`` then says why; the state
+            is the last good one).
+
+        Raises:
+            ConfigError: the episode already ended, or a bad action row.
+        """
+        if self.infeasible is not None or self.steps_done >= self.task.horizon:
+            raise ConfigError(f"task {self.task.name}: episode is over ({self.infeasible or 'horizon reached'})")
+        row = self.task.check_actions(np.asarray(row, dtype=float)[None, :])[0]
+        self.pose_targets, self.gripper_targets = apply_action(self.task, row, self.pose_targets, self.gripper_targets)
+        control = Control(effector_pose_target={k: v.copy() for k, v in self.pose_targets.items()},
+                          gripper_target=dict(self.gripper_targets))
+        step = self.steps_done + 1
+        try:
+            info = self.sim.step(control)
+        except SimulationDivergedError as err:
+            self.infeasible = f"solver failure at step {step}: {err}"
+            return None
+        self.steps_done = step
+        if not np.all(np.isfinite(self.sim.state.x)):
+            self.infeasible = f"non-finite positions at step {step}"
+            return info
+        self.infeasible = self._check(step)
+        return info
+
+    def _check(self, step: int) -> str | None:
+        rules = self.task.infeasible
+        wrench = self.wrenches()
+        for name, w in wrench.items():
+            if rules.max_force_N is not None and np.max(np.abs(w[:3])) > rules.max_force_N:
+                return (f"excessive force at step {step}: effector {name} |f| components {np.abs(w[:3]).round(3).tolist()} N "
+                        f"> {rules.max_force_N} N")
+        if rules.min_contact_force_N is not None and step > rules.contact_after_step:
+            names = rules.contact_effectors or tuple(e for e, k in self.task.action_layout if k == "pose")
+            for name in names:
+                if float(np.linalg.norm(wrench[name][:3])) < rules.min_contact_force_N:
+                    return (f"no contact at step {step}: effector {name} net contact force "
+                            f"{np.linalg.norm(wrench[name][:3]):.3g} N < {rules.min_contact_force_N} N")
+        return None
+
+    def reward(self) -> float:
+        """The task's reward of the current state."""
+        return float(self.task.reward(self.sim.model, self.sim.state))
+
+
+def rollout(task: TaskSpec, actions: np.ndarray, params: dict[str, float] | None = None, *, backend: str = "numpy",
+            keep_states: bool = False, solver_config: SolverConfig | None = None) -> RolloutResult:
+    """Run an action sequence from the task's initial state and score the final state.
+
+    Args:
+        task: the task.
+        actions: per-step action rows, shape ``(k, action_dim)`` with ``k <= horizon`` (see
+            :mod:`sim_core.tasks.spec` for their meaning); must lie within the task's bounds.
+        params: global parameter overrides (inverse tasks: the candidate values).
+        backend: solver backend (``"numpy"``, ``"taichi-cpu"``, ...).
+        keep_states: keep every state in the result.
+        solver_config: full solver settings, or None.
+
+    Returns:
+        the :class:`RolloutResult` (an infeasible rollout stops at the failing step and says why).
+
+    Raises:
+        ConfigError: bad actions (shape, bounds, non-finite) or parameters.
+    """
+    a = task.check_actions(actions)
+    ep = TaskEpisode(task, params, backend, solver_config)
+    sim = ep.sim
+    states = [sim.state.copy()] if keep_states else None
+    poses = {k: [np.array(v)] for k, v in sim.state.effector_pose.items()}
+    grip = {k: [float(sim.state.gripper_opening[k])] for k in ep.gripper_targets}
+    wrench = {k: [v] for k, v in ep.wrenches().items()}
+    infos: list[StepInfo] = []
+    t0 = time.perf_counter()
+    for row in a:
+        info = ep.step(row)
+        if info is None:
+            break
+        infos.append(info)
+        if states is not None:
+            states.append(sim.state.copy())
+        for k in poses:
+            poses[k].append(np.array(sim.state.effector_pose[k]))
+        for k in grip:
+            grip[k].append(float(sim.state.gripper_opening[k]))
+        for k, v in ep.wrenches().items():
+            wrench[k].append(v)
+        if ep.infeasible is not None:
+            break
+    elapsed = time.perf_counter() - t0
+    return RolloutResult(
+        reward=ep.reward(), steps_done=ep.steps_done, infeasible=ep.infeasible, states=states,
+        effector_poses={k: np.array(v) for k, v in poses.items()}, gripper={k: np.array(v) for k, v in grip.items()},
+        step_infos=infos, wrench={k: np.array(v) for k, v in wrench.items()}, sim_time_s=elapsed,
+    )
