@@ -58,8 +58,8 @@ def test_targets_accumulate_increments():
 
 
 def test_control_points_decode_piecewise_constant_in_original_units():
-    task = forming_task(horizon=5, control_points=2)
-    d = ControlPointDecoder.for_task(task)
+    task = forming_task(horizon=5)
+    d = ControlPointDecoder.for_task(task, control_points=2)
     z = np.zeros(d.dim)
     z[0], z[6 + 2] = 1.0, -100.0  # 1 unit of x at point 0; far below the z bound at point 1
     a = d.decode(z)
