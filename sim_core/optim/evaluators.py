@@ -9,6 +9,7 @@ caches), so a batch gives the same results in any process and in any order.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -94,7 +95,8 @@ class RayEvaluator:
             try:
                 if address is None:
                     # a local instance sized to the workers; the driver's own process does no rollouts
-                    ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False)
+                    ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False,
+                             runtime_env={"env_vars": {"PYTHONPATH": _package_root()}})
                 else:
                     ray.init(address=address, log_to_driver=False)
             except (ConnectionError, RuntimeError, ValueError) as err:
@@ -130,6 +132,14 @@ class RayEvaluator:
         if self._started:
             ray.shutdown()
             self._started = False
+
+
+def _package_root() -> str:
+    """The directory holding this ``sim_core`` package: local Ray workers import the same code as
+    the driver (a source checkout run with ``python -m`` or pytest is not on the workers' path)."""
+    import sim_core
+
+    return str(Path(sim_core.__file__).resolve().parents[1])
 
 
 def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
