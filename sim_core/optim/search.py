@@ -75,12 +75,14 @@ class ActionSpace:
         evaluator: batch evaluator (serial or Ray) of the task at the decoder's horizon.
         episode: the in-process episode for gradients (built on first use when None).
         task: the task (for the in-process episode).
+        params: global parameter values of the in-process episode (as the evaluator's).
     """
 
     decoder: ControlPointDecoder
     evaluator: Any
     task: Any
     episode: Episode | None = None
+    params: dict | None = None
 
     def cma_start(self):
         low, high = self.decoder.bounds()
@@ -107,7 +109,7 @@ class ActionSpace:
 
     def gd_gradient(self, y):
         if self.episode is None:
-            self.episode = Episode(self.task, self.decoder.horizon)
+            self.episode = Episode(self.task, self.decoder.horizon, self.params)
         res, da, _ = self.episode.reward_gradient(self.actions(y))
         return res.summary(), (da * self.decoder.units).reshape(-1)
 
