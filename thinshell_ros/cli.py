@@ -21,7 +21,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "diagnose": ("sysid.diagnose_cli", "diagnose_main", "find, name and model missing physics in recorded bags"),
     "deploy": ("thinshell_ros.deploy_node", "deploy_main", "play a trajectory.yaml (or a bag's pose_cmd stream) on the robot over DDS, with limits and an abort"),
     "optimise": ("sysid.optimise_cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
-    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose"),
+    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, optimise"),
 }
 
 

@@ -1,6 +1,12 @@
-"""ThinShellLab-style tasks: benchmark trajectories and rewards as pure functions of the state.
+"""ThinShellLab-style tasks: task specifications, rewards as pure functions of the state, rollouts,
+Gymnasium environments and benchmark trajectories.
 
-Scenes live in ``config/scenes`` (``kind: task``, built by :mod:`sim_core.scenes.task_scene`).
+Modules: :mod:`~sim_core.tasks.spec` (``TaskSpec``, action rows), :mod:`~sim_core.tasks.registry`
+(``load_task``, ``task_names``: ``config/tasks/*.yaml``), :mod:`~sim_core.tasks.rewards` (formulas),
+:mod:`~sim_core.tasks.task_rewards` (bindings), :mod:`~sim_core.tasks.rollout` (``rollout``,
+``build_task_simulation``, ``TaskEpisode``), :mod:`~sim_core.tasks.env` (Gymnasium, imported on
+demand), :mod:`~sim_core.tasks.bench` (``thinshell bench tasks``). Scenes live in ``config/scenes``
+(``kind: task``, built by :mod:`sim_core.scenes.task_scene`).
 """
 
 from __future__ import annotations

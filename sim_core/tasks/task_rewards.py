@@ -12,6 +12,11 @@ of :mod:`sim_core.tasks.rewards`. Registered names and parameters:
 | ``coordinate_sum`` | ``terms: [{body, axis: x/y/z, weight}]`` | ``sum w sum_i x_i[axis]`` | m |
 | ``observed_motion`` | ``bodies: [names]`` | ``-sum_i |x_i - x_i^obs|^2`` over the bodies, ``x^obs`` = the end of the reference trajectory at the task's ``true_parameters`` | m^2 |
 
+Dihedral angles enter the crease rewards in ThinShellLab's sign convention,
+``theta_ThinShellLab = -theta`` (:data:`THINSHELLLAB_ANGLE_SIGN`; ours, :func:`~sim_core.potentials.bending.dihedral_angle`,
+is positive when the wings fold towards the sheet normal): with it the human-designed motions of
+Folding-L, Folding-U and Pick-Folding score with the signs of Table A.
+
 ``sheet_target`` and ``observed_motion`` need the final state of the reference trajectory; it is
 computed on first use by the ``reference_final`` callable the task loader passes in, and cached.
 """
@@ -29,6 +34,7 @@ from sim_core.state import State
 from sim_core.tasks import rewards
 
 RewardFn = Callable[[Model, State], float]
+THINSHELLLAB_ANGLE_SIGN = -1.0
 ReferenceFinal = Callable[[], State]
 
 REWARD_UNITS = {"sheet_target": "m^2", "crease_rest_angle": "rad", "crease_fold": "rad", "body_displacement": "m^2",
@@ -115,7 +121,7 @@ def build_reward(name: str, params: dict[str, Any], where: str, reference_final:
 
         def reward(model: Model, state: State) -> float:
             hinges, nx = _sheet_hinges(model, body, where)
-            return rewards.folding_reward(state.hinge_theta_bar[body], hinges, nx, weights)
+            return rewards.folding_reward(THINSHELLLAB_ANGLE_SIGN * state.hinge_theta_bar[body], hinges, nx, weights)
         return reward
     if name == "crease_fold":
         body, column, aw = str(params["body"]), int(params["column"]), float(params["angle_weight"])
@@ -123,7 +129,8 @@ def build_reward(name: str, params: dict[str, Any], where: str, reference_final:
         def reward(model: Model, state: State) -> float:
             hinges, nx = _sheet_hinges(model, body, where)
             theta = dihedral_angle(_body_x(model, state, body)[hinges])
-            return rewards.crease_fold_reward(state.hinge_theta_bar[body], theta, hinges, nx, column, aw)
+            return rewards.crease_fold_reward(THINSHELLLAB_ANGLE_SIGN * state.hinge_theta_bar[body],
+                                              THINSHELLLAB_ANGLE_SIGN * theta, hinges, nx, column, aw)
         return reward
     if name == "body_displacement":
         body = str(params["body"])

@@ -56,6 +56,16 @@ def _is_nonempty(path: Path) -> bool:
     return not path.is_dir() or any(path.iterdir())
 
 
+def _is_task_scene(path: str | Path) -> bool:
+    """Whether a scene file is a ``kind: task`` scene (False when unreadable: the scene-file loader
+    then reports the problem)."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(doc, dict) and doc.get("kind") == "task"
+
+
 class BagWriter:
     """A rosbag2 MCAP writer for thinshell topics; use as a context manager.
 
@@ -110,9 +120,19 @@ class BagWriter:
     def _scene_yaml(scene: str | Path | Mapping[str, Any] | SceneFile | None) -> str | None:
         if scene is None:
             return None
+        if isinstance(scene, (str, Path)) and _is_task_scene(scene):
+            from sim_core.scenes import load_scene
+
+            load_scene(scene)  # a task scene (docs/scene_schema.md): validated by building it
+            return Path(scene).read_text(encoding="utf-8")
         if isinstance(scene, (str, Path)):
             load_scene_file(scene)
             return Path(scene).read_text(encoding="utf-8")
+        if isinstance(scene, Mapping) and scene.get("kind") == "task":
+            from sim_core.scenes import load_scene
+
+            load_scene(dict(scene))
+            return yaml.safe_dump(dict(scene), sort_keys=False)
         parsed = load_scene_file(scene)
         return yaml.safe_dump(parsed.to_dict(), sort_keys=False)
 
