@@ -1,5 +1,5 @@
 """Actions of a task episode: per-step effector increments, their decoding from CMA-ES control
-points, the commanded targets they imply, and the chain rule from target to action gradients.
+points, and the chain rule from commanded-target gradients to action gradients.
 
 Action layout (the task contract, ``TaskSpec.action_layout``): per step, 6 values for each
 ``(effector, "pose")`` entry - a world-frame translation increment ``dx dy dz`` (m) and a
@@ -10,8 +10,10 @@ world-frame rotation-vector increment ``rx ry rz`` (rad) - and 1 value for each
     p_i = p_{i-1} + d_i,    q_i = exp(r_i) * q_{i-1},    opening_i = opening_{i-1} + g_i,
 
 with ``(p_{-1}, q_{-1})`` the initial pose and ``exp`` the rotation-vector quaternion
-(:func:`~sim_core.transforms.quat_from_rotvec`). The rate limiter of :mod:`sim_core.effector`
-then moves the effector toward that target.
+(:func:`~sim_core.transforms.quat_from_rotvec`), as :func:`sim_core.tasks.spec.apply_action` applies
+them (it renormalises q, which changes q only along itself: the adjoint's derivative of a commanded
+quaternion is tangent to the unit sphere, so :func:`action_gradient` needs no normalisation term).
+The rate limiter of :mod:`sim_core.effector` then moves the effector toward that target.
 
 Control points (ThinShellLab ``code/training/run_cmaes_all.py``, ``abs_step``): the horizon is cut
 into ``K`` equal segments; control point ``k`` holds the per-step increment of every step of
@@ -34,7 +36,6 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.adjoint import Gradient
-from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.transforms import quat_from_rotvec, quat_multiply
 
@@ -167,53 +168,6 @@ def check_actions(actions: np.ndarray, horizon: int, action_dim: int, where: str
     return a
 
 
-def commanded_targets(actions: np.ndarray, layout: Sequence[tuple[str, str]], initial_pose: dict[str, np.ndarray],
-                      initial_opening: dict[str, float]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """The commanded effector targets of every step (module docstring).
-
-    Args:
-        actions: shape ``(T, action_dim)``.
-        layout: the action layout.
-        initial_pose: effector -> ``[x y z qx qy qz qw]`` at the start.
-        initial_opening: effector -> opening in m at the start (gripper entries only).
-
-    Returns:
-        ``(poses, openings)``: effector -> ``(T, 7)`` targets; effector -> ``(T,)`` opening targets.
-
-    Raises:
-        ConfigError: a layout entry names an effector without an initial pose / opening.
-    """
-    actions = np.asarray(actions, dtype=float)
-    poses, openings = {}, {}
-    for eff, kind, cols in layout_slices(layout):
-        a = actions[:, cols]
-        if kind == "pose":
-            if eff not in initial_pose:
-                raise ConfigError(f"action layout names effector {eff!r}; the scene has {sorted(initial_pose)}")
-            out = np.empty((a.shape[0], 7))
-            p = np.array(initial_pose[eff][:3], dtype=float)
-            q = np.array(initial_pose[eff][3:7], dtype=float)
-            for i in range(a.shape[0]):
-                p = p + a[i, :3]
-                q = quat_multiply(quat_from_rotvec(a[i, 3:6]), q)
-                out[i, :3], out[i, 3:] = p, q
-            poses[eff] = out
-        else:
-            if eff not in initial_opening:
-                raise ConfigError(f"action layout names gripper {eff!r}; the scene's grippers: {sorted(initial_opening)}")
-            openings[eff] = float(initial_opening[eff]) + np.cumsum(a[:, 0])
-    return poses, openings
-
-
-def actions_to_controls(actions: np.ndarray, layout: Sequence[tuple[str, str]], initial_pose: dict[str, np.ndarray],
-                        initial_opening: dict[str, float]) -> list[Control]:
-    """One :class:`~sim_core.control.Control` per step with the commanded targets of :func:`commanded_targets`."""
-    poses, openings = commanded_targets(actions, layout, initial_pose, initial_opening)
-    T = np.asarray(actions).shape[0]
-    return [Control({e: v[i].copy() for e, v in poses.items()}, {e: float(v[i]) for e, v in openings.items()})
-            for i in range(T)]
-
-
 def _left_multiplication(e: np.ndarray) -> np.ndarray:
     """Matrix of ``q -> e * q`` (exact: the product is linear in q), shape ``(4, 4)``."""
     return np.stack([quat_multiply(e, col) for col in np.eye(4)], axis=1)
@@ -238,7 +192,7 @@ def action_gradient(actions: np.ndarray, layout: Sequence[tuple[str, str]], init
     Args:
         actions: the actions of the rollout, shape ``(T, action_dim)``.
         layout: the action layout.
-        initial_pose: effector -> initial pose (as for :func:`commanded_targets`).
+        initial_pose: effector -> initial pose ``[x y z qx qy qz qw]``.
         gradient: :func:`sim_core.adjoint.rollout_gradient` of that rollout (``controls`` and
             ``gripper`` per step).
 

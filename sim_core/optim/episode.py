@@ -166,12 +166,6 @@ class Episode:
         """The simulated model."""
         return self.sim.model
 
-    @property
-    def initial_state(self) -> State:
-        """The task's initial state (a copy; resets the episode)."""
-        self.runner.reset()
-        return self.sim.state.copy()
-
     def set_parameters(self, params: Mapping[str, float]) -> None:
         """Set global parameters (``Model.set_parameter``) for the following episodes.
 

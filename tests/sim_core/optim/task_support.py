@@ -18,4 +18,4 @@ def forming_task(horizon: int = 4):
 
 
 def folding_task(horizon: int = 4):
-    return short_task("folding_l", horizon)
+    return short_task("folding_u", horizon)

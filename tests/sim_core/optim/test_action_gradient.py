@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim_core.optim.actions import ControlPointDecoder, actions_to_controls, commanded_targets
+from sim_core.optim.actions import ControlPointDecoder
 from sim_core.optim.episode import Episode
 from sim_core.solver_config import SolverConfig
 from tests.sim_core.optim.task_support import folding_task, forming_task, short_task
@@ -42,19 +42,6 @@ def test_reward_gradient_matches_central_differences(make, press, entries):
         fd = (ep.run(up).reward - ep.run(down).reward) / (2 * h)
         scale = np.abs(grad).max()
         assert grad[i, j] == pytest.approx(fd, rel=2e-3, abs=2e-4 * scale), (i, j, grad[i, j], fd)
-
-
-def test_targets_accumulate_increments():
-    task = forming_task(horizon=3)
-    a = np.zeros((3, 6))
-    a[:, 0] = 1e-4
-    a[1, 5] = 0.1  # 0.1 rad about z in step 1
-    p0 = np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 1.0])
-    poses, _ = commanded_targets(a, task.action_layout, {"dome": p0}, {})
-    np.testing.assert_allclose(poses["dome"][:, 0], [1e-4, 2e-4, 3e-4])
-    np.testing.assert_allclose(poses["dome"][2, 3:], [0.0, 0.0, np.sin(0.05), np.cos(0.05)])
-    c = actions_to_controls(a, task.action_layout, {"dome": p0}, {})
-    assert len(c) == 3 and np.allclose(c[2].effector_pose_target["dome"], poses["dome"][2])
 
 
 def test_control_points_decode_piecewise_constant_in_original_units():
