@@ -35,6 +35,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=1, help="seeds per task and method (success over seeds)")
     p.add_argument("--workers", type=int, default=1, help="Ray workers per run")
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
+    p.add_argument("--max-time", type=float, help="wall-time limit per run in s (thinshell optimise --max-time)")
+    p.add_argument("--method-args", default="", help="further thinshell optimise arguments, space-separated")
     p.add_argument("--json", action="store_true", help="print one JSON line per run")
     p.add_argument("--markdown", help="append the table to this markdown file")
     p.add_argument("--rl", action="store_true", help="also a stable-baselines3 PPO baseline (if installed)")
@@ -53,6 +55,9 @@ def run_one(task: str, method: str, seed: int, args) -> dict[str, Any]:
             argv += ["--horizon", str(args.horizon)]
         if args.population:
             argv += ["--population", str(args.population)]
+        if args.max_time:
+            argv += ["--max-time", str(args.max_time)]
+        argv += args.method_args.split()
         optimise_main(argv)
         doc = json.loads((out / "result.json").read_text())
     doc.pop("history", None)

@@ -62,6 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--learning-rate", type=float, help="Adam step in search coordinates (default 0.5)")
     p.add_argument("--start", action="append", default=[], metavar="NAME=VALUE",
                    help="inverse tasks: start value of an identified parameter (repeatable)")
+    p.add_argument("--max-time", type=float, help="wall-time limit in s: no new batch starts after it (resumable)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--force", action="store_true", help="replace an existing output directory")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pkl")
@@ -174,7 +175,8 @@ def optimise_main(argv: list[str]) -> int:
     try:
         space = _space(task, evaluator, horizon, params, start, args.control_points)
         t0 = time.perf_counter()
-        _run(state, space, out, progress=not args.no_progress)
+        deadline = None if args.max_time is None else t0 + float(args.max_time)
+        _run(state, space, out, progress=not args.no_progress, deadline=deadline)
         wall = time.perf_counter() - t0
     finally:
         evaluator.close()
@@ -197,7 +199,7 @@ def _space(task, evaluator, horizon: int, params: dict, start: dict, control_poi
     return ActionSpace(ControlPointDecoder.for_task(task, horizon, control_points), evaluator, task, params=params)
 
 
-def _run(state: SearchState, space, out: Path, progress: bool) -> None:
+def _run(state: SearchState, space, out: Path, progress: bool, deadline: float | None = None) -> None:
     from tqdm import tqdm
 
     bar = tqdm(total=state.episodes, initial=state.episodes_done, unit="episode", disable=not progress,
@@ -210,7 +212,7 @@ def _run(state: SearchState, space, out: Path, progress: bool) -> None:
         bar.set_postfix(best=f"{st.best_reward:.4g}", phase=st.phase)
 
     try:
-        optimise(state, space, on_batch)
+        optimise(state, space, on_batch, deadline)
         save_checkpoint(out / CHECKPOINT, state)
     finally:
         bar.close()

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import pickle
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol, Sequence
@@ -295,14 +296,22 @@ def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     return _gd_step(state, space)
 
 
-def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchState, list[EpisodeLog]], None] | None = None) -> SearchState:
+def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchState, list[EpisodeLog]], None] | None = None,
+             deadline: float | None = None) -> SearchState:
     """Run :func:`step` until the budget is spent, calling ``on_batch(state, logs)`` after each batch
     (progress bars, checkpoints).
+
+    Args:
+        state: the search state (fresh or from a checkpoint).
+        space: what is searched.
+        on_batch: called after every batch.
+        deadline: ``time.perf_counter()`` value after which no new batch starts (the state stays
+            resumable; a fresh run does at least one batch); None: run to the end of the budget.
 
     Returns:
         ``state`` (advanced in place).
     """
-    while not state.done:
+    while not state.done and (deadline is None or state.episodes_done == 0 or time.perf_counter() < deadline):
         logs = step(state, space)
         if not logs:
             break

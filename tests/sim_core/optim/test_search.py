@@ -4,6 +4,7 @@ a run resumed from its checkpoint continues it exactly (sim_core.optim.search)."
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
@@ -56,6 +57,15 @@ def test_resumed_run_continues_from_its_checkpoint(tmp_path):
     assert [h.score for h in resumed.history] == [h.score for h in full.history]
     assert resumed.best_score == full.best_score
     np.testing.assert_array_equal(resumed.best_candidate, full.best_candidate)
+
+
+def test_deadline_stops_after_a_batch_and_the_run_goes_on():
+    task = forming_task(horizon=2)
+    space = _space(task, control_points=1)
+    state = optimise(new_state("cma", 9, seed=0, sigma=2.5, population=3), space, deadline=time.perf_counter())
+    assert state.episodes_done == 3 and not state.done and state.best_candidate is not None
+    optimise(state, space)
+    assert state.episodes_done == 9 and state.done
 
 
 def test_bad_settings_and_checkpoints_are_refused(tmp_path):
