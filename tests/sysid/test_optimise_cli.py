@@ -4,6 +4,7 @@ checkpoint), refusal to overwrite, --force, --resume continuing a finished run, 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,3 +57,32 @@ def test_bad_arguments_are_named(tmp_path):
         optimise_main(ARGS + ["--episodes", "1", "--start", "x=1", "--out", str(tmp_path / "c")])
     with pytest.raises(ConfigError, match="no checkpoint.pkl"):
         optimise_main(ARGS + ["--episodes", "1", "--resume", "--out", str(tmp_path / "d")])
+
+
+def test_scene_argument_task_scene_or_sysid_fitted_values(tmp_path):
+    import yaml
+
+    from sysid.optimise_cli import load_target
+
+    # a kind: task scene replaces the task's scene
+    doc = yaml.safe_load(open(Path(__file__).resolve().parents[2] / "config/scenes/forming.yaml"))
+    doc["friction"][0]["mu"] = 2.0
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    task, params, path = load_target("forming", str(other), 3)
+    assert task.scene["friction"][0]["mu"] == 2.0 and params == {} and path == str(other) and task.horizon == 3
+    # a scene written by thinshell sysid: its fitted values of the task scene's parameters apply
+    fitted = tmp_path / "fitted.yaml"
+    fitted.write_text(yaml.safe_dump({"kind": "tactile", "fitted": {"params": {"friction.dome_sheet": 3.5,
+                                                                               "gel.youngs_modulus": 2e5}}}))
+    task, params, _ = load_target("forming", str(fitted), 3)
+    assert params == {"friction.dome_sheet": 3.5}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"kind": "tactile", "fitted": {"params": {"gel.youngs_modulus": 2e5}}}))
+    with pytest.raises(ConfigError, match="none of the fitted parameters"):
+        load_target("forming", str(bad), 3)
+    doc["effectors"] = {"probe": doc["effectors"]["dome"]}  # renamed: the task moves "dome"
+    doc["friction"] = [f for f in doc["friction"] if "dome" not in f["pair"]]
+    other.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="lacks the effectors"):
+        load_target("forming", str(other), 3)
