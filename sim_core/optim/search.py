@@ -10,7 +10,9 @@
   epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
   epsilon would swamp small gradients).
 * ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
-  gradient steps from the best candidate.
+  gradient steps from the best candidate. A gradient that is exactly zero there (the effector
+  touches nothing: no action changes the reward to first order) hands the rest of the budget back
+  to CMA-ES, which continues its search distribution.
 
 A :class:`SearchSpace` says what is searched (per-step actions of a manipulation task, material
 parameters of an inverse task) in two coordinate systems: the CMA-ES one (control points,
@@ -157,11 +159,11 @@ class SearchState:
         seed: random seed (CMA-ES gets ``seed + 1``: the ``cma`` package treats 0 as "random").
         sigma, population: CMA-ES step size (coordinate units) and population.
         learning_rate, hybrid_fraction: Adam step and the CMA-ES share of a hybrid run.
-        phase: ``cma`` | ``gd`` | ``done``.
+        phase: ``cma`` | ``gd`` | ``cma_rest`` (a hybrid's CMA-ES after a zero gradient) | ``done``.
         history: one :class:`EpisodeLog` per episode.
         best_score, best_reward, best_candidate, best_phase, best_point: the best episode so far
             (score ranks; candidate as :meth:`SearchSpace.candidate`).
-        es: the ``cma.CMAEvolutionStrategy`` while in the CMA-ES phase.
+        es: the ``cma.CMAEvolutionStrategy`` (kept through a hybrid's gradient phase).
         adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
         meta: free description of the problem (task name, horizon, ...) checked on resume.
     """
@@ -259,6 +261,9 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     y = a["y"].copy()
     res, g = space.gd_gradient(y)
     logs = _record(state, "gd", [res], [y])
+    if res.feasible and a["t"] == 0 and not np.any(g) and state.es is not None:
+        state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
+        return logs
     if not res.feasible:
         a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
         a["m"][:], a["v"][:] = 0.0, 0.0
@@ -292,7 +297,12 @@ def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
         if state.method == "cma":
             state.phase = "done"
             return []
-        state.phase, state.es = "gd", None
+        state.phase = "gd"
+    if state.phase == "cma_rest":
+        if state.episodes - state.episodes_done >= state.population:
+            return _cma_generation(state, space)
+        state.phase = "done"
+        return []
     return _gd_step(state, space)
 
 

@@ -77,3 +77,38 @@ def test_bad_settings_and_checkpoints_are_refused(tmp_path):
     bad.write_bytes(b"not a pickle")
     with pytest.raises(ConfigError, match="c.pkl"):
         load_checkpoint(bad)
+
+
+class _Plateau:
+    """Analytic search space: reward ``-|z - c|^2`` within 1 of ``c = (3, 3)``, -1 elsewhere (a
+    plateau where no action touches anything: zero gradient)."""
+
+    c = np.array([3.0, 3.0])
+
+    def _result(self, z):
+        from sim_core.optim.episode import EpisodeResult
+
+        d2 = float(np.sum((np.asarray(z) - self.c) ** 2))
+        return EpisodeResult(-d2 if d2 < 1.0 else -1.0, 1, 1, None)
+
+    def cma_start(self):
+        return np.zeros(2), np.full(2, -10.0), np.full(2, 10.0)
+
+    def cma_evaluate(self, points):
+        return [self._result(z) for z in points]
+
+    def gd_start(self, cma_point):
+        return np.array(cma_point), np.full(2, -10.0), np.full(2, 10.0)
+
+    def gd_gradient(self, y):
+        inside = np.sum((y - self.c) ** 2) < 1.0
+        return self._result(y), (-2.0 * (y - self.c) if inside else np.zeros(2))
+
+    def candidate(self, phase, point):
+        return np.array(point)
+
+
+def test_hybrid_hands_a_zero_gradient_back_to_cma():
+    state = optimise(new_state("hybrid", 13, seed=0, sigma=0.5, population=4), _Plateau())
+    assert [h.phase for h in state.history] == ["cma"] * 8 + ["gd"] + ["cma"] * 4
+    assert state.episodes_done == 13 and state.done
