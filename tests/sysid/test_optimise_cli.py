@@ -86,3 +86,16 @@ def test_scene_argument_task_scene_or_sysid_fitted_values(tmp_path):
     other.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match="lacks the effectors"):
         load_target("forming", str(other), 3)
+
+
+def test_bench_optimise_appends_a_table(tmp_path):
+    from thinshell_ros.bench import bench_main
+
+    md = tmp_path / "bench.md"
+    md.write_text("# benchmarks\n")
+    assert bench_main(["optimise", "--tasks", "forming", "--methods", "cma", "--episodes", "3", "--horizon", "2",
+                       "--population", "3", "--markdown", str(md)]) == 0
+    text = md.read_text()
+    assert text.startswith("# benchmarks\n") and "## Task optimisation" in text
+    row = [line for line in text.splitlines() if line.startswith("| Forming | cma |")]
+    assert len(row) == 1 and "| 1 | 3 |" in row[0]  # one seed, 3 episodes
