@@ -82,7 +82,8 @@ class ParameterSpace:
         return self.values(point)
 
 
-def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | None = None) -> ParameterSpace:
+def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | None = None,
+                    solver_config=None) -> ParameterSpace:
     """The :class:`ParameterSpace` of an inverse task.
 
     Args:
@@ -90,6 +91,7 @@ def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | 
         evaluator: batch evaluator of the task.
         horizon: steps per episode.
         start: start value per identified parameter (default: the scene's values).
+        solver_config: Newton settings of the gradient episodes (Episode's default when None).
 
     Raises:
         ConfigError: not an inverse task, no identified parameter, or a start naming another parameter.
@@ -101,6 +103,6 @@ def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | 
     if unknown:
         raise ConfigError(f"task {task.name}: start values for {sorted(unknown)}, which it does not identify "
                           f"(it identifies {list(task.identify)})")
-    ep = Episode(task, horizon)
+    ep = Episode(task, horizon, solver_config=solver_config)
     specs = tuple(parameter_spec(name, float(start.get(name, ep.model.get_parameter(name)))) for name in task.identify)
     return ParameterSpace(task, specs, evaluator, horizon, ep)

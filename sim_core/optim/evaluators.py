@@ -16,6 +16,7 @@ import numpy as np
 
 from sim_core.errors import ConfigError
 from sim_core.optim.episode import Episode, EpisodeResult
+from sim_core.solver_config import SolverConfig
 
 
 class SerialEvaluator:
@@ -24,13 +25,16 @@ class SerialEvaluator:
     Args:
         task: the task.
         horizon: steps per episode (default the task's).
-        params: global parameter values set before every batch (overridable per call).
+        params: global parameter values of the episodes (a call's ``params`` replace them for it and
+            the calls after it).
+        solver_config: Newton settings (:class:`~sim_core.optim.episode.Episode`'s default when None).
     """
 
     workers = 1
 
-    def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None) -> None:
-        self.episode = Episode(task, horizon, params)
+    def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
+                 solver_config: SolverConfig | None = None) -> None:
+        self.episode = Episode(task, horizon, params, solver_config)
 
     def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
         """Roll out each action sequence (optionally each with its own parameter values).
@@ -59,8 +63,8 @@ def _actor_class():
 
     @ray.remote(num_cpus=1)
     class RolloutActor:
-        def __init__(self, task, horizon, params):
-            self.evaluator = SerialEvaluator(task, horizon, params)
+        def __init__(self, task, horizon, params, solver_config):
+            self.evaluator = SerialEvaluator(task, horizon, params, solver_config)
 
         def evaluate(self, actions, params):
             return self.evaluator.evaluate(actions, params)
@@ -74,7 +78,7 @@ class RayEvaluator:
     Args:
         task: the task (sent to each actor; must be picklable by cloudpickle).
         workers: number of actors K >= 1.
-        horizon, params: as :class:`SerialEvaluator`.
+        horizon, params, solver_config: as :class:`SerialEvaluator`.
         address: a Ray cluster address (``ray://host:10001`` or ``host:6379``) to join; None starts
             a local Ray instance with ``workers`` CPUs (or joins the one already running in this
             process).
@@ -84,7 +88,7 @@ class RayEvaluator:
     """
 
     def __init__(self, task, workers: int, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                 address: str | None = None) -> None:
+                 address: str | None = None, solver_config: SolverConfig | None = None) -> None:
         import ray  # optional heavy dependency: imported only when parallel rollouts are asked for
 
         if int(workers) < 1:
@@ -103,7 +107,7 @@ class RayEvaluator:
                 raise ConfigError(f"ray: cannot {'start a local instance' if address is None else f'join {address}'}: {err}") from err
             self._started = True
         actor = _actor_class()
-        self.actors = [actor.remote(task, horizon, dict(params or {})) for _ in range(self.workers)]
+        self.actors = [actor.remote(task, horizon, dict(params or {}), solver_config) for _ in range(self.workers)]
 
     def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
         """As :meth:`SerialEvaluator.evaluate`; sequence ``i`` goes to actor ``i mod K`` (contiguous
@@ -143,8 +147,8 @@ def _package_root() -> str:
 
 
 def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                   address: str | None = None):
+                   address: str | None = None, solver_config: SolverConfig | None = None):
     """:class:`SerialEvaluator` for one worker without a cluster address, else :class:`RayEvaluator`."""
     if int(workers) <= 1 and address is None:
-        return SerialEvaluator(task, horizon, params)
-    return RayEvaluator(task, max(1, int(workers)), horizon, params, address)
+        return SerialEvaluator(task, horizon, params, solver_config)
+    return RayEvaluator(task, max(1, int(workers)), horizon, params, address, solver_config)

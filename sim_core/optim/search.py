@@ -79,6 +79,7 @@ class ActionSpace:
         episode: the in-process episode for gradients (built on first use when None).
         task: the task (for the in-process episode).
         params: global parameter values of the in-process episode (as the evaluator's).
+        solver_config: Newton settings of the in-process episode (as the evaluator's).
     """
 
     decoder: ControlPointDecoder
@@ -86,6 +87,7 @@ class ActionSpace:
     task: Any
     episode: Episode | None = None
     params: dict | None = None
+    solver_config: Any = None
 
     def cma_start(self):
         low, high = self.decoder.bounds()
@@ -112,7 +114,7 @@ class ActionSpace:
 
     def gd_gradient(self, y):
         if self.episode is None:
-            self.episode = Episode(self.task, self.decoder.horizon, self.params)
+            self.episode = Episode(self.task, self.decoder.horizon, self.params, self.solver_config)
         res, da, _ = self.episode.reward_gradient(self.actions(y))
         return res.summary(), (da * self.decoder.units).reshape(-1)
 

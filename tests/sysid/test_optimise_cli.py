@@ -14,7 +14,8 @@ from sim_core.trajectory_file import read_trajectory
 from sysid.optimise_cli import optimise_main
 from thinshell_ros.cli import COMMANDS
 
-ARGS = ["forming", "--horizon", "3", "--population", "4", "--control-points", "1", "--no-progress", "--seed", "2"]
+ARGS = ["forming", "--horizon", "3", "--population", "4", "--control-points", "1", "--no-progress", "--seed", "2",
+        "--backend", "numpy"]
 
 
 def test_optimise_writes_trajectory_report_and_checkpoint_and_resumes(tmp_path):
@@ -94,7 +95,7 @@ def test_bench_optimise_appends_a_table(tmp_path):
     md = tmp_path / "bench.md"
     md.write_text("# benchmarks\n")
     assert bench_main(["optimise", "--tasks", "forming", "--methods", "cma", "--episodes", "3", "--horizon", "2",
-                       "--population", "3", "--markdown", str(md)]) == 0
+                       "--population", "3", "--markdown", str(md), "--method-args", "--backend numpy"]) == 0
     text = md.read_text()
     assert text.startswith("# benchmarks\n") and "## Task optimisation" in text
     row = [line for line in text.splitlines() if line.startswith("| Forming | cma |")]
