@@ -62,7 +62,9 @@ def run_one(task: str, method: str, seed: int, args) -> dict[str, Any]:
         doc = json.loads((out / "result.json").read_text())
     doc.pop("history", None)
     success = doc.get("success_score")
-    doc["success"] = None if success is None or doc["best_reward"] is None else bool(doc["best_reward"] >= success)
+    # Table A's scores are for the full horizon: no success verdict on a shortened episode
+    doc["success"] = (None if success is None or doc["best_reward"] is None or args.horizon
+                      else bool(doc["best_reward"] >= success))
     return doc
 
 
