@@ -230,7 +230,7 @@ def _episode_of(space, candidate):
     """An in-process episode and the actions / parameters of a candidate."""
     from sim_core.optim.episode import Episode
 
-    if hasattr(space, "specs"):  # inverse: candidate = parameter values
+    if space.task.kind == "inverse":  # candidate = parameter values
         ep = space.episode or Episode(space.task, space.horizon)
         space.episode = ep
         ep.set_parameters(candidate)
@@ -241,7 +241,7 @@ def _episode_of(space, candidate):
 
 
 def _start_candidate(space):
-    if hasattr(space, "specs"):
+    if space.task.kind == "inverse":
         return {s.name: s.initial for s in space.specs}
     return np.zeros((space.decoder.horizon, space.decoder.action_dim))
 
@@ -259,7 +259,7 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
     ep0, start_actions = _episode_of(space, _start_candidate(space))
     before = ep0.run(start_actions, keep_states=True)
     run_params = dict(params)
-    if hasattr(space, "specs"):
+    if task.kind == "inverse":
         run_params.update(state.best_candidate)
     scene_file = _atomic_write(out / "scene.yaml", "# the scene this run optimised on (thinshell optimise)\n"
                                + yaml.safe_dump(_plain(task.scene), sort_keys=False))
@@ -277,11 +277,11 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
     paths = [scene_file, write_trajectory(out / "trajectory.yaml", traj, force=True)]
     doc = {"schema": RESULT_SCHEMA, "schema_version": 1, "task": task.name, "kind": task.kind, "method": state.method,
            "episodes": state.episodes_done, "horizon": task.horizon, "seed": state.seed, "workers": workers,
-           "backend": state.meta.get("backend"),
+           "backend": state.meta.get("backend"), "stop_reason": state.stop_reason,
            "wall_time_s": wall_s, "rollouts_per_s": state.episodes_done / wall_s if wall_s > 0 else None,
            "best_reward": _num(state.best_reward), "best_score": _num(state.best_score), "start_reward": _num(before.reward),
            "success_score": task.success_score, "human_score": task.human_score,
-           "task_file": task.path, "scene_arg": scene_path, "parameters": run_params, "true_parameters": dict(getattr(task, "true_parameters", {}) or {}),
+           "task_file": task.path, "scene_arg": scene_path, "parameters": run_params, "true_parameters": dict(task.true_parameters),
            "history": [{"episode": h.episode, "phase": h.phase, "reward": _num(h.reward), "score": h.score,
                         "infeasible": h.infeasible} for h in state.history]}
     paths.append(_atomic_write(out / "result.json", json.dumps(doc, indent=1)))
@@ -343,7 +343,7 @@ def _plot_reward(path: Path, state: SearchState, task) -> Path:
         ax.plot(ep[bad], np.full(bad.sum(), np.nanmin(rw) if np.isfinite(np.nanmin(rw, initial=np.inf)) else 0.0), "x",
                 color="tab:red", label="infeasible")
     ax.set_xlabel("episode")
-    ax.set_ylabel(f"reward ({getattr(task, 'reward_units', '') or 'task units'})")
+    ax.set_ylabel(f"reward ({task.reward_units or 'task units'})")
     ax.set_title(f"{task.name}: {state.method}")
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -375,7 +375,7 @@ def _plot_states(path: Path, model, before, after) -> Path:
 def _report_html(doc: dict) -> str:
     e = html.escape
     rows = [("task", doc["task"]), ("method", doc["method"]), ("episodes", doc["episodes"]), ("horizon", doc["horizon"]),
-            ("seed", doc["seed"]), ("workers", doc["workers"]), ("wall time (s)", f"{doc['wall_time_s']:.1f}"),
+            ("seed", doc["seed"]), ("workers", doc["workers"]), ("ended by", doc["stop_reason"]), ("wall time (s)", f"{doc['wall_time_s']:.1f}"),
             ("start reward", doc["start_reward"]), ("best reward", doc["best_reward"]),
             ("success score (Table A)", doc["success_score"]), ("human score (Table A)", doc["human_score"])]
     rows += [(f"parameter {k}", v) for k, v in doc["parameters"].items()]

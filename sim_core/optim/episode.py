@@ -10,13 +10,12 @@ The score the optimisers rank by is ThinShellLab's CMA-ES fitness (``code/traini
 An infeasible episode (the solver fails, a task check stops it early) therefore scores below every
 feasible one whose reward exceeds -5, and a later stop scores above an earlier one.
 
-Reward gradients: the task's reward is a pure function of the final state. When the reward object
-has ``state_gradient(model, state) -> (dR/dx (n, 3), {sheet: dR/dtheta_bar (h,)})`` that is used;
-otherwise the gradient is central differences of the reward over the final positions and rest
+Reward gradients: the task's reward is a pure function of the final state (a closure of
+:mod:`sim_core.tasks.task_rewards`); its gradient is central differences of the reward over the final positions and rest
 angles (step :data:`REWARD_FD_STEP`; exact up to rounding for quadratic and linear rewards such
 as Forming's and Folding's), body by body and sheet by sheet, skipping a body whose random
 perturbation leaves the reward unchanged (a reward reads a few bodies). The reward must then
-depend on the state only through ``x`` and ``hinge_theta_bar``.
+depend on the state only through ``x`` and ``hinge_theta_bar`` (true of every registered reward).
 """
 
 from __future__ import annotations
@@ -88,20 +87,16 @@ class EpisodeResult:
 
 def reward_state_gradient(reward: Callable[[Model, State], float], model: Model,
                           state: State) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """dR/dx and dR/dtheta_bar of a reward at ``state`` (module docstring).
+    """dR/dx and dR/dtheta_bar of a reward at ``state`` by central differences (module docstring).
+
+    Args:
+        reward: ``reward(model, state) -> float``.
+        model: the model.
+        state: the state (not modified).
 
     Returns:
-        ``(dR/dx (n, 3), {sheet: dR/dtheta_bar (h,)})``.
-
-    Raises:
-        ConfigError: a ``state_gradient`` with wrong shapes.
+        ``(dR/dx (n, 3), {sheet: dR/dtheta_bar (h,)})`` (sheets whose rest angles the reward reads).
     """
-    if hasattr(reward, "state_gradient"):
-        gx, gtb = reward.state_gradient(model, state)
-        gx = np.asarray(gx, dtype=float)
-        if gx.shape != state.x.shape:
-            raise ConfigError(f"reward.state_gradient: dR/dx has shape {gx.shape}, expected {state.x.shape}")
-        return gx, {k: np.asarray(v, dtype=float) for k, v in gtb.items()}
     probe = state.copy()
     h = REWARD_FD_STEP
     base = float(reward(model, probe))

@@ -3,7 +3,9 @@
 * ``cma``: CMA-ES (Hansen 2016) through the ``cma`` package, ask/tell, box bounds, per-task
   population and step size; candidates are ranked by the episode score (ThinShellLab's fitness,
   :mod:`sim_core.optim.episode`: infeasible or early-stopped episodes are penalised as the
-  original). One generation costs ``population`` episodes.
+  original). One generation costs ``population`` episodes. The run ends when the budget is spent
+  or at CMA-ES's own termination criteria in the search space (``es.stop()``: step size, condition
+  number, ...; not the score-difference criteria, the rewards not being normalised).
 * ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
   reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
   infeasible episode returns to the best point found and halves the learning rate. Adam's
@@ -43,6 +45,9 @@ DEFAULT_LEARNING_RATE = 0.5
 """Adam step in gradient coordinates (for actions: control-point units, 0.5 = 3e-5 m per step)."""
 DEFAULT_HYBRID_FRACTION = 0.8
 CHECKPOINT_VERSION = 1
+FLAT_FITNESS_GENERATIONS = 10**9
+"""CMA-ES ``tolflatfitness``: generations of equal scores tolerated (episodes that touch nothing all
+score the same; the search goes on, its step size growing)."""
 
 
 class SearchSpace(Protocol):
@@ -100,7 +105,7 @@ class ActionSpace:
         d = self.decoder
         if cma_point is not None:
             start = d.decode(cma_point)
-        elif getattr(self.task, "reference_actions", None) is not None:
+        elif self.task.reference_actions is not None:
             start = reference_start(self.task, d)
         else:
             start = np.zeros((d.horizon, d.action_dim))
@@ -132,7 +137,7 @@ def reference_start(task, decoder: ControlPointDecoder) -> np.ndarray:
     """
     ref = np.asarray(task.reference_actions, dtype=float)
     if ref.ndim != 2 or ref.shape[1] != decoder.action_dim:
-        raise ConfigError(f"task {getattr(task, 'name', '?')}: reference_actions have shape {ref.shape}, "
+        raise ConfigError(f"task {task.name}: reference_actions have shape {ref.shape}, "
                           f"expected (steps, {decoder.action_dim})")
     out = np.zeros((decoder.horizon, decoder.action_dim))
     k = min(decoder.horizon, ref.shape[0])
@@ -168,6 +173,8 @@ class SearchState:
         es: the ``cma.CMAEvolutionStrategy`` (kept through a hybrid's gradient phase).
         adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
         meta: free description of the problem (task name, horizon, ...) checked on resume.
+        stop_reason: how the last :func:`optimise` call ended (``episode budget spent``,
+            ``deadline``, or CMA-ES's own termination criteria, e.g. ``{'tolfun': 1e-11}``).
     """
 
     method: str
@@ -188,6 +195,7 @@ class SearchState:
     es: Any = None
     adam: dict | None = None
     meta: dict = field(default_factory=dict)
+    stop_reason: str | None = None
 
     @property
     def episodes_done(self) -> int:
@@ -245,8 +253,11 @@ def _cma_generation(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
 
     if state.es is None:
         x0, low, high = space.cma_start()
+        # no stop on small or flat score differences: rewards come in m^2 (Forming's differ by
+        # < 1e-11 near the optimum) and a generation that touches nothing scores flat
         opts = {"popsize": state.population, "bounds": [list(low), list(high)], "seed": state.seed + 1,
-                "verbose": -9, "verb_log": 0, "verb_disp": 0}
+                "verbose": -9, "verb_log": 0, "verb_disp": 0, "tolfun": 0.0, "tolfunhist": 0.0,
+                "tolflatfitness": FLAT_FITNESS_GENERATIONS}
         state.es = cma.CMAEvolutionStrategy(list(x0), state.sigma, opts)
     points = [np.asarray(p, dtype=float) for p in state.es.ask()]
     results = space.cma_evaluate(points)
@@ -292,6 +303,11 @@ def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     if state.done:
         state.phase = "done"
         return []
+    if state.phase in ("cma", "cma_rest") and state.es is not None and state.es.stop():
+        state.stop_reason = f"CMA-ES termination {dict(state.es.stop())}"
+        state.phase = "gd" if state.phase == "cma" and state.method == "hybrid" else "done"
+        if state.phase == "done":
+            return []
     if state.phase == "cma":
         left = _cma_budget(state) - state.episodes_done
         if left >= state.population or state.episodes_done == 0:
@@ -323,13 +339,17 @@ def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchS
     Returns:
         ``state`` (advanced in place).
     """
+    state.stop_reason = None
     while not state.done and (deadline is None or state.episodes_done == 0 or time.perf_counter() < deadline):
         logs = step(state, space)
         if not logs:
             break
         if on_batch is not None:
             on_batch(state, logs)
-    state.phase = "done" if state.episodes_done >= state.episodes else state.phase
+    if state.episodes_done >= state.episodes:
+        state.phase, state.stop_reason = "done", "episode budget spent"
+    elif state.phase != "done":
+        state.stop_reason = "deadline"
     if state.best_phase is not None:
         state.best_candidate = space.candidate(state.best_phase, state.best_point)
     return state

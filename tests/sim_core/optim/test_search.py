@@ -64,8 +64,9 @@ def test_deadline_stops_after_a_batch_and_the_run_goes_on():
     space = _space(task, control_points=1)
     state = optimise(new_state("cma", 9, seed=0, sigma=2.5, population=3), space, deadline=time.perf_counter())
     assert state.episodes_done == 3 and not state.done and state.best_candidate is not None
+    assert state.stop_reason == "deadline"
     optimise(state, space)
-    assert state.episodes_done == 9 and state.done
+    assert state.episodes_done == 9 and state.done and state.stop_reason == "episode budget spent"
 
 
 def test_bad_settings_and_checkpoints_are_refused(tmp_path):
