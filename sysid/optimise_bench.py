@@ -102,7 +102,8 @@ def markdown_table(rows: list[dict[str, Any]], args) -> str:
     """The results as a markdown section."""
     head = (f"\n## Task optimisation (`thinshell bench optimise`), {_dt.date.today().isoformat()}\n\n"
             f"Machine: {_machine()}. Settings: episodes {args.episodes}, horizon {args.horizon or 'task'}, seeds "
-            f"{args.seeds}, workers {args.workers}, population {args.population or 'task'}.\n\n"
+            f"{args.seeds}, workers {args.workers}, population {args.population or 'task'}, backend "
+            f"{', '.join(sorted({str(r.get('backend')) for r in rows}))}.\n\n"
             "| task | method | seeds | episodes | wall time (s) | rollouts/s | best reward (mean) | start reward | "
             "Table A human | Table A success | success |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
     groups: dict[tuple[str, str], list[dict]] = {}
