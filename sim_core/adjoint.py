@@ -481,7 +481,9 @@ class StepLinearization:
     def mass_gradient(self) -> np.ndarray:
         """d(inertia + gravity + damping gradient)/d m_i per vertex, shape ``(n, 3)``."""
         x_hat = self.x_n + self.dt * self.record.v_prev
-        return (self.x - x_hat) / self.dt**2 - self.model.gravity[None, :] + self.model.damping * (self.x - self.x_n) / self.dt
+        scale = self.model.vertex_gravity_scale
+        g = self.model.gravity[None, :] if scale is None else scale[:, None] * self.model.gravity[None, :]
+        return (self.x - x_hat) / self.dt**2 - g + self.model.damping * (self.x - self.x_n) / self.dt
 
     def parameter_rhs(self, name: str) -> np.ndarray:
         """dg/dp of global parameter ``name`` at the converged step, shape ``(n, 3)``.

@@ -157,6 +157,9 @@ class Model:
         planes: name -> :class:`Plane`.
         sensors: sensor name -> sensor instance (``sim_core.sensors``), built by the scene loader.
         gravity: m/s^2, shape ``(3,)``.
+        vertex_gravity_scale: fraction of ``gravity`` acting on each vertex, shape ``(vertex_count,)``,
+            or None (1 everywhere). Task scenes v2 set it per body (``gravity_scale``): ThinShellLab
+            gives bodies of one scene different gravity (Lifting: none on the sheet, g on the block).
         contact: :class:`ContactSettings`.
         friction: Coulomb coefficients per unordered pair of body/plane names.
         damping: mass-proportional damping coefficient in 1/s (0 = off).
@@ -182,6 +185,7 @@ class Model:
     candidates: dict[str, float] = field(default_factory=dict)
     revision: int = 0
     meta: dict[str, Any] = field(default_factory=dict)
+    vertex_gravity_scale: np.ndarray | None = None
 
     # ------------------------------------------------------------------ sizes
     @property

@@ -353,7 +353,8 @@ class NewtonSolver:
         x[fixed] = x_target[fixed]
         x_hat = x_n + dt * state_in.v
         mass = self.vertex_mass
-        fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(mass, model.gravity)]
+        gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
+        fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
         diag = fixed_terms[0].hessian_diagonal()
         if model.damping > 0:
             damp = ViscousDamping(mass, x_n, model.damping, dt)

@@ -117,12 +117,19 @@ def scale_markers(xyz: np.ndarray, rest: np.ndarray, s_xy: float, s_z: float) ->
     return rest + (np.asarray(xyz, float) - rest) * scale
 
 
+MIN_GAIN_INFORMATION = 100.0
+"""Whitened energy ``sum (pred / sigma)^2`` a prediction needs before a gain is fitted to it: the
+gain's standard error is ``1 / sqrt`` of it (0.1 here). Below, the recording does not determine the
+gain (no contact, markers that do not move) and the scene's value 1 is kept."""
+
+
 def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
-    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2), bounded."""
+    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2), bounded;
+    1 when the prediction carries less than :data:`MIN_GAIN_INFORMATION`."""
     d = data / sigma
     p = pred / sigma
     den = float(np.sum(p * p))
-    if den <= 0.0 or not math.isfinite(den):
+    if not math.isfinite(den) or den < MIN_GAIN_INFORMATION:
         return 1.0
     return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
 
@@ -210,6 +217,7 @@ class CalibrationResult:
         whitened_rms_before, whitened_rms_after: channel -> whitened RMS (noise units) of the
             replay at the scene values with the scene's sensor calibration, and after calibration.
         fit: the :class:`sysid.fit.FitResult` of the simulator parameters (None if not fitted).
+        prediction: channel -> the calibrated prediction at ``params`` (aligned to the recording).
     """
 
     params: dict[str, float]
@@ -217,6 +225,7 @@ class CalibrationResult:
     whitened_rms_before: dict[str, float]
     whitened_rms_after: dict[str, float]
     fit: Any = None
+    prediction: dict[str, np.ndarray] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (parameters, sensor calibration, whitened RMS before and after)."""
@@ -297,5 +306,6 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         trace = model.simulate(values)
         raw = model.predict_raw(trace)
         model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
-    after = whitened_rms(model, model.sensor_calibration.apply(raw, model.marker_rest), channels)
-    return CalibrationResult(values, model.sensor_calibration, before, after, result)
+    calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
+    after = whitened_rms(model, calibrated, channels)
+    return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated))

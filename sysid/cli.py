@@ -66,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-sensor-calibration", action="store_true",
+                   help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
+                        "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
     return p
 
 
@@ -152,6 +155,16 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     params = _split(args.params) or []
     print(f"{PROG}: {bag}: fitting {', '.join(params)} on {', '.join(model.channels)} "
           f"({model.step_count} steps of {args.dt} s, {model.residual_count} residuals)", file=sys.stderr)
+    sensor = None
+    if not args.no_sensor_calibration:
+        from sysid.calibration import calibrate
+
+        # the same sensor calibration as thinshell diagnose (sysid.calibration): one replay at the
+        # scene values, the gains / scales / intrinsics fitted in closed form; the fit is then judged
+        # against the calibrated prediction
+        sensor = calibrate(model, params=())
+        print(f"{PROG}: sensor calibration: " + ", ".join(f"{k} {v:.4g}" for k, v in sensor.sensor.as_dict().items()),
+              file=sys.stderr)
     progress = _Progress(not args.quiet)
     try:
         result = fit(model, params, jacobian=args.jacobian, global_method=args.global_method if args.global_search else None,
@@ -162,7 +175,15 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, simula
     finally:
         progress.close()
     result.warnings[:0] = [str(w.message) for w in caught]
+    worse = [ch for ch, before in result.rms_initial.items()
+             if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]]
+    for ch in worse:
+        result.warnings.append(f"the fit does not improve channel {ch}: RMS {result.rms_initial[ch]['rms']:.4g} -> "
+                               f"{result.rms_final[ch]['rms']:.4g} {result.rms_initial[ch]['unit']} (the fitted "
+                               "parameters cannot follow it; weigh or drop it with --channels)")
     doc = fit_document(result, provenance(evidence, args.seed, args.t_max, [PROG, *argv], args.scene))
+    if sensor is not None:
+        doc["diagnostics"]["sensor_calibration"] = sensor.summary()
     with staged_directory(out, args.force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)

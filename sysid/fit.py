@@ -272,7 +272,10 @@ class FitProblem:
                 self._keep_jacobian(key, J)
             return r
         try:
-            trace = self.model.simulate(self.values(u), keep_positions=self.warm_start)
+            # the budget is checked at every replay step too: a hard trial point (many Newton
+            # iterations per step) cannot hold the fit past its deadline
+            on_step = None if self.deadline is None or phase == "final" else (lambda k, K: self._check_time(phase))
+            trace = self.model.simulate(self.values(u), keep_positions=self.warm_start, on_step=on_step)
             prediction = self.model.predict(trace)
             r = self.model.residuals(prediction)
             self.last_positions = trace.positions

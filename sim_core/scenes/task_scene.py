@@ -90,9 +90,9 @@ _EFFECTOR = {"shape": True, "material": True, "initial_pose": True, "outer_radiu
 _TASK = {"type": True, "horizon": True, "identify": False}
 # keys that version 2 adds (sim_core.scenes.task_scene_v2)
 _TOP_V2 = {**_TOP, "blocks": False, "meshes": False}
-_SHEET_V2 = {**_SHEET, "pinned": False, "creases": False}
+_SHEET_V2 = {**_SHEET, "pinned": False, "creases": False, "gravity_scale": False}
 _BOX_V2 = {**_BOX, "arch_height": False}
-_EFFECTOR_V2 = {**_EFFECTOR, "finger": False, "opening": False, "axis": False, "rigid": False}
+_EFFECTOR_V2 = {**_EFFECTOR, "finger": False, "opening": False, "axis": False, "rigid": False, "gravity_scale": False}
 
 
 # ----------------------------------------------------------------------------- validation helpers
@@ -420,11 +420,24 @@ def build_task_scene(scene: dict, base_dir: Path | None = None) -> Model:
                        meta=meta)
     if moved:
         model.initial_x = np.concatenate(initial_parts)
+    _set_gravity_scale(model, scene)
     known = set(model.parameter_names)
     for p in meta["task"]["identify"]:
         if p not in known:
             raise ConfigError(f"task scene: task.identify names unknown parameter {p!r}; known: {sorted(known)}")
     return model
+
+
+def _set_gravity_scale(model: Model, scene: dict) -> None:
+    """``model.vertex_gravity_scale`` from the bodies' ``gravity_scale`` keys (version 2; None when all 1)."""
+    scale = np.ones(model.vertex_count)
+    for section in ("sheets", "blocks", "meshes", "effectors"):
+        for name, spec in (scene.get(section) or {}).items():
+            if isinstance(spec, dict) and "gravity_scale" in spec:
+                value = _number(spec["gravity_scale"], f"{section}.{name}.gravity_scale", nonneg=True)
+                body = model.bodies[name]
+                scale[body.vertex_start:body.vertex_stop] = value
+    model.vertex_gravity_scale = None if np.all(scale == 1.0) else scale
 
 
 def _add_mesh_object(b: ModelBuilder, name: str, spec: Any, base_dir: Path | None) -> np.ndarray:

@@ -15,6 +15,8 @@
 * ``sheets.NAME.pinned``: vertex sets held fixed (``{edge: x0|x1|y0|y1}``, ``{vertices: [...]}`` or
   ``{region: {min: [...], max: [...]}}``), in addition to ``clamped_edge``.
 * ``sheets.NAME.creases``: rest angles set on grid lines (``{column: ix | row: iy, rest_angle: rad}``).
+* ``gravity_scale`` (sheets, blocks, meshes, effectors): the fraction of the scene's gravity acting on
+  the body (``Model.vertex_gravity_scale``; ThinShellLab's Lifting: 0 on the sheet, 1 on the block).
 * ``meshes``: objects read from mesh files (``.obj``, ``.stl``, ``.msh`` ... through
   :mod:`sim_core.mesh.io`): ``kind: sheet`` (triangles), ``solid`` (tets) or ``frozen`` (tets, fixed);
   a degenerate mesh raises an error naming the file and the element.
@@ -39,8 +41,9 @@ STIFF_BLOCK_YOUNGS_MODULUS = 5.0e5
 STIFF_BLOCK_POISSON_RATIO = 0.0
 
 BLOCK_KEYS = {"size": True, "resolution": True, "origin": True, "mode": True, "mass": False, "density": False,
-              "youngs_modulus": False, "poisson_ratio": False}
-MESH_KEYS = {"file": True, "kind": True, "scale": False, "translation": False, "material": False, "pinned": False}
+              "youngs_modulus": False, "poisson_ratio": False, "gravity_scale": False}
+MESH_KEYS = {"file": True, "kind": True, "scale": False, "translation": False, "material": False, "pinned": False,
+             "gravity_scale": False}
 GRIPPER_KEYS = {"finger": True, "opening": True, "axis": True}
 FINGER_KEYS = {"shape": True, "outer_radius": False, "inner_radius": False, "mesh": False, "size": False,
                "resolution": False, "rigid": False}

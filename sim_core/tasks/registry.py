@@ -96,9 +96,10 @@ def set_dotted(doc: dict, dotted: str, value: Any, where: str) -> None:
     node[parts[-1]] = copy.deepcopy(value)
 
 
-def _scene(raw: Any, base: Path | None, where: str) -> dict:
+def _scene(raw: Any, base_dir: Path | None, where: str) -> dict:
     if not isinstance(raw, dict) or len(raw.keys() & {"file", "inline"}) != 1:
         raise ConfigError(f"{where} must be {{file: path, set: {{...}}}} or {{inline: scene}}")
+    base = base_dir
     if "inline" in raw:
         _keys(raw, where, {"inline": True})
         doc = copy.deepcopy(raw["inline"])
@@ -106,15 +107,21 @@ def _scene(raw: Any, base: Path | None, where: str) -> dict:
         _keys(raw, where, {"file": True, "set": False})
         path = Path(str(raw["file"]))
         if not path.is_absolute():
-            path = (base or Path.cwd()) / path
+            path = (base_dir or Path.cwd()) / path
         try:
             doc = yaml.safe_load(path.read_text())
         except (OSError, yaml.YAMLError) as err:
             raise ConfigError(f"{where}.file: cannot read scene {path} ({err})") from err
         for dotted, value in (raw.get("set") or {}).items():
             set_dotted(doc, str(dotted), value, f"{where}.set.{dotted}")
+        base = path.parent
     if not isinstance(doc, dict) or doc.get("kind") != "task":
         raise ConfigError(f"{where}: the scene must be a 'kind: task' scene document")
+    # mesh files are named relative to the scene file (inline scenes: to the task file): made absolute,
+    # so that the document builds from anywhere (TaskSpec.scene)
+    for spec in (doc.get("meshes") or {}).values():
+        if isinstance(spec, dict) and "file" in spec and not Path(str(spec["file"])).is_absolute():
+            spec["file"] = str((base or Path.cwd()) / str(spec["file"]))
     return doc
 
 

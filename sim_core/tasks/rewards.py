@@ -34,7 +34,7 @@ def forming_reward(sheet_x: np.ndarray, target_x: np.ndarray) -> float:
     a, b = np.asarray(sheet_x, dtype=float), np.asarray(target_x, dtype=float)
     if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 3:
         raise ConfigError(f"forming_reward: sheet {a.shape} and target {b.shape} must both be (p, 3)")
-    return -float(np.sum((a - b) ** 2))
+    return 0.0 - float(np.sum((a - b) ** 2))  # 0.0 - s: no negative zero at the target
 
 
 def crease_columns(hinges_local: np.ndarray, nx: int) -> np.ndarray:

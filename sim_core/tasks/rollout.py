@@ -185,7 +185,7 @@ class TaskEpisode:
 
 
 def rollout(task: TaskSpec, actions: np.ndarray, params: dict[str, float] | None = None, *, backend: str = "numpy",
-            keep_states: bool = False, solver_config: SolverConfig | None = None) -> RolloutResult:
+            keep_states: bool = False, solver_config: SolverConfig | None = None, clip: bool = False) -> RolloutResult:
     """Run an action sequence from the task's initial state and score the final state.
 
     Args:
@@ -196,14 +196,19 @@ def rollout(task: TaskSpec, actions: np.ndarray, params: dict[str, float] | None
         backend: solver backend (``"numpy"``, ``"taichi-cpu"``, ...).
         keep_states: keep every state in the result.
         solver_config: full solver settings, or None.
+        clip: clip finite actions to the task's bounds (as ThinShellLab's ``fix_action`` limits each
+            step) instead of refusing them.
 
     Returns:
         the :class:`RolloutResult` (an infeasible rollout stops at the failing step and says why).
 
     Raises:
-        ConfigError: bad actions (shape, bounds, non-finite) or parameters.
+        ConfigError: bad actions (shape, non-finite, or outside the bounds without ``clip``) or parameters.
     """
-    a = task.check_actions(actions)
+    a = np.asarray(actions, dtype=float)
+    if clip and a.ndim == 2 and np.all(np.isfinite(a)):
+        a = np.clip(a, task.action_low, task.action_high)
+    a = task.check_actions(a)
     ep = TaskEpisode(task, params, backend, solver_config)
     sim = ep.sim
     states = [sim.state.copy()] if keep_states else None

@@ -15,6 +15,15 @@ def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``thinshell diagnose``."""
     p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")
+    p.add_argument("--engine", choices=("signatures", "score"), default="signatures",
+                   help="signatures (default): calibrate, then name effects by their own signatures against a "
+                        "calibrated null (sysid.diagnose.signature_engine; for recordings the simulator did not make); "
+                        "score: score tests of the candidates' replays against the nominal model "
+                        "(sysid.diagnose.engine; exact when the scene is the recording's own simulator)")
+    p.add_argument("--baseline", nargs="*", default=[],
+                   help="recordings of the same cell declared normal: they calibrate the null (signatures engine)")
+    p.add_argument("--calibration-time", type=float, default=90.0,
+                   help="wall-time budget of the calibration's parameter fit, s (default %(default)s)")
     p.add_argument("--heldout", nargs="*", default=[], help="held-out recordings (default: held-out time blocks)")
     p.add_argument("--json", type=Path, help="write the JSON report here")
     p.add_argument("--out", type=Path, help="report directory (report.md, report.html, PNGs)")
@@ -56,6 +65,8 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
     if args.json is not None and args.json.exists() and not args.force:
         print(f"thinshell diagnose: {args.json} exists (use --force)", file=sys.stderr)
         return 2
+    if args.engine == "signatures":
+        return _signatures_main(args)
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
                         ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
                         calibrate=not args.no_calibrate,
@@ -76,6 +87,58 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
     if args.out is not None:
         write_report(doc, runs[0], args.out)
     print(f"explained_by: {doc['explained_by']}", file=sys.stderr)
+    return 0
+
+
+def _write_json_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text + "\n")
+    tmp.replace(path)
+
+
+def _signatures_main(args: argparse.Namespace) -> int:
+    """``thinshell diagnose`` with the signature engine (see :mod:`sysid.diagnose.signature_engine`)."""
+    from sysid.calibration import CALIBRATION_PARAMETERS
+    from sysid.diagnose.schema import validate_report
+    from sysid.diagnose.signature_engine import SignatureSettings, diagnose_one, prepare
+    from sysid.diagnose.signature_report import write_signature_report
+    from sysid.results import staged_directory
+
+    if args.heldout:
+        print("thinshell diagnose: --heldout is not used by the signatures engine (held-out events and time blocks "
+              "of each recording are); use --engine score", file=sys.stderr)
+        return 2
+    settings = SignatureSettings(
+        dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
+        calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
+        calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
+        workers=max(1, args.workers),
+        simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
+    try:
+        baselines = [prepare(b, settings) for b in args.baseline]
+        docs, runs = [], []
+        for bag in args.bags:
+            doc, prepared = diagnose_one(bag, settings=settings, baseline_prepared=baselines)
+            validate_report(doc)
+            docs.append(doc)
+            runs.append(prepared)
+    except ThinShellError as err:
+        print(f"thinshell diagnose: {err}", file=sys.stderr)
+        return 2
+    top = dict(docs[0])
+    if len(docs) > 1:
+        top["extra"] = dict(top["extra"], others=docs[1:])
+    text = json.dumps(top, indent=2)
+    if args.json is not None:
+        _write_json_atomic(args.json, text)
+    else:
+        print(text)
+    if args.out is not None:
+        with staged_directory(args.out, args.force) as stage:
+            write_signature_report(docs[0], runs[0], stage)
+    for doc in docs:
+        print(f"{doc['bag']}: explained_by: {doc['explained_by']}", file=sys.stderr)
     return 0
 
 

@@ -42,7 +42,7 @@ def test_gains_are_bounded_and_rows_select_the_training_part():
     rest, xyz, wrench = _synthetic(rng)
     nominal = SensorCalibration()
     data = {"wrench": 10.0 * wrench}
-    sigma = {"wrench": np.ones(6)}
+    sigma = {"wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
     fitted = fit_sensor_calibration(data, {"wrench": wrench}, sigma, None, nominal)
     assert fitted.force_gain == GAIN_BOUNDS[1] and fitted.torque_gain == GAIN_BOUNDS[1]
     # only the first half is the training part: its gain is 0.7, the other half's 1.4
@@ -50,6 +50,18 @@ def test_gains_are_bounded_and_rows_select_the_training_part():
     rows = {"wrench": np.arange(200) < 100}
     fitted = fit_sensor_calibration(data, {"wrench": wrench}, sigma, None, nominal, rows)
     assert fitted.force_gain == pytest.approx(0.7)
+
+
+def test_a_prediction_below_the_noise_keeps_the_scene_gain():
+    rng = np.random.default_rng(3)
+    rest, xyz, wrench = _synthetic(rng)
+    # the markers barely move (1 um against 15 um noise): the recording does not determine the scales
+    still = rest + (xyz - rest) * 0.01
+    data = {"markers_xyz": rest + rng.normal(size=xyz.shape) * 15e-6, "wrench": 0.6 * wrench}
+    sigma = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
+    fitted = fit_sensor_calibration(data, {"markers_xyz": still, "wrench": wrench}, sigma, rest, SensorCalibration())
+    assert fitted.marker_scale_xy == 1.0 and fitted.marker_scale_z == 1.0
+    assert fitted.force_gain == pytest.approx(0.6)
 
 
 def test_derivative_matches_finite_difference_of_apply():

@@ -1,18 +1,24 @@
-"""``thinshell sim`` on a version-2 task scene (gripper, blocks, arched box, pinned set, crease) to a bag."""
+"""``thinshell sim`` on a version-2 task scene (gripper, blocks, arched box, pinned set, crease, mesh
+object, gravity scale) to a bag."""
 
 from __future__ import annotations
 
 import numpy as np
 import yaml
 
-from tests.sim_core.scenes.test_task_scene_v2 import v2_scene
+from tests.sim_core.scenes.test_task_scene_v2 import _write_obj, v2_scene
 from tests.thinshell_ros.test_recorder import read_with_rosbags
 from thinshell_ros.headless import sim_main
 
 
 def test_v2_task_scene_runs_through_thinshell_sim_to_a_bag(tmp_path):
+    doc = v2_scene()
+    _write_obj(tmp_path / "patch.obj", [(0, 0, 0), (0.01, 0, 0), (0, 0.01, 0)], [(0, 1, 2)])
+    doc["meshes"] = {"patch": {"file": "patch.obj", "kind": "sheet", "translation": [0.03, 0.0, 0.0], "gravity_scale": 0.0,
+                               "material": {"youngs_modulus": 1.0e6, "poisson_ratio": 0.3, "thickness": 0.001,
+                                            "density": 100.0, "bending_stiffness": 1.0e-4}}}
     scene = tmp_path / "scene.yaml"
-    scene.write_text(yaml.safe_dump(v2_scene(), sort_keys=False))
+    scene.write_text(yaml.safe_dump(doc, sort_keys=False))
     traj = tmp_path / "traj.yaml"
     traj.write_text("version: 1\neffector: grip\nwaypoints:\n"
                     "  - {t: 0.0, pose: [0.0, 0.0, 0.02, 0, 0, 0, 1], gripper: 0.012}\n"

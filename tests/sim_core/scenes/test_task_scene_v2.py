@@ -209,3 +209,19 @@ def test_rotation_of_fingers_is_proper():
         R = quat_to_matrix(rotation_z_to(u))
         np.testing.assert_allclose(R @ [0, 0, 1], u, atol=1e-12)
         assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_gravity_scale_per_body():
+    scene = v2_scene()
+    scene["sheets"]["sheet"]["gravity_scale"] = 0.0
+    scene["sheets"]["sheet"].pop("creases")
+    model = build_task_scene(scene)
+    sheet, cube = model.bodies["sheet"], model.bodies["cube"]
+    assert np.all(model.vertex_gravity_scale[sheet.vertices] == 0.0) and np.all(model.vertex_gravity_scale[cube.vertices] == 1.0)
+    sim = Simulation(model)
+    sim.step()
+    x = sim.state.x
+    np.testing.assert_allclose(x[sheet.vertices], model.x_rest[sheet.vertices], atol=1e-12)  # weightless, untouched
+    # the free cube falls freely in its first step: dz = g dt^2
+    np.testing.assert_allclose(x[cube.vertices, 2] - model.x_rest[cube.vertices, 2], -9.8 * 0.005**2, rtol=1e-6)
+    assert build_task_scene(v2_scene()).vertex_gravity_scale is None

@@ -75,9 +75,7 @@ def test_forming_reference_scores_zero_and_another_motion_scores_less():
     short = dataclasses.replace(t)
     ref = rollout(short, t.reference_actions)
     assert ref.infeasible is None and ref.reward == pytest.approx(0.0, abs=1e-18)
-    other = t.reference_actions.copy()
-    other[:, 2] = 0.0  # no pressing
-    res = rollout(t, other)
+    res = rollout(t, np.zeros((5, t.action_dim)))  # the dome held: the sheet stays far from the target
     assert res.reward < -1e-6
 
 
@@ -107,6 +105,16 @@ def test_actions_outside_bounds_are_rejected_naming_step_and_column():
     a[1, 3] = 1.0
     with pytest.raises(ConfigError, match=r"action\[1\]\[3\]"):
         rollout(t, a)
+    clipped = rollout(t, a, clip=True)  # rotation clipped to its per-step bound
+    from sim_core.transforms import quat_multiply, quat_to_rotvec
+
+    q0, q2 = clipped.effector_poses["dome"][0, 3:], clipped.effector_poses["dome"][2, 3:]
+    rel = quat_to_rotvec(quat_multiply(q2, np.r_[-q0[:3], q0[3]]))
+    assert clipped.steps_done == 2 and clipped.infeasible is None
+    np.testing.assert_allclose(rel, [t.action_high[3], 0.0, 0.0], atol=1e-9)
+    a[0, 0] = np.nan
+    with pytest.raises(ConfigError, match=r"action\[0\]\[0\]"):
+        rollout(t, a, clip=True)
 
 
 def test_apply_action_composes_rotation_in_world_frame():
@@ -150,3 +158,30 @@ def test_crease_reward_reads_the_rest_angles_of_one_grid_line():
     state.hinge_theta_bar["sheet"] = np.where(on7, 0.1, 0.0)
     # Folding-L weighs column 7 by +1 in ThinShellLab's angle sign (-theta): -(1)(-0.1) per hinge
     assert t.reward(sim.model, state) == pytest.approx(0.1 * on7.sum())
+
+
+def test_task_on_a_scene_with_a_mesh_file_builds_from_any_directory(tmp_path, monkeypatch):
+    import yaml
+
+    from tests.sim_core.scenes.test_task_scene_v2 import _write_obj, v2_scene
+
+    (tmp_path / "scenes").mkdir()
+    _write_obj(tmp_path / "scenes" / "patch.obj", [(0, 0, 0), (0.01, 0, 0), (0, 0.01, 0)], [(0, 1, 2)])
+    scene = v2_scene()
+    scene["meshes"] = {"patch": {"file": "patch.obj", "kind": "sheet", "translation": [0.03, 0.0, 0.0],
+                                 "material": {"youngs_modulus": 1.0e6, "poisson_ratio": 0.3, "thickness": 0.001,
+                                              "density": 100.0, "bending_stiffness": 1.0e-4}}}
+    (tmp_path / "scenes" / "s.yaml").write_text(yaml.safe_dump(scene))
+    doc = {"format": "thinshell-task", "version": 1, "name": "Grip", "kind": "manipulation", "source": "ThinShellLab (test)",
+           "scene": {"file": "scenes/s.yaml"}, "horizon": 2,
+           "actions": [{"effector": "grip", "kind": "pose", "max_translation": 0.001, "max_rotation": 0.01},
+                       {"effector": "grip", "kind": "gripper", "max_opening_change": 0.001}],
+           "cma": {"control_points": 1, "sigma": 1.0, "population": 4, "generations": 1},
+           "reward": {"name": "body_displacement", "params": {"body": "cube", "offset": [0.0, 0.0, 0.0]}},
+           "reference": [{"steps": 2, "gripper": {"grip": -0.001}}]}
+    (tmp_path / "grip.yaml").write_text(yaml.safe_dump(doc))
+    t = load_task(tmp_path / "grip.yaml")
+    monkeypatch.chdir(tmp_path)  # neither the scene's nor the repository's directory
+    res = rollout(t, t.reference_actions)
+    assert res.infeasible is None and res.steps_done == 2 and res.reward < 0  # the cube fell
+    np.testing.assert_allclose(res.gripper["grip"], [0.012, 0.011, 0.010])

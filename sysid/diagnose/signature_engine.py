@@ -1,0 +1,405 @@
+"""Diagnosis of recordings the simulator did not make: calibrate, test each effect's signature
+against a calibrated null, name, refit the named effect and validate it on held-out data.
+
+The score-test pipeline of :mod:`sysid.diagnose.engine` assumes the nominal model is right up to
+the concealed effect; on a real cell (or another engine's recordings) the calibrated nominal model
+still leaves a structured gap many times the noise, and every candidate can absorb part of it
+(SYSID.md "Model-form gap"). This pipeline names an effect only from its own signature
+(:mod:`sysid.diagnose.signatures`), each read where the gap matters least:
+
+1. **Calibrate** (:func:`sysid.calibration.calibrate`): the sensor calibration in closed form and
+   the uncertain simulator parameters (gel modulus and Poisson ratio, gel-sheet friction, bending
+   stiffness, sensor normal offset) by weighted least squares within a wall-time budget. The
+   whitened RMS per channel before and after goes into ``baseline``.
+2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias
+   from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
+   contact events, bending plasticity from the sheet's set after release, adhesion from the sheet
+   carried by the gel.
+3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
+   the same tests on recordings the user declares normal (``--baseline``) when given.
+4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
+   markers) and **refit** each named effect on training data, reporting whitened RMS before and
+   after on held-out data: held-out contact events for the timing effects (each event predicted with
+   the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
+   of ``2 * holdout_blocks`` blocks), and the sheet's final free window for plasticity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sim_core.errors import CalibrationError, SimulationDivergedError
+from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate
+from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
+from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
+                                            default_thresholds)
+from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, lens_design
+from sysid.diagnose.signatures.timing import delayed, first_order, timing_fits, timing_signal
+from sysid.evidence import load_evidence
+from sysid.observation import ObservationModel
+
+ENGINE_NAME = "signatures"
+
+
+@dataclass
+class SignatureSettings:
+    """Settings of the signature diagnosis.
+
+    Attributes:
+        dt: replay step, s.
+        t_max: use the first t_max s of each recording (None: all).
+        arch: elastic terms of the replays (``numpy``, ``cpu``, ``cuda``).
+        calibrate: fit the simulator parameters (``calibration_params``) as well as the sensor
+            calibration; False: the sensor calibration only (one replay).
+        calibration_params: simulator parameters of the calibration.
+        calibration_max_nfev: function evaluations of its least-squares fit.
+        calibration_max_time: wall-time budget of that fit, s (None: none).
+        baseline_factor: a baseline-calibrated threshold is this factor times the largest value the
+            test reaches on the baselines.
+        holdout_blocks: held-out time blocks of the sensor effects' refits (every other of
+            ``2 * holdout_blocks``).
+        simulation: overrides of the scene's ``simulation:`` block for the replays.
+        workers: processes for the calibration's batched replays.
+    """
+
+    dt: float = 0.01
+    t_max: float | None = None
+    arch: str = "cpu"
+    calibrate: bool = True
+    calibration_params: tuple[str, ...] = CALIBRATION_PARAMETERS
+    calibration_max_nfev: int = 4
+    calibration_max_time: float | None = 90.0
+    baseline_factor: float = 2.0
+    holdout_blocks: int = 4
+    simulation: dict[str, Any] | None = None
+    workers: int = 1
+
+
+@dataclass
+class Prepared:
+    """A recording read, calibrated and replayed.
+
+    Attributes:
+        bag: recording path.
+        model: its :class:`~sysid.observation.ObservationModel` (calibrated).
+        calibration: the :class:`~sysid.calibration.CalibrationResult`.
+        prediction: channel -> calibrated nominal replay aligned to the recording.
+        recording: the :class:`~sysid.diagnose.signatures.Recording` the tests read.
+        results: effect -> :class:`SignatureResult` (undecided until :func:`decide`).
+        wall_s: seconds spent.
+    """
+
+    bag: Path
+    model: ObservationModel
+    calibration: CalibrationResult
+    prediction: dict[str, np.ndarray]
+    recording: Recording
+    results: dict[str, SignatureResult]
+    wall_s: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+
+def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None) -> Recording:
+    """The :class:`Recording` view of a (calibrated) observation model and its prediction."""
+    ev = model.evidence
+    t0 = ev.start_ns
+    t = {ch: (np.asarray(ev.t_ns[ch], dtype=np.int64) - t0) * 1e-9 for ch in ev.channels_present}
+    data = {ch: np.asarray(ev.values(ch), dtype=float) for ch in ev.channels_present if ch != "image"}
+    sigma = {ch: np.asarray(s, dtype=float) for ch, s in model.sigma.items()}
+    for ch in data:
+        if ch not in sigma and ch in ev.noise:
+            sigma[ch] = np.asarray(ev.noise[ch], dtype=float)
+    cal = model.sensor_calibration
+    if cal is not None:
+        camera = (float(cal.fx), float(cal.fy), float(cal.cx), float(cal.cy), float(cal.distance))
+    else:
+        cam = model.scene["sensors"][model.sensor]["camera"]
+        camera = (float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]), float(cam["distance"]))
+    return Recording(t=t, data=data, prediction=None if prediction is None else dict(prediction), sigma=sigma,
+                     camera=camera, name=Path(str(ev.source.bag_path)).name)
+
+
+def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
+    """Read, calibrate and replay one recording, and run the signature tests on it.
+
+    Raises:
+        BagReadError: unreadable recording.
+        CalibrationError: the replay at the scene values diverged.
+    """
+    t_start = time.monotonic()
+    evidence = load_evidence(bag, include_image="auto")
+    model = ObservationModel(evidence, dt=settings.dt, t_max=settings.t_max, simulation=settings.simulation,
+                             arch=settings.arch)
+    params = tuple(settings.calibration_params) if settings.calibrate else ()
+    notes: list[str] = []
+    try:
+        cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
+                        max_time=settings.calibration_max_time)
+    except SimulationDivergedError as err:
+        raise CalibrationError(f"{bag}: the calibration's replay diverged: {err}") from err
+    prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
+    rec = recording_of(model, prediction)
+    results = run_signature_tests(rec)
+    return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
+
+
+# ================================================================================ refits
+def _whitened_rms(residual: np.ndarray, sigma: np.ndarray) -> float:
+    r = np.asarray(residual, dtype=float)
+    return float(np.sqrt(np.mean((r.reshape(-1, sigma.shape[-1]) / sigma) ** 2))) if r.size else float("nan")
+
+
+def _blocks(n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training and held-out rows: every other of ``2 k`` equal blocks."""
+    idx = np.arange(n)
+    block = np.minimum(idx * 2 * k // max(n, 1), 2 * k - 1)
+    held = block % 2 == 1
+    return ~held, held
+
+
+def refit_lens(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
+    """Camera intrinsics with and without the radial terms, fitted on training blocks; held-out RMS
+    of the recorded pixels against the camera applied to the recorded positions."""
+    rec = p.recording
+    xyz, uv = rec.data["markers_xyz"], rec.data["markers_uv"]
+    train, held = _blocks(len(xyz), k)
+    fx, fy, _, _, d = rec.camera
+    w = float(np.median(xyz[..., 2])) + d
+    sig = np.sqrt(rec.sigma["markers_uv"] ** 2 + (np.array([fx, fy]) / w) ** 2 * rec.sigma["markers_xyz"][:2] ** 2)
+
+    def fit(rows: np.ndarray, radial: bool) -> np.ndarray:
+        A_u, A_v = lens_design(xyz[rows], rec.camera)
+        cols = slice(0, 4) if radial else slice(0, 2)
+        n = A_u.shape[0]
+        J = np.zeros((2 * n, 6))
+        J[:n, 0:2], J[n:, 2:4] = A_u[:, :2] / sig[0], A_v[:, :2] / sig[1]
+        if radial:
+            J[:n, 4:6], J[n:, 4:6] = A_u[:, 2:] / sig[0], A_v[:, 2:] / sig[1]
+        y = np.concatenate([uv[rows][..., 0].reshape(-1) / sig[0], uv[rows][..., 1].reshape(-1) / sig[1]])
+        c, *_ = np.linalg.lstsq(J[:, :6 if radial else 4], y, rcond=None)
+        del cols
+        return np.concatenate([c, np.zeros(6 - len(c))])
+
+    def predict(rows: np.ndarray, c: np.ndarray) -> np.ndarray:
+        A_u, A_v = lens_design(xyz[rows], rec.camera)
+        u = A_u[:, :2] @ c[0:2] + A_u[:, 2:] @ c[4:6]
+        v = A_v[:, :2] @ c[2:4] + A_v[:, 2:] @ c[4:6]
+        return np.stack([u, v], axis=-1)
+
+    c0, c1 = fit(train, False), fit(train, True)
+    obs = uv[held].reshape(-1, 2)
+    before = _whitened_rms(obs - predict(held, c0), sig)
+    after = _whitened_rms(obs - predict(held, c1), sig)
+    return {"params": {"k1": float(c1[4]), "k2": float(c1[5]), "fx": float(c1[0]), "cx": float(c1[1]),
+                       "fy": float(c1[2]), "cy": float(c1[3])},
+            "observable": "markers_uv against the camera applied to the recorded marker positions",
+            "heldout": f"every other of {2 * k} time blocks", "rms": {"markers_uv": after},
+            "heldout_rms_before": before, "heldout_rms_after": after}
+
+
+def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
+    """Offset and drift fitted on the training blocks of the free-gel rows; held-out RMS of the
+    wrench there against the calibrated replay without and with them."""
+    rec = p.recording
+    tw = rec.t["wrench"]
+    free = free_gel_rows(rec)
+    train, held = _blocks(len(tw), k)
+    tr, he = free & train, free & held
+    sig = rec.sigma["wrench"]
+    w = rec.data["wrench"]
+    pred = p.prediction.get("wrench", np.zeros_like(w))
+    t_ref = float(np.mean(tw[tr])) if tr.any() else 0.0
+    X = np.stack([np.ones(int(tr.sum())), tw[tr] - t_ref], axis=1)
+    coef, *_ = np.linalg.lstsq(X, (w - pred)[tr], rcond=None)
+    from sysid.diagnose.signatures.sensor import AXES
+
+    est = {**{f"offset_{a}": float(coef[0, i]) for i, a in enumerate(AXES)},
+           **{f"drift_{a}_per_s": float(coef[1, i]) for i, a in enumerate(AXES)}, "t_ref_s": t_ref}
+    after_pred = apply_force_bias(pred, tw, est)
+    before = _whitened_rms((w - pred)[he], sig)
+    after = _whitened_rms((w - after_pred)[he], sig)
+    return {"params": est, "observable": "wrench where the gel touches nothing",
+            "heldout": f"every other of {2 * k} time blocks", "rms": {"wrench": after},
+            "heldout_rms_before": before, "heldout_rms_after": after}
+
+
+def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
+    """Delay (latency) or first-order lag (gel viscoelasticity) fitted on all contact events but
+    one and evaluated on that one, for every event (leave one event out)."""
+    rec = p.recording
+    fits = timing_fits(rec)
+    events = fits["events"] if fits else []
+    channel, t, y, yp, sigma = timing_signal(rec)
+    y, yp = y[:, None], yp[:, None]
+    sig = np.array([sigma])
+    latency = r.effect == "latency"
+    taus = np.arange(0.0, 0.3 + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
+    fracs = np.linspace(0.0, 1.0, 11)
+
+    def transformed(theta: tuple[float, float]) -> np.ndarray:
+        return delayed(t, yp, theta[0]) if latency else first_order(t, yp, theta[0], theta[1])
+
+    def sse(theta, rows, pred=None) -> float:
+        # a gain and an offset per event window, fitted before and after alike: the amplitude gap
+        # between the calibrated replay and the recording is not the timing effect
+        z = transformed(theta) if pred is None else pred
+        total = 0.0
+        for m in masks:
+            mm = m & rows
+            if mm.sum() < 3:
+                continue
+            X = np.stack([z[mm, 0], np.ones(int(mm.sum()))], axis=1)
+            c, *_ = np.linalg.lstsq(X, y[mm, 0], rcond=None)
+            total += float(np.sum(((y[mm, 0] - X @ c) / sig[0]) ** 2))
+        return total
+
+    masks = [(t >= e["window_s"][0]) & (t <= e["window_s"][1]) for e in events]
+    grid = [(float(a), 0.0) for a in taus] if latency else [(float(a), float(b)) for a in taus[1:] for b in fracs]
+    before, after, thetas = [], [], []
+    for i, m in enumerate(masks):
+        train = np.zeros(len(t), bool)
+        for j, mj in enumerate(masks):
+            if j != i:
+                train |= mj
+        if not train.any():
+            train = m
+        best = min(grid, key=lambda th: sse(th, train))
+        thetas.append(best)
+        before.append(sse(None, m, pred=yp))
+        after.append(sse(best, m))
+    n_held = sum(int(m.sum()) * sig.shape[0] for m in masks)
+    all_rows = np.any(masks, axis=0) if masks else np.ones(len(t), bool)
+    best_all = min(grid, key=lambda th: sse(th, all_rows))
+    params = {"latency_s": best_all[0]} if latency else {"tau_s": best_all[0], "fraction": best_all[1]}
+    observable = "normal force" if channel == "wrench" else "mean marker depth"
+    return {"params": params, "observable": f"{observable} in the contact events' windows",
+            "heldout": "leave one contact event out", "per_event": [list(th) for th in thetas],
+            "rms": {channel: math.sqrt(sse(best_all, all_rows) / max(int(all_rows.sum()) * sig.shape[0], 1))},
+            "heldout_rms_before": math.sqrt(sum(before) / max(n_held, 1)),
+            "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
+
+
+def refit_sheet(p: Prepared, r: SignatureResult) -> dict[str, Any]:
+    """Sheet effects: the located set or carried height, without a replay of the effect's term.
+
+    The permanent set (plasticity) and the carried sheet (adhesion) are reported with the sheet's
+    whitened RMS in the effect's windows; modelling them needs a replay with the effect's term
+    (``thinshell diagnose --engine score`` refits ``sheet.yield_angle`` and the adhesion bonds)."""
+    rec = p.recording
+    t = rec.t["sheet_points"]
+    rows = np.zeros(len(t), bool)
+    for a, b in r.windows_s:
+        rows |= (t >= a) & (t <= b)
+    sig = rec.sigma["sheet_points"]
+    before = _whitened_rms((rec.data["sheet_points"] - p.prediction["sheet_points"])[rows], sig)
+    return {"params": dict(r.estimate), "observable": "sheet_points in the effect's windows",
+            "heldout": None, "rms": {"sheet_points": before}, "heldout_rms_before": before,
+            "heldout_rms_after": None, "note": "not refitted with the effect's term in this engine"}
+
+
+def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
+    """The named effect's model fitted on training data and its held-out RMS before and after."""
+    if r.effect == "lens_distortion":
+        return refit_lens(p, r, settings.holdout_blocks)
+    if r.effect == "force_bias":
+        return refit_force_bias(p, r, settings.holdout_blocks)
+    if r.effect in ("latency", "gel_viscoelasticity"):
+        return refit_timing(p, r)
+    return refit_sheet(p, r)
+
+
+# ================================================================================ pipeline
+def _baseline_block(p: Prepared) -> dict[str, Any]:
+    cal = p.calibration.summary()
+    rms = {ch: float(v) for ch, v in p.calibration.whitened_rms_after.items()}
+    return {"params": dict(p.calibration.params), "rms": rms, "fitted": bool(p.calibration.params),
+            "calibration": cal, "whitened_rms_before": dict(p.calibration.whitened_rms_before),
+            "whitened_rms_after": rms}
+
+
+def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings: SignatureSettings | None = None,
+                 baseline_prepared: Sequence[Prepared] | None = None,
+                 prepared: Prepared | None = None) -> tuple[dict[str, Any], Prepared]:
+    """Diagnose one recording (SYSID.md output contract; engine details under ``extra``).
+
+    Args:
+        bag: recording path.
+        baselines: recordings declared normal for this cell (calibrate the null).
+        settings: :class:`SignatureSettings`.
+        baseline_prepared: already prepared baselines (skips re-reading them).
+        prepared: ``bag`` already prepared by :func:`prepare` with these settings.
+
+    Returns:
+        ``(report, prepared)``.
+
+    Raises:
+        BagReadError, CalibrationError: unreadable recording or a replay that cannot start.
+    """
+    settings = settings or SignatureSettings()
+    t0 = time.monotonic()
+    if prepared is not None:
+        # decisions set flags on the results: start from undecided copies
+        p = Prepared(prepared.bag, prepared.model, prepared.calibration, prepared.prediction, prepared.recording,
+                     {e: dataclasses.replace(r, detected=False, threshold={}, reason=r.reason if not r.applicable else "")
+                      for e, r in prepared.results.items()}, prepared.wall_s, list(prepared.notes))
+    else:
+        p = prepare(bag, settings)
+    base = list(baseline_prepared) if baseline_prepared is not None else [prepare(b, settings) for b in baselines]
+    th: Thresholds = default_thresholds(p.recording)
+    if base:
+        th = calibrated_thresholds(th, [b.results for b in base], settings.baseline_factor)
+    decision: Decision = decide(p.results, th)
+    refits: dict[str, Any] = {}
+    for effect in decision.explained_by:
+        refits[effect] = refit(p, p.results[effect], settings)
+    named = [p.results[e] for e in decision.explained_by]
+    windows = sorted({(round(a, 4), round(b, 4)) for r in named for a, b in r.windows_s})
+    channels = sorted({ch for r in named for ch in r.channels})
+    markers = sorted({m for r in named for m in r.markers})
+    top = refits.get(decision.explained_by[0]) if decision.explained_by else None
+    candidates = []
+    for effect, r in sorted(p.results.items(), key=lambda kv: -kv[1].statistic):
+        if not r.applicable:
+            continue
+        thr = r.threshold.get("statistic") or 1.0
+        candidates.append({"effect": effect, "statistic": float(r.statistic),
+                           # tail bound of the statistic against its threshold's chi-square reference
+                           "p_value": float(math.exp(-0.5 * max(r.statistic - thr, 0.0))) if r.detected else 1.0,
+                           "detected": r.detected, "effect_size": float(r.effect_size), "effect_unit": r.effect_unit})
+    doc: dict[str, Any] = {
+        "bag": str(bag),
+        "baseline": _baseline_block(p),
+        "mismatch": {"detected": bool(decision.explained_by), "windows_s": [list(w) for w in windows],
+                     "channels": channels, "markers": markers},
+        "candidates": candidates,
+        "explained_by": list(decision.explained_by),
+        "refit": {"params": dict(top["params"]) if top else {}, "rms": dict(top["rms"]) if top else {},
+                  "heldout_rms_before": None if top is None else top["heldout_rms_before"],
+                  "heldout_rms_after": None if top is None else top["heldout_rms_after"],
+                  "effects": refits},
+        "extra": {"engine": ENGINE_NAME, "signatures": {e: r.as_dict() for e, r in p.results.items()},
+                  "ties": decision.ties, "contact_properties": decision.contact_properties,
+                  "null": {"source": "baseline" if base else "default", "baselines": [str(b.bag) for b in base],
+                           "statistic": th.statistic, "effect_size": th.effect_size},
+                  "notes": p.notes, "wall_time_s": time.monotonic() - t0 + (p.wall_s if prepared is not None else 0.0),
+                  "settings": {"dt": settings.dt, "t_max": settings.t_max, "arch": settings.arch,
+                               "calibrate": settings.calibrate}},
+    }
+    return doc, p
+
+
+def diagnose(bags: Sequence[str | Path], dt: float = 0.01, heldout: Sequence[str | Path] | None = None,
+             **kwargs: Any) -> dict[str, Any]:
+    """``thinshell bench diagnose --engine sysid.diagnose.signature_engine:diagnose`` entry: the report
+    of the first recording (``heldout`` recordings are not used: the engine holds out events and
+    time blocks of the recording itself)."""
+    del heldout
+    doc, _ = diagnose_one(bags[0], settings=SignatureSettings(dt=dt, **kwargs))
+    return doc

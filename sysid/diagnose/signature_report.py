@@ -1,0 +1,161 @@
+"""Report of the signature diagnosis: ``report.md``, ``report.html``, ``diagnosis.json`` and plots.
+
+The plots show, for each named effect, where it was found (its windows shaded) and the recording
+against the calibrated replay before and after the effect's refit on the channel it acts on; and
+the baseline's whitened RMS per channel before and after calibration.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
+from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
+
+
+def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rec = prepared.recording
+    sig = doc["extra"]["signatures"][effect]
+    fit = doc["refit"]["effects"].get(effect, {})
+    params = fit.get("params", {})
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    if effect in ("latency", "gel_viscoelasticity"):
+        channel, t, y, yp, _ = timing_signal(rec)
+        after = delayed(t, yp, params.get("latency_s", 0.0)) if effect == "latency" else \
+            first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
+        ax.plot(t, y, "k.", ms=2, label="recorded")
+        ax.plot(t, yp, "C0-", lw=1, label="calibrated replay")
+        ax.plot(t, after, "C3-", lw=1, label=f"replay with {effect}")
+        ax.set_ylabel("normal force, N" if channel == "wrench" else "mean marker depth, m")
+    elif effect == "force_bias":
+        t = rec.t["wrench"]
+        w, wp = rec.data["wrench"], prepared.prediction["wrench"]
+        ax.plot(t, w[:, 2], "k.", ms=2, label="recorded F_z")
+        ax.plot(t, wp[:, 2], "C0-", lw=1, label="calibrated replay F_z")
+        ax.plot(t, apply_force_bias(wp, t, params)[:, 2], "C3-", lw=1, label="replay + bias")
+        ax.set_ylabel("F_z (sensor frame), N")
+    elif effect == "lens_distortion":
+        xyz, uv = rec.data["markers_xyz"], rec.data["markers_uv"]
+        pin = apply_lens(xyz, rec.camera, {k: v for k, v in params.items() if k not in ("k1", "k2")})
+        dist = apply_lens(xyz, rec.camera, params)
+        c = np.array(rec.camera[2:4])
+        r = np.linalg.norm(pin - c, axis=-1).reshape(-1)
+        ax.plot(r, np.linalg.norm(uv - pin, axis=-1).reshape(-1), "k.", ms=1, alpha=0.3, label="|recorded - pinhole|")
+        ax.plot(r, np.linalg.norm(uv - dist, axis=-1).reshape(-1), "C3.", ms=1, alpha=0.3, label="|recorded - radial model|")
+        ax.set_xlabel("radius from the principal point, px")
+        ax.set_ylabel("pixel residual, px")
+    else:
+        t = rec.t["sheet_points"]
+        x, xp = rec.data["sheet_points"], prepared.prediction["sheet_points"]
+        ax.plot(t, x[:, :, 2].max(axis=1), "k-", lw=1, label="recorded sheet, highest point")
+        ax.plot(t, xp[:, :, 2].max(axis=1), "C0-", lw=1, label="calibrated replay")
+        ax.set_ylabel("height, m")
+    if effect != "lens_distortion":
+        for a, b in sig["windows_s"]:
+            ax.axvspan(a, b, color="C1", alpha=0.15)
+        ax.set_xlabel("time, s")
+    ax.set_title(f"{effect}: statistic {sig['statistic']:.3g} (threshold {sig['threshold'].get('statistic', 0):.3g}), "
+                 f"effect size {sig['effect_size']:.3g} {sig['effect_unit']}", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = out / f"signature_{effect}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _plot_calibration(doc: Mapping[str, Any], out: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    before, after = doc["baseline"]["whitened_rms_before"], doc["baseline"]["whitened_rms_after"]
+    chans = list(before)
+    fig, ax = plt.subplots(figsize=(6, 3))
+    x = np.arange(len(chans))
+    ax.bar(x - 0.2, [before[c] for c in chans], 0.4, label="scene values")
+    ax.bar(x + 0.2, [after.get(c, np.nan) for c in chans], 0.4, label="calibrated")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xticks(x, chans, fontsize=8)
+    ax.set_ylabel("whitened RMS (noise units)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "calibration_rms.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+WORDS = {
+    "latency": "the tactile streams arrive late: every contact event is delayed by the same time",
+    "gel_viscoelasticity": "the gel creeps: the tactile response follows the contact with a first-order lag and relaxes on plateaus",
+    "lens_distortion": "the tactile camera's lens bends the marker pixels radially, growing towards the image edge",
+    "force_bias": "the wrench sensor reads an offset that drifts, even when the gel touches nothing",
+    "bending_plasticity": "the sheet keeps a fold after the gel lets go of it (plastic bending)",
+    "adhesion": "the gel sticks to the sheet and carries it up on a lift (tack)",
+}
+
+
+def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
+    """The report's text."""
+    lines = [f"# Diagnosis of `{doc['bag']}`", ""]
+    ex = doc["explained_by"]
+    lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
+    for e in ex:
+        lines.append(f"- **{e}**: {WORDS.get(e, e)}.")
+    props = doc["extra"].get("contact_properties") or []
+    if props:
+        lines.append(f"- contact properties of this cell (not named alone): {', '.join(props)}")
+    if doc["extra"].get("ties"):
+        lines.append(f"- ties (not resolved by a discriminating test): {doc['extra']['ties']}")
+    lines += ["", "## Calibration (whitened RMS, noise units)", "", "| channel | scene values | calibrated |", "|---|---|---|"]
+    for ch, v in doc["baseline"]["whitened_rms_before"].items():
+        lines.append(f"| {ch} | {v:.2f} | {doc['baseline']['whitened_rms_after'].get(ch, float('nan')):.2f} |")
+    lines += ["", f"Fitted parameters: `{json.dumps(doc['baseline']['params'])}`", "",
+              "## Where", "", f"windows (s): {doc['mismatch']['windows_s']}; channels: {doc['mismatch']['channels']}; "
+              f"markers: {doc['mismatch']['markers']}", "", "## Signature tests", "",
+              "| effect | statistic | threshold | effect size | min size | detected | note |", "|---|---|---|---|---|---|---|"]
+    for e, s in doc["extra"]["signatures"].items():
+        th = s.get("threshold") or {}
+        lines.append(f"| {e} | {s['statistic']:.3g} | {th.get('statistic', float('nan')):.3g} | {s['effect_size']:.3g} {s['effect_unit']} "
+                     f"| {th.get('effect_size', float('nan')):.3g} | {s['detected']} | {s['reason']} |")
+    lines += ["", f"Null: {doc['extra']['null']['source']} ({', '.join(doc['extra']['null']['baselines']) or 'noise model'})", "",
+              "## Refits (held-out whitened RMS before -> after)", ""]
+    for e, r in doc["refit"]["effects"].items():
+        b, a = r.get("heldout_rms_before"), r.get("heldout_rms_after")
+        lines.append(f"- {e}: params `{json.dumps(r['params'])}`; {r['observable']}; held-out: {r['heldout']}; "
+                     f"{'n/a' if b is None else f'{b:.3g}'} -> {'n/a' if a is None else f'{a:.3g}'}")
+    lines += ["", *[f"![{p.stem}]({p.name})" for p in images], ""]
+    return "\n".join(lines)
+
+
+def write_signature_report(doc: Mapping[str, Any], prepared: Any, out_dir: str | Path) -> list[Path]:
+    """Write ``report.md``, ``report.html``, ``diagnosis.json`` and the PNGs into ``out_dir``.
+
+    Returns:
+        written paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    images = [_plot_calibration(doc, out)]
+    for e in doc["explained_by"]:
+        p = _plot_effect(doc, prepared, e, out)
+        if p is not None:
+            images.append(p)
+    md = markdown(doc, images)
+    (out / "report.md").write_text(md)
+    body = "".join(f"<p><img src='{html.escape(p.name)}'></p>" for p in images)
+    (out / "report.html").write_text("<html><body><pre>" + html.escape(md) + "</pre>" + body + "</body></html>\n")
+    (out / "diagnosis.json").write_text(json.dumps(doc, indent=2) + "\n")
+    return [out / "report.md", out / "report.html", out / "diagnosis.json", *images]

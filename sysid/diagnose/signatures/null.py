@@ -1,0 +1,153 @@
+"""Decisions on the signature tests: thresholds from the noise model, or a null calibrated on
+recordings the user declares normal.
+
+Every effect is named only when its test passes two thresholds: the **statistic** (whitened SSE the
+effect's pattern removes, noise units) must be far beyond what noise gives (a chi-square tail), and
+the **effect size** must be physically resolvable (a delay of at least two tactile sample periods, a
+distortion of at least two pixel-noise sigmas at the markers' radius, a permanent set of at least
+ten sheet-tracking sigmas, ...). The timing effects must also explain most of the event windows'
+excess energy (``min_explained``): a systematic gap between simulator and recording, which even a
+nominal recording has, leaves most of it in place.
+
+With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each threshold is raised to
+``baseline_factor`` times the largest value the same test reaches on the baselines: what is
+different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
+"Model-form gap").
+
+Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
+(a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`); when neither
+shape is clearly better both are reported as a tie and the larger statistic is named first.
+Adhesion on a lift is a property of the contact (the gel tacks to the sheet in every lift of the
+cell): it is named beside another effect, and otherwise reported under ``contact_properties``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from sysid.diagnose.signatures.base import Recording, SignatureResult
+
+STATISTIC_THRESHOLD = 50.0
+"""Default statistic threshold, noise units: far in the tail of the chi-square laws of the tests
+(at most 12 degrees of freedom for the force bias; P(chi2_12 > 50) < 2e-6)."""
+
+SHAPE_MARGIN = math.log(1.25)
+"""A first-order lag (delay) is preferred when it fits the events' windows with at least 25 % less
+(more) whitened SSE than the other shape."""
+
+MIN_EXPLAINED = 0.5
+"""Fraction of the event windows' excess energy (``SSE - samples``) a timing effect must remove."""
+
+SECONDARY_EFFECTS = ("adhesion",)
+"""Effects named only beside another one (contact properties of the cell)."""
+
+
+@dataclass
+class Thresholds:
+    """Statistic and effect-size thresholds per effect.
+
+    Attributes:
+        statistic: effect -> minimum statistic (noise units).
+        effect_size: effect -> minimum effect size (the test's unit).
+        source: effect -> ``"default"`` or ``"baseline"``.
+    """
+
+    statistic: dict[str, float] = field(default_factory=dict)
+    effect_size: dict[str, float] = field(default_factory=dict)
+    source: dict[str, str] = field(default_factory=dict)
+
+
+def default_thresholds(rec: Recording) -> Thresholds:
+    """Thresholds from the recording's noise model and sample periods."""
+    th = Thresholds()
+    period = rec.tactile_period() if any(rec.has(ch) for ch in ("markers_xyz", "markers_uv", "wrench")) else 0.01
+    uv_sigma = float(np.max(rec.sigma["markers_uv"])) if "markers_uv" in rec.sigma else 0.15
+    sheet_sigma = float(np.max(rec.sigma["sheet_points"])) if "sheet_points" in rec.sigma else 5e-5
+    sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": 2.0 * period,
+             "gel_viscoelasticity": 2.0 * period, "bending_plasticity": 10.0 * sheet_sigma,
+             "adhesion": 10.0 * sheet_sigma}
+    for effect, size in sizes.items():
+        th.statistic[effect] = STATISTIC_THRESHOLD
+        th.effect_size[effect] = float(size)
+        th.source[effect] = "default"
+    return th
+
+
+def calibrated_thresholds(default: Thresholds, baselines: Sequence[Mapping[str, SignatureResult]],
+                          baseline_factor: float = 2.0) -> Thresholds:
+    """Raise the default thresholds to ``baseline_factor`` times the largest statistic and effect
+    size each test reaches on the baseline recordings (tests not applicable there are skipped)."""
+    th = Thresholds(dict(default.statistic), dict(default.effect_size), dict(default.source))
+    for results in baselines:
+        for effect, r in results.items():
+            if not r.applicable or effect not in th.statistic:
+                continue
+            s, e = baseline_factor * r.statistic, baseline_factor * r.effect_size
+            if s > th.statistic[effect]:
+                th.statistic[effect], th.source[effect] = s, "baseline"
+            if e > th.effect_size[effect]:
+                th.effect_size[effect], th.source[effect] = e, "baseline"
+    return th
+
+
+@dataclass
+class Decision:
+    """What the signature tests say about one recording.
+
+    Attributes:
+        explained_by: named effects, strongest first (SYSID.md contract; secondary effects last).
+        ties: confusable pairs left undecided, ``[[a, b], ...]``.
+        contact_properties: secondary effects found without a primary one (not named).
+        detected: every effect whose test passed.
+    """
+
+    explained_by: list[str]
+    ties: list[list[str]]
+    contact_properties: list[str]
+    detected: list[str]
+
+
+def _passes(r: SignatureResult, th: Thresholds) -> bool:
+    if not r.applicable:
+        return False
+    r.threshold = {"statistic": th.statistic.get(r.effect, STATISTIC_THRESHOLD),
+                   "effect_size": th.effect_size.get(r.effect, 0.0), "source": th.source.get(r.effect, "default")}
+    ok = r.statistic >= r.threshold["statistic"] and r.effect_size >= r.threshold["effect_size"]
+    if ok and r.effect in ("latency", "gel_viscoelasticity"):
+        key = "explained_delay" if r.effect == "latency" else "explained_lag"
+        ok = float(r.detail.get(key, 0.0)) >= MIN_EXPLAINED
+        if ok and r.effect == "gel_viscoelasticity":
+            ok = 0.0 < float(r.estimate.get("fraction", 0.0))
+    return bool(ok)
+
+
+def decide(results: Mapping[str, SignatureResult], th: Thresholds) -> Decision:
+    """Name the effects whose tests pass; resolve the latency / viscoelasticity pair by shape.
+
+    Sets ``detected`` and ``threshold`` on every result.
+    """
+    for r in results.values():
+        r.detected = _passes(r, th)
+    ties: list[list[str]] = []
+    lat, visco = results.get("latency"), results.get("gel_viscoelasticity")
+    if lat is not None and visco is not None and lat.detected and visco.detected:
+        shape = float(lat.detail.get("shape_log_ratio", 0.0))
+        if shape >= SHAPE_MARGIN:
+            lat.detected, lat.reason = False, "the events fit a first-order lag better than a delay (gel viscoelasticity)"
+        elif shape <= 0.0:
+            visco.detected, visco.reason = False, "the events fit a pure delay at least as well as a lag (latency)"
+        else:
+            ties.append(["latency", "gel_viscoelasticity"])
+    detected = [e for e, r in results.items() if r.detected]
+    ratio = {e: results[e].statistic / max(results[e].threshold["statistic"], 1e-12) for e in detected}
+    primary = sorted((e for e in detected if e not in SECONDARY_EFFECTS), key=lambda e: -ratio[e])
+    secondary = sorted((e for e in detected if e in SECONDARY_EFFECTS), key=lambda e: -ratio[e])
+    if primary:
+        return Decision(primary + secondary, ties, [], detected)
+    for e in secondary:
+        results[e].reason = "a contact property of this cell (named only beside another effect)"
+    return Decision([], ties, secondary, detected)

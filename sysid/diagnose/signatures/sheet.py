@@ -1,0 +1,132 @@
+"""Signature tests on the tracked sheet: bending plasticity and adhesion.
+
+* **Bending plasticity** (SYSID.md: "a fold that remains after release ... persists after
+  unloading, localised on the fold"): once the gel has let go of the sheet (the replay predicts no
+  contact and the recorded markers are back at rest), an elastic sheet returns to the shape the
+  replay predicts for it; a plastic one keeps a set. Over the final free window the recorded
+  sheet is compared with the replay (statistic: whitened SSE of the time-averaged difference, about
+  chi-square(3p) without an effect) and with its own initial shape; the effect size is the smaller
+  of the two largest point displacements (a set both unexplained by the replay and different from
+  where the sheet started).
+* **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
+  replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
+  recorded sheet rises above the replay's, the sheet is being carried by the gel. The statistic is
+  the whitened excess energy of the sheet residual over those rows; the effect size the largest
+  height the recorded sheet has above the replay there, m.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
+                                            not_applicable, predicted_contact, segments)
+from sysid.diagnose.signatures.sensor import FREE_MARGIN_S, REST_DISPLACEMENT
+
+FINAL_WINDOW_S = 0.2
+"""Length of the final free window of the permanent-set test, s."""
+
+MIN_CARRIED_S = 0.1
+"""Shortest run of carried-sheet rows that counts, s (a tactile delay leaves shorter ones)."""
+
+MIN_FOLLOW_CORRELATION = 0.8
+"""Correlation of the sheet's highest point with the effector height over a carried run."""
+
+
+def _free_rows(rec: Recording, channel: str) -> np.ndarray | None:
+    contact = predicted_contact(rec, channel)
+    if contact is None:
+        return None
+    t = rec.t[channel]
+    free = ~dilate(contact, t, FREE_MARGIN_S)
+    disp = marker_displacement(rec)
+    if disp is not None:
+        moved = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.0
+        free &= ~dilate(moved, t, FREE_MARGIN_S)
+    return free
+
+
+def plasticity_test(rec: Recording) -> SignatureResult:
+    """Permanent set of the sheet after the gel released it."""
+    effect = "bending_plasticity"
+    if not rec.predicted("sheet_points"):
+        return not_applicable(effect, "needs the tracked sheet points and their replay")
+    t = rec.t["sheet_points"]
+    free = _free_rows(rec, "sheet_points")
+    contact = predicted_contact(rec, "sheet_points")
+    if free is None or contact is None or not contact.any():
+        return not_applicable(effect, "the replay predicts no contact with the sheet")
+    last_contact = int(np.nonzero(contact)[0][-1])
+    final = free & (t >= t[-1] - FINAL_WINDOW_S) & (np.arange(len(t)) > last_contact)
+    if final.sum() < 3:
+        return not_applicable(effect, "the gel does not release the sheet before the recording ends "
+                                      f"(no free final window of {FINAL_WINDOW_S} s)")
+    first_contact = int(np.nonzero(contact)[0][0])
+    initial = free & (np.arange(len(t)) < first_contact)
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
+    sig = rec.sigma["sheet_points"]
+    n = int(final.sum())
+    d_pred = (x[final] - xp[final]).mean(axis=0)                       # (p, 3)
+    stat = float(np.sum((d_pred / sig) ** 2) * n - d_pred.size)
+    set_vs_pred = float(np.max(np.linalg.norm(d_pred, axis=1)))
+    if initial.sum() >= 3:
+        d_init = x[final].mean(axis=0) - x[initial].mean(axis=0)
+        set_vs_initial = float(np.max(np.linalg.norm(d_init, axis=1)))
+    else:
+        set_vs_initial = set_vs_pred
+    per_point = np.linalg.norm(d_pred, axis=1)
+    top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
+    t_release = float(t[last_contact])
+    return SignatureResult(
+        effect=effect, statistic=max(stat, 0.0), effect_size=min(set_vs_pred, set_vs_initial), effect_unit="m",
+        estimate={"permanent_set_m": set_vs_pred}, windows_s=[[t_release, float(t[-1])]], channels=["sheet_points"],
+        markers=[], detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
+                            "points": sorted(top.tolist()), "release_s": t_release})
+
+
+def adhesion_test(rec: Recording) -> SignatureResult:
+    """The sheet carried by the gel after the replay has let it go."""
+    effect = "adhesion"
+    if not (rec.predicted("sheet_points") and rec.has("markers_xyz")):
+        return not_applicable(effect, "needs the tracked sheet points, their replay and the marker positions")
+    t = rec.t["sheet_points"]
+    contact = predicted_contact(rec, "sheet_points")
+    disp = marker_displacement(rec)
+    if contact is None or disp is None or not contact.any():
+        return not_applicable(effect, "the replay predicts no contact with the sheet")
+    loaded = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.5
+    after_first = np.arange(len(t)) > int(np.nonzero(contact)[0][0])
+    carried = after_first & ~contact & loaded
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
+    sig = rec.sigma["sheet_points"]
+    if carried.sum() < 3:
+        return SignatureResult(effect=effect, statistic=0.0, effect_size=0.0, effect_unit="m",
+                               reason="the recorded gel is never loaded where the replay has released the sheet")
+    # the carried sheet follows the effector: its highest point rises and falls with it
+    ee_z = np.interp(t, rec.t["pose"], np.asarray(rec.data["pose"], dtype=float)[:, 2]) if rec.has("pose") else None
+    runs = [(i0, i1) for i0, i1 in segments(carried) if t[i1 - 1] - t[i0] >= MIN_CARRIED_S]
+    top = x[:, :, 2].max(axis=1)
+    follows = []
+    for i0, i1 in runs:
+        if ee_z is None or i1 - i0 < 3 or np.std(ee_z[i0:i1]) == 0.0:
+            continue
+        follows.append(float(np.corrcoef(top[i0:i1], ee_z[i0:i1])[0, 1]))
+    keep = np.zeros(len(t), bool)
+    for (i0, i1), c in zip(runs, follows):
+        if c >= MIN_FOLLOW_CORRELATION:
+            keep[i0:i1] = True
+    if not keep.any():
+        return SignatureResult(effect=effect, statistic=0.0, effect_size=0.0, effect_unit="m",
+                               detail={"carried_samples": int(carried.sum()), "follow_correlation": follows},
+                               reason="the recorded sheet does not follow the effector where the replay released it")
+    carried = keep
+    r = (x[carried] - xp[carried]) / sig
+    stat = float(np.sum(r ** 2) - r.size)
+    lift = float(np.max(x[carried][:, :, 2].max(axis=1) - xp[carried][:, :, 2].max(axis=1)))
+    windows = [[float(t[i0]), float(t[i1 - 1])] for i0, i1 in segments(carried)]
+    return SignatureResult(effect=effect, statistic=max(stat, 0.0), effect_size=max(lift, 0.0), effect_unit="m",
+                           estimate={"carried_height_m": max(lift, 0.0)}, windows_s=windows,
+                           channels=["sheet_points", "wrench"],
+                           detail={"carried_samples": int(carried.sum()), "follow_correlation": follows})

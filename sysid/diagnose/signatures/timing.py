@@ -1,0 +1,181 @@
+"""Signature tests of the tactile stream's timing: latency and gel viscoelastic lag.
+
+Both effects change *when* the tactile channels respond to the effector's motion, not how much,
+so they are read at the contact events of the calibrated nominal replay (the normal force rising
+through, or falling through, a fraction of its peak), where the response changes fastest and an
+amplitude gap between simulator and recording matters least: in a window around each event the
+recorded normal force is regressed on a transformed prediction with a free gain and offset,
+
+* delay (latency, SYSID.md "residual about -tau dy/dt on every channel of a stream"):
+  ``y(t - tau)``;
+* first-order lag (gel viscoelasticity, "markers creep at constant indentation, force relaxes"):
+  ``(1 - a) y + a L_tau y`` with ``L_tau`` the first-order low-pass of time constant tau,
+
+over a grid of tau. The statistic of each is the whitened SSE it removes against ``tau = 0``
+summed over the events; the two are told apart by their shape (a pure delay moves a step, a lag
+rounds it and leaves an exponential tail; SYSID.md: "latency delays every channel of a stream by the
+same amount at every frequency and shows no creep on plateaus"), and a delay must be consistent
+across events (every event delayed by about the same tau).
+
+Without a wrench the mean marker depth is used in the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable
+
+EVENT_FRACTION = 0.2
+"""Contact events: the predicted normal force crossing this fraction of its peak."""
+
+WINDOW_BEFORE_S = 0.15
+WINDOW_AFTER_S = 0.3
+"""Window around an event, s (before / after the crossing on a rising event; mirrored on a
+falling one)."""
+
+TAU_MAX_S = 0.3
+"""Largest delay or time constant searched, s."""
+
+
+def low_pass(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
+    """First-order low-pass ``tau dy_f/dt = y - y_f`` (exact for piecewise-constant input), along
+    axis 0; ``tau <= 0`` returns a copy."""
+    y = np.asarray(y, dtype=float)
+    if tau <= 0.0:
+        return y.copy()
+    out = np.empty_like(y)
+    out[0] = y[0]
+    a = 1.0 - np.exp(-np.diff(np.asarray(t, dtype=float)) / tau)
+    for i in range(1, len(y)):
+        out[i] = out[i - 1] + a[i - 1] * (y[i] - out[i - 1])
+    return out
+
+
+def delayed(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
+    """``y(t - tau)`` by linear interpolation along axis 0 (held at the first sample before it)."""
+    y = np.asarray(y, dtype=float)
+    flat = y.reshape(len(y), -1)
+    out = np.stack([np.interp(t - tau, t, flat[:, j]) for j in range(flat.shape[1])], axis=1)
+    return out.reshape(y.shape)
+
+
+def first_order(t: np.ndarray, y: np.ndarray, tau: float, a: float) -> np.ndarray:
+    """``(1 - a) y + a L_tau y`` along axis 0."""
+    return (1.0 - a) * np.asarray(y, dtype=float) + a * low_pass(t, y, tau)
+
+
+def contact_events(t: np.ndarray, y_pred: np.ndarray, fraction: float = EVENT_FRACTION) -> list[tuple[float, int]]:
+    """Crossings of ``fraction`` of the peak of ``y_pred`` as ``[(time s, +1 rising / -1 falling)]``."""
+    peak = float(np.max(y_pred)) if len(y_pred) else 0.0
+    if not peak > 0.0:
+        return []
+    above = y_pred > fraction * peak
+    d = np.diff(above.astype(np.int8))
+    out = []
+    for i in np.nonzero(d)[0]:
+        y0, y1 = y_pred[i], y_pred[i + 1]
+        f = (fraction * peak - y0) / (y1 - y0) if y1 != y0 else 0.0
+        out.append((float(t[i] + f * (t[i + 1] - t[i])), int(d[i])))
+    return out
+
+
+def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    X = np.stack(cols + [np.ones_like(y)], axis=1)
+    c, *_ = np.linalg.lstsq(X, y, rcond=None)
+    r = y - X @ c
+    return float(r @ r), c
+
+
+def timing_signal(rec: Recording) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The signal the timing tests read: ``(channel, t (n,) s, recorded (n,), predicted (n,), sigma)``:
+    the compressive normal force (N) when the wrench is recorded and predicted, else the mean marker
+    depth (m); None without either."""
+    if rec.predicted("wrench"):
+        t = rec.t["wrench"]
+        return ("wrench", t, normal_force(rec.data["wrench"]), normal_force(rec.prediction["wrench"]),
+                float(rec.sigma["wrench"][2]))
+    if rec.predicted("markers_xyz"):
+        t = rec.t["markers_xyz"]
+        depth = lambda x: -np.asarray(x, dtype=float)[:, :, 2].mean(axis=1)  # noqa: E731
+        k = rec.data["markers_xyz"].shape[1]
+        return ("markers_xyz", t, depth(rec.data["markers_xyz"]), depth(rec.prediction["markers_xyz"]),
+                float(rec.sigma["markers_xyz"][2]) / np.sqrt(k))
+    return None
+
+
+def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
+    """Delay and first-order fits at every contact event.
+
+    Returns:
+        None without a predicted normal force or marker depth, else a dict with ``channel``,
+        ``events`` (one dict per event: time, direction, window, whitened SSE at tau = 0, best delay
+        and its SSE, best first-order tau / fraction and its SSE) and the summed SSEs.
+    """
+    sig = timing_signal(rec)
+    if sig is None:
+        return None
+    channel, t, y, yp, sigma = sig
+    if taus is None:
+        taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
+    events = []
+    lp_cache = {tau: low_pass(t, yp, tau) for tau in taus[1:]}
+    for te, direction in contact_events(t, yp):
+        lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
+        m = (t >= lo) & (t <= hi)
+        if m.sum() < 10:
+            continue
+        s0, _ = _sse(y[m], [yp[m]])
+        sd = [(s0, 0.0)]
+        for tau in taus[1:]:
+            sd.append((_sse(y[m], [np.interp(t - tau, t, yp)[m]])[0], float(tau)))
+        best_d = min(sd)
+        sl = [(s0, 0.0, 0.0)]
+        for tau in taus[1:]:
+            s, c = _sse(y[m], [yp[m], lp_cache[tau][m]])
+            tot = c[0] + c[1]
+            a = float(c[1] / tot) if tot != 0.0 else 0.0
+            if 0.0 <= a <= 1.5:  # a lag (a > 1: a slight overshoot of the low-pass), not a lead
+                sl.append((s, float(tau), a))
+        best_l = min(sl)
+        events.append({"t_s": te, "direction": "rising" if direction > 0 else "falling", "window_s": [lo, hi],
+                       "samples": int(m.sum()), "sse0": s0 / sigma ** 2, "delay_s": best_d[1], "sse_delay": best_d[0] / sigma ** 2,
+                       "lag_tau_s": best_l[1], "lag_fraction": best_l[2], "sse_lag": best_l[0] / sigma ** 2})
+    return {"channel": channel, "events": events,
+            "samples": int(sum(e["samples"] for e in events)),
+            "sse0": float(sum(e["sse0"] for e in events)),
+            "sse_delay": float(sum(e["sse_delay"] for e in events)),
+            "sse_lag": float(sum(e["sse_lag"] for e in events))}
+
+
+def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
+    """The latency and the gel viscoelasticity results from one set of :func:`timing_fits`."""
+    fits = timing_fits(rec)
+    if fits is None:
+        reason = "needs a predicted wrench or marker positions (a calibrated replay)"
+        return not_applicable("latency", reason), not_applicable("gel_viscoelasticity", reason)
+    ev = fits["events"]
+    if not ev:
+        reason = "the replay predicts no contact event"
+        return not_applicable("latency", reason), not_applicable("gel_viscoelasticity", reason)
+    windows = [e["window_s"] for e in ev]
+    delays = np.array([e["delay_s"] for e in ev])
+    lag_taus = np.array([e["lag_tau_s"] for e in ev])
+    excess = max(fits["sse0"] - fits["samples"], 1e-12)
+    detail = {"channel": fits["channel"], "events": ev, "samples": fits["samples"], "sse0": fits["sse0"],
+              "explained_delay": float((fits["sse0"] - fits["sse_delay"]) / excess),
+              "explained_lag": float((fits["sse0"] - fits["sse_lag"]) / excess), "sse_delay": fits["sse_delay"],
+              "sse_lag": fits["sse_lag"],
+              # shape: > 0 when the first-order lag fits the events better than a pure delay
+              "shape_log_ratio": float(np.log(max(fits["sse_delay"], 1e-12) / max(fits["sse_lag"], 1e-12)))}
+    lat = SignatureResult(effect="latency", statistic=max(fits["sse0"] - fits["sse_delay"], 0.0),
+                          effect_size=float(np.min(delays)), effect_unit="s (smallest event delay)",
+                          estimate={"latency_s": float(np.median(delays))}, windows_s=windows,
+                          channels=["markers_xyz", "markers_uv", "wrench"], detail=dict(detail, delays_s=delays.tolist()))
+    frac = float(np.median([e["lag_fraction"] for e in ev]))
+    visco = SignatureResult(effect="gel_viscoelasticity", statistic=max(fits["sse0"] - fits["sse_lag"], 0.0),
+                            effect_size=float(np.median(lag_taus)), effect_unit="s (median time constant)",
+                            estimate={"tau_s": float(np.median(lag_taus)), "fraction": frac}, windows_s=windows,
+                            channels=["markers_xyz", "markers_uv", "wrench"],
+                            detail=dict(detail, taus_s=lag_taus.tolist()))
+    return lat, visco

@@ -1,0 +1,166 @@
+"""Signature tests on synthetic recordings with known answers (no replay)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sysid.diagnose.signatures import Recording, run_signature_tests
+from sysid.diagnose.signatures.null import Thresholds, calibrated_thresholds, decide, default_thresholds
+from sysid.diagnose.signatures.sensor import apply_lens, force_bias_test, lens_test
+from sysid.diagnose.signatures.sheet import adhesion_test, plasticity_test
+from sysid.diagnose.signatures.timing import delayed, first_order, low_pass, timing_tests
+
+CAMERA = (300.0, 300.0, 160.0, 120.0, 0.025)
+SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
+         "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4]), "sheet_points": np.array([5e-5, 5e-5, 5e-5]),
+         "pose": np.array([5e-6] * 3 + [0.0] * 4)}
+
+
+def press_profile(t: np.ndarray, t_on: float = 1.0, t_off: float = 2.5, ramp: float = 0.15) -> np.ndarray:
+    """0 -> 1 -> 0 trapezoid (press, dwell, release)."""
+    up = np.clip((t - t_on) / ramp, 0.0, 1.0)
+    down = np.clip((t_off - t) / ramp, 0.0, 1.0)
+    return np.minimum(up, down)
+
+
+def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float = 0.0, k1: float = 0.0,
+              bias: float = 0.0, set_height: float = 0.0, carried: bool = False, duration: float = 3.5) -> Recording:
+    """A press-and-release recording and its exact 'replay', with one effect applied to the data."""
+    tw = np.arange(0.0, duration, 0.005)
+    tm = np.arange(0.0, duration, 0.01)
+    # with a carried sheet the replay lets go when the effector lifts (1.6 s); the recorded gel
+    # stays loaded until the sheet drops off (2.5 s)
+    t_off_pred = 1.6 if carried else 2.5
+    prof_w, prof_m = press_profile(tw, t_off=t_off_pred), press_profile(tm, t_off=t_off_pred)
+    rec_w, rec_m = press_profile(tw), press_profile(tm)
+    # markers: 9 x 7 grid, pressed 200 um at the dwell
+    gx, gy = np.meshgrid(np.arange(9) * 0.002 - 0.008, np.arange(7) * 0.002 - 0.006)
+    rest = np.stack([gx.ravel(), gy.ravel(), np.zeros(63)], axis=1)
+    bowl = np.exp(-(rest[:, 0] ** 2 + rest[:, 1] ** 2) / (2 * 0.006 ** 2))
+    xyz_pred = rest[None] + np.stack([np.zeros_like(bowl), np.zeros_like(bowl), -2e-4 * bowl], 1)[None] * prof_m[:, None, None]
+    wrench_pred = np.zeros((len(tw), 6))
+    wrench_pred[:, 2] = -5.0 * prof_w
+    # sheet: 21 x 13 flat grid, rises under the gel only if carried
+    sx, sy = np.meshgrid(np.linspace(0, 0.1, 21), np.linspace(-0.03, 0.03, 13))
+    sheet0 = np.stack([sx.ravel(), sy.ravel(), np.full(sx.size, 1.5e-4)], axis=1)
+    sheet_pred = np.repeat(sheet0[None], len(tm), axis=0)
+    pose = np.tile([0.07, 0.0, 0.003, 1.0, 0.0, 0.0, 0.0], (len(tw), 1))
+    pose[:, 2] -= 0.0025 * prof_w
+    # the recording: effects, then noise
+    xyz = rest[None] + np.stack([np.zeros_like(bowl), np.zeros_like(bowl), -2e-4 * bowl], 1)[None] * rec_m[:, None, None]
+    w = np.zeros((len(tw), 6))
+    w[:, 2] = -5.0 * rec_w
+    if latency:
+        xyz, w = delayed(tm, xyz, latency), delayed(tw, w, latency)
+    if lag_tau:
+        xyz, w = first_order(tm, xyz, lag_tau, 1.0), first_order(tw, w, lag_tau, 1.0)
+    uv = apply_lens(xyz, CAMERA, {"k1": k1})
+    if bias:
+        w = w + bias * SIGMA["wrench"] * (1.0 + 0.1 * tw[:, None])
+    sheet = sheet_pred.copy()
+    if carried:
+        lift = np.clip((tm - 1.6) / 0.5, 0.0, 1.0) * (tm < 2.45) * 0.01
+        pose_lift = np.interp(tw, tm, lift)
+        pose[:, 2] += pose_lift
+        near = (np.abs(sheet0[:, 0] - 0.07) < 0.01)
+        sheet[:, near, 2] += lift[:, None]
+    if set_height:
+        final = tm > 2.7
+        fold = np.abs(sheet0[:, 0] - 0.07) < 0.015
+        sheet[np.ix_(final, fold, [2])] += set_height
+    noise = lambda a, s: a + rng.normal(size=a.shape) * s  # noqa: E731
+    data = {"markers_xyz": noise(xyz, SIGMA["markers_xyz"]), "markers_uv": noise(uv, SIGMA["markers_uv"]),
+            "wrench": noise(w, SIGMA["wrench"]), "sheet_points": noise(sheet, SIGMA["sheet_points"]),
+            "pose": pose, "pose_cmd": pose}
+    pred = {"markers_xyz": xyz_pred, "markers_uv": apply_lens(xyz_pred, CAMERA, {}), "wrench": wrench_pred,
+            "sheet_points": sheet_pred}
+    t = {"markers_xyz": tm, "markers_uv": tm, "sheet_points": tm, "wrench": tw, "pose": tw, "pose_cmd": tw}
+    return Recording(t=t, data=data, prediction=pred, sigma=SIGMA, camera=CAMERA, name="synthetic")
+
+
+def named(rec: Recording, th: Thresholds | None = None) -> list[str]:
+    results = run_signature_tests(rec)
+    return decide(results, th or default_thresholds(rec)).explained_by
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def test_nothing_concealed_names_nothing(rng):
+    rec = synthetic(rng)
+    assert named(rec) == []
+    results = run_signature_tests(rec)
+    # noise only: the lens statistic follows chi-square(2), the force-bias one chi-square(12)
+    assert results["lens_distortion"].statistic < 20.0
+    assert results["force_bias"].statistic < 40.0
+
+
+def test_latency_named_with_its_delay(rng):
+    rec = synthetic(rng, latency=0.04)
+    assert named(rec) == ["latency"]
+    lat, _ = timing_tests(rec)
+    assert lat.estimate["latency_s"] == pytest.approx(0.04, abs=0.006)
+
+
+def test_first_order_lag_named_as_gel_viscoelasticity(rng):
+    rec = synthetic(rng, lag_tau=0.12)
+    assert named(rec) == ["gel_viscoelasticity"]
+    _, visco = timing_tests(rec)
+    assert visco.estimate["tau_s"] == pytest.approx(0.12, rel=0.25)
+
+
+def test_lens_distortion_named_and_k1_recovered(rng):
+    rec = synthetic(rng, k1=-0.08)
+    assert named(rec) == ["lens_distortion"]
+    r = lens_test(rec)
+    assert r.estimate["k1"] == pytest.approx(-0.08, abs=0.02)
+
+
+def test_force_bias_named_and_offset_recovered(rng):
+    rec = synthetic(rng, bias=3.0)
+    assert named(rec) == ["force_bias"]
+    r = force_bias_test(rec)
+    assert r.estimate["offset_Fz"] == pytest.approx(3.0 * 0.2 * (1.0 + 0.1 * r.estimate["t_ref_s"]), rel=0.15)
+
+
+def test_permanent_set_named_as_plasticity(rng):
+    rec = synthetic(rng, set_height=0.004)
+    assert named(rec) == ["bending_plasticity"]
+    assert plasticity_test(rec).effect_size == pytest.approx(0.004, rel=0.1)
+
+
+def test_adhesion_alone_is_a_contact_property_and_named_beside_plasticity(rng):
+    rec = synthetic(rng, carried=True)
+    results = run_signature_tests(rec)
+    d = decide(results, default_thresholds(rec))
+    assert results["adhesion"].detected and d.explained_by == [] and d.contact_properties == ["adhesion"]
+    rec2 = synthetic(np.random.default_rng(8), carried=True, set_height=0.004)
+    assert named(rec2) == ["bending_plasticity", "adhesion"]
+    assert adhesion_test(rec2).effect_size > 0.005
+
+
+def test_baseline_null_raises_thresholds(rng):
+    base = synthetic(rng, latency=0.04)
+    rec = synthetic(np.random.default_rng(9), latency=0.04)
+    th = calibrated_thresholds(default_thresholds(rec), [run_signature_tests(base)], baseline_factor=2.0)
+    # the same delay on the cell's normal recordings is the usual gap: not named
+    assert th.source["latency"] == "baseline"
+    assert named(rec, th) == []
+
+
+def test_low_pass_step_response():
+    t = np.arange(0.0, 1.0, 0.001)
+    y = low_pass(t, (t >= 0.1).astype(float), 0.1)
+    assert y[np.searchsorted(t, 0.2)] == pytest.approx(1.0 - np.exp(-1.0), abs=0.01)
+
+
+def test_tests_say_what_they_need():
+    rec = Recording(t={"wrench": np.arange(10) * 0.005}, data={"wrench": np.zeros((10, 6))}, prediction=None,
+                    sigma=SIGMA, camera=CAMERA)
+    results = run_signature_tests(rec)
+    assert not results["lens_distortion"].applicable and "marker positions" in results["lens_distortion"].reason
+    assert not results["latency"].applicable and "replay" in results["latency"].reason
+    assert not results["bending_plasticity"].applicable
