@@ -46,13 +46,14 @@ def test_short_optimisation_beats_the_zero_trajectory(make, method, episodes):
 def test_resumed_run_continues_from_its_checkpoint(tmp_path):
     task = forming_task(horizon=3)
     space = _space(task, control_points=1)
-    full = optimise(new_state("hybrid", 10, seed=4, sigma=2.5, population=4, hybrid_fraction=0.8), space)
-    part = new_state("hybrid", 10, seed=4, sigma=2.5, population=4, hybrid_fraction=0.8)
-    while part.episodes_done < 8:  # two CMA-ES generations, then stop ("killed")
+    full = optimise(new_state("hybrid", 8, seed=4, sigma=2.5, population=3, hybrid_fraction=0.8), space)
+    assert [h.phase for h in full.history] == ["cma"] * 6 + ["gd"] * 2
+    part = new_state("hybrid", 8, seed=4, sigma=2.5, population=3, hybrid_fraction=0.8)
+    while part.episodes_done < 3:  # one CMA-ES generation, then stop ("killed")
         step(part, space)
     path = save_checkpoint(tmp_path / "checkpoint.pkl", part)
     resumed = load_checkpoint(path)
-    assert resumed.episodes_done == 8 and resumed.es is not None
+    assert resumed.episodes_done == 3 and resumed.es is not None
     optimise(resumed, space)
     assert [h.score for h in resumed.history] == [h.score for h in full.history]
     assert resumed.best_score == full.best_score
