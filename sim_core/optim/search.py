@@ -12,7 +12,8 @@
   epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
   epsilon would swamp small gradients).
 * ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
-  gradient steps from the best candidate. A gradient that is exactly zero there (the effector
+  gradient steps from the best feasible candidate (none feasible: from the gradient method's own
+  start, the task's reference trajectory). A gradient that is exactly zero there (the effector
   touches nothing: no action changes the reward to first order) hands the rest of the budget back
   to CMA-ES, which continues its search distribution.
 
@@ -170,6 +171,8 @@ class SearchState:
         history: one :class:`EpisodeLog` per episode.
         best_score, best_reward, best_candidate, best_phase, best_point: the best episode so far
             (score ranks; candidate as :meth:`SearchSpace.candidate`).
+        best_cma_point: the best feasible CMA-ES point, where a hybrid's gradient phase starts (None:
+            no feasible one; the gradient phase then starts where ``gd`` would).
         es: the ``cma.CMAEvolutionStrategy`` (kept through a hybrid's gradient phase).
         adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
         meta: free description of the problem (task name, horizon, ...) checked on resume.
@@ -243,7 +246,7 @@ def _record(state: SearchState, phase: str, results: Sequence[EpisodeResult], po
         if res.score > state.best_score:
             state.best_score, state.best_reward = float(res.score), float(res.reward)
             state.best_phase, state.best_point = phase, np.array(point, dtype=float)
-            if phase == "cma":
+            if phase == "cma" and res.feasible:
                 state.best_cma_point = np.array(point, dtype=float)
     return logs
 

@@ -114,3 +114,26 @@ def test_hybrid_hands_a_zero_gradient_back_to_cma():
     state = optimise(new_state("hybrid", 13, seed=0, sigma=0.5, population=4), _Plateau())
     assert [h.phase for h in state.history] == ["cma"] * 8 + ["gd"] + ["cma"] * 4
     assert state.episodes_done == 13 and state.done
+
+
+class _NoFeasibleCma(_Plateau):
+    """Every CMA-ES episode stops early (as on Pick-Folding, where the zero trajectory loses contact)."""
+
+    started_from = "unset"
+
+    def cma_evaluate(self, points):
+        from sim_core.optim.episode import EpisodeResult
+
+        return [EpisodeResult(float("nan"), 0, 1, "no contact") for _ in points]
+
+    def gd_start(self, cma_point):
+        self.started_from = cma_point
+        return super().gd_start(self.c + 0.5 if cma_point is None else cma_point)
+
+
+def test_hybrid_without_a_feasible_cma_point_starts_the_gradient_phase_on_its_own():
+    space = _NoFeasibleCma()
+    state = optimise(new_state("hybrid", 8, seed=0, sigma=0.5, population=3), space)
+    assert space.started_from is None
+    assert [h.phase for h in state.history] == ["cma"] * 6 + ["gd"] * 2
+    assert state.best_phase == "gd" and state.best_reward > -0.5  # the descent improved on -0.5
