@@ -8,7 +8,8 @@
   number, ...; not the score-difference criteria, the rewards not being normalised).
 * ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
   reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
-  infeasible episode returns to the best point found and halves the learning rate. Adam's
+  infeasible episode returns to the best point found and halves the learning rate; a gradient
+  that is exactly zero at the start ends the run (nothing to descend). Adam's
   epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
   epsilon would swamp small gradients).
 * ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
@@ -277,8 +278,12 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     y = a["y"].copy()
     res, g = space.gd_gradient(y)
     logs = _record(state, "gd", [res], [y])
-    if res.feasible and a["t"] == 0 and not np.any(g) and state.es is not None:
-        state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
+    if res.feasible and a["t"] == 0 and not np.any(g):
+        if state.es is not None:
+            state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
+        else:
+            state.phase = "done"
+            state.stop_reason = "zero gradient at the start: no action changes the reward to first order"
         return logs
     if not res.feasible:
         a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
@@ -351,7 +356,9 @@ def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchS
             on_batch(state, logs)
     if state.episodes_done >= state.episodes:
         state.phase, state.stop_reason = "done", "episode budget spent"
-    elif state.phase != "done":
+    elif state.phase == "done":
+        state.stop_reason = state.stop_reason or "episode budget spent (what is left is less than a generation)"
+    else:
         state.stop_reason = "deadline"
     if state.best_phase is not None:
         state.best_candidate = space.candidate(state.best_phase, state.best_point)

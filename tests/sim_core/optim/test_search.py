@@ -137,3 +137,14 @@ def test_hybrid_without_a_feasible_cma_point_starts_the_gradient_phase_on_its_ow
     assert space.started_from is None
     assert [h.phase for h in state.history] == ["cma"] * 6 + ["gd"] * 2
     assert state.best_phase == "gd" and state.best_reward > -0.5  # the descent improved on -0.5
+
+
+def test_gd_on_a_plateau_stops_and_says_why():
+    class Flat(_Plateau):
+        def gd_start(self, cma_point):
+            return super().gd_start(np.zeros(2))
+
+    state = optimise(new_state("gd", 5), Flat())
+    assert state.episodes_done == 1 and state.done and "zero gradient" in state.stop_reason
+    cma_state = optimise(new_state("cma", 10, population=4), Flat())
+    assert cma_state.episodes_done == 8 and cma_state.stop_reason.startswith("episode budget spent (what is left")
