@@ -7,6 +7,7 @@
 * ``bench sysid``: a 3-parameter fit on a whole recording (:mod:`sysid.bench_fit`).
 * ``bench tasks``: the ten ThinShellLab tasks' reference trajectories, rewards vs Table A
   (:mod:`sim_core.tasks.bench`).
+* ``bench optimise``: the optimisers on the ThinShellLab tasks vs Table A (:mod:`sysid.optimise_bench`).
 """
 
 from __future__ import annotations
@@ -25,11 +26,12 @@ BENCHMARKS = {
     "diagnose": "missing-physics diagnosis benchmark",
     "sysid": "3-parameter material fit on a whole recording",
     "tasks": "the ten ThinShellLab tasks: reference trajectories' rewards vs Table A",
+    "optimise": "the optimisers (CMA-ES, adjoint gradient, hybrid) on the ThinShellLab tasks vs Table A",
 }
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks} [ARGS]``; returns the exit
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks,optimise} [ARGS]``; returns the exit
     code of the benchmark (see each one's ``--help``; 2 for an unknown benchmark)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="thinshell bench", description="benchmarks")
@@ -56,6 +58,10 @@ def bench_main(argv: list[str] | None = None) -> int:
         from sysid.diagnose_bench import bench_diagnose_main
 
         return int(bench_diagnose_main(rest) or 0)
+    if which == "optimise":
+        from sysid.optimise_bench import bench_optimise_main
+
+        return int(bench_optimise_main(rest) or 0)
     from sysid.bench_fit import bench_sysid_main
 
     return int(bench_sysid_main(rest) or 0)

@@ -64,7 +64,9 @@ class TaskSpec:
         action_low: per-step lower bounds, shape ``(action_dim,)`` (m, rad, m).
         action_high: per-step upper bounds, shape ``(action_dim,)``.
         control_points: CMA-ES control points per episode (the original's ``abs_step``).
-        cma_sigma: CMA-ES initial step (the original's units: 1.0 = 0.0003 m per step and dimension).
+        cma_sigma: CMA-ES initial step in the original's units (``run_cmaes_all.py`` decodes
+            ``(x - 5) 0.0003 / 5``: 1.0 = 6e-5 m of translation, 2e-3 rad of rotation per step;
+            :mod:`sim_core.optim.actions`).
         cma_population: CMA-ES population size.
         cma_generations: CMA-ES generations.
         reward: pure function ``reward(model, state) -> float`` of the final state (units in
