@@ -1,0 +1,124 @@
+"""BatchedSimulation: per copy the states of separate runs; a failing copy is reported, the others finish."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.batch import BatchedSimulation
+from sim_core.control import Control
+from sim_core.errors import ConfigError
+from sim_core.scenes.task_scene import build_task_scene, task_initial_state
+from sim_core.simulation import Simulation
+from sim_core.solver_config import SolverConfig
+from tests.support.press_scenes import pad_scene, paper_sheet
+
+STEPS = 4
+PARAMS = [{}, {"pad.youngs_modulus": 6e5, "friction.pad_sheet": 0.2},
+          {"sheet.bending_stiffness": 2e-2, "friction.pad_sheet": 0.9}]
+# per copy: press depth per step (m) and drag per step along x (m)
+MOTIONS = [(3e-4, 0.0), (2e-4, 2e-4), (4e-4, -1e-4)]
+
+
+def _model():
+    scene = pad_scene({"sheet": paper_sheet((0.03, 0.03), (7, 7), (-0.015, -0.015, 0.0))}, 6e-4,
+                      [{"pair": ["pad", "sheet"], "mu": 0.5}, {"pair": ["sheet", "table"], "mu": 0.3}])
+    return build_task_scene(scene)
+
+
+def _control(pose0: np.ndarray, motion: tuple[float, float], k: int) -> Control:
+    target = pose0.copy()
+    target[2] -= motion[0] * (k + 1)
+    target[0] += motion[1] * k
+    return Control(effector_pose_target={"pad": target})
+
+
+def _separate(model, params, motion, config=None):
+    """One copy run alone: a Simulation of its own; the states after each step (stops at a failure)."""
+    import copy
+
+    m = copy.deepcopy(model)
+    for name, value in params.items():
+        m.set_parameter(name, value)
+    sim = Simulation(m, solver_config=config)
+    sim.state = task_initial_state(m)
+    pose0 = sim.state.effector_pose["pad"].copy()
+    states = []
+    for k in range(STEPS):
+        sim.step(_control(pose0, motion, k))
+        states.append(sim.state.copy())
+    return states
+
+
+@pytest.fixture(scope="module")
+def model():
+    return _model()
+
+
+def _batch(model, configs=None):
+    return BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model), solver_config=configs)
+
+
+def test_batch_of_three_gives_the_states_of_three_separate_runs(model):
+    batch = _batch(model)
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    per_step = []
+    for k in range(STEPS):
+        res = batch.step([_control(pose0, MOTIONS[i], k) for i in range(3)])
+        assert res.failed_now == [] and all(info is not None and info.iterations >= 1 for info in res.infos)
+        per_step.append([s.copy() for s in batch.states])
+    tol = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
+    for i in range(3):
+        alone = _separate(model, PARAMS[i], MOTIONS[i])
+        for k in range(STEPS):
+            got, ref = per_step[k][i], alone[k]
+            assert np.max(np.abs(got.x - ref.x)) <= tol, (i, k)
+            assert np.max(np.abs(got.contact_force - ref.contact_force)) <= 1e-6 * max(1.0, np.abs(ref.contact_force).max())
+            assert got.step_index == ref.step_index == k + 1
+    # the copies really differ (own actions and parameters): the comparison above could fail
+    x = batch.positions()
+    assert x.shape == (3, model.vertex_count, 3)
+    assert min(np.max(np.abs(x[0] - x[1])), np.max(np.abs(x[0] - x[2])), np.max(np.abs(x[1] - x[2]))) > 100 * tol
+    assert batch.sims[1].get_parameter("pad.youngs_modulus") == 6e5 and batch.sims[0].get_parameter("pad.youngs_modulus") == 3e5
+
+
+def test_a_copy_that_diverges_is_reported_and_the_others_finish(model):
+    failing = SolverConfig(max_iterations=1)  # Newton cannot converge in one iteration under the pad's contact
+    batch = _batch(model, [SolverConfig(), failing, SolverConfig()])
+    start = batch.states[1].x.copy()
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    failed_at = None
+    for k in range(STEPS):
+        res = batch.step([_control(pose0, MOTIONS[i], k) for i in range(3)])
+        if res.failed_now:
+            assert res.failed_now == [1] and res.infos[1] is None and failed_at is None
+            failed_at = k
+        if failed_at is not None and k > failed_at:
+            assert not res.stepped[1]  # a failed copy is not stepped again
+    assert failed_at == 0
+    assert batch.failures[0] is None and batch.failures[2] is None
+    assert batch.failures[1].startswith("step 0 ")  # the solver's message names the step
+    assert list(batch.active) == [True, False, True]
+    np.testing.assert_array_equal(batch.states[1].x, start)  # the last good state is kept
+    tol = SolverConfig().tol_velocity * 0.005
+    for i in (0, 2):
+        alone = _separate(model, PARAMS[i], MOTIONS[i])
+        assert batch.states[i].step_index == STEPS
+        assert np.max(np.abs(batch.states[i].x - alone[-1].x)) <= tol
+    batch.reset()
+    assert list(batch.active) == [True, True, True] and batch.states[0].step_index == 0
+
+
+def test_copies_must_be_copies_of_one_scene(model):
+    other = build_task_scene(pad_scene({"sheet": paper_sheet((0.03, 0.03), (6, 6), (-0.015, -0.015, 0.0))}, 6e-4, []))
+    with pytest.raises(ConfigError, match="copy 1 is not a copy"):
+        BatchedSimulation([Simulation(model), Simulation(other)])
+    sim = Simulation(model)
+    with pytest.raises(ConfigError, match="share a model"):
+        BatchedSimulation([sim, Simulation(model)])
+    with pytest.raises(ConfigError, match="batch copy 1: .*youngs_modulus"):
+        BatchedSimulation.from_model(model, 2, params=[{}, {"pad.youngs_modulus": -1.0}])
+    with pytest.raises(ConfigError, match="3 controls for a batch of 2"):
+        BatchedSimulation.from_model(model, 2).step([None] * 3)
+    with pytest.raises(ConfigError, match="batch_size"):
+        BatchedSimulation.from_model(model, 0)
