@@ -83,6 +83,9 @@ class BatchedSimulation:
             :meth:`from_model` or by the caller, e.g. one per task episode). Their models must be
             copies of one scene (:func:`same_topology`), their solvers on one backend, and no two
             copies may share a model, solver or state object.
+        finite_check: treat a step that ends with non-finite positions as a failure (the copy keeps
+            its last good state). False leaves such a state in place for the caller to judge (the
+            task episodes do, as :func:`sim_core.tasks.rollout.rollout` does).
 
     Raises:
         ConfigError: no copies, models of different topology, shared objects, or solvers on different
@@ -93,7 +96,7 @@ class BatchedSimulation:
         failures: per copy, why it stopped (the solver's message, naming the step), or None while it runs.
     """
 
-    def __init__(self, simulations: Sequence[Simulation]) -> None:
+    def __init__(self, simulations: Sequence[Simulation], finite_check: bool = True) -> None:
         sims = list(simulations)
         if not sims:
             raise ConfigError("a batch needs at least one copy")
@@ -111,6 +114,7 @@ class BatchedSimulation:
                 raise ConfigError(f"batch copies share a {what} object: every copy needs its own")
         self.sims = sims
         self.failures: list[str | None] = [None] * len(sims)
+        self.finite_check = bool(finite_check)
 
     @classmethod
     def from_model(cls, model: Model, batch_size: int, *, dt: float | None = None,
@@ -223,7 +227,7 @@ class BatchedSimulation:
                 continue
             except ConfigError as err:
                 raise ConfigError(f"batch copy {i}: {err}") from err
-            if not np.all(np.isfinite(sim.state.x)):
+            if self.finite_check and not np.all(np.isfinite(sim.state.x)):
                 sim.state = before
                 self.failures[i] = f"step {before.step_index} (t = {before.t:.6g} s): non-finite positions"
                 failed_now.append(int(i))
