@@ -313,39 +313,69 @@ def rollout_population(task: TaskSpec, actions: Sequence[np.ndarray],
     Raises:
         ConfigError: bad actions (naming the member), parameters, or a ``params`` list of another length.
     """
-    from sim_core.batch.simulation import BatchedSimulation
+    return PopulationRollout(task, actions, params, backend=backend, keep_states=keep_states,
+                             solver_config=solver_config, clip=clip).run()
 
-    arrays = []
-    for i, a in enumerate(actions):
-        try:
-            arrays.append(_checked_actions(task, a, clip))
-        except ConfigError as err:
-            raise ConfigError(f"population member {i}: {err}") from err
-    B = len(arrays)
-    if B == 0:
-        return []
-    if params is None or isinstance(params, Mapping):
-        plist = [params] * B
-    else:
-        plist = list(params)
-        if len(plist) != B:
-            raise ConfigError(f"rollout_population: {len(plist)} parameter sets for {B} action sequences")
-    episodes = [TaskEpisode(task, p, backend, solver_config) for p in plist]
-    batch = BatchedSimulation([ep.sim for ep in episodes], finite_check=False)
-    logs = [_EpisodeLog(ep, keep_states) for ep in episodes]
-    running = np.array([len(a) > 0 for a in arrays])
-    for k in range(max(len(a) for a in arrays)):
-        mask = running & np.array([k < len(a) for a in arrays])
-        if not mask.any():
-            break
-        controls = [episodes[i].command(arrays[i][k]) if mask[i] else None for i in range(B)]
-        res = batch.step(controls, mask)
-        for i in np.flatnonzero(mask):
-            info = episodes[i].record_step(res.infos[i], batch.failures[i] if i in res.failed_now else None)
-            if info is None:
-                running[i] = False
-                continue
-            logs[i].add(info)
-            if episodes[i].infeasible is not None:
-                running[i] = False
-    return [log.result(float(sum(info.time_total for info in log.infos))) for log in logs]
+
+class PopulationRollout:
+    """The batch of one :func:`rollout_population` call, built and then run (:meth:`run`); kept as an
+    object so that a benchmark can read the batch's memory after the run.
+
+    Args: as :func:`rollout_population`.
+
+    Attributes:
+        episodes: one :class:`TaskEpisode` per member.
+        batch: the :class:`sim_core.batch.BatchedSimulation` of the episodes' simulations (None for an
+            empty population).
+
+    Raises:
+        ConfigError: as :func:`rollout_population`.
+    """
+
+    def __init__(self, task: TaskSpec, actions: Sequence[np.ndarray],
+                 params: Sequence[Mapping[str, float] | None] | Mapping[str, float] | None = None, *,
+                 backend: str = "numpy", keep_states: bool = False, solver_config: SolverConfig | None = None,
+                 clip: bool = False) -> None:
+        from sim_core.batch.simulation import BatchedSimulation
+
+        arrays = []
+        for i, a in enumerate(actions):
+            try:
+                arrays.append(_checked_actions(task, a, clip))
+            except ConfigError as err:
+                raise ConfigError(f"population member {i}: {err}") from err
+        B = len(arrays)
+        if params is None or isinstance(params, Mapping):
+            plist = [params] * B
+        else:
+            plist = list(params)
+            if len(plist) != B:
+                raise ConfigError(f"rollout_population: {len(plist)} parameter sets for {B} action sequences")
+        self.actions = arrays
+        self.keep_states = keep_states
+        self.episodes = [TaskEpisode(task, p, backend, solver_config) for p in plist]
+        self.batch = BatchedSimulation([ep.sim for ep in self.episodes], finite_check=False) if B else None
+
+    def run(self) -> list[RolloutResult]:
+        """Step every member through its actions (once); one :class:`RolloutResult` per member."""
+        arrays, episodes, batch = self.actions, self.episodes, self.batch
+        B = len(arrays)
+        if B == 0:
+            return []
+        logs = [_EpisodeLog(ep, self.keep_states) for ep in episodes]
+        running = np.array([len(a) > 0 for a in arrays])
+        for k in range(max(len(a) for a in arrays)):
+            mask = running & np.array([k < len(a) for a in arrays])
+            if not mask.any():
+                break
+            controls = [episodes[i].command(arrays[i][k]) if mask[i] else None for i in range(B)]
+            res = batch.step(controls, mask)
+            for i in np.flatnonzero(mask):
+                info = episodes[i].record_step(res.infos[i], batch.failures[i] if i in res.failed_now else None)
+                if info is None:
+                    running[i] = False
+                    continue
+                logs[i].add(info)
+                if episodes[i].infeasible is not None:
+                    running[i] = False
+        return [log.result(float(sum(info.time_total for info in log.infos))) for log in logs]
