@@ -126,7 +126,7 @@ def _make_run(scene: str, B: int, steps: int, backend: str):
     return _FormingRun(B, steps, backend) if scene == "forming" else _TaskRun(scene, B, steps, backend)
 
 
-def bench_batch(scene: str, sizes: list[int], steps: int, arch: str) -> list[dict]:
+def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None) -> list[dict]:
     """Time batches of each size in ``sizes`` (one after the other, each built, stepped and dropped).
 
     Args:
@@ -135,6 +135,8 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str) -> list[dic
         steps: steps per copy (Forming: 1..49; a task: 1..horizon).
         arch: ``numpy``, ``cpu`` or ``cuda`` (``SolverConfig.backend`` ``numpy`` / ``taichi-cpu`` /
             ``taichi-cuda``).
+        on_row: called with each record as soon as it is measured (a long run keeps what it measured
+            when it is stopped), or None.
 
     Returns:
         one record per size (keys in the module docstring, plus ``B``, ``steps``, ``scene``, ``arch``,
@@ -180,6 +182,8 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str) -> list[dic
             "python": platform.python_version(), "numpy": np.__version__,
         })
         del run
+        if on_row is not None:
+            on_row(out[-1])
     return out
 
 
@@ -196,23 +200,23 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=10, help="steps per copy (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON line per size")
     ns = p.parse_args(argv)
+    def show(r: dict) -> None:
+        if ns.json:
+            print(json.dumps(r), flush=True)
+            return
+        if r["B"] == ns.sizes[0]:
+            print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {ns.steps} steps per "
+                  f"copy, JIT {r['jit_s']:.1f} s")
+            print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
+                  f"{'GPU/copy MiB':>13} {'build s':>8}")
+        gpu = "-" if r["gpu_mib_per_copy"] is None else f"{r['gpu_mib_per_copy']:.1f}"
+        print(f"{r['B']:>5} {r['scene_steps_per_s']:>14.2f} {r['steps_per_s_per_copy']:>13.2f} "
+              f"{r['newton_iters_mean']:>6.2f} {r['failed_copies']:>6} {r['rss_per_copy_mib']:>13.1f} {gpu:>13} "
+              f"{r['build_s']:>8.2f}", flush=True)
+
     try:
-        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch)
+        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch, on_row=show)
     except ConfigError as err:
         print(f"thinshell bench batch: {err}", file=sys.stderr)
         return 2
-    if not ns.json:
-        r0 = rows[0]
-        print(f"thinshell bench batch: scene {r0['scene']} ({r0['dofs']} DoF), arch {r0['arch']}, {ns.steps} steps per copy, "
-              f"JIT {r0['jit_s']:.1f} s")
-        print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
-              f"{'GPU/copy MiB':>13} {'build s':>8}")
-    for r in rows:
-        if ns.json:
-            print(json.dumps(r), flush=True)
-        else:
-            gpu = "-" if r["gpu_mib_per_copy"] is None else f"{r['gpu_mib_per_copy']:.1f}"
-            print(f"{r['B']:>5} {r['scene_steps_per_s']:>14.2f} {r['steps_per_s_per_copy']:>13.2f} "
-                  f"{r['newton_iters_mean']:>6.2f} {r['failed_copies']:>6} {r['rss_per_copy_mib']:>13.1f} {gpu:>13} "
-                  f"{r['build_s']:>8.2f}", flush=True)
     return 1 if any(r["failed_copies"] for r in rows) else 0
