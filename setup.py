@@ -46,6 +46,7 @@ setup(
             "thinshell = thinshell_ros.cli:main",
             "thinshell-sim-node = thinshell_ros.sim_node:main",
             "thinshell-sysid-node = thinshell_ros.sysid_node:main",
+            "thinshell-deploy-node = thinshell_ros.deploy_node:main",
             "sim_node = thinshell_ros.sim_node:main",
         ],
     },

@@ -624,7 +624,8 @@ def _dof_vertices(eff) -> np.ndarray:
 # ============================================================================ reverse mode
 def rollout_gradient(sim_or_model, trajectory: Trajectory,
                      dL_dx: np.ndarray | Callable[[Trajectory], tuple[float, np.ndarray]],
-                     params: Sequence[str] = ()) -> Gradient:
+                     params: Sequence[str] = (),
+                     dL_dtheta_bar: dict[str, np.ndarray] | None = None) -> Gradient:
     """Reverse-mode derivative of a loss of the rollout's positions (adjoint method).
 
     One linear solve per step with the factorisation of the exact Hessian at the converged step.
@@ -635,12 +636,15 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
         dL_dx: dL/dx of every state, shape ``(T + 1, n, 3)``, or a callback
             ``loss(trajectory) -> (value, dL_dx)``.
         params: global parameter names (``Model.parameter_names``) to differentiate.
+        dL_dtheta_bar: optional sheet name -> dL/d(rest dihedral angles of the FINAL state),
+            shape ``(h,)`` (a loss that reads the plastic rest angles, e.g. a folding reward).
 
     Returns:
         the :class:`Gradient`.
 
     Raises:
-        ConfigError: no records, parameters changed since the rollout, unknown parameter, bad shape.
+        ConfigError: no records, parameters changed since the rollout, unknown parameter, bad shape
+            (of ``dL_dx`` or of a ``dL_dtheta_bar`` entry), or a ``dL_dtheta_bar`` sheet without hinges.
     """
     model, solver_name, backend = _model_and_solver(sim_or_model)
     _check_trajectory(model, trajectory)
@@ -658,6 +662,13 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     ax = dL_dx[T].copy()
     av = np.zeros((n, 3))
     atb = {name: np.zeros(len(model.bodies[name].hinges)) for name in elastic.hinges}
+    for name, value in (dL_dtheta_bar or {}).items():
+        if name not in atb:
+            raise ConfigError(f"adjoint: dL_dtheta_bar names {name!r}, not a sheet with hinges; sheets: {sorted(atb)}")
+        value = np.asarray(value, dtype=float)
+        if value.shape != atb[name].shape:
+            raise ConfigError(f"adjoint: dL_dtheta_bar[{name!r}] has shape {value.shape}, expected {atb[name].shape}")
+        atb[name] = value.copy()
     apose = {k: np.zeros(7) for k in model.effectors}
     aopen = {k: 0.0 for k in model.effectors}
     aparams = {p: 0.0 for p in params}

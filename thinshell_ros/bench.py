@@ -10,9 +10,10 @@
   or ``taichi-cuda`` (``SolverConfig.backend``, :mod:`sim_core.backend`; the Taichi ones run the fused
   elastic kernels of ``sim_core.fused_elastic`` in the Newton loop, compiled before the timed steps).
   The sim node runs the same backends (its ``backend`` parameter).
-* ``bench node`` / ``bench diagnose`` / ``bench tasks`` / ``bench batch``: dispatched to
+* ``bench node`` / ``bench diagnose`` / ``bench tasks`` / ``bench optimise`` / ``bench batch``: dispatched to
   ``thinshell_ros.bench_node.bench_node_main``, ``sysid.diagnose_bench.bench_diagnose_main``,
-  ``sim_core.tasks.bench.bench_tasks_main`` and ``sim_core.batch.bench.bench_batch_main``.
+  ``sim_core.tasks.bench.bench_tasks_main``, ``sysid.optimise_bench.bench_optimise_main`` and
+  ``sim_core.batch.bench.bench_batch_main``.
 """
 
 from __future__ import annotations
@@ -378,10 +379,12 @@ def bench_main(argv: list[str] | None = None) -> int:
     sub.add_parser("diagnose", help="missing-physics diagnosis benchmark", add_help=False)
     sub.add_parser("sysid", help="3-parameter material fit on a whole recording", add_help=False)
     sub.add_parser("tasks", help="the ten ThinShellLab tasks: reference trajectories' rewards vs Table A", add_help=False)
+    sub.add_parser("optimise", help="the optimisers (cma, gd, hybrid; PPO with --rl) on the tasks vs Table A", add_help=False)
     sub.add_parser("batch", help="B copies of a scene stepped together: scene-steps/s and memory per copy vs B",
                    add_help=False)
     delegated = {"node": ("thinshell_ros.bench_node", "bench_node_main"),
                  "tasks": ("sim_core.tasks.bench", "bench_tasks_main"),
+                 "optimise": ("sysid.optimise_bench", "bench_optimise_main"),
                  "batch": ("sim_core.batch.bench", "bench_batch_main"),
                  "diagnose": ("sysid.diagnose_bench", "bench_diagnose_main"),
                  "sysid": ("sysid.bench_fit", "bench_sysid_main")}

@@ -1,6 +1,6 @@
 """The ``thinshell`` command line: one entry point, subcommands per job.
 
-``thinshell demo | sim | record | sysid | indent | diagnose | bench {forming,scale,node,diagnose,sysid,tasks,batch}``.
+``thinshell demo | sim | record | sysid | indent | diagnose | deploy | optimise | bench {forming,scale,node,diagnose,sysid,tasks,optimise,batch}``.
 Each subcommand's implementation lives in the module that owns the job; this file only parses
 arguments and dispatches (imports are lazy so ``thinshell bench forming`` never loads rclpy).
 """
@@ -19,7 +19,9 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "sysid": ("sysid.cli", "sysid_main", "fit material parameters to a recorded bag"),
     "indent": ("sysid.indentation_cli", "indent_main", "fit the gel modulus to indentation depth/force measurements (FEATS)"),
     "diagnose": ("sysid.diagnose_cli", "diagnose_main", "find, name and model missing physics in recorded bags"),
-    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, batch"),
+    "deploy": ("thinshell_ros.deploy_node", "deploy_main", "play a trajectory.yaml (or a bag's pose_cmd stream) on the robot over DDS, with limits and an abort"),
+    "optimise": ("sysid.optimise_cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
+    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, optimise, batch"),
 }
 
 

@@ -4,14 +4,15 @@ The simulator node feeds every received command to a :class:`CommandArbiter` and
 step, for the pose targets of the step. The rules (INTERFACES.md topics ``<effector>/pose_cmd``,
 ``twist_cmd``, ``gripper_cmd``):
 
-- a pose with NaN/inf entries, a quaternion whose norm is off 1 by more than a tolerance, or a frame
-  other than ``world`` is rejected with a reason string (the node logs it; the last valid command
-  stays in force);
+- a pose with NaN/inf entries, a quaternion whose norm is off 1 by more than a tolerance, a frame
+  other than ``world``, or a position outside the effector's declared workspace (an axis-aligned box
+  in ``world``, :class:`Workspace`) is rejected with a reason string (the node logs it; the last
+  valid command stays in force);
 - a target farther than the per-step translation / rotation limit is approached at the limit
   (ThinShellLab's bounded SE(3) action, DESIGN.md "Boundaries"), and the arbiter reports that once
   per command;
 - a twist is integrated into a pose target each step: ``p += v dt``, ``q = exp(w dt) * q`` (angular
-  velocity in ``world``);
+  velocity in ``world``); a twist that would leave the workspace stops at its boundary (reported once);
 - a command older than ``timeout`` (sim seconds since it was received) is stale: a pose target not
   yet reached and a twist are dropped and the effector holds its pose (the commander may have died);
 - a command for an effector the scene does not have is rejected, naming the known effectors.
@@ -32,6 +33,45 @@ ACCEPTED_FRAMES = ("world", "")
 
 
 @dataclass(frozen=True)
+class Workspace:
+    """Axis-aligned box of allowed effector positions in ``world``.
+
+    Attributes:
+        low: ``[x y z]`` lower corner, m, shape ``(3,)``.
+        high: ``[x y z]`` upper corner, m, shape ``(3,)``; ``high > low`` on every axis.
+
+    Raises:
+        ValueError: corners not 3 finite numbers each, or not ``low < high``.
+    """
+
+    low: tuple[float, float, float]
+    high: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        low = np.asarray(self.low, dtype=float).reshape(-1)
+        high = np.asarray(self.high, dtype=float).reshape(-1)
+        if low.shape != (3,) or high.shape != (3,) or not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+            raise ValueError(f"workspace corners must be 3 finite numbers each, got {self.low!r} and {self.high!r}")
+        if np.any(high <= low):
+            raise ValueError(f"workspace must have low < high on every axis, got low {low.tolist()}, high {high.tolist()}")
+        object.__setattr__(self, "low", tuple(float(v) for v in low))
+        object.__setattr__(self, "high", tuple(float(v) for v in high))
+
+    def contains(self, position: np.ndarray) -> bool:
+        """True when ``position`` ``(3,)`` (m) lies in the box (boundary included)."""
+        p = np.asarray(position, dtype=float)
+        return bool(np.all(p >= self.low) and np.all(p <= self.high))
+
+    def clip(self, position: np.ndarray) -> np.ndarray:
+        """``position`` ``(3,)`` clamped into the box."""
+        return np.clip(np.asarray(position, dtype=float), self.low, self.high)
+
+    def describe(self) -> str:
+        """``[low] .. [high] m`` for messages."""
+        return f"{list(self.low)} .. {list(self.high)} m"
+
+
+@dataclass(frozen=True)
 class CommandLimits:
     """Per-effector command limits.
 
@@ -41,6 +81,7 @@ class CommandLimits:
         timeout: s of sim time after which an unfinished command is stale; <= 0 disables.
         quaternion_tolerance: accepted ``| |q| - 1 |``.
         max_gripper_opening: m; openings outside ``[0, max]`` are rejected.
+        workspace: allowed positions (:class:`Workspace`), or None for no box.
     """
 
     max_translation_per_step: float = 1e-3
@@ -48,6 +89,7 @@ class CommandLimits:
     timeout: float = 1.0
     quaternion_tolerance: float = 1e-3
     max_gripper_opening: float = 0.2
+    workspace: Workspace | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_translation_per_step", "max_rotation_per_step", "quaternion_tolerance", "max_gripper_opening"):
@@ -80,13 +122,15 @@ class StepTargets(NamedTuple):
 
 
 # ------------------------------------------------------------------------------------- checks
-def check_pose(pose: np.ndarray, frame_id: str = "world", quaternion_tolerance: float = 1e-3) -> str | None:
+def check_pose(pose: np.ndarray, frame_id: str = "world", quaternion_tolerance: float = 1e-3,
+               workspace: Workspace | None = None) -> str | None:
     """Reason why a pose command is unusable, or None when it is fine.
 
     Args:
         pose: ``[x y z qx qy qz qw]``.
         frame_id: header frame; ``world`` (or empty, meaning world) is accepted.
         quaternion_tolerance: accepted deviation of the quaternion norm from 1.
+        workspace: allowed positions, or None.
     """
     pose = np.asarray(pose, dtype=float).reshape(-1)
     if pose.shape != (7,):
@@ -98,6 +142,8 @@ def check_pose(pose: np.ndarray, frame_id: str = "world", quaternion_tolerance: 
     norm = float(np.linalg.norm(pose[3:]))
     if abs(norm - 1.0) > quaternion_tolerance:
         return f"quaternion norm {norm:.6g} is not 1 (tolerance {quaternion_tolerance:g}; x y z w = {pose[3:].tolist()})"
+    if workspace is not None and not workspace.contains(pose[:3]):
+        return f"position {pose[:3].tolist()} m is outside the workspace {workspace.describe()}"
     return None
 
 
@@ -180,6 +226,7 @@ class _EffectorCommand:
     gripper: float | None = None
     limit_reported: bool = False
     stale_reported: bool = False
+    boundary_reported: bool = False
 
 
 class CommandArbiter:
@@ -209,13 +256,13 @@ class CommandArbiter:
         cmd = self._lookup(effector)
         if isinstance(cmd, CommandResult):
             return cmd
-        reason = check_pose(pose, frame_id, cmd.limits.quaternion_tolerance)
+        reason = check_pose(pose, frame_id, cmd.limits.quaternion_tolerance, cmd.limits.workspace)
         if reason:
             return CommandResult(False, f"{effector}/pose_cmd rejected: {reason}")
         pose = np.asarray(pose, dtype=float).reshape(7).copy()
         pose[3:] /= np.linalg.norm(pose[3:])
         cmd.kind, cmd.target, cmd.twist, cmd.received = "pose", pose, None, float(now)
-        cmd.limit_reported = cmd.stale_reported = False
+        cmd.limit_reported = cmd.stale_reported = cmd.boundary_reported = False
         return CommandResult(True)
 
     def submit_twist(self, effector: str, twist: np.ndarray, now: float, frame_id: str = "world") -> CommandResult:
@@ -227,7 +274,7 @@ class CommandArbiter:
         if reason:
             return CommandResult(False, f"{effector}/twist_cmd rejected: {reason}")
         cmd.kind, cmd.twist, cmd.target, cmd.received = "twist", np.asarray(twist, float).reshape(6).copy(), None, float(now)
-        cmd.limit_reported = cmd.stale_reported = False
+        cmd.limit_reported = cmd.stale_reported = cmd.boundary_reported = False
         return CommandResult(True)
 
     def submit_gripper(self, effector: str, opening: float) -> CommandResult:
@@ -277,6 +324,12 @@ class CommandArbiter:
                 cmd.kind = None
             if cmd.kind is not None:
                 goal = cmd.target if cmd.kind == "pose" else integrate_twist(cmd.setpoint, cmd.twist, dt)
+                ws = lim.workspace
+                if ws is not None and not ws.contains(goal[:3]):
+                    goal = np.concatenate([ws.clip(goal[:3]), goal[3:]])
+                    if not cmd.boundary_reported:
+                        events.append(f"{name}: twist command reaches the workspace boundary {ws.describe()}; stopped there")
+                        cmd.boundary_reported = True
                 new, limited = limit_pose_step(cmd.setpoint, goal, lim.max_translation_per_step, lim.max_rotation_per_step)
                 if limited and not cmd.limit_reported:
                     dist = float(np.linalg.norm(goal[:3] - cmd.setpoint[:3]))

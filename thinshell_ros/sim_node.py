@@ -17,6 +17,11 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - ``record`` (str): bag directory to record inputs and outputs into (empty: off);
   ``record_force`` replaces an existing one.
 - ``command_timeout`` (s of sim time): commands older than this are stale (hold position); 0 = never.
+- ``workspace_min``, ``workspace_max`` (``[x, y, z]`` m in ``world``): the box every effector
+  position command must lie in; a pose command outside is rejected like one with NaN or a zero
+  quaternion (logged, the last valid command stays), a twist stops at the boundary. Default (both
+  empty): the bounding box of the effectors' initial positions and the sheet, grown by
+  ``workspace_margin`` (m, default 0.1) on every side. ``workspace_margin < 0`` with no box: no limit.
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
@@ -38,6 +43,8 @@ import sys
 import time
 from typing import Any, Sequence
 
+import numpy as np
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -53,11 +60,14 @@ from sim_core.backend import BACKEND_CHOICES, check_backend
 from sim_core.errors import ConfigError, ThinShellError
 from sim_core.solver import NewtonSolver, StepInfo
 from thinshell_ros import conversions as cv
-from thinshell_ros.commands import CommandArbiter, CommandLimits, unknown_effector_topics
+from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS
 
 MODES = ("realtime", "fast", "stepped")
+
+DEFAULT_WORKSPACE_MARGIN = 0.1
+"""m around the scene's bounding box (effector start positions and sheet) of the default workspace."""
 
 
 MAX_CONSECUTIVE_FAILURES = 3
@@ -136,6 +146,14 @@ class SimNode(Node):
         record = str(self.declare_parameter("record", "", ro).value)
         record_force = bool(self.declare_parameter("record_force", False, ro).value)
         timeout = float(self.declare_parameter("command_timeout", 1.0, ro).value)
+        ws_min = list(self.declare_parameter("workspace_min", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            read_only=True, description="[x, y, z] lower corner of the allowed effector positions, m in world "
+                                        "(empty: the scene's bounding box grown by workspace_margin)")).value or [])
+        ws_max = list(self.declare_parameter("workspace_max", Parameter.Type.DOUBLE_ARRAY, ParameterDescriptor(
+            read_only=True, description="[x, y, z] upper corner of the allowed effector positions, m in world")).value or [])
+        ws_margin = float(self.declare_parameter("workspace_margin", DEFAULT_WORKSPACE_MARGIN, ParameterDescriptor(
+            read_only=True, description="m added on every side of the scene's bounding box when no workspace_min/max "
+                                        "is given; < 0: no workspace limit")).value)
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
@@ -150,13 +168,14 @@ class SimNode(Node):
         self.dt = float(sim.dt)
         self._declare_material_parameters()
 
+        self.workspace = self._workspace(ws_min, ws_max, ws_margin)
         limits = {}
         for name in sim.effector_names:
             eff = getattr(getattr(sim, "model", None), "effectors", {}).get(name)
             limits[name] = CommandLimits(
                 max_translation_per_step=float(getattr(eff, "max_translation_per_step", 1e-3)),
                 max_rotation_per_step=float(getattr(eff, "max_rotation_per_step", 0.02)),
-                timeout=timeout)
+                timeout=timeout, workspace=self.workspace)
         self.arbiter = CommandArbiter(limits)
         self.paused = self.mode == "stepped"
         self.rejected_commands = 0
@@ -204,7 +223,24 @@ class SimNode(Node):
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
             f"backend {self._solver_backend()}, "
-            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}")
+            f"effectors {sim.effector_names}, sensors {sim.sensor_names}, topics under {ns}, workspace "
+            f"{self.workspace.describe() if self.workspace else 'unlimited'}")
+
+    def _workspace(self, low: list[float], high: list[float], margin: float) -> Workspace | None:
+        """The declared workspace, or the scene's bounding box grown by ``margin`` (module docstring)."""
+        if low or high:
+            try:
+                return Workspace(tuple(low), tuple(high))
+            except ValueError as err:
+                raise ConfigError(f"parameters 'workspace_min'/'workspace_max': {err}") from err
+        if not math.isfinite(margin):
+            raise ConfigError(f"parameter 'workspace_margin' must be finite, got {margin}")
+        if margin < 0:
+            return None
+        obs = self.sim.observe()
+        pts = [np.asarray(p, dtype=float)[:3] for p in obs.effector_pose.values()]
+        pts = np.vstack([np.asarray(pts).reshape(-1, 3), np.asarray(obs.sheet_points, dtype=float).reshape(-1, 3)])
+        return Workspace(tuple(pts.min(axis=0) - margin), tuple(pts.max(axis=0) + margin))
 
     # ------------------------------------------------------------------------------ parameters
     def _declare_material_parameters(self) -> None:

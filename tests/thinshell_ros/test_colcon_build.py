@@ -31,7 +31,7 @@ def test_colcon_build_installs_package(tmp_path):
     assert (share / "package.xml").read_text() == (REPO / "package.xml").read_text()
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "thinshell").is_file()
     assert (share / "config" / "scenes" / "press_slide.yaml").is_file()
-    for script in ("thinshell", "thinshell-sim-node", "thinshell-sysid-node", "sim_node"):
+    for script in ("thinshell", "thinshell-sim-node", "thinshell-sysid-node", "thinshell-deploy-node", "sim_node"):
         path = prefix / "lib" / "thinshell" / script
         assert path.is_file() and os.access(path, os.X_OK), script
     (site,) = prefix.glob("lib/python3*/site-packages")

@@ -9,6 +9,7 @@ from sim_core.transforms import quat_from_rotvec, quat_multiply, quat_to_rotvec
 from thinshell_ros.commands import (
     CommandArbiter,
     CommandLimits,
+    Workspace,
     check_gripper,
     check_pose,
     integrate_twist,
@@ -35,6 +36,28 @@ def test_check_pose_reasons():
     assert "7 entries" in check_pose(HOME[:6])
     assert "outside [0, 0.1]" in check_gripper(0.2, 0.1)
     assert "not finite" in check_gripper(float("nan"), 0.1)
+
+
+def test_workspace_rejects_far_poses_and_stops_twists_at_the_boundary():
+    ws = Workspace((0.0, -0.05, -0.01), (0.1, 0.05, 0.05))
+    assert check_pose(HOME, workspace=ws) is None
+    reason = check_pose(HOME + np.r_[1e9, 0, 0, 0, 0, 0, 0], workspace=ws)
+    assert "outside the workspace [0.0, -0.05, -0.01] .. [0.1, 0.05, 0.05] m" in reason
+    arb = _arbiter(workspace=ws)
+    arb.step_targets(0.0, DT, {"ee": HOME})
+    res = arb.submit_pose("ee", HOME + np.r_[0, 0, -1.0, 0, 0, 0, 0], 0.0)
+    assert not res.accepted and res.reason.startswith("ee/pose_cmd rejected: position") and "outside the workspace" in res.reason
+    assert arb.submit_twist("ee", np.r_[0.0, 0.0, 1.0, 0, 0, 0], 0.0).accepted  # 5 mm per step, limited to 1 mm
+    events = []
+    for k in range(60):
+        out = arb.step_targets(k * DT, DT, {"ee": HOME})
+        events += out.events
+    assert out.effector_pose_target["ee"][2] == pytest.approx(0.05)  # stopped at the top face
+    assert sum("workspace boundary" in e for e in events) == 1
+    with pytest.raises(ValueError, match="low < high"):
+        Workspace((0, 0, 0), (1, 0, 1))
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        Workspace((0, 0, np.nan), (1, 1, 1))
 
 
 def test_rejected_command_keeps_previous_target():

@@ -106,11 +106,40 @@ def test_bad_input_is_rejected_and_node_keeps_publishing(ros_context):
     assert len(c.got["clock"]) > n_clock + 10
     assert np.array_equal(c.got["pose"][-1][1], HOME)
     # a huge jump is approached at the limit, never teleported
-    c.send_pose(HOME + np.r_[5.0, 0, 0, 0, 0, 0, 0])
+    c.send_pose(HOME + np.r_[0.05, 0, 0, 0, 0, 0, 0])
     c.spin(0.3)
     xs = [p[1][0] for p in c.got["pose"]]
     assert np.diff(xs).max() <= 1e-3 + 1e-12 and xs[-1] > HOME[0]
     node.destroy_node()
+
+
+def test_pose_outside_the_workspace_is_rejected_like_nan(ros_context):
+    # default workspace: effector start + sheet bounding box grown by 0.1 m
+    node = _node(ros_context)
+    assert node.workspace.low == pytest.approx((-0.1, -0.13, -0.0997)) and node.workspace.high == pytest.approx((0.2, 0.13, 0.104))
+    c = Client(ros_context, node)
+    c.send_pose(HOME + np.r_[1e9, 0, 0, 0, 0, 0, 0])
+    assert spin_until(c.ex, lambda: node.rejected_commands == 1, 5.0)
+    c.spin(0.2)
+    assert np.array_equal(c.got["pose"][-1][1], HOME)  # the effector did not move towards it
+    node.destroy_node()
+    # a declared box
+    node = _node(ros_context, workspace_min=[0.0, -0.01, 0.0], workspace_max=[0.07, 0.01, 0.01])
+    logged = []
+    node.get_logger().error = lambda msg, **kw: logged.append(msg)
+    c = Client(ros_context, node)
+    c.send_pose(HOME + np.r_[0.02, 0, 0, 0, 0, 0, 0])
+    c.spin(0.1)
+    c.send_pose(HOME + np.r_[0.005, 0, 0, 0, 0, 0, 0])
+    assert spin_until(c.ex, lambda: c.got["pose"] and c.got["pose"][-1][1][0] == pytest.approx(0.065), 5.0)
+    assert node.rejected_commands == 1
+    assert "ee/pose_cmd rejected: position [0.08, 0.0, 0.004] m is outside the workspace [0.0, -0.01, 0.0] .. " \
+           "[0.07, 0.01, 0.01] m" in logged[0]
+    node.destroy_node()
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="workspace_min.*low < high"):
+        _node(ros_context, workspace_min=[0.0, 0.0, 0.0], workspace_max=[0.07, 0.0, 0.01])
 
 
 def test_failed_step_holds_and_keeps_publishing(ros_context):

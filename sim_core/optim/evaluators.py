@@ -1,0 +1,154 @@
+"""Evaluate batches of episodes: serially in this process, or in parallel on Ray.
+
+Ray (https://docs.ray.io) is an optional, heavy dependency (``requirements.txt``); it is imported
+inside :class:`RayEvaluator` only, so that the rest of sim_core, its tests and the ROS nodes never
+load it. Each Ray actor builds its own :class:`~sim_core.optim.episode.Episode` once and then rolls
+out the candidates it is given; an episode is deterministic (``Simulation.reset`` clears the solver's
+caches), so a batch gives the same results in any process and in any order.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from sim_core.errors import ConfigError
+from sim_core.optim.episode import Episode, EpisodeResult
+from sim_core.solver_config import SolverConfig
+
+
+class SerialEvaluator:
+    """Episodes one after the other in this process.
+
+    Args:
+        task: the task.
+        horizon: steps per episode (default the task's).
+        params: global parameter values of the episodes (a call's ``params`` replace them for it and
+            the calls after it).
+        solver_config: Newton settings (:class:`~sim_core.optim.episode.Episode`'s default when None).
+    """
+
+    workers = 1
+
+    def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
+                 solver_config: SolverConfig | None = None) -> None:
+        self.episode = Episode(task, horizon, params, solver_config)
+
+    def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
+        """Roll out each action sequence (optionally each with its own parameter values).
+
+        Args:
+            actions: sequences of shape ``(horizon, action_dim)``.
+            params: one mapping of parameter values per sequence, or None.
+
+        Returns:
+            one :class:`EpisodeResult` (without states) per sequence, in order.
+        """
+        out = []
+        for i, a in enumerate(actions):
+            if params is not None:
+                self.episode.set_parameters(params[i])
+            out.append(self.episode.run(a).summary())
+        return out
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _actor_class():
+    """The Ray actor class (defined on first use: ``ray`` is imported here only)."""
+    import ray  # optional heavy dependency: imported only when parallel rollouts are asked for
+
+    @ray.remote(num_cpus=1)
+    class RolloutActor:
+        def __init__(self, task, horizon, params, solver_config):
+            self.evaluator = SerialEvaluator(task, horizon, params, solver_config)
+
+        def evaluate(self, actions, params):
+            return self.evaluator.evaluate(actions, params)
+
+    return RolloutActor
+
+
+class RayEvaluator:
+    """Episodes spread over Ray actors (one simulation each).
+
+    Args:
+        task: the task (sent to each actor; must be picklable by cloudpickle).
+        workers: number of actors K >= 1.
+        horizon, params, solver_config: as :class:`SerialEvaluator`.
+        address: a Ray cluster address (``ray://host:10001`` or ``host:6379``) to join; None starts
+            a local Ray instance with ``workers`` CPUs (or joins the one already running in this
+            process).
+
+    Raises:
+        ConfigError: ``workers`` < 1, or Ray cannot start / connect (naming the address).
+    """
+
+    def __init__(self, task, workers: int, horizon: int | None = None, params: Mapping[str, float] | None = None,
+                 address: str | None = None, solver_config: SolverConfig | None = None) -> None:
+        import ray  # optional heavy dependency: imported only when parallel rollouts are asked for
+
+        if int(workers) < 1:
+            raise ConfigError(f"ray evaluator: workers must be >= 1, got {workers}")
+        self.workers = int(workers)
+        self._started = False
+        if not ray.is_initialized():
+            try:
+                if address is None:
+                    # a local instance sized to the workers; the driver's own process does no rollouts
+                    ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False,
+                             runtime_env={"env_vars": {"PYTHONPATH": _package_root()}})
+                else:
+                    ray.init(address=address, log_to_driver=False)
+            except (ConnectionError, RuntimeError, ValueError) as err:
+                raise ConfigError(f"ray: cannot {'start a local instance' if address is None else f'join {address}'}: {err}") from err
+            self._started = True
+        actor = _actor_class()
+        self.actors = [actor.remote(task, horizon, dict(params or {}), solver_config) for _ in range(self.workers)]
+
+    def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
+        """As :meth:`SerialEvaluator.evaluate`; sequence ``i`` goes to actor ``i mod K`` (contiguous
+        chunks keep each actor's batch in one call)."""
+        import ray  # optional heavy dependency
+
+        n = len(actions)
+        chunks = np.array_split(np.arange(n), min(self.workers, max(n, 1)))
+        refs = []
+        for actor, idx in zip(self.actors, chunks):
+            if idx.size:
+                refs.append(actor.evaluate.remote([actions[i] for i in idx],
+                                                  None if params is None else [params[i] for i in idx]))
+        out: list[EpisodeResult] = []
+        for part in ray.get(refs):
+            out.extend(part)
+        return out
+
+    def close(self) -> None:
+        """Stop the actors, and the local Ray instance when this evaluator started it."""
+        import ray  # optional heavy dependency
+
+        for a in self.actors:
+            ray.kill(a)
+        self.actors = []
+        if self._started:
+            ray.shutdown()
+            self._started = False
+
+
+def _package_root() -> str:
+    """The directory holding this ``sim_core`` package: local Ray workers import the same code as
+    the driver (a source checkout run with ``python -m`` or pytest is not on the workers' path)."""
+    import sim_core
+
+    return str(Path(sim_core.__file__).resolve().parents[1])
+
+
+def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
+                   address: str | None = None, solver_config: SolverConfig | None = None):
+    """:class:`SerialEvaluator` for one worker without a cluster address, else :class:`RayEvaluator`."""
+    if int(workers) <= 1 and address is None:
+        return SerialEvaluator(task, horizon, params, solver_config)
+    return RayEvaluator(task, max(1, int(workers)), horizon, params, address, solver_config)

@@ -1,0 +1,380 @@
+"""Episode-budgeted optimisers: CMA-ES, gradient ascent with Adam through the adjoint, and the hybrid.
+
+* ``cma``: CMA-ES (Hansen 2016) through the ``cma`` package, ask/tell, box bounds, per-task
+  population and step size; candidates are ranked by the episode score (ThinShellLab's fitness,
+  :mod:`sim_core.optim.episode`: infeasible or early-stopped episodes are penalised as the
+  original). One generation costs ``population`` episodes. The run ends when the budget is spent
+  or at CMA-ES's own termination criteria in the search space (``es.stop()``: step size, condition
+  number, ...; not the score-difference criteria, the rewards not being normalised).
+* ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
+  reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
+  infeasible episode returns to the best point found and halves the learning rate. Adam's
+  epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
+  epsilon would swamp small gradients).
+* ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
+  gradient steps from the best candidate. A gradient that is exactly zero there (the effector
+  touches nothing: no action changes the reward to first order) hands the rest of the budget back
+  to CMA-ES, which continues its search distribution.
+
+A :class:`SearchSpace` says what is searched (per-step actions of a manipulation task, material
+parameters of an inverse task) in two coordinate systems: the CMA-ES one (control points,
+:mod:`sim_core.optim.actions`) and the gradient one (every per-step action). The whole optimiser
+state (:class:`SearchState`, including the CMA-ES object) pickles, so a run resumes from a
+checkpoint exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+
+from sim_core.errors import ConfigError
+from sim_core.optim.actions import ControlPointDecoder
+from sim_core.optim.episode import Episode, EpisodeResult
+
+METHODS = ("cma", "gd", "hybrid")
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS_FRACTION = 1e-8
+DEFAULT_LEARNING_RATE = 0.5
+"""Adam step in gradient coordinates (for actions: control-point units, 0.5 = 3e-5 m per step)."""
+DEFAULT_HYBRID_FRACTION = 0.8
+CHECKPOINT_VERSION = 1
+FLAT_FITNESS_GENERATIONS = 10**9
+"""CMA-ES ``tolflatfitness``: generations of equal scores tolerated (episodes that touch nothing all
+score the same; the search goes on, its step size growing)."""
+
+
+class SearchSpace(Protocol):
+    """What an optimiser searches (see the module docstring)."""
+
+    def cma_start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x0, low, high)`` of the CMA-ES coordinates."""
+
+    def cma_evaluate(self, points: Sequence[np.ndarray]) -> list[EpisodeResult]:
+        """One episode per point."""
+
+    def gd_start(self, cma_point: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(y0, low, high)`` of the gradient coordinates, starting from a CMA-ES point (None: the zero start)."""
+
+    def gd_gradient(self, y: np.ndarray) -> tuple[EpisodeResult, np.ndarray]:
+        """The episode at ``y`` and d score / d y (zeros when infeasible)."""
+
+    def candidate(self, phase: str, point: np.ndarray) -> Any:
+        """What a point means (per-step actions, parameter values), kept as the best candidate."""
+
+
+@dataclass
+class ActionSpace:
+    """Per-step actions of a manipulation task.
+
+    CMA-ES searches the control points of ``decoder`` from zero (the zero trajectory, as the
+    original); gradient ascent searches every step's action in control-point units,
+    ``y = actions / units`` (shape ``(T * action_dim,)``), from the best CMA-ES point (hybrid), else
+    from the task's ``reference_actions`` (:func:`reference_start`), else from zero.
+
+    Args:
+        decoder: the control-point decoder of the task.
+        evaluator: batch evaluator (serial or Ray) of the task at the decoder's horizon.
+        episode: the in-process episode for gradients (built on first use when None).
+        task: the task (for the in-process episode).
+        params: global parameter values of the in-process episode (as the evaluator's).
+        solver_config: Newton settings of the in-process episode (as the evaluator's).
+    """
+
+    decoder: ControlPointDecoder
+    evaluator: Any
+    task: Any
+    episode: Episode | None = None
+    params: dict | None = None
+    solver_config: Any = None
+
+    def cma_start(self):
+        low, high = self.decoder.bounds()
+        return np.zeros(self.decoder.dim), low, high
+
+    def cma_evaluate(self, points):
+        return self.evaluator.evaluate([self.decoder.decode(z) for z in points])
+
+    def gd_start(self, cma_point):
+        d = self.decoder
+        if cma_point is not None:
+            start = d.decode(cma_point)
+        elif self.task.reference_actions is not None:
+            start = reference_start(self.task, d)
+        else:
+            start = np.zeros((d.horizon, d.action_dim))
+        y0 = (start / d.units).reshape(-1)
+        return y0, np.tile(d.low / d.units, d.horizon), np.tile(d.high / d.units, d.horizon)
+
+    def actions(self, y: np.ndarray) -> np.ndarray:
+        """Per-step actions of gradient coordinates ``y``, shape ``(T, action_dim)``."""
+        d = self.decoder
+        return np.clip(np.asarray(y).reshape(d.horizon, d.action_dim) * d.units, d.low, d.high)
+
+    def gd_gradient(self, y):
+        if self.episode is None:
+            self.episode = Episode(self.task, self.decoder.horizon, self.params, self.solver_config)
+        res, da, _ = self.episode.reward_gradient(self.actions(y))
+        return res.summary(), (da * self.decoder.units).reshape(-1)
+
+    def candidate(self, phase, point):
+        return self.decoder.decode(point) if phase == "cma" else self.actions(point)
+
+
+def reference_start(task, decoder: ControlPointDecoder) -> np.ndarray:
+    """The task's human-designed actions cut (or padded with zeros) to the decoder's horizon and
+    clipped to the bounds, shape ``(T, action_dim)``: the gradient method's start when there is no
+    CMA-ES point (ThinShellLab's trajectory optimisation starts from the human trajectory).
+
+    Raises:
+        ConfigError: reference actions of the wrong width.
+    """
+    ref = np.asarray(task.reference_actions, dtype=float)
+    if ref.ndim != 2 or ref.shape[1] != decoder.action_dim:
+        raise ConfigError(f"task {task.name}: reference_actions have shape {ref.shape}, "
+                          f"expected (steps, {decoder.action_dim})")
+    out = np.zeros((decoder.horizon, decoder.action_dim))
+    k = min(decoder.horizon, ref.shape[0])
+    out[:k] = ref[:k]
+    return np.clip(out, decoder.low, decoder.high)
+
+
+@dataclass
+class EpisodeLog:
+    """One episode of an optimisation run: index (1-based), phase, reward, score, feasibility."""
+
+    episode: int
+    phase: str
+    reward: float
+    score: float
+    infeasible: str | None
+
+
+@dataclass
+class SearchState:
+    """Everything an optimisation run needs to continue (pickled into the checkpoint).
+
+    Attributes:
+        method: ``cma`` | ``gd`` | ``hybrid``.
+        episodes: episode budget.
+        seed: random seed (CMA-ES gets ``seed + 1``: the ``cma`` package treats 0 as "random").
+        sigma, population: CMA-ES step size (coordinate units) and population.
+        learning_rate, hybrid_fraction: Adam step and the CMA-ES share of a hybrid run.
+        phase: ``cma`` | ``gd`` | ``cma_rest`` (a hybrid's CMA-ES after a zero gradient) | ``done``.
+        history: one :class:`EpisodeLog` per episode.
+        best_score, best_reward, best_candidate, best_phase, best_point: the best episode so far
+            (score ranks; candidate as :meth:`SearchSpace.candidate`).
+        es: the ``cma.CMAEvolutionStrategy`` (kept through a hybrid's gradient phase).
+        adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
+        meta: free description of the problem (task name, horizon, ...) checked on resume.
+        stop_reason: how the last :func:`optimise` call ended (``episode budget spent``,
+            ``deadline``, or CMA-ES's own termination criteria, e.g. ``{'tolfun': 1e-11}``).
+    """
+
+    method: str
+    episodes: int
+    seed: int
+    sigma: float
+    population: int
+    learning_rate: float = DEFAULT_LEARNING_RATE
+    hybrid_fraction: float = DEFAULT_HYBRID_FRACTION
+    phase: str = "cma"
+    history: list[EpisodeLog] = field(default_factory=list)
+    best_score: float = -math.inf
+    best_reward: float = math.nan
+    best_candidate: Any = None
+    best_phase: str | None = None
+    best_point: np.ndarray | None = None
+    best_cma_point: np.ndarray | None = None
+    es: Any = None
+    adam: dict | None = None
+    meta: dict = field(default_factory=dict)
+    stop_reason: str | None = None
+
+    @property
+    def episodes_done(self) -> int:
+        """Episodes evaluated so far."""
+        return len(self.history)
+
+    @property
+    def done(self) -> bool:
+        """The budget is spent (or the search stopped)."""
+        return self.phase == "done" or self.episodes_done >= self.episodes
+
+
+def new_state(method: str, episodes: int, *, seed: int = 0, sigma: float = 1.0, population: int = 8,
+              learning_rate: float = DEFAULT_LEARNING_RATE, hybrid_fraction: float = DEFAULT_HYBRID_FRACTION,
+              meta: dict | None = None) -> SearchState:
+    """A fresh :class:`SearchState`.
+
+    Raises:
+        ConfigError: unknown method or non-positive budget / sigma / population / learning rate, or a
+            hybrid fraction outside (0, 1).
+    """
+    if method not in METHODS:
+        raise ConfigError(f"optimiser: method must be one of {METHODS}, got {method!r}")
+    if int(episodes) < 1 or sigma <= 0 or int(population) < 2 or learning_rate <= 0:
+        raise ConfigError(f"optimiser: episodes >= 1, sigma > 0, population >= 2, learning rate > 0 required; got "
+                          f"{episodes}, {sigma}, {population}, {learning_rate}")
+    if not 0.0 < hybrid_fraction < 1.0:
+        raise ConfigError(f"optimiser: hybrid fraction must be in (0, 1), got {hybrid_fraction}")
+    return SearchState(method, int(episodes), int(seed), float(sigma), int(population), float(learning_rate),
+                       float(hybrid_fraction), phase="gd" if method == "gd" else "cma", meta=dict(meta or {}))
+
+
+def _cma_budget(state: SearchState) -> int:
+    if state.method == "cma":
+        return state.episodes
+    return max(state.population, int(round(state.hybrid_fraction * state.episodes)))
+
+
+def _record(state: SearchState, phase: str, results: Sequence[EpisodeResult], points: Sequence[np.ndarray]) -> list[EpisodeLog]:
+    logs = []
+    for res, point in zip(results, points):
+        log = EpisodeLog(state.episodes_done + 1, phase, float(res.reward), float(res.score), res.infeasible)
+        state.history.append(log)
+        logs.append(log)
+        if res.score > state.best_score:
+            state.best_score, state.best_reward = float(res.score), float(res.reward)
+            state.best_phase, state.best_point = phase, np.array(point, dtype=float)
+            if phase == "cma":
+                state.best_cma_point = np.array(point, dtype=float)
+    return logs
+
+
+def _cma_generation(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    import cma
+
+    if state.es is None:
+        x0, low, high = space.cma_start()
+        # no stop on small or flat score differences: rewards come in m^2 (Forming's differ by
+        # < 1e-11 near the optimum) and a generation that touches nothing scores flat
+        opts = {"popsize": state.population, "bounds": [list(low), list(high)], "seed": state.seed + 1,
+                "verbose": -9, "verb_log": 0, "verb_disp": 0, "tolfun": 0.0, "tolfunhist": 0.0,
+                "tolflatfitness": FLAT_FITNESS_GENERATIONS}
+        state.es = cma.CMAEvolutionStrategy(list(x0), state.sigma, opts)
+    points = [np.asarray(p, dtype=float) for p in state.es.ask()]
+    results = space.cma_evaluate(points)
+    state.es.tell(points, [-r.score for r in results])
+    return _record(state, "cma", results, points)
+
+
+def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    if state.adam is None:
+        y0, low, high = space.gd_start(state.best_cma_point)
+        state.adam = {"y": y0, "low": low, "high": high, "m": np.zeros_like(y0), "v": np.zeros_like(y0), "t": 0,
+                      "lr": state.learning_rate, "eps": None, "best_y": y0.copy(), "best_score": -math.inf}
+    a = state.adam
+    y = a["y"].copy()
+    res, g = space.gd_gradient(y)
+    logs = _record(state, "gd", [res], [y])
+    if res.feasible and a["t"] == 0 and not np.any(g) and state.es is not None:
+        state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
+        return logs
+    if not res.feasible:
+        a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
+        a["m"][:], a["v"][:] = 0.0, 0.0
+        return logs
+    if res.score > a["best_score"]:
+        a["best_score"], a["best_y"] = res.score, y.copy()
+    if a["eps"] is None:
+        a["eps"] = ADAM_EPS_FRACTION * max(float(np.sqrt(np.mean(g**2))), np.finfo(float).tiny)
+    b1, b2 = ADAM_BETAS
+    a["t"] += 1
+    a["m"] = b1 * a["m"] + (1 - b1) * g
+    a["v"] = b2 * a["v"] + (1 - b2) * g**2
+    m_hat, v_hat = a["m"] / (1 - b1 ** a["t"]), a["v"] / (1 - b2 ** a["t"])
+    a["y"] = np.clip(y + a["lr"] * m_hat / (np.sqrt(v_hat) + a["eps"]), a["low"], a["high"])
+    return logs
+
+
+def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
+    """One batch: a CMA-ES generation or one gradient step (the phase switches as the budget says).
+
+    Returns:
+        the episodes of the batch (empty when the run is done).
+    """
+    if state.done:
+        state.phase = "done"
+        return []
+    if state.phase in ("cma", "cma_rest") and state.es is not None and state.es.stop():
+        state.stop_reason = f"CMA-ES termination {dict(state.es.stop())}"
+        state.phase = "gd" if state.phase == "cma" and state.method == "hybrid" else "done"
+        if state.phase == "done":
+            return []
+    if state.phase == "cma":
+        left = _cma_budget(state) - state.episodes_done
+        if left >= state.population or state.episodes_done == 0:
+            return _cma_generation(state, space)
+        if state.method == "cma":
+            state.phase = "done"
+            return []
+        state.phase = "gd"
+    if state.phase == "cma_rest":
+        if state.episodes - state.episodes_done >= state.population:
+            return _cma_generation(state, space)
+        state.phase = "done"
+        return []
+    return _gd_step(state, space)
+
+
+def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchState, list[EpisodeLog]], None] | None = None,
+             deadline: float | None = None) -> SearchState:
+    """Run :func:`step` until the budget is spent, calling ``on_batch(state, logs)`` after each batch
+    (progress bars, checkpoints).
+
+    Args:
+        state: the search state (fresh or from a checkpoint).
+        space: what is searched.
+        on_batch: called after every batch.
+        deadline: ``time.perf_counter()`` value after which no new batch starts (the state stays
+            resumable; a fresh run does at least one batch); None: run to the end of the budget.
+
+    Returns:
+        ``state`` (advanced in place).
+    """
+    state.stop_reason = None
+    while not state.done and (deadline is None or state.episodes_done == 0 or time.perf_counter() < deadline):
+        logs = step(state, space)
+        if not logs:
+            break
+        if on_batch is not None:
+            on_batch(state, logs)
+    if state.episodes_done >= state.episodes:
+        state.phase, state.stop_reason = "done", "episode budget spent"
+    elif state.phase != "done":
+        state.stop_reason = "deadline"
+    if state.best_phase is not None:
+        state.best_candidate = space.candidate(state.best_phase, state.best_point)
+    return state
+
+
+def save_checkpoint(path: str | Path, state: SearchState) -> Path:
+    """Pickle ``state`` to ``path`` atomically (a temporary file renamed over it)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(pickle.dumps({"version": CHECKPOINT_VERSION, "state": state}))
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> SearchState:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises:
+        ConfigError: missing or unreadable file, or another checkpoint version (naming the file).
+    """
+    path = Path(path)
+    try:
+        data = pickle.loads(path.read_bytes())
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError) as err:
+        raise ConfigError(f"{path}: cannot read optimiser checkpoint ({err})") from err
+    if not isinstance(data, dict) or data.get("version") != CHECKPOINT_VERSION:
+        raise ConfigError(f"{path}: not a version-{CHECKPOINT_VERSION} optimiser checkpoint")
+    return data["state"]

@@ -1,0 +1,98 @@
+"""``thinshell optimise`` end to end on short tasks: outputs (trajectory.yaml by contract B, report,
+checkpoint), refusal to overwrite, --force, --resume continuing a finished run, an inverse task."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_core.errors import ConfigError
+from sim_core.trajectory_file import read_trajectory
+from sysid.optimise_cli import optimise_main
+from thinshell_ros.cli import COMMANDS
+
+ARGS = ["forming", "--horizon", "3", "--population", "4", "--control-points", "1", "--no-progress", "--seed", "2",
+        "--backend", "numpy"]
+
+
+def test_optimise_writes_trajectory_report_and_checkpoint_and_resumes(tmp_path):
+    out = tmp_path / "run"
+    assert COMMANDS["optimise"][:2] == ("sysid.optimise_cli", "optimise_main")
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(out)]) == 0
+    for name in ("trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png", "checkpoint.pkl", "scene.yaml"):
+        assert (out / name).is_file(), name
+    doc = json.loads((out / "result.json").read_text())
+    traj = read_trajectory(out / "trajectory.yaml")
+    assert traj.waypoint_count == 4 and traj.effectors == ["dome"]
+    np.testing.assert_allclose(np.diff(traj.t), 0.005)
+    assert traj.prediction["reward"] == pytest.approx(doc["best_reward"])
+    assert doc["best_reward"] >= max(h["reward"] for h in doc["history"] if h["reward"] is not None)
+    assert "reward.png" in (out / "report.html").read_text()
+    # refuses to overwrite; --resume with a larger budget continues the same run
+    with pytest.raises(ConfigError, match="exists"):
+        optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(out)])
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "8", "--out", str(out), "--resume"]) == 0
+    resumed = json.loads((out / "result.json").read_text())
+    assert [h["score"] for h in resumed["history"][:4]] == [h["score"] for h in doc["history"]]
+    assert len(resumed["history"]) == 8 and resumed["best_reward"] >= doc["best_reward"]
+    # (that a resumed run equals an uninterrupted one: tests/sim_core/optim/test_search.py)
+    with pytest.raises(ConfigError, match="another run"):
+        optimise_main(ARGS + ["--method", "gd", "--episodes", "9", "--out", str(out), "--resume"])
+    assert optimise_main(ARGS + ["--method", "gd", "--episodes", "1", "--out", str(out), "--force"]) == 0
+    assert len(json.loads((out / "result.json").read_text())["history"]) == 1
+
+
+def test_bad_arguments_are_named(tmp_path):
+    with pytest.raises(ConfigError, match="unknown task"):
+        optimise_main(["nosuchtask", "--episodes", "1", "--out", str(tmp_path / "a")])
+    with pytest.raises(ConfigError, match="horizon"):
+        optimise_main(["forming", "--horizon", "999", "--episodes", "1", "--out", str(tmp_path / "b")])
+    with pytest.raises(ConfigError, match="inverse"):
+        optimise_main(ARGS + ["--episodes", "1", "--start", "x=1", "--out", str(tmp_path / "c")])
+    with pytest.raises(ConfigError, match="no checkpoint.pkl"):
+        optimise_main(ARGS + ["--episodes", "1", "--resume", "--out", str(tmp_path / "d")])
+
+
+def test_scene_argument_task_scene_or_sysid_fitted_values(tmp_path):
+    import yaml
+
+    from sysid.optimise_cli import load_target
+
+    # a kind: task scene replaces the task's scene
+    doc = yaml.safe_load(open(Path(__file__).resolve().parents[2] / "config/scenes/forming.yaml"))
+    doc["friction"][0]["mu"] = 2.0
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    task, params, path = load_target("forming", str(other), 3)
+    assert task.scene["friction"][0]["mu"] == 2.0 and params == {} and path == str(other) and task.horizon == 3
+    # a scene written by thinshell sysid: its fitted values of the task scene's parameters apply
+    fitted = tmp_path / "fitted.yaml"
+    fitted.write_text(yaml.safe_dump({"kind": "tactile", "fitted": {"params": {"friction.dome_sheet": 3.5,
+                                                                               "gel.youngs_modulus": 2e5}}}))
+    task, params, _ = load_target("forming", str(fitted), 3)
+    assert params == {"friction.dome_sheet": 3.5}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"kind": "tactile", "fitted": {"params": {"gel.youngs_modulus": 2e5}}}))
+    with pytest.raises(ConfigError, match="none of the fitted parameters"):
+        load_target("forming", str(bad), 3)
+    doc["effectors"] = {"probe": doc["effectors"]["dome"]}  # renamed: the task moves "dome"
+    doc["friction"] = [f for f in doc["friction"] if "dome" not in f["pair"]]
+    other.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="lacks the effectors"):
+        load_target("forming", str(other), 3)
+
+
+def test_bench_optimise_appends_a_table(tmp_path):
+    from thinshell_ros.bench import bench_main
+
+    md = tmp_path / "bench.md"
+    md.write_text("# benchmarks\n")
+    assert bench_main(["optimise", "--tasks", "forming", "--methods", "cma", "--episodes", "3", "--horizon", "2",
+                       "--population", "3", "--markdown", str(md), "--method-args", "--backend numpy"]) == 0
+    text = md.read_text()
+    assert text.startswith("# benchmarks\n") and "## Task optimisation" in text
+    row = [line for line in text.splitlines() if line.startswith("| Forming | cma |")]
+    assert len(row) == 1 and "| 1 | 3 |" in row[0]  # one seed, 3 episodes
