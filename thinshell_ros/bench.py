@@ -328,7 +328,7 @@ def _delegate(module: str, func: str, argv: list[str], what: str) -> int:
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks,batch}``; returns the exit code.
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks,optimise,batch}``; returns the exit code.
 
     ``--json`` output of ``forming`` is one line with the keys ``dofs``, ``steps_per_s``,
     ``newton_iters_mean``, ``newton_iters_max``, ``factorizations_mean``
