@@ -6,53 +6,16 @@ import numpy as np
 import pytest
 
 from sim_core.batch import BatchedSimulation
-from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.scenes.task_scene import build_task_scene, task_initial_state
 from sim_core.simulation import Simulation
 from sim_core.solver_config import SolverConfig
+from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
 from tests.support.press_scenes import pad_scene, paper_sheet
-
-STEPS = 4
-PARAMS = [{}, {"pad.youngs_modulus": 6e5, "friction.pad_sheet": 0.2},
-          {"sheet.bending_stiffness": 2e-2, "friction.pad_sheet": 0.9}]
-# per copy: press depth per step (m) and drag per step along x (m)
-MOTIONS = [(3e-4, 0.0), (2e-4, 2e-4), (4e-4, -1e-4)]
-
-
-def _model():
-    scene = pad_scene({"sheet": paper_sheet((0.03, 0.03), (7, 7), (-0.015, -0.015, 0.0))}, 6e-4,
-                      [{"pair": ["pad", "sheet"], "mu": 0.5}, {"pair": ["sheet", "table"], "mu": 0.3}])
-    return build_task_scene(scene)
-
-
-def _control(pose0: np.ndarray, motion: tuple[float, float], k: int) -> Control:
-    target = pose0.copy()
-    target[2] -= motion[0] * (k + 1)
-    target[0] += motion[1] * k
-    return Control(effector_pose_target={"pad": target})
-
-
-def _separate(model, params, motion, config=None):
-    """One copy run alone: a Simulation of its own; the states after each step (stops at a failure)."""
-    import copy
-
-    m = copy.deepcopy(model)
-    for name, value in params.items():
-        m.set_parameter(name, value)
-    sim = Simulation(m, solver_config=config)
-    sim.state = task_initial_state(m)
-    pose0 = sim.state.effector_pose["pad"].copy()
-    states = []
-    for k in range(STEPS):
-        sim.step(_control(pose0, motion, k))
-        states.append(sim.state.copy())
-    return states
-
 
 @pytest.fixture(scope="module")
 def model():
-    return _model()
+    return pad_model()
 
 
 def _batch(model, configs=None):
@@ -64,12 +27,12 @@ def test_batch_of_three_gives_the_states_of_three_separate_runs(model):
     pose0 = batch.states[0].effector_pose["pad"].copy()
     per_step = []
     for k in range(STEPS):
-        res = batch.step([_control(pose0, MOTIONS[i], k) for i in range(3)])
+        res = batch.step([control(pose0, MOTIONS[i], k) for i in range(3)])
         assert res.failed_now == [] and all(info is not None and info.iterations >= 1 for info in res.infos)
         per_step.append([s.copy() for s in batch.states])
     tol = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
     for i in range(3):
-        alone = _separate(model, PARAMS[i], MOTIONS[i])
+        alone = separate_run(model, PARAMS[i], MOTIONS[i])
         for k in range(STEPS):
             got, ref = per_step[k][i], alone[k]
             assert np.max(np.abs(got.x - ref.x)) <= tol, (i, k)
@@ -89,7 +52,7 @@ def test_a_copy_that_diverges_is_reported_and_the_others_finish(model):
     pose0 = batch.states[0].effector_pose["pad"].copy()
     failed_at = None
     for k in range(STEPS):
-        res = batch.step([_control(pose0, MOTIONS[i], k) for i in range(3)])
+        res = batch.step([control(pose0, MOTIONS[i], k) for i in range(3)])
         if res.failed_now:
             assert res.failed_now == [1] and res.infos[1] is None and failed_at is None
             failed_at = k
@@ -102,7 +65,7 @@ def test_a_copy_that_diverges_is_reported_and_the_others_finish(model):
     np.testing.assert_array_equal(batch.states[1].x, start)  # the last good state is kept
     tol = SolverConfig().tol_velocity * 0.005
     for i in (0, 2):
-        alone = _separate(model, PARAMS[i], MOTIONS[i])
+        alone = separate_run(model, PARAMS[i], MOTIONS[i])
         assert batch.states[i].step_index == STEPS
         assert np.max(np.abs(batch.states[i].x - alone[-1].x)) <= tol
     batch.reset()
