@@ -200,9 +200,9 @@ class BatchedSimulation:
             :attr:`failures`, its state the last good one.
 
         Raises:
-            ConfigError: controls or mask of the wrong length; an invalid control (unknown effector,
-                non-finite pose: the caller's error, raised before any copy is stepped for a
-                malformed length, and naming the copy otherwise).
+            ConfigError: controls or mask of the wrong length, or a control with an unknown effector
+                or a non-finite pose target (raised before any copy is stepped, naming the copy); any
+                other invalid control the solver refuses (naming the copy).
         """
         t0 = time.perf_counter()
         B = self.batch_size
@@ -214,6 +214,8 @@ class BatchedSimulation:
         run = self.active if mask is None else np.asarray(mask, dtype=bool) & self.active
         if run.shape != (B,):
             raise ConfigError(f"batch step: mask of shape {run.shape} for a batch of {B}")
+        for i in np.flatnonzero(run):  # the caller's errors before any copy moves
+            _check_control(self.sims[i].model, controls[i], int(i))
         infos: list[StepInfo | None] = [None] * B
         failed_now = []
         for i in np.flatnonzero(run):
@@ -251,6 +253,18 @@ class BatchedSimulation:
             self.sims[copy_index].set_parameter(name, value)
         except ConfigError as err:
             raise ConfigError(f"batch copy {copy_index}: {err}") from err
+
+
+def _check_control(model: Model, control: Control | None, index: int) -> None:
+    """Raise :class:`ConfigError` naming copy ``index`` for a control with an effector ``model`` does
+    not have or a non-finite pose target."""
+    if control is None:
+        return
+    for name, target in control.effector_pose_target.items():
+        if name not in model.effectors:
+            raise ConfigError(f"batch copy {index}: unknown effector {name!r} in control; known: {list(model.effectors)}")
+        if not np.all(np.isfinite(np.asarray(target, dtype=float))):
+            raise ConfigError(f"batch copy {index}: effector {name!r} pose target is not finite: {np.asarray(target).tolist()}")
 
 
 def _per_copy(value, B: int, what: str) -> list:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sim_core.batch import BatchedSimulation
+from sim_core.control import Control
 from sim_core.errors import ConfigError
 from sim_core.scenes.task_scene import build_task_scene, task_initial_state
 from sim_core.simulation import Simulation
@@ -83,5 +84,12 @@ def test_copies_must_be_copies_of_one_scene(model):
         BatchedSimulation.from_model(model, 2, params=[{}, {"pad.youngs_modulus": -1.0}])
     with pytest.raises(ConfigError, match="3 controls for a batch of 2"):
         BatchedSimulation.from_model(model, 2).step([None] * 3)
+    two = BatchedSimulation.from_model(model, 2, state=task_initial_state(model))
+    bad = Control(effector_pose_target={"pad": np.full(7, np.nan)})
+    with pytest.raises(ConfigError, match="batch copy 1: effector 'pad' pose target is not finite"):
+        two.step([None, bad])
+    with pytest.raises(ConfigError, match="batch copy 0: unknown effector 'dome'"):
+        two.step([Control(effector_pose_target={"dome": np.zeros(7)}), None])
+    assert [s.state.step_index for s in two.sims] == [0, 0]  # no copy moved
     with pytest.raises(ConfigError, match="batch_size"):
         BatchedSimulation.from_model(model, 0)
