@@ -15,6 +15,9 @@ Backends:
   Taichi starts on CUDA, else ``taichi-cpu`` when Taichi imports, else ``numpy``; in a process whose
   Taichi runtime is already initialised, the Taichi backend of that arch.
 
+Batches of scene copies (:mod:`sim_core.batch`) run on any of these backends: every copy's solver
+resolves the same name, and the copies share the process's Taichi runtime.
+
 Taichi keeps one runtime per process (:mod:`sim_core.ti_backend`): :func:`resolve_backend` initialises
 it (:func:`sim_core.ti_backend.init_backend`, idempotent) for a Taichi backend, and a second backend
 of another arch in the same process is a :class:`~sim_core.errors.ConfigError`.

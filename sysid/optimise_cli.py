@@ -56,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, required=True, help="episode budget (rollouts)")
     p.add_argument("--workers", type=int, default=1, help="parallel Ray workers (1: serial, unless --address)")
     p.add_argument("--address", help="Ray cluster address to join (default: a local Ray instance when --workers > 1)")
+    p.add_argument("--batched", action="store_true",
+                   help="evaluate each CMA-ES population as one batch of scene copies stepped together "
+                        "(sim_core.batch; same episodes as the serial evaluator)")
     p.add_argument("--horizon", type=int, help="steps per episode (default: the task's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
@@ -176,7 +179,7 @@ def optimise_main(argv: list[str]) -> int:
     from sim_core.optim.evaluators import make_evaluator
 
     solver_config = SolverConfig(backend=args.backend, dt_halvings_on_failure=0)
-    evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config)
+    evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config, batched=args.batched)
     try:
         space = _space(task, evaluator, horizon, params, start, args.control_points, solver_config)
         t0 = time.perf_counter()

@@ -8,6 +8,7 @@
 * ``bench tasks``: the ten ThinShellLab tasks' reference trajectories, rewards vs Table A
   (:mod:`sim_core.tasks.bench`).
 * ``bench optimise``: the optimisers on the ThinShellLab tasks vs Table A (:mod:`sysid.optimise_bench`).
+* ``bench batch``: B copies of a scene stepped together, scene-steps/s against B (:mod:`sim_core.batch.bench`).
 """
 
 from __future__ import annotations
@@ -27,11 +28,12 @@ BENCHMARKS = {
     "sysid": "3-parameter material fit on a whole recording",
     "tasks": "the ten ThinShellLab tasks: reference trajectories' rewards vs Table A",
     "optimise": "the optimisers (CMA-ES, adjoint gradient, hybrid) on the ThinShellLab tasks vs Table A",
+    "batch": "B copies of a scene stepped together: scene-steps/s and memory per copy against B",
 }
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks,optimise} [ARGS]``; returns the exit
+    """Entry point of ``thinshell bench {forming,scale,node,diagnose,sysid,tasks,optimise,batch} [ARGS]``; returns the exit
     code of the benchmark (see each one's ``--help``; 2 for an unknown benchmark)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="thinshell bench", description="benchmarks")
@@ -58,6 +60,10 @@ def bench_main(argv: list[str] | None = None) -> int:
         from sysid.diagnose_bench import bench_diagnose_main
 
         return int(bench_diagnose_main(rest) or 0)
+    if which == "batch":
+        from sim_core.batch.bench import bench_batch_main
+
+        return int(bench_batch_main(rest) or 0)
     if which == "optimise":
         from sysid.optimise_bench import bench_optimise_main
 

@@ -1,4 +1,5 @@
-"""Evaluate batches of episodes: serially in this process, or in parallel on Ray.
+"""Evaluate batches of episodes: serially in this process, as one batch of scene copies stepped
+together (:class:`BatchedEvaluator`, :mod:`sim_core.batch`), or in parallel on Ray.
 
 Ray (https://docs.ray.io) is an optional, heavy dependency (``requirements.txt``); it is imported
 inside :class:`RayEvaluator` only, so that the rest of sim_core, its tests and the ROS nodes never
@@ -52,6 +53,68 @@ class SerialEvaluator:
                 self.episode.set_parameters(params[i])
             out.append(self.episode.run(a).summary())
         return out
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class BatchedEvaluator:
+    """A population's episodes as one batch: one copy of the task's scene per sequence, stepped
+    together (:func:`sim_core.tasks.rollout.rollout_population`, :class:`sim_core.batch.BatchedSimulation`).
+
+    Each sequence gets the :class:`EpisodeResult` (without states) that :class:`SerialEvaluator` gives
+    it: the same steps, early stops, reward and score (an infeasible episode's reward NaN, a
+    non-finite reward infeasible, ``wrench_peak_N`` over the steps taken).
+
+    Args:
+        task, horizon, params, solver_config: as :class:`SerialEvaluator` (the same default solver
+            settings: no dt halving).
+
+    Raises:
+        ConfigError: a horizon outside ``1..task.horizon``.
+    """
+
+    workers = 1
+
+    def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
+                 solver_config: SolverConfig | None = None) -> None:
+        self.task = task
+        self.horizon = int(horizon if horizon is not None else task.horizon)
+        if not 1 <= self.horizon <= task.horizon:
+            raise ConfigError(f"task {task.name}: episode horizon must be in 1..{task.horizon}, got {self.horizon}")
+        self.params = dict(params or {})
+        self.solver_config = solver_config or SolverConfig(dt_halvings_on_failure=0)
+
+    def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
+        """As :meth:`SerialEvaluator.evaluate` (a call's ``params`` replace the evaluator's for it and
+        the calls after it, as the serial evaluator's episode keeps the last values set)."""
+        from sim_core.optim.actions import check_actions
+        from sim_core.tasks.rollout import rollout_population
+
+        seqs = [self.task.check_actions(check_actions(a, self.horizon, self.task.action_dim)) for a in actions]
+        if params is not None:
+            if len(params) != len(seqs):
+                raise ConfigError(f"batched evaluator: {len(params)} parameter sets for {len(seqs)} sequences")
+            plist = []
+            for p in params:
+                self.params = {**self.params, **dict(p)}
+                plist.append(dict(self.params))
+        else:
+            plist = [dict(self.params)] * len(seqs)
+        results = rollout_population(self.task, seqs, plist, solver_config=self.solver_config)
+        return [self._episode_result(r) for r in results]
+
+    def _episode_result(self, r) -> EpisodeResult:
+        """The :class:`EpisodeResult` of a :class:`~sim_core.tasks.rollout.RolloutResult`
+        (:meth:`Episode._result`'s rules)."""
+        infeasible = r.infeasible
+        reward = float(r.reward) if infeasible is None else float("nan")
+        if infeasible is None and not np.isfinite(reward):
+            infeasible = f"reward is {reward}"
+        peak = max((float(np.linalg.norm(w[k, :3])) for w in r.wrench.values() for k in range(1, w.shape[0])),
+                   default=0.0)
+        return EpisodeResult(reward, r.steps_done, self.horizon, infeasible, r.effector_poses, r.gripper,
+                             wrench_peak_N=peak)
 
     def close(self) -> None:
         """Nothing to release."""
@@ -147,8 +210,17 @@ def _package_root() -> str:
 
 
 def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                   address: str | None = None, solver_config: SolverConfig | None = None):
-    """:class:`SerialEvaluator` for one worker without a cluster address, else :class:`RayEvaluator`."""
+                   address: str | None = None, solver_config: SolverConfig | None = None, batched: bool = False):
+    """:class:`BatchedEvaluator` when ``batched`` (one worker, no cluster address), else
+    :class:`SerialEvaluator` for one worker without a cluster address, else :class:`RayEvaluator`.
+
+    Raises:
+        ConfigError: ``batched`` with several workers or a cluster address.
+    """
+    if batched:
+        if int(workers) > 1 or address is not None:
+            raise ConfigError("a batched evaluator runs in this process: no --workers > 1 or --address with it")
+        return BatchedEvaluator(task, horizon, params, solver_config)
     if int(workers) <= 1 and address is None:
         return SerialEvaluator(task, horizon, params, solver_config)
     return RayEvaluator(task, max(1, int(workers)), horizon, params, address, solver_config)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass, field
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -144,17 +145,38 @@ class TaskEpisode:
         Raises:
             ConfigError: the episode already ended, or a bad action row.
         """
+        control = self.command(row)
+        try:
+            info = self.sim.step(control)
+        except SimulationDivergedError as err:
+            return self.record_step(None, str(err))
+        return self.record_step(info)
+
+    def command(self, row: np.ndarray) -> Control:
+        """The control of the next step: apply one action row to the commanded targets (the first half
+        of :meth:`step`; a batch steps the simulation itself, then calls :meth:`record_step`).
+
+        Raises:
+            ConfigError: the episode already ended, or a bad action row.
+        """
         if self.infeasible is not None or self.steps_done >= self.task.horizon:
             raise ConfigError(f"task {self.task.name}: episode is over ({self.infeasible or 'horizon reached'})")
         row = self.task.check_actions(np.asarray(row, dtype=float)[None, :])[0]
         self.pose_targets, self.gripper_targets = apply_action(self.task, row, self.pose_targets, self.gripper_targets)
-        control = Control(effector_pose_target={k: v.copy() for k, v in self.pose_targets.items()},
-                          gripper_target=dict(self.gripper_targets))
+        return Control(effector_pose_target={k: v.copy() for k, v in self.pose_targets.items()},
+                       gripper_target=dict(self.gripper_targets))
+
+    def record_step(self, info: StepInfo | None, failure: str | None = None) -> StepInfo | None:
+        """Account for the step just taken on :attr:`sim` with the control of :meth:`command` (the
+        second half of :meth:`step`): ``info`` its StepInfo, or ``failure`` the solver's message when
+        it failed. Sets :attr:`infeasible` by the task's early-stop rules.
+
+        Returns:
+            ``info``, or None when the step failed.
+        """
         step = self.steps_done + 1
-        try:
-            info = self.sim.step(control)
-        except SimulationDivergedError as err:
-            self.infeasible = f"solver failure at step {step}: {err}"
+        if failure is not None or info is None:
+            self.infeasible = f"solver failure at step {step}: {failure}"
             return None
         self.steps_done = step
         if not np.all(np.isfinite(self.sim.state.x)):
@@ -204,36 +226,155 @@ def rollout(task: TaskSpec, actions: np.ndarray, params: dict[str, float] | None
     Raises:
         ConfigError: bad actions (shape, non-finite, or outside the bounds without ``clip``) or parameters.
     """
-    a = np.asarray(actions, dtype=float)
-    if clip and a.ndim == 2 and np.all(np.isfinite(a)):
-        a = np.clip(a, task.action_low, task.action_high)
-    a = task.check_actions(a)
+    a = _checked_actions(task, actions, clip)
     ep = TaskEpisode(task, params, backend, solver_config)
-    sim = ep.sim
-    states = [sim.state.copy()] if keep_states else None
-    poses = {k: [np.array(v)] for k, v in sim.state.effector_pose.items()}
-    grip = {k: [float(sim.state.gripper_opening[k])] for k in ep.gripper_targets}
-    wrench = {k: [v] for k, v in ep.wrenches().items()}
-    infos: list[StepInfo] = []
+    log = _EpisodeLog(ep, keep_states)
     t0 = time.perf_counter()
     for row in a:
         info = ep.step(row)
         if info is None:
             break
-        infos.append(info)
-        if states is not None:
-            states.append(sim.state.copy())
-        for k in poses:
-            poses[k].append(np.array(sim.state.effector_pose[k]))
-        for k in grip:
-            grip[k].append(float(sim.state.gripper_opening[k]))
-        for k, v in ep.wrenches().items():
-            wrench[k].append(v)
+        log.add(info)
         if ep.infeasible is not None:
             break
-    elapsed = time.perf_counter() - t0
-    return RolloutResult(
-        reward=ep.reward(), steps_done=ep.steps_done, infeasible=ep.infeasible, states=states,
-        effector_poses={k: np.array(v) for k, v in poses.items()}, gripper={k: np.array(v) for k, v in grip.items()},
-        step_infos=infos, wrench={k: np.array(v) for k, v in wrench.items()}, sim_time_s=elapsed,
-    )
+    return log.result(time.perf_counter() - t0)
+
+
+def _checked_actions(task: TaskSpec, actions: np.ndarray, clip: bool) -> np.ndarray:
+    """``actions`` validated (:meth:`TaskSpec.check_actions`), clipped first when ``clip``."""
+    a = np.asarray(actions, dtype=float)
+    if clip and a.ndim == 2 and np.all(np.isfinite(a)):
+        a = np.clip(a, task.action_low, task.action_high)
+    return task.check_actions(a)
+
+
+class _EpisodeLog:
+    """What :class:`RolloutResult` reports of an episode, gathered step by step."""
+
+    def __init__(self, ep: TaskEpisode, keep_states: bool) -> None:
+        sim = ep.sim
+        self.ep = ep
+        self.states = [sim.state.copy()] if keep_states else None
+        self.poses = {k: [np.array(v)] for k, v in sim.state.effector_pose.items()}
+        self.grip = {k: [float(sim.state.gripper_opening[k])] for k in ep.gripper_targets}
+        self.wrench = {k: [v] for k, v in ep.wrenches().items()}
+        self.infos: list[StepInfo] = []
+
+    def add(self, info: StepInfo) -> None:
+        """Record the step just completed (``info``) and the state it reached."""
+        state = self.ep.sim.state
+        self.infos.append(info)
+        if self.states is not None:
+            self.states.append(state.copy())
+        for k in self.poses:
+            self.poses[k].append(np.array(state.effector_pose[k]))
+        for k in self.grip:
+            self.grip[k].append(float(state.gripper_opening[k]))
+        for k, v in self.ep.wrenches().items():
+            self.wrench[k].append(v)
+
+    def result(self, sim_time_s: float) -> RolloutResult:
+        """The :class:`RolloutResult` (reward of the current state)."""
+        ep = self.ep
+        return RolloutResult(
+            reward=ep.reward(), steps_done=ep.steps_done, infeasible=ep.infeasible, states=self.states,
+            effector_poses={k: np.array(v) for k, v in self.poses.items()},
+            gripper={k: np.array(v) for k, v in self.grip.items()}, step_infos=self.infos,
+            wrench={k: np.array(v) for k, v in self.wrench.items()}, sim_time_s=sim_time_s,
+        )
+
+
+def rollout_population(task: TaskSpec, actions: Sequence[np.ndarray],
+                       params: Sequence[Mapping[str, float] | None] | Mapping[str, float] | None = None, *,
+                       backend: str = "numpy", keep_states: bool = False, solver_config: SolverConfig | None = None,
+                       clip: bool = False) -> list[RolloutResult]:
+    """:func:`rollout` of a population of action sequences, stepped together as one batch
+    (:class:`sim_core.batch.BatchedSimulation`: one copy of the task's scene per member).
+
+    Each member's result is the one :func:`rollout` gives for its actions and parameters alone (same
+    steps, early stops and reward); members stop independently (early stop, solver failure, end of
+    their actions) and the others go on.
+
+    Args:
+        task: the task.
+        actions: per member, action rows of shape ``(k_i, action_dim)``, ``k_i <= horizon``.
+        params: parameter overrides: one mapping for every member, or one per member (None entries:
+            none), or None.
+        backend: solver backend of every copy when ``solver_config`` is None.
+        keep_states: keep every state in each result.
+        solver_config: full solver settings of every copy, or None.
+        clip: clip finite actions to the task's bounds (as :func:`rollout`).
+
+    Returns:
+        one :class:`RolloutResult` per member, in order; ``sim_time_s`` is the member's own stepping
+        time (the sum of its steps' ``StepInfo.time_total``).
+
+    Raises:
+        ConfigError: bad actions (naming the member), parameters, or a ``params`` list of another length.
+    """
+    return PopulationRollout(task, actions, params, backend=backend, keep_states=keep_states,
+                             solver_config=solver_config, clip=clip).run()
+
+
+class PopulationRollout:
+    """The batch of one :func:`rollout_population` call, built and then run (:meth:`run`); kept as an
+    object so that a benchmark can read the batch's memory after the run.
+
+    Args: as :func:`rollout_population`.
+
+    Attributes:
+        episodes: one :class:`TaskEpisode` per member.
+        batch: the :class:`sim_core.batch.BatchedSimulation` of the episodes' simulations (None for an
+            empty population).
+
+    Raises:
+        ConfigError: as :func:`rollout_population`.
+    """
+
+    def __init__(self, task: TaskSpec, actions: Sequence[np.ndarray],
+                 params: Sequence[Mapping[str, float] | None] | Mapping[str, float] | None = None, *,
+                 backend: str = "numpy", keep_states: bool = False, solver_config: SolverConfig | None = None,
+                 clip: bool = False) -> None:
+        from sim_core.batch.simulation import BatchedSimulation
+
+        arrays = []
+        for i, a in enumerate(actions):
+            try:
+                arrays.append(_checked_actions(task, a, clip))
+            except ConfigError as err:
+                raise ConfigError(f"population member {i}: {err}") from err
+        B = len(arrays)
+        if params is None or isinstance(params, Mapping):
+            plist = [params] * B
+        else:
+            plist = list(params)
+            if len(plist) != B:
+                raise ConfigError(f"rollout_population: {len(plist)} parameter sets for {B} action sequences")
+        self.actions = arrays
+        self.keep_states = keep_states
+        self.episodes = [TaskEpisode(task, p, backend, solver_config) for p in plist]
+        self.batch = BatchedSimulation([ep.sim for ep in self.episodes], finite_check=False) if B else None
+
+    def run(self) -> list[RolloutResult]:
+        """Step every member through its actions (once); one :class:`RolloutResult` per member."""
+        arrays, episodes, batch = self.actions, self.episodes, self.batch
+        B = len(arrays)
+        if B == 0:
+            return []
+        logs = [_EpisodeLog(ep, self.keep_states) for ep in episodes]
+        running = np.array([len(a) > 0 for a in arrays])
+        for k in range(max(len(a) for a in arrays)):
+            mask = running & np.array([k < len(a) for a in arrays])
+            if not mask.any():
+                break
+            controls = [episodes[i].command(arrays[i][k]) if mask[i] else None for i in range(B)]
+            res = batch.step(controls, mask)
+            for i in np.flatnonzero(mask):
+                info = episodes[i].record_step(res.infos[i], batch.failures[i] if i in res.failed_now else None)
+                if info is None:
+                    running[i] = False
+                    continue
+                logs[i].add(info)
+                if episodes[i].infeasible is not None:
+                    running[i] = False
+        return [log.result(float(sum(info.time_total for info in log.infos))) for log in logs]

@@ -96,3 +96,15 @@ def test_bench_optimise_appends_a_table(tmp_path):
     assert text.startswith("# benchmarks\n") and "## Task optimisation" in text
     row = [line for line in text.splitlines() if line.startswith("| Forming | cma |")]
     assert len(row) == 1 and "| 1 | 3 |" in row[0]  # one seed, 3 episodes
+
+
+def test_batched_flag_evaluates_populations_as_one_batch_with_the_serial_scores(tmp_path):
+    serial, batched = tmp_path / "serial", tmp_path / "batched"
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(serial)]) == 0
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(batched), "--batched"]) == 0
+    a = json.loads((serial / "result.json").read_text())
+    b = json.loads((batched / "result.json").read_text())
+    np.testing.assert_allclose([h["score"] for h in b["history"]], [h["score"] for h in a["history"]], rtol=1e-9)
+    with pytest.raises(ConfigError, match="batched"):
+        optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(tmp_path / "c"), "--batched",
+                              "--workers", "2"])

@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Prepare the GPU machine and run the GPU benchmarks of docs/benchmarks.md.
+#
+# The GPU machine (the `device` tool's nvidia-h100-x1 / nvidia-h200) has Python 3.12, NumPy, SciPy
+# and PyYAML but no Taichi, and no network. Its Python packages therefore travel as wheels:
+#
+#   benchmarks/device_cuda.sh prepare [WHEELS]   # here, with network: download the cp312 wheels
+#                                                # (Taichi and its pure-Python needs) into WHEELS
+#                                                # (default .gpu_wheels/, ignored by git; ~59 MB)
+#   benchmarks/device_cuda.sh run [WHEELS]       # on the GPU machine, from the repository root,
+#                                                # with WHEELS carried: install them into /tmp/site,
+#                                                # then run the benchmarks below
+#
+# What `run` measures (one process per arch: Taichi initialises one arch per process), each line of
+# JSON also appended to $OUT/bench.jsonl when $OUT is set (the device tool returns that folder):
+#   1. thinshell bench batch --arch cuda --scene forming  --sizes $CUDA_SIZES  --steps $STEPS
+#   2. thinshell bench batch --arch cpu  --scene forming  --sizes $CPU_SIZES   --steps $STEPS
+#   3. thinshell bench batch --arch cuda --scene $TASK    --sizes $TASK_SIZES  --steps $STEPS
+#   4. thinshell bench batch --arch cpu  --scene $TASK    --sizes $TASK_SIZES  --steps $STEPS
+#   5. thinshell bench forming --arch cuda|cpu|numpy --json (the single-environment figures)
+# Environment overrides: STEPS (10), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES ("1 4 16"),
+# TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a batch
+# benchmark prints each size as it finishes, so a part stopped at its limit keeps its smaller sizes),
+# SKIP_FORMING=1 to leave out part 5, PYTHON (the interpreter, default python3).
+set -u
+mode=${1:-run}
+wheels=${2:-.gpu_wheels}
+PY=${PYTHON:-python3}
+
+if [ "$mode" = prepare ]; then
+    mkdir -p "$wheels"
+    "$PY" -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+        --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+        --platform manylinux2014_x86_64 -d "$wheels" \
+        taichi==1.7.4 colorama==0.4.6 dill==0.4.1 rich==15.0.0 markdown-it-py==4.3.0 mdurl==0.1.2 \
+        pygments==2.21.0 PyYAML==6.0.3 || exit 1
+    du -sh "$wheels"
+    exit 0
+fi
+if [ "$mode" != run ]; then
+    echo "usage: $0 prepare|run [WHEELS]" >&2
+    exit 2
+fi
+
+if ls "$wheels"/*.whl > /dev/null 2>&1; then
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$wheels"/*.whl || exit 1
+else
+    echo "no wheels in $wheels: using the interpreter's own packages"
+fi
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+out=${OUT:-/tmp/device_cuda_out}
+mkdir -p "$out"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$out/machine.txt"
+nproc | sed 's/^/cpu cores: /' | tee -a "$out/machine.txt"
+"$PY" -c "import sys, numpy, scipy, taichi; print('python', sys.version.split()[0], 'numpy', numpy.__version__, 'scipy', scipy.__version__, 'taichi', taichi.__version__)" 2>&1 | grep -v '^\[Taichi\]' | tee -a "$out/machine.txt"
+
+STEPS=${STEPS:-10}
+PART_TIMEOUT=${PART_TIMEOUT:-170}
+TASK=${TASK:-folding_u}
+bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
+    local name=$1; shift
+    echo "=== $name: thinshell bench $*"
+    timeout "$PART_TIMEOUT" "$PY" -m thinshell_ros.cli bench "$@" > "$out/$name.out" 2> "$out/$name.err"
+    echo "exit $?"
+    grep '^{' "$out/$name.out" | tee -a "$out/bench.jsonl"
+    grep -v '^\[Taichi\]' "$out/$name.err" | tail -3
+}
+bench batch_cuda_forming batch --arch cuda --scene forming --sizes ${CUDA_SIZES:-1 2 4 8 16 32} --steps "$STEPS" --json
+bench batch_cpu_forming batch --arch cpu --scene forming --sizes ${CPU_SIZES:-1 4 16} --steps "$STEPS" --json
+bench batch_cuda_task batch --arch cuda --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json
+bench batch_cpu_task batch --arch cpu --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json
+if [ "${SKIP_FORMING:-0}" != 1 ]; then
+    for arch in cuda cpu numpy; do
+        bench "forming_$arch" forming --arch "$arch" --no-elastic-worker --json
+    done
+fi

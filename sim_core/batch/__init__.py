@@ -1,0 +1,13 @@
+"""Batched simulation: ``B`` independent copies of one scene stepped together.
+
+Modules: :mod:`~sim_core.batch.simulation` (``BatchedSimulation``: per-copy models, solvers, states,
+controls; per-copy convergence and failure), :mod:`~sim_core.batch.bench` (``thinshell bench batch``:
+scene-steps per second and memory per copy against ``B``). Task populations roll out through
+:func:`sim_core.tasks.population.rollout_population`.
+"""
+
+from __future__ import annotations
+
+from sim_core.batch.simulation import BatchedSimulation, BatchStep, same_topology
+
+__all__ = ["BatchedSimulation", "BatchStep", "same_topology"]

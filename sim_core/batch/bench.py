@@ -1,0 +1,222 @@
+"""``thinshell bench batch``: scene-steps per second and memory per copy of a batch against its size ``B``.
+
+Scenes: ``forming`` (the Forming benchmark scene of ``thinshell bench forming``, 1698 DoF: copy ``i``
+of ``B`` follows the benchmark trajectory scaled by ``1 - 0.1 i / B``, so the copies differ) or a
+task name (``config/tasks``: a population of the task's reference actions with seeded uniform noise
+of 20 % of the per-step bounds, clipped, rolled out with
+:class:`sim_core.tasks.rollout.PopulationRollout`; inverse tasks at their true parameters).
+
+Per size: ``scene_steps_per_s`` (steps of all copies / wall seconds of the batched steps),
+``steps_per_s_per_copy``, the mean Newton iterations, failed copies, ``rss_per_copy_mib`` (growth of
+the process's resident memory from before the batch was built to after its steps, divided by ``B``)
+and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvidia-smi`` reports it,
+divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
+the copies add beyond it). The kernels are compiled before the first size by one short batch of one
+copy (``jit_s``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ARCH_BACKENDS = {"numpy": "numpy", "cpu": "taichi-cpu", "cuda": "taichi-cuda"}
+DEFAULT_SIZES = (1, 2, 4, 8)
+
+
+def current_rss_mib() -> float:
+    """Resident set size of this process now, MiB (``/proc/self/statm``; 0 where unavailable)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0.0
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def gpu_memory_mib() -> float | None:
+    """GPU memory used by this process, MiB, as ``nvidia-smi --query-compute-apps`` reports it; None
+    where ``nvidia-smi`` is missing or lists no memory for this process."""
+    exe = shutil.which("nvidia-smi")
+    if exe is None:
+        return None
+    try:
+        out = subprocess.run([exe, "--query-compute-apps=pid,used_memory", "--format=csv,noheader,nounits"],
+                             capture_output=True, text=True, timeout=20, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    used = [float(mem) for pid, mem in (line.split(",") for line in out.splitlines() if "," in line)
+            if pid.strip() == str(os.getpid())]
+    return sum(used) if used else None
+
+
+def _forming_scene() -> Path:
+    return Path(__file__).resolve().parents[2] / "config" / "scenes" / "forming.yaml"
+
+
+class _FormingRun:
+    """``B`` copies of the Forming benchmark scene on one backend, each on its scaled trajectory."""
+
+    def __init__(self, B: int, steps: int, backend: str) -> None:
+        from sim_core.batch.simulation import BatchedSimulation
+        from sim_core.scenes.task_scene import load_task_scene, task_initial_state
+        from sim_core.solver_config import SolverConfig
+        from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
+
+        model = load_task_scene(_forming_scene())
+        self.batch = BatchedSimulation.from_model(model, B, solver_config=SolverConfig(backend=backend),
+                                                  state=task_initial_state(model))
+        self.effector = next(iter(model.effectors))
+        pose0 = model.effectors[self.effector].initial_pose
+        offsets = forming_benchmark_offsets(steps)
+        self.targets = [pose_targets(pose0, offsets * (1.0 - 0.1 * i / B)) for i in range(B)]
+        self.steps = steps
+
+    def run(self) -> tuple[int, list[int], int]:
+        """Step; returns (steps done by all copies, Newton iterations of each step, failed copies)."""
+        from sim_core.control import Control
+
+        self.batch.warm_up()
+        done, iterations = 0, []
+        for k in range(self.steps):
+            res = self.batch.step([Control(effector_pose_target={self.effector: t[k]}) for t in self.targets])
+            for info in res.infos:
+                if info is not None:
+                    done += 1
+                    iterations.append(info.iterations)
+        return done, iterations, int((~self.batch.active).sum())
+
+
+class _TaskRun:
+    """A population of ``B`` perturbed reference trajectories of a task (:class:`PopulationRollout`)."""
+
+    def __init__(self, name: str, B: int, steps: int, backend: str, seed: int = 0) -> None:
+        from sim_core.errors import ConfigError
+        from sim_core.tasks.registry import load_task
+        from sim_core.tasks.rollout import PopulationRollout
+
+        task = load_task(name)
+        if task.reference_actions is None:
+            raise ConfigError(f"task {task.name} has no reference trajectory to perturb")
+        ref = task.reference_actions[:steps]
+        rng = np.random.default_rng(seed)
+        span = 0.2 * (task.action_high - task.action_low) / 2.0
+        actions = [ref] + [np.clip(ref + rng.uniform(-1.0, 1.0, ref.shape) * span, task.action_low, task.action_high)
+                           for _ in range(B - 1)]
+        self.population = PopulationRollout(task, actions, task.true_parameters or None, backend=backend)
+        self.batch = self.population.batch
+
+    def run(self) -> tuple[int, list[int], int]:
+        results = self.population.run()
+        iterations = [info.iterations for r in results for info in r.step_infos]
+        failed = sum(1 for r in results if r.infeasible is not None and r.infeasible.startswith("solver failure"))
+        return sum(r.steps_done for r in results), iterations, failed
+
+
+def _make_run(scene: str, B: int, steps: int, backend: str):
+    return _FormingRun(B, steps, backend) if scene == "forming" else _TaskRun(scene, B, steps, backend)
+
+
+def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None) -> list[dict]:
+    """Time batches of each size in ``sizes`` (one after the other, each built, stepped and dropped).
+
+    Args:
+        scene: ``forming`` or a task name.
+        sizes: batch sizes ``B >= 1``.
+        steps: steps per copy (Forming: 1..49; a task: 1..horizon).
+        arch: ``numpy``, ``cpu`` or ``cuda`` (``SolverConfig.backend`` ``numpy`` / ``taichi-cpu`` /
+            ``taichi-cuda``).
+        on_row: called with each record as soon as it is measured (a long run keeps what it measured
+            when it is stopped), or None.
+
+    Returns:
+        one record per size (keys in the module docstring, plus ``B``, ``steps``, ``scene``, ``arch``,
+        ``backend``, ``dofs``, ``wall_s``, ``build_s``, ``jit_s`` (first record only)).
+
+    Raises:
+        ConfigError: unknown scene, task without reference, arch not available here, bad sizes.
+    """
+    from sim_core.backend import resolve_backend
+    from sim_core.errors import ConfigError
+
+    if arch not in ARCH_BACKENDS:
+        raise ConfigError(f"--arch must be one of {', '.join(ARCH_BACKENDS)}; got {arch!r}")
+    if not sizes or min(sizes) < 1:
+        raise ConfigError(f"--sizes must be integers >= 1, got {sizes}")
+    backend = resolve_backend(ARCH_BACKENDS[arch])
+    t0 = time.perf_counter()
+    warm = _make_run(scene, 1, min(2, steps), backend)  # JIT of every kernel the steps call
+    warm.run()
+    dofs = int(warm.batch.sims[0].model.dof_count)
+    del warm
+    jit_s = time.perf_counter() - t0
+    out = []
+    for B in sizes:
+        gc.collect()
+        rss0, gpu0 = current_rss_mib(), gpu_memory_mib()
+        t0 = time.perf_counter()
+        run = _make_run(scene, int(B), steps, backend)
+        build_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        done, iterations, failed = run.run()
+        wall = time.perf_counter() - t0
+        rss1, gpu1 = current_rss_mib(), gpu_memory_mib()
+        out.append({
+            "bench": "batch", "scene": scene, "arch": arch, "backend": backend, "dofs": dofs, "B": int(B),
+            "steps": steps, "scene_steps": done, "wall_s": wall, "build_s": build_s,
+            "scene_steps_per_s": done / wall if wall > 0 else 0.0,
+            "steps_per_s_per_copy": done / wall / B if wall > 0 else 0.0,
+            "newton_iters_mean": float(np.mean(iterations)) if iterations else 0.0, "failed_copies": failed,
+            "rss_per_copy_mib": (rss1 - rss0) / B,
+            "gpu_mib_per_copy": None if gpu0 is None or gpu1 is None else (gpu1 - gpu0) / B,
+            "gpu_mib_process": gpu1, "jit_s": jit_s if not out else 0.0,
+            "python": platform.python_version(), "numpy": np.__version__,
+        })
+        del run
+        if on_row is not None:
+            on_row(out[-1])
+    return out
+
+
+def bench_batch_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``thinshell bench batch``; returns the exit code (0 success, 1 a copy failed,
+    2 a usage error or an arch that cannot start here)."""
+    from sim_core.errors import ConfigError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(prog="thinshell bench batch", description=__doc__.splitlines()[0])
+    p.add_argument("--arch", default="cpu", choices=sorted(ARCH_BACKENDS), help="backend of every copy (default cpu)")
+    p.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="batch sizes B (default 1 2 4 8)")
+    p.add_argument("--scene", default="forming", help="forming (the benchmark scene) or a task name")
+    p.add_argument("--steps", type=int, default=10, help="steps per copy (default 10)")
+    p.add_argument("--json", action="store_true", help="print one JSON line per size")
+    ns = p.parse_args(argv)
+    def show(r: dict) -> None:
+        if ns.json:
+            print(json.dumps(r), flush=True)
+            return
+        if r["B"] == ns.sizes[0]:
+            print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {ns.steps} steps per "
+                  f"copy, JIT {r['jit_s']:.1f} s")
+            print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
+                  f"{'GPU/copy MiB':>13} {'build s':>8}")
+        gpu = "-" if r["gpu_mib_per_copy"] is None else f"{r['gpu_mib_per_copy']:.1f}"
+        print(f"{r['B']:>5} {r['scene_steps_per_s']:>14.2f} {r['steps_per_s_per_copy']:>13.2f} "
+              f"{r['newton_iters_mean']:>6.2f} {r['failed_copies']:>6} {r['rss_per_copy_mib']:>13.1f} {gpu:>13} "
+              f"{r['build_s']:>8.2f}", flush=True)
+
+    try:
+        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch, on_row=show)
+    except ConfigError as err:
+        print(f"thinshell bench batch: {err}", file=sys.stderr)
+        return 2
+    return 1 if any(r["failed_copies"] for r in rows) else 0

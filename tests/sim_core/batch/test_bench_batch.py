@@ -1,0 +1,27 @@
+"""thinshell bench batch: one JSON line per batch size, every copy stepped, memory per copy reported."""
+
+from __future__ import annotations
+
+import json
+
+from thinshell_ros.bench import bench_main
+
+
+def test_bench_batch_json_lines_per_size(capsys):
+    assert bench_main(["batch", "--arch", "numpy", "--sizes", "1", "2", "--steps", "1", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["B"] for r in rows] == [1, 2]
+    for r in rows:
+        assert r["scene"] == "forming" and r["dofs"] == 1698 and r["backend"] == "numpy"
+        assert r["scene_steps"] == r["B"] and r["failed_copies"] == 0  # every copy took its step
+        assert r["scene_steps_per_s"] > 0 and r["newton_iters_mean"] >= 1
+        assert r["steps_per_s_per_copy"] == r["scene_steps_per_s"] / r["B"]
+        assert r["rss_per_copy_mib"] > 0  # a copy holds its own model, solver and state
+        assert r["gpu_mib_per_copy"] is None or r["gpu_mib_per_copy"] >= 0
+
+
+def test_bench_batch_rejects_bad_sizes_and_unknown_tasks(capsys):
+    assert bench_main(["batch", "--arch", "numpy", "--sizes", "0"]) == 2
+    assert "--sizes" in capsys.readouterr().err
+    assert bench_main(["batch", "--arch", "numpy", "--scene", "juggling", "--sizes", "1"]) == 2
+    assert "juggling" in capsys.readouterr().err
