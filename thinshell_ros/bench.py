@@ -8,7 +8,7 @@
 * ``bench tasks``: the ten ThinShellLab tasks' reference trajectories, rewards vs Table A
   (:mod:`sim_core.tasks.bench`).
 * ``bench optimise``: the optimisers on the ThinShellLab tasks vs Table A (:mod:`sysid.optimise_bench`).
-* ``bench batch``: B copies of a scene stepped together, scene-steps/s against B (:mod:`sim_core.batch.bench`).
+* ``bench batch``: B copies of a scene stepped together, scene-steps/s against B (:mod:`sim_core.bench.batch`).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def bench_main(argv: list[str] | None = None) -> int:
 
         return int(bench_diagnose_main(rest) or 0)
     if which == "batch":
-        from sim_core.batch.bench import bench_batch_main
+        from sim_core.bench.batch import bench_batch_main
 
         return int(bench_batch_main(rest) or 0)
     if which == "optimise":

@@ -1,7 +1,7 @@
 """Batched simulation: ``B`` independent copies of one scene stepped together.
 
 Modules: :mod:`~sim_core.batch.simulation` (``BatchedSimulation``: per-copy models, solvers, states,
-controls; per-copy convergence and failure), :mod:`~sim_core.batch.bench` (``thinshell bench batch``:
+controls; per-copy convergence and failure), :mod:`~sim_core.bench.batch` (``thinshell bench batch``:
 scene-steps per second and memory per copy against ``B``). Task populations roll out through
 :func:`sim_core.tasks.population.rollout_population`.
 """

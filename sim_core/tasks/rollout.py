@@ -17,6 +17,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from sim_core.batch.simulation import BatchedSimulation
 from sim_core.control import Control
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.scenes.task_scene import build_task_scene, task_initial_state
@@ -335,8 +336,6 @@ class PopulationRollout:
                  params: Sequence[Mapping[str, float] | None] | Mapping[str, float] | None = None, *,
                  backend: str = "numpy", keep_states: bool = False, solver_config: SolverConfig | None = None,
                  clip: bool = False) -> None:
-        from sim_core.batch.simulation import BatchedSimulation
-
         arrays = []
         for i, a in enumerate(actions):
             try:
