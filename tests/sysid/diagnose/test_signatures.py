@@ -164,3 +164,18 @@ def test_tests_say_what_they_need():
     assert not results["lens_distortion"].applicable and "marker positions" in results["lens_distortion"].reason
     assert not results["latency"].applicable and "replay" in results["latency"].reason
     assert not results["bending_plasticity"].applicable
+
+
+def test_a_shape_the_replay_also_keeps_is_not_a_set(rng):
+    rec = synthetic(rng, set_height=0.004)
+    # the replay keeps most of the same deformation after release (a held buckle): not plasticity
+    pred = dict(rec.prediction)
+    sheet = pred["sheet_points"].copy()
+    final = rec.t["sheet_points"] > 2.7
+    fold = np.abs(sheet[0, :, 0] - 0.07) < 0.015
+    sheet[np.ix_(final, fold, [2])] += 0.003
+    pred["sheet_points"] = sheet
+    held = Recording(t=rec.t, data=rec.data, prediction=pred, sigma=rec.sigma, camera=rec.camera)
+    r = plasticity_test(held)
+    assert r.effect_size == 0.0 and "replay itself" in r.reason
+    assert "bending_plasticity" not in named(held)
