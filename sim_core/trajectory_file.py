@@ -37,6 +37,7 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.plain import plain
 from sim_core.transforms import quat_from_rotvec, quat_multiply, quat_to_rotvec
 
 FORMAT = "thinshell-trajectory"
@@ -337,19 +338,10 @@ def trajectory_to_document(traj: Trajectory) -> dict[str, Any]:
         "scene": {"path": traj.scene_path, "name": traj.scene_name,
                   "parameters": {k: float(v) for k, v in traj.parameters.items()}},
         "effectors": traj.effectors, "waypoints": wps,
-        "prediction": _plain(traj.prediction), "provenance": _plain(traj.provenance),
+        "prediction": plain(traj.prediction), "provenance": plain(traj.provenance),
     }
 
 
-def _plain(value: Any) -> Any:
-    """NumPy scalars / arrays -> Python values (safe_dump cannot write NumPy types)."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def write_trajectory(path: str | Path, traj: Trajectory, *, force: bool = False) -> Path:

@@ -46,6 +46,7 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ConfigError
+from sim_core.plain import plain
 from sim_core.scenes import load_scene
 from sim_core.transforms import quat_to_matrix
 from sysid.calibration import SensorCalibration
@@ -162,7 +163,7 @@ def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
                               "sigma": {k: (None if sigma is None or sigma.get(k) is None else float(sigma[k]))
                                         for k in values},
                               "effects": effects}
-    fitted.update(_plain(dict(record or {})))
+    fitted.update(plain(dict(record or {})))
     doc["fitted"] = fitted
     model = load_scene(doc)
     for name, value in values.items():
@@ -174,16 +175,6 @@ def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
     return doc
 
 
-def _plain(value: Any) -> Any:
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def write_fitted_scene(path: str | Path, doc: Mapping[str, Any], *, force: bool = False) -> Path:
@@ -197,7 +188,7 @@ def write_fitted_scene(path: str | Path, doc: Mapping[str, Any], *, force: bool 
         raise ConfigError(f"{path}: exists (use --force to replace it)")
     path.parent.mkdir(parents=True, exist_ok=True)
     text = ("# thinshell scene with the values fitted by thinshell sysid (see fitted:); sysid/fitted_scene.py\n"
-            + yaml.safe_dump(_plain(dict(doc)), sort_keys=False, default_flow_style=None, width=120))
+            + yaml.safe_dump(plain(dict(doc)), sort_keys=False, default_flow_style=None, width=120))
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as fh:
