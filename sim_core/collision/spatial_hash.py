@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.errors import ConfigError
+from sim_core.errors import ConfigError, SimulationDivergedError
 
 _OFFSET = 1 << 20  # cell coordinates are packed as 21-bit unsigned fields of one int64 key
 _CELL_LIMIT = float(1 << 18)  # hash_cell_size keeps |cell index| <= 2^18 + 1
@@ -34,6 +34,14 @@ def hash_cell_size(box_min: np.ndarray, box_max: np.ndarray, reach: float, radiu
     cell = max(float(np.mean(width)) + 2.0 * radius, (float(np.max(width)) + 2.0 * radius) / _WIDEST_CELLS,
                (float(reach) + radius) / _CELL_LIMIT)
     return cell if cell > 0.0 else 1.0
+
+
+MAX_COVERED_CELLS = 1 << 22
+"""Cells all boxes of one hash may cover together before the positions count as diverged (with
+:data:`CELLS_PER_BOX` times the box count when that is larger)."""
+
+CELLS_PER_BOX = 64
+"""Mean cells per box above which the positions count as diverged (boxes about the cell size cover 1-8)."""
 
 
 def _cell_keys(cells: np.ndarray) -> np.ndarray:
@@ -82,6 +90,13 @@ class SpatialHash:
         lo, hi = self._cell_range(box_min, box_max)
         extent = hi - lo + 1
         counts = np.prod(extent, axis=1)
+        total = int(counts.sum())
+        if total > max(MAX_COVERED_CELLS, CELLS_PER_BOX * lo.shape[0]):
+            # elements stretched far beyond the cell size: a diverging iterate (e.g. a line-search
+            # trial point), not a geometry worth hashing (it would need GiBs of cell lists)
+            raise SimulationDivergedError(
+                f"spatial hash: {lo.shape[0]} boxes cover {total} cells of {self.cell_size:g} m "
+                f"(largest box {int(counts.max())} cells): the positions have diverged")
         owner = np.repeat(np.arange(lo.shape[0]), counts)
         start = np.cumsum(counts) - counts
         local = np.arange(owner.shape[0]) - np.repeat(start, counts)

@@ -9,7 +9,7 @@ from sim_core.collision.candidates import PairFilter, box_pairs_kdtree, edge_edg
 from sim_core.collision.distances import point_triangle_distance
 from sim_core.collision.memory import ContactMemory, edge_edge_pair_sides, vertex_triangle_pair_sides
 from sim_core.collision.spatial_hash import SpatialHash
-from sim_core.errors import ConfigError
+from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
 
 
@@ -265,3 +265,12 @@ def test_spatial_hash_box_pairs_of_points_empty_sets_and_nan():
     bad[2, 1] = np.nan
     with pytest.raises(ConfigError, match="NaN or infinite"):
         box_pairs_hash(bad, bad, None, None, 0.1)
+
+
+def test_spatial_hash_refuses_diverged_boxes_instead_of_allocating_cells():
+    lo = np.zeros((3, 3))
+    hi = np.full((3, 3), 1e-3)
+    hi[1] = [5.0, 5.0, 5.0]  # one element stretched 5 m at a 1 mm cell size: 1.25e11 cells
+    with pytest.raises(SimulationDivergedError, match="positions have diverged"):
+        SpatialHash(lo, hi, 1e-3)
+    SpatialHash(lo[[0, 2]], hi[[0, 2]], 1e-3)  # ordinary boxes still hash
