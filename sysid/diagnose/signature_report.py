@@ -39,7 +39,8 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         ax.set_ylabel("normal force, N" if channel == "wrench" else "mean marker depth, m")
     elif effect == "force_bias":
         t = rec.t["wrench"]
-        w, wp = rec.data["wrench"], prepared.prediction["wrench"]
+        w = rec.data["wrench"]
+        wp = prepared.prediction.get("wrench", np.zeros_like(w))  # no replay: the free gel's zero
         ax.plot(t, w[:, 2], "k.", ms=2, label="recorded F_z")
         ax.plot(t, wp[:, 2], "C0-", lw=1, label="calibrated replay F_z")
         ax.plot(t, apply_force_bias(wp, t, params)[:, 2], "C3-", lw=1, label="replay + bias")

@@ -90,3 +90,21 @@ def test_existing_outputs_are_not_overwritten(tmp_path):
     out.write_text("{}")
     assert diagnose_main([str(reference_bag("nominal_s101")), "--no-calibrate", "--json", str(out)]) == 2
     assert out.read_text() == "{}"
+
+
+def test_a_recording_without_a_replay_keeps_the_tests_of_the_recording_alone(tmp_path, monkeypatch):
+    from sim_core.errors import CalibrationError
+    from sysid.diagnose import signature_engine
+
+    def diverged(*args, **kwargs):
+        raise CalibrationError("the replay at the scene values diverged: step 12 (t = 0.12 s)")
+
+    monkeypatch.setattr(signature_engine, "calibrate", diverged)
+    out = tmp_path / "d.json"
+    rc = diagnose_main([str(reference_bag("lens_s106")), "--json", str(out), "--out", str(tmp_path / "r")])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    validate_report(doc)
+    assert doc["explained_by"] == ["lens_distortion"]
+    assert any("step 12" in n for n in doc["extra"]["notes"])
+    assert not doc["extra"]["signatures"]["latency"]["applicable"]
