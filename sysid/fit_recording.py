@@ -172,7 +172,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if on_model is not None:
         on_model(model, notes)
     sensor = None
-    if options.sensor_calibration:
+    if options.sensor_calibration and model.sensor is not None:  # a task scene may have no sensor
         sensor = calibrate(model, params=())
         if on_calibration is not None:
             on_calibration(sensor)
