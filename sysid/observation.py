@@ -343,8 +343,9 @@ class ObservationModel:
                 continue
             chosen.append(ch)
         if not chosen:
+            why = "; ".join(self.dropped[ch] for ch in wanted if ch in self.dropped)
             raise CalibrationError(f"{self.evidence.source.bag_path}: none of the channels {', '.join(wanted)} is in "
-                                   "the recording; nothing to fit")
+                                   f"the recording ({why}); nothing to fit")
         self.channels = tuple(chosen)
 
     def _noise_levels(self, noise: Mapping[str, Sequence[float]] | None) -> dict[str, np.ndarray]:

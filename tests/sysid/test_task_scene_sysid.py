@@ -52,6 +52,10 @@ def test_sysid_recovers_the_bending_stiffness_of_a_folding_bag(tmp_path, capsys)
     assert fitted["sigma"] is not None and 0.0 < fitted["sigma"] < 0.01 * true_k
     value = fitted["value"]
     assert abs(value / true_k - 1.0) < 0.02                            # from 2.5x off to within 2 %
+    rc = sysid_main([str(bag), "--params", "sheet.bending_stiffness", "--dt", "0.005", "--arch", "numpy",
+                     "--out", str(tmp_path / "fit2"), "--quiet", "--write-scene", str(tmp_path / "fitted.yaml")])
+    assert rc == 1 and "scene.yaml: a fitted scene is written for version-1 tactile scenes only" in capsys.readouterr().err
+    assert not (tmp_path / "fit2").exists() and not (tmp_path / "fitted.yaml").exists()
 
 
 def test_task_replay_reproduces_the_recording_and_rejects_tactile_channels(tmp_path):
@@ -89,3 +93,20 @@ def test_gripper_cmd_and_every_effector_are_replayed_and_a_missing_effector_is_n
     other.write_text(yaml.safe_dump(doc, sort_keys=False))
     with pytest.raises(CalibrationError, match=r"effector 'spare' of .*other.yaml has no recorded pose or pose_cmd"):
         ObservationModel(load_evidence(bag, scene_path=other), scene=other, dt=0.005)
+
+
+def test_a_task_bag_without_sheet_points_is_refused_naming_the_topic(tmp_path, capsys):
+    doc = v2_scene()
+    doc["sheets"] = {"cloth": doc["sheets"].pop("sheet")}          # no body named sheet: no sheet/points topic
+    doc["friction"] = [{"pair": ["grip", "cube"], "mu": 1.0}, {"pair": ["table", "cloth"], "mu": 0.5}]
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(yaml.safe_dump(doc, sort_keys=False))
+    bag = tmp_path / "bag"
+    traj = tmp_path / "traj.yaml"
+    traj.write_text("version: 1\neffector: grip\nwaypoints:\n  - {t: 0.0, pose: [0.0, 0.0, 0.02, 0, 0, 0, 1]}\n"
+                    "  - {t: 0.01, pose: [0.0, 0.0, 0.019, 0, 0, 0, 1]}\n")
+    assert sim_main(["--scene", str(scene), "--trajectory", str(traj), "--out", str(bag)]) == 0
+    rc = sysid_main([str(bag), "--params", "cloth.bending_stiffness", "--dt", "0.005", "--arch", "numpy",
+                     "--out", str(tmp_path / "fit"), "--quiet"])
+    assert rc == 1
+    assert "(topic /thinshell/sheet/points not in the recording); nothing to fit" in capsys.readouterr().err
