@@ -12,6 +12,7 @@ import yaml
 
 from sim_core.errors import CalibrationError
 from sim_core.simulation import Simulation
+from sysid.calibration import calibrate
 from sysid.cli import sysid_main
 from sysid.evidence import load_evidence
 from sysid.observation import ObservationModel, ObservationWarning
@@ -68,6 +69,8 @@ def test_task_replay_reproduces_the_recording_and_rejects_tactile_channels(tmp_p
     assert rms < 1e-8                       # the same scene and commands give the recorded points
     with pytest.raises(CalibrationError, match="no tactile sensor; channels wrench cannot be fitted"):
         ObservationModel(load_evidence(bag), dt=0.005, channels=["sheet_points", "wrench"])
+    with pytest.raises(CalibrationError, match="no tactile sensor, so there is no sensor calibration"):
+        calibrate(model)                                   # thinshell diagnose: one clear line, no KeyError
 
 
 def test_gripper_cmd_and_every_effector_are_replayed_and_a_missing_effector_is_named(tmp_path):
