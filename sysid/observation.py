@@ -9,10 +9,12 @@ matching evidence channel (:meth:`ObservationModel.align`). The initial effector
 is replaced by the recorded pose at ``t_0`` so that the gel is built where the recording starts.
 
 A task scene (``kind: task``; :mod:`sim_core.scenes.task_scene`) is replayed the same way with
-every effector driven: each by its own recorded ``<effector>/pose`` (resampled at ``t_k`` as above),
-or, where only its command was recorded, by ``<effector>/pose_cmd`` sampled at ``t_{k-1}`` (the
-command of step k is stamped at the step's start), and its finger opening by ``<effector>/gripper_cmd``
-sampled at ``t_{k-1}`` when recorded (``Evidence.effectors``). A task scene without a tactile sensor
+every effector driven: each by its recorded ``<effector>/pose_cmd`` sampled at ``t_{k-1}`` (the
+command of step k is stamped at the step's start; ``thinshell sim`` logs it every step, whatever its
+output rate, and the replay applies the same effector rate limits), or, where no command was recorded
+(an effector held still), by its ``<effector>/pose`` resampled at ``t_k`` as above; its finger opening
+by ``<effector>/gripper_cmd`` sampled at ``t_{k-1}`` when recorded (``Evidence.effectors``). Each
+effector starts at its recorded pose at ``t_0``. A task scene without a tactile sensor
 has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are then the tracked points of every
 sheet in the scene's order.
 
@@ -394,10 +396,10 @@ class ObservationModel:
         for name, got in self._task_effectors.items():
             if name not in (self.scene.get("effectors") or {}):
                 continue
-            if "pose" in got:
-                self.task_controls[name] = resample_pose(*got["pose"], self.step_times_ns, outside="clamp")
-            else:
+            if "pose_cmd" in got:
                 self.task_controls[name] = resample_pose(*got["pose_cmd"], before, outside="clamp")
+            else:
+                self.task_controls[name] = resample_pose(*got["pose"], self.step_times_ns, outside="clamp")
             if "gripper_cmd" in got:
                 t, v = got["gripper_cmd"]
                 self.task_grippers[name] = resample(t, v, before, outside="clamp")

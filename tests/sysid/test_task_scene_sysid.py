@@ -24,14 +24,14 @@ FOLDING = config_dir() / "scenes" / "folding.yaml"
 DOME_START = [-0.0144833, 0.0, 0.0212333, 1.0, 0.0, 0.0, 0.0]
 
 
-def _folding_bag(tmp_path):
+def _folding_bag(tmp_path, *extra):
     """Ten 5 ms steps of the Folding scene's dome pressing 2 mm down and 2 mm along x into the strip."""
     traj = tmp_path / "press.yaml"
     end = [DOME_START[0] + 0.002, 0.0, DOME_START[2] - 0.002, 1.0, 0.0, 0.0, 0.0]
     traj.write_text(yaml.safe_dump({"version": 1, "effector": "dome", "waypoints": [
         {"t": 0.0, "pose": DOME_START}, {"t": 0.05, "pose": end}]}))
     bag = tmp_path / "bag"
-    assert sim_main(["--scene", str(FOLDING), "--trajectory", str(traj), "--out", str(bag)]) == 0
+    assert sim_main(["--scene", str(FOLDING), "--trajectory", str(traj), "--out", str(bag), *extra]) == 0
     return bag
 
 
@@ -60,10 +60,11 @@ def test_sysid_recovers_the_bending_stiffness_of_a_folding_bag(tmp_path, capsys)
 
 
 def test_task_replay_reproduces_the_recording_and_rejects_tactile_channels(tmp_path):
-    bag = _folding_bag(tmp_path)
+    bag = _folding_bag(tmp_path, "--rate", "100")   # outputs every other step; commands every step
     with pytest.warns(ObservationWarning, match="no tactile sensor"):
         model = ObservationModel(load_evidence(bag), dt=0.005)
     assert model.channels == ("sheet_points",) and model.sensor is None
+    assert model.data("sheet_points").shape == (6, 64, 3) and model.step_count == 10
     trace = model.simulate({})
     rms = model.channel_rms(model.predict(trace))["sheet_points"]["rms"]
     assert rms < 1e-8                       # the same scene and commands give the recorded points
