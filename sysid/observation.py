@@ -15,8 +15,8 @@ output rate, and the replay applies the same effector rate limits), or, where no
 (an effector held still), by its ``<effector>/pose`` resampled at ``t_k`` as above; its finger opening
 by ``<effector>/gripper_cmd`` sampled at ``t_{k-1}`` when recorded (``Evidence.effectors``). Each
 effector starts at its recorded pose at ``t_0``. A task scene without a tactile sensor
-has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are then the tracked points of every
-sheet in the scene's order.
+has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are the vertices of its body named
+``sheet`` in grid order (``Simulation.observe``), their count checked against the recording.
 
 Residuals are whitened per channel and axis by the white-noise level estimated from the recording
 (``Evidence.noise``, :mod:`sysid.noise`): ``r = (y_data - y_sim) / sigma``, so that weighted least
@@ -213,7 +213,10 @@ class ObservationModel:
     Attributes:
         evidence: the (cropped) recording.
         scene: the scene dict actually simulated.
-        sensor, effector: names of the tactile sensor and its effector.
+        sensor, effector: names of the tactile sensor and its effector (None for a task scene).
+        task: True for a task scene (``kind: task``): every effector replayed (module docstring).
+        task_controls, task_grippers: of a task scene, effector -> targets ``(K + 1, 7)`` and
+            effector -> finger openings ``(K + 1,)`` m (row k drives step k).
         channels: fitted channels, in residual order.
         dropped: channel -> why it is not fitted.
         sigma: channel -> per-axis noise level used for whitening.
@@ -228,7 +231,8 @@ class ObservationModel:
 
     Raises:
         CalibrationError: no pose channel, no fittable channel, bad ``dt`` / ``t_max``, or a sensor
-            that the scene does not define.
+            that the scene does not define; of a task scene, an effector without a recorded pose or
+            pose_cmd topic, or tactile channels asked of a scene without a sensor.
     """
 
     def __init__(self, evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
