@@ -287,8 +287,12 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         the :class:`CalibrationResult`.
 
     Raises:
-        CalibrationError: the replay at the scene values diverged.
+        CalibrationError: the replay at the scene values diverged; the scene has no tactile sensor
+            (a task scene: nothing to calibrate).
     """
+    if model.sensor is None:
+        raise CalibrationError(f"{model.scene_source}: the scene has no tactile sensor, so there is no sensor "
+                               "calibration to fit (thinshell sysid fits a task scene's parameters without one)")
     channels = [ch for ch in model.sigma]
     model.sensor_calibration = None
     model.nominal_normal_offset = 0.0

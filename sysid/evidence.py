@@ -34,7 +34,8 @@ import numpy as np
 from sim_core.errors import BagReadError, CalibrationError
 from sim_core.scenes.scene_file import SceneFile
 from sysid.bagio import BagWarning
-from sysid.bagio.reader import BagConfig, BagContents, open_bag
+from sim_core.scenes.task_file import TaskSceneFile
+from sysid.bagio.reader import BagConfig, BagContents, load_bag_config, open_bag, read_effector_streams
 from sysid.noise import estimate_noise, noise_config
 
 CHANNELS = ("pose", "pose_cmd", "markers_xyz", "markers_uv", "wrench", "sheet_points", "image")
@@ -78,6 +79,10 @@ class Evidence:
         channels_present: channels with data, in :data:`CHANNELS` order.
         channels_missing: channel -> why it is absent (names the topic).
         notes: warnings raised while reading (dropped samples, re-sorted stamps, missing topics).
+        effectors: for a task scene (``kind: task``), every effector's recorded streams: effector ->
+            ``"pose"`` / ``"pose_cmd"`` / ``"gripper_cmd"`` -> ``(t_ns (N,), values)``, poses
+            ``(N, 7)``, openings ``(N,)`` m (:func:`sysid.bagio.reader.read_effector_streams`);
+            empty for a version-1 scene (its one effector is the ``pose`` channel).
     """
 
     source: EvidenceSource
@@ -95,6 +100,7 @@ class Evidence:
     channels_present: tuple[str, ...] = ()
     channels_missing: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    effectors: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
     def values(self, channel: str) -> np.ndarray:
         """The array of ``channel``.
@@ -166,7 +172,7 @@ def _check_against_scene(bag: BagContents, scene: SceneFile) -> None:
             raise BagReadError(f"topic {markers.topic} has {k} points but sensor {sensors[0].name} of {scene.source} "
                                f"has a {sensors[0].marker_grid[0]}x{sensors[0].marker_grid[1]} marker grid")
     sheet = bag.series.get("sheet_points")
-    if sheet is not None:
+    if sheet is not None and not isinstance(scene, TaskSceneFile):  # a task scene's count is checked on replay
         p = sheet.values.shape[1]
         nx, ny = scene.sheet.resolution
         if p != nx * ny:
@@ -225,8 +231,11 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         s = bag.series.get(role)
         if s is None:
             skipped = ch == "image" and include_image is not True and bag.roles[role] in bag.topics
-            missing[ch] = (f"not decoded (include_image={include_image!r})" if skipped
-                           else f"topic {bag.roles[role]} not in the recording")
+            if isinstance(scene, TaskSceneFile) and not scene.sensors and role in ("markers", "wrench", "image"):
+                missing[ch] = f"the scene {scene.source} has no tactile sensor"
+            else:
+                missing[ch] = (f"not decoded (include_image={include_image!r})" if skipped
+                               else f"topic {bag.roles[role]} not in the recording")
             continue
         if ch == "markers_xyz":
             value = s.values[..., :3]
@@ -253,10 +262,14 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
             noise[ch] = _frozen(estimate_noise(t_ns[ch], value, order))
     clock = bag.series.get("clock")
     present = tuple(ch for ch in CHANNELS if ch in arrays)
+    effectors = {}
+    if isinstance(scene, TaskSceneFile):
+        namespace = config.namespace if isinstance(config, BagConfig) else load_bag_config(config).namespace
+        effectors = read_effector_streams(bag.path, scene.effector_names, namespace)
     return Evidence(
         source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
-        channels_present=present, channels_missing=missing, notes=tuple(notes), **arrays,
+        channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors, **arrays,
     )
 
 

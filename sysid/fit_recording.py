@@ -148,7 +148,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
 
     Raises:
         ConfigError: ``bag`` does not exist; ``out`` or ``write_scene`` exists and not ``force``; an
-            unknown parameter name; a fitted value the scene has no key for.
+            unknown parameter name; a fitted value the scene has no key for; ``write_scene`` for a task
+            scene (``kind: task``).
         ThinShellError: unreadable bag, invalid scene, failed fit (:class:`~sim_core.errors.BagReadError`,
             :class:`~sim_core.errors.CalibrationError`, ...).
     """
@@ -167,12 +168,15 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
+    if write_scene is not None and model.task:
+        raise ConfigError(f"{model.scene_source}: a fitted scene is written for version-1 tactile scenes only; "
+                          "this is a task scene (kind: task): drop --write-scene and read the values in fit.json")
     for name in options.params:  # an unknown name fails here, before the calibration's replay
         model.parameter_value(name)
     if on_model is not None:
         on_model(model, notes)
     sensor = None
-    if options.sensor_calibration:
+    if options.sensor_calibration and model.sensor is not None:  # a task scene may have no sensor
         sensor = calibrate(model, params=())
         if on_calibration is not None:
             on_calibration(sensor)

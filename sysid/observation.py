@@ -8,6 +8,16 @@ points in ``world``), and each observed stream is interpolated linearly in time 
 matching evidence channel (:meth:`ObservationModel.align`). The initial effector pose of the scene
 is replaced by the recorded pose at ``t_0`` so that the gel is built where the recording starts.
 
+A task scene (``kind: task``; :mod:`sim_core.scenes.task_scene`) is replayed the same way with
+every effector driven: each by its recorded ``<effector>/pose_cmd`` sampled at ``t_{k-1}`` (the
+command of step k is stamped at the step's start; ``thinshell sim`` logs it every step, whatever its
+output rate, and the replay applies the same effector rate limits), or, where no command was recorded
+(an effector held still), by its ``<effector>/pose`` resampled at ``t_k`` as above; its finger opening
+by ``<effector>/gripper_cmd`` sampled at ``t_{k-1}`` when recorded (``Evidence.effectors``). Each
+effector starts at its recorded pose at ``t_0``. A task scene without a tactile sensor
+has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are the vertices of its body named
+``sheet`` in grid order (``Simulation.observe``), their count checked against the recording.
+
 Residuals are whitened per channel and axis by the white-noise level estimated from the recording
 (``Evidence.noise``, :mod:`sysid.noise`): ``r = (y_data - y_sim) / sigma``, so that weighted least
 squares with ``W = diag(1 / sigma^2)`` is ordinary least squares on ``r``.
@@ -32,10 +42,12 @@ from sim_core.errors import CalibrationError
 from sim_core.fused_elastic import compile_kernels
 from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
+from sim_core.scenes.task_file import TaskSceneFile, is_task_scene, load_any_scene_file
+from sim_core.scenes.task_scene import build_task_scene
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
-from sysid.evidence import Evidence, resample_pose
+from sysid.evidence import Evidence, resample, resample_pose
 
 PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 """Evidence channels the simulator predicts."""
@@ -169,8 +181,10 @@ def scene_dict_for(evidence: Evidence, scene: str | Path | Mapping[str, Any] | S
             raise CalibrationError(f"{evidence.source.bag_path}: the bag has no scene.yaml; pass a scene file")
         parsed = evidence.scene
     else:
-        parsed = load_scene_file(scene)
+        parsed = load_any_scene_file(scene)
     out = copy.deepcopy(parsed.to_dict())
+    if isinstance(parsed, TaskSceneFile):
+        return out  # validated when its model is built
     if simulation:
         block = dict(out.get("simulation") or {})
         block.update(simulation)
@@ -199,7 +213,10 @@ class ObservationModel:
     Attributes:
         evidence: the (cropped) recording.
         scene: the scene dict actually simulated.
-        sensor, effector: names of the tactile sensor and its effector.
+        sensor, effector: names of the tactile sensor and its effector (None for a task scene).
+        task: True for a task scene (``kind: task``): every effector replayed (module docstring).
+        task_controls, task_grippers: of a task scene, effector -> targets ``(K + 1, 7)`` and
+            effector -> finger openings ``(K + 1,)`` m (row k drives step k).
         channels: fitted channels, in residual order.
         dropped: channel -> why it is not fitted.
         sigma: channel -> per-axis noise level used for whitening.
@@ -214,7 +231,8 @@ class ObservationModel:
 
     Raises:
         CalibrationError: no pose channel, no fittable channel, bad ``dt`` / ``t_max``, or a sensor
-            that the scene does not define.
+            that the scene does not define; of a task scene, an effector without a recorded pose or
+            pose_cmd topic, or tactile channels asked of a scene without a sensor.
     """
 
     def __init__(self, evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
@@ -242,8 +260,15 @@ class ObservationModel:
         self.dt = float(dt)
         self.t_max = t_max
         self.scene = scene_dict_for(evidence, scene, simulation)
-        self.sensor, self.effector = self._pick_sensor()
-        self.scene["effectors"][self.effector]["initial_pose"] = [float(v) for v in evidence.pose[0]]
+        self.task = is_task_scene(self.scene)
+        if self.task:
+            parsed = evidence.scene if scene is None else load_any_scene_file(scene)
+            self._base_dir = getattr(parsed, "base_dir", None)
+            self.sensor, self.effector = None, None
+            self._task_effectors = self._task_streams()
+        else:
+            self.sensor, self.effector = self._pick_sensor()
+            self.scene["effectors"][self.effector]["initial_pose"] = [float(v) for v in evidence.pose[0]]
         self._choose_channels(channels)
         self.sigma = self._noise_levels(noise)
         self._build_replay()
@@ -269,6 +294,25 @@ class ObservationModel:
                           "replaying it on that effector", ObservationWarning, stacklevel=3)
         return name, effector
 
+    def _task_streams(self) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+        """The recorded streams of every effector of a task scene; each effector's initial pose becomes
+        its recorded pose at ``t_0``.
+
+        Raises:
+            CalibrationError: an effector of the scene has neither a pose nor a pose_cmd stream.
+        """
+        ev = self.evidence
+        streams = ev.effectors
+        t0 = np.asarray([ev.t_ns["pose"][0]], dtype=np.int64)
+        for name, spec in (self.scene.get("effectors") or {}).items():
+            got = streams.get(name, {})
+            source = got.get("pose") or got.get("pose_cmd")
+            if source is None:
+                raise CalibrationError(f"{ev.source.bag_path}: effector {name!r} of {self.scene_source} has no "
+                                       f"recorded pose or pose_cmd topic; its motion cannot be replayed")
+            spec["initial_pose"] = [float(v) for v in resample_pose(source[0], source[1], t0, outside="clamp")[0]]
+        return streams
+
     @property
     def scene_source(self) -> str:
         """Where the scene came from (for messages)."""
@@ -285,6 +329,15 @@ class ObservationModel:
             wanted = list(channels)
         self.dropped: dict[str, str] = {}
         chosen = []
+        if self.task and not (self.scene.get("sensors") or {}):
+            tactile = [ch for ch in wanted if ch != "sheet_points"]
+            if tactile and channels is not None:
+                raise CalibrationError(f"{self.scene_source}: the scene has no tactile sensor; channels "
+                                       f"{', '.join(tactile)} cannot be fitted (fittable: sheet_points)")
+            warnings.warn(f"{self.scene_source}: the scene has no tactile sensor; fitting without tactile channels "
+                          "(markers, wrench)", ObservationWarning, stacklevel=3)
+            wanted = [ch for ch in wanted if ch == "sheet_points"]
+            self.dropped.update({ch: "the scene has no tactile sensor" for ch in tactile})
         for ch in wanted:
             if ch not in PREDICTABLE_CHANNELS:
                 raise CalibrationError(f"channel {ch!r} cannot be fitted (fittable: {', '.join(PREDICTABLE_CHANNELS)})")
@@ -296,8 +349,9 @@ class ObservationModel:
                 continue
             chosen.append(ch)
         if not chosen:
+            why = "; ".join(self.dropped[ch] for ch in wanted if ch in self.dropped)
             raise CalibrationError(f"{self.evidence.source.bag_path}: none of the channels {', '.join(wanted)} is in "
-                                   "the recording; nothing to fit")
+                                   f"the recording ({why}); nothing to fit")
         self.channels = tuple(chosen)
 
     def _noise_levels(self, noise: Mapping[str, Sequence[float]] | None) -> dict[str, np.ndarray]:
@@ -327,6 +381,8 @@ class ObservationModel:
         steps = max(1, int(math.ceil((t_end - t0) / dt_ns)))
         self.step_times_ns = t0 + dt_ns * np.arange(steps + 1, dtype=np.int64)
         self.controls = resample_pose(t_pose, ev.pose, self.step_times_ns, outside="clamp")
+        if self.task:
+            self._build_task_controls(dt_ns)
         self._interp = {}
         for ch in PREDICTABLE_CHANNELS:
             if ch in ev.channels_present:
@@ -335,6 +391,22 @@ class ObservationModel:
                 if not keep.all():
                     raise CalibrationError(f"{ev.source.bag_path}: {ch} has samples before the first pose stamp")
                 self._interp[ch] = _interpolation(self.step_times_ns, t)
+
+    def _build_task_controls(self, dt_ns: int) -> None:
+        """Per-effector targets ``(K + 1, 7)`` and finger openings ``(K + 1,)`` of a task scene's replay."""
+        before = np.maximum(self.step_times_ns - dt_ns, self.step_times_ns[0])  # t_{k-1}: a command's stamp
+        self.task_controls: dict[str, np.ndarray] = {}
+        self.task_grippers: dict[str, np.ndarray] = {}
+        for name, got in self._task_effectors.items():
+            if name not in (self.scene.get("effectors") or {}):
+                continue
+            if "pose_cmd" in got:
+                self.task_controls[name] = resample_pose(*got["pose_cmd"], before, outside="clamp")
+            else:
+                self.task_controls[name] = resample_pose(*got["pose"], self.step_times_ns, outside="clamp")
+            if "gripper_cmd" in got:
+                t, v = got["gripper_cmd"]
+                self.task_grippers[name] = resample(t, v, before, outside="clamp")
 
     # ------------------------------------------------------------------------------ simulation
     @property
@@ -348,9 +420,25 @@ class ObservationModel:
         if self._sim is None:
             # the backend starts (Taichi initialised once) with the solver; ConfigError names a problem
             config = SolverConfig(backend=backend_of_arch(self.arch), dt_halvings_on_failure=REPLAY_DT_HALVINGS)
-            self._sim = Simulation(load_scene(self.scene), dt=self.dt, solver_config=config)
+            model = build_task_scene(self.scene, self._base_dir) if self.task else load_scene(self.scene)
+            self._sim = Simulation(model, dt=self.dt, solver_config=config)
+            if self.task:
+                self._check_task_model(self._sim)
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
         return self._sim
+
+    def _check_task_model(self, sim) -> None:
+        """The recorded sheet points must be the task model's tracked points.
+
+        Raises:
+            CalibrationError: another point count (names the topic).
+        """
+        if "sheet_points" in self.evidence.channels_present:
+            p = self.evidence.sheet_points.shape[1]
+            n = np.asarray(sim.observe().sheet_points).shape[0]
+            if p != n:
+                topic = self.evidence.source.topics.get("sheet_points", "sheet/points")
+                raise CalibrationError(f"topic {topic} has {p} points but the scene {self.scene_source} tracks {n}")
 
     def compile_kernels(self) -> float:
         """JIT-compile, in this process, the Taichi kernels a replay calls; seconds (0 for ``numpy``).
@@ -418,6 +506,10 @@ class ObservationModel:
     def control(self, k: int, guess: np.ndarray | None = None) -> Control:
         """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``; with ``guess``
         ``(K + 1, n, 3)``, row ``k`` is the step's Newton start (``Control.position_guess``)."""
+        if self.task:
+            return Control({n: c[k].copy() for n, c in self.task_controls.items()},
+                           gripper_target={n: float(g[k]) for n, g in self.task_grippers.items()},
+                           position_guess=None if guess is None else guess[k])
         pose = self.controls[k].copy()
         if self.normal_offset:
             pose[:3] += self.normal_offset * self._sensor_normal(pose)
@@ -528,6 +620,8 @@ class ObservationModel:
 
     def _observe(self, sim, state=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         o = sim.observe(state=state)
+        if self.sensor is None:
+            return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(6), np.asarray(o.sheet_points, float)
         r = o.tactile[self.sensor]
         return (np.asarray(r.markers_xyz, float), np.asarray(r.markers_uv, float), np.asarray(r.wrench, float),
                 np.asarray(o.sheet_points, float))

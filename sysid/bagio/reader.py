@@ -37,7 +37,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from sim_core.errors import BagReadError, ConfigError
-from sim_core.scenes.scene_file import SceneFile, load_scene_file, load_yaml
+from sim_core.scenes.scene_file import SceneFile, load_yaml
+from sim_core.scenes.task_file import TaskSceneFile, load_any_scene_file
 from sysid.bagio import codec
 from sysid.bagio.errors import BagWarning
 from sysid.data import DEFAULT_CONFIG, data_file
@@ -211,6 +212,8 @@ def resolve_roles(config: BagConfig | None = None, scene: SceneFile | None = Non
         only = next(iter(scene.sensors.values()))
         sensor = sensor or only.name
         effector = effector or only.effector
+    if isinstance(scene, TaskSceneFile) and scene.effector_names:
+        effector = effector or scene.effector_names[0]
     effector, sensor = effector or "ee", sensor or "tactile"
     out = {r: _join(config.namespace, ROLE_TEMPLATES[r].format(effector=effector, sensor=sensor)) for r in ROLES}
     for source in (config.topics, roles or {}):
@@ -420,11 +423,13 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
 
     mcap_path, scene_dir, meta_dir = _locate(path)
     if scene is not None:
-        scene_path = Path(scene.source) if isinstance(scene, SceneFile) else Path(scene).absolute()
-        scene = load_scene_file(scene)
+        scene_path = Path(scene.source) if isinstance(scene, (SceneFile, TaskSceneFile)) else Path(scene).absolute()
+        scene = load_any_scene_file(scene)
     else:
         scene_path = scene_dir / SCENE_FILENAME
-        scene = load_scene_file(scene_path) if scene_path.is_file() else None
+        scene = load_any_scene_file(scene_path) if scene_path.is_file() else None
+    if isinstance(scene, TaskSceneFile) and not scene.sensors:
+        skip_roles = (*skip_roles, "markers", "wrench", "image")  # a task scene without a tactile sensor
     if not isinstance(config, BagConfig):
         config = load_bag_config(config)
     role_topics = resolve_roles(config, scene, roles)
@@ -470,3 +475,49 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
         series=series, missing_roles=tuple(missing), scene=scene, scene_path=scene_path if scene else None,
         start_ns=start, end_ns=end, notes=tuple(notes),
     )
+
+
+EFFECTOR_STREAMS = {"pose": codec.POSE_STAMPED, "pose_cmd": codec.POSE_STAMPED, "gripper_cmd": codec.FLOAT64}
+"""Per-effector streams of a task-scene recording (``<namespace>/<effector>/<stream>``) and their types."""
+
+
+def read_effector_streams(path: str | Path, effectors: list[str], namespace: str = "/thinshell"
+                          ) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Every effector's ``pose``, ``pose_cmd`` and ``gripper_cmd`` stream of a recording.
+
+    A task scene moves several effectors (and grippers); :func:`open_bag` reads the role topics of
+    one effector only, this reads them all. Samples are cleaned as :func:`open_bag` does.
+
+    Args:
+        path: rosbag2 directory or ``.mcap`` file.
+        effectors: effector names of the scene.
+        namespace: topic prefix.
+
+    Returns:
+        effector -> stream -> ``(t_ns (N,) int64, values)``, values ``(N, 7)`` poses [x y z qx qy
+        qz qw] (m) or ``(N,)`` finger openings (m); streams not in the bag are absent. ``gripper_cmd``
+        (``std_msgs/Float64``, no header) is stamped with its log time.
+
+    Raises:
+        BagReadError: unreadable bag, or a stream topic of another message type (names the topic).
+    """
+    path = Path(path).absolute()
+    mcap_path, _, meta_dir = _locate(path)
+    topic_of = {(e, k): _join(namespace, f"{e}/{k}") for e in effectors for k in EFFECTOR_STREAMS}
+    topics, raw = _read_raw(path, mcap_path, meta_dir is not None, set(topic_of.values()))
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for (effector, kind), topic in topic_of.items():
+        items = raw.get(topic, [])
+        if not items:
+            continue
+        if topics[topic].msgtype != EFFECTOR_STREAMS[kind]:
+            raise BagReadError(f"topic {topic} has type {topics[topic].msgtype}, expected {EFFECTOR_STREAMS[kind]} "
+                               f"in {path}")
+        if kind == "gripper_cmd":
+            t_ns = np.asarray([log for log, _ in items], dtype=np.int64)
+            values = np.asarray([codec.parse_float64(m) for _, m in items], dtype=np.float64)
+        else:
+            t_ns, values, _, _ = _decode("pose", topic, items)
+        t_ns, values, _, _ = _clean(kind, topic, t_ns, values, lambda m: warnings.warn(m, BagWarning, stacklevel=3))
+        out.setdefault(effector, {})[kind] = (t_ns, values)
+    return out
