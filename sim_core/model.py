@@ -206,6 +206,19 @@ class Model:
             out[b.vertex_start : b.vertex_stop] = i
         return out
 
+    def tracked_sheets(self) -> list[Body]:
+        """The sheet bodies whose vertices are the tracked ``sheet/points`` (INTERFACES.md): the body
+        named ``sheet`` when there is one, else every body of kind ``sheet`` in ``bodies`` order (a
+        stack of cards)."""
+        if "sheet" in self.bodies:
+            return [self.bodies["sheet"]]
+        return [b for b in self.bodies.values() if b.kind == "sheet"]
+
+    def tracked_sheet_vertices(self) -> np.ndarray:
+        """Global indices of the tracked sheet points in their published order, shape ``(p,)`` int64."""
+        parts = [np.arange(b.vertex_start, b.vertex_stop, dtype=np.int64) for b in self.tracked_sheets()]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
     # ------------------------------------------------------------------ mass
     def vertex_mass(self) -> np.ndarray:
         """Lumped vertex masses in kg, shape ``(vertex_count,)``.

@@ -230,9 +230,9 @@ def observation_sensitivities(model: Model, trajectory: Trajectory, dX: np.ndarr
     if dX.ndim != 4 or dX.shape[:3] != (T + 1, model.vertex_count, 3):
         raise ConfigError(f"observation_sensitivities: dX has shape {dX.shape}, expected (T+1, n, 3, P) with T = {T}")
     out: dict[str, np.ndarray] = {}
-    sheet = model.bodies.get("sheet")
-    if sheet is not None:
-        out["sheet_points"] = dX[:, sheet.vertex_start:sheet.vertex_stop]
+    tracked = model.tracked_sheet_vertices()
+    if tracked.size:
+        out["sheet_points"] = dX[:, tracked]
     if not model.sensors:
         return out
     name = sensor if sensor is not None else next(iter(model.sensors))

@@ -140,10 +140,11 @@ class Simulation:
                 s.spec, s.camera, s.embedding, state.x, s.contact_triangles, self.sensor_pose(name, state),
                 state.contact_force, gel.vertices, render_image=render_image,
             )
-        sheet = self.model.bodies.get("sheet")
-        if sheet is not None:
-            pts = state.x[sheet.vertex_start : sheet.vertex_stop].copy()
-            tris = sheet.triangles - sheet.vertex_start
+        sheets = self.model.tracked_sheets()
+        if sheets:
+            pts = state.x[self.model.tracked_sheet_vertices()].copy()
+            offsets = np.cumsum([0] + [b.vertex_stop - b.vertex_start for b in sheets[:-1]])
+            tris = np.concatenate([b.triangles - b.vertex_start + o for b, o in zip(sheets, offsets)])
         else:
             pts, tris = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
         return Observation(
