@@ -42,6 +42,18 @@ REWARD_FD_STEP = 1e-6
 """Central-difference step of the fallback reward gradient (m for positions, rad for rest angles)."""
 
 
+def episode_horizon(task, horizon: int | None) -> int:
+    """The steps of an episode of ``task``: ``horizon``, or the task's when None.
+
+    Raises:
+        ConfigError: a horizon outside ``1..task.horizon``.
+    """
+    steps = int(horizon if horizon is not None else task.horizon)
+    if not 1 <= steps <= task.horizon:
+        raise ConfigError(f"task {task.name}: episode horizon must be in 1..{task.horizon}, got {steps}")
+    return steps
+
+
 @dataclass
 class EpisodeResult:
     """What one episode gave.
@@ -148,9 +160,7 @@ class Episode:
         from sim_core.tasks.rollout import TaskEpisode
 
         self.task = task
-        self.horizon = int(horizon if horizon is not None else task.horizon)
-        if not 1 <= self.horizon <= task.horizon:
-            raise ConfigError(f"task {task.name}: episode horizon must be in 1..{task.horizon}, got {self.horizon}")
+        self.horizon = episode_horizon(task, horizon)
         self.runner = TaskEpisode(task, dict(params) if params else None,
                                   solver_config=solver_config or SolverConfig(dt_halvings_on_failure=0))
         self.sim: Simulation = self.runner.sim

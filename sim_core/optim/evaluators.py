@@ -16,7 +16,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import ConfigError
-from sim_core.optim.episode import Episode, EpisodeResult
+from sim_core.optim.episode import Episode, EpisodeResult, episode_horizon
 from sim_core.solver_config import SolverConfig
 
 
@@ -79,9 +79,7 @@ class BatchedEvaluator:
     def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
                  solver_config: SolverConfig | None = None) -> None:
         self.task = task
-        self.horizon = int(horizon if horizon is not None else task.horizon)
-        if not 1 <= self.horizon <= task.horizon:
-            raise ConfigError(f"task {task.name}: episode horizon must be in 1..{task.horizon}, got {self.horizon}")
+        self.horizon = episode_horizon(task, horizon)
         self.params = dict(params or {})
         self.solver_config = solver_config or SolverConfig(dt_halvings_on_failure=0)
 

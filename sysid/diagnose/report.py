@@ -174,7 +174,16 @@ def write_report(doc: Mapping[str, Any], diagnosis: Any, out_dir: str | Path) ->
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     images = plot_residuals(diagnosis, out)
-    md = _markdown(doc, images)
+    return write_report_files(doc, _markdown(doc, images), images, out)
+
+
+def write_report_files(doc: Mapping[str, Any], md: str, images: list[Path], out: Path) -> list[Path]:
+    """Write ``report.md`` (``md``), ``report.html`` (the text and the ``images``) and ``diagnosis.json``
+    (``doc``) into ``out``.
+
+    Returns:
+        written paths, the images last.
+    """
     (out / "report.md").write_text(md)
     body = "".join(f"<p><img src='{html.escape(p.name)}'></p>" for p in images)
     (out / "report.html").write_text("<html><body><pre>" + html.escape(md) + "</pre>" + body + "</body></html>\n")

@@ -183,7 +183,6 @@ def refit_lens(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 
     def fit(rows: np.ndarray, radial: bool) -> np.ndarray:
         A_u, A_v = lens_design(xyz[rows], rec.camera)
-        cols = slice(0, 4) if radial else slice(0, 2)
         n = A_u.shape[0]
         J = np.zeros((2 * n, 6))
         J[:n, 0:2], J[n:, 2:4] = A_u[:, :2] / sig[0], A_v[:, :2] / sig[1]
@@ -191,7 +190,6 @@ def refit_lens(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
             J[:n, 4:6], J[n:, 4:6] = A_u[:, 2:] / sig[0], A_v[:, 2:] / sig[1]
         y = np.concatenate([uv[rows][..., 0].reshape(-1) / sig[0], uv[rows][..., 1].reshape(-1) / sig[1]])
         c, *_ = np.linalg.lstsq(J[:, :6 if radial else 4], y, rcond=None)
-        del cols
         return np.concatenate([c, np.zeros(6 - len(c))])
 
     def predict(rows: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -7,13 +7,13 @@ the baseline's whitened RMS per channel before and after calibration.
 
 from __future__ import annotations
 
-import html
 import json
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from sysid.diagnose.report import write_report_files
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
 
@@ -154,9 +154,4 @@ def write_signature_report(doc: Mapping[str, Any], prepared: Any, out_dir: str |
         p = _plot_effect(doc, prepared, e, out)
         if p is not None:
             images.append(p)
-    md = markdown(doc, images)
-    (out / "report.md").write_text(md)
-    body = "".join(f"<p><img src='{html.escape(p.name)}'></p>" for p in images)
-    (out / "report.html").write_text("<html><body><pre>" + html.escape(md) + "</pre>" + body + "</body></html>\n")
-    (out / "diagnosis.json").write_text(json.dumps(doc, indent=2) + "\n")
-    return [out / "report.md", out / "report.html", out / "diagnosis.json", *images]
+    return write_report_files(doc, markdown(doc, images), images, out)
