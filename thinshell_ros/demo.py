@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import time
 import warnings
@@ -46,7 +45,8 @@ from sysid.compare import compare_main
 from sysid.diagnose.cli import diagnose_main
 from sysid.fitted_scene import scene_with_values
 from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
-                                     robot_noise_args, run_deploy_stage, stop_process, write_hidden_scene)
+                                     robot_noise_args, run_deploy_stage, start_sim_node, stop_process,
+                                     write_hidden_scene)
 from thinshell_ros.paths import bundled_scene, config_dir
 
 DEFAULT_BAG = "nominal_s101"
@@ -199,19 +199,12 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
     from thinshell_ros.commander import CommanderNode
 
     log_path = run / "sim_node.log"
-    env = dict(os.environ)
-    repo = str(Path(__file__).resolve().parents[1])
-    env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={scene}",
-           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={result.recorded_bag}",
-           "-p", f"record_scene:={record_scene or scene}", *extra_args]
     console.print(f"[bold]1/6 robot[/bold]: thinshell-sim-node ({mode} mode) on {scene.name}, "
                   f"recording into {result.recorded_bag} (log {log_path})")
     t0 = time.monotonic()
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    with open(log_path, "w") as log:
-        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = start_sim_node(scene, result.recorded_bag, record_scene or scene, log_path, mode=mode, extra_args=extra_args)
     node = executor = None
     try:
         node = CommanderNode(context=ctx, parameter_overrides=[

@@ -24,7 +24,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -48,6 +48,24 @@ bundled recording ``bags/nominal_s101``."""
 
 WRENCH_LIMIT = 40.0
 """N: the deploy node's wrench limit on the demo robot (its stiffer gel presses the card with about 20 N)."""
+
+
+def start_sim_node(scene: Path, bag: Path, record_scene: Path, log_path: Path, mode: str = "fast",
+                   extra_args: Sequence[str] = ()) -> subprocess.Popen:
+    """Start ``thinshell-sim-node`` on ``scene`` as a subprocess of this checkout, recording into
+    ``bag`` with ``record_scene`` as the bag's scene.yaml; its output goes to ``log_path``.
+
+    Returns:
+        the process (stop it with :func:`stop_process`).
+    """
+    env = dict(os.environ)
+    repo = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={scene}",
+           "-p", f"mode:={mode}", "-p", "mesh_rate:=0.0", "-p", f"record:={bag}", "-p", f"record_scene:={record_scene}",
+           *extra_args]
+    with open(log_path, "w") as log:
+        return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
 
 
 def stop_process(proc: subprocess.Popen, timeout: float = 60.0) -> int:
@@ -138,17 +156,10 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
 
     from thinshell_ros.deploy_node import DeployNode
 
-    env = dict(os.environ)
-    repo = str(Path(__file__).resolve().parents[1])
-    env["PYTHONPATH"] = repo + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"scene:={hidden_scene}",
-           "-p", "mode:=fast", "-p", "mesh_rate:=0.0", "-p", f"record:={bag}", "-p", f"record_scene:={nominal}",
-           *robot_noise_args(seed=2)]
     t0 = time.monotonic()
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    with open(log_path, "w") as log:
-        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = start_sim_node(hidden_scene, bag, nominal, log_path, extra_args=robot_noise_args(seed=2))
     node = executor = None
     try:
         node = DeployNode(context=ctx, parameter_overrides=[
