@@ -91,6 +91,12 @@ class SolverConfig:
             takes ever shorter steps for ~20 iterations before its line search fails outright
             (folding.yaml, dome dragging the fold: 53 iterations in one step; 10 halvings make it
             21 iterations). Where no side is stale this changes nothing.
+        lockstep: how a :class:`~sim_core.batch.BatchedSimulation` of copies with these settings
+            steps them: False (default) one copy after another, each with its own solver; True all
+            together, one Newton iteration for all copies on their stacked model
+            (:mod:`sim_core.batch.lockstep`: one evaluation per energy term and one linear solve for
+            all copies, per-copy convergence, line search and failure). A single
+            :class:`~sim_core.simulation.Simulation` ignores it.
     """
 
     tol_velocity: float = 1e-4
@@ -111,6 +117,7 @@ class SolverConfig:
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
+    lockstep: bool = False
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
