@@ -42,7 +42,9 @@ class SolverConfig:
             ``projection="none"``, the ``projection`` Hessian is always used. Per-element projection
             discards negative curvature the neighbours would compensate, so projected Newton only
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
-        linear_solver: "pardiso" or "scipy".
+        linear_solver: "pardiso" or "scipy"; in a lockstep batch also "pcg" (the batched conjugate
+            gradient on the Taichi device, :mod:`sim_core.ti_kernels.pcg`; a lockstep batch on
+            ``taichi-cuda`` takes it for "pardiso").
         backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
             the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
             fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
@@ -121,6 +123,8 @@ class SolverConfig:
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
+        if self.linear_solver == "pcg" and self.backend == "numpy":
+            raise ConfigError("solver linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not 'numpy'")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
         if self.stale_side_backtracks < 1:

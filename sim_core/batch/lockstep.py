@@ -37,8 +37,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim_core.batch.stacked import StackedScene
+from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.errors import SimulationDivergedError
+from sim_core.errors import ConfigError
 from sim_core.solver import NewtonSolver
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
@@ -73,7 +74,13 @@ class LockstepSolver(NewtonSolver):
 
     Args:
         scene: the stacked scene.
-        config: solver settings of every copy.
+        config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
+            ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
+            (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix); else the
+            named direct solver on the stacked matrix.
+
+    Raises:
+        ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
 
     Attributes:
         scene: the stacked scene.
@@ -83,7 +90,17 @@ class LockstepSolver(NewtonSolver):
     """
 
     def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
+        config = config or SolverConfig()
         super().__init__(scene.model, config)
+        self.pcg = None
+        if config.linear_solver == "pcg" or (self.backend == "taichi-cuda" and config.linear_solver == "pardiso"):
+            if not uses_taichi(self.backend):
+                raise ConfigError(f"linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {self.backend!r}")
+            from sim_core.ti_kernels.pcg import BatchedPCG  # Taichi kernels: loaded on a Taichi backend only
+
+            segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+            segments[scene.index] = np.arange(scene.copies)[:, None]
+            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3))
         self.scene = scene
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
@@ -180,6 +197,10 @@ class LockstepSolver(NewtonSolver):
             bad = open_ & ~np.all(np.isfinite(dB), axis=(1, 2))
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
+            if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
+                raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
+                           f"conjugate gradient did not converge at Newton iteration {it} "
+                           f"({self.pcg.max_iterations} iterations)")
             dB[~open_] = 0.0
             step_max = np.linalg.norm(dB, axis=2).max(axis=1) if n else np.zeros(B)
             for i in np.flatnonzero(open_):
@@ -356,7 +377,6 @@ class LockstepEngine:
 
     def __init__(self, sims) -> None:
         from sim_core.batch.stacked import stack_models
-        from sim_core.errors import ConfigError
 
         ref = sims[0]
         for i, sim in enumerate(sims):
