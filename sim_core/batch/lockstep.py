@@ -276,8 +276,14 @@ class LockstepSolver(NewtonSolver):
 
     def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
         """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
-        entries kept: :meth:`NewtonSolver._newton_direction` without its finiteness test (a copy's NaN
-        fails that copy alone)."""
+        entries kept (a copy's NaN fails that copy alone). With a direct solver:
+        :meth:`NewtonSolver._newton_direction` without its finiteness test (the exact Hessian when the
+        stacked matrix factorises as positive definite, else the projected one for every copy). With
+        the batched CG (:attr:`pcg`) the choice is per copy: the exact Hessian's solution for every
+        copy whose CG met no negative curvature and whose update descends, the projected Hessian's for
+        the others (the blocks are independent, so each copy's update is the one its own solve gives)."""
+        if self.pcg is not None:
+            return self._direction_pcg(step, x, g, contact_terms, info)
         dynamic_terms = contact_terms + step.dynamic_terms
         d = None
         factorization = self.linear_solver
@@ -304,6 +310,41 @@ class LockstepSolver(NewtonSolver):
             info.time_linear_solve += time.perf_counter() - tl
         d[~step.free] = 0.0
         return d, H, projection, factorization
+
+    def _direction_pcg(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
+        """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
+        cfg = self.config
+        dynamic_terms = contact_terms + step.dynamic_terms
+        dofs = self._dofs
+        pcg = self.pcg
+        projections = ("none", cfg.projection) if cfg.exact_hessian_first and cfg.projection != "none" else (cfg.projection,)
+        rhs = g
+        d = np.zeros_like(g)
+        todo = np.any(g[dofs] != 0.0, axis=1)  # copies with an update to find
+        H, projection = None, cfg.projection
+        for k, projection in enumerate(projections):
+            ta = time.perf_counter()
+            H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            tl = time.perf_counter()
+            info.time_assembly += tl - ta
+            info.factorizations += 1
+            pcg.factorize(H)
+            dk = -pcg.solve(rhs)
+            info.time_linear_solve += time.perf_counter() - tl
+            dk[~step.free] = 0.0
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.all(np.isfinite(dk[dofs]), axis=1)
+            if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
+                ok &= np.einsum("ij,ij->i", g[dofs], dk[dofs]) < 0.0
+            d[dofs[ok]] = dk[dofs[ok]]
+            info.projected_iterations += projection != "none" and bool(ok.any())
+            todo &= ~ok
+            if not todo.any() or k + 1 == len(projections):
+                if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
+                    d[dofs[todo]] = dk[dofs[todo]]
+                break
+            rhs = g.copy()
+            rhs[dofs[~todo]] = 0.0
+        return d, H, projection, pcg
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, info: StepInfo):
