@@ -106,6 +106,14 @@ class LockstepSolver(NewtonSolver):
         self._dofs = scene.dof_index  # (B, 3n)
         self.last_stacked_info: StepInfo | None = None
 
+    def _projections(self) -> tuple[str, ...]:
+        """:meth:`NewtonSolver._projections`; with the batched CG, which tells indefinite copies apart
+        (:meth:`_direction_pcg`), the exact Hessian first too (and the fused elastic kernels with it)."""
+        cfg = self.config
+        if self.pcg is not None and cfg.exact_hessian_first and cfg.projection != "none":
+            return ("none", cfg.projection)
+        return super()._projections()
+
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary`, with the vertices of the :attr:`held` copies fixed at their
         positions in ``state``."""
@@ -317,7 +325,7 @@ class LockstepSolver(NewtonSolver):
         dynamic_terms = contact_terms + step.dynamic_terms
         dofs = self._dofs
         pcg = self.pcg
-        projections = ("none", cfg.projection) if cfg.exact_hessian_first and cfg.projection != "none" else (cfg.projection,)
+        projections = self._projections()
         rhs = g
         d = np.zeros_like(g)
         todo = np.any(g[dofs] != 0.0, axis=1)  # copies with an update to find

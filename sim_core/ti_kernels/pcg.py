@@ -4,7 +4,9 @@ batch solved on the device, one independent CG per copy.
 :class:`BatchedPCG` follows the :class:`~sim_core.linsolve.SymmetricSolver` contract (``factorize``
 takes the upper triangle of the symmetric Newton matrix, ``solve`` one right-hand side). The matrix,
 its 3x3 vertex-block Jacobi preconditioner and every CG vector stay in Taichi ndarrays (device memory
-on CUDA); each iteration is five kernel launches over all copies:
+on CUDA); each iteration is five passes over all copies, and one kernel launch runs
+:data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its top-level loops, which Taichi runs one
+after the other on the device):
 
 * ``A p`` from the upper triangle (CSR): each stored entry ``a_ij`` adds ``a_ij p_j`` to row ``i``
   and, off the diagonal, ``a_ij p_i`` to row ``j`` (atomic adds);
@@ -18,7 +20,7 @@ on CUDA); each iteration is five kernel launches over all copies:
 Copies are independent CGs (Hestenes & Stiefel 1952; preconditioned form: Saad, Iterative Methods
 for Sparse Linear Systems, 2nd ed., Alg. 9.1), each with its own step sizes and stopping test, so a
 copy's solution does not depend on the others. The host reads the count of running copies after
-every iteration (the one synchronisation per iteration). The matrix must be positive definite (the projected Newton matrix):
+each launch (its one synchronisation); a copy that has stopped is left unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
 :attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
 """
 
@@ -75,85 +77,72 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz
             bb[s] += b[i] * b[i]
 
 
-@ti.kernel
-def _spmv_upper(indptr: _I32, indices: _I32, data: _F64, p: _F64, ap: _F64, n: ti.i32):
-    """``ap += A p`` for the symmetric ``A`` stored as its upper triangle (``ap`` zeroed before)."""
-    for i in range(n):
-        acc = 0.0
-        pi = p[i]
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            a = data[k]
-            acc += a * p[j]
-            if j != i:
-                ti.atomic_add(ap[j], a * pi)
-        ti.atomic_add(ap[i], acc)
+ITERATIONS_PER_LAUNCH = 8
+"""CG iterations of one launch of :func:`_cg_iterations` (the host tests for the end between launches)."""
 
 
 @ti.kernel
-def _dot_seg(u: _F64, w: _F64, seg: _I32, out: _F64, n: ti.i32):
-    """Per copy ``out[c] += sum_{seg[i] = c} u_i w_i``."""
-    for i in range(n):
-        ti.atomic_add(out[seg[i]], u[i] * w[i])
-
-
-@ti.kernel
-def _update(x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, seg: _I32, rz: _F64, pap: _F64,
-            active: _I32, rz_new: _F64, rr: _F64, nvert: ti.i32):
-    """Running copies: ``x += alpha p``, ``r -= alpha Ap``, ``z = M^-1 r`` (``alpha = rz / pAp``); per copy
-    ``rz_new = r.z``, ``rr = r.r``."""
-    for v in range(nvert):
-        s = seg[3 * v]
-        if active[s] != 0 and pap[s] > 0:
-            alpha = rz[s] / pap[s]
-            for a in ti.static(range(3)):
-                i = 3 * v + a
-                x[i] += alpha * p[i]
-                r[i] -= alpha * ap[i]
-            for a in ti.static(range(3)):
-                i = 3 * v + a
-                acc = 0.0
-                for c in ti.static(range(3)):
-                    acc += inv[9 * v + 3 * a + c] * r[3 * v + c]
-                z[i] = acc
-                ti.atomic_add(rz_new[s], r[i] * acc)
-                ti.atomic_add(rr[s], r[i] * r[i])
-
-
-@ti.kernel
-def _per_copy(rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
-              rtol2: ti.f64, copies: ti.i32) -> ti.i32:
-    """Per copy: ``beta = rz_new / rz``; stop at ``rr <= rtol^2 bb`` or at ``pAp <= 0`` (``bad``);
-    accumulators reset. Returns the number of running copies."""
-    running = 0
+def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, inv: _F64, seg: _I32, x: _F64, r: _F64, z: _F64,
+                   p: _F64, ap: _F64, rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64,
+                   active: _I32, bad: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, copies: ti.i32):
+    """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``running[0]`` = copies still
+    running after them. Each top-level loop is one device pass, run in order: ``Ap`` (``ap`` zero on
+    entry and on exit), per copy ``p.Ap``, the update of ``x``, ``r``, ``z`` with per-copy ``r.z`` and
+    ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
+    for _ in ti.static(range(ITERATIONS_PER_LAUNCH)):
+        for i in range(n):  # ap += A p, A symmetric stored as its upper triangle
+            acc = 0.0
+            pi = p[i]
+            for k in range(indptr[i], indptr[i + 1]):
+                j = indices[k]
+                a = data[k]
+                acc += a * p[j]
+                if j != i:
+                    ti.atomic_add(ap[j], a * pi)
+            ti.atomic_add(ap[i], acc)
+        for i in range(n):
+            ti.atomic_add(pap[seg[i]], p[i] * ap[i])
+        for v in range(n // 3):
+            s = seg[3 * v]
+            if active[s] != 0 and pap[s] > 0:
+                alpha = rz[s] / pap[s]
+                for a in ti.static(range(3)):
+                    i = 3 * v + a
+                    x[i] += alpha * p[i]
+                    r[i] -= alpha * ap[i]
+                for a in ti.static(range(3)):
+                    i = 3 * v + a
+                    acc = 0.0
+                    for c in ti.static(range(3)):
+                        acc += inv[9 * v + 3 * a + c] * r[3 * v + c]
+                    z[i] = acc
+                    ti.atomic_add(rz_new[s], r[i] * acc)
+                    ti.atomic_add(rr[s], r[i] * r[i])
+        for c in range(copies):
+            b = 0.0
+            if active[c] != 0:
+                if pap[c] <= 0:
+                    active[c] = 0
+                    if bb[c] > 0:
+                        bad[c] = 1
+                elif rr[c] <= rtol2 * bb[c]:
+                    active[c] = 0
+                else:
+                    b = rz_new[c] / rz[c]
+                    rz[c] = rz_new[c]
+            beta[c] = b
+            rz_new[c] = 0.0
+            rr[c] = 0.0
+            pap[c] = 0.0
+        for i in range(n):
+            s = seg[i]
+            if active[s] != 0:
+                p[i] = z[i] + beta[s] * p[i]
+            ap[i] = 0.0
+    for _ in range(1):
+        running[0] = 0
     for c in range(copies):
-        b = 0.0
-        if active[c] != 0:
-            if pap[c] <= 0:
-                active[c] = 0
-                if bb[c] > 0:
-                    bad[c] = 1
-            elif rr[c] <= rtol2 * bb[c]:
-                active[c] = 0
-            else:
-                b = rz_new[c] / rz[c]
-                rz[c] = rz_new[c]
-                running += 1
-        beta[c] = b
-        rz_new[c] = 0.0
-        rr[c] = 0.0
-        pap[c] = 0.0
-    return running
-
-
-@ti.kernel
-def _direction(z: _F64, p: _F64, ap: _F64, seg: _I32, beta: _F64, active: _I32, n: ti.i32):
-    """Running copies: ``p = z + beta p``; ``Ap = 0`` for the next product."""
-    for i in range(n):
-        s = seg[i]
-        if active[s] != 0:
-            p[i] = z[i] + beta[s] * p[i]
-        ap[i] = 0.0
+        ti.atomic_add(running[0], active[c])
 
 
 class BatchedPCG:
@@ -171,7 +160,7 @@ class BatchedPCG:
         name: ``"pcg"``.
         detects_indefinite: False (the Newton solver then assembles the projected Hessian).
         factorizations: :meth:`factorize` calls.
-        iterations: CG iterations of the last solve.
+        iterations: CG iterations of the last solve (launches times :data:`ITERATIONS_PER_LAUNCH`).
         indefinite: copies whose matrix showed ``p.Ap <= 0`` in the last solve, shape ``(B,)`` bool.
         unconverged: copies still running after ``max_iterations``, shape ``(B,)`` bool.
     """
@@ -251,19 +240,15 @@ class BatchedPCG:
         nvert = n // 3
         _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], a["inv"], a["seg"], per["rz"], per["bb"], nvert)
         rtol2 = self.rtol ** 2
-        running = B
+        running = self._array("running", 1, ti.i32)
         it = 0
         while it < self.max_iterations:
-            it += 1
-            _spmv_upper(a["indptr"], a["indices"], a["data"], vec["p"], vec["ap"], n)
-            _dot_seg(vec["p"], vec["ap"], a["seg"], per["pap"], n)
-            _update(vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], a["seg"], per["rz"], per["pap"],
-                    active, per["rz_new"], per["rr"], nvert)
-            running = _per_copy(per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"], active, bad,
-                                rtol2, B)
-            if running == 0:
+            it += ITERATIONS_PER_LAUNCH
+            _cg_iterations(a["indptr"], a["indices"], a["data"], a["inv"], a["seg"], vec["x"], vec["r"], vec["z"],
+                           vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"],
+                           active, bad, running, rtol2, n, B)
+            if int(running.to_numpy()[0]) == 0:
                 break
-            _direction(vec["z"], vec["p"], vec["ap"], a["seg"], per["beta"], active, n)
         self.iterations = it
         self.indefinite = bad.to_numpy().astype(bool)
         self.unconverged = active.to_numpy().astype(bool)
