@@ -10,23 +10,32 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   the solver's stopping tests (:meth:`NewtonSolver._stop_reason`: velocity, force, stalled); a copy
   that has converged takes no further update (its right-hand side is zeroed, so its block of the
   solution is zero) while the others iterate;
-* step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy.
-  The line search tests the Armijo condition ``E_i(x + a d) <= E_i(x) + c a g_i.d_i`` with the energy
-  change estimated by the trapezoidal rule of the directional derivatives,
-  ``E_i(x + a d) - E_i(x) ~ a (g_i(x).d_i + g_i(x + a d).d_i) / 2`` (exact for a quadratic energy;
-  Nocedal & Wright, Numerical Optimization, 2nd ed., Sec. 3.5 on interpolating line searches), since
-  the per-copy gradient is a slice of the stacked gradient while the energy is one sum over all copies;
+* step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
+  a copy keeps a step once it passes, the others halve theirs. The per-copy gradient is a slice of the
+  stacked gradient, but the energy is one sum over all copies, so each trial step is tested twice:
+  first the Armijo condition with the energy change estimated by the trapezoidal rule of the
+  directional derivatives, ``E_i(x + a d) - E_i(x) ~ a (g_i(x).d_i + g_i(x + a d).d_i) / 2`` (exact
+  for a quadratic; Nocedal & Wright, Numerical Optimization, 2nd ed., Sec. 3.5), then, for the copies
+  that pass, the Armijo condition on the measured energy change of the group, split in halves
+  (one energy evaluation a split; the energy being a sum over copies, the other half's change is the
+  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`).
+  With one copy this is the separate run's line search; with several, a copy whose own energy test
+  fails while its group's holds (another copy's decrease covering it) is accepted: rare, since it must
+  pass the slope test too, but a difference from its separate run;
+* Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
+  is not positive definite is factorised again block by block, each copy taking the exact or the
+  projected block its own run would take);
 * failure: a copy whose gradient or update is not finite, whose line search fails with no relaxed
   acceptance and no stale contact side to release, or that has not converged in ``max_iterations``
   is reported with the reason, and the step is taken again from its start with that copy held fixed
   (Dirichlet at its positions), so that the others finish as they would without it.
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
-translated apart, :mod:`sim_core.batch.stacked`). Not done per copy: the exact-Hessian-first choice
-(one stacked Cholesky: when one copy's exact Hessian is not positive definite every copy takes the
-projected one that iteration), the simplified Newton and rate stopping tests, substep retries
+translated apart, :mod:`sim_core.batch.stacked`). Not done: the simplified Newton and rate stopping
+tests (a copy stops on the velocity, force or stalled test), substep retries
 (``dt_halvings_on_failure``) and position guesses. Each copy's result is its separate run's to the
-Newton tolerance, not bit for bit.
+Newton tolerance, not bit for bit (on a scene with several equilibria within reach, a copy whose path
+differs, e.g. by one more iteration, may settle in another one).
 """
 
 from __future__ import annotations
@@ -228,7 +237,7 @@ class LockstepSolver(NewtonSolver):
                 dB[uphill] = -gB[uphill].reshape(-1, n, 3)
                 slope[uphill] = -np.einsum("ij,ij->i", gB[uphill], gB[uphill])
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
-                step, x, dB, alpha, slope, open_, info)
+                step, x, dB, alpha, slope, open_, contact_terms, x_search, info)
             for i in np.flatnonzero(open_):
                 infos[i].backtracks += int(backtracks[i])
             failed_ls = open_ & ~accepted
@@ -284,40 +293,73 @@ class LockstepSolver(NewtonSolver):
 
     def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
         """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
-        entries kept (a copy's NaN fails that copy alone). With a direct solver:
-        :meth:`NewtonSolver._newton_direction` without its finiteness test (the exact Hessian when the
-        stacked matrix factorises as positive definite, else the projected one for every copy). With
-        the batched CG (:attr:`pcg`) the choice is per copy: the exact Hessian's solution for every
+        entries kept (a copy's NaN fails that copy alone). With a direct solver: one factorisation of the
+        stacked matrix (the exact Hessian first, :meth:`NewtonSolver._projections`) when it is positive
+        definite, else each copy's block on its own (:meth:`_direction_per_copy`), so that every copy
+        takes the matrix its separate run takes. With the batched CG (:attr:`pcg`) the choice is per copy: the exact Hessian's solution for every
         copy whose CG met no negative curvature and whose update descends, the projected Hessian's for
         the others (the blocks are independent, so each copy's update is the one its own solve gives)."""
         if self.pcg is not None:
             return self._direction_pcg(step, x, g, contact_terms, info)
         dynamic_terms = contact_terms + step.dynamic_terms
-        d = None
-        factorization = self.linear_solver
-        H = None
-        projection = self.config.projection
-        for projection in self._projections():
-            ta = time.perf_counter()
-            H = self._assemble_hessian(step, x, projection, dynamic_terms)
-            tl = time.perf_counter()
-            info.time_assembly += tl - ta
-            info.factorizations += 1
-            if self.linear_solver.factorize(H):
-                d = -self.linear_solver.solve(g)
-                info.projected_iterations += projection != "none"
-            info.time_linear_solve += time.perf_counter() - tl
-            if d is not None:
+        projections = self._projections()
+        ta = time.perf_counter()
+        H = self._assemble_hessian(step, x, projections[0], dynamic_terms)
+        tl = time.perf_counter()
+        info.time_assembly += tl - ta
+        info.factorizations += 1
+        ok = self.linear_solver.factorize(H)
+        d = -self.linear_solver.solve(g) if ok else None
+        info.time_linear_solve += time.perf_counter() - tl
+        if d is not None:
+            info.projected_iterations += projections[0] != "none"
+            d[~step.free] = 0.0
+            return d, H, projections[0], self.linear_solver
+        return self._direction_per_copy(step, x, g, H, projections, dynamic_terms, info)
+
+    def _direction_per_copy(self, step, x: np.ndarray, g: np.ndarray, H_first, projections: tuple[str, ...],
+                            dynamic_terms: list, info: StepInfo):
+        """The update when the stacked matrix of ``projections[0]`` is not positive definite: each copy's
+        block factorised on its own, in the order of ``projections`` (the exact Hessian, then the projected
+        one, then the general LU for ``projection="none"``), so that each copy takes the matrix its
+        separate run takes. A copy's DoFs are increasing in the stacked order, so its block of the upper
+        triangle is the upper triangle of its block."""
+        from sim_core.linsolve import make_symmetric_solver
+
+        dofs = self._dofs
+        d = np.zeros_like(g)
+        todo = np.any(g[dofs] != 0.0, axis=1)
+        matrices = {projections[0]: H_first}
+        projection = projections[0]
+        for projection in projections:
+            if not todo.any():
                 break
-        if d is None:  # projection="none" and not positive definite: the general LU
+            if projection not in matrices:
+                ta = time.perf_counter()
+                matrices[projection] = self._assemble_hessian(step, x, projection, dynamic_terms)
+                info.time_assembly += time.perf_counter() - ta
+            H = matrices[projection].tocsr()
             tl = time.perf_counter()
-            info.factorizations += 1
-            factorization = self.general_solver()
-            factorization.factorize(self._full_from_upper(H))
-            d = -factorization.solve(g)
+            for i in np.flatnonzero(todo):
+                block = H[dofs[i]][:, dofs[i]].tocsr()
+                block.sort_indices()
+                solver = make_symmetric_solver(self.config.linear_solver)
+                info.factorizations += 1
+                if solver.factorize(block):
+                    d[dofs[i]] = -solver.solve(g[dofs[i]])
+                    todo[i] = False
+                    info.projected_iterations += projection != "none"
             info.time_linear_solve += time.perf_counter() - tl
+        if todo.any():  # projection="none" and not positive definite: the general LU of each such block
+            H = matrices[projections[-1]]
+            full = self._full_from_upper(H)
+            for i in np.flatnonzero(todo):
+                lu = self.general_solver()
+                info.factorizations += 1
+                lu.factorize(full[dofs[i]][:, dofs[i]].tocsr())
+                d[dofs[i]] = -lu.solve(g[dofs[i]])
         d[~step.free] = 0.0
-        return d, H, projection, factorization
+        return d, matrices[projection], projection, self.linear_solver
 
     def _direction_pcg(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
         """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
@@ -355,48 +397,91 @@ class LockstepSolver(NewtonSolver):
         return d, H, projection, pcg
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
-                            open_: np.ndarray, info: StepInfo):
-        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along ``dB`` ``(B, n, 3)`` until each open
-        copy meets the trapezoidal Armijo condition (module docstring); accepted copies keep their step
-        while the others halve theirs.
+                            open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
+        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along ``dB`` ``(B, n, 3)``: accepted copies
+        keep their step while the others halve theirs (module docstring: the slope test, then the energy
+        test of the copies that passed it, :meth:`_armijo_groups`).
 
         Returns:
             ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the positions
             ``(N, 3)`` with every accepted copy moved and the others where they were, the gradient at
-            ``x_new`` (when the last evaluation was at ``x_new``), its contact terms and search position,
-            accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
+            ``x_new``, its contact terms and search position, accepted copies ``(B,)`` bool and halvings
+            per copy ``(B,)``.
         """
         cfg = self.config
         B = self.scene.copies
-        idx = self.scene.index
         dofs = self._dofs
+        e0 = self._energy(step, x, contact_terms, x_search)
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
         a = np.where(pending, alpha, 0.0)
+        taken = np.zeros(B)  # the accepted copies' step sizes
         backtracks = np.zeros(B, dtype=np.int64)
         bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
-        x_try, g_try, terms, x_search = x, None, None, None
+        last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
         for _ in range(cfg.max_backtracks):
             if not pending.any():
                 break
-            disp = np.zeros_like(x)
-            disp[idx] = a[:, None, None] * dB
-            x_try = x + disp
-            terms, x_search, g_try = self._stacked_gradient(step, x_try, info)
+            trial = np.where(pending, a, 0.0) + taken
+            x_try = self._moved(x, dB, trial)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info)
+            last = (trial, x_try, (terms, xs, g_try))
             s_try = np.einsum("ij,ij->i", g_try[dofs], dB.reshape(B, -1))
-            ok = pending & np.isfinite(s_try) & (s_try <= bound)
-            accepted |= ok
-            pending &= ~ok
+            cand = pending & np.isfinite(s_try) & (s_try <= bound)
+            if cand.any():
+                if np.array_equal(cand, pending):
+                    delta = self._energy(step, x_try, terms, xs) - self._energy_with(step, x, dB, taken)
+                else:
+                    delta = (self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0))
+                             - self._energy_with(step, x, dB, taken))
+                ok = self._armijo_groups(step, x, dB, taken, cand, delta, a, slope, e0)
+                accepted |= ok
+                taken[ok] = a[ok]
+                pending &= ~ok
             backtracks[pending] += 1
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
-        if pending.any():  # no decrease in max_backtracks halvings: these copies stay where they were
-            a[pending] = 0.0
-            disp = np.zeros_like(x)
-            disp[idx] = a[:, None, None] * dB
-            x_try = x + disp
-            terms, x_search, g_try = self._stacked_gradient(step, x_try, info)
-        return x_try, (x_try, g_try), terms, x_search, accepted, backtracks
+        if last is not None and np.array_equal(last[0], taken):
+            x_new, (terms, xs, g_new) = last[1], last[2]
+        else:
+            x_new = self._moved(x, dB, taken)
+            terms, xs, g_new = self._stacked_gradient(step, x_new, info)
+        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+
+    def _moved(self, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> np.ndarray:
+        """``x`` with copy ``i`` moved by ``alphas[i] * dB[i]`` (m, shape ``(N, 3)``)."""
+        disp = np.zeros_like(x)
+        disp[self.scene.index] = alphas[:, None, None] * dB
+        return x + disp
+
+    def _energy_with(self, step, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> float:
+        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i] * dB[i]``."""
+        xm = self._moved(x, dB, alphas) if np.any(alphas) else x
+        terms = self.contact.potentials(xm, step.x_n, step.memory)
+        return self._energy(step, xm, terms, self.contact.search_position)
+
+    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, group: np.ndarray,
+                       delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
+        """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
+        ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
+        by ``base``; the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off of the
+        stacked sum, ``1e-14 |E|``), else it is split in halves (one more evaluation: the other half's
+        change is the difference, the energy being a sum over copies) down to single copies, each then
+        tested alone. A single copy is thus held to its own Armijo condition whenever its group's is not
+        met."""
+        c = self.config.armijo_c
+        if delta <= c * float(np.sum(a[group] * slope[group])) + 1e-14 * abs(e0):
+            return group
+        members = np.flatnonzero(group)
+        if len(members) == 1:
+            return np.zeros_like(group)
+        half = np.zeros_like(group)
+        half[members[: len(members) // 2]] = True
+        rest = group & ~half
+        e_base = self._energy_with(step, x, dB, base)
+        d_half = self._energy_with(step, x, dB, base + np.where(half, a, 0.0)) - e_base
+        return (self._armijo_groups(step, x, dB, base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, dB, base, rest, delta - d_half, a, slope, e0))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:
