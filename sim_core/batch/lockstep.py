@@ -160,8 +160,12 @@ class LockstepSolver(NewtonSolver):
             if self.held.all():
                 _copy_state(state_in, state_out, dt)
                 return LockstepResult([None] * self.scene.copies, failures, attempts)
+            attempt_in = state_in
+            if self.held.any():  # held copies stand still: their velocities (maybe a failed copy's NaN) play no part
+                attempt_in = state_in.copy()
+                attempt_in.v[self.scene.index[self.held].ravel()] = 0.0
             try:
-                infos = self._lockstep_step(state_in, state_out, control, dt, step_index)
+                infos = self._lockstep_step(attempt_in, state_out, control, dt, step_index)
             except _CopiesFailed as err:
                 failures.update(err.failures)
                 continue
