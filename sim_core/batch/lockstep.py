@@ -433,12 +433,12 @@ class LockstepSolver(NewtonSolver):
             s_try = np.einsum("ij,ij->i", g_try[dofs], dB.reshape(B, -1))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if cand.any():
+                e_base = e0 if not np.any(taken) else self._energy_with(step, x, dB, taken)
                 if np.array_equal(cand, pending):
-                    delta = self._energy(step, x_try, terms, xs) - self._energy_with(step, x, dB, taken)
+                    delta = self._energy(step, x_try, terms, xs) - e_base
                 else:
-                    delta = (self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0))
-                             - self._energy_with(step, x, dB, taken))
-                ok = self._armijo_groups(step, x, dB, taken, cand, delta, a, slope, e0)
+                    delta = self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0)) - e_base
+                ok = self._armijo_groups(step, x, dB, taken, e_base, cand, delta, a, slope, e0)
                 accepted |= ok
                 taken[ok] = a[ok]
                 pending &= ~ok
@@ -464,11 +464,11 @@ class LockstepSolver(NewtonSolver):
         terms = self.contact.potentials(xm, step.x_n, step.memory)
         return self._energy(step, xm, terms, self.contact.search_position)
 
-    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, group: np.ndarray,
-                       delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
+    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, e_base: float,
+                       group: np.ndarray, delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
         """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
         ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
-        by ``base``; the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off of the
+        by ``base`` (energy ``e_base``, J); the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off of the
         stacked sum, ``1e-14 |E|``), else it is split in halves (one more evaluation: the other half's
         change is the difference, the energy being a sum over copies) down to single copies, each then
         tested alone. A single copy is thus held to its own Armijo condition whenever its group's is not
@@ -482,10 +482,9 @@ class LockstepSolver(NewtonSolver):
         half = np.zeros_like(group)
         half[members[: len(members) // 2]] = True
         rest = group & ~half
-        e_base = self._energy_with(step, x, dB, base)
         d_half = self._energy_with(step, x, dB, base + np.where(half, a, 0.0)) - e_base
-        return (self._armijo_groups(step, x, dB, base, half, d_half, a, slope, e0)
-                | self._armijo_groups(step, x, dB, base, rest, delta - d_half, a, slope, e0))
+        return (self._armijo_groups(step, x, dB, base, e_base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, dB, base, e_base, rest, delta - d_half, a, slope, e0))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:
