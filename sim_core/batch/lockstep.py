@@ -30,6 +30,12 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   is reported with the reason, and the step is taken again from its start with that copy held fixed
   (Dirichlet at its positions), so that the others finish as they would without it.
 
+Each copy's :class:`~sim_core.step_info.StepInfo` has its own iterations, residual, stop reason,
+backtracks and line-search failures; its factorisations, projected iterations and assembly and
+solve times are the stacked step's, ``time_total`` is the step's wall time divided among the stepped
+copies, and ``energy`` is NaN (the incremental potential is one sum over all copies:
+:attr:`LockstepSolver.last_stacked_info`).
+
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). Not done: the simplified Newton and rate stopping
 tests (a copy stops on the velocity, force or stalled test), substep retries
