@@ -1,0 +1,147 @@
+"""The stiction signature test on synthetic press-and-slide recordings with a known friction law.
+
+The recording is made by a quasi-static stick-slip model: the effector (kinematic, 200 Hz) slides a
+pressed gel whose contact surface is tied to it by a tangential spring ``k_g``; the surface sticks
+while the spring force stays below ``mu_s F_n``, then slips with a friction level that decays from
+``mu_s`` to ``mu_k`` over a slip time ``tau_b`` (slip weakening). ``mu_s = mu_k`` is Coulomb friction.
+"""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from sysid.diagnose.signature_engine import refit_stiction
+from sysid.diagnose.signatures import Recording, run_signature_tests
+from sysid.diagnose.signatures.friction import breakaways, resolvable_excess, stiction_test
+from sysid.diagnose.signatures.null import decide, default_thresholds
+
+SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
+         "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4]), "pose": np.array([5e-6] * 3 + [0.0] * 4)}
+CAMERA = (300.0, 300.0, 160.0, 120.0, 0.025)
+F_N, K_GEL, MU_K = 6.0, 4000.0, 0.8
+
+
+def slide_velocity(t: np.ndarray, v: float = 0.02, t_on: float = 1.0, t_off: float = 2.2, ramp: float = 0.2) -> np.ndarray:
+    """Commanded slide speed, m/s: smooth ramps up from ``t_on`` and down to 0 at ``t_off``."""
+    up = np.clip((t - t_on) / ramp, 0.0, 1.0)
+    down = np.clip((t_off - t) / ramp, 0.0, 1.0)
+    return v * np.minimum(0.5 - 0.5 * np.cos(np.pi * up), 0.5 - 0.5 * np.cos(np.pi * down))
+
+
+def stick_slip(t: np.ndarray, ee: np.ndarray, mu_s: float, tau_b: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Contact-surface position (m) and friction force magnitude (N) along the slide.
+
+    Stick while ``K_GEL (ee - s) < mu_s F_N``; after the breakaway at ``t_b`` the friction level is
+    ``mu_k + (mu_s - mu_k) exp(-(t - t_b) / tau_b)`` and the surface trails the effector by that
+    force over ``K_GEL``.
+    """
+    s, ft = np.zeros_like(ee), np.zeros_like(ee)
+    t_b = None
+    for i in range(len(t)):
+        if t_b is None:
+            if K_GEL * (ee[i] - ee[0]) < mu_s * F_N:
+                s[i], ft[i] = ee[0], K_GEL * (ee[i] - ee[0])
+                continue
+            t_b = t[i]
+        mu = MU_K + (mu_s - MU_K) * np.exp(-(t[i] - t_b) / tau_b)
+        ft[i] = mu * F_N
+        s[i] = max(ee[i] - ft[i] / K_GEL, s[i - 1])  # the surface never moves backwards
+        ft[i] = K_GEL * (ee[i] - s[i])
+    return s, ft
+
+
+def press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), tau_b: float = 0.03) -> Recording:
+    """A pressed gel slid along ``direction`` (world xy) with the stick-slip law above, plus noise.
+
+    The sensor frame is the effector's, rotated 180 degrees about x from world (quaternion
+    ``(1, 0, 0, 0)``): sensor x = world x, sensor y = -world y, F_z < 0 pressing.
+    """
+    u = np.asarray(direction, dtype=float)
+    u = u / np.linalg.norm(u)
+    tw = np.arange(0.0, 3.0, 0.005)
+    tm = tw[::2]
+    travel = np.concatenate([[0.0], np.cumsum(slide_velocity(tw)[1:] * np.diff(tw))])
+    surf, ft = stick_slip(tw, travel, mu_s, tau_b)
+    pose = np.tile([0.05, 0.0, 0.003, 1.0, 0.0, 0.0, 0.0], (len(tw), 1))
+    pose[:, :2] += travel[:, None] * u
+    to_sensor = np.array([1.0, -1.0])
+    w = np.zeros((len(tw), 6))
+    w[:, :2] = -(ft[:, None] * u) * to_sensor  # friction on the gel opposes its slide
+    w[:, 2] = -F_N
+    gx, gy = np.meshgrid(np.arange(9) * 0.002 - 0.008, np.arange(7) * 0.002 - 0.006)
+    rest = np.stack([gx.ravel(), gy.ravel(), np.zeros(63)], axis=1)
+    shear = np.interp(tm, tw, surf - travel)  # surface relative to the effector along u, world
+    xyz = np.repeat(rest[None], len(tm), axis=0)
+    xyz[:, :, :2] += (shear[:, None] * u * to_sensor)[:, None, :]
+    xyz[:, :, 2] = -2e-4
+    noise = lambda a, s: a + rng.normal(size=a.shape) * s  # noqa: E731
+    data = {"markers_xyz": noise(xyz, SIGMA["markers_xyz"]), "wrench": noise(w, SIGMA["wrench"]),
+            "pose": pose, "pose_cmd": pose}
+    t = {"markers_xyz": tm, "wrench": tw, "pose": tw, "pose_cmd": tw}
+    return Recording(t=t, data=data, prediction=None, sigma=SIGMA, camera=CAMERA, name="synthetic slide")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_coulomb_friction_is_not_stiction(seed):
+    rec = press_slide(np.random.default_rng(seed), mu_s=MU_K)
+    r = stiction_test(rec)
+    th = default_thresholds(rec)
+    assert r.applicable and len(r.detail["breakaways"]) == 1
+    assert r.statistic < th.statistic["stiction"]
+    assert "stiction" not in decide({"stiction": r}, th).explained_by
+    # the sliding level is the kinetic coefficient
+    assert r.detail["breakaways"][0]["kinetic_ratio"] == pytest.approx(MU_K, abs=0.03)
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.0, -1.0), (-0.6, 0.8)])
+def test_breakaway_excess_named_as_stiction_with_its_ratio(direction):
+    rec = press_slide(np.random.default_rng(3), mu_s=1.5 * MU_K, direction=direction)
+    r = stiction_test(rec)
+    d = decide({"stiction": r}, default_thresholds(rec))
+    assert d.explained_by == ["stiction"]
+    b = r.detail["breakaways"][0]
+    # the breakaway starts when the command has moved mu_s F_n / k_g: the contact stuck that long
+    assert b["t_slip_s"] > b["t_command_s"]
+    assert np.allclose(np.abs(b["direction"]), np.abs(direction) / np.linalg.norm(direction), atol=1e-6)
+    # the peak is sampled at 200 Hz a little after the breakaway: within 10 % of mu_s / mu_k
+    assert r.estimate["static_over_kinetic"] == pytest.approx(1.5, rel=0.1)
+    assert r.estimate["kinetic_ratio"] == pytest.approx(MU_K, abs=0.03)
+
+
+def test_a_small_excess_below_the_resolvable_size_is_not_named():
+    # 3 % static excess: below twice the ratio's relative noise on one sample (about 5 % here)
+    rec = press_slide(np.random.default_rng(4), mu_s=1.03 * MU_K)
+    r = stiction_test(rec)
+    th = default_thresholds(rec)
+    assert th.effect_size["stiction"] == pytest.approx(resolvable_excess(rec))
+    assert 0.03 < th.effect_size["stiction"] < 0.1
+    assert "stiction" not in decide({"stiction": r}, th).explained_by
+
+
+def test_refit_lowers_the_heldout_residual_of_a_breakaway():
+    rec = press_slide(np.random.default_rng(5), mu_s=1.5 * MU_K)
+    r = stiction_test(rec)
+    fit = refit_stiction(types.SimpleNamespace(recording=rec), r)
+    assert fit["heldout_rms_after"] < 0.8 * fit["heldout_rms_before"]
+    assert fit["heldout_rms_after"] < 1.5  # noise level on the held-out samples
+    assert fit["params"]["static_over_kinetic"] == pytest.approx(1.5, rel=0.15)
+    coulomb = press_slide(np.random.default_rng(5), mu_s=MU_K)
+    fit0 = refit_stiction(types.SimpleNamespace(recording=coulomb), stiction_test(coulomb))
+    assert fit0["heldout_rms_after"] == pytest.approx(fit0["heldout_rms_before"], rel=0.1)
+
+
+def test_a_press_without_slide_or_a_contact_that_never_slips_is_not_applicable():
+    rng = np.random.default_rng(6)
+    rec = press_slide(rng, mu_s=MU_K)
+    still = Recording(t=rec.t, data={**rec.data, "pose_cmd": np.repeat(rec.data["pose"][:1], len(rec.t["pose"]), 0),
+                                     "pose": np.repeat(rec.data["pose"][:1], len(rec.t["pose"]), 0)},
+                      prediction=None, sigma=SIGMA, camera=CAMERA)
+    assert not stiction_test(still).applicable
+    # static friction high enough to hold the whole slide: the contact never breaks away
+    stuck = press_slide(rng, mu_s=20.0)  # breakaway would need 30 mm of travel; the slide is 20 mm
+    assert breakaways(stuck) == []
+    assert not stiction_test(stuck).applicable
+    assert "stiction" in run_signature_tests(stuck)
