@@ -182,3 +182,24 @@ def test_reference_stiction_breakaway_is_located_at_the_slide_onset():
     assert b["direction"] == pytest.approx([-1.0, 0.0], abs=0.02)
     assert 2.0 < b["t_command_s"] < b["t_slip_s"] < 2.5
     assert 0.6 < b["kinetic_ratio"] < 0.8
+
+
+def test_report_says_in_words_how_much_the_contact_sticks_and_plots_the_breakaway(tmp_path):
+    from sysid.diagnose.signature_report import _plot_effect, markdown
+
+    rec = press_slide(np.random.default_rng(7), mu_s=1.5 * MU_K)
+    r = stiction_test(rec)
+    decide({"stiction": r}, default_thresholds(rec))
+    prepared = types.SimpleNamespace(recording=rec)
+    fit = refit_stiction(prepared, r)
+    doc = {"bag": "synthetic", "explained_by": ["stiction"],
+           "baseline": {"whitened_rms_before": {}, "whitened_rms_after": {}, "params": {}},
+           "mismatch": {"windows_s": r.windows_s, "channels": r.channels, "markers": []},
+           "refit": {"effects": {"stiction": fit}},
+           "extra": {"signatures": {"stiction": r.as_dict()}, "null": {"source": "default", "baselines": []},
+                     "contact_properties": [], "ties": []}}
+    png = _plot_effect(doc, prepared, "stiction", tmp_path)
+    assert png.is_file() and png.stat().st_size > 0
+    md = markdown(doc, [png])
+    ratio = fit["params"]["static_over_kinetic"]
+    assert "the contact sticks before it slides" in md and f"about {ratio:.2g} times" in md
