@@ -111,13 +111,15 @@ def test_breakaway_excess_named_as_stiction_with_its_ratio(direction):
     assert r.estimate["kinetic_ratio"] == pytest.approx(MU_K, abs=0.03)
 
 
-def test_a_small_excess_below_the_resolvable_size_is_not_named():
-    # 3 % static excess: below twice the ratio's relative noise on one sample (about 5 % here)
+def test_a_small_excess_is_not_named_and_the_resolvable_size_comes_from_the_noise():
+    # 3 % static excess: far below the statistic threshold; the resolvable size is twice the ratio's
+    # relative noise on one sample (sqrt(0.1^2 + 0.8^2 0.2^2) / (0.8 * 6) = 0.039 per sample here)
     rec = press_slide(np.random.default_rng(4), mu_s=1.03 * MU_K)
     r = stiction_test(rec)
     th = default_thresholds(rec)
     assert th.effect_size["stiction"] == pytest.approx(resolvable_excess(rec))
-    assert 0.03 < th.effect_size["stiction"] < 0.1
+    assert th.effect_size["stiction"] == pytest.approx(2 * np.hypot(0.1, MU_K * 0.2) / (MU_K * F_N), rel=0.1)
+    assert r.statistic < th.statistic["stiction"]
     assert "stiction" not in decide({"stiction": r}, th).explained_by
 
 
