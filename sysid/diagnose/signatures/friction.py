@@ -16,7 +16,8 @@ level, so a calibration gap in the friction coefficient or the normal force does
 2. **Breakaway** of each slide: the first sample at which the gel's contact surface (effector
    position plus the mean marker displacement, in world) moves along the slide at least
    :data:`ONSET_FRACTION` of the command's speed: the end of the stick phase.
-3. **Shape**: in a window from one tactile period before the breakaway to
+3. **Shape**: in a window from the breakaway peak ``t0`` (the largest ratio within two tactile
+   periods of the breakaway: the stick's rise before it is left out) to
    :data:`BREAKAWAY_WINDOW_S` after it (or the slide's end), the friction ratio along the slide
    ``q = -F . u / F_n`` (u the slide direction, F the force on the gel in world) is fitted by a
    sliding level with a linear trend, ``a + b (t - t0)``, and by the same plus a breakaway decay
@@ -26,7 +27,8 @@ level, so a calibration gap in the friction coefficient or the normal force does
    ``sigma_q = sqrt(sigma_t^2 + q^2 sigma_n^2) / F_n``.
 
 The statistic is the whitened SSE the decay removes, summed over breakaways (a likelihood-ratio
-statistic, about chi-square with two degrees of freedom under Coulomb friction and white noise); the
+statistic, about chi-square with two degrees of freedom under Coulomb friction and white noise, a
+little more for the choice of ``t0`` among a few samples and of tau on its grid); the
 effect size is the relative breakaway excess ``A / a = mu_s / mu_k - 1`` of the strongest breakaway.
 The excess is resolvable when it exceeds twice the ratio's relative noise on one sample
 (:func:`resolvable_excess`, the effect-size threshold of :mod:`sysid.diagnose.signatures.null`).
@@ -34,7 +36,7 @@ The excess is resolvable when it exceeds twice the ratio's relative noise on one
 Known limit: a contact that slips progressively (partial slip over a large soft pad: the edges slip
 first) spreads the breakaway over the stick phase and shows a much smaller macroscopic excess than
 the local ``mu_s / mu_k`` (docs/benchmarks_log.md, 2026-11-25: the reference engine's stiction
-recording with ``mu_s / mu_k = 1.66`` shows a 5 % excess, statistic about 5, below the threshold).
+recording with ``mu_s / mu_k = 1.66`` shows a 5-10 % excess, statistic 5.7, below the threshold).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from sim_core.errors import BagReadError
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
 
 CONTACT_SIGMAS = 5.0
@@ -96,11 +99,20 @@ class Breakaway:
 
 
 def _rotations(rec: Recording, t: np.ndarray) -> Rotation:
-    """Sensor-to-world rotations of the effector at times ``t`` (nearest pose sample)."""
+    """Sensor-to-world rotations of the effector at times ``t`` (the pose sample at or after each).
+
+    Raises:
+        BagReadError: no pose sample has a non-zero orientation quaternion.
+    """
     tp = rec.t["pose"]
     quat = np.asarray(rec.data["pose"], dtype=float)[:, 3:7]
     idx = np.clip(np.searchsorted(tp, t), 0, len(tp) - 1)
-    return Rotation.from_quat(quat[idx])  # (x, y, z, w), scipy's convention
+    q = quat[idx]
+    bad = ~(np.linalg.norm(q, axis=1) > 0.0)
+    if bad.all():
+        raise BagReadError(f"{rec.name or 'recording'}: pose: no valid orientation quaternion (all zero)")
+    q[bad] = q[~bad][0]  # a zero quaternion (dropped sample) takes the first valid orientation
+    return Rotation.from_quat(q)  # (x, y, z, w), scipy's convention
 
 
 def friction_ratio(rec: Recording, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -255,11 +267,18 @@ def decay_taus(rec: Recording) -> np.ndarray:
     return np.arange(period, TAU_MAX_S + 1e-9, period / 2.0)
 
 
+def _readable(rec: Recording) -> bool:
+    """Whether the recording has the wrench, the pose with a valid orientation and the markers."""
+    if not rec.has("wrench", "pose", "markers_xyz"):
+        return False
+    return bool((np.linalg.norm(np.asarray(rec.data["pose"], dtype=float)[:, 3:7], axis=1) > 0.0).any())
+
+
 def resolvable_excess(rec: Recording) -> float:
     """Smallest relative breakaway excess the recording resolves: :data:`RESOLVABLE_SIGMAS` times the
     friction ratio's relative noise on one sample, at the median of the breakaway windows (twice the
     noise at a ratio of 1 and the median loaded normal force without slides)."""
-    bs = breakaways(rec) if rec.has("wrench", "pose", "markers_xyz") else []
+    bs = breakaways(rec) if _readable(rec) else []
     if bs:
         rel = np.concatenate([b.sigma / np.maximum(np.abs(b.q), 1e-6) for b in bs])
         return float(RESOLVABLE_SIGMAS * np.median(rel))
@@ -278,6 +297,8 @@ def stiction_test(rec: Recording) -> SignatureResult:
     effect = "stiction"
     if not rec.has("wrench", "pose", "markers_xyz"):
         return not_applicable(effect, "needs the wrench, the effector pose and the marker positions")
+    if not _readable(rec):
+        return not_applicable(effect, "the effector pose has no valid orientation (all-zero quaternions)")
     bs = breakaways(rec)
     if not bs:
         return not_applicable(effect, "no slide under load in which the gel's contact surface slips")

@@ -24,7 +24,8 @@ CAMERA = (300.0, 300.0, 160.0, 120.0, 0.025)
 F_N, K_GEL, MU_K = 6.0, 4000.0, 0.8
 
 
-def slide_velocity(t: np.ndarray, v: float = 0.02, t_on: float = 1.0, t_off: float = 2.2, ramp: float = 0.2) -> np.ndarray:
+def slide_velocity(t: np.ndarray, v: float = 0.02, t_on: float = 1.0, t_off: float = 2.2,
+                   ramp: float = 0.2) -> np.ndarray:
     """Commanded slide speed, m/s: smooth ramps up from ``t_on`` and down to 0 at ``t_off``."""
     up = np.clip((t - t_on) / ramp, 0.0, 1.0)
     down = np.clip((t_off - t) / ramp, 0.0, 1.0)
