@@ -12,10 +12,12 @@ level, so a calibration gap in the friction coefficient or the normal force does
 
 1. **Slides**: runs where the gel is loaded (compressive normal force above
    :data:`CONTACT_SIGMAS` sigmas of ``F_z``) and the commanded effector moves tangentially faster
-   than :data:`SLIDE_FRACTION` of its peak tangential speed in contact.
+   than :data:`SLIDE_FRACTION` of its peak tangential speed in contact, starting with the gel
+   already loaded.
 2. **Breakaway** of each slide: the first sample at which the gel's contact surface (effector
    position plus the mean marker displacement, in world) moves along the slide at least
-   :data:`ONSET_FRACTION` of the command's speed: the end of the stick phase.
+   :data:`ONSET_FRACTION` of the command's speed: the end of the stick phase (a slide whose
+   surface moves from its first sample has no stick phase and no breakaway).
 3. **Shape**: in a window from the breakaway peak ``t0`` (the largest ratio within two tactile
    periods of the breakaway: the stick's rise before it is left out) to
    :data:`BREAKAWAY_WINDOW_S` after it (or the slide's end), the friction ratio along the slide
@@ -188,8 +190,8 @@ def breakaways(rec: Recording) -> list[Breakaway]:
     period = rec.tactile_period()
     out = []
     for i0, i1 in segments(loaded_p & (speed > SLIDE_FRACTION * peak)):
-        if i1 - i0 < 3:
-            continue
+        if i1 - i0 < 3 or i0 == 0 or not loaded_p[i0 - 1]:
+            continue  # too short, or a slide that starts before the gel is loaded (touchdown while sliding)
         mean_v = v_cmd[i0:i1].mean(axis=0)
         if not np.linalg.norm(mean_v) > 0.0:
             continue
@@ -200,8 +202,8 @@ def breakaways(rec: Recording) -> list[Breakaway]:
         v_c = np.interp(tm, tp, v_cmd @ u)
         inside = (tm >= t_a) & (tm <= t_b)
         slip = np.nonzero(inside & (v_s >= ONSET_FRACTION * v_c) & (v_c > 0.0))[0]
-        if not len(slip):
-            continue  # the contact sticks through the whole slide
+        if not len(slip) or slip[0] == np.argmax(inside):
+            continue  # the contact sticks through the whole slide, or slips from its start (no stick)
         t_slip = float(tm[slip[0]])
         q, sigma = friction_ratio(rec, u)
         # the breakaway peak ends the stick: the largest ratio within two tactile periods of the
