@@ -32,7 +32,7 @@ from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
 
 
 def measure_node(context: Context, namespace: str = "/thinshell", effector: str = "ee", window: float = 3.0,
-                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0) -> dict[str, Any]:
+                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0, warmup: int = 20) -> dict[str, Any]:
     """Measure a running sim node from a client node in ``context``.
 
     Args:
@@ -41,7 +41,9 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         window: wall seconds of the real-time-factor window.
         commands: number of latency probes (alternately +step and -step along world z).
         step: probe displacement in m (must be within the node's per-step limit).
-        timeout: wall seconds to wait for the node's first output and for each probe.
+        timeout: wall seconds to wait for the node's first output, for its warm-up and for each probe.
+        warmup: node steps (advances of ``/clock``) to wait for before the window starts: the first
+            steps of a Taichi backend compile its kernels (seconds), which is start-up, not stepping.
 
     Returns:
         dict with ``real_time_factor``, ``steps_per_second`` (simulated time over the step dt, the
@@ -49,7 +51,7 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         (``median``, ``p95``, ``max``), ``probes``, ``lost``.
 
     Raises:
-        TimeoutError: the node published nothing within ``timeout``.
+        TimeoutError: the node published nothing, or did not finish its warm-up, within ``timeout``.
     """
     node = Node("thinshell_bench_client", context=context)
     ex = SingleThreadedExecutor(context=context)
@@ -70,6 +72,11 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
     try:
         if not spin_for(lambda: bool(clock) and bool(poses) and pub.get_subscription_count() > 0, timeout):
             raise TimeoutError(f"no /clock and {namespace}/{effector}/pose from the sim node within {timeout} s")
+        def clock_advances() -> int:
+            return sum(1 for a, b in zip(clock, clock[1:]) if b[1] > a[1])
+
+        if not spin_for(lambda: clock_advances() >= warmup, timeout):
+            raise TimeoutError(f"the sim node did not take {warmup} steps (/clock) within {timeout} s")
         n0 = len(clock)
         spin_for(lambda: False, window)
         win = clock[n0:]

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from typing import Iterator, Sequence
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -50,9 +50,17 @@ def ros_session(args: Sequence[str] | None = None) -> Iterator[threading.Event]:
         rclpy.try_shutdown()
 
 
-def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05) -> None:
-    """Spin ``node`` until ``stop`` is set or the context is shut down (returns; never raises for that)."""
-    executor = SingleThreadedExecutor(context=node.context)
+def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05, executor: Executor | None = None) -> None:
+    """Spin ``node`` until ``stop`` is set or the context is shut down (returns; never raises for that).
+
+    Args:
+        node: the node to spin.
+        stop: event that ends the spin (set by the signal handlers of :func:`ros_session`).
+        poll: s between checks of ``stop``.
+        executor: executor to spin ``node`` in (shut down on return); default a new
+            ``SingleThreadedExecutor`` on the node's context.
+    """
+    executor = executor if executor is not None else SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     try:
         while not stop.is_set() and node.context.ok():

@@ -34,6 +34,9 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
+Executor: :func:`main` spins the node in rclpy's ``EventsExecutor`` (``rclpy.experimental``; callbacks
+run one at a time, as in ``SingleThreadedExecutor``).
+
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
 
@@ -57,6 +60,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -534,7 +538,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"thinshell sim node: error: {err}", file=sys.stderr)
             return 1
         try:
-            spin_until_stopped(node, stop)
+            # rclpy's events executor: timers and callbacks dispatched from its C++ event queue, without
+            # the per-spin wait-set rebuild of SingleThreadedExecutor (about 0.4 ms of every control
+            # period of the bundled scene, docs/benchmarks.md "Sim node through DDS")
+            spin_until_stopped(node, stop, executor=EventsExecutor(context=node.context))
         finally:
             node.close()
             node.destroy_node()
