@@ -539,7 +539,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
         try:
             # rclpy's events executor: timers and callbacks dispatched from its C++ event queue, without
-            # the per-spin wait-set rebuild of SingleThreadedExecutor (about 0.4 ms of every control
+            # the per-spin wait-set rebuild of SingleThreadedExecutor (about 0.3 ms of every control
             # period of the bundled scene, docs/benchmarks.md "Sim node through DDS")
             spin_until_stopped(node, stop, executor=EventsExecutor(context=node.context))
         finally:
