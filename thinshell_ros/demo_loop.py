@@ -138,9 +138,12 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
 
 
 def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: Path, log_path: Path,
-                     timeout: float, console: Any) -> dict[str, Any]:
+                     timeout: float, console: Any, limits: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Start the robot (sim node on the hidden scene, ``fast`` mode, recording into ``bag``), deploy
     ``trajectory`` on it with the deploy node in sim time, stop the robot (SIGINT closes the bag).
+
+    ``limits``: further float parameters of the deploy node (``rate``, ``max_linear_speed``, ...;
+    :data:`thinshell_ros.deploy_node.FLOAT_PARAMETERS`); the wrench limit is :data:`WRENCH_LIMIT`.
 
     Returns:
         the deploy node's final status (``state``, ``reason``, ``published``, ...) and ``wall_s``.
@@ -164,7 +167,8 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     try:
         node = DeployNode(context=ctx, parameter_overrides=[
             Parameter("trajectory", value=str(trajectory)), Parameter("use_sim_time", value=True),
-            Parameter("start_timeout", value=120.0), Parameter("wrench_limit", value=WRENCH_LIMIT)])
+            Parameter("start_timeout", value=120.0), Parameter("wrench_limit", value=WRENCH_LIMIT),
+            *(Parameter(k, value=float(v)) for k, v in (limits or {}).items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         deadline = time.monotonic() + timeout
