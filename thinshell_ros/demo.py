@@ -425,6 +425,10 @@ def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) ->
     return path
 
 
+def _num(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4g}"
+
+
 def task_report_lines(task: TaskStageResult, rel: Any) -> list[str]:
     """The task stage's part of ``report.md`` (``rel``: path -> link relative to the run directory)."""
     link = lambda p, name=None: f"[{name or rel(p)}]({rel(p)})"  # noqa: E731
@@ -446,10 +450,10 @@ def task_report_lines(task: TaskStageResult, rel: Any) -> list[str]:
     for name, value in fit.get("params", {}).items():
         sigma = fit.get("sigma", {}).get(name)
         lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
-                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {TASK_HIDDEN.get(name, '-')} |")
+                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {_num(TASK_HIDDEN.get(name))} |")
     for name, value in task.carried.items():
         lines.append(f"| {name} (carried: the tactile fit) | - | {value:.4g} | - | "
-                     f"{({v: HIDDEN.get(k) for k, v in SHARED.items()}).get(name, '-')} |")
+                     f"{_num({v: HIDDEN.get(k) for k, v in SHARED.items()}.get(name))} |")
     if cmp:
         lines += ["", "| deployed run | fitted scene | nominal scene | fitted / nominal |", "|---|---|---|---|"]
         for ch, v in cmp["rms"].items():
