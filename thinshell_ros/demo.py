@@ -102,7 +102,7 @@ FULL = DemoSettings(
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
     compare_args=("--dt", "0.01"),
-    # Forming at its 50 steps; the sheet's bending stiffness from the reference run; 6 gradient steps
+    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 6 gradient steps
     task=TaskStageSettings())
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
 import yaml
 
 from sim_core.errors import ThinShellError
@@ -77,7 +78,7 @@ class TaskStageSettings:
 
     task: str = TASK
     horizon: int | None = None
-    sysid_args: tuple[str, ...] = ("--params", "sheet.bending_stiffness", "--max-nfev", "6")
+    sysid_args: tuple[str, ...] = ("--params", "sheet.bending_stiffness", "--max-nfev", "4")
     episodes: int = 6
     optimise_args: tuple[str, ...] = ("--method", "gd")
     compare_args: tuple[str, ...] = ()
@@ -150,8 +151,6 @@ def reference_trajectory(task: Any, out: Path, scene_path: Path) -> Path:
     Raises:
         ThinShellError: the task has no reference trajectory, or it is infeasible.
     """
-    import numpy as np
-
     from sim_core.optim.episode import Episode
 
     if task.reference_actions is None:
