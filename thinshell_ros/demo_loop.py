@@ -138,12 +138,15 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
 
 
 def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: Path, log_path: Path,
-                     timeout: float, console: Any, limits: Mapping[str, float] | None = None) -> dict[str, Any]:
+                     timeout: float, console: Any, limits: Mapping[str, float] | None = None,
+                     settle: float = 0.0) -> dict[str, Any]:
     """Start the robot (sim node on the hidden scene, ``fast`` mode, recording into ``bag``), deploy
     ``trajectory`` on it with the deploy node in sim time, stop the robot (SIGINT closes the bag).
 
     ``limits``: further float parameters of the deploy node (``rate``, ``max_linear_speed``, ...;
     :data:`thinshell_ros.deploy_node.FLOAT_PARAMETERS`); the wrench limit is :data:`WRENCH_LIMIT`.
+    ``settle``: s of the robot's (sim) clock it keeps running, and recording, after the last command
+    (the state the last command produced is then in the bag).
 
     Returns:
         the deploy node's final status (``state``, ``reason``, ``published``, ...) and ``wall_s``.
@@ -180,6 +183,13 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
                 raise ThinShellError(f"the deployment did not finish within {timeout:.0f} s ({node.status()})")
             executor.spin_once(timeout_sec=0.05)
         status = node.status()
+        if status["state"] == "completed" and settle > 0:
+            clock = node.get_clock()  # the robot's /clock (use_sim_time)
+            end = clock.now().nanoseconds * 1e-9 + settle
+            while clock.now().nanoseconds * 1e-9 < end:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    break
+                executor.spin_once(timeout_sec=0.05)
         code = stop_process(proc)
     finally:
         if proc.poll() is None:

@@ -63,6 +63,11 @@ TASK_DEPLOY_LIMITS = {"max_linear_speed": 0.25, "max_angular_speed": 5.0, "max_l
 """The task cell's deploy limits: ThinShellLab's tasks move the dome up to 1 mm per 5 ms step (0.2 m/s)."""
 
 
+SETTLE = 0.05
+"""s of robot (sim) time the task robot keeps running after the last command: the state it produced is
+recorded (the reward is measured there, :mod:`sysid.task_reward`)."""
+
+
 @dataclass(frozen=True)
 class TaskStageSettings:
     """Knobs of the task stage.
@@ -216,7 +221,8 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     console.print(f"[bold]task 2/5 identify[/bold]: the reference trajectory deployed on the task robot, recording "
                   f"into {res.id_bag}")
     res.id_deploy = run_deploy_stage(hidden_scene, nominal, res.reference_trajectory, res.id_bag, out / "robot_id.log",
-                                     settings.timeout, console, limits=limits)
+                                     settings.timeout, console, limits=limits,
+                                     settle=SETTLE)
     if res.id_deploy["state"] != "completed":
         raise ThinShellError(f"the identification run {res.id_deploy['state']}: {res.id_deploy['reason']}")
     res.id_reward = recorded_reward(task, res.id_bag)
@@ -253,7 +259,8 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     console.print(f"[bold]task 4/5 deploy[/bold]: {res.trajectory} on the task robot, recording into {res.deployed_bag}")
     t0 = time.monotonic()
     res.deploy = run_deploy_stage(hidden_scene, nominal, res.trajectory, res.deployed_bag, out / "robot_deploy.log",
-                                  settings.timeout, console, limits=limits)
+                                  settings.timeout, console, limits=limits,
+                                  settle=SETTLE)
     res.timings["task_deploy_s"] = time.monotonic() - t0
     if res.deploy["state"] != "completed":
         raise ThinShellError(f"the task deployment {res.deploy['state']}: {res.deploy['reason']}")
