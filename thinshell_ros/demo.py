@@ -10,7 +10,7 @@
    ``--write-scene <run>/fitted_scene.yaml`` (fitted values, sigma, the modelled effect's term).
 3. **Trajectory**: a press-slide-lift of its own (deeper and longer than the identification motion)
    planned from the recording's start, written as ``<run>/trajectory.yaml`` (the trajectory format
-   the optimiser writes; the demo deploys this scripted one).
+   the optimiser writes; stage 6 deploys the optimiser's).
 4. **Deploy**: the robot again, driven by the deploy node (limits, abort; sim time from the robot's
    ``/clock``), recorded into ``<run>/deployed_bag``.
 5. **Compare**: ``thinshell compare`` replays the deployed run in the fitted and in the nominal scene:

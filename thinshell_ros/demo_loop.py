@@ -9,7 +9,8 @@ report only.
 - :func:`write_hidden_scene`: the hidden scene file.
 - :func:`deploy_trajectory_from_bag`: a press-slide-lift planned from the first measured pose and sheet
   of a recording, written as a trajectory file (``docs/trajectory_format.md``): the motion the demo
-  deploys until the optimiser (``thinshell optimise``) writes one.
+  deploys on the tactile cell (the optimiser's trajectory is deployed on the task cell,
+  :mod:`thinshell_ros.demo_task`).
 - :func:`stop_process`, :func:`log_tail`: the robot subprocess's end and its log.
 - :func:`run_deploy_stage`: the robot again, driven by the deploy node (sim time: the robot's
   ``/clock``), recording the deployed run.
@@ -132,7 +133,7 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
     plan = plan_from_observation(scene, pose, points, "press_slide_lift", **motion)
     effector = plan.effector or next(iter(scene.sensors.values())).effector
     traj = Trajectory(t=plan.t, poses={effector: plan.poses}, scene_path=str(nominal), scene_name=scene.name,
-                      provenance={"tool": "thinshell demo (scripted press-slide-lift; thinshell optimise replaces it)",
+                      provenance={"tool": "thinshell demo (scripted press-slide-lift of the tactile cell)",
                                   "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "from_bag": str(bag)})
     return write_trajectory(out, traj, force=True)
 
