@@ -49,3 +49,40 @@ def test_the_reward_sample_is_the_first_after_the_last_pose_command():
         reward_sample_index(evidence([0, 20]), sheet_t)
     with pytest.raises(ConfigError, match="bag: no <effector>/pose_cmd recorded"):
         reward_sample_index(evidence([]), sheet_t)
+
+
+def test_compare_task_measures_the_reward_the_recording_scene_predicts(tmp_path, capsys):
+    """``thinshell compare --task``: on a Forming bag of ``thinshell sim``, the recording's own scene predicts
+    the reward the recording achieved (to rounding); a scene with another sheet stiffness does not; a
+    rest-angle reward is refused naming it."""
+    import json
+
+    import yaml
+
+    from sysid.compare import compare_main
+    from thinshell_ros.headless import sim_main
+
+    task = task_at_horizon("forming", 5)
+    scene = tmp_path / "forming.yaml"
+    scene.write_text(yaml.safe_dump(task.scene, sort_keys=False))
+    start = list(task.scene["effectors"]["dome"]["initial_pose"])
+    end = [start[0] + 0.0012, start[1], start[2] - 0.0006, *start[3:]]
+    traj = tmp_path / "push.yaml"
+    traj.write_text(yaml.safe_dump({"version": 1, "effector": "dome", "waypoints": [
+        {"t": 0.0, "pose": start}, {"t": 0.025, "pose": end}]}))
+    bag = tmp_path / "bag"
+    assert sim_main(["--scene", str(scene), "--trajectory", str(traj), "--out", str(bag)]) == 0
+    stiff = dict(task.scene, sheets={"sheet": dict(task.scene["sheets"]["sheet"], bending={"bending_stiffness": 4e-3})})
+    other = tmp_path / "stiff.yaml"
+    other.write_text(yaml.safe_dump(stiff, sort_keys=False))
+    out = tmp_path / "cmp"
+    assert compare_main([str(bag), "--scene", str(other), "--label", "stiff", "--task", "forming", "--horizon", "5",
+                         "--dt", "0.005", "--arch", "numpy", "--out", str(out)]) == 0
+    reward = json.loads((out / "compare.json").read_text())["reward"]
+    assert reward["task"] == "Forming" and reward["unit"] == "m^2" and reward["recording"] < 0
+    assert reward["predicted"]["nominal"] == pytest.approx(reward["recording"], rel=1e-6)   # the bag's own scene
+    assert abs(reward["predicted"]["stiff"] - reward["recording"]) > 1e-3 * abs(reward["recording"])
+    assert "reward achieved on the recording" in capsys.readouterr().out
+    assert compare_main([str(bag), "--scene", str(other), "--task", "folding_l", "--horizon", "5", "--dt", "0.005",
+                         "--arch", "numpy", "--out", str(tmp_path / "cmp2")]) == 1
+    assert "reward 'crease_rest_angle' reads more than the recorded sheet points" in capsys.readouterr().err
