@@ -31,12 +31,12 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.energies.base import PenaltyContact
 from sim_core.model import Model, check_broad_phase
-from sim_core.potentials.base import PenaltyContact
-from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
+from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
                                         edge_edge_vertices, vertex_triangle_vertices)
-from sim_core.potentials.friction import LaggedFriction
-from sim_core.potentials.sphere_contact import SphereContact
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.sphere_contact.reference import SphereContact
 
 
 class FrictionRowSource(NamedTuple):
@@ -313,10 +313,10 @@ class ContactSet:
 
     def _pair_classes(self) -> tuple[type, type]:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
-        (:mod:`sim_core.ti_kernels.contact`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
+        (:mod:`sim_core.energies.contact.kernel`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
+            from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 
             return TiVertexTriangleContact, TiEdgeEdgeContact
         return VertexTriangleContact, EdgeEdgeContact
@@ -357,11 +357,11 @@ class ContactSet:
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
         """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
         ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on a Taichi backend one
-        kernel launch for both kinds (:func:`sim_core.ti_kernels.contact_setup.pair_geometry`), else the
+        kernel launch for both kinds (:func:`sim_core.energies.contact.setup_kernel.pair_geometry`), else the
         NumPy reference."""
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact_setup import pair_geometry as geometry
+            from sim_core.energies.contact.setup_kernel import pair_geometry as geometry
         else:
             geometry = pair_geometry
         return geometry(x, vt_vertices, ee_vertices)
@@ -467,7 +467,7 @@ class ContactSet:
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact_batch import PairBatch
+            from sim_core.energies.contact.batch_kernel import PairBatch
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
         return pots, (vt_sides, ee_sides)
@@ -554,7 +554,7 @@ class ContactSet:
         friction_class = LaggedFriction
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
+            from sim_core.energies.friction.kernel import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
         return friction
@@ -563,11 +563,11 @@ class ContactSet:
                        ) -> LaggedFriction | None:
         """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
         bases of the active pairs of both kinds from one launch
-        (:func:`sim_core.ti_kernels.contact_setup.friction_frames`; the values of the pair potentials'
+        (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
         ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
-        from sim_core.ti_kernels.contact_setup import friction_frames
-        from sim_core.ti_kernels.friction import TiLaggedFriction
+        from sim_core.energies.contact.setup_kernel import friction_frames
+        from sim_core.energies.friction.kernel import TiLaggedFriction
 
         pots = (vt, ee)
         rows = [pot.active_distances(x_n) for pot in pots]
@@ -644,7 +644,7 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     """The touching contacts of the penalty potentials ``terms`` (as :meth:`ContactSet.potentials`
     returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
     (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
-    a term is not a :class:`~sim_core.potentials.base.PenaltyContact` (a missing-physics candidate's
+    a term is not a :class:`~sim_core.energies.base.PenaltyContact` (a missing-physics candidate's
     adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""

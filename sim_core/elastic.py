@@ -15,12 +15,12 @@ import copy
 
 import numpy as np
 
-from sim_core.model import Model
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending, plastic_update
+from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
+from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
-from sim_core.potentials.bending import DiscreteShellBending, plastic_update
-from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
-from sim_core.potentials.neohookean import StableNeoHookean
+from sim_core.model import Model
 
 
 class ElasticTerms:

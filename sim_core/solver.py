@@ -31,15 +31,15 @@ from sim_core.contact_set import ContactSet, active_contacts, same_active_contac
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
+from sim_core.energies.base import KeepsDerivatives
+from sim_core.energies.damping.reference import ViscousDamping
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.gravity.reference import GravityPotential
+from sim_core.energies.inertia.reference import InertiaPotential
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
-from sim_core.potentials.base import KeepsDerivatives
-from sim_core.potentials.damping import ViscousDamping
-from sim_core.potentials.friction import LaggedFriction
-from sim_core.potentials.gravity import GravityPotential
-from sim_core.potentials.inertia import InertiaPotential
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
