@@ -40,12 +40,17 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ThinShellError
+from sim_core.optim.episode import Episode
+from sim_core.optim.tasks import task_at_horizon
 from sim_core.plain import plain
 from sim_core.trajectory_file import Trajectory, write_trajectory
 from sysid.cli import sysid_main
 from sysid.compare import compare_main
+from sysid.evidence import load_evidence
 from sysid.fitted_scene import scene_with_values
 from sysid.optimise_cli import optimise_main
+from sysid.task_reward import TaskRewardProbe, reward_sample_index
+from thinshell_ros.demo_loop import rms_table, run_deploy_stage
 
 TASK = "forming"
 """The demo's task (``config/tasks/forming.yaml``): its reward, ``-sum |x - x_target|^2`` over the sheet,
@@ -156,8 +161,6 @@ def reference_trajectory(task: Any, out: Path, scene_path: Path) -> Path:
     Raises:
         ThinShellError: the task has no reference trajectory, or it is infeasible.
     """
-    from sim_core.optim.episode import Episode
-
     if task.reference_actions is None:
         raise ThinShellError(f"task {task.name} has no reference trajectory to identify the robot with")
     ep = Episode(task, task.horizon)
@@ -175,9 +178,6 @@ def reference_trajectory(task: Any, out: Path, scene_path: Path) -> Path:
 def recorded_reward(task: Any, bag: Path) -> float:
     """The task's reward achieved in a task-scene recording, at the end of its commanded motion
     (:mod:`sysid.task_reward`)."""
-    from sysid.evidence import load_evidence
-    from sysid.task_reward import TaskRewardProbe, reward_sample_index
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ev = load_evidence(bag)
@@ -199,9 +199,6 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     Raises:
         ThinShellError: a stage failed (a tool's exit code, a deployment that did not complete).
     """
-    from sim_core.optim.tasks import task_at_horizon
-    from thinshell_ros.demo_loop import run_deploy_stage
-
     out = run / "task"
     out.mkdir()
     task = task_at_horizon(settings.task, settings.horizon)
@@ -264,8 +261,6 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     res.timings["task_deploy_s"] = time.monotonic() - t0
     if res.deploy["state"] != "completed":
         raise ThinShellError(f"the task deployment {res.deploy['state']}: {res.deploy['reason']}")
-
-    from thinshell_ros.demo_loop import rms_table
 
     res.compare_out = out / "compare"
     args = [str(res.deployed_bag), "--scene", str(res.fitted_scene), "--scene-nominal", str(nominal), "--label",
