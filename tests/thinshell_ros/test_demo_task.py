@@ -5,6 +5,7 @@ the optimiser on the fitted task scene, the deployed optimised run and its compa
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from rich.console import Console
 from sim_core.scenes import load_scene
 from sim_core.trajectory_file import read_trajectory
 from sysid.bagio import open_bag
+from sysid.compare import compare_recording
+from sysid.observation import ObservationWarning
 from thinshell_ros.demo_loop import HIDDEN
 from thinshell_ros.demo_task import TASK_HIDDEN, TaskStageSettings, carried_values, recorded_reward, run_task_stages
 
@@ -58,6 +61,14 @@ def test_task_stage_optimises_on_the_fitted_scene_deploys_and_scores_the_robot(r
     assert reward["recording"] == pytest.approx(recorded_reward_at(res.deployed_bag), rel=1e-12)
     assert abs(reward["predicted"]["fitted"] - reward["recording"]) < abs(reward["predicted"]["nominal"] - reward["recording"])
     assert np.isfinite(res.id_reward) and res.id_reward < 0
+    # the chain deploy -> record -> replay is exact: the robot's own (hidden) scene replays the deployed run
+    # to the robot's sheet-point noise (10 um per axis) and predicts the reward it achieved
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ObservationWarning)   # "no tactile sensor"
+        truth = compare_recording(res.deployed_bag, [("hidden", res.hidden_scene)], dt=0.005, task="forming",
+                                  horizon=10)
+    assert truth.rms["hidden"]["sheet_points"]["whitened_rms"] < 1.5
+    assert truth.reward["predicted"]["hidden"] == pytest.approx(reward["recording"], rel=0.02)
     assert (out / "compare" / "report.html").is_file() and "reward achieved on the recording" in (
         out / "compare" / "report.md").read_text()
 
