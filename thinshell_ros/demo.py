@@ -55,9 +55,7 @@ from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_b
                                      robot_noise_args, run_deploy_stage, start_sim_node, stop_process,
                                      write_hidden_scene)
 from thinshell_ros.demo_task import SHARED, TASK_HIDDEN, TaskStageResult, TaskStageSettings, run_task_stages
-from thinshell_ros.paths import bundled_scene, config_dir
-
-DEFAULT_BAG = "nominal_s101"
+from thinshell_ros.paths import DEFAULT_BAG, bundled_scene
 
 
 @dataclass(frozen=True)
@@ -151,18 +149,6 @@ class DemoResult:
     compare_out: Path | None = None
     comparison: dict[str, Any] | None = None
     task: TaskStageResult | None = None
-
-
-def bundled_bag(name: str = DEFAULT_BAG) -> Path:
-    """``bags/<name>`` of the source tree (beside ``config/``).
-
-    Raises:
-        ConfigError: no such bag directory.
-    """
-    path = config_dir().parent / "bags" / name
-    if not (path / "metadata.yaml").is_file():
-        raise ConfigError(f"bundled recording {path} not found (expected metadata.yaml, .mcap and scene.yaml)")
-    return path
 
 
 def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:
