@@ -148,12 +148,14 @@ def test_press_bad_input_and_sigint_recording(ros_env, tmp_path, client):
     assert (bag / "scene.yaml").is_file()
 
 
-def test_sigterm_and_params_file(ros_env, tmp_path, client):
+@pytest.mark.parametrize("executor", ["single", "events"])
+def test_sigterm_and_params_file(ros_env, tmp_path, client, executor):
     """The node reads the bundled params file, runs in stepped mode, serves its parameters and exits
-    cleanly on SIGTERM."""
+    cleanly on SIGTERM, in either executor."""
     ctx, node, ex, got = client
     params = REPO / "config" / "nodes" / "sim_node.yaml"
-    args = [PYTHON, "-m", "thinshell_ros.sim_node", "--ros-args", "--params-file", str(params), "-p", "mode:=stepped"]
+    args = [PYTHON, "-m", "thinshell_ros.sim_node", "--ros-args", "--params-file", str(params), "-p", "mode:=stepped",
+            "-p", f"executor:={executor}"]
     proc = subprocess.Popen(args, cwd=REPO, env=ros_env, stdout=open(tmp_path / "node.log", "w"), stderr=subprocess.STDOUT)
     try:
         from std_srvs.srv import Trigger
