@@ -87,7 +87,7 @@ class SignatureSettings:
     simulation: dict[str, Any] | None = None
     workers: int = 1
     plasticity_replays: int = 5
-    plasticity_max_time: float | None = 300.0
+    plasticity_max_time: float | None = 120.0
 
 
 @dataclass
