@@ -88,7 +88,8 @@ def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nom
 
     Returns:
         dict with ``yield_angle`` (rad; None when no evaluated angle beats the nominal replay on the
-        training points), ``evaluations`` (``[[yield_angle, training whitened RMS], ...]``),
+        training points), ``evaluations`` (``[[yield_angle, training whitened RMS or None where the
+        replay diverged], ...]``),
         ``prediction`` (the replay at the fitted angle, or ``nominal``), the training and held-out
         whitened RMS in ``rows`` before and after, the held-out RMS over all rows before and after,
         ``heldout_reduction`` (1 - after / before of the held-out RMS in ``rows``),
@@ -146,7 +147,8 @@ def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nom
         notes.append(f"the term lowers the held-out sheet residual by {100 * reduction:.2g} % only: the replay's sheet "
                      f"bends at most {theta_max:.3g} rad, so no yield angle makes the fold the recorded set comes from")
     return {"heldout_reduction": reduction, "yield_angle": yield_angle, "theta_max": theta_max,
-            "evaluations": [[theta_max * math.exp(u), math.sqrt(c / n_tr)] for u, c, _ in evals],
+            "evaluations": [[theta_max * math.exp(u), math.sqrt(c / n_tr) if math.isfinite(c) else None]
+                            for u, c, _ in evals],
             "prediction": pred, "notes": notes, "wall_s": time.monotonic() - t0,
             "train_rms_before": math.sqrt(nominal_cost / n_tr),
             "train_rms_after": math.sqrt(_sse(x_tr, pred[rows][:, train], sigma) / n_tr),
