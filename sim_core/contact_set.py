@@ -32,11 +32,12 @@ from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import PenaltyContact
-from sim_core.model import Model, check_broad_phase
-from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
-                                        edge_edge_vertices, vertex_triangle_vertices)
+from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact,
+                                                 concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.sphere_contact.reference import SphereContact
+from sim_core.model import Model, check_broad_phase
+from sim_core.workspace import Workspace
 
 
 class FrictionRowSource(NamedTuple):
@@ -66,6 +67,8 @@ class ContactSet:
         backend: the solver's concrete backend (:data:`sim_core.backend.BACKENDS`; ``NewtonSolver.backend``):
             the Taichi contact, friction and broad-phase kernels on ``taichi-cpu`` / ``taichi-cuda``
             (Taichi initialised for it), the NumPy reference on ``numpy``.
+        workspace: where the contact and friction potentials keep their evaluations
+            (:mod:`sim_core.workspace`; the solver's), or None for one of this contact set's own.
 
     Attributes:
         taichi: whether this contact set runs the Taichi kernels (``backend`` is a Taichi one).
@@ -74,8 +77,10 @@ class ContactSet:
         ConfigError: an unknown ``broad_phase`` or ``backend``.
     """
 
-    def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy") -> None:
+    def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy",
+                 workspace: Workspace | None = None) -> None:
         self.model = model
+        self.workspace = Workspace() if workspace is None else workspace
         self.taichi = uses_taichi(backend)
         c = model.contact
         self.broad_phase = check_broad_phase(c.broad_phase if broad_phase is None else broad_phase,
@@ -465,6 +470,8 @@ class ContactSet:
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee, ee_sides = ee[keep], ee_sides[keep]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        for pot in pots:
+            pot.workspace = self.workspace
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
@@ -556,6 +563,7 @@ class ContactSet:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.friction.kernel import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction.workspace = self.workspace
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
         return friction
 
@@ -583,6 +591,7 @@ class ContactSet:
         weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
         lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
         friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
+        friction.workspace = self.workspace
         friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
                                 if len(active)]
         return friction

@@ -1,7 +1,7 @@
 """The potential contract shared by every energy term, and sparse assembly of its Hessian.
 
 Every energy in the incremental potential (inertia, gravity, membrane, bending, Stable Neo-Hookean,
-contact, friction, ...) is one module in ``sim_core/potentials`` with a class that follows
+contact, friction, ...) is a class in ``sim_core/energies/<energy>/reference.py`` that follows
 :class:`Potential`: parameters fixed at construction, positions passed at call time (IPC Toolkit's
 convention). Positions are always the *global* vertex array of the model, ``x`` of shape
 ``(vertex_count, 3)`` in metres; the potential holds global vertex indices of its elements. The

@@ -10,8 +10,8 @@ gathered in the kernel; the distance of every pair; with derivatives, the distan
 penalty Hessian ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs ``d < eps`` and the
 penalty gradient ``k_c (d - eps) grad d`` summed per vertex), and
 each potential keeps its part as its evaluation of ``x`` (a
-:class:`~sim_core.energies.contact.reference.PairEvaluation`, the ``_last`` of
-:meth:`sim_core.energies.contact.reference._PairPenalty._evaluate`), so the second request finds it there.
+:class:`~sim_core.energies.contact.reference.PairEvaluation` in its workspace, :mod:`sim_core.workspace`,
+as :meth:`sim_core.energies.contact.reference._PairPenalty._evaluate` keeps it), so the second request finds it there.
 The penalty Hessian is made in the kernel from the distance Hessian it has just computed, and the
 penalty gradient summed there in pair order (the reference's operations in its order: the same
 blocks and sums bit for bit), so that neither the distance Hessians are copied out nor the blocks
@@ -46,6 +46,7 @@ from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -227,11 +228,11 @@ class PairBatch:
             if derivatives:
                 g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
-                pot._last = PairEvaluation(order, key, active, dd, pot.eps, (stiffness, h),
-                                           (stiffness, gradients[kind * n:(kind + 1) * n].copy()))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, gradients[kind * n:(kind + 1) * n].copy())))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
-                pot._last = PairEvaluation(order, key, active, dd, pot.eps)
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
 
 
 def compile_kernels() -> None:

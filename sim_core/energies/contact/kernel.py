@@ -21,6 +21,7 @@ from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as contact_distance, setup_kernel as contact_setup
 from sim_core.energies.contact.reference import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
+from sim_core.workspace import workspace_of
 
 
 def _frames(pot, x: np.ndarray, point_first: bool) -> ContactFrames:
@@ -50,7 +51,7 @@ class _Batched:
         kept = self._kept(key, order)
         if kept is None:
             self._batch.evaluate(x, order > 0, key)
-            kept = self._last
+            kept = workspace_of(self).get(self, "evaluation")
         return kept
 
 

@@ -41,6 +41,7 @@ from sim_core.collision.distances import (
 )
 from sim_core.energies.base import HessianBlocks, Projection, positions_key, project_psd, scatter_gradient
 from sim_core.errors import ConfigError
+from sim_core.workspace import workspace_of
 
 
 class ContactFrames(NamedTuple):
@@ -209,7 +210,7 @@ class _PairPenalty:
         """The kept evaluation if it was made at positions ``key`` (:func:`positions_key`) with this
         ``eps`` and holds derivatives up to ``order`` (order 2: with the Hessians of this stiffness,
         :meth:`PairEvaluation.holds_hessian`), else None."""
-        last = getattr(self, "_last", None)
+        last = workspace_of(self).get(self, "evaluation")
         if (last is not None and last.order >= order and last.eps == self.eps and last.key == key
                 and (order < 2 or last.holds_hessian(self.stiffness))):
             return last
@@ -231,8 +232,7 @@ class _PairPenalty:
         else:
             order = 2
             dd = self._distance(x[self.vertices[active]], self.sides[active], order)
-        self._last = PairEvaluation(order, key, active, dd, self.eps)
-        return self._last
+        return workspace_of(self).put(self, "evaluation", PairEvaluation(order, key, active, dd, self.eps))
 
     def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
         """Indices of the active pairs and their distance (with derivatives up to ``order``).
@@ -265,13 +265,14 @@ class _PairPenalty:
         Same class, pairs (vertex arrays), sides and eps define the same distances, so the result
         kept for some ``x`` is valid here too (still matched against ``x`` on use). The contact set
         passes the potential of the previous Newton iterate, whose last evaluation is the energy at
-        the accepted line-search point, the next iterate.
+        the accepted line-search point, the next iterate. (Both keep their evaluations in their
+        workspaces, :mod:`sim_core.workspace`.)
         """
-        last = getattr(other, "_last", None)
+        last = None if other is None else workspace_of(other).get(other, "evaluation")
         if (last is not None and type(other) is type(self) and other.eps == self.eps
                 and other.vertices.shape == self.vertices.shape and np.array_equal(other.vertices, self.vertices)
                 and np.array_equal(other.sides, self.sides)):
-            self._last = last
+            workspace_of(self).put(self, "evaluation", last)
 
     def active_distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the active pairs (``d < eps``) at positions ``x`` ``(n, 3)`` and their distances (m):

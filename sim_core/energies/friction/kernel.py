@@ -31,6 +31,7 @@ from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
 
@@ -185,8 +186,8 @@ class TiLaggedFriction(LaggedFriction):
         return float(self._energy[0])
 
     def keep_derivatives(self, x: np.ndarray) -> None:
-        """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept for
-        :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
+        """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
+        workspace (:mod:`sim_core.workspace`) for :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
         ``x``, coefficients and ``eps_u``; the next :meth:`gradient` call drops them (the Newton
         line search evaluates a trial point this way when, once accepted, it is the next iterate)."""
         p, m = self.vertices.shape
@@ -196,11 +197,11 @@ class TiLaggedFriction(LaggedFriction):
         grad = np.zeros((x.shape[0], 3))
         blocks = np.empty((p, 3 * m, 3 * m))
         energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
-        self._kept_all = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks)
+        workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
         """The :meth:`keep_derivatives` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
-        kept = getattr(self, "_kept_all", None)
+        kept = workspace_of(self).get(self, "derivatives")
         return kept if kept is not None and self._matches(kept, arrays) else None
 
     def energy(self, x: np.ndarray) -> float:
@@ -217,28 +218,30 @@ class TiLaggedFriction(LaggedFriction):
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
 
         The same launch computes the Hessian blocks at ``x`` (the Newton solver asks for them next),
-        kept for one :meth:`hessian` call at equal ``x``, coefficients and ``eps_u``. The gradient is
+        kept in the workspace (:mod:`sim_core.workspace`) for one :meth:`hessian` call at equal ``x``,
+        coefficients and ``eps_u``. The gradient is
         kept too, for one more :meth:`gradient` call at equal ``x`` (the solver's contact force at the
         converged positions, where its last iteration took the gradient): that call returns it and
-        keeps nothing, so a step's friction, kept in its record, holds no arrays.
+        keeps nothing, so the workspace holds no arrays of a step's friction after the step.
         """
         grad = np.zeros((x.shape[0], 3))
         p, m = self.vertices.shape
         if p:
             arrays = self._kernel_arrays(x)
-            again, self._kept_gradient = getattr(self, "_kept_gradient", None), None
+            workspace = workspace_of(self)
+            again = workspace.take(self, "gradient")
             if again is not None and self._matches(again, arrays):
                 return again[3]
             kept = self._kept(arrays)
-            self._kept_all = None  # consumed (a step's friction is kept in its record: hold no arrays)
+            workspace.take(self, "derivatives")  # consumed
             if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
-                self._kept_hessian = (kept[0], kept[1], kept[2], kept[5])
-                self._kept_gradient = (kept[0], kept[1], kept[2], kept[4])
+                workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
+                workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
                 return kept[4].copy()
             blocks = np.empty((p, 3 * m, 3 * m))
             self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
-            self._kept_hessian = (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks)
-            self._kept_gradient = self._kept_hessian[:3] + (grad.copy(),)
+            kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
+            workspace.put(self, "gradient", kept_hessian[:3] + (grad.copy(),))
         return grad
 
     def _matches(self, kept: tuple, arrays: tuple) -> bool:
@@ -253,7 +256,7 @@ class TiLaggedFriction(LaggedFriction):
         if p == 0:
             return HessianBlocks.empty(m)
         arrays = self._kernel_arrays(x)
-        kept, self._kept_hessian = getattr(self, "_kept_hessian", None), None
+        kept = workspace_of(self).take(self, "hessian")
         if kept is not None and self._matches(kept, arrays):
             return HessianBlocks(self.vertices, kept[3])
         blocks = np.empty((p, 3 * m, 3 * m))

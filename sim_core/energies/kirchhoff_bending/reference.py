@@ -60,6 +60,7 @@ from sim_core.energies.hinge_bending.reference import dihedral_angle, dihedral_a
 from sim_core.energies.membrane.reference import project_psd_translation_free
 from sim_core.errors import ConfigError, MeshError
 from sim_core.mesh.validate import validate_triangles, validate_vertices
+from sim_core.workspace import workspace_of
 
 
 def plate_energy_matrix(poisson_ratio: float) -> np.ndarray:
@@ -318,14 +319,16 @@ class KirchhoffBending:
 
     def _hinge_kinematics(self, x: np.ndarray, gradient: bool = False) -> tuple:
         """``(X (h, 4, 3), theta (h,), dtheta/dx (h, 4, 3) or None)`` at ``x``, kept with a copy of
-        ``x`` so that energy, gradient and Hessian of one iterate share them (they do not depend on
-        the rest angles, which copies of this potential replace)."""
-        kept = self.__dict__.get("_kept")
-        if kept is None or kept[0] is not self.hinges or not np.array_equal(kept[1], x):
+        ``x`` in the workspace (:mod:`sim_core.workspace`) so that energy, gradient and Hessian of one
+        iterate share them (they do not depend on the rest angles, which copies of this potential
+        replace)."""
+        workspace = workspace_of(self)
+        kept = workspace.get(self.hinges, "hinge_kinematics")  # owned by the hinges: copies share it
+        if kept is None or not np.array_equal(kept[0], x):
             X = x[self.hinges]
-            kept = (self.hinges, np.array(x, dtype=float, copy=True), [X, dihedral_angle(X), None])
-            self._kept = kept
-        values = kept[2]
+            kept = workspace.put(self.hinges, "hinge_kinematics", (np.array(x, dtype=float, copy=True),
+                                                                   [X, dihedral_angle(X), None]))
+        values = kept[1]
         if gradient and values[2] is None:
             values[2] = dihedral_angle_gradient(values[0])
         return tuple(values)

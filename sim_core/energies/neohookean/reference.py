@@ -34,6 +34,7 @@ import numpy as np
 from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
 from sim_core.errors import ConfigError
 from sim_core.mesh.validate import tet_signed_volumes, validate_tets
+from sim_core.workspace import workspace_of
 
 _PAIRS = ((1, 2), (2, 0), (0, 1))
 """Index pairs (i, j) of the twist/flip modes; the third index of pair k is k."""
@@ -156,20 +157,23 @@ class StableNeoHookean:
         return np.einsum("kai,kaj->kij", p, self.tet_dFdx)
 
     def _deformation(self, x: np.ndarray) -> np.ndarray:
-        """:meth:`deformation_gradient` kept with ``x``: energy, gradient and Hessian of one
-        iterate (the line search's accepted point is the next iterate) share it and its invariants."""
-        kept = self.__dict__.get("_kept")
-        if kept is not None and kept[0] is self.tet_dFdx and np.array_equal(kept[1], x):
-            return kept[2]
+        """:meth:`deformation_gradient` kept with ``x`` in the workspace (:mod:`sim_core.workspace`):
+        energy, gradient and Hessian of one iterate (the line search's accepted point is the next
+        iterate) share it and its invariants."""
+        workspace = workspace_of(self)
+        # owned by tet_dFdx: copies with the same dF/dx share it, a copy with other dF/dx (the
+        # Maxwell branch) does not
+        kept = workspace.get(self.tet_dFdx, "deformation")
+        if kept is not None and np.array_equal(kept[0], x):
+            return kept[1]
         F = self.deformation_gradient(x)
-        # keyed on tet_dFdx too: a copy with other dF/dx (the Maxwell branch) must not reuse it
-        self._kept = (self.tet_dFdx, np.array(x, dtype=float, copy=True), F, [])
+        workspace.put(self.tet_dFdx, "deformation", (np.array(x, dtype=float, copy=True), F, []))
         return F
 
     def _invariants(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(I_C, J, cof F)``, shapes ``(k,), (k,), (k, 3, 3)``; memoised for the kept ``F``."""
-        kept = self.__dict__.get("_kept")
-        memo = kept[3] if kept is not None and kept[2] is F else None
+        kept = workspace_of(self).get(self.tet_dFdx, "deformation")
+        memo = kept[2] if kept is not None and kept[1] is F else None
         if memo:
             return memo[0]
         out = (np.einsum("kij,kij->k", F, F), np.linalg.det(F), _cofactor(F))

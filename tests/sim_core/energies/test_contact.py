@@ -8,6 +8,7 @@ import pytest
 from sim_core.collision.distances import EdgeEdgeRegion, PointTriangleRegion
 from sim_core.energies.contact.reference import EdgeEdgeContact, PlaneContact, VertexTriangleContact
 from sim_core.errors import ConfigError
+from sim_core.workspace import workspace_of
 from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
 
 K, EPS = 1.0e4, 4.0e-4
@@ -224,12 +225,12 @@ def test_kept_evaluation_is_reused_only_for_the_same_function():
     first.energy(x)  # keeps the order-0 result
     same = VertexTriangleContact(pairs, tris, sides.copy(), K, EPS)
     same.inherit_evaluation(first)
-    assert same._last is first._last
+    assert workspace_of(same).get(same, "evaluation") is workspace_of(first).get(first, "evaluation")
     assert same.energy(x) == e
     assert np.array_equal(same.gradient(x), g) and np.array_equal(same.hessian(x, "none").blocks, h)
     flipped = VertexTriangleContact(pairs, tris, -sides, K, EPS)
     flipped.inherit_evaluation(first)
-    assert getattr(flipped, "_last", None) is None
+    assert workspace_of(flipped).get(flipped, "evaluation") is None
     # a kept result is only used at equal positions
     x2 = x + 1e-6
     assert same.energy(x2) == VertexTriangleContact(pairs, tris, sides, K, EPS).energy(x2)
@@ -245,15 +246,15 @@ def test_kept_evaluation_is_matched_bitwise_and_its_stiffness_terms_per_stiffnes
     x, tris, pairs = _vt_scene(rng, list(PointTriangleRegion))
     pot = VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS)
     g = pot.gradient(x)
-    kept = pot._last
-    assert pot.energy(x.copy()) > 0.0 and pot._last is kept
+    kept = workspace_of(pot).get(pot, "evaluation")
+    assert pot.energy(x.copy()) > 0.0 and workspace_of(pot).get(pot, "evaluation") is kept
     assert positions_key(x) == positions_key(x.copy()) != positions_key(x.astype(np.float32))
     assert positions_key(x.tolist()) == positions_key(x)
     y = x.copy()
     y[0, 2] += 1e-7  # in place: another key, a new evaluation
     assert positions_key(y) != positions_key(x)
     assert pot.energy(y) == VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS).energy(y)
-    assert pot._last is not kept
+    assert workspace_of(pot).get(pot, "evaluation") is not kept
     pot.gradient(x)[:] = 0.0
     np.testing.assert_array_equal(pot.gradient(x), g)
     e = pot.energy(x)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sim_core.workspace import workspace_of
+
 from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
 
 K = 1.0e4
@@ -91,10 +93,10 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
 def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
     x, (vt, ee), _ = _potentials(100)
     vt.gradient(x)  # both evaluated with derivatives at x
-    kept = vt._last
-    ee._last = None
+    kept = workspace_of(vt).get(vt, "evaluation")
+    workspace_of(ee).take(ee, "evaluation")
     ee.energy(x)  # a values-only launch for ee: vt keeps its derivatives
-    assert vt._last is kept and ee._last.order == 0
+    assert workspace_of(vt).get(vt, "evaluation") is kept and workspace_of(ee).get(ee, "evaluation").order == 0
     assert vt.kept_evaluation(x, 2) is not None and ee.kept_evaluation(x, 1) is None
     assert vt.kept_evaluation(x + 1e-9, 0) is None
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.workspace import workspace_of
 from tests.sim_core.energies import test_friction as ref_tests
 from tests.sim_core.ti_kernels.conftest import relative_error
 
@@ -143,7 +144,7 @@ def test_keep_derivatives_keeps_the_values_of_the_separate_requests(ti_cpu, monk
     np.testing.assert_array_equal(kept.gradient(x.copy()), grad)
     np.testing.assert_array_equal(kept.hessian(x.copy()).blocks, blocks)
     assert launches == []
-    assert getattr(kept, "_kept_all", None) is None  # dropped by the gradient call
+    assert workspace_of(kept).get(kept, "derivatives") is None  # dropped by the gradient call
     kept.keep_derivatives(x)
     y = x + 0.1 * EPS_U
     assert kept.energy(y) == fresh.energy(y)
@@ -178,7 +179,7 @@ def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti
         grad[0] = 1e9  # the caller's array: the kept one is another
         again = tik.gradient(x.copy())
         assert relative_error(again, ref.gradient(x)) < 1e-12 and len(launches) == 1
-        assert getattr(tik, "_kept_gradient", None) is None
+        assert workspace_of(tik).get(tik, "gradient") is None
         np.testing.assert_array_equal(tik.gradient(x), again)
         assert len(launches) == 2
     tik.mu = 2.0 * tik.mu
