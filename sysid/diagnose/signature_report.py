@@ -171,6 +171,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         b, a = r.get("heldout_rms_before"), r.get("heldout_rms_after")
         lines.append(f"- {e}: params `{json.dumps(r['params'])}`; {r['observable']}; held-out: {r['heldout']}; "
                      f"{'n/a' if b is None else f'{b:.3g}'} -> {'n/a' if a is None else f'{a:.3g}'}")
+        for note in ([r["note"]] if r.get("note") else []) + list((r.get("detail") or {}).get("notes", [])):
+            lines.append(f"  - {note}")
     lines += ["", *[f"![{p.stem}]({p.name})" for p in images], ""]
     return "\n".join(lines)
 
