@@ -15,8 +15,8 @@ workers, or on the Ray cluster at ``--address`` (sim_core.optim.evaluators).
 
 Outputs in DIR: ``scene.yaml`` (the scene document the run used), ``checkpoint.pkl`` (after every batch; ``--resume`` continues from it, also with a
 larger ``--episodes``), and at the end ``trajectory.yaml`` (docs/trajectory_format.md: the best
-trajectory's reached effector poses, ``scene.path`` = that ``scene.yaml``, the parameter values, the predicted reward and peak wrench;
-none for a task without effectors),
+trajectory's reached effector poses, ``scene.path`` = that ``scene.yaml``, the parameter values, the predicted reward and
+the contact summary of :mod:`sim_core.optim.prediction` (effector wrenches, tactile readings); none for a task without effectors),
 ``result.json`` (summary and reward per episode), ``report.html`` with ``reward.png`` (reward versus
 episode) and ``before_after.png`` (final states of the start and of the best trajectory). Every file
 is written atomically; an existing DIR with results is refused unless ``--force`` (start again) or
@@ -259,6 +259,7 @@ def _start_candidate(space):
 def write_outputs(out: Path, task, state: SearchState, space, params: dict, scene_path: str | None,
                   wall_s: float, workers: int) -> list[Path]:
     """``trajectory.yaml``, ``result.json``, ``reward.png``, ``before_after.png``, ``report.html``."""
+    from sim_core.optim.prediction import contact_summary
     from sim_core.trajectory_file import Trajectory, write_trajectory
     from sysid.results import git_revision
 
@@ -279,7 +280,7 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
         scene_path=str(scene_file.resolve()), scene_name=str(task.scene.get("name", task.name)), parameters=run_params,
         prediction={"reward": _num(best.reward), "score": _num(best.score), "wrench_peak_N": _num(best.wrench_peak_N),
                     "start_reward": _num(before.reward), "success_score": task.success_score,
-                    "human_score": task.human_score},
+                    "human_score": task.human_score, **contact_summary(ep.sim, best.states)},
         provenance={"tool": "thinshell optimise", "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "git": git_revision()[0] or "", "seed": state.seed, "method": state.method, "task": task.name,
                     "episodes": state.episodes_done, "horizon": task.horizon},
