@@ -198,3 +198,28 @@ def test_reference_start_needs_a_reference_and_a_known_start():
         _warm_space("mean", np.zeros((6, 2)), np.zeros((6, 2)))
     with pytest.raises(ConfigError, match="base actions have shape"):
         _warm_space("zero", np.zeros((6, 2)), None).decoder.decode(np.zeros(4), np.zeros((5, 2)))
+
+
+class _Bowl(_Plateau):
+    """``-(y - 0.7)^2`` everywhere (1-D): Adam with a step of 2 overshoots the optimum by far."""
+
+    c = np.array([0.7])
+
+    def _result(self, z):
+        from sim_core.optim.episode import EpisodeResult
+
+        return EpisodeResult(-float(np.sum((np.asarray(z) - self.c) ** 2)), 1, 1, None)
+
+    def gd_start(self, cma_point):
+        return np.zeros(1), np.full(1, -10.0), np.full(1, 10.0)
+
+    def gd_gradient(self, y):
+        return self._result(y), -2.0 * (y - self.c)
+
+
+def test_a_step_that_does_not_improve_backtracks_with_half_the_step():
+    state = optimise(new_state("gd", 12, learning_rate=2.0), _Bowl())
+    rewards = [h.reward for h in state.history]
+    assert rewards[0] == pytest.approx(-0.49) and rewards[1] == pytest.approx(-1.69)  # 0 -> 2: overshoot
+    assert rewards[2] == pytest.approx(-0.09)  # back at 0, half the step: 0 -> 1
+    assert state.adam["lr"] <= 0.25 and state.best_reward > -1e-3  # the step shrank onto the optimum
