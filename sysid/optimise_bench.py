@@ -9,7 +9,12 @@ PPO baseline on the task's Gymnasium environment where both are installed (not i
 Usage::
 
     thinshell bench optimise [--tasks a,b] [--methods cma,gd,hybrid] [--episodes N] [--horizon H]
-                          [--seeds K] [--workers K] [--json] [--markdown FILE] [--rl]
+                          [--seeds K] [--workers K] [--start-factor F] [--tolerance R] [--json]
+                          [--markdown FILE] [--rl]
+
+Inverse tasks (Sliding, Bouncing, Card) start every identified parameter at ``F`` (default 2) times
+its hidden true value (``--start``); their ``success`` is every parameter recovered within the
+relative ``--tolerance`` (default 5 %), reported as ``parameter_rel_error``.
 """
 
 from __future__ import annotations
