@@ -8,12 +8,11 @@
   number, ...; not the score-difference criteria, the rewards not being normalised).
 * ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
   reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
-  infeasible episode returns to the best point found and halves the learning rate; a step that
-  lands on a feasible episode scoring no better than the best does the same and steps again at
-  once from the best point along its (kept) gradient, with Adam's moments restarted (backtracking:
-  Adam's step is about ``learning_rate`` per coordinate whatever the gradient's size, so near an
-  optimum it overshoots until the step shrinks); a gradient
-  that is exactly zero at the start ends the run (nothing to descend). Adam's
+  infeasible episode, or on one scoring no better than the best, halves the learning rate and steps
+  again at once from the best point along its (kept) gradient, with Adam's moments restarted
+  (backtracking: Adam's step is about ``learning_rate`` per coordinate whatever the gradient's
+  size, so near an optimum it overshoots until the step shrinks; an infeasible first step returns
+  to the start); a gradient that is exactly zero at the start ends the run (nothing to descend). Adam's
   epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
   epsilon would swamp small gradients).
 * ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
@@ -322,17 +321,18 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
             state.phase = "done"
             state.stop_reason = "zero gradient at the start: no action changes the reward to first order"
         return logs
-    if not res.feasible:
-        a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
-        a["m"][:], a["v"][:] = 0.0, 0.0
-        return logs
-    if res.score > a["best_score"]:
+    if res.feasible and res.score > a["best_score"]:
         a["best_score"], a["best_y"], a["best_g"] = res.score, y.copy(), g.copy()
     elif a.get("best_g") is not None:
-        # no better than the best point: step again from there, with half the step (backtracking)
+        # infeasible, or no better than the best point: step again from there along its gradient,
+        # with half the step and Adam's moments restarted (backtracking)
         y, g = a["best_y"].copy(), a["best_g"]
         a["lr"] *= 0.5
         a["m"], a["v"], a["t"] = np.zeros_like(y), np.zeros_like(y), 0
+    else:  # infeasible before any feasible step: back to the start with half the step
+        a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
+        a["m"][:], a["v"][:] = 0.0, 0.0
+        return logs
     if a["eps"] is None:
         a["eps"] = ADAM_EPS_FRACTION * max(float(np.sqrt(np.mean(g**2))), np.finfo(float).tiny)
     b1, b2 = ADAM_BETAS

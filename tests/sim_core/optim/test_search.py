@@ -223,3 +223,24 @@ def test_a_step_that_does_not_improve_backtracks_with_half_the_step():
     assert rewards[0] == pytest.approx(-0.49) and rewards[1] == pytest.approx(-1.69)  # 0 -> 2: overshoot
     assert rewards[2] == pytest.approx(-0.09)  # back at 0, half the step: 0 -> 1
     assert state.adam["lr"] <= 0.25 and state.best_reward > -1e-3  # the step shrank onto the optimum
+
+
+class _BowlWithWall(_Bowl):
+    """``-(y - 1.4)^2`` for y <= 1.5, infeasible beyond (a contact force over the limit, say)."""
+
+    c = np.array([1.4])
+
+    def _result(self, z):
+        from sim_core.optim.episode import EpisodeResult
+
+        if np.asarray(z)[0] > 1.5:
+            return EpisodeResult(float("nan"), 0, 1, "max force")
+        return super()._result(z)
+
+
+def test_an_infeasible_step_backtracks_from_the_best_point_without_evaluating_it_again():
+    state = optimise(new_state("gd", 4, learning_rate=2.0), _BowlWithWall())
+    assert state.history[0].reward == pytest.approx(-1.96)  # y = 0
+    assert state.history[1].infeasible == "max force"  # y = 2
+    assert state.history[2].reward == pytest.approx(-0.16)  # y = 1: half the step from 0, at once
+    assert state.best_reward > -0.16 - 1e-6  # (Adam's epsilon: y = 1 - 1e-8)
