@@ -62,12 +62,12 @@ import numpy as np
 import yaml
 
 from sim_core.builder import ModelBuilder
+from sim_core.energies.hinge_bending.reference import dihedral_angle
 from sim_core.errors import ConfigError
 from sim_core.mesh.dome import dome_shell
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import TetMesh, box_face_vertices, tet_box
 from sim_core.model import ContactSettings, Model, check_broad_phase
-from sim_core.potentials.bending import dihedral_angle
 from sim_core.scenes import task_scene_v2 as v2
 from sim_core.state import State
 from sim_core.transforms import transform_points
@@ -78,7 +78,8 @@ TASK_SCENE_VERSIONS = (1, 2)
 SPRING_STANDIN_POISSON_RATIO = 1.0 / 3.0
 
 _TOP = {"kind": True, "version": True, "name": True, "dt": True, "gravity": True, "contact": True, "sheets": True,
-        "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False}
+        "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False,
+        "fitted": False}  # fitted: the record of thinshell sysid --write-scene (sysid.fitted_scene), not read here
 _CONTACT = {"stiffness": True, "eps": True, "eps_v": False, "self_contact": False, "broad_phase": False}
 _SHEET = {"size": True, "resolution": True, "origin": True, "thickness": True, "membrane": True, "bending": True,
           "yield_angle": True, "clamped_edge": True, "density": False, "areal_density": False, "pattern": False,

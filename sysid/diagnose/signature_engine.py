@@ -14,14 +14,16 @@ still leaves a structured gap many times the noise, and every candidate can abso
 2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias
    from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
    contact events, bending plasticity from the sheet's set after release, adhesion from the sheet
-   carried by the gel.
+   carried by the gel, stiction from the friction ratio's overshoot at each slide's breakaway.
 3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
    the same tests on recordings the user declares normal (``--baseline``) when given.
 4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
    markers) and **refit** each named effect on training data, reporting whitened RMS before and
    after on held-out data: held-out contact events for the timing effects (each event predicted with
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
-   of ``2 * holdout_blocks`` blocks), and the sheet's final free window for plasticity.
+   of ``2 * holdout_blocks`` blocks), a checkerboard of the sheet grid after the release for
+   plasticity (its yield angle refitted by replays, :mod:`sysid.diagnose.plasticity_refit`), and
+   every other wrench sample of each breakaway window for stiction.
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
+from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
+from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, lens_design
@@ -67,6 +71,8 @@ class SignatureSettings:
             ``2 * holdout_blocks``).
         simulation: overrides of the scene's ``simulation:`` block for the replays.
         workers: processes for the calibration's batched replays.
+        plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
+        plasticity_max_time: wall-time budget of that search, s (None: none).
     """
 
     dt: float = 0.01
@@ -80,6 +86,8 @@ class SignatureSettings:
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
     workers: int = 1
+    plasticity_replays: int = 5
+    plasticity_max_time: float | None = 120.0
 
 
 @dataclass
@@ -94,6 +102,9 @@ class Prepared:
         recording: the :class:`~sysid.diagnose.signatures.Recording` the tests read.
         results: effect -> :class:`SignatureResult` (undecided until :func:`decide`).
         wall_s: seconds spent.
+        notes: what could not be done, and why.
+        refit_predictions: effect -> channel -> the replay with the effect's term, for the refits
+            that replay the simulator (the report plots them).
     """
 
     bag: Path
@@ -104,6 +115,7 @@ class Prepared:
     results: dict[str, SignatureResult]
     wall_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    refit_predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None) -> Recording:
@@ -298,13 +310,23 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
 
 
-def refit_sheet(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Sheet effects: the located set or carried height, without a replay of the effect's term.
-
-    The permanent set (plasticity) and the carried sheet (adhesion) are reported with the sheet's
-    whitened RMS in the effect's windows; modelling them needs a replay with the effect's term
-    (``thinshell diagnose --engine score`` refits ``sheet.yield_angle`` and the adhesion bonds)."""
+def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
+    """Sheet effects. Bending plasticity: the hinge bending's yield angle refitted by replays with
+    the calibrated parameters (:func:`sysid.diagnose.plasticity_refit.refit_plasticity`; training and
+    held-out sheet points in a checkerboard of the grid, rows of the effect's windows). Adhesion: the
+    carried height located, with the sheet's whitened RMS in its windows, not refitted (its bonds
+    are refitted by ``thinshell diagnose --engine score``)."""
     rec = p.recording
+    if r.effect == "bending_plasticity" and p.calibration.prediction:
+        try:
+            out = refit_plasticity(p.model, p.calibration.params, rec, p.prediction["sheet_points"], r.windows_s,
+                                   settings.plasticity_replays, settings.plasticity_max_time)
+        except ValueError as err:
+            p.notes.append(f"bending_plasticity: not refitted ({err})")
+        else:
+            p.refit_predictions[r.effect] = out.pop("prediction")
+            out["params"] = {**r.estimate, **out["params"]}
+            return out
     t = rec.t["sheet_points"]
     rows = np.zeros(len(t), bool)
     for a, b in r.windows_s:
@@ -316,6 +338,44 @@ def refit_sheet(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": None, "note": "not refitted with the effect's term in this engine"}
 
 
+def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
+    """Static over kinetic friction fitted on every other wrench sample of each breakaway window
+    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the friction
+    ratio against the kinetic level alone (Coulomb friction, one coefficient) and with the breakaway
+    decay (:mod:`sysid.diagnose.signatures.friction`)."""
+    rec = p.recording
+    taus = decay_taus(rec)
+    before = after = fit_sse = 0.0
+    n_held = n_fit = 0
+    ratios, decays = [], []
+    for b in breakaways(rec):
+        train = np.arange(len(b.t)) % 2 == 0
+        held = ~train
+        if held.sum() < 2:
+            continue
+        f = fit_breakaway(b, taus, train)
+        cols = decay_columns(b.t[held], b.t0, f["tau_s"])
+        c0, c1 = f["coef0"], f["coef1"]
+        pred0 = cols[0] * c0[0] + cols[1] * c0[1]
+        pred1 = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
+        z = b.sigma[held]
+        before += float(np.sum(((b.q[held] - pred0) / z) ** 2))
+        after += float(np.sum(((b.q[held] - pred1) / z) ** 2))
+        n_held += int(held.sum())
+        fit_sse += f["sse1"]
+        n_fit += int(train.sum())
+        if f["level"] > 0.0:
+            ratios.append(1.0 + f["excess"] / f["level"])
+            decays.append(f["tau_s"])
+    params = {"static_over_kinetic": float(np.median(ratios)) if ratios else 1.0,
+              "decay_s": float(np.median(decays)) if decays else 0.0}
+    return {"params": params, "observable": "friction ratio F_t / F_n along the slide at each breakaway",
+            "heldout": "every other wrench sample of each breakaway window",
+            "rms": {"wrench": math.sqrt(fit_sse / max(n_fit, 1))},
+            "heldout_rms_before": math.sqrt(before / n_held) if n_held else None,
+            "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
+
+
 def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
     """The named effect's model fitted on training data and its held-out RMS before and after."""
     if r.effect == "lens_distortion":
@@ -324,7 +384,9 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[
         return refit_force_bias(p, r, settings.holdout_blocks)
     if r.effect in ("latency", "gel_viscoelasticity"):
         return refit_timing(p, r)
-    return refit_sheet(p, r)
+    if r.effect == "stiction":
+        return refit_stiction(p, r)
+    return refit_sheet(p, r, settings)
 
 
 # ================================================================================ pipeline

@@ -14,6 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sysid.diagnose.report import write_report_files
+from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
 
@@ -28,7 +29,11 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
     sig = doc["extra"]["signatures"][effect]
     fit = doc["refit"]["effects"].get(effect, {})
     params = fit.get("params", {})
-    fig, ax = plt.subplots(figsize=(9, 3.6))
+    term = getattr(prepared, "refit_predictions", {}).get(effect, {}).get("sheet_points")
+    if term is not None:
+        fig, (ax, ax_res) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    else:
+        fig, ax = plt.subplots(figsize=(9, 3.6))
     if effect in ("latency", "gel_viscoelasticity"):
         channel, t, y, yp, _ = timing_signal(rec)
         after = delayed(t, yp, params.get("latency_s", 0.0)) if effect == "latency" else \
@@ -45,6 +50,16 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         ax.plot(t, wp[:, 2], "C0-", lw=1, label="calibrated replay F_z")
         ax.plot(t, apply_force_bias(wp, t, params)[:, 2], "C3-", lw=1, label="replay + bias")
         ax.set_ylabel("F_z (sensor frame), N")
+    elif effect == "stiction":
+        for i, b in enumerate(breakaways(rec)):
+            f = fit_breakaway(b, decay_taus(rec))
+            cols = decay_columns(b.t, b.t0, f["tau_s"])
+            c0, c1 = f["coef0"], f["coef1"]
+            ax.plot(b.t, b.q, "k.", ms=3, label="recorded F_t / F_n" if i == 0 else None)
+            ax.plot(b.t, cols[0] * c0[0] + cols[1] * c0[1], "C0-", lw=1, label="kinetic level (Coulomb)" if i == 0 else None)
+            fit = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
+            ax.plot(b.t, fit, "C3-", lw=1, label="with the breakaway excess" if i == 0 else None)
+        ax.set_ylabel("friction ratio along the slide")
     elif effect == "lens_distortion":
         xyz, uv = rec.data["markers_xyz"], rec.data["markers_uv"]
         pin = apply_lens(xyz, rec.camera, {k: v for k, v in params.items() if k not in ("k1", "k2")})
@@ -60,6 +75,22 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         x, xp = rec.data["sheet_points"], prepared.prediction["sheet_points"]
         ax.plot(t, x[:, :, 2].max(axis=1), "k-", lw=1, label="recorded sheet, highest point")
         ax.plot(t, xp[:, :, 2].max(axis=1), "C0-", lw=1, label="calibrated replay")
+        if term is not None:
+            y = params.get("yield_angle_rad")
+            ax.plot(t, term[:, :, 2].max(axis=1), "C3-", lw=1,
+                    label=f"replay with {effect}" + ("" if y is None else f" (yield angle {y:.3g} rad)"))
+            held = fit.get("detail", {}).get("heldout_points") or list(range(x.shape[1]))
+            s = rec.sigma["sheet_points"]
+            per_row = lambda pred: np.sqrt(np.mean(((x[:, held] - pred[:, held]) / s) ** 2, axis=(1, 2)))  # noqa: E731
+            ax_res.semilogy(t, per_row(xp), "C0-", lw=1, label="calibrated replay")
+            ax_res.semilogy(t, per_row(term), "C3-", lw=1, label=f"replay with {effect}")
+            ax_res.set_ylabel("held-out points:\nwhitened RMS")
+            ax_res.set_title(f"held-out sheet points in the windows: {fit.get('heldout_rms_before', float('nan')):.3g} -> "
+                             f"{fit.get('heldout_rms_after', float('nan')):.3g} (noise units)", fontsize=9)
+            for a, b in sig["windows_s"]:
+                ax_res.axvspan(a, b, color="C1", alpha=0.15)
+            ax_res.set_xlabel("time, s")
+            ax_res.legend(fontsize=7)
         ax.set_ylabel("height, m")
     if effect != "lens_distortion":
         for a, b in sig["windows_s"]:
@@ -105,6 +136,8 @@ WORDS = {
     "force_bias": "the wrench sensor reads an offset that drifts, even when the gel touches nothing",
     "bending_plasticity": "the sheet keeps a fold after the gel lets go of it (plastic bending)",
     "adhesion": "the gel sticks to the sheet and carries it up on a lift (tack)",
+    "stiction": "the contact sticks before it slides: at breakaway the friction reaches about {ratio:.2g} times "
+                "its sliding (kinetic) level, then falls back",
 }
 
 
@@ -114,7 +147,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     ex = doc["explained_by"]
     lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
     for e in ex:
-        lines.append(f"- **{e}**: {WORDS.get(e, e)}.")
+        ratio = doc["refit"]["effects"].get(e, {}).get("params", {}).get("static_over_kinetic", float("nan"))
+        lines.append(f"- **{e}**: {WORDS.get(e, e).format(ratio=ratio)}.")
     props = doc["extra"].get("contact_properties") or []
     if props:
         lines.append(f"- contact properties of this cell (not named alone): {', '.join(props)}")
@@ -137,6 +171,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         b, a = r.get("heldout_rms_before"), r.get("heldout_rms_after")
         lines.append(f"- {e}: params `{json.dumps(r['params'])}`; {r['observable']}; held-out: {r['heldout']}; "
                      f"{'n/a' if b is None else f'{b:.3g}'} -> {'n/a' if a is None else f'{a:.3g}'}")
+        for note in ([r["note"]] if r.get("note") else []) + list((r.get("detail") or {}).get("notes", [])):
+            lines.append(f"  - {note}")
     lines += ["", *[f"![{p.stem}]({p.name})" for p in images], ""]
     return "\n".join(lines)
 
