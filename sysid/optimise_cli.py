@@ -15,7 +15,8 @@ workers, or on the Ray cluster at ``--address`` (sim_core.optim.evaluators).
 
 Outputs in DIR: ``scene.yaml`` (the scene document the run used), ``checkpoint.pkl`` (after every batch; ``--resume`` continues from it, also with a
 larger ``--episodes``), and at the end ``trajectory.yaml`` (docs/trajectory_format.md: the best
-trajectory's reached effector poses, ``scene.path`` = that ``scene.yaml``, the parameter values, the predicted reward and peak wrench),
+trajectory's reached effector poses, ``scene.path`` = that ``scene.yaml``, the parameter values, the predicted reward and
+the contact summary of :mod:`sim_core.optim.prediction` (effector wrenches, tactile readings); none for a task without effectors),
 ``result.json`` (summary and reward per episode), ``report.html`` with ``reward.png`` (reward versus
 episode) and ``before_after.png`` (final states of the start and of the best trajectory). Every file
 is written atomically; an existing DIR with results is refused unless ``--force`` (start again) or
@@ -40,7 +41,7 @@ import yaml
 
 from sim_core.errors import ConfigError
 from sim_core.backend import BACKENDS
-from sim_core.optim.search import (METHODS, SearchState, load_checkpoint, new_state, optimise, save_checkpoint)
+from sim_core.optim.search import (CMA_STARTS, METHODS, SearchState, load_checkpoint, new_state, optimise, save_checkpoint)
 from sim_core.solver_config import SolverConfig
 
 CHECKPOINT = "checkpoint.pkl"
@@ -65,6 +66,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sigma", type=float, help="CMA-ES step (default: the task's)")
     p.add_argument("--control-points", type=int, help="CMA-ES control points (default: the task's)")
     p.add_argument("--learning-rate", type=float, help="Adam step in search coordinates (default 0.5)")
+    p.add_argument("--cma-start", choices=CMA_STARTS,
+                   help="manipulation tasks: CMA-ES control points added to the zero trajectory or to the task's "
+                        "reference (human-designed) trajectory (default: the task file's cma.start)")
     p.add_argument("--start", action="append", default=[], metavar="NAME=VALUE",
                    help="inverse tasks: start value of an identified parameter (repeatable)")
     p.add_argument("--backend", choices=BACKENDS, default="taichi-cpu",
@@ -161,8 +165,11 @@ def optimise_main(argv: list[str]) -> int:
     task, params, scene_path = load_target(args.task, args.scene, args.horizon)
     horizon = task.horizon
     start = _pairs(args.start, "--start")
+    cma_start = args.cma_start or task.cma_start
+    if task.kind == "inverse" and args.cma_start:
+        raise ConfigError(f"--cma-start applies to manipulation tasks; {task.name} is an inverse task")
     meta = {"task": task.name, "horizon": horizon, "scene": scene_path, "params": params, "start": start,
-            "control_points": args.control_points, "backend": args.backend}
+            "control_points": args.control_points, "backend": args.backend, "cma_start": cma_start}
     if args.resume:
         state = load_checkpoint(out / CHECKPOINT)
         if state.method != args.method or state.meta != meta:
@@ -181,7 +188,7 @@ def optimise_main(argv: list[str]) -> int:
     solver_config = SolverConfig(backend=args.backend, dt_halvings_on_failure=0)
     evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config, batched=args.batched)
     try:
-        space = _space(task, evaluator, horizon, params, start, args.control_points, solver_config)
+        space = _space(task, evaluator, horizon, params, start, args.control_points, solver_config, cma_start)
         t0 = time.perf_counter()
         deadline = None if args.max_time is None else t0 + float(args.max_time)
         _run(state, space, out, progress=not args.no_progress, deadline=deadline)
@@ -195,7 +202,7 @@ def optimise_main(argv: list[str]) -> int:
 
 
 def _space(task, evaluator, horizon: int, params: dict, start: dict, control_points: int | None,
-           solver_config: SolverConfig):
+           solver_config: SolverConfig, cma_start: str = "zero"):
     if task.kind == "inverse":
         from sysid.inverse_task import parameter_space
 
@@ -206,7 +213,7 @@ def _space(task, evaluator, horizon: int, params: dict, start: dict, control_poi
     from sim_core.optim.search import ActionSpace
 
     return ActionSpace(ControlPointDecoder.for_task(task, horizon, control_points), evaluator, task, params=params,
-                       solver_config=solver_config)
+                       solver_config=solver_config, start=cma_start)
 
 
 def _run(state: SearchState, space, out: Path, progress: bool, deadline: float | None = None) -> None:
@@ -246,12 +253,13 @@ def _episode_of(space, candidate):
 def _start_candidate(space):
     if space.task.kind == "inverse":
         return {s.name: s.initial for s in space.specs}
-    return np.zeros((space.decoder.horizon, space.decoder.action_dim))
+    return space.decode(np.zeros(space.decoder.dim))  # the CMA-ES mean: zero or the reference trajectory
 
 
 def write_outputs(out: Path, task, state: SearchState, space, params: dict, scene_path: str | None,
                   wall_s: float, workers: int) -> list[Path]:
     """``trajectory.yaml``, ``result.json``, ``reward.png``, ``before_after.png``, ``report.html``."""
+    from sim_core.optim.prediction import contact_summary
     from sim_core.trajectory_file import Trajectory, write_trajectory
     from sysid.results import git_revision
 
@@ -272,12 +280,14 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
         scene_path=str(scene_file.resolve()), scene_name=str(task.scene.get("name", task.name)), parameters=run_params,
         prediction={"reward": _num(best.reward), "score": _num(best.score), "wrench_peak_N": _num(best.wrench_peak_N),
                     "start_reward": _num(before.reward), "success_score": task.success_score,
-                    "human_score": task.human_score},
+                    "human_score": task.human_score, **contact_summary(ep.sim, best.states)},
         provenance={"tool": "thinshell optimise", "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "git": git_revision()[0] or "", "seed": state.seed, "method": state.method, "task": task.name,
                     "episodes": state.episodes_done, "horizon": task.horizon},
     )
-    paths = [scene_file, write_trajectory(out / "trajectory.yaml", traj, force=True)]
+    paths = [scene_file]
+    if traj.poses:  # a task without effectors (Bouncing) has no trajectory to write
+        paths.append(write_trajectory(out / "trajectory.yaml", traj, force=True))
     doc = {"schema": RESULT_SCHEMA, "schema_version": 1, "task": task.name, "kind": task.kind, "method": state.method,
            "episodes": state.episodes_done, "horizon": task.horizon, "seed": state.seed, "workers": workers,
            "backend": state.meta.get("backend"), "stop_reason": state.stop_reason,

@@ -129,27 +129,43 @@ class ControlPointDecoder:
         when K does not divide T)."""
         return (np.arange(self.horizon) * self.control_points) // self.horizon
 
-    def decode(self, z: np.ndarray) -> np.ndarray:
+    def decode(self, z: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
         """Per-step actions of search coordinates ``z``.
 
         Args:
             z: shape ``(K * action_dim,)``, control point-major.
+            base: per-step actions the control points are added to, shape ``(T, action_dim)``
+                (a warm start: ``z = 0`` decodes to ``base``); None: zero.
 
         Returns:
-            actions, shape ``(T, action_dim)``, clipped to the bounds.
+            actions ``base + piecewise-constant(z)``, shape ``(T, action_dim)``, clipped to the bounds.
 
         Raises:
-            ConfigError: wrong size or non-finite coordinates.
+            ConfigError: wrong size or non-finite coordinates, or a base of the wrong shape.
         """
         z = np.asarray(z, dtype=float)
         if z.shape != (self.dim,) or not np.all(np.isfinite(z)):
             raise ConfigError(f"control points: expected {self.dim} finite values, got shape {z.shape}")
-        per_point = z.reshape(self.control_points, self.action_dim) * self.units
-        return np.clip(per_point[self.segment_of_step()], self.low, self.high)
+        actions = (z.reshape(self.control_points, self.action_dim) * self.units)[self.segment_of_step()]
+        if base is not None:
+            base = np.asarray(base, dtype=float)
+            if base.shape != actions.shape:
+                raise ConfigError(f"control points: base actions have shape {base.shape}, expected {actions.shape}")
+            actions = actions + base
+        return np.clip(actions, self.low, self.high)
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Box bounds of the search coordinates that keep every decoded action within the action
-        bounds, each shape ``(K * action_dim,)``."""
+    def bounds(self, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Box bounds of the search coordinates, each shape ``(K * action_dim,)``.
+
+        Args:
+            warm: the coordinates are added to base actions within the action bounds
+                (:meth:`decode`'s ``base``): the box is the span ``+-(high - low)`` that can move any
+                base action to any bounded action; otherwise the box that keeps every decoded action
+                within the action bounds.
+        """
+        if warm:
+            span = (self.high - self.low) / self.units
+            return np.tile(-span, self.control_points), np.tile(span, self.control_points)
         return np.tile(self.low / self.units, self.control_points), np.tile(self.high / self.units, self.control_points)
 
 

@@ -8,8 +8,11 @@
   number, ...; not the score-difference criteria, the rewards not being normalised).
 * ``gd``: projected gradient ascent with Adam (Kingma & Ba 2015) on the exact gradient of the
   reward (adjoint). One step costs one episode (rollout + adjoint pass). A step that lands on an
-  infeasible episode returns to the best point found and halves the learning rate; a gradient
-  that is exactly zero at the start ends the run (nothing to descend). Adam's
+  infeasible episode, or on one scoring no better than the best, halves the learning rate and steps
+  again at once from the best point along its (kept) gradient, with Adam's moments restarted
+  (backtracking: Adam's step is about ``learning_rate`` per coordinate whatever the gradient's
+  size, so near an optimum it overshoots until the step shrinks; an infeasible first step returns
+  to the start); a gradient that is exactly zero at the start ends the run (nothing to descend). Adam's
   epsilon is ``1e-8`` times the RMS of the first gradient (rewards come in m^2 or rad: a fixed
   epsilon would swamp small gradients).
 * ``hybrid``: CMA-ES for ``hybrid_fraction`` of the episodes (at least one generation), then
@@ -41,6 +44,8 @@ from sim_core.optim.actions import ControlPointDecoder
 from sim_core.optim.episode import Episode, EpisodeResult
 
 METHODS = ("cma", "gd", "hybrid")
+CMA_STARTS = ("zero", "reference")
+"""What a manipulation task's CMA-ES control points are added to (:class:`ActionSpace`)."""
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS_FRACTION = 1e-8
 DEFAULT_LEARNING_RATE = 0.5
@@ -75,10 +80,14 @@ class SearchSpace(Protocol):
 class ActionSpace:
     """Per-step actions of a manipulation task.
 
-    CMA-ES searches the control points of ``decoder`` from zero (the zero trajectory, as the
-    original); gradient ascent searches every step's action in control-point units,
-    ``y = actions / units`` (shape ``(T * action_dim,)``), from the best CMA-ES point (hybrid), else
-    from the task's ``reference_actions`` (:func:`reference_start`), else from zero.
+    CMA-ES searches the control points of ``decoder`` around its mean ``z = 0``: with ``start =
+    "zero"`` the control points are the actions (``z = 0`` is the zero trajectory, as the original);
+    with ``start = "reference"`` they are added to the task's human-designed actions
+    (:func:`reference_start`; ``z = 0`` is the reference trajectory, evaluated in the first
+    generation), a warm start for tasks where the zero trajectory is far from any good one.
+    Gradient ascent searches every step's action in control-point units, ``y = actions / units``
+    (shape ``(T * action_dim,)``), from the best CMA-ES point (hybrid), else from the task's
+    ``reference_actions``, else from zero.
 
     Args:
         decoder: the control-point decoder of the task.
@@ -87,6 +96,10 @@ class ActionSpace:
         task: the task (for the in-process episode).
         params: global parameter values of the in-process episode (as the evaluator's).
         solver_config: Newton settings of the in-process episode (as the evaluator's).
+        start: ``"zero"`` or ``"reference"``: what the CMA-ES control points are added to.
+
+    Raises:
+        ConfigError: an unknown ``start``, or ``"reference"`` for a task without reference actions.
     """
 
     decoder: ControlPointDecoder
@@ -95,18 +108,39 @@ class ActionSpace:
     episode: Episode | None = None
     params: dict | None = None
     solver_config: Any = None
+    start: str = "zero"
+
+    def __post_init__(self) -> None:
+        if self.start not in CMA_STARTS:
+            raise ConfigError(f"task {self.task.name}: CMA-ES start must be one of {CMA_STARTS}, got {self.start!r}")
+        if self.start == "reference" and self.task.reference_actions is None:
+            raise ConfigError(f"task {self.task.name}: CMA-ES start 'reference' needs the task's reference trajectory")
+
+    @property
+    def base_actions(self) -> np.ndarray | None:
+        """The actions the CMA-ES control points are added to, shape ``(T, action_dim)``; None: zero."""
+        return reference_start(self.task, self.decoder) if self.start == "reference" else None
+
+    @property
+    def cma_evaluates_mean(self) -> bool:
+        """Whether the first CMA-ES generation evaluates its mean (the warm start itself)."""
+        return self.start == "reference"
 
     def cma_start(self):
-        low, high = self.decoder.bounds()
+        low, high = self.decoder.bounds(warm=self.start == "reference")
         return np.zeros(self.decoder.dim), low, high
 
+    def decode(self, z: np.ndarray) -> np.ndarray:
+        """Per-step actions of CMA-ES coordinates ``z``, shape ``(T, action_dim)``."""
+        return self.decoder.decode(z, self.base_actions)
+
     def cma_evaluate(self, points):
-        return self.evaluator.evaluate([self.decoder.decode(z) for z in points])
+        return self.evaluator.evaluate([self.decode(z) for z in points])
 
     def gd_start(self, cma_point):
         d = self.decoder
         if cma_point is not None:
-            start = d.decode(cma_point)
+            start = self.decode(cma_point)
         elif self.task.reference_actions is not None:
             start = reference_start(self.task, d)
         else:
@@ -126,7 +160,7 @@ class ActionSpace:
         return res.summary(), (da * self.decoder.units).reshape(-1)
 
     def candidate(self, phase, point):
-        return self.decoder.decode(point) if phase == "cma" else self.actions(point)
+        return self.decode(point) if phase == "cma" else self.actions(point)
 
 
 def reference_start(task, decoder: ControlPointDecoder) -> np.ndarray:
@@ -263,6 +297,8 @@ def _cma_generation(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
                 "verbose": -9, "verb_log": 0, "verb_disp": 0, "tolfun": 0.0, "tolfunhist": 0.0,
                 "tolflatfitness": FLAT_FITNESS_GENERATIONS}
         state.es = cma.CMAEvolutionStrategy(list(x0), state.sigma, opts)
+        if getattr(space, "cma_evaluates_mean", False):
+            state.es.inject([np.asarray(x0, dtype=float)], force=True)  # the warm start is the first candidate
     points = [np.asarray(p, dtype=float) for p in state.es.ask()]
     results = space.cma_evaluate(points)
     state.es.tell(points, [-r.score for r in results])
@@ -285,12 +321,18 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
             state.phase = "done"
             state.stop_reason = "zero gradient at the start: no action changes the reward to first order"
         return logs
-    if not res.feasible:
+    if res.feasible and res.score > a["best_score"]:
+        a["best_score"], a["best_y"], a["best_g"] = res.score, y.copy(), g.copy()
+    elif a.get("best_g") is not None:
+        # infeasible, or no better than the best point: step again from there along its gradient,
+        # with half the step and Adam's moments restarted (backtracking)
+        y, g = a["best_y"].copy(), a["best_g"]
+        a["lr"] *= 0.5
+        a["m"], a["v"], a["t"] = np.zeros_like(y), np.zeros_like(y), 0
+    else:  # infeasible before any feasible step: back to the start with half the step
         a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
         a["m"][:], a["v"][:] = 0.0, 0.0
         return logs
-    if res.score > a["best_score"]:
-        a["best_score"], a["best_y"] = res.score, y.copy()
     if a["eps"] is None:
         a["eps"] = ADAM_EPS_FRACTION * max(float(np.sqrt(np.mean(g**2))), np.finfo(float).tiny)
     b1, b2 = ADAM_BETAS

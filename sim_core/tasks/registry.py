@@ -9,7 +9,7 @@ the dotted key)::
     horizon: steps
     actions: [{effector, kind: pose, max_translation: m, max_rotation: rad}
               | {effector, kind: gripper, max_opening_change: m}, ...]   (may be empty: inverse tasks)
-    cma: {control_points, sigma, population, generations}
+    cma: {control_points, sigma, population, generations, start: zero | reference (optional, default zero)}
     reward: {name, params}                        # sim_core.tasks.task_rewards
     scores: {human, oracle, success} (optional, each a number or null)
     infeasible: {max_force_N, min_contact_force_N, contact_after_step, contact_effectors} (optional)
@@ -45,7 +45,8 @@ TASK_NAMES = ("lifting", "separating", "following", "folding_l", "folding_u", "p
 _TOP = {"format": True, "version": True, "name": True, "kind": True, "source": True, "scene": True, "horizon": True,
         "actions": True, "cma": True, "reward": True, "scores": False, "infeasible": False, "reference": False,
         "identify": False, "true_parameters": False}
-_CMA = {"control_points": True, "sigma": True, "population": True, "generations": True}
+_CMA = {"control_points": True, "sigma": True, "population": True, "generations": True, "start": False}
+CMA_STARTS = ("zero", "reference")
 _INFEASIBLE = {"max_force_N": False, "min_contact_force_N": False, "contact_after_step": False,
                "contact_effectors": False}
 
@@ -248,6 +249,11 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
                                   "the reward's reference state cannot be computed")
         return ep.sim.state
 
+    cma_start = str(cma.get("start", "zero"))
+    if cma_start not in CMA_STARTS:
+        raise ConfigError(f"cma.start must be one of {CMA_STARTS}, got {cma.get('start')!r}")
+    if cma_start == "reference" and reference is None:
+        raise ConfigError("cma.start: 'reference' needs the task's reference trajectory (key reference)")
     rw = _keys(d["reward"], "reward", {"name": True, "params": True})
     reward = build_reward(str(rw["name"]), rw["params"], "reward", reference_final if reference is not None else None)
     task = TaskSpec(
@@ -255,7 +261,7 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
         action_low=-high, action_high=high.copy(),
         control_points=_num(cma["control_points"], "cma.control_points", True, True),
         cma_sigma=_num(cma["sigma"], "cma.sigma", True), cma_population=_num(cma["population"], "cma.population", True, True),
-        cma_generations=_num(cma["generations"], "cma.generations", True, True), reward=reward,
+        cma_generations=_num(cma["generations"], "cma.generations", True, True), cma_start=cma_start, reward=reward,
         success_score=_optional_score(scores, "success", "scores"), human_score=_optional_score(scores, "human", "scores"),
         oracle_score=_optional_score(scores, "oracle", "scores"), reference_actions=reference, identify=identify,
         source=str(d["source"]), reward_name=str(rw["name"]), reward_units=REWARD_UNITS[str(rw["name"])],

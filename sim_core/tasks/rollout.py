@@ -86,12 +86,23 @@ def effector_wrench(sim: Simulation, state: State, effector: str) -> np.ndarray:
     Args:
         sim: the simulation.
         state: a state with ``contact_force``.
-        effector: effector name (its body is ``model.meta["effector_bodies"][effector]``).
+        effector: effector name (its body is ``model.meta["effector_bodies"][effector]``, else the body
+            of that name, else the gel of the tactile sensor it carries).
 
     Returns:
         ``[fx fy fz tx ty tz]`` in N and N m, world axes, torque about the effector frame's origin ``p``.
+
+    Raises:
+        ConfigError: the effector has no body.
     """
-    body = sim.model.bodies[sim.model.meta.get("effector_bodies", {}).get(effector, effector)]
+    model = sim.model
+    name = model.meta.get("effector_bodies", {}).get(effector, effector)
+    if name not in model.bodies:
+        gels = [s.gel_body for s in model.sensors.values() if s.effector == effector]
+        if not gels:
+            raise ConfigError(f"effector {effector!r} has no body (no body of that name, no tactile gel)")
+        name = gels[0]
+    body = model.bodies[name]
     f = np.zeros((0, 3)) if state.contact_force is None else state.contact_force[body.vertex_start:body.vertex_stop]
     r = state.x[body.vertex_start:body.vertex_stop] - state.effector_pose[effector][:3]
     return np.concatenate([f.sum(axis=0), np.cross(r, f).sum(axis=0)])

@@ -69,6 +69,9 @@ class TaskSpec:
             :mod:`sim_core.optim.actions`).
         cma_population: CMA-ES population size.
         cma_generations: CMA-ES generations.
+        cma_start: what the CMA-ES control points are added to: ``"zero"`` (the zero trajectory, as
+            the original) or ``"reference"`` (the human-designed ``reference_actions``: a warm start,
+            :class:`sim_core.optim.search.ActionSpace`).
         reward: pure function ``reward(model, state) -> float`` of the final state (units in
             ``reward_units``; larger is better).
         success_score: Table A's success threshold, or None.
@@ -97,6 +100,7 @@ class TaskSpec:
     cma_population: int
     cma_generations: int
     reward: RewardFn
+    cma_start: str = "zero"
     success_score: float | None = None
     human_score: float | None = None
     reference_actions: np.ndarray | None = None

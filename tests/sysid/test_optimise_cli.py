@@ -29,6 +29,9 @@ def test_optimise_writes_trajectory_report_and_checkpoint_and_resumes(tmp_path):
     assert traj.waypoint_count == 4 and traj.effectors == ["dome"]
     np.testing.assert_allclose(np.diff(traj.t), 0.005)
     assert traj.prediction["reward"] == pytest.approx(doc["best_reward"])
+    # the contact summary: one effector, so its peak is the episode's peak (recorded live while stepping)
+    assert traj.prediction["wrench_peak_N.dome"] == pytest.approx(traj.prediction["wrench_peak_N"], rel=1e-12)
+    assert len(traj.prediction["wrench_final.dome"]) == 6 and traj.prediction["torque_peak_Nm.dome"] >= 0.0
     assert doc["best_reward"] >= max(h["reward"] for h in doc["history"] if h["reward"] is not None)
     assert "reward.png" in (out / "report.html").read_text()
     # refuses to overwrite; --resume with a larger budget continues the same run
@@ -108,3 +111,33 @@ def test_batched_flag_evaluates_populations_as_one_batch_with_the_serial_scores(
     with pytest.raises(ConfigError, match="batched"):
         optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(tmp_path / "c"), "--batched",
                               "--workers", "2"])
+
+
+def test_cma_start_reference_evaluates_the_reference_first(tmp_path):
+    out = tmp_path / "warm"
+    args = ["forming", "--horizon", "2", "--population", "2", "--control-points", "1", "--no-progress",
+            "--backend", "numpy"]
+    assert optimise_main(args + ["--method", "cma", "--episodes", "2", "--cma-start", "reference", "--out", str(out)]) == 0
+    doc = json.loads((out / "result.json").read_text())
+    # Forming's target is the end of its reference trajectory: the reference scores exactly 0
+    assert doc["history"][0]["reward"] == pytest.approx(0.0, abs=1e-15)  # the CMA-ES mean, evaluated first
+    assert doc["start_reward"] == pytest.approx(0.0, abs=1e-15) and doc["history"][1]["reward"] < 0.0
+    with pytest.raises(ConfigError, match="--cma-start applies to manipulation tasks"):
+        optimise_main(["bouncing", "--horizon", "2", "--method", "cma", "--episodes", "2", "--cma-start", "zero",
+                       "--out", str(tmp_path / "inv")])
+
+
+def test_bench_optimise_starts_inverse_tasks_away_from_the_truth_and_reports_the_parameter_error(capsys):
+    from sysid.optimise_bench import bench_optimise_main, parameter_error
+
+    assert parameter_error({"a": 1.04, "b": 2.0}, {"a": 1.0, "b": 2.0}) == pytest.approx(0.04)
+    with pytest.raises(ConfigError, match="'c' missing"):
+        parameter_error({"a": 1.0}, {"c": 1.0})
+    assert bench_optimise_main(["--tasks", "bouncing", "--methods", "cma", "--episodes", "2", "--horizon", "2",
+                                "--population", "2", "--json", "--method-args", "--backend numpy"]) == 0
+    row = json.loads([line for line in capsys.readouterr().out.splitlines() if line.startswith("{")][0])
+    (name, true), = row["true_parameters"].items()
+    found = row["parameters"][name]
+    assert row["parameter_rel_error"] == pytest.approx(abs(found - true) / true)
+    # two CMA-ES samples around the start (2 x the truth, sigma 0.2 in log space) are not within 5 %
+    assert row["parameter_rel_error"] > 0.3 and row["success"] is False

@@ -148,3 +148,99 @@ def test_gd_on_a_plateau_stops_and_says_why():
     assert state.episodes_done == 1 and state.done and "zero gradient" in state.stop_reason
     cma_state = optimise(new_state("cma", 10, population=4), Flat())
     assert cma_state.episodes_done == 8 and cma_state.stop_reason.startswith("episode budget spent (what is left")
+
+
+class _QuadraticEvaluator:
+    """Reward ``-sum((a - target) / 1e-4)^2`` of per-step actions; keeps every evaluated sequence."""
+
+    def __init__(self, target):
+        self.target, self.seen = np.asarray(target, dtype=float), []
+
+    def evaluate(self, actions):
+        from sim_core.optim.episode import EpisodeResult
+
+        self.seen += [np.array(a) for a in actions]
+        return [EpisodeResult(-float(np.sum(((a - self.target) / 1e-4) ** 2)), 6, 6, None) for a in actions]
+
+
+def _warm_space(start, target, reference):
+    import types
+
+    decoder = ControlPointDecoder(6, 2, np.full(2, 6e-5), np.full(2, -2e-3), np.full(2, 2e-3))
+    task = types.SimpleNamespace(name="Quadratic", reference_actions=reference)
+    return ActionSpace(decoder, _QuadraticEvaluator(target), task, start=start)
+
+
+def test_reference_start_centres_cma_on_the_reference_and_evaluates_it_first():
+    reference = np.outer(np.linspace(1e-3, 1.5e-3, 6), [1.0, -1.0])  # 17-25 units from zero
+    target = reference + np.array([3e-4, 1.2e-4])  # 5 and 2 units from the reference
+    warm = _warm_space("reference", target, reference)
+    np.testing.assert_array_equal(warm.decode(np.zeros(4)), reference)
+    low, high = warm.cma_start()[1:]
+    np.testing.assert_allclose(high, 4e-3 / 6e-5)  # the span of the action bounds
+    np.testing.assert_allclose(low, -4e-3 / 6e-5)
+    state = optimise(new_state("cma", 24, seed=2, sigma=1.0, population=6), warm)
+    np.testing.assert_array_equal(warm.evaluator.seen[0], reference)  # the warm start itself, first
+    assert state.history[0].reward == pytest.approx(-np.sum(((reference - target) / 1e-4) ** 2))
+    cold = _warm_space("zero", target, reference)
+    cold_state = optimise(new_state("cma", 24, seed=2, sigma=1.0, population=6), cold)
+    assert not np.array_equal(cold.evaluator.seen[0], reference)
+    # same budget and seed: the search around the reference ends far closer to the target
+    assert state.best_reward > state.history[0].reward > 100.0 * cold_state.best_reward
+    # the best candidate is the actions it scored (reference + control points)
+    assert warm.evaluator.evaluate([state.best_candidate])[0].reward == pytest.approx(state.best_reward)
+
+
+def test_reference_start_needs_a_reference_and_a_known_start():
+    with pytest.raises(ConfigError, match="needs the task's reference trajectory"):
+        _warm_space("reference", np.zeros((6, 2)), None)
+    with pytest.raises(ConfigError, match="CMA-ES start must be one of"):
+        _warm_space("mean", np.zeros((6, 2)), np.zeros((6, 2)))
+    with pytest.raises(ConfigError, match="base actions have shape"):
+        _warm_space("zero", np.zeros((6, 2)), None).decoder.decode(np.zeros(4), np.zeros((5, 2)))
+
+
+class _Bowl(_Plateau):
+    """``-(y - 0.7)^2`` everywhere (1-D): Adam with a step of 2 overshoots the optimum by far."""
+
+    c = np.array([0.7])
+
+    def _result(self, z):
+        from sim_core.optim.episode import EpisodeResult
+
+        return EpisodeResult(-float(np.sum((np.asarray(z) - self.c) ** 2)), 1, 1, None)
+
+    def gd_start(self, cma_point):
+        return np.zeros(1), np.full(1, -10.0), np.full(1, 10.0)
+
+    def gd_gradient(self, y):
+        return self._result(y), -2.0 * (y - self.c)
+
+
+def test_a_step_that_does_not_improve_backtracks_with_half_the_step():
+    state = optimise(new_state("gd", 12, learning_rate=2.0), _Bowl())
+    rewards = [h.reward for h in state.history]
+    assert rewards[0] == pytest.approx(-0.49) and rewards[1] == pytest.approx(-1.69)  # 0 -> 2: overshoot
+    assert rewards[2] == pytest.approx(-0.09)  # back at 0, half the step: 0 -> 1
+    assert state.adam["lr"] <= 0.25 and state.best_reward > -1e-3  # the step shrank onto the optimum
+
+
+class _BowlWithWall(_Bowl):
+    """``-(y - 1.4)^2`` for y <= 1.5, infeasible beyond (a contact force over the limit, say)."""
+
+    c = np.array([1.4])
+
+    def _result(self, z):
+        from sim_core.optim.episode import EpisodeResult
+
+        if np.asarray(z)[0] > 1.5:
+            return EpisodeResult(float("nan"), 0, 1, "max force")
+        return super()._result(z)
+
+
+def test_an_infeasible_step_backtracks_from_the_best_point_without_evaluating_it_again():
+    state = optimise(new_state("gd", 4, learning_rate=2.0), _BowlWithWall())
+    assert state.history[0].reward == pytest.approx(-1.96)  # y = 0
+    assert state.history[1].infeasible == "max force"  # y = 2
+    assert state.history[2].reward == pytest.approx(-0.16)  # y = 1: half the step from 0, at once
+    assert state.best_reward > -0.16 - 1e-6  # (Adam's epsilon: y = 1 - 1e-8)

@@ -143,6 +143,13 @@ def test_task_file_errors_name_the_key(tmp_path):
         build_task({**doc, "reference": [{"steps": 1, "pose": {"dome": [0.01, 0, 0, 0, 0, 0]}}]})
     with pytest.raises(ConfigError, match=r"unknown task 'juggling'"):
         load_task("juggling")
+    assert build_task(doc).cma_start == "zero"
+    assert build_task({**doc, "cma": {**doc["cma"], "start": "reference"}}).cma_start == "reference"
+    with pytest.raises(ConfigError, match=r"cma.start must be one of"):
+        build_task({**doc, "cma": {**doc["cma"], "start": "mean"}})
+    no_ref = {k: v for k, v in doc.items() if k != "reference"}
+    with pytest.raises(ConfigError, match=r"cma.start: 'reference' needs the task's reference trajectory"):
+        build_task({**no_ref, "cma": {**doc["cma"], "start": "reference"}})
 
 
 def test_crease_reward_reads_the_rest_angles_of_one_grid_line():
