@@ -9,7 +9,7 @@ calibrated nominal replay (press and release), with the windows of
 :mod:`sysid.diagnose.signatures.timing`: in each window the recorded normal force is regressed on
 the replay's Kelvin-Voigt response ``y ~ a + b (y_pred + tau dy_pred/dt)`` (free gain and offset
 per window: the amplitude gap between simulator and recording is not the effect), over a grid of
-``tau >= 0``.
+``tau >= 0``; the replay's value and rate are read by a Savitzky-Golay filter (:func:`kelvin_voigt`).
 
 * statistic: the whitened SSE a common lead removes against ``tau = 0`` summed over the events
   (a likelihood-ratio statistic in noise units);
@@ -27,6 +27,7 @@ Without a wrench the mean marker depth is used in the same way (:func:`timing.ti
 from __future__ import annotations
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
 from sysid.diagnose.signatures.timing import (TAU_MAX_S, WINDOW_AFTER_S, WINDOW_BEFORE_S, contact_events,
@@ -35,14 +36,47 @@ from sysid.diagnose.signatures.timing import (TAU_MAX_S, WINDOW_AFTER_S, WINDOW_
 EFFECT = "damping"
 
 
-def kelvin_voigt(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
-    """``y + tau dy/dt`` along axis 0 (central differences, :func:`numpy.gradient`): the force of a
-    Kelvin-Voigt element of time constant ``tau`` s whose elastic part is ``y``; to first order
-    ``y(t + tau)``, a lead of ``tau``."""
+RATE_WINDOW_S = 0.05
+"""Span of the quadratic Savitzky-Golay filter that reads the replay's value and rate, s. Longer
+than the replay's step (0.01 s by default: its contact solve leaves step-to-step roughness on the
+predicted force, which a derivative amplifies), and a third of the event windows' shorter side
+(:data:`~sysid.diagnose.signatures.timing.WINDOW_BEFORE_S`), so that a press or release ramp keeps
+its rate."""
+
+
+def _savgol_window(t: np.ndarray, span_s: float) -> int:
+    """Odd number of samples covering ``span_s`` on the (uniform) time base ``t``, at least 5."""
+    dt = float(np.median(np.diff(t)))
+    w = int(round(span_s / dt)) if dt > 0 else 5
+    w = max(w, 5)
+    return w if w % 2 == 1 else w + 1
+
+
+def kelvin_voigt(t: np.ndarray, y: np.ndarray, tau: float, span_s: float = RATE_WINDOW_S) -> np.ndarray:
+    """``y + tau dy/dt`` along axis 0, value and rate read by a quadratic Savitzky-Golay filter
+    over ``span_s`` (:func:`scipy.signal.savgol_filter`; Savitzky & Golay 1964): the force of a
+    Kelvin-Voigt element of time constant ``tau`` s whose elastic part is ``y``, to first order
+    ``y(t + tau)``, a lead of ``tau``.
+
+    Args:
+        t: uniform sample times, s, shape ``(n,)``.
+        y: elastic response, shape ``(n, ...)``.
+        tau: time constant, s (0: the filtered ``y``).
+        span_s: filter span, s; a series shorter than the filter is differentiated by central
+            differences instead.
+    """
+    t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    if tau == 0.0 or len(y) < 2:
+    if len(y) < 3:
         return y.copy()
-    return y + tau * np.gradient(y, np.asarray(t, dtype=float), axis=0)
+    w = _savgol_window(t, span_s)
+    if len(y) < w:
+        return y + tau * np.gradient(y, t, axis=0)
+    dt = float(np.median(np.diff(t)))
+    value = savgol_filter(y, w, 2, axis=0)
+    if tau == 0.0:
+        return value
+    return value + tau * savgol_filter(y, w, 2, deriv=1, delta=dt, axis=0)
 
 
 def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
