@@ -7,7 +7,7 @@ import pytest
 
 from sysid.diagnose.signature_engine import Prepared, refit_timing
 from sysid.diagnose.signatures import Recording, run_signature_tests
-from sysid.diagnose.signatures.damping import damping_test
+from sysid.diagnose.signatures.damping import damping_test, kelvin_voigt
 from sysid.diagnose.signatures.null import Thresholds, calibrated_thresholds, decide, default_thresholds
 from sysid.diagnose.signatures.sensor import apply_lens, force_bias_test, lens_test
 from sysid.diagnose.signatures.sheet import adhesion_test, plasticity_test
@@ -229,3 +229,12 @@ def test_baseline_null_raises_damping_threshold(rng):
     th = calibrated_thresholds(default_thresholds(rec), [run_signature_tests(base)], baseline_factor=2.0)
     assert th.source["damping"] == "baseline"
     assert named(rec, th) == []
+
+
+def test_kelvin_voigt_is_value_plus_tau_times_rate():
+    t = np.arange(0.0, 2.0, 0.005)
+    y = np.sin(2 * np.pi * 1.5 * t)
+    kv = kelvin_voigt(t, y, 0.02)
+    exact = y + 0.02 * 2 * np.pi * 1.5 * np.cos(2 * np.pi * 1.5 * t)
+    inner = slice(20, -20)  # the filter's edges fit a shorter span
+    assert np.max(np.abs(kv[inner] - exact[inner])) < 0.01
