@@ -35,7 +35,6 @@ from sysid.diagnose.signatures.timing import (TAU_MAX_S, WINDOW_AFTER_S, WINDOW_
 
 EFFECT = "damping"
 
-
 RATE_WINDOW_S = 0.05
 """Span of the quadratic Savitzky-Golay filter that reads the replay's value and rate, s. Longer
 than the replay's step (0.01 s by default: its contact solve leaves step-to-step roughness on the
