@@ -1,10 +1,11 @@
 """Packaging of thinshell: pip (``pip install -e .``) and ROS 2 ament_python (``colcon build``).
 
-Installs the Python packages ``sim_core``, ``sysid`` and ``thinshell_ros``, the ament resource-index
-marker, ``package.xml`` and every file under ``config/`` into ``share/thinshell`` so that
-``ament_index_python.get_package_share_directory("thinshell")`` finds the bundled scenes and node
-configurations, and the console scripts (also under ``lib/thinshell`` for ``ros2 run``, see
-``setup.cfg``).
+Installs the Python packages ``sim_core``, ``sysid`` and ``thinshell_ros`` with their package data
+(``sysid/data``; ``config/`` and ``bags/`` as the package data of ``thinshell_ros.bundled``, which
+:mod:`thinshell_ros.paths` reads with ``importlib.resources``), the ament resource-index marker,
+``package.xml`` and every file under ``config/`` into ``share/thinshell`` (the ROS convention, for
+``ros2 launch`` / parameter files), and the console scripts (also under ``lib/thinshell`` for
+``ros2 run``, see ``setup.cfg``).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["sim_core", "sim_core.*", "sysid", "sysid.*", "thinshell_ros", "thinshell_ros.*"]),
-    package_data={"sysid.data": ["*.yaml"]},
+    # thinshell_ros/bundled/config and bags link to the top-level folders; installed as copies
+    package_data={"sysid.data": ["*.yaml"], "thinshell_ros.bundled": ["config/**/*", "bags/**/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         (os.path.join("share", PACKAGE), ["package.xml"]),

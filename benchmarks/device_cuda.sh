@@ -12,16 +12,23 @@
 #                                                # then run the benchmarks below
 #
 # What `run` measures (one process per arch: Taichi initialises one arch per process), each line of
-# JSON also appended to $OUT/bench.jsonl when $OUT is set (the device tool returns that folder):
-#   1. thinshell bench batch --arch cuda --scene forming  --sizes $CUDA_SIZES  --steps $STEPS
-#   2. thinshell bench batch --arch cpu  --scene forming  --sizes $CPU_SIZES   --steps $STEPS
-#   3. thinshell bench batch --arch cuda --scene $TASK    --sizes $TASK_SIZES  --steps $STEPS
-#   4. thinshell bench batch --arch cpu  --scene $TASK    --sizes $TASK_SIZES  --steps $STEPS
-#   5. thinshell bench forming --arch cuda|cpu|numpy --json (the single-environment figures)
-# Environment overrides: STEPS (10), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES ("1 4 16"),
-# TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a batch
-# benchmark prints each size as it finishes, so a part stopped at its limit keeps its smaller sizes),
-# SKIP_FORMING=1 to leave out part 5, PYTHON (the interpreter, default python3).
+# JSON also appended to $OUT/bench.jsonl when $OUT is set (the device tool returns that folder); the
+# parts named in $PARTS (default: all, in this order):
+#   lockstep_cuda_forming  thinshell bench batch --lockstep --arch cuda --scene forming --sizes $LOCK_SIZES
+#   lockstep_cuda_task     thinshell bench batch --lockstep --arch cuda --scene $TASK   --sizes $LOCK_TASK_SIZES
+#   lockstep_cpu_forming   thinshell bench batch --lockstep --arch cpu  --scene forming --sizes $LOCK_CPU_SIZES
+#   lockstep_cpu_task      thinshell bench batch --lockstep --arch cpu  --scene $TASK   --sizes $LOCK_CPU_SIZES
+#   batch_cuda_forming     thinshell bench batch --arch cuda --scene forming  --sizes $CUDA_SIZES  (one copy after another)
+#   batch_cpu_forming      thinshell bench batch --arch cpu  --scene forming  --sizes $CPU_SIZES
+#   batch_cuda_task        thinshell bench batch --arch cuda --scene $TASK    --sizes $TASK_SIZES
+#   batch_cpu_task         thinshell bench batch --arch cpu  --scene $TASK    --sizes $TASK_SIZES
+#   forming                thinshell bench forming --arch cuda|cpu|numpy --json (single-environment figures)
+# each with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
+# LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
+# ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
+# batch benchmark prints each size as it finishes, so a part stopped at its limit keeps its smaller
+# sizes), PYTHON (the interpreter, default python3). The GPU machine has no MKL: its direct solves
+# are SciPy's (a lockstep batch on CUDA solves with the batched CG on the device).
 set -u
 mode=${1:-run}
 wheels=${2:-.gpu_wheels}
@@ -65,12 +72,18 @@ bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
     grep '^{' "$out/$name.out" | tee -a "$out/bench.jsonl"
     grep -v '^\[Taichi\]' "$out/$name.err" | tail -3
 }
-bench batch_cuda_forming batch --arch cuda --scene forming --sizes ${CUDA_SIZES:-1 2 4 8 16 32} --steps "$STEPS" --json
-bench batch_cpu_forming batch --arch cpu --scene forming --sizes ${CPU_SIZES:-1 4 16} --steps "$STEPS" --json
-bench batch_cuda_task batch --arch cuda --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json
-bench batch_cpu_task batch --arch cpu --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json
-if [ "${SKIP_FORMING:-0}" != 1 ]; then
-    for arch in cuda cpu numpy; do
-        bench "forming_$arch" forming --arch "$arch" --no-elastic-worker --json
-    done
-fi
+PARTS=${PARTS:-lockstep_cuda_forming lockstep_cuda_task lockstep_cpu_forming lockstep_cpu_task batch_cuda_forming batch_cpu_forming batch_cuda_task batch_cpu_task forming}
+for part in $PARTS; do
+    case $part in
+        lockstep_cuda_forming) bench "$part" batch --lockstep --arch cuda --scene forming --sizes ${LOCK_SIZES:-1 16 64 256 1024} --steps "$STEPS" --json ;;
+        lockstep_cuda_task) bench "$part" batch --lockstep --arch cuda --scene "$TASK" --sizes ${LOCK_TASK_SIZES:-1 16 64 256} --steps "$STEPS" --json ;;
+        lockstep_cpu_forming) bench "$part" batch --lockstep --arch cpu --scene forming --sizes ${LOCK_CPU_SIZES:-1 16 64} --steps "$STEPS" --json ;;
+        lockstep_cpu_task) bench "$part" batch --lockstep --arch cpu --scene "$TASK" --sizes ${LOCK_CPU_SIZES:-1 16 64} --steps "$STEPS" --json ;;
+        batch_cuda_forming) bench "$part" batch --arch cuda --scene forming --sizes ${CUDA_SIZES:-1 2 4 8 16 32} --steps "$STEPS" --json ;;
+        batch_cpu_forming) bench "$part" batch --arch cpu --scene forming --sizes ${CPU_SIZES:-1 4 16} --steps "$STEPS" --json ;;
+        batch_cuda_task) bench "$part" batch --arch cuda --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json ;;
+        batch_cpu_task) bench "$part" batch --arch cpu --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json ;;
+        forming) for arch in cuda cpu numpy; do bench "forming_$arch" forming --arch "$arch" --no-elastic-worker --json; done ;;
+        *) echo "unknown part $part" >&2; exit 2 ;;
+    esac
+done

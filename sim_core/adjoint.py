@@ -53,13 +53,13 @@ from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.effector import limit_pose_step
 from sim_core.elastic import ElasticTerms
+from sim_core.energies.base import ConstantDiagonalHessian, HingeBending, assemble_hessian, block_dof_indices
+from sim_core.energies.contact.reference import EdgeEdgeContact, PlaneContact, VertexTriangleContact
+from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.errors import ConfigError, ThinShellError
 from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
-from sim_core.potentials.base import ConstantDiagonalHessian, HingeBending, assemble_hessian, block_dof_indices
-from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
-from sim_core.potentials.sphere_contact import SphereContact
-from sim_core.potentials.friction import (
+from sim_core.energies.friction.reference import (
     LaggedFriction,
     smooth_friction_f1_over_x,
     smooth_friction_f2_x_minus_f1_over_x3,
@@ -242,7 +242,7 @@ def theta_stiffness(pot) -> sp.csr_matrix:
     ``A = diag(2 k_h)``; Kirchhoff plate energy (``KirchhoffBending``, ``E = d^T M d``): ``A = 2 M``.
 
     Raises:
-        ThinShellError: a bending potential that is not a :class:`~sim_core.potentials.base.HingeBending`.
+        ThinShellError: a bending potential that is not a :class:`~sim_core.energies.base.HingeBending`.
     """
     return _hinge_bending(pot).theta_stiffness()
 
@@ -256,7 +256,7 @@ def _theta_stiffness_product(pot, v: np.ndarray) -> np.ndarray:
 
 
 def _hinge_bending(pot) -> HingeBending:
-    """``pot`` if it declares :class:`~sim_core.potentials.base.HingeBending`.
+    """``pot`` if it declares :class:`~sim_core.energies.base.HingeBending`.
 
     Raises:
         ThinShellError: it does not.
@@ -575,7 +575,7 @@ def _friction_hessian_product(friction: LaggedFriction, x: np.ndarray, dx: np.nd
     """``H_friction(x) dx`` without the per-pair ``(3m, 3m)`` blocks of :meth:`LaggedFriction.hessian`.
 
     The block of pair k is ``mu lam w_a w_b T Hu T^T`` (``Hu = (f1/y) I + ((f1' y - f1)/y^3) u u^T``,
-    Li et al. 2020, as in :mod:`sim_core.potentials.friction`), so per pair
+    Li et al. 2020, as in :mod:`sim_core.energies.friction.reference`), so per pair
     ``(H dx)_a = w_a mu lam T Hu T^T sum_b w_b dx_b``: 2-D products instead of 12 x 12 ones.
 
     Args:

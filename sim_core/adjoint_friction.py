@@ -21,15 +21,15 @@ from sim_core.collision.distances import (
     point_triangle_closest_point,
 )
 from sim_core.contact_set import ContactSet, FrictionRowSource
+from sim_core.energies.contact.reference import EdgeEdgeContact, PlaneContact, VertexTriangleContact
 from sim_core.errors import ThinShellError
 from sim_core.model import Model
-from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
-from sim_core.potentials.friction import (
+from sim_core.energies.friction.reference import (
     LaggedFriction,
     smooth_friction_f1_over_x,
     smooth_friction_f2_x_minus_f1_over_x3,
 )
-from sim_core.potentials.sphere_contact import SphereContact
+from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.state import State
 
 

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.dynamic_slots import STICKY_ASSEMBLIES, DynamicMerge  # noqa: F401 (documented here)
-from sim_core.potentials.base import HessianBlocks
+from sim_core.energies.base import HessianBlocks
 from sim_core.static_pattern import StaticPattern
 
 

@@ -8,7 +8,7 @@ Backends:
   kernels of :class:`sim_core.contact_set.ContactSet`, on Taichi's CPU backend (serial element loops:
   results reproducible bit for bit, and safe in forked replay workers). The elastic potentials
   themselves stay the NumPy reference (the adjoint and sensitivities use them); their Taichi twins
-  (:func:`sim_core.ti_kernels.use_taichi_kernels`) are not part of a backend (their loops are parallel,
+  (:func:`sim_core.energies.registry.use_taichi_kernels`) are not part of a backend (their loops are parallel,
   which a forked worker cannot run).
 - ``"taichi-cuda"``: the same kernels on CUDA (parallel element loops: sums in a varying order).
 - ``"auto"``: the fastest available, resolved by :func:`resolve_backend`: ``taichi-cuda`` when

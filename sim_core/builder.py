@@ -132,7 +132,7 @@ class ModelBuilder:
 
         The body has one vertex, the centre, always kinematic: fixed, or moved by an effector
         (:meth:`add_effector` with ``local_vertices=[0]``). Other bodies' surface vertices touch it
-        through :class:`sim_core.potentials.sphere_contact.SphereContact` (smooth signed distance,
+        through :class:`sim_core.energies.sphere_contact.reference.SphereContact` (smooth signed distance,
         no facets); the contact force on the sphere is the force on its centre vertex.
 
         Args:

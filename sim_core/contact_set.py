@@ -31,12 +31,13 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.energies.base import PenaltyContact
+from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact,
+                                                 concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.model import Model, check_broad_phase
-from sim_core.potentials.base import PenaltyContact
-from sim_core.potentials.contact import (EdgeEdgeContact, PlaneContact, VertexTriangleContact, concatenate_frames,
-                                        edge_edge_vertices, vertex_triangle_vertices)
-from sim_core.potentials.friction import LaggedFriction
-from sim_core.potentials.sphere_contact import SphereContact
+from sim_core.workspace import Workspace
 
 
 class FrictionRowSource(NamedTuple):
@@ -66,6 +67,8 @@ class ContactSet:
         backend: the solver's concrete backend (:data:`sim_core.backend.BACKENDS`; ``NewtonSolver.backend``):
             the Taichi contact, friction and broad-phase kernels on ``taichi-cpu`` / ``taichi-cuda``
             (Taichi initialised for it), the NumPy reference on ``numpy``.
+        workspace: where the contact and friction potentials keep their evaluations
+            (:mod:`sim_core.workspace`; the solver's), or None for one of this contact set's own.
 
     Attributes:
         taichi: whether this contact set runs the Taichi kernels (``backend`` is a Taichi one).
@@ -74,8 +77,10 @@ class ContactSet:
         ConfigError: an unknown ``broad_phase`` or ``backend``.
     """
 
-    def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy") -> None:
+    def __init__(self, model: Model, broad_phase: str | None = None, backend: str = "numpy",
+                 workspace: Workspace | None = None) -> None:
         self.model = model
+        self.workspace = Workspace() if workspace is None else workspace
         self.taichi = uses_taichi(backend)
         c = model.contact
         self.broad_phase = check_broad_phase(c.broad_phase if broad_phase is None else broad_phase,
@@ -313,10 +318,10 @@ class ContactSet:
 
     def _pair_classes(self) -> tuple[type, type]:
         """The vertex-triangle and edge-edge potential classes: the Taichi distance kernels
-        (:mod:`sim_core.ti_kernels.contact`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
+        (:mod:`sim_core.energies.contact.kernel`) on a Taichi backend (:attr:`taichi`), else the NumPy reference."""
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
+            from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 
             return TiVertexTriangleContact, TiEdgeEdgeContact
         return VertexTriangleContact, EdgeEdgeContact
@@ -357,11 +362,11 @@ class ContactSet:
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
         """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
         ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on a Taichi backend one
-        kernel launch for both kinds (:func:`sim_core.ti_kernels.contact_setup.pair_geometry`), else the
+        kernel launch for both kinds (:func:`sim_core.energies.contact.setup_kernel.pair_geometry`), else the
         NumPy reference."""
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact_setup import pair_geometry as geometry
+            from sim_core.energies.contact.setup_kernel import pair_geometry as geometry
         else:
             geometry = pair_geometry
         return geometry(x, vt_vertices, ee_vertices)
@@ -465,9 +470,11 @@ class ContactSet:
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee, ee_sides = ee[keep], ee_sides[keep]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        for pot in pots:
+            pot.workspace = self.workspace
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.contact_batch import PairBatch
+            from sim_core.energies.contact.batch_kernel import PairBatch
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
         return pots, (vt_sides, ee_sides)
@@ -554,8 +561,9 @@ class ContactSet:
         friction_class = LaggedFriction
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.ti_kernels.friction import TiLaggedFriction as friction_class
+            from sim_core.energies.friction.kernel import TiLaggedFriction as friction_class
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
+        friction.workspace = self.workspace
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
         return friction
 
@@ -563,11 +571,11 @@ class ContactSet:
                        ) -> LaggedFriction | None:
         """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
         bases of the active pairs of both kinds from one launch
-        (:func:`sim_core.ti_kernels.contact_setup.friction_frames`; the values of the pair potentials'
+        (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
         ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
         # optional heavy dependency: Taichi, loaded on a Taichi backend only
-        from sim_core.ti_kernels.contact_setup import friction_frames
-        from sim_core.ti_kernels.friction import TiLaggedFriction
+        from sim_core.energies.contact.setup_kernel import friction_frames
+        from sim_core.energies.friction.kernel import TiLaggedFriction
 
         pots = (vt, ee)
         rows = [pot.active_distances(x_n) for pot in pots]
@@ -583,6 +591,7 @@ class ContactSet:
         weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
         lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
         friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
+        friction.workspace = self.workspace
         friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
                                 if len(active)]
         return friction
@@ -644,7 +653,7 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     """The touching contacts of the penalty potentials ``terms`` (as :meth:`ContactSet.potentials`
     returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
     (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
-    a term is not a :class:`~sim_core.potentials.base.PenaltyContact` (a missing-physics candidate's
+    a term is not a :class:`~sim_core.energies.base.PenaltyContact` (a missing-physics candidate's
     adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""

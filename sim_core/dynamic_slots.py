@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from sim_core.potentials.base import HessianBlocks
+from sim_core.energies.base import HessianBlocks
 from sim_core.static_pattern import StaticPattern, block_keys  # noqa: F401 (block_keys: this module's too)
 from sim_core.unique import sorted_unique
 

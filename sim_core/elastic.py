@@ -15,12 +15,13 @@ import copy
 
 import numpy as np
 
-from sim_core.model import Model
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending, plastic_update
+from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
+from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
-from sim_core.potentials.bending import DiscreteShellBending, plastic_update
-from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
-from sim_core.potentials.neohookean import StableNeoHookean
+from sim_core.model import Model
+from sim_core.workspace import Workspace
 
 
 class ElasticTerms:
@@ -30,6 +31,8 @@ class ElasticTerms:
         model: the scene model (rest shape ``x_rest`` and body materials are read once).
         bending_model: ``"kirchhoff"`` or ``"hinge"`` for every sheet; ``None`` reads
             ``model.meta.get("bending_model", "kirchhoff")`` (a name or a dict sheet -> name).
+        workspace: where the potentials keep their evaluations (:mod:`sim_core.workspace`; the
+            solver's), or None for one of these terms' own.
 
     Raises:
         ConfigError: unknown bending model name.
@@ -37,8 +40,9 @@ class ElasticTerms:
 
     BENDING_MODELS = ("kirchhoff", "hinge")
 
-    def __init__(self, model: Model, bending_model: str | None = None) -> None:
+    def __init__(self, model: Model, bending_model: str | None = None, workspace: Workspace | None = None) -> None:
         self.model = model
+        self.workspace = Workspace() if workspace is None else workspace
         choice = model.meta.get("bending_model", "kirchhoff") if bending_model is None else bending_model
         self.bending_model: dict[str, str] = {}
         self.membranes: dict[str, StVKMembrane] = {}
@@ -66,6 +70,8 @@ class ElasticTerms:
                 self.bending_model[b.name] = kind
             elif b.kind == "solid":
                 self.solids[b.name] = StableNeoHookean(b.tets, model.x_rest, m["youngs_modulus"], m["poisson_ratio"])
+        for pot in [*self.membranes.values(), *self.solids.values()]:
+            pot.workspace = self.workspace
 
     def bending(self, name: str, theta_bar: np.ndarray | None) -> KirchhoffBending | DiscreteShellBending:
         """Bending potential of sheet ``name`` with rest angles ``theta_bar`` (rad, shape ``(h,)``).
@@ -82,6 +88,7 @@ class ElasticTerms:
                                        m["poisson_ratio"], theta_bar)
             else:
                 pot = DiscreteShellBending(self.hinges[name], self.model.x_rest, m["bending_stiffness"], theta_bar)
+            pot.workspace = self.workspace
             self._bending[name] = pot
             return pot
         if theta_bar is None:

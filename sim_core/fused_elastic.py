@@ -4,7 +4,7 @@ The Newton loop needs, per iteration, the elastic energy, its gradient and its e
 assembled into the upper triangle of the Newton matrix. Through the reference potentials that is
 three calls per potential, per-element blocks ``(k, 3m, 3m)`` and a ``bincount`` over every block
 entry (:meth:`sim_core.assembly.HessianAssembler.assemble_upper`). :class:`FusedElastic` instead
-launches one Taichi kernel per potential (``sim_core/ti_kernels/fused_*.py``) that computes energy,
+launches one Taichi kernel per potential (``sim_core/energies/<energy>/fused_*kernel.py``) that computes energy,
 gradient and exact Hessian together and adds the Hessian entries straight into the values of the
 assembler's static pattern through precomputed slot maps
 (:meth:`sim_core.assembly.StaticPattern.slot_map`); the line search calls energy-only kernels,
@@ -18,7 +18,7 @@ the exact matrix, goes into the same slots (:meth:`FusedElastic.projected_hessia
 Kirchhoff bending computes its exact per-triangle blocks in Taichi and eigen-decomposes only the
 blocks a Cholesky test does not prove definite (:mod:`sim_core.ti_kernels.block_projection`);
 Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of their Taichi twins
-(:mod:`sim_core.ti_kernels.neohookean`, :mod:`sim_core.ti_kernels.membrane`).
+(:mod:`sim_core.energies.neohookean.kernel`, :mod:`sim_core.energies.membrane.kernel`).
 
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
@@ -32,12 +32,13 @@ from typing import Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from sim_core.assembly import HessianAssembler, StaticPattern
+from sim_core.energies import kirchhoff_bending, membrane, neohookean
+from sim_core.energies.base import ElasticEquivalent, positions_key
+from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
+from sim_core.energies.membrane.reference import SpringMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.base import ElasticEquivalent, positions_key
-from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.potentials.membrane import SpringMembrane
-from sim_core.potentials.neohookean import StableNeoHookean
 from sim_core.worker_recipe import Recipe
 
 
@@ -46,18 +47,13 @@ OFFLOAD_MIN_ELEMENTS = 256
 
 
 FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {
-    ("sim_core.potentials.neohookean", "StableNeoHookean"):
-        ("sim_core.ti_kernels.fused_neohookean", "FusedStableNeoHookean"),
-    ("sim_core.potentials.membrane", "SpringMembrane"):
-        ("sim_core.ti_kernels.fused_spring_membrane", "FusedSpringMembrane"),
-    ("sim_core.potentials.membrane", "StVKMembrane"):
-        ("sim_core.ti_kernels.fused_stvk_membrane", "FusedStVKMembrane"),
-    ("sim_core.potentials.kirchhoff_bending", "KirchhoffBending"):
-        ("sim_core.ti_kernels.fused_kirchhoff", "FusedKirchhoffBending"),
+    **neohookean.FUSED_KERNELS, **membrane.FUSED_KERNELS, **kirchhoff_bending.FUSED_KERNELS,
     ("sim_core.candidates.anisotropic_bending", "AnisotropicBendingCorrection"):
-        ("sim_core.ti_kernels.fused_hinge", "FusedAnisotropicBending"),
+        ("sim_core.energies.hinge_bending.fused_kernel", "FusedAnisotropicBending"),
 }
-"""The registry of fused kernels: potential class -> fused part class, both as (module, name).
+"""The registry of fused kernels: potential class -> fused part class, both as (module, name), from
+the energy folders' registrations (``FUSED_KERNELS`` in ``sim_core/energies/<energy>/__init__.py``)
+and the candidate terms'.
 A potential's class or its nearest registered base class selects the part; the Taichi modules
 are imported on first use (importing Taichi is optional and heavy)."""
 
@@ -100,7 +96,7 @@ def fusable(potential) -> bool:
 
 def _fused_form(potential):
     """The potential a part evaluates for ``potential``: its ``elastic_equivalent()`` when it is an
-    :class:`~sim_core.potentials.base.ElasticEquivalent` (a candidate term equal to an elastic
+    :class:`~sim_core.energies.base.ElasticEquivalent` (a candidate term equal to an elastic
     potential, e.g. the gel's Maxwell branch, a Stable Neo-Hookean on its relaxed rest state:
     :mod:`sim_core.candidates.gel_viscoelasticity`), else itself."""
     return potential.elastic_equivalent() if isinstance(potential, ElasticEquivalent) else potential
@@ -177,7 +173,7 @@ class FusedElastic:
     Build with :meth:`for_terms` once per step (cheap when the terms are those of the last step);
     then per Newton iterate ``x``: :meth:`gradient` (runs the fused kernels, keeps energy and
     Hessian values of ``x``), :meth:`hessian_values`, and :meth:`energy` for line-search points.
-    Follows the energy/gradient half of the potential contract (``sim_core.potentials.base``), so
+    Follows the energy/gradient half of the potential contract (``sim_core.energies.base``), so
     the solver can sum it with the other terms.
 
     Args:
@@ -448,8 +444,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
 
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
-    fallback (and that of the potentials that are Taichi twins, ``sim_core.ti_kernels``), and the contact
-    distance kernels (:mod:`sim_core.ti_kernels.contact_distance`), the broad phase (and its candidate-list
+    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``), and the contact
+    distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the broad phase (and its candidate-list
     kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
@@ -478,11 +474,15 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     if projection != "none":
         fused.projected_hessian_values(x, projection)
     for p in potentials:
-        if type(p).__module__.startswith("sim_core.ti_kernels"):
+        if type(p).__module__.endswith(".kernel"):  # a Taichi twin (sim_core/energies/<energy>/kernel.py)
             p.hessian(x, projection)
     # optional heavy dependency: Taichi, loaded on a Taichi backend only
-    from sim_core.ti_kernels import (broad_phase, contact_batch, contact_distance, contact_setup, friction,
-                                     fused_hinge, hash_candidates, sweep_candidates)
+    from sim_core.energies.contact import batch_kernel as contact_batch
+    from sim_core.energies.contact import distance_kernel as contact_distance
+    from sim_core.energies.contact import setup_kernel as contact_setup
+    from sim_core.energies.friction import kernel as friction
+    from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
+    from sim_core.ti_kernels import broad_phase, hash_candidates, sweep_candidates
 
     fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
     contact_distance.compile_kernels()

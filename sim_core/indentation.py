@@ -4,7 +4,7 @@ A gel (tetrahedral Stable Neo-Hookean solid, fixed on its back face) is pressed 
 indenter: either a triangle surface whose every vertex is driven by one kinematic effector (so it
 is a rigid, displacement-controlled body, like the fixed node set of a CalculiX indenter), or an
 exact sphere (:class:`RigidSphere`: centre vertex driven by the effector, smooth signed distance,
-:mod:`sim_core.potentials.sphere_contact`), which avoids the facets of a meshed sphere. The indenter
+:mod:`sim_core.energies.sphere_contact.reference`), which avoids the facets of a meshed sphere. The indenter
 moves along -z in small increments with a large time step (inertia negligible), and after each
 increment the net contact + friction force on the indenter is read from ``State.contact_force``.
 

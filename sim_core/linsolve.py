@@ -532,7 +532,8 @@ class ScipySymmetric:
 
 def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:
     """Symmetric solver by name: ``"pardiso"`` (:class:`PardisoCholesky`, SciPy when pypardiso is
-    unavailable) or ``"scipy"`` (:class:`ScipySymmetric`).
+    unavailable), ``"scipy"`` (:class:`ScipySymmetric`) or ``"pcg"`` (the block-Jacobi conjugate
+    gradient in Taichi, :class:`sim_core.ti_kernels.pcg.BatchedPCG`; Taichi must be initialised).
 
     Raises:
         ConfigError: unknown name.
@@ -544,20 +545,25 @@ def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:
             return ScipySymmetric()
     if name == "scipy":
         return ScipySymmetric()
-    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso' or 'scipy'")
+    if name == "pcg":
+        from sim_core.ti_kernels.pcg import BatchedPCG  # optional heavy dependency: Taichi
+
+        return BatchedPCG()
+    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso', 'scipy' or 'pcg'")
 
 
 def make_linear_solver(name: str = "pardiso") -> LinearSolver:
-    """Create a solver by name: ``"pardiso"`` (falls back to SciPy if unavailable) or ``"scipy"``.
+    """Create a solver by name: ``"pardiso"`` (falls back to SciPy if unavailable) or ``"scipy"``;
+    ``"pcg"`` (a configuration whose Newton systems take the conjugate gradient) gets PARDISO's LU.
 
     Raises:
         ConfigError: unknown name.
     """
-    if name == "pardiso":
+    if name in ("pardiso", "pcg"):
         try:
             return PardisoSolver()
         except (ImportError, OSError, AttributeError):
             return ScipySolver()
     if name == "scipy":
         return ScipySolver()
-    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso' or 'scipy'")
+    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso', 'scipy' or 'pcg'")

@@ -31,18 +31,19 @@ from sim_core.contact_set import ContactSet, active_contacts, same_active_contac
 from sim_core.control import Control
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
+from sim_core.energies.base import KeepsDerivatives
+from sim_core.energies.damping.reference import ViscousDamping
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.gravity.reference import GravityPotential
+from sim_core.energies.inertia.reference import InertiaPotential
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
-from sim_core.potentials.base import KeepsDerivatives
-from sim_core.potentials.damping import ViscousDamping
-from sim_core.potentials.friction import LaggedFriction
-from sim_core.potentials.gravity import GravityPotential
-from sim_core.potentials.inertia import InertiaPotential
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
+from sim_core.workspace import Workspace
 
 __all__ = ["NewtonSolver", "SolverConfig", "StepInfo", "StepRecord", "StepTotals", "STRICT_STOPS", "RELAXED_STOPS"]
 
@@ -136,7 +137,9 @@ class NewtonSolver:
         self.linear_solver: SymmetricSolver = make_symmetric_solver(self.config.linear_solver)
         self._general_solver: LinearSolver | None = None  # LU for a non-PD projection="none" matrix
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
-        self.contact = ContactSet(model, backend=self.backend)
+        # evaluations the potentials' energy, gradient and Hessian calls share (sim_core.workspace)
+        self.workspace = Workspace()
+        self.contact = ContactSet(model, backend=self.backend, workspace=self.workspace)
         self._revision = -1
         self._hook = _checked_hook(hook)
         self.step_hook: StepHook | None = None
@@ -156,8 +159,8 @@ class NewtonSolver:
         return None if self.last_record is None else self.last_record.hessian
 
     def reset_caches(self) -> None:
-        """Forget what steps carry to the next besides the state: the contact set's candidate lists
-        and search state, the Newton matrix's union pattern (dynamic entries are kept until unused
+        """Forget what steps carry to the next besides the state: the workspace's evaluations
+        (:mod:`sim_core.workspace`), the contact set's candidate lists and search state, the Newton matrix's union pattern (dynamic entries are kept until unused
         for 50 assemblies, so the pattern, PARDISO's ordering and the rounding of the solve depend
         on the steps before) and the last step's record. A rollout from a given state then gives
         the same result bit for bit whatever ran before it (the simulation's ``reset``, the sim
@@ -169,14 +172,15 @@ class NewtonSolver:
         self.last_factorization = None
 
     def _new_caches(self) -> None:
-        """Fresh contact set, assembler (union pattern) and fused-evaluator slot."""
-        self.contact = ContactSet(self.model, backend=self.backend)
+        """Fresh contact set, assembler (union pattern), fused-evaluator slot and an empty workspace."""
+        self.workspace.clear()
+        self.contact = ContactSet(self.model, backend=self.backend, workspace=self.workspace)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
-        self.elastic = ElasticTerms(self.model)
+        self.elastic = ElasticTerms(self.model, workspace=self.workspace)
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         self.step_hook = self._resolve_hook()

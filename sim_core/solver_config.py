@@ -42,7 +42,9 @@ class SolverConfig:
             ``projection="none"``, the ``projection`` Hessian is always used. Per-element projection
             discards negative curvature the neighbours would compensate, so projected Newton only
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
-        linear_solver: "pardiso" or "scipy".
+        linear_solver: "pardiso" or "scipy"; in a lockstep batch also "pcg" (the batched conjugate
+            gradient on the Taichi device, :mod:`sim_core.ti_kernels.pcg`; a lockstep batch on
+            ``taichi-cuda`` takes it for "pardiso").
         backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
             the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
             fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
@@ -91,6 +93,12 @@ class SolverConfig:
             takes ever shorter steps for ~20 iterations before its line search fails outright
             (folding.yaml, dome dragging the fold: 53 iterations in one step; 10 halvings make it
             21 iterations). Where no side is stale this changes nothing.
+        lockstep: how a :class:`~sim_core.batch.BatchedSimulation` of copies with these settings
+            steps them: False (default) one copy after another, each with its own solver; True all
+            together, one Newton iteration for all copies on their stacked model
+            (:mod:`sim_core.batch.lockstep`: one evaluation per energy term and one linear solve for
+            all copies, per-copy convergence, line search and failure). A single
+            :class:`~sim_core.simulation.Simulation` ignores it.
     """
 
     tol_velocity: float = 1e-4
@@ -111,9 +119,12 @@ class SolverConfig:
     dt_halvings_on_failure: int = 0
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
+    lockstep: bool = False
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
+        if self.linear_solver == "pcg" and self.backend == "numpy":
+            raise ConfigError("solver linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not 'numpy'")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
         if self.stale_side_backtracks < 1:

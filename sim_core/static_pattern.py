@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sim_core.potentials.base import block_dof_indices
+from sim_core.energies.base import block_dof_indices
 from sim_core.unique import sorted_unique
 
 

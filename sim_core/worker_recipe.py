@@ -1,7 +1,7 @@
 """What an elastic worker evaluates: recipes of fused parts, compared by identity.
 
 A :class:`Recipe` names the fused kernels (``"module:function"``) and their arguments; the fused parts
-(:mod:`sim_core.ti_kernels`) build theirs with :func:`part_recipe`, :class:`~sim_core.fused_elastic.FusedElastic`
+(``sim_core/energies/<energy>/fused_*kernel.py``) build theirs with :func:`part_recipe`, :class:`~sim_core.fused_elastic.FusedElastic`
 combines them, and :class:`~sim_core.elastic_worker.ElasticWorker` runs them in its process. This module
 holds the records only, so that the fused terms do not depend on the process machinery.
 """

@@ -18,8 +18,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from sim_core.candidates.adhesion import adhesion_pairs
-from sim_core.potentials.base import HessianBlocks, scatter_gradient
-from sim_core.potentials.bending import DiscreteShellBending, dihedral_angle
+from sim_core.energies.base import HessianBlocks, scatter_gradient
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending, dihedral_angle
 
 class PhysicsEffect:
     """Base of the hooks: no terms, no state; ``attach`` gives the simulation before the first step."""

@@ -1,5 +1,6 @@
 """The import contracts of ``.importlinter`` (layers thinshell_ros -> sysid -> sim_core, no ROS or bag
-library in sim_core, bags read only in sysid.bagio, no cycles between sibling modules), checked with
+library in sim_core, bags read only in sysid.bagio, no cycles between sibling modules, the shared Taichi
+infrastructure free of energies, the energies' NumPy references free of Taichi), checked with
 import-linter's ``lint-imports`` so that ``make test`` and CI check them."""
 
 from __future__ import annotations

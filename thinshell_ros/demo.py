@@ -47,9 +47,7 @@ from sysid.fitted_scene import scene_with_values
 from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
                                      robot_noise_args, run_deploy_stage, start_sim_node, stop_process,
                                      write_hidden_scene)
-from thinshell_ros.paths import bundled_scene, config_dir
-
-DEFAULT_BAG = "nominal_s101"
+from thinshell_ros.paths import DEFAULT_BAG, bundled_scene
 
 
 @dataclass(frozen=True)
@@ -136,18 +134,6 @@ class DemoResult:
     deploy: dict[str, Any] | None = None
     compare_out: Path | None = None
     comparison: dict[str, Any] | None = None
-
-
-def bundled_bag(name: str = DEFAULT_BAG) -> Path:
-    """``bags/<name>`` of the source tree (beside ``config/``).
-
-    Raises:
-        ConfigError: no such bag directory.
-    """
-    path = config_dir().parent / "bags" / name
-    if not (path / "metadata.yaml").is_file():
-        raise ConfigError(f"bundled recording {path} not found (expected metadata.yaml, .mcap and scene.yaml)")
-    return path
 
 
 def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:

@@ -7,8 +7,17 @@ union sparsity pattern) and its own :class:`~sim_core.state.State`, and takes it
 (``SolverConfig.backend``, :mod:`sim_core.backend`: ``numpy``, ``taichi-cpu`` or ``taichi-cuda``),
 which they share in this process (one Taichi runtime, kernels compiled once for all copies).
 
-Execution is lockstep at the granularity of a step: :meth:`BatchedSimulation.step` advances every
-active copy by one ``dt`` with that copy's solver, in copy order. Each copy's step is exactly what a
+Two executions, chosen by the copies' ``SolverConfig.lockstep``:
+
+* sequential (``lockstep=False``, default): :meth:`BatchedSimulation.step` advances every active copy
+  by one ``dt`` with that copy's solver, in copy order.
+* lockstep (``lockstep=True``): the copies' models are stacked into one model of disconnected copies
+  and every step is one Newton solve of all copies together (:mod:`sim_core.batch.lockstep`: one
+  evaluation per energy term and one linear solve per iteration for all copies; per-copy convergence,
+  line search and failure). Each copy's ``Simulation.state`` is written after every step; each copy's
+  states are those of its separate run to the Newton tolerance. The copies' own solvers are not used.
+
+Sequential execution in detail: Each copy's step is exactly what a
 separate :class:`~sim_core.simulation.Simulation` of the same model, state and control computes (same
 code, same per-copy caches), so a batch gives per copy the states of separate runs. A copy whose step
 fails (:class:`~sim_core.errors.SimulationDivergedError`, or non-finite positions) keeps its last good
@@ -94,6 +103,8 @@ class BatchedSimulation:
     Attributes:
         sims: the copies.
         failures: per copy, why it stopped (the solver's message, naming the step), or None while it runs.
+        lockstep: the :class:`~sim_core.batch.lockstep.LockstepEngine` when the copies' solver settings
+            ask for lockstep stepping (``SolverConfig.lockstep``), else None.
     """
 
     def __init__(self, simulations: Sequence[Simulation], finite_check: bool = True) -> None:
@@ -115,6 +126,11 @@ class BatchedSimulation:
         self.sims = sims
         self.failures: list[str | None] = [None] * len(sims)
         self.finite_check = bool(finite_check)
+        self.lockstep = None
+        if ref.solver.config.lockstep:
+            from sim_core.batch.lockstep import LockstepEngine
+
+            self.lockstep = LockstepEngine(sims)
 
     @classmethod
     def from_model(cls, model: Model, batch_size: int, *, dt: float | None = None,
@@ -183,6 +199,9 @@ class BatchedSimulation:
     # ------------------------------------------------------------------ stepping
     def warm_up(self) -> None:
         """:meth:`Simulation.warm_up` of every copy (per-copy solver structures before the first step)."""
+        if self.lockstep is not None:
+            self.lockstep.warm_up()
+            return
         for sim in self.sims:
             sim.warm_up()
 
@@ -216,6 +235,11 @@ class BatchedSimulation:
             raise ConfigError(f"batch step: mask of shape {run.shape} for a batch of {B}")
         for i in np.flatnonzero(run):  # the caller's errors before any copy moves
             _check_control(self.sims[i].model, controls[i], int(i))
+        if self.lockstep is not None:
+            infos, failures = self.lockstep.step(controls, run)
+            for i, why in failures.items():
+                self.failures[i] = why
+            return BatchStep(infos=infos, failed_now=sorted(failures), stepped=run, wall_s=time.perf_counter() - t0)
         infos: list[StepInfo | None] = [None] * B
         failed_now = []
         for i in np.flatnonzero(run):
@@ -241,6 +265,8 @@ class BatchedSimulation:
         """Every copy back to its model's initial state (:meth:`Simulation.reset`), failures cleared."""
         for sim in self.sims:
             sim.reset()
+        if self.lockstep is not None:
+            self.lockstep.reset()
         self.failures = [None] * self.batch_size
 
     def set_parameter(self, copy_index: int, name: str, value: float) -> None:

@@ -12,7 +12,7 @@ the process's resident memory from before the batch was built to after its steps
 and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvidia-smi`` reports it,
 divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
 the copies add beyond it). The kernels are compiled before the first size by one short batch of one
-copy (``jit_s``).
+copy and the projected-Hessian kernels (``jit_s``).
 """
 
 from __future__ import annotations
@@ -66,14 +66,14 @@ def _forming_scene() -> Path:
 class _FormingRun:
     """``B`` copies of the Forming benchmark scene on one backend, each on its scaled trajectory."""
 
-    def __init__(self, B: int, steps: int, backend: str) -> None:
+    def __init__(self, B: int, steps: int, backend: str, lockstep: bool = False) -> None:
         from sim_core.batch.simulation import BatchedSimulation
         from sim_core.scenes.task_scene import load_task_scene, task_initial_state
         from sim_core.solver_config import SolverConfig
         from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
 
         model = load_task_scene(_forming_scene())
-        self.batch = BatchedSimulation.from_model(model, B, solver_config=SolverConfig(backend=backend),
+        self.batch = BatchedSimulation.from_model(model, B, solver_config=SolverConfig(backend=backend, lockstep=lockstep),
                                                   state=task_initial_state(model))
         self.effector = next(iter(model.effectors))
         pose0 = model.effectors[self.effector].initial_pose
@@ -99,8 +99,9 @@ class _FormingRun:
 class _TaskRun:
     """A population of ``B`` perturbed reference trajectories of a task (:class:`PopulationRollout`)."""
 
-    def __init__(self, name: str, B: int, steps: int, backend: str, seed: int = 0) -> None:
+    def __init__(self, name: str, B: int, steps: int, backend: str, lockstep: bool = False, seed: int = 0) -> None:
         from sim_core.errors import ConfigError
+        from sim_core.solver_config import SolverConfig
         from sim_core.tasks.registry import load_task
         from sim_core.tasks.rollout import PopulationRollout
 
@@ -112,7 +113,8 @@ class _TaskRun:
         span = 0.2 * (task.action_high - task.action_low) / 2.0
         actions = [ref] + [np.clip(ref + rng.uniform(-1.0, 1.0, ref.shape) * span, task.action_low, task.action_high)
                            for _ in range(B - 1)]
-        self.population = PopulationRollout(task, actions, task.true_parameters or None, backend=backend)
+        self.population = PopulationRollout(task, actions, task.true_parameters or None, backend=backend,
+                                            solver_config=SolverConfig(backend=backend, lockstep=lockstep))
         self.batch = self.population.batch
 
     def run(self) -> tuple[int, list[int], int]:
@@ -122,11 +124,13 @@ class _TaskRun:
         return sum(r.steps_done for r in results), iterations, failed
 
 
-def _make_run(scene: str, B: int, steps: int, backend: str):
-    return _FormingRun(B, steps, backend) if scene == "forming" else _TaskRun(scene, B, steps, backend)
+def _make_run(scene: str, B: int, steps: int, backend: str, lockstep: bool):
+    if scene == "forming":
+        return _FormingRun(B, steps, backend, lockstep)
+    return _TaskRun(scene, B, steps, backend, lockstep)
 
 
-def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None) -> list[dict]:
+def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None, lockstep: bool = False) -> list[dict]:
     """Time batches of each size in ``sizes`` (one after the other, each built, stepped and dropped).
 
     Args:
@@ -137,6 +141,8 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
             ``taichi-cuda``).
         on_row: called with each record as soon as it is measured (a long run keeps what it measured
             when it is stopped), or None.
+        lockstep: step the copies together (``SolverConfig.lockstep``, :mod:`sim_core.batch.lockstep`)
+            instead of one after another.
 
     Returns:
         one record per size (keys in the module docstring, plus ``B``, ``steps``, ``scene``, ``arch``,
@@ -154,9 +160,14 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
         raise ConfigError(f"--sizes must be integers >= 1, got {sizes}")
     backend = resolve_backend(ARCH_BACKENDS[arch])
     t0 = time.perf_counter()
-    warm = _make_run(scene, 1, min(2, steps), backend)  # JIT of every kernel the steps call
+    warm = _make_run(scene, 1, min(2, steps), backend, lockstep)  # JIT of every kernel the steps call
     warm.run()
-    dofs = int(warm.batch.sims[0].model.dof_count)
+    sim0 = warm.batch.sims[0]
+    if backend != "numpy":  # the projected-Hessian kernels too, which the short warm-up may not reach
+        from sim_core.fused_elastic import compile_kernels
+
+        compile_kernels(sim0.solver.elastic.potentials(sim0.state.hinge_theta_bar), sim0.model.x_rest)
+    dofs = int(sim0.model.dof_count)
     del warm
     jit_s = time.perf_counter() - t0
     out = []
@@ -164,7 +175,7 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
         gc.collect()
         rss0, gpu0 = current_rss_mib(), gpu_memory_mib()
         t0 = time.perf_counter()
-        run = _make_run(scene, int(B), steps, backend)
+        run = _make_run(scene, int(B), steps, backend, lockstep)
         build_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         done, iterations, failed = run.run()
@@ -172,6 +183,7 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
         rss1, gpu1 = current_rss_mib(), gpu_memory_mib()
         out.append({
             "bench": "batch", "scene": scene, "arch": arch, "backend": backend, "dofs": dofs, "B": int(B),
+            "mode": "lockstep" if lockstep else "sequential",
             "steps": steps, "scene_steps": done, "wall_s": wall, "build_s": build_s,
             "scene_steps_per_s": done / wall if wall > 0 else 0.0,
             "steps_per_s_per_copy": done / wall / B if wall > 0 else 0.0,
@@ -199,13 +211,15 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", default="forming", help="forming (the benchmark scene) or a task name")
     p.add_argument("--steps", type=int, default=10, help="steps per copy (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON line per size")
+    p.add_argument("--lockstep", action="store_true",
+                   help="step the copies together: one Newton iteration for all (SolverConfig.lockstep)")
     ns = p.parse_args(argv)
     def show(r: dict) -> None:
         if ns.json:
             print(json.dumps(r), flush=True)
             return
         if r["B"] == ns.sizes[0]:
-            print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {ns.steps} steps per "
+            print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {r['mode']}, {ns.steps} steps per "
                   f"copy, JIT {r['jit_s']:.1f} s")
             print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
                   f"{'GPU/copy MiB':>13} {'build s':>8}")
@@ -215,7 +229,7 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
               f"{r['build_s']:>8.2f}", flush=True)
 
     try:
-        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch, on_row=show)
+        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch, on_row=show, lockstep=ns.lockstep)
     except ConfigError as err:
         print(f"thinshell bench batch: {err}", file=sys.stderr)
         return 2

@@ -35,8 +35,8 @@ import numpy as np
 
 from sim_core.collision import vertex_triangle_candidates
 from sim_core.collision.distances import point_triangle_closest_point
+from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection, scatter_gradient
 
 
 def adhesion_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray,

@@ -4,7 +4,7 @@ Candidate ``anisotropic_bending`` of SYSID.md. ``phi_h`` is the angle between hi
 and the sheet's x axis (in the sheet plane), so edges along x (fold lines along x, i.e. bending
 about the x axis) get ``(1 + beta) k_h``, edges along y ``(1 - beta) k_h`` and diagonal edges
 ``k_h``; ``beta = 0`` is the isotropic discrete shell of
-:class:`~sim_core.potentials.bending.DiscreteShellBending` (Grinspun et al. 2003). This is the
+:class:`~sim_core.energies.hinge_bending.reference.DiscreteShellBending` (Grinspun et al. 2003). This is the
 lowest angular harmonic of an orthotropic plate (``D(phi) = D_x cos^2 phi + D_y sin^2 phi`` gives
 ``beta = (D_x - D_y) / (D_x + D_y)``).
 
@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection
-from sim_core.potentials.bending import DiscreteShellBending
 
 
 def hinge_grain_cosine(hinges: np.ndarray, x_rest: np.ndarray, grain_axis: np.ndarray | None = None) -> np.ndarray:

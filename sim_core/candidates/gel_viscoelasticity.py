@@ -11,7 +11,7 @@ Govindjee 1998), where the per-tet internal variable ``F_r`` is the branch's rel
 ``(1 + beta) E``, relaxed modulus ``E``), ``beta = 0`` is off. Since ``F F_r^{-1} = D_s (F_r D_m)^{-1}``
 the branch is a Stable Neo-Hookean potential whose rest edge matrix is ``F_r D_m`` (rest volume
 kept), so its gradient and PSD-projected Hessian are those of
-:class:`~sim_core.potentials.neohookean.StableNeoHookean`, scaled by ``beta``.
+:class:`~sim_core.energies.neohookean.reference.StableNeoHookean`, scaled by ``beta``.
 
 After each converged step the relaxed state flows towards the current deformation (exact
 exponential integration of ``dF_r/dt = (F - F_r) / tau`` with ``F`` held over the step):
@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection
-from sim_core.potentials.neohookean import StableNeoHookean
 
 
 class MaxwellBranch:

@@ -27,10 +27,10 @@ import numpy as np
 from sim_core.candidates.adhesion import LaggedAdhesion, bonded_after, bonded_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
+from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
 from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
 from sim_core.candidates.stiction import StictionFriction
-from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
-from sim_core.potentials.bending import DiscreteShellBending
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
 
 __all__ = ["ADHESION_REACH_FRACTION", "ADHESION_RELEASE_FRACTION", "CANDIDATE_NAMES", "CANDIDATE_SETTINGS",
            "CandidateHook", "GelContactFace", "StepHook", "validate_candidate_parameters"]
@@ -79,7 +79,7 @@ class StepHook(Protocol):
 
     def terms(self, model, state, x_prev: np.ndarray, dt: float, elastic, friction) -> tuple[list, list]:
         """``(contact_like, body_like)`` potentials of the step that starts at ``state``: lists of
-        :class:`~sim_core.potentials.base.Potential`; ``x_prev`` ``(n, 3)`` m, ``dt`` s, ``elastic``
+        :class:`~sim_core.energies.base.Potential`; ``x_prev`` ``(n, 3)`` m, ``dt`` s, ``elastic``
         the solver's :class:`~sim_core.elastic.ElasticTerms`, ``friction`` the step's lagged friction
         or None."""
         ...

@@ -5,7 +5,7 @@ off). The model's global ``damping`` parameter is mass-proportional over *every*
 drags the gel, which the effector drives: its signature is then dominated by the gel lagging the
 effector (a wrench and marker change that gel viscoelasticity and a force bias also produce),
 not by the sheet's motion that a missing sheet damping leaves in the data. This candidate acts on
-the sheets alone. As :class:`~sim_core.potentials.damping.ViscousDamping`, implicit Euler with the
+the sheets alone. As :class:`~sim_core.energies.damping.reference.ViscousDamping`, implicit Euler with the
 drag is the minimisation of
 
     E = beta / (2 dt) sum_{i in sheets} m_i |x_i - x_i^n|^2,      v_i = (x_i - x_i^n) / dt.
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection, scatter_gradient
 
 
 def sheet_vertices(model) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Stiction: static friction above kinetic friction, as a lagged potential beside IPC friction.
 
 Candidate ``stiction`` of SYSID.md. The kinetic friction force of a pair is ``mu lam f1(y)``
-(:mod:`sim_core.potentials.friction`, ``y = |u|`` the tangential slip of the step). Stiction adds a
+(:mod:`sim_core.energies.friction.reference`, ``y = |u|`` the tangential slip of the step). Stiction adds a
 breakaway bump in the small-slip regime,
 
     f_s(y) = beta mu lam h(y / eps_s),   h(r) = r exp(1 - r),
@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
+from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.errors import ConfigError
-from sim_core.potentials.base import HessianBlocks, Projection, scatter_gradient
-from sim_core.potentials.friction import LaggedFriction
 
 
 def stiction_bump_energy(y: np.ndarray, eps_s: float) -> np.ndarray:
@@ -44,7 +44,7 @@ class StictionFriction:
     """Stiction bump on top of a lagged friction's frozen pairs (module docstring).
 
     Args:
-        friction: the step's :class:`~sim_core.potentials.friction.LaggedFriction` (pairs, lam, mu,
+        friction: the step's :class:`~sim_core.energies.friction.reference.LaggedFriction` (pairs, lam, mu,
             tangent bases, ``x^n``, ``eps_u``).
         beta: ``mu_s / mu_k - 1`` (dimensionless, >= 0; 0 = off).
         slip_scale: ``eps_s / eps_u`` (>= 1; default 2): slip of the step, in units of the

@@ -3,7 +3,7 @@
 Layers (IPC Toolkit's): :mod:`distances` (closest points and contact distances with derivatives)
 -> :mod:`candidates` (broad phase over :mod:`spatial_hash`, exclusions) -> :mod:`memory` (side
 memory of active pairs). The penalty and friction energies built on them live in
-``sim_core.potentials.contact`` and ``sim_core.potentials.friction``.
+``sim_core.energies.contact.reference`` and ``sim_core.energies.friction.reference``.
 """
 
 from __future__ import annotations

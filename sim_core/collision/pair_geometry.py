@@ -11,7 +11,7 @@ step (``x^n``) and of its active pairs at the end (``x^{n+1}``), before any side
   closest points are interior (Ericson 2005, sec. 5.1.9) and the sign of
   ``((a1 - a0) x (b1 - b0)).(a0 - b0)`` (:func:`~sim_core.collision.distances.edge_edge_side`).
 
-This NumPy function is the reference; :func:`sim_core.ti_kernels.contact_setup.pair_geometry` is its
+This NumPy function is the reference; :func:`sim_core.energies.contact.setup_kernel.pair_geometry` is its
 Taichi twin (one launch for both pair kinds, equal bit for bit).
 """
 

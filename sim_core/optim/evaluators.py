@@ -10,6 +10,8 @@ caches), so a batch gives the same results in any process and in any order.
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -60,15 +62,20 @@ class SerialEvaluator:
 
 class BatchedEvaluator:
     """A population's episodes as one batch: one copy of the task's scene per sequence, stepped
-    together (:func:`sim_core.tasks.rollout.rollout_population`, :class:`sim_core.batch.BatchedSimulation`).
+    together (:func:`sim_core.tasks.rollout.rollout_population`, :class:`sim_core.batch.BatchedSimulation`),
+    by default in lockstep (``SolverConfig.lockstep``: one Newton solve of all copies per step,
+    :mod:`sim_core.batch.lockstep`).
 
     Each sequence gets the :class:`EpisodeResult` (without states) that :class:`SerialEvaluator` gives
-    it: the same steps, early stops, reward and score (an infeasible episode's reward NaN, a
-    non-finite reward infeasible, ``wrench_peak_N`` over the steps taken).
+    it, to the Newton tolerance (in lockstep; exactly when the copies are stepped one after another):
+    the same steps, early stops, reward and score (an infeasible episode's reward NaN, a non-finite
+    reward infeasible, ``wrench_peak_N`` over the steps taken).
 
     Args:
         task, horizon, params, solver_config: as :class:`SerialEvaluator` (the same default solver
             settings: no dt halving).
+        lockstep: step the copies in lockstep (default), else one after another; it replaces
+            ``solver_config.lockstep``.
 
     Raises:
         ConfigError: a horizon outside ``1..task.horizon``.
@@ -77,11 +84,12 @@ class BatchedEvaluator:
     workers = 1
 
     def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                 solver_config: SolverConfig | None = None) -> None:
+                 solver_config: SolverConfig | None = None, lockstep: bool = True) -> None:
         self.task = task
         self.horizon = episode_horizon(task, horizon)
         self.params = dict(params or {})
-        self.solver_config = solver_config or SolverConfig(dt_halvings_on_failure=0)
+        self.solver_config = dataclasses.replace(solver_config or SolverConfig(dt_halvings_on_failure=0),
+                                                 lockstep=bool(lockstep))
 
     def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
         """As :meth:`SerialEvaluator.evaluate` (a call's ``params`` replace the evaluator's for it and

@@ -62,12 +62,12 @@ import numpy as np
 import yaml
 
 from sim_core.builder import ModelBuilder
+from sim_core.energies.hinge_bending.reference import dihedral_angle
 from sim_core.errors import ConfigError
 from sim_core.mesh.dome import dome_shell
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import TetMesh, box_face_vertices, tet_box
 from sim_core.model import ContactSettings, Model, check_broad_phase
-from sim_core.potentials.bending import dihedral_angle
 from sim_core.scenes import task_scene_v2 as v2
 from sim_core.state import State
 from sim_core.transforms import transform_points

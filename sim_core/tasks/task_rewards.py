@@ -13,7 +13,7 @@ of :mod:`sim_core.tasks.rewards`. Registered names and parameters:
 | ``observed_motion`` | ``bodies: [names]`` | ``-sum_i |x_i - x_i^obs|^2`` over the bodies, ``x^obs`` = the end of the reference trajectory at the task's ``true_parameters`` | m^2 |
 
 Dihedral angles enter the crease rewards in ThinShellLab's sign convention,
-``theta_ThinShellLab = -theta`` (:data:`THINSHELLLAB_ANGLE_SIGN`; ours, :func:`~sim_core.potentials.bending.dihedral_angle`,
+``theta_ThinShellLab = -theta`` (:data:`THINSHELLLAB_ANGLE_SIGN`; ours, :func:`~sim_core.energies.hinge_bending.reference.dihedral_angle`,
 is positive when the wings fold towards the sheet normal): with it the human-designed motions of
 Folding-L, Folding-U and Pick-Folding score with the signs of Table A.
 
@@ -27,9 +27,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from sim_core.energies.hinge_bending.reference import dihedral_angle
 from sim_core.errors import ConfigError
 from sim_core.model import Model
-from sim_core.potentials.bending import dihedral_angle
 from sim_core.state import State
 from sim_core.tasks import rewards
 

@@ -2,10 +2,10 @@
 
 The Newton solver (:mod:`sim_core.solver`) falls back to the PSD-projected Hessian when PARDISO's
 Cholesky refuses the exact one. The projection is per element block, as in the reference
-potentials (:func:`sim_core.potentials.base.project_psd`, "clamp" of Teran et al. 2005 or "abs"),
+potentials (:func:`sim_core.energies.base.project_psd`, "clamp" of Teran et al. 2005 or "abs"),
 and for an energy that depends only on vertex differences it is done in the ``3 m - 3``
 dimensional complement of the rigid translations
-(:func:`sim_core.potentials.membrane.project_psd_translation_free`): with ``B = h (x) I_3``, ``h``
+(:func:`sim_core.energies.membrane.reference.project_psd_translation_free`): with ``B = h (x) I_3``, ``h``
 the Helmert basis of :func:`sim_core.ti_kernels.linalg.helmert_basis` (``m x (m - 1)``, any
 orthonormal basis of the complement gives the same projection),
 
@@ -31,7 +31,7 @@ The result equals the reference's projected blocks to round-off: the reference r
 block of a batch in which some block has a negative eigenvalue, and returns the symmetrised block
 when none has; here a block is reconstructed only when it has a negative eigenvalue itself.
 
-The fused kernels (``sim_core/ti_kernels/fused_*.py``), which compute the local upper triangle
+The fused kernels (``sim_core/energies/<energy>/fused_*kernel.py``), which compute the local upper triangle
 ``r <= s`` of each symmetric element block, read their slots from :func:`upper_slot_table`: the
 slot map folded onto its upper triangle and packed, one int32 per entry (:func:`upper_index`,
 :func:`add_upper_entry`), in place of the two entries ``[e, r, s]`` and ``[e, s, r]`` of the full

@@ -9,7 +9,7 @@ parallel loop of an element kernel, so every thread works on its own element.
 * :func:`project_psd_translation_free`: the PSD projection of an element Hessian of a
   translation-invariant energy (a function of vertex differences only), done in the
   ``3 m - 3`` dimensional complement of the rigid translations (the Taichi twin of
-  :func:`sim_core.potentials.membrane.project_psd_translation_free`). The orthonormal basis of the
+  :func:`sim_core.energies.membrane.reference.project_psd_translation_free`). The orthonormal basis of the
   complement is the Helmert basis ``h (x) I_3``; any orthonormal basis gives the same projection.
 """
 

@@ -405,8 +405,8 @@ def hinge_angle_history(model: Any, sheet_points: np.ndarray, stride: int = 1) -
         the angles ``(ceil((K + 1) / stride),)``, or None when the scene has no grid sheet with
         hinges matching the sheet points.
     """
+    from sim_core.energies.hinge_bending.reference import dihedral_angle
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.potentials.bending import dihedral_angle
     from sim_core.scenes.scene_file import load_scene_file
 
     sheet = getattr(load_scene_file(model.scene), "sheet", None)

@@ -1,7 +1,7 @@
 """Replays that start from the nominal replay's state: the steps before an effect can act are the nominal's.
 
 Bending plasticity changes a sheet only when a dihedral angle leaves its elastic range: the rest
-angle ``theta_bar`` moves where ``|theta - theta_bar| > theta_yield`` (:func:`sim_core.potentials.
+angle ``theta_bar`` moves where ``|theta - theta_bar| > theta_yield`` (:func:`sim_core.energies.
 bending.plastic_update`; the yield angle enters nothing else). With a flat rest shape, a replay that
 differs from the nominal one only in ``sheet.yield_angle`` therefore takes exactly the nominal
 replay's steps until the first step whose largest ``|theta|`` exceeds its yield angle; those steps

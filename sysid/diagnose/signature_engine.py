@@ -14,15 +14,16 @@ still leaves a structured gap many times the noise, and every candidate can abso
 2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias
    from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
    contact events, gel damping from the contact force leading the replay there (Kelvin-Voigt),
-   bending plasticity from the sheet's set after release, adhesion from the sheet
-   carried by the gel.
+   bending plasticity from the sheet's set after release, adhesion from the sheet carried by the
+   gel, stiction from the friction ratio's overshoot at each slide's breakaway.
 3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
    the same tests on recordings the user declares normal (``--baseline``) when given.
 4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
    markers) and **refit** each named effect on training data, reporting whitened RMS before and
    after on held-out data: held-out contact events for the timing effects (each event predicted with
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
-   of ``2 * holdout_blocks`` blocks), and the sheet's final free window for plasticity.
+   of ``2 * holdout_blocks`` blocks), the sheet's final free window for plasticity, and every
+   other wrench sample of each breakaway window for stiction.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import numpy as np
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
+from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.damping import kelvin_voigt
@@ -322,6 +324,44 @@ def refit_sheet(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": None, "note": "not refitted with the effect's term in this engine"}
 
 
+def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
+    """Static over kinetic friction fitted on every other wrench sample of each breakaway window
+    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the friction
+    ratio against the kinetic level alone (Coulomb friction, one coefficient) and with the breakaway
+    decay (:mod:`sysid.diagnose.signatures.friction`)."""
+    rec = p.recording
+    taus = decay_taus(rec)
+    before = after = fit_sse = 0.0
+    n_held = n_fit = 0
+    ratios, decays = [], []
+    for b in breakaways(rec):
+        train = np.arange(len(b.t)) % 2 == 0
+        held = ~train
+        if held.sum() < 2:
+            continue
+        f = fit_breakaway(b, taus, train)
+        cols = decay_columns(b.t[held], b.t0, f["tau_s"])
+        c0, c1 = f["coef0"], f["coef1"]
+        pred0 = cols[0] * c0[0] + cols[1] * c0[1]
+        pred1 = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
+        z = b.sigma[held]
+        before += float(np.sum(((b.q[held] - pred0) / z) ** 2))
+        after += float(np.sum(((b.q[held] - pred1) / z) ** 2))
+        n_held += int(held.sum())
+        fit_sse += f["sse1"]
+        n_fit += int(train.sum())
+        if f["level"] > 0.0:
+            ratios.append(1.0 + f["excess"] / f["level"])
+            decays.append(f["tau_s"])
+    params = {"static_over_kinetic": float(np.median(ratios)) if ratios else 1.0,
+              "decay_s": float(np.median(decays)) if decays else 0.0}
+    return {"params": params, "observable": "friction ratio F_t / F_n along the slide at each breakaway",
+            "heldout": "every other wrench sample of each breakaway window",
+            "rms": {"wrench": math.sqrt(fit_sse / max(n_fit, 1))},
+            "heldout_rms_before": math.sqrt(before / n_held) if n_held else None,
+            "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
+
+
 def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
     """The named effect's model fitted on training data and its held-out RMS before and after."""
     if r.effect == "lens_distortion":
@@ -330,6 +370,8 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[
         return refit_force_bias(p, r, settings.holdout_blocks)
     if r.effect in ("latency", "gel_viscoelasticity", "damping"):
         return refit_timing(p, r)
+    if r.effect == "stiction":
+        return refit_stiction(p, r)
     return refit_sheet(p, r)
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from sysid.diagnose.report import write_report_files
 from sysid.diagnose.signatures.damping import kelvin_voigt
+from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
 
@@ -50,6 +51,16 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         ax.plot(t, wp[:, 2], "C0-", lw=1, label="calibrated replay F_z")
         ax.plot(t, apply_force_bias(wp, t, params)[:, 2], "C3-", lw=1, label="replay + bias")
         ax.set_ylabel("F_z (sensor frame), N")
+    elif effect == "stiction":
+        for i, b in enumerate(breakaways(rec)):
+            f = fit_breakaway(b, decay_taus(rec))
+            cols = decay_columns(b.t, b.t0, f["tau_s"])
+            c0, c1 = f["coef0"], f["coef1"]
+            ax.plot(b.t, b.q, "k.", ms=3, label="recorded F_t / F_n" if i == 0 else None)
+            ax.plot(b.t, cols[0] * c0[0] + cols[1] * c0[1], "C0-", lw=1, label="kinetic level (Coulomb)" if i == 0 else None)
+            fit = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
+            ax.plot(b.t, fit, "C3-", lw=1, label="with the breakaway excess" if i == 0 else None)
+        ax.set_ylabel("friction ratio along the slide")
     elif effect == "lens_distortion":
         xyz, uv = rec.data["markers_xyz"], rec.data["markers_uv"]
         pin = apply_lens(xyz, rec.camera, {k: v for k, v in params.items() if k not in ("k1", "k2")})
@@ -112,6 +123,8 @@ WORDS = {
     "force_bias": "the wrench sensor reads an offset that drifts, even when the gel touches nothing",
     "bending_plasticity": "the sheet keeps a fold after the gel lets go of it (plastic bending)",
     "adhesion": "the gel sticks to the sheet and carries it up on a lift (tack)",
+    "stiction": "the contact sticks before it slides: at breakaway the friction reaches about {ratio:.2g} times "
+                "its sliding (kinetic) level, then falls back",
 }
 
 
@@ -121,7 +134,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     ex = doc["explained_by"]
     lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
     for e in ex:
-        lines.append(f"- **{e}**: {WORDS.get(e, e)}.")
+        ratio = doc["refit"]["effects"].get(e, {}).get("params", {}).get("static_over_kinetic", float("nan"))
+        lines.append(f"- **{e}**: {WORDS.get(e, e).format(ratio=ratio)}.")
     props = doc["extra"].get("contact_properties") or []
     if props:
         lines.append(f"- contact properties of this cell (not named alone): {', '.join(props)}")

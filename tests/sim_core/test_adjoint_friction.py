@@ -17,9 +17,9 @@ import pytest
 from sim_core.adjoint import rollout
 from sim_core.adjoint_friction import friction_rows
 from sim_core.contact_set import ContactSet, FrictionRowSource
+from sim_core.energies.contact.reference import EdgeEdgeContact, PlaneContact, VertexTriangleContact
+from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.errors import ThinShellError
-from sim_core.potentials.contact import EdgeEdgeContact, PlaneContact, VertexTriangleContact
-from sim_core.potentials.friction import LaggedFriction
 from tests.sim_core.test_adjoint import _controls, _make
 
 

@@ -1,4 +1,4 @@
-"""Adjoint through frictional contact with an exact rigid sphere (sim_core.potentials.sphere_contact).
+"""Adjoint through frictional contact with an exact rigid sphere (sim_core.energies.sphere_contact.reference).
 
 A 2 x 2 x 1 mm gel block, clamped at its base, is pressed by a sphere (R 2 mm, Coulomb mu 0.5) and
 dragged sideways so that friction is active; the loss is a random linear function of every

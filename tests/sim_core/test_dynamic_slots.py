@@ -15,7 +15,7 @@ import pytest
 import sim_core.dynamic_slots as dynamic_slots
 from sim_core.assembly import HessianAssembler, StaticPattern
 from sim_core.dynamic_slots import STICKY_ASSEMBLIES, DynamicMerge, block_keys
-from sim_core.potentials.base import HessianBlocks
+from sim_core.energies.base import HessianBlocks
 
 
 class _UncachedMerge:

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from sim_core.builder import ModelBuilder
+from sim_core.energies.gravity.reference import GravityPotential
+from sim_core.energies.inertia.reference import InertiaPotential
 from sim_core.errors import SimulationDivergedError
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.model import ContactSettings
-from sim_core.potentials.gravity import GravityPotential
-from sim_core.potentials.inertia import InertiaPotential
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 

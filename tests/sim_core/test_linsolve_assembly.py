@@ -15,9 +15,9 @@ import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
 from sim_core.builder import ModelBuilder
+from sim_core.energies.base import HessianBlocks, assemble_hessian
 from sim_core.linsolve import PardisoCholesky, ScipySymmetric, full_from_upper
 from sim_core.mesh.sheet import grid_sheet
-from sim_core.potentials.base import HessianBlocks, assemble_hessian
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 

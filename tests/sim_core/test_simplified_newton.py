@@ -16,7 +16,7 @@ import pytest
 from sim_core.adjoint import rollout
 from sim_core.contact_set import active_contacts, same_active_contacts
 from sim_core.control import Control
-from sim_core.potentials.contact import PlaneContact
+from sim_core.energies.contact.reference import PlaneContact
 from sim_core.sensitivity import parameter_sensitivities, rollout_sensitivities
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.potentials.base import HessianBlocks, assemble_hessian
+from sim_core.energies.base import HessianBlocks, assemble_hessian
 
 
 def fd_gradient(energy, x: np.ndarray, h: float = 1e-7) -> np.ndarray:

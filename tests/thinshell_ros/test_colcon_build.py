@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tests.thinshell_ros.conftest import PYTHON, REPO
 
-PACKAGE_FILES = ("package.xml", "setup.py", "setup.cfg", "resource", "config", "sim_core", "sysid", "thinshell_ros")
+PACKAGE_FILES = ("package.xml", "setup.py", "setup.cfg", "resource", "config", "bags", "sim_core", "sysid", "thinshell_ros")
 
 
 def test_colcon_build_installs_package(tmp_path):
@@ -36,12 +36,17 @@ def test_colcon_build_installs_package(tmp_path):
         assert path.is_file() and os.access(path, os.X_OK), script
     (site,) = prefix.glob("lib/python3*/site-packages")
     assert (site / "thinshell_ros" / "sim_node.py").is_file() and (site / "sim_core" / "simulation.py").is_file()
-    # the installed code finds its bundled scene through the ament index, not the source tree
+    # the installed code finds its bundled scene and recording as its package data (importlib.resources),
+    # not through the ament index or the source tree
     run_env = dict(env, AMENT_PREFIX_PATH=str(prefix), PYTHONPATH=str(site))
-    out = subprocess.run([PYTHON, "-c", "from thinshell_ros.paths import bundled_scene; print(bundled_scene())"],
+    out = subprocess.run([PYTHON, "-c", "from thinshell_ros.paths import bundled_bag, bundled_scene; "
+                          "print(bundled_scene()); print(bundled_bag())"],
                          cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    assert Path(out.stdout.strip()) == share / "config" / "scenes" / "press_slide.yaml"
+    scene, bag = out.stdout.split()
+    bundled = site / "thinshell_ros" / "bundled"
+    assert Path(scene) == bundled / "config" / "scenes" / "press_slide.yaml"
+    assert Path(bag) == bundled / "bags" / "nominal_s101" and (Path(bag) / "nominal_s101.mcap").is_file()
     # sysid's packaged data comes with the installed package (importlib.resources)
     out = subprocess.run([PYTHON, "-c", "from sysid.data import data_file; print(data_file('default.yaml'))"],
                          cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)

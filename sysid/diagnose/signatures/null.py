@@ -5,7 +5,8 @@ Every effect is named only when its test passes two thresholds: the **statistic*
 effect's pattern removes, noise units) must be far beyond what noise gives (a chi-square tail), and
 the **effect size** must be physically resolvable (a delay of at least two tactile sample periods, a
 distortion of at least two pixel-noise sigmas at the markers' radius, a permanent set of at least
-ten sheet-tracking sigmas, ...). The timing effects must also explain most of the event windows'
+ten sheet-tracking sigmas, a static-friction excess at breakaway of at least twice the friction
+ratio's relative noise on one sample, ...). The timing effects must also explain most of the event windows'
 excess energy (``min_explained``): a systematic gap between simulator and recording, which even a
 nominal recording has, leaves most of it in place.
 
@@ -34,10 +35,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult
+from sysid.diagnose.signatures.friction import resolvable_excess
 
 STATISTIC_THRESHOLD = 50.0
 """Default statistic threshold, noise units: far in the tail of the chi-square laws of the tests
-(at most 12 degrees of freedom for the force bias; P(chi2_12 > 50) < 2e-6)."""
+(at most 12 degrees of freedom for the force bias; P(chi2_12 > 50) < 2e-6; the stiction test's
+breakaway decay has two, its amplitude and its decay time searched on a grid of at most 19 values,
+P(chi2_2 > 50) * 19 < 3e-10)."""
 
 SHAPE_MARGIN = math.log(1.25)
 """A first-order lag (delay) is preferred when it fits the events' windows with at least 25 % less
@@ -88,7 +92,8 @@ def default_thresholds(rec: Recording) -> Thresholds:
     sheet_sigma = float(np.max(rec.sigma["sheet_points"])) if "sheet_points" in rec.sigma else 5e-5
     sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": 2.0 * period,
              "gel_viscoelasticity": 2.0 * period, "damping": damping_lead_threshold(rec),
-             "bending_plasticity": 10.0 * sheet_sigma, "adhesion": 10.0 * sheet_sigma}
+             "bending_plasticity": 10.0 * sheet_sigma, "adhesion": 10.0 * sheet_sigma,
+             "stiction": resolvable_excess(rec)}
     for effect, size in sizes.items():
         th.statistic[effect] = STATISTIC_THRESHOLD
         th.effect_size[effect] = float(size)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection, hinge_grain_cosine
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
-from sim_core.potentials.bending import DiscreteShellBending
 from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
 
 D = 0.008

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.neohookean import StableNeoHookean
 from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
 
 E, NU = 3e5, 0.45

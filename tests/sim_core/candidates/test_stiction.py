@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sim_core.candidates.stiction import StictionFriction
+from sim_core.energies.friction.reference import LaggedFriction, tangent_basis
 from sim_core.errors import ConfigError
-from sim_core.potentials.friction import LaggedFriction, tangent_basis
 from tests.support.fd import dense_hessian, fd_gradient, fd_hessian, relative_error
 
 DT, EPS_V = 0.01, 0.01

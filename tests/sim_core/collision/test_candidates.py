@@ -9,8 +9,8 @@ from sim_core.collision.candidates import PairFilter, box_pairs_kdtree, edge_edg
 from sim_core.collision.distances import point_triangle_distance
 from sim_core.collision.memory import ContactMemory, edge_edge_pair_sides, vertex_triangle_pair_sides
 from sim_core.collision.spatial_hash import SpatialHash
+from sim_core.energies.contact.reference import EdgeEdgeContact, VertexTriangleContact
 from sim_core.errors import ConfigError, SimulationDivergedError
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
 
 
 def _random_soup(rng, n=300, t=400, size=0.01):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
+from sim_core.energies.hinge_bending.reference import dihedral_angle
 from sim_core.errors import ConfigError
 from sim_core.mesh.dome import dome_shell, dome_vertex_count
 from sim_core.mesh.tet import tet_boundary_triangles
 from sim_core.mesh.validate import tet_signed_volumes
-from sim_core.potentials.bending import dihedral_angle
 from sim_core.scenes.task_scene import build_task_scene, hairpin_fold, task_initial_state
 from sim_core.tasks import crease_columns, folding_reward, forming_benchmark_offsets, forming_reward, pose_targets
 

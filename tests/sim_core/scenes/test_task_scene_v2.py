@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 from sim_core.control import Control
+from sim_core.energies.hinge_bending.reference import dihedral_angle
 from sim_core.errors import ConfigError, MeshError
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.bending import dihedral_angle
 from sim_core.scenes import load_scene
 from sim_core.scenes.task_scene import build_task_scene
 from sim_core.simulation import Simulation

@@ -6,15 +6,15 @@ import copy
 
 import numpy as np
 
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
-from sim_core.potentials.bending import DiscreteShellBending
 from tests.sim_core.ti_kernels.conftest import assert_projection_active_and_psd, assert_same_potential
 
 D_PAPER = 2e-3  # N m
 
 
 def _pair(theta_bar=None):
-    from sim_core.ti_kernels.bending import TiDiscreteShellBending
+    from sim_core.energies.hinge_bending.kernel import TiDiscreteShellBending
 
     mesh = grid_sheet((0.04, 0.03), (5, 4), (0.0, 0.0, 0.0))
     hinges = sheet_topology(mesh.triangles).hinges

@@ -2,9 +2,9 @@
 
 :mod:`sim_core.ti_kernels.block_projection` (translation-free reduction by GEMMs, batched
 LAPACK eigen-decomposition, slot-map assembly), the per-triangle
-Kirchhoff blocks of :func:`sim_core.ti_kernels.fused_kirchhoff.kirchhoff_triangle_hessians`, and
+Kirchhoff blocks of :func:`sim_core.energies.kirchhoff_bending.fused_kernel.kirchhoff_triangle_hessians`, and
 :meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values` for every elastic term, against
-:func:`sim_core.potentials.base.project_psd`, the reference potentials and finite differences.
+:func:`sim_core.energies.base.project_psd`, the reference potentials and finite differences.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from sim_core.assembly import HessianAssembler
-from sim_core.potentials.base import project_psd
-from sim_core.potentials.membrane import project_psd_translation_free
+from sim_core.energies.base import project_psd
+from sim_core.energies.membrane.reference import project_psd_translation_free
 from tests.sim_core.ti_kernels.test_fused_elastic import KINDS, _fused, _potentials
 from tests.support.fd import fd_gradient, fd_hessian, relative_error
 
@@ -85,7 +85,7 @@ def test_projector_adds_the_reference_projection(ti_cpu, projection):
     values = np.zeros(pattern.keys.size)
     projector = TranslationFreeProjector(6)
     projector.add_projected(blocks, projection, pattern.slot_map(vertices), values)
-    from sim_core.potentials.base import HessianBlocks
+    from sim_core.energies.base import HessianBlocks
 
     diag = np.ones(3 * n_vertices)
     H = asm.assemble_upper_values(pattern, values, [], diag, free)
@@ -211,7 +211,7 @@ def test_spring_membrane_projected_blocks_equal_reference_block_by_block(ti_cpu,
     """Each projected edge block (closed form) and triangle block (reduced eigen-decomposition) of the
     fused spring membrane equals the reference's ``hessian(x, projection)`` block to 1e-12 relative,
     at configurations with stretched and compressed edges and with grown and shrunk triangles."""
-    from sim_core.potentials.membrane import SpringMembrane
+    from sim_core.energies.membrane.reference import SpringMembrane
     from tests.sim_core.ti_kernels.test_fused_elastic import _deformed_sheet, _sheet
 
     mesh, topo = _sheet(3, 2)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sim_core.workspace import workspace_of
+
 from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
 
 K = 1.0e4
@@ -13,8 +15,8 @@ K = 1.0e4
 
 def _potentials(count: int = 400, vt_rows: slice = slice(None), ee_rows: slice = slice(None)):
     """Twin potential pairs over random pairs (every region, every side): one pair linked, one not."""
-    from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
-    from sim_core.ti_kernels.contact_batch import PairBatch
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 
     rng = np.random.default_rng(20)
     z = np.concatenate([_random_pairs(rng, count), _near_parallel_edges(rng, count // 4)])
@@ -39,7 +41,7 @@ def _potentials(count: int = 400, vt_rows: slice = slice(None), ee_rows: slice =
 def _launches(monkeypatch) -> list:
     """Records ``(derivatives, pairs evaluated)`` of each batch kernel launch (and fails on any
     separate distance launch)."""
-    from sim_core.ti_kernels import contact_batch, contact_distance
+    from sim_core.energies.contact import batch_kernel as contact_batch, distance_kernel as contact_distance
 
     calls = []
     kernel = contact_batch._batch_kernel
@@ -71,7 +73,7 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
     active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
     assert 0 < active < total
     assert calls == [(False, total)]  # values of both kinds at x: one launch
-    from sim_core.ti_kernels import contact_batch
+    from sim_core.energies.contact import batch_kernel as contact_batch
 
     ruled_out = np.count_nonzero(contact_batch.work_arrays(total)[1][:total] == -1)  # by the kernel's distance bounds
     assert 0 < ruled_out < total - active
@@ -91,10 +93,10 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
 def test_a_kept_evaluation_is_not_replaced_by_a_less_complete_one(ti_cpu):
     x, (vt, ee), _ = _potentials(100)
     vt.gradient(x)  # both evaluated with derivatives at x
-    kept = vt._last
-    ee._last = None
+    kept = workspace_of(vt).get(vt, "evaluation")
+    workspace_of(ee).take(ee, "evaluation")
     ee.energy(x)  # a values-only launch for ee: vt keeps its derivatives
-    assert vt._last is kept and ee._last.order == 0
+    assert workspace_of(vt).get(vt, "evaluation") is kept and workspace_of(ee).get(ee, "evaluation").order == 0
     assert vt.kept_evaluation(x, 2) is not None and ee.kept_evaluation(x, 1) is None
     assert vt.kept_evaluation(x + 1e-9, 0) is None
 

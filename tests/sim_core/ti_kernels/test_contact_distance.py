@@ -8,15 +8,15 @@ import pytest
 
 from sim_core.collision import distances as reference
 from sim_core.collision.distances import EdgeEdgeRegion, PointTriangleRegion
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
-from tests.sim_core.potentials import test_contact as ref_tests
+from sim_core.energies.contact.reference import EdgeEdgeContact, VertexTriangleContact
+from tests.sim_core.energies import test_contact as ref_tests
 from tests.sim_core.ti_kernels.conftest import relative_error
 
 EPS = 4.0e-4
 
 
 def _kernels():
-    from sim_core.ti_kernels import contact_distance
+    from sim_core.energies.contact import distance_kernel as contact_distance
 
     return {
         "vt": (contact_distance.point_triangle_contact_distance, reference.point_triangle_contact_distance,
@@ -72,7 +72,7 @@ def test_empty_batch(ti_cpu, kind):
 
 @pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
 def test_taichi_vertex_triangle_contact_fd_and_reference(ti_cpu, side):
-    from sim_core.ti_kernels.contact import TiVertexTriangleContact
+    from sim_core.energies.contact.kernel import TiVertexTriangleContact
 
     rng = np.random.default_rng(10)
     x, tris, pairs = ref_tests._vt_scene(rng, list(PointTriangleRegion))
@@ -84,7 +84,7 @@ def test_taichi_vertex_triangle_contact_fd_and_reference(ti_cpu, side):
 
 @pytest.mark.parametrize("side", [1.0, -1.0, 0.0])
 def test_taichi_edge_edge_contact_fd_and_reference(ti_cpu, side):
-    from sim_core.ti_kernels.contact import TiEdgeEdgeContact
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact
 
     rng = np.random.default_rng(11)
     z = np.concatenate([_random_pairs(rng, 40), _near_parallel_edges(rng, 20)])
@@ -122,8 +122,8 @@ def _assert_same(pot, ref_pot, x):
 
 def test_contact_set_uses_the_kernels_on_the_taichi_backend(ti_cpu):
     from sim_core.contact_set import ContactSet
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
     from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-    from sim_core.ti_kernels.contact import TiEdgeEdgeContact, TiVertexTriangleContact
     from thinshell_ros.paths import bundled_scene
 
     model = load_task_scene(bundled_scene("forming"))

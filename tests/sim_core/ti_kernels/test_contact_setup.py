@@ -14,8 +14,8 @@ from sim_core.collision.distances import (
     point_triangle_closest_point,
 )
 from sim_core.collision.pair_geometry import pair_geometry
-from sim_core.potentials.contact import EdgeEdgeContact, VertexTriangleContact
-from sim_core.potentials.friction import tangent_basis
+from sim_core.energies.contact.reference import EdgeEdgeContact, VertexTriangleContact
+from sim_core.energies.friction.reference import tangent_basis
 from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
 
 
@@ -48,7 +48,7 @@ def test_reference_pair_geometry_of_known_configurations():
 
 
 def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
-    from sim_core.ti_kernels.contact_setup import pair_geometry as ti_pair_geometry
+    from sim_core.energies.contact.setup_kernel import pair_geometry as ti_pair_geometry
 
     x, vertices = _batch(3)
     ref, tik = pair_geometry(x, vertices, vertices), ti_pair_geometry(x, vertices, vertices)
@@ -69,7 +69,7 @@ def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
 
 @pytest.mark.parametrize("point_first", [True, False])
 def test_contact_frames_kernel_equals_the_reference(ti_cpu, point_first):
-    from sim_core.ti_kernels.contact_setup import contact_frames
+    from sim_core.energies.contact.setup_kernel import contact_frames
 
     x, vertices = _batch(4)
     rng = np.random.default_rng(5)
@@ -103,7 +103,7 @@ def test_contact_frames_kernel_equals_the_reference(ti_cpu, point_first):
 def test_kept_launch_arrays_give_each_call_its_own_results(ti_cpu):
     """The set-up functions copy into kept arrays (longer than a later call's pairs) and out of them:
     a shorter call after a longer one, and other positions, give what fresh arrays give."""
-    from sim_core.ti_kernels import contact_setup
+    from sim_core.energies.contact import setup_kernel as contact_setup
 
     x, vertices = _batch(4, 300)
     geometry = contact_setup.pair_geometry(x, vertices, vertices)
@@ -120,7 +120,7 @@ def test_kept_launch_arrays_give_each_call_its_own_results(ti_cpu):
 
 
 def test_tangent_basis_kernel_equals_the_reference_and_is_orthonormal(ti_cpu):
-    from sim_core.ti_kernels.contact_setup import tangent_basis as ti_tangent_basis
+    from sim_core.energies.contact.setup_kernel import tangent_basis as ti_tangent_basis
 
     rng = np.random.default_rng(6)
     normal = rng.normal(size=(500, 3))
@@ -146,7 +146,7 @@ def _forming_contact(backend: str):
 def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi_backend(ti_cpu):
     """A pressed Forming state: the Taichi set-up keeps the same pairs and step sides, friction rows
     (frames to round-off) and remembered sides as the NumPy reference."""
-    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from sim_core.energies.friction.kernel import TiLaggedFriction
 
     results = []
     for backend in ("numpy", "taichi-cpu"):
@@ -179,7 +179,7 @@ def test_contact_set_sides_friction_and_memory_equal_the_reference_on_the_taichi
 def test_friction_frames_equal_the_frames_of_each_kind_and_their_tangents_bit_for_bit(ti_cpu):
     """One launch over vertex-triangle rows then edge-edge rows gives what contact_frames of each kind
     and tangent_basis give, bit for bit (every split, the empty list too)."""
-    from sim_core.ti_kernels import contact_setup
+    from sim_core.energies.contact import setup_kernel as contact_setup
 
     x, vertices = _batch(8, 400)
     sides = np.random.default_rng(9).choice([-1.0, 0.0, 1.0], size=len(vertices))
@@ -198,8 +198,8 @@ def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potential
     """On the Taichi backend the contact set builds its friction from one set-up launch: the rows, row
     sources, normal forces, coefficients, frames and tangents of the pair potentials' contact_frames
     and the Taichi tangent bases, bit for bit."""
-    from sim_core.potentials.contact import concatenate_frames
-    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from sim_core.energies.contact.reference import concatenate_frames
+    from sim_core.energies.friction.kernel import TiLaggedFriction
 
     contact, x = _forming_contact("taichi-cpu")
     x_n = x + 0.4 * contact.eps * np.random.default_rng(7).normal(size=x.shape)

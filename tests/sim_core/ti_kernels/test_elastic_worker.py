@@ -70,9 +70,9 @@ def test_forming_with_the_worker_equals_one_process_bit_for_bit(worker):
 def _overlapping_terms():
     """A gel and a Maxwell branch on the same tets (parts sharing every vertex), a pattern and positions."""
     from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+    from sim_core.energies.neohookean.reference import StableNeoHookean
     from sim_core.fused_elastic import FusedElastic
     from sim_core.mesh.tet import tet_box
-    from sim_core.potentials.neohookean import StableNeoHookean
 
     mesh = tet_box((0.01, 0.01, 0.01), (3, 3, 3), (0.0, 0.0, 0.0))
     gel = StableNeoHookean(mesh.tets, mesh.x, 3e5, 0.45)
@@ -147,7 +147,7 @@ def test_a_dead_worker_is_given_up_and_the_run_goes_on(cpu_arch, caplog):
 def test_close_ends_the_process_and_leaves_no_file(cpu_arch):
     """close() stops the process; the shared region's file is gone once configured."""
     from sim_core.elastic_worker import ElasticWorker, Recipe
-    from sim_core.ti_kernels.fused_neohookean import remote_evaluate
+    from sim_core.energies.neohookean.fused_kernel import remote_evaluate
 
     w = ElasticWorker()
     assert w.wait_ready()
@@ -242,8 +242,8 @@ def test_start_evaluates_every_part_in_the_worker(worker, monkeypatch):
     the same positions runs no kernel here, and the sums are those of the split evaluation (the gel's
     part apart), bit for bit; at other positions the result is dropped."""
     import sim_core.fused_elastic as fe
+    from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean
     from sim_core.fused_elastic import FusedElastic
-    from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
 
     monkeypatch.setattr(fe, "OFFLOAD_MIN_ELEMENTS", 1)
     terms, pattern, x = _overlapping_terms()

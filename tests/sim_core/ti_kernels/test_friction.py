@@ -5,15 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim_core.potentials.friction import LaggedFriction
-from tests.sim_core.potentials import test_friction as ref_tests
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.workspace import workspace_of
+from tests.sim_core.energies import test_friction as ref_tests
 from tests.sim_core.ti_kernels.conftest import relative_error
 
 EPS_U = ref_tests.EPS_U
 
 
 def _twin(ref: LaggedFriction):
-    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from sim_core.energies.friction.kernel import TiLaggedFriction
 
     return TiLaggedFriction(ref.vertices, ref.weights, ref.tangent, ref.lam, ref.mu, ref.x_prev, ref.eps_v, ref.dt)
 
@@ -33,7 +34,7 @@ def test_energy_gradient_hessian_equal_the_reference(ti_cpu, scale):
 
 def test_one_vertex_pairs_and_no_pairs(ti_cpu):
     """Pairs against an obstacle (one block vertex, plane / sphere frames) and an empty set."""
-    from sim_core.ti_kernels.friction import TiLaggedFriction
+    from sim_core.energies.friction.kernel import TiLaggedFriction
 
     rng = np.random.default_rng(32)
     n = 6
@@ -61,9 +62,9 @@ def test_finite_differences_psd_and_mu(ti_cpu, scale, regime):
 
 def test_the_contact_set_builds_it_on_the_taichi_backend(ti_cpu):
     """Forming after a few steps of the benchmark trajectory: the same frozen pairs, the Taichi class."""
-    from sim_core.contact_set import ContactSet
-    from sim_core.ti_kernels.friction import TiLaggedFriction
     from sim_core.bench.forming import run_forming
+    from sim_core.contact_set import ContactSet
+    from sim_core.energies.friction.kernel import TiLaggedFriction
     from thinshell_ros.paths import bundled_scene
 
     states = []
@@ -96,7 +97,7 @@ def test_hessian_kept_from_the_gradient_launch_equals_the_hessian_kernel(ti_cpu,
     """The gradient's launch also computes the blocks; the next hessian at the same x and
     coefficients takes them (no launch), bit for bit a Hessian-only launch's; an edited mu, another x
     or a second call launch a Hessian-only request again."""
-    from sim_core.ti_kernels import friction as ti_friction
+    from sim_core.energies.friction import kernel as ti_friction
 
     rng = np.random.default_rng(33)
     ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
@@ -127,7 +128,7 @@ def test_keep_derivatives_keeps_the_values_of_the_separate_requests(ti_cpu, monk
     """``keep_derivatives(x)`` (one launch) keeps energy, gradient and blocks that equal the energy-only launch's
     and the gradient-Hessian launch's bit for bit; energy, gradient and the following hessian at an
     equal x read them (no other launch); an edited mu or another x launches the separate requests."""
-    from sim_core.ti_kernels import friction as ti_friction
+    from sim_core.energies.friction import kernel as ti_friction
 
     rng = np.random.default_rng(35)
     ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
@@ -143,7 +144,7 @@ def test_keep_derivatives_keeps_the_values_of_the_separate_requests(ti_cpu, monk
     np.testing.assert_array_equal(kept.gradient(x.copy()), grad)
     np.testing.assert_array_equal(kept.hessian(x.copy()).blocks, blocks)
     assert launches == []
-    assert getattr(kept, "_kept_all", None) is None  # dropped by the gradient call
+    assert workspace_of(kept).get(kept, "derivatives") is None  # dropped by the gradient call
     kept.keep_derivatives(x)
     y = x + 0.1 * EPS_U
     assert kept.energy(y) == fresh.energy(y)
@@ -161,7 +162,7 @@ def test_keep_derivatives_keeps_the_values_of_the_separate_requests(ti_cpu, monk
 def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti_cpu, monkeypatch):
     """A gradient request at the x (coefficients, eps_u) of the previous one returns that gradient
     without a launch and keeps nothing; another x, an edited mu or a third request launch again."""
-    from sim_core.ti_kernels import friction as ti_friction
+    from sim_core.energies.friction import kernel as ti_friction
 
     rng = np.random.default_rng(37)
     ref, x_prev = ref_tests._random_friction(rng, p=40, n=30)
@@ -178,7 +179,7 @@ def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti
         grad[0] = 1e9  # the caller's array: the kept one is another
         again = tik.gradient(x.copy())
         assert relative_error(again, ref.gradient(x)) < 1e-12 and len(launches) == 1
-        assert getattr(tik, "_kept_gradient", None) is None
+        assert workspace_of(tik).get(tik, "gradient") is None
         np.testing.assert_array_equal(tik.gradient(x), again)
         assert len(launches) == 2
     tik.mu = 2.0 * tik.mu

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from sim_core.assembly import HessianAssembler
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
+from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
+from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.bending import DiscreteShellBending
-from sim_core.potentials.kirchhoff_bending import KirchhoffBending
-from sim_core.potentials.membrane import SpringMembrane, StVKMembrane
-from sim_core.potentials.neohookean import StableNeoHookean
 from tests.support.fd import fd_gradient, fd_hessian, relative_error
 
 
@@ -178,8 +178,8 @@ def test_solver_steps_equal_reference_path(ti_cpu):
 
 
 def test_compile_kernels_runs_every_fused_kernel(ti_cpu):
+    from sim_core.energies.neohookean.kernel import TiStableNeoHookean
     from sim_core.fused_elastic import compile_kernels
-    from sim_core.ti_kernels.neohookean import TiStableNeoHookean
 
     mesh, topo = _sheet(3, 3)
     tet = np.array([[0.0, 0.0, -0.01], [0.01, 0.0, -0.01], [0.0, 0.01, -0.01], [0.0, 0.0, 0.0]])
@@ -226,9 +226,9 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.keep_derivatives``) equal
     those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
     energy-only kernels."""
+    from sim_core.energies.base import positions_key
+    from sim_core.energies.friction.kernel import TiLaggedFriction
     from sim_core.fused_elastic import FusedElastic
-    from sim_core.potentials.base import positions_key
-    from sim_core.ti_kernels.friction import TiLaggedFriction
 
     energy = FusedElastic.energy
     runs = []
@@ -369,7 +369,7 @@ def test_solver_fuses_the_maxwell_branch(ti_cpu, monkeypatch, route):
     dynamic Hessian term), whether set as model candidates (as the diagnosis replays do) or given as
     a hook, and the relaxation state follows."""
     import sim_core.fused_elastic as fused_elastic
-    from sim_core.ti_kernels.fused_neohookean import FusedStableNeoHookean
+    from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean
 
     params = {"gel_viscoelasticity": 1.5, "gel_viscoelasticity.tau": 0.03}
     fused, it_fused, parts_fused = _fused_candidate_press(params, route)
@@ -390,7 +390,7 @@ def test_solver_fuses_the_anisotropic_bending_candidate(ti_cpu, monkeypatch):
     """A press with the anisotropic bending candidate set as model candidates (the diagnosis replays'
     route): the fused hinge part equals the candidate's NumPy blocks merged as a dynamic term."""
     import sim_core.solver as solver_module
-    from sim_core.ti_kernels.fused_hinge import FusedAnisotropicBending
+    from sim_core.energies.hinge_bending.fused_kernel import FusedAnisotropicBending
 
     params = {"anisotropic_bending": -0.6}
     fused, it_fused, parts_fused = _fused_candidate_press(params, depth=0.0005)

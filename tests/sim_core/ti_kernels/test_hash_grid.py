@@ -103,9 +103,9 @@ def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_c
 
 def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
     """``fused_elastic.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
+    from sim_core.energies.membrane.reference import SpringMembrane
     from sim_core.fused_elastic import compile_kernels
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
-    from sim_core.potentials.membrane import SpringMembrane
     from sim_core.ti_kernels import hash_candidates, hash_grid
 
     hash_candidates.compile_kernels()
@@ -121,8 +121,8 @@ def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
 def test_every_broad_phase_gives_the_same_contact_lists_on_the_taichi_path(ti_cpu, seed):
     """Forming's sheet + gel + table model, deformed, on the Taichi backend: the hash kernel (the
     default), the sweep and the k-d trees give the same sorted lists over successive searches."""
-    from tests.sim_core.test_contact_set import _forming_model_deformed
     from sim_core.contact_set import ContactSet
+    from tests.sim_core.test_contact_set import _forming_model_deformed
 
     model, x = _forming_model_deformed(seed)
     sets = {name: ContactSet(model, broad_phase=name, backend="taichi-cpu") for name in ("spatial_hash", "sweep", "kdtree")}

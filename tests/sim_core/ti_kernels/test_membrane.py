@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.membrane.reference import StVKMembrane
 from sim_core.mesh.sheet import grid_sheet
-from sim_core.potentials.membrane import StVKMembrane
 from tests.sim_core.ti_kernels.conftest import assert_projection_active_and_psd, assert_same_potential
 
 
 def _pair():
-    from sim_core.ti_kernels.membrane import TiStVKMembrane
+    from sim_core.energies.membrane.kernel import TiStVKMembrane
 
     mesh = grid_sheet((0.04, 0.03), (5, 4), (0.0, 0.0, 0.0))  # 24 triangles
     args = (mesh.triangles, mesh.x, 3e9, 0.3, 3e-4)

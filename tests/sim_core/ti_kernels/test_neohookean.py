@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.neohookean import StableNeoHookean
 from tests.sim_core.ti_kernels.conftest import assert_projection_active_and_psd, assert_same_potential
 
 E_GEL, NU_GEL = 3e5, 0.2
 
 
 def _pair(nu: float = NU_GEL):
-    from sim_core.ti_kernels.neohookean import TiStableNeoHookean
+    from sim_core.energies.neohookean.kernel import TiStableNeoHookean
 
     mesh = tet_box((0.01, 0.01, 0.01), (3, 3, 3), (0.0, 0.0, 0.0))  # 48 tets
     return mesh, StableNeoHookean(mesh.tets, mesh.x, E_GEL, nu), TiStableNeoHookean(mesh.tets, mesh.x, E_GEL, nu)

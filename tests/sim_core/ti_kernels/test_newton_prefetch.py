@@ -10,8 +10,8 @@ import numpy as np
 def _forming(steps: int, monkeypatch, prefetch: bool) -> tuple[np.ndarray, list[int], list[tuple]]:
     """Final positions (m), Newton iterations per step and the batch kernel's launches
     ``(derivatives, pairs)`` of ``steps`` Forming benchmark steps on the Taichi path."""
-    from sim_core.potentials.contact import _PairPenalty
-    from sim_core.ti_kernels import contact_batch
+    from sim_core.energies.contact import batch_kernel as contact_batch
+    from sim_core.energies.contact.reference import _PairPenalty
     from tests.support.forming import forming_simulation, step_benchmark_trajectory
 
     with monkeypatch.context() as patch:

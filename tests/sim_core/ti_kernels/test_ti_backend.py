@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.errors import ConfigError
 from sim_core.mesh.tet import tet_box
-from sim_core.potentials.neohookean import StableNeoHookean
 
 
 def test_init_is_idempotent_and_reports_the_arch(ti_cpu):
@@ -28,8 +28,8 @@ def test_unknown_arch_and_arch_switch_raise(ti_cpu):
 
 
 def test_make_elastic_potential_selects_the_backend(ti_cpu):
-    from sim_core.ti_kernels import make_elastic_potential
-    from sim_core.ti_kernels.neohookean import TiStableNeoHookean
+    from sim_core.energies.neohookean.kernel import TiStableNeoHookean
+    from sim_core.energies.registry import make_elastic_potential
 
     mesh = tet_box((0.01, 0.01, 0.01), (2, 2, 2), (0.0, 0.0, 0.0))
     ref = make_elastic_potential("stable_neohookean", mesh.tets, mesh.x, 3e5, 0.2)
@@ -46,7 +46,7 @@ def test_make_elastic_potential_selects_the_backend(ti_cpu):
 
 
 def test_unknown_projection_raises(ti_cpu):
-    from sim_core.ti_kernels.neohookean import TiStableNeoHookean
+    from sim_core.energies.neohookean.kernel import TiStableNeoHookean
 
     mesh = tet_box((0.01, 0.01, 0.01), (2, 2, 2), (0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="unknown PSD projection 'flip'"):

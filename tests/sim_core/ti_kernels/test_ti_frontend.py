@@ -81,8 +81,8 @@ def test_compile_error_still_names_file_line_and_source(ti_cpu):
 def test_memoized_function_sources_equal_inspects(ti_cpu):
     from taichi.lang import kernel_impl
 
+    from sim_core.energies.hinge_bending import kernel as bending
     from sim_core.ti_frontend import memoize_function_sources
-    from sim_core.ti_kernels import bending
 
     assert memoize_function_sources() is True  # installed by init_backend; idempotent
     lines_of, file_of = kernel_impl.getsourcelines, kernel_impl.getsourcefile

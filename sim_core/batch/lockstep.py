@@ -1,0 +1,597 @@
+"""Lockstep Newton: one Newton iteration for all ``B`` copies of a stacked scene together.
+
+:class:`LockstepSolver` is a :class:`~sim_core.solver.NewtonSolver` on the stacked model of
+:mod:`sim_core.batch.stacked`: each iteration evaluates every energy term of every copy in one call
+per term (one kernel launch per fused energy on a Taichi backend), assembles one sparse Newton matrix
+(block diagonal by copy) and solves it once (one PARDISO factorisation, or SciPy's, per
+``SolverConfig.linear_solver``). What is per copy:
+
+* convergence: copy ``i``'s scaled Newton update ``max_v |d_iv| / dt`` and gradient are tested by
+  the solver's stopping tests (:meth:`NewtonSolver._stop_reason`: velocity, force, stalled); a copy
+  that has converged takes no further update (its right-hand side is zeroed, so its block of the
+  solution is zero) while the others iterate;
+* step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
+  a copy keeps a step once it passes, the others halve theirs. The per-copy gradient is a slice of the
+  stacked gradient, but the energy is one sum over all copies, so each trial step is tested twice:
+  first the Armijo condition with the energy change estimated by the trapezoidal rule of the
+  directional derivatives, ``E_i(x + a d) - E_i(x) ~ a (g_i(x).d_i + g_i(x + a d).d_i) / 2`` (exact
+  for a quadratic; Nocedal & Wright, Numerical Optimization, 2nd ed., Sec. 3.5), then, for the copies
+  that pass, the Armijo condition on the measured energy change of the group, split in halves
+  (one energy evaluation a split; the energy being a sum over copies, the other half's change is the
+  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`).
+  With one copy this is the separate run's line search; with several, a copy whose own energy test
+  fails while its group's holds (another copy's decrease covering it) is accepted: rare, since it must
+  pass the slope test too, but a difference from its separate run;
+* Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
+  is not positive definite is factorised again block by block, each copy taking the exact or the
+  projected block its own run would take);
+* failure: a copy whose gradient or update is not finite, whose line search fails with no relaxed
+  acceptance and no stale contact side to release, or that has not converged in ``max_iterations``
+  is reported with the reason, and the step is taken again from its start with that copy held fixed
+  (Dirichlet at its positions), so that the others finish as they would without it.
+
+Each copy's :class:`~sim_core.step_info.StepInfo` has its own iterations, residual, stop reason,
+backtracks and line-search failures; its factorisations, projected iterations and assembly and
+solve times are the stacked step's, ``time_total`` is the step's wall time divided among the stepped
+copies, and ``energy`` is NaN (the incremental potential is one sum over all copies:
+:attr:`LockstepSolver.last_stacked_info`).
+
+The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
+translated apart, :mod:`sim_core.batch.stacked`). Not done: the simplified Newton and rate stopping
+tests (a copy stops on the velocity, force or stalled test), substep retries
+(``dt_halvings_on_failure``) and position guesses. Each copy's result is its separate run's to the
+Newton tolerance, not bit for bit (on a scene with several equilibria within reach, a copy whose path
+differs, e.g. by one more iteration, may settle in another one).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sim_core.batch.stacked import StackedScene
+from sim_core.backend import uses_taichi
+from sim_core.control import Control
+from sim_core.errors import ConfigError
+from sim_core.solver import NewtonSolver
+from sim_core.solver_config import SolverConfig
+from sim_core.state import State
+from sim_core.step_info import StepInfo
+
+
+class _CopiesFailed(Exception):
+    """Copies that failed in a lockstep attempt: ``failures`` maps copy -> reason."""
+
+    def __init__(self, failures: dict[int, str]) -> None:
+        super().__init__(", ".join(f"copy {i}: {why}" for i, why in failures.items()))
+        self.failures = failures
+
+
+@dataclass
+class LockstepResult:
+    """What one :meth:`LockstepSolver.step_copies` did.
+
+    Attributes:
+        infos: per copy, its :class:`StepInfo` (None for a copy that was held or failed).
+        failures: copy -> reason, for the copies that failed in this step (their positions held).
+        attempts: how many times the step was taken (1 + the attempts ended by failing copies).
+    """
+
+    infos: list[StepInfo | None]
+    failures: dict[int, str] = field(default_factory=dict)
+    attempts: int = 1
+
+
+class LockstepSolver(NewtonSolver):
+    """Newton's method on all copies of a :class:`StackedScene` at once (module docstring).
+
+    Args:
+        scene: the stacked scene.
+        config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
+            ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
+            (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix); else the
+            named direct solver on the stacked matrix.
+
+    Raises:
+        ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
+
+    Attributes:
+        scene: the stacked scene.
+        held: copies held fixed in the current attempt, shape ``(B,)`` bool.
+        last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
+            copy, factorisations, times), or None.
+    """
+
+    def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
+        config = config or SolverConfig()
+        super().__init__(scene.model, config)
+        self.pcg = None
+        if config.linear_solver == "pcg" or (self.backend == "taichi-cuda" and config.linear_solver == "pardiso"):
+            if not uses_taichi(self.backend):
+                raise ConfigError(f"linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {self.backend!r}")
+            from sim_core.ti_kernels.pcg import BatchedPCG  # Taichi kernels: loaded on a Taichi backend only
+
+            segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+            segments[scene.index] = np.arange(scene.copies)[:, None]
+            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3))
+        self.scene = scene
+        self.held = np.zeros(scene.copies, dtype=bool)
+        self._dofs = scene.dof_index  # (B, 3n)
+        self.last_stacked_info: StepInfo | None = None
+
+    def _projections(self) -> tuple[str, ...]:
+        """:meth:`NewtonSolver._projections`; with the batched CG, which tells indefinite copies apart
+        (:meth:`_direction_pcg`), the exact Hessian first too (and the fused elastic kernels with it)."""
+        cfg = self.config
+        if self.pcg is not None and cfg.exact_hessian_first and cfg.projection != "none":
+            return ("none", cfg.projection)
+        return super()._projections()
+
+    def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
+        """:meth:`NewtonSolver.boundary`, with the vertices of the :attr:`held` copies fixed at their
+        positions in ``state``."""
+        fixed, x_target, poses, openings, limited = super().boundary(state, control)
+        if self.held.any():
+            v = self.scene.index[self.held].ravel()
+            fixed[v] = True
+            x_target[v] = state.x[v]
+        return fixed, x_target, poses, openings, limited
+
+    def step_copies(self, state_in: State, state_out: State, control: Control, dt: float, stepped: np.ndarray,
+                    step_index: np.ndarray) -> LockstepResult:
+        """One step of ``dt`` (s) of the copies in ``stepped`` (shape ``(B,)`` bool) from the stacked
+        ``state_in`` into ``state_out``; the other copies are held at their positions.
+
+        Args:
+            state_in, state_out: stacked states (only ``state_out`` is written).
+            control: the stacked control (:meth:`StackedScene.stack_controls`).
+            dt: step size, s.
+            stepped: copies to step.
+            step_index: each copy's own step index, shape ``(B,)`` (named by failure reasons).
+
+        Returns:
+            the :class:`LockstepResult`; a failed copy's positions in ``state_out`` are those of
+            ``state_in``.
+        """
+        t0 = time.perf_counter()
+        failures: dict[int, str] = {}
+        attempts = 0
+        while True:
+            attempts += 1
+            self.held = ~np.asarray(stepped, dtype=bool).copy()
+            for i in failures:
+                self.held[i] = True
+            if self.held.all():
+                _copy_state(state_in, state_out, dt)
+                return LockstepResult([None] * self.scene.copies, failures, attempts)
+            attempt_in = state_in
+            if self.held.any():  # held copies stand still: their velocities (maybe a failed copy's NaN) play no part
+                attempt_in = state_in.copy()
+                attempt_in.v[self.scene.index[self.held].ravel()] = 0.0
+            try:
+                infos = self._lockstep_step(attempt_in, state_out, control, dt, step_index)
+            except _CopiesFailed as err:
+                failures.update(err.failures)
+                continue
+            wall = time.perf_counter() - t0
+            share = wall / max(1, int((~self.held).sum()))
+            for info in infos:
+                if info is not None:
+                    info.time_total = share
+            return LockstepResult(infos, failures, attempts)
+
+    # ---------------------------------------------------------------------- the lockstep step
+    def _lockstep_step(self, state_in: State, state_out: State, control: Control, dt: float,
+                       step_index: np.ndarray) -> list[StepInfo | None]:
+        """One attempt: Newton iterations of every copy not :attr:`held` until each has converged.
+
+        Raises:
+            _CopiesFailed: the copies that failed (a step without them is the next attempt).
+        """
+        cfg = self.config
+        B, n = self.scene.copies, self.scene.vertex_count
+        dofs = self._dofs
+        info = StepInfo()
+        step, x = self._set_up_step(state_in, control, dt, None, info)
+        running = ~self.held
+        infos = [StepInfo() if running[i] else None for i in range(B)]
+        limited = [self.scene.copy_of_effector(name) for name in info.limited_effectors]
+        for i, name in limited:
+            if infos[i] is not None:
+                infos[i].limited_effectors.append(name)
+        done = np.zeros(B, dtype=bool)
+        history: list[list[float]] = [[] for _ in range(B)]
+        residual = np.full(B, np.inf)
+
+        def fail(mask: np.ndarray, what: str) -> _CopiesFailed:
+            return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
+                                  for i in np.flatnonzero(mask)})
+
+        contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+        H = projection = factorization = None
+        for it in range(1, cfg.max_iterations + 1):
+            gB = g[dofs]  # (B, 3n)
+            bad = running & ~done & ~np.all(np.isfinite(gB), axis=1)
+            if bad.any():
+                raise fail(bad, f"non-finite gradient at Newton iteration {it}")
+            open_ = running & ~done
+            rhs = g.copy()
+            rhs[dofs[~open_]] = 0.0  # closed copies take no update: their block of the solution is zero
+            d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
+            dB = d[dofs].reshape(B, n, 3)
+            bad = open_ & ~np.all(np.isfinite(dB), axis=(1, 2))
+            if bad.any():
+                raise fail(bad, f"linear solve produced NaN at iteration {it}")
+            if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
+                raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
+                           f"conjugate gradient did not converge at Newton iteration {it} "
+                           f"({self.pcg.max_iterations} iterations)")
+            dB[~open_] = 0.0
+            step_max = np.linalg.norm(dB, axis=2).max(axis=1) if n else np.zeros(B)
+            for i in np.flatnonzero(open_):
+                residual[i] = step_max[i] / dt
+                history[i].append(residual[i])
+                reason = self._stop_reason(residual[i], gB[i], history[i])
+                if reason is not None:
+                    self._accept(infos[i], it, residual[i], reason)
+                    done[i] = True
+            open_ = running & ~done
+            if not open_.any():
+                break
+            alpha = np.where(open_ & (step_max > 0), np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
+            slope = np.einsum("ij,ij->i", gB, dB.reshape(B, -1))
+            uphill = open_ & (slope >= 0)
+            if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
+                dB[uphill] = -gB[uphill].reshape(-1, n, 3)
+                slope[uphill] = -np.einsum("ij,ij->i", gB[uphill], gB[uphill])
+            x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
+                step, x, dB, alpha, slope, open_, contact_terms, x_search, info)
+            for i in np.flatnonzero(open_):
+                infos[i].backtracks += int(backtracks[i])
+            failed_ls = open_ & ~accepted
+            if failed_ls.any():
+                for i in np.flatnonzero(failed_ls):
+                    infos[i].line_search_failures += 1
+                relaxed = failed_ls & (residual < cfg.line_search_tolerance_factor * cfg.tol_velocity)
+                for i in np.flatnonzero(relaxed):
+                    self._accept(infos[i], it, residual[i], "line_search_relaxed")
+                    done[i] = True
+                stuck = failed_ls & ~relaxed
+                if stuck.any():
+                    released = self.contact.release_stale_sides(x_new, step.memory)
+                    info.released_sides += released
+                    if not released:
+                        raise fail(stuck, f"line search failed at Newton iteration {it} (no decrease along the "
+                                          f"Newton direction; residual {', '.join(f'{residual[i]:.3g}' for i in np.flatnonzero(stuck))} m/s)")
+                    for i in np.flatnonzero(stuck):
+                        infos[i].released_sides += released
+                    # the stacked energy changed where the stuck copies stand: their gradient again
+                    x_new = x_new.copy()
+            if np.any(open_ & (backtracks >= cfg.stale_side_backtracks)):
+                info.released_sides += self.contact.release_stale_sides(x_new, step.memory)
+            x = x_new
+            if g_new[1] is None or x is not g_new[0]:
+                contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+            else:
+                contact_terms, x_search, g = contact_new, x_search_new, g_new[1]
+        else:
+            raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
+        self._finish_step(step, x, H, projection, factorization, state_out, info)
+        for i in np.flatnonzero(running):
+            st = infos[i]
+            st.energy = float("nan")  # one incremental potential of all copies: StepInfo.energy of the stack
+            st.factorizations = info.factorizations
+            st.projected_iterations = info.projected_iterations
+            st.time_assembly = info.time_assembly
+            st.time_linear_solve = info.time_linear_solve
+        info.iterations = max((st.iterations for st in infos if st is not None), default=0)
+        self.last_stacked_info = info
+        return infos
+
+    def _stacked_gradient(self, step, x: np.ndarray, info: StepInfo) -> tuple[list, np.ndarray | None, np.ndarray]:
+        """The contact potentials at ``x``, their search position and the free-DoF gradient of the stacked
+        incremental potential (J/m, shape ``(3 N,)``), non-finite entries kept (a copy's own failure)."""
+        ta = time.perf_counter()
+        contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        x_search = self.contact.search_position
+        g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
+        g[~step.free] = 0.0
+        info.time_assembly += time.perf_counter() - ta
+        return contact_terms, x_search, g
+
+    def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
+        """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
+        entries kept (a copy's NaN fails that copy alone). With a direct solver: one factorisation of the
+        stacked matrix (the exact Hessian first, :meth:`NewtonSolver._projections`) when it is positive
+        definite, else each copy's block on its own (:meth:`_direction_per_copy`), so that every copy
+        takes the matrix its separate run takes. With the batched CG (:attr:`pcg`) the choice is per copy: the exact Hessian's solution for every
+        copy whose CG met no negative curvature and whose update descends, the projected Hessian's for
+        the others (the blocks are independent, so each copy's update is the one its own solve gives)."""
+        if self.pcg is not None:
+            return self._direction_pcg(step, x, g, contact_terms, info)
+        dynamic_terms = contact_terms + step.dynamic_terms
+        projections = self._projections()
+        ta = time.perf_counter()
+        H = self._assemble_hessian(step, x, projections[0], dynamic_terms)
+        tl = time.perf_counter()
+        info.time_assembly += tl - ta
+        info.factorizations += 1
+        ok = self.linear_solver.factorize(H)
+        d = -self.linear_solver.solve(g) if ok else None
+        info.time_linear_solve += time.perf_counter() - tl
+        if d is not None:
+            info.projected_iterations += projections[0] != "none"
+            d[~step.free] = 0.0
+            return d, H, projections[0], self.linear_solver
+        return self._direction_per_copy(step, x, g, H, projections, dynamic_terms, info)
+
+    def _direction_per_copy(self, step, x: np.ndarray, g: np.ndarray, H_first, projections: tuple[str, ...],
+                            dynamic_terms: list, info: StepInfo):
+        """The update when the stacked matrix of ``projections[0]`` is not positive definite: each copy's
+        block factorised on its own, in the order of ``projections`` (the exact Hessian, then the projected
+        one, then the general LU for ``projection="none"``), so that each copy takes the matrix its
+        separate run takes. A copy's DoFs are increasing in the stacked order, so its block of the upper
+        triangle is the upper triangle of its block."""
+        from sim_core.linsolve import make_symmetric_solver
+
+        dofs = self._dofs
+        d = np.zeros_like(g)
+        todo = np.any(g[dofs] != 0.0, axis=1)
+        matrices = {projections[0]: H_first}
+        projection = projections[0]
+        for projection in projections:
+            if not todo.any():
+                break
+            if projection not in matrices:
+                ta = time.perf_counter()
+                matrices[projection] = self._assemble_hessian(step, x, projection, dynamic_terms)
+                info.time_assembly += time.perf_counter() - ta
+            H = matrices[projection].tocsr()
+            tl = time.perf_counter()
+            for i in np.flatnonzero(todo):
+                block = H[dofs[i]][:, dofs[i]].tocsr()
+                block.sort_indices()
+                solver = make_symmetric_solver(self.config.linear_solver)
+                info.factorizations += 1
+                if solver.factorize(block):
+                    d[dofs[i]] = -solver.solve(g[dofs[i]])
+                    todo[i] = False
+                    info.projected_iterations += projection != "none"
+            info.time_linear_solve += time.perf_counter() - tl
+        if todo.any():  # projection="none" and not positive definite: the general LU of each such block
+            H = matrices[projections[-1]]
+            full = self._full_from_upper(H)
+            for i in np.flatnonzero(todo):
+                lu = self.general_solver()
+                info.factorizations += 1
+                lu.factorize(full[dofs[i]][:, dofs[i]].tocsr())
+                d[dofs[i]] = -lu.solve(g[dofs[i]])
+        d[~step.free] = 0.0
+        return d, matrices[projection], projection, self.linear_solver
+
+    def _direction_pcg(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
+        """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
+        cfg = self.config
+        dynamic_terms = contact_terms + step.dynamic_terms
+        dofs = self._dofs
+        pcg = self.pcg
+        projections = self._projections()
+        rhs = g
+        d = np.zeros_like(g)
+        todo = np.any(g[dofs] != 0.0, axis=1)  # copies with an update to find
+        H, projection = None, cfg.projection
+        for k, projection in enumerate(projections):
+            ta = time.perf_counter()
+            H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            tl = time.perf_counter()
+            info.time_assembly += tl - ta
+            info.factorizations += 1
+            pcg.factorize(H)
+            dk = -pcg.solve(rhs)
+            info.time_linear_solve += time.perf_counter() - tl
+            dk[~step.free] = 0.0
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.all(np.isfinite(dk[dofs]), axis=1)
+            if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
+                ok &= np.einsum("ij,ij->i", g[dofs], dk[dofs]) < 0.0
+            d[dofs[ok]] = dk[dofs[ok]]
+            info.projected_iterations += projection != "none" and bool(ok.any())
+            todo &= ~ok
+            if not todo.any() or k + 1 == len(projections):
+                if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
+                    d[dofs[todo]] = dk[dofs[todo]]
+                break
+            rhs = g.copy()
+            rhs[dofs[~todo]] = 0.0
+        return d, H, projection, pcg
+
+    def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
+                            open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
+        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along ``dB`` ``(B, n, 3)``: accepted copies
+        keep their step while the others halve theirs (module docstring: the slope test, then the energy
+        test of the copies that passed it, :meth:`_armijo_groups`).
+
+        Returns:
+            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the positions
+            ``(N, 3)`` with every accepted copy moved and the others where they were, the gradient at
+            ``x_new``, its contact terms and search position, accepted copies ``(B,)`` bool and halvings
+            per copy ``(B,)``.
+        """
+        cfg = self.config
+        B = self.scene.copies
+        dofs = self._dofs
+        e0 = self._energy(step, x, contact_terms, x_search)
+        pending = open_ & (alpha > 0)
+        accepted = open_ & (alpha == 0)
+        a = np.where(pending, alpha, 0.0)
+        taken = np.zeros(B)  # the accepted copies' step sizes
+        backtracks = np.zeros(B, dtype=np.int64)
+        bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
+        last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
+        for _ in range(cfg.max_backtracks):
+            if not pending.any():
+                break
+            trial = np.where(pending, a, 0.0) + taken
+            x_try = self._moved(x, dB, trial)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info)
+            last = (trial, x_try, (terms, xs, g_try))
+            s_try = np.einsum("ij,ij->i", g_try[dofs], dB.reshape(B, -1))
+            cand = pending & np.isfinite(s_try) & (s_try <= bound)
+            if cand.any():
+                e_base = e0 if not np.any(taken) else self._energy_with(step, x, dB, taken)
+                if np.array_equal(cand, pending):
+                    delta = self._energy(step, x_try, terms, xs) - e_base
+                else:
+                    delta = self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0)) - e_base
+                ok = self._armijo_groups(step, x, dB, taken, e_base, cand, delta, a, slope, e0)
+                accepted |= ok
+                taken[ok] = a[ok]
+                pending &= ~ok
+            backtracks[pending] += 1
+            info.backtracks += int(pending.sum())
+            a[pending] *= 0.5
+        if last is not None and np.array_equal(last[0], taken):
+            x_new, (terms, xs, g_new) = last[1], last[2]
+        else:
+            x_new = self._moved(x, dB, taken)
+            terms, xs, g_new = self._stacked_gradient(step, x_new, info)
+        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+
+    def _moved(self, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> np.ndarray:
+        """``x`` with copy ``i`` moved by ``alphas[i] * dB[i]`` (m, shape ``(N, 3)``)."""
+        disp = np.zeros_like(x)
+        disp[self.scene.index] = alphas[:, None, None] * dB
+        return x + disp
+
+    def _energy_with(self, step, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> float:
+        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i] * dB[i]``."""
+        xm = self._moved(x, dB, alphas) if np.any(alphas) else x
+        terms = self.contact.potentials(xm, step.x_n, step.memory)
+        return self._energy(step, xm, terms, self.contact.search_position)
+
+    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, e_base: float,
+                       group: np.ndarray, delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
+        """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
+        ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
+        by ``base`` (energy ``e_base``, J); the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off of the
+        stacked sum, ``1e-14 |E|``), else it is split in halves (one more evaluation: the other half's
+        change is the difference, the energy being a sum over copies) down to single copies, each then
+        tested alone. A single copy is thus held to its own Armijo condition whenever its group's is not
+        met."""
+        c = self.config.armijo_c
+        if delta <= c * float(np.sum(a[group] * slope[group])) + 1e-14 * abs(e0):
+            return group
+        members = np.flatnonzero(group)
+        if len(members) == 1:
+            return np.zeros_like(group)
+        half = np.zeros_like(group)
+        half[members[: len(members) // 2]] = True
+        rest = group & ~half
+        d_half = self._energy_with(step, x, dB, base + np.where(half, a, 0.0)) - e_base
+        return (self._armijo_groups(step, x, dB, base, e_base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, dB, base, e_base, rest, delta - d_half, a, slope, e0))
+
+
+def _copy_state(state_in: State, state_out: State, dt: float) -> None:
+    """``state_out`` = ``state_in`` a step later with nothing moved (every copy held)."""
+    for k, v in vars(state_in.copy()).items():
+        setattr(state_out, k, v)
+    state_out.v = np.zeros_like(state_in.v)
+    state_out.t = state_in.t + dt
+    state_out.step_index = state_in.step_index + 1
+
+
+class LockstepEngine:
+    """The lockstep stepping of a :class:`~sim_core.batch.BatchedSimulation`: its copies' models stacked
+    (:func:`~sim_core.batch.stacked.stack_models`), one :class:`LockstepSolver`, and the stacked state,
+    which it writes back into each copy's ``Simulation.state`` after every step.
+
+    The stacked scene is built again when a copy's model changes (``Model.revision``), and the stacked
+    state when a copy's state object was replaced from outside (a reset, a caller's initial state;
+    the contact side memories then start afresh).
+
+    Args:
+        sims: the batch's copies (:class:`~sim_core.simulation.Simulation` objects).
+
+    Raises:
+        ConfigError: copies with different ``dt`` or solver settings, or what :func:`stack_models` refuses.
+    """
+
+    def __init__(self, sims) -> None:
+        from sim_core.batch.stacked import stack_models
+
+        ref = sims[0]
+        for i, sim in enumerate(sims):
+            if sim.dt != ref.dt:
+                raise ConfigError(f"batch copy {i}: dt {sim.dt:g} s differs from copy 0's {ref.dt:g} s; a lockstep "
+                                  f"batch steps every copy by one dt")
+            if sim.solver.config != ref.solver.config:
+                raise ConfigError(f"batch copy {i}: solver settings differ from copy 0's; a lockstep batch has one "
+                                  f"solver")
+        self.sims = sims
+        self.scene = stack_models([s.model for s in sims])
+        self.solver = LockstepSolver(self.scene, ref.solver.config)
+        self._revisions = [s.model.revision for s in sims]
+        self.state: State | None = None
+        self._written: list = [None] * len(sims)
+
+    def _sync(self) -> None:
+        """Rebuild the stacked scene (changed model) and the stacked state (replaced copy state)."""
+        from sim_core.batch.stacked import stack_models
+
+        revisions = [s.model.revision for s in self.sims]
+        if revisions != self._revisions:
+            self.scene = stack_models([s.model for s in self.sims])
+            self.solver = LockstepSolver(self.scene, self.sims[0].solver.config)
+            self._revisions = revisions
+            self.state = None
+        if self.state is None or any(s.state is not w for s, w in zip(self.sims, self._written)):
+            self.state = self.scene.stack_states([s.state for s in self.sims])
+            self._written = [s.state for s in self.sims]
+            self.solver.reset_caches()
+
+    def warm_up(self) -> None:
+        """:meth:`NewtonSolver.warm_up` of the stacked solver at the stacked state."""
+        self._sync()
+        self.solver.warm_up(self.state)
+
+    def reset(self) -> None:
+        """Forget the stacked state (the copies' reset states are stacked at the next step)."""
+        self.state = None
+
+    def step(self, controls: list, run: np.ndarray) -> tuple[list[StepInfo | None], dict[int, str]]:
+        """Step the copies in ``run`` (shape ``(B,)`` bool) with their ``controls`` (None entries: none).
+
+        Returns:
+            ``(infos, failures)``: per copy its :class:`StepInfo` (None: not stepped or failed) and
+            copy -> reason for the copies that failed (their states are kept).
+        """
+        self._sync()
+        sims, scene = self.sims, self.scene
+        state_in = self.state
+        control = scene.stack_controls([c if run[i] else None for i, c in enumerate(controls)])
+        out = state_in.copy()
+        step_index = np.array([s.state.step_index for s in sims])
+        res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
+        advanced = np.array([info is not None for info in res.infos])
+        for i in np.flatnonzero(~advanced):  # held and failed copies: as they were
+            idx = scene.index[i]
+            out.x[idx] = state_in.x[idx]
+            out.v[idx] = state_in.v[idx]
+            out.contact_force[idx] = state_in.contact_force[idx]
+            g, k = int(scene.group_of_copy[i]), int(scene.slot_in_group[i])
+            for sheet, h in scene.hinge_counts.items():
+                name = scene.group_names[g][sheet]
+                out.hinge_theta_bar[name][k * h:(k + 1) * h] = state_in.hinge_theta_bar[name][k * h:(k + 1) * h]
+            for e in scene.effector_names:
+                out.effector_pose[f"{e}#{i}"] = np.array(state_in.effector_pose[f"{e}#{i}"])
+        self.state = out
+        for i in np.flatnonzero(advanced):
+            sim = sims[i]
+            before = sim.state
+            sim.state = scene.copy_state(out, int(i), before.t + sim.dt, before.step_index + 1)
+            sim.step_totals.add(res.infos[i], before.step_index)
+            sim.last_info = res.infos[i]
+            self._written[i] = sim.state
+        return res.infos, res.failures

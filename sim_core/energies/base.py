@@ -1,0 +1,266 @@
+"""The potential contract shared by every energy term, and sparse assembly of its Hessian.
+
+Every energy in the incremental potential (inertia, gravity, membrane, bending, Stable Neo-Hookean,
+contact, friction, ...) is a class in ``sim_core/energies/<energy>/reference.py`` that follows
+:class:`Potential`: parameters fixed at construction, positions passed at call time (IPC Toolkit's
+convention). Positions are always the *global* vertex array of the model, ``x`` of shape
+``(vertex_count, 3)`` in metres; the potential holds global vertex indices of its elements. The
+global degree of freedom of vertex ``i``, axis ``d`` is ``3 * i + d``.
+
+Hessians are returned as per-element dense blocks (:class:`HessianBlocks`) which the solver
+projects and assembles into one sparse matrix; nothing n x n is ever dense.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+import scipy.sparse as sp
+
+Projection = Literal["none", "clamp", "abs"]
+"""PSD projection of element Hessians: keep as is, clamp negative eigenvalues to 0, or flip them."""
+
+
+class HessianBlocks(NamedTuple):
+    """Dense per-element Hessian blocks of one potential.
+
+    Attributes:
+        vertices: global vertex indices of each element, shape ``(element_count, m)``, int64.
+        blocks: second derivatives, shape ``(element_count, 3 m, 3 m)``, float64, local DoF order
+            vertex-major (local DoF ``3 a + d`` is axis ``d`` of ``vertices[:, a]``). Units:
+            J/m^2 (= N/m).
+    """
+
+    vertices: np.ndarray
+    blocks: np.ndarray
+
+    @staticmethod
+    def empty(m: int) -> "HessianBlocks":
+        """An element-free block set with ``m`` vertices per element."""
+        return HessianBlocks(np.zeros((0, m), dtype=np.int64), np.zeros((0, 3 * m, 3 * m)))
+
+
+@runtime_checkable
+class Potential(Protocol):
+    """What every energy term provides.
+
+    ``parameter_names`` lists the scalar parameters ``p`` for which
+    :meth:`parameter_gradient` returns ``d(gradient)/dp`` (used by the adjoint, SYSID.md).
+    """
+
+    parameter_names: tuple[str, ...]
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy in J at positions ``x`` of shape ``(vertex_count, 3)``."""
+        ...
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(vertex_count, 3)`` (zero rows for vertices not involved)."""
+        ...
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-element Hessian blocks, PSD-projected per ``projection``."""
+        ...
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/d(parameter ``name``), shape ``(vertex_count, 3)``.
+
+        Raises:
+            KeyError: ``name`` is not in ``parameter_names``.
+        """
+        ...
+
+
+# ---------------------------------------------------------------------------- optional capabilities
+# What some potentials provide beyond :class:`Potential`. Callers test for a capability with
+# ``isinstance(term, <Protocol>)``; the test ``tests/sim_core/energies/test_contract.py`` checks
+# that every potential class meets :class:`Potential` and lists the capabilities each one declares.
+
+
+@runtime_checkable
+class ConstantDiagonalHessian(Protocol):
+    """A potential whose Hessian is a constant diagonal (inertia, viscous damping): the solver adds
+    :meth:`hessian_diagonal` to the Newton matrix's diagonal instead of assembling blocks."""
+
+    def hessian_diagonal(self) -> np.ndarray:
+        """The Hessian's diagonal, shape ``(3 vertex_count,)`` in N/m (global DoF order)."""
+        ...
+
+
+@runtime_checkable
+class PenaltyContact(Protocol):
+    """A penalty contact potential that switches on below its contact offset: its touching entries
+    are ``vertices[active_mask(x)]`` (pairs ``(a, 4)``, or vertices ``(a,)`` against a plane or a
+    sphere). The solver compares the active sets of two iterates
+    (:func:`sim_core.contact_set.active_contacts`)."""
+
+    vertices: np.ndarray
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Whether each entry is within the contact offset at ``x`` ``(vertex_count, 3)``: ``(k,)`` bool."""
+        ...
+
+
+@runtime_checkable
+class KeepsDerivatives(Protocol):
+    """A potential that can evaluate energy, gradient and Hessian at once ahead of time: the line
+    search calls :meth:`keep_derivatives` at a trial point that, once accepted, is the next
+    iterate, whose gradient and Hessian are then read from the kept evaluation."""
+
+    def keep_derivatives(self, x: np.ndarray) -> None:
+        """Evaluate and keep the energy, gradient and Hessian at ``x`` ``(vertex_count, 3)`` m."""
+        ...
+
+
+@runtime_checkable
+class HingeBending(Protocol):
+    """A bending energy of the dihedral angles of hinges, ``E = d^T K_h d`` with
+    ``d = theta - theta_bar`` (diagonal ``K_h`` for discrete-shell bending, coupled for Kirchhoff
+    plates); the adjoint differentiates through the rest angles ``theta_bar`` (bending plasticity)."""
+
+    hinges: np.ndarray
+    hinge_theta_bar: np.ndarray
+
+    def theta(self, x: np.ndarray) -> np.ndarray:
+        """Signed dihedral angle of every hinge in rad, shape ``(h,)``."""
+        ...
+
+    def theta_gradient(self, x: np.ndarray) -> np.ndarray:
+        """``dtheta/dx`` of every hinge, shape ``(h, 4, 3)`` in 1/m."""
+        ...
+
+    def theta_stiffness(self) -> sp.csr_matrix:
+        """``A = dE/dtheta dtheta`` = ``2 K_h`` in J/rad^2, sparse ``(h, h)``."""
+        ...
+
+    def theta_stiffness_product(self, v: np.ndarray) -> np.ndarray:
+        """``A v`` for ``v`` of shape ``(h, r)``, equal to ``theta_stiffness() @ v`` bit for bit."""
+        ...
+
+
+@runtime_checkable
+class ElasticEquivalent(Protocol):
+    """A term equal to an elastic potential on another rest state (the gel's Maxwell branch: a
+    Stable Neo-Hookean on its relaxed rest shape), which the fused elastic kernels evaluate
+    through :meth:`elastic_equivalent` (:mod:`sim_core.fused_elastic`)."""
+
+    def elastic_equivalent(self) -> Potential:
+        """The elastic potential this term equals now."""
+        ...
+
+
+CAPABILITIES: tuple[type, ...] = (
+    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent)
+"""The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
+
+
+def project_psd(blocks: np.ndarray, projection: Projection = "clamp") -> np.ndarray:
+    """Project symmetric element Hessians onto the positive semi-definite cone.
+
+    Args:
+        blocks: shape ``(k, n, n)``, symmetric.
+        projection: ``"none"`` returns the input, ``"clamp"`` sets negative eigenvalues to 0
+            (Teran et al. 2005), ``"abs"`` replaces them by their absolute value.
+
+    Returns:
+        Array of shape ``(k, n, n)``.
+
+    Raises:
+        ValueError: unknown projection name.
+    """
+    if projection == "none" or blocks.shape[0] == 0:
+        return blocks
+    if projection not in ("clamp", "abs"):
+        raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+    sym = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
+    w, q = np.linalg.eigh(sym)
+    if np.all(w >= 0.0):
+        return sym
+    w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
+    return np.einsum("kij,kj,klj->kil", q, w, q, optimize=True)
+
+
+def block_dof_indices(vertices: np.ndarray) -> np.ndarray:
+    """Global DoF indices of element vertex lists.
+
+    Args:
+        vertices: shape ``(k, m)`` global vertex indices.
+
+    Returns:
+        shape ``(k, 3 m)``: ``3 * vertices[:, a] + d`` in vertex-major order.
+    """
+    vertices = np.asarray(vertices, dtype=np.int64)
+    return (3 * vertices[:, :, None] + np.arange(3)[None, None, :]).reshape(vertices.shape[0], -1)
+
+
+def scatter_gradient(vertex_count: int, vertices: np.ndarray, element_grad: np.ndarray) -> np.ndarray:
+    """Sum per-element gradients into the global gradient.
+
+    Args:
+        vertex_count: number of vertices of the model.
+        vertices: shape ``(k, m)`` global vertex indices.
+        element_grad: shape ``(k, m, 3)`` or ``(k, 3 m)``.
+
+    Returns:
+        shape ``(vertex_count, 3)``.
+
+    One ``np.bincount`` over the flattened DoF indices (the sums of ``np.add.at`` in the same
+    order, bit for bit, at a third of its cost for the few hundred rows of a contact potential).
+    """
+    k, m = vertices.shape
+    if not k:
+        return np.zeros((vertex_count, 3))
+    dofs = (np.asarray(vertices, dtype=np.int64).reshape(-1, 1) * 3 + np.arange(3)).reshape(-1)
+    weights = np.asarray(element_grad, dtype=float).reshape(-1)
+    return np.bincount(dofs, weights=weights, minlength=3 * vertex_count).reshape(vertex_count, 3)
+
+
+def assemble_hessian(
+    parts: Sequence[HessianBlocks], dof_count: int, diagonal: np.ndarray | None = None
+) -> sp.csr_matrix:
+    """Assemble element blocks into one sparse symmetric matrix (COO -> CSR, duplicates summed).
+
+    Args:
+        parts: block sets of several potentials.
+        dof_count: ``3 * vertex_count``.
+        diagonal: optional extra diagonal, shape ``(dof_count,)`` (e.g. the mass term m / dt^2).
+
+    Returns:
+        CSR matrix of shape ``(dof_count, dof_count)``.
+    """
+    rows, cols, vals = [], [], []
+    for part in parts:
+        if part.blocks.shape[0] == 0:
+            continue
+        dofs = block_dof_indices(part.vertices)
+        n = dofs.shape[1]
+        rows.append(np.repeat(dofs, n, axis=1).reshape(-1))
+        cols.append(np.tile(dofs, (1, n)).reshape(-1))
+        vals.append(part.blocks.reshape(-1))
+    if diagonal is not None:
+        idx = np.arange(dof_count)
+        rows.append(idx)
+        cols.append(idx)
+        vals.append(np.asarray(diagonal, dtype=float))
+    if not rows:
+        return sp.csr_matrix((dof_count, dof_count))
+    mat = sp.coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(dof_count, dof_count)
+    )
+    return mat.tocsr()
+
+
+_F64 = np.dtype(np.float64)
+
+
+def positions_key(x: np.ndarray) -> tuple:
+    """``(shape, bytes)`` of positions ``x`` as float64 in C order: equal keys are bitwise equal positions.
+
+    Kept evaluations are matched by this key: the pair potentials' (:mod:`sim_core.energies.contact.reference`)
+    and the fused elastic terms' (:mod:`sim_core.fused_elastic`); a copy of ``x`` compared with
+    ``np.array_equal`` cost four times as much, and bitwise equality is the stricter test.
+    """
+    if type(x) is not np.ndarray or x.dtype is not _F64:
+        x = np.asarray(x, dtype=np.float64)
+    return x.shape, x.tobytes()

@@ -1,0 +1,249 @@
+"""One kernel launch evaluates a vertex-triangle and an edge-edge contact potential together.
+
+The Newton solver asks the step's two pair potentials for their energy (line search), then for the
+gradient and Hessian (iterate) at the same positions, one potential after the other. Evaluated
+separately, each potential launches the distance kernels of :mod:`sim_core.energies.contact.distance_kernel`
+once or twice per request (values of every pair, then derivatives of the active ones) after a NumPy
+gather of the pair positions. A :class:`PairBatch` links the two potentials: the first request at
+new positions ``x`` evaluates both in one launch of :func:`_batch_kernel` (the pair positions
+gathered in the kernel; the distance of every pair; with derivatives, the distance gradient, the
+penalty Hessian ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs ``d < eps`` and the
+penalty gradient ``k_c (d - eps) grad d`` summed per vertex), and
+each potential keeps its part as its evaluation of ``x`` (a
+:class:`~sim_core.energies.contact.reference.PairEvaluation` in its workspace, :mod:`sim_core.workspace`,
+as :meth:`sim_core.energies.contact.reference._PairPenalty._evaluate` keeps it), so the second request finds it there.
+The penalty Hessian is made in the kernel from the distance Hessian it has just computed, and the
+penalty gradient summed there in pair order (the reference's operations in its order: the same
+blocks and sums bit for bit), so that neither the distance Hessians are copied out nor the blocks
+and the gradient built in NumPy (about 30 + 15 us of NumPy per potential and Forming iterate, for
+~17 us more kernel time); both are kept with the stiffness they were made for (another stiffness
+evaluates the Hessian again, and sums the gradient in NumPy from the kept distance gradients). Before measuring a pair, the kernel applies the exact prefilter of
+:mod:`sim_core.collision.distance_bounds` (box gap, plane / line-line bound, same margins): about
+two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
+(they are never active, so the active pairs and their values are unchanged). The kernel's work
+arrays are kept per thread and shared by all batches (:data:`_ARRAYS`; bound to the compiled kernel
+once, positions copied in).
+
+When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
+point, the next Newton iterate), the derivatives are computed for their active pairs only. The
+kernel calls the same Taichi functions as the separate kernels, so every distance, gradient and
+Hessian equals theirs bit for bit (tests).
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
+from sim_core.collision.distances import DistanceDerivatives
+from sim_core.energies.base import positions_key
+from sim_core.energies.contact import distance_kernel as cd
+from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+from sim_core.energies.contact.reference import PairEvaluation
+from sim_core.energies.contact.setup_kernel import _vertex
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import LaunchArrays
+from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.workspace import workspace_of
+
+_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+@ti.func
+def _may_touch(z0, z1, z2, z3, side: ti.f64, eps: ti.f64, point_first: ti.i32) -> ti.i32:
+    """0 when pair ``[z0, z1, z2, z3]`` (``[p, a, b, c]`` with ``point_first``, else ``[a0, a1, b0, b1]``)
+    is farther than ``eps`` for certain: the box and plane bounds of
+    :mod:`sim_core.collision.distance_bounds` (same tests and margins, one pair)."""
+    limit = eps * (1.0 + RELATIVE_SLACK)
+    # the first primitive's points z0 (and z1 for an edge), the second's z2, z3 (and z1 for a triangle)
+    w, y = z1, z1
+    u, v, r = z2 - z1, z3 - z1, z0 - z1
+    if point_first:
+        w = z0
+    else:
+        y = z2
+        u, v, r = z1 - z0, z3 - z2, z0 - z2
+    a_lo, a_hi = ti.min(z0, w), ti.max(z0, w)
+    b_lo, b_hi = ti.min(ti.min(z2, z3), y), ti.max(ti.max(z2, z3), y)
+    gap = ti.max(a_lo - b_hi, b_lo - a_hi)
+    box_far = gap[0] > limit or gap[1] > limit or gap[2] > limit
+    n = cd._cross(u, v)
+    nn = cd._dot(n, n)
+    usable = nn >= MIN_SINE_SQUARED * cd._dot(u, u) * cd._dot(v, v)
+    h = 0.0
+    if usable:
+        h = cd._dot(n, r) / ti.sqrt(nn)
+    far = usable and side * h > limit
+    if side == 0.0:
+        far = box_far or (usable and ti.abs(h) > limit)
+    return ti.cast(not far, ti.i32)
+
+
+@ti.func
+def _penalty_hessian(i: ti.i32, gap: ti.f64, stiffness: ti.f64, grad: ti.template(), hess: ti.template()):
+    """Row ``i`` of ``hess``, a distance Hessian, replaced by the penalty Hessian
+    ``k_c (grad d grad d^T + (d - eps) hess d)`` (``gap = d - eps``), the reference's operations in its order."""
+    for a in range(12):
+        for b in range(12):
+            hess[i, a, b] = (grad[i, a] * grad[i, b] + gap * hess[i, a, b]) * stiffness
+
+
+@ti.func
+def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti.i32, vertices: ti.template(),
+                              grad: ti.template(), gradients: ti.template()):
+    """``gradients[first_row + v] += scale * grad d`` over the vertices ``v`` of pair ``k`` (its distance
+    gradient in row ``i`` of ``grad``, ``scale = k_c (d - eps)``): the sums of the reference's
+    ``scatter_gradient`` (one ``np.bincount`` in pair, vertex, axis order) when pairs come in order."""
+    for a in range(4):
+        row = first_row + vertices[k, a]
+        for c in ti.static(range(3)):
+            gradients[row, c] += scale * grad[i, 3 * a + c]
+
+
+@fast_kernel
+def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
+                  eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
+                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2):
+    """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
+    ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the distance gradient
+    row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
+    ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
+    as they are), and their penalty gradients ``k_c (d - eps) grad d`` summed per vertex into
+    ``gradients`` (``(2 n, 3)``: rows ``v`` for the vertex-triangle pairs, ``n + v`` for the edge-edge
+    pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`_scatter_penalty_gradient`).
+    A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
+    (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
+    pair kind are runtime values: one compiled kernel for every request."""
+    n = x.shape[0]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 2 * n):
+        for c in ti.static(range(3)):
+            gradients[j, c] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(count):
+        k = rows[i]
+        point_first = 0
+        eps, stiffness, first_row = eps_ee, stiffness_ee, n
+        if k < split:
+            point_first = 1
+            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
+        p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                          _vertex(x, vertices, k, 3))
+        if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
+            for c in ti.static(range(3)):
+                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
+            region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
+            if derivatives:
+                if d[i] < eps:
+                    cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
+                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
+                    _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
+        else:
+            region[i], d[i] = -1, ti.math.inf
+
+
+_ARRAYS = LaunchArrays()
+"""The batch kernel's work arrays, per thread (:class:`~sim_core.ti_kernels.buffers.LaunchArrays`):
+shared by every :class:`PairBatch` (an evaluation copies its rows out), so a step's new batch binds
+no new arrays and writes into pages already mapped (fresh ``(p, 12, 12)`` arrays per batch cost
+page faults at the first launches)."""
+
+
+def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The batch kernel's kept output arrays with at least ``rows`` rows, for the calling thread:
+    distance ``(>= rows,)``, region int32 ``(>= rows,)``, gradient ``(>= rows, 12)`` and Hessian
+    ``(>= rows, 12, 12)`` (rows ``i`` of a launch's pairs ``i``; overwritten by the next launch)."""
+    return (_ARRAYS.rows("d", rows), _ARRAYS.rows("region", rows, (), np.int32), _ARRAYS.rows("grad", rows, (12,)),
+            _ARRAYS.rows("hess", rows, (12, 12)))
+
+
+class PairBatch:
+    """Evaluates a vertex-triangle and an edge-edge pair potential in one launch (module docstring).
+
+    Args:
+        vt: a :class:`~sim_core.energies.contact.reference.VertexTriangleContact` (its ``vertices`` ``(p, 4)``
+            and ``sides`` ``(p,)``).
+        ee: an :class:`~sim_core.energies.contact.reference.EdgeEdgeContact` (``(q, 4)``, ``(q,)``).
+
+    Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
+    is read at every evaluation.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+
+    def __init__(self, vt, ee) -> None:
+        require_backend("PairBatch")
+        self.vt, self.ee = vt, ee
+        self.split = int(vt.vertices.shape[0])
+        self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
+        self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
+        self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
+        vt._batch = ee._batch = self
+
+    def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
+        """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
+        evaluation of ``x``: active pairs and distances, with ``derivatives`` also their gradients
+        ``(a, 12)`` and Hessians ``(a, 12, 12)``. Derivatives after both kept the distances of ``x``
+        are computed for their active pairs only; a potential that already keeps an evaluation of
+        ``x`` at least as complete keeps it. ``key``: :func:`~sim_core.energies.base.positions_key`
+        of ``x`` when the caller has it."""
+        if key is None:
+            key = positions_key(x)
+        pots = (self.vt, self.ee)
+        kept = [pot._kept(key, 0) for pot in pots]
+        if derivatives and kept[0] is not None and kept[1] is not None:
+            rows = np.concatenate([kept[0].active, kept[1].active + self.split])
+            parts = (slice(0, len(kept[0].active)), slice(len(kept[0].active), len(rows)))
+        else:
+            rows, kept = self._all, [None, None]
+            parts = (slice(0, self.split), slice(self.split, len(rows)))
+        m = len(rows)
+        d, region, grad, hess = work_arrays(m)
+        stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
+        n = x.shape[0]
+        gradients = _ARRAYS.rows("gradients", 2 * n, (3,))
+        if m:
+            kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
+            kept_rows[:m] = rows
+            _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows, m, self.split,
+                          float(self.vt.eps), float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)),
+                          _ARRAYS.rows("z", m, (4, 3)), d, region, grad, hess, gradients)
+        else:
+            gradients[: 2 * n] = 0.0
+        order = 2 if derivatives else 0
+        for kind, (pot, part, known, stiffness) in enumerate(zip(pots, parts, kept, stiffnesses)):
+            if pot._kept(key, order) is not None:
+                continue
+            if known is None:
+                active = np.flatnonzero(d[part] < pot.eps)
+                rows = active + part.start  # rows of the kernel's arrays (fancy indexing: copies)
+            else:  # the rows are the known active pairs, in order
+                active, rows = known.active, part
+            # copies: the kernel's arrays are overwritten by the next evaluation
+            dk = d[rows].copy() if known is not None else d[rows]
+            if derivatives:
+                g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
+                dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, gradients[kind * n:(kind + 1) * n].copy())))
+            else:
+                dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the kernel; runs it without and with derivatives.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.array([[0.0, 0.0, 1.0e-3], [0.0, 0.0, 0.0], [1.0e-2, 0.0, 0.0], [0.0, 1.0e-2, 0.0]])
+    vt = TiVertexTriangleContact(np.array([[0, 0]]), np.array([[1, 2, 3]]), np.ones(1), 1.0, 2.0e-3)
+    ee = TiEdgeEdgeContact(np.array([[0, 1]]), np.array([[0, 1], [2, 3]]), np.ones(1), 1.0, 2.0e-3)
+    batch = PairBatch(vt, ee)
+    for derivatives in (False, True):
+        batch.evaluate(x, derivatives)

@@ -1,0 +1,91 @@
+"""Vertex-triangle and edge-edge penalty contact with the pair distances on Taichi kernels.
+
+:class:`TiVertexTriangleContact` and :class:`TiEdgeEdgeContact` subclass the NumPy reference
+potentials of :mod:`sim_core.energies.contact.reference` and replace only the contact distance and its
+derivatives (:mod:`sim_core.energies.contact.distance_kernel`); the penalty algebra, side handling,
+and ``parameter_gradient`` stay the reference's. The distances and gradients equal the reference
+bit for bit, the distance Hessians to round-off (1e-15 relative). On its own, every pair is
+measured by the kernel (no NumPy prefilter: the kernel is cheaper than the NumPy bounds). The contact frames (friction's
+closest-point weights and normals) come from one launch of
+:func:`sim_core.energies.contact.setup_kernel.contact_frames` (equal to the reference to round-off).
+Linked by a :class:`~sim_core.energies.contact.batch_kernel.PairBatch`, a vertex-triangle and an edge-edge
+potential are evaluated together, one launch for both, with the distance bounds inside the kernel
+(same results).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.collision.distances import DistanceDerivatives
+from sim_core.energies.base import positions_key
+from sim_core.energies.contact import distance_kernel as contact_distance, setup_kernel as contact_setup
+from sim_core.energies.contact.reference import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
+from sim_core.workspace import workspace_of
+
+
+def _frames(pot, x: np.ndarray, point_first: bool) -> ContactFrames:
+    """The reference ``contact_frames`` of ``pot`` with weights and normals from one kernel launch."""
+    act, dd = pot._evaluate(x, 0)  # the kept evaluation of x when there is one
+    vertices = pot.vertices[act]
+    weights, normal = contact_setup.contact_frames(x, vertices, pot.sides[act], point_first)
+    return ContactFrames(vertices, weights, normal, pot.stiffness * (pot.eps - dd.d), act)
+
+
+class _Batched:
+    """Evaluation through a :class:`~sim_core.energies.contact.batch_kernel.PairBatch` when the potential
+    is linked to one (the contact set links its step's two pair potentials), else on its own."""
+
+    _batch = None
+
+    def kept_evaluation(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives] | None:
+        """The kept evaluation ``(active, distances)`` of positions ``x`` ``(n, 3)`` if it holds
+        derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
+        kept = self._kept(positions_key(x), order)
+        return None if kept is None else (kept.active, kept.dd)
+
+    def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
+        if self._batch is None:
+            return super()._evaluation(x, order)
+        key = positions_key(x)
+        kept = self._kept(key, order)
+        if kept is None:
+            self._batch.evaluate(x, order > 0, key)
+            kept = workspace_of(self).get(self, "evaluation")
+        return kept
+
+
+class TiVertexTriangleContact(_Batched, VertexTriangleContact):
+    """:class:`~sim_core.energies.contact.reference.VertexTriangleContact` on the Taichi distance kernels
+    (same arguments and errors; needs :func:`sim_core.ti_backend.init_backend`)."""
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return contact_distance.point_triangle_contact_distance(z, side, order)
+
+    def _active_distances(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = self._distance(z, self.sides, 0).d
+        active = np.flatnonzero(d < self.eps)
+        return active, d[active]
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.energies.contact.reference.VertexTriangleContact.contact_frames`
+        (weights and normals from :func:`sim_core.energies.contact.setup_kernel.contact_frames`)."""
+        return _frames(self, x, True)
+
+
+class TiEdgeEdgeContact(_Batched, EdgeEdgeContact):
+    """:class:`~sim_core.energies.contact.reference.EdgeEdgeContact` on the Taichi distance kernels
+    (same arguments and errors; needs :func:`sim_core.ti_backend.init_backend`)."""
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return contact_distance.edge_edge_contact_distance(z, side, order)
+
+    def _active_distances(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = self._distance(z, self.sides, 0).d
+        active = np.flatnonzero(d < self.eps)
+        return active, d[active]
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """As the reference :meth:`~sim_core.energies.contact.reference.EdgeEdgeContact.contact_frames`
+        (weights and normals from :func:`sim_core.energies.contact.setup_kernel.contact_frames`)."""
+        return _frames(self, x, False)

@@ -1,0 +1,524 @@
+"""Penalty contact with side memory: vertex-triangle, edge-edge and vertex-plane pairs.
+
+Energy per pair (DESIGN.md "Contact", ThinShellLab): ``E = k_c / 2 (d - eps)^2`` for ``d < eps``,
+0 otherwise (C1 at ``d = eps``), with ``k_c`` the penalty stiffness (N/m) and ``eps`` the contact
+offset (m). The distance ``d`` and its region-wise definition (signed along the remembered side
+in the face / interior region, unsigned elsewhere) are documented in
+:mod:`sim_core.collision.distances`. Derivatives: ``grad E = k_c (d - eps) grad d`` and
+``hess E = k_c (grad d grad d^T + (d - eps) hess d)``, the latter PSD-projected per pair.
+
+The potentials take *candidate* pairs (from :mod:`sim_core.collision.candidates`); pairs with
+``d >= eps`` contribute nothing, so the candidate set may be larger than the active set.
+:meth:`contact_frames` gives the normal force magnitude ``lam = k_c (eps - d)``, the unit normal (the
+direction of the force on the first side: the vertex, or edge a) and the barycentric weights of
+the closest points, which friction (:mod:`sim_core.energies.friction.reference`) and the wrench need.
+
+Side 0 means *unsigned*: the pair has no remembered side (it was not above the face / interior
+when its step began, so the side of the plane through the triangle or of the line-line normal says
+nothing about which way it came from) and ``d`` is the Euclidean distance in every region, i.e. the
+side is that of the evaluated configuration itself. A side fixed per step for every pair makes the
+energy one function of ``x`` within a step; a side chosen from each Newton iterate did not, and
+Newton cycled (:mod:`sim_core.contact_set`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from sim_core.collision.distance_bounds import edge_edge_may_touch, point_triangle_may_touch
+from sim_core.collision.distances import (
+    DistanceDerivatives,
+    EdgeEdgeRegion,
+    PointTriangleRegion,
+    edge_edge_closest_points,
+    edge_edge_contact_distance,
+    edge_edge_side,
+    point_triangle_closest_point,
+    point_triangle_contact_distance,
+    point_triangle_side,
+)
+from sim_core.energies.base import HessianBlocks, Projection, positions_key, project_psd, scatter_gradient
+from sim_core.errors import ConfigError
+from sim_core.workspace import workspace_of
+
+
+class ContactFrames(NamedTuple):
+    """Active contact pairs at one configuration, as friction and the wrench consume them.
+
+    Attributes:
+        vertices: global vertex indices per pair, shape ``(p, m)`` int64.
+        weights: closest-point weights, shape ``(p, m)``: the relative position of the first side
+            w.r.t. the second is ``sum_j weights[:, j] x[vertices[:, j]]`` (first side positive).
+        normal: unit contact normal, direction of the force on the first side, shape ``(p, 3)``.
+        lam: normal force magnitude ``k_c (eps - d)`` in N, shape ``(p,)``.
+        pair_index: row of each pair in the potential's pair list, shape ``(p,)``.
+    """
+
+    vertices: np.ndarray
+    weights: np.ndarray
+    normal: np.ndarray
+    lam: np.ndarray
+    pair_index: np.ndarray
+
+
+def _check_penalty(stiffness: float, eps: float, where: str) -> None:
+    if not (np.isfinite(stiffness) and stiffness > 0):
+        raise ConfigError(f"{where}: contact stiffness must be finite and > 0 (N/m), got {stiffness}")
+    if not (np.isfinite(eps) and eps > 0):
+        raise ConfigError(f"{where}: contact eps must be finite and > 0 (m), got {eps}")
+
+
+def _check_sides(sides: np.ndarray, count: int, where: str) -> np.ndarray:
+    sides = np.asarray(sides, dtype=float).reshape(-1)
+    if sides.shape[0] != count:
+        raise ConfigError(f"{where}: {count} pairs but {sides.shape[0]} sides")
+    if not np.all((np.abs(sides) == 1.0) | (sides == 0.0)):
+        raise ConfigError(f"{where}: sides must be +1 or -1 (0: unsigned)")
+    return sides
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def vertex_triangle_vertices(pairs: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Global vertices ``[p, a, b, c]`` ``(k, 4)`` of vertex-triangle pairs ``(vertex, triangle)`` ``(k, 2)``
+    over ``triangles`` ``(t, 3)`` (``np.take`` of rows: several times faster than fancy indexing by a
+    strided index column)."""
+    return np.concatenate([pairs[:, :1], np.take(triangles, pairs[:, 1], axis=0)], axis=1)
+
+
+def edge_edge_vertices(pairs: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Global vertices ``[a0, a1, b0, b1]`` ``(k, 4)`` of edge-edge pairs ``(edge, edge)`` ``(k, 2)`` over
+    ``edges`` ``(e, 2)`` (one ``np.take`` of rows; fancy indexing by index columns costs ~15x more)."""
+    return np.take(edges, pairs, axis=0).reshape(-1, 4)
+
+
+class PairEvaluation:
+    """An evaluation of a pair potential kept for the positions it was made at (:meth:`_PairPenalty._evaluate`).
+
+    Distances depend on the pairs, sides, ``eps`` and positions only, so an evaluation is shared by
+    the potentials of the same function (:meth:`_PairPenalty.inherit_evaluation`); what depends on
+    the stiffness (energy, gradient, penalty Hessian) is kept with the stiffness it was computed for.
+
+    Args:
+        order: 0 (distances only) or 2 (with distance gradients, and distance Hessians or penalty
+            Hessian blocks).
+        key: :func:`positions_key` of the positions.
+        active: rows of the active pairs (``d < eps``), int64 ``(a,)``.
+        dd: their distances (m) and derivatives; ``dd.hess`` None when ``hessian_blocks`` are given.
+        eps: the contact offset of the evaluation (m).
+        hessian_blocks: None, or ``(k_c, blocks)``: the penalty Hessians
+            ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs for stiffness ``k_c``
+            (N/m), ``(a, 12, 12)``, made with the distances (the batch kernel of
+            :mod:`sim_core.energies.contact.batch_kernel`).
+        gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, ``(n, 3)``
+            (N), summed as :meth:`gradient` sums it (the batch kernel).
+    """
+
+    __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
+
+    def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float,
+                 hessian_blocks: tuple[float, np.ndarray] | None = None,
+                 gradient: tuple[float, np.ndarray] | None = None) -> None:
+        self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
+        self.hessian_blocks = hessian_blocks
+        self._gradient = gradient
+        self._vertices = self._energy = None
+
+    def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
+        """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential
+        sharing this evaluation), int64 ``(a, 4)``, kept."""
+        if self._vertices is None:
+            self._vertices = vertices[self.active]
+        return self._vertices
+
+    def holds_hessian(self, stiffness: float) -> bool:
+        """Whether :meth:`penalty_hessian` can give the Hessians for ``stiffness`` (N/m)."""
+        blocks = self.hessian_blocks
+        return self.dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
+
+    def energy(self, stiffness: float) -> float:
+        """``k_c / 2 sum (d - eps)^2`` in J (kept per stiffness ``k_c``, N/m)."""
+        kept = self._energy
+        if kept is None or kept[0] != stiffness:
+            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self.dd.d - self.eps) ** 2)))
+        return kept[1]
+
+    def gradient(self, stiffness: float, vertices: np.ndarray) -> np.ndarray:
+        """``dE/dx = k_c (d - eps) grad d`` summed into a new ``(n, 3)`` array (N), ``n`` the row count
+        of the positions (kept per stiffness, returned as a copy)."""
+        kept = self._gradient
+        if kept is None or kept[0] != stiffness:
+            dd = self.dd
+            g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
+            kept = self._gradient = (stiffness, scatter_gradient(self.key[0][0], self.active_vertices(vertices), g))
+        return kept[1].copy()
+
+    def penalty_hessian(self, stiffness: float) -> np.ndarray:
+        """New blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
+        (J/m^2): a copy of the kept ``hessian_blocks`` when made for ``stiffness``, else from ``dd``.
+
+        Raises:
+            ValueError: neither is available (see :meth:`holds_hessian`).
+        """
+        blocks = self.hessian_blocks
+        if blocks is not None and blocks[0] == stiffness:
+            return blocks[1].copy()
+        dd = self.dd
+        if dd.hess is None:
+            raise ValueError(f"PairEvaluation: no distance Hessians, and no penalty Hessians for stiffness {stiffness}")
+        H = np.multiply(dd.grad[:, :, None], dd.grad[:, None, :])  # in place below: the same sums, fewer temporaries
+        H += (dd.d - self.eps)[:, None, None] * dd.hess
+        H *= stiffness
+        return H
+
+
+class _PairPenalty:
+    """Shared penalty algebra of the 4-vertex pair potentials."""
+
+    parameter_names: tuple[str, ...] = ("stiffness",)
+    vertices: np.ndarray
+    sides: np.ndarray
+    stiffness: float
+    eps: float
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        raise NotImplementedError
+
+    _geometric_side: staticmethod
+    """Side of configurations ``z`` (k, 4, 3): ``point_triangle_side`` or ``edge_edge_side``."""
+
+    def _resolve(self, z: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """``side`` with the unsigned pairs (0) given the side of configuration ``z`` (k, 4, 3)."""
+        unsigned = side == 0.0
+        if not np.any(unsigned):
+            return side
+        return np.where(unsigned, self._geometric_side(z), side)
+
+    def resolved_sides(self, x: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Side of every pair (or of the pairs ``rows``, int ``(r,)`` or bool ``(p,)``) at positions
+        ``x`` (n, 3) m: the fixed side, or for an unsigned pair the side of ``x`` itself; +1 / -1,
+        shape ``(p,)`` (``(r,)``)."""
+        if rows is None:
+            return self._resolve(x[self.vertices], self.sides)
+        return self._resolve(x[self.vertices[rows]], self.sides[rows])
+
+    def _kept(self, key: tuple, order: int) -> "PairEvaluation | None":
+        """The kept evaluation if it was made at positions ``key`` (:func:`positions_key`) with this
+        ``eps`` and holds derivatives up to ``order`` (order 2: with the Hessians of this stiffness,
+        :meth:`PairEvaluation.holds_hessian`), else None."""
+        last = workspace_of(self).get(self, "evaluation")
+        if (last is not None and last.order >= order and last.eps == self.eps and last.key == key
+                and (order < 2 or last.holds_hessian(self.stiffness))):
+            return last
+        return None
+
+    def _evaluation(self, x: np.ndarray, order: int) -> "PairEvaluation":
+        """The evaluation of positions ``x`` with distance derivatives up to ``order`` (:meth:`_evaluate`)."""
+        key = positions_key(x)
+        kept = self._kept(key, order)
+        if kept is not None:
+            return kept
+        kept = self._kept(key, 0)
+        if kept is not None:
+            active = kept.active  # order-0 result at this x: derivatives of its active pairs only
+        else:
+            active, d = self._active_distances(x[self.vertices])
+        if order == 0:  # (only reached without a kept evaluation, which sets d)
+            dd = DistanceDerivatives(d, None, None, np.zeros(active.shape, np.int64))
+        else:
+            order = 2
+            dd = self._distance(x[self.vertices[active]], self.sides[active], order)
+        return workspace_of(self).put(self, "evaluation", PairEvaluation(order, key, active, dd, self.eps))
+
+    def _evaluate(self, x: np.ndarray, order: int) -> tuple[np.ndarray, DistanceDerivatives]:
+        """Indices of the active pairs and their distance (with derivatives up to ``order``).
+
+        Order >= 1 computes the Hessian too (the solver asks for the gradient and then the Hessian
+        at the same iterate); the last result is kept (a :class:`PairEvaluation`) and reused while
+        ``x`` is bitwise equal (energy, gradient and Hessian of one iterate share one evaluation).
+        """
+        evaluation = self._evaluation(x, order)
+        return evaluation.active, evaluation.dd
+
+    _may_touch: staticmethod
+    """Exact prefilter ``(z, side, eps) -> (k,) bool``: ``point_triangle_may_touch`` or
+    ``edge_edge_may_touch`` (:mod:`sim_core.collision.distance_bounds`)."""
+
+    def _active_distances(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the active pairs (``d < eps``) of configurations ``z`` (p, 4, 3) and their ``d`` (m).
+
+        Measures only the pairs the prefilter :attr:`_may_touch` keeps; the result equals filtering the
+        distances of every pair. Returns int64 ``(a,)`` and float ``(a,)``.
+        """
+        near = np.flatnonzero(self._may_touch(z, self.sides, self.eps))
+        d = self._distance(z[near], self.sides[near], 0).d
+        hit = d < self.eps
+        return near[hit], d[hit]
+
+    def inherit_evaluation(self, other: "_PairPenalty | None") -> None:
+        """Take over ``other``'s kept evaluation (:meth:`_evaluate`) if it is the same function.
+
+        Same class, pairs (vertex arrays), sides and eps define the same distances, so the result
+        kept for some ``x`` is valid here too (still matched against ``x`` on use). The contact set
+        passes the potential of the previous Newton iterate, whose last evaluation is the energy at
+        the accepted line-search point, the next iterate. (Both keep their evaluations in their
+        workspaces, :mod:`sim_core.workspace`.)
+        """
+        last = None if other is None else workspace_of(other).get(other, "evaluation")
+        if (last is not None and type(other) is type(self) and other.eps == self.eps
+                and other.vertices.shape == self.vertices.shape and np.array_equal(other.vertices, self.vertices)
+                and np.array_equal(other.sides, self.sides)):
+            workspace_of(self).put(self, "evaluation", last)
+
+    def active_distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the active pairs (``d < eps``) at positions ``x`` ``(n, 3)`` and their distances (m):
+        int64 ``(a,)`` and float ``(a,)`` (the kept evaluation of ``x`` when there is one)."""
+        active, dd = self._evaluate(x, 0)
+        return active, dd.d
+
+    def keep_derivatives(self, x: np.ndarray) -> None:
+        """Evaluate the pairs at positions ``x`` ``(n, 3)`` with distance derivatives and keep the result
+        (:meth:`_evaluate`): the energy, gradient and Hessian at ``x`` then reuse it. The solver calls
+        this at a line search's first trial point, which once accepted is the next Newton iterate."""
+        self._evaluate(x, 2)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """Contact distance ``d`` of every pair in m, shape ``(p,)``."""
+        return self._distance(x[self.vertices], self.sides, 0).d
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Pairs with ``d < eps``, bool shape ``(p,)``."""
+        mask = np.zeros(self.vertices.shape[0], dtype=bool)
+        mask[self._evaluate(x, 0)[0]] = True  # the kept evaluation of x when there is one
+        return mask
+
+    def energy(self, x: np.ndarray) -> float:
+        """Penalty energy in J."""
+        return self._evaluation(x, 0).energy(self.stiffness)
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``."""
+        return self._evaluation(x, 1).gradient(self.stiffness, self.vertices)
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``."""
+        evaluation = self._evaluation(x, 2)
+        if evaluation.active.size == 0:
+            return HessianBlocks.empty(4)
+        H = evaluation.penalty_hessian(self.stiffness)
+        return HessianBlocks(evaluation.active_vertices(self.vertices), project_psd(H, projection))
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/d(stiffness) = ``(d - eps) grad d`` in m, shape ``(n, 3)``."""
+        if name != "stiffness":
+            raise KeyError(name)
+        active, dd = self._evaluate(x, 1)
+        return scatter_gradient(x.shape[0], self.vertices[active], (dd.d - self.eps)[:, None] * dd.grad)
+
+
+class VertexTriangleContact(_PairPenalty):
+    """Penalty between vertices and triangles, normal oriented by the remembered side.
+
+    Args:
+        pairs: ``[global vertex, row of triangles]``, shape ``(p, 2)``.
+        triangles: global vertex indices, shape ``(t, 3)``.
+        sides: side of each vertex w.r.t. its triangle's normal ``(b - a) x (c - a)`` remembered
+            when the pair became active (+1 / -1; 0: unsigned, module docstring), shape ``(p,)``.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: bad stiffness, eps, sides or shapes.
+    """
+
+    def __init__(self, pairs: np.ndarray, triangles: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+        where = "VertexTriangleContact"
+        _check_penalty(stiffness, eps, where)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        if pairs.size and (pairs[:, 1].min() < 0 or pairs[:, 1].max() >= triangles.shape[0]):
+            raise ConfigError(f"{where}: triangle index out of range [0, {triangles.shape[0]})")
+        self.pairs = pairs
+        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.vertices = vertex_triangle_vertices(pairs, triangles)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return point_triangle_contact_distance(z, self._resolve(z, side), order)
+
+    _geometric_side = staticmethod(point_triangle_side)
+    _may_touch = staticmethod(point_triangle_may_touch)
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
+        act, dd = self._evaluate(x, 0)  # the kept evaluation of x when there is one
+        d = dd.d
+        z = x[self.vertices[act]]
+        bary, region = point_triangle_closest_point(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+        q = np.einsum("kj,kjd->kd", bary, z[:, 1:])
+        face = region == PointTriangleRegion.FACE
+        normal = np.zeros((act.size, 3))
+        if np.any(~face):
+            normal[~face] = _unit(z[~face, 0] - q[~face])
+        if np.any(face):
+            n = np.cross(z[face, 2] - z[face, 1], z[face, 3] - z[face, 1])
+            normal[face] = self._resolve(z[face], self.sides[act][face])[:, None] * _unit(n)
+        weights = np.concatenate([np.ones((act.size, 1)), -bary], axis=1)
+        lam = self.stiffness * (self.eps - d)
+        return ContactFrames(self.vertices[act], weights, normal, lam, act)
+
+
+class EdgeEdgeContact(_PairPenalty):
+    """Penalty between edges, normal oriented by the remembered side where it is defined.
+
+    Args:
+        pairs: ``[row i of edges, row j of edges]``, shape ``(p, 2)``.
+        edges: global vertex indices, shape ``(e, 2)``.
+        sides: remembered sign of ``((a1 - a0) x (b1 - b0)).(a0 - b0)`` (+1 / -1; 0: unsigned,
+            module docstring), shape ``(p,)``.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: bad stiffness, eps, sides or shapes.
+    """
+
+    def __init__(self, pairs: np.ndarray, edges: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+        where = "EdgeEdgeContact"
+        _check_penalty(stiffness, eps, where)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        if pairs.size and (pairs.min() < 0 or pairs.max() >= edges.shape[0]):
+            raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
+        self.pairs = pairs
+        self.sides = _check_sides(sides, pairs.shape[0], where)
+        self.vertices = edge_edge_vertices(pairs, edges)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def _distance(self, z: np.ndarray, side: np.ndarray, order: int) -> DistanceDerivatives:
+        return edge_edge_contact_distance(z, self._resolve(z, side), order)
+
+    _geometric_side = staticmethod(edge_edge_side)
+    _may_touch = staticmethod(edge_edge_may_touch)
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force, normal and closest-point weights of the active pairs (module docstring)."""
+        act, dd = self._evaluate(x, 0)  # the kept evaluation of x when there is one
+        d = dd.d
+        z = x[self.vertices[act]]
+        s, t, region = edge_edge_closest_points(z[:, 0], z[:, 1], z[:, 2], z[:, 3])
+        weights = np.stack([1 - s, s, -(1 - t), -t], axis=1)
+        rel = np.einsum("kj,kjd->kd", weights, z)
+        interior = region == EdgeEdgeRegion.INTERIOR
+        normal = np.zeros((act.size, 3))
+        if np.any(~interior):
+            normal[~interior] = _unit(rel[~interior])
+        if np.any(interior):
+            n = np.cross(z[interior, 1] - z[interior, 0], z[interior, 3] - z[interior, 2])
+            normal[interior] = self._resolve(z[interior], self.sides[act][interior])[:, None] * _unit(n)
+        lam = self.stiffness * (self.eps - d)
+        return ContactFrames(self.vertices[act], weights, normal, lam, act)
+
+
+class PlaneContact:
+    """Penalty between vertices and a fixed plane ``normal . x = offset`` (e.g. a table z = h).
+
+    ``d = normal . x_i - offset`` (signed; the plane's free side is along ``normal``),
+    ``E = k_c / 2 (d - eps)^2`` for ``d < eps``; the force on a vertex is ``k_c (eps - d) normal``.
+
+    Args:
+        vertices: global vertex indices, shape ``(v,)``.
+        normal: plane normal, shape ``(3,)`` (normalised here; must be non-zero).
+        offset: plane offset in m.
+        stiffness: k_c in N/m (> 0).
+        eps: contact offset in m (> 0).
+
+    Raises:
+        ConfigError: zero/non-finite normal, bad stiffness or eps.
+    """
+
+    parameter_names: tuple[str, ...] = ("stiffness",)
+
+    def __init__(self, vertices: np.ndarray, normal: np.ndarray, offset: float, stiffness: float, eps: float):
+        _check_penalty(stiffness, eps, "PlaneContact")
+        normal = np.asarray(normal, dtype=float).reshape(3)
+        length = float(np.linalg.norm(normal))
+        if not (np.isfinite(length) and length > 0):
+            raise ConfigError(f"PlaneContact: normal must be finite and non-zero, got {normal.tolist()}")
+        if not np.isfinite(offset):
+            raise ConfigError(f"PlaneContact: offset must be finite, got {offset}")
+        self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1)
+        self.normal = normal / length
+        self.offset = float(offset)
+        self.stiffness = float(stiffness)
+        self.eps = float(eps)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """Signed distance ``n . x - offset`` of every vertex in m, shape ``(v,)``."""
+        return x[self.vertices] @ self.normal - self.offset
+
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Vertices with ``d < eps``, bool shape ``(v,)``."""
+        return self.distance(x) < self.eps
+
+    def energy(self, x: np.ndarray) -> float:
+        """Penalty energy in J."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        return float(0.5 * self.stiffness * np.sum(gap * gap))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """``k_c (d - eps) n`` on active vertices, N, shape ``(n, 3)``."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        g = np.zeros_like(x, dtype=float)
+        np.add.at(g, self.vertices, self.stiffness * gap[:, None] * self.normal[None, :])
+        return g
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Blocks ``k_c n n^T`` (PSD) of the active vertices, shape ``(a, 3, 3)``."""
+        act = np.flatnonzero(self.active_mask(x))
+        blocks = np.broadcast_to(self.stiffness * np.outer(self.normal, self.normal), (act.size, 3, 3)).copy()
+        return HessianBlocks(self.vertices[act][:, None], blocks)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/d(stiffness) = ``(d - eps) n`` on active vertices, m, shape ``(n, 3)``."""
+        if name != "stiffness":
+            raise KeyError(name)
+        return self.gradient(x) / self.stiffness
+
+    def contact_frames(self, x: np.ndarray) -> ContactFrames:
+        """Normal force ``k_c (eps - d)``, the plane normal and unit weights of the active vertices."""
+        d = self.distance(x)
+        act = np.flatnonzero(d < self.eps)
+        normal = np.broadcast_to(self.normal, (act.size, 3)).copy()
+        lam = self.stiffness * (self.eps - d[act])
+        return ContactFrames(self.vertices[act][:, None], np.ones((act.size, 1)), normal, lam, act)
+
+
+def concatenate_frames(frames: list[ContactFrames], width: int = 4) -> ContactFrames:
+    """Stack frames of several pair kinds, padding to ``width`` vertices with zero weights.
+
+    Padding repeats the pair's first vertex with weight 0, which adds nothing to any sum.
+    ``pair_index`` is kept per kind (not unique across kinds).
+    """
+    vs, ws = [], []
+    for f in frames:
+        pad = width - f.vertices.shape[1]
+        vs.append(np.concatenate([f.vertices, np.repeat(f.vertices[:, :1], pad, axis=1)], axis=1))
+        ws.append(np.concatenate([f.weights, np.zeros((f.weights.shape[0], pad))], axis=1))
+    if not frames:
+        return ContactFrames(
+            np.zeros((0, width), np.int64), np.zeros((0, width)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+        )
+    return ContactFrames(
+        np.concatenate(vs).astype(np.int64),
+        np.concatenate(ws),
+        np.concatenate([f.normal for f in frames]),
+        np.concatenate([f.lam for f in frames]),
+        np.concatenate([f.pair_index for f in frames]).astype(np.int64),
+    )

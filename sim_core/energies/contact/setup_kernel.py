@@ -1,0 +1,310 @@
+"""Start- and end-of-step contact set-up in Taichi kernels: pair geometry, contact frames, tangent bases.
+
+The Taichi twins of the NumPy set-up the contact set and lagged friction do once per step (or per
+candidate search), each one launch over its pairs instead of a few dozen small array operations:
+
+* :func:`pair_geometry`: :func:`sim_core.collision.pair_geometry.pair_geometry` (above-face /
+  interior regions, geometric sides and edge sines of vertex-triangle and edge-edge pairs, both
+  kinds in one launch);
+* :func:`contact_frames`: the normals and closest-point weights of
+  :meth:`sim_core.energies.contact.reference.VertexTriangleContact.contact_frames` and
+  :meth:`~sim_core.energies.contact.reference.EdgeEdgeContact.contact_frames` (Ericson 2005, sec. 5.1.5 and
+  5.1.9: closest points; the normal is the oriented face / line-line normal in the face / interior
+  region, the unit closest-point direction elsewhere);
+* :func:`tangent_basis`: :func:`sim_core.energies.friction.reference.tangent_basis`;
+* :func:`friction_frames`: the frames of both pair kinds and their tangent bases in one launch
+  (what :meth:`sim_core.contact_set.ContactSet.friction` freezes of its pairs).
+
+The regions reuse the Voronoi tests of :mod:`sim_core.energies.contact.distance_kernel`; every
+expression is the reference's in the same order (sums left to right), so the results equal the
+reference bit for bit (tests). Loops are serial on the CPU, parallel on CUDA, as there. The
+callers pass new arrays at every call; the functions copy them into per-thread kept arrays
+(:class:`~sim_core.ti_kernels.buffers.LaunchArrays`, row counts as scalars) and the results out of
+them, so a launch re-binds no array.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.collision.pair_geometry import PairGeometry
+from sim_core.energies.contact import distance_kernel as cd
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import LaunchArrays
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+@ti.func
+def _vertex(x: ti.template(), vertices: ti.template(), k: ti.i32, a: ti.i32):
+    v = vertices[k, a]
+    return ti.Vector([x[v, 0], x[v, 1], x[v, 2]], ti.f64)
+
+
+@ti.func
+def _unit(v):
+    """``v / |v|`` (the reference's ``v / norm(v)``)."""
+    return v / ti.sqrt(cd._dot(v, v))
+
+
+@fast_kernel
+def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, vt_above: _I32_1, vt_side: _F64_1,
+                     ee_sine: _F64_1, ee_interior: _I32_1, ee_side: _F64_1):
+    """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (kept arrays, :data:`_ARRAYS`)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vt_count):
+        p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
+        vt_above[k] = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 1, 0)
+        vt_side[k] = cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(ee_count):
+        a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
+        ea, eb = a1 - a0, b1 - b0
+        n = cd._cross(ea, eb)
+        ee_sine[k] = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
+        ee_interior[k] = ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 1, 0)
+        ee_side[k] = cd._resolved_side(0.0, n, a0 - b0)
+
+
+_ARRAYS = LaunchArrays()
+"""The kernels' arrays (inputs copied in, outputs copied out): launches re-bind none."""
+
+
+def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
+    """The kept int32 array ``name`` ``(capacity, 4)`` whose first rows hold ``vertices`` ``(k, 4)``."""
+    vertices = np.asarray(vertices).reshape(-1, 4)
+    kept = _ARRAYS.rows(name, len(vertices), (4,), np.int32)
+    kept[:len(vertices)] = vertices
+    return kept
+
+
+def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
+    """Taichi twin of :func:`sim_core.collision.pair_geometry.pair_geometry` (same arguments and result).
+
+    Args:
+        x: positions, shape ``(n, 3)`` (m).
+        vt_vertices: ``[p, a, b, c]`` global vertex indices, shape ``(p, 4)``.
+        ee_vertices: ``[a0, a1, b0, b1]`` global vertex indices, shape ``(q, 4)``.
+
+    Returns:
+        :class:`~sim_core.collision.pair_geometry.PairGeometry`.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("contact set-up kernels")
+    vt, ee = _kept_indices("vt", vt_vertices), _kept_indices("ee", ee_vertices)
+    p, q = len(vt_vertices), len(ee_vertices)
+    above, vt_side = _ARRAYS.rows("above", p, (), np.int32), _ARRAYS.rows("vt_side", p)
+    sine, interior, ee_side = _ARRAYS.rows("sine", q), _ARRAYS.rows("interior", q, (), np.int32), _ARRAYS.rows("ee_side", q)
+    if p or q:
+        _geometry_kernel(_ARRAYS.copy_of("x", x), vt, p, ee, q, above, vt_side, sine, interior, ee_side)
+    return PairGeometry(above[:p].astype(bool), vt_side[:p].copy(), sine[:q].copy(), interior[:q].astype(bool),
+                        ee_side[:q].copy())
+
+
+@ti.func
+def _point_triangle_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side: ti.f64,
+                          weights: ti.template(), normal: ti.template()):
+    p, a, b, c = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                  _vertex(x, vertices, k, 3))
+    region, d1, d2, d3, d4, d5, d6, va, vb, vc = cd._point_triangle_tests(p, a, b, c)
+    bary = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+    if region == cd._PT_FACE:
+        denom = 1.0 / (va + vb + vc)
+        v, w = vb * denom, vc * denom
+        bary = ti.Vector([1.0 - v - w, v, w], ti.f64)
+    elif region == cd._PT_EDGE_AB:
+        v = d1 / (d1 - d3)
+        bary = ti.Vector([1.0 - v, v, 0.0], ti.f64)
+    elif region == cd._PT_EDGE_CA:
+        w = d2 / (d2 - d6)
+        bary = ti.Vector([1.0 - w, 0.0, w], ti.f64)
+    elif region == cd._PT_EDGE_BC:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        bary = ti.Vector([0.0, 1.0 - w, w], ti.f64)
+    else:
+        bary[region - cd._PT_VERTEX_A] = 1.0
+    n = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+    if region == cd._PT_FACE:
+        m = cd._cross(b - a, c - a)
+        n = cd._resolved_side(side, m, p - a) * _unit(m)
+    else:
+        n = _unit(p - ((bary[0] * a + bary[1] * b) + bary[2] * c))
+    weights[k, 0] = 1.0
+    for j in ti.static(range(3)):
+        weights[k, j + 1] = -bary[j]
+        normal[k, j] = n[j]
+
+
+@ti.func
+def _edge_edge_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side: ti.f64,
+                     weights: ti.template(), normal: ti.template()):
+    a0, a1, b0, b1 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                      _vertex(x, vertices, k, 3))
+    s, t, region = cd._edge_edge_closest(a0, a1, b0, b1)
+    w = ti.Vector([1.0 - s, s, -(1.0 - t), -t], ti.f64)
+    n = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+    if region == cd._EE_INTERIOR:
+        m = cd._cross(a1 - a0, b1 - b0)
+        n = cd._resolved_side(side, m, a0 - b0) * _unit(m)
+    else:
+        n = _unit(((w[0] * a0 + w[1] * a1) + w[2] * b0) + w[3] * b1)
+    for j in ti.static(range(4)):
+        weights[k, j] = w[j]
+    for j in ti.static(range(3)):
+        normal[k, j] = n[j]
+
+
+@fast_kernel
+def _frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, point_first: ti.template(),
+                   weights: _F64_2, normal: _F64_2):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(count):
+        if ti.static(point_first):
+            _point_triangle_frame(x, vertices, k, side[k], weights, normal)
+        else:
+            _edge_edge_frame(x, vertices, k, side[k], weights, normal)
+
+
+def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point_first: bool
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Closest-point weights and unit normals of pairs (the geometric part of the reference
+    ``contact_frames``, module docstring).
+
+    Args:
+        x: positions, shape ``(n, 3)`` (m).
+        vertices: ``[p, a, b, c]`` (``point_first``, vertex-triangle) or ``[a0, a1, b0, b1]``
+            (edge-edge) global vertex indices, shape ``(k, 4)``.
+        sides: the pairs' step sides (+1 / -1, 0 unsigned: the side of ``x`` itself), shape ``(k,)``.
+        point_first: vertex-triangle (True) or edge-edge (False) pairs.
+
+    Returns:
+        ``(weights (k, 4), normal (k, 3))``: the relative position of the first side w.r.t. the
+        second is ``sum_j weights[:, j] x[vertices[:, j]]``; the normal (direction of the force on
+        the first side) is unit.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("contact set-up kernels")
+    k = len(vertices)
+    if not k:
+        return np.empty((0, 4)), np.empty((0, 3))
+    side = _ARRAYS.rows("side", k)
+    side[:k] = np.reshape(sides, -1)
+    weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
+    _frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, bool(point_first), weights,
+                   normal)
+    return weights[:k].copy(), normal[:k].copy()
+
+
+@ti.func
+def _tangent_frame(normal: ti.template(), k: ti.i32, tangent: ti.template()):
+    """Tangent basis row ``k`` of unit normal row ``k`` (:func:`tangent_basis`)."""
+    n = ti.Vector([normal[k, 0], normal[k, 1], normal[k, 2]], ti.f64)
+    axis = 0  # the first coordinate axis of least |n_i| (np.argmin)
+    if ti.abs(n[1]) < ti.abs(n[0]):
+        axis = 1
+    if ti.abs(n[2]) < ti.abs(n[axis]):
+        axis = 2
+    e = ti.Vector([0.0, 0.0, 0.0], ti.f64)
+    e[axis] = 1.0
+    t1 = _unit(cd._cross(n, e))
+    t2 = cd._cross(n, t1)
+    for d in ti.static(range(3)):
+        tangent[k, d, 0] = t1[d]
+        tangent[k, d, 1] = t2[d]
+
+
+@fast_kernel
+def _tangent_kernel(normal: _F64_2, count: ti.i32, tangent: _F64_3):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(count):
+        _tangent_frame(normal, k, tangent)
+
+
+@fast_kernel
+def _friction_frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, split: ti.i32,
+                            weights: _F64_2, normal: _F64_2, tangent: _F64_3):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`): vertex-triangle pairs below ``split``,
+    edge-edge pairs from there; frame, then tangent basis."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(count):
+        if k < split:
+            _point_triangle_frame(x, vertices, k, side[k], weights, normal)
+        else:
+            _edge_edge_frame(x, vertices, k, side[k], weights, normal)
+        _tangent_frame(normal, k, tangent)
+
+
+def tangent_basis(normal: np.ndarray) -> np.ndarray:
+    """Taichi twin of :func:`sim_core.energies.friction.reference.tangent_basis`: orthonormal tangent bases
+    ``T`` (columns ``t1 = normalise(n x a)``, ``a`` the coordinate axis least aligned with ``n``, and
+    ``t2 = n x t1``) of unit normals ``(p, 3)``, shape ``(p, 3, 2)``.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("contact set-up kernels")
+    normal = np.reshape(normal, (-1, 3))
+    k = len(normal)
+    if not k:
+        return np.empty((0, 3, 2))
+    kept, tangent = _ARRAYS.rows("normal_in", k, (3,)), _ARRAYS.rows("tangent", k, (3, 2))
+    kept[:k] = normal
+    _tangent_kernel(kept, k, tangent)
+    return tangent[:k].copy()
+
+
+def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest-point weights, unit normals and tangent bases of vertex-triangle and edge-edge pairs in
+    one launch: :func:`contact_frames` of each kind, then :func:`tangent_basis` of the normals (the same
+    values bit for bit), what lagged friction freezes of its pairs.
+
+    Args:
+        x: positions, shape ``(n, 3)`` (m).
+        vertices: the first ``split`` rows ``[p, a, b, c]`` (vertex-triangle), the others
+            ``[a0, a1, b0, b1]`` (edge-edge), global vertex indices, shape ``(k, 4)``.
+        sides: the pairs' step sides (+1 / -1, 0 unsigned), shape ``(k,)``.
+        split: number of vertex-triangle rows, ``0 <= split <= k``.
+
+    Returns:
+        ``(weights (k, 4), normal (k, 3), tangent (k, 3, 2))``.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    require_backend("contact set-up kernels")
+    k = len(vertices)
+    if not k:
+        return np.empty((0, 4)), np.empty((0, 3)), np.empty((0, 3, 2))
+    side = _ARRAYS.rows("side", k)
+    side[:k] = np.reshape(sides, -1)
+    weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
+    tangent = _ARRAYS.rows("tangent", k, (3, 2))
+    _friction_frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, int(split), weights,
+                            normal, tangent)
+    return weights[:k].copy(), normal[:k].copy(), tangent[:k].copy()
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the kernels on one pair each.
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.array([[0.0, 0.0, 1.0e-3], [0.0, 0.0, 0.0], [1.0e-2, 0.0, 0.0], [0.0, 1.0e-2, 0.0]])
+    pair = np.arange(4)[None]
+    pair_geometry(x, pair, pair)
+    for point_first in (True, False):
+        contact_frames(x, pair, np.ones(1), point_first)
+    tangent_basis(np.array([[0.0, 0.0, 1.0]]))
+    friction_frames(x, np.concatenate([pair, pair]), np.ones(2), 1)

@@ -1,0 +1,280 @@
+"""Lagged IPC friction in Taichi kernels: energy, gradient and Hessian blocks of the frozen pairs.
+
+The Taichi twin of :class:`sim_core.energies.friction.reference.LaggedFriction` (the reference and test
+oracle; Li et al., "Incremental Potential Contact", SIGGRAPH 2020, eq. 14-15). Per pair ``k`` with
+block vertices ``j`` (weights ``w_kj``), tangent basis ``T_k`` (3 x 2) and ``c_k = mu_k lam_k`` (N):
+
+    u_k = T_k^T sum_j w_kj (x_j - x^n_j),   y_k = |u_k|,   E = sum_k c_k f0(y_k),
+    dE/dx_j = c_k (f1(y)/y) w_kj T_k u_k,
+    d2E/dx_a dx_b = c_k w_ka w_kb T_k [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T_k^T,
+
+with the mollifier ``f0`` of :func:`sim_core.energies.friction.reference.smooth_friction_f0` and the same
+piecewise forms of ``f1/y`` and ``(f1' y - f1)/y^3`` (``eps_u = eps_v dt``). A Forming step has
+about a hundred pairs: the NumPy reference spends its time in a dozen small array operations per
+call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
+wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
+keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
+only the output arrays (:mod:`sim_core.ti_kernels.launch`). Loops are serial on the CPU (the
+energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
+round-off (tests: 1e-12 relative).
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
+# objects (string annotations are rejected).
+
+import numpy as np
+
+from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.contact.reference import ContactFrames
+from sim_core.energies.contact.setup_kernel import tangent_basis
+from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.workspace import workspace_of
+
+_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+
+
+@ti.func
+def _tangential_displacement(x: ti.template(), x_prev: ti.template(), vertices: ti.template(),
+                             weights: ti.template(), tangent: ti.template(), k: ti.i32):
+    """``u = T^T sum_j w_j (x_j - x^n_j)`` (2-vector, m) of pair ``k``."""
+    rel = ti.Vector.zero(ti.f64, 3)
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            rel[d] += weights[k, j] * (x[v, d] - x_prev[v, d])
+    u = ti.Vector.zero(ti.f64, 2)
+    for i in ti.static(range(2)):
+        for d in ti.static(range(3)):
+            u[i] += tangent[k, d, i] * rel[d]
+    return u
+
+
+@ti.func
+def _f0(y, eps_u):
+    r = y
+    if y < eps_u:
+        r = -(y ** 3) / (3.0 * eps_u ** 2) + y * y / eps_u + eps_u / 3.0
+    return r
+
+
+@ti.func
+def _f1_over_x(y, eps_u):
+    r = 0.0
+    if y < eps_u:
+        r = 2.0 / eps_u - y / eps_u ** 2
+    else:
+        r = 1.0 / ti.max(y, eps_u)
+    return r
+
+
+@ti.func
+def _f2_x_minus_f1_over_x3(y, eps_u):
+    r = 0.0
+    if y > 0.0:
+        if y < eps_u:
+            r = -1.0 / (eps_u ** 2 * y)
+        else:
+            r = -1.0 / y ** 3
+    return r
+
+
+@ti.func
+def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
+    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+    u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+    scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+    tu = ti.Vector.zero(ti.f64, 3)
+    for d in ti.static(range(3)):
+        tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            grad[v, d] += weights[k, j] * tu[d]
+
+
+@ti.func
+def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
+    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m)."""
+    u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+    y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
+    f1x = _f1_over_x(y, eps_u)
+    f2 = _f2_x_minus_f1_over_x3(y, eps_u)
+    Hu = ti.Matrix.zero(ti.f64, 2, 2)
+    for i, j in ti.static(ti.ndrange(2, 2)):
+        Hu[i, j] = f2 * u[i] * u[j]
+        if ti.static(i == j):
+            Hu[i, j] += f1x
+    H3 = ti.Matrix.zero(ti.f64, 3, 3)
+    for d, e in ti.static(ti.ndrange(3, 3)):
+        acc = 0.0
+        for i, j in ti.static(ti.ndrange(2, 2)):
+            acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
+        H3[d, e] = acc * coefficient[k]
+    for a in range(vertices.shape[1]):
+        for b in range(vertices.shape[1]):
+            wab = weights[k, a] * weights[k, b]
+            for d, e in ti.static(ti.ndrange(3, 3)):
+                blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
+
+
+_ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
+_NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
+_NO_BLOCKS = np.zeros((0, 0, 0))
+
+
+@fast_kernel
+def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, energy: _F64_1, grad: _F64_2,
+                     blocks: _F64_3):
+    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
+    kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
+    ``_GRADIENT`` adds ``dE/dx`` (N) to ``grad`` ``(n, 3)``, ``_HESSIAN`` writes the pair blocks
+    ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written to an array rather than
+    returned: a launch then needs no synchronisation for a return value."""
+    energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0]):
+        if want & _ENERGY:
+            u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+            energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        if want & _GRADIENT:
+            _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+        if want & _HESSIAN:
+            _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+
+
+class TiLaggedFriction(LaggedFriction):
+    """:class:`~sim_core.energies.friction.reference.LaggedFriction` with energy, gradient and Hessian on the
+    Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
+    :func:`sim_core.ti_backend.init_backend`)."""
+
+    @classmethod
+    def from_frames(cls, frames: ContactFrames, mu: np.ndarray | float, x_prev: np.ndarray, eps_v: float,
+                    dt: float) -> "TiLaggedFriction":
+        """As the reference :meth:`~sim_core.energies.friction.reference.LaggedFriction.from_frames`, the
+        tangent bases from one launch of :func:`sim_core.energies.contact.setup_kernel.tangent_basis`
+        (equal to the reference's bit for bit)."""
+        return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
+
+    def _kernel_arrays(self, x: np.ndarray) -> tuple:
+        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; ``x`` and
+        the coefficients, ``mu`` may be edited, are copied into kept arrays)."""
+        arrays = getattr(self, "_arrays", None)
+        if arrays is None or arrays[0].shape != x.shape:
+            require_backend("TiLaggedFriction")
+            arrays = (np.empty(x.shape),
+                      np.ascontiguousarray(self.x_prev, dtype=np.float64),
+                      np.ascontiguousarray(self.vertices, dtype=np.int32),
+                      np.ascontiguousarray(self.weights, dtype=np.float64),
+                      np.ascontiguousarray(self.tangent, dtype=np.float64),
+                      np.empty(self.vertices.shape[0]))
+            self._arrays, self._energy = arrays, np.zeros(1)
+        np.copyto(arrays[0], x)
+        np.multiply(self.mu, self.lam, out=arrays[-1])
+        return arrays
+
+    def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
+                blocks: np.ndarray = _NO_BLOCKS) -> float:
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`); the energy
+        (J) when ``want`` asks for it."""
+        _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
+        return float(self._energy[0])
+
+    def keep_derivatives(self, x: np.ndarray) -> None:
+        """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
+        workspace (:mod:`sim_core.workspace`) for :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
+        ``x``, coefficients and ``eps_u``; the next :meth:`gradient` call drops them (the Newton
+        line search evaluates a trial point this way when, once accepted, it is the next iterate)."""
+        p, m = self.vertices.shape
+        if not p:
+            return
+        arrays = self._kernel_arrays(x)
+        grad = np.zeros((x.shape[0], 3))
+        blocks = np.empty((p, 3 * m, 3 * m))
+        energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
+        workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
+
+    def _kept(self, arrays: tuple) -> tuple | None:
+        """The :meth:`keep_derivatives` result for these kernel arrays (same ``x``, coefficients, ``eps_u``), or None."""
+        kept = workspace_of(self).get(self, "derivatives")
+        return kept if kept is not None and self._matches(kept, arrays) else None
+
+    def energy(self, x: np.ndarray) -> float:
+        """Friction dissipation potential in J."""
+        if self.vertices.shape[0] == 0:
+            return 0.0
+        arrays = self._kernel_arrays(x)
+        kept = self._kept(arrays)
+        if kept is not None:
+            return kept[3]
+        return self._launch(arrays, _ENERGY)
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N (minus the friction force), shape ``(n, 3)``.
+
+        The same launch computes the Hessian blocks at ``x`` (the Newton solver asks for them next),
+        kept in the workspace (:mod:`sim_core.workspace`) for one :meth:`hessian` call at equal ``x``,
+        coefficients and ``eps_u``. The gradient is
+        kept too, for one more :meth:`gradient` call at equal ``x`` (the solver's contact force at the
+        converged positions, where its last iteration took the gradient): that call returns it and
+        keeps nothing, so the workspace holds no arrays of a step's friction after the step.
+        """
+        grad = np.zeros((x.shape[0], 3))
+        p, m = self.vertices.shape
+        if p:
+            arrays = self._kernel_arrays(x)
+            workspace = workspace_of(self)
+            again = workspace.take(self, "gradient")
+            if again is not None and self._matches(again, arrays):
+                return again[3]
+            kept = self._kept(arrays)
+            workspace.take(self, "derivatives")  # consumed
+            if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
+                workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
+                workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
+                return kept[4].copy()
+            blocks = np.empty((p, 3 * m, 3 * m))
+            self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
+            kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
+            workspace.put(self, "gradient", kept_hessian[:3] + (grad.copy(),))
+        return grad
+
+    def _matches(self, kept: tuple, arrays: tuple) -> bool:
+        """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and
+        coefficients and the current ``eps_u``."""
+        return kept[2] == self.eps_u and np.array_equal(kept[0], arrays[0]) and np.array_equal(kept[1], arrays[-1])
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-pair blocks ``(p, 3m, 3m)``, PSD by construction (``projection`` is not needed); the
+        blocks computed with the last :meth:`gradient` when that was at the same ``x`` and coefficients."""
+        p, m = self.vertices.shape
+        if p == 0:
+            return HessianBlocks.empty(m)
+        arrays = self._kernel_arrays(x)
+        kept = workspace_of(self).take(self, "hessian")
+        if kept is not None and self._matches(kept, arrays):
+            return HessianBlocks(self.vertices, kept[3])
+        blocks = np.empty((p, 3 * m, 3 * m))
+        self._launch(arrays, _HESSIAN, blocks=blocks)
+        return HessianBlocks(self.vertices, blocks)
+
+
+def compile_kernels() -> None:
+    """JIT-compile (or load from Taichi's offline cache) the kernel on one pair (every request).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    x = np.zeros((4, 3))
+    friction = TiLaggedFriction(np.arange(4)[None], np.array([[1.0, -0.5, -0.25, -0.25]]),
+                                np.eye(3)[None, :, :2], np.ones(1), 0.5, x, 0.01, 0.01)
+    friction.energy(x + 1e-4)
+    friction.gradient(x + 1e-4)
+    friction.hessian(x + 1e-4)  # the blocks kept by the gradient
+    friction.hessian(x + 1e-4)  # the Hessian kernel
+    friction.keep_derivatives(x + 2e-4)  # energy, gradient and Hessian in one launch

@@ -1,0 +1,18 @@
+"""The inertia term of the incremental potential (implicit Euler as minimisation).
+
+- ``reference.py``: :class:`InertiaPotential` in NumPy (no Taichi kernel: diagonal, cheap).
+"""
+
+from __future__ import annotations
+
+from sim_core.energies.inertia.reference import InertiaPotential
+
+ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {}
+"""Elastic potential kind -> (NumPy class, Taichi twin class), each as (module, name):
+the registration read by :func:`sim_core.energies.registry.make_elastic_potential`."""
+
+FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {}
+"""Potential class -> fused part class, each as (module, name): the registration read by
+:data:`sim_core.fused_elastic.FUSED_KERNELS`. Taichi modules are imported on first use."""
+
+__all__ = ['InertiaPotential', 'ELASTIC_KINDS', 'FUSED_KERNELS']

@@ -1,1 +1,0 @@
-"""Energy terms of the incremental potential: one module per potential (see base.py)."""

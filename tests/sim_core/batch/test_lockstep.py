@@ -1,0 +1,152 @@
+"""Lockstep batches (SolverConfig.lockstep, sim_core.batch.lockstep / stacked): one Newton solve of all
+copies per step gives, per copy, the states of separate runs to the Newton tolerance; a copy that
+diverges is reported and the others finish; the stacked model keeps the copies apart."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from sim_core.batch import BatchedSimulation
+from sim_core.batch.stacked import stack_models
+from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.scenes.task_scene import task_initial_state
+from sim_core.simulation import Simulation
+from sim_core.solver_config import SolverConfig
+from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
+
+LOCKSTEP = SolverConfig(lockstep=True)
+TOL = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
+
+
+@pytest.fixture(scope="module")
+def model():
+    return pad_model()
+
+
+def _lockstep_batch(model, config=LOCKSTEP, params=PARAMS):
+    return BatchedSimulation.from_model(model, len(params), params=params, state=task_initial_state(model),
+                                        solver_config=config)
+
+
+def _run(batch, steps=STEPS):
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    per_step, results = [], []
+    for k in range(steps):
+        res = batch.step([control(pose0, MOTIONS[i], k) for i in range(batch.batch_size)])
+        results.append(res)
+        per_step.append([s.copy() for s in batch.states])
+    return per_step, results
+
+
+def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model):
+    batch = _lockstep_batch(model)
+    assert batch.lockstep is not None
+    per_step, results = _run(batch)
+    solver = batch.lockstep.solver
+    for res in results:
+        assert res.failed_now == [] and all(info is not None and info.iterations >= 1 for info in res.infos)
+    # one Newton iteration of all copies together: the step's iterations are the slowest copy's, and it
+    # factorised far fewer matrices than the copies' iterations add up to
+    first = [info.iterations for info in results[-1].infos]
+    assert solver.last_stacked_info.iterations == max(first)
+    stiffness = model.contact.stiffness
+    for i in range(3):
+        alone = separate_run(model, PARAMS[i], MOTIONS[i])
+        for k in range(STEPS):
+            got, ref = per_step[k][i], alone[k]
+            assert np.max(np.abs(got.x - ref.x)) <= TOL, (i, k)
+            assert np.max(np.abs(got.v - ref.v)) <= TOL / 0.005 * 2, (i, k)
+            # a penalty force changes by the stiffness times the position change
+            assert np.max(np.abs(got.contact_force - ref.contact_force)) <= stiffness * TOL, (i, k)
+            assert got.step_index == ref.step_index == k + 1 and got.t == pytest.approx(ref.t)
+            np.testing.assert_allclose(got.effector_pose["pad"], ref.effector_pose["pad"], atol=1e-12)
+    x = batch.positions()
+    assert min(np.max(np.abs(x[0] - x[1])), np.max(np.abs(x[0] - x[2])), np.max(np.abs(x[1] - x[2]))) > 100 * TOL
+    # the copies' own parameters reached the stacked model: one material group per parameter set
+    assert batch.lockstep.scene.model.bodies["pad#1"].material["youngs_modulus"] == 6e5
+    assert batch.lockstep.scene.model.bodies["pad#0"].material["youngs_modulus"] == 3e5
+
+
+def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model):
+    batch = _lockstep_batch(model)
+    sheet = model.bodies["sheet"].vertices
+    # copy 1 starts from a blown-up state (one sheet vertex with a non-finite velocity): its incremental
+    # potential has a non-finite gradient, and its separate run raises
+    batch.sims[1].state.v[sheet[len(sheet) // 2]] = [0.0, 0.0, np.nan]
+    start = batch.states[1].copy()
+    alone = Simulation(copy.deepcopy(batch.sims[1].model))
+    alone.state = start.copy()
+    with pytest.raises(SimulationDivergedError):
+        alone.step(control(start.effector_pose["pad"], MOTIONS[1], 0))
+    _, results = _run(batch)
+    assert results[0].failed_now == [1] and results[0].infos[1] is None
+    assert batch.failures[1].startswith("step 0 ") and "non-finite gradient" in batch.failures[1]
+    assert all(not res.stepped[1] and res.infos[1] is None for res in results[1:])  # not stepped again
+    assert list(batch.active) == [True, False, True]
+    np.testing.assert_array_equal(batch.states[1].x, start.x)  # the last good state is kept
+    assert np.all(np.isfinite(batch.positions()[[0, 2]]))  # nothing of copy 1 leaked into the others
+    assert batch.states[1].step_index == 0
+    for i in (0, 2):
+        ref = separate_run(model, PARAMS[i], MOTIONS[i])[-1]
+        assert batch.states[i].step_index == STEPS
+        assert np.max(np.abs(batch.states[i].x - ref.x)) <= TOL
+    batch.reset()
+    assert list(batch.active) == [True, True, True] and batch.states[1].step_index == 0
+
+
+def test_stacked_model_keeps_the_copies_apart_and_shares_one_term_per_energy(model):
+    same = stack_models([copy.deepcopy(model) for _ in range(4)])
+    n = model.vertex_count
+    assert same.model.vertex_count == 4 * n and same.index.shape == (4, n)
+    assert sorted(np.unique(same.index)) == list(range(4 * n))  # every stacked vertex is one copy's
+    # one material group: the scene's bodies, each holding all copies (one kernel per energy term)
+    assert list(same.model.bodies) == list(model.bodies)
+    assert same.model.bodies["sheet"].triangles.shape[0] == 4 * model.bodies["sheet"].triangles.shape[0]
+    assert list(same.model.friction) == list(model.friction)
+    # copies translated along the planes (their normals see no offset), farther apart than the scene
+    for p in model.planes.values():
+        np.testing.assert_allclose(same.offset @ np.asarray(p.normal, float), 0.0, atol=1e-12)
+    extent = np.ptp(model.x_rest, axis=0).max()
+    gaps = [np.linalg.norm(same.offset[i] - same.offset[j]) for i in range(4) for j in range(i)]
+    assert min(gaps) >= extent + 0.5
+    # positions and poses go in and come back out unchanged
+    state = task_initial_state(model)
+    back = same.copy_state(same.stack_states([state] * 4), 3, state.t, 0)
+    np.testing.assert_allclose(back.x, state.x, atol=1e-15)
+    np.testing.assert_allclose(back.effector_pose["pad"], state.effector_pose["pad"], atol=1e-15)
+
+    # after steps with contact, no contact candidate pairs two copies
+    batch = _lockstep_batch(model)
+    _run(batch, steps=2)
+    scene, contact = batch.lockstep.scene, batch.lockstep.solver.contact
+    copy_of = np.empty(scene.model.vertex_count, dtype=np.int64)
+    copy_of[scene.index] = np.arange(scene.copies)[:, None]
+    terms = batch.lockstep.solver.last_record.terms
+    vt = next(t for t in terms if type(t).__name__.endswith("VertexTriangleContact"))
+    ee = next(t for t in terms if type(t).__name__.endswith("EdgeEdgeContact"))
+    assert len(vt.pairs) > 0
+    vt_vertices = np.column_stack([vt.pairs[:, 0], contact.triangles[vt.pairs[:, 1]]])
+    ee_vertices = np.column_stack([contact.edges[ee.pairs[:, 0]], contact.edges[ee.pairs[:, 1]]])
+    for verts in (vt_vertices, ee_vertices):
+        assert np.all(copy_of[verts] == copy_of[verts[:, :1]])
+
+
+def test_lockstep_settings_are_checked(model):
+    with pytest.raises(ConfigError, match="pcg.*Taichi backend"):
+        SolverConfig(lockstep=True, linear_solver="pcg")
+    sims = [Simulation(copy.deepcopy(model), solver_config=LOCKSTEP), Simulation(copy.deepcopy(model), dt=0.002,
+                                                                                   solver_config=LOCKSTEP)]
+    with pytest.raises(ConfigError, match="batch copy 1: dt"):
+        BatchedSimulation(sims)
+    other = copy.deepcopy(model)
+    other.set_parameter("contact.stiffness", 1e3)
+    with pytest.raises(ConfigError, match="batch copy 1: its contact settings differ"):
+        stack_models([model, other])
+    batch = _lockstep_batch(model, params=[{}, {}])
+    guess = control(batch.states[0].effector_pose["pad"], MOTIONS[0], 0)
+    guess.position_guess = batch.states[0].x.copy()
+    with pytest.raises(ConfigError, match="batch copy 0: a lockstep batch takes no Control.position_guess"):
+        batch.step([guess, None])

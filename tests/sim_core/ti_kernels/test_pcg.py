@@ -1,0 +1,82 @@
+"""The batched block-Jacobi conjugate gradient (sim_core.ti_kernels.pcg.BatchedPCG): each copy's block of
+a block-diagonal system solved to its own tolerance, a copy with a zero right-hand side left at zero,
+an indefinite copy reported; and a lockstep batch whose Newton systems it solves gives the separate
+runs' states."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from sim_core.batch import BatchedSimulation
+from sim_core.scenes.task_scene import task_initial_state
+from sim_core.solver_config import SolverConfig
+from tests.support.batch_copies import MOTIONS, PARAMS, control, pad_model, separate_run
+
+
+def _spd_block(m: int, seed: int, shift: float) -> sp.csr_matrix:
+    """A sparse symmetric positive definite ``(m, m)`` matrix with 3x3 vertex coupling, condition ~1e3."""
+    rng = np.random.default_rng(seed)
+    a = sp.random(m, m, density=0.08, random_state=rng)
+    return (a @ a.T + shift * sp.eye(m) + sp.kron(sp.eye(m // 3), rng.uniform(0.1, 1.0) * np.ones((3, 3)))).tocsr()
+
+
+def test_each_copy_is_solved_to_its_tolerance(ti_cpu):
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    blocks = [_spd_block(60, seed, shift) for seed, shift in ((0, 0.01), (1, 1.0), (2, 10.0))]
+    A = sp.block_diag(blocks, format="csr")
+    segments = np.repeat(np.arange(3), 60)
+    solver = BatchedPCG(segments, rtol=1e-12)
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    assert solver.factorize(upper)
+    b = np.random.default_rng(5).normal(size=A.shape[0])
+    b[60:120] = 0.0  # copy 1 has nothing to solve
+    x = solver.solve(b)
+    want = spla.spsolve(A.tocsc(), b)
+    for c in (0, 2):
+        part = slice(60 * c, 60 * (c + 1))
+        assert np.linalg.norm(x[part] - want[part]) <= 1e-9 * np.linalg.norm(want[part])
+        assert np.linalg.norm(A[part, part] @ x[part] - b[part]) <= 1e-11 * np.linalg.norm(b[part])
+    np.testing.assert_array_equal(x[60:120], 0.0)
+    assert not solver.indefinite.any() and not solver.unconverged.any() and solver.iterations > 8
+    # a copy whose block is indefinite is reported; the others are still solved
+    blocks[2] = (blocks[2] - 50.0 * sp.eye(60)).tocsr()
+    A = sp.block_diag(blocks, format="csr")
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    solver.factorize(upper)
+    x = solver.solve(b)
+    assert list(solver.indefinite) == [False, False, True]
+    assert np.linalg.norm(x[:60] - want[:60]) <= 1e-9 * np.linalg.norm(want[:60])
+
+
+def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu):
+    model = pad_model()
+    steps = 2
+    batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
+                                         solver_config=SolverConfig(backend="taichi-cpu", lockstep=True,
+                                                                    linear_solver="pcg"))
+    assert batch.lockstep.solver.pcg is not None
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    got = []
+    for k in range(steps):
+        res = batch.step([control(pose0, MOTIONS[i], k) for i in range(3)])
+        assert res.failed_now == []
+        got.append([s.x.copy() for s in batch.states])
+    assert batch.lockstep.solver.pcg.iterations > 0
+    tol = SolverConfig().tol_velocity * 0.005
+    for i in range(3):
+        alone = separate_run(model, PARAMS[i], MOTIONS[i])
+        for k in range(steps):
+            assert np.max(np.abs(got[k][i] - alone[k].x)) <= tol, (i, k)
+
+
+def test_pcg_needs_a_taichi_backend():
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="pcg"):
+        SolverConfig(linear_solver="pcg")
