@@ -1,8 +1,8 @@
 """Packaging of thinshell: pip (``pip install -e .``) and ROS 2 ament_python (``colcon build``).
 
 Installs the Python packages ``sim_core``, ``sysid`` and ``thinshell_ros`` with their package data
-(``sysid/data``; ``config/`` and ``bags/`` as the package data of ``thinshell_ros.bundled``, which
-:mod:`thinshell_ros.paths` reads with ``importlib.resources``), the ament resource-index marker,
+(``sysid/data``; ``config/`` as the package data of ``sim_core.bundled`` and ``bags/`` as that of
+``thinshell_ros.bundled``, which :mod:`thinshell_ros.paths` reads with ``importlib.resources``), the ament resource-index marker,
 ``package.xml`` and every file under ``config/`` into ``share/thinshell`` (the ROS convention, for
 ``ros2 launch`` / parameter files), and the console scripts (also under ``lib/thinshell`` for
 ``ros2 run``, see ``setup.cfg``).
@@ -35,8 +35,9 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["sim_core", "sim_core.*", "sysid", "sysid.*", "thinshell_ros", "thinshell_ros.*"]),
-    # thinshell_ros/bundled/config and bags link to the top-level folders; installed as copies
-    package_data={"sysid.data": ["*.yaml"], "thinshell_ros.bundled": ["config/**/*", "bags/**/*"]},
+    # sim_core/bundled/config and thinshell_ros/bundled/bags link to the top-level folders; installed as copies
+    package_data={"sysid.data": ["*.yaml"], "sim_core.bundled": ["config/**/*"],
+                  "thinshell_ros.bundled": ["bags/**/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         (os.path.join("share", PACKAGE), ["package.xml"]),

@@ -1,7 +1,7 @@
 """``thinshell bench sysid``: time a material fit on a whole recording (issue: 3 parameters, 4 s).
 
-Runs ``thinshell sysid`` in-process on a bag (default: the bundled ``bags/nominal_s101``, a 3.6 s
-press-slide recording made by an independent engine) with the three default parameters (bending
+Runs ``thinshell sysid`` in-process on a bag (``thinshell bench sysid`` passes the bundled
+``bags/nominal_s101``, a 3.6 s press-slide recording made by an independent engine, as the default) with the three default parameters (bending
 stiffness, gel modulus, gel-sheet friction) over the whole recording, into a temporary output
 directory (or ``--out``), and prints the wall time with the fit's own figures. Results are recorded
 by hand in ``docs/benchmarks_log.md``.
@@ -27,14 +27,15 @@ from typing import Sequence
 
 from sysid.cli import sysid_main
 
-DEFAULT_BAG = Path(__file__).resolve().parents[1] / "bags" / "nominal_s101"
 DEFAULT_PARAMS = "sheet.bending_stiffness,gel.youngs_modulus,friction.gel_sheet"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``thinshell bench sysid``."""
+def build_parser(default_bag: str | Path | None = None) -> argparse.ArgumentParser:
+    """The argument parser of ``thinshell bench sysid``; ``default_bag`` is the ``--bag`` default
+    (required when None)."""
     p = argparse.ArgumentParser(prog="thinshell bench sysid", description="time a material fit on a recording")
-    p.add_argument("--bag", default=str(DEFAULT_BAG), help="bag directory (default: bundled nominal_s101)")
+    p.add_argument("--bag", default=None if default_bag is None else str(default_bag), required=default_bag is None,
+                   help="bag directory (default: the caller's, the bundled nominal_s101 for `thinshell bench sysid`)")
     p.add_argument("--params", default=DEFAULT_PARAMS, help="parameters to fit (default: %(default)s)")
     p.add_argument("--t-max", type=float, default=None, help="fit only the first T s (default: whole recording)")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
@@ -44,15 +45,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def bench_sysid_main(argv: Sequence[str] | None = None) -> int:
+def bench_sysid_main(argv: Sequence[str] | None = None, default_bag: str | Path | None = None) -> int:
     """Run the benchmark; returns the exit code (that of ``thinshell sysid`` on failure).
+
+    ``default_bag`` is the recording used without ``--bag`` (``--bag`` is required when None).
 
     The ``--json`` line has the keys ``bag``, ``params``, ``duration_s`` (fitted span of the
     recording), ``steps``, ``dt``, ``wall_s`` (the whole command), ``fit_wall_s`` (the fit itself),
     ``iterations``, ``sim_runs``, ``status``, ``values`` {name: [initial, fitted]}, ``rms``
     {channel: [before, after]}, ``python``, ``machine``.
     """
-    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    args = build_parser(default_bag).parse_args(list(sys.argv[1:] if argv is None else argv))
     with tempfile.TemporaryDirectory(prefix="thinshell_bench_sysid_") as tmp:
         out = Path(args.out) if args.out else Path(tmp) / "fit"
         cmd = [args.bag, "--params", args.params, "--dt", str(args.dt), "--out", str(out), "--quiet", *args.extra]

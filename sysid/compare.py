@@ -3,7 +3,7 @@
 Usage::
 
     thinshell compare BAG --scene S [--scene-nominal S0] [--label NAME] --out DIR [--force] [--t-max T] [--dt DT]
-                          [--arch cpu|numpy] [--gel-resolution NX,NY,NZ]
+                          [--arch cpu|numpy] [--gel-resolution NX,NY,NZ] [--task TASK]
 
 Every scene replays the recording's effector motion (the recorded effector poses, kinematically, as
 the fitter does: :class:`sysid.observation.ObservationModel` at its values) and predicts every channel
@@ -18,6 +18,11 @@ Outputs in ``DIR`` (filled in a hidden sibling and renamed into place; an existi
 without ``--force``): ``compare.json`` (``rms``: scene -> channel -> entry, ``better``: channel ->
 scene with the lower whitened RMS, provenance), ``wrench.png``, ``markers.png``, ``sheet_points.png``
 (overlays of the recording and every scene's prediction), ``report.md`` and ``report.html``.
+
+``--task TASK`` (a task-scene recording, e.g. a deployed ``thinshell optimise`` trajectory): the task's
+reward achieved on the recording and predicted by every scene, each measured on the sheet points at
+the end of the commanded motion (:mod:`sysid.task_reward`), in ``compare.json`` (``reward``) and the
+report.
 """
 
 from __future__ import annotations
@@ -35,11 +40,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sim_core.errors import ThinShellError
+from sim_core.errors import ConfigError, ThinShellError
 from sysid.evidence import load_evidence
 from sysid.fitted_scene import sensor_calibration_of
 from sysid.observation import ObservationModel
 from sysid.results import staged_directory
+from sysid.task_reward import TaskRewardProbe, reward_sample_index
 
 PROG = "thinshell compare"
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
@@ -60,6 +66,8 @@ class Comparison:
         wall_time_s: label -> replay wall time, s.
         replay: label -> how the replay's steps ended (``StepTotals`` as a dict: steps, substep
             retries, relaxed acceptances).
+        reward: with a task, ``{"task", "unit", "t_s", "recording", "predicted": {label: value}}``
+            (:func:`task_rewards`), else None.
     """
 
     bag: Path
@@ -70,6 +78,7 @@ class Comparison:
     rms: dict[str, dict[str, dict[str, Any]]]
     wall_time_s: dict[str, float]
     replay: dict[str, dict[str, Any]] = field(default_factory=dict)
+    reward: dict[str, Any] | None = None
 
     def better(self) -> dict[str, str]:
         """Channel -> label of the scene with the lowest whitened RMS (``tie`` when equal to 1e-9)."""
@@ -84,7 +93,8 @@ class Comparison:
 
 def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | None]], *, dt: float = 0.01,
                       t_max: float | None = None, arch: str = "cpu",
-                      simulation: dict | None = None) -> Comparison:
+                      simulation: dict | None = None, task: str | None = None,
+                      horizon: int | None = None) -> Comparison:
     """Replay ``bag``'s motion in every scene and compare the predictions with the recording.
 
     Args:
@@ -92,9 +102,12 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         scenes: ``(label, scene file)``; a None file is the bag's ``scene.yaml``.
         dt: replay step, s. t_max: use only the first ``t_max`` s. arch: ``numpy`` | ``cpu`` | ``cuda``.
         simulation: overrides of every scene's ``simulation:`` block (e.g. a coarser ``gel_resolution``).
+        task: a task name or file: also the task's reward achieved and predicted (:func:`task_rewards`).
+        horizon: the task at this many steps (``thinshell optimise --horizon``; None: the task's).
 
     Raises:
-        BagReadError: unreadable bag. ConfigError: invalid scene. CalibrationError: nothing to compare.
+        BagReadError: unreadable bag. ConfigError: invalid scene, or a task whose reward cannot be
+            measured on the recording. CalibrationError: nothing to compare.
         SimulationDivergedError: a replay failed (names the step).
     """
     evidence = load_evidence(bag, include_image="auto")
@@ -117,7 +130,31 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         out.rms[label] = model.channel_rms(prediction)
         if trace.step_totals is not None:
             out.replay[label] = dataclasses.asdict(trace.step_totals)
+    if task is not None:
+        out.reward = task_rewards(out, task, horizon)
     return out
+
+
+def task_rewards(cmp: Comparison, task: str, horizon: int | None = None) -> dict[str, Any]:
+    """The task's reward on the recording's sheet points and on every scene's prediction of them, at the
+    end of the commanded motion (:mod:`sysid.task_reward`).
+
+    Raises:
+        ConfigError: no sheet points, a reward that reads more than them, or no sample after the motion.
+    """
+    from sim_core.optim.tasks import task_at_horizon
+
+    spec = task_at_horizon(task, horizon)
+    model = cmp.models[cmp.labels[0]]
+    if "sheet_points" not in cmp.predictions[cmp.labels[0]]:
+        raise ConfigError(f"{cmp.bag}: no sheet/points recorded; task {spec.name}'s reward cannot be measured")
+    probe = TaskRewardProbe(spec)
+    t_ns = model.evidence.t_ns["sheet_points"]
+    k = reward_sample_index(model.evidence, t_ns)
+    return {"task": spec.name, "unit": spec.reward_units, "t_s": float((t_ns[k] - model.step_times_ns[0]) * 1e-9),
+            "recording": probe(model.data("sheet_points")[k]),
+            "predicted": {lab: probe(cmp.predictions[lab]["sheet_points"][k]) for lab in cmp.labels},
+            "success_score": spec.success_score, "human_score": spec.human_score}
 
 
 # ----------------------------------------------------------------------------------- plots
@@ -198,7 +235,7 @@ def comparison_document(cmp: Comparison, argv: Sequence[str], dt: float, t_max: 
     ev = cmp.models[cmp.labels[0]].evidence
     return {"schema": "thinshell-compare/1", "bag": str(ev.source.bag_path), "bag_sha256": ev.source.sha256,
             "scenes": cmp.scenes, "dt": dt, "t_max": t_max, "rms": cmp.rms, "better": cmp.better(),
-            "wall_time_s": cmp.wall_time_s, "replay": cmp.replay, "command": [PROG, *argv]}
+            "wall_time_s": cmp.wall_time_s, "replay": cmp.replay, "reward": cmp.reward, "command": [PROG, *argv]}
 
 
 def _table(doc: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
@@ -221,6 +258,13 @@ def _summary(doc: dict[str, Any]) -> list[str]:
         wins = sum(1 for lab in doc["better"].values() if lab == labels[0])
         lines.append(f"{labels[0]} predicts the recording better than {', '.join(labels[1:])} on {wins} of "
                      f"{len(doc['better'])} channels (whitened RMS)")
+    reward = doc.get("reward")
+    if reward:
+        lines.append(f"task {reward['task']}: reward achieved on the recording {reward['recording']:.6g} {reward['unit']} "
+                     f"(at t = {reward['t_s']:.4f} s, the end of the commanded motion); predicted "
+                     + ", ".join(f"{lab} {v:.6g}" for lab, v in reward["predicted"].items())
+                     + (f"; Table A success score {reward['success_score']:.6g}" if reward.get("success_score") is not None
+                        else ""))
     return lines
 
 
@@ -261,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--t-max", type=float, help="compare only the first T seconds")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu", help="elastic terms of the replays")
     p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ of every scene")
+    p.add_argument("--task", help="task name or file: also its reward achieved on the recording and predicted by every "
+                                  "scene (a task-scene recording)")
+    p.add_argument("--horizon", type=int, help="with --task: the task at H steps (as thinshell optimise --horizon)")
     return p
 
 
@@ -289,7 +336,8 @@ def compare_main(argv: Sequence[str] | None = None) -> int:
             if args.label == "nominal":
                 raise ThinShellError("--label must differ from 'nominal'")
             cmp = compare_recording(args.bag, [(args.label, args.scene), ("nominal", args.scene_nominal)], dt=args.dt,
-                                    t_max=args.t_max, arch=args.arch, simulation=simulation)
+                                    t_max=args.t_max, arch=args.arch, simulation=simulation, task=args.task,
+                                    horizon=args.horizon)
         for w in caught:
             print(f"{PROG}: warning: {w.message}", file=sys.stderr)
         doc = comparison_document(cmp, argv, args.dt, args.t_max)

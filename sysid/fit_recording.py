@@ -148,8 +148,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
 
     Raises:
         ConfigError: ``bag`` does not exist; ``out`` or ``write_scene`` exists and not ``force``; an
-            unknown parameter name; a fitted value the scene has no key for; ``write_scene`` for a task
-            scene (``kind: task``).
+            unknown parameter name; a fitted value the scene has no key for.
         ThinShellError: unreadable bag, invalid scene, failed fit (:class:`~sim_core.errors.BagReadError`,
             :class:`~sim_core.errors.CalibrationError`, ...).
     """
@@ -168,9 +167,6 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
-    if write_scene is not None and model.task:
-        raise ConfigError(f"{model.scene_source}: a fitted scene is written for version-1 tactile scenes only; "
-                          "this is a task scene (kind: task): drop --write-scene and read the values in fit.json")
     for name in options.params:  # an unknown name fails here, before the calibration's replay
         model.parameter_value(name)
     if on_model is not None:

@@ -23,6 +23,14 @@ poisson_ratio | density`` -> ``sensors.<s>.gel_material.*``; ``friction.<gel bod
 ``mount`` moved by that offset along its +z (the replay's shift of the effector along the sensor
 normal, made permanent). A parameter with no scene key (``contact.eps_v``) is refused.
 
+A task scene (``kind: task``, ``docs/scene_schema.md``) keeps its own keys: ``<sheet>.bending_stiffness``
+-> ``sheets.<sheet>.bending: {bending_stiffness: D}`` (replacing ThinShellLab's ``k_bend_thinshelllab``),
+``<sheet>.thickness | yield_angle | density`` -> ``sheets.<sheet>.*``, ``<sheet>.youngs_modulus |
+poisson_ratio`` -> ``sheets.<sheet>.membrane.*`` (an ``stvk`` membrane only: a spring membrane's
+modulus is derived), ``<effector or elastic box>.youngs_modulus | poisson_ratio | density`` ->
+``effectors.<e>.material.*`` / ``boxes.<b>.material.*``, ``friction.<a>_<b>`` -> the ``mu`` of that
+pair in ``friction``, ``contact.stiffness | eps_v`` -> ``contact.*``, ``damping`` -> ``damping``.
+
 The sensor calibration that ``thinshell sysid`` fits in closed form before the parameters (wrench
 gains, marker scales, camera intrinsics: :mod:`sysid.calibration`) acts on the predictions, not on the
 physics; it is recorded as ``fitted.sensor_calibration`` and applied by the tools that predict a
@@ -53,6 +61,7 @@ from sysid.calibration import SensorCalibration
 
 _SHEET_MATERIAL = ("youngs_modulus", "poisson_ratio", "bending_stiffness")
 _GEL_MATERIAL = ("youngs_modulus", "poisson_ratio", "density")
+_TASK_SHEET_KEYS = ("youngs_modulus", "poisson_ratio", "thickness", "bending_stiffness", "density", "yield_angle")
 
 
 def _gel_body(sensor_names: Sequence[str], index: int) -> str:
@@ -109,7 +118,7 @@ def scene_with_values(scene: Mapping[str, Any], values: Mapping[str, float], *,
     """A copy of ``scene`` (without any ``fitted:`` record) with global parameters set in its keys.
 
     Args:
-        scene: scene v1 as a plain dict.
+        scene: scene v1 or a task scene (``kind: task``) as a plain dict.
         values: global parameter name -> value (SI units); mapping in the module docstring.
         sensor: the sensor whose mount ``sensor.normal_offset`` moves (default: the first).
 
@@ -118,6 +127,8 @@ def scene_with_values(scene: Mapping[str, Any], values: Mapping[str, float], *,
     """
     doc = copy.deepcopy(dict(scene))
     doc.pop("fitted", None)
+    if doc.get("kind") == "task":
+        return _task_scene_with_values(doc, values)
     sensors = list((doc.get("sensors") or {}).keys())
     for name, value in values.items():
         value = float(value)
@@ -136,13 +147,59 @@ def scene_with_values(scene: Mapping[str, Any], values: Mapping[str, float], *,
     return doc
 
 
+def _task_scene_with_values(doc: dict[str, Any], values: Mapping[str, float]) -> dict[str, Any]:
+    """``doc`` (a ``kind: task`` scene, modified in place) with global parameters set in its keys
+    (:data:`TASK_SCENE_KEYS`)."""
+    sheets = doc.get("sheets") or {}
+    solids = {**{n: ("effectors", n) for n in (doc.get("effectors") or {})},
+              **{n: ("boxes", n) for n, b in (doc.get("boxes") or {}).items() if not b.get("frozen")}}
+    for name, value in values.items():
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"fitted value of {name!r} is not finite: {value}")
+        body, _, key = name.partition(".")
+        if body in sheets and key in _TASK_SHEET_KEYS:
+            sheet = sheets[body]
+            if key == "bending_stiffness":
+                sheet["bending"] = {"bending_stiffness": value}
+                continue
+            if key in ("youngs_modulus", "poisson_ratio"):
+                if (sheet.get("membrane") or {}).get("model") != "stvk":
+                    raise ConfigError(f"parameter {name!r}: sheet {body!r} has a spring membrane (derived modulus); "
+                                      "it cannot be written into a fitted scene")
+                sheet["membrane"][key] = value
+                continue
+            if key == "density" and "density" not in sheet:
+                raise ConfigError(f"parameter {name!r}: sheet {body!r} gives areal_density; it cannot be written "
+                                  "into a fitted scene")
+            sheet[key] = value
+        elif body in solids and key in _GEL_MATERIAL:
+            section, solid = solids[body]
+            doc[section][solid].setdefault("material", {})[key] = value
+        elif body == "friction":
+            for entry in doc.get("friction") or []:
+                a, b = entry["pair"]
+                if key in (f"{a}_{b}", f"{b}_{a}"):
+                    entry["mu"] = value
+                    break
+            else:
+                raise ConfigError(f"parameter {name!r}: the scene's friction list has no such pair")
+        elif name in ("contact.stiffness", "contact.eps_v"):
+            doc["contact"][key] = value
+        elif name == "damping":
+            doc["damping"] = value
+        else:
+            raise ConfigError(f"parameter {name!r} has no key in a task scene; it cannot be written into a fitted scene")
+    return doc
+
+
 def fitted_scene_document(scene: Mapping[str, Any], values: Mapping[str, float],
                           sigma: Mapping[str, float] | None = None, *, sensor: str | None = None,
                           record: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The scene with the fitted values and the ``fitted:`` record (module docstring).
 
     Args:
-        scene: the scene the fit simulated (scene v1 as a plain dict).
+        scene: the scene the fit simulated (scene v1 or a task scene, as a plain dict).
         values: fitted global parameter values (SI units).
         sigma: their 1-sigma, or None.
         sensor: the sensor whose mount ``sensor.normal_offset`` moves (default: the first).

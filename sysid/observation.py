@@ -9,11 +9,15 @@ matching evidence channel (:meth:`ObservationModel.align`). The initial effector
 is replaced by the recorded pose at ``t_0`` so that the gel is built where the recording starts.
 
 A task scene (``kind: task``; :mod:`sim_core.scenes.task_scene`) is replayed the same way with
-every effector driven: each by its recorded ``<effector>/pose_cmd`` sampled at ``t_{k-1}`` (the
-command of step k is stamped at the step's start; ``thinshell sim`` logs it every step, whatever its
-output rate, and the replay applies the same effector rate limits), or, where no command was recorded
-(an effector held still), by its ``<effector>/pose`` resampled at ``t_k`` as above; its finger opening
-by ``<effector>/gripper_cmd`` sampled at ``t_{k-1}`` when recorded (``Evidence.effectors``). Each
+every effector driven: each by its recorded ``<effector>/pose_cmd`` held as the robot holds it
+(zero-order hold: step k, from ``t_{k-1}`` to ``t_k``, takes the last command logged at or before
+``t_{k-1}`` within half a step, and the effector's recorded start pose before the first command).
+A command's time is its log time, when the robot took it (:func:`sysid.bagio.read_effector_streams`):
+``thinshell sim`` logs one every step at the step's start, the sim node logs one when it takes it,
+between steps, whatever the deploy node scheduled it for; the replay applies the same effector rate
+limits. Where no command was recorded (an effector held still) the effector follows its
+``<effector>/pose`` resampled at ``t_k`` as above; its finger opening follows ``<effector>/gripper_cmd``
+held the same way (the scene's ``opening`` before the first) when recorded (``Evidence.effectors``). Each
 effector starts at its recorded pose at ``t_0``. A task scene without a tactile sensor
 has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are the vertices of its body named
 ``sheet`` in grid order (``Simulation.observe``), their count checked against the recording.
@@ -47,7 +51,7 @@ from sim_core.scenes.task_scene import build_task_scene
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
-from sysid.evidence import Evidence, resample, resample_pose
+from sysid.evidence import Evidence, resample_pose
 
 PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 """Evidence channels the simulator predicts."""
@@ -152,6 +156,24 @@ class _Interpolation:
     def apply(self, per_step: np.ndarray) -> np.ndarray:
         w = self.weight.reshape(-1, *(1,) * (per_step.ndim - 1))
         return (1.0 - w) * per_step[self.index] + w * per_step[self.index + 1]
+
+
+def _held(t_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray, dt_ns: int, initial: np.ndarray) -> np.ndarray:
+    """Zero-order hold: at each ``at_ns`` the last of ``values`` logged at or before it (within half a
+    step ``dt_ns``, for stamps rounded to the ns), ``initial`` before the first.
+
+    Args:
+        t_ns: log times ``(N,)`` int64, increasing. values: ``(N, ...)``. at_ns: query times ``(M,)``.
+        dt_ns: the replay step, ns. initial: the value before the first sample, shaped like one value.
+
+    Returns:
+        ``(M, ...)``.
+    """
+    values = np.asarray(values, dtype=float)
+    idx = np.searchsorted(np.asarray(t_ns), np.asarray(at_ns) + dt_ns // 2, side="right") - 1
+    out = values[np.maximum(idx, 0)].copy()
+    out[idx < 0] = initial
+    return out
 
 
 def _interpolation(t_steps: np.ndarray, t_dst: np.ndarray) -> _Interpolation:
@@ -393,20 +415,25 @@ class ObservationModel:
                 self._interp[ch] = _interpolation(self.step_times_ns, t)
 
     def _build_task_controls(self, dt_ns: int) -> None:
-        """Per-effector targets ``(K + 1, 7)`` and finger openings ``(K + 1,)`` of a task scene's replay."""
-        before = np.maximum(self.step_times_ns - dt_ns, self.step_times_ns[0])  # t_{k-1}: a command's stamp
+        """Per-effector targets ``(K + 1, 7)`` and finger openings ``(K + 1,)`` of a task scene's replay
+        (module docstring: commands held from their log time)."""
+        before = np.maximum(self.step_times_ns - dt_ns, self.step_times_ns[0])  # t_{k-1}: step k's start
         self.task_controls: dict[str, np.ndarray] = {}
         self.task_grippers: dict[str, np.ndarray] = {}
+        effectors = self.scene.get("effectors") or {}
         for name, got in self._task_effectors.items():
-            if name not in (self.scene.get("effectors") or {}):
+            if name not in effectors:
                 continue
             if "pose_cmd" in got:
-                self.task_controls[name] = resample_pose(*got["pose_cmd"], before, outside="clamp")
+                start = np.asarray(effectors[name]["initial_pose"], dtype=float)
+                self.task_controls[name] = _held(*got["pose_cmd"], before, dt_ns, start)
             else:
                 self.task_controls[name] = resample_pose(*got["pose"], self.step_times_ns, outside="clamp")
             if "gripper_cmd" in got:
                 t, v = got["gripper_cmd"]
-                self.task_grippers[name] = resample(t, v, before, outside="clamp")
+                opening = effectors[name].get("opening")
+                self.task_grippers[name] = _held(t, v, before, dt_ns, np.asarray(v[0] if opening is None else opening,
+                                                                                dtype=float))
 
     # ------------------------------------------------------------------------------ simulation
     @property

@@ -69,8 +69,9 @@ def bench_main(argv: list[str] | None = None) -> int:
 
         return int(bench_optimise_main(rest) or 0)
     from sysid.bench_fit import bench_sysid_main
+    from thinshell_ros.paths import bundled_bag
 
-    return int(bench_sysid_main(rest) or 0)
+    return int(bench_sysid_main(rest, default_bag=bundled_bag()) or 0)
 
 
 if __name__ == "__main__":

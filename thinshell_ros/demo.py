@@ -10,11 +10,18 @@
    ``--write-scene <run>/fitted_scene.yaml`` (fitted values, sigma, the modelled effect's term).
 3. **Trajectory**: a press-slide-lift of its own (deeper and longer than the identification motion)
    planned from the recording's start, written as ``<run>/trajectory.yaml`` (the trajectory format
-   the optimiser writes; the demo deploys this scripted one).
+   the optimiser writes; stage 6 deploys the optimiser's).
 4. **Deploy**: the robot again, driven by the deploy node (limits, abort; sim time from the robot's
    ``/clock``), recorded into ``<run>/deployed_bag``.
 5. **Compare**: ``thinshell compare`` replays the deployed run in the fitted and in the nominal scene:
    RMS per channel, overlay plots, ``<run>/compare/report.html``.
+6. **Task** (:mod:`thinshell_ros.demo_task`): the robot's gel works a ThinShellLab task cell (Forming)
+   with a sheet of hidden stiffness. The gel fit is carried into the task scene, the task's reference
+   trajectory is deployed and recorded, ``thinshell sysid`` fits the sheet from it (``--write-scene``),
+   ``thinshell optimise`` optimises the task on that fitted scene (small budget), the deploy node runs
+   the result on the task robot (recorded) and ``thinshell compare --task`` gives the fitted and nominal
+   prediction error on the deployed run and the task reward achieved on the robot against the predicted
+   ones (``<run>/task/``).
 
 ``<run>/report.md`` links every step and reveals the hidden values; ``<run>/demo.json`` keeps the
 timings, message counts, fit summary, deploy status and the comparison. ``<run>`` is
@@ -47,6 +54,7 @@ from sysid.fitted_scene import scene_with_values
 from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
                                      robot_noise_args, run_deploy_stage, start_sim_node, stop_process,
                                      write_hidden_scene)
+from thinshell_ros.demo_task import SHARED, TASK_HIDDEN, TaskStageResult, TaskStageSettings, run_task_stages
 from thinshell_ros.paths import DEFAULT_BAG, bundled_scene
 
 
@@ -63,6 +71,7 @@ class DemoSettings:
         compare_args: ``thinshell compare`` options besides the bag, scenes and ``--out``.
         start_timeout: s of wall time for the sim node to come up and the plan to be made.
         motion_timeout: s of wall time for the scripted motion.
+        task: the task stage's knobs (:mod:`thinshell_ros.demo_task`).
     """
 
     motion: dict[str, float]
@@ -72,6 +81,7 @@ class DemoSettings:
     compare_args: tuple[str, ...] = ()
     start_timeout: float = 120.0
     motion_timeout: float = 600.0
+    task: TaskStageSettings = TaskStageSettings()
 
 
 FULL = DemoSettings(
@@ -89,7 +99,9 @@ FULL = DemoSettings(
                    "stiction", "gel_viscoelasticity", "adhesion", "--workers", "2"),
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
-    compare_args=("--dt", "0.01"))
+    compare_args=("--dt", "0.01"),
+    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 6 gradient steps
+    task=TaskStageSettings())
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
             "slide_speed": 0.02, "hold": 0.01},
@@ -97,7 +109,8 @@ QUICK = DemoSettings(
                 "--gel-resolution", "3,3,2", "--max-time", "60"),
     deploy_motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.01},
-    compare_args=("--dt", "0.02", "--gel-resolution", "3,3,2"))
+    compare_args=("--dt", "0.02", "--gel-resolution", "3,3,2"),
+    task=TaskStageSettings(horizon=10, episodes=1, sysid_args=("--params", "sheet.bending_stiffness", "--max-nfev", "2")))
 
 
 @dataclass
@@ -117,6 +130,7 @@ class DemoResult:
         trajectory: the deployed trajectory file; deployed_bag: the deployed run's recording.
         deploy: the deploy node's final status.
         compare_out: the comparison report directory; comparison: its ``compare.json``.
+        task: the task stage's outputs (:class:`thinshell_ros.demo_task.TaskStageResult`).
     """
 
     run_dir: Path
@@ -134,6 +148,7 @@ class DemoResult:
     deploy: dict[str, Any] | None = None
     compare_out: Path | None = None
     comparison: dict[str, Any] | None = None
+    task: TaskStageResult | None = None
 
 
 def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:
@@ -388,11 +403,57 @@ def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) ->
                   "| channel | fitted scene | nominal scene | fitted / nominal |", "|---|---|---|---|"]
         for ch, v in result.comparison["rms"].items():
             lines.append(f"| {ch} | {v['fitted']:.4g} | {v['nominal']:.4g} | {v['fitted'] / v['nominal']:.3f} |")
-    lines += ["", "Task reward: not measured (the deployed motion is the scripted press-slide-lift, not a task "
-              "trajectory of thinshell optimise).", ""]
+    if result.task is not None:
+        lines += task_report_lines(result.task, rel)
+    lines.append("")
     path = run / "report.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def _num(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4g}"
+
+
+def task_report_lines(task: TaskStageResult, rel: Any) -> list[str]:
+    """The task stage's part of ``report.md`` (``rel``: path -> link relative to the run directory)."""
+    link = lambda p, name=None: f"[{name or rel(p)}]({rel(p)})"  # noqa: E731
+    fit, opt, cmp = task.fit or {}, task.optimise or {}, task.comparison or {}
+    reward = cmp.get("reward") or {}
+    unit = reward.get("unit", "")
+    lines = ["", "## Task: a ThinShellLab task optimised on the fitted scene, deployed on the robot", "",
+             f"1. Task robot: hidden scene {link(task.hidden_scene)}; nominal task scene {link(task.nominal_scene)}; "
+             f"carried from the tactile fit {task.carried}: {link(task.start_scene)}",
+             f"2. Identification: the task's reference trajectory {link(task.reference_trajectory)} deployed "
+             f"({(task.id_deploy or {}).get('state')}), recorded {link(task.id_bag)}; fit "
+             f"{link(Path(task.sysid_out) / 'report.html', 'sysid report')}, fitted task scene {link(task.fitted_scene)}",
+             f"3. Optimisation: {link(Path(task.optimise_out) / 'report.html', 'optimise report')} ({opt.get('method')}, "
+             f"{opt.get('episodes')} episodes), trajectory {link(task.trajectory)}",
+             f"4. Deployed on the task robot: {(task.deploy or {}).get('state')} ({(task.deploy or {}).get('reason')}), "
+             f"recorded {link(task.deployed_bag)}",
+             f"5. Comparison: {link(Path(task.compare_out) / 'report.html', 'compare report')}", "",
+             "| parameter | nominal | fitted | sigma | hidden |", "|---|---|---|---|---|"]
+    for name, value in fit.get("params", {}).items():
+        sigma = fit.get("sigma", {}).get(name)
+        lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
+                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {_num(TASK_HIDDEN.get(name))} |")
+    for name, value in task.carried.items():
+        lines.append(f"| {name} (carried: the tactile fit) | - | {value:.4g} | - | "
+                     f"{_num({v: HIDDEN.get(k) for k, v in SHARED.items()}.get(name))} |")
+    if cmp:
+        lines += ["", "| deployed run | fitted scene | nominal scene | fitted / nominal |", "|---|---|---|---|"]
+        for ch, v in cmp["rms"].items():
+            lines.append(f"| RMS {ch} (m) | {v['fitted']:.4g} | {v['nominal']:.4g} | {v['fitted'] / v['nominal']:.3f} |")
+    if reward:
+        pred = reward["predicted"]
+        lines += ["", f"Task reward ({reward['task']}, {unit}; higher is better, Table A success score "
+                      f"{reward.get('success_score')}):", "",
+                  f"- achieved on the robot by the optimised trajectory: **{reward['recording']:.4g}**",
+                  f"- predicted for the deployed run: fitted scene {pred['fitted']:.4g}, nominal scene {pred['nominal']:.4g}; "
+                  f"by the optimiser (its own rollout on the fitted scene) {opt.get('best_reward', float('nan')):.4g}",
+                  f"- achieved on the robot by the task's reference trajectory (the identification run): "
+                  f"{task.id_reward:.4g}"]
+    return lines
 
 
 def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "fast", scene: Path | None = None,
@@ -434,6 +495,8 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
         start = run_diagnose_stage(run, settings, fit_bag, scene, console, result)
     run_sysid_stage(run, settings, fit_bag, console, result, nominal=start)
     run_loop_stages(run, settings, scene, console, result)
+    result.task = run_task_stages(run, settings.task, (result.fit or {}).get("params", {}), HIDDEN, console)
+    result.timings.update(result.task.timings)
     result.timings["total_s"] = time.monotonic() - t0
     hidden = {**HIDDEN, **CONCEALED}
     report = write_run_report(run, result, hidden)
@@ -444,7 +507,8 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
                "message_counts": result.message_counts, "sysid_out": str(result.sysid_out), "fit": result.fit,
                "fitted_scene": str(result.fitted_scene), "trajectory": str(result.trajectory),
                "deployed_bag": str(result.deployed_bag), "deploy": result.deploy,
-               "compare_out": str(result.compare_out), "comparison": result.comparison, "report": str(report),
+               "compare_out": str(result.compare_out), "comparison": result.comparison, "task": task_summary(result.task),
+               "report": str(report),
                "timings_s": {k: round(v, 2) for k, v in result.timings.items()}}
     (run / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.rule("done")
@@ -454,18 +518,38 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
                       + f" (nominal {result.fit['initial'][name]:.6g}, hidden {hidden.get(name, '-')})")
     for ch, v in (result.comparison or {}).get("rms", {}).items():
         console.print(f"  deployed run, RMS {ch}: fitted {v['fitted']:.4g}, nominal {v['nominal']:.4g}")
+    task = result.task
+    for ch, v in task.comparison["rms"].items():
+        console.print(f"  task {task.comparison['reward']['task']}, deployed optimised run, RMS {ch}: fitted "
+                      f"{v['fitted']:.4g}, nominal {v['nominal']:.4g}")
+    reward = task.comparison["reward"]
+    console.print(f"  task reward on the robot: {reward['recording']:.4g} {reward['unit']} (predicted: fitted "
+                  f"{reward['predicted']['fitted']:.4g}, nominal {reward['predicted']['nominal']:.4g}; the reference "
+                  f"trajectory achieved {task.id_reward:.4g})")
     console.print(f"  recorded bag:  {result.recorded_bag}")
     console.print(f"  sysid report:  {result.sysid_out / 'report.html'} (also report.md, fit.json, plots)")
     console.print(f"  fitted scene:  {result.fitted_scene}")
     console.print(f"  deployed bag:  {result.deployed_bag}")
     console.print(f"  comparison:    {result.compare_out / 'report.html'}")
+    console.print(f"  task:          {task.optimise_out / 'report.html'} (optimiser), {task.compare_out / 'report.html'} "
+                  "(deployed run)")
     console.print(f"  report:        {report}")
     console.print(f"  summary:       {run / 'demo.json'}")
     console.print(f"  wall time:     {result.timings['total_s']:.1f} s "
                   f"(robot {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
                   f"sysid {result.timings.get('sysid_s', 0):.1f} s, deploy {result.timings.get('deploy_s', 0):.1f} s, "
-                  f"compare {result.timings.get('compare_s', 0):.1f} s)")
+                  f"compare {result.timings.get('compare_s', 0):.1f} s, task "
+                  f"{sum(v for k, v in result.timings.items() if k.startswith('task_')):.1f} s)")
     return result
+
+
+def task_summary(task: TaskStageResult | None) -> dict[str, Any] | None:
+    """The task stage's entry of ``demo.json`` (paths as strings)."""
+    if task is None:
+        return None
+    doc = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(task).items()}
+    doc["hidden"] = {**{v: HIDDEN[k] for k, v in SHARED.items() if k in HIDDEN}, **TASK_HIDDEN}
+    return doc
 
 
 def demo_main(argv: Sequence[str]) -> int:
@@ -475,7 +559,9 @@ def demo_main(argv: Sequence[str]) -> int:
     """
     parser = argparse.ArgumentParser(prog="thinshell demo", description="the main job: a hidden-scene robot (sim "
                                      "node) recorded, fitted (sysid --write-scene), a trajectory deployed on it and "
-                                     "recorded, the fitted and nominal scenes compared on the deployed run")
+                                     "recorded, the fitted and nominal scenes compared on the deployed run; then a "
+                                     "ThinShellLab task (Forming) optimised on the fitted task scene, deployed on the "
+                                     "task robot, its reward achieved vs predicted")
     parser.add_argument("--out", default="demo_out", help="parent of the timestamped run directory (default demo_out)")
     parser.add_argument("--force", action="store_true", help="replace an existing run directory")
     parser.add_argument("--quick", action="store_true", help="shorter motion and fit (a smoke test)")

@@ -9,7 +9,8 @@ report only.
 - :func:`write_hidden_scene`: the hidden scene file.
 - :func:`deploy_trajectory_from_bag`: a press-slide-lift planned from the first measured pose and sheet
   of a recording, written as a trajectory file (``docs/trajectory_format.md``): the motion the demo
-  deploys until the optimiser (``thinshell optimise``) writes one.
+  deploys on the tactile cell (the optimiser's trajectory is deployed on the task cell,
+  :mod:`thinshell_ros.demo_task`).
 - :func:`stop_process`, :func:`log_tail`: the robot subprocess's end and its log.
 - :func:`run_deploy_stage`: the robot again, driven by the deploy node (sim time: the robot's
   ``/clock``), recording the deployed run.
@@ -132,15 +133,21 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
     plan = plan_from_observation(scene, pose, points, "press_slide_lift", **motion)
     effector = plan.effector or next(iter(scene.sensors.values())).effector
     traj = Trajectory(t=plan.t, poses={effector: plan.poses}, scene_path=str(nominal), scene_name=scene.name,
-                      provenance={"tool": "thinshell demo (scripted press-slide-lift; thinshell optimise replaces it)",
+                      provenance={"tool": "thinshell demo (scripted press-slide-lift of the tactile cell)",
                                   "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "from_bag": str(bag)})
     return write_trajectory(out, traj, force=True)
 
 
 def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: Path, log_path: Path,
-                     timeout: float, console: Any) -> dict[str, Any]:
+                     timeout: float, console: Any, limits: Mapping[str, float] | None = None,
+                     settle: float = 0.0) -> dict[str, Any]:
     """Start the robot (sim node on the hidden scene, ``fast`` mode, recording into ``bag``), deploy
     ``trajectory`` on it with the deploy node in sim time, stop the robot (SIGINT closes the bag).
+
+    ``limits``: further float parameters of the deploy node (``rate``, ``max_linear_speed``, ...;
+    :data:`thinshell_ros.deploy_node.FLOAT_PARAMETERS`); the wrench limit is :data:`WRENCH_LIMIT`.
+    ``settle``: s of the robot's (sim) clock it keeps running, and recording, after the last command
+    (the state the last command produced is then in the bag).
 
     Returns:
         the deploy node's final status (``state``, ``reason``, ``published``, ...) and ``wall_s``.
@@ -164,7 +171,8 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     try:
         node = DeployNode(context=ctx, parameter_overrides=[
             Parameter("trajectory", value=str(trajectory)), Parameter("use_sim_time", value=True),
-            Parameter("start_timeout", value=120.0), Parameter("wrench_limit", value=WRENCH_LIMIT)])
+            Parameter("start_timeout", value=120.0), Parameter("wrench_limit", value=WRENCH_LIMIT),
+            *(Parameter(k, value=float(v)) for k, v in (limits or {}).items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         deadline = time.monotonic() + timeout
@@ -176,6 +184,13 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
                 raise ThinShellError(f"the deployment did not finish within {timeout:.0f} s ({node.status()})")
             executor.spin_once(timeout_sec=0.05)
         status = node.status()
+        if status["state"] == "completed" and settle > 0:
+            clock = node.get_clock()  # the robot's /clock (use_sim_time)
+            end = clock.now().nanoseconds * 1e-9 + settle
+            while clock.now().nanoseconds * 1e-9 < end:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    break
+                executor.spin_once(timeout_sec=0.05)
         code = stop_process(proc)
     finally:
         if proc.poll() is None:

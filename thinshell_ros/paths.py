@@ -1,7 +1,8 @@
 """Locating the bundled configuration (scenes, node parameter files) and recordings.
 
-They are package data of :mod:`thinshell_ros.bundled`, read with :mod:`importlib.resources`: the
-same code finds them in a source checkout and in an installed package (``pip install``,
+The configuration is package data of :mod:`sim_core.bundled` (the simulator's tools read it too), the
+recordings of :mod:`thinshell_ros.bundled`, both read with :mod:`importlib.resources`: the same code
+finds them in a source checkout and in an installed package (``pip install``,
 ``colcon build``), with no search of the ament index or of the source tree.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
+from sim_core import bundled as sim_core_bundled
 from sim_core.errors import ConfigError
 
 BUNDLE = "thinshell_ros.bundled"
@@ -18,7 +20,7 @@ DEFAULT_BAG = "nominal_s101"
 
 
 def _bundled_dir(name: str) -> Path:
-    """The folder ``name`` (``config`` or ``bags``) of the bundled package data.
+    """The folder ``name`` (``bags``) of this package's bundled data.
 
     Raises:
         ConfigError: the package was installed without it.
@@ -36,7 +38,7 @@ def config_dir() -> Path:
     Raises:
         ConfigError: it is not installed.
     """
-    return _bundled_dir("config")
+    return sim_core_bundled.config_dir()
 
 
 def bags_dir() -> Path:

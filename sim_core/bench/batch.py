@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_core.bundled import config_dir
+
 ARCH_BACKENDS = {"numpy": "numpy", "cpu": "taichi-cpu", "cuda": "taichi-cuda"}
 DEFAULT_SIZES = (1, 2, 4, 8)
 
@@ -60,7 +62,7 @@ def gpu_memory_mib() -> float | None:
 
 
 def _forming_scene() -> Path:
-    return Path(__file__).resolve().parents[2] / "config" / "scenes" / "forming.yaml"
+    return config_dir() / "scenes" / "forming.yaml"
 
 
 class _FormingRun:

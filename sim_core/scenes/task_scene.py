@@ -78,7 +78,8 @@ TASK_SCENE_VERSIONS = (1, 2)
 SPRING_STANDIN_POISSON_RATIO = 1.0 / 3.0
 
 _TOP = {"kind": True, "version": True, "name": True, "dt": True, "gravity": True, "contact": True, "sheets": True,
-        "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False}
+        "damping": False, "boxes": False, "effectors": False, "planes": False, "friction": False, "task": False,
+        "fitted": False}  # fitted: the record of thinshell sysid --write-scene (sysid.fitted_scene), not read here
 _CONTACT = {"stiffness": True, "eps": True, "eps_v": False, "self_contact": False, "broad_phase": False}
 _SHEET = {"size": True, "resolution": True, "origin": True, "thickness": True, "membrane": True, "bending": True,
           "yield_angle": True, "clamped_edge": True, "density": False, "areal_density": False, "pattern": False,

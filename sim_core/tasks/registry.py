@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from sim_core.bundled import config_dir
 from sim_core.errors import ConfigError
 from sim_core.scenes.task_scene import build_task_scene
 from sim_core.tasks.rollout import TaskEpisode
@@ -50,8 +51,12 @@ _INFEASIBLE = {"max_force_N": False, "min_contact_force_N": False, "contact_afte
 
 
 def default_tasks_dir() -> Path:
-    """``config/tasks`` of the source tree."""
-    return Path(__file__).resolve().parents[2] / "config" / "tasks"
+    """The bundled ``config/tasks`` (package data of :mod:`sim_core.bundled`).
+
+    Raises:
+        ConfigError: the package was installed without its configuration.
+    """
+    return config_dir() / "tasks"
 
 
 def task_names() -> list[str]:

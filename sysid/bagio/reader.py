@@ -495,8 +495,11 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
 
     Returns:
         effector -> stream -> ``(t_ns (N,) int64, values)``, values ``(N, 7)`` poses [x y z qx qy
-        qz qw] (m) or ``(N,)`` finger openings (m); streams not in the bag are absent. ``gripper_cmd``
-        (``std_msgs/Float64``, no header) is stamped with its log time.
+        qz qw] (m) or ``(N,)`` finger openings (m); streams not in the bag are absent. ``pose`` is
+        stamped with its header stamp (when it was measured); the commands ``pose_cmd`` and
+        ``gripper_cmd`` with their log time: when the robot took them (the sim node logs a command
+        at the sim time it takes it, between steps), not when a commander scheduled them (its header
+        stamp, which a robot that steps faster than its commander receives a step or two late).
 
     Raises:
         BagReadError: unreadable bag, or a stream topic of another message type (names the topic).
@@ -518,6 +521,8 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
             values = np.asarray([codec.parse_float64(m) for _, m in items], dtype=np.float64)
         else:
             t_ns, values, _, _ = _decode("pose", topic, items)
+            if kind == "pose_cmd":  # a command's time is when the robot took it (docstring)
+                t_ns = np.asarray([log for log, _ in items], dtype=np.int64)
         t_ns, values, _, _ = _clean(kind, topic, t_ns, values, lambda m: warnings.warn(m, BagWarning, stacklevel=3))
         out.setdefault(effector, {})[kind] = (t_ns, values)
     return out

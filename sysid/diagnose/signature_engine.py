@@ -22,8 +22,9 @@ still leaves a structured gap many times the noise, and every candidate can abso
    markers) and **refit** each named effect on training data, reporting whitened RMS before and
    after on held-out data: held-out contact events for the timing effects (each event predicted with
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
-   of ``2 * holdout_blocks`` blocks), the sheet's final free window for plasticity, and every
-   other wrench sample of each breakaway window for stiction.
+   of ``2 * holdout_blocks`` blocks), a checkerboard of the sheet grid after the release for
+   plasticity (its yield angle refitted by replays, :mod:`sysid.diagnose.plasticity_refit`), and
+   every other wrench sample of each breakaway window for stiction.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
+from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
@@ -71,6 +73,8 @@ class SignatureSettings:
             ``2 * holdout_blocks``).
         simulation: overrides of the scene's ``simulation:`` block for the replays.
         workers: processes for the calibration's batched replays.
+        plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
+        plasticity_max_time: wall-time budget of that search, s (None: none).
     """
 
     dt: float = 0.01
@@ -84,6 +88,8 @@ class SignatureSettings:
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
     workers: int = 1
+    plasticity_replays: int = 5
+    plasticity_max_time: float | None = 120.0
 
 
 @dataclass
@@ -98,6 +104,9 @@ class Prepared:
         recording: the :class:`~sysid.diagnose.signatures.Recording` the tests read.
         results: effect -> :class:`SignatureResult` (undecided until :func:`decide`).
         wall_s: seconds spent.
+        notes: what could not be done, and why.
+        refit_predictions: effect -> channel -> the replay with the effect's term, for the refits
+            that replay the simulator (the report plots them).
     """
 
     bag: Path
@@ -108,6 +117,7 @@ class Prepared:
     results: dict[str, SignatureResult]
     wall_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    refit_predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None) -> Recording:
@@ -306,13 +316,23 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
 
 
-def refit_sheet(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Sheet effects: the located set or carried height, without a replay of the effect's term.
-
-    The permanent set (plasticity) and the carried sheet (adhesion) are reported with the sheet's
-    whitened RMS in the effect's windows; modelling them needs a replay with the effect's term
-    (``thinshell diagnose --engine score`` refits ``sheet.yield_angle`` and the adhesion bonds)."""
+def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
+    """Sheet effects. Bending plasticity: the hinge bending's yield angle refitted by replays with
+    the calibrated parameters (:func:`sysid.diagnose.plasticity_refit.refit_plasticity`; training and
+    held-out sheet points in a checkerboard of the grid, rows of the effect's windows). Adhesion: the
+    carried height located, with the sheet's whitened RMS in its windows, not refitted (its bonds
+    are refitted by ``thinshell diagnose --engine score``)."""
     rec = p.recording
+    if r.effect == "bending_plasticity" and p.calibration.prediction:
+        try:
+            out = refit_plasticity(p.model, p.calibration.params, rec, p.prediction["sheet_points"], r.windows_s,
+                                   settings.plasticity_replays, settings.plasticity_max_time)
+        except ValueError as err:
+            p.notes.append(f"bending_plasticity: not refitted ({err})")
+        else:
+            p.refit_predictions[r.effect] = out.pop("prediction")
+            out["params"] = {**r.estimate, **out["params"]}
+            return out
     t = rec.t["sheet_points"]
     rows = np.zeros(len(t), bool)
     for a, b in r.windows_s:
@@ -372,7 +392,7 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[
         return refit_timing(p, r)
     if r.effect == "stiction":
         return refit_stiction(p, r)
-    return refit_sheet(p, r)
+    return refit_sheet(p, r, settings)
 
 
 # ================================================================================ pipeline

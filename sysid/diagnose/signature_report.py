@@ -30,7 +30,11 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
     sig = doc["extra"]["signatures"][effect]
     fit = doc["refit"]["effects"].get(effect, {})
     params = fit.get("params", {})
-    fig, ax = plt.subplots(figsize=(9, 3.6))
+    term = getattr(prepared, "refit_predictions", {}).get(effect, {}).get("sheet_points")
+    if term is not None:
+        fig, (ax, ax_res) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    else:
+        fig, ax = plt.subplots(figsize=(9, 3.6))
     if effect in ("latency", "gel_viscoelasticity", "damping"):
         channel, t, y, yp, _ = timing_signal(rec)
         if effect == "gel_viscoelasticity":
@@ -76,6 +80,22 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         x, xp = rec.data["sheet_points"], prepared.prediction["sheet_points"]
         ax.plot(t, x[:, :, 2].max(axis=1), "k-", lw=1, label="recorded sheet, highest point")
         ax.plot(t, xp[:, :, 2].max(axis=1), "C0-", lw=1, label="calibrated replay")
+        if term is not None:
+            y = params.get("yield_angle_rad")
+            ax.plot(t, term[:, :, 2].max(axis=1), "C3-", lw=1,
+                    label=f"replay with {effect}" + ("" if y is None else f" (yield angle {y:.3g} rad)"))
+            held = fit.get("detail", {}).get("heldout_points") or list(range(x.shape[1]))
+            s = rec.sigma["sheet_points"]
+            per_row = lambda pred: np.sqrt(np.mean(((x[:, held] - pred[:, held]) / s) ** 2, axis=(1, 2)))  # noqa: E731
+            ax_res.semilogy(t, per_row(xp), "C0-", lw=1, label="calibrated replay")
+            ax_res.semilogy(t, per_row(term), "C3-", lw=1, label=f"replay with {effect}")
+            ax_res.set_ylabel("held-out points:\nwhitened RMS")
+            ax_res.set_title(f"held-out sheet points in the windows: {fit.get('heldout_rms_before', float('nan')):.3g} -> "
+                             f"{fit.get('heldout_rms_after', float('nan')):.3g} (noise units)", fontsize=9)
+            for a, b in sig["windows_s"]:
+                ax_res.axvspan(a, b, color="C1", alpha=0.15)
+            ax_res.set_xlabel("time, s")
+            ax_res.legend(fontsize=7)
         ax.set_ylabel("height, m")
     if effect != "lens_distortion":
         for a, b in sig["windows_s"]:
@@ -158,6 +178,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         b, a = r.get("heldout_rms_before"), r.get("heldout_rms_after")
         lines.append(f"- {e}: params `{json.dumps(r['params'])}`; {r['observable']}; held-out: {r['heldout']}; "
                      f"{'n/a' if b is None else f'{b:.3g}'} -> {'n/a' if a is None else f'{a:.3g}'}")
+        for note in ([r["note"]] if r.get("note") else []) + list((r.get("detail") or {}).get("notes", [])):
+            lines.append(f"  - {note}")
     lines += ["", *[f"![{p.stem}]({p.name})" for p in images], ""]
     return "\n".join(lines)
 

@@ -121,3 +121,33 @@ def test_cli_writes_the_scene_and_refuses_to_overwrite(press_bag, tmp_path, caps
     assert Simulation.from_scene(scene).get_parameter("gel.youngs_modulus") == fitted["params"]["gel.youngs_modulus"]
     assert sysid_main([*args[:2], str(tmp_path / "fit2"), *args[3:]]) == 2
     assert f"scene file {scene} exists" in capsys.readouterr().err
+
+
+def test_task_scene_values_go_into_the_task_scene_keys():
+    """A ``kind: task`` scene (Forming): every fitted parameter lands in its own key and reads back."""
+    from sim_core.optim.tasks import task_at_horizon
+    from sim_core.scenes import load_scene
+    from sysid.fitted_scene import scene_with_values
+
+    scene = task_at_horizon("forming").scene
+    values = {"sheet.bending_stiffness": 2.5e-3, "dome.youngs_modulus": 4.2e5, "dome.poisson_ratio": 0.3,
+              "friction.sheet_dome": 3.5, "contact.stiffness": 1.5e4, "damping": 0.2, "sheet.yield_angle": 1.0}
+    doc = fitted_scene_document(scene, values, record={"status": "converged"})
+    assert doc["sheets"]["sheet"]["bending"] == {"bending_stiffness": 2.5e-3}          # replaces k_bend_thinshelllab
+    assert doc["effectors"]["dome"]["material"]["youngs_modulus"] == 4.2e5
+    assert {tuple(f["pair"]): f["mu"] for f in doc["friction"]} == {("dome", "sheet"): 3.5, ("table", "sheet"): 5.0}
+    assert doc["fitted"]["params"] == values and doc["fitted"]["status"] == "converged"
+    model = load_scene(doc)                       # the fitted: record is accepted by the task-scene builder
+    for name, value in values.items():
+        assert model.get_parameter(name) == pytest.approx(value, rel=1e-12)
+    assert scene["sheets"]["sheet"]["bending"] == {"k_bend_thinshelllab": 200.0}      # input untouched
+    with pytest.raises(ConfigError, match="sheet 'sheet' has a spring membrane"):
+        scene_with_values(scene, {"sheet.youngs_modulus": 1e6})
+    with pytest.raises(ConfigError, match="sheet 'sheet' gives areal_density"):
+        scene_with_values(scene, {"sheet.density": 1e3})
+    with pytest.raises(ConfigError, match="'contact.eps' has no key in a task scene"):
+        scene_with_values(scene, {"contact.eps": 1e-4})
+    with pytest.raises(ConfigError, match="friction list has no such pair"):
+        scene_with_values(scene, {"friction.dome_table": 1.0})
+    with pytest.raises(ConfigError, match="not finite"):
+        scene_with_values(scene, {"damping": float("nan")})

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from sim_core.errors import CalibrationError
+from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sysid.calibration import calibrate
 from sysid.cli import sysid_main
@@ -43,7 +44,7 @@ def test_sysid_recovers_the_bending_stiffness_of_a_folding_bag(tmp_path, capsys)
     start.write_text(yaml.safe_dump(off, sort_keys=False))
     out = tmp_path / "fit"
     rc = sysid_main([str(bag), "--scene", str(start), "--params", "sheet.bending_stiffness", "--dt", "0.005",
-                     "--arch", "numpy", "--out", str(out), "--quiet"])
+                     "--arch", "numpy", "--out", str(out), "--quiet", "--write-scene", str(tmp_path / "fitted.yaml")])
     assert rc == 0
     err = capsys.readouterr().err
     assert err.count("has no tactile sensor") == 1                      # said once
@@ -53,10 +54,22 @@ def test_sysid_recovers_the_bending_stiffness_of_a_folding_bag(tmp_path, capsys)
     assert fitted["sigma"] is not None and 0.0 < fitted["sigma"] < 0.01 * true_k
     value = fitted["value"]
     assert abs(value / true_k - 1.0) < 0.02                            # from 2.5x off to within 2 %
-    rc = sysid_main([str(bag), "--params", "sheet.bending_stiffness", "--dt", "0.005", "--arch", "numpy",
-                     "--out", str(tmp_path / "fit2"), "--quiet", "--write-scene", str(tmp_path / "fitted.yaml")])
-    assert rc == 1 and "scene.yaml: a fitted scene is written for version-1 tactile scenes only" in capsys.readouterr().err
-    assert not (tmp_path / "fit2").exists() and not (tmp_path / "fitted.yaml").exists()
+    # the fitted task scene: the start scene with D in sheets.sheet.bending; it loads, reads back the fitted
+    # value and replays the bag with the fit's final RMS
+    doc = yaml.safe_load((tmp_path / "fitted.yaml").read_text())
+    assert doc["kind"] == "task" and doc["sheets"]["sheet"]["bending"] == {"bending_stiffness": value}
+    assert doc["fitted"]["params"] == {"sheet.bending_stiffness": value} and doc["fitted"]["sigma"]["sheet.bending_stiffness"] > 0
+    assert doc["friction"] == off["friction"]
+    assert {k: float(v) for k, v in doc["effectors"]["dome"]["material"].items()} == {
+        k: float(v) for k, v in off["effectors"]["dome"]["material"].items()}
+    assert load_scene(tmp_path / "fitted.yaml").get_parameter("sheet.bending_stiffness") == value
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ObservationWarning)
+        replay = ObservationModel(load_evidence(bag), scene=tmp_path / "fitted.yaml", dt=0.005, arch="numpy")
+    rms = replay.channel_rms(replay.predict(replay.simulate({})))["sheet_points"]["rms"]
+    metrics = json.loads((out / "fit.json").read_text())["metrics"]
+    assert rms == pytest.approx(metrics["rms_final"]["sheet_points"]["rms"], rel=0.02)
+    assert rms < 0.05 * metrics["rms_initial"]["sheet_points"]["rms"]   # the start scene's RMS
 
 
 def test_task_replay_reproduces_the_recording_and_rejects_tactile_channels(tmp_path):

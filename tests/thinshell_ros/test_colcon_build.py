@@ -44,9 +44,9 @@ def test_colcon_build_installs_package(tmp_path):
                          cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     scene, bag = out.stdout.split()
-    bundled = site / "thinshell_ros" / "bundled"
-    assert Path(scene) == bundled / "config" / "scenes" / "press_slide.yaml"
-    assert Path(bag) == bundled / "bags" / "nominal_s101" and (Path(bag) / "nominal_s101.mcap").is_file()
+    assert Path(scene) == site / "sim_core" / "bundled" / "config" / "scenes" / "press_slide.yaml"
+    bag_dir = site / "thinshell_ros" / "bundled" / "bags" / "nominal_s101"
+    assert Path(bag) == bag_dir and (Path(bag) / "nominal_s101.mcap").is_file()
     # sysid's packaged data comes with the installed package (importlib.resources)
     out = subprocess.run([PYTHON, "-c", "from sysid.data import data_file; print(data_file('default.yaml'))"],
                          cwd=tmp_path, env=run_env, capture_output=True, text=True, timeout=60)

@@ -148,7 +148,8 @@ def test_commander_rejects_bad_parameters(ros_context):
 @pytest.mark.ros
 def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     """``thinshell demo --quick`` end to end: hidden robot (sim node subprocess) + commander over DDS, SIGINT,
-    sysid with the fitted scene, trajectory file, deploy node on the robot (recorded), comparison."""
+    sysid with the fitted scene, trajectory file, deploy node on the robot (recorded), comparison, and the
+    task stage at a tiny budget."""
     from sysid.bagio import open_bag
     from sysid.results import load_fit_json
     from thinshell_ros.demo import demo_main
@@ -190,6 +191,12 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert deployed.series["wrench"].values[:, 2].min() < -0.05  # the deployed press touched the card
     assert set(summary["comparison"]["rms"]["wrench"]) == {"fitted", "nominal"}
     assert (run / "compare" / "report.html").is_file() and (run / "report.md").is_file()
+    # the task stage: Forming optimised on the fitted task scene, deployed, scored (tests/thinshell_ros/test_demo_task.py)
+    task = summary["task"]
+    assert task["carried"] == {"dome.youngs_modulus": summary["fit"]["params"]["gel.youngs_modulus"]}
+    assert task["deploy"]["state"] == "completed" and task["optimise"]["method"] == "gd"
+    assert set(task["comparison"]["reward"]["predicted"]) == {"fitted", "nominal"}
+    assert "achieved on the robot by the optimised trajectory" in (run / "report.md").read_text()
     with pytest.raises(ConfigError, match="exists; use --force"):
         make_run_dir(tmp_path, force=False, stamp=run.name)
 

@@ -1,4 +1,5 @@
-"""The bundled scenes and recordings are package data of thinshell_ros.bundled (importlib.resources):
+"""The bundled scenes and recordings are package data of sim_core.bundled and thinshell_ros.bundled
+(importlib.resources):
 found in a source checkout (the installed case: tests/thinshell_ros/test_colcon_build.py), with a
 clear error naming the missing folder, scene or recording."""
 
@@ -34,8 +35,17 @@ def test_a_package_installed_without_its_data_says_so(tmp_path, monkeypatch):
     """A package whose bundled folders were not installed (no package data): the error names the
     folder and the package and says to reinstall."""
     real = resources.files
-    monkeypatch.setattr(paths.resources, "files", lambda name: tmp_path if name == paths.BUNDLE else real(name))
-    for call, folder in ((paths.bundled_scene, "config"), (paths.bundled_bag, "bags")):
+    fake = lambda name: tmp_path if name in (paths.BUNDLE, "sim_core.bundled") else real(name)  # noqa: E731
+    monkeypatch.setattr(resources, "files", fake)
+    for call, folder, package in ((paths.bundled_scene, "config", "sim_core.bundled"),
+                                  (paths.bundled_bag, "bags", "thinshell_ros.bundled")):
         with pytest.raises(ConfigError, match=rf"bundled '{folder}' folder is missing from the package "
-                                              r"thinshell_ros.bundled .*reinstall"):
+                                              rf"{package} .*reinstall"):
             call()
+
+
+def test_the_task_files_are_found_as_package_data():
+    """The simulator's own tools (task registry) read the same bundled configuration."""
+    from sim_core.tasks.registry import default_tasks_dir
+
+    assert default_tasks_dir() == REPO / "config" / "tasks" and (default_tasks_dir() / "forming.yaml").is_file()

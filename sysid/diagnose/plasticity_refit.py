@@ -1,0 +1,215 @@
+"""Refit of bending plasticity with its physics term: the hinge bending's yield angle.
+
+The hinge bending energy moves a hinge's rest angle where ``|theta - theta_bar|`` exceeds the
+yield angle (:func:`sim_core.energies.hinge_bending.reference.plastic_update`; ThinShellLab, Wang
+et al. 2024), so a replay with a finite ``sheet.yield_angle`` keeps a set after the gel lets go of
+the sheet. The refit searches that one angle by bounded scalar minimisation (Brent's method on
+``log(yield / theta_max)``, :func:`scipy.optimize.minimize_scalar`), each evaluation one replay of
+the recording with the calibrated parameters, within a replay count and a wall-time budget.
+
+Training and held-out data: the sheet points split in a checkerboard of the sheet grid (points
+``(i + j) % 2 == 0`` train, the others are held out), both halves over the same rows. A split in
+time is not honest here: the set exists only after the release, and the rows before it carry no
+information on the yield angle (fitting there and testing after it would test an unidentified
+parameter); the checkerboard keeps both halves on the fold while their noise is independent, and
+with one fitted scalar the held-out half tests whether the replay with the term predicts the
+sheet's shape where it was not fitted. The cost and the held-out figure are read on the effect's
+windows (after the release, where the set lives); the held-out RMS over the whole recording is
+reported as well, so a term that helps after the release but harms the loading shows it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from sim_core.errors import ConfigError, SimulationDivergedError
+from sysid.diagnose.resume import YIELD_PARAMETER
+
+LOWEST_FRACTION = 0.02
+"""Smallest yield angle searched, as a fraction of the largest hinge angle of the calibrated replay."""
+
+FALLBACK_THETA_MAX = 0.5
+"""Largest yield angle searched (rad) when the replay's hinge angles cannot be computed from its sheet points."""
+
+SMALL_REDUCTION = 0.05
+"""A refit that lowers the held-out whitened RMS by less than this fraction gets a note that the term
+does not reproduce the set (the replay does not bend the sheet where the recording folds it)."""
+
+XATOL = 0.05
+"""Tolerance of the search on ``log(yield / theta_max)``."""
+
+
+def checkerboard(n_points: int, resolution: tuple[int, int] | None) -> np.ndarray:
+    """Training points of the sheet: ``(i + j) % 2 == 0`` on the ``nx x ny`` grid (vertex ``k`` at
+    ``i = k % nx, j = k // nx``, :func:`sim_core.mesh.sheet.grid_sheet`), alternate points when the
+    points are not that grid.
+
+    Returns:
+        boolean mask ``(n_points,)``: True for a training point.
+    """
+    k = np.arange(int(n_points))
+    if resolution is not None and int(resolution[0]) * int(resolution[1]) == n_points:
+        nx = int(resolution[0])
+        return (k % nx + k // nx) % 2 == 0
+    return k % 2 == 0
+
+
+def _sse(x: np.ndarray, xp: np.ndarray, sigma: np.ndarray) -> float:
+    return float(np.sum(((x - xp) / sigma) ** 2))
+
+
+def _rms(x: np.ndarray, xp: np.ndarray, sigma: np.ndarray) -> float:
+    return math.sqrt(_sse(x, xp, sigma) / max(x.size, 1)) if x.size else float("nan")
+
+
+def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nominal: np.ndarray,
+                    sigma: np.ndarray, rows: np.ndarray, train: np.ndarray, theta_max: float,
+                    max_replays: int = 5, max_time: float | None = None) -> dict[str, Any]:
+    """Yield angle of the hinge bending that best fits the training sheet points.
+
+    Args:
+        replay: yield angle (rad) -> predicted sheet points ``(n, p, 3)`` m aligned to ``data``
+            (may raise :class:`~sim_core.errors.SimulationDivergedError`).
+        data: recorded sheet points ``(n, p, 3)`` m.
+        nominal: the calibrated replay without plasticity ``(n, p, 3)`` m.
+        sigma: noise per axis ``(3,)`` m.
+        rows: rows ``(n,)`` of the cost and of the held-out figure (the effect's windows).
+        train: training points ``(p,)`` (the others are held out).
+        theta_max: largest hinge angle of the nominal replay, rad (> 0): the search spans
+            ``[LOWEST_FRACTION * theta_max, theta_max]`` on a log scale; at ``theta_max`` nothing yields.
+        max_replays: most replays of the search.
+        max_time: wall-time budget of the search, s (None: none); a replay started before it ends
+            is finished.
+
+    Returns:
+        dict with ``yield_angle`` (rad; None when no evaluated angle beats the nominal replay on the
+        training points), ``evaluations`` (``[[yield_angle, training whitened RMS or None where the
+        replay diverged], ...]``),
+        ``prediction`` (the replay at the fitted angle, or ``nominal``), the training and held-out
+        whitened RMS in ``rows`` before and after, the held-out RMS over all rows before and after,
+        ``heldout_reduction`` (1 - after / before of the held-out RMS in ``rows``),
+        ``heldout_points`` (indices) and ``notes``.
+
+    Raises:
+        ValueError: ``theta_max`` not > 0, no training or no held-out point, no row.
+    """
+    if not theta_max > 0.0:
+        raise ValueError(f"fit_yield_angle: theta_max must be > 0 rad, got {theta_max}")
+    if train.all() or not train.any():
+        raise ValueError("fit_yield_angle: needs both training and held-out sheet points")
+    if not rows.any():
+        raise ValueError("fit_yield_angle: no row to fit")
+    held = ~train
+    x_tr, x_he = data[rows][:, train], data[rows][:, held]
+    nominal_cost = _sse(x_tr, nominal[rows][:, train], sigma)
+    t0 = time.monotonic()
+    evals: list[tuple[float, float, np.ndarray | None]] = []  # (u, sse, prediction)
+    notes: list[str] = []
+
+    class _Budget(Exception):
+        pass
+
+    def cost(u: float) -> float:
+        if len(evals) >= max_replays or (max_time is not None and time.monotonic() - t0 > max_time):
+            raise _Budget
+        y = theta_max * math.exp(u)
+        try:
+            pred = replay(y)
+        except SimulationDivergedError as err:
+            notes.append(f"yield angle {y:.4g} rad: replay diverged ({err})")
+            evals.append((u, math.inf, None))
+            return 10.0 * nominal_cost + 1.0
+        c = _sse(x_tr, pred[rows][:, train], sigma)
+        evals.append((u, c, pred))
+        return c
+
+    lo = math.log(LOWEST_FRACTION)
+    try:
+        minimize_scalar(cost, bounds=(lo, 0.0), method="bounded", options={"xatol": XATOL, "maxiter": max_replays})
+    except _Budget:
+        notes.append(f"search stopped by its budget ({max_replays} replays, {max_time} s) after {len(evals)} replays")
+    finite = [e for e in evals if math.isfinite(e[1])]
+    best = min(finite, key=lambda e: e[1]) if finite else None
+    improved = best is not None and best[1] < nominal_cost
+    pred = best[2] if improved else nominal
+    yield_angle = theta_max * math.exp(best[0]) if improved else None
+    if not improved:
+        notes.append("no yield angle searched fits the training points better than the replay without plasticity")
+    n_tr = max(x_tr.size, 1)
+    before, after = _rms(x_he, nominal[rows][:, held], sigma), _rms(x_he, pred[rows][:, held], sigma)
+    reduction = 1.0 - after / before if before > 0.0 else 0.0
+    if improved and reduction < SMALL_REDUCTION:
+        notes.append(f"the term lowers the held-out sheet residual by {100 * reduction:.2g} % only: the replay's sheet "
+                     f"bends at most {theta_max:.3g} rad, so no yield angle makes the fold the recorded set comes from")
+    return {"heldout_reduction": reduction, "yield_angle": yield_angle, "theta_max": theta_max,
+            "evaluations": [[theta_max * math.exp(u), math.sqrt(c / n_tr) if math.isfinite(c) else None]
+                            for u, c, _ in evals],
+            "prediction": pred, "notes": notes, "wall_s": time.monotonic() - t0,
+            "train_rms_before": math.sqrt(nominal_cost / n_tr),
+            "train_rms_after": math.sqrt(_sse(x_tr, pred[rows][:, train], sigma) / n_tr),
+            "heldout_rms_before": before, "heldout_rms_after": after,
+            "heldout_rms_all_rows_before": _rms(data[:, held], nominal[:, held], sigma),
+            "heldout_rms_all_rows_after": _rms(data[:, held], pred[:, held], sigma),
+            "heldout_points": np.nonzero(held)[0].tolist()}
+
+
+def sheet_resolution(model: Any) -> tuple[int, int] | None:
+    """``(nx, ny)`` of the scene's grid sheet of an :class:`~sysid.observation.ObservationModel`, or None."""
+    from sim_core.scenes.scene_file import load_scene_file
+
+    try:
+        sheet = getattr(load_scene_file(model.scene), "sheet", None)
+    except ConfigError:
+        return None
+    return None if sheet is None else tuple(int(v) for v in sheet.resolution)
+
+
+def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
+                     windows_s: list[list[float]], max_replays: int = 5,
+                     max_time: float | None = None) -> dict[str, Any]:
+    """Bending plasticity refitted with its term (``sheet.yield_angle``) on a calibrated recording.
+
+    Args:
+        model: the calibrated :class:`~sysid.observation.ObservationModel` of the recording.
+        params: its calibrated simulator parameters (every replay starts from them).
+        recording: the :class:`~sysid.diagnose.signatures.Recording` (``sheet_points`` recorded).
+        nominal: the calibrated replay's ``sheet_points`` ``(n, p, 3)`` m.
+        windows_s: the effect's windows ``[[t0, t1], ...]`` s (the rows of the cost).
+        max_replays, max_time: budget of the search (:func:`fit_yield_angle`).
+
+    Returns:
+        the refit block of the report (``params``, ``observable``, ``heldout``, ``rms``,
+        ``heldout_rms_before`` / ``_after``, ``detail``) and ``prediction``: channel -> the replay
+        with the fitted term (popped by the caller before the report is written).
+    """
+    from sysid.diagnose.candidates import hinge_angle_history
+
+    t = recording.t["sheet_points"]
+    data = np.asarray(recording.data["sheet_points"], dtype=float)
+    sigma = np.asarray(recording.sigma["sheet_points"], dtype=float)
+    rows = np.zeros(len(t), bool)
+    for a, b in windows_s:
+        rows |= (t >= a) & (t <= b)
+    angles = hinge_angle_history(model, nominal)
+    theta_max = float(np.max(angles)) if angles is not None and angles.size else FALLBACK_THETA_MAX
+    theta_max = theta_max if theta_max > 1e-6 else FALLBACK_THETA_MAX
+    train = checkerboard(data.shape[1], sheet_resolution(model))
+
+    def replay(y: float) -> np.ndarray:
+        trace = model.simulate({**dict(params), YIELD_PARAMETER: float(y)})
+        return np.asarray(model.predict(trace)["sheet_points"], dtype=float)
+
+    f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time)
+    pred = f.pop("prediction")
+    fitted = {} if f["yield_angle"] is None else {"yield_angle_rad": f["yield_angle"]}
+    return {"params": fitted,
+            "observable": "sheet_points in the effect's windows (after the release)",
+            "heldout": "checkerboard of the sheet grid (half the points fitted, the other half held out)",
+            "rms": {"sheet_points": f["train_rms_after"]},
+            "heldout_rms_before": f["heldout_rms_before"], "heldout_rms_after": f["heldout_rms_after"],
+            "detail": f, "prediction": {"sheet_points": pred}}
