@@ -29,10 +29,11 @@ from rosgraph_msgs.msg import Clock
 from sim_core.backend import BACKEND_CHOICES
 from thinshell_ros import conversions as cv
 from thinshell_ros.runtime import CLOCK_QOS, COMMAND_QOS, SENSOR_QOS
+from thinshell_ros.sim_node import EXECUTORS
 
 
 def measure_node(context: Context, namespace: str = "/thinshell", effector: str = "ee", window: float = 3.0,
-                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0) -> dict[str, Any]:
+                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0, warmup: int = 20) -> dict[str, Any]:
     """Measure a running sim node from a client node in ``context``.
 
     Args:
@@ -41,7 +42,9 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         window: wall seconds of the real-time-factor window.
         commands: number of latency probes (alternately +step and -step along world z).
         step: probe displacement in m (must be within the node's per-step limit).
-        timeout: wall seconds to wait for the node's first output and for each probe.
+        timeout: wall seconds to wait for the node's first output, for its warm-up and for each probe.
+        warmup: node steps (advances of ``/clock``) to wait for before the window starts: the first
+            steps of a Taichi backend compile its kernels (seconds), which is start-up, not stepping.
 
     Returns:
         dict with ``real_time_factor``, ``steps_per_second`` (simulated time over the step dt, the
@@ -49,7 +52,7 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         (``median``, ``p95``, ``max``), ``probes``, ``lost``.
 
     Raises:
-        TimeoutError: the node published nothing within ``timeout``.
+        TimeoutError: the node published nothing, or did not finish its warm-up, within ``timeout``.
     """
     node = Node("thinshell_bench_client", context=context)
     ex = SingleThreadedExecutor(context=context)
@@ -70,6 +73,11 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
     try:
         if not spin_for(lambda: bool(clock) and bool(poses) and pub.get_subscription_count() > 0, timeout):
             raise TimeoutError(f"no /clock and {namespace}/{effector}/pose from the sim node within {timeout} s")
+        def clock_advances() -> int:
+            return sum(1 for a, b in zip(clock, clock[1:]) if b[1] > a[1])
+
+        if not spin_for(lambda: clock_advances() >= warmup, timeout):
+            raise TimeoutError(f"the sim node did not take {warmup} steps (/clock) within {timeout} s")
         n0 = len(clock)
         spin_for(lambda: False, window)
         win = clock[n0:]
@@ -112,7 +120,7 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
 
 
 def bench_node_main(argv: Sequence[str]) -> int:
-    """``thinshell bench node [--scene S] [--mode realtime|fast] [--backend B] [--window s] [--commands N] [--json]``.
+    """``thinshell bench node [--scene S] [--mode realtime|fast] [--backend B] [--executor E] [--window s] [--commands N] [--json]``.
 
     Starts the sim node in a subprocess on ``ROS_DOMAIN_ID`` (default: derived from the pid, so as not
     to disturb a live graph), measures it and prints a summary (one JSON line with ``--json``).
@@ -124,6 +132,8 @@ def bench_node_main(argv: Sequence[str]) -> int:
     parser.add_argument("--mode", choices=("realtime", "fast"), default="realtime")
     parser.add_argument("--backend", choices=BACKEND_CHOICES, default="auto",
                         help="the node's solver backend (its 'backend' parameter; default auto, as the node's)")
+    parser.add_argument("--executor", choices=tuple(EXECUTORS), default="single",
+                        help="the node's executor (its 'executor' parameter; default single, as the node's)")
     parser.add_argument("--window", type=float, default=3.0, help="wall seconds for the real-time factor")
     parser.add_argument("--commands", type=int, default=20, help="latency probes")
     parser.add_argument("--timeout", type=float, default=120.0, help="wall seconds to wait for the node")
@@ -133,7 +143,7 @@ def bench_node_main(argv: Sequence[str]) -> int:
     env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     cmd = [sys.executable, "-m", "thinshell_ros.sim_node", "--ros-args", "-p", f"mode:={args.mode}",
-           "-p", "rate:=0.0", "-p", "mesh_rate:=0.0", "-p", f"backend:={args.backend}"]
+           "-p", "rate:=0.0", "-p", "mesh_rate:=0.0", "-p", f"backend:={args.backend}", "-p", f"executor:={args.executor}"]
     if args.scene:
         cmd += ["-p", f"scene:={args.scene}"]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -148,12 +158,12 @@ def bench_node_main(argv: Sequence[str]) -> int:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
-    result = {"bench": "node", "mode": args.mode, "backend": args.backend, **result}
+    result = {"bench": "node", "mode": args.mode, "backend": args.backend, "executor": args.executor, **result}
     if args.json:
         print(json.dumps(result))
     else:
         lat = result["latency_ms"]
-        print(f"sim node ({args.mode}): real-time factor {result['real_time_factor']:.3g}, "
+        print(f"sim node ({args.mode}, {args.executor} executor): real-time factor {result['real_time_factor']:.3g}, "
               f"{result['steps_per_second']:.1f} steps/s, command->output latency median {lat['median']:.1f} ms, "
               f"p95 {lat['p95']:.1f} ms, max {lat['max']:.1f} ms ({result['lost']} of {result['probes']} probes lost)")
     return 0

@@ -10,7 +10,7 @@ from __future__ import annotations
 import signal
 import threading
 from contextlib import contextmanager
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -50,9 +50,18 @@ def ros_session(args: Sequence[str] | None = None) -> Iterator[threading.Event]:
         rclpy.try_shutdown()
 
 
-def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05) -> None:
-    """Spin ``node`` until ``stop`` is set or the context is shut down (returns; never raises for that)."""
-    executor = SingleThreadedExecutor(context=node.context)
+def spin_until_stopped(node: Node, stop: threading.Event, poll: float = 0.05, executor: Any | None = None) -> None:
+    """Spin ``node`` until ``stop`` is set or the context is shut down (returns; never raises for that).
+
+    Args:
+        node: the node to spin.
+        stop: event that ends the spin (set by the signal handlers of :func:`ros_session`).
+        poll: s between checks of ``stop``.
+        executor: executor to spin ``node`` in (an ``rclpy.executors.Executor`` or rclpy's
+            ``EventsExecutor``; shut down on return); default a new ``SingleThreadedExecutor`` on the
+            node's context.
+    """
+    executor = executor if executor is not None else SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     try:
         while not stop.is_set() and node.context.ok():

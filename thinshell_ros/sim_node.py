@@ -34,6 +34,11 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
+- ``executor`` (str): the executor :func:`main` spins the node in, ``single`` (default: rclpy's
+  ``SingleThreadedExecutor``) or ``events`` (rclpy's ``EventsExecutor``, ``rclpy.experimental``:
+  callbacks one at a time in arrival order from a C++ event queue, no wait-set rebuild per spin;
+  lower command-to-output latency, docs/benchmarks.md "Sim node through DDS").
+
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
 
@@ -57,6 +62,8 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
@@ -77,6 +84,9 @@ from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QO
                                    topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
+
+EXECUTORS = {"single": SingleThreadedExecutor, "events": EventsExecutor}
+"""Values of the ``executor`` parameter: the rclpy executor factory :func:`main` spins the node in."""
 
 DEFAULT_WORKSPACE_MARGIN = 0.1
 """m around the scene's bounding box (effector start positions and sheet) of the default workspace."""
@@ -151,6 +161,8 @@ class SimNode(Node):
             read_only=True, description=f"solver backend, one of {', '.join(BACKEND_CHOICES)} (auto: the fastest "
                                         "available); ignored when the node is given a built simulation")).value
         self.mode = str(self.declare_parameter("mode", "realtime", ro).value)
+        self.executor_name = str(self.declare_parameter("executor", "single", ParameterDescriptor(
+            read_only=True, description=f"executor main() spins the node in, one of {', '.join(EXECUTORS)}")).value)
         self.rate = float(self.declare_parameter("rate", 0.0, ro).value)
         self.mesh_rate = float(self.declare_parameter("mesh_rate", 10.0, ro).value)
         self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell", ro).value))
@@ -176,6 +188,8 @@ class SimNode(Node):
                                         "is given; < 0: no workspace limit")).value)
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
+        if self.executor_name not in EXECUTORS:
+            raise ConfigError(f"parameter 'executor' must be one of {tuple(EXECUTORS)}, got {self.executor_name!r}")
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
         check_backend(backend, "node parameter 'backend'")
@@ -516,6 +530,11 @@ class SimNode(Node):
         return response
 
     # ------------------------------------------------------------------------------ shutdown
+    def make_executor(self) -> Any:
+        """A new executor of the ``executor`` parameter's kind (:data:`EXECUTORS`) on the node's context:
+        an ``rclpy.executors.SingleThreadedExecutor`` or an ``EventsExecutor`` (a C++ class of rclpy)."""
+        return EXECUTORS[self.executor_name](context=self.context)
+
     def close(self) -> None:
         """Close the recording (idempotent)."""
         if self.recorder is not None and not self.recorder.closed:
@@ -534,7 +553,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"thinshell sim node: error: {err}", file=sys.stderr)
             return 1
         try:
-            spin_until_stopped(node, stop)
+            spin_until_stopped(node, stop, executor=node.make_executor())
         finally:
             node.close()
             node.destroy_node()

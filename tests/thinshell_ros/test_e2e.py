@@ -148,11 +148,14 @@ def test_press_bad_input_and_sigint_recording(ros_env, tmp_path, client):
     assert (bag / "scene.yaml").is_file()
 
 
-def test_sigterm_and_params_file(ros_env, tmp_path, client):
-    """The node reads the bundled params file, runs in stepped mode, and exits cleanly on SIGTERM."""
+@pytest.mark.parametrize("executor", ["single", "events"])
+def test_sigterm_and_params_file(ros_env, tmp_path, client, executor):
+    """The node reads the bundled params file, runs in stepped mode, serves its parameters and exits
+    cleanly on SIGTERM, in either executor."""
     ctx, node, ex, got = client
     params = REPO / "config" / "nodes" / "sim_node.yaml"
-    args = [PYTHON, "-m", "thinshell_ros.sim_node", "--ros-args", "--params-file", str(params), "-p", "mode:=stepped"]
+    args = [PYTHON, "-m", "thinshell_ros.sim_node", "--ros-args", "--params-file", str(params), "-p", "mode:=stepped",
+            "-p", f"executor:={executor}"]
     proc = subprocess.Popen(args, cwd=REPO, env=ros_env, stdout=open(tmp_path / "node.log", "w"), stderr=subprocess.STDOUT)
     try:
         from std_srvs.srv import Trigger
@@ -166,6 +169,20 @@ def test_sigterm_and_params_file(ros_env, tmp_path, client):
         assert spin_until(ex, fut.done, PHYSICS_TIMEOUT)
         assert fut.result().success and fut.result().message == "t=0.005000 s"
         assert spin_until(ex, lambda: got["clock"] and got["clock"][-1] == 5_000_000, 5.0)
+        # the node's parameter services through its executor: a material value set and read back, a bad
+        # one rejected with the old value kept
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+
+        params_client = AsyncParameterClient(node, "/thinshell_sim")
+        assert params_client.wait_for_services(timeout_sec=10.0)
+        for value, accepted in ((2.5e9, True), (-1.0, False)):
+            fut = params_client.set_parameters([Parameter("sheet.youngs_modulus", value=value)])
+            assert spin_until(ex, fut.done, 10.0)
+            assert fut.result().results[0].successful is accepted, fut.result()
+        fut = params_client.get_parameters(["sheet.youngs_modulus"])
+        assert spin_until(ex, fut.done, 10.0)
+        assert fut.result().values[0].double_value == 2.5e9
     finally:
         rc = _stop(proc, signal.SIGTERM)
     assert rc == 0, (tmp_path / "node.log").read_text()

@@ -295,3 +295,16 @@ def test_repeated_failures_pause_the_node_until_reset(ros_context):
     response = node._on_reset(Trigger.Request(), Trigger.Response())
     assert response.success and node.consecutive_failures == 0
     node.destroy_node()
+
+
+def test_executor_parameter_makes_that_executor_or_is_rejected(ros_context):
+    from sim_core.errors import ConfigError
+
+    for name, kind in (("single", "SingleThreadedExecutor"), ("events", "EventsExecutor")):
+        node = _node(ros_context, executor=name)
+        executor = node.make_executor()
+        assert type(executor).__name__ == kind
+        executor.shutdown(timeout_sec=0)
+        node.destroy_node()
+    with pytest.raises(ConfigError, match="parameter 'executor' must be one of .*'threads'"):
+        _node(ros_context, executor="threads")
