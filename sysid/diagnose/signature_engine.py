@@ -13,8 +13,9 @@ still leaves a structured gap many times the noise, and every candidate can abso
    whitened RMS per channel before and after goes into ``baseline``.
 2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias
    from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
-   contact events, bending plasticity from the sheet's set after release, adhesion from the sheet
-   carried by the gel, stiction from the friction ratio's overshoot at each slide's breakaway.
+   contact events, gel damping from the contact force leading the replay there (Kelvin-Voigt),
+   bending plasticity from the sheet's set after release, adhesion from the sheet carried by the
+   gel, stiction from the friction ratio's overshoot at each slide's breakaway.
 3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
    the same tests on recordings the user declares normal (``--baseline``) when given.
 4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
@@ -44,6 +45,7 @@ from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
+from sysid.diagnose.signatures.damping import kelvin_voigt
 from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, lens_design
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_fits, timing_signal
 from sysid.evidence import load_evidence
@@ -255,19 +257,22 @@ def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 
 
 def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Delay (latency) or first-order lag (gel viscoelasticity) fitted on all contact events but
-    one and evaluated on that one, for every event (leave one event out)."""
+    """Delay (latency), first-order lag (gel viscoelasticity) or Kelvin-Voigt time constant (damping:
+    the replay's force plus tau times its rate) fitted on all contact events but one and evaluated on that
+    one, for every event (leave one event out)."""
     rec = p.recording
     fits = timing_fits(rec)
     events = fits["events"] if fits else []
     channel, t, y, yp, sigma = timing_signal(rec)
     y, yp = y[:, None], yp[:, None]
     sig = np.array([sigma])
-    latency = r.effect == "latency"
+    latency, lead = r.effect == "latency", r.effect == "damping"
     taus = np.arange(0.0, 0.3 + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     fracs = np.linspace(0.0, 1.0, 11)
 
     def transformed(theta: tuple[float, float]) -> np.ndarray:
+        if lead:
+            return kelvin_voigt(t, yp, theta[0])
         return delayed(t, yp, theta[0]) if latency else first_order(t, yp, theta[0], theta[1])
 
     def sse(theta, rows, pred=None) -> float:
@@ -285,7 +290,7 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
         return total
 
     masks = [(t >= e["window_s"][0]) & (t <= e["window_s"][1]) for e in events]
-    grid = [(float(a), 0.0) for a in taus] if latency else [(float(a), float(b)) for a in taus[1:] for b in fracs]
+    grid = [(float(a), 0.0) for a in taus] if latency or lead else [(float(a), float(b)) for a in taus[1:] for b in fracs]
     before, after, thetas = [], [], []
     for i, m in enumerate(masks):
         train = np.zeros(len(t), bool)
@@ -301,7 +306,8 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     n_held = sum(int(m.sum()) * sig.shape[0] for m in masks)
     all_rows = np.any(masks, axis=0) if masks else np.ones(len(t), bool)
     best_all = min(grid, key=lambda th: sse(th, all_rows))
-    params = {"latency_s": best_all[0]} if latency else {"tau_s": best_all[0], "fraction": best_all[1]}
+    params = ({"latency_s": best_all[0]} if latency else {"tau_s": best_all[0]} if lead
+              else {"tau_s": best_all[0], "fraction": best_all[1]})
     observable = "normal force" if channel == "wrench" else "mean marker depth"
     return {"params": params, "observable": f"{observable} in the contact events' windows",
             "heldout": "leave one contact event out", "per_event": [list(th) for th in thetas],
@@ -382,7 +388,7 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[
         return refit_lens(p, r, settings.holdout_blocks)
     if r.effect == "force_bias":
         return refit_force_bias(p, r, settings.holdout_blocks)
-    if r.effect in ("latency", "gel_viscoelasticity"):
+    if r.effect in ("latency", "gel_viscoelasticity", "damping"):
         return refit_timing(p, r)
     if r.effect == "stiction":
         return refit_stiction(p, r)

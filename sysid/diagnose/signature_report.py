@@ -14,6 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sysid.diagnose.report import write_report_files
+from sysid.diagnose.signatures.damping import kelvin_voigt
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
@@ -34,10 +35,14 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         fig, (ax, ax_res) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     else:
         fig, ax = plt.subplots(figsize=(9, 3.6))
-    if effect in ("latency", "gel_viscoelasticity"):
+    if effect in ("latency", "gel_viscoelasticity", "damping"):
         channel, t, y, yp, _ = timing_signal(rec)
-        after = delayed(t, yp, params.get("latency_s", 0.0)) if effect == "latency" else \
-            first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
+        if effect == "gel_viscoelasticity":
+            after = first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
+        elif effect == "damping":
+            after = kelvin_voigt(t, yp, params.get("tau_s", 0.0))
+        else:
+            after = delayed(t, yp, params.get("latency_s", 0.0))
         ax.plot(t, y, "k.", ms=2, label="recorded")
         ax.plot(t, yp, "C0-", lw=1, label="calibrated replay")
         ax.plot(t, after, "C3-", lw=1, label=f"replay with {effect}")
@@ -132,6 +137,8 @@ def _plot_calibration(doc: Mapping[str, Any], out: Path) -> Path:
 WORDS = {
     "latency": "the tactile streams arrive late: every contact event is delayed by the same time",
     "gel_viscoelasticity": "the gel creeps: the tactile response follows the contact with a first-order lag and relaxes on plateaus",
+    "damping": "the gel is damped: its contact force runs ahead of the deformation at every press and release, "
+               "by more the faster it is pressed (a force proportional to the deformation rate)",
     "lens_distortion": "the tactile camera's lens bends the marker pixels radially, growing towards the image edge",
     "force_bias": "the wrench sensor reads an offset that drifts, even when the gel touches nothing",
     "bending_plasticity": "the sheet keeps a fold after the gel lets go of it (plastic bending)",

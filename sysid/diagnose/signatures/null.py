@@ -15,6 +15,10 @@ With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each thre
 different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
 "Model-form gap").
 
+Damping reads the same event windows as the timing effects with the opposite sign (the force leads
+the replay instead of following it), so it is not confused with them; it must explain the same
+fraction of the windows' excess energy.
+
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
 (a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`); when neither
 shape is clearly better both are reported as a tie and the larger statistic is named first.
@@ -65,6 +69,21 @@ class Thresholds:
     source: dict[str, str] = field(default_factory=dict)
 
 
+def damping_lead_threshold(rec: Recording) -> float:
+    """Smallest lead of the contact force over the replay that names damping, s: two sample periods
+    of the stream the damping test reads (the wrench, else the markers).
+
+    Derivation: the test (:mod:`sysid.diagnose.signatures.damping`) reads one stream against the
+    replay, so a lead is resolved to that stream's own sample period (the 200 Hz wrench: 5 ms), and
+    two periods keep a one-sample misalignment of the event windows (the 5 ms averaging of every
+    tactile sample, the replay step) below the threshold. Latency and viscoelasticity use the
+    coarsest tactile period instead because they shift every tactile stream."""
+    for ch in ("wrench", "markers_xyz"):
+        if rec.has(ch) and ch in rec.t and len(rec.t[ch]) > 1:
+            return 2.0 * rec.sample_period(ch)
+    return 2.0 * 0.01
+
+
 def default_thresholds(rec: Recording) -> Thresholds:
     """Thresholds from the recording's noise model and sample periods."""
     th = Thresholds()
@@ -72,8 +91,9 @@ def default_thresholds(rec: Recording) -> Thresholds:
     uv_sigma = float(np.max(rec.sigma["markers_uv"])) if "markers_uv" in rec.sigma else 0.15
     sheet_sigma = float(np.max(rec.sigma["sheet_points"])) if "sheet_points" in rec.sigma else 5e-5
     sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": 2.0 * period,
-             "gel_viscoelasticity": 2.0 * period, "bending_plasticity": 10.0 * sheet_sigma,
-             "adhesion": 10.0 * sheet_sigma, "stiction": resolvable_excess(rec)}
+             "gel_viscoelasticity": 2.0 * period, "damping": damping_lead_threshold(rec),
+             "bending_plasticity": 10.0 * sheet_sigma, "adhesion": 10.0 * sheet_sigma,
+             "stiction": resolvable_excess(rec)}
     for effect, size in sizes.items():
         th.statistic[effect] = STATISTIC_THRESHOLD
         th.effect_size[effect] = float(size)
@@ -121,8 +141,8 @@ def _passes(r: SignatureResult, th: Thresholds) -> bool:
     r.threshold = {"statistic": th.statistic.get(r.effect, STATISTIC_THRESHOLD),
                    "effect_size": th.effect_size.get(r.effect, 0.0), "source": th.source.get(r.effect, "default")}
     ok = r.statistic >= r.threshold["statistic"] and r.effect_size >= r.threshold["effect_size"]
-    if ok and r.effect in ("latency", "gel_viscoelasticity"):
-        key = "explained_delay" if r.effect == "latency" else "explained_lag"
+    if ok and r.effect in ("latency", "gel_viscoelasticity", "damping"):
+        key = {"latency": "explained_delay", "gel_viscoelasticity": "explained_lag", "damping": "explained_lead"}[r.effect]
         ok = float(r.detail.get(key, 0.0)) >= MIN_EXPLAINED
         if ok and r.effect == "gel_viscoelasticity":
             ok = 0.0 < float(r.estimate.get("fraction", 0.0))

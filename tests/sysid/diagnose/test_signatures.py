@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sysid.diagnose.signature_engine import Prepared, refit_timing
 from sysid.diagnose.signatures import Recording, run_signature_tests
+from sysid.diagnose.signatures.damping import damping_test, kelvin_voigt
 from sysid.diagnose.signatures.null import Thresholds, calibrated_thresholds, decide, default_thresholds
 from sysid.diagnose.signatures.sensor import apply_lens, force_bias_test, lens_test
 from sysid.diagnose.signatures.sheet import adhesion_test, plasticity_test
@@ -25,8 +27,11 @@ def press_profile(t: np.ndarray, t_on: float = 1.0, t_off: float = 2.5, ramp: fl
 
 
 def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float = 0.0, k1: float = 0.0,
-              bias: float = 0.0, set_height: float = 0.0, carried: bool = False, duration: float = 3.5) -> Recording:
-    """A press-and-release recording and its exact 'replay', with one effect applied to the data."""
+              bias: float = 0.0, set_height: float = 0.0, carried: bool = False, duration: float = 3.5,
+              damping: float = 0.0) -> Recording:
+    """A press-and-release recording and its exact 'replay', with one effect applied to the data
+    (``damping``: a Kelvin-Voigt gel of that time constant, ``F = k (x + tau dx/dt)`` on the force,
+    the markers keep the elastic deformation ``x``)."""
     tw = np.arange(0.0, duration, 0.005)
     tm = np.arange(0.0, duration, 0.01)
     # with a carried sheet the replay lets go when the effector lifts (1.6 s); the recorded gel
@@ -50,7 +55,7 @@ def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float 
     # the recording: effects, then noise
     xyz = rest[None] + np.stack([np.zeros_like(bowl), np.zeros_like(bowl), -2e-4 * bowl], 1)[None] * rec_m[:, None, None]
     w = np.zeros((len(tw), 6))
-    w[:, 2] = -5.0 * rec_w
+    w[:, 2] = -5.0 * (rec_w + damping * np.gradient(rec_w, tw))
     if latency:
         xyz, w = delayed(tm, xyz, latency), delayed(tw, w, latency)
     if lag_tau:
@@ -179,3 +184,57 @@ def test_a_shape_the_replay_also_keeps_is_not_a_set(rng):
     r = plasticity_test(held)
     assert r.effect_size == 0.0 and "replay itself" in r.reason
     assert "bending_plasticity" not in named(held)
+
+
+def test_gel_damping_named_with_its_time_constant(rng):
+    # Kelvin-Voigt gel, tau = 30 ms: the force leads the markers' elastic deformation at both events
+    rec = synthetic(rng, damping=0.03)
+    assert named(rec) == ["damping"]
+    r = damping_test(rec)
+    assert r.estimate["tau_s"] == pytest.approx(0.03, abs=0.005)
+    assert min(r.detail["leads_s"]) == pytest.approx(0.03, abs=0.0051)
+    # the timing effects read the same windows with the other sign: no delay, no lag
+    lat, visco = timing_tests(rec)
+    assert not lat.detected and not visco.detected
+
+
+def test_gel_damping_refit_lowers_heldout_residual(rng):
+    rec = synthetic(rng, damping=0.03)
+    results = run_signature_tests(rec)
+    decide(results, default_thresholds(rec))
+    p = Prepared("synthetic", None, None, dict(rec.prediction), rec, results)
+    fit = refit_timing(p, results["damping"])
+    assert fit["params"]["tau_s"] == pytest.approx(0.03, abs=0.005)
+    # each event predicted with the lead fitted on the other one: back to the noise level
+    assert fit["heldout_rms_before"] > 2.0 and fit["heldout_rms_after"] < 1.2
+
+
+def test_damping_below_two_wrench_periods_not_named(rng):
+    rec = synthetic(rng, damping=0.004)
+    r = run_signature_tests(rec)["damping"]
+    assert default_thresholds(rec).effect_size["damping"] == pytest.approx(0.01)
+    assert named(rec) == []
+    assert r.effect_size < 0.01
+
+
+@pytest.mark.parametrize("kwargs", [{"latency": 0.04}, {"lag_tau": 0.12}])
+def test_delay_and_lag_give_no_lead(rng, kwargs):
+    r = damping_test(synthetic(rng, **kwargs))
+    assert r.effect_size == 0.0 and r.estimate["tau_s"] == 0.0
+
+
+def test_baseline_null_raises_damping_threshold(rng):
+    base = synthetic(rng, damping=0.03)
+    rec = synthetic(np.random.default_rng(9), damping=0.03)
+    th = calibrated_thresholds(default_thresholds(rec), [run_signature_tests(base)], baseline_factor=2.0)
+    assert th.source["damping"] == "baseline"
+    assert named(rec, th) == []
+
+
+def test_kelvin_voigt_is_value_plus_tau_times_rate():
+    t = np.arange(0.0, 2.0, 0.005)
+    y = np.sin(2 * np.pi * 1.5 * t)
+    kv = kelvin_voigt(t, y, 0.02)
+    exact = y + 0.02 * 2 * np.pi * 1.5 * np.cos(2 * np.pi * 1.5 * t)
+    inner = slice(20, -20)  # the filter's edges fit a shorter span
+    assert np.max(np.abs(kv[inner] - exact[inner])) < 0.01

@@ -1,0 +1,144 @@
+"""Signature test of damping in the gel: the contact force leads the deformation.
+
+A Kelvin-Voigt (stiffness-proportional, Rayleigh) damped gel carries ``F = k (x + tau dx/dt)``,
+which to first order is ``k x(t + tau)``: the force runs *ahead* of the elastic response by the
+damping time constant, by an amount proportional to the deformation rate, and adds nothing on
+quasi-static segments (SYSID.md "damping — residual proportional to velocity, nothing in
+quasi-static segments"). It is read where the rate is largest, at the contact events of the
+calibrated nominal replay (press and release), with the windows of
+:mod:`sysid.diagnose.signatures.timing`: in each window the recorded normal force is regressed on
+the replay's Kelvin-Voigt response ``y ~ a + b (y_pred + tau dy_pred/dt)`` (free gain and offset
+per window: the amplitude gap between simulator and recording is not the effect), over a grid of
+``tau >= 0``; the replay's value and rate are read by a Savitzky-Golay filter (:func:`kelvin_voigt`).
+
+* statistic: the whitened SSE a common lead removes against ``tau = 0`` summed over the events
+  (a likelihood-ratio statistic in noise units);
+* effect size: the smallest of the events' own best leads (a damping time constant leads every
+  event; a lead at one event only is the model's gap there), s;
+* estimate: the common lead, the damping time constant beyond the replay's own, s.
+
+Confusable effects read the same windows with the opposite sign: latency delays every event by the
+same time (``tau < 0`` here), a first-order lag (gel viscoelasticity) rounds and delays it; neither
+gives a lead at every event, so the three are told apart by the sign of the shift.
+
+Without a wrench the mean marker depth is used in the same way (:func:`timing.timing_signal`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
+from sysid.diagnose.signatures.timing import (TAU_MAX_S, WINDOW_AFTER_S, WINDOW_BEFORE_S, contact_events,
+                                              timing_signal)
+
+EFFECT = "damping"
+
+RATE_WINDOW_S = 0.05
+"""Span of the quadratic Savitzky-Golay filter that reads the replay's value and rate, s. Longer
+than the replay's step (0.01 s by default: its contact solve leaves step-to-step roughness on the
+predicted force, which a derivative amplifies), and a third of the event windows' shorter side
+(:data:`~sysid.diagnose.signatures.timing.WINDOW_BEFORE_S`), so that a press or release ramp keeps
+its rate."""
+
+
+def _savgol_window(t: np.ndarray, span_s: float) -> int:
+    """Odd number of samples covering ``span_s`` on the (uniform) time base ``t``, at least 5."""
+    dt = float(np.median(np.diff(t)))
+    w = int(round(span_s / dt)) if dt > 0 else 5
+    w = max(w, 5)
+    return w if w % 2 == 1 else w + 1
+
+
+def kelvin_voigt(t: np.ndarray, y: np.ndarray, tau: float, span_s: float = RATE_WINDOW_S) -> np.ndarray:
+    """``y + tau dy/dt`` along axis 0, value and rate read by a quadratic Savitzky-Golay filter
+    over ``span_s`` (:func:`scipy.signal.savgol_filter`; Savitzky & Golay 1964): the force of a
+    Kelvin-Voigt element of time constant ``tau`` s whose elastic part is ``y``, to first order
+    ``y(t + tau)``, a lead of ``tau``.
+
+    Args:
+        t: uniform sample times, s, shape ``(n,)``.
+        y: elastic response, shape ``(n, ...)``.
+        tau: time constant, s (0: the filtered ``y``).
+        span_s: filter span, s; a series shorter than the filter is differentiated by central
+            differences instead.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if len(y) < 3:
+        return y.copy()
+    w = _savgol_window(t, span_s)
+    if len(y) < w:
+        return y + tau * np.gradient(y, t, axis=0)
+    dt = float(np.median(np.diff(t)))
+    value = savgol_filter(y, w, 2, axis=0)
+    if tau == 0.0:
+        return value
+    return value + tau * savgol_filter(y, w, 2, deriv=1, delta=dt, axis=0)
+
+
+def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
+    X = np.stack([x, np.ones_like(x)], axis=1)
+    c, *_ = np.linalg.lstsq(X, y, rcond=None)
+    r = y - X @ c
+    return float(r @ r)
+
+
+def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
+    """Whitened SSE of every contact event's window against the replay's Kelvin-Voigt response for
+    each time constant.
+
+    Args:
+        rec: recording with its calibrated replay.
+        taus: time constants searched, s, ascending from 0 (default: 0 to ``TAU_MAX_S`` in half sample periods).
+
+    Returns:
+        None without a predicted normal force or marker depth, else a dict with ``channel``,
+        ``taus_s`` (m,), ``sse`` (events, m) whitened SSE per event and lead, and ``events`` (one dict
+        per event: time, direction, window, samples, SSE at 0, best lead and its SSE).
+    """
+    sig = timing_signal(rec)
+    if sig is None:
+        return None
+    channel, t, y, yp, sigma = sig
+    if taus is None:
+        taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
+    shifted = [kelvin_voigt(t, yp, float(tau)) for tau in taus]
+    events, sse = [], []
+    for te, direction in contact_events(t, yp):
+        lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
+        m = (t >= lo) & (t <= hi)
+        if m.sum() < 10:
+            continue
+        row = np.array([_window_sse(y[m], z[m]) for z in shifted]) / sigma ** 2
+        i = int(np.argmin(row))
+        sse.append(row)
+        events.append({"t_s": te, "direction": "rising" if direction > 0 else "falling", "window_s": [lo, hi],
+                       "samples": int(m.sum()), "sse0": float(row[0]), "lead_s": float(taus[i]),
+                       "sse_lead": float(row[i])})
+    return {"channel": channel, "taus_s": np.asarray(taus, dtype=float),
+            "sse": np.array(sse).reshape(len(events), len(taus)), "events": events}
+
+
+def damping_test(rec: Recording) -> SignatureResult:
+    """Gel damping from the lead of the recorded contact force over the calibrated replay."""
+    fits = lead_fits(rec)
+    if fits is None:
+        return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")
+    ev = fits["events"]
+    if not ev:
+        return not_applicable(EFFECT, "the replay predicts no contact event")
+    total = fits["sse"].sum(axis=0)
+    j = int(np.argmin(total))
+    lead = float(fits["taus_s"][j])
+    leads = np.array([e["lead_s"] for e in ev])
+    samples = int(sum(e["samples"] for e in ev))
+    excess = max(float(total[0]) - samples, 1e-12)
+    detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
+              "sse_lead": float(total[j]), "leads_s": leads.tolist(),
+              "explained_lead": float((total[0] - total[j]) / excess)}
+    return SignatureResult(effect=EFFECT, statistic=max(float(total[0] - total[j]), 0.0),
+                           effect_size=float(np.min(leads)), effect_unit="s (smallest event lead)",
+                           estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],
+                           channels=["wrench"] if fits["channel"] == "wrench" else ["markers_xyz"], detail=detail)
