@@ -16,6 +16,10 @@ class ConfigError(ThinShellError):
     """A scene/material/node/sysid configuration is invalid (unknown key, bad value, wrong version)."""
 
 
+class InsufficientMemoryError(ConfigError):
+    """Not even one copy of a batch fits in the memory free on the device (or the host)."""
+
+
 class MeshError(ConfigError):
     """A mesh is unusable: NaN coordinates, degenerate triangle, inverted tetrahedron, bad indices."""
 
