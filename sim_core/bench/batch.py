@@ -13,6 +13,14 @@ and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvi
 divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
 the copies add beyond it). The kernels are compiled before the first size by one short batch of one
 copy and the projected-Hessian kernels (``jit_s``).
+
+``--sizes auto``: one size, the largest ``B`` that fits (:mod:`sim_core.batch.sizing`): probe batches of
+one and two copies, built and stepped after the compilation, give the memory per copy (host resident
+set size and, on CUDA, this process's GPU memory); the free memory (``/proc/meminfo`` ``MemAvailable``;
+``nvidia-smi --query-gpu=memory.free``) less a reserve (``--reserve``, default 20 %) over it gives
+``B``, at most ``--max-size``. The record adds ``auto_B``, ``auto_limit`` (``host``, ``gpu`` or
+``cap``), ``host_mib_per_copy_probe``, ``host_mib_free`` and, on CUDA, ``gpu_mib_per_copy_probe``,
+``gpu_mib_free``.
 """
 
 from __future__ import annotations
@@ -132,12 +140,15 @@ def _make_run(scene: str, B: int, steps: int, backend: str, lockstep: bool):
     return _TaskRun(scene, B, steps, backend, lockstep)
 
 
-def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None, lockstep: bool = False) -> list[dict]:
+def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_row=None, lockstep: bool = False,
+                max_size: int | None = None, reserve_fraction: float = 0.2) -> list[dict]:
     """Time batches of each size in ``sizes`` (one after the other, each built, stepped and dropped).
 
     Args:
         scene: ``forming`` or a task name.
-        sizes: batch sizes ``B >= 1``.
+        sizes: batch sizes ``B >= 1``, or ``"auto"``: the largest ``B`` that fits (module docstring).
+        max_size: with ``"auto"``, the largest ``B`` to run (None: no bound but the memory).
+        reserve_fraction: with ``"auto"``, the fraction of the free memory left unused.
         steps: steps per copy (Forming: 1..49; a task: 1..horizon).
         arch: ``numpy``, ``cpu`` or ``cuda`` (``SolverConfig.backend`` ``numpy`` / ``taichi-cpu`` /
             ``taichi-cuda``).
@@ -151,15 +162,18 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
         ``backend``, ``dofs``, ``wall_s``, ``build_s``, ``jit_s`` (first record only)).
 
     Raises:
-        ConfigError: unknown scene, task without reference, arch not available here, bad sizes.
+        ConfigError: unknown scene, task without reference, arch not available here, bad sizes, a probe
+            that measured no memory growth.
+        InsufficientMemoryError: ``"auto"`` and not even one copy fits.
     """
     from sim_core.backend import resolve_backend
     from sim_core.errors import ConfigError
 
     if arch not in ARCH_BACKENDS:
         raise ConfigError(f"--arch must be one of {', '.join(ARCH_BACKENDS)}; got {arch!r}")
-    if not sizes or min(sizes) < 1:
-        raise ConfigError(f"--sizes must be integers >= 1, got {sizes}")
+    auto = sizes == "auto"
+    if not auto and (not sizes or min(sizes) < 1):
+        raise ConfigError(f"--sizes must be integers >= 1 or auto, got {sizes}")
     backend = resolve_backend(ARCH_BACKENDS[arch])
     t0 = time.perf_counter()
     warm = _make_run(scene, 1, min(2, steps), backend, lockstep)  # JIT of every kernel the steps call
@@ -172,6 +186,18 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
     dofs = int(sim0.model.dof_count)
     del warm
     jit_s = time.perf_counter() - t0
+    sizing = None
+    if auto:
+        from sim_core.batch.sizing import choose_batch_size, measure_per_copy, resources_of
+
+        def probe(B: int):
+            run = _make_run(scene, B, steps, backend, lockstep)
+            run.run()
+            return run
+
+        per_copy = measure_per_copy(probe, resources_of(backend))
+        sizing = choose_batch_size(per_copy, max_size, reserve_fraction)
+        sizes = [sizing.B]
     out = []
     for B in sizes:
         gc.collect()
@@ -195,6 +221,8 @@ def bench_batch(scene: str, sizes: list[int], steps: int, arch: str, on_row=None
             "gpu_mib_process": gpu1, "jit_s": jit_s if not out else 0.0,
             "python": platform.python_version(), "numpy": np.__version__,
         })
+        if sizing is not None:
+            out[-1].update(sizing.as_record())
         del run
         if on_row is not None:
             on_row(out[-1])
@@ -209,18 +237,38 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(prog="thinshell bench batch", description=__doc__.splitlines()[0])
     p.add_argument("--arch", default="cpu", choices=sorted(ARCH_BACKENDS), help="backend of every copy (default cpu)")
-    p.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="batch sizes B (default 1 2 4 8)")
+    p.add_argument("--sizes", nargs="+", default=[str(b) for b in DEFAULT_SIZES],
+                   help="batch sizes B (default 1 2 4 8), or auto: the largest B that fits the device's free memory")
+    p.add_argument("--max-size", type=int, help="with --sizes auto: the largest B to run")
+    p.add_argument("--reserve", type=float, default=0.2,
+                   help="with --sizes auto: fraction of the free memory left unused (default 0.2)")
     p.add_argument("--scene", default="forming", help="forming (the benchmark scene) or a task name")
     p.add_argument("--steps", type=int, default=10, help="steps per copy (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON line per size")
     p.add_argument("--lockstep", action="store_true",
                    help="step the copies together: one Newton iteration for all (SolverConfig.lockstep)")
     ns = p.parse_args(argv)
+    if ns.sizes == ["auto"]:
+        sizes: list[int] | str = "auto"
+    else:
+        try:
+            sizes = [int(b) for b in ns.sizes]
+        except ValueError:
+            p.error(f"--sizes: integers >= 1, or auto alone; got {' '.join(ns.sizes)}")
+
     def show(r: dict) -> None:
         if ns.json:
             print(json.dumps(r), flush=True)
             return
-        if r["B"] == ns.sizes[0]:
+        if sizes == "auto":
+            gpu_free = r.get("gpu_mib_free")
+            print(f"thinshell bench batch: auto size B = {r['auto_B']} (bounded by {r['auto_limit']}): "
+                  f"{r.get('host_mib_per_copy_probe', float('nan')):.1f} MiB host per copy, "
+                  f"{r.get('host_mib_free', float('nan')):.0f} MiB host free"
+                  + ("" if gpu_free is None else f", {r.get('gpu_mib_per_copy_probe', float('nan')):.2f} MiB GPU per copy, "
+                                                 f"{gpu_free:.0f} MiB GPU free")
+                  + f", reserve {100 * ns.reserve:.0f} %", flush=True)
+        if r["B"] == (r["auto_B"] if sizes == "auto" else sizes[0]):
             print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {r['mode']}, {ns.steps} steps per "
                   f"copy, JIT {r['jit_s']:.1f} s")
             print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
@@ -231,7 +279,8 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
               f"{r['build_s']:>8.2f}", flush=True)
 
     try:
-        rows = bench_batch(ns.scene, ns.sizes, ns.steps, ns.arch, on_row=show, lockstep=ns.lockstep)
+        rows = bench_batch(ns.scene, sizes, ns.steps, ns.arch, on_row=show, lockstep=ns.lockstep,
+                           max_size=ns.max_size, reserve_fraction=ns.reserve)
     except ConfigError as err:
         print(f"thinshell bench batch: {err}", file=sys.stderr)
         return 2
