@@ -49,6 +49,19 @@ OUTPUTS = ("scene.yaml", "trajectory.yaml", "result.json", "report.html", "rewar
 RESULT_SCHEMA = "thinshell.optimise.result"
 
 
+def _batch_size(text: str) -> int | str:
+    """``--batch-size``: an integer >= 1 or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"an integer >= 1 or auto, got {text!r}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="thinshell optimise", description=__doc__.split("\n\n")[0])
     p.add_argument("task", help="task name (config/tasks) or task file")
@@ -60,6 +73,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batched", action="store_true",
                    help="evaluate each CMA-ES population as one batch of scene copies stepped together "
                         "(sim_core.batch; same episodes as the serial evaluator)")
+    p.add_argument("--batch-size", type=_batch_size, metavar="N|auto",
+                   help="with --batched: the most copies stepped together (a larger population runs in chunks); "
+                        "auto: the largest number that fits the device's free memory (sim_core.batch.sizing)")
     p.add_argument("--horizon", type=int, help="steps per episode (default: the task's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
@@ -186,7 +202,8 @@ def optimise_main(argv: list[str]) -> int:
     from sim_core.optim.evaluators import make_evaluator
 
     solver_config = SolverConfig(backend=args.backend, dt_halvings_on_failure=0)
-    evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config, batched=args.batched)
+    evaluator = make_evaluator(task, args.workers, horizon, params, args.address, solver_config, batched=args.batched,
+                               batch_size=args.batch_size)
     try:
         space = _space(task, evaluator, horizon, params, start, args.control_points, solver_config, cma_start)
         t0 = time.perf_counter()

@@ -186,7 +186,7 @@ class BatchSizing:
 
 
 def measure_per_copy(build: Callable[[int], object], resources: tuple[str, ...],
-                     used: Callable[[str], float | None] = used_memory) -> dict:
+                     used: Callable[[str], float | None] | None = None) -> dict:
     """Memory per copy on each resource, from probe batches of one and two copies.
 
     Args:
@@ -201,6 +201,7 @@ def measure_per_copy(build: Callable[[int], object], resources: tuple[str, ...],
     Raises:
         ConfigError: a probe measured no growth (:func:`per_copy_from_probe`).
     """
+    used = used or used_memory
     gc.collect()
     readings = [{r: used(r) for r in resources}]
     for B in (1, 2):
@@ -217,7 +218,7 @@ def measure_per_copy(build: Callable[[int], object], resources: tuple[str, ...],
 
 
 def choose_batch_size(per_copy_bytes: dict, cap: int | None = None, reserve_fraction: float = DEFAULT_RESERVE,
-                      free: Callable[[str], float | None] = free_memory) -> BatchSizing:
+                      free: Callable[[str], float | None] | None = None) -> BatchSizing:
     """The largest ``B`` that fits every resource of ``per_copy_bytes`` (:func:`auto_batch_size` on each).
 
     Args:
@@ -233,6 +234,7 @@ def choose_batch_size(per_copy_bytes: dict, cap: int | None = None, reserve_frac
         ConfigError: no resource's free memory or per-copy memory could be read and no cap bounds ``B``.
         InsufficientMemoryError: not even one copy fits one of the resources.
     """
+    free = free or free_memory
     names = {"gpu": "GPU", "host": "host"}
     sizes, frees = {}, {}
     for r, per in per_copy_bytes.items():

@@ -76,24 +76,69 @@ class BatchedEvaluator:
             settings: no dt halving).
         lockstep: step the copies in lockstep (default), else one after another; it replaces
             ``solver_config.lockstep``.
+        batch_size: the most copies stepped together: a larger population is evaluated in chunks of
+            this size, one after another (each a batch of its own). None: the whole population as one
+            batch; ``"auto"``: the largest size that fits the device (:mod:`sim_core.batch.sizing`:
+            probe batches of one and two copies, one step of the first sequence each, measured on the
+            first call; host memory and, on ``taichi-cuda``, GPU memory; ``reserve_fraction`` of
+            the free memory left unused).
+        reserve_fraction: with ``batch_size="auto"``, as :func:`sim_core.batch.sizing.auto_batch_size`.
+
+    Attributes:
+        sizing: with ``batch_size="auto"``, the :class:`sim_core.batch.sizing.BatchSizing` of the first
+            call (None before it, and without ``"auto"``).
 
     Raises:
-        ConfigError: a horizon outside ``1..task.horizon``.
+        ConfigError: a horizon outside ``1..task.horizon``, a ``batch_size`` that is neither None,
+            ``"auto"`` nor an integer >= 1.
     """
 
     workers = 1
 
     def __init__(self, task, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                 solver_config: SolverConfig | None = None, lockstep: bool = True) -> None:
+                 solver_config: SolverConfig | None = None, lockstep: bool = True,
+                 batch_size: int | str | None = None, reserve_fraction: float = 0.2) -> None:
         self.task = task
         self.horizon = episode_horizon(task, horizon)
         self.params = dict(params or {})
         self.solver_config = dataclasses.replace(solver_config or SolverConfig(dt_halvings_on_failure=0),
                                                  lockstep=bool(lockstep))
+        if batch_size is not None and batch_size != "auto" and (isinstance(batch_size, str) or int(batch_size) < 1):
+            raise ConfigError(f"batched evaluator: batch_size must be an integer >= 1, 'auto' or None; got {batch_size!r}")
+        self.batch_size = batch_size if batch_size in (None, "auto") else int(batch_size)
+        self.reserve_fraction = float(reserve_fraction)
+        self.sizing = None
+
+    def _chunk_size(self, seqs: list[np.ndarray], plist: list[dict]) -> int:
+        """Copies per batch for this call (``len(seqs)`` without a bound)."""
+        if self.batch_size is None:
+            return max(1, len(seqs))
+        if self.batch_size == "auto":
+            if self.sizing is None:
+                from sim_core.batch.sizing import choose_batch_size, measure_per_copy, resources_of
+                from sim_core.tasks.rollout import PopulationRollout
+
+                def probe(B: int):
+                    rollout = PopulationRollout(self.task, [seqs[0][:1]] * B, [plist[0]] * B,
+                                                solver_config=self.solver_config)
+                    rollout.run()
+                    return rollout
+
+                per_copy = measure_per_copy(probe, resources_of(self.solver_config.backend))
+                self.sizing = choose_batch_size(per_copy, None, self.reserve_fraction)
+            return self.sizing.B
+        return int(self.batch_size)
 
     def evaluate(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None) -> list[EpisodeResult]:
         """As :meth:`SerialEvaluator.evaluate` (a call's ``params`` replace the evaluator's for it and
-        the calls after it, as the serial evaluator's episode keeps the last values set)."""
+        the calls after it, as the serial evaluator's episode keeps the last values set); in batches
+        of at most ``batch_size`` copies.
+
+        Raises:
+            ConfigError: bad actions or parameter sets; with ``batch_size="auto"``, a probe that
+                measured no memory growth.
+            InsufficientMemoryError: with ``batch_size="auto"``, not even one copy fits.
+        """
         from sim_core.optim.actions import check_actions
         from sim_core.tasks.rollout import rollout_population
 
@@ -107,7 +152,13 @@ class BatchedEvaluator:
                 plist.append(dict(self.params))
         else:
             plist = [dict(self.params)] * len(seqs)
-        results = rollout_population(self.task, seqs, plist, solver_config=self.solver_config)
+        if not seqs:
+            return []
+        size = self._chunk_size(seqs, plist)
+        results = []
+        for start in range(0, len(seqs), size):
+            results += rollout_population(self.task, seqs[start:start + size], plist[start:start + size],
+                                          solver_config=self.solver_config)
         return [self._episode_result(r) for r in results]
 
     def _episode_result(self, r) -> EpisodeResult:
@@ -216,17 +267,21 @@ def _package_root() -> str:
 
 
 def make_evaluator(task, workers: int = 1, horizon: int | None = None, params: Mapping[str, float] | None = None,
-                   address: str | None = None, solver_config: SolverConfig | None = None, batched: bool = False):
-    """:class:`BatchedEvaluator` when ``batched`` (one worker, no cluster address), else
+                   address: str | None = None, solver_config: SolverConfig | None = None, batched: bool = False,
+                   batch_size: int | str | None = None):
+    """:class:`BatchedEvaluator` (with ``batch_size``) when ``batched`` (one worker, no cluster address), else
     :class:`SerialEvaluator` for one worker without a cluster address, else :class:`RayEvaluator`.
 
     Raises:
-        ConfigError: ``batched`` with several workers or a cluster address.
+        ConfigError: ``batched`` with several workers or a cluster address; ``batch_size`` without
+            ``batched``.
     """
+    if batch_size is not None and not batched:
+        raise ConfigError("a batch size (--batch-size) applies to a batched evaluator (--batched) only")
     if batched:
         if int(workers) > 1 or address is not None:
             raise ConfigError("a batched evaluator runs in this process: no --workers > 1 or --address with it")
-        return BatchedEvaluator(task, horizon, params, solver_config)
+        return BatchedEvaluator(task, horizon, params, solver_config, batch_size=batch_size)
     if int(workers) <= 1 and address is None:
         return SerialEvaluator(task, horizon, params, solver_config)
     return RayEvaluator(task, max(1, int(workers)), horizon, params, address, solver_config)
