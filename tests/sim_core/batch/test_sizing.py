@@ -63,7 +63,7 @@ def test_measure_per_copy_skips_resources_it_cannot_read():
 
 def test_choose_batch_size_takes_the_tightest_resource():
     free = {"host": 1000 * MIB, "gpu": 100 * MIB}.get
-    got = choose_batch_size({"host": 10 * MIB, "gpu": 1 * MIB}, reserve_fraction=0.0, free=free)
+    got = choose_batch_size({"host": 5 * MIB, "gpu": 1 * MIB}, reserve_fraction=0.0, free=free)
     assert (got.B, got.limit) == (100, "gpu")
     got = choose_batch_size({"host": 20 * MIB, "gpu": 1 * MIB}, reserve_fraction=0.0, free=free)
     assert (got.B, got.limit) == (50, "host")
