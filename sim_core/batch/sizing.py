@@ -22,6 +22,9 @@ from pathlib import Path
 from sim_core.errors import ConfigError, InsufficientMemoryError
 
 MIB = 2**20
+HOST_NOISE_BYTES = 64 * 1024
+"""Host growth per copy at or below this is probe noise (page granularity, the probe's own
+bookkeeping), not a copy's memory."""
 DEFAULT_RESERVE = 0.2
 """Fraction of the free memory left unused by :func:`auto_batch_size` (allocator slack, JIT, other work)."""
 
@@ -189,6 +192,12 @@ def measure_per_copy(build: Callable[[int], object], resources: tuple[str, ...],
                      used: Callable[[str], float | None] | None = None) -> dict:
     """Memory per copy on each resource, from probe batches of one and two copies.
 
+    Host memory is measured two ways and the larger figure is kept (one at or below
+    :data:`HOST_NOISE_BYTES` counts as no growth): the growth of ``used("host")``
+    (resident set size by default; it misses memory that the allocator reuses after earlier work was
+    freed) and the growth of the Python heap as :mod:`tracemalloc` traces it (NumPy and SciPy arrays
+    included; it misses memory that native libraries such as Taichi or PARDISO allocate themselves).
+
     Args:
         build: ``build(B)`` builds and warms a batch of ``B`` copies (it is kept alive while the memory
             is read, then dropped).
@@ -199,20 +208,38 @@ def measure_per_copy(build: Callable[[int], object], resources: tuple[str, ...],
         ``{resource: bytes per copy}`` for the resources whose use could be read.
 
     Raises:
-        ConfigError: a probe measured no growth (:func:`per_copy_from_probe`).
+        ConfigError: the host probe measured no growth either way, or another resource's probe
+            measured none (:func:`per_copy_from_probe`).
     """
+    import tracemalloc
+
     used = used or used_memory
-    gc.collect()
-    readings = [{r: used(r) for r in resources}]
-    for B in (1, 2):
-        batch = build(B)
-        readings.append({r: used(r) for r in resources})
-        del batch
+    tracing = tracemalloc.is_tracing()
+    if not tracing:
+        tracemalloc.start()
+    try:
         gc.collect()
+        readings = [{**{r: used(r) for r in resources}, "traced": float(tracemalloc.get_traced_memory()[0])}]
+        for B in (1, 2):
+            batch = build(B)
+            readings.append({**{r: used(r) for r in resources}, "traced": float(tracemalloc.get_traced_memory()[0])})
+            del batch
+            gc.collect()
+    finally:
+        if not tracing:
+            tracemalloc.stop()
     out = {}
     for r in resources:
         vals = [rd[r] for rd in readings]
-        if all(v is not None for v in vals):
+        if r == "host":
+            figures = [max(vals[2] - vals[1], (vals[2] - vals[0]) / 2.0)] if all(v is not None for v in vals) else []
+            figures.append(max(readings[2]["traced"] - readings[1]["traced"],
+                               (readings[2]["traced"] - readings[0]["traced"]) / 2.0))
+            if max(figures) <= HOST_NOISE_BYTES:
+                raise ConfigError(f"batch sizing: the probe measured no host memory growth per copy (resident set "
+                                  f"{vals} bytes, traced heap {[rd['traced'] for rd in readings]} bytes with 0, 1, 2 copies)")
+            out[r] = max(figures)
+        elif all(v is not None for v in vals):
             out[r] = per_copy_from_probe(*vals)
     return out
 

@@ -25,3 +25,19 @@ def test_bench_batch_rejects_bad_sizes_and_unknown_tasks(capsys):
     assert "--sizes" in capsys.readouterr().err
     assert bench_main(["batch", "--arch", "numpy", "--scene", "juggling", "--sizes", "1"]) == 2
     assert "juggling" in capsys.readouterr().err
+
+
+def test_bench_batch_auto_size_reports_the_probe(capsys):
+    """--sizes auto: the largest B that fits (here bounded by --max-size), with the probe's figures;
+    a reserve leaving nothing free is a usage error naming the memory."""
+    assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "--max-size", "2", "--steps", "1", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 1 and rows[0]["B"] == rows[0]["auto_B"]
+    r = rows[0]
+    assert r["scene_steps"] == r["B"] and r["failed_copies"] == 0
+    assert r["host_mib_per_copy_probe"] > 0 and r["host_mib_free"] > 0
+    fits = int(0.8 * r["host_mib_free"] / r["host_mib_per_copy_probe"])
+    assert r["B"] == min(2, fits) and r["auto_limit"] == ("cap" if fits > 2 else "host")
+    assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "--steps", "1", "--reserve", "0.9999999999"]) == 2
+    assert "not even one copy fits in host memory" in capsys.readouterr().err
+    assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "4"]) == 2

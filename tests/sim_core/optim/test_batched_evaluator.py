@@ -61,3 +61,77 @@ def test_batched_parameters_per_sequence_match_serial():
     assert got[0].reward != got[1].reward  # the parameters reach the copies
     with pytest.raises(ConfigError, match="batched"):
         make_evaluator(task, workers=2, batched=True)
+
+
+def _population(task, n: int, seed: int = 5):
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(-1.0, 1.0, (2, task.action_dim)) * 0.5 * (task.action_high - task.action_low) / 2
+            for _ in range(n)]
+
+
+def _record_chunks(monkeypatch) -> list[int]:
+    """Sizes of the batches the evaluator rolls out (sim_core.tasks.rollout.rollout_population calls)."""
+    import sim_core.tasks.rollout as rollout
+
+    sizes, real = [], rollout.rollout_population
+
+    def spy(task, actions, *args, **kwargs):
+        sizes.append(len(actions))
+        return real(task, actions, *args, **kwargs)
+
+    monkeypatch.setattr(rollout, "rollout_population", spy)
+    return sizes
+
+
+def test_chunked_population_matches_one_batch(monkeypatch):
+    task = folding_task(horizon=2)
+    actions = _population(task, 3)
+    one = BatchedEvaluator(task, lockstep=False).evaluate(actions)
+    chunks = _record_chunks(monkeypatch)
+    got = BatchedEvaluator(task, lockstep=False, batch_size=2).evaluate(actions)
+    assert chunks == [2, 1]
+    assert [g.reward for g in got] == pytest.approx([w.reward for w in one], rel=1e-12)
+    assert [g.steps_done for g in got] == [w.steps_done for w in one]
+    locked_one = BatchedEvaluator(task, solver_config=TIGHT).evaluate(actions)  # lockstep: one batch of 3
+    locked = BatchedEvaluator(task, solver_config=TIGHT, batch_size=2).evaluate(actions)  # lockstep: 2 and 1
+    assert [g.reward for g in locked] == pytest.approx([w.reward for w in locked_one], rel=1e-6)
+    assert len({g.reward for g in got}) == 3  # the sequences differ
+    with pytest.raises(ConfigError, match="batch_size"):
+        BatchedEvaluator(task, batch_size=0)
+    with pytest.raises(ConfigError, match="--batched"):
+        make_evaluator(task, batch_size=2)
+
+
+def test_auto_batch_size_fits_the_free_memory(monkeypatch):
+    """With 100 MiB measured per copy and 250 MiB free (20 % reserve: 200 usable) the population of 3
+    runs as batches of 2 and 1; with 100 MiB free not one copy fits."""
+    from sim_core.batch import sizing
+    from sim_core.errors import InsufficientMemoryError
+
+    task = folding_task(horizon=2)
+    actions = _population(task, 3)
+    readings = iter(range(100))
+    monkeypatch.setattr(sizing, "used_memory", lambda r: 100.0 * sizing.MIB * next(readings))
+    monkeypatch.setattr(sizing, "free_memory", lambda r: 250.0 * sizing.MIB)
+    chunks = _record_chunks(monkeypatch)
+    evaluator = BatchedEvaluator(task, lockstep=False, batch_size="auto")
+    got = evaluator.evaluate(actions)
+    assert evaluator.sizing.B == 2 and evaluator.sizing.limit == "host"
+    assert evaluator.sizing.per_copy_bytes["host"] == pytest.approx(100.0 * sizing.MIB)
+    assert chunks == [2, 1]
+    want = BatchedEvaluator(task, lockstep=False).evaluate(actions)
+    assert [g.reward for g in got] == pytest.approx([w.reward for w in want], rel=1e-12)
+    monkeypatch.setattr(sizing, "free_memory", lambda r: 100.0 * sizing.MIB)
+    with pytest.raises(InsufficientMemoryError, match="not even one copy fits in host memory"):
+        BatchedEvaluator(task, lockstep=False, batch_size="auto").evaluate(actions)
+
+
+def test_auto_batch_size_measured_on_this_host():
+    """A real probe (resident set growth of one-step batches): at least one copy per batch, every
+    sequence evaluated."""
+    task = folding_task(horizon=2)
+    actions = _population(task, 2)
+    evaluator = BatchedEvaluator(task, lockstep=False, batch_size="auto")
+    got = evaluator.evaluate(actions)
+    assert evaluator.sizing.B >= 1 and evaluator.sizing.per_copy_bytes["host"] > 0
+    assert len(got) == 2 and all(g.steps_done == 2 for g in got)
