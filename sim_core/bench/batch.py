@@ -254,7 +254,9 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
         try:
             sizes = [int(b) for b in ns.sizes]
         except ValueError:
-            p.error(f"--sizes: integers >= 1, or auto alone; got {' '.join(ns.sizes)}")
+            print(f"thinshell bench batch: --sizes must be integers >= 1 or auto alone; got {' '.join(ns.sizes)}",
+                  file=sys.stderr)
+            return 2
 
     def show(r: dict) -> None:
         if ns.json:

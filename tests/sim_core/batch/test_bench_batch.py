@@ -41,3 +41,4 @@ def test_bench_batch_auto_size_reports_the_probe(capsys):
     assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "--steps", "1", "--reserve", "0.9999999999"]) == 2
     assert "not even one copy fits in host memory" in capsys.readouterr().err
     assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "4"]) == 2
+    assert "auto alone" in capsys.readouterr().err
