@@ -113,6 +113,21 @@ def test_batched_flag_evaluates_populations_as_one_batch_with_the_serial_scores(
                               "--workers", "2"])
 
 
+def test_batch_size_splits_each_population_into_chunks_with_the_serial_scores(tmp_path):
+    serial, chunked = tmp_path / "serial", tmp_path / "chunked"
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(serial)]) == 0
+    assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(chunked), "--batched",
+                                 "--batch-size", "3"]) == 0  # the population of 4 as batches of 3 and 1
+    a = json.loads((serial / "result.json").read_text())
+    b = json.loads((chunked / "result.json").read_text())
+    np.testing.assert_allclose([h["score"] for h in b["history"]], [h["score"] for h in a["history"]], rtol=1e-9)
+    with pytest.raises(ConfigError, match="--batched"):
+        optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(tmp_path / "c"), "--batch-size", "2"])
+    with pytest.raises(SystemExit):
+        optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(tmp_path / "d"), "--batched",
+                              "--batch-size", "0"])
+
+
 def test_cma_start_reference_evaluates_the_reference_first(tmp_path):
     out = tmp_path / "warm"
     args = ["forming", "--horizon", "2", "--population", "2", "--control-points", "1", "--no-progress",
