@@ -15,8 +15,9 @@ the copies add beyond it). The kernels are compiled before the first size by one
 copy and the projected-Hessian kernels (``jit_s``).
 
 ``--sizes auto``: one size, the largest ``B`` that fits (:mod:`sim_core.batch.sizing`): probe batches of
-one and two copies, built and stepped after the compilation, give the memory per copy (host resident
-set size and, on CUDA, this process's GPU memory); the free memory (``/proc/meminfo`` ``MemAvailable``;
+one and two copies, built and stepped after the compilation, give the memory per copy (host: the larger
+of resident-set and traced-heap growth; on CUDA also this process's GPU memory, where it grows beyond
+Taichi's pool); the free memory (``/proc/meminfo`` ``MemAvailable``;
 ``nvidia-smi --query-gpu=memory.free``) less a reserve (``--reserve``, default 20 %) over it gives
 ``B``, at most ``--max-size``. The record adds ``auto_B``, ``auto_limit`` (``host``, ``gpu`` or
 ``cap``), ``host_mib_per_copy_probe``, ``host_mib_free`` and, on CUDA, ``gpu_mib_per_copy_probe``,
@@ -28,16 +29,14 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import os
 import platform
-import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from sim_core.batch.sizing import MIB, gpu_used_bytes, host_used_bytes
 from sim_core.bundled import config_dir
 
 ARCH_BACKENDS = {"numpy": "numpy", "cpu": "taichi-cpu", "cuda": "taichi-cuda"}
@@ -46,27 +45,15 @@ DEFAULT_SIZES = (1, 2, 4, 8)
 
 def current_rss_mib() -> float:
     """Resident set size of this process now, MiB (``/proc/self/statm``; 0 where unavailable)."""
-    try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-    except (OSError, ValueError, IndexError):
-        return 0.0
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    used = host_used_bytes()
+    return 0.0 if used is None else used / MIB
 
 
 def gpu_memory_mib() -> float | None:
     """GPU memory used by this process, MiB, as ``nvidia-smi --query-compute-apps`` reports it; None
     where ``nvidia-smi`` is missing or lists no memory for this process."""
-    exe = shutil.which("nvidia-smi")
-    if exe is None:
-        return None
-    try:
-        out = subprocess.run([exe, "--query-compute-apps=pid,used_memory", "--format=csv,noheader,nounits"],
-                             capture_output=True, text=True, timeout=20, check=True).stdout
-    except (OSError, subprocess.SubprocessError):
-        return None
-    used = [float(mem) for pid, mem in (line.split(",") for line in out.splitlines() if "," in line)
-            if pid.strip() == str(os.getpid())]
-    return sum(used) if used else None
+    used = gpu_used_bytes()
+    return None if used is None else used / MIB
 
 
 def _forming_scene() -> Path:

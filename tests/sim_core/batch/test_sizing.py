@@ -98,3 +98,11 @@ def test_measure_per_copy_traces_the_heap_when_the_resident_set_does_not_grow():
     assert per["host"] == pytest.approx(8 * MIB, rel=0.05)
     with pytest.raises(ConfigError, match="no host memory growth"):
         measure_per_copy(lambda B: None, ("host",), used=lambda r: 100.0 * MIB)
+
+
+def test_a_gpu_that_does_not_grow_is_left_out():
+    """Copies that fit in a memory pool the GPU already holds: the host sizes the batch."""
+    host = iter([10 * MIB, 20 * MIB, 30 * MIB])
+    per = measure_per_copy(lambda B: B, ("host", "gpu"),
+                           used=lambda r: next(host) if r == "host" else 500.0 * MIB)
+    assert per == {"host": pytest.approx(10 * MIB)}
