@@ -9,6 +9,9 @@ a Poisson ratio linearly - so CMA-ES steps are relative and a gradient step resp
 episode is the same as a manipulation task's (:class:`sim_core.optim.episode.Episode`); the gradient
 is the adjoint's parameter derivative (``dR/du = dR/dtheta dtheta/du``).
 
+Tied parameters (``TaskSpec.tied``, ``{follower: leader}``) are one coordinate: a follower takes its
+leader's value and its derivative adds to the leader's (``dR/du_leader = sum over the group``).
+
 The reward is a scalar (sum of squared position errors), not a residual vector, so the least-squares
 local phase of ``thinshell sysid`` does not apply; CMA-ES, Adam and the hybrid do.
 """
@@ -29,12 +32,12 @@ from sysid.fit import ParameterSpec, parameter_spec
 class ParameterSpace:
     """The identified parameters of an inverse task as a :class:`sim_core.optim.search.SearchSpace`.
 
-    Both CMA-ES and gradient ascent search the sysid coordinates ``u`` (one per parameter, 0 at the
-    start values).
+    Both CMA-ES and gradient ascent search the sysid coordinates ``u`` (one per searched parameter:
+    every identified one that is not tied to another, 0 at the start values).
 
     Args:
         task: the inverse task.
-        specs: one :class:`~sysid.fit.ParameterSpec` per identified parameter (start = ``initial``).
+        specs: one :class:`~sysid.fit.ParameterSpec` per searched parameter (start = ``initial``).
         evaluator: batch evaluator of the task (serial or Ray) at ``horizon``.
         horizon: steps per episode.
         episode: in-process episode for gradients (built on first use when None).
@@ -47,8 +50,10 @@ class ParameterSpace:
     episode: Episode | None = None
 
     def values(self, u: np.ndarray) -> dict[str, float]:
-        """Parameter values of coordinates ``u``."""
-        return {s.name: s.to_value(float(v)) for s, v in zip(self.specs, u)}
+        """Values of every identified parameter at coordinates ``u`` (followers = their leader)."""
+        out = {s.name: s.to_value(float(v)) for s, v in zip(self.specs, u)}
+        out.update({f: out[lead] for f, lead in self.task.tied.items()})
+        return out
 
     def actions(self) -> np.ndarray:
         """The replayed actions: the task's reference cut to the horizon, shape ``(horizon, action_dim)``."""
@@ -74,8 +79,10 @@ class ParameterSpace:
             self.episode = Episode(self.task, self.horizon)
         values = self.values(y)
         self.episode.set_parameters(values)
-        res, _, dp = self.episode.reward_gradient(self.actions(), params=[s.name for s in self.specs])
-        du = np.array([dp[s.name] * (values[s.name] if s.log else s.scale) for s in self.specs])
+        res, _, dp = self.episode.reward_gradient(self.actions(), params=list(values))
+        group = {s.name: dp[s.name] + sum(dp[f] for f, lead in self.task.tied.items() if lead == s.name)
+                 for s in self.specs}
+        du = np.array([group[s.name] * (values[s.name] if s.log else s.scale) for s in self.specs])
         return res.summary(), du
 
     def candidate(self, phase, point):
@@ -90,11 +97,13 @@ def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | 
         task: the inverse task (``identify`` names the parameters).
         evaluator: batch evaluator of the task.
         horizon: steps per episode.
-        start: start value per identified parameter (default: the scene's values).
+        start: start value per identified parameter (default: the scene's values); a tied follower's,
+            if given, must equal its leader's.
         solver_config: Newton settings of the gradient episodes (Episode's default when None).
 
     Raises:
-        ConfigError: not an inverse task, no identified parameter, or a start naming another parameter.
+        ConfigError: not an inverse task, no identified parameter, a start naming another parameter,
+            or a follower started apart from its leader.
     """
     if task.kind != "inverse" or not task.identify:
         raise ConfigError(f"task {task.name}: not an inverse task with identified parameters (kind {task.kind!r})")
@@ -104,5 +113,10 @@ def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | 
         raise ConfigError(f"task {task.name}: start values for {sorted(unknown)}, which it does not identify "
                           f"(it identifies {list(task.identify)})")
     ep = Episode(task, horizon, solver_config=solver_config)
-    specs = tuple(parameter_spec(name, float(start.get(name, ep.model.get_parameter(name)))) for name in task.identify)
+    value = {name: float(start.get(name, ep.model.get_parameter(name))) for name in task.identify}
+    for follower, leader in task.tied.items():
+        if value[follower] != value[leader]:
+            raise ConfigError(f"task {task.name}: {follower} is tied to {leader} but starts at {value[follower]} "
+                              f"against {value[leader]}")
+    specs = tuple(parameter_spec(name, value[name]) for name in task.identify if name not in task.tied)
     return ParameterSpace(task, specs, evaluator, horizon, ep)

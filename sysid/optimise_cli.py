@@ -269,7 +269,7 @@ def _episode_of(space, candidate):
 
 def _start_candidate(space):
     if space.task.kind == "inverse":
-        return {s.name: s.initial for s in space.specs}
+        return space.values(np.zeros(len(space.specs)))  # every identified value (tied followers too)
     return space.decode(np.zeros(space.decoder.dim))  # the CMA-ES mean: zero or the reference trajectory
 
 

@@ -15,6 +15,7 @@ the dotted key)::
     infeasible: {max_force_N, min_contact_force_N, contact_after_step, contact_effectors} (optional)
     reference: [{steps: n, pose: {effector: [6 values]}, gripper: {effector: value}}, ...] (optional)
     identify: [parameter names] (inverse)         true_parameters: {name: value} (inverse, optional)
+    tie: {follower: leader} (inverse, optional)   # identified names held equal, searched as one
 
 The reference trajectory is piecewise constant: each block repeats its action row ``steps`` times;
 blocks shorter than the horizon are padded with zero rows.
@@ -44,7 +45,7 @@ TASK_NAMES = ("lifting", "separating", "following", "folding_l", "folding_u", "p
 
 _TOP = {"format": True, "version": True, "name": True, "kind": True, "source": True, "scene": True, "horizon": True,
         "actions": True, "cma": True, "reward": True, "scores": False, "infeasible": False, "reference": False,
-        "identify": False, "true_parameters": False}
+        "identify": False, "true_parameters": False, "tie": False}
 _CMA = {"control_points": True, "sigma": True, "population": True, "generations": True, "start": False}
 CMA_STARTS = ("zero", "reference")
 _INFEASIBLE = {"max_force_N": False, "min_contact_force_N": False, "contact_after_step": False,
@@ -191,6 +192,30 @@ def _optional_score(scores: dict, key: str, where: str) -> float | None:
     return None if v is None else _num(v, f"{where}.{key}")
 
 
+def _tie(raw: Any, identify: tuple[str, ...], true_parameters: dict[str, float]) -> dict[str, str]:
+    """The ``tie`` block: ``{follower: leader}``, both identified, a leader never itself a follower, and
+    equal hidden values (a tie states that the two are one physical parameter).
+
+    Raises:
+        ConfigError: not a mapping, a name not in ``identify``, a chain, or different hidden values.
+    """
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"tie must map a follower parameter to its leader, got {type(raw).__name__}")
+    tied = {str(k): str(v) for k, v in raw.items()}
+    for follower, leader in tied.items():
+        for name in (follower, leader):
+            if name not in identify:
+                raise ConfigError(f"tie.{follower}: {name!r} is not identified (identify: {list(identify)})")
+        if leader in tied or follower == leader:
+            raise ConfigError(f"tie.{follower}: leader {leader!r} is itself tied; tie every follower to one leader")
+        if true_parameters[follower] != true_parameters[leader]:
+            raise ConfigError(f"tie.{follower}: hidden values differ ({true_parameters[follower]} against "
+                              f"{leader} {true_parameters[leader]}); tied parameters are one value")
+    return tied
+
+
 def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
     """Build a TaskSpec from a parsed task document.
 
@@ -235,6 +260,7 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
     for name, value in (d.get("true_parameters") or {}).items():
         model.get_parameter(str(name))
         true_parameters[str(name)] = _num(value, f"true_parameters.{name}")
+    tied = _tie(d.get("tie"), identify, true_parameters)
     scores = d.get("scores") or {}
     _keys(scores, "scores", {"human": False, "oracle": False, "success": False})
     reference = _reference(d["reference"], layout, horizon, "reference") if d.get("reference") is not None else None
@@ -265,7 +291,7 @@ def build_task(doc: dict, path: Path | None = None) -> TaskSpec:
         success_score=_optional_score(scores, "success", "scores"), human_score=_optional_score(scores, "human", "scores"),
         oracle_score=_optional_score(scores, "oracle", "scores"), reference_actions=reference, identify=identify,
         source=str(d["source"]), reward_name=str(rw["name"]), reward_units=REWARD_UNITS[str(rw["name"])],
-        infeasible=infeasible, true_parameters=true_parameters, path=None if path is None else str(path),
+        infeasible=infeasible, true_parameters=true_parameters, tied=tied, path=None if path is None else str(path),
     )
     if reference is not None:
         task.check_actions(reference)

@@ -84,6 +84,8 @@ class TaskSpec:
         oracle_score: Table A's oracle score, or None.
         infeasible: the early-stop rules.
         true_parameters: inverse tasks: the parameter values that produced the observed motion.
+        tied: inverse tasks: ``{follower: leader}`` among ``identify``; a follower always takes its
+            leader's value (one physical parameter set on several scene entries), so it is not searched.
         path: the task file, or None for a task built in memory.
     """
 
@@ -111,6 +113,7 @@ class TaskSpec:
     oracle_score: float | None = None
     infeasible: Infeasibility = field(default_factory=Infeasibility)
     true_parameters: dict = field(default_factory=dict)
+    tied: dict = field(default_factory=dict)
     path: str | None = None
 
     @property

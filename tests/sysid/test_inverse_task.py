@@ -51,3 +51,43 @@ def test_start_must_name_identified_parameters():
         parameter_space(task, None, 3, {"sheet.density": 1.0})
     with pytest.raises(ConfigError, match="not an inverse task"):
         parameter_space(short_task("forming", 3), None, 3)
+
+
+CARDS = [f"card_{i}.bending_stiffness" for i in range(3)]
+
+
+@pytest.fixture(scope="module")
+def tied_space():
+    """Card's three bending stiffnesses (equal hidden values) tied into one searched coordinate."""
+    import dataclasses
+
+    task = dataclasses.replace(short_task("card", 3), tied={CARDS[1]: CARDS[0], CARDS[2]: CARDS[0]})
+    truth = task.true_parameters[CARDS[0]]
+    return parameter_space(task, SerialEvaluator(task, 3), 3, {n: 2.0 * truth for n in CARDS}), truth
+
+
+def test_tied_parameters_are_one_coordinate(tied_space):
+    sp, truth = tied_space
+    assert [s.name for s in sp.specs] == [CARDS[0]]
+    assert sp.values(np.array([np.log(0.5)])) == pytest.approx({n: truth for n in CARDS})
+
+
+def test_tied_gradient_is_the_sum_over_the_group(tied_space):
+    """Moving the one tied coordinate moves all three stiffnesses: its derivative is the sum of the
+    untied derivatives at the same values (the same adjoint; the chain factor theta is shared)."""
+    sp, truth = tied_space
+    u = np.array([0.1])
+    res, g = sp.gd_gradient(u)
+    untied = parameter_space(short_task("card", 3), None, 3, {n: 2.0 * truth for n in CARDS})
+    res_u, g_u = untied.gd_gradient(np.full(3, 0.1))
+    assert res.feasible and res.reward == pytest.approx(res_u.reward, rel=1e-12)
+    assert np.all(g_u != 0.0) and np.ptp(g_u) > 0.0  # the three cards respond differently
+    assert g[0] == pytest.approx(g_u.sum(), rel=1e-9)
+
+
+def test_tied_follower_must_start_with_its_leader(tied_space):
+    from sim_core.errors import ConfigError
+
+    sp, truth = tied_space
+    with pytest.raises(ConfigError, match="is tied to"):
+        parameter_space(sp.task, None, 3, {CARDS[0]: 2.0 * truth, CARDS[1]: truth, CARDS[2]: 2.0 * truth})

@@ -192,3 +192,19 @@ def test_task_on_a_scene_with_a_mesh_file_builds_from_any_directory(tmp_path, mo
     res = rollout(t, t.reference_actions)
     assert res.infeasible is None and res.steps_done == 2 and res.reward < 0  # the cube fell
     np.testing.assert_allclose(res.gripper["grip"], [0.012, 0.011, 0.010])
+
+
+def test_tie_joins_identified_parameters_with_equal_hidden_values():
+    import yaml
+
+    path = task("sliding").path
+    doc = yaml.safe_load(open(path).read())
+    doc["scene"] = {"file": str(path).replace("tasks/sliding.yaml", "scenes/sliding.yaml")}
+    a, b = "friction.sheet_0_sheet_1", "friction.sheet_1_sheet_2"
+    assert build_task({**doc, "tie": {b: a}}).tied == {b: a}
+    with pytest.raises(ConfigError, match=r"tie.friction.table_sheet_0: 'friction.table_sheet_0' is not identified"):
+        build_task({**doc, "tie": {"friction.table_sheet_0": a}})
+    with pytest.raises(ConfigError, match=r"hidden values differ"):
+        build_task({**doc, "tie": {b: a}, "true_parameters": {a: 0.1, b: 0.2}})
+    with pytest.raises(ConfigError, match=r"is itself tied"):
+        build_task({**doc, "tie": {b: a, a: b}})
