@@ -201,6 +201,7 @@ def test_tie_joins_identified_parameters_with_equal_hidden_values():
     doc = yaml.safe_load(open(path).read())
     doc["scene"] = {"file": str(path).replace("tasks/sliding.yaml", "scenes/sliding.yaml")}
     a, b = "friction.sheet_0_sheet_1", "friction.sheet_1_sheet_2"
+    assert task("sliding").tied == {b: a}  # the original's one mu_cloth_cloth
     assert build_task({**doc, "tie": {b: a}}).tied == {b: a}
     with pytest.raises(ConfigError, match=r"tie.friction.table_sheet_0: 'friction.table_sheet_0' is not identified"):
         build_task({**doc, "tie": {"friction.table_sheet_0": a}})
