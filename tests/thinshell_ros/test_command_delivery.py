@@ -71,28 +71,34 @@ def test_every_deployed_command_is_recorded_by_a_busy_fast_sim_node(ros_context,
     traj = Trajectory(t=np.linspace(0.0, 0.1, n), poses={"ee": poses}, scene_name="fake")
     deploy = DeployNode(trajectory=traj, context=ros_context, parameter_overrides=[
         Parameter("use_sim_time", value=True), Parameter("rate", value=1.0 / DT), Parameter("start_timeout", value=10.0)])
+    probe = Node("probe", context=ros_context)  # what the deploy node published, as a second reader sees it
+    sent: list[int] = []
+    probe.create_subscription(PoseStamped, "/thinshell/ee/pose_cmd",
+                              lambda m: sent.append(cv.ns_from_stamp(m.header.stamp)), COMMAND_QOS)
     ex = SingleThreadedExecutor(context=ros_context)
     ex.add_node(deploy)
+    ex.add_node(probe)
     try:
         assert spin_until(ex, deploy.done.is_set, 20.0), deploy.status()
         assert deploy.state == "completed", deploy.reason
         t_end = deploy.schedule.end
-        assert spin_until(ex, lambda: robot.sim.t > t_end + 3 * DT, 5.0)
+        assert spin_until(ex, lambda: robot.sim.t > t_end + 3 * DT and len(sent) == deploy.published, 5.0)
     finally:
         close_robot()
         robot.close()
         ex.shutdown(timeout_sec=0)
-        deploy.destroy_node()
-        robot.destroy_node()
-    # each robot step (20 ms wall) is four deploy periods: the deploy node sees every sim tick and publishes it
-    assert deploy.published == deploy.schedule.tick_count == n
+        for n_ in (deploy, probe, robot):
+            n_.destroy_node()
+    # each robot step (20 ms wall) is four deploy periods: the deploy node sees (nearly) every sim tick
+    grid = {cv.seconds_to_ns(deploy.schedule.t0 + k * DT) for k in range(n)}
+    assert deploy.published == len(sent) >= n - 2 and set(sent) <= grid, (deploy.published, sent)
     cmds = read_with_rosbags(bag)["/thinshell/ee/pose_cmd"]
     stamps = [cv.ns_from_stamp(m.header.stamp) for _, _, m in cmds]
-    expected = [cv.seconds_to_ns(deploy.schedule.t0 + k * DT) for k in range(n)]
-    assert stamps == expected  # every command, in order, none twice
-    # taken before the step after the one it arrived in: recorded at most one step after its stamp
+    assert stamps == sent  # the robot recorded every command, in order, none twice
+    # taken before the step after the one it arrived in: recorded one step after its stamp, no lag building up
+    # (a depth-1 queue loses every second command here; a deep queue without the take before each step: 2 steps)
     lag = np.array([t_rec - s for (_, t_rec, _), s in zip(cmds, stamps)]) * 1e-9
-    assert lag.min() >= 0.0 and lag.max() <= DT + 1e-9, lag
+    assert lag.min() >= 0.0 and np.median(lag) <= DT + 1e-9 and lag.max() <= 3 * DT + 1e-9, lag
 
 
 def test_a_step_takes_every_queued_command_and_the_newest_controls_it(ros_context, tmp_path):
