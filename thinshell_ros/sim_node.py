@@ -39,6 +39,11 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   callbacks one at a time in arrival order from a C++ event queue, no wait-set rebuild per spin;
   lower command-to-output latency, docs/benchmarks.md "Sim node through DDS").
 
+Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
+:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
+(:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
+controls the step.
+
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
 
