@@ -140,7 +140,7 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
 
 def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: Path, log_path: Path,
                      timeout: float, console: Any, limits: Mapping[str, float] | None = None,
-                     settle: float = 0.0) -> dict[str, Any]:
+                     settle: float = 0.0, require_wrench: bool = True) -> dict[str, Any]:
     """Start the robot (sim node on the hidden scene, ``fast`` mode, recording into ``bag``), deploy
     ``trajectory`` on it with the deploy node in sim time, stop the robot (SIGINT closes the bag).
 
@@ -148,6 +148,8 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     :data:`thinshell_ros.deploy_node.FLOAT_PARAMETERS`); the wrench limit is :data:`WRENCH_LIMIT`.
     ``settle``: s of the robot's (sim) clock it keeps running, and recording, after the last command
     (the state the last command produced is then in the bag).
+    ``require_wrench``: the deploy node's parameter (false for a robot that publishes no wrench: its
+    wrench limit is then not enforced).
 
     Returns:
         the deploy node's final status (``state``, ``reason``, ``published``, ...) and ``wall_s``.
@@ -172,6 +174,7 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
         node = DeployNode(context=ctx, parameter_overrides=[
             Parameter("trajectory", value=str(trajectory)), Parameter("use_sim_time", value=True),
             Parameter("start_timeout", value=120.0), Parameter("wrench_limit", value=WRENCH_LIMIT),
+            Parameter("require_wrench", value=bool(require_wrench)),
             *(Parameter(k, value=float(v)) for k, v in (limits or {}).items())])
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)

@@ -14,7 +14,9 @@ and follow ROS namespacing and remapping (``--ros-args -r __ns:=/robot``); the d
 
 Sequence: check the trajectory against the limits (:func:`thinshell_ros.deploy_plan.check_trajectory`;
 a refusal names the waypoint and nothing is published) -> wait for the measured ``<effector>/pose``
--> compare it with the first waypoint (``start_tolerance``, ``start_angle_tolerance``; with
+and, with ``require_wrench`` (default), a measured wrench on every ``wrench_topics`` topic (a cell
+that publishes no force cannot enforce ``wrench_limit``: the node aborts after ``start_timeout`` and
+says so; ``require_wrench:=false`` deploys without force monitoring, logged as a warning) -> compare it with the first waypoint (``start_tolerance``, ``start_angle_tolerance``; with
 ``approach`` a slow approach at ``approach_speed`` is planned instead of refusing) -> publish the
 commands on the clock grid -> ``completed``. During the motion every measured wrench whose force
 exceeds ``wrench_limit`` and every measured pose farther than ``pose_lag_tolerance`` from all
@@ -127,6 +129,9 @@ class DeployNode(Node):
             "[x, y, z] upper corner of the allowed effector positions, m in world")).value)
         self.wrench_topics = list(self.declare_parameter("wrench_topics", ["tactile/wrench"], _descriptor(
             "WrenchStamped topics monitored against wrench_limit (relative names follow the namespace)")).value)
+        self.require_wrench = bool(self.declare_parameter("require_wrench", True, _descriptor(
+            "wait for a measured wrench on every wrench_topics topic before starting (false: a cell without "
+            "force sensing, wrench_limit not enforced)")).value)
         self.dry_run = bool(self.declare_parameter("dry_run", False, _descriptor(
             "check the trajectory and report, publish no command")).value)
         self.approach = bool(self.declare_parameter("approach", False, _descriptor(
@@ -157,6 +162,8 @@ class DeployNode(Node):
         self.monitor = SafetyMonitor(self.limits)
         self.published = 0
         self._measured: dict[str, np.ndarray] = {}
+        self._wrench_seen: set[str] = set()
+        self._warned_no_wrench = False
         self._wall0 = time.monotonic()
         self._last_status = 0.0
 
@@ -251,6 +258,7 @@ class DeployNode(Node):
 
     def _wrench_callback(self, topic: str):
         def on_wrench(msg: WrenchStamped) -> None:
+            self._wrench_seen.add(topic)
             if self.state == "running":
                 reason = self.monitor.check_wrench(topic, cv.wrench_from_msg(msg)[1])
                 if reason:
@@ -274,12 +282,23 @@ class DeployNode(Node):
         waited = time.monotonic() - self._wall0
         now = self._now()
         missing = [e for e in self.trajectory.effectors if e not in self._measured]
-        if now is None or missing:
+        no_wrench = [t for t in self.wrench_topics if t not in self._wrench_seen] if self.require_wrench else []
+        if now is None or missing or no_wrench:
             if waited > self.start_timeout:
-                what = "no /clock (use_sim_time is set)" if now is None else \
-                    f"no measured pose on {[self.resolve_topic_name(f'{e}/pose') for e in missing]}"
+                if now is None:
+                    what = "no /clock (use_sim_time is set)"
+                elif missing:
+                    what = f"no measured pose on {[self.resolve_topic_name(f'{e}/pose') for e in missing]}"
+                else:
+                    what = (f"no measured wrench on {[self.resolve_topic_name(t) for t in no_wrench]} (wrench_limit "
+                            f"{self.limits.wrench_limit:g} N cannot be enforced; require_wrench:=false deploys on a "
+                            "cell without force sensing)")
                 self.abort(f"{what} within start_timeout {self.start_timeout:g} s")
             return
+        if not self.require_wrench and not self._warned_no_wrench:
+            self._warned_no_wrench = True
+            self.get_logger().warning("require_wrench is false: the wrench limit is not enforced unless a wrench "
+                                      "arrives on " + ", ".join(self.resolve_topic_name(t) for t in self.wrench_topics))
         traj = self.trajectory
         for e in traj.effectors:
             dist, angle = start_pose_error(self._measured[e], traj.poses[e][0])

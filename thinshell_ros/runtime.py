@@ -18,8 +18,15 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-# INTERFACES.md "QoS"
-COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+COMMAND_DEPTH = 10
+"""Keep-last depth of the command topics: every command published while the receiving node is busy
+(a solver step) stays queued until it is taken; the sim node takes all queued commands before each
+step (:meth:`thinshell_ros.sim_node.SimNode.take_pending_commands`), so the newest one controls the
+step and no lag builds up. With depth 1 a command that arrives before its predecessor was taken
+replaces it unseen (docs/benchmarks_log.md, issue 27)."""
+
+# INTERFACES.md "QoS" (commands reliable, keep-last COMMAND_DEPTH)
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=COMMAND_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)

@@ -39,6 +39,11 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   callbacks one at a time in arrival order from a C++ event queue, no wait-set rebuild per spin;
   lower command-to-output latency, docs/benchmarks.md "Sim node through DDS").
 
+Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
+:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
+(:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
+controls the step.
+
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
 
@@ -62,6 +67,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
@@ -234,10 +240,12 @@ class SimNode(Node):
         self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._command_subs = []
         for e in sim.effector_names:
-            self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS)
-            self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS)
-            self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)
+            self._command_subs += [
+                self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS),
+                self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS),
+                self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)]
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
@@ -358,6 +366,33 @@ class SimNode(Node):
                 self._reject(f"{topic}: unusable message: {err}")
         return on_gripper
 
+    def take_pending_commands(self) -> int:
+        """Take every command message queued on the command subscriptions and handle it (record, submit).
+
+        rclpy's executors take one message per ready subscription per wait, and the ``fast`` mode's step
+        timer runs before the subscriptions of the same wait: without this, a command that arrived during
+        a step waits behind the next step, and with a shallow queue a newer one replaces it unseen. Each
+        step therefore starts by taking all queued commands (in arrival order, oldest first; the newest
+        one controls the step). Taking uses the subscription's handle as rclpy's executor does
+        (``Executor._take_subscription``).
+
+        Returns:
+            the number of messages taken.
+        """
+        taken = 0
+        for sub in self._command_subs:
+            while True:
+                try:
+                    with sub.handle:
+                        msg_info = sub.handle.take_message(sub.msg_type, sub.raw)
+                except InvalidHandle:  # destroyed while shutting down
+                    break
+                if msg_info is None:
+                    break
+                sub.callback(msg_info[0])
+                taken += 1
+        return taken
+
     def _check_graph(self) -> None:
         try:
             topics = [name for name, _ in self.get_topic_names_and_types()]
@@ -372,6 +407,7 @@ class SimNode(Node):
     # ------------------------------------------------------------------------------ stepping
     def advance(self) -> bool:
         """One simulation step with the current commands, then publish; returns whether it succeeded."""
+        self.take_pending_commands()
         try:
             targets = self.arbiter.step_targets(self.sim.t, self.dt, self._measured_poses())
             for event in targets.events:

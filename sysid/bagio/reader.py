@@ -372,8 +372,9 @@ def _decode(role: str, topic: str, items: list[tuple[int, Any]]) -> tuple[np.nda
 
 
 def _clean(role: str, topic: str, t_ns: np.ndarray, values: np.ndarray,
-           warn: Callable[[str], None]) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Drop non-finite samples, sort by stamp, drop repeated stamps."""
+           warn: Callable[[str], None], keep: str = "first") -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Drop non-finite samples, sort by stamp (stable), drop repeated stamps but the ``keep`` one of each
+    (``"first"``; ``"last"`` for commands by log time: of several taken at one time the last is in force)."""
     n = t_ns.shape[0]
     finite = np.ones(n, dtype=bool) if values.dtype == np.uint8 else \
         np.all(np.isfinite(values.reshape(n, -1)), axis=1)
@@ -388,9 +389,13 @@ def _clean(role: str, topic: str, t_ns: np.ndarray, values: np.ndarray,
         order = np.argsort(t_ns, kind="stable")
         warn(f"topic {topic}: {int(np.sum(np.diff(t_ns) < 0))} stamps out of order; samples sorted by stamp")
         t_ns, values = t_ns[order], values[order]
-    repeated = np.concatenate([[False], np.diff(t_ns) == 0])
-    if repeated.any():
-        warn(f"topic {topic}: dropped {int(repeated.sum())} samples with a repeated stamp (kept the first)")
+    same = np.diff(t_ns) == 0
+    if same.any():
+        if keep == "first":  # a sensor sample stamped twice is an anomaly worth a warning
+            repeated = np.concatenate([[False], same])
+            warn(f"topic {topic}: dropped {int(repeated.sum())} samples with a repeated stamp (kept the first)")
+        else:  # commands by log time: several taken between two steps, the last one is in force
+            repeated = np.concatenate([same, [False]])
         t_ns, values = t_ns[~repeated], values[~repeated]
     return t_ns, values, dropped, resorted
 
@@ -499,7 +504,8 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
         stamped with its header stamp (when it was measured); the commands ``pose_cmd`` and
         ``gripper_cmd`` with their log time: when the robot took them (the sim node logs a command
         at the sim time it takes it, between steps), not when a commander scheduled them (its header
-        stamp, which a robot that steps faster than its commander receives a step or two late).
+        stamp, which a robot that steps faster than its commander receives a step or two late). Of
+        several commands taken at one time (queued during a step) the last, the one in force, is kept.
 
     Raises:
         BagReadError: unreadable bag, or a stream topic of another message type (names the topic).
@@ -523,6 +529,7 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
             t_ns, values, _, _ = _decode("pose", topic, items)
             if kind == "pose_cmd":  # a command's time is when the robot took it (docstring)
                 t_ns = np.asarray([log for log, _ in items], dtype=np.int64)
-        t_ns, values, _, _ = _clean(kind, topic, t_ns, values, lambda m: warnings.warn(m, BagWarning, stacklevel=3))
+        t_ns, values, _, _ = _clean(kind, topic, t_ns, values, lambda m: warnings.warn(m, BagWarning, stacklevel=3),
+                                    keep="first" if kind == "pose" else "last")
         out.setdefault(effector, {})[kind] = (t_ns, values)
     return out

@@ -318,6 +318,22 @@ def test_out_of_order_stamps_are_sorted_with_a_warning(tmp_path):
     assert any("repeated stamp" in n for n in bag.notes)
 
 
+def test_commands_taken_at_one_time_keep_the_last_one_the_robot_applied(tmp_path):
+    # the sim node logs each command at the sim time it takes it; two queued during a step share that time
+    log = [0, 5, 5, 10, 15, 15, 15]
+    pose0 = np.array([0.06, 0.0, 0.004, 0.0, 0.0, 0.0, 1.0])
+    with BagWriter(tmp_path / "b") as bag:
+        for i, t in enumerate(log):
+            msg = codec.pose_stamped(1000 + i, pose0 + np.r_[1e-4 * i, 0, 0, 0, 0, 0, 0], "world")
+            bag.write_message(f"{NS}/ee/pose_cmd", codec.POSE_STAMPED, t, msg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BagWarning)  # normal for commands: no warning
+        streams = reader.read_effector_streams(tmp_path / "b", ["ee"], NS)
+    t_ns, values = streams["ee"]["pose_cmd"]
+    assert t_ns.tolist() == [0, 5, 10, 15]
+    np.testing.assert_allclose(values[:, 0] - pose0[0], [0.0, 2e-4, 3e-4, 6e-4], atol=1e-15)
+
+
 def test_missing_markers_topic_warns_and_names_it(tmp_path):
     write_synthetic(tmp_path / "b", synthetic_streams(n=5), skip=("markers",))
     with pytest.warns(BagWarning, match=f"topic {NS}/tactile/markers \\(role markers\\) is missing"):

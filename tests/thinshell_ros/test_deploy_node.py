@@ -222,6 +222,28 @@ def test_start_pose_checked_or_approached(ros_context):
         _close(ex, node, obs.n, sim)
 
 
+def test_a_cell_without_a_wrench_stream_is_refused_unless_declared(ros_context):
+    """The force limit cannot be enforced without a measured wrench: the node waits for one on every
+    monitored topic and aborts after start_timeout naming it; require_wrench:=false deploys anyway."""
+    sim = _sim(ros_context)
+    node, obs, ex = _setup(ros_context, sim, _line(duration=0.3), wrench_topics=["gripper/wrench"], start_timeout=0.5)
+    try:
+        assert spin_until(ex, node.done.is_set, 5.0)
+        assert node.state == "aborted", node.reason
+        assert "no measured wrench on ['/thinshell/gripper/wrench']" in node.reason and "require_wrench" in node.reason
+        assert obs.cmds == []
+    finally:
+        _close(ex, node, obs.n, sim)
+    sim = _sim(ros_context)
+    node, obs, ex = _setup(ros_context, sim, _line(duration=0.3), wrench_topics=["gripper/wrench"],
+                           require_wrench=False)
+    try:
+        assert spin_until(ex, node.done.is_set, 10.0)
+        assert node.state == "completed", node.reason
+    finally:
+        _close(ex, node, obs.n, sim)
+
+
 def test_pose_lag_and_abort_service(ros_context):
     # the robot is limited to 1 mm per 5 ms step = 0.2 m/s; command 0.04 m/s but make the robot slower
     sim = _sim(ros_context)

@@ -49,6 +49,29 @@ def test_table_a_and_original_settings_carried_over():
     assert task("separating").action_layout == (("gripper", "pose"), ("gripper", "gripper"))
 
 
+def test_following_horizon_lets_friction_carry_the_block_to_table_a_scores():
+    """The block rides on the sheet by Coulomb friction: on a flat sheet pulled from the reference's first
+    pose step on, it travels mu g t^2 / 2 at most, which gives the reward_1 = -sum x(block) that friction
+    can reach. Table A's human and success scores are within it at ThinShellLab's 50 frames; at 30 the
+    success score needs about twice the travel (the estimate ignores tilting and the table's edge, so
+    an optimiser may pass it by a little: 1.41 at 30 frames, 6.94 at 50)."""
+    t = task("following")
+    scene = t.scene
+    mu = next(f["mu"] for f in scene["friction"] if sorted(f["pair"]) == ["block", "sheet"])
+    g = -scene["gravity"][2]
+    block = scene["blocks"]["block"]
+    nx, ny, nz = block["resolution"]
+    x0 = np.linspace(block["origin"][0], block["origin"][0] + block["size"][0], nx)
+    pose = next(sl for eff, kind, sl in t.action_slices() if kind == "pose")
+    first_pull = int(np.argmax(np.any(t.reference_actions[:, pose] != 0, axis=1)))
+    pulled_s = (t.horizon - first_pull) * scene["dt"]
+    bound = -ny * nz * np.sum(x0 - mu * g * pulled_s ** 2 / 2)
+    assert t.horizon == 50
+    assert bound > t.human_score > t.success_score
+    short = -ny * nz * np.sum(x0 - mu * g * ((30 - first_pull) * scene["dt"]) ** 2 / 2)
+    assert short < t.success_score  # the 30-frame task could not reach it
+
+
 @pytest.mark.parametrize("name", MANIPULATION)
 def test_reference_runs_a_short_horizon_with_finite_reward(name):
     t = task(name)
