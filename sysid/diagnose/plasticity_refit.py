@@ -112,7 +112,7 @@ def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nom
     notes: list[str] = []
 
     class _Budget(Exception):
-        pass
+        """Raised inside the scalar search when the replay or time budget is spent (ends the search)."""
 
     def cost(u: float) -> float:
         if len(evals) >= max_replays or (max_time is not None and time.monotonic() - t0 > max_time):
