@@ -30,8 +30,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
-from sysid.diagnose.signatures.timing import (TAU_MAX_S, WINDOW_AFTER_S, WINDOW_BEFORE_S, contact_events,
-                                              timing_signal)
+from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, timing_signal
 
 EFFECT = "damping"
 
@@ -106,11 +105,7 @@ def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     shifted = [kelvin_voigt(t, yp, float(tau)) for tau in taus]
     events, sse = [], []
-    for te, direction in contact_events(t, yp):
-        lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
-        m = (t >= lo) & (t <= hi)
-        if m.sum() < 10:
-            continue
+    for te, direction, lo, hi, m in event_windows(t, yp):
         row = np.array([_window_sse(y[m], z[m]) for z in shifted]) / sigma ** 2
         i = int(np.argmin(row))
         sse.append(row)

@@ -80,6 +80,24 @@ def contact_events(t: np.ndarray, y_pred: np.ndarray, fraction: float = EVENT_FR
     return out
 
 
+MIN_WINDOW_SAMPLES = 10
+"""An event window with fewer samples is not read."""
+
+
+def event_windows(t: np.ndarray, y_pred: np.ndarray) -> list[tuple[float, int, float, float, np.ndarray]]:
+    """The window read around each contact event of the replay (:func:`contact_events`):
+    ``[(time s, +1 rising / -1 falling, window start s, window end s, mask (n,))]``, reaching
+    ``WINDOW_BEFORE_S`` before the event into the free side and ``WINDOW_AFTER_S`` into the contact;
+    windows with fewer than ``MIN_WINDOW_SAMPLES`` samples are left out."""
+    out = []
+    for te, direction in contact_events(t, y_pred):
+        lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
+        m = (t >= lo) & (t <= hi)
+        if m.sum() >= MIN_WINDOW_SAMPLES:
+            out.append((te, direction, lo, hi, m))
+    return out
+
+
 def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
     X = np.stack(cols + [np.ones_like(y)], axis=1)
     c, *_ = np.linalg.lstsq(X, y, rcond=None)
@@ -120,11 +138,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     events = []
     lp_cache = {tau: low_pass(t, yp, tau) for tau in taus[1:]}
-    for te, direction in contact_events(t, yp):
-        lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
-        m = (t >= lo) & (t <= hi)
-        if m.sum() < 10:
-            continue
+    for te, direction, lo, hi, m in event_windows(t, yp):
         s0, _ = _sse(y[m], [yp[m]])
         sd = [(s0, 0.0)]
         for tau in taus[1:]:
