@@ -549,8 +549,7 @@ class ContactSet:
         for name, obstacle, f in obstacle_frames:
             if len(f.lam):
                 frames.append(f)
-                bodies = self.vertex_body[obstacle.vertices[f.pair_index]]
-                mus.append(np.array([self.model.friction_coefficient(self.body_names[b], name) for b in bodies]))
+                mus.append(self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]])
                 sources.append(FrictionRowSource(name, obstacle, f.pair_index))
         if not frames:
             return None
@@ -609,7 +608,18 @@ class ContactSet:
             table = np.array([[self.model.friction_coefficient(a, b) for b in self.body_names] for a in self.body_names],
                              dtype=float).reshape(len(self.body_names), len(self.body_names))
             kept = self._mu_kept = (key, table)
+            self._obstacle_mu_kept = {}
         return kept[1]
+
+    def _obstacle_mu(self, name: str) -> np.ndarray:
+        """Coulomb coefficients ``(b,)`` between each body and the obstacle (plane or sphere) ``name``
+        (:meth:`Model.friction_coefficient`), kept while ``model.friction`` is unchanged."""
+        self._mu_table()  # forgets the kept columns when model.friction has changed
+        column = self._obstacle_mu_kept.get(name)
+        if column is None:
+            column = self._obstacle_mu_kept[name] = np.array(
+                [self.model.friction_coefficient(b, name) for b in self.body_names], dtype=float)
+        return column
 
     def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:
         """Remember the sides of the pairs active at the converged positions ``x``.

@@ -99,6 +99,19 @@ class SolverConfig:
             (:mod:`sim_core.batch.lockstep`: one evaluation per energy term and one linear solve for
             all copies, per-copy convergence, line search and failure). A single
             :class:`~sim_core.simulation.Simulation` ignores it.
+        repeat_fixed_points: a step whose inputs are bitwise those of the step before (positions,
+            velocities, effector poses and openings, rest angles, contact memory, the Dirichlet data
+            its control resolves to, ``dt``, the model and these settings), when that step left
+            its state unchanged (zero velocity in and out: a scene at rest) and was accepted by a
+            strict test, is not solved again: it takes that step's result and outcome (its residual,
+            energy and stop reason) and says so (``StepInfo.repeated``; ``iterations`` and
+            ``factorizations`` 0). The step is a deterministic function of those inputs, so the
+            result is the one a solve would give; only the rounding of the solve's residual may
+            differ in its last bits, as the Newton matrix's union pattern and PARDISO's ordering
+            depend on the steps before (which decides nothing unless that residual is within a few
+            ulps of the tolerance). Off by default; the sim node turns it on (a scene at rest then
+            costs a comparison of the inputs per step; docs/benchmarks_log.md, 2026-11-25 "the sim
+            node's step"). Never with a step hook (candidate terms carry their own state).
     """
 
     tol_velocity: float = 1e-4
@@ -120,6 +133,7 @@ class SolverConfig:
     stale_side_backtracks: int = 10
     simplified_newton_check: float = 0.25
     lockstep: bool = False
+    repeat_fixed_points: bool = False
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")

@@ -116,6 +116,10 @@ class StepInfo:
         stalled_accepts: of those, the stalled ones.
         line_search_failures: line searches that found no sufficient decrease in ``max_backtracks``
             halvings (accepted relaxed, followed by a released contact side, or raised).
+        repeated: the step was not solved: its inputs were those of the step before, a fixed point
+            (``SolverConfig.repeat_fixed_points``), whose result it took; ``residual_velocity``,
+            ``energy``, ``stop_reason``, ``converged_strict`` and ``accepted_tolerance`` are that
+            step's, the counts and times its own (no iteration, no factorisation).
     """
 
     iterations: int = 0
@@ -138,6 +142,7 @@ class StepInfo:
     relaxed_accepts: int = 0
     stalled_accepts: int = 0
     line_search_failures: int = 0
+    repeated: bool = False
 
     @property
     def needs_attention(self) -> bool:
@@ -159,6 +164,7 @@ class StepTotals:
         relaxed_accepts, stalled_accepts, line_search_failures: summed as in :class:`StepInfo`.
         largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
         first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
+        repeated_steps: steps that repeated a fixed point instead of a solve (``StepInfo.repeated``).
     """
 
     steps: int = 0
@@ -171,6 +177,7 @@ class StepTotals:
     line_search_failures: int = 0
     largest_accepted_tolerance: float = 0.0
     first_relaxed_step: int | None = None
+    repeated_steps: int = 0
 
     def add(self, info: StepInfo, step_index: int) -> None:
         """Count the step that started at ``step_index`` and ended as ``info``."""
@@ -182,6 +189,7 @@ class StepTotals:
         self.relaxed_accepts += info.relaxed_accepts
         self.stalled_accepts += info.stalled_accepts
         self.line_search_failures += info.line_search_failures
+        self.repeated_steps += info.repeated
         self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
         if info.needs_attention and self.first_relaxed_step is None:
             self.first_relaxed_step = int(step_index)

@@ -6,7 +6,9 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - ``backend`` (str): the solver backend (``SolverConfig.backend``, :mod:`sim_core.backend`):
   ``auto`` (default: the fastest available, Taichi's CUDA or CPU kernels, else NumPy), ``numpy``,
   ``taichi-cpu``, ``taichi-cuda`` (``thinshell bench forming --arch cpu`` measures ``taichi-cpu``).
-  Not used when the node is given a built simulation (its solver's backend stands).
+  Not used when the node is given a built simulation (its solver's backend stands). The node's
+  solver repeats a fixed point (``SolverConfig.repeat_fixed_points``): while the scene rests, a step
+  whose inputs equal the last one's takes its result instead of a Newton solve.
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
@@ -118,7 +120,7 @@ def solver_status(name: str, t: float, info: StepInfo | None = None, error: str 
         ``ERROR`` with ``error``; ``WARN`` when ``info.needs_attention`` (accepted above the strict
         tolerance or retried in substeps); else ``OK``. Values: ``t``, and from ``info`` the stopping
         test, residual, accepted tolerance, iterations, substeps, retries, relaxed acceptances,
-        stalled acceptances and line-search failures.
+        stalled acceptances, line-search failures and whether the step repeated a fixed point.
     """
     status = DiagnosticStatus(name=name, hardware_id="thinshell")
     values = {"t": f"{t:.6f}"}
@@ -139,7 +141,7 @@ def solver_status(name: str, t: float, info: StepInfo | None = None, error: str 
             "accepted_tolerance": f"{info.accepted_tolerance:.6g}", "iterations": str(info.iterations),
             "substeps": str(info.substeps), "retries": str(info.retries),
             "relaxed_accepts": str(info.relaxed_accepts), "stalled_accepts": str(info.stalled_accepts),
-            "line_search_failures": str(info.line_search_failures),
+            "line_search_failures": str(info.line_search_failures), "repeated": str(info.repeated).lower(),
         })
     status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
     return status
@@ -200,7 +202,9 @@ class SimNode(Node):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
         check_backend(backend, "node parameter 'backend'")
         if sim is None:
-            sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(backend=backend))
+            # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated)
+            sim = Simulation.from_scene(self.scene_path,
+                                        solver_config=SolverConfig(backend=backend, repeat_fixed_points=True))
         self.sim = sim
         self.dt = float(sim.dt)
         self._declare_material_parameters()
