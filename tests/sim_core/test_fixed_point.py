@@ -94,3 +94,37 @@ def test_any_changed_input_solves_the_step_again():
     # and a guess is always solved
     sim = _at_rest()
     assert not sim.step(Control(position_guess=sim.state.x.copy())).repeated
+
+
+def _assert_same_observation(a, b) -> None:
+    assert a.t == b.t and a.effector_pose.keys() == b.effector_pose.keys() and a.tactile.keys() == b.tactile.keys()
+    for k in a.effector_pose:
+        np.testing.assert_array_equal(a.effector_pose[k], b.effector_pose[k])
+    for k in a.tactile:
+        for u, v in zip(a.tactile[k], b.tactile[k]):
+            np.testing.assert_array_equal(u, v)
+    np.testing.assert_array_equal(a.sheet_points, b.sheet_points)
+    np.testing.assert_array_equal(a.sheet_triangles, b.sheet_triangles)
+
+
+def test_an_unchanged_state_observes_what_was_read_from_it_at_its_own_time():
+    sim = _at_rest()
+    first = sim.observe()
+    assert sim.step().repeated
+    second = sim.observe()
+    reader = _sim(False)  # reads every observation afresh (nothing kept for these states)
+    reader.state = sim.state.copy()
+    assert second.t == sim.state.t > first.t
+    _assert_same_observation(second, reader.observe())
+    # the caller's copy is its own
+    second.tactile["tactile"].markers_xyz[:] = 0.0
+    assert np.all(np.abs(sim.observe().tactile["tactile"].markers_xyz[:, 2]) > 0)
+    # a state changed in place is read again: the gel pushed up moves the markers, a sheet vertex
+    # its point
+    sim.state.x[sim.model.bodies["gel"].vertices, 2] += 1e-4
+    sim.state.x[10, 2] += 1e-4
+    moved = sim.observe()
+    reader.state = sim.state.copy()
+    _assert_same_observation(moved, reader.observe())
+    assert not np.array_equal(moved.tactile["tactile"].markers_xyz, first.tactile["tactile"].markers_xyz)
+    assert not np.array_equal(moved.sheet_points, first.sheet_points)
