@@ -23,3 +23,17 @@ def test_the_backend_reaches_the_solver_of_the_scene(ros_context):
     assert node.sim.solver.config.backend == "numpy" and node.sim.solver.backend == "numpy"
     assert node.get_parameter("backend").value == "numpy"
     node.destroy_node()
+
+
+def test_the_node_repeats_a_resting_scene_and_reports_it(ros_context):
+    node = SimNode(context=ros_context, parameter_overrides=[Parameter("backend", value="numpy"),
+                                                             Parameter("mode", value="stepped")])
+    assert node.sim.solver.config.repeat_fixed_points
+    infos = []
+    for _ in range(8):  # the bundled scene settles in a few steps (the pad does not touch the card)
+        assert node.advance()
+        infos.append(node.sim.last_info)
+    assert not infos[0].repeated and infos[-1].repeated and infos[-1].iterations == 0
+    assert node.sim.step_totals.repeated_steps == sum(i.repeated for i in infos)
+    assert node.failed_steps == 0 and node.relaxed_steps == 0
+    node.destroy_node()
