@@ -354,7 +354,8 @@ class DynamicMerge:
         if cached is None or len(cached[0]) != len(gathered) or any(a is not b for a, b in zip(cached[0], gathered)):
             cached = self._slots_cache = (gathered, np.concatenate([g[1] for g in gathered]))
         values = np.concatenate([b.blocks.reshape(-1)[g[0]] for b, g in zip(blocks, gathered)])
-        data = np.bincount(cached[1], weights=values, minlength=union.nnz)
+        # float64 also when no entry is kept (NumPy's bincount of an empty list is int64 even with weights)
+        data = np.bincount(cached[1], weights=values, minlength=union.nnz).astype(np.float64, copy=False)
         # dynamic sums first, then the static value added: the same D + s per slot as adding s into the
         # slots (0 + s in the static-only slots; 0 + 0 in the dynamic-only ones)
         data += static

@@ -237,3 +237,21 @@ def test_matrices_of_one_union_share_read_only_sorted_index_arrays():
     assert third.indices is not second.indices and third.nnz > second.nnz
     with pytest.raises(ValueError, match="3 values for"):
         merge.union.matrix(np.zeros(3))
+
+
+def test_a_body_held_after_steps_leaves_no_dynamic_entry_and_steps_on():
+    """The card's table contact and friction blocks were merged while it was free; once every card
+    vertex is held, no dynamic entry is kept (an empty bincount, int64 in NumPy) and the Newton
+    matrix is still a float matrix: the step converges and the held card stays where it is."""
+    from sim_core.bundled import config_dir
+    from sim_core.simulation import Simulation
+
+    sim = Simulation.from_scene(config_dir() / "scenes" / "press_slide.yaml")
+    for _ in range(3):
+        sim.step()
+    card = sim.model.bodies["sheet"].vertices
+    sim.model.vertex_fixed[card] = True
+    x_card = sim.state.x[card].copy()
+    info = sim.step()
+    assert info.converged_strict and info.factorizations >= 1
+    np.testing.assert_array_equal(sim.state.x[card], x_card)
