@@ -119,6 +119,7 @@ class LockstepSolver(NewtonSolver):
         self.scene = scene
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
+        self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self.last_stacked_info: StepInfo | None = None
 
     def _projections(self) -> tuple[str, ...]:
@@ -384,11 +385,16 @@ class LockstepSolver(NewtonSolver):
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
-            H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            if step.fused is not None:  # the static part's values in its fixed pattern, contacts as blocks
+                H = None
+                upper, blocks = self._device_operator(step, x, projection, dynamic_terms)
+            else:
+                H = upper = self._assemble_hessian(step, x, projection, dynamic_terms)
+                blocks = None
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
-            pcg.factorize(H)
+            pcg.factorize(upper, blocks)
             dk = -pcg.solve(rhs)
             info.time_linear_solve += time.perf_counter() - tl
             dk[~step.free] = 0.0
@@ -405,6 +411,32 @@ class LockstepSolver(NewtonSolver):
             rhs = g.copy()
             rhs[dofs[~todo]] = 0.0
         return d, H, projection, pcg
+
+    def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list):
+        """The Newton matrix at ``x`` as the batched CG's operator, never merged into one sparse pattern:
+        ``(indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian values
+        in their static pattern (fixed for the step's elements and free mask: its index arrays travel to
+        the device once) plus the inertia / damping diagonal, 1 on fixed DoFs; and the contact and
+        friction Hessians (``dynamic_terms``, projected by ``projection``) as
+        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
+        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order)."""
+        from sim_core.ti_kernels.pcg import VertexBlocks
+
+        fused = step.fused
+        pattern = fused.pattern
+        values = fused.hessian_values(x) if projection == "none" else fused.projected_hessian_values(x, projection)
+        cached = self._pattern_csr
+        if cached is None or cached[0] is not pattern:
+            n = pattern.dof_count
+            rows = pattern.keys // n
+            indptr = np.zeros(n + 1, dtype=np.int32)
+            np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+            cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
+        data = values.copy()
+        data[pattern.diag_slots] += step.diag
+        data[pattern.fixed_diag_slots] = 1.0
+        blocks = VertexBlocks.from_element_blocks([p.hessian(x, projection) for p in dynamic_terms], step.free)
+        return (cached[1], cached[2], data), blocks
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
