@@ -67,10 +67,15 @@ def main() -> int:
     row("fused elastic energy only", lambda: fused.energy(x + 1e-9))
     row("contact potentials (search + pairs)", lambda: solver.contact.potentials(x, step.x_n, step.memory))
     contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
+    shift = iter(np.arange(1, 10 ** 6) * 1e-13)  # each call at new positions: no kept evaluation is reused
     for p in step.loop_terms + contact_terms:
         if p is fused:
             continue
-        row(f"gradient {type(p).__name__}", lambda p=p: p.gradient(x))
+        row(f"gradient {type(p).__name__} (new x)", lambda p=p: p.gradient(x + next(shift)))
+        row(f"energy {type(p).__name__} (new x)", lambda p=p: p.energy(x + next(shift)))
+    row("stacked gradient (contact potentials + every gradient, new x)",
+        lambda: solver._stacked_gradient(step, x + next(shift), StepInfo()))
+    row("stacked energy (new x)", lambda: solver._energy(step, x + next(shift), contact_terms, solver.contact.search_position))
     for p in contact_terms + step.dynamic_terms:
         for proj in ("none", "clamp"):
             row(f"hessian {type(p).__name__} {proj}", lambda p=p, proj=proj: p.hessian(x, proj))
@@ -78,6 +83,15 @@ def main() -> int:
         values = np.zeros(fused.pattern.keys.size)
         row(f"projected {type(part).__name__}", lambda part=part: part.add_projected(x, "clamp", values))
     row("projected_hessian_values (all parts)", lambda: fused.projected_hessian_values(x, "clamp"))
+    for method in ("lapack", "jacobi"):
+        from sim_core.ti_kernels.block_projection import project_reduced_blocks
+
+        bend = [part for part in fused._parts if type(part).__name__ == "FusedKirchhoffBending"]
+        if bend:
+            red = bend[0]._projector.reduced(bend[0].triangle_hessians(x))
+            red = 0.5 * (red + np.swapaxes(red, 1, 2))
+            row(f"bending reduced blocks {red.shape} projected by {method}",
+                lambda red=red, method=method: project_reduced_blocks(red.copy(), "clamp", method=method))
     dyn = contact_terms + step.dynamic_terms
     row("device operator (exact)", lambda: solver._device_operator(step, x, "none", dyn))
     upper, blocks = solver._device_operator(step, x, "none", dyn)
