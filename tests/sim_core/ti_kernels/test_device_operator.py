@@ -68,7 +68,7 @@ def test_vertex_blocks_product_is_the_assembled_element_blocks_product(ti_cpu):
 
 def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu):
     model = pad_model()
-    config = SolverConfig(backend="taichi-cpu", lockstep=True, linear_solver="pcg")
+    config = SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True, linear_solver="pcg")
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model), solver_config=config)
     pose0 = batch.states[0].effector_pose["pad"].copy()
     for k in range(3):  # press until the pad and the table touch the sheet
