@@ -204,6 +204,7 @@ class FusedElastic:
         self._offload_buffers: tuple[np.ndarray, np.ndarray] | None = None  # the offloaded part's, when local
         self._recipes: dict[str, Recipe] = {}  # the last worker recipes ("part", "all", "projected")
         self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
+        self._device_kept: tuple | None = None  # on CUDA: device positions, gradient, values (_device_buffers)
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -257,10 +258,22 @@ class FusedElastic:
                 self._kept = (key, energy, grad, values)
                 return self._kept
         np.copyto(xc, x)
-        grad.fill(0.0)
-        values.fill(0.0)
         remote = self.offloaded_part()
         energy = 0.0
+        if remote is None and self._on_device():
+            # CUDA: positions up, gradient and Hessian values down once per evaluation, not per part
+            xd, gd, vd = self._device_buffers(xc.shape, values.size)
+            xd.from_numpy(xc)
+            gd.fill(0.0)
+            vd.fill(0.0)
+            for part in self._parts:
+                energy += part.evaluate(xd, gd, vd)
+            np.copyto(grad, gd.to_numpy())
+            values[:] = vd.to_numpy()[: values.size]
+            self._kept = (key, energy, grad, values)
+            return self._kept
+        grad.fill(0.0)
+        values.fill(0.0)
         if remote is None:
             for part in self._parts:
                 energy += part.evaluate(xc, grad, values)
@@ -352,6 +365,23 @@ class FusedElastic:
         for e in energies:
             energy += remote_energy if e is None else e
         return energy
+
+    def _on_device(self) -> bool:
+        """Whether the evaluation runs on device arrays: Taichi on CUDA and every part a fused kernel
+        part whose constant arrays live on the device (``_device``, :func:`~sim_core.ti_kernels.buffers.on_device`)."""
+        from sim_core.ti_backend import current_arch
+
+        return current_arch() == "cuda" and all(getattr(p, "_device", None) is not None for p in self._parts)
+
+    def _device_buffers(self, shape: tuple, nnz: int) -> tuple:
+        """Device arrays (Taichi ndarrays) for positions ``shape``, gradient ``shape`` and ``nnz`` Hessian values."""
+        from sim_core.ti_backend import ti
+
+        kept = self._device_kept
+        if kept is None or tuple(kept[0].shape) != tuple(shape) or kept[2].shape != (max(nnz, 1),):
+            kept = self._device_kept = (ti.ndarray(ti.f64, shape=tuple(shape)), ti.ndarray(ti.f64, shape=tuple(shape)),
+                                        ti.ndarray(ti.f64, shape=(max(nnz, 1),)))
+        return kept
 
     def _evaluation_buffers(self, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The positions ``shape``, gradient ``shape`` and Hessian-value ``(pattern.keys.size,)`` arrays

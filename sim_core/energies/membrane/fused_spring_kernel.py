@@ -39,6 +39,7 @@ import numpy as np
 from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
@@ -239,6 +240,7 @@ class FusedSpringMembrane:
         self._blocks: np.ndarray | None = None  # triangle blocks of the projected Hessian, (t, 9, 9)
         self._projector = TranslationFreeProjector(3)
         self._recipe: tuple | None = None  # the last offload_recipe()
+        self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, stiffnesses)."""
@@ -258,15 +260,19 @@ class FusedSpringMembrane:
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""
         p = self.potential
-        return float(spring_membrane_energy(x, self._triangles, self._edges, self._area0, self._length0,
+        d = self._device
+        return float(spring_membrane_energy(x, on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+                                            on_device(d, "area0", self._area0), on_device(d, "length0", self._length0),
                                             p.k_length, p.k_area))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
         p = self.potential
+        d = self._device
         return float(spring_membrane_energy_gradient_hessian(
-            x, self._triangles, self._edges, self._area0, self._length0, self._upper, p.k_length, p.k_area,
-            grad, values))
+            x, on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+            on_device(d, "area0", self._area0), on_device(d, "length0", self._length0), on_device(d, "upper", self._upper),
+            p.k_length, p.k_area, grad, values))
 
     @property
     def element_count(self) -> int:

@@ -34,6 +34,7 @@ from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index, upper_slot_table
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
@@ -193,6 +194,7 @@ class FusedStableNeoHookean:
     def __init__(self, potential: StableNeoHookean) -> None:
         require_backend("FusedStableNeoHookean")
         self.potential = potential
+        self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
         self.vertices = potential.tets
         self._tets = np.ascontiguousarray(potential.tets, dtype=np.int32)
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
@@ -231,7 +233,9 @@ class FusedStableNeoHookean:
         if self._tets.shape[0] == 0:
             return 0.0
         p = self.potential
-        return float(snh_energy(x, self._tets, self._dFdx, self._vol, p.mu, p.lam))
+        d = self._device
+        return float(snh_energy(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                on_device(d, "vol", self._vol), p.mu, p.lam))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.
@@ -241,8 +245,10 @@ class FusedStableNeoHookean:
         if self._tets.shape[0] == 0:
             return 0.0
         p = self.potential
-        return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._upper, p.mu, p.lam,
-                                                 grad, values))
+        d = self._device
+        return float(snh_energy_gradient_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                                 on_device(d, "vol", self._vol), on_device(d, "upper", self._upper),
+                                                 p.mu, p.lam, grad, values))
 
     @property
     def element_count(self) -> int:
