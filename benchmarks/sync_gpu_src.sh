@@ -10,5 +10,5 @@ mkdir -p "$dest"
 (cd "$src" && tar --exclude=.git --exclude=./tests --exclude=./docs --exclude=./bags --exclude=__pycache__ \
     --exclude=.pytest_cache --exclude=./.gpu_src --exclude=./.gpu_wheels -cf - .) | (cd "$dest" && tar -xf -)
 (cd "$src" && tar --exclude=__pycache__ -cf - tests/__init__.py tests/sim_core/__init__.py tests/support \
-    tests/sim_core/ti_kernels) | (cd "$dest" && tar -xf -)
+    tests/sim_core/ti_kernels tests/sim_core/energies) | (cd "$dest" && tar -xf -)
 du -sb "$dest"

@@ -147,7 +147,8 @@ def test_batches_sharing_the_work_arrays_keep_their_own_results(ti_cpu):
 
 def test_two_pass_derivatives_equal_the_one_pass_bit_for_bit(ti_cpu, monkeypatch):
     """``PairBatch.two_pass`` (CUDA's default): the gradient at new positions from the distances of every
-    pair, then the derivatives of the active ones: the same values in two launches."""
+    pair, then the derivatives of the active ones: the same values in two launches (bit for bit on the
+    CPU's serial sums; on CUDA, like the other bit-for-bit tests here, to round-off)."""
     from sim_core.energies.contact import batch_kernel as contact_batch
 
     x, linked, alone = _potentials()

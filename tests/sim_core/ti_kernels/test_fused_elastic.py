@@ -410,6 +410,8 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     import sim_core.ti_backend as backend
     from sim_core.fused_elastic import FusedElastic
 
+    if ti_cpu == "cuda":
+        pytest.skip("the reference is the NumPy-argument path, which runs on the CPU arch only")
     terms = []
     xs = []
     offset = 0
