@@ -2,15 +2,21 @@
 batch solved on the device, one independent CG per copy.
 
 :class:`BatchedPCG` follows the :class:`~sim_core.linsolve.SymmetricSolver` contract (``factorize``
-takes the upper triangle of the symmetric Newton matrix, ``solve`` one right-hand side). The matrix,
-its 3x3 vertex-block Jacobi preconditioner and every CG vector stay in Taichi ndarrays (device memory
-on CUDA); each iteration is five passes over all copies, and one kernel launch runs
-:data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its top-level loops, which Taichi runs one
-after the other on the device):
+takes the upper triangle of the symmetric Newton matrix, ``solve`` one right-hand side). The matrix
+is ``A = U + U^T - diag(U) + sum_t F E_t F``: an assembled part given by its upper triangle ``U``
+(CSR; the fused elastic terms' values in their fixed pattern, whose index arrays travel to the
+device once) and a matrix-free part, element Hessians kept as 3x3 vertex blocks ``E_t``
+(:class:`VertexBlocks`: contact and friction, never merged into a sparse pattern), ``F`` the
+free-DoF mask. On the device ``U`` is expanded to both triangles (a gather through a pattern made
+once), so that its product needs no atomics; the preconditioner is each vertex's 3x3 diagonal block
+of ``A`` (from ``U`` and the diagonal blocks ``E_t``), inverted. The matrix, the preconditioner and
+every CG vector stay in Taichi ndarrays (device memory on CUDA); each iteration is five passes over
+all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its
+top-level loops, which Taichi runs one after the other on the device):
 
-* ``A p`` from the upper triangle (CSR): each stored entry ``a_ij`` adds ``a_ij p_j`` to row ``i``
-  and, off the diagonal, ``a_ij p_i`` to row ``j`` (atomic adds);
-* per copy ``p.Ap`` (a segmented sum by the DoF's copy);
+* ``A p``: the rows of ``U + U^T - diag(U)`` (one thread a row), then each vertex block ``E_t``
+  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds);
+* per copy ``p.Ap`` (a segmented sum by the vertex's copy);
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
   ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``;
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
@@ -37,20 +43,21 @@ _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _upper_csr_matvec(indptr: ti.template(), indices: ti.template(), data: ti.template(), p: ti.template(),
-                      ap: ti.template(), n: ti.i32):
-    """``ap += A p`` for ``A`` symmetric stored as its upper triangle (CSR): each stored entry ``a_ij`` adds
-    ``a_ij p_j`` to row ``i`` and, off the diagonal, ``a_ij p_i`` to row ``j`` (atomic adds)."""
+def _full_csr_matvec(indptr: ti.template(), indices: ti.template(), data: ti.template(), p: ti.template(),
+                     ap: ti.template(), n: ti.i32):
+    """``ap += A p`` for ``A`` stored with both triangles (CSR): one thread a row, no atomics."""
     for i in range(n):
         acc = 0.0
-        pi = p[i]
         for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            a = data[k]
-            acc += a * p[j]
-            if j != i:
-                ti.atomic_add(ap[j], a * pi)
-        ti.atomic_add(ap[i], acc)
+            acc += data[k] * p[indices[k]]
+        ap[i] += acc
+
+
+@ti.kernel
+def _gather(src: _F64, index: _I32, out: _F64, count: ti.i32):
+    """``out[k] = src[index[k]]`` for ``k < count``."""
+    for k in range(count):
+        out[k] = src[index[k]]
 
 
 @ti.func
@@ -124,7 +131,7 @@ def _apply(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval
     """``ap = A p`` (``ap`` zeroed here) for the operator of :meth:`BatchedPCG.factorize`."""
     for i in range(n):
         ap[i] = 0.0
-    _upper_csr_matvec(indptr, indices, data, p, ap, n)
+    _full_csr_matvec(indptr, indices, data, p, ap, n)
     _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
 
 
@@ -160,10 +167,10 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
     entry and on exit; the CSR part, then the vertex blocks), per copy ``p.Ap``, the update of ``x``,
     ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
     for _ in ti.static(range(ITERATIONS_PER_LAUNCH)):
-        _upper_csr_matvec(indptr, indices, data, p, ap, n)
+        _full_csr_matvec(indptr, indices, data, p, ap, n)
         _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
-        for i in range(n):
-            ti.atomic_add(pap[seg[i]], p[i] * ap[i])
+        for v in range(n // 3):
+            ti.atomic_add(pap[seg[3 * v]], p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2])
         for v in range(n // 3):
             s = seg[3 * v]
             if active[s] != 0 and pap[s] > 0:
@@ -282,6 +289,7 @@ class BatchedPCG:
         self._arrays: dict[str, object] = {}
         self._uploaded: dict[str, np.ndarray] = {}  # name -> the host array last uploaded there
         self._nblocks = 0
+        self._full: tuple | None = None  # (indptr, indices, nnz) of the both-triangle pattern (_full_pattern)
         self._n = -1
         self.indefinite = np.zeros(0, dtype=bool)
         self.unconverged = np.zeros(0, dtype=bool)
@@ -344,6 +352,10 @@ class BatchedPCG:
         nvert = n // 3
         blk = self._array("blk", max(3 * n, 1))
         _diag_blocks_csr(indptr, indices, data, blk, nvert)
+        full = self._full_pattern(indptr_h, indices_h, n, nnz)
+        full_data = self._array("full_data", max(full[2], 1))
+        if full[2]:
+            _gather(data, self._arrays["full_src"], full_data, full[2])
         self._nblocks = 0 if blocks is None else int(blocks.rows.size)
         brow = self._array("brow", max(self._nblocks, 1), ti.i32)
         bcol = self._array("bcol", max(self._nblocks, 1), ti.i32)
@@ -357,9 +369,33 @@ class BatchedPCG:
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
         return True
 
+    def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int, nnz: int) -> tuple:
+        """The pattern of ``U + U^T - diag(U)`` (both triangles) of the upper-triangle CSR arrays: its
+        ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``, and ``full_src``, the
+        position in ``U``'s data of each entry, so that the CG's product needs no atomics (one thread a
+        row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.
+        Returns ``(indptr_h, indices_h, full nnz)``."""
+        kept = self._full
+        if kept is not None and kept[0] is indptr_h and kept[1] is indices_h:
+            return kept
+        upper = sp.csr_matrix((np.arange(1, nnz + 1, dtype=np.int64), indices_h[:nnz], indptr_h), shape=(n, n))
+        lower = upper.T.tocsr()
+        lower.setdiag(0)
+        lower.eliminate_zeros()
+        full = (upper + lower).tocsr()
+        full.sort_indices()
+        self._array("full_indptr", n + 1, ti.i32).from_numpy(full.indptr.astype(np.int32))
+        size = max(full.nnz, 1)
+        self._array("full_indices", size, ti.i32).from_numpy(
+            full.indices.astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        self._array("full_src", size, ti.i32).from_numpy(
+            (full.data - 1).astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        self._full = (indptr_h, indices_h, int(full.nnz))
+        return self._full
+
     def _operator(self) -> tuple:
         a = self._arrays
-        return a["indptr"], a["indices"], a["data"], a["brow"], a["bcol"], a["bval"], a["free"]
+        return a["full_indptr"], a["full_indices"], a["full_data"], a["brow"], a["bcol"], a["bval"], a["free"]
 
     def matvec(self, p: np.ndarray) -> np.ndarray:
         """``A p`` on the device for the matrix of the last :meth:`factorize` (``p`` shape ``(n,)``)."""
