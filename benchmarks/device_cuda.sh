@@ -18,7 +18,9 @@
 # runs this script from DEST.
 #
 # `profile` (PROFILE_SIZES, default "64 256"; STEPS) runs benchmarks/profile_lockstep.py on CUDA: the
-# wall time of a lockstep Forming step split into the solver's parts.
+# wall time of a lockstep Forming step split into the solver's parts (one step first for compilation
+# and set-up, then STEPS timed), and benchmarks/parts_lockstep.py --B 256 (each term's gradient,
+# energy and Hessian, the projected elastic Hessian, the CG's operator, set-up and solve, in ms).
 #
 # What `run` measures (one process per arch: Taichi initialises one arch per process), each line of
 # JSON also appended to $OUT/bench.jsonl when $OUT is set (the device tool returns that folder); the
@@ -78,6 +80,9 @@ if [ "$mode" = profile ]; then
         echo "exit $?"
         grep -v '^\[Taichi\]' "$out/profile_$B.out" | grep -v Warning | tail -40
     done
+    timeout "${PART_TIMEOUT:-170}" "$PY" benchmarks/parts_lockstep.py --arch cuda --B 256 > "$out/parts_256.out" 2>&1
+    echo "=== parts B=256: exit $?"
+    grep ' ms$' "$out/parts_256.out"
     exit 0
 fi
 PART_TIMEOUT=${PART_TIMEOUT:-170}

@@ -20,6 +20,11 @@ blocks a Cholesky test does not prove definite (:mod:`sim_core.ti_kernels.block_
 Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of their Taichi twins
 (:mod:`sim_core.energies.neohookean.kernel`, :mod:`sim_core.energies.membrane.kernel`).
 
+On CUDA every array argument of a launch that is a NumPy array is copied to the device and back;
+there the fused parts keep their constant arrays (elements, rest shapes, slot tables) on the device
+(:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once and
+downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`).
+
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
 

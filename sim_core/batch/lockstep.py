@@ -24,7 +24,10 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   pass the slope test too, but a difference from its separate run;
 * Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
   is not positive definite is factorised again block by block, each copy taking the exact or the
-  projected block its own run would take);
+  projected block its own run would take). With the batched CG it is never assembled into one sparse
+  pattern: the fused elastic terms' values in their fixed static pattern plus the diagonal, and the
+  contact and friction Hessians as vertex blocks applied matrix-free on the device
+  (:meth:`LockstepSolver._device_operator`; the stacked step's ``StepRecord`` then holds no Hessian);
 * failure: a copy whose gradient or update is not finite, whose line search fails with no relaxed
   acceptance and no stale contact side to release, or that has not converged in ``max_iterations``
   is reported with the reason, and the step is taken again from its start with that copy held fixed
