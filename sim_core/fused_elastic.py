@@ -426,7 +426,8 @@ class FusedElastic:
         (the kept array: the next evaluation at other positions overwrites it)."""
         return self._evaluate(x)[3]
 
-    def projected_hessian_values(self, x: np.ndarray, projection: str) -> np.ndarray:
+    def projected_hessian_values(self, x: np.ndarray, projection: str,
+                                 vertices: np.ndarray | None = None) -> np.ndarray:
         """Hessian entries in N/m with PSD-projected element blocks, summed per slot of :attr:`pattern`.
 
         Each potential's blocks are projected as its reference ``hessian(x, projection)`` does (the
@@ -437,6 +438,11 @@ class FusedElastic:
         Args:
             x: positions ``(n, 3)`` in m.
             projection: "clamp" or "abs" ("none" gives the exact Hessian, element by element).
+            vertices: None, or a bool mask ``(n,)`` closed under the elements (every element touching a
+                marked vertex has all its vertices marked, as the copies of a stacked scene): then the
+                rows and columns of the marked vertices hold the projected Hessian's entries, and those of
+                the others only part of them (parts with ``projects_subsets`` project only the elements
+                touching marked vertices; a lockstep batch needs the projected matrix of a few copies).
 
         Returns:
             a new array of shape ``(pattern.keys.size,)``.
@@ -452,7 +458,10 @@ class FusedElastic:
         remote = self.offloaded_part()
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
-                part.add_projected(xc, projection, values)
+                if vertices is not None and getattr(part, "projects_subsets", False):
+                    part.add_projected(xc, projection, values, vertices=vertices)
+                else:
+                    part.add_projected(xc, projection, values)
             return values
         # the offloaded part's projected blocks apart (in the worker meanwhile), added after the others'
         recipe = self._recipe("projected", (remote.offload_projected_recipe(projection),), None)

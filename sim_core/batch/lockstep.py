@@ -390,7 +390,11 @@ class LockstepSolver(NewtonSolver):
             ta = time.perf_counter()
             if step.fused is not None:  # the static part's values in its fixed pattern, contacts as blocks
                 H = None
-                upper, blocks = self._device_operator(step, x, projection, dynamic_terms)
+                marked = None
+                if k > 0:  # the projected matrix is solved for the copies in todo only (the others' rhs is 0)
+                    marked = np.zeros(self.scene.model.vertex_count, dtype=bool)
+                    marked[self.scene.index[todo]] = True
+                upper, blocks = self._device_operator(step, x, projection, dynamic_terms, marked)
             else:
                 H = upper = self._assemble_hessian(step, x, projection, dynamic_terms)
                 blocks = None
@@ -415,19 +419,25 @@ class LockstepSolver(NewtonSolver):
             rhs[dofs[~todo]] = 0.0
         return d, H, projection, pcg
 
-    def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list):
+    def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
+                         vertices: np.ndarray | None = None):
         """The Newton matrix at ``x`` as the batched CG's operator, never merged into one sparse pattern:
         ``(indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian values
         in their static pattern (fixed for the step's elements and free mask: its index arrays travel to
         the device once) plus the inertia / damping diagonal, 1 on fixed DoFs; and the contact and
         friction Hessians (``dynamic_terms``, projected by ``projection``) as
         :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
-        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order)."""
+        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
+        ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
+        copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`): the matrix is
+        then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
+        side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
         from sim_core.ti_kernels.pcg import VertexBlocks
 
         fused = step.fused
         pattern = fused.pattern
-        values = fused.hessian_values(x) if projection == "none" else fused.projected_hessian_values(x, projection)
+        values = (fused.hessian_values(x) if projection == "none"
+                  else fused.projected_hessian_values(x, projection, vertices))
         cached = self._pattern_csr
         if cached is None or cached[0] is not pattern:
             n = pattern.dof_count

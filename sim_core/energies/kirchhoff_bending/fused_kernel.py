@@ -325,12 +325,21 @@ class FusedKirchhoffBending:
                                     self._stiffness, self._scratch, self._blocks)
         return self._blocks
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") of the per-triangle blocks into ``values``
-        (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: batched LAPACK
-        eigen-decomposition in the translation-free 15-dimensional space).
+        (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: the eigen-decomposition
+        in the translation-free 15-dimensional space); with ``vertices`` (bool ``(n,)``) only the
+        triangles whose stencil touches a marked vertex.
 
         Raises:
             ValueError: unknown projection.
         """
-        self._projector.add_projected(self.triangle_hessians(x), projection, self._tri_slots, values)
+        blocks, slots = self.triangle_hessians(x), self._tri_slots
+        if vertices is not None:
+            rows = np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1))
+            blocks, slots = blocks[rows], slots[rows]
+        self._projector.add_projected(blocks, projection, slots, values)

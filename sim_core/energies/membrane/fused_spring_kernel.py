@@ -288,12 +288,17 @@ class FusedSpringMembrane:
         self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
         return self._recipe
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the reference's
         projection (:meth:`SpringMembrane.hessian`) to round-off, the triangles' exact 9x9 blocks
         (:func:`spring_membrane_triangle_blocks`) through
         :class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector` (6-dimensional), then
-        the edges' closed form (:func:`spring_membrane_projected_edges`).
+        the edges' closed form (:func:`spring_membrane_projected_edges`). With ``vertices`` (bool
+        ``(n,)``) the triangles projected are those touching a marked vertex (every edge is added).
 
         Raises:
             ValueError: unknown projection.
@@ -305,7 +310,11 @@ class FusedSpringMembrane:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
             spring_membrane_triangle_blocks(x, self._triangles, self._area0, p.k_area, self._blocks)
-            self._projector.add_projected(self._blocks, projection, self._slots[:t_count], values)
+            blocks, slots = self._blocks, self._slots[:t_count]
+            if vertices is not None:
+                rows = np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1))
+                blocks, slots = blocks[rows], slots[rows]
+            self._projector.add_projected(blocks, projection, slots, values)
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, self._edges, self._length0, self._upper, t_count, p.k_length, code,
                                             values)

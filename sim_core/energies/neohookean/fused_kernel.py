@@ -278,10 +278,16 @@ class FusedStableNeoHookean:
         self._projected_recipe = part_recipe(self._projected_recipe, f"{__name__}:remote_add_projected", args)
         return self._projected_recipe
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic
         eigensystem of d2psi/dF2 (Smith et al. 2018, section 4.2) of the Taichi twin
         (:func:`sim_core.energies.neohookean.kernel.evaluate_snh_hessian`), the reference's projection.
+
+        With ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex are added.
 
         Raises:
             ValueError: unknown projection.
@@ -293,4 +299,8 @@ class FusedStableNeoHookean:
             self._blocks = np.zeros((self._tets.shape[0], 12, 12))
         p = self.potential
         evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, self._blocks)
-        add_blocks(self._blocks, self._slots, values)
+        if vertices is None:
+            add_blocks(self._blocks, self._slots, values)
+        else:  # only the tets touching a marked vertex
+            rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1))
+            add_blocks(self._blocks[rows], self._slots[rows], values)
