@@ -5,11 +5,22 @@
 # and PyYAML but no Taichi, and no network. Its Python packages therefore travel as wheels:
 #
 #   benchmarks/device_cuda.sh prepare [WHEELS]   # here, with network: download the cp312 wheels
-#                                                # (Taichi and its pure-Python needs) into WHEELS
-#                                                # (default .gpu_wheels/, ignored by git; ~59 MB)
+#                                                # (Taichi and the two packages `import taichi` loads:
+#                                                # colorama, dill) into WHEELS (default .gpu_wheels/,
+#                                                # ignored by git; 56.4 MB, so that the carried total of
+#                                                # the device tool, 64 MiB, also holds the repository)
 #   benchmarks/device_cuda.sh run [WHEELS]       # on the GPU machine, from the repository root,
 #                                                # with WHEELS carried: install them into /tmp/site,
 #                                                # then run the benchmarks below
+#
+# A helper's branch whose checkout is not the one the device tool copies travels as a copy of its code
+# (benchmarks/sync_gpu_src.sh DEST, DEST ignored by git and carried beside WHEELS); the command then
+# runs this script from DEST.
+#
+# `profile` (PROFILE_SIZES, default "64 256"; STEPS) runs benchmarks/profile_lockstep.py on CUDA: the
+# wall time of a lockstep Forming step split into the solver's parts (one step first for compilation
+# and set-up, then STEPS timed), and benchmarks/parts_lockstep.py --B 256 (each term's gradient,
+# energy and Hessian, the projected elastic Hessian, the CG's operator, set-up and solve, in ms).
 #
 # What `run` measures (one process per arch: Taichi initialises one arch per process), each line of
 # JSON also appended to $OUT/bench.jsonl when $OUT is set (the device tool returns that folder); the
@@ -39,13 +50,12 @@ if [ "$mode" = prepare ]; then
     "$PY" -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
         --platform manylinux2014_x86_64 -d "$wheels" \
-        taichi==1.7.4 colorama==0.4.6 dill==0.4.1 rich==15.0.0 markdown-it-py==4.3.0 mdurl==0.1.2 \
-        pygments==2.21.0 PyYAML==6.0.3 || exit 1
+        taichi==1.7.4 colorama==0.4.6 dill==0.4.1 || exit 1
     du -sh "$wheels"
     exit 0
 fi
-if [ "$mode" != run ]; then
-    echo "usage: $0 prepare|run [WHEELS]" >&2
+if [ "$mode" != run ] && [ "$mode" != profile ]; then
+    echo "usage: $0 prepare|run|profile [WHEELS]" >&2
     exit 2
 fi
 
@@ -62,6 +72,19 @@ nproc | sed 's/^/cpu cores: /' | tee -a "$out/machine.txt"
 "$PY" -c "import sys, numpy, scipy, taichi; print('python', sys.version.split()[0], 'numpy', numpy.__version__, 'scipy', scipy.__version__, 'taichi', taichi.__version__)" 2>&1 | grep -v '^\[Taichi\]' | tee -a "$out/machine.txt"
 
 STEPS=${STEPS:-10}
+if [ "$mode" = profile ]; then
+    for B in ${PROFILE_SIZES:-64 256}; do
+        echo "=== profile B=$B"
+        timeout "${PART_TIMEOUT:-170}" "$PY" benchmarks/profile_lockstep.py --arch cuda --B "$B" --steps "$STEPS" \
+            > "$out/profile_$B.out" 2>&1
+        echo "exit $?"
+        grep -v '^\[Taichi\]' "$out/profile_$B.out" | grep -v Warning | tail -40
+    done
+    timeout "${PART_TIMEOUT:-170}" "$PY" benchmarks/parts_lockstep.py --arch cuda --B 256 > "$out/parts_256.out" 2>&1
+    echo "=== parts B=256: exit $?"
+    grep ' ms$' "$out/parts_256.out"
+    exit 0
+fi
 PART_TIMEOUT=${PART_TIMEOUT:-170}
 TASK=${TASK:-folding_u}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept

@@ -20,6 +20,11 @@ blocks a Cholesky test does not prove definite (:mod:`sim_core.ti_kernels.block_
 Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of their Taichi twins
 (:mod:`sim_core.energies.neohookean.kernel`, :mod:`sim_core.energies.membrane.kernel`).
 
+On CUDA every array argument of a launch that is a NumPy array is copied to the device and back;
+there the fused parts keep their constant arrays (elements, rest shapes, slot tables) on the device
+(:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once and
+downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`).
+
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
 
@@ -204,6 +209,7 @@ class FusedElastic:
         self._offload_buffers: tuple[np.ndarray, np.ndarray] | None = None  # the offloaded part's, when local
         self._recipes: dict[str, Recipe] = {}  # the last worker recipes ("part", "all", "projected")
         self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
+        self._device_kept: tuple | None = None  # on CUDA: device positions, gradient, values (_device_buffers)
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -257,10 +263,22 @@ class FusedElastic:
                 self._kept = (key, energy, grad, values)
                 return self._kept
         np.copyto(xc, x)
-        grad.fill(0.0)
-        values.fill(0.0)
         remote = self.offloaded_part()
         energy = 0.0
+        if remote is None and self._on_device():
+            # CUDA: positions up, gradient and Hessian values down once per evaluation, not per part
+            xd, gd, vd = self._device_buffers(xc.shape, values.size)
+            xd.from_numpy(xc)
+            gd.fill(0.0)
+            vd.fill(0.0)
+            for part in self._parts:
+                energy += part.evaluate(xd, gd, vd)
+            np.copyto(grad, gd.to_numpy())
+            values[:] = vd.to_numpy()[: values.size]
+            self._kept = (key, energy, grad, values)
+            return self._kept
+        grad.fill(0.0)
+        values.fill(0.0)
         if remote is None:
             for part in self._parts:
                 energy += part.evaluate(xc, grad, values)
@@ -353,6 +371,23 @@ class FusedElastic:
             energy += remote_energy if e is None else e
         return energy
 
+    def _on_device(self) -> bool:
+        """Whether the evaluation runs on device arrays: Taichi on CUDA and every part a fused kernel
+        part whose constant arrays live on the device (``_device``, :func:`~sim_core.ti_kernels.buffers.on_device`)."""
+        from sim_core.ti_backend import current_arch
+
+        return current_arch() == "cuda" and all(getattr(p, "_device", None) is not None for p in self._parts)
+
+    def _device_buffers(self, shape: tuple, nnz: int) -> tuple:
+        """Device arrays (Taichi ndarrays) for positions ``shape``, gradient ``shape`` and ``nnz`` Hessian values."""
+        from sim_core.ti_backend import ti
+
+        kept = self._device_kept
+        if kept is None or tuple(kept[0].shape) != tuple(shape) or kept[2].shape != (max(nnz, 1),):
+            kept = self._device_kept = (ti.ndarray(ti.f64, shape=tuple(shape)), ti.ndarray(ti.f64, shape=tuple(shape)),
+                                        ti.ndarray(ti.f64, shape=(max(nnz, 1),)))
+        return kept
+
     def _evaluation_buffers(self, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The positions ``shape``, gradient ``shape`` and Hessian-value ``(pattern.keys.size,)`` arrays
         the kernels read and add into, float64, kept from one evaluation to the next (the kernels'
@@ -391,7 +426,8 @@ class FusedElastic:
         (the kept array: the next evaluation at other positions overwrites it)."""
         return self._evaluate(x)[3]
 
-    def projected_hessian_values(self, x: np.ndarray, projection: str) -> np.ndarray:
+    def projected_hessian_values(self, x: np.ndarray, projection: str,
+                                 vertices: np.ndarray | None = None) -> np.ndarray:
         """Hessian entries in N/m with PSD-projected element blocks, summed per slot of :attr:`pattern`.
 
         Each potential's blocks are projected as its reference ``hessian(x, projection)`` does (the
@@ -402,6 +438,11 @@ class FusedElastic:
         Args:
             x: positions ``(n, 3)`` in m.
             projection: "clamp" or "abs" ("none" gives the exact Hessian, element by element).
+            vertices: None, or a bool mask ``(n,)`` closed under the elements (every element touching a
+                marked vertex has all its vertices marked, as the copies of a stacked scene): then the
+                rows and columns of the marked vertices hold the projected Hessian's entries, and those of
+                the others only part of them (parts with ``projects_subsets`` project only the elements
+                touching marked vertices; a lockstep batch needs the projected matrix of a few copies).
 
         Returns:
             a new array of shape ``(pattern.keys.size,)``.
@@ -417,7 +458,10 @@ class FusedElastic:
         remote = self.offloaded_part()
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
-                part.add_projected(xc, projection, values)
+                if vertices is not None and getattr(part, "projects_subsets", False):
+                    part.add_projected(xc, projection, values, vertices=vertices)
+                else:
+                    part.add_projected(xc, projection, values)
             return values
         # the offloaded part's projected blocks apart (in the worker meanwhile), added after the others'
         recipe = self._recipe("projected", (remote.offload_projected_recipe(projection),), None)

@@ -24,7 +24,10 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   pass the slope test too, but a difference from its separate run;
 * Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
   is not positive definite is factorised again block by block, each copy taking the exact or the
-  projected block its own run would take);
+  projected block its own run would take). With the batched CG it is never assembled into one sparse
+  pattern: the fused elastic terms' values in their fixed static pattern plus the diagonal, and the
+  contact and friction Hessians as vertex blocks applied matrix-free on the device
+  (:meth:`LockstepSolver._device_operator`; the stacked step's ``StepRecord`` then holds no Hessian);
 * failure: a copy whose gradient or update is not finite, whose line search fails with no relaxed
   acceptance and no stale contact side to release, or that has not converged in ``max_iterations``
   is reported with the reason, and the step is taken again from its start with that copy held fixed
@@ -119,6 +122,7 @@ class LockstepSolver(NewtonSolver):
         self.scene = scene
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
+        self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self.last_stacked_info: StepInfo | None = None
 
     def _projections(self) -> tuple[str, ...]:
@@ -384,11 +388,20 @@ class LockstepSolver(NewtonSolver):
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
-            H = self._assemble_hessian(step, x, projection, dynamic_terms)
+            if step.fused is not None:  # the static part's values in its fixed pattern, contacts as blocks
+                H = None
+                marked = None
+                if k > 0:  # the projected matrix is solved for the copies in todo only (the others' rhs is 0)
+                    marked = np.zeros(self.scene.model.vertex_count, dtype=bool)
+                    marked[self.scene.index[todo]] = True
+                upper, blocks = self._device_operator(step, x, projection, dynamic_terms, marked)
+            else:
+                H = upper = self._assemble_hessian(step, x, projection, dynamic_terms)
+                blocks = None
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
-            pcg.factorize(H)
+            pcg.factorize(upper, blocks)
             dk = -pcg.solve(rhs)
             info.time_linear_solve += time.perf_counter() - tl
             dk[~step.free] = 0.0
@@ -405,6 +418,38 @@ class LockstepSolver(NewtonSolver):
             rhs = g.copy()
             rhs[dofs[~todo]] = 0.0
         return d, H, projection, pcg
+
+    def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
+                         vertices: np.ndarray | None = None):
+        """The Newton matrix at ``x`` as the batched CG's operator, never merged into one sparse pattern:
+        ``(indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian values
+        in their static pattern (fixed for the step's elements and free mask: its index arrays travel to
+        the device once) plus the inertia / damping diagonal, 1 on fixed DoFs; and the contact and
+        friction Hessians (``dynamic_terms``, projected by ``projection``) as
+        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
+        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
+        ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
+        copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`): the matrix is
+        then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
+        side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
+        from sim_core.ti_kernels.pcg import VertexBlocks
+
+        fused = step.fused
+        pattern = fused.pattern
+        values = (fused.hessian_values(x) if projection == "none"
+                  else fused.projected_hessian_values(x, projection, vertices))
+        cached = self._pattern_csr
+        if cached is None or cached[0] is not pattern:
+            n = pattern.dof_count
+            rows = pattern.keys // n
+            indptr = np.zeros(n + 1, dtype=np.int32)
+            np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+            cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
+        data = values.copy()
+        data[pattern.diag_slots] += step.diag
+        data[pattern.fixed_diag_slots] = 1.0
+        blocks = VertexBlocks.from_element_blocks([p.hessian(x, projection) for p in dynamic_terms], step.free)
+        return (cached[1], cached[2], data), blocks
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):

@@ -17,11 +17,13 @@ The work is split where each part is cheapest (measured, docs/benchmarks_log.md)
   ``B^T H B`` and ``B R B^T`` as stacked matrix products with a constant ``B`` (about 0.25 ms for
   480 blocks of 18 x 18; a Taichi loop per element took 3 ms, and one large GEMM over the stacked
   rows, 0.4 ms alone, took 25 ms inside a replay on the loaded 2-core VM: OpenBLAS threads it).
-* :func:`project_reduced_blocks` (NumPy): one batched ``numpy.linalg.eigh`` (LAPACK) and
-  ``Q f(w) Q^T`` only for the blocks with a negative eigenvalue (``f`` per projection). A Taichi
-  Jacobi eigen-solver was slower than LAPACK for the 15 x 15 reduced Kirchhoff blocks, and a
-  Cholesky test that skips the eigen-decomposition of definite blocks pays nothing there: at the
-  replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15.
+* :func:`project_reduced_blocks`: on the CPU one batched ``numpy.linalg.eigh`` (LAPACK) and
+  ``Q f(w) Q^T`` only for the blocks with a negative eigenvalue (``f`` per projection); a Taichi
+  Jacobi eigen-solver was slower than LAPACK there for the 15 x 15 reduced Kirchhoff blocks, and a
+  Cholesky test that skips the eigen-decomposition of definite blocks pays nothing: at the
+  replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15. On
+  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread): a lockstep
+  batch of 256 Forming copies projects 10^5 such blocks per fallback, several seconds of LAPACK.
 * :func:`add_blocks` (Taichi): the projected blocks added into the values of the solver's static
   pattern through the per-element slot map (:meth:`sim_core.assembly.StaticPattern.slot_map`:
   entry ``[e, r, s]`` is a slot or -1), in element order on the CPU (bitwise reproducible), with
@@ -46,7 +48,7 @@ import functools
 
 import numpy as np
 
-from sim_core.ti_backend import serial_loops, ti
+from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
 
@@ -112,23 +114,107 @@ def add_upper_entry(values: ti.template(), slot: ti.i32, value: ti.f64):
         values[-2 - slot] += value
 
 
-def project_reduced_blocks(blocks: np.ndarray, projection: str) -> np.ndarray:
+JACOBI_SWEEPS = 60
+"""Cyclic Jacobi sweeps at most per block (:func:`jacobi_project_blocks`; 15 x 15 blocks take 6 to 10)."""
+
+
+@fast_kernel
+def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, code: ti.i32):
+    """PSD projection of symmetric blocks in place by the cyclic Jacobi eigenvalue method (Golub & Van
+    Loan, Matrix Computations, 4th ed., Sec. 8.5.3; the rotation of their Alg. 8.5.1), one block per
+    thread: rotations ``A <- J^T A J`` of a copy (``work``) zero its off-diagonal entries in turn until
+    their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``; a block with a
+    negative eigenvalue (a diagonal entry of the rotated copy) is replaced by ``V f(w) V^T`` (``code`` 1
+    clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries. ``work`` and
+    ``vectors`` are scratch arrays of the blocks' shape. On the GPU all blocks run at once (no host
+    round trip for LAPACK)."""
+    for e in range(blocks.shape[0]):
+        n = blocks.shape[1]
+        total = 0.0
+        off = 0.0
+        for i in range(n):
+            for j in range(n):
+                vectors[e, i, j] = 1.0 if i == j else 0.0
+                a = 0.5 * (blocks[e, i, j] + blocks[e, j, i])
+                work[e, i, j] = a
+                total += a * a
+                if j > i:
+                    off += a * a
+        sweep = 0
+        while sweep < JACOBI_SWEEPS and off > 1e-30 * total:
+            sweep += 1
+            for p in range(n - 1):
+                for q in range(p + 1, n):
+                    apq = work[e, p, q]
+                    if apq != 0.0:
+                        theta = (work[e, q, q] - work[e, p, p]) / (2.0 * apq)
+                        t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
+                        if theta < 0.0:
+                            t = -t
+                        c = 1.0 / ti.sqrt(t * t + 1.0)
+                        s = t * c
+                        for k in range(n):  # columns p, q: A J
+                            akp = work[e, k, p]
+                            akq = work[e, k, q]
+                            work[e, k, p] = c * akp - s * akq
+                            work[e, k, q] = s * akp + c * akq
+                        for k in range(n):  # rows p, q: J^T (A J)
+                            apk = work[e, p, k]
+                            aqk = work[e, q, k]
+                            work[e, p, k] = c * apk - s * aqk
+                            work[e, q, k] = s * apk + c * aqk
+                        for k in range(n):  # V J
+                            vkp = vectors[e, k, p]
+                            vkq = vectors[e, k, q]
+                            vectors[e, k, p] = c * vkp - s * vkq
+                            vectors[e, k, q] = s * vkp + c * vkq
+            off = 0.0
+            for i in range(n):
+                for j in range(i + 1, n):
+                    off += work[e, i, j] * work[e, i, j]
+        negative = 0
+        for k in range(n):
+            if work[e, k, k] < 0.0:
+                negative = 1
+        if negative == 1:
+            for k in range(n):
+                w = work[e, k, k]
+                work[e, k, k] = ti.max(w, 0.0) if code == 1 else ti.abs(w)
+            for i in range(n):
+                for j in range(i, n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += vectors[e, i, k] * work[e, k, k] * vectors[e, j, k]
+                    blocks[e, i, j] = acc
+                    blocks[e, j, i] = acc
+
+
+def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | None = None) -> np.ndarray:
     """PSD projection of symmetric blocks; only blocks with a negative eigenvalue are rebuilt.
 
     Args:
         blocks: symmetric blocks, shape ``(k, n, n)`` (modified in place and returned).
         projection: ``"clamp"`` (negative eigenvalues -> 0) or ``"abs"`` (-> their absolute value);
             ``"none"`` returns ``blocks`` unchanged.
+        method: ``"lapack"`` (one batched ``numpy.linalg.eigh``), ``"jacobi"`` (:func:`jacobi_project_blocks`
+            in Taichi) or None: Jacobi on CUDA (all blocks at once on the device), LAPACK elsewhere.
 
     Returns:
-        ``blocks``, every block with a negative eigenvalue replaced by ``Q f(w) Q^T``
-        (``numpy.linalg.eigh``, LAPACK).
+        ``blocks``, every block with a negative eigenvalue replaced by ``Q f(w) Q^T``.
 
     Raises:
-        ValueError: unknown projection (the reference's message).
+        ValueError: unknown projection (the reference's message) or method.
     """
     code = linalg.projection_code(projection)
+    if method not in (None, "lapack", "jacobi"):
+        raise ValueError(f"project_reduced_blocks: unknown method {method!r} (lapack, jacobi)")
     if code == 0 or blocks.shape[0] == 0:
+        return blocks
+    if method == "jacobi" or (method is None and current_arch() == "cuda"):
+        out = np.ascontiguousarray(blocks, dtype=np.float64)
+        jacobi_project_blocks(out, np.empty_like(out), np.empty_like(out), code)
+        if out is not blocks:
+            blocks[:] = out
         return blocks
     w, q = np.linalg.eigh(blocks)
     negative = np.any(w < 0.0, axis=1)

@@ -99,3 +99,32 @@ def copy_into(kept: np.ndarray | None, values: np.ndarray) -> np.ndarray:
         kept = np.empty(np.shape(values))
     np.copyto(kept, values)
     return kept
+
+
+def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False):
+    """The array a kernel launch should take for ``host``: on CUDA a Taichi ndarray in device memory kept in
+    ``kept[name]`` (copied from ``host`` when ``host`` is another object than at the last call; a
+    ``scratch`` array is only allocated, never copied: the kernels write it before they read it), so
+    that a constant array crosses to the device once instead of at every launch (a NumPy argument of a
+    CUDA launch is copied to the device and back each time); elsewhere ``host`` itself.
+
+    Args:
+        kept: the caller's cache (one per owner of the arrays).
+        name: the array's name in it.
+        host: the array, C-contiguous, never changed in place while it is used here (a changed array
+            is a new object).
+        scratch: a work array of the kernels (device contents only).
+    """
+    from sim_core.ti_backend import current_arch, ti
+
+    if current_arch() != "cuda":
+        return host
+    entry = kept.get(name)
+    if entry is None or entry[0] is not host:
+        dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
+        dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
+            else ti.ndarray(dtype=dtype, shape=host.shape)
+        if not scratch and host.size:
+            dev.from_numpy(np.ascontiguousarray(host))
+        entry = kept[name] = (host, dev)
+    return entry[1]

@@ -2,15 +2,21 @@
 batch solved on the device, one independent CG per copy.
 
 :class:`BatchedPCG` follows the :class:`~sim_core.linsolve.SymmetricSolver` contract (``factorize``
-takes the upper triangle of the symmetric Newton matrix, ``solve`` one right-hand side). The matrix,
-its 3x3 vertex-block Jacobi preconditioner and every CG vector stay in Taichi ndarrays (device memory
-on CUDA); each iteration is five passes over all copies, and one kernel launch runs
-:data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its top-level loops, which Taichi runs one
-after the other on the device):
+takes the upper triangle of the symmetric Newton matrix, ``solve`` one right-hand side). The matrix
+is ``A = U + U^T - diag(U) + sum_t F E_t F``: an assembled part given by its upper triangle ``U``
+(CSR; the fused elastic terms' values in their fixed pattern, whose index arrays travel to the
+device once) and a matrix-free part, element Hessians kept as 3x3 vertex blocks ``E_t``
+(:class:`VertexBlocks`: contact and friction, never merged into a sparse pattern), ``F`` the
+free-DoF mask. On the device ``U`` is expanded to both triangles (a gather through a pattern made
+once), so that its product needs no atomics; the preconditioner is each vertex's 3x3 diagonal block
+of ``A`` (from ``U`` and the diagonal blocks ``E_t``), inverted. The matrix, the preconditioner and
+every CG vector stay in Taichi ndarrays (device memory on CUDA); each iteration is five passes over
+all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its
+top-level loops, which Taichi runs one after the other on the device):
 
-* ``A p`` from the upper triangle (CSR): each stored entry ``a_ij`` adds ``a_ij p_j`` to row ``i``
-  and, off the diagonal, ``a_ij p_i`` to row ``j`` (atomic adds);
-* per copy ``p.Ap`` (a segmented sum by the DoF's copy);
+* ``A p``: the rows of ``U + U^T - diag(U)`` (one thread a row), then each vertex block ``E_t``
+  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds);
+* per copy ``p.Ap`` (a segmented sum by the vertex's copy);
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
   ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``;
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
@@ -24,6 +30,9 @@ each launch (its one synchronisation); a copy that has stopped is left unchanged
 :attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
 """
 
+from dataclasses import dataclass
+from typing import Sequence
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -33,30 +42,97 @@ _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
+@ti.func
+def _full_csr_matvec(indptr: ti.template(), indices: ti.template(), data: ti.template(), p: ti.template(),
+                     ap: ti.template(), n: ti.i32):
+    """``ap += A p`` for ``A`` stored with both triangles (CSR): one thread a row, no atomics."""
+    for i in range(n):
+        acc = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            acc += data[k] * p[indices[k]]
+        ap[i] += acc
+
+
 @ti.kernel
-def _block_jacobi(indptr: _I32, indices: _I32, data: _F64, inv: _F64, nvert: ti.i32):
-    """``inv`` ``(9 nvert,)``: the inverse of each vertex's 3x3 diagonal block (its diagonal's inverse
-    when the block is singular, 1 where the diagonal is zero)."""
+def _gather(src: _F64, index: _I32, out: _F64, count: ti.i32):
+    """``out[k] = src[index[k]]`` for ``k < count``."""
+    for k in range(count):
+        out[k] = src[index[k]]
+
+
+@ti.func
+def _vertex_blocks_matvec(brow: ti.template(), bcol: ti.template(), bval: ti.template(), free: ti.template(),
+                          p: ti.template(), ap: ti.template(), nblocks: ti.i32):
+    """``ap += F (sum_t E_t) F p``: ``E_t`` the 3x3 block ``bval[9 t: 9 t + 9]`` (row-major) at vertex rows
+    ``brow[t]`` and vertex columns ``bcol[t]``, ``F = diag(free)`` (0 on fixed DoFs); one thread a block,
+    a gather of ``p`` and an atomic scatter into ``ap``."""
+    for t in range(nblocks):
+        r = brow[t]
+        c = bcol[t]
+        for a in ti.static(range(3)):
+            acc = 0.0
+            for b in ti.static(range(3)):
+                acc += bval[9 * t + 3 * a + b] * free[3 * c + b] * p[3 * c + b]
+            ti.atomic_add(ap[3 * r + a], free[3 * r + a] * acc)
+
+
+@ti.kernel
+def _diag_blocks_csr(indptr: _I32, indices: _I32, data: _F64, blk: _F64, nvert: ti.i32):
+    """``blk`` ``(9 nvert,)``: each vertex's 3x3 diagonal block of the upper-triangle CSR matrix (mirrored)."""
     for v in range(nvert):
-        blk = ti.Matrix.zero(ti.f64, 3, 3)
+        for a in ti.static(range(3)):
+            for b in ti.static(range(3)):
+                blk[9 * v + 3 * a + b] = 0.0
         for a in ti.static(range(3)):
             i = 3 * v + a
             for k in range(indptr[i], indptr[i + 1]):
                 j = indices[k]
                 if j // 3 == v:
-                    blk[a, j % 3] = data[k]
-                    blk[j % 3, a] = data[k]
-        det = blk.determinant()
-        scale = ti.abs(blk[0, 0]) * ti.abs(blk[1, 1]) * ti.abs(blk[2, 2])
+                    blk[9 * v + 3 * a + j % 3] = data[k]
+                    blk[9 * v + 3 * (j % 3) + a] = data[k]
+
+
+@ti.kernel
+def _diag_blocks_add(brow: _I32, bcol: _I32, bval: _F64, free: _F64, blk: _F64, nblocks: ti.i32):
+    """``blk += F E_t F`` for every vertex block ``E_t`` on the diagonal (``brow[t] == bcol[t]``)."""
+    for t in range(nblocks):
+        v = brow[t]
+        if bcol[t] == v:
+            for a in ti.static(range(3)):
+                for b in ti.static(range(3)):
+                    ti.atomic_add(blk[9 * v + 3 * a + b], free[3 * v + a] * free[3 * v + b] * bval[9 * t + 3 * a + b])
+
+
+@ti.kernel
+def _invert_blocks(blk: _F64, inv: _F64, nvert: ti.i32):
+    """``inv`` ``(9 nvert,)``: the inverse of each 3x3 block of ``blk`` (its diagonal's inverse when the
+    block is singular, 1 where the diagonal is zero)."""
+    for v in range(nvert):
+        m = ti.Matrix.zero(ti.f64, 3, 3)
+        for a in ti.static(range(3)):
+            for b in ti.static(range(3)):
+                m[a, b] = blk[9 * v + 3 * a + b]
+        det = m.determinant()
+        scale = ti.abs(m[0, 0]) * ti.abs(m[1, 1]) * ti.abs(m[2, 2])
         out = ti.Matrix.zero(ti.f64, 3, 3)
         if det > 1e-12 * scale and scale > 0:
-            out = blk.inverse()
+            out = m.inverse()
         else:
             for a in ti.static(range(3)):
-                out[a, a] = 1.0 / blk[a, a] if blk[a, a] > 0 else 1.0
+                out[a, a] = 1.0 / m[a, a] if m[a, a] > 0 else 1.0
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
                 inv[9 * v + 3 * a + b] = out[a, b]
+
+
+@ti.kernel
+def _apply(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64, p: _F64,
+           ap: _F64, n: ti.i32, nblocks: ti.i32):
+    """``ap = A p`` (``ap`` zeroed here) for the operator of :meth:`BatchedPCG.factorize`."""
+    for i in range(n):
+        ap[i] = 0.0
+    _full_csr_matvec(indptr, indices, data, p, ap, n)
+    _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
 
 
 @ti.kernel
@@ -82,26 +158,19 @@ ITERATIONS_PER_LAUNCH = 8
 
 
 @ti.kernel
-def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, inv: _F64, seg: _I32, x: _F64, r: _F64, z: _F64,
-                   p: _F64, ap: _F64, rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64,
-                   active: _I32, bad: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, copies: ti.i32):
+def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
+                   inv: _F64, seg: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, rz: _F64, rz_new: _F64,
+                   rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32, running: _I32, rtol2: ti.f64,
+                   n: ti.i32, nblocks: ti.i32, copies: ti.i32):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``running[0]`` = copies still
     running after them. Each top-level loop is one device pass, run in order: ``Ap`` (``ap`` zero on
-    entry and on exit), per copy ``p.Ap``, the update of ``x``, ``r``, ``z`` with per-copy ``r.z`` and
-    ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
+    entry and on exit; the CSR part, then the vertex blocks), per copy ``p.Ap``, the update of ``x``,
+    ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
     for _ in ti.static(range(ITERATIONS_PER_LAUNCH)):
-        for i in range(n):  # ap += A p, A symmetric stored as its upper triangle
-            acc = 0.0
-            pi = p[i]
-            for k in range(indptr[i], indptr[i + 1]):
-                j = indices[k]
-                a = data[k]
-                acc += a * p[j]
-                if j != i:
-                    ti.atomic_add(ap[j], a * pi)
-            ti.atomic_add(ap[i], acc)
-        for i in range(n):
-            ti.atomic_add(pap[seg[i]], p[i] * ap[i])
+        _full_csr_matvec(indptr, indices, data, p, ap, n)
+        _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
+        for v in range(n // 3):
+            ti.atomic_add(pap[seg[3 * v]], p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2])
         for v in range(n // 3):
             s = seg[3 * v]
             if active[s] != 0 and pap[s] > 0:
@@ -145,6 +214,49 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, inv: _F64, seg: _I32
         ti.atomic_add(running[0], active[c])
 
 
+@dataclass
+class VertexBlocks:
+    """A sum of 3x3 vertex blocks, the matrix-free part of a Newton matrix (element Hessians kept as blocks,
+    never assembled): ``sum_t F E_t F`` with ``E_t`` at vertex rows ``rows[t]`` and vertex columns
+    ``cols[t]``, ``F = diag(free)``.
+
+    Attributes:
+        rows, cols: vertex indices, int32 ``(K,)``.
+        values: the blocks, ``(K, 3, 3)`` float64 (N/m).
+        free: the free-DoF mask, ``(3 N,)`` bool (a fixed DoF's rows and columns are dropped).
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    values: np.ndarray
+    free: np.ndarray
+
+    @classmethod
+    def from_element_blocks(cls, element_blocks: Sequence, free: np.ndarray) -> "VertexBlocks":
+        """The vertex blocks of element Hessians: each :class:`~sim_core.energies.base.HessianBlocks`
+        (``vertices`` ``(k, m)``, ``blocks`` ``(k, 3m, 3m)``, symmetric) gives its ``k m^2`` 3x3 blocks
+        ``(a, b)`` at vertices ``(vertices[e, a], vertices[e, b])``.
+
+        Args:
+            element_blocks: the element Hessians (any number of sets, any ``m``).
+            free: the free-DoF mask, ``(3 N,)`` bool.
+        """
+        rows, cols, values = [], [], []
+        for b in element_blocks:
+            v = np.asarray(b.vertices)
+            k, m = v.shape
+            if not k:
+                continue
+            rows.append(np.repeat(v, m, axis=1).reshape(-1))
+            cols.append(np.tile(v, (1, m)).reshape(-1))
+            values.append(np.asarray(b.blocks, dtype=np.float64).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
+                          .reshape(-1, 3, 3))
+        if not rows:
+            return cls(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3, 3)), np.asarray(free, dtype=bool))
+        return cls(np.concatenate(rows).astype(np.int32), np.concatenate(cols).astype(np.int32),
+                   np.concatenate(values), np.asarray(free, dtype=bool))
+
+
 class BatchedPCG:
     """Block-Jacobi preconditioned CG for a block-diagonal symmetric positive definite matrix, one CG per
     block (module docstring); Taichi must be initialised (a Taichi solver backend).
@@ -175,6 +287,9 @@ class BatchedPCG:
         self.iterations = 0
         self._segments = None if segments is None else np.ascontiguousarray(segments, dtype=np.int32)
         self._arrays: dict[str, object] = {}
+        self._uploaded: dict[str, np.ndarray] = {}  # name -> the host array last uploaded there
+        self._nblocks = 0
+        self._full: tuple | None = None  # (indptr, indices, nnz) of the both-triangle pattern (_full_pattern)
         self._n = -1
         self.indefinite = np.zeros(0, dtype=bool)
         self.unconverged = np.zeros(0, dtype=bool)
@@ -186,35 +301,115 @@ class BatchedPCG:
             self._arrays[name] = arr
         return arr
 
-    def factorize(self, upper: "sp.csr_matrix") -> bool:
-        """Keep the matrix ``A = U + U^T - diag(U)`` (``U`` its upper triangle, CSR, shape ``(n, n)``,
-        ``n`` a multiple of 3) on the device and build its block-Jacobi preconditioner; True.
+    def _upload(self, name: str, host: np.ndarray, dtype) -> object:
+        """The device copy of ``host`` (1-D) as ``name``, uploaded only when ``host`` is not the array
+        object uploaded last under that name (index arrays of a fixed pattern travel once)."""
+        size = max(host.size, 1)
+        kept = self._arrays.get(name)
+        arr = self._array(name, size, dtype)
+        if self._uploaded.get(name) is not host or arr is not kept:
+            np_type = np.int32 if dtype == ti.i32 else np.float64
+            arr.from_numpy(np.ascontiguousarray(host, dtype=np_type) if host.size else np.zeros(1, np_type))
+            self._uploaded[name] = host
+        return arr
+
+    def factorize(self, upper, blocks: "VertexBlocks | None" = None) -> bool:
+        """Keep the matrix ``A = U + U^T - diag(U) + sum_t F E_t F`` on the device and build its block-Jacobi
+        preconditioner (each vertex's 3x3 diagonal block of ``A``, inverted); True.
+
+        Args:
+            upper: ``U``, the upper triangle of the assembled part, shape ``(n, n)``, ``n`` a multiple of 3:
+                a CSR matrix, or ``(indptr, indices, data)`` CSR arrays (when ``indptr`` and ``indices``
+                are the objects of the last call, only ``data`` travels to the device).
+            blocks: the matrix-free part (element Hessians as vertex blocks, :class:`VertexBlocks`), or
+                None; the product ``A p`` gathers, multiplies and scatters them on the device.
 
         Raises:
-            ValueError: ``n`` is not a multiple of 3 or does not match the segments.
+            ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
+                mask is not of size ``n``.
         """
-        n = upper.shape[0]
+        if isinstance(upper, tuple):
+            indptr_h, indices_h, data_h = upper
+        else:
+            indptr_h, indices_h, data_h = upper.indptr, upper.indices, upper.data
+        n = int(indptr_h.shape[0]) - 1
         if n % 3 or (self._segments is not None and self._segments.shape != (n,)):
             raise ValueError(f"BatchedPCG: matrix of size {n} for {None if self._segments is None else self._segments.shape[0]} "
                              f"segment entries (n must be a multiple of 3)")
+        if blocks is not None and blocks.free.shape != (n,):
+            raise ValueError(f"BatchedPCG: vertex blocks with a free mask of shape {blocks.free.shape}, expected ({n},)")
         self.factorizations += 1
         self._n = n
         seg = self._segments if self._segments is not None else np.zeros(n, dtype=np.int32)
         self._copies = int(seg.max()) + 1 if n else 1
-        indptr = self._array("indptr", n + 1, ti.i32)
-        indptr.from_numpy(upper.indptr.astype(np.int32))
-        nnz = int(upper.indptr[-1])
-        indices = self._array("indices", max(nnz, 1), ti.i32)
+        nnz = int(indptr_h[-1])
+        indptr = self._upload("indptr", indptr_h, ti.i32)
+        indices = self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
         data = self._array("data", max(nnz, 1))
         if nnz:
-            indices.from_numpy(upper.indices[:nnz].astype(np.int32))
-            data.from_numpy(np.ascontiguousarray(upper.data[:nnz], dtype=np.float64))
-        segs = self._array("seg", max(n, 1), ti.i32)
-        if self._arrays.get("_seg_host") is not seg:
-            segs.from_numpy(seg if n else np.zeros(1, np.int32))
-            self._arrays["_seg_host"] = seg
-        _block_jacobi(indptr, indices, data, self._array("inv", max(3 * n, 1)), n // 3)
+            data.from_numpy(np.ascontiguousarray(data_h[:nnz], dtype=np.float64))
+        self._upload("seg", seg, ti.i32)
+        nvert = n // 3
+        blk = self._array("blk", max(3 * n, 1))
+        _diag_blocks_csr(indptr, indices, data, blk, nvert)
+        full = self._full_pattern(indptr_h, indices_h, n, nnz)
+        full_data = self._array("full_data", max(full[2], 1))
+        if full[2]:
+            _gather(data, self._arrays["full_src"], full_data, full[2])
+        self._nblocks = 0 if blocks is None else int(blocks.rows.size)
+        brow = self._array("brow", max(self._nblocks, 1), ti.i32)
+        bcol = self._array("bcol", max(self._nblocks, 1), ti.i32)
+        bval = self._array("bval", max(9 * self._nblocks, 1))
+        free = self._upload("free", np.ones(1) if blocks is None else blocks.free, ti.f64)
+        if self._nblocks:
+            brow.from_numpy(np.ascontiguousarray(blocks.rows, dtype=np.int32))
+            bcol.from_numpy(np.ascontiguousarray(blocks.cols, dtype=np.int32))
+            bval.from_numpy(np.ascontiguousarray(blocks.values, dtype=np.float64).reshape(-1))
+            _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
+        _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
         return True
+
+    def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int, nnz: int) -> tuple:
+        """The pattern of ``U + U^T - diag(U)`` (both triangles) of the upper-triangle CSR arrays: its
+        ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``, and ``full_src``, the
+        position in ``U``'s data of each entry, so that the CG's product needs no atomics (one thread a
+        row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.
+        Returns ``(indptr_h, indices_h, full nnz)``."""
+        kept = self._full
+        if kept is not None and kept[0] is indptr_h and kept[1] is indices_h:
+            return kept
+        upper = sp.csr_matrix((np.arange(1, nnz + 1, dtype=np.int64), indices_h[:nnz], indptr_h), shape=(n, n))
+        lower = upper.T.tocsr()
+        lower.setdiag(0)
+        lower.eliminate_zeros()
+        full = (upper + lower).tocsr()
+        full.sort_indices()
+        self._array("full_indptr", n + 1, ti.i32).from_numpy(full.indptr.astype(np.int32))
+        size = max(full.nnz, 1)
+        self._array("full_indices", size, ti.i32).from_numpy(
+            full.indices.astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        self._array("full_src", size, ti.i32).from_numpy(
+            (full.data - 1).astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        self._full = (indptr_h, indices_h, int(full.nnz))
+        return self._full
+
+    def _operator(self) -> tuple:
+        a = self._arrays
+        return a["full_indptr"], a["full_indices"], a["full_data"], a["brow"], a["bcol"], a["bval"], a["free"]
+
+    def matvec(self, p: np.ndarray) -> np.ndarray:
+        """``A p`` on the device for the matrix of the last :meth:`factorize` (``p`` shape ``(n,)``)."""
+        if self._n < 0:
+            raise RuntimeError("BatchedPCG: factorize before matvec")
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        if p.shape != (self._n,):
+            raise ValueError(f"BatchedPCG: vector of shape {p.shape}, expected ({self._n},)")
+        pin = self._array("mv_in", max(self._n, 1))
+        out = self._array("mv_out", max(self._n, 1))
+        if self._n:
+            pin.from_numpy(p)
+        _apply(*self._operator(), pin, out, self._n, self._nblocks)
+        return out.to_numpy()[: self._n]
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` (``b`` shape ``(n,)``) per copy to ``|r_c| <= rtol |b_c|``; returns ``x``."""
@@ -244,9 +439,9 @@ class BatchedPCG:
         it = 0
         while it < self.max_iterations:
             it += ITERATIONS_PER_LAUNCH
-            _cg_iterations(a["indptr"], a["indices"], a["data"], a["inv"], a["seg"], vec["x"], vec["r"], vec["z"],
+            _cg_iterations(*self._operator(), a["inv"], a["seg"], vec["x"], vec["r"], vec["z"],
                            vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"],
-                           active, bad, running, rtol2, n, B)
+                           active, bad, running, rtol2, n, self._nblocks, B)
             if int(running.to_numpy()[0]) == 0:
                 break
         self.iterations = it

@@ -42,7 +42,7 @@ from sim_core.energies.contact import distance_kernel as cd
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays
 from sim_core.ti_kernels.launch import fast_kernel
@@ -175,6 +175,11 @@ class PairBatch:
         ConfigError: the Taichi backend is not initialised.
     """
 
+    two_pass: bool | None = None
+    """Derivatives of an unevaluated ``x`` in two launches (distances of every pair, then derivatives of the
+    active ones: less data through the launch, where arrays cross to a GPU and back) or one (all pairs);
+    None: two on CUDA. The results are the same."""
+
     def __init__(self, vt, ee) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
@@ -195,6 +200,12 @@ class PairBatch:
             key = positions_key(x)
         pots = (self.vt, self.ee)
         kept = [pot._kept(key, 0) for pot in pots]
+        two_pass = current_arch() == "cuda" if self.two_pass is None else self.two_pass
+        if derivatives and (kept[0] is None or kept[1] is None) and two_pass:
+            # on the GPU every array argument crosses to the device and back at each launch: the
+            # distances of all pairs first (no derivative arrays), then derivatives of the active ones
+            self.evaluate(x, False, key)
+            kept = [pot._kept(key, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
             rows = np.concatenate([kept[0].active, kept[1].active + self.split])
             parts = (slice(0, len(kept[0].active)), slice(len(kept[0].active), len(rows)))
@@ -209,9 +220,20 @@ class PairBatch:
         if m:
             kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
             kept_rows[:m] = rows
-            _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows, m, self.split,
-                          float(self.vt.eps), float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)),
-                          _ARRAYS.rows("z", m, (4, 3)), d, region, grad, hess, gradients)
+            if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
+                grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
+                                                     _ARRAYS.rows("hess_unused", 1, (12, 12)),
+                                                     _ARRAYS.rows("gradients_unused", 1, (3,)))
+            else:
+                grad_arg, hess_arg, gradients_arg = grad, hess, gradients
+            z, d_arg, region_arg = _ARRAYS.rows("z", m, (4, 3)), d, region
+            if current_arch() == "cuda":  # only the rows of this launch travel (the kept arrays may be longer)
+                z, d_arg, region_arg = z[:m], d[:m], region[:m]
+                if derivatives:
+                    grad_arg, hess_arg = grad[:m], hess[:m]
+            _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows[:m] if current_arch() == "cuda"
+                          else kept_rows, m, self.split, float(self.vt.eps), float(self.ee.eps), stiffnesses[0],
+                          stiffnesses[1], int(bool(derivatives)), z, d_arg, region_arg, grad_arg, hess_arg, gradients_arg)
         else:
             gradients[: 2 * n] = 0.0
         order = 2 if derivatives else 0

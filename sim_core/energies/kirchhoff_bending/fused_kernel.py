@@ -26,6 +26,7 @@ import numpy as np
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, upper_index,
@@ -257,6 +258,7 @@ class FusedKirchhoffBending:
         self._hinge_upper: np.ndarray | None = None
         self._blocks = np.zeros((self._tri_hinge.shape[0], 18, 18))
         self._projector = TranslationFreeProjector(6)
+        self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
         self._recipe: tuple | None = None  # the last offload_recipe()
 
     def accepts(self, potential) -> bool:
@@ -296,16 +298,22 @@ class FusedKirchhoffBending:
         """Energy in J at positions ``x`` ``(n, 3)``."""
         if self._hinges.shape[0] == 0:
             return 0.0
-        return float(kirchhoff_energy(x, self._hinges, self._theta_bar, self._tri_hinge, self._stiffness,
-                                      self._scratch))
+        d = self._device
+        return float(kirchhoff_energy(x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
+                                      on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "stiffness", self._stiffness),
+                                      on_device(d, "scratch", self._scratch, scratch=True)))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
         if self._hinges.shape[0] == 0:
             return 0.0
+        d = self._device
         return float(kirchhoff_energy_gradient_hessian(
-            x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local, self._stiffness, self._tri_upper,
-            self._hinge_upper, self._scratch, grad, values))
+            x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
+            on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "tri_local", self._tri_local),
+            on_device(d, "stiffness", self._stiffness), on_device(d, "tri_upper", self._tri_upper),
+            on_device(d, "hinge_upper", self._hinge_upper), on_device(d, "scratch", self._scratch, scratch=True),
+            grad, values))
 
     def triangle_hessians(self, x: np.ndarray) -> np.ndarray:
         """The exact per-triangle blocks ``(t, 18, 18)`` in N/m over ``vertices`` (the reference's
@@ -317,12 +325,21 @@ class FusedKirchhoffBending:
                                     self._stiffness, self._scratch, self._blocks)
         return self._blocks
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") of the per-triangle blocks into ``values``
-        (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: batched LAPACK
-        eigen-decomposition in the translation-free 15-dimensional space).
+        (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: the eigen-decomposition
+        in the translation-free 15-dimensional space); with ``vertices`` (bool ``(n,)``) only the
+        triangles whose stencil touches a marked vertex.
 
         Raises:
             ValueError: unknown projection.
         """
-        self._projector.add_projected(self.triangle_hessians(x), projection, self._tri_slots, values)
+        blocks, slots = self.triangle_hessians(x), self._tri_slots
+        if vertices is not None:
+            rows = np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1))
+            blocks, slots = blocks[rows], slots[rows]
+        self._projector.add_projected(blocks, projection, slots, values)

@@ -39,6 +39,7 @@ import numpy as np
 from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
@@ -239,6 +240,7 @@ class FusedSpringMembrane:
         self._blocks: np.ndarray | None = None  # triangle blocks of the projected Hessian, (t, 9, 9)
         self._projector = TranslationFreeProjector(3)
         self._recipe: tuple | None = None  # the last offload_recipe()
+        self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
 
     def accepts(self, potential) -> bool:
         """Whether ``potential`` is evaluated by this kernel as it stands (same elements, stiffnesses)."""
@@ -258,15 +260,19 @@ class FusedSpringMembrane:
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""
         p = self.potential
-        return float(spring_membrane_energy(x, self._triangles, self._edges, self._area0, self._length0,
+        d = self._device
+        return float(spring_membrane_energy(x, on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+                                            on_device(d, "area0", self._area0), on_device(d, "length0", self._length0),
                                             p.k_length, p.k_area))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
         p = self.potential
+        d = self._device
         return float(spring_membrane_energy_gradient_hessian(
-            x, self._triangles, self._edges, self._area0, self._length0, self._upper, p.k_length, p.k_area,
-            grad, values))
+            x, on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+            on_device(d, "area0", self._area0), on_device(d, "length0", self._length0), on_device(d, "upper", self._upper),
+            p.k_length, p.k_area, grad, values))
 
     @property
     def element_count(self) -> int:
@@ -282,12 +288,17 @@ class FusedSpringMembrane:
         self._recipe = part_recipe(self._recipe, f"{__name__}:remote_evaluate", args)
         return self._recipe
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the reference's
         projection (:meth:`SpringMembrane.hessian`) to round-off, the triangles' exact 9x9 blocks
         (:func:`spring_membrane_triangle_blocks`) through
         :class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector` (6-dimensional), then
-        the edges' closed form (:func:`spring_membrane_projected_edges`).
+        the edges' closed form (:func:`spring_membrane_projected_edges`). With ``vertices`` (bool
+        ``(n,)``) the triangles projected are those touching a marked vertex (every edge is added).
 
         Raises:
             ValueError: unknown projection.
@@ -299,7 +310,11 @@ class FusedSpringMembrane:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
             spring_membrane_triangle_blocks(x, self._triangles, self._area0, p.k_area, self._blocks)
-            self._projector.add_projected(self._blocks, projection, self._slots[:t_count], values)
+            blocks, slots = self._blocks, self._slots[:t_count]
+            if vertices is not None:
+                rows = np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1))
+                blocks, slots = blocks[rows], slots[rows]
+            self._projector.add_projected(blocks, projection, slots, values)
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, self._edges, self._length0, self._upper, t_count, p.k_length, code,
                                             values)

@@ -34,6 +34,7 @@ from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index, upper_slot_table
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
@@ -193,6 +194,7 @@ class FusedStableNeoHookean:
     def __init__(self, potential: StableNeoHookean) -> None:
         require_backend("FusedStableNeoHookean")
         self.potential = potential
+        self._device: dict = {}  # on CUDA: device copies of the constant arrays (buffers.on_device)
         self.vertices = potential.tets
         self._tets = np.ascontiguousarray(potential.tets, dtype=np.int32)
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
@@ -231,7 +233,9 @@ class FusedStableNeoHookean:
         if self._tets.shape[0] == 0:
             return 0.0
         p = self.potential
-        return float(snh_energy(x, self._tets, self._dFdx, self._vol, p.mu, p.lam))
+        d = self._device
+        return float(snh_energy(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                on_device(d, "vol", self._vol), p.mu, p.lam))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.
@@ -241,8 +245,10 @@ class FusedStableNeoHookean:
         if self._tets.shape[0] == 0:
             return 0.0
         p = self.potential
-        return float(snh_energy_gradient_hessian(x, self._tets, self._dFdx, self._vol, self._upper, p.mu, p.lam,
-                                                 grad, values))
+        d = self._device
+        return float(snh_energy_gradient_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                                 on_device(d, "vol", self._vol), on_device(d, "upper", self._upper),
+                                                 p.mu, p.lam, grad, values))
 
     @property
     def element_count(self) -> int:
@@ -272,10 +278,16 @@ class FusedStableNeoHookean:
         self._projected_recipe = part_recipe(self._projected_recipe, f"{__name__}:remote_add_projected", args)
         return self._projected_recipe
 
-    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray) -> None:
+    projects_subsets = True
+    """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
+
+    def add_projected(self, x: np.ndarray, projection: str, values: np.ndarray,
+                      vertices: np.ndarray | None = None) -> None:
         """Add the ``projection`` ("none", "clamp", "abs") Hessian blocks into ``values``: the analytic
         eigensystem of d2psi/dF2 (Smith et al. 2018, section 4.2) of the Taichi twin
         (:func:`sim_core.energies.neohookean.kernel.evaluate_snh_hessian`), the reference's projection.
+
+        With ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex are added.
 
         Raises:
             ValueError: unknown projection.
@@ -287,4 +299,8 @@ class FusedStableNeoHookean:
             self._blocks = np.zeros((self._tets.shape[0], 12, 12))
         p = self.potential
         evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, self._blocks)
-        add_blocks(self._blocks, self._slots, values)
+        if vertices is None:
+            add_blocks(self._blocks, self._slots, values)
+        else:  # only the tets touching a marked vertex
+            rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1))
+            add_blocks(self._blocks[rows], self._slots[rows], values)

@@ -143,3 +143,23 @@ def test_batches_sharing_the_work_arrays_keep_their_own_results(ti_cpu):
         for pot, (g, h) in zip(pots, exp):
             np.testing.assert_array_equal(pot.gradient(xx), g)
             np.testing.assert_array_equal(pot.hessian(xx, "none").blocks, h)
+
+
+def test_two_pass_derivatives_equal_the_one_pass_bit_for_bit(ti_cpu, monkeypatch):
+    """``PairBatch.two_pass`` (CUDA's default): the gradient at new positions from the distances of every
+    pair, then the derivatives of the active ones: the same values in two launches (bit for bit on the
+    CPU's serial sums; on CUDA, like the other bit-for-bit tests here, to round-off)."""
+    from sim_core.energies.contact import batch_kernel as contact_batch
+
+    x, linked, alone = _potentials()
+    y = x + 0.1 * EPS * np.random.default_rng(22).normal(size=x.shape)
+    expected = [(pot.gradient(y), pot.energy(y), pot.hessian(y, "none").blocks) for pot in alone]
+    monkeypatch.setattr(contact_batch.PairBatch, "two_pass", True)
+    calls = _launches(monkeypatch)
+    for pot, (grad, energy, hess) in zip(linked, expected):
+        np.testing.assert_array_equal(pot.gradient(y), grad)
+        assert pot.energy(y) == energy
+        np.testing.assert_array_equal(pot.hessian(y, "none").blocks, hess)
+    total = len(linked[0].pairs) + len(linked[1].pairs)
+    active = sum(int(np.count_nonzero(p.active_mask(y))) for p in linked)
+    assert calls == [(False, total), (True, active)]

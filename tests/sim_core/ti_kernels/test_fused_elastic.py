@@ -401,3 +401,49 @@ def test_solver_fuses_the_anisotropic_bending_candidate(ti_cpu, monkeypatch):
     assert it_fused == it_plain
     assert np.max(np.abs(fused.state.x - plain.state.x)) < 1e-12
     assert np.max(np.abs(off.state.x - fused.state.x)) > 1e-9  # the candidate acts
+
+
+def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
+    """The CUDA evaluation path (constant arrays, positions, gradient and Hessian values as Taichi
+    ndarrays, sim_core.ti_kernels.buffers.on_device), run here on the CPU arch with the arch query
+    answering "cuda": the same energy, gradient and values as the NumPy-argument path."""
+    import sim_core.ti_backend as backend
+    from sim_core.fused_elastic import FusedElastic
+
+    if ti_cpu == "cuda":
+        pytest.skip("the reference is the NumPy-argument path, which runs on the CPU arch only")
+    terms = []
+    xs = []
+    offset = 0
+    for kind in ("snh", "spring_membrane", "kirchhoff"):
+        pot, x_rest, deformed = _potentials(kind)
+        xs.append((x_rest, deformed(3)))
+        terms.append((kind, pot, offset))
+        offset += x_rest.shape[0]
+    # one model of three disjoint bodies: each term's element indices moved to its body's rows
+    pots = [_potentials(kind)[0] for kind, _, _ in terms]
+    pots = [StableNeoHookean(pots[0].tets, xs[0][0], 3e5, 0.45),
+            SpringMembrane(pots[1].triangles + terms[1][2], pots[1].edges + terms[1][2], np.concatenate([x for x, _ in xs]),
+                           1000.0, 800.0),
+            KirchhoffBending(pots[2].triangles + terms[2][2], pots[2].hinges + terms[2][2],
+                             np.concatenate([x for x, _ in xs]), 2e-3, 0.3, np.linspace(-0.3, 0.4, pots[2].hinges.shape[0]))]
+    x_rest = np.concatenate([x for x, _ in xs])
+    x = np.concatenate([y for _, y in xs])
+    free = np.ones(x.size, bool)
+    free[:6] = False
+
+    def evaluate():
+        fused = FusedElastic(pots)
+        asm = HessianAssembler(x.size)
+        fused.bind(asm.static_pattern(fused.block_vertex_arrays(x_rest), free))
+        return fused.energy(x), fused.gradient(x), fused.hessian_values(x).copy(), fused
+
+    e_host, g_host, v_host, fused_host = evaluate()
+    assert not fused_host._on_device()
+    monkeypatch.setattr(backend, "current_arch", lambda: "cuda")
+    e_dev, g_dev, v_dev, fused_dev = evaluate()
+    assert fused_dev._on_device() and fused_dev._device_kept is not None
+    assert e_dev == pytest.approx(e_host, rel=1e-13)
+    assert relative_error(g_dev, g_host) < 1e-13
+    assert relative_error(v_dev, v_host) < 1e-13
+    assert abs(v_host).max() > 0

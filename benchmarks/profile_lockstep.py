@@ -1,0 +1,128 @@
+"""Profile a lockstep batch of the Forming scene: where the wall time of a Newton iteration goes.
+
+Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``.
+Builds ``B`` copies (``sim_core.bench.batch._FormingRun``), steps once to compile and set up, then
+times ``--steps`` more steps: per step its wall time, Newton iterations and assembly / solve times, and
+over all of them the inclusive wall time and calls of the solver's parts (wrapped with timers: the
+gradient with its contact search, the Newton matrix, the CG's set-up and solve, the line search and its
+energies, the step's set-up and finish). ``--cprofile`` adds cProfile's tables (incomplete on Python
+3.12 with Taichi's compiler in the profiled region).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import sys
+import time
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--B", type=int, default=8)
+    ap.add_argument("--steps", type=int, default=2)
+    ap.add_argument("--linear-solver", default=None)
+    ap.add_argument("--top", type=int, default=45)
+    ap.add_argument("--out", default=None, help="write the pstats file here")
+    ap.add_argument("--cprofile", action="store_true")
+    args = ap.parse_args()
+    from sim_core.ti_backend import init_backend
+    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
+
+    backend = ARCH_BACKENDS[args.arch]
+    init_backend(args.arch)
+
+    extra = {"linear_solver": args.linear_solver} if args.linear_solver else {}
+    import sim_core.solver_config as sc
+
+    orig = sc.SolverConfig
+    sc.SolverConfig = lambda **kw: orig(**kw, **extra)  # _FormingRun imports it at call time
+    try:
+        run = _FormingRun(args.B, args.steps + 1, backend, lockstep=True)
+    finally:
+        sc.SolverConfig = orig
+    from sim_core.control import Control
+
+    def step(k):
+        t = time.perf_counter()
+        res = run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
+        wall = time.perf_counter() - t
+        eng = run.batch.lockstep
+        info = eng.solver.last_stacked_info if eng is not None else None
+        print(f"step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)}, assembly "
+              f"{getattr(info, 'time_assembly', 0):.3f} s, solve {getattr(info, 'time_linear_solve', 0):.3f} s, "
+              f"factorizations {getattr(info, 'factorizations', None)}", flush=True)
+        return res
+
+    run.batch.warm_up()
+    step(0)
+    timers = _wrap_parts()
+    prof = cProfile.Profile() if args.cprofile else None
+    t0 = time.perf_counter()
+    if prof:
+        prof.enable()
+    for k in range(1, args.steps + 1):
+        step(k)
+    if prof:
+        prof.disable()
+    wall = time.perf_counter() - t0
+    print(f"B={args.B} {args.steps} steps in {wall:.3f} s: {args.B * args.steps / wall:.2f} scene-steps/s")
+    print(f"{'part (inclusive)':58s} {'calls':>6s} {'s':>8s} {'% wall':>7s}")
+    for name, (calls, total) in sorted(timers.items(), key=lambda kv: -kv[1][1]):
+        print(f"{name:58s} {calls:6d} {total:8.3f} {100 * total / wall:7.1f}")
+    if prof:
+        st = pstats.Stats(prof, stream=sys.stdout)
+        st.sort_stats("cumulative").print_stats(args.top)
+        st.sort_stats("tottime").print_stats(args.top)
+        if args.out:
+            st.dump_stats(args.out)
+    return 0
+
+
+def _wrap_parts() -> dict:
+    """Wrap the solver's parts with wall-clock timers; returns name -> [calls, seconds] (filled as they run)."""
+    import functools
+
+    from sim_core.batch import lockstep
+    from sim_core.contact_set import ContactSet
+    from sim_core.fused_elastic import FusedElastic
+    from sim_core.solver import NewtonSolver
+    from sim_core.ti_kernels import pcg
+
+    timers: dict = {}
+    parts = [(lockstep.LockstepSolver, n) for n in ("_stacked_gradient", "_direction", "_device_operator",
+                                                     "_line_search_copies", "_energy_with", "_moved")]
+    parts += [(NewtonSolver, n) for n in ("_set_up_step", "_finish_step", "_assemble_hessian", "_energy")]
+    parts += [(ContactSet, n) for n in ("potentials", "begin_step", "friction", "end_step")]
+    parts += [(FusedElastic, n) for n in ("_evaluate", "energy", "projected_hessian_values")]
+    parts += [(pcg.BatchedPCG, n) for n in ("factorize", "solve")]
+    parts += [(pcg.VertexBlocks, "from_element_blocks")]
+    for cls, name in parts:
+        if name not in vars(cls):
+            continue
+        fn = vars(cls)[name]
+        label = f"{cls.__name__}.{name}"
+        timers[label] = [0, 0.0]
+        is_cm = isinstance(fn, classmethod)
+        raw = fn.__func__ if is_cm else fn
+
+        def make(raw=raw, label=label):
+            @functools.wraps(raw)
+            def wrapped(*a, **kw):
+                t = time.perf_counter()
+                try:
+                    return raw(*a, **kw)
+                finally:
+                    rec = timers[label]
+                    rec[0] += 1
+                    rec[1] += time.perf_counter() - t
+            return wrapped
+
+        setattr(cls, name, classmethod(make()) if is_cm else make())
+    return timers
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""The Jacobi PSD projection of symmetric blocks (sim_core.ti_kernels.block_projection.jacobi_project_blocks,
+used on CUDA) equals LAPACK's (numpy.linalg.eigh) for the block sizes of the fused elastic terms and
+contact elements, definite blocks kept as they are."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.ti_kernels.block_projection import project_reduced_blocks  # noqa: E402 (Taichi imported here)
+
+
+@pytest.mark.parametrize("n", [3, 6, 9, 15])
+@pytest.mark.parametrize("projection", ["clamp", "abs"])
+def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
+    rng = np.random.default_rng(n)
+    a = rng.normal(size=(40, n, n))
+    blocks = a + np.swapaxes(a, 1, 2)
+    # some definite blocks (kept as they are), a rank-deficient one and a diagonal one
+    blocks[:8] = np.matmul(a[:8], np.swapaxes(a[:8], 1, 2)) + 0.1 * np.eye(n)
+    blocks[8] = np.outer(a[8, 0], a[8, 0]) - np.outer(a[8, 1], a[8, 1])
+    blocks[9] = np.diag(rng.normal(size=n))
+    want = project_reduced_blocks(blocks.copy(), projection, method="lapack")
+    got = project_reduced_blocks(blocks.copy(), projection, method="jacobi")
+    scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
+    assert np.all(np.abs(got - want) <= 1e-12 * scale)
+    np.testing.assert_array_equal(got[:8], blocks[:8])
+    w = np.linalg.eigvalsh(got)
+    assert w.min() >= -1e-12 * scale.max()
+    if projection == "abs":  # |H| has the absolute eigenvalues of H
+        np.testing.assert_allclose(np.sort(w, axis=1), np.sort(np.abs(np.linalg.eigvalsh(blocks)), axis=1),
+                                   atol=1e-11 * scale.max())
+
+
+def test_projection_method_is_checked(ti_cpu):
+    with pytest.raises(ValueError, match="method"):
+        project_reduced_blocks(np.eye(3)[None], "clamp", method="qr")
