@@ -58,6 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2 as chi2_law
 
 from sim_core.errors import BagReadError
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
@@ -83,6 +84,10 @@ MIN_WINDOW_SAMPLES = 5
 TREND_MIN_SAMPLES = 10
 """The sliding level gets a linear trend only in windows of at least this many samples (a short
 slide's window fits a constant level)."""
+
+LAG_CHECK_ALPHA = 1e-3
+"""The effector's lag is used as a normal-load measure only if its fit to the wrench's normal force
+passes a chi-square goodness-of-fit test at this false-rejection rate."""
 
 RESOLVABLE_SIGMAS = 2.0
 """The normal-load-corrected breakaway excess must exceed this many of its standard deviations."""
@@ -241,23 +246,85 @@ def shear_breakaway(rec: Recording, b: Breakaway) -> Breakaway | None:
     return Breakaway(b.t_command, b.t_slip, t0, b.direction, tm[m], shear[m], sigma[m], b.t_slide_end, "marker_shear")
 
 
-def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float, float]:
-    """Relative breakaway excess of the normal force on ``b``'s window, with ``b``'s ``t0`` and ``tau``.
+def normal_lag(rec: Recording) -> tuple[np.ndarray, float] | None:
+    """The effector's lag behind its command against the sensor normal, from its free-space lag.
 
-    The wrench's normal force on the loaded samples from ``b.t0`` to the window's end is fitted by
-    ``a + b (t - t0) + A exp(-(t - t0) / tau)`` weighted by the ``F_z`` noise (A of either sign).
+    A compliant effector (the reference cell's arm: a 3000 N/m Cartesian impedance) is pushed back
+    along the sensor normal by the normal force on the gel, so this lag is proportional to ``F_n``
+    at time scales above the arm's response (its bandwidth, about 30 Hz there, against the breakaway
+    decays of 10-100 ms), with the pose's noise (5 um against a lag of about 2 mm at 6 N: a tenth of
+    the wrench's relative noise). A kinematic effector has no lag, and the lag carries no load.
 
     Returns:
-        ``(A / a, its standard deviation)``; ``(0, inf)`` with ``tau <= 0`` or too few samples.
+        ``(lag (n,) m on the pose time base, its noise sigma m)``: ``(pose_cmd - pose) . n`` (n the
+        sensor normal in world, out of the gel) minus its median before the gel is first loaded;
+        None without ``pose_cmd``, a pose noise, or at least three pose samples before the contact.
+    """
+    if not rec.has("pose_cmd") or "pose" not in rec.sigma:
+        return None
+    tp = rec.t["pose"]
+    pose = np.asarray(rec.data["pose"], dtype=float)
+    cmd = np.asarray(rec.data["pose_cmd"], dtype=float)
+    if cmd.shape != pose.shape or not np.array_equal(rec.t["pose_cmd"], tp):
+        return None
+    normal = _rotations(rec, tp).apply(np.tile([0.0, 0.0, 1.0], (len(tp), 1)))
+    lag = np.sum((cmd[:, :3] - pose[:, :3]) * normal, axis=1)
+    loaded = np.interp(tp, rec.t["wrench"], _loaded(rec).astype(float)) > 0.5
+    first = int(np.argmax(loaded)) if loaded.any() else len(tp)
+    if first < 3:
+        return None
+    sig = np.asarray(rec.sigma["pose"], dtype=float)[:3]
+    sigma = float(np.sqrt(np.median(np.sum((normal * sig) ** 2, axis=1))))
+    if not sigma > 0.0:
+        return None
+    return lag - float(np.median(lag[:first])), sigma
+
+
+def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float, float, str]:
+    """Relative breakaway excess of the normal load on ``b``'s window, with ``b``'s ``t0`` and ``tau``.
+
+    Two measures of the normal load over the loaded samples from ``b.t0`` to the window's end are
+    each fitted by ``a + b (t - t0) + A exp(-(t - t0) / tau)`` weighted by their noise (A of either
+    sign): the wrench's normal force, and the effector's lag against the sensor normal
+    (:func:`normal_lag`), whose relative excess is the normal force's for a compliant effector. They
+    are combined by inverse variance (the lag of a kinematic effector has no level, so no weight)
+    unless the lag does not follow the load: a gain and offset fitted from the lag to the wrench's
+    normal force over the window leave a residual beyond the wrench noise (chi-square test at
+    :data:`LAG_CHECK_ALPHA`), or the two excesses differ by more than three standard deviations of
+    their difference. Then the wrench's alone.
+
+    Returns:
+        ``(A / a, its standard deviation, source)``, source ``"wrench"`` or ``"wrench+effector lag"``;
+        ``(0, inf, "none")`` with ``tau <= 0`` or too few samples.
     """
     if not tau > 0.0:
-        return 0.0, float("inf")
+        return 0.0, float("inf"), "none"
     tw = rec.t["wrench"]
-    m = (tw >= b.t0) & (tw <= b.t[-1] + 0.5 * rec.sample_period("wrench")) & _loaded(rec)
+    t_end = b.t[-1] + 0.5 * rec.sample_period("wrench")
+    m = (tw >= b.t0) & (tw <= t_end) & _loaded(rec)
     if m.sum() < MIN_WINDOW_SAMPLES:
-        return 0.0, float("inf")
+        return 0.0, float("inf"), "none"
     fn = normal_force(rec.data["wrench"])[m]
-    return _relative_excess(decay_columns(tw[m], b.t0, tau), fn, np.full(len(fn), float(rec.sigma["wrench"][2])))
+    rel_w, sig_w = _relative_excess(decay_columns(tw[m], b.t0, tau), fn, np.full(len(fn), float(rec.sigma["wrench"][2])))
+    lag = normal_lag(rec)
+    if lag is None:
+        return rel_w, sig_w, "wrench"
+    tp = rec.t["pose"]
+    mp = (tp >= b.t0) & (tp <= t_end) & (np.interp(tp, tw, _loaded(rec).astype(float)) > 0.5)
+    if mp.sum() < MIN_WINDOW_SAMPLES:
+        return rel_w, sig_w, "wrench"
+    rel_p, sig_p = _relative_excess(decay_columns(tp[mp], b.t0, tau), lag[0][mp], np.full(int(mp.sum()), lag[1]))
+    if not (np.isfinite(sig_p) and sig_p > 0.0 and np.isfinite(sig_w)):
+        return rel_w, sig_w, "wrench"
+    # the lag must follow the wrench's normal force over the window (a gain and an offset fitted:
+    # residual within the wrench noise at the 0.1 % chi-square tail) and agree on the excess
+    X = np.stack([np.interp(tw[m], tp, lag[0]), np.ones(int(m.sum()))], axis=1)
+    c, *_ = np.linalg.lstsq(X, fn, rcond=None)
+    chi2 = float(np.sum(((fn - X @ c) / float(rec.sigma["wrench"][2])) ** 2))
+    if chi2 > chi2_law.ppf(1.0 - LAG_CHECK_ALPHA, int(m.sum()) - 2) or abs(rel_p - rel_w) > 3.0 * np.hypot(sig_p, sig_w):
+        return rel_w, sig_w, "wrench"
+    w_w, w_p = sig_w ** -2, sig_p ** -2
+    return float((w_w * rel_w + w_p * rel_p) / (w_w + w_p)), float((w_w + w_p) ** -0.5), "wrench+effector lag"
 
 
 def breakaways(rec: Recording) -> list[Breakaway]:
@@ -407,7 +474,7 @@ def breakaway_fits(rec: Recording) -> list[dict]:
         stat = max(fq["sse0"] - fq["sse1"], 0.0)
         bs = shear_breakaway(rec, b)
         fs = fit_breakaway(bs, taus) if bs is not None else None
-        rel_s, sig_s, rel_n, sig_n = 0.0, float("inf"), 0.0, float("inf")
+        rel_s, sig_s, rel_n, sig_n, source = 0.0, float("inf"), 0.0, float("inf"), "none"
         if bs is not None and fs is not None:
             stat += max(fs["sse0"] - fs["sse1"], 0.0)
             # the spread of the excess at the fitted decay time (at the grid's shortest one when no
@@ -415,12 +482,12 @@ def breakaway_fits(rec: Recording) -> list[dict]:
             tau = fs["tau_s"] if fs["tau_s"] > 0.0 else float(taus[0]) if len(taus) else 0.0
             if tau > 0.0:
                 rel_s, sig_s = _relative_excess(decay_columns(bs.t, bs.t0, tau), bs.q, bs.sigma)
-                rel_n, sig_n = normal_load_excess(rec, bs, tau)
+                rel_n, sig_n, source = normal_load_excess(rec, bs, tau)
             if not fs["tau_s"] > 0.0:
                 rel_s = rel_n = 0.0  # no breakaway excess of the shear: nothing to correct
         out.append({"breakaway": b, "shear": bs, "ratio_fit": fq, "shear_fit": fs, "statistic": stat,
                     "shear_excess": rel_s, "shear_excess_sigma": sig_s, "normal_excess": rel_n,
-                    "normal_excess_sigma": sig_n, "excess": rel_s - rel_n,
+                    "normal_excess_sigma": sig_n, "normal_source": source, "excess": rel_s - rel_n,
                     "excess_sigma": float(np.hypot(sig_s, sig_n))})
     return out
 
@@ -473,7 +540,8 @@ def stiction_test(rec: Recording) -> SignatureResult:
                        "shear_samples": int(len(f["shear"].t)) if fs else 0,
                        "shear_level_m": fs["level"] if fs else 0.0, "decay_s": fs["tau_s"] if fs else 0.0,
                        "shear_excess": f["shear_excess"], "normal_excess": f["normal_excess"],
-                       "normal_excess_sigma": f["normal_excess_sigma"], "relative_excess": f["excess"],
+                       "normal_excess_sigma": f["normal_excess_sigma"], "normal_source": f["normal_source"],
+                       "relative_excess": f["excess"],
                        "relative_excess_sigma": f["excess_sigma"]})
     best = fits[k]
     size = max(float(best["excess"]), 0.0)
