@@ -34,8 +34,10 @@ so a calibration gap in the friction coefficient or the normal force does not en
    ``sigma_q = sqrt(sigma_t^2 + q^2 sigma_n^2) / F_n``).
 4. **Normal load**: under Coulomb friction the sliding tangential load is ``mu F_n``, so a
    breakaway excess of the shear that the normal force shares is a change of the normal load, not
-   static friction. The normal force of the wrench is fitted on the shear's window with the same
-   ``t0`` and tau; its relative excess is subtracted from the shear's.
+   static friction. The normal load is fitted on the shear's window with the same ``t0`` and tau,
+   read in the wrench's normal force and, where the effector is compliant and its lag follows the
+   load, in the effector's lag against the sensor normal (:func:`normal_load_excess`); its relative
+   excess is subtracted from the shear's.
 
 The statistic is the whitened SSE the decay removes from both series, summed over breakaways (a
 likelihood-ratio statistic, about chi-square with four degrees of freedom under Coulomb friction
@@ -48,8 +50,12 @@ effect-size threshold of :mod:`sysid.diagnose.signatures.null`).
 
 A soft pad slips progressively (partial slip: the lightly loaded edges slip first, the centre
 last), so the macroscopic excess is well below the local ``mu_s / mu_k - 1``: on the reference
-engine's stiction recording, local 1.66, macroscopic 5-15 % (docs/benchmarks_log.md, 2026-11-25).
+engine's stiction recording, local 1.66, macroscopic about 11 % (docs/benchmarks_log.md, 2026-11-25).
 The wrench alone resolves it only at about 5 noise units; the marker shear at several hundred.
+
+Known limits: a stiction that only raises the sliding level (no breakaway drop within the slide) is
+not a breakaway and is not found; tactile latency or creep on top of stiction delays the shear
+against the pose, so the window starts on the shear's rise and the decay is not found.
 """
 
 from __future__ import annotations
@@ -464,8 +470,9 @@ def breakaway_fits(rec: Recording) -> list[dict]:
         ``shear_fit`` (:func:`fit_breakaway`; ``shear_fit`` None without a shear window),
         ``statistic`` (the whitened SSE the decay removes from both series), ``shear_excess`` (the
         shear's ``A / a``) and its standard deviation ``shear_excess_sigma``, ``normal_excess`` and
-        ``normal_excess_sigma`` (:func:`normal_load_excess` at the shear's decay time), ``excess``
-        (the normal-load-corrected excess, their difference) and ``excess_sigma``.
+        ``normal_excess_sigma`` and ``normal_source`` (:func:`normal_load_excess` at the shear's decay
+        time), ``excess`` (the normal-load-corrected excess, their difference; 0 when no positive
+        decay fits the shear) and ``excess_sigma``.
     """
     taus = decay_taus(rec)
     out = []
