@@ -43,8 +43,8 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
-from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway, normal_load_excess,
-                                                shear_breakaway)
+from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
+                                                normal_load_excess, shear_breakaway)
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.damping import kelvin_voigt

@@ -293,8 +293,8 @@ def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float,
     each fitted by ``a + b (t - t0) + A exp(-(t - t0) / tau)`` weighted by their noise (A of either
     sign): the wrench's normal force, and the effector's lag against the sensor normal
     (:func:`normal_lag`), whose relative excess is the normal force's for a compliant effector. They
-    are combined by inverse variance (the lag of a kinematic effector has no level, so no weight)
-    unless the lag does not follow the load: a gain and offset fitted from the lag to the wrench's
+    are combined by inverse variance where the lag's excess is the more precise (the lag of a
+    kinematic effector has no level: the wrench's alone), unless the lag does not follow the load: a gain and offset fitted from the lag to the wrench's
     normal force over the window leave a residual beyond the wrench noise (chi-square test at
     :data:`LAG_CHECK_ALPHA`), or the two excesses differ by more than three standard deviations of
     their difference. Then the wrench's alone.
@@ -311,7 +311,8 @@ def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float,
     if m.sum() < MIN_WINDOW_SAMPLES:
         return 0.0, float("inf"), "none"
     fn = normal_force(rec.data["wrench"])[m]
-    rel_w, sig_w = _relative_excess(decay_columns(tw[m], b.t0, tau), fn, np.full(len(fn), float(rec.sigma["wrench"][2])))
+    sigma_n = float(rec.sigma["wrench"][2])
+    rel_w, sig_w = _relative_excess(decay_columns(tw[m], b.t0, tau), fn, np.full(len(fn), sigma_n))
     lag = normal_lag(rec)
     if lag is None:
         return rel_w, sig_w, "wrench"
@@ -320,14 +321,15 @@ def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float,
     if mp.sum() < MIN_WINDOW_SAMPLES:
         return rel_w, sig_w, "wrench"
     rel_p, sig_p = _relative_excess(decay_columns(tp[mp], b.t0, tau), lag[0][mp], np.full(int(mp.sum()), lag[1]))
-    if not (np.isfinite(sig_p) and sig_p > 0.0 and np.isfinite(sig_w)):
-        return rel_w, sig_w, "wrench"
+    if not (np.isfinite(sig_w) and 0.0 < sig_p < sig_w):
+        return rel_w, sig_w, "wrench"  # no lag to speak of (a kinematic effector): nothing to gain
     # the lag must follow the wrench's normal force over the window (a gain and an offset fitted:
     # residual within the wrench noise at the 0.1 % chi-square tail) and agree on the excess
     X = np.stack([np.interp(tw[m], tp, lag[0]), np.ones(int(m.sum()))], axis=1)
     c, *_ = np.linalg.lstsq(X, fn, rcond=None)
-    chi2 = float(np.sum(((fn - X @ c) / float(rec.sigma["wrench"][2])) ** 2))
-    if chi2 > chi2_law.ppf(1.0 - LAG_CHECK_ALPHA, int(m.sum()) - 2) or abs(rel_p - rel_w) > 3.0 * np.hypot(sig_p, sig_w):
+    chi2 = float(np.sum(((fn - X @ c) / sigma_n) ** 2))
+    follows = chi2 <= chi2_law.ppf(1.0 - LAG_CHECK_ALPHA, int(m.sum()) - 2)
+    if not follows or abs(rel_p - rel_w) > 3.0 * np.hypot(sig_p, sig_w):
         return rel_w, sig_w, "wrench"
     w_w, w_p = sig_w ** -2, sig_p ** -2
     return float((w_w * rel_w + w_p * rel_p) / (w_w + w_p)), float((w_w + w_p) ** -0.5), "wrench+effector lag"
