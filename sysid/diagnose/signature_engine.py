@@ -15,7 +15,8 @@ still leaves a structured gap many times the noise, and every candidate can abso
    from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
    contact events, gel damping from the contact force leading the replay there (Kelvin-Voigt),
    bending plasticity from the sheet's set after release, adhesion from the sheet carried by the
-   gel, stiction from the friction ratio's overshoot at each slide's breakaway.
+   gel, stiction from the tangential load's overshoot at each slide's breakaway (the mean marker
+   shear and the friction ratio, beyond the normal load's).
 3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
    the same tests on recordings the user declares normal (``--baseline``) when given.
 4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
@@ -24,7 +25,7 @@ still leaves a structured gap many times the noise, and every candidate can abso
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
    of ``2 * holdout_blocks`` blocks), a checkerboard of the sheet grid after the release for
    plasticity (its yield angle refitted by replays, :mod:`sysid.diagnose.plasticity_refit`), and
-   every other wrench sample of each breakaway window for stiction.
+   every other marker sample of each breakaway window for stiction.
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
-from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
+from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
+                                                normal_load_excess, shear_breakaway)
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.damping import kelvin_voigt
@@ -345,39 +347,45 @@ def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings) ->
 
 
 def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Static over kinetic friction fitted on every other wrench sample of each breakaway window
-    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the friction
-    ratio against the kinetic level alone (Coulomb friction, one coefficient) and with the breakaway
-    decay (:mod:`sysid.diagnose.signatures.friction`)."""
+    """Static over kinetic friction fitted on every other marker sample of each breakaway window
+    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the mean
+    marker shear against the slide (the tangential load's most precise measure) with the kinetic
+    level alone (Coulomb friction: a level with a linear trend) and with the breakaway decay
+    (:mod:`sysid.diagnose.signatures.friction`). The ratio is ``1 +`` the training fit's relative
+    excess minus the normal force's over the same window (:func:`normal_load_excess`)."""
     rec = p.recording
     taus = decay_taus(rec)
     before = after = fit_sse = 0.0
     n_held = n_fit = 0
     ratios, decays = [], []
     for b in breakaways(rec):
-        train = np.arange(len(b.t)) % 2 == 0
+        bs = shear_breakaway(rec, b)
+        if bs is None:
+            continue
+        train = np.arange(len(bs.t)) % 2 == 0
         held = ~train
         if held.sum() < 2:
             continue
-        f = fit_breakaway(b, taus, train)
-        cols = decay_columns(b.t[held], b.t0, f["tau_s"])
+        f = fit_breakaway(bs, taus, train)
+        cols = decay_columns(bs.t[held], bs.t0, f["tau_s"])
         c0, c1 = f["coef0"], f["coef1"]
         pred0 = cols[0] * c0[0] + cols[1] * c0[1]
         pred1 = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
-        z = b.sigma[held]
-        before += float(np.sum(((b.q[held] - pred0) / z) ** 2))
-        after += float(np.sum(((b.q[held] - pred1) / z) ** 2))
+        z = bs.sigma[held]
+        before += float(np.sum(((bs.q[held] - pred0) / z) ** 2))
+        after += float(np.sum(((bs.q[held] - pred1) / z) ** 2))
         n_held += int(held.sum())
         fit_sse += f["sse1"]
         n_fit += int(train.sum())
         if f["level"] > 0.0:
-            ratios.append(1.0 + f["excess"] / f["level"])
+            normal = normal_load_excess(rec, bs, f["tau_s"])[0] if f["tau_s"] > 0.0 else 0.0
+            ratios.append(1.0 + max(f["excess"] / f["level"] - normal, 0.0))
             decays.append(f["tau_s"])
     params = {"static_over_kinetic": float(np.median(ratios)) if ratios else 1.0,
               "decay_s": float(np.median(decays)) if decays else 0.0}
-    return {"params": params, "observable": "friction ratio F_t / F_n along the slide at each breakaway",
-            "heldout": "every other wrench sample of each breakaway window",
-            "rms": {"wrench": math.sqrt(fit_sse / max(n_fit, 1))},
+    return {"params": params, "observable": "mean marker shear against the slide at each breakaway",
+            "heldout": "every other marker sample of each breakaway window",
+            "rms": {"markers_xyz": math.sqrt(fit_sse / max(n_fit, 1))},
             "heldout_rms_before": math.sqrt(before / n_held) if n_held else None,
             "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from sysid.diagnose.report import write_report_files
 from sysid.diagnose.signatures.damping import kelvin_voigt
-from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway
+from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway, shear_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
 
@@ -56,15 +56,19 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         ax.plot(t, apply_force_bias(wp, t, params)[:, 2], "C3-", lw=1, label="replay + bias")
         ax.set_ylabel("F_z (sensor frame), N")
     elif effect == "stiction":
-        for i, b in enumerate(breakaways(rec)):
+        for i, b0 in enumerate(breakaways(rec)):
+            b = shear_breakaway(rec, b0)
+            if b is None:
+                continue
             f = fit_breakaway(b, decay_taus(rec))
             cols = decay_columns(b.t, b.t0, f["tau_s"])
             c0, c1 = f["coef0"], f["coef1"]
-            ax.plot(b.t, b.q, "k.", ms=3, label="recorded F_t / F_n" if i == 0 else None)
-            ax.plot(b.t, cols[0] * c0[0] + cols[1] * c0[1], "C0-", lw=1, label="kinetic level (Coulomb)" if i == 0 else None)
+            ax.plot(b.t, b.q * 1e6, "k.", ms=3, label="recorded mean marker shear" if i == 0 else None)
+            ax.plot(b.t, (cols[0] * c0[0] + cols[1] * c0[1]) * 1e6, "C0-", lw=1,
+                    label="kinetic level (Coulomb)" if i == 0 else None)
             fit = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
-            ax.plot(b.t, fit, "C3-", lw=1, label="with the breakaway excess" if i == 0 else None)
-        ax.set_ylabel("friction ratio along the slide")
+            ax.plot(b.t, fit * 1e6, "C3-", lw=1, label="with the breakaway excess" if i == 0 else None)
+        ax.set_ylabel("mean marker shear against the slide, um")
     elif effect == "lens_distortion":
         xyz, uv = rec.data["markers_xyz"], rec.data["markers_uv"]
         pin = apply_lens(xyz, rec.camera, {k: v for k, v in params.items() if k not in ("k1", "k2")})
@@ -144,7 +148,8 @@ WORDS = {
     "bending_plasticity": "the sheet keeps a fold after the gel lets go of it (plastic bending)",
     "adhesion": "the gel sticks to the sheet and carries it up on a lift (tack)",
     "stiction": "the contact sticks before it slides: at breakaway the friction reaches about {ratio:.2g} times "
-                "its sliding (kinetic) level, then falls back",
+                "its sliding (kinetic) level, then falls back (over the whole pad: the pad slips progressively, so "
+                "the local static friction is higher still)",
 }
 
 

@@ -7,8 +7,8 @@ slips once the load reaches the static limit ``mu_s F_n`` and then falls to the 
 monotonically to its sliding level; with ``mu_s > mu_k`` it overshoots at breakaway and decays back
 (a Stribeck law: the breakaway excess decays over a short slip time).
 
-The test therefore needs no replay (the breakaway shape is relative to the same slide's own sliding
-level, so a calibration gap in the friction coefficient or the normal force does not enter):
+The test needs no replay: the breakaway shape is relative to the same slide's own sliding level,
+so a calibration gap in the friction coefficient or the normal force does not enter.
 
 1. **Slides**: runs where the gel is loaded (compressive normal force above
    :data:`CONTACT_SIGMAS` sigmas of ``F_z``) and the commanded effector moves tangentially faster
@@ -18,27 +18,44 @@ level, so a calibration gap in the friction coefficient or the normal force does
    position plus the mean marker displacement, in world) moves along the slide at least
    :data:`ONSET_FRACTION` of the command's speed: the end of the stick phase (a slide whose
    surface moves from its first sample has no stick phase and no breakaway).
-3. **Shape**: in a window from the breakaway peak ``t0`` (the largest ratio within two tactile
-   periods of the breakaway: the stick's rise before it is left out) to
-   :data:`BREAKAWAY_WINDOW_S` after it (or the slide's end), the friction ratio along the slide
-   ``q = -F . u / F_n`` (u the slide direction, F the force on the gel in world) is fitted by a
-   sliding level with a linear trend, ``a + b (t - t0)``, and by the same plus a breakaway decay
-   ``A exp(-(t - t0) / tau)``, ``A > 0``, tau on a grid of half tactile periods up to
-   :data:`TAU_MAX_S` (a decay slower than that is a trend of the slide, not a breakaway). Each
-   sample is weighted by the ratio's noise from the wrench noise model,
-   ``sigma_q = sqrt(sigma_t^2 + q^2 sigma_n^2) / F_n``.
+3. **Shape**: the tangential load is read twice, from independent sensors: the **mean marker
+   shear** against the slide (the gel's elastic shear carries the tangential load on the gel: a
+   thin elastic layer's surface displacement is proportional to its local traction, so the mean
+   over markers covering the pad follows the total tangential force; its noise is the marker
+   noise over the square root of the marker count, about ten times below the wrench's relative
+   noise on the reference cell) and the **friction ratio** ``q = -F . u / F_n`` of the wrench (u
+   the slide direction, F the force on the gel in world). In a window from the breakaway peak
+   ``t0`` (the largest value within two tactile periods of the breakaway: the stick's rise before
+   it is left out) to :data:`BREAKAWAY_WINDOW_S` after it (or the slide's end), each series is
+   fitted by a sliding level with a linear trend, ``a + b (t - t0)``, and by the same plus a
+   breakaway decay ``A exp(-(t - t0) / tau)``, ``A > 0``, tau on a grid of half tactile periods up
+   to :data:`TAU_MAX_S` (a decay slower than that is a trend of the slide, not a breakaway), each
+   sample weighted by its noise from the noise model (the ratio's:
+   ``sigma_q = sqrt(sigma_t^2 + q^2 sigma_n^2) / F_n``).
+4. **Normal load**: under Coulomb friction the sliding tangential load is ``mu F_n``, so a
+   breakaway excess of the shear that the normal force shares is a change of the normal load, not
+   static friction. The normal load is fitted on the shear's window with the same ``t0`` and tau,
+   read in the wrench's normal force and, where the effector is compliant and its lag follows the
+   load, in the effector's lag against the sensor normal (:func:`normal_load_excess`); its relative
+   excess is subtracted from the shear's.
 
-The statistic is the whitened SSE the decay removes, summed over breakaways (a likelihood-ratio
-statistic, about chi-square with two degrees of freedom under Coulomb friction and white noise, a
-little more for the choice of ``t0`` among a few samples and of tau on its grid); the
-effect size is the relative breakaway excess ``A / a = mu_s / mu_k - 1`` of the strongest breakaway.
-The excess is resolvable when it exceeds twice the ratio's relative noise on one sample
-(:func:`resolvable_excess`, the effect-size threshold of :mod:`sysid.diagnose.signatures.null`).
+The statistic is the whitened SSE the decay removes from both series, summed over breakaways (a
+likelihood-ratio statistic, about chi-square with four degrees of freedom under Coulomb friction
+and white noise, a little more for the choice of ``t0`` among a few samples and of tau on its
+grid). The effect size is the normal-load-corrected relative excess of the tangential load at the
+strongest breakaway, ``A / a`` of the shear minus that of the normal force: the macroscopic
+``mu_s / mu_k - 1``. It is resolvable when above :data:`RESOLVABLE_SIGMAS` standard deviations of
+that difference, propagated from the noise model through both fits (:func:`resolvable_excess`, the
+effect-size threshold of :mod:`sysid.diagnose.signatures.null`).
 
-Known limit: a contact that slips progressively (partial slip over a large soft pad: the edges slip
-first) spreads the breakaway over the stick phase and shows a much smaller macroscopic excess than
-the local ``mu_s / mu_k`` (docs/benchmarks_log.md, 2026-11-25: the reference engine's stiction
-recording with ``mu_s / mu_k = 1.66`` shows a 5-10 % excess, statistic 5.7, below the threshold).
+A soft pad slips progressively (partial slip: the lightly loaded edges slip first, the centre
+last), so the macroscopic excess is well below the local ``mu_s / mu_k - 1``: on the reference
+engine's stiction recording, local 1.66, macroscopic about 11 % (docs/benchmarks_log.md, 2026-11-25).
+The wrench alone resolves it only at about 5 noise units; the marker shear at several hundred.
+
+Known limits: a stiction that only raises the sliding level (no breakaway drop within the slide) is
+not a breakaway and is not found; tactile latency or creep on top of stiction delays the shear
+against the pose, so the window starts on the shear's rise and the decay is not found.
 """
 
 from __future__ import annotations
@@ -47,6 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2 as chi2_law
 
 from sim_core.errors import BagReadError
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
@@ -73,22 +91,31 @@ TREND_MIN_SAMPLES = 10
 """The sliding level gets a linear trend only in windows of at least this many samples (a short
 slide's window fits a constant level)."""
 
+LAG_CHECK_ALPHA = 1e-3
+"""The effector's lag is used as a normal-load measure only if its fit to the wrench's normal force
+passes a chi-square goodness-of-fit test at this false-rejection rate."""
+
 RESOLVABLE_SIGMAS = 2.0
-"""The breakaway excess must exceed this many relative sigmas of the ratio on one sample."""
+"""The normal-load-corrected breakaway excess must exceed this many of its standard deviations."""
 
 
 @dataclass
 class Breakaway:
-    """One slide's breakaway and the friction ratio around it.
+    """One slide's breakaway and a measure of the tangential load around it.
 
     Attributes:
         t_command: start of the slide (commanded tangential speed above the slide fraction), s.
         t_slip: first sample where the contact surface follows the command (end of the stick), s.
-        t0: start of the fitted window: the largest ratio within two tactile periods of ``t_slip``, s.
+        t0: start of the fitted window: the largest value of ``q`` within two tactile periods of
+            ``t_slip``, s.
         direction: unit slide direction in world, shape ``(2,)``.
-        t: wrench sample times of the window, s, shape ``(m,)``.
-        q: friction ratio along the slide there, shape ``(m,)``.
+        t: sample times of the window, s, shape ``(m,)``.
+        q: the series fitted there, shape ``(m,)``: the friction ratio along the slide
+            (:func:`breakaways`, wrench time base) or the mean marker shear against the slide, m
+            (:func:`shear_breakaway`, marker time base).
         sigma: its noise, shape ``(m,)``.
+        t_slide_end: end of the slide, s.
+        quantity: what ``q`` is (``"friction_ratio"`` or ``"marker_shear"``).
     """
 
     t_command: float
@@ -98,6 +125,8 @@ class Breakaway:
     t: np.ndarray
     q: np.ndarray
     sigma: np.ndarray
+    t_slide_end: float = float("inf")
+    quantity: str = "friction_ratio"
 
 
 def _rotations(rec: Recording, t: np.ndarray) -> Rotation:
@@ -157,6 +186,155 @@ def _surface_along(rec: Recording, direction: np.ndarray, rest_rows: np.ndarray)
     return (ee + disp_w) @ direction
 
 
+def marker_shear(rec: Recording, direction: np.ndarray, rest_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean marker shear against a slide and its noise on the marker time base.
+
+    Args:
+        rec: recording with ``markers_xyz`` and ``pose``.
+        direction: unit slide direction in world, ``(2,)``.
+        rest_rows: boolean mask ``(n,)`` of marker samples with the gel unloaded (rest positions: their
+            median).
+
+    Returns:
+        ``(shear, sigma)``, each ``(n,)``, m: the markers' mean displacement from rest, projected on the
+        slide direction in the sensor frame and negated (positive while the sheet's friction holds
+        the gel's surface back), and its standard deviation from the marker noise (the per-axis
+        sigma over the square root of the marker count: white noise, independent across markers).
+    """
+    tm = rec.t["markers_xyz"]
+    x = np.asarray(rec.data["markers_xyz"], dtype=float)
+    disp = (x - np.median(x[rest_rows], axis=0)).mean(axis=1)  # (n, 3) sensor frame
+    u3 = np.array([direction[0], direction[1], 0.0])
+    s = _rotations(rec, tm).inv().apply(np.tile(u3, (len(tm), 1)))  # slide direction, sensor frame
+    sig = np.asarray(rec.sigma["markers_xyz"], dtype=float)[:3]
+    sigma = np.sqrt(np.sum((s * sig) ** 2, axis=1) / x.shape[1])
+    return -np.sum(disp * s, axis=1), sigma
+
+
+def _rest_rows(rec: Recording, loaded_w: np.ndarray) -> np.ndarray:
+    """Marker samples before the gel is first loaded (at least three: else the first 5 %)."""
+    tm = rec.t["markers_xyz"]
+    loaded_m = np.interp(tm, rec.t["wrench"], loaded_w.astype(float)) > 0.5
+    first = int(np.argmax(loaded_m)) if loaded_m.any() else len(tm)
+    rest_rows = np.arange(len(tm)) < first
+    if rest_rows.sum() < 3:
+        rest_rows = np.arange(len(tm)) < max(3, len(tm) // 20)
+    return rest_rows
+
+
+def _loaded(rec: Recording) -> np.ndarray:
+    """Wrench samples with the gel loaded (compressive normal force above :data:`CONTACT_SIGMAS` sigmas)."""
+    return normal_force(rec.data["wrench"]) > CONTACT_SIGMAS * float(rec.sigma["wrench"][2])
+
+
+def shear_breakaway(rec: Recording, b: Breakaway) -> Breakaway | None:
+    """The mean marker shear (:func:`marker_shear`) around a breakaway found by :func:`breakaways`.
+
+    The window starts at the largest shear within two tactile periods of ``b.t_slip`` and ends
+    :data:`BREAKAWAY_WINDOW_S` later or at the slide's end, loaded marker samples only.
+
+    Returns:
+        the breakaway on the marker time base (``quantity="marker_shear"``), or None with fewer than
+        :data:`MIN_WINDOW_SAMPLES` samples in the window.
+    """
+    tm = rec.t["markers_xyz"]
+    loaded_w = _loaded(rec)
+    loaded_m = np.interp(tm, rec.t["wrench"], loaded_w.astype(float)) > 0.5
+    shear, sigma = marker_shear(rec, b.direction, _rest_rows(rec, loaded_w))
+    period = rec.tactile_period()
+    near = np.nonzero((tm >= b.t_slip - 2.0 * period) & (tm <= b.t_slip + 2.0 * period) & loaded_m)[0]
+    if not len(near):
+        return None
+    t0 = float(tm[near[np.argmax(shear[near])]])
+    m = (tm >= t0) & (tm <= min(t0 + BREAKAWAY_WINDOW_S, b.t_slide_end)) & loaded_m
+    if m.sum() < MIN_WINDOW_SAMPLES:
+        return None
+    return Breakaway(b.t_command, b.t_slip, t0, b.direction, tm[m], shear[m], sigma[m], b.t_slide_end, "marker_shear")
+
+
+def normal_lag(rec: Recording) -> tuple[np.ndarray, float] | None:
+    """The effector's lag behind its command against the sensor normal, from its free-space lag.
+
+    A compliant effector (the reference cell's arm: a 3000 N/m Cartesian impedance) is pushed back
+    along the sensor normal by the normal force on the gel, so this lag is proportional to ``F_n``
+    at time scales above the arm's response (its bandwidth, about 30 Hz there, against the breakaway
+    decays of 10-100 ms), with the pose's noise (5 um against a lag of about 2 mm at 6 N: a tenth of
+    the wrench's relative noise). A kinematic effector has no lag, and the lag carries no load.
+
+    Returns:
+        ``(lag (n,) m on the pose time base, its noise sigma m)``: ``(pose_cmd - pose) . n`` (n the
+        sensor normal in world, out of the gel) minus its median before the gel is first loaded;
+        None without ``pose_cmd``, a pose noise, or at least three pose samples before the contact.
+    """
+    if not rec.has("pose_cmd") or "pose" not in rec.sigma:
+        return None
+    tp = rec.t["pose"]
+    pose = np.asarray(rec.data["pose"], dtype=float)
+    cmd = np.asarray(rec.data["pose_cmd"], dtype=float)
+    if cmd.shape != pose.shape or not np.array_equal(rec.t["pose_cmd"], tp):
+        return None
+    normal = _rotations(rec, tp).apply(np.tile([0.0, 0.0, 1.0], (len(tp), 1)))
+    lag = np.sum((cmd[:, :3] - pose[:, :3]) * normal, axis=1)
+    loaded = np.interp(tp, rec.t["wrench"], _loaded(rec).astype(float)) > 0.5
+    first = int(np.argmax(loaded)) if loaded.any() else len(tp)
+    if first < 3:
+        return None
+    sig = np.asarray(rec.sigma["pose"], dtype=float)[:3]
+    sigma = float(np.sqrt(np.median(np.sum((normal * sig) ** 2, axis=1))))
+    if not sigma > 0.0:
+        return None
+    return lag - float(np.median(lag[:first])), sigma
+
+
+def normal_load_excess(rec: Recording, b: Breakaway, tau: float) -> tuple[float, float, str]:
+    """Relative breakaway excess of the normal load on ``b``'s window, with ``b``'s ``t0`` and ``tau``.
+
+    Two measures of the normal load over the loaded samples from ``b.t0`` to the window's end are
+    each fitted by ``a + b (t - t0) + A exp(-(t - t0) / tau)`` weighted by their noise (A of either
+    sign): the wrench's normal force, and the effector's lag against the sensor normal
+    (:func:`normal_lag`), whose relative excess is the normal force's for a compliant effector. They
+    are combined by inverse variance where the lag's excess is the more precise (the lag of a
+    kinematic effector has no level: the wrench's alone), unless the lag does not follow the load: a gain and offset fitted from the lag to the wrench's
+    normal force over the window leave a residual beyond the wrench noise (chi-square test at
+    :data:`LAG_CHECK_ALPHA`), or the two excesses differ by more than three standard deviations of
+    their difference. Then the wrench's alone.
+
+    Returns:
+        ``(A / a, its standard deviation, source)``, source ``"wrench"`` or ``"wrench+effector lag"``;
+        ``(0, inf, "none")`` with ``tau <= 0`` or too few samples.
+    """
+    if not tau > 0.0:
+        return 0.0, float("inf"), "none"
+    tw = rec.t["wrench"]
+    t_end = b.t[-1] + 0.5 * rec.sample_period("wrench")
+    m = (tw >= b.t0) & (tw <= t_end) & _loaded(rec)
+    if m.sum() < MIN_WINDOW_SAMPLES:
+        return 0.0, float("inf"), "none"
+    fn = normal_force(rec.data["wrench"])[m]
+    sigma_n = float(rec.sigma["wrench"][2])
+    rel_w, sig_w = _relative_excess(decay_columns(tw[m], b.t0, tau), fn, np.full(len(fn), sigma_n))
+    lag = normal_lag(rec)
+    if lag is None:
+        return rel_w, sig_w, "wrench"
+    tp = rec.t["pose"]
+    mp = (tp >= b.t0) & (tp <= t_end) & (np.interp(tp, tw, _loaded(rec).astype(float)) > 0.5)
+    if mp.sum() < MIN_WINDOW_SAMPLES:
+        return rel_w, sig_w, "wrench"
+    rel_p, sig_p = _relative_excess(decay_columns(tp[mp], b.t0, tau), lag[0][mp], np.full(int(mp.sum()), lag[1]))
+    if not (np.isfinite(sig_w) and 0.0 < sig_p < sig_w):
+        return rel_w, sig_w, "wrench"  # no lag to speak of (a kinematic effector): nothing to gain
+    # the lag must follow the wrench's normal force over the window (a gain and an offset fitted:
+    # residual within the wrench noise at the 0.1 % chi-square tail) and agree on the excess
+    X = np.stack([np.interp(tw[m], tp, lag[0]), np.ones(int(m.sum()))], axis=1)
+    c, *_ = np.linalg.lstsq(X, fn, rcond=None)
+    chi2 = float(np.sum(((fn - X @ c) / sigma_n) ** 2))
+    follows = chi2 <= chi2_law.ppf(1.0 - LAG_CHECK_ALPHA, int(m.sum()) - 2)
+    if not follows or abs(rel_p - rel_w) > 3.0 * np.hypot(sig_p, sig_w):
+        return rel_w, sig_w, "wrench"
+    w_w, w_p = sig_w ** -2, sig_p ** -2
+    return float((w_w * rel_w + w_p * rel_p) / (w_w + w_p)), float((w_w + w_p) ** -0.5), "wrench+effector lag"
+
+
 def breakaways(rec: Recording) -> list[Breakaway]:
     """Every slide's breakaway (module docstring, steps 1-2).
 
@@ -168,8 +346,7 @@ def breakaways(rec: Recording) -> list[Breakaway]:
     tp = rec.t[cmd_ch]
     cmd = np.asarray(rec.data[cmd_ch], dtype=float)[:, :2]
     tw = rec.t["wrench"]
-    fn = normal_force(rec.data["wrench"])
-    loaded_w = fn > CONTACT_SIGMAS * float(rec.sigma["wrench"][2])
+    loaded_w = _loaded(rec)
     if not loaded_w.any():
         return []
     # backward differences: the motion that ends at each sample (a step of a target sequence
@@ -182,11 +359,7 @@ def breakaways(rec: Recording) -> list[Breakaway]:
     if not peak > 0.0:
         return []
     tm = rec.t["markers_xyz"]
-    loaded_m = np.interp(tm, tw, loaded_w.astype(float)) > 0.5
-    first = int(np.argmax(loaded_m)) if loaded_m.any() else len(tm)
-    rest_rows = np.arange(len(tm)) < first
-    if rest_rows.sum() < 3:
-        rest_rows = np.arange(len(tm)) < max(3, len(tm) // 20)
+    rest_rows = _rest_rows(rec, loaded_w)
     period = rec.tactile_period()
     out = []
     for i0, i1 in segments(loaded_p & (speed > SLIDE_FRACTION * peak)):
@@ -216,7 +389,7 @@ def breakaways(rec: Recording) -> list[Breakaway]:
         m = (tw >= t0) & (tw <= t_end) & loaded_w & np.isfinite(q)
         if m.sum() < MIN_WINDOW_SAMPLES:
             continue
-        out.append(Breakaway(t_a, t_slip, t0, u, tw[m], q[m], sigma[m]))
+        out.append(Breakaway(t_a, t_slip, t0, u, tw[m], q[m], sigma[m], t_b))
     return out
 
 
@@ -225,6 +398,20 @@ def _wls(cols: list[np.ndarray], y: np.ndarray, sigma: np.ndarray) -> tuple[floa
     c, *_ = np.linalg.lstsq(X, y / sigma, rcond=None)
     r = y / sigma - X @ c
     return float(r @ r), c
+
+
+def _relative_excess(cols: list[np.ndarray], y: np.ndarray, sigma: np.ndarray) -> tuple[float, float]:
+    """Relative excess ``A / a`` of the weighted fit ``a + b (t - t0) + A exp(..)`` (``cols`` from
+    :func:`decay_columns` with the decay) and its standard deviation from the noise model (the fit's
+    covariance ``(X^T W X)^-1`` through the gradient of ``A / a``); ``(0, inf)`` for a level <= 0."""
+    X = np.stack(cols, axis=1) / sigma[:, None]
+    c, *_ = np.linalg.lstsq(X, y / sigma, rcond=None)
+    if not c[0] > 0.0:
+        return 0.0, float("inf")
+    cov = np.linalg.pinv(X.T @ X)
+    grad = np.zeros(len(c))
+    grad[0], grad[2] = -c[2] / c[0] ** 2, 1.0 / c[0]
+    return float(c[2] / c[0]), float(np.sqrt(max(grad @ cov @ grad, 0.0)))
 
 
 def decay_columns(t: np.ndarray, t0: float, tau: float) -> list[np.ndarray]:
@@ -276,14 +463,59 @@ def _readable(rec: Recording) -> bool:
     return bool((np.linalg.norm(np.asarray(rec.data["pose"], dtype=float)[:, 3:7], axis=1) > 0.0).any())
 
 
+def breakaway_fits(rec: Recording) -> list[dict]:
+    """Every breakaway analysed (module docstring, steps 3-4).
+
+    Returns:
+        one dict per breakaway of :func:`breakaways`: ``breakaway`` (the friction ratio's window),
+        ``shear`` (the marker shear's window, :func:`shear_breakaway`, or None), ``ratio_fit`` and
+        ``shear_fit`` (:func:`fit_breakaway`; ``shear_fit`` None without a shear window),
+        ``statistic`` (the whitened SSE the decay removes from both series), ``shear_excess`` (the
+        shear's ``A / a``) and its standard deviation ``shear_excess_sigma``, ``normal_excess`` and
+        ``normal_excess_sigma`` and ``normal_source`` (:func:`normal_load_excess` at the shear's decay
+        time), ``excess`` (the normal-load-corrected excess, their difference; 0 when no positive
+        decay fits the shear) and ``excess_sigma``.
+    """
+    taus = decay_taus(rec)
+    out = []
+    for b in breakaways(rec):
+        fq = fit_breakaway(b, taus)
+        stat = max(fq["sse0"] - fq["sse1"], 0.0)
+        bs = shear_breakaway(rec, b)
+        fs = fit_breakaway(bs, taus) if bs is not None else None
+        rel_s, sig_s, rel_n, sig_n, source = 0.0, float("inf"), 0.0, float("inf"), "none"
+        if bs is not None and fs is not None:
+            stat += max(fs["sse0"] - fs["sse1"], 0.0)
+            # the spread of the excess at the fitted decay time (at the grid's shortest one when no
+            # positive decay fits: the excess is then 0 and only its resolvable size is reported)
+            tau = fs["tau_s"] if fs["tau_s"] > 0.0 else float(taus[0]) if len(taus) else 0.0
+            if tau > 0.0:
+                rel_s, sig_s = _relative_excess(decay_columns(bs.t, bs.t0, tau), bs.q, bs.sigma)
+                rel_n, sig_n, source = normal_load_excess(rec, bs, tau)
+            if not fs["tau_s"] > 0.0:
+                rel_s = rel_n = 0.0  # no breakaway excess of the shear: nothing to correct
+        out.append({"breakaway": b, "shear": bs, "ratio_fit": fq, "shear_fit": fs, "statistic": stat,
+                    "shear_excess": rel_s, "shear_excess_sigma": sig_s, "normal_excess": rel_n,
+                    "normal_excess_sigma": sig_n, "normal_source": source, "excess": rel_s - rel_n,
+                    "excess_sigma": float(np.hypot(sig_s, sig_n))})
+    return out
+
+
+def _strongest(fits: list[dict]) -> int:
+    return int(np.argmax([f["statistic"] for f in fits]))
+
+
 def resolvable_excess(rec: Recording) -> float:
-    """Smallest relative breakaway excess the recording resolves: :data:`RESOLVABLE_SIGMAS` times the
-    friction ratio's relative noise on one sample, at the median of the breakaway windows (twice the
-    noise at a ratio of 1 and the median loaded normal force without slides)."""
-    bs = breakaways(rec) if _readable(rec) else []
-    if bs:
-        rel = np.concatenate([b.sigma / np.maximum(np.abs(b.q), 1e-6) for b in bs])
-        return float(RESOLVABLE_SIGMAS * np.median(rel))
+    """Smallest normal-load-corrected breakaway excess the recording resolves: :data:`RESOLVABLE_SIGMAS`
+    standard deviations of that excess at the strongest breakaway (noise model propagated through the
+    shear's and the normal force's fits); without a breakaway, twice the relative noise of the friction
+    ratio on one wrench sample at a ratio of 1 and the median loaded normal force; inf without a
+    loaded wrench."""
+    fits = breakaway_fits(rec) if _readable(rec) else []
+    if fits:
+        sigma = fits[_strongest(fits)]["excess_sigma"]
+        if np.isfinite(sigma):
+            return float(RESOLVABLE_SIGMAS * sigma)
     if not rec.has("wrench"):
         return float("inf")
     fn = normal_force(rec.data["wrench"])
@@ -295,29 +527,38 @@ def resolvable_excess(rec: Recording) -> float:
 
 
 def stiction_test(rec: Recording) -> SignatureResult:
-    """Breakaway overshoot of the friction ratio at slide onset (module docstring)."""
+    """Breakaway overshoot of the tangential load at slide onset, beyond the normal load's (module
+    docstring)."""
     effect = "stiction"
     if not rec.has("wrench", "pose", "markers_xyz"):
         return not_applicable(effect, "needs the wrench, the effector pose and the marker positions")
     if not _readable(rec):
         return not_applicable(effect, "the effector pose has no valid orientation (all-zero quaternions)")
-    bs = breakaways(rec)
-    if not bs:
+    fits = breakaway_fits(rec)
+    if not fits:
         return not_applicable(effect, "no slide under load in which the gel's contact surface slips")
-    taus = decay_taus(rec)
-    fits = [fit_breakaway(b, taus) for b in bs]
-    stats = [max(f["sse0"] - f["sse1"], 0.0) for f in fits]
-    rel = [f["excess"] / f["level"] if f["level"] > 0.0 else 0.0 for f in fits]
-    k = int(np.argmax(stats))
-    events = [{"t_command_s": b.t_command, "t_slip_s": b.t_slip, "direction": b.direction.tolist(),
-               "samples": int(len(b.t)), "statistic": s, "kinetic_ratio": f["level"], "excess": f["excess"],
-               "relative_excess": r, "decay_s": f["tau_s"], "trend_per_s": f["trend"]}
-              for b, f, s, r in zip(bs, fits, stats, rel)]
+    k = _strongest(fits)
+    events = []
+    for f in fits:
+        b, fq, fs = f["breakaway"], f["ratio_fit"], f["shear_fit"]
+        events.append({"t_command_s": b.t_command, "t_slip_s": b.t_slip, "direction": b.direction.tolist(),
+                       "samples": int(len(b.t)), "statistic": f["statistic"],
+                       "ratio_statistic": max(fq["sse0"] - fq["sse1"], 0.0), "kinetic_ratio": fq["level"],
+                       "ratio_excess": fq["excess"] / fq["level"] if fq["level"] > 0.0 else 0.0,
+                       "shear_statistic": max(fs["sse0"] - fs["sse1"], 0.0) if fs else 0.0,
+                       "shear_samples": int(len(f["shear"].t)) if fs else 0,
+                       "shear_level_m": fs["level"] if fs else 0.0, "decay_s": fs["tau_s"] if fs else 0.0,
+                       "shear_excess": f["shear_excess"], "normal_excess": f["normal_excess"],
+                       "normal_excess_sigma": f["normal_excess_sigma"], "normal_source": f["normal_source"],
+                       "relative_excess": f["excess"],
+                       "relative_excess_sigma": f["excess_sigma"]})
     best = fits[k]
+    size = max(float(best["excess"]), 0.0)
+    windows = [[float(f["breakaway"].t[0]), float(f["breakaway"].t[-1])] for f in fits]
     return SignatureResult(
-        effect=effect, statistic=float(sum(stats)), effect_size=max(float(rel[k]), 0.0),
-        effect_unit="(mu_s / mu_k - 1 at breakaway)",
-        estimate={"static_over_kinetic": 1.0 + max(float(rel[k]), 0.0), "kinetic_ratio": best["level"],
-                  "decay_s": best["tau_s"]},
-        windows_s=[[float(b.t[0]), float(b.t[-1])] for b in bs], channels=["wrench", "markers_xyz"], markers=[],
-        detail={"breakaways": events, "resolvable_excess": resolvable_excess(rec)})
+        effect=effect, statistic=float(sum(f["statistic"] for f in fits)), effect_size=size,
+        effect_unit="(mu_s / mu_k - 1 at breakaway, beyond the normal load)",
+        estimate={"static_over_kinetic": 1.0 + size, "kinetic_ratio": best["ratio_fit"]["level"],
+                  "decay_s": best["shear_fit"]["tau_s"] if best["shear_fit"] else 0.0},
+        windows_s=windows, channels=["markers_xyz", "wrench"], markers=[],
+        detail={"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])})

@@ -5,10 +5,10 @@ Every effect is named only when its test passes two thresholds: the **statistic*
 effect's pattern removes, noise units) must be far beyond what noise gives (a chi-square tail), and
 the **effect size** must be physically resolvable (a delay of at least two tactile sample periods, a
 distortion of at least two pixel-noise sigmas at the markers' radius, a permanent set of at least
-ten sheet-tracking sigmas, a static-friction excess at breakaway of at least twice the friction
-ratio's relative noise on one sample, ...). The timing effects must also explain most of the event windows'
-excess energy (``min_explained``): a systematic gap between simulator and recording, which even a
-nominal recording has, leaves most of it in place.
+ten sheet-tracking sigmas, a static-friction excess at breakaway, beyond the normal load's, of at
+least two of its standard deviations propagated from the noise model, ...). The timing effects must
+also explain most of the event windows' excess energy (``min_explained``): a systematic gap between
+simulator and recording, which even a nominal recording has, leaves most of it in place.
 
 With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each threshold is raised to
 ``baseline_factor`` times the largest value the same test reaches on the baselines: what is
@@ -40,8 +40,8 @@ from sysid.diagnose.signatures.friction import resolvable_excess
 STATISTIC_THRESHOLD = 50.0
 """Default statistic threshold, noise units: far in the tail of the chi-square laws of the tests
 (at most 12 degrees of freedom for the force bias; P(chi2_12 > 50) < 2e-6; the stiction test's
-breakaway decay has two, its amplitude and its decay time searched on a grid of at most 19 values,
-P(chi2_2 > 50) * 19 < 3e-10)."""
+breakaway decay has two in each of its two series, amplitude and decay time searched on a grid of at
+most 19 values per series, P(chi2_4 > 50) * 19^2 < 2e-7)."""
 
 SHAPE_MARGIN = math.log(1.25)
 """A first-order lag (delay) is preferred when it fits the events' windows with at least 25 % less

@@ -1,9 +1,18 @@
 """The stiction signature test on synthetic press-and-slide recordings with a known friction law.
 
-The recording is made by a quasi-static stick-slip model: the effector (kinematic, 200 Hz) slides a
-pressed gel whose contact surface is tied to it by a tangential spring ``k_g``; the surface sticks
-while the spring force stays below ``mu_s F_n``, then slips with a friction level that decays from
-``mu_s`` to ``mu_k`` over a slip time ``tau_b`` (slip weakening). ``mu_s = mu_k`` is Coulomb friction.
+Two recording models, both independent of the test's breakaway shape:
+
+- a quasi-static stick-slip model of the whole contact (:func:`press_slide`): the effector
+  (kinematic, 200 Hz) slides a pressed gel whose contact surface is tied to it by a tangential spring
+  ``k_g``; the surface sticks while the spring force stays below ``mu_s F_n``, then slips with a
+  friction level that decays from ``mu_s`` to ``mu_k`` over a slip time ``tau_b`` (slip weakening);
+- a brush model of a soft pad with partial slip (:func:`brush_press_slide`): one bristle under each
+  marker carries a share of an elliptic pressure distribution and a local Stribeck law, the effector
+  is held by a critically damped 3000 N/m Cartesian impedance (the reference cell's arm), so the
+  lightly loaded edges slip first and the macroscopic breakaway excess is well below the local
+  ``mu_s / mu_k - 1``, as on the reference engine's recording.
+
+``mu_s = mu_k`` is Coulomb friction.
 """
 
 from __future__ import annotations
@@ -15,7 +24,7 @@ import pytest
 
 from sysid.diagnose.signature_engine import refit_stiction
 from sysid.diagnose.signatures import Recording, run_signature_tests
-from sysid.diagnose.signatures.friction import breakaways, resolvable_excess, stiction_test
+from sysid.diagnose.signatures.friction import breakaway_fits, breakaways, resolvable_excess, stiction_test
 from sysid.diagnose.signatures.null import decide, default_thresholds
 
 SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
@@ -85,6 +94,74 @@ def press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), tau
     return Recording(t=t, data=data, prediction=None, sigma=SIGMA, camera=CAMERA, name="synthetic slide")
 
 
+def brush_press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), normal_bump: float = 0.0,
+                      lag_follows_load: bool = True, v_s: float = 2e-3, dt: float = 2e-4) -> Recording:
+    """A soft pad slid with partial slip (brush model), plus the reference noise.
+
+    The pad is pressed to ``F_N`` from 0.2 s to 0.5 s, then slid as :func:`press_slide`. One bristle
+    under each of the 9 x 7 markers carries ``p_i``, a share of the normal force under an elliptic
+    pressure ``sqrt(1 - (x / 10 mm)^2 - (y / 8 mm)^2)``, and a tangential stiffness ``K_GEL / 63``; its
+    tip sticks to the sheet while its force stays below ``p_i (mu_k + (mu_s - mu_k) exp(-(w / v_s)^2))``
+    (a local Stribeck law, w the tip's slip speed over the previous step) and slides at that limit
+    otherwise. The effector is held on the command by a 3000 N/m Cartesian impedance (mass 0.08 kg,
+    critically damped in free motion, quasi-static along the normal: it yields ``F_n / 3000`` m),
+    integrated semi-implicitly at ``dt``. ``normal_bump``: the normal force rises by that fraction at
+    1.3 s (the slip) and relaxes over 50 ms (a Gaussian rise of 15 ms), every bristle's load with it;
+    ``lag_follows_load=False`` keeps the effector's normal yield at the mean load (a lag that does
+    not follow it). The markers record the tips' positions relative to the effector, the wrench the
+    sum of the bristles' forces, the pose the effector (5 um noise).
+    """
+    u = np.asarray(direction, dtype=float)
+    u = u / np.linalg.norm(u)
+    gx, gy = np.meshgrid(np.arange(9) * 0.002 - 0.008, np.arange(7) * 0.002 - 0.006)
+    gx, gy = gx.ravel(), gy.ravel()
+    share = np.sqrt(np.clip(1.0 - (gx / 0.010) ** 2 - (gy / 0.008) ** 2, 0.0, None))
+    share /= share.sum()
+    k_b, k_arm, mass = K_GEL / len(share), 3000.0, 0.08
+    c_arm = 2.0 * np.sqrt(k_arm * mass)
+    t = np.arange(int(round(3.0 / dt))) * dt
+    v_c = slide_velocity(t)
+    x_c = np.concatenate([[0.0], np.cumsum(v_c[1:] * dt)])
+    bump = np.where(t < 1.3, np.exp(-0.5 * ((t - 1.3) / 0.015) ** 2), np.exp(-(t - 1.3) / 0.05))
+    f_n = F_N * np.clip((t - 0.2) / 0.3, 0.0, 1.0) * (1.0 + normal_bump * bump)  # press from 0.2 s to 0.5 s
+    x = v = 0.0
+    tip, slip = np.zeros_like(share), np.zeros_like(share)
+    every = int(round(0.005 / dt))
+    rows = []
+    for i in range(len(t)):
+        f = k_b * (x - tip)
+        v += dt * (k_arm * (x_c[i] - x) + c_arm * (v_c[i] - v) - f.sum()) / mass
+        x += dt * v
+        reach = f_n[i] * share * (MU_K + (mu_s - MU_K) * np.exp(-((slip / v_s) ** 2))) / k_b
+        moved = np.clip(tip, x - reach, x + reach)
+        slip, tip = np.abs(moved - tip) / dt, moved
+        if i % every == 0:
+            rows.append((t[i], x, tip - x, k_b * np.sum(x - tip), f_n[i]))
+    tw = np.array([r[0] for r in rows])
+    ee = np.array([r[1] for r in rows])
+    shear = np.array([r[2] for r in rows])
+    f_t = np.array([r[3] for r in rows])
+    to_sensor = np.array([1.0, -1.0])
+    pose = np.tile([0.05, 0.0, 0.003, 1.0, 0.0, 0.0, 0.0], (len(tw), 1))
+    cmd = pose.copy()
+    pose[:, :2] += ee[:, None] * u
+    load = np.array([r[4] for r in rows]) if lag_follows_load else np.full(len(rows), F_N)
+    pose[:, 2] += load / k_arm  # the normal force pushes the effector back (up)
+    cmd[:, :2] += np.interp(tw, t, x_c)[:, None] * u
+    w = np.zeros((len(tw), 6))
+    w[:, :2] = -(f_t[:, None] * u) * to_sensor
+    w[:, 2] = -np.array([r[4] for r in rows])
+    rest = np.stack([gx, gy, np.zeros_like(gx)], axis=1)
+    xyz = np.repeat(rest[None], len(tw[::2]), axis=0)
+    xyz[:, :, :2] += shear[::2, :, None] * (u * to_sensor)[None, None, :]
+    xyz[:, :, 2] = -2e-4
+    noise = lambda a, s: a + rng.normal(size=a.shape) * s  # noqa: E731
+    data = {"markers_xyz": noise(xyz, SIGMA["markers_xyz"]), "wrench": noise(w, SIGMA["wrench"]),
+            "pose": noise(pose, SIGMA["pose"]), "pose_cmd": cmd}
+    t_ch = {"markers_xyz": tw[::2], "wrench": tw, "pose": tw, "pose_cmd": tw}
+    return Recording(t=t_ch, data=data, prediction=None, sigma=SIGMA, camera=CAMERA, name="brush slide")
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_coulomb_friction_is_not_stiction(seed):
     rec = press_slide(np.random.default_rng(seed), mu_s=MU_K)
@@ -112,16 +189,86 @@ def test_breakaway_excess_named_as_stiction_with_its_ratio(direction):
     assert r.estimate["kinetic_ratio"] == pytest.approx(MU_K, abs=0.03)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_partial_slip_with_coulomb_friction_is_not_stiction(seed):
+    rec = brush_press_slide(np.random.default_rng(10 + seed), mu_s=MU_K)
+    r = stiction_test(rec)
+    th = default_thresholds(rec)
+    assert r.applicable and len(r.detail["breakaways"]) == 1
+    assert r.statistic < th.statistic["stiction"]
+    assert "stiction" not in decide({"stiction": r}, th).explained_by
+
+
+@pytest.mark.parametrize("ratio", [1.2, 1.5, 2.0])
+def test_partial_slip_stiction_is_named_with_a_macroscopic_excess_below_the_local_ratio(ratio):
+    rec = brush_press_slide(np.random.default_rng(20), mu_s=ratio * MU_K)
+    r = stiction_test(rec)
+    assert decide({"stiction": r}, default_thresholds(rec)).explained_by == ["stiction"]
+    (b,) = r.detail["breakaways"]
+    # the marker shear carries the breakaway far beyond the wrench's friction ratio
+    assert b["shear_statistic"] > 5 * b["ratio_statistic"]
+    assert r.estimate["static_over_kinetic"] > 1.0
+    if ratio < 2.0:
+        # the edges slip first: the pad's excess is below the local one (at 2.0 the pad slips in
+        # bursts over 60 ms, which one decay does not follow: its excess is then only an order of size)
+        assert r.estimate["static_over_kinetic"] < ratio
+
+
+@pytest.mark.parametrize("direction", [(0.0, -1.0), (-0.6, 0.8)])
+def test_partial_slip_stiction_is_named_in_any_slide_direction(direction):
+    rec = brush_press_slide(np.random.default_rng(21), mu_s=1.5 * MU_K, direction=direction)
+    r = stiction_test(rec)
+    assert decide({"stiction": r}, default_thresholds(rec)).explained_by == ["stiction"]
+    assert np.allclose(r.detail["breakaways"][0]["direction"], np.asarray(direction) / np.linalg.norm(direction),
+                       atol=1e-6)
+
+
+def test_a_normal_load_overshoot_at_slip_is_not_stiction():
+    # Coulomb friction under a normal force that rises 15 % at the slip and relaxes: the shear follows
+    # the normal load and overshoots far beyond the noise, but the normal load shares the excess (read
+    # in the wrench and, ten times more precisely, in the compliant effector's lag)
+    rec = brush_press_slide(np.random.default_rng(30), mu_s=MU_K, normal_bump=0.15)
+    r = stiction_test(rec)
+    th = default_thresholds(rec)
+    (b,) = r.detail["breakaways"]
+    assert b["shear_statistic"] > th.statistic["stiction"]
+    assert b["normal_source"] == "wrench+effector lag"
+    assert b["normal_excess"] > 0.05
+    assert b["relative_excess"] < th.effect_size["stiction"]
+    assert "stiction" not in decide({"stiction": r}, th).explained_by
+    # the same normal load with static friction above the kinetic: named
+    sticky = brush_press_slide(np.random.default_rng(30), mu_s=1.5 * MU_K, normal_bump=0.15)
+    assert decide({"stiction": stiction_test(sticky)}, default_thresholds(sticky)).explained_by == ["stiction"]
+
+
+def test_an_effector_lag_that_does_not_follow_the_load_is_not_used():
+    # the lag misses the 15 % normal-force overshoot: it does not follow the wrench's normal force
+    # within its noise, so the wrench alone corrects the shear's excess (not named)
+    rec = brush_press_slide(np.random.default_rng(31), mu_s=MU_K, normal_bump=0.15, lag_follows_load=False)
+    r = stiction_test(rec)
+    (b,) = r.detail["breakaways"]
+    assert b["normal_source"] == "wrench"
+    assert "stiction" not in decide({"stiction": r}, default_thresholds(rec)).explained_by
+    # a kinematic effector (no lag at all): the wrench alone
+    (f,) = breakaway_fits(press_slide(np.random.default_rng(32), mu_s=1.5 * MU_K))
+    assert f["normal_source"] == "wrench"
+
+
 def test_a_small_excess_is_not_named_and_the_resolvable_size_comes_from_the_noise():
-    # 3 % static excess: far below the statistic threshold; the resolvable size is twice the ratio's
-    # relative noise on one sample (sqrt(0.1^2 + 0.8^2 0.2^2) / (0.8 * 6) = 0.039 per sample here)
-    rec = press_slide(np.random.default_rng(4), mu_s=1.03 * MU_K)
+    # 1 % static excess: below the resolvable size, which is two standard deviations of the shear's
+    # excess minus the normal force's, propagated from the noise model (the normal force's dominates:
+    # 0.2 N on 6 N per sample against 15 um / sqrt(63) on a 1.2 mm shear)
+    rec = press_slide(np.random.default_rng(4), mu_s=1.01 * MU_K)
     r = stiction_test(rec)
     th = default_thresholds(rec)
     assert th.effect_size["stiction"] == pytest.approx(resolvable_excess(rec))
-    assert th.effect_size["stiction"] == pytest.approx(2 * np.hypot(0.1, MU_K * 0.2) / (MU_K * F_N), rel=0.1)
-    assert r.statistic < th.statistic["stiction"]
     assert "stiction" not in decide({"stiction": r}, th).explained_by
+    (f,) = breakaway_fits(rec)
+    assert f["normal_excess_sigma"] > 3 * f["shear_excess_sigma"]
+    # a quieter normal-force channel resolves a smaller excess, in proportion
+    quiet_sigma = {**SIGMA, "wrench": SIGMA["wrench"] * np.array([1, 1, 0.5, 1, 1, 1])}
+    quiet = Recording(t=rec.t, data=rec.data, prediction=None, sigma=quiet_sigma, camera=CAMERA)
+    assert resolvable_excess(quiet) == pytest.approx(0.5 * resolvable_excess(rec), rel=0.15)
 
 
 def test_refit_lowers_the_heldout_residual_of_a_breakaway():
@@ -176,15 +323,24 @@ def test_no_stiction_named_on_reference_recordings_without_it(name):
         assert not r.applicable
 
 
-def test_reference_stiction_breakaway_is_located_at_the_slide_onset():
-    # slide (-22, 0) mm from 2.10 s; MuJoCo mu_s / mu_k = 1.66 shows a 5-10 % macroscopic excess
-    # (partial slip over the pad), below the noise-model threshold: located, not named
-    # (docs/benchmarks_log.md, 2026-11-25)
-    r = stiction_test(reference_recording("stiction_s105"))
+def test_reference_stiction_is_named_at_the_slide_onset_and_its_refit_holds_out():
+    # slide (-22, 0) mm from 2.10 s; MuJoCo mu_s / mu_k = 1.66 locally, a 5-15 % excess over the pad
+    # (partial slip): about 5 noise units in the wrench's friction ratio, hundreds in the marker shear,
+    # with the normal force not sharing it (docs/benchmarks_log.md, 2026-11-25)
+    rec = reference_recording("stiction_s105")
+    r = stiction_test(rec)
+    th = default_thresholds(rec)
+    assert decide({"stiction": r}, th).explained_by == ["stiction"]
     (b,) = r.detail["breakaways"]
     assert b["direction"] == pytest.approx([-1.0, 0.0], abs=0.02)
     assert 2.0 < b["t_command_s"] < b["t_slip_s"] < 2.5
     assert 0.6 < b["kinetic_ratio"] < 0.8
+    assert b["ratio_statistic"] < th.statistic["stiction"] < b["shear_statistic"]
+    assert b["normal_excess"] < b["shear_excess"]
+    # the pad's excess is below the local static-over-kinetic ratio
+    assert 1.0 + th.effect_size["stiction"] < r.estimate["static_over_kinetic"] < 1.66
+    fit = refit_stiction(types.SimpleNamespace(recording=rec), r)
+    assert fit["heldout_rms_after"] < 0.5 * fit["heldout_rms_before"]
 
 
 def test_report_says_in_words_how_much_the_contact_sticks_and_plots_the_breakaway(tmp_path):
@@ -206,3 +362,28 @@ def test_report_says_in_words_how_much_the_contact_sticks_and_plots_the_breakawa
     md = markdown(doc, [png])
     ratio = fit["params"]["static_over_kinetic"]
     assert "the contact sticks before it slides" in md and f"about {ratio:.2g} times" in md
+
+
+# ---------------------------------------------------------------- this project's simulator
+@pytest.mark.slow
+def test_own_simulator_stribeck_friction_named_and_coulomb_silent():
+    """The benchmark scene pressed and slid 10 mm at 20 mm/s (100 Hz, kinematic effector), with the
+    driver-level Stribeck law of :class:`sysid.bench_effects.StribeckFriction` at a = 0.5 (static 1.5
+    times kinetic) and without it (Coulomb friction), the reference noise added."""
+    from sysid.bench_effects import StribeckFriction
+    from sysid.diagnose_bench import NOISE, SCENE, effector_targets, rollout
+
+    segments = (((0.0, 0.0, -0.00105), 3), ((0.0, 0.0, 0.0), 10), ((-0.010, 0.0, 0.0), 50), ((0.0, 0.0, 0.0), 10))
+    targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], segments)
+    named = {}
+    for a in (0.0, 0.5):
+        s = rollout(SCENE, targets, StribeckFriction(a) if a > 0.0 else None)
+        rng = np.random.default_rng(40)
+        t = s["t_ns"] * 1e-9
+        data = {ch: s[ch] + rng.normal(size=s[ch].shape) * NOISE[ch] for ch in ("markers_xyz", "wrench")}
+        data.update(pose=s["pose"], pose_cmd=s["pose_cmd"])
+        rec = Recording(t={ch: t for ch in data}, data=data, prediction=None, sigma=dict(NOISE), camera=CAMERA)
+        r = stiction_test(rec)
+        assert r.applicable
+        named[a] = decide({"stiction": r}, default_thresholds(rec)).explained_by
+    assert named == {0.0: [], 0.5: ["stiction"]}
