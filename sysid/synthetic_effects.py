@@ -38,9 +38,9 @@ wrench; the effector pose, its command and the tracked sheet are left as recorde
   the stream's noise level stays within about 15 %).
 
 ``visibility`` of each written recording is the whitened RMS of the change per channel (noise
-sigmas estimated from the recording itself, :func:`sysid.noise.estimate_noise`; for the latency,
-less the mean square the same shift gives white noise of that level, since a shift of the
-recorded noise is no part of the effect),
+sigmas estimated from the recording itself, :func:`sysid.noise.estimate_noise`; for the latency
+and the creep, less the mean square the same operator gives white noise of that level, since what
+it does to the recorded noise is no part of the effect),
 the figure the reference set's labels give.
 
 ``python -m sysid.synthetic_effects OUT_DIR`` writes the validation set of
@@ -336,15 +336,15 @@ def apply_effect(contents: BagContents, effect: str, params: Mapping[str, Any] |
         raise ValueError(f"effect {effect}: missing parameter {err.args[0]!r}") from err
     change = {role: values[role] - contents.series[role].values for role in TACTILE_ROLES}
     noise_change = None
-    if effect == "latency":
-        # a shift of the recorded noise is no part of the effect: subtract what the same shift does
-        # to white noise of the recording's level
+    if effect in ("latency", "gel_creep"):
+        # what the operator does to the recorded noise is no part of the effect: subtract what it
+        # does to white noise of the recording's level
         noise_rng = np.random.default_rng(0)
         noise_change = {}
         for role in TACTILE_ROLES:
             s = contents.series[role]
             n = noise_rng.standard_normal(s.values.shape) * estimate_noise(s.t_ns, s.values)
-            noise_change[role] = delayed(s.t_ns, n, lat) - n
+            noise_change[role] = (delayed(s.t_ns, n, lat) if effect == "latency" else creep(s.t_ns, n, tau, frac)) - n
     return Synthetic(values, dict(params), _visibility(contents, change, noise_change))
 
 
