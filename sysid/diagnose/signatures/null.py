@@ -21,9 +21,11 @@ fraction of the windows' excess energy.
 
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
 (a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`), also when only
-one of the two passes its thresholds (the events that fit a delay at least as well as a lag do not
-name the lag); when neither shape is clearly better both are reported as a tie and the larger
-statistic is named first.
+one of the two passes its thresholds (events that fit a delay at least as well as a lag do not name
+the lag, events that fit a lag clearly better do not name the latency); when neither shape is
+clearly better both are reported as a tie, the larger statistic named first, if both pass, and
+neither is named if only one does (a delay just below its resolvable size is not a lag because the
+lag's own size, a median over the events, passed).
 Adhesion on a lift is a property of the contact (the gel tacks to the sheet in every lift of the
 cell): it is named beside another effect, and otherwise reported under ``contact_properties``.
 """
@@ -169,8 +171,17 @@ def decide(results: Mapping[str, SignatureResult], th: Thresholds) -> Decision:
             lat.detected, lat.reason = False, "the events fit a first-order lag better than a delay (gel viscoelasticity)"
         elif shape <= 0.0 and visco.detected:
             visco.detected, visco.reason = False, "the events fit a pure delay at least as well as a lag (latency)"
-        elif lat.detected and visco.detected:
-            ties.append(["latency", "gel_viscoelasticity"])
+        elif 0.0 < shape < SHAPE_MARGIN:
+            if lat.detected and visco.detected:
+                ties.append(["latency", "gel_viscoelasticity"])
+            else:
+                # neither shape clearly better and only one passes its thresholds: which of the two
+                # it is cannot be told, so neither is named
+                for r, other in ((lat, visco), (visco, lat)):
+                    if r.detected:
+                        r.detected = False
+                        r.reason = (f"the events fit a delay and a lag about as well, and {other.effect} does not "
+                                    "pass its thresholds: the timing pattern's shape is undecided")
     detected = [e for e, r in results.items() if r.detected]
     ratio = {e: results[e].statistic / max(results[e].threshold["statistic"], 1e-12) for e in detected}
     primary = sorted((e for e in detected if e not in SECONDARY_EFFECTS), key=lambda e: -ratio[e])

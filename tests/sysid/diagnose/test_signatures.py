@@ -267,3 +267,26 @@ def test_kelvin_voigt_is_value_plus_tau_times_rate():
     exact = y + 0.02 * 2 * np.pi * 1.5 * np.cos(2 * np.pi * 1.5 * t)
     inner = slice(20, -20)  # the filter's edges fit a shorter span
     assert np.max(np.abs(kv[inner] - exact[inner])) < 0.01
+
+
+def _timing_pair(delay_s: float, lag_tau_s: float, shape: float) -> dict:
+    from sysid.diagnose.signatures.base import SignatureResult
+
+    detail = {"explained_delay": 0.9, "explained_lag": 0.9, "shape_log_ratio": shape}
+    return {"latency": SignatureResult("latency", statistic=200.0, effect_size=delay_s, detail=detail),
+            "gel_viscoelasticity": SignatureResult("gel_viscoelasticity", statistic=210.0, effect_size=lag_tau_s,
+                                                   estimate={"tau_s": lag_tau_s, "fraction": 0.9}, detail=detail)}
+
+
+@pytest.mark.parametrize("shape, expected", [(-0.05, []), (0.05, []), (0.5, ["gel_viscoelasticity"])])
+def test_a_delay_below_its_size_is_not_named_a_lag_unless_the_shape_says_lag(shape, expected):
+    # the delay (10 ms) is below two tactile periods (20 ms), the lag's median tau (25 ms) above
+    rec = Recording(t={"wrench": np.arange(100) * 0.005, "markers_xyz": np.arange(50) * 0.01},
+                    data={"wrench": np.zeros((100, 6)), "markers_xyz": np.zeros((50, 63, 3))}, prediction=None,
+                    sigma=SIGMA, camera=CAMERA)
+    results = _timing_pair(0.010, 0.025, shape)
+    assert decide(results, default_thresholds(rec)).explained_by == expected
+    # both passing in the undecided band: a tie, the larger statistic first
+    results = _timing_pair(0.030, 0.035, 0.05)
+    d = decide(results, default_thresholds(rec))
+    assert d.explained_by == ["gel_viscoelasticity", "latency"] and d.ties == [["latency", "gel_viscoelasticity"]]
