@@ -408,7 +408,9 @@ def _item(source: str, effect: str, level: str, params: Mapping[str, Any], seed:
 
 DEFAULT_PLAN: tuple[Item, ...] = (
     # lift_fold (none of the nine reference recordings has a data effect on a lift), three magnitudes
-    # each: about half, once and twice the reference recordings' visibility
+    # each around the reference recordings' own (latency 40 ms, k1 -0.077, bias 3.5 sigma, creep tau
+    # 0.13 s): half, once and 1.5-2 times. The creep is a full first-order lag (fraction 1): the lag
+    # fitted to gel_creep_s108 takes a share of 0.97-1.0 of the response.
     _item("nominal_s109", "latency", "40ms", {"latency_s": 0.04}),
     _item("nominal_s109", "lens", "k1m077", {"k1": -0.077}),
     _item("nominal_s109", "force_bias", "3p5", {"scale_sigma": 3.5}, seed=1),
