@@ -253,7 +253,7 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
                           channels=["markers_xyz", "markers_uv", "wrench"], detail=dict(detail, delays_s=delays.tolist()))
     frac = float(np.median([e["lag_fraction"] for e in ev]))
     visco = SignatureResult(effect="gel_viscoelasticity", statistic=max(fits["sse0"] - fits["sse_lag"], 0.0),
-                            effect_size=float(np.median(lag_taus)), effect_unit="s (median time constant)",
+                            effect_size=float(np.min(lag_taus)), effect_unit="s (smallest event time constant)",
                             estimate={"tau_s": float(np.median(lag_taus)), "fraction": frac}, windows_s=windows,
                             channels=["markers_xyz", "markers_uv", "wrench"],
                             detail=dict(detail, taus_s=lag_taus.tolist()))

@@ -278,15 +278,22 @@ def _timing_pair(delay_s: float, lag_tau_s: float, shape: float) -> dict:
                                                    estimate={"tau_s": lag_tau_s, "fraction": 0.9}, detail=detail)}
 
 
-@pytest.mark.parametrize("shape, expected", [(-0.05, []), (0.05, []), (0.5, ["gel_viscoelasticity"])])
-def test_a_delay_below_its_size_is_not_named_a_lag_unless_the_shape_says_lag(shape, expected):
-    # the delay (10 ms) is below two tactile periods (20 ms), the lag's median tau (25 ms) above
+@pytest.mark.parametrize("delay, lag, shape, expected", [
+    (0.010, 0.025, -0.05, []),                                     # a delay's shape, too small: not a lag
+    (0.025, 0.010, 0.5, []),                                       # a lag's shape, too small: not a delay
+    (0.010, 0.025, 0.05, ["gel_viscoelasticity"]),                 # undecided shape: the one that passes
+    (0.030, 0.035, 0.05, ["gel_viscoelasticity", "latency"]),      # both pass, undecided: a tie
+    (0.02 - 1e-17, 0.0, -0.5, ["latency"]),                        # two periods read off the grid
+])
+def test_the_timing_shape_decides_also_when_one_effect_alone_passes(delay, lag, shape, expected):
     rec = Recording(t={"wrench": np.arange(100) * 0.005, "markers_xyz": np.arange(50) * 0.01},
                     data={"wrench": np.zeros((100, 6)), "markers_xyz": np.zeros((50, 63, 3))}, prediction=None,
                     sigma=SIGMA, camera=CAMERA)
-    results = _timing_pair(0.010, 0.025, shape)
-    assert decide(results, default_thresholds(rec)).explained_by == expected
-    # both passing in the undecided band: a tie, the larger statistic first
-    results = _timing_pair(0.030, 0.035, 0.05)
-    d = decide(results, default_thresholds(rec))
-    assert d.explained_by == ["gel_viscoelasticity", "latency"] and d.ties == [["latency", "gel_viscoelasticity"]]
+    d = decide(_timing_pair(delay, lag, shape), default_thresholds(rec))
+    assert d.explained_by == expected
+    assert d.ties == ([["latency", "gel_viscoelasticity"]] if len(expected) == 2 else [])
+
+
+def test_both_timing_effects_are_sized_by_their_smallest_event(rng):
+    lat, visco = timing_tests(synthetic(rng, lag_tau=0.12))
+    assert visco.effect_size == min(visco.detail["taus_s"]) and lat.effect_size == min(lat.detail["delays_s"])
