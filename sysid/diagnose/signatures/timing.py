@@ -39,7 +39,8 @@ TAU_MAX_S = 0.3
 """Largest delay or time constant searched, s."""
 
 MAX_LAG_FRACTION = 1.0
-"""Largest share ``a`` of the response that follows the first-order lag."""
+"""Largest share ``a`` of the response that follows the first-order lag: a share, at most one (a
+larger one gives the response a negative instantaneous part, a shape that mimics a delay)."""
 
 
 def low_pass(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
