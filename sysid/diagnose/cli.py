@@ -6,9 +6,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 from sim_core.errors import ThinShellError
+
+if TYPE_CHECKING:
+    from sysid.diagnose.signature_engine import SignatureSettings
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -97,11 +100,24 @@ def _write_json_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
+def signature_settings(args: argparse.Namespace) -> SignatureSettings:
+    """The signature engine's settings of parsed ``thinshell diagnose`` arguments
+    (``build_parser().parse_args([BAG])`` gives the command's defaults)."""
+    from sysid.calibration import CALIBRATION_PARAMETERS
+    from sysid.diagnose.signature_engine import SignatureSettings
+
+    return SignatureSettings(
+        dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
+        calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
+        calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
+        workers=max(1, args.workers),
+        simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
+
+
 def _signatures_main(args: argparse.Namespace) -> int:
     """``thinshell diagnose`` with the signature engine (see :mod:`sysid.diagnose.signature_engine`)."""
-    from sysid.calibration import CALIBRATION_PARAMETERS
     from sysid.diagnose.schema import validate_report
-    from sysid.diagnose.signature_engine import SignatureSettings, diagnose_one, prepare
+    from sysid.diagnose.signature_engine import diagnose_one, prepare
     from sysid.diagnose.signature_report import write_signature_report
     from sysid.results import staged_directory
 
@@ -111,12 +127,7 @@ def _signatures_main(args: argparse.Namespace) -> int:
         print(f"thinshell diagnose: {score_only[0]} belongs to --engine score (the signatures engine holds out "
               "events and time blocks of each recording and runs every signature test)", file=sys.stderr)
         return 2
-    settings = SignatureSettings(
-        dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
-        calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
-        calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
-        workers=max(1, args.workers),
-        simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
+    settings = signature_settings(args)
     try:
         baselines = [prepare(b, settings) for b in args.baseline]
         docs, runs = [], []

@@ -20,8 +20,12 @@ the replay instead of following it), so it is not confused with them; it must ex
 fraction of the windows' excess energy.
 
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
-(a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`); when neither
-shape is clearly better both are reported as a tie and the larger statistic is named first.
+(a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`), also when only
+one of the two passes its thresholds (events that fit a delay at least as well as a lag do not name
+the lag, events that fit a lag clearly better do not name the latency); when neither shape is
+clearly better and both pass, both are reported as a tie and the larger statistic is named first.
+Both are held to the same size rule: the smallest delay, or the smallest lag time constant, over
+the events (an effect of the stream delays or lags every event).
 Adhesion on a lift is a property of the contact (the gel tacks to the sheet in every lift of the
 cell): it is named beside another effect, and otherwise reported under ``contact_properties``.
 """
@@ -49,6 +53,9 @@ SHAPE_MARGIN = math.log(1.25)
 
 MIN_EXPLAINED = 0.5
 """Fraction of the event windows' excess energy (``SSE - samples``) a timing effect must remove."""
+
+SIZE_TOLERANCE = 1e-9
+"""Relative tolerance of the effect-size comparison (floating-point rounding of grid values)."""
 
 SECONDARY_EFFECTS = ("adhesion",)
 """Effects named only beside another one (contact properties of the cell)."""
@@ -140,7 +147,10 @@ def _passes(r: SignatureResult, th: Thresholds) -> bool:
         return False
     r.threshold = {"statistic": th.statistic.get(r.effect, STATISTIC_THRESHOLD),
                    "effect_size": th.effect_size.get(r.effect, 0.0), "source": th.source.get(r.effect, "default")}
-    ok = r.statistic >= r.threshold["statistic"] and r.effect_size >= r.threshold["effect_size"]
+    # sizes read off a grid of sample periods (s) meet a threshold of whole periods: compare them to
+    # a part in 1e9 (the bag's nanosecond stamps), not to the float's last bit
+    ok = (r.statistic >= r.threshold["statistic"]
+          and r.effect_size >= r.threshold["effect_size"] - SIZE_TOLERANCE * abs(r.threshold["effect_size"]))
     if ok and r.effect in ("latency", "gel_viscoelasticity", "damping"):
         key = {"latency": "explained_delay", "gel_viscoelasticity": "explained_lag", "damping": "explained_lead"}[r.effect]
         ok = float(r.detail.get(key, 0.0)) >= MIN_EXPLAINED
@@ -158,13 +168,16 @@ def decide(results: Mapping[str, SignatureResult], th: Thresholds) -> Decision:
         r.detected = _passes(r, th)
     ties: list[list[str]] = []
     lat, visco = results.get("latency"), results.get("gel_viscoelasticity")
-    if lat is not None and visco is not None and lat.detected and visco.detected:
+    if lat is not None and visco is not None and (lat.detected or visco.detected):
+        # one timing pattern, two shapes: the shape decides even when only one of them passes its
+        # thresholds (a delay just below its resolvable size is not a lag because the lag's own
+        # size, a median over the events, passed)
         shape = float(lat.detail.get("shape_log_ratio", 0.0))
-        if shape >= SHAPE_MARGIN:
+        if shape >= SHAPE_MARGIN and lat.detected:
             lat.detected, lat.reason = False, "the events fit a first-order lag better than a delay (gel viscoelasticity)"
-        elif shape <= 0.0:
+        elif shape <= 0.0 and visco.detected:
             visco.detected, visco.reason = False, "the events fit a pure delay at least as well as a lag (latency)"
-        else:
+        elif lat.detected and visco.detected:
             ties.append(["latency", "gel_viscoelasticity"])
     detected = [e for e, r in results.items() if r.detected]
     ratio = {e: results[e].statistic / max(results[e].threshold["statistic"], 1e-12) for e in detected}

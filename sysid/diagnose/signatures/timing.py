@@ -23,6 +23,7 @@ Without a wrench the mean marker depth is used in the same way.
 from __future__ import annotations
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable
 
@@ -36,6 +37,10 @@ falling one)."""
 
 TAU_MAX_S = 0.3
 """Largest delay or time constant searched, s."""
+
+MAX_LAG_FRACTION = 1.0
+"""Largest share ``a`` of the response that follows the first-order lag: a share, at most one (a
+larger one gives the response a negative instantaneous part, a shape that mimics a delay)."""
 
 
 def low_pass(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
@@ -65,19 +70,51 @@ def first_order(t: np.ndarray, y: np.ndarray, tau: float, a: float) -> np.ndarra
     return (1.0 - a) * np.asarray(y, dtype=float) + a * low_pass(t, y, tau)
 
 
-def contact_events(t: np.ndarray, y_pred: np.ndarray, fraction: float = EVENT_FRACTION) -> list[tuple[float, int]]:
-    """Crossings of ``fraction`` of the peak of ``y_pred`` as ``[(time s, +1 rising / -1 falling)]``."""
-    peak = float(np.max(y_pred)) if len(y_pred) else 0.0
-    if not peak > 0.0:
-        return []
-    above = y_pred > fraction * peak
+HYSTERESIS = 0.5
+"""A contact event's crossing counts only when the signal then leaves the level by this fraction
+of it before crossing back (below ``(1 - HYSTERESIS)`` of the level after a falling crossing, above
+``(1 + HYSTERESIS)`` of it after a rising one): a Schmitt trigger, so that the replay's
+step-to-step roughness near the level (its contact solve at the 0.01 s replay step) does not split
+one press into several overlapping events."""
+
+
+def _crossings(t: np.ndarray, y: np.ndarray, level: float) -> list[tuple[float, int, int]]:
+    """Crossings of ``level`` as ``[(time s, +1 / -1, sample index before it)]``, linear interpolation."""
+    above = y > level
     d = np.diff(above.astype(np.int8))
     out = []
     for i in np.nonzero(d)[0]:
-        y0, y1 = y_pred[i], y_pred[i + 1]
-        f = (fraction * peak - y0) / (y1 - y0) if y1 != y0 else 0.0
-        out.append((float(t[i] + f * (t[i + 1] - t[i])), int(d[i])))
+        y0, y1 = y[i], y[i + 1]
+        f = (level - y0) / (y1 - y0) if y1 != y0 else 0.0
+        out.append((float(t[i] + f * (t[i + 1] - t[i])), int(d[i]), int(i)))
     return out
+
+
+def contact_events(t: np.ndarray, y_pred: np.ndarray, fraction: float = EVENT_FRACTION,
+                   hysteresis: float = HYSTERESIS) -> list[tuple[float, int]]:
+    """Crossings of ``fraction`` of the peak of ``y_pred`` as ``[(time s, +1 rising / -1 falling)]``.
+
+    A pair of crossings that encloses only a shallow excursion (the signal dips below the level but
+    not below ``(1 - hysteresis)`` of it, or rises above it but not above ``(1 + hysteresis)`` of
+    it) is dropped: roughness around the level, not a contact event (:data:`HYSTERESIS`).
+    """
+    y_pred = np.asarray(y_pred, dtype=float)
+    peak = float(np.max(y_pred)) if len(y_pred) else 0.0
+    if not peak > 0.0:
+        return []
+    level = fraction * peak
+    cross = _crossings(np.asarray(t, dtype=float), y_pred, level)
+    while len(cross) > 1:
+        # relative depth of the excursion between each pair of neighbouring crossings
+        depth = []
+        for (_, dj, ij), (_, _, ik) in zip(cross[:-1], cross[1:]):
+            seg = y_pred[ij + 1: ik + 1]
+            depth.append((seg.max() - level) / level if dj > 0 else (level - seg.min()) / level)
+        j = int(np.argmin(depth))
+        if depth[j] >= hysteresis:
+            break
+        del cross[j: j + 2]  # the shallowest excursion first: the crossings that remain are the outer ones
+    return [(tc, d) for tc, d, _ in cross]
 
 
 MIN_WINDOW_SAMPLES = 10
@@ -103,6 +140,34 @@ def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
     c, *_ = np.linalg.lstsq(X, y, rcond=None)
     r = y - X @ c
     return float(r @ r), c
+
+
+REPLAY_SMOOTH_S = 0.05
+"""Span of the quadratic Savitzky-Golay filter through which the timing fits read the replay, s:
+longer than the replay's step (0.01 s by default), whose contact solve leaves step-to-step
+roughness on the predicted force. Read raw, that roughness favours the first-order lag (which
+smooths it away) over a pure delay (which keeps it) whatever the recording's timing; through the
+filter both shapes see the same replay. The damping test reads it through the same span
+(:data:`sysid.diagnose.signatures.damping.RATE_WINDOW_S`)."""
+
+
+def smoothed_replay(t: np.ndarray, y: np.ndarray, span_s: float = REPLAY_SMOOTH_S) -> np.ndarray:
+    """``y`` through a quadratic Savitzky-Golay filter over ``span_s`` (Savitzky & Golay 1964),
+    along axis 0, on the uniform time base ``t`` (s); a series shorter than the filter is returned
+    as a copy.
+
+    Args:
+        t: sample times, s, shape ``(n,)``.
+        y: samples, shape ``(n, ...)``.
+        span_s: filter span, s (at least 5 samples, odd).
+    """
+    y = np.asarray(y, dtype=float)
+    if len(y) < 3:
+        return y.copy()
+    dt = float(np.median(np.diff(np.asarray(t, dtype=float))))
+    w = max(5, int(round(span_s / dt)) if dt > 0 else 5)
+    w = w if w % 2 == 1 else w + 1
+    return savgol_filter(y, w, 2, axis=0) if len(y) >= w else y.copy()
 
 
 def timing_signal(rec: Recording) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float] | None:
@@ -134,6 +199,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     if sig is None:
         return None
     channel, t, y, yp, sigma = sig
+    yp = smoothed_replay(t, yp)
     if taus is None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     events = []
@@ -149,7 +215,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             s, c = _sse(y[m], [yp[m], lp_cache[tau][m]])
             tot = c[0] + c[1]
             a = float(c[1] / tot) if tot != 0.0 else 0.0
-            if 0.0 <= a <= 1.5:  # a lag (a > 1: a slight overshoot of the low-pass), not a lead
+            if 0.0 <= a <= MAX_LAG_FRACTION:  # a lag, not a lead
                 sl.append((s, float(tau), a))
         best_l = min(sl)
         events.append({"t_s": te, "direction": "rising" if direction > 0 else "falling", "window_s": [lo, hi],
@@ -188,7 +254,7 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
                           channels=["markers_xyz", "markers_uv", "wrench"], detail=dict(detail, delays_s=delays.tolist()))
     frac = float(np.median([e["lag_fraction"] for e in ev]))
     visco = SignatureResult(effect="gel_viscoelasticity", statistic=max(fits["sse0"] - fits["sse_lag"], 0.0),
-                            effect_size=float(np.median(lag_taus)), effect_unit="s (median time constant)",
+                            effect_size=float(np.min(lag_taus)), effect_unit="s (smallest event time constant)",
                             estimate={"tau_s": float(np.median(lag_taus)), "fraction": frac}, windows_s=windows,
                             channels=["markers_xyz", "markers_uv", "wrench"],
                             detail=dict(detail, taus_s=lag_taus.tolist()))

@@ -11,7 +11,7 @@ from sysid.diagnose.signatures.damping import damping_test, kelvin_voigt
 from sysid.diagnose.signatures.null import Thresholds, calibrated_thresholds, decide, default_thresholds
 from sysid.diagnose.signatures.sensor import apply_lens, force_bias_test, lens_test
 from sysid.diagnose.signatures.sheet import adhesion_test, plasticity_test
-from sysid.diagnose.signatures.timing import delayed, first_order, low_pass, timing_tests
+from sysid.diagnose.signatures.timing import contact_events, delayed, first_order, low_pass, timing_tests
 
 CAMERA = (300.0, 300.0, 160.0, 120.0, 0.025)
 SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
@@ -28,24 +28,27 @@ def press_profile(t: np.ndarray, t_on: float = 1.0, t_off: float = 2.5, ramp: fl
 
 def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float = 0.0, k1: float = 0.0,
               bias: float = 0.0, set_height: float = 0.0, carried: bool = False, duration: float = 3.5,
-              damping: float = 0.0) -> Recording:
+              damping: float = 0.0, ramp: float = 0.15, rough: float = 0.0) -> Recording:
     """A press-and-release recording and its exact 'replay', with one effect applied to the data
     (``damping``: a Kelvin-Voigt gel of that time constant, ``F = k (x + tau dx/dt)`` on the force,
-    the markers keep the elastic deformation ``x``)."""
+    the markers keep the elastic deformation ``x``). ``ramp``: press and release time, s;
+    ``rough``: step-to-step roughness of the replay's force while it ramps, a fraction of its peak
+    (alternating sign every 0.01 s replay step, as the contact solve leaves it)."""
     tw = np.arange(0.0, duration, 0.005)
     tm = np.arange(0.0, duration, 0.01)
     # with a carried sheet the replay lets go when the effector lifts (1.6 s); the recorded gel
     # stays loaded until the sheet drops off (2.5 s)
     t_off_pred = 1.6 if carried else 2.5
-    prof_w, prof_m = press_profile(tw, t_off=t_off_pred), press_profile(tm, t_off=t_off_pred)
-    rec_w, rec_m = press_profile(tw), press_profile(tm)
+    prof_w, prof_m = press_profile(tw, t_off=t_off_pred, ramp=ramp), press_profile(tm, t_off=t_off_pred, ramp=ramp)
+    rec_w, rec_m = press_profile(tw, ramp=ramp), press_profile(tm, ramp=ramp)
     # markers: 9 x 7 grid, pressed 200 um at the dwell
     gx, gy = np.meshgrid(np.arange(9) * 0.002 - 0.008, np.arange(7) * 0.002 - 0.006)
     rest = np.stack([gx.ravel(), gy.ravel(), np.zeros(63)], axis=1)
     bowl = np.exp(-(rest[:, 0] ** 2 + rest[:, 1] ** 2) / (2 * 0.006 ** 2))
     xyz_pred = rest[None] + np.stack([np.zeros_like(bowl), np.zeros_like(bowl), -2e-4 * bowl], 1)[None] * prof_m[:, None, None]
     wrench_pred = np.zeros((len(tw), 6))
-    wrench_pred[:, 2] = -5.0 * prof_w
+    ramping = (prof_w > 0.0) & (prof_w < 1.0)
+    wrench_pred[:, 2] = -5.0 * (prof_w + rough * ramping * (-1.0) ** np.floor(tw / 0.01 + 1e-9))
     # sheet: 21 x 13 flat grid, rises under the gel only if carried
     sx, sy = np.meshgrid(np.linspace(0, 0.1, 21), np.linspace(-0.03, 0.03, 13))
     sheet0 = np.stack([sx.ravel(), sy.ravel(), np.full(sx.size, 1.5e-4)], axis=1)
@@ -108,6 +111,32 @@ def test_latency_named_with_its_delay(rng):
     assert named(rec) == ["latency"]
     lat, _ = timing_tests(rec)
     assert lat.estimate["latency_s"] == pytest.approx(0.04, abs=0.006)
+
+
+def test_contact_events_ignore_roughness_near_the_level():
+    t = np.arange(0.0, 3.0, 0.005)
+    y = press_profile(t, ramp=0.6) * (1.0 + 0.3 * (-1.0) ** np.floor(t / 0.01 + 1e-9))
+    # the rough ramp crosses 20 % of the peak several times on the way up and down: one press
+    assert [d for _, d in contact_events(t, y)] == [1, -1]
+    # each where the rough ramp is at the level (20 % of the 1.3 peak): the smooth ramp between 0.2 and 0.37
+    (t_on, _), (t_off, _) = contact_events(t, y)
+    assert 1.0 + 0.2 * 0.6 - 0.01 <= t_on <= 1.0 + 0.26 / 0.7 * 0.6 + 0.01
+    assert 2.5 - 0.26 / 0.7 * 0.6 - 0.01 <= t_off <= 2.5 - 0.2 * 0.6 + 0.01
+    # two presses with a release between them stay four events
+    two = press_profile(t, 0.5, 1.2, 0.1) + press_profile(t, 1.8, 2.6, 0.1)
+    assert [d for _, d in contact_events(t, two)] == [1, -1, 1, -1]
+
+
+@pytest.mark.parametrize("rough", [0.0, 0.05])
+def test_latency_on_a_slow_rough_press_is_named_latency(rng, rough):
+    # a slower press (0.3 s ramps) seen by a replay with step-to-step roughness (5 % of the peak, as
+    # nominal_s109's replay has near the event level): one event per ramp, a pure delay, not a
+    # first-order lag with an unphysical share above one
+    rec = synthetic(rng, latency=0.04, ramp=0.3, rough=rough)
+    assert named(rec) == ["latency"]
+    lat, visco = timing_tests(rec)
+    assert len(lat.detail["events"]) == 2
+    assert 0.0 <= visco.estimate["fraction"] <= 1.0
 
 
 def test_first_order_lag_named_as_gel_viscoelasticity(rng):
@@ -238,3 +267,33 @@ def test_kelvin_voigt_is_value_plus_tau_times_rate():
     exact = y + 0.02 * 2 * np.pi * 1.5 * np.cos(2 * np.pi * 1.5 * t)
     inner = slice(20, -20)  # the filter's edges fit a shorter span
     assert np.max(np.abs(kv[inner] - exact[inner])) < 0.01
+
+
+def _timing_pair(delay_s: float, lag_tau_s: float, shape: float) -> dict:
+    from sysid.diagnose.signatures.base import SignatureResult
+
+    detail = {"explained_delay": 0.9, "explained_lag": 0.9, "shape_log_ratio": shape}
+    return {"latency": SignatureResult("latency", statistic=200.0, effect_size=delay_s, detail=detail),
+            "gel_viscoelasticity": SignatureResult("gel_viscoelasticity", statistic=210.0, effect_size=lag_tau_s,
+                                                   estimate={"tau_s": lag_tau_s, "fraction": 0.9}, detail=detail)}
+
+
+@pytest.mark.parametrize("delay, lag, shape, expected", [
+    (0.010, 0.025, -0.05, []),                                     # a delay's shape, too small: not a lag
+    (0.025, 0.010, 0.5, []),                                       # a lag's shape, too small: not a delay
+    (0.010, 0.025, 0.05, ["gel_viscoelasticity"]),                 # undecided shape: the one that passes
+    (0.030, 0.035, 0.05, ["gel_viscoelasticity", "latency"]),      # both pass, undecided: a tie
+    (0.02 - 1e-17, 0.0, -0.5, ["latency"]),                        # two periods read off the grid
+])
+def test_the_timing_shape_decides_also_when_one_effect_alone_passes(delay, lag, shape, expected):
+    rec = Recording(t={"wrench": np.arange(100) * 0.005, "markers_xyz": np.arange(50) * 0.01},
+                    data={"wrench": np.zeros((100, 6)), "markers_xyz": np.zeros((50, 63, 3))}, prediction=None,
+                    sigma=SIGMA, camera=CAMERA)
+    d = decide(_timing_pair(delay, lag, shape), default_thresholds(rec))
+    assert d.explained_by == expected
+    assert d.ties == ([["latency", "gel_viscoelasticity"]] if len(expected) == 2 else [])
+
+
+def test_both_timing_effects_are_sized_by_their_smallest_event(rng):
+    lat, visco = timing_tests(synthetic(rng, lag_tau=0.12))
+    assert visco.effect_size == min(visco.detail["taus_s"]) and lat.effect_size == min(lat.detail["delays_s"])
