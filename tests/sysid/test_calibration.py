@@ -110,3 +110,105 @@ def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
     fitted = fit_sensor_calibration({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
     assert fitted.fx == 300.0 and fitted.cx == 160.0
     assert fitted.fy == pytest.approx(300.0) and fitted.cy == pytest.approx(120.0)
+
+
+# ------------------------------------------------------------------ contact parameters of the calibration
+CONTACT_TRUTH = {"contact.stiffness": 6.0e3, "contact.eps_v": 2.0e-3}
+"""A contact 3.3x more compliant than the scene's (2e4 N/m) and a stick regularisation 5x narrower
+than its (0.01 m/s): the known answer of the recording below."""
+
+
+@pytest.fixture(scope="module")
+def contact_bag(tmp_path_factory):
+    """A noisy press-and-slide recording of the bench card made with :data:`CONTACT_TRUTH`; its
+    scene file holds the simulator's default contact (the nominal a real cell's scene would hold)."""
+    from tests.sysid.simbag import CARD_SCENE, PRESS_SLIDE, add_noise, simulate_streams, targets_from_segments, write_bag
+
+    scene = dict(CARD_SCENE)
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), PRESS_SLIDE)
+    streams = add_noise(simulate_streams(scene, CONTACT_TRUTH, targets), seed=4)
+    return write_bag(tmp_path_factory.mktemp("contact") / "bag", scene, streams)
+
+
+def _model(bag):
+    import warnings
+
+    from sysid.evidence import load_evidence
+    from sysid.observation import ObservationModel
+    from tests.sysid.simbag import DT
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ObservationModel(load_evidence(bag), dt=DT)
+
+
+def test_contact_columns_of_the_calibration_jacobian_match_central_differences(contact_bag):
+    """The calibration's Jacobian columns of the contact stiffness (forward sensitivities through the
+    penalty's stiffness derivative) and of the stick regularisation (forward differences: no adjoint
+    derivative) against central differences of the replayed residual, away from the truth."""
+    from sysid.fit import FiniteDifferenceJacobian, FitProblem, SensitivityJacobian, parameter_spec
+
+    model = _model(contact_bag)
+    names = ["contact.stiffness", "contact.eps_v"]
+    problem = FitProblem(model, [parameter_spec(n, model.parameter_value(n)) for n in names])
+    u = np.array([-0.4, -0.6])
+    J_fd = FiniteDifferenceJacobian(step=1e-3)(problem, u)
+    J_s = SensitivityJacobian()(problem, u)
+    assert J_s.shape == J_fd.shape == (model.residual_count, 2)
+    for j, name in enumerate(names):
+        norm = np.linalg.norm(J_fd[:, j])
+        assert norm > 1.0, (name, norm)  # the recording sees both: a 1 % change moves the residual
+        assert np.linalg.norm(J_s[:, j] - J_fd[:, j]) / norm < 0.1, name
+
+
+def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_bag):
+    """Known answer: on a recording this simulator made with a softer contact and a narrower stick zone
+    than its scene says, the calibration finds both within 3 sigma (and 15 %), and its 1-sigma and
+    correlations are reported."""
+    from sysid.calibration import calibrate
+
+    model = _model(contact_bag)
+    assert model.parameter_value("contact.stiffness") == pytest.approx(2.0e4)
+    result = calibrate(model, tuple(CONTACT_TRUTH), max_nfev=12)
+    summary = result.summary()
+    for name, true in CONTACT_TRUTH.items():
+        value, sigma = result.params[name], summary["sigma"][name]
+        assert value == pytest.approx(true, rel=0.15), (name, value)
+        assert sigma is not None and 0.0 < sigma < 0.2 * true, (name, sigma)
+        assert abs(value - true) < 3.0 * max(summary["sigma_scaled"][name], 0.01 * true), (name, value, sigma)
+    assert summary["fitted"] == list(CONTACT_TRUTH)
+    corr = np.asarray(summary["correlation"])
+    assert corr.shape == (2, 2) and np.allclose(np.diag(corr), 1.0) and abs(corr[0, 1]) < 0.9
+    # the contact explains the recording: the sensor calibration has nothing left to take
+    assert result.sensor.force_gain == pytest.approx(1.0, abs=0.05)
+    assert result.whitened_rms_after["wrench"] < 1.5 < result.whitened_rms_before["wrench"]
+
+
+def test_calibration_bounds_follow_the_scene_and_narrow_the_search():
+    from sysid.calibration import CALIBRATION_BOUNDS, CALIBRATION_PARAMETERS, calibration_bounds
+    from sysid.fit import bounded_spec, parameter_spec
+    from sim_core.errors import CalibrationError
+
+    class _Scene:
+        values = {"gel.youngs_modulus": 3.0e5, "gel.poisson_ratio": 0.45, "friction.gel_sheet": 0.8,
+                  "sheet.bending_stiffness": 0.008, "sensor.normal_offset": 0.0, "contact.stiffness": 2.0e4,
+                  "contact.eps_v": 0.01}
+
+        def parameter_value(self, name):
+            return self.values[name]
+
+    assert set(CALIBRATION_PARAMETERS) <= set(CALIBRATION_BOUNDS)
+    b = calibration_bounds(_Scene(), CALIBRATION_PARAMETERS)
+    assert b["gel.youngs_modulus"] == pytest.approx((1.0e5, 9.0e5))
+    assert b["contact.stiffness"] == pytest.approx((2.0e4 / 30.0, 6.0e5))
+    assert b["contact.eps_v"] == pytest.approx((1.0e-4, 0.1))
+    assert b["sensor.normal_offset"] == pytest.approx((-5.0e-4, 5.0e-4))
+    assert b["gel.poisson_ratio"] == (0.3, 0.499)
+    for name, value in _Scene.values.items():  # every scene value lies inside its own bounds
+        spec = bounded_spec(parameter_spec(name, value), b[name])
+        lo, hi = spec.u_bounds
+        assert lo < spec.to_u(value) < hi and spec.to_value(lo) == pytest.approx(b[name][0])
+    with pytest.raises(CalibrationError, match="outside its bounds"):
+        bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (3.0e4, 5.0e4))
+    with pytest.raises(CalibrationError, match="leave no range"):
+        bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (5.0e4, 3.0e4))
