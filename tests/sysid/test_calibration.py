@@ -115,19 +115,35 @@ def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
 # ------------------------------------------------------------------ contact parameters of the calibration
 CONTACT_TRUTH = {"contact.stiffness": 6.0e3, "contact.eps_v": 2.0e-3}
 """A contact 3.3x more compliant than the scene's (2e4 N/m) and a stick regularisation 5x narrower
-than its (0.01 m/s): the known answer of the recording below."""
+than its (0.01 m/s): the known answer of the recordings below."""
+
+
+def _contact_recording(out_dir, segments):
+    """A noisy recording of the bench card made with :data:`CONTACT_TRUTH`; its scene file holds the
+    simulator's default contact (the nominal a real cell's scene would hold)."""
+    from tests.sysid.simbag import CARD_SCENE, add_noise, simulate_streams, targets_from_segments, write_bag
+
+    scene = dict(CARD_SCENE)
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), segments)
+    return write_bag(out_dir, scene, add_noise(simulate_streams(scene, CONTACT_TRUTH, targets), seed=4))
 
 
 @pytest.fixture(scope="module")
-def contact_bag(tmp_path_factory):
-    """A noisy press-and-slide recording of the bench card made with :data:`CONTACT_TRUTH`; its
-    scene file holds the simulator's default contact (the nominal a real cell's scene would hold)."""
-    from tests.sysid.simbag import CARD_SCENE, PRESS_SLIDE, add_noise, simulate_streams, targets_from_segments, write_bag
+def contact_press(tmp_path_factory):
+    """A press (5 steps of 10 ms)."""
+    from tests.sysid.simbag import PRESS_ONLY
 
-    scene = dict(CARD_SCENE)
-    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), PRESS_SLIDE)
-    streams = add_noise(simulate_streams(scene, CONTACT_TRUTH, targets), seed=4)
-    return write_bag(tmp_path_factory.mktemp("contact") / "bag", scene, streams)
+    return _contact_recording(tmp_path_factory.mktemp("contact_press") / "bag", PRESS_ONLY)
+
+
+@pytest.fixture(scope="module")
+def contact_slip(tmp_path_factory):
+    """A press, the gel slips 2 mm over the card, then holds still (the sheared gel creeps back at a
+    rate set by the stick regularisation): 19 steps of 10 ms."""
+    from tests.sysid.simbag import PRESS_SLIDE
+
+    return _contact_recording(tmp_path_factory.mktemp("contact_slip") / "bag",
+                              (*PRESS_SLIDE[:2], ((0.0, 0.0, 0.0), 8)))
 
 
 def _model(bag):
@@ -142,44 +158,62 @@ def _model(bag):
         return ObservationModel(load_evidence(bag), dt=DT)
 
 
-def test_contact_columns_of_the_calibration_jacobian_match_central_differences(contact_bag):
-    """The calibration's Jacobian columns of the contact stiffness (forward sensitivities through the
-    penalty's stiffness derivative) and of the stick regularisation (forward differences: no adjoint
-    derivative) against central differences of the replayed residual, away from the truth."""
+def test_contact_stiffness_column_matches_central_differences(contact_press):
+    """The calibration's Jacobian column of the contact stiffness (forward sensitivities through the
+    penalty's stiffness derivative) against central differences of the replayed residual, away from
+    the truth."""
     from sysid.fit import FiniteDifferenceJacobian, FitProblem, SensitivityJacobian, parameter_spec
 
-    model = _model(contact_bag)
-    names = ["contact.stiffness", "contact.eps_v"]
+    model = _model(contact_press)
+    names = ["contact.stiffness", "gel.youngs_modulus"]
     problem = FitProblem(model, [parameter_spec(n, model.parameter_value(n)) for n in names])
-    u = np.array([-0.4, -0.6])
+    u = np.array([-0.4, 0.1])
     J_fd = FiniteDifferenceJacobian(step=1e-3)(problem, u)
     J_s = SensitivityJacobian()(problem, u)
-    assert J_s.shape == J_fd.shape == (model.residual_count, 2)
     for j, name in enumerate(names):
         norm = np.linalg.norm(J_fd[:, j])
-        assert norm > 1.0, (name, norm)  # the recording sees both: a 1 % change moves the residual
-        assert np.linalg.norm(J_s[:, j] - J_fd[:, j]) / norm < 0.1, name
+        assert norm > 1.0, (name, norm)  # the recording sees it: a 1 % change moves the residual
+        assert np.linalg.norm(J_s[:, j] - J_fd[:, j]) / norm < 0.05, name
 
 
-def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_bag):
+def test_stick_regularisation_column_is_the_secant_over_its_difference_step(contact_slip):
+    """``contact.eps_v`` has no adjoint derivative: its column is the forward secant over
+    :data:`sysid.jacobians.DIFFERENCE_STEPS` (10 %), also when it is the only parameter; it points
+    along the central secant over the same step (the replay's cost is rough on 1 % steps)."""
+    from sysid.fit import FitProblem, SensitivityJacobian, parameter_spec
+    from sysid.jacobians import DIFFERENCE_STEPS
+
+    model = _model(contact_slip)
+    name = "contact.eps_v"
+    problem = FitProblem(model, [parameter_spec(name, model.parameter_value(name))])
+    u, h = np.array([-0.6]), DIFFERENCE_STEPS[name]
+    J = SensitivityJacobian()(problem, u)
+    r0, rp, rm = (problem.residual(u + d) for d in (0.0, h, -h))
+    np.testing.assert_allclose(J[:, 0], (rp - r0) / h, rtol=0, atol=1e-9 * np.abs(J).max())
+    central = (rp - rm) / (2.0 * h)
+    assert np.linalg.norm(central) > 1.0
+    cosine = float(J[:, 0] @ central) / (np.linalg.norm(J[:, 0]) * np.linalg.norm(central))
+    assert cosine > 0.8, cosine
+
+
+def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_slip):
     """Known answer: on a recording this simulator made with a softer contact and a narrower stick zone
-    than its scene says, the calibration finds both within 3 sigma (and 15 %), and its 1-sigma and
-    correlations are reported."""
+    than its scene says, the calibration finds both (within 3 scaled sigma, 10 % and 35 %), reports
+    their 1-sigma and correlation, and leaves the sensor calibration at unit gains."""
     from sysid.calibration import calibrate
 
-    model = _model(contact_bag)
+    model = _model(contact_slip)
     assert model.parameter_value("contact.stiffness") == pytest.approx(2.0e4)
     result = calibrate(model, tuple(CONTACT_TRUTH), max_nfev=12)
     summary = result.summary()
-    for name, true in CONTACT_TRUTH.items():
+    for (name, true), rel in zip(CONTACT_TRUTH.items(), (0.10, 0.35)):
         value, sigma = result.params[name], summary["sigma"][name]
-        assert value == pytest.approx(true, rel=0.15), (name, value)
-        assert sigma is not None and 0.0 < sigma < 0.2 * true, (name, sigma)
-        assert abs(value - true) < 3.0 * max(summary["sigma_scaled"][name], 0.01 * true), (name, value, sigma)
+        assert value == pytest.approx(true, rel=rel), (name, value, summary)
+        assert sigma is not None and 0.0 < sigma < 0.5 * true, (name, sigma)
+        assert abs(value - true) < 3.0 * max(summary["sigma_scaled"][name], 0.02 * true), (name, value, sigma)
     assert summary["fitted"] == list(CONTACT_TRUTH)
     corr = np.asarray(summary["correlation"])
-    assert corr.shape == (2, 2) and np.allclose(np.diag(corr), 1.0) and abs(corr[0, 1]) < 0.9
-    # the contact explains the recording: the sensor calibration has nothing left to take
+    assert corr.shape == (2, 2) and np.allclose(np.diag(corr), 1.0) and abs(corr[0, 1]) < 0.95
     assert result.sensor.force_gain == pytest.approx(1.0, abs=0.05)
     assert result.whitened_rms_after["wrench"] < 1.5 < result.whitened_rms_before["wrench"]
 
