@@ -332,9 +332,10 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
 
-    Sets ``model.sensor_calibration``, ``model.marker_rest`` and ``model.nominal_normal_offset``
-    (the fitted mount offset becomes the replay's nominal), so that every later prediction of the
-    model is calibrated.
+    Sets ``model.sensor_calibration`` and ``model.marker_rest``, and makes the fitted parameters the
+    model's nominal (:meth:`~sysid.observation.ObservationModel.set_nominal`; the mount offset
+    ``model.nominal_normal_offset``), so that every later replay and prediction of the model is
+    calibrated. The fit starts from the scene's values (:meth:`~sysid.observation.ObservationModel.reset_nominal`).
 
     Steps (default): replay at the scene values; fit ``params`` with the scene's sensor calibration
     (unit gains: the physics, not the sensor, is asked to explain the recording first); fit the sensor
@@ -370,7 +371,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     t_start = time.perf_counter()
     channels = [ch for ch in model.sigma]
     model.sensor_calibration = None
-    model.nominal_normal_offset = 0.0
+    model.reset_nominal()
     try:
         trace = model.simulate({})
     except SimulationDivergedError as err:
@@ -389,7 +390,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
         result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time, bounds=limits)
         values = {k: float(v) for k, v in result.values.items()}
-        model.nominal_normal_offset = float(values.get("sensor.normal_offset", 0.0))
+        model.set_nominal(values)
         if sensor_first:
             trace = model.simulate(values)
             raw = model.predict_raw(trace)

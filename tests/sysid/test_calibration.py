@@ -246,3 +246,37 @@ def test_calibration_bounds_follow_the_scene_and_narrow_the_search():
         bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (3.0e4, 5.0e4))
     with pytest.raises(CalibrationError, match="leave no range"):
         bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (5.0e4, 3.0e4))
+
+
+def test_calibrated_values_become_the_replays_nominal(contact_press):
+    from sim_core.errors import ConfigError
+
+    model = _model(contact_press)
+    model.set_nominal({"contact.stiffness": 1.0e4, "sensor.normal_offset": 1.0e-5})
+    assert model.parameter_value("contact.stiffness") == 1.0e4 and model.nominal_normal_offset == 1.0e-5
+    assert model.prepare({}).get_parameter("contact.stiffness") == 1.0e4
+    assert model.prepare({"contact.stiffness": 3.0e3}).get_parameter("contact.stiffness") == 3.0e3
+    with pytest.raises(ConfigError, match="must be > 0"):  # nothing changes on a bad value
+        model.set_nominal({"gel.youngs_modulus": 2.0e5, "contact.stiffness": -1.0})
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        model.set_nominal({"contact.stifness": 1.0})
+    assert model.parameter_value("gel.youngs_modulus") == 3.0e5
+    model.reset_nominal()
+    assert model.parameter_value("contact.stiffness") == 2.0e4 and model.nominal_normal_offset == 0.0
+    assert model.prepare({}).get_parameter("contact.stiffness") == 2.0e4
+
+
+def test_sysid_fit_starts_from_the_calibrated_model(contact_press, tmp_path):
+    """``thinshell sysid --calibrate``: the calibration parameters other than the fitted ones are
+    calibrated first (as ``thinshell diagnose`` does), and the fit replays with their values."""
+    from sysid.fit_recording import FitOptions, fit_recording
+
+    options = FitOptions(params=("gel.youngs_modulus",), calibration_params=("contact.stiffness", "gel.youngs_modulus"),
+                         max_nfev=4)
+    outcome = fit_recording(contact_press, tmp_path / "out", options)
+    cal = outcome.document["diagnostics"]["sensor_calibration"]
+    assert cal["fitted"] == ["contact.stiffness"]  # the fitted parameter is not calibrated beforehand
+    k = cal["params"]["contact.stiffness"]
+    assert k == pytest.approx(CONTACT_TRUTH["contact.stiffness"], rel=0.15)
+    assert outcome.result.model.parameter_value("contact.stiffness") == k
+    assert outcome.result.values["gel.youngs_modulus"] == pytest.approx(3.0e5, rel=0.05)
