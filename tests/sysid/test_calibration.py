@@ -198,15 +198,15 @@ def test_stick_regularisation_column_is_the_secant_over_its_difference_step(cont
 
 def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_slip):
     """Known answer: on a recording this simulator made with a softer contact and a narrower stick zone
-    than its scene says, the calibration finds both (within 3 scaled sigma, 10 % and 35 %), reports
-    their 1-sigma and correlation, and leaves the sensor calibration at unit gains."""
+    than its scene says, the calibration finds both (within 3 scaled sigma and 10 %; found: -2.0 % and
+    +2.6 %), reports their 1-sigma and correlation, and leaves the sensor calibration at unit gains."""
     from sysid.calibration import calibrate
 
     model = _model(contact_slip)
     assert model.parameter_value("contact.stiffness") == pytest.approx(2.0e4)
     result = calibrate(model, tuple(CONTACT_TRUTH), max_nfev=12)
     summary = result.summary()
-    for (name, true), rel in zip(CONTACT_TRUTH.items(), (0.10, 0.35)):
+    for (name, true), rel in zip(CONTACT_TRUTH.items(), (0.10, 0.10)):
         value, sigma = result.params[name], summary["sigma"][name]
         assert value == pytest.approx(true, rel=rel), (name, value, summary)
         assert sigma is not None and 0.0 < sigma < 0.5 * true, (name, sigma)
