@@ -17,6 +17,9 @@ from sysid.diagnose.schema import validate_report
 from sysid.diagnose_cli import diagnose_main
 from tests.sysid.conftest import reference_bag
 
+# three full diagnoses (calibration budget 90 s each) share one fixture: longer than pytest.ini's per-test 600 s on a loaded 2-core machine
+pytestmark = pytest.mark.timeout(1800)
+
 EXPECTED = {"nominal_s101": [], "latency_s103": ["latency"], "plastic_s102": ["bending_plasticity", "adhesion"]}
 
 
