@@ -28,9 +28,9 @@ import scipy.sparse as sp
 from sim_core.assembly import HessianAssembler
 from sim_core.backend import resolve_backend, uses_taichi
 from sim_core.candidates.hook import CandidateHook, StepHook
-from sim_core.collision.memory import CollisionMemory
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
+from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.energies.base import KeepsDerivatives
@@ -102,27 +102,6 @@ class _StepTerms:
     simplified: bool
     loop_energy_x: np.ndarray | None = None
     loop_energy: float = 0.0
-
-
-@dataclass
-class _FixedPoint:
-    """A step that left its state unchanged, and what it depended on (:meth:`NewtonSolver._repeat_fixed_point`).
-
-    Attributes:
-        inputs: the model revision, ``dt``, gravity, damping, friction table and solver settings of the step.
-        state: the step's output (= its input but for ``t``, ``step_index``), a copy.
-        fixed, x_target, poses, openings, limited: the step's Dirichlet data (:meth:`NewtonSolver.boundary`).
-        info: how the step ended.
-    """
-
-    inputs: tuple
-    state: State
-    fixed: np.ndarray
-    x_target: np.ndarray
-    poses: dict
-    openings: dict
-    limited: list
-    info: StepInfo
 
 
 class NewtonSolver:
@@ -200,7 +179,7 @@ class NewtonSolver:
         self.contact = ContactSet(self.model, backend=self.backend, workspace=self.workspace)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
-        self._fixed_point: _FixedPoint | None = None
+        self._fixed_point: FixedPoint | None = None
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -296,21 +275,17 @@ class NewtonSolver:
                 None if scale is None else np.asarray(scale, dtype=float).tobytes(),
                 tuple(model.friction.items()), self.config)
 
-    def _as_fixed_point(self, state_in: State, state_out: State, dt: float, info: StepInfo) -> _FixedPoint | None:
-        """The step just taken from ``state_in`` to ``state_out`` as a :class:`_FixedPoint`, when it left
+    def _as_fixed_point(self, state_in: State, state_out: State, dt: float, info: StepInfo) -> FixedPoint | None:
+        """The step just taken from ``state_in`` to ``state_out`` as a :class:`FixedPoint`, when it left
         the state unchanged (positions, zero velocity, poses, openings, rest angles, contact memory)
         and was accepted by a strict test in one (sub)step; else None."""
         rec = self.last_record
-        if (rec is None or not info.converged_strict or info.substeps != 1 or state_in.contact_memory is None
-                or not _same_array(state_out.x, state_in.x) or np.any(state_in.v)
-                or not _same_arrays(state_out.effector_pose, state_in.effector_pose)
-                or state_out.gripper_opening != state_in.gripper_opening
-                or not _same_arrays(state_out.hinge_theta_bar, state_in.hinge_theta_bar)
-                or not _same_memory(state_out.contact_memory, state_in.contact_memory)):
+        if (rec is None or not info.converged_strict or info.substeps != 1 or np.any(state_in.v)
+                or not same_resting_state(state_out, state_in, with_velocity=False)):
             return None
         # a copy of the settings: the kept ones compare by value with the solver's (a dataclass's ==)
         inputs = self._step_inputs(dt)[:-1] + (dataclasses.replace(self.config),)
-        return _FixedPoint(inputs=inputs, state=state_out.copy(), fixed=rec.fixed, x_target=rec.x_target,
+        return FixedPoint(inputs=inputs, state=state_out.copy(), fixed=rec.fixed, x_target=rec.x_target,
                            poses=rec.effector_pose, openings=rec.gripper_opening, limited=list(rec.limited_effectors),
                            info=dataclasses.replace(info))
 
@@ -323,22 +298,17 @@ class NewtonSolver:
         if fp is None or self._revision != self.model.revision:
             return None
         kept = fp.state
-        if not (_same_array(state_in.x, kept.x) and _same_array(state_in.v, kept.v)
-                and _same_arrays(state_in.effector_pose, kept.effector_pose)
-                and state_in.gripper_opening == kept.gripper_opening
-                and _same_arrays(state_in.hinge_theta_bar, kept.hinge_theta_bar)
-                and state_in.contact_memory is not None and _same_memory(state_in.contact_memory, kept.contact_memory)
-                and self._step_inputs(dt) == fp.inputs):
+        if not (same_resting_state(state_in, kept, with_velocity=True) and self._step_inputs(dt) == fp.inputs):
             return None
         fixed, x_target, poses, openings, limited = self.boundary(state_in, control)
-        if not (_same_array(fixed, fp.fixed) and _same_array(x_target, fp.x_target) and _same_arrays(poses, fp.poses)
+        if not (same_array(fixed, fp.fixed) and same_array(x_target, fp.x_target) and same_arrays(poses, fp.poses)
                 and openings == fp.openings and limited == fp.limited):
             return None
         out = kept.copy()
         out.t = state_in.t + dt
         out.step_index = state_in.step_index + 1
         out.candidate_state = state_in.candidate_state
-        _copy_state_into(out, state_out)
+        copy_state_into(out, state_out)
         done = fp.info
         return StepInfo(residual_velocity=done.residual_velocity, energy=done.energy, limited_effectors=list(limited),
                         stop_reason=done.stop_reason, converged_strict=done.converged_strict,
@@ -386,7 +356,7 @@ class NewtonSolver:
             s = nxt
         s.step_index = state_in.step_index + 1
         s.t = state_in.t + dt
-        _copy_state_into(s, state_out)
+        copy_state_into(s, state_out)
         return total
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
@@ -873,24 +843,3 @@ def _rate_stops(history: list[float], tol_velocity: float) -> bool:
     ``tol_velocity``."""
     theta = history[-1] / history[-2]
     return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity
-
-
-def _same_array(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether ``a`` and ``b`` have the same shape, dtype and bytes (bitwise equal)."""
-    a, b = np.asarray(a), np.asarray(b)
-    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
-
-
-def _same_arrays(a: dict, b: dict) -> bool:
-    """Whether two dicts of arrays have the same keys and bitwise equal arrays (:func:`_same_array`)."""
-    return a.keys() == b.keys() and all(_same_array(a[k], b[k]) for k in a)
-
-
-def _same_memory(a: CollisionMemory, b: CollisionMemory) -> bool:
-    """Whether two contact side memories hold the same pairs and sides."""
-    return a.vertex_triangle == b.vertex_triangle and a.edge_edge == b.edge_edge
-
-
-def _copy_state_into(src: State, dst: State) -> None:
-    for k, v in vars(src).items():
-        setattr(dst, k, v)
