@@ -43,6 +43,7 @@ from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.solver_config import SolverConfig
+from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
@@ -79,6 +80,8 @@ class _StepTerms:
         simplified: whether the simplified Newton test may end the step.
         loop_energy_x, loop_energy: the positions array object the loop terms' energy (J) was last
             evaluated at, and that energy.
+        last_update: the Newton update (m, ``(3 n,)``) the stopping test measured at the accepted
+            iterate (the ordinary or simplified correction), None when the step ended otherwise.
     """
 
     state_in: State
@@ -102,6 +105,7 @@ class _StepTerms:
     simplified: bool
     loop_energy_x: np.ndarray | None = None
     loop_energy: float = 0.0
+    last_update: np.ndarray | None = None
 
 
 class NewtonSolver:
@@ -179,7 +183,11 @@ class NewtonSolver:
         self.contact = ContactSet(self.model, backend=self.backend, workspace=self.workspace)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
+        self._fused_kept: dict[frozenset, FusedElastic] = {}  # by the sleeping bodies' names
         self._fixed_point: FixedPoint | None = None
+        self._sleep = SleepSet(self.model, self.config.sleep_velocity)
+        self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
+        self._last_contact_terms: list = []  # the contact terms at the last step's result
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -199,6 +207,7 @@ class NewtonSolver:
         self._hook = _checked_hook(hook)
         self.step_hook = self._resolve_hook()
         self._fixed_point = None
+        self._sleep.wake_all()
 
     def _resolve_hook(self) -> StepHook | None:
         """The explicit hook, else a :class:`CandidateHook` of the model's candidates, else None.
@@ -237,13 +246,53 @@ class NewtonSolver:
                 raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
+        sleeping = self.config.sleeping and guess is None and self.step_hook is None
+        woken = self._wake_before_step(state_in, control, dt, sleeping)
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
-        if repeat:
+        if repeat and not woken:
             info = self._repeat_fixed_point(state_in, state_out, control, dt)
             if info is not None:
+                info.sleeping = self._sleep.names
                 info.time_total = time.perf_counter() - t0
                 return info
         self._fixed_point = None
+        redos = 0
+        while True:
+            try:
+                info = self._solve(state_in, state_out, control, dt, guess, repeat)
+            except Woken as err:  # a sleeping body was reached during the solve: solve again with it awake
+                self._sleep.wake(err.bodies)
+                woken = sorted(set(woken) | set(err.bodies))
+                redos += 1
+                continue
+            info.woken, info.wake_redos = tuple(woken), redos
+            if sleeping and info.retries == 0 and info.converged_strict:
+                info.fell_asleep = tuple(self._sleep.fall_asleep(
+                    state_in, state_out, self._last_update, dt, self._last_contact_terms, self._step_inputs(dt),
+                    lambda name, x: self.elastic.body_energy(name, x, state_out.hinge_theta_bar)))
+            info.time_total = time.perf_counter() - t0
+            return info
+
+    def _wake_before_step(self, state_in: State, control: Control, dt: float, sleeping: bool) -> list[str]:
+        """Wake the sleeping bodies the step could change (:meth:`SleepSet.wake_before_step`), or all of
+        them when this step does not sleep (``sleeping`` False: a position guess, a step hook or
+        ``SolverConfig.sleeping`` off); the woken names, sorted."""
+        if not self._sleep.bodies:
+            return []
+        if not sleeping:
+            return self._sleep.wake_all()
+        fixed, x_target = self.boundary(state_in, control)[:2]
+        return self._sleep.wake_before_step(state_in, self._step_inputs(dt), x_target, fixed, dt)
+
+    def _solve(self, state_in: State, state_out: State, control: Control, dt: float, guess: np.ndarray | None,
+               repeat: bool) -> StepInfo:
+        """The step solved, retried in substeps as configured (``SolverConfig.dt_halvings_on_failure``);
+        kept as the fixed point when ``repeat`` and it left the state at rest.
+
+        Raises:
+            SimulationDivergedError: see :meth:`step`.
+            Woken: a contact candidate pair joined a sleeping body to a moving vertex.
+        """
         retries = 0
         while True:
             n_sub = 2 ** retries
@@ -261,9 +310,9 @@ class NewtonSolver:
                     f"SolverConfig.dt_halvings_on_failure exhausted); last failure: {err}",
                     step_index=state_in.step_index, t=state_in.t) from err
             info.retries = retries
+            info.sleeping = self._sleep.names
             if repeat and retries == 0:
                 self._fixed_point = self._as_fixed_point(state_in, state_out, dt, info)
-            info.time_total = time.perf_counter() - t0
             return info
 
     def _step_inputs(self, dt: float) -> tuple:
@@ -301,6 +350,8 @@ class NewtonSolver:
         if not (same_resting_state(state_in, kept, with_velocity=True) and self._step_inputs(dt) == fp.inputs):
             return None
         fixed, x_target, poses, openings, limited = self.boundary(state_in, control)
+        if self._sleep.bodies:
+            fixed = fixed | self._sleep.mask  # the step's Dirichlet mask holds the sleeping bodies
         if not (same_array(fixed, fp.fixed) and same_array(x_target, fp.x_target) and same_arrays(poses, fp.poses)
                 and openings == fp.openings and limited == fp.limited):
             return None
@@ -408,7 +459,8 @@ class NewtonSolver:
         reference potentials)."""
         if not self._fused_path():
             return None
-        self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
+        key = frozenset(self._sleep.bodies)
+        self._fused = self._fused_kept[key] = FusedElastic.for_terms(self._fused_kept.get(key), elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)
         self._fused.offload = self.elastic_worker if self.backend == "taichi-cpu" else None
@@ -430,6 +482,7 @@ class NewtonSolver:
         step, x = self._set_up_step(state_in, control, dt, guess, info)
         x, H, projection, factorization = self._newton_iterations(step, x, guess is not None, info)
         self._finish_step(step, x, H, projection, factorization, state_out, info)
+        self._last_update = step.last_update
         return info
 
     # -------------------------------------------------------------- the parts of one step
@@ -440,6 +493,9 @@ class NewtonSolver:
         cfg = self.config
         model = self.model
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
+        asleep = frozenset(self._sleep.bodies)
+        if asleep:
+            fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
         free = np.repeat(~fixed, 3)
         x_n = state_in.x
         x = x_n.copy() if guess is None else guess.copy()
@@ -453,7 +509,7 @@ class NewtonSolver:
             damp = ViscousDamping(mass, x_n, model.damping, dt)
             fixed_terms.append(damp)
             diag = diag + damp.hessian_diagonal()
-        elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
+        elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar, skip=asleep)
         fixed_terms += elastic_terms
         fused = None
         if self.step_hook is None and self.elastic_worker is not None:
@@ -523,9 +579,10 @@ class NewtonSolver:
             contact_terms, x_search, g = self._gradient(step, x, it, info)
             if (simplified_ok and active_before is not None
                     and same_active_contacts(active_contacts(contact_terms, x), active_before)):
-                residual_bar = self._simplified_correction(step, g, info)
+                residual_bar, d_bar = self._simplified_correction(step, g, info)
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
                     info.simplified_stops = 1
+                    step.last_update = d_bar
                     self._accept(info, it, residual_bar, "simplified")
                     return x, H, projection, factorization
             active_before = None
@@ -537,6 +594,7 @@ class NewtonSolver:
             reason = self._stop_reason(residual, g, history)
             if reason is not None:
                 if not (guessed and it == 1):
+                    step.last_update = d if reason in STRICT_STOPS else None
                     self._accept(info, it, residual, reason)
                     return x, H, projection, factorization
                 # a guess already within the tolerance: take its Newton correction (no line search:
@@ -608,6 +666,7 @@ class NewtonSolver:
         """
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        self._check_asleep_unreached(contact_terms)
         x_search = self.contact.search_position
         g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
         g[~step.free] = 0.0
@@ -616,14 +675,14 @@ class NewtonSolver:
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
 
-    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> float:
+    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> tuple[float, np.ndarray]:
         """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
-        last factorisation (``SolverConfig.simplified_newton_check``)."""
+        last factorisation (``SolverConfig.simplified_newton_check``), and the correction (m, ``(3 n,)``)."""
         tl = time.perf_counter()
         d_bar = self.linear_solver.solve(g)
         d_bar[~step.free] = 0.0
         info.time_linear_solve += time.perf_counter() - tl
-        return _largest_move(d_bar) / step.dt
+        return _largest_move(d_bar) / step.dt, d_bar
 
     def _assemble_hessian(self, step: _StepTerms, x: np.ndarray, projection: str,
                           dynamic_terms: list) -> sp.csr_matrix:
@@ -768,6 +827,13 @@ class NewtonSolver:
         else:  # the round-off test bounds the predicted energy decrease, not the residual
             info.accepted_tolerance = np.inf
 
+    def _check_asleep_unreached(self, contact_terms: list) -> None:
+        """Raise :class:`Woken` when a contact candidate pair of ``contact_terms`` joins a sleeping body
+        to a moving vertex (:meth:`SleepSet.reached_by_pairs`)."""
+        reached = self._sleep.reached_by_pairs(contact_terms) if self._sleep.bodies else []
+        if reached:
+            raise Woken(reached)
+
     @staticmethod
     def _diverged(step: _StepTerms, what: str) -> SimulationDivergedError:
         """A :class:`SimulationDivergedError` naming the step index and time of ``step``."""
@@ -783,17 +849,19 @@ class NewtonSolver:
         state_in, dt, x_n = step.state_in, step.dt, step.x_n
         # a step ended by the simplified Newton test has the matrix of the iterate before x
         exact = projection == "none" and not info.simplified_stops
+        contact_terms = self.contact.potentials(x, x_n, step.memory)
+        self._check_asleep_unreached(contact_terms)
+        self._last_contact_terms = contact_terms
         self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
-        contact_terms = self.contact.potentials(x, x_n, step.memory)
-        info.energy = self._energy(step, x, contact_terms, self.contact.search_position)
+        info.energy = self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
         self.last_record = StepRecord(
             dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
             x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
             gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
             terms=step.fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
-            free_dofs=step.free, hessian_exact=exact, expansion=self._full_from_upper,
+            free_dofs=step.free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
         )
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1

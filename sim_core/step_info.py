@@ -37,6 +37,8 @@ class StepRecord:
             iterate before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
             :attr:`hessian`.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
+        asleep: the bodies held asleep during the step (``SolverConfig.sleeping``): their vertices are
+            in ``fixed`` and their elastic terms are not in ``terms`` (not the full system's linearisation).
         hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
             of the implicit-function-theorem linearisation (:mod:`sim_core.adjoint`).
         expansion: the :class:`~sim_core.linsolve.SymmetricExpansion` that builds :attr:`hessian`
@@ -57,6 +59,7 @@ class StepRecord:
     hessian_upper: sp.csr_matrix
     free_dofs: np.ndarray
     hessian_exact: bool = False
+    asleep: tuple[str, ...] = ()
     expansion: SymmetricExpansion | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -120,6 +123,11 @@ class StepInfo:
             (``SolverConfig.repeat_fixed_points``), whose result it took; ``residual_velocity``,
             ``energy``, ``stop_reason``, ``converged_strict`` and ``accepted_tolerance`` are that
             step's, the counts and times its own (no iteration, no factorisation).
+        sleeping: the bodies held asleep during the step (``SolverConfig.sleeping``), sorted names.
+        woken: the bodies woken at the step (before it, or during it: then the step was solved again), sorted.
+        fell_asleep: the bodies that fell asleep after the step (they sleep from the next step on), sorted.
+        wake_redos: times the step was solved again because a contact candidate pair joined a sleeping
+            body to a moving vertex during the solve.
     """
 
     iterations: int = 0
@@ -143,6 +151,10 @@ class StepInfo:
     stalled_accepts: int = 0
     line_search_failures: int = 0
     repeated: bool = False
+    sleeping: tuple[str, ...] = ()
+    woken: tuple[str, ...] = ()
+    fell_asleep: tuple[str, ...] = ()
+    wake_redos: int = 0
 
     @property
     def needs_attention(self) -> bool:
@@ -165,6 +177,8 @@ class StepTotals:
         largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
         first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
         repeated_steps: steps that repeated a fixed point instead of a solve (``StepInfo.repeated``).
+        sleeping_steps: steps with at least one body asleep (``StepInfo.sleeping``).
+        wake_redos: steps solved again after a sleeping body was reached (``StepInfo.wake_redos``), summed.
     """
 
     steps: int = 0
@@ -178,6 +192,8 @@ class StepTotals:
     largest_accepted_tolerance: float = 0.0
     first_relaxed_step: int | None = None
     repeated_steps: int = 0
+    sleeping_steps: int = 0
+    wake_redos: int = 0
 
     def add(self, info: StepInfo, step_index: int) -> None:
         """Count the step that started at ``step_index`` and ended as ``info``."""
@@ -190,6 +206,8 @@ class StepTotals:
         self.stalled_accepts += info.stalled_accepts
         self.line_search_failures += info.line_search_failures
         self.repeated_steps += info.repeated
+        self.sleeping_steps += bool(info.sleeping)
+        self.wake_redos += info.wake_redos
         self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
         if info.needs_attention and self.first_relaxed_step is None:
             self.first_relaxed_step = int(step_index)
