@@ -31,8 +31,8 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.energies.base import PenaltyContact
-from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact,
+from sim_core.energies.base import PenaltyContact, declares
+from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.sphere_contact.reference import SphereContact
@@ -532,10 +532,16 @@ class ContactSet:
         vt, ee = self._pairs(x, memory)
         return [vt, ee] + [p for _, p in self.planes] + [p for _, p in self.spheres]
 
-    def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
-        """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
+    def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory,
+                 held: np.ndarray | None = None) -> LaggedFriction | None:
+        """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0).
+
+        ``held``: vertices held at ``x^n`` for the whole step (sleeping bodies, :mod:`sim_core.sleeping`),
+        bool ``(n,)``, or None; the rows of a vertex and an obstacle with the vertex held are left out
+        (its tangential displacement is zero all step: no friction energy or force)."""
         vt, ee = self._pairs(x_n, memory)
-        obstacle_frames = [(name, obstacle, obstacle.contact_frames(x_n)) for name, obstacle in self.planes + self.spheres]
+        obstacle_frames = [(name, obstacle, _without_held(obstacle.contact_frames(x_n), held))
+                           for name, obstacle in self.planes + self.spheres]
         if self.taichi and not any(len(f.lam) for *_, f in obstacle_frames):
             return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
@@ -643,6 +649,14 @@ class ContactSet:
 _NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
+def _without_held(frames: ContactFrames, held: np.ndarray | None) -> ContactFrames:
+    """``frames`` without the rows whose vertices are all ``held`` (bool ``(n,)``; None: ``frames``)."""
+    if held is None or not len(frames.lam):
+        return frames
+    keep = ~held[frames.vertices.reshape(len(frames.lam), -1)].all(axis=1)
+    return frames if keep.all() else ContactFrames(*(a[keep] for a in frames))
+
+
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:
     """The rows of ``pairs`` ``(p, 2)`` not ``found`` (bool ``(p,)``); ``pairs`` itself when none is."""
     return pairs if not np.any(found) else pairs[~found]
@@ -667,7 +681,7 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
-    if not all(isinstance(p, PenaltyContact) for p in terms):
+    if not all(declares(p, PenaltyContact) for p in terms):
         return None
     return [p.vertices[p.active_mask(x)] for p in terms]
 

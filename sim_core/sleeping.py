@@ -49,6 +49,7 @@ class SleepingBody:
         name: the body's name.
         vertices: its vertex indices, int64 shape ``(k,)``.
         x: its held positions, m, shape ``(k, 3)`` (a copy).
+        lo, hi: the corners of its bounding box at ``x``, m, ``(3,)`` each.
         theta_bar: its rest dihedral angles when it fell asleep (rad, ``(h,)``), or None (no hinges).
         energy: its elastic energy at ``x`` (J), added to ``StepInfo.energy`` while it sleeps.
     """
@@ -56,6 +57,8 @@ class SleepingBody:
     name: str
     vertices: np.ndarray
     x: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
     theta_bar: np.ndarray | None
     energy: float
 
@@ -89,6 +92,8 @@ class SleepSet:
         self.bodies: dict[str, SleepingBody] = {}
         self.inputs: tuple | None = None
         self._mask: np.ndarray | None = None
+        self._code: np.ndarray | None = None  # _vertex_code, for the current mask
+        self._pairs_seen: dict[int, tuple] = {}  # id(pair vertices) -> (the array, its joining vertices or None)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -115,50 +120,70 @@ class SleepSet:
         """The sleeping bodies that a contact candidate pair of ``contact_terms`` (as
         :meth:`~sim_core.contact_set.ContactSet.potentials` returns them: vertex-triangle and
         edge-edge pairs with ``vertices`` ``(p, 4)``) joins to a moving vertex (neither asleep nor
-        static), sorted."""
+        static), sorted. A pair array seen before (the contact set keeps its candidate lists while
+        they cover the iterates) is answered from the last look."""
         if not self.bodies:
             return []
-        asleep = self.mask
-        moving = ~(asleep | self.static)
-        hit = np.zeros(self.model.vertex_count, dtype=bool)
+        hit = None
         for pot in contact_terms:
             v = getattr(pot, "vertices", None)
             if v is None or v.ndim != 2 or not len(v):
                 continue
-            rows = asleep[v].any(axis=1) & moving[v].any(axis=1)
-            if np.any(rows):
-                hit[v[rows].reshape(-1)] = True
-        hit &= asleep
-        return sorted(name for name, b in self.bodies.items() if np.any(hit[b.vertices]))
+            kept = self._pairs_seen.get(id(v))
+            if kept is None or kept[0] is not v:
+                code = self._vertex_code()
+                c = code[v]
+                rows = ((c & 1).any(axis=1)) & ((c & 2).any(axis=1))
+                if len(self._pairs_seen) >= 16:  # the lists of earlier searches: not asked again
+                    self._pairs_seen.clear()
+                kept = self._pairs_seen[id(v)] = (v, v[rows].reshape(-1) if np.any(rows) else None)
+            if kept[1] is not None:
+                hit = kept[1] if hit is None else np.concatenate([hit, kept[1]])
+        if hit is None:
+            return []
+        asleep_hit = np.zeros(self.model.vertex_count, dtype=bool)
+        asleep_hit[hit] = True
+        asleep_hit &= self.mask
+        return sorted(name for name, b in self.bodies.items() if np.any(asleep_hit[b.vertices]))
 
-    def _within_reach(self, name: str, x: np.ndarray, x_end: np.ndarray, sleeping: np.ndarray) -> bool:
-        """Whether a moving vertex (neither in ``sleeping`` nor static) at ``x`` or ``x_end`` ``(n, 3)``
-        may come within the contact search distance of body ``name``'s bounding box at ``x`` in one
-        step: a box gap below ``radius`` plus twice the largest move ``|x_end - x|`` of a moving
-        vertex."""
-        body = self.model.bodies[name]
-        lo, hi = x[body.vertex_start:body.vertex_stop].min(axis=0), x[body.vertex_start:body.vertex_stop].max(axis=0)
-        moving = ~(sleeping | self.static)
-        moving[body.vertex_start:body.vertex_stop] = False
+    def _vertex_code(self) -> np.ndarray:
+        """Per vertex: 1 asleep, 2 moving (neither asleep nor static), 0 static; int8 ``(n,)``."""
+        if self._code is None:
+            self._code = np.where(self.mask, 1, np.where(self.static, 0, 2)).astype(np.int8)
+        return self._code
+
+    def _within_reach(self, lo: np.ndarray, hi: np.ndarray, x: np.ndarray, x_end: np.ndarray,
+                      moving: np.ndarray) -> bool:
+        """Whether a ``moving`` vertex (bool ``(n,)``) at ``x`` or ``x_end`` ``(n, 3)`` may come within the
+        contact search distance of the box ``[lo, hi]`` (m, ``(3,)`` each) in one step: a box gap below
+        ``radius`` plus twice the largest move ``|x_end - x|`` of a moving vertex, per body."""
         if not np.any(moving):
             return False
-        reach = 2.0 * float(np.max(np.linalg.norm(x_end[moving] - x[moving], axis=1)))
+        reach = 2.0 * float(np.sqrt(np.max(np.sum((x_end[moving] - x[moving]) ** 2, axis=1))))
         for other in self.model.bodies.values():
-            m = moving[other.vertex_start:other.vertex_stop]
-            if other.vertex_stop <= other.vertex_start or not np.any(m):
+            sl = slice(other.vertex_start, other.vertex_stop)
+            m = moving[sl]
+            if not np.any(m):
                 continue
-            pts = np.concatenate([x[other.vertex_start:other.vertex_stop][m], x_end[other.vertex_start:other.vertex_stop][m]])
-            gap = np.maximum(0.0, np.maximum(pts.min(axis=0) - hi, lo - pts.max(axis=0)))
+            a, b = x[sl][m], x_end[sl][m]
+            gap = np.maximum(0.0, np.maximum(np.minimum(a.min(axis=0), b.min(axis=0)) - hi,
+                                             lo - np.maximum(a.max(axis=0), b.max(axis=0))))
             if float(np.linalg.norm(gap)) < self.radius + reach:
                 return True
         return False
 
     # ------------------------------------------------------------------ transitions
+    def _forget_mask(self) -> None:
+        """The sleeping set changed: forget the vertex mask, codes and pair answers built on it."""
+        self._mask = None
+        self._code = None
+        self._pairs_seen = {}
+
     def wake(self, names) -> None:
         """Wake the bodies ``names`` (those not asleep are ignored)."""
         for name in names:
             if self.bodies.pop(name, None) is not None:
-                self._mask = None
+                self._forget_mask()
         if not self.bodies:
             self.inputs = None
 
@@ -182,16 +207,20 @@ class SleepSet:
             return self.wake_all()
         woken = []
         for name, body in self.bodies.items():
-            v = state_in.v[body.vertices]
+            sl = slice(int(body.vertices[0]), int(body.vertices[-1]) + 1)  # a body's vertices are contiguous
+            v = state_in.v[sl]
             tb = state_in.hinge_theta_bar.get(name)
-            if (not np.array_equal(state_in.x[body.vertices], body.x)
+            if (not np.array_equal(state_in.x[sl], body.x)
                     or (v.size and float(np.max(np.abs(v))) > self.sleep_velocity)
                     or (tb is None) != (body.theta_bar is None)
                     or (tb is not None and not np.array_equal(tb, body.theta_bar))):
                 woken.append(name)
         self.wake(woken)
+        if not self.bodies:
+            return sorted(woken)
         x_end = np.where(fixed[:, None], x_target, state_in.x + dt * state_in.v)
-        reached = [name for name in self.bodies if self._within_reach(name, state_in.x, x_end, self.mask)]
+        moving = ~(self.mask | self.static)
+        reached = [name for name, b in self.bodies.items() if self._within_reach(b.lo, b.hi, state_in.x, x_end, moving)]
         self.wake(reached)
         return sorted(woken + reached)
 
@@ -236,16 +265,18 @@ class SleepSet:
             joined = any(np.any(inside[v].any(axis=1) & moving[v].any(axis=1))
                          for v in (getattr(p, "vertices", None) for p in contact_terms)
                          if v is not None and v.ndim == 2 and len(v))
-            if joined or self._within_reach(name, x, x_end, trial):
+            xb = x[b.vertex_start:b.vertex_stop]
+            if joined or self._within_reach(xb.min(axis=0), xb.max(axis=0), x, x_end, moving):
                 continue
             asleep.append(name)
         for name in asleep:
             b = self.model.bodies[name]
             tb = state_out.hinge_theta_bar.get(name)
-            self.bodies[name] = SleepingBody(name=name, vertices=b.vertices.copy(), x=x[b.vertices].copy(),
-                                             theta_bar=None if tb is None else np.array(tb),
+            xb = x[b.vertex_start:b.vertex_stop].copy()
+            self.bodies[name] = SleepingBody(name=name, vertices=b.vertices, x=xb, lo=xb.min(axis=0),
+                                             hi=xb.max(axis=0), theta_bar=None if tb is None else np.array(tb),
                                              energy=float(energy_of(name, x)))
-            self._mask = None
+            self._forget_mask()
         if asleep:
             self.inputs = inputs
         return sorted(asleep)

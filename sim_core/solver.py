@@ -33,7 +33,7 @@ from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
-from sim_core.energies.base import KeepsDerivatives
+from sim_core.energies.base import KeepsDerivatives, declares
 from sim_core.energies.damping.reference import ViscousDamping
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.gravity.reference import GravityPotential
@@ -247,10 +247,12 @@ class NewtonSolver:
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
         sleeping = self.config.sleeping and guess is None and self.step_hook is None
-        woken = self._wake_before_step(state_in, control, dt, sleeping)
+        # the Dirichlet data, computed once for the wake test and the fixed point's comparison
+        bnd = self.boundary(state_in, control) if (sleeping and self._sleep.bodies) else None
+        woken = self._wake_before_step(state_in, dt, sleeping, bnd)
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
         if repeat and not woken:
-            info = self._repeat_fixed_point(state_in, state_out, control, dt)
+            info = self._repeat_fixed_point(state_in, state_out, control, dt, bnd)
             if info is not None:
                 info.sleeping = self._sleep.names
                 info.time_total = time.perf_counter() - t0
@@ -273,15 +275,15 @@ class NewtonSolver:
             info.time_total = time.perf_counter() - t0
             return info
 
-    def _wake_before_step(self, state_in: State, control: Control, dt: float, sleeping: bool) -> list[str]:
-        """Wake the sleeping bodies the step could change (:meth:`SleepSet.wake_before_step`), or all of
-        them when this step does not sleep (``sleeping`` False: a position guess, a step hook or
-        ``SolverConfig.sleeping`` off); the woken names, sorted."""
+    def _wake_before_step(self, state_in: State, dt: float, sleeping: bool, bnd: tuple | None) -> list[str]:
+        """Wake the sleeping bodies the step could change (:meth:`SleepSet.wake_before_step`; ``bnd``: the
+        step's :meth:`boundary`), or all of them when this step does not sleep (``sleeping`` False: a
+        position guess, a step hook or ``SolverConfig.sleeping`` off); the woken names, sorted."""
         if not self._sleep.bodies:
             return []
         if not sleeping:
             return self._sleep.wake_all()
-        fixed, x_target = self.boundary(state_in, control)[:2]
+        fixed, x_target = bnd[:2]
         return self._sleep.wake_before_step(state_in, self._step_inputs(dt), x_target, fixed, dt)
 
     def _solve(self, state_in: State, state_out: State, control: Control, dt: float, guess: np.ndarray | None,
@@ -338,18 +340,19 @@ class NewtonSolver:
                            poses=rec.effector_pose, openings=rec.gripper_opening, limited=list(rec.limited_effectors),
                            info=dataclasses.replace(info))
 
-    def _repeat_fixed_point(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo | None:
+    def _repeat_fixed_point(self, state_in: State, state_out: State, control: Control, dt: float,
+                            bnd: tuple | None = None) -> StepInfo | None:
         """Take the kept fixed point's result into ``state_out`` when ``state_in``, the Dirichlet data
-        ``control`` resolves to and the other inputs (:meth:`_step_inputs`) are bitwise its own
-        (``SolverConfig.repeat_fixed_points``); its :class:`StepInfo` (``repeated``). None otherwise
-        (nothing written)."""
+        ``control`` resolves to (``bnd``, else :meth:`boundary`) and the other inputs
+        (:meth:`_step_inputs`) are bitwise its own (``SolverConfig.repeat_fixed_points``); its
+        :class:`StepInfo` (``repeated``). None otherwise (nothing written)."""
         fp = self._fixed_point
         if fp is None or self._revision != self.model.revision:
             return None
         kept = fp.state
         if not (same_resting_state(state_in, kept, with_velocity=True) and self._step_inputs(dt) == fp.inputs):
             return None
-        fixed, x_target, poses, openings, limited = self.boundary(state_in, control)
+        fixed, x_target, poses, openings, limited = bnd or self.boundary(state_in, control)
         if self._sleep.bodies:
             fixed = fixed | self._sleep.mask  # the step's Dirichlet mask holds the sleeping bodies
         if not (same_array(fixed, fp.fixed) and same_array(x_target, fp.x_target) and same_arrays(poses, fp.poses)
@@ -519,7 +522,7 @@ class NewtonSolver:
             if fused is not None:
                 fused.start(x)
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
-        friction = self.contact.friction(x_n, dt, memory)
+        friction = self.contact.friction(x_n, dt, memory, held=self._sleep.mask if asleep else None)
         if friction is not None:
             fixed_terms.append(friction)
         cand_contact, cand_body = ([], []) if self.step_hook is None else self.step_hook.terms(
@@ -767,11 +770,11 @@ class NewtonSolver:
             x_new = x + alpha * d3
             if prefetch and backtrack == 0:
                 step.fused.evaluate(x_new)
-                if isinstance(step.friction, KeepsDerivatives):
+                if declares(step.friction, KeepsDerivatives):
                     step.friction.keep_derivatives(x_new)
                 if self.contact.covers(x_search, x_new):  # else _energy searches again: new pairs
                     for p in contact_terms:
-                        if isinstance(p, KeepsDerivatives):
+                        if declares(p, KeepsDerivatives):
                             p.keep_derivatives(x_new)
             if self._energy(step, x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                 return x_new, backtrack
