@@ -34,7 +34,7 @@ from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import PenaltyContact, declares
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
-from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
 from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.model import Model, check_broad_phase
 from sim_core.workspace import Workspace
@@ -125,6 +125,7 @@ class ContactSet:
             for b in bodies if b.kind == "sphere"
         ]
         self.x_prev: np.ndarray | None = None
+        self.held_friction_energy = 0.0  # J, of the obstacle rows friction() left out for held vertices
         self._cache = None  # (memory, candidates, potentials, sides) of the current step
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
@@ -538,11 +539,21 @@ class ContactSet:
 
         ``held``: vertices held at ``x^n`` for the whole step (sleeping bodies, :mod:`sim_core.sleeping`),
         bool ``(n,)``, or None; the rows of a vertex and an obstacle with the vertex held are left out
-        (its tangential displacement is zero all step: no friction energy or force)."""
+        (its tangential displacement is zero all step: no force, and the constant energy
+        ``mu lam f0(0)`` of each, kept as :attr:`held_friction_energy`)."""
         vt, ee = self._pairs(x_n, memory)
-        obstacle_frames = [(name, obstacle, _without_held(obstacle.contact_frames(x_n), held))
-                           for name, obstacle in self.planes + self.spheres]
-        if self.taichi and not any(len(f.lam) for *_, f in obstacle_frames):
+        self.held_friction_energy = 0.0
+        eps_u = self.model.contact.eps_v * dt
+        obstacle_frames = []
+        for name, obstacle in self.planes + self.spheres:
+            f = obstacle.contact_frames(x_n)
+            mu = self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]]
+            if held is not None and len(f.lam):
+                keep = ~held[f.vertices[:, 0]]
+                self.held_friction_energy += float(np.sum(mu[~keep] * f.lam[~keep]) * smooth_friction_f0(0.0, eps_u))
+                f, mu = ContactFrames(*(a[keep] for a in f)), mu[keep]
+            obstacle_frames.append((name, obstacle, f, mu))
+        if self.taichi and not any(len(f.lam) for _, _, f, _ in obstacle_frames):
             return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
         # a pair's vertices: [p, a, b, c] / [a0, a1, b0, b1]; column 0 and ``second`` are on its two sides
@@ -552,10 +563,10 @@ class ContactSet:
                 frames.append(f)
                 mus.append(self._mu(f.vertices[:, 0], f.vertices[:, second]))
                 sources.append(FrictionRowSource(None, pot, f.pair_index))
-        for name, obstacle, f in obstacle_frames:
+        for name, obstacle, f, mu in obstacle_frames:
             if len(f.lam):
                 frames.append(f)
-                mus.append(self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]])
+                mus.append(mu)
                 sources.append(FrictionRowSource(name, obstacle, f.pair_index))
         if not frames:
             return None
@@ -647,14 +658,6 @@ class ContactSet:
 
 
 _NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
-
-
-def _without_held(frames: ContactFrames, held: np.ndarray | None) -> ContactFrames:
-    """``frames`` without the rows whose vertices are all ``held`` (bool ``(n,)``; None: ``frames``)."""
-    if held is None or not len(frames.lam):
-        return frames
-    keep = ~held[frames.vertices.reshape(len(frames.lam), -1)].all(axis=1)
-    return frames if keep.all() else ContactFrames(*(a[keep] for a in frames))
 
 
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:

@@ -185,6 +185,8 @@ class NewtonSolver:
         self._fused: FusedElastic | None = None
         self._fused_kept: dict[frozenset, FusedElastic] = {}  # by the sleeping bodies' names
         self._fixed_point: FixedPoint | None = None
+        # the bodies asleep until now are woken (reported by the next step)
+        self._woken_by_reset = getattr(self, "_sleep", None) and self._sleep.names or ()
         self._sleep = SleepSet(self.model, self.config.sleep_velocity)
         self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
         self._last_contact_terms: list = []  # the contact terms at the last step's result
@@ -249,7 +251,8 @@ class NewtonSolver:
         sleeping = self.config.sleeping and guess is None and self.step_hook is None
         # the Dirichlet data, computed once for the wake test and the fixed point's comparison
         bnd = self.boundary(state_in, control) if (sleeping and self._sleep.bodies) else None
-        woken = self._wake_before_step(state_in, dt, sleeping, bnd)
+        woken = sorted(set(self._wake_before_step(state_in, dt, sleeping, bnd)) | set(self._woken_by_reset))
+        self._woken_by_reset = ()
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
         if repeat and not woken:
             info = self._repeat_fixed_point(state_in, state_out, control, dt, bnd)
@@ -857,7 +860,8 @@ class NewtonSolver:
         self._last_contact_terms = contact_terms
         self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
-        info.energy = self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
+        info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
+                       + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         self.last_record = StepRecord(
             dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
             x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
