@@ -45,6 +45,7 @@ from sim_core.model import Model
 from sim_core.solver_config import SolverConfig
 from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
+from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
@@ -401,15 +402,7 @@ class NewtonSolver:
             nxt = s.copy()
             info = self._single_step(s, nxt, control, dt / n_sub, guess=guess)
             nxt.step_index = state_in.step_index
-            for name in _SUMMED_COUNTS:
-                setattr(total, name, getattr(total, name) + getattr(info, name))
-            total.residual_velocity = info.residual_velocity
-            total.energy = info.energy
-            total.limited_effectors = sorted(set(total.limited_effectors) | set(info.limited_effectors))
-            if total.converged_strict or not info.converged_strict:
-                total.stop_reason = info.stop_reason
-            total.converged_strict = total.converged_strict and info.converged_strict
-            total.accepted_tolerance = max(total.accepted_tolerance, info.accepted_tolerance)
+            total.add_substep(info)
             s = nxt
         s.step_index = state_in.step_index + 1
         s.t = state_in.t + dt
@@ -558,7 +551,7 @@ class NewtonSolver:
 
     def _newton_iterations(self, step: _StepTerms, x: np.ndarray, guessed: bool,
                            info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
-        """Newton iterations from ``x`` until a stopping test accepts an iterate (:meth:`_stop_reason`,
+        """Newton iterations from ``x`` until a stopping test accepts an iterate (:func:`~sim_core.newton_stop.stop_reason`,
         the simplified Newton test, rate stopping, or a failed line search at a relaxed tolerance).
 
         Records in ``info`` the iterations, the residual, how the step ended (``stop_reason``,
@@ -589,19 +582,19 @@ class NewtonSolver:
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
                     info.simplified_stops = 1
                     step.last_update = d_bar
-                    self._accept(info, it, residual_bar, "simplified")
+                    accept(self.config, info, it, residual_bar, "simplified")
                     return x, H, projection, factorization
             active_before = None
             d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
             d3 = d.reshape(-1, 3)
-            step_max = _largest_move(d)
+            step_max = largest_move(d)
             residual = step_max / dt
             history.append(residual)
-            reason = self._stop_reason(residual, g, history)
+            reason = stop_reason(self.config, residual, g, history)
             if reason is not None:
                 if not (guessed and it == 1):
                     step.last_update = d if reason in STRICT_STOPS else None
-                    self._accept(info, it, residual, reason)
+                    accept(self.config, info, it, residual, reason)
                     return x, H, projection, factorization
                 # a guess already within the tolerance: take its Newton correction (no line search:
                 # a step this small is in the quadratic region) and test again, so that the result
@@ -621,7 +614,7 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             # rate stopping ends the step on this update if it is taken in full
-            rate_stop = cfg.rate_stopping and len(history) > 1 and _rate_stops(history, cfg.tol_velocity)
+            rate_stop = cfg.rate_stopping and len(history) > 1 and rate_stops(history, cfg.tol_velocity)
             # the elastic terms' (and the Taichi friction's and the pair contacts') energy, gradient and
             # Hessian at the first trial point in one evaluation when, once accepted (backtracks are
             # rare), it is the next iterate
@@ -630,9 +623,9 @@ class NewtonSolver:
                                                   prefetch, info)
             if x_new is None:
                 info.line_search_failures += 1
-                reason = self._line_search_failure_acceptance(slope, e0, residual)
+                reason = line_search_failure_acceptance(self.config, slope, e0, residual)
                 if reason is not None:
-                    self._accept(info, it, residual, reason)
+                    accept(self.config, info, it, residual, reason)
                     return x, H, projection, factorization
                 released = self.contact.release_stale_sides(x, step.memory)
                 if released:
@@ -654,7 +647,7 @@ class NewtonSolver:
                 info.released_sides += self.contact.release_stale_sides(x, step.memory)
             if rate_stop and full_step:
                 theta = residual / history[-2]
-                self._accept(info, it, residual * (theta / (1.0 - theta)), "rate")  # the estimated remaining error
+                accept(self.config, info, it, residual * (theta / (1.0 - theta)), "rate")  # the estimated remaining error
                 return x, H, projection, factorization
         raise self._diverged(
             step, f"Newton did not converge in {cfg.max_iterations} iterations (residual {residual:.3g} m/s > "
@@ -688,7 +681,7 @@ class NewtonSolver:
         d_bar = self.linear_solver.solve(g)
         d_bar[~step.free] = 0.0
         info.time_linear_solve += time.perf_counter() - tl
-        return _largest_move(d_bar) / step.dt, d_bar
+        return largest_move(d_bar) / step.dt, d_bar
 
     def _assemble_hessian(self, step: _StepTerms, x: np.ndarray, projection: str,
                           dynamic_terms: list) -> sp.csr_matrix:
@@ -785,54 +778,6 @@ class NewtonSolver:
             info.backtracks += 1
         return None, cfg.max_backtracks
 
-    def _stop_reason(self, residual: float, g: np.ndarray, history: list[float]) -> str | None:
-        """The convergence test of an iterate with Newton update of scaled size ``residual`` (m/s) and
-        free-DoF gradient ``g`` (J/m): ``"velocity"`` (``residual < tol_velocity``), ``"force"``
-        (``max |g| < tol_force``), ``"stalled"`` (relaxed: ``residual`` below ``stall_tolerance_factor
-        * tol_velocity`` and not 10 % below the residual ``stall_iterations`` iterations earlier), or
-        None (not converged)."""
-        cfg = self.config
-        if residual < cfg.tol_velocity:
-            return "velocity"
-        if float(np.max(np.abs(g))) < cfg.tol_force:
-            return "force"
-        if (len(history) > cfg.stall_iterations and residual < cfg.stall_tolerance_factor * cfg.tol_velocity
-                and residual > 0.9 * history[-1 - cfg.stall_iterations]):
-            return "stalled"
-        return None
-
-    def _line_search_failure_acceptance(self, slope: float, e0: float, residual: float) -> str | None:
-        """Whether an iterate whose line search failed is accepted (relaxed): ``"line_search_roundoff"``
-        when the predicted decrease ``|g.d|`` is below ``stationary_slope_rtol * |E|`` (x is stationary
-        to working precision), ``"line_search_relaxed"`` when ``residual`` (m/s) is below
-        ``line_search_tolerance_factor * tol_velocity``; else None."""
-        cfg = self.config
-        if abs(slope) <= cfg.stationary_slope_rtol * max(abs(e0), 1e-30):
-            return "line_search_roundoff"
-        if residual < cfg.line_search_tolerance_factor * cfg.tol_velocity:
-            return "line_search_relaxed"
-        return None
-
-    def _accept(self, info: StepInfo, it: int, residual: float, reason: str) -> None:
-        """Record in ``info`` that iteration ``it`` ended the step with ``residual`` (m/s) by the stopping
-        test ``reason`` (:data:`STRICT_STOPS` or a relaxed one, which is counted)."""
-        cfg = self.config
-        info.iterations = it
-        info.residual_velocity = residual
-        info.stop_reason = reason
-        info.converged_strict = reason in STRICT_STOPS
-        if reason in STRICT_STOPS:
-            info.accepted_tolerance = cfg.tol_velocity
-            return
-        info.relaxed_accepts += 1
-        if reason == "stalled":
-            info.stalled_accepts += 1
-            info.accepted_tolerance = cfg.stall_tolerance_factor * cfg.tol_velocity
-        elif reason == "line_search_relaxed":
-            info.accepted_tolerance = cfg.line_search_tolerance_factor * cfg.tol_velocity
-        else:  # the round-off test bounds the predicted energy decrease, not the residual
-            info.accepted_tolerance = np.inf
-
     def _check_asleep_unreached(self, contact_terms: list) -> None:
         """Raise :class:`Woken` when a contact candidate pair of ``contact_terms`` joins a sleeping body
         to a moving vertex (:meth:`SleepSet.reached_by_pairs`)."""
@@ -896,25 +841,3 @@ def _checked_hook(hook: StepHook | None) -> StepHook | None:
         return hook
     missing = [m for m in ("terms", "update_state") if not callable(getattr(hook, m, None))]
     raise ConfigError(f"NewtonSolver: hook {type(hook).__name__} is not a StepHook (missing {', '.join(missing)})")
-
-
-_SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
-                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
-                  "line_search_failures")
-"""The :class:`StepInfo` fields summed over the substeps of a step."""
-
-
-def _largest_move(d: np.ndarray) -> float:
-    """The largest vertex displacement ``max_i |d_i|`` (m) of a Newton update ``d`` ``(3 n,)``; 0 when
-    there are no DoFs."""
-    d3 = d.reshape(-1, 3)
-    return float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
-
-
-def _rate_stops(history: list[float], tol_velocity: float) -> bool:
-    """Whether a full Newton update with scaled size ``history[-1]`` (m/s) after one of size
-    ``history[-2]`` ends the step under ``SolverConfig.rate_stopping``: its estimated remaining
-    error ``theta / (1 - theta) * history[-1]``, ``theta = history[-1] / history[-2] < 1``, is below
-    ``tol_velocity``."""
-    theta = history[-1] / history[-2]
-    return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity

@@ -156,10 +156,31 @@ class StepInfo:
     fell_asleep: tuple[str, ...] = ()
     wake_redos: int = 0
 
+    def add_substep(self, info: "StepInfo") -> None:
+        """Add substep ``info`` to this step's summary: its counts and times summed
+        (:data:`SUMMED_COUNTS`), its residual and energy taken (the last substep's), the limited
+        effectors merged, the stop reason the last relaxed one (else the last), strict only when
+        every substep was, the accepted tolerance the largest."""
+        for name in SUMMED_COUNTS:
+            setattr(self, name, getattr(self, name) + getattr(info, name))
+        self.residual_velocity = info.residual_velocity
+        self.energy = info.energy
+        self.limited_effectors = sorted(set(self.limited_effectors) | set(info.limited_effectors))
+        if self.converged_strict or not info.converged_strict:
+            self.stop_reason = info.stop_reason
+        self.converged_strict = self.converged_strict and info.converged_strict
+        self.accepted_tolerance = max(self.accepted_tolerance, info.accepted_tolerance)
+
     @property
     def needs_attention(self) -> bool:
         """Whether the step was accepted above the strict tolerance or needed substep retries."""
         return not self.converged_strict or self.retries > 0
+
+
+SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
+                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
+                  "line_search_failures")
+"""The :class:`StepInfo` fields summed over the substeps of a step."""
 
 
 @dataclass
