@@ -75,6 +75,7 @@ class SleepSet:
         eligible: the names of the bodies that may sleep: kind in :data:`SLEEPING_KINDS`, with
             vertices, none driven by an effector.
         radius: the contact search distance ``eps + candidate_margin``, m.
+        sphere_radius: the radius (m) of each sphere body, whose one vertex is its centre.
     """
 
     def __init__(self, model: Model, sleep_velocity: float) -> None:
@@ -89,6 +90,8 @@ class SleepSet:
         self.eligible = [b.name for b in model.bodies.values()
                          if b.kind in SLEEPING_KINDS and b.vertex_stop > b.vertex_start and not np.any(driven[b.vertices])]
         self.radius = float(model.contact.eps + model.contact.candidate_margin)
+        # a sphere body is its centre vertex: its surface lies this far (m) beyond the vertex
+        self.sphere_radius = {b.name: float(b.material["radius"]) for b in model.bodies.values() if b.kind == "sphere"}
         self.bodies: dict[str, SleepingBody] = {}
         self.inputs: tuple | None = None
         self._mask: np.ndarray | None = None
@@ -116,16 +119,26 @@ class SleepSet:
         """The sleeping bodies' elastic energy, J."""
         return float(sum(b.energy for b in self.bodies.values()))
 
-    def reached_by_pairs(self, contact_terms: list) -> list[str]:
+    def reached_by_pairs(self, contact_terms: list, x: np.ndarray) -> list[str]:
         """The sleeping bodies that a contact candidate pair of ``contact_terms`` (as
         :meth:`~sim_core.contact_set.ContactSet.potentials` returns them: vertex-triangle and
         edge-edge pairs with ``vertices`` ``(p, 4)``) joins to a moving vertex (neither asleep nor
-        static), sorted. A pair array seen before (the contact set keeps its candidate lists while
-        they cover the iterates) is answered from the last look."""
+        static), or that a moving sphere obstacle (a term with a ``center`` vertex and a ``radius``)
+        at positions ``x`` ``(n, 3)`` m comes within the contact search distance of, sorted. A pair
+        array seen before (the contact set keeps its candidate lists while they cover the iterates)
+        is answered from the last look."""
         if not self.bodies:
             return []
         hit = None
         for pot in contact_terms:
+            center = getattr(pot, "center", None)
+            if center is not None and self._vertex_code()[center] == 2:
+                near = np.flatnonzero(self.mask)
+                dist = np.linalg.norm(x[near] - x[center], axis=1) - float(pot.radius)
+                close = near[dist < self.radius]
+                if len(close):
+                    hit = close if hit is None else np.concatenate([hit, close])
+                continue
             v = getattr(pot, "vertices", None)
             if v is None or v.ndim != 2 or not len(v):
                 continue
@@ -168,7 +181,7 @@ class SleepSet:
             a, b = x[sl][m], x_end[sl][m]
             gap = np.maximum(0.0, np.maximum(np.minimum(a.min(axis=0), b.min(axis=0)) - hi,
                                              lo - np.maximum(a.max(axis=0), b.max(axis=0))))
-            if float(np.linalg.norm(gap)) < self.radius + reach:
+            if float(np.linalg.norm(gap)) - self.sphere_radius.get(other.name, 0.0) < self.radius + reach:
                 return True
         return False
 

@@ -665,7 +665,7 @@ class NewtonSolver:
         """
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
-        self._check_asleep_unreached(contact_terms)
+        self._check_asleep_unreached(contact_terms, x)
         x_search = self.contact.search_position
         g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
         g[~step.free] = 0.0
@@ -778,10 +778,10 @@ class NewtonSolver:
             info.backtracks += 1
         return None, cfg.max_backtracks
 
-    def _check_asleep_unreached(self, contact_terms: list) -> None:
+    def _check_asleep_unreached(self, contact_terms: list, x: np.ndarray) -> None:
         """Raise :class:`Woken` when a contact candidate pair of ``contact_terms`` joins a sleeping body
-        to a moving vertex (:meth:`SleepSet.reached_by_pairs`)."""
-        reached = self._sleep.reached_by_pairs(contact_terms) if self._sleep.bodies else []
+        to a moving vertex, or a moving sphere comes near one, at ``x`` (:meth:`SleepSet.reached_by_pairs`)."""
+        reached = self._sleep.reached_by_pairs(contact_terms, x) if self._sleep.bodies else []
         if reached:
             raise Woken(reached)
 
@@ -801,7 +801,7 @@ class NewtonSolver:
         # a step ended by the simplified Newton test has the matrix of the iterate before x
         exact = projection == "none" and not info.simplified_stops
         contact_terms = self.contact.potentials(x, x_n, step.memory)
-        self._check_asleep_unreached(contact_terms)
+        self._check_asleep_unreached(contact_terms, x)
         self._last_contact_terms = contact_terms
         self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
