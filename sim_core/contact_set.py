@@ -126,6 +126,9 @@ class ContactSet:
         ]
         self.x_prev: np.ndarray | None = None
         self.held_friction_energy = 0.0  # J, of the obstacle rows friction() left out for held vertices
+        # vertices held for the step (sleeping bodies, sim_core.sleeping; set by the solver), or None
+        self.held: np.ndarray | None = None
+        self._held_kept = None  # (candidates, held, candidates without the held pairs apart)
         self._cache = None  # (memory, candidates, potentials, sides) of the current step
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
@@ -155,7 +158,7 @@ class ContactSet:
         a little ahead of ``x`` along the step's motion (:meth:`_search_position`), so that it
         usually covers the next step's first iterates too.
         """
-        candidates = self._candidate_pairs(x)
+        candidates = self._without_held_pairs(self._candidate_pairs(x), x, memory)
         cache = getattr(self, "_cache", None)
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             # the step's potentials over these candidates (same pairs, sides and class): reused, not
@@ -242,6 +245,38 @@ class ContactSet:
             vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
         self._candidates = (x_search, vt, ee)
         return self._candidates
+
+    def _without_held_pairs(self, candidates: tuple, x: np.ndarray, memory: CollisionMemory) -> tuple:
+        """``candidates`` ``(x at the search, vertex-triangle pairs, edge-edge pairs)`` without the pairs
+        whose four vertices are all :attr:`held` (sleeping bodies) and that are apart at ``x`` (unsigned
+        distance >= eps, the held vertices' positions all step) and not remembered in ``memory``: such a
+        pair has no energy, force or Hessian entry all step, and no memory to keep. The lists are kept
+        while the candidates and the held mask are the same objects (a held pair stays apart and
+        unremembered while held). ``candidates`` itself when nothing is held."""
+        held = self.held
+        if held is None:
+            return candidates
+        kept = self._held_kept
+        if kept is not None and kept[0] is candidates and kept[1] is held:
+            return kept[2]
+        x_search, vt, ee = candidates
+        out = []
+        for pairs, vertices_of, kind, remembered in (
+                (vt, lambda p: vertex_triangle_vertices(p, self.triangles), VertexTriangleContact, memory.vertex_triangle),
+                (ee, lambda p: edge_edge_vertices(p, self.edges), EdgeEdgeContact, memory.edge_edge)):
+            rows = np.flatnonzero(held[vertices_of(pairs)].all(axis=1)) if len(pairs) else np.zeros(0, dtype=np.int64)
+            if not len(rows):
+                out.append(pairs)
+                continue
+            elements = self.triangles if kind is VertexTriangleContact else self.edges
+            apart = ~kind(pairs[rows], elements, np.zeros(len(rows)), self.stiffness, self.eps).active_mask(x)
+            drop = rows[apart & ~remembered.lookup(pairs[rows])[1]]
+            keep = np.ones(len(pairs), dtype=bool)
+            keep[drop] = False
+            out.append(pairs[keep])
+        filtered = (x_search, out[0], out[1])
+        self._held_kept = (candidates, held, filtered)
+        return filtered
 
     def _candidate_lists(self, search):
         """On the Taichi backend, the candidate lists of this contact set's elements with the

@@ -517,6 +517,7 @@ class NewtonSolver:
             fused = self._fused_elastic(elastic_terms, x, free)
             if fused is not None:
                 fused.start(x)
+        self.contact.held = self._sleep.mask if asleep else None  # their pairs apart leave the candidates
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
         friction = self.contact.friction(x_n, dt, memory, held=self._sleep.mask if asleep else None)
         if friction is not None:
