@@ -250,17 +250,21 @@ class NewtonSolver:
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
         sleeping = self.config.sleeping and guess is None and self.step_hook is None
-        # the Dirichlet data, computed once for the wake test and the fixed point's comparison
-        bnd = self.boundary(state_in, control) if (sleeping and self._sleep.bodies) else None
-        woken = sorted(set(self._wake_before_step(state_in, dt, sleeping, bnd)) | set(self._woken_by_reset))
+        woken = sorted(set(self._woken_by_reset) | set([] if sleeping else self._sleep.wake_all()))
         self._woken_by_reset = ()
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
         if repeat and not woken:
-            info = self._repeat_fixed_point(state_in, state_out, control, dt, bnd)
+            # a fixed point of this sleeping set (its Dirichlet mask holds them) from bitwise this state
+            # and inputs: the wake test passed when it was solved and would pass again
+            info = self._repeat_fixed_point(state_in, state_out, control, dt)
             if info is not None:
                 info.sleeping = self._sleep.names
                 info.time_total = time.perf_counter() - t0
                 return info
+        if sleeping and self._sleep.bodies:
+            fixed, x_target = self.boundary(state_in, control)[:2]
+            woken = sorted(set(woken) | set(self._sleep.wake_before_step(state_in, self._step_inputs(dt), x_target,
+                                                                         fixed, dt)))
         self._fixed_point = None
         redos = 0
         while True:
@@ -278,17 +282,6 @@ class NewtonSolver:
                     lambda name, x: self.elastic.body_energy(name, x, state_out.hinge_theta_bar)))
             info.time_total = time.perf_counter() - t0
             return info
-
-    def _wake_before_step(self, state_in: State, dt: float, sleeping: bool, bnd: tuple | None) -> list[str]:
-        """Wake the sleeping bodies the step could change (:meth:`SleepSet.wake_before_step`; ``bnd``: the
-        step's :meth:`boundary`), or all of them when this step does not sleep (``sleeping`` False: a
-        position guess, a step hook or ``SolverConfig.sleeping`` off); the woken names, sorted."""
-        if not self._sleep.bodies:
-            return []
-        if not sleeping:
-            return self._sleep.wake_all()
-        fixed, x_target = bnd[:2]
-        return self._sleep.wake_before_step(state_in, self._step_inputs(dt), x_target, fixed, dt)
 
     def _solve(self, state_in: State, state_out: State, control: Control, dt: float, guess: np.ndarray | None,
                repeat: bool) -> StepInfo:
@@ -344,10 +337,9 @@ class NewtonSolver:
                            poses=rec.effector_pose, openings=rec.gripper_opening, limited=list(rec.limited_effectors),
                            info=dataclasses.replace(info))
 
-    def _repeat_fixed_point(self, state_in: State, state_out: State, control: Control, dt: float,
-                            bnd: tuple | None = None) -> StepInfo | None:
+    def _repeat_fixed_point(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo | None:
         """Take the kept fixed point's result into ``state_out`` when ``state_in``, the Dirichlet data
-        ``control`` resolves to (``bnd``, else :meth:`boundary`) and the other inputs
+        ``control`` resolves to (with the sleeping bodies held) and the other inputs
         (:meth:`_step_inputs`) are bitwise its own (``SolverConfig.repeat_fixed_points``); its
         :class:`StepInfo` (``repeated``). None otherwise (nothing written)."""
         fp = self._fixed_point
@@ -356,7 +348,7 @@ class NewtonSolver:
         kept = fp.state
         if not (same_resting_state(state_in, kept, with_velocity=True) and self._step_inputs(dt) == fp.inputs):
             return None
-        fixed, x_target, poses, openings, limited = bnd or self.boundary(state_in, control)
+        fixed, x_target, poses, openings, limited = self.boundary(state_in, control)
         if self._sleep.bodies:
             fixed = fixed | self._sleep.mask  # the step's Dirichlet mask holds the sleeping bodies
         if not (same_array(fixed, fp.fixed) and same_array(x_target, fp.x_target) and same_arrays(poses, fp.poses)

@@ -9,8 +9,10 @@ import pytest
 
 from sim_core.adjoint import rollout_step
 from sim_core.bundled import config_dir
+from sim_core.contact_set import ContactSet
 from sim_core.control import Control
 from sim_core.errors import ConfigError
+from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sim_core.sleeping import SleepSet
 from sim_core.solver import SolverConfig
@@ -165,3 +167,34 @@ def test_sleeping_is_refused_for_gradients_and_bad_settings():
         SolverConfig(sleeping=True, sleep_velocity=0.0)
     with pytest.raises(ConfigError, match="sleeping is not available with lockstep"):
         SolverConfig(sleeping=True, lockstep=True)
+
+
+def test_held_pairs_apart_and_unremembered_leave_the_candidates_others_stay():
+    model = load_scene(SCENE)
+    contact = ContactSet(model)
+    sheet = model.bodies["sheet"]
+    x = model.state().x.copy()
+    # fold one vertex of the card onto a triangle of it that is not its neighbour: an active held pair
+    x_search, vt, ee = contact._candidate_pairs(x)
+    p, t = vt[len(vt) // 2]
+    x[p] = x[contact.triangles[t]].mean(axis=0) + np.array([0.0, 0.0, 0.5 * model.contact.eps])
+    contact = ContactSet(model)
+    memory = contact.begin_step(x, None)
+    candidates = contact._candidate_pairs(x)
+    remembered = candidates[2][:3]  # three edge-edge pairs in the memory
+    memory.edge_edge.update(remembered, np.ones(len(remembered)))
+    held = np.zeros(model.vertex_count, dtype=bool)
+    held[sheet.vertex_start:sheet.vertex_stop] = True
+    contact.held = held
+    _, vt_kept, ee_kept = contact._without_held_pairs(candidates, x, memory)
+    assert len(vt_kept) < len(candidates[1]) and len(ee_kept) < len(candidates[2])
+    assert any(np.array_equal(row, [p, t]) for row in vt_kept)  # active: kept
+    for row in remembered:
+        assert any(np.array_equal(r, row) for r in ee_kept)  # remembered: kept
+    # every pair left out is apart: the full and the kept potentials agree at x
+    full = contact._vertex_triangle(candidates[1], np.zeros(len(candidates[1])))
+    kept = contact._vertex_triangle(vt_kept, np.zeros(len(vt_kept)))
+    assert full.energy(x) == pytest.approx(kept.energy(x), rel=1e-12) and full.energy(x) > 0
+    assert contact._without_held_pairs(candidates, x, memory) is contact._without_held_pairs(candidates, x, memory)
+    contact.held = None
+    assert contact._without_held_pairs(candidates, x, memory) is candidates
