@@ -71,7 +71,10 @@ class SleepSet:
         sleep_velocity: the rest threshold, m/s (``SolverConfig.sleep_velocity``).
 
     Attributes:
+        sleep_velocity: the rest threshold, m/s.
+        static: the vertices that never move (statically fixed, not driven by an effector), bool ``(n,)``.
         bodies: the sleeping bodies by name.
+        inputs: the step inputs (``NewtonSolver._step_inputs``) they fell asleep under, None when none sleeps.
         eligible: the names of the bodies that may sleep: kind in :data:`SLEEPING_KINDS`, with
             vertices, none driven by an effector.
         radius: the contact search distance ``eps + candidate_margin``, m.
