@@ -7,23 +7,30 @@
 # DIR (default: .device_cpu/ in that checkout, ignored by git), which the device call carries:
 #
 #   DIR/src/      a copy of THIS checkout's code (no .git, tests, docs, bags)
-#   DIR/wheels/   cp312 manylinux wheels of the packages the machine lacks, per profile:
-#                   optimise  taichi 1.7.4, dill (imported by taichi), cma   (thinshell optimise / bench optimise)
-#                   diagnose  rosbags and its needs (apsw, backports.zstd, lz4, ruamel.yaml,
-#                             typing_extensions) and the reference bags in DIR/data/reference_bags
-#                             (thinshell bench diagnose --labelled; no Taichi: it runs on the numpy backend)
-#   DIR/jobs.txt  the commands, one a line (written by the caller; see below)
+#   DIR/wheels/   cp312 manylinux wheels of the packages the machine lacks, by profile:
+#                   taichi       the Taichi 1.7.4 wheel (54 MiB) and dill (imported by taichi)
+#                   taichi-slim  Taichi without its C API library, examples and C headers, as an xz
+#                                tarball (24 MiB), and dill: the same kernels (`import taichi` and
+#                                ti.init do not load libtaichi_c_api.so)
+#                   cma          cma 4.5.0 (thinshell optimise's CMA-ES)
+#                   rosbags      rosbags 0.11.9 and its needs (apsw, backports.zstd, lz4, ruamel.yaml,
+#                                typing_extensions)
+#                   bags         the reference bags, copied to DIR/data/reference_bags
+#                   optimise     = taichi cma      (thinshell optimise / bench optimise)
+#                   diagnose     = taichi-slim rosbags bags  (thinshell bench diagnose --labelled, whose
+#                                replays run on Taichi CPU)
+#   DIR/jobs.txt  the commands, one a line (written by the caller, kept by `prepare`; see below)
 #
-# The device tool carries at most 64 MiB: DIR plus the device checkout's tracked files (about 6 MiB).
-# `prepare` prints both and refuses a total over the limit. Taichi's wheel alone is 54 MiB, so the two
-# profiles do not fit together (optimise: about 63 MiB; diagnose: about 40 MiB).
+# The device tool carries at most 64 MiB: DIR plus the device checkout's tracked files (about 5 MiB).
+# `prepare` prints both and refuses a total over the limit: optimise about 62 MiB, diagnose about
+# 61 MiB (with the full Taichi wheel it would be about 91 MiB: it does not fit).
 #
 #   benchmarks/device_cpu.sh prepare PROFILE [PROFILE ...]      # here, with network
 #       environment: DIR (default /work/main/.device_cpu), DEVICE_CHECKOUT (default /work/main: the tree the
 #       device copies, whose tracked files count towards the limit), BAGS (default
 #       /work/shared/data/reference_bags), PYTHON (default /work/main/.venv/bin/python).
 #   benchmarks/device_cpu.sh run [DIR]                          # on the device, from the checkout's root
-#       installs DIR/wheels into /tmp/site, then runs every line of DIR/jobs.txt (blank and # lines
+#       installs DIR/wheels (*.whl, *.tar.xz) into /tmp/site, then runs every line of DIR/jobs.txt (blank and # lines
 #       skipped) as `bash -c LINE` from DIR/src, JOBS at a time (default: the machine's cores), each
 #       with one thread for BLAS, OpenMP and Taichi (TI_CPU_MAX_NUM_THREADS=1), stopped after
 #       JOB_TIMEOUT s (default 560). `python` in a line is the machine's python3, `$DATA` is DIR/data.
@@ -55,18 +62,48 @@ if [ "$mode" = prepare ]; then
         --exclude=.pytest_cache --exclude=./.gpu_src --exclude=./.gpu_wheels --exclude=./.device_cpu -cf - .) \
         | (cd "$dir/src" && tar -xf -) || exit 1
     pkgs=()
+    slim=0
     for profile in "$@"; do
         case $profile in
-            optimise) pkgs+=(taichi==1.7.4 dill==0.4.1 cma==4.5.0) ;;
-            diagnose) pkgs+=(rosbags==0.11.9 apsw backports.zstd lz4==4.4.5 ruamel.yaml==0.19.1 typing_extensions)
-                      mkdir -p "$dir/data"
-                      cp -r "${BAGS:-/work/shared/data/reference_bags}" "$dir/data/reference_bags" || exit 1 ;;
-            *) echo "unknown profile $profile (optimise, diagnose)" >&2; exit 2 ;;
+            optimise) set -- "$@" taichi cma ;;
+            diagnose) set -- "$@" taichi-slim rosbags bags ;;
         esac
     done
-    "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-        --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-        --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d "$dir/wheels" "${pkgs[@]}" || exit 1
+    for profile in "$@"; do
+        case $profile in
+            optimise|diagnose) ;;
+            taichi) pkgs+=(taichi==1.7.4 dill==0.4.1) ;;
+            taichi-slim) pkgs+=(dill==0.4.1); slim=1 ;;
+            cma) pkgs+=(cma==4.5.0) ;;
+            rosbags) pkgs+=(rosbags==0.11.9 apsw==3.54.1.0 backports.zstd==1.8.0 lz4==4.4.5 ruamel.yaml==0.19.1
+                            typing_extensions==4.16.0) ;;
+            bags) mkdir -p "$dir/data"
+                  cp -r "${BAGS:-/work/shared/data/reference_bags}" "$dir/data/reference_bags" || exit 1 ;;
+            *) echo "unknown profile $profile (optimise, diagnose, taichi, taichi-slim, cma, rosbags, bags)" >&2
+               exit 2 ;;
+        esac
+    done
+    mapfile -t pkgs < <(printf '%s\n' "${pkgs[@]}" | sort -u)
+    if [ "$slim" = 1 ] && printf '%s\n' "${pkgs[@]}" | grep -q '^taichi=='; then
+        echo "taichi and taichi-slim exclude each other" >&2
+        exit 2
+    fi
+    download() {
+        "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+            --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+            --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d "$@"
+    }
+    [ ${#pkgs[@]} -eq 0 ] || download "$dir/wheels" "${pkgs[@]}" || exit 1
+    if [ "$slim" = 1 ]; then
+        # Taichi without its C API library (libtaichi_c_api.so, for C/AOT users; `import taichi` and
+        # the kernels do not load it), examples and C headers, packed with xz: 24 MiB instead of the
+        # wheel's 54 MiB. Unpacked into /tmp/site by `run`.
+        tmp=$(mktemp -d)
+        download "$tmp" taichi==1.7.4 || exit 1
+        (cd "$tmp" && unzip -q taichi-*.whl && rm -rf taichi/_lib/c_api taichi/examples taichi-*.data taichi-*.whl \
+            && tar -cf - taichi taichi-*.dist-info | xz -T2 -6 > "$dir/wheels/taichi-slim.tar.xz") || exit 1
+        rm -rf "$tmp"
+    fi
     tracked=$(cd "$checkout" && git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
     carried=$(du -sb "$dir" | cut -f1)
     total=$((tracked + carried))
@@ -91,6 +128,10 @@ if ls "$dir"/wheels/*.whl > /dev/null 2>&1; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
         "$dir"/wheels/*.whl || exit 1
 fi
+mkdir -p /tmp/site
+for t in "$dir"/wheels/*.tar.xz; do
+    [ -e "$t" ] && { tar -xJf "$t" -C /tmp/site || exit 1; }
+done
 cores=$(getconf _NPROCESSORS_ONLN)  # before OMP_NUM_THREADS=1, which GNU nproc would report
 export PYTHONPATH=/tmp/site:$dir/src PYTHONUNBUFFERED=1 DATA=$dir/data
 export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 TI_CPU_MAX_NUM_THREADS=1
