@@ -22,8 +22,8 @@
 #   DIR/jobs.txt  the commands, one a line (written by the caller, kept by `prepare`; see below)
 #
 # The device tool carries at most 64 MiB: DIR plus the device checkout's tracked files (about 5 MiB).
-# `prepare` prints both and refuses a total over the limit: optimise about 62 MiB, diagnose about
-# 61 MiB (with the full Taichi wheel it would be about 91 MiB: it does not fit).
+# `prepare` prints both and refuses a total over the limit: optimise 62 MiB, diagnose 58 MiB (with
+# the full Taichi wheel it would be 89 MiB: it does not fit). taichi-slim's xz takes about 5 min here.
 #
 #   benchmarks/device_cpu.sh prepare PROFILE [PROFILE ...]      # here, with network
 #       environment: DIR (default /work/main/.device_cpu), DEVICE_CHECKOUT (default /work/main: the tree the
