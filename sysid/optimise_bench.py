@@ -9,12 +9,17 @@ PPO baseline on the task's Gymnasium environment where both are installed (not i
 Usage::
 
     thinshell bench optimise [--tasks a,b] [--methods cma,gd,hybrid] [--episodes N] [--horizon H]
-                          [--seeds K] [--workers K] [--start-factor F] [--tolerance R] [--json]
+                          [--seeds K] [--first-seed S] [--workers K] [--start-factor F] [--tolerance R] [--json]
                           [--markdown FILE] [--rl]
 
 Inverse tasks (Sliding, Bouncing, Card) start every identified parameter at ``F`` (default 2) times
 its hidden true value (``--start``); their ``success`` is every parameter recovered within the
 relative ``--tolerance`` (default 5 %), reported as ``parameter_rel_error``.
+
+``--first-seed S`` runs seeds ``S .. S+K-1`` (with ``--seeds K``), so that the seeds of one table
+can run in separate processes or on separate machines. The seed drives CMA-ES only (its sampling;
+:mod:`sim_core.optim.search`): ``gd`` starts from a fixed point (the task's reference, else zero)
+and gives the same episodes for every seed.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=40, help="episode budget per run")
     p.add_argument("--horizon", type=int, help="steps per episode (default: each task's)")
     p.add_argument("--seeds", type=int, default=1, help="seeds per task and method (success over seeds)")
+    p.add_argument("--first-seed", type=int, default=0, help="the first seed (seeds FIRST .. FIRST+K-1)")
     p.add_argument("--workers", type=int, default=1, help="Ray workers per run")
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
     p.add_argument("--max-time", type=float, help="wall-time limit per run in s (thinshell optimise --max-time)")
@@ -142,7 +148,7 @@ def markdown_table(rows: list[dict[str, Any]], args) -> str:
     """The results as a markdown section."""
     head = (f"\n## Task optimisation (`thinshell bench optimise`), {_dt.date.today().isoformat()}\n\n"
             f"Machine: {_machine()}. Settings: episodes {args.episodes}, horizon {args.horizon or 'task'}, seeds "
-            f"{args.seeds}, workers {args.workers}, population {args.population or 'task'}, backend "
+            f"{args.seeds} (from {args.first_seed}), workers {args.workers}, population {args.population or 'task'}, backend "
             f"{', '.join(sorted({str(r.get('backend')) for r in rows}))}.\n\n"
             "| task | method | seeds | episodes | wall time (s) | rollouts/s | best reward (mean) | start reward | "
             "Table A human | Table A success | success |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
@@ -170,7 +176,7 @@ def bench_optimise_main(argv: list[str]) -> int:
     """Entry point of ``thinshell bench optimise`` (module docstring); returns the exit code.
 
     Raises:
-        ConfigError: an unknown task or method.
+        ConfigError: an unknown task or method, fewer than one seed or a negative first seed.
     """
     from sim_core.optim.search import METHODS
     from sim_core.tasks.registry import task_names
@@ -181,10 +187,12 @@ def bench_optimise_main(argv: list[str]) -> int:
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise ConfigError(f"bench tasks: unknown methods {bad}; known {METHODS}")
+    if args.seeds < 1 or args.first_seed < 0:
+        raise ConfigError(f"bench optimise: --seeds >= 1 and --first-seed >= 0 required; got {args.seeds}, {args.first_seed}")
     rows = []
     for task in tasks:
         for method in methods:
-            for seed in range(args.seeds):
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
                 row = run_one(task, method, seed, args)
                 rows.append(row)
                 print(json.dumps(row) if args.json else

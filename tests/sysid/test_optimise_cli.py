@@ -156,3 +156,21 @@ def test_bench_optimise_starts_inverse_tasks_away_from_the_truth_and_reports_the
     assert row["parameter_rel_error"] == pytest.approx(abs(found - true) / true)
     # two CMA-ES samples around the start (2 x the truth, sigma 0.2 in log space) are not within 5 %
     assert row["parameter_rel_error"] > 0.3 and row["success"] is False
+
+
+def test_bench_optimise_first_seed_runs_the_seeds_from_there(monkeypatch, capsys):
+    import sysid.optimise_bench as bench
+
+    seen = []
+
+    def fake_run(task, method, seed, args):
+        seen.append((task, method, seed))
+        return {"task": task, "method": method, "best_reward": 1.0, "start_reward": 0.0, "wall_time_s": 1.0,
+                "rollouts_per_s": 1.0}
+
+    monkeypatch.setattr(bench, "run_one", fake_run)
+    assert bench.bench_optimise_main(["--tasks", "forming", "--methods", "cma,gd", "--seeds", "2",
+                                      "--first-seed", "3"]) == 0
+    assert seen == [("forming", "cma", 3), ("forming", "cma", 4), ("forming", "gd", 3), ("forming", "gd", 4)]
+    with pytest.raises(ConfigError, match="--first-seed"):
+        bench.bench_optimise_main(["--tasks", "forming", "--methods", "cma", "--first-seed", "-1"])
