@@ -13,7 +13,10 @@ Taichi path, ``SolverConfig.backend`` ``taichi-cpu`` or ``taichi-cuda``, the ela
 projected ones from :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`). The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
 the contact candidate set of the iteration valid. A step that does not converge raises
-:class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured).
+:class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured). The
+stopping tests are in :mod:`sim_core.newton_stop`; a resting scene may repeat its fixed point
+(``SolverConfig.repeat_fixed_points``, :mod:`sim_core.fixed_point`) and a resting body nothing moving
+can reach may sleep out of the Newton system (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`).
 """
 
 from __future__ import annotations
