@@ -159,7 +159,7 @@ def rollout_step(sim, control: Control | None, index: int, differentiable: bool 
 
     Raises:
         ConfigError: ``differentiable`` and the solver halved dt (such a step has no implicit
-            derivative), naming the step ``index``.
+            derivative) or held sleeping bodies (``SolverConfig.sleeping``), naming the step ``index``.
         SimulationDivergedError: from the solver.
     """
     c = control.copy() if control is not None else Control()
@@ -169,6 +169,11 @@ def rollout_step(sim, control: Control | None, index: int, differentiable: bool 
             f"rollout step {index}: the solver halved dt ({info.substeps} sub-steps); such steps are not "
             "differentiable, use SolverConfig(dt_halvings_on_failure=0) or a smaller dt"
         )
+    if differentiable and info.sleeping:
+        raise ConfigError(
+            f"rollout step {index}: bodies {list(info.sleeping)} slept through the step (SolverConfig.sleeping): "
+            "its record holds them as Dirichlet and lacks their elastic terms; use SolverConfig(sleeping=False) "
+            "for gradients")
     return c
 
 

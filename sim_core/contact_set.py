@@ -31,10 +31,10 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.energies.base import PenaltyContact
-from sim_core.energies.contact.reference import (EdgeEdgeContact, PlaneContact, VertexTriangleContact,
+from sim_core.energies.base import PenaltyContact, declares
+from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
-from sim_core.energies.friction.reference import LaggedFriction
+from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
 from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.model import Model, check_broad_phase
 from sim_core.workspace import Workspace
@@ -125,6 +125,10 @@ class ContactSet:
             for b in bodies if b.kind == "sphere"
         ]
         self.x_prev: np.ndarray | None = None
+        self.held_friction_energy = 0.0  # J, of the obstacle rows friction() left out for held vertices
+        # vertices held for the step (sleeping bodies, sim_core.sleeping; set by the solver), or None
+        self.held: np.ndarray | None = None
+        self._held_kept = None  # (candidates, held, candidates without the held pairs apart)
         self._cache = None  # (memory, candidates, potentials, sides) of the current step
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
@@ -154,7 +158,7 @@ class ContactSet:
         a little ahead of ``x`` along the step's motion (:meth:`_search_position`), so that it
         usually covers the next step's first iterates too.
         """
-        candidates = self._candidate_pairs(x)
+        candidates = self._without_held_pairs(self._candidate_pairs(x), x, memory)
         cache = getattr(self, "_cache", None)
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             # the step's potentials over these candidates (same pairs, sides and class): reused, not
@@ -241,6 +245,38 @@ class ContactSet:
             vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
         self._candidates = (x_search, vt, ee)
         return self._candidates
+
+    def _without_held_pairs(self, candidates: tuple, x: np.ndarray, memory: CollisionMemory) -> tuple:
+        """``candidates`` ``(x at the search, vertex-triangle pairs, edge-edge pairs)`` without the pairs
+        whose four vertices are all :attr:`held` (sleeping bodies) and that are apart at ``x`` (unsigned
+        distance >= eps, the held vertices' positions all step) and not remembered in ``memory``: such a
+        pair has no energy, force or Hessian entry all step, and no memory to keep. The lists are kept
+        while the candidates and the held mask are the same objects (a held pair stays apart and
+        unremembered while held). ``candidates`` itself when nothing is held."""
+        held = self.held
+        if held is None:
+            return candidates
+        kept = self._held_kept
+        if kept is not None and kept[0] is candidates and kept[1] is held:
+            return kept[2]
+        x_search, vt, ee = candidates
+        out = []
+        for pairs, vertices_of, kind, remembered in (
+                (vt, lambda p: vertex_triangle_vertices(p, self.triangles), VertexTriangleContact, memory.vertex_triangle),
+                (ee, lambda p: edge_edge_vertices(p, self.edges), EdgeEdgeContact, memory.edge_edge)):
+            rows = np.flatnonzero(held[vertices_of(pairs)].all(axis=1)) if len(pairs) else np.zeros(0, dtype=np.int64)
+            if not len(rows):
+                out.append(pairs)
+                continue
+            elements = self.triangles if kind is VertexTriangleContact else self.edges
+            apart = ~kind(pairs[rows], elements, np.zeros(len(rows)), self.stiffness, self.eps).active_mask(x)
+            drop = rows[apart & ~remembered.lookup(pairs[rows])[1]]
+            keep = np.ones(len(pairs), dtype=bool)
+            keep[drop] = False
+            out.append(pairs[keep])
+        filtered = (x_search, out[0], out[1])
+        self._held_kept = (candidates, held, filtered)
+        return filtered
 
     def _candidate_lists(self, search):
         """On the Taichi backend, the candidate lists of this contact set's elements with the
@@ -532,11 +568,27 @@ class ContactSet:
         vt, ee = self._pairs(x, memory)
         return [vt, ee] + [p for _, p in self.planes] + [p for _, p in self.spheres]
 
-    def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory) -> LaggedFriction | None:
-        """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0)."""
+    def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory,
+                 held: np.ndarray | None = None) -> LaggedFriction | None:
+        """Lagged friction of the pairs active at ``x^n`` (None when nothing touches or mu = 0).
+
+        ``held``: vertices held at ``x^n`` for the whole step (sleeping bodies, :mod:`sim_core.sleeping`),
+        bool ``(n,)``, or None; the rows of a vertex and an obstacle with the vertex held are left out
+        (its tangential displacement is zero all step: no force, and the constant energy
+        ``mu lam f0(0)`` of each, kept as :attr:`held_friction_energy`)."""
         vt, ee = self._pairs(x_n, memory)
-        obstacle_frames = [(name, obstacle, obstacle.contact_frames(x_n)) for name, obstacle in self.planes + self.spheres]
-        if self.taichi and not any(len(f.lam) for *_, f in obstacle_frames):
+        self.held_friction_energy = 0.0
+        eps_u = self.model.contact.eps_v * dt
+        obstacle_frames = []
+        for name, obstacle in self.planes + self.spheres:
+            f = obstacle.contact_frames(x_n)
+            mu = self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]]
+            if held is not None and len(f.lam):
+                keep = ~held[f.vertices[:, 0]]
+                self.held_friction_energy += float(np.sum(mu[~keep] * f.lam[~keep]) * smooth_friction_f0(0.0, eps_u))
+                f, mu = ContactFrames(*(a[keep] for a in f)), mu[keep]
+            obstacle_frames.append((name, obstacle, f, mu))
+        if self.taichi and not any(len(f.lam) for _, _, f, _ in obstacle_frames):
             return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
         # a pair's vertices: [p, a, b, c] / [a0, a1, b0, b1]; column 0 and ``second`` are on its two sides
@@ -546,10 +598,10 @@ class ContactSet:
                 frames.append(f)
                 mus.append(self._mu(f.vertices[:, 0], f.vertices[:, second]))
                 sources.append(FrictionRowSource(None, pot, f.pair_index))
-        for name, obstacle, f in obstacle_frames:
+        for name, obstacle, f, mu in obstacle_frames:
             if len(f.lam):
                 frames.append(f)
-                mus.append(self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]])
+                mus.append(mu)
                 sources.append(FrictionRowSource(name, obstacle, f.pair_index))
         if not frames:
             return None
@@ -667,7 +719,7 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     adhesion, say).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
-    if not all(isinstance(p, PenaltyContact) for p in terms):
+    if not all(declares(p, PenaltyContact) for p in terms):
         return None
     return [p.vertices[p.active_mask(x)] for p in terms]
 

@@ -100,11 +100,21 @@ class ElasticTerms:
         clone.hinge_theta_bar = theta_bar
         return clone
 
-    def potentials(self, hinge_theta_bar: dict[str, np.ndarray]) -> list:
-        """All elastic potentials for one step, given the rest angles of the state."""
-        out: list = list(self.membranes.values()) + list(self.solids.values())
-        out += [self.bending(name, hinge_theta_bar.get(name)) for name in self.hinges]
+    def potentials(self, hinge_theta_bar: dict[str, np.ndarray], skip: frozenset[str] = frozenset()) -> list:
+        """The elastic potentials for one step, given the rest angles of the state: all of them, but
+        those of the bodies named in ``skip`` (sleeping bodies, :mod:`sim_core.sleeping`)."""
+        out: list = [p for name, p in self.membranes.items() if name not in skip]
+        out += [p for name, p in self.solids.items() if name not in skip]
+        out += [self.bending(name, hinge_theta_bar.get(name)) for name in self.hinges if name not in skip]
         return out
+
+    def body_energy(self, name: str, x: np.ndarray, hinge_theta_bar: dict[str, np.ndarray]) -> float:
+        """The elastic energy (J) of body ``name`` at positions ``x`` ``(n, 3)`` m: its membrane,
+        solid and bending terms (0 for a body without any)."""
+        terms = [d[name] for d in (self.membranes, self.solids) if name in d]
+        if name in self.hinges:
+            terms.append(self.bending(name, hinge_theta_bar.get(name)))
+        return float(sum(p.energy(x) for p in terms))
 
     def parameter_terms(self, name: str, hinge_theta_bar: dict[str, np.ndarray]) -> list[tuple[object, str]]:
         """Potentials that depend on global parameter ``name`` and their local parameter names."""

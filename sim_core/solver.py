@@ -13,7 +13,10 @@ Taichi path, ``SolverConfig.backend`` ``taichi-cpu`` or ``taichi-cuda``, the ela
 projected ones from :meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`). The step
 is also capped so that no vertex moves more than ``max_displacement`` per iteration, which keeps
 the contact candidate set of the iteration valid. A step that does not converge raises
-:class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured).
+:class:`SimulationDivergedError` naming the step (or retries with dt/2 when configured). The
+stopping tests are in :mod:`sim_core.newton_stop`; a resting scene may repeat its fixed point
+(``SolverConfig.repeat_fixed_points``, :mod:`sim_core.fixed_point`) and a resting body nothing moving
+can reach may sleep out of the Newton system (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
-from sim_core.energies.base import KeepsDerivatives
+from sim_core.energies.base import KeepsDerivatives, declares
 from sim_core.energies.damping.reference import ViscousDamping
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.gravity.reference import GravityPotential
@@ -43,7 +46,9 @@ from sim_core.fused_elastic import FusedElastic, fusable
 from sim_core.linsolve import LinearSolver, SymmetricExpansion, SymmetricSolver, make_linear_solver, make_symmetric_solver
 from sim_core.model import Model
 from sim_core.solver_config import SolverConfig
+from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
+from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
@@ -79,6 +84,8 @@ class _StepTerms:
         simplified: whether the simplified Newton test may end the step.
         loop_energy_x, loop_energy: the positions array object the loop terms' energy (J) was last
             evaluated at, and that energy.
+        last_update: the Newton update (m, ``(3 n,)``) the stopping test measured at the accepted
+            iterate (the ordinary or simplified correction), None when the step ended otherwise.
     """
 
     state_in: State
@@ -102,6 +109,7 @@ class _StepTerms:
     simplified: bool
     loop_energy_x: np.ndarray | None = None
     loop_energy: float = 0.0
+    last_update: np.ndarray | None = None
 
 
 class NewtonSolver:
@@ -179,7 +187,13 @@ class NewtonSolver:
         self.contact = ContactSet(self.model, backend=self.backend, workspace=self.workspace)
         self.assembler = HessianAssembler(self.model.dof_count)
         self._fused: FusedElastic | None = None
+        self._fused_kept: dict[frozenset, FusedElastic] = {}  # by the sleeping bodies' names
         self._fixed_point: FixedPoint | None = None
+        # the bodies asleep until now are woken (reported by the next step)
+        self._woken_by_reset = getattr(self, "_sleep", None) and self._sleep.names or ()
+        self._sleep = SleepSet(self.model, self.config.sleep_velocity)
+        self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
+        self._last_contact_terms: list = []  # the contact terms at the last step's result
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -199,6 +213,7 @@ class NewtonSolver:
         self._hook = _checked_hook(hook)
         self.step_hook = self._resolve_hook()
         self._fixed_point = None
+        self._sleep.wake_all()
 
     def _resolve_hook(self) -> StepHook | None:
         """The explicit hook, else a :class:`CandidateHook` of the model's candidates, else None.
@@ -237,13 +252,49 @@ class NewtonSolver:
                 raise ConfigError(f"control position_guess must be finite positions of shape {state_in.x.shape}, "
                                   f"got shape {guess.shape}" + ("" if guess.shape != state_in.x.shape else " with NaN/inf"))
         t0 = time.perf_counter()
+        sleeping = self.config.sleeping and guess is None and self.step_hook is None
+        woken = sorted(set(self._woken_by_reset) | set([] if sleeping else self._sleep.wake_all()))
+        self._woken_by_reset = ()
         repeat = self.config.repeat_fixed_points and guess is None and self.step_hook is None
-        if repeat:
+        if repeat and not woken:
+            # a fixed point of this sleeping set (its Dirichlet mask holds them) from bitwise this state
+            # and inputs: the wake test passed when it was solved and would pass again
             info = self._repeat_fixed_point(state_in, state_out, control, dt)
             if info is not None:
+                info.sleeping = self._sleep.names
                 info.time_total = time.perf_counter() - t0
                 return info
+        if sleeping and self._sleep.bodies:
+            fixed, x_target = self.boundary(state_in, control)[:2]
+            woken = sorted(set(woken) | set(self._sleep.wake_before_step(state_in, self._step_inputs(dt), x_target,
+                                                                         fixed, dt)))
         self._fixed_point = None
+        redos = 0
+        while True:
+            try:
+                info = self._solve(state_in, state_out, control, dt, guess, repeat)
+            except Woken as err:  # a sleeping body was reached during the solve: solve again with it awake
+                self._sleep.wake(err.bodies)
+                woken = sorted(set(woken) | set(err.bodies))
+                redos += 1
+                continue
+            info.woken, info.wake_redos = tuple(woken), redos
+            if sleeping and info.retries == 0 and info.converged_strict:
+                info.fell_asleep = tuple(self._sleep.fall_asleep(
+                    state_in, state_out, self._last_update, dt, self._last_contact_terms, self._step_inputs(dt),
+                    lambda name, x: self.elastic.body_energy(name, x, state_out.hinge_theta_bar)))
+            info.time_total = time.perf_counter() - t0
+            return info
+
+    def _solve(self, state_in: State, state_out: State, control: Control, dt: float, guess: np.ndarray | None,
+               repeat: bool) -> StepInfo:
+        """The step solved, retried in substeps as configured (``SolverConfig.dt_halvings_on_failure``);
+        kept as the fixed point when ``repeat`` and it left the state at rest.
+
+        Raises:
+            SimulationDivergedError: see :meth:`step`.
+            Woken: a contact candidate pair joined a sleeping body to a moving vertex.
+        """
         retries = 0
         while True:
             n_sub = 2 ** retries
@@ -261,9 +312,9 @@ class NewtonSolver:
                     f"SolverConfig.dt_halvings_on_failure exhausted); last failure: {err}",
                     step_index=state_in.step_index, t=state_in.t) from err
             info.retries = retries
+            info.sleeping = self._sleep.names
             if repeat and retries == 0:
                 self._fixed_point = self._as_fixed_point(state_in, state_out, dt, info)
-            info.time_total = time.perf_counter() - t0
             return info
 
     def _step_inputs(self, dt: float) -> tuple:
@@ -291,9 +342,9 @@ class NewtonSolver:
 
     def _repeat_fixed_point(self, state_in: State, state_out: State, control: Control, dt: float) -> StepInfo | None:
         """Take the kept fixed point's result into ``state_out`` when ``state_in``, the Dirichlet data
-        ``control`` resolves to and the other inputs (:meth:`_step_inputs`) are bitwise its own
-        (``SolverConfig.repeat_fixed_points``); its :class:`StepInfo` (``repeated``). None otherwise
-        (nothing written)."""
+        ``control`` resolves to (with the sleeping bodies held) and the other inputs
+        (:meth:`_step_inputs`) are bitwise its own (``SolverConfig.repeat_fixed_points``); its
+        :class:`StepInfo` (``repeated``). None otherwise (nothing written)."""
         fp = self._fixed_point
         if fp is None or self._revision != self.model.revision:
             return None
@@ -301,6 +352,8 @@ class NewtonSolver:
         if not (same_resting_state(state_in, kept, with_velocity=True) and self._step_inputs(dt) == fp.inputs):
             return None
         fixed, x_target, poses, openings, limited = self.boundary(state_in, control)
+        if self._sleep.bodies:
+            fixed = fixed | self._sleep.mask  # the step's Dirichlet mask holds the sleeping bodies
         if not (same_array(fixed, fp.fixed) and same_array(x_target, fp.x_target) and same_arrays(poses, fp.poses)
                 and openings == fp.openings and limited == fp.limited):
             return None
@@ -344,15 +397,7 @@ class NewtonSolver:
             nxt = s.copy()
             info = self._single_step(s, nxt, control, dt / n_sub, guess=guess)
             nxt.step_index = state_in.step_index
-            for name in _SUMMED_COUNTS:
-                setattr(total, name, getattr(total, name) + getattr(info, name))
-            total.residual_velocity = info.residual_velocity
-            total.energy = info.energy
-            total.limited_effectors = sorted(set(total.limited_effectors) | set(info.limited_effectors))
-            if total.converged_strict or not info.converged_strict:
-                total.stop_reason = info.stop_reason
-            total.converged_strict = total.converged_strict and info.converged_strict
-            total.accepted_tolerance = max(total.accepted_tolerance, info.accepted_tolerance)
+            total.add_substep(info)
             s = nxt
         s.step_index = state_in.step_index + 1
         s.t = state_in.t + dt
@@ -408,7 +453,8 @@ class NewtonSolver:
         reference potentials)."""
         if not self._fused_path():
             return None
-        self._fused = FusedElastic.for_terms(self._fused, elastic_terms)
+        key = frozenset(self._sleep.bodies)
+        self._fused = self._fused_kept[key] = FusedElastic.for_terms(self._fused_kept.get(key), elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)
         self._fused.offload = self.elastic_worker if self.backend == "taichi-cpu" else None
@@ -430,6 +476,7 @@ class NewtonSolver:
         step, x = self._set_up_step(state_in, control, dt, guess, info)
         x, H, projection, factorization = self._newton_iterations(step, x, guess is not None, info)
         self._finish_step(step, x, H, projection, factorization, state_out, info)
+        self._last_update = step.last_update
         return info
 
     # -------------------------------------------------------------- the parts of one step
@@ -440,6 +487,9 @@ class NewtonSolver:
         cfg = self.config
         model = self.model
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
+        asleep = frozenset(self._sleep.bodies)
+        if asleep:
+            fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
         free = np.repeat(~fixed, 3)
         x_n = state_in.x
         x = x_n.copy() if guess is None else guess.copy()
@@ -453,7 +503,7 @@ class NewtonSolver:
             damp = ViscousDamping(mass, x_n, model.damping, dt)
             fixed_terms.append(damp)
             diag = diag + damp.hessian_diagonal()
-        elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar)
+        elastic_terms = self.elastic.potentials(state_in.hinge_theta_bar, skip=asleep)
         fixed_terms += elastic_terms
         fused = None
         if self.step_hook is None and self.elastic_worker is not None:
@@ -462,8 +512,9 @@ class NewtonSolver:
             fused = self._fused_elastic(elastic_terms, x, free)
             if fused is not None:
                 fused.start(x)
+        self.contact.held = self._sleep.mask if asleep else None  # their pairs apart leave the candidates
         memory = self.contact.begin_step(x_n, state_in.contact_memory)
-        friction = self.contact.friction(x_n, dt, memory)
+        friction = self.contact.friction(x_n, dt, memory, held=self._sleep.mask if asleep else None)
         if friction is not None:
             fixed_terms.append(friction)
         cand_contact, cand_body = ([], []) if self.step_hook is None else self.step_hook.terms(
@@ -496,7 +547,7 @@ class NewtonSolver:
 
     def _newton_iterations(self, step: _StepTerms, x: np.ndarray, guessed: bool,
                            info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
-        """Newton iterations from ``x`` until a stopping test accepts an iterate (:meth:`_stop_reason`,
+        """Newton iterations from ``x`` until a stopping test accepts an iterate (:func:`~sim_core.newton_stop.stop_reason`,
         the simplified Newton test, rate stopping, or a failed line search at a relaxed tolerance).
 
         Records in ``info`` the iterations, the residual, how the step ended (``stop_reason``,
@@ -523,21 +574,23 @@ class NewtonSolver:
             contact_terms, x_search, g = self._gradient(step, x, it, info)
             if (simplified_ok and active_before is not None
                     and same_active_contacts(active_contacts(contact_terms, x), active_before)):
-                residual_bar = self._simplified_correction(step, g, info)
+                residual_bar, d_bar = self._simplified_correction(step, g, info)
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
                     info.simplified_stops = 1
-                    self._accept(info, it, residual_bar, "simplified")
+                    step.last_update = d_bar
+                    accept(self.config, info, it, residual_bar, "simplified")
                     return x, H, projection, factorization
             active_before = None
             d, H, projection, factorization = self._newton_direction(step, x, g, contact_terms, it, info)
             d3 = d.reshape(-1, 3)
-            step_max = _largest_move(d)
+            step_max = largest_move(d)
             residual = step_max / dt
             history.append(residual)
-            reason = self._stop_reason(residual, g, history)
+            reason = stop_reason(self.config, residual, g, history)
             if reason is not None:
                 if not (guessed and it == 1):
-                    self._accept(info, it, residual, reason)
+                    step.last_update = d if reason in STRICT_STOPS else None
+                    accept(self.config, info, it, residual, reason)
                     return x, H, projection, factorization
                 # a guess already within the tolerance: take its Newton correction (no line search:
                 # a step this small is in the quadratic region) and test again, so that the result
@@ -557,7 +610,7 @@ class NewtonSolver:
                 d3 = d.reshape(-1, 3)
                 slope = float(g @ d)
             # rate stopping ends the step on this update if it is taken in full
-            rate_stop = cfg.rate_stopping and len(history) > 1 and _rate_stops(history, cfg.tol_velocity)
+            rate_stop = cfg.rate_stopping and len(history) > 1 and rate_stops(history, cfg.tol_velocity)
             # the elastic terms' (and the Taichi friction's and the pair contacts') energy, gradient and
             # Hessian at the first trial point in one evaluation when, once accepted (backtracks are
             # rare), it is the next iterate
@@ -566,9 +619,9 @@ class NewtonSolver:
                                                   prefetch, info)
             if x_new is None:
                 info.line_search_failures += 1
-                reason = self._line_search_failure_acceptance(slope, e0, residual)
+                reason = line_search_failure_acceptance(self.config, slope, e0, residual)
                 if reason is not None:
-                    self._accept(info, it, residual, reason)
+                    accept(self.config, info, it, residual, reason)
                     return x, H, projection, factorization
                 released = self.contact.release_stale_sides(x, step.memory)
                 if released:
@@ -590,7 +643,7 @@ class NewtonSolver:
                 info.released_sides += self.contact.release_stale_sides(x, step.memory)
             if rate_stop and full_step:
                 theta = residual / history[-2]
-                self._accept(info, it, residual * (theta / (1.0 - theta)), "rate")  # the estimated remaining error
+                accept(self.config, info, it, residual * (theta / (1.0 - theta)), "rate")  # the estimated remaining error
                 return x, H, projection, factorization
         raise self._diverged(
             step, f"Newton did not converge in {cfg.max_iterations} iterations (residual {residual:.3g} m/s > "
@@ -608,6 +661,7 @@ class NewtonSolver:
         """
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        self._check_asleep_unreached(contact_terms, x)
         x_search = self.contact.search_position
         g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
         g[~step.free] = 0.0
@@ -616,14 +670,14 @@ class NewtonSolver:
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
 
-    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> float:
+    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> tuple[float, np.ndarray]:
         """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
-        last factorisation (``SolverConfig.simplified_newton_check``)."""
+        last factorisation (``SolverConfig.simplified_newton_check``), and the correction (m, ``(3 n,)``)."""
         tl = time.perf_counter()
         d_bar = self.linear_solver.solve(g)
         d_bar[~step.free] = 0.0
         info.time_linear_solve += time.perf_counter() - tl
-        return _largest_move(d_bar) / step.dt
+        return largest_move(d_bar) / step.dt, d_bar
 
     def _assemble_hessian(self, step: _StepTerms, x: np.ndarray, projection: str,
                           dynamic_terms: list) -> sp.csr_matrix:
@@ -708,11 +762,11 @@ class NewtonSolver:
             x_new = x + alpha * d3
             if prefetch and backtrack == 0:
                 step.fused.evaluate(x_new)
-                if isinstance(step.friction, KeepsDerivatives):
+                if declares(step.friction, KeepsDerivatives):
                     step.friction.keep_derivatives(x_new)
                 if self.contact.covers(x_search, x_new):  # else _energy searches again: new pairs
                     for p in contact_terms:
-                        if isinstance(p, KeepsDerivatives):
+                        if declares(p, KeepsDerivatives):
                             p.keep_derivatives(x_new)
             if self._energy(step, x_new, contact_terms, x_search) <= e0 + cfg.armijo_c * alpha * slope:
                 return x_new, backtrack
@@ -720,53 +774,12 @@ class NewtonSolver:
             info.backtracks += 1
         return None, cfg.max_backtracks
 
-    def _stop_reason(self, residual: float, g: np.ndarray, history: list[float]) -> str | None:
-        """The convergence test of an iterate with Newton update of scaled size ``residual`` (m/s) and
-        free-DoF gradient ``g`` (J/m): ``"velocity"`` (``residual < tol_velocity``), ``"force"``
-        (``max |g| < tol_force``), ``"stalled"`` (relaxed: ``residual`` below ``stall_tolerance_factor
-        * tol_velocity`` and not 10 % below the residual ``stall_iterations`` iterations earlier), or
-        None (not converged)."""
-        cfg = self.config
-        if residual < cfg.tol_velocity:
-            return "velocity"
-        if float(np.max(np.abs(g))) < cfg.tol_force:
-            return "force"
-        if (len(history) > cfg.stall_iterations and residual < cfg.stall_tolerance_factor * cfg.tol_velocity
-                and residual > 0.9 * history[-1 - cfg.stall_iterations]):
-            return "stalled"
-        return None
-
-    def _line_search_failure_acceptance(self, slope: float, e0: float, residual: float) -> str | None:
-        """Whether an iterate whose line search failed is accepted (relaxed): ``"line_search_roundoff"``
-        when the predicted decrease ``|g.d|`` is below ``stationary_slope_rtol * |E|`` (x is stationary
-        to working precision), ``"line_search_relaxed"`` when ``residual`` (m/s) is below
-        ``line_search_tolerance_factor * tol_velocity``; else None."""
-        cfg = self.config
-        if abs(slope) <= cfg.stationary_slope_rtol * max(abs(e0), 1e-30):
-            return "line_search_roundoff"
-        if residual < cfg.line_search_tolerance_factor * cfg.tol_velocity:
-            return "line_search_relaxed"
-        return None
-
-    def _accept(self, info: StepInfo, it: int, residual: float, reason: str) -> None:
-        """Record in ``info`` that iteration ``it`` ended the step with ``residual`` (m/s) by the stopping
-        test ``reason`` (:data:`STRICT_STOPS` or a relaxed one, which is counted)."""
-        cfg = self.config
-        info.iterations = it
-        info.residual_velocity = residual
-        info.stop_reason = reason
-        info.converged_strict = reason in STRICT_STOPS
-        if reason in STRICT_STOPS:
-            info.accepted_tolerance = cfg.tol_velocity
-            return
-        info.relaxed_accepts += 1
-        if reason == "stalled":
-            info.stalled_accepts += 1
-            info.accepted_tolerance = cfg.stall_tolerance_factor * cfg.tol_velocity
-        elif reason == "line_search_relaxed":
-            info.accepted_tolerance = cfg.line_search_tolerance_factor * cfg.tol_velocity
-        else:  # the round-off test bounds the predicted energy decrease, not the residual
-            info.accepted_tolerance = np.inf
+    def _check_asleep_unreached(self, contact_terms: list, x: np.ndarray) -> None:
+        """Raise :class:`Woken` when a contact candidate pair of ``contact_terms`` joins a sleeping body
+        to a moving vertex, or a moving sphere comes near one, at ``x`` (:meth:`SleepSet.reached_by_pairs`)."""
+        reached = self._sleep.reached_by_pairs(contact_terms, x) if self._sleep.bodies else []
+        if reached:
+            raise Woken(reached)
 
     @staticmethod
     def _diverged(step: _StepTerms, what: str) -> SimulationDivergedError:
@@ -783,17 +796,20 @@ class NewtonSolver:
         state_in, dt, x_n = step.state_in, step.dt, step.x_n
         # a step ended by the simplified Newton test has the matrix of the iterate before x
         exact = projection == "none" and not info.simplified_stops
+        contact_terms = self.contact.potentials(x, x_n, step.memory)
+        self._check_asleep_unreached(contact_terms, x)
+        self._last_contact_terms = contact_terms
         self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
-        contact_terms = self.contact.potentials(x, x_n, step.memory)
-        info.energy = self._energy(step, x, contact_terms, self.contact.search_position)
+        info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
+                       + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         self.last_record = StepRecord(
             dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
             x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
             gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
             terms=step.fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
-            free_dofs=step.free, hessian_exact=exact, expansion=self._full_from_upper,
+            free_dofs=step.free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
         )
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
@@ -821,25 +837,3 @@ def _checked_hook(hook: StepHook | None) -> StepHook | None:
         return hook
     missing = [m for m in ("terms", "update_state") if not callable(getattr(hook, m, None))]
     raise ConfigError(f"NewtonSolver: hook {type(hook).__name__} is not a StepHook (missing {', '.join(missing)})")
-
-
-_SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
-                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
-                  "line_search_failures")
-"""The :class:`StepInfo` fields summed over the substeps of a step."""
-
-
-def _largest_move(d: np.ndarray) -> float:
-    """The largest vertex displacement ``max_i |d_i|`` (m) of a Newton update ``d`` ``(3 n,)``; 0 when
-    there are no DoFs."""
-    d3 = d.reshape(-1, 3)
-    return float(np.max(np.linalg.norm(d3, axis=1))) if d3.size else 0.0
-
-
-def _rate_stops(history: list[float], tol_velocity: float) -> bool:
-    """Whether a full Newton update with scaled size ``history[-1]`` (m/s) after one of size
-    ``history[-2]`` ends the step under ``SolverConfig.rate_stopping``: its estimated remaining
-    error ``theta / (1 - theta) * history[-1]``, ``theta = history[-1] / history[-2] < 1``, is below
-    ``tol_velocity``."""
-    theta = history[-1] / history[-2]
-    return theta < 1.0 and theta / (1.0 - theta) * history[-1] < tol_velocity

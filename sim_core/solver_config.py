@@ -112,6 +112,24 @@ class SolverConfig:
             ulps of the tolerance). Off by default; the sim node turns it on (a scene at rest then
             costs a comparison of the inputs per step; docs/benchmarks_log.md, 2026-11-25 "the sim
             node's step"). Never with a step hook (candidate terms carry their own state).
+        sleeping: let a body at rest that nothing moving can reach sleep (:mod:`sim_core.sleeping`):
+            after a strictly converged step that left an eligible body (a sheet or solid not driven
+            by an effector) with velocities in and out and its part of the last Newton update all
+            below ``sleep_velocity``, with no contact candidate pair shared with a moving vertex and
+            no moving vertex within reach, its DoFs are held (Dirichlet at its positions) and its
+            elastic terms are not evaluated until it is woken: before a step whose inputs (model
+            revision, gravity, damping, friction table, dt, these settings) or whose state of the
+            body differ from those it fell asleep with, or that a moving vertex may reach it in;
+            during a step (solved again with it awake, ``StepInfo.wake_redos``) as soon as a contact
+            candidate pair joins it to a moving vertex. A never-sleeping solve would move such a body
+            by its sub-threshold Newton updates only, so the trajectories differ by about
+            ``sleep_velocity * dt`` per step it sleeps (tests/sim_core/test_sleeping.py: below 1e-9 m
+            on the bundled scene with the pad pressing near, then onto, the card).
+            Reported in ``StepInfo.sleeping`` / ``woken``. Off by default; the sim node turns it on. Not
+            with a position guess or a step hook (the step solves every body), nor for gradients:
+            a sleeping step's ``StepRecord`` holds the body as Dirichlet and lacks its elastic terms
+            (:func:`sim_core.adjoint.rollout_step` refuses it), nor with ``lockstep``.
+        sleep_velocity: the rest threshold of ``sleeping``, m/s (> 0; 1e-7 m/s = 0.5 nm per 5 ms step).
     """
 
     tol_velocity: float = 1e-4
@@ -134,6 +152,8 @@ class SolverConfig:
     simplified_newton_check: float = 0.25
     lockstep: bool = False
     repeat_fixed_points: bool = False
+    sleeping: bool = False
+    sleep_velocity: float = 1e-7
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
@@ -151,5 +171,9 @@ class SolverConfig:
                 raise ConfigError(f"solver {name} must be a finite number >= 1, got {value!r}")
         if not (np.isfinite(self.stationary_slope_rtol) and self.stationary_slope_rtol >= 0.0):
             raise ConfigError(f"solver stationary_slope_rtol must be a finite number >= 0, got {self.stationary_slope_rtol!r}")
+        if not (np.isfinite(self.sleep_velocity) and self.sleep_velocity > 0.0):
+            raise ConfigError(f"solver sleep_velocity must be a finite number > 0 m/s, got {self.sleep_velocity!r}")
+        if self.sleeping and self.lockstep:
+            raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
         if self.dt_halvings_on_failure < 0:
             raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")

@@ -37,6 +37,8 @@ class StepRecord:
             iterate before ``x``, within the Newton tolerance of ``x``. The full symmetric matrix is
             :attr:`hessian`.
         free_dofs: free DoF mask, shape ``(3 n,)`` bool.
+        asleep: the bodies held asleep during the step (``SolverConfig.sleeping``): their vertices are
+            in ``fixed`` and their elastic terms are not in ``terms`` (not the full system's linearisation).
         hessian_exact: ``hessian`` is the exact (unprojected) Hessian at ``x``, i.e. the matrix
             of the implicit-function-theorem linearisation (:mod:`sim_core.adjoint`).
         expansion: the :class:`~sim_core.linsolve.SymmetricExpansion` that builds :attr:`hessian`
@@ -57,6 +59,7 @@ class StepRecord:
     hessian_upper: sp.csr_matrix
     free_dofs: np.ndarray
     hessian_exact: bool = False
+    asleep: tuple[str, ...] = ()
     expansion: SymmetricExpansion | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -120,6 +123,11 @@ class StepInfo:
             (``SolverConfig.repeat_fixed_points``), whose result it took; ``residual_velocity``,
             ``energy``, ``stop_reason``, ``converged_strict`` and ``accepted_tolerance`` are that
             step's, the counts and times its own (no iteration, no factorisation).
+        sleeping: the bodies held asleep during the step (``SolverConfig.sleeping``), sorted names.
+        woken: the bodies woken at the step (before it, or during it: then the step was solved again), sorted.
+        fell_asleep: the bodies that fell asleep after the step (they sleep from the next step on), sorted.
+        wake_redos: times the step was solved again because a contact candidate pair joined a sleeping
+            body to a moving vertex during the solve.
     """
 
     iterations: int = 0
@@ -143,11 +151,36 @@ class StepInfo:
     stalled_accepts: int = 0
     line_search_failures: int = 0
     repeated: bool = False
+    sleeping: tuple[str, ...] = ()
+    woken: tuple[str, ...] = ()
+    fell_asleep: tuple[str, ...] = ()
+    wake_redos: int = 0
+
+    def add_substep(self, info: "StepInfo") -> None:
+        """Add substep ``info`` to this step's summary: its counts and times summed
+        (:data:`SUMMED_COUNTS`), its residual and energy taken (the last substep's), the limited
+        effectors merged, the stop reason the last relaxed one (else the last), strict only when
+        every substep was, the accepted tolerance the largest."""
+        for name in SUMMED_COUNTS:
+            setattr(self, name, getattr(self, name) + getattr(info, name))
+        self.residual_velocity = info.residual_velocity
+        self.energy = info.energy
+        self.limited_effectors = sorted(set(self.limited_effectors) | set(info.limited_effectors))
+        if self.converged_strict or not info.converged_strict:
+            self.stop_reason = info.stop_reason
+        self.converged_strict = self.converged_strict and info.converged_strict
+        self.accepted_tolerance = max(self.accepted_tolerance, info.accepted_tolerance)
 
     @property
     def needs_attention(self) -> bool:
         """Whether the step was accepted above the strict tolerance or needed substep retries."""
         return not self.converged_strict or self.retries > 0
+
+
+SUMMED_COUNTS = ("iterations", "backtracks", "time_assembly", "time_linear_solve", "projected_iterations",
+                  "released_sides", "factorizations", "simplified_stops", "relaxed_accepts", "stalled_accepts",
+                  "line_search_failures")
+"""The :class:`StepInfo` fields summed over the substeps of a step."""
 
 
 @dataclass
@@ -165,6 +198,8 @@ class StepTotals:
         largest_accepted_tolerance: the largest ``StepInfo.accepted_tolerance``, m/s (0 before a step).
         first_relaxed_step: ``State.step_index`` at the start of the first relaxed or retried step, or None.
         repeated_steps: steps that repeated a fixed point instead of a solve (``StepInfo.repeated``).
+        sleeping_steps: steps with at least one body asleep (``StepInfo.sleeping``).
+        wake_redos: steps solved again after a sleeping body was reached (``StepInfo.wake_redos``), summed.
     """
 
     steps: int = 0
@@ -178,6 +213,8 @@ class StepTotals:
     largest_accepted_tolerance: float = 0.0
     first_relaxed_step: int | None = None
     repeated_steps: int = 0
+    sleeping_steps: int = 0
+    wake_redos: int = 0
 
     def add(self, info: StepInfo, step_index: int) -> None:
         """Count the step that started at ``step_index`` and ended as ``info``."""
@@ -190,6 +227,8 @@ class StepTotals:
         self.stalled_accepts += info.stalled_accepts
         self.line_search_failures += info.line_search_failures
         self.repeated_steps += info.repeated
+        self.sleeping_steps += bool(info.sleeping)
+        self.wake_redos += info.wake_redos
         self.largest_accepted_tolerance = max(self.largest_accepted_tolerance, info.accepted_tolerance)
         if info.needs_attention and self.first_relaxed_step is None:
             self.first_relaxed_step = int(step_index)

@@ -8,7 +8,9 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   ``taichi-cpu``, ``taichi-cuda`` (``thinshell bench forming --arch cpu`` measures ``taichi-cpu``).
   Not used when the node is given a built simulation (its solver's backend stands). The node's
   solver repeats a fixed point (``SolverConfig.repeat_fixed_points``): while the scene rests, a step
-  whose inputs equal the last one's takes its result instead of a Newton solve.
+  whose inputs equal the last one's takes its result instead of a Newton solve; and it lets a body at
+  rest that nothing moving can reach sleep (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`: the
+  card while the pad moves above it), held out of the Newton system until something could change it.
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
@@ -54,7 +56,9 @@ false: a stalled residual or a failed line search accepted at a relaxed toleranc
 retried substeps (``StepInfo.retries``) is logged as a warning and published as a ``WARN``
 ``diagnostic_msgs/DiagnosticStatus`` on ``/diagnostics`` (the ROS diagnostics convention); a failed
 step as ``ERROR``; the next strictly converged step after either as ``OK``. The status is named
-``<node name>: solver`` and its values say how the step ended (:func:`solver_status`).
+``<node name>: solver`` and its values say how the step ended (:func:`solver_status`). A step after
+which a body fell asleep, or at which one was woken, is published as ``OK`` with the sleeping bodies
+(values ``sleeping``, ``fell_asleep``, ``woken``, ``wake_redos``).
 """
 
 from __future__ import annotations
@@ -120,7 +124,9 @@ def solver_status(name: str, t: float, info: StepInfo | None = None, error: str 
         ``ERROR`` with ``error``; ``WARN`` when ``info.needs_attention`` (accepted above the strict
         tolerance or retried in substeps); else ``OK``. Values: ``t``, and from ``info`` the stopping
         test, residual, accepted tolerance, iterations, substeps, retries, relaxed acceptances,
-        stalled acceptances, line-search failures and whether the step repeated a fixed point.
+        stalled acceptances, line-search failures, whether the step repeated a fixed point, and the
+        sleeping bodies (``sleeping``: held during the step; ``fell_asleep``: after it; ``woken``: at it;
+        ``wake_redos``: solves redone after a sleeping body was reached; names comma-separated).
     """
     status = DiagnosticStatus(name=name, hardware_id="thinshell")
     values = {"t": f"{t:.6f}"}
@@ -136,12 +142,18 @@ def solver_status(name: str, t: float, info: StepInfo | None = None, error: str 
             status.message = f"step converged after {info.retries} substep retries ({info.substeps} substeps)"
         else:
             status.level, status.message = DiagnosticStatus.OK, "converged"
+            changes = [f"{what}: {', '.join(names)}" for what, names in
+                       (("fell asleep", info.fell_asleep), ("woken", info.woken)) if names]
+            if changes:
+                status.message += " (" + "; ".join(changes) + ")"
         values.update({
             "stop_reason": info.stop_reason, "residual_velocity": f"{info.residual_velocity:.6g}",
             "accepted_tolerance": f"{info.accepted_tolerance:.6g}", "iterations": str(info.iterations),
             "substeps": str(info.substeps), "retries": str(info.retries),
             "relaxed_accepts": str(info.relaxed_accepts), "stalled_accepts": str(info.stalled_accepts),
             "line_search_failures": str(info.line_search_failures), "repeated": str(info.repeated).lower(),
+            "sleeping": ",".join(info.sleeping), "fell_asleep": ",".join(info.fell_asleep),
+            "woken": ",".join(info.woken), "wake_redos": str(info.wake_redos),
         })
     status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
     return status
@@ -203,8 +215,9 @@ class SimNode(Node):
         check_backend(backend, "node parameter 'backend'")
         if sim is None:
             # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated)
-            sim = Simulation.from_scene(self.scene_path,
-                                        solver_config=SolverConfig(backend=backend, repeat_fixed_points=True))
+            # and a resting body nothing moving can reach sleeps (StepInfo.sleeping)
+            sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(
+                backend=backend, repeat_fixed_points=True, sleeping=True))
         self.sim = sim
         self.dt = float(sim.dt)
         self._declare_material_parameters()
@@ -454,7 +467,8 @@ class SimNode(Node):
 
     def _report_step(self, t: float, info: StepInfo) -> None:
         """Warn about and publish a step that was not strictly converged or needed substep retries;
-        publish ``OK`` on the first strict step after one."""
+        publish ``OK`` on the first strict step after one, and on a step at which bodies fell asleep or
+        were woken."""
         if info.needs_attention:
             self.relaxed_steps += 1
             status = solver_status(self._status_name, t, info)
@@ -462,7 +476,7 @@ class SimNode(Node):
                                       f"{info.residual_velocity:.3g} m/s, {info.iterations} iterations)",
                                       throttle_duration_sec=1.0)
             self._publish_solver_status(status)
-        elif self._solver_status_level != DiagnosticStatus.OK:
+        elif self._solver_status_level != DiagnosticStatus.OK or info.fell_asleep or info.woken:
             self._publish_solver_status(solver_status(self._status_name, t, info))
 
     def _publish_solver_status(self, status: DiagnosticStatus) -> None:

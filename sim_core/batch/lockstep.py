@@ -7,7 +7,7 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
 ``SolverConfig.linear_solver``). What is per copy:
 
 * convergence: copy ``i``'s scaled Newton update ``max_v |d_iv| / dt`` and gradient are tested by
-  the solver's stopping tests (:meth:`NewtonSolver._stop_reason`: velocity, force, stalled); a copy
+  the solver's stopping tests (:func:`sim_core.newton_stop.stop_reason`: velocity, force, stalled); a copy
   that has converged takes no further update (its right-hand side is zeroed, so its block of the
   solution is zero) while the others iterate;
 * step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
@@ -58,6 +58,7 @@ from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
 from sim_core.errors import ConfigError
+from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
@@ -237,9 +238,9 @@ class LockstepSolver(NewtonSolver):
             for i in np.flatnonzero(open_):
                 residual[i] = step_max[i] / dt
                 history[i].append(residual[i])
-                reason = self._stop_reason(residual[i], gB[i], history[i])
+                reason = stop_reason(self.config, residual[i], gB[i], history[i])
                 if reason is not None:
-                    self._accept(infos[i], it, residual[i], reason)
+                    accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
             open_ = running & ~done
             if not open_.any():
@@ -260,7 +261,7 @@ class LockstepSolver(NewtonSolver):
                     infos[i].line_search_failures += 1
                 relaxed = failed_ls & (residual < cfg.line_search_tolerance_factor * cfg.tol_velocity)
                 for i in np.flatnonzero(relaxed):
-                    self._accept(infos[i], it, residual[i], "line_search_relaxed")
+                    accept(self.config, infos[i], it, residual[i], "line_search_relaxed")
                     done[i] = True
                 stuck = failed_ls & ~relaxed
                 if stuck.any():

@@ -13,6 +13,7 @@ projects and assembles into one sparse matrix; nothing n x n is ever dense.
 
 from __future__ import annotations
 
+import functools
 from typing import Literal, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -153,6 +154,23 @@ class ElasticEquivalent(Protocol):
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
+
+
+def declares(obj: object, capability: type) -> bool:
+    """``isinstance(obj, capability)`` for a capability Protocol of :data:`CAPABILITIES`, at the cost of a
+    dictionary look-up: its methods are looked up once per class of ``obj``, its data members (e.g.
+    :attr:`PenaltyContact.vertices`) on ``obj`` itself. (A ``runtime_checkable`` ``isinstance`` walks the
+    Protocol's members on every call, about 80 us: the Newton loop asks several times per iteration.)"""
+    methods, data = _capability_members(type(obj), capability)
+    return methods and all(hasattr(obj, name) for name in data)
+
+
+@functools.cache
+def _capability_members(cls: type, capability: type) -> tuple[bool, tuple[str, ...]]:
+    """Whether class ``cls`` has every method of ``capability`` (callable), and the Protocol's data members."""
+    data = tuple(getattr(capability, "__annotations__", {}))
+    methods = [name for name, value in vars(capability).items() if callable(value) and not name.startswith("_")]
+    return all(callable(getattr(cls, name, None)) for name in methods), data
 
 
 def project_psd(blocks: np.ndarray, projection: Projection = "clamp") -> np.ndarray:

@@ -3,6 +3,7 @@ an impossible step reach ``/diagnostics`` with how they ended."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
@@ -11,11 +12,12 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from sim_core.builder import ModelBuilder
+from sim_core.control import Control
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.simulation import Simulation
-from sim_core.solver import SolverConfig
+from sim_core.solver import SolverConfig, StepInfo
 from tests.thinshell_ros.conftest import spin_until
-from thinshell_ros.sim_node import DIAGNOSTICS_TOPIC, SimNode
+from thinshell_ros.sim_node import DIAGNOSTICS_TOPIC, SimNode, solver_status
 
 pytestmark = pytest.mark.ros
 
@@ -73,4 +75,32 @@ def test_an_impossible_step_is_published_as_an_error(ros_context):
     assert status.level == DiagnosticStatus.ERROR
     assert "SimulationDivergedError: step 0 (t = 0 s): Newton failed at dt = 0.01 s" in status.message
     assert "1 retries" in status.message and "did not converge in 1 iterations" in status.message
+    node.destroy_node()
+
+
+def test_sleeping_bodies_are_in_the_solver_status():
+    info = StepInfo(stop_reason="velocity", residual_velocity=5e-5, accepted_tolerance=1e-4, iterations=3,
+                    sleeping=("sheet",), fell_asleep=("card",), wake_redos=1)
+    status = solver_status("thinshell_sim: solver", 0.25, info)
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == DiagnosticStatus.OK and status.message == "converged (fell asleep: card)"
+    assert values["sleeping"] == "sheet" and values["fell_asleep"] == "card" and values["woken"] == ""
+    assert values["wake_redos"] == "1"
+    woken = solver_status("s", 0.3, StepInfo(stop_reason="velocity", woken=("card", "sheet")))
+    assert woken.message == "converged (woken: card, sheet)"
+
+
+def test_the_node_lets_the_resting_card_sleep(ros_context):
+    # the node's own simulation of the bundled scene: sleeping on; a 0.1 mm move of the pad settles the card
+    node = SimNode(context=ros_context, parameter_overrides=[Parameter("mode", value="stepped"),
+                                                             Parameter("backend", value="numpy")])
+    assert node.sim.solver.config.sleeping and node.sim.solver.config.repeat_fixed_points
+    pose = np.array(node.sim.state.effector_pose["ee"])
+    for k in range(16):
+        target = pose.copy()
+        target[2] += 1e-4 if k == 8 else 0.0
+        control = Control()
+        control.effector_pose_target["ee"] = target
+        node.sim.step(control)
+    assert node.sim.last_info.sleeping == ("sheet",)
     node.destroy_node()

@@ -128,3 +128,24 @@ def test_isinstance_checks_capabilities_of_instances():
     v = np.array([[1.0, -2.0]])
     np.testing.assert_array_equal(bending.theta_stiffness_product(v), bending.theta_stiffness() @ v)
     assert bending.theta_stiffness()[0, 0] == 2.0 * bending.hinge_stiffness[0]
+
+
+def test_declares_answers_as_isinstance():
+    """``base.declares`` (a capability decided once per class, data members on the instance) gives the
+    ``isinstance`` answer of every capability for built potentials, and False for None."""
+    from sim_core.energies.contact.reference import PlaneContact, VertexTriangleContact
+    from sim_core.energies.gravity.reference import GravityPotential
+    from sim_core.energies.hinge_bending.reference import DiscreteShellBending
+    from sim_core.energies.inertia.reference import InertiaPotential
+
+    mass = np.array([1.0, 2.0, 3.0, 4.0])
+    x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.2]])
+    terms = [InertiaPotential(mass, x, 0.01), GravityPotential(mass, np.array([0, 0, -9.81])),
+             DiscreteShellBending(np.array([[0, 3, 1, 2]]), x, 1e-3),
+             PlaneContact(np.arange(4), np.array([0.0, 0.0, 1.0]), 0.0, 1e3, 1e-3),
+             VertexTriangleContact(np.array([[3, 0]]), np.array([[0, 1, 2]]), np.zeros(1), 1e3, 1e-3)]
+    for term in terms:
+        for capability in CAPABILITIES:
+            assert base.declares(term, capability) == isinstance(term, capability), (term, capability)
+    assert sum(base.declares(t, c) for t in terms for c in CAPABILITIES) >= 5
+    assert not any(base.declares(None, c) for c in CAPABILITIES)
