@@ -5,7 +5,7 @@ Builds ``B`` copies (``sim_core.bench.batch._FormingRun``), steps once to compil
 times ``--steps`` more steps: per step its wall time, Newton iterations and assembly / solve times, and
 over all of them the inclusive wall time and calls of the solver's parts (wrapped with timers: the
 gradient with its contact search, the Newton matrix, the CG's set-up and solve, the line search and its
-energies, the step's set-up and finish). ``--cprofile`` adds cProfile's tables (incomplete on Python
+energies, the step's set-up and finish) and the CG's iterations per solve. ``--cprofile`` adds cProfile's tables (incomplete on Python
 3.12 with Taichi's compiler in the profiled region).
 """
 
@@ -59,6 +59,7 @@ def main() -> int:
     run.batch.warm_up()
     step(0)
     timers = _wrap_parts()
+    cg_iterations = _count_cg_iterations()
     prof = cProfile.Profile() if args.cprofile else None
     t0 = time.perf_counter()
     if prof:
@@ -72,6 +73,9 @@ def main() -> int:
     print(f"{'part (inclusive)':58s} {'calls':>6s} {'s':>8s} {'% wall':>7s}")
     for name, (calls, total) in sorted(timers.items(), key=lambda kv: -kv[1][1]):
         print(f"{name:58s} {calls:6d} {total:8.3f} {100 * total / wall:7.1f}")
+    if cg_iterations:
+        print(f"CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
+              f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
     if prof:
         st = pstats.Stats(prof, stream=sys.stdout)
         st.sort_stats("cumulative").print_stats(args.top)
@@ -79,6 +83,22 @@ def main() -> int:
         if args.out:
             st.dump_stats(args.out)
     return 0
+
+
+def _count_cg_iterations() -> list:
+    """Record each batched CG solve's iterations (``BatchedPCG.iterations``) in the returned list."""
+    from sim_core.ti_kernels import pcg
+
+    counts: list = []
+    solve = pcg.BatchedPCG.solve
+
+    def counted(self, b):
+        x = solve(self, b)
+        counts.append(self.iterations)
+        return x
+
+    pcg.BatchedPCG.solve = counted
+    return counts
 
 
 def _wrap_parts() -> dict:
