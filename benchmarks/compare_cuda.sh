@@ -6,9 +6,9 @@
 # run from anywhere on the GPU machine: installs the carried wheels (benchmarks/device_cuda.sh prepare)
 # into /tmp/site (once a machine), then for each DIR (a checkout: the device tool's copy of the repository root, or a
 # branch's copy made by benchmarks/sync_gpu_src.sh) runs, from that DIR with that DIR first on the path,
-#   bench      thinshell bench batch --lockstep --arch cuda --scene forming --sizes $SIZES --steps $STEPS --json
+#   bench      thinshell bench batch --lockstep --arch cuda --scene $SCENE --sizes $SIZES --steps $STEPS --json
 #   profile    python3 benchmarks/profile_lockstep.py --arch cuda --B $PROFILE_B --steps $PROFILE_STEPS
-# (PARTS="bench profile" by default; SIZES "256", STEPS 5, PROFILE_B 256, PROFILE_STEPS 3, PART_TIMEOUT
+# (PARTS="bench profile" by default; SCENE forming, SIZES "256", STEPS 5, PROFILE_B 256, PROFILE_STEPS 3, PART_TIMEOUT
 # 170 s per process). The JSON lines go to $OUT/NAME_bench.jsonl, the profiles' tails to
 # $OUT/NAME_profile.txt ($OUT: the device tool's folder, else /tmp/compare_cuda_out). The first process
 # compiles Taichi's kernels into the offline cache, which later processes share for unchanged kernels:
@@ -30,8 +30,8 @@ for part in ${PARTS:-bench profile}; do
         case $part in
             bench)
                 (cd "$dir" && PYTHONPATH=/tmp/site:$dir timeout "${PART_TIMEOUT:-170}" python3 -m thinshell_ros.cli bench batch \
-                    --lockstep --arch cuda --scene forming --sizes ${SIZES:-256} --steps "${STEPS:-5}" --json 2>/dev/null) \
-                    | grep '^{' | tee "$out/${name}_bench.jsonl" ;;
+                    --lockstep --arch cuda --scene "${SCENE:-forming}" --sizes ${SIZES:-256} --steps "${STEPS:-5}" --json 2>/dev/null) \
+                    | grep '^{' | tee -a "$out/${name}_bench.jsonl" ;;
             profile)
                 (cd "$dir" && PYTHONPATH=/tmp/site:$dir timeout "${PART_TIMEOUT:-170}" python3 benchmarks/profile_lockstep.py \
                     --arch cuda --B "${PROFILE_B:-256}" --steps "${PROFILE_STEPS:-3}" 2>&1) \
