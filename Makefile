@@ -29,9 +29,12 @@ demo: $(STAMP)
 
 # make test: two pytest-xdist workers (CI has 2 cores), each test module whole on one worker (its
 # module-scoped fixtures built once), modules handed out in collection order with the `early` ones
-# first (tests/conftest.py). `pytest tests` alone runs serially.
+# first (tests/conftest.py); then the `realtime` tests (wall-clock timing) in one process, with the
+# machine to themselves. Both parts run; the target fails if either does. `pytest tests` alone runs
+# everything serially.
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadfile --no-loadscope-reorder tests
+	$(PY) -m pytest -q -m "not slow and not realtime" -n 2 --dist loadfile --no-loadscope-reorder tests; \
+	status=$$?; $(PY) -m pytest -q -m "realtime and not slow" tests || status=1; exit $$status
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow tests
