@@ -1,6 +1,6 @@
 # thinshell: two commands on a fresh machine.
 #   make demo   set up (venv + install) and run the main job on the bundled scene and bag
-#   make test   set up and run the whole test suite
+#   make test   set up and run the test suite (not the slow tests; two workers)
 # The venv's interpreter: the distribution's /usr/bin/python3.11 where there is one, else python3
 # (`make setup PYTHON=...` picks another). Debian's is linked statically against libpython; a
 # shared-library build (pyenv's, `--enable-shared`) runs the Newton loop's Python glue about 10 %
@@ -27,8 +27,14 @@ $(STAMP): requirements.txt setup.py package.xml
 demo: $(STAMP)
 	$(PY) -m thinshell_ros.cli demo
 
+# make test: two pytest-xdist workers (CI has 2 cores), each test module whole on one worker (its
+# module-scoped fixtures built once), modules handed out in collection order with the `early` ones
+# first (tests/conftest.py); then the `realtime` tests (wall-clock timing) in one process, with the
+# machine to themselves. Both parts run; the target fails if either does. `pytest tests` alone runs
+# everything serially.
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow" tests
+	$(PY) -m pytest -q -m "not slow and not realtime" -n 2 --dist loadfile --no-loadscope-reorder tests; \
+	status=$$?; $(PY) -m pytest -q -m "realtime and not slow" tests || status=1; exit $$status
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow tests

@@ -18,7 +18,7 @@ from sysid.diagnose_cli import diagnose_main
 from tests.sysid.conftest import reference_bag
 
 # three full diagnoses (calibration budget 90 s each) share one fixture: longer than pytest.ini's per-test 600 s on a loaded 2-core machine
-pytestmark = pytest.mark.timeout(1800)
+pytestmark = [pytest.mark.timeout(1800), pytest.mark.early]
 
 EXPECTED = {"nominal_s101": [], "latency_s103": ["latency"], "plastic_s102": ["bending_plasticity", "adhesion"]}
 

@@ -21,7 +21,7 @@ from sysid.synthetic_effects import apply_effect, write_like
 from tests.sysid.conftest import reference_bag
 
 # one full diagnosis, calibration included: longer than pytest.ini's per-test 600 s on a loaded 2-core machine
-pytestmark = pytest.mark.timeout(1800)
+pytestmark = [pytest.mark.timeout(1800), pytest.mark.early]
 
 
 def test_latency_on_the_lift_and_fold_nominal_is_named_latency(tmp_path):
