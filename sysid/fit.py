@@ -118,6 +118,24 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
     return ParameterSpec(name, initial, True, initial / math.exp(LOG_SPAN), initial * math.exp(LOG_SPAN))
 
 
+def bounded_spec(spec: ParameterSpec, bounds: tuple[float, float] | None) -> ParameterSpec:
+    """``spec`` with its range narrowed to ``bounds`` ``(lower, upper)`` (parameter units; None: unchanged).
+
+    Raises:
+        CalibrationError: bounds that leave no range, or a start value outside them.
+    """
+    if bounds is None:
+        return spec
+    lower, upper = max(spec.lower, float(bounds[0])), min(spec.upper, float(bounds[1]))
+    if not lower < upper:
+        raise CalibrationError(f"parameter {spec.name}: bounds {tuple(bounds)} leave no range within "
+                               f"[{spec.lower:.6g}, {spec.upper:.6g}]")
+    if not lower <= spec.initial <= upper:
+        raise CalibrationError(f"parameter {spec.name} starts at {spec.initial:.6g}, outside its bounds "
+                               f"[{lower:.6g}, {upper:.6g}]")
+    return ParameterSpec(spec.name, spec.initial, spec.log, lower, upper, spec.scale)
+
+
 # ====================================================================================== problem
 class _OutOfTime(Exception):
     """The time budget is spent (internal: ends the current phase)."""
@@ -485,7 +503,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
-        warm_start: bool = True) -> FitResult:
+        warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -538,8 +556,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
 
     Raises:
         ConfigError: unknown parameter name / provider / global method.
-        CalibrationError: empty or duplicate parameter list, a non-finite start, the replay at the
-            start diverged, or the time budget ran out before the start was evaluated.
+        CalibrationError: empty or duplicate parameter list, a non-finite start, a start outside
+            ``bounds`` or bounds that leave no range, the replay at the start diverged, or the time
+            budget ran out before the start was evaluated.
     """
     t0 = time.perf_counter()
     names = tuple(params)
@@ -548,7 +567,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     if len(set(names)) != len(names):
         raise CalibrationError(f"parameter list has duplicates: {', '.join(names)}")
     start = {n: float(initial[n]) if initial and n in initial else model.parameter_value(n) for n in names}
-    specs = [parameter_spec(n, start[n]) for n in names]
+    specs = [bounded_spec(parameter_spec(n, start[n]), (bounds or {}).get(n)) for n in names]
     provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
     deadline = t0 + max_time if max_time is not None else None
     joint = getattr(provider, "joint", None)

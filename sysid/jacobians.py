@@ -26,6 +26,14 @@ DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v")
 replay's sensor offset (not a simulator parameter) and the friction mollifier width (no adjoint
 derivative)."""
 
+DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "contact.eps_v": 0.1}
+"""Forward-difference step (search coordinates) of each difference parameter, when larger than the
+provider's ``fd_step``: 5 um of sensor offset, 10 % of the stick regularisation. A replay's cost is
+rough at the 0.3 % level under small changes of these two (the lagged friction's stick/slip state and
+the contact set switch pair by pair: on the bench card's press-and-slide, 1 % steps of ``contact.eps_v``
+move the cost up and down by 0.1-0.3 %, and the one-sided 1 % difference was off by a factor 2 from
+a central one), so a 1 % step measures that roughness rather than the slope."""
+
 
 # ====================================================================================== Jacobians
 class JacobianProvider(Protocol):
@@ -117,6 +125,8 @@ class SensitivityJacobian:
         model = problem.model
         values = problem.values(u)
         names, other = self._split(problem)
+        if not names:  # only difference columns: no tangents to propagate
+            return self._with_difference_columns(problem, u, np.zeros((model.residual_count, 0)), other, None)
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
@@ -148,7 +158,8 @@ class SensitivityJacobian:
         lb, ub = problem.bounds
         points, steps = [], []
         for i in other:
-            h = self.fallback.step if u[i] + self.fallback.step <= ub[i] else -self.fallback.step
+            step = max(self.fallback.step, DIFFERENCE_STEPS.get(problem.names[i], 0.0))
+            h = step if u[i] + step <= ub[i] else -step
             du = u.copy()
             du[i] += h
             points.append(du)
@@ -179,11 +190,14 @@ class SensitivityJacobian:
 
         Raises:
             SimulationDivergedError: the replay diverged.
-            ConfigError: the replay is not differentiable (the caller replays without tangents).
+            ConfigError: the replay is not differentiable, or no parameter has simulator
+                sensitivities (the caller replays without tangents).
         """
         model = problem.model
         values = problem.values(u)
         names, other = self._split(problem)
+        if not names:
+            raise ConfigError("no parameter with simulator sensitivities: a plain replay gives the residual")
         sim = model.prepare(values)
         t = time.perf_counter()
         traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names,

@@ -452,6 +452,7 @@ class ObservationModel:
             if self.task:
                 self._check_task_model(self._sim)
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
+            self._scene_nominal = dict(self._nominal)
         return self._sim
 
     def _check_task_model(self, sim) -> None:
@@ -500,8 +501,38 @@ class ObservationModel:
             value = float(self._sim.get_parameter(name))  # raises ConfigError listing the known names
             # a missing-physics term (candidate.<name>): its scene value (0 when the scene has none) is
             # its nominal from now on, so prepare() resets it for replays that do not set it
-            self._nominal[name] = value
+            self._nominal[name] = self._scene_nominal[name] = value
         return self._nominal[name]
+
+    def set_nominal(self, values: Mapping[str, float]) -> None:
+        """Make ``values`` the nominal of every later replay (a calibration's fitted parameters):
+        a replay that does not set a parameter uses its value here, and :meth:`parameter_value`
+        returns it (``sensor.normal_offset``: :attr:`nominal_normal_offset`).
+
+        Raises:
+            ConfigError: unknown parameter or a value outside its physical range (nothing is changed).
+        """
+        checked = {}
+        for name, value in values.items():
+            value = float(value)
+            if name not in SENSOR_PARAMETERS:
+                self.parameter_value(name)  # unknown names raise, listing the known ones
+                current = self._sim.get_parameter(name)
+                self._sim.set_parameter(name, value)  # range check; prepare() sets it again per replay
+                self._sim.set_parameter(name, current)
+            checked[name] = value
+        for name, value in checked.items():
+            if name in SENSOR_PARAMETERS:
+                self.nominal_normal_offset = value
+            else:
+                self._nominal[name] = value
+
+    def reset_nominal(self) -> None:
+        """Scene values as the nominal of every later replay again (undoes :meth:`set_nominal`;
+        the sensor offset back to 0)."""
+        self.simulation()
+        self._nominal.update(self._scene_nominal)
+        self.nominal_normal_offset = 0.0
 
     def prepare(self, params: Mapping[str, float]):
         """The cached simulation with ``params`` set (others at their scene values), reset to t_0.

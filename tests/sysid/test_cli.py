@@ -88,3 +88,16 @@ def test_unknown_parameter_is_one_line_error(press_bag, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 1 and "gel.hardness" in err and err.strip().count("\n") <= 1
     assert not (tmp_path / "o").exists()
+
+
+def test_calibrate_flag_calibrates_the_diagnosis_parameters_not_fitted():
+    from sim_core.errors import ConfigError
+    from sysid.calibration import CALIBRATION_PARAMETERS
+    from sysid.cli import build_parser, fit_options
+
+    options = fit_options(build_parser().parse_args(["bag", "--params", "gel.youngs_modulus", "--calibrate",
+                                                     "--calibration-time", "60"]))
+    assert options.calibration_params == CALIBRATION_PARAMETERS and options.calibration_max_time == 60.0
+    assert fit_options(build_parser().parse_args(["bag"])).calibration_params == ()
+    with pytest.raises(ConfigError, match="calibration_max_time must be > 0"):
+        fit_options(build_parser().parse_args(["bag", "--calibrate", "--calibration-time", "0"]))
