@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
-from sysid.calibration import CALIBRATION_PARAMETERS
+from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 from sysid.fit_recording import FitOptions, fit_recording
 
@@ -76,8 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "sysid.calibration.CALIBRATION_PARAMETERS not in --params (gel, friction, bending, contact "
                         "compliance, stick regularisation, sensor offset) and the sensor calibration; the fit then "
                         "starts from the calibrated model")
+    p.add_argument("--calibration-replays", type=int, default=CALIBRATION_REPLAYS,
+                   help="replay budget of --calibrate's parameter fit (default %(default)s, as thinshell diagnose)")
     p.add_argument("--calibration-time", type=float,
-                   help="wall-time budget of --calibrate's parameter fit, s (default: none)")
+                   help="also a wall-time budget of --calibrate's parameter fit, s (default: none; with one, the "
+                        "calibration depends on the machine's load)")
     p.add_argument("--no-sensor-calibration", action="store_true",
                    help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
                         "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
@@ -172,7 +175,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
-                      calibration_max_time=args.calibration_time, workers=args.workers, seed=args.seed)
+                      calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
+                      workers=args.workers, seed=args.seed)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

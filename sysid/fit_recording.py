@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
-from sysid.calibration import CalibrationResult, calibrate
+from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -56,7 +56,10 @@ class FitOptions:
             (:func:`sysid.calibration.calibrate`, as ``thinshell diagnose`` does; ``thinshell sysid
             --calibrate``: :data:`sysid.calibration.CALIBRATION_PARAMETERS`), the fitted ``params``
             left out; their calibrated values are the fit's fixed nominal. Empty: the sensor only.
-        calibration_max_time: wall-time budget of that calibration's parameter fit, s (None: none).
+        calibration_max_time: wall-time budget of that calibration's parameter fit, s (None: none;
+            with one, the calibration depends on the machine's load).
+        calibration_max_replays: replay budget of that calibration's parameter fit (None: none;
+            default :data:`sysid.calibration.CALIBRATION_REPLAYS`, as ``thinshell diagnose``).
         workers: processes for batched replays.
         seed: seed of the global phase.
     """
@@ -81,6 +84,7 @@ class FitOptions:
     sensor_calibration: bool = True
     calibration_params: tuple[str, ...] = ()
     calibration_max_time: float | None = None
+    calibration_max_replays: int | None = CALIBRATION_REPLAYS
     workers: int = 1
     seed: int = 0
 
@@ -98,6 +102,8 @@ class FitOptions:
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ConfigError(f"FitOptions: {name} must be > 0 s, got {value}")
+        if self.calibration_max_replays is not None and int(self.calibration_max_replays) < 1:
+            raise ConfigError(f"FitOptions: calibration_max_replays must be >= 1, got {self.calibration_max_replays}")
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
@@ -182,7 +188,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
         on_model(model, notes)
     sensor = None
     if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
-        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time)
+        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
+                           max_replays=options.calibration_max_replays)
         if on_calibration is not None:
             on_calibration(sensor)
     result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,

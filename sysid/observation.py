@@ -242,6 +242,9 @@ class ObservationModel:
         channels: fitted channels, in residual order.
         dropped: channel -> why it is not fitted.
         sigma: channel -> per-axis noise level used for whitening.
+        sigma_scale: None, or channel -> factor (>= 1) on ``sigma`` in :meth:`residuals` and
+            :meth:`whiten_derivative` only: the model-form weights of a fit
+            (:func:`sysid.fit.fit` ``reweight_channels``); reported RMS values stay in noise units.
         step_times_ns: ``(K + 1,)`` simulation step times (recording clock).
         controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
@@ -300,6 +303,7 @@ class ObservationModel:
         self.nominal_normal_offset = 0.0
         self.sensor_calibration = None
         self.marker_rest: np.ndarray | None = None
+        self.sigma_scale: dict[str, float] | None = None
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:
@@ -734,9 +738,22 @@ class ObservationModel:
         return out
 
     def residuals(self, prediction: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Whitened residual ``r = (y_data - y_sim) / sigma`` over the fitted channels, ``(m,)``."""
-        return np.concatenate([((self.data(ch) - prediction[ch]) / self.sigma[ch]).reshape(-1)
+        """Whitened residual ``r = (y_data - y_sim) / (sigma s)`` over the fitted channels, ``(m,)``
+        (``s`` the channel's :attr:`sigma_scale`, 1 without one)."""
+        return np.concatenate([((self.data(ch) - prediction[ch]) / (self.sigma[ch] * self._scale(ch))).reshape(-1)
                                for ch in self.channels])
+
+    def _scale(self, channel: str) -> float:
+        return 1.0 if self.sigma_scale is None else float(self.sigma_scale.get(channel, 1.0))
+
+    def channel_slices(self) -> dict[str, slice]:
+        """Channel -> its rows in :meth:`residuals` (and in a whitened Jacobian)."""
+        out, start = {}, 0
+        for ch in self.channels:
+            n = int(self.data(ch).size)
+            out[ch] = slice(start, start + n)
+            start += n
+        return out
 
     def whiten_derivative(self, channel: str, d_prediction: np.ndarray) -> np.ndarray:
         """d r / d theta of one channel from the aligned prediction derivative ``(n, ..., axes, p)``.
@@ -745,7 +762,7 @@ class ObservationModel:
             ``(n * ... * axes, p)`` (the sign of ``r = data - sim`` applied).
         """
         p = d_prediction.shape[-1]
-        return (-d_prediction / self.sigma[channel][:, None]).reshape(-1, p)
+        return (-d_prediction / (self.sigma[channel][:, None] * self._scale(channel))).reshape(-1, p)
 
     def channel_rms(self, prediction: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
         """Per-channel RMS of ``data - prediction`` over every predictable channel present.
