@@ -220,10 +220,10 @@ CALIBRATION_REPLAYS = 4
 """Default replay budget of the calibration's parameter fit (``thinshell diagnose``, ``thinshell
 sysid --calibrate``): the replay at the scene values (with the tangents of the parameters that have
 them), the difference columns of its Jacobian (:data:`sysid.jacobians.DIFFERENCE_PARAMETERS`: the
-sensor offset and the stick regularisation, a replay each) and one trial step. A count and not
-seconds, so that the calibration, and every answer read from it, is the same on any machine and
-under any load; four replays keep one 4-5 s recording's diagnosis within the 3-minute goal on a
-2-core CPU (docs/benchmarks_log.md, 2026-11-25, issue 23: the count-bounded calibration)."""
+sensor offset and the stick regularisation, a replay each) and one trial step: about 4.6 times one
+plain replay, which is nearly all of a diagnosis's time. A count and not seconds, so that the
+calibration, and every answer read from it, is the same on any machine and under any load
+(docs/benchmarks_log.md, 2026-11-25, issue 23: the count-bounded calibration, with wall times)."""
 
 CALIBRATION_BOUNDS: dict[str, tuple[str, float, float]] = {
     "gel.youngs_modulus": ("factor", 1.0 / 3.0, 3.0),
