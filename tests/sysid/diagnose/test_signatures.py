@@ -313,12 +313,9 @@ def test_press_size_needs_every_event_delayed():
     assert timing_size(ev, "d") == pytest.approx(0.03)
 
 
-def test_latency_read_through_a_replay_with_a_depth_gap_is_named_latency(rng):
-    """The calibrated replay's contact begins 25 ms late and ends 25 ms early (a shallower mount or a
-    softer contact fitted to the recording): a 40 ms latency then delays the rise by 15 ms only (under
-    the two-period size) and the fall by 65 ms; the press's mean is the latency."""
-    rec = synthetic(rng, latency=0.04, ramp=0.3)
-    gap = 0.025
+def _with_depth_gap(rec: Recording, gap: float) -> Recording:
+    """``rec`` with a replay whose contact begins ``gap`` s late and ends ``gap`` s early (a shallower
+    mount or a softer contact, as a calibration fitted to the recording may leave it)."""
     tw, tm = rec.t["wrench"], rec.t["markers_xyz"]
     prof_w = press_profile(tw, t_on=1.0 + gap, t_off=2.5 - gap, ramp=0.3)
     prof_m = press_profile(tm, t_on=1.0 + gap, t_off=2.5 - gap, ramp=0.3)
@@ -327,7 +324,28 @@ def test_latency_read_through_a_replay_with_a_depth_gap_is_named_latency(rng):
     rest = rec.prediction["markers_xyz"][0]
     depth = rec.prediction["markers_xyz"][int(np.argmax(press_profile(tm, ramp=0.3)))] - rest
     rec.prediction["markers_xyz"] = rest[None] + depth[None] * prof_m[:, None, None]
+    return rec
+
+
+def test_latency_read_through_a_replay_with_a_depth_gap_is_named_latency(rng):
+    """Through a replay whose contact begins 25 ms late and ends 25 ms early, a 40 ms latency delays
+    the rise by 15 ms only (under the two-period size) and the fall by 65 ms; the press's mean is the
+    latency."""
+    rec = _with_depth_gap(synthetic(rng, latency=0.04, ramp=0.3), 0.025)
     lat, _ = timing_tests(rec)
     assert min(lat.detail["delays_s"]) < 0.02 < max(lat.detail["delays_s"])
     assert lat.effect_size == pytest.approx(0.04, abs=0.005)
     assert named(rec)[0] == "latency"
+
+
+def test_gel_damping_read_through_a_replay_with_a_depth_gap_is_named_damping(rng):
+    """Through the same shallower replay a 30 ms Kelvin-Voigt lead is 5 ms at one event (under the
+    10 ms size) and about 55 ms at the other; the press's mean is the time constant. Without damping
+    the gap alone leads one event only, and names nothing."""
+    rec = _with_depth_gap(synthetic(rng, damping=0.03, ramp=0.3), 0.025)
+    r = damping_test(rec)
+    assert min(r.detail["leads_s"]) < 0.01 < max(r.detail["leads_s"])
+    assert r.effect_size == pytest.approx(0.03, abs=0.006)
+    assert named(rec) == ["damping"]
+    plain = _with_depth_gap(synthetic(np.random.default_rng(5), ramp=0.3), 0.025)
+    assert damping_test(plain).effect_size == 0.0 and named(plain) == []
