@@ -201,29 +201,38 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
 
 # ====================================================================================== calibration
 CALIBRATION_PARAMETERS = ("gel.youngs_modulus", "gel.poisson_ratio", "friction.gel_sheet",
-                          "sheet.bending_stiffness", "sensor.normal_offset", "contact.stiffness", "contact.eps_v")
+                          "sheet.bending_stiffness", "sensor.normal_offset")
 """Simulator parameters fitted by :func:`calibrate` by default: the ones uncertain on any real cell
-that a recording of a press or a lift constrains (SYSID.md "Diagnosis", step 1), the contact's
-compliance (``contact.stiffness``, the penalty stiffness k_c: how far the gel-card and card-table
-contacts give under load) and the lagged friction's stick regularisation (``contact.eps_v``, m/s:
-how fast a sheared gel creeps back under static friction) among them. Left out, as the recordings
-do not determine them: the sheet-table friction (on the reference recordings a factor of 2.7 on it
-changes the replay by less than the noise: the clamped card does not slide on the table) and the
-contact offset ``eps`` (where contact begins; on the gel-card pair the same as the sensor's normal
-offset, which is fitted)."""
+that a recording of a press or a lift constrains (SYSID.md "Diagnosis", step 1). The sheet-table
+friction is left out: on the reference recordings a factor of 2.7 on it changes the replay by less
+than the noise (the clamped card does not slide on the table), so it is not identifiable there. The
+contact offset ``eps`` is left out too (on the gel-card pair the same as the sensor's normal offset,
+which is fitted)."""
+
+CONTACT_PARAMETERS = ("contact.stiffness", "contact.eps_v")
+"""The contact's compliance (``contact.stiffness``, the penalty stiffness k_c: how far the gel-card
+and card-table contacts give under load) and the lagged friction's stick regularisation
+(``contact.eps_v``, m/s: how fast a sheared gel creeps back under static friction): calibrated on
+request (``--params`` with :data:`CALIBRATION_PARAMETERS` and these, and a replay budget that allows
+steps). Run to convergence on nominal_s101 they bring every tactile channel under 3 (1.70 / 2.21 /
+2.28, 18 replays; docs/benchmarks_log.md), which the default budget does not afford."""
 
 FOLLOWED_RMS = 3.0
 """Whitened RMS (noise units) above which a calibrated channel is reported as not followed by the
 model: issue 23's goal for every tactile channel after calibration."""
 
-CALIBRATION_REPLAYS = 4
+CALIBRATION_REPLAYS = 1
 """Default replay budget of the calibration's parameter fit (``thinshell diagnose``, ``thinshell
-sysid --calibrate``): the replay at the scene values (with the tangents of the parameters that have
-them), the difference columns of its Jacobian (:data:`sysid.jacobians.DIFFERENCE_PARAMETERS`: the
-sensor offset and the stick regularisation, a replay each) and one trial step: about 4.6 times one
-plain replay, which is nearly all of a diagnosis's time. A count and not seconds, so that the
-calibration, and every answer read from it, is the same on any machine and under any load
-(docs/benchmarks_log.md, 2026-11-25, issue 23: the count-bounded calibration, with wall times)."""
+sysid --calibrate``): the fit's start, the replay at the scene values (with the tangents of the
+parameters that have them), and no step. A count and not seconds, so that the calibration, and every
+answer read from it, is the same on any machine and under any load. One replay keeps a diagnosis
+within the time of the wall-time budget it replaces (about three replays: 46-121 s per reference
+recording idle), and gives the answers that budget gave under load (where it cut the fit before its
+first step on 7 of 9 reference recordings). A step costs more than the goal allows: with the contact
+parameters, 4 replays (one step: the start, two difference columns, a trial) took 66-978 s per
+reference recording at load 3-7 on the 2-core VM, and the answers after it needed the per-press
+timing sizes (:func:`sysid.diagnose.signatures.timing.timing_size`); docs/benchmarks_log.md,
+2026-11-25 (session 34), issue 23. ``--calibration-replays N`` buys steps."""
 
 CALIBRATION_BOUNDS: dict[str, tuple[str, float, float]] = {
     "gel.youngs_modulus": ("factor", 1.0 / 3.0, 3.0),

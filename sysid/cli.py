@@ -73,8 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibrate", action="store_true",
                    help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
-                        "sysid.calibration.CALIBRATION_PARAMETERS not in --params (gel, friction, bending, contact "
-                        "compliance, stick regularisation, sensor offset) and the sensor calibration; the fit then "
+                        "sysid.calibration.CALIBRATION_PARAMETERS not in --params (gel, friction, bending, sensor offset) "
+                        "and the sensor calibration; the fit then "
                         "starts from the calibrated model")
     p.add_argument("--calibration-replays", type=int, default=CALIBRATION_REPLAYS,
                    help="replay budget of --calibrate's parameter fit (default %(default)s, as thinshell diagnose)")

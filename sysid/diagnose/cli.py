@@ -28,8 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baseline", nargs="*", default=[],
                    help="recordings of the same cell declared normal: they calibrate the null (signatures engine)")
     p.add_argument("--calibration-replays", type=int, default=CALIBRATION_REPLAYS,
-                   help="replay budget of the calibration's parameter fit (default %(default)s: the same replays, "
-                        "and so the same answer, on any machine)")
+                   help="replay budget of the calibration's parameter fit (default %(default)s: the start only, no step; "
+                        "a count, so the same answer on any machine; each Gauss-Newton step costs a trial replay and one "
+                        "replay per parameter without tangents, sensor.normal_offset and contact.eps_v)")
     p.add_argument("--calibration-time", type=float, default=None,
                    help="also stop the calibration's parameter fit after this many seconds (default: no time budget; "
                         "with one, the answer depends on the machine's speed and load)")
@@ -43,8 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
     p.add_argument("--params", nargs="*", default=[],
                    help="simulator parameters of the calibration (default: sysid.calibration.CALIBRATION_PARAMETERS: "
-                        "gel modulus and Poisson ratio, gel-sheet friction, sheet bending stiffness, sensor normal offset, "
-                        "contact stiffness, stick regularisation)")
+                        "gel modulus and Poisson ratio, gel-sheet friction, sheet bending stiffness, sensor normal offset; "
+                        "add contact.stiffness contact.eps_v for the contact's compliance, with --calibration-replays 4 or more "
+                        "for a step)")
     p.add_argument("--no-calibrate", action="store_true",
                    help="diagnose against the scene values and the scene's sensor calibration (no calibration)")
     p.add_argument("--project", nargs="*", help="parameters projected out of the tests (default: --params)")

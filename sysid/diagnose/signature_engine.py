@@ -8,8 +8,9 @@ still leaves a structured gap many times the noise, and every candidate can abso
 (:mod:`sysid.diagnose.signatures`), each read where the gap matters least:
 
 1. **Calibrate** (:func:`sysid.calibration.calibrate`): the uncertain simulator parameters (gel
-   modulus and Poisson ratio, gel-sheet friction, bending stiffness, sensor normal offset, contact
-   stiffness, stick regularisation) by weighted least squares within a replay budget, then the
+   modulus and Poisson ratio, gel-sheet friction, bending stiffness, sensor normal offset; on request
+   the contact's compliance and stick regularisation) by weighted least squares within a replay
+   budget (by default the start only: :data:`sysid.calibration.CALIBRATION_REPLAYS`), then the
    sensor calibration in closed form. The whitened RMS per channel before and after goes into
    ``baseline``.
 2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias

@@ -272,7 +272,7 @@ def test_sysid_fit_starts_from_the_calibrated_model(contact_press, tmp_path):
     from sysid.fit_recording import FitOptions, fit_recording
 
     options = FitOptions(params=("gel.youngs_modulus",), calibration_params=("contact.stiffness", "gel.youngs_modulus"),
-                         max_nfev=4)
+                         max_nfev=4, calibration_max_replays=12)
     outcome = fit_recording(contact_press, tmp_path / "out", options)
     cal = outcome.document["diagnostics"]["sensor_calibration"]
     assert cal["fitted"] == ["contact.stiffness"]  # the fitted parameter is not calibrated beforehand
