@@ -617,6 +617,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     joint = getattr(provider, "joint", None)
     if max_replays is not None and not max_replays >= 1:
         raise ConfigError(f"max_replays must be >= 1, got {max_replays!r}")
+    if max_replays is not None and max_replays < 2:
+        joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
                          warm_start=warm_start, max_replays=max_replays)
     saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None

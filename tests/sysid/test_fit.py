@@ -372,6 +372,9 @@ def test_replay_budget_bounds_the_fit_and_gives_the_same_fit_twice(press_bag):
     assert runs[0].values == runs[1].values and runs[0].cost_final == runs[1].cost_final
     more = fit(model, names, initial=start, jacobian="sensitivity", max_replays=10)
     assert 4 < more.sim_runs <= 10 and more.cost_final < runs[0].cost_final
+    one = fit(model, names, initial=start, jacobian="sensitivity", max_replays=1)  # the start alone, plain
+    assert one.sim_runs == 1 and one.status == "replay_budget" and one.values == pytest.approx(start)
+    assert one.sigma is None and one.cost_final == one.cost_initial == pytest.approx(runs[0].cost_initial)
     with pytest.raises(ConfigError, match="max_replays must be >= 1"):
         fit(model, names, max_replays=0)
 
