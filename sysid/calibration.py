@@ -223,8 +223,8 @@ model: issue 23's goal for every tactile channel after calibration."""
 
 CALIBRATION_REPLAYS = 1
 """Default replay budget of the calibration's parameter fit (``thinshell diagnose``, ``thinshell
-sysid --calibrate``): the fit's start, the replay at the scene values (with the tangents of the
-parameters that have them), and no step. A count and not seconds, so that the calibration, and every
+sysid --calibrate``): the fit's start, a plain replay at the scene values, and no step (a step
+needs the start's tangents, one replay per parameter without them and a trial replay). A count and not seconds, so that the calibration, and every
 answer read from it, is the same on any machine and under any load. One replay keeps a diagnosis
 within the time of the wall-time budget it replaces (about three replays: 46-121 s per reference
 recording idle), and gives the answers that budget gave under load (where it cut the fit before its
