@@ -222,7 +222,7 @@ def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation
 
 
 def test_calibration_bounds_follow_the_scene_and_narrow_the_search():
-    from sysid.calibration import CALIBRATION_BOUNDS, CALIBRATION_PARAMETERS, calibration_bounds
+    from sysid.calibration import CALIBRATION_BOUNDS, CALIBRATION_PARAMETERS, CONTACT_PARAMETERS, calibration_bounds
     from sysid.fit import bounded_spec, parameter_spec
     from sim_core.errors import CalibrationError
 
@@ -234,8 +234,8 @@ def test_calibration_bounds_follow_the_scene_and_narrow_the_search():
         def parameter_value(self, name):
             return self.values[name]
 
-    assert set(CALIBRATION_PARAMETERS) <= set(CALIBRATION_BOUNDS)
-    b = calibration_bounds(_Scene(), CALIBRATION_PARAMETERS)
+    assert set(CALIBRATION_PARAMETERS) | set(CONTACT_PARAMETERS) <= set(CALIBRATION_BOUNDS)
+    b = calibration_bounds(_Scene(), CALIBRATION_PARAMETERS + CONTACT_PARAMETERS)
     assert b["gel.youngs_modulus"] == pytest.approx((1.0e5, 9.0e5))
     assert b["contact.stiffness"] == pytest.approx((2.0e4 / 30.0, 6.0e5))
     assert b["contact.eps_v"] == pytest.approx((1.0e-4, 0.1))
