@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
+from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 from sysid.fit_recording import FitOptions, fit_recording
 
@@ -70,6 +71,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--calibrate", action="store_true",
+                   help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
+                        "sysid.calibration.CALIBRATION_PARAMETERS not in --params (gel, friction, bending, sensor offset) "
+                        "and the sensor calibration; the fit then "
+                        "starts from the calibrated model")
+    p.add_argument("--calibration-replays", type=int, default=CALIBRATION_REPLAYS,
+                   help="replay budget of --calibrate's parameter fit (default %(default)s, as thinshell diagnose)")
+    p.add_argument("--calibration-time", type=float,
+                   help="also a wall-time budget of --calibrate's parameter fit, s (default: none; with one, the "
+                        "calibration depends on the machine's load)")
     p.add_argument("--no-sensor-calibration", action="store_true",
                    help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
                         "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
@@ -162,7 +173,10 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
                       stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
-                      sensor_calibration=not args.no_sensor_calibration, workers=args.workers, seed=args.seed)
+                      sensor_calibration=not args.no_sensor_calibration,
+                      calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
+                      calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
+                      workers=args.workers, seed=args.seed)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

@@ -118,9 +118,31 @@ def parameter_spec(name: str, initial: float) -> ParameterSpec:
     return ParameterSpec(name, initial, True, initial / math.exp(LOG_SPAN), initial * math.exp(LOG_SPAN))
 
 
+def bounded_spec(spec: ParameterSpec, bounds: tuple[float, float] | None) -> ParameterSpec:
+    """``spec`` with its range narrowed to ``bounds`` ``(lower, upper)`` (parameter units; None: unchanged).
+
+    Raises:
+        CalibrationError: bounds that leave no range, or a start value outside them.
+    """
+    if bounds is None:
+        return spec
+    lower, upper = max(spec.lower, float(bounds[0])), min(spec.upper, float(bounds[1]))
+    if not lower < upper:
+        raise CalibrationError(f"parameter {spec.name}: bounds {tuple(bounds)} leave no range within "
+                               f"[{spec.lower:.6g}, {spec.upper:.6g}]")
+    if not lower <= spec.initial <= upper:
+        raise CalibrationError(f"parameter {spec.name} starts at {spec.initial:.6g}, outside its bounds "
+                               f"[{lower:.6g}, {upper:.6g}]")
+    return ParameterSpec(spec.name, spec.initial, spec.log, lower, upper, spec.scale)
+
+
 # ====================================================================================== problem
 class _OutOfTime(Exception):
     """The time budget is spent (internal: ends the current phase)."""
+
+
+class _OutOfReplays(_OutOfTime):
+    """The replay budget cannot afford the next replay (internal: ends the current phase)."""
 
 
 class _WithinNoise(Exception):
@@ -163,6 +185,9 @@ class FitProblem:
         specs: one :class:`ParameterSpec` per fitted parameter.
         workers: processes for batches of replays (finite differences, CMA populations); 1 = serial.
         deadline: ``time.perf_counter()`` value after which optimisation phases stop (None: none).
+        max_replays: most replays (:attr:`sim_runs`) of the problem; a replay of any phase but
+            ``initial`` and ``final`` that would exceed it is not started (:meth:`reserve`). None: no
+            limit. Unlike ``deadline`` it does not depend on the machine's speed or load.
         on_eval: called with each :class:`Evaluation`.
         joint: optional ``joint(problem, u) -> (r, J, prediction)`` computing the whitened residual
             ``(m,)``, its Jacobian ``(m, p)`` and the aligned prediction in one replay; used by the
@@ -184,8 +209,10 @@ class FitProblem:
 
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
                  deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
-                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False) -> None:
+                 joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False,
+                 max_replays: int | None = None) -> None:
         self.model = model
+        self.max_replays = max_replays
         self.warm_start = bool(warm_start)
         self.last_positions: np.ndarray | None = None
         self.specs = tuple(specs)
@@ -219,6 +246,16 @@ class FitProblem:
     def _check_time(self, phase: str) -> None:
         if self.deadline is not None and phase != "final" and time.perf_counter() > self.deadline:
             raise _OutOfTime(phase)
+
+    def reserve(self, count: int, phase: str) -> None:
+        """Check that ``count`` more replays fit in :attr:`max_replays` before starting them.
+
+        Raises:
+            _OutOfReplays: they do not (never for the ``initial`` and ``final`` phases).
+        """
+        if self.max_replays is not None and phase not in ("initial", "final") and \
+                self.sim_runs + int(count) > self.max_replays:
+            raise _OutOfReplays(phase)
 
     def _record(self, u: np.ndarray, r: np.ndarray | None, phase: str, wall: float,
                 prediction: dict[str, np.ndarray] | None = None) -> None:
@@ -257,6 +294,7 @@ class FitProblem:
         if key in self._cache:
             return self._cache[key]
         self._check_time(phase)
+        self.reserve(1, phase)
         t = time.perf_counter()
         joint = None
         if self.joint is not None and phase in self.JOINT_PHASES:
@@ -272,7 +310,7 @@ class FitProblem:
             r, J, prediction = joint
             self._record(u, r, phase, time.perf_counter() - t, prediction)
             if J is not None:
-                self._keep_jacobian(key, J)
+                self.keep_jacobian(u, J)
             return r
         try:
             # the budget is checked at every replay step too: a hard trial point (many Newton
@@ -288,7 +326,10 @@ class FitProblem:
         self._record(u, r, phase, time.perf_counter() - t, prediction)
         return r
 
-    def _keep_jacobian(self, key: bytes, J: np.ndarray) -> None:
+    def keep_jacobian(self, u: np.ndarray, J: np.ndarray) -> None:
+        """Keep the Jacobian ``J`` ``(m, p)`` at ``u`` for :meth:`cached_jacobian` (a column of NaN:
+        not computed yet)."""
+        key = np.asarray(u, dtype=float).tobytes()
         self._jacobians.pop(key, None)
         self._jacobians[key] = J
         best = self.best[1].tobytes() if self.best is not None else None
@@ -306,6 +347,7 @@ class FitProblem:
         todo = [np.asarray(p, dtype=float) for p in points if np.asarray(p, dtype=float).tobytes() not in self._cache]
         if self.workers > 1 and len(todo) > 1:
             self._check_time(phase)
+            self.reserve(len(todo), phase)
             if self._pool is None:
                 # the forked workers inherit compiled kernels; one a child compiles itself hangs it
                 # (Taichi's compile thread pool does not survive fork): ObservationModel.compile_kernels
@@ -352,11 +394,14 @@ class FitResult:
         history: every replay (:class:`Evaluation`).
         iterations: accepted iterates of the local phase; nfev, njev: its function / Jacobian calls.
         sim_runs, sim_time_s: replays and their total wall time; wall_time_s: whole fit.
-        status, message: ``converged`` | ``max_nfev`` | ``time_budget`` | ``failed`` and detail.
+        status, message: ``converged`` | ``max_nfev`` | ``replay_budget`` | ``time_budget`` | ``failed``
+            and detail.
         jacobian: provider name; global_phase: summary of the global phase or None.
         channels, residual_count, step_count, dt: problem size.
         warnings: messages raised during the fit.
         model: the observation model (not serialised).
+        sigma_scale: channel -> the factor on its noise level in the fit's residual
+            (``reweight_channels``), or None.
     """
 
     names: tuple[str, ...]
@@ -392,6 +437,7 @@ class FitResult:
     dt: float
     warnings: list[str] = field(default_factory=list)
     model: ObservationModel | None = None
+    sigma_scale: dict[str, float] | None = None
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -485,7 +531,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         gtol: float = 1e-10, fd_step: float = 0.01, workers: int = 1, seed: int = 0,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
-        warm_start: bool = True) -> FitResult:
+        warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
+        max_replays: int | None = None, reweight_channels: bool = False) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -497,7 +544,22 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         global_evals: replay budget of the global phase (default 6 CMA generations / 4(p+1) points).
         global_sigma: initial CMA step / multi-start half-width / 2, in u units (1 = factor e).
         max_time: wall-time budget in s; when spent, the best point so far is returned with
-            ``status="time_budget"``. The global phase gets at most half of it.
+            ``status="time_budget"``. The global phase gets at most half of it. The result then
+            depends on the machine's speed and load; ``max_replays`` does not.
+        reweight_channels: after the start replay, weigh each channel by the model's gap there:
+            its noise level is multiplied by ``max(1, whitened RMS of the channel at the start)``
+            for the rest of the fit (``ObservationModel.sigma_scale``; restored afterwards), so that
+            every channel's residual enters at about unit variance. A variance component estimated
+            from the start's residual per channel (feasible weighted least squares, e.g. Carroll &
+            Ruppert 1988, "Transformation and Weighting in Regression", ch. 3): a channel the model
+            cannot follow (its whitened RMS far above the others', e.g. a card the gel lifts with a
+            tack the model lacks) then cannot drive the fit, while channels at their noise level
+            keep their weight. The cost, covariance and ``reduced_chi2`` are in these units;
+            ``rms_initial`` / ``rms_final`` stay in noise units. The factors are in ``sigma_scale``.
+        max_replays: replay budget of the whole fit (every replay counts: plain, with tangents, or a
+            finite-difference column; the start is always replayed). A replay that would exceed it
+            is not started, and the best point so far is returned with ``status="replay_budget"``:
+            the same replays, and so the same result, on any machine. None: no budget.
         max_nfev: function evaluations of the local phase.
         ftol, xtol, gtol: ``least_squares`` tolerances.
         fd_step: finite-difference step in u.
@@ -538,8 +600,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
 
     Raises:
         ConfigError: unknown parameter name / provider / global method.
-        CalibrationError: empty or duplicate parameter list, a non-finite start, the replay at the
-            start diverged, or the time budget ran out before the start was evaluated.
+        CalibrationError: empty or duplicate parameter list, a non-finite start, a start outside
+            ``bounds`` or bounds that leave no range, the replay at the start diverged, or the time
+            budget ran out before the start was evaluated.
     """
     t0 = time.perf_counter()
     names = tuple(params)
@@ -548,13 +611,21 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     if len(set(names)) != len(names):
         raise CalibrationError(f"parameter list has duplicates: {', '.join(names)}")
     start = {n: float(initial[n]) if initial and n in initial else model.parameter_value(n) for n in names}
-    specs = [parameter_spec(n, start[n]) for n in names]
+    specs = [bounded_spec(parameter_spec(n, start[n]), (bounds or {}).get(n)) for n in names]
     provider = make_jacobian(jacobian, fd_step) if isinstance(jacobian, str) else jacobian
     deadline = t0 + max_time if max_time is not None else None
     joint = getattr(provider, "joint", None)
+    if max_replays is not None and not max_replays >= 1:
+        raise ConfigError(f"max_replays must be >= 1, got {max_replays!r}")
+    if max_replays is not None and max_replays < 2:
+        joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
-                         warm_start=warm_start)
+                         warm_start=warm_start, max_replays=max_replays)
     saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None
+    saved_scale = getattr(model, "sigma_scale", None)
+    if reweight_channels:
+        model.sigma_scale = None
+    channel_scale: dict[str, float] | None = None
     notes: list[str] = [f"fitting without {ch}: {why}" for ch, why in model.dropped.items()]
     with _warnings.catch_warnings(record=True) as caught:
         _warnings.simplefilter("always")
@@ -564,6 +635,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             if r0 is None:
                 raise CalibrationError(f"the replay diverged at the start values {start}: {problem.last_failure} "
                                        "(try a smaller --dt)")
+            if reweight_channels:
+                channel_scale, r0 = _reweight_start(problem, u0, r0)
             cost0, prediction0 = problem.best[0], problem.best_prediction()
             global_info = None
             if global_method is not None:
@@ -620,6 +693,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                                     ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
                 status = "max_nfev" if res.status == 0 else "converged" if res.status > 0 else "failed"
                 message, nfev = str(res.message), int(res.nfev)
+            except _OutOfReplays:
+                status, message = "replay_budget", (f"stopped at the replay budget ({max_replays} replays, "
+                                                    f"{problem.sim_runs} made); best point so far returned")
             except _OutOfTime:
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
             except _WithinNoise:
@@ -638,18 +714,23 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             prediction_best = problem.best_prediction()
             cost_best, u_best = problem.best[0], problem.best[1]
             njev = int(jac_at.get("count", 0))
+            J, spent = None, "time" if status == "time_budget" else "replay"
             if "u" in jac_at and np.array_equal(jac_at["u"], u_best):
                 J, jac_note = jac_at["J"], "ok"
             elif status != "time_budget":
                 problem.deadline = None
-                J, jac_note = jac(u_best), "ok"
-            elif "J" in jac_at:
-                J, jac_note = jac_at["J"], "Jacobian of the last accepted iterate (time budget spent)"
-            else:
-                J, jac_note = None, "no Jacobian computed before the time budget ran out"
+                try:  # within the replay budget (a finite-difference column costs a replay)
+                    J, jac_note = jac(u_best), "ok"
+                except _OutOfReplays:
+                    J = None
+            if J is None and "J" in jac_at:
+                J, jac_note = jac_at["J"], f"Jacobian of the last accepted iterate ({spent} budget spent)"
+            elif J is None:
+                J, jac_note = None, f"no Jacobian computed before the {spent} budget ran out"
         finally:
             problem.close()
             model.warm_start = saved_warm_start
+            model.sigma_scale = saved_scale
     notes += [str(w.message) for w in caught]
     m, p = model.residual_count, len(names)
     chi2_red = 2.0 * cost_best / max(m - p, 1)
@@ -669,4 +750,31 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
+        sigma_scale=channel_scale,
     )
+
+
+def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+    """``fit(reweight_channels=True)``: set the model's per-channel ``sigma_scale`` from the start's
+    whitened residual ``r0`` and express what the problem holds at the start (residual, cost,
+    Jacobian) in the reweighted units. Returns ``(channel -> factor, reweighted r0)``."""
+    model = problem.model
+    slices = model.channel_slices()
+    scale = {ch: max(1.0, float(np.sqrt(np.mean(r0[sl] ** 2)))) if sl.stop > sl.start else 1.0
+             for ch, sl in slices.items()}
+    model.sigma_scale = dict(scale)
+    vec = np.ones_like(r0)
+    for ch, sl in slices.items():
+        vec[sl] = scale[ch]
+    key = np.asarray(u0, dtype=float).tobytes()
+    r = r0 / vec
+    problem._cache[key] = r
+    J = problem.cached_jacobian(u0)
+    if J is not None:
+        problem.keep_jacobian(u0, J / vec[:, None])
+    cost, u_best, prediction = problem.best
+    problem.best = (0.5 * float(r @ r), u_best, prediction)
+    for ev in problem.history:
+        if ev.u.tobytes() == key:
+            ev.cost = problem.best[0]
+    return scale, r

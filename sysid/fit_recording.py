@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
-from sysid.calibration import CalibrationResult, calibrate
+from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -52,6 +52,14 @@ class FitOptions:
         warm_start: start each replay's Newton solves from the best replay so far.
         sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
             the scene's sensor calibration).
+        calibration_params: simulator parameters calibrated with the sensor before the fit
+            (:func:`sysid.calibration.calibrate`, as ``thinshell diagnose`` does; ``thinshell sysid
+            --calibrate``: :data:`sysid.calibration.CALIBRATION_PARAMETERS`), the fitted ``params``
+            left out; their calibrated values are the fit's fixed nominal. Empty: the sensor only.
+        calibration_max_time: wall-time budget of that calibration's parameter fit, s (None: none;
+            with one, the calibration depends on the machine's load).
+        calibration_max_replays: replay budget of that calibration's parameter fit (None: none;
+            default :data:`sysid.calibration.CALIBRATION_REPLAYS`, as ``thinshell diagnose``).
         workers: processes for batched replays.
         seed: seed of the global phase.
     """
@@ -74,6 +82,9 @@ class FitOptions:
     stop_rms: float | None = STOP_RMS
     warm_start: bool = True
     sensor_calibration: bool = True
+    calibration_params: tuple[str, ...] = ()
+    calibration_max_time: float | None = None
+    calibration_max_replays: int | None = CALIBRATION_REPLAYS
     workers: int = 1
     seed: int = 0
 
@@ -82,14 +93,17 @@ class FitOptions:
 
         Raises:
             ConfigError: empty parameter list, non-positive ``dt`` / ``t_max`` / ``max_time`` /
+                ``calibration_max_time`` /
                 ``max_nfev`` / ``workers``, a gel resolution that is not three positive integers.
         """
         if not self.params:
             raise ConfigError("FitOptions: no parameters to fit")
-        for name in ("dt", "t_max", "max_time"):
+        for name in ("dt", "t_max", "max_time", "calibration_max_time"):
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise ConfigError(f"FitOptions: {name} must be > 0 s, got {value}")
+        if self.calibration_max_replays is not None and int(self.calibration_max_replays) < 1:
+            raise ConfigError(f"FitOptions: calibration_max_replays must be >= 1, got {self.calibration_max_replays}")
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
@@ -167,13 +181,15 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation, arch=options.arch)
     notes = tuple(str(w.message) for w in caught)
-    for name in options.params:  # an unknown name fails here, before the calibration's replay
+    calibrated = tuple(p for p in options.calibration_params if p not in options.params)
+    for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
         model.parameter_value(name)
     if on_model is not None:
         on_model(model, notes)
     sensor = None
-    if options.sensor_calibration and model.sensor is not None:  # a task scene may have no sensor
-        sensor = calibrate(model, params=())
+    if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
+        sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
+                           max_replays=options.calibration_max_replays)
         if on_calibration is not None:
             on_calibration(sensor)
     result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,

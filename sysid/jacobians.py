@@ -26,6 +26,14 @@ DIFFERENCE_PARAMETERS = (*SENSOR_PARAMETERS, "contact.eps_v")
 replay's sensor offset (not a simulator parameter) and the friction mollifier width (no adjoint
 derivative)."""
 
+DIFFERENCE_STEPS = {"sensor.normal_offset": 0.1, "contact.eps_v": 0.1}
+"""Forward-difference step (search coordinates) of each difference parameter, when larger than the
+provider's ``fd_step``: 5 um of sensor offset, 10 % of the stick regularisation. A replay's cost is
+rough at the 0.3 % level under small changes of these two (the lagged friction's stick/slip state and
+the contact set switch pair by pair: on the bench card's press-and-slide, 1 % steps of ``contact.eps_v``
+move the cost up and down by 0.1-0.3 %, and the one-sided 1 % difference was off by a factor 2 from
+a central one), so a 1 % step measures that roughness rather than the slope."""
+
 
 # ====================================================================================== Jacobians
 class JacobianProvider(Protocol):
@@ -111,12 +119,19 @@ class SensitivityJacobian:
 
     def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
         u = np.asarray(u, dtype=float)
+        names, other = self._split(problem)
         J = problem.cached_jacobian(u)
         if J is not None:
+            if other and np.isnan(J[:, other]).any():  # a joint replay's: its difference columns now
+                mine = [i for i in range(len(problem.names)) if i not in other]
+                J = self._with_difference_columns(problem, u, J[:, mine], other, None)
+                problem.keep_jacobian(u, J)
             return J
         model = problem.model
         values = problem.values(u)
-        names, other = self._split(problem)
+        if not names:  # only difference columns: no tangents to propagate
+            return self._with_difference_columns(problem, u, np.zeros((model.residual_count, 0)), other, None)
+        problem.reserve(1 + len(other), "jacobian")
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
@@ -148,12 +163,14 @@ class SensitivityJacobian:
         lb, ub = problem.bounds
         points, steps = [], []
         for i in other:
-            h = self.fallback.step if u[i] + self.fallback.step <= ub[i] else -self.fallback.step
+            step = max(self.fallback.step, DIFFERENCE_STEPS.get(problem.names[i], 0.0))
+            h = step if u[i] + step <= ub[i] else -step
             du = u.copy()
             du[i] += h
             points.append(du)
             steps.append(h)
         r0 = problem.residual(u, phase="jacobian") if r0 is None else r0
+        problem.reserve(len(points), "jacobian")
         res = problem.evaluate_many(points, phase="jacobian")
         full = np.zeros((J.shape[0], len(problem.names)))
         mine = [i for i in range(len(problem.names)) if i not in other]
@@ -175,15 +192,21 @@ class SensitivityJacobian:
 
         The tangents are solved step by step with the Newton factorisation of each step
         (``sim_core.sensitivity.rollout_sensitivities``), so the Jacobian costs about a quarter of
-        a replay on top of it instead of a second replay.
+        a replay on top of it instead of a second replay. The columns of the difference parameters
+        (:data:`DIFFERENCE_PARAMETERS`, a replay each) are left NaN: :meth:`__call__` computes them
+        when the Jacobian at ``u`` is asked for, i.e. at an accepted point of the fit, so that a
+        rejected trial point costs one replay.
 
         Raises:
             SimulationDivergedError: the replay diverged.
-            ConfigError: the replay is not differentiable (the caller replays without tangents).
+            ConfigError: the replay is not differentiable, or no parameter has simulator
+                sensitivities (the caller replays without tangents).
         """
         model = problem.model
         values = problem.values(u)
         names, other = self._split(problem)
+        if not names:
+            raise ConfigError("no parameter with simulator sensitivities: a plain replay gives the residual")
         sim = model.prepare(values)
         t = time.perf_counter()
         traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names,
@@ -192,8 +215,8 @@ class SensitivityJacobian:
             problem.last_positions = np.stack([s.x for s in traj.states])
         prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
         r = model.residuals(prediction)
-        J = self._with_difference_columns(problem, np.asarray(u, float), self._whitened(problem, values, sim, traj, dX, dF),
-                                          other, r)
+        J = np.full((r.shape[0], len(problem.names)), np.nan)
+        J[:, [i for i in range(len(problem.names)) if i not in other]] = self._whitened(problem, values, sim, traj, dX, dF)
         return r, J, prediction
 
     def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,

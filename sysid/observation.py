@@ -242,6 +242,9 @@ class ObservationModel:
         channels: fitted channels, in residual order.
         dropped: channel -> why it is not fitted.
         sigma: channel -> per-axis noise level used for whitening.
+        sigma_scale: None, or channel -> factor (>= 1) on ``sigma`` in :meth:`residuals` and
+            :meth:`whiten_derivative` only: the model-form weights of a fit
+            (:func:`sysid.fit.fit` ``reweight_channels``); reported RMS values stay in noise units.
         step_times_ns: ``(K + 1,)`` simulation step times (recording clock).
         controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
@@ -300,6 +303,7 @@ class ObservationModel:
         self.nominal_normal_offset = 0.0
         self.sensor_calibration = None
         self.marker_rest: np.ndarray | None = None
+        self.sigma_scale: dict[str, float] | None = None
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:
@@ -452,6 +456,7 @@ class ObservationModel:
             if self.task:
                 self._check_task_model(self._sim)
             self._nominal = {n: float(self._sim.get_parameter(n)) for n in self._sim.parameter_names}
+            self._scene_nominal = dict(self._nominal)
         return self._sim
 
     def _check_task_model(self, sim) -> None:
@@ -500,8 +505,38 @@ class ObservationModel:
             value = float(self._sim.get_parameter(name))  # raises ConfigError listing the known names
             # a missing-physics term (candidate.<name>): its scene value (0 when the scene has none) is
             # its nominal from now on, so prepare() resets it for replays that do not set it
-            self._nominal[name] = value
+            self._nominal[name] = self._scene_nominal[name] = value
         return self._nominal[name]
+
+    def set_nominal(self, values: Mapping[str, float]) -> None:
+        """Make ``values`` the nominal of every later replay (a calibration's fitted parameters):
+        a replay that does not set a parameter uses its value here, and :meth:`parameter_value`
+        returns it (``sensor.normal_offset``: :attr:`nominal_normal_offset`).
+
+        Raises:
+            ConfigError: unknown parameter or a value outside its physical range (nothing is changed).
+        """
+        checked = {}
+        for name, value in values.items():
+            value = float(value)
+            if name not in SENSOR_PARAMETERS:
+                self.parameter_value(name)  # unknown names raise, listing the known ones
+                current = self._sim.get_parameter(name)
+                self._sim.set_parameter(name, value)  # range check; prepare() sets it again per replay
+                self._sim.set_parameter(name, current)
+            checked[name] = value
+        for name, value in checked.items():
+            if name in SENSOR_PARAMETERS:
+                self.nominal_normal_offset = value
+            else:
+                self._nominal[name] = value
+
+    def reset_nominal(self) -> None:
+        """Scene values as the nominal of every later replay again (undoes :meth:`set_nominal`;
+        the sensor offset back to 0)."""
+        self.simulation()
+        self._nominal.update(self._scene_nominal)
+        self.nominal_normal_offset = 0.0
 
     def prepare(self, params: Mapping[str, float]):
         """The cached simulation with ``params`` set (others at their scene values), reset to t_0.
@@ -703,9 +738,22 @@ class ObservationModel:
         return out
 
     def residuals(self, prediction: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Whitened residual ``r = (y_data - y_sim) / sigma`` over the fitted channels, ``(m,)``."""
-        return np.concatenate([((self.data(ch) - prediction[ch]) / self.sigma[ch]).reshape(-1)
+        """Whitened residual ``r = (y_data - y_sim) / (sigma s)`` over the fitted channels, ``(m,)``
+        (``s`` the channel's :attr:`sigma_scale`, 1 without one)."""
+        return np.concatenate([((self.data(ch) - prediction[ch]) / (self.sigma[ch] * self._scale(ch))).reshape(-1)
                                for ch in self.channels])
+
+    def _scale(self, channel: str) -> float:
+        return 1.0 if self.sigma_scale is None else float(self.sigma_scale.get(channel, 1.0))
+
+    def channel_slices(self) -> dict[str, slice]:
+        """Channel -> its rows in :meth:`residuals` (and in a whitened Jacobian)."""
+        out, start = {}, 0
+        for ch in self.channels:
+            n = int(self.data(ch).size)
+            out[ch] = slice(start, start + n)
+            start += n
+        return out
 
     def whiten_derivative(self, channel: str, d_prediction: np.ndarray) -> np.ndarray:
         """d r / d theta of one channel from the aligned prediction derivative ``(n, ..., axes, p)``.
@@ -714,7 +762,7 @@ class ObservationModel:
             ``(n * ... * axes, p)`` (the sign of ``r = data - sim`` applied).
         """
         p = d_prediction.shape[-1]
-        return (-d_prediction / self.sigma[channel][:, None]).reshape(-1, p)
+        return (-d_prediction / (self.sigma[channel][:, None] * self._scale(channel))).reshape(-1, p)
 
     def channel_rms(self, prediction: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
         """Per-channel RMS of ``data - prediction`` over every predictable channel present.

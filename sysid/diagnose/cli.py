@@ -16,6 +16,8 @@ if TYPE_CHECKING:
 
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``thinshell diagnose``."""
+    from sysid.calibration import CALIBRATION_REPLAYS
+
     p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")
     p.add_argument("--engine", choices=("signatures", "score"), default="signatures",
@@ -25,8 +27,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "(sysid.diagnose.engine; exact when the scene is the recording's own simulator)")
     p.add_argument("--baseline", nargs="*", default=[],
                    help="recordings of the same cell declared normal: they calibrate the null (signatures engine)")
-    p.add_argument("--calibration-time", type=float, default=90.0,
-                   help="wall-time budget of the calibration's parameter fit, s (default %(default)s)")
+    p.add_argument("--calibration-replays", type=int, default=CALIBRATION_REPLAYS,
+                   help="replay budget of the calibration's parameter fit (default %(default)s: the start only, no step; "
+                        "a count, so the same answer on any machine; each Gauss-Newton step costs a trial replay and one "
+                        "replay per parameter without tangents, sensor.normal_offset and contact.eps_v)")
+    p.add_argument("--calibration-time", type=float, default=None,
+                   help="also stop the calibration's parameter fit after this many seconds (default: no time budget; "
+                        "with one, the answer depends on the machine's speed and load)")
     p.add_argument("--heldout", nargs="*", default=[], help="held-out recordings (default: held-out time blocks)")
     p.add_argument("--json", type=Path, help="write the JSON report here")
     p.add_argument("--out", type=Path, help="report directory (report.md, report.html, PNGs)")
@@ -37,7 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
     p.add_argument("--params", nargs="*", default=[],
                    help="simulator parameters of the calibration (default: sysid.calibration.CALIBRATION_PARAMETERS: "
-                        "gel modulus and Poisson ratio, gel-sheet friction, sheet bending stiffness, sensor normal offset)")
+                        "gel modulus and Poisson ratio, gel-sheet friction, sheet bending stiffness, sensor normal offset; "
+                        "add contact.stiffness contact.eps_v for the contact's compliance, with --calibration-replays 4 or more "
+                        "for a step)")
     p.add_argument("--no-calibrate", action="store_true",
                    help="diagnose against the scene values and the scene's sensor calibration (no calibration)")
     p.add_argument("--project", nargs="*", help="parameters projected out of the tests (default: --params)")
@@ -68,12 +77,16 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
     if args.json is not None and args.json.exists() and not args.force:
         print(f"thinshell diagnose: {args.json} exists (use --force)", file=sys.stderr)
         return 2
+    for flag, value in (("--calibration-replays", args.calibration_replays), ("--calibration-time", args.calibration_time)):
+        if value is not None and not value > 0:
+            print(f"thinshell diagnose: {flag} must be > 0, got {value}", file=sys.stderr)
+            return 2
     if args.engine == "signatures":
         return _signatures_main(args)
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
                         ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
-                        calibrate=not args.no_calibrate,
-                        warm_start=args.warm_start,
+                        calibrate=not args.no_calibrate, calibration_max_time=args.calibration_time,
+                        calibration_max_replays=args.calibration_replays, warm_start=args.warm_start,
                         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
     try:
         doc, runs = run_diagnosis(args.bags, args.heldout, args.params, settings, args.project, args.candidates)
@@ -110,6 +123,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
+        calibration_max_replays=args.calibration_replays,
         workers=max(1, args.workers),
         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
 

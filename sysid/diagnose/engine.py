@@ -169,7 +169,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cal = calibrate(self.model, self.params, max_nfev=self.settings.fit_max_nfev,
-                            workers=self.settings.workers, max_time=self.settings.calibration_max_time)
+                            workers=self.settings.workers, max_time=self.settings.calibration_max_time,
+                            max_replays=self.settings.calibration_max_replays)
         self.timings["fit_s"] = time.perf_counter() - t
         self.calibration = cal
         self.fit_result = cal.fit

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from sysid.calibration import CALIBRATION_REPLAYS
+
 
 @dataclass
 class Settings:
@@ -50,8 +52,11 @@ class Settings:
             :data:`sysid.calibration.CALIBRATION_PARAMETERS`); False: the scene values. Off in the
             library (the own-simulator benchmark's recordings are made by the nominal scene); on by
             default in ``thinshell diagnose`` (``--no-calibrate`` turns it off).
-        calibration_max_time: wall-time budget of the calibration's parameter fit, s (the best
-            point so far is used when it is spent; None: no budget).
+        calibration_max_replays: replay budget of the calibration's parameter fit (the best point
+            so far is used when it is spent; None: no budget). A count, so that the calibration is
+            the same on any machine.
+        calibration_max_time: wall-time budget of that fit, s (None, the default: none; with one,
+            the result depends on the machine's load).
     """
 
     dt: float = 0.01
@@ -75,4 +80,5 @@ class Settings:
     probe_max_growth: float = 1000.0
     warm_start: bool = False
     calibrate: bool = False
-    calibration_max_time: float | None = 180.0
+    calibration_max_replays: int | None = CALIBRATION_REPLAYS
+    calibration_max_time: float | None = None

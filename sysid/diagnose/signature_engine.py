@@ -7,10 +7,12 @@ still leaves a structured gap many times the noise, and every candidate can abso
 (SYSID.md "Model-form gap"). This pipeline names an effect only from its own signature
 (:mod:`sysid.diagnose.signatures`), each read where the gap matters least:
 
-1. **Calibrate** (:func:`sysid.calibration.calibrate`): the sensor calibration in closed form and
-   the uncertain simulator parameters (gel modulus and Poisson ratio, gel-sheet friction, bending
-   stiffness, sensor normal offset) by weighted least squares within a wall-time budget. The
-   whitened RMS per channel before and after goes into ``baseline``.
+1. **Calibrate** (:func:`sysid.calibration.calibrate`): the uncertain simulator parameters (gel
+   modulus and Poisson ratio, gel-sheet friction, bending stiffness, sensor normal offset; on request
+   the contact's compliance and stick regularisation) by weighted least squares within a replay
+   budget (by default the start only: :data:`sysid.calibration.CALIBRATION_REPLAYS`), then the
+   sensor calibration in closed form. The whitened RMS per channel before and after goes into
+   ``baseline``.
 2. **Signature tests** on the recording and its calibrated replay: lens distortion and force bias
    from the sensor's own chain (no replay), latency and gel viscoelasticity from the timing of the
    contact events, gel damping from the contact force leading the replay there (Kelvin-Voigt),
@@ -40,7 +42,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
-from sysid.calibration import CALIBRATION_PARAMETERS, CalibrationResult, calibrate, nominal_sensor_calibration
+from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
+                               nominal_sensor_calibration)
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
@@ -68,7 +71,11 @@ class SignatureSettings:
             calibration; False: the sensor calibration only (one replay).
         calibration_params: simulator parameters of the calibration.
         calibration_max_nfev: function evaluations of its least-squares fit.
-        calibration_max_time: wall-time budget of that fit, s (None: none).
+        calibration_max_replays: replay budget of that fit (:func:`sysid.fit.fit` ``max_replays``;
+            None: none; default :data:`sysid.calibration.CALIBRATION_REPLAYS`): the diagnosis makes
+            the same replays, and names the same effects, on any machine.
+        calibration_max_time: wall-time budget of that fit, s (None, the default: none; a budget
+            makes the result depend on the machine's load).
         baseline_factor: a baseline-calibrated threshold is this factor times the largest value the
             test reaches on the baselines.
         holdout_blocks: held-out time blocks of the sensor effects' refits (every other of
@@ -76,7 +83,8 @@ class SignatureSettings:
         simulation: overrides of the scene's ``simulation:`` block for the replays.
         workers: processes for the calibration's batched replays.
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
-        plasticity_max_time: wall-time budget of that search, s (None: none).
+        plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
+            replay count bounds it).
     """
 
     dt: float = 0.01
@@ -85,13 +93,14 @@ class SignatureSettings:
     calibrate: bool = True
     calibration_params: tuple[str, ...] = CALIBRATION_PARAMETERS
     calibration_max_nfev: int = 4
-    calibration_max_time: float | None = 90.0
+    calibration_max_replays: int | None = CALIBRATION_REPLAYS
+    calibration_max_time: float | None = None
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
     workers: int = 1
     plasticity_replays: int = 5
-    plasticity_max_time: float | None = 120.0
+    plasticity_max_time: float | None = None
 
 
 @dataclass
@@ -161,7 +170,7 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
     notes: list[str] = []
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
-                        max_time=settings.calibration_max_time)
+                        max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")

@@ -166,9 +166,21 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         lines.append(f"- contact properties of this cell (not named alone): {', '.join(props)}")
     if doc["extra"].get("ties"):
         lines.append(f"- ties (not resolved by a discriminating test): {doc['extra']['ties']}")
-    lines += ["", "## Calibration (whitened RMS, noise units)", "", "| channel | scene values | calibrated |", "|---|---|---|"]
+    cal = doc["baseline"].get("calibration") or {}
+    weights = cal.get("channel_weights") or {}
+    lines += ["", "## Calibration (whitened RMS, noise units)", "",
+              "| channel | scene values | calibrated | weight in the fit |", "|---|---|---|---|"]
     for ch, v in doc["baseline"]["whitened_rms_before"].items():
-        lines.append(f"| {ch} | {v:.2f} | {doc['baseline']['whitened_rms_after'].get(ch, float('nan')):.2f} |")
+        w = weights.get(ch)
+        lines.append(f"| {ch} | {v:.2f} | {doc['baseline']['whitened_rms_after'].get(ch, float('nan')):.2f} | "
+                     f"{'-' if w is None else f'{w:.3g}'} |")
+    gaps = cal.get("not_followed") or {}
+    if gaps:
+        lines += ["", "The calibrated model does not follow " + ", ".join(f"{ch} (whitened RMS {v:.3g})" for ch, v in gaps.items())
+                  + ": a model-form gap, not noise. The calibration weighed each channel by its gap at the scene values "
+                  "(weight 1 / RMS^2), so such a channel did not drive the fitted parameters."]
+    if cal.get("status"):
+        lines.append(f"\nParameter fit: {cal['status']}, {cal.get('fit_replays')} replays.")
     lines += ["", f"Fitted parameters: `{json.dumps(doc['baseline']['params'])}`", "",
               "## Where", "", f"windows (s): {doc['mismatch']['windows_s']}; channels: {doc['mismatch']['channels']}; "
               f"markers: {doc['mismatch']['markers']}", "", "## Signature tests", "",

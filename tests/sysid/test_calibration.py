@@ -110,3 +110,176 @@ def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
     fitted = fit_sensor_calibration({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
     assert fitted.fx == 300.0 and fitted.cx == 160.0
     assert fitted.fy == pytest.approx(300.0) and fitted.cy == pytest.approx(120.0)
+
+
+# ------------------------------------------------------------------ contact parameters of the calibration
+CONTACT_TRUTH = {"contact.stiffness": 6.0e3, "contact.eps_v": 2.0e-3}
+"""A contact 3.3x more compliant than the scene's (2e4 N/m) and a stick regularisation 5x narrower
+than its (0.01 m/s): the known answer of the recordings below."""
+
+
+def _contact_recording(out_dir, segments):
+    """A noisy recording of the bench card made with :data:`CONTACT_TRUTH`; its scene file holds the
+    simulator's default contact (the nominal a real cell's scene would hold)."""
+    from tests.sysid.simbag import CARD_SCENE, add_noise, simulate_streams, targets_from_segments, write_bag
+
+    scene = dict(CARD_SCENE)
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), segments)
+    return write_bag(out_dir, scene, add_noise(simulate_streams(scene, CONTACT_TRUTH, targets), seed=4))
+
+
+@pytest.fixture(scope="module")
+def contact_press(tmp_path_factory):
+    """A press (5 steps of 10 ms)."""
+    from tests.sysid.simbag import PRESS_ONLY
+
+    return _contact_recording(tmp_path_factory.mktemp("contact_press") / "bag", PRESS_ONLY)
+
+
+@pytest.fixture(scope="module")
+def contact_slip(tmp_path_factory):
+    """A press, the gel slips 2 mm over the card, then holds still (the sheared gel creeps back at a
+    rate set by the stick regularisation): 19 steps of 10 ms."""
+    from tests.sysid.simbag import PRESS_SLIDE
+
+    return _contact_recording(tmp_path_factory.mktemp("contact_slip") / "bag",
+                              (*PRESS_SLIDE[:2], ((0.0, 0.0, 0.0), 8)))
+
+
+def _model(bag):
+    import warnings
+
+    from sysid.evidence import load_evidence
+    from sysid.observation import ObservationModel
+    from tests.sysid.simbag import DT
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ObservationModel(load_evidence(bag), dt=DT)
+
+
+def test_contact_stiffness_column_matches_central_differences(contact_press):
+    """The calibration's Jacobian column of the contact stiffness (forward sensitivities through the
+    penalty's stiffness derivative) against central differences of the replayed residual, away from
+    the truth."""
+    from sysid.fit import FiniteDifferenceJacobian, FitProblem, SensitivityJacobian, parameter_spec
+
+    model = _model(contact_press)
+    names = ["contact.stiffness", "gel.youngs_modulus"]
+    problem = FitProblem(model, [parameter_spec(n, model.parameter_value(n)) for n in names])
+    u = np.array([-0.4, 0.1])
+    J_fd = FiniteDifferenceJacobian(step=1e-3)(problem, u)
+    J_s = SensitivityJacobian()(problem, u)
+    for j, name in enumerate(names):
+        norm = np.linalg.norm(J_fd[:, j])
+        assert norm > 1.0, (name, norm)  # the recording sees it: a 1 % change moves the residual
+        assert np.linalg.norm(J_s[:, j] - J_fd[:, j]) / norm < 0.05, name
+
+
+def test_stick_regularisation_column_is_the_secant_over_its_difference_step(contact_slip):
+    """``contact.eps_v`` has no adjoint derivative: its column is the forward secant over
+    :data:`sysid.jacobians.DIFFERENCE_STEPS` (10 %), also when it is the only parameter; it points
+    along the central secant over the same step (the replay's cost is rough on 1 % steps)."""
+    from sysid.fit import FitProblem, SensitivityJacobian, parameter_spec
+    from sysid.jacobians import DIFFERENCE_STEPS
+
+    model = _model(contact_slip)
+    name = "contact.eps_v"
+    problem = FitProblem(model, [parameter_spec(name, model.parameter_value(name))])
+    u, h = np.array([-0.6]), DIFFERENCE_STEPS[name]
+    J = SensitivityJacobian()(problem, u)
+    r0, rp, rm = (problem.residual(u + d) for d in (0.0, h, -h))
+    np.testing.assert_allclose(J[:, 0], (rp - r0) / h, rtol=0, atol=1e-9 * np.abs(J).max())
+    central = (rp - rm) / (2.0 * h)
+    assert np.linalg.norm(central) > 1.0
+    cosine = float(J[:, 0] @ central) / (np.linalg.norm(J[:, 0]) * np.linalg.norm(central))
+    assert cosine > 0.8, cosine
+
+
+def test_calibration_recovers_a_known_contact_stiffness_and_stick_regularisation(contact_slip):
+    """Known answer: on a recording this simulator made with a softer contact and a narrower stick zone
+    than its scene says, the calibration finds both (within 3 scaled sigma and 10 %; found: -2.0 % and
+    +2.6 %), reports their 1-sigma and correlation, and leaves the sensor calibration at unit gains.
+    The model is exact here, so the noise levels are the right weights: the channels are not
+    reweighted by the start's gap (with them reweighted: -1.2 % and +10.7 %, the wrench's weight set
+    by a start 3.3x too stiff)."""
+    from sysid.calibration import calibrate
+
+    model = _model(contact_slip)
+    assert model.parameter_value("contact.stiffness") == pytest.approx(2.0e4)
+    result = calibrate(model, tuple(CONTACT_TRUTH), max_nfev=12, reweight_channels=False)
+    summary = result.summary()
+    for (name, true), rel in zip(CONTACT_TRUTH.items(), (0.10, 0.10)):
+        value, sigma = result.params[name], summary["sigma"][name]
+        assert value == pytest.approx(true, rel=rel), (name, value, summary)
+        assert sigma is not None and 0.0 < sigma < 0.5 * true, (name, sigma)
+        assert abs(value - true) < 3.0 * max(summary["sigma_scaled"][name], 0.02 * true), (name, value, sigma)
+    assert summary["fitted"] == list(CONTACT_TRUTH)
+    corr = np.asarray(summary["correlation"])
+    assert corr.shape == (2, 2) and np.allclose(np.diag(corr), 1.0) and abs(corr[0, 1]) < 0.95
+    assert result.sensor.force_gain == pytest.approx(1.0, abs=0.05)
+    assert result.whitened_rms_after["wrench"] < 1.5 < result.whitened_rms_before["wrench"]
+
+
+def test_calibration_bounds_follow_the_scene_and_narrow_the_search():
+    from sysid.calibration import CALIBRATION_BOUNDS, CALIBRATION_PARAMETERS, CONTACT_PARAMETERS, calibration_bounds
+    from sysid.fit import bounded_spec, parameter_spec
+    from sim_core.errors import CalibrationError
+
+    class _Scene:
+        values = {"gel.youngs_modulus": 3.0e5, "gel.poisson_ratio": 0.45, "friction.gel_sheet": 0.8,
+                  "sheet.bending_stiffness": 0.008, "sensor.normal_offset": 0.0, "contact.stiffness": 2.0e4,
+                  "contact.eps_v": 0.01}
+
+        def parameter_value(self, name):
+            return self.values[name]
+
+    assert set(CALIBRATION_PARAMETERS) | set(CONTACT_PARAMETERS) <= set(CALIBRATION_BOUNDS)
+    b = calibration_bounds(_Scene(), CALIBRATION_PARAMETERS + CONTACT_PARAMETERS)
+    assert b["gel.youngs_modulus"] == pytest.approx((1.0e5, 9.0e5))
+    assert b["contact.stiffness"] == pytest.approx((2.0e4 / 30.0, 6.0e5))
+    assert b["contact.eps_v"] == pytest.approx((1.0e-4, 0.1))
+    assert b["sensor.normal_offset"] == pytest.approx((-5.0e-4, 5.0e-4))
+    assert b["gel.poisson_ratio"] == (0.3, 0.499)
+    for name, value in _Scene.values.items():  # every scene value lies inside its own bounds
+        spec = bounded_spec(parameter_spec(name, value), b[name])
+        lo, hi = spec.u_bounds
+        assert lo < spec.to_u(value) < hi and spec.to_value(lo) == pytest.approx(b[name][0])
+    with pytest.raises(CalibrationError, match="outside its bounds"):
+        bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (3.0e4, 5.0e4))
+    with pytest.raises(CalibrationError, match="leave no range"):
+        bounded_spec(parameter_spec("contact.stiffness", 2.0e4), (5.0e4, 3.0e4))
+
+
+def test_calibrated_values_become_the_replays_nominal(contact_press):
+    from sim_core.errors import ConfigError
+
+    model = _model(contact_press)
+    model.set_nominal({"contact.stiffness": 1.0e4, "sensor.normal_offset": 1.0e-5})
+    assert model.parameter_value("contact.stiffness") == 1.0e4 and model.nominal_normal_offset == 1.0e-5
+    assert model.prepare({}).get_parameter("contact.stiffness") == 1.0e4
+    assert model.prepare({"contact.stiffness": 3.0e3}).get_parameter("contact.stiffness") == 3.0e3
+    with pytest.raises(ConfigError, match="must be > 0"):  # nothing changes on a bad value
+        model.set_nominal({"gel.youngs_modulus": 2.0e5, "contact.stiffness": -1.0})
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        model.set_nominal({"contact.stifness": 1.0})
+    assert model.parameter_value("gel.youngs_modulus") == 3.0e5
+    model.reset_nominal()
+    assert model.parameter_value("contact.stiffness") == 2.0e4 and model.nominal_normal_offset == 0.0
+    assert model.prepare({}).get_parameter("contact.stiffness") == 2.0e4
+
+
+def test_sysid_fit_starts_from_the_calibrated_model(contact_press, tmp_path):
+    """``thinshell sysid --calibrate``: the calibration parameters other than the fitted ones are
+    calibrated first (as ``thinshell diagnose`` does), and the fit replays with their values."""
+    from sysid.fit_recording import FitOptions, fit_recording
+
+    options = FitOptions(params=("gel.youngs_modulus",), calibration_params=("contact.stiffness", "gel.youngs_modulus"),
+                         max_nfev=4, calibration_max_replays=12)
+    outcome = fit_recording(contact_press, tmp_path / "out", options)
+    cal = outcome.document["diagnostics"]["sensor_calibration"]
+    assert cal["fitted"] == ["contact.stiffness"]  # the fitted parameter is not calibrated beforehand
+    k = cal["params"]["contact.stiffness"]
+    assert k == pytest.approx(CONTACT_TRUTH["contact.stiffness"], rel=0.15)
+    assert outcome.result.model.parameter_value("contact.stiffness") == k
+    assert outcome.result.values["gel.youngs_modulus"] == pytest.approx(3.0e5, rel=0.05)

@@ -88,3 +88,42 @@ def test_unknown_parameter_is_one_line_error(press_bag, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 1 and "gel.hardness" in err and err.strip().count("\n") <= 1
     assert not (tmp_path / "o").exists()
+
+
+def test_calibrate_flag_calibrates_the_diagnosis_parameters_not_fitted():
+    from sim_core.errors import ConfigError
+    from sysid.calibration import CALIBRATION_PARAMETERS
+    from sysid.cli import build_parser, fit_options
+
+    options = fit_options(build_parser().parse_args(["bag", "--params", "gel.youngs_modulus", "--calibrate",
+                                                     "--calibration-time", "60"]))
+    assert options.calibration_params == CALIBRATION_PARAMETERS and options.calibration_max_time == 60.0
+    assert fit_options(build_parser().parse_args(["bag"])).calibration_params == ()
+    with pytest.raises(ConfigError, match="calibration_max_time must be > 0"):
+        fit_options(build_parser().parse_args(["bag", "--calibrate", "--calibration-time", "0"]))
+    with pytest.raises(ConfigError, match="calibration_max_replays must be >= 1"):
+        fit_options(build_parser().parse_args(["bag", "--calibrate", "--calibration-replays", "0"]))
+
+
+def test_calibrations_are_bounded_by_a_replay_count_not_by_seconds(capsys):
+    """``thinshell sysid --calibrate`` and ``thinshell diagnose`` calibrate within the same replay
+    count and no wall-time budget by default (the same answer under any load); seconds are opt-in."""
+    from sysid.calibration import CALIBRATION_REPLAYS
+    from sysid.cli import build_parser, fit_options
+    from sysid.diagnose.cli import build_parser as diagnose_parser, signature_settings
+    from sysid.diagnose.settings import Settings
+    from sysid.diagnose.signature_engine import SignatureSettings
+
+    options = fit_options(build_parser().parse_args(["bag", "--calibrate"]))
+    assert options.calibration_max_replays == CALIBRATION_REPLAYS and options.calibration_max_time is None
+    settings = signature_settings(diagnose_parser().parse_args(["bag"]))
+    assert settings.calibration_max_replays == CALIBRATION_REPLAYS and settings.calibration_max_time is None
+    assert settings.plasticity_max_time is None and settings.plasticity_replays >= 1
+    for defaults in (SignatureSettings(), Settings()):
+        assert defaults.calibration_max_replays == CALIBRATION_REPLAYS and defaults.calibration_max_time is None
+    timed = signature_settings(diagnose_parser().parse_args(["bag", "--calibration-time", "30", "--calibration-replays", "9"]))
+    assert timed.calibration_max_time == 30.0 and timed.calibration_max_replays == 9
+    from sysid.diagnose.cli import diagnose_main
+
+    assert diagnose_main(["no_such_bag", "--calibration-replays", "0"]) == 2
+    assert "--calibration-replays must be > 0" in capsys.readouterr().err

@@ -327,3 +327,85 @@ def test_warm_start_replays_from_the_best_replay_with_fewer_newton_iterations(pr
     assert model.warm_start is None
     with pytest.raises(CalibrationError, match="warm start: expected"):
         model.controls_list(np.zeros((2, 3, 3)))
+
+
+# ------------------------------------------------------------------------------------ replay budget
+def test_joint_replay_leaves_the_difference_columns_to_the_accepted_point(press_bag):
+    """A joint replay computes the tangent columns only; the sensor offset's forward-difference column
+    (a replay) is computed when the Jacobian at that point is asked for, and equals the plain
+    provider's column."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    names = ["gel.youngs_modulus", "sensor.normal_offset"]
+    specs = [parameter_spec(n, model.parameter_value(n)) for n in names]
+    provider = SensitivityJacobian()
+    u = np.array([0.2, 0.5])
+    joint = FitProblem(model, specs, joint=provider.joint)
+    joint.residual(u, phase="local")
+    partial = joint.cached_jacobian(u)
+    assert joint.sim_runs == 1 and np.isnan(partial[:, 1]).all() and np.isfinite(partial[:, 0]).all()
+    J = provider(joint, u)
+    assert joint.sim_runs == 2 and np.isfinite(J).all()
+    assert provider(joint, u) is joint.cached_jacobian(u) and joint.sim_runs == 2  # kept, complete
+    plain = FitProblem(model, specs)
+    J_plain = provider(plain, u)
+    np.testing.assert_allclose(J, J_plain, rtol=0, atol=1e-9 * np.abs(J_plain).max())
+    assert np.linalg.norm(J[:, 1]) > 1.0  # the offset moves the residual: the column is not empty
+
+
+def test_replay_budget_bounds_the_fit_and_gives_the_same_fit_twice(press_bag):
+    """``max_replays``: the fit never makes more replays than the budget, stops with status
+    ``replay_budget`` at the best point so far, and repeats itself exactly (a count, not seconds);
+    a larger budget goes further."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    names = ["gel.youngs_modulus", "sensor.normal_offset"]
+    start = {"gel.youngs_modulus": 3.0 * TRUE_PARAMS["gel.youngs_modulus"], "sensor.normal_offset": 0.0}
+    runs = [fit(model, names, initial=start, jacobian="sensitivity", max_replays=4) for _ in range(2)]
+    for r in runs:
+        assert r.sim_runs <= 4 and r.status == "replay_budget" and "replay budget" in r.message
+        # the start with tangents, the offset's difference column, one trial step
+        assert [e.phase for e in r.history][:3] == ["initial", "jacobian", "local"]
+        assert r.cost_final < r.cost_initial and r.sigma is not None
+    assert runs[0].values == runs[1].values and runs[0].cost_final == runs[1].cost_final
+    more = fit(model, names, initial=start, jacobian="sensitivity", max_replays=10)
+    assert 4 < more.sim_runs <= 10 and more.cost_final < runs[0].cost_final
+    one = fit(model, names, initial=start, jacobian="sensitivity", max_replays=1)  # the start alone, plain
+    assert one.sim_runs == 1 and one.status == "replay_budget" and one.values == pytest.approx(start)
+    assert one.sigma is None and one.cost_final == one.cost_initial == pytest.approx(runs[0].cost_initial)
+    with pytest.raises(ConfigError, match="max_replays must be >= 1"):
+        fit(model, names, max_replays=0)
+
+
+def test_reweighted_channels_enter_at_unit_variance_and_a_gap_channel_does_not_drive_the_fit(press_bag):
+    """``reweight_channels``: each channel's noise is scaled by ``max(1, its whitened RMS at the
+    start)``, so the start's cost is ``1/2 sum_ch n_ch min(1, rms_ch^2)``; a channel with a gap no
+    parameter can follow (a 40-sigma offset on the normal force, with the gel modulus started 3x
+    off) then no longer pulls the modulus: it lands nearer the truth than the unweighted fit's."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObservationModel(load_evidence(press_bag), dt=DT)
+    name = "gel.youngs_modulus"
+    true = TRUE_PARAMS[name]
+    recorded = model.data
+
+    def with_gap(ch):
+        d = recorded(ch)
+        if ch == "wrench":
+            d = d.copy()
+            d[:, 2] += 40.0 * model.sigma["wrench"][2]
+        return d
+
+    model.data = with_gap
+    start = {name: 3.0 * true}
+    plain = fit(model, [name], initial=start, jacobian="sensitivity", max_nfev=8)
+    weighted = fit(model, [name], initial=start, jacobian="sensitivity", max_nfev=8, reweight_channels=True)
+    assert model.sigma_scale is None and plain.sigma_scale is None  # restored; off by default
+    rms0 = {ch: v["whitened_rms"] for ch, v in weighted.rms_initial.items() if ch in model.channels}
+    assert weighted.sigma_scale == pytest.approx({ch: max(1.0, r) for ch, r in rms0.items()})
+    assert weighted.sigma_scale["wrench"] > 10.0
+    n = {ch: model.data(ch).size for ch in model.channels}
+    assert weighted.cost_initial == pytest.approx(0.5 * sum(n[ch] * min(1.0, rms0[ch] ** 2) for ch in n), rel=1e-9)
+    assert abs(weighted.values[name] / true - 1.0) < abs(plain.values[name] / true - 1.0)

@@ -13,8 +13,10 @@ per window: the amplitude gap between simulator and recording is not the effect)
 
 * statistic: the whitened SSE a common lead removes against ``tau = 0`` summed over the events
   (a likelihood-ratio statistic in noise units);
-* effect size: the smallest of the events' own best leads (a damping time constant leads every
-  event; a lead at one event only is the model's gap there), s;
+* effect size: the smallest press's mean lead over its rising and falling events, with every
+  event leading (:func:`~sysid.diagnose.signatures.timing.timing_size`: a damping time constant
+  leads every event; a lead at one event only is the model's gap there, and a depth gap of the
+  calibrated replay moves a press's two events apart), s;
 * estimate: the common lead, the damping time constant beyond the replay's own, s.
 
 Confusable effects read the same windows with the opposite sign: latency delays every event by the
@@ -30,7 +32,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
-from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, timing_signal
+from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, press_sizes, timing_signal, timing_size
 
 EFFECT = "damping"
 
@@ -131,9 +133,9 @@ def damping_test(rec: Recording) -> SignatureResult:
     samples = int(sum(e["samples"] for e in ev))
     excess = max(float(total[0]) - samples, 1e-12)
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
-              "sse_lead": float(total[j]), "leads_s": leads.tolist(),
+              "sse_lead": float(total[j]), "leads_s": leads.tolist(), "press_leads_s": press_sizes(ev, "lead_s"),
               "explained_lead": float((total[0] - total[j]) / excess)}
     return SignatureResult(effect=EFFECT, statistic=max(float(total[0] - total[j]), 0.0),
-                           effect_size=float(np.min(leads)), effect_unit="s (smallest event lead)",
+                           effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],
                            channels=["wrench"] if fits["channel"] == "wrench" else ["markers_xyz"], detail=detail)

@@ -24,8 +24,10 @@ Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by
 one of the two passes its thresholds (events that fit a delay at least as well as a lag do not name
 the lag, events that fit a lag clearly better do not name the latency); when neither shape is
 clearly better and both pass, both are reported as a tie and the larger statistic is named first.
-Both are held to the same size rule: the smallest delay, or the smallest lag time constant, over
-the events (an effect of the stream delays or lags every event).
+Both are held to the same size rule (:func:`sysid.diagnose.signatures.timing.timing_size`): every
+event delayed (or lagged), and the smallest press's mean delay (or lag time constant) over its rising
+and falling events (an effect of the stream delays or lags every event; the mean cancels a depth gap
+of the calibrated replay, which moves a press's two events in opposite directions).
 Adhesion on a lift is a property of the contact (the gel tacks to the sheet in every lift of the
 cell): it is named beside another effect, and otherwise reported under ``contact_properties``.
 """

@@ -294,6 +294,58 @@ def test_the_timing_shape_decides_also_when_one_effect_alone_passes(delay, lag, 
     assert d.ties == ([["latency", "gel_viscoelasticity"]] if len(expected) == 2 else [])
 
 
-def test_both_timing_effects_are_sized_by_their_smallest_event(rng):
+def test_both_timing_effects_are_sized_by_their_smallest_press(rng):
     lat, visco = timing_tests(synthetic(rng, lag_tau=0.12))
-    assert visco.effect_size == min(visco.detail["taus_s"]) and lat.effect_size == min(lat.detail["delays_s"])
+    taus, delays = visco.detail["taus_s"], lat.detail["delays_s"]
+    assert len(taus) == 2  # one press: its rising and its falling event
+    assert visco.effect_size == pytest.approx(0.5 * sum(taus)) and lat.effect_size == pytest.approx(0.5 * sum(delays))
+    assert visco.detail["press_taus_s"] == [visco.effect_size]
+
+
+def test_press_size_needs_every_event_delayed():
+    from sysid.diagnose.signatures.timing import press_sizes, timing_size
+
+    ev = [{"t_s": 1.0, "direction": "rising", "d": 0.05}, {"t_s": 2.0, "direction": "falling", "d": 0.0},
+          {"t_s": 3.0, "direction": "rising", "d": 0.03}]
+    assert press_sizes(ev, "d") == [0.025, 0.03]  # the last rise has no fall: a press of its own
+    assert timing_size(ev, "d") == 0.0  # one event not delayed: not an effect of the stream
+    ev[1]["d"] = 0.01
+    assert timing_size(ev, "d") == pytest.approx(0.03)
+
+
+def _with_depth_gap(rec: Recording, gap: float) -> Recording:
+    """``rec`` with a replay whose contact begins ``gap`` s late and ends ``gap`` s early (a shallower
+    mount or a softer contact, as a calibration fitted to the recording may leave it)."""
+    tw, tm = rec.t["wrench"], rec.t["markers_xyz"]
+    prof_w = press_profile(tw, t_on=1.0 + gap, t_off=2.5 - gap, ramp=0.3)
+    prof_m = press_profile(tm, t_on=1.0 + gap, t_off=2.5 - gap, ramp=0.3)
+    rec.prediction["wrench"] = rec.prediction["wrench"].copy()
+    rec.prediction["wrench"][:, 2] = -5.0 * prof_w
+    rest = rec.prediction["markers_xyz"][0]
+    depth = rec.prediction["markers_xyz"][int(np.argmax(press_profile(tm, ramp=0.3)))] - rest
+    rec.prediction["markers_xyz"] = rest[None] + depth[None] * prof_m[:, None, None]
+    return rec
+
+
+def test_latency_read_through_a_replay_with_a_depth_gap_is_named_latency(rng):
+    """Through a replay whose contact begins 25 ms late and ends 25 ms early, a 40 ms latency delays
+    the rise by 15 ms only (under the two-period size) and the fall by 65 ms; the press's mean is the
+    latency."""
+    rec = _with_depth_gap(synthetic(rng, latency=0.04, ramp=0.3), 0.025)
+    lat, _ = timing_tests(rec)
+    assert min(lat.detail["delays_s"]) < 0.02 < max(lat.detail["delays_s"])
+    assert lat.effect_size == pytest.approx(0.04, abs=0.005)
+    assert named(rec)[0] == "latency"
+
+
+def test_gel_damping_read_through_a_replay_with_a_depth_gap_is_named_damping(rng):
+    """Through the same shallower replay a 30 ms Kelvin-Voigt lead is 5 ms at one event (under the
+    10 ms size) and about 55 ms at the other; the press's mean is the time constant. Without damping
+    the gap alone leads one event only, and names nothing."""
+    rec = _with_depth_gap(synthetic(rng, damping=0.03, ramp=0.3), 0.025)
+    r = damping_test(rec)
+    assert min(r.detail["leads_s"]) < 0.01 < max(r.detail["leads_s"])
+    assert r.effect_size == pytest.approx(0.03, abs=0.006)
+    assert named(rec) == ["damping"]
+    plain = _with_depth_gap(synthetic(np.random.default_rng(5), ramp=0.3), 0.025)
+    assert damping_test(plain).effect_size == 0.0 and named(plain) == []
