@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -49,67 +48,11 @@ from sim_core.solver_config import SolverConfig
 from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
 from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
+from sim_core.step_terms import StepTerms
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
 __all__ = ["NewtonSolver", "SolverConfig", "StepInfo", "StepRecord", "StepTotals", "STRICT_STOPS", "RELAXED_STOPS"]
-
-
-@dataclass
-class _StepTerms:
-    """The incremental potential of one step, set up once before its Newton iterations
-    (:meth:`NewtonSolver._set_up_step`).
-
-    Attributes:
-        state_in: the state at the start of the step.
-        dt: step size, s.
-        fixed: Dirichlet vertices (static + effector-driven), shape ``(n,)`` bool.
-        free: free DoFs, shape ``(3 n,)`` bool.
-        x_target: prescribed positions of the fixed vertices, m, shape ``(n, 3)``.
-        poses, openings: effector poses and finger openings reached at the end of the step.
-        x_n: positions at the start, m, shape ``(n, 3)``.
-        diag: diagonal of the inertia (+ damping) Hessian, the assembler's ``diag`` argument.
-        fixed_terms: the potentials that do not change within the step (inertia, gravity,
-            [damping], elastic..., [friction], candidates...; :attr:`StepRecord.terms` without contacts).
-        elastic_terms: the elastic potentials of the step.
-        fused: the fused elastic evaluator of the Taichi path, or None.
-        loop_terms: the terms the Newton loop evaluates besides contacts (``fused`` in place of
-            the terms it covers).
-        friction: the step's lagged friction, or None.
-        cand_contact: candidate contact-like terms (their forces count in ``contact_force``).
-        dynamic_terms: the non-contact terms assembled into the dynamic pattern each iteration
-            ([friction] + candidate terms without a fused part).
-        memory: the contact memory of the step (:meth:`ContactSet.begin_step`).
-        max_displacement: cap on any vertex's move per iteration, m.
-        simplified: whether the simplified Newton test may end the step.
-        loop_energy_x, loop_energy: the positions array object the loop terms' energy (J) was last
-            evaluated at, and that energy.
-        last_update: the Newton update (m, ``(3 n,)``) the stopping test measured at the accepted
-            iterate (the ordinary or simplified correction), None when the step ended otherwise.
-    """
-
-    state_in: State
-    dt: float
-    fixed: np.ndarray
-    free: np.ndarray
-    x_target: np.ndarray
-    poses: dict
-    openings: dict
-    x_n: np.ndarray
-    diag: np.ndarray
-    fixed_terms: list
-    elastic_terms: list
-    fused: FusedElastic | None
-    loop_terms: list
-    friction: object | None
-    cand_contact: list
-    dynamic_terms: list
-    memory: object
-    max_displacement: float
-    simplified: bool
-    loop_energy_x: np.ndarray | None = None
-    loop_energy: float = 0.0
-    last_update: np.ndarray | None = None
 
 
 class NewtonSolver:
@@ -481,7 +424,7 @@ class NewtonSolver:
 
     # -------------------------------------------------------------- the parts of one step
     def _set_up_step(self, state_in: State, control: Control, dt: float, guess: np.ndarray | None,
-                     info: StepInfo) -> tuple[_StepTerms, np.ndarray]:
+                     info: StepInfo) -> tuple[StepTerms, np.ndarray]:
         """The step's Dirichlet data and the terms of its incremental potential, and the first iterate
         (``guess`` or ``x^n``, with the fixed vertices at their targets), shape ``(n, 3)``."""
         cfg = self.config
@@ -536,7 +479,7 @@ class NewtonSolver:
         # step)
         simplified = (cfg.simplified_newton_check > 0 and not (cand_contact or cand_body)
                       and (friction is None or isinstance(friction, LaggedFriction)))
-        step = _StepTerms(
+        step = StepTerms(
             state_in=state_in, dt=dt, fixed=fixed, free=free, x_target=x_target, poses=poses, openings=openings,
             x_n=x_n, diag=diag, fixed_terms=fixed_terms, elastic_terms=elastic_terms, fused=fused,
             loop_terms=loop_terms, friction=friction, cand_contact=cand_contact,
@@ -545,7 +488,7 @@ class NewtonSolver:
         )
         return step, x
 
-    def _newton_iterations(self, step: _StepTerms, x: np.ndarray, guessed: bool,
+    def _newton_iterations(self, step: StepTerms, x: np.ndarray, guessed: bool,
                            info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
         """Newton iterations from ``x`` until a stopping test accepts an iterate (:func:`~sim_core.newton_stop.stop_reason`,
         the simplified Newton test, rate stopping, or a failed line search at a relaxed tolerance).
@@ -650,7 +593,7 @@ class NewtonSolver:
                   f"tol {cfg.tol_velocity:g}; last residuals {', '.join(f'{r:.2g}' for r in history[-6:])}; "
                   f"{info.backtracks} backtracks)")
 
-    def _gradient(self, step: _StepTerms, x: np.ndarray, it: int,
+    def _gradient(self, step: StepTerms, x: np.ndarray, it: int,
                   info: StepInfo) -> tuple[list, np.ndarray | None, np.ndarray]:
         """The contact potentials at ``x``, the position their candidate search was made at, and the
         free-DoF gradient of the incremental potential at ``x`` (J/m, shape ``(3 n,)``, zero on fixed
@@ -670,7 +613,7 @@ class NewtonSolver:
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
 
-    def _simplified_correction(self, step: _StepTerms, g: np.ndarray, info: StepInfo) -> tuple[float, np.ndarray]:
+    def _simplified_correction(self, step: StepTerms, g: np.ndarray, info: StepInfo) -> tuple[float, np.ndarray]:
         """Scaled size (m/s) of the simplified Newton correction ``H(x_{k-1})^{-1} g(x_k)`` with the
         last factorisation (``SolverConfig.simplified_newton_check``), and the correction (m, ``(3 n,)``)."""
         tl = time.perf_counter()
@@ -679,7 +622,7 @@ class NewtonSolver:
         info.time_linear_solve += time.perf_counter() - tl
         return largest_move(d_bar) / step.dt, d_bar
 
-    def _assemble_hessian(self, step: _StepTerms, x: np.ndarray, projection: str,
+    def _assemble_hessian(self, step: StepTerms, x: np.ndarray, projection: str,
                           dynamic_terms: list) -> sp.csr_matrix:
         """Upper triangle (CSR) of the constrained Newton matrix at ``x`` with element Hessians
         projected by ``projection`` ("none": exact)."""
@@ -693,7 +636,7 @@ class NewtonSolver:
         return self.assembler.assemble_upper([p.hessian(x, projection) for p in step.elastic_terms],
                                              [p.hessian(x, projection) for p in dynamic_terms], step.diag, step.free)
 
-    def _newton_direction(self, step: _StepTerms, x: np.ndarray, g: np.ndarray, contact_terms: list, it: int,
+    def _newton_direction(self, step: StepTerms, x: np.ndarray, g: np.ndarray, contact_terms: list, it: int,
                           info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
         """The Newton update ``d = -H^{-1} g`` (m, shape ``(3 n,)``, zero on fixed DoFs): the exact
         Hessian when it factorises as positive definite, else the projected one (:meth:`_projections`),
@@ -733,7 +676,7 @@ class NewtonSolver:
             raise self._diverged(step, f"linear solve produced NaN at iteration {it}")
         return d, H, projection, factorization
 
-    def _energy(self, step: _StepTerms, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
+    def _energy(self, step: StepTerms, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
         """The incremental potential at ``x`` (J): the loop terms' energy, kept for the same array
         object (the accepted line-search point is the next iteration's ``e0``), plus the contacts'."""
         if step.loop_energy_x is not x:
@@ -744,7 +687,7 @@ class NewtonSolver:
             contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         return step.loop_energy + sum(p.energy(x) for p in contact_terms)
 
-    def _line_search(self, step: _StepTerms, x: np.ndarray, d3: np.ndarray, alpha: float, e0: float, slope: float,
+    def _line_search(self, step: StepTerms, x: np.ndarray, d3: np.ndarray, alpha: float, e0: float, slope: float,
                      contact_terms: list, x_search: np.ndarray | None, prefetch: bool,
                      info: StepInfo) -> tuple[np.ndarray | None, int]:
         """Backtracking (halving) line search from ``alpha`` along ``d3`` ``(n, 3)`` until the Armijo
@@ -782,13 +725,13 @@ class NewtonSolver:
             raise Woken(reached)
 
     @staticmethod
-    def _diverged(step: _StepTerms, what: str) -> SimulationDivergedError:
+    def _diverged(step: StepTerms, what: str) -> SimulationDivergedError:
         """A :class:`SimulationDivergedError` naming the step index and time of ``step``."""
         state = step.state_in
         return SimulationDivergedError(f"step {state.step_index} (t = {state.t:.6g} s): {what}",
                                        step_index=state.step_index, t=state.t)
 
-    def _finish_step(self, step: _StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
+    def _finish_step(self, step: StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
                      factorization: LinearSolver | SymmetricSolver, state_out: State, info: StepInfo) -> None:
         """Write the step's outputs at the accepted positions ``x`` ``(n, 3)`` into ``state_out``, its
         energy into ``info``, and keep the adjoint's :class:`StepRecord` and factorisation."""
