@@ -365,7 +365,6 @@ def test_report_says_in_words_how_much_the_contact_sticks_and_plots_the_breakawa
 
 
 # ---------------------------------------------------------------- this project's simulator
-@pytest.mark.slow
 def test_own_simulator_stribeck_friction_named_and_coulomb_silent():
     """The benchmark scene pressed and slid 10 mm at 20 mm/s (100 Hz, kinematic effector), with the
     driver-level Stribeck law of :class:`sysid.bench_effects.StribeckFriction` at a = 0.5 (static 1.5
