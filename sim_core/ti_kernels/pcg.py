@@ -15,10 +15,12 @@ all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations 
 top-level loops, which Taichi runs one after the other on the device):
 
 * ``A p``: the rows of ``U + U^T - diag(U)`` (one thread a row), then each vertex block ``E_t``
-  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds);
-* per copy ``p.Ap`` (a segmented sum by the vertex's copy);
+  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds); rows of copies that
+  have stopped are skipped;
+* per copy ``p.Ap``: :data:`REDUCTION_LANES` threads a copy, each summing a strided share of the
+  copy's vertices (listed copy by copy, made once per segmentation) and adding its partial sum once;
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
-  ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``;
+  ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``, by the same threads;
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
   a matrix not positive definite on that copy, which :attr:`BatchedPCG.indefinite` reports);
 * ``p = z + beta_c p``.
@@ -156,37 +158,72 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz
 ITERATIONS_PER_LAUNCH = 8
 """CG iterations of one launch of :func:`_cg_iterations` (the host tests for the end between launches)."""
 
+REDUCTION_LANES = 64
+"""Threads per copy of the per-copy sums of a CG iteration (:func:`_cg_iterations`): each sums every
+``REDUCTION_LANES``-th vertex of its copy and adds its partial sum once (``B * REDUCTION_LANES`` atomic
+adds a sum, spread over the copies, in place of one per DoF into the same ``B`` addresses)."""
+
+
+@ti.func
+def _lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
+    """How many of copy ``c``'s vertices lane ``k`` visits (its ``k``-th, then every ``REDUCTION_LANES``-th)."""
+    return (start[c + 1] - start[c] - k + REDUCTION_LANES - 1) // REDUCTION_LANES
+
 
 @ti.kernel
 def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
-                   inv: _F64, seg: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, rz: _F64, rz_new: _F64,
-                   rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32, running: _I32, rtol2: ti.f64,
-                   n: ti.i32, nblocks: ti.i32, copies: ti.i32):
+                   inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
+                   rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
+                   running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``running[0]`` = copies still
-    running after them. Each top-level loop is one device pass, run in order: ``Ap`` (``ap`` zero on
-    entry and on exit; the CSR part, then the vertex blocks), per copy ``p.Ap``, the update of ``x``,
-    ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
+    running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
+    ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
+    zero on entry and on exit; the CSR part, then the vertex blocks; rows of stopped copies skipped), per
+    copy ``p.Ap``, the update of ``x``, ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test
+    and ``beta``, and the new ``p``. The per-copy sums run :data:`REDUCTION_LANES` threads a copy."""
     for _ in ti.static(range(ITERATIONS_PER_LAUNCH)):
-        _full_csr_matvec(indptr, indices, data, p, ap, n)
-        _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
-        for v in range(n // 3):
-            ti.atomic_add(pap[seg[3 * v]], p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2])
-        for v in range(n // 3):
-            s = seg[3 * v]
-            if active[s] != 0 and pap[s] > 0:
-                alpha = rz[s] / pap[s]
+        for i in range(n):
+            if active[seg[i]] != 0:
+                acc = 0.0
+                for k in range(indptr[i], indptr[i + 1]):
+                    acc += data[k] * p[indices[k]]
+                ap[i] += acc
+        for t in range(nblocks):
+            rv = brow[t]
+            if active[seg[3 * rv]] != 0:
+                cv = bcol[t]
                 for a in ti.static(range(3)):
-                    i = 3 * v + a
-                    x[i] += alpha * p[i]
-                    r[i] -= alpha * ap[i]
-                for a in ti.static(range(3)):
-                    i = 3 * v + a
                     acc = 0.0
-                    for c in ti.static(range(3)):
-                        acc += inv[9 * v + 3 * a + c] * r[3 * v + c]
-                    z[i] = acc
-                    ti.atomic_add(rz_new[s], r[i] * acc)
-                    ti.atomic_add(rr[s], r[i] * r[i])
+                    for b in ti.static(range(3)):
+                        acc += bval[9 * t + 3 * a + b] * free[3 * cv + b] * p[3 * cv + b]
+                    ti.atomic_add(ap[3 * rv + a], free[3 * rv + a] * acc)
+        for c, k in ti.ndrange(copies, REDUCTION_LANES):
+            if active[c] != 0:
+                acc = 0.0
+                for q in range(_lane_count(start, c, k)):
+                    v = order[start[c] + k + q * REDUCTION_LANES]
+                    acc += p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2]
+                ti.atomic_add(pap[c], acc)
+        for c, k in ti.ndrange(copies, REDUCTION_LANES):
+            if active[c] != 0 and pap[c] > 0:
+                alpha = rz[c] / pap[c]
+                rz_acc = 0.0
+                rr_acc = 0.0
+                for q in range(_lane_count(start, c, k)):
+                    v = order[start[c] + k + q * REDUCTION_LANES]
+                    for a in ti.static(range(3)):
+                        i = 3 * v + a
+                        x[i] += alpha * p[i]
+                        r[i] -= alpha * ap[i]
+                    for a in ti.static(range(3)):
+                        acc = 0.0
+                        for b in ti.static(range(3)):
+                            acc += inv[9 * v + 3 * a + b] * r[3 * v + b]
+                        z[3 * v + a] = acc
+                        rz_acc += r[3 * v + a] * acc
+                        rr_acc += r[3 * v + a] * r[3 * v + a]
+                ti.atomic_add(rz_new[c], rz_acc)
+                ti.atomic_add(rr[c], rr_acc)
         for c in range(copies):
             b = 0.0
             if active[c] != 0:
@@ -349,6 +386,7 @@ class BatchedPCG:
         if nnz:
             data.from_numpy(np.ascontiguousarray(data_h[:nnz], dtype=np.float64))
         self._upload("seg", seg, ti.i32)
+        self._copy_order(seg)
         nvert = n // 3
         blk = self._array("blk", max(3 * n, 1))
         _diag_blocks_csr(indptr, indices, data, blk, nvert)
@@ -368,6 +406,20 @@ class BatchedPCG:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
         return True
+
+    def _copy_order(self, seg: np.ndarray) -> None:
+        """The vertices grouped by copy on the device (``order``, ``start``: copy ``c``'s vertices are
+        ``order[start[c]:start[c + 1]]``, in increasing order), for the per-copy sums of the CG; made again
+        only when ``seg`` is another object than at the last call."""
+        if self._uploaded.get("order_of") is seg:
+            return
+        vertex_copy = seg[::3]
+        order = np.argsort(vertex_copy, kind="stable").astype(np.int32)
+        start = np.zeros(self._copies + 1, dtype=np.int32)
+        np.cumsum(np.bincount(vertex_copy, minlength=self._copies), out=start[1:])
+        self._upload("order", order, ti.i32)
+        self._upload("start", start, ti.i32)
+        self._uploaded["order_of"] = seg
 
     def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int, nnz: int) -> tuple:
         """The pattern of ``U + U^T - diag(U)`` (both triangles) of the upper-triangle CSR arrays: its
@@ -439,7 +491,7 @@ class BatchedPCG:
         it = 0
         while it < self.max_iterations:
             it += ITERATIONS_PER_LAUNCH
-            _cg_iterations(*self._operator(), a["inv"], a["seg"], vec["x"], vec["r"], vec["z"],
+            _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"], vec["z"],
                            vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"],
                            active, bad, running, rtol2, n, self._nblocks, B)
             if int(running.to_numpy()[0]) == 0:
