@@ -438,6 +438,13 @@ class FusedElastic:
             self._values_on_device = False
         return kept[3]
 
+    def hessian_values_device(self, x: np.ndarray):
+        """The exact Hessian values of :meth:`hessian_values` as the Taichi ndarray the fused kernels wrote on
+        the device (CUDA, every part a device part: at least ``pattern.keys.size`` entries, the kept
+        array), or None where the evaluation runs on host arrays."""
+        self._evaluate(x)
+        return self._device_kept[2] if self._values_on_device else None
+
     def projected_hessian_values(self, x: np.ndarray, projection: str,
                                  vertices: np.ndarray | None = None) -> np.ndarray:
         """Hessian entries in N/m with PSD-projected element blocks, summed per slot of :attr:`pattern`.

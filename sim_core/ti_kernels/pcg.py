@@ -79,6 +79,22 @@ def _vertex_blocks_matvec(brow: ti.template(), bcol: ti.template(), bval: ti.tem
 
 
 @ti.kernel
+def _copy_values(src: _F64, dst: _F64, count: ti.i32):
+    """``dst[k] = src[k]`` for ``k < count``."""
+    for k in range(count):
+        dst[k] = src[k]
+
+
+@ti.kernel
+def _add_diagonal(data: _F64, slots: _I32, diag: _F64, ndiag: ti.i32, fixed: _I32, nfixed: ti.i32):
+    """``data[slots[i]] += diag[i]`` (distinct slots), then ``data[fixed[j]] = 1``."""
+    for i in range(ndiag):
+        data[slots[i]] += diag[i]
+    for j in range(nfixed):
+        data[fixed[j]] = 1.0
+
+
+@ti.kernel
 def _diag_blocks_csr(indptr: _I32, indices: _I32, data: _F64, blk: _F64, nvert: ti.i32):
     """``blk`` ``(9 nvert,)``: each vertex's 3x3 diagonal block of the upper-triangle CSR matrix (mirrored)."""
     for v in range(nvert):
@@ -350,16 +366,21 @@ class BatchedPCG:
             self._uploaded[name] = host
         return arr
 
-    def factorize(self, upper, blocks: "VertexBlocks | None" = None) -> bool:
+    def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None) -> bool:
         """Keep the matrix ``A = U + U^T - diag(U) + sum_t F E_t F`` on the device and build its block-Jacobi
         preconditioner (each vertex's 3x3 diagonal block of ``A``, inverted); True.
 
         Args:
             upper: ``U``, the upper triangle of the assembled part, shape ``(n, n)``, ``n`` a multiple of 3:
                 a CSR matrix, or ``(indptr, indices, data)`` CSR arrays (when ``indptr`` and ``indices``
-                are the objects of the last call, only ``data`` travels to the device).
+                are the objects of the last call, only ``data`` travels to the device; ``data`` may be a
+                Taichi ndarray already on the device, copied there without a host round trip).
             blocks: the matrix-free part (element Hessians as vertex blocks, :class:`VertexBlocks`), or
                 None; the product ``A p`` gathers, multiplies and scatters them on the device.
+            diagonal: None, or ``(slots, values, fixed)`` applied to ``U``'s data on the device before
+                anything else: ``data[slots] += values`` (int ``(m,)`` distinct positions in ``data``,
+                float ``(m,)``), then ``data[fixed] = 1`` (int ``(f,)``). Index arrays of the same objects
+                as at the last call travel once.
 
         Raises:
             ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
@@ -383,8 +404,14 @@ class BatchedPCG:
         indptr = self._upload("indptr", indptr_h, ti.i32)
         indices = self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
         data = self._array("data", max(nnz, 1))
-        if nnz:
+        if nnz and isinstance(data_h, np.ndarray):
             data.from_numpy(np.ascontiguousarray(data_h[:nnz], dtype=np.float64))
+        elif nnz:
+            _copy_values(data_h, data, nnz)
+        if diagonal is not None and nnz:
+            slots, values, fixed = diagonal
+            _add_diagonal(data, self._upload("diag_slots", slots, ti.i32), self._upload("diag", values, ti.f64),
+                          int(np.size(slots)), self._upload("fixed_slots", fixed, ti.i32), int(np.size(fixed)))
         self._upload("seg", seg, ti.i32)
         self._copy_order(seg)
         nvert = n // 3
