@@ -28,7 +28,8 @@ top-level loops, which Taichi runs one after the other on the device):
 Copies are independent CGs (Hestenes & Stiefel 1952; preconditioned form: Saad, Iterative Methods
 for Sparse Linear Systems, 2nd ed., Alg. 9.1), each with its own step sizes and stopping test, so a
 copy's solution does not depend on the others. The host reads the count of running copies after
-each launch (its one synchronisation); a copy that has stopped is left unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
+every :data:`LAUNCHES_PER_TEST` launches (its one synchronisation); a copy that has stopped is left
+unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
 :attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
 """
 
@@ -172,7 +173,11 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz
 
 
 ITERATIONS_PER_LAUNCH = 8
-"""CG iterations of one launch of :func:`_cg_iterations` (the host tests for the end between launches)."""
+"""CG iterations of one launch of :func:`_cg_iterations`."""
+
+LAUNCHES_PER_TEST = 4
+"""Launches of :func:`_cg_iterations` queued on the device before the host reads whether a copy still runs
+(a stopped copy's rows are skipped, so the iterations after the last copy stops cost only their launches)."""
 
 REDUCTION_LANES = 64
 """Threads per copy of the per-copy sums of a CG iteration (:func:`_cg_iterations`): each sums every
@@ -190,9 +195,9 @@ def _lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
 def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
                    inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
                    rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
-                   running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32):
-    """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``running[0]`` = copies still
-    running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
+                   done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32):
+    """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
+    ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
     ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
     zero on entry and on exit; the CSR part, then the vertex blocks; rows of stopped copies skipped), per
     copy ``p.Ap``, the update of ``x``, ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test
@@ -243,6 +248,7 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
         for c in range(copies):
             b = 0.0
             if active[c] != 0:
+                done[c] += 1
                 if pap[c] <= 0:
                     active[c] = 0
                     if bb[c] > 0:
@@ -294,20 +300,20 @@ class VertexBlocks:
             element_blocks: the element Hessians (any number of sets, any ``m``).
             free: the free-DoF mask, ``(3 N,)`` bool.
         """
-        rows, cols, values = [], [], []
-        for b in element_blocks:
-            v = np.asarray(b.vertices)
+        sets = [(np.asarray(b.vertices), b.blocks) for b in element_blocks if np.shape(b.vertices)[0]]
+        total = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in sets)
+        rows = np.empty(total, dtype=np.int32)
+        cols = np.empty(total, dtype=np.int32)
+        values = np.empty((total, 3, 3))
+        at = 0
+        for v, blocks in sets:  # each set written once into its slice (no concatenation)
             k, m = v.shape
-            if not k:
-                continue
-            rows.append(np.repeat(v, m, axis=1).reshape(-1))
-            cols.append(np.tile(v, (1, m)).reshape(-1))
-            values.append(np.asarray(b.blocks, dtype=np.float64).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
-                          .reshape(-1, 3, 3))
-        if not rows:
-            return cls(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3, 3)), np.asarray(free, dtype=bool))
-        return cls(np.concatenate(rows).astype(np.int32), np.concatenate(cols).astype(np.int32),
-                   np.concatenate(values), np.asarray(free, dtype=bool))
+            part = slice(at, at + k * m * m)
+            rows[part].reshape(k, m, m)[...] = v[:, :, None]
+            cols[part].reshape(k, m, m)[...] = v[:, None, :]
+            values[part].reshape(k, m, m, 3, 3)[...] = np.asarray(blocks).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
+            at = part.stop
+        return cls(rows, cols, values, np.asarray(free, dtype=bool))
 
 
 class BatchedPCG:
@@ -325,7 +331,7 @@ class BatchedPCG:
         name: ``"pcg"``.
         detects_indefinite: False (the Newton solver then assembles the projected Hessian).
         factorizations: :meth:`factorize` calls.
-        iterations: CG iterations of the last solve (launches times :data:`ITERATIONS_PER_LAUNCH`).
+        iterations: CG iterations of the last solve (of the copy that ran the most).
         indefinite: copies whose matrix showed ``p.Ap <= 0`` in the last solve, shape ``(B,)`` bool.
         unconverged: copies still running after ``max_iterations``, shape ``(B,)`` bool.
     """
@@ -515,15 +521,18 @@ class BatchedPCG:
         _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], a["inv"], a["seg"], per["rz"], per["bb"], nvert)
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
-        it = 0
-        while it < self.max_iterations:
-            it += ITERATIONS_PER_LAUNCH
-            _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"], vec["z"],
-                           vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"],
-                           active, bad, running, rtol2, n, self._nblocks, B)
+        done = self._array("done", B, ti.i32)
+        done.fill(0)
+        launched = 0
+        while launched < self.max_iterations:
+            for _ in range(min(LAUNCHES_PER_TEST, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
+                launched += ITERATIONS_PER_LAUNCH
+                _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"],
+                               vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
+                               per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B)
             if int(running.to_numpy()[0]) == 0:
                 break
-        self.iterations = it
+        self.iterations = int(done.to_numpy().max())
         self.indefinite = bad.to_numpy().astype(bool)
         self.unconverged = active.to_numpy().astype(bool)
         return vec["x"].to_numpy()
