@@ -54,6 +54,24 @@ def test_each_copy_is_solved_to_its_tolerance(ti_cpu):
     assert np.linalg.norm(x[:60] - want[:60]) <= 1e-9 * np.linalg.norm(want[:60])
 
 
+def test_a_copy_not_converged_within_the_iteration_limit_is_reported_with_the_iterations_run(ti_cpu):
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    blocks = [_spd_block(90, 0, 1e-3), sp.eye(90, format="csr")]  # copy 1: the identity, one iteration
+    A = sp.block_diag(blocks, format="csr")
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    solver = BatchedPCG(np.repeat(np.arange(2), 90), rtol=1e-14, max_iterations=40)
+    solver.factorize(upper)
+    b = np.random.default_rng(2).normal(size=180)
+    x = solver.solve(b)
+    assert list(solver.unconverged) == [True, False] and not solver.indefinite.any()
+    assert solver.iterations == 40  # five launches of 8, each iteration of copy 0 counted once
+    np.testing.assert_allclose(x[90:], b[90:], rtol=1e-14)  # the identity block is solved at once
+    r = np.linalg.norm(A[:90, :90] @ x[:90] - b[:90])
+    assert 1e-14 * np.linalg.norm(b[:90]) < r < np.linalg.norm(b[:90])  # copy 0 progressed, not to tolerance
+
+
 def test_values_on_the_device_and_the_diagonal_added_there_give_the_matrix_with_that_diagonal(ti_cpu):
     """``factorize`` with ``U``'s values as a Taichi ndarray and a diagonal (added at given slots, 1 at the
     fixed ones) on the device multiplies and solves as the matrix assembled on the host, and leaves the
