@@ -321,8 +321,14 @@ class FusedKirchhoffBending:
         if self._hinges.shape[0] == 0:
             self._blocks[:] = 0.0
             return self._blocks
-        kirchhoff_triangle_hessians(x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local,
-                                    self._stiffness, self._scratch, self._blocks)
+        d = self._device  # on CUDA the constant arrays stay on the device and the blocks only come back
+        blocks = on_device(d, "blocks", self._blocks, scratch=True)
+        kirchhoff_triangle_hessians(x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
+                                    on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "tri_local", self._tri_local),
+                                    on_device(d, "stiffness", self._stiffness),
+                                    on_device(d, "scratch", self._scratch, scratch=True), blocks)
+        if blocks is not self._blocks:
+            self._blocks[...] = blocks.to_numpy()
         return self._blocks
 
     projects_subsets = True
