@@ -53,6 +53,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_3, _I32_3 = linalg.F64_1, linalg.F64_3, linalg.I32_3
+_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @functools.lru_cache(maxsize=8)
@@ -68,6 +69,20 @@ def add_blocks(blocks: _F64_3, slots: _I32_3, values: _F64_1):
     """``values[slots[e, i, j]] += blocks[e, i, j]`` where the slot is >= 0 (the assembler's keep rule)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(blocks.shape[0]):
+        for i in range(blocks.shape[1]):
+            for j in range(blocks.shape[2]):
+                k = slots[e, i, j]
+                if k >= 0:
+                    values[k] += blocks[e, i, j]
+
+
+@fast_kernel
+def add_block_rows(blocks: _F64_3, slots: _I32_3, rows: _I32_1, count: ti.i32, values: _F64_1):
+    """``values[slots[e, i, j]] += blocks[e, i, j]`` for the blocks ``e = rows[r]``, ``r < count``, where the
+    slot is >= 0 (:func:`add_blocks` of the listed blocks, in the order listed on the CPU)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for r in range(count):
+        e = rows[r]
         for i in range(blocks.shape[1]):
             for j in range(blocks.shape[2]):
                 k = slots[e, i, j]
