@@ -37,7 +37,7 @@ Serial loops on the CPU, parallel on CUDA, as in :mod:`sim_core.energies.neohook
 import numpy as np
 
 from sim_core.energies.membrane.reference import SpringMembrane
-from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
+from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
@@ -306,9 +306,6 @@ class FusedSpringMembrane:
         code = projection_code(projection)
         p = self.potential
         t_count = self._triangles.shape[0]
-        if current_arch() == "cuda":
-            self._add_projected_on_device(x, projection, code, values, vertices)
-            return
         if t_count:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
@@ -321,28 +318,3 @@ class FusedSpringMembrane:
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, self._edges, self._length0, self._upper, t_count, p.k_length, code,
                                             values)
-
-    def _add_projected_on_device(self, x: np.ndarray, projection: str, code: int, values: np.ndarray,
-                                 vertices: np.ndarray | None) -> None:
-        """:meth:`add_projected` on CUDA: the triangle blocks made, projected and added, and the edges' closed
-        form added, into device sums by kernels (:meth:`TranslationFreeProjector.add_projected_rows`), which
-        are then added to ``values`` (one download)."""
-        p = self.potential
-        d = self._device
-        t_count = self._triangles.shape[0]
-        sums = on_device(d, "sums", values, scratch=True)
-        sums.fill(0.0)
-        slots = on_device(d, "slots", self._slots)
-        if t_count:
-            if self._blocks is None:
-                self._blocks = np.zeros((t_count, 9, 9))
-            blocks = on_device(d, "blocks", self._blocks, scratch=True)
-            spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles), on_device(d, "area0", self._area0),
-                                            p.k_area, blocks)
-            rows = (np.arange(t_count, dtype=np.int32) if vertices is None
-                    else np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1)).astype(np.int32))
-            self._projector.add_projected_rows(blocks, projection, slots, rows, sums)
-        if self._edges.shape[0]:
-            spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),
-                                            on_device(d, "upper", self._upper), t_count, p.k_length, code, sums)
-        values += sums.to_numpy()
