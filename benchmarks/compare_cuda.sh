@@ -25,7 +25,7 @@ date -u
 for part in ${PARTS:-bench profile}; do
     for spec in "$@"; do
         name=${spec%%=*}
-        dir=${spec#*=}
+        dir=$(cd "${spec#*=}" && pwd)  # absolute: the parts run from DIR with DIR on PYTHONPATH
         echo "=== $name $part ($dir, $(cd "$dir" && git rev-parse --short HEAD 2>/dev/null || echo copy))"
         case $part in
             bench)

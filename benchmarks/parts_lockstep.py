@@ -94,8 +94,8 @@ def main() -> int:
                 lambda red=red, method=method: project_reduced_blocks(red.copy(), "clamp", method=method))
     dyn = contact_terms + step.dynamic_terms
     row("device operator (exact)", lambda: solver._device_operator(step, x, "none", dyn))
-    upper, blocks = solver._device_operator(step, x, "none", dyn)
-    row("pcg factorize", lambda: solver.pcg.factorize(upper, blocks))
+    upper, blocks, diagonal = solver._device_operator(step, x, "none", dyn)
+    row("pcg factorize", lambda: solver.pcg.factorize(upper, blocks, diagonal))
     g = np.random.default_rng(0).normal(size=3 * x.shape[0]) * step.free
     row("pcg solve (random rhs)", lambda: solver.pcg.solve(g))
     print(f"B={args.B} arch={args.arch} blocks={blocks.rows.size} pattern nnz={fused.pattern.keys.size} "

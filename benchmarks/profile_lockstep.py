@@ -2,7 +2,7 @@
 
 Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``.
 Builds ``B`` copies (``sim_core.bench.batch._FormingRun``), steps once to compile and set up, then
-times ``--steps`` more steps: per step its wall time, Newton iterations and assembly / solve times, and
+times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
 over all of them the inclusive wall time and calls of the solver's parts (wrapped with timers: the
 gradient with its contact search, the Newton matrix, the CG's set-up and solve, the line search and its
 energies, the step's set-up and finish) and the CG's iterations per solve. ``--cprofile`` adds cProfile's tables (incomplete on Python
@@ -27,12 +27,14 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=45)
     ap.add_argument("--out", default=None, help="write the pstats file here")
     ap.add_argument("--cprofile", action="store_true")
+    ap.add_argument("--kernel-profiler", action="store_true",
+                    help="print the device time of each Taichi kernel task over the timed steps")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
 
     backend = ARCH_BACKENDS[args.arch]
-    init_backend(args.arch)
+    init_backend(args.arch, kernel_profiler=args.kernel_profiler)
 
     extra = {"linear_solver": args.linear_solver} if args.linear_solver else {}
     import sim_core.solver_config as sc
@@ -59,6 +61,10 @@ def main() -> int:
     run.batch.warm_up()
     step(0)
     timers = _wrap_parts()
+    if args.kernel_profiler:
+        from sim_core.ti_backend import ti
+
+        ti.profiler.clear_kernel_profiler_info()
     cg_iterations = _count_cg_iterations()
     prof = cProfile.Profile() if args.cprofile else None
     t0 = time.perf_counter()
@@ -76,6 +82,10 @@ def main() -> int:
     if cg_iterations:
         print(f"CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
               f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
+    if args.kernel_profiler:
+        from sim_core.ti_backend import ti
+
+        ti.profiler.print_kernel_profiler_info("count")
     if prof:
         st = pstats.Stats(prof, stream=sys.stdout)
         st.sort_stats("cumulative").print_stats(args.top)

@@ -210,6 +210,7 @@ class FusedElastic:
         self._recipes: dict[str, Recipe] = {}  # the last worker recipes ("part", "all", "projected")
         self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
         self._device_kept: tuple | None = None  # on CUDA: device positions, gradient, values (_device_buffers)
+        self._values_on_device = False  # the kept evaluation's Hessian values are on the device only
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -251,6 +252,7 @@ class FusedElastic:
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
         self._kept = None
+        self._values_on_device = False
         xc, grad, values = self._evaluation_buffers(np.shape(x))
         pending, self._pending = self._pending, None
         if pending is not None:  # every part evaluated in the worker since start()
@@ -274,7 +276,7 @@ class FusedElastic:
             for part in self._parts:
                 energy += part.evaluate(xd, gd, vd)
             np.copyto(grad, gd.to_numpy())
-            values[:] = vd.to_numpy()[: values.size]
+            self._values_on_device = True  # copied to ``values`` when asked for (hessian_values)
             self._kept = (key, energy, grad, values)
             return self._kept
         grad.fill(0.0)
@@ -410,11 +412,16 @@ class FusedElastic:
         self._evaluate(x)
 
     def energy(self, x: np.ndarray) -> float:
-        """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated)."""
+        """Elastic energy in J at ``x`` ``(n, 3)`` (energy-only kernels unless ``x`` was evaluated; on
+        CUDA the positions travel to the device once for all parts)."""
         kept = self._kept
         if kept is not None and kept[0] == positions_key(x):
             return kept[1]
         xc = np.ascontiguousarray(x, dtype=np.float64)
+        if self.pattern is not None and self.offloaded_part() is None and self._on_device():
+            xd = self._device_buffers(xc.shape, self.pattern.keys.size)[0]
+            xd.from_numpy(xc)
+            xc = xd
         return float(sum(part.energy(xc) for part in self._parts))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
@@ -423,8 +430,20 @@ class FusedElastic:
 
     def hessian_values(self, x: np.ndarray) -> np.ndarray:
         """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``
-        (the kept array: the next evaluation at other positions overwrites it)."""
-        return self._evaluate(x)[3]
+        (the kept array: the next evaluation at other positions overwrites it). On CUDA the values stay
+        on the device after an evaluation and are copied here only when asked for."""
+        kept = self._evaluate(x)
+        if self._values_on_device:
+            kept[3][:] = self._device_kept[2].to_numpy()[: kept[3].size]
+            self._values_on_device = False
+        return kept[3]
+
+    def hessian_values_device(self, x: np.ndarray):
+        """The exact Hessian values of :meth:`hessian_values` as the Taichi ndarray the fused kernels wrote on
+        the device (CUDA, every part a device part: at least ``pattern.keys.size`` entries, the kept
+        array), or None where the evaluation runs on host arrays."""
+        self._evaluate(x)
+        return self._device_kept[2] if self._values_on_device else None
 
     def projected_hessian_values(self, x: np.ndarray, projection: str,
                                  vertices: np.ndarray | None = None) -> np.ndarray:

@@ -55,7 +55,8 @@ _STATE = _BackendState()
 """The only module-level mutable state of the Taichi backend (one Taichi runtime per process)."""
 
 
-def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_dir: str | None = None) -> str:
+def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_dir: str | None = None,
+                 kernel_profiler: bool = False) -> str:
     """Initialise Taichi once for this process (float64 kernels) and return the arch in use.
 
     Also memoises Taichi's per-node source-position messages and function sources
@@ -68,6 +69,8 @@ def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_di
         offline_cache: keep compiled kernels on disk between processes (Taichi ``offline_cache``).
         offline_cache_dir: directory of the offline cache; ``None`` uses Taichi's default
             (``~/.cache/taichi/ticache``).
+        kernel_profiler: record each kernel task's device time (Taichi ``kernel_profiler``, read with
+            ``ti.profiler.print_kernel_profiler_info``; benchmarks only: it synchronises every launch).
 
     Returns:
         the arch actually used, ``"cpu"`` or ``"cuda"`` (Taichi never silently falls back here).
@@ -87,7 +90,7 @@ def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_di
         return _STATE.arch
     # fast_math off: LLVM fast-math may reassociate sums and assume no inf/NaN, which breaks the
     # 1e-10 agreement with the NumPy reference and the inf-safe Jacobi rotations.
-    options = {"offline_cache": bool(offline_cache), "fast_math": False}
+    options = {"offline_cache": bool(offline_cache), "fast_math": False, "kernel_profiler": bool(kernel_profiler)}
     if offline_cache_dir is not None:
         options["offline_cache_file_path"] = str(offline_cache_dir)
     ti_arch = ti.cpu if arch == "cpu" else ti.cuda

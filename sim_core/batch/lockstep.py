@@ -395,14 +395,14 @@ class LockstepSolver(NewtonSolver):
                 if k > 0:  # the projected matrix is solved for the copies in todo only (the others' rhs is 0)
                     marked = np.zeros(self.scene.model.vertex_count, dtype=bool)
                     marked[self.scene.index[todo]] = True
-                upper, blocks = self._device_operator(step, x, projection, dynamic_terms, marked)
+                upper, blocks, diagonal = self._device_operator(step, x, projection, dynamic_terms, marked)
             else:
                 H = upper = self._assemble_hessian(step, x, projection, dynamic_terms)
-                blocks = None
+                blocks = diagonal = None
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
-            pcg.factorize(upper, blocks)
+            pcg.factorize(upper, blocks, diagonal)
             dk = -pcg.solve(rhs)
             info.time_linear_solve += time.perf_counter() - tl
             dk[~step.free] = 0.0
@@ -423,10 +423,12 @@ class LockstepSolver(NewtonSolver):
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
                          vertices: np.ndarray | None = None):
         """The Newton matrix at ``x`` as the batched CG's operator, never merged into one sparse pattern:
-        ``(indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian values
-        in their static pattern (fixed for the step's elements and free mask: its index arrays travel to
-        the device once) plus the inertia / damping diagonal, 1 on fixed DoFs; and the contact and
-        friction Hessians (``dynamic_terms``, projected by ``projection``) as
+        ``(upper, blocks, diagonal)`` for :meth:`~sim_core.ti_kernels.pcg.BatchedPCG.factorize`:
+        ``upper = (indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian
+        values in their static pattern (fixed for the step's elements and free mask: its index arrays travel
+        to the device once; the exact values stay on the device where the fused kernels ran there), to which
+        the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the contact
+        and friction Hessians (``dynamic_terms``, projected by ``projection``) as
         :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
         matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
@@ -437,8 +439,10 @@ class LockstepSolver(NewtonSolver):
 
         fused = step.fused
         pattern = fused.pattern
-        values = (fused.hessian_values(x) if projection == "none"
-                  else fused.projected_hessian_values(x, projection, vertices))
+        values = None if projection != "none" else fused.hessian_values_device(x)
+        if values is None:
+            values = (fused.hessian_values(x) if projection == "none"
+                      else fused.projected_hessian_values(x, projection, vertices))
         cached = self._pattern_csr
         if cached is None or cached[0] is not pattern:
             n = pattern.dof_count
@@ -446,11 +450,8 @@ class LockstepSolver(NewtonSolver):
             indptr = np.zeros(n + 1, dtype=np.int32)
             np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
             cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
-        data = values.copy()
-        data[pattern.diag_slots] += step.diag
-        data[pattern.fixed_diag_slots] = 1.0
         blocks = VertexBlocks.from_element_blocks([p.hessian(x, projection) for p in dynamic_terms], step.free)
-        return (cached[1], cached[2], data), blocks
+        return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):

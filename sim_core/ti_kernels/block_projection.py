@@ -53,6 +53,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_3, _I32_3 = linalg.F64_1, linalg.F64_3, linalg.I32_3
+_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @functools.lru_cache(maxsize=8)
@@ -68,6 +69,20 @@ def add_blocks(blocks: _F64_3, slots: _I32_3, values: _F64_1):
     """``values[slots[e, i, j]] += blocks[e, i, j]`` where the slot is >= 0 (the assembler's keep rule)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(blocks.shape[0]):
+        for i in range(blocks.shape[1]):
+            for j in range(blocks.shape[2]):
+                k = slots[e, i, j]
+                if k >= 0:
+                    values[k] += blocks[e, i, j]
+
+
+@fast_kernel
+def add_block_rows(blocks: _F64_3, slots: _I32_3, rows: _I32_1, count: ti.i32, values: _F64_1):
+    """``values[slots[e, i, j]] += blocks[e, i, j]`` for the blocks ``e = rows[r]``, ``r < count``, where the
+    slot is >= 0 (:func:`add_blocks` of the listed blocks, in the order listed on the CPU)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for r in range(count):
+        e = rows[r]
         for i in range(blocks.shape[1]):
             for j in range(blocks.shape[2]):
                 k = slots[e, i, j]
@@ -228,6 +243,44 @@ def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | No
     return blocks
 
 
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+
+
+@fast_kernel
+def reduce_block_rows(blocks: _F64_3, helmert: _F64_2, rows: _I32_1, count: ti.i32, reduced: _F64_3):
+    """``reduced[r] = sym(B^T H B)`` of the blocks ``H = blocks[rows[r]]`` ``(3 m, 3 m)``, ``r < count``, with
+    ``B = helmert (x) I_3`` (``helmert`` ``(m, m - 1)``) and ``sym(A) = (A + A^T) / 2``: one thread an entry,
+    ``B^T H B`` summed over the vertex pairs ``(u, v)`` of the Kronecker factor."""
+    m = helmert.shape[0]
+    size = 3 * (m - 1)
+    for r, a, b in ti.ndrange(count, size, size):
+        e = rows[r]
+        pa, ca, pb, cb = a // 3, a % 3, b // 3, b % 3
+        acc = 0.0
+        for u in range(m):
+            for v in range(m):
+                acc += helmert[u, pa] * helmert[v, pb] * (blocks[e, 3 * u + ca, 3 * v + cb]
+                                                         + blocks[e, 3 * v + cb, 3 * u + ca])
+        reduced[r, a, b] = 0.5 * acc
+
+
+@fast_kernel
+def expand_add_block_rows(reduced: _F64_3, helmert: _F64_2, slots: _I32_3, rows: _I32_1, count: ti.i32,
+                          values: _F64_1):
+    """``values[slots[rows[r], i, j]] += (B R B^T)[i, j]`` for ``R = reduced[r]``, ``r < count``, where the slot is
+    >= 0 (``B = helmert (x) I_3``): one thread an entry."""
+    m = helmert.shape[0]
+    for r, i, j in ti.ndrange(count, 3 * m, 3 * m):
+        k = slots[rows[r], i, j]
+        if k >= 0:
+            u, ci, v, cj = i // 3, i % 3, j // 3, j % 3
+            acc = 0.0
+            for p in range(m - 1):
+                for q in range(m - 1):
+                    acc += helmert[u, p] * helmert[v, q] * reduced[r, 3 * p + ci, 3 * q + cj]
+            values[k] += acc
+
+
 class TranslationFreeProjector:
     """Projects translation-invariant element blocks and adds them into slot values (module docstring).
 
@@ -238,6 +291,7 @@ class TranslationFreeProjector:
     def __init__(self, vertex_count: int) -> None:
         self.helmert = helmert_array(vertex_count)
         self.basis = np.kron(self.helmert, np.eye(3))  # B, (3 m, 3 m - 3), orthonormal columns
+        self._device: dict = {}  # the Taichi ndarrays of add_projected_rows, by name
 
     def reduced(self, blocks: np.ndarray) -> np.ndarray:
         """``B^T H B`` of every block ``H`` of ``blocks`` ``(k, 3 m, 3 m)``: ``(k, 3 m - 3, 3 m - 3)``."""
@@ -272,3 +326,39 @@ class TranslationFreeProjector:
             linalg.projection_code(projection)
             return
         add_blocks(self.project(blocks, projection), slots, values)
+
+    def add_projected_rows(self, blocks, projection: str, slots, rows: np.ndarray, values) -> None:
+        """:meth:`add_projected` of the blocks ``rows`` (int32 ``(c,)``) of ``blocks`` by kernels alone: the
+        reduction, :func:`jacobi_project_blocks` and the expansion and scatter run where the arrays are
+        (Taichi ndarrays on the device: nothing crosses to the host). ``blocks`` ``(k, 3 m, 3 m)``, ``slots``
+        int32 ``(k, 3 m, 3 m)``, ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s
+        to round-off.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = linalg.projection_code(projection)
+        count = int(rows.shape[0])
+        if count == 0:
+            return
+        rows_arg = self._kept("rows", rows.shape, ti.i32, rows)
+        if code == 0:
+            add_block_rows(blocks, slots, rows_arg, count, values)
+            return
+        size = self.basis.shape[1]
+        reduced, work, vectors = (self._kept(name, (count, size, size), ti.f64) for name in ("reduced", "work", "vectors"))
+        helmert = self._kept("helmert", self.helmert.shape, ti.f64, self.helmert)
+        reduce_block_rows(blocks, helmert, rows_arg, count, reduced)
+        jacobi_project_blocks(reduced, work, vectors, code)
+        expand_add_block_rows(reduced, helmert, slots, rows_arg, count, values)
+
+    def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
+        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes),
+        filled from ``host`` when given."""
+        kept = self._device
+        arr = kept.get(name)
+        if arr is None or tuple(arr.shape) != tuple(shape):
+            arr = kept[name] = ti.ndarray(dtype, shape=tuple(shape))
+        if host is not None and host.size:
+            arr.from_numpy(np.ascontiguousarray(host, dtype=np.int32 if dtype == ti.i32 else np.float64))
+        return arr

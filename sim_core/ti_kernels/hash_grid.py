@@ -11,7 +11,7 @@ and test oracle): the same pairs, found on a uniform grid whose cells are hashed
    (about one inflated box per cell; the second bound keeps the cells of the widest box below 257
    per axis, the third keeps cell indices far inside the 21-bit fields of the cell keys);
 2. a counting sort of the boxes of set B into the buckets of the cells they overlap (count per
-   bucket, prefix sum into ``bucket_start``, scatter of ``(box, cell key)`` entries);
+   bucket, prefix sum into ``bucket_start`` by chunks of buckets, scatter of ``(box, cell key)`` entries);
 3. for each box ``a`` of set A, inflated by ``radius``, a visit of the cells it overlaps: the
    entries of the cell (its bucket, entries of other cells of the bucket skipped by their key) are
    pairs when their bodies may touch and the reference's exact inflated-box test holds,
@@ -54,6 +54,7 @@ _KEY_OFFSET = 1 << 20  # cell indices are packed as 21-bit unsigned fields of on
 _CELL_LIMIT = float(1 << 18)  # the cell size keeps |cell index| <= 2^18 + 1
 _WIDEST_CELLS = 256.0  # the widest box overlaps at most 257 cells per axis
 _P1, _P2, _P3 = 73856093, 19349663, 83492791  # Teschner et al. 2003
+_SCAN_CHUNK = 512  # buckets per chunk of the bucket counts' prefix sum (chunks summed in parallel on CUDA)
 # count: [0] pairs found, [1] entries needed, [2] 1 if a coordinate is not finite
 _PAIRS, _ENTRIES, _BAD = 0, 1, 2
 
@@ -116,7 +117,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 allowed: _I32_2, rest_keys: _I64_1, radius: ti.f64,
                 cell_scale: ti.f64, same: ti.i32, bucket_start: _I32_1, bucket_fill: _I32_1, entry_item: _I32_1,
                 entry_cell: _I64_1, entry_lower: _I32_1, box: _F64_2, body_box: _F64_2, scale: _F64_1, out: _I32_2,
-                count: _I32_1):
+                count: _I32_1, chunk_total: _I32_1):
     """Pairs of elements (rows of ``a_vertices`` and ``b_vertices``: vertex indices into ``x``) whose
     boxes (the min / max of their vertices' positions) overlap when A's are inflated by ``radius``.
 
@@ -128,6 +129,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
     a box visits only the entries of the bodies it may touch, and of those only within the cell range
     of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
+    Scratch ``chunk_total`` ``(ceil(buckets / _SCAN_CHUNK),)``: the bucket counts' prefix sum by chunks.
     Scratch ``box`` ``(nb, 6)``: B's boxes (lower, upper corner); ``entry_lower`` (as ``entry_item``):
     bit ``d`` set when the entry's cell is its box's lowest along axis ``d``. ``scale``: scratch,
     ``[cell size, 1 / cell size, sum of box widths, widest box, largest |coordinate|]``; the
@@ -201,13 +203,29 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 for c1 in range(lo[1], hi[1] + 1):
                     for c2 in range(lo[2], hi[2] + 1):
                         ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
-    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
-    for _ in range(1):  # prefix sum (one thread)
+    # prefix sum of the counts in chunks of _SCAN_CHUNK buckets: the chunks' totals (in parallel), their
+    # exclusive prefix sum (one thread), then each chunk's running sum from its offset (in parallel)
+    chunks = (buckets + _SCAN_CHUNK - 1) // _SCAN_CHUNK
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(chunks):
         total = 0
-        for h in range(buckets):
+        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
+            total += bucket_start[h + 1]
+        chunk_total[k] = total
+    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
+    for _ in range(1):
+        total = 0
+        for k in range(chunks):
+            part = chunk_total[k]
+            chunk_total[k] = total
+            total += part
+        count[_ENTRIES] = total
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(chunks):
+        total = chunk_total[k]
+        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
             total += bucket_start[h + 1]
             bucket_start[h + 1] = total
-        count[_ENTRIES] = total
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(buckets):
         bucket_fill[h] = bucket_start[h]
@@ -299,7 +317,7 @@ class HashGrid:
     def __init__(self, cell_scale: float = 1.0) -> None:
         self._launch = FastKernel(_hash_pairs.kernel)
         self.x = np.zeros((0, 3), dtype=np.float64)
-        self.bucket_start = self.bucket_fill = np.zeros(0, dtype=np.int32)
+        self.bucket_start = self.bucket_fill = self.chunk_total = np.zeros(0, dtype=np.int32)
         self.entry_item = self.entry_lower = np.zeros(0, dtype=np.int32)
         self.entry_cell = np.zeros(0, dtype=np.int64)
         self.box = np.zeros((0, 6), dtype=np.float64)
@@ -345,6 +363,7 @@ class HashGrid:
         if self.bucket_fill.shape[0] != buckets:
             self.bucket_fill = np.zeros(buckets, dtype=np.int32)
             self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
+            self.chunk_total = np.zeros(-(-buckets // _SCAN_CHUNK), dtype=np.int32)
         if self.box.shape[0] != nb:
             self.box = np.zeros((nb, 6), dtype=np.float64)
         if self.entry_item.shape[0] < 4 * nb:
@@ -355,7 +374,8 @@ class HashGrid:
             self.count[_PAIRS] = 0
             self._launch(self.x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
                          self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
-                         self.entry_cell, self.entry_lower, self.box, self.body_box, self.scale, self.out, self.count)
+                         self.entry_cell, self.entry_lower, self.box, self.body_box, self.scale, self.out, self.count,
+                         self.chunk_total)
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             self.cell_size = float(self.scale[0])

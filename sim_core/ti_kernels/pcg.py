@@ -15,10 +15,12 @@ all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations 
 top-level loops, which Taichi runs one after the other on the device):
 
 * ``A p``: the rows of ``U + U^T - diag(U)`` (one thread a row), then each vertex block ``E_t``
-  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds);
-* per copy ``p.Ap`` (a segmented sum by the vertex's copy);
+  gathers ``p`` at its column vertex and adds into its row vertex (atomic adds); rows of copies that
+  have stopped are skipped;
+* per copy ``p.Ap``: :data:`REDUCTION_LANES` threads a copy, each summing a strided share of the
+  copy's vertices (listed copy by copy, made once per segmentation) and adding its partial sum once;
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
-  ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``;
+  ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``, by the same threads;
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
   a matrix not positive definite on that copy, which :attr:`BatchedPCG.indefinite` reports);
 * ``p = z + beta_c p``.
@@ -26,7 +28,8 @@ top-level loops, which Taichi runs one after the other on the device):
 Copies are independent CGs (Hestenes & Stiefel 1952; preconditioned form: Saad, Iterative Methods
 for Sparse Linear Systems, 2nd ed., Alg. 9.1), each with its own step sizes and stopping test, so a
 copy's solution does not depend on the others. The host reads the count of running copies after
-each launch (its one synchronisation); a copy that has stopped is left unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
+every :data:`LAUNCHES_PER_TEST` launches (its one synchronisation); a copy that has stopped is left
+unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
 :attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
 """
 
@@ -74,6 +77,22 @@ def _vertex_blocks_matvec(brow: ti.template(), bcol: ti.template(), bval: ti.tem
             for b in ti.static(range(3)):
                 acc += bval[9 * t + 3 * a + b] * free[3 * c + b] * p[3 * c + b]
             ti.atomic_add(ap[3 * r + a], free[3 * r + a] * acc)
+
+
+@ti.kernel
+def _copy_values(src: _F64, dst: _F64, count: ti.i32):
+    """``dst[k] = src[k]`` for ``k < count``."""
+    for k in range(count):
+        dst[k] = src[k]
+
+
+@ti.kernel
+def _add_diagonal(data: _F64, slots: _I32, diag: _F64, ndiag: ti.i32, fixed: _I32, nfixed: ti.i32):
+    """``data[slots[i]] += diag[i]`` (distinct slots), then ``data[fixed[j]] = 1``."""
+    for i in range(ndiag):
+        data[slots[i]] += diag[i]
+    for j in range(nfixed):
+        data[fixed[j]] = 1.0
 
 
 @ti.kernel
@@ -154,42 +173,82 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz
 
 
 ITERATIONS_PER_LAUNCH = 8
-"""CG iterations of one launch of :func:`_cg_iterations` (the host tests for the end between launches)."""
+"""CG iterations of one launch of :func:`_cg_iterations`."""
+
+LAUNCHES_PER_TEST = 4
+"""Launches of :func:`_cg_iterations` queued on the device before the host reads whether a copy still runs
+(a stopped copy's rows are skipped, so the iterations after the last copy stops cost only their launches)."""
+
+REDUCTION_LANES = 64
+"""Threads per copy of the per-copy sums of a CG iteration (:func:`_cg_iterations`): each sums every
+``REDUCTION_LANES``-th vertex of its copy and adds its partial sum once (``B * REDUCTION_LANES`` atomic
+adds a sum, spread over the copies, in place of one per DoF into the same ``B`` addresses)."""
+
+
+@ti.func
+def _lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
+    """How many of copy ``c``'s vertices lane ``k`` visits (its ``k``-th, then every ``REDUCTION_LANES``-th)."""
+    return (start[c + 1] - start[c] - k + REDUCTION_LANES - 1) // REDUCTION_LANES
 
 
 @ti.kernel
 def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
-                   inv: _F64, seg: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, rz: _F64, rz_new: _F64,
-                   rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32, running: _I32, rtol2: ti.f64,
-                   n: ti.i32, nblocks: ti.i32, copies: ti.i32):
-    """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``running[0]`` = copies still
-    running after them. Each top-level loop is one device pass, run in order: ``Ap`` (``ap`` zero on
-    entry and on exit; the CSR part, then the vertex blocks), per copy ``p.Ap``, the update of ``x``,
-    ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test and ``beta``, and the new ``p``."""
+                   inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
+                   rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
+                   done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32):
+    """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
+    ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
+    ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
+    zero on entry and on exit; the CSR part, then the vertex blocks; rows of stopped copies skipped), per
+    copy ``p.Ap``, the update of ``x``, ``r``, ``z`` with per-copy ``r.z`` and ``r.r``, the per-copy test
+    and ``beta``, and the new ``p``. The per-copy sums run :data:`REDUCTION_LANES` threads a copy."""
     for _ in ti.static(range(ITERATIONS_PER_LAUNCH)):
-        _full_csr_matvec(indptr, indices, data, p, ap, n)
-        _vertex_blocks_matvec(brow, bcol, bval, free, p, ap, nblocks)
-        for v in range(n // 3):
-            ti.atomic_add(pap[seg[3 * v]], p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2])
-        for v in range(n // 3):
-            s = seg[3 * v]
-            if active[s] != 0 and pap[s] > 0:
-                alpha = rz[s] / pap[s]
+        for i in range(n):
+            if active[seg[i]] != 0:
+                acc = 0.0
+                for k in range(indptr[i], indptr[i + 1]):
+                    acc += data[k] * p[indices[k]]
+                ap[i] += acc
+        for t in range(nblocks):
+            rv = brow[t]
+            if active[seg[3 * rv]] != 0:
+                cv = bcol[t]
                 for a in ti.static(range(3)):
-                    i = 3 * v + a
-                    x[i] += alpha * p[i]
-                    r[i] -= alpha * ap[i]
-                for a in ti.static(range(3)):
-                    i = 3 * v + a
                     acc = 0.0
-                    for c in ti.static(range(3)):
-                        acc += inv[9 * v + 3 * a + c] * r[3 * v + c]
-                    z[i] = acc
-                    ti.atomic_add(rz_new[s], r[i] * acc)
-                    ti.atomic_add(rr[s], r[i] * r[i])
+                    for b in ti.static(range(3)):
+                        acc += bval[9 * t + 3 * a + b] * free[3 * cv + b] * p[3 * cv + b]
+                    ti.atomic_add(ap[3 * rv + a], free[3 * rv + a] * acc)
+        for c, k in ti.ndrange(copies, REDUCTION_LANES):
+            if active[c] != 0:
+                acc = 0.0
+                for q in range(_lane_count(start, c, k)):
+                    v = order[start[c] + k + q * REDUCTION_LANES]
+                    acc += p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2]
+                ti.atomic_add(pap[c], acc)
+        for c, k in ti.ndrange(copies, REDUCTION_LANES):
+            if active[c] != 0 and pap[c] > 0:
+                alpha = rz[c] / pap[c]
+                rz_acc = 0.0
+                rr_acc = 0.0
+                for q in range(_lane_count(start, c, k)):
+                    v = order[start[c] + k + q * REDUCTION_LANES]
+                    for a in ti.static(range(3)):
+                        i = 3 * v + a
+                        x[i] += alpha * p[i]
+                        r[i] -= alpha * ap[i]
+                    for a in ti.static(range(3)):
+                        acc = 0.0
+                        for b in ti.static(range(3)):
+                            acc += inv[9 * v + 3 * a + b] * r[3 * v + b]
+                        z[3 * v + a] = acc
+                        rz_acc += r[3 * v + a] * acc
+                        rr_acc += r[3 * v + a] * r[3 * v + a]
+                ti.atomic_add(rz_new[c], rz_acc)
+                ti.atomic_add(rr[c], rr_acc)
         for c in range(copies):
             b = 0.0
             if active[c] != 0:
+                done[c] += 1
                 if pap[c] <= 0:
                     active[c] = 0
                     if bb[c] > 0:
@@ -241,20 +300,20 @@ class VertexBlocks:
             element_blocks: the element Hessians (any number of sets, any ``m``).
             free: the free-DoF mask, ``(3 N,)`` bool.
         """
-        rows, cols, values = [], [], []
-        for b in element_blocks:
-            v = np.asarray(b.vertices)
+        sets = [(np.asarray(b.vertices), b.blocks) for b in element_blocks if np.shape(b.vertices)[0]]
+        total = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in sets)
+        rows = np.empty(total, dtype=np.int32)
+        cols = np.empty(total, dtype=np.int32)
+        values = np.empty((total, 3, 3))
+        at = 0
+        for v, blocks in sets:  # each set written once into its slice (no concatenation)
             k, m = v.shape
-            if not k:
-                continue
-            rows.append(np.repeat(v, m, axis=1).reshape(-1))
-            cols.append(np.tile(v, (1, m)).reshape(-1))
-            values.append(np.asarray(b.blocks, dtype=np.float64).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
-                          .reshape(-1, 3, 3))
-        if not rows:
-            return cls(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3, 3)), np.asarray(free, dtype=bool))
-        return cls(np.concatenate(rows).astype(np.int32), np.concatenate(cols).astype(np.int32),
-                   np.concatenate(values), np.asarray(free, dtype=bool))
+            part = slice(at, at + k * m * m)
+            rows[part].reshape(k, m, m)[...] = v[:, :, None]
+            cols[part].reshape(k, m, m)[...] = v[:, None, :]
+            values[part].reshape(k, m, m, 3, 3)[...] = np.asarray(blocks).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
+            at = part.stop
+        return cls(rows, cols, values, np.asarray(free, dtype=bool))
 
 
 class BatchedPCG:
@@ -272,7 +331,7 @@ class BatchedPCG:
         name: ``"pcg"``.
         detects_indefinite: False (the Newton solver then assembles the projected Hessian).
         factorizations: :meth:`factorize` calls.
-        iterations: CG iterations of the last solve (launches times :data:`ITERATIONS_PER_LAUNCH`).
+        iterations: CG iterations of the last solve (of the copy that ran the most).
         indefinite: copies whose matrix showed ``p.Ap <= 0`` in the last solve, shape ``(B,)`` bool.
         unconverged: copies still running after ``max_iterations``, shape ``(B,)`` bool.
     """
@@ -313,16 +372,21 @@ class BatchedPCG:
             self._uploaded[name] = host
         return arr
 
-    def factorize(self, upper, blocks: "VertexBlocks | None" = None) -> bool:
+    def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None) -> bool:
         """Keep the matrix ``A = U + U^T - diag(U) + sum_t F E_t F`` on the device and build its block-Jacobi
         preconditioner (each vertex's 3x3 diagonal block of ``A``, inverted); True.
 
         Args:
             upper: ``U``, the upper triangle of the assembled part, shape ``(n, n)``, ``n`` a multiple of 3:
                 a CSR matrix, or ``(indptr, indices, data)`` CSR arrays (when ``indptr`` and ``indices``
-                are the objects of the last call, only ``data`` travels to the device).
+                are the objects of the last call, only ``data`` travels to the device; ``data`` may be a
+                Taichi ndarray already on the device, copied there without a host round trip).
             blocks: the matrix-free part (element Hessians as vertex blocks, :class:`VertexBlocks`), or
                 None; the product ``A p`` gathers, multiplies and scatters them on the device.
+            diagonal: None, or ``(slots, values, fixed)`` applied to ``U``'s data on the device before
+                anything else: ``data[slots] += values`` (int ``(m,)`` distinct positions in ``data``,
+                float ``(m,)``), then ``data[fixed] = 1`` (int ``(f,)``). Index arrays of the same objects
+                as at the last call travel once.
 
         Raises:
             ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
@@ -346,9 +410,16 @@ class BatchedPCG:
         indptr = self._upload("indptr", indptr_h, ti.i32)
         indices = self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
         data = self._array("data", max(nnz, 1))
-        if nnz:
+        if nnz and isinstance(data_h, np.ndarray):
             data.from_numpy(np.ascontiguousarray(data_h[:nnz], dtype=np.float64))
+        elif nnz:
+            _copy_values(data_h, data, nnz)
+        if diagonal is not None and nnz:
+            slots, values, fixed = diagonal
+            _add_diagonal(data, self._upload("diag_slots", slots, ti.i32), self._upload("diag", values, ti.f64),
+                          int(np.size(slots)), self._upload("fixed_slots", fixed, ti.i32), int(np.size(fixed)))
         self._upload("seg", seg, ti.i32)
+        self._copy_order(seg)
         nvert = n // 3
         blk = self._array("blk", max(3 * n, 1))
         _diag_blocks_csr(indptr, indices, data, blk, nvert)
@@ -368,6 +439,20 @@ class BatchedPCG:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
         return True
+
+    def _copy_order(self, seg: np.ndarray) -> None:
+        """The vertices grouped by copy on the device (``order``, ``start``: copy ``c``'s vertices are
+        ``order[start[c]:start[c + 1]]``, in increasing order), for the per-copy sums of the CG; made again
+        only when ``seg`` is another object than at the last call."""
+        if self._uploaded.get("order_of") is seg:
+            return
+        vertex_copy = seg[::3]
+        order = np.argsort(vertex_copy, kind="stable").astype(np.int32)
+        start = np.zeros(self._copies + 1, dtype=np.int32)
+        np.cumsum(np.bincount(vertex_copy, minlength=self._copies), out=start[1:])
+        self._upload("order", order, ti.i32)
+        self._upload("start", start, ti.i32)
+        self._uploaded["order_of"] = seg
 
     def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int, nnz: int) -> tuple:
         """The pattern of ``U + U^T - diag(U)`` (both triangles) of the upper-triangle CSR arrays: its
@@ -436,15 +521,18 @@ class BatchedPCG:
         _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], a["inv"], a["seg"], per["rz"], per["bb"], nvert)
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
-        it = 0
-        while it < self.max_iterations:
-            it += ITERATIONS_PER_LAUNCH
-            _cg_iterations(*self._operator(), a["inv"], a["seg"], vec["x"], vec["r"], vec["z"],
-                           vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"], per["beta"],
-                           active, bad, running, rtol2, n, self._nblocks, B)
+        done = self._array("done", B, ti.i32)
+        done.fill(0)
+        launched = 0
+        while launched < self.max_iterations:
+            for _ in range(min(LAUNCHES_PER_TEST, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
+                launched += ITERATIONS_PER_LAUNCH
+                _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"],
+                               vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
+                               per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B)
             if int(running.to_numpy()[0]) == 0:
                 break
-        self.iterations = it
+        self.iterations = int(done.to_numpy().max())
         self.indefinite = bad.to_numpy().astype(bool)
         self.unconverged = active.to_numpy().astype(bool)
         return vec["x"].to_numpy()

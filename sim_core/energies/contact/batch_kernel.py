@@ -44,7 +44,7 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import LaunchArrays
+from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.workspace import workspace_of
 
@@ -187,7 +187,26 @@ class PairBatch:
         self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
+        self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
+        self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         vt._batch = ee._batch = self
+
+    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool) -> tuple:
+        """On CUDA, the launch's arguments that need not cross to the device and back at every launch:
+        the positions (uploaded once per ``key``), pairs and sides (once per batch), the gathered pair
+        positions (device only) and, with ``derivatives``, the per-vertex gradient sums (downloaded
+        after the launch); returns ``(x, vertices, sides, z, gradients)`` device arrays (``gradients``
+        None without derivatives)."""
+        kept = self._device_x
+        if kept is None or kept[0] != key or tuple(kept[1].shape) != x.shape:
+            xd = kept[1] if kept is not None and tuple(kept[1].shape) == x.shape else ti.ndarray(ti.f64, shape=x.shape)
+            xd.from_numpy(np.ascontiguousarray(x, dtype=np.float64))
+            kept = self._device_x = (key, xd)
+        dev = self._device
+        z = on_device(dev, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
+        gradients = (on_device(dev, "gradients", _ARRAYS.rows("gradients", 2 * x.shape[0], (3,)), scratch=True)
+                     if derivatives else None)
+        return kept[1], on_device(dev, "vertices", self.vertices), on_device(dev, "sides", self.sides), z, gradients
 
     def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
         """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
@@ -226,14 +245,20 @@ class PairBatch:
                                                      _ARRAYS.rows("gradients_unused", 1, (3,)))
             else:
                 grad_arg, hess_arg, gradients_arg = grad, hess, gradients
-            z, d_arg, region_arg = _ARRAYS.rows("z", m, (4, 3)), d, region
+            d_arg, region_arg = d, region
             if current_arch() == "cuda":  # only the rows of this launch travel (the kept arrays may be longer)
-                z, d_arg, region_arg = z[:m], d[:m], region[:m]
+                x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
+                d_arg, region_arg, rows_arg = d[:m], region[:m], kept_rows[:m]
                 if derivatives:
-                    grad_arg, hess_arg = grad[:m], hess[:m]
-            _batch_kernel(_ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows[:m] if current_arch() == "cuda"
-                          else kept_rows, m, self.split, float(self.vt.eps), float(self.ee.eps), stiffnesses[0],
-                          stiffnesses[1], int(bool(derivatives)), z, d_arg, region_arg, grad_arg, hess_arg, gradients_arg)
+                    grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
+            else:
+                x_arg, vertices_arg, sides_arg, rows_arg = _ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows
+                z = _ARRAYS.rows("z", m, (4, 3))
+            _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
+                          float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
+                          region_arg, grad_arg, hess_arg, gradients_arg)
+            if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
+                gradients[: 2 * n] = gradients_arg.to_numpy()[: 2 * n]
         else:
             gradients[: 2 * n] = 0.0
         order = 2 if derivatives else 0

@@ -24,7 +24,7 @@ symmetrised per entry). The slot tables are the packed upper triangles of the sl
 import numpy as np
 
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
@@ -321,9 +321,21 @@ class FusedKirchhoffBending:
         if self._hinges.shape[0] == 0:
             self._blocks[:] = 0.0
             return self._blocks
-        kirchhoff_triangle_hessians(x, self._hinges, self._theta_bar, self._tri_hinge, self._tri_local,
-                                    self._stiffness, self._scratch, self._blocks)
+        blocks = self._triangle_hessians_where_run(x)
+        if blocks is not self._blocks:
+            self._blocks[...] = blocks.to_numpy()
         return self._blocks
+
+    def _triangle_hessians_where_run(self, x: np.ndarray):
+        """The blocks of :meth:`triangle_hessians` in the array the kernel wrote: on CUDA a device array
+        (the constant arrays kept there, :func:`~sim_core.ti_kernels.buffers.on_device`), else the kept buffer."""
+        d = self._device
+        blocks = on_device(d, "blocks", self._blocks, scratch=True)
+        kirchhoff_triangle_hessians(x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
+                                    on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "tri_local", self._tri_local),
+                                    on_device(d, "stiffness", self._stiffness),
+                                    on_device(d, "scratch", self._scratch, scratch=True), blocks)
+        return blocks
 
     projects_subsets = True
     """:meth:`add_projected` takes a vertex mask (:meth:`sim_core.fused_elastic.FusedElastic.projected_hessian_values`)."""
@@ -338,6 +350,16 @@ class FusedKirchhoffBending:
         Raises:
             ValueError: unknown projection.
         """
+        if self._hinges.shape[0] and current_arch() == "cuda":  # every stage on the device, the sums downloaded
+            blocks = self._triangle_hessians_where_run(x)
+            rows = (np.arange(self._blocks.shape[0], dtype=np.int32) if vertices is None
+                    else np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1)).astype(np.int32))
+            sums = on_device(self._device, "sums", values, scratch=True)
+            sums.fill(0.0)
+            self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_slots", self._tri_slots),
+                                               rows, sums)
+            values += sums.to_numpy()
+            return
         blocks, slots = self.triangle_hessians(x), self._tri_slots
         if vertices is not None:
             rows = np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1))

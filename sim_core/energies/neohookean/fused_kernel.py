@@ -33,7 +33,8 @@ from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import add_blocks, add_upper_entry, upper_index, upper_slot_table
+from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, upper_index,
+                                                  upper_slot_table)
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.linalg import projection_code
@@ -298,9 +299,21 @@ class FusedStableNeoHookean:
         if self._blocks is None:
             self._blocks = np.zeros((self._tets.shape[0], 12, 12))
         p = self.potential
-        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, self._blocks)
-        if vertices is None:
-            add_blocks(self._blocks, self._slots, values)
-        else:  # only the tets touching a marked vertex
-            rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1))
-            add_blocks(self._blocks[rows], self._slots[rows], values)
+        d = self._device  # on CUDA: the blocks made and added into the values on the device, the values downloaded
+        blocks = on_device(d, "blocks", self._blocks, scratch=True)
+        evaluate_snh_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                             on_device(d, "vol", self._vol), p.mu, p.lam, code, blocks)
+        rows = (np.arange(self._tets.shape[0], dtype=np.int32) if vertices is None  # else the tets touching a marked vertex
+                else np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32))
+        if blocks is self._blocks:
+            if vertices is None:
+                add_blocks(self._blocks, self._slots, values)
+            else:
+                add_block_rows(self._blocks, self._slots, rows, rows.size, values)
+            return
+        if rows.size == 0:
+            return
+        sums = on_device(d, "sums", values, scratch=True)
+        sums.fill(0.0)
+        add_block_rows(blocks, on_device(d, "slots", self._slots), on_device(d, "rows", rows), rows.size, sums)
+        values += sums.to_numpy()

@@ -165,6 +165,63 @@ def test_fused_projected_hessian_equals_reference_and_is_psd(ti_cpu, kind, proje
             assert np.linalg.eigvalsh(exact).min() < 0
 
 
+@pytest.mark.parametrize("kind", ("snh", "spring_membrane", "kirchhoff"))
+def test_projected_hessian_of_marked_vertices_sums_the_elements_touching_them(ti_cpu, kind):
+    """With a vertex mask, only the elements touching a marked vertex are projected and added: the rows and
+    columns of the vertices that no other element touches equal the whole projected matrix's, and the
+    values differ from the whole matrix's elsewhere."""
+    from sim_core.fused_elastic import FusedElastic
+
+    pot, x_rest, deformed = _potentials(kind)
+    n = x_rest.shape[0]
+    free = np.ones(3 * n, bool)
+    free[[0, 1, 2]] = False
+    fused, asm = _fused(pot, x_rest, free)
+    x = deformed(3)
+    marked = np.zeros(n, dtype=bool)
+    marked[: n // 3] = True
+    elements = fused.block_vertex_arrays(x_rest)[0]
+    touching = np.asarray(marked)[elements].any(axis=1)
+    assert 0 < touching.sum() < len(elements)
+    got = fused.projected_hessian_values(x, "clamp", marked)
+    whole = fused.projected_hessian_values(x, "clamp")
+    inner = ~np.isin(np.arange(n), elements[~touching])  # vertices no unmarked element touches
+    dofs = np.flatnonzero(np.repeat(inner, 3) & free)
+    zero = np.zeros(3 * n)
+    H_got = _dense_upper(asm.assemble_upper_values(fused.pattern, got, [], zero, free))
+    H_whole = _dense_upper(asm.assemble_upper_values(fused.pattern, whole, [], zero, free))
+    assert dofs.size > 0
+    np.testing.assert_allclose(H_got[np.ix_(dofs, dofs)], H_whole[np.ix_(dofs, dofs)], rtol=1e-12,
+                               atol=1e-12 * np.abs(H_whole).max())
+    assert not np.allclose(got, whole)  # the unmarked elements' blocks are left out
+
+
+@pytest.mark.parametrize("projection", ("none", "clamp", "abs"))
+def test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds(ti_cpu, projection):
+    """``add_projected_rows`` (reduction, Jacobi projection, expansion and scatter as kernels, the path of
+    device arrays) adds, for the listed blocks, the sums ``add_projected`` adds for those blocks (NumPy
+    reduction and LAPACK), to round-off; the unlisted blocks add nothing."""
+    from sim_core.ti_kernels.block_projection import TranslationFreeProjector
+
+    rng = np.random.default_rng(11)
+    m, k, nnz = 6, 40, 500
+    projector = TranslationFreeProjector(m)
+    reduced = rng.normal(size=(k, 3 * m - 3, 3 * m - 3))
+    reduced = reduced + reduced.transpose(0, 2, 1)  # indefinite symmetric blocks
+    blocks = np.ascontiguousarray(projector.expanded(reduced) + 1e-3 * rng.normal(size=(k, 3 * m, 3 * m)))
+    slots = rng.integers(-1, nnz, size=(k, 3 * m, 3 * m)).astype(np.int32)
+    rows = np.array([3, 0, 17, 39, 5], dtype=np.int32)
+    want = np.zeros(nnz)
+    projector.add_projected(blocks[rows], projection, slots[rows], want)
+    got = np.zeros(nnz)
+    projector.add_projected_rows(blocks, projection, slots, rows, got)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    if projection != "none":  # the projection changed the blocks (they have negative eigenvalues)
+        plain = np.zeros(nnz)
+        projector.add_projected(blocks[rows], "none", slots[rows], plain)
+        assert np.abs(plain - want).max() > 1e-3 * np.abs(want).max()
+
+
 def test_projected_hessian_needs_bind_and_a_known_projection(ti_cpu):
     from sim_core.fused_elastic import FusedElastic
 

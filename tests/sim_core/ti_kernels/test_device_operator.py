@@ -84,9 +84,9 @@ def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu):
     rng = np.random.default_rng(1)
     for projection in ("none", "clamp"):
         assembled = _full(solver._assemble_hessian(step, x, projection, dynamic))
-        upper, blocks = solver._device_operator(step, x, projection, dynamic)
+        upper, blocks, diagonal = solver._device_operator(step, x, projection, dynamic)
         assert blocks.rows.size > 0  # contact and friction blocks take part
-        solver.pcg.factorize(upper, blocks)
+        solver.pcg.factorize(upper, blocks, diagonal)
         scale = abs(assembled).max()
         for _ in range(3):
             p = rng.normal(size=assembled.shape[0])
@@ -98,8 +98,8 @@ def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu):
     marked = np.zeros(engine.scene.model.vertex_count, dtype=bool)
     marked[engine.scene.index[1]] = True
     dofs = engine.scene.dof_index[1]
-    upper, blocks = solver._device_operator(step, x, "clamp", dynamic, marked)
-    solver.pcg.factorize(upper, blocks)
+    upper, blocks, diagonal = solver._device_operator(step, x, "clamp", dynamic, marked)
+    solver.pcg.factorize(upper, blocks, diagonal)
     assembled = _full(solver._assemble_hessian(step, x, "clamp", dynamic))
     scale = abs(assembled).max()
     for _ in range(3):

@@ -54,6 +54,57 @@ def test_each_copy_is_solved_to_its_tolerance(ti_cpu):
     assert np.linalg.norm(x[:60] - want[:60]) <= 1e-9 * np.linalg.norm(want[:60])
 
 
+def test_a_copy_not_converged_within_the_iteration_limit_is_reported_with_the_iterations_run(ti_cpu):
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    blocks = [_spd_block(90, 0, 1e-3), sp.eye(90, format="csr")]  # copy 1: the identity, one iteration
+    A = sp.block_diag(blocks, format="csr")
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    solver = BatchedPCG(np.repeat(np.arange(2), 90), rtol=1e-14, max_iterations=40)
+    solver.factorize(upper)
+    b = np.random.default_rng(2).normal(size=180)
+    x = solver.solve(b)
+    assert list(solver.unconverged) == [True, False] and not solver.indefinite.any()
+    assert solver.iterations == 40  # five launches of 8, each iteration of copy 0 counted once
+    np.testing.assert_allclose(x[90:], b[90:], rtol=1e-14)  # the identity block is solved at once
+    r = np.linalg.norm(A[:90, :90] @ x[:90] - b[:90])
+    assert 1e-14 * np.linalg.norm(b[:90]) < r < np.linalg.norm(b[:90])  # copy 0 progressed, not to tolerance
+
+
+def test_values_on_the_device_and_the_diagonal_added_there_give_the_matrix_with_that_diagonal(ti_cpu):
+    """``factorize`` with ``U``'s values as a Taichi ndarray and a diagonal (added at given slots, 1 at the
+    fixed ones) on the device multiplies and solves as the matrix assembled on the host, and leaves the
+    passed values unchanged."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    blocks = [_spd_block(30, seed, 1.0) for seed in (3, 4)]
+    A = sp.block_diag(blocks, format="csr")
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    n = A.shape[0]
+    slots = np.array([upper.indptr[i] + np.flatnonzero(upper.indices[upper.indptr[i]:upper.indptr[i + 1]] == i)[0]
+                      for i in range(n)])
+    rng = np.random.default_rng(7)
+    diag = rng.uniform(1.0, 3.0, n)
+    fixed = slots[[4, 40]]  # two DoFs whose diagonal entry is set to 1
+    want = upper.copy()
+    want.data[slots] += diag
+    want.data[fixed] = 1.0
+    want_full = (want + sp.triu(want, k=1).T).tocsr()
+    device_values = ti.ndarray(ti.f64, shape=(upper.nnz + 5,))  # longer than nnz, as the fused kernels' array
+    device_values.from_numpy(np.concatenate([upper.data, np.full(5, np.nan)]))
+    solver = BatchedPCG(np.repeat(np.arange(2), 30), rtol=1e-12)
+    solver.factorize((upper.indptr, upper.indices, device_values), None, (slots, diag, fixed))
+    p = rng.normal(size=n)
+    np.testing.assert_allclose(solver.matvec(p), want_full @ p, rtol=1e-13, atol=1e-13 * np.abs(want_full @ p).max())
+    b = rng.normal(size=n)
+    x = solver.solve(b)
+    assert np.linalg.norm(want_full @ x - b) <= 1e-10 * np.linalg.norm(b)
+    np.testing.assert_array_equal(device_values.to_numpy()[: upper.nnz], upper.data)
+
+
 def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu):
     model = pad_model()
     steps = 2
