@@ -72,6 +72,35 @@ def test_the_timer_takes_every_due_step_up_to_its_bound(ros_context):
         node.destroy_node()
 
 
+class SlowSimulation(FakeSimulation):
+    """The stand-in whose every step takes ``step_time`` s of the test clock."""
+
+    def __init__(self, clock: TestClock, step_time: float) -> None:
+        super().__init__()
+        self.clock, self.step_time = clock, step_time
+
+    def step(self, control=None) -> None:
+        super().step(control)
+        self.clock.now += self.step_time
+
+
+def test_a_tick_steps_for_one_dt_and_leaves_the_lag_to_the_next_ticks(ros_context):
+    """Steps of 1.5 dt: each tick takes one step (it has used its dt), the steps it leaves due are
+    taken by the next ticks; steps of 0.3 dt: a late tick takes the due ones back to back."""
+    clock = TestClock()
+    node = SimNode(sim=SlowSimulation(clock, 0.0075), context=ros_context, wall_clock=clock,
+                   parameter_overrides=[Parameter("mode", value="realtime")])
+    try:
+        for k in range(1, 4):
+            node._on_timer()
+            assert _steps(node) == k  # one step a tick, although behind the schedule
+        node.sim.step_time = 0.0015
+        node._on_timer()  # 1.5 steps behind, quick steps: caught up within the tick
+        assert _steps(node) == 6
+    finally:
+        node.destroy_node()
+
+
 def test_a_command_between_ticks_starts_its_step_at_once(ros_context):
     """With the wall clock standing still between ticks, a pose command is applied by a step that it
     starts itself (one step ahead of the schedule at most); a second command waits for the clock."""
