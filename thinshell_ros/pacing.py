@@ -5,8 +5,8 @@ A ROS timer of period ``dt`` alone does not keep simulated time with wall time: 
 next call past the periods it missed (``rcl_timer_call``), so every step that ends after the next tick
 (a slow Newton step, the process descheduled on a loaded machine) loses the time to that tick for
 good. The pacer counts steps against the wall clock instead: the node's timer callback takes the
-steps that are due (for up to about one ``dt`` of wall time per callback, the rest at the next ticks),
-so a scene whose steps take less than ``dt`` on average runs at a real-time factor of 1 however they
+steps that are due back to back (after a step slower than ``dt`` the rest wait for the next tick), so
+a scene whose steps take less than ``dt`` on average runs at a real-time factor of 1 however they
 are spread; and a command that arrives
 between ticks may start its step at once when that step would be due within one ``dt``
 (:meth:`RealtimePacer.may_start`): simulated time then runs at most one step ahead of wall time,

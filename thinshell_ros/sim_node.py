@@ -13,9 +13,9 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   card while the pad moves above it), held out of the Newton system until something could change it.
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower: steps are counted against the wall clock, :class:`thinshell_ros.pacing.RealtimePacer`; a
-  tick of the timer takes the due steps for up to one ``dt`` of wall time, so the steps a late tick
-  missed are taken at the next ticks, a lag over :data:`REALTIME_MAX_LAG` is dropped, and a command
-  that arrives between two steps starts its step at once when it would be due within one ``dt``),
+  tick of the timer takes the due steps back to back until one takes a ``dt`` or more, so the steps
+  a late tick missed are taken, a lag over :data:`REALTIME_MAX_LAG` is dropped, and a command that
+  arrives between two steps starts its step at once when it would be due within one ``dt``),
   ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
@@ -551,24 +551,26 @@ class SimNode(Node):
             self._pub_clock.publish(cv.clock_msg(cv.seconds_to_ns(self.sim.t)))
 
     def _on_timer(self) -> None:
-        """The step timer: in ``fast`` mode one step; in ``realtime`` mode the due steps, at most
-        :data:`REALTIME_STEPS_PER_TICK` and none begun after one ``dt`` of wall time in this call (a
-        lag is repaid over the next ticks, and between them the executor is free for a command to
-        start its step at once: :meth:`_step_for_command`); the schedule restarts while paused."""
+        """The step timer: in ``fast`` mode one step; in ``realtime`` mode the due steps back to back, at
+        most :data:`REALTIME_STEPS_PER_TICK`, and none after a step that took a ``dt`` or more of wall
+        time (a Newton solve: the lag waits for the next tick, and until then the executor is free for
+        a command to start its step at once, :meth:`_step_for_command`); the schedule restarts while
+        paused."""
         if self.mode != "realtime":
             if not self.paused:
                 self.advance()
             return
-        start = self._wall_clock()
         for _ in range(REALTIME_STEPS_PER_TICK):
             if self.paused:
                 self._pacer.restart()
                 return
-            now = self._wall_clock()
-            if now - start >= self.dt or not self._pacer.due(now):
+            start = self._wall_clock()
+            if not self._pacer.due(start):
                 return
             self._pacer.stepped()
             self.advance()
+            if self._wall_clock() - start >= self.dt:
+                return
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, pub: Any, msg: Any, t_ns: int) -> None:

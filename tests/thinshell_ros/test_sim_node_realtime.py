@@ -84,9 +84,9 @@ class SlowSimulation(FakeSimulation):
         self.clock.now += self.step_time
 
 
-def test_a_tick_steps_for_one_dt_and_leaves_the_lag_to_the_next_ticks(ros_context):
-    """Steps of 1.5 dt: each tick takes one step (it has used its dt), the steps it leaves due are
-    taken by the next ticks; steps of 0.3 dt: a late tick takes the due ones back to back."""
+def test_after_a_slow_step_the_lag_waits_for_the_next_tick(ros_context):
+    """Steps of 1.5 dt: each tick takes one step (a slow step: the steps it leaves due wait for the
+    next tick); steps of 0.3 dt: a late tick takes the due ones back to back."""
     clock = TestClock()
     node = SimNode(sim=SlowSimulation(clock, 0.0075), context=ros_context, wall_clock=clock,
                    parameter_overrides=[Parameter("mode", value="realtime")])
