@@ -9,7 +9,9 @@ Patterns are cached as maps from block entries to CSR slots, so an assembly is a
 ``np.bincount`` calls (no COO -> CSR conversion, no index sort):
 
 * static blocks (elastic terms, the same elements every call, recognised by the identity of their
-  ``vertices`` arrays) + the diagonal: one map, rebuilt when the arrays or the free mask change;
+  ``vertices`` arrays) + the diagonal: one map per set of arrays and free mask, the last
+  :data:`STATIC_PATTERNS_KEPT` of them kept (a sleeping body's steps and its awake steps each have
+  their own, :mod:`sim_core.sleeping`);
 * dynamic blocks (contact, friction: the active pairs change): their entries are mapped into a
   union pattern "static + recently used dynamic entries", which is rebuilt only when an entry
   that is not in it appears; dynamic entries stay in it (as structural zeros) until they have been
@@ -35,6 +37,11 @@ from sim_core.dynamic_slots import STICKY_ASSEMBLIES, DynamicMerge  # noqa: F401
 from sim_core.energies.base import HessianBlocks
 from sim_core.static_pattern import StaticPattern
 
+STATIC_PATTERNS_KEPT = 4
+"""Static patterns an assembler keeps (the most recently used): one per sleeping set and free mask a
+solver switches between (:meth:`HessianAssembler.static_pattern`). A cache bound only: a pattern is a
+function of its arrays and mask, so a kept one and a rebuilt one are the same."""
+
 
 class HessianAssembler:
     """Assemble ``static`` blocks + ``dynamic`` blocks + a diagonal into the constrained upper triangle.
@@ -45,23 +52,28 @@ class HessianAssembler:
 
     def __init__(self, dof_count: int) -> None:
         self.dof_count = dof_count
-        self._static_key: tuple | None = None
         self._static: StaticPattern | None = None
-        self._keep_alive: list[np.ndarray] = []
+        # key -> (pattern, its vertex arrays: referenced, so that their ids stay unique), most recent last
+        self._patterns: dict[tuple, tuple[StaticPattern, list[np.ndarray]]] = {}
         self._dynamic = DynamicMerge(dof_count)
 
     def static_pattern(self, vertex_arrays: Sequence[np.ndarray], free: np.ndarray) -> StaticPattern:
-        """The cached pattern of the static element-vertex arrays (rebuilt when they or ``free`` change).
+        """The pattern of the static element-vertex arrays and ``free``, made the current one: the same
+        object as the last call's for the same arrays and mask, else a kept one of an earlier call
+        (:data:`STATIC_PATTERNS_KEPT`), else a new one.
 
         Args:
             vertex_arrays: the ``vertices`` arrays of the static blocks, the same objects every call.
             free: free-DoF mask, shape ``(dof_count,)`` bool.
         """
         key = (tuple((id(v), v.shape) for v in vertex_arrays), np.packbits(free).tobytes())
-        if key != self._static_key:
-            self._static = StaticPattern(list(vertex_arrays), free, self.dof_count)
-            self._static_key = key
-            self._keep_alive = list(vertex_arrays)  # ids stay unique while referenced
+        kept = self._patterns.pop(key, None)
+        if kept is None:
+            kept = (StaticPattern(list(vertex_arrays), free, self.dof_count), list(vertex_arrays))
+            while len(self._patterns) >= STATIC_PATTERNS_KEPT:
+                del self._patterns[next(iter(self._patterns))]
+        self._patterns[key] = kept  # the most recent last
+        self._static = kept[0]
         return self._static
 
     def assemble_upper(

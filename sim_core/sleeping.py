@@ -117,6 +117,13 @@ class SleepSet:
             self._mask = mask
         return self._mask
 
+    def mask_of(self, names) -> np.ndarray:
+        """The vertices of the bodies ``names`` (asleep or not), bool shape ``(n,)``."""
+        mask = np.zeros(self.model.vertex_count, dtype=bool)
+        for name in names:
+            mask[self.model.bodies[name].vertices] = True
+        return mask
+
     @property
     def energy(self) -> float:
         """The sleeping bodies' elastic energy, J."""

@@ -314,9 +314,12 @@ class NewtonSolver:
         """Build, before the first step from ``state``, the per-model structures that step would build
         before its first Newton iteration and later steps reuse: on the fused path (``_fused_path``) the
         fused elastic evaluator bound to the assembler's static sparsity pattern of the state's Dirichlet
-        mask with ``control`` (:meth:`_fused_elastic`; Forming: about 30 ms). Steps give the same results
-        with or without it (the step finds the evaluator and pattern built); a missing-physics candidate
-        body term with a fused part changes the pattern, which its first step then builds as before.
+        mask with ``control`` (:meth:`_fused_elastic`; Forming: about 30 ms); with
+        ``SolverConfig.sleeping``, also those of the steps with every body that may sleep asleep
+        (their vertices held; the bundled press_slide scene's card: about 8 ms at its first sleeping
+        step otherwise). Steps give the same results with or without it (the step finds the evaluator
+        and pattern built); a missing-physics candidate body term with a fused part changes the
+        pattern, which its first step then builds as before.
 
         Raises:
             ConfigError: invalid control (:meth:`boundary`).
@@ -326,7 +329,18 @@ class NewtonSolver:
         if not self._fused_path():
             return
         fixed = self.boundary(state, control or Control())[0]
-        self._fused_elastic(self.elastic.potentials(state.hinge_theta_bar), state.x, np.repeat(~fixed, 3))
+        asleep = frozenset(self._sleep.bodies)
+        if self.config.sleeping and self._sleep.eligible:
+            # the evaluator and pattern of the steps with every body that may sleep asleep (a resting
+            # scene's; sim_core.sleeping): the first such step would build them (Forming-sized: ms)
+            every = frozenset(self._sleep.eligible)
+            held = fixed | self._sleep.mask_of(every)
+            self._fused_elastic(self.elastic.potentials(state.hinge_theta_bar, skip=every), state.x,
+                                np.repeat(~held, 3), asleep=every)
+        if asleep:
+            fixed = fixed | self._sleep.mask
+        self._fused_elastic(self.elastic.potentials(state.hinge_theta_bar, skip=asleep), state.x,
+                            np.repeat(~fixed, 3), asleep=asleep)
 
     def _step_substeps(self, state_in: State, state_out: State, control: Control, dt: float, n_sub: int,
                        guess: np.ndarray | None = None) -> StepInfo:
@@ -390,13 +404,15 @@ class NewtonSolver:
         exact Hessian is tried first)."""
         return uses_taichi(self.backend) and "none" in self._projections()
 
-    def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray) -> FusedElastic | None:
+    def _fused_elastic(self, elastic_terms: list, x: np.ndarray, free: np.ndarray,
+                       asleep: frozenset[str] | None = None) -> FusedElastic | None:
         """The step's fused elastic evaluator (Taichi kernels) bound to the assembler's static
         pattern, on a Taichi :attr:`backend` when the exact Hessian is tried first; else None (the
-        reference potentials)."""
+        reference potentials). One is kept per sleeping set: ``asleep`` (default: the bodies asleep
+        now), whose elastic terms ``elastic_terms`` leave out and whose vertices ``free`` holds."""
         if not self._fused_path():
             return None
-        key = frozenset(self._sleep.bodies)
+        key = frozenset(self._sleep.bodies) if asleep is None else asleep
         self._fused = self._fused_kept[key] = FusedElastic.for_terms(self._fused_kept.get(key), elastic_terms)
         self._fused.bind(self.assembler.static_pattern(self._fused.block_vertex_arrays(x), free))
         # the worker runs Taichi's CPU backend: only beside CPU kernels (the same kernels, the same values)

@@ -12,7 +12,11 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   rest that nothing moving can reach sleep (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`: the
   card while the pad moves above it), held out of the Newton system until something could change it.
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
-  slower), ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
+  slower: steps are counted against the wall clock, :class:`thinshell_ros.pacing.RealtimePacer`; a
+  tick of the timer takes the due steps back to back until one takes a ``dt`` or more, so the steps
+  a late tick missed are taken, a lag over :data:`REALTIME_MAX_LAG` is dropped, and a command that
+  arrives between two steps starts its step at once when it would be due within one ``dt``),
+  ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
 - ``mesh_rate`` (Hz, sim time): rate of the ``sheet/mesh`` marker (0 = off).
@@ -66,7 +70,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -91,6 +95,7 @@ from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.paths import bundled_scene
+from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
 from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, ros_session, spin_until_stopped,
                                    topic_namespace)
@@ -103,6 +108,15 @@ EXECUTORS = {"single": SingleThreadedExecutor, "events": EventsExecutor}
 DEFAULT_WORKSPACE_MARGIN = 0.1
 """m around the scene's bounding box (effector start positions and sheet) of the default workspace."""
 
+
+REALTIME_MAX_LAG = 0.05
+"""s behind the wall-clock schedule (10 steps of the bundled scene's 5 ms) beyond which the
+``realtime`` mode drops the lag instead of catching it up (:class:`~thinshell_ros.pacing.RealtimePacer`):
+a longer lag is the solver being slower than real time, not a late tick."""
+
+REALTIME_STEPS_PER_TICK = 4
+"""Due steps the ``realtime`` timer callback takes at most before it returns to the executor
+(services, parameters, the other timers run between)."""
 
 MAX_CONSECUTIVE_FAILURES = 3
 """Failed steps in a row (with the effectors held) after which the node pauses itself."""
@@ -166,6 +180,8 @@ class SimNode(Node):
         sim: an already built simulation (facade API of ``sim_core.simulation.Simulation``); default:
             built from the ``scene`` parameter.
         node_name: ROS node name.
+        wall_clock: the clock (s, monotonic) the ``realtime`` mode's schedule reads
+            (:class:`~thinshell_ros.pacing.RealtimePacer`); default ``time.monotonic``.
         **kwargs: passed to ``rclpy.node.Node`` (``context``, ``parameter_overrides``, ...).
 
     Raises:
@@ -173,7 +189,8 @@ class SimNode(Node):
             cannot start here.
     """
 
-    def __init__(self, sim: Any | None = None, node_name: str = "thinshell_sim", **kwargs: Any) -> None:
+    def __init__(self, sim: Any | None = None, node_name: str = "thinshell_sim",
+                 wall_clock: Callable[[], float] = time.monotonic, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         ro = ParameterDescriptor(read_only=True)
         self.scene_path = str(self.declare_parameter("scene", "", ro).value) or (str(bundled_scene()) if sim is None else "")
@@ -218,6 +235,9 @@ class SimNode(Node):
             # and a resting body nothing moving can reach sleeps (StepInfo.sleeping)
             sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(
                 backend=backend, repeat_fixed_points=True, sleeping=True))
+            # the solver's per-model structures (the fused evaluators and patterns, awake and with the
+            # resting bodies asleep) now, not in the first steps that need them
+            sim.warm_up()
         self.sim = sim
         self.dt = float(sim.dt)
         self._declare_material_parameters()
@@ -241,6 +261,9 @@ class SimNode(Node):
         self._next_mesh_t = 0.0
         self._warned_topics: set[str] = set()
         self._steps = 0
+        self._advancing = False  # inside advance(): a command taken there does not start a step
+        self._pacer = RealtimePacer(self.dt, REALTIME_MAX_LAG)
+        self._wall_clock = wall_clock
         self._wall0 = time.monotonic()
         self._sim0 = sim.t
 
@@ -260,9 +283,12 @@ class SimNode(Node):
         self._command_subs = []
         for e in sim.effector_names:
             self._command_subs += [
-                self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._pose_callback(e), COMMAND_QOS),
-                self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd", self._twist_callback(e), COMMAND_QOS),
-                self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._gripper_callback(e), COMMAND_QOS)]
+                self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._stepping(self._pose_callback(e)),
+                                         COMMAND_QOS),
+                self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd",
+                                         self._stepping(self._twist_callback(e)), COMMAND_QOS),
+                self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._stepping(self._gripper_callback(e)),
+                                         COMMAND_QOS)]
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
@@ -383,6 +409,24 @@ class SimNode(Node):
                 self._reject(f"{topic}: unusable message: {err}")
         return on_gripper
 
+    def _stepping(self, handle):
+        """The subscription callback of a command topic: ``handle`` the message, then, in ``realtime``
+        mode, start the step that applies it when it may start now (:meth:`_step_for_command`)."""
+
+        def on_command(msg: Any) -> None:
+            handle(msg)
+            self._step_for_command()
+        return on_command
+
+    def _step_for_command(self) -> None:
+        """In ``realtime`` mode, running and not inside a step: take the next step now when the
+        schedule lets it start (:meth:`RealtimePacer.may_start`: due within one ``dt``), so that a
+        command does not wait for the next tick of the timer."""
+        if self.mode == "realtime" and not self.paused and not self._advancing and \
+                self._pacer.may_start(self._wall_clock()):
+            self._pacer.stepped()
+            self.advance()
+
     def take_pending_commands(self) -> int:
         """Take every command message queued on the command subscriptions and handle it (record, submit).
 
@@ -424,6 +468,13 @@ class SimNode(Node):
     # ------------------------------------------------------------------------------ stepping
     def advance(self) -> bool:
         """One simulation step with the current commands, then publish; returns whether it succeeded."""
+        self._advancing = True
+        try:
+            return self._advance()
+        finally:
+            self._advancing = False
+
+    def _advance(self) -> bool:
         self.take_pending_commands()
         try:
             targets = self.arbiter.step_targets(self.sim.t, self.dt, self._measured_poses())
@@ -500,8 +551,26 @@ class SimNode(Node):
             self._pub_clock.publish(cv.clock_msg(cv.seconds_to_ns(self.sim.t)))
 
     def _on_timer(self) -> None:
-        if not self.paused:
+        """The step timer: in ``fast`` mode one step; in ``realtime`` mode the due steps back to back, at
+        most :data:`REALTIME_STEPS_PER_TICK`, and none after a step that took a ``dt`` or more of wall
+        time (a Newton solve: the lag waits for the next tick, and until then the executor is free for
+        a command to start its step at once, :meth:`_step_for_command`); the schedule restarts while
+        paused."""
+        if self.mode != "realtime":
+            if not self.paused:
+                self.advance()
+            return
+        for _ in range(REALTIME_STEPS_PER_TICK):
+            if self.paused:
+                self._pacer.restart()
+                return
+            start = self._wall_clock()
+            if not self._pacer.due(start):
+                return
+            self._pacer.stepped()
             self.advance()
+            if self._wall_clock() - start >= self.dt:
+                return
 
     # ------------------------------------------------------------------------------ outputs
     def _publish(self, pub: Any, msg: Any, t_ns: int) -> None:
@@ -553,7 +622,8 @@ class SimNode(Node):
         wall = time.monotonic() - self._wall0
         if wall > 0 and self._steps:
             rtf = (self.sim.t - self._sim0) / wall
-            self.get_logger().info(f"t={self.sim.t:.3f} s, {self._steps} steps, real-time factor {rtf:.3g}")
+            lag = f", {self._pacer.dropped:.3g} s of lag dropped so far" if self.mode == "realtime" else ""
+            self.get_logger().info(f"t={self.sim.t:.3f} s, {self._steps} steps, real-time factor {rtf:.3g}{lag}")
         self._wall0, self._sim0, self._steps = time.monotonic(), self.sim.t, 0
 
     # ------------------------------------------------------------------------------ services
@@ -561,6 +631,7 @@ class SimNode(Node):
         try:
             self.sim.reset()
             self.arbiter.reset()
+            self._pacer.restart()
             self.consecutive_failures = 0
             self._next_publish_t = self._next_mesh_t = 0.0
             self.publish_outputs(force=True)
