@@ -10,10 +10,16 @@ least two of its standard deviations propagated from the noise model, ...). The 
 also explain most of the event windows' excess energy (``min_explained``): a systematic gap between
 simulator and recording, which even a nominal recording has, leaves most of it in place.
 
-With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each threshold is raised to
-``baseline_factor`` times the largest value the same test reaches on the baselines: what is
-different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
-"Model-form gap").
+With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each statistic threshold is
+raised to ``baseline_factor`` times the largest statistic the same test reaches on the baselines:
+what is different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
+"Model-form gap"). The effect-size thresholds stay what the instrument resolves (sample periods,
+noise levels): an effect size is an estimate whose resolution is the sensor's, while how much of
+the recording a test's pattern explains on a normal recording of the cell is what the statistic
+measures. A size read on a baseline (e.g. a nominal lift's contact force leading its replay by
+11 ms) is the cell's gap in that test's pattern; the statistic it gives there is the null the test
+recording must exceed. With baselines no threshold is lower than without, so a baseline can only
+withdraw a name.
 
 Damping reads the same event windows as the timing effects with the opposite sign (the force leads
 the replay instead of following it), so it is not confused with them; it must explain the same
@@ -115,18 +121,17 @@ def default_thresholds(rec: Recording) -> Thresholds:
 
 def calibrated_thresholds(default: Thresholds, baselines: Sequence[Mapping[str, SignatureResult]],
                           baseline_factor: float = 2.0) -> Thresholds:
-    """Raise the default thresholds to ``baseline_factor`` times the largest statistic and effect
-    size each test reaches on the baseline recordings (tests not applicable there are skipped)."""
+    """Raise the default statistic thresholds to ``baseline_factor`` times the largest statistic
+    each test reaches on the baseline recordings (tests not applicable there are skipped); the
+    effect-size thresholds stay the default ones, the instrument's resolution (module docstring)."""
     th = Thresholds(dict(default.statistic), dict(default.effect_size), dict(default.source))
     for results in baselines:
         for effect, r in results.items():
             if not r.applicable or effect not in th.statistic:
                 continue
-            s, e = baseline_factor * r.statistic, baseline_factor * r.effect_size
+            s = baseline_factor * r.statistic
             if s > th.statistic[effect]:
                 th.statistic[effect], th.source[effect] = s, "baseline"
-            if e > th.effect_size[effect]:
-                th.effect_size[effect], th.source[effect] = e, "baseline"
     return th
 
 

@@ -390,3 +390,23 @@ def test_shape_z_is_vuongs_statistic():
     d = 1.0 + 0.5 * rng.normal(size=25)
     assert shape_z(d) == pytest.approx(d.mean() / (d.std(ddof=1) / 5.0))
     assert shape_z(np.array([3.0])) == 0.0 and shape_z(np.zeros(5)) == 0.0
+
+
+def test_baselines_raise_the_statistic_not_the_resolvable_size():
+    """The cell's normal recordings lead their replay by 12 ms (a gap of the model, as a nominal lift
+    of the reference set leads by 11 ms); a recording of the same cell with a 20 ms Kelvin-Voigt
+    damping leads by less than twice that, but its lead explains far more than the gap's: named.
+    A second normal recording of the cell is not."""
+    base = synthetic(np.random.default_rng(11), damping=0.012)
+    th_of = lambda rec: calibrated_thresholds(default_thresholds(rec), [run_signature_tests(base)])  # noqa: E731
+    rec = synthetic(np.random.default_rng(12), damping=0.02)
+    r = damping_test(rec)
+    assert r.effect_size < 2.0 * damping_test(base).effect_size  # the size rule "twice the baseline's" would miss it
+    th = th_of(rec)
+    assert th.source["damping"] == "baseline" and th.effect_size["damping"] == default_thresholds(rec).effect_size["damping"]
+    assert named(rec, th) == ["damping"]
+    normal = synthetic(np.random.default_rng(13), damping=0.012)
+    assert named(normal, th_of(normal)) == []
+    # a baseline never lowers a threshold
+    for effect, s in default_thresholds(rec).statistic.items():
+        assert th.statistic[effect] >= s
