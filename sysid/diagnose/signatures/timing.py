@@ -48,7 +48,10 @@ TAU_MAX_S = 0.3
 
 MAX_LAG_FRACTION = 1.0
 """Largest share ``a`` of the response that follows the first-order lag: a share, at most one (a
-larger one gives the response a negative instantaneous part, a shape that mimics a delay)."""
+larger one gives the response a negative instantaneous part, a shape that mimics a delay). Where the
+unconstrained fit of a time constant gives a share outside ``[0, MAX_LAG_FRACTION]``, the fit is
+read at the nearer bound (the constrained least-squares optimum of two columns lies on the
+boundary), so that a long lag whose share comes out a little above one is not dropped."""
 
 
 def low_pass(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
@@ -248,6 +251,10 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             a = float(c[1] / tot) if tot != 0.0 else 0.0
             if 0.0 <= a <= MAX_LAG_FRACTION:  # a lag, not a lead
                 sl.append((s, float(tau), a))
+            else:
+                # the constrained optimum lies on the boundary: share MAX_LAG_FRACTION (or 0, ``s0``)
+                col = (1.0 - MAX_LAG_FRACTION) * yp[m] + MAX_LAG_FRACTION * lp_cache[tau][m]
+                sl.append((_sse(y[m], [col])[0], float(tau), MAX_LAG_FRACTION))
         best_l = min(sl)
         # pointwise difference of the two best fits (delay minus lag), whitened, summed per block
         r_d, _ = _fit(y[m], [np.interp(t - best_d[1], t, yp)[m]])

@@ -410,3 +410,15 @@ def test_baselines_raise_the_statistic_not_the_resolvable_size():
     # a baseline never lowers a threshold
     for effect, s in default_thresholds(rec).statistic.items():
         assert th.statistic[effect] >= s
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_long_lag_is_read_at_the_share_bound(seed):
+    """A 0.26 s first-order lag: at the falling event the unconstrained share comes out a little
+    above one at every time constant; read at the bound (share one) the event is lagged, so the lag
+    is sized over the whole press and named first (not the latency its delay-like rise suggests)."""
+    rec = synthetic(np.random.default_rng(seed), lag_tau=0.26)
+    lat, visco = timing_tests(rec)
+    assert all(e["lag_tau_s"] > 0.0 and 0.0 < e["lag_fraction"] <= 1.0 for e in visco.detail["events"])
+    assert visco.effect_size > 0.15
+    assert named(rec)[0] == "gel_viscoelasticity" and "latency" not in named(rec)
