@@ -251,14 +251,15 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             a = float(c[1] / tot) if tot != 0.0 else 0.0
             if 0.0 <= a <= MAX_LAG_FRACTION:  # a lag, not a lead
                 sl.append((s, float(tau), a))
-            else:
-                # the constrained optimum lies on the boundary: share MAX_LAG_FRACTION (or 0, ``s0``)
+            elif a > MAX_LAG_FRACTION:
+                # the constrained optimum lies on the nearer bound (a share below 0: ``s0``, listed)
                 col = (1.0 - MAX_LAG_FRACTION) * yp[m] + MAX_LAG_FRACTION * lp_cache[tau][m]
                 sl.append((_sse(y[m], [col])[0], float(tau), MAX_LAG_FRACTION))
         best_l = min(sl)
         # pointwise difference of the two best fits (delay minus lag), whitened, summed per block
         r_d, _ = _fit(y[m], [np.interp(t - best_d[1], t, yp)[m]])
-        r_l, _ = _fit(y[m], [yp[m]] + ([lp_cache[best_l[1]][m]] if best_l[1] > 0.0 else []))
+        lag = yp[m] if best_l[1] <= 0.0 else (1.0 - best_l[2]) * yp[m] + best_l[2] * lp_cache[best_l[1]][m]
+        r_l, _ = _fit(y[m], [lag])
         diff = (r_d ** 2 - r_l ** 2) / sigma ** 2
         per_block = max(1, int(round(SHAPE_BLOCK_S / rec.sample_period(channel))))
         blocks.extend(np.add.reduceat(diff, np.arange(0, len(diff), per_block)).tolist())
