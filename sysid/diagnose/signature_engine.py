@@ -19,8 +19,9 @@ still leaves a structured gap many times the noise, and every candidate can abso
    bending plasticity from the sheet's set after release, adhesion from the sheet carried by the
    gel, stiction from the tangential load's overshoot at each slide's breakaway (the mean marker
    shear and the friction ratio, beyond the normal load's).
-3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`), raised by
-   the same tests on recordings the user declares normal (``--baseline``) when given.
+3. **Null**: thresholds from the noise model (:func:`signatures.null.default_thresholds`); the
+   statistic thresholds raised by the same tests on recordings the user declares normal
+   (``--baseline``) when given.
 4. **Name** (:func:`signatures.null.decide`), **locate** (the named tests' windows, channels and
    markers) and **refit** each named effect on training data, reporting whitened RMS before and
    after on held-out data: held-out contact events for the timing effects (each event predicted with
@@ -76,8 +77,9 @@ class SignatureSettings:
             the same replays, and names the same effects, on any machine.
         calibration_max_time: wall-time budget of that fit, s (None, the default: none; a budget
             makes the result depend on the machine's load).
-        baseline_factor: a baseline-calibrated threshold is this factor times the largest value the
-            test reaches on the baselines.
+        baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
+            statistic the test reaches on the baselines (the effect-size thresholds stay the
+            instrument's resolution).
         holdout_blocks: held-out time blocks of the sensor effects' refits (every other of
             ``2 * holdout_blocks``).
         simulation: overrides of the scene's ``simulation:`` block for the replays.

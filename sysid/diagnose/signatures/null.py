@@ -3,17 +3,23 @@ recordings the user declares normal.
 
 Every effect is named only when its test passes two thresholds: the **statistic** (whitened SSE the
 effect's pattern removes, noise units) must be far beyond what noise gives (a chi-square tail), and
-the **effect size** must be physically resolvable (a delay of at least two tactile sample periods, a
+the **effect size** must be physically resolvable (a delay of at least two sample periods of the stream read, a
 distortion of at least two pixel-noise sigmas at the markers' radius, a permanent set of at least
 ten sheet-tracking sigmas, a static-friction excess at breakaway, beyond the normal load's, of at
 least two of its standard deviations propagated from the noise model, ...). The timing effects must
 also explain most of the event windows' excess energy (``min_explained``): a systematic gap between
 simulator and recording, which even a nominal recording has, leaves most of it in place.
 
-With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each threshold is raised to
-``baseline_factor`` times the largest value the same test reaches on the baselines: what is
-different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
-"Model-form gap").
+With baseline recordings (``thinshell diagnose BAG --baseline B1 B2``) each statistic threshold is
+raised to ``baseline_factor`` times the largest statistic the same test reaches on the baselines:
+what is different in this run, beyond the usual gap between the simulator and this cell (SYSID.md
+"Model-form gap"). The effect-size thresholds stay what the instrument resolves (sample periods,
+noise levels): an effect size is an estimate whose resolution is the sensor's, while how much of
+the recording a test's pattern explains on a normal recording of the cell is what the statistic
+measures. A size read on a baseline (e.g. a nominal lift's contact force leading its replay by
+11 ms) is the cell's gap in that test's pattern; the statistic it gives there is the null the test
+recording must exceed. With baselines no threshold is lower than without, so a baseline can only
+withdraw a name.
 
 Damping reads the same event windows as the timing effects with the opposite sign (the force leads
 the replay instead of following it), so it is not confused with them; it must explain the same
@@ -21,11 +27,12 @@ fraction of the windows' excess energy.
 
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
 (a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`), also when only
-one of the two passes its thresholds (events that fit a delay at least as well as a lag do not name
-the lag, events that fit a lag clearly better do not name the latency); when neither shape is
-clearly better and both pass, both are reported as a tie and the larger statistic is named first.
-Both are held to the same size rule (:func:`sysid.diagnose.signatures.timing.timing_size`): every
-event delayed (or lagged), and the smallest press's mean delay (or lag time constant) over its rising
+one of the two passes its thresholds: the lag, the richer model (a time constant and a share), is
+named only when it fits the events significantly better than the delay (Vuong's ``z`` at least
+:data:`SHAPE_Z`, one-sided), and then the latency is not; otherwise the lag is not named (for short
+delays the two shapes agree to first order, and the delay is the simpler explanation). Both are held
+to the same size rule (:func:`sysid.diagnose.signatures.timing.timing_size`) in the same unit, the
+response's mean delay: every event delayed (or lagged), and the smallest press's mean over its rising
 and falling events (an effect of the stream delays or lags every event; the mean cancels a depth gap
 of the calibrated replay, which moves a press's two events in opposite directions).
 Adhesion on a lift is a property of the contact (the gel tacks to the sheet in every lift of the
@@ -34,7 +41,6 @@ cell): it is named beside another effect, and otherwise reported under ``contact
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -49,9 +55,10 @@ STATISTIC_THRESHOLD = 50.0
 breakaway decay has two in each of its two series, amplitude and decay time searched on a grid of at
 most 19 values per series, P(chi2_4 > 50) * 19^2 < 2e-7)."""
 
-SHAPE_MARGIN = math.log(1.25)
-"""A first-order lag (delay) is preferred when it fits the events' windows with at least 25 % less
-(more) whitened SSE than the other shape."""
+SHAPE_Z = 1.645
+"""Vuong's statistic of the first-order lag against the delay
+(:func:`sysid.diagnose.signatures.timing.shape_z`) that names the lag: the one-sided 5 % point of
+the standard normal."""
 
 MIN_EXPLAINED = 0.5
 """Fraction of the event windows' excess energy (``SSE - samples``) a timing effect must remove."""
@@ -78,15 +85,17 @@ class Thresholds:
     source: dict[str, str] = field(default_factory=dict)
 
 
-def damping_lead_threshold(rec: Recording) -> float:
-    """Smallest lead of the contact force over the replay that names damping, s: two sample periods
-    of the stream the damping test reads (the wrench, else the markers).
+def timing_size_threshold(rec: Recording) -> float:
+    """Smallest timing effect that is named, s: two sample periods of the stream the timing tests
+    read (the wrench, else the markers); the same for a delay (latency), a first-order lag's mean
+    delay (gel viscoelasticity) and a lead (damping).
 
-    Derivation: the test (:mod:`sysid.diagnose.signatures.damping`) reads one stream against the
-    replay, so a lead is resolved to that stream's own sample period (the 200 Hz wrench: 5 ms), and
-    two periods keep a one-sample misalignment of the event windows (the 5 ms averaging of every
-    tactile sample, the replay step) below the threshold. Latency and viscoelasticity use the
-    coarsest tactile period instead because they shift every tactile stream."""
+    Derivation: the three tests (:mod:`sysid.diagnose.signatures.timing`,
+    :mod:`sysid.diagnose.signatures.damping`) read one stream against the replay in the same event
+    windows, so a shift is resolved to that stream's own sample period (the 200 Hz wrench: 5 ms; the
+    delay and the lag are searched on a grid of half that period), and two periods keep a one-sample
+    misalignment of the event windows (the 5 ms averaging of every tactile sample, the replay step)
+    below the threshold."""
     for ch in ("wrench", "markers_xyz"):
         if rec.has(ch) and ch in rec.t and len(rec.t[ch]) > 1:
             return 2.0 * rec.sample_period(ch)
@@ -96,11 +105,11 @@ def damping_lead_threshold(rec: Recording) -> float:
 def default_thresholds(rec: Recording) -> Thresholds:
     """Thresholds from the recording's noise model and sample periods."""
     th = Thresholds()
-    period = rec.tactile_period() if any(rec.has(ch) for ch in ("markers_xyz", "markers_uv", "wrench")) else 0.01
+    timing = timing_size_threshold(rec)
     uv_sigma = float(np.max(rec.sigma["markers_uv"])) if "markers_uv" in rec.sigma else 0.15
     sheet_sigma = float(np.max(rec.sigma["sheet_points"])) if "sheet_points" in rec.sigma else 5e-5
-    sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": 2.0 * period,
-             "gel_viscoelasticity": 2.0 * period, "damping": damping_lead_threshold(rec),
+    sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": timing,
+             "gel_viscoelasticity": timing, "damping": timing,
              "bending_plasticity": 10.0 * sheet_sigma, "adhesion": 10.0 * sheet_sigma,
              "stiction": resolvable_excess(rec)}
     for effect, size in sizes.items():
@@ -112,18 +121,17 @@ def default_thresholds(rec: Recording) -> Thresholds:
 
 def calibrated_thresholds(default: Thresholds, baselines: Sequence[Mapping[str, SignatureResult]],
                           baseline_factor: float = 2.0) -> Thresholds:
-    """Raise the default thresholds to ``baseline_factor`` times the largest statistic and effect
-    size each test reaches on the baseline recordings (tests not applicable there are skipped)."""
+    """Raise the default statistic thresholds to ``baseline_factor`` times the largest statistic
+    each test reaches on the baseline recordings (tests not applicable there are skipped); the
+    effect-size thresholds stay the default ones, the instrument's resolution (module docstring)."""
     th = Thresholds(dict(default.statistic), dict(default.effect_size), dict(default.source))
     for results in baselines:
         for effect, r in results.items():
             if not r.applicable or effect not in th.statistic:
                 continue
-            s, e = baseline_factor * r.statistic, baseline_factor * r.effect_size
+            s = baseline_factor * r.statistic
             if s > th.statistic[effect]:
                 th.statistic[effect], th.source[effect] = s, "baseline"
-            if e > th.effect_size[effect]:
-                th.effect_size[effect], th.source[effect] = e, "baseline"
     return th
 
 
@@ -172,15 +180,14 @@ def decide(results: Mapping[str, SignatureResult], th: Thresholds) -> Decision:
     lat, visco = results.get("latency"), results.get("gel_viscoelasticity")
     if lat is not None and visco is not None and (lat.detected or visco.detected):
         # one timing pattern, two shapes: the shape decides even when only one of them passes its
-        # thresholds (a delay just below its resolvable size is not a lag because the lag's own
-        # size, a median over the events, passed)
-        shape = float(lat.detail.get("shape_log_ratio", 0.0))
-        if shape >= SHAPE_MARGIN and lat.detected:
-            lat.detected, lat.reason = False, "the events fit a first-order lag better than a delay (gel viscoelasticity)"
-        elif shape <= 0.0 and visco.detected:
-            visco.detected, visco.reason = False, "the events fit a pure delay at least as well as a lag (latency)"
-        elif lat.detected and visco.detected:
-            ties.append(["latency", "gel_viscoelasticity"])
+        # thresholds (a delay just below its resolvable size is not a lag because the lag passed)
+        z = float(lat.detail.get("shape_z", 0.0))
+        if z >= SHAPE_Z and lat.detected:
+            lat.detected, lat.reason = False, (f"the events fit a first-order lag significantly better than a "
+                                               f"delay (Vuong z {z:.2f}): gel viscoelasticity")
+        elif z < SHAPE_Z and visco.detected:
+            visco.detected, visco.reason = False, (f"a first-order lag does not fit the events significantly better "
+                                                   f"than a pure delay (Vuong z {z:.2f} < {SHAPE_Z})")
     detected = [e for e, r in results.items() if r.detected]
     ratio = {e: results[e].statistic / max(results[e].threshold["statistic"], 1e-12) for e in detected}
     primary = sorted((e for e in detected if e not in SECONDARY_EFFECTS), key=lambda e: -ratio[e])

@@ -12,10 +12,18 @@ recorded normal force is regressed on a transformed prediction with a free gain 
   ``(1 - a) y + a L_tau y`` with ``L_tau`` the first-order low-pass of time constant tau,
 
 over a grid of tau. The statistic of each is the whitened SSE it removes against ``tau = 0``
-summed over the events; the two are told apart by their shape (a pure delay moves a step, a lag
-rounds it and leaves an exponential tail; SYSID.md: "latency delays every channel of a stream by the
-same amount at every frequency and shows no creep on plateaus"), and a delay must be consistent
-across events (every event delayed by about the same tau).
+summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
+of the impulse response: ``tau`` for the delay, ``a tau`` for the lag), so that a timing read off
+the events names neither more readily because of the model it is read with.
+
+The two are told apart by their shape (a pure delay moves a step, a lag rounds it and leaves an
+exponential tail; SYSID.md: "latency delays every channel of a stream by the same amount at every
+frequency and shows no creep on plateaus") with Vuong's test of non-nested models (Vuong 1989,
+Econometrica 57(2) 307-333): the pointwise difference of the two best fits' whitened squared
+residuals, summed over blocks of :data:`SHAPE_BLOCK_S` (the residual of a replay read through a
+filter of that span is correlated over it), gives ``z = sum(d_b) / (sqrt(B) std(d_b))``, about
+standard normal when both shapes fit the events equally well (:func:`shape_z`). For short delays the
+two shapes agree to first order in ``tau d/dt`` and ``z`` stays small whatever the stream's timing.
 
 Without a wrench the mean marker depth is used in the same way.
 """
@@ -40,7 +48,10 @@ TAU_MAX_S = 0.3
 
 MAX_LAG_FRACTION = 1.0
 """Largest share ``a`` of the response that follows the first-order lag: a share, at most one (a
-larger one gives the response a negative instantaneous part, a shape that mimics a delay)."""
+larger one gives the response a negative instantaneous part, a shape that mimics a delay). Where the
+unconstrained fit of a time constant gives a share outside ``[0, MAX_LAG_FRACTION]``, the fit is
+read at the nearer bound (the constrained least-squares optimum of two columns lies on the
+boundary), so that a long lag whose share comes out a little above one is not dropped."""
 
 
 def low_pass(t: np.ndarray, y: np.ndarray, tau: float) -> np.ndarray:
@@ -135,11 +146,32 @@ def event_windows(t: np.ndarray, y_pred: np.ndarray) -> list[tuple[float, int, f
     return out
 
 
-def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
+def _fit(y: np.ndarray, cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Residual and coefficients of ``y`` regressed on ``cols`` and a constant."""
     X = np.stack(cols + [np.ones_like(y)], axis=1)
     c, *_ = np.linalg.lstsq(X, y, rcond=None)
-    r = y - X @ c
+    return y - X @ c, c
+
+
+def _sse(y: np.ndarray, cols: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    r, c = _fit(y, cols)
     return float(r @ r), c
+
+
+SHAPE_BLOCK_S = 0.05
+"""Block length of the shape test, s: the span of the filter through which the replay is read
+(:data:`REPLAY_SMOOTH_S`), over which the windows' residuals are correlated."""
+
+
+def shape_z(block_sums: np.ndarray) -> float:
+    """Vuong's statistic (Vuong 1989) of two non-nested fits from per-block sums of the pointwise
+    difference of their whitened squared residuals ``(B,)``: ``sum / (sqrt(B) std)``, > 0 when the
+    second fit is better; 0 with fewer than two blocks or no difference."""
+    d = np.asarray(block_sums, dtype=float)
+    if len(d) < 2:
+        return 0.0
+    sd = float(np.std(d, ddof=1))
+    return float(d.sum() / (np.sqrt(len(d)) * sd)) if sd > 0.0 else 0.0
 
 
 REPLAY_SMOOTH_S = 0.05
@@ -193,7 +225,9 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     Returns:
         None without a predicted normal force or marker depth, else a dict with ``channel``,
         ``events`` (one dict per event: time, direction, window, whitened SSE at tau = 0, best delay
-        and its SSE, best first-order tau / fraction and its SSE) and the summed SSEs.
+        and its SSE, best first-order tau / fraction, its mean delay ``a tau`` and its SSE), the
+        summed SSEs and ``shape_z`` (:func:`shape_z` of the best delay against the best lag over
+        every event's blocks: > 0 when the lag fits better).
     """
     sig = timing_signal(rec)
     if sig is None:
@@ -202,7 +236,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     yp = smoothed_replay(t, yp)
     if taus is None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
-    events = []
+    events, blocks = [], []
     lp_cache = {tau: low_pass(t, yp, tau) for tau in taus[1:]}
     for te, direction, lo, hi, m in event_windows(t, yp):
         s0, _ = _sse(y[m], [yp[m]])
@@ -217,15 +251,28 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             a = float(c[1] / tot) if tot != 0.0 else 0.0
             if 0.0 <= a <= MAX_LAG_FRACTION:  # a lag, not a lead
                 sl.append((s, float(tau), a))
+            elif a > MAX_LAG_FRACTION:
+                # the constrained optimum lies on the nearer bound (a share below 0: ``s0``, listed)
+                col = (1.0 - MAX_LAG_FRACTION) * yp[m] + MAX_LAG_FRACTION * lp_cache[tau][m]
+                sl.append((_sse(y[m], [col])[0], float(tau), MAX_LAG_FRACTION))
         best_l = min(sl)
+        # pointwise difference of the two best fits (delay minus lag), whitened, summed per block
+        r_d, _ = _fit(y[m], [np.interp(t - best_d[1], t, yp)[m]])
+        lag = yp[m] if best_l[1] <= 0.0 else (1.0 - best_l[2]) * yp[m] + best_l[2] * lp_cache[best_l[1]][m]
+        r_l, _ = _fit(y[m], [lag])
+        diff = (r_d ** 2 - r_l ** 2) / sigma ** 2
+        per_block = max(1, int(round(SHAPE_BLOCK_S / rec.sample_period(channel))))
+        blocks.extend(np.add.reduceat(diff, np.arange(0, len(diff), per_block)).tolist())
         events.append({"t_s": te, "direction": "rising" if direction > 0 else "falling", "window_s": [lo, hi],
                        "samples": int(m.sum()), "sse0": s0 / sigma ** 2, "delay_s": best_d[1], "sse_delay": best_d[0] / sigma ** 2,
-                       "lag_tau_s": best_l[1], "lag_fraction": best_l[2], "sse_lag": best_l[0] / sigma ** 2})
+                       "lag_tau_s": best_l[1], "lag_fraction": best_l[2], "lag_delay_s": best_l[1] * best_l[2],
+                       "sse_lag": best_l[0] / sigma ** 2})
     return {"channel": channel, "events": events,
             "samples": int(sum(e["samples"] for e in events)),
             "sse0": float(sum(e["sse0"] for e in events)),
             "sse_delay": float(sum(e["sse_delay"] for e in events)),
-            "sse_lag": float(sum(e["sse_lag"] for e in events))}
+            "sse_lag": float(sum(e["sse_lag"] for e in events)),
+            "shape_z": shape_z(np.asarray(blocks))}
 
 
 def press_sizes(events: list[dict], key: str) -> list[float]:
@@ -282,8 +329,8 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
               "explained_delay": float((fits["sse0"] - fits["sse_delay"]) / excess),
               "explained_lag": float((fits["sse0"] - fits["sse_lag"]) / excess), "sse_delay": fits["sse_delay"],
               "sse_lag": fits["sse_lag"],
-              # shape: > 0 when the first-order lag fits the events better than a pure delay
-              "shape_log_ratio": float(np.log(max(fits["sse_delay"], 1e-12) / max(fits["sse_lag"], 1e-12)))}
+              # shape: Vuong's z, > 0 when the first-order lag fits the events better than a pure delay
+              "shape_z": fits["shape_z"]}
     lat = SignatureResult(effect="latency", statistic=max(fits["sse0"] - fits["sse_delay"], 0.0),
                           effect_size=timing_size(ev, "delay_s"), effect_unit="s (smallest press delay)",
                           estimate={"latency_s": float(np.median(delays))}, windows_s=windows,
@@ -291,8 +338,10 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
                           detail=dict(detail, delays_s=delays.tolist(), press_delays_s=press_sizes(ev, "delay_s")))
     frac = float(np.median([e["lag_fraction"] for e in ev]))
     visco = SignatureResult(effect="gel_viscoelasticity", statistic=max(fits["sse0"] - fits["sse_lag"], 0.0),
-                            effect_size=timing_size(ev, "lag_tau_s"), effect_unit="s (smallest press time constant)",
+                            effect_size=timing_size(ev, "lag_delay_s"),
+                            effect_unit="s (smallest press mean delay a tau)",
                             estimate={"tau_s": float(np.median(lag_taus)), "fraction": frac}, windows_s=windows,
                             channels=["markers_xyz", "markers_uv", "wrench"],
-                            detail=dict(detail, taus_s=lag_taus.tolist(), press_taus_s=press_sizes(ev, "lag_tau_s")))
+                            detail=dict(detail, taus_s=lag_taus.tolist(), press_taus_s=press_sizes(ev, "lag_tau_s"),
+                                        press_lag_delays_s=press_sizes(ev, "lag_delay_s")))
     return lat, visco
