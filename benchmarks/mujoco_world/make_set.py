@@ -46,6 +46,15 @@ def _one(out_dir: str, scene_path: str, item: tuple) -> dict:
         return generate(Path(out_dir) / name, scene, variant, magnitude, seed, motion, direction, log=log)
 
 
+def collect_labels(out_dir: Path) -> dict:
+    """Merge every ``OUT_DIR/*/label.yaml`` into ``OUT_DIR/labels.yaml`` (the reference set's format)."""
+    labels: dict = {}
+    for path in sorted(out_dir.glob("*/label.yaml")):
+        labels.update(yaml.safe_load(path.read_text(encoding="utf-8")))
+    (out_dir / "labels.yaml").write_text(yaml.safe_dump(labels, sort_keys=False), encoding="utf-8")
+    return labels
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out_dir", type=Path)
@@ -55,15 +64,12 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     a.out_dir.mkdir(parents=True, exist_ok=True)
     plan = [p for p in PLAN if not a.only or p[0] in a.only]
-    labels_path = a.out_dir / "labels.yaml"
-    labels = yaml.safe_load(labels_path.read_text(encoding="utf-8")) if labels_path.exists() else {}
     with ProcessPoolExecutor(max_workers=a.jobs) as pool:
         futs = {pool.submit(_one, str(a.out_dir.resolve()), str(a.scene.resolve()), p): p[0] for p in plan
                 if not (a.out_dir / p[0]).exists()}
         for fut in as_completed(futs):
             label = fut.result()
-            labels[label["bag"]] = label
-            labels_path.write_text(yaml.safe_dump(dict(sorted(labels.items())), sort_keys=False), encoding="utf-8")
+            collect_labels(a.out_dir)
             print(f"{label['bag']}: {label['sim']['wall_s']} s, peak |Fz| {label['sim']['max_normal_force_N']:.2f} N,"
                   f" warnings {label['sim']['warnings']}", flush=True)
     return 0

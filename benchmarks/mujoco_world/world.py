@@ -72,8 +72,10 @@ def tack_candidates(scene: Mapping[str, Any], start_xy) -> list[TackCandidate]:
     return out
 
 
-def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print) -> Recording:
+def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None) -> Recording:
     """Simulate ``motion`` in the world of ``scene`` with the true values ``truth`` (labels' ``mujoco``).
+
+    ``probe(k, t, model, data)``, when given, is called after every step (diagnostics).
 
     Raises:
         RuntimeError: the simulation produced a non-finite state.
@@ -141,6 +143,8 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
             data.eq_active[:] = 0
         elif tack and tacked:
             bonds_broken += _break_bonds(model, data, bond_max)
+        if probe is not None:
+            probe(k, t[k], model, data)
         if k % 500 == 0:
             log(f"  t={t[k]:.2f}s ee_z={ee[2] * 1e3:.3f}mm Fz={rec_w[k, 2]:.3f}N ncon={data.ncon} "
                 f"{time.perf_counter() - t0:.0f}s")
