@@ -57,7 +57,7 @@ class Recording:
 
 
 def tack_candidates(scene: Mapping[str, Any], start_xy) -> list[TackCandidate]:
-    """Card vertices under the gel footprint at ``start_xy`` (m), each with its nearest gel bottom vertex."""
+    """Card vertices under the gel footprint at ``start_xy`` (m) (``gel_bottom``: the nearest gel bottom vertex, for reference)."""
     nx, ny = scene["sheet"]["resolution"]
     sx, sy = scene["sheet"]["size"]
     ox, oy, _ = scene["sheet"]["origin"]
@@ -179,8 +179,9 @@ def _gel_wrench(model, data, gel_id: int, origin: np.ndarray) -> np.ndarray:
 def _bond_wrench(model, data, origin: np.ndarray) -> np.ndarray:
     """Force of the active tack bonds on the gel and its torque about ``origin``, world (N, N m), shape (6,).
 
-    A connect equality's residual is ``p1 - p2`` (card vertex minus gel vertex) in world, so its
-    three multipliers ``f`` act as ``+f`` on the card and ``-f`` on the gel.
+    A connect equality's residual is ``p1 - p2`` (card vertex minus its anchor on the effector) in
+    world, so its three multipliers ``f`` act as ``+f`` on the card and ``-f`` on the gel, at the
+    card vertex (where the tack sits on the gel surface).
     """
     out = np.zeros(6)
     eq_rows = np.nonzero(data.efc_type[: data.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
@@ -190,7 +191,7 @@ def _bond_wrench(model, data, origin: np.ndarray) -> np.ndarray:
             continue
         f = -data.efc_force[rows]
         out[:3] += f
-        out[3:] += np.cross(data.xpos[model.eq_obj2id[k]] - origin, f)
+        out[3:] += np.cross(data.xpos[model.eq_obj1id[k]] - origin, f)
     return out
 
 
