@@ -1,0 +1,220 @@
+"""Run the MuJoCo reference world along a commanded motion and record its true signals at every step.
+
+What is recorded (every ``timestep``, world frame unless said):
+
+* ``cmd``: the commanded effector position (m, (T, 3)); ``ee``: the measured one (m, (T, 3)).
+* ``wrench``: net contact force ON the gel and its torque about the effector origin, in world
+  (N, N m, (T, 6)): the sum over every contact whose one side is the gel flex of
+  ``+/- (f_n n + f_t1 t1 + f_t2 t2)`` (MuJoCo's contact force acts on the contact's second object
+  along the frame; elliptic cones keep it in ``efc_force[efc_address : +3]``).
+* ``gel_bottom``: the gel's bottom-layer vertices (m, (T, nx*ny, 3), y outer, x inner).
+* ``sheet``: the card vertices in the contract's order (row-major, y outer), m, (T, 273, 3).
+
+Stiction (static > kinetic gel-card friction): MuJoCo has one Coulomb coefficient per contact,
+so the gel's coefficient is switched before every step: static while the gel's contact layer sticks
+to the card (mean tangential speed of the gel vertices touching the card below ``STICK_SPEED``),
+kinetic once it slips (above ``SLIP_SPEED``), with hysteresis between.
+
+Tack (lift_fold): at ``tack_on_s`` every candidate bond whose card vertex lies under the gel
+footprint is re-anchored at the current relative position and activated; a bond whose constraint
+force exceeds ``bond_strength_N`` breaks; all are released at ``tack_off_s`` (the peel).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import mujoco
+import numpy as np
+
+from benchmarks.mujoco_world.mjcf import GEL_COUNT, TackCandidate, build_mjcf, gel_bottom_rest
+from benchmarks.mujoco_world.motion import Motion
+
+SLIP_SPEED = 2.0e-3
+"""Mean tangential speed of the gel's contact layer above which it slips (kinetic friction), m/s."""
+
+STICK_SPEED = 0.5e-3
+"""... and below which it sticks again (static friction), m/s."""
+
+CONTACT_BAND = 3.0e-4
+"""A gel bottom vertex within this height above the card's top surface counts as touching, m."""
+
+
+@dataclass
+class Recording:
+    """True signals of one run at every step (see module docstring for shapes and units)."""
+
+    t: np.ndarray
+    cmd: np.ndarray
+    ee: np.ndarray
+    wrench: np.ndarray
+    gel_bottom: np.ndarray
+    sheet: np.ndarray
+    gel_bottom_rest: np.ndarray
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def tack_candidates(scene: Mapping[str, Any], start_xy) -> list[TackCandidate]:
+    """Card vertices under the gel footprint at ``start_xy`` (m) (``gel_bottom``: the nearest gel bottom vertex, for reference)."""
+    nx, ny = scene["sheet"]["resolution"]
+    sx, sy = scene["sheet"]["size"]
+    ox, oy, _ = scene["sheet"]["origin"]
+    gx, gy, _ = scene["sensors"]["tactile"]["gel_size"]
+    rest = gel_bottom_rest(scene)
+    out = []
+    for ix in range(nx):
+        for iy in range(ny):
+            p = np.array([ox + ix * sx / (nx - 1), oy + iy * sy / (ny - 1)]) - np.asarray(start_xy)
+            if abs(p[0]) <= gx / 2 and abs(p[1]) <= gy / 2:
+                out.append(TackCandidate(ix, iy, int(np.argmin(np.linalg.norm(rest - p, axis=1)))))
+    return out
+
+
+def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None) -> Recording:
+    """Simulate ``motion`` in the world of ``scene`` with the true values ``truth`` (labels' ``mujoco``).
+
+    ``probe(k, t, model, data)``, when given, is called after every step (diagnostics).
+
+    Raises:
+        RuntimeError: the simulation produced a non-finite state.
+    """
+    tack = tack_candidates(scene, motion.start[:2]) if motion.tack_on_s is not None else []
+    model = mujoco.MjModel.from_xml_string(build_mjcf(scene, truth, motion.start, tack))
+    data = mujoco.MjData(model)
+    dt = model.opt.timestep
+    n_steps = int(np.floor(motion.duration_s / dt + 1e-9)) + 1
+    card_id, gel_id = 0, 1
+    cadr, gadr = model.flex_vertadr[card_id], model.flex_vertadr[gel_id]
+    cnum, gnum = model.flex_vertnum[card_id], model.flex_vertnum[gel_id]
+    gnx, gny, gnz = GEL_COUNT
+    bottom = np.array([gadr + (ix * gny + iy) * gnz for iy in range(gny) for ix in range(gnx)])
+    nx, ny = scene["sheet"]["resolution"]
+    sheet_order = np.array([cadr + ix * ny + iy for iy in range(ny) for ix in range(nx)])
+    contact_z = scene["sheet"]["origin"][2] + truth["sheet"]["thickness"] / 2
+    mu_k, mu_s = float(truth["friction"]["gel_sheet_kinetic"]), float(truth["friction"]["gel_sheet_static"])
+    stiction = mu_s > mu_k
+    bond_max = float(truth["tack"]["bond_strength_N"])
+    start = np.asarray(motion.start, dtype=float)
+
+    t = np.arange(n_steps) * dt
+    cmd = motion.command(t)
+    rec_ee = np.zeros((n_steps, 3))
+    rec_w = np.zeros((n_steps, 6))
+    rec_gel = np.zeros((n_steps, bottom.size, 3))
+    rec_sheet = np.zeros((n_steps, sheet_order.size, 3))
+    slipping, n_switch, bonds_formed, bonds_broken = False, 0, 0, 0
+    tacked = False
+    prev_gel = None
+    t0 = time.perf_counter()
+    ee_body = model.body("ee").id
+    for k in range(n_steps):
+        data.ctrl[:] = cmd[k] - start
+        mujoco.mj_step(model, data)
+        # mj_step's position stage and constraint solve describe the state at t[k]
+        ee = data.xpos[ee_body].copy()
+        rec_ee[k] = ee
+        rec_gel[k] = data.flexvert_xpos[bottom]
+        rec_sheet[k] = data.flexvert_xpos[sheet_order]
+        rec_w[k] = _gel_wrench(model, data, gel_id, ee)
+        if tack and tacked:
+            rec_w[k] += _bond_wrench(model, data, ee)
+        if not np.all(np.isfinite(rec_gel[k])):
+            raise RuntimeError(f"non-finite state at t = {t[k]:.3f} s")
+        # stiction: friction for the next step from the contact layer's slip speed
+        gel_now = rec_gel[k]
+        if stiction:
+            touching = gel_now[:, 2] < contact_z + CONTACT_BAND + 2e-4
+            if prev_gel is not None and touching.any():
+                speed = np.linalg.norm((gel_now[touching, :2] - prev_gel[touching, :2]).mean(axis=0)) / dt
+                new = speed > SLIP_SPEED if not slipping else speed > STICK_SPEED
+                n_switch += int(new != slipping)
+                slipping = new
+            elif not touching.any():
+                slipping = False
+            model.flex_friction[gel_id, 0] = mu_k if slipping else mu_s
+        prev_gel = gel_now.copy()
+        # tack bonds
+        if tack and not tacked and t[k] >= motion.tack_on_s:
+            tacked = True
+            bonds_formed = _form_bonds(model, data, tack, scene, ee)
+        if tack and tacked and t[k] >= motion.tack_off_s:
+            data.eq_active[:] = 0
+        elif tack and tacked:
+            bonds_broken += _break_bonds(model, data, bond_max)
+        if probe is not None:
+            probe(k, t[k], model, data)
+        if k % 500 == 0:
+            log(f"  t={t[k]:.2f}s ee_z={ee[2] * 1e3:.3f}mm Fz={rec_w[k, 2]:.3f}N ncon={data.ncon} "
+                f"{time.perf_counter() - t0:.0f}s")
+    stats = {"wall_s": round(time.perf_counter() - t0, 1), "steps": int(n_steps),
+             "warnings": int(np.sum(data.warning.number)), "tack_bonds_formed": int(bonds_formed),
+             "tack_bonds_broken": int(bonds_broken), "friction_switches": int(n_switch),
+             "max_normal_force_N": float(np.max(np.abs(rec_w[:, 2])))}
+    return Recording(t, cmd, rec_ee, rec_w, rec_gel, rec_sheet,
+                     np.c_[gel_bottom_rest(scene), np.zeros(bottom.size)], stats)
+
+
+def _gel_wrench(model, data, gel_id: int, origin: np.ndarray) -> np.ndarray:
+    """Net contact force on the gel flex and torque about ``origin``, world (N, N m), shape (6,)."""
+    n = data.ncon
+    if n == 0:
+        return np.zeros(6)
+    con = data.contact
+    flex = con.flex[:n]
+    sign = np.where(flex[:, 1] == gel_id, 1.0, np.where(flex[:, 0] == gel_id, -1.0, 0.0))
+    adr = con.efc_address[:n]
+    use = (sign != 0.0) & (adr >= 0)
+    if not use.any():
+        return np.zeros(6)
+    adr = adr[use]
+    f = np.stack([data.efc_force[adr], data.efc_force[adr + 1], data.efc_force[adr + 2]], axis=1)
+    frame = con.frame[:n][use].reshape(-1, 3, 3)
+    fw = np.einsum("ci,cij->cj", f, frame) * sign[use][:, None]
+    tw = np.cross(con.pos[:n][use] - origin, fw)
+    return np.r_[fw.sum(axis=0), tw.sum(axis=0)]
+
+
+def _bond_wrench(model, data, origin: np.ndarray) -> np.ndarray:
+    """Force of the active tack bonds on the gel and its torque about ``origin``, world (N, N m), shape (6,).
+
+    A connect equality's residual is ``p1 - p2`` (card vertex minus its anchor on the effector) in
+    world, so its three multipliers ``f`` act as ``+f`` on the card and ``-f`` on the gel, at the
+    card vertex (where the tack sits on the gel surface).
+    """
+    out = np.zeros(6)
+    eq_rows = np.nonzero(data.efc_type[: data.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
+    for k in np.nonzero(data.eq_active)[0]:
+        rows = eq_rows[data.efc_id[eq_rows] == k]
+        if rows.size != 3:
+            continue
+        f = -data.efc_force[rows]
+        out[:3] += f
+        out[3:] += np.cross(data.xpos[model.eq_obj1id[k]] - origin, f)
+    return out
+
+
+def _form_bonds(model, data, tack, scene, ee) -> int:
+    gx, gy, _ = scene["sensors"]["tactile"]["gel_size"]
+    formed = 0
+    for k, c in enumerate(tack):
+        b1, b2 = model.eq_obj1id[k], model.eq_obj2id[k]
+        p1, p2 = data.xpos[b1], data.xpos[b2]
+        if abs(p1[0] - ee[0]) <= gx / 2 and abs(p1[1] - ee[1]) <= gy / 2:
+            model.eq_data[k, 0:3] = 0.0
+            model.eq_data[k, 3:6] = p1 - p2
+            data.eq_active[k] = 1
+            formed += 1
+    return formed
+
+
+def _break_bonds(model, data, bond_max: float) -> int:
+    broken = 0
+    eq_rows = np.nonzero(data.efc_type[: data.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
+    for k in np.nonzero(data.eq_active)[0]:
+        rows = eq_rows[data.efc_id[eq_rows] == k]
+        if rows.size and np.linalg.norm(data.efc_force[rows]) > bond_max:
+            data.eq_active[k] = 0
+            broken += 1
+    return broken
