@@ -441,8 +441,12 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     (unit gains: the physics, not the sensor, is asked to explain the recording first; the fit's first
     replay, at the scene values, gives the whitened RMS before); fit the sensor calibration to the
     fit's best replay (it takes what the physics cannot: a gain, a marker scale, the
-    camera). The wrench gain and the gel's modulus, and the marker scale and the contact's compliance,
-    are nearly interchangeable on a press (correlations of 0.97 on the reference recordings when
+    camera), after the secant stage of the parameters without tangents (``secant_params``, by default
+    the stick regularisation ``contact.eps_v``: :func:`sysid.calibration_secant.secant_calibration`,
+    ``secant_replays`` plain replays, each judged after its own sensor calibration; its values are
+    taken when they lower the stage's cost by more than the replays' numerical noise). The wrench
+    gain and the gel's modulus, and the marker scale and the contact's compliance, are nearly
+    interchangeable on a press (correlations of 0.97 on the reference recordings when
     fitted together), so the order decides which of them takes a common scale gap; the recordings
     cannot. With ``sensor_first`` the sensor calibration is fitted to the scene-value replay first
     and held during the parameter fit, then fitted again (the gains take the scale gap). Each fit
