@@ -103,14 +103,15 @@ class SensorCalibration:
     def derivative(self, channel: str, d: np.ndarray) -> np.ndarray:
         """The calibrated derivative of ``channel`` from the raw one ``d`` ``(n, ..., axes, p)``.
 
-        Exact for the wrench (``dT = g_T dT_sim + a x g_F dF_sim``) and the markers (linear maps); for the pixels the focal-length ratio to
-        the scene camera is applied (first order: the marker scale's effect on the projection is
+        Exact for the wrench (``dT = g_T dT_sim + a x g_F dF_sim``) and the markers (linear maps);
+        for the pixels the focal-length ratio to the scene camera is applied (first order: the marker scale's effect on the projection is
         neglected).
         """
         d = np.array(d, dtype=float)
         if channel == "wrench":
             d[..., :3, :] *= self.force_gain
-            d[..., 3:, :] = self.torque_gain * d[..., 3:, :] + np.cross(self.torque_arm, d[..., :3, :], axisb=-2, axisc=-2)
+            moment = np.cross(self.torque_arm, d[..., :3, :], axisb=-2, axisc=-2)
+            d[..., 3:, :] = self.torque_gain * d[..., 3:, :] + moment
         elif channel == "markers_xyz":
             d[..., :2, :] *= self.marker_scale_xy
             d[..., 2:, :] *= self.marker_scale_z
@@ -168,7 +169,7 @@ def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray,
     fit_gain = float(np.sum((torque / sigma_t) ** 2)) >= MIN_GAIN_INFORMATION
     fit_arm = float(np.sum((force / sigma_f) ** 2)) >= MIN_GAIN_INFORMATION
     gain, arm = 1.0, np.zeros(3)
-    ok = np.all(np.isfinite(data), axis=1) & np.all(np.isfinite(torque), axis=1) & np.all(np.isfinite(force), axis=1)
+    ok = np.all(np.isfinite(np.concatenate([data, torque, force], axis=1)), axis=1)
     if not (fit_gain or fit_arm) or ok.sum() < 2:
         return gain, arm
     d, t, f = data[ok], torque[ok], force[ok]
@@ -189,7 +190,8 @@ def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray,
     lower = ([GAIN_BOUNDS[0]] if fit_gain else []) + ([-TORQUE_ARM_BOUND] * 3 if fit_arm else [])
     upper = ([GAIN_BOUNDS[1]] if fit_gain else []) + ([TORQUE_ARM_BOUND] * 3 if fit_arm else [])
     solution = lsq_linear(A, b, bounds=(lower, upper))
-    x = np.where(solution.active_mask > 0, upper, np.where(solution.active_mask < 0, lower, solution.x))  # active: on it
+    # a bound the solver reports active is taken exactly (lsq_linear may stop a rounding error inside it)
+    x = np.where(solution.active_mask > 0, upper, np.where(solution.active_mask < 0, lower, solution.x))
     if fit_gain:
         gain, x = float(x[0]), x[1:]
     if fit_arm:

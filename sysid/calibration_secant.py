@@ -118,7 +118,8 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
     names = tuple(names)
     start = {n: float(model.parameter_value(n)) for n in names}
     if any(v <= 0.0 for v in start.values()) or any(bounds[n][0] <= 0.0 for n in names):
-        raise ValueError(f"secant parameters are searched in log space: positive starts and bounds needed ({start}, {bounds})")
+        raise ValueError("secant parameters are searched in log space: positive starts and bounds needed "
+                         f"({start}, {bounds})")
     lower = np.array([math.log(bounds[n][0] / start[n]) for n in names])
     upper = np.array([math.log(bounds[n][1] / start[n]) for n in names])
     channels = tuple(model.channels)
