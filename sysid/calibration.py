@@ -281,7 +281,10 @@ and card-table contacts give under load) and the lagged friction's stick regular
 (``contact.eps_v``, m/s: how fast a sheared gel creeps back under static friction): calibrated on
 request (``--params`` with :data:`CALIBRATION_PARAMETERS` and these, and a replay budget that allows
 steps). Run to convergence on nominal_s101 they bring every tactile channel under 3 (1.70 / 2.21 /
-2.28, 18 replays; docs/benchmarks_log.md), which the default budget does not afford."""
+2.28, 18 replays; docs/benchmarks_log.md), which the default budget does not afford. By default
+the stick regularisation alone is fitted after the parameter fit, on a secant
+(:mod:`sysid.calibration_secant`, two replays: nominal_s101 2.09 / 2.84 / 2.01); given in ``params``
+it is left to the parameter fit instead."""
 
 FOLLOWED_RMS = 3.0
 """Whitened RMS (noise units) above which a calibrated channel is reported as not followed by the
