@@ -6,8 +6,10 @@ marker reconstruction, the pixels through the camera intrinsics. Each is an affi
 simulator's prediction, so it is fitted in closed form (weighted linear least squares) to a
 recording, with no replay (SYSID.md "Diagnosis", step 1):
 
-- wrench: ``F_rec = g_F F_sim`` (one gain on the three forces) and ``T_rec = g_T T_sim`` (one on the
-  three torques);
+- wrench: ``F_rec = g_F F_sim`` (one gain on the three forces) and
+  ``T_rec = g_T T_sim + a x F_rec`` (one gain on the three torques, and the offset ``a`` (m, sensor
+  frame) of the point the recorded torques are resolved about from the simulator's: the moment
+  transport ``T_o' = T_o + (o - o') x F`` of a rigid-body wrench);
 - markers (sensor frame): ``x_rec = x0 + s_xy (x_sim - x0)``, ``y`` alike, ``z_rec = z0 + s_z (z_sim - z0)``
   with ``x0`` the rest position of each marker (the prediction's first sample, before contact);
 - pixels: the pinhole ``u = f_x x / (z + d) + c_x``, ``v = f_y y / (z + d) + c_y`` (d the camera
@@ -30,10 +32,16 @@ from typing import Any, Mapping
 import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
+from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS, secant_calibration
 from sysid.fit import fit
 
 GAIN_BOUNDS = (0.5, 2.0)
 """Range of a fitted gain or marker scale (-)."""
+
+TORQUE_ARM_BOUND = 5.0e-3
+"""Largest offset (m, per sensor-frame axis) of the torque reference point: a quarter of the gel
+pad's width (20 mm). A wrench resolved about a point further off is a different sensor frame (a
+mount or tool-point error a user must fix), not a calibration error."""
 
 
 @dataclass(frozen=True)
@@ -42,6 +50,8 @@ class SensorCalibration:
 
     Attributes:
         force_gain, torque_gain: wrench gains (-).
+        torque_arm_x, torque_arm_y, torque_arm_z: offset ``a`` of the point the recorded torques are
+            resolved about from the simulator's, m, sensor frame (``T_rec = g_T T_sim + a x F_rec``).
         marker_scale_xy, marker_scale_z: marker displacement scales (-).
         fx, fy: focal lengths, px; cx, cy: principal point, px; distance: camera to the undeformed
             contact surface, m (not fitted).
@@ -49,6 +59,9 @@ class SensorCalibration:
 
     force_gain: float = 1.0
     torque_gain: float = 1.0
+    torque_arm_x: float = 0.0
+    torque_arm_y: float = 0.0
+    torque_arm_z: float = 0.0
     marker_scale_xy: float = 1.0
     marker_scale_z: float = 1.0
     fx: float = 300.0
@@ -79,7 +92,7 @@ class SensorCalibration:
         if "wrench" in out:
             w = np.array(out["wrench"], dtype=float)
             w[..., :3] *= self.force_gain
-            w[..., 3:] *= self.torque_gain
+            w[..., 3:] = self.torque_gain * w[..., 3:] + np.cross(self.torque_arm, w[..., :3])
             out["wrench"] = w
         if "markers_xyz" in out and marker_rest is not None:
             out["markers_xyz"] = scale_markers(out["markers_xyz"], marker_rest, self.marker_scale_xy, self.marker_scale_z)
@@ -90,14 +103,15 @@ class SensorCalibration:
     def derivative(self, channel: str, d: np.ndarray) -> np.ndarray:
         """The calibrated derivative of ``channel`` from the raw one ``d`` ``(n, ..., axes, p)``.
 
-        Exact for the wrench and the markers (linear maps); for the pixels the focal-length ratio to
-        the scene camera is applied (first order: the marker scale's effect on the projection is
+        Exact for the wrench (``dT = g_T dT_sim + a x g_F dF_sim``) and the markers (linear maps);
+        for the pixels the focal-length ratio to the scene camera is applied (first order: the marker scale's effect on the projection is
         neglected).
         """
         d = np.array(d, dtype=float)
         if channel == "wrench":
             d[..., :3, :] *= self.force_gain
-            d[..., 3:, :] *= self.torque_gain
+            moment = np.cross(self.torque_arm, d[..., :3, :], axisb=-2, axisc=-2)
+            d[..., 3:, :] = self.torque_gain * d[..., 3:, :] + moment
         elif channel == "markers_xyz":
             d[..., :2, :] *= self.marker_scale_xy
             d[..., 2:, :] *= self.marker_scale_z
@@ -105,6 +119,11 @@ class SensorCalibration:
             d[..., 0, :] *= self.fx / self.nominal_fx
             d[..., 1, :] *= self.fy / self.nominal_fy
         return d
+
+    @property
+    def torque_arm(self) -> np.ndarray:
+        """``(3,)`` the torque reference point's offset ``a``, m, sensor frame."""
+        return np.array([self.torque_arm_x, self.torque_arm_y, self.torque_arm_z])
 
     def project(self, xyz: np.ndarray) -> np.ndarray:
         """Pinhole pixels ``(..., 2)`` of sensor-frame points ``xyz`` ``(..., 3)`` (m)."""
@@ -133,6 +152,51 @@ def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
     if not math.isfinite(den) or den < MIN_GAIN_INFORMATION:
         return 1.0
     return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
+
+
+def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray, sigma_t: np.ndarray,
+                        sigma_f: np.ndarray) -> tuple[float, np.ndarray]:
+    """Bounded weighted least squares of ``T_rec ~ g_T T_sim + a x F`` (module docstring): ``(g_T, a)``.
+
+    ``data``, ``torque``: ``(n, 3)`` recorded and simulated torques (N m); ``force``: ``(n, 3)`` the
+    calibrated simulated forces (N); ``sigma_t``, ``sigma_f``: ``(3,)`` noise levels. The gain is fitted
+    when the simulated torques carry :data:`MIN_GAIN_INFORMATION` (else 1), the arm when the forces
+    do (else 0); the gain within :data:`GAIN_BOUNDS`, the arm within :data:`TORQUE_ARM_BOUND` per axis
+    (``scipy.optimize.lsq_linear``: the bounded optimum, not a clipped one).
+    """
+    from scipy.optimize import lsq_linear
+
+    fit_gain = float(np.sum((torque / sigma_t) ** 2)) >= MIN_GAIN_INFORMATION
+    fit_arm = float(np.sum((force / sigma_f) ** 2)) >= MIN_GAIN_INFORMATION
+    gain, arm = 1.0, np.zeros(3)
+    ok = np.all(np.isfinite(np.concatenate([data, torque, force], axis=1)), axis=1)
+    if not (fit_gain or fit_arm) or ok.sum() < 2:
+        return gain, arm
+    d, t, f = data[ok], torque[ok], force[ok]
+    zero = np.zeros(len(d))
+    # (a x F) = (a_y F_z - a_z F_y, a_z F_x - a_x F_z, a_x F_y - a_y F_x): columns of (a_x, a_y, a_z) per axis
+    arm_columns = [np.stack([zero, f[:, 2], -f[:, 1]], axis=1), np.stack([-f[:, 2], zero, f[:, 0]], axis=1),
+                   np.stack([f[:, 1], -f[:, 0], zero], axis=1)]
+    blocks, rhs = [], []
+    for k in range(3):
+        cols = []
+        if fit_gain:
+            cols.append(t[:, k:k + 1])
+        if fit_arm:
+            cols.append(arm_columns[k])
+        blocks.append(np.concatenate(cols, axis=1) / sigma_t[k])
+        rhs.append((d[:, k] - (0.0 if fit_gain else t[:, k])) / sigma_t[k])
+    A, b = np.concatenate(blocks, axis=0), np.concatenate(rhs)
+    lower = ([GAIN_BOUNDS[0]] if fit_gain else []) + ([-TORQUE_ARM_BOUND] * 3 if fit_arm else [])
+    upper = ([GAIN_BOUNDS[1]] if fit_gain else []) + ([TORQUE_ARM_BOUND] * 3 if fit_arm else [])
+    solution = lsq_linear(A, b, bounds=(lower, upper))
+    # a bound the solver reports active is taken exactly (lsq_linear may stop a rounding error inside it)
+    x = np.where(solution.active_mask > 0, upper, np.where(solution.active_mask < 0, lower, solution.x))
+    if fit_gain:
+        gain, x = float(x[0]), x[1:]
+    if fit_arm:
+        arm = np.asarray(x, dtype=float)
+    return gain, arm
 
 
 def _affine(a: np.ndarray, b: np.ndarray) -> tuple[float, float] | None:
@@ -174,7 +238,9 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
     if "wrench" in data and "wrench" in prediction:
         d, p, s = pick("wrench", data["wrench"]), pick("wrench", prediction["wrench"]), sigma["wrench"]
         fields["force_gain"] = _gain(d[:, :3], p[:, :3], s[:3])
-        fields["torque_gain"] = _gain(d[:, 3:], p[:, 3:], s[3:])
+        gain, arm = _torque_calibration(d[:, 3:], p[:, 3:], fields["force_gain"] * p[:, :3], s[3:], s[:3])
+        fields["torque_gain"] = gain
+        fields["torque_arm_x"], fields["torque_arm_y"], fields["torque_arm_z"] = (float(a) for a in arm)
     if "markers_xyz" in data and "markers_xyz" in prediction and marker_rest is not None:
         d = pick("markers_xyz", data["markers_xyz"]) - marker_rest
         p = pick("markers_xyz", prediction["markers_xyz"]) - marker_rest
@@ -215,7 +281,10 @@ and card-table contacts give under load) and the lagged friction's stick regular
 (``contact.eps_v``, m/s: how fast a sheared gel creeps back under static friction): calibrated on
 request (``--params`` with :data:`CALIBRATION_PARAMETERS` and these, and a replay budget that allows
 steps). Run to convergence on nominal_s101 they bring every tactile channel under 3 (1.70 / 2.21 /
-2.28, 18 replays; docs/benchmarks_log.md), which the default budget does not afford."""
+2.28, 18 replays; docs/benchmarks_log.md), which the default budget does not afford. By default
+the stick regularisation alone is fitted after the parameter fit, on a secant
+(:mod:`sysid.calibration_secant`, two replays: nominal_s101 2.09 / 2.84 / 2.01); given in ``params``
+it is left to the parameter fit instead."""
 
 FOLLOWED_RMS = 3.0
 """Whitened RMS (noise units) above which a calibrated channel is reported as not followed by the
@@ -293,6 +362,8 @@ class CalibrationResult:
             (``StepTotals`` as a dict: steps, substep retries, relaxed acceptances); ``calibrated`` is
             None when the prediction at ``params`` is the fit's own best replay (not replayed again).
         wall_time_s: the calibration's wall time, s.
+        secant: the :class:`sysid.calibration_secant.SecantStage` of the parameters without
+            tangents (None when none was run).
     """
 
     params: dict[str, float]
@@ -303,6 +374,7 @@ class CalibrationResult:
     prediction: dict[str, np.ndarray] | None = None
     replay_totals: dict[str, Any] | None = None
     wall_time_s: float | None = None
+    secant: Any = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary: parameters, sensor calibration, whitened RMS before and after, and,
@@ -333,6 +405,8 @@ class CalibrationResult:
             out["replay"] = self.replay_totals
         if self.wall_time_s is not None:
             out["wall_time_s"] = float(self.wall_time_s)
+        if self.secant is not None:
+            out["secant"] = self.secant.summary()
         return out
 
 
@@ -357,7 +431,8 @@ def whitened_rms(model, prediction: Mapping[str, np.ndarray], channels) -> dict[
 def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.ndarray] | None = None,
               max_nfev: int = 8, workers: int = 1, max_time: float | None = None, max_replays: int | None = None,
               bounds: Mapping[str, tuple[float, float]] | None = None, sensor_first: bool = False,
-              reweight_channels: bool = True) -> CalibrationResult:
+              reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
+              secant_replays: int = SECANT_REPLAYS) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
@@ -371,8 +446,12 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     (unit gains: the physics, not the sensor, is asked to explain the recording first; the fit's first
     replay, at the scene values, gives the whitened RMS before); fit the sensor calibration to the
     fit's best replay (it takes what the physics cannot: a gain, a marker scale, the
-    camera). The wrench gain and the gel's modulus, and the marker scale and the contact's compliance,
-    are nearly interchangeable on a press (correlations of 0.97 on the reference recordings when
+    camera), after the secant stage of the parameters without tangents (``secant_params``, by default
+    the stick regularisation ``contact.eps_v``: :func:`sysid.calibration_secant.secant_calibration`,
+    ``secant_replays`` plain replays, each judged after its own sensor calibration; its values are
+    taken when they lower the stage's cost by more than the replays' numerical noise). The wrench
+    gain and the gel's modulus, and the marker scale and the contact's compliance, are nearly
+    interchangeable on a press (correlations of 0.97 on the reference recordings when
     fitted together), so the order decides which of them takes a common scale gap; the recordings
     cannot. With ``sensor_first`` the sensor calibration is fitted to the scene-value replay first
     and held during the parameter fit, then fitted again (the gains take the scale gap). Each fit
@@ -397,6 +476,11 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             against 2-4 on the tactile channels) would otherwise make the fit's steps, moving the
             contact parameters for a change of its cost within the replays' numerical noise. The
             factors are in the summary (``channel_weights``).
+        secant_params: parameters without tangents fitted after ``params`` on secants with the
+            sensor calibration projected out (:func:`sysid.calibration_secant.secant_calibration`;
+            default the stick regularisation ``contact.eps_v``); those in ``params`` are left to the
+            parameter fit. In the summary under ``secant``.
+        secant_replays: replay budget of that stage (0: none), a count as ``max_replays``.
 
     Returns:
         the :class:`CalibrationResult`.
@@ -452,11 +536,25 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             totals["calibrated"] = None
     else:
         totals["calibrated"] = totals["scene_values"]
+    stage = None
+    secant_names = tuple(n for n in secant_params if n not in tuple(params))
+    if secant_names and secant_replays:
+        def sensor_calibrated(prediction):
+            cal = fit_sensor_calibration(data, prediction, model.sigma, model.marker_rest, nominal, rows)
+            return cal.apply(prediction, model.marker_rest)
+
+        stage_bounds = {**calibration_bounds(model, secant_names), **dict(bounds or {})}
+        stage = secant_calibration(model, values, raw, sensor_calibrated, secant_names, stage_bounds, secant_replays)
+        if stage.accepted:
+            values.update(stage.values)
+            model.set_nominal(values)
+            raw = stage.raw
+            totals["calibrated"] = None
     model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
     calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
     after = whitened_rms(model, calibrated, channels)
     return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals,
-                             time.perf_counter() - t_start)
+                             time.perf_counter() - t_start, stage)
 
 
 def _totals(trace) -> dict[str, Any] | None:

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``thinshell diagnose``."""
     from sysid.calibration import CALIBRATION_REPLAYS
+    from sysid.calibration_secant import SECANT_REPLAYS
 
     p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")
@@ -31,6 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay budget of the calibration's parameter fit (default %(default)s: the start only, no step; "
                         "a count, so the same answer on any machine; each Gauss-Newton step costs a trial replay and one "
                         "replay per parameter without tangents, sensor.normal_offset and contact.eps_v)")
+    p.add_argument("--calibration-secant-replays", type=int, default=SECANT_REPLAYS,
+                   help="replay budget of the calibration's stage for the stick regularisation contact.eps_v "
+                        "(default %(default)s: a probe at a third of the scene's value, then one Gauss-Newton step on "
+                        "the secant; each more replay is a Broyden-updated step; 0: none)")
     p.add_argument("--calibration-time", type=float, default=None,
                    help="also stop the calibration's parameter fit after this many seconds (default: no time budget; "
                         "with one, the answer depends on the machine's speed and load)")
@@ -81,6 +86,10 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         if value is not None and not value > 0:
             print(f"thinshell diagnose: {flag} must be > 0, got {value}", file=sys.stderr)
             return 2
+    if args.calibration_secant_replays < 0:
+        print(f"thinshell diagnose: --calibration-secant-replays must be >= 0, got {args.calibration_secant_replays}",
+              file=sys.stderr)
+        return 2
     if args.engine == "signatures":
         return _signatures_main(args)
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
@@ -123,7 +132,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
-        calibration_max_replays=args.calibration_replays,
+        calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
         workers=max(1, args.workers),
         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
 

@@ -45,6 +45,7 @@ import numpy as np
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                nominal_sensor_calibration)
+from sysid.calibration_secant import SECANT_REPLAYS
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
@@ -77,6 +78,9 @@ class SignatureSettings:
             the same replays, and names the same effects, on any machine.
         calibration_max_time: wall-time budget of that fit, s (None, the default: none; a budget
             makes the result depend on the machine's load).
+        calibration_secant_replays: replay budget of the calibration's secant stage (the stick
+            regularisation, :mod:`sysid.calibration_secant`; default
+            :data:`sysid.calibration_secant.SECANT_REPLAYS`; none when ``calibrate`` is False).
         baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
             statistic the test reaches on the baselines (the effect-size thresholds stay the
             instrument's resolution).
@@ -97,6 +101,7 @@ class SignatureSettings:
     calibration_max_nfev: int = 4
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
+    calibration_secant_replays: int = SECANT_REPLAYS
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
@@ -172,7 +177,8 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
     notes: list[str] = []
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
-                        max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays)
+                        max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
+                        secant_replays=settings.calibration_secant_replays if settings.calibrate else 0)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")

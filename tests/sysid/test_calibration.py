@@ -23,15 +23,17 @@ def test_recovers_known_calibration_exactly():
     rng = np.random.default_rng(0)
     rest, xyz, wrench = _synthetic(rng)
     nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
-    truth = SensorCalibration(force_gain=0.8, torque_gain=1.3, marker_scale_xy=0.9, marker_scale_z=1.2,
+    truth = SensorCalibration(force_gain=0.8, torque_gain=1.3, torque_arm_x=-7e-4, torque_arm_y=4e-4,
+                              torque_arm_z=2e-3, marker_scale_xy=0.9, marker_scale_z=1.2,
                               fx=310.0, fy=295.0, cx=158.0, cy=121.5, distance=0.025)
     prediction = {"markers_xyz": xyz, "wrench": wrench, "markers_uv": nominal.project(xyz)}
     data = truth.apply(prediction, rest)
     sigma = {"markers_xyz": np.array([1.5e-5, 1.5e-5, 2e-5]), "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4]),
              "markers_uv": np.array([0.15, 0.15])}
     fitted = fit_sensor_calibration(data, prediction, sigma, rest, nominal)
-    for key in ("force_gain", "torque_gain", "marker_scale_xy", "marker_scale_z", "fx", "fy", "cx", "cy"):
-        assert getattr(fitted, key) == pytest.approx(getattr(truth, key), rel=1e-9), key
+    for key in ("force_gain", "torque_gain", "torque_arm_x", "torque_arm_y", "torque_arm_z", "marker_scale_xy",
+                "marker_scale_z", "fx", "fy", "cx", "cy"):
+        assert getattr(fitted, key) == pytest.approx(getattr(truth, key), rel=1e-7), key
     calibrated = fitted.apply(prediction, rest)
     for ch in data:
         np.testing.assert_allclose(calibrated[ch], data[ch], atol=1e-9)
@@ -52,6 +54,32 @@ def test_gains_are_bounded_and_rows_select_the_training_part():
     assert fitted.force_gain == pytest.approx(0.7)
 
 
+def test_torque_reference_offset_is_the_moment_transport_and_is_bounded():
+    """A wrench resolved about a point offset by ``a`` from the simulator's: the recorded torques are
+    ``T + a x F`` (rigid-body moment transport; checked here against r x F summed over point forces),
+    and the closed form recovers ``a`` with the gains; an offset beyond TORQUE_ARM_BOUND ends on it;
+    forces below the noise leave it at 0."""
+    from sysid.calibration import TORQUE_ARM_BOUND
+
+    rng = np.random.default_rng(5)
+    points, forces = rng.normal(scale=3e-3, size=(50, 4, 3)), rng.normal(size=(50, 4, 3))
+    a = np.array([6e-4, -9e-4, 1.5e-3])
+    sim = np.concatenate([forces.sum(1), np.cross(points, forces).sum(1)], axis=1)
+    recorded = np.concatenate([forces.sum(1), np.cross(points + a, forces).sum(1)], axis=1)
+    np.testing.assert_allclose(SensorCalibration(torque_arm_x=a[0], torque_arm_y=a[1], torque_arm_z=a[2])
+                               .apply({"wrench": sim}, None)["wrench"], recorded, rtol=1e-12, atol=1e-15)
+    sigma = {"wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])}
+    fitted = fit_sensor_calibration({"wrench": recorded}, {"wrench": sim}, sigma, None, SensorCalibration())
+    np.testing.assert_allclose(fitted.torque_arm, a, rtol=1e-8)
+    assert fitted.torque_gain == pytest.approx(1.0) and fitted.force_gain == pytest.approx(1.0)
+    far = np.concatenate([forces.sum(1), np.cross(points + 3.0 * TORQUE_ARM_BOUND, forces).sum(1)], axis=1)
+    fitted = fit_sensor_calibration({"wrench": far}, {"wrench": sim}, sigma, None, SensorCalibration())
+    np.testing.assert_allclose(fitted.torque_arm, TORQUE_ARM_BOUND, rtol=1e-6)
+    quiet = {"wrench": sim * np.array([1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0])}  # forces at 1 % of the noise
+    fitted = fit_sensor_calibration(quiet, quiet, sigma, None, SensorCalibration())
+    assert np.all(fitted.torque_arm == 0.0) and fitted.torque_gain == pytest.approx(1.0)
+
+
 def test_a_prediction_below_the_noise_keeps_the_scene_gain():
     rng = np.random.default_rng(3)
     rest, xyz, wrench = _synthetic(rng)
@@ -67,7 +95,8 @@ def test_a_prediction_below_the_noise_keeps_the_scene_gain():
 def test_derivative_matches_finite_difference_of_apply():
     rng = np.random.default_rng(2)
     rest, xyz, wrench = _synthetic(rng, n=5, k=4)
-    cal = SensorCalibration(force_gain=0.7, torque_gain=1.1, marker_scale_xy=0.9, marker_scale_z=1.3)
+    cal = SensorCalibration(force_gain=0.7, torque_gain=1.1, torque_arm_x=1e-3, torque_arm_y=-2e-3, torque_arm_z=5e-4,
+                            marker_scale_xy=0.9, marker_scale_z=1.3)
     d = rng.normal(size=(5, 6, 1))
     h = 1e-6
     fd = (cal.apply({"wrench": wrench + h * d[..., 0]}, None)["wrench"] - cal.apply({"wrench": wrench}, None)["wrench"]) / h
@@ -118,14 +147,14 @@ CONTACT_TRUTH = {"contact.stiffness": 6.0e3, "contact.eps_v": 2.0e-3}
 than its (0.01 m/s): the known answer of the recordings below."""
 
 
-def _contact_recording(out_dir, segments):
-    """A noisy recording of the bench card made with :data:`CONTACT_TRUTH`; its scene file holds the
-    simulator's default contact (the nominal a real cell's scene would hold)."""
+def _contact_recording(out_dir, segments, truth=CONTACT_TRUTH):
+    """A noisy recording of the bench card made with ``truth`` (default :data:`CONTACT_TRUTH`); its
+    scene file holds the simulator's default contact (the nominal a real cell's scene would hold)."""
     from tests.sysid.simbag import CARD_SCENE, add_noise, simulate_streams, targets_from_segments, write_bag
 
     scene = dict(CARD_SCENE)
     targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), segments)
-    return write_bag(out_dir, scene, add_noise(simulate_streams(scene, CONTACT_TRUTH, targets), seed=4))
+    return write_bag(out_dir, scene, add_noise(simulate_streams(scene, truth, targets), seed=4))
 
 
 @pytest.fixture(scope="module")
@@ -144,6 +173,46 @@ def contact_slip(tmp_path_factory):
 
     return _contact_recording(tmp_path_factory.mktemp("contact_slip") / "bag",
                               (*PRESS_SLIDE[:2], ((0.0, 0.0, 0.0), 8)))
+
+
+STICK_TRUTH = {"contact.eps_v": 2.5e-3}
+"""A stick regularisation 4x narrower than the scene's (0.01 m/s), the contact stiffness the scene's."""
+
+
+@pytest.fixture(scope="module")
+def stick_slip(tmp_path_factory):
+    """contact_slip's motion, recorded with :data:`STICK_TRUTH`."""
+    from tests.sysid.simbag import PRESS_SLIDE
+
+    return _contact_recording(tmp_path_factory.mktemp("stick_slip") / "bag", (*PRESS_SLIDE[:2], ((0.0, 0.0, 0.0), 8)),
+                              STICK_TRUTH)
+
+
+def test_secant_stage_recovers_a_known_stick_regularisation(stick_slip):
+    """Known answer: the calibration's secant stage (the probe at 1/3 of the scene's eps_v, then
+    Broyden-updated Gauss-Newton steps with the sensor calibration refitted to each replay) moves a
+    stick regularisation 4x narrower than the scene's to within 25 % of the truth in at most four
+    replays (found: +21 %, converged after two), and lowers the tactile channels' whitened RMS; with
+    no replays it leaves the scene's value. The stage gives every channel one vote
+    (:func:`sysid.calibration_secant.secant_calibration`), not the noise-level weights that are the
+    maximum-likelihood ones where the model is exact, as it nearly is here: that costs accuracy on
+    this recording (the vote weights' optimum is 10 of its scaled 1-sigma from the truth) and keeps the
+    card's 273 points from outvoting the tactile channels on the reference recordings."""
+    from sysid.calibration import calibrate
+
+    model = _model(stick_slip)
+    assert model.parameter_value("contact.eps_v") == pytest.approx(0.01)
+    result = calibrate(model, (), secant_replays=4)
+    stage = result.summary()["secant"]
+    assert stage["fitted"] == ["contact.eps_v"] and stage["replays"] <= 4
+    assert result.params["contact.eps_v"] == pytest.approx(STICK_TRUTH["contact.eps_v"], rel=0.25), stage
+    assert model.parameter_value("contact.eps_v") == result.params["contact.eps_v"]
+    assert stage["cost_final"] < stage["cost_initial"]
+    for ch in ("markers_xyz", "wrench"):
+        assert result.whitened_rms_after[ch] < result.whitened_rms_before[ch], (ch, result.summary())
+    model = _model(stick_slip)
+    result = calibrate(model, (), secant_replays=0)
+    assert "contact.eps_v" not in result.params and "secant" not in result.summary()
 
 
 def _model(bag):

@@ -127,3 +127,10 @@ def test_calibrations_are_bounded_by_a_replay_count_not_by_seconds(capsys):
 
     assert diagnose_main(["no_such_bag", "--calibration-replays", "0"]) == 2
     assert "--calibration-replays must be > 0" in capsys.readouterr().err
+    from sysid.calibration_secant import SECANT_REPLAYS
+
+    assert settings.calibration_secant_replays == SECANT_REPLAYS == SignatureSettings().calibration_secant_replays
+    assert signature_settings(diagnose_parser().parse_args(["bag", "--calibration-secant-replays", "0"])
+                              ).calibration_secant_replays == 0
+    assert diagnose_main(["no_such_bag", "--calibration-secant-replays", "-1"]) == 2
+    assert "--calibration-secant-replays must be >= 0" in capsys.readouterr().err
