@@ -163,7 +163,12 @@ def _passes(r: SignatureResult, th: Thresholds) -> bool:
           and r.effect_size >= r.threshold["effect_size"] - SIZE_TOLERANCE * abs(r.threshold["effect_size"]))
     if ok and r.effect in ("latency", "gel_viscoelasticity", "damping"):
         key = {"latency": "explained_delay", "gel_viscoelasticity": "explained_lag", "damping": "explained_lead"}[r.effect]
-        ok = float(r.detail.get(key, 0.0)) >= MIN_EXPLAINED
+        explained = float(r.detail.get(key, 0.0))
+        ok = explained >= MIN_EXPLAINED
+        if not ok:
+            r.reason = (f"statistic and size pass, but the fitted {key.removeprefix('explained_')} removes "
+                        f"{explained:.0%} of the event windows' excess, under the {MIN_EXPLAINED:.0%} a timing "
+                        f"effect must explain")
         if ok and r.effect == "gel_viscoelasticity":
             ok = 0.0 < float(r.estimate.get("fraction", 0.0))
     return bool(ok)

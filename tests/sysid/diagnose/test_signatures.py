@@ -296,6 +296,23 @@ def test_the_timing_shape_decides_also_when_one_effect_alone_passes(delay, lag, 
     assert d.ties == []
 
 
+def test_a_lead_that_explains_too_little_is_not_named_and_the_result_says_why():
+    from sysid.diagnose.signatures.base import SignatureResult
+    from sysid.diagnose.signatures.null import MIN_EXPLAINED
+
+    rec = Recording(t={"wrench": np.arange(100) * 0.005, "markers_xyz": np.arange(50) * 0.01},
+                    data={"wrench": np.zeros((100, 6)), "markers_xyz": np.zeros((50, 63, 3))}, prediction=None,
+                    sigma=SIGMA, camera=CAMERA)
+    for explained, named in ((MIN_EXPLAINED - 0.12, []), (MIN_EXPLAINED + 0.1, ["damping"])):
+        r = SignatureResult("damping", statistic=337.0, effect_size=0.021, detail={"explained_lead": explained})
+        d = decide({"damping": r}, default_thresholds(rec))
+        assert d.explained_by == named
+        if named:
+            assert r.reason == ""
+        else:  # statistic and size pass: the report says which condition withdrew the name
+            assert "lead removes 38%" in r.reason and "50%" in r.reason
+
+
 def test_both_timing_effects_are_sized_by_their_smallest_press_in_mean_delay(rng):
     lat, visco = timing_tests(synthetic(rng, lag_tau=0.12))
     ev, delays = visco.detail["events"], lat.detail["delays_s"]
