@@ -552,10 +552,12 @@ class SimNode(Node):
         ended; None when off."""
         if self.settle_steps_max <= 0:
             return None
+        start = time.monotonic()
         info = settle(self.sim, self.settle_steps_max)
         log = self.get_logger()
         (log.info if info.settled else log.warning)(
-            f"start state: {info.describe()}" + ("" if info.settled else "; starting anyway"))
+            f"start state: {info.describe()} ({time.monotonic() - start:.3g} s of wall time)"
+            + ("" if info.settled else "; starting anyway"))
         return info
 
     def _publish_settle_status(self) -> None:
