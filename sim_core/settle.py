@@ -40,7 +40,8 @@ class SettleInfo(NamedTuple):
         max_steps: the cap on steps it was given.
         residual_velocity: at the last step, the largest of the velocities in and out and the step's
             scaled Newton update ``StepInfo.residual_velocity``, m/s (0 when no step was taken).
-        displacement: the largest move of a vertex from the state settling started at, m.
+        displacement: the largest move of a vertex from the state settling started at, m (when not
+            settled: the move it had made at the cap, before the state was put back).
         sleeping: the bodies asleep after the last step (``SolverConfig.sleeping``), sorted names.
         awake: the bodies that may sleep (:func:`~sim_core.sleeping.sleeping_eligible`) but are awake
             after the last step (with ``SolverConfig.sleeping``: a moving vertex within reach, or not
@@ -60,7 +61,8 @@ class SettleInfo(NamedTuple):
     def describe(self) -> str:
         """One line for a log: settled or not, steps, residual, displacement, the sleeping bodies."""
         head = (f"settled in {self.steps} steps" if self.settled
-                else f"did not settle in {self.steps} steps (cap {self.max_steps}): {self.reason}")
+                else f"did not settle in {self.steps} steps (cap {self.max_steps}): {self.reason}; "
+                     f"starting from the scene's own state")
         return (f"{head}; residual velocity {self.residual_velocity:.3g} m/s, largest vertex move "
                 f"{self.displacement:.3g} m; asleep: {', '.join(self.sleeping) or 'none'}"
                 + (f"; awake: {', '.join(self.awake)}" if self.awake else ""))
@@ -80,8 +82,9 @@ def settle(sim: Simulation, max_steps: int) -> SettleInfo:
        and with ``SolverConfig.sleeping`` every body that may sleep and that no moving vertex can
        reach falls asleep after it.
 
-    A step that raises :class:`~sim_core.errors.SimulationDivergedError` ends settling (not settled;
-    the state is the last accepted one). The solver's settings are restored in every case. The
+    A step that raises :class:`~sim_core.errors.SimulationDivergedError` ends settling (not settled).
+    A scene that does not settle (a failed step, or still moving at the cap: a falling block) is put
+    back to the state it started at, so that it starts as its file says. The solver's settings are restored in every case. The
     steps count in ``sim.step_totals``.
 
     Args:
@@ -102,6 +105,7 @@ def settle(sim: Simulation, max_steps: int) -> SettleInfo:
     tight = dataclasses.replace(own, tol_velocity=min(own.tol_velocity, SETTLE_TOLERANCE_FRACTION * own.sleep_velocity))
     rest = own.sleep_velocity
     start = sim.state
+    original = start.copy()
     x0 = start.x.copy()
     steps, residual, phase, info, reason = 0, 0.0, 1, None, ""
     try:
@@ -132,11 +136,17 @@ def settle(sim: Simulation, max_steps: int) -> SettleInfo:
     finally:
         solver.config = own
     settled = not reason
-    sim.state.t, sim.state.step_index = start.t, start.step_index
-    sleeping = tuple(sorted(info.sleeping + info.fell_asleep)) if info is not None and own.sleeping else ()
+    displacement = _largest(sim.state.x - x0)
+    if settled:
+        sim.state.t, sim.state.step_index = start.t, start.step_index
+        sleeping = tuple(sorted(info.sleeping + info.fell_asleep)) if info is not None and own.sleeping else ()
+    else:
+        # a scene that moves on its own (a falling block) or a failed step: it starts as its file says
+        sim.state = original
+        sleeping = ()
     awake = tuple(sorted(set(sleeping_eligible(sim.model)) - set(sleeping))) if own.sleeping else ()
     return SettleInfo(settled=settled, steps=steps, max_steps=int(max_steps), residual_velocity=residual,
-                      displacement=_largest(sim.state.x - x0), sleeping=sleeping, awake=awake, reason=reason)
+                      displacement=displacement, sleeping=sleeping, awake=awake, reason=reason)
 
 
 def _largest(a: np.ndarray) -> float:

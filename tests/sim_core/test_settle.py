@@ -94,9 +94,12 @@ def test_a_falling_sheet_cannot_settle_and_is_reported_after_the_cap():
     b.add_sheet("sheet", grid_sheet((0.03, 0.03), (4, 4), (-0.015, -0.015, 0.0)), material)
     dt, n = 0.005, 12
     sim = Simulation(b.finalize(), dt=dt, solver_config=SolverConfig(repeat_fixed_points=True, sleeping=True))
+    x_file = sim.state.x.copy()
     info = settle(sim, n)
     assert not info.settled and info.steps == n and info.reason == f"still moving after {n} steps"
     assert info.sleeping == () and info.awake == ("sheet",)
     assert info.residual_velocity == pytest.approx(GRAVITY * n * dt, rel=1e-3)
     assert info.displacement == pytest.approx(GRAVITY * dt ** 2 * n * (n + 1) / 2, rel=1e-3)
     assert sim.state.t == 0.0 and sim.state.step_index == 0
+    # not settled: the sheet starts where its file puts it, at rest, not 12 steps into its fall
+    assert np.array_equal(sim.state.x, x_file) and not np.any(sim.state.v)
