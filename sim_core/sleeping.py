@@ -28,6 +28,16 @@ SLEEPING_KINDS = ("sheet", "solid")
 """Body kinds that may sleep (frozen bodies and spheres never move; effector-driven bodies never sleep)."""
 
 
+def sleeping_eligible(model: Model) -> list[str]:
+    """The names of the bodies of ``model`` that may sleep: kind in :data:`SLEEPING_KINDS`, with
+    vertices, none of them driven by an effector; in the model's body order."""
+    driven = np.zeros(model.vertex_count, dtype=bool)
+    for eff in model.effectors.values():
+        driven[eff.vertices] = True
+    return [b.name for b in model.bodies.values()
+            if b.kind in SLEEPING_KINDS and b.vertex_stop > b.vertex_start and not np.any(driven[b.vertices])]
+
+
 class Woken(Exception):
     """Raised inside a step when a contact candidate pair joins sleeping bodies to a moving vertex; the
     solver wakes them and solves the step again (never leaves the solver).
@@ -90,8 +100,7 @@ class SleepSet:
             driven[eff.vertices] = True
         # vertices that never move: statically fixed and not driven
         self.static = np.asarray(model.vertex_fixed, dtype=bool) & ~driven
-        self.eligible = [b.name for b in model.bodies.values()
-                         if b.kind in SLEEPING_KINDS and b.vertex_stop > b.vertex_start and not np.any(driven[b.vertices])]
+        self.eligible = sleeping_eligible(model)
         self.radius = float(model.contact.eps + model.contact.candidate_margin)
         # a sphere body is its centre vertex: its surface lies this far (m) beyond the vertex
         self.sphere_radius = {b.name: float(b.material["radius"]) for b in model.bodies.values() if b.kind == "sphere"}

@@ -11,6 +11,17 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   whose inputs equal the last one's takes its result instead of a Newton solve; and it lets a body at
   rest that nothing moving can reach sleep (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`: the
   card while the pad moves above it), held out of the Newton system until something could change it.
+- ``settle_steps_max`` (int, default :data:`DEFAULT_SETTLE_STEPS_MAX`): at start-up and after
+  ``~/reset``, before the clock starts and before the first output, the scene is stepped under zero
+  commands until it is at rest (:func:`sim_core.settle.settle`: the Newton tolerance tightened below
+  the sleeping threshold, then the node's own solver settings until a step leaves the state
+  unchanged), at most this many steps; the settled state starts at t = 0. A scene file's initial
+  state is not exactly at the equilibrium of the step (the bundled scene's card: a Newton update of
+  7.9e-7 m/s, above ``sleep_velocity``), so without it the card stays awake, and in every solve,
+  until the first command. The steps taken, the residual velocity and the largest vertex move are
+  logged and published as a diagnostic status ``<node name>: settle`` (``OK``; ``WARN`` when the
+  scene did not settle within the cap: the node starts anyway). 0: off. Only for the simulation the
+  node builds from ``scene`` (a given simulation starts as given).
 - ``mode`` (str): ``realtime`` (one step per ``dt`` of wall time, or slower when the solver is
   slower: steps are counted against the wall clock, :class:`thinshell_ros.pacing.RealtimePacer`; a
   tick of the timer takes the due steps back to back until one takes a ``dt`` or more, so the steps
@@ -90,6 +101,7 @@ from visualization_msgs.msg import Marker
 
 from sim_core.backend import BACKEND_CHOICES, check_backend
 from sim_core.errors import ConfigError, ThinShellError
+from sim_core.settle import SettleInfo, settle
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
@@ -118,11 +130,29 @@ REALTIME_STEPS_PER_TICK = 4
 """Due steps the ``realtime`` timer callback takes at most before it returns to the executor
 (services, parameters, the other timers run between)."""
 
+DEFAULT_SETTLE_STEPS_MAX = 400
+"""Default of the ``settle_steps_max`` parameter: the cap on the start-up settling steps (2 s of the
+bundled scene's 5 ms steps; it settles in 5)."""
+
 MAX_CONSECUTIVE_FAILURES = 3
 """Failed steps in a row (with the effectors held) after which the node pauses itself."""
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 """Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
+
+
+def settle_status(name: str, info: SettleInfo) -> DiagnosticStatus:
+    """The diagnostic status of a start-up settling (:func:`sim_core.settle.settle`): ``OK`` when the
+    scene settled, else ``WARN``; the message is :meth:`SettleInfo.describe`, the values ``settled``,
+    ``steps``, ``max_steps``, ``residual_velocity`` (m/s), ``displacement`` (m), ``sleeping`` and
+    ``awake`` (names comma-separated) and ``reason``."""
+    status = DiagnosticStatus(name=name, hardware_id="thinshell", message=info.describe(),
+                              level=DiagnosticStatus.OK if info.settled else DiagnosticStatus.WARN)
+    values = {"settled": str(info.settled).lower(), "steps": str(info.steps), "max_steps": str(info.max_steps),
+              "residual_velocity": f"{info.residual_velocity:.6g}", "displacement": f"{info.displacement:.6g}",
+              "sleeping": ",".join(info.sleeping), "awake": ",".join(info.awake), "reason": info.reason}
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    return status
 
 
 def solver_status(name: str, t: float, info: StepInfo | None = None, error: str | None = None) -> DiagnosticStatus:
@@ -223,6 +253,12 @@ class SimNode(Node):
         ws_margin = float(self.declare_parameter("workspace_margin", DEFAULT_WORKSPACE_MARGIN, ParameterDescriptor(
             read_only=True, description="m added on every side of the scene's bounding box when no workspace_min/max "
                                         "is given; < 0: no workspace limit")).value)
+        settle_steps_max = int(self.declare_parameter("settle_steps_max", DEFAULT_SETTLE_STEPS_MAX, ParameterDescriptor(
+            read_only=True, description="cap on the steps that settle the scene to rest under zero commands at "
+                                        "start-up and after ~/reset (0: off); only for the simulation built from "
+                                        "'scene'")).value)
+        if settle_steps_max < 0:
+            raise ConfigError(f"parameter 'settle_steps_max' must be >= 0, got {settle_steps_max}")
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if self.executor_name not in EXECUTORS:
@@ -230,6 +266,7 @@ class SimNode(Node):
         if not (math.isfinite(self.rate) and self.rate >= 0) or not (math.isfinite(self.mesh_rate) and self.mesh_rate >= 0):
             raise ConfigError(f"parameters 'rate' and 'mesh_rate' must be >= 0 Hz, got {self.rate}, {self.mesh_rate}")
         check_backend(backend, "node parameter 'backend'")
+        sim_built = sim is None
         if sim is None:
             # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated)
             # and a resting body nothing moving can reach sleeps (StepInfo.sleeping)
@@ -239,6 +276,8 @@ class SimNode(Node):
             # resting bodies asleep) now, not in the first steps that need them
             sim.warm_up()
         self.sim = sim
+        self.settle_steps_max = settle_steps_max if sim_built else 0
+        self.settle_info: SettleInfo | None = self._settle()
         self.dt = float(sim.dt)
         self._declare_material_parameters()
 
@@ -298,6 +337,7 @@ class SimNode(Node):
         self.create_timer(1.0, self._check_graph)
         self.create_timer(5.0, self._log_progress)
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._publish_settle_status()
         self.publish_outputs(force=True)
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
@@ -507,6 +547,25 @@ class SimNode(Node):
         self.publish_outputs()
         return True
 
+    def _settle(self) -> SettleInfo | None:
+        """Settle the scene to rest (``settle_steps_max``, :func:`sim_core.settle.settle`) and log how it
+        ended; None when off."""
+        if self.settle_steps_max <= 0:
+            return None
+        start = time.monotonic()
+        info = settle(self.sim, self.settle_steps_max)
+        log = self.get_logger()
+        (log.info if info.settled else log.warning)(
+            f"start state: {info.describe()} ({time.monotonic() - start:.3g} s of wall time)"
+            + ("" if info.settled else "; starting anyway"))
+        return info
+
+    def _publish_settle_status(self) -> None:
+        """Publish the last settling's diagnostic status (:func:`settle_status`), if there was one."""
+        if self.settle_info is not None:
+            self._publish_solver_status(settle_status(f"{self.get_name()}: settle", self.settle_info),
+                                        track_level=False)
+
     def _solver_backend(self) -> str:
         """The concrete backend of the simulation's solver, ``"<given>"`` for a stand-in without one."""
         solver = getattr(self.sim, "solver", None)
@@ -530,8 +589,9 @@ class SimNode(Node):
         elif self._solver_status_level != DiagnosticStatus.OK or info.fell_asleep or info.woken:
             self._publish_solver_status(solver_status(self._status_name, t, info))
 
-    def _publish_solver_status(self, status: DiagnosticStatus) -> None:
-        self._solver_status_level = status.level
+    def _publish_solver_status(self, status: DiagnosticStatus, track_level: bool = True) -> None:
+        if track_level:
+            self._solver_status_level = status.level
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = cv.stamp_from_ns(cv.seconds_to_ns(self.sim.t))
         try:
@@ -630,6 +690,8 @@ class SimNode(Node):
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             self.sim.reset()
+            self.settle_info = self._settle()
+            self._publish_settle_status()
             self.arbiter.reset()
             self._pacer.restart()
             self.consecutive_failures = 0

@@ -94,7 +94,11 @@ def test_press_bad_input_and_sigint_recording(ros_env, tmp_path, client):
         assert proc.poll() is None, (tmp_path / "node.log").read_text()
         fz0 = got["wrench"][-1][1][2]
         z0 = got["markers"][-1][1][:, 2].copy()
-        assert abs(fz0) < 1e-9 and np.allclose(z0, 0.0, atol=1e-9)  # no contact at the start
+        # no contact at the start: the node starts from the settled scene (settle_steps_max), whose gel
+        # hangs 0.15-0.18 um lower under its weight than the scene file's rest shape (+z of the sensor frame,
+        # away from the pad; a press moves markers along -z), within one step's Newton tolerance
+        # (tol_velocity dt = 1e-4 m/s x 5 ms = 0.5 um); the press below moves them by more than 10 um
+        assert abs(fz0) < 1e-9 and np.allclose(z0, 0.0, atol=5e-7) and np.all(z0 >= 0.0)
 
         # press 0.5 mm into the card: the normal force ON the gel points along -z of the sensor frame
         target = _press_target(5e-4)
