@@ -158,7 +158,7 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     lines = [f"# Diagnosis of `{doc['bag']}`", ""]
     ex = doc["explained_by"]
     lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
-    for e in ex:
+    for e in (e for e in ex if e != "unexplained"):
         ratio = doc["refit"]["effects"].get(e, {}).get("params", {}).get("static_over_kinetic", float("nan"))
         lines.append(f"- **{e}**: {WORDS.get(e, e).format(ratio=ratio)}.")
     for u in doc["extra"].get("unexplained") or []:
