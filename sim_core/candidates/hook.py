@@ -50,6 +50,9 @@ away from the gel and changed the buckling, a signature no adhesion has (benchma
 2026-11-22)."""
 
 _STATE_KEY = "gel_viscoelasticity"
+RELEASE_TIME_TOLERANCE = 1e-9
+"""Tolerance (s) of the comparison of the simulated time with ``adhesion.release_time``."""
+
 _ADHESION_KEY = "adhesion"
 
 
@@ -117,8 +120,9 @@ class CandidateHook:
 
     def peeled(self, state) -> bool:
         """Whether the adhesion bonds are gone at ``state`` (its time ``t`` s at or past
-        ``adhesion.release_time``; ``state`` None: not peeled)."""
-        return state is not None and float(state.t) >= self.setting("adhesion.release_time")
+        ``adhesion.release_time``, to :data:`RELEASE_TIME_TOLERANCE`: the step clock is a sum of
+        steps, so ``12 * 0.01`` may read 0.11999999999999998; ``state`` None: not peeled)."""
+        return state is not None and float(state.t) >= self.setting("adhesion.release_time") - RELEASE_TIME_TOLERANCE
 
     def _hinge_bending(self, model, name: str, hinges: np.ndarray, theta_bar) -> DiscreteShellBending:
         """Discrete-shell bending of sheet ``name`` (built once per stiffness, rest angles replaced)."""

@@ -48,3 +48,48 @@ def test_a_card_never_carried_peels_at_the_lift_off_and_one_never_left_has_no_pe
     assert face_gap(sheet[0], face[0] + np.array([1.0, 0.0, 0.0])) == float("inf")  # no point under the face
     with pytest.raises(ValueError, match="opening"):
         peel_time(t, sheet, t, face, 0.0)
+
+
+def test_own_simulator_tack_released_at_a_known_time_is_read_back_and_replayed():
+    """Known answer in this simulator: the benchmark card recorded with the gel's tack (4 card weights of
+    bonds) that breaks at 0.12 s, while the gel lifts 3 mm, waits, and lifts 3 mm more (the card is
+    carried to 3.35 mm and falls back at the break). The peel read from the recording is within one
+    step of the break, and the replay with the tack released there fits the sheet points at the
+    noise except on the rows of the fall, the replay without it does not (it never lifts the card)."""
+    import pathlib
+    import tempfile
+
+    from sim_core.scenes import load_scene
+    from sim_core.simulation import Simulation
+    from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING
+    from sysid.diagnose.plasticity_refit import checkerboard, sheet_resolution, tack_base
+    from sysid.diagnose.signature_engine import recording_of
+    from sysid.evidence import load_evidence
+    from sysid.observation import ObservationModel
+    from tests.sysid.simbag import (PRESS_ONLY, TRUE_PARAMS, add_noise, scene_with, simulate_streams,
+                                    targets_from_segments, write_bag)
+
+    scene = scene_with(TRUE_PARAMS)
+    dt = float(scene["dt"])
+    beta = ADHESION_PROBE_WEIGHTS * adhesion_weight_scale(Simulation(load_scene(scene), dt=dt).model)
+    lift = PRESS_ONLY + (((0.0, 0.0, 0.003), 6), ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.003), 4), ((0.0, 0.0, 0.0), 6))
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), lift)
+    release = 12 * dt
+    truth = {**TRUE_PARAMS, "candidate.adhesion": beta, RELEASE_TIME_SETTING: release}
+    streams = add_noise(simulate_streams(scene, truth, targets), seed=3)
+    bag = write_bag(pathlib.Path(tempfile.mkdtemp()) / "bag", scene, streams)
+    model = ObservationModel(load_evidence(bag, include_image="auto"), dt=dt)
+    rec = recording_of(model, None)
+    assert rec.data["sheet_points"][:, :, 2].max() > 0.003  # carried
+    nominal = np.asarray(model.predict(model.simulate(TRUE_PARAMS))["sheet_points"], dtype=float)
+    train = checkerboard(nominal.shape[1], sheet_resolution(model))
+    tack = tack_base(model, TRUE_PARAMS, rec, nominal, train)
+    assert tack is not None
+    assert abs(tack["params"][RELEASE_TIME_SETTING] - release) <= dt + 1e-9
+    assert tack["nominal_train_rms"] > 5.0  # the replay without the tack leaves the card flat (7.2)
+    # measured 2.5: every row at the noise (0.83-1.01) but the two of the fall (7.6, 8.7): the replay's
+    # card falls one step after the recording's although both release at 0.12 s (cause not found)
+    assert tack["train_rms"] < 0.5 * tack["nominal_train_rms"]
+    rows = np.sqrt(np.mean(((tack["prediction"] - rec.data["sheet_points"]) / rec.sigma["sheet_points"]) ** 2, axis=(1, 2)))
+    assert np.sum(rows > 2.0) <= 2
