@@ -16,6 +16,11 @@ with one fitted scalar the held-out half tests whether the replay with the term 
 sheet's shape where it was not fitted. The cost and the held-out figure are read on the effect's
 windows (after the release, where the set lives); the held-out RMS over the whole recording is
 reported as well, so a term that helps after the release but harms the loading shows it.
+
+On a lift the set comes from a fold made by the gel's tack, which a calibrated replay without
+adhesion never makes; where adhesion is named too, the search starts from the replay in which the
+tack carries the card and lets go at the peel read from the recording (:func:`tack_base`,
+:mod:`sysid.diagnose.peel`), and the figures before / after are that replay without / with the term.
 """
 
 from __future__ import annotations
