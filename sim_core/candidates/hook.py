@@ -20,6 +20,7 @@ energy whose ``parameter_gradient`` is the signature ``d(grad E)/d beta`` at ``b
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
@@ -49,6 +50,9 @@ away from the gel and changed the buckling, a signature no adhesion has (benchma
 2026-11-22)."""
 
 _STATE_KEY = "gel_viscoelasticity"
+RELEASE_TIME_TOLERANCE = 1e-9
+"""Tolerance (s) of the comparison of the simulated time with ``adhesion.release_time``."""
+
 _ADHESION_KEY = "adhesion"
 
 
@@ -110,7 +114,15 @@ class CandidateHook:
             return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
         if name == "adhesion.release" and v is None:
             return max(ADHESION_RELEASE_FRACTION * self.setting("adhesion.delta"), self.setting("adhesion.reach"))
+        if name == "adhesion.release_time" and v is None:
+            return math.inf
         return float(v)
+
+    def peeled(self, state) -> bool:
+        """Whether the adhesion bonds are gone at ``state`` (its time ``t`` s at or past
+        ``adhesion.release_time``, to :data:`RELEASE_TIME_TOLERANCE`: the step clock is a sum of
+        steps, so ``12 * 0.01`` may read 0.11999999999999998; ``state`` None: not peeled)."""
+        return state is not None and float(state.t) >= self.setting("adhesion.release_time") - RELEASE_TIME_TOLERANCE
 
     def _hinge_bending(self, model, name: str, hinges: np.ndarray, theta_bar) -> DiscreteShellBending:
         """Discrete-shell bending of sheet ``name`` (built once per stiffness, rest angles replaced)."""
@@ -156,12 +168,13 @@ class CandidateHook:
     def contact_terms(self, model, x_prev: np.ndarray, friction, state=None) -> list:
         """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``: gel vertices
         in contact, and the bonded ones of ``state.candidate_state["adhesion"]`` up to the release
-        opening; :mod:`sim_core.candidates.adhesion`). ``state`` None: no bonded vertices."""
+        opening; :mod:`sim_core.candidates.adhesion`), none from ``adhesion.release_time`` on.
+        ``state`` None: no bonded vertices."""
         p = self.params
         out: list = []
         if "stiction" in p and friction is not None:
             out.append(StictionFriction(friction, p["stiction"], self.setting("stiction.slip_scale")))
-        if "adhesion" in p:
+        if "adhesion" in p and not self.peeled(state):
             v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
                                    self.setting("adhesion.reach"), self.setting("adhesion.release"),
                                    self.bonded(state))
@@ -190,7 +203,9 @@ class CandidateHook:
     def update_state(self, model, state_in, x: np.ndarray, dt: float, elastic) -> dict[str, Any]:
         """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation, adhesion bonds)."""
         out = dict(state_in.candidate_state or {})
-        if "adhesion" in self.params:
+        if "adhesion" in self.params and self.peeled(state_in):
+            out[_ADHESION_KEY] = np.zeros(0, np.int64)
+        elif "adhesion" in self.params:
             out[_ADHESION_KEY] = bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
                                               self.setting("adhesion.reach"), self.setting("adhesion.release"),
                                               self.bonded(state_in))

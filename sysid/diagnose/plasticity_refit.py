@@ -16,6 +16,11 @@ with one fitted scalar the held-out half tests whether the replay with the term 
 sheet's shape where it was not fitted. The cost and the held-out figure are read on the effect's
 windows (after the release, where the set lives); the held-out RMS over the whole recording is
 reported as well, so a term that helps after the release but harms the loading shows it.
+
+On a lift the set comes from a fold made by the gel's tack, which a calibrated replay without
+adhesion never makes; where adhesion is named too, the search starts from the replay in which the
+tack carries the card and lets go at the peel read from the recording (:func:`tack_base`,
+:mod:`sysid.diagnose.peel`), and the figures before / after are that replay without / with the term.
 """
 
 from __future__ import annotations
@@ -169,9 +174,46 @@ def sheet_resolution(model: Any) -> tuple[int, int] | None:
     return None if sheet is None else tuple(int(v) for v in sheet.resolution)
 
 
+def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
+              train: np.ndarray) -> dict[str, Any] | None:
+    """The replay in which the gel's tack carries the card and lets go at the recorded peel, when it
+    fits the training sheet points (all rows) better than the calibrated replay.
+
+    A set is made by a fold, and on a lift the fold is made by the tack that carries the card
+    (candidate adhesion); a calibrated replay without it never lifts the card, so no yield angle can
+    give it the recorded set. The bonds' strength is :data:`~sysid.diagnose.candidates.
+    ADHESION_PROBE_WEIGHTS` times :func:`~sysid.diagnose.candidates.adhesion_weight_scale` (bonds
+    that together bear four card weights: the card follows the gel, and far above that only the pull
+    on the gel grows); their release time is the peel read from the recording
+    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays.
+
+    Returns:
+        ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms"}``,
+        or None (no adhesion candidate, no peel in the recording, or no better fit).
+    """
+    from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
+    from sysid.diagnose.peel import tack_with_peel
+
+    t = np.asarray(recording.t["sheet_points"], dtype=float)
+    data = np.asarray(recording.data["sheet_points"], dtype=float)
+    sigma = np.asarray(recording.sigma["sheet_points"], dtype=float)
+    w = adhesion_weight_scale(model.simulation().model)
+    if not (math.isfinite(w) and w > 0.0):
+        return None
+    tack = tack_with_peel(model, params, t, data, ADHESION_PROBE_WEIGHTS * w)
+    if tack is None:
+        return None
+    pred = np.asarray(model.predict(model.simulate(tack["params"]))["sheet_points"], dtype=float)
+    n_tr = max(data[:, train].size, 1)
+    c_tack, c_nom = _sse(data[:, train], pred[:, train], sigma), _sse(data[:, train], nominal[:, train], sigma)
+    if not c_tack < c_nom:
+        return None
+    return {**tack, "prediction": pred, "train_rms": math.sqrt(c_tack / n_tr), "nominal_train_rms": math.sqrt(c_nom / n_tr)}
+
+
 def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
                      windows_s: list[list[float]], max_replays: int = 5,
-                     max_time: float | None = None) -> dict[str, Any]:
+                     max_time: float | None = None, carried_by_tack: bool = False) -> dict[str, Any]:
     """Bending plasticity refitted with its term (``sheet.yield_angle``) on a calibrated recording.
 
     Args:
@@ -181,6 +223,11 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
         nominal: the calibrated replay's ``sheet_points`` ``(n, p, 3)`` m.
         windows_s: the effect's windows ``[[t0, t1], ...]`` s (the rows of the cost).
         max_replays, max_time: budget of the search (:func:`fit_yield_angle`).
+        carried_by_tack: (the diagnosis also names adhesion) try the replay in which the gel's tack
+            carries the card up to the recorded peel (:func:`tack_base`, two replays) as the base of the search; it is kept
+            when it fits the training points better than the calibrated replay. The held-out figures
+            before / after are then those of that base without / with the term
+            (``detail.heldout_rms_calibrated``: the calibrated replay's).
 
     Returns:
         the refit block of the report (``params``, ``observable``, ``heldout``, ``rms``,
@@ -195,19 +242,32 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     rows = np.zeros(len(t), bool)
     for a, b in windows_s:
         rows |= (t >= a) & (t <= b)
+    train = checkerboard(data.shape[1], sheet_resolution(model))
+    held = ~train
+    calibrated = nominal
+    base_params = dict(params)
+    tack = tack_base(model, params, recording, nominal, train) if carried_by_tack else None
+    if tack is not None:
+        base_params, nominal = dict(tack.pop("params")), tack.pop("prediction")
     angles = hinge_angle_history(model, nominal)
     theta_max = float(np.max(angles)) if angles is not None and angles.size else FALLBACK_THETA_MAX
     theta_max = theta_max if theta_max > 1e-6 else FALLBACK_THETA_MAX
-    train = checkerboard(data.shape[1], sheet_resolution(model))
 
     def replay(y: float) -> np.ndarray:
-        trace = model.simulate({**dict(params), YIELD_PARAMETER: float(y)})
+        trace = model.simulate({**base_params, YIELD_PARAMETER: float(y)})
         return np.asarray(model.predict(trace)["sheet_points"], dtype=float)
 
     f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time)
     pred = f.pop("prediction")
+    f["tack"] = tack
+    f["heldout_rms_calibrated"] = _rms(data[rows][:, held], calibrated[rows][:, held], sigma)
     fitted = {} if f["yield_angle"] is None else {"yield_angle_rad": f["yield_angle"]}
+    if tack is not None:
+        fitted = {**fitted, "adhesion_N_per_pair": tack["beta"], "peel_s": tack["peel_s"]}
     return {"params": fitted,
+            "base": ("calibrated replay" if tack is None else
+                     f"calibrated replay with the gel's tack ({tack['beta']:.3g} N per bond, bonds broken at the "
+                     f"recorded peel, {tack['peel_s']:.3f} s)"),
             "observable": "sheet_points in the effect's windows (after the release)",
             "heldout": "checkerboard of the sheet grid (half the points fitted, the other half held out)",
             "rms": {"sheet_points": f["train_rms_after"]},

@@ -46,6 +46,7 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                nominal_sensor_calibration)
 from sysid.calibration_secant import SECANT_REPLAYS
+from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
@@ -337,17 +338,21 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
 
 
-def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
+def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings,
+                named: Sequence[str] = ()) -> dict[str, Any]:
     """Sheet effects. Bending plasticity: the hinge bending's yield angle refitted by replays with
     the calibrated parameters (:func:`sysid.diagnose.plasticity_refit.refit_plasticity`; training and
     held-out sheet points in a checkerboard of the grid, rows of the effect's windows). Adhesion: the
     carried height located, with the sheet's whitened RMS in its windows, not refitted (its bonds
-    are refitted by ``thinshell diagnose --engine score``)."""
+    are refitted by ``thinshell diagnose --engine score``). Where adhesion is named too (``named``),
+    the plasticity refit starts from the replay in which the gel's tack carries the card up to the
+    recorded peel (:func:`sysid.diagnose.plasticity_refit.tack_base`)."""
     rec = p.recording
     if r.effect == "bending_plasticity" and p.calibration.prediction:
         try:
             out = refit_plasticity(p.model, p.calibration.params, rec, p.prediction["sheet_points"], r.windows_s,
-                                   settings.plasticity_replays, settings.plasticity_max_time)
+                                   settings.plasticity_replays, settings.plasticity_max_time,
+                                   carried_by_tack="adhesion" in named)
         except ValueError as err:
             p.notes.append(f"bending_plasticity: not refitted ({err})")
         else:
@@ -409,8 +414,9 @@ def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
             "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
 
 
-def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[str, Any]:
-    """The named effect's model fitted on training data and its held-out RMS before and after."""
+def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: Sequence[str] = ()) -> dict[str, Any]:
+    """The named effect's model fitted on training data and its held-out RMS before and after
+    (``named``: every effect the signatures name; :func:`refit_sheet`)."""
     if r.effect == "lens_distortion":
         return refit_lens(p, r, settings.holdout_blocks)
     if r.effect == "force_bias":
@@ -419,7 +425,7 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings) -> dict[
         return refit_timing(p, r)
     if r.effect == "stiction":
         return refit_stiction(p, r)
-    return refit_sheet(p, r, settings)
+    return refit_sheet(p, r, settings, named)
 
 
 # ================================================================================ pipeline
@@ -465,12 +471,17 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
     decision: Decision = decide(p.results, th)
     refits: dict[str, Any] = {}
     for effect in decision.explained_by:
-        refits[effect] = refit(p, p.results[effect], settings)
+        refits[effect] = refit(p, p.results[effect], settings, decision.explained_by)
+    # a name stands only where the effect's own term gains on held-out data (sysid.diagnose.gain_guard)
+    explained, unexplained = split_by_gain(decision.explained_by, refits)
+    p.notes.extend(u["reason"] for u in unexplained)
+    if unexplained and not explained:
+        explained = ["unexplained"]
     named = [p.results[e] for e in decision.explained_by]
     windows = sorted({(round(a, 4), round(b, 4)) for r in named for a, b in r.windows_s})
     channels = sorted({ch for r in named for ch in r.channels})
     markers = sorted({m for r in named for m in r.markers})
-    top = refits.get(decision.explained_by[0]) if decision.explained_by else None
+    top = refits.get(explained[0]) if explained else None
     candidates = []
     for effect, r in sorted(p.results.items(), key=lambda kv: -kv[1].statistic):
         if not r.applicable:
@@ -486,13 +497,14 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
         "mismatch": {"detected": bool(decision.explained_by), "windows_s": [list(w) for w in windows],
                      "channels": channels, "markers": markers},
         "candidates": candidates,
-        "explained_by": list(decision.explained_by),
+        "explained_by": list(explained),
         "refit": {"params": dict(top["params"]) if top else {}, "rms": dict(top["rms"]) if top else {},
                   "heldout_rms_before": None if top is None else top["heldout_rms_before"],
                   "heldout_rms_after": None if top is None else top["heldout_rms_after"],
                   "effects": refits},
         "extra": {"engine": ENGINE_NAME, "signatures": {e: r.as_dict() for e, r in p.results.items()},
                   "ties": decision.ties, "contact_properties": decision.contact_properties,
+                  "unexplained": unexplained,
                   "null": {"source": "baseline" if base else "default", "baselines": [str(b.bag) for b in base],
                            "statistic": th.statistic, "effect_size": th.effect_size},
                   "notes": p.notes, "wall_time_s": time.monotonic() - t0 + (p.wall_s if prepared is not None else 0.0),

@@ -158,9 +158,11 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     lines = [f"# Diagnosis of `{doc['bag']}`", ""]
     ex = doc["explained_by"]
     lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
-    for e in ex:
+    for e in (e for e in ex if e != "unexplained"):
         ratio = doc["refit"]["effects"].get(e, {}).get("params", {}).get("static_over_kinetic", float("nan"))
         lines.append(f"- **{e}**: {WORDS.get(e, e).format(ratio=ratio)}.")
+    for u in doc["extra"].get("unexplained") or []:
+        lines.append(f"- not named: {u['reason']}.")
     props = doc["extra"].get("contact_properties") or []
     if props:
         lines.append(f"- contact properties of this cell (not named alone): {', '.join(props)}")
@@ -195,6 +197,8 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         b, a = r.get("heldout_rms_before"), r.get("heldout_rms_after")
         lines.append(f"- {e}: params `{json.dumps(r['params'])}`; {r['observable']}; held-out: {r['heldout']}; "
                      f"{'n/a' if b is None else f'{b:.3g}'} -> {'n/a' if a is None else f'{a:.3g}'}")
+        if r.get("base"):
+            lines.append(f"  - before: the {r['base']}")
         for note in ([r["note"]] if r.get("note") else []) + list((r.get("detail") or {}).get("notes", [])):
             lines.append(f"  - {note}")
     lines += ["", *[f"![{p.stem}]({p.name})" for p in images], ""]
@@ -210,7 +214,8 @@ def write_signature_report(doc: Mapping[str, Any], prepared: Any, out_dir: str |
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     images = [_plot_calibration(doc, out)]
-    for e in doc["explained_by"]:
+    shown = [e for e in doc["explained_by"] if e != "unexplained"]
+    for e in shown + [u["effect"] for u in doc["extra"].get("unexplained") or [] if u["effect"] not in shown]:
         p = _plot_effect(doc, prepared, e, out)
         if p is not None:
             images.append(p)

@@ -148,3 +148,22 @@ def test_one_hook_path_model_candidates_and_a_given_hook_step_alike():
         sim.solver.set_hook(CandidateHook({"stiction": 0.1}))
     with pytest.raises(ConfigError, match="hook object is not a StepHook .missing terms, update_state"):
         NewtonSolver(sim.model, hook=object())
+
+
+def test_adhesion_bonds_break_at_the_release_time():
+    """``adhesion.release_time``: the bonds act as without it in every step that starts before it, and
+    from it on none acts (the gel rising off the card is free: Fz 0, as without adhesion) and the
+    bonded set is empty."""
+    beta, release = 0.002, 0.07  # the lift starts with step 5 (t 0.04 -> 0.05); bonds pull from step 6 on
+    base, _ = _press_and_hold(None, hold=1, lift=10, tol_velocity=1e-6)
+    tacky, _ = _press_and_hold({"adhesion": beta}, hold=1, lift=10, tol_velocity=1e-6)
+    peeled, sim = _press_and_hold({"adhesion": beta, "adhesion.release_time": release}, hold=1, lift=10,
+                                  tol_velocity=1e-6)
+    n_before = int(round(release / DT))  # steps 0..6 start before 0.07 s
+    assert np.allclose(peeled[:n_before], tacky[:n_before], rtol=1e-9, atol=1e-12)
+    assert np.all(tacky[n_before:] > 1e-3)  # still pulled without the release
+    # free after it, as the bare gel (1e-6 N at the first step: the card, pulled up, touches as it falls back)
+    assert np.allclose(peeled[n_before:], base[n_before:], atol=1e-5)
+    assert sim.state.candidate_state["adhesion"].size == 0
+    with pytest.raises(ConfigError, match="release_time"):
+        validate_candidate_parameters({"adhesion.release_time": -1.0})
