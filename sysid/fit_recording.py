@@ -208,7 +208,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if sensor is not None:
         doc["diagnostics"]["sensor_calibration"] = sensor.summary()
     # the fitted scene is built (and checked) before anything is written
-    scene_doc = None if write_scene is None else fitted_scene_from_result(result, evidence, options.t_max)
+    scene_doc = None if write_scene is None else fitted_scene_from_result(
+        result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)
     with staged_directory(out, force) as staging:
         write_fit_json(staging / "fit.json", doc)
         write_report(result, doc, staging)

@@ -17,11 +17,12 @@ Parameter -> scene key: ``sheet.youngs_modulus | poisson_ratio | bending_stiffne
 ``sheet.material.*``; ``sheet.density`` -> ``sheet.density``; ``<gel body>.youngs_modulus |
 poisson_ratio | density`` -> ``sensors.<s>.gel_material.*``; ``friction.<gel body>_sheet`` ->
 ``sensors.<s>.friction``; ``friction.sheet_table`` / ``friction.<gel>_table`` -> ``table.friction``
-(one value for both pairs); ``contact.stiffness`` -> ``simulation.contact_stiffness``; ``damping`` ->
+(one value for both pairs); ``contact.stiffness`` -> ``simulation.contact_stiffness``;
+``contact.eps_v`` -> ``simulation.contact_eps_v``; ``damping`` ->
 ``simulation.damping``; ``sheet.yield_angle`` -> ``simulation.sheet_yield_angle``; ``candidate.<name>``
 -> ``simulation.candidates.<name>`` (the effect's term); ``sensor.normal_offset`` -> the sensor's
 ``mount`` moved by that offset along its +z (the replay's shift of the effector along the sensor
-normal, made permanent). A parameter with no scene key (``contact.eps_v``) is refused.
+normal, made permanent). A parameter with no scene key is refused.
 
 A task scene (``kind: task``, ``docs/scene_schema.md``) keeps its own keys: ``<sheet>.bending_stiffness``
 -> ``sheets.<sheet>.bending: {bending_stiffness: D}`` (replacing ThinShellLab's ``k_bend_thinshelllab``),
@@ -97,6 +98,8 @@ def scene_keys_for(scene: Mapping[str, Any], name: str) -> list[tuple[str, ...]]
         return [("sensors", gels[body], "gel_material", key)]
     if name == "contact.stiffness":
         return [("simulation", "contact_stiffness")]
+    if name == "contact.eps_v":
+        return [("simulation", "contact_eps_v")]
     if name == "damping":
         return [("simulation", "damping")]
     if body == "candidate" and key:
@@ -257,8 +260,18 @@ def write_fitted_scene(path: str | Path, doc: Mapping[str, Any], *, force: bool 
     return path
 
 
-def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = None) -> dict[str, Any]:
+def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = None,
+                             calibrated: Mapping[str, float] | None = None) -> dict[str, Any]:
     """The fitted scene of a :class:`sysid.fit.FitResult` on ``evidence`` (the scene its model simulated).
+
+    Args:
+        result: the fit.
+        evidence: the recording it was fitted to.
+        t_max: the fit's time window end, s (recorded).
+        calibrated: name -> value of the simulator parameters the calibration set before the fit
+            (:attr:`sysid.calibration.CalibrationResult.params`, e.g. the stick speed
+            ``contact.eps_v`` of its secant stage): the fit's replays ran with them, so the scene
+            holds them too (no uncertainty: ``sigma`` None); the fit's own values take precedence.
 
     Raises:
         ConfigError: see :func:`fitted_scene_document`.
@@ -271,7 +284,11 @@ def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = N
     if model.sensor_calibration is not None:
         # the fit was judged through this sensor calibration (thinshell sysid's default): it is part of the fit
         record["sensor_calibration"] = model.sensor_calibration.as_dict()
-    return fitted_scene_document(model.scene, result.values, result.sigma, sensor=model.sensor, record=record)
+    values = {**{k: float(v) for k, v in (calibrated or {}).items()}, **result.values}
+    sigma = {**{k: None for k in (calibrated or {})}, **result.sigma}
+    if calibrated:
+        record["calibrated"] = sorted(k for k in calibrated if k not in result.values)
+    return fitted_scene_document(model.scene, values, sigma, sensor=model.sensor, record=record)
 
 
 def sensor_calibration_of(scene: Mapping[str, Any]):

@@ -12,6 +12,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
 
     simulation:
       contact_stiffness: 2.0e4     # N/m penalty stiffness
+      contact_eps_v: 0.01          # m/s, friction's stick speed (IPC mollifier)
       contact_eps: null            # m; default: half the sheet thickness
       gel_resolution: [10, 8, 3]   # gel tet-box vertices along sensor x, y, z
       sheet_yield_angle: .inf      # rad, bending plasticity threshold
@@ -43,6 +44,7 @@ from sim_core.transforms import compose_poses, transform_points
 
 SIMULATION_KEYS = {
     "contact_stiffness": 2.0e4,
+    "contact_eps_v": 0.01,
     "contact_eps": None,
     "gel_resolution": None,
     "sheet_yield_angle": float("inf"),
@@ -170,7 +172,10 @@ def build_tactile_scene(scene: dict) -> Model:
             contact_triangles=face + body.vertex_start, spec=TactileSensorSpec.from_dict(s, sname), camera=camera, embedding=embedding,
         )
     eps = opts["contact_eps"] if opts["contact_eps"] is not None else 0.5 * thickness
-    contact = ContactSettings(stiffness=float(opts["contact_stiffness"]), eps=float(eps),
+    eps_v = float(opts["contact_eps_v"])
+    if not (np.isfinite(eps_v) and eps_v > 0):
+        raise ConfigError(f"scene: simulation.contact_eps_v must be a positive number (m/s), got {opts['contact_eps_v']!r}")
+    contact = ContactSettings(stiffness=float(opts["contact_stiffness"]), eps=float(eps), eps_v=eps_v,
                               self_contact=bool(opts["self_contact"]),
                               broad_phase=check_broad_phase(opts["broad_phase"], "simulation.broad_phase"))
     model = b.finalize(gravity=scene.get("gravity", (0, 0, -9.81)), contact=contact, damping=float(opts["damping"]),

@@ -81,8 +81,12 @@ def test_effect_and_mapping(press_bag):
     assert sim.model.candidates == {"stiction": 0.3} and sim.get_parameter("candidate.stiction") == 0.3
     assert "fitted" not in scene  # input untouched
     assert scene_keys_for(scene, "gel.density") == [("sensors", "tactile", "gel_material", "density")]
-    with pytest.raises(ConfigError, match="'contact.eps_v' has no scene key"):
-        fitted_scene_document(scene, {"contact.eps_v": 1e-4})
+    # the stick speed (the calibration's secant stage) has its scene key, read back by the built scene
+    eps_doc = fitted_scene_document(scene, {"contact.eps_v": 3e-3})
+    assert eps_doc["simulation"]["contact_eps_v"] == 3e-3
+    assert Simulation.from_scene(yaml.safe_load(yaml.safe_dump(eps_doc))).get_parameter("contact.eps_v") == 3e-3
+    with pytest.raises(ConfigError, match="'contact.warp' has no scene key"):
+        fitted_scene_document(scene, {"contact.warp": 1e-4})
     with pytest.raises(ConfigError, match="not finite"):
         fitted_scene_document(scene, {"gel.youngs_modulus": float("nan")})
     with pytest.raises(ConfigError, match="simulation.candidates"):
