@@ -83,8 +83,11 @@ def settle(sim: Simulation, max_steps: int) -> SettleInfo:
        reach falls asleep after it.
 
     A step that raises :class:`~sim_core.errors.SimulationDivergedError` ends settling (not settled).
-    A scene that does not settle (a failed step, or still moving at the cap: a falling block) is put
-    back to the state it started at, so that it starts as its file says. The solver's settings are restored in every case. The
+    A scene that does not settle (a failed step, still moving at the cap: a falling block), or whose
+    rest lies farther from its starting state than one step's Newton tolerance (``dt * tol_velocity``:
+    a sheet that sags by more than that), is put back to the state it started at, so that it starts
+    as its file says and a replay of the node's recording (which starts from the scene file) follows
+    it. The solver's settings are restored in every case. The
     steps count in ``sim.step_totals``.
 
     Args:
@@ -135,8 +138,12 @@ def settle(sim: Simulation, max_steps: int) -> SettleInfo:
                       f"unchanged in {steps} steps")
     finally:
         solver.config = own
-    settled = not reason
     displacement = _largest(sim.state.x - x0)
+    tolerance = sim.dt * own.tol_velocity
+    if not reason and displacement > tolerance:
+        reason = (f"its rest is {displacement:.3g} m from the scene's state, more than one step's Newton tolerance "
+                  f"({tolerance:.3g} m): a replay of what the node records starts from the scene's state")
+    settled = not reason
     if settled:
         sim.state.t, sim.state.step_index = start.t, start.step_index
         sleeping = tuple(sorted(info.sleeping + info.fell_asleep)) if info is not None and own.sleeping else ()

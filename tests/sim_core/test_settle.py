@@ -103,3 +103,16 @@ def test_a_falling_sheet_cannot_settle_and_is_reported_after_the_cap():
     assert sim.state.t == 0.0 and sim.state.step_index == 0
     # not settled: the sheet starts where its file puts it, at rest, not 12 steps into its fall
     assert np.array_equal(sim.state.x, x_file) and not np.any(sim.state.v)
+
+
+def test_a_rest_farther_than_one_steps_tolerance_from_the_scene_state_is_not_taken():
+    # the bundled scene's rest is 0.27 um from its file state (the gel's sag): under one step's Newton
+    # tolerance at tol_velocity 1e-4 m/s (0.5 um), over it at 1e-6 m/s (5 nm); there the node starts
+    # from the file state, which a replay of its recording also starts from
+    sim = Simulation.from_scene(SCENE, solver_config=SolverConfig(repeat_fixed_points=True, sleeping=True,
+                                                                  tol_velocity=1e-6))
+    x_file = sim.state.x.copy()
+    info = settle(sim, 400)
+    assert not info.settled and "one step's Newton tolerance" in info.reason
+    assert sim.dt * 1e-6 < info.displacement < 0.5 * sim.dt * 1e-4 * 2
+    assert np.array_equal(sim.state.x, x_file) and not np.any(sim.state.v)
