@@ -109,8 +109,8 @@ from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unk
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, ros_session, spin_until_stopped,
-                                   topic_namespace)
+from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, freeze_start_up_objects, ros_session,
+                                   spin_until_stopped, topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
 
@@ -542,9 +542,9 @@ class SimNode(Node):
                     "simulation paused; call ~/reset (or ~/pause false to retry)")
             self.publish_outputs(force=True)
             return False
+        self.publish_outputs()  # the outputs first, then the bookkeeping (diagnostics)
         if isinstance(info, StepInfo):
             self._report_step(t, info)
-        self.publish_outputs()
         return True
 
     def _settle(self) -> SettleInfo | None:
@@ -648,7 +648,8 @@ class SimNode(Node):
         return values if sigma == 0 else values + self._rng.normal(0.0, sigma, values.shape)
 
     def publish_outputs(self, force: bool = False) -> None:
-        """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output."""
+        """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output: the effector
+        poses (the state's) first, then the tactile outputs and sheet points (:meth:`Simulation.observe`)."""
         t = float(self.sim.t)
         t_ns = cv.seconds_to_ns(t)
         try:
@@ -658,9 +659,11 @@ class SimNode(Node):
                 return
             if self.rate > 0:
                 self._next_publish_t = t + 1.0 / self.rate
-            obs = self.sim.observe(render_image=self.publish_image) if self.publish_image else self.sim.observe()
-            for e, pose in obs.effector_pose.items():
+            # the effector poses are the state's (the step's kinematic result), published before the
+            # tactile observation is read: a command's pose does not wait for the sensor model
+            for e, pose in self._measured_poses().items():
                 self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
+            obs = self.sim.observe(render_image=self.publish_image) if self.publish_image else self.sim.observe()
             for s, reading in obs.tactile.items():
                 xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
                 wrench = np.asarray(reading.wrench, dtype=float)
@@ -739,6 +742,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ThinShellError, FileNotFoundError) as err:
             print(f"thinshell sim node: error: {err}", file=sys.stderr)
             return 1
+        freeze_start_up_objects()  # no full collection traverses the start-up state while the node runs
         try:
             spin_until_stopped(node, stop, executor=node.make_executor())
         finally:
