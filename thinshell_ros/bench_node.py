@@ -33,7 +33,8 @@ from thinshell_ros.sim_node import EXECUTORS
 
 
 def measure_node(context: Context, namespace: str = "/thinshell", effector: str = "ee", window: float = 3.0,
-                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0, warmup: int = 20) -> dict[str, Any]:
+                 commands: int = 20, step: float = 2e-4, timeout: float = 60.0, warmup: int = 20,
+                 keep_probes: bool = False) -> dict[str, Any]:
     """Measure a running sim node from a client node in ``context``.
 
     Args:
@@ -45,11 +46,14 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
         timeout: wall seconds to wait for the node's first output, for its warm-up and for each probe.
         warmup: node steps (advances of ``/clock``) to wait for before the window starts: the first
             steps of a Taichi backend compile its kernels (seconds), which is start-up, not stepping.
+        keep_probes: also return each probe (``probes_sent``).
 
     Returns:
         dict with ``real_time_factor``, ``steps_per_second`` (simulated time over the step dt, the
         smallest /clock increment: robust to dropped best-effort /clock messages), ``latency_ms``
-        (``median``, ``p95``, ``max``), ``probes``, ``lost``.
+        (``median``, ``p95``, ``max``), ``probes``, ``lost``; with ``keep_probes`` also
+        ``probes_sent``: per probe ``[sent, received, z]``, the client's ``time.monotonic()`` (s) when
+        the command was published and when its pose arrived (None: lost) and the commanded z (m).
 
     Raises:
         TimeoutError: the node published nothing, or did not finish its warm-up, within ``timeout``.
@@ -91,7 +95,7 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
             if increments.size:
                 steps_per_s = rtf / (float(increments.min()) * 1e-9)
         base = poses[-1][1].copy()
-        latencies, lost = [], 0
+        latencies, lost, sent = [], 0, []
         for k in range(commands):
             target = base.copy()
             target[2] += step if k % 2 == 0 else 0.0
@@ -101,11 +105,13 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
             reached = spin_for(lambda: any(abs(p[2] - target[2]) < 1e-7 for _, p in poses[n_before:]), timeout)
             if not reached:
                 lost += 1
+                sent.append([t0, None, float(target[2])])
                 continue
             t1 = next(t for t, p in poses[n_before:] if abs(p[2] - target[2]) < 1e-7)
             latencies.append(t1 - t0)
+            sent.append([t0, t1, float(target[2])])
         lat = np.array(latencies) * 1e3
-        return {
+        result = {
             "real_time_factor": rtf,
             "steps_per_second": steps_per_s,
             "latency_ms": {"median": float(np.median(lat)) if lat.size else float("nan"),
@@ -114,6 +120,9 @@ def measure_node(context: Context, namespace: str = "/thinshell", effector: str 
             "probes": commands,
             "lost": lost,
         }
+        if keep_probes:
+            result["probes_sent"] = sent
+        return result
     finally:
         ex.shutdown(timeout_sec=0)
         node.destroy_node()

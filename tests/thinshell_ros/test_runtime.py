@@ -1,16 +1,19 @@
-"""spin_until_stopped: spins the given executor until the stop event, then shuts it down."""
+"""spin_until_stopped: spins the given executor until the stop event, then shuts it down;
+freeze_start_up_objects: start-up garbage collected, the rest frozen."""
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
+import weakref
 
 import pytest
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 
-from thinshell_ros.runtime import spin_until_stopped
+from thinshell_ros.runtime import freeze_start_up_objects, spin_until_stopped
 
 pytestmark = pytest.mark.ros
 
@@ -37,3 +40,27 @@ def test_spin_until_stopped_runs_timers_and_returns_on_stop(ros_context, executo
     if executor is not None:
         assert node not in executor.get_nodes()
     node.destroy_node()
+
+
+def test_freeze_start_up_objects_collects_garbage_and_freezes_what_lives():
+    class Held:
+        pass
+
+    live, cycle = Held(), Held()
+    cycle.self = cycle  # cyclic garbage: only the collector frees it
+    dead = weakref.ref(cycle)
+    del cycle
+    try:
+        frozen = freeze_start_up_objects()
+        assert dead() is None, "the start-up garbage was frozen instead of collected"
+        assert frozen == gc.get_freeze_count() > 0
+        # frozen: no collection traverses the live start-up object any more; new objects are collected
+        assert all(obj is not live for obj in gc.get_objects())
+        later = Held()
+        later.self = later
+        dead_later = weakref.ref(later)
+        del later
+        gc.collect()
+        assert dead_later() is None
+    finally:
+        gc.unfreeze()
