@@ -31,6 +31,11 @@ def block_keys(vertices: np.ndarray, dof_count: int) -> tuple[np.ndarray, np.nda
     return rows, cols
 
 
+_BLOCK_KEPT = np.array([np.zeros((3, 3), bool), np.ones((3, 3), bool), np.triu(np.ones((3, 3), bool)), np.eye(3, dtype=bool)])
+"""Kept entries (i, j) of a 3x3 vertex block by its kind: none (lower triangle, a fixed vertex), between two free
+vertices, a free vertex's own block (upper triangle), a fixed vertex's own block (diagonal)."""
+
+
 class StaticPattern:
     """Upper-triangle pattern of fixed element-vertex arrays plus the full diagonal, for one free mask.
 
@@ -186,27 +191,26 @@ class StaticPattern:
             return self.lookup(rows, cols).reshape(k, 3 * m, 3 * m)
         N, vertex_free, full, own, pairs, pair_start, indptr = self._vertex
         v = vertices.astype(np.int64)
-        u = np.broadcast_to(v[:, :, None], (k, m, m)).ravel()
-        w = np.broadcast_to(v[:, None, :], (k, m, m)).ravel()
-        out = np.full((u.size, 3, 3), -1, dtype=np.int32)  # [pair of local vertices, i, j]
         a = np.arange(3)
-        between = np.flatnonzero((u < w) & vertex_free[u] & vertex_free[w])
-        if between.size:
-            ub = u[between]
-            key = ub * N + w[between]
+        u, w = v[:, :, None], v[:, None, :]  # (k, m, 1), (k, 1, m): the local vertex pair (a, b)
+        between = (u < w) & vertex_free[u] & vertex_free[w]  # (k, m, m)
+        same = np.broadcast_to(u == w, between.shape)
+        if np.any(same & ~full[u] & vertex_free[u]):
+            raise ValueError("StaticPattern.slot_map: entries outside the pattern")
+        rank = np.zeros(between.shape, dtype=np.int64)  # the pair's rank in u's list of pairs
+        if between.any():
+            key = (u * N + w)[between]
             q = np.minimum(np.searchsorted(pairs, key), max(pairs.size - 1, 0))
             if pairs.size == 0 or not np.array_equal(pairs[q], key):
                 raise ValueError("StaticPattern.slot_map: entries outside the pattern")
-            start = indptr[3 * ub[:, None] + a[None, :]] + own[ub] + 3 * (q - pair_start[ub])[:, None]  # (P, 3)
-            out[between] = start[:, :, None] + a[None, None, :]
-        same = np.flatnonzero(u == w)
-        if same.size:
-            us = u[same]
-            if np.any(vertex_free[us] & ~full[us]):
-                raise ValueError("StaticPattern.slot_map: entries outside the pattern")
-            start = indptr[3 * us[:, None] + a[None, :]]  # (S, 3): row 3 u + i starts at its diagonal
-            upper = start[:, :, None] + (a[None, None, :] - a[None, :, None])  # column j at j - i
-            keep = (a[None, :] >= a[:, None])[None] & full[us][:, None, None]
-            keep |= np.eye(3, dtype=bool)[None]
-            out[same] = np.where(keep, upper, -1)
-        return out.reshape(k, m, m, 3, 3).transpose(0, 1, 3, 2, 4).reshape(k, 3 * m, 3 * m)
+            rank[between] = q - np.broadcast_to(pair_start[u], between.shape)[between]
+        row_start = indptr[3 * v[:, :, None] + a].astype(np.int32)  # (k, m, 3): row 3 u + i starts at its diagonal
+        # the block of pair (a, b), row i: its first column's slot (between: after the own entries and the
+        # earlier pairs' blocks; same vertex: the diagonal's slot less i), column j at that + j
+        base = np.where(between[:, :, None, :],
+                        (row_start + own[v].astype(np.int32))[:, :, :, None] + (3 * rank).astype(np.int32)[:, :, None, :],
+                        (row_start - a.astype(np.int32))[:, :, :, None])  # (k, m, 3, m)
+        kind = np.where(between, 1, np.where(same, np.where(full[u], 2, 3), 0))  # (k, m, m)
+        kept = _BLOCK_KEPT[kind].transpose(0, 1, 3, 2, 4)  # (k, m, 3, m, 3)
+        out = np.where(kept, base[..., None] + np.arange(3, dtype=np.int32), np.int32(-1))
+        return out.reshape(k, 3 * m, 3 * m)
