@@ -1,7 +1,8 @@
 """Profile a lockstep batch of the Forming scene: where the wall time of a Newton iteration goes.
 
 Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``.
-Builds ``B`` copies (``sim_core.bench.batch._FormingRun``), steps once to compile and set up, then
+Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
+Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
 times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
 over all of them the inclusive wall time and calls of the solver's parts (wrapped with timers: the
 gradient with its contact search, the Newton matrix, the CG's set-up and solve, the line search and its
@@ -42,6 +43,14 @@ def main() -> int:
     orig = sc.SolverConfig
     sc.SolverConfig = lambda **kw: orig(**kw, **extra)  # _FormingRun imports it at call time
     try:
+        if backend != "numpy":  # every kernel compiled or loaded first, the projected Hessian's too (as bench batch)
+            from sim_core.fused_elastic import compile_kernels
+
+            warm = _FormingRun(1, 2, backend, lockstep=True)
+            warm.run()
+            sim0 = warm.batch.sims[0]
+            compile_kernels(sim0.solver.elastic.potentials(sim0.state.hinge_theta_bar), sim0.model.x_rest)
+            del warm
         run = _FormingRun(args.B, args.steps + 1, backend, lockstep=True)
     finally:
         sc.SolverConfig = orig
