@@ -158,15 +158,18 @@ class PairEvaluation:
         return kept[1].copy()
 
     def penalty_hessian(self, stiffness: float) -> np.ndarray:
-        """New blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
-        (J/m^2): a copy of the kept ``hessian_blocks`` when made for ``stiffness``, else from ``dd``.
+        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
+        (J/m^2): the kept ``hessian_blocks`` when made for ``stiffness``, as a read-only view (no copy of
+        what can be tens of megabytes a Newton iteration; writing into it raises), else new blocks from ``dd``.
 
         Raises:
             ValueError: neither is available (see :meth:`holds_hessian`).
         """
         blocks = self.hessian_blocks
         if blocks is not None and blocks[0] == stiffness:
-            return blocks[1].copy()
+            view = blocks[1].view()
+            view.flags.writeable = False
+            return view
         dd = self.dd
         if dd.hess is None:
             raise ValueError(f"PairEvaluation: no distance Hessians, and no penalty Hessians for stiffness {stiffness}")
