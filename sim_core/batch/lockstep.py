@@ -432,7 +432,8 @@ class LockstepSolver(NewtonSolver):
         :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
         matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
-        copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`): the matrix is
+        copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
+        contact pair blocks (terms with ``projects_subsets``, projected for the marked copies only): the matrix is
         then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
         side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
         from sim_core.ti_kernels.pcg import VertexBlocks
@@ -450,7 +451,9 @@ class LockstepSolver(NewtonSolver):
             indptr = np.zeros(n + 1, dtype=np.int32)
             np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
             cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
-        blocks = VertexBlocks.from_element_blocks([p.hessian(x, projection) for p in dynamic_terms], step.free)
+        blocks = VertexBlocks.from_element_blocks(
+            [p.hessian(x, projection, vertices=vertices) if vertices is not None and getattr(p, "projects_subsets", False)
+             else p.hessian(x, projection) for p in dynamic_terms], step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,

@@ -209,7 +209,7 @@ def block_dof_indices(vertices: np.ndarray) -> np.ndarray:
         shape ``(k, 3 m)``: ``3 * vertices[:, a] + d`` in vertex-major order.
     """
     vertices = np.asarray(vertices, dtype=np.int64)
-    return (3 * vertices[:, :, None] + np.arange(3)[None, None, :]).reshape(vertices.shape[0], -1)
+    return (3 * vertices[:, :, None] + np.arange(3)[None, None, :]).reshape(vertices.shape[0], 3 * vertices.shape[1])
 
 
 def scatter_gradient(vertex_count: int, vertices: np.ndarray, element_grad: np.ndarray) -> np.ndarray:

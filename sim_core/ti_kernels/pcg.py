@@ -33,7 +33,6 @@ unchanged by later passes. The matrix must be positive definite (the projected N
 :attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
 """
 
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -109,6 +108,24 @@ def _diag_blocks_csr(indptr: _I32, indices: _I32, data: _F64, blk: _F64, nvert: 
                 if j // 3 == v:
                     blk[9 * v + 3 * a + j % 3] = data[k]
                     blk[9 * v + 3 * (j % 3) + a] = data[k]
+
+
+@ti.kernel
+def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32,
+                           bval: _F64):
+    """Vertex blocks ``at + (e m + a) m + b`` of ``count`` element blocks over ``m`` vertices: row vertex
+    ``vertices[e m + a]``, column vertex ``vertices[e m + b]``, values ``blocks`` of element ``e`` (row-major
+    ``(3m, 3m)``) at rows ``3 a + i``, columns ``3 b + j``."""
+    for t in range(count * m * m):
+        e = t // (m * m)
+        a = (t // m) % m
+        b = t % m
+        k = at + t
+        brow[k] = vertices[e * m + a]
+        bcol[k] = vertices[e * m + b]
+        for i in ti.static(range(3)):
+            for j in ti.static(range(3)):
+                bval[9 * k + 3 * i + j] = blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j]
 
 
 @ti.kernel
@@ -273,47 +290,83 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
         ti.atomic_add(running[0], active[c])
 
 
-@dataclass
 class VertexBlocks:
     """A sum of 3x3 vertex blocks, the matrix-free part of a Newton matrix (element Hessians kept as blocks,
     never assembled): ``sum_t F E_t F`` with ``E_t`` at vertex rows ``rows[t]`` and vertex columns
     ``cols[t]``, ``F = diag(free)``.
 
-    Attributes:
-        rows, cols: vertex indices, int32 ``(K,)``.
+    Made from explicit vertex blocks (``VertexBlocks(rows, cols, values, free)``) or from element Hessians
+    (:meth:`from_element_blocks`, which keeps the element sets: :meth:`BatchedPCG.factorize` uploads them as
+    they are and expands them into vertex blocks by a kernel, where they are; ``rows``, ``cols`` and
+    ``values`` are then made on the host only when read).
+
+    Args:
+        rows, cols: vertex indices, int ``(K,)``.
         values: the blocks, ``(K, 3, 3)`` float64 (N/m).
         free: the free-DoF mask, ``(3 N,)`` bool (a fixed DoF's rows and columns are dropped).
+
+    Attributes:
+        free: the free-DoF mask, ``(3 N,)`` bool.
+        count: number of vertex blocks ``K``.
+        sets: None, or the element sets ``[(vertices int32 (k, m), blocks float64 (k, 3m, 3m))]`` (C order).
     """
 
-    rows: np.ndarray
-    cols: np.ndarray
-    values: np.ndarray
-    free: np.ndarray
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, free: np.ndarray) -> None:
+        self._vertex_form: tuple | None = (np.asarray(rows, dtype=np.int32), np.asarray(cols, dtype=np.int32),
+                                           np.asarray(values, dtype=np.float64).reshape(-1, 3, 3))
+        self.free = np.asarray(free, dtype=bool)
+        self.count = int(self._vertex_form[0].size)
+        self.sets: list | None = None
 
     @classmethod
     def from_element_blocks(cls, element_blocks: Sequence, free: np.ndarray) -> "VertexBlocks":
         """The vertex blocks of element Hessians: each :class:`~sim_core.energies.base.HessianBlocks`
         (``vertices`` ``(k, m)``, ``blocks`` ``(k, 3m, 3m)``, symmetric) gives its ``k m^2`` 3x3 blocks
-        ``(a, b)`` at vertices ``(vertices[e, a], vertices[e, b])``.
+        ``(a, b)`` at vertices ``(vertices[e, a], vertices[e, b])``, in the order of the sets, elements,
+        ``a`` and ``b``.
 
         Args:
             element_blocks: the element Hessians (any number of sets, any ``m``).
             free: the free-DoF mask, ``(3 N,)`` bool.
         """
-        sets = [(np.asarray(b.vertices), b.blocks) for b in element_blocks if np.shape(b.vertices)[0]]
-        total = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in sets)
-        rows = np.empty(total, dtype=np.int32)
-        cols = np.empty(total, dtype=np.int32)
-        values = np.empty((total, 3, 3))
-        at = 0
-        for v, blocks in sets:  # each set written once into its slice (no concatenation)
-            k, m = v.shape
-            part = slice(at, at + k * m * m)
-            rows[part].reshape(k, m, m)[...] = v[:, :, None]
-            cols[part].reshape(k, m, m)[...] = v[:, None, :]
-            values[part].reshape(k, m, m, 3, 3)[...] = np.asarray(blocks).reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
-            at = part.stop
-        return cls(rows, cols, values, np.asarray(free, dtype=bool))
+        out = cls.__new__(cls)
+        out.sets = [(np.ascontiguousarray(b.vertices, dtype=np.int32), np.ascontiguousarray(b.blocks, dtype=np.float64))
+                    for b in element_blocks if np.shape(b.vertices)[0]]
+        out.free = np.asarray(free, dtype=bool)
+        out.count = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in out.sets)
+        out._vertex_form = None
+        return out
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Row vertex of each block, int32 ``(K,)``."""
+        return self._vertex_blocks()[0]
+
+    @property
+    def cols(self) -> np.ndarray:
+        """Column vertex of each block, int32 ``(K,)``."""
+        return self._vertex_blocks()[1]
+
+    @property
+    def values(self) -> np.ndarray:
+        """The blocks, ``(K, 3, 3)`` float64 (N/m)."""
+        return self._vertex_blocks()[2]
+
+    def _vertex_blocks(self) -> tuple:
+        if self._vertex_form is None:
+            rows = np.empty(self.count, dtype=np.int32)
+            cols = np.empty(self.count, dtype=np.int32)
+            values = np.empty((self.count, 3, 3))
+            at = 0
+            for v, blocks in self.sets:  # each set written once into its slice (no concatenation)
+                k, m = v.shape
+                part = slice(at, at + k * m * m)
+                rows[part].reshape(k, m, m)[...] = v[:, :, None]
+                cols[part].reshape(k, m, m)[...] = v[:, None, :]
+                values[part].reshape(k, m, m, 3, 3)[...] = blocks.reshape(k, m, 3, m, 3).transpose(0, 1, 3, 2, 4)
+                at = part.stop
+            self._vertex_form = (rows, cols, values)
+        return self._vertex_form
 
 
 class BatchedPCG:
@@ -427,15 +480,26 @@ class BatchedPCG:
         full_data = self._array("full_data", max(full[2], 1))
         if full[2]:
             _gather(data, self._arrays["full_src"], full_data, full[2])
-        self._nblocks = 0 if blocks is None else int(blocks.rows.size)
+        self._nblocks = 0 if blocks is None else int(blocks.count)
         brow = self._array("brow", max(self._nblocks, 1), ti.i32)
         bcol = self._array("bcol", max(self._nblocks, 1), ti.i32)
         bval = self._array("bval", max(9 * self._nblocks, 1))
         free = self._upload("free", np.ones(1) if blocks is None else blocks.free, ti.f64)
+        if self._nblocks and blocks.sets is not None:  # element sets uploaded as they are, expanded here
+            at = 0
+            for s, (verts, vals) in enumerate(blocks.sets):
+                k, m = verts.shape
+                verts_dev = self._array(f"element_vertices_{s}", verts.size, ti.i32)
+                vals_dev = self._array(f"element_blocks_{s}", vals.size)
+                verts_dev.from_numpy(verts.reshape(-1))
+                vals_dev.from_numpy(vals.reshape(-1))
+                _expand_element_blocks(verts_dev, vals_dev, k, m, at, brow, bcol, bval)
+                at += k * m * m
+        elif self._nblocks:
+            brow.from_numpy(np.ascontiguousarray(blocks.rows))
+            bcol.from_numpy(np.ascontiguousarray(blocks.cols))
+            bval.from_numpy(np.ascontiguousarray(blocks.values).reshape(-1))
         if self._nblocks:
-            brow.from_numpy(np.ascontiguousarray(blocks.rows, dtype=np.int32))
-            bcol.from_numpy(np.ascontiguousarray(blocks.cols, dtype=np.int32))
-            bval.from_numpy(np.ascontiguousarray(blocks.values, dtype=np.float64).reshape(-1))
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
         return True

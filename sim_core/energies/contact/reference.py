@@ -158,15 +158,18 @@ class PairEvaluation:
         return kept[1].copy()
 
     def penalty_hessian(self, stiffness: float) -> np.ndarray:
-        """New blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
-        (J/m^2): a copy of the kept ``hessian_blocks`` when made for ``stiffness``, else from ``dd``.
+        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``
+        (J/m^2): the kept ``hessian_blocks`` when made for ``stiffness``, as a read-only view (no copy of
+        what can be tens of megabytes a Newton iteration; writing into it raises), else new blocks from ``dd``.
 
         Raises:
             ValueError: neither is available (see :meth:`holds_hessian`).
         """
         blocks = self.hessian_blocks
         if blocks is not None and blocks[0] == stiffness:
-            return blocks[1].copy()
+            view = blocks[1].view()
+            view.flags.writeable = False
+            return view
         dd = self.dd
         if dd.hess is None:
             raise ValueError(f"PairEvaluation: no distance Hessians, and no penalty Hessians for stiffness {stiffness}")
@@ -304,13 +307,24 @@ class _PairPenalty:
         """dE/dx in N, shape ``(n, 3)``."""
         return self._evaluation(x, 1).gradient(self.stiffness, self.vertices)
 
-    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``."""
+    projects_subsets = True
+    """:meth:`hessian` takes a vertex mask (the lockstep solver's projected retry of a few copies)."""
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp",
+                vertices: np.ndarray | None = None) -> HessianBlocks:
+        """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``,
+        projected by ``projection``; with ``vertices`` (bool ``(n,)``) only the active pairs whose first
+        vertex is marked (for a mask closed under the pairs, as a stacked scene's copies: the pairs of the
+        marked vertices), so that only those are projected."""
         evaluation = self._evaluation(x, 2)
         if evaluation.active.size == 0:
             return HessianBlocks.empty(4)
         H = evaluation.penalty_hessian(self.stiffness)
-        return HessianBlocks(evaluation.active_vertices(self.vertices), project_psd(H, projection))
+        pair_vertices = evaluation.active_vertices(self.vertices)
+        if vertices is not None:
+            rows = np.flatnonzero(np.asarray(vertices)[pair_vertices[:, 0]])
+            pair_vertices, H = pair_vertices[rows], H[rows]
+        return HessianBlocks(pair_vertices, project_psd(H, projection))
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/d(stiffness) = ``(d - eps) grad d`` in m, shape ``(n, 3)``."""

@@ -37,7 +37,7 @@ Serial loops on the CPU, parallel on CUDA, as in :mod:`sim_core.energies.neohook
 import numpy as np
 
 from sim_core.energies.membrane.reference import SpringMembrane
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
@@ -306,6 +306,9 @@ class FusedSpringMembrane:
         code = projection_code(projection)
         p = self.potential
         t_count = self._triangles.shape[0]
+        if current_arch() == "cuda":  # every stage on the device, the sums downloaded once
+            self.add_projected_by_kernels(x, projection, values, vertices)
+            return
         if t_count:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
@@ -318,3 +321,41 @@ class FusedSpringMembrane:
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, self._edges, self._length0, self._upper, t_count, p.k_length, code,
                                             values)
+
+    def add_projected_by_kernels(self, x: np.ndarray, projection: str, values: np.ndarray,
+                                 vertices: np.ndarray | None = None) -> None:
+        """:meth:`add_projected` by kernels alone (what it runs on CUDA; on the CPU arch the same kernels on
+        host arrays): the triangles' exact blocks (:func:`spring_membrane_triangle_blocks`) reduced,
+        projected by the Jacobi kernel and scattered by
+        :meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows`, the edges'
+        closed form (:func:`spring_membrane_projected_edges`), all into one array of sums kept where the
+        kernels run (on CUDA the device: the blocks never cross to the host), then added to ``values``
+        ``(pattern.keys.size,)`` (one download). The sums equal :meth:`add_projected`'s host path to round-off.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = projection_code(projection)
+        p = self.potential
+        d = self._device
+        t_count = self._triangles.shape[0]
+        sums = on_device(d, "sums", values, scratch=True)
+        if sums is values:  # host arrays (CPU arch): the kernels add into values directly
+            sums = None
+        else:
+            sums.fill(0.0)
+        target = values if sums is None else sums
+        if t_count:
+            if self._blocks is None:
+                self._blocks = np.zeros((t_count, 9, 9))
+            blocks = on_device(d, "blocks", self._blocks, scratch=True)
+            spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles),
+                                            on_device(d, "area0", self._area0), p.k_area, blocks)
+            rows = (np.arange(t_count, dtype=np.int32) if vertices is None
+                    else np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1)).astype(np.int32))
+            self._projector.add_projected_rows(blocks, projection, on_device(d, "slots", self._slots), rows, target)
+        if self._edges.shape[0]:
+            spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),
+                                            on_device(d, "upper", self._upper), t_count, p.k_length, code, target)
+        if sums is not None:
+            values += sums.to_numpy()

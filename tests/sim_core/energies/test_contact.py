@@ -262,3 +262,22 @@ def test_kept_evaluation_is_matched_bitwise_and_its_stiffness_terms_per_stiffnes
     assert pot.energy(x) == VertexTriangleContact(pairs, tris, np.ones(len(pairs)), 2.0 * K, EPS).energy(x) != e
     np.testing.assert_array_equal(pot.gradient(x),
                                   VertexTriangleContact(pairs, tris, np.ones(len(pairs)), 2.0 * K, EPS).gradient(x))
+
+
+@pytest.mark.parametrize("projection", ["none", "clamp"])
+def test_hessian_of_marked_vertices_is_the_marked_pairs_blocks(projection):
+    """With a vertex mask, the Hessian holds the blocks of the active pairs whose vertices are marked
+    (each pair here has its own four vertices), equal to those of the whole Hessian, and no other."""
+    rng = np.random.default_rng(4)
+    regions = list(PointTriangleRegion)
+    x, tris, pairs = _vt_scene(rng, regions)
+    pot = VertexTriangleContact(pairs, tris, np.full(len(pairs), 1.0), K, EPS)
+    whole = pot.hessian(x, projection)
+    marked = np.zeros(x.shape[0], dtype=bool)
+    chosen = np.array([1, 4, 5])
+    marked[(4 * chosen[:, None] + np.arange(4)).ravel()] = True
+    part = pot.hessian(x, projection, vertices=marked)
+    rows = np.flatnonzero(marked[whole.vertices[:, 0]])
+    assert rows.size == chosen.size
+    np.testing.assert_array_equal(part.vertices, whole.vertices[rows])
+    np.testing.assert_allclose(part.blocks, whole.blocks[rows], rtol=0, atol=1e-12 * np.abs(whole.blocks).max())

@@ -288,3 +288,30 @@ def test_spring_membrane_projected_blocks_equal_reference_block_by_block(ti_cpu,
                                                        [], zero, free))
             H_ref = _dense_upper(asm.assemble_upper([pot.hessian(x, projection)], [], zero, free))
             assert np.abs(H - H_ref).max() <= 1e-12 * np.abs(H_ref).max()
+
+
+@pytest.mark.parametrize("projection", ["clamp", "abs"])
+def test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds(ti_cpu, projection):
+    """The spring membrane's projection by kernels alone (its CUDA path, run here on the CPU arch: triangle
+    blocks, Jacobi projection, scatter and the edges' closed form) adds the host path's sums (LAPACK) to
+    1e-11 relative, for every element and for the elements touching a vertex mask; the projection
+    changed the deformed sheet's exact Hessian."""
+    from sim_core.energies.membrane.fused_spring_kernel import FusedSpringMembrane
+
+    pot, x_rest, deformed = _potentials("spring_membrane")
+    n = x_rest.shape[0]
+    fused, _ = _fused(pot, x_rest, np.ones(3 * n, bool))
+    part = FusedSpringMembrane(pot)
+    part.bind(fused.pattern)
+    x = np.ascontiguousarray(deformed(3))
+    marked = np.zeros(n, dtype=bool)
+    marked[: n // 3] = True
+    for vertices in (None, marked):
+        want = np.zeros(fused.pattern.keys.size)
+        part.add_projected(x, projection, want, vertices=vertices)
+        got = np.zeros(fused.pattern.keys.size)
+        part.add_projected_by_kernels(x, projection, got, vertices=vertices)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
+        exact = np.zeros(fused.pattern.keys.size)
+        part.add_projected(x, "none", exact, vertices=vertices)
+        assert np.abs(exact - want).max() > 1e-6 * np.abs(want).max()

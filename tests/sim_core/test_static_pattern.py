@@ -1,0 +1,86 @@
+"""The static sparsity pattern (:class:`sim_core.static_pattern.StaticPattern`) against its definition:
+the sorted distinct keys ``row * n + col`` of the element blocks' entries with ``row < col`` between free
+DoFs, plus the whole diagonal; the slots of block entries are their positions among those keys. Both
+constructions (by vertex pairs, for masks that keep each vertex's DoFs together, and entry by entry)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.static_pattern import StaticPattern
+
+
+def _elements(rng, vertex_count: int) -> list[np.ndarray]:
+    """Element arrays of 1 to 4 vertices over the first 80 % of the vertices (the rest in no element),
+    with repeated vertices in some elements (padded edges ``[a, b, b]``)."""
+    reach = int(0.8 * vertex_count)
+    arrays = [rng.integers(0, reach, size=(rng.integers(5, 40), m)) for m in (1, 2, 3, 4)]
+    padded = rng.integers(0, reach, size=(12, 2))
+    arrays.append(np.concatenate([padded, padded[:, 1:]], axis=1))
+    arrays.append(np.zeros((0, 3), dtype=np.int64))
+    return arrays
+
+
+def _definition(arrays: list[np.ndarray], free: np.ndarray):
+    """(keys, kept entries' positions, their rows, their columns) by the rule, entry by entry."""
+    n = free.size
+    rows, cols = [], []
+    for v in arrays:
+        dofs = (3 * v[:, :, None] + np.arange(3)).reshape(v.shape[0], 3 * v.shape[1])
+        rows.append(np.repeat(dofs, dofs.shape[1], axis=1).ravel())
+        cols.append(np.tile(dofs, (1, dofs.shape[1])).ravel())
+    rows.append(np.arange(n))
+    cols.append(np.arange(n))
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    keep = ((r < c) & free[r] & free[c]) | (r == c)
+    return np.unique(r[keep] * n + c[keep]), np.flatnonzero(keep), r, c
+
+
+@pytest.mark.parametrize("mask", ["all free", "fixed vertices", "split vertices"])
+def test_pattern_and_slots_are_those_of_the_definition(mask):
+    """Keys, diagonal slots, the kept entries' slots and every element's slot map equal the definition's,
+    for every mask kind (the split mask takes the entry-by-entry construction)."""
+    rng = np.random.default_rng(5)
+    vertex_count = 60
+    arrays = _elements(rng, vertex_count)
+    free = np.ones(3 * vertex_count, dtype=bool)
+    if mask == "fixed vertices":
+        free = np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
+    elif mask == "split vertices":
+        free = rng.uniform(size=3 * vertex_count) > 0.3
+    n = free.size
+    pattern = StaticPattern(arrays, free, n)
+    keys, entry_index, r, c = _definition(arrays, free)
+    np.testing.assert_array_equal(pattern.keys, keys)
+    idx = np.arange(n)
+    np.testing.assert_array_equal(pattern.diag_slots, np.searchsorted(keys, idx * n + idx))
+    np.testing.assert_array_equal(pattern.fixed_diag_slots, pattern.diag_slots[~free])
+    np.testing.assert_array_equal(pattern.entry_index, entry_index)
+    np.testing.assert_array_equal(pattern.keys[pattern.slot], (r * n + c)[entry_index])
+    for v in arrays:
+        k, m = v.shape
+        slots = pattern.slot_map(v)
+        assert slots.shape == (k, 3 * m, 3 * m) and slots.dtype == np.int32
+        dofs = (3 * v[:, :, None] + np.arange(3)).reshape(k, 3 * m)
+        rows, cols = dofs[:, :, None] + 0 * dofs[:, None, :], dofs[:, None, :] + 0 * dofs[:, :, None]
+        kept = ((rows < cols) & free[rows] & free[cols]) | (rows == cols)
+        np.testing.assert_array_equal(slots[~kept], -1)
+        np.testing.assert_array_equal(pattern.keys[slots[kept]], (rows * n + cols)[kept])
+
+
+@pytest.mark.parametrize("mask", ["fixed vertices", "split vertices"])
+def test_slot_map_of_elements_outside_the_pattern_is_refused(mask):
+    """A block between free vertices that no element of the pattern joins, or a free vertex's own block
+    when the vertex is in no element, is refused with a ValueError."""
+    vertex_count = 20
+    free = np.ones(3 * vertex_count, dtype=bool)
+    free[:3] = False
+    if mask == "split vertices":
+        free[4] = False
+    pattern = StaticPattern([np.array([[0, 1, 2], [3, 4, 5]])], free, 3 * vertex_count)
+    assert pattern.slot_map(np.array([[0, 1]])).max() >= 0  # vertex 0 is fixed: its pairs are not kept
+    with pytest.raises(ValueError, match="outside the pattern"):
+        pattern.slot_map(np.array([[1, 7]]))
+    with pytest.raises(ValueError, match="outside the pattern"):
+        pattern.slot_map(np.array([[12]]))
