@@ -58,9 +58,9 @@ if [ "$mode" = prepare ]; then
     PY=${PYTHON:-/work/main/.venv/bin/python}
     rm -rf "$dir/src" "$dir/wheels" "$dir/data"
     mkdir -p "$dir/src" "$dir/wheels"
-    (cd "$src" && tar --exclude=.git --exclude=./tests --exclude=./docs --exclude=./bags --exclude=__pycache__ \
-        --exclude=.pytest_cache --exclude=./.gpu_src --exclude=./.gpu_wheels --exclude=./.device_cpu -cf - .) \
-        | (cd "$dir/src" && tar -xf -) || exit 1
+    # the checkout's files that git tracks or would track (not its ignored venv, build outputs, caches)
+    (cd "$src" && git ls-files -co --exclude-standard -z -- . ':!:tests' ':!:docs' ':!:bags' \
+        | tar --null -T - -cf -) | (cd "$dir/src" && tar -xf -) || exit 1
     pkgs=()
     slim=0
     for profile in "$@"; do

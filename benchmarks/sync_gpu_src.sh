@@ -7,8 +7,9 @@ src=$(cd "$(dirname "$0")/.." && pwd)
 dest=${1:-/work/main/.gpu_src}
 rm -rf "$dest"
 mkdir -p "$dest"
-(cd "$src" && tar --exclude=.git --exclude=./tests --exclude=./docs --exclude=./bags --exclude=__pycache__ \
-    --exclude=.pytest_cache --exclude=./.gpu_src --exclude=./.gpu_wheels -cf - .) | (cd "$dest" && tar -xf -)
+# the checkout's files that git tracks or would track (not its ignored venv, build outputs, caches)
+(cd "$src" && git ls-files -co --exclude-standard -z -- . ':!:tests' ':!:docs' ':!:bags' \
+    | tar --null -T - -cf -) | (cd "$dest" && tar -xf -)
 (cd "$src" && tar --exclude=__pycache__ -cf - tests/__init__.py tests/sim_core/__init__.py tests/support \
     tests/sim_core/ti_kernels tests/sim_core/energies) | (cd "$dest" && tar -xf -)
 du -sb "$dest"
