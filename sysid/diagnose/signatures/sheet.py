@@ -31,6 +31,10 @@ REPLAY_SET_FRACTION = 0.5
 """The permanent-set test reads a set only where the replay returns the sheet closer to its start
 than this fraction of the recording's difference from the replay."""
 
+RESOLVABLE_SET_SIGMAS = 10.0
+"""A permanent set counts as resolved when at least this many sheet-tracking sigmas (the size
+threshold of the plasticity decision, :func:`sysid.diagnose.signatures.null.default_thresholds`)."""
+
 MIN_CARRIED_S = 0.1
 """Shortest run of carried-sheet rows that counts, s (a tactile delay leaves shorter ones)."""
 
@@ -125,6 +129,39 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         markers=[], detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
                             "replay_set_m": replay_set, "replay_released": replay_released,
                             "points": sorted(top.tolist()), "release_s": t_release})
+
+
+def resolvable_set(rec: Recording) -> float:
+    """Smallest permanent set the sheet tracking resolves, m: :data:`RESOLVABLE_SET_SIGMAS` times the
+    largest sheet-point noise sigma."""
+    return RESOLVABLE_SET_SIGMAS * float(np.max(rec.sigma["sheet_points"]))
+
+
+def set_rise(rec: Recording, result: SignatureResult, t0: float, t1: float) -> float:
+    """How far the points carrying a permanent set rose between ``t0`` and ``t1``, m.
+
+    Args:
+        rec: the recording.
+        result: a :func:`plasticity_test` result (its ``detail["points"]``: the points with the
+            largest set).
+        t0, t1: the interval, s.
+
+    Returns:
+        the mean height of those points at ``t1`` minus that at ``t0`` (each the mean of the sheet
+        samples within one sheet period of the instant); 0 for a result without points.
+    """
+    points = result.detail.get("points") if result.applicable else None
+    if not points:
+        return 0.0
+    t = rec.t["sheet_points"]
+    z = np.asarray(rec.data["sheet_points"], dtype=float)[:, points, 2].mean(axis=1)
+    half = rec.sample_period("sheet_points")
+
+    def height(at: float) -> float:
+        rows = np.abs(t - at) <= half
+        return float(z[rows].mean()) if rows.any() else float(np.interp(at, t, z))
+
+    return height(t1) - height(t0)
 
 
 def adhesion_test(rec: Recording) -> SignatureResult:
