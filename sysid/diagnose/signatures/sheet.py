@@ -63,8 +63,10 @@ def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
-    The final window is the last :data:`FINAL_WINDOW_S` of the recording, all of it after the
-    recorded gel's last load (:func:`_released_rows`). Where the replay has released the sheet
+    The final window is the last :data:`FINAL_WINDOW_S` of the last run of released rows
+    (:func:`_released_rows`) at least that long after the recorded gel's main contact (its longest
+    loaded run): a brief touch later (a kept fold brushing the lifted pad) neither hides the set nor
+    enters the window; without such a touch it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
     smaller of the two sets is the size). Where the replay still presses the gel on the sheet in that
     window (its contact outlasts the recorded one, e.g. an elastic fold of the replay leaning on the
@@ -83,8 +85,13 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     held = np.nonzero(~free)[0]
     if not len(held):
         return not_applicable(effect, "the recorded gel is never loaded")
-    last_held = int(held[-1])
-    final = free & (t >= t[-1] - FINAL_WINDOW_S) & (np.arange(len(t)) > last_held)
+    main_end = max(segments(~free), key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
+    runs = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end and t[i1 - 1] - t[i0] >= FINAL_WINDOW_S]
+    final = np.zeros(len(t), bool)
+    if runs:
+        i0, i1 = runs[-1]
+        final[i0:i1] = t[i0:i1] >= t[i1 - 1] - FINAL_WINDOW_S
+        last_held = i0 - 1
     if final.sum() < 3:
         return not_applicable(effect, "the gel does not release the sheet before the recording ends "
                                       f"(no free final window of {FINAL_WINDOW_S} s)")
@@ -122,12 +129,13 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         return not_applicable(effect, "the replay holds the sheet after the recorded release and the sheet has "
                                       "no free initial window to compare with")
     top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
-    t_release = float(t[last_held])
+    t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
         effect=effect, statistic=max(stat, 0.0), effect_size=size, effect_unit="m", reason=reason,
-        estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, float(t[-1])]], channels=["sheet_points"],
+        estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]], channels=["sheet_points"],
         markers=[], detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
                             "replay_set_m": replay_set, "replay_released": replay_released,
+                            "final_window_s": [float(t[final][0]), t_end],
                             "points": sorted(top.tolist()), "release_s": t_release})
 
 

@@ -467,3 +467,17 @@ def test_a_gel_still_loaded_at_the_end_gives_no_final_window(rng):
     rec = synthetic(rng, set_height=0.004, duration=2.55)
     r = plasticity_test(rec)
     assert not r.applicable and "does not release" in r.reason
+
+
+def test_a_brief_touch_after_the_release_does_not_hide_the_set(rng):
+    rec = synthetic(rng, set_height=0.004)
+    # the kept fold brushes the lifted pad for 50 ms near the end: every marker moves 100 um
+    xyz = rec.data["markers_xyz"].copy()
+    touch = (rec.t["markers_xyz"] > 3.3) & (rec.t["markers_xyz"] < 3.35)
+    xyz[touch, :, 0] += 1e-4
+    touched = Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz), prediction=rec.prediction, sigma=rec.sigma,
+                        camera=rec.camera, name=rec.name)
+    r = plasticity_test(touched)
+    assert r.applicable and r.effect_size == pytest.approx(0.004, rel=0.1)
+    # the window is the free run before the touch, its last 0.2 s
+    assert r.detail["final_window_s"][1] < 3.3 - 0.1 and r.detail["final_window_s"][0] > 2.5
