@@ -63,10 +63,11 @@ def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
-    The final window is the last :data:`FINAL_WINDOW_S` of the last run of released rows
-    (:func:`_released_rows`) at least that long after the recorded gel's main contact (its longest
-    loaded run): a brief touch later (a kept fold brushing the lifted pad) neither hides the set nor
-    enters the window; without such a touch it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
+    The final window is the last :data:`FINAL_WINDOW_S` (at least three samples) of the last run of
+    released rows (:func:`_released_rows`) after the recorded gel's main contact (its longest loaded
+    run) that lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
+    touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
+    without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
     smaller of the two sets is the size). Where the replay still presses the gel on the sheet in that
     window (its contact outlasts the recorded one, e.g. an elastic fold of the replay leaning on the
@@ -86,7 +87,8 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     if not len(held):
         return not_applicable(effect, "the recorded gel is never loaded")
     main_end = max(segments(~free), key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
-    runs = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end and t[i1 - 1] - t[i0] >= FINAL_WINDOW_S]
+    after = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end]
+    runs = [(i0, i1) for i0, i1 in after if t[i1 - 1] - t[i0] >= FINAL_WINDOW_S] or [r for r in after if r[1] == len(t)]
     final = np.zeros(len(t), bool)
     if runs:
         i0, i1 = runs[-1]
