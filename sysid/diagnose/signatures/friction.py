@@ -53,6 +53,16 @@ last), so the macroscopic excess is well below the local ``mu_s / mu_k - 1``: on
 engine's stiction recording, local 1.66, macroscopic about 11 % (docs/benchmarks_log.md, 2026-11-25).
 The wrench alone resolves it only at about 5 noise units; the marker shear at several hundred.
 
+**Sheet yield**: a sheet that yields limits the tangential load it passes to the gel to what its
+fold resists, below the friction limit: on a slide toward a clamped edge a plastic card folds ahead of
+the pad, the load rises to the yield and falls while the fold grows, a breakaway shape with no
+static friction in it (the gel sticks to the card and slides at no friction limit). Where the
+recording keeps a resolvable permanent set after release (the bending-plasticity test,
+:mod:`sysid.diagnose.signatures.sheet`) and the set's points rose by at least that resolvable size
+during a tested slide, the fold formed while sliding: the breakaway is the sheet's yield and the
+effect size is 0 (the result's ``reason`` and ``detail["sheet_yield"]`` say so). Stiction and
+plasticity together on one slide toward a clamped edge are then read as plasticity alone.
+
 Known limits: a stiction that only raises the sliding level (no breakaway drop within the slide) is
 not a breakaway and is not found; tactile latency or creep on top of stiction delays the shear
 against the pose, so the window starts on the shear's rise and the decay is not found.
@@ -68,6 +78,7 @@ from scipy.stats import chi2 as chi2_law
 
 from sim_core.errors import BagReadError
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
+from sysid.diagnose.signatures.sheet import plasticity_test, resolvable_set, set_rise
 
 CONTACT_SIGMAS = 5.0
 """The gel is loaded where the compressive normal force exceeds this many sigmas of ``F_z``."""
@@ -526,6 +537,30 @@ def resolvable_excess(rec: Recording) -> float:
     return float(RESOLVABLE_SIGMAS * np.hypot(sig[0], sig[2]) / np.median(fn[loaded]))
 
 
+def sheet_yield(rec: Recording, fits: list[dict]) -> dict | None:
+    """Whether the sheet folded for good during a tested slide (module docstring, "Sheet yield").
+
+    Returns:
+        None when the recording keeps no resolvable permanent set after release
+        (:func:`sysid.diagnose.signatures.sheet.plasticity_test`, size at least
+        :func:`sysid.diagnose.signatures.sheet.resolvable_set`) or no slide raised the set's points by
+        that size; else ``{"set_m", "rise_m", "slide_s": [t_command, t_slide_end]}`` of the slide
+        whose rise is largest.
+    """
+    if not rec.predicted("sheet_points"):
+        return None
+    r = plasticity_test(rec)
+    floor = resolvable_set(rec)
+    if not (r.applicable and r.effect_size >= floor):
+        return None
+    rises = [(set_rise(rec, r, f["breakaway"].t_command, f["breakaway"].t_slide_end), f) for f in fits]
+    rise, f = max(rises, key=lambda x: x[0])
+    if rise < floor:
+        return None
+    return {"set_m": float(r.effect_size), "rise_m": float(rise),
+            "slide_s": [float(f["breakaway"].t_command), float(f["breakaway"].t_slide_end)]}
+
+
 def stiction_test(rec: Recording) -> SignatureResult:
     """Breakaway overshoot of the tangential load at slide onset, beyond the normal load's (module
     docstring)."""
@@ -554,11 +589,18 @@ def stiction_test(rec: Recording) -> SignatureResult:
                        "relative_excess_sigma": f["excess_sigma"]})
     best = fits[k]
     size = max(float(best["excess"]), 0.0)
+    detail = {"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])}
+    reason = ""
+    yielded = sheet_yield(rec, fits) if size > 0.0 else None
+    if yielded is not None:
+        detail["sheet_yield"] = yielded
+        size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {1e3 * yielded['set_m']:.3g} mm rose "
+                             f"{1e3 * yielded['rise_m']:.3g} mm during the slide): the tangential load's drop is the "
+                             "sheet yielding, not static friction")
     windows = [[float(f["breakaway"].t[0]), float(f["breakaway"].t[-1])] for f in fits]
     return SignatureResult(
         effect=effect, statistic=float(sum(f["statistic"] for f in fits)), effect_size=size,
         effect_unit="(mu_s / mu_k - 1 at breakaway, beyond the normal load)",
         estimate={"static_over_kinetic": 1.0 + size, "kinetic_ratio": best["ratio_fit"]["level"],
                   "decay_s": best["shear_fit"]["tau_s"] if best["shear_fit"] else 0.0},
-        windows_s=windows, channels=["markers_xyz", "wrench"], markers=[],
-        detail={"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])})
+        windows_s=windows, channels=["markers_xyz", "wrench"], markers=[], detail=detail, reason=reason)

@@ -31,6 +31,10 @@ REPLAY_SET_FRACTION = 0.5
 """The permanent-set test reads a set only where the replay returns the sheet closer to its start
 than this fraction of the recording's difference from the replay."""
 
+RESOLVABLE_SET_SIGMAS = 10.0
+"""A permanent set counts as resolved when at least this many sheet-tracking sigmas (the size
+threshold of the plasticity decision, :func:`sysid.diagnose.signatures.null.default_thresholds`)."""
+
 MIN_CARRIED_S = 0.1
 """Shortest run of carried-sheet rows that counts, s (a tactile delay leaves shorter ones)."""
 
@@ -38,64 +42,136 @@ MIN_FOLLOW_CORRELATION = 0.8
 """Correlation of the sheet's highest point with the effector height over a carried run."""
 
 
-def _free_rows(rec: Recording, channel: str) -> np.ndarray | None:
-    contact = predicted_contact(rec, channel)
-    if contact is None:
-        return None
+def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
+    """Samples of ``channel`` where the recorded gel has let go of everything: its markers at rest
+    (:func:`marker_displacement` at most :data:`REST_DISPLACEMENT`) at least :data:`FREE_MARGIN_S`
+    from any loaded marker sample. The recording itself says whether the gel holds the sheet; the
+    replay's contact is used only without recorded markers.
+
+    Returns:
+        boolean mask ``(n,)`` on ``rec.t[channel]``, or None when neither markers nor a replay tell.
+    """
     t = rec.t[channel]
-    free = ~dilate(contact, t, FREE_MARGIN_S)
     disp = marker_displacement(rec)
-    if disp is not None:
-        moved = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.0
-        free &= ~dilate(moved, t, FREE_MARGIN_S)
-    return free
+    if disp is None:
+        contact = predicted_contact(rec, channel)
+        return None if contact is None else ~dilate(contact, t, FREE_MARGIN_S)
+    moved = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.0
+    return ~dilate(moved, t, FREE_MARGIN_S)
 
 
 def plasticity_test(rec: Recording) -> SignatureResult:
-    """Permanent set of the sheet after the gel released it."""
+    """Permanent set of the sheet after the gel released it (module docstring).
+
+    The final window is the last :data:`FINAL_WINDOW_S` (at least three samples) of the last run of
+    released rows (:func:`_released_rows`) after the recorded gel's main contact (its longest loaded
+    run) that lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
+    touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
+    without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
+    there too, the recorded sheet is compared with the replay's and with its own initial shape (the
+    smaller of the two sets is the size). Where the replay still presses the gel on the sheet in that
+    window (its contact outlasts the recorded one, e.g. an elastic fold of the replay leaning on the
+    pad), the replay's sheet is not a released shape: the set is read against the sheet's initial
+    shape alone, the statistic being the whitened SSE of the difference of the two windows' means
+    (about chi-square(3p) without a set).
+    """
     effect = "bending_plasticity"
     if not rec.predicted("sheet_points"):
         return not_applicable(effect, "needs the tracked sheet points and their replay")
     t = rec.t["sheet_points"]
-    free = _free_rows(rec, "sheet_points")
+    free = _released_rows(rec, "sheet_points")
     contact = predicted_contact(rec, "sheet_points")
     if free is None or contact is None or not contact.any():
         return not_applicable(effect, "the replay predicts no contact with the sheet")
-    last_contact = int(np.nonzero(contact)[0][-1])
-    final = free & (t >= t[-1] - FINAL_WINDOW_S) & (np.arange(len(t)) > last_contact)
+    held = np.nonzero(~free)[0]
+    if not len(held):
+        return not_applicable(effect, "the recorded gel is never loaded")
+    main_end = max(segments(~free), key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
+    after = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end]
+    runs = [(i0, i1) for i0, i1 in after if t[i1 - 1] - t[i0] >= FINAL_WINDOW_S] or [r for r in after if r[1] == len(t)]
+    final = np.zeros(len(t), bool)
+    if runs:
+        i0, i1 = runs[-1]
+        final[i0:i1] = t[i0:i1] >= t[i1 - 1] - FINAL_WINDOW_S
+        last_held = i0 - 1
     if final.sum() < 3:
         return not_applicable(effect, "the gel does not release the sheet before the recording ends "
                                       f"(no free final window of {FINAL_WINDOW_S} s)")
-    first_contact = int(np.nonzero(contact)[0][0])
+    first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
+    replay_released = not bool(contact[final].any())
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
     sig = rec.sigma["sheet_points"]
-    n = int(final.sum())
+    n, n0 = int(final.sum()), int(initial.sum())
     d_pred = (x[final] - xp[final]).mean(axis=0)                       # (p, 3)
-    stat = float(np.sum((d_pred / sig) ** 2) * n - d_pred.size)
     set_vs_pred = float(np.max(np.linalg.norm(d_pred, axis=1)))
-    if initial.sum() >= 3:
+    replay_set, set_vs_initial, d_init = 0.0, set_vs_pred, None
+    if n0 >= 3:
         d_init = x[final].mean(axis=0) - x[initial].mean(axis=0)
         set_vs_initial = float(np.max(np.linalg.norm(d_init, axis=1)))
         # where the replay itself ends far from its start (a buckle held by friction), the
         # difference of the two final shapes is the model's gap in that shape, not a set
         replay_set = float(np.max(np.linalg.norm(xp[final].mean(axis=0) - xp[initial].mean(axis=0), axis=1)))
-    else:
-        set_vs_initial, replay_set = set_vs_pred, 0.0
-    per_point = np.linalg.norm(d_pred, axis=1)
-    top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
-    t_release = float(t[last_contact])
-    size = min(set_vs_pred, set_vs_initial)
     reason = ""
-    if replay_set > REPLAY_SET_FRACTION * set_vs_pred:
-        size, reason = 0.0, (f"the replay itself keeps the sheet {1e3 * replay_set:.2g} mm from its start after release: "
-                             "the final shapes' difference is not read as a set")
+    if replay_released:
+        stat = float(np.sum((d_pred / sig) ** 2) * n - d_pred.size)
+        per_point = np.linalg.norm(d_pred, axis=1)
+        size = min(set_vs_pred, set_vs_initial)
+        if replay_set > REPLAY_SET_FRACTION * set_vs_pred:
+            size, reason = 0.0, (f"the replay itself keeps the sheet {1e3 * replay_set:.2g} mm from its start after "
+                                 "release: the final shapes' difference is not read as a set")
+    elif d_init is not None:
+        stat = float(np.sum((d_init / sig) ** 2) / (1.0 / n + 1.0 / n0) - d_init.size)
+        per_point = np.linalg.norm(d_init, axis=1)
+        size = set_vs_initial
+        reason = ("the replay still presses the gel on the sheet after the recorded gel let go: the set is read "
+                  "against the sheet's initial shape")
+    else:
+        return not_applicable(effect, "the replay holds the sheet after the recorded release and the sheet has "
+                                      "no free initial window to compare with")
+    top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
+    t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
         effect=effect, statistic=max(stat, 0.0), effect_size=size, effect_unit="m", reason=reason,
-        estimate={"permanent_set_m": set_vs_pred}, windows_s=[[t_release, float(t[-1])]], channels=["sheet_points"],
+        estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]], channels=["sheet_points"],
         markers=[], detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
-                            "replay_set_m": replay_set, "points": sorted(top.tolist()), "release_s": t_release})
+                            "replay_set_m": replay_set, "replay_released": replay_released,
+                            "final_window_s": [float(t[final][0]), t_end],
+                            "points": sorted(top.tolist()), "release_s": t_release})
+
+
+def resolvable_set(rec: Recording) -> float:
+    """Smallest permanent set the sheet tracking resolves, m: :data:`RESOLVABLE_SET_SIGMAS` times the
+    largest sheet-point noise sigma."""
+    return RESOLVABLE_SET_SIGMAS * float(np.max(rec.sigma["sheet_points"]))
+
+
+def set_rise(rec: Recording, result: SignatureResult, t0: float, t1: float) -> float:
+    """How far the points carrying a permanent set rose between ``t0`` and ``t1``, m.
+
+    Args:
+        rec: the recording.
+        result: a :func:`plasticity_test` result (its ``detail["points"]``: the points with the
+            largest set).
+        t0, t1: the interval, s.
+
+    Returns:
+        the mean height of those points at ``t1`` minus that at ``t0`` (each the mean of the sheet
+        samples within one sheet period of the instant); 0 for a result without points.
+    """
+    points = result.detail.get("points") if result.applicable else None
+    if not points:
+        return 0.0
+    t = rec.t["sheet_points"]
+    z = np.asarray(rec.data["sheet_points"], dtype=float)[:, points, 2].mean(axis=1)
+    half = rec.sample_period("sheet_points")
+
+    def height(at: float) -> float:
+        rows = np.abs(t - at) <= half
+        return float(z[rows].mean()) if rows.any() else float(np.interp(at, t, z))
+
+    return height(t1) - height(t0)
 
 
 def adhesion_test(rec: Recording) -> SignatureResult:

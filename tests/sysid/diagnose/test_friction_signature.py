@@ -386,3 +386,59 @@ def test_own_simulator_stribeck_friction_named_and_coulomb_silent():
         assert r.applicable
         named[a] = decide({"stiction": r}, default_thresholds(rec)).explained_by
     assert named == {0.0: [], 0.5: ["stiction"]}
+
+
+def slide_then_lift(rng: np.random.Generator, mu_s: float, fold: float) -> Recording:
+    """:func:`press_slide` with a released start and end, the tracked sheet and a replay.
+
+    The gel is loaded from 0.5 s to 2.6 s (the slide runs 1.0-2.2 s); outside that the wrench reads
+    noise and the markers rest. The sheet (21 x 13 grid, clamped flat) keeps a fold of height
+    ``fold`` ahead of the pad: it rises with the slide's travel and stays after the lift (a card that
+    yields). The replay is the same contact with a flat, elastic sheet. With ``fold > 0`` the load's
+    rise and fall at slide onset (``mu_s > mu_k`` of the stick-slip law) is the card's yield load
+    falling to what its growing fold resists.
+    """
+    rec = press_slide(rng, mu_s)
+    tw, tm = rec.t["wrench"], rec.t["markers_xyz"]
+    loaded_w, loaded_m = (tw >= 0.5) & (tw <= 2.6), (tm >= 0.5) & (tm <= 2.6)
+    w = rec.data["wrench"].copy()
+    w[~loaded_w] = rng.normal(size=(int((~loaded_w).sum()), 6)) * SIGMA["wrench"]
+    xyz = rec.data["markers_xyz"].copy()
+    xyz[~loaded_m, :, 2] = rng.normal(size=(int((~loaded_m).sum()), xyz.shape[1])) * SIGMA["markers_xyz"][2]
+    xyz[~loaded_m, :, :2] -= xyz[~loaded_m, :, :2].mean(axis=1, keepdims=True) - xyz[0, :, :2].mean(axis=0)
+    gx, gy = np.meshgrid(np.linspace(0.0, 0.1, 21), np.linspace(-0.03, 0.03, 13))
+    sheet0 = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 1.5e-4)], axis=1)
+    sheet_pred = np.repeat(sheet0[None], len(tm), axis=0)
+    sheet = sheet_pred.copy()
+    growth = np.clip((tm - 1.0) / 1.2, 0.0, 1.0)                     # the slide's travel, 0 -> 1
+    ahead = np.abs(sheet0[:, 0] - 0.075) < 0.01
+    sheet[:, ahead, 2] += fold * growth[:, None]
+    sigma = dict(SIGMA, sheet_points=np.array([5e-5, 5e-5, 5e-5]))
+    pred_w = np.zeros((len(tw), 6))
+    pred_w[loaded_w, 2] = -F_N
+    pred_m = np.repeat(xyz[:1] * 0.0, len(tm), axis=0)
+    pred_m[loaded_m, :, 2] = -2e-4
+    data = dict(rec.data, wrench=w, markers_xyz=xyz,
+                sheet_points=sheet + rng.normal(size=sheet.shape) * sigma["sheet_points"])
+    pred = {"wrench": pred_w, "markers_xyz": pred_m, "sheet_points": sheet_pred}
+    return Recording(t=dict(rec.t, sheet_points=tm), data=data, prediction=pred, sigma=sigma, camera=CAMERA,
+                     name="slide toward a clamped edge")
+
+
+def test_a_load_drop_while_the_sheet_folds_for_good_is_plasticity_not_stiction():
+    rec = slide_then_lift(np.random.default_rng(21), mu_s=1.8 * MU_K, fold=0.008)
+    results = run_signature_tests(rec)
+    d = decide(results, default_thresholds(rec))
+    r = results["stiction"]
+    assert r.applicable and r.effect_size == 0.0 and "sheet yielding" in r.reason
+    assert r.detail["sheet_yield"]["rise_m"] == pytest.approx(0.008, rel=0.1)
+    assert results["bending_plasticity"].detected
+    assert d.explained_by == ["bending_plasticity"]
+
+
+def test_a_breakaway_beside_a_sheet_that_returns_flat_stays_stiction():
+    rec = slide_then_lift(np.random.default_rng(21), mu_s=1.8 * MU_K, fold=0.0)
+    results = run_signature_tests(rec)
+    assert results["stiction"].estimate["static_over_kinetic"] == pytest.approx(1.8, rel=0.1)
+    assert "sheet_yield" not in results["stiction"].detail
+    assert decide(results, default_thresholds(rec)).explained_by == ["stiction"]

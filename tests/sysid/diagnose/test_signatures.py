@@ -439,3 +439,45 @@ def test_a_long_lag_is_read_at_the_share_bound(seed):
     assert all(e["lag_tau_s"] > 0.0 and 0.0 < e["lag_fraction"] <= 1.0 for e in visco.detail["events"])
     assert visco.effect_size > 0.15
     assert named(rec)[0] == "gel_viscoelasticity" and "latency" not in named(rec)
+
+
+def _replay_still_pressing(rec: Recording) -> Recording:
+    """``rec`` with a replay whose contact outlasts the recorded one: 1 N on the gel to the end (an
+    elastic fold of the replay leaning on the pad after the recorded gel let go)."""
+    pred = dict(rec.prediction)
+    w = pred["wrench"].copy()
+    w[rec.t["wrench"] > 2.5, 2] = -1.0
+    pred["wrench"] = w
+    return Recording(t=rec.t, data=rec.data, prediction=pred, sigma=rec.sigma, camera=rec.camera, name=rec.name)
+
+
+def test_a_set_after_the_recorded_release_is_read_while_the_replay_still_presses(rng):
+    rec = _replay_still_pressing(synthetic(rng, set_height=0.004))
+    r = plasticity_test(rec)
+    # the recorded markers are at rest: the gel let go, whatever the replay's contact says
+    assert r.applicable and r.detail["replay_released"] is False and "initial shape" in r.reason
+    assert r.effect_size == pytest.approx(0.004, rel=0.1)
+    assert named(rec) == ["bending_plasticity"]
+    flat = _replay_still_pressing(synthetic(np.random.default_rng(8)))
+    r = plasticity_test(flat)
+    assert r.applicable and r.effect_size < 5e-4 and "bending_plasticity" not in named(flat)
+
+
+def test_a_gel_still_loaded_at_the_end_gives_no_final_window(rng):
+    rec = synthetic(rng, set_height=0.004, duration=2.55)
+    r = plasticity_test(rec)
+    assert not r.applicable and "does not release" in r.reason
+
+
+def test_a_brief_touch_after_the_release_does_not_hide_the_set(rng):
+    rec = synthetic(rng, set_height=0.004)
+    # the kept fold brushes the lifted pad for 50 ms near the end: every marker moves 100 um
+    xyz = rec.data["markers_xyz"].copy()
+    touch = (rec.t["markers_xyz"] > 3.3) & (rec.t["markers_xyz"] < 3.35)
+    xyz[touch, :, 0] += 1e-4
+    touched = Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz), prediction=rec.prediction, sigma=rec.sigma,
+                        camera=rec.camera, name=rec.name)
+    r = plasticity_test(touched)
+    assert r.applicable and r.effect_size == pytest.approx(0.004, rel=0.1)
+    # the window is the free run before the touch, its last 0.2 s
+    assert r.detail["final_window_s"][1] < 3.3 - 0.1 and r.detail["final_window_s"][0] > 2.5
