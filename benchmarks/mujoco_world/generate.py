@@ -116,8 +116,7 @@ def _motion_from_labels(m: Mapping[str, Any], contact_z: float) -> motion_mod.Mo
     if m["kind"] == "press_slide":
         return motion_mod.press_slide(m["start_xy"], m["depth"], m["slide"], m["height"], m["v_press"],
                                       m["v_slide"], m["v_lift"], contact_z)
-    return motion_mod.lift_fold(m["start_xy"], m["depth"], m["lift"], m["fold_back"], m["height"], m["v_press"],
-                                m["v_fold"], contact_z)
+    return motion_mod.lift_fold_like(m, contact_z)
 
 
 def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: float | None, seed: int,
