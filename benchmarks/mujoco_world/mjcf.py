@@ -18,8 +18,9 @@ World frame z up, table plane at ``table.height``.
   gel's coefficient gives gel-card; the gel's coefficient is switched between static and kinetic
   at run time (:mod:`benchmarks.mujoco_world.world`).
 * Tack bonds (lift_fold): inactive ``connect`` equalities between candidate card vertices and the
-  nearest gel bottom vertex, ``solref`` of the labels, ``solimp`` ``tack.BOND_SOLIMP``, activated and
-  re-anchored at run time (:mod:`benchmarks.mujoco_world.tack`).
+  nearest gel bottom vertex, ``solref`` of the labels, ``solimp`` making each a spring of
+  ``tack.BOND_STIFFNESS_N_PER_M`` at rest (vertex masses: flexcomp spreads a flex's mass evenly over
+  its vertices), activated and re-anchored at run time (:mod:`benchmarks.mujoco_world.tack`).
 
 Integrator ``discrete`` with the Newton solver: MuJoCo 4.0 integrates flex elasticity implicitly
 only there (``implicitfast`` refuses flex elasticity).
@@ -31,7 +32,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from benchmarks.mujoco_world.tack import BOND_SOLIMP, TackCandidate
+from benchmarks.mujoco_world.tack import BOND_STIFFNESS_N_PER_M, TackCandidate, bond_impedance, bond_solimp
 
 GEL_COUNT = (10, 8, 3)
 """Gel grid vertices along x, y, thickness (spacing about 2 mm, the marker pitch)."""
@@ -98,9 +99,12 @@ def build_mjcf(scene: Mapping[str, Any], truth: Mapping[str, Any], ee_start: Seq
     solref, solimp = _v(con["solref"]), _v(con["solimp"])
     table = scene.get("table", {"height": 0.0})
     bonds = []
+    if tack:
+        bond_d = bond_impedance(card_mass / (nx * ny), gel_mass / (gnx * gny * gnz), BOND_STIFFNESS_N_PER_M,
+                                truth["tack"]["solref"])
     for k, c in enumerate(tack):
         bonds.append(f'<connect name="tack_{k}" body1="{card_vertex_body(c, ny)}" body2="{gel_vertex_body(c)}" '
-                     f'anchor="0 0 0" active="false" solref="{_v(truth["tack"]["solref"])}" solimp="{_v(BOND_SOLIMP)}"/>')
+                     f'anchor="0 0 0" active="false" solref="{_v(truth["tack"]["solref"])}" solimp="{_v(bond_solimp(bond_d))}"/>')
     equality = f"<equality>{''.join(bonds)}</equality>" if bonds else ""
     return f"""<mujoco model="thinshell_reference_world">
   <compiler autolimits="true"/>

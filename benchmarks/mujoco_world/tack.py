@@ -7,13 +7,19 @@ vertex under the gel footprint (at tack time) and the nearest vertex of the gel'
 re-anchored at the pair's relative position when it forms.
 
 Softness: MuJoCo's soft constraint lets through ``(1 - d)`` of the unconstrained acceleration ``a0``
-of its row (``a1 = (1 - d) a0 + d a_ref``, MuJoCo documentation, "Computation: soft constraints"),
-``d`` from ``solimp``; ``a_ref = -b v - k r`` with ``k = 1 / (d_max^2 tau^2 zeta^2)`` from ``solref``
-(tau, zeta). A card vertex weighs about 4.6 mg, so the card's elastic pull gives ``a0`` of order
-5e4 m/s^2, and a bond with MuJoCo's default ``d`` of 0.9-0.95 settles at ``r = (1 - d) a0 / (d k)``,
-centimetres (it does not hold the card). With ``BOND_SOLIMP``'s ``d = 0.9999`` the same pull leaves
-about 0.1 mm, and the bond force is the force that holds the pair together; ``solref`` still sets
-how fast a drift is corrected.
+of its row (``a1 = (1 - d) a0 + d a_ref``, ``a_ref = -b v - k r``, ``k = d / (d_max^2 tau^2 zeta^2)``
+from ``solref`` (tau, zeta) and ``solimp``; MuJoCo documentation, "Computation: soft
+constraints"), with the regulariser ``R = (1 - d) / d * A_hat``, ``A_hat`` the row's inverse mass
+from the bodies' bare masses. At rest (``a1 = 0``) the row then acts as a spring of stiffness
+``K = k / R = d k m_hat / (1 - d)``, which for ``d_min = d_max = d`` is ``m_hat / ((1 - d) tau^2 zeta^2)``,
+``m_hat = 1 / (1/m_card + 1/m_gel)`` (the vertices' bare masses, about 4.6 and 4.9 mg). With MuJoCo's
+default ``solimp`` (d 0.9-0.95) that is about 1-2 N/m: the card slides out of such bonds and stays
+a straight ramp on a fold-back; with ``d`` near 1 the bond is rigid and the card buckles into an
+arch as soon as the fold moves back. The reference's bonds are neither: in its three lift-folds
+the tacked patch lags the gel by 4.7-12.4 mm in x during the hold while the gel is pulled by
+0.52-0.71 N (``BOND_STIFFNESS_N_PER_M``). So each bond's ``solimp`` gets the ``d`` that makes it
+a spring of that stiffness (:func:`bond_impedance`); ``solref`` stays the reference's, so the
+bond's damping and drift correction are the reference's.
 
 Pure numpy except :func:`bond_rows` and :func:`bond_forces`, which read a ``mujoco.MjData``.
 """
@@ -24,8 +30,46 @@ from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-BOND_SOLIMP = (0.9999, 0.9999, 1.0e-4, 0.5, 2.0)
-"""solimp of the tack bonds: impedance d = 0.9999 at every violation (see the module docstring)."""
+BOND_STIFFNESS_N_PER_M = 8.3
+"""Stiffness of one tack bond at rest, N/m: the tangential pull on the gel in the hold divided by the
+bonds' count and the tacked patch's mean lag behind the gel, in the reference's lift-folds:
+plastic_s102 0.574 N / (12 x 4.65 mm) = 10.3, nominal_s109 0.521 N / (12 x 6.0 mm) = 7.2,
+damped_s104 0.714 N / (8 x 12.3 mm) = 7.3; their mean. Leave-one-out: the mean of the other two
+is within 30 % of each (7.25 against 10.3, 8.8 against 7.2, 8.75 against 7.3)."""
+
+
+def bond_impedance(m_card: float, m_gel: float, stiffness: float, solref: Sequence[float]) -> float:
+    """The impedance ``d`` (solimp ``d_min = d_max``) that makes a connect bond a spring of ``stiffness`` at rest.
+
+    ``K = m_hat / ((1 - d) tau^2 zeta^2)`` (module docstring) solved for ``d``.
+
+    Args:
+        m_card, m_gel: bare masses of the two bonded bodies (kg, > 0).
+        stiffness: the bond's stiffness at rest (N/m, > 0).
+        solref: (timeconst tau s, dampratio zeta) of the bond, both > 0.
+
+    Raises:
+        ValueError: a non-positive input, or a stiffness below ``m_hat / (tau zeta)^2`` (no ``d`` in (0, 1)).
+    """
+    tau, zeta = float(solref[0]), float(solref[1])
+    if min(m_card, m_gel, stiffness, tau, zeta) <= 0.0:
+        raise ValueError(f"masses, stiffness and solref must be positive, got {m_card}, {m_gel}, {stiffness}, {solref}")
+    m_hat = 1.0 / (1.0 / m_card + 1.0 / m_gel)
+    one_minus_d = m_hat / (stiffness * tau * tau * zeta * zeta)
+    if not one_minus_d < 1.0:
+        raise ValueError(f"a bond of {stiffness} N/m between {m_hat:.3g} kg is softer than any impedance gives")
+    return 1.0 - one_minus_d
+
+
+def bond_solimp(d: float) -> tuple[float, float, float, float, float]:
+    """solimp with the impedance ``d`` at every violation (width, midpoint and power then do not matter)."""
+    return (d, d, 1.0e-4, 0.5, 2.0)
+
+
+def bond_stiffness(m_card: float, m_gel: float, d: float, solref: Sequence[float]) -> float:
+    """The stiffness at rest (N/m) of a connect bond of impedance ``d`` (``d_min = d_max``) between bare masses (kg)."""
+    m_hat = 1.0 / (1.0 / m_card + 1.0 / m_gel)
+    return m_hat / ((1.0 - d) * float(solref[0]) ** 2 * float(solref[1]) ** 2)
 
 
 class TackCandidate(NamedTuple):
@@ -87,14 +131,31 @@ def bonds_to_break(force_on_card: np.ndarray, active: np.ndarray, strength_N: fl
     return active & (np.linalg.norm(f, axis=1) > strength_N)
 
 
-def bond_wrench(force_on_card: np.ndarray, at: np.ndarray, active: np.ndarray, origin: Sequence[float]) -> np.ndarray:
-    """Force of the active bonds ON the gel and its torque about ``origin`` (world, N and N m, shape (6,)).
+BOND_WRENCH_CONVENTIONS = ("reference", "physical")
+"""How the bonds enter the recorded wrench. ``physical``: their force ON the gel (``-f``), as the
+contacts' force. ``reference``: the force on the card (``+f``), which is what the reference's
+lift-folds record: in the hold their F_x is -0.52 to -0.71 N and F_z -0.25 to -0.66 N (sensor frame)
+while their markers shear +47 to +146 um along x (sensor frame, the direction of the force on the
+gel's face), and our physical bonds give +F_x, +F_z of similar size with the same +x shear; in the
+reference's press-slides force and shear agree (cos 1.00)."""
+
+
+def bond_wrench(force_on_card: np.ndarray, at: np.ndarray, active: np.ndarray, origin: Sequence[float],
+                convention: str = "physical") -> np.ndarray:
+    """Force of the active bonds in the wrench and its torque about ``origin`` (world, N and N m, shape (6,)).
 
     A bond acts with ``+f`` on the card vertex and ``-f`` on the gel at ``at`` (the gel vertex, m, shape
-    (n_bonds, 3)); ``force_on_card`` is ``f`` (N, shape (n_bonds, 3)).
+    (n_bonds, 3)); ``force_on_card`` is ``f`` (N, shape (n_bonds, 3)). ``convention`` (one of
+    ``BOND_WRENCH_CONVENTIONS``): ``physical`` gives ``-f`` (the force ON the gel), ``reference`` ``+f``.
+
+    Raises:
+        ValueError: an unknown convention.
     """
+    if convention not in BOND_WRENCH_CONVENTIONS:
+        raise ValueError(f"unknown bond wrench convention {convention!r}; one of {BOND_WRENCH_CONVENTIONS}")
+    sign = -1.0 if convention == "physical" else 1.0
     active = np.asarray(active, dtype=bool)
-    f = -np.asarray(force_on_card, dtype=float)[active]
+    f = sign * np.asarray(force_on_card, dtype=float)[active]
     r = np.asarray(at, dtype=float)[active] - np.asarray(origin, dtype=float)
     return np.r_[f.sum(axis=0), np.cross(r, f).sum(axis=0)]
 

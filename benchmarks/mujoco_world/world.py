@@ -18,7 +18,7 @@ kinetic once it slips (above ``SLIP_SPEED``), with hysteresis between.
 Tack (lift_fold, :mod:`benchmarks.mujoco_world.tack`): at ``tack_on_s`` every candidate bond whose
 card vertex lies under the gel footprint is re-anchored at the current relative position and
 activated; a bond whose force exceeds ``bond_strength_N`` breaks; all are released at ``tack_off_s``
-(the peel). The wrench includes the active bonds' force on the gel.
+(the peel). The wrench includes the active bonds' force (sign: ``bond_wrench`` of :func:`run`).
 """
 
 from __future__ import annotations
@@ -58,8 +58,11 @@ class Recording:
     stats: dict[str, Any] = field(default_factory=dict)
 
 
-def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None) -> Recording:
+def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None,
+        bond_wrench: str = "reference") -> Recording:
     """Simulate ``motion`` in the world of ``scene`` with the true values ``truth`` (labels' ``mujoco``).
+
+    ``bond_wrench``: how the tack bonds enter the wrench (``tack.BOND_WRENCH_CONVENTIONS``).
 
     ``probe(k, t, model, data)``, when given, is called after every step (diagnostics).
 
@@ -113,7 +116,7 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
             active = data.eq_active[: len(tack)].astype(bool)
             f_bond = tack_mod.bond_forces(data, tack_mod.bond_rows(data, len(tack), mujoco))
             bond_peak = np.maximum(bond_peak, np.linalg.norm(f_bond, axis=1) * active)
-            rec_w[k] += tack_mod.bond_wrench(f_bond, data.xpos[gel_bodies], active, ee)
+            rec_w[k] += tack_mod.bond_wrench(f_bond, data.xpos[gel_bodies], active, ee, bond_wrench)
         if not np.all(np.isfinite(rec_gel[k])):
             raise RuntimeError(f"non-finite state at t = {t[k]:.3f} s")
         # stiction: friction for the next step from the contact layer's slip speed

@@ -69,15 +69,44 @@ def test_under_footprint_is_the_gel_rectangle_around_the_effector():
     np.testing.assert_array_equal(tack.under_footprint(xy, (0.0, 0.0), (0.0186, 0.0143)), [True, True, False, False])
 
 
-def test_bond_solimp_leaves_a_drift_under_a_millimetre_where_the_default_leaves_centimetres():
-    # steady state of a soft equality row (MuJoCo: a1 = (1 - d) a0 + d a_ref, a_ref = -k r, a1 = 0):
-    # r = (1 - d) a0 / (d k), k = 1 / (d_max^2 tau^2) (zeta = 1); a0 = 0.23 N on a 4.6 mg vertex
-    a0, tau = 0.23 / 4.6e-6, 0.005
+def test_reference_convention_records_the_force_on_the_card():
+    f_card = np.array([[0.02, 0.0, 0.05], [0.01, 0.01, 0.04]])
+    at = np.array([[0.01, 0.0, 0.0], [-0.01, 0.002, 0.0]])
+    active = np.array([True, True])
+    phys = tack.bond_wrench(f_card, at, active, [0.0, 0.0, 0.0], "physical")
+    ref = tack.bond_wrench(f_card, at, active, [0.0, 0.0, 0.0], "reference")
+    np.testing.assert_allclose(ref, -phys)
+    np.testing.assert_allclose(ref[:3], f_card.sum(axis=0))
+    with pytest.raises(ValueError, match="unknown bond wrench convention 'gel'"):
+        tack.bond_wrench(f_card, at, active, [0.0, 0.0, 0.0], "gel")
 
-    def drift(d):
-        return (1 - d) * a0 / (d * (1 / (d * d * tau * tau)))
 
-    assert drift(0.9) > 0.01
-    d = tack.BOND_SOLIMP[0]
-    assert tack.BOND_SOLIMP[0] == tack.BOND_SOLIMP[1]
-    assert drift(d) < 2e-4
+def _steady_spring(d, m_card, m_gel, solref):
+    """Stiffness of a soft equality row at rest from MuJoCo's equations, step by step (not the closed form):
+    a1 = a0 + A f with f = (a_ref - a0) / (A + R), R = (1 - d) / d * A_hat, a_ref = -k r, k = d / (d^2 tau^2 zeta^2);
+    a1 = 0 at rest, so f = -k r / R; the spring's stiffness is -f / r."""
+    tau, zeta = solref
+    a_hat = 1.0 / m_card + 1.0 / m_gel
+    k = d / (d * d * tau * tau * zeta * zeta)
+    r = 1.0e-3
+    for a_true in (a_hat, 0.01 * a_hat):            # the true A (effective inertia) does not matter at rest
+        R = (1.0 - d) / d * a_hat
+        a0 = k * r * a_true / R                     # the a0 at which a1 = a0 + A f vanishes
+        f = (-k * r - a0) / (a_true + R)
+        assert a0 + a_true * f == pytest.approx(0.0, abs=1e-9 * a0)
+    return -f / r
+
+
+def test_bond_impedance_makes_a_spring_of_the_asked_stiffness_and_the_default_is_far_softer():
+    m_card, m_gel, solref = 4.615e-6, 4.876e-6, (0.005, 1.0)
+    d = tack.bond_impedance(m_card, m_gel, tack.BOND_STIFFNESS_N_PER_M, solref)
+    assert 0.98 < d < 0.999
+    assert _steady_spring(d, m_card, m_gel, solref) == pytest.approx(tack.BOND_STIFFNESS_N_PER_M, rel=1e-9)
+    assert tack.bond_stiffness(m_card, m_gel, d, solref) == pytest.approx(tack.BOND_STIFFNESS_N_PER_M, rel=1e-12)
+    # MuJoCo's default solimp (d 0.9 to 0.95): 1-2 N/m, the card slides out of the bonds
+    assert 0.9 < _steady_spring(0.95, m_card, m_gel, solref) < 2.0
+    assert tack.bond_solimp(d)[:2] == (d, d)
+    with pytest.raises(ValueError, match="softer than any impedance"):
+        tack.bond_impedance(m_card, m_gel, 0.05, solref)
+    with pytest.raises(ValueError, match="must be positive"):
+        tack.bond_impedance(m_card, 0.0, 8.0, solref)
