@@ -11,7 +11,9 @@ arch (highest point of the card's y-mean profile, m, and where), the effector he
 wrench (sensor frame: F_x < 0 pulls the gel toward the clamp, F_z > 0 pulls it down) and marker
 shear; the largest pull along +F_z and -F_x between the tack and the peel; after the peel, the
 card's final fold (highest point of the y-mean profile over the last 0.1 s) and how long after the
-peel's start the card's highest point first comes within 1 mm of it. Reads bags with ``rosbags`` only.
+peel's start the card's highest point first comes within 1 mm of it, and how much that highest point
+still moves over the last ``SETTLE_WINDOW_S`` (a settled card: about the sheet noise). Reads bags
+with ``rosbags`` only.
 """
 
 from __future__ import annotations
@@ -25,6 +27,11 @@ from rosbags.highlevel import AnyReader
 
 SHEET_NY = 13
 """Rows of the contract's card grid along y (21 x 13, y outer)."""
+
+
+SETTLE_WINDOW_S = 0.3
+"""lift_fold: the card's highest point should be still over the recording's last this many seconds
+(``final_fold_range_mm``, a check that the card has settled after the peel)."""
 
 
 def load(bag: Path) -> dict[str, np.ndarray]:
@@ -136,6 +143,8 @@ def summary_lift_fold(d: dict[str, np.ndarray]) -> dict[str, float]:
     out["initial_fold_mm"] = float(prof[:5].max(axis=1).mean() * 1e3)
     final = float(prof[ts >= ts[-1] - 0.1].mean(axis=0).max())
     out["final_fold_mm"] = final * 1e3
+    top_end = prof[ts >= ts[-1] - SETTLE_WINDOW_S].max(axis=1)
+    out["final_fold_range_mm"] = float((top_end.max() - top_end.min()) * 1e3)
     after = np.flatnonzero((ts >= k0) & (prof.max(axis=1) <= final + 1e-3))
     out["card_down_after_peel_s"] = float(ts[after[0]] - k0) if after.size else float("nan")
     out["duration_s"] = float(d["cmd"][-1, 0])
