@@ -1,4 +1,4 @@
-"""Compare two recordings of the same motion kind phase by phase (same-kind check of a generated bag against a reference).
+"""Compare two recordings of the same motion kind phase by phase (a generated bag against a reference).
 
     python -m benchmarks.mujoco_world.compare REF_BAG OUR_BAG
 

@@ -104,7 +104,8 @@ def build_mjcf(scene: Mapping[str, Any], truth: Mapping[str, Any], ee_start: Seq
                                 truth["tack"]["solref"])
     for k, c in enumerate(tack):
         bonds.append(f'<connect name="tack_{k}" body1="{card_vertex_body(c, ny)}" body2="{gel_vertex_body(c)}" '
-                     f'anchor="0 0 0" active="false" solref="{_v(truth["tack"]["solref"])}" solimp="{_v(bond_solimp(bond_d))}"/>')
+                     f'anchor="0 0 0" active="false" solref="{_v(truth["tack"]["solref"])}" '
+                     f'solimp="{_v(bond_solimp(bond_d))}"/>')
     equality = f"<equality>{''.join(bonds)}</equality>" if bonds else ""
     return f"""<mujoco model="thinshell_reference_world">
   <compiler autolimits="true"/>

@@ -81,7 +81,8 @@ class TackCandidate(NamedTuple):
     gel_bottom: int
 
 
-def tack_candidates(scene: Mapping[str, Any], start_xy: Sequence[float], gel_rest_xy: np.ndarray) -> list[TackCandidate]:
+def tack_candidates(scene: Mapping[str, Any], start_xy: Sequence[float],
+                    gel_rest_xy: np.ndarray) -> list[TackCandidate]:
     """Card vertices under the gel footprint at ``start_xy`` (m, world) and the nearest gel bottom vertex of each.
 
     Args:
