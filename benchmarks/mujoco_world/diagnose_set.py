@@ -4,12 +4,13 @@
 (``EXPECTED``, the vocabulary of ``sysid.diagnose.reference_bench.VARIANT_EFFECT``); on a lift-fold
 an ``adhesion`` beside it is not counted (issue 23: adhesion may be named beside the effect on a lift).
 
-    python benchmarks/mujoco_world/diagnose_set.py SET_DIR RUNS_DIR [--python PY] [--wait N]
+    python benchmarks/mujoco_world/diagnose_set.py SET_DIR RUNS_DIR [--python PY] [--wait N] [--jobs N]
 
 Runs the project's CLI in a subprocess (``PY -m thinshell_ros.cli diagnose BAG --json RUNS/NAME.json
 --force``) for each ``SET_DIR/*/label.yaml`` without a JSON yet (``--wait N``: poll up to N s for
 recordings still being generated), and prints truth / named / wall / load (1-min load average at the
-start and end of the run) as a Markdown table. Imports nothing of the project (stdlib + pyyaml).
+start and end of the run) as a Markdown table. ``--jobs N`` runs up to N diagnoses at a time (each in
+its own process). Imports nothing of the project (stdlib + pyyaml).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import os
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import yaml
@@ -75,22 +77,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--python", default=sys.executable)
     ap.add_argument("--wait", type=float, default=0.0, help="poll this long (s) for recordings still being generated")
     ap.add_argument("--expect", type=int, default=0, help="number of recordings to wait for")
+    ap.add_argument("--jobs", type=int, default=1, help="diagnoses run at a time")
     a = ap.parse_args(argv)
     a.runs_dir.mkdir(parents=True, exist_ok=True)
     deadline = time.time() + a.wait
-    done: set[str] = set()
-    while True:
-        todo = [p.parent for p in sorted(a.set_dir.glob("*/label.yaml"))
-                if p.parent.name not in done and not (a.runs_dir / f"{p.parent.name}.run.json").exists()]
-        for bag in todo:
-            rec = run_one(bag, a.runs_dir, a.python)
-            done.add(bag.name)
-            print(json.dumps(rec), flush=True)
-        n = len(list(a.runs_dir.glob("*.run.json")))
-        if n >= a.expect or time.time() > deadline:
-            break
-        if not todo:
-            time.sleep(20)
+    started: set[str] = set()
+    with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as pool:
+        pending = []
+        while True:
+            todo = [p.parent for p in sorted(a.set_dir.glob("*/label.yaml"))
+                    if p.parent.name not in started and not (a.runs_dir / f"{p.parent.name}.run.json").exists()]
+            for bag in todo:
+                started.add(bag.name)
+                pending.append(pool.submit(run_one, bag, a.runs_dir, a.python))
+            for fut in [f for f in pending if f.done()]:
+                pending.remove(fut)
+                print(json.dumps(fut.result()), flush=True)
+            n = len(list(a.runs_dir.glob("*.run.json")))
+            if (n >= a.expect or time.time() > deadline) and not pending:
+                break
+            time.sleep(5 if pending else 20)
     print(table(a.set_dir, a.runs_dir))
     return 0
 

@@ -116,13 +116,12 @@ def _motion_from_labels(m: Mapping[str, Any], contact_z: float) -> motion_mod.Mo
     if m["kind"] == "press_slide":
         return motion_mod.press_slide(m["start_xy"], m["depth"], m["slide"], m["height"], m["v_press"],
                                       m["v_slide"], m["v_lift"], contact_z)
-    return motion_mod.lift_fold(m["start_xy"], m["depth"], m["lift"], m["fold_back"], m["height"], m["v_press"],
-                                m["v_fold"], contact_z)
+    return motion_mod.lift_fold_like(m, contact_z)
 
 
 def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: float | None, seed: int,
              motion_kind: str = "press_slide", direction: str | None = None, jitter_frac: float = 0.1,
-             like: Mapping[str, Any] | None = None, log=print) -> dict[str, Any]:
+             like: Mapping[str, Any] | None = None, log=print, bond_wrench: str = "reference") -> dict[str, Any]:
     """Simulate and write one recording; returns its labels entry (reference format)."""
     from benchmarks.mujoco_world.bagwrite import write_bag
     from benchmarks.mujoco_world.world import run
@@ -147,7 +146,7 @@ def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: floa
         truth = jitter(nominal_truth(scene), rng, jitter_frac)
         truth, effects, effect_params = apply_variant(truth, variant, magnitude, rng)
     log(f"{out_dir.name}: {variant} {magnitude} {motion.kind} {motion.duration_s:.2f}s")
-    rec = run(scene, truth, motion, log=log)
+    rec = run(scene, truth, motion, log=log, bond_wrench=bond_wrench)
     streams = observe(rec, scene, motion.duration_s, effects, rng)
     out_scene = copy.deepcopy(scene)
     out_scene["dt"] = float(truth["timestep"])
@@ -159,6 +158,8 @@ def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: floa
              "effect_params": effect_params, "material_jitter": float(jitter_frac),
              "motion": motion.labels(), "mujoco": _plain(truth), "sim": rec.stats,
              "messages": counts, "generator": "benchmarks/mujoco_world (thinshell), MuJoCo 4.0.0"}
+    if motion.tack_on_s is not None:
+        label["bond_wrench"] = bond_wrench
     (out_dir / "label.yaml").write_text(yaml.safe_dump({out_dir.name: label}, sort_keys=False), encoding="utf-8")
     return label
 
@@ -184,13 +185,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jitter", type=float, default=0.1, help="material jitter fraction (0.1: up to 10 %%)")
     ap.add_argument("--like", help="LABELS.yaml:NAME: re-run that labelled recording's variant, motion and values")
+    ap.add_argument("--bond-wrench", default="reference", choices=["reference", "physical"],
+                    help="tack bonds in the wrench: the force on the card as the reference records it, or on the gel")
     a = ap.parse_args(argv)
     scene = yaml.safe_load(a.scene.read_text(encoding="utf-8"))
     like = None
     if a.like:
         path, name = a.like.rsplit(":", 1)
         like = yaml.safe_load(Path(path).read_text(encoding="utf-8"))[name]
-    generate(a.out_dir, scene, a.variant, a.magnitude, a.seed, a.motion, a.direction, a.jitter, like)
+    generate(a.out_dir, scene, a.variant, a.magnitude, a.seed, a.motion, a.direction, a.jitter, like,
+             bond_wrench=a.bond_wrench)
     return 0
 
 

@@ -18,10 +18,9 @@ World frame z up, table plane at ``table.height``.
   gel's coefficient gives gel-card; the gel's coefficient is switched between static and kinetic
   at run time (:mod:`benchmarks.mujoco_world.world`).
 * Tack bonds (lift_fold): inactive ``connect`` equalities between candidate card vertices and the
-  effector body (the gel's holder), activated and re-anchored at run time. A bond to a gel vertex
-  instead is too compliant to carry the card: MuJoCo scales a constraint's stiffness by the
-  effective mass of its bodies, and a gel vertex weighs 5 mg (the card slid 17 mm out of such
-  bonds on a fold-back while the reference card arches between clamp and gel).
+  nearest gel bottom vertex, ``solref`` of the labels, ``solimp`` making each a spring of
+  ``tack.BOND_STIFFNESS_N_PER_M`` at rest (vertex masses: flexcomp spreads a flex's mass evenly over
+  its vertices), activated and re-anchored at run time (:mod:`benchmarks.mujoco_world.tack`).
 
 Integrator ``discrete`` with the Newton solver: MuJoCo 4.0 integrates flex elasticity implicitly
 only there (``implicitfast`` refuses flex elasticity).
@@ -29,10 +28,11 @@ only there (``implicitfast`` refuses flex elasticity).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+
+from benchmarks.mujoco_world.tack import BOND_STIFFNESS_N_PER_M, TackCandidate, bond_impedance, bond_solimp
 
 GEL_COUNT = (10, 8, 3)
 """Gel grid vertices along x, y, thickness (spacing about 2 mm, the marker pitch)."""
@@ -42,15 +42,6 @@ GEL_RADIUS = 1.0e-4
 
 CLAMP_GRIDRANGE = {"x0": lambda nx, ny: (0, 0, 0, ny - 1), "x1": lambda nx, ny: (nx - 1, 0, nx - 1, ny - 1),
                    "y0": lambda nx, ny: (0, 0, nx - 1, 0), "y1": lambda nx, ny: (0, ny - 1, nx - 1, ny - 1)}
-
-
-@dataclass(frozen=True)
-class TackCandidate:
-    """A possible adhesive bond: card grid vertex (ix, iy) and gel bottom vertex index (into the bottom layer)."""
-
-    card_ix: int
-    card_iy: int
-    gel_bottom: int
 
 
 def _v(xs: Sequence[float]) -> str:
@@ -64,6 +55,18 @@ def gel_bottom_rest(scene: Mapping[str, Any]) -> np.ndarray:
     xs = np.linspace(-gx / 2, gx / 2, nx)
     ys = np.linspace(-gy / 2, gy / 2, ny)
     return np.array([(x, y) for y in ys for x in xs])
+
+
+def card_vertex_body(c: TackCandidate, ny: int) -> str:
+    """MuJoCo body name of a candidate's card vertex (flexcomp grid index ``ix * ny + iy``)."""
+    return f"card_{c.card_ix * ny + c.card_iy}"
+
+
+def gel_vertex_body(c: TackCandidate) -> str:
+    """MuJoCo body name of a candidate's gel bottom vertex (flexcomp grid index ``(ix * gny + iy) * gnz``, iz = 0)."""
+    gnx, gny, gnz = GEL_COUNT
+    iy, ix = divmod(c.gel_bottom, gnx)
+    return f"gel_{(ix * gny + iy) * gnz}"
 
 
 def build_mjcf(scene: Mapping[str, Any], truth: Mapping[str, Any], ee_start: Sequence[float],
@@ -96,10 +99,13 @@ def build_mjcf(scene: Mapping[str, Any], truth: Mapping[str, Any], ee_start: Seq
     solref, solimp = _v(con["solref"]), _v(con["solimp"])
     table = scene.get("table", {"height": 0.0})
     bonds = []
+    if tack:
+        bond_d = bond_impedance(card_mass / (nx * ny), gel_mass / (gnx * gny * gnz), BOND_STIFFNESS_N_PER_M,
+                                truth["tack"]["solref"])
     for k, c in enumerate(tack):
-        card_body = f"card_{c.card_ix * ny + c.card_iy}"
-        bonds.append(f'<connect name="tack_{k}" body1="{card_body}" body2="ee" anchor="0 0 0" '
-                     f'active="false" solref="{_v(truth["tack"]["solref"])}"/>')
+        bonds.append(f'<connect name="tack_{k}" body1="{card_vertex_body(c, ny)}" body2="{gel_vertex_body(c)}" '
+                     f'anchor="0 0 0" active="false" solref="{_v(truth["tack"]["solref"])}" '
+                     f'solimp="{_v(bond_solimp(bond_d))}"/>')
     equality = f"<equality>{''.join(bonds)}</equality>" if bonds else ""
     return f"""<mujoco model="thinshell_reference_world">
   <compiler autolimits="true"/>

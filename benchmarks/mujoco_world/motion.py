@@ -113,32 +113,66 @@ def press_slide(start_xy, depth, slide, height, v_press, v_slide, v_lift, contac
     return Motion("press_slide", tuple(start), [press, sl, lift], t, params)
 
 
-def lift_fold(start_xy, depth, lift, fold_back, height, v_press, v_fold, contact_z,
-              rests=(0.15, 0.35, 0.35, 0.6), tack_lead_s=0.05, peel_rise=0.006, v_peel=0.02) -> Motion:
-    """Press near the free edge, tack, lift by ``lift`` while moving ``fold_back`` toward the clamp, hold, peel.
+LIFT_FIRST_FRACTION = 0.36
+"""Share of a lift_fold's rise (depth + lift) made straight up before the fold moves back (the mean of
+the three reference lift-folds' commands: 0.374, 0.340, 0.370)."""
 
-    The tack bonds form ``tack_lead_s`` before the fold starts and are released (peel) at the start
-    of the final rise of ``peel_rise`` m at ``v_peel`` m/s (the reference's last move: 6 mm at
-    20 mm/s).
+
+def lift_fold(start_xy, depth, lift, fold_back, height, v_press, v_fold, contact_z,
+              rests=(0.15, 0.35, 0.35, 0.6), tack_lead_s=0.05, peel_rise=0.006, v_peel=0.02,
+              lift_first: float | None = None) -> Motion:
+    """Press near the free edge, tack, lift, then lift further while moving ``fold_back`` toward the clamp, hold, peel.
+
+    The rise of ``depth + lift`` is two back-to-back min-jerk moves at the mean speed ``v_fold``:
+    ``lift_first`` m straight up (default ``LIFT_FIRST_FRACTION`` of the rise), then the rest of the
+    rise together with ``fold_back`` (the reference commands show two speed peaks of the same
+    height, the first move vertical). The tack bonds form ``tack_lead_s`` before the rise starts and
+    are released (peel) at the start of the final rise of ``peel_rise`` m at ``v_peel`` m/s (the
+    reference's last move: 6 mm at 20 mm/s).
 
     Raises:
-        ValueError: a non-positive length or speed.
+        ValueError: a non-positive length or speed, or ``lift_first`` not inside the rise.
     """
     t_rest0, dwell1, hold, tail = rests
+    rise = depth + lift
+    if lift_first is None:
+        lift_first = LIFT_FIRST_FRACTION * rise
+    if not 0.0 < lift_first < rise:
+        raise ValueError(f"lift_first {lift_first} m must lie inside the rise (0, {rise}) m")
     start = np.array([start_xy[0], start_xy[1], contact_z + height])
     t = t_rest0
     press = _seg(t, np.array([0.0, 0.0, -(height + depth)]), v_press)
     t += press.duration + dwell1
-    fold = _seg(t, np.array([-fold_back, 0.0, depth + lift]), v_fold)
+    up = _seg(t, np.array([0.0, 0.0, lift_first]), v_fold)
     tack_on = t - tack_lead_s
+    t += up.duration
+    fold = _seg(t, np.array([-fold_back, 0.0, rise - lift_first]), v_fold)
     t += fold.duration + hold
     peel = _seg(t, np.array([0.0, 0.0, peel_rise]), v_peel)
     tack_off = t
     t += peel.duration + tail
     params = {"start_xy": [float(start_xy[0]), float(start_xy[1])], "depth": float(depth),
               "lift": float(lift), "fold_back": float(fold_back), "height": float(height),
-              "v_press": float(v_press), "v_fold": float(v_fold)}
-    return Motion("lift_fold", tuple(start), [press, fold, peel], t, params, tack_on, tack_off)
+              "v_press": float(v_press), "v_fold": float(v_fold), "lift_first": float(lift_first)}
+    return Motion("lift_fold", tuple(start), [press, up, fold, peel], t, params, tack_on, tack_off)
+
+
+def lift_fold_like(m: dict[str, Any], contact_z: float, rest0: float = 0.15, tack_lead_s: float = 0.05) -> Motion:
+    """The lift_fold of a labels ``motion`` entry, its rests recovered from ``t_tack_on``, ``t_tack_off`` and
+    ``duration_s`` (the labels do not give them; the initial rest ``rest0`` s is assumed).
+
+    Raises:
+        ValueError: the labels' times leave a negative rest, or a bad move (see :func:`lift_fold`).
+    """
+    args = (m["start_xy"], m["depth"], m["lift"], m["fold_back"], m["height"], m["v_press"], m["v_fold"], contact_z)
+    probe = lift_fold(*args, rests=(rest0, 0.0, 0.0, 0.0), tack_lead_s=tack_lead_s, lift_first=m.get("lift_first"))
+    press, up, fold, peel = probe.segments
+    dwell1 = float(m["t_tack_on"]) + tack_lead_s - (rest0 + press.duration)
+    hold = float(m["t_tack_off"]) - (float(m["t_tack_on"]) + tack_lead_s + up.duration + fold.duration)
+    tail = float(m["duration_s"]) - (float(m["t_tack_off"]) + peel.duration)
+    if min(dwell1, hold, tail) < 0.0:
+        raise ValueError(f"labels' times leave a negative rest: dwell {dwell1:.3f}, hold {hold:.3f}, tail {tail:.3f} s")
+    return lift_fold(*args, rests=(rest0, dwell1, hold, tail), tack_lead_s=tack_lead_s, lift_first=m.get("lift_first"))
 
 
 def sample_press_slide(rng: np.random.Generator, contact_z: float, direction: str | None = None) -> Motion:

@@ -15,9 +15,11 @@ so the gel's coefficient is switched before every step: static while the gel's c
 to the card (mean tangential speed of the gel vertices touching the card below ``STICK_SPEED``),
 kinetic once it slips (above ``SLIP_SPEED``), with hysteresis between.
 
-Tack (lift_fold): at ``tack_on_s`` every candidate bond whose card vertex lies under the gel
-footprint is re-anchored at the current relative position and activated; a bond whose constraint
-force exceeds ``bond_strength_N`` breaks; all are released at ``tack_off_s`` (the peel).
+Tack (lift_fold, :mod:`benchmarks.mujoco_world.tack`): at ``tack_on_s`` every candidate bond whose
+card vertex lies under the gel footprint is re-anchored at the current relative position and
+activated; a bond whose force exceeds ``bond_strength_N`` breaks; all are released at ``tack_off_s``
+(the peel). The wrench includes the active bonds' force (sign: ``bond_wrench`` of :func:`run`). From the
+peel on, each step is ``PEEL_SUBSTEPS`` MuJoCo steps.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from typing import Any, Mapping
 import mujoco
 import numpy as np
 
-from benchmarks.mujoco_world.mjcf import GEL_COUNT, TackCandidate, build_mjcf, gel_bottom_rest
+from benchmarks.mujoco_world import tack as tack_mod
+from benchmarks.mujoco_world.mjcf import GEL_COUNT, build_mjcf, card_vertex_body, gel_bottom_rest, gel_vertex_body
 from benchmarks.mujoco_world.motion import Motion
 
 SLIP_SPEED = 2.0e-3
@@ -37,6 +40,12 @@ SLIP_SPEED = 2.0e-3
 
 STICK_SPEED = 0.5e-3
 """... and below which it sticks again (static friction), m/s."""
+
+PEEL_SUBSTEPS = 2
+"""From the peel on, each recorded step is this many MuJoCo steps of ``timestep / PEEL_SUBSTEPS``: the
+release of the stretched bonds is a stiff transient that the 1 ms step does not integrate here
+(nominal_s109's re-run from its peel state: at 1 ms the card is flung to 24 mm and the gel's vertices
+move 8.4 mm; at 0.5 ms the card falls flat within 0.1 s and the gel relaxes by 0.34 mm)."""
 
 CONTACT_BAND = 3.0e-4
 """A gel bottom vertex within this height above the card's top surface counts as touching, m."""
@@ -56,31 +65,19 @@ class Recording:
     stats: dict[str, Any] = field(default_factory=dict)
 
 
-def tack_candidates(scene: Mapping[str, Any], start_xy) -> list[TackCandidate]:
-    """Card vertices under the gel footprint at ``start_xy`` (m) (``gel_bottom``: the nearest gel bottom vertex, for reference)."""
-    nx, ny = scene["sheet"]["resolution"]
-    sx, sy = scene["sheet"]["size"]
-    ox, oy, _ = scene["sheet"]["origin"]
-    gx, gy, _ = scene["sensors"]["tactile"]["gel_size"]
-    rest = gel_bottom_rest(scene)
-    out = []
-    for ix in range(nx):
-        for iy in range(ny):
-            p = np.array([ox + ix * sx / (nx - 1), oy + iy * sy / (ny - 1)]) - np.asarray(start_xy)
-            if abs(p[0]) <= gx / 2 and abs(p[1]) <= gy / 2:
-                out.append(TackCandidate(ix, iy, int(np.argmin(np.linalg.norm(rest - p, axis=1)))))
-    return out
-
-
-def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None) -> Recording:
+def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None,
+        bond_wrench: str = "reference") -> Recording:
     """Simulate ``motion`` in the world of ``scene`` with the true values ``truth`` (labels' ``mujoco``).
+
+    ``bond_wrench``: how the tack bonds enter the wrench (``tack.BOND_WRENCH_CONVENTIONS``).
 
     ``probe(k, t, model, data)``, when given, is called after every step (diagnostics).
 
     Raises:
         RuntimeError: the simulation produced a non-finite state.
     """
-    tack = tack_candidates(scene, motion.start[:2]) if motion.tack_on_s is not None else []
+    tack = (tack_mod.tack_candidates(scene, motion.start[:2], gel_bottom_rest(scene))
+            if motion.tack_on_s is not None else [])
     model = mujoco.MjModel.from_xml_string(build_mjcf(scene, truth, motion.start, tack))
     data = mujoco.MjData(model)
     dt = model.opt.timestep
@@ -106,12 +103,21 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
     rec_sheet = np.zeros((n_steps, sheet_order.size, 3))
     slipping, n_switch, bonds_formed, bonds_broken = False, 0, 0, 0
     tacked = False
+    bond_peak = np.zeros(len(tack))
+    card_bodies = np.array([model.body(card_vertex_body(c, ny)).id for c in tack], dtype=int)
+    gel_bodies = np.array([model.body(gel_vertex_body(c)).id for c in tack], dtype=int)
+    gel_xy = np.asarray(scene["sensors"]["tactile"]["gel_size"][:2], dtype=float)
     prev_gel = None
     t0 = time.perf_counter()
     ee_body = model.body("ee").id
     for k in range(n_steps):
-        data.ctrl[:] = cmd[k] - start
-        mujoco.mj_step(model, data)
+        peeled = bool(tack) and k > 0 and t[k - 1] >= motion.tack_off_s
+        n_sub = PEEL_SUBSTEPS if peeled else 1
+        model.opt.timestep = dt / n_sub
+        for j in range(1, n_sub + 1):
+            data.ctrl[:] = (cmd[k] if j == n_sub else motion.command(t[k] - dt + j * dt / n_sub)) - start
+            mujoco.mj_step(model, data)
+        model.opt.timestep = dt
         # mj_step's position stage and constraint solve describe the state at t[k]
         ee = data.xpos[ee_body].copy()
         rec_ee[k] = ee
@@ -119,7 +125,10 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
         rec_sheet[k] = data.flexvert_xpos[sheet_order]
         rec_w[k] = _gel_wrench(model, data, gel_id, ee)
         if tack and tacked:
-            rec_w[k] += _bond_wrench(model, data, ee)
+            active = data.eq_active[: len(tack)].astype(bool)
+            f_bond = tack_mod.bond_forces(data, tack_mod.bond_rows(data, len(tack), mujoco))
+            bond_peak = np.maximum(bond_peak, np.linalg.norm(f_bond, axis=1) * active)
+            rec_w[k] += tack_mod.bond_wrench(f_bond, data.xpos[gel_bodies], active, ee, bond_wrench)
         if not np.all(np.isfinite(rec_gel[k])):
             raise RuntimeError(f"non-finite state at t = {t[k]:.3f} s")
         # stiction: friction for the next step from the contact layer's slip speed
@@ -136,13 +145,15 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
             model.flex_friction[gel_id, 0] = mu_k if slipping else mu_s
         prev_gel = gel_now.copy()
         # tack bonds
-        if tack and not tacked and t[k] >= motion.tack_on_s:
-            tacked = True
-            bonds_formed = _form_bonds(model, data, tack, scene, ee)
         if tack and tacked and t[k] >= motion.tack_off_s:
-            data.eq_active[:] = 0
+            data.eq_active[: len(tack)] = 0
         elif tack and tacked:
-            bonds_broken += _break_bonds(model, data, bond_max)
+            brk = tack_mod.bonds_to_break(f_bond, active, bond_max)
+            data.eq_active[: len(tack)][brk] = 0
+            bonds_broken += int(brk.sum())
+        elif tack and t[k] >= motion.tack_on_s:
+            tacked = True
+            bonds_formed = _form_bonds(model, data, card_bodies, gel_bodies, ee[:2], gel_xy)
         if probe is not None:
             probe(k, t[k], model, data)
         if k % 500 == 0:
@@ -152,6 +163,9 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
              "warnings": int(np.sum(data.warning.number)), "tack_bonds_formed": int(bonds_formed),
              "tack_bonds_broken": int(bonds_broken), "friction_switches": int(n_switch),
              "max_normal_force_N": float(np.max(np.abs(rec_w[:, 2])))}
+    if tack:
+        stats["peel_substeps"] = PEEL_SUBSTEPS
+        stats["tack_bond_peak_force_N"] = [round(float(x), 4) for x in bond_peak]
     return Recording(t, cmd, rec_ee, rec_w, rec_gel, rec_sheet,
                      np.c_[gel_bottom_rest(scene), np.zeros(bottom.size)], stats)
 
@@ -176,45 +190,12 @@ def _gel_wrench(model, data, gel_id: int, origin: np.ndarray) -> np.ndarray:
     return np.r_[fw.sum(axis=0), tw.sum(axis=0)]
 
 
-def _bond_wrench(model, data, origin: np.ndarray) -> np.ndarray:
-    """Force of the active tack bonds on the gel and its torque about ``origin``, world (N, N m), shape (6,).
-
-    A connect equality's residual is ``p1 - p2`` (card vertex minus its anchor on the effector) in
-    world, so its three multipliers ``f`` act as ``+f`` on the card and ``-f`` on the gel, at the
-    card vertex (where the tack sits on the gel surface).
-    """
-    out = np.zeros(6)
-    eq_rows = np.nonzero(data.efc_type[: data.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
-    for k in np.nonzero(data.eq_active)[0]:
-        rows = eq_rows[data.efc_id[eq_rows] == k]
-        if rows.size != 3:
-            continue
-        f = -data.efc_force[rows]
-        out[:3] += f
-        out[3:] += np.cross(data.xpos[model.eq_obj1id[k]] - origin, f)
-    return out
-
-
-def _form_bonds(model, data, tack, scene, ee) -> int:
-    gx, gy, _ = scene["sensors"]["tactile"]["gel_size"]
-    formed = 0
-    for k, c in enumerate(tack):
-        b1, b2 = model.eq_obj1id[k], model.eq_obj2id[k]
-        p1, p2 = data.xpos[b1], data.xpos[b2]
-        if abs(p1[0] - ee[0]) <= gx / 2 and abs(p1[1] - ee[1]) <= gy / 2:
-            model.eq_data[k, 0:3] = 0.0
-            model.eq_data[k, 3:6] = p1 - p2
-            data.eq_active[k] = 1
-            formed += 1
-    return formed
-
-
-def _break_bonds(model, data, bond_max: float) -> int:
-    broken = 0
-    eq_rows = np.nonzero(data.efc_type[: data.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY)[0]
-    for k in np.nonzero(data.eq_active)[0]:
-        rows = eq_rows[data.efc_id[eq_rows] == k]
-        if rows.size and np.linalg.norm(data.efc_force[rows]) > bond_max:
-            data.eq_active[k] = 0
-            broken += 1
-    return broken
+def _form_bonds(model, data, card_bodies: np.ndarray, gel_bodies: np.ndarray, ee_xy, gel_xy) -> int:
+    """Activate the bonds whose card vertex lies under the gel footprint, anchored at the pair's current offset."""
+    p1, p2 = data.xpos[card_bodies], data.xpos[gel_bodies]
+    form = tack_mod.under_footprint(p1[:, :2], ee_xy, gel_xy)
+    for k in np.nonzero(form)[0]:
+        model.eq_data[k, 0:3] = 0.0
+        model.eq_data[k, 3:6] = p1[k] - p2[k]
+        data.eq_active[k] = 1
+    return int(form.sum())

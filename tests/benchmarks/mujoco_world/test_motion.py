@@ -35,14 +35,37 @@ def test_press_slide_reaches_depth_slides_and_returns():
     assert m.labels()["depth"] == 0.002 and m.labels()["kind"] == "press_slide"
 
 
-def test_lift_fold_tacks_before_the_fold_and_peels_at_the_last_rise():
-    m = mm.lift_fold((0.088, 0.0), 0.0015, 0.012, 0.011, 0.004, 0.006, 0.014, 3.0e-4)
-    press, fold, peel = m.segments
-    assert m.tack_on_s == pytest.approx(fold.t0 - 0.05)
+def test_lift_fold_tacks_before_the_rise_lifts_straight_up_first_and_peels_at_the_last_rise():
+    m = mm.lift_fold((0.088, 0.0), 0.0015, 0.012, 0.011, 0.004, 0.006, 0.014, 3.0e-4, lift_first=0.005)
+    press, up, fold, peel = m.segments
+    assert m.tack_on_s == pytest.approx(up.t0 - 0.05)
     assert m.tack_off_s == pytest.approx(peel.t0)
-    np.testing.assert_allclose(fold.delta, [-0.011, 0.0, 0.0015 + 0.012])
+    np.testing.assert_allclose(up.delta, [0.0, 0.0, 0.005])
+    np.testing.assert_allclose(fold.delta, [-0.011, 0.0, 0.0015 + 0.012 - 0.005])
+    # back to back at the same mean speed: the two speed peaks are equal (1.875 v_fold)
+    assert fold.t0 == pytest.approx(up.t0 + up.duration)
+    assert up.duration == pytest.approx(0.005 / 0.014)
+    t = np.linspace(up.t0, fold.t0 + fold.duration, 20001)
+    speed = np.linalg.norm(np.gradient(m.command(t), t, axis=0), axis=1)
+    first, second = speed[t < fold.t0].max(), speed[t > fold.t0].max()
+    assert first == pytest.approx(1.875 * 0.014, rel=1e-4) and second == pytest.approx(first, rel=1e-4)
     held = m.command(fold.t0 + fold.duration + 0.01)
     np.testing.assert_allclose(held, [0.088 - 0.011, 0.0, 3.0e-4 + 0.012], atol=1e-12)
+    with pytest.raises(ValueError, match="must lie inside the rise"):
+        mm.lift_fold((0.088, 0.0), 0.0015, 0.012, 0.011, 0.004, 0.006, 0.014, 3.0e-4, lift_first=0.02)
+
+
+def test_lift_fold_like_recovers_the_rests_from_the_labels_times():
+    m = mm.lift_fold((0.088, 0.003), 0.0018, 0.0153, 0.0103, 0.0041, 0.0082, 0.0138, 3.0e-4,
+                     rests=(0.15, 0.31, 0.33, 0.6))
+    again = mm.lift_fold_like(m.labels(), 3.0e-4)
+    assert again.tack_on_s == pytest.approx(m.tack_on_s) and again.tack_off_s == pytest.approx(m.tack_off_s)
+    assert again.duration_s == pytest.approx(m.duration_s)
+    t = np.linspace(0.0, m.duration_s, 4001)
+    np.testing.assert_allclose(again.command(t), m.command(t), atol=1e-12)
+    bad = dict(m.labels(), t_tack_off=m.tack_on_s + 0.1)
+    with pytest.raises(ValueError, match="negative rest"):
+        mm.lift_fold_like(bad, 3.0e-4)
 
 
 def test_sampled_slides_stay_on_the_card_and_refuse_bad_moves():
