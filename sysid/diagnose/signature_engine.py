@@ -53,7 +53,7 @@ from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay
                                                 normal_load_excess, shear_breakaway)
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
-from sysid.diagnose.signatures.damping import kelvin_voigt
+from sysid.diagnose.signatures.damping import contact_force
 from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, lens_design
 from sysid.diagnose.signatures.timing import delayed, first_order, smoothed_replay, timing_fits, timing_signal
 from sysid.evidence import load_evidence
@@ -278,8 +278,8 @@ def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 
 def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     """Delay (latency), first-order lag (gel viscoelasticity) or Kelvin-Voigt time constant (damping:
-    the replay's force plus tau times its rate) fitted on all contact events but one and evaluated on that
-    one, for every event (leave one event out)."""
+    the replay's force plus tau times its rate, never tensile: :func:`contact_force`) fitted on all
+    contact events but one and evaluated on that one, for every event (leave one event out)."""
     rec = p.recording
     fits = timing_fits(rec)
     events = fits["events"] if fits else []
@@ -294,7 +294,7 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
 
     def transformed(theta: tuple[float, float]) -> np.ndarray:
         if lead:
-            return kelvin_voigt(t, yp, theta[0])
+            return contact_force(t, yp, theta[0])
         return delayed(t, yp, theta[0]) if latency else first_order(t, yp, theta[0], theta[1])
 
     def sse(theta, rows, pred=None) -> float:

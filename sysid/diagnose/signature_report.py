@@ -14,7 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sysid.diagnose.report import write_report_files
-from sysid.diagnose.signatures.damping import kelvin_voigt
+from sysid.diagnose.signatures.damping import contact_force
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway, shear_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
@@ -40,7 +40,7 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         if effect == "gel_viscoelasticity":
             after = first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
         elif effect == "damping":
-            after = kelvin_voigt(t, yp, params.get("tau_s", 0.0))
+            after = contact_force(t, yp, params.get("tau_s", 0.0))
         else:
             after = delayed(t, yp, params.get("latency_s", 0.0))
         ax.plot(t, y, "k.", ms=2, label="recorded")

@@ -7,12 +7,20 @@ quasi-static segments (SYSID.md "damping — residual proportional to velocity, 
 quasi-static segments"). It is read where the rate is largest, at the contact events of the
 calibrated nominal replay (press and release), with the windows of
 :mod:`sysid.diagnose.signatures.timing`: in each window the recorded normal force is regressed on
-the replay's Kelvin-Voigt response ``y ~ a + b (y_pred + tau dy_pred/dt)`` (free gain and offset
-per window: the amplitude gap between simulator and recording is not the effect), over a grid of
-``tau >= 0``; the replay's value and rate are read by a Savitzky-Golay filter (:func:`kelvin_voigt`).
+the replay's Kelvin-Voigt contact force ``y ~ a + b max(y_pred + tau dy_pred/dt, 0)`` (free gain and
+offset per window: the amplitude gap between simulator and recording is not the effect), over a
+grid of ``tau >= 0``; the replay's value and rate are read by a Savitzky-Golay filter
+(:func:`kelvin_voigt`). The contact pushes only: on a release the damping force opposes the gel's
+recovery, and where it exceeds the elastic force the surfaces part and the force is zero, not
+tensile (:func:`contact_force`).
 
-* statistic: the whitened SSE a common lead removes against ``tau = 0`` summed over the events
-  (a likelihood-ratio statistic in noise units);
+* statistic: the whitened SSE a common lead removes against ``tau = 0`` summed over the events (a
+  likelihood-ratio statistic in noise units), divided by the windows' dispersion after the lead,
+  ``max(1, SSE_lead / (n - p))`` (``n`` samples, ``p`` = a gain and an offset per window and the
+  lead): a quasi-likelihood F statistic (McCullagh & Nelder 1989, *Generalized Linear Models*,
+  2nd ed., sec. 9.2). Where the replay leaves a gap the lead does not explain (a nominal model is
+  never exactly right), the residual's variance exceeds the noise model's and the lead's drop is
+  judged against that variance, not against the sensor noise alone (:func:`dispersion`);
 * effect size: the smallest press's mean lead over its rising and falling events, with every
   event leading (:func:`~sysid.diagnose.signatures.timing.timing_size`: a damping time constant
   leads every event; a lead at one event only is the model's gap there, and a depth gap of the
@@ -79,6 +87,40 @@ def kelvin_voigt(t: np.ndarray, y: np.ndarray, tau: float, span_s: float = RATE_
     return value + tau * savgol_filter(y, w, 2, deriv=1, delta=dt, axis=0)
 
 
+def contact_force(t: np.ndarray, y: np.ndarray, tau: float, span_s: float = RATE_WINDOW_S) -> np.ndarray:
+    """Contact force of a Kelvin-Voigt gel whose elastic force is ``y`` (>= 0, pressing):
+    ``max(y + tau dy/dt, 0)`` along axis 0 (:func:`kelvin_voigt`). A contact pushes only: on a
+    release the damping force opposes the gel's recovery, and once it exceeds the elastic force the
+    gel's surface lags behind the lifting pad and the contact force is zero (Signorini condition).
+
+    Args:
+        t: uniform sample times, s, shape ``(n,)``.
+        y: elastic (replay) normal force, N, shape ``(n, ...)``.
+        tau: damping time constant, s.
+        span_s: span of the rate filter, s.
+    """
+    return np.maximum(kelvin_voigt(t, y, tau, span_s), 0.0)
+
+
+def dispersion(sse: float, samples: int, params: int) -> float:
+    """Dispersion of a whitened residual, ``max(1, sse / (samples - params))``: its variance in
+    units of the noise model's (Pearson's estimate, McCullagh & Nelder 1989 sec. 9.2), never
+    below one (a residual under the noise level is the noise model's, not a better fit's).
+
+    Args:
+        sse: whitened sum of squares after the fit.
+        samples: samples fitted.
+        params: parameters fitted.
+
+    Raises:
+        ValueError: ``samples <= params`` (no degree of freedom left to estimate it).
+    """
+    dof = int(samples) - int(params)
+    if dof <= 0:
+        raise ValueError(f"dispersion needs more samples than parameters ({samples} <= {params})")
+    return max(1.0, float(sse) / dof)
+
+
 def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
     X = np.stack([x, np.ones_like(x)], axis=1)
     c, *_ = np.linalg.lstsq(X, y, rcond=None)
@@ -87,8 +129,8 @@ def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
 
 
 def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
-    """Whitened SSE of every contact event's window against the replay's Kelvin-Voigt response for
-    each time constant.
+    """Whitened SSE of every contact event's window against the replay's Kelvin-Voigt contact force
+    (:func:`contact_force`) for each time constant.
 
     Args:
         rec: recording with its calibrated replay.
@@ -105,7 +147,7 @@ def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     channel, t, y, yp, sigma = sig
     if taus is None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
-    shifted = [kelvin_voigt(t, yp, float(tau)) for tau in taus]
+    shifted = [contact_force(t, yp, float(tau)) for tau in taus]
     events, sse = [], []
     for te, direction, lo, hi, m in event_windows(t, yp):
         row = np.array([_window_sse(y[m], z[m]) for z in shifted]) / sigma ** 2
@@ -119,7 +161,8 @@ def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
 
 
 def damping_test(rec: Recording) -> SignatureResult:
-    """Gel damping from the lead of the recorded contact force over the calibrated replay."""
+    """Gel damping from the lead of the recorded contact force over the calibrated replay (module
+    docstring: statistic, effect size, estimate)."""
     fits = lead_fits(rec)
     if fits is None:
         return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")
@@ -131,11 +174,14 @@ def damping_test(rec: Recording) -> SignatureResult:
     lead = float(fits["taus_s"][j])
     leads = np.array([e["lead_s"] for e in ev])
     samples = int(sum(e["samples"] for e in ev))
+    removed = max(float(total[0] - total[j]), 0.0)
     excess = max(float(total[0]) - samples, 1e-12)
+    # a gain and an offset per window, and the common lead
+    phi = dispersion(float(total[j]), samples, 2 * len(ev) + 1)
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
-              "sse_lead": float(total[j]), "leads_s": leads.tolist(), "press_leads_s": press_sizes(ev, "lead_s"),
-              "explained_lead": float((total[0] - total[j]) / excess)}
-    return SignatureResult(effect=EFFECT, statistic=max(float(total[0] - total[j]), 0.0),
+              "sse_lead": float(total[j]), "sse_removed": removed, "dispersion": phi, "leads_s": leads.tolist(),
+              "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess)}
+    return SignatureResult(effect=EFFECT, statistic=removed / phi,
                            effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],
                            channels=["wrench"] if fits["channel"] == "wrench" else ["markers_xyz"], detail=detail)

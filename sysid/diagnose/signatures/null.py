@@ -22,8 +22,10 @@ recording must exceed. With baselines no threshold is lower than without, so a b
 withdraw a name.
 
 Damping reads the same event windows as the timing effects with the opposite sign (the force leads
-the replay instead of following it), so it is not confused with them; it must explain the same
-fraction of the windows' excess energy.
+the replay instead of following it), so it is not confused with them. Its statistic is already
+divided by the windows' dispersion after the lead (:func:`sysid.diagnose.signatures.damping.dispersion`):
+a gap the lead leaves in place raises the bar in proportion, so it is not held to ``min_explained``
+as well.
 
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
 (a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`), also when only
@@ -161,8 +163,8 @@ def _passes(r: SignatureResult, th: Thresholds) -> bool:
     # a part in 1e9 (the bag's nanosecond stamps), not to the float's last bit
     ok = (r.statistic >= r.threshold["statistic"]
           and r.effect_size >= r.threshold["effect_size"] - SIZE_TOLERANCE * abs(r.threshold["effect_size"]))
-    if ok and r.effect in ("latency", "gel_viscoelasticity", "damping"):
-        key = {"latency": "explained_delay", "gel_viscoelasticity": "explained_lag", "damping": "explained_lead"}[r.effect]
+    if ok and r.effect in ("latency", "gel_viscoelasticity"):
+        key = {"latency": "explained_delay", "gel_viscoelasticity": "explained_lag"}[r.effect]
         explained = float(r.detail.get(key, 0.0))
         ok = explained >= MIN_EXPLAINED
         if not ok:

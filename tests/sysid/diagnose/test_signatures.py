@@ -30,8 +30,8 @@ def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float 
               bias: float = 0.0, set_height: float = 0.0, carried: bool = False, duration: float = 3.5,
               damping: float = 0.0, ramp: float = 0.15, rough: float = 0.0) -> Recording:
     """A press-and-release recording and its exact 'replay', with one effect applied to the data
-    (``damping``: a Kelvin-Voigt gel of that time constant, ``F = k (x + tau dx/dt)`` on the force,
-    the markers keep the elastic deformation ``x``). ``ramp``: press and release time, s;
+    (``damping``: a Kelvin-Voigt gel of that time constant, ``F = max(k (x + tau dx/dt), 0)`` on the
+    force, the markers keep the elastic deformation ``x``). ``ramp``: press and release time, s;
     ``rough``: step-to-step roughness of the replay's force while it ramps, a fraction of its peak
     (alternating sign every 0.01 s replay step, as the contact solve leaves it)."""
     tw = np.arange(0.0, duration, 0.005)
@@ -58,7 +58,9 @@ def synthetic(rng: np.random.Generator, *, latency: float = 0.0, lag_tau: float 
     # the recording: effects, then noise
     xyz = rest[None] + np.stack([np.zeros_like(bowl), np.zeros_like(bowl), -2e-4 * bowl], 1)[None] * rec_m[:, None, None]
     w = np.zeros((len(tw), 6))
-    w[:, 2] = -5.0 * (rec_w + damping * np.gradient(rec_w, tw))
+    # a Kelvin-Voigt contact pushes only: where the damping force exceeds the elastic one on the
+    # release the gel's surface parts from the sheet (sysid.diagnose.signatures.damping.contact_force)
+    w[:, 2] = -5.0 * np.maximum(rec_w + damping * np.gradient(rec_w, tw), 0.0)
     if latency:
         xyz, w = delayed(tm, xyz, latency), delayed(tw, w, latency)
     if lag_tau:
@@ -296,21 +298,21 @@ def test_the_timing_shape_decides_also_when_one_effect_alone_passes(delay, lag, 
     assert d.ties == []
 
 
-def test_a_lead_that_explains_too_little_is_not_named_and_the_result_says_why():
+def test_a_delay_that_explains_too_little_is_not_named_and_the_result_says_why():
     from sysid.diagnose.signatures.base import SignatureResult
     from sysid.diagnose.signatures.null import MIN_EXPLAINED
 
     rec = Recording(t={"wrench": np.arange(100) * 0.005, "markers_xyz": np.arange(50) * 0.01},
                     data={"wrench": np.zeros((100, 6)), "markers_xyz": np.zeros((50, 63, 3))}, prediction=None,
                     sigma=SIGMA, camera=CAMERA)
-    for explained, named in ((MIN_EXPLAINED - 0.12, []), (MIN_EXPLAINED + 0.1, ["damping"])):
-        r = SignatureResult("damping", statistic=337.0, effect_size=0.021, detail={"explained_lead": explained})
-        d = decide({"damping": r}, default_thresholds(rec))
+    for explained, named in ((MIN_EXPLAINED - 0.12, []), (MIN_EXPLAINED + 0.1, ["latency"])):
+        r = SignatureResult("latency", statistic=337.0, effect_size=0.021, detail={"explained_delay": explained})
+        d = decide({"latency": r}, default_thresholds(rec))
         assert d.explained_by == named
         if named:
             assert r.reason == ""
         else:  # statistic and size pass: the report says which condition withdrew the name
-            assert "lead removes 38%" in r.reason and "50%" in r.reason
+            assert "delay removes 38%" in r.reason and "50%" in r.reason
 
 
 def test_both_timing_effects_are_sized_by_their_smallest_press_in_mean_delay(rng):

@@ -1,0 +1,78 @@
+"""The gel damping signature (:mod:`sysid.diagnose.signatures.damping`): the Kelvin-Voigt contact
+force, the windows' dispersion, and the decision on a lead read through a replay with a gap."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from sysid.diagnose.signatures.damping import contact_force, damping_test, dispersion, kelvin_voigt
+from sysid.diagnose.signatures.null import default_thresholds
+from tests.sysid.diagnose.test_signatures import named, press_profile, synthetic
+
+
+def test_contact_force_is_kelvin_voigt_while_pressing_and_zero_once_the_surfaces_part():
+    """A 5 N press with 0.3 s ramps (16.7 N/s) and tau = 30 ms: while pressing the force is
+    ``y + tau dy/dt``; on the release the damping force (0.5 N) exceeds the elastic force in its
+    last 0.5 N, so the surfaces part tau = 30 ms before the elastic force reaches zero, and the
+    force is never tensile."""
+    t = np.arange(0.0, 3.5, 0.005)
+    y = 5.0 * press_profile(t, t_on=1.0, t_off=2.5, ramp=0.3)
+    tau = 0.03
+    kv, f = kelvin_voigt(t, y, tau), contact_force(t, y, tau)
+    assert f.min() >= 0.0 and kv.min() < -0.2  # without the contact condition: tensile
+    pressing = kv > 0.0
+    np.testing.assert_array_equal(f[pressing], kv[pressing])
+    # on the ramps (farther than the 0.05 s filter's half-span from their corners): value plus tau
+    # times the slope, +-0.5 N
+    rise, fall = np.abs(t - 1.15) < 0.1, np.abs(t - 2.35) < 0.1
+    np.testing.assert_allclose(f[rise], y[rise] + 0.5, atol=1e-9)
+    np.testing.assert_allclose(f[fall], y[fall] - 0.5, atol=1e-9)
+    # the surfaces part where the elastic force is 0.5 N, tau before it reaches zero
+    last_contact = t[np.nonzero(f > 0.0)[0][-1]]
+    assert last_contact == pytest.approx(2.5 - tau, abs=0.0051)
+
+
+def test_dispersion_is_pearsons_variance_estimate_never_below_the_noise():
+    rng = np.random.default_rng(3)
+    r = 2.0 * rng.normal(size=4000)  # a residual twice the noise model's standard deviation
+    assert dispersion(float(r @ r), r.size, 5) == pytest.approx(4.0, rel=0.05)
+    quiet = 0.5 * rng.normal(size=4000)
+    assert dispersion(float(quiet @ quiet), quiet.size, 5) == 1.0
+    with pytest.raises(ValueError, match="more samples than parameters"):
+        dispersion(10.0, 5, 5)
+
+
+def _with_dwell_gap(rec, amplitude_n: float, period_s: float = 0.1):
+    """``rec`` whose recorded normal force, while the press dwells, oscillates by ``amplitude_n`` N
+    at ``period_s`` (the sheet settling under the pad, say) where its replay is flat: a gap of the
+    model in the event windows that no lead of the replay's contact force can explain (the replay's
+    rate is zero there)."""
+    tw = rec.t["wrench"]
+    dwell = press_profile(tw) >= 1.0
+    data = dict(rec.data)
+    data["wrench"] = rec.data["wrench"].copy()
+    data["wrench"][:, 2] -= amplitude_n * np.sin(2.0 * np.pi * tw / period_s) * dwell
+    return dataclasses.replace(rec, data=data)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_lead_behind_a_replay_gap_is_judged_against_the_windows_dispersion(seed):
+    """A 30 ms Kelvin-Voigt gel whose recording holds, where the press dwells, an oscillation its
+    replay lacks (1.2 N amplitude, rms 4.2 noise sigmas): the lead removes less than half of the
+    windows' excess, but its drop, divided by the dispersion the gap leaves (about 9 times the
+    noise variance), is beyond the threshold: damping is named with its time constant. The same
+    gap without damping names nothing: the gap does not look like a lead."""
+    rec = _with_dwell_gap(synthetic(np.random.default_rng(seed), damping=0.03), 1.2)
+    r = damping_test(rec)
+    assert r.detail["explained_lead"] < 0.5
+    assert r.detail["dispersion"] > 5.0
+    assert r.statistic == pytest.approx(r.detail["sse_removed"] / r.detail["dispersion"])
+    assert r.statistic > default_thresholds(rec).statistic["damping"]
+    assert r.estimate["tau_s"] == pytest.approx(0.03, abs=0.005)
+    assert named(rec) == ["damping"]
+    plain = _with_dwell_gap(synthetic(np.random.default_rng(seed + 10)), 1.2)
+    assert damping_test(plain).effect_size < default_thresholds(plain).effect_size["damping"]
+    assert named(plain) == []
