@@ -439,3 +439,48 @@ def test_a_long_lag_is_read_at_the_share_bound(seed):
     assert all(e["lag_tau_s"] > 0.0 and 0.0 < e["lag_fraction"] <= 1.0 for e in visco.detail["events"])
     assert visco.effect_size > 0.15
     assert named(rec)[0] == "gel_viscoelasticity" and "latency" not in named(rec)
+
+
+@pytest.mark.parametrize("tau, seed", [(0.1, 1), (0.25, 3)])
+def test_a_lag_on_a_slow_release_is_read_in_its_tail_beyond_the_release(tau, seed):
+    """A 0.4 s release ramp (the press-slides of the independent engine lift off over 0.3-0.4 s):
+    on the ramp a first-order lag of time constant tau is a delay by tau, and the two shapes differ
+    only in the lag's exponential tail after the force reaches zero, which lies up to a few tau
+    beyond the crossing. The falling event's window reaches RELEASE_TAIL_S (the largest time
+    constant searched) further into the free gel, so the tail is read and the lag is named, not
+    the latency its ramp suggests (with the 0.15 s free side of the rising event the shapes tie)."""
+    from sysid.diagnose.signatures.timing import RELEASE_TAIL_S, TAU_MAX_S, WINDOW_BEFORE_S
+
+    rec = synthetic(np.random.default_rng(seed), lag_tau=tau, ramp=0.4)
+    lat, visco = timing_tests(rec)
+    fall = [e for e in lat.detail["events"] if e["direction"] == "falling"]
+    assert RELEASE_TAIL_S == TAU_MAX_S
+    assert fall and fall[0]["window_s"][1] - fall[0]["t_s"] == pytest.approx(WINDOW_BEFORE_S + RELEASE_TAIL_S)
+    assert lat.detail["shape_z"] >= SHAPE_Z
+    assert named(rec) == ["gel_viscoelasticity"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_delay_on_a_slow_release_stays_a_latency(seed):
+    """The same slow press delayed by 45 ms: after the release the delayed force is zero like the
+    replay, no tail, so the longer free side gives the lag nothing to gain and the latency is
+    named with its delay."""
+    rec = synthetic(np.random.default_rng(seed), latency=0.045, ramp=0.4)
+    lat, _ = timing_tests(rec)
+    assert named(rec) == ["latency"]
+    assert lat.effect_size == pytest.approx(0.045, abs=0.005)
+
+
+def test_the_release_tail_stops_short_of_the_next_press():
+    """Two presses 0.3 s apart: the first release's extended window ends where the next rising
+    event's window begins (the same samples are not read by two events)."""
+    from sysid.diagnose.signatures.timing import RELEASE_TAIL_S, WINDOW_BEFORE_S, event_windows
+
+    t = np.arange(0.0, 4.0, 0.005)
+    y = press_profile(t, t_on=1.0, t_off=2.0) + press_profile(t, t_on=2.3, t_off=3.3)
+    ev = event_windows(t, y, RELEASE_TAIL_S)
+    assert [d for _, d, *_ in ev] == [1, -1, 1, -1]
+    (_, _, _, hi_fall, _), (t_rise, _, lo_rise, _, _) = ev[1], ev[2]
+    assert hi_fall == pytest.approx(lo_rise) and lo_rise == pytest.approx(t_rise - WINDOW_BEFORE_S)
+    # the last release has nothing after it: the full tail
+    assert ev[3][3] - ev[3][0] == pytest.approx(WINDOW_BEFORE_S + RELEASE_TAIL_S)
