@@ -11,8 +11,9 @@ recorded normal force is regressed on a transformed prediction with a free gain 
 * first-order lag (gel viscoelasticity, "markers creep at constant indentation, force relaxes"):
   ``(1 - a) y + a L_tau y`` with ``L_tau`` the first-order low-pass of time constant tau,
 
-over a grid of tau. The statistic of each is the whitened SSE it removes against ``tau = 0``
-summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
+over a grid of tau. A release's window reaches :data:`RELEASE_TAIL_S` further into the free gel,
+where a lag leaves its exponential tail and the replay predicts no force. The statistic of each is
+the whitened SSE it removes against ``tau = 0`` summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
 of the impulse response: ``tau`` for the delay, ``a tau`` for the lag), so that a timing read off
 the events names neither more readily because of the model it is read with.
 
