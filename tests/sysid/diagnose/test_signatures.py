@@ -484,3 +484,32 @@ def test_the_release_tail_stops_short_of_the_next_press():
     assert hi_fall == pytest.approx(lo_rise) and lo_rise == pytest.approx(t_rise - WINDOW_BEFORE_S)
     # the last release has nothing after it: the full tail
     assert ev[3][3] - ev[3][0] == pytest.approx(WINDOW_BEFORE_S + RELEASE_TAIL_S)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
+    """A bias of the reference set's form (offset, drift and a slow wobble of a 4 s period) on a
+    recording free of contact for 0.9 s before the press and only 0.35 s after the release: blocks
+    of the free rows themselves put training rows in both free stretches, so the offset and drift
+    refitted on them bring the held-out wrench down to the noise (whitened RMS about 1). Blocks of
+    the whole recording would leave the last stretch held out only, the drift extrapolated over the
+    press."""
+    from sysid.diagnose.signature_engine import refit_force_bias
+    from sysid.synthetic_effects import force_bias
+
+    rec = synthetic(np.random.default_rng(seed), duration=2.85)
+    tw = rec.t["wrench"]
+    s = SIGMA["wrench"]
+    params = {"offset": (3.0 * s).tolist(), "drift_per_s": (-1.5 * s).tolist(), "wobble_amp": (0.8 * s).tolist(),
+              "wobble_period_s": 4.0, "wobble_phase": [0.3, 1.0, 2.0, 0.5, 1.5, 2.5]}
+    data = dict(rec.data, wrench=rec.data["wrench"] + force_bias(tw, params))
+    rec = Recording(t=rec.t, data=data, prediction=rec.prediction, sigma=rec.sigma, camera=rec.camera, name="biased")
+    results = run_signature_tests(rec)
+    assert "force_bias" in decide(results, default_thresholds(rec)).explained_by
+    p = Prepared("synthetic", None, None, dict(rec.prediction), rec, results)
+    fit = refit_force_bias(p, results["force_bias"], 4)
+    assert fit["heldout"] == "every other of 8 blocks of the free-gel rows"
+    assert fit["heldout_rms_before"] > 2.0
+    assert fit["heldout_rms_after"] < 1.3
+    assert fit["params"]["offset_Fz"] + fit["params"]["drift_Fz_per_s"] * (0.0 - fit["params"]["t_ref_s"]) == \
+        pytest.approx(3.0 * s[2] + 0.8 * s[2] * np.sin(1.0), abs=1.0 * s[2])
