@@ -5,12 +5,14 @@ a labelled set (``labels.yaml`` in the reference set's format, e.g. one written 
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR [--only NAME ...]
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --table
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --redecide   # signature tests again on
-        the saved calibrated replays (after a change to sysid.diagnose.signatures only)
+        the saved calibrated replays, with the gain guard of ``guarded`` (after a change to the decision stage only)
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --proxy SOURCE_RUNS   # the signature
         tests and the default decision on each recording's own tactile streams (and their noise
         levels) with the calibrated replay saved for its source recording (SOURCE_RUNS/SOURCE.pkl,
-        a run of this script on the source set): the decision of a full run whose calibration is
-        the source's, for the recordings that were not run in full
+        a run of this script on the source set), then the held-out gain guard on the refits that
+        read the recording alone (lens, force bias, timing, stiction; a sheet effect's refit
+        replays the simulator and is kept): the decision of a full run whose calibration is the
+        source's, for the recordings that were not run in full
 
 Each recording goes through the same code as ``thinshell diagnose BAG --json OUT`` (its parser's
 defaults, :func:`sysid.diagnose.signature_engine.prepare` then ``diagnose_one``); the report goes to
@@ -34,7 +36,8 @@ import yaml
 from sysid.diagnose.cli import build_parser, signature_settings
 from sysid.diagnose.signatures.base import TACTILE_CHANNELS
 from sysid.diagnose.reference_bench import VARIANT_EFFECT
-from sysid.diagnose.signature_engine import diagnose_one, prepare
+from sysid.diagnose.gain_guard import split_by_gain
+from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare, refit
 from sysid.diagnose.signatures import run_signature_tests
 from sysid.diagnose.signatures.null import decide, default_thresholds
 from sysid.evidence import load_evidence
@@ -55,9 +58,7 @@ def redecide(out: Path, name: str) -> list[str] | None:
     pkl = out / f"{name}.pkl"
     if not pkl.is_file():
         return None
-    rec = pickle.loads(pkl.read_bytes())["recording"]
-    results = run_signature_tests(rec)
-    return decide(results, default_thresholds(rec)).explained_by
+    return guarded(pickle.loads(pkl.read_bytes())["recording"])
 
 
 def proxy(set_dir: Path, source_runs: Path, name: str, source: str) -> list[str] | None:
@@ -81,7 +82,22 @@ def proxy(set_dir: Path, source_runs: Path, name: str, source: str) -> list[str]
             raise ValueError(f"{name}: {ch} {v.shape} against {source}'s {data[ch].shape}")
         data[ch], sigma[ch] = v, ev.noise[ch]
     rec = dataclasses.replace(rec, data=data, sigma=sigma, name=name)
-    return decide(run_signature_tests(rec), default_thresholds(rec)).explained_by
+    return guarded(rec)
+
+
+DATA_REFITS = ("lens_distortion", "force_bias", "latency", "gel_viscoelasticity", "damping", "stiction")
+"""Effects whose refit reads the recording and its saved replay alone (no simulator replay)."""
+
+
+def guarded(rec) -> list[str]:
+    """The default decision on a recording with its replay, then the held-out gain guard of
+    ``thinshell diagnose`` on the refits of :data:`DATA_REFITS` (other named effects are kept)."""
+    results = run_signature_tests(rec)
+    named = decide(results, default_thresholds(rec)).explained_by
+    p = Prepared(Path(rec.name), None, None, dict(rec.prediction or {}), rec, results)
+    refits = {e: refit(p, results[e], SignatureSettings(), named) for e in named if e in DATA_REFITS}
+    kept, dropped = split_by_gain(named, refits)
+    return kept or (["unexplained"] if dropped else [])
 
 
 def table(set_dir: Path, out: Path, redo: bool, source_runs: Path | None = None) -> str:
