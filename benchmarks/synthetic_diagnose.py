@@ -5,7 +5,14 @@ a labelled set (``labels.yaml`` in the reference set's format, e.g. one written 
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR [--only NAME ...]
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --table
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --redecide   # signature tests again on
-        the saved calibrated replays (after a change to sysid.diagnose.signatures only)
+        the saved calibrated replays, with the gain guard of ``guarded`` (after a change to the decision stage only)
+    python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --proxy SOURCE_RUNS   # the signature
+        tests and the default decision on each recording's own tactile streams (and their noise
+        levels) with the calibrated replay saved for its source recording (SOURCE_RUNS/SOURCE.pkl,
+        a run of this script on the source set), then the held-out gain guard on the refits that
+        read the recording alone (lens, force bias, timing, stiction; a sheet effect's refit
+        replays the simulator and is kept): the decision of a full run whose calibration is the
+        source's, for the recordings that were not run in full
 
 Each recording goes through the same code as ``thinshell diagnose BAG --json OUT`` (its parser's
 defaults, :func:`sysid.diagnose.signature_engine.prepare` then ``diagnose_one``); the report goes to
@@ -16,6 +23,7 @@ to ``OUT_DIR/NAME.pkl``, and a failure's traceback to ``OUT_DIR/NAME.error``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pickle
 import sys
@@ -26,10 +34,13 @@ from pathlib import Path
 import yaml
 
 from sysid.diagnose.cli import build_parser, signature_settings
+from sysid.diagnose.signatures.base import TACTILE_CHANNELS
 from sysid.diagnose.reference_bench import VARIANT_EFFECT
-from sysid.diagnose.signature_engine import diagnose_one, prepare
+from sysid.diagnose.gain_guard import split_by_gain
+from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare, refit
 from sysid.diagnose.signatures import run_signature_tests
 from sysid.diagnose.signatures.null import decide, default_thresholds
+from sysid.evidence import load_evidence
 
 
 def run_one(bag: Path, out: Path) -> dict:
@@ -47,12 +58,49 @@ def redecide(out: Path, name: str) -> list[str] | None:
     pkl = out / f"{name}.pkl"
     if not pkl.is_file():
         return None
+    return guarded(pickle.loads(pkl.read_bytes())["recording"])
+
+
+def proxy(set_dir: Path, source_runs: Path, name: str, source: str) -> list[str] | None:
+    """The default decision on recording ``name``'s tactile streams and noise levels with the
+    calibrated replay saved for ``source`` (None when that run is missing).
+
+    Raises:
+        ValueError: the recording's streams and the source run's differ in shape (not the same stamps).
+    """
+    pkl = source_runs / f"{source}.pkl"
+    if not pkl.is_file():
+        return None
     rec = pickle.loads(pkl.read_bytes())["recording"]
+    ev = load_evidence(set_dir / name, include_image=False)
+    data, sigma = dict(rec.data), dict(rec.sigma)
+    for ch in TACTILE_CHANNELS:
+        if ch not in data:
+            continue
+        v = ev.values(ch)
+        if v.shape != data[ch].shape:
+            raise ValueError(f"{name}: {ch} {v.shape} against {source}'s {data[ch].shape}")
+        data[ch], sigma[ch] = v, ev.noise[ch]
+    rec = dataclasses.replace(rec, data=data, sigma=sigma, name=name)
+    return guarded(rec)
+
+
+DATA_REFITS = ("lens_distortion", "force_bias", "latency", "gel_viscoelasticity", "damping", "stiction")
+"""Effects whose refit reads the recording and its saved replay alone (no simulator replay)."""
+
+
+def guarded(rec) -> list[str]:
+    """The default decision on a recording with its replay, then the held-out gain guard of
+    ``thinshell diagnose`` on the refits of :data:`DATA_REFITS` (other named effects are kept)."""
     results = run_signature_tests(rec)
-    return decide(results, default_thresholds(rec)).explained_by
+    named = decide(results, default_thresholds(rec)).explained_by
+    p = Prepared(Path(rec.name), None, None, dict(rec.prediction or {}), rec, results)
+    refits = {e: refit(p, results[e], SignatureSettings(), named) for e in named if e in DATA_REFITS}
+    kept, dropped = split_by_gain(named, refits)
+    return kept or (["unexplained"] if dropped else [])
 
 
-def table(set_dir: Path, out: Path, redo: bool) -> str:
+def table(set_dir: Path, out: Path, redo: bool, source_runs: Path | None = None) -> str:
     labels = yaml.safe_load((set_dir / "labels.yaml").read_text())
     rows = ["| recording | motion | truth | magnitude | visibility (xyz / uv / wrench) | named | wall |",
             "|---|---|---|---|---|---|---|"]
@@ -61,7 +109,10 @@ def table(set_dir: Path, out: Path, redo: bool) -> str:
         truth = VARIANT_EFFECT[lab["variant"]]
         vis = lab.get("visibility") or {}
         js = out / f"{name}.json"
-        if redo:
+        if source_runs is not None:
+            named = proxy(set_dir, source_runs, name, lab["source"]) if lab.get("source") else redecide(source_runs, name)
+            wall = "proxy"
+        elif redo:
             named = redecide(out, name)
             wall = "-"
         elif js.is_file():
@@ -93,10 +144,11 @@ def main() -> int:
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--table", action="store_true")
     ap.add_argument("--redecide", action="store_true")
+    ap.add_argument("--proxy", type=Path, metavar="SOURCE_RUNS")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.table or args.redecide:
-        print(table(args.set_dir, args.out, args.redecide))
+    if args.table or args.redecide or args.proxy:
+        print(table(args.set_dir, args.out, args.redecide, args.proxy))
         return 0
     labels = yaml.safe_load((args.set_dir / "labels.yaml").read_text())
     for name in labels:

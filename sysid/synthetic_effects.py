@@ -436,14 +436,83 @@ DEFAULT_PLAN: tuple[Item, ...] = (
 """The validation set written by ``python -m sysid.synthetic_effects`` (in this order: the
 diagnosis runner takes them one by one)."""
 
+WIDE_PLAN: tuple[Item, ...] = (
+    # press-slides of the independent MuJoCo world (benchmarks/mujoco_world: other seeds, material
+    # jitter up to 10 %, a slide along +x on nominal_s201 and a diagonal one on nominal_s202), at
+    # magnitudes drawn around and beyond the reference recordings' own: latency 25-60 ms (reference
+    # 40 ms), |k1| 0.03-0.12 of either sign (-0.077), force bias 2-6 sigma (3.5), full creeps of tau
+    # 0.06-0.25 s (0.13 s)
+    _item("nominal_s201", "none", "control", {}),
+    _item("nominal_s201", "latency", "25ms", {"latency_s": 0.025}),
+    _item("nominal_s201", "latency", "45ms", {"latency_s": 0.045}),
+    _item("nominal_s201", "lens", "k1p030", {"k1": 0.03}),
+    _item("nominal_s201", "lens", "k1m060", {"k1": -0.06}),
+    _item("nominal_s201", "force_bias", "2", {"scale_sigma": 2.0}, seed=11),
+    _item("nominal_s201", "force_bias", "4p5", {"scale_sigma": 4.5}, seed=12),
+    _item("nominal_s201", "gel_creep", "tau250", {"tau_s": 0.25, "fraction": 1.0}),
+    _item("nominal_s201", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
+    _item("nominal_s202", "none", "control", {}),
+    _item("nominal_s202", "latency", "60ms", {"latency_s": 0.06}),
+    _item("nominal_s202", "latency", "35ms", {"latency_s": 0.035}),
+    _item("nominal_s202", "lens", "k1m120", {"k1": -0.12}),
+    _item("nominal_s202", "lens", "k1p080", {"k1": 0.08}),
+    _item("nominal_s202", "force_bias", "6", {"scale_sigma": 6.0}, seed=13),
+    _item("nominal_s202", "force_bias", "3", {"scale_sigma": 3.0}, seed=14),
+    _item("nominal_s202", "gel_creep", "tau060", {"tau_s": 0.06, "fraction": 1.0}),
+    _item("nominal_s202", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
+    # the reference press-slide at the magnitudes the default plan does not cover
+    _item("nominal_s101", "latency", "30ms", {"latency_s": 0.03}),
+    _item("nominal_s101", "lens", "k1m120", {"k1": -0.12}),
+    _item("nominal_s101", "force_bias", "6", {"scale_sigma": 6.0}, seed=15),
+    _item("nominal_s101", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
+    # lifts
+    _item("nominal_s109", "latency", "25ms", {"latency_s": 0.025}),
+    _item("nominal_s109", "latency", "35ms", {"latency_s": 0.035}),
+    _item("nominal_s109", "lens", "k1p030", {"k1": 0.03}),
+    _item("nominal_s109", "lens", "k1m120", {"k1": -0.12}),
+    _item("nominal_s109", "force_bias", "2", {"scale_sigma": 2.0}, seed=16),
+    _item("nominal_s109", "gel_creep", "tau060", {"tau_s": 0.06, "fraction": 1.0}),
+    _item("nominal_s109", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
+    _item("plastic_s102", "lens", "k1p060", {"k1": 0.06}),
+    _item("plastic_s102", "force_bias", "4", {"scale_sigma": 4.0}, seed=17),
+    _item("plastic_s102", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
+)
+"""A wider set: the data effects on press-slides of the independent MuJoCo world and on the
+reference recordings, over the magnitude ranges a hidden set of the reference's kind may use
+(``python -m sysid.synthetic_effects OUT --plan wide --source REF_DIR --source MUJOCO_DIR``)."""
 
-def make_set(source_dir: str | Path, out_dir: str | Path, plan: Sequence[Item] = DEFAULT_PLAN,
+PLANS = {"default": DEFAULT_PLAN, "wide": WIDE_PLAN}
+"""Plans by name (``--plan``)."""
+
+
+def _find_source(source_dirs: Sequence[Path], name: str) -> tuple[Path, dict[str, Any]]:
+    """The first recording ``name`` among ``source_dirs`` and its label there (``{}`` without one).
+
+    Raises:
+        FileNotFoundError: ``name`` in none of them.
+    """
+    for d in source_dirs:
+        if (d / name).exists():
+            labels_path = d / "labels.yaml"
+            labels = yaml.safe_load(labels_path.read_text()) if labels_path.is_file() else {}
+            return d / name, (labels or {}).get(name, {}) or {}
+    raise FileNotFoundError(f"source recording {name} in none of {', '.join(str(d) for d in source_dirs)}")
+
+
+def make_set(source_dir: str | Path | Sequence[str | Path], out_dir: str | Path, plan: Sequence[Item] = DEFAULT_PLAN,
              force: bool = False) -> dict[str, Any]:
     """Write the validation set and its ``labels.yaml`` (the reference set's format).
 
     Each label keeps the variant, ``kind: data``, the magnitude, the effect's parameters, the
     source recording, its motion (from the source set's ``labels.yaml`` when present), the
     source's own variant (a physics effect already there) and the visibility.
+
+    Args:
+        source_dir: directory of the source recordings, or several (a source is read from the
+            first that holds it).
+        out_dir: directory of the set.
+        plan: the recordings to write.
+        force: replace existing bags.
 
     Returns:
         the labels written (name -> dict).
@@ -452,22 +521,18 @@ def make_set(source_dir: str | Path, out_dir: str | Path, plan: Sequence[Item] =
         FileNotFoundError: a source recording missing.
         BagExistsError: an output bag exists (and not ``force``).
     """
-    source_dir, out_dir = Path(source_dir), Path(out_dir)
+    dirs = [Path(source_dir)] if isinstance(source_dir, (str, Path)) else [Path(d) for d in source_dir]
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    src_labels_path = source_dir / "labels.yaml"
-    src_labels = yaml.safe_load(src_labels_path.read_text()) if src_labels_path.is_file() else {}
     labels: dict[str, Any] = {}
     for item in plan:
-        src = source_dir / item.source
-        if not src.exists():
-            raise FileNotFoundError(f"{src}: source recording of {item.name} not found")
+        src, src_label = _find_source(dirs, item.source)
         contents = open_bag(src, skip_roles=("image",))
         syn = apply_effect(contents, item.effect, item.params, np.random.default_rng(item.seed))
         dst = out_dir / item.name
         if dst.exists() and force:
             shutil.rmtree(dst)
         write_like(contents, syn.values, dst, force=force)
-        src_label = (src_labels or {}).get(item.source, {}) or {}
         magnitude = ({} if item.effect == "none" else
                      {k: v for k, v in syn.params.items() if k in ("latency_s", "k1", "scale_sigma", "tau_s")})
         labels[item.name] = {
@@ -485,11 +550,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m sysid.synthetic_effects OUT_DIR [--source DIR] [--force]``."""
     p = argparse.ArgumentParser(prog="python -m sysid.synthetic_effects", description=__doc__.split("\n")[0])
     p.add_argument("out", type=Path, help="directory of the validation set")
-    p.add_argument("--source", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-                   / "reference_bags", help="the reference set the sources are read from")
+    p.add_argument("--source", type=Path, action="append",
+                   help="directory the sources are read from (repeatable; the first holding a source is used; "
+                        "default the shared reference set)")
+    p.add_argument("--plan", choices=sorted(PLANS), default="default", help="which set to write")
     p.add_argument("--force", action="store_true", help="replace existing bags")
     args = p.parse_args(argv)
-    labels = make_set(args.source, args.out, force=args.force)
+    sources = args.source or [Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "reference_bags"]
+    labels = make_set(sources, args.out, PLANS[args.plan], force=args.force)
     for name, lab in labels.items():
         vis = ", ".join(f"{k} {v:.2f}" for k, v in lab["visibility"].items() if not isinstance(v, list))
         print(f"{name}: {lab['variant']} {lab['magnitude']} on {lab['source']} ({lab['motion']['kind']}); {vis}")

@@ -245,13 +245,19 @@ def refit_lens(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 
 def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
     """Offset and drift fitted on the training blocks of the free-gel rows; held-out RMS of the
-    wrench there against the calibrated replay without and with them."""
+    wrench there against the calibrated replay without and with them. The blocks divide the free
+    rows themselves (every other of ``2 k`` runs of free samples), so that training and held-out rows
+    both span every stretch of free gel: blocks of the whole recording can leave the training rows
+    in one stretch (a press-slide is free only before the press and after the lift) and the drift
+    extrapolated across the contact."""
     rec = p.recording
     tw = rec.t["wrench"]
     free = free_gel_rows(rec)
-    train, held = _blocks(len(tw), k)
-    tr, he = free & train, free & held
-    heldout_note = f"every other of {2 * k} time blocks"
+    free_idx = np.nonzero(free)[0]
+    train_f, held_f = _blocks(len(free_idx), k)
+    tr, he = np.zeros_like(free), np.zeros_like(free)
+    tr[free_idx[train_f]], he[free_idx[held_f]] = True, True
+    heldout_note = f"every other of {2 * k} blocks of the free-gel rows"
     if tr.sum() < 3 or he.sum() < 3:  # the free rows fall in one kind of block: fit on all, no held-out figure
         tr, he, heldout_note = free, np.zeros_like(free), None
     sig = rec.sigma["wrench"]

@@ -135,3 +135,16 @@ def test_make_set_writes_bags_and_reference_style_labels(bag, tmp_path):
     ctl = open_bag(tmp_path / "set" / "ctl_src")
     for role, s in open_bag(bag).series.items():
         np.testing.assert_array_equal(ctl.series[role].values, s.values)
+
+
+def test_make_set_reads_each_source_from_the_first_directory_that_holds_it(bag, tmp_path):
+    src = bag.parent
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "labels.yaml").write_text(yaml.safe_dump({"src": {"variant": "plastic", "motion": {"kind": "lift_fold"}}}))
+    plan = (Item("ctl_src", "src", "none", {}),)
+    # the source is only in the second directory: read from there, without the first's labels
+    labels = make_set([other, src], tmp_path / "set", plan)
+    assert labels["ctl_src"]["source_variant"] is None
+    with pytest.raises(FileNotFoundError, match="missing_s1 in none of"):
+        make_set([other, src], tmp_path / "set2", (Item("x", "missing_s1", "none", {}),))

@@ -11,8 +11,9 @@ recorded normal force is regressed on a transformed prediction with a free gain 
 * first-order lag (gel viscoelasticity, "markers creep at constant indentation, force relaxes"):
   ``(1 - a) y + a L_tau y`` with ``L_tau`` the first-order low-pass of time constant tau,
 
-over a grid of tau. The statistic of each is the whitened SSE it removes against ``tau = 0``
-summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
+over a grid of tau. A release's window reaches :data:`RELEASE_TAIL_S` further into the free gel,
+where a lag leaves its exponential tail and the replay predicts no force. The statistic of each is
+the whitened SSE it removes against ``tau = 0`` summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
 of the impulse response: ``tau`` for the delay, ``a tau`` for the lag), so that a timing read off
 the events names neither more readily because of the model it is read with.
 
@@ -132,14 +133,36 @@ MIN_WINDOW_SAMPLES = 10
 """An event window with fewer samples is not read."""
 
 
-def event_windows(t: np.ndarray, y_pred: np.ndarray) -> list[tuple[float, int, float, float, np.ndarray]]:
+RELEASE_TAIL_S = TAU_MAX_S
+"""Extra free side of a falling event's window in the delay and lag fits, s: the largest delay or
+time constant searched. A stream delayed or lagged by ``tau`` moves a release ``tau`` into the free
+side, where the replay predicts no force and a first-order lag leaves its exponential tail (the part
+of the response by which a lag differs from a delay; on the ramp before it the two agree, both
+shifting it by the mean delay); the window then keeps ``WINDOW_BEFORE_S`` of free gel beyond the
+shifted release, as it does beyond an unshifted one. A rising event needs no extension: its response
+moves into the contact side, which already reaches ``WINDOW_AFTER_S`` = ``TAU_MAX_S``."""
+
+
+def event_windows(t: np.ndarray, y_pred: np.ndarray,
+                  release_tail_s: float = 0.0) -> list[tuple[float, int, float, float, np.ndarray]]:
     """The window read around each contact event of the replay (:func:`contact_events`):
     ``[(time s, +1 rising / -1 falling, window start s, window end s, mask (n,))]``, reaching
     ``WINDOW_BEFORE_S`` before the event into the free side and ``WINDOW_AFTER_S`` into the contact;
-    windows with fewer than ``MIN_WINDOW_SAMPLES`` samples are left out."""
+    windows with fewer than ``MIN_WINDOW_SAMPLES`` samples are left out.
+
+    Args:
+        t: sample times, s, shape ``(n,)``.
+        y_pred: predicted signal, shape ``(n,)``.
+        release_tail_s: extra free side after a falling event, s (:data:`RELEASE_TAIL_S` for the
+            delay and lag fits), never reaching into the next event's window.
+    """
     out = []
-    for te, direction in contact_events(t, y_pred):
+    events = contact_events(t, y_pred)
+    for k, (te, direction) in enumerate(events):
         lo, hi = (te - WINDOW_BEFORE_S, te + WINDOW_AFTER_S) if direction > 0 else (te - WINDOW_AFTER_S, te + WINDOW_BEFORE_S)
+        if direction < 0 and release_tail_s > 0.0:
+            limit = events[k + 1][0] - WINDOW_BEFORE_S if k + 1 < len(events) else np.inf
+            hi = max(hi, min(hi + release_tail_s, limit))
         m = (t >= lo) & (t <= hi)
         if m.sum() >= MIN_WINDOW_SAMPLES:
             out.append((te, direction, lo, hi, m))
@@ -238,7 +261,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     events, blocks = [], []
     lp_cache = {tau: low_pass(t, yp, tau) for tau in taus[1:]}
-    for te, direction, lo, hi, m in event_windows(t, yp):
+    for te, direction, lo, hi, m in event_windows(t, yp, RELEASE_TAIL_S):
         s0, _ = _sse(y[m], [yp[m]])
         sd = [(s0, 0.0)]
         for tau in taus[1:]:

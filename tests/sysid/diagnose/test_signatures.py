@@ -483,3 +483,75 @@ def test_a_brief_touch_after_the_release_does_not_hide_the_set(rng):
     assert r.applicable and r.effect_size == pytest.approx(0.004, rel=0.1)
     # the window is the free run before the touch, its last 0.2 s
     assert r.detail["final_window_s"][1] < 3.3 - 0.1 and r.detail["final_window_s"][0] > 2.5
+@pytest.mark.parametrize("tau, seed", [(0.1, 1), (0.25, 3)])
+def test_a_lag_on_a_slow_release_is_read_in_its_tail_beyond_the_release(tau, seed):
+    """A 0.4 s release ramp (the press-slides of the independent engine lift off over 0.3-0.4 s):
+    on the ramp a first-order lag of time constant tau is a delay by tau, and the two shapes differ
+    only in the lag's exponential tail after the force reaches zero, which lies up to a few tau
+    beyond the crossing. The falling event's window reaches RELEASE_TAIL_S (the largest time
+    constant searched) further into the free gel, so the tail is read and the lag is named, not
+    the latency its ramp suggests (with the 0.15 s free side of the rising event the shapes tie)."""
+    from sysid.diagnose.signatures.timing import RELEASE_TAIL_S, TAU_MAX_S, WINDOW_BEFORE_S
+
+    rec = synthetic(np.random.default_rng(seed), lag_tau=tau, ramp=0.4)
+    lat, visco = timing_tests(rec)
+    fall = [e for e in lat.detail["events"] if e["direction"] == "falling"]
+    assert RELEASE_TAIL_S == TAU_MAX_S
+    assert fall and fall[0]["window_s"][1] - fall[0]["t_s"] == pytest.approx(WINDOW_BEFORE_S + RELEASE_TAIL_S)
+    assert lat.detail["shape_z"] >= SHAPE_Z
+    assert named(rec) == ["gel_viscoelasticity"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_delay_on_a_slow_release_stays_a_latency(seed):
+    """The same slow press delayed by 45 ms: after the release the delayed force is zero like the
+    replay, no tail, so the longer free side gives the lag nothing to gain and the latency is
+    named with its delay."""
+    rec = synthetic(np.random.default_rng(seed), latency=0.045, ramp=0.4)
+    lat, _ = timing_tests(rec)
+    assert named(rec) == ["latency"]
+    assert lat.effect_size == pytest.approx(0.045, abs=0.005)
+
+
+def test_the_release_tail_stops_short_of_the_next_press():
+    """Two presses 0.3 s apart: the first release's extended window ends where the next rising
+    event's window begins (the same samples are not read by two events)."""
+    from sysid.diagnose.signatures.timing import RELEASE_TAIL_S, WINDOW_BEFORE_S, event_windows
+
+    t = np.arange(0.0, 4.0, 0.005)
+    y = press_profile(t, t_on=1.0, t_off=2.0) + press_profile(t, t_on=2.3, t_off=3.3)
+    ev = event_windows(t, y, RELEASE_TAIL_S)
+    assert [d for _, d, *_ in ev] == [1, -1, 1, -1]
+    (_, _, _, hi_fall, _), (t_rise, _, lo_rise, _, _) = ev[1], ev[2]
+    assert hi_fall == pytest.approx(lo_rise) and lo_rise == pytest.approx(t_rise - WINDOW_BEFORE_S)
+    # the last release has nothing after it: the full tail
+    assert ev[3][3] - ev[3][0] == pytest.approx(WINDOW_BEFORE_S + RELEASE_TAIL_S)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
+    """A bias of the reference set's form (offset, drift and a slow wobble of a 4 s period) on a
+    recording free of contact for 0.9 s before the press and only 0.35 s after the release: blocks
+    of the free rows themselves put training rows in both free stretches, so the offset and drift
+    refitted on them bring the held-out wrench down to the noise (whitened RMS about 1). Blocks of
+    the whole recording would leave the last stretch held out only, the drift extrapolated over the
+    press."""
+    from sysid.diagnose.signature_engine import refit_force_bias
+    from sysid.synthetic_effects import force_bias
+
+    rec = synthetic(np.random.default_rng(seed), duration=2.85)
+    tw = rec.t["wrench"]
+    s = SIGMA["wrench"]
+    params = {"offset": (3.0 * s).tolist(), "drift_per_s": (-1.5 * s).tolist(), "wobble_amp": (0.8 * s).tolist(),
+              "wobble_period_s": 4.0, "wobble_phase": [0.3, 1.0, 2.0, 0.5, 1.5, 2.5]}
+    data = dict(rec.data, wrench=rec.data["wrench"] + force_bias(tw, params))
+    rec = Recording(t=rec.t, data=data, prediction=rec.prediction, sigma=rec.sigma, camera=rec.camera, name="biased")
+    results = run_signature_tests(rec)
+    assert "force_bias" in decide(results, default_thresholds(rec)).explained_by
+    p = Prepared("synthetic", None, None, dict(rec.prediction), rec, results)
+    fit = refit_force_bias(p, results["force_bias"], 4)
+    assert fit["heldout"] == "every other of 8 blocks of the free-gel rows"
+    assert fit["heldout_rms_before"] > 2.0
+    assert fit["heldout_rms_after"] < 1.3
+    assert fit["params"]["offset_Fz"] + fit["params"]["drift_Fz_per_s"] * (0.0 - fit["params"]["t_ref_s"]) == \
+        pytest.approx(3.0 * s[2] + 0.8 * s[2] * np.sin(1.0), abs=1.0 * s[2])
