@@ -57,6 +57,7 @@ import numpy as np
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
+from sim_core.energies.base import SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -433,8 +434,8 @@ class LockstepSolver(NewtonSolver):
         matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
-        contact pair blocks (terms with ``projects_subsets``, projected for the marked copies only): the matrix is
-        then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
+        contact pair blocks (terms declaring :class:`~sim_core.energies.base.SubsetHessian`, projected for
+        the marked copies only): the matrix is then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
         side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
         from sim_core.ti_kernels.pcg import VertexBlocks
 
@@ -452,7 +453,7 @@ class LockstepSolver(NewtonSolver):
             np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
             cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
         blocks = VertexBlocks.from_element_blocks(
-            [p.hessian(x, projection, vertices=vertices) if vertices is not None and getattr(p, "projects_subsets", False)
+            [p.hessian_of_vertices(x, projection, vertices) if vertices is not None and declares(p, SubsetHessian)
              else p.hessian(x, projection) for p in dynamic_terms], step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 

@@ -151,8 +151,20 @@ class ElasticEquivalent(Protocol):
         ...
 
 
+@runtime_checkable
+class SubsetHessian(Protocol):
+    """A potential whose Hessian blocks can be evaluated for the entries of some vertices only: the
+    lockstep batch's projected retry projects the blocks of the copies it retries, not every copy's
+    (:mod:`sim_core.batch.lockstep`)."""
+
+    def hessian_of_vertices(self, x: np.ndarray, projection: Projection, vertices: np.ndarray) -> HessianBlocks:
+        """The blocks of :meth:`Potential.hessian` whose first vertex is marked in ``vertices`` (bool
+        ``(vertex_count,)``; a mask closed under the entries, e.g. one stacked copy's vertices)."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
-    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent)
+    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 

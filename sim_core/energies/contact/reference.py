@@ -307,15 +307,18 @@ class _PairPenalty:
         """dE/dx in N, shape ``(n, 3)``."""
         return self._evaluation(x, 1).gradient(self.stiffness, self.vertices)
 
-    projects_subsets = True
-    """:meth:`hessian` takes a vertex mask (the lockstep solver's projected retry of a few copies)."""
-
-    def hessian(self, x: np.ndarray, projection: Projection = "clamp",
-                vertices: np.ndarray | None = None) -> HessianBlocks:
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``,
-        projected by ``projection``; with ``vertices`` (bool ``(n,)``) only the active pairs whose first
-        vertex is marked (for a mask closed under the pairs, as a stacked scene's copies: the pairs of the
-        marked vertices), so that only those are projected."""
+        projected by ``projection``."""
+        return self._pair_hessian(x, projection, None)
+
+    def hessian_of_vertices(self, x: np.ndarray, projection: Projection, vertices: np.ndarray) -> HessianBlocks:
+        """:meth:`hessian`'s blocks of the active pairs whose first vertex is marked in ``vertices`` (bool
+        ``(n,)``; for a mask closed under the pairs, as a stacked scene's copies: the pairs of the marked
+        vertices), so that only those are projected (capability :class:`~sim_core.energies.base.SubsetHessian`)."""
+        return self._pair_hessian(x, projection, vertices)
+
+    def _pair_hessian(self, x: np.ndarray, projection: Projection, vertices: np.ndarray | None) -> HessianBlocks:
         evaluation = self._evaluation(x, 2)
         if evaluation.active.size == 0:
             return HessianBlocks.empty(4)

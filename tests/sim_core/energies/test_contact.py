@@ -276,7 +276,7 @@ def test_hessian_of_marked_vertices_is_the_marked_pairs_blocks(projection):
     marked = np.zeros(x.shape[0], dtype=bool)
     chosen = np.array([1, 4, 5])
     marked[(4 * chosen[:, None] + np.arange(4)).ravel()] = True
-    part = pot.hessian(x, projection, vertices=marked)
+    part = pot.hessian_of_vertices(x, projection, marked)
     rows = np.flatnonzero(marked[whole.vertices[:, 0]])
     assert rows.size == chosen.size
     np.testing.assert_array_equal(part.vertices, whole.vertices[rows])

@@ -15,7 +15,7 @@ import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
 from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, ElasticEquivalent, HingeBending,
-                                      KeepsDerivatives, PenaltyContact, Potential)
+                                      KeepsDerivatives, PenaltyContact, Potential, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential"} | {c.__name__ for c in CAPABILITIES},
@@ -97,6 +97,7 @@ EXPECTED_CAPABILITIES = {
     KeepsDerivatives: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
     HingeBending: {"DiscreteShellBending", "KirchhoffBending"},
     ElasticEquivalent: {"MaxwellBranch"},
+    SubsetHessian: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
 }
 
 
