@@ -435,8 +435,8 @@ class LockstepSolver(NewtonSolver):
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
         contact pair blocks (terms declaring :class:`~sim_core.energies.base.SubsetHessian`, projected for
-        the marked copies only): the matrix is then right in the marked copies' rows and columns, which is all a solve with a zero right-hand
-        side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
+        the marked copies only): the matrix is then right in the marked copies' rows and columns, which is
+        all a solve with a zero right-hand side elsewhere reads (the CG stops a copy with ``b = 0`` at once)."""
         from sim_core.ti_kernels.pcg import VertexBlocks
 
         fused = step.fused
