@@ -4,15 +4,14 @@ steps take a known wall time."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from benchmarks.node_latency_trace import TracedSimNode, probe_rows
 from tests.thinshell_ros.conftest import ros_context, ros_env  # noqa: F401 - the DDS fixtures
+from tests.thinshell_ros.conftest import spinning
 from tests.thinshell_ros.fake_sim import FakeSimulation
 from thinshell_ros.bench_node import measure_node
 
@@ -31,17 +30,8 @@ class SlowStepSimulation(FakeSimulation):
 def test_each_probe_is_split_into_wait_step_publication_and_way_back(ros_context):
     node = TracedSimNode(sim=SlowStepSimulation(), context=ros_context,
                          parameter_overrides=[Parameter("mode", value="realtime"), Parameter("mesh_rate", value=0.0)])
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    stop = threading.Event()
-    thread = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.005) for _ in iter(stop.is_set, True)])
-    thread.start()
-    try:
+    with spinning(ros_context, node):
         result = measure_node(ros_context, window=0.3, commands=6, timeout=10.0, warmup=3, keep_probes=True)
-    finally:
-        stop.set()
-        thread.join(timeout=5)
-        ex.shutdown(timeout_sec=0)
     events = list(node.events)
     node.destroy_node()
     assert result["lost"] == 0 and len(result["probes_sent"]) == 6

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import sys
+import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import pytest
 
@@ -71,6 +73,65 @@ def spin_until(executor, condition: Callable[[], bool], timeout: float, step: fl
             return True
         executor.spin_once(timeout_sec=step)
     return condition()
+
+
+def call_trigger_collecting_diagnostics(context, node, service: str, client_name: str,
+                                        timeout: float = 10.0) -> tuple[object, list]:
+    """Call the ``std_srvs/Trigger`` service ``service`` of ``node`` from a new client node while
+    collecting the ``diagnostic_msgs/DiagnosticStatus`` entries ``node`` publishes on its diagnostics
+    topic; the client and its executor are gone on return.
+
+    Returns:
+        the service's response and the statuses received (at least one).
+
+    Raises:
+        AssertionError: no diagnostics publisher, no service, or no response and status within ``timeout`` s.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray  # ROS messages only where a test calls a node
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    from thinshell_ros.sim_node import DIAGNOSTICS_TOPIC
+
+    client = Node(client_name, context=context)
+    got: list = []
+    sub = client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, lambda m: got.extend(m.status), 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(client)
+    try:
+        assert spin_until(executor, lambda: sub.get_publisher_count() > 0, timeout)
+        cli = client.create_client(Trigger, service)
+        assert cli.wait_for_service(timeout_sec=5.0)
+        fut = cli.call_async(Trigger.Request())
+        assert spin_until(executor, lambda: fut.done() and got, timeout)
+        return fut.result(), got
+    finally:
+        executor.shutdown(timeout_sec=0)
+        client.destroy_node()
+
+
+@contextlib.contextmanager
+def spinning(context, *nodes, period: float = 0.005) -> Iterator[object]:
+    """Spin ``nodes`` on a single-threaded executor in a background thread for the ``with`` block.
+
+    ``period`` is each ``spin_once`` timeout, s. On exit the thread is stopped and the executor shut
+    down; the nodes are left to the caller. Yields the executor."""
+    from rclpy.executors import SingleThreadedExecutor  # rclpy only where a test spins nodes
+
+    executor = SingleThreadedExecutor(context=context)
+    for node in nodes:
+        executor.add_node(node)
+    stop = threading.Event()
+    thread = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=period) for _ in iter(stop.is_set, True)])
+    thread.start()
+    try:
+        yield executor
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        executor.shutdown(timeout_sec=0)
 
 
 PYTHON = sys.executable

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from tests.thinshell_ros.conftest import spinning
 from tests.thinshell_ros.fake_sim import FakeSimulation
 from thinshell_ros.bench_node import measure_node
 from thinshell_ros.sim_node import SimNode
@@ -34,16 +33,10 @@ class SlowStartSimulation(FakeSimulation):
 def _measure(ros_context, sim, **kwargs):
     node = SimNode(sim=sim, context=ros_context,
                    parameter_overrides=[Parameter("mode", value="realtime"), Parameter("mesh_rate", value=0.0)])
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    stop = threading.Event()
-    thread = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.01) for _ in iter(stop.is_set, True)])
-    thread.start()
     try:
-        return measure_node(ros_context, timeout=10.0, **kwargs)
+        with spinning(ros_context, node, period=0.01):
+            return measure_node(ros_context, timeout=10.0, **kwargs)
     finally:
-        stop.set()
-        thread.join(timeout=5)
         node.destroy_node()
 
 

@@ -44,7 +44,7 @@ def test_spin_until_stopped_runs_timers_and_returns_on_stop(ros_context, executo
 
 def test_freeze_start_up_objects_collects_garbage_and_freezes_what_lives():
     class Held:
-        pass
+        """An object the collector can hold or free."""
 
     live, cycle = Held(), Held()
     cycle.self = cycle  # cyclic garbage: only the collector frees it

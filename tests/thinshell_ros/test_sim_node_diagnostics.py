@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
@@ -16,8 +14,8 @@ from sim_core.control import Control
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig, StepInfo
-from tests.thinshell_ros.conftest import spin_until
-from thinshell_ros.sim_node import DIAGNOSTICS_TOPIC, SimNode, solver_status
+from tests.thinshell_ros.conftest import call_trigger_collecting_diagnostics
+from thinshell_ros.sim_node import SimNode, solver_status
 
 pytestmark = pytest.mark.ros
 
@@ -39,18 +37,8 @@ def _falling_sheet(config: SolverConfig) -> Simulation:
 def _step_and_receive(ctx, sim: Simulation) -> tuple[SimNode, Trigger.Response, list[DiagnosticStatus]]:
     """Start a stepped node on ``sim``, call ``~/step`` once, return the solver statuses received."""
     node = SimNode(sim=sim, context=ctx, parameter_overrides=[Parameter("mode", value="stepped")])
-    client = Node("diagnostics_client", context=ctx)
-    got: list[DiagnosticStatus] = []
-    sub = client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, lambda m: got.extend(m.status), 10)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    ex.add_node(client)
-    assert spin_until(ex, lambda: sub.get_publisher_count() > 0, 10.0)
-    cli = client.create_client(Trigger, "/thinshell_sim/step")
-    assert cli.wait_for_service(timeout_sec=5.0)
-    fut = cli.call_async(Trigger.Request())
-    assert spin_until(ex, lambda: fut.done() and got, 10.0)
-    return node, fut.result(), got
+    response, got = call_trigger_collecting_diagnostics(ctx, node, "/thinshell_sim/step", "diagnostics_client")
+    return node, response, got
 
 
 def test_a_step_accepted_at_a_relaxed_tolerance_is_published_as_a_warning(ros_context):

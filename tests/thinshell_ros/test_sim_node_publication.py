@@ -4,17 +4,15 @@ the sensor model."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
-from tests.thinshell_ros.conftest import spin_until
+from tests.thinshell_ros.conftest import spinning
 from tests.thinshell_ros.fake_sim import FakeSimulation
 from thinshell_ros import conversions as cv
 from thinshell_ros.runtime import SENSOR_QOS
@@ -45,33 +43,26 @@ def test_a_steps_pose_is_received_before_its_tactile_observation_is_read(ros_con
     client.create_subscription(PointCloud2, "/thinshell/tactile/markers",
                                lambda m: received["markers"].append((time.monotonic(), cv.ns_from_stamp(m.header.stamp))),
                                SENSOR_QOS)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(client)
-    stop = threading.Event()
-    thread = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.005) for _ in iter(stop.is_set, True)])
-    thread.start()
     try:
-        deadline = time.monotonic() + 10.0
-        while node.count_subscribers("/thinshell/ee/pose") < 1 or node.count_subscribers("/thinshell/tactile/markers") < 1:
-            assert time.monotonic() < deadline, "the client's subscriptions were not matched"
-            time.sleep(0.01)
-        time.sleep(0.2)  # matched both ways (best effort drops what the writer sends before)
-        for _ in range(3):
-            start = time.monotonic()
-            assert node.advance()
-            t_ns = cv.seconds_to_ns(node.sim.t)
-            deadline = time.monotonic() + 5.0
-            while not all(any(stamp == t_ns for _, stamp in msgs) for msgs in received.values()):
-                assert time.monotonic() < deadline, f"no pose and markers stamped {t_ns} ns"
-                time.sleep(0.005)
-            pose_at = next(t for t, stamp in received["pose"] if stamp == t_ns) - start
-            markers_at = next(t for t, stamp in received["markers"] if stamp == t_ns) - start
-            # the pose left before the observation was read; the markers after it
-            assert pose_at < 0.5 * OBSERVE_S, (pose_at, markers_at)
-            assert markers_at >= OBSERVE_S, (pose_at, markers_at)
+        with spinning(ros_context, client):
+            deadline = time.monotonic() + 10.0
+            while node.count_subscribers("/thinshell/ee/pose") < 1 or node.count_subscribers("/thinshell/tactile/markers") < 1:
+                assert time.monotonic() < deadline, "the client's subscriptions were not matched"
+                time.sleep(0.01)
+            time.sleep(0.2)  # matched both ways (best effort drops what the writer sends before)
+            for _ in range(3):
+                start = time.monotonic()
+                assert node.advance()
+                t_ns = cv.seconds_to_ns(node.sim.t)
+                deadline = time.monotonic() + 5.0
+                while not all(any(stamp == t_ns for _, stamp in msgs) for msgs in received.values()):
+                    assert time.monotonic() < deadline, f"no pose and markers stamped {t_ns} ns"
+                    time.sleep(0.005)
+                pose_at = next(t for t, stamp in received["pose"] if stamp == t_ns) - start
+                markers_at = next(t for t, stamp in received["markers"] if stamp == t_ns) - start
+                # the pose left before the observation was read; the markers after it
+                assert pose_at < 0.5 * OBSERVE_S, (pose_at, markers_at)
+                assert markers_at >= OBSERVE_S, (pose_at, markers_at)
     finally:
-        stop.set()
-        thread.join(timeout=5)
-        ex.shutdown(timeout_sec=0)
         client.destroy_node()
         node.destroy_node()

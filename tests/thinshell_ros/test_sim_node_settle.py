@@ -6,16 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.parameter import Parameter
-from std_srvs.srv import Trigger
 
 from sim_core.errors import ConfigError
-from tests.thinshell_ros.conftest import spin_until
+from tests.thinshell_ros.conftest import call_trigger_collecting_diagnostics
 from tests.thinshell_ros.fake_sim import FakeSimulation
-from thinshell_ros.sim_node import DIAGNOSTICS_TOPIC, SimNode
+from thinshell_ros.sim_node import SimNode
 
 pytestmark = pytest.mark.ros
 
@@ -53,18 +50,9 @@ def test_the_bundled_scene_starts_settled_with_the_card_asleep(ros_context):
 def test_a_scene_that_does_not_settle_within_the_cap_starts_and_says_so(ros_context):
     node = _node(ros_context, settle_steps_max=2)
     assert not node.settle_info.settled and node.settle_info.steps == 2
-    client = Node("settle_client", context=ros_context)
-    got: list[DiagnosticStatus] = []
-    sub = client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, lambda m: got.extend(m.status), 10)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(client)
-    assert spin_until(ex, lambda: sub.get_publisher_count() > 0, 10.0)
-    cli = client.create_client(Trigger, "/thinshell_sim/reset")  # ~/reset settles again
-    assert cli.wait_for_service(timeout_sec=5.0)
-    fut = cli.call_async(Trigger.Request())
-    assert spin_until(ex, lambda: fut.done() and got, 10.0)
-    assert fut.result().success
+    # ~/reset settles again
+    response, got = call_trigger_collecting_diagnostics(ros_context, node, "/thinshell_sim/reset", "settle_client")
+    assert response.success
     status = got[-1]
     values = {kv.key: kv.value for kv in status.values}
     assert status.name == "thinshell_sim: settle" and status.level == DiagnosticStatus.WARN
@@ -72,8 +60,6 @@ def test_a_scene_that_does_not_settle_within_the_cap_starts_and_says_so(ros_cont
     assert values["settled"] == "false" and values["steps"] == "2" and values["max_steps"] == "2"
     assert float(values["residual_velocity"]) > node.sim.solver.config.sleep_velocity
     assert node.sim.t == 0.0 and node.advance()  # it runs anyway
-    ex.shutdown(timeout_sec=0)
-    client.destroy_node()
     node.destroy_node()
 
 
