@@ -594,7 +594,8 @@ def stiction_test(rec: Recording) -> SignatureResult:
     yielded = sheet_yield(rec, fits) if size > 0.0 else None
     if yielded is not None:
         detail["sheet_yield"] = yielded
-        size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {1e3 * yielded['set_m']:.3g} mm rose "
+        set_mm = 1e3 * yielded["set_m"]
+        size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {set_mm:.3g} mm rose "
                              f"{1e3 * yielded['rise_m']:.3g} mm during the slide): the tangential load's drop is the "
                              "sheet yielding, not static friction")
     windows = [[float(f["breakaway"].t[0]), float(f["breakaway"].t[-1])] for f in fits]

@@ -50,6 +50,7 @@ import numpy as np
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult
 from sysid.diagnose.signatures.friction import resolvable_excess
+from sysid.diagnose.signatures.sheet import RESOLVABLE_SET_SIGMAS
 
 STATISTIC_THRESHOLD = 50.0
 """Default statistic threshold, noise units: far in the tail of the chi-square laws of the tests
@@ -112,7 +113,7 @@ def default_thresholds(rec: Recording) -> Thresholds:
     sheet_sigma = float(np.max(rec.sigma["sheet_points"])) if "sheet_points" in rec.sigma else 5e-5
     sizes = {"lens_distortion": 2.0 * uv_sigma, "force_bias": 0.5, "latency": timing,
              "gel_viscoelasticity": timing, "damping": timing,
-             "bending_plasticity": 10.0 * sheet_sigma, "adhesion": 10.0 * sheet_sigma,
+             "bending_plasticity": RESOLVABLE_SET_SIGMAS * sheet_sigma, "adhesion": RESOLVABLE_SET_SIGMAS * sheet_sigma,
              "stiction": resolvable_excess(rec)}
     for effect, size in sizes.items():
         th.statistic[effect] = STATISTIC_THRESHOLD

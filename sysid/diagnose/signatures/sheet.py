@@ -32,8 +32,9 @@ REPLAY_SET_FRACTION = 0.5
 than this fraction of the recording's difference from the replay."""
 
 RESOLVABLE_SET_SIGMAS = 10.0
-"""A permanent set counts as resolved when at least this many sheet-tracking sigmas (the size
-threshold of the plasticity decision, :func:`sysid.diagnose.signatures.null.default_thresholds`)."""
+"""A sheet height the tracking resolves, in sheet-point sigmas: a permanent set or a carried height
+of at least this many (the size thresholds of the plasticity and adhesion decisions,
+:func:`sysid.diagnose.signatures.null.default_thresholds`, and the stiction test's sheet-yield check)."""
 
 MIN_CARRIED_S = 0.1
 """Shortest run of carried-sheet rows that counts, s (a tactile delay leaves shorter ones)."""
@@ -134,11 +135,12 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
         effect=effect, statistic=max(stat, 0.0), effect_size=size, effect_unit="m", reason=reason,
-        estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]], channels=["sheet_points"],
-        markers=[], detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
-                            "replay_set_m": replay_set, "replay_released": replay_released,
-                            "final_window_s": [float(t[final][0]), t_end],
-                            "points": sorted(top.tolist()), "release_s": t_release})
+        estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]],
+        channels=["sheet_points"], markers=[],
+        detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
+                "replay_set_m": replay_set, "replay_released": replay_released,
+                "final_window_s": [float(t[final][0]), t_end],
+                "points": sorted(top.tolist()), "release_s": t_release})
 
 
 def resolvable_set(rec: Recording) -> float:

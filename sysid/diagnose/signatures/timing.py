@@ -13,9 +13,10 @@ recorded normal force is regressed on a transformed prediction with a free gain 
 
 over a grid of tau. A release's window reaches :data:`RELEASE_TAIL_S` further into the free gel,
 where a lag leaves its exponential tail and the replay predicts no force. The statistic of each is
-the whitened SSE it removes against ``tau = 0`` summed over the events. Both are sized in one unit, the mean delay of the response (the first moment
-of the impulse response: ``tau`` for the delay, ``a tau`` for the lag), so that a timing read off
-the events names neither more readily because of the model it is read with.
+the whitened SSE it removes against ``tau = 0`` summed over the events. Both are sized in one unit,
+the mean delay of the response (the first moment of the impulse response: ``tau`` for the delay,
+``a tau`` for the lag), so that a timing read off the events names neither more readily because of
+the model it is read with.
 
 The two are told apart by their shape (a pure delay moves a step, a lag rounds it and leaves an
 exponential tail; SYSID.md: "latency delays every channel of a stream by the same amount at every
