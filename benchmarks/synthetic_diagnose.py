@@ -36,8 +36,7 @@ import yaml
 from sysid.diagnose.cli import build_parser, signature_settings
 from sysid.diagnose.signatures.base import TACTILE_CHANNELS
 from sysid.diagnose.reference_bench import VARIANT_EFFECT
-from sysid.diagnose.gain_guard import split_by_gain
-from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare, refit
+from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, guard_names, prepare
 from sysid.diagnose.signatures import run_signature_tests
 from sysid.diagnose.signatures.null import decide, default_thresholds
 from sysid.evidence import load_evidence
@@ -95,9 +94,7 @@ def guarded(rec) -> list[str]:
     results = run_signature_tests(rec)
     named = decide(results, default_thresholds(rec)).explained_by
     p = Prepared(Path(rec.name), None, None, dict(rec.prediction or {}), rec, results)
-    refits = {e: refit(p, results[e], SignatureSettings(), named) for e in named if e in DATA_REFITS}
-    kept, dropped = split_by_gain(named, refits)
-    return kept or (["unexplained"] if dropped else [])
+    return guard_names(p, named, SignatureSettings(), DATA_REFITS)[0]
 
 
 def table(set_dir: Path, out: Path, redo: bool, source_runs: Path | None = None) -> str:

@@ -434,6 +434,28 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: S
     return refit_sheet(p, r, settings, named)
 
 
+def guard_names(p: Prepared, named: Sequence[str], settings: SignatureSettings,
+                effects: Sequence[str] | None = None) -> tuple[list[str], list[dict], dict[str, Any]]:
+    """Each named effect refitted with its own term (:func:`refit`), and the names kept only where
+    that term gains on held-out data (:func:`sysid.diagnose.gain_guard.split_by_gain`).
+
+    Args:
+        p: the prepared recording with its signature results.
+        named: the effects the decision names, in rank order.
+        settings: the diagnosis settings (the refits' budgets).
+        effects: refit only these (the others are kept as named); None: every named effect.
+
+    Returns:
+        ``(explained, unexplained, refits)``: the kept names, ``["unexplained"]`` when every name was
+        withdrawn; the withdrawn ones with their held-out figures and reason; effect -> refit block.
+    """
+    refits = {e: refit(p, p.results[e], settings, named) for e in named if effects is None or e in effects}
+    explained, unexplained = split_by_gain(named, refits)
+    if unexplained and not explained:
+        explained = ["unexplained"]
+    return explained, unexplained, refits
+
+
 # ================================================================================ pipeline
 def _baseline_block(p: Prepared) -> dict[str, Any]:
     cal = p.calibration.summary()
@@ -475,14 +497,8 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
     if base:
         th = calibrated_thresholds(th, [b.results for b in base], settings.baseline_factor)
     decision: Decision = decide(p.results, th)
-    refits: dict[str, Any] = {}
-    for effect in decision.explained_by:
-        refits[effect] = refit(p, p.results[effect], settings, decision.explained_by)
-    # a name stands only where the effect's own term gains on held-out data (sysid.diagnose.gain_guard)
-    explained, unexplained = split_by_gain(decision.explained_by, refits)
+    explained, unexplained, refits = guard_names(p, decision.explained_by, settings)
     p.notes.extend(u["reason"] for u in unexplained)
-    if unexplained and not explained:
-        explained = ["unexplained"]
     named = [p.results[e] for e in decision.explained_by]
     windows = sorted({(round(a, 4), round(b, 4)) for r in named for a, b in r.windows_s})
     channels = sorted({ch for r in named for ch in r.channels})
