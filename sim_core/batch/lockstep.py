@@ -430,7 +430,9 @@ class LockstepSolver(NewtonSolver):
         to the device once; the exact values stay on the device where the fused kernels ran there), to which
         the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the contact
         and friction Hessians (``dynamic_terms``, projected by ``projection``) as
-        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
+        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG (the exact blocks of
+        the contact pairs left in device memory where the pair kernel wrote them, :meth:`_term_hessian`).
+        The sum is the
         matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
