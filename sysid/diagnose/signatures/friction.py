@@ -63,6 +63,19 @@ during a tested slide, the fold formed while sliding: the breakaway is the sheet
 effect size is 0 (the result's ``reason`` and ``detail["sheet_yield"]`` say so). Stiction and
 plasticity together on one slide toward a clamped edge are then read as plasticity alone.
 
+A yield is also read while it happens, without a released window (a kept fold that still touches
+the lifted pad leaves none): past the breakaway's decay (:data:`TAU_MAX_S` after its peak) to the
+slide's end, the sheet's crest (its highest point) rises by at least the resolvable set while the
+tangential load falls with it. A card carried by the pad that buckles elastically passes a load
+that stays at or above its buckling load as the fold grows (the elastica's post-buckling branch);
+a card that yields passes what its plastic hinge resists, ``M_p`` over the fold's lever arm, which
+falls as the fold rises; friction at the kinetic level follows the normal load and not the fold.
+The mean marker shear and the normal force are each regressed on the crest's height over that
+part of the slide (:func:`load_against_fold`); the yield is read where the shear's relative fall
+over the crest's rise exceeds the normal force's by :data:`RESOLVABLE_SIGMAS` standard deviations
+of the difference (each from its regression's residual dispersion, which takes in the tactile
+roughness of a sliding contact beyond the white noise model).
+
 Known limits: a stiction that only raises the sliding level (no breakaway drop within the slide) is
 not a breakaway and is not found; tactile latency or creep on top of stiction delays the shear
 against the pose, so the window starts on the shear's rise and the decay is not found.
@@ -561,6 +574,86 @@ def sheet_yield(rec: Recording, fits: list[dict]) -> dict | None:
             "slide_s": [float(f["breakaway"].t_command), float(f["breakaway"].t_slide_end)]}
 
 
+def _slope(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of ``y`` on ``x`` (with an offset) and its standard error from the
+    residual dispersion ``SSE / (n - 2)``; ``(0, inf)`` for fewer than three samples or a constant x."""
+    n = len(x)
+    dx = x - x.mean()
+    sxx = float(dx @ dx)
+    if n < 3 or not sxx > 0.0:
+        return 0.0, float("inf")
+    c1 = float(dx @ (y - y.mean())) / sxx
+    r = y - y.mean() - c1 * dx
+    return c1, float(np.sqrt(float(r @ r) / (n - 2) / sxx))
+
+
+def load_against_fold(rec: Recording, fit: dict) -> dict | None:
+    """The tangential and normal load regressed on the sheet's crest height past a breakaway's decay
+    (module docstring, "Sheet yield").
+
+    Args:
+        rec: recording with ``sheet_points`` (world, m), ``markers_xyz``, ``wrench`` and ``pose``.
+        fit: one entry of :func:`breakaway_fits` with a shear window.
+
+    Returns:
+        None without the sheet, a shear window or :data:`MIN_WINDOW_SAMPLES` loaded marker samples
+        from :data:`TAU_MAX_S` past the shear's peak to the slide's end; else ``{"rise_m"`` (the
+        crest's rise over that part, m), ``"shear_fall"`` / ``"normal_fall"`` (relative fall of the
+        mean marker shear / the normal force over that rise, from their slopes on the crest height;
+        positive when falling), ``"fall_sigma"`` (standard deviation of their difference) and
+        ``"window_s"``.
+    """
+    b, bs = fit["breakaway"], fit["shear"]
+    if bs is None or not rec.has("sheet_points"):
+        return None
+    tm, tw = rec.t["markers_xyz"], rec.t["wrench"]
+    loaded_w = _loaded(rec)
+    loaded_m = np.interp(tm, tw, loaded_w.astype(float)) > 0.5
+    m = (tm >= bs.t0 + TAU_MAX_S) & (tm <= b.t_slide_end) & loaded_m
+    mw = (tw >= bs.t0 + TAU_MAX_S) & (tw <= b.t_slide_end) & loaded_w
+    if m.sum() < MIN_WINDOW_SAMPLES or mw.sum() < MIN_WINDOW_SAMPLES:
+        return None
+    crest = np.asarray(rec.data["sheet_points"], dtype=float)[..., 2].max(axis=1)  # (n_sheet,) m
+    ts = rec.t["sheet_points"]
+    h_m, h_w = np.interp(tm[m], ts, crest), np.interp(tw[mw], ts, crest)
+    rise = float(h_m[-1] - h_m[0])
+    shear, _ = marker_shear(rec, b.direction, _rest_rows(rec, loaded_w))
+    fn = normal_force(rec.data["wrench"])[mw]
+    c_s, se_s = _slope(h_m, shear[m])
+    c_n, se_n = _slope(h_w, fn)
+    level_s, level_n = float(np.mean(shear[m])), float(np.mean(fn))
+    if not (level_s > 0.0 and level_n > 0.0):
+        return None
+    fall_s, fall_n = -c_s * rise / level_s, -c_n * rise / level_n
+    sigma = float(np.hypot(se_s * abs(rise) / level_s, se_n * abs(rise) / level_n))
+    return {"rise_m": rise, "shear_fall": float(fall_s), "normal_fall": float(fall_n), "fall_sigma": sigma,
+            "window_s": [float(tm[m][0]), float(tm[m][-1])]}
+
+
+def falling_load_yield(rec: Recording, fits: list[dict]) -> dict | None:
+    """Whether the tangential load fell as the sheet's fold rose past a breakaway's decay (module
+    docstring, "Sheet yield"): the crest rose by at least
+    :func:`sysid.diagnose.signatures.sheet.resolvable_set` and the shear's relative fall exceeds the
+    normal force's by :data:`RESOLVABLE_SIGMAS` standard deviations of the difference.
+
+    Returns:
+        None when no breakaway shows it; else :func:`load_against_fold`'s dict of the breakaway
+        whose fall is largest, with ``"slide_s"``.
+    """
+    if not rec.has("sheet_points") or "sheet_points" not in rec.sigma:
+        return None
+    floor = resolvable_set(rec)
+    best = None
+    for f in fits:
+        lf = load_against_fold(rec, f)
+        if lf is None or lf["rise_m"] < floor:
+            continue
+        excess = lf["shear_fall"] - lf["normal_fall"]
+        if excess > RESOLVABLE_SIGMAS * lf["fall_sigma"] and (best is None or excess > best[0]):
+            best = (excess, {**lf, "slide_s": [float(f["breakaway"].t_command), float(f["breakaway"].t_slide_end)]})
+    return None if best is None else best[1]
+
+
 def stiction_test(rec: Recording) -> SignatureResult:
     """Breakaway overshoot of the tangential load at slide onset, beyond the normal load's (module
     docstring)."""
@@ -592,12 +685,19 @@ def stiction_test(rec: Recording) -> SignatureResult:
     detail = {"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])}
     reason = ""
     yielded = sheet_yield(rec, fits) if size > 0.0 else None
+    falling = falling_load_yield(rec, fits) if size > 0.0 and yielded is None else None
     if yielded is not None:
         detail["sheet_yield"] = yielded
         set_mm = 1e3 * yielded["set_m"]
         size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {set_mm:.3g} mm rose "
                              f"{1e3 * yielded['rise_m']:.3g} mm during the slide): the tangential load's drop is the "
                              "sheet yielding, not static friction")
+    elif falling is not None:
+        detail["sheet_yield"] = falling
+        size, reason = 0.0, (f"the tangential load kept falling as the sheet's fold rose after the breakaway "
+                             f"({100 * falling['shear_fall']:.3g} % over a {1e3 * falling['rise_m']:.3g} mm rise, the "
+                             f"normal load {100 * falling['normal_fall']:.3g} %): the sheet yielding limits the load, "
+                             "not static friction")
     windows = [[float(f["breakaway"].t[0]), float(f["breakaway"].t[-1])] for f in fits]
     return SignatureResult(
         effect=effect, statistic=float(sum(f["statistic"] for f in fits)), effect_size=size,
