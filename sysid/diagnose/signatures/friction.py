@@ -39,10 +39,15 @@ so a calibration gap in the friction coefficient or the normal force does not en
    load, in the effector's lag against the sensor normal (:func:`normal_load_excess`); its relative
    excess is subtracted from the shear's.
 
-The statistic is the whitened SSE the decay removes from both series, summed over breakaways (a
-likelihood-ratio statistic, about chi-square with four degrees of freedom under Coulomb friction
-and white noise, a little more for the choice of ``t0`` among a few samples and of tau on its
-grid). The effect size is the normal-load-corrected relative excess of the tangential load at the
+The statistic is the whitened SSE the decay removes from both series, each over its window's
+dispersion beyond the noise model (:func:`roughness`: the whitened second differences' variance,
+floored at 1; a quasi-likelihood F statistic, McCullagh & Nelder, *Generalized Linear Models*, 2nd
+ed., section 9.2), summed over breakaways: about chi-square with four degrees of freedom under
+Coulomb friction and white noise, a little more for the choice of ``t0`` among a few samples and of
+tau on its grid. The dispersion takes in a sliding contact's tactile roughness, which the noise
+model leaves out (the mean marker shear of a sliding MuJoCo pad scatters 2-3 times its white-noise
+sigma from sample to sample): without it a slow decay that removes 2 % of a rough window's SSE
+reads as a breakaway that no held-out sample confirms. The effect size is the normal-load-corrected relative excess of the tangential load at the
 strongest breakaway, ``A / a`` of the shear minus that of the normal force: the macroscopic
 ``mu_s / mu_k - 1``. It is resolvable when above :data:`RESOLVABLE_SIGMAS` standard deviations of
 that difference, propagated from the noise model through both fits (:func:`resolvable_excess`, the
@@ -474,6 +479,33 @@ def fit_breakaway(b: Breakaway, taus: np.ndarray, rows: np.ndarray | None = None
             "tau_s": tau, "coef0": c0, "coef1": c1}
 
 
+MAD_TO_SIGMA = 1.4826
+"""Standard deviation of a normal law over its median absolute deviation."""
+
+
+def roughness(b: Breakaway) -> float:
+    """Sample-to-sample dispersion of a breakaway window's series over its noise model, floored at 1.
+
+    The variance of the whitened second differences ``(y[i+1] - 2 y[i] + y[i-1]) / sigma`` over 6
+    (their variance for white noise of unit variance), read robustly (:data:`MAD_TO_SIGMA` times
+    their median absolute deviation, squared): it takes in a sliding contact's roughness beyond the
+    noise model and leaves out the window's slow shape (the breakaway's decay, the level's trend and
+    curvature), whose second differences are small but for a few samples at the decay's start.
+    1 for a window with fewer than :data:`MIN_WINDOW_SAMPLES` second differences.
+    """
+    if len(b.q) < MIN_WINDOW_SAMPLES + 2:
+        return 1.0
+    z = (b.q[2:] - 2.0 * b.q[1:-1] + b.q[:-2]) / b.sigma[1:-1]
+    mad = float(np.median(np.abs(z - np.median(z))))
+    return max((MAD_TO_SIGMA * mad) ** 2 / 6.0, 1.0)
+
+
+def decay_statistic(fit: dict, b: Breakaway) -> float:
+    """Whitened SSE a breakaway decay removes from a window (:func:`fit_breakaway`) over the window's
+    roughness (:func:`roughness`): a quasi-likelihood F statistic (module docstring)."""
+    return max(fit["sse0"] - fit["sse1"], 0.0) / roughness(b)
+
+
 def decay_taus(rec: Recording) -> np.ndarray:
     """Decay times searched: half tactile periods from one period up to :data:`TAU_MAX_S`."""
     period = rec.tactile_period()
@@ -494,7 +526,8 @@ def breakaway_fits(rec: Recording) -> list[dict]:
         one dict per breakaway of :func:`breakaways`: ``breakaway`` (the friction ratio's window),
         ``shear`` (the marker shear's window, :func:`shear_breakaway`, or None), ``ratio_fit`` and
         ``shear_fit`` (:func:`fit_breakaway`; ``shear_fit`` None without a shear window),
-        ``statistic`` (the whitened SSE the decay removes from both series), ``shear_excess`` (the
+        ``statistic`` (the whitened SSE the decay removes from both series, each over its roughness:
+        :func:`decay_statistic`), ``shear_excess`` (the
         shear's ``A / a``) and its standard deviation ``shear_excess_sigma``, ``normal_excess`` and
         ``normal_excess_sigma`` and ``normal_source`` (:func:`normal_load_excess` at the shear's decay
         time), ``excess`` (the normal-load-corrected excess, their difference; 0 when no positive
@@ -504,12 +537,12 @@ def breakaway_fits(rec: Recording) -> list[dict]:
     out = []
     for b in breakaways(rec):
         fq = fit_breakaway(b, taus)
-        stat = max(fq["sse0"] - fq["sse1"], 0.0)
+        stat = decay_statistic(fq, b)
         bs = shear_breakaway(rec, b)
         fs = fit_breakaway(bs, taus) if bs is not None else None
         rel_s, sig_s, rel_n, sig_n, source = 0.0, float("inf"), 0.0, float("inf"), "none"
         if bs is not None and fs is not None:
-            stat += max(fs["sse0"] - fs["sse1"], 0.0)
+            stat += decay_statistic(fs, bs)
             # the spread of the excess at the fitted decay time (at the grid's shortest one when no
             # positive decay fits: the excess is then 0 and only its resolvable size is reported)
             tau = fs["tau_s"] if fs["tau_s"] > 0.0 else float(taus[0]) if len(taus) else 0.0
@@ -671,9 +704,11 @@ def stiction_test(rec: Recording) -> SignatureResult:
         b, fq, fs = f["breakaway"], f["ratio_fit"], f["shear_fit"]
         events.append({"t_command_s": b.t_command, "t_slip_s": b.t_slip, "direction": b.direction.tolist(),
                        "samples": int(len(b.t)), "statistic": f["statistic"],
-                       "ratio_statistic": max(fq["sse0"] - fq["sse1"], 0.0), "kinetic_ratio": fq["level"],
+                       "ratio_statistic": decay_statistic(fq, b), "kinetic_ratio": fq["level"],
                        "ratio_excess": fq["excess"] / fq["level"] if fq["level"] > 0.0 else 0.0,
-                       "shear_statistic": max(fs["sse0"] - fs["sse1"], 0.0) if fs else 0.0,
+                       "ratio_roughness": roughness(b),
+                       "shear_statistic": decay_statistic(fs, f["shear"]) if fs else 0.0,
+                       "shear_roughness": roughness(f["shear"]) if fs else 1.0,
                        "shear_samples": int(len(f["shear"].t)) if fs else 0,
                        "shear_level_m": fs["level"] if fs else 0.0, "decay_s": fs["tau_s"] if fs else 0.0,
                        "shear_excess": f["shear_excess"], "normal_excess": f["normal_excess"],

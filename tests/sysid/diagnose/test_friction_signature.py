@@ -518,3 +518,30 @@ def test_the_reference_stiction_card_buckles_carrying_a_load_that_does_not_fall(
     lf = load_against_fold(rec, fit)
     assert lf["rise_m"] > 0.005 and lf["shear_fall"] < 0.0
     assert "sheet_yield" not in r.detail and r.effect_size > 0.05
+
+
+def rough_slide(rng: np.random.Generator, mu_s: float, roughness: float) -> Recording:
+    """:func:`press_slide` whose sliding contact adds a common tangential roughness to every marker:
+    white, ``roughness`` times the mean marker shear's noise sigma (a sliding MuJoCo pad's mean shear
+    scatters 2-3 times its sigma from sample to sample, beyond the noise model)."""
+    rec = press_slide(rng, mu_s)
+    xyz = rec.data["markers_xyz"].copy()
+    sigma_mean = SIGMA["markers_xyz"][0] / np.sqrt(xyz.shape[1])
+    xyz[..., 0] += (roughness * sigma_mean * rng.normal(size=xyz.shape[0]))[:, None]
+    return Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz), prediction=None, sigma=SIGMA, camera=CAMERA,
+                     name="rough slide")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_rough_sliding_contact_is_judged_against_its_own_scatter(seed):
+    # Coulomb friction with a roughness 3 sigma of the mean shear: the shear window's whitened second
+    # differences read a variance of about 1 + 3^2, and the decay's SSE is judged against it
+    rec = rough_slide(np.random.default_rng(50 + seed), MU_K, 3.0)
+    r = stiction_test(rec)
+    (b,) = r.detail["breakaways"]
+    assert 4.0 < b["shear_roughness"] < 25.0
+    assert 1.0 <= b["ratio_roughness"] < 2.0  # the wrench carries no roughness here
+    assert "stiction" not in decide({"stiction": r}, default_thresholds(rec)).explained_by
+    # static friction 1.5 times the kinetic on the same rough contact: still named
+    sticky = rough_slide(np.random.default_rng(50 + seed), 1.5 * MU_K, 3.0)
+    assert decide({"stiction": stiction_test(sticky)}, default_thresholds(sticky)).explained_by == ["stiction"]
