@@ -39,11 +39,17 @@ so a calibration gap in the friction coefficient or the normal force does not en
    load, in the effector's lag against the sensor normal (:func:`normal_load_excess`); its relative
    excess is subtracted from the shear's.
 
-The statistic is the whitened SSE the decay removes from both series, summed over breakaways (a
-likelihood-ratio statistic, about chi-square with four degrees of freedom under Coulomb friction
-and white noise, a little more for the choice of ``t0`` among a few samples and of tau on its
-grid). The effect size is the normal-load-corrected relative excess of the tangential load at the
-strongest breakaway, ``A / a`` of the shear minus that of the normal force: the macroscopic
+The statistic is the whitened SSE the decay removes from both series, each over its window's
+dispersion beyond the noise model (:func:`roughness`: the whitened second differences' variance,
+floored at 1; a quasi-likelihood F statistic, McCullagh & Nelder, *Generalized Linear Models*, 2nd
+ed., section 9.2), summed over breakaways: about chi-square with four degrees of freedom under
+Coulomb friction and white noise, a little more for the choice of ``t0`` among a few samples and of
+tau on its grid. The dispersion takes in a sliding contact's tactile roughness, which the noise
+model leaves out (the mean marker shear of a sliding MuJoCo pad scatters 2-3 times its white-noise
+sigma from sample to sample): without it a slow decay that removes 2 % of a rough window's SSE
+reads as a breakaway that no held-out sample confirms. The effect size is the normal-load-corrected
+relative excess of the tangential load at the strongest breakaway, ``A / a`` of the shear minus that
+of the normal force: the macroscopic
 ``mu_s / mu_k - 1``. It is resolvable when above :data:`RESOLVABLE_SIGMAS` standard deviations of
 that difference, propagated from the noise model through both fits (:func:`resolvable_excess`, the
 effect-size threshold of :mod:`sysid.diagnose.signatures.null`).
@@ -63,8 +69,26 @@ during a tested slide, the fold formed while sliding: the breakaway is the sheet
 effect size is 0 (the result's ``reason`` and ``detail["sheet_yield"]`` say so). Stiction and
 plasticity together on one slide toward a clamped edge are then read as plasticity alone.
 
+A yield is also read while it happens, without a released window (a kept fold that still touches
+the lifted pad leaves none): past the breakaway's decay (:data:`TAU_MAX_S` after its peak) to the
+slide's end, the sheet's crest (its highest point) rises by at least the resolvable set while the
+tangential load falls with it. A card carried by the pad that buckles elastically passes a load
+that stays at or above its buckling load as the fold grows (the elastica's post-buckling branch);
+a card that yields passes what its plastic hinge resists, ``M_p`` over the fold's lever arm, which
+falls as the fold rises; friction at the kinetic level follows the normal load and not the fold.
+The mean marker shear and the normal force are each regressed on the crest's height over that
+part of the slide (:func:`load_against_fold`); the yield is read where the shear's relative fall
+over the crest's rise exceeds the normal force's by :data:`RESOLVABLE_SIGMAS` standard deviations
+of the difference (each from its regression's residual dispersion, which takes in the tactile
+roughness of a sliding contact beyond the white noise model).
+
 Known limits: a stiction that only raises the sliding level (no breakaway drop within the slide) is
-not a breakaway and is not found; tactile latency or creep on top of stiction delays the shear
+not a breakaway and is not found; nor is one whose pad passes from stick to slip by partial slip with
+the tangential load rising monotonically to its sliding level (the MuJoCo world of
+``benchmarks/mujoco_world`` switches the pad's friction to kinetic once its contact layer's mean speed
+passes 2 mm/s, before the load reaches the static limit: its press-slides at static/kinetic 1.4-2.0
+show no overshoot, and one with the same seed and static = kinetic matches it through the breakaway,
+docs/benchmarks_log.md, session 37); tactile latency or creep on top of stiction delays the shear
 against the pose, so the window starts on the shear's rise and the decay is not found.
 """
 
@@ -461,6 +485,33 @@ def fit_breakaway(b: Breakaway, taus: np.ndarray, rows: np.ndarray | None = None
             "tau_s": tau, "coef0": c0, "coef1": c1}
 
 
+MAD_TO_SIGMA = 1.4826
+"""Standard deviation of a normal law over its median absolute deviation."""
+
+
+def roughness(b: Breakaway) -> float:
+    """Sample-to-sample dispersion of a breakaway window's series over its noise model, floored at 1.
+
+    The variance of the whitened second differences ``(y[i+1] - 2 y[i] + y[i-1]) / sigma`` over 6
+    (their variance for white noise of unit variance), read robustly (:data:`MAD_TO_SIGMA` times
+    their median absolute deviation, squared): it takes in a sliding contact's roughness beyond the
+    noise model and leaves out the window's slow shape (the breakaway's decay, the level's trend and
+    curvature), whose second differences are small but for a few samples at the decay's start.
+    1 for a window with fewer than :data:`MIN_WINDOW_SAMPLES` second differences.
+    """
+    if len(b.q) < MIN_WINDOW_SAMPLES + 2:
+        return 1.0
+    z = (b.q[2:] - 2.0 * b.q[1:-1] + b.q[:-2]) / b.sigma[1:-1]
+    mad = float(np.median(np.abs(z - np.median(z))))
+    return max((MAD_TO_SIGMA * mad) ** 2 / 6.0, 1.0)
+
+
+def decay_statistic(fit: dict, b: Breakaway) -> float:
+    """Whitened SSE a breakaway decay removes from a window (:func:`fit_breakaway`) over the window's
+    roughness (:func:`roughness`): a quasi-likelihood F statistic (module docstring)."""
+    return max(fit["sse0"] - fit["sse1"], 0.0) / roughness(b)
+
+
 def decay_taus(rec: Recording) -> np.ndarray:
     """Decay times searched: half tactile periods from one period up to :data:`TAU_MAX_S`."""
     period = rec.tactile_period()
@@ -481,7 +532,8 @@ def breakaway_fits(rec: Recording) -> list[dict]:
         one dict per breakaway of :func:`breakaways`: ``breakaway`` (the friction ratio's window),
         ``shear`` (the marker shear's window, :func:`shear_breakaway`, or None), ``ratio_fit`` and
         ``shear_fit`` (:func:`fit_breakaway`; ``shear_fit`` None without a shear window),
-        ``statistic`` (the whitened SSE the decay removes from both series), ``shear_excess`` (the
+        ``statistic`` (the whitened SSE the decay removes from both series, each over its roughness:
+        :func:`decay_statistic`), ``shear_excess`` (the
         shear's ``A / a``) and its standard deviation ``shear_excess_sigma``, ``normal_excess`` and
         ``normal_excess_sigma`` and ``normal_source`` (:func:`normal_load_excess` at the shear's decay
         time), ``excess`` (the normal-load-corrected excess, their difference; 0 when no positive
@@ -491,12 +543,12 @@ def breakaway_fits(rec: Recording) -> list[dict]:
     out = []
     for b in breakaways(rec):
         fq = fit_breakaway(b, taus)
-        stat = max(fq["sse0"] - fq["sse1"], 0.0)
+        stat = decay_statistic(fq, b)
         bs = shear_breakaway(rec, b)
         fs = fit_breakaway(bs, taus) if bs is not None else None
         rel_s, sig_s, rel_n, sig_n, source = 0.0, float("inf"), 0.0, float("inf"), "none"
         if bs is not None and fs is not None:
-            stat += max(fs["sse0"] - fs["sse1"], 0.0)
+            stat += decay_statistic(fs, bs)
             # the spread of the excess at the fitted decay time (at the grid's shortest one when no
             # positive decay fits: the excess is then 0 and only its resolvable size is reported)
             tau = fs["tau_s"] if fs["tau_s"] > 0.0 else float(taus[0]) if len(taus) else 0.0
@@ -561,6 +613,86 @@ def sheet_yield(rec: Recording, fits: list[dict]) -> dict | None:
             "slide_s": [float(f["breakaway"].t_command), float(f["breakaway"].t_slide_end)]}
 
 
+def _slope(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of ``y`` on ``x`` (with an offset) and its standard error from the
+    residual dispersion ``SSE / (n - 2)``; ``(0, inf)`` for fewer than three samples or a constant x."""
+    n = len(x)
+    dx = x - x.mean()
+    sxx = float(dx @ dx)
+    if n < 3 or not sxx > 0.0:
+        return 0.0, float("inf")
+    c1 = float(dx @ (y - y.mean())) / sxx
+    r = y - y.mean() - c1 * dx
+    return c1, float(np.sqrt(float(r @ r) / (n - 2) / sxx))
+
+
+def load_against_fold(rec: Recording, fit: dict) -> dict | None:
+    """The tangential and normal load regressed on the sheet's crest height past a breakaway's decay
+    (module docstring, "Sheet yield").
+
+    Args:
+        rec: recording with ``sheet_points`` (world, m), ``markers_xyz``, ``wrench`` and ``pose``.
+        fit: one entry of :func:`breakaway_fits` with a shear window.
+
+    Returns:
+        None without the sheet, a shear window or :data:`MIN_WINDOW_SAMPLES` loaded marker samples
+        from :data:`TAU_MAX_S` past the shear's peak to the slide's end; else ``{"rise_m"`` (the
+        crest's rise over that part, m), ``"shear_fall"`` / ``"normal_fall"`` (relative fall of the
+        mean marker shear / the normal force over that rise, from their slopes on the crest height;
+        positive when falling), ``"fall_sigma"`` (standard deviation of their difference) and
+        ``"window_s"``.
+    """
+    b, bs = fit["breakaway"], fit["shear"]
+    if bs is None or not rec.has("sheet_points"):
+        return None
+    tm, tw = rec.t["markers_xyz"], rec.t["wrench"]
+    loaded_w = _loaded(rec)
+    loaded_m = np.interp(tm, tw, loaded_w.astype(float)) > 0.5
+    m = (tm >= bs.t0 + TAU_MAX_S) & (tm <= b.t_slide_end) & loaded_m
+    mw = (tw >= bs.t0 + TAU_MAX_S) & (tw <= b.t_slide_end) & loaded_w
+    if m.sum() < MIN_WINDOW_SAMPLES or mw.sum() < MIN_WINDOW_SAMPLES:
+        return None
+    crest = np.asarray(rec.data["sheet_points"], dtype=float)[..., 2].max(axis=1)  # (n_sheet,) m
+    ts = rec.t["sheet_points"]
+    h_m, h_w = np.interp(tm[m], ts, crest), np.interp(tw[mw], ts, crest)
+    rise = float(h_m[-1] - h_m[0])
+    shear, _ = marker_shear(rec, b.direction, _rest_rows(rec, loaded_w))
+    fn = normal_force(rec.data["wrench"])[mw]
+    c_s, se_s = _slope(h_m, shear[m])
+    c_n, se_n = _slope(h_w, fn)
+    level_s, level_n = float(np.mean(shear[m])), float(np.mean(fn))
+    if not (level_s > 0.0 and level_n > 0.0):
+        return None
+    fall_s, fall_n = -c_s * rise / level_s, -c_n * rise / level_n
+    sigma = float(np.hypot(se_s * abs(rise) / level_s, se_n * abs(rise) / level_n))
+    return {"rise_m": rise, "shear_fall": float(fall_s), "normal_fall": float(fall_n), "fall_sigma": sigma,
+            "window_s": [float(tm[m][0]), float(tm[m][-1])]}
+
+
+def falling_load_yield(rec: Recording, fits: list[dict]) -> dict | None:
+    """Whether the tangential load fell as the sheet's fold rose past a breakaway's decay (module
+    docstring, "Sheet yield"): the crest rose by at least
+    :func:`sysid.diagnose.signatures.sheet.resolvable_set` and the shear's relative fall exceeds the
+    normal force's by :data:`RESOLVABLE_SIGMAS` standard deviations of the difference.
+
+    Returns:
+        None when no breakaway shows it; else :func:`load_against_fold`'s dict of the breakaway
+        whose fall is largest, with ``"slide_s"``.
+    """
+    if not rec.has("sheet_points") or "sheet_points" not in rec.sigma:
+        return None
+    floor = resolvable_set(rec)
+    best = None
+    for f in fits:
+        lf = load_against_fold(rec, f)
+        if lf is None or lf["rise_m"] < floor:
+            continue
+        excess = lf["shear_fall"] - lf["normal_fall"]
+        if excess > RESOLVABLE_SIGMAS * lf["fall_sigma"] and (best is None or excess > best[0]):
+            best = (excess, {**lf, "slide_s": [float(f["breakaway"].t_command), float(f["breakaway"].t_slide_end)]})
+    return None if best is None else best[1]
+
+
 def stiction_test(rec: Recording) -> SignatureResult:
     """Breakaway overshoot of the tangential load at slide onset, beyond the normal load's (module
     docstring)."""
@@ -578,9 +710,11 @@ def stiction_test(rec: Recording) -> SignatureResult:
         b, fq, fs = f["breakaway"], f["ratio_fit"], f["shear_fit"]
         events.append({"t_command_s": b.t_command, "t_slip_s": b.t_slip, "direction": b.direction.tolist(),
                        "samples": int(len(b.t)), "statistic": f["statistic"],
-                       "ratio_statistic": max(fq["sse0"] - fq["sse1"], 0.0), "kinetic_ratio": fq["level"],
+                       "ratio_statistic": decay_statistic(fq, b), "kinetic_ratio": fq["level"],
                        "ratio_excess": fq["excess"] / fq["level"] if fq["level"] > 0.0 else 0.0,
-                       "shear_statistic": max(fs["sse0"] - fs["sse1"], 0.0) if fs else 0.0,
+                       "ratio_roughness": roughness(b),
+                       "shear_statistic": decay_statistic(fs, f["shear"]) if fs else 0.0,
+                       "shear_roughness": roughness(f["shear"]) if fs else 1.0,
                        "shear_samples": int(len(f["shear"].t)) if fs else 0,
                        "shear_level_m": fs["level"] if fs else 0.0, "decay_s": fs["tau_s"] if fs else 0.0,
                        "shear_excess": f["shear_excess"], "normal_excess": f["normal_excess"],
@@ -592,12 +726,19 @@ def stiction_test(rec: Recording) -> SignatureResult:
     detail = {"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])}
     reason = ""
     yielded = sheet_yield(rec, fits) if size > 0.0 else None
+    falling = falling_load_yield(rec, fits) if size > 0.0 and yielded is None else None
     if yielded is not None:
         detail["sheet_yield"] = yielded
         set_mm = 1e3 * yielded["set_m"]
         size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {set_mm:.3g} mm rose "
                              f"{1e3 * yielded['rise_m']:.3g} mm during the slide): the tangential load's drop is the "
                              "sheet yielding, not static friction")
+    elif falling is not None:
+        detail["sheet_yield"] = falling
+        size, reason = 0.0, (f"the tangential load kept falling as the sheet's fold rose after the breakaway "
+                             f"({100 * falling['shear_fall']:.3g} % over a {1e3 * falling['rise_m']:.3g} mm rise, the "
+                             f"normal load {100 * falling['normal_fall']:.3g} %): the sheet yielding limits the load, "
+                             "not static friction")
     windows = [[float(f["breakaway"].t[0]), float(f["breakaway"].t[-1])] for f in fits]
     return SignatureResult(
         effect=effect, statistic=float(sum(f["statistic"] for f in fits)), effect_size=size,

@@ -24,7 +24,8 @@ import pytest
 
 from sysid.diagnose.signature_engine import refit_stiction
 from sysid.diagnose.signatures import Recording, run_signature_tests
-from sysid.diagnose.signatures.friction import breakaway_fits, breakaways, resolvable_excess, stiction_test
+from sysid.diagnose.signatures.friction import (breakaway_fits, breakaways, load_against_fold, resolvable_excess,
+                                                stiction_test)
 from sysid.diagnose.signatures.null import decide, default_thresholds
 
 SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
@@ -41,12 +42,13 @@ def slide_velocity(t: np.ndarray, v: float = 0.02, t_on: float = 1.0, t_off: flo
     return v * np.minimum(0.5 - 0.5 * np.cos(np.pi * up), 0.5 - 0.5 * np.cos(np.pi * down))
 
 
-def stick_slip(t: np.ndarray, ee: np.ndarray, mu_s: float, tau_b: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+def stick_slip(t: np.ndarray, ee: np.ndarray, mu_s: float, tau_b: float = 0.03,
+               limit=None) -> tuple[np.ndarray, np.ndarray]:
     """Contact-surface position (m) and friction force magnitude (N) along the slide.
 
     Stick while ``K_GEL (ee - s) < mu_s F_N``; after the breakaway at ``t_b`` the friction level is
-    ``mu_k + (mu_s - mu_k) exp(-(t - t_b) / tau_b)`` and the surface trails the effector by that
-    force over ``K_GEL``.
+    ``mu_k + (mu_s - mu_k) exp(-(t - t_b) / tau_b)`` (or ``limit(t, t_b)`` N when given) and the
+    surface trails the effector by that force over ``K_GEL``.
     """
     s, ft = np.zeros_like(ee), np.zeros_like(ee)
     t_b = None
@@ -57,14 +59,16 @@ def stick_slip(t: np.ndarray, ee: np.ndarray, mu_s: float, tau_b: float = 0.03) 
                 continue
             t_b = t[i]
         mu = MU_K + (mu_s - MU_K) * np.exp(-(t[i] - t_b) / tau_b)
-        ft[i] = mu * F_N
+        ft[i] = mu * F_N if limit is None else limit(t[i], t_b)
         s[i] = max(ee[i] - ft[i] / K_GEL, s[i - 1])  # the surface never moves backwards
         ft[i] = K_GEL * (ee[i] - s[i])
     return s, ft
 
 
-def press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), tau_b: float = 0.03) -> Recording:
-    """A pressed gel slid along ``direction`` (world xy) with the stick-slip law above, plus noise.
+def press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), tau_b: float = 0.03,
+                limit=None) -> Recording:
+    """A pressed gel slid along ``direction`` (world xy) with the stick-slip law above (``limit``:
+    :func:`stick_slip`'s), plus noise.
 
     The sensor frame is the effector's, rotated 180 degrees about x from world (quaternion
     ``(1, 0, 0, 0)``): sensor x = world x, sensor y = -world y, F_z < 0 pressing.
@@ -74,7 +78,7 @@ def press_slide(rng: np.random.Generator, mu_s: float, direction=(1.0, 0.0), tau
     tw = np.arange(0.0, 3.0, 0.005)
     tm = tw[::2]
     travel = np.concatenate([[0.0], np.cumsum(slide_velocity(tw)[1:] * np.diff(tw))])
-    surf, ft = stick_slip(tw, travel, mu_s, tau_b)
+    surf, ft = stick_slip(tw, travel, mu_s, tau_b, limit)
     pose = np.tile([0.05, 0.0, 0.003, 1.0, 0.0, 0.0, 0.0], (len(tw), 1))
     pose[:, :2] += travel[:, None] * u
     to_sensor = np.array([1.0, -1.0])
@@ -442,3 +446,102 @@ def test_a_breakaway_beside_a_sheet_that_returns_flat_stays_stiction():
     assert results["stiction"].estimate["static_over_kinetic"] == pytest.approx(1.8, rel=0.1)
     assert "sheet_yield" not in results["stiction"].detail
     assert decide(results, default_thresholds(rec)).explained_by == ["stiction"]
+
+
+FOLD_LEVER_M = 1e-3
+"""Lever arm of a yielding card's hinge at the breakaway in :func:`slide_with_a_rising_fold`, m."""
+
+
+def fold_height(t: np.ndarray, fold: float) -> np.ndarray:
+    """Height of the fold ahead of the pad in :func:`slide_with_a_rising_fold`: rising with the slide's
+    travel from 1.0 s to 2.2 s to ``fold`` m."""
+    return fold * np.clip((np.asarray(t, dtype=float) - 1.0) / 1.2, 0.0, 1.0)
+
+
+def slide_with_a_rising_fold(rng: np.random.Generator, fold: float, yields: bool) -> Recording:
+    """:func:`press_slide` (``mu_s = 1.5 mu_k``) toward a clamped edge: the pad carries the card, which
+    folds ahead of it (its crest rising to ``fold`` m with the slide), and the gel stays pressed to the
+    recording's end (the kept fold still touches the pad: no released window for a permanent set).
+
+    ``yields=False``: the card buckles elastically; after the breakaway the load falls to the kinetic
+    level (static friction) and stays there as the fold rises. ``yields=True``: the load after the
+    breakaway is what the card's plastic hinge resists, its moment over the fold's lever arm,
+    ``P = P_b l / (l + h(t) - h(t_b))`` (``P_b = mu_s F_N`` the breakaway load, ``l`` =
+    :data:`FOLD_LEVER_M`, h the fold's height): it keeps falling as the fold rises.
+    """
+    mu_s = 1.5 * MU_K
+
+    def hinge(t: float, t_b: float) -> float:
+        rise = float(fold_height(t, fold) - fold_height(t_b, fold))
+        return mu_s * F_N * FOLD_LEVER_M / (FOLD_LEVER_M + rise)
+
+    rec = press_slide(rng, mu_s, direction=(-1.0, 0.0), limit=hinge if yields else None)
+    tm = rec.t["markers_xyz"]
+    gx, gy = np.meshgrid(np.linspace(0.0, 0.1, 21), np.linspace(-0.03, 0.03, 13))
+    sheet = np.repeat(np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 1.5e-4)], axis=1)[None], len(tm), axis=0)
+    ahead = np.abs(sheet[0, :, 0] - 0.03) < 0.01
+    sheet[:, ahead, 2] += fold_height(tm, fold)[:, None]
+    sigma = dict(SIGMA, sheet_points=np.array([5e-5, 5e-5, 5e-5]))
+    data = dict(rec.data, sheet_points=sheet + rng.normal(size=sheet.shape) * sigma["sheet_points"])
+    return Recording(t=dict(rec.t, sheet_points=tm), data=data, prediction=None, sigma=sigma, camera=CAMERA,
+                     name="slide folding the card ahead of the pad")
+
+
+def test_a_load_that_keeps_falling_as_the_fold_rises_is_the_sheet_yielding_not_stiction():
+    rec = slide_with_a_rising_fold(np.random.default_rng(22), fold=0.008, yields=True)
+    results = run_signature_tests(rec)
+    r = results["stiction"]
+    assert not results["bending_plasticity"].applicable  # the gel never lets go: no permanent set to read
+    (b,) = r.detail["breakaways"]
+    assert b["relative_excess"] > 2.0 * b["relative_excess_sigma"]  # a breakaway shape the test resolves ...
+    assert r.effect_size == 0.0 and "sheet yielding limits the load" in r.reason  # ... read as the yield
+    y = r.detail["sheet_yield"]
+    assert y["rise_m"] > 0.5 * 0.008 and y["shear_fall"] > 0.1 and abs(y["normal_fall"]) < 0.05
+    assert "stiction" not in decide({"stiction": r}, default_thresholds(rec)).explained_by
+
+
+def test_static_friction_beside_a_fold_that_rises_elastically_stays_stiction():
+    rec = slide_with_a_rising_fold(np.random.default_rng(22), fold=0.008, yields=False)
+    results = run_signature_tests(rec)
+    r = results["stiction"]
+    assert "sheet_yield" not in r.detail
+    assert r.estimate["static_over_kinetic"] == pytest.approx(1.5, rel=0.1)
+    assert decide({"stiction": r}, default_thresholds(rec)).explained_by == ["stiction"]
+
+
+def test_the_reference_stiction_card_buckles_carrying_a_load_that_does_not_fall():
+    # stiction_s105: the pad drags the card toward its clamped edge and the card buckles 10 mm past
+    # the breakaway's decay (elastic: the load then rises); stiction stays named
+    rec = reference_recording("stiction_s105")
+    r = stiction_test(rec)
+    (fit,) = breakaway_fits(rec)
+    lf = load_against_fold(rec, fit)
+    assert lf["rise_m"] > 0.005 and lf["shear_fall"] < 0.0
+    assert "sheet_yield" not in r.detail and r.effect_size > 0.05
+
+
+def rough_slide(rng: np.random.Generator, mu_s: float, roughness: float) -> Recording:
+    """:func:`press_slide` whose sliding contact adds a common tangential roughness to every marker:
+    white, ``roughness`` times the mean marker shear's noise sigma (a sliding MuJoCo pad's mean shear
+    scatters 2-3 times its sigma from sample to sample, beyond the noise model)."""
+    rec = press_slide(rng, mu_s)
+    xyz = rec.data["markers_xyz"].copy()
+    sigma_mean = SIGMA["markers_xyz"][0] / np.sqrt(xyz.shape[1])
+    xyz[..., 0] += (roughness * sigma_mean * rng.normal(size=xyz.shape[0]))[:, None]
+    return Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz), prediction=None, sigma=SIGMA, camera=CAMERA,
+                     name="rough slide")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_rough_sliding_contact_is_judged_against_its_own_scatter(seed):
+    # Coulomb friction with a roughness 3 sigma of the mean shear: the shear window's whitened second
+    # differences read a variance of about 1 + 3^2, and the decay's SSE is judged against it
+    rec = rough_slide(np.random.default_rng(50 + seed), MU_K, 3.0)
+    r = stiction_test(rec)
+    (b,) = r.detail["breakaways"]
+    assert 4.0 < b["shear_roughness"] < 25.0
+    assert 1.0 <= b["ratio_roughness"] < 2.0  # the wrench carries no roughness here
+    assert "stiction" not in decide({"stiction": r}, default_thresholds(rec)).explained_by
+    # static friction 1.5 times the kinetic on the same rough contact: still named
+    sticky = rough_slide(np.random.default_rng(50 + seed), 1.5 * MU_K, 3.0)
+    assert decide({"stiction": stiction_test(sticky)}, default_thresholds(sticky)).explained_by == ["stiction"]
