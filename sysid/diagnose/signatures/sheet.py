@@ -8,7 +8,10 @@
   chi-square(3p) without an effect) and with its own initial shape; the effect size is the smaller
   of the two largest point displacements (a set both unexplained by the replay and different from
   where the sheet started), and 0 where the replay itself leaves the sheet away from its start (a
-  buckle held by friction: the difference is then the model's gap in that shape).
+  buckle held by friction: the difference is then the model's gap in that shape). A set is a rest
+  shape: where the recorded sheet still moves over the final window (an elastic card flapping after
+  the lift let it go), its displacement is read as a set only where it stays within the fold the
+  loaded gel made at the same points (:func:`moving_sheet_check`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
   recorded sheet rises above the replay's, the sheet is being carried by the gel. The statistic is
@@ -61,6 +64,58 @@ def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
     return ~dilate(moved, t, FREE_MARGIN_S)
 
 
+def _halves_motion(x: np.ndarray) -> float:
+    """Largest point displacement between the mean shapes of the first and the second half of
+    ``x`` ``(n, p, 3)``, m."""
+    h = len(x) // 2
+    return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
+
+
+def moving_sheet_check(rec: Recording, final: np.ndarray, initial: np.ndarray) -> tuple[float, str]:
+    """Whether the recorded sheet's shape over the final window is one a yield can have left.
+
+    A permanent set is the shape the sheet rests in once the gel has let it go (plasticity is rate
+    independent: the set does not move). Where the sheet still moves over the final window by more
+    than the tracking resolves (:func:`resolvable_set`: the largest point displacement between the
+    window's two halves' mean shapes), the window holds no rest shape: its displacement from the
+    initial shape is read as a set only where it stays within the displacement the loaded gel gave
+    the same points (a yield keeps at most the fold the load made, less its elastic springback;
+    an elastic card flung beyond the load's fold by the lift is in motion, not yielded). Loaded rows
+    are those of the recorded markers off rest (:func:`marker_displacement` above
+    :data:`~sysid.diagnose.signatures.sensor.REST_DISPLACEMENT`), or the replay's contact without
+    markers.
+
+    Args:
+        rec: the recording (sheet points and their sigma; markers or a replay).
+        final: boolean mask ``(n,)`` of the final window on ``rec.t["sheet_points"]``.
+        initial: boolean mask ``(n,)`` of the free rows before the first contact (at least one).
+
+    Returns:
+        ``(motion_m, reason)``: the sheet's motion over the final window, m, and an empty reason
+        when a set may be read there, else why not.
+    """
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    motion = _halves_motion(x[final])
+    if motion <= resolvable_set(rec):
+        return motion, ""
+    t = rec.t["sheet_points"]
+    disp = marker_displacement(rec)
+    if disp is not None:
+        loaded = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.5
+    else:
+        contact = predicted_contact(rec, "sheet_points")
+        loaded = np.zeros(len(t), bool) if contact is None else contact
+    x0 = x[initial].mean(axis=0)
+    kept = np.linalg.norm(x[final].mean(axis=0) - x0, axis=1)                        # (p,)
+    k = int(np.argmax(kept))
+    folded = float(np.max(np.linalg.norm(x[loaded, k] - x0[k], axis=1))) if loaded.any() else 0.0
+    if kept[k] <= folded:
+        return motion, ""
+    return motion, (f"the sheet still moves {1e3 * motion:.2g} mm over the final window and its point {k} stands "
+                    f"{1e3 * kept[k]:.2g} mm from its start, beyond the {1e3 * folded:.2g} mm the loaded gel moved "
+                    "it: an elastic sheet in motion, not a set")
+
+
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
@@ -100,6 +155,9 @@ def plasticity_test(rec: Recording) -> SignatureResult:
                                       f"(no free final window of {FINAL_WINDOW_S} s)")
     first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
+    motion, moving = moving_sheet_check(rec, final, initial) if initial.any() else (0.0, "")
+    if moving:
+        return not_applicable(effect, moving)
     replay_released = not bool(contact[final].any())
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
@@ -138,7 +196,7 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]],
         channels=["sheet_points"], markers=[],
         detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
-                "replay_set_m": replay_set, "replay_released": replay_released,
+                "replay_set_m": replay_set, "replay_released": replay_released, "final_motion_m": motion,
                 "final_window_s": [float(t[final][0]), t_end],
                 "points": sorted(top.tolist()), "release_s": t_release})
 
