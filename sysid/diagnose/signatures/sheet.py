@@ -10,8 +10,7 @@
   where the sheet started), and 0 where the replay itself leaves the sheet away from its start (a
   buckle held by friction: the difference is then the model's gap in that shape). A set is a rest
   shape: where the recorded sheet still moves over the final window (an elastic card flapping after
-  the lift let it go), its displacement is read as a set only where it stays within the fold the
-  loaded gel made at the same points (:func:`moving_sheet_check`).
+  the lift let it go), no set is read (:func:`final_motion`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
   recorded sheet rises above the replay's, the sheet is being carried by the gel. The statistic is
@@ -64,56 +63,22 @@ def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
     return ~dilate(moved, t, FREE_MARGIN_S)
 
 
-def _halves_motion(x: np.ndarray) -> float:
-    """Largest point displacement between the mean shapes of the first and the second half of
-    ``x`` ``(n, p, 3)``, m."""
-    h = len(x) // 2
-    return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
-
-
-def moving_sheet_check(rec: Recording, final: np.ndarray, initial: np.ndarray) -> tuple[float, str]:
-    """Whether the recorded sheet's shape over the final window is one a yield can have left.
+def final_motion(rec: Recording, final: np.ndarray) -> float:
+    """How far the recorded sheet moves over the final window, m: the largest point displacement
+    between the mean shapes of the window's first and second halves.
 
     A permanent set is the shape the sheet rests in once the gel has let it go (plasticity is rate
-    independent: the set does not move). Where the sheet still moves over the final window by more
-    than the tracking resolves (:func:`resolvable_set`: the largest point displacement between the
-    window's two halves' mean shapes), the window holds no rest shape: its displacement from the
-    initial shape is read as a set only where it stays within the displacement the loaded gel gave
-    the same points (a yield keeps at most the fold the load made, less its elastic springback;
-    an elastic card flung beyond the load's fold by the lift is in motion, not yielded). Loaded rows
-    are those of the recorded markers off rest (:func:`marker_displacement` above
-    :data:`~sysid.diagnose.signatures.sensor.REST_DISPLACEMENT`), or the replay's contact without
-    markers.
+    independent: a set does not move); a sheet that still moves by more than the tracking resolves
+    (:func:`resolvable_set`) holds no rest shape there (an elastic card flapping after the lift let
+    it go), and :func:`plasticity_test` reads no set from it.
 
     Args:
-        rec: the recording (sheet points and their sigma; markers or a replay).
+        rec: the recording (sheet points).
         final: boolean mask ``(n,)`` of the final window on ``rec.t["sheet_points"]``.
-        initial: boolean mask ``(n,)`` of the free rows before the first contact (at least one).
-
-    Returns:
-        ``(motion_m, reason)``: the sheet's motion over the final window, m, and an empty reason
-        when a set may be read there, else why not.
     """
-    x = np.asarray(rec.data["sheet_points"], dtype=float)
-    motion = _halves_motion(x[final])
-    if motion <= resolvable_set(rec):
-        return motion, ""
-    t = rec.t["sheet_points"]
-    disp = marker_displacement(rec)
-    if disp is not None:
-        loaded = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.5
-    else:
-        contact = predicted_contact(rec, "sheet_points")
-        loaded = np.zeros(len(t), bool) if contact is None else contact
-    x0 = x[initial].mean(axis=0)
-    kept = np.linalg.norm(x[final].mean(axis=0) - x0, axis=1)                        # (p,)
-    k = int(np.argmax(kept))
-    folded = float(np.max(np.linalg.norm(x[loaded, k] - x0[k], axis=1))) if loaded.any() else 0.0
-    if kept[k] <= folded:
-        return motion, ""
-    return motion, (f"the sheet still moves {1e3 * motion:.2g} mm over the final window and its point {k} stands "
-                    f"{1e3 * kept[k]:.2g} mm from its start, beyond the {1e3 * folded:.2g} mm the loaded gel moved "
-                    "it: an elastic sheet in motion, not a set")
+    x = np.asarray(rec.data["sheet_points"], dtype=float)[final]
+    h = len(x) // 2
+    return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
 
 
 def plasticity_test(rec: Recording) -> SignatureResult:
@@ -155,9 +120,10 @@ def plasticity_test(rec: Recording) -> SignatureResult:
                                       f"(no free final window of {FINAL_WINDOW_S} s)")
     first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
-    motion, moving = moving_sheet_check(rec, final, initial) if initial.any() else (0.0, "")
-    if moving:
-        return not_applicable(effect, moving)
+    motion = final_motion(rec, final)
+    if motion > resolvable_set(rec):
+        return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
+                                      f"({t[final][0]:.2f}-{t[final][-1]:.2f} s): no rest shape to read a set from")
     replay_released = not bool(contact[final].any())
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
