@@ -10,7 +10,8 @@
   where the sheet started), and 0 where the replay itself leaves the sheet away from its start (a
   buckle held by friction: the difference is then the model's gap in that shape). A set is a rest
   shape: where the recorded sheet still moves over the final window (an elastic card flapping after
-  the lift let it go), no set is read (:func:`final_motion`).
+  the lift let it go), no set is read (:func:`final_motion`); nor where the sheet is back at its
+  initial shape when the recording ends (:func:`_returned_by_the_end`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
   recorded sheet rises above the replay's, the sheet is being carried by the gel. The statistic is
@@ -81,6 +82,37 @@ def final_motion(rec: Recording, final: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
 
 
+def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
+                         released_runs: list[tuple[int, int]]) -> str:
+    """Why a set in the final window did not remain, or "" when it may have: a permanent set is still
+    there when the recording ends. Where a later released run reaches the recording's end (too short
+    to be the final window: a touch of the gel came between, at least three samples), the sheet's mean
+    shape there is compared with its initial shape; back within :func:`resolvable_set` of it while the
+    final window is not, the fold sprang back (an elastic sheet caught in mid-motion by the window).
+
+    Args:
+        rec: the recording (sheet points).
+        final: boolean mask ``(n,)`` of the final window.
+        initial: boolean mask ``(n,)`` of the free rows before the first contact.
+        released_runs: the released runs after the gel's main contact, ``[(i0, i1), ...]``.
+    """
+    t = rec.t["sheet_points"]
+    tail = [(i0, i1) for i0, i1 in released_runs if i1 == len(t) and i1 - i0 >= 3 and not final[i0:i1].any()]
+    if not tail or initial.sum() < 3:
+        return ""
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    x0 = x[initial].mean(axis=0)
+    i0, i1 = tail[0]
+    held_set = float(np.max(np.linalg.norm(x[final].mean(axis=0) - x0, axis=1)))
+    end_set = float(np.max(np.linalg.norm(x[i0:i1].mean(axis=0) - x0, axis=1)))
+    floor = resolvable_set(rec)
+    if held_set < floor or end_set >= floor:
+        return ""
+    return (f"the sheet stands {1e3 * held_set:.2g} mm from its initial shape in the final window but is back "
+            f"within {1e3 * end_set:.2g} mm of it at the recording's end ({t[i0]:.2f}-{t[i1 - 1]:.2f} s): "
+            "the fold did not remain")
+
+
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
@@ -124,6 +156,9 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     if motion > resolvable_set(rec):
         return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
                                       f"({t[final][0]:.2f}-{t[final][-1]:.2f} s): no rest shape to read a set from")
+    returned = _returned_by_the_end(rec, final, initial, after)
+    if returned:
+        return not_applicable(effect, returned)
     replay_released = not bool(contact[final].any())
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
