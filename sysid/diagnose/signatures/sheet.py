@@ -117,8 +117,9 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
     The final window is the last :data:`FINAL_WINDOW_S` (at least three samples) of the last run of
-    released rows (:func:`_released_rows`) after the recorded gel's main contact (its longest loaded
-    run) that lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
+    released rows (:func:`_released_rows`) after the recorded gel's last contact (its last loaded run
+    lasting :data:`FINAL_WINDOW_S` beyond the :data:`FREE_MARGIN_S` margins, else its longest) that
+    lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
     touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
     without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
@@ -139,7 +140,11 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     held = np.nonzero(~free)[0]
     if not len(held):
         return not_applicable(effect, "the recorded gel is never loaded")
-    main_end = max(segments(~free), key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
+    # the gel's last contact: the last loaded run that lasts a final window beyond its margins (a
+    # touch is shorter); without one, the longest loaded run
+    loaded = segments(~free)
+    contacts = [seg for seg in loaded if t[seg[1] - 1] - t[seg[0]] - 2.0 * FREE_MARGIN_S >= FINAL_WINDOW_S]
+    main_end = contacts[-1][1] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
     after = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end]
     runs = [(i0, i1) for i0, i1 in after if t[i1 - 1] - t[i0] >= FINAL_WINDOW_S] or [r for r in after if r[1] == len(t)]
     final = np.zeros(len(t), bool)

@@ -111,3 +111,25 @@ def test_a_fold_the_sheet_springs_back_from_by_the_end_did_not_remain(rng):
     kept = Recording(t=rec.t, data=dict(sprung.data, sheet_points=x), prediction=rec.prediction, sigma=rec.sigma,
                      camera=rec.camera, name=rec.name)
     assert plasticity_test(kept).effect_size == pytest.approx(4e-3, rel=0.1)
+
+
+def test_the_set_is_read_after_the_last_contact_not_between_two(rng):
+    """A lift-and-fold: the press (1.0-2.5 s), a pause with the card lifted 4 mm (2.6-2.9 s, markers
+    at rest), then the tack's hold loading the gel again for 0.45 s (2.95-3.4 s), shorter than the
+    press, and 0.2 s of flat card to the end. The set is read after the last contact (flat: no set),
+    not in the pause between the two, the last free run of 0.2 s (MuJoCo damped_s304 with 1 ms steps
+    read a 3.3 mm 'set' there)."""
+    rec = synthetic(rng, duration=3.6)
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float).copy()
+    fold = np.abs(x[0, :, 0] - 0.07) < 0.015
+    x[np.ix_((t > 2.6) & (t < 2.9), fold, [2])] += 4e-3
+    tm = rec.t["markers_xyz"]
+    xyz = rec.data["markers_xyz"].copy()
+    xyz[(tm > 2.95) & (tm < 3.4), :, 2] -= 1e-4
+    lifted = Recording(t=rec.t, data=dict(rec.data, sheet_points=x, markers_xyz=xyz), prediction=rec.prediction,
+                       sigma=rec.sigma, camera=rec.camera, name=rec.name)
+    r = plasticity_test(lifted)
+    assert r.applicable and r.detail["final_window_s"][0] > 3.4
+    assert r.effect_size < resolvable_set(lifted)
+    assert "bending_plasticity" not in named(lifted)
