@@ -27,6 +27,14 @@ tensile (:func:`contact_force`).
   calibrated replay moves a press's two events apart), s;
 * estimate: the common lead, the damping time constant beyond the replay's own, s.
 
+A Kelvin-Voigt gel's force leads its own deformation, not the deformation's timing: where the
+recorded gel's deformation (the mean marker depth) itself runs ahead of the replay's at an event by
+at least the smallest lead named (the damping size threshold,
+:func:`~sysid.diagnose.signatures.null.timing_size_threshold`), the replay reaches or leaves that
+deformation later than the recording (e.g. its buckled card keeps pushing the lifting pad), and the
+force's lead there is that gap: the event is left out of the statistic and the size
+(:func:`deformation_lead`).
+
 Confusable effects read the same windows with the opposite sign: latency delays every event by the
 same time (``tau < 0`` here), a first-order lag (gel viscoelasticity) rounds and delays it; neither
 gives a lead at every event, so the three are told apart by the sign of the shift.
@@ -40,6 +48,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
+from sysid.diagnose.signatures.null import SIZE_TOLERANCE, timing_size_threshold
 from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, press_sizes, timing_signal, timing_size
 
 EFFECT = "damping"
@@ -160,6 +169,36 @@ def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             "sse": np.array(sse).reshape(len(events), len(taus)), "events": events}
 
 
+SHIFT_STEP_S = 1e-3
+"""Grid step of the deformation's shift search (:func:`deformation_lead`), s: a numerical resolution,
+a tenth of the markers' 10 ms sample period (the replay's depth is interpolated between samples)."""
+
+
+def deformation_lead(rec: Recording, window: tuple[float, float] | list[float]) -> float | None:
+    """How far the recorded gel's deformation runs ahead of the replay's in ``window``, s: the shift
+    ``s`` (in ``[-TAU_MAX_S, TAU_MAX_S]``, step :data:`SHIFT_STEP_S`) whose replay ``depth_pred(t + s)``
+    fits the recorded mean marker depth best with a free gain and offset (> 0: the recording ahead;
+    the smallest ``|s|`` among equal fits). None without recorded and predicted markers or with fewer
+    than three marker samples in the window.
+
+    Args:
+        rec: recording with its calibrated replay.
+        window: ``[t0, t1]``, s.
+    """
+    if not rec.predicted("markers_xyz"):
+        return None
+    tm = rec.t["markers_xyz"]
+    depth = -np.asarray(rec.data["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
+    depth_pred = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
+    m = (tm >= window[0]) & (tm <= window[1])
+    if m.sum() < 3:
+        return None
+    shifts = np.arange(-TAU_MAX_S, TAU_MAX_S + 1e-12, SHIFT_STEP_S)
+    sse = np.array([_window_sse(depth[m], np.interp(tm[m] + sh, tm, depth_pred)) for sh in shifts])
+    best = np.flatnonzero(sse <= sse.min() * (1.0 + 1e-12))
+    return float(shifts[best[np.argmin(np.abs(shifts[best]))]])
+
+
 def damping_test(rec: Recording) -> SignatureResult:
     """Gel damping from the lead of the recorded contact force over the calibrated replay (module
     docstring: statistic, effect size, estimate)."""
@@ -169,7 +208,21 @@ def damping_test(rec: Recording) -> SignatureResult:
     ev = fits["events"]
     if not ev:
         return not_applicable(EFFECT, "the replay predicts no contact event")
-    total = fits["sse"].sum(axis=0)
+    resolution = timing_size_threshold(rec) * (1.0 - SIZE_TOLERANCE)
+    for e in ev:
+        # the deformation's own timing is read from the markers only when the lead is read on the force
+        # and only on a release (module docstring)
+        reads = fits["channel"] == "wrench" and e["direction"] == "falling"
+        e["deformation_lead_s"] = deformation_lead(rec, e["window_s"]) if reads else None
+    read = np.array([e["deformation_lead_s"] is None or e["deformation_lead_s"] < resolution for e in ev])
+    if not read.any():
+        return SignatureResult(effect=EFFECT, statistic=0.0, effect_size=0.0, effect_unit="s (smallest press lead)",
+                               windows_s=[e["window_s"] for e in ev], detail={"events": ev},
+                               reason="the recorded deformation runs ahead of the replay's at every event: "
+                                      "the force's lead is the replay's timing gap, not damping")
+    held = [e for e, r in zip(ev, read) if not r]
+    ev = [e for e, r in zip(ev, read) if r]
+    total = fits["sse"][read].sum(axis=0)
     j = int(np.argmin(total))
     lead = float(fits["taus_s"][j])
     leads = np.array([e["lead_s"] for e in ev])
@@ -180,7 +233,8 @@ def damping_test(rec: Recording) -> SignatureResult:
     phi = dispersion(float(total[j]), samples, 2 * len(ev) + 1)
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
               "sse_lead": float(total[j]), "sse_removed": removed, "dispersion": phi, "leads_s": leads.tolist(),
-              "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess)}
+              "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess),
+              "events_left_out": held}
     return SignatureResult(effect=EFFECT, statistic=removed / phi,
                            effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],

@@ -8,7 +8,10 @@
   chi-square(3p) without an effect) and with its own initial shape; the effect size is the smaller
   of the two largest point displacements (a set both unexplained by the replay and different from
   where the sheet started), and 0 where the replay itself leaves the sheet away from its start (a
-  buckle held by friction: the difference is then the model's gap in that shape).
+  buckle held by friction: the difference is then the model's gap in that shape). A set is a rest
+  shape: where the recorded sheet still moves over the final window (an elastic card flapping after
+  the lift let it go), no set is read (:func:`final_motion`); nor where the sheet is back at its
+  initial shape when the recording ends (:func:`_returned_by_the_end`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
   recorded sheet rises above the replay's, the sheet is being carried by the gel. The statistic is
@@ -61,12 +64,62 @@ def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
     return ~dilate(moved, t, FREE_MARGIN_S)
 
 
+def final_motion(rec: Recording, final: np.ndarray) -> float:
+    """How far the recorded sheet moves over the final window, m: the largest point displacement
+    between the mean shapes of the window's first and second halves.
+
+    A permanent set is the shape the sheet rests in once the gel has let it go (plasticity is rate
+    independent: a set does not move); a sheet that still moves by more than the tracking resolves
+    (:func:`resolvable_set`) holds no rest shape there (an elastic card flapping after the lift let
+    it go), and :func:`plasticity_test` reads no set from it.
+
+    Args:
+        rec: the recording (sheet points).
+        final: boolean mask ``(n,)`` of the final window on ``rec.t["sheet_points"]``.
+    """
+    x = np.asarray(rec.data["sheet_points"], dtype=float)[final]
+    h = len(x) // 2
+    return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
+
+
+def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
+                         released_runs: list[tuple[int, int]]) -> str:
+    """Why a set in the final window did not remain, or "" when it may have: a permanent set is still
+    there when the recording ends. Where a later released run reaches the recording's end (too short
+    to be the final window: a touch of the gel came between, at least three samples), the sheet's mean
+    shape there is compared with its initial shape; back within :func:`resolvable_set` of it while the
+    final window is not, the fold sprang back (an elastic sheet caught in mid-motion by the window).
+
+    Args:
+        rec: the recording (sheet points).
+        final: boolean mask ``(n,)`` of the final window.
+        initial: boolean mask ``(n,)`` of the free rows before the first contact.
+        released_runs: the released runs after the gel's main contact, ``[(i0, i1), ...]``.
+    """
+    t = rec.t["sheet_points"]
+    tail = [(i0, i1) for i0, i1 in released_runs if i1 == len(t) and i1 - i0 >= 3 and not final[i0:i1].any()]
+    if not tail or initial.sum() < 3:
+        return ""
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    x0 = x[initial].mean(axis=0)
+    i0, i1 = tail[0]
+    held_set = float(np.max(np.linalg.norm(x[final].mean(axis=0) - x0, axis=1)))
+    end_set = float(np.max(np.linalg.norm(x[i0:i1].mean(axis=0) - x0, axis=1)))
+    floor = resolvable_set(rec)
+    if held_set < floor or end_set >= floor:
+        return ""
+    return (f"the sheet stands {1e3 * held_set:.2g} mm from its initial shape in the final window but is back "
+            f"within {1e3 * end_set:.2g} mm of it at the recording's end ({t[i0]:.2f}-{t[i1 - 1]:.2f} s): "
+            "the fold did not remain")
+
+
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
     The final window is the last :data:`FINAL_WINDOW_S` (at least three samples) of the last run of
-    released rows (:func:`_released_rows`) after the recorded gel's main contact (its longest loaded
-    run) that lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
+    released rows (:func:`_released_rows`) after the recorded gel's last contact (its last loaded run
+    lasting :data:`FINAL_WINDOW_S` beyond the :data:`FREE_MARGIN_S` margins, else its longest) that
+    lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
     touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
     without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
@@ -87,7 +140,11 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     held = np.nonzero(~free)[0]
     if not len(held):
         return not_applicable(effect, "the recorded gel is never loaded")
-    main_end = max(segments(~free), key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
+    # the gel's last contact: the last loaded run that lasts a final window beyond its margins (a
+    # touch is shorter); without one, the longest loaded run
+    loaded = segments(~free)
+    contacts = [seg for seg in loaded if t[seg[1] - 1] - t[seg[0]] - 2.0 * FREE_MARGIN_S >= FINAL_WINDOW_S]
+    main_end = contacts[-1][1] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[1]
     after = [(i0, i1) for i0, i1 in segments(free) if i0 >= main_end]
     runs = [(i0, i1) for i0, i1 in after if t[i1 - 1] - t[i0] >= FINAL_WINDOW_S] or [r for r in after if r[1] == len(t)]
     final = np.zeros(len(t), bool)
@@ -100,6 +157,13 @@ def plasticity_test(rec: Recording) -> SignatureResult:
                                       f"(no free final window of {FINAL_WINDOW_S} s)")
     first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
+    motion = final_motion(rec, final)
+    if motion > resolvable_set(rec):
+        return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
+                                      f"({t[final][0]:.2f}-{t[final][-1]:.2f} s): no rest shape to read a set from")
+    returned = _returned_by_the_end(rec, final, initial, after)
+    if returned:
+        return not_applicable(effect, returned)
     replay_released = not bool(contact[final].any())
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     xp = np.asarray(rec.prediction["sheet_points"], dtype=float)
@@ -138,7 +202,7 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         estimate={"permanent_set_m": set_vs_pred if replay_released else size}, windows_s=[[t_release, t_end]],
         channels=["sheet_points"], markers=[],
         detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
-                "replay_set_m": replay_set, "replay_released": replay_released,
+                "replay_set_m": replay_set, "replay_released": replay_released, "final_motion_m": motion,
                 "final_window_s": [float(t[final][0]), t_end],
                 "points": sorted(top.tolist()), "release_s": t_release})
 

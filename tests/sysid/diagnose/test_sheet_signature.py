@@ -1,0 +1,135 @@
+"""The permanent-set test (:func:`sysid.diagnose.signatures.sheet.plasticity_test`) reads a set only
+from a sheet at rest over the final window."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sysid.diagnose.signatures import Recording
+from sysid.diagnose.signatures.base import marker_displacement
+from sysid.diagnose.signatures.sensor import REST_DISPLACEMENT
+from sysid.diagnose.signatures.sheet import final_motion, plasticity_test, resolvable_set
+from tests.sysid.diagnose.test_friction_signature import reference_recording
+from tests.sysid.diagnose.test_signatures import named, synthetic
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(11)
+
+
+def _elastic_replay(rec: Recording) -> Recording:
+    """``rec`` with the replay of an elastic sheet pressed where the recorded gel is: the sheet at its
+    recorded initial shape throughout (mean of the first 0.3 s), the wrench the recorded one where
+    the recorded markers are off rest and zero elsewhere."""
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    flat = np.repeat(x[t < 0.3].mean(axis=0)[None], len(t), axis=0)
+    loaded = np.interp(rec.t["wrench"], rec.t["markers_xyz"], marker_displacement(rec) > REST_DISPLACEMENT) > 0.5
+    pred = {"sheet_points": flat, "wrench": np.asarray(rec.data["wrench"], dtype=float) * loaded[:, None]}
+    return Recording(t=rec.t, data=rec.data, prediction=pred, sigma=rec.sigma, camera=rec.camera, name=rec.name)
+
+
+def test_a_reference_plastic_fold_at_rest_is_read_as_a_set():
+    """MuJoCo's plastic lift-fold (reference plastic_s102, bend yield 0.001): the card keeps a 9.1 mm
+    tent, settled 0.07 s after the peel, so the final window holds a rest shape."""
+    rec = _elastic_replay(reference_recording("plastic_s102"))
+    r = plasticity_test(rec)
+    assert r.applicable and r.detail["final_motion_m"] < resolvable_set(rec)
+    assert r.effect_size == pytest.approx(9.1e-3, abs=0.5e-3)
+    assert "bending_plasticity" in named(rec)
+
+
+def test_a_reference_elastic_fold_returns_flat_and_names_no_set():
+    """MuJoCo's nominal lift-fold (reference nominal_s109): folded 19 mm while the tack holds it,
+    flat again (0.04 mm) after the peel."""
+    rec = _elastic_replay(reference_recording("nominal_s109"))
+    r = plasticity_test(rec)
+    assert r.applicable and r.effect_size < resolvable_set(rec)
+    assert "bending_plasticity" not in named(rec)
+
+
+def _flung(rec: Recording, settle_at: float | None = None) -> Recording:
+    """``rec`` (the synthetic press of ``test_signatures``: gel released at 2.5 s, recording to
+    3.5 s) with a recorded sheet that, after the release, lifts as a ramp from the clamped edge
+    (x = 0) to 6 mm at the free edge and flaps back (a 2 Hz oscillation about 3 mm): an elastic card
+    flung by the lift, flapping to the end; or, with ``settle_at``, flapping until then and resting
+    from then on with a 4 mm fold at x = 70 +- 15 mm."""
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float).copy()
+    x0 = x[0]
+    flap = (t > 2.6) & (t < (settle_at if settle_at is not None else np.inf))
+    ramp = x0[:, 0] / 0.1                                                              # (p,)
+    height = 3e-3 * (1.0 + np.cos(2.0 * np.pi * 2.0 * (t - 2.6)))                       # (n,) 6 mm -> 0
+    x[flap, :, 2] += height[flap, None] * ramp[None, :]
+    if settle_at is not None:
+        fold = np.abs(x0[:, 0] - 0.07) < 0.015
+        x[np.ix_(t >= settle_at, fold, [2])] += 4e-3
+    return Recording(t=rec.t, data=dict(rec.data, sheet_points=x), prediction=rec.prediction, sigma=rec.sigma,
+                     camera=rec.camera, name=rec.name)
+
+
+def test_an_elastic_sheet_still_flapping_at_the_end_is_not_a_set(rng):
+    """The lift flung the card and it still moves at the end (MuJoCo's damped_s214 and damped_s404:
+    1.6 and 3.8 mm over the final window): no rest shape, no set, whatever its height."""
+    rec = _flung(synthetic(rng))
+    assert final_motion(rec, rec.t["sheet_points"] > 3.29) > resolvable_set(rec)
+    r = plasticity_test(rec)
+    assert not r.applicable and "still moves" in r.reason
+    assert "bending_plasticity" not in named(rec)
+
+
+def test_a_fold_kept_once_the_sheet_comes_to_rest_is_a_set(rng):
+    """The same flapping card coming to rest at 3.0 s with a 4 mm fold: the final window (the last
+    0.2 s) holds a rest shape, and the fold is read as a set."""
+    rec = _flung(synthetic(rng), settle_at=3.0)
+    r = plasticity_test(rec)
+    assert r.applicable and r.detail["final_motion_m"] < resolvable_set(rec)
+    assert r.effect_size == pytest.approx(4e-3, rel=0.1)
+    assert named(rec) == ["bending_plasticity"]
+
+
+def test_a_fold_the_sheet_springs_back_from_by_the_end_did_not_remain(rng):
+    """A card held still with a 4 mm fold for 0.6 s after the release, then brushed by the gel
+    (every marker 100 um off rest for 50 ms) and flat from then to the end (MuJoCo's damped_s404: the
+    final window before the touch, 5.9 mm, the end 0.07 mm): the fold did not remain, no set."""
+    rec = synthetic(rng)
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float).copy()
+    fold = np.abs(x[0, :, 0] - 0.07) < 0.015
+    x[np.ix_((t > 2.6) & (t < 3.25), fold, [2])] += 4e-3
+    xyz = rec.data["markers_xyz"].copy()
+    xyz[(rec.t["markers_xyz"] > 3.25) & (rec.t["markers_xyz"] < 3.3), :, 0] += 1e-4
+    sprung = Recording(t=rec.t, data=dict(rec.data, sheet_points=x, markers_xyz=xyz), prediction=rec.prediction,
+                       sigma=rec.sigma, camera=rec.camera, name=rec.name)
+    r = plasticity_test(sprung)
+    assert not r.applicable and "did not remain" in r.reason
+    assert "bending_plasticity" not in named(sprung)
+    # the same fold kept to the end is a set
+    x[np.ix_(t >= 3.25, fold, [2])] += 4e-3
+    kept = Recording(t=rec.t, data=dict(sprung.data, sheet_points=x), prediction=rec.prediction, sigma=rec.sigma,
+                     camera=rec.camera, name=rec.name)
+    assert plasticity_test(kept).effect_size == pytest.approx(4e-3, rel=0.1)
+
+
+def test_the_set_is_read_after_the_last_contact_not_between_two(rng):
+    """A lift-and-fold: the press (1.0-2.5 s), a pause with the card lifted 4 mm (2.6-2.9 s, markers
+    at rest), then the tack's hold loading the gel again for 0.45 s (2.95-3.4 s), shorter than the
+    press, and 0.2 s of flat card to the end. The set is read after the last contact (flat: no set),
+    not in the pause between the two, the last free run of 0.2 s (MuJoCo damped_s304 with 1 ms steps
+    read a 3.3 mm 'set' there)."""
+    rec = synthetic(rng, duration=3.6)
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float).copy()
+    fold = np.abs(x[0, :, 0] - 0.07) < 0.015
+    x[np.ix_((t > 2.6) & (t < 2.9), fold, [2])] += 4e-3
+    tm = rec.t["markers_xyz"]
+    xyz = rec.data["markers_xyz"].copy()
+    xyz[(tm > 2.95) & (tm < 3.4), :, 2] -= 1e-4
+    lifted = Recording(t=rec.t, data=dict(rec.data, sheet_points=x, markers_xyz=xyz), prediction=rec.prediction,
+                       sigma=rec.sigma, camera=rec.camera, name=rec.name)
+    r = plasticity_test(lifted)
+    assert r.applicable and r.detail["final_window_s"][0] > 3.4
+    assert r.effect_size < resolvable_set(lifted)
+    assert "bending_plasticity" not in named(lifted)
