@@ -1,7 +1,7 @@
 """Sensor calibration of a replay: the observation-level half of "calibrate before diagnosing".
 
 A real tactile sensor reports its streams through a calibration that is never exactly the data
-sheet's: the wrench through a gain per group of axes, the markers through the scale of the
+sheet's: the wrench through a gain, a sign convention and a reference point of its torques, the markers through the scale of the
 marker reconstruction, the pixels through the camera intrinsics. Each is an affine map of the
 simulator's prediction, so it is fitted in closed form (weighted linear least squares) to a
 recording, with no replay (SYSID.md "Diagnosis", step 1):
@@ -12,15 +12,17 @@ recording, with no replay (SYSID.md "Diagnosis", step 1):
   simulator's (the moment transport ``T_o' = T_o + (o - o') x F`` of a rigid-body wrench), and
   ``s_T = +-1`` the torques' sign convention: +1 the moment of the force ON the gel, as INTERFACES.md
   and the simulator define it, -1 the moment of its reaction (the force on the touched object) while
-  the forces keep the contract's sign. A sensor driver can report either. The reference recordings
-  report -1 about a point about 2 mm behind the gel's surface (``a = (0.1, 0.0, -2.2)`` mm fitted on
-  nominal_s101, ``(-0.1, -0.1, -1.9)`` on nominal_s109, ``(0.1, 0.1, -2.8)`` on lens_s106, each alone):
-  pressing a flat card, their centre of pressure reads (-0.25, -0.29) mm where this simulator's gel and
-  our own MuJoCo rebuild of their world (which resolves torques by the contract) both read +0.2 to +0.3
-  mm on each axis (a bias of a gel's structured tetrahedral split: 0.19 mm with 2 mm cells, 0.12 mm with
-  1 mm cells, the same at any position on the card), and while sliding their spin torque ``T_z`` has
-  the opposite sign of the replay's. With the contract's sign alone a separate torque gain ended on its
-  lower bound on every recording;
+  the forces keep the contract's sign. A sensor driver can report either. On the reference
+  recordings nominal_s101, nominal_s109 and lens_s106 the fit (each recording alone) gives -1 about a
+  point about 2 mm behind the gel's surface (``a = (0.15, 0.01, -2.25)``, ``(-0.10, -0.09, -1.88)``,
+  ``(0.13, 0.09, -2.80)`` mm): pressing a flat card, their centre of pressure reads (-0.25, -0.29) mm
+  where this simulator's gel and our MuJoCo rebuild of their world (which resolves torques by the
+  contract, and gives +1 and ``a`` within 0.2 mm of 0) both read +0.2 to +0.3 mm on each axis (a bias of
+  a gel's structured tetrahedral split: 0.19 mm with 2 mm cells, 0.12 mm with 1 mm cells, the same
+  anywhere on the card), and while sliding their spin torque ``T_z`` has the opposite sign of the
+  replay's. Where a delay or a torque bias dominates the torque's residual (latency_s103,
+  force_bias_s107) the fit gives +1. A separate torque gain with the contract's sign alone ends on the
+  lower bound of :data:`GAIN_BOUNDS` on such recordings;
 - markers (sensor frame): ``x_rec = x0 + s_xy (x_sim - x0)``, ``y`` alike, ``z_rec = z0 + s_z (z_sim - z0)``
   with ``x0`` the rest position of each marker (the prediction's first sample, before contact);
 - pixels: the pinhole ``u = f_x x / (z + d) + c_x``, ``v = f_y y / (z + d) + c_y`` (d the camera
