@@ -1,8 +1,8 @@
 """Sensor calibration of a replay: the observation-level half of "calibrate before diagnosing".
 
 A real tactile sensor reports its streams through a calibration that is never exactly the data
-sheet's: the wrench through a gain, a sign convention and a reference point of its torques, the markers through the scale of the
-marker reconstruction, the pixels through the camera intrinsics. Each is an affine map of the
+sheet's: the wrench through a gain and its torques' sign convention and reference point, the markers
+through the scale of the marker reconstruction, the pixels through the camera intrinsics. Each is an affine map of the
 simulator's prediction, so it is fitted in closed form (weighted linear least squares) to a
 recording, with no replay (SYSID.md "Diagnosis", step 1):
 
