@@ -2,9 +2,9 @@
 
 A real tactile sensor reports its streams through a calibration that is never exactly the data
 sheet's: the wrench through a gain and its torques' sign convention and reference point, the markers
-through the scale of the marker reconstruction, the pixels through the camera intrinsics. Each is an affine map of the
-simulator's prediction, so it is fitted in closed form (weighted linear least squares) to a
-recording, with no replay (SYSID.md "Diagnosis", step 1):
+through the scale of the marker reconstruction, the pixels through the camera intrinsics. Each is an
+affine map of the simulator's prediction, so it is fitted in closed form (weighted linear least
+squares) to a recording, with no replay (SYSID.md "Diagnosis", step 1):
 
 - wrench: ``F_rec = g_F F_sim`` (one gain on the three forces) and ``T_rec = s_T g_F T_sim + a x F_rec``:
   the torques are the moment of the same contact forces, so the force gain scales them too; ``a`` (m,
@@ -469,7 +469,9 @@ def not_followed_windows(t: np.ndarray, residual: np.ndarray, sigma: np.ndarray)
         float | None, "fraction_of_samples": float}``; runs separated by less than
         :data:`GAP_MERGE_S` form one window; None where a part holds no sample.
     """
-    e = np.asarray(residual, dtype=float).reshape(len(t), -1, len(sigma)) / np.asarray(sigma, dtype=float)
+    n = min(len(t), len(residual))
+    t = np.asarray(t, dtype=float)[:n]
+    e = np.asarray(residual, dtype=float)[:n].reshape(n, -1, len(sigma)) / np.asarray(sigma, dtype=float)
     sq = np.nanmean(e ** 2, axis=(1, 2))
     flagged = np.sqrt(sq) > FOLLOWED_RMS
     windows: list[list[float]] = []

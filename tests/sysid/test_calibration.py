@@ -120,6 +120,29 @@ def test_torque_sign_convention_of_a_reaction_wrench_is_recovered_not_absorbed_b
     assert bounded.x[0] == pytest.approx(GAIN_BOUNDS[0])
 
 
+def test_not_followed_windows_locate_a_gap_and_split_the_rms():
+    """Known answer: white noise (unit whitened RMS) on 63 markers x 2 axes at 100 Hz, plus a common
+    offset of 8 sigma on u over 2.60-3.80 s (nominal_s109's tack lift, in kind): one window at those
+    times, RMS inside sqrt((64 + 1 + 1) / 2) and about 1 outside; a 40 ms dip inside stays one window."""
+    from sysid.calibration import not_followed_windows
+
+    rng = np.random.default_rng(11)
+    t = np.arange(0, 4.5, 0.01)
+    sigma = np.array([0.15, 0.15])
+    residual = rng.normal(size=(len(t), 63, 2)) * sigma
+    gap = (t >= 2.6 - 1e-9) & (t <= 3.8 + 1e-9)
+    residual[gap, :, 0] += 8.0 * sigma[0]
+    residual[(t > 3.0) & (t < 3.04), :, 0] -= 8.0 * sigma[0]  # 3 samples back in the noise
+    where = not_followed_windows(t, residual, sigma)
+    assert len(where["windows_s"]) == 1
+    np.testing.assert_allclose(where["windows_s"][0], [2.6, 3.8], atol=1e-9)
+    assert where["whitened_rms_inside"] == pytest.approx(np.sqrt((64 + 2) / 2 * (118 / 121) + 3 / 121), rel=0.05)
+    assert where["whitened_rms_outside"] == pytest.approx(1.0, rel=0.03)
+    assert where["fraction_of_samples"] == pytest.approx(121 / len(t), rel=1e-9)
+    quiet = not_followed_windows(t, rng.normal(size=(len(t), 63, 2)) * sigma, sigma)
+    assert quiet["windows_s"] == [] and quiet["whitened_rms_inside"] is None
+
+
 def test_a_prediction_below_the_noise_keeps_the_scene_gain():
     rng = np.random.default_rng(3)
     rest, xyz, wrench = _synthetic(rng)
