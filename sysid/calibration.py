@@ -1,15 +1,28 @@
 """Sensor calibration of a replay: the observation-level half of "calibrate before diagnosing".
 
 A real tactile sensor reports its streams through a calibration that is never exactly the data
-sheet's: the wrench through a gain per group of axes, the markers through the scale of the
-marker reconstruction, the pixels through the camera intrinsics. Each is an affine map of the
-simulator's prediction, so it is fitted in closed form (weighted linear least squares) to a
-recording, with no replay (SYSID.md "Diagnosis", step 1):
+sheet's: the wrench through a gain and its torques' sign convention and reference point, the markers
+through the scale of the marker reconstruction, the pixels through the camera intrinsics. Each is an
+affine map of the simulator's prediction, so it is fitted in closed form (weighted linear least
+squares) to a recording, with no replay (SYSID.md "Diagnosis", step 1):
 
-- wrench: ``F_rec = g_F F_sim`` (one gain on the three forces) and
-  ``T_rec = g_T T_sim + a x F_rec`` (one gain on the three torques, and the offset ``a`` (m, sensor
-  frame) of the point the recorded torques are resolved about from the simulator's: the moment
-  transport ``T_o' = T_o + (o - o') x F`` of a rigid-body wrench);
+- wrench: ``F_rec = g_F F_sim`` (one gain on the three forces) and ``T_rec = s_T g_F T_sim + a x F_rec``:
+  the torques are the moment of the same contact forces, so the force gain scales them too; ``a`` (m,
+  sensor frame) is the offset of the point the recorded torques are resolved about from the
+  simulator's (the moment transport ``T_o' = T_o + (o - o') x F`` of a rigid-body wrench), and
+  ``s_T = +-1`` the torques' sign convention: +1 the moment of the force ON the gel, as INTERFACES.md
+  and the simulator define it, -1 the moment of its reaction (the force on the touched object) while
+  the forces keep the contract's sign. A sensor driver can report either. On the reference
+  recordings nominal_s101, nominal_s109 and lens_s106 the fit (each recording alone) gives -1 about a
+  point about 2 mm behind the gel's surface (``a = (0.15, 0.01, -2.25)``, ``(-0.10, -0.09, -1.88)``,
+  ``(0.13, 0.09, -2.80)`` mm): pressing a flat card, their centre of pressure reads (-0.25, -0.29) mm
+  where this simulator's gel and our MuJoCo rebuild of their world (which resolves torques by the
+  contract, and gives +1 and ``a`` within 0.2 mm of 0) both read +0.2 to +0.3 mm on each axis (a bias of
+  a gel's structured tetrahedral split: 0.19 mm with 2 mm cells, 0.12 mm with 1 mm cells, the same
+  anywhere on the card), and while sliding their spin torque ``T_z`` has the opposite sign of the
+  replay's. Where a delay or a torque bias dominates the torque's residual (latency_s103,
+  force_bias_s107) the fit gives +1. A separate torque gain with the contract's sign alone ends on the
+  lower bound of :data:`GAIN_BOUNDS` on such recordings;
 - markers (sensor frame): ``x_rec = x0 + s_xy (x_sim - x0)``, ``y`` alike, ``z_rec = z0 + s_z (z_sim - z0)``
   with ``x0`` the rest position of each marker (the prediction's first sample, before contact);
 - pixels: the pinhole ``u = f_x x / (z + d) + c_x``, ``v = f_y y / (z + d) + c_y`` (d the camera
@@ -49,16 +62,18 @@ class SensorCalibration:
     """Observation-level calibration of one tactile sensor (see the module docstring).
 
     Attributes:
-        force_gain, torque_gain: wrench gains (-).
+        force_gain: wrench gain (-), on the forces and the torques alike (the moment of the forces).
+        torque_sign: sign convention ``s_T`` of the recorded torques (+1: the moment of the force on the
+            gel, the simulator's; -1: the moment of its reaction; module docstring).
         torque_arm_x, torque_arm_y, torque_arm_z: offset ``a`` of the point the recorded torques are
-            resolved about from the simulator's, m, sensor frame (``T_rec = g_T T_sim + a x F_rec``).
+            resolved about from the simulator's, m, sensor frame (``T_rec = s_T g_F T_sim + a x F_rec``).
         marker_scale_xy, marker_scale_z: marker displacement scales (-).
         fx, fy: focal lengths, px; cx, cy: principal point, px; distance: camera to the undeformed
             contact surface, m (not fitted).
     """
 
     force_gain: float = 1.0
-    torque_gain: float = 1.0
+    torque_sign: float = 1.0
     torque_arm_x: float = 0.0
     torque_arm_y: float = 0.0
     torque_arm_z: float = 0.0
@@ -92,7 +107,7 @@ class SensorCalibration:
         if "wrench" in out:
             w = np.array(out["wrench"], dtype=float)
             w[..., :3] *= self.force_gain
-            w[..., 3:] = self.torque_gain * w[..., 3:] + np.cross(self.torque_arm, w[..., :3])
+            w[..., 3:] = self.torque_sign * self.force_gain * w[..., 3:] + np.cross(self.torque_arm, w[..., :3])
             out["wrench"] = w
         if "markers_xyz" in out and marker_rest is not None:
             out["markers_xyz"] = scale_markers(out["markers_xyz"], marker_rest, self.marker_scale_xy, self.marker_scale_z)
@@ -103,7 +118,7 @@ class SensorCalibration:
     def derivative(self, channel: str, d: np.ndarray) -> np.ndarray:
         """The calibrated derivative of ``channel`` from the raw one ``d`` ``(n, ..., axes, p)``.
 
-        Exact for the wrench (``dT = g_T dT_sim + a x g_F dF_sim``) and the markers (linear maps);
+        Exact for the wrench (``dT = s_T g_F dT_sim + a x g_F dF_sim``) and the markers (linear maps);
         for the pixels the focal-length ratio to the scene camera is applied (first order: the marker scale's effect on the projection is
         neglected).
         """
@@ -111,7 +126,7 @@ class SensorCalibration:
         if channel == "wrench":
             d[..., :3, :] *= self.force_gain
             moment = np.cross(self.torque_arm, d[..., :3, :], axisb=-2, axisc=-2)
-            d[..., 3:, :] = self.torque_gain * d[..., 3:, :] + moment
+            d[..., 3:, :] = self.torque_sign * self.force_gain * d[..., 3:, :] + moment
         elif channel == "markers_xyz":
             d[..., :2, :] *= self.marker_scale_xy
             d[..., 2:, :] *= self.marker_scale_z
@@ -154,49 +169,48 @@ def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
     return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
 
 
-def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray, sigma_t: np.ndarray,
-                        sigma_f: np.ndarray) -> tuple[float, np.ndarray]:
-    """Bounded weighted least squares of ``T_rec ~ g_T T_sim + a x F`` (module docstring): ``(g_T, a)``.
+def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray, gain: float,
+                        sigma_t: np.ndarray, sigma_f: np.ndarray) -> tuple[float, np.ndarray]:
+    """Weighted least squares of ``T_rec ~ s_T g_F T_sim + a x F`` (module docstring): ``(s_T, a)``.
 
-    ``data``, ``torque``: ``(n, 3)`` recorded and simulated torques (N m); ``force``: ``(n, 3)`` the
-    calibrated simulated forces (N); ``sigma_t``, ``sigma_f``: ``(3,)`` noise levels. The gain is fitted
-    when the simulated torques carry :data:`MIN_GAIN_INFORMATION` (else 1), the arm when the forces
-    do (else 0); the gain within :data:`GAIN_BOUNDS`, the arm within :data:`TORQUE_ARM_BOUND` per axis
-    (``scipy.optimize.lsq_linear``: the bounded optimum, not a clipped one).
+    Args:
+        data, torque: ``(n, 3)`` recorded and simulated torques, N m.
+        force: ``(n, 3)`` the calibrated simulated forces, N.
+        gain: the force gain ``g_F`` (-), fitted to the forces.
+        sigma_t, sigma_f: ``(3,)`` noise levels of the torques and the forces.
+
+    Returns:
+        the sign (+1 unless the simulated torques carry :data:`MIN_GAIN_INFORMATION` and -1 gives a
+        strictly lower weighted cost: maximum likelihood over a discrete parameter) and the arm ``a``
+        ``(3,)`` m (fitted when the forces carry :data:`MIN_GAIN_INFORMATION`, else 0; within
+        :data:`TORQUE_ARM_BOUND` per axis by ``scipy.optimize.lsq_linear``: the bounded optimum, not a
+        clipped one).
     """
     from scipy.optimize import lsq_linear
 
-    fit_gain = float(np.sum((torque / sigma_t) ** 2)) >= MIN_GAIN_INFORMATION
+    fit_sign = float(np.sum((torque / sigma_t) ** 2)) >= MIN_GAIN_INFORMATION
     fit_arm = float(np.sum((force / sigma_f) ** 2)) >= MIN_GAIN_INFORMATION
-    gain, arm = 1.0, np.zeros(3)
     ok = np.all(np.isfinite(np.concatenate([data, torque, force], axis=1)), axis=1)
-    if not (fit_gain or fit_arm) or ok.sum() < 2:
-        return gain, arm
+    if not (fit_sign or fit_arm) or ok.sum() < 2:
+        return 1.0, np.zeros(3)
     d, t, f = data[ok], torque[ok], force[ok]
     zero = np.zeros(len(d))
     # (a x F) = (a_y F_z - a_z F_y, a_z F_x - a_x F_z, a_x F_y - a_y F_x): columns of (a_x, a_y, a_z) per axis
-    arm_columns = [np.stack([zero, f[:, 2], -f[:, 1]], axis=1), np.stack([-f[:, 2], zero, f[:, 0]], axis=1),
-                   np.stack([f[:, 1], -f[:, 0], zero], axis=1)]
-    blocks, rhs = [], []
-    for k in range(3):
-        cols = []
-        if fit_gain:
-            cols.append(t[:, k:k + 1])
+    A = np.concatenate([np.stack([zero, f[:, 2], -f[:, 1]], axis=1) / sigma_t[0],
+                        np.stack([-f[:, 2], zero, f[:, 0]], axis=1) / sigma_t[1],
+                        np.stack([f[:, 1], -f[:, 0], zero], axis=1) / sigma_t[2]], axis=0)
+    best = None
+    for sign in ((1.0, -1.0) if fit_sign else (1.0,)):
+        b = ((d - sign * gain * t) / sigma_t).T.reshape(-1)
+        arm = np.zeros(3)
         if fit_arm:
-            cols.append(arm_columns[k])
-        blocks.append(np.concatenate(cols, axis=1) / sigma_t[k])
-        rhs.append((d[:, k] - (0.0 if fit_gain else t[:, k])) / sigma_t[k])
-    A, b = np.concatenate(blocks, axis=0), np.concatenate(rhs)
-    lower = ([GAIN_BOUNDS[0]] if fit_gain else []) + ([-TORQUE_ARM_BOUND] * 3 if fit_arm else [])
-    upper = ([GAIN_BOUNDS[1]] if fit_gain else []) + ([TORQUE_ARM_BOUND] * 3 if fit_arm else [])
-    solution = lsq_linear(A, b, bounds=(lower, upper))
-    # a bound the solver reports active is taken exactly (lsq_linear may stop a rounding error inside it)
-    x = np.where(solution.active_mask > 0, upper, np.where(solution.active_mask < 0, lower, solution.x))
-    if fit_gain:
-        gain, x = float(x[0]), x[1:]
-    if fit_arm:
-        arm = np.asarray(x, dtype=float)
-    return gain, arm
+            solution = lsq_linear(A, b, bounds=(-TORQUE_ARM_BOUND, TORQUE_ARM_BOUND))
+            # a bound the solver reports active is taken exactly (lsq_linear may stop a rounding error inside it)
+            arm = np.where(solution.active_mask != 0, np.sign(solution.active_mask) * TORQUE_ARM_BOUND, solution.x)
+        cost = float(np.sum((A @ arm - b) ** 2))
+        if best is None or cost < best[0]:
+            best = (cost, sign, np.asarray(arm, dtype=float))
+    return best[1], best[2]
 
 
 def _affine(a: np.ndarray, b: np.ndarray) -> tuple[float, float] | None:
@@ -238,8 +252,9 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
     if "wrench" in data and "wrench" in prediction:
         d, p, s = pick("wrench", data["wrench"]), pick("wrench", prediction["wrench"]), sigma["wrench"]
         fields["force_gain"] = _gain(d[:, :3], p[:, :3], s[:3])
-        gain, arm = _torque_calibration(d[:, 3:], p[:, 3:], fields["force_gain"] * p[:, :3], s[3:], s[:3])
-        fields["torque_gain"] = gain
+        sign, arm = _torque_calibration(d[:, 3:], p[:, 3:], fields["force_gain"] * p[:, :3], fields["force_gain"],
+                                        s[3:], s[:3])
+        fields["torque_sign"] = sign
         fields["torque_arm_x"], fields["torque_arm_y"], fields["torque_arm_z"] = (float(a) for a in arm)
     if "markers_xyz" in data and "markers_xyz" in prediction and marker_rest is not None:
         d = pick("markers_xyz", data["markers_xyz"]) - marker_rest
@@ -364,6 +379,8 @@ class CalibrationResult:
         wall_time_s: the calibration's wall time, s.
         secant: the :class:`sysid.calibration_secant.SecantStage` of the parameters without
             tangents (None when none was run).
+        not_followed_where: channel -> :func:`not_followed_windows` of each channel above
+            :data:`FOLLOWED_RMS` after calibration (None: not computed).
     """
 
     params: dict[str, float]
@@ -375,6 +392,7 @@ class CalibrationResult:
     replay_totals: dict[str, Any] | None = None
     wall_time_s: float | None = None
     secant: Any = None
+    not_followed_where: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary: parameters, sensor calibration, whitened RMS before and after, and,
@@ -383,7 +401,8 @@ class CalibrationResult:
         ``fitted``), the fit's status, replays and wall time, the weight of each channel in the fit
         (``channel_weights``: ``1 / s^2`` with ``s`` its factor on the noise level, when reweighted)
         and the channels the calibrated model does not follow (``not_followed``: channel -> its
-        whitened RMS after calibration, where above :data:`FOLLOWED_RMS`)."""
+        whitened RMS after calibration, where above :data:`FOLLOWED_RMS`; ``not_followed_where``: where in
+        time, :func:`not_followed_windows`)."""
         out: dict[str, Any] = {"params": dict(self.params), "sensor": self.sensor.as_dict(),
                                "whitened_rms_before": dict(self.whitened_rms_before),
                                "whitened_rms_after": dict(self.whitened_rms_after)}
@@ -401,6 +420,8 @@ class CalibrationResult:
             if weights is not None:
                 out["channel_weights"] = {ch: 1.0 / float(v) ** 2 for ch, v in weights.items()}
         out["not_followed"] = {ch: float(v) for ch, v in self.whitened_rms_after.items() if v > FOLLOWED_RMS}
+        if self.not_followed_where:
+            out["not_followed_where"] = self.not_followed_where
         if self.replay_totals is not None:
             out["replay"] = self.replay_totals
         if self.wall_time_s is not None:
@@ -426,6 +447,48 @@ def whitened_rms(model, prediction: Mapping[str, np.ndarray], channels) -> dict[
             e = (model.data(ch) - prediction[ch]).reshape(-1, model.sigma[ch].shape[0]) / model.sigma[ch]
             out[ch] = float(np.sqrt(np.mean(e ** 2)))
     return out
+
+
+GAP_MERGE_S = 0.05
+"""Gap (s) across which two runs of samples the calibrated model does not follow are reported as one
+window: five samples of the 100 Hz tactile streams (a reporting choice; it moves no fitted value)."""
+
+
+def not_followed_windows(t: np.ndarray, residual: np.ndarray, sigma: np.ndarray) -> dict[str, Any]:
+    """Where a calibrated channel is not followed: the time windows of its samples whose whitened RMS
+    (over the sample's markers and axes) exceeds :data:`FOLLOWED_RMS`, and the channel's whitened RMS
+    inside and outside them.
+
+    Args:
+        t: ``(n,)`` sample times, s from the recording's start.
+        residual: ``(n, ...)`` data minus calibrated prediction, last axis the channel's axes.
+        sigma: ``(axes,)`` noise level per axis.
+
+    Returns:
+        ``{"windows_s": [[t0, t1], ...], "whitened_rms_inside": float | None, "whitened_rms_outside":
+        float | None, "fraction_of_samples": float}``; runs separated by less than
+        :data:`GAP_MERGE_S` form one window; None where a part holds no sample.
+    """
+    n = min(len(t), len(residual))
+    t = np.asarray(t, dtype=float)[:n]
+    e = np.asarray(residual, dtype=float)[:n].reshape(n, -1, len(sigma)) / np.asarray(sigma, dtype=float)
+    sq = np.nanmean(e ** 2, axis=(1, 2))
+    flagged = np.sqrt(sq) > FOLLOWED_RMS
+    windows: list[list[float]] = []
+    for k in np.flatnonzero(flagged):
+        if windows and t[k] - windows[-1][1] < GAP_MERGE_S:
+            windows[-1][1] = float(t[k])
+        else:
+            windows.append([float(t[k]), float(t[k])])
+    inside = np.zeros(len(t), dtype=bool)
+    for a, b in windows:
+        inside |= (t >= a) & (t <= b)
+
+    def rms(mask):
+        return float(np.sqrt(np.nanmean(sq[mask]))) if mask.any() else None
+
+    return {"windows_s": [[round(a, 3), round(b, 3)] for a, b in windows], "whitened_rms_inside": rms(inside),
+            "whitened_rms_outside": rms(~inside), "fraction_of_samples": float(inside.mean()) if len(t) else 0.0}
 
 
 def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.ndarray] | None = None,
@@ -553,8 +616,14 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
     calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
     after = whitened_rms(model, calibrated, channels)
+    ev = model.evidence
+    where = {}
+    for ch in (c for c, v in after.items() if v > FOLLOWED_RMS and c in ev.t_ns):
+        y = model.data(ch)
+        t = (np.asarray(ev.t_ns[ch], dtype=np.int64)[:len(y)] - ev.start_ns) * 1e-9
+        where[ch] = not_followed_windows(t, y - calibrated[ch], model.sigma[ch])
     return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals,
-                             time.perf_counter() - t_start, stage)
+                             time.perf_counter() - t_start, stage, where)
 
 
 def _totals(trace) -> dict[str, Any] | None:

@@ -23,7 +23,7 @@ def test_recovers_known_calibration_exactly():
     rng = np.random.default_rng(0)
     rest, xyz, wrench = _synthetic(rng)
     nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
-    truth = SensorCalibration(force_gain=0.8, torque_gain=1.3, torque_arm_x=-7e-4, torque_arm_y=4e-4,
+    truth = SensorCalibration(force_gain=0.8, torque_sign=-1.0, torque_arm_x=-7e-4, torque_arm_y=4e-4,
                               torque_arm_z=2e-3, marker_scale_xy=0.9, marker_scale_z=1.2,
                               fx=310.0, fy=295.0, cx=158.0, cy=121.5, distance=0.025)
     prediction = {"markers_xyz": xyz, "wrench": wrench, "markers_uv": nominal.project(xyz)}
@@ -31,7 +31,7 @@ def test_recovers_known_calibration_exactly():
     sigma = {"markers_xyz": np.array([1.5e-5, 1.5e-5, 2e-5]), "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4]),
              "markers_uv": np.array([0.15, 0.15])}
     fitted = fit_sensor_calibration(data, prediction, sigma, rest, nominal)
-    for key in ("force_gain", "torque_gain", "torque_arm_x", "torque_arm_y", "torque_arm_z", "marker_scale_xy",
+    for key in ("force_gain", "torque_sign", "torque_arm_x", "torque_arm_y", "torque_arm_z", "marker_scale_xy",
                 "marker_scale_z", "fx", "fy", "cx", "cy"):
         assert getattr(fitted, key) == pytest.approx(getattr(truth, key), rel=1e-7), key
     calibrated = fitted.apply(prediction, rest)
@@ -46,7 +46,7 @@ def test_gains_are_bounded_and_rows_select_the_training_part():
     data = {"wrench": 10.0 * wrench}
     sigma = {"wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
     fitted = fit_sensor_calibration(data, {"wrench": wrench}, sigma, None, nominal)
-    assert fitted.force_gain == GAIN_BOUNDS[1] and fitted.torque_gain == GAIN_BOUNDS[1]
+    assert fitted.force_gain == GAIN_BOUNDS[1]
     # only the first half is the training part: its gain is 0.7, the other half's 1.4
     data = {"wrench": np.concatenate([0.7 * wrench[:100], 1.4 * wrench[100:]])}
     rows = {"wrench": np.arange(200) < 100}
@@ -71,13 +71,76 @@ def test_torque_reference_offset_is_the_moment_transport_and_is_bounded():
     sigma = {"wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])}
     fitted = fit_sensor_calibration({"wrench": recorded}, {"wrench": sim}, sigma, None, SensorCalibration())
     np.testing.assert_allclose(fitted.torque_arm, a, rtol=1e-8)
-    assert fitted.torque_gain == pytest.approx(1.0) and fitted.force_gain == pytest.approx(1.0)
+    assert fitted.torque_sign == 1.0 and fitted.force_gain == pytest.approx(1.0)
     far = np.concatenate([forces.sum(1), np.cross(points + 3.0 * TORQUE_ARM_BOUND, forces).sum(1)], axis=1)
     fitted = fit_sensor_calibration({"wrench": far}, {"wrench": sim}, sigma, None, SensorCalibration())
     np.testing.assert_allclose(fitted.torque_arm, TORQUE_ARM_BOUND, rtol=1e-6)
     quiet = {"wrench": sim * np.array([1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0])}  # forces at 1 % of the noise
     fitted = fit_sensor_calibration(quiet, quiet, sigma, None, SensorCalibration())
-    assert np.all(fitted.torque_arm == 0.0) and fitted.torque_gain == pytest.approx(1.0)
+    assert np.all(fitted.torque_arm == 0.0) and fitted.torque_sign == 1.0
+
+
+def test_torque_sign_convention_of_a_reaction_wrench_is_recovered_not_absorbed_by_a_bound():
+    """Known answer: a sensor that reports the moment of the reaction (the force on the touched object,
+    ``-sum (r - a) x g f``) about a point offset by ``a``, while its forces keep the contract's sign
+    (``g sum f``, on the gel). The calibration recovers the sign -1, the gain g (on forces and torques
+    alike: the moment of the same forces) and ``a`` exactly; a recording that follows the contract
+    keeps +1, and so does one whose torques the recording does not determine. A separate torque gain
+    with the contract's sign (the calibration before) ends on GAIN_BOUNDS[0] on such a recording, as it
+    did on every reference recording."""
+    from scipy.optimize import lsq_linear
+
+    rng = np.random.default_rng(7)
+    points, forces = rng.normal(scale=3e-3, size=(60, 5, 3)), rng.normal(size=(60, 5, 3))
+    a, g = np.array([-4e-4, 3e-4, -2.5e-3]), 0.7
+    sim = np.concatenate([forces.sum(1), np.cross(points, forces).sum(1)], axis=1)
+    reaction = np.concatenate([g * forces.sum(1), np.cross(points - a, -g * forces).sum(1)], axis=1)
+    sigma = {"wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])}
+    fitted = fit_sensor_calibration({"wrench": reaction}, {"wrench": sim}, sigma, None, SensorCalibration())
+    assert fitted.torque_sign == -1.0 and fitted.force_gain == pytest.approx(g, rel=1e-9)
+    np.testing.assert_allclose(fitted.torque_arm, a, rtol=1e-7)
+    np.testing.assert_allclose(fitted.apply({"wrench": sim}, None)["wrench"], reaction, rtol=1e-9, atol=1e-12)
+    d = rng.normal(size=(4, 6, 2))  # the derivative carries the sign and the gain
+    np.testing.assert_allclose(fitted.derivative("wrench", d)[:, 3:, :],
+                               -g * d[:, 3:, :] + np.cross(a, g * d[:, :3, :], axisb=-2, axisc=-2), rtol=1e-12)
+    contract = np.concatenate([g * forces.sum(1), np.cross(points + a, g * forces).sum(1)], axis=1)
+    fitted = fit_sensor_calibration({"wrench": contract}, {"wrench": sim}, sigma, None, SensorCalibration())
+    assert fitted.torque_sign == 1.0
+    np.testing.assert_allclose(fitted.torque_arm, a, rtol=1e-7)
+    quiet = {"wrench": sim * np.array([1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])}  # torques at 1 % of the noise
+    assert fit_sensor_calibration(quiet, quiet, sigma, None, SensorCalibration()).torque_sign == 1.0
+    # a separate torque gain on the contract's sign, with the arm: the bounded optimum is on the bound
+    zero = np.zeros(len(sim))
+    f = g * sim[:, :3]
+    arm_cols = [np.stack([zero, f[:, 2], -f[:, 1]], 1), np.stack([-f[:, 2], zero, f[:, 0]], 1),
+                np.stack([f[:, 1], -f[:, 0], zero], 1)]
+    A = np.concatenate([np.concatenate([sim[:, 3 + k:4 + k], arm_cols[k]], 1) / 4e-4 for k in range(3)])
+    bounded = lsq_linear(A, (reaction[:, 3:] / 4e-4).T.reshape(-1), bounds=([GAIN_BOUNDS[0], -1, -1, -1],
+                                                                            [GAIN_BOUNDS[1], 1, 1, 1]))
+    assert bounded.x[0] == pytest.approx(GAIN_BOUNDS[0])
+
+
+def test_not_followed_windows_locate_a_gap_and_split_the_rms():
+    """Known answer: white noise (unit whitened RMS) on 63 markers x 2 axes at 100 Hz, plus a common
+    offset of 8 sigma on u over 2.60-3.80 s (nominal_s109's tack lift, in kind): one window at those
+    times, RMS inside sqrt((64 + 1 + 1) / 2) and about 1 outside; a 40 ms dip inside stays one window."""
+    from sysid.calibration import not_followed_windows
+
+    rng = np.random.default_rng(11)
+    t = np.arange(0, 4.5, 0.01)
+    sigma = np.array([0.15, 0.15])
+    residual = rng.normal(size=(len(t), 63, 2)) * sigma
+    gap = (t >= 2.6 - 1e-9) & (t <= 3.8 + 1e-9)
+    residual[gap, :, 0] += 8.0 * sigma[0]
+    residual[(t > 3.0) & (t < 3.04), :, 0] -= 8.0 * sigma[0]  # 3 samples back in the noise
+    where = not_followed_windows(t, residual, sigma)
+    assert len(where["windows_s"]) == 1
+    np.testing.assert_allclose(where["windows_s"][0], [2.6, 3.8], atol=1e-9)
+    assert where["whitened_rms_inside"] == pytest.approx(np.sqrt((64 + 2) / 2 * (118 / 121) + 3 / 121), rel=0.05)
+    assert where["whitened_rms_outside"] == pytest.approx(1.0, rel=0.03)
+    assert where["fraction_of_samples"] == pytest.approx(121 / len(t), rel=1e-9)
+    quiet = not_followed_windows(t, rng.normal(size=(len(t), 63, 2)) * sigma, sigma)
+    assert quiet["windows_s"] == [] and quiet["whitened_rms_inside"] is None
 
 
 def test_a_prediction_below_the_noise_keeps_the_scene_gain():
@@ -95,7 +158,7 @@ def test_a_prediction_below_the_noise_keeps_the_scene_gain():
 def test_derivative_matches_finite_difference_of_apply():
     rng = np.random.default_rng(2)
     rest, xyz, wrench = _synthetic(rng, n=5, k=4)
-    cal = SensorCalibration(force_gain=0.7, torque_gain=1.1, torque_arm_x=1e-3, torque_arm_y=-2e-3, torque_arm_z=5e-4,
+    cal = SensorCalibration(force_gain=0.7, torque_sign=-1.0, torque_arm_x=1e-3, torque_arm_y=-2e-3, torque_arm_z=5e-4,
                             marker_scale_xy=0.9, marker_scale_z=1.3)
     d = rng.normal(size=(5, 6, 1))
     h = 1e-6

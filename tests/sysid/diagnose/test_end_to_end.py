@@ -57,6 +57,22 @@ def test_calibration_is_reported_and_lowers_the_tactile_rms(reports):
     assert all(base["whitened_rms_after"][ch] < FOLLOWED_RMS for ch in ("markers_xyz", "markers_uv", "wrench")), base
 
 
+def test_torque_convention_is_calibrated_not_absorbed_by_a_gain_bound(reports):
+    """The reference recordings report the moment of the reaction about a point behind the gel's
+    surface (sysid.calibration's module docstring): on the nominal press-and-slide the calibration
+    takes the sign -1 with a reference point inside its bounds (a separate torque gain with the
+    contract's sign sat on its lower bound 0.5 on every recording), and the wrench's calibrated RMS
+    stays under 3. (On latency_s103 the 40 ms delay, not the convention, dominates the torque's
+    residual, and the sign found there is +1.)"""
+    from sysid.calibration import FOLLOWED_RMS, TORQUE_ARM_BOUND
+
+    base = reports["nominal_s101"][0]["baseline"]
+    sensor = base["calibration"]["sensor"]
+    assert sensor["torque_sign"] == -1.0, sensor
+    assert all(abs(sensor[f"torque_arm_{k}"]) < TORQUE_ARM_BOUND for k in "xyz"), sensor
+    assert base["whitened_rms_after"]["wrench"] < FOLLOWED_RMS
+
+
 def test_latency_refit_recovers_the_delay_and_improves_held_out_events(reports):
     doc, d = reports["latency_s103"]
     # truth: 0.04 s
