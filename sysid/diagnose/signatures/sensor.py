@@ -10,8 +10,9 @@
   projection.
 * **Force bias** (SYSID.md: "slowly varying offset on the wrench only, present without contact"):
   where the gel touches nothing (no predicted contact, with a margin, recorded markers at rest, and
-  no recorded sheet hanging on the gel: :func:`sheet_on_gel_rows`) the true wrench is zero, so an offset and a linear drift per axis are fitted to the recorded
-  wrench there; the statistic is the whitened SSE they remove, about chi-square(12) with no bias.
+  no recorded sheet hanging on the gel: :func:`sheet_on_gel_rows`) the true wrench is zero, so an
+  offset and a linear drift per axis are fitted to the recorded wrench there; the statistic is the
+  whitened SSE they remove, about chi-square(12) with no bias.
 """
 
 from __future__ import annotations
@@ -114,12 +115,14 @@ def sheet_on_gel_rows(rec: Recording, channel: str) -> np.ndarray | None:
     effector pose alone: some sheet point in front of the gel's face (within the markers' radius of
     the sensor axis) lies nearer the face than to where it started, along the face's normal.
 
-    The gel's face is the plane through the effector's position normal to its z axis (the sensor
-    normal, pointing from the gel to what it touches; the sensor frame of the markers, whose rest
-    positions lie on that face); its extent the largest radius of the recorded markers' rest
-    positions about that axis. A sheet point ``p`` with start position ``p_0`` has risen toward the
-    gel by ``h = (p_0 - p) . n`` and lies ``g = (p - x_e) . n`` in front of the face; the sheet is on
-    the gel where some point in front of the face has ``h > g``, i.e. it lies beyond the midway
+    The gel's face is the plane through the effector's position ``x_e`` normal to its z axis ``n``
+    (the sensor normal, pointing from the gel to what it touches: the markers' sensor frame is the
+    effector's, mounted along that normal, and their rest positions, the first marker sample, lie on
+    that face); its extent the largest radius of those rest positions about the axis. A sheet point
+    ``p`` with start position ``p_0`` (the first sheet sample) has risen toward the gel by
+    ``h = (p_0 - p) . n`` and lies ``g = (p - x_e) . n`` in front of the face; the sheet is on the gel
+    where some point within the face's radius of its axis, and no more than that radius behind the
+    face (a sheet pressed into the gel or wrapped round its edge), has ``h > g``, i.e. it lies beyond the midway
     between its start and the face (a resting sheet under a hovering pad has ``h`` at the noise and
     ``g`` the hover height; a sheet pressed by the gel has ``g <= 0``; a sheet carried by a tacked gel
     has ``h`` the lift and ``g`` the bonds' stretch). A sheet that only slid in its plane does not
