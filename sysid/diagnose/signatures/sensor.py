@@ -120,14 +120,14 @@ def sheet_on_gel_rows(rec: Recording, channel: str) -> np.ndarray | None:
     effector's, mounted along that normal, and their rest positions, the first marker sample, lie on
     that face); its extent the largest radius of those rest positions about the axis. A sheet point
     ``p`` with start position ``p_0`` (the first sheet sample) has risen toward the gel by
-    ``h = (p_0 - p) . n`` and lies ``g = (p - x_e) . n`` in front of the face; the sheet is on the gel
-    where some point within the face's radius of its axis, and no more than that radius behind the
-    face (a sheet pressed into the gel or wrapped round its edge), has ``h > g``, i.e. it lies beyond the midway
-    between its start and the face (a resting sheet under a hovering pad has ``h`` at the noise and
-    ``g`` the hover height; a sheet pressed by the gel has ``g <= 0``; a sheet carried by a tacked gel
-    has ``h`` the lift and ``g`` the bonds' stretch). A sheet that only slid in its plane does not
-    rise, so it is never counted. The markers' whole-grid displacement does not see a sheet hanging
-    on a few tacked points of the gel (a lift-and-fold's hold), this does.
+    ``h = (p_0 - p) . n`` and lies ``g = (p - x_e) . n`` in front of the face. The sheet is on the
+    gel where some point within the face's radius of its axis, and no more than that radius behind
+    the face (a sheet pressed into the gel or wrapped round its edge), has ``h > g``: it lies beyond
+    the midway between its start and the face. A resting sheet under a hovering pad has ``h`` at the
+    noise and ``g`` the hover height; a sheet pressed by the gel has ``g <= 0``; a sheet carried by a
+    tacked gel has ``h`` the lift and ``g`` the bonds' stretch; a sheet that only slid in its plane
+    does not rise, so it is never counted. The markers' whole-grid displacement does not see a
+    sheet hanging on a few tacked points of the gel (a lift-and-fold's hold); this does.
 
     Args:
         rec: the recording (``sheet_points``, ``pose`` and ``markers_xyz`` recorded).
