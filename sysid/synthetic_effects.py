@@ -481,7 +481,46 @@ WIDE_PLAN: tuple[Item, ...] = (
 reference recordings, over the magnitude ranges a hidden set of the reference's kind may use
 (``python -m sysid.synthetic_effects OUT --plan wide --source REF_DIR --source MUJOCO_DIR``)."""
 
-PLANS = {"default": DEFAULT_PLAN, "wide": WIDE_PLAN}
+LIFT_PLAN: tuple[Item, ...] = (
+    # lift-and-folds of the independent MuJoCo world (benchmarks/mujoco_world: nominal_s301, 8 tack
+    # bonds; plastic_s302, yield 0.0005) and the reference's nominal_s109, and one MuJoCo press-slide
+    # (nominal_s213), at the low end of the magnitudes and the signs the wide plan leaves out:
+    # latencies of 15-30 ms, positive k1 from 0.02, force biases of 1.5-4 sigma, creeps of 0.04-0.25 s
+    _item("nominal_s301", "none", "control", {}),
+    _item("nominal_s301", "latency", "15ms", {"latency_s": 0.015}),
+    _item("nominal_s301", "latency", "20ms", {"latency_s": 0.02}),
+    _item("nominal_s301", "latency", "30ms", {"latency_s": 0.03}),
+    _item("nominal_s301", "lens", "k1p030", {"k1": 0.03}),
+    _item("nominal_s301", "lens", "k1p050", {"k1": 0.05}),
+    _item("nominal_s301", "lens", "k1m030", {"k1": -0.03}),
+    _item("nominal_s301", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=21),
+    _item("nominal_s301", "force_bias", "2p5", {"scale_sigma": 2.5}, seed=22),
+    _item("nominal_s301", "force_bias", "4", {"scale_sigma": 4.0}, seed=23),
+    _item("nominal_s301", "gel_creep", "tau050", {"tau_s": 0.05, "fraction": 1.0}),
+    _item("nominal_s301", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
+    _item("nominal_s301", "gel_creep", "tau200", {"tau_s": 0.20, "fraction": 1.0}),
+    _item("nominal_s109", "latency", "15ms", {"latency_s": 0.015}),
+    _item("nominal_s109", "latency", "30ms", {"latency_s": 0.03}),
+    _item("nominal_s109", "lens", "k1p050", {"k1": 0.05}),
+    _item("nominal_s109", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=24),
+    _item("nominal_s109", "force_bias", "3", {"scale_sigma": 3.0}, seed=25),
+    _item("nominal_s109", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
+    _item("nominal_s109", "gel_creep", "tau250", {"tau_s": 0.25, "fraction": 1.0}),
+    _item("plastic_s302", "latency", "30ms", {"latency_s": 0.03}),
+    _item("plastic_s302", "lens", "k1p040", {"k1": 0.04}),
+    _item("plastic_s302", "force_bias", "3", {"scale_sigma": 3.0}, seed=26),
+    _item("plastic_s302", "gel_creep", "tau130", {"tau_s": 0.13, "fraction": 1.0}),
+    _item("nominal_s213", "none", "control", {}),
+    _item("nominal_s213", "latency", "15ms", {"latency_s": 0.015}),
+    _item("nominal_s213", "latency", "20ms", {"latency_s": 0.02}),
+    _item("nominal_s213", "lens", "k1p020", {"k1": 0.02}),
+    _item("nominal_s213", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=27),
+    _item("nominal_s213", "gel_creep", "tau040", {"tau_s": 0.04, "fraction": 1.0}),
+)
+"""Lifts and the low end (``python -m sysid.synthetic_effects OUT --plan lift --source REF_DIR
+--source MUJOCO_LIFT_DIR --source MUJOCO_SLIDE_DIR``)."""
+
+PLANS = {"default": DEFAULT_PLAN, "wide": WIDE_PLAN, "lift": LIFT_PLAN}
 """Plans by name (``--plan``)."""
 
 

@@ -9,14 +9,16 @@
   distortion. The residual's noise is the pixel noise plus the position noise carried through the
   projection.
 * **Force bias** (SYSID.md: "slowly varying offset on the wrench only, present without contact"):
-  where the gel touches nothing (no predicted contact, with a margin, and recorded markers at rest)
-  the true wrench is zero, so an offset and a linear drift per axis are fitted to the recorded
-  wrench there; the statistic is the whitened SSE they remove, about chi-square(12) with no bias.
+  where the gel touches nothing (no predicted contact, with a margin, recorded markers at rest, and
+  no recorded sheet hanging on the gel: :func:`sheet_on_gel_rows`) the true wrench is zero, so an
+  offset and a linear drift per axis are fitted to the recorded wrench there; the statistic is the
+  whitened SSE they remove, about chi-square(12) with no bias.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
                                             not_applicable, predicted_contact, segments)
@@ -108,9 +110,55 @@ def lens_test(rec: Recording) -> SignatureResult:
                 "fx": float(c[0]), "cx": float(c[1]), "fy": float(c[2]), "cy": float(c[3]), "samples": int(n)})
 
 
+def sheet_on_gel_rows(rec: Recording, channel: str) -> np.ndarray | None:
+    """Samples where the recorded sheet touches or hangs on the gel, from the sheet points and the
+    effector pose alone: some sheet point in front of the gel's face (within the markers' radius of
+    the sensor axis) lies nearer the face than to where it started, along the face's normal.
+
+    The gel's face is the plane through the effector's position ``x_e`` normal to its z axis ``n``
+    (the sensor normal, pointing from the gel to what it touches: the markers' sensor frame is the
+    effector's, mounted along that normal, and their rest positions, the first marker sample, lie on
+    that face); its extent the largest radius of those rest positions about the axis. A sheet point
+    ``p`` with start position ``p_0`` (the first sheet sample) has risen toward the gel by
+    ``h = (p_0 - p) . n`` and lies ``g = (p - x_e) . n`` in front of the face. The sheet is on the
+    gel where some point within the face's radius of its axis, and no more than that radius behind
+    the face (a sheet pressed into the gel or wrapped round its edge), has ``h > g``: it lies beyond
+    the midway between its start and the face. A resting sheet under a hovering pad has ``h`` at the
+    noise and ``g`` the hover height; a sheet pressed by the gel has ``g <= 0``; a sheet carried by a
+    tacked gel has ``h`` the lift and ``g`` the bonds' stretch; a sheet that only slid in its plane
+    does not rise, so it is never counted. The markers' whole-grid displacement does not see a
+    sheet hanging on a few tacked points of the gel (a lift-and-fold's hold); this does.
+
+    Args:
+        rec: the recording (``sheet_points``, ``pose`` and ``markers_xyz`` recorded).
+        channel: the channel whose samples are returned.
+
+    Returns:
+        boolean mask ``(n,)`` on ``rec.t[channel]``, or None without those three channels.
+    """
+    if not rec.has("sheet_points", "pose", "markers_xyz"):
+        return None
+    ts = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float)                  # (n, p, 3) world
+    pose = np.asarray(rec.data["pose"], dtype=float)
+    tp = rec.t["pose"]
+    pos = np.stack([np.interp(ts, tp, pose[:, j]) for j in range(3)], axis=1)                  # (n, 3)
+    nearest = np.clip(np.searchsorted(tp, ts), 0, len(tp) - 1)
+    n = Rotation.from_quat(pose[nearest, 3:7]).apply(np.array([0.0, 0.0, 1.0]))               # (n, 3)
+    rest = np.asarray(rec.data["markers_xyz"], dtype=float)[0]
+    radius = float(np.max(np.linalg.norm(rest[:, :2], axis=1)))
+    rel = x - pos[:, None, :]
+    gap = np.einsum("npk,nk->np", rel, n)
+    lateral = np.linalg.norm(rel - gap[..., None] * n[:, None, :], axis=2)
+    rise = np.einsum("npk,nk->np", x[:1] - x, n)
+    on = np.any((lateral <= radius) & (gap > -radius) & (rise > gap), axis=1)
+    return np.interp(rec.t[channel], ts, on.astype(float)) > 0.0
+
+
 def free_gel_rows(rec: Recording) -> np.ndarray | None:
     """Wrench samples where the gel touches nothing: no predicted contact within
-    :data:`FREE_MARGIN_S` and, when markers are recorded, markers at rest.
+    :data:`FREE_MARGIN_S`, when markers are recorded, markers at rest, and, when the sheet is
+    tracked, no sheet on the gel (:func:`sheet_on_gel_rows`) within :data:`FREE_MARGIN_S`.
 
     Returns:
         boolean mask on ``rec.t["wrench"]``, or None when contact cannot be told (no replay and no
@@ -127,6 +175,9 @@ def free_gel_rows(rec: Recording) -> np.ndarray | None:
         moved = np.interp(tw, tm, (disp > REST_DISPLACEMENT).astype(float)) > 0.0
         rest = ~dilate(moved, tw, FREE_MARGIN_S)
         mask = rest if mask is None else (mask & rest)
+    on_gel = sheet_on_gel_rows(rec, "wrench")
+    if mask is not None and on_gel is not None:
+        mask &= ~dilate(on_gel, tw, FREE_MARGIN_S)
     return mask
 
 
