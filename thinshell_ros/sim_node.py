@@ -10,7 +10,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   solver repeats a fixed point (``SolverConfig.repeat_fixed_points``): while the scene rests, a step
   whose inputs equal the last one's takes its result instead of a Newton solve; and it lets a body at
   rest that nothing moving can reach sleep (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`: the
-  card while the pad moves above it), held out of the Newton system until something could change it.
+  card while the pad moves above it), held out of the Newton system until something could change it;
+  and it starts each step's Newton iterations with the pad carried by its effector's motion over
+  the step (``SolverConfig.carried_start``, :mod:`sim_core.carried_start`: a move of the pad in the
+  air takes 1 Newton iteration instead of 3; the result differs within the Newton tolerance).
 - ``settle_steps_max`` (int, default :data:`DEFAULT_SETTLE_STEPS_MAX`): at start-up and after
   ``~/reset``, before the clock starts and before the first output, the scene is stepped under zero
   commands until it is at rest (:func:`sim_core.settle.settle`: the Newton tolerance tightened below
@@ -268,10 +271,11 @@ class SimNode(Node):
         check_backend(backend, "node parameter 'backend'")
         sim_built = sim is None
         if sim is None:
-            # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated)
-            # and a resting body nothing moving can reach sleeps (StepInfo.sleeping)
+            # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated),
+            # a resting body nothing moving can reach sleeps (StepInfo.sleeping), and a step starts
+            # with the pad carried by its effector (sim_core.carried_start)
             sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(
-                backend=backend, repeat_fixed_points=True, sleeping=True))
+                backend=backend, repeat_fixed_points=True, sleeping=True, carried_start=True))
             # the solver's per-model structures (the fused evaluators and patterns, awake and with the
             # resting bodies asleep) now, not in the first steps that need them
             sim.warm_up()
@@ -647,9 +651,19 @@ class SimNode(Node):
         sigma = self.noise[key]
         return values if sigma == 0 else values + self._rng.normal(0.0, sigma, values.shape)
 
+    def _wanted(self, pub: Any) -> bool:
+        """Whether a message on ``pub`` is read by anyone: the recording, or a matched subscription."""
+        return (self.recorder is not None and not self.recorder.closed) or pub.get_subscription_count() > 0
+
     def publish_outputs(self, force: bool = False) -> None:
         """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output: the effector
-        poses (the state's) first, then the tactile outputs and sheet points (:meth:`Simulation.observe`)."""
+        poses (the state's) first, then the tactile outputs and sheet points (:meth:`Simulation.observe`).
+
+        A sensor output is built only when it is read (:meth:`_wanted`: while recording, every one;
+        else those with a matched subscription, which is all DDS would deliver it to), and the
+        observation is read only when one of them is: with no subscriber to the markers, wrench,
+        image, points and mesh, a step publishes ``/clock`` and the poses only.
+        """
         t = float(self.sim.t)
         t_ns = cv.seconds_to_ns(t)
         try:
@@ -663,21 +677,33 @@ class SimNode(Node):
             # tactile observation is read: a command's pose does not wait for the sensor model
             for e, pose in self._measured_poses().items():
                 self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
+            mesh_due = self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9)
+            tactile = {s: (self._wanted(self._pub_markers[s]), self._wanted(self._pub_wrench[s]),
+                           self.publish_image and self._wanted(self._pub_image[s])) for s in self._pub_markers}
+            points, mesh = self._wanted(self._pub_points), mesh_due and self._wanted(self._pub_mesh)
+            if not (points or mesh or any(any(w) for w in tactile.values())):
+                return
             obs = self.sim.observe(render_image=self.publish_image) if self.publish_image else self.sim.observe()
             for s, reading in obs.tactile.items():
-                xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
-                wrench = np.asarray(reading.wrench, dtype=float)
-                wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
-                self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
-                self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
-                if self.publish_image and reading.image is not None:
+                markers, wrench_wanted, image = tactile.get(s, (False, False, False))
+                if markers:
+                    xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
+                    self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
+                if wrench_wanted:
+                    wrench = np.asarray(reading.wrench, dtype=float)
+                    wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
+                    self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
+                if image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
             if len(obs.sheet_points):
-                self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns, "world"),
-                              t_ns)
-                if self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9):
+                if points:
+                    self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns,
+                                                                     "world"), t_ns)
+                if mesh_due:
                     self._next_mesh_t = t + 1.0 / self.mesh_rate
-                    self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns), t_ns)
+                    if mesh:
+                        self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns),
+                                      t_ns)
         except Exception as err:  # noqa: BLE001
             self.get_logger().error(f"publishing at t={t:.4f} s failed: {err}", throttle_duration_sec=1.0)
 
