@@ -29,7 +29,8 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   slower: steps are counted against the wall clock, :class:`thinshell_ros.pacing.RealtimePacer`; a
   tick of the timer takes the due steps back to back until one takes a ``dt`` or more, so the steps
   a late tick missed are taken, a lag over :data:`REALTIME_MAX_LAG` is dropped, and a command that
-  arrives between two steps starts its step at once when it would be due within one ``dt``),
+  arrives between two steps starts its step at once when it would be due within one ``dt``, else as
+  soon as it would be, not at the timer's next tick),
   ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
@@ -64,7 +65,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
 :data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
 (:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
-controls the step.
+controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
+the commands it took; a command that arrives during a step is taken by the next one, which in
+``realtime`` mode starts as soon as the step in progress has ended and the schedule lets it (at most
+one step ahead of the wall clock).
 
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
@@ -305,6 +309,7 @@ class SimNode(Node):
         self._warned_topics: set[str] = set()
         self._steps = 0
         self._advancing = False  # inside advance(): a command taken there does not start a step
+        self._command_timer = None  # realtime: the one-shot wake-up of a command waiting for its step
         self._pacer = RealtimePacer(self.dt, REALTIME_MAX_LAG)
         self._wall_clock = wall_clock
         self._wall0 = time.monotonic()
@@ -337,6 +342,10 @@ class SimNode(Node):
         self.create_service(Trigger, "~/step", self._on_step)
         if self.mode != "stepped":
             self.create_timer(self.dt if self.mode == "realtime" else 0.0, self._on_timer)
+        # realtime: wakes the node when a command that arrived one step ahead of the schedule may start
+        # its step (_step_for_command); idle otherwise
+        self._command_timer = self.create_timer(self.dt, self._on_command_due, autostart=False) \
+            if self.mode == "realtime" else None
         self.create_timer(0.2, self._clock_heartbeat)
         self.create_timer(1.0, self._check_graph)
         self.create_timer(5.0, self._log_progress)
@@ -464,12 +473,24 @@ class SimNode(Node):
 
     def _step_for_command(self) -> None:
         """In ``realtime`` mode, running and not inside a step: take the next step now when the
-        schedule lets it start (:meth:`RealtimePacer.may_start`: due within one ``dt``), so that a
-        command does not wait for the next tick of the timer."""
-        if self.mode == "realtime" and not self.paused and not self._advancing and \
-                self._pacer.may_start(self._wall_clock()):
+        schedule lets it start (:meth:`RealtimePacer.may_start`: due within one ``dt``), else as soon
+        as it does (:meth:`RealtimePacer.start_time`, by a one-shot wake-up), so that a command does
+        not wait for the timer's tick at the step's due time (up to a ``dt`` later)."""
+        if self.mode != "realtime" or self.paused or self._advancing:
+            return
+        now = self._wall_clock()
+        if self._pacer.may_start(now):
             self._pacer.stepped()
             self.advance()
+            return
+        delay = max(self._pacer.start_time(now) - now, 1e-4)
+        self._command_timer.timer_period_ns = int(delay * 1e9)
+        self._command_timer.reset()
+
+    def _on_command_due(self) -> None:
+        """The one-shot wake-up of a command that waits for its step (:meth:`_step_for_command`)."""
+        self._command_timer.cancel()
+        self._step_for_command()
 
     def take_pending_commands(self) -> int:
         """Take every command message queued on the command subscriptions and handle it (record, submit).
@@ -513,6 +534,8 @@ class SimNode(Node):
     def advance(self) -> bool:
         """One simulation step with the current commands, then publish; returns whether it succeeded."""
         self._advancing = True
+        if self._command_timer is not None:
+            self._command_timer.cancel()  # this step applies every command handled so far
         try:
             return self._advance()
         finally:
