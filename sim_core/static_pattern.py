@@ -189,6 +189,87 @@ class StaticPattern:
         if self._vertex is None:
             rows, cols = block_keys(vertices, self.dof_count)
             return self.lookup(rows, cols).reshape(k, 3 * m, 3 * m)
+        parts, at = [], 0
+        while at < k:  # runs of translated chunks (a stacked scene's copies: sim_core.batch.stacked), each
+            run = self._translated_chunks(vertices[at:])  # made from its first chunk, moved
+            if run is None:
+                parts.append(self._pair_slot_map(vertices[at:]))
+                break
+            k0, offsets = run
+            first = self._pair_slot_map(vertices[at:at + k0])
+            parts.append(np.where(first[None] >= 0, first[None] + offsets[:, None, None, None], np.int32(-1))
+                         .reshape(-1, 3 * m, 3 * m))
+            at += k0 * offsets.size
+        if len(parts) == 1:
+            return parts[0]
+        return np.concatenate(parts) if parts else np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
+
+    _CHUNK_TRIES = 16
+    """Chunk lengths :meth:`_translated_chunks` tries at most."""
+
+    def _translated_chunks(self, vertices: np.ndarray) -> tuple[int, np.ndarray] | None:
+        """``(k0, offsets)`` when the element array ``vertices`` ``(k, m)`` begins with ``P >= 2`` chunks of
+        ``k0`` elements, chunk ``j`` being chunk 0 with every vertex index moved by one shift ``s_j`` (a
+        stacked scene's copies of one body), and the pattern's rows of chunk 0's vertices, moved by ``s_j``,
+        are those rows moved by ``s_j`` (same free and own-block kinds, the same keys moved by ``3 s_j`` in
+        row and column), starting ``offsets[j]`` slots later (int32 ``(P,)``); else None. Then every slot of
+        chunk ``j`` is chunk 0's plus ``offsets[j]`` (slots are row starts plus ranks within the row). Chunk
+        lengths are tried shortest first (at most :attr:`_CHUNK_TRIES`), each with its longest run of
+        chunks."""
+        k, m = vertices.shape
+        if k < 4 or m == 0:
+            return None
+        v = vertices.astype(np.int64)
+        moved = v - v[0]
+        # chunk lengths L: element L is element 0 moved by a shift larger than the span of elements 0 .. L - 1
+        # (chunks share no vertex, as stacked copies)
+        span = np.maximum.accumulate(v.max(axis=1)) - np.minimum.accumulate(v.min(axis=1))
+        lengths = np.flatnonzero(np.all(moved == moved[:, :1], axis=1))
+        lengths = lengths[(lengths > 0) & (lengths <= k // 2)]
+        shift = moved[lengths, :1]  # (c, 1); the second chunk's first, second and last elements must be moved alike
+        alike = (np.all(v[lengths + 1] - v[1] == shift, axis=1) & np.all(v[2 * lengths - 1] - v[lengths - 1] == shift, axis=1))
+        lengths = lengths[alike & (shift[:, 0] > span[lengths - 1])][: self._CHUNK_TRIES]
+        for k0 in lengths:
+            k0 = int(k0)
+            chunks = v[: k - k % k0].reshape(k // k0, k0, m)
+            shifts = chunks[:, 0, 0] - v[0, 0]
+            same = np.all(chunks - shifts[:, None, None] == chunks[0], axis=(1, 2))
+            count = int(np.argmin(same)) if not same.all() else same.size  # the leading run of translated chunks
+            if count < 2:
+                continue
+            offsets = self._translated_rows(np.unique(chunks[0]), shifts[:count])
+            if offsets.size >= 2:
+                return k0, offsets
+        return None
+
+    def _translated_rows(self, u: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+        """The slot offsets (int32) of the leading run of ``shifts`` ``(P,)`` (``shifts[0] = 0``) for which
+        the rows of vertices ``u`` moved by the shift are the rows of ``u`` moved (:meth:`_translated_chunks`);
+        its length is the run's."""
+        N, vertex_free, full, own, pairs, pair_start, indptr = self._vertex
+        n = self.dof_count
+        inside = (shifts + u.min() >= 0) & (shifts + u.max() < N)
+        shifts = shifts[: int(np.argmin(inside)) if not inside.all() else inside.size]
+        moved = u[None, :] + shifts[:, None]  # (P, U)
+        ok = np.all(vertex_free[moved] == vertex_free[u], axis=1) & np.all(full[moved] == full[u], axis=1)
+        rows0 = (3 * u[:, None] + np.arange(3)).ravel()  # (R,)
+        rows = rows0[None, :] + 3 * shifts[:, None]  # (P, R)
+        start0, length0 = indptr[rows0], indptr[rows0 + 1] - indptr[rows0]
+        offsets = indptr[rows] - start0  # (P, R): one offset per chunk, or the rows are not translated
+        ok &= np.all(indptr[rows + 1] - indptr[rows] == length0, axis=1) & np.all(offsets == offsets[:, :1], axis=1)
+        ok &= offsets[:, 0] + int(self.keys.size) <= np.iinfo(np.int32).max
+        count = int(np.argmin(ok)) if not ok.all() else ok.size
+        pos0 = np.repeat(start0, length0) + np.arange(int(length0.sum())) - np.repeat(np.cumsum(length0) - length0, length0)
+        keys0 = self.keys[pos0]
+        for j in range(count):  # one chunk at a time: no (P, entries) temporaries
+            if not np.array_equal(self.keys[pos0 + offsets[j, 0]], keys0 + 3 * shifts[j] * (n + 1)):
+                count = j
+                break
+        return offsets[:count, 0].astype(np.int32)
+
+    def _pair_slot_map(self, vertices: np.ndarray) -> np.ndarray:
+        """:meth:`slot_map` by vertex pairs (the tables of :meth:`_by_vertex_pairs`)."""
+        k, m = vertices.shape
         N, vertex_free, full, own, pairs, pair_start, indptr = self._vertex
         v = vertices.astype(np.int64)
         a = np.arange(3)

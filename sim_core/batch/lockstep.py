@@ -57,7 +57,7 @@ import numpy as np
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import SubsetHessian, declares
+from sim_core.energies.base import DeviceHessian, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -430,7 +430,9 @@ class LockstepSolver(NewtonSolver):
         to the device once; the exact values stay on the device where the fused kernels ran there), to which
         the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the contact
         and friction Hessians (``dynamic_terms``, projected by ``projection``) as
-        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG. The sum is the
+        :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG (the exact blocks of
+        the contact pairs left in device memory where the pair kernel wrote them, :meth:`_term_hessian`).
+        The sum is the
         matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
@@ -452,10 +454,23 @@ class LockstepSolver(NewtonSolver):
             indptr = np.zeros(n + 1, dtype=np.int32)
             np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
             cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
-        blocks = VertexBlocks.from_element_blocks(
-            [p.hessian_of_vertices(x, projection, vertices) if vertices is not None and declares(p, SubsetHessian)
-             else p.hessian(x, projection) for p in dynamic_terms], step.free)
+        blocks = VertexBlocks.from_element_blocks([self._term_hessian(p, x, projection, vertices) for p in dynamic_terms],
+                                                  step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
+
+    @staticmethod
+    def _term_hessian(term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
+        """A contact or friction term's Hessian blocks at ``x`` for :meth:`_device_operator`: the exact blocks
+        left on the device where the term declares :class:`~sim_core.energies.base.DeviceHessian` and has them
+        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term, else
+        ``term.hessian(x, projection)``."""
+        if projection == "none" and vertices is None and declares(term, DeviceHessian):
+            kept = term.hessian_on_device(x)
+            if kept is not None:
+                return kept
+        if vertices is not None and declares(term, SubsetHessian):
+            return term.hessian_of_vertices(x, projection, vertices)
+        return term.hessian(x, projection)
 
     def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):

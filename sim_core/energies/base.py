@@ -163,8 +163,22 @@ class SubsetHessian(Protocol):
         ...
 
 
+@runtime_checkable
+class DeviceHessian(Protocol):
+    """A potential whose exact Hessian blocks can stay in the device memory a kernel wrote them to: the
+    lockstep batch's CG expands them there (:mod:`sim_core.batch.lockstep`) instead of taking them through
+    the host."""
+
+    def hessian_on_device(self, x: np.ndarray) -> object | None:
+        """The unprojected blocks of :meth:`Potential.hessian` at ``x`` ``(vertex_count, 3)`` as
+        :class:`~sim_core.ti_kernels.buffers.DeviceHessianBlocks`, or None where they are not on the device
+        (the caller then asks :meth:`Potential.hessian`)."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
-    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian)
+    ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
+    DeviceHessian)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 

@@ -12,6 +12,7 @@ launches find the arrays they were bound to.
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 
 import numpy as np
 
@@ -128,3 +129,48 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False):
             dev.from_numpy(np.ascontiguousarray(host))
         entry = kept[name] = (host, dev)
     return entry[1]
+
+
+class DeviceRows:
+    """Rows ``start:stop`` of a Taichi ndarray kept where a kernel wrote it (device memory on CUDA), read on
+    the host only when asked: e.g. the contact pair batch's penalty Hessian blocks ``(a, 12, 12)``, which
+    the batched CG expands on the device (:meth:`sim_core.ti_kernels.pcg.BatchedPCG.factorize`) without a
+    round trip through the host.
+
+    Args:
+        array: the ndarray, shape ``(rows, ...)``.
+        start, stop: the rows meant (``0 <= start <= stop <= rows``).
+        shared: a dict shared by the :class:`DeviceRows` of one ``array`` (its host copy, downloaded once
+            for all of them); None: its own.
+
+    Attributes:
+        array, start, stop: as given.
+        shape: ``(stop - start,) + array.shape[1:]``.
+    """
+
+    def __init__(self, array, start: int, stop: int, shared: dict | None = None) -> None:
+        self.array, self.start, self.stop = array, int(start), int(stop)
+        self.shape = (self.stop - self.start,) + tuple(array.shape[1:])
+        self._shared = {} if shared is None else shared
+
+    def to_numpy(self) -> np.ndarray:
+        """The rows as a read-only NumPy array (the whole ndarray downloaded once, kept, and sliced)."""
+        host = self._shared.get("host")
+        if host is None:
+            host = self._shared["host"] = self.array.to_numpy()
+            host.flags.writeable = False
+        return host[self.start:self.stop]
+
+
+class DeviceHessianBlocks(NamedTuple):
+    """Per-element Hessian blocks kept on the device: :class:`~sim_core.energies.base.HessianBlocks` with the
+    blocks as :class:`DeviceRows`.
+
+    Attributes:
+        vertices: global vertex indices of each element, shape ``(element_count, m)``, int.
+        blocks: :class:`DeviceRows` of shape ``(element_count, 3 m, 3 m)`` (J/m^2), local DoF order as in
+            ``HessianBlocks``.
+    """
+
+    vertices: np.ndarray
+    blocks: DeviceRows

@@ -39,6 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.ti_backend import ti
+from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -126,6 +127,23 @@ def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i3
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
                 bval[9 * k + 3 * i + j] = blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j]
+
+
+@ti.kernel
+def _expand_device_rows(vertices: _I32, blocks: ti.types.ndarray(dtype=ti.f64, ndim=3), start: ti.i32, count: ti.i32,
+                        m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32, bval: _F64):
+    """:func:`_expand_element_blocks` of element blocks held as rows ``start .. start + count`` of a
+    ``(rows, 3m, 3m)`` ndarray (:class:`~sim_core.ti_kernels.buffers.DeviceRows`)."""
+    for t in range(count * m * m):
+        e = t // (m * m)
+        a = (t // m) % m
+        b = t % m
+        k = at + t
+        brow[k] = vertices[e * m + a]
+        bcol[k] = vertices[e * m + b]
+        for i in ti.static(range(3)):
+            for j in ti.static(range(3)):
+                bval[9 * k + 3 * i + j] = blocks[start + e, 3 * a + i, 3 * b + j]
 
 
 @ti.kernel
@@ -308,7 +326,8 @@ class VertexBlocks:
     Attributes:
         free: the free-DoF mask, ``(3 N,)`` bool.
         count: number of vertex blocks ``K``.
-        sets: None, or the element sets ``[(vertices int32 (k, m), blocks float64 (k, 3m, 3m))]`` (C order).
+        sets: None, or the element sets ``[(vertices int32 (k, m), blocks float64 (k, 3m, 3m))]`` (C order;
+            ``blocks`` a NumPy array, or :class:`~sim_core.ti_kernels.buffers.DeviceRows` kept on the device).
     """
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray, free: np.ndarray) -> None:
@@ -326,11 +345,14 @@ class VertexBlocks:
         ``a`` and ``b``.
 
         Args:
-            element_blocks: the element Hessians (any number of sets, any ``m``).
+            element_blocks: the element Hessians (any number of sets, any ``m``):
+                :class:`~sim_core.energies.base.HessianBlocks`, or
+                :class:`~sim_core.ti_kernels.buffers.DeviceHessianBlocks` (blocks left on the device).
             free: the free-DoF mask, ``(3 N,)`` bool.
         """
         out = cls.__new__(cls)
-        out.sets = [(np.ascontiguousarray(b.vertices, dtype=np.int32), np.ascontiguousarray(b.blocks, dtype=np.float64))
+        out.sets = [(np.ascontiguousarray(b.vertices, dtype=np.int32),
+                     b.blocks if isinstance(b, DeviceHessianBlocks) else np.ascontiguousarray(b.blocks, dtype=np.float64))
                     for b in element_blocks if np.shape(b.vertices)[0]]
         out.free = np.asarray(free, dtype=bool)
         out.count = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in out.sets)
@@ -360,6 +382,8 @@ class VertexBlocks:
             at = 0
             for v, blocks in self.sets:  # each set written once into its slice (no concatenation)
                 k, m = v.shape
+                if isinstance(blocks, DeviceRows):
+                    blocks = blocks.to_numpy()
                 part = slice(at, at + k * m * m)
                 rows[part].reshape(k, m, m)[...] = v[:, :, None]
                 cols[part].reshape(k, m, m)[...] = v[:, None, :]
@@ -490,10 +514,13 @@ class BatchedPCG:
             for s, (verts, vals) in enumerate(blocks.sets):
                 k, m = verts.shape
                 verts_dev = self._array(f"element_vertices_{s}", verts.size, ti.i32)
-                vals_dev = self._array(f"element_blocks_{s}", vals.size)
                 verts_dev.from_numpy(verts.reshape(-1))
-                vals_dev.from_numpy(vals.reshape(-1))
-                _expand_element_blocks(verts_dev, vals_dev, k, m, at, brow, bcol, bval)
+                if isinstance(vals, DeviceRows):  # already on the device: no transfer
+                    _expand_device_rows(verts_dev, vals.array, vals.start, k, m, at, brow, bcol, bval)
+                else:
+                    vals_dev = self._array(f"element_blocks_{s}", vals.size)
+                    vals_dev.from_numpy(vals.reshape(-1))
+                    _expand_element_blocks(verts_dev, vals_dev, k, m, at, brow, bcol, bval)
                 at += k * m * m
         elif self._nblocks:
             brow.from_numpy(np.ascontiguousarray(blocks.rows))

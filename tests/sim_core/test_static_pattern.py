@@ -84,3 +84,50 @@ def test_slot_map_of_elements_outside_the_pattern_is_refused(mask):
         pattern.slot_map(np.array([[1, 7]]))
     with pytest.raises(ValueError, match="outside the pattern"):
         pattern.slot_map(np.array([[12]]))
+
+
+def _assert_slots_of_definition(pattern: StaticPattern, v: np.ndarray, free: np.ndarray) -> None:
+    """Every entry of ``pattern.slot_map(v)`` is the position of its key, or -1 where not kept."""
+    n = free.size
+    k, m = v.shape
+    slots = pattern.slot_map(v)
+    assert slots.shape == (k, 3 * m, 3 * m) and slots.dtype == np.int32
+    dofs = (3 * v[:, :, None] + np.arange(3)).reshape(k, 3 * m)
+    rows, cols = dofs[:, :, None] + 0 * dofs[:, None, :], dofs[:, None, :] + 0 * dofs[:, :, None]
+    kept = ((rows < cols) & free[rows] & free[cols]) | (rows == cols)
+    np.testing.assert_array_equal(slots[~kept], -1)
+    np.testing.assert_array_equal(pattern.keys[slots[kept]], (rows * n + cols)[kept])
+
+
+@pytest.mark.parametrize("held", [None, 2])
+def test_slot_maps_of_translated_copies_are_the_first_copy_moved_and_those_of_the_definition(held):
+    """Element arrays of five stacked copies of one scene (body-major: each body's copies one after the other,
+    as sim_core.batch.stacked lays them out): the slot map is made from the first copy's chunk and moved
+    (StaticPattern._translated_chunks finds the run of chunks), and equals the definition; a copy with another
+    free mask (a held copy) ends the run, and the map of the rest, made element by element, still equals it;
+    an array of two bodies' copies is two runs."""
+    rng = np.random.default_rng(8)
+    copies, per_copy = 5, (14, 9)  # two bodies: vertices per copy
+    base = _elements(rng, per_copy[0])[:5] + [rng.integers(0, per_copy[1], size=(7, 3))]
+    body_of = [0, 0, 0, 0, 0, 1]
+    start = (0, copies * per_copy[0])  # each body's first stacked vertex
+    arrays = [np.concatenate([b + start[body] + i * per_copy[body] for i in range(copies)])
+              for b, body in zip(base, body_of)]
+    vertex_count = copies * sum(per_copy)
+    vertex_free = np.ones(vertex_count, dtype=bool)
+    for body in (0, 1):
+        fixed = rng.uniform(size=per_copy[body]) < 0.3
+        for i in range(copies):
+            vertex_free[start[body] + i * per_copy[body] + np.flatnonzero(fixed)] = False
+    if held is not None:
+        vertex_free[start[0] + held * per_copy[0]: start[0] + (held + 1) * per_copy[0]] = False
+    free = np.repeat(vertex_free, 3)
+    pattern = StaticPattern(arrays, free, free.size)
+    keys, _, _, _ = _definition(arrays, free)
+    np.testing.assert_array_equal(pattern.keys, keys)
+    for v, b, body in zip(arrays, base, body_of):
+        k0, offsets = pattern._translated_chunks(v)
+        assert k0 == len(b) and offsets.size == (held if held is not None and body == 0 else copies)
+        _assert_slots_of_definition(pattern, v, free)
+    _assert_slots_of_definition(pattern, np.concatenate([arrays[2], arrays[5]]), free)  # two bodies' runs
+    assert pattern._translated_chunks(np.array([[0, 1], [1, 2], [2, 3], [3, 4]])) is None  # chunks sharing vertices

@@ -44,7 +44,7 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import LaunchArrays, on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.workspace import workspace_of
 
@@ -180,6 +180,13 @@ class PairBatch:
     active ones: less data through the launch, where arrays cross to a GPU and back) or one (all pairs);
     None: two on CUDA. The results are the same."""
 
+    device_hessian: bool | None = None
+    """Derivatives of the known active pairs (the second launch of :attr:`two_pass`) written into a new Taichi
+    ndarray that stays where the kernel ran, each potential keeping its rows as
+    :class:`~sim_core.ti_kernels.buffers.DeviceRows` (the batched CG expands them there; the host reads them
+    only when asked), instead of host arrays that cross to the device and back at the launch; None: on CUDA.
+    The values are the same."""
+
     def __init__(self, vt, ee) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
@@ -233,6 +240,8 @@ class PairBatch:
             parts = (slice(0, self.split), slice(self.split, len(rows)))
         m = len(rows)
         d, region, grad, hess = work_arrays(m)
+        device_hessian = ((current_arch() == "cuda" if self.device_hessian is None else self.device_hessian)
+                          and derivatives and kept[0] is not None and m > 0)
         stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
         n = x.shape[0]
         gradients = _ARRAYS.rows("gradients", 2 * n, (3,))
@@ -254,14 +263,20 @@ class PairBatch:
             else:
                 x_arg, vertices_arg, sides_arg, rows_arg = _ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows
                 z = _ARRAYS.rows("z", m, (4, 3))
+            if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
+                grad_arg = ti.ndarray(ti.f64, shape=(m, 12))
+                hess_arg = ti.ndarray(ti.f64, shape=(m, 12, 12))
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
                 gradients[: 2 * n] = gradients_arg.to_numpy()[: 2 * n]
+            if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
+                grad[:m] = grad_arg.to_numpy()
         else:
             gradients[: 2 * n] = 0.0
         order = 2 if derivatives else 0
+        shared: dict = {}  # the device Hessian's host copy, downloaded once for both potentials if asked
         for kind, (pot, part, known, stiffness) in enumerate(zip(pots, parts, kept, stiffnesses)):
             if pot._kept(key, order) is not None:
                 continue
@@ -273,7 +288,10 @@ class PairBatch:
             # copies: the kernel's arrays are overwritten by the next evaluation
             dk = d[rows].copy() if known is not None else d[rows]
             if derivatives:
-                g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
+                if device_hessian:  # the rows are the slice ``part`` of the launch's rows
+                    g, h = grad[rows].copy(), DeviceRows(hess_arg, rows.start, rows.stop, shared)
+                else:
+                    g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
                     order, key, active, dd, pot.eps, (stiffness, h), (stiffness, gradients[kind * n:(kind + 1) * n].copy())))

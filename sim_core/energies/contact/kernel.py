@@ -21,6 +21,7 @@ from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as contact_distance, setup_kernel as contact_setup
 from sim_core.energies.contact.reference import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
+from sim_core.ti_kernels.buffers import DeviceHessianBlocks
 from sim_core.workspace import workspace_of
 
 
@@ -43,6 +44,19 @@ class _Batched:
         derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
         kept = self._kept(positions_key(x), order)
         return None if kept is None else (kept.active, kept.dd)
+
+    def hessian_on_device(self, x: np.ndarray) -> DeviceHessianBlocks | None:
+        """The unprojected Hessian blocks of the active pairs at ``x`` ``(n, 3)`` (capability
+        :class:`~sim_core.energies.base.DeviceHessian`) when the pair batch kept them on the device
+        (:attr:`~sim_core.energies.contact.batch_kernel.PairBatch.device_hessian`), else None."""
+        if self._batch is None:
+            return None
+        evaluation = self._evaluation(x, 2)
+        blocks = evaluation.hessian_blocks
+        if (evaluation.active.size == 0 or blocks is None or blocks[0] != self.stiffness
+                or isinstance(blocks[1], np.ndarray)):
+            return None
+        return DeviceHessianBlocks(evaluation.active_vertices(self.vertices), blocks[1])
 
     def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
         if self._batch is None:

@@ -113,7 +113,8 @@ class PairEvaluation:
         hessian_blocks: None, or ``(k_c, blocks)``: the penalty Hessians
             ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs for stiffness ``k_c``
             (N/m), ``(a, 12, 12)``, made with the distances (the batch kernel of
-            :mod:`sim_core.energies.contact.batch_kernel`).
+            :mod:`sim_core.energies.contact.batch_kernel`): a NumPy array, or
+            :class:`~sim_core.ti_kernels.buffers.DeviceRows` kept where the kernel wrote them.
         gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, ``(n, 3)``
             (N), summed as :meth:`gradient` sums it (the batch kernel).
     """
@@ -167,6 +168,8 @@ class PairEvaluation:
         """
         blocks = self.hessian_blocks
         if blocks is not None and blocks[0] == stiffness:
+            if not isinstance(blocks[1], np.ndarray):  # kept on the device (DeviceRows): read here
+                return blocks[1].to_numpy()
             view = blocks[1].view()
             view.flags.writeable = False
             return view

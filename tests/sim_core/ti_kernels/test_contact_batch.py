@@ -163,3 +163,56 @@ def test_two_pass_derivatives_equal_the_one_pass_bit_for_bit(ti_cpu, monkeypatch
     total = len(linked[0].pairs) + len(linked[1].pairs)
     active = sum(int(np.count_nonzero(p.active_mask(y))) for p in linked)
     assert calls == [(False, total), (True, active)]
+
+
+def test_hessians_kept_on_the_device_are_the_host_ones_and_give_the_same_vertex_blocks(ti_cpu, monkeypatch):
+    """With ``PairBatch.device_hessian`` the penalty Hessians stay in the kernel's ndarray: read back they equal
+    the host path's bit for bit, and the batched CG's product of the vertex blocks expanded from them on the
+    device equals the product of the blocks expanded from the host copies (to round-off: sums by atomic adds,
+    in no fixed order on a parallel arch, as the per-vertex gradient sums)."""
+    from sim_core.energies.base import DeviceHessian, declares
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_kernels.buffers import DeviceHessianBlocks
+    from sim_core.ti_kernels.pcg import BatchedPCG, VertexBlocks
+
+    x, linked, alone = _potentials()
+    y = x + 0.1 * EPS * np.random.default_rng(22).normal(size=x.shape)
+    PairBatch(*alone)
+    monkeypatch.setattr(PairBatch, "two_pass", True)  # the derivatives of known active pairs: the device path
+    expected = []
+    for pot in alone:
+        monkeypatch.setattr(PairBatch, "device_hessian", False)
+        expected.append((pot.gradient(y), pot.hessian(y, "none"), pot.hessian(y, "clamp")))
+        assert pot.hessian_on_device(y) is None  # held on the host
+    monkeypatch.setattr(PairBatch, "device_hessian", True)
+    on_device = []
+    for pot, (grad, h_none, h_clamp) in zip(linked, expected):
+        assert declares(pot, DeviceHessian)
+        np.testing.assert_allclose(pot.gradient(y), grad, rtol=0, atol=1e-13 * np.abs(grad).max())
+        kept = pot.hessian_on_device(y)
+        assert isinstance(kept, DeviceHessianBlocks) and kept.blocks.shape == h_none.blocks.shape
+        np.testing.assert_array_equal(kept.vertices, h_none.vertices)
+        np.testing.assert_array_equal(kept.blocks.to_numpy(), h_none.blocks)
+        np.testing.assert_array_equal(pot.hessian(y, "none").blocks, h_none.blocks)
+        np.testing.assert_array_equal(pot.hessian(y, "clamp").blocks, h_clamp.blocks)
+        on_device.append(kept)
+    free = np.ones(x.size, dtype=bool)
+    free[::7] = False
+    from_device = VertexBlocks.from_element_blocks(on_device, free)
+    from_host = VertexBlocks.from_element_blocks([e[1] for e in expected], free)
+    np.testing.assert_array_equal(from_device.values, from_host.values)
+    p = np.random.default_rng(23).normal(size=x.size)
+    products = []
+    for blocks in (from_device, from_host):
+        solver = BatchedPCG()
+        solver.factorize(sp_identity(x.size), blocks)
+        products.append(solver.matvec(p))
+    assert np.abs(products[1] - p).max() > 0  # the contact blocks take part
+    np.testing.assert_allclose(products[0], products[1], rtol=0, atol=1e-13 * np.abs(products[1]).max())
+
+
+def sp_identity(n: int):
+    """The identity as a CSR upper triangle."""
+    import scipy.sparse as sp
+
+    return sp.identity(n, format="csr")

@@ -6,6 +6,7 @@ product and in its block-Jacobi preconditioner, with the exact and with the proj
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from sim_core.batch import BatchedSimulation
@@ -70,7 +71,14 @@ def test_vertex_blocks_product_is_the_assembled_element_blocks_product(ti_cpu):
         _assert_block_jacobi(solver, want)
 
 
-def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu):
+@pytest.mark.parametrize("device_hessian", [False, True])
+def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu, monkeypatch, device_hessian):
+    """With ``device_hessian`` the exact contact Hessians reach the CG without leaving the kernel's ndarray."""
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_kernels.buffers import DeviceRows
+
+    monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
+    monkeypatch.setattr(PairBatch, "device_hessian", device_hessian)
     model = pad_model()
     config = SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True, linear_solver="pcg")
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model), solver_config=config)
@@ -87,8 +95,9 @@ def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu):
     assert step.fused is not None
     rng = np.random.default_rng(1)
     for projection in ("none", "clamp"):
-        assembled = _full(solver._assemble_hessian(step, x, projection, dynamic))
         upper, blocks, diagonal = solver._device_operator(step, x, projection, dynamic)
+        assert any(isinstance(v, DeviceRows) for _, v in blocks.sets) == (device_hessian and projection == "none")
+        assembled = _full(solver._assemble_hessian(step, x, projection, dynamic))
         assert blocks.rows.size > 0  # contact and friction blocks take part
         solver.pcg.factorize(upper, blocks, diagonal)
         scale = abs(assembled).max()

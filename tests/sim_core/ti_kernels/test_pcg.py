@@ -105,7 +105,13 @@ def test_values_on_the_device_and_the_diagonal_added_there_give_the_matrix_with_
     np.testing.assert_array_equal(device_values.to_numpy()[: upper.nnz], upper.data)
 
 
-def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu):
+@pytest.mark.parametrize("device_hessian", [False, True])
+def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian):
+    """With ``device_hessian`` (CUDA's default) the CG takes the contact Hessians from the pair kernel's ndarray."""
+    from sim_core.energies.contact.batch_kernel import PairBatch
+
+    monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
+    monkeypatch.setattr(PairBatch, "device_hessian", device_hessian)
     model = pad_model()
     steps = 2
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
