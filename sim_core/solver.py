@@ -454,7 +454,8 @@ class NewtonSolver:
         x_n = state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
-            carry_driven_bodies(model, x_n, state_in.effector_pose, state_in.gripper_opening, poses, openings, fixed, x)
+            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
+                                openings, fixed, x_target, x)
         x[fixed] = x_target[fixed]
         x_hat = x_n + dt * state_in.v
         mass = self.vertex_mass

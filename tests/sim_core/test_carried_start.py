@@ -36,7 +36,7 @@ def test_the_pad_is_carried_rigidly_onto_its_driven_targets_and_nothing_else_mov
     pose1[3:] = quat_multiply(quat_from_rotvec(np.array([0.01, -0.02, 0.015])), pose0[3:])
     fixed = np.zeros(len(state.x), dtype=bool)
     x = state.x.copy()
-    moved = carry_driven_bodies(model, state.x, state.effector_pose, {}, {"ee": pose1}, {}, fixed, x)
+    moved = carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {}, fixed, state.x, x)
     assert moved == [gel.name]
     # the map is the effector's own: its driven vertices land on their targets
     np.testing.assert_allclose(x[eff.vertices], driven_positions(eff, pose1, eff.initial_opening), atol=1e-15)
@@ -50,29 +50,55 @@ def test_the_pad_is_carried_rigidly_onto_its_driven_targets_and_nothing_else_mov
     held = fixed.copy()
     held[g[:10]] = True
     x2 = state.x.copy()
-    carry_driven_bodies(model, state.x, state.effector_pose, {}, {"ee": pose1}, {}, held, x2)
+    carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {}, held, state.x, x2)
     assert np.array_equal(x2[g[:10]], state.x[g[:10]]) and np.array_equal(x2[g[10:]], x[g[10:]])
     x3 = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.effector_pose, {}, state.effector_pose, {}, fixed, x3) == []
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, state.effector_pose, {}, fixed, state.x, x3) == []
     assert np.array_equal(x3, state.x)
 
 
+def _lifted(model, state, body: str, effector: str, dz: float):
+    """``state`` with ``body`` and ``effector`` moved by ``dz`` (m) along world z."""
+    b = model.bodies[body]
+    state.x[b.vertex_start:b.vertex_stop, 2] += dz
+    state.effector_pose[effector] = np.array(state.effector_pose[effector], dtype=float)
+    state.effector_pose[effector][2] += dz
+    return state
+
+
+def test_a_pad_within_contact_reach_is_not_carried():
+    """The bundled pad hangs 3.85 mm above the card: lowered by 3 mm it is within the contact search
+    radius (1.4 mm) of the card, and its step starts at x^n."""
+    model = load_scene(SCENES / "press_slide.yaml")
+    gel = model.sensors["tactile"].gel_body
+    fixed = np.zeros(model.vertex_count, dtype=bool)
+    for dz, carried in ((0.0, [gel]), (-3e-3, [])):
+        state = _lifted(model, model.state(), gel, "ee", dz)
+        pose1 = np.array(state.effector_pose["ee"], dtype=float)
+        pose1[2] -= 2e-4
+        x = state.x.copy()
+        assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {},
+                                   fixed, state.x, x) == carried
+        assert np.array_equal(x, state.x) == (not carried)
+
+
 def test_a_gripper_holding_both_fingers_is_carried_only_while_its_opening_is_held():
+    """The interact scene's gripper lifted 5 cm clear of the card and the table."""
     model = load_scene(SCENES / "interact.yaml")
-    state = model.state()
+    state = _lifted(model, model.state(), "gripper", "gripper", 0.05)
     eff = model.effectors["gripper"]
     pose1 = np.array(state.effector_pose["gripper"], dtype=float)
     pose1[:3] += [1e-3, 0.0, 5e-4]
     fixed = np.zeros(len(state.x), dtype=bool)
     x = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.effector_pose, state.gripper_opening, {"gripper": pose1},
-                               dict(state.gripper_opening), fixed, x) == ["gripper"]
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening, {"gripper": pose1},
+                               dict(state.gripper_opening), fixed, state.x, x) == ["gripper"]
     opening = float(state.gripper_opening.get("gripper", eff.initial_opening))
     np.testing.assert_allclose(x[eff.vertices], driven_positions(eff, pose1, opening), atol=1e-15)
     # closing the fingers is not one rigid motion of the body: the start stays x^n
     x = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.effector_pose, state.gripper_opening, {"gripper": pose1},
-                               {"gripper": opening - 1e-3}, fixed, x) == []
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening, {"gripper": pose1},
+                               {"gripper": opening - 1e-3}, fixed, state.x, x) == []
     assert np.array_equal(x, state.x)
 
 
