@@ -131,11 +131,11 @@ class SolverConfig:
             (:func:`sim_core.adjoint.rollout_step` refuses it), nor with ``lockstep``.
         sleep_velocity: the rest threshold of ``sleeping``, m/s (> 0; 1e-7 m/s = 0.5 nm per 5 ms step).
         carried_start: start each step's Newton iterations with the free vertices of every solid an
-            effector drives (a tactile pad) moved by the effector's rigid motion over the step
-            (:mod:`sim_core.carried_start`) instead of at ``x^n``: the step minimises the same
-            potential, and its accepted iterate differs by less than ``tol_velocity * dt`` per step
-            from the one reached from ``x^n`` (the bundled scene's pad moved 0.2 mm in the air: 1
-            Newton iteration instead of 3). Off by default (the benchmarks' and the replays' steps
+            effector drives (a tactile pad) and that is clear of contact reach moved by the effector's
+            rigid motion over the step (:mod:`sim_core.carried_start`) instead of at ``x^n``: the step
+            minimises the same potential, and its accepted iterate differs by less than
+            ``tol_velocity * dt`` per step from the one reached from ``x^n`` (the bundled scene's pad
+            moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks' and the replays' steps
             are those from ``x^n``); the sim node turns it on. Not with ``lockstep``; ignored with
             a position guess (``Control.position_guess``).
     """
