@@ -14,7 +14,10 @@ one machine). The client is :func:`thinshell_ros.bench_node.measure_node`. Per p
   Newton solve);
 - ``publish``: the start of the outputs to the pose's publication;
 - ``back``: the pose's publication to its arrival in the client (DDS out, the client's turn);
-- ``busy_at_send``: wall ms of the step in progress when the probe was published (0: none).
+- ``busy_at_send``: wall ms of the step in progress when the probe was published (0: none);
+- ``step_cpu``: CPU ms of the node's thread in the probe's whole ``advance`` (commands, solve, every
+  output), ``time.thread_time``: what the step costs, apart from the machine's load;
+- ``busy_cpu``: CPU ms of the step in progress when the probe was published (0: none).
 
 Writes ``OUT.json`` (the bench result, the rows, the node's events) and prints the rows.
 """
@@ -37,8 +40,9 @@ from thinshell_ros.sim_node import EXECUTORS, SimNode
 
 class TracedSimNode(SimNode):
     """The sim node with a trace: ``events`` of ``[name, monotonic s, value]``, names ``command``
-    (value: handled inside a step), ``advance`` / ``advanced`` (a step's start and end), ``outputs``
-    (its outputs start) and ``pose`` (value: the published z, m)."""
+    (value: handled inside a step), ``advance`` / ``advanced`` (a step's start and end; value: the
+    node thread's CPU time, ``time.thread_time`` s), ``outputs`` (its outputs start) and ``pose``
+    (value: the published z, m)."""
 
     def __init__(self, **kwargs: Any) -> None:
         self.events: list[list[Any]] = []
@@ -49,11 +53,11 @@ class TracedSimNode(SimNode):
         super()._step_for_command()
 
     def advance(self) -> bool:
-        self.events.append(["advance", time.monotonic(), None])
+        self.events.append(["advance", time.monotonic(), time.thread_time()])
         try:
             return super().advance()
         finally:
-            self.events.append(["advanced", time.monotonic(), None])
+            self.events.append(["advanced", time.monotonic(), time.thread_time()])
 
     def publish_outputs(self, force: bool = False) -> None:
         self.events.append(["outputs", time.monotonic(), None])
@@ -82,15 +86,16 @@ def run_node(events_path: Path, ros_args: Sequence[str]) -> int:
 
 def probe_rows(probes: list[list[Any]], events: list[list[Any]]) -> list[dict[str, float]]:
     """Per probe ``[sent, received, z]`` (client), the node's events -> the latency split (ms)."""
-    steps = []  # (start, outputs, end) of each advance
-    start = outputs = None
-    for name, t, _ in events:
+    steps = []  # (start, outputs, end, CPU s) of each advance
+    start = outputs = cpu = None
+    for name, t, value in events:
         if name == "advance":
-            start, outputs = t, None
+            start, outputs, cpu = t, None, value
         elif name == "outputs" and start is not None:
             outputs = t
         elif name == "advanced" and start is not None:
-            steps.append((start, outputs if outputs is not None else t, t))
+            steps.append((start, outputs if outputs is not None else t, t,
+                          value - cpu if value is not None and cpu is not None else float("nan")))
             start = None
     rows = []
     for sent, received, z in probes:
@@ -102,11 +107,12 @@ def probe_rows(probes: list[list[Any]], events: list[list[Any]]) -> list[dict[st
         own = [s for s in steps if s[1] <= pose_t <= s[2]]
         if not own:
             continue
-        s0, s1, _ = own[-1]
+        s0, s1, _, cpu = own[-1]
         busy = [s for s in steps if s[0] <= sent < s[2]]
         rows.append({"latency": 1e3 * (received - sent), "wait": 1e3 * (s0 - sent), "step": 1e3 * (s1 - s0),
                      "publish": 1e3 * (pose_t - s1), "back": 1e3 * (received - pose_t),
-                     "busy_at_send": 1e3 * (busy[0][2] - busy[0][0]) if busy else 0.0})
+                     "busy_at_send": 1e3 * (busy[0][2] - busy[0][0]) if busy else 0.0,
+                     "step_cpu": 1e3 * cpu, "busy_cpu": 1e3 * busy[0][3] if busy else 0.0})
     return rows
 
 
@@ -145,11 +151,14 @@ def main(argv: Sequence[str]) -> int:
     events_path.unlink()
     rows = probe_rows(result["probes_sent"], events)
     args.out.write_text(json.dumps({"result": result, "load": os.getloadavg()[0], "rows": rows, "events": events}))
-    print(" ".join(f"{k:>12}" for k in ("latency", "wait", "step", "publish", "back", "busy_at_send")))
+    columns = ("latency", "wait", "step", "publish", "back", "busy_at_send", "step_cpu", "busy_cpu")
+    print(" ".join(f"{k:>12}" for k in columns))
     for row in rows:
-        print(" ".join(f"{row[k]:12.2f}" for k in ("latency", "wait", "step", "publish", "back", "busy_at_send")))
+        print(" ".join(f"{row[k]:12.2f}" for k in columns))
     lat = np.array([r["latency"] for r in rows])
-    print(f"median {np.median(lat):.1f} ms, p95 {np.percentile(lat, 95):.1f} ms; load {os.getloadavg()[0]:.2f}")
+    cpu = np.array([r["step_cpu"] for r in rows])
+    print(f"median {np.median(lat):.1f} ms, p95 {np.percentile(lat, 95):.1f} ms; the probes' advance CPU median "
+          f"{np.median(cpu):.2f} ms, p95 {np.percentile(cpu, 95):.2f} ms; load {os.getloadavg()[0]:.2f}")
     return 0
 
 

@@ -29,7 +29,8 @@ import scipy.sparse as sp
 
 from sim_core.assembly import HessianAssembler
 from sim_core.backend import resolve_backend, uses_taichi
-from sim_core.candidates.hook import CandidateHook, StepHook
+from sim_core.candidates.hook import CandidateHook, StepHook, checked_hook
+from sim_core.carried_start import carry_driven_bodies
 from sim_core.contact_set import ContactSet, active_contacts, same_active_contacts
 from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
@@ -94,7 +95,7 @@ class NewtonSolver:
         self.workspace = Workspace()
         self.contact = ContactSet(model, backend=self.backend, workspace=self.workspace)
         self._revision = -1
-        self._hook = _checked_hook(hook)
+        self._hook = checked_hook(hook)
         self.step_hook: StepHook | None = None
         # Optional worker process for the largest fused elastic term (sim_core.elastic_worker), None = off.
         self.elastic_worker = None
@@ -153,7 +154,7 @@ class NewtonSolver:
             ConfigError: ``hook`` is not a :class:`~sim_core.candidates.hook.StepHook`, or the model
                 has candidate parameters (one source of extra terms at a time).
         """
-        self._hook = _checked_hook(hook)
+        self._hook = checked_hook(hook)
         self.step_hook = self._resolve_hook()
         self._fixed_point = None
         self._sleep.wake_all()
@@ -452,6 +453,9 @@ class NewtonSolver:
         free = np.repeat(~fixed, 3)
         x_n = state_in.x
         x = x_n.copy() if guess is None else guess.copy()
+        if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
+            carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
+                                openings, fixed, x_target, x)
         x[fixed] = x_target[fixed]
         x_hat = x_n + dt * state_in.v
         mass = self.vertex_mass
@@ -784,15 +788,3 @@ class NewtonSolver:
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
         if self.step_hook is not None:
             state_out.candidate_state = self.step_hook.update_state(model, state_in, x, dt, self.elastic)
-
-
-def _checked_hook(hook: StepHook | None) -> StepHook | None:
-    """``hook`` if it is None or a :class:`StepHook`.
-
-    Raises:
-        ConfigError: it is neither (names its type and the missing methods).
-    """
-    if hook is None or isinstance(hook, StepHook):
-        return hook
-    missing = [m for m in ("terms", "update_state") if not callable(getattr(hook, m, None))]
-    raise ConfigError(f"NewtonSolver: hook {type(hook).__name__} is not a StepHook (missing {', '.join(missing)})")

@@ -130,6 +130,14 @@ class SolverConfig:
             a sleeping step's ``StepRecord`` holds the body as Dirichlet and lacks its elastic terms
             (:func:`sim_core.adjoint.rollout_step` refuses it), nor with ``lockstep``.
         sleep_velocity: the rest threshold of ``sleeping``, m/s (> 0; 1e-7 m/s = 0.5 nm per 5 ms step).
+        carried_start: start each step's Newton iterations with the free vertices of every solid an
+            effector drives (a tactile pad) and that is clear of contact reach moved by the effector's
+            rigid motion over the step (:mod:`sim_core.carried_start`) instead of at ``x^n``: the step
+            minimises the same potential, and its accepted iterate differs by less than
+            ``tol_velocity * dt`` per step from the one reached from ``x^n`` (the bundled scene's pad
+            moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks' and the replays' steps
+            are those from ``x^n``); the sim node turns it on. Not with ``lockstep``; ignored with
+            a position guess (``Control.position_guess``).
     """
 
     tol_velocity: float = 1e-4
@@ -154,6 +162,7 @@ class SolverConfig:
     repeat_fixed_points: bool = False
     sleeping: bool = False
     sleep_velocity: float = 1e-7
+    carried_start: bool = False
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
@@ -173,6 +182,8 @@ class SolverConfig:
             raise ConfigError(f"solver stationary_slope_rtol must be a finite number >= 0, got {self.stationary_slope_rtol!r}")
         if not (np.isfinite(self.sleep_velocity) and self.sleep_velocity > 0.0):
             raise ConfigError(f"solver sleep_velocity must be a finite number > 0 m/s, got {self.sleep_velocity!r}")
+        if self.carried_start and self.lockstep:
+            raise ConfigError("solver carried_start is not available with lockstep (a lockstep batch starts every copy at x^n)")
         if self.sleeping and self.lockstep:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
         if self.dt_halvings_on_failure < 0:

@@ -9,8 +9,9 @@ steps that are due back to back (after a step slower than ``dt`` the rest wait f
 a scene whose steps take less than ``dt`` on average runs at a real-time factor of 1 however they
 are spread; and a command that arrives
 between ticks may start its step at once when that step would be due within one ``dt``
-(:meth:`RealtimePacer.may_start`): simulated time then runs at most one step ahead of wall time,
-and the command does not wait for the next tick. A lag beyond ``max_lag`` (the solver slower than
+(:meth:`RealtimePacer.may_start`), or else as soon as it would be (:meth:`RealtimePacer.start_time`):
+simulated time then runs at most one step ahead of wall time, and the command does not wait for the
+next tick. A lag beyond ``max_lag`` (the solver slower than
 real time for a while) is dropped, not caught up: the node then runs slower than real time, as the
 mode's documentation says, instead of racing to make up seconds.
 
@@ -69,10 +70,15 @@ class RealtimePacer:
         """Whether the next step is due at wall time ``now`` (s, a monotonic clock)."""
         return now >= self._next_due(now)
 
+    def start_time(self, now: float) -> float:
+        """Wall time (s) from which the next step may start for a new command (:meth:`may_start`): one
+        ``dt`` before it is due (the schedule as it stands at ``now``)."""
+        return self._next_due(now) - self.dt
+
     def may_start(self, now: float) -> bool:
         """Whether the next step may start at ``now`` (s) for a new command: due, or due within one
         ``dt`` (simulated time then stays at most one step ahead of wall time)."""
-        return now >= self._next_due(now) - self.dt
+        return now >= self.start_time(now)
 
     def stepped(self) -> None:
         """Count a step taken (the next one is due ``dt`` after this one's due time)."""

@@ -10,7 +10,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   solver repeats a fixed point (``SolverConfig.repeat_fixed_points``): while the scene rests, a step
   whose inputs equal the last one's takes its result instead of a Newton solve; and it lets a body at
   rest that nothing moving can reach sleep (``SolverConfig.sleeping``, :mod:`sim_core.sleeping`: the
-  card while the pad moves above it), held out of the Newton system until something could change it.
+  card while the pad moves above it), held out of the Newton system until something could change it;
+  and it starts each step's Newton iterations with the pad carried by its effector's motion over
+  the step (``SolverConfig.carried_start``, :mod:`sim_core.carried_start`: a move of the pad in the
+  air takes 1 Newton iteration instead of 3; the result differs within the Newton tolerance).
 - ``settle_steps_max`` (int, default :data:`DEFAULT_SETTLE_STEPS_MAX`): at start-up and after
   ``~/reset``, before the clock starts and before the first output, the scene is stepped under zero
   commands until it is at rest (:func:`sim_core.settle.settle`: the Newton tolerance tightened below
@@ -26,7 +29,8 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
   slower: steps are counted against the wall clock, :class:`thinshell_ros.pacing.RealtimePacer`; a
   tick of the timer takes the due steps back to back until one takes a ``dt`` or more, so the steps
   a late tick missed are taken, a lag over :data:`REALTIME_MAX_LAG` is dropped, and a command that
-  arrives between two steps starts its step at once when it would be due within one ``dt``),
+  arrives between two steps starts its step at once when it would be due within one ``dt``, else as
+  soon as it would be, not at the timer's next tick),
   ``fast`` (steps back to back), ``stepped`` (only the ``~/step`` service steps).
 - ``rate`` (Hz, sim time): publication rate of the sensor outputs; 0 publishes after every step.
   ``/clock`` is published after every step.
@@ -61,7 +65,10 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
 :data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
 (:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
-controls the step.
+controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
+the commands it took; a command that arrives during a step is taken by the next one, which in
+``realtime`` mode starts as soon as the step in progress has ended and the schedule lets it (at most
+one step ahead of the wall clock).
 
 Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
 Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
@@ -85,7 +92,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import InvalidHandle
@@ -106,6 +113,7 @@ from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
 from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
+from thinshell_ros.node_status import settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
@@ -139,68 +147,6 @@ MAX_CONSECUTIVE_FAILURES = 3
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 """Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
-
-
-def settle_status(name: str, info: SettleInfo) -> DiagnosticStatus:
-    """The diagnostic status of a start-up settling (:func:`sim_core.settle.settle`): ``OK`` when the
-    scene settled, else ``WARN``; the message is :meth:`SettleInfo.describe`, the values ``settled``,
-    ``steps``, ``max_steps``, ``residual_velocity`` (m/s), ``displacement`` (m), ``sleeping`` and
-    ``awake`` (names comma-separated) and ``reason``."""
-    status = DiagnosticStatus(name=name, hardware_id="thinshell", message=info.describe(),
-                              level=DiagnosticStatus.OK if info.settled else DiagnosticStatus.WARN)
-    values = {"settled": str(info.settled).lower(), "steps": str(info.steps), "max_steps": str(info.max_steps),
-              "residual_velocity": f"{info.residual_velocity:.6g}", "displacement": f"{info.displacement:.6g}",
-              "sleeping": ",".join(info.sleeping), "awake": ",".join(info.awake), "reason": info.reason}
-    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-    return status
-
-
-def solver_status(name: str, t: float, info: StepInfo | None = None, error: str | None = None) -> DiagnosticStatus:
-    """The solver's diagnostic status for the step that started at sim time ``t`` (s).
-
-    Args:
-        name: status name.
-        t: sim time at the start of the step, s.
-        info: how the step ended (None for a failed step).
-        error: the failure's message (``ERROR`` status), or None.
-
-    Returns:
-        ``ERROR`` with ``error``; ``WARN`` when ``info.needs_attention`` (accepted above the strict
-        tolerance or retried in substeps); else ``OK``. Values: ``t``, and from ``info`` the stopping
-        test, residual, accepted tolerance, iterations, substeps, retries, relaxed acceptances,
-        stalled acceptances, line-search failures, whether the step repeated a fixed point, and the
-        sleeping bodies (``sleeping``: held during the step; ``fell_asleep``: after it; ``woken``: at it;
-        ``wake_redos``: solves redone after a sleeping body was reached; names comma-separated).
-    """
-    status = DiagnosticStatus(name=name, hardware_id="thinshell")
-    values = {"t": f"{t:.6f}"}
-    if error is not None:
-        status.level, status.message = DiagnosticStatus.ERROR, f"step failed: {error}"
-    else:
-        if not info.converged_strict:
-            status.level = DiagnosticStatus.WARN
-            status.message = (f"step accepted at a relaxed tolerance ({info.stop_reason}, "
-                              f"{info.accepted_tolerance:g} m/s)")
-        elif info.retries:
-            status.level = DiagnosticStatus.WARN
-            status.message = f"step converged after {info.retries} substep retries ({info.substeps} substeps)"
-        else:
-            status.level, status.message = DiagnosticStatus.OK, "converged"
-            changes = [f"{what}: {', '.join(names)}" for what, names in
-                       (("fell asleep", info.fell_asleep), ("woken", info.woken)) if names]
-            if changes:
-                status.message += " (" + "; ".join(changes) + ")"
-        values.update({
-            "stop_reason": info.stop_reason, "residual_velocity": f"{info.residual_velocity:.6g}",
-            "accepted_tolerance": f"{info.accepted_tolerance:.6g}", "iterations": str(info.iterations),
-            "substeps": str(info.substeps), "retries": str(info.retries),
-            "relaxed_accepts": str(info.relaxed_accepts), "stalled_accepts": str(info.stalled_accepts),
-            "line_search_failures": str(info.line_search_failures), "repeated": str(info.repeated).lower(),
-            "sleeping": ",".join(info.sleeping), "fell_asleep": ",".join(info.fell_asleep),
-            "woken": ",".join(info.woken), "wake_redos": str(info.wake_redos),
-        })
-    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-    return status
 
 
 class SimNode(Node):
@@ -268,10 +214,11 @@ class SimNode(Node):
         check_backend(backend, "node parameter 'backend'")
         sim_built = sim is None
         if sim is None:
-            # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated)
-            # and a resting body nothing moving can reach sleeps (StepInfo.sleeping)
+            # a scene at rest repeats its fixed point instead of solving it again (StepInfo.repeated),
+            # a resting body nothing moving can reach sleeps (StepInfo.sleeping), and a step starts
+            # with the pad carried by its effector (sim_core.carried_start)
             sim = Simulation.from_scene(self.scene_path, solver_config=SolverConfig(
-                backend=backend, repeat_fixed_points=True, sleeping=True))
+                backend=backend, repeat_fixed_points=True, sleeping=True, carried_start=True))
             # the solver's per-model structures (the fused evaluators and patterns, awake and with the
             # resting bodies asleep) now, not in the first steps that need them
             sim.warm_up()
@@ -301,6 +248,7 @@ class SimNode(Node):
         self._warned_topics: set[str] = set()
         self._steps = 0
         self._advancing = False  # inside advance(): a command taken there does not start a step
+        self._command_timer = None  # realtime: the one-shot wake-up of a command waiting for its step
         self._pacer = RealtimePacer(self.dt, REALTIME_MAX_LAG)
         self._wall_clock = wall_clock
         self._wall0 = time.monotonic()
@@ -333,6 +281,10 @@ class SimNode(Node):
         self.create_service(Trigger, "~/step", self._on_step)
         if self.mode != "stepped":
             self.create_timer(self.dt if self.mode == "realtime" else 0.0, self._on_timer)
+        # realtime: wakes the node when a command that arrived one step ahead of the schedule may start
+        # its step (_step_for_command); idle otherwise
+        self._command_timer = self.create_timer(self.dt, self._on_command_due, autostart=False) \
+            if self.mode == "realtime" else None
         self.create_timer(0.2, self._clock_heartbeat)
         self.create_timer(1.0, self._check_graph)
         self.create_timer(5.0, self._log_progress)
@@ -460,12 +412,24 @@ class SimNode(Node):
 
     def _step_for_command(self) -> None:
         """In ``realtime`` mode, running and not inside a step: take the next step now when the
-        schedule lets it start (:meth:`RealtimePacer.may_start`: due within one ``dt``), so that a
-        command does not wait for the next tick of the timer."""
-        if self.mode == "realtime" and not self.paused and not self._advancing and \
-                self._pacer.may_start(self._wall_clock()):
+        schedule lets it start (:meth:`RealtimePacer.may_start`: due within one ``dt``), else as soon
+        as it does (:meth:`RealtimePacer.start_time`, by a one-shot wake-up), so that a command does
+        not wait for the timer's tick at the step's due time (up to a ``dt`` later)."""
+        if self.mode != "realtime" or self.paused or self._advancing:
+            return
+        now = self._wall_clock()
+        if self._pacer.may_start(now):
             self._pacer.stepped()
             self.advance()
+            return
+        delay = max(self._pacer.start_time(now) - now, 1e-4)
+        self._command_timer.timer_period_ns = int(delay * 1e9)
+        self._command_timer.reset()
+
+    def _on_command_due(self) -> None:
+        """The one-shot wake-up of a command that waits for its step (:meth:`_step_for_command`)."""
+        self._command_timer.cancel()
+        self._step_for_command()
 
     def take_pending_commands(self) -> int:
         """Take every command message queued on the command subscriptions and handle it (record, submit).
@@ -509,6 +473,8 @@ class SimNode(Node):
     def advance(self) -> bool:
         """One simulation step with the current commands, then publish; returns whether it succeeded."""
         self._advancing = True
+        if self._command_timer is not None:
+            self._command_timer.cancel()  # this step applies every command handled so far
         try:
             return self._advance()
         finally:
@@ -647,9 +613,19 @@ class SimNode(Node):
         sigma = self.noise[key]
         return values if sigma == 0 else values + self._rng.normal(0.0, sigma, values.shape)
 
+    def _wanted(self, pub: Any) -> bool:
+        """Whether a message on ``pub`` is read by anyone: the recording, or a matched subscription."""
+        return (self.recorder is not None and not self.recorder.closed) or pub.get_subscription_count() > 0
+
     def publish_outputs(self, force: bool = False) -> None:
         """Publish ``/clock`` and, when due (``rate``) or ``force``, every sensor output: the effector
-        poses (the state's) first, then the tactile outputs and sheet points (:meth:`Simulation.observe`)."""
+        poses (the state's) first, then the tactile outputs and sheet points (:meth:`Simulation.observe`).
+
+        A sensor output is built only when it is read (:meth:`_wanted`: while recording, every one;
+        else those with a matched subscription, which is all DDS would deliver it to), and the
+        observation is read only when one of them is: with no subscriber to the markers, wrench,
+        image, points and mesh, a step publishes ``/clock`` and the poses only.
+        """
         t = float(self.sim.t)
         t_ns = cv.seconds_to_ns(t)
         try:
@@ -663,21 +639,33 @@ class SimNode(Node):
             # tactile observation is read: a command's pose does not wait for the sensor model
             for e, pose in self._measured_poses().items():
                 self._publish(self._pub_pose[e], cv.pose_to_msg(pose, t_ns, "world"), t_ns)
+            mesh_due = self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9)
+            tactile = {s: (self._wanted(self._pub_markers[s]), self._wanted(self._pub_wrench[s]),
+                           self.publish_image and self._wanted(self._pub_image[s])) for s in self._pub_markers}
+            points, mesh = self._wanted(self._pub_points), mesh_due and self._wanted(self._pub_mesh)
+            if not (points or mesh or any(any(w) for w in tactile.values())):
+                return
             obs = self.sim.observe(render_image=self.publish_image) if self.publish_image else self.sim.observe()
             for s, reading in obs.tactile.items():
-                xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
-                wrench = np.asarray(reading.wrench, dtype=float)
-                wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
-                self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
-                self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
-                if self.publish_image and reading.image is not None:
+                markers, wrench_wanted, image = tactile.get(s, (False, False, False))
+                if markers:
+                    xyz, uv = self._noisy(reading.markers_xyz, "markers"), self._noisy(reading.markers_uv, "pixels")
+                    self._publish(self._pub_markers[s], cv.markers_to_msg(xyz, uv, t_ns, s), t_ns)
+                if wrench_wanted:
+                    wrench = np.asarray(reading.wrench, dtype=float)
+                    wrench = np.concatenate([self._noisy(wrench[:3], "force"), self._noisy(wrench[3:], "torque")])
+                    self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
+                if image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
             if len(obs.sheet_points):
-                self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns, "world"),
-                              t_ns)
-                if self.mesh_rate > 0 and (force or t >= self._next_mesh_t - 1e-9):
+                if points:
+                    self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns,
+                                                                     "world"), t_ns)
+                if mesh_due:
                     self._next_mesh_t = t + 1.0 / self.mesh_rate
-                    self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns), t_ns)
+                    if mesh:
+                        self._publish(self._pub_mesh, cv.mesh_to_marker(obs.sheet_points, obs.sheet_triangles, t_ns),
+                                      t_ns)
         except Exception as err:  # noqa: BLE001
             self.get_logger().error(f"publishing at t={t:.4f} s failed: {err}", throttle_duration_sec=1.0)
 

@@ -32,9 +32,10 @@ from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, 
 from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
 from sim_core.candidates.stiction import StictionFriction
 from sim_core.energies.hinge_bending.reference import DiscreteShellBending
+from sim_core.errors import ConfigError
 
 __all__ = ["ADHESION_REACH_FRACTION", "ADHESION_RELEASE_FRACTION", "CANDIDATE_NAMES", "CANDIDATE_SETTINGS",
-           "CandidateHook", "GelContactFace", "StepHook", "validate_candidate_parameters"]
+           "CandidateHook", "GelContactFace", "StepHook", "checked_hook", "validate_candidate_parameters"]
 
 ADHESION_RELEASE_FRACTION = 5.0
 """Default release opening of a bonded pair, in units of ``adhesion.delta``: at ``r = 5`` the
@@ -215,3 +216,15 @@ class CandidateHook:
             out[_STATE_KEY] = {name: relax_state(Fr[name], solid.deformation_gradient(x), dt, tau)
                                for name, solid in elastic.solids.items()}
         return out
+
+
+def checked_hook(hook: StepHook | None) -> StepHook | None:
+    """``hook`` if it is None or a :class:`StepHook`.
+
+    Raises:
+        ConfigError: it is neither (names its type and the missing methods).
+    """
+    if hook is None or isinstance(hook, StepHook):
+        return hook
+    missing = [m for m in ("terms", "update_state") if not callable(getattr(hook, m, None))]
+    raise ConfigError(f"NewtonSolver: hook {type(hook).__name__} is not a StepHook (missing {', '.join(missing)})")

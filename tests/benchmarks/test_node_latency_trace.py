@@ -1,6 +1,6 @@
 """The node latency trace (benchmarks/node_latency_trace.py): each probe's latency split into the wait,
-the step that applied it, the publication and the way back, over real DDS with a stand-in whose
-steps take a known wall time."""
+the step that applied it, the publication and the way back, and the step's CPU time, over real DDS
+with a stand-in whose steps take a known wall time and a known CPU time."""
 
 from __future__ import annotations
 
@@ -18,11 +18,17 @@ from thinshell_ros.bench_node import measure_node
 pytestmark = pytest.mark.ros
 
 STEP_S = 0.03
-"""Wall seconds of every step of the stand-in (six times its dt: the node is never ahead of a command)."""
+"""Wall seconds every step of the stand-in sleeps (six times its dt: the node is never ahead of a command)."""
+
+BURN_S = 0.005
+"""CPU seconds every step of the stand-in computes besides its sleep."""
 
 
 class SlowStepSimulation(FakeSimulation):
     def step(self, control=None) -> None:
+        end = time.thread_time() + BURN_S
+        while time.thread_time() < end:
+            pass
         time.sleep(STEP_S)
         super().step(control)
 
@@ -47,3 +53,6 @@ def test_each_probe_is_split_into_wait_step_publication_and_way_back(ros_context
         assert 0.0 <= row["publish"] < 50.0 and row["back"] > -1.0, row
         assert row["busy_at_send"] == 0.0 or row["busy_at_send"] >= 1e3 * STEP_S, row
         assert row["wait"] > -1.0, row
+        # the step's CPU holds the stand-in's computation, not its sleep
+        assert 1e3 * BURN_S <= row["step_cpu"] < 1e3 * (BURN_S + 0.5 * STEP_S), row
+        assert row["busy_cpu"] == 0.0 or row["busy_cpu"] >= 1e3 * BURN_S, row

@@ -15,7 +15,8 @@ from sim_core.mesh.sheet import grid_sheet
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig, StepInfo
 from tests.thinshell_ros.conftest import call_trigger_collecting_diagnostics
-from thinshell_ros.sim_node import SimNode, solver_status
+from thinshell_ros.node_status import solver_status
+from thinshell_ros.sim_node import SimNode
 
 pytestmark = pytest.mark.ros
 

@@ -66,3 +66,60 @@ def test_a_steps_pose_is_received_before_its_tactile_observation_is_read(ros_con
     finally:
         client.destroy_node()
         node.destroy_node()
+
+
+class CountingSimulation(FakeSimulation):
+    """FakeSimulation counting its observations (the tactile model's reads)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.observations = 0
+
+    def observe(self, render_image: bool = False):
+        self.observations += 1
+        return super().observe(render_image)
+
+
+def test_the_observation_is_read_only_for_outputs_someone_subscribes_to(ros_context):
+    sim = CountingSimulation()
+    node = SimNode(sim=sim, context=ros_context,
+                   parameter_overrides=[Parameter("mode", value="stepped"), Parameter("mesh_rate", value=0.0)])
+    client = Node("observation_client", context=ros_context)
+    poses: list[int] = []
+    markers: list[int] = []
+    client.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.ns_from_stamp(m.header.stamp)),
+                               SENSOR_QOS)
+    try:
+        with spinning(ros_context, client):
+            deadline = time.monotonic() + 10.0
+            while node.count_subscribers("/thinshell/ee/pose") < 1:
+                assert time.monotonic() < deadline, "the client's pose subscription was not matched"
+                time.sleep(0.01)
+            time.sleep(0.2)
+            before = sim.observations
+            for _ in range(3):
+                assert node.advance()
+            stamp = cv.seconds_to_ns(node.sim.t)
+            deadline = time.monotonic() + 5.0
+            while stamp not in poses:
+                assert time.monotonic() < deadline, "the poses were not published"
+                time.sleep(0.005)
+            # nobody reads the markers, wrench, image, points or mesh: the tactile model was not run
+            assert sim.observations == before
+            client.create_subscription(PointCloud2, "/thinshell/tactile/markers",
+                                       lambda m: markers.append(cv.ns_from_stamp(m.header.stamp)), SENSOR_QOS)
+            deadline = time.monotonic() + 10.0
+            while node.count_subscribers("/thinshell/tactile/markers") < 1:
+                assert time.monotonic() < deadline, "the client's markers subscription was not matched"
+                time.sleep(0.01)
+            time.sleep(0.2)
+            assert node.advance()
+            stamp = cv.seconds_to_ns(node.sim.t)
+            assert sim.observations == before + 1
+            deadline = time.monotonic() + 5.0
+            while stamp not in markers:
+                assert time.monotonic() < deadline, f"no markers stamped {stamp} ns"
+                time.sleep(0.005)
+    finally:
+        client.destroy_node()
+        node.destroy_node()

@@ -131,3 +131,35 @@ def test_a_command_between_ticks_starts_its_step_at_once(ros_context):
         ex.shutdown(timeout_sec=0)
         client.destroy_node()
         node.destroy_node()
+
+
+def test_a_command_one_step_ahead_starts_its_step_as_soon_as_the_schedule_lets_it(ros_context):
+    """A command that arrives while the node is one step ahead of the schedule starts its step as
+    soon as that step is due within one ``dt`` (the pacer's start time), not at the timer's tick at
+    its due time one ``dt`` later."""
+    clock = TestClock()
+    node = _realtime_node(ros_context, clock)
+    client = Node("client", context=ros_context)
+    pub = client.create_publisher(PoseStamped, "/thinshell/ee/pose_cmd", COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    ex.add_node(client)
+    try:
+        assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and _steps(node) == 1, 10.0)
+        first = HOME.copy()
+        first[2] += 2e-4
+        pub.publish(cv.pose_to_msg(first, 0))
+        assert spin_until(ex, lambda: _steps(node) == 2, 10.0)  # one step ahead of the schedule
+        second = HOME.copy()
+        pub.publish(cv.pose_to_msg(second, 0))
+        spin_until(ex, lambda: False, 0.3)
+        assert _steps(node) == 2  # the schedule does not let it start yet
+        clock.now += 1.001 * node.dt  # its step is now due within one dt (due itself only at 2 dt)
+        assert spin_until(ex, lambda: _steps(node) == 3, 2.0)
+        np.testing.assert_allclose(node.sim.state.effector_pose["ee"], second)
+        spin_until(ex, lambda: False, 0.3)
+        assert _steps(node) == 3  # the wake-up took one step: the schedule is one step ahead again
+    finally:
+        ex.shutdown(timeout_sec=0)
+        client.destroy_node()
+        node.destroy_node()
