@@ -33,8 +33,9 @@ SRC=$R/.device_cpu/src
 SETS=${2:-dev}
 PLAN=$SRC/${3:-benchmarks/mujoco_world/plans/session37.txt}
 SCENE=$R/.device_mj/scene.yaml
+# MuJoCo's wheels and device_cpu.sh's (rosbags and its needs: the generator writes the bags)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-    "$R"/.device_mj/wheels/*.whl || exit 1
+    "$R"/.device_mj/wheels/*.whl "$R"/.device_cpu/wheels/*.whl || exit 1
 rm -rf /tmp/gen /tmp/dc
 mkdir -p /tmp/gen/logs /tmp/dc
 gen() {  # gen SET NAME VARIANT MAGNITUDE MOTION SEED [DIRECTION]
@@ -45,7 +46,8 @@ gen() {  # gen SET NAME VARIANT MAGNITUDE MOTION SEED [DIRECTION]
     mkdir -p "/tmp/gen/logs/$name"
     (cd "/tmp/gen/logs/$name" && PYTHONPATH=/tmp/site:$SRC OMP_NUM_THREADS=1 MUJOCO_GL=disable \
         timeout 300 python3 -m benchmarks.mujoco_world.generate "/tmp/gen/$set/$name" "${args[@]}" > out.log 2>&1
-     echo "$name generate exit $?" >> /tmp/gen/status.txt) &
+     rc=$?; echo "$name generate exit $rc" >> /tmp/gen/status.txt
+     [ $rc = 0 ] || tail -5 out.log) &
 }
 while read -r line; do gen $line; done < <(grep -v '^#' "$PLAN" | grep -E "^($SETS) ")
 wait
