@@ -135,9 +135,9 @@ class SolverConfig:
             rigid motion over the step (:mod:`sim_core.carried_start`) instead of at ``x^n``: the step
             minimises the same potential, and its accepted iterate differs by less than
             ``tol_velocity * dt`` per step from the one reached from ``x^n`` (the bundled scene's pad
-            moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks' and the replays' steps
-            are those from ``x^n``); the sim node turns it on. Not with ``lockstep``; ignored with
-            a position guess (``Control.position_guess``).
+            moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks'
+            and the replays' steps are those from ``x^n``); the sim node turns it on. Not with
+            ``lockstep``; ignored with a position guess (``Control.position_guess``).
     """
 
     tol_velocity: float = 1e-4
@@ -183,7 +183,8 @@ class SolverConfig:
         if not (np.isfinite(self.sleep_velocity) and self.sleep_velocity > 0.0):
             raise ConfigError(f"solver sleep_velocity must be a finite number > 0 m/s, got {self.sleep_velocity!r}")
         if self.carried_start and self.lockstep:
-            raise ConfigError("solver carried_start is not available with lockstep (a lockstep batch starts every copy at x^n)")
+            raise ConfigError("solver carried_start is not available with lockstep "
+                              "(a lockstep batch starts every copy at x^n)")
         if self.sleeping and self.lockstep:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
         if self.dt_halvings_on_failure < 0:

@@ -227,7 +227,8 @@ class StaticPattern:
         lengths = np.flatnonzero(np.all(moved == moved[:, :1], axis=1))
         lengths = lengths[(lengths > 0) & (lengths <= k // 2)]
         shift = moved[lengths, :1]  # (c, 1); the second chunk's first, second and last elements must be moved alike
-        alike = (np.all(v[lengths + 1] - v[1] == shift, axis=1) & np.all(v[2 * lengths - 1] - v[lengths - 1] == shift, axis=1))
+        alike = (np.all(v[lengths + 1] - v[1] == shift, axis=1)
+                 & np.all(v[2 * lengths - 1] - v[lengths - 1] == shift, axis=1))
         lengths = lengths[alike & (shift[:, 0] > span[lengths - 1])][: self._CHUNK_TRIES]
         for k0 in lengths:
             k0 = int(k0)
@@ -259,7 +260,8 @@ class StaticPattern:
         ok &= np.all(indptr[rows + 1] - indptr[rows] == length0, axis=1) & np.all(offsets == offsets[:, :1], axis=1)
         ok &= offsets[:, 0] + int(self.keys.size) <= np.iinfo(np.int32).max
         count = int(np.argmin(ok)) if not ok.all() else ok.size
-        pos0 = np.repeat(start0, length0) + np.arange(int(length0.sum())) - np.repeat(np.cumsum(length0) - length0, length0)
+        pos0 = (np.repeat(start0, length0) + np.arange(int(length0.sum()))
+                - np.repeat(np.cumsum(length0) - length0, length0))
         keys0 = self.keys[pos0]
         for j in range(count):  # one chunk at a time: no (P, entries) temporaries
             if not np.array_equal(self.keys[pos0 + offsets[j, 0]], keys0 + 3 * shifts[j] * (n + 1)):

@@ -406,32 +406,43 @@ def _item(source: str, effect: str, level: str, params: Mapping[str, Any], seed:
     return Item(f"{effect}_{level}_{source}", source, effect, dict(params), seed)
 
 
+def _source_items(source: str, *, control: bool = False, latency_s: Sequence[float] = (), k1: Sequence[float] = (),
+                  scale_sigma: Sequence[tuple[float, int]] = (), tau_s: Sequence[float] = ()) -> tuple[Item, ...]:
+    """The items of one source recording, in the order: the control, the latencies, the lens distortions,
+    the force biases, the gel creeps; each named ``<effect>_<level>_<source>`` with the level written
+    from its magnitude (``40ms``, ``k1m077``, ``3p5``, ``tau130``).
+
+    Args:
+        source: the source recording's name.
+        control: whether to add the control (no effect).
+        latency_s: transport delays [s].
+        k1: radial lens distortion coefficients [-].
+        scale_sigma: force biases as ``(bias in units of the force noise sigma, seed)`` pairs.
+        tau_s: time constants of full first-order gel creeps (fraction 1) [s].
+    """
+    items = [_item(source, "none", "control", {})] if control else []
+    items += [_item(source, "latency", f"{round(s * 1e3)}ms", {"latency_s": s}) for s in latency_s]
+    items += [_item(source, "lens", f"k1{'p' if k >= 0 else 'm'}{round(abs(k) * 1e3):03d}", {"k1": k}) for k in k1]
+    items += [_item(source, "force_bias", f"{b:g}".replace(".", "p"), {"scale_sigma": b}, seed=seed)
+              for b, seed in scale_sigma]
+    items += [_item(source, "gel_creep", f"tau{round(t * 1e3):03d}", {"tau_s": t, "fraction": 1.0}) for t in tau_s]
+    return tuple(items)
+
+
 DEFAULT_PLAN: tuple[Item, ...] = (
     # lift_fold (none of the nine reference recordings has a data effect on a lift), three magnitudes
     # each around the reference recordings' own (latency 40 ms, k1 -0.077, bias 3.5 sigma, creep tau
     # 0.13 s): half, once and 1.5-2 times. The creep is a full first-order lag (fraction 1): the lag
     # fitted to gel_creep_s108 takes a share of 0.97-1.0 of the response.
-    _item("nominal_s109", "latency", "40ms", {"latency_s": 0.04}),
-    _item("nominal_s109", "lens", "k1m077", {"k1": -0.077}),
-    _item("nominal_s109", "force_bias", "3p5", {"scale_sigma": 3.5}, seed=1),
-    _item("nominal_s109", "gel_creep", "tau130", {"tau_s": 0.13, "fraction": 1.0}),
-    _item("nominal_s109", "none", "control", {}),
-    _item("nominal_s109", "latency", "20ms", {"latency_s": 0.02}),
-    _item("nominal_s109", "lens", "k1m040", {"k1": -0.04}),
-    _item("nominal_s109", "force_bias", "1p75", {"scale_sigma": 1.75}, seed=2),
-    _item("nominal_s109", "gel_creep", "tau065", {"tau_s": 0.065, "fraction": 1.0}),
-    _item("plastic_s102", "latency", "40ms", {"latency_s": 0.04}),
+    *_source_items("nominal_s109", latency_s=(0.04,), k1=(-0.077,), scale_sigma=((3.5, 1),), tau_s=(0.13,)),
+    *_source_items("nominal_s109", control=True, latency_s=(0.02,), k1=(-0.04,), scale_sigma=((1.75, 2),),
+                   tau_s=(0.065,)),
+    *_source_items("plastic_s102", latency_s=(0.04,)),
     # press_slide at the low end (the reference set has each at about once its visibility)
-    _item("nominal_s101", "latency", "20ms", {"latency_s": 0.02}),
-    _item("nominal_s101", "lens", "k1p040", {"k1": 0.04}),
-    _item("nominal_s101", "force_bias", "1p75", {"scale_sigma": 1.75}, seed=3),
-    _item("nominal_s101", "gel_creep", "tau065", {"tau_s": 0.065, "fraction": 1.0}),
-    _item("nominal_s101", "none", "control", {}),
+    *_source_items("nominal_s101", latency_s=(0.02,), k1=(0.04,), scale_sigma=((1.75, 3),), tau_s=(0.065,)),
+    *_source_items("nominal_s101", control=True),
     # the large end on the lift
-    _item("nominal_s109", "latency", "60ms", {"latency_s": 0.06}),
-    _item("nominal_s109", "lens", "k1p150", {"k1": 0.15}),
-    _item("nominal_s109", "force_bias", "7", {"scale_sigma": 7.0}, seed=4),
-    _item("nominal_s109", "gel_creep", "tau260", {"tau_s": 0.26, "fraction": 1.0}),
+    *_source_items("nominal_s109", latency_s=(0.06,), k1=(0.15,), scale_sigma=((7.0, 4),), tau_s=(0.26,)),
 )
 """The validation set written by ``python -m sysid.synthetic_effects`` (in this order: the
 diagnosis runner takes them one by one)."""
@@ -442,40 +453,16 @@ WIDE_PLAN: tuple[Item, ...] = (
     # magnitudes drawn around and beyond the reference recordings' own: latency 25-60 ms (reference
     # 40 ms), |k1| 0.03-0.12 of either sign (-0.077), force bias 2-6 sigma (3.5), full creeps of tau
     # 0.06-0.25 s (0.13 s)
-    _item("nominal_s201", "none", "control", {}),
-    _item("nominal_s201", "latency", "25ms", {"latency_s": 0.025}),
-    _item("nominal_s201", "latency", "45ms", {"latency_s": 0.045}),
-    _item("nominal_s201", "lens", "k1p030", {"k1": 0.03}),
-    _item("nominal_s201", "lens", "k1m060", {"k1": -0.06}),
-    _item("nominal_s201", "force_bias", "2", {"scale_sigma": 2.0}, seed=11),
-    _item("nominal_s201", "force_bias", "4p5", {"scale_sigma": 4.5}, seed=12),
-    _item("nominal_s201", "gel_creep", "tau250", {"tau_s": 0.25, "fraction": 1.0}),
-    _item("nominal_s201", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
-    _item("nominal_s202", "none", "control", {}),
-    _item("nominal_s202", "latency", "60ms", {"latency_s": 0.06}),
-    _item("nominal_s202", "latency", "35ms", {"latency_s": 0.035}),
-    _item("nominal_s202", "lens", "k1m120", {"k1": -0.12}),
-    _item("nominal_s202", "lens", "k1p080", {"k1": 0.08}),
-    _item("nominal_s202", "force_bias", "6", {"scale_sigma": 6.0}, seed=13),
-    _item("nominal_s202", "force_bias", "3", {"scale_sigma": 3.0}, seed=14),
-    _item("nominal_s202", "gel_creep", "tau060", {"tau_s": 0.06, "fraction": 1.0}),
-    _item("nominal_s202", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
+    *_source_items("nominal_s201", control=True, latency_s=(0.025, 0.045), k1=(0.03, -0.06),
+                   scale_sigma=((2.0, 11), (4.5, 12)), tau_s=(0.25, 0.10)),
+    *_source_items("nominal_s202", control=True, latency_s=(0.06, 0.035), k1=(-0.12, 0.08),
+                   scale_sigma=((6.0, 13), (3.0, 14)), tau_s=(0.06, 0.18)),
     # the reference press-slide at the magnitudes the default plan does not cover
-    _item("nominal_s101", "latency", "30ms", {"latency_s": 0.03}),
-    _item("nominal_s101", "lens", "k1m120", {"k1": -0.12}),
-    _item("nominal_s101", "force_bias", "6", {"scale_sigma": 6.0}, seed=15),
-    _item("nominal_s101", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
+    *_source_items("nominal_s101", latency_s=(0.03,), k1=(-0.12,), scale_sigma=((6.0, 15),), tau_s=(0.18,)),
     # lifts
-    _item("nominal_s109", "latency", "25ms", {"latency_s": 0.025}),
-    _item("nominal_s109", "latency", "35ms", {"latency_s": 0.035}),
-    _item("nominal_s109", "lens", "k1p030", {"k1": 0.03}),
-    _item("nominal_s109", "lens", "k1m120", {"k1": -0.12}),
-    _item("nominal_s109", "force_bias", "2", {"scale_sigma": 2.0}, seed=16),
-    _item("nominal_s109", "gel_creep", "tau060", {"tau_s": 0.06, "fraction": 1.0}),
-    _item("nominal_s109", "gel_creep", "tau180", {"tau_s": 0.18, "fraction": 1.0}),
-    _item("plastic_s102", "lens", "k1p060", {"k1": 0.06}),
-    _item("plastic_s102", "force_bias", "4", {"scale_sigma": 4.0}, seed=17),
-    _item("plastic_s102", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
+    *_source_items("nominal_s109", latency_s=(0.025, 0.035), k1=(0.03, -0.12), scale_sigma=((2.0, 16),),
+                   tau_s=(0.06, 0.18)),
+    *_source_items("plastic_s102", k1=(0.06,), scale_sigma=((4.0, 17),), tau_s=(0.10,)),
 )
 """A wider set: the data effects on press-slides of the independent MuJoCo world and on the
 reference recordings, over the magnitude ranges a hidden set of the reference's kind may use
@@ -486,36 +473,13 @@ LIFT_PLAN: tuple[Item, ...] = (
     # bonds; plastic_s302, yield 0.0005) and the reference's nominal_s109, and one MuJoCo press-slide
     # (nominal_s213), at the low end of the magnitudes and the signs the wide plan leaves out:
     # latencies of 15-30 ms, positive k1 from 0.02, force biases of 1.5-4 sigma, creeps of 0.04-0.25 s
-    _item("nominal_s301", "none", "control", {}),
-    _item("nominal_s301", "latency", "15ms", {"latency_s": 0.015}),
-    _item("nominal_s301", "latency", "20ms", {"latency_s": 0.02}),
-    _item("nominal_s301", "latency", "30ms", {"latency_s": 0.03}),
-    _item("nominal_s301", "lens", "k1p030", {"k1": 0.03}),
-    _item("nominal_s301", "lens", "k1p050", {"k1": 0.05}),
-    _item("nominal_s301", "lens", "k1m030", {"k1": -0.03}),
-    _item("nominal_s301", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=21),
-    _item("nominal_s301", "force_bias", "2p5", {"scale_sigma": 2.5}, seed=22),
-    _item("nominal_s301", "force_bias", "4", {"scale_sigma": 4.0}, seed=23),
-    _item("nominal_s301", "gel_creep", "tau050", {"tau_s": 0.05, "fraction": 1.0}),
-    _item("nominal_s301", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
-    _item("nominal_s301", "gel_creep", "tau200", {"tau_s": 0.20, "fraction": 1.0}),
-    _item("nominal_s109", "latency", "15ms", {"latency_s": 0.015}),
-    _item("nominal_s109", "latency", "30ms", {"latency_s": 0.03}),
-    _item("nominal_s109", "lens", "k1p050", {"k1": 0.05}),
-    _item("nominal_s109", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=24),
-    _item("nominal_s109", "force_bias", "3", {"scale_sigma": 3.0}, seed=25),
-    _item("nominal_s109", "gel_creep", "tau100", {"tau_s": 0.10, "fraction": 1.0}),
-    _item("nominal_s109", "gel_creep", "tau250", {"tau_s": 0.25, "fraction": 1.0}),
-    _item("plastic_s302", "latency", "30ms", {"latency_s": 0.03}),
-    _item("plastic_s302", "lens", "k1p040", {"k1": 0.04}),
-    _item("plastic_s302", "force_bias", "3", {"scale_sigma": 3.0}, seed=26),
-    _item("plastic_s302", "gel_creep", "tau130", {"tau_s": 0.13, "fraction": 1.0}),
-    _item("nominal_s213", "none", "control", {}),
-    _item("nominal_s213", "latency", "15ms", {"latency_s": 0.015}),
-    _item("nominal_s213", "latency", "20ms", {"latency_s": 0.02}),
-    _item("nominal_s213", "lens", "k1p020", {"k1": 0.02}),
-    _item("nominal_s213", "force_bias", "1p5", {"scale_sigma": 1.5}, seed=27),
-    _item("nominal_s213", "gel_creep", "tau040", {"tau_s": 0.04, "fraction": 1.0}),
+    *_source_items("nominal_s301", control=True, latency_s=(0.015, 0.02, 0.03), k1=(0.03, 0.05, -0.03),
+                   scale_sigma=((1.5, 21), (2.5, 22), (4.0, 23)), tau_s=(0.05, 0.10, 0.20)),
+    *_source_items("nominal_s109", latency_s=(0.015, 0.03), k1=(0.05,), scale_sigma=((1.5, 24), (3.0, 25)),
+                   tau_s=(0.10, 0.25)),
+    *_source_items("plastic_s302", latency_s=(0.03,), k1=(0.04,), scale_sigma=((3.0, 26),), tau_s=(0.13,)),
+    *_source_items("nominal_s213", control=True, latency_s=(0.015, 0.02), k1=(0.02,), scale_sigma=((1.5, 27),),
+                   tau_s=(0.04,)),
 )
 """Lifts and the low end (``python -m sysid.synthetic_effects OUT --plan lift --source REF_DIR
 --source MUJOCO_LIFT_DIR --source MUJOCO_SLIDE_DIR``)."""

@@ -454,8 +454,8 @@ class LockstepSolver(NewtonSolver):
             indptr = np.zeros(n + 1, dtype=np.int32)
             np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
             cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
-        blocks = VertexBlocks.from_element_blocks([self._term_hessian(p, x, projection, vertices) for p in dynamic_terms],
-                                                  step.free)
+        blocks = VertexBlocks.from_element_blocks(
+            [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     @staticmethod

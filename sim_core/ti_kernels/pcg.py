@@ -111,6 +111,21 @@ def _diag_blocks_csr(indptr: _I32, indices: _I32, data: _F64, blk: _F64, nvert: 
                     blk[9 * v + 3 * (j % 3) + a] = data[k]
 
 
+@ti.func
+def _element_block_position(vertices: ti.template(), t: ti.i32, m: ti.i32, at: ti.i32, brow: ti.template(),
+                            bcol: ti.template()):
+    """Vertex block ``t = (e m + a) m + b`` of element blocks over ``m`` vertices: writes its row vertex
+    ``vertices[e m + a]`` and column vertex ``vertices[e m + b]`` at ``brow[at + t]``, ``bcol[at + t]``, and
+    returns ``(e, a, b, at + t)``."""
+    e = t // (m * m)
+    a = (t // m) % m
+    b = t % m
+    k = at + t
+    brow[k] = vertices[e * m + a]
+    bcol[k] = vertices[e * m + b]
+    return e, a, b, k
+
+
 @ti.kernel
 def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32,
                            bval: _F64):
@@ -118,12 +133,7 @@ def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i3
     ``vertices[e m + a]``, column vertex ``vertices[e m + b]``, values ``blocks`` of element ``e`` (row-major
     ``(3m, 3m)``) at rows ``3 a + i``, columns ``3 b + j``."""
     for t in range(count * m * m):
-        e = t // (m * m)
-        a = (t // m) % m
-        b = t % m
-        k = at + t
-        brow[k] = vertices[e * m + a]
-        bcol[k] = vertices[e * m + b]
+        e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
                 bval[9 * k + 3 * i + j] = blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j]
@@ -135,12 +145,7 @@ def _expand_device_rows(vertices: _I32, blocks: ti.types.ndarray(dtype=ti.f64, n
     """:func:`_expand_element_blocks` of element blocks held as rows ``start .. start + count`` of a
     ``(rows, 3m, 3m)`` ndarray (:class:`~sim_core.ti_kernels.buffers.DeviceRows`)."""
     for t in range(count * m * m):
-        e = t // (m * m)
-        a = (t // m) % m
-        b = t % m
-        k = at + t
-        brow[k] = vertices[e * m + a]
-        bcol[k] = vertices[e * m + b]
+        e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
                 bval[9 * k + 3 * i + j] = blocks[start + e, 3 * a + i, 3 * b + j]
@@ -352,7 +357,8 @@ class VertexBlocks:
         """
         out = cls.__new__(cls)
         out.sets = [(np.ascontiguousarray(b.vertices, dtype=np.int32),
-                     b.blocks if isinstance(b, DeviceHessianBlocks) else np.ascontiguousarray(b.blocks, dtype=np.float64))
+                     b.blocks if isinstance(b, DeviceHessianBlocks)
+                     else np.ascontiguousarray(b.blocks, dtype=np.float64))
                     for b in element_blocks if np.shape(b.vertices)[0]]
         out.free = np.asarray(free, dtype=bool)
         out.count = sum(v.shape[0] * v.shape[1] ** 2 for v, _ in out.sets)

@@ -36,7 +36,8 @@ def test_the_pad_is_carried_rigidly_onto_its_driven_targets_and_nothing_else_mov
     pose1[3:] = quat_multiply(quat_from_rotvec(np.array([0.01, -0.02, 0.015])), pose0[3:])
     fixed = np.zeros(len(state.x), dtype=bool)
     x = state.x.copy()
-    moved = carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {}, fixed, state.x, x)
+    moved = carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {}, fixed,
+                                state.x, x)
     assert moved == [gel.name]
     # the map is the effector's own: its driven vertices land on their targets
     np.testing.assert_allclose(x[eff.vertices], driven_positions(eff, pose1, eff.initial_opening), atol=1e-15)
@@ -53,7 +54,8 @@ def test_the_pad_is_carried_rigidly_onto_its_driven_targets_and_nothing_else_mov
     carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, {"ee": pose1}, {}, held, state.x, x2)
     assert np.array_equal(x2[g[:10]], state.x[g[:10]]) and np.array_equal(x2[g[10:]], x[g[10:]])
     x3 = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, state.effector_pose, {}, fixed, state.x, x3) == []
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, {}, state.effector_pose, {},
+                               fixed, state.x, x3) == []
     assert np.array_equal(x3, state.x)
 
 
@@ -91,14 +93,14 @@ def test_a_gripper_holding_both_fingers_is_carried_only_while_its_opening_is_hel
     pose1[:3] += [1e-3, 0.0, 5e-4]
     fixed = np.zeros(len(state.x), dtype=bool)
     x = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening, {"gripper": pose1},
-                               dict(state.gripper_opening), fixed, state.x, x) == ["gripper"]
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening,
+                               {"gripper": pose1}, dict(state.gripper_opening), fixed, state.x, x) == ["gripper"]
     opening = float(state.gripper_opening.get("gripper", eff.initial_opening))
     np.testing.assert_allclose(x[eff.vertices], driven_positions(eff, pose1, opening), atol=1e-15)
     # closing the fingers is not one rigid motion of the body: the start stays x^n
     x = state.x.copy()
-    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening, {"gripper": pose1},
-                               {"gripper": opening - 1e-3}, fixed, state.x, x) == []
+    assert carry_driven_bodies(model, state.x, state.v, 0.005, state.effector_pose, state.gripper_opening,
+                               {"gripper": pose1}, {"gripper": opening - 1e-3}, fixed, state.x, x) == []
     assert np.array_equal(x, state.x)
 
 

@@ -59,14 +59,7 @@ def test_pattern_and_slots_are_those_of_the_definition(mask):
     np.testing.assert_array_equal(pattern.entry_index, entry_index)
     np.testing.assert_array_equal(pattern.keys[pattern.slot], (r * n + c)[entry_index])
     for v in arrays:
-        k, m = v.shape
-        slots = pattern.slot_map(v)
-        assert slots.shape == (k, 3 * m, 3 * m) and slots.dtype == np.int32
-        dofs = (3 * v[:, :, None] + np.arange(3)).reshape(k, 3 * m)
-        rows, cols = dofs[:, :, None] + 0 * dofs[:, None, :], dofs[:, None, :] + 0 * dofs[:, :, None]
-        kept = ((rows < cols) & free[rows] & free[cols]) | (rows == cols)
-        np.testing.assert_array_equal(slots[~kept], -1)
-        np.testing.assert_array_equal(pattern.keys[slots[kept]], (rows * n + cols)[kept])
+        _assert_slots_of_definition(pattern, v, free)
 
 
 @pytest.mark.parametrize("mask", ["fixed vertices", "split vertices"])

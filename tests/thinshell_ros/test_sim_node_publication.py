@@ -87,8 +87,8 @@ def test_the_observation_is_read_only_for_outputs_someone_subscribes_to(ros_cont
     client = Node("observation_client", context=ros_context)
     poses: list[int] = []
     markers: list[int] = []
-    client.create_subscription(PoseStamped, "/thinshell/ee/pose", lambda m: poses.append(cv.ns_from_stamp(m.header.stamp)),
-                               SENSOR_QOS)
+    client.create_subscription(PoseStamped, "/thinshell/ee/pose",
+                               lambda m: poses.append(cv.ns_from_stamp(m.header.stamp)), SENSOR_QOS)
     try:
         with spinning(ros_context, client):
             deadline = time.monotonic() + 10.0

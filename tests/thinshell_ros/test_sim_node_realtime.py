@@ -3,12 +3,16 @@ with the kinematic FakeSimulation."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from typing import Iterator
+
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 
 from tests.thinshell_ros.conftest import spin_until
 from tests.thinshell_ros.fake_sim import HOME, FakeSimulation
@@ -38,6 +42,26 @@ def _realtime_node(ctx, clock: TestClock) -> SimNode:
 
 def _steps(node: SimNode) -> int:
     return int(round(node.sim.t / node.dt))
+
+
+@contextmanager
+def _commanding(ctx) -> Iterator[tuple[TestClock, SimNode, Publisher, SingleThreadedExecutor]]:
+    """A realtime node on a test clock, a client publishing pose commands to it and an executor spinning
+    both, after the node's first step; the nodes are destroyed on exit."""
+    clock = TestClock()
+    node = _realtime_node(ctx, clock)
+    client = Node("client", context=ctx)
+    pub = client.create_publisher(PoseStamped, "/thinshell/ee/pose_cmd", COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(client)
+    try:
+        assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and _steps(node) == 1, 10.0)
+        yield clock, node, pub, ex
+    finally:
+        ex.shutdown(timeout_sec=0)
+        client.destroy_node()
+        node.destroy_node()
 
 
 def test_the_timer_takes_every_due_step_up_to_its_bound(ros_context):
@@ -104,15 +128,7 @@ def test_after_a_slow_step_the_lag_waits_for_the_next_tick(ros_context):
 def test_a_command_between_ticks_starts_its_step_at_once(ros_context):
     """With the wall clock standing still between ticks, a pose command is applied by a step that it
     starts itself (one step ahead of the schedule at most); a second command waits for the clock."""
-    clock = TestClock()
-    node = _realtime_node(ros_context, clock)
-    client = Node("client", context=ros_context)
-    pub = client.create_publisher(PoseStamped, "/thinshell/ee/pose_cmd", COMMAND_QOS)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(client)
-    try:
-        assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and _steps(node) == 1, 10.0)
+    with _commanding(ros_context) as (clock, node, pub, ex):
         spin_until(ex, lambda: False, 0.1)
         assert _steps(node) == 1  # the timer ticks, the clock stands: nothing more is due
         first = HOME.copy()
@@ -127,25 +143,13 @@ def test_a_command_between_ticks_starts_its_step_at_once(ros_context):
         clock.now += 2.001 * node.dt  # step 2 was due two steps after step 0
         assert spin_until(ex, lambda: _steps(node) == 3, 10.0)
         np.testing.assert_allclose(node.sim.state.effector_pose["ee"], second)
-    finally:
-        ex.shutdown(timeout_sec=0)
-        client.destroy_node()
-        node.destroy_node()
 
 
 def test_a_command_one_step_ahead_starts_its_step_as_soon_as_the_schedule_lets_it(ros_context):
     """A command that arrives while the node is one step ahead of the schedule starts its step as
     soon as that step is due within one ``dt`` (the pacer's start time), not at the timer's tick at
     its due time one ``dt`` later."""
-    clock = TestClock()
-    node = _realtime_node(ros_context, clock)
-    client = Node("client", context=ros_context)
-    pub = client.create_publisher(PoseStamped, "/thinshell/ee/pose_cmd", COMMAND_QOS)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    ex.add_node(client)
-    try:
-        assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and _steps(node) == 1, 10.0)
+    with _commanding(ros_context) as (clock, node, pub, ex):
         first = HOME.copy()
         first[2] += 2e-4
         pub.publish(cv.pose_to_msg(first, 0))
@@ -159,7 +163,3 @@ def test_a_command_one_step_ahead_starts_its_step_as_soon_as_the_schedule_lets_i
         np.testing.assert_allclose(node.sim.state.effector_pose["ee"], second)
         spin_until(ex, lambda: False, 0.3)
         assert _steps(node) == 3  # the wake-up took one step: the schedule is one step ahead again
-    finally:
-        ex.shutdown(timeout_sec=0)
-        client.destroy_node()
-        node.destroy_node()
