@@ -24,11 +24,18 @@ BURN_S = 0.005
 """CPU seconds every step of the stand-in computes besides its sleep."""
 
 
+def burn_cpu(seconds: float) -> None:
+    """Keep this thread computing for ``seconds`` of its own CPU time (a stand-in for a step's work)."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        sum(range(100))
+
+
 class SlowStepSimulation(FakeSimulation):
+    """A simulation whose every step computes :data:`BURN_S` of CPU and sleeps :data:`STEP_S`."""
+
     def step(self, control=None) -> None:
-        end = time.thread_time() + BURN_S
-        while time.thread_time() < end:
-            pass
+        burn_cpu(BURN_S)
         time.sleep(STEP_S)
         super().step(control)
 

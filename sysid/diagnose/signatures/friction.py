@@ -103,6 +103,7 @@ from scipy.stats import chi2 as chi2_law
 from sim_core.errors import BagReadError
 from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable, segments
 from sysid.diagnose.signatures.sheet import plasticity_test, resolvable_set, set_rise
+from sysid.noise import robust_scale
 
 CONTACT_SIGMAS = 5.0
 """The gel is loaded where the compressive normal force exceeds this many sigmas of ``F_z``."""
@@ -485,25 +486,20 @@ def fit_breakaway(b: Breakaway, taus: np.ndarray, rows: np.ndarray | None = None
             "tau_s": tau, "coef0": c0, "coef1": c1}
 
 
-MAD_TO_SIGMA = 1.4826
-"""Standard deviation of a normal law over its median absolute deviation."""
-
-
 def roughness(b: Breakaway) -> float:
     """Sample-to-sample dispersion of a breakaway window's series over its noise model, floored at 1.
 
     The variance of the whitened second differences ``(y[i+1] - 2 y[i] + y[i-1]) / sigma`` over 6
-    (their variance for white noise of unit variance), read robustly (:data:`MAD_TO_SIGMA` times
-    their median absolute deviation, squared): it takes in a sliding contact's roughness beyond the
-    noise model and leaves out the window's slow shape (the breakaway's decay, the level's trend and
+    (their variance for white noise of unit variance), read robustly
+    (:func:`sysid.noise.robust_scale`: 1.4826 times their median absolute deviation, squared): it
+    takes in a sliding contact's roughness beyond the noise model and leaves out the window's slow shape (the breakaway's decay, the level's trend and
     curvature), whose second differences are small but for a few samples at the decay's start.
     1 for a window with fewer than :data:`MIN_WINDOW_SAMPLES` second differences.
     """
     if len(b.q) < MIN_WINDOW_SAMPLES + 2:
         return 1.0
     z = (b.q[2:] - 2.0 * b.q[1:-1] + b.q[:-2]) / b.sigma[1:-1]
-    mad = float(np.median(np.abs(z - np.median(z))))
-    return max((MAD_TO_SIGMA * mad) ** 2 / 6.0, 1.0)
+    return max(robust_scale(z) ** 2 / 6.0, 1.0)
 
 
 def decay_statistic(fit: dict, b: Breakaway) -> float:
