@@ -14,7 +14,7 @@
 #       on the device, from the checkout's root: SETS (a regex over the plan's first column; default dev),
 #       PLAN (default benchmarks/mujoco_world/plans/session37.txt, relative to .device_cpu/src). Back under
 #       $OUT: md5.txt of the recordings, and device_cpu.sh's machine.txt, results.jsonl (one summary line a
-#       recording), summary.txt, logs.tar.gz; with KEEP_BAGS=1 also bags.tar (the recordings). JOBS (16)
+#       recording), summary.txt, logs.tar.gz; with KEEP_BAGS=1 also the recordings. JOBS (16)
 #       and JOB_TIMEOUT (330 s) as in device_cpu.sh.
 set -u
 mode=${1:-}
@@ -54,8 +54,12 @@ while read -r line; do gen $line; done < <(grep -v '^#' "$PLAN" | grep -E "^($SE
 wait
 cat /tmp/gen/status.txt
 (cd /tmp/gen && md5sum ./*/*_s*/*.mcap) > "$OUT/md5.txt"
-# KEEP_BAGS=1: the recordings come back too ($OUT/bags.tar, about 2.5 MB a recording)
-[ "${KEEP_BAGS:-0}" = 1 ] && (cd /tmp/gen && tar -cf "$OUT/bags.tar" --exclude=logs --exclude=status.txt .)
+# KEEP_BAGS=1: the recordings come back too, as bags.tgz.part_aa, _ab, ... (15 MB each; about 2.5 MB a
+# recording; `cat bags.tgz.part_* | tar -xz` here); DIAGNOSE=0: generate only
+if [ "${KEEP_BAGS:-0}" = 1 ]; then
+    (cd /tmp/gen && tar -czf - --exclude=./logs --exclude=./status.txt .) | split -b 15M - "$OUT/bags.tgz.part_"
+fi
+[ "${DIAGNOSE:-1}" = 0 ] && exit 0
 ln -s "$SRC" /tmp/dc/src
 ln -s "$R/.device_cpu/wheels" /tmp/dc/wheels
 ln -s /tmp/gen /tmp/dc/data
