@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
@@ -124,6 +125,8 @@ class LockstepSolver(NewtonSolver):
         self.scene = scene
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
+        self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
+        self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
         self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self.last_stacked_info: StepInfo | None = None
 
@@ -197,8 +200,8 @@ class LockstepSolver(NewtonSolver):
             _CopiesFailed: the copies that failed (a step without them is the next attempt).
         """
         cfg = self.config
-        B, n = self.scene.copies, self.scene.vertex_count
-        dofs = self._dofs
+        B = self.scene.copies
+        runs = self._runs
         info = StepInfo()
         step, x = self._set_up_step(state_in, control, dt, None, info)
         running = ~self.held
@@ -218,42 +221,42 @@ class LockstepSolver(NewtonSolver):
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         H = projection = factorization = None
         for it in range(1, cfg.max_iterations + 1):
-            gB = g[dofs]  # (B, 3n)
-            bad = running & ~done & ~np.all(np.isfinite(gB), axis=1)
+            bad = running & ~done & ~runs.all_finite(g)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
             open_ = running & ~done
-            rhs = g.copy()
-            rhs[dofs[~open_]] = 0.0  # closed copies take no update: their block of the solution is zero
+            closed = runs.per_dof(~open_)
+            rhs = np.where(closed, 0.0, g)  # closed copies take no update: their block of the solution is zero
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
-            dB = d[dofs].reshape(B, n, 3)
-            bad = open_ & ~np.all(np.isfinite(dB), axis=(1, 2))
+            bad = open_ & ~runs.all_finite(d)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
             if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            dB[~open_] = 0.0
-            step_max = np.linalg.norm(dB, axis=2).max(axis=1) if n else np.zeros(B)
+            d[closed] = 0.0
+            step_max = runs.largest_norm(d)
+            g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
                 residual[i] = step_max[i] / dt
                 history[i].append(residual[i])
-                reason = stop_reason(self.config, residual[i], gB[i], history[i])
+                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[i])
                 if reason is not None:
                     accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
             open_ = running & ~done
             if not open_.any():
                 break
-            alpha = np.where(open_ & (step_max > 0), np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = np.einsum("ij,ij->i", gB, dB.reshape(B, -1))
+            alpha = np.where(open_ & (step_max > 0),
+                             np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
+            slope = runs.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
-                dB[uphill] = -gB[uphill].reshape(-1, n, 3)
-                slope[uphill] = -np.einsum("ij,ij->i", gB[uphill], gB[uphill])
+                d = np.where(runs.per_dof(uphill), -g, d)
+                slope[uphill] = -runs.dot(g, g)[uphill]
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
-                step, x, dB, alpha, slope, open_, contact_terms, x_search, info)
+                step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
             for i in np.flatnonzero(open_):
                 infos[i].backtracks += int(backtracks[i])
             failed_ls = open_ & ~accepted
@@ -302,10 +305,23 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
-        g[~step.free] = 0.0
+        g = None
+        for p in step.loop_terms + contact_terms:  # summed in place: one (N, 3) array, not one per term
+            if g is None:
+                g = np.array(p.gradient(x), dtype=np.float64).reshape(-1)
+            else:
+                g += p.gradient(x).reshape(-1)
+        g = np.zeros(3 * len(x)) if g is None else g
+        g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
+
+    def _fixed_dofs(self, step) -> np.ndarray:
+        """The step's fixed DoFs (``~step.free``) as indices, shape ``(f,)`` int64, made once per step."""
+        kept = self._fixed
+        if kept is None or kept[0] is not step.free:
+            kept = self._fixed = (step.free, np.flatnonzero(~step.free))
+        return kept[1]
 
     def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
         """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
@@ -381,12 +397,12 @@ class LockstepSolver(NewtonSolver):
         """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
         cfg = self.config
         dynamic_terms = contact_terms + step.dynamic_terms
-        dofs = self._dofs
+        runs = self._runs
         pcg = self.pcg
         projections = self._projections()
         rhs = g
         d = np.zeros_like(g)
-        todo = np.any(g[dofs] != 0.0, axis=1)  # copies with an update to find
+        todo = runs.any_dof(g != 0.0)  # copies with an update to find
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
@@ -406,19 +422,18 @@ class LockstepSolver(NewtonSolver):
             pcg.factorize(upper, blocks, diagonal)
             dk = -pcg.solve(rhs)
             info.time_linear_solve += time.perf_counter() - tl
-            dk[~step.free] = 0.0
-            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.all(np.isfinite(dk[dofs]), axis=1)
+            dk[self._fixed_dofs(step)] = 0.0
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
-                ok &= np.einsum("ij,ij->i", g[dofs], dk[dofs]) < 0.0
-            d[dofs[ok]] = dk[dofs[ok]]
+                ok &= runs.dot(g, dk) < 0.0
+            np.copyto(d, dk, where=runs.per_dof(ok))
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
-                    d[dofs[todo]] = dk[dofs[todo]]
+                    np.copyto(d, dk, where=runs.per_dof(todo))
                 break
-            rhs = g.copy()
-            rhs[dofs[~todo]] = 0.0
+            rhs = np.where(runs.per_dof(todo), g, 0.0)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
@@ -472,9 +487,10 @@ class LockstepSolver(NewtonSolver):
             return term.hessian_of_vertices(x, projection, vertices)
         return term.hessian(x, projection)
 
-    def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
+    def _line_search_copies(self, step, x: np.ndarray, d: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
-        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along ``dB`` ``(B, n, 3)``: accepted copies
+        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along the stacked update ``d`` ``(N, 3)`` (zero
+        on the copies not in ``open_``): accepted copies
         keep their step while the others halve theirs (module docstring: the slope test, then the energy
         test of the copies that passed it, :meth:`_armijo_groups`).
 
@@ -486,7 +502,7 @@ class LockstepSolver(NewtonSolver):
         """
         cfg = self.config
         B = self.scene.copies
-        dofs = self._dofs
+        runs = self._runs
         e0 = self._energy(step, x, contact_terms, x_search)
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -499,18 +515,18 @@ class LockstepSolver(NewtonSolver):
             if not pending.any():
                 break
             trial = np.where(pending, a, 0.0) + taken
-            x_try = self._moved(x, dB, trial)
+            x_try = runs.moved(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
             last = (trial, x_try, (terms, xs, g_try))
-            s_try = np.einsum("ij,ij->i", g_try[dofs], dB.reshape(B, -1))
+            s_try = runs.dot(g_try, d)
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if cand.any():
-                e_base = e0 if not np.any(taken) else self._energy_with(step, x, dB, taken)
+                e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
                 if np.array_equal(cand, pending):
                     delta = self._energy(step, x_try, terms, xs) - e_base
                 else:
-                    delta = self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0)) - e_base
-                ok = self._armijo_groups(step, x, dB, taken, e_base, cand, delta, a, slope, e0)
+                    delta = self._energy_with(step, x, d, taken + np.where(cand, a, 0.0)) - e_base
+                ok = self._armijo_groups(step, x, d, taken, e_base, cand, delta, a, slope, e0)
                 accepted |= ok
                 taken[ok] = a[ok]
                 pending &= ~ok
@@ -520,23 +536,18 @@ class LockstepSolver(NewtonSolver):
         if last is not None and np.array_equal(last[0], taken):
             x_new, (terms, xs, g_new) = last[1], last[2]
         else:
-            x_new = self._moved(x, dB, taken)
+            x_new = runs.moved(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
         return x_new, (x_new, g_new), terms, xs, accepted, backtracks
 
-    def _moved(self, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> np.ndarray:
-        """``x`` with copy ``i`` moved by ``alphas[i] * dB[i]`` (m, shape ``(N, 3)``)."""
-        disp = np.zeros_like(x)
-        disp[self.scene.index] = alphas[:, None, None] * dB
-        return x + disp
-
-    def _energy_with(self, step, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> float:
-        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i] * dB[i]``."""
-        xm = self._moved(x, dB, alphas) if np.any(alphas) else x
+    def _energy_with(self, step, x: np.ndarray, d: np.ndarray, alphas: np.ndarray) -> float:
+        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
+        stacked update ``d`` ``(N, 3)``."""
+        xm = self._runs.moved(x, d, alphas) if np.any(alphas) else x
         terms = self.contact.potentials(xm, step.x_n, step.memory)
         return self._energy(step, xm, terms, self.contact.search_position)
 
-    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, e_base: float,
+    def _armijo_groups(self, step, x: np.ndarray, d: np.ndarray, base: np.ndarray, e_base: float,
                        group: np.ndarray, delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
         """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
         ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
@@ -554,9 +565,9 @@ class LockstepSolver(NewtonSolver):
         half = np.zeros_like(group)
         half[members[: len(members) // 2]] = True
         rest = group & ~half
-        d_half = self._energy_with(step, x, dB, base + np.where(half, a, 0.0)) - e_base
-        return (self._armijo_groups(step, x, dB, base, e_base, half, d_half, a, slope, e0)
-                | self._armijo_groups(step, x, dB, base, e_base, rest, delta - d_half, a, slope, e0))
+        d_half = self._energy_with(step, x, d, base + np.where(half, a, 0.0)) - e_base
+        return (self._armijo_groups(step, x, d, base, e_base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, d, base, e_base, rest, delta - d_half, a, slope, e0))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:
