@@ -58,13 +58,22 @@ from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, SubsetHessian, declares
+from sim_core.energies.base import DeviceHessian, HessianBlocks, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
 from sim_core.step_info import StepInfo
+
+
+LOCKSTEP_CG_RTOL = 1e-4
+"""Relative residual ``|r_c| <= rtol |g_c|`` at which the batched CG stops a copy's Newton solve: an inexact Newton
+method (Dembo, Eisenstat & Steihaug, "Inexact Newton methods", SIAM J. Numer. Anal. 19, 1982: a forcing term
+``eta`` adds at most a factor ``eta`` to each iteration's linear convergence). On the Forming scene (6 copies, 8
+steps, CPU) the Newton iterations are those of ``rtol = 1e-10`` step by step, the states within 5e-8 m of its states
+(a tenth of the Newton tolerance ``tol_velocity dt``), with a quarter fewer CG iterations (357 -> 267 a solve);
+``1e-2`` adds Newton iterations."""
 
 
 class _CopiesFailed(Exception):
@@ -106,6 +115,9 @@ class LockstepSolver(NewtonSolver):
     Attributes:
         scene: the stacked scene.
         held: copies held fixed in the current attempt, shape ``(B,)`` bool.
+        subset_projection: how the projected retry projects the contact pair blocks of the retried copies:
+            ``"jacobi"`` on ``taichi-cuda`` (:func:`projected_subset_blocks`), None elsewhere (the terms' own
+            ``hessian_of_vertices``).
         last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
             copy, factorisations, times), or None.
     """
@@ -121,8 +133,11 @@ class LockstepSolver(NewtonSolver):
 
             segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
             segments[scene.index] = np.arange(scene.copies)[:, None]
-            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3))
+            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL)
         self.scene = scene
+        # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
+        # 68 ms a term at B = 256); None: the terms' own projection
+        self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
         self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
@@ -473,18 +488,20 @@ class LockstepSolver(NewtonSolver):
             [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
-    @staticmethod
-    def _term_hessian(term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
+    def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
         """A contact or friction term's Hessian blocks at ``x`` for :meth:`_device_operator`: the exact blocks
         left on the device where the term declares :class:`~sim_core.energies.base.DeviceHessian` and has them
-        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term, else
+        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term (projected
+        by :attr:`subset_projection` where set, :func:`projected_subset_blocks`), else
         ``term.hessian(x, projection)``."""
         if projection == "none" and vertices is None and declares(term, DeviceHessian):
             kept = term.hessian_on_device(x)
             if kept is not None:
                 return kept
         if vertices is not None and declares(term, SubsetHessian):
-            return term.hessian_of_vertices(x, projection, vertices)
+            if projection == "none" or self.subset_projection is None:
+                return term.hessian_of_vertices(x, projection, vertices)
+            return projected_subset_blocks(term, x, projection, vertices, self.subset_projection)
         return term.hessian(x, projection)
 
     def _line_search_copies(self, step, x: np.ndarray, d: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
@@ -568,6 +585,24 @@ class LockstepSolver(NewtonSolver):
         d_half = self._energy_with(step, x, d, base + np.where(half, a, 0.0)) - e_base
         return (self._armijo_groups(step, x, d, base, e_base, half, d_half, a, slope, e0)
                 | self._armijo_groups(step, x, d, base, e_base, rest, delta - d_half, a, slope, e0))
+
+
+def projected_subset_blocks(term, x: np.ndarray, projection: str, vertices: np.ndarray, method: str) -> HessianBlocks:
+    """The PSD-projected blocks of a :class:`~sim_core.energies.base.SubsetHessian` term whose projection is per
+    block (the contact pair penalties: ``project_psd`` of each exact ``(12, 12)`` block): the term's exact blocks
+    of the marked ``vertices`` (bool ``(N,)``), projected by
+    :func:`~sim_core.ti_kernels.block_projection.project_reduced_blocks` with ``method`` (``"jacobi"``: the cyclic
+    Jacobi kernel, every block at once on the device; ``"lapack"``), which rebuilds only the blocks with a negative
+    eigenvalue. Equal to ``term.hessian_of_vertices(x, projection, vertices)`` to round-off.
+
+    Raises:
+        ValueError: unknown projection or method.
+    """
+    from sim_core.ti_kernels.block_projection import project_reduced_blocks  # Taichi kernels: a Taichi backend
+
+    exact = term.hessian_of_vertices(x, "none", vertices)
+    blocks = np.array(exact.blocks, dtype=np.float64)  # an own copy, projected in place
+    return HessianBlocks(exact.vertices, project_reduced_blocks(blocks, projection, method))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:
