@@ -160,11 +160,18 @@ def _wrap_parts() -> dict:
     parts += [(_PairPenalty, "hessian"), (TiLaggedFriction, "hessian"), (HessianAssembler, "static_pattern"),
               (StaticPattern, "__init__"), (StaticPattern, "slot_map")]
     parts += [(lockstep.LockstepEngine, "_sync"), (NewtonSolver, "warm_up"), (NewtonSolver, "_fused_elastic")]
+    # the stacked gradient's and the energies' terms
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.inertia.reference import InertiaPotential
+
+    parts += [(cls, n) for cls in (InertiaPotential, _PairPenalty, TiLaggedFriction) for n in ("gradient", "energy")]
+    parts += [(FusedElastic, "gradient"), (PairBatch, "evaluate"), (ContactSet, "covers"),
+              (lockstep, "projected_subset_blocks")]
     for cls, name in parts:
         if name not in vars(cls):
             continue
         fn = vars(cls)[name]
-        label = f"{cls.__name__}.{name}"
+        label = f"{getattr(cls, '__name__', cls)}.{name}"
         timers[label] = [0, 0.0]
         is_cm = isinstance(fn, classmethod)
         raw = fn.__func__ if is_cm else fn

@@ -54,16 +54,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, SubsetHessian, declares
+from sim_core.energies.base import DeviceHessian, HessianBlocks, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
 from sim_core.solver_config import SolverConfig
 from sim_core.state import State
 from sim_core.step_info import StepInfo
+
+
+LOCKSTEP_CG_RTOL = 1e-4
+"""Relative residual ``|r_c| <= rtol |g_c|`` at which the batched CG stops a copy's Newton solve: an inexact Newton
+method (Dembo, Eisenstat & Steihaug, "Inexact Newton methods", SIAM J. Numer. Anal. 19, 1982: a forcing term
+``eta`` adds at most a factor ``eta`` to each iteration's linear convergence). On the Forming scene (6 copies, 8
+steps, CPU) the Newton iterations are those of ``rtol = 1e-10`` step by step, the states within 5e-8 m of its states
+(a tenth of the Newton tolerance ``tol_velocity dt``), with a quarter fewer CG iterations (357 -> 267 a solve);
+``1e-2`` adds Newton iterations."""
 
 
 class _CopiesFailed(Exception):
@@ -96,8 +106,8 @@ class LockstepSolver(NewtonSolver):
         scene: the stacked scene.
         config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
             ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
-            (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix); else the
-            named direct solver on the stacked matrix.
+            (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix, each copy solved to
+            the relative residual :data:`LOCKSTEP_CG_RTOL`); else the named direct solver on the stacked matrix.
 
     Raises:
         ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
@@ -105,6 +115,9 @@ class LockstepSolver(NewtonSolver):
     Attributes:
         scene: the stacked scene.
         held: copies held fixed in the current attempt, shape ``(B,)`` bool.
+        subset_projection: how the projected retry projects the contact pair blocks of the retried copies:
+            ``"jacobi"`` on ``taichi-cuda`` (:func:`projected_subset_blocks`), None elsewhere (the terms' own
+            ``hessian_of_vertices``).
         last_stacked_info: the stacked :class:`StepInfo` of the last step (iterations of the slowest
             copy, factorisations, times), or None.
     """
@@ -120,10 +133,15 @@ class LockstepSolver(NewtonSolver):
 
             segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
             segments[scene.index] = np.arange(scene.copies)[:, None]
-            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3))
+            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL)
         self.scene = scene
+        # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
+        # 68 ms a term at B = 256); None: the terms' own projection
+        self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
+        self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
+        self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
         self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self.last_stacked_info: StepInfo | None = None
 
@@ -197,8 +215,8 @@ class LockstepSolver(NewtonSolver):
             _CopiesFailed: the copies that failed (a step without them is the next attempt).
         """
         cfg = self.config
-        B, n = self.scene.copies, self.scene.vertex_count
-        dofs = self._dofs
+        B = self.scene.copies
+        runs = self._runs
         info = StepInfo()
         step, x = self._set_up_step(state_in, control, dt, None, info)
         running = ~self.held
@@ -218,42 +236,42 @@ class LockstepSolver(NewtonSolver):
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         H = projection = factorization = None
         for it in range(1, cfg.max_iterations + 1):
-            gB = g[dofs]  # (B, 3n)
-            bad = running & ~done & ~np.all(np.isfinite(gB), axis=1)
+            bad = running & ~done & ~runs.all_finite(g)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
             open_ = running & ~done
-            rhs = g.copy()
-            rhs[dofs[~open_]] = 0.0  # closed copies take no update: their block of the solution is zero
+            closed = runs.per_dof(~open_)
+            rhs = np.where(closed, 0.0, g)  # closed copies take no update: their block of the solution is zero
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
-            dB = d[dofs].reshape(B, n, 3)
-            bad = open_ & ~np.all(np.isfinite(dB), axis=(1, 2))
+            bad = open_ & ~runs.all_finite(d)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
             if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            dB[~open_] = 0.0
-            step_max = np.linalg.norm(dB, axis=2).max(axis=1) if n else np.zeros(B)
+            d[closed] = 0.0
+            step_max = runs.largest_norm(d)
+            g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
                 residual[i] = step_max[i] / dt
                 history[i].append(residual[i])
-                reason = stop_reason(self.config, residual[i], gB[i], history[i])
+                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[i])
                 if reason is not None:
                     accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
             open_ = running & ~done
             if not open_.any():
                 break
-            alpha = np.where(open_ & (step_max > 0), np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = np.einsum("ij,ij->i", gB, dB.reshape(B, -1))
+            alpha = np.where(open_ & (step_max > 0),
+                             np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
+            slope = runs.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
-                dB[uphill] = -gB[uphill].reshape(-1, n, 3)
-                slope[uphill] = -np.einsum("ij,ij->i", gB[uphill], gB[uphill])
+                d = np.where(runs.per_dof(uphill), -g, d)
+                slope[uphill] = -runs.dot(g, g)[uphill]
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
-                step, x, dB, alpha, slope, open_, contact_terms, x_search, info)
+                step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
             for i in np.flatnonzero(open_):
                 infos[i].backtracks += int(backtracks[i])
             failed_ls = open_ & ~accepted
@@ -302,10 +320,23 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
-        g[~step.free] = 0.0
+        g = None
+        for p in step.loop_terms + contact_terms:  # summed in place: one (N, 3) array, not one per term
+            if g is None:
+                g = np.array(p.gradient(x), dtype=np.float64).reshape(-1)
+            else:
+                g += p.gradient(x).reshape(-1)
+        g = np.zeros(3 * len(x)) if g is None else g
+        g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
+
+    def _fixed_dofs(self, step) -> np.ndarray:
+        """The step's fixed DoFs (``~step.free``) as indices, shape ``(f,)`` int64, made once per step."""
+        kept = self._fixed
+        if kept is None or kept[0] is not step.free:
+            kept = self._fixed = (step.free, np.flatnonzero(~step.free))
+        return kept[1]
 
     def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
         """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
@@ -381,12 +412,12 @@ class LockstepSolver(NewtonSolver):
         """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
         cfg = self.config
         dynamic_terms = contact_terms + step.dynamic_terms
-        dofs = self._dofs
+        runs = self._runs
         pcg = self.pcg
         projections = self._projections()
         rhs = g
         d = np.zeros_like(g)
-        todo = np.any(g[dofs] != 0.0, axis=1)  # copies with an update to find
+        todo = runs.any_dof(g != 0.0)  # copies with an update to find
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
@@ -406,19 +437,18 @@ class LockstepSolver(NewtonSolver):
             pcg.factorize(upper, blocks, diagonal)
             dk = -pcg.solve(rhs)
             info.time_linear_solve += time.perf_counter() - tl
-            dk[~step.free] = 0.0
-            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.all(np.isfinite(dk[dofs]), axis=1)
+            dk[self._fixed_dofs(step)] = 0.0
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
-                ok &= np.einsum("ij,ij->i", g[dofs], dk[dofs]) < 0.0
-            d[dofs[ok]] = dk[dofs[ok]]
+                ok &= runs.dot(g, dk) < 0.0
+            np.copyto(d, dk, where=runs.per_dof(ok))
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
-                    d[dofs[todo]] = dk[dofs[todo]]
+                    np.copyto(d, dk, where=runs.per_dof(todo))
                 break
-            rhs = g.copy()
-            rhs[dofs[~todo]] = 0.0
+            rhs = np.where(runs.per_dof(todo), g, 0.0)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
@@ -458,23 +488,26 @@ class LockstepSolver(NewtonSolver):
             [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
         return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
-    @staticmethod
-    def _term_hessian(term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
+    def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
         """A contact or friction term's Hessian blocks at ``x`` for :meth:`_device_operator`: the exact blocks
         left on the device where the term declares :class:`~sim_core.energies.base.DeviceHessian` and has them
-        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term, else
+        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term (projected
+        by :attr:`subset_projection` where set, :func:`projected_subset_blocks`), else
         ``term.hessian(x, projection)``."""
         if projection == "none" and vertices is None and declares(term, DeviceHessian):
             kept = term.hessian_on_device(x)
             if kept is not None:
                 return kept
         if vertices is not None and declares(term, SubsetHessian):
-            return term.hessian_of_vertices(x, projection, vertices)
+            if projection == "none" or self.subset_projection is None:
+                return term.hessian_of_vertices(x, projection, vertices)
+            return projected_subset_blocks(term, x, projection, vertices, self.subset_projection)
         return term.hessian(x, projection)
 
-    def _line_search_copies(self, step, x: np.ndarray, dB: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
+    def _line_search_copies(self, step, x: np.ndarray, d: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
                             open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
-        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along ``dB`` ``(B, n, 3)``: accepted copies
+        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along the stacked update ``d`` ``(N, 3)`` (zero
+        on the copies not in ``open_``): accepted copies
         keep their step while the others halve theirs (module docstring: the slope test, then the energy
         test of the copies that passed it, :meth:`_armijo_groups`).
 
@@ -486,7 +519,7 @@ class LockstepSolver(NewtonSolver):
         """
         cfg = self.config
         B = self.scene.copies
-        dofs = self._dofs
+        runs = self._runs
         e0 = self._energy(step, x, contact_terms, x_search)
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -499,18 +532,18 @@ class LockstepSolver(NewtonSolver):
             if not pending.any():
                 break
             trial = np.where(pending, a, 0.0) + taken
-            x_try = self._moved(x, dB, trial)
+            x_try = runs.moved(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
             last = (trial, x_try, (terms, xs, g_try))
-            s_try = np.einsum("ij,ij->i", g_try[dofs], dB.reshape(B, -1))
+            s_try = runs.dot(g_try, d)
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if cand.any():
-                e_base = e0 if not np.any(taken) else self._energy_with(step, x, dB, taken)
+                e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
                 if np.array_equal(cand, pending):
                     delta = self._energy(step, x_try, terms, xs) - e_base
                 else:
-                    delta = self._energy_with(step, x, dB, taken + np.where(cand, a, 0.0)) - e_base
-                ok = self._armijo_groups(step, x, dB, taken, e_base, cand, delta, a, slope, e0)
+                    delta = self._energy_with(step, x, d, taken + np.where(cand, a, 0.0)) - e_base
+                ok = self._armijo_groups(step, x, d, taken, e_base, cand, delta, a, slope, e0)
                 accepted |= ok
                 taken[ok] = a[ok]
                 pending &= ~ok
@@ -520,23 +553,18 @@ class LockstepSolver(NewtonSolver):
         if last is not None and np.array_equal(last[0], taken):
             x_new, (terms, xs, g_new) = last[1], last[2]
         else:
-            x_new = self._moved(x, dB, taken)
+            x_new = runs.moved(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
         return x_new, (x_new, g_new), terms, xs, accepted, backtracks
 
-    def _moved(self, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> np.ndarray:
-        """``x`` with copy ``i`` moved by ``alphas[i] * dB[i]`` (m, shape ``(N, 3)``)."""
-        disp = np.zeros_like(x)
-        disp[self.scene.index] = alphas[:, None, None] * dB
-        return x + disp
-
-    def _energy_with(self, step, x: np.ndarray, dB: np.ndarray, alphas: np.ndarray) -> float:
-        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i] * dB[i]``."""
-        xm = self._moved(x, dB, alphas) if np.any(alphas) else x
+    def _energy_with(self, step, x: np.ndarray, d: np.ndarray, alphas: np.ndarray) -> float:
+        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
+        stacked update ``d`` ``(N, 3)``."""
+        xm = self._runs.moved(x, d, alphas) if np.any(alphas) else x
         terms = self.contact.potentials(xm, step.x_n, step.memory)
         return self._energy(step, xm, terms, self.contact.search_position)
 
-    def _armijo_groups(self, step, x: np.ndarray, dB: np.ndarray, base: np.ndarray, e_base: float,
+    def _armijo_groups(self, step, x: np.ndarray, d: np.ndarray, base: np.ndarray, e_base: float,
                        group: np.ndarray, delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
         """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
         ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
@@ -554,9 +582,27 @@ class LockstepSolver(NewtonSolver):
         half = np.zeros_like(group)
         half[members[: len(members) // 2]] = True
         rest = group & ~half
-        d_half = self._energy_with(step, x, dB, base + np.where(half, a, 0.0)) - e_base
-        return (self._armijo_groups(step, x, dB, base, e_base, half, d_half, a, slope, e0)
-                | self._armijo_groups(step, x, dB, base, e_base, rest, delta - d_half, a, slope, e0))
+        d_half = self._energy_with(step, x, d, base + np.where(half, a, 0.0)) - e_base
+        return (self._armijo_groups(step, x, d, base, e_base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, d, base, e_base, rest, delta - d_half, a, slope, e0))
+
+
+def projected_subset_blocks(term, x: np.ndarray, projection: str, vertices: np.ndarray, method: str) -> HessianBlocks:
+    """The PSD-projected blocks of a :class:`~sim_core.energies.base.SubsetHessian` term whose projection is per
+    block (the contact pair penalties: ``project_psd`` of each exact ``(12, 12)`` block): the term's exact blocks
+    of the marked ``vertices`` (bool ``(N,)``), projected by
+    :func:`~sim_core.ti_kernels.block_projection.project_reduced_blocks` with ``method`` (``"jacobi"``: the cyclic
+    Jacobi kernel, every block at once on the device; ``"lapack"``), which rebuilds only the blocks with a negative
+    eigenvalue. Equal to ``term.hessian_of_vertices(x, projection, vertices)`` to round-off.
+
+    Raises:
+        ValueError: unknown projection or method.
+    """
+    from sim_core.ti_kernels.block_projection import project_reduced_blocks  # Taichi kernels: a Taichi backend
+
+    exact = term.hessian_of_vertices(x, "none", vertices)
+    blocks = np.array(exact.blocks, dtype=np.float64)  # an own copy, projected in place
+    return HessianBlocks(exact.vertices, project_reduced_blocks(blocks, projection, method))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:

@@ -107,7 +107,8 @@ def test_values_on_the_device_and_the_diagonal_added_there_give_the_matrix_with_
 
 @pytest.mark.parametrize("device_hessian", [False, True])
 def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian):
-    """With ``device_hessian`` (CUDA's default) the CG takes the contact Hessians from the pair kernel's ndarray."""
+    """With ``device_hessian`` (CUDA's defaults) the CG takes the contact Hessians from the pair kernel's ndarray,
+    and the projected retry projects the contact pair blocks by the Jacobi kernel."""
     from sim_core.energies.contact.batch_kernel import PairBatch
 
     monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
@@ -118,6 +119,8 @@ def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_c
                                          solver_config=SolverConfig(backend="taichi-cpu", lockstep=True,
                                                                     linear_solver="pcg"))
     assert batch.lockstep.solver.pcg is not None
+    if device_hessian:
+        batch.lockstep.solver.subset_projection = "jacobi"
     pose0 = batch.states[0].effector_pose["pad"].copy()
     got = []
     for k in range(steps):
