@@ -274,3 +274,31 @@ def _host_arch(runtime) -> bool:
 def fast_kernel(fn: Callable) -> FastKernel:
     """``@fast_kernel`` in place of ``@ti.kernel``: a Taichi kernel with cached launch plans (module docstring)."""
     return FastKernel(ti.kernel(fn))
+
+
+def summing_kernel(fn: Callable) -> Callable[..., float]:
+    """``@summing_kernel`` in place of ``@fast_kernel`` for a kernel that sums a scalar over its loops
+    (an energy in J): the kernel's last argument is a ``(1,)`` float64 array ``energy`` that it sets to
+    zero and adds into (``energy[0] += ...``); the returned function takes the other arguments, launches
+    the kernel (a :func:`fast_kernel`) with an array kept per thread, and returns ``energy[0]``.
+
+    Why not a returned scalar (``-> ti.f64``) summed in a local variable: on CUDA such a kernel's parallel
+    loop took 1.9 ms whatever its element count (210 to 1,125 elements, energy alone or with the
+    Hessian, Taichi 1.7.4 on an H200: docs/benchmarks_log.md, session 38, 28single), about 40 ms a
+    Forming step, where a sum into an array element takes microseconds. On the CPU (serial loops) the
+    additions are the same, in the same order: the same sum bit for bit.
+    """
+    kernel = fast_kernel(fn)
+    cells = threading.local()
+
+    @functools.wraps(fn)
+    def summed(*args: Any) -> float:
+        energy = getattr(cells, "energy", None)
+        if energy is None:
+            energy = cells.energy = np.zeros(1)
+        kernel(*args, energy)
+        return float(energy[0])
+
+    summed.kernel = kernel  # the FastKernel itself
+    return summed
+
