@@ -229,3 +229,32 @@ def test_summing_kernel_returns_the_in_order_sum_of_its_loop(ti_cpu):
             assert isinstance(total, float)
             assert total == in_order
             assert total == squares_returned(x, w)
+
+
+def test_planned_launches_bind_taichi_ndarrays(ti_cpu):
+    """Taichi ndarray arguments go through the kept plans too (bound again at every launch): repeated
+    calls, another ndarray object in the same slot and a NumPy array in place of an ndarray (another
+    signature) all give Taichi's own results."""
+    from sim_core.ti_kernels.launch import fast_kernel
+
+    @fast_kernel
+    def axpy(a: ti.f64, x: _F64_1, y: _F64_1):
+        for k in range(x.shape[0]):
+            y[k] = a * x[k] + y[k]
+
+    rng = np.random.default_rng(5)
+    x_host = rng.normal(size=11)
+    x_dev, y_dev, y_other = (ti.ndarray(ti.f64, shape=(11,)) for _ in range(3))
+    x_dev.from_numpy(x_host)
+    y_dev.fill(1.0)
+    y_other.fill(-2.0)
+    expected_dev, expected_other = np.ones(11), np.full(11, -2.0)
+    for call in range(4):
+        a = 0.5 + call
+        axpy(a, x_dev, y_dev)
+        expected_dev = a * x_host + expected_dev
+        np.testing.assert_allclose(y_dev.to_numpy(), expected_dev, rtol=0, atol=1e-13)
+        axpy(a, x_host, y_other)  # a NumPy array where an ndarray was: another plan
+        expected_other = a * x_host + expected_other
+        np.testing.assert_allclose(y_other.to_numpy(), expected_other, rtol=0, atol=1e-13)
+    assert len([p for p in axpy._plans.values() if p is not None]) == 2
