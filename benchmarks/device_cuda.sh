@@ -15,7 +15,10 @@
 #
 # A helper's branch whose checkout is not the one the device tool copies travels as a copy of its code
 # (benchmarks/sync_gpu_src.sh DEST, DEST ignored by git and carried beside WHEELS); the command then
-# runs this script from DEST.
+# runs this script from DEST. Where that copy, the wheels and the tree exceed the tool's 64 MiB, carry only
+# the branch's changed files (`git diff --name-only BASE`, new files too) in DEST and lay them over a copy of
+# the device's tree: `mkdir /tmp/br && tar --exclude=./.gpu_wheels --exclude=./DEST -cf - . | tar -xf - -C /tmp/br
+# && cp -r DEST/. /tmp/br/`, then run from /tmp/br with the repository root's run as the baseline (session 38).
 #
 # `profile` (PROFILE_SIZES, default "64 256"; STEPS) runs benchmarks/profile_lockstep.py on CUDA: the
 # wall time of a lockstep Forming step split into the solver's parts (one step first for compilation
@@ -117,7 +120,8 @@ for part in $PARTS; do
                 [ "$arch" = numpy ] && continue
                 flag=; [ "$arch" = cuda ] && flag=--kernel-profiler
                 echo "=== single_profile $arch"
-                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag > "$out/profile_single_$arch.out" 2>&1
+                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
+                    > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
                 grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
             done ;;
