@@ -15,7 +15,10 @@
 #
 # A helper's branch whose checkout is not the one the device tool copies travels as a copy of its code
 # (benchmarks/sync_gpu_src.sh DEST, DEST ignored by git and carried beside WHEELS); the command then
-# runs this script from DEST.
+# runs this script from DEST. Where that copy, the wheels and the tree exceed the tool's 64 MiB, carry only
+# the branch's changed files (`git diff --name-only BASE`, new files too) in DEST and lay them over a copy of
+# the device's tree: `mkdir /tmp/br && tar --exclude=./.gpu_wheels --exclude=./DEST -cf - . | tar -xf - -C /tmp/br
+# && cp -r DEST/. /tmp/br/`, then run from /tmp/br with the repository root's run as the baseline (session 38).
 #
 # `profile` (PROFILE_SIZES, default "64 256"; STEPS) runs benchmarks/profile_lockstep.py on CUDA: the
 # wall time of a lockstep Forming step split into the solver's parts (one step first for compilation
@@ -33,8 +36,12 @@
 #   batch_cpu_forming      thinshell bench batch --arch cpu  --scene forming  --sizes $CPU_SIZES
 #   batch_cuda_task        thinshell bench batch --arch cuda --scene $TASK    --sizes $TASK_SIZES
 #   batch_cpu_task         thinshell bench batch --arch cpu  --scene $TASK    --sizes $TASK_SIZES
-#   forming                thinshell bench forming --arch cuda|cpu|numpy --json (single-environment figures)
-# each with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
+#   forming                thinshell bench forming --arch A --json --repeat $FORMING_REPEAT for A in $FORMING_ARCHS
+#                          (single-environment figures; FORMING_ARCHS default "cuda cpu numpy", FORMING_REPEAT 1)
+#   single_profile         benchmarks/profile_single.py --arch A for A in $FORMING_ARCHS but numpy (where a
+#                          single environment's step goes: kernel launches, transfers, linear solve, the rest;
+#                          with --kernel-profiler on cuda)
+# each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
 # ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
 # batch benchmark prints each size as it finishes, so a part stopped at its limit keeps its smaller
@@ -106,7 +113,18 @@ for part in $PARTS; do
         batch_cpu_forming) bench "$part" batch --arch cpu --scene forming --sizes ${CPU_SIZES:-1 4 16} --steps "$STEPS" --json ;;
         batch_cuda_task) bench "$part" batch --arch cuda --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json ;;
         batch_cpu_task) bench "$part" batch --arch cpu --scene "$TASK" --sizes ${TASK_SIZES:-1 4 16} --steps "$STEPS" --json ;;
-        forming) for arch in cuda cpu numpy; do bench "forming_$arch" forming --arch "$arch" --no-elastic-worker --json; done ;;
+        forming) for arch in ${FORMING_ARCHS:-cuda cpu numpy}; do
+                bench "forming_$arch" forming --arch "$arch" --repeat "${FORMING_REPEAT:-1}" --json
+            done ;;
+        single_profile) for arch in ${FORMING_ARCHS:-cuda cpu}; do
+                [ "$arch" = numpy ] && continue
+                flag=; [ "$arch" = cuda ] && flag=--kernel-profiler
+                echo "=== single_profile $arch"
+                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
+                    > "$out/profile_single_$arch.out" 2>&1
+                echo "exit $?"
+                grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
+            done ;;
         *) echo "unknown part $part" >&2; exit 2 ;;
     esac
 done

@@ -269,13 +269,15 @@ class FusedElastic:
         energy = 0.0
         if remote is None and self._on_device():
             # CUDA: positions up, gradient and Hessian values down once per evaluation, not per part
+            from sim_core.ti_kernels.transfer import download, fill, upload  # Taichi only on a Taichi backend
+
             xd, gd, vd = self._device_buffers(xc.shape, values.size)
-            xd.from_numpy(xc)
-            gd.fill(0.0)
-            vd.fill(0.0)
+            upload(xd, xc)
+            fill(gd, 0.0)
+            fill(vd, 0.0)
             for part in self._parts:
                 energy += part.evaluate(xd, gd, vd)
-            np.copyto(grad, gd.to_numpy())
+            download(gd, grad)
             self._values_on_device = True  # copied to ``values`` when asked for (hessian_values)
             self._kept = (key, energy, grad, values)
             return self._kept
@@ -419,9 +421,9 @@ class FusedElastic:
             return kept[1]
         xc = np.ascontiguousarray(x, dtype=np.float64)
         if self.pattern is not None and self.offloaded_part() is None and self._on_device():
-            xd = self._device_buffers(xc.shape, self.pattern.keys.size)[0]
-            xd.from_numpy(xc)
-            xc = xd
+            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
+
+            xc = upload(self._device_buffers(xc.shape, self.pattern.keys.size)[0], xc)
         return float(sum(part.energy(xc) for part in self._parts))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
@@ -434,7 +436,9 @@ class FusedElastic:
         on the device after an evaluation and are copied here only when asked for."""
         kept = self._evaluate(x)
         if self._values_on_device:
-            kept[3][:] = self._device_kept[2].to_numpy()[: kept[3].size]
+            from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
+
+            kept[3][:] = download(self._device_kept[2])[: kept[3].size]
             self._values_on_device = False
         return kept[3]
 

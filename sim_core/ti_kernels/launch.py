@@ -7,11 +7,15 @@ per call for the 7 to 9 array arguments of the fused and contact kernels, agains
 the launch itself (2-core VM). A Newton step of the Forming scene makes ~50 such calls.
 
 :func:`fast_kernel` wraps a kernel so that the first call of each *call signature* (per argument:
-the dtype and rank of a NumPy array, the type of a scalar, the value of a template argument) goes
+the dtype and rank of a NumPy array or of a Taichi ndarray, the type of a scalar, the value of a
+template argument) goes
 through Taichi's own path, which compiles, validates and launches; it then records the compiled
 kernel and a plan of typed argument setters, and later calls with that signature fill the launch
-context directly (``set_arg_external_array_with_shape`` / ``set_arg_float`` / ``set_arg_int``,
-the calls Taichi's ``Kernel.launch_kernel`` makes) and launch the same compiled code. On the CPU
+context directly (``set_arg_external_array_with_shape`` / ``set_arg_ndarray`` / ``set_arg_float`` /
+``set_arg_int``, the calls Taichi's ``Kernel.launch_kernel`` makes) and launch the same compiled code.
+A Taichi ndarray argument (device memory on CUDA: the kernels of one environment keep their arrays
+there) then costs no more Python than a NumPy one, against about 45-75 us a call through Taichi's
+path on the H200 host (``benchmarks/profile_single.py``). On the CPU
 the plan keeps its launch context and sets again only the array arguments that are other array
 objects than at the last launch and the scalars that changed (:class:`_Plan`; constant index and
 rest-shape arrays are bound once), which cuts a launch with 7 arrays from about 60 us to 15 us. A
@@ -21,9 +25,10 @@ as it is set (about 4 us of Python for the 14 arguments of the contact batch ker
 plain call: same compiled kernel, same argument values.
 
 Anything the plan does not cover takes Taichi's path every time: keyword arguments, arrays that
-are not C-contiguous NumPy arrays, ndarray annotations with a matrix/vector element type, struct,
-matrix or argpack arguments, kernels that print or return anything but one scalar, and any call
-after the Taichi program was re-initialised (the plans of the old program are dropped).
+are neither C-contiguous NumPy arrays nor Taichi scalar ndarrays without a gradient, ndarray
+annotations with a matrix/vector element type, struct, matrix or argpack arguments, kernels that
+print or return anything but one scalar, and any call after the Taichi program was re-initialised
+(the plans of the old program are dropped).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import threading
 from typing import Any, Callable
 
 import numpy as np
+from taichi.lang._ndarray import ScalarNdarray as _ScalarNdarray
 from taichi.lang.util import cook_dtype
 from taichi.types import ndarray_type, primitive_types, template
 from taichi.types.utils import is_signed
@@ -43,6 +49,7 @@ from sim_core.ti_backend import ti  # first: Taichi through ti_backend, which si
 _runtime = ti.lang.impl.get_runtime  # (taichi is imported through ti_backend, which silences its banner)
 
 _ARRAY, _FLOAT, _INT, _UINT, _TEMPLATE = range(5)
+_NDARRAY = "ndarray"  # the first entry of a Taichi ndarray argument's signature: (_NDARRAY, dtype, ndim)
 
 
 def _argument_kinds(primal) -> list[int] | None:
@@ -146,6 +153,13 @@ class _Plan:
             v = args[position]
             last = None if bound is None else bound[n]
             if kind == _ARRAY:
+                if expected[0] is _NDARRAY:  # a Taichi ndarray: bound by its allocation, as Taichi's own call does,
+                    # at every launch (a launch replaces the allocation it was given with its address)
+                    if not checked and (type(v) is not _ScalarNdarray or v.grad is not None
+                                        or v.dtype != expected[1] or len(v.shape) != expected[2]):
+                        return _MISMATCH
+                    ctx.set_arg_ndarray((index,), v.arr)
+                    continue
                 if last is not None and last[0] is v and last[1] == v.shape and last[2] is v.dtype \
                         and last[3] == v.strides:
                     continue
@@ -208,6 +222,11 @@ class FastKernel:
         key = []
         for arg, kind in zip(args, kinds):
             if kind == _ARRAY:
+                if type(arg) is _ScalarNdarray:
+                    if arg.grad is not None:
+                        return None
+                    key.append((_NDARRAY, arg.dtype, len(arg.shape)))
+                    continue
                 if type(arg) is not np.ndarray or not arg.flags.c_contiguous:
                     return None
                 key.append((arg.dtype.num, arg.ndim))
@@ -274,3 +293,31 @@ def _host_arch(runtime) -> bool:
 def fast_kernel(fn: Callable) -> FastKernel:
     """``@fast_kernel`` in place of ``@ti.kernel``: a Taichi kernel with cached launch plans (module docstring)."""
     return FastKernel(ti.kernel(fn))
+
+
+def summing_kernel(fn: Callable) -> Callable[..., float]:
+    """``@summing_kernel`` in place of ``@fast_kernel`` for a kernel that sums a scalar over its loops
+    (an energy in J): the kernel's last argument is a ``(1,)`` float64 array ``energy`` that it sets to
+    zero and adds into (``energy[0] += ...``); the returned function takes the other arguments, launches
+    the kernel (a :func:`fast_kernel`) with an array kept per thread, and returns ``energy[0]``.
+
+    Why not a returned scalar (``-> ti.f64``) summed in a local variable: on CUDA such a kernel's parallel
+    loop took 1.9 ms whatever its element count (210 to 1,125 elements, energy alone or with the
+    Hessian, Taichi 1.7.4 on an H200: docs/benchmarks_log.md, session 38, 28single), about 40 ms a
+    Forming step, where a sum into an array element takes microseconds. On the CPU (serial loops) the
+    additions are the same, in the same order: the same sum bit for bit.
+    """
+    kernel = fast_kernel(fn)
+    cells = threading.local()
+
+    @functools.wraps(fn)
+    def summed(*args: Any) -> float:
+        energy = getattr(cells, "energy", None)
+        if energy is None:
+            energy = cells.energy = np.zeros(1)
+        kernel(*args, energy)
+        return float(energy[0])
+
+    summed.kernel = kernel  # the FastKernel itself
+    return summed
+

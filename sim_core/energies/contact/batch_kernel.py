@@ -46,6 +46,7 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.transfer import download, upload
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -207,7 +208,7 @@ class PairBatch:
         kept = self._device_x
         if kept is None or kept[0] != key or tuple(kept[1].shape) != x.shape:
             xd = kept[1] if kept is not None and tuple(kept[1].shape) == x.shape else ti.ndarray(ti.f64, shape=x.shape)
-            xd.from_numpy(np.ascontiguousarray(x, dtype=np.float64))
+            upload(xd, x)
             kept = self._device_x = (key, xd)
         dev = self._device
         z = on_device(dev, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
@@ -270,9 +271,9 @@ class PairBatch:
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                gradients[: 2 * n] = gradients_arg.to_numpy()[: 2 * n]
+                gradients[: 2 * n] = download(gradients_arg)[: 2 * n]
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
-                grad[:m] = grad_arg.to_numpy()
+                grad[:m] = download(grad_arg)
         else:
             gradients[: 2 * n] = 0.0
         order = 2 if derivatives else 0

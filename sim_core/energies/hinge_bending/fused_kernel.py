@@ -28,36 +28,36 @@ from sim_core.energies.hinge_bending.kernel import _dihedral_angle, _hinge_posit
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import summing_kernel
 
 _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
 
 
-@fast_kernel
-def weighted_hinge_energy(x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, weight: _F64_1) -> ti.f64:
+@summing_kernel
+def weighted_hinge_energy(x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, weight: _F64_1, energy: _F64_1):
     """``sum_h weight_h (theta_h - theta_bar_h)^2`` in J."""
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
-        energy += weight[h] * d * d
-    return energy
+        energy[0] += weight[h] * d * d
 
 
-@fast_kernel
+@summing_kernel
 def weighted_hinge_energy_gradient_hessian(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, weight: _F64_1, slots: _I32_3, grad: _F64_2, values: _F64_1,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy (J, returned); adds the gradient (N) to ``grad`` ``(n, 3)`` and the exact Hessian (N/m)
     to ``values`` at ``slots[h, r, s]`` (``(h, 12, 12)``, -1 = not stored; module docstring)."""
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
         w = weight[h]
-        energy += w * d * d
+        energy[0] += w * d * d
         g = _theta_gradient(x0, x1, x2, x3)
         f = 2.0 * w * d
         for a in ti.static(range(4)):
@@ -77,7 +77,6 @@ def weighted_hinge_energy_gradient_hessian(
                         values[k1] += val
                     if k2 >= 0:
                         values[k2] += val
-    return energy
 
 
 class FusedAnisotropicBending:

@@ -27,7 +27,7 @@ from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, upper_index,
                                                   upper_slot_table)
@@ -72,29 +72,30 @@ def _add_gauss_newton_entry(values: ti.template(), tri_upper: ti.template(), t, 
         add_upper_entry(values, slot, G[0, r] * MG[0, s] + G[1, r] * MG[1, s] + G[2, r] * MG[2, s])
 
 
-@fast_kernel
+@summing_kernel
 def kirchhoff_energy(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, stiffness: _F64_3, scratch: _F64_2,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy ``sum_T d_T^T M_T d_T`` in J (``scratch`` (h, 14) is overwritten)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         for k, l in ti.static(ti.ndrange(3, 3)):
-            energy += d[k] * stiffness[t, k, l] * d[l]
-    return energy
+            energy[0] += d[k] * stiffness[t, k, l] * d[l]
 
 
-@fast_kernel
+@summing_kernel
 def kirchhoff_energy_gradient_hessian(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
     tri_upper: _I32_2, hinge_upper: _I32_2, scratch: _F64_2, grad: _F64_2, values: _F64_1,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``.
 
     ``tri_local[t, k, a]``: local block vertex (0..5) of vertex ``a`` of the hinge on edge ``k``;
@@ -111,7 +112,7 @@ def kirchhoff_energy_gradient_hessian(
         g = _theta_gradient(x0, x1, x2, x3)
         for r in ti.static(range(12)):
             scratch[h, 2 + r] = g[r]
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
@@ -119,7 +120,7 @@ def kirchhoff_energy_gradient_hessian(
         for k, l in ti.static(ti.ndrange(3, 3)):
             M[k, l] = stiffness[t, k, l]
         Md = M @ d
-        energy += d.dot(Md)
+        energy[0] += d.dot(Md)
         G = ti.Matrix.zero(ti.f64, 3, 18)
         has_hinge = ti.Vector([1, 1, 1, 0, 0, 0])  # per block vertex: in some hinge of the triangle
         for k in ti.static(range(3)):
@@ -157,7 +158,6 @@ def kirchhoff_energy_gradient_hessian(
             for s in range(r + 1, 12):
                 add_upper_entry(values, hinge_upper[h, u], f * (0.5 * (H[r, s] + H[s, r])))  # symmetrised
                 u += 1
-    return energy
 
 
 @fast_kernel

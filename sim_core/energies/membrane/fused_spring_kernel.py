@@ -40,7 +40,7 @@ from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
@@ -56,22 +56,22 @@ def _cross_matrix(v):
     return ti.Matrix([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], ti.f64)
 
 
-@fast_kernel
+@summing_kernel
 def spring_membrane_energy(
     x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, k_length: ti.f64, k_area: ti.f64,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy in J (module docstring)."""
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
         l = (linalg.row3(x, edges[e, 1]) - linalg.row3(x, edges[e, 0])).norm()
-        energy += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
+        energy[0] += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         x0 = linalg.row3(x, triangles[t, 0])
         A = 0.5 * (linalg.row3(x, triangles[t, 1]) - x0).cross(linalg.row3(x, triangles[t, 2]) - x0).norm()
-        energy += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
-    return energy
+        energy[0] += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
 
 
 @ti.func
@@ -131,15 +131,16 @@ def _area_block(a: ti.template(), b: ti.template(), g1, g2, n_norm, K, W, dA):
     return B
 
 
-@fast_kernel
+@summing_kernel
 def spring_membrane_energy_gradient_hessian(
     x: _F64_2, triangles: _I32_2, edges: _I32_2, area0: _F64_1, length0: _F64_1, upper: _I32_2,
     k_length: ti.f64, k_area: ti.f64, grad: _F64_2, values: _F64_1,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy (J, returned); adds the gradient (N) to ``grad`` (n, 3) and the exact Hessian (N/m)
     to ``values`` through the packed upper slot table ``upper`` (rows: triangles, then edges; 45
     entries of the 9x9 blocks, :func:`~sim_core.ti_kernels.block_projection.upper_slot_table`)."""
-    energy = 0.0
+    energy[0] = 0.0
     t_count = triangles.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
@@ -147,7 +148,7 @@ def spring_membrane_energy_gradient_hessian(
         vb = edges[e, 1]
         u, l, f1, f2 = _edge_terms(x, edges, length0, k_length, e)
         l0 = length0[e]
-        energy += k_length * (1.0 - l / l0) ** 2 * l0
+        energy[0] += k_length * (1.0 - l / l0) ** 2 * l0
         for i in ti.static(range(3)):
             grad[vb, i] += f1 * u[i]
             grad[va, i] -= f1 * u[i]
@@ -156,7 +157,7 @@ def spring_membrane_energy_gradient_hessian(
     for t in range(t_count):
         A, g1, g2, n_norm, K, W, dA = _triangle_terms(x, triangles, area0, k_area, t)
         A0 = area0[t]
-        energy += k_area * (1.0 - A / A0) ** 2 * A0
+        energy[0] += k_area * (1.0 - A / A0) ** 2 * A0
         for i in ti.static(range(3)):
             for a in ti.static(range(3)):
                 grad[triangles[t, a], i] += g1 * dA[a][i]
@@ -166,7 +167,6 @@ def spring_membrane_energy_gradient_hessian(
                 for c, d in ti.static(ti.ndrange(3, 3)):
                     if ti.static(a != b or c <= d):
                         add_upper_entry(values, upper[t, upper_index(9, 3 * a + c, 3 * b + d)], B[c, d])
-    return energy
 
 
 @fast_kernel

@@ -24,7 +24,7 @@ from sim_core.energies.membrane.reference import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -53,32 +53,32 @@ def _stress(F, mu, lam):
     return G, tr, S
 
 
-@fast_kernel
+@summing_kernel
 def stvk_energy(x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F64_1, mu: ti.f64,
-                lam: ti.f64) -> ti.f64:
+                lam: ti.f64, energy: _F64_1):
     """Membrane energy in J."""
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, _ = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, _S = _stress(F, mu, lam)
-        energy += weight[t] * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
-    return energy
+        energy[0] += weight[t] * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
 
 
-@fast_kernel
+@summing_kernel
 def stvk_energy_gradient_hessian(
     x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F64_1, slots: _I32_3, mu: ti.f64,
     lam: ti.f64, grad: _F64_2, values: _F64_1,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``."""
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, D = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, S = _stress(F, mu, lam)
         w = weight[t]
-        energy += w * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
+        energy[0] += w * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
         PD = F @ S @ D.transpose()  # PD[d, a] = (F S D_a)_d
         for a in ti.static(range(3)):
             v = triangles[t, a]
@@ -107,7 +107,6 @@ def stvk_energy_gradient_hessian(
                                 values[k] += h
                             if k2 >= 0:
                                 values[k2] += h
-    return energy
 
 
 class FusedStVKMembrane:

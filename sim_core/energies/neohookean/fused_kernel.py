@@ -36,7 +36,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, upper_index,
                                                   upper_slot_table)
 from sim_core.ti_kernels.buffers import on_device
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.worker_recipe import part_recipe
 
@@ -63,16 +63,15 @@ def _psi(I_C, J, mu, lam, alpha):
             - 0.5 * mu * ti.log((I_C + 1.0) / 4.0) - 9.0 * mu * mu / (32.0 * lam))
 
 
-@fast_kernel
-def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, lam: ti.f64) -> ti.f64:
+@summing_kernel
+def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, lam: ti.f64, energy: _F64_1):
     """``sum_t V_t psi(F_t)`` in J."""
     alpha = 1.0 + 0.75 * mu / lam
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, _ = _tet_state(x, tets, dFdx, t)
-        energy += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
-    return energy
+        energy[0] += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
 
 
 @ti.func
@@ -96,17 +95,18 @@ def _add_entry(values: ti.template(), upper: ti.template(), t, a, b, c: ti.templ
         add_upper_entry(values, slot, h)
 
 
-@fast_kernel
+@summing_kernel
 def snh_energy_gradient_hessian(
     x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, upper: _I32_2, mu: ti.f64, lam: ti.f64,
     grad: _F64_2, values: _F64_1,
-) -> ti.f64:
+    energy: _F64_1,
+):
     """Energy (J, returned); adds the forces to ``grad`` (n, 3) in N and the exact Hessian entries
     (N/m) to ``values`` through the packed upper slot table ``upper`` (t, 78)
     (:func:`~sim_core.ti_kernels.block_projection.upper_slot_table`; module docstring). Corners
     without a free DoF are skipped (their entries are not stored)."""
     alpha = 1.0 + 0.75 * mu / lam
-    energy = 0.0
+    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, G = _tet_state(x, tets, dFdx, t)
@@ -114,7 +114,7 @@ def snh_energy_gradient_hessian(
         J = F.determinant()
         cof = linalg.cofactor(F)
         V = vol[t]
-        energy += V * _psi(I_C, J, mu, lam, alpha)
+        energy[0] += V * _psi(I_C, J, mu, lam, alpha)
         mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
         stretch = lam * (J - alpha)
         P = mu_t * F + stretch * cof
@@ -149,7 +149,6 @@ def snh_energy_gradient_hessian(
                         mgg = mu_t * ga.dot(gb)
                         for c, d in ti.static(ti.ndrange(3, 3)):
                             _add_entry(values, upper, t, a, b, c, d, bGF, GF, lGK, GK, mgg, sFw, V)
-    return energy
 
 
 def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:

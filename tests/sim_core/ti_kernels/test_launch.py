@@ -195,3 +195,66 @@ def test_read_only_and_offset_arrays_are_bound_at_their_address(ti_cpu):
         out = np.zeros(5)
         weighted_sum(x, w_view, idx, 1.0, 0, False, out)
         np.testing.assert_array_equal(out, _reference(x, w_view, idx, 1.0, 0, False))
+
+
+def test_summing_kernel_returns_the_in_order_sum_of_its_loop(ti_cpu):
+    """A ``summing_kernel`` returns what its loop added into ``energy[0]``: on the CPU (serial loops) the
+    sum of the terms in loop order, bit for bit, the same as the returned scalar of the same loop; the kept
+    array is zeroed by the kernel, so a second call does not add to the first's sum."""
+    from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
+
+    def squares(x: _F64_1, w: _F64_1, energy: _F64_1):
+        energy[0] = 0.0
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            energy[0] += w[k] * x[k] * x[k]
+
+    @fast_kernel
+    def squares_returned(x: _F64_1, w: _F64_1) -> ti.f64:
+        total = 0.0
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            total += w[k] * x[k] * x[k]
+        return total
+
+    summed = summing_kernel(squares)
+    rng = np.random.default_rng(3)
+    for n in (1, 7, 1000):
+        x, w = rng.normal(size=n), rng.uniform(0.5, 2.0, size=n)
+        in_order = 0.0
+        for k in range(n):
+            in_order += w[k] * x[k] * x[k]
+        for _ in range(2):
+            total = summed(x, w)
+            assert isinstance(total, float)
+            assert total == in_order
+            assert total == squares_returned(x, w)
+
+
+def test_planned_launches_bind_taichi_ndarrays(ti_cpu):
+    """Taichi ndarray arguments go through the kept plans too (bound again at every launch): repeated
+    calls, another ndarray object in the same slot and a NumPy array in place of an ndarray (another
+    signature) all give Taichi's own results."""
+    from sim_core.ti_kernels.launch import fast_kernel
+
+    @fast_kernel
+    def axpy(a: ti.f64, x: _F64_1, y: _F64_1):
+        for k in range(x.shape[0]):
+            y[k] = a * x[k] + y[k]
+
+    rng = np.random.default_rng(5)
+    x_host = rng.normal(size=11)
+    x_dev, y_dev, y_other = (ti.ndarray(ti.f64, shape=(11,)) for _ in range(3))
+    x_dev.from_numpy(x_host)
+    y_dev.fill(1.0)
+    y_other.fill(-2.0)
+    expected_dev, expected_other = np.ones(11), np.full(11, -2.0)
+    for call in range(4):
+        a = 0.5 + call
+        axpy(a, x_dev, y_dev)
+        expected_dev = a * x_host + expected_dev
+        np.testing.assert_allclose(y_dev.to_numpy(), expected_dev, rtol=0, atol=1e-13)
+        axpy(a, x_host, y_other)  # a NumPy array where an ndarray was: another plan
+        expected_other = a * x_host + expected_other
+        np.testing.assert_allclose(y_other.to_numpy(), expected_other, rtol=0, atol=1e-13)
+    assert len([p for p in axpy._plans.values() if p is not None]) == 2

@@ -1,0 +1,147 @@
+"""Profile one Forming environment (``thinshell bench forming``'s trajectory): where a step's wall time goes.
+
+Usage: ``python benchmarks/profile_single.py --arch cuda [--steps 49] [--kernel-profiler]``.
+
+Runs the trajectory once (kernels compiled or loaded, untimed), then again with the parts wrapped in
+wall-clock timers. A part's time is counted only where no other timed part encloses it (the outermost
+timed call wins), so the parts add up to at most the steps' wall time; the rest is Python and NumPy
+of the Newton loop. Parts:
+
+- ``kernel launch``: Taichi kernel calls (:class:`sim_core.ti_kernels.launch.FastKernel` and Taichi's
+  own ``Kernel.__call__``): on CUDA the device time plus, per NumPy array argument, a device buffer,
+  its copy to the device, a synchronisation and the copy back (Taichi's CUDA launcher does this for
+  every host array, read or written);
+- ``ndarray transfer``: ``from_numpy`` / ``to_numpy`` of Taichi ndarrays;
+- ``linear solve``: the symmetric solver's ``factorize`` / ``solve`` and the general LU's.
+
+Also printed: kernel calls and NumPy array arguments per step; with ``--kernel-profiler`` Taichi's
+per-kernel device time (it synchronises every launch: the timed run is then slower than the bench's);
+and a launch micro-benchmark (one kernel, one array of 5,094 float64 passed as a NumPy array vs as a
+Taichi ndarray, us per launch).
+"""
+
+# no `from __future__ import annotations`: the micro-benchmark's Taichi kernel needs evaluated annotations
+import argparse
+import functools
+import time
+
+
+class _Parts:
+    """Outermost-wins wall-clock accumulators: name -> [calls, seconds]."""
+
+    def __init__(self) -> None:
+        self.totals: dict[str, list] = {}
+        self.depth = 0
+        self.arrays = 0
+
+    def wrap(self, owner, attribute: str, name: str, count_arrays: bool = False) -> None:
+        original = getattr(owner, attribute)
+        record = self.totals.setdefault(name, [0, 0.0])
+        parts = self
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            if parts.depth:
+                return original(*args, **kwargs)
+            if count_arrays:
+                import numpy as np
+
+                parts.arrays += sum(type(a) is np.ndarray for a in args)
+            parts.depth += 1
+            t0 = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                record[1] += time.perf_counter() - t0
+                record[0] += 1
+                parts.depth -= 1
+
+        setattr(owner, attribute, timed)
+
+    def reset(self) -> None:
+        for record in self.totals.values():
+            record[0], record[1] = 0, 0.0
+        self.arrays = 0
+
+
+def _launch_microbenchmark(ti, repeats: int = 500) -> None:
+    import numpy as np
+
+    from sim_core.ti_kernels.launch import fast_kernel
+
+    def scale(a: ti.types.ndarray(dtype=ti.f64, ndim=1), s: ti.f64):
+        for i in range(a.shape[0]):
+            a[i] = a[i] * s
+
+    host = np.ones(5094)
+    device = ti.ndarray(dtype=ti.f64, shape=host.shape)
+    planned = fast_kernel(scale)
+    for label, kernel, arg in (("NumPy array (fast_kernel)", planned, host),
+                               ("Taichi ndarray (Taichi's call)", ti.kernel(scale), device)):
+        kernel(arg, 1.0)
+        kernel(arg, 1.0)
+        ti.sync()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            kernel(arg, 1.0)
+        ti.sync()
+        print(f"launch micro-benchmark, one {label} argument: {1e6 * (time.perf_counter() - t0) / repeats:.1f} us")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--steps", type=int, default=49)
+    ap.add_argument("--kernel-profiler", action="store_true")
+    args = ap.parse_args()
+    from sim_core.ti_backend import init_backend, ti
+
+    init_backend(args.arch, kernel_profiler=args.kernel_profiler)
+    from taichi.lang import _ndarray, kernel_impl
+
+    from sim_core import linsolve
+    from sim_core.bench.forming import run_forming
+    from sim_core.ti_kernels import launch
+    from thinshell_ros.paths import bundled_scene
+
+    scene = bundled_scene("forming")
+    t0 = time.perf_counter()
+    first = run_forming(scene, args.steps, arch=args.arch)
+    print(f"untimed run: {time.perf_counter() - t0:.1f} s, {first['steps_per_s']:.2f} steps/s, "
+          f"jit {first['jit_s']:.1f} s, linear solver {first['linear_solver']}, backend {first['backend']}")
+    parts = _Parts()
+    parts.wrap(launch.FastKernel, "__call__", "kernel launch", count_arrays=True)
+    parts.wrap(kernel_impl.Kernel, "__call__", "kernel launch", count_arrays=True)
+    for method in ("_ndarray_from_numpy", "_ndarray_to_numpy", "_ndarray_matrix_from_numpy",
+                   "_ndarray_matrix_to_numpy"):
+        parts.wrap(_ndarray.Ndarray, method, "ndarray transfer")
+    for cls in (linsolve.PardisoCholesky, linsolve.ScipySymmetric, linsolve.PardisoSolver, linsolve.ScipySolver):
+        for method in ("factorize", "solve"):
+            parts.wrap(cls, method, "linear solve")
+    parts.reset()
+    if args.kernel_profiler:
+        ti.profiler.clear_kernel_profiler_info()
+    result = run_forming(scene, args.steps, arch=args.arch)
+    wall = result["forward_total_s"]
+    steps = result["steps"]
+    print(f"timed run: {result['steps_per_s']:.2f} steps/s ({1e3 * wall / steps:.1f} ms/step), "
+          f"{result['newton_iters_mean']:.2f} Newton iterations and {result['factorizations_mean']:.2f} "
+          f"factorisations per step")
+    counted = 0.0
+    print(f"{'part (ms per step)':24s} {'calls/step':>10s} {'ms/step':>8s} {'% wall':>7s}")
+    for name, (calls, total) in parts.totals.items():
+        counted += total
+        print(f"{name:24s} {calls / steps:10.1f} {1e3 * total / steps:8.2f} {100 * total / wall:7.1f}")
+    rest = wall - counted
+    print(f"{'rest (Python, NumPy)':24s} {'':10s} {1e3 * rest / steps:8.2f} {100 * rest / wall:7.1f}")
+    print(f"NumPy array arguments of kernel calls per step: {parts.arrays / steps:.1f}")
+    if args.kernel_profiler:
+        device = ti.profiler.get_kernel_profiler_total_time()
+        print(f"kernel device time (Taichi kernel profiler): {1e3 * device / steps:.2f} ms/step")
+        ti.profiler.print_kernel_profiler_info("count")
+    _launch_microbenchmark(ti)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,41 @@
+"""Copies and fills of float64 Taichi ndarrays through kept launch plans (sim_core/ti_kernels/transfer.py)
+equal Taichi's own ``from_numpy`` / ``to_numpy`` / ``fill``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def test_upload_download_and_fill_equal_taichis_own_copies(ti_cpu):
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import download, fill, upload
+
+    rng = np.random.default_rng(7)
+    for shape in ((9,), (6, 3), (4, 12, 12)):
+        dev = ti.ndarray(ti.f64, shape=shape)
+        out = np.empty(shape)
+        for call in range(3):  # the first call of a rank goes through Taichi, later ones through the plan
+            values = rng.normal(size=shape)
+            assert upload(dev, values) is dev
+            assert np.array_equal(dev.to_numpy(), values)
+            assert np.array_equal(download(dev), values)
+            assert download(dev, out) is out and np.array_equal(out, values)
+            fill(dev, float(call) - 0.25)
+            assert np.array_equal(dev.to_numpy(), np.full(shape, float(call) - 0.25))
+    dev = ti.ndarray(ti.f64, shape=(5, 3))
+    upload(dev, np.arange(15, dtype=np.int64).reshape(5, 3))  # converted to float64
+    assert np.array_equal(download(dev), np.arange(15.0).reshape(5, 3))
+
+
+def test_transfers_refuse_arrays_of_another_shape(ti_cpu):
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import download, upload
+
+    dev = ti.ndarray(ti.f64, shape=(5, 3))
+    with pytest.raises(ValueError, match=r"upload: values of shape \(3, 5\) for an ndarray of shape \(5, 3\)"):
+        upload(dev, np.zeros((3, 5)))
+    with pytest.raises(ValueError, match=r"download: out must be C-contiguous float64 of shape \(5, 3\)"):
+        download(dev, np.zeros((5, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="download: out must be C-contiguous"):
+        download(dev, np.zeros((3, 5)).T)
