@@ -22,7 +22,9 @@ The root is therefore bracketed after the first evaluation, and the safeguarded 
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
 For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
 (``d`` the anchor's depth past first contact), and the first secant step, taken with the previous
-step's contact slope, lands on the root.
+step's contact slope, lands on the root. Every evaluation after the first starts its Newton iterations
+from the previous evaluation's solution (``Control.position_guess``), which differs by the small change
+of compression.
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
@@ -145,13 +147,16 @@ class SeriesSpringDrive:
         anchor = np.asarray(control.effector_pose_target[self.effector], dtype=float)
         k_s = self.stiffness
 
+        guess = [control.position_guess]
+
         def h(b: float) -> tuple[float, float]:
             pose = anchor.copy()
             pose[:3] -= b * axis
             trial = dataclasses.replace(control, effector_pose_target={**control.effector_pose_target,
-                                                                       self.effector: pose})
+                                                                       self.effector: pose}, position_guess=guess[0])
             sim.state, sim.step_totals = state0, dataclasses.replace(totals0)
             sim.step(trial)
+            guess[0] = sim.state.x  # the next evaluation's Newton start: this one's solution
             f = self.load(sim.state, axis)
             return f - k_s * b, f
 

@@ -77,7 +77,7 @@ NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_p
 would otherwise get an infinite weight."""
 
 
-DRIVE_FORCE_TOLERANCE = 0.1
+DRIVE_FORCE_TOLERANCE = 0.5
 """Force tolerance of a series drive's step, in noise levels of the recorded normal force (-)."""
 
 REPLAY_DT_HALVINGS = 4

@@ -46,6 +46,7 @@ class ReplayDrive:
     def start(self) -> None:
         """Begin a replay: no compression carried, counts at zero."""
         self._carried = (0.0, 0.0)
+        self._anchor: np.ndarray | None = None
         self.evaluations = 0
         self.unconverged = 0
 
@@ -63,8 +64,14 @@ class ReplayDrive:
             pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
         anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target),
                            control.position_guess)
-        result = self.spring.step(sim, anchored, axis, start=self._carried[0], contact_slope=self._carried[1])
+        # first guess: the last compression, plus the share of the anchor's advance along the normal that
+        # the contact takes from the spring in series (k_c / (k_c + k_s), k_c the last contact slope)
+        compression, slope = self._carried
+        advance = 0.0 if self._anchor is None else float(np.dot(pose[:3] - self._anchor, axis))
+        start = compression + advance * slope / (slope + self.spring.stiffness)
+        result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)
         self._carried = (result.compression, result.contact_slope)
+        self._anchor = pose[:3].copy()
         self.evaluations += result.evaluations
         self.unconverged += int(not result.converged)
 
