@@ -21,8 +21,8 @@ The root is therefore bracketed after the first evaluation, and the safeguarded 
 (a secant step when it lands strictly inside the bracket, else the bracket's midpoint, which halves
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
 For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
-(``d`` the anchor's depth past first contact), and the first secant step, taken with the previous
-step's contact slope, lands on the root. Every evaluation after the first starts its Newton iterations
+(``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
+slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after the first starts its Newton iterations
 from the previous evaluation's solution (``Control.position_guess``), which differs by the small change
 of compression.
 
