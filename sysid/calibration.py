@@ -46,6 +46,7 @@ import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS, secant_calibration
+from sysid.drive_calibration import fit_drive
 from sysid.fit import fit
 
 GAIN_BOUNDS = (0.5, 2.0)
@@ -381,6 +382,8 @@ class CalibrationResult:
             tangents (None when none was run).
         not_followed_where: channel -> :func:`not_followed_windows` of each channel above
             :data:`FOLLOWED_RMS` after calibration (None: not computed).
+        drive: the :class:`sysid.drive_calibration.DriveCalibration` every replay took (None: the
+            kinematic drive, not calibrated).
     """
 
     params: dict[str, float]
@@ -393,6 +396,7 @@ class CalibrationResult:
     wall_time_s: float | None = None
     secant: Any = None
     not_followed_where: dict[str, Any] | None = None
+    drive: Any = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary: parameters, sensor calibration, whitened RMS before and after, and,
@@ -428,6 +432,8 @@ class CalibrationResult:
             out["wall_time_s"] = float(self.wall_time_s)
         if self.secant is not None:
             out["secant"] = self.secant.summary()
+        if self.drive is not None:
+            out["drive"] = self.drive.summary()
         return out
 
 
@@ -495,7 +501,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               max_nfev: int = 8, workers: int = 1, max_time: float | None = None, max_replays: int | None = None,
               bounds: Mapping[str, tuple[float, float]] | None = None, sensor_first: bool = False,
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
-              secant_replays: int = SECANT_REPLAYS) -> CalibrationResult:
+              secant_replays: int = SECANT_REPLAYS, drive: bool = False) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
@@ -544,6 +550,10 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             default the stick regularisation ``contact.eps_v``); those in ``params`` are left to the
             parameter fit. In the summary under ``secant``.
         secant_replays: replay budget of that stage (0: none), a count as ``max_replays``.
+        drive: calibrate the effector's drive along the sensor normal first, in closed form
+            (:func:`sysid.drive_calibration.fit_drive`), and make every replay, the first included,
+            take it (:meth:`~sysid.observation.ObservationModel.set_drive_stiffness`); False: the
+            recorded pose driven kinematically (the scene's prior).
 
     Returns:
         the :class:`CalibrationResult`.
@@ -560,6 +570,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     channels = [ch for ch in model.sigma]
     model.sensor_calibration = None
     model.reset_nominal()
+    drive_fit = fit_drive(model) if drive else None
+    model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf)
     limits = calibration_bounds(model, params) if params and bounds is None else dict(bounds or {})
     totals: dict[str, Any] = {}
     result = None
@@ -623,7 +635,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         t = (np.asarray(ev.t_ns[ch], dtype=np.int64)[:len(y)] - ev.start_ns) * 1e-9
         where[ch] = not_followed_windows(t, y - calibrated[ch], model.sigma[ch])
     return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals,
-                             time.perf_counter() - t_start, stage, where)
+                             time.perf_counter() - t_start, stage, where, drive_fit)
 
 
 def _totals(trace) -> dict[str, Any] | None:

@@ -7,6 +7,8 @@ is observed at ``t_k`` (markers in the sensor frame and their pixels, net wrench
 points in ``world``), and each observed stream is interpolated linearly in time to the stamps of the
 matching evidence channel (:meth:`ObservationModel.align`). The initial effector pose of the scene
 is replaced by the recorded pose at ``t_0`` so that the gel is built where the recording starts.
+With a series drive (:meth:`ObservationModel.set_drive_stiffness`) the pad's position along the sensor
+normal is solved each step, on a spring anchored at the recorded command (:mod:`sysid.replay_drive`).
 
 A task scene (``kind: task``; :mod:`sim_core.scenes.task_scene`) is replayed the same way with
 every effector driven: each by its recorded ``<effector>/pose_cmd`` held as the robot holds it
@@ -48,10 +50,13 @@ from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.scenes.task_file import TaskSceneFile, is_task_scene, load_any_scene_file
 from sim_core.scenes.task_scene import build_task_scene
+from sim_core.series_drive import SeriesSpringDrive
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
 from sysid.evidence import Evidence, resample_pose
+from sysid.replay_drive import ReplayDrive
+from sysid.replay_time import held as _held, interpolation as _interpolation
 
 PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
 """Evidence channels the simulator predicts."""
@@ -71,6 +76,9 @@ NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_p
 """Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
 would otherwise get an infinite weight."""
 
+
+DRIVE_FORCE_TOLERANCE = 0.5
+"""Force tolerance of a series drive's step, in noise levels of the recorded normal force (-)."""
 
 REPLAY_DT_HALVINGS = 4
 """Substep retries of a replay step whose Newton solve fails (``SolverConfig.dt_halvings_on_failure``):
@@ -100,6 +108,7 @@ class SimTrace:
             :class:`Resume`), else None.
         step_totals: how the replay's steps ended (``sim_core.step_info.StepTotals``: substep
             retries, relaxed acceptances), or None when not recorded.
+        drive: of a replay through a series drive, :meth:`sysid.replay_drive.ReplayDrive.summary`; else None.
     """
 
     t_ns: np.ndarray
@@ -111,6 +120,7 @@ class SimTrace:
     positions: np.ndarray | None = None
     states: list | None = None
     step_totals: Any = None
+    drive: dict | None = None
 
     def head(self, step: int) -> "SimTrace":
         """The observations of steps ``0..step`` (no positions, no states; same wall time)."""
@@ -144,44 +154,6 @@ class Resume:
     step: int
     state: Any
     prefix: SimTrace
-
-
-@dataclass(frozen=True)
-class _Interpolation:
-    """Linear interpolation from step times to stamps: ``y(t_j) = (1 - w_j) Y[i_j] + w_j Y[i_j + 1]``."""
-
-    index: np.ndarray
-    weight: np.ndarray
-
-    def apply(self, per_step: np.ndarray) -> np.ndarray:
-        w = self.weight.reshape(-1, *(1,) * (per_step.ndim - 1))
-        return (1.0 - w) * per_step[self.index] + w * per_step[self.index + 1]
-
-
-def _held(t_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray, dt_ns: int, initial: np.ndarray) -> np.ndarray:
-    """Zero-order hold: at each ``at_ns`` the last of ``values`` logged at or before it (within half a
-    step ``dt_ns``, for stamps rounded to the ns), ``initial`` before the first.
-
-    Args:
-        t_ns: log times ``(N,)`` int64, increasing. values: ``(N, ...)``. at_ns: query times ``(M,)``.
-        dt_ns: the replay step, ns. initial: the value before the first sample, shaped like one value.
-
-    Returns:
-        ``(M, ...)``.
-    """
-    values = np.asarray(values, dtype=float)
-    idx = np.searchsorted(np.asarray(t_ns), np.asarray(at_ns) + dt_ns // 2, side="right") - 1
-    out = values[np.maximum(idx, 0)].copy()
-    out[idx < 0] = initial
-    return out
-
-
-def _interpolation(t_steps: np.ndarray, t_dst: np.ndarray) -> _Interpolation:
-    xs = (t_steps - t_steps[0]).astype(np.float64)
-    xd = (t_dst - t_steps[0]).astype(np.float64)
-    i = np.clip(np.searchsorted(xs, xd, side="right") - 1, 0, xs.shape[0] - 2)
-    w = np.clip((xd - xs[i]) / (xs[i + 1] - xs[i]), 0.0, 1.0)
-    return _Interpolation(i.astype(np.int64), w)
 
 
 def scene_dict_for(evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
@@ -247,6 +219,9 @@ class ObservationModel:
             (:func:`sysid.fit.fit` ``reweight_channels``); reported RMS values stay in noise units.
         step_times_ns: ``(K + 1,)`` simulation step times (recording clock).
         controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
+        drive_stiffness: stiffness (N/m) of the effector's drive along the sensor normal
+            (:meth:`set_drive_stiffness`); ``inf`` (default): the recorded pose driven kinematically.
+        commands: ``(K + 1, 7)`` recorded commanded poses (``pose_cmd``) at the step times, or None.
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
             parameters (``SimTrace.positions``): every replay then starts the Newton solve of step
             k from row k (``Control.position_guess``) instead of from step k - 1's solution. Each
@@ -304,6 +279,10 @@ class ObservationModel:
         self.sensor_calibration = None
         self.marker_rest: np.ndarray | None = None
         self.sigma_scale: dict[str, float] | None = None
+        self.drive_stiffness = math.inf
+        commanded = not self.task and "pose_cmd" in evidence.channels_present
+        self.commands = (resample_pose(evidence.t_ns["pose_cmd"], evidence.pose_cmd, self.step_times_ns,
+                                       outside="clamp") if commanded else None)
 
     # ------------------------------------------------------------------------------ set-up
     def _pick_sensor(self) -> tuple[str, str]:
@@ -555,13 +534,39 @@ class ObservationModel:
         sim.reset()
         return sim
 
+    def set_drive_stiffness(self, stiffness: float) -> None:
+        """Replay the effector on a series spring of ``stiffness`` (N/m) along the sensor normal, anchored
+        at the recorded command (:mod:`sysid.replay_drive`; ``inf``: the recorded pose, kinematic).
+
+        Raises:
+            CalibrationError: a stiffness that is not > 0; a finite one for a task scene.
+        """
+        stiffness = float(stiffness)
+        if not stiffness > 0.0 or (self.task and not math.isinf(stiffness)):
+            raise CalibrationError(f"drive stiffness must be > 0 N/m (inf: kinematic) and infinite for a task "
+                                   f"scene, got {stiffness!r}")
+        self.drive_stiffness = stiffness
+
+    def replay_drive(self) -> ReplayDrive | None:
+        """The series drive of :attr:`drive_stiffness` for the next replay (None: kinematic)."""
+        if math.isinf(self.drive_stiffness):
+            return None
+        sim = self.simulation()
+        gel = sim.model.bodies[sim.model.sensors[self.sensor].gel_body].vertices
+        tolerance = DRIVE_FORCE_TOLERANCE * float(self.sigma["wrench"][2]) if "wrench" in self.sigma else 1.0e-3
+        spring = SeriesSpringDrive(self.effector, self.drive_stiffness, gel, force_tolerance=tolerance)
+        return ReplayDrive(spring, self.controls, self.commands, self._sensor_normal)
+
     def controls_list(self, guess: np.ndarray | None = None) -> list[Control]:
         """The K kinematic controls of one replay, with the Newton start of each step from
         ``guess`` ``(K + 1, n, 3)`` (default :attr:`warm_start`; see :meth:`control`).
 
         Raises:
-            CalibrationError: ``guess`` is not ``K + 1`` position arrays.
+            CalibrationError: ``guess`` is not ``K + 1`` position arrays; a series drive is set
+                (:meth:`set_drive_stiffness`: its steps are solved, not given by controls).
         """
+        if not math.isinf(self.drive_stiffness):
+            raise CalibrationError("a replay through a series drive has no kinematic controls (no tangents)")
         guess = self._checked_guess(guess)
         return [self.control(k, guess) for k in range(1, self.step_count + 1)]
 
@@ -594,7 +599,8 @@ class ObservationModel:
                  keep_states: bool = False, resume: Resume | None = None) -> SimTrace:
         """Replay the recording with parameter values ``params`` and observe every step.
 
-        Each step's Newton solve starts from :attr:`warm_start` when it is set.
+        Each step's Newton solve starts from :attr:`warm_start` when it is set; through a series drive
+        (:meth:`set_drive_stiffness`) for the spring's compression too (counts in ``SimTrace.drive``).
 
         Args:
             params: global parameter name -> value (``Model.set_parameter`` names); others keep
@@ -630,8 +636,12 @@ class ObservationModel:
             obs = [(p.markers_xyz[k], p.markers_uv[k], p.wrench[k], p.sheet_points[k]) for k in range(start + 1)]
         positions = [sim.state.x.copy()] if keep_positions else None
         states = [sim.state.copy()] if keep_states else None
+        drive = self.replay_drive()
         for k in range(start + 1, K + 1):
-            sim.step(self.control(k, guess))
+            if drive is None:
+                sim.step(self.control(k, guess))
+            else:
+                drive.step(sim, self.control(k, guess), k)
             obs.append(self._observe(sim))
             if positions is not None:
                 positions.append(sim.state.x.copy())
@@ -640,7 +650,8 @@ class ObservationModel:
             if on_step is not None:
                 on_step(k, K)
         trace = self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
-        trace = dataclasses.replace(trace, step_totals=dataclasses.replace(sim.step_totals))
+        trace = dataclasses.replace(trace, step_totals=dataclasses.replace(sim.step_totals),
+                                    drive=None if drive is None else drive.summary())
         return trace if states is None else dataclasses.replace(trace, states=states)
 
     def _checked_resume(self, resume: Resume, keeping: bool, sim) -> int:

@@ -1,0 +1,187 @@
+"""An effector driven along one world axis through a series spring: an impedance-controlled arm.
+
+An impedance-controlled arm holds its tool with a spring of stiffness ``k_s`` (N/m) about the
+commanded pose: under a contact load ``F`` along the spring's axis the tool sits ``b = F / k_s``
+behind the command. :class:`SeriesSpringDrive` prescribes the effector's rotation and its position
+across a unit axis ``n`` (world, pointing into the contact) kinematically, as
+:mod:`sim_core.effector` does, and along ``n`` places it at ``p(b) = a - b n``, ``a`` the anchor (the
+commanded position). With the tool massless, a step is at rest when
+
+    ``h(b) = F(b) - k_s b = 0``,
+
+``F(b)`` (N) the load along ``-n`` that the step's contact forces put on the driven body (the sum of
+the contact and friction forces on its vertices, projected on ``-n``) when the effector ends the step
+at ``p(b)``. Each step is the implicit step of :class:`sim_core.simulation.Simulation` at that pose,
+so ``F(b)`` is evaluated by taking the step from the same start state.
+
+Convergence: the load cannot grow as the tool backs off (``F`` non-increasing in ``b``), so ``h`` is
+strictly decreasing and has one root ``b*``. From any start ``b_0`` the root lies between ``b_0`` and
+``b_0 + h(b_0) / k_s``: there ``h = F(b_0 + h(b_0)/k_s) - F(b_0)``, of the opposite sign of ``h(b_0)``.
+The root is therefore bracketed after the first evaluation, and the safeguarded secant iteration
+(a secant step when it lands strictly inside the bracket, else the bracket's midpoint, which halves
+it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
+For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
+(``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
+slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after the first starts its Newton iterations
+from the previous evaluation's solution (``Control.position_guess``), which differs by the small change
+of compression.
+
+An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
+step, ``b = 0`` (the step taken exactly as without the drive).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_core.control import Control
+from sim_core.errors import ConfigError
+
+SERIES_MAX_EVALUATIONS = 12
+"""Default largest number of step evaluations of one drive step: the bracket's bisections alone
+shrink it by 2^-10 within that count."""
+
+
+@dataclass(frozen=True)
+class SeriesDriveStep:
+    """How one step of a :class:`SeriesSpringDrive` ended.
+
+    Attributes:
+        compression: the spring's compression ``b`` (m) the step ended at (the tool behind its anchor).
+        load: the load ``F`` (N) along ``-n`` on the driven body at the end of the step.
+        residual: ``h = F - k_s b`` (N).
+        evaluations: steps evaluated (each one implicit step of the simulation).
+        converged: ``|h|`` within the force tolerance, or the bracket narrower than the offset tolerance.
+        contact_slope: the last secant's estimate of ``-dF/db`` (N/m, >= 0; 0 when none), the
+            next step's first guess of the contact's stiffness.
+    """
+
+    compression: float
+    load: float
+    residual: float
+    evaluations: int
+    converged: bool
+    contact_slope: float
+
+
+class SeriesSpringDrive:
+    """Drive one effector along a world axis through a series spring (module docstring).
+
+    Args:
+        effector: name of the driven effector.
+        stiffness: the spring's stiffness ``k_s``, N/m (> 0; ``math.inf``: kinematic).
+        load_vertices: global indices of the vertices whose contact forces load the tool (the body the
+            effector drives, e.g. a tactile sensor's gel), shape ``(m,)``.
+        force_tolerance: ``|h|`` (N) at which a step is accepted (> 0).
+        offset_tolerance: bracket width (m) at which a step is accepted (> 0).
+        max_evaluations: step evaluations allowed per step (>= 2).
+
+    Raises:
+        ConfigError: a stiffness that is not positive, tolerances that are not positive, fewer than
+            two evaluations, or no load vertices.
+    """
+
+    def __init__(self, effector: str, stiffness: float, load_vertices: np.ndarray,
+                 force_tolerance: float = 1.0e-3, offset_tolerance: float = 1.0e-9,
+                 max_evaluations: int = SERIES_MAX_EVALUATIONS) -> None:
+        if not stiffness > 0.0:
+            raise ConfigError(f"series drive of {effector!r}: stiffness must be > 0 N/m (inf: kinematic), "
+                              f"got {stiffness!r}")
+        if not (force_tolerance > 0.0 and offset_tolerance > 0.0):
+            raise ConfigError(f"series drive of {effector!r}: tolerances must be > 0, got force "
+                              f"{force_tolerance!r} N, offset {offset_tolerance!r} m")
+        if int(max_evaluations) < 2:
+            raise ConfigError(f"series drive of {effector!r}: max_evaluations must be >= 2, got {max_evaluations!r}")
+        load_vertices = np.asarray(load_vertices, dtype=np.int64).reshape(-1)
+        if load_vertices.size == 0:
+            raise ConfigError(f"series drive of {effector!r}: no load vertices")
+        self.effector = effector
+        self.stiffness = float(stiffness)
+        self.load_vertices = load_vertices
+        self.force_tolerance = float(force_tolerance)
+        self.offset_tolerance = float(offset_tolerance)
+        self.max_evaluations = int(max_evaluations)
+
+    @property
+    def kinematic(self) -> bool:
+        """Whether the spring is infinitely stiff (the effector at its anchor)."""
+        return math.isinf(self.stiffness)
+
+    def load(self, state, axis: np.ndarray) -> float:
+        """Load ``F`` (N) along ``-axis`` on the load vertices in ``state`` (0 before any contact force)."""
+        if state.contact_force is None:
+            return 0.0
+        total = np.asarray(state.contact_force, dtype=float)[self.load_vertices].sum(axis=0)
+        return -float(np.dot(total, axis))
+
+    def step(self, sim, control: Control, axis: np.ndarray, start: float = 0.0,
+             contact_slope: float = 0.0) -> SeriesDriveStep:
+        """Advance ``sim`` one step with the effector on the spring (module docstring).
+
+        Args:
+            sim: the :class:`~sim_core.simulation.Simulation`; its state is replaced by the step's.
+            control: the step's control; ``control.effector_pose_target[effector]`` is the anchor pose.
+            axis: unit axis ``n`` (3,), world, pointing into the contact.
+            start: first compression tried, m (e.g. the previous step's).
+            contact_slope: guess of ``-dF/db`` (N/m, >= 0) for the first secant step.
+
+        Returns:
+            the :class:`SeriesDriveStep`; ``sim.step_totals`` count the accepted step only.
+
+        Raises:
+            ConfigError: an axis that is not a unit vector.
+            SimulationDivergedError: a step evaluation failed (from the solver).
+        """
+        axis = np.asarray(axis, dtype=float)
+        if axis.shape != (3,) or abs(float(np.linalg.norm(axis)) - 1.0) > 1e-9:
+            raise ConfigError(f"series drive of {self.effector!r}: axis must be a unit 3-vector, got {axis.tolist()}")
+        if self.kinematic:
+            sim.step(control)
+            f = self.load(sim.state, axis)
+            return SeriesDriveStep(0.0, f, 0.0, 1, True, 0.0)
+        state0, totals0 = sim.state, dataclasses.replace(sim.step_totals)
+        anchor = np.asarray(control.effector_pose_target[self.effector], dtype=float)
+        k_s = self.stiffness
+
+        guess = [control.position_guess]
+
+        def h(b: float) -> tuple[float, float]:
+            pose = anchor.copy()
+            pose[:3] -= b * axis
+            trial = dataclasses.replace(control, effector_pose_target={**control.effector_pose_target,
+                                                                       self.effector: pose}, position_guess=guess[0])
+            sim.state, sim.step_totals = state0, dataclasses.replace(totals0)
+            sim.step(trial)
+            guess[0] = sim.state.x  # the next evaluation's Newton start: this one's solution
+            f = self.load(sim.state, axis)
+            return f - k_s * b, f
+
+        b0 = float(start)
+        h0, f0 = h(b0)
+        n = 1
+        slope = max(float(contact_slope), 0.0)
+        if abs(h0) <= self.force_tolerance:
+            return SeriesDriveStep(b0, f0, h0, n, True, slope)
+        # bracket [lo, hi] with h(lo) >= 0 >= h(hi) (module docstring)
+        lo, hi = (b0, b0 + h0 / k_s) if h0 > 0.0 else (b0 + h0 / k_s, b0)
+        b_prev, h_prev = b0, h0
+        b = b0 + h0 / (k_s + slope)
+        while True:
+            hb, fb = h(b)
+            n += 1
+            if hb > 0.0:
+                lo = b
+            else:
+                hi = b
+            if b != b_prev and hb != h_prev:
+                slope = max(-(hb - h_prev) / (b - b_prev) - k_s, 0.0)
+            if abs(hb) <= self.force_tolerance or hi - lo <= self.offset_tolerance or n >= self.max_evaluations:
+                converged = abs(hb) <= self.force_tolerance or hi - lo <= self.offset_tolerance
+                return SeriesDriveStep(b, fb, hb, n, converged, slope)
+            secant = b - hb * (b - b_prev) / (hb - h_prev) if hb != h_prev else math.nan
+            b_prev, h_prev = b, hb
+            b = secant if lo < secant < hi else 0.5 * (lo + hi)

@@ -1,0 +1,81 @@
+"""The effector's drive along the sensor normal in a replay: a series spring anchored at the command.
+
+An impedance-controlled arm's measured pose lags its command by the load over its stiffness. A
+replay that imposes the measured pose (the kinematic drive) loads the gel through the contact's own
+stiffness instead, so a sink of the measured pose by 0.1 mm while the pad slides becomes a few newtons
+more load (docs/benchmarks_log.md, session 37, 23drag). :class:`ReplayDrive` replays such an arm:
+along the sensor normal ``n`` the pad hangs on a spring of stiffness ``k_s`` anchored at the recorded
+command's position along ``n`` (the recorded pose's where no command was recorded), across ``n`` and in
+rotation it follows the recorded pose, and each step is solved for the spring's compression
+(:class:`sim_core.series_drive.SeriesSpringDrive`). The recorded wrench is not an input.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from sim_core.control import Control
+from sim_core.series_drive import SeriesSpringDrive
+
+
+class ReplayDrive:
+    """Series drive of one replay.
+
+    Args:
+        spring: the :class:`~sim_core.series_drive.SeriesSpringDrive` (its effector, stiffness, gel vertices).
+        controls: ``(K + 1, 7)`` the replay's recorded poses at the step times.
+        commands: ``(K + 1, 7)`` the recorded commanded poses at the step times, or None (the spring is
+            then anchored at the recorded pose).
+        normal: pose ``(7,)`` -> unit sensor normal ``(3,)`` into the contact, world.
+
+    Attributes:
+        evaluations: step evaluations since :meth:`start` (each one implicit step).
+        unconverged: steps since :meth:`start` that ended on the evaluation limit.
+    """
+
+    def __init__(self, spring: SeriesSpringDrive, controls: np.ndarray, commands: np.ndarray | None,
+                 normal: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.spring = spring
+        self.controls = controls
+        self.commands = commands
+        self.normal = normal
+        self.start()
+
+    def start(self) -> None:
+        """Begin a replay: no compression carried, counts at zero."""
+        self._carried = (0.0, 0.0)
+        self._anchor: np.ndarray | None = None
+        self.evaluations = 0
+        self.unconverged = 0
+
+    def step(self, sim, control: Control, k: int) -> None:
+        """Advance ``sim`` by step ``k`` (1-based) of ``control``: the effector's target is moved along the
+        sensor normal to the command's position there, and hangs on the spring from it.
+
+        Raises:
+            SimulationDivergedError: a step evaluation failed.
+        """
+        name = self.spring.effector
+        pose = np.array(control.effector_pose_target[name], dtype=float)
+        axis = self.normal(pose)
+        if self.commands is not None:
+            pose[:3] += float(np.dot(self.commands[k, :3] - self.controls[k, :3], axis)) * axis
+        anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target),
+                           control.position_guess)
+        # first guess: the last compression, plus the share of the anchor's advance along the normal that
+        # the contact takes from the spring in series (k_c / (k_c + k_s), k_c the last contact slope)
+        compression, slope = self._carried
+        advance = 0.0 if self._anchor is None else float(np.dot(pose[:3] - self._anchor, axis))
+        start = compression + advance * slope / (slope + self.spring.stiffness)
+        result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)
+        self._carried = (result.compression, result.contact_slope)
+        self._anchor = pose[:3].copy()
+        self.evaluations += result.evaluations
+        self.unconverged += int(not result.converged)
+
+    def summary(self) -> dict[str, float]:
+        """JSON-ready: stiffness (N/m), whether anchored at the command, evaluations, unconverged steps."""
+        return {"stiffness": self.spring.stiffness, "anchored_at_command": self.commands is not None,
+                "evaluations": int(self.evaluations), "unconverged": int(self.unconverged)}
