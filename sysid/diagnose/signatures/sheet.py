@@ -1,8 +1,8 @@
 """Signature tests on the tracked sheet: bending plasticity and adhesion.
 
 * **Bending plasticity** (SYSID.md: "a fold that remains after release ... persists after
-  unloading, localised on the fold"): once the gel has let go of the sheet (the replay predicts no
-  contact and the recorded markers are back at rest), an elastic sheet returns to the shape the
+  unloading, localised on the fold"): once the gel has let go of the sheet (the recorded gel's
+  median marker back at rest, :func:`median_marker_displacement`), an elastic sheet returns to the shape the
   replay predicts for it; a plastic one keeps a set. Over the final free window the recorded
   sheet is compared with the replay (statistic: whitened SSE of the time-averaged difference, about
   chi-square(3p) without an effect) and with its own initial shape; the effect size is the smaller
