@@ -1,8 +1,8 @@
 """Signature tests on the tracked sheet: bending plasticity and adhesion.
 
 * **Bending plasticity** (SYSID.md: "a fold that remains after release ... persists after
-  unloading, localised on the fold"): once the gel has let go of the sheet (the replay predicts no
-  contact and the recorded markers are back at rest), an elastic sheet returns to the shape the
+  unloading, localised on the fold"): once the gel has let go of the sheet (the recorded gel's
+  median marker back at rest, :func:`median_marker_displacement`), an elastic sheet returns to the shape the
   replay predicts for it; a plastic one keeps a set. Over the final free window the recorded
   sheet is compared with the replay (statistic: whitened SSE of the time-averaged difference, about
   chi-square(3p) without an effect) and with its own initial shape; the effect size is the smaller
@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2 as chi2_law
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
                                             not_applicable, predicted_contact, segments)
@@ -45,22 +46,51 @@ MIN_CARRIED_S = 0.1
 MIN_FOLLOW_CORRELATION = 0.8
 """Correlation of the sheet's highest point with the effector height over a carried run."""
 
+MEDIAN_MARKER_AT_REST = REST_DISPLACEMENT * float(np.sqrt(chi2_law.median(3) / 3.0))
+"""Whitened displacement of the median marker below which the recorded gel counts as at rest:
+:data:`REST_DISPLACEMENT` times what noise alone gives the median marker (a marker's whitened RMS
+over its three axes is ``sqrt(chi2(3) / 3)``, median 0.888)."""
+
+
+def median_marker_displacement(rec: Recording) -> np.ndarray | None:
+    """Whitened displacement of the median marker from its rest position, per sample, on
+    ``rec.t["markers_xyz"]`` (about 0.89 at rest: noise only).
+
+    Each marker's displacement is its whitened RMS over the three axes from the rest positions of
+    :func:`marker_displacement` (the median of the samples where the replay predicts no contact, the
+    first 5 % without a replay); the median over the markers is taken per sample. A load on the gel
+    displaces a patch of markers (the elastic field spreads over the gel's thickness, more than the
+    marker spacing); a few markers that stay displaced alone while the rest of the grid is at rest
+    (a marker torn from its place, or a gel edge that does not spring back after a peel) move the
+    grid's RMS but not its median marker.
+
+    Returns:
+        array ``(n,)``, or None without recorded markers.
+    """
+    if not rec.has("markers_xyz"):
+        return None
+    x = np.asarray(rec.data["markers_xyz"], dtype=float)
+    free = predicted_contact(rec, "markers_xyz")
+    rows = ~free if free is not None and (~free).sum() >= 5 else np.arange(len(x)) < max(5, len(x) // 20)
+    per_marker = np.sqrt(np.mean(((x - np.median(x[rows], axis=0)) / rec.sigma["markers_xyz"]) ** 2, axis=2))
+    return np.median(per_marker, axis=1)
+
 
 def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
-    """Samples of ``channel`` where the recorded gel has let go of everything: its markers at rest
-    (:func:`marker_displacement` at most :data:`REST_DISPLACEMENT`) at least :data:`FREE_MARGIN_S`
-    from any loaded marker sample. The recording itself says whether the gel holds the sheet; the
-    replay's contact is used only without recorded markers.
+    """Samples of ``channel`` where the recorded gel has let go of everything: its median marker at
+    rest (:func:`median_marker_displacement` at most :data:`MEDIAN_MARKER_AT_REST`) at least
+    :data:`FREE_MARGIN_S` from any loaded marker sample. The recording itself says whether the gel
+    holds the sheet; the replay's contact is used only without recorded markers.
 
     Returns:
         boolean mask ``(n,)`` on ``rec.t[channel]``, or None when neither markers nor a replay tell.
     """
     t = rec.t[channel]
-    disp = marker_displacement(rec)
+    disp = median_marker_displacement(rec)
     if disp is None:
         contact = predicted_contact(rec, channel)
         return None if contact is None else ~dilate(contact, t, FREE_MARGIN_S)
-    moved = np.interp(t, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.0
+    moved = np.interp(t, rec.t["markers_xyz"], (disp > MEDIAN_MARKER_AT_REST).astype(float)) > 0.0
     return ~dilate(moved, t, FREE_MARGIN_S)
 
 

@@ -1,5 +1,5 @@
 """The permanent-set test (:func:`sysid.diagnose.signatures.sheet.plasticity_test`) reads a set only
-from a sheet at rest over the final window."""
+from a sheet at rest over the final window, after the gel's median marker is back at rest."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 from sysid.diagnose.signatures import Recording
 from sysid.diagnose.signatures.base import marker_displacement
 from sysid.diagnose.signatures.sensor import REST_DISPLACEMENT
-from sysid.diagnose.signatures.sheet import final_motion, plasticity_test, resolvable_set
+from sysid.diagnose.signatures.sheet import (MEDIAN_MARKER_AT_REST, final_motion, median_marker_displacement,
+                                             plasticity_test, resolvable_set)
 from tests.sysid.diagnose.test_friction_signature import reference_recording
 from tests.sysid.diagnose.test_signatures import named, synthetic
 
@@ -133,3 +134,54 @@ def test_the_set_is_read_after_the_last_contact_not_between_two(rng):
     assert r.applicable and r.detail["final_window_s"][0] > 3.4
     assert r.effect_size < resolvable_set(lifted)
     assert "bending_plasticity" not in named(lifted)
+
+
+def _edge_left_displaced(rec: Recording, sigmas: tuple[float, float, float] = (11.0, 11.5, -16.7)) -> Recording:
+    """``rec`` with the markers of the gel's -x edge column (7 of 63) displaced by ``sigmas`` noise
+    sigmas per axis from 0.05 s after the recorded gel's last loaded sample to the end, the rest of
+    the grid untouched: the gel's edge that did not spring back after the peel in our MuJoCo world
+    (plastic_s703: its corner marker 0.17 / 0.17 / -0.34 mm off rest with zero force on the gel from
+    the peel to the end; damped_s403: the whole column 35 sigmas)."""
+    tm = rec.t["markers_xyz"]
+    xyz = np.asarray(rec.data["markers_xyz"], dtype=float).copy()
+    released = tm > tm[np.nonzero(marker_displacement(rec) > REST_DISPLACEMENT)[0][-1]] + 0.05
+    edge = np.isclose(xyz[0, :, 0], xyz[0, :, 0].min(), atol=5e-4)
+    xyz[np.ix_(released, edge)] += np.asarray(sigmas) * rec.sigma["markers_xyz"]
+    return Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz), prediction=rec.prediction, sigma=rec.sigma,
+                     camera=rec.camera, name=rec.name)
+
+
+def test_the_median_marker_of_a_gel_at_rest_is_at_the_noise(rng):
+    """Noise alone: a marker's whitened RMS over its axes is sqrt(chi2(3) / 3), whose median is 0.888;
+    the threshold is REST_DISPLACEMENT (1.5) times that."""
+    rec = synthetic(rng)
+    free = np.asarray(rec.prediction["markers_xyz"], dtype=float)
+    noise = rng.normal(size=free.shape) * rec.sigma["markers_xyz"]
+    at_rest = Recording(t=rec.t, data=dict(rec.data, markers_xyz=free[:1] + noise), prediction=None,
+                        sigma=rec.sigma, camera=rec.camera, name=rec.name)
+    assert np.median(median_marker_displacement(at_rest)) == pytest.approx(0.888, abs=0.03)
+    assert MEDIAN_MARKER_AT_REST == pytest.approx(1.5 * 0.888, abs=1e-3)
+
+
+def test_a_set_is_read_where_a_gel_edge_stays_displaced_alone():
+    """Reference plastic_s102 (9.1 mm tent) with the gel's edge column left displaced after the peel:
+    the grid's RMS stays above rest to the end (the old reading: 'the gel does not release the
+    sheet'), its median marker is at rest, and the set is read and named."""
+    ref = _elastic_replay(reference_recording("plastic_s102"))
+    rec = _edge_left_displaced(ref)
+    tail = rec.t["markers_xyz"] > rec.t["markers_xyz"][-1] - 0.3
+    assert np.all(marker_displacement(rec)[tail] > REST_DISPLACEMENT)
+    assert np.all(median_marker_displacement(rec)[tail] < MEDIAN_MARKER_AT_REST)
+    r = plasticity_test(rec)
+    assert r.applicable and r.effect_size == pytest.approx(9.1e-3, abs=0.5e-3)
+    assert r.detail["final_window_s"] == plasticity_test(ref).detail["final_window_s"]
+    assert "bending_plasticity" in named(rec)
+
+
+def test_an_elastic_fold_with_a_gel_edge_left_displaced_names_no_set():
+    """Reference nominal_s109 (flat again after the peel) with the same edge column: the window after
+    the peel is read and holds no set."""
+    rec = _edge_left_displaced(_elastic_replay(reference_recording("nominal_s109")))
+    r = plasticity_test(rec)
+    assert r.applicable and r.effect_size < resolvable_set(rec)
+    assert "bending_plasticity" not in named(rec)
