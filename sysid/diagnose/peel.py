@@ -101,9 +101,11 @@ RELEASE_TIME_SETTING = "candidate.adhesion.release_time"
 def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: float) -> dict | None:
     """Simulator parameters of a gel that carries the card with its tack and lets go at the recorded peel.
 
-    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps the vertex
-    positions; the gel's contact face of that replay and the recorded sheet give the peel time
-    (:func:`peel_time`, at the bonds' release opening); the bonds are then set to break at it.
+    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps its states;
+    the gel's contact face of that replay and the recorded sheet give the peel time
+    (:func:`peel_time`, at the bonds' release opening); the bonds are then set to break at it. A
+    replay with the release takes that replay's steps before the peel unchanged
+    (:func:`sysid.diagnose.resume.steps_before`), so it can start from its states.
 
     Args:
         model: the calibrated ``sysid.observation.ObservationModel`` (``simulate``, ``evidence``,
@@ -115,8 +117,9 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
 
     Returns:
         ``{"params": the calibrated ones with the tack and its release time, "peel_s": recording
-        time of the peel, "beta": beta}``; None when the simulator has no adhesion candidate, the
-        scene no gel face, or the recorded sheet never touches or never leaves the gel.
+        time of the peel, "beta": beta, "carried": the replay with the bonds and no release, with its
+        states (``sysid.observation.SimTrace``)}``; None when the simulator has no adhesion candidate,
+        the scene no gel face, or the recorded sheet never touches or never leaves the gel.
 
     Raises:
         SimulationDivergedError: the replay with the bonds diverged.
@@ -133,11 +136,12 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
     if face_idx.size == 0 or not beta > 0.0:
         return None
     carried = {**dict(params), ADHESION_PARAMETER: float(beta)}
-    trace = model.simulate(carried, keep_positions=True)
+    trace = model.simulate(carried, keep_states=True)
     t_face = (np.asarray(trace.t_ns, dtype=np.int64) - int(model.evidence.start_ns)) * 1e-9
     opening = CandidateHook({"adhesion": float(beta)}).setting("adhesion.release")
-    t_peel = peel_time(t_sheet, sheet, t_face, np.asarray(trace.positions)[:, face_idx], opening)
+    face = np.stack([np.asarray(state.x)[face_idx] for state in trace.states])
+    t_peel = peel_time(t_sheet, sheet, t_face, face, opening)
     if t_peel is None:
         return None
     return {"params": {**carried, RELEASE_TIME_SETTING: max(t_peel - float(t_face[0]), 1e-9)},
-            "peel_s": t_peel, "beta": float(beta)}
+            "peel_s": t_peel, "beta": float(beta), "carried": trace}

@@ -68,13 +68,7 @@ class NominalResume:
         keys = set(params) | set(self.theta)
         if {k for k in keys if params.get(k) != self.theta.get(k)} != {YIELD_PARAMETER}:
             return 0
-        y = float(params[YIELD_PARAMETER])
-        if not (math.isfinite(y) and y >= 0.0):
-            return 0
-        over = np.flatnonzero(self.angles > y * (1.0 - 1e-9))
-        K = self.angles.size - 1
-        first = int(over[0]) if over.size else K + 1 + MARGIN_STEPS
-        return max(0, min(K, first - MARGIN_STEPS - 1))
+        return elastic_steps(self.angles, float(params[YIELD_PARAMETER]))
 
     def __call__(self, params: Mapping[str, float]) -> Resume | None:
         """The :class:`~sysid.observation.Resume` of the replay of ``params``, None: from the start."""
@@ -82,3 +76,43 @@ class NominalResume:
         if k <= 0:
             return None
         return Resume(k, self.trace.states[k], self.trace.head(k))
+
+
+def elastic_steps(angles: np.ndarray, yield_angle: float) -> int:
+    """Last step a replay with yield angle ``yield_angle`` shares with the elastic replay whose largest
+    dihedral angle per step is ``angles`` (flat rest shape): the steps before the first one whose angle
+    exceeds the yield angle, less :data:`MARGIN_STEPS`; every step when none does.
+
+    Args:
+        angles: largest ``|theta|`` per step ``(K + 1,)``, rad
+            (:func:`sysid.diagnose.candidates.hinge_angle_history` of the elastic replay).
+        yield_angle: rad.
+
+    Returns:
+        the step (0 when nothing is shared, or the yield angle is not a finite angle >= 0).
+    """
+    y = float(yield_angle)
+    if not (math.isfinite(y) and y >= 0.0):
+        return 0
+    angles = np.asarray(angles, dtype=float)
+    over = np.flatnonzero(angles > y * (1.0 - 1e-9))
+    K = angles.size - 1
+    first = int(over[0]) if over.size else K + 1 + MARGIN_STEPS
+    return max(0, min(K, first - MARGIN_STEPS - 1))
+
+
+def steps_before(step_times_s: np.ndarray, t_s: float) -> int:
+    """Last step of a replay that a setting acting from simulated time ``t_s`` on leaves unchanged
+    (the steps whose time is before ``t_s``, less :data:`MARGIN_STEPS`; e.g. the tack's release time
+    ``adhesion.release_time``, compared with the step clock to a tolerance).
+
+    Args:
+        step_times_s: the replay's step times from its initial state ``(K + 1,)``, s, increasing.
+        t_s: simulated time from which the setting acts, s.
+
+    Returns:
+        the step (0 when nothing is shared).
+    """
+    t = np.asarray(step_times_s, dtype=float)
+    before = int(np.searchsorted(t, float(t_s), side="left"))  # steps 0..before-1 lie before t_s
+    return max(0, min(t.size - 1, before - 1 - MARGIN_STEPS))

@@ -110,3 +110,16 @@ def test_a_resumed_plasticity_replay_equals_the_full_one():
         model.simulate(params, resume=Resume(resume.step + 1, resume.state, nominal))
     with pytest.raises(CalibrationError, match="cannot keep"):
         model.simulate(params, resume=resume, keep_positions=True)
+
+
+def test_shared_steps_before_a_yield_angle_is_exceeded_and_before_a_release_time():
+    from sysid.diagnose.resume import elastic_steps, steps_before
+
+    angles = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.5, 0.4, 0.3])  # K = 8
+    assert elastic_steps(angles, 0.35) == 3 - MARGIN_STEPS  # 0.4 at step 4 exceeds it
+    assert elastic_steps(angles, 0.6) == 8 and elastic_steps(angles, 0.05) == 0
+    assert elastic_steps(angles, math.inf) == 0 and elastic_steps(angles, -0.1) == 0
+    t = 0.01 * np.arange(9)
+    # a setting acting from 0.045 s on changes the steps from 0.05 s (step 5) on: steps 0..4 shared, less the margin
+    assert steps_before(t, 0.045) == 4 - MARGIN_STEPS
+    assert steps_before(t, 0.0) == 0 and steps_before(t, 1.0) == 8 - MARGIN_STEPS
