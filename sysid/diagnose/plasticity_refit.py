@@ -33,8 +33,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from sim_core.errors import ConfigError, SimulationDivergedError
-from sysid.diagnose.resume import YIELD_PARAMETER, elastic_steps, steps_before
-from sysid.observation import Resume
+from sysid.diagnose.resume import YIELD_PARAMETER
 
 LOWEST_FRACTION = 0.02
 """Smallest yield angle searched, as a fraction of the largest hinge angle of the calibrated replay."""
@@ -175,73 +174,6 @@ def sheet_resolution(model: Any) -> tuple[int, int] | None:
     return None if sheet is None else tuple(int(v) for v in sheet.resolution)
 
 
-class YieldReplays:
-    """The replays of the yield-angle search, each started from a kept replay where it takes the same steps.
-
-    A replay with yield angle ``y`` takes the elastic replay's steps until the first step whose largest
-    dihedral angle exceeds ``y`` (flat rest shape; :func:`sysid.diagnose.resume.elastic_steps`), and a
-    kept replay is the elastic one for as long as its rest angles stay flat (no plastic update yet). The
-    kept replay is ``base`` (the replay with the gel's tack and no release: the search's replays release
-    it at ``release_setting``'s time, so they share its steps before that too,
-    :func:`sysid.diagnose.resume.steps_before`), else the search's first replay. Each replay after it
-    simulates only the steps after the shared ones (:class:`~sysid.observation.Resume`), with the same
-    result to round-off.
-
-    Args:
-        model: the calibrated :class:`~sysid.observation.ObservationModel`.
-        params: parameters of every replay but the yield angle.
-        base: a replay with its states (``simulate(keep_states=True)``) of ``params`` without
-            ``release_setting`` and without a yield angle, or None.
-        release_setting: the setting of ``params`` that acts only from a simulated time on (s; the
-            tack's release time), absent from ``base``'s parameters; None: none.
-
-    Attributes:
-        shared_steps: per replay, the steps taken from the kept replay (0: simulated from the start).
-    """
-
-    def __init__(self, model: Any, params: Mapping[str, float], base: Any = None,
-                 release_setting: str | None = None) -> None:
-        self.model, self.params = model, dict(params)
-        self.shared_steps: list[int] = []
-        self.limit = int(model.step_count)
-        if release_setting is not None and release_setting in self.params:
-            t = (np.asarray(model.step_times_ns, dtype=np.int64) - int(model.step_times_ns[0])) * 1e-9
-            self.limit = steps_before(t, float(self.params[release_setting]))
-        self.base, self.angles, self.elastic_until = None, None, 0
-        if base is not None:
-            self._keep(base)
-
-    def _keep(self, trace: Any) -> None:
-        """Keep ``trace`` (with its states) as the start of later replays where it is elastic."""
-        from sysid.diagnose.candidates import hinge_angle_history
-
-        states = getattr(trace, "states", None) or []
-        flat = 0  # leading states whose rest angles are flat: no plastic update up to them
-        while flat < len(states) and not any(np.any(np.asarray(tb)) for tb in states[flat].hinge_theta_bar.values()):
-            flat += 1
-        angles = hinge_angle_history(self.model, trace.sheet_points) if flat else None
-        if angles is not None and angles.shape == (len(states),):
-            self.base, self.angles, self.elastic_until = trace, angles, flat - 1
-
-    def __call__(self, yield_angle: float) -> np.ndarray:
-        """The replay at ``yield_angle`` (rad): its sheet points aligned to the recording ``(n, p, 3)`` m.
-
-        Raises:
-            SimulationDivergedError: the replay diverged.
-        """
-        params = {**self.params, YIELD_PARAMETER: float(yield_angle)}
-        k = 0 if self.base is None else min(elastic_steps(self.angles, yield_angle), self.elastic_until, self.limit)
-        if k > 0:
-            trace = self.model.simulate(params, resume=Resume(k, self.base.states[k], self.base.head(k)))
-        elif self.base is None:
-            trace = self.model.simulate(params, keep_states=True)
-            self._keep(trace)
-        else:
-            trace = self.model.simulate(params)
-        self.shared_steps.append(k)
-        return np.asarray(self.model.predict(trace)["sheet_points"], dtype=float)
-
-
 def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
               train: np.ndarray) -> dict[str, Any] | None:
     """The replay in which the gel's tack carries the card and lets go at the recorded peel, when it
@@ -253,16 +185,14 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     ADHESION_PROBE_WEIGHTS` times :func:`~sysid.diagnose.candidates.adhesion_weight_scale` (bonds
     that together bear four card weights: the card follows the gel, and far above that only the pull
     on the gel grows); their release time is the peel read from the recording
-    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays, the second simulated from the peel on
-    (the steps before it are the first's).
+    (:func:`sysid.diagnose.peel.tack_with_peel`). Two replays.
 
     Returns:
-        ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms",
-        "carried"}`` (``carried``: the replay with the tack and no release, with its states), or None
-        (no adhesion candidate, no peel in the recording, or no better fit).
+        ``{"params", "peel_s", "beta", "prediction" (n, p, 3) m, "train_rms", "nominal_train_rms"}``,
+        or None (no adhesion candidate, no peel in the recording, or no better fit).
     """
     from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
-    from sysid.diagnose.peel import RELEASE_TIME_SETTING, tack_with_peel
+    from sysid.diagnose.peel import tack_with_peel
 
     t = np.asarray(recording.t["sheet_points"], dtype=float)
     data = np.asarray(recording.data["sheet_points"], dtype=float)
@@ -273,11 +203,7 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     tack = tack_with_peel(model, params, t, data, ADHESION_PROBE_WEIGHTS * w)
     if tack is None:
         return None
-    carried = tack["carried"]
-    t_steps = (np.asarray(carried.t_ns, dtype=np.int64) - int(carried.t_ns[0])) * 1e-9
-    k = steps_before(t_steps, float(tack["params"][RELEASE_TIME_SETTING]))
-    resume = Resume(k, carried.states[k], carried.head(k)) if k > 0 else None
-    pred = np.asarray(model.predict(model.simulate(tack["params"], resume=resume))["sheet_points"], dtype=float)
+    pred = np.asarray(model.predict(model.simulate(tack["params"]))["sheet_points"], dtype=float)
     n_tr = max(data[:, train].size, 1)
     c_tack, c_nom = _sse(data[:, train], pred[:, train], sigma), _sse(data[:, train], nominal[:, train], sigma)
     if not c_tack < c_nom:
@@ -309,7 +235,6 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
         with the fitted term (popped by the caller before the report is written).
     """
     from sysid.diagnose.candidates import hinge_angle_history
-    from sysid.diagnose.peel import RELEASE_TIME_SETTING
 
     t = recording.t["sheet_points"]
     data = np.asarray(recording.data["sheet_points"], dtype=float)
@@ -322,15 +247,17 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     calibrated = nominal
     base_params = dict(params)
     tack = tack_base(model, params, recording, nominal, train) if carried_by_tack else None
-    carried = None
     if tack is not None:
-        base_params, nominal, carried = dict(tack.pop("params")), tack.pop("prediction"), tack.pop("carried")
+        base_params, nominal = dict(tack.pop("params")), tack.pop("prediction")
     angles = hinge_angle_history(model, nominal)
     theta_max = float(np.max(angles)) if angles is not None and angles.size else FALLBACK_THETA_MAX
     theta_max = theta_max if theta_max > 1e-6 else FALLBACK_THETA_MAX
-    replay = YieldReplays(model, base_params, carried, RELEASE_TIME_SETTING if carried is not None else None)
+
+    def replay(y: float) -> np.ndarray:
+        trace = model.simulate({**base_params, YIELD_PARAMETER: float(y)})
+        return np.asarray(model.predict(trace)["sheet_points"], dtype=float)
+
     f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time)
-    f["shared_steps"] = list(replay.shared_steps)
     pred = f.pop("prediction")
     f["tack"] = tack
     f["heldout_rms_calibrated"] = _rms(data[rows][:, held], calibrated[rows][:, held], sigma)

@@ -19,7 +19,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
-from sim_core.errors import CalibrationError
+from sysid.diagnose.parallel import connected_ray
 from sysid.diagnose.signature_engine import Prepared, SignatureSettings, prepare
 
 
@@ -52,18 +52,13 @@ def prepare_with_baselines(bag: str | Path, baselines: Sequence[str | Path], set
         ``model`` None.
 
     Raises:
-        CalibrationError: a Ray address is given but ``ray`` is not installed.
+        CalibrationError: a Ray address is given but ``ray`` is not installed
+            (:func:`~sysid.diagnose.parallel.connected_ray`).
         BagReadError, ConfigError: from :func:`~sysid.diagnose.signature_engine.prepare`.
     """
     baselines = list(baselines)
     if ray_address and baselines:
-        try:
-            import ray
-        except ImportError as err:
-            raise CalibrationError(f"--ray-address {ray_address} given but the 'ray' package is not installed "
-                                   "(pip install 'ray[default]'), or drop --ray-address to use --workers") from err
-        if not ray.is_initialized():
-            ray.init(address=ray_address, ignore_reinit_error=True)
+        ray = connected_ray(ray_address)
         task = ray.remote(prepare_baseline)
         refs = [task.remote(str(b), settings) for b in baselines]
         return prepare(bag, settings), list(ray.get(refs))

@@ -82,34 +82,3 @@ def test_fit_keeps_the_elastic_model_when_no_yield_angle_fits_better():
     assert len(calls) <= 3 and f["evaluations"]
     with pytest.raises(ValueError, match="theta_max"):
         fit_yield_angle(replay, data, nominal, sigma, np.ones(20, bool), checkerboard(6, (3, 2)), 0.0)
-
-
-def test_search_replays_after_the_first_start_from_its_states_and_equal_full_replays(plastic_diagnosis):
-    """A replay at a yield angle takes the steps of a kept replay (the search's first one) for as long as
-    that one is elastic and the angle is not exceeded: it equals the replay simulated from the start to
-    round-off. A kept replay that is plastic from the start shares nothing."""
-    from sysid.diagnose.candidates import hinge_angle_history
-    from sysid.diagnose.plasticity_refit import YieldReplays
-    from sysid.diagnose.resume import MARGIN_STEPS, YIELD_PARAMETER, elastic_steps
-
-    doc, prepared = plastic_diagnosis
-    # the diagnosis's own search: the first replay from the start, later ones resumed
-    shared = doc["refit"]["effects"]["bending_plasticity"]["detail"]["shared_steps"]
-    assert shared[0] == 0 and any(k > 0 for k in shared[1:])
-    model = prepared.model
-    elastic = model.simulate({YIELD_PARAMETER: 1e3})  # never exceeded
-    angles = hinge_angle_history(model, elastic.sheet_points)
-    y1, y2 = 0.3 * float(angles.max()), 0.6 * float(angles.max())
-    replays = YieldReplays(model, {})
-    first = replays(y1)  # plastic from the first exceedance of y1 on
-    second = replays(y2)  # shares the first's steps before y1 is exceeded
-    # shared: the states before the first one that the plastic update changed (before the elastic replay
-    # first exceeds y1), and fewer than the margin before it
-    first_over = int(np.flatnonzero(angles > y1)[0])
-    assert replays.shared_steps[0] == 0 and elastic_steps(angles, y1) <= replays.shared_steps[1] < first_over
-    full = np.asarray(model.predict(model.simulate({YIELD_PARAMETER: y2}))["sheet_points"], dtype=float)
-    assert np.abs(full - first).max() > 1e-4  # the smaller angle leaves a larger set
-    assert np.abs(second - full).max() <= 1e-9 * np.abs(full).max()
-    # a kept replay plastic from its first step on: nothing is shared
-    plastic = model.simulate({YIELD_PARAMETER: 1e-9}, keep_states=True)
-    assert YieldReplays(model, {}, base=plastic).elastic_until < MARGIN_STEPS
