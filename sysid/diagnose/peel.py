@@ -102,11 +102,11 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
                    keep_carried: bool = False) -> dict | None:
     """Simulator parameters of a gel that carries the card with its tack and lets go at the recorded peel.
 
-    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps its states;
-    the gel's contact face of that replay and the recorded sheet give the peel time
-    (:func:`peel_time`, at the bonds' release opening); the bonds are then set to break at it. A
-    replay with the release takes that replay's steps before the peel unchanged, so it can start from
-    its states (:func:`sysid.diagnose.resume.resume_before_time`).
+    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps its vertex
+    positions (its states with ``keep_carried``); the gel's contact face of that replay and the
+    recorded sheet give the peel time (:func:`peel_time`, at the bonds' release opening); the bonds
+    are then set to break at it. A replay with the release takes that replay's steps before the peel
+    unchanged, so it can start from its states (:func:`sysid.diagnose.resume.resume_before_time`).
 
     Args:
         model: the calibrated ``sysid.observation.ObservationModel`` (``simulate``, ``evidence``,
@@ -138,10 +138,11 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
     if face_idx.size == 0 or not beta > 0.0:
         return None
     carried = {**dict(params), ADHESION_PARAMETER: float(beta)}
-    trace = model.simulate(carried, keep_states=True)
+    trace = model.simulate(carried, keep_positions=not keep_carried, keep_states=keep_carried)
     t_face = (np.asarray(trace.t_ns, dtype=np.int64) - int(model.evidence.start_ns)) * 1e-9
     opening = CandidateHook({"adhesion": float(beta)}).setting("adhesion.release")
-    face = np.stack([np.asarray(state.x)[face_idx] for state in trace.states])
+    x = np.stack([s.x for s in trace.states]) if keep_carried else np.asarray(trace.positions)
+    face = x[:, face_idx]
     t_peel = peel_time(t_sheet, sheet, t_face, face, opening)
     if t_peel is None:
         return None
