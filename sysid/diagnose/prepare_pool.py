@@ -24,9 +24,12 @@ from sysid.diagnose.signature_engine import Prepared, SignatureSettings, prepare
 
 
 def prepare_baseline(bag: str | Path, settings: SignatureSettings) -> Prepared:
-    """:func:`~sysid.diagnose.signature_engine.prepare` without the observation model in the result
-    (``model`` None: a worker's simulator is not sent back)."""
-    return dataclasses.replace(prepare(bag, settings), model=None)
+    """:func:`~sysid.diagnose.signature_engine.prepare` without the simulator in the result: ``model``
+    None and the calibration without its parameter fit's record (``calibration.fit`` None: a
+    :class:`sysid.fit.FitResult` holds the model); parameters, sensor calibration, whitened RMS and
+    prediction are kept."""
+    p = prepare(bag, settings)
+    return dataclasses.replace(p, model=None, calibration=dataclasses.replace(p.calibration, fit=None))
 
 
 def _pool_context() -> multiprocessing.context.BaseContext:

@@ -21,10 +21,11 @@ def two_recordings(tmp_path_factory):
 
 def test_a_baseline_prepared_in_a_worker_equals_the_one_prepared_here(two_recordings):
     bag, baseline = two_recordings
-    settings = SignatureSettings(calibrate=False)
+    settings = SignatureSettings()  # calibrated, as by default: its fit record stays in the worker
     pooled, [base_pooled] = prepare_with_baselines(bag, [baseline], settings, workers=2)
     here, [base_here] = prepare_with_baselines(bag, [baseline], settings, workers=1)
     assert base_here.model is not None and base_pooled.model is None and pooled.model is not None
+    assert base_pooled.calibration.fit is None and base_pooled.calibration.params == base_here.calibration.params
     assert base_pooled.bag == base_here.bag
     for p, q in ((here, pooled), (base_here, base_pooled)):
         assert set(p.results) == set(q.results)
