@@ -43,8 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, help="write the JSON report here")
     p.add_argument("--out", type=Path, help="report directory (report.md, report.html, PNGs)")
     p.add_argument("--force", action="store_true", help="write into a non-empty --out directory / over --json")
-    p.add_argument("--workers", type=int, default=1, help="processes for independent replays")
-    p.add_argument("--ray-address", help="run the replays as Ray tasks on this cluster")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes for independent replays (signatures engine: the --baseline recordings are "
+                        "prepared in WORKERS - 1 processes beside the recording's own)")
+    p.add_argument("--ray-address", help="run the replays (signatures engine: the --baseline recordings' "
+                                         "preparation) as Ray tasks on this cluster")
     p.add_argument("--t-max", type=float, help="use only the first T_MAX s of each recording")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
     p.add_argument("--params", nargs="*", default=[],
@@ -139,8 +142,9 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
 
 def _signatures_main(args: argparse.Namespace) -> int:
     """``thinshell diagnose`` with the signature engine (see :mod:`sysid.diagnose.signature_engine`)."""
+    from sysid.diagnose.prepare_pool import prepare_with_baselines
     from sysid.diagnose.schema import validate_report
-    from sysid.diagnose.signature_engine import diagnose_one, prepare
+    from sysid.diagnose.signature_engine import diagnose_one
     from sysid.diagnose.signature_report import write_signature_report
     from sysid.results import staged_directory
 
@@ -152,10 +156,12 @@ def _signatures_main(args: argparse.Namespace) -> int:
         return 2
     settings = signature_settings(args)
     try:
-        baselines = [prepare(b, settings) for b in args.baseline]
+        first, baselines = prepare_with_baselines(args.bags[0], args.baseline, settings, settings.workers,
+                                                  args.ray_address)
         docs, runs = [], []
-        for bag in args.bags:
-            doc, prepared = diagnose_one(bag, settings=settings, baseline_prepared=baselines)
+        for i, bag in enumerate(args.bags):
+            doc, prepared = diagnose_one(bag, settings=settings, baseline_prepared=baselines,
+                                         prepared=first if i == 0 else None)
             validate_report(doc)
             docs.append(doc)
             runs.append(prepared)

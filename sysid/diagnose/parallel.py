@@ -76,6 +76,22 @@ def _worker(params: Mapping[str, float], resume: Any = None) -> tuple[Any, dict[
     return _replay(_MODEL["model"], params, resume)
 
 
+def connected_ray(ray_address: str) -> Any:
+    """The ``ray`` module, connected to the cluster at ``ray_address`` (``ray.init`` once per process).
+
+    Raises:
+        CalibrationError: ``ray`` is not installed.
+    """
+    try:
+        import ray
+    except ImportError as err:
+        raise CalibrationError(f"--ray-address {ray_address} given but the 'ray' package is not installed "
+                               "(pip install 'ray[default]'), or drop --ray-address to use --workers") from err
+    if not ray.is_initialized():
+        ray.init(address=ray_address, ignore_reinit_error=True)
+    return ray
+
+
 def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: int = 1,
                 ray_address: str | None = None,
                 resumes: Sequence[Any] | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
@@ -102,13 +118,7 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
     if len(resumes) != len(sets):
         raise ValueError(f"replay_many: {len(resumes)} resumes for {len(sets)} parameter sets")
     if ray_address:
-        try:
-            import ray
-        except ImportError as err:
-            raise CalibrationError(f"--ray-address {ray_address} given but the 'ray' package is not installed "
-                                   "(pip install 'ray[default]'), or drop --ray-address to use --workers") from err
-        if not ray.is_initialized():
-            ray.init(address=ray_address, ignore_reinit_error=True)
+        ray = connected_ray(ray_address)
         portable = copy.copy(model)
         portable._sim = None  # the simulator is rebuilt on the worker
         task = ray.remote(_replay)

@@ -98,12 +98,15 @@ RELEASE_TIME_SETTING = "candidate.adhesion.release_time"
 """The simulator setting of the time (s, simulation clock) from which every adhesion bond is broken."""
 
 
-def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: float) -> dict | None:
+def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: float,
+                   keep_carried: bool = False) -> dict | None:
     """Simulator parameters of a gel that carries the card with its tack and lets go at the recorded peel.
 
-    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps the vertex
-    positions; the gel's contact face of that replay and the recorded sheet give the peel time
-    (:func:`peel_time`, at the bonds' release opening); the bonds are then set to break at it.
+    One replay with the bonds on (``candidate.adhesion = beta``, no release time) keeps its vertex
+    positions (its states with ``keep_carried``); the gel's contact face of that replay and the
+    recorded sheet give the peel time (:func:`peel_time`, at the bonds' release opening); the bonds
+    are then set to break at it. A replay with the release takes that replay's steps before the peel
+    unchanged, so it can start from its states (:func:`sysid.diagnose.resume.resume_before_time`).
 
     Args:
         model: the calibrated ``sysid.observation.ObservationModel`` (``simulate``, ``evidence``,
@@ -112,11 +115,13 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
         t_sheet: recorded sheet rows' times ``(n,)`` s from the recording's start.
         sheet: recorded sheet points ``(n, p, 3)`` m.
         beta: bond strength per pair, N (> 0).
+        keep_carried: also return the replay with the bonds and no release, with its states.
 
     Returns:
         ``{"params": the calibrated ones with the tack and its release time, "peel_s": recording
-        time of the peel, "beta": beta}``; None when the simulator has no adhesion candidate, the
-        scene no gel face, or the recorded sheet never touches or never leaves the gel.
+        time of the peel, "beta": beta}``, and with ``keep_carried`` ``"carried"``: that replay
+        (``sysid.observation.SimTrace`` with ``states``); None when the simulator has no adhesion
+        candidate, the scene no gel face, or the recorded sheet never touches or never leaves the gel.
 
     Raises:
         SimulationDivergedError: the replay with the bonds diverged.
@@ -133,11 +138,14 @@ def tack_with_peel(model, params, t_sheet: np.ndarray, sheet: np.ndarray, beta: 
     if face_idx.size == 0 or not beta > 0.0:
         return None
     carried = {**dict(params), ADHESION_PARAMETER: float(beta)}
-    trace = model.simulate(carried, keep_positions=True)
+    trace = model.simulate(carried, keep_positions=not keep_carried, keep_states=keep_carried)
     t_face = (np.asarray(trace.t_ns, dtype=np.int64) - int(model.evidence.start_ns)) * 1e-9
     opening = CandidateHook({"adhesion": float(beta)}).setting("adhesion.release")
-    t_peel = peel_time(t_sheet, sheet, t_face, np.asarray(trace.positions)[:, face_idx], opening)
+    x = np.stack([s.x for s in trace.states]) if keep_carried else np.asarray(trace.positions)
+    face = x[:, face_idx]
+    t_peel = peel_time(t_sheet, sheet, t_face, face, opening)
     if t_peel is None:
         return None
-    return {"params": {**carried, RELEASE_TIME_SETTING: max(t_peel - float(t_face[0]), 1e-9)},
-            "peel_s": t_peel, "beta": float(beta)}
+    out = {"params": {**carried, RELEASE_TIME_SETTING: max(t_peel - float(t_face[0]), 1e-9)},
+           "peel_s": t_peel, "beta": float(beta)}
+    return {**out, "carried": trace} if keep_carried else out

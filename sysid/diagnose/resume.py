@@ -9,15 +9,21 @@ are not simulated again (:class:`~sysid.observation.Resume`). On a press-and-sli
 sheet reaches half its largest bend about half-way (``latency_s103``: step 198 of 384); as the
 early approach steps are the cheap ones, each replay of the plasticity chain saves about a third of
 a replay's time.
+
+The signature engine's plasticity refit (:mod:`sysid.diagnose.plasticity_refit`) keeps no nominal
+replay's states; its yield-angle search starts each replay from a replay it kept
+(:class:`YieldReplays`: the gel's tack carrying the card, or the search's first replay), and the
+tack's released replay starts from the carried one before the peel (:func:`resume_before_time`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
+from sysid.diagnose.candidates import hinge_angle_history
 from sysid.observation import Resume, SimTrace
 
 YIELD_PARAMETER = "sheet.yield_angle"
@@ -68,13 +74,7 @@ class NominalResume:
         keys = set(params) | set(self.theta)
         if {k for k in keys if params.get(k) != self.theta.get(k)} != {YIELD_PARAMETER}:
             return 0
-        y = float(params[YIELD_PARAMETER])
-        if not (math.isfinite(y) and y >= 0.0):
-            return 0
-        over = np.flatnonzero(self.angles > y * (1.0 - 1e-9))
-        K = self.angles.size - 1
-        first = int(over[0]) if over.size else K + 1 + MARGIN_STEPS
-        return max(0, min(K, first - MARGIN_STEPS - 1))
+        return elastic_steps(self.angles, float(params[YIELD_PARAMETER]))
 
     def __call__(self, params: Mapping[str, float]) -> Resume | None:
         """The :class:`~sysid.observation.Resume` of the replay of ``params``, None: from the start."""
@@ -82,3 +82,125 @@ class NominalResume:
         if k <= 0:
             return None
         return Resume(k, self.trace.states[k], self.trace.head(k))
+
+
+def elastic_steps(angles: np.ndarray, yield_angle: float) -> int:
+    """Last step a replay with yield angle ``yield_angle`` shares with the elastic replay whose largest
+    dihedral angle per step is ``angles`` (flat rest shape): the steps before the first one whose angle
+    exceeds the yield angle, less :data:`MARGIN_STEPS`; every step when none does.
+
+    Args:
+        angles: largest ``|theta|`` per step ``(K + 1,)``, rad
+            (:func:`sysid.diagnose.candidates.hinge_angle_history` of the elastic replay).
+        yield_angle: rad.
+
+    Returns:
+        the step (0 when nothing is shared, or the yield angle is not a finite angle >= 0).
+    """
+    y = float(yield_angle)
+    if not (math.isfinite(y) and y >= 0.0):
+        return 0
+    angles = np.asarray(angles, dtype=float)
+    over = np.flatnonzero(angles > y * (1.0 - 1e-9))
+    K = angles.size - 1
+    first = int(over[0]) if over.size else K + 1 + MARGIN_STEPS
+    return max(0, min(K, first - MARGIN_STEPS - 1))
+
+
+def steps_before(step_times_s: np.ndarray, t_s: float) -> int:
+    """Last step of a replay that a setting acting from simulated time ``t_s`` on leaves unchanged
+    (the steps whose time is before ``t_s``, less :data:`MARGIN_STEPS`; e.g. the tack's release time
+    ``adhesion.release_time``, compared with the step clock to a tolerance).
+
+    Args:
+        step_times_s: the replay's step times from its initial state ``(K + 1,)``, s, increasing.
+        t_s: simulated time from which the setting acts, s.
+
+    Returns:
+        the step (0 when nothing is shared).
+    """
+    t = np.asarray(step_times_s, dtype=float)
+    before = int(np.searchsorted(t, float(t_s), side="left"))  # steps 0..before-1 lie before t_s
+    return max(0, min(t.size - 1, before - 1 - MARGIN_STEPS))
+
+
+def resume_before_time(trace: SimTrace, t_s: float) -> Resume | None:
+    """The start, from ``trace`` (kept with its states), of a replay whose parameters differ from its own
+    only in a setting that acts from simulated time ``t_s`` on (the tack's release time,
+    ``candidate.adhesion.release_time``): the steps before it (:func:`steps_before`).
+
+    Returns:
+        the :class:`~sysid.observation.Resume`, or None (nothing shared: replay from the start).
+
+    Raises:
+        ValueError: the trace has no states.
+    """
+    if trace.states is None:
+        raise ValueError("resume_before_time: the trace has no states (simulate(keep_states=True))")
+    t = (np.asarray(trace.t_ns, dtype=np.int64) - int(trace.t_ns[0])) * 1e-9
+    k = steps_before(t, t_s)
+    return Resume(k, trace.states[k], trace.head(k)) if k > 0 else None
+
+
+class YieldReplays:
+    """The replays of the yield-angle search, each started from a kept replay where it takes the same steps.
+
+    A replay with yield angle ``y`` takes the elastic replay's steps until the first step whose largest
+    dihedral angle exceeds ``y`` (flat rest shape; :func:`elastic_steps`), and a kept replay is the
+    elastic one for as long as its rest angles stay flat (no plastic update yet). The kept replay is
+    ``base`` (the replay with the gel's tack and no release: the search's replays release it at
+    ``release_setting``'s time, so they share its steps before that too, :func:`steps_before`), else
+    the search's first replay. Each replay after it simulates only the steps after the shared ones
+    (:class:`~sysid.observation.Resume`), with the same result to round-off.
+
+    Args:
+        model: the calibrated :class:`~sysid.observation.ObservationModel`.
+        params: parameters of every replay but the yield angle.
+        base: a replay with its states (``simulate(keep_states=True)``) of ``params`` without
+            ``release_setting`` and without a yield angle, or None.
+        release_setting: the setting of ``params`` that acts only from a simulated time on (s; the
+            tack's release time), absent from ``base``'s parameters; None: none.
+
+    Attributes:
+        shared_steps: per replay, the steps taken from the kept replay (0: simulated from the start).
+    """
+
+    def __init__(self, model: Any, params: Mapping[str, float], base: Any = None,
+                 release_setting: str | None = None) -> None:
+        self.model, self.params = model, dict(params)
+        self.shared_steps: list[int] = []
+        self.limit = int(model.step_count)
+        if release_setting is not None and release_setting in self.params:
+            t = (np.asarray(model.step_times_ns, dtype=np.int64) - int(model.step_times_ns[0])) * 1e-9
+            self.limit = steps_before(t, float(self.params[release_setting]))
+        self.base, self.angles, self.elastic_until = None, None, 0
+        if base is not None:
+            self._keep(base)
+
+    def _keep(self, trace: Any) -> None:
+        """Keep ``trace`` (with its states) as the start of later replays where it is elastic."""
+        states = getattr(trace, "states", None) or []
+        flat = 0  # leading states whose rest angles are flat: no plastic update up to them
+        while flat < len(states) and not any(np.any(np.asarray(tb)) for tb in states[flat].hinge_theta_bar.values()):
+            flat += 1
+        angles = hinge_angle_history(self.model, trace.sheet_points) if flat else None
+        if angles is not None and angles.shape == (len(states),):
+            self.base, self.angles, self.elastic_until = trace, angles, flat - 1
+
+    def __call__(self, yield_angle: float) -> np.ndarray:
+        """The replay at ``yield_angle`` (rad): its sheet points aligned to the recording ``(n, p, 3)`` m.
+
+        Raises:
+            SimulationDivergedError: the replay diverged.
+        """
+        params = {**self.params, YIELD_PARAMETER: float(yield_angle)}
+        k = 0 if self.base is None else min(elastic_steps(self.angles, yield_angle), self.elastic_until, self.limit)
+        if k > 0:
+            trace = self.model.simulate(params, resume=Resume(k, self.base.states[k], self.base.head(k)))
+        elif self.base is None:
+            trace = self.model.simulate(params, keep_states=True)
+            self._keep(trace)
+        else:
+            trace = self.model.simulate(params)
+        self.shared_steps.append(k)
+        return np.asarray(self.model.predict(trace)["sheet_points"], dtype=float)

@@ -474,7 +474,9 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
         bag: recording path.
         baselines: recordings declared normal for this cell (calibrate the null).
         settings: :class:`SignatureSettings`.
-        baseline_prepared: already prepared baselines (skips re-reading them).
+        baseline_prepared: already prepared baselines (skips re-reading them; only their signature
+            results are read, so a baseline prepared in another process may come without its ``model``,
+            :mod:`sysid.diagnose.prepare_pool`).
         prepared: ``bag`` already prepared by :func:`prepare` with these settings.
 
     Returns:

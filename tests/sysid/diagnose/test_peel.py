@@ -62,7 +62,8 @@ def test_own_simulator_tack_released_at_a_known_time_is_read_back_and_replayed()
     from sim_core.scenes import load_scene
     from sim_core.simulation import Simulation
     from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
-    from sysid.diagnose.peel import RELEASE_TIME_SETTING
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING, tack_with_peel
+    from sysid.diagnose.resume import MARGIN_STEPS, resume_before_time
     from sysid.diagnose.plasticity_refit import checkerboard, sheet_resolution, tack_base
     from sysid.diagnose.signature_engine import recording_of
     from sysid.evidence import load_evidence
@@ -93,3 +94,11 @@ def test_own_simulator_tack_released_at_a_known_time_is_read_back_and_replayed()
     assert tack["train_rms"] < 0.5 * tack["nominal_train_rms"]
     rows = np.sqrt(np.mean(((tack["prediction"] - rec.data["sheet_points"]) / rec.sigma["sheet_points"]) ** 2, axis=(1, 2)))
     assert np.sum(rows > 2.0) <= 2
+    # the replay with the release takes the carried replay's steps before the peel: started from its
+    # state there, it equals the replay simulated from the start, to round-off
+    kept = tack_with_peel(model, TRUE_PARAMS, rec.t["sheet_points"], rec.data["sheet_points"], beta, keep_carried=True)
+    assert kept["params"] == tack["params"] and len(kept["carried"].states) == model.step_count + 1
+    resume = resume_before_time(kept["carried"], kept["params"][RELEASE_TIME_SETTING])
+    assert resume is not None and resume.step == round(release / dt) - 1 - MARGIN_STEPS
+    resumed = np.asarray(model.predict(model.simulate(kept["params"], resume=resume))["sheet_points"], dtype=float)
+    assert np.abs(resumed - tack["prediction"]).max() <= 1e-9 * np.abs(tack["prediction"]).max()

@@ -4,6 +4,7 @@ resumed replay equals the full one."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from types import SimpleNamespace
@@ -110,3 +111,72 @@ def test_a_resumed_plasticity_replay_equals_the_full_one():
         model.simulate(params, resume=Resume(resume.step + 1, resume.state, nominal))
     with pytest.raises(CalibrationError, match="cannot keep"):
         model.simulate(params, resume=resume, keep_positions=True)
+
+
+def test_shared_steps_before_a_yield_angle_is_exceeded_and_before_a_release_time():
+    from sysid.diagnose.resume import elastic_steps, steps_before
+
+    angles = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.5, 0.4, 0.3])  # K = 8
+    assert elastic_steps(angles, 0.35) == 3 - MARGIN_STEPS  # 0.4 at step 4 exceeds it
+    assert elastic_steps(angles, 0.6) == 8 and elastic_steps(angles, 0.05) == 0
+    assert elastic_steps(angles, math.inf) == 0 and elastic_steps(angles, -0.1) == 0
+    t = 0.01 * np.arange(9)
+    # a setting acting from 0.045 s on changes the steps from 0.05 s (step 5) on: steps 0..4 shared, less the margin
+    assert steps_before(t, 0.045) == 4 - MARGIN_STEPS
+    assert steps_before(t, 0.0) == 0 and steps_before(t, 1.0) == 8 - MARGIN_STEPS
+
+
+@pytest.fixture(scope="module")
+def plastic_card(tmp_path_factory):
+    """The benchmark card recorded by this simulator with a yield angle of 0.05 rad (press, slide, lift,
+    wait; the card keeps a buckle), as an observation model of the scene without plasticity."""
+    from sysid.evidence import load_evidence
+    from sysid.observation import ObservationModel
+    from tests.sysid.simbag import (PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with, simulate_streams,
+                                    targets_from_segments, write_bag)
+
+    scene = scene_with(TRUE_PARAMS)
+    lift_and_wait = (((0.0, 0.0, 0.004), 6), ((0.0, 0.0, 0.0), 22))
+    targets = targets_from_segments(np.asarray(scene["effectors"]["ee"]["initial_pose"]), PRESS_SLIDE + lift_and_wait)
+    streams = add_noise(simulate_streams(scene, {**TRUE_PARAMS, "sheet.yield_angle": 0.05}, targets), seed=3)
+    bag = write_bag(tmp_path_factory.mktemp("plastic") / "bag", scene, streams)
+    return ObservationModel(load_evidence(bag, include_image="auto"), dt=float(scene["dt"]), arch="cpu")
+
+
+def test_yield_search_replays_start_from_the_first_one_and_equal_full_replays(plastic_card):
+    """A replay at a yield angle takes the steps of a kept replay (the search's first one) for as long as
+    that one is elastic and the angle is not exceeded, and equals the replay simulated from the start to
+    round-off. A kept replay that is plastic from its first step on shares nothing."""
+    from sysid.diagnose.resume import YIELD_PARAMETER, YieldReplays, elastic_steps
+
+    model = plastic_card
+    elastic = model.simulate({YIELD_PARAMETER: 1e3})  # never exceeded
+    angles = hinge_angle_history(model, elastic.sheet_points)
+    y1, y2 = 0.3 * float(angles.max()), 0.6 * float(angles.max())
+    replays = YieldReplays(model, {})
+    first = replays(y1)  # plastic from the first exceedance of y1 on
+    steps = []
+    model_simulate = model.simulate
+
+    def counting(params, **kwargs):
+        return model_simulate(params, on_step=lambda k, n: steps.append(k), **kwargs)
+
+    model.simulate = counting
+    try:
+        second = replays(y2)  # shares the first's steps before y1 is exceeded
+    finally:
+        del model.simulate
+    # shared: the states before the first one the plastic update changed (before the elastic replay
+    # first exceeds y1); only the steps after them are simulated
+    first_over = int(np.flatnonzero(angles > y1)[0])
+    k = replays.shared_steps[1]
+    assert replays.shared_steps[0] == 0 and elastic_steps(angles, y1) <= k < first_over
+    assert steps == list(range(k + 1, model.step_count + 1))
+    full = np.asarray(model.predict(model.simulate({YIELD_PARAMETER: y2}))["sheet_points"], dtype=float)
+    assert np.abs(full - first).max() > 1e-4  # the smaller angle leaves a larger set
+    assert np.abs(second - full).max() <= 1e-9 * np.abs(full).max()
+    # a kept replay whose rest angles moved from its first step on (plastic at once): nothing is shared
+    states = [SimpleNamespace(step_index=j, hinge_theta_bar={"sheet": np.full(4, 0.01 * j)})
+              for j in range(model.step_count + 1)]
+    plastic = YieldReplays(model, {}, base=dataclasses.replace(elastic, states=states))
+    assert plastic.base is not None and plastic.elastic_until == 0
