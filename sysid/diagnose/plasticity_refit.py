@@ -33,7 +33,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from sim_core.errors import ConfigError, SimulationDivergedError
-from sysid.diagnose.resume import YIELD_PARAMETER
+from sysid.diagnose.resume import YIELD_PARAMETER, YieldReplays, resume_before_time
 
 LOWEST_FRACTION = 0.02
 """Smallest yield angle searched, as a fraction of the largest hinge angle of the calibrated replay."""
@@ -192,7 +192,7 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
         or None (no adhesion candidate, no peel in the recording, or no better fit).
     """
     from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
-    from sysid.diagnose.peel import tack_with_peel
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING, tack_with_peel
 
     t = np.asarray(recording.t["sheet_points"], dtype=float)
     data = np.asarray(recording.data["sheet_points"], dtype=float)
@@ -200,10 +200,11 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
     w = adhesion_weight_scale(model.simulation().model)
     if not (math.isfinite(w) and w > 0.0):
         return None
-    tack = tack_with_peel(model, params, t, data, ADHESION_PROBE_WEIGHTS * w)
+    tack = tack_with_peel(model, params, t, data, ADHESION_PROBE_WEIGHTS * w, keep_carried=True)
     if tack is None:
         return None
-    pred = np.asarray(model.predict(model.simulate(tack["params"]))["sheet_points"], dtype=float)
+    resume = resume_before_time(tack["carried"], tack["params"][RELEASE_TIME_SETTING])
+    pred = np.asarray(model.predict(model.simulate(tack["params"], resume=resume))["sheet_points"], dtype=float)
     n_tr = max(data[:, train].size, 1)
     c_tack, c_nom = _sse(data[:, train], pred[:, train], sigma), _sse(data[:, train], nominal[:, train], sigma)
     if not c_tack < c_nom:
@@ -235,6 +236,7 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
         with the fitted term (popped by the caller before the report is written).
     """
     from sysid.diagnose.candidates import hinge_angle_history
+    from sysid.diagnose.peel import RELEASE_TIME_SETTING
 
     t = recording.t["sheet_points"]
     data = np.asarray(recording.data["sheet_points"], dtype=float)
@@ -247,17 +249,16 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     calibrated = nominal
     base_params = dict(params)
     tack = tack_base(model, params, recording, nominal, train) if carried_by_tack else None
+    carried = None
     if tack is not None:
-        base_params, nominal = dict(tack.pop("params")), tack.pop("prediction")
+        base_params, nominal, carried = dict(tack.pop("params")), tack.pop("prediction"), tack.pop("carried")
     angles = hinge_angle_history(model, nominal)
     theta_max = float(np.max(angles)) if angles is not None and angles.size else FALLBACK_THETA_MAX
     theta_max = theta_max if theta_max > 1e-6 else FALLBACK_THETA_MAX
 
-    def replay(y: float) -> np.ndarray:
-        trace = model.simulate({**base_params, YIELD_PARAMETER: float(y)})
-        return np.asarray(model.predict(trace)["sheet_points"], dtype=float)
-
+    replay = YieldReplays(model, base_params, carried, RELEASE_TIME_SETTING if carried is not None else None)
     f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time)
+    f["shared_steps"] = list(replay.shared_steps)
     pred = f.pop("prediction")
     f["tack"] = tack
     f["heldout_rms_calibrated"] = _rms(data[rows][:, held], calibrated[rows][:, held], sigma)
