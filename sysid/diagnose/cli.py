@@ -36,6 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replay budget of the calibration's stage for the stick regularisation contact.eps_v "
                         "(default %(default)s: a probe at a third of the scene's value, then one Gauss-Newton step on "
                         "the secant; each more replay is a Broyden-updated step; 0: none)")
+    p.add_argument("--drive", action="store_true",
+                   help="calibrate the arm's compliance along the sensor normal from the recorded command and "
+                        "measured pose (ee/pose_cmd, ee/pose) and the normal load, and replay through that spring "
+                        "(default: the recorded pose driven kinematically; kept kinematic, with the reason in the "
+                        "report, where the lag does not explain the load)")
     p.add_argument("--calibration-time", type=float, default=None,
                    help="also stop the calibration's parameter fit after this many seconds (default: no time budget; "
                         "with one, the answer depends on the machine's speed and load)")
@@ -93,6 +98,10 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         print(f"thinshell diagnose: --calibration-secant-replays must be >= 0, got {args.calibration_secant_replays}",
               file=sys.stderr)
         return 2
+    if args.drive and (args.calibration_replays is None or args.calibration_replays > 1):
+        print("thinshell diagnose: --drive takes one calibration replay (a replay through the drive has no "
+              f"tangents): use --calibration-replays 1, got {args.calibration_replays}", file=sys.stderr)
+        return 2
     if args.engine == "signatures":
         return _signatures_main(args)
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
@@ -136,7 +145,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
-        workers=max(1, args.workers),
+        calibration_drive=args.drive, workers=max(1, args.workers),
         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
 
 

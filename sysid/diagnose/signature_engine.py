@@ -82,6 +82,9 @@ class SignatureSettings:
         calibration_secant_replays: replay budget of the calibration's secant stage (the stick
             regularisation, :mod:`sysid.calibration_secant`; default
             :data:`sysid.calibration_secant.SECANT_REPLAYS`; none when ``calibrate`` is False).
+        calibration_drive: calibrate the arm's drive along the sensor normal (a spring about the
+            recorded command, :func:`sysid.drive_calibration.fit_drive`) and replay through it; False,
+            the default: the recorded pose driven kinematically.
         baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
             statistic the test reaches on the baselines (the effect-size thresholds stay the
             instrument's resolution).
@@ -103,6 +106,7 @@ class SignatureSettings:
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
     calibration_secant_replays: int = SECANT_REPLAYS
+    calibration_drive: bool = False
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
@@ -179,7 +183,8 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
                         max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
-                        secant_replays=settings.calibration_secant_replays if settings.calibrate else 0)
+                        secant_replays=settings.calibration_secant_replays if settings.calibrate else 0,
+                        drive=settings.calibration_drive and settings.calibrate)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")
