@@ -22,9 +22,9 @@ The root is therefore bracketed after the first evaluation, and the safeguarded 
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
 For a linear contact of stiffness ``k_c`` the load is the series spring's ``F = k_s k_c / (k_s + k_c) d``
 (``d`` the anchor's depth past first contact), and the first secant step, taken with the contact's
-slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after the first starts its Newton iterations
-from the previous evaluation's solution (``Control.position_guess``), which differs by the small change
-of compression.
+slope (the previous step's estimate), lands on the root when that slope is exact. Every evaluation after
+the first starts its Newton iterations from the previous evaluation's solution (``Control.position_guess``),
+which differs by the small change of compression.
 
 An infinitely stiff spring (``k_s = inf``) is the kinematic drive: the effector at the anchor, one
 step, ``b = 0`` (the step taken exactly as without the drive).
