@@ -531,15 +531,16 @@ def test_the_release_tail_stops_short_of_the_next_press():
 @pytest.mark.parametrize("seed", [1, 2])
 def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
     """A bias of the reference set's form (offset, drift and a slow wobble of a 4 s period) on a
-    recording free of contact for 0.9 s before the press and only 0.35 s after the release: blocks
-    of the free rows themselves put training rows in both free stretches, so the offset and drift
-    refitted on them bring the held-out wrench down to the noise (whitened RMS about 1). Blocks of
-    the whole recording would leave the last stretch held out only, the drift extrapolated over the
-    press."""
+    recording free of contact for 0.9 s before the press and only 0.35 s after the release has
+    relaxed (``RELAXATION_S`` after it): blocks of the free rows themselves put training rows in both
+    free stretches, so the offset and drift refitted on them bring the held-out wrench down to the
+    noise (whitened RMS about 1). Blocks of the whole recording would leave the last stretch held
+    out only, the drift extrapolated over the press."""
     from sysid.diagnose.signature_engine import refit_force_bias
+    from sysid.diagnose.signatures.sensor import RELAXATION_S
     from sysid.synthetic_effects import force_bias
 
-    rec = synthetic(np.random.default_rng(seed), duration=2.85)
+    rec = synthetic(np.random.default_rng(seed), duration=2.85 + RELAXATION_S)
     tw = rec.t["wrench"]
     s = SIGMA["wrench"]
     params = {"offset": (3.0 * s).tolist(), "drift_per_s": (-1.5 * s).tolist(), "wobble_amp": (0.8 * s).tolist(),
