@@ -211,9 +211,11 @@ def paired_shape_z(sse_difference: float, curve_distance: float, phi: float, ext
         extra_params: ``k``.
 
     Returns:
-        ``z``; 0 when the two curves coincide.
+        ``z``; 0 when the two curves lie within the noise of the extra parameters of each other
+        (``D <= phi k``: the fits are observationally equivalent, Vuong's sec. 4 pretest, and
+        neither shape is preferred).
     """
-    if not curve_distance > 0.0:
+    if not curve_distance > phi * extra_params or not curve_distance > 0.0:
         return 0.0
     return float((sse_difference - phi * extra_params) / (2.0 * np.sqrt(phi * curve_distance)))
 
