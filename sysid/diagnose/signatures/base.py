@@ -167,3 +167,22 @@ def marker_displacement(rec: Recording) -> np.ndarray | None:
     rows = ~free if free is not None and (~free).sum() >= 5 else np.arange(len(x)) < max(5, len(x) // 20)
     rest = np.median(x[rows], axis=0)
     return np.sqrt(np.mean(((x - rest) / rec.sigma["markers_xyz"]) ** 2, axis=(1, 2)))
+
+
+def dispersion(sse: float, samples: int, params: int) -> float:
+    """Dispersion of a whitened residual, ``max(1, sse / (samples - params))``: its variance in
+    units of the noise model's (Pearson's estimate, McCullagh & Nelder 1989 sec. 9.2), never
+    below one (a residual under the noise level is the noise model's, not a better fit's).
+
+    Args:
+        sse: whitened sum of squares after the fit.
+        samples: samples fitted.
+        params: parameters fitted.
+
+    Raises:
+        ValueError: ``samples <= params`` (no degree of freedom left to estimate it).
+    """
+    dof = int(samples) - int(params)
+    if dof <= 0:
+        raise ValueError(f"dispersion needs more samples than parameters ({samples} <= {params})")
+    return max(1.0, float(sse) / dof)

@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, not_applicable
+from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, not_applicable
 from sysid.diagnose.signatures.null import SIZE_TOLERANCE, timing_size_threshold
 from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, press_sizes, timing_signal, timing_size
 
@@ -109,25 +109,6 @@ def contact_force(t: np.ndarray, y: np.ndarray, tau: float, span_s: float = RATE
         span_s: span of the rate filter, s.
     """
     return np.maximum(kelvin_voigt(t, y, tau, span_s), 0.0)
-
-
-def dispersion(sse: float, samples: int, params: int) -> float:
-    """Dispersion of a whitened residual, ``max(1, sse / (samples - params))``: its variance in
-    units of the noise model's (Pearson's estimate, McCullagh & Nelder 1989 sec. 9.2), never
-    below one (a residual under the noise level is the noise model's, not a better fit's).
-
-    Args:
-        sse: whitened sum of squares after the fit.
-        samples: samples fitted.
-        params: parameters fitted.
-
-    Raises:
-        ValueError: ``samples <= params`` (no degree of freedom left to estimate it).
-    """
-    dof = int(samples) - int(params)
-    if dof <= 0:
-        raise ValueError(f"dispersion needs more samples than parameters ({samples} <= {params})")
-    return max(1.0, float(sse) / dof)
 
 
 def _window_sse(y: np.ndarray, x: np.ndarray) -> float:

@@ -30,8 +30,8 @@ as well.
 Confusable pairs (SYSID.md step 5): latency vs gel viscoelasticity is decided by the events' shape
 (a pure delay against a first-order lag, :mod:`sysid.diagnose.signatures.timing`), also when only
 one of the two passes its thresholds: the lag, the richer model (a time constant and a share), is
-named only when it fits the events significantly better than the delay (Vuong's ``z`` at least
-:data:`SHAPE_Z`, one-sided), and then the latency is not; otherwise the lag is not named (for short
+named only when it fits the events significantly better than the delay (the paired ``z`` of the two
+fits at least :data:`SHAPE_Z`, one-sided), and then the latency is not; otherwise the lag is not named (for short
 delays the two shapes agree to first order, and the delay is the simpler explanation). Both are held
 to the same size rule (:func:`sysid.diagnose.signatures.timing.timing_size`) in the same unit, the
 response's mean delay: every event delayed (or lagged), and the smallest press's mean over its rising
@@ -59,9 +59,9 @@ breakaway decay has two in each of its two series, amplitude and decay time sear
 most 19 values per series, P(chi2_4 > 50) * 19^2 < 2e-7)."""
 
 SHAPE_Z = 1.645
-"""Vuong's statistic of the first-order lag against the delay
-(:func:`sysid.diagnose.signatures.timing.shape_z`) that names the lag: the one-sided 5 % point of
-the standard normal."""
+"""The paired statistic of the first-order lag against the delay
+(:func:`sysid.diagnose.signatures.timing.paired_shape_z`) that names the lag: the one-sided 5 % point
+of the standard normal."""
 
 MIN_EXPLAINED = 0.5
 """Fraction of the event windows' excess energy (``SSE - samples``) a timing effect must remove."""
@@ -192,10 +192,10 @@ def decide(results: Mapping[str, SignatureResult], th: Thresholds) -> Decision:
         z = float(lat.detail.get("shape_z", 0.0))
         if z >= SHAPE_Z and lat.detected:
             lat.detected, lat.reason = False, (f"the events fit a first-order lag significantly better than a "
-                                               f"delay (Vuong z {z:.2f}): gel viscoelasticity")
+                                               f"delay (paired z {z:.2f}): gel viscoelasticity")
         elif z < SHAPE_Z and visco.detected:
             visco.detected, visco.reason = False, (f"a first-order lag does not fit the events significantly better "
-                                                   f"than a pure delay (Vuong z {z:.2f} < {SHAPE_Z})")
+                                                   f"than a pure delay (paired z {z:.2f} < {SHAPE_Z})")
     detected = [e for e, r in results.items() if r.detected]
     ratio = {e: results[e].statistic / max(results[e].threshold["statistic"], 1e-12) for e in detected}
     primary = sorted((e for e in detected if e not in SECONDARY_EFFECTS), key=lambda e: -ratio[e])

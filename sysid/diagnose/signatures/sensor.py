@@ -9,10 +9,11 @@
   distortion. The residual's noise is the pixel noise plus the position noise carried through the
   projection.
 * **Force bias** (SYSID.md: "slowly varying offset on the wrench only, present without contact"):
-  where the gel touches nothing (no predicted contact, with a margin, recorded markers at rest, and
-  no recorded sheet hanging on the gel: :func:`sheet_on_gel_rows`) the true wrench is zero, so an
-  offset and a linear drift per axis are fitted to the recorded wrench there; the statistic is the
-  whitened SSE they remove, about chi-square(12) with no bias.
+  where the gel touches nothing (no predicted contact, with a margin, recorded markers at rest, no
+  recorded sheet hanging on the gel: :func:`sheet_on_gel_rows`, and not relaxing from a release:
+  :func:`relaxing_rows`) the true wrench is zero, so an offset and a linear drift per axis are
+  fitted to the recorded wrench there; the statistic is the whitened SSE they remove, about
+  chi-square(12) with no bias.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
                                             not_applicable, predicted_contact, segments)
+from sysid.diagnose.signatures.timing import TAU_MAX_S
 
 FREE_MARGIN_S = 0.1
 """Margin around predicted contact that is not counted as free gel, s (transients of approach and
@@ -30,6 +32,14 @@ release)."""
 REST_DISPLACEMENT = 1.5
 """Whitened RMS marker displacement below which the recorded gel counts as at rest (noise alone
 gives about 1)."""
+
+RELAXATION_S = TAU_MAX_S
+"""Time after a release during which the gel is still relaxing, s: the slowest relaxation the
+diagnosis models (the timing tests' largest time constant,
+:data:`~sysid.diagnose.signatures.timing.TAU_MAX_S`). A viscoelastic gel released from a load
+``F`` still carries ``F exp(-t / tau)`` a time ``t`` after the release, in the wrench (which reads
+the whole gel) before the markers' whole-grid displacement resolves it; after one slowest time
+constant, at most ``exp(-1)`` of it remains."""
 
 
 def _normalised(xyz: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
@@ -155,10 +165,42 @@ def sheet_on_gel_rows(rec: Recording, channel: str) -> np.ndarray | None:
     return np.interp(rec.t[channel], ts, on.astype(float)) > 0.0
 
 
+def relaxing_rows(t: np.ndarray, engaged: np.ndarray, loaded: np.ndarray,
+                  relaxation_s: float = RELAXATION_S) -> np.ndarray:
+    """Samples within ``relaxation_s`` after a release: the last engaged sample of each run of
+    engaged samples that holds a load (:func:`free_gel_rows`: a predicted contact or a sheet on the
+    gel, not a marker-noise excursion at rest).
+
+    Args:
+        t: sample times, s, shape ``(n,)``.
+        engaged: samples where the gel is loaded or deformed (contact, sheet on the gel, markers off
+            rest), undilated, shape ``(n,)``.
+        loaded: samples where the gel carries a load (a subset of ``engaged``), shape ``(n,)``.
+        relaxation_s: how long a release relaxes, s (:data:`RELAXATION_S`).
+
+    Returns:
+        boolean mask ``(n,)``, True in ``(t_release, t_release + relaxation_s]`` after each release.
+    """
+    t = np.asarray(t, dtype=float)
+    engaged = np.asarray(engaged, dtype=bool)
+    loaded = np.asarray(loaded, dtype=bool)
+    out = np.zeros(len(t), dtype=bool)
+    # a run of the margin-dilated mask joins a load and the markers' return to rest that follows it
+    for i0, i1 in segments(dilate(engaged, t, FREE_MARGIN_S)):
+        if not loaded[i0:i1].any():
+            continue
+        t_release = t[i0 + int(np.flatnonzero(engaged[i0:i1])[-1])]
+        out |= (t > t_release) & (t <= t_release + relaxation_s)
+    return out
+
+
 def free_gel_rows(rec: Recording) -> np.ndarray | None:
     """Wrench samples where the gel touches nothing: no predicted contact within
-    :data:`FREE_MARGIN_S`, when markers are recorded, markers at rest, and, when the sheet is
-    tracked, no sheet on the gel (:func:`sheet_on_gel_rows`) within :data:`FREE_MARGIN_S`.
+    :data:`FREE_MARGIN_S`, when markers are recorded, markers at rest, when the sheet is tracked, no
+    sheet on the gel (:func:`sheet_on_gel_rows`) within :data:`FREE_MARGIN_S`, and not within
+    :data:`RELAXATION_S` after a release (:func:`relaxing_rows`): the end of a predicted contact or of
+    a sheet on the gel, or of the markers' return to rest that follows it (without a replay or a
+    tracked sheet, the end of any run of markers off rest).
 
     Returns:
         boolean mask on ``rec.t["wrench"]``, or None when contact cannot be told (no replay and no
@@ -166,19 +208,17 @@ def free_gel_rows(rec: Recording) -> np.ndarray | None:
     """
     tw = rec.t["wrench"]
     contact = predicted_contact(rec, "wrench")
-    mask = None
-    if contact is not None:
-        mask = ~dilate(contact, tw, FREE_MARGIN_S)
     disp = marker_displacement(rec)
+    if contact is None and disp is None:
+        return None
+    loads = [m for m in (contact, sheet_on_gel_rows(rec, "wrench")) if m is not None]
+    loaded = np.any(loads, axis=0) if loads else np.zeros(len(tw), dtype=bool)
+    engaged = loaded.copy()
     if disp is not None:
-        tm = rec.t["markers_xyz"]
-        moved = np.interp(tw, tm, (disp > REST_DISPLACEMENT).astype(float)) > 0.0
-        rest = ~dilate(moved, tw, FREE_MARGIN_S)
-        mask = rest if mask is None else (mask & rest)
-    on_gel = sheet_on_gel_rows(rec, "wrench")
-    if mask is not None and on_gel is not None:
-        mask &= ~dilate(on_gel, tw, FREE_MARGIN_S)
-    return mask
+        engaged |= np.interp(tw, rec.t["markers_xyz"], (disp > REST_DISPLACEMENT).astype(float)) > 0.0
+    if not loads:
+        loaded = engaged
+    return ~dilate(engaged, tw, FREE_MARGIN_S) & ~relaxing_rows(tw, engaged, loaded)
 
 
 def force_bias_basis(t: np.ndarray, t_ref: float) -> np.ndarray:

@@ -20,12 +20,18 @@ the model it is read with.
 
 The two are told apart by their shape (a pure delay moves a step, a lag rounds it and leaves an
 exponential tail; SYSID.md: "latency delays every channel of a stream by the same amount at every
-frequency and shows no creep on plateaus") with Vuong's test of non-nested models (Vuong 1989,
-Econometrica 57(2) 307-333): the pointwise difference of the two best fits' whitened squared
-residuals, summed over blocks of :data:`SHAPE_BLOCK_S` (the residual of a replay read through a
-filter of that span is correlated over it), gives ``z = sum(d_b) / (sqrt(B) std(d_b))``, about
-standard normal when both shapes fit the events equally well (:func:`shape_z`). For short delays the
-two shapes agree to first order in ``tau d/dt`` and ``z`` stays small whatever the stream's timing.
+frequency and shows no creep on plateaus") with a paired test of the two non-nested fits (Vuong
+1989, Econometrica 57(2) 307-333, with the variance of the likelihood ratio from the noise model):
+the difference of the two best fits' whitened SSEs, less the lag's extra parameter per event, over
+its standard deviation under the noise model, ``2 sqrt(phi D)``, with ``D`` the whitened squared
+distance between the two fitted curves and ``phi`` the residual's dispersion at the scale of
+:data:`SHAPE_BLOCK_S` (the residual of a replay read through a filter of that span is correlated
+over it): about standard normal when both shapes fit the events equally well
+(:func:`paired_shape_z`). For short delays the two shapes agree to first order in ``tau d/dt``,
+their curves nearly coincide and ``z`` stays small whatever the stream's timing. Vuong's own
+estimate of that variance, the spread of the difference over blocks (:func:`shape_z`, reported
+beside it), counts the shape's signal as noise where it sits in a few blocks (a release's tail),
+which caps it near the square root of their number.
 
 Without a wrench the mean marker depth is used in the same way.
 """
@@ -35,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, normal_force, not_applicable
+from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, normal_force, not_applicable
 
 EVENT_FRACTION = 0.2
 """Contact events: the predicted normal force crossing this fraction of its peak."""
@@ -187,6 +193,33 @@ SHAPE_BLOCK_S = 0.05
 (:data:`REPLAY_SMOOTH_S`), over which the windows' residuals are correlated."""
 
 
+def paired_shape_z(sse_difference: float, curve_distance: float, phi: float, extra_params: int) -> float:
+    """Paired test of two non-nested least-squares fits ``f_1`` (e.g. the delay) and ``f_2`` (the
+    lag) of one whitened series ``y``: ``z = (SSE_1 - SSE_2 - phi k) / (2 sqrt(phi D))``, > 0 when
+    the second fits better.
+
+    ``SSE_1 - SSE_2 = ||y - f_1||^2 - ||y - f_2||^2`` is the deterministic part (zero when the truth
+    is as far from either fit) plus ``2 <e, f_2 - f_1>``, whose variance under noise ``e`` of
+    variance ``phi`` per sample is ``4 phi D`` with ``D = ||f_2 - f_1||^2``; ``k``, the second fit's
+    extra parameters, is what it gains on noise alone (Akaike's correction, in quasi-likelihood units
+    ``phi``). Vuong (1989), Econometrica 57(2) 307-333, sec. 5, with the variance from the noise model.
+
+    Args:
+        sse_difference: ``SSE_1 - SSE_2``, whitened.
+        curve_distance: ``D``, the whitened squared distance between the two fitted curves.
+        phi: the residual's dispersion (>= 1, :func:`~sysid.diagnose.signatures.base.dispersion`).
+        extra_params: ``k``.
+
+    Returns:
+        ``z``; 0 when the two curves lie within the noise of the extra parameters of each other
+        (``D <= phi k``: the fits are observationally equivalent, Vuong's sec. 4 pretest, and
+        neither shape is preferred).
+    """
+    if not curve_distance > phi * extra_params or not curve_distance > 0.0:
+        return 0.0
+    return float((sse_difference - phi * extra_params) / (2.0 * np.sqrt(phi * curve_distance)))
+
+
 def shape_z(block_sums: np.ndarray) -> float:
     """Vuong's statistic (Vuong 1989) of two non-nested fits from per-block sums of the pointwise
     difference of their whitened squared residuals ``(B,)``: ``sum / (sqrt(B) std)``, > 0 when the
@@ -250,8 +283,9 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         None without a predicted normal force or marker depth, else a dict with ``channel``,
         ``events`` (one dict per event: time, direction, window, whitened SSE at tau = 0, best delay
         and its SSE, best first-order tau / fraction, its mean delay ``a tau`` and its SSE), the
-        summed SSEs and ``shape_z`` (:func:`shape_z` of the best delay against the best lag over
-        every event's blocks: > 0 when the lag fits better).
+        summed SSEs, ``shape_z`` (:func:`paired_shape_z` of the best delay against the best lag
+        over every event: > 0 when the lag fits better) and ``shape_z_blocks`` (:func:`shape_z`,
+        Vuong's estimate of the same from the spread over blocks).
     """
     sig = timing_signal(rec)
     if sig is None:
@@ -261,6 +295,7 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     if taus is None:
         taus = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     events, blocks = [], []
+    distance, block_sq, fitted, params = 0.0, 0.0, 0, 0
     lp_cache = {tau: low_pass(t, yp, tau) for tau in taus[1:]}
     for te, direction, lo, hi, m in event_windows(t, yp, RELEASE_TAIL_S):
         s0, _ = _sse(y[m], [yp[m]])
@@ -286,7 +321,15 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
         r_l, _ = _fit(y[m], [lag])
         diff = (r_d ** 2 - r_l ** 2) / sigma ** 2
         per_block = max(1, int(round(SHAPE_BLOCK_S / rec.sample_period(channel))))
-        blocks.extend(np.add.reduceat(diff, np.arange(0, len(diff), per_block)).tolist())
+        starts = np.arange(0, len(diff), per_block)
+        blocks.extend(np.add.reduceat(diff, starts).tolist())
+        # the two fitted curves differ by r_d - r_l; the better fit's residual, summed per block, gives
+        # the dispersion at the block scale (a block of white noise sums to a variance of its length)
+        distance += float(np.sum((r_d - r_l) ** 2)) / sigma ** 2
+        best_r = r_l if best_l[0] < best_d[0] else r_d
+        block_sq += float(np.sum(np.add.reduceat(best_r / sigma, starts) ** 2))
+        fitted += int(m.sum())
+        params += 4  # a gain, an offset, a time constant and, for the lag, its share
         events.append({"t_s": te, "direction": "rising" if direction > 0 else "falling", "window_s": [lo, hi],
                        "samples": int(m.sum()), "sse0": s0 / sigma ** 2, "delay_s": best_d[1], "sse_delay": best_d[0] / sigma ** 2,
                        "lag_tau_s": best_l[1], "lag_fraction": best_l[2], "lag_delay_s": best_l[1] * best_l[2],
@@ -296,7 +339,9 @@ def timing_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
             "sse0": float(sum(e["sse0"] for e in events)),
             "sse_delay": float(sum(e["sse_delay"] for e in events)),
             "sse_lag": float(sum(e["sse_lag"] for e in events)),
-            "shape_z": shape_z(np.asarray(blocks))}
+            "shape_z": paired_shape_z(sum(e["sse_delay"] - e["sse_lag"] for e in events), distance,
+                                      dispersion(block_sq, fitted, params) if fitted > params else 1.0, len(events)),
+            "shape_z_blocks": shape_z(np.asarray(blocks))}
 
 
 def press_sizes(events: list[dict], key: str) -> list[float]:
@@ -353,8 +398,8 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
               "explained_delay": float((fits["sse0"] - fits["sse_delay"]) / excess),
               "explained_lag": float((fits["sse0"] - fits["sse_lag"]) / excess), "sse_delay": fits["sse_delay"],
               "sse_lag": fits["sse_lag"],
-              # shape: Vuong's z, > 0 when the first-order lag fits the events better than a pure delay
-              "shape_z": fits["shape_z"]}
+              # shape: the paired z, > 0 when the first-order lag fits the events better than a pure delay
+              "shape_z": fits["shape_z"], "shape_z_blocks": fits["shape_z_blocks"]}
     lat = SignatureResult(effect="latency", statistic=max(fits["sse0"] - fits["sse_delay"], 0.0),
                           effect_size=timing_size(ev, "delay_s"), effect_unit="s (smallest press delay)",
                           estimate={"latency_s": float(np.median(delays))}, windows_s=windows,

@@ -81,3 +81,20 @@ def test_force_bias_named_from_the_recording_alone():
     assert r.statistic > 10 * th.statistic["force_bias"] and r.effect_size > 2 * th.effect_size["force_bias"]
     for name in ("plastic_s102", "nominal_s109"):
         assert force_bias_test(recording(reference_bag(name))).statistic < STATISTIC_THRESHOLD
+
+
+def test_the_gel_relaxes_after_a_release_not_after_a_marker_noise_excursion():
+    """A contact from 1.0 to 2.0 s whose markers return to rest at 2.2 s, and two single samples
+    of marker noise off rest at 0.4 and 3.0 s: only the release is followed by RELAXATION_S of
+    relaxing gel, counted from the markers' return (the end of the gel's recorded deformation)."""
+    from sysid.diagnose.signatures.sensor import RELAXATION_S, relaxing_rows
+
+    t = np.arange(0.0, 4.0, 0.005)
+    loaded = (t >= 1.0) & (t <= 2.0)
+    engaged = (t >= 1.0) & (t <= 2.2) | np.isclose(t, 0.4) | np.isclose(t, 3.0)
+    relaxing = relaxing_rows(t, engaged, loaded)
+    assert np.array_equal(relaxing, (t > 2.2 + 1e-9) & (t <= 2.2 + RELAXATION_S + 1e-9))
+    # without a known load every run of markers off rest is a release
+    alone = relaxing_rows(t, engaged, engaged)
+    assert alone[(t > 0.4) & (t <= 0.4 + RELAXATION_S - 1e-9)].all()
+    assert alone[(t > 3.0) & (t < 3.0 + RELAXATION_S)].all()

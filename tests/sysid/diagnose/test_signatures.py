@@ -411,6 +411,63 @@ def test_shape_z_is_vuongs_statistic():
     assert shape_z(np.array([3.0])) == 0.0 and shape_z(np.zeros(5)) == 0.0
 
 
+def test_paired_shape_z_is_standard_normal_when_both_fits_are_equally_far():
+    """Two fixed curves and a truth midway between them: the paired z (noise-model variance) is
+    about standard normal over noise draws."""
+    from sysid.diagnose.signatures.timing import paired_shape_z
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(0.0, 1.0, 240)
+    f1, f2 = np.sin(6.0 * t), np.sin(6.0 * t) + 0.3 * np.exp(-((t - 0.6) / 0.1) ** 2)
+    zs = []
+    for _ in range(400):
+        y = 0.5 * (f1 + f2) + rng.normal(size=t.size)
+        zs.append(paired_shape_z(float(np.sum((y - f1) ** 2) - np.sum((y - f2) ** 2)),
+                                 float(np.sum((f2 - f1) ** 2)), 1.0, 0))
+    assert abs(np.mean(zs)) < 0.15 and np.std(zs) == pytest.approx(1.0, abs=0.12)
+    # curves within the noise of the extra parameter: observationally equivalent, no preference
+    assert paired_shape_z(5.0, 0.0, 1.0, 1) == 0.0 and paired_shape_z(-0.5, 0.9, 1.0, 1) == 0.0
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_shape_difference_in_few_blocks_is_resolved_by_the_paired_z(seed):
+    """The second fit differs from the first only over 20 samples (two 10-sample blocks, as a lag's
+    exponential tail past a release), and the data follow it: Vuong's block estimate counts that
+    difference as spread and stays near the square root of the two blocks, under SHAPE_Z, while
+    the paired z, whose variance is the noise model's, resolves it."""
+    from sysid.diagnose.signatures.timing import paired_shape_z, shape_z
+
+    rng = np.random.default_rng(seed)
+    f1 = np.zeros(240)
+    f2 = f1.copy()
+    f2[150:170] = 2.0
+    y = f2 + rng.normal(size=240)
+    d = (y - f1) ** 2 - (y - f2) ** 2
+    assert shape_z(np.add.reduceat(d, np.arange(0, 240, 10))) < SHAPE_Z
+    assert paired_shape_z(float(d.sum()), float(np.sum((f2 - f1) ** 2)), 1.0, 1) > SHAPE_Z + 1.0
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_release_that_still_relaxes_is_not_read_as_a_force_bias(seed):
+    """A first-order lag of the slowest time constant searched (TAU_MAX_S) on the whole tactile
+    stream: after the release the wrench relaxes for a few tenths of a second more, beyond where the
+    markers' whole-grid displacement is back at rest. Those rows are not free gel (RELAXATION_S
+    after the release), so the lag is named and no force bias beside it (main named both)."""
+    from sysid.diagnose.signatures.base import marker_displacement
+    from sysid.diagnose.signatures.sensor import RELAXATION_S, REST_DISPLACEMENT, free_gel_rows
+    from sysid.diagnose.signatures.timing import TAU_MAX_S
+
+    rec = synthetic(np.random.default_rng(seed), lag_tau=TAU_MAX_S)
+    tw, tm = rec.t["wrench"], rec.t["markers_xyz"]
+    back = tm[np.flatnonzero(marker_displacement(rec) > REST_DISPLACEMENT)[-1]]
+    free = free_gel_rows(rec)
+    assert RELAXATION_S == TAU_MAX_S
+    # the markers' last off-rest sample reaches the wrench's time base through one marker period
+    assert not free[(tw > back) & (tw <= back + RELAXATION_S)].any()
+    assert free[tw > back + RELAXATION_S + rec.sample_period("markers_xyz")].all()
+    assert named(rec) == ["gel_viscoelasticity"]
+
+
 def test_baselines_raise_the_statistic_not_the_resolvable_size():
     """The cell's normal recordings lead their replay by 12 ms (a gap of the model, as a nominal lift
     of the reference set leads by 11 ms); a recording of the same cell with a 20 ms Kelvin-Voigt
@@ -531,15 +588,16 @@ def test_the_release_tail_stops_short_of_the_next_press():
 @pytest.mark.parametrize("seed", [1, 2])
 def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
     """A bias of the reference set's form (offset, drift and a slow wobble of a 4 s period) on a
-    recording free of contact for 0.9 s before the press and only 0.35 s after the release: blocks
-    of the free rows themselves put training rows in both free stretches, so the offset and drift
-    refitted on them bring the held-out wrench down to the noise (whitened RMS about 1). Blocks of
-    the whole recording would leave the last stretch held out only, the drift extrapolated over the
-    press."""
+    recording free of contact for 0.9 s before the press and only 0.35 s after the release has
+    relaxed (``RELAXATION_S`` after it): blocks of the free rows themselves put training rows in both
+    free stretches, so the offset and drift refitted on them bring the held-out wrench down to the
+    noise (whitened RMS about 1). Blocks of the whole recording would leave the last stretch held
+    out only, the drift extrapolated over the press."""
     from sysid.diagnose.signature_engine import refit_force_bias
+    from sysid.diagnose.signatures.sensor import RELAXATION_S
     from sysid.synthetic_effects import force_bias
 
-    rec = synthetic(np.random.default_rng(seed), duration=2.85)
+    rec = synthetic(np.random.default_rng(seed), duration=2.85 + RELAXATION_S)
     tw = rec.t["wrench"]
     s = SIGMA["wrench"]
     params = {"offset": (3.0 * s).tolist(), "drift_per_s": (-1.5 * s).tolist(), "wobble_amp": (0.8 * s).tolist(),
