@@ -87,7 +87,9 @@ def test_plastic_set_is_located_after_release(reports):
     sig = doc["extra"]["signatures"]["bending_plasticity"]
     # truth: the card keeps a fold about 9 mm high after the peel-off at 3.04 s
     assert 0.005 < sig["effect_size"] < 0.02
-    assert any(a < 3.2 and b > 3.5 for a, b in sig["windows_s"])
+    # located after the peel, from where the recorded gel's median marker is back at rest (3.36 s: the
+    # gel springs back for about 0.3 s after the peel) to the recording's end
+    assert any(3.04 < a < 3.4 and b > 3.9 for a, b in sig["windows_s"])
     # refitted with the yield angle on half the sheet points, held-out figures on the other half
     # (docs/benchmarks_log.md: the calibrated replay does not lift the card, so the term barely helps)
     fit = doc["refit"]["effects"]["bending_plasticity"]
