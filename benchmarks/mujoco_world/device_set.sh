@@ -15,7 +15,7 @@
 #       PLAN (default benchmarks/mujoco_world/plans/session37.txt, relative to .device_cpu/src). Back under
 #       $OUT: md5.txt of the recordings, and device_cpu.sh's machine.txt, results.jsonl (one summary line a
 #       recording), summary.txt, logs.tar.gz; with KEEP_BAGS=1 also the recordings. JOBS (16)
-#       and JOB_TIMEOUT (330 s) as in device_cpu.sh.
+#       and JOB_TIMEOUT (330 s) as in device_cpu.sh; DIAG_ARGS: more `thinshell diagnose` arguments (e.g. --drive).
 set -u
 mode=${1:-}
 R=$(pwd)
@@ -65,6 +65,6 @@ ln -s "$R/.device_cpu/wheels" /tmp/dc/wheels
 ln -s /tmp/gen /tmp/dc/data
 for b in $(cd /tmp/gen && ls -d ./*/*_s*/ | grep -v '^./logs/' | sort); do
     n=$(basename "$b")
-    echo "python -m thinshell_ros.cli diagnose \$DATA/${b#./} --json /tmp/a_$n.json --force; python $SRC/benchmarks/diagnose_summary.py $n alone /tmp/a_$n.json"
+    echo "python -m thinshell_ros.cli diagnose \$DATA/${b#./} ${DIAG_ARGS:-} --json /tmp/a_$n.json --force; python $SRC/benchmarks/diagnose_summary.py $n alone /tmp/a_$n.json"
 done > /tmp/dc/jobs.txt
 JOBS=${JOBS:-16} JOB_TIMEOUT=${JOB_TIMEOUT:-330} bash "$SRC/benchmarks/device_cpu.sh" run /tmp/dc
