@@ -65,6 +65,7 @@ ln -s "$R/.device_cpu/wheels" /tmp/dc/wheels
 ln -s /tmp/gen /tmp/dc/data
 for b in $(cd /tmp/gen && ls -d ./*/*_s*/ | grep -v '^./logs/' | sort); do
     n=$(basename "$b")
-    echo "python -m thinshell_ros.cli diagnose \$DATA/${b#./} ${DIAG_ARGS:-} --json /tmp/a_$n.json --force; python $SRC/benchmarks/diagnose_summary.py $n alone /tmp/a_$n.json"
+    diag="python -m thinshell_ros.cli diagnose \$DATA/${b#./} ${DIAG_ARGS:-} --json /tmp/a_$n.json --force"
+    echo "$diag; python $SRC/benchmarks/diagnose_summary.py $n alone /tmp/a_$n.json"
 done > /tmp/dc/jobs.txt
 JOBS=${JOBS:-16} JOB_TIMEOUT=${JOB_TIMEOUT:-330} bash "$SRC/benchmarks/device_cpu.sh" run /tmp/dc
