@@ -156,17 +156,24 @@ def predicted_contact(rec: Recording, channel: str = "wrench", fraction: float =
     return np.interp(rec.t[channel], tc, on.astype(float)) > 0.5
 
 
-def marker_displacement(rec: Recording) -> np.ndarray | None:
-    """Whitened RMS displacement of the recorded markers from their rest positions, per sample
-    (about 1 at rest: noise only), on ``rec.t["markers_xyz"]``; the rest positions are the median of
-    the samples where the replay predicts no contact (the first 5 % when there is no replay)."""
+def whitened_marker_offsets(rec: Recording) -> np.ndarray | None:
+    """Whitened offsets ``(n, m, 3)`` of the recorded markers from their rest positions, on
+    ``rec.t["markers_xyz"]``; the rest positions are the median of the samples where the replay
+    predicts no contact (the first 5 % when there is no replay). None without recorded markers."""
     if not rec.has("markers_xyz"):
         return None
     x = np.asarray(rec.data["markers_xyz"], dtype=float)
     free = predicted_contact(rec, "markers_xyz")
     rows = ~free if free is not None and (~free).sum() >= 5 else np.arange(len(x)) < max(5, len(x) // 20)
-    rest = np.median(x[rows], axis=0)
-    return np.sqrt(np.mean(((x - rest) / rec.sigma["markers_xyz"]) ** 2, axis=(1, 2)))
+    return (x - np.median(x[rows], axis=0)) / rec.sigma["markers_xyz"]
+
+
+def marker_displacement(rec: Recording) -> np.ndarray | None:
+    """Whitened RMS displacement of the recorded markers from their rest positions
+    (:func:`whitened_marker_offsets`), per sample (about 1 at rest: noise only), on
+    ``rec.t["markers_xyz"]``."""
+    offsets = whitened_marker_offsets(rec)
+    return None if offsets is None else np.sqrt(np.mean(offsets ** 2, axis=(1, 2)))
 
 
 def dispersion(sse: float, samples: int, params: int) -> float:

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_law
 
 from sysid.diagnose.signatures.base import (Recording, SignatureResult, dilate, marker_displacement,
-                                            not_applicable, predicted_contact, segments)
+                                            not_applicable, predicted_contact, segments, whitened_marker_offsets)
 from sysid.diagnose.signatures.sensor import FREE_MARGIN_S, REST_DISPLACEMENT
 
 FINAL_WINDOW_S = 0.2
@@ -56,9 +56,9 @@ def median_marker_displacement(rec: Recording) -> np.ndarray | None:
     """Whitened displacement of the median marker from its rest position, per sample, on
     ``rec.t["markers_xyz"]`` (about 0.89 at rest: noise only).
 
-    Each marker's displacement is its whitened RMS over the three axes from the rest positions of
-    :func:`marker_displacement` (the median of the samples where the replay predicts no contact, the
-    first 5 % without a replay); the median over the markers is taken per sample. A load on the gel
+    Each marker's displacement is its whitened RMS over the three axes from its rest position
+    (:func:`~sysid.diagnose.signatures.base.whitened_marker_offsets`); the median over the markers is
+    taken per sample. A load on the gel
     displaces a patch of markers (the elastic field spreads over the gel's thickness, more than the
     marker spacing); a few markers that stay displaced alone while the rest of the grid is at rest
     (a marker torn from its place, or a gel edge that does not spring back after a peel) move the
@@ -67,13 +67,8 @@ def median_marker_displacement(rec: Recording) -> np.ndarray | None:
     Returns:
         array ``(n,)``, or None without recorded markers.
     """
-    if not rec.has("markers_xyz"):
-        return None
-    x = np.asarray(rec.data["markers_xyz"], dtype=float)
-    free = predicted_contact(rec, "markers_xyz")
-    rows = ~free if free is not None and (~free).sum() >= 5 else np.arange(len(x)) < max(5, len(x) // 20)
-    per_marker = np.sqrt(np.mean(((x - np.median(x[rows], axis=0)) / rec.sigma["markers_xyz"]) ** 2, axis=2))
-    return np.median(per_marker, axis=1)
+    offsets = whitened_marker_offsets(rec)
+    return None if offsets is None else np.median(np.sqrt(np.mean(offsets ** 2, axis=2)), axis=1)
 
 
 def _released_rows(rec: Recording, channel: str) -> np.ndarray | None:
