@@ -86,7 +86,7 @@ def fit_drive(model) -> DriveCalibration:
     load = -np.asarray(ev.values("wrench"), dtype=float)[:, 2]
     pose = resample_pose(ev.t_ns["pose"], ev.pose, t, outside="clamp")
     command = resample_pose(ev.t_ns["pose_cmd"], ev.pose_cmd, t, outside="clamp")
-    normal = np.stack([model._sensor_normal(p) for p in pose])
+    normal = np.stack([model.sensor_normal(p) for p in pose])
     lag = np.einsum("ij,ij->i", command[:, :3] - pose[:, :3], normal)
     design = np.column_stack([lag, np.ones_like(lag)])
     coef, _, rank, _ = np.linalg.lstsq(design, load, rcond=None)

@@ -555,7 +555,7 @@ class ObservationModel:
         gel = sim.model.bodies[sim.model.sensors[self.sensor].gel_body].vertices
         tolerance = DRIVE_FORCE_TOLERANCE * float(self.sigma["wrench"][2]) if "wrench" in self.sigma else 1.0e-3
         spring = SeriesSpringDrive(self.effector, self.drive_stiffness, gel, force_tolerance=tolerance)
-        return ReplayDrive(spring, self.controls, self.commands, self._sensor_normal)
+        return ReplayDrive(spring, self.controls, self.commands, self.sensor_normal)
 
     def controls_list(self, guess: np.ndarray | None = None) -> list[Control]:
         """The K kinematic controls of one replay, with the Newton start of each step from
@@ -579,10 +579,10 @@ class ObservationModel:
                            position_guess=None if guess is None else guess[k])
         pose = self.controls[k].copy()
         if self.normal_offset:
-            pose[:3] += self.normal_offset * self._sensor_normal(pose)
+            pose[:3] += self.normal_offset * self.sensor_normal(pose)
         return Control({self.effector: pose}, position_guess=None if guess is None else guess[k])
 
-    def _sensor_normal(self, pose: np.ndarray) -> np.ndarray:
+    def sensor_normal(self, pose: np.ndarray) -> np.ndarray:
         """World direction ``(3,)`` of the sensor's +z (out of the gel) at effector pose ``pose``."""
         mount = self.simulation().model.sensors[self.sensor].mount
         return quat_to_matrix(pose[3:7]) @ quat_to_matrix(mount[3:7]) @ np.array([0.0, 0.0, 1.0])
