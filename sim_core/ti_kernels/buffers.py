@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sim_core.ti_backend import ti
+from sim_core.ti_kernels import transfer
 
 
 class DeviceArray:
@@ -51,13 +52,27 @@ class DeviceArray:
         values = np.ascontiguousarray(values, dtype=np_dtype)
         arr = self.ensure(values.shape)
         if self._host is None or self._host.shape != values.shape or not np.array_equal(self._host, values):
-            arr.from_numpy(values)
+            _from_numpy(arr, values)
             self._host = values.copy()
         return arr
 
     def download(self) -> np.ndarray:
         """The ndarray's contents as a new NumPy array."""
-        return self.array.to_numpy()
+        return _to_numpy(self.array)
+
+
+def _from_numpy(array, values: np.ndarray) -> None:
+    """``array.from_numpy(values)``; float64 through :func:`sim_core.ti_kernels.transfer.upload` (one
+    planned launch instead of Taichi's call path)."""
+    if array.dtype == ti.f64:
+        transfer.upload(array, values)
+    else:
+        array.from_numpy(values)
+
+
+def _to_numpy(array) -> np.ndarray:
+    """``array.to_numpy()``; float64 through :func:`sim_core.ti_kernels.transfer.download`."""
+    return transfer.download(array) if array.dtype == ti.f64 else array.to_numpy()
 
 
 def upload_constant(values: np.ndarray, dtype):
@@ -126,7 +141,7 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False):
         dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
             else ti.ndarray(dtype=dtype, shape=host.shape)
         if not scratch and host.size:
-            dev.from_numpy(np.ascontiguousarray(host))
+            _from_numpy(dev, np.ascontiguousarray(host))
         entry = kept[name] = (host, dev)
     return entry[1]
 
@@ -157,7 +172,7 @@ class DeviceRows:
         """The rows as a read-only NumPy array (the whole ndarray downloaded once, kept, and sliced)."""
         host = self._shared.get("host")
         if host is None:
-            host = self._shared["host"] = self.array.to_numpy()
+            host = self._shared["host"] = _to_numpy(self.array)
             host.flags.writeable = False
         return host[self.start:self.stop]
 
