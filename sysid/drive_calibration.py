@@ -190,6 +190,7 @@ def fit_drive(model) -> DriveCalibration:
         why = (f"the pad slides {slide * 1e3:.1f} mm under load (< {DRIVE_MIN_SLIDE * 1e3:.0f} mm): not a "
                "press-and-slide, where the drive is validated")
     else:
-        why = f"the lag explains {explained:.2f} of the load's variance (< {DRIVE_MIN_EXPLAINED}) or k_s = {k:.3g} N/m <= 0"
+        why = (f"the lag explains {explained:.2f} of the load's variance (< {DRIVE_MIN_EXPLAINED}) "
+               f"or k_s = {k:.3g} N/m <= 0")
     return DriveCalibration(k, k_sigma, tau * k, abs(tau) * k_sigma, f0, explained, n, compliant, why,
                             float(np.sqrt(np.mean(residual ** 2))))
