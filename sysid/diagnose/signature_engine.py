@@ -171,7 +171,9 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
 
     A recording whose replay cannot be calibrated (the replay at the scene values diverges) keeps
     the tests that read the recording alone (lens distortion, force bias on the markers' rest rows);
-    ``notes`` says why the others did not run.
+    ``notes`` says why the others did not run. Where the replay with the recorded pose imposed (the damping
+    test's reference through the drive, :func:`sysid.calibration.kinematic_reference`) diverges, the damping
+    test reads the drive's replay and ``notes`` says so.
 
     Raises:
         BagReadError: unreadable recording.
@@ -194,7 +196,13 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         model.sensor_calibration = None
         cal = CalibrationResult({}, nominal_sensor_calibration(model), {}, {})
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
-    rec = recording_of(model, prediction or None, kinematic_reference(model, cal) if prediction else None)
+    reference = None
+    try:
+        reference = kinematic_reference(model, cal) if prediction else None
+    except SimulationDivergedError as err:
+        notes.append(f"{bag}: the replay with the recorded pose imposed diverged ({err}); gel damping is read "
+                     "against the drive's replay")
+    rec = recording_of(model, prediction or None, reference)
     results = run_signature_tests(rec)
     return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
 
