@@ -69,10 +69,12 @@ class ProbeWorker:
         return self._result
 
     def close(self) -> None:
-        """End the child (its result, if not received yet, is dropped)."""
+        """End the child: it has sent its result (:meth:`result`) or is stopped (a calibration that ended
+        before its secant stage)."""
         self._done = True
         self._conn.close()
-        self._process.join(timeout=5.0)
+        if self._process.is_alive():
+            self._process.join(timeout=1.0)
         if self._process.is_alive():
             self._process.terminate()
             self._process.join()
