@@ -67,3 +67,10 @@ def test_probe_worker_only_where_its_replay_is_the_secant_stage_first_one():
         assert probe_worker_for(None, params + ("contact.eps_v",), on) is None
     with pytest.raises(ValueError, match="no secant parameter"):
         ProbeWorker(None, ("contact.eps_v",))
+
+
+def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
+    from sysid.diagnose.cli import build_parser, signature_settings
+
+    assert signature_settings(build_parser().parse_args(["bag"])).probe_worker
+    assert not signature_settings(build_parser().parse_args(["bag", "--one-process"])).probe_worker
