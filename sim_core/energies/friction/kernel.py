@@ -14,7 +14,8 @@ about a hundred pairs: the NumPy reference spends its time in a dozen small arra
 call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
-only the output arrays (:mod:`sim_core.ti_kernels.launch`). Loops are serial on the CPU (the
+only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
+instead, the constant ones sent once, and copies back only the outputs a request wants. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
 round-off (tests: 1e-12 relative).
 """
@@ -28,9 +29,11 @@ from sim_core.energies.base import HessianBlocks, Projection
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.transfer import download
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -125,6 +128,8 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
 _NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
 _NO_BLOCKS = np.zeros((0, 0, 0))
+_UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
+_UNUSED_BLOCKS = np.zeros((1, 1, 1))
 
 
 @fast_kernel
@@ -133,10 +138,14 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
                      blocks: _F64_3):
     """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
     kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
-    ``_GRADIENT`` adds ``dE/dx`` (N) to ``grad`` ``(n, 3)``, ``_HESSIAN`` writes the pair blocks
-    ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written to an array rather than
-    returned: a launch then needs no synchronisation for a return value."""
+    ``_GRADIENT`` sets ``grad`` ``(n, 3)`` to ``dE/dx`` (N; zeroed, then the pairs' parts added),
+    ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written
+    to an array rather than returned: a launch then needs no synchronisation for a return value."""
     energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(grad.shape[0] * ((want & _GRADIENT) // _GRADIENT)):
+        for d in ti.static(range(3)):
+            grad[i, d] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
         if want & _ENERGY:
@@ -180,9 +189,35 @@ class TiLaggedFriction(LaggedFriction):
 
     def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
                 blocks: np.ndarray = _NO_BLOCKS) -> float:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`); the energy
-        (J) when ``want`` asks for it."""
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
+        and ``blocks`` where ``want`` asks for them; the energy (J) when ``want`` asks for it."""
+        if current_arch() == "cuda":
+            return self._launch_on_device(arrays, want, grad, blocks)
         _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
+        return float(self._energy[0])
+
+    def _launch_on_device(self, arrays: tuple, want: int, grad: np.ndarray, blocks: np.ndarray) -> float:
+        """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
+        CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
+        previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
+        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back."""
+        device = self.__dict__.setdefault("_device", {})
+        x, x_prev, vertices, weights, tangent, coefficient = arrays
+        args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
+                on_device(device, "vertices", vertices), on_device(device, "weights", weights),
+                on_device(device, "tangent", tangent), on_device(device, "coefficient", coefficient, refresh=True))
+        outputs = (on_device(device, "energy", self._energy, scratch=True),
+                   on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
+                   else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
+                   on_device(device, "blocks", blocks, scratch=True) if want & _HESSIAN
+                   else on_device(device, "no_blocks", _UNUSED_BLOCKS, scratch=True))
+        _friction_kernel(*args, self.eps_u, want, *outputs)
+        if want & _GRADIENT:
+            download(outputs[1], grad)
+        if want & _HESSIAN:
+            download(outputs[2], blocks)
+        if want & _ENERGY:
+            download(outputs[0], self._energy)
         return float(self._energy[0])
 
     def keep_derivatives(self, x: np.ndarray) -> None:
@@ -194,7 +229,7 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        grad = np.zeros((x.shape[0], 3))
+        grad = np.empty((x.shape[0], 3))
         blocks = np.empty((p, 3 * m, 3 * m))
         energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))

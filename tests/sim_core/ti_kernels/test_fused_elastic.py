@@ -18,7 +18,10 @@ from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
 from sim_core.mesh.tet import tet_box
+from tests.sim_core.ti_kernels.conftest import TEST_ARCH
 from tests.support.fd import fd_gradient, fd_hessian, relative_error
+
+TEST_BACKEND = f"taichi-{TEST_ARCH}"  # the solver backend of the kernels' test arch (one Taichi arch per process)
 
 
 def _sheet(nx: int = 4, ny: int = 3):
@@ -167,9 +170,9 @@ def _forming_steps(backend: str, steps: int):
 
 
 def test_solver_steps_equal_reference_path(ti_cpu):
-    """Forming steps on the ``taichi-cpu`` backend (fused kernels) equal the NumPy path."""
+    """Forming steps on the Taichi backend of the test arch (fused kernels) equal the NumPy path."""
     runs = []
-    for backend in ("numpy", "taichi-cpu"):
+    for backend in ("numpy", TEST_BACKEND):
         sim, iterations = _forming_steps(backend, 4)
         runs.append((sim.state.x.copy(), iterations, sim.solver.last_record.hessian_exact))
     (x_ref, it_ref, exact_ref), (x_fused, it_fused, exact_fused) = runs
@@ -244,7 +247,7 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
             monkeypatch.setattr(TiLaggedFriction, "keep_derivatives", lambda self, x: None)
-        sim, iterations = _forming_steps("taichi-cpu", 6)
+        sim, iterations = _forming_steps(TEST_BACKEND, 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
     assert it_on == it_off and sum(it_on) > 6
@@ -347,7 +350,7 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
     from sim_core.solver import SolverConfig
 
     model = load_scene(copy.deepcopy(SCENE))
-    sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend="taichi-cpu"))
+    sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend=TEST_BACKEND))
     if route == "hook":
         sim.solver.set_hook(CandidateHook(candidates))
     else:

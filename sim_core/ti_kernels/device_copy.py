@@ -1,0 +1,115 @@
+"""Byte copies between NumPy arrays and Taichi ndarrays by address, without a kernel launch.
+
+A copy through a Taichi kernel (``from_numpy`` / ``to_numpy``, or a planned launch of a copy kernel with a
+NumPy argument, :mod:`sim_core.ti_kernels.transfer`) costs on CUDA a launch, a device buffer for the NumPy
+array, its copy to the device *and back* (Taichi's CUDA launcher copies every host array of a launch both
+ways), a synchronisation and a free: 83-103 us a call on the H200 host (``benchmarks/profile_single.py``'s
+launch micro-benchmark, docs/benchmarks_log.md, session 38, 28single). Here the ndarray's address
+(``Program.get_ndarray_data_ptr_as_int``: a device pointer on CUDA, a host pointer on the CPU) is copied
+to or from directly: on CUDA by the driver's synchronous ``cuMemcpyHtoD_v2`` / ``cuMemcpyDtoH_v2``
+(``libcuda.so.1`` through ctypes; synchronous copies run on the legacy default stream, the stream of
+Taichi's launches, so they follow the kernels launched before them), on the CPU by ``memmove`` (Taichi's
+CPU launches return when the kernel has run).
+
+On CUDA the driver copies need Taichi's CUDA context current on the calling thread: Taichi makes it
+current on the thread that initialised it, and restores a thread's own (none) after each of its launches
+on another thread. Where no context is current, or the driver library is not found, the functions return
+False and the caller copies through a kernel instead (same bytes).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+
+import numpy as np
+from taichi.lang.util import to_numpy_type
+
+from sim_core.ti_backend import current_arch, ti
+
+_CUDA_SUCCESS = 0
+
+
+@functools.cache
+def _driver() -> ctypes.CDLL | None:
+    """The CUDA driver library with the argument types of the three entry points used, or None."""
+    try:
+        lib = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+    lib.cuMemcpyHtoD_v2.argtypes = (ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t)
+    lib.cuMemcpyDtoH_v2.argtypes = (ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t)
+    lib.cuCtxGetCurrent.argtypes = (ctypes.POINTER(ctypes.c_void_p),)
+    return lib
+
+
+def _cuda_ready(lib: ctypes.CDLL | None) -> bool:
+    """Whether ``lib`` is loaded and a CUDA context is current on this thread."""
+    if lib is None:
+        return False
+    ctx = ctypes.c_void_p()
+    return lib.cuCtxGetCurrent(ctypes.byref(ctx)) == _CUDA_SUCCESS and bool(ctx.value)
+
+
+def address(array) -> int:
+    """The address of the Taichi ndarray ``array``'s first element (a device pointer on CUDA)."""
+    return int(ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr))
+
+
+def _checked(array, host: np.ndarray) -> int:
+    """``host``'s byte count after checking that it matches ``array`` (shape and dtype).
+
+    Raises:
+        ValueError: another shape or dtype, or ``host`` not C-contiguous.
+    """
+    shape, dtype = tuple(array.shape), np.dtype(to_numpy_type(array.dtype))
+    if host.shape != shape or host.dtype != dtype or not host.flags.c_contiguous:
+        raise ValueError(f"device_copy: a C-contiguous {dtype} array of shape {shape} is needed; "
+                         f"got {host.dtype} {host.shape}")
+    return host.nbytes
+
+
+def to_device(array, host: np.ndarray) -> bool:
+    """Copy the C-contiguous ``host`` (the bytes of ``array``'s dtype, ``array``'s shape) into the Taichi
+    ndarray ``array``; False (nothing copied) where no direct copy is possible here (module docstring).
+
+    Raises:
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape.
+    """
+    nbytes = _checked(array, host)
+    if not nbytes:
+        return True
+    arch = current_arch()
+    if arch == "cuda":
+        lib = _driver()
+        if not _cuda_ready(lib):
+            return False
+        if lib.cuMemcpyHtoD_v2(address(array), host.ctypes.data, nbytes) != _CUDA_SUCCESS:
+            return False
+        return True
+    if arch == "cpu":
+        ctypes.memmove(address(array), host.ctypes.data, nbytes)
+        return True
+    return False
+
+
+def to_host(host: np.ndarray, array) -> bool:
+    """Copy the Taichi ndarray ``array`` into the writable C-contiguous ``host`` (``array``'s shape, the
+    bytes of its dtype); False (nothing copied) where no direct copy is possible here.
+
+    Raises:
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape.
+    """
+    nbytes = _checked(array, host)
+    if not nbytes:
+        return True
+    arch = current_arch()
+    if arch == "cuda":
+        lib = _driver()
+        if not _cuda_ready(lib):
+            return False
+        return lib.cuMemcpyDtoH_v2(host.ctypes.data, address(array), nbytes) == _CUDA_SUCCESS
+    if arch == "cpu":
+        ctypes.memmove(host.ctypes.data, address(array), nbytes)
+        return True
+    return False
