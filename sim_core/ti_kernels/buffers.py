@@ -37,7 +37,7 @@ class DeviceArray:
         """The ndarray with ``shape`` (allocated on first use or when the shape changed)."""
         shape = tuple(int(s) for s in shape)
         if self.shape != shape:
-            self.array = ti.ndarray(dtype=self.dtype, shape=shape)
+            self.array = device_copy.new_ndarray(self.dtype, shape)
             self.shape = shape
             self._host = None
         return self.array
@@ -145,7 +145,7 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
     if entry is None or entry[0] is not host or refresh:
         dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
         dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
-            else ti.ndarray(dtype=dtype, shape=host.shape)
+            else device_copy.new_ndarray(dtype, host.shape)
         if not scratch and host.size:
             _from_numpy(dev, np.ascontiguousarray(host))
         entry = kept[name] = (host, dev)

@@ -319,7 +319,7 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
         runtime = _runtime()
         if energy is None or cells.prog is not runtime.prog:  # (a device cell belongs to one Taichi program)
             energy = cells.energy = np.zeros(1)
-            cells.device = ti.ndarray(ti.f64, shape=(1,)) if not _host_arch(runtime) else None
+            cells.device = device_copy.new_ndarray(ti.f64, (1,)) if not _host_arch(runtime) else None
             cells.prog = runtime.prog
         if cells.device is None:
             kernel(*args, energy)

@@ -45,6 +45,7 @@ from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
 from sim_core.workspace import workspace_of
@@ -207,7 +208,7 @@ class PairBatch:
         None without derivatives)."""
         kept = self._device_x
         if kept is None or kept[0] != key or tuple(kept[1].shape) != x.shape:
-            xd = kept[1] if kept is not None and tuple(kept[1].shape) == x.shape else ti.ndarray(ti.f64, shape=x.shape)
+            xd = kept[1] if kept is not None and tuple(kept[1].shape) == x.shape else new_ndarray(ti.f64, x.shape)
             upload(xd, x)
             kept = self._device_x = (key, xd)
         dev, shared = self._device, _ARRAYS.device()
@@ -273,14 +274,15 @@ class PairBatch:
                 x_arg, vertices_arg, sides_arg, rows_arg = _ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows
                 z = _ARRAYS.rows("z", m, (4, 3))
             if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-                grad_arg = ti.ndarray(ti.f64, shape=(m, 12))
-                hess_arg = ti.ndarray(ti.f64, shape=(m, 12, 12))
+                grad_arg = new_ndarray(ti.f64, (m, 12))
+                hess_arg = new_ndarray(ti.f64, (m, 12, 12))
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
-            if on_gpu:
+            if on_gpu:  # (the regions are read with derivatives only)
                 copy_back(d, d_arg)
-                copy_back(region, region_arg)
+                if derivatives:
+                    copy_back(region, region_arg)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
                 copy_back(gradients, gradients_arg)
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)

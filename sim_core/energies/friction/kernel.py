@@ -31,7 +31,7 @@ from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download
 from sim_core.workspace import workspace_of
@@ -130,6 +130,8 @@ _NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not w
 _NO_BLOCKS = np.zeros((0, 0, 0))
 _UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
 _UNUSED_BLOCKS = np.zeros((1, 1, 1))
+_ARRAYS = LaunchArrays()
+"""Per thread, the device arrays of the CUDA launches (:meth:`TiLaggedFriction._launch_on_device`)."""
 
 
 @fast_kernel
@@ -200,8 +202,9 @@ class TiLaggedFriction(LaggedFriction):
         """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
         CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
         previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
-        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back."""
-        device = self.__dict__.setdefault("_device", {})
+        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back. The device
+        arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
+        device = _ARRAYS.device()
         x, x_prev, vertices, weights, tangent, coefficient = arrays
         args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
                 on_device(device, "vertices", vertices), on_device(device, "weights", weights),
