@@ -41,6 +41,9 @@
 #   single_profile         benchmarks/profile_single.py --arch A for A in $FORMING_ARCHS but numpy (where a
 #                          single environment's step goes: kernel launches, transfers, linear solve, the rest;
 #                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0)
+#   single_compare         the `forming` bench of the baseline tree BASELINE_ROOT (e.g. the device's copy of main)
+#                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
+#                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
 #   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
 #                          elastic and device-copy kernel tests; a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
@@ -130,6 +133,21 @@ for part in $PARTS; do
                     > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
                 grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
+            done ;;
+        single_compare) [ -n "${BASELINE_ROOT:-}" ] || { echo "single_compare needs BASELINE_ROOT" >&2; exit 2; }
+            for round in $(seq "${SINGLE_ROUNDS:-1}"); do
+                for arch in ${FORMING_ARCHS:-cuda cpu}; do
+                    for label in baseline branch; do
+                        tree=$PWD; [ "$label" = baseline ] && tree=$BASELINE_ROOT
+                        echo "=== single_compare round $round $arch $label ($tree)"
+                        (cd "$tree" && PYTHONPATH=/tmp/site:$tree timeout "$PART_TIMEOUT" "$PY" -m thinshell_ros.cli \
+                            bench forming --arch "$arch" --repeat "${FORMING_REPEAT:-3}" --json) \
+                            > "$out/compare_${round}_${arch}_$label.out" 2>&1
+                        echo "exit $?"
+                        grep '^{' "$out/compare_${round}_${arch}_$label.out" \
+                            | sed "s/^{/{\"code\": \"$label\", \"round\": $round, /" | tee -a "$out/bench.jsonl"
+                    done
+                done
             done ;;
         kernel_tests) echo "=== kernel_tests (THINSHELL_TEST_ARCH=cuda): $KERNEL_TESTS"
             THINSHELL_TEST_ARCH=cuda timeout "$PART_TIMEOUT" "$PY" -m pytest -q -rf -p no:cacheprovider $KERNEL_TESTS \

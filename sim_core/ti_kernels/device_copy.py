@@ -98,37 +98,30 @@ def _checked(array, host: np.ndarray) -> int:
 
 
 def to_device(array, host: np.ndarray) -> bool:
-    """Copy the C-contiguous ``host`` (the bytes of ``array``'s dtype, ``array``'s shape) into the Taichi
-    ndarray ``array``; False (nothing copied) where no direct copy is possible here (module docstring).
+    """Copy the C-contiguous ``host`` (``array``'s dtype and shape) into the Taichi ndarray ``array``; False
+    (nothing copied) where no direct copy is possible here (module docstring).
 
     Raises:
-        ValueError: ``host`` is not C-contiguous of ``array``'s shape.
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype.
     """
-    nbytes = _checked(array, host)
-    if not nbytes:
-        return True
-    arch = current_arch()
-    if arch == "cuda":
-        lib = _driver()
-        if not _cuda_ready(lib):
-            return False
-        if lib.cuMemcpyHtoD_v2(address(array), host.ctypes.data, nbytes) != _CUDA_SUCCESS:
-            return False
-        return True
-    if arch == "cpu":
-        ctypes.memmove(address(array), host.ctypes.data, nbytes)
-        return True
-    return False
+    return _copy(array, host, True)
 
 
 def to_host(host: np.ndarray, array) -> bool:
-    """Copy the Taichi ndarray ``array`` into the writable C-contiguous ``host`` (``array``'s shape, the
-    bytes of its dtype); False (nothing copied) where no direct copy is possible here.
+    """Copy the Taichi ndarray ``array`` into the writable C-contiguous ``host`` (``array``'s dtype and
+    shape); False (nothing copied) where no direct copy is possible here.
 
     Raises:
-        ValueError: ``host`` is not C-contiguous of ``array``'s shape.
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or is read-only.
     """
+    return _copy(array, host, False)
+
+
+def _copy(array, host: np.ndarray, upload: bool) -> bool:
+    """``host`` into ``array`` (``upload``) or back; whether the bytes were copied."""
     nbytes = _checked(array, host)
+    if not upload and not host.flags.writeable:
+        raise ValueError("device_copy: the host array to copy into is read-only")
     if not nbytes:
         return True
     arch = current_arch()
@@ -136,8 +129,13 @@ def to_host(host: np.ndarray, array) -> bool:
         lib = _driver()
         if not _cuda_ready(lib):
             return False
+        if upload:
+            return lib.cuMemcpyHtoD_v2(address(array), host.ctypes.data, nbytes) == _CUDA_SUCCESS
         return lib.cuMemcpyDtoH_v2(host.ctypes.data, address(array), nbytes) == _CUDA_SUCCESS
     if arch == "cpu":
-        ctypes.memmove(host.ctypes.data, address(array), nbytes)
+        if upload:
+            ctypes.memmove(address(array), host.ctypes.data, nbytes)
+        else:
+            ctypes.memmove(host.ctypes.data, address(array), nbytes)
         return True
     return False

@@ -32,12 +32,17 @@ def test_copies_refuse_another_shape_or_dtype(ti_cpu):
     from sim_core.ti_kernels.device_copy import to_device, to_host
 
     dev = ti.ndarray(ti.f64, shape=(4, 3))
-    with pytest.raises(ValueError, match=r"a C-contiguous float64 array of shape \(4, 3\) is needed; got float64 \(3, 4\)"):
+    needed = r"C-contiguous float64 array of shape \(4, 3\) is needed; got float64 \(3, 4\)"
+    with pytest.raises(ValueError, match=needed):
         to_device(dev, np.zeros((3, 4)))
     with pytest.raises(ValueError, match=r"got int32 \(4, 3\)"):
         to_host(np.zeros((4, 3), dtype=np.int32), dev)
     with pytest.raises(ValueError, match="C-contiguous"):
         to_host(np.zeros((3, 4)).T, dev)
+    read_only = np.zeros((4, 3))
+    read_only.flags.writeable = False
+    with pytest.raises(ValueError, match="read-only"):
+        to_host(read_only, dev)
 
 
 def test_another_thread_copies_or_declines(ti_cpu):
