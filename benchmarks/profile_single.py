@@ -108,6 +108,8 @@ def main() -> int:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--steps", type=int, default=49)
     ap.add_argument("--kernel-profiler", action="store_true")
+    ap.add_argument("--cprofile", type=int, default=0, metavar="N",
+                    help="also run the trajectory a third time under cProfile and print its N functions of most own time")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
@@ -157,6 +159,13 @@ def main() -> int:
         print(f"kernel device time (Taichi kernel profiler): {1e3 * device / steps:.2f} ms/step")
         ti.profiler.print_kernel_profiler_info("count")
     _launch_microbenchmark(ti)
+    if args.cprofile:
+        import cProfile
+        import pstats
+
+        profiler = cProfile.Profile()
+        profiler.runcall(run_forming, scene, args.steps, arch=args.arch)
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(args.cprofile)
     return 0
 
 
