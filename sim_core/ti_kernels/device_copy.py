@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import threading
 
 import numpy as np
 from taichi._lib import core as _ti_core
@@ -51,12 +52,20 @@ def _driver() -> ctypes.CDLL | None:
     return lib
 
 
+_READY = threading.local()
+"""Per thread: ``ready`` once a CUDA context was found current there (Taichi leaves its context current on the
+thread that initialised it, and restores a thread's own after each launch, so it stays so)."""
+
+
 def _cuda_ready(lib: ctypes.CDLL | None) -> bool:
     """Whether ``lib`` is loaded and a CUDA context is current on this thread."""
+    if getattr(_READY, "ready", False):
+        return True
     if lib is None:
         return False
     ctx = ctypes.c_void_p()
-    return lib.cuCtxGetCurrent(ctypes.byref(ctx)) == _CUDA_SUCCESS and bool(ctx.value)
+    _READY.ready = lib.cuCtxGetCurrent(ctypes.byref(ctx)) == _CUDA_SUCCESS and bool(ctx.value)
+    return _READY.ready
 
 
 def new_ndarray(dtype, shape: tuple[int, ...]) -> ScalarNdarray:
@@ -80,17 +89,24 @@ def new_ndarray(dtype, shape: tuple[int, ...]) -> ScalarNdarray:
 
 
 def address(array) -> int:
-    """The address of the Taichi ndarray ``array``'s first element (a device pointer on CUDA)."""
-    return int(ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr))
+    """The address of the Taichi ndarray ``array``'s first element (a device pointer on CUDA); read from Taichi
+    once per array and kept on it (an ndarray keeps its allocation for its lifetime)."""
+    kept = getattr(array, "_device_address", None)
+    if kept is None:
+        kept = array._device_address = int(ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr))
+    return kept
 
 
 def _checked(array, host: np.ndarray) -> int:
-    """``host``'s byte count after checking that it matches ``array`` (shape and dtype).
+    """``host``'s byte count after checking that it matches ``array`` (shape and dtype; both kept on the array).
 
     Raises:
         ValueError: another shape or dtype, or ``host`` not C-contiguous.
     """
-    shape, dtype = tuple(array.shape), np.dtype(to_numpy_type(array.dtype))
+    layout = getattr(array, "_host_layout", None)
+    if layout is None:
+        layout = array._host_layout = (tuple(array.shape), np.dtype(to_numpy_type(array.dtype)))
+    shape, dtype = layout
     if host.shape != shape or host.dtype != dtype or not host.flags.c_contiguous:
         raise ValueError(f"device_copy: a C-contiguous {dtype} array of shape {shape} is needed; "
                          f"got {host.dtype} {host.shape}")

@@ -208,7 +208,7 @@ class TiLaggedFriction(LaggedFriction):
         x, x_prev, vertices, weights, tangent, coefficient = arrays
         args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
                 on_device(device, "vertices", vertices), on_device(device, "weights", weights),
-                on_device(device, "tangent", tangent), on_device(device, "coefficient", coefficient, refresh=True))
+                on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
         outputs = (on_device(device, "energy", self._energy, scratch=True),
                    on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
                    else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
@@ -222,6 +222,15 @@ class TiLaggedFriction(LaggedFriction):
         if want & _ENERGY:
             download(outputs[0], self._energy)
         return float(self._energy[0])
+
+    def _device_coefficients(self, device: dict, coefficient: np.ndarray):
+        """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
+        values changed (``mu`` may be edited between launches; the kept array is refilled at every call)."""
+        sent = device.get("coefficient_sent")
+        if sent is None or sent[0] is not coefficient or not np.array_equal(sent[1], coefficient):
+            device["coefficient_sent"] = (coefficient, coefficient.copy())
+            return on_device(device, "coefficient", coefficient, refresh=True)
+        return on_device(device, "coefficient", coefficient)
 
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
