@@ -109,7 +109,7 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=49)
     ap.add_argument("--kernel-profiler", action="store_true")
     ap.add_argument("--cprofile", type=int, default=0, metavar="N",
-                    help="also run the trajectory a third time under cProfile and print its N functions of most own time")
+                    help="run the trajectory a third time under cProfile; print its N functions of most own time")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
