@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim_core.batch.copy_runs import CopyRuns
+from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
@@ -626,6 +627,8 @@ class LockstepEngine:
     Args:
         sims: the batch's copies (:class:`~sim_core.simulation.Simulation` objects).
 
+    Making one sets the process's C heap to keep freed memory (:func:`~sim_core.batch.heap.keep_freed_memory`).
+
     Raises:
         ConfigError: copies with different ``dt`` or solver settings, or what :func:`stack_models` refuses.
     """
@@ -641,6 +644,7 @@ class LockstepEngine:
             if sim.solver.config != ref.solver.config:
                 raise ConfigError(f"batch copy {i}: solver settings differ from copy 0's; a lockstep batch has one "
                                   f"solver")
+        keep_freed_memory()  # the iterations' stacked temporaries reuse the heap (sim_core.batch.heap)
         self.sims = sims
         self.scene = stack_models([s.model for s in sims])
         self.solver = LockstepSolver(self.scene, ref.solver.config)
