@@ -49,6 +49,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -196,8 +197,8 @@ class PairBatch:
         self.split = int(vt.vertices.shape[0])
         self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        self.own, local = np.unique(self.vertices, return_inverse=True)
-        self._local_vertices = np.ascontiguousarray(local.reshape(self.vertices.shape), dtype=np.int32)
+        self.own, local = compact_indices(self.vertices)
+        self._local_vertices = np.ascontiguousarray(local, dtype=np.int32)
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)

@@ -34,6 +34,7 @@ from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -171,11 +172,11 @@ class TiLaggedFriction(LaggedFriction):
         arrays = getattr(self, "_arrays", None)
         if arrays is None or self._n != x.shape[0]:
             require_backend("TiLaggedFriction")
-            own, local = np.unique(self.vertices, return_inverse=True)
+            own, local = compact_indices(self.vertices)
             self._own, self._n = own, x.shape[0]
             arrays = (np.empty((len(own), 3)),
                       np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
-                      np.ascontiguousarray(local.reshape(self.vertices.shape), dtype=np.int32),
+                      np.ascontiguousarray(local, dtype=np.int32),
                       np.ascontiguousarray(self.weights, dtype=np.float64),
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))
