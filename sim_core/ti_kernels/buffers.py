@@ -153,13 +153,18 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
 
 
 def copy_back(host: np.ndarray, array) -> np.ndarray:
-    """``array``'s values (a Taichi ndarray of ``host``'s shape and dtype) copied into ``host``, returned: a
-    byte copy (:mod:`sim_core.ti_kernels.device_copy`) where one can be made, else through
+    """``array``'s values (a Taichi ndarray of ``host``'s shape and dtype, or a NumPy array: what
+    :func:`on_device` returned) copied into ``host``, returned: a byte copy
+    (:mod:`sim_core.ti_kernels.device_copy`) where one can be made, else through
     :func:`sim_core.ti_kernels.transfer.download` (float64) or Taichi's ``to_numpy``.
 
     Raises:
         ValueError: ``host`` is not a C-contiguous array of ``array``'s shape and dtype.
     """
+    if isinstance(array, np.ndarray):  # what on_device returns off CUDA: the host array itself, or another
+        if array is not host:
+            np.copyto(host, array)
+        return host
     if not device_copy.to_host(host, array):
         np.copyto(host, _to_numpy(array))
     return host

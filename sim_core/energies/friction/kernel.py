@@ -15,7 +15,9 @@ call, here each request is one launch of one kernel (:func:`_friction_kernel`, t
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
 only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
-instead, the constant ones sent once, and copies back only the outputs a request wants. Loops are serial on the CPU (the
+instead, the constant ones sent once, and copies back only the outputs a request wants. The kernel sees the
+pairs' own vertices only (positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``):
+a Forming step's pairs name 10-17 % of the scene's vertices. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
 round-off (tests: 1e-12 relative).
 """
@@ -34,6 +36,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -173,21 +176,36 @@ class TiLaggedFriction(LaggedFriction):
         return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
-        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; ``x`` and
-        the coefficients, ``mu`` may be edited, are copied into kept arrays)."""
+        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; the positions of
+        the pairs' vertices and the coefficients, ``mu`` may be edited, are copied into kept arrays). The
+        kernel's vertex indices are into ``self._own``, the pairs' vertices ``(u,)``."""
         arrays = getattr(self, "_arrays", None)
-        if arrays is None or arrays[0].shape != x.shape:
+        if arrays is None or self._n != x.shape[0]:
             require_backend("TiLaggedFriction")
-            arrays = (np.empty(x.shape),
-                      np.ascontiguousarray(self.x_prev, dtype=np.float64),
-                      np.ascontiguousarray(self.vertices, dtype=np.int32),
+            own, local = compact_indices(self.vertices)
+            self._own, self._n = own, x.shape[0]
+            arrays = (np.empty((len(own), 3)),
+                      np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
+                      np.ascontiguousarray(local, dtype=np.int32),
                       np.ascontiguousarray(self.weights, dtype=np.float64),
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))
             self._arrays, self._energy = arrays, np.zeros(1)
-        np.copyto(arrays[0], x)
+        np.take(x, self._own, axis=0, out=arrays[0])
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
+
+    def _launch_gradient(self, arrays: tuple, want: int, blocks: np.ndarray) -> tuple[float, np.ndarray]:
+        """One launch of :func:`_friction_kernel` with ``_GRADIENT`` in ``want``: ``(energy, gradient)``, the
+        gradient's rows of the pairs' vertices ``self._own`` ``(u, 3)`` (N)."""
+        own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
+        return self._launch(arrays, want, own_grad, blocks), own_grad
+
+    def _spread(self, own_grad: np.ndarray, n: int) -> np.ndarray:
+        """A new ``(n, 3)`` gradient (N): ``own_grad`` on the pairs' vertices, zero elsewhere."""
+        grad = np.zeros((n, 3))
+        grad[self._own] = own_grad
+        return grad
 
     def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
                 blocks: np.ndarray = _NO_BLOCKS) -> float:
@@ -241,9 +259,8 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        grad = np.empty((x.shape[0], 3))
         blocks = np.empty((p, 3 * m, 3 * m))
-        energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
+        energy, grad = self._launch_gradient(arrays, _ENERGY | _GRADIENT | _HESSIAN, blocks)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
@@ -271,25 +288,25 @@ class TiLaggedFriction(LaggedFriction):
         converged positions, where its last iteration took the gradient): that call returns it and
         keeps nothing, so the workspace holds no arrays of a step's friction after the step.
         """
-        grad = np.zeros((x.shape[0], 3))
         p, m = self.vertices.shape
-        if p:
-            arrays = self._kernel_arrays(x)
-            workspace = workspace_of(self)
-            again = workspace.take(self, "gradient")
-            if again is not None and self._matches(again, arrays):
-                return again[3]
-            kept = self._kept(arrays)
-            workspace.take(self, "derivatives")  # consumed
-            if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
-                workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
-                workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
-                return kept[4].copy()
-            blocks = np.empty((p, 3 * m, 3 * m))
-            self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
-            kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
-            workspace.put(self, "gradient", kept_hessian[:3] + (grad.copy(),))
-        return grad
+        if not p:
+            return np.zeros((x.shape[0], 3))
+        arrays = self._kernel_arrays(x)
+        workspace = workspace_of(self)
+        again = workspace.take(self, "gradient")
+        if again is not None and self._matches(again, arrays):
+            return self._spread(again[3], x.shape[0])
+        kept = self._kept(arrays)
+        workspace.take(self, "derivatives")  # consumed
+        if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
+            workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
+            workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
+            return self._spread(kept[4], x.shape[0])
+        blocks = np.empty((p, 3 * m, 3 * m))
+        own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
+        kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
+        workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
+        return self._spread(own_grad, x.shape[0])
 
     def _matches(self, kept: tuple, arrays: tuple) -> bool:
         """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and
