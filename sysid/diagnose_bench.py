@@ -43,6 +43,7 @@ import multiprocessing
 import sys
 import tempfile
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -355,16 +356,29 @@ HELDOUT_DIR = "heldout"
 """Sub-directory of a set that holds the held-out companion of each recording (same name)."""
 
 
-def companion_rng(seed: int) -> np.random.Generator:
-    """Noise generator of the held-out companions: independent of the primary recordings' stream
-    (``default_rng(seed)``), so that adding companions leaves the primary recordings of a seed unchanged."""
-    return np.random.default_rng([seed, 1])
+def recording_rng(seed: int, name: str) -> np.random.Generator:
+    """Noise generator of one primary recording: seeded by the set's seed and the recording's name only,
+    so that a recording's bytes do not depend on which other recordings are generated, nor in which
+    process or order (a set generated per effect in parallel, ``--effects``, equals the one-process set).
+
+    Args:
+        seed: the set's noise seed.
+        name: the recording's name (e.g. ``damping_x2``).
+    """
+    return np.random.default_rng([seed, zlib.crc32(name.encode("utf-8"))])
 
 
-def write_companion(out_dir: Path, rec: Recording, streams: dict, rng: np.random.Generator) -> Path:
-    """Write the held-out companion of ``rec``: its noise-free ``streams`` with new noise, as
-    ``out_dir/heldout/<name>``; appends the path to ``rec.heldout``."""
-    path = write_recording(Path(out_dir) / HELDOUT_DIR / rec.name, add_noise(streams, rng))
+def companion_rng(seed: int, name: str) -> np.random.Generator:
+    """Noise generator of one held-out companion: independent of its recording's
+    (:func:`recording_rng`), so that adding companions leaves the primary recordings of a seed
+    unchanged, and, like it, a function of the seed and the recording's name only."""
+    return np.random.default_rng([seed, 1, zlib.crc32(name.encode("utf-8"))])
+
+
+def write_companion(out_dir: Path, rec: Recording, streams: dict, seed: int) -> Path:
+    """Write the held-out companion of ``rec``: its noise-free ``streams`` with new noise
+    (:func:`companion_rng`), as ``out_dir/heldout/<name>``; appends the path to ``rec.heldout``."""
+    path = write_recording(Path(out_dir) / HELDOUT_DIR / rec.name, add_noise(streams, companion_rng(seed, rec.name)))
     rec.heldout.append(path)
     return path
 
@@ -387,7 +401,6 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
             the diagnosis validates its refits on another recording; an effect confined to one event
             (adhesion's single lift-off) cannot be validated on held-out time blocks.
     """
-    rng = np.random.default_rng(seed)
     if quick:
         strengths, nominal_count, effects = (4.0,), 1, effects or QUICK_EFFECTS
     specs = [e for e in EFFECTS if effects is None or e.label in effects]
@@ -446,7 +459,7 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
             recs.append(Recording(f"{spec.label}_x{k:g}", spec.label, spec.in_library, k, s, m, windows, streams=streams))
             log(f"  x{k:g}: magnitude {m:.4g}, strength {s:.2f}, windows {[(round(a, 2), round(b, 2)) for a, b in windows]}")
     for rec in recs:
-        rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, rng))
+        rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, recording_rng(seed, rec.name)))
         rec.streams = {}
     if heldout:
         add_companions(out_dir, recs, seed=seed, log=log)
@@ -469,7 +482,6 @@ def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
     specs = {e.label: e for e in EFFECTS}
     targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], companion_segments())
     base = rollout(SCENE, targets)
-    rng = companion_rng(seed)
     for rec in recs:
         if rec.label != "none" and rec.label not in specs:
             raise ValueError(f"{rec.name}: label {rec.label!r} is not a benchmark effect")
@@ -482,7 +494,7 @@ def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
         except ThinShellError as err:
             log(f"{rec.name}: companion rollout failed, validated on held-out time blocks ({err})")
             continue
-        write_companion(directory, rec, streams, rng)
+        write_companion(directory, rec, streams, seed)
         log(f"{rec.name}: held-out companion written")
     return recs
 
