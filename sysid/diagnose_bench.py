@@ -22,7 +22,10 @@ window`` (window: samples where the change exceeds a quarter of its peak). Each 
 from one calibration rollout (plus one power-law correction when the response is nonlinear), to
 about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
 ``thickness_step`` may stay below its target).
-Nominal recordings differ by their noise only. With ``--heldout-companions`` each recording also
+Nominal recordings differ by their noise only. Each recording's noise is seeded by the set's seed and the
+recording's name (:func:`recording_rng`), so a set can be generated per effect in parallel processes
+(``--generate-only --effects E --nominal 0``, the nominal recordings with ``--effects --nominal N``) and merged
+(``--merge PART... --out DIR``) into the bytes one process writes. With ``--heldout-companions`` each recording also
 gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
 whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
 validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
@@ -507,10 +510,8 @@ def load_labelled_set(directory: Path) -> list[Recording]:
     """
     directory = Path(directory)
     index = directory / "labels.json"
-    if not index.is_file():
-        raise FileNotFoundError(f"{index}: no labels.json (write a set with --generate-only --out DIR)")
     recs = []
-    for item in json.loads(index.read_text()):
+    for item in json.loads(_labels_text(directory)):
         path = directory / item["name"]
         if not path.exists():
             raise FileNotFoundError(f"{index}: recording {item['name']!r} not found at {path}")
@@ -522,6 +523,51 @@ def load_labelled_set(directory: Path) -> list[Recording]:
                               float(item["strength"]), float(item["magnitude"]),
                               [tuple(w) for w in item["windows_s"]], path=path, heldout=heldout))
     return recs
+
+
+def merge_sets(parts: Sequence[Path], out_dir: Path) -> int:
+    """Move the recordings of sets generated in parts (e.g. one ``--effects E`` process each) into one set.
+
+    The recordings' noise depends on the seed and their names only (:func:`recording_rng`), so parts of one
+    seed merge into the set one process would have written. ``labels.json`` of ``out_dir`` lists the parts'
+    recordings in the order the parts are given.
+
+    Args:
+        parts: directories written by :func:`generate_set` (each with its ``labels.json``).
+        out_dir: the merged set's directory (created; must not hold a ``labels.json`` yet).
+
+    Returns:
+        the number of recordings merged.
+
+    Raises:
+        FileNotFoundError: a part without ``labels.json`` or a listed recording missing (names it).
+        FileExistsError: ``out_dir`` already holds a set, or two parts hold recordings of one name.
+    """
+    out_dir = Path(out_dir)
+    if (out_dir / "labels.json").exists():
+        raise FileExistsError(f"{out_dir}: already holds a labelled set (labels.json)")
+    items = [(Path(part), item) for part in parts for item in json.loads(_labels_text(Path(part)))]
+    names = [item["name"] for _, item in items]
+    if len(set(names)) != len(names):
+        raise FileExistsError(f"{out_dir}: recordings of one name in two parts: "
+                              f"{sorted({n for n in names if names.count(n) > 1})}")
+    for part, item in items:
+        if item.get("heldout"):
+            raise ValueError(f"{part}: {item['name']!r} has held-out companions; merge sets without them")
+        if not (part / item["name"]).exists():
+            raise FileNotFoundError(f"{part / 'labels.json'}: recording {item['name']!r} not found")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for part, item in items:
+        (part / item["name"]).rename(out_dir / item["name"])
+    (out_dir / "labels.json").write_text(json.dumps([item for _, item in items], indent=1))
+    return len(items)
+
+
+def _labels_text(directory: Path) -> str:
+    index = directory / "labels.json"
+    if not index.is_file():
+        raise FileNotFoundError(f"{index}: no labels.json (write a set with --generate-only --out DIR)")
+    return index.read_text()
 
 
 def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
@@ -572,7 +618,21 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="ignore the companions a labelled set lists (validate on held-out time blocks)")
     ap.add_argument("--add-heldout", action="store_true",
                     help="with --labelled: write held-out companions for a set that has none (seed --seed)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="PART",
+                    help="move the recordings of sets generated in parts (e.g. one --effects E process each, same "
+                         "--seed) into --out, with one labels.json, and stop")
     args = ap.parse_args(argv)
+    if args.merge is not None:
+        if args.out is None:
+            print("thinshell bench diagnose: --merge needs --out DIR", file=sys.stderr)
+            return 2
+        try:
+            count = merge_sets(args.merge, args.out)
+        except (OSError, ValueError) as err:
+            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            return 2
+        print(f"merged {count} recordings into {args.out} (labels.json)")
+        return 0
     if args.jobs < 1 or any(not k > 0 for k in args.strengths):
         print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
         return 2

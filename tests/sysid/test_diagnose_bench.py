@@ -343,6 +343,19 @@ def test_a_set_generated_per_effect_has_the_bytes_of_the_one_process_set(tmp_pat
     assert files(tmp_path / "one" / "fake_a_x2") != one
     assert files(tmp_path / "one" / "nominal_0") != files(tmp_path / "one" / "nominal_1")
 
+    # the CLI: parts generated one effect each (nominal recordings in a part of their own), merged
+    for name, argv in (("n", ["--effects", "--nominal", "2"]), ("a", ["--effects", "fake_a", "--nominal", "0"]),
+                       ("b", ["--effects", "fake_b", "--nominal", "0"])):
+        assert db.bench_diagnose_main(["--generate-only", "--json", "--strengths", "2", "--out", str(tmp_path / name),
+                                       *argv]) == 0
+    parts = [str(tmp_path / n) for n in ("n", "a", "b")]
+    assert db.bench_diagnose_main(["--merge", *parts, "--out", str(tmp_path / "merged")]) == 0
+    merged = {r.name: r for r in db.load_labelled_set(tmp_path / "merged")}
+    assert list(merged) == ["nominal_0", "nominal_1", "fake_a_x2", "fake_b_x2"]
+    for name in merged:
+        assert files(tmp_path / "merged" / name) == files(tmp_path / "one" / name)
+    assert db.bench_diagnose_main(["--merge", *parts, "--out", str(tmp_path / "merged")]) == 2  # a set is there
+
 
 def test_companion_motion_shortens_the_slides_only():
     seg = db.companion_segments(slide_scale=0.5)
