@@ -46,7 +46,8 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
 from sim_core.unique import compact_indices
@@ -214,12 +215,12 @@ class PairBatch:
         kept = self._device_x
         u = len(self.own)
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
-            xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else ti.ndarray(ti.f64, shape=(u, 3))
+            xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else new_ndarray(ti.f64, (u, 3))
             upload(xd, x[self.own])
             kept = self._device_x = (key, xd)
-        dev = self._device
-        z = on_device(dev, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(dev, "gradients", _ARRAYS.rows("gradients", 2 * u, (3,)), scratch=True)
+        dev, shared = self._device, _ARRAYS.device()
+        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", 2 * u, (3,)), scratch=True)
                      if derivatives else None)
         return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
                 gradients)
@@ -264,23 +265,35 @@ class PairBatch:
             else:
                 grad_arg, hess_arg, gradients_arg = grad, hess, gradients
             d_arg, region_arg = d, region
-            if current_arch() == "cuda":  # only the rows of this launch travel (the kept arrays may be longer)
+            on_gpu = current_arch() == "cuda"
+            if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
                 x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
-                d_arg, region_arg, rows_arg = d[:m], region[:m], kept_rows[:m]
+                device = _ARRAYS.device()
+                rows_arg = on_device(device, "pair_rows", kept_rows, refresh=True)
+                d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
+                                                                                        scratch=True)
                 if derivatives:
                     grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
+                else:
+                    grad_arg, hess_arg, gradients_arg = (on_device(device, name, host, scratch=True) for name, host in
+                                                         (("grad_unused", grad_arg), ("hess_unused", hess_arg),
+                                                          ("gradients_unused", gradients_arg)))
             else:
                 x_arg, vertices_arg, sides_arg, rows_arg = (_ARRAYS.copy_of("x", x[self.own]), self._local_vertices,
                                                             self.sides, kept_rows)
                 z = _ARRAYS.rows("z", m, (4, 3))
             if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-                grad_arg = ti.ndarray(ti.f64, shape=(m, 12))
-                hess_arg = ti.ndarray(ti.f64, shape=(m, 12, 12))
+                grad_arg = new_ndarray(ti.f64, (m, 12))
+                hess_arg = new_ndarray(ti.f64, (m, 12, 12))
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
+            if on_gpu:  # (the regions are read with derivatives only)
+                copy_back(d, d_arg)
+                if derivatives:
+                    copy_back(region, region_arg)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                gradients[: 2 * u] = download(gradients_arg)[: 2 * u]
+                copy_back(gradients, gradients_arg)
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
                 grad[:m] = download(grad_arg)
         else:

@@ -14,10 +14,10 @@ about a hundred pairs: the NumPy reference spends its time in a dozen small arra
 call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
-only the output arrays (:mod:`sim_core.ti_kernels.launch`). The kernel sees the pairs' own vertices only
-(positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``): on CUDA every array
-argument crosses to the device and back at each launch, and a Forming step's pairs name 10-17 % of the
-scene's vertices. Loops are serial on the CPU (the
+only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
+instead, the constant ones sent once, and copies back only the outputs a request wants. The kernel sees the
+pairs' own vertices only (positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``):
+a Forming step's pairs name 10-17 % of the scene's vertices. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
 round-off (tests: 1e-12 relative).
 """
@@ -31,9 +31,11 @@ from sim_core.energies.base import HessianBlocks, Projection
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.transfer import download
 from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
@@ -129,6 +131,10 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
 _NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
 _NO_BLOCKS = np.zeros((0, 0, 0))
+_UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
+_UNUSED_BLOCKS = np.zeros((1, 1, 1))
+_ARRAYS = LaunchArrays()
+"""Per thread, the device arrays of the CUDA launches (:meth:`TiLaggedFriction._launch_on_device`)."""
 
 
 @fast_kernel
@@ -137,10 +143,14 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
                      blocks: _F64_3):
     """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
     kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
-    ``_GRADIENT`` adds ``dE/dx`` (N) to ``grad`` ``(n, 3)``, ``_HESSIAN`` writes the pair blocks
-    ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written to an array rather than
-    returned: a launch then needs no synchronisation for a return value."""
+    ``_GRADIENT`` sets ``grad`` ``(n, 3)`` to ``dE/dx`` (N; zeroed, then the pairs' parts added),
+    ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written
+    to an array rather than returned: a launch then needs no synchronisation for a return value."""
     energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(grad.shape[0] * ((want & _GRADIENT) // _GRADIENT)):
+        for d in ti.static(range(3)):
+            grad[i, d] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
         if want & _ENERGY:
@@ -188,7 +198,7 @@ class TiLaggedFriction(LaggedFriction):
     def _launch_gradient(self, arrays: tuple, want: int, blocks: np.ndarray) -> tuple[float, np.ndarray]:
         """One launch of :func:`_friction_kernel` with ``_GRADIENT`` in ``want``: ``(energy, gradient)``, the
         gradient's rows of the pairs' vertices ``self._own`` ``(u, 3)`` (N)."""
-        own_grad = np.zeros((len(self._own), 3))
+        own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
         return self._launch(arrays, want, own_grad, blocks), own_grad
 
     def _spread(self, own_grad: np.ndarray, n: int) -> np.ndarray:
@@ -199,10 +209,46 @@ class TiLaggedFriction(LaggedFriction):
 
     def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
                 blocks: np.ndarray = _NO_BLOCKS) -> float:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`); the energy
-        (J) when ``want`` asks for it."""
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
+        and ``blocks`` where ``want`` asks for them; the energy (J) when ``want`` asks for it."""
+        if current_arch() == "cuda":
+            return self._launch_on_device(arrays, want, grad, blocks)
         _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
         return float(self._energy[0])
+
+    def _launch_on_device(self, arrays: tuple, want: int, grad: np.ndarray, blocks: np.ndarray) -> float:
+        """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
+        CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
+        previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
+        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back. The device
+        arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
+        device = _ARRAYS.device()
+        x, x_prev, vertices, weights, tangent, coefficient = arrays
+        args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
+                on_device(device, "vertices", vertices), on_device(device, "weights", weights),
+                on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
+        outputs = (on_device(device, "energy", self._energy, scratch=True),
+                   on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
+                   else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
+                   on_device(device, "blocks", blocks, scratch=True) if want & _HESSIAN
+                   else on_device(device, "no_blocks", _UNUSED_BLOCKS, scratch=True))
+        _friction_kernel(*args, self.eps_u, want, *outputs)
+        if want & _GRADIENT:
+            download(outputs[1], grad)
+        if want & _HESSIAN:
+            download(outputs[2], blocks)
+        if want & _ENERGY:
+            download(outputs[0], self._energy)
+        return float(self._energy[0])
+
+    def _device_coefficients(self, device: dict, coefficient: np.ndarray):
+        """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
+        values changed (``mu`` may be edited between launches; the kept array is refilled at every call)."""
+        sent = device.get("coefficient_sent")
+        if sent is None or sent[0] is not coefficient or not np.array_equal(sent[1], coefficient):
+            device["coefficient_sent"] = (coefficient, coefficient.copy())
+            return on_device(device, "coefficient", coefficient, refresh=True)
+        return on_device(device, "coefficient", coefficient)
 
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
