@@ -40,7 +40,12 @@
 #                          (single-environment figures; FORMING_ARCHS default "cuda cpu numpy", FORMING_REPEAT 1)
 #   single_profile         benchmarks/profile_single.py --arch A for A in $FORMING_ARCHS but numpy (where a
 #                          single environment's step goes: kernel launches, transfers, linear solve, the rest;
-#                          with --kernel-profiler on cuda)
+#                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0)
+#   single_compare         the `forming` bench of the baseline tree BASELINE_ROOT (e.g. the device's copy of main)
+#                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
+#                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
+#   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
+#                          elastic and device-copy kernel tests; a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
 # ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
@@ -66,7 +71,9 @@ if [ "$mode" != run ] && [ "$mode" != profile ]; then
     exit 2
 fi
 
-if ls "$wheels"/*.whl > /dev/null 2>&1; then
+if [ -d /tmp/site/taichi ]; then
+    echo "wheels already installed in /tmp/site"
+elif ls "$wheels"/*.whl > /dev/null 2>&1; then
     "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$wheels"/*.whl || exit 1
 else
     echo "no wheels in $wheels: using the interpreter's own packages"
@@ -94,6 +101,8 @@ if [ "$mode" = profile ]; then
 fi
 PART_TIMEOUT=${PART_TIMEOUT:-170}
 TASK=${TASK:-folding_u}
+KERNEL_TESTS=${KERNEL_TESTS:-tests/sim_core/ti_kernels/test_launch.py tests/sim_core/ti_kernels/test_transfer.py \
+tests/sim_core/ti_kernels/test_fused_elastic.py tests/sim_core/ti_kernels/test_device_copy.py}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
     local name=$1; shift
     echo "=== $name: thinshell bench $*"
@@ -118,13 +127,33 @@ for part in $PARTS; do
             done ;;
         single_profile) for arch in ${FORMING_ARCHS:-cuda cpu}; do
                 [ "$arch" = numpy ] && continue
-                flag=; [ "$arch" = cuda ] && flag=--kernel-profiler
+                flag=; [ "$arch" = cuda ] && [ "${KERNEL_PROFILER:-1}" = 1 ] && flag=--kernel-profiler
                 echo "=== single_profile $arch"
                 timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
                     > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
                 grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
             done ;;
+        single_compare) [ -n "${BASELINE_ROOT:-}" ] || { echo "single_compare needs BASELINE_ROOT" >&2; exit 2; }
+            for round in $(seq "${SINGLE_ROUNDS:-1}"); do
+                for arch in ${FORMING_ARCHS:-cuda cpu}; do
+                    for label in baseline branch; do
+                        tree=$PWD; [ "$label" = baseline ] && tree=$BASELINE_ROOT
+                        echo "=== single_compare round $round $arch $label ($tree)"
+                        (cd "$tree" && PYTHONPATH=/tmp/site:$tree timeout "$PART_TIMEOUT" "$PY" -m thinshell_ros.cli \
+                            bench forming --arch "$arch" --repeat "${FORMING_REPEAT:-3}" --json) \
+                            > "$out/compare_${round}_${arch}_$label.out" 2>&1
+                        echo "exit $?"
+                        grep '^{' "$out/compare_${round}_${arch}_$label.out" \
+                            | sed "s/^{/{\"code\": \"$label\", \"round\": $round, /" | tee -a "$out/bench.jsonl"
+                    done
+                done
+            done ;;
+        kernel_tests) echo "=== kernel_tests (THINSHELL_TEST_ARCH=cuda): $KERNEL_TESTS"
+            THINSHELL_TEST_ARCH=cuda timeout "$PART_TIMEOUT" "$PY" -m pytest -q -rf -p no:cacheprovider $KERNEL_TESTS \
+                > "$out/kernel_tests.out" 2>&1
+            echo "exit $?"
+            grep -E '^(FAILED|ERROR)|passed|failed' "$out/kernel_tests.out" | tail -20 ;;
         *) echo "unknown part $part" >&2; exit 2 ;;
     esac
 done

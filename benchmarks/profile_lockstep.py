@@ -1,6 +1,8 @@
 """Profile a lockstep batch of the Forming scene: where the wall time of a Newton iteration goes.
 
-Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``.
+Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``; ``--B 16,64,256``
+profiles each size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so
+that what grows with ``B`` shows by part.
 Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
 Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
 times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
@@ -22,7 +24,7 @@ import time
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--arch", default="cpu")
-    ap.add_argument("--B", type=int, default=8)
+    ap.add_argument("--B", default="8", help="copies; a comma-separated list profiles each size in turn")
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--linear-solver", default=None)
     ap.add_argument("--top", type=int, default=45)
@@ -51,10 +53,26 @@ def main() -> int:
             sim0 = warm.batch.sims[0]
             compile_kernels(sim0.solver.elastic.potentials(sim0.state.hinge_theta_bar), sim0.model.x_rest)
             del warm
-        run = _FormingRun(args.B, args.steps + 1, backend, lockstep=True)
     finally:
         sc.SolverConfig = orig
+    timers = _wrap_parts()
+    cg_iterations = _count_cg_iterations()
+    for B in (int(b) for b in str(args.B).split(",")):
+        sc.SolverConfig = lambda **kw: orig(**kw, **extra)
+        try:
+            run = _FormingRun(B, args.steps + 1, backend, lockstep=True)
+        finally:
+            sc.SolverConfig = orig
+        _profile_size(run, B, args, timers, cg_iterations)
+        del run
+    return 0
+
+
+def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
+    """Set up and step ``run`` (``B`` copies) once, then time ``args.steps`` steps by part."""
     from sim_core.control import Control
+
+    iterations = [0]
 
     def step(k):
         t = time.perf_counter()
@@ -62,23 +80,26 @@ def main() -> int:
         wall = time.perf_counter() - t
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
-        print(f"step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)}, assembly "
+        iterations[0] += getattr(info, "iterations", 0) or 0
+        print(f"B={B} step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)}, assembly "
               f"{getattr(info, 'time_assembly', 0):.3f} s, solve {getattr(info, 'time_linear_solve', 0):.3f} s, "
               f"factorizations {getattr(info, 'factorizations', None)}", flush=True)
         return res
 
-    timers = _wrap_parts()
+    for rec in timers.values():
+        rec[0], rec[1] = 0, 0.0
     t0 = time.perf_counter()
     run.batch.warm_up()
     step(0)
-    _print_parts("set-up and step 0", timers, time.perf_counter() - t0)
+    _print_parts(f"B={B} set-up and step 0", timers, time.perf_counter() - t0)
     for rec in timers.values():
         rec[0], rec[1] = 0, 0.0
+    iterations[0] = 0
+    cg_iterations.clear()
     if args.kernel_profiler:
         from sim_core.ti_backend import ti
 
         ti.profiler.clear_kernel_profiler_info()
-    cg_iterations = _count_cg_iterations()
     prof = cProfile.Profile() if args.cprofile else None
     t0 = time.perf_counter()
     if prof:
@@ -88,10 +109,11 @@ def main() -> int:
     if prof:
         prof.disable()
     wall = time.perf_counter() - t0
-    print(f"B={args.B} {args.steps} steps in {wall:.3f} s: {args.B * args.steps / wall:.2f} scene-steps/s")
-    _print_parts(f"{args.steps} timed steps", timers, wall)
+    print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
+          f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
+    _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
     if cg_iterations:
-        print(f"CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
+        print(f"B={B} CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
               f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
     if args.kernel_profiler:
         from sim_core.ti_backend import ti
@@ -102,16 +124,17 @@ def main() -> int:
         st.sort_stats("cumulative").print_stats(args.top)
         st.sort_stats("tottime").print_stats(args.top)
         if args.out:
-            st.dump_stats(args.out)
-    return 0
+            st.dump_stats(f"{args.out}.B{B}")
 
 
-def _print_parts(title: str, timers: dict, wall: float) -> None:
-    """The parts that ran (inclusive wall seconds, calls, share of ``wall``), longest first."""
-    print(f"{'part (inclusive), ' + title:58s} {'calls':>6s} {'s':>8s} {'% wall':>7s}")
+def _print_parts(title: str, timers: dict, wall: float, iterations: int = 0) -> None:
+    """The parts that ran (inclusive wall seconds, calls, share of ``wall``, and with ``iterations`` the ms per
+    Newton iteration), longest first."""
+    print(f"{'part (inclusive), ' + title:58s} {'calls':>6s} {'s':>8s} {'% wall':>7s} {'ms/it':>8s}")
     for name, (calls, total) in sorted(timers.items(), key=lambda kv: -kv[1][1]):
         if calls:
-            print(f"{name:58s} {calls:6d} {total:8.3f} {100 * total / wall:7.1f}")
+            per_it = f"{1e3 * total / iterations:8.2f}" if iterations else ""
+            print(f"{name:58s} {calls:6d} {total:8.3f} {100 * total / wall:7.1f} {per_it}")
 
 
 def _count_cg_iterations() -> list:
@@ -167,6 +190,11 @@ def _wrap_parts() -> dict:
     parts += [(cls, n) for cls in (InertiaPotential, _PairPenalty, TiLaggedFriction) for n in ("gradient", "energy")]
     parts += [(FusedElastic, "gradient"), (PairBatch, "evaluate"), (ContactSet, "covers"),
               (lockstep, "projected_subset_blocks")]
+    from sim_core.batch.copy_runs import CopyRuns  # the per-copy reductions over the stacked arrays (host NumPy)
+
+    parts += [(CopyRuns, n) for n in ("dot", "any_dof", "all_finite", "largest_norm", "largest_abs", "per_dof",
+                                       "moved")]
+    parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
     for cls, name in parts:
         if name not in vars(cls):
             continue

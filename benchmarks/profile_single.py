@@ -11,13 +11,15 @@ of the Newton loop. Parts:
   own ``Kernel.__call__``): on CUDA the device time plus, per NumPy array argument, a device buffer,
   its copy to the device, a synchronisation and the copy back (Taichi's CUDA launcher does this for
   every host array, read or written);
-- ``ndarray transfer``: ``from_numpy`` / ``to_numpy`` of Taichi ndarrays;
+- ``ndarray transfer``: ``from_numpy`` / ``to_numpy`` of Taichi ndarrays, and the byte copies of
+  :mod:`sim_core.ti_kernels.device_copy`;
 - ``linear solve``: the symmetric solver's ``factorize`` / ``solve`` and the general LU's.
 
 Also printed: kernel calls and NumPy array arguments per step; with ``--kernel-profiler`` Taichi's
 per-kernel device time (it synchronises every launch: the timed run is then slower than the bench's);
-and a launch micro-benchmark (one kernel, one array of 5,094 float64 passed as a NumPy array vs as a
-Taichi ndarray, us per launch).
+a launch micro-benchmark (one kernel, one array of 5,094 float64 passed as a NumPy array vs as a
+Taichi ndarray, us per launch) and a transfer micro-benchmark (that array to and from a Taichi ndarray by
+:mod:`sim_core.ti_kernels.device_copy`'s byte copies and by a planned copy kernel, us per copy).
 """
 
 # no `from __future__ import annotations`: the micro-benchmark's Taichi kernel needs evaluated annotations
@@ -86,6 +88,19 @@ def _launch_microbenchmark(ti, repeats: int = 500) -> None:
             kernel(arg, 1.0)
         ti.sync()
         print(f"launch micro-benchmark, one {label} argument: {1e6 * (time.perf_counter() - t0) / repeats:.1f} us")
+    from sim_core.ti_kernels import device_copy, transfer
+
+    copies = (("upload, byte copy (device_copy.to_device)", lambda: device_copy.to_device(device, host)),
+              ("download, byte copy (device_copy.to_host)", lambda: device_copy.to_host(host, device)),
+              ("upload, planned copy kernel", lambda: transfer._copy_f64(host, device)),
+              ("download, planned copy kernel", lambda: transfer._copy_f64(device, host)))
+    for label, copy in copies:
+        made = copy()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            copy()
+        print(f"transfer micro-benchmark, 5,094 float64, {label}: {1e6 * (time.perf_counter() - t0) / repeats:.1f} us"
+              + ("" if made is not False else " (declined: no byte copy on this thread)"))
 
 
 def main() -> int:
@@ -93,6 +108,8 @@ def main() -> int:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--steps", type=int, default=49)
     ap.add_argument("--kernel-profiler", action="store_true")
+    ap.add_argument("--cprofile", type=int, default=0, metavar="N",
+                    help="run the trajectory a third time under cProfile; print its N functions of most own time")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
@@ -101,7 +118,7 @@ def main() -> int:
 
     from sim_core import linsolve
     from sim_core.bench.forming import run_forming
-    from sim_core.ti_kernels import launch
+    from sim_core.ti_kernels import device_copy, launch
     from thinshell_ros.paths import bundled_scene
 
     scene = bundled_scene("forming")
@@ -115,6 +132,8 @@ def main() -> int:
     for method in ("_ndarray_from_numpy", "_ndarray_to_numpy", "_ndarray_matrix_from_numpy",
                    "_ndarray_matrix_to_numpy"):
         parts.wrap(_ndarray.Ndarray, method, "ndarray transfer")
+    for function in ("to_device", "to_host"):
+        parts.wrap(device_copy, function, "ndarray transfer")
     for cls in (linsolve.PardisoCholesky, linsolve.ScipySymmetric, linsolve.PardisoSolver, linsolve.ScipySolver):
         for method in ("factorize", "solve"):
             parts.wrap(cls, method, "linear solve")
@@ -140,6 +159,13 @@ def main() -> int:
         print(f"kernel device time (Taichi kernel profiler): {1e3 * device / steps:.2f} ms/step")
         ti.profiler.print_kernel_profiler_info("count")
     _launch_microbenchmark(ti)
+    if args.cprofile:
+        import cProfile
+        import pstats
+
+        profiler = cProfile.Profile()
+        profiler.runcall(run_forming, scene, args.steps, arch=args.arch)
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(args.cprofile)
     return 0
 
 

@@ -11,11 +11,12 @@ Backends:
   (:func:`sim_core.energies.registry.use_taichi_kernels`) are not part of a backend (their loops are parallel,
   which a forked worker cannot run).
 - ``"taichi-cuda"``: the same kernels on CUDA (parallel element loops: sums in a varying order). The
-  Newton system is still solved on the host (the symmetric solver of ``SolverConfig.linear_solver``), and
-  kernels whose arguments are NumPy arrays copy them to the device and back at each launch, so one
-  environment of a scene this small is slower here than on ``taichi-cpu``: Forming (1,698 DoF) at 18.0
-  steps/s on an H200 host against 24-30 with ``taichi-cpu`` on the same host's CPU (SciPy SuperLU, no MKL;
-  docs/benchmarks_log.md, session 38, 28single). The GPU pays off for batches of copies (:mod:`sim_core.batch`).
+  kernels of one environment keep their arrays in device memory and copy only their outputs back
+  (:mod:`sim_core.ti_kernels.device_copy`), but the Newton system is still solved on the host (the
+  symmetric solver of ``SolverConfig.linear_solver``), so one environment of a scene this small is still
+  slower here than on ``taichi-cpu``: Forming (1,698 DoF) at 24.8-25.2 steps/s on an H200 host against
+  28.6-31.1 with ``taichi-cpu`` on the same host's CPU (SciPy SuperLU, no MKL; docs/benchmarks_log.md,
+  session 39, 28single). The GPU pays off for batches of copies (:mod:`sim_core.batch`).
 - ``"auto"``: the fastest available, resolved by :func:`resolve_backend`: ``taichi-cuda`` when
   Taichi starts on CUDA, else ``taichi-cpu`` when Taichi imports, else ``numpy``; in a process whose
   Taichi runtime is already initialised, the Taichi backend of that arch.

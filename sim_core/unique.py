@@ -6,6 +6,8 @@ same arrays: 4 us and 0.1-0.2 ms). The Newton loop's assembly calls it when cont
 sparsity pattern (:mod:`sim_core.dynamic_slots`) and once per static pattern
 (:class:`sim_core.assembly.StaticPattern`). :func:`sorted_unique` returns what ``np.unique`` does
 (first occurrences through a stable sort), from a sort and a comparison of neighbours.
+:func:`compact_indices` gives ``np.unique(indices, return_inverse=True)`` of non-negative integer indices
+without a sort (a presence mask): the vertices a set of contact pairs names.
 """
 
 from __future__ import annotations
@@ -53,3 +55,30 @@ def _firsts(ordered: np.ndarray) -> np.ndarray:
     first[:1] = True
     first[1:] = ordered[1:] != ordered[:-1]  # the operator, not the ufunc: void rows compare too
     return first
+
+
+def compact_indices(indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct values of non-negative integer ``indices`` and each index's position among them, as
+    ``np.unique(indices, return_inverse=True)`` (the inverse in ``indices``' shape), from a presence mask
+    of length ``max + 1`` instead of a sort: ``O(k + max)``; a stacked batch's contact pairs name a
+    million vertex indices, which ``np.unique`` sorts in about 0.1 s.
+
+    Args:
+        indices: integer array of any shape, values ``>= 0``.
+
+    Returns:
+        ``(own, local)``: ``own`` int64 ``(u,)`` sorted distinct values; ``local`` int64 of ``indices``' shape,
+        ``own[local] == indices``.
+
+    Raises:
+        ValueError: a negative index.
+    """
+    indices = np.asarray(indices)
+    if indices.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(indices.shape, dtype=np.int64)
+    if indices.min() < 0:
+        raise ValueError("compact_indices: indices must be >= 0")
+    named = np.zeros(int(indices.max()) + 1, dtype=bool)
+    named[indices.ravel()] = True
+    position = np.cumsum(named) - 1
+    return np.flatnonzero(named), position[indices]

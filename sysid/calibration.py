@@ -40,12 +40,12 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
-from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS, secant_calibration
+from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS, FirstReplay, secant_calibration
 from sysid.drive_calibration import fit_drive
 from sysid.fit import fit
 
@@ -501,7 +501,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               max_nfev: int = 8, workers: int = 1, max_time: float | None = None, max_replays: int | None = None,
               bounds: Mapping[str, tuple[float, float]] | None = None, sensor_first: bool = False,
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
-              secant_replays: int = SECANT_REPLAYS, drive: bool = False) -> CalibrationResult:
+              secant_replays: int = SECANT_REPLAYS, drive: bool = False,
+              secant_first: Callable[[], FirstReplay | None] | None = None) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
@@ -554,6 +555,9 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             (:func:`sysid.drive_calibration.fit_drive`), and make every replay, the first included,
             take it (:meth:`~sysid.observation.ObservationModel.set_drive_stiffness`); False: the
             recorded pose driven kinematically (the scene's prior).
+        secant_first: gives the secant stage's first replay made beforehand (in another process beside
+            the fit's start replay: :mod:`sysid.diagnose.probe_worker`), taken only where its parameters
+            are bitwise the stage's first ones (:func:`sysid.calibration_secant.secant_calibration` ``first``).
 
     Returns:
         the :class:`CalibrationResult`.
@@ -620,7 +624,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             return cal.apply(prediction, model.marker_rest)
 
         stage_bounds = {**calibration_bounds(model, secant_names), **dict(bounds or {})}
-        stage = secant_calibration(model, values, raw, sensor_calibrated, secant_names, stage_bounds, secant_replays)
+        stage = secant_calibration(model, values, raw, sensor_calibrated, secant_names, stage_bounds, secant_replays,
+                                   first=secant_first)
         if stage.accepted:
             values.update(stage.values)
             model.set_nominal(values)

@@ -13,10 +13,21 @@ exact stick, then one replay per step. Each replay's residual is taken after the
 calibration fitted to that replay (variable projection, Golub & Pereyra 1973, "The differentiation of
 pseudo-inverses and nonlinear least squares problems whose variables separate", SIAM J. Numer. Anal.
 10), so a gain or a marker scale does not stand in for the shear the friction keeps.
+
+The stick regularisation acts only on contacts that carry a load and slip. Before the gel's first
+contact force the card rests on the table (slip zero) and nothing else touches, so every replay of the
+stage takes the same steps up to then (equal to round-off: the stick stiffness enters the Newton
+matrix of the resting card's table contacts, not its solution). The stage's first replay keeps its
+states, and each later replay starts from its state :data:`CONTACT_MARGIN_STEPS` steps before the
+gel's first force (:func:`resume_before_contact`, :class:`~sysid.observation.Resume`). The first
+replay's parameters are known before the calibration's start replay ends (the scene values when the
+parameter fit takes no step), so it can run beside that replay in another process (``first``,
+:mod:`sysid.diagnose.probe_worker`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -25,6 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import SimulationDivergedError
+from sysid.observation import Resume, SimTrace
 from sysid.secant import SecantResult, secant_least_squares
 
 SECANT_PARAMETERS = ("contact.eps_v",)
@@ -40,6 +52,15 @@ SECANT_MIN_GAIN = 5.0e-4
 be taken (:attr:`SecantStage.accepted`): the scale of the replays' numerical noise, as
 :data:`sysid.fit.STOP_RMS` (Newton tolerance, contact set changes). A smaller gain is a flat cost,
 where the values would follow the noise."""
+
+CONTACT_ONSET_PARAMETERS = ("contact.eps_v",)
+"""Secant parameters that change a replay only from the gel's first contact force on (the friction's
+stick regularisation: no slipping loaded contact before it), so that the stage's later replays start
+from its first replay's state before that force (:func:`resume_before_contact`)."""
+
+CONTACT_MARGIN_STEPS = 2
+"""A resumed replay starts this many steps before the last step without gel force (the lagged friction
+of a step reads the contacts at its start, so one step would do; two keep a step of margin)."""
 
 SECANT_REPLAYS = 2
 """Default replay budget of the secant stage: the probe and one Gauss-Newton step on its secant. A
@@ -89,7 +110,7 @@ class SecantStage:
 def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.ndarray],
                        calibrated: Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]],
                        names: Sequence[str], bounds: Mapping[str, tuple[float, float]],
-                       max_replays: int) -> SecantStage:
+                       max_replays: int, first: Callable[[], "FirstReplay | None"] | None = None) -> SecantStage:
     """Fit the positive parameters ``names`` of ``model`` on secants (module docstring).
 
     Args:
@@ -100,6 +121,9 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
         names: the parameters (positive; searched in ``log(value / start)``).
         bounds: name -> ``(lower, upper)`` SI, containing the start.
         max_replays: replays allowed (the probes included; fewer than ``len(names)``: none made).
+        first: called once, at the stage's first replay: that replay made elsewhere (:class:`FirstReplay`,
+            e.g. :meth:`sysid.diagnose.probe_worker.ProbeWorker.result`), taken when its parameters are
+            bitwise the stage's first ones; None (or a None result): replayed here.
 
     The cost gives every fitted channel one vote: each channel's whitened residual is divided by its
     RMS at the start and by ``sqrt`` of its sample count relative to the mean count. The model's gap,
@@ -141,11 +165,13 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
         offset += n
     r0 = whitened(raw0, scale)
     raws: dict[bytes, dict[str, np.ndarray]] = {np.zeros(len(names)).tobytes(): dict(raw0)}
+    shared = set(names) <= set(CONTACT_ONSET_PARAMETERS) and max_replays > 1
+    kept: list[Resume | None] = []  # the later replays' start, from the first replay (None: none)
 
     def residual(u: np.ndarray) -> np.ndarray | None:
         values = {**dict(base), **{n: start[n] * math.exp(float(x)) for n, x in zip(names, u)}}
         try:
-            raw = model.predict_raw(model.simulate(values))
+            raw = model.predict_raw(_replay(model, values, shared, kept, first))
         except SimulationDivergedError:
             return None
         raws[np.asarray(u, dtype=float).tobytes()] = raw
@@ -157,3 +183,67 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
     values = {n: start[n] * math.exp(float(x)) for n, x in zip(names, result.u)}
     return SecantStage(names, values, start, raws[np.asarray(result.u, dtype=float).tobytes()], result, scale,
                        time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class FirstReplay:
+    """The secant stage's first replay, made before the stage (e.g. in another process).
+
+    Attributes:
+        values: the parameters it was replayed with (SI; all of them, as the stage passes them).
+        trace: the replay, without states.
+        resume: the start of the stage's later replays (:func:`resume_before_contact`), or None.
+    """
+
+    values: dict[str, float]
+    trace: SimTrace
+    resume: Resume | None
+
+
+def first_probe_values(model, base: Mapping[str, float], names: Sequence[str]) -> dict[str, float]:
+    """The parameters of :func:`secant_calibration`'s first replay when its first probe stays within the
+    bounds: ``base``, the first of ``names`` at :data:`SECANT_FIRST_FACTOR` times its nominal value and
+    the others at theirs (the stage probes one coordinate at a time), computed as the stage does."""
+    steps = [math.log(SECANT_FIRST_FACTOR)] + [0.0] * (len(names) - 1)
+    return {**dict(base), **{n: float(model.parameter_value(n)) * math.exp(x) for n, x in zip(names, steps)}}
+
+
+def resume_before_contact(trace: SimTrace) -> Resume | None:
+    """The start, from ``trace`` (kept with its states), of a replay whose parameters differ from its own
+    only in :data:`CONTACT_ONSET_PARAMETERS`: its state :data:`CONTACT_MARGIN_STEPS` steps before the
+    last step without gel force (module docstring).
+
+    Args:
+        trace: a replay with its states (``ObservationModel.simulate(keep_states=True)``); its wrench
+            ``(K + 1, 6)`` is exactly zero while no contact acts on the gel.
+
+    Returns:
+        the :class:`~sysid.observation.Resume`, or None (the gel is loaded too early: replay from the start).
+
+    Raises:
+        ValueError: the trace has no states.
+    """
+    if trace.states is None:
+        raise ValueError("resume_before_contact: the trace has no states (simulate(keep_states=True))")
+    loaded = np.flatnonzero(np.any(np.asarray(trace.wrench) != 0.0, axis=1))
+    first = int(loaded[0]) if loaded.size else len(trace.states)
+    k = min(len(trace.states) - 1, first - 1 - CONTACT_MARGIN_STEPS)
+    return Resume(k, trace.states[k], trace.head(k)) if k > 0 else None
+
+
+def _replay(model, values: Mapping[str, float], shared: bool, kept: list,
+            first: Callable[[], FirstReplay | None] | None) -> SimTrace:
+    """One replay of the stage: ``first()`` when it was made with ``values``; else resumed from the kept
+    start when ``shared`` and one is kept; else from t = 0 (keeping its states for the later replays
+    when ``shared`` and this is the stage's first replay)."""
+    made = first() if first is not None and not kept else None
+    if made is not None and made.values == dict(values):
+        kept.append(made.resume if shared else None)
+        return made.trace
+    if kept:
+        return model.simulate(values, resume=kept[0]) if kept[0] is not None else model.simulate(values)
+    if not shared:
+        return model.simulate(values)
+    trace = model.simulate(values, keep_states=True)
+    kept.append(resume_before_contact(trace))
+    return dataclasses.replace(trace, states=None)

@@ -22,7 +22,10 @@ window`` (window: samples where the change exceeds a quarter of its peak). Each 
 from one calibration rollout (plus one power-law correction when the response is nonlinear), to
 about 1, 2 and 4, and the strength actually reached is recorded (a saturating effect such as
 ``thickness_step`` may stay below its target).
-Nominal recordings differ by their noise only. With ``--heldout-companions`` each recording also
+Nominal recordings differ by their noise only. Each recording's noise is seeded by the set's seed and the
+recording's name (:func:`recording_rng`), so a set can be generated per effect in parallel processes
+(``--generate-only --effects E --nominal 0``, the nominal recordings with ``--effects --nominal N``) and merged
+(``--merge PART... --out DIR``) into the bytes one process writes. With ``--heldout-companions`` each recording also
 gets a held-out companion (``heldout/<name>``: the same effect at the same magnitude on a motion
 whose slides are :data:`COMPANION_SLIDE_SCALE` as long, with independent noise) that the diagnosis
 validates its refits on (``thinshell diagnose BAG --heldout COMPANION``) instead of held-out time
@@ -43,6 +46,7 @@ import multiprocessing
 import sys
 import tempfile
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -355,16 +359,29 @@ HELDOUT_DIR = "heldout"
 """Sub-directory of a set that holds the held-out companion of each recording (same name)."""
 
 
-def companion_rng(seed: int) -> np.random.Generator:
-    """Noise generator of the held-out companions: independent of the primary recordings' stream
-    (``default_rng(seed)``), so that adding companions leaves the primary recordings of a seed unchanged."""
-    return np.random.default_rng([seed, 1])
+def recording_rng(seed: int, name: str) -> np.random.Generator:
+    """Noise generator of one primary recording: seeded by the set's seed and the recording's name only,
+    so that a recording's bytes do not depend on which other recordings are generated, nor in which
+    process or order (a set generated per effect in parallel, ``--effects``, equals the one-process set).
+
+    Args:
+        seed: the set's noise seed.
+        name: the recording's name (e.g. ``damping_x2``).
+    """
+    return np.random.default_rng([seed, zlib.crc32(name.encode("utf-8"))])
 
 
-def write_companion(out_dir: Path, rec: Recording, streams: dict, rng: np.random.Generator) -> Path:
-    """Write the held-out companion of ``rec``: its noise-free ``streams`` with new noise, as
-    ``out_dir/heldout/<name>``; appends the path to ``rec.heldout``."""
-    path = write_recording(Path(out_dir) / HELDOUT_DIR / rec.name, add_noise(streams, rng))
+def companion_rng(seed: int, name: str) -> np.random.Generator:
+    """Noise generator of one held-out companion: independent of its recording's
+    (:func:`recording_rng`), so that adding companions leaves the primary recordings of a seed
+    unchanged, and, like it, a function of the seed and the recording's name only."""
+    return np.random.default_rng([seed, 1, zlib.crc32(name.encode("utf-8"))])
+
+
+def write_companion(out_dir: Path, rec: Recording, streams: dict, seed: int) -> Path:
+    """Write the held-out companion of ``rec``: its noise-free ``streams`` with new noise
+    (:func:`companion_rng`), as ``out_dir/heldout/<name>``; appends the path to ``rec.heldout``."""
+    path = write_recording(Path(out_dir) / HELDOUT_DIR / rec.name, add_noise(streams, companion_rng(seed, rec.name)))
     rec.heldout.append(path)
     return path
 
@@ -387,7 +404,6 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
             the diagnosis validates its refits on another recording; an effect confined to one event
             (adhesion's single lift-off) cannot be validated on held-out time blocks.
     """
-    rng = np.random.default_rng(seed)
     if quick:
         strengths, nominal_count, effects = (4.0,), 1, effects or QUICK_EFFECTS
     specs = [e for e in EFFECTS if effects is None or e.label in effects]
@@ -446,7 +462,7 @@ def generate_set(out_dir: Path, quick: bool = False, seed: int = 0, strengths: S
             recs.append(Recording(f"{spec.label}_x{k:g}", spec.label, spec.in_library, k, s, m, windows, streams=streams))
             log(f"  x{k:g}: magnitude {m:.4g}, strength {s:.2f}, windows {[(round(a, 2), round(b, 2)) for a, b in windows]}")
     for rec in recs:
-        rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, rng))
+        rec.path = write_recording(out_dir / rec.name, add_noise(rec.streams, recording_rng(seed, rec.name)))
         rec.streams = {}
     if heldout:
         add_companions(out_dir, recs, seed=seed, log=log)
@@ -469,7 +485,6 @@ def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
     specs = {e.label: e for e in EFFECTS}
     targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], companion_segments())
     base = rollout(SCENE, targets)
-    rng = companion_rng(seed)
     for rec in recs:
         if rec.label != "none" and rec.label not in specs:
             raise ValueError(f"{rec.name}: label {rec.label!r} is not a benchmark effect")
@@ -482,7 +497,7 @@ def add_companions(directory: Path, recs: Sequence[Recording], seed: int = 0,
         except ThinShellError as err:
             log(f"{rec.name}: companion rollout failed, validated on held-out time blocks ({err})")
             continue
-        write_companion(directory, rec, streams, rng)
+        write_companion(directory, rec, streams, seed)
         log(f"{rec.name}: held-out companion written")
     return recs
 
@@ -495,10 +510,8 @@ def load_labelled_set(directory: Path) -> list[Recording]:
     """
     directory = Path(directory)
     index = directory / "labels.json"
-    if not index.is_file():
-        raise FileNotFoundError(f"{index}: no labels.json (write a set with --generate-only --out DIR)")
     recs = []
-    for item in json.loads(index.read_text()):
+    for item in json.loads(_labels_text(directory)):
         path = directory / item["name"]
         if not path.exists():
             raise FileNotFoundError(f"{index}: recording {item['name']!r} not found at {path}")
@@ -510,6 +523,51 @@ def load_labelled_set(directory: Path) -> list[Recording]:
                               float(item["strength"]), float(item["magnitude"]),
                               [tuple(w) for w in item["windows_s"]], path=path, heldout=heldout))
     return recs
+
+
+def merge_sets(parts: Sequence[Path], out_dir: Path) -> int:
+    """Move the recordings of sets generated in parts (e.g. one ``--effects E`` process each) into one set.
+
+    The recordings' noise depends on the seed and their names only (:func:`recording_rng`), so parts of one
+    seed merge into the set one process would have written. ``labels.json`` of ``out_dir`` lists the parts'
+    recordings in the order the parts are given.
+
+    Args:
+        parts: directories written by :func:`generate_set` (each with its ``labels.json``).
+        out_dir: the merged set's directory (created; must not hold a ``labels.json`` yet).
+
+    Returns:
+        the number of recordings merged.
+
+    Raises:
+        FileNotFoundError: a part without ``labels.json`` or a listed recording missing (names it).
+        FileExistsError: ``out_dir`` already holds a set, or two parts hold recordings of one name.
+    """
+    out_dir = Path(out_dir)
+    if (out_dir / "labels.json").exists():
+        raise FileExistsError(f"{out_dir}: already holds a labelled set (labels.json)")
+    items = [(Path(part), item) for part in parts for item in json.loads(_labels_text(Path(part)))]
+    names = [item["name"] for _, item in items]
+    if len(set(names)) != len(names):
+        raise FileExistsError(f"{out_dir}: recordings of one name in two parts: "
+                              f"{sorted({n for n in names if names.count(n) > 1})}")
+    for part, item in items:
+        if item.get("heldout"):
+            raise ValueError(f"{part}: {item['name']!r} has held-out companions; merge sets without them")
+        if not (part / item["name"]).exists():
+            raise FileNotFoundError(f"{part / 'labels.json'}: recording {item['name']!r} not found")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for part, item in items:
+        (part / item["name"]).rename(out_dir / item["name"])
+    (out_dir / "labels.json").write_text(json.dumps([item for _, item in items], indent=1))
+    return len(items)
+
+
+def _labels_text(directory: Path) -> str:
+    index = directory / "labels.json"
+    if not index.is_file():
+        raise FileNotFoundError(f"{index}: no labels.json (write a set with --generate-only --out DIR)")
+    return index.read_text()
 
 
 def _engine(spec: str) -> Callable[..., Mapping[str, Any]]:
@@ -560,7 +618,21 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
                     help="ignore the companions a labelled set lists (validate on held-out time blocks)")
     ap.add_argument("--add-heldout", action="store_true",
                     help="with --labelled: write held-out companions for a set that has none (seed --seed)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="PART",
+                    help="move the recordings of sets generated in parts (e.g. one --effects E process each, same "
+                         "--seed) into --out, with one labels.json, and stop")
     args = ap.parse_args(argv)
+    if args.merge is not None:
+        if args.out is None:
+            print("thinshell bench diagnose: --merge needs --out DIR", file=sys.stderr)
+            return 2
+        try:
+            count = merge_sets(args.merge, args.out)
+        except (OSError, ValueError) as err:
+            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            return 2
+        print(f"merged {count} recordings into {args.out} (labels.json)")
+        return 0
     if args.jobs < 1 or any(not k > 0 for k in args.strengths):
         print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
         return 2

@@ -68,11 +68,24 @@ class CopyRuns:
         """Per copy whether any of its ``3 n`` DoFs is set in ``mask`` (bool, ``3 N`` entries), shape ``(B,)``."""
         if not self.vertex_count:
             return np.zeros(self.copies, dtype=bool)
-        return self._per_copy(np.add.reduceat(mask.reshape(-1).astype(np.float64), self._dof_starts)) > 0
+        out = np.zeros(self.copies, dtype=bool)
+        np.logical_or.at(out, self.run_copy, np.logical_or.reduceat(mask.reshape(-1), self._dof_starts))
+        return out
 
     def all_finite(self, a: np.ndarray) -> np.ndarray:
-        """Per copy whether all its DoFs of the stacked array ``a`` (``3 N`` entries) are finite, shape ``(B,)``."""
-        return ~self.any_dof(~np.isfinite(a))
+        """Per copy whether all its DoFs of the stacked array ``a`` (``3 N`` entries) are finite, shape ``(B,)``.
+        One pass: a run whose sum is finite has only finite entries; the runs whose sum is not (a NaN or an
+        infinity, or finite entries whose sum overflows) are tested entry by entry."""
+        if not self.vertex_count:
+            return np.ones(self.copies, dtype=bool)
+        flat = a.reshape(-1)
+        finite_run = np.isfinite(np.add.reduceat(flat, self._dof_starts))
+        for r in np.flatnonzero(~finite_run):
+            start = self._dof_starts[r]
+            finite_run[r] = np.isfinite(flat[start:start + 3 * self.lengths[r]]).all()
+        out = np.ones(self.copies, dtype=bool)
+        np.logical_and.at(out, self.run_copy, finite_run)
+        return out
 
     def largest_norm(self, d: np.ndarray) -> np.ndarray:
         """Per copy the largest vertex norm ``max_v |d_v|`` of the stacked ``d`` (``(N, 3)`` or ``3 N``

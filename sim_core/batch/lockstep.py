@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim_core.batch.copy_runs import CopyRuns
+from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
@@ -143,6 +144,7 @@ class LockstepSolver(NewtonSolver):
         self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
         self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
+        self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self.last_stacked_info: StepInfo | None = None
 
     def _projections(self) -> tuple[str, ...]:
@@ -233,6 +235,7 @@ class LockstepSolver(NewtonSolver):
             return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
                                   for i in np.flatnonzero(mask)})
 
+        self._trial_energy = None
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         H = projection = factorization = None
         for it in range(1, cfg.max_iterations + 1):
@@ -284,6 +287,7 @@ class LockstepSolver(NewtonSolver):
                     done[i] = True
                 stuck = failed_ls & ~relaxed
                 if stuck.any():
+                    self._trial_energy = None  # a released side changes the energies
                     released = self.contact.release_stale_sides(x_new, step.memory)
                     info.released_sides += released
                     if not released:
@@ -294,6 +298,7 @@ class LockstepSolver(NewtonSolver):
                     # the stacked energy changed where the stuck copies stand: their gradient again
                     x_new = x_new.copy()
             if np.any(open_ & (backtracks >= cfg.stale_side_backtracks)):
+                self._trial_energy = None
                 info.released_sides += self.contact.release_stale_sides(x_new, step.memory)
             x = x_new
             if g_new[1] is None or x is not g_new[0]:
@@ -511,6 +516,9 @@ class LockstepSolver(NewtonSolver):
         keep their step while the others halve theirs (module docstring: the slope test, then the energy
         test of the copies that passed it, :meth:`_armijo_groups`).
 
+        ``e0``, the energy at ``x``, is the one measured there when ``x`` was the last line search's trial point
+        with these ``contact_terms`` (no contact side released since).
+
         Returns:
             ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the positions
             ``(N, 3)`` with every accepted copy moved and the others where they were, the gradient at
@@ -520,7 +528,11 @@ class LockstepSolver(NewtonSolver):
         cfg = self.config
         B = self.scene.copies
         runs = self._runs
-        e0 = self._energy(step, x, contact_terms, x_search)
+        kept = self._trial_energy  # the accepted trial point of the last line search is this x: its energy
+        if kept is not None and kept[0] is x and kept[1] is contact_terms:
+            e0 = kept[2]
+        else:
+            e0 = self._energy(step, x, contact_terms, x_search)
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
         a = np.where(pending, alpha, 0.0)
@@ -540,7 +552,9 @@ class LockstepSolver(NewtonSolver):
             if cand.any():
                 e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
                 if np.array_equal(cand, pending):
-                    delta = self._energy(step, x_try, terms, xs) - e_base
+                    e_try = self._energy(step, x_try, terms, xs)
+                    self._trial_energy = (x_try, terms, e_try)
+                    delta = e_try - e_base
                 else:
                     delta = self._energy_with(step, x, d, taken + np.where(cand, a, 0.0)) - e_base
                 ok = self._armijo_groups(step, x, d, taken, e_base, cand, delta, a, slope, e0)
@@ -626,6 +640,8 @@ class LockstepEngine:
     Args:
         sims: the batch's copies (:class:`~sim_core.simulation.Simulation` objects).
 
+    Making one sets the process's C heap to keep freed memory (:func:`~sim_core.batch.heap.keep_freed_memory`).
+
     Raises:
         ConfigError: copies with different ``dt`` or solver settings, or what :func:`stack_models` refuses.
     """
@@ -641,6 +657,7 @@ class LockstepEngine:
             if sim.solver.config != ref.solver.config:
                 raise ConfigError(f"batch copy {i}: solver settings differ from copy 0's; a lockstep batch has one "
                                   f"solver")
+        keep_freed_memory()  # the iterations' stacked temporaries reuse the heap (sim_core.batch.heap)
         self.sims = sims
         self.scene = stack_models([s.model for s in sims])
         self.solver = LockstepSolver(self.scene, ref.solver.config)

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sim_core.ti_backend import ti
-from sim_core.ti_kernels import transfer
+from sim_core.ti_kernels import device_copy, transfer
 
 
 class DeviceArray:
@@ -37,7 +37,7 @@ class DeviceArray:
         """The ndarray with ``shape`` (allocated on first use or when the shape changed)."""
         shape = tuple(int(s) for s in shape)
         if self.shape != shape:
-            self.array = ti.ndarray(dtype=self.dtype, shape=shape)
+            self.array = device_copy.new_ndarray(self.dtype, shape)
             self.shape = shape
             self._host = None
         return self.array
@@ -62,11 +62,12 @@ class DeviceArray:
 
 
 def _from_numpy(array, values: np.ndarray) -> None:
-    """``array.from_numpy(values)``; float64 through :func:`sim_core.ti_kernels.transfer.upload` (one
-    planned launch instead of Taichi's call path)."""
+    """``array.from_numpy(values)`` (``values`` of the ndarray's dtype): a byte copy
+    (:mod:`sim_core.ti_kernels.device_copy`) where one can be made, else float64 through
+    :func:`sim_core.ti_kernels.transfer.upload` and other dtypes through Taichi's call path."""
     if array.dtype == ti.f64:
         transfer.upload(array, values)
-    else:
+    elif not device_copy.to_device(array, np.ascontiguousarray(values)):
         array.from_numpy(values)
 
 
@@ -101,6 +102,10 @@ class LaunchArrays(threading.local):
             array = self.__dict__[name] = np.zeros((capacity,) + tuple(tail), dtype=dtype)
         return array
 
+    def device(self) -> dict:
+        """This thread's cache of device copies of its kept arrays (the ``kept`` of :func:`on_device`)."""
+        return self.__dict__.setdefault("_device", {})
+
     def copy_of(self, name: str, values: np.ndarray) -> np.ndarray:
         """The kept float64 array ``name`` of ``values``' shape, holding a copy of ``values``."""
         array = self.__dict__[name] = copy_into(self.__dict__.get(name), values)
@@ -117,33 +122,52 @@ def copy_into(kept: np.ndarray | None, values: np.ndarray) -> np.ndarray:
     return kept
 
 
-def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False):
+def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, refresh: bool = False):
     """The array a kernel launch should take for ``host``: on CUDA a Taichi ndarray in device memory kept in
-    ``kept[name]`` (copied from ``host`` when ``host`` is another object than at the last call; a
-    ``scratch`` array is only allocated, never copied: the kernels write it before they read it), so
-    that a constant array crosses to the device once instead of at every launch (a NumPy argument of a
-    CUDA launch is copied to the device and back each time); elsewhere ``host`` itself.
+    ``kept[name]`` (copied from ``host`` when ``host`` is another object than at the last call, or at every
+    call with ``refresh``; a ``scratch`` array is only allocated, never copied: the kernels write it before
+    they read it), so that a constant array crosses to the device once instead of at every launch (a NumPy
+    argument of a CUDA launch is copied to the device and back each time); elsewhere ``host`` itself.
 
     Args:
         kept: the caller's cache (one per owner of the arrays).
         name: the array's name in it.
-        host: the array, C-contiguous, never changed in place while it is used here (a changed array
-            is a new object).
+        host: the array, C-contiguous (float64, int32 or int64), never changed in place while it is used here
+            (a changed array is a new object) unless ``refresh``.
         scratch: a work array of the kernels (device contents only).
+        refresh: copy ``host`` at every call (a kept host array whose contents change in place).
     """
     from sim_core.ti_backend import current_arch, ti
 
     if current_arch() != "cuda":
         return host
     entry = kept.get(name)
-    if entry is None or entry[0] is not host:
+    if entry is None or entry[0] is not host or refresh:
         dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
         dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
-            else ti.ndarray(dtype=dtype, shape=host.shape)
+            else device_copy.new_ndarray(dtype, host.shape)
         if not scratch and host.size:
             _from_numpy(dev, np.ascontiguousarray(host))
         entry = kept[name] = (host, dev)
     return entry[1]
+
+
+def copy_back(host: np.ndarray, array) -> np.ndarray:
+    """``array``'s values (a Taichi ndarray of ``host``'s shape and dtype, or a NumPy array: what
+    :func:`on_device` returned) copied into ``host``, returned: a byte copy
+    (:mod:`sim_core.ti_kernels.device_copy`) where one can be made, else through
+    :func:`sim_core.ti_kernels.transfer.download` (float64) or Taichi's ``to_numpy``.
+
+    Raises:
+        ValueError: ``host`` is not a C-contiguous array of ``array``'s shape and dtype.
+    """
+    if isinstance(array, np.ndarray):  # what on_device returns off CUDA: the host array itself, or another
+        if array is not host:
+            np.copyto(host, array)
+        return host
+    if not device_copy.to_host(host, array):
+        np.copyto(host, _to_numpy(array))
+    return host
 
 
 class DeviceRows:

@@ -41,9 +41,9 @@ runs again on a larger one.
 import numpy as np
 
 from sim_core.errors import ConfigError
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import copy_into
+from sim_core.ti_kernels.buffers import copy_back, copy_into, on_device
 from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
 
@@ -312,6 +312,8 @@ class HashGrid:
     launches through its own :class:`~sim_core.ti_kernels.launch.FastKernel` of the one compiled
     kernel, whose launch plan keeps its arrays bound (:mod:`sim_core.ti_kernels.launch`), so the
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
+    On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), and copies back only the
+    pair count, the scale and the pairs.
     """
 
     def __init__(self, cell_scale: float = 1.0) -> None:
@@ -372,10 +374,15 @@ class HashGrid:
             self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + nb)), 2), dtype=np.int32)
         while True:
             self.count[_PAIRS] = 0
-            self._launch(self.x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, float(radius),
-                         self.cell_scale, int(same), self.bucket_start, self.bucket_fill, self.entry_item,
-                         self.entry_cell, self.entry_lower, self.box, self.body_box, self.scale, self.out, self.count,
-                         self.chunk_total)
+            arrays = (self.x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, self.bucket_start,
+                      self.bucket_fill, self.entry_item, self.entry_cell, self.entry_lower, self.box, self.body_box,
+                      self.scale, self.out, self.count, self.chunk_total)
+            if current_arch() == "cuda":
+                arrays = self._on_device(arrays)
+            self._launch(*arrays[:8], float(radius), self.cell_scale, int(same), *arrays[8:])
+            if arrays[0] is not self.x:  # the outputs read here, copied back from the device
+                for host, device in zip((self.scale, self.out, self.count), arrays[15:18]):
+                    copy_back(host, device)
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             self.cell_size = float(self.scale[0])
@@ -387,6 +394,19 @@ class HashGrid:
                 self.out = np.empty((found + found // 4, 2), dtype=np.int32)
                 continue
             return sorted_pairs(self.out[:found])
+
+    def _on_device(self, arrays: tuple) -> tuple:
+        """The launch's arrays (the order of :func:`_hash_pairs`' array arguments) as Taichi ndarrays in device
+        memory (:func:`~sim_core.ti_kernels.buffers.on_device`, kept per grid): the positions and the pair count
+        sent at every launch, the element lists when they are other objects than at the last launch (never
+        edited in place), the work arrays when the host replaced them (grown: the device copy starts from the
+        same zeros and keeps what the kernel leaves in it, as the host array does on the CPU)."""
+        names = ("x", "a_vertices", "a_body", "a_key", "b_vertices", "b_body", "allowed", "rest_keys",
+                 "bucket_start", "bucket_fill", "entry_item", "entry_cell", "entry_lower", "box", "body_box", "scale",
+                 "out", "count", "chunk_total")
+        device = self.__dict__.setdefault("_device", {})
+        return tuple(on_device(device, name, host, refresh=name in ("x", "count"))
+                     for name, host in zip(names, arrays))
 
     def _grow_entries(self, size: int) -> None:
         self.entry_item = np.zeros(size, dtype=np.int32)

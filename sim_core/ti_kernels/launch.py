@@ -45,6 +45,7 @@ from taichi.types import ndarray_type, primitive_types, template
 from taichi.types.utils import is_signed
 
 from sim_core.ti_backend import ti  # first: Taichi through ti_backend, which silences its import banner
+from sim_core.ti_kernels import device_copy
 
 _runtime = ti.lang.impl.get_runtime  # (taichi is imported through ti_backend, which silences its banner)
 
@@ -305,7 +306,9 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
     loop took 1.9 ms whatever its element count (210 to 1,125 elements, energy alone or with the
     Hessian, Taichi 1.7.4 on an H200: docs/benchmarks_log.md, session 38, 28single), about 40 ms a
     Forming step, where a sum into an array element takes microseconds. On the CPU (serial loops) the
-    additions are the same, in the same order: the same sum bit for bit.
+    additions are the same, in the same order: the same sum bit for bit. On a GPU the array is a Taichi
+    ndarray in device memory, copied back by :func:`sim_core.ti_kernels.device_copy.to_host` (a NumPy
+    argument would make Taichi's launcher copy it to the device and back and synchronise).
     """
     kernel = fast_kernel(fn)
     cells = threading.local()
@@ -313,9 +316,17 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
     @functools.wraps(fn)
     def summed(*args: Any) -> float:
         energy = getattr(cells, "energy", None)
-        if energy is None:
+        runtime = _runtime()
+        if energy is None or cells.prog is not runtime.prog:  # (a device cell belongs to one Taichi program)
             energy = cells.energy = np.zeros(1)
-        kernel(*args, energy)
+            cells.device = device_copy.new_ndarray(ti.f64, (1,)) if not _host_arch(runtime) else None
+            cells.prog = runtime.prog
+        if cells.device is None:
+            kernel(*args, energy)
+        else:  # on a GPU: summed in device memory, copied back by the driver (no host array in the launch)
+            kernel(*args, cells.device)
+            if not device_copy.to_host(energy, cells.device):
+                energy[0] = cells.device.to_numpy()[0]
         return float(energy[0])
 
     summed.kernel = kernel  # the FastKernel itself

@@ -1,12 +1,13 @@
-"""Copies between NumPy arrays and float64 Taichi ndarrays, and fills, through kept launch plans.
+"""Copies between NumPy arrays and float64 Taichi ndarrays, and fills, without Taichi's call path.
 
 ``ndarray.to_numpy()``, ``from_numpy()`` and ``fill()`` go through Taichi's own call path (a kernel
 launched with its per-call argument analysis, then a synchronisation): about 0.23 ms a call on the
-H200 host, 41 calls a Forming step on CUDA (``benchmarks/profile_single.py``). The functions here
-launch one copy or fill kernel through :func:`sim_core.ti_kernels.launch.fast_kernel` instead (its
-plans bind NumPy arrays and Taichi ndarrays alike); the values are the same. On CUDA the NumPy side
-of a copy crosses to the device and back with the launch (Taichi copies every host array of a launch
-both ways); on the CPU the ndarray is host memory and nothing crosses.
+H200 host, 41 calls a Forming step on CUDA (``benchmarks/profile_single.py``). The copies here are
+byte copies by address (:mod:`sim_core.ti_kernels.device_copy`: the CUDA driver's synchronous copies,
+``memmove`` on the CPU) where the calling thread can make them, else one launch of a copy kernel
+through :func:`sim_core.ti_kernels.launch.fast_kernel` (its plans bind NumPy arrays and Taichi ndarrays
+alike; on CUDA the NumPy side then crosses to the device and back with the launch, as Taichi copies
+every host array of a launch both ways). A fill is one planned launch. The values are the same.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
@@ -14,6 +15,7 @@ both ways); on the CPU the ndarray is host memory and nothing crosses.
 import numpy as np
 
 from sim_core.ti_backend import ti
+from sim_core.ti_kernels import device_copy
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_ANY = ti.types.ndarray(dtype=ti.f64)  # float64 of any rank (a kernel compiled per rank)
@@ -35,7 +37,7 @@ def _fill_f64(target: _F64_ANY, value: ti.f64):
 
 def download(array, out: "np.ndarray | None" = None) -> np.ndarray:
     """The values of the float64 ndarray ``array`` in ``out`` (a C-contiguous float64 NumPy array of its
-    shape; None: a new one), returned: ``array.to_numpy()`` in one planned launch.
+    shape; None: a new one), returned: ``array.to_numpy()`` in one byte copy or planned launch.
 
     Raises:
         ValueError: ``out`` is not a C-contiguous float64 array of ``array``'s shape.
@@ -45,14 +47,14 @@ def download(array, out: "np.ndarray | None" = None) -> np.ndarray:
         out = np.empty(shape)
     elif out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
         raise ValueError(f"download: out must be C-contiguous float64 of shape {shape}; got {out.dtype} {out.shape}")
-    if out.size:
+    if out.size and not device_copy.to_host(out, array):
         _copy_f64(array, out)
     return out
 
 
 def upload(array, values: np.ndarray):
     """Copy ``values`` (float64 after conversion, ``array``'s shape) into the float64 ndarray ``array``:
-    ``array.from_numpy(values)`` in one planned launch; returns ``array``.
+    ``array.from_numpy(values)`` in one byte copy or planned launch; returns ``array``.
 
     Raises:
         ValueError: ``values`` has another shape than ``array``.
@@ -60,7 +62,7 @@ def upload(array, values: np.ndarray):
     values = np.ascontiguousarray(values, dtype=np.float64)
     if values.shape != tuple(array.shape):
         raise ValueError(f"upload: values of shape {values.shape} for an ndarray of shape {tuple(array.shape)}")
-    if values.size:
+    if values.size and not device_copy.to_device(array, values):
         _copy_f64(values, array)
     return array
 

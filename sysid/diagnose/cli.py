@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1,
                    help="processes for independent replays (signatures engine: the --baseline recordings are "
                         "prepared in WORKERS - 1 processes beside the recording's own)")
+    p.add_argument("--one-process", action="store_true",
+                   help="make the calibration's replays one after the other in this process (default: its secant "
+                        "probe runs in a second process beside its start replay; the same replays and answer)")
     p.add_argument("--ray-address", help="run the replays (signatures engine: the --baseline recordings' "
                                          "preparation) as Ray tasks on this cluster")
     p.add_argument("--t-max", type=float, help="use only the first T_MAX s of each recording")
@@ -148,7 +151,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
-        calibration_drive=args.drive, workers=max(1, args.workers),
+        calibration_drive=args.drive, workers=max(1, args.workers), probe_worker=not args.one_process,
         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
 
 

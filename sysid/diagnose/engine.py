@@ -539,7 +539,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         (:func:`stats.heldout_test`: the larger of the Newey-West and the conventional variance),
         Holm over the refitted candidates. It is
         accepted when that test rejects, the training SSE drops too, no channel's held-out fit is made
-        significantly worse (consistency: one parameter drives every channel the effect acts on), and
+        significantly worse (consistency: one parameter drives every channel the effect acts on; a
+        discriminating test like the two below), and
         the refit removes at least ``min_explained`` of the held-out excess energy of its channels and
         ``min_gain`` of their held-out mean square (effect sizes: a candidate that only correlates
         with a larger gap, or with the small systematic mismatch that even a nominal recording has
@@ -558,7 +559,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         candidate that passes every criterion but a discriminating test (``refuted_by``) is not named
         but takes its place in this sequence: it describes the mismatch (in the benchmark, a 2 %
         static-friction excess explains 87 % of a thickness step's held-out excess while moving the
-        moment at under half the scale the force needs), and an anisotropy that explains 67 % of the
+        moment at under half the scale the force needs, or while the held-out wrench supports it at
+        under half its scale), and an anisotropy that explains 67 % of the
         same pattern is then judged on what it adds beyond it, not named in its place.
         """
         s = self.settings
@@ -603,10 +605,10 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             d["heldout_p_holm"] = float(a)
             explains = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
                             and d["explained_fraction"] >= s.min_explained
-                            and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain
-                            and not d["contradicted_on"])
+                            and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain)
             refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
-                                              ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha)) if not ok]
+                                              ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha),
+                                              ("channel_consistency", not d["contradicted_on"])) if not ok]
             d["accepted"] = explains and not refuted
             d["acceptable_alone"] = d["accepted"]
             if explains and refuted:

@@ -68,6 +68,8 @@ def prepare_with_baselines(bag: str | Path, baselines: Sequence[str | Path], set
     if workers <= 1 or not baselines:
         base = [prepare(b, settings) for b in baselines]
         return prepare(bag, settings), base
+    # the workers fill the cores: each recording's calibration replays in its own process only
+    settings = dataclasses.replace(settings, probe_worker=False)
     with ProcessPoolExecutor(min(workers - 1, len(baselines)), mp_context=_pool_context()) as pool:
         futures = [pool.submit(prepare_baseline, str(b), settings) for b in baselines]
         p = prepare(bag, settings)

@@ -45,9 +45,10 @@ import numpy as np
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                kinematic_reference, nominal_sensor_calibration)
-from sysid.calibration_secant import SECANT_REPLAYS
+from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
+from sysid.diagnose.probe_worker import ProbeWorker
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
 from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
                                                 normal_load_excess, shear_breakaway)
@@ -95,6 +96,9 @@ class SignatureSettings:
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
+        probe_worker: make the calibration's secant probe in a second process beside its start replay
+            (:class:`sysid.diagnose.probe_worker.ProbeWorker`; the same replays, about one replay less
+            wall time on two cores), where it applies (:func:`probe_worker_for`); False: one process.
     """
 
     dt: float = 0.01
@@ -113,6 +117,7 @@ class SignatureSettings:
     workers: int = 1
     plasticity_replays: int = 5
     plasticity_max_time: float | None = None
+    probe_worker: bool = False
 
 
 @dataclass
@@ -185,16 +190,21 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                              arch=settings.arch)
     params = tuple(settings.calibration_params) if settings.calibrate else ()
     notes: list[str] = []
+    worker = probe_worker_for(model, params, settings)
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
                         max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
                         secant_replays=settings.calibration_secant_replays if settings.calibrate else 0,
-                        drive=settings.calibration_drive and settings.calibrate)
+                        drive=settings.calibration_drive and settings.calibrate,
+                        secant_first=None if worker is None else worker.result)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")
         model.sensor_calibration = None
         cal = CalibrationResult({}, nominal_sensor_calibration(model), {}, {})
+    finally:
+        if worker is not None:
+            worker.close()
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
     reference = None
     try:
@@ -205,6 +215,22 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
     rec = recording_of(model, prediction or None, reference)
     results = run_signature_tests(rec)
     return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
+
+
+def probe_worker_for(model: ObservationModel, params: Sequence[str], settings: SignatureSettings) -> ProbeWorker | None:
+    """A :class:`~sysid.diagnose.probe_worker.ProbeWorker` for the calibration of ``model``, or None where
+    its replay would not be the secant stage's first one or cannot run: ``settings.probe_worker`` off,
+    no calibration or no secant replay, a drive calibration (its replays take the fitted drive), a
+    parameter fit that may step (a budget other than one replay, or a time budget), or Taichi already
+    started here (a forked child could not run it)."""
+    from sim_core.ti_backend import current_arch
+
+    if not (settings.probe_worker and settings.calibrate and settings.calibration_secant_replays > 0
+            and not settings.calibration_drive and settings.calibration_max_time is None
+            and (not params or settings.calibration_max_replays == 1) and current_arch() is None):
+        return None
+    names = tuple(n for n in SECANT_PARAMETERS if n not in tuple(params))
+    return ProbeWorker(model, params, names) if names else None
 
 
 # ================================================================================ refits

@@ -1,4 +1,4 @@
-"""``sim_core.unique.sorted_unique`` returns exactly ``np.unique``'s results."""
+"""``sim_core.unique.sorted_unique`` and ``compact_indices`` return exactly ``np.unique``'s results."""
 
 from __future__ import annotations
 
@@ -38,3 +38,21 @@ def test_sorted_unique_equals_numpy_unique(return_index, return_inverse):
 def test_sorted_unique_rejects_arrays_that_are_not_one_dimensional():
     with pytest.raises(ValueError, match="must be 1-D, got shape \\(2, 3\\)"):
         sorted_unique(np.zeros((2, 3)))
+
+
+def test_compact_indices_are_np_unique_with_the_inverse_in_the_input_shape():
+    """Pairs of four vertex indices (repeats, gaps): the distinct indices and each one's position among them are
+    ``np.unique``'s; an empty set gives empty arrays of the input's shape; a negative index is refused."""
+    from sim_core.unique import compact_indices
+
+    rng = np.random.default_rng(4)
+    pairs = rng.integers(3, 5000, size=(700, 4))
+    own, local = compact_indices(pairs)
+    expected, inverse = np.unique(pairs, return_inverse=True)
+    np.testing.assert_array_equal(own, expected)
+    np.testing.assert_array_equal(local, inverse.reshape(pairs.shape))
+    np.testing.assert_array_equal(own[local], pairs)
+    none = compact_indices(np.zeros((0, 4), dtype=np.int32))
+    assert none[0].shape == (0,) and none[1].shape == (0, 4)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        compact_indices(np.array([[0, -1]]))

@@ -308,9 +308,53 @@ def test_each_recording_is_diagnosed_with_its_heldout_companion(tmp_path, capsys
 
 
 def test_companion_noise_leaves_the_primary_noise_of_a_seed_unchanged():
-    a, b = np.random.default_rng(3), db.companion_rng(3)
+    a, b = db.recording_rng(3, "damping_x2"), db.companion_rng(3, "damping_x2")
     assert not np.allclose(a.normal(size=5), b.normal(size=5))
-    assert np.allclose(np.random.default_rng(3).normal(size=5), np.random.default_rng(3).normal(size=5))
+    assert np.array_equal(db.recording_rng(3, "damping_x2").normal(size=5),
+                          db.recording_rng(3, "damping_x2").normal(size=5))
+    assert not np.allclose(db.recording_rng(3, "damping_x2").normal(size=5),
+                           db.recording_rng(3, "damping_x4").normal(size=5))
+
+
+def test_a_set_generated_per_effect_has_the_bytes_of_the_one_process_set(tmp_path, monkeypatch):
+    """A recording's noise depends on the seed and its name only: generating one effect alone (as the
+    per-effect parallel generation does) writes the same bag files as generating it with the others."""
+    base = _streams(n=21)
+
+    def fake_rollout(scene, targets, hook=None):
+        out = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in base.items()}
+        if hook is not None:
+            out["wrench"][5:15, 2] += hook * db.NOISE["wrench"][2] * np.sqrt(6)
+        return out
+
+    monkeypatch.setattr(db, "rollout", fake_rollout)
+    monkeypatch.setattr(db, "EFFECTS", (db.EffectSpec("fake_a", lambda m: m, 1.0),
+                                        db.EffectSpec("fake_b", lambda m: 2 * m, 1.0)))
+    together = db.generate_set(tmp_path / "one", nominal_count=2, strengths=(2.0,))
+    alone = db.generate_set(tmp_path / "part", nominal_count=0, strengths=(2.0,), effects=["fake_b"])
+    assert [r.name for r in together] == ["nominal_0", "nominal_1", "fake_a_x2", "fake_b_x2"]
+    assert [r.name for r in alone] == ["fake_b_x2"]
+
+    def files(path):
+        return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+    one, part = files(tmp_path / "one" / "fake_b_x2"), files(tmp_path / "part" / "fake_b_x2")
+    assert one and one == part
+    assert files(tmp_path / "one" / "fake_a_x2") != one
+    assert files(tmp_path / "one" / "nominal_0") != files(tmp_path / "one" / "nominal_1")
+
+    # the CLI: parts generated one effect each (nominal recordings in a part of their own), merged
+    for name, argv in (("n", ["--effects", "--nominal", "2"]), ("a", ["--effects", "fake_a", "--nominal", "0"]),
+                       ("b", ["--effects", "fake_b", "--nominal", "0"])):
+        assert db.bench_diagnose_main(["--generate-only", "--json", "--strengths", "2", "--out", str(tmp_path / name),
+                                       *argv]) == 0
+    parts = [str(tmp_path / n) for n in ("n", "a", "b")]
+    assert db.bench_diagnose_main(["--merge", *parts, "--out", str(tmp_path / "merged")]) == 0
+    merged = {r.name: r for r in db.load_labelled_set(tmp_path / "merged")}
+    assert list(merged) == ["nominal_0", "nominal_1", "fake_a_x2", "fake_b_x2"]
+    for name in merged:
+        assert files(tmp_path / "merged" / name) == files(tmp_path / "one" / name)
+    assert db.bench_diagnose_main(["--merge", *parts, "--out", str(tmp_path / "merged")]) == 2  # a set is there
 
 
 def test_companion_motion_shortens_the_slides_only():

@@ -22,7 +22,9 @@ evaluates the Hessian again, and sums the gradient in NumPy from the kept distan
 two thirds of Forming's candidate pairs are farther than ``eps`` for certain and are left out
 (they are never active, so the active pairs and their values are unchanged). The kernel's work
 arrays are kept per thread and shared by all batches (:data:`_ARRAYS`; bound to the compiled kernel
-once, positions copied in).
+once, positions copied in). The kernel sees the pairs' own vertices only (``unique`` of the pairs' vertices, the
+positions gathered and the summed gradients spread back on the host): on CUDA the positions and the summed
+gradients cross to the device and back at each launch, and a Forming step's pairs name a fraction of its vertices.
 
 When both potentials already keep the distances of ``x`` (the energy of the accepted line-search
 point, the next Newton iterate), the derivatives are computed for their active pairs only. The
@@ -44,9 +46,11 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -193,6 +197,9 @@ class PairBatch:
         self.vt, self.ee = vt, ee
         self.split = int(vt.vertices.shape[0])
         self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
+        # the kernel's vertex indices are into ``own``, the vertices the pairs name
+        self.own, local = compact_indices(self.vertices)
+        self._local_vertices = np.ascontiguousarray(local, dtype=np.int32)
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
@@ -201,20 +208,22 @@ class PairBatch:
 
     def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool) -> tuple:
         """On CUDA, the launch's arguments that need not cross to the device and back at every launch:
-        the positions (uploaded once per ``key``), pairs and sides (once per batch), the gathered pair
-        positions (device only) and, with ``derivatives``, the per-vertex gradient sums (downloaded
-        after the launch); returns ``(x, vertices, sides, z, gradients)`` device arrays (``gradients``
+        the positions of the pairs' vertices ``x_own`` ``(u, 3)`` (uploaded once per ``key``), pairs and sides (once
+        per batch), the gathered pair positions (device only) and, with ``derivatives``, the per-vertex gradient sums
+        (downloaded after the launch); returns ``(x, vertices, sides, z, gradients)`` device arrays (``gradients``
         None without derivatives)."""
         kept = self._device_x
-        if kept is None or kept[0] != key or tuple(kept[1].shape) != x.shape:
-            xd = kept[1] if kept is not None and tuple(kept[1].shape) == x.shape else ti.ndarray(ti.f64, shape=x.shape)
-            upload(xd, x)
+        u = len(self.own)
+        if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
+            xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else new_ndarray(ti.f64, (u, 3))
+            upload(xd, x[self.own])
             kept = self._device_x = (key, xd)
-        dev = self._device
-        z = on_device(dev, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(dev, "gradients", _ARRAYS.rows("gradients", 2 * x.shape[0], (3,)), scratch=True)
+        dev, shared = self._device, _ARRAYS.device()
+        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", 2 * u, (3,)), scratch=True)
                      if derivatives else None)
-        return kept[1], on_device(dev, "vertices", self.vertices), on_device(dev, "sides", self.sides), z, gradients
+        return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
+                gradients)
 
     def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
         """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
@@ -244,8 +253,8 @@ class PairBatch:
         device_hessian = ((current_arch() == "cuda" if self.device_hessian is None else self.device_hessian)
                           and derivatives and kept[0] is not None and m > 0)
         stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
-        n = x.shape[0]
-        gradients = _ARRAYS.rows("gradients", 2 * n, (3,))
+        n, u = x.shape[0], len(self.own)
+        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
         if m:
             kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
             kept_rows[:m] = rows
@@ -256,26 +265,39 @@ class PairBatch:
             else:
                 grad_arg, hess_arg, gradients_arg = grad, hess, gradients
             d_arg, region_arg = d, region
-            if current_arch() == "cuda":  # only the rows of this launch travel (the kept arrays may be longer)
+            on_gpu = current_arch() == "cuda"
+            if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
                 x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
-                d_arg, region_arg, rows_arg = d[:m], region[:m], kept_rows[:m]
+                device = _ARRAYS.device()
+                rows_arg = on_device(device, "pair_rows", kept_rows, refresh=True)
+                d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
+                                                                                        scratch=True)
                 if derivatives:
                     grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
+                else:
+                    grad_arg, hess_arg, gradients_arg = (on_device(device, name, host, scratch=True) for name, host in
+                                                         (("grad_unused", grad_arg), ("hess_unused", hess_arg),
+                                                          ("gradients_unused", gradients_arg)))
             else:
-                x_arg, vertices_arg, sides_arg, rows_arg = _ARRAYS.copy_of("x", x), self.vertices, self.sides, kept_rows
+                x_arg, vertices_arg, sides_arg, rows_arg = (_ARRAYS.copy_of("x", x[self.own]), self._local_vertices,
+                                                            self.sides, kept_rows)
                 z = _ARRAYS.rows("z", m, (4, 3))
             if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-                grad_arg = ti.ndarray(ti.f64, shape=(m, 12))
-                hess_arg = ti.ndarray(ti.f64, shape=(m, 12, 12))
+                grad_arg = new_ndarray(ti.f64, (m, 12))
+                hess_arg = new_ndarray(ti.f64, (m, 12, 12))
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
+            if on_gpu:  # (the regions are read with derivatives only)
+                copy_back(d, d_arg)
+                if derivatives:
+                    copy_back(region, region_arg)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                gradients[: 2 * n] = download(gradients_arg)[: 2 * n]
+                copy_back(gradients, gradients_arg)
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
                 grad[:m] = download(grad_arg)
         else:
-            gradients[: 2 * n] = 0.0
+            gradients[: 2 * u] = 0.0
         order = 2 if derivatives else 0
         shared: dict = {}  # the device Hessian's host copy, downloaded once for both potentials if asked
         for kind, (pot, part, known, stiffness) in enumerate(zip(pots, parts, kept, stiffnesses)):
@@ -295,10 +317,18 @@ class PairBatch:
                     g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
-                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, gradients[kind * n:(kind + 1) * n].copy())))
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._spread(gradients, kind, n))))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+    def _spread(self, gradients: np.ndarray, kind: int, n: int) -> np.ndarray:
+        """A new ``(n, 3)`` array (N): the summed gradient rows of potential ``kind`` (0 vertex-triangle, 1
+        edge-edge) of the kernel's ``gradients`` ``(>= 2 u, 3)`` on the pairs' vertices, zero elsewhere."""
+        u = len(self.own)
+        full = np.zeros((n, 3))
+        full[self.own] = gradients[kind * u:(kind + 1) * u]
+        return full
 
 
 def compile_kernels() -> None:

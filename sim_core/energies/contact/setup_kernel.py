@@ -30,9 +30,9 @@ import numpy as np
 
 from sim_core.collision.pair_geometry import PairGeometry
 from sim_core.energies.contact import distance_kernel as cd
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import LaunchArrays
+from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -74,6 +74,23 @@ _ARRAYS = LaunchArrays()
 """The kernels' arrays (inputs copied in, outputs copied out): launches re-bind none."""
 
 
+def _device_launch(kernel, args: tuple, outputs: tuple[int, ...]) -> None:
+    """``kernel(*args)``; on CUDA with every array of ``args`` (kept arrays of :data:`_ARRAYS`) replaced by a
+    device copy kept per thread (the inputs sent at every launch, the arrays at positions ``outputs`` only
+    allocated there and copied back after the launch), instead of NumPy arguments that cross to the device
+    and back at each launch."""
+    if current_arch() != "cuda":
+        kernel(*args)
+        return
+    device = _ARRAYS.device()
+    launch = [on_device(device, f"{position}:{kernel.__name__}", a, scratch=position in outputs,
+                        refresh=position not in outputs) if isinstance(a, np.ndarray) else a
+              for position, a in enumerate(args)]
+    kernel(*launch)
+    for position in outputs:
+        copy_back(args[position], launch[position])
+
+
 def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
     """The kept int32 array ``name`` ``(capacity, 4)`` whose first rows hold ``vertices`` ``(k, 4)``."""
     vertices = np.asarray(vertices).reshape(-1, 4)
@@ -102,7 +119,8 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
     above, vt_side = _ARRAYS.rows("above", p, (), np.int32), _ARRAYS.rows("vt_side", p)
     sine, interior, ee_side = _ARRAYS.rows("sine", q), _ARRAYS.rows("interior", q, (), np.int32), _ARRAYS.rows("ee_side", q)
     if p or q:
-        _geometry_kernel(_ARRAYS.copy_of("x", x), vt, p, ee, q, above, vt_side, sine, interior, ee_side)
+        _device_launch(_geometry_kernel, (_ARRAYS.copy_of("x", x), vt, p, ee, q, above, vt_side, sine, interior,
+                                          ee_side), outputs=(5, 6, 7, 8, 9))
     return PairGeometry(above[:p].astype(bool), vt_side[:p].copy(), sine[:q].copy(), interior[:q].astype(bool),
                         ee_side[:q].copy())
 
@@ -290,8 +308,8 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
     side[:k] = np.reshape(sides, -1)
     weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
     tangent = _ARRAYS.rows("tangent", k, (3, 2))
-    _friction_frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, int(split), weights,
-                            normal, tangent)
+    _device_launch(_friction_frames_kernel, (_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k,
+                                             int(split), weights, normal, tangent), outputs=(5, 6, 7))
     return weights[:k].copy(), normal[:k].copy(), tangent[:k].copy()
 
 

@@ -14,7 +14,10 @@ about a hundred pairs: the NumPy reference spends its time in a dozen small arra
 call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
-only the output arrays (:mod:`sim_core.ti_kernels.launch`). Loops are serial on the CPU (the
+only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
+instead, the constant ones sent once, and copies back only the outputs a request wants. The kernel sees the
+pairs' own vertices only (positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``):
+a Forming step's pairs name 10-17 % of the scene's vertices. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
 round-off (tests: 1e-12 relative).
 """
@@ -28,9 +31,12 @@ from sim_core.energies.base import HessianBlocks, Projection
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.transfer import download
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -125,6 +131,10 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
 _NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
 _NO_BLOCKS = np.zeros((0, 0, 0))
+_UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
+_UNUSED_BLOCKS = np.zeros((1, 1, 1))
+_ARRAYS = LaunchArrays()
+"""Per thread, the device arrays of the CUDA launches (:meth:`TiLaggedFriction._launch_on_device`)."""
 
 
 @fast_kernel
@@ -133,10 +143,14 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
                      blocks: _F64_3):
     """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
     kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
-    ``_GRADIENT`` adds ``dE/dx`` (N) to ``grad`` ``(n, 3)``, ``_HESSIAN`` writes the pair blocks
-    ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written to an array rather than
-    returned: a launch then needs no synchronisation for a return value."""
+    ``_GRADIENT`` sets ``grad`` ``(n, 3)`` to ``dE/dx`` (N; zeroed, then the pairs' parts added),
+    ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written
+    to an array rather than returned: a launch then needs no synchronisation for a return value."""
     energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(grad.shape[0] * ((want & _GRADIENT) // _GRADIENT)):
+        for d in ti.static(range(3)):
+            grad[i, d] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
         if want & _ENERGY:
@@ -162,28 +176,79 @@ class TiLaggedFriction(LaggedFriction):
         return cls(frames.vertices, frames.weights, tangent_basis(frames.normal), frames.lam, mu, x_prev, eps_v, dt)
 
     def _kernel_arrays(self, x: np.ndarray) -> tuple:
-        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; ``x`` and
-        the coefficients, ``mu`` may be edited, are copied into kept arrays)."""
+        """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; the positions of
+        the pairs' vertices and the coefficients, ``mu`` may be edited, are copied into kept arrays). The
+        kernel's vertex indices are into ``self._own``, the pairs' vertices ``(u,)``."""
         arrays = getattr(self, "_arrays", None)
-        if arrays is None or arrays[0].shape != x.shape:
+        if arrays is None or self._n != x.shape[0]:
             require_backend("TiLaggedFriction")
-            arrays = (np.empty(x.shape),
-                      np.ascontiguousarray(self.x_prev, dtype=np.float64),
-                      np.ascontiguousarray(self.vertices, dtype=np.int32),
+            own, local = compact_indices(self.vertices)
+            self._own, self._n = own, x.shape[0]
+            arrays = (np.empty((len(own), 3)),
+                      np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
+                      np.ascontiguousarray(local, dtype=np.int32),
                       np.ascontiguousarray(self.weights, dtype=np.float64),
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))
             self._arrays, self._energy = arrays, np.zeros(1)
-        np.copyto(arrays[0], x)
+        np.take(x, self._own, axis=0, out=arrays[0])
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
 
+    def _launch_gradient(self, arrays: tuple, want: int, blocks: np.ndarray) -> tuple[float, np.ndarray]:
+        """One launch of :func:`_friction_kernel` with ``_GRADIENT`` in ``want``: ``(energy, gradient)``, the
+        gradient's rows of the pairs' vertices ``self._own`` ``(u, 3)`` (N)."""
+        own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
+        return self._launch(arrays, want, own_grad, blocks), own_grad
+
+    def _spread(self, own_grad: np.ndarray, n: int) -> np.ndarray:
+        """A new ``(n, 3)`` gradient (N): ``own_grad`` on the pairs' vertices, zero elsewhere."""
+        grad = np.zeros((n, 3))
+        grad[self._own] = own_grad
+        return grad
+
     def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
                 blocks: np.ndarray = _NO_BLOCKS) -> float:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`); the energy
-        (J) when ``want`` asks for it."""
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
+        and ``blocks`` where ``want`` asks for them; the energy (J) when ``want`` asks for it."""
+        if current_arch() == "cuda":
+            return self._launch_on_device(arrays, want, grad, blocks)
         _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
         return float(self._energy[0])
+
+    def _launch_on_device(self, arrays: tuple, want: int, grad: np.ndarray, blocks: np.ndarray) -> float:
+        """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
+        CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
+        previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
+        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back. The device
+        arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
+        device = _ARRAYS.device()
+        x, x_prev, vertices, weights, tangent, coefficient = arrays
+        args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
+                on_device(device, "vertices", vertices), on_device(device, "weights", weights),
+                on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
+        outputs = (on_device(device, "energy", self._energy, scratch=True),
+                   on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
+                   else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
+                   on_device(device, "blocks", blocks, scratch=True) if want & _HESSIAN
+                   else on_device(device, "no_blocks", _UNUSED_BLOCKS, scratch=True))
+        _friction_kernel(*args, self.eps_u, want, *outputs)
+        if want & _GRADIENT:
+            download(outputs[1], grad)
+        if want & _HESSIAN:
+            download(outputs[2], blocks)
+        if want & _ENERGY:
+            download(outputs[0], self._energy)
+        return float(self._energy[0])
+
+    def _device_coefficients(self, device: dict, coefficient: np.ndarray):
+        """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
+        values changed (``mu`` may be edited between launches; the kept array is refilled at every call)."""
+        sent = device.get("coefficient_sent")
+        if sent is None or sent[0] is not coefficient or not np.array_equal(sent[1], coefficient):
+            device["coefficient_sent"] = (coefficient, coefficient.copy())
+            return on_device(device, "coefficient", coefficient, refresh=True)
+        return on_device(device, "coefficient", coefficient)
 
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
@@ -194,9 +259,8 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        grad = np.zeros((x.shape[0], 3))
         blocks = np.empty((p, 3 * m, 3 * m))
-        energy = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, grad, blocks)
+        energy, grad = self._launch_gradient(arrays, _ENERGY | _GRADIENT | _HESSIAN, blocks)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
@@ -224,25 +288,25 @@ class TiLaggedFriction(LaggedFriction):
         converged positions, where its last iteration took the gradient): that call returns it and
         keeps nothing, so the workspace holds no arrays of a step's friction after the step.
         """
-        grad = np.zeros((x.shape[0], 3))
         p, m = self.vertices.shape
-        if p:
-            arrays = self._kernel_arrays(x)
-            workspace = workspace_of(self)
-            again = workspace.take(self, "gradient")
-            if again is not None and self._matches(again, arrays):
-                return again[3]
-            kept = self._kept(arrays)
-            workspace.take(self, "derivatives")  # consumed
-            if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
-                workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
-                workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
-                return kept[4].copy()
-            blocks = np.empty((p, 3 * m, 3 * m))
-            self._launch(arrays, _GRADIENT | _HESSIAN, grad, blocks)
-            kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
-            workspace.put(self, "gradient", kept_hessian[:3] + (grad.copy(),))
-        return grad
+        if not p:
+            return np.zeros((x.shape[0], 3))
+        arrays = self._kernel_arrays(x)
+        workspace = workspace_of(self)
+        again = workspace.take(self, "gradient")
+        if again is not None and self._matches(again, arrays):
+            return self._spread(again[3], x.shape[0])
+        kept = self._kept(arrays)
+        workspace.take(self, "derivatives")  # consumed
+        if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
+            workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
+            workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
+            return self._spread(kept[4], x.shape[0])
+        blocks = np.empty((p, 3 * m, 3 * m))
+        own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
+        kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
+        workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
+        return self._spread(own_grad, x.shape[0])
 
     def _matches(self, kept: tuple, arrays: tuple) -> bool:
         """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and

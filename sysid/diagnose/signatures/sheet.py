@@ -10,7 +10,10 @@
   where the sheet started), and 0 where the replay itself leaves the sheet away from its start (a
   buckle held by friction: the difference is then the model's gap in that shape). A set is a rest
   shape: where the recorded sheet still moves over the final window (an elastic card flapping after
-  the lift let it go), no set is read (:func:`final_motion`); nor where the sheet is back at its
+  the lift let it go), no set is read (:func:`final_motion`), unless the fold the gel gave it
+  remains while it moves (:func:`remaining_fold`: the grid line that bent most under the gel's last
+  contact keeps that bend's sign, by at least a resolvable set, over every released row after the
+  contact; an elastic card's lines bend by its motion only); nor where the sheet is back at its
   initial shape when the recording ends (:func:`_returned_by_the_end`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
@@ -107,6 +110,103 @@ def final_motion(rec: Recording, final: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(x[h:].mean(axis=0) - x[:h].mean(axis=0), axis=1)))
 
 
+def sheet_grid(x0: np.ndarray) -> tuple[int, int] | None:
+    """``(nx, ny)`` of sheet points laid out as a row-major grid (point ``iy * nx + ix``,
+    :func:`sim_core.mesh.sheet.grid_sheet`), read from their initial shape: ``nx`` points share point 0's
+    y (within half the spacing of points 0 and 1) before the next row starts.
+
+    Args:
+        x0: initial sheet points ``(p, 3)`` m.
+
+    Returns:
+        ``(nx, ny)`` with ``nx, ny >= 3``, or None when the points are not such a grid.
+    """
+    p = len(x0)
+    if p < 9:
+        return None
+    spacing = float(np.linalg.norm(x0[1] - x0[0]))
+    if not spacing > 0.0:
+        return None
+    off_row = np.nonzero(np.abs(x0[:, 1] - x0[0, 1]) > 0.5 * spacing)[0]
+    nx = int(off_row[0]) if off_row.size else p
+    if nx < 3 or p % nx or p // nx < 3:
+        return None
+    g = x0.reshape(p // nx, nx, 3)
+    if np.ptp(g[:, :, 1], axis=1).max() > 0.5 * spacing or np.ptp(g[:, :, 0], axis=0).max() > 0.5 * spacing:
+        return None
+    return nx, p // nx
+
+
+def line_curvatures(x: np.ndarray, grid: tuple[int, int], spacing: float) -> np.ndarray:
+    """Mean height curvature of the sheet's grid lines, 1/m: the second difference of the points'
+    heights along each grid direction over ``spacing**2`` (the z component of a material line's
+    curvature vector), averaged over the parallel lines; interior lines along x first (``nx - 2``),
+    then along y (``ny - 2``). Linear in the data: white point noise ``sigma_z`` gives each value a
+    standard error ``sqrt(6) sigma_z / (spacing**2 sqrt(lines averaged))``.
+
+    Args:
+        x: sheet points ``(n, p, 3)`` m.
+        grid: ``(nx, ny)`` (:func:`sheet_grid`).
+        spacing: grid spacing, m.
+
+    Returns:
+        ``(n, nx - 2 + ny - 2)``.
+    """
+    nx, ny = grid
+    z = np.asarray(x, dtype=float)[:, :, 2].reshape(len(x), ny, nx)
+    along_x = (z[:, :, 2:] - 2.0 * z[:, :, 1:-1] + z[:, :, :-2]).mean(axis=1)
+    along_y = (z[:, 2:, :] - 2.0 * z[:, 1:-1, :] + z[:, :-2, :]).mean(axis=2)
+    return np.concatenate([along_x, along_y], axis=1) / spacing ** 2
+
+
+def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final: np.ndarray,
+                   initial: np.ndarray) -> dict | None:
+    """Whether the fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
+
+    The fold line is the grid line whose mean height curvature over the gel's contact (``hold``),
+    less its initial one, is largest in size (:func:`line_curvatures`). A plastic hinge keeps a rest
+    angle of that sign, so the line keeps its bend whatever the card's motion; an elastic card's lines
+    bend by its motion only, through flat and beyond. The fold remains when the line's mean
+    curvature, signed as under the gel, over every ``released`` row and over the ``final`` window is
+    at least the curvature whose turning angle over one spacing tilts the shorter side of the sheet
+    beyond the line by a resolvable set (:func:`resolvable_set`): at least 6.7 standard errors of the
+    final window's mean (:func:`line_curvatures`) on a 21 x 13 grid of 5 mm sampled 21 times, the most
+    for the middle line.
+
+    Args:
+        rec: the recording (sheet points).
+        hold, released, final, initial: boolean masks ``(n,)`` on ``rec.t["sheet_points"]``: the gel's
+            last contact, the released rows after it, the final window, the free rows before the
+            first contact.
+
+    Returns:
+        ``{"remains", "line", "along", "hold_curvature", "released_curvature", "final_curvature",
+        "resolvable_curvature"}`` (curvatures 1/m, signed), or None when the points are no grid or a
+        mask is empty.
+    """
+    x = np.asarray(rec.data["sheet_points"], dtype=float)
+    if not (hold.any() and released.any() and final.any() and initial.any()):
+        return None
+    x0 = x[initial].mean(axis=0)
+    grid = sheet_grid(x0)
+    if grid is None:
+        return None
+    nx, ny = grid
+    spacing = float(np.linalg.norm(x0[1] - x0[0]))
+    k = line_curvatures(x, grid, spacing)
+    k = k - k[initial].mean(axis=0)
+    k_hold = k[hold].mean(axis=0)
+    j = int(np.argmax(np.abs(k_hold)))
+    sign = float(np.sign(k_hold[j]))
+    along_x = j < nx - 2
+    index, count = (j + 1, nx) if along_x else (j - (nx - 2) + 1, ny)
+    resolvable = resolvable_set(rec) / (spacing * min(index, count - 1 - index) * spacing)
+    kept, kept_final = sign * float(k[released, j].mean()), sign * float(k[final, j].mean())
+    return {"remains": bool(min(kept, kept_final) >= resolvable), "line": index, "along": "x" if along_x else "y",
+            "hold_curvature": float(k_hold[j]), "released_curvature": sign * kept,
+            "final_curvature": sign * kept_final, "resolvable_curvature": resolvable}
+
+
 def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
                          released_runs: list[tuple[int, int]]) -> str:
     """Why a set in the final window did not remain, or "" when it may have: a permanent set is still
@@ -183,9 +283,18 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
     motion = final_motion(rec, final)
+    fold = None
     if motion > resolvable_set(rec):
-        return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
-                                      f"({t[final][0]:.2f}-{t[final][-1]:.2f} s): no rest shape to read a set from")
+        rows = np.arange(len(t))
+        main_start = contacts[-1][0] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[0]
+        fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial)
+        if fold is None or not fold["remains"]:
+            kept = "" if fold is None else (f", and the fold the gel gave it ({fold['along']} line {fold['line']}, "
+                                            f"{fold['hold_curvature']:.3g} 1/m) does not remain "
+                                            f"({fold['released_curvature']:.3g} 1/m after the release)")
+            return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
+                                          f"({t[final][0]:.2f}-{t[final][-1]:.2f} s){kept}: no rest shape to read "
+                                          "a set from")
     returned = _returned_by_the_end(rec, final, initial, after)
     if returned:
         return not_applicable(effect, returned)
@@ -220,6 +329,12 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     else:
         return not_applicable(effect, "the replay holds the sheet after the recorded release and the sheet has "
                                       "no free initial window to compare with")
+    if fold is not None:
+        reason = (f"{reason}; " if reason else "") + (
+            f"the sheet still moves {1e3 * motion:.2g} mm over the final window, but the fold the gel gave it "
+            f"remains ({fold['along']} line {fold['line']}: {fold['hold_curvature']:.3g} 1/m under the gel, "
+            f"{fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} 1/m "
+            "resolvable): the set is read from the moving sheet")
     top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
     t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
@@ -229,7 +344,7 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         detail={"final_samples": n, "set_vs_replay_m": set_vs_pred, "set_vs_initial_m": set_vs_initial,
                 "replay_set_m": replay_set, "replay_released": replay_released, "final_motion_m": motion,
                 "final_window_s": [float(t[final][0]), t_end],
-                "points": sorted(top.tolist()), "release_s": t_release})
+                "points": sorted(top.tolist()), "release_s": t_release, "remaining_fold": fold})
 
 
 def resolvable_set(rec: Recording) -> float:

@@ -216,3 +216,28 @@ def sp_identity(n: int):
     import scipy.sparse as sp
 
     return sp.identity(n, format="csr")
+
+
+@pytest.mark.parametrize("device_arguments", [False, True])
+def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(ti_cpu, monkeypatch, device_arguments):
+    """The kernel sees the pairs' own vertices only (``PairBatch.own``); with pairs that name a third of the
+    positions the gradients, energies and Hessians are the separate potentials' (bit for bit on the CPU's serial
+    sums), exactly zero on the other rows, through the host arguments and through CUDA's device arguments (the
+    positions of the pairs' vertices uploaded, their summed gradient rows downloaded and spread)."""
+    from sim_core.energies.contact import batch_kernel as contact_batch
+
+    x, linked, alone = _potentials(vt_rows=slice(0, 150), ee_rows=slice(0, 60))
+    batch = linked[0]._batch
+    named = np.zeros(len(x), dtype=bool)
+    named[batch.vertices.ravel()] = True
+    assert len(batch.own) == np.count_nonzero(named) < 0.5 * len(x)
+    y = x + 0.1 * EPS * np.random.default_rng(23).normal(size=x.shape)
+    expected = [(pot.gradient(y), pot.energy(y), pot.hessian(y, "none").blocks) for pot in alone]
+    if device_arguments:
+        monkeypatch.setattr(contact_batch, "current_arch", lambda: "cuda")
+    for pot, (grad, energy, hess) in zip(linked, expected):
+        got = pot.gradient(y)
+        assert np.any(got[named] != 0.0) and not np.any(got[~named])
+        np.testing.assert_array_equal(got, grad)
+        assert pot.energy(y) == energy
+        np.testing.assert_array_equal(pot.hessian(y, "none").blocks, hess)

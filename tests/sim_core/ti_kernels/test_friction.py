@@ -186,3 +186,25 @@ def test_a_second_gradient_at_the_same_x_is_the_kept_one_then_nothing_is_kept(ti
     assert relative_error(tik.gradient(x), 2.0 * ref.gradient(x)) < 1e-12 and len(launches) == 3
     y = x + 0.1 * EPS_U
     assert relative_error(tik.gradient(y), 2.0 * ref.gradient(y)) < 1e-12 and len(launches) == 4
+
+
+def test_pairs_naming_few_vertices_give_the_reference_there_and_zero_elsewhere(ti_cpu):
+    """The kernel sees the pairs' own vertices only: with 6 pairs over 400 vertices the energy, gradient and
+    blocks are the reference's (1e-12), the gradient exactly zero on the vertices no pair names, also when the
+    kept gradient and the kept derivatives of an equal ``x`` are returned again."""
+    rng = np.random.default_rng(36)
+    ref, x_prev = ref_tests._random_friction(rng, p=6, n=400)
+    tik = _twin(ref)
+    x = x_prev + rng.normal(scale=0.7 * EPS_U, size=x_prev.shape)
+    named = np.zeros(len(x), dtype=bool)
+    named[ref.vertices.ravel()] = True
+    assert np.count_nonzero(named) <= 24
+    expected = ref.gradient(x)
+    assert tik.energy(x) == pytest.approx(ref.energy(x), rel=1e-12)
+    first, again = tik.gradient(x), tik.gradient(x.copy())  # the second: the kept gradient
+    tik.keep_derivatives(x)
+    kept = tik.gradient(x)  # the kept derivatives'
+    for grad in (first, again, kept):
+        assert grad.shape == x.shape and relative_error(grad, expected) < 1e-12 and not np.any(grad[~named])
+    assert again is not first and not np.shares_memory(again, first)
+    assert relative_error(tik.hessian(x).blocks, ref.hessian(x, "none").blocks) < 1e-12

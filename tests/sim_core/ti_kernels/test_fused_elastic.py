@@ -18,7 +18,10 @@ from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.mesh.sheet import grid_sheet, sheet_topology
 from sim_core.mesh.tet import tet_box
+from tests.sim_core.ti_kernels.conftest import TEST_ARCH, assert_same_sums
 from tests.support.fd import fd_gradient, fd_hessian, relative_error
+
+TEST_BACKEND = f"taichi-{TEST_ARCH}"  # the solver backend of the kernels' test arch (one Taichi arch per process)
 
 
 def _sheet(nx: int = 4, ny: int = 3):
@@ -167,9 +170,9 @@ def _forming_steps(backend: str, steps: int):
 
 
 def test_solver_steps_equal_reference_path(ti_cpu):
-    """Forming steps on the ``taichi-cpu`` backend (fused kernels) equal the NumPy path."""
+    """Forming steps on the Taichi backend of the test arch (fused kernels) equal the NumPy path."""
     runs = []
-    for backend in ("numpy", "taichi-cpu"):
+    for backend in ("numpy", TEST_BACKEND):
         sim, iterations = _forming_steps(backend, 4)
         runs.append((sim.state.x.copy(), iterations, sim.solver.last_record.hessian_exact))
     (x_ref, it_ref, exact_ref), (x_fused, it_fused, exact_fused) = runs
@@ -195,8 +198,8 @@ def test_compile_kernels_runs_every_fused_kernel(ti_cpu):
 
 def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
     """``evaluate(x)`` keeps what ``energy``, ``gradient`` and ``hessian_values`` then read at ``x``
-    (a copy of ``x`` as well): equal to a second evaluator's fresh calls, the energy bit for bit to
-    the energy-only kernels; another ``x`` is evaluated afresh."""
+    (a copy of ``x`` as well): equal to a second evaluator's fresh calls, the energy to the energy-only
+    kernels (bit for bit on the CPU: ``assert_same_sums``); another ``x`` is evaluated afresh."""
     mesh, topo = _sheet()
     n = mesh.x.shape[0]
     free = np.ones(3 * n, dtype=bool)
@@ -214,18 +217,19 @@ def test_evaluate_keeps_the_values_of_a_fresh_evaluation(ti_cpu):
     x = _deformed_sheet(mesh.x, 3)
     kept.evaluate(x)
     energy_only = fresh.energy(x)  # energy-only kernels (nothing kept yet)
-    assert kept.energy(x.copy()) == energy_only
-    np.testing.assert_array_equal(kept.gradient(x.copy()), fresh.gradient(x))
-    np.testing.assert_array_equal(kept.hessian_values(x.copy()), fresh.hessian_values(x))
+    assert_same_sums(kept.energy(x.copy()), energy_only)
+    assert_same_sums(kept.gradient(x.copy()), fresh.gradient(x))
+    assert_same_sums(kept.hessian_values(x.copy()), fresh.hessian_values(x))
     y = _deformed_sheet(mesh.x, 4)
-    assert kept.energy(y) == fresh.energy(y) != energy_only
+    assert_same_sums(kept.energy(y), fresh.energy(y))
+    assert abs(kept.energy(y) - energy_only) > 1e-6 * energy_only
 
 
 def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
     """Forming steps whose line searches evaluate the first trial point with the fused kernels
     (energy, gradient and Hessian: ``FusedElastic.evaluate``, ``TiLaggedFriction.keep_derivatives``) equal
-    those with energy-only trial evaluations bit for bit, with the same iterations, and launch fewer
-    energy-only kernels."""
+    those with energy-only trial evaluations (bit for bit on the CPU: ``assert_same_sums``), with the same
+    iterations, and launch fewer energy-only kernels."""
     from sim_core.energies.base import positions_key
     from sim_core.energies.friction.kernel import TiLaggedFriction
     from sim_core.fused_elastic import FusedElastic
@@ -244,11 +248,11 @@ def test_solver_prefetch_of_trial_points_changes_nothing(ti_cpu, monkeypatch):
         if not prefetch:
             monkeypatch.setattr(FusedElastic, "evaluate", lambda self, x: None)
             monkeypatch.setattr(TiLaggedFriction, "keep_derivatives", lambda self, x: None)
-        sim, iterations = _forming_steps("taichi-cpu", 6)
+        sim, iterations = _forming_steps(TEST_BACKEND, 6)
         runs.append((sim.state.x.copy(), iterations, calls["energy"]))
     (x_on, it_on, e_on), (x_off, it_off, e_off) = runs
     assert it_on == it_off and sum(it_on) > 6
-    np.testing.assert_array_equal(x_on, x_off)
+    assert_same_sums(x_on, x_off)
     assert e_on < e_off
 
 
@@ -347,7 +351,7 @@ def _fused_candidate_press(candidates: dict, route: str = "model_candidates", de
     from sim_core.solver import SolverConfig
 
     model = load_scene(copy.deepcopy(SCENE))
-    sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend="taichi-cpu"))
+    sim = Simulation(model, dt=0.01, solver_config=SolverConfig(backend=TEST_BACKEND))
     if route == "hook":
         sim.solver.set_hook(CandidateHook(candidates))
     else:

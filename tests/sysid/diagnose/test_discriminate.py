@@ -160,3 +160,46 @@ def test_real_stiction_passes_the_line_of_action_test():
     out, _ = _decide(pred0 + 1.1 * change + noise, pred0, {"stiction": stiction})
     assert out["stiction"]["accepted"] and "refuted_by" not in out["stiction"]
     assert out["stiction"]["line_of_action_p"] > 0.01
+
+
+def test_a_candidate_contradicted_on_a_channel_is_not_named_and_a_weaker_proxy_is_not_named_in_its_place():
+    """Channel consistency is a discriminating test like the line of action: a refit that explains the
+    wrench but moves the sheet where the recording does not (held-out supported scale on the sheet
+    under 1/2) is not named, and stays in the acceptance sequence, so that a weaker candidate that only
+    follows part of the same wrench change is judged on what it adds beyond it (the benchmark's
+    thickness step: stiction contradicted on one channel, anisotropy then named alone)."""
+    rng = np.random.default_rng(16)
+    T = 47
+    sheet_sigma = np.array([5e-5, 5e-5, 5e-5])
+    pred0 = {"wrench": np.zeros((T, 6)), "sheet_points": np.zeros((T, 4, 3))}
+    change = 3.0 * _wrench_change(T) * SIGMA
+    sheet_change = 0.6 * np.clip(np.linspace(-1.0, 3.0, T), 0.0, None)[:, None, None] * sheet_sigma * np.ones((1, 4, 3))
+    data = {"wrench": pred0["wrench"] + change + _correlated_noise(rng, T, 6, rho=0.3, common=0.2) * SIGMA,
+            "sheet_points": rng.normal(size=(T, 4, 3)) * sheet_sigma}
+    steps = np.arange(T, dtype=np.int64) * 10_000_000
+    model = SimpleNamespace(sigma={"wrench": SIGMA.copy(), "sheet_points": sheet_sigma.copy()},
+                            data=lambda ch: data[ch], step_times_ns=steps,
+                            evidence=SimpleNamespace(t_ns={"wrench": steps, "sheet_points": steps},
+                                                     channels_present=("wrench", "sheet_points")),
+                            channels=("wrench", "sheet_points"))
+    trace = SimpleNamespace(channel=lambda ch: pred0[ch])
+    ctx = DiagnosisContext(model, {}, trace, dict(pred0), ("wrench", "sheet_points"))
+    gel = Refit(np.array([0.1]), {"candidate.gel_viscoelasticity": 0.1},
+                {"wrench": pred0["wrench"] + change, "sheet_points": pred0["sheet_points"] + sheet_change},
+                {"candidate.gel_viscoelasticity": 0.1})
+    aniso = Refit(np.array([0.05]), {"candidate.anisotropic_bending": 0.05}, {"wrench": pred0["wrench"] + 0.6 * change},
+                  {"candidate.anisotropic_bending": 0.05})
+
+    def decide(refits):
+        d = engine.BagDiagnosis.__new__(engine.BagDiagnosis)
+        d.model, d.settings, d.notes, d.tested, d.heldout = model, engine.Settings(), [], ctx.channels, []
+        train = {ch: np.arange(T) % 2 == 0 for ch in ctx.channels}
+        return d._decide(ctx, refits, train, [engine.heldout.block_fold(model, ctx.prediction, train, refits)])
+
+    out = decide({"gel_viscoelasticity": gel, "anisotropic_bending": aniso})
+    assert out["gel_viscoelasticity"]["contradicted_on"] == ["sheet_points"]
+    assert out["gel_viscoelasticity"]["refuted_by"] == ["channel_consistency"]
+    assert not out["gel_viscoelasticity"]["accepted"]
+    assert out["gel_viscoelasticity"]["heldout_gain"] > out["anisotropic_bending"]["heldout_gain"]
+    assert not out["anisotropic_bending"]["accepted"]
+    assert decide({"anisotropic_bending": aniso})["anisotropic_bending"]["accepted"]  # alone it would be named

@@ -78,6 +78,47 @@ def test_denoised_controls_keep_the_command_corners_and_the_tracking_lag():
     assert model._sim is None and model.scene["effectors"]["ee"]["initial_pose"][0] == pytest.approx(0.0, abs=2e-5)
 
 
+def test_a_white_tracking_error_replays_the_command_exactly():
+    """An effector that follows its command (the own-simulator benchmark's kinematic pad): the
+    tracking error is the pose noise alone, and the replay takes the command itself rather than the
+    command plus a smoothed noise (which would leave a correlated error of about 2 um)."""
+    from sysid.evidence import resample_pose
+
+    model, t_ns, truth, pose = _pose_model()
+    ev = model.evidence
+    ev.pose = ev.pose_cmd + np.concatenate([pose[:, :3] - truth[:, :3], np.zeros((len(t_ns), 4))], axis=1)
+    note = noise.denoise_controls(model, engine.Settings().denoise_window)
+    assert "tracking error is white" in note
+    assert np.array_equal(model.controls, resample_pose(t_ns, ev.pose_cmd, model.step_times_ns, outside="clamp"))
+
+
+def test_whiteness_of_the_tracking_error():
+    """Von Neumann's ratio: white noise passes at every seed tried; a lag, an offset or a slow drift of
+    a fraction of the noise's size over the whole recording does not."""
+    t = np.linspace(0.0, 1.0, 47)[:, None]
+    passed = [noise.tracking_error_is_white(np.random.default_rng(k).normal(size=(47, 3)) * 5e-6)
+              for k in range(200)]
+    assert sum(passed) >= 198  # one-sided p = 0.001 per seed
+    rng = np.random.default_rng(7)
+    white = rng.normal(size=(47, 3)) * 5e-6
+    assert not noise.tracking_error_is_white(white + 1e-5)                        # offset of 2 sigma
+    assert not noise.tracking_error_is_white(white + 2e-5 * np.sin(np.pi * t))    # smooth lag
+    assert not noise.tracking_error_is_white(np.zeros((2, 3)))                    # too short to test
+    assert noise.tracking_error_is_white(np.zeros((47, 3)))
+
+
+def test_an_arm_that_lags_its_command_keeps_the_smoothed_tracking_error():
+    """The reference recordings' arm (a 3000 N/m impedance about ``ee/pose_cmd``) lags its command by
+    0.2-1.1 mm: far from white, so the replay adds the smoothed tracking error as before."""
+    from sysid.evidence import load_evidence, resample_pose
+    from tests.sysid.conftest import reference_bag
+
+    ev = load_evidence(reference_bag("nominal_s101"))
+    cmd = resample_pose(np.asarray(ev.t_ns["pose_cmd"]), ev.pose_cmd, np.asarray(ev.t_ns["pose"]), outside="clamp")
+    err = np.asarray(ev.pose, dtype=float)[:, :3] - cmd[:, :3]
+    assert np.sqrt(np.mean(err ** 2)) > 1e-4 and not noise.tracking_error_is_white(err)
+
+
 def test_without_a_command_the_measured_poses_are_replayed():
     model, *_ = _pose_model()
     model.evidence.channels_present = ("pose",)

@@ -1,5 +1,6 @@
-"""The permanent-set test (:func:`sysid.diagnose.signatures.sheet.plasticity_test`) reads a set only
-from a sheet at rest over the final window, after the gel's median marker is back at rest."""
+"""The permanent-set test (:func:`sysid.diagnose.signatures.sheet.plasticity_test`) reads a set from
+a sheet at rest over the final window, after the gel's median marker is back at rest, or from a sheet
+that still moves where the fold the gel gave it remains."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import pytest
 from sysid.diagnose.signatures import Recording
 from sysid.diagnose.signatures.base import marker_displacement
 from sysid.diagnose.signatures.sensor import REST_DISPLACEMENT
-from sysid.diagnose.signatures.sheet import (MEDIAN_MARKER_AT_REST, final_motion, median_marker_displacement,
-                                             plasticity_test, resolvable_set)
+from sim_core.mesh.sheet import grid_sheet
+from sysid.diagnose.signatures.sheet import (MEDIAN_MARKER_AT_REST, final_motion, line_curvatures,
+                                             median_marker_displacement, plasticity_test, resolvable_set, sheet_grid)
 from tests.sysid.diagnose.test_friction_signature import reference_recording
 from tests.sysid.diagnose.test_signatures import named, synthetic
 
@@ -185,3 +187,68 @@ def test_an_elastic_fold_with_a_gel_edge_left_displaced_names_no_set():
     r = plasticity_test(rec)
     assert r.applicable and r.effect_size < resolvable_set(rec)
     assert "bending_plasticity" not in named(rec)
+
+
+def _rising_after_release(rec: Recording, rate: float = 0.1) -> Recording:
+    """``rec`` whose recorded sheet, from the plasticity test's release on, also turns about the clamped
+    edge (x = 0) at ``rate`` rad/s: a rigid tilt that lifts the free edge (x = 100 mm) 10 mm/s and
+    bends no grid line, so the sheet still moves over the final window (MuJoCo's plastic_s727: its
+    kept tent rising 12 mm/s to the end, 0.9 s after the peel)."""
+    t = rec.t["sheet_points"]
+    x = np.asarray(rec.data["sheet_points"], dtype=float).copy()
+    t_release = plasticity_test(rec).detail["release_s"]
+    x[:, :, 2] += rate * np.clip(t - t_release, 0.0, None)[:, None] * x[0, :, 0][None, :]
+    return Recording(t=rec.t, data=dict(rec.data, sheet_points=x), prediction=rec.prediction, sigma=rec.sigma,
+                     camera=rec.camera, name=rec.name)
+
+
+def test_a_kept_fold_on_a_sheet_that_still_moves_is_a_set():
+    """Reference plastic_s102 (its 9.1 mm tent kept at x = 35 mm) tilting on after the peel: the final
+    window holds no rest shape (1 mm of motion), but the line the gel bent most keeps that bend, so
+    the set is read and named; the tilt bends no line, so the kept curvature stays what it is at the
+    release."""
+    rest = _elastic_replay(reference_recording("plastic_s102"))
+    rec = _rising_after_release(rest)
+    assert final_motion(rec, rec.t["sheet_points"] > rec.t["sheet_points"][-1] - 0.2) > resolvable_set(rec)
+    r = plasticity_test(rec)
+    assert r.applicable and "remains" in r.reason
+    fold = r.detail["remaining_fold"]
+    assert (fold["along"], fold["line"]) == ("x", 7)
+    assert np.sign(fold["released_curvature"]) == np.sign(fold["hold_curvature"])
+    assert fold["final_curvature"] == pytest.approx(fold["released_curvature"], rel=0.1)
+    assert abs(fold["released_curvature"]) > 10.0 * fold["resolvable_curvature"]
+    assert r.effect_size > 9.1e-3
+    assert "bending_plasticity" in named(rec)
+
+
+def test_an_elastic_sheet_that_still_moves_keeps_no_fold():
+    """Reference nominal_s109 (folded 19 mm under the tack, flat after the peel) with the same tilt:
+    the line the gel bent most is back to flat while the sheet moves, so no set is read."""
+    rec = _rising_after_release(_elastic_replay(reference_recording("nominal_s109")))
+    r = plasticity_test(rec)
+    assert not r.applicable and "does not remain" in r.reason
+    assert "bending_plasticity" not in named(rec)
+
+
+def test_the_sheet_grid_is_read_from_the_initial_points():
+    """The scene's grid sheet (point iy * nx + ix) gives its (nx, ny); shuffled points are no grid."""
+    mesh = grid_sheet((0.1, 0.06), (21, 13))
+    x0 = np.asarray(mesh.x, dtype=float)
+    assert sheet_grid(x0) == (21, 13)
+    assert sheet_grid(x0[np.random.default_rng(3).permutation(len(x0))]) is None
+
+
+def test_line_curvatures_of_a_cylinder_and_their_noise(rng):
+    """A cylinder z = c x^2 / 2 bends every line along x by c and none along y (second differences are
+    exact on a quadratic); white height noise gives each value the standard error
+    sqrt(6) sigma / (h^2 sqrt(lines))."""
+    nx, ny, h, c, sigma = 21, 13, 0.005, 30.0, 5e-5
+    x0 = np.asarray(grid_sheet((0.1, 0.06), (nx, ny)).x, dtype=float)
+    bent = x0.copy()
+    bent[:, 2] = 0.5 * c * x0[:, 0] ** 2
+    k = line_curvatures(bent[None], (nx, ny), h)[0]
+    assert np.allclose(k[: nx - 2], c) and np.allclose(k[nx - 2:], 0.0, atol=1e-9)
+    noisy = x0[None] + np.concatenate([np.zeros((4000, len(x0), 2)), rng.normal(0.0, sigma, (4000, len(x0), 1))], 2)
+    k = line_curvatures(noisy, (nx, ny), h)
+    assert k[:, : nx - 2].std() == pytest.approx(np.sqrt(6.0) * sigma / (h ** 2 * np.sqrt(ny)), rel=0.05)
+    assert k[:, nx - 2:].std() == pytest.approx(np.sqrt(6.0) * sigma / (h ** 2 * np.sqrt(nx)), rel=0.05)

@@ -1,0 +1,157 @@
+"""Byte copies between NumPy arrays and Taichi ndarrays by address, without a kernel launch, and ndarrays
+allocated without Taichi's record of the Python stack.
+
+A copy through a Taichi kernel (``from_numpy`` / ``to_numpy``, or a planned launch of a copy kernel with a
+NumPy argument, :mod:`sim_core.ti_kernels.transfer`) costs on CUDA a launch, a device buffer for the NumPy
+array, its copy to the device *and back* (Taichi's CUDA launcher copies every host array of a launch both
+ways), a synchronisation and a free: 83-103 us a call on the H200 host (``benchmarks/profile_single.py``'s
+launch micro-benchmark, docs/benchmarks_log.md, session 38, 28single). Here the ndarray's address
+(``Program.get_ndarray_data_ptr_as_int``: a device pointer on CUDA, a host pointer on the CPU) is copied
+to or from directly: on CUDA by the driver's synchronous ``cuMemcpyHtoD_v2`` / ``cuMemcpyDtoH_v2``
+(``libcuda.so.1`` through ctypes; synchronous copies run on the legacy default stream, the stream of
+Taichi's launches, so they follow the kernels launched before them), on the CPU by ``memmove`` (Taichi's
+CPU launches return when the kernel has run).
+
+On CUDA the driver copies need Taichi's CUDA context current on the calling thread: Taichi makes it
+current on the thread that initialised it, and restores a thread's own (none) after each of its launches
+on another thread. Where no context is current, or the driver library is not found, the functions return
+False and the caller copies through a kernel instead (same bytes).
+
+``ti.ndarray`` formats the whole Python call stack into the new array's debug record (``get_traceback``) at
+every allocation: 0.8 ms a call on the 2-core VM, 28 allocations a Forming step on the CUDA path.
+:func:`new_ndarray` makes the same zero-filled array with an empty debug record.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import threading
+
+import numpy as np
+from taichi._lib import core as _ti_core
+from taichi.lang._ndarray import Ndarray, ScalarNdarray
+from taichi.lang.enums import Layout
+from taichi.lang.util import cook_dtype, to_numpy_type
+
+from sim_core.ti_backend import current_arch, ti
+
+_CUDA_SUCCESS = 0
+
+
+@functools.cache
+def _driver() -> ctypes.CDLL | None:
+    """The CUDA driver library with the argument types of the three entry points used, or None."""
+    try:
+        lib = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+    lib.cuMemcpyHtoD_v2.argtypes = (ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t)
+    lib.cuMemcpyDtoH_v2.argtypes = (ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t)
+    lib.cuCtxGetCurrent.argtypes = (ctypes.POINTER(ctypes.c_void_p),)
+    return lib
+
+
+_READY = threading.local()
+"""Per thread: ``ready`` once a CUDA context was found current there (Taichi leaves its context current on the
+thread that initialised it, and restores a thread's own after each launch, so it stays so)."""
+
+
+def _cuda_ready(lib: ctypes.CDLL | None) -> bool:
+    """Whether ``lib`` is loaded and a CUDA context is current on this thread."""
+    if getattr(_READY, "ready", False):
+        return True
+    if lib is None:
+        return False
+    ctx = ctypes.c_void_p()
+    _READY.ready = lib.cuCtxGetCurrent(ctypes.byref(ctx)) == _CUDA_SUCCESS and bool(ctx.value)
+    return _READY.ready
+
+
+def new_ndarray(dtype, shape: tuple[int, ...]) -> ScalarNdarray:
+    """A zero-filled Taichi ndarray of scalar ``dtype`` (``ti.f64``, ``ti.i32``, ...) and ``shape``: what
+    ``ti.ndarray(dtype, shape)`` makes (module docstring), freed as Taichi frees it (``ScalarNdarray.__del__``).
+
+    Raises:
+        ValueError: a dimension that is not a positive int (Taichi allocates no empty ndarray).
+    """
+    shape = tuple(int(n) for n in shape)
+    if not shape or min(shape) <= 0:
+        raise ValueError(f"new_ndarray: every dimension must be positive; got shape {shape}")
+    array = ScalarNdarray.__new__(ScalarNdarray)
+    Ndarray.__init__(array)
+    array.dtype = cook_dtype(dtype)
+    array.arr = ti.lang.impl.get_runtime().prog.create_ndarray(array.dtype, shape, layout=Layout.NULL, zero_fill=True,
+                                                               dbg_info=_ti_core.DebugInfo())
+    array.shape = tuple(array.arr.shape)
+    array.element_type = array.dtype
+    return array
+
+
+def address(array) -> int:
+    """The address of the Taichi ndarray ``array``'s first element (a device pointer on CUDA); read from Taichi
+    once per array and kept on it (an ndarray keeps its allocation for its lifetime)."""
+    kept = getattr(array, "_device_address", None)
+    if kept is None:
+        kept = array._device_address = int(ti.lang.impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr))
+    return kept
+
+
+def _checked(array, host: np.ndarray) -> int:
+    """``host``'s byte count after checking that it matches ``array`` (shape and dtype; both kept on the array).
+
+    Raises:
+        ValueError: another shape or dtype, or ``host`` not C-contiguous.
+    """
+    layout = getattr(array, "_host_layout", None)
+    if layout is None:
+        layout = array._host_layout = (tuple(array.shape), np.dtype(to_numpy_type(array.dtype)))
+    shape, dtype = layout
+    if host.shape != shape or host.dtype != dtype or not host.flags.c_contiguous:
+        raise ValueError(f"device_copy: a C-contiguous {dtype} array of shape {shape} is needed; "
+                         f"got {host.dtype} {host.shape}")
+    return host.nbytes
+
+
+def to_device(array, host: np.ndarray) -> bool:
+    """Copy the C-contiguous ``host`` (``array``'s dtype and shape) into the Taichi ndarray ``array``; False
+    (nothing copied) where no direct copy is possible here (module docstring).
+
+    Raises:
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype.
+    """
+    return _copy(array, host, True)
+
+
+def to_host(host: np.ndarray, array) -> bool:
+    """Copy the Taichi ndarray ``array`` into the writable C-contiguous ``host`` (``array``'s dtype and
+    shape); False (nothing copied) where no direct copy is possible here.
+
+    Raises:
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or is read-only.
+    """
+    return _copy(array, host, False)
+
+
+def _copy(array, host: np.ndarray, upload: bool) -> bool:
+    """``host`` into ``array`` (``upload``) or back; whether the bytes were copied."""
+    nbytes = _checked(array, host)
+    if not upload and not host.flags.writeable:
+        raise ValueError("device_copy: the host array to copy into is read-only")
+    if not nbytes:
+        return True
+    arch = current_arch()
+    if arch == "cuda":
+        lib = _driver()
+        if not _cuda_ready(lib):
+            return False
+        if upload:
+            return lib.cuMemcpyHtoD_v2(address(array), host.ctypes.data, nbytes) == _CUDA_SUCCESS
+        return lib.cuMemcpyDtoH_v2(host.ctypes.data, address(array), nbytes) == _CUDA_SUCCESS
+    if arch == "cpu":
+        if upload:
+            ctypes.memmove(address(array), host.ctypes.data, nbytes)
+        else:
+            ctypes.memmove(host.ctypes.data, address(array), nbytes)
+        return True
+    return False

@@ -1,0 +1,102 @@
+"""The calibration's first secant replay in a second process, beside the calibration's start replay.
+
+A diagnosis's calibration (:func:`sysid.calibration.calibrate`) replays the recording three times, one
+after the other: the start replay at the scene values (the parameter fit's first and, with the
+default budget of one replay, only point), then the secant stage's probe at a third of the stick
+regularisation and its Gauss-Newton step (:mod:`sysid.calibration_secant`). When the fit takes no
+step, the probe's parameters are known before the start replay begins: the scene values with
+``contact.eps_v`` scaled (:func:`sysid.calibration_secant.first_probe_values`). A
+:class:`ProbeWorker` makes that replay in a forked process while this one makes the start replay;
+the secant stage takes it where its parameters are bitwise the ones it would replay
+(:func:`~sysid.calibration_secant.secant_calibration` ``first``), else replays them itself. A replay
+is a deterministic function of its parameters (the simulation is reset before each, solver caches
+included: :meth:`sim_core.simulation.Simulation.reset`), so the calibration makes the same replays
+and reaches the same values as in one process; on two cores its wall time falls by about one replay.
+
+The child is forked before this process starts Taichi (Taichi's runtime does not survive ``fork``,
+:mod:`sysid.diagnose.parallel`); it starts its own. It sends back the replay without its states and
+the later replays' start (:func:`~sysid.calibration_secant.resume_before_contact`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+from typing import Sequence
+
+from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETERS, FirstReplay, first_probe_values,
+                                      resume_before_contact)
+
+
+class ProbeWorker:
+    """The secant stage's first replay made in a forked child process (module docstring).
+
+    Args:
+        model: the recording's :class:`~sysid.observation.ObservationModel`, before its simulation has
+            started Taichi (the child gets a copy).
+        params: the calibration's fitted parameters (their scene values are the fit's start).
+        names: the secant stage's parameters (the calibration's ``secant_params`` not in ``params``).
+
+    Raises:
+        ValueError: no secant parameter, or this process has started Taichi (the child could not run it).
+    """
+
+    def __init__(self, model, params: Sequence[str], names: Sequence[str] = SECANT_PARAMETERS) -> None:
+        from sim_core.ti_backend import current_arch
+
+        names = tuple(n for n in names if n not in tuple(params))
+        if not names:
+            raise ValueError("ProbeWorker: no secant parameter left to probe")
+        if current_arch() is not None:
+            raise ValueError("ProbeWorker: Taichi is started in this process; a forked child cannot run it")
+        ctx = multiprocessing.get_context("fork")
+        self._conn, child = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_probe, args=(model, tuple(params), names, child), daemon=True)
+        self._process.start()
+        child.close()
+        self._result: FirstReplay | None = None
+        self._done = False
+
+    def result(self) -> FirstReplay | None:
+        """The replay (waits for the child), or None when the child failed (a diverged replay, an error:
+        the stage then replays it here and meets the same failure). Later calls return the same."""
+        if not self._done:
+            try:
+                self._result = self._conn.recv()
+            except (EOFError, OSError):
+                self._result = None
+            self.close()
+        return self._result
+
+    def close(self) -> None:
+        """End the child: it has sent its result (:meth:`result`) or is stopped (a calibration that ended
+        before its secant stage)."""
+        self._done = True
+        self._conn.close()
+        if self._process.is_alive():
+            self._process.join(timeout=1.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join()
+
+
+def _probe(model, params: tuple[str, ...], names: tuple[str, ...], conn) -> None:
+    """The child: replay the secant stage's first parameters from the scene values and send a
+    :class:`~sysid.calibration_secant.FirstReplay` (None on failure)."""
+    out = None
+    try:
+        model.sensor_calibration = None
+        model.reset_nominal()
+        base = {n: float(model.parameter_value(n)) for n in params}
+        values = first_probe_values(model, base, names)
+        shared = set(names) <= set(CONTACT_ONSET_PARAMETERS)
+        trace = model.simulate(values, keep_states=shared)
+        resume = resume_before_contact(trace) if shared else None
+        out = FirstReplay(values, dataclasses.replace(trace, states=None), resume)
+    except Exception:  # noqa: BLE001 -- any failure: the parent replays it itself and reports it there
+        out = None
+    finally:
+        try:
+            conn.send(out)
+        finally:
+            conn.close()

@@ -1,0 +1,62 @@
+"""Byte copies by address between NumPy arrays and Taichi ndarrays (sim_core/ti_kernels/device_copy.py) equal
+Taichi's own ``from_numpy`` / ``to_numpy``, and refuse arrays of another shape or dtype."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+
+@pytest.mark.parametrize("dtype_name", ["f64", "i32", "i64"])
+def test_copies_equal_taichis_own(ti_cpu, dtype_name):
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import to_device, to_host
+
+    dtype = {"f64": (ti.f64, np.float64), "i32": (ti.i32, np.int32), "i64": (ti.i64, np.int64)}[dtype_name]
+    rng = np.random.default_rng(11)
+    for shape in ((7,), (5, 3), (3, 12, 12)):
+        dev = ti.ndarray(dtype[0], shape=shape)
+        for _ in range(2):
+            values = (rng.normal(size=shape) * 1e3).astype(dtype[1])
+            assert to_device(dev, values)  # the thread that initialised Taichi can always copy
+            assert np.array_equal(dev.to_numpy(), values)
+            dev.from_numpy(values[::-1].copy())
+            out = np.empty(shape, dtype=dtype[1])
+            assert to_host(out, dev) and np.array_equal(out, values[::-1])
+
+
+def test_copies_refuse_another_shape_or_dtype(ti_cpu):
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import to_device, to_host
+
+    dev = ti.ndarray(ti.f64, shape=(4, 3))
+    needed = r"C-contiguous float64 array of shape \(4, 3\) is needed; got float64 \(3, 4\)"
+    with pytest.raises(ValueError, match=needed):
+        to_device(dev, np.zeros((3, 4)))
+    with pytest.raises(ValueError, match=r"got int32 \(4, 3\)"):
+        to_host(np.zeros((4, 3), dtype=np.int32), dev)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        to_host(np.zeros((3, 4)).T, dev)
+    read_only = np.zeros((4, 3))
+    read_only.flags.writeable = False
+    with pytest.raises(ValueError, match="read-only"):
+        to_host(read_only, dev)
+
+
+def test_another_thread_copies_or_declines(ti_cpu):
+    """From a thread that never launched a kernel the copy is made (CPU) or declined with nothing copied
+    (CUDA, where that thread has no current context); the values are right either way."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import to_device
+
+    dev = ti.ndarray(ti.f64, shape=(6,))
+    dev.fill(-1.0)
+    values = np.arange(6.0)
+    done = {}
+    thread = threading.Thread(target=lambda: done.setdefault("copied", to_device(dev, values)))
+    thread.start()
+    thread.join()
+    assert done["copied"] == (ti_cpu == "cpu")
+    assert np.array_equal(dev.to_numpy(), values if done["copied"] else np.full(6, -1.0))

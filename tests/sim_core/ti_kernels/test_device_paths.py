@@ -1,0 +1,42 @@
+"""The CUDA launch paths of the contact, friction and broad-phase kernels' callers (device arrays kept by
+``buffers.on_device``, outputs copied back) give the host path's Forming steps; run here on the CPU arch with
+the arch query answering "cuda" (the loops stay serial, so the sums are the same: bit for bit)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.sim_core.ti_kernels.conftest import TEST_ARCH
+from tests.sim_core.ti_kernels.test_fused_elastic import _forming_steps
+
+_CALLERS = ("sim_core.ti_backend", "sim_core.energies.friction.kernel", "sim_core.energies.contact.batch_kernel",
+            "sim_core.energies.contact.setup_kernel", "sim_core.ti_kernels.hash_grid")
+
+
+def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
+    import importlib
+
+    if TEST_ARCH != "cpu":
+        pytest.skip("the reference is the host path, which runs on the CPU arch only")
+    runs = []
+    for device in (False, True):
+        if device:
+            for name in _CALLERS:
+                monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
+        sim, iterations = _forming_steps("taichi-cpu", 5)
+        runs.append((sim.state.x.copy(), iterations))
+    (x_host, it_host), (x_device, it_device) = runs
+    assert it_device == it_host and sum(it_host) > 5
+    np.testing.assert_array_equal(x_device, x_host)
+    from sim_core.energies.contact import batch_kernel, setup_kernel
+    from sim_core.energies.friction import kernel as friction_kernel
+    from sim_core.ti_backend import ti
+
+    # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
+    for module, names in ((friction_kernel, {"x", "x_prev", "coefficient", "grad", "blocks"}),
+                          (batch_kernel, {"pair_rows", "d", "region", "gradients"}),
+                          (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
+        kept = module._ARRAYS.device()
+        assert names <= set(kept), module.__name__
+        assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)

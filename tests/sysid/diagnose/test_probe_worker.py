@@ -1,0 +1,76 @@
+"""The calibration's secant probe made in a forked process (sysid.diagnose.probe_worker): bit for bit the
+replay this process makes, on the reference recording nominal_s101 (first 0.8 s, coarse gel)."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sysid.diagnose.signature_engine import SignatureSettings, probe_worker_for
+
+REPO = Path(__file__).resolve().parents[3]
+
+CHILD = """
+import sys
+import numpy as np
+from sysid.calibration_secant import first_probe_values
+from sysid.diagnose.probe_worker import ProbeWorker
+from sysid.evidence import load_evidence
+from sysid.observation import ObservationModel
+
+model = ObservationModel(load_evidence(sys.argv[1]), dt=0.01, t_max=0.8, simulation={"gel_resolution": [4, 3, 2]},
+                         arch="cpu")
+worker = ProbeWorker(model, ("gel.youngs_modulus",))
+made = worker.result()
+assert made is not None and made.trace.states is None
+base = {"gel.youngs_modulus": model.parameter_value("gel.youngs_modulus")}
+values = first_probe_values(model, base, ("contact.eps_v",))
+assert made.values == values, (made.values, values)
+here = model.simulate(values)
+for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
+    assert np.array_equal(getattr(made.trace, ch), getattr(here, ch)), ch
+assert 0 < made.resume.step < model.step_count and not np.any(made.resume.prefix.wrench)
+assert worker.result() is made
+print("same replay; later replays resume at step", made.resume.step)
+"""
+
+
+def test_probe_made_in_a_forked_process_is_the_replay_made_here():
+    """Run in a process of its own: the worker forks before Taichi starts (a test process may have
+    started it already)."""
+    from tests.sysid.conftest import reference_bag
+
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(reference_bag("nominal_s101"))], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "same replay" in proc.stdout
+
+
+def test_probe_worker_only_where_its_replay_is_the_secant_stage_first_one():
+    """None without the setting, with a drive, with a fit that may step, with a time budget, or with
+    the stick regularisation among the fitted parameters; no fork once Taichi runs here."""
+    from sim_core.ti_backend import current_arch
+    from sysid.diagnose.probe_worker import ProbeWorker
+
+    on = SignatureSettings(probe_worker=True)
+    params = ("gel.youngs_modulus",)
+    for settings in (SignatureSettings(), dataclasses.replace(on, calibration_drive=True),
+                     dataclasses.replace(on, calibration_max_replays=3),
+                     dataclasses.replace(on, calibration_max_time=10.0),
+                     dataclasses.replace(on, calibration_secant_replays=0), dataclasses.replace(on, calibrate=False)):
+        assert probe_worker_for(None, params, settings) is None
+    if current_arch() is None:
+        assert probe_worker_for(None, params + ("contact.eps_v",), on) is None
+    with pytest.raises(ValueError, match="no secant parameter"):
+        ProbeWorker(None, ("contact.eps_v",))
+
+
+def test_diagnose_command_makes_the_probe_beside_unless_asked_for_one_process():
+    from sysid.diagnose.cli import build_parser, signature_settings
+
+    assert signature_settings(build_parser().parse_args(["bag"])).probe_worker
+    assert not signature_settings(build_parser().parse_args(["bag", "--one-process"])).probe_worker
