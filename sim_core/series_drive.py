@@ -5,18 +5,24 @@ commanded pose: under a contact load ``F`` along the spring's axis the tool sits
 behind the command. :class:`SeriesSpringDrive` prescribes the effector's rotation and its position
 across a unit axis ``n`` (world, pointing into the contact) kinematically, as
 :mod:`sim_core.effector` does, and along ``n`` places it at ``p(b) = a - b n``, ``a`` the anchor (the
-commanded position). With the tool massless, a step is at rest when
+commanded position). An impedance also damps the tool's own velocity along ``n`` with a damper
+``c`` (N s/m; an arm's Cartesian impedance is a spring and a damper, Hogan 1985, "Impedance Control: An
+Approach to Manipulation", J. Dyn. Syst. Meas. Control 107(1)); with the tool massless and its velocity
+taken over the step, ``(p(b) - p_prev) . n / dt`` (implicit Euler, ``p_prev`` the tool's position at
+the step's start), a step is at rest when
 
-    ``h(b) = F(b) - k_s b = 0``,
+    ``h(b) = F(b) - k_s b + c (p(b) - p_prev) . n / dt = F(b) - K b + c d / dt = 0``,
 
-``F(b)`` (N) the load along ``-n`` that the step's contact forces put on the driven body (the sum of
-the contact and friction forces on its vertices, projected on ``-n``) when the effector ends the step
-at ``p(b)``. Each step is the implicit step of :class:`sim_core.simulation.Simulation` at that pose,
+``K = k_s + c / dt``, ``d = (a - p_prev) . n``, ``F(b)`` (N) the load along ``-n`` that the step's
+contact forces put on the driven body (the sum of the contact and friction forces on its vertices,
+projected on ``-n``) when the effector ends the step at ``p(b)``. The damper is thus a second spring
+``c / dt`` to the tool's last position; in free motion it keeps the tool ``c v / k_s`` behind a command
+moving at ``v``. Each step is the implicit step of :class:`sim_core.simulation.Simulation` at that pose,
 so ``F(b)`` is evaluated by taking the step from the same start state.
 
 Convergence: the load cannot grow as the tool backs off (``F`` non-increasing in ``b``), so ``h`` is
 strictly decreasing and has one root ``b*``. From any start ``b_0`` the root lies between ``b_0`` and
-``b_0 + h(b_0) / k_s``: there ``h = F(b_0 + h(b_0)/k_s) - F(b_0)``, of the opposite sign of ``h(b_0)``.
+``b_0 + h(b_0) / K``: there ``h = F(b_0 + h(b_0)/K) - F(b_0)``, of the opposite sign of ``h(b_0)``.
 The root is therefore bracketed after the first evaluation, and the safeguarded secant iteration
 (a secant step when it lands strictly inside the bracket, else the bracket's midpoint, which halves
 it; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 4) converges from any start.
@@ -53,7 +59,7 @@ class SeriesDriveStep:
     Attributes:
         compression: the spring's compression ``b`` (m) the step ended at (the tool behind its anchor).
         load: the load ``F`` (N) along ``-n`` on the driven body at the end of the step.
-        residual: ``h = F - k_s b`` (N).
+        residual: ``h = F - K b + c d / dt`` (N; ``F - k_s b`` without a damper).
         evaluations: steps evaluated (each one implicit step of the simulation).
         converged: ``|h|`` within the force tolerance, or the bracket narrower than the offset tolerance.
         contact_slope: the last secant's estimate of ``-dF/db`` (N/m, >= 0; 0 when none), the
@@ -79,18 +85,21 @@ class SeriesSpringDrive:
         force_tolerance: ``|h|`` (N) at which a step is accepted (> 0).
         offset_tolerance: bracket width (m) at which a step is accepted (> 0).
         max_evaluations: step evaluations allowed per step (>= 2).
+        damping: the damper ``c`` on the tool's velocity along the axis, N s/m (>= 0; finite).
 
     Raises:
         ConfigError: a stiffness that is not positive, tolerances that are not positive, fewer than
-            two evaluations, or no load vertices.
+            two evaluations, no load vertices, or a damping that is negative or not finite.
     """
 
     def __init__(self, effector: str, stiffness: float, load_vertices: np.ndarray,
                  force_tolerance: float = 1.0e-3, offset_tolerance: float = 1.0e-9,
-                 max_evaluations: int = SERIES_MAX_EVALUATIONS) -> None:
+                 max_evaluations: int = SERIES_MAX_EVALUATIONS, damping: float = 0.0) -> None:
         if not stiffness > 0.0:
             raise ConfigError(f"series drive of {effector!r}: stiffness must be > 0 N/m (inf: kinematic), "
                               f"got {stiffness!r}")
+        if not (math.isfinite(damping) and damping >= 0.0):
+            raise ConfigError(f"series drive of {effector!r}: damping must be finite and >= 0 N s/m, got {damping!r}")
         if not (force_tolerance > 0.0 and offset_tolerance > 0.0):
             raise ConfigError(f"series drive of {effector!r}: tolerances must be > 0, got force "
                               f"{force_tolerance!r} N, offset {offset_tolerance!r} m")
@@ -105,6 +114,7 @@ class SeriesSpringDrive:
         self.force_tolerance = float(force_tolerance)
         self.offset_tolerance = float(offset_tolerance)
         self.max_evaluations = int(max_evaluations)
+        self.damping = float(damping)
 
     @property
     def kinematic(self) -> bool:
@@ -129,6 +139,8 @@ class SeriesSpringDrive:
             start: first compression tried, m (e.g. the previous step's).
             contact_slope: guess of ``-dF/db`` (N/m, >= 0) for the first secant step.
 
+        The damper reads the tool's position at the step's start from ``sim.state.effector_pose``.
+
         Returns:
             the :class:`SeriesDriveStep`; ``sim.step_totals`` count the accepted step only.
 
@@ -145,7 +157,10 @@ class SeriesSpringDrive:
             return SeriesDriveStep(0.0, f, 0.0, 1, True, 0.0)
         state0, totals0 = sim.state, dataclasses.replace(sim.step_totals)
         anchor = np.asarray(control.effector_pose_target[self.effector], dtype=float)
-        k_s = self.stiffness
+        k, pull = self.stiffness, 0.0
+        if self.damping > 0.0:  # the damper as a spring c / dt to the tool's last position (module docstring)
+            previous = np.asarray(state0.effector_pose[self.effector], dtype=float)[:3]
+            k, pull = k + self.damping / sim.dt, self.damping / sim.dt * float(np.dot(anchor[:3] - previous, axis))
 
         guess = [control.position_guess]
 
@@ -158,7 +173,7 @@ class SeriesSpringDrive:
             sim.step(trial)
             guess[0] = sim.state.x  # the next evaluation's Newton start: this one's solution
             f = self.load(sim.state, axis)
-            return f - k_s * b, f
+            return f - k * b + pull, f
 
         b0 = float(start)
         h0, f0 = h(b0)
@@ -167,9 +182,9 @@ class SeriesSpringDrive:
         if abs(h0) <= self.force_tolerance:
             return SeriesDriveStep(b0, f0, h0, n, True, slope)
         # bracket [lo, hi] with h(lo) >= 0 >= h(hi) (module docstring)
-        lo, hi = (b0, b0 + h0 / k_s) if h0 > 0.0 else (b0 + h0 / k_s, b0)
+        lo, hi = (b0, b0 + h0 / k) if h0 > 0.0 else (b0 + h0 / k, b0)
         b_prev, h_prev = b0, h0
-        b = b0 + h0 / (k_s + slope)
+        b = b0 + h0 / (k + slope)
         while True:
             hb, fb = h(b)
             n += 1
@@ -178,7 +193,7 @@ class SeriesSpringDrive:
             else:
                 hi = b
             if b != b_prev and hb != h_prev:
-                slope = max(-(hb - h_prev) / (b - b_prev) - k_s, 0.0)
+                slope = max(-(hb - h_prev) / (b - b_prev) - k, 0.0)
             if abs(hb) <= self.force_tolerance or hi - lo <= self.offset_tolerance or n >= self.max_evaluations:
                 converged = abs(hb) <= self.force_tolerance or hi - lo <= self.offset_tolerance
                 return SeriesDriveStep(b, fb, hb, n, converged, slope)

@@ -575,7 +575,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     model.sensor_calibration = None
     model.reset_nominal()
     drive_fit = fit_drive(model) if drive else None
-    model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf)
+    model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf,
+                              drive_fit.replay_damping if drive_fit is not None else 0.0)
     limits = calibration_bounds(model, params) if params and bounds is None else dict(bounds or {})
     totals: dict[str, Any] = {}
     result = None
@@ -641,6 +642,34 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         where[ch] = not_followed_windows(t, y - calibrated[ch], model.sigma[ch])
     return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals,
                              time.perf_counter() - t_start, stage, where, drive_fit)
+
+
+def kinematic_reference(model, result: CalibrationResult) -> dict[str, np.ndarray] | None:
+    """The calibrated replay with the recorded pose imposed (kinematic) where the calibration's replays went
+    through the arm drive (``result.drive`` compliant): one more replay at the calibrated values, through
+    the calibrated sensor; None where they were kinematic (the prediction is that replay) or nothing was
+    calibrated. A force that leads the gel's own deformation (a damped gel) is read against it
+    (:func:`sysid.diagnose.signatures.damping.lead_recording`).
+
+    Args:
+        model: the calibrated :class:`~sysid.observation.ObservationModel` (its sensor calibration set).
+        result: its :class:`CalibrationResult`.
+
+    Returns:
+        channel -> calibrated prediction, shaped as ``result.prediction``; or None.
+
+    Raises:
+        SimulationDivergedError: the kinematic replay failed.
+    """
+    if result.drive is None or not result.drive.compliant or model.sensor_calibration is None:
+        return None
+    stiffness, damping = model.drive_stiffness, model.drive_damping
+    model.set_drive_stiffness(math.inf)
+    try:
+        raw = model.predict_raw(model.simulate(dict(result.params)))
+    finally:
+        model.set_drive_stiffness(stiffness, damping)
+    return dict(model.sensor_calibration.apply(raw, model.marker_rest))
 
 
 def _totals(trace) -> dict[str, Any] | None:

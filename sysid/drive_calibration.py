@@ -1,16 +1,25 @@
 """Closed-form calibration of the effector's drive along the sensor normal (no replay).
 
-An impedance-controlled arm's measured pose lags its command by the load over its stiffness. Along
-the sensor normal ``n`` (into the contact, at the recorded pose) the recorded normal load on the gel
-``F_n = -F_z`` (sensor frame) then follows the recorded lag ``l = (c - p) . n`` of the command ``c`` past
-the measured position ``p``:
+An impedance-controlled arm's measured pose lags its command by the load over its stiffness, and its
+damper holds the moving tool back (Hogan 1985, "Impedance Control: An Approach to Manipulation", J.
+Dyn. Syst. Meas. Control 107(1)). Along the sensor normal ``n`` (into the contact, at the recorded pose)
+the recorded normal load on the gel ``F_n = -F_z`` (sensor frame) then follows the recorded lag
+``l = (c - p) . n`` of the command ``c`` past the measured position ``p`` and the measured velocity
+``v = dp/dt . n``:
 
-    ``F_n = k_s l + F_0``,
+    ``F_n = k_s l - c_d v + F_0``,
 
-``F_0`` an offset of the force sensor. Ordinary least squares of the recorded load on the recorded lag,
-both at the wrench's stamps, gives the drive's stiffness ``k_s`` (N/m) and its standard error; the
-drive counts as compliant (:attr:`DriveCalibration.compliant`) when the lag explains at least
-:data:`DRIVE_MIN_EXPLAINED` of the load's variance and ``k_s`` is positive. A kinematic drive (the
+``F_0`` an offset of the force sensor; the tool's mass is left out (an arm's tool of 0.1 kg at the
+press's accelerations carries under a hundredth of a newton). In free motion the load is zero and the
+lag is the damper's, ``tau_d v`` with ``tau_d = c_d / k_s``. The fit reads the damper where no load acts,
+from the arm's own streams: ``tau_d`` by least squares of the lag on the velocity (central differences of
+the measured position) and a constant over the samples in free motion (:data:`KEEP_UP`,
+:data:`FREE_LOAD_SIGMAS`), so that a delay or a lag of the tactile streams (latency, a creeping gel) does
+not enter it; then ``k_s`` and ``F_0`` by least squares of the load on ``l - tau_d v``, at the wrench's
+stamps, with their standard errors (``c_d = tau_d k_s``). The drive counts as compliant
+(:attr:`DriveCalibration.compliant`) when the lag explains at least :data:`DRIVE_MIN_EXPLAINED` of the
+load's variance, ``k_s`` is positive and the pad slides under load (:data:`DRIVE_MIN_SLIDE`, the
+motions the drive is validated on). A kinematic drive (the
 pose equal to its command, as in this simulator's own recordings) leaves the lag at the pose noise,
 explains nothing, and keeps the replay kinematic (``inf``).
 
@@ -32,6 +41,23 @@ DRIVE_MIN_EXPLAINED = 0.9
 """Smallest fraction of the recorded normal load's variance the lag must explain (the coefficient of
 determination) for the drive to count as compliant: nine tenths, a load set by the lag, not by noise."""
 
+KEEP_UP = 0.5
+"""A sample counts as free motion only where the tool keeps at least this share of its command's speed
+along the normal: in free motion it follows the command (the damper only delays it), in contact it moves at
+``k_s / (k_s + k_c)`` of it, about a tenth for a 3 N/mm arm on a 35-40 N/mm contact."""
+
+FREE_LOAD_SIGMAS = 2.0
+"""... and where the load lies within this many noise levels of its free level (no contact load)."""
+
+LOADED_FRACTION = 0.2
+"""The pad counts as loaded above this fraction of the peak normal load (the contact events' level of
+:mod:`sysid.diagnose.signatures.timing`)."""
+
+DRIVE_MIN_SLIDE = 0.01
+"""Shortest slide under load (m) of a recording that takes the drive: the drive is validated on
+press-and-slide motions (the development and reference press-slides slide 16-31 mm under load, their
+lift-and-fold motions 1-8 mm); elsewhere the replay stays kinematic."""
+
 
 @dataclass(frozen=True)
 class DriveCalibration:
@@ -40,8 +66,11 @@ class DriveCalibration:
     Attributes:
         stiffness: ``k_s`` (N/m) of the least-squares fit (nan when it could not be fitted).
         stiffness_sigma: its standard error, N/m.
+        damping: ``c_d`` (N s/m) of the same fit (nan when it could not be fitted).
+        damping_sigma: its standard error, N s/m.
         offset: ``F_0``, N.
         explained: coefficient of determination of the fit (-).
+        residual_rms: root mean square of the load the fit leaves, N (nan when it could not be fitted).
         samples: wrench samples used.
         compliant: whether the replay takes the drive (``explained >= DRIVE_MIN_EXPLAINED``, ``k_s > 0``).
         why: why the drive is kept kinematic ("" when compliant).
@@ -49,56 +78,119 @@ class DriveCalibration:
 
     stiffness: float
     stiffness_sigma: float
+    damping: float
+    damping_sigma: float
     offset: float
     explained: float
     samples: int
     compliant: bool
     why: str = ""
+    residual_rms: float = math.nan
 
     @property
     def replay_stiffness(self) -> float:
         """The stiffness a replay takes: :attr:`stiffness` when compliant, else ``inf`` (kinematic)."""
         return self.stiffness if self.compliant else math.inf
 
+    @property
+    def replay_damping(self) -> float:
+        """The damping a replay takes, N s/m: :attr:`damping` when compliant and positive, else 0 (a damper
+        that feeds energy in is no arm's)."""
+        return max(self.damping, 0.0) if self.compliant else 0.0
+
     def summary(self) -> dict:
         """JSON-ready."""
         return {"stiffness": float(self.stiffness), "stiffness_sigma": float(self.stiffness_sigma),
+                "damping": float(self.damping), "damping_sigma": float(self.damping_sigma),
+                "replay_damping": float(self.replay_damping),
                 "offset": float(self.offset), "explained": float(self.explained), "samples": int(self.samples),
+                "residual_rms": float(self.residual_rms),
                 "compliant": bool(self.compliant), "replay_stiffness": float(self.replay_stiffness), "why": self.why}
+
+
+def _free_motion_time_constant(lag: np.ndarray, velocity: np.ndarray, command_velocity: np.ndarray,
+                               load: np.ndarray, sigma: float) -> float:
+    """The damper's time constant ``c_d / k_s`` (s) from the samples in free motion (module docstring): where
+    the command advances into the contact, the tool keeps at least :data:`KEEP_UP` of its speed along ``n``
+    and the load lies within :data:`FREE_LOAD_SIGMAS` noise levels of its median there, least squares of the
+    lag on the velocity and a constant; 0 with fewer than three such samples or no speed among them. (On a
+    retreat a decompressing gel lets a loaded tool keep up with its command: only the approach is read.)"""
+    moving = (command_velocity > 0.0) & (velocity >= KEEP_UP * command_velocity)
+    if moving.sum() < 3:
+        return 0.0
+    free = moving & (np.abs(load - np.median(load[moving])) <= FREE_LOAD_SIGMAS * sigma)
+    if free.sum() < 3 or np.ptp(velocity[free]) <= 0.0:
+        return 0.0
+    coef, *_ = np.linalg.lstsq(np.column_stack([velocity[free], np.ones(int(free.sum()))]), lag[free], rcond=None)
+    return float(coef[0])
+
+
+def loaded_slide(pose: np.ndarray, normal: np.ndarray, load: np.ndarray) -> float:
+    """Path length (m) the tool travels across the sensor normal while the normal load exceeds
+    :data:`LOADED_FRACTION` of its peak: the slide of a press-and-slide.
+
+    Args:
+        pose: measured poses ``(n, 7)`` at the load's stamps, m.
+        normal: unit sensor normals ``(n, 3)`` there.
+        load: normal load ``(n,)``, N.
+    """
+    if load.size < 2 or not np.max(load) > 0.0:
+        return 0.0
+    step = np.diff(pose[:, :3], axis=0)
+    across = step - np.einsum("ij,ij->i", step, normal[1:])[:, None] * normal[1:]
+    loaded = load[1:] > LOADED_FRACTION * float(np.max(load))
+    return float(np.linalg.norm(across[loaded], axis=1).sum())
 
 
 def fit_drive(model) -> DriveCalibration:
     """Fit the drive of ``model``'s recording (module docstring).
 
     Args:
-        model: the :class:`~sysid.observation.ObservationModel` (its evidence and sensor normal).
+        model: the :class:`~sysid.observation.ObservationModel` (its evidence, noise levels and sensor normal).
 
     Returns:
         the :class:`DriveCalibration`; kinematic, with the reason, when the recording has no commanded
-        pose or no wrench, or the lag does not explain the load.
+        pose or no wrench, the lag does not explain the load, or the pad does not slide under load.
     """
     ev = model.evidence
     missing = [ch for ch in ("pose", "pose_cmd", "wrench") if ch not in ev.channels_present]
     if missing or model.sensor is None:
         why = f"no {', '.join(missing)} recorded" if missing else "no tactile sensor"
-        return DriveCalibration(math.nan, math.nan, math.nan, 0.0, 0, False, why)
+        return DriveCalibration(math.nan, math.nan, math.nan, math.nan, math.nan, 0.0, 0, False, why)
     t = np.asarray(ev.t_ns["wrench"], dtype=np.int64)
     load = -np.asarray(ev.values("wrench"), dtype=float)[:, 2]
     pose = resample_pose(ev.t_ns["pose"], ev.pose, t, outside="clamp")
     command = resample_pose(ev.t_ns["pose_cmd"], ev.pose_cmd, t, outside="clamp")
     normal = np.stack([model.sensor_normal(p) for p in pose])
     lag = np.einsum("ij,ij->i", command[:, :3] - pose[:, :3], normal)
-    design = np.column_stack([lag, np.ones_like(lag)])
+    n = int(load.size)
+    if n < 4 or np.ptp(lag) <= 0.0:
+        return DriveCalibration(math.nan, math.nan, math.nan, math.nan, math.nan, 0.0, n, False,
+                                "the lag does not vary")
+    seconds = (t - t[0]) * 1e-9
+    velocity = np.einsum("ij,ij->i", np.gradient(pose[:, :3], seconds, axis=0), normal)
+    command_velocity = np.einsum("ij,ij->i", np.gradient(command[:, :3], seconds, axis=0), normal)
+    tau = _free_motion_time_constant(lag, velocity, command_velocity, load, float(model.sigma["wrench"][2]))
+    design = np.column_stack([lag - tau * velocity, np.ones_like(lag)])
     coef, _, rank, _ = np.linalg.lstsq(design, load, rcond=None)
     residual = load - design @ coef
     spread = float(np.sum((load - load.mean()) ** 2))
-    n = int(load.size)
-    if rank < 2 or n < 3 or spread <= 0.0:
-        return DriveCalibration(math.nan, math.nan, math.nan, 0.0, n, False, "the lag does not vary")
+    if rank < 2 or spread <= 0.0:
+        return DriveCalibration(math.nan, math.nan, math.nan, math.nan, math.nan, 0.0, n, False,
+                                "the lag does not vary")
     explained = 1.0 - float(np.sum(residual ** 2)) / spread
     cov = np.linalg.inv(design.T @ design) * float(np.sum(residual ** 2)) / (n - 2)
     k, f0 = float(coef[0]), float(coef[1])
-    compliant = explained >= DRIVE_MIN_EXPLAINED and k > 0.0
-    why = "" if compliant else (f"the lag explains {explained:.2f} of the load's variance "
-                                f"(< {DRIVE_MIN_EXPLAINED}) or k_s = {k:.3g} N/m <= 0")
-    return DriveCalibration(k, float(math.sqrt(cov[0, 0])), f0, explained, n, compliant, why)
+    k_sigma = float(math.sqrt(cov[0, 0]))
+    slide = loaded_slide(pose, normal, load)
+    compliant = explained >= DRIVE_MIN_EXPLAINED and k > 0.0 and slide >= DRIVE_MIN_SLIDE
+    if compliant:
+        why = ""
+    elif slide < DRIVE_MIN_SLIDE:
+        why = (f"the pad slides {slide * 1e3:.1f} mm under load (< {DRIVE_MIN_SLIDE * 1e3:.0f} mm): not a "
+               "press-and-slide, where the drive is validated")
+    else:
+        why = (f"the lag explains {explained:.2f} of the load's variance (< {DRIVE_MIN_EXPLAINED}) "
+               f"or k_s = {k:.3g} N/m <= 0")
+    return DriveCalibration(k, k_sigma, tau * k, abs(tau) * k_sigma, f0, explained, n, compliant, why,
+                            float(np.sqrt(np.mean(residual ** 2))))

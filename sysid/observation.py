@@ -50,7 +50,6 @@ from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.scenes.task_file import TaskSceneFile, is_task_scene, load_any_scene_file
 from sim_core.scenes.task_scene import build_task_scene
-from sim_core.series_drive import SeriesSpringDrive
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
@@ -76,9 +75,6 @@ NOISE_FLOOR = {"markers_xyz": 1e-7, "markers_uv": 1e-3, "wrench": 1e-4, "sheet_p
 """Lower bound of a per-axis noise level (SI / px): a noise-free (synthetic or quantised) channel
 would otherwise get an infinite weight."""
 
-
-DRIVE_FORCE_TOLERANCE = 0.5
-"""Force tolerance of a series drive's step, in noise levels of the recorded normal force (-)."""
 
 REPLAY_DT_HALVINGS = 4
 """Substep retries of a replay step whose Newton solve fails (``SolverConfig.dt_halvings_on_failure``):
@@ -221,6 +217,7 @@ class ObservationModel:
         controls: ``(K + 1, 7)`` effector target poses (row 0 = initial pose).
         drive_stiffness: stiffness (N/m) of the effector's drive along the sensor normal
             (:meth:`set_drive_stiffness`); ``inf`` (default): the recorded pose driven kinematically.
+        drive_damping: the drive's damper on the effector's velocity along the normal, N s/m (0 by default).
         commands: ``(K + 1, 7)`` recorded commanded poses (``pose_cmd``) at the step times, or None.
         warm_start: None, or vertex positions ``(K + 1, n, 3)`` in m of a replay at nearby
             parameters (``SimTrace.positions``): every replay then starts the Newton solve of step
@@ -280,6 +277,7 @@ class ObservationModel:
         self.marker_rest: np.ndarray | None = None
         self.sigma_scale: dict[str, float] | None = None
         self.drive_stiffness = math.inf
+        self.drive_damping = 0.0
         commanded = not self.task and "pose_cmd" in evidence.channels_present
         self.commands = (resample_pose(evidence.t_ns["pose_cmd"], evidence.pose_cmd, self.step_times_ns,
                                        outside="clamp") if commanded else None)
@@ -534,28 +532,28 @@ class ObservationModel:
         sim.reset()
         return sim
 
-    def set_drive_stiffness(self, stiffness: float) -> None:
+    def set_drive_stiffness(self, stiffness: float, damping: float = 0.0) -> None:
         """Replay the effector on a series spring of ``stiffness`` (N/m) along the sensor normal, anchored
-        at the recorded command (:mod:`sysid.replay_drive`; ``inf``: the recorded pose, kinematic).
+        at the recorded command, with a damper of ``damping`` (N s/m) on its velocity there
+        (:mod:`sysid.replay_drive`; ``inf``: the recorded pose, kinematic, and no damper).
 
         Raises:
-            CalibrationError: a stiffness that is not > 0; a finite one for a task scene.
+            CalibrationError: a stiffness that is not > 0; a finite one for a task scene; a damping that is
+                negative or not finite.
         """
-        stiffness = float(stiffness)
+        stiffness, damping = float(stiffness), float(damping)
         if not stiffness > 0.0 or (self.task and not math.isinf(stiffness)):
             raise CalibrationError(f"drive stiffness must be > 0 N/m (inf: kinematic) and infinite for a task "
                                    f"scene, got {stiffness!r}")
+        if not (math.isfinite(damping) and damping >= 0.0):
+            raise CalibrationError(f"drive damping must be finite and >= 0 N s/m, got {damping!r}")
         self.drive_stiffness = stiffness
+        self.drive_damping = damping if math.isfinite(stiffness) else 0.0
 
     def replay_drive(self) -> ReplayDrive | None:
-        """The series drive of :attr:`drive_stiffness` for the next replay (None: kinematic)."""
-        if math.isinf(self.drive_stiffness):
-            return None
-        sim = self.simulation()
-        gel = sim.model.bodies[sim.model.sensors[self.sensor].gel_body].vertices
-        tolerance = DRIVE_FORCE_TOLERANCE * float(self.sigma["wrench"][2]) if "wrench" in self.sigma else 1.0e-3
-        spring = SeriesSpringDrive(self.effector, self.drive_stiffness, gel, force_tolerance=tolerance)
-        return ReplayDrive(spring, self.controls, self.commands, self.sensor_normal)
+        """The series drive of :attr:`drive_stiffness` and :attr:`drive_damping` for the next replay (None:
+        kinematic; :meth:`sysid.replay_drive.ReplayDrive.of_model`)."""
+        return ReplayDrive.of_model(self)
 
     def controls_list(self, guess: np.ndarray | None = None) -> list[Control]:
         """The K kinematic controls of one replay, with the Newton start of each step from

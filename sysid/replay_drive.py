@@ -5,13 +5,15 @@ replay that imposes the measured pose (the kinematic drive) loads the gel throug
 stiffness instead, so a sink of the measured pose by 0.1 mm while the pad slides becomes a few newtons
 more load (docs/benchmarks_log.md, session 37, 23drag). :class:`ReplayDrive` replays such an arm:
 along the sensor normal ``n`` the pad hangs on a spring of stiffness ``k_s`` anchored at the recorded
-command's position along ``n`` (the recorded pose's where no command was recorded), across ``n`` and in
-rotation it follows the recorded pose, and each step is solved for the spring's compression
+command's position along ``n`` (the recorded pose's where no command was recorded), with the arm's
+damper on the pad's velocity along ``n`` beside it, across ``n`` and in rotation it follows the recorded
+pose, and each step is solved for the spring's compression
 (:class:`sim_core.series_drive.SeriesSpringDrive`). The recorded wrench is not an input.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
@@ -20,11 +22,16 @@ from sim_core.control import Control
 from sim_core.series_drive import SeriesSpringDrive
 
 
+DRIVE_FORCE_TOLERANCE = 0.5
+"""Force tolerance of a series drive's step, in noise levels of the recorded normal force (-)."""
+
+
 class ReplayDrive:
     """Series drive of one replay.
 
     Args:
-        spring: the :class:`~sim_core.series_drive.SeriesSpringDrive` (its effector, stiffness, gel vertices).
+        spring: the :class:`~sim_core.series_drive.SeriesSpringDrive` (its effector, stiffness, damping, gel
+            vertices).
         controls: ``(K + 1, 7)`` the replay's recorded poses at the step times.
         commands: ``(K + 1, 7)`` the recorded commanded poses at the step times, or None (the spring is
             then anchored at the recorded pose).
@@ -42,6 +49,20 @@ class ReplayDrive:
         self.commands = commands
         self.normal = normal
         self.start()
+
+    @classmethod
+    def of_model(cls, model) -> "ReplayDrive | None":
+        """The drive of an :class:`~sysid.observation.ObservationModel`'s next replay: its ``drive_stiffness``
+        and ``drive_damping`` on the sensor's gel, each step solved to :data:`DRIVE_FORCE_TOLERANCE` of the
+        recorded normal force's noise; None for a kinematic drive (``inf``)."""
+        if math.isinf(model.drive_stiffness):
+            return None
+        sim = model.simulation()
+        gel = sim.model.bodies[sim.model.sensors[model.sensor].gel_body].vertices
+        tolerance = DRIVE_FORCE_TOLERANCE * float(model.sigma["wrench"][2]) if "wrench" in model.sigma else 1.0e-3
+        spring = SeriesSpringDrive(model.effector, model.drive_stiffness, gel, force_tolerance=tolerance,
+                                   damping=model.drive_damping)
+        return cls(spring, model.controls, model.commands, model.sensor_normal)
 
     def start(self) -> None:
         """Begin a replay: no compression carried, counts at zero."""
@@ -65,10 +86,11 @@ class ReplayDrive:
         anchored = Control({**control.effector_pose_target, name: pose}, dict(control.gripper_target),
                            control.position_guess)
         # first guess: the last compression, plus the share of the anchor's advance along the normal that
-        # the contact takes from the spring in series (k_c / (k_c + k_s), k_c the last contact slope)
+        # the contact takes from the spring in series (k_c / (k_c + K), k_c the last contact slope, K the
+        # spring's stiffness with the damper's c / dt beside it)
         compression, slope = self._carried
         advance = 0.0 if self._anchor is None else float(np.dot(pose[:3] - self._anchor, axis))
-        start = compression + advance * slope / (slope + self.spring.stiffness)
+        start = compression + advance * slope / (slope + self.spring.stiffness + self.spring.damping / sim.dt)
         result = self.spring.step(sim, anchored, axis, start=start, contact_slope=slope)
         self._carried = (result.compression, result.contact_slope)
         self._anchor = pose[:3].copy()
@@ -76,6 +98,8 @@ class ReplayDrive:
         self.unconverged += int(not result.converged)
 
     def summary(self) -> dict[str, float]:
-        """JSON-ready: stiffness (N/m), whether anchored at the command, evaluations, unconverged steps."""
-        return {"stiffness": self.spring.stiffness, "anchored_at_command": self.commands is not None,
+        """JSON-ready: stiffness (N/m), damping (N s/m), whether anchored at the command, evaluations,
+        unconverged steps."""
+        return {"stiffness": self.spring.stiffness, "damping": self.spring.damping,
+                "anchored_at_command": self.commands is not None,
                 "evaluations": int(self.evaluations), "unconverged": int(self.unconverged)}

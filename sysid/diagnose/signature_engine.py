@@ -44,7 +44,7 @@ import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
-                               nominal_sensor_calibration)
+                               kinematic_reference, nominal_sensor_calibration)
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
@@ -54,7 +54,7 @@ from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay
                                                 normal_load_excess, shear_breakaway)
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
-from sysid.diagnose.signatures.damping import contact_force
+from sysid.diagnose.signatures.damping import contact_force, lead_recording
 from sysid.diagnose.signatures.sensor import apply_force_bias, free_gel_rows, lens_design
 from sysid.diagnose.signatures.timing import delayed, first_order, smoothed_replay, timing_fits, timing_signal
 from sysid.evidence import load_evidence
@@ -84,8 +84,8 @@ class SignatureSettings:
             regularisation, :mod:`sysid.calibration_secant`; default
             :data:`sysid.calibration_secant.SECANT_REPLAYS`; none when ``calibrate`` is False).
         calibration_drive: calibrate the arm's drive along the sensor normal (a spring about the
-            recorded command, :func:`sysid.drive_calibration.fit_drive`) and replay through it; False,
-            the default: the recorded pose driven kinematically.
+            recorded command and a damper, :func:`sysid.drive_calibration.fit_drive`) and replay through
+            it where it is compliant (the default); False: the recorded pose driven kinematically.
         baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
             statistic the test reaches on the baselines (the effect-size thresholds stay the
             instrument's resolution).
@@ -110,7 +110,7 @@ class SignatureSettings:
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
     calibration_secant_replays: int = SECANT_REPLAYS
-    calibration_drive: bool = False
+    calibration_drive: bool = True
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
@@ -148,8 +148,10 @@ class Prepared:
     refit_predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
-def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None) -> Recording:
-    """The :class:`Recording` view of a (calibrated) observation model and its prediction."""
+def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None,
+                 reference: Mapping[str, np.ndarray] | None = None) -> Recording:
+    """The :class:`Recording` view of a (calibrated) observation model and its prediction (``reference``:
+    :attr:`Recording.reference`)."""
     ev = model.evidence
     t0 = ev.start_ns
     t = {ch: (np.asarray(ev.t_ns[ch], dtype=np.int64) - t0) * 1e-9 for ch in ev.channels_present}
@@ -165,7 +167,8 @@ def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] |
         cam = model.scene["sensors"][model.sensor]["camera"]
         camera = (float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]), float(cam["distance"]))
     return Recording(t=t, data=data, prediction=None if prediction is None else dict(prediction), sigma=sigma,
-                     camera=camera, name=Path(str(ev.source.bag_path)).name)
+                     camera=camera, name=Path(str(ev.source.bag_path)).name,
+                     reference=None if reference is None else dict(reference))
 
 
 def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
@@ -173,7 +176,9 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
 
     A recording whose replay cannot be calibrated (the replay at the scene values diverges) keeps
     the tests that read the recording alone (lens distortion, force bias on the markers' rest rows);
-    ``notes`` says why the others did not run.
+    ``notes`` says why the others did not run. Where the replay with the recorded pose imposed (the damping
+    test's reference through the drive, :func:`sysid.calibration.kinematic_reference`) diverges, the damping
+    test reads the drive's replay and ``notes`` says so.
 
     Raises:
         BagReadError: unreadable recording.
@@ -201,7 +206,13 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         if worker is not None:
             worker.close()
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
-    rec = recording_of(model, prediction or None)
+    reference = None
+    try:
+        reference = kinematic_reference(model, cal) if prediction else None
+    except SimulationDivergedError as err:
+        notes.append(f"{bag}: the replay with the recorded pose imposed diverged ({err}); gel damping is read "
+                     "against the drive's replay")
+    rec = recording_of(model, prediction or None, reference)
     results = run_signature_tests(rec)
     return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
 
@@ -317,11 +328,11 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     """Delay (latency), first-order lag (gel viscoelasticity) or Kelvin-Voigt time constant (damping:
     the replay's force plus tau times its rate, never tensile: :func:`contact_force`) fitted on all
     contact events but one and evaluated on that one, for every event (leave one event out)."""
-    rec = p.recording
+    latency, lead = r.effect == "latency", r.effect == "damping"
+    rec = lead_recording(p.recording) if lead else p.recording  # the damping test's replay
     fits = timing_fits(rec)
     events = fits["events"] if fits else []
     channel, t, y, yp, sigma = timing_signal(rec)
-    latency, lead = r.effect == "latency", r.effect == "damping"
     if not lead:  # the delay and the lag read the replay as the tests do (Kelvin-Voigt filters it itself)
         yp = smoothed_replay(t, yp)
     y, yp = y[:, None], yp[:, None]

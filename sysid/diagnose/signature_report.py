@@ -14,7 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sysid.diagnose.report import write_report_files
-from sysid.diagnose.signatures.damping import contact_force
+from sysid.diagnose.signatures.damping import contact_force, lead_recording
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway, shear_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
 from sysid.diagnose.signatures.timing import delayed, first_order, timing_signal
@@ -36,7 +36,8 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
     else:
         fig, ax = plt.subplots(figsize=(9, 3.6))
     if effect in ("latency", "gel_viscoelasticity", "damping"):
-        channel, t, y, yp, _ = timing_signal(rec)
+        kinematic = effect == "damping" and rec.reference is not None
+        channel, t, y, yp, _ = timing_signal(lead_recording(rec) if effect == "damping" else rec)
         if effect == "gel_viscoelasticity":
             after = first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
         elif effect == "damping":
@@ -44,7 +45,7 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         else:
             after = delayed(t, yp, params.get("latency_s", 0.0))
         ax.plot(t, y, "k.", ms=2, label="recorded")
-        ax.plot(t, yp, "C0-", lw=1, label="calibrated replay")
+        ax.plot(t, yp, "C0-", lw=1, label="calibrated replay" + (", recorded pose imposed" if kinematic else ""))
         ax.plot(t, after, "C3-", lw=1, label=f"replay with {effect}")
         ax.set_ylabel("normal force, N" if channel == "wrench" else "mean marker depth, m")
     elif effect == "force_bias":

@@ -102,3 +102,29 @@ def test_invalid_drives_are_refused(stiffness, axis, match):
     with pytest.raises(ConfigError, match=match):
         drive = SeriesSpringDrive("ee", stiffness, _gel_vertices(sim))
         drive.step(sim, Control({"ee": _pose(START_Z)}), axis)
+
+
+def test_a_damper_holds_the_moving_tool_back_by_c_v_over_k_s_in_free_motion():
+    """An anchor lowered at v = 5 mm/s above the table (no contact): with a damper c on the tool's velocity
+    the tool settles ``c v / k_s`` behind it (the implicit step's steady state is exact, ``k_s b = c (v dt
+    + b - b) / dt``, reached geometrically by the factor ``(c / dt) / (k_s + c / dt)``, a half here, per
+    step), here 3000 N/m and 30 N s/m: 50 um, a 10 ms delay; without the damper it sits at its anchor."""
+    k_s, c, v, dt = 3000.0, 30.0, 0.005, 0.01
+    lag = {}
+    for damping in (0.0, c):
+        sim = _simulation()
+        drive = SeriesSpringDrive("ee", k_s, _gel_vertices(sim), damping=damping)
+        z0 = float(sim.state.effector_pose["ee"][2])
+        for k in range(1, 16):
+            anchor = z0 - v * dt * k
+            result = drive.step(sim, Control({"ee": _pose(anchor)}), DOWN)
+            assert result.converged and result.load == 0.0
+        lag[damping] = float(sim.state.effector_pose["ee"][2]) - anchor
+    assert lag[0.0] == 0.0
+    assert lag[c] == pytest.approx(c * v / k_s, rel=0.5 ** 15 * 1.01)
+
+
+@pytest.mark.parametrize("damping", [-1.0, math.inf, math.nan])
+def test_an_invalid_damper_is_refused(damping):
+    with pytest.raises(ConfigError, match="damping must be finite and >= 0"):
+        SeriesSpringDrive("ee", 3000.0, _gel_vertices(_simulation()), damping=damping)

@@ -34,6 +34,9 @@ class Recording:
         camera: pinhole intrinsics ``(fx, fy, cx, cy, d)`` (px, px, px, px, m) of the sensor
             calibration in force.
         name: recording name (for messages).
+        reference: where ``prediction`` went through the calibrated arm drive (:mod:`sysid.replay_drive`),
+            the same calibrated replay with the recorded pose imposed (kinematic), channel -> values as
+            ``prediction``: a force read against the recorded deformation (gel damping) reads it; else None.
     """
 
     t: Mapping[str, np.ndarray]
@@ -42,6 +45,7 @@ class Recording:
     sigma: Mapping[str, np.ndarray]
     camera: tuple[float, float, float, float, float]
     name: str = ""
+    reference: Mapping[str, np.ndarray] | None = None
 
     def has(self, *channels: str) -> bool:
         """Whether every channel is recorded."""

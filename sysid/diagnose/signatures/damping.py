@@ -35,6 +35,14 @@ deformation later than the recording (e.g. its buckled card keeps pushing the li
 force's lead there is that gap: the event is left out of the statistic and the size
 (:func:`deformation_lead`).
 
+Through the calibrated arm drive (:mod:`sysid.replay_drive`) the replay's pad is not the recorded pose:
+in series with the arm's spring ``k_s`` a damped gel of contact stiffness ``k_c`` moves its *deformation*
+``tau k_c / (k_s + k_c)`` behind the undamped replay's and its force only ``tau k_s / (k_s + k_c)``
+ahead of it (to first order in ``tau d/dt``: ``x = k_s c / (k_s + k_c (1 + tau s))``, ``F = k_c (1 + tau
+s) x``), a tenth of the lead for a 3 N/mm arm on a 35-40 N/mm contact. The lead over the gel's own
+deformation is read, as without the drive, against the calibrated replay with the recorded pose
+imposed (:attr:`~sysid.diagnose.signatures.base.Recording.reference`, :func:`lead_recording`).
+
 Confusable effects read the same windows with the opposite sign: latency delays every event by the
 same time (``tau < 0`` here), a first-order lag (gel viscoelasticity) rounds and delays it; neither
 gives a lead at every event, so the three are told apart by the sign of the shift.
@@ -43,6 +51,8 @@ Without a wrench the mean marker depth is used in the same way (:func:`timing.ti
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -118,6 +128,13 @@ def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
     return float(r @ r)
 
 
+def lead_recording(rec: Recording) -> Recording:
+    """The recording with the replay the lead is read against (module docstring): the calibrated replay
+    with the recorded pose imposed (``rec.reference``) where the prediction went through the arm drive,
+    else ``rec`` itself."""
+    return rec if rec.reference is None else dataclasses.replace(rec, prediction=rec.reference, reference=None)
+
+
 def lead_fits(rec: Recording, taus: np.ndarray | None = None) -> dict | None:
     """Whitened SSE of every contact event's window against the replay's Kelvin-Voigt contact force
     (:func:`contact_force`) for each time constant.
@@ -181,8 +198,9 @@ def deformation_lead(rec: Recording, window: tuple[float, float] | list[float]) 
 
 
 def damping_test(rec: Recording) -> SignatureResult:
-    """Gel damping from the lead of the recorded contact force over the calibrated replay (module
-    docstring: statistic, effect size, estimate)."""
+    """Gel damping from the lead of the recorded contact force over the calibrated replay with the recorded
+    pose imposed (:func:`lead_recording`; module docstring: statistic, effect size, estimate)."""
+    rec = lead_recording(rec)
     fits = lead_fits(rec)
     if fits is None:
         return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")

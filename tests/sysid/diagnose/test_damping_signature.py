@@ -8,8 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sysid.diagnose.signatures.damping import contact_force, damping_test, dispersion, kelvin_voigt
+from sysid.diagnose.signatures.damping import contact_force, damping_test, dispersion, kelvin_voigt, lead_recording
 from sysid.diagnose.signatures.null import default_thresholds
+from sysid.diagnose.signatures.timing import delayed
 from tests.sysid.diagnose.test_signatures import named, press_profile, synthetic
 
 
@@ -110,3 +111,24 @@ def test_a_release_lead_the_deformation_shares_is_not_damping(seed):
     damped = synthetic(np.random.default_rng(seed), damping=0.03)
     assert not damping_test(damped).detail["events_left_out"]
     assert named(damped) == ["damping"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_through_the_arm_drive_the_lead_is_read_against_the_recorded_pose(seed):
+    """A 30 ms Kelvin-Voigt gel pressed through a 3 N/mm arm on a 36 N/mm contact: the replay through the
+    drive (undamped) deforms ``tau k_c / (k_s + k_c)`` = 27.7 ms ahead of the recording and its force leads
+    the recorded force by the rest, 2.3 ms, under the 10 ms a lead must reach: read against that replay
+    alone damping is not named. Read against the replay with the recorded pose imposed
+    (``Recording.reference``, the exact replay here) the lead is the gel's 30 ms: named, as without the
+    drive."""
+    rec = synthetic(np.random.default_rng(seed), damping=0.03)
+    ahead = 0.03 * 36.0 / (3.0 + 36.0)
+    driven = {ch: delayed(rec.t[ch], v, -ahead) for ch, v in rec.prediction.items()}
+    alone = dataclasses.replace(rec, prediction=driven)
+    assert damping_test(alone).effect_size < default_thresholds(alone).effect_size["damping"]
+    assert "damping" not in named(alone)
+    through_drive = dataclasses.replace(rec, prediction=driven, reference=rec.prediction)
+    assert lead_recording(through_drive).prediction is rec.prediction
+    r = damping_test(through_drive)
+    assert r.estimate["tau_s"] == pytest.approx(0.03, abs=0.005)
+    assert named(through_drive) == ["damping"]

@@ -53,3 +53,21 @@ def test_no_baseline_prepares_the_recording_alone_and_a_ray_address_needs_ray(tw
     monkeypatch.setattr(builtins, "__import__", no_ray)
     with pytest.raises(CalibrationError, match="ray-address auto given but the 'ray' package is not installed"):
         prepare_with_baselines(bag, [baseline], settings, ray_address="auto")
+
+
+def test_a_diverged_kinematic_reference_is_noted_and_the_diagnosis_goes_on(two_recordings, monkeypatch):
+    """Where the replay with the recorded pose imposed (the damping test's reference through the drive)
+    diverges, the recording is still prepared: the tests run on the calibrated replay and ``notes`` says why
+    the reference is missing."""
+    from sim_core.errors import SimulationDivergedError
+    from sysid.diagnose import signature_engine
+
+    def diverged(*args, **kwargs):
+        raise SimulationDivergedError("step 339 (t = 3.39 s): Newton failed")
+
+    monkeypatch.setattr(signature_engine, "kinematic_reference", diverged)
+    bag, _ = two_recordings
+    p = signature_engine.prepare(bag, SignatureSettings(calibrate=False))
+    assert p.recording.reference is None and p.recording.prediction is not None
+    assert any("recorded pose imposed diverged" in n and "step 339" in n for n in p.notes)
+    assert "damping" in p.results and "lens_distortion" in p.results
