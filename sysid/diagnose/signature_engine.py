@@ -85,7 +85,7 @@ class SignatureSettings:
             :data:`sysid.calibration_secant.SECANT_REPLAYS`; none when ``calibrate`` is False).
         calibration_drive: calibrate the arm's drive along the sensor normal (a spring about the
             recorded command and a damper, :func:`sysid.drive_calibration.fit_drive`) and replay through
-            it where it is compliant (the default); False: the recorded pose driven kinematically.
+            it where it is compliant; False (the default): the recorded pose driven kinematically.
         baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
             statistic the test reaches on the baselines (the effect-size thresholds stay the
             instrument's resolution).
@@ -110,7 +110,7 @@ class SignatureSettings:
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
     calibration_secant_replays: int = SECANT_REPLAYS
-    calibration_drive: bool = True
+    calibration_drive: bool = False
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None

@@ -137,16 +137,16 @@ def test_calibrations_are_bounded_by_a_replay_count_not_by_seconds(capsys):
 
 
 def test_diagnose_drive_flag_reaches_the_calibration_and_needs_one_replay(capsys):
-    """``thinshell diagnose`` asks the calibration for the arm's drive by default (``--no-drive``: kinematic),
-    and refuses a replay budget the drive cannot take (its replays have no tangents) unless told
-    ``--no-drive``."""
+    """``thinshell diagnose`` replays the recorded pose kinematically by default, asks the calibration for
+    the arm's drive with ``--drive``, and refuses with it a replay budget the drive cannot take (its replays
+    have no tangents)."""
     from sysid.diagnose.cli import build_parser as diagnose_parser, diagnose_main, signature_settings
     from sysid.diagnose.signature_engine import SignatureSettings
 
-    assert SignatureSettings().calibration_drive
-    assert signature_settings(diagnose_parser().parse_args(["bag"])).calibration_drive
+    assert not SignatureSettings().calibration_drive
+    assert not signature_settings(diagnose_parser().parse_args(["bag"])).calibration_drive
     assert signature_settings(diagnose_parser().parse_args(["bag", "--drive"])).calibration_drive
     assert not signature_settings(diagnose_parser().parse_args(["bag", "--no-drive"])).calibration_drive
-    assert diagnose_main(["no_such_bag", "--calibration-replays", "2"]) == 2
-    assert "--drive (the default) takes one calibration replay" in capsys.readouterr().err
+    assert diagnose_main(["no_such_bag", "--drive", "--calibration-replays", "2"]) == 2
+    assert "--drive takes one calibration replay" in capsys.readouterr().err
     assert "--no-drive" in diagnose_parser().format_help()
