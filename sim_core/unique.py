@@ -7,7 +7,8 @@ sparsity pattern (:mod:`sim_core.dynamic_slots`) and once per static pattern
 (:class:`sim_core.assembly.StaticPattern`). :func:`sorted_unique` returns what ``np.unique`` does
 (first occurrences through a stable sort), from a sort and a comparison of neighbours.
 :func:`compact_indices` gives ``np.unique(indices, return_inverse=True)`` of non-negative integer indices
-without a sort (a presence mask): the vertices a set of contact pairs names.
+without a sort (a presence mask): the vertices a set of contact pairs names; :func:`spread_rows` puts rows
+computed on those vertices back into a full array.
 """
 
 from __future__ import annotations
@@ -82,3 +83,20 @@ def compact_indices(indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     named[indices.ravel()] = True
     position = np.cumsum(named) - 1
     return np.flatnonzero(named), position[indices]
+
+
+def spread_rows(own: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """A new ``(n, 3)`` array: ``rows`` at the positions ``own`` (:func:`compact_indices`' distinct values),
+    zero elsewhere; e.g. a gradient computed on the vertices a set of contact pairs names.
+
+    Args:
+        own: int ``(u,)`` distinct row indices in ``[0, n)``.
+        rows: ``(u, 3)`` values.
+        n: rows of the result.
+
+    Returns:
+        float64 ``(n, 3)``.
+    """
+    full = np.zeros((n, 3))
+    full[own] = rows
+    return full

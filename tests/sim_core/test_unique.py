@@ -56,3 +56,14 @@ def test_compact_indices_are_np_unique_with_the_inverse_in_the_input_shape():
     assert none[0].shape == (0,) and none[1].shape == (0, 4)
     with pytest.raises(ValueError, match="must be >= 0"):
         compact_indices(np.array([[0, -1]]))
+
+
+def test_spread_rows_inverts_the_gather_of_compact_indices():
+    """Rows gathered on the named indices and spread back give the full array on those rows, zero elsewhere."""
+    from sim_core.unique import compact_indices, spread_rows
+
+    full = np.arange(30.0).reshape(10, 3)
+    own, _ = compact_indices(np.array([[7, 2], [2, 9]]))
+    out = spread_rows(own, full[own], 10)
+    np.testing.assert_array_equal(out[own], full[own])
+    assert not out[np.setdiff1d(np.arange(10), own)].any()

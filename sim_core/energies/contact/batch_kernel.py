@@ -50,7 +50,7 @@ from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
-from sim_core.unique import compact_indices
+from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -326,9 +326,7 @@ class PairBatch:
         """A new ``(n, 3)`` array (N): the summed gradient rows of potential ``kind`` (0 vertex-triangle, 1
         edge-edge) of the kernel's ``gradients`` ``(>= 2 u, 3)`` on the pairs' vertices, zero elsewhere."""
         u = len(self.own)
-        full = np.zeros((n, 3))
-        full[self.own] = gradients[kind * u:(kind + 1) * u]
-        return full
+        return spread_rows(self.own, gradients[kind * u:(kind + 1) * u], n)
 
 
 def compile_kernels() -> None:

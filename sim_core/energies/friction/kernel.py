@@ -36,7 +36,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download
-from sim_core.unique import compact_indices
+from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -201,12 +201,6 @@ class TiLaggedFriction(LaggedFriction):
         own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
         return self._launch(arrays, want, own_grad, blocks), own_grad
 
-    def _spread(self, own_grad: np.ndarray, n: int) -> np.ndarray:
-        """A new ``(n, 3)`` gradient (N): ``own_grad`` on the pairs' vertices, zero elsewhere."""
-        grad = np.zeros((n, 3))
-        grad[self._own] = own_grad
-        return grad
-
     def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
                 blocks: np.ndarray = _NO_BLOCKS) -> float:
         """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
@@ -295,18 +289,18 @@ class TiLaggedFriction(LaggedFriction):
         workspace = workspace_of(self)
         again = workspace.take(self, "gradient")
         if again is not None and self._matches(again, arrays):
-            return self._spread(again[3], x.shape[0])
+            return spread_rows(self._own, again[3], x.shape[0])
         kept = self._kept(arrays)
         workspace.take(self, "derivatives")  # consumed
         if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
             workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
             workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
-            return self._spread(kept[4], x.shape[0])
+            return spread_rows(self._own, kept[4], x.shape[0])
         blocks = np.empty((p, 3 * m, 3 * m))
         own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
         kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
         workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
-        return self._spread(own_grad, x.shape[0])
+        return spread_rows(self._own, own_grad, x.shape[0])
 
     def _matches(self, kept: tuple, arrays: tuple) -> bool:
         """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and
