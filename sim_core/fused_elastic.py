@@ -479,6 +479,10 @@ class FusedElastic:
         xc = np.ascontiguousarray(x, dtype=np.float64)
         values = np.zeros(self.pattern.keys.size)
         remote = self.offloaded_part()
+        if remote is None and self._on_device():  # CUDA: the positions up once for every part's kernels
+            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
+
+            xc = upload(self._device_buffers(xc.shape, values.size)[0], xc)
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
                 if vertices is not None and getattr(part, "projects_subsets", False):
