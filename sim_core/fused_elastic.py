@@ -23,7 +23,9 @@ Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of t
 On CUDA every array argument of a launch that is a NumPy array is copied to the device and back;
 there the fused parts keep their constant arrays (elements, rest shapes, slot tables) on the device
 (:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once and
-downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`).
+downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`); the parts'
+kernels are launched one after another and their energy sums read after the last
+(:class:`sim_core.ti_kernels.launch.DeferredSums`), so the host does not wait for each part's kernel.
 
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
