@@ -141,11 +141,13 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
             host: a comparison of a few thousand entries costs less than a copy's round trip); for arrays the
             kernels only read, so that the device copy still holds the last copy's values.
     """
+    entry = kept.get(name)
+    if entry is not None and entry[0] is host and not refresh:  # kept on the device (only CUDA keeps entries)
+        return entry[1]
     from sim_core.ti_backend import current_arch, ti
 
     if current_arch() != "cuda":
         return host
-    entry = kept.get(name)
     if entry is None or entry[0] is not host or refresh:
         if changed and entry is not None and entry[0] is host and entry[2] is not None \
                 and np.array_equal(entry[2], host):
