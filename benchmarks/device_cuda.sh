@@ -45,7 +45,8 @@
 #                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
 #                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
 #   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
-#                          elastic and device-copy kernel tests; a file missing from the tree is an error)
+#                          elastic and device-copy kernel tests and the projection of listed blocks by kernels
+#                          (Jacobi and host LAPACK); a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
 # ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
@@ -101,8 +102,9 @@ if [ "$mode" = profile ]; then
 fi
 PART_TIMEOUT=${PART_TIMEOUT:-170}
 TASK=${TASK:-folding_u}
-KERNEL_TESTS=${KERNEL_TESTS:-tests/sim_core/ti_kernels/test_launch.py tests/sim_core/ti_kernels/test_transfer.py \
-tests/sim_core/ti_kernels/test_fused_elastic.py tests/sim_core/ti_kernels/test_device_copy.py}
+KT=tests/sim_core/ti_kernels
+KERNEL_TESTS=${KERNEL_TESTS:-$KT/test_launch.py $KT/test_transfer.py $KT/test_fused_elastic.py $KT/test_device_copy.py \
+$KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
     local name=$1; shift
     echo "=== $name: thinshell bench $*"

@@ -11,8 +11,8 @@ of the Newton loop. Parts:
   own ``Kernel.__call__``): on CUDA the device time plus, per NumPy array argument, a device buffer,
   its copy to the device, a synchronisation and the copy back (Taichi's CUDA launcher does this for
   every host array, read or written);
-- ``ndarray transfer``: ``from_numpy`` / ``to_numpy`` of Taichi ndarrays, and the byte copies of
-  :mod:`sim_core.ti_kernels.device_copy`;
+- ``ndarray transfer``: ``from_numpy`` / ``to_numpy`` of Taichi ndarrays, and the byte copies and zero fills
+  (memset) of :mod:`sim_core.ti_kernels.device_copy`;
 - ``linear solve``: the symmetric solver's ``factorize`` / ``solve`` and the general LU's.
 
 Also printed: kernel calls and NumPy array arguments per step; with ``--kernel-profiler`` Taichi's
@@ -132,7 +132,7 @@ def main() -> int:
     for method in ("_ndarray_from_numpy", "_ndarray_to_numpy", "_ndarray_matrix_from_numpy",
                    "_ndarray_matrix_to_numpy"):
         parts.wrap(_ndarray.Ndarray, method, "ndarray transfer")
-    for function in ("to_device", "to_host"):
+    for function in ("to_device", "to_host", "zero"):
         parts.wrap(device_copy, function, "ndarray transfer")
     for cls in (linsolve.PardisoCholesky, linsolve.ScipySymmetric, linsolve.PardisoSolver, linsolve.ScipySolver):
         for method in ("factorize", "solve"):

@@ -23,7 +23,9 @@ Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of t
 On CUDA every array argument of a launch that is a NumPy array is copied to the device and back;
 there the fused parts keep their constant arrays (elements, rest shapes, slot tables) on the device
 (:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once and
-downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`).
+downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`); the parts'
+kernels are launched one after another and their energy sums read after the last
+(:class:`sim_core.ti_kernels.launch.DeferredSums`), so the host does not wait for each part's kernel.
 
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
@@ -211,6 +213,7 @@ class FusedElastic:
         self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
         self._device_kept: tuple | None = None  # on CUDA: device positions, gradient, values (_device_buffers)
         self._values_on_device = False  # the kept evaluation's Hessian values are on the device only
+        self._sums = None  # on CUDA: the DeferredSums of the device evaluations (its cells kept)
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -275,8 +278,7 @@ class FusedElastic:
             upload(xd, xc)
             fill(gd, 0.0)
             fill(vd, 0.0)
-            for part in self._parts:
-                energy += part.evaluate(xd, gd, vd)
+            energy = self._deferred_sum(lambda part: part.evaluate(xd, gd, vd), 0.0)
             download(gd, grad)
             self._values_on_device = True  # copied to ``values`` when asked for (hessian_values)
             self._kept = (key, energy, grad, values)
@@ -423,8 +425,38 @@ class FusedElastic:
         if self.pattern is not None and self.offloaded_part() is None and self._on_device():
             from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
 
-            xc = upload(self._device_buffers(xc.shape, self.pattern.keys.size)[0], xc)
+            xd = upload(self._device_buffers(xc.shape, self.pattern.keys.size)[0], xc)
+            return float(self._deferred_sum(lambda part: part.energy(xd), 0))
         return float(sum(part.energy(xc) for part in self._parts))
+
+    def _deferred_sum(self, run, start: float):
+        """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched
+        in one :class:`~sim_core.ti_kernels.launch.DeferredSums` block (on a GPU the launches follow one another
+        without waiting for each sum; the sums are read after the block). A part returns its kernel's sum (NaN
+        inside the block, then read) or its own value (no kernel launched, e.g. no elements).
+
+        Raises:
+            RuntimeError: a part launched more than one summing kernel.
+        """
+        from sim_core.ti_kernels.launch import DeferredSums  # Taichi only on a Taichi backend
+
+        sums = self._sums
+        if sums is None:
+            sums = self._sums = DeferredSums()
+        returned = []  # per part: (True, index of its launch) or (False, the value it returned)
+        with sums:
+            for part in self._parts:
+                before = sums.launches
+                value = run(part)
+                launched = sums.launches - before
+                if launched > 1:
+                    raise RuntimeError(f"FusedElastic: {type(part).__name__} launched {launched} summing kernels")
+                returned.append((True, before) if launched else (False, value))
+        values = sums.values()
+        total = start
+        for launched, item in returned:
+            total += values[item] if launched else item
+        return total
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too)."""
@@ -479,6 +511,10 @@ class FusedElastic:
         xc = np.ascontiguousarray(x, dtype=np.float64)
         values = np.zeros(self.pattern.keys.size)
         remote = self.offloaded_part()
+        if remote is None and self._on_device():  # CUDA: the positions up once for every part's kernels
+            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
+
+            xc = upload(self._device_buffers(xc.shape, values.size)[0], xc)
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
                 if vertices is not None and getattr(part, "projects_subsets", False):

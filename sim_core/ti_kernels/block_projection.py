@@ -22,8 +22,10 @@ The work is split where each part is cheapest (measured, docs/benchmarks_log.md)
   Jacobi eigen-solver was slower than LAPACK there for the 15 x 15 reduced Kirchhoff blocks, and a
   Cholesky test that skips the eigen-decomposition of definite blocks pays nothing: at the
   replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15. On
-  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread): a lockstep
-  batch of 256 Forming copies projects 10^5 such blocks per fallback, several seconds of LAPACK.
+  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread) for many
+  blocks: a lockstep batch of 256 Forming copies projects 10^5 such blocks per fallback, several
+  seconds of LAPACK; one environment's few hundred blocks go to LAPACK on the host instead
+  (:data:`HOST_PROJECTION_MAX_BLOCKS`), where they take less time than the kernel's serial thread.
 * :func:`add_blocks` (Taichi): the projected blocks added into the values of the solver's static
   pattern through the per-element slot map (:meth:`sim_core.assembly.StaticPattern.slot_map`:
   entry ``[e, r, s]`` is a slot or -1), in element order on the CPU (bitwise reproducible), with
@@ -50,7 +52,9 @@ import numpy as np
 
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import DeviceArray
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.transfer import download, upload
 
 _F64_1, _F64_3, _I32_3 = linalg.F64_1, linalg.F64_3, linalg.I32_3
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -131,6 +135,14 @@ def add_upper_entry(values: ti.template(), slot: ti.i32, value: ti.f64):
 
 JACOBI_SWEEPS = 60
 """Cyclic Jacobi sweeps at most per block (:func:`jacobi_project_blocks`; 15 x 15 blocks take 6 to 10)."""
+
+HOST_PROJECTION_MAX_BLOCKS = 1024
+"""Up to this many reduced blocks, :meth:`TranslationFreeProjector.add_projected_rows` projects them on the host
+(one download, LAPACK, one upload) instead of by :func:`jacobi_project_blocks` on the device. The Jacobi kernel
+runs one block per GPU thread, serially in global memory: for one Forming environment's 210 Kirchhoff blocks
+(15 x 15) it took 7.6 ms a call on average and 15.8 ms at most on the H200 (docs/benchmarks_log.md, session 39),
+while LAPACK takes about 10 us a 15 x 15 block on one core. Its time hardly grows with the block count until
+the GPU is full, so a lockstep batch's tens of thousands of blocks stay on the device."""
 
 
 @fast_kernel
@@ -291,7 +303,8 @@ class TranslationFreeProjector:
     def __init__(self, vertex_count: int) -> None:
         self.helmert = helmert_array(vertex_count)
         self.basis = np.kron(self.helmert, np.eye(3))  # B, (3 m, 3 m - 3), orthonormal columns
-        self._device: dict = {}  # the Taichi ndarrays of add_projected_rows, by name
+        self._device: dict[str, DeviceArray] = {}  # the Taichi ndarrays of add_projected_rows, by name
+        self._host_reduced: np.ndarray | None = None  # add_projected_rows' host copy of the reduced blocks
 
     def reduced(self, blocks: np.ndarray) -> np.ndarray:
         """``B^T H B`` of every block ``H`` of ``blocks`` ``(k, 3 m, 3 m)``: ``(k, 3 m - 3, 3 m - 3)``."""
@@ -327,17 +340,25 @@ class TranslationFreeProjector:
             return
         add_blocks(self.project(blocks, projection), slots, values)
 
-    def add_projected_rows(self, blocks, projection: str, slots, rows: np.ndarray, values) -> None:
-        """:meth:`add_projected` of the blocks ``rows`` (int32 ``(c,)``) of ``blocks`` by kernels alone: the
-        reduction, :func:`jacobi_project_blocks` and the expansion and scatter run where the arrays are
-        (Taichi ndarrays on the device: nothing crosses to the host). ``blocks`` ``(k, 3 m, 3 m)``, ``slots``
-        int32 ``(k, 3 m, 3 m)``, ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s
-        to round-off.
+    def add_projected_rows(self, blocks, projection: str, slots, rows: np.ndarray, values,
+                           method: str | None = None) -> None:
+        """:meth:`add_projected` of the blocks ``rows`` (int32 ``(c,)``) of ``blocks`` by kernels where the arrays
+        are (Taichi ndarrays on the device): the reduction ``B^T H B`` and the expansion and scatter as kernels;
+        the reduced blocks' projection by :func:`jacobi_project_blocks` where they are, or on the host
+        (:func:`project_reduced_blocks` with LAPACK: the reduced blocks downloaded, projected and uploaded, two
+        copies of ``c (3 m - 3)^2`` float64). ``blocks`` ``(k, 3 m, 3 m)``, ``slots`` int32 ``(k, 3 m, 3 m)``,
+        ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off.
+
+        Args:
+            method: ``"jacobi"`` (the kernel), ``"lapack"`` (the host) or None: LAPACK for at most
+                :data:`HOST_PROJECTION_MAX_BLOCKS` blocks (one environment), the kernel for more.
 
         Raises:
-            ValueError: unknown projection.
+            ValueError: unknown projection or method.
         """
         code = linalg.projection_code(projection)
+        if method not in (None, "lapack", "jacobi"):
+            raise ValueError(f"add_projected_rows: unknown method {method!r} (lapack, jacobi)")
         count = int(rows.shape[0])
         if count == 0:
             return
@@ -346,19 +367,26 @@ class TranslationFreeProjector:
             add_block_rows(blocks, slots, rows_arg, count, values)
             return
         size = self.basis.shape[1]
-        reduced, work, vectors = (self._kept(name, (count, size, size), ti.f64) for name in ("reduced", "work", "vectors"))
+        reduced = self._kept("reduced", (count, size, size), ti.f64)
         helmert = self._kept("helmert", self.helmert.shape, ti.f64, self.helmert)
         reduce_block_rows(blocks, helmert, rows_arg, count, reduced)
-        jacobi_project_blocks(reduced, work, vectors, code)
+        if method == "lapack" or (method is None and count <= HOST_PROJECTION_MAX_BLOCKS):
+            kept = self._host_reduced
+            if kept is None or kept.shape != (count, size, size):
+                kept = self._host_reduced = np.empty((count, size, size))
+            upload(reduced, project_reduced_blocks(download(reduced, kept), projection, method="lapack"))
+        else:
+            work, vectors = (self._kept(name, (count, size, size), ti.f64) for name in ("work", "vectors"))
+            jacobi_project_blocks(reduced, work, vectors, code)
         expand_add_block_rows(reduced, helmert, slots, rows_arg, count, values)
 
     def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
-        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes),
-        filled from ``host`` when given."""
-        kept = self._device
-        arr = kept.get(name)
-        if arr is None or tuple(arr.shape) != tuple(shape):
-            arr = kept[name] = ti.ndarray(dtype, shape=tuple(shape))
-        if host is not None and host.size:
-            arr.from_numpy(np.ascontiguousarray(host, dtype=np.int32 if dtype == ti.i32 else np.float64))
-        return arr
+        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes), holding
+        ``host`` when given (copied only when it differs from the last copy: the Helmert basis once, one
+        environment's rows while they stay the same)."""
+        kept = self._device.get(name)
+        if kept is None:
+            kept = self._device[name] = DeviceArray(dtype)
+        if host is None or not host.size:
+            return kept.ensure(shape)
+        return kept.upload(host)

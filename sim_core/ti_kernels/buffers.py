@@ -122,7 +122,8 @@ def copy_into(kept: np.ndarray | None, values: np.ndarray) -> np.ndarray:
     return kept
 
 
-def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, refresh: bool = False):
+def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, refresh: bool = False,
+              changed: bool = False):
     """The array a kernel launch should take for ``host``: on CUDA a Taichi ndarray in device memory kept in
     ``kept[name]`` (copied from ``host`` when ``host`` is another object than at the last call, or at every
     call with ``refresh``; a ``scratch`` array is only allocated, never copied: the kernels write it before
@@ -136,19 +137,27 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
             (a changed array is a new object) unless ``refresh``.
         scratch: a work array of the kernels (device contents only).
         refresh: copy ``host`` at every call (a kept host array whose contents change in place).
+        changed: with ``refresh``, copy ``host`` only when its contents differ from the last copy's (kept on the
+            host: a comparison of a few thousand entries costs less than a copy's round trip); for arrays the
+            kernels only read, so that the device copy still holds the last copy's values.
     """
+    entry = kept.get(name)
+    if entry is not None and entry[0] is host and not refresh:  # kept on the device (only CUDA keeps entries)
+        return entry[1]
     from sim_core.ti_backend import current_arch, ti
 
     if current_arch() != "cuda":
         return host
-    entry = kept.get(name)
     if entry is None or entry[0] is not host or refresh:
+        if changed and entry is not None and entry[0] is host and entry[2] is not None \
+                and np.array_equal(entry[2], host):
+            return entry[1]
         dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
         dev = entry[1] if entry is not None and tuple(entry[1].shape) == host.shape and entry[1].dtype == dtype \
             else device_copy.new_ndarray(dtype, host.shape)
         if not scratch and host.size:
             _from_numpy(dev, np.ascontiguousarray(host))
-        entry = kept[name] = (host, dev)
+        entry = kept[name] = (host, dev, host.copy() if changed else None)
     return entry[1]
 
 

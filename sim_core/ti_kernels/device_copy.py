@@ -1,5 +1,5 @@
-"""Byte copies between NumPy arrays and Taichi ndarrays by address, without a kernel launch, and ndarrays
-allocated without Taichi's record of the Python stack.
+"""Byte copies between NumPy arrays and Taichi ndarrays by address, and zero fills, without a kernel launch, and
+ndarrays allocated without Taichi's record of the Python stack.
 
 A copy through a Taichi kernel (``from_numpy`` / ``to_numpy``, or a planned launch of a copy kernel with a
 NumPy argument, :mod:`sim_core.ti_kernels.transfer`) costs on CUDA a launch, a device buffer for the NumPy
@@ -41,7 +41,7 @@ _CUDA_SUCCESS = 0
 
 @functools.cache
 def _driver() -> ctypes.CDLL | None:
-    """The CUDA driver library with the argument types of the three entry points used, or None."""
+    """The CUDA driver library with the argument types of the four entry points used, or None."""
     try:
         lib = ctypes.CDLL("libcuda.so.1")
     except OSError:
@@ -49,6 +49,7 @@ def _driver() -> ctypes.CDLL | None:
     lib.cuMemcpyHtoD_v2.argtypes = (ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t)
     lib.cuMemcpyDtoH_v2.argtypes = (ctypes.c_void_p, ctypes.c_uint64, ctypes.c_size_t)
     lib.cuCtxGetCurrent.argtypes = (ctypes.POINTER(ctypes.c_void_p),)
+    lib.cuMemsetD8_v2.argtypes = (ctypes.c_uint64, ctypes.c_ubyte, ctypes.c_size_t)
     return lib
 
 
@@ -131,6 +132,24 @@ def to_host(host: np.ndarray, array) -> bool:
         ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or is read-only.
     """
     return _copy(array, host, False)
+
+
+def zero(array) -> bool:
+    """Set every byte of the Taichi ndarray ``array`` to 0 (0.0 in float64, 0 in the integer types) without a
+    kernel launch: on CUDA the driver's ``cuMemsetD8_v2`` (device memory: asynchronous to the host, ordered on the
+    legacy default stream after the kernels launched before it and before those launched after it), on the CPU
+    ``memset``; False (nothing set) where neither can be made here (module docstring)."""
+    nbytes = int(np.prod(array.shape)) * np.dtype(to_numpy_type(array.dtype)).itemsize
+    if not nbytes:
+        return True
+    arch = current_arch()
+    if arch == "cuda":
+        lib = _driver()
+        return _cuda_ready(lib) and lib.cuMemsetD8_v2(address(array), 0, nbytes) == _CUDA_SUCCESS
+    if arch == "cpu":
+        ctypes.memset(address(array), 0, nbytes)
+        return True
+    return False
 
 
 def _copy(array, host: np.ndarray, upload: bool) -> bool:

@@ -405,7 +405,7 @@ class HashGrid:
                  "bucket_start", "bucket_fill", "entry_item", "entry_cell", "entry_lower", "box", "body_box", "scale",
                  "out", "count", "chunk_total")
         device = self.__dict__.setdefault("_device", {})
-        return tuple(on_device(device, name, host, refresh=name in ("x", "count"))
+        return tuple(on_device(device, name, host, refresh=name in ("x", "count"), changed=name == "x")
                      for name, host in zip(names, arrays))
 
     def _grow_entries(self, size: int) -> None:

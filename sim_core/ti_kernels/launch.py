@@ -315,6 +315,10 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
 
     @functools.wraps(fn)
     def summed(*args: Any) -> float:
+        deferred = getattr(_DEFERRED, "active", None)
+        if deferred is not None:  # launched into a cell of the block's own, read after the block
+            kernel(*args, deferred._next_cell())
+            return float("nan")
         energy = getattr(cells, "energy", None)
         runtime = _runtime()
         if energy is None or cells.prog is not runtime.prog:  # (a device cell belongs to one Taichi program)
@@ -332,3 +336,65 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
     summed.kernel = kernel  # the FastKernel itself
     return summed
 
+
+
+_DEFERRED = threading.local()
+"""Per thread: ``active``, the :class:`DeferredSums` whose block is running, or None."""
+
+
+class DeferredSums:
+    """A block in which the calling thread's :func:`summing_kernel` launches do not wait for their sums.
+
+    Within ``with DeferredSums() as sums:`` each summing kernel is launched with a cell of its own (a ``(1,)``
+    float64 array kept by this object across blocks: device memory on a GPU, host memory on the CPU) and returns
+    NaN at once, so that on a GPU the host launches the next kernel while the device runs this one, instead of
+    copying each sum back (a synchronisation) before the next launch. After the block, :meth:`values` reads the
+    sums in launch order (the first read waits for the kernels). The sums are those of the plain calls: same
+    kernels, same arguments, each into a zeroed cell of its own.
+
+    Raises:
+        RuntimeError: a block entered while another one is active on the same thread.
+    """
+
+    def __init__(self) -> None:
+        self._cells: list = []
+        self._used = 0
+        self._prog = None
+
+    def __enter__(self) -> "DeferredSums":
+        if getattr(_DEFERRED, "active", None) is not None:
+            raise RuntimeError("DeferredSums: a block is already active on this thread")
+        runtime = _runtime()
+        if self._prog is not runtime.prog:  # (a device cell belongs to one Taichi program)
+            self._cells, self._prog = [], runtime.prog
+        self._used = 0
+        _DEFERRED.active = self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        _DEFERRED.active = None
+
+    @property
+    def launches(self) -> int:
+        """Summing-kernel launches in the current (or last) block."""
+        return self._used
+
+    def _next_cell(self):
+        if self._used == len(self._cells):
+            self._cells.append(np.zeros(1) if _host_arch(_runtime()) else device_copy.new_ndarray(ti.f64, (1,)))
+        cell = self._cells[self._used]
+        self._used += 1
+        return cell
+
+    def values(self) -> list[float]:
+        """The sums (J) of the last block's launches, in launch order."""
+        out = []
+        host = np.zeros(1)
+        for cell in self._cells[: self._used]:
+            if isinstance(cell, np.ndarray):
+                out.append(float(cell[0]))
+            elif device_copy.to_host(host, cell):
+                out.append(float(host[0]))
+            else:
+                out.append(float(cell.to_numpy()[0]))
+        return out

@@ -7,7 +7,8 @@ byte copies by address (:mod:`sim_core.ti_kernels.device_copy`: the CUDA driver'
 ``memmove`` on the CPU) where the calling thread can make them, else one launch of a copy kernel
 through :func:`sim_core.ti_kernels.launch.fast_kernel` (its plans bind NumPy arrays and Taichi ndarrays
 alike; on CUDA the NumPy side then crosses to the device and back with the launch, as Taichi copies
-every host array of a launch both ways). A fill is one planned launch. The values are the same.
+every host array of a launch both ways). A zero fill is a memset, another fill one planned launch. The
+values are the same.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
@@ -68,8 +69,10 @@ def upload(array, values: np.ndarray):
 
 
 def fill(array, value: float):
-    """Set every entry of the float64 ndarray ``array`` to ``value`` (``array.fill(value)`` in one planned
-    launch, no host array in it); returns ``array``."""
-    if int(np.prod(array.shape)):
-        _fill_f64(array, float(value))
+    """Set every entry of the float64 ndarray ``array`` to ``value`` (``array.fill(value)``; returns ``array``): a
+    zero by the driver's memset where it can be made (:func:`sim_core.ti_kernels.device_copy.zero`: no launch, the
+    bytes of +0.0), else one planned launch, no host array in it."""
+    value = float(value)
+    if int(np.prod(array.shape)) and not (value == 0.0 and not np.signbit(value) and device_copy.zero(array)):
+        _fill_f64(array, value)
     return array

@@ -269,7 +269,8 @@ class PairBatch:
             if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
                 x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
                 device = _ARRAYS.device()
-                rows_arg = on_device(device, "pair_rows", kept_rows, refresh=True)
+                rows_arg = (on_device(self._device, "all_rows", self._all) if rows is self._all  # sent once a batch
+                            else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
                 d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                         scratch=True)
                 if derivatives:

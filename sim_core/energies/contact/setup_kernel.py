@@ -84,7 +84,7 @@ def _device_launch(kernel, args: tuple, outputs: tuple[int, ...]) -> None:
         return
     device = _ARRAYS.device()
     launch = [on_device(device, f"{position}:{kernel.__name__}", a, scratch=position in outputs,
-                        refresh=position not in outputs) if isinstance(a, np.ndarray) else a
+                        refresh=position not in outputs, changed=True) if isinstance(a, np.ndarray) else a
               for position, a in enumerate(args)]
     kernel(*launch)
     for position in outputs:

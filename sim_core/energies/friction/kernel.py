@@ -218,7 +218,7 @@ class TiLaggedFriction(LaggedFriction):
         arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
         device = _ARRAYS.device()
         x, x_prev, vertices, weights, tangent, coefficient = arrays
-        args = (on_device(device, "x", x, refresh=True), on_device(device, "x_prev", x_prev),
+        args = (on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
                 on_device(device, "vertices", vertices), on_device(device, "weights", weights),
                 on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
         outputs = (on_device(device, "energy", self._energy, scratch=True),

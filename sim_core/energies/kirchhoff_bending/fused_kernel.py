@@ -28,6 +28,7 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
+from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, upper_index,
                                                   upper_slot_table)
@@ -355,10 +356,10 @@ class FusedKirchhoffBending:
             rows = (np.arange(self._blocks.shape[0], dtype=np.int32) if vertices is None
                     else np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1)).astype(np.int32))
             sums = on_device(self._device, "sums", values, scratch=True)
-            sums.fill(0.0)
+            fill(sums, 0.0)
             self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_slots", self._tri_slots),
                                                rows, sums)
-            values += sums.to_numpy()
+            values += download(sums)
             return
         blocks, slots = self.triangle_hessians(x), self._tri_slots
         if vertices is not None:

@@ -42,6 +42,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
+from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
     TranslationFreeProjector, add_upper_entry, upper_index, upper_slot_table,
@@ -343,7 +344,7 @@ class FusedSpringMembrane:
         if sums is values:  # host arrays (CPU arch): the kernels add into values directly
             sums = None
         else:
-            sums.fill(0.0)
+            fill(sums, 0.0)
         target = values if sums is None else sums
         if t_count:
             if self._blocks is None:
@@ -358,4 +359,4 @@ class FusedSpringMembrane:
             spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),
                                             on_device(d, "upper", self._upper), t_count, p.k_length, code, target)
         if sums is not None:
-            values += sums.to_numpy()
+            values += download(sums)

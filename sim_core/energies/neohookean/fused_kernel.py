@@ -38,6 +38,7 @@ from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, ad
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
+from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -313,6 +314,6 @@ class FusedStableNeoHookean:
         if rows.size == 0:
             return
         sums = on_device(d, "sums", values, scratch=True)
-        sums.fill(0.0)
+        fill(sums, 0.0)
         add_block_rows(blocks, on_device(d, "slots", self._slots), on_device(d, "rows", rows), rows.size, sums)
-        values += sums.to_numpy()
+        values += download(sums)

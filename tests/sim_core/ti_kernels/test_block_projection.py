@@ -196,11 +196,13 @@ def test_projected_hessian_of_marked_vertices_sums_the_elements_touching_them(ti
     assert not np.allclose(got, whole)  # the unmarked elements' blocks are left out
 
 
+@pytest.mark.parametrize("method", ("jacobi", "lapack", None))
 @pytest.mark.parametrize("projection", ("none", "clamp", "abs"))
-def test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds(ti_cpu, projection):
-    """``add_projected_rows`` (reduction, Jacobi projection, expansion and scatter as kernels, the path of
-    device arrays) adds, for the listed blocks, the sums ``add_projected`` adds for those blocks (NumPy
-    reduction and LAPACK), to round-off; the unlisted blocks add nothing."""
+def test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds(ti_cpu, projection, method):
+    """``add_projected_rows`` (reduction, expansion and scatter as kernels, the path of device arrays; the reduced
+    blocks projected by the Jacobi kernel or by LAPACK on the host) adds, for the listed blocks, the sums
+    ``add_projected`` adds for those blocks (NumPy reduction and LAPACK), to round-off; the unlisted blocks add
+    nothing."""
     from sim_core.ti_kernels.block_projection import TranslationFreeProjector
 
     rng = np.random.default_rng(11)
@@ -214,8 +216,10 @@ def test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_ad
     want = np.zeros(nnz)
     projector.add_projected(blocks[rows], projection, slots[rows], want)
     got = np.zeros(nnz)
-    projector.add_projected_rows(blocks, projection, slots, rows, got)
+    projector.add_projected_rows(blocks, projection, slots, rows, got, method=method)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    with pytest.raises(ValueError, match="add_projected_rows: unknown method 'qr'"):
+        projector.add_projected_rows(blocks, projection, slots, rows, got, method="qr")
     if projection != "none":  # the projection changed the blocks (they have negative eigenvalues)
         plain = np.zeros(nnz)
         projector.add_projected(blocks[rows], "none", slots[rows], plain)

@@ -60,3 +60,27 @@ def test_another_thread_copies_or_declines(ti_cpu):
     thread.join()
     assert done["copied"] == (ti_cpu == "cpu")
     assert np.array_equal(dev.to_numpy(), values if done["copied"] else np.full(6, -1.0))
+
+
+@pytest.mark.parametrize("dtype_name", ["f64", "i32"])
+def test_zero_sets_every_entry_to_zero_in_order_with_kernels(ti_cpu, dtype_name):
+    """``zero`` clears the whole ndarray, after the kernel launched before it and before the one launched after it
+    (the legacy stream's order on CUDA), and ``transfer.fill`` with 0.0 (a memset) equals Taichi's ``fill``."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import zero
+    from sim_core.ti_kernels.transfer import fill
+
+    dtype = {"f64": ti.f64, "i32": ti.i32}[dtype_name]
+    dev = ti.ndarray(dtype, shape=(5, 12, 12))
+    dev.fill(3)  # a kernel launch before the memset
+    assert zero(dev)
+    assert not dev.to_numpy().any()
+    dev.fill(7)  # and after it
+    assert (dev.to_numpy() == 7).all()
+    if dtype_name == "f64":
+        want = ti.ndarray(ti.f64, shape=(5, 12, 12))
+        for value in (0.0, -0.0, 2.5):
+            want.fill(value)
+            assert fill(dev, value) is dev
+            assert np.array_equal(dev.to_numpy(), want.to_numpy())
+        assert not fill(dev, 0.0).to_numpy().tobytes().strip(b"\x00")  # +0.0: every byte 0

@@ -443,11 +443,21 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
         return fused.energy(x), fused.gradient(x), fused.hessian_values(x).copy(), fused
 
     e_host, g_host, v_host, fused_host = evaluate()
+    p_host = fused_host.projected_hessian_values(x, "clamp")
     assert not fused_host._on_device()
-    monkeypatch.setattr(backend, "current_arch", lambda: "cuda")
+    import sim_core.energies.kirchhoff_bending.fused_kernel as kirchhoff_kernel
+    import sim_core.energies.membrane.fused_spring_kernel as spring_kernel
+
+    for module in (backend, kirchhoff_kernel, spring_kernel):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
     e_dev, g_dev, v_dev, fused_dev = evaluate()
     assert fused_dev._on_device() and fused_dev._device_kept is not None
     assert e_dev == pytest.approx(e_host, rel=1e-13)
     assert relative_error(g_dev, g_host) < 1e-13
     assert relative_error(v_dev, v_host) < 1e-13
     assert abs(v_host).max() > 0
+    # the projected Hessian: positions uploaded once, every part's blocks made, reduced and scattered by kernels on
+    # device arrays, the reduced blocks projected by LAPACK on the host (few blocks): the host path's values
+    p_dev = fused_dev.projected_hessian_values(x, "clamp")
+    assert relative_error(p_dev, p_host) < 1e-12
+    assert relative_error(p_host, v_host) > 1e-6  # the projection changed the matrix

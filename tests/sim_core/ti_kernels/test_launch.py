@@ -261,3 +261,39 @@ def test_planned_launches_bind_taichi_ndarrays(ti_cpu):
         expected_other = a * x_host + expected_other
         np.testing.assert_allclose(y_other.to_numpy(), expected_other, rtol=0, atol=1e-13)
     assert len([p for p in axpy._plans.values() if p is not None]) == 2
+
+
+def test_deferred_sums_are_the_plain_calls_sums_in_launch_order(ti_cpu):
+    """In a ``DeferredSums`` block a ``summing_kernel`` launch returns NaN without waiting for its sum, each launch
+    into a cell of its own (two launches of one kernel do not share one), and ``values()`` after the block gives
+    the plain calls' sums in launch order; the cells are reused by the next block; a block inside a block is
+    refused."""
+    from sim_core.ti_kernels.launch import DeferredSums, summing_kernel
+
+    def squares(x: _F64_1, w: _F64_1, energy: _F64_1):
+        energy[0] = 0.0
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            energy[0] += w[k] * x[k] * x[k]
+
+    def cubes(x: _F64_1, energy: _F64_1):
+        energy[0] = 0.0
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            energy[0] += x[k] * x[k] * x[k]
+
+    summed, cubed = summing_kernel(squares), summing_kernel(cubes)
+    rng = np.random.default_rng(8)
+    sums = DeferredSums()
+    for n in (5, 300):
+        x, y, w = rng.normal(size=n), rng.normal(size=n), rng.uniform(0.5, 2.0, size=n)
+        plain = [summed(x, w), cubed(x), summed(y, w)]
+        with sums:
+            returned = [summed(x, w), cubed(x), summed(y, w)]
+            assert sums.launches == 3
+            with pytest.raises(RuntimeError, match="already active"):
+                with DeferredSums():
+                    pass
+        assert all(np.isnan(r) for r in returned)
+        assert sums.values() == plain
+        assert summed(x, w) == plain[0]  # outside a block: the plain call again

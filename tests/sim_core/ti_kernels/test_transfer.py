@@ -39,3 +39,25 @@ def test_transfers_refuse_arrays_of_another_shape(ti_cpu):
         download(dev, np.zeros((5, 3), dtype=np.float32))
     with pytest.raises(ValueError, match="download: out must be C-contiguous"):
         download(dev, np.zeros((3, 5)).T)
+
+
+def test_on_device_with_changed_copies_only_new_contents(ti_cpu, monkeypatch):
+    """``buffers.on_device(..., refresh=True, changed=True)`` (the CUDA path's inputs, run here with the arch query
+    answering "cuda"): the host array is copied to its device array at the first call and whenever its contents
+    changed in place, and not when they are the last copy's (a device value written meanwhile stays)."""
+    import sim_core.ti_backend as backend
+    from sim_core.ti_kernels.buffers import on_device
+
+    monkeypatch.setattr(backend, "current_arch", lambda: "cuda")
+    kept: dict = {}
+    host = np.arange(6, dtype=np.int32)
+    dev = on_device(kept, "rows", host, refresh=True, changed=True)
+    assert np.array_equal(dev.to_numpy(), host)
+    dev[0] = 99  # a device write the host does not know of: a call with unchanged contents leaves it
+    assert on_device(kept, "rows", host, refresh=True, changed=True) is dev and dev[0] == 99
+    host[2] = -4  # contents changed in place: copied again
+    assert on_device(kept, "rows", host, refresh=True, changed=True) is dev
+    assert np.array_equal(dev.to_numpy(), host)
+    dev[0] = 99  # without ``changed`` every call copies
+    on_device(kept, "rows", host, refresh=True)
+    assert dev[0] == host[0]
