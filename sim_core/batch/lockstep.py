@@ -243,8 +243,7 @@ class LockstepSolver(NewtonSolver):
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
             open_ = running & ~done
-            closed = runs.per_dof(~open_)
-            rhs = np.where(closed, 0.0, g)  # closed copies take no update: their block of the solution is zero
+            rhs = runs.zero_copies(g.copy(), ~open_)  # closed copies take no update: their block of the solution is 0
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
             bad = open_ & ~runs.all_finite(d)
             if bad.any():
@@ -253,7 +252,7 @@ class LockstepSolver(NewtonSolver):
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            d[closed] = 0.0
+            runs.zero_copies(d, ~open_)
             step_max = runs.largest_norm(d)
             g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
@@ -271,7 +270,7 @@ class LockstepSolver(NewtonSolver):
             slope = runs.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
-                d = np.where(runs.per_dof(uphill), -g, d)
+                runs.copy_where(d, -g, uphill)
                 slope[uphill] = -runs.dot(g, g)[uphill]
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
                 step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
@@ -422,7 +421,7 @@ class LockstepSolver(NewtonSolver):
         projections = self._projections()
         rhs = g
         d = np.zeros_like(g)
-        todo = runs.any_dof(g != 0.0)  # copies with an update to find
+        todo = runs.any_dof(g)  # copies with an update to find
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
@@ -446,14 +445,14 @@ class LockstepSolver(NewtonSolver):
             ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
                 ok &= runs.dot(g, dk) < 0.0
-            np.copyto(d, dk, where=runs.per_dof(ok))
+            runs.copy_where(d, dk, ok)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
-                    np.copyto(d, dk, where=runs.per_dof(todo))
+                    runs.copy_where(d, dk, todo)
                 break
-            rhs = np.where(runs.per_dof(todo), g, 0.0)
+            rhs = runs.zero_copies(g.copy(), ~todo)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
