@@ -420,7 +420,7 @@ class LockstepSolver(NewtonSolver):
         pcg = self.pcg
         projections = self._projections()
         rhs = g
-        d = np.zeros_like(g)
+        d = None  # the update: the first solve's own array when every copy keeps that solve's update
         todo = runs.any_dof(g)  # copies with an update to find
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
@@ -439,13 +439,17 @@ class LockstepSolver(NewtonSolver):
             info.time_assembly += tl - ta
             info.factorizations += 1
             pcg.factorize(upper, blocks, diagonal)
-            dk = -pcg.solve(rhs)
+            dk = pcg.solve(rhs)
+            np.negative(dk, out=dk)  # the solve's own array (no second one of the stacked size)
             info.time_linear_solve += time.perf_counter() - tl
             dk[self._fixed_dofs(step)] = 0.0
             ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
                 ok &= runs.dot(g, dk) < 0.0
-            runs.copy_where(d, dk, ok)
+            if d is None and np.array_equal(ok, todo):
+                d = dk  # every copy with an update keeps this one; the others' right-hand side was 0, so is their dk
+            else:
+                d = runs.copy_where(np.zeros_like(g) if d is None else d, dk, ok)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
