@@ -49,6 +49,7 @@ differs, e.g. by one more iteration, may settle in another one).
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -324,13 +325,13 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = None
-        for p in step.loop_terms + contact_terms:  # summed in place: one (N, 3) array, not one per term
-            if g is None:
-                g = np.array(p.gradient(x), dtype=np.float64).reshape(-1)
-            else:
+        terms = step.loop_terms + contact_terms
+        if len(terms) < 2:
+            g = np.array(terms[0].gradient(x), dtype=np.float64).reshape(-1) if terms else np.zeros(3 * len(x))
+        else:  # summed into one new (N, 3) array (the terms' kept gradients are left as they are), not one per term
+            g = np.add(terms[0].gradient(x).reshape(-1), terms[1].gradient(x).reshape(-1), dtype=np.float64)
+            for p in terms[2:]:
                 g += p.gradient(x).reshape(-1)
-        g = np.zeros(3 * len(x)) if g is None else g
         g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
@@ -703,7 +704,10 @@ class LockstepEngine:
         sims, scene = self.sims, self.scene
         state_in = self.state
         control = scene.stack_controls([c if run[i] else None for i, c in enumerate(controls)])
-        out = state_in.copy()
+        # the step's outputs: _finish_step binds every field the step changes to new arrays (and _copy_state
+        # every field when all copies are held), so the stacked state's arrays are not copied first
+        out = copy.copy(state_in)
+        out.candidate_state = dict(state_in.candidate_state)
         step_index = np.array([s.state.step_index for s in sims])
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
