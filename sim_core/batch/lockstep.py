@@ -723,11 +723,14 @@ class LockstepEngine:
             for e in scene.effector_names:
                 out.effector_pose[f"{e}#{i}"] = np.array(state_in.effector_pose[f"{e}#{i}"])
         self.state = out
-        for i in np.flatnonzero(advanced):
+        stepped = np.flatnonzero(advanced)
+        before = [sims[i].state for i in stepped]
+        states = scene.copy_states(out, stepped, np.array([b.t + sims[i].dt for i, b in zip(stepped, before)]),
+                                   np.array([b.step_index + 1 for b in before], dtype=np.int64))
+        for i, b, st in zip(stepped, before, states):
             sim = sims[i]
-            before = sim.state
-            sim.state = scene.copy_state(out, int(i), before.t + sim.dt, before.step_index + 1)
-            sim.step_totals.add(res.infos[i], before.step_index)
+            sim.state = st
+            sim.step_totals.add(res.infos[i], b.step_index)
             sim.last_info = res.infos[i]
             self._written[i] = sim.state
         return res.infos, res.failures
