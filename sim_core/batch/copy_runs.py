@@ -59,7 +59,8 @@ class CopyRuns:
         self.run_copy = copy_of[self.starts]
         first = np.flatnonzero(np.r_[True, self.lengths[1:] != self.lengths[:-1]]) if N else np.zeros(0, np.int64)
         ends = np.r_[first[1:], len(self.starts)]
-        self.blocks = [(int(r0), int(self.starts[r0]), int(r1 - r0), int(self.lengths[r0])) for r0, r1 in zip(first, ends)]
+        self.blocks = [(int(r0), int(self.starts[r0]), int(r1 - r0), int(self.lengths[r0]))
+                       for r0, r1 in zip(first, ends)]
 
     def _rows(self, a: np.ndarray, width: int = 3) -> list[np.ndarray]:
         """Each block's view of the stacked ``a`` (``width`` entries a vertex), shape ``(m, width s)``."""

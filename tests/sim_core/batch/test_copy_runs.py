@@ -51,7 +51,8 @@ def test_runs_of_one_length_form_blocks_that_tile_the_stacked_vertices(stacked):
     runs = CopyRuns(stacked.index)
     at = 0
     for r0, v0, m, s in runs.blocks:
-        assert v0 == at and np.all(runs.lengths[r0:r0 + m] == s) and np.all(runs.starts[r0:r0 + m] == v0 + s * np.arange(m))
+        assert v0 == at and np.all(runs.lengths[r0:r0 + m] == s)
+        assert np.all(runs.starts[r0:r0 + m] == v0 + s * np.arange(m))
         at += m * s
     assert at == runs.vertex_count
     assert len(runs.blocks) < len(runs.starts)  # each body's runs over the four copies are one block
