@@ -707,7 +707,7 @@ class LockstepEngine:
         # the step's outputs: _finish_step binds every field the step changes to new arrays (and _copy_state
         # every field when all copies are held), so the stacked state's arrays are not copied first
         out = copy.copy(state_in)
-        out.candidate_state = dict(state_in.candidate_state)
+        out.candidate_state = copy.deepcopy(state_in.candidate_state)  # the candidates' variables: own copies
         step_index = np.array([s.state.step_index for s in sims])
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
