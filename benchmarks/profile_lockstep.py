@@ -195,6 +195,13 @@ def _wrap_parts() -> dict:
     parts += [(CopyRuns, n) for n in ("dot", "any_dof", "all_finite", "largest_norm", "largest_abs", "per_dof",
                                        "moved")]
     parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
+    # the step's host work outside the Newton loop, and the synchronous copies to and from the device
+    from sim_core.batch.stacked import StackedScene
+    from sim_core.elastic import ElasticTerms
+    from sim_core.ti_kernels import device_copy
+
+    parts += [(lockstep.LockstepEngine, "step"), (StackedScene, "copy_states"), (StackedScene, "stack_controls"),
+              (NewtonSolver, "boundary"), (ElasticTerms, "plastic_update"), (device_copy, "_copy")]
     for cls, name in parts:
         if name not in vars(cls):
             continue

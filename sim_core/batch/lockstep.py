@@ -49,6 +49,7 @@ differs, e.g. by one more iteration, may settle in another one).
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -243,8 +244,7 @@ class LockstepSolver(NewtonSolver):
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
             open_ = running & ~done
-            closed = runs.per_dof(~open_)
-            rhs = np.where(closed, 0.0, g)  # closed copies take no update: their block of the solution is zero
+            rhs = runs.zero_copies(g.copy(), ~open_)  # closed copies take no update: their block of the solution is 0
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
             bad = open_ & ~runs.all_finite(d)
             if bad.any():
@@ -253,7 +253,7 @@ class LockstepSolver(NewtonSolver):
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            d[closed] = 0.0
+            runs.zero_copies(d, ~open_)
             step_max = runs.largest_norm(d)
             g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
@@ -271,7 +271,7 @@ class LockstepSolver(NewtonSolver):
             slope = runs.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
-                d = np.where(runs.per_dof(uphill), -g, d)
+                runs.copy_where(d, -g, uphill)
                 slope[uphill] = -runs.dot(g, g)[uphill]
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
                 step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
@@ -325,13 +325,13 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = None
-        for p in step.loop_terms + contact_terms:  # summed in place: one (N, 3) array, not one per term
-            if g is None:
-                g = np.array(p.gradient(x), dtype=np.float64).reshape(-1)
-            else:
+        terms = step.loop_terms + contact_terms
+        if len(terms) < 2:
+            g = np.array(terms[0].gradient(x), dtype=np.float64).reshape(-1) if terms else np.zeros(3 * len(x))
+        else:  # summed into one new (N, 3) array (the terms' kept gradients are left as they are), not one per term
+            g = np.add(terms[0].gradient(x).reshape(-1), terms[1].gradient(x).reshape(-1), dtype=np.float64)
+            for p in terms[2:]:
                 g += p.gradient(x).reshape(-1)
-        g = np.zeros(3 * len(x)) if g is None else g
         g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
@@ -421,8 +421,8 @@ class LockstepSolver(NewtonSolver):
         pcg = self.pcg
         projections = self._projections()
         rhs = g
-        d = np.zeros_like(g)
-        todo = runs.any_dof(g != 0.0)  # copies with an update to find
+        d = None  # the update: the first solve's own array when every copy keeps that solve's update
+        todo = runs.any_dof(g)  # copies with an update to find
         H, projection = None, cfg.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
@@ -440,20 +440,24 @@ class LockstepSolver(NewtonSolver):
             info.time_assembly += tl - ta
             info.factorizations += 1
             pcg.factorize(upper, blocks, diagonal)
-            dk = -pcg.solve(rhs)
+            dk = pcg.solve(rhs)
+            np.negative(dk, out=dk)  # the solve's own array (no second one of the stacked size)
             info.time_linear_solve += time.perf_counter() - tl
             dk[self._fixed_dofs(step)] = 0.0
             ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
                 ok &= runs.dot(g, dk) < 0.0
-            np.copyto(d, dk, where=runs.per_dof(ok))
+            if d is None and np.array_equal(ok, todo):
+                d = dk  # every copy with an update keeps this one; the others' right-hand side was 0, so is their dk
+            else:
+                d = runs.copy_where(np.zeros_like(g) if d is None else d, dk, ok)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
-                    np.copyto(d, dk, where=runs.per_dof(todo))
+                    runs.copy_where(d, dk, todo)
                 break
-            rhs = np.where(runs.per_dof(todo), g, 0.0)
+            rhs = runs.zero_copies(g.copy(), ~todo)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
@@ -700,7 +704,10 @@ class LockstepEngine:
         sims, scene = self.sims, self.scene
         state_in = self.state
         control = scene.stack_controls([c if run[i] else None for i, c in enumerate(controls)])
-        out = state_in.copy()
+        # the step's outputs: _finish_step binds every field the step changes to new arrays (and _copy_state
+        # every field when all copies are held), so the stacked state's arrays are not copied first
+        out = copy.copy(state_in)
+        out.candidate_state = copy.deepcopy(state_in.candidate_state)  # the candidates' variables: own copies
         step_index = np.array([s.state.step_index for s in sims])
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
@@ -716,11 +723,14 @@ class LockstepEngine:
             for e in scene.effector_names:
                 out.effector_pose[f"{e}#{i}"] = np.array(state_in.effector_pose[f"{e}#{i}"])
         self.state = out
-        for i in np.flatnonzero(advanced):
+        stepped = np.flatnonzero(advanced)
+        before = [sims[i].state for i in stepped]
+        states = scene.copy_states(out, stepped, np.array([b.t + sims[i].dt for i, b in zip(stepped, before)]),
+                                   np.array([b.step_index + 1 for b in before], dtype=np.int64))
+        for i, b, st in zip(stepped, before, states):
             sim = sims[i]
-            before = sim.state
-            sim.state = scene.copy_state(out, int(i), before.t + sim.dt, before.step_index + 1)
-            sim.step_totals.add(res.infos[i], before.step_index)
+            sim.state = st
+            sim.step_totals.add(res.infos[i], b.step_index)
             sim.last_info = res.infos[i]
             self._written[i] = sim.state
         return res.infos, res.failures

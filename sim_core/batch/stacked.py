@@ -119,18 +119,33 @@ class StackedScene:
     def copy_state(self, stacked: State, i: int, t: float, step_index: int) -> State:
         """Copy ``i``'s state read from the stacked state (positions and poses translated back), with its
         own time ``t`` (s) and step index; no contact memory (the stacked state holds it)."""
-        idx = self.index[i]
-        g, k = int(self.group_of_copy[i]), int(self.slot_in_group[i])
-        theta = {sheet: np.array(stacked.hinge_theta_bar[self.group_names[g][sheet]][k * h:(k + 1) * h])
-                 for sheet, h in self.hinge_counts.items()}
-        force = None if stacked.contact_force is None else stacked.contact_force[idx].copy()
-        return State(
-            t=float(t), x=stacked.x[idx] - self.offset[i], v=stacked.v[idx].copy(), hinge_theta_bar=theta,
-            effector_pose={n: _moved_pose(stacked.effector_pose[f"{n}#{i}"], -self.offset[i]) for n in self.effector_names},
-            gripper_opening={n: stacked.gripper_opening[f"{n}#{i}"] for n in self.effector_names
-                             if f"{n}#{i}" in stacked.gripper_opening},
-            contact_force=force, step_index=int(step_index),
-        )
+        return self.copy_states(stacked, np.array([i]), np.array([t]), np.array([step_index]))[0]
+
+    def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray) -> list[State]:
+        """:meth:`copy_state` of each copy in ``copies`` (int ``(k,)``) with its own time ``t[j]`` (s) and step
+        index ``step_index[j]``: positions, velocities and contact forces gathered from the stacked arrays at
+        once (each state's arrays are views of one ``(k, n, 3)`` array a quantity)."""
+        copies = np.asarray(copies, dtype=np.int64)
+        idx = self.index[copies].reshape(-1)
+        shape = (len(copies), self.vertex_count, 3)
+        x = np.take(stacked.x, idx, axis=0).reshape(shape)
+        x -= self.offset[copies][:, None, :]
+        v = np.take(stacked.v, idx, axis=0).reshape(shape)
+        force = None if stacked.contact_force is None else np.take(stacked.contact_force, idx, axis=0).reshape(shape)
+        out = []
+        for j, i in enumerate(copies):
+            g, k = int(self.group_of_copy[i]), int(self.slot_in_group[i])
+            out.append(State(
+                t=float(t[j]), x=x[j], v=v[j],
+                hinge_theta_bar={sheet: np.array(stacked.hinge_theta_bar[self.group_names[g][sheet]][k * h:(k + 1) * h])
+                                 for sheet, h in self.hinge_counts.items()},
+                effector_pose={n: _moved_pose(stacked.effector_pose[f"{n}#{i}"], -self.offset[i])
+                               for n in self.effector_names},
+                gripper_opening={n: stacked.gripper_opening[f"{n}#{i}"] for n in self.effector_names
+                                 if f"{n}#{i}" in stacked.gripper_opening},
+                contact_force=None if force is None else force[j], step_index=int(step_index[j]),
+            ))
+        return out
 
     def stack_controls(self, controls: Sequence[Control | None]) -> Control:
         """One stacked control of the copies' controls (pose targets translated by :attr:`offset`).

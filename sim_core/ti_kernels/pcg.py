@@ -39,6 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim_core.ti_backend import ti
+from sim_core.ti_kernels import device_copy, transfer
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -195,8 +196,26 @@ def _apply(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval
 
 
 @ti.kernel
-def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz: _F64, bb: _F64, nvert: ti.i32):
-    """``x = 0``, ``r = b``, ``z = p = M^-1 b``; per copy ``rz = r.z`` and ``bb = b.b`` (zeroed before)."""
+def _reset_copies(rz: _F64, bb: _F64, pap: _F64, rz_new: _F64, rr: _F64, active: _I32, bad: _I32, done: _I32,
+                  copies: ti.i32):
+    """The start of a solve for every copy: running (``active`` 1), not indefinite, no iterations done, its
+    sums zero."""
+    for c in range(copies):
+        rz[c] = 0.0
+        bb[c] = 0.0
+        pap[c] = 0.0
+        rz_new[c] = 0.0
+        rr[c] = 0.0
+        active[c] = 1
+        bad[c] = 0
+        done[c] = 0
+
+
+@ti.kernel
+def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, seg: _I32, rz: _F64, bb: _F64,
+           nvert: ti.i32):
+    """``x = 0``, ``ap = 0``, ``r = b``, ``z = p = M^-1 b``; per copy ``rz = r.z`` and ``bb = b.b`` (zeroed
+    before)."""
     for v in range(nvert):
         for a in ti.static(range(3)):
             i = 3 * v + a
@@ -204,6 +223,7 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, inv: _F64, seg: _I32, rz
             for c in ti.static(range(3)):
                 acc += inv[9 * v + 3 * a + c] * b[3 * v + c]
             x[i] = 0.0
+            ap[i] = 0.0
             r[i] = b[i]
             z[i] = acc
             p[i] = acc
@@ -439,7 +459,7 @@ class BatchedPCG:
     def _array(self, name: str, size: int, dtype=ti.f64):
         arr = self._arrays.get(name)
         if arr is None or arr.shape != (size,):
-            arr = ti.ndarray(dtype=dtype, shape=(size,))
+            arr = device_copy.new_ndarray(dtype, (size,))
             self._arrays[name] = arr
         return arr
 
@@ -451,7 +471,7 @@ class BatchedPCG:
         arr = self._array(name, size, dtype)
         if self._uploaded.get(name) is not host or arr is not kept:
             np_type = np.int32 if dtype == ti.i32 else np.float64
-            arr.from_numpy(np.ascontiguousarray(host, dtype=np_type) if host.size else np.zeros(1, np_type))
+            _copy_in(arr, np.ascontiguousarray(host, dtype=np_type) if host.size else np.zeros(1, np_type))
             self._uploaded[name] = host
         return arr
 
@@ -494,7 +514,7 @@ class BatchedPCG:
         indices = self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
         data = self._array("data", max(nnz, 1))
         if nnz and isinstance(data_h, np.ndarray):
-            data.from_numpy(np.ascontiguousarray(data_h[:nnz], dtype=np.float64))
+            transfer.upload(data, data_h[:nnz])
         elif nnz:
             _copy_values(data_h, data, nnz)
         if diagonal is not None and nnz:
@@ -520,18 +540,18 @@ class BatchedPCG:
             for s, (verts, vals) in enumerate(blocks.sets):
                 k, m = verts.shape
                 verts_dev = self._array(f"element_vertices_{s}", verts.size, ti.i32)
-                verts_dev.from_numpy(verts.reshape(-1))
+                _copy_in(verts_dev, verts.reshape(-1))
                 if isinstance(vals, DeviceRows):  # already on the device: no transfer
                     _expand_device_rows(verts_dev, vals.array, vals.start, k, m, at, brow, bcol, bval)
                 else:
                     vals_dev = self._array(f"element_blocks_{s}", vals.size)
-                    vals_dev.from_numpy(vals.reshape(-1))
+                    transfer.upload(vals_dev, vals.reshape(-1))
                     _expand_element_blocks(verts_dev, vals_dev, k, m, at, brow, bcol, bval)
                 at += k * m * m
         elif self._nblocks:
-            brow.from_numpy(np.ascontiguousarray(blocks.rows))
-            bcol.from_numpy(np.ascontiguousarray(blocks.cols))
-            bval.from_numpy(np.ascontiguousarray(blocks.values).reshape(-1))
+            _copy_in(brow, np.ascontiguousarray(blocks.rows))
+            _copy_in(bcol, np.ascontiguousarray(blocks.cols))
+            transfer.upload(bval, blocks.values.reshape(-1))
         if self._nblocks:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
@@ -566,12 +586,12 @@ class BatchedPCG:
         lower.eliminate_zeros()
         full = (upper + lower).tocsr()
         full.sort_indices()
-        self._array("full_indptr", n + 1, ti.i32).from_numpy(full.indptr.astype(np.int32))
+        _copy_in(self._array("full_indptr", n + 1, ti.i32), full.indptr.astype(np.int32))
         size = max(full.nnz, 1)
-        self._array("full_indices", size, ti.i32).from_numpy(
-            full.indices.astype(np.int32) if full.nnz else np.zeros(1, np.int32))
-        self._array("full_src", size, ti.i32).from_numpy(
-            (full.data - 1).astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        _copy_in(self._array("full_indices", size, ti.i32),
+                 full.indices.astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+        _copy_in(self._array("full_src", size, ti.i32),
+                 (full.data - 1).astype(np.int32) if full.nnz else np.zeros(1, np.int32))
         self._full = (indptr_h, indices_h, int(full.nnz))
         return self._full
 
@@ -589,9 +609,9 @@ class BatchedPCG:
         pin = self._array("mv_in", max(self._n, 1))
         out = self._array("mv_out", max(self._n, 1))
         if self._n:
-            pin.from_numpy(p)
+            transfer.upload(pin, p)
         _apply(*self._operator(), pin, out, self._n, self._nblocks)
-        return out.to_numpy()[: self._n]
+        return transfer.download(out)[: self._n]
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` (``b`` shape ``(n,)``) per copy to ``|r_c| <= rtol |b_c|``; returns ``x``."""
@@ -608,18 +628,13 @@ class BatchedPCG:
         per = {k: self._array(k, B) for k in ("rz", "bb", "pap", "rz_new", "rr", "beta")}
         active = self._array("active", B, ti.i32)
         bad = self._array("bad", B, ti.i32)
-        vec["b"].from_numpy(b)
-        for k in ("rz", "bb", "pap", "rz_new", "rr"):
-            per[k].fill(0.0)
-        active.fill(1)
-        bad.fill(0)
-        vec["ap"].fill(0.0)
-        nvert = n // 3
-        _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], a["inv"], a["seg"], per["rz"], per["bb"], nvert)
+        done = self._array("done", B, ti.i32)
+        transfer.upload(vec["b"], b)
+        _reset_copies(per["rz"], per["bb"], per["pap"], per["rz_new"], per["rr"], active, bad, done, B)
+        _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], a["seg"], per["rz"], per["bb"],
+               n // 3)
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
-        done = self._array("done", B, ti.i32)
-        done.fill(0)
         launched = 0
         while launched < self.max_iterations:
             for _ in range(min(LAUNCHES_PER_TEST, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
@@ -627,9 +642,24 @@ class BatchedPCG:
                 _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"],
                                vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
                                per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B)
-            if int(running.to_numpy()[0]) == 0:
+            if int(_copy_out(running)[0]) == 0:  # the host's one wait for the device in these launches
                 break
-        self.iterations = int(done.to_numpy().max())
-        self.indefinite = bad.to_numpy().astype(bool)
-        self.unconverged = active.to_numpy().astype(bool)
-        return vec["x"].to_numpy()
+        self.iterations = int(_copy_out(done).max())
+        self.indefinite = _copy_out(bad).astype(bool)
+        self.unconverged = _copy_out(active).astype(bool)
+        return transfer.download(vec["x"])
+
+
+def _copy_in(array, host: np.ndarray) -> None:
+    """``host`` (C-contiguous, ``array``'s dtype and size) into the 1-D ndarray ``array``: a byte copy
+    (:mod:`sim_core.ti_kernels.device_copy`) where one can be made here, else Taichi's ``from_numpy``."""
+    if array.dtype == ti.f64:
+        transfer.upload(array, host)
+    elif not device_copy.to_device(array, host):
+        array.from_numpy(host)
+
+
+def _copy_out(array) -> np.ndarray:
+    """The int32 1-D ndarray ``array``'s values (a byte copy where one can be made, else ``to_numpy``)."""
+    out = np.empty(array.shape, dtype=np.int32)
+    return out if device_copy.to_host(out, array) else array.to_numpy()

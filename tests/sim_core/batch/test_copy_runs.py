@@ -47,6 +47,37 @@ def test_per_copy_reductions_equal_those_of_the_gathered_dofs(stacked):
     np.testing.assert_array_equal(runs.per_dof(alphas)[dofs], np.repeat(alphas[:, None], dofs.shape[1], axis=1))
 
 
+def test_runs_of_one_length_form_blocks_that_tile_the_stacked_vertices(stacked):
+    runs = CopyRuns(stacked.index)
+    at = 0
+    for r0, v0, m, s in runs.blocks:
+        assert v0 == at and np.all(runs.lengths[r0:r0 + m] == s)
+        assert np.all(runs.starts[r0:r0 + m] == v0 + s * np.arange(m))
+        at += m * s
+    assert at == runs.vertex_count
+    assert len(runs.blocks) < len(runs.starts)  # each body's runs over the four copies are one block
+
+
+def test_whole_copies_are_zeroed_and_taken_in_place(stacked):
+    runs = CopyRuns(stacked.index)
+    dofs = stacked.dof_index
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=3 * runs.vertex_count), rng.normal(size=3 * runs.vertex_count)
+    mask = np.array([False, True, False, True])
+    want = a.copy()
+    want[dofs[mask]] = 0.0
+    out = runs.zero_copies(a, mask)
+    assert out is a
+    np.testing.assert_array_equal(a, want)
+    want[dofs[mask]] = b[dofs[mask]]
+    assert runs.copy_where(a, b, mask) is a
+    np.testing.assert_array_equal(a, want)
+    # a number counts as set where it is non-zero (a NaN too): the copies with a non-zero entry
+    c = np.zeros(3 * runs.vertex_count)
+    c[dofs[0, 4]], c[dofs[3, -1]] = 1e-300, np.nan
+    np.testing.assert_array_equal(runs.any_dof(c), [True, False, False, True])
+
+
 def test_a_non_finite_entry_marks_its_copy_alone(stacked):
     runs = CopyRuns(stacked.index)
     d = np.ones((runs.vertex_count, 3))
@@ -54,7 +85,8 @@ def test_a_non_finite_entry_marks_its_copy_alone(stacked):
     d[stacked.index[3, 0], 0] = np.inf
     np.testing.assert_array_equal(runs.all_finite(d), [True, False, True, False])
     norms = runs.largest_norm(d)
-    assert np.isnan(norms[1]) and norms[0] == pytest.approx(np.sqrt(3.0)) and norms[2] == pytest.approx(np.sqrt(3.0))
+    assert np.isnan(norms[1]) and np.isnan(norms[3])
+    assert norms[0] == pytest.approx(np.sqrt(3.0)) and norms[2] == pytest.approx(np.sqrt(3.0))
 
 
 def test_an_index_that_is_not_a_permutation_is_refused():

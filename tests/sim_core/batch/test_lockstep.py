@@ -117,6 +117,27 @@ def test_stacked_model_keeps_the_copies_apart_and_shares_one_term_per_energy(mod
     back = same.copy_state(same.stack_states([state] * 4), 3, state.t, 0)
     np.testing.assert_allclose(back.x, state.x, atol=1e-15)
     np.testing.assert_allclose(back.effector_pose["pad"], state.effector_pose["pad"], atol=1e-15)
+    # several copies' states at once: each its own positions, velocities, forces, poses, time and step
+    states = []
+    for i in range(4):
+        s = state.copy()
+        s.x = s.x + 1e-3 * i
+        s.v = np.full_like(s.x, float(i))
+        s.contact_force = np.full_like(s.x, -float(i))
+        s.effector_pose["pad"] = s.effector_pose["pad"] + np.r_[1e-3 * i, 0, 0, 0, 0, 0, 0]
+        s.hinge_theta_bar = {k: v + 0.01 * i for k, v in s.hinge_theta_bar.items()}
+        states.append(s)
+    backs = same.copy_states(same.stack_states(states), np.array([3, 0, 2]), np.array([0.1, 0.2, 0.3]),
+                             np.array([7, 8, 9]))
+    for b, i, t, k in zip(backs, (3, 0, 2), (0.1, 0.2, 0.3), (7, 8, 9)):
+        np.testing.assert_allclose(b.x, states[i].x, atol=1e-15)
+        np.testing.assert_array_equal(b.v, states[i].v)
+        np.testing.assert_array_equal(b.contact_force, states[i].contact_force)
+        np.testing.assert_allclose(b.effector_pose["pad"], states[i].effector_pose["pad"], atol=1e-15)
+        assert b.t == t and b.step_index == k
+        assert set(b.hinge_theta_bar) == set(state.hinge_theta_bar) and b.hinge_theta_bar
+        for sheet, theta in b.hinge_theta_bar.items():
+            np.testing.assert_array_equal(theta, states[i].hinge_theta_bar[sheet])
 
     # after steps with contact, no contact candidate pairs two copies
     batch = _lockstep_batch(model)
