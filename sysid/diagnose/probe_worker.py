@@ -36,7 +36,8 @@ from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETER
 
 
 class ProbeWorker:
-    """The secant stage's first replay made in a forked child process (module docstring).
+    """The secant stage's first replay made in a forked child process, which then makes further replays on
+    request until closed (module docstring).
 
     Args:
         model: the recording's :class:`~sysid.observation.ObservationModel`, before its simulation has
