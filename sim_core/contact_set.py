@@ -716,7 +716,7 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     returns them) at positions ``x`` ``(n, 3)`` m: per term, the vertex rows of its active entries
     (``d < eps``): ``(a, 4)`` int for a pair potential, ``(a,)`` for a plane or a sphere. None when
     a term is not a :class:`~sim_core.energies.base.PenaltyContact` (a missing-physics candidate's
-    adhesion, say).
+    stiction, say; its adhesion declares its open pairs).
     Two iterates with equal results have the same penalty terms switched on, so the contact part of
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
     if not all(declares(p, PenaltyContact) for p in terms):

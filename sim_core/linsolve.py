@@ -30,14 +30,16 @@ def mkl_runtime() -> ctypes.CDLL:
 
     pypardiso looks for ``mkl_rt`` on every ``PyPardisoSolver()``; without a system MKL that is a
     recursive glob over the environment's ``lib`` tree (~0.4 s), which every new solver (each
-    replay of a fit, each diagnosis probe) would pay again.
+    replay of a fit, each diagnosis probe) would pay again. Importing pypardiso already builds one
+    (its module-level solver, ``pypardiso.scipy_aliases.pypardiso_solver``): its library is taken, so
+    the search runs once per process.
 
     Raises:
         ImportError: pypardiso is not installed or MKL's runtime library is not found.
     """
-    import pypardiso  # optional heavy dependency: MKL PARDISO, loaded on first use
+    import pypardiso.scipy_aliases  # optional heavy dependency: MKL PARDISO, loaded on first use
 
-    return pypardiso.PyPardisoSolver().libmkl
+    return pypardiso.scipy_aliases.pypardiso_solver.libmkl
 
 
 class LinearSolver(Protocol):

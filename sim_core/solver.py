@@ -36,7 +36,7 @@ from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
-from sim_core.energies.base import KeepsDerivatives, declares
+from sim_core.energies.base import KeepsDerivatives, PenaltyContact, declares
 from sim_core.energies.damping.reference import ViscousDamping
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.gravity.reference import GravityPotential
@@ -494,10 +494,11 @@ class NewtonSolver:
             [fixed_terms[1]] if not np.any(model.gravity) else [])
         loop_terms = [p for p in fixed_terms if not any(p is q for q in replaced)] + ([fused] if fused is not None else [])
         cand_dynamic = cand_contact + [p for p in cand_body if not any(p is q for q in fused_body)]
-        # the simplified Newton test (SolverConfig.simplified_newton_check): only with the library's
-        # penalty contacts and lagged friction (a candidate's adhesion or stiction may switch within a
-        # step)
-        simplified = (cfg.simplified_newton_check > 0 and not (cand_contact or cand_body)
+        # the simplified Newton test (SolverConfig.simplified_newton_check): only with penalty-like contacts
+        # whose switches the test compares (the library's, a candidate's adhesion) and lagged friction (a
+        # candidate's stiction may switch within a step; a body term is not compared)
+        simplified = (cfg.simplified_newton_check > 0 and not cand_body
+                      and all(declares(p, PenaltyContact) for p in cand_contact)
                       and (friction is None or isinstance(friction, LaggedFriction)))
         step = StepTerms(
             state_in=state_in, dt=dt, fixed=fixed, free=free, x_target=x_target, poses=poses, openings=openings,
@@ -536,7 +537,7 @@ class NewtonSolver:
         for it in range(1, cfg.max_iterations + 1):
             contact_terms, x_search, g = self._gradient(step, x, it, info)
             if (simplified_ok and active_before is not None
-                    and same_active_contacts(active_contacts(contact_terms, x), active_before)):
+                    and same_active_contacts(active_contacts(contact_terms + step.cand_contact, x), active_before)):
                 residual_bar, d_bar = self._simplified_correction(step, g, info)
                 if residual_bar < cfg.simplified_newton_check * cfg.tol_velocity:
                     info.simplified_stops = 1
@@ -562,9 +563,9 @@ class NewtonSolver:
                 x = x + d3
                 continue
             if step.simplified and projection == "none" and factorization is self.linear_solver:
-                # the contacts touching at x, for the simplified test at the next iterate (which needs
-                # this iteration's exact factorisation)
-                active_before = active_contacts(contact_terms, x)
+                # the contacts touching at x (and the candidate's open adhesion pairs), for the simplified
+                # test at the next iterate (which needs this iteration's exact factorisation)
+                active_before = active_contacts(contact_terms + step.cand_contact, x)
             alpha = min(1.0, step.max_displacement / step_max) if step_max > 0 else 1.0
             e0 = self._energy(step, x, contact_terms, x_search)
             slope = float(g @ d)

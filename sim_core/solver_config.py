@@ -71,8 +71,9 @@ class SolverConfig:
             convergence (Forming: a step takes about four Newton updates and a fifth, tiny one
             that is not applied). The test runs only after an iteration that factorised the
             exact Hessian and took its full step, when the same contacts touch at ``x_{k-1}``
-            and ``x_k`` (:func:`sim_core.contact_set.active_contacts`) and the model has no
-            candidate terms: a contact switching on or off between the two iterates changes the
+            and ``x_k`` (:func:`sim_core.contact_set.active_contacts`; a candidate's adhesion pairs
+            count with them, open or closed) and the model has no other candidate term (stiction,
+            body terms): a contact switching on or off between the two iterates changes the
             matrix, and the simplified correction then underestimates the ordinary one (Forming:
             by up to 28x). With the same contacts it underestimated by up to 3.6x (Forming, 49
             steps, every iteration after the first; the lagged friction's stiffness

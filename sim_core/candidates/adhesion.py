@@ -145,6 +145,13 @@ class LaggedAdhesion:
         rel = np.einsum("kj,kjd->kd", self.weights, x[self.vertices])
         return np.einsum("kd,kd->k", rel, self.normal) - self.eps
 
+    def active_mask(self, x: np.ndarray) -> np.ndarray:
+        """Whether each pair is open (``s > 0``) at ``x`` ``(n, 3)`` m, ``(p,)`` bool: its Hessian block is
+        non-zero there and switches off where the pair closes, as a penalty contact's switches on below its
+        offset (:class:`~sim_core.energies.base.PenaltyContact`: the simplified Newton test compares the
+        open pairs of two iterates, :func:`sim_core.contact_set.active_contacts`)."""
+        return self.opening(x) > 0.0
+
     def _r(self, x: np.ndarray) -> np.ndarray:
         return np.maximum(self.opening(x), 0.0) / self.delta
 

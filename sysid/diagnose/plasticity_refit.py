@@ -72,9 +72,31 @@ def _rms(x: np.ndarray, xp: np.ndarray, sigma: np.ndarray) -> float:
     return math.sqrt(_sse(x, xp, sigma) / max(x.size, 1)) if x.size else float("nan")
 
 
+def brent_first_points(lower: float, upper: float, xatol: float) -> tuple[float, float]:
+    """The first two points that bounded Brent minimisation (:func:`scipy.optimize.minimize_scalar`,
+    ``method="bounded"``; Brent 1973, "Algorithms for Minimization without Derivatives", ch. 5) evaluates on
+    ``[lower, upper]``: the golden section point, then a golden section step from it (no parabola can be
+    fitted through one point), computed as SciPy computes them (the same floating-point operations), so
+    neither depends on a function value and both can be replayed at once.
+
+    Returns:
+        ``(x1, x2)``.
+    """
+    golden_mean = 0.5 * (3.0 - math.sqrt(5.0))
+    a, b = float(lower), float(upper)
+    xf = a + golden_mean * (b - a)
+    xm = 0.5 * (a + b)
+    tol1 = math.sqrt(2.2e-16) * abs(xf) + xatol / 3.0
+    e = a - xf if xf >= xm else b - xf
+    rat = golden_mean * e
+    si = np.sign(rat) + (rat == 0)
+    return xf, float(xf + si * np.maximum(np.abs(rat), tol1))
+
+
 def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nominal: np.ndarray,
                     sigma: np.ndarray, rows: np.ndarray, train: np.ndarray, theta_max: float,
-                    max_replays: int = 5, max_time: float | None = None) -> dict[str, Any]:
+                    max_replays: int = 5, max_time: float | None = None,
+                    prefetch: Callable[[float], None] | None = None) -> dict[str, Any]:
     """Yield angle of the hinge bending that best fits the training sheet points.
 
     Args:
@@ -90,6 +112,8 @@ def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nom
         max_replays: most replays of the search.
         max_time: wall-time budget of the search, s (None: none); a replay started before it ends
             is finished.
+        prefetch: called with the search's second yield angle (rad) before its first replay, so that
+            ``replay`` may make both at once (:meth:`sysid.diagnose.resume.YieldReplays.prefetch`); None: none.
 
     Returns:
         dict with ``yield_angle`` (rad; None when no evaluated angle beats the nominal replay on the
@@ -134,6 +158,8 @@ def fit_yield_angle(replay: Callable[[float], np.ndarray], data: np.ndarray, nom
         return c
 
     lo = math.log(LOWEST_FRACTION)
+    if prefetch is not None and max_replays >= 2:
+        prefetch(theta_max * math.exp(brent_first_points(lo, 0.0, XATOL)[1]))
     try:
         minimize_scalar(cost, bounds=(lo, 0.0), method="bounded", options={"xatol": XATOL, "maxiter": max_replays})
     except _Budget:
@@ -214,7 +240,8 @@ def tack_base(model: Any, params: Mapping[str, float], recording: Any, nominal: 
 
 def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, nominal: np.ndarray,
                      windows_s: list[list[float]], max_replays: int = 5,
-                     max_time: float | None = None, carried_by_tack: bool = False) -> dict[str, Any]:
+                     max_time: float | None = None, carried_by_tack: bool = False,
+                     worker: Any = None) -> dict[str, Any]:
     """Bending plasticity refitted with its term (``sheet.yield_angle``) on a calibrated recording.
 
     Args:
@@ -229,6 +256,9 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
             when it fits the training points better than the calibrated replay. The held-out figures
             before / after are then those of that base without / with the term
             (``detail.heldout_rms_calibrated``: the calibrated replay's).
+        worker: a process that makes replays beside this one (the calibration's probe process,
+            :class:`~sysid.diagnose.probe_worker.ProbeWorker`), or None: the search's second replay is made
+            there while this process makes its first (:class:`~sysid.diagnose.resume.YieldReplays`).
 
     Returns:
         the refit block of the report (``params``, ``observable``, ``heldout``, ``rms``,
@@ -256,9 +286,12 @@ def refit_plasticity(model: Any, params: Mapping[str, float], recording: Any, no
     theta_max = float(np.max(angles)) if angles is not None and angles.size else FALLBACK_THETA_MAX
     theta_max = theta_max if theta_max > 1e-6 else FALLBACK_THETA_MAX
 
-    replay = YieldReplays(model, base_params, carried, RELEASE_TIME_SETTING if carried is not None else None)
-    f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time)
+    replay = YieldReplays(model, base_params, carried, RELEASE_TIME_SETTING if carried is not None else None,
+                          worker=worker, nominal=params)
+    f = fit_yield_angle(replay, data, nominal, sigma, rows, train, theta_max, max_replays, max_time,
+                        prefetch=replay.prefetch)
     f["shared_steps"] = list(replay.shared_steps)
+    f["prefetched"] = list(replay.prefetched)
     pred = f.pop("prediction")
     f["tack"] = tack
     f["heldout_rms_calibrated"] = _rms(data[rows][:, held], calibrated[rows][:, held], sigma)

@@ -20,15 +20,15 @@ from pathlib import Path
 from typing import Sequence
 
 from sysid.diagnose.parallel import connected_ray
-from sysid.diagnose.signature_engine import Prepared, SignatureSettings, prepare
+from sysid.diagnose.signature_engine import Prepared, SignatureSettings, prepare, without_replays
 
 
 def prepare_baseline(bag: str | Path, settings: SignatureSettings) -> Prepared:
     """:func:`~sysid.diagnose.signature_engine.prepare` without the simulator in the result: ``model``
-    None and the calibration without its parameter fit's record (``calibration.fit`` None: a
-    :class:`sysid.fit.FitResult` holds the model); parameters, sensor calibration, whitened RMS and
+    None, no probe process and the calibration without its parameter fit's record (``calibration.fit``
+    None: a :class:`sysid.fit.FitResult` holds the model); parameters, sensor calibration, whitened RMS and
     prediction are kept."""
-    p = prepare(bag, settings)
+    p = without_replays(prepare(bag, settings))
     return dataclasses.replace(p, model=None, calibration=dataclasses.replace(p.calibration, fit=None))
 
 
@@ -66,7 +66,7 @@ def prepare_with_baselines(bag: str | Path, baselines: Sequence[str | Path], set
         refs = [task.remote(str(b), settings) for b in baselines]
         return prepare(bag, settings), list(ray.get(refs))
     if workers <= 1 or not baselines:
-        base = [prepare(b, settings) for b in baselines]
+        base = [without_replays(prepare(b, settings)) for b in baselines]
         return prepare(bag, settings), base
     # the workers fill the cores: each recording's calibration replays in its own process only
     settings = dataclasses.replace(settings, probe_worker=False)

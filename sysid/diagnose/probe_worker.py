@@ -16,20 +16,28 @@ and reaches the same values as in one process; on two cores its wall time falls 
 The child is forked before this process starts Taichi (Taichi's runtime does not survive ``fork``,
 :mod:`sysid.diagnose.parallel`); it starts its own. It sends back the replay without its states and
 the later replays' start (:func:`~sysid.calibration_secant.resume_before_contact`).
+
+After the probe the child stays, its Taichi runtime warm, and makes further replays on request
+(:meth:`ProbeWorker.submit`, :meth:`ProbeWorker.collect`) until :meth:`ProbeWorker.close`: the bending
+plasticity refit's yield-angle search makes its second replay there while this process makes its first
+(:func:`sysid.diagnose.plasticity_refit.fit_yield_angle` ``prefetch``). A request carries the calibration's
+nominal values, the replay's parameters and its start (:class:`~sysid.observation.Resume`); the child sets
+the same nominal values on its copy of the model, so that the replay is the one this process would make.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import multiprocessing
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 from sysid.calibration_secant import (CONTACT_ONSET_PARAMETERS, SECANT_PARAMETERS, FirstReplay, first_probe_values,
                                       resume_before_contact)
 
 
 class ProbeWorker:
-    """The secant stage's first replay made in a forked child process (module docstring).
+    """The secant stage's first replay made in a forked child process, which then makes further replays on
+    request until closed (module docstring).
 
     Args:
         model: the recording's :class:`~sysid.observation.ObservationModel`, before its simulation has
@@ -50,28 +58,70 @@ class ProbeWorker:
         if current_arch() is not None:
             raise ValueError("ProbeWorker: Taichi is started in this process; a forked child cannot run it")
         ctx = multiprocessing.get_context("fork")
-        self._conn, child = ctx.Pipe(duplex=False)
+        self._conn, child = ctx.Pipe(duplex=True)
         self._process = ctx.Process(target=_probe, args=(model, tuple(params), names, child), daemon=True)
         self._process.start()
         child.close()
         self._result: FirstReplay | None = None
-        self._done = False
+        self._received = False
+        self._pending = False
+        self._closed = False
 
     def result(self) -> FirstReplay | None:
         """The replay (waits for the child), or None when the child failed (a diverged replay, an error:
-        the stage then replays it here and meets the same failure). Later calls return the same."""
-        if not self._done:
-            try:
-                self._result = self._conn.recv()
-            except (EOFError, OSError):
-                self._result = None
-            self.close()
+        the stage then replays it here and meets the same failure; the child is then ended). Later calls
+        return the same."""
+        if not self._received:
+            self._received = True
+            self._result = self._receive()
+            if self._result is None:
+                self.close()
         return self._result
 
+    @property
+    def available(self) -> bool:
+        """Whether the child takes a request now: its probe is sent, no request is pending, not closed."""
+        return self._received and not self._pending and not self._closed
+
+    def submit(self, nominal: Mapping[str, float], params: Mapping[str, float], resume: Any = None) -> bool:
+        """Ask the child for the replay of ``params`` started at ``resume`` (a :class:`~sysid.observation.Resume`
+        or None: from t = 0), with ``nominal`` as the model's nominal values (``ObservationModel.set_nominal``:
+        the calibration's parameters). False (nothing asked) when the child is not :attr:`available`."""
+        if not self.available:
+            return False
+        try:
+            self._conn.send((dict(nominal), dict(params), resume))
+        except (OSError, ValueError):
+            self.close()
+            return False
+        self._pending = True
+        return True
+
+    def collect(self) -> Any:
+        """The submitted replay (a :class:`~sysid.observation.SimTrace` without states; waits for the
+        child), or None when it failed or nothing was submitted (the caller then replays it itself)."""
+        if not self._pending:
+            return None
+        self._pending = False
+        out = self._receive()
+        if out is None:
+            self.close()
+        return out
+
+    def _receive(self) -> Any:
+        if self._closed:
+            return None
+        try:
+            return self._conn.recv()
+        except (EOFError, OSError):
+            return None
+
     def close(self) -> None:
-        """End the child: it has sent its result (:meth:`result`) or is stopped (a calibration that ended
-        before its secant stage)."""
-        self._done = True
+        """End the child (after its last reply, or stopped where a calibration ended before its secant stage).
+        Later calls do nothing."""
+        if self._closed:
+            return
+        self._closed = True
         self._conn.close()
         if self._process.is_alive():
             self._process.join(timeout=1.0)
@@ -82,7 +132,7 @@ class ProbeWorker:
 
 def _probe(model, params: tuple[str, ...], names: tuple[str, ...], conn) -> None:
     """The child: replay the secant stage's first parameters from the scene values and send a
-    :class:`~sysid.calibration_secant.FirstReplay` (None on failure)."""
+    :class:`~sysid.calibration_secant.FirstReplay` (None on failure), then serve requests (:func:`_serve`)."""
     out = None
     try:
         model.sensor_calibration = None
@@ -95,8 +145,26 @@ def _probe(model, params: tuple[str, ...], names: tuple[str, ...], conn) -> None
         out = FirstReplay(values, dataclasses.replace(trace, states=None), resume)
     except Exception:  # noqa: BLE001 -- any failure: the parent replays it itself and reports it there
         out = None
+    try:
+        conn.send(out)
+        if out is not None:
+            _serve(model, conn)
+    except (EOFError, OSError):
+        return
     finally:
+        conn.close()
+
+
+def _serve(model, conn) -> None:
+    """The child after its probe: replay each request ``(nominal, params, resume)`` and send the trace
+    without states (None on failure), until the parent closes its end."""
+    while True:
+        nominal, params, resume = conn.recv()
+        out = None
         try:
-            conn.send(out)
-        finally:
-            conn.close()
+            model.reset_nominal()
+            model.set_nominal(nominal)
+            out = dataclasses.replace(model.simulate(params, resume=resume), states=None)
+        except Exception:  # noqa: BLE001 -- any failure: the parent replays it itself and reports it there
+            out = None
+        conn.send(out)

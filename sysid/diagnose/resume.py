@@ -153,6 +153,9 @@ class YieldReplays:
     the search's first replay. Each replay after it simulates only the steps after the shared ones
     (:class:`~sysid.observation.Resume`), with the same result to round-off.
 
+    A replay announced by :meth:`prefetch` is made by ``worker`` (another process with the same model) while
+    this one makes the replays asked before it; it is taken when it is asked for with that very angle.
+
     Args:
         model: the calibrated :class:`~sysid.observation.ObservationModel`.
         params: parameters of every replay but the yield angle.
@@ -160,14 +163,23 @@ class YieldReplays:
             ``release_setting`` and without a yield angle, or None.
         release_setting: the setting of ``params`` that acts only from a simulated time on (s; the
             tack's release time), absent from ``base``'s parameters; None: none.
+        worker: the process that makes prefetched replays (``submit(nominal, params, resume)`` and
+            ``collect()``, :class:`~sysid.diagnose.probe_worker.ProbeWorker`), or None: every replay here.
+        nominal: the model's nominal values (``ObservationModel.set_nominal``: the calibration's parameters),
+            set by ``worker`` on its copy of the model.
 
     Attributes:
         shared_steps: per replay, the steps taken from the kept replay (0: simulated from the start).
+        prefetched: the yield angles whose replay ``worker`` made.
     """
 
     def __init__(self, model: Any, params: Mapping[str, float], base: Any = None,
-                 release_setting: str | None = None) -> None:
+                 release_setting: str | None = None, worker: Any = None,
+                 nominal: Mapping[str, float] | None = None) -> None:
         self.model, self.params = model, dict(params)
+        self.worker, self.nominal = worker, dict(nominal or {})
+        self._pending: float | None = None
+        self.prefetched: list[float] = []
         self.shared_steps: list[int] = []
         self.limit = int(model.step_count)
         if release_setting is not None and release_setting in self.params:
@@ -187,6 +199,20 @@ class YieldReplays:
         if angles is not None and angles.shape == (len(states),):
             self.base, self.angles, self.elastic_until = trace, angles, flat - 1
 
+    def _start(self, yield_angle: float) -> int:
+        """The last step a replay at ``yield_angle`` takes from the kept replay (0: none kept)."""
+        return 0 if self.base is None else min(elastic_steps(self.angles, yield_angle), self.elastic_until, self.limit)
+
+    def prefetch(self, yield_angle: float) -> None:
+        """Have ``worker`` make the replay at ``yield_angle`` (rad) now, for a later call with that angle; only
+        one resumed from the kept replay (the one this process would make), and one at a time."""
+        k = self._start(yield_angle)
+        if self.worker is None or self._pending is not None or k <= 0:
+            return
+        params = {**self.params, YIELD_PARAMETER: float(yield_angle)}
+        if self.worker.submit(self.nominal, params, Resume(k, self.base.states[k], self.base.head(k))):
+            self._pending = float(yield_angle)
+
     def __call__(self, yield_angle: float) -> np.ndarray:
         """The replay at ``yield_angle`` (rad): its sheet points aligned to the recording ``(n, p, 3)`` m.
 
@@ -194,8 +220,15 @@ class YieldReplays:
             SimulationDivergedError: the replay diverged.
         """
         params = {**self.params, YIELD_PARAMETER: float(yield_angle)}
-        k = 0 if self.base is None else min(elastic_steps(self.angles, yield_angle), self.elastic_until, self.limit)
-        if k > 0:
+        k = self._start(yield_angle)
+        made = None
+        if self._pending is not None and self._pending == float(yield_angle):
+            self._pending = None
+            made = self.worker.collect()  # None: it failed there; made here (and failing as it did)
+        if made is not None:
+            self.prefetched.append(float(yield_angle))
+            trace = made
+        elif k > 0:
             trace = self.model.simulate(params, resume=Resume(k, self.base.states[k], self.base.head(k)))
         elif self.base is None:
             trace = self.model.simulate(params, keep_states=True)

@@ -135,6 +135,9 @@ class Prepared:
         notes: what could not be done, and why.
         refit_predictions: effect -> channel -> the replay with the effect's term, for the refits
             that replay the simulator (the report plots them).
+        replays: the calibration's probe process, kept for the refits' replays
+            (:class:`~sysid.diagnose.probe_worker.ProbeWorker` ``submit`` / ``collect``), or None; closed by
+            :func:`diagnose_one` (:func:`without_replays`).
     """
 
     bag: Path
@@ -146,6 +149,7 @@ class Prepared:
     wall_s: float = 0.0
     notes: list[str] = field(default_factory=list)
     refit_predictions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    replays: ProbeWorker | None = None
 
 
 def recording_of(model: ObservationModel, prediction: Mapping[str, np.ndarray] | None,
@@ -202,9 +206,13 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")
         model.sensor_calibration = None
         cal = CalibrationResult({}, nominal_sensor_calibration(model), {}, {})
-    finally:
+    except BaseException:
         if worker is not None:
             worker.close()
+        raise
+    if worker is not None and not cal.prediction:
+        worker.close()
+        worker = None
     prediction = {ch: np.asarray(v, dtype=float) for ch, v in (cal.prediction or {}).items()}
     reference = None
     try:
@@ -214,7 +222,16 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                      "against the drive's replay")
     rec = recording_of(model, prediction or None, reference)
     results = run_signature_tests(rec)
-    return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes)
+    return Prepared(Path(bag), model, cal, prediction, rec, results, time.monotonic() - t_start, notes,
+                    replays=worker)
+
+
+def without_replays(p: Prepared) -> Prepared:
+    """``p`` with its probe process (:attr:`Prepared.replays`) ended and dropped (a recording that makes no
+    more replays, or one sent to another process)."""
+    if p.replays is not None:
+        p.replays.close()
+    return dataclasses.replace(p, replays=None)
 
 
 def probe_worker_for(model: ObservationModel, params: Sequence[str], settings: SignatureSettings) -> ProbeWorker | None:
@@ -400,7 +417,7 @@ def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings,
         try:
             out = refit_plasticity(p.model, p.calibration.params, rec, p.prediction["sheet_points"], r.windows_s,
                                    settings.plasticity_replays, settings.plasticity_max_time,
-                                   carried_by_tack="adhesion" in named)
+                                   carried_by_tack="adhesion" in named, worker=p.replays)
         except ValueError as err:
             p.notes.append(f"bending_plasticity: not refitted ({err})")
         else:
@@ -533,15 +550,20 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
         # decisions set flags on the results: start from undecided copies
         p = Prepared(prepared.bag, prepared.model, prepared.calibration, prepared.prediction, prepared.recording,
                      {e: dataclasses.replace(r, detected=False, threshold={}, reason=r.reason if not r.applicable else "")
-                      for e, r in prepared.results.items()}, prepared.wall_s, list(prepared.notes))
+                      for e, r in prepared.results.items()}, prepared.wall_s, list(prepared.notes),
+                     replays=prepared.replays)
     else:
         p = prepare(bag, settings)
-    base = list(baseline_prepared) if baseline_prepared is not None else [prepare(b, settings) for b in baselines]
+    base = (list(baseline_prepared) if baseline_prepared is not None
+            else [without_replays(prepare(b, settings)) for b in baselines])
     th: Thresholds = default_thresholds(p.recording)
     if base:
         th = calibrated_thresholds(th, [b.results for b in base], settings.baseline_factor)
     decision: Decision = decide(p.results, th)
-    explained, unexplained, refits = guard_names(p, decision.explained_by, settings)
+    try:
+        explained, unexplained, refits = guard_names(p, decision.explained_by, settings)
+    finally:
+        p = without_replays(p)
     p.notes.extend(u["reason"] for u in unexplained)
     named = [p.results[e] for e in decision.explained_by]
     windows = sorted({(round(a, 4), round(b, 4)) for r in named for a, b in r.windows_s})

@@ -245,3 +245,17 @@ def test_cholesky_reuses_the_split_of_a_shared_read_only_pattern():
         assert solver.solve(b).tobytes() == reference.solve(b).tobytes()
     assert len(splits) == 1
     assert not solver._split.indptr.flags.writeable and not solver._split.indices.flags.writeable
+
+
+def test_mkl_runtime_is_the_library_pypardiso_found_on_import():
+    """The MKL library is pypardiso's own module-level solver's (searched once, on import), and a handle
+    built on it solves."""
+    import pypardiso.scipy_aliases
+
+    from sim_core.linsolve import mkl_runtime
+
+    assert mkl_runtime() is pypardiso.scipy_aliases.pypardiso_solver.libmkl
+    A = sp.csr_matrix(np.array([[4.0, 1.0], [1.0, 3.0]]))
+    lu = PardisoSolver()
+    lu.factorize(A)
+    np.testing.assert_allclose(A @ lu.solve(np.array([1.0, 2.0])), [1.0, 2.0], rtol=1e-12)

@@ -121,3 +121,34 @@ def test_active_contacts_name_the_touching_vertices_and_refuse_unknown_terms():
 def test_switched_off_check_never_stops_early(runs):
     _, (_, ref_infos, _) = runs
     assert all(i.factorizations == i.iterations + i.projected_iterations for i in ref_infos)
+
+
+def _adhesion_run(config: SolverConfig) -> list[tuple]:
+    """The card of ``test_adjoint`` pressed by a tacky gel (candidate adhesion, 2 mN per pair) that then
+    lifts 0.2 mm: per step its StepInfo, the open adhesion pairs at the result and the positions."""
+    from sim_core.candidates.adhesion import LaggedAdhesion
+
+    sim = Simulation.from_scene(_scene(), solver_config=config)
+    sim.set_parameter("candidate.adhesion", 0.002)
+    out = []
+    for z in (0.00026, 0.00022, 0.00022, 0.00024, 0.00027, 0.00030, 0.00034, 0.00038, 0.00042):
+        info = sim.step(Control({"ee": np.array([0.025, 0.0, z, 1.0, 0.0, 0.0, 0.0])}))
+        bonds = [t for t in sim.solver.last_record.terms if isinstance(t, LaggedAdhesion)]
+        opened = sum(int(np.count_nonzero(t.active_mask(sim.state.x))) for t in bonds)
+        out.append((info, len(bonds), opened, sim.state.x.copy()))
+    return out
+
+
+def test_simplified_stops_with_adhesion_pairs_reach_the_ordinary_result():
+    """A candidate's adhesion declares its open pairs (``LaggedAdhesion.active_mask``), so the test runs on
+    its steps too, and ends some where bonded pairs are open, at the positions the ordinary test reaches."""
+    runs, ref = _adhesion_run(SolverConfig()), _adhesion_run(SolverConfig(simplified_newton_check=0.0))
+    tol_dx = SolverConfig().tol_velocity * 0.005
+    assert all(bonds == 1 for _, bonds, _, _ in runs)  # the candidate's term is in every step
+    assert any(info.simplified_stops for info, _, opened, _ in runs if opened)
+    assert all(info.simplified_stops == 0 for info, _, _, _ in ref)
+    for (info, _, opened, x), (ref_info, _, ref_opened, x_ref) in zip(runs, ref):
+        assert opened == ref_opened
+        assert info.factorizations == info.iterations - info.simplified_stops + info.projected_iterations
+        assert np.max(np.abs(x - x_ref)) < tol_dx
+    assert sum(r[0].factorizations for r in runs) < sum(r[0].factorizations for r in ref)

@@ -10,6 +10,8 @@ predicts the held-out half at the noise level.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -82,3 +84,30 @@ def test_fit_keeps_the_elastic_model_when_no_yield_angle_fits_better():
     assert len(calls) <= 3 and f["evaluations"]
     with pytest.raises(ValueError, match="theta_max"):
         fit_yield_angle(replay, data, nominal, sigma, np.ones(20, bool), checkerboard(6, (3, 2)), 0.0)
+
+
+def test_brent_first_points_are_the_first_two_that_bounded_minimisation_evaluates():
+    """Computed as SciPy computes them (bit for bit), for the refit's own interval and others."""
+    from scipy.optimize import minimize_scalar
+
+    from sysid.diagnose.plasticity_refit import LOWEST_FRACTION, XATOL, brent_first_points
+
+    for lo, hi, xatol in ((math.log(LOWEST_FRACTION), 0.0, XATOL), (-1.0, 3.0, 1e-5), (2.0, 2.5, 0.3)):
+        calls: list[float] = []
+        minimize_scalar(lambda u: calls.append(float(u)) or (u - hi) ** 2, bounds=(lo, hi), method="bounded",
+                        options={"xatol": xatol, "maxiter": 4})
+        assert brent_first_points(lo, hi, xatol) == (calls[0], calls[1])
+
+
+def test_the_search_prefetches_its_second_replay_before_its_first():
+    order: list[tuple[str, float]] = []
+    data = np.zeros((4, 6, 3))
+
+    def replay(y: float) -> np.ndarray:
+        order.append(("replay", y))
+        return data + 1e-3 * math.log(y)
+
+    fit_yield_angle(replay, data, data + 0.01, np.full(3, 1e-3), np.ones(4, bool), np.arange(6) % 2 == 0, 0.5,
+                    max_replays=3, prefetch=lambda y: order.append(("prefetch", y)))
+    assert [kind for kind, _ in order] == ["prefetch", "replay", "replay", "replay"]
+    assert order[0][1] == order[2][1]  # the second replay is the prefetched angle, bit for bit

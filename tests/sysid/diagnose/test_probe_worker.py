@@ -35,13 +35,26 @@ for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
     assert np.array_equal(getattr(made.trace, ch), getattr(here, ch)), ch
 assert 0 < made.resume.step < model.step_count and not np.any(made.resume.prefix.wrench)
 assert worker.result() is made
+# later requests: the child sets the nominal values asked for and makes the replay this process makes
+model.set_nominal(base)
+stiffer = {**values, "gel.youngs_modulus": 1.1 * base["gel.youngs_modulus"]}
+step = {**values, "contact.eps_v": values["contact.eps_v"] / 3.0}
+for params, resume in ((stiffer, None), (step, made.resume)):
+    assert worker.available and worker.submit(base, params, resume) and not worker.available
+    there, here = worker.collect(), model.simulate(params, resume=resume)
+    assert there.states is None and worker.available
+    for ch in ("markers_xyz", "markers_uv", "wrench", "sheet_points"):
+        assert np.array_equal(getattr(there, ch), getattr(here, ch)), ch
+assert worker.collect() is None  # nothing submitted
+worker.close()
+assert not worker.available and not worker.submit(base, step) and worker.collect() is None
 print("same replay; later replays resume at step", made.resume.step)
 """
 
 
 def test_probe_made_in_a_forked_process_is_the_replay_made_here():
     """Run in a process of its own: the worker forks before Taichi starts (a test process may have
-    started it already)."""
+    started it already). The child's later replays on request are those made here too."""
     from tests.sysid.conftest import reference_bag
 
     proc = subprocess.run([sys.executable, "-c", CHILD, str(reference_bag("nominal_s101"))], cwd=REPO,

@@ -180,3 +180,52 @@ def test_yield_search_replays_start_from_the_first_one_and_equal_full_replays(pl
               for j in range(model.step_count + 1)]
     plastic = YieldReplays(model, {}, base=dataclasses.replace(elastic, states=states))
     assert plastic.base is not None and plastic.elastic_until == 0
+
+
+class _HereWorker:
+    """A worker that makes the submitted replay in this process when it is collected (the requests and
+    replies of :class:`sysid.diagnose.probe_worker.ProbeWorker`, without its process)."""
+
+    def __init__(self, model):
+        self.model, self.requests, self._request = model, [], None
+
+    def submit(self, nominal, params, resume=None) -> bool:
+        if self._request is not None:
+            return False
+        self._request = (dict(nominal), dict(params), resume)
+        self.requests.append(self._request)
+        return True
+
+    def collect(self):
+        nominal, params, resume = self._request
+        self._request = None
+        self.model.set_nominal(nominal)
+        return dataclasses.replace(self.model.simulate(params, resume=resume), states=None)
+
+
+def test_a_prefetched_yield_replay_is_made_by_the_worker_from_the_kept_replay(plastic_card):
+    """:meth:`YieldReplays.prefetch` asks the worker for the replay this process would make (resumed from the
+    kept replay at the same step); it is taken only for that very angle, and equals the replay made here."""
+    from sysid.diagnose.resume import YIELD_PARAMETER, YieldReplays
+
+    model = plastic_card
+    elastic = model.simulate({YIELD_PARAMETER: 1e3}, keep_states=True)
+    angles = hinge_angle_history(model, elastic.sheet_points)
+    y1, y2 = 0.3 * float(angles.max()), 0.6 * float(angles.max())
+    here = YieldReplays(model, {}, base=elastic)
+    worker = _HereWorker(model)
+    replays = YieldReplays(model, {}, base=elastic, worker=worker, nominal={})
+    replays.prefetch(y2)
+    replays.prefetch(y1)  # one at a time: not asked
+    assert len(worker.requests) == 1
+    nominal, params, resume = worker.requests[0]
+    assert params == {YIELD_PARAMETER: y2} and resume.step == here._start(y2) > 0
+    first = replays(y1)  # made here
+    assert replays.prefetched == [] and np.array_equal(first, here(y1))
+    second = replays(y2)  # the worker's
+    assert replays.prefetched == [y2] and np.array_equal(second, here(y2))
+    assert replays.shared_steps == here.shared_steps
+    # without a kept replay nothing is prefetched (the search's first replay becomes the kept one here)
+    alone = YieldReplays(model, {}, worker=worker, nominal={})
+    alone.prefetch(y2)
+    assert len(worker.requests) == 1
