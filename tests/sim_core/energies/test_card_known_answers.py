@@ -105,7 +105,8 @@ def _bent_column(strip: ClampedStrip, tip_rotation: float) -> np.ndarray:
     s = np.clip(strip.mesh.x[:, 0] - (strip.mesh.x[:, 0].max() - strip.free_length), 0.0, None)
     grid = np.linspace(0.0, strip.free_length, 2001)
     angle = tip_rotation * np.sin(0.5 * np.pi * grid / strip.free_length)
-    steps = np.diff(grid)[:, None] * 0.5 * (np.c_[np.cos(angle), np.sin(angle)][1:] + np.c_[np.cos(angle), np.sin(angle)][:-1])
+    slope = np.c_[np.cos(angle), np.sin(angle)]
+    steps = np.diff(grid)[:, None] * 0.5 * (slope[1:] + slope[:-1])
     path = np.vstack([np.zeros(2), np.cumsum(steps, axis=0)])
     x = strip.mesh.x.copy()
     x[:, 0] += np.interp(s, grid, path[:, 0]) - s
