@@ -30,7 +30,10 @@ theta_d = -sqrt(2) h S_xy, and S_T = S exactly for every S: cylinders in any dir
 alternates between the two cell types: axis-aligned curvature (cylinders along x or y, spheres,
 the saddle k (x^2 - y^2) / 2) is exact, off-axis bending is too stiff by the factor
 1 + 2 (1 + nu) sin^2(phi) cos^2(phi) (phi: angle of the bending direction to the x axis; 1.49 at
-30 degrees for nu = 0.3). The operator is nevertheless *stable*: the area average of S_T over a
+30 degrees for nu = 0.3), and a pure twist S = [[0, k], [k, 0]] (the saddle at 45 degrees) costs
+2 D k^2 instead of D (1 - nu) k^2, 2 / (1 - nu) = 2.86x for nu = 0.3 (a clamped strip under an end torque
+twists 2.76x too little; on the ``"regular"`` grid 1.10x; tests/sim_core/energies/test_card_known_answers.py).
+The operator is nevertheless *stable*: the area average of S_T over a
 patch is the integrated curvature measure of the patch (Cohen-Steiner & Morvan 2003), so by
 convexity of psi no pattern of folds is cheaper than the smooth surface it approximates. (A
 least-squares fit of S_T to its three angles, exact for uniform curvature on any mesh, is not: on
