@@ -141,7 +141,8 @@ def test_channel_weighted_figures_count_every_channel_once_whatever_its_value_co
     rng = np.random.default_rng(5)
     change = 2.0 * _wrench_change(T, start=0.0) / np.sqrt(np.mean(_wrench_change(T, start=0.0) ** 2))
     model, ctx, pred0 = _wrench_and_sheet(rng, change)
-    refit = Refit(np.zeros(1), {}, {"wrench": pred0["wrench"] + change * SIGMA, "sheet_points": pred0["sheet_points"]})
+    refit = Refit(np.zeros(1), {}, {"wrench": pred0["wrench"] + change * SIGMA,
+                                    "sheet_points": pred0["sheet_points"]})
     train = {ch: np.arange(T) % 2 == 0 for ch in model.channels}
     fold = heldout.block_fold(model, ctx.prediction, train, {"e": refit})
     pooled_before, pooled_after, _, per = heldout.evaluate([fold], {}, {"e": 1.0}, list(model.channels))
