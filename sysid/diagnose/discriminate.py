@@ -20,7 +20,7 @@ refit fixed only the overall scale, which the test leaves free; an equal-weighte
 twelve degrees of freedom). A mismatch whose moment does not follow its force (a shifted centre of
 pressure, i.e. a changed *normal* traction distribution, as a stiffer card under the gel gives: force
 scale 1.18, moment scale 0.48, p 0.006 on the benchmark's thickness step x4 of seed 2; true stiction x2
-and x4 of seeds 0 and 2: p 0.13-0.96; docs/benchmarks_log.md, session 40, 23loa) is not stiction.
+and x4 of seeds 0-2: p 0.13-0.96; docs/benchmarks_log.md, session 40, 23loa) is not stiction.
 """
 
 from __future__ import annotations

@@ -433,7 +433,7 @@ def scale_equality_test(r: np.ndarray, X: np.ndarray, cosines: int = 12, prewhit
     recommendations for practice", JBES 36(4); for ``q = 2`` a Student t with B degrees of freedom).
     Unlike batch means over B contiguous blocks, every sample enters every weight, so the p-value does
     not jump with where block boundaries fall. In simulation (28-32 samples, AR(1) 0 - 0.8 with a
-    factor common to the series, 400 draws, B = 12): 4.5-9 % rejections at 5 %, 0.25-1.25 % at 1 %;
+    factor common to the series, 400 draws, B = 12): 4.5-9 % rejections at 5 %, 0.5-1.25 % at 1 %;
     power at 1 % against a moment at 0.45 of the force's scale 0.77-1.0, against 0.5-0.87 for eight
     batch means (docs/benchmarks_log.md, session 40, 23loa).
 
