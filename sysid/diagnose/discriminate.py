@@ -16,10 +16,11 @@ shares with the recording, so the recorded wrench must support the refit's wrenc
 common scale on the force axes and on the moment axes:
 :func:`sysid.diagnose.stats.scale_equality_test` with the two columns "refit change on the force
 axes" and "refit change on the moment axes", on every sample where the refit changes the wrench (the
-refit fixed only the overall scale, which the test leaves free; eight time blocks). A mismatch whose
-moment does not follow its force (a shifted centre of pressure, i.e. a changed *normal* traction
-distribution, as a stiffer card under the gel gives: force scale 1.24, moment scale 0.46, p 0.007 on the
-benchmark's thickness step x4; true stiction p 0.22-0.56) is not stiction.
+refit fixed only the overall scale, which the test leaves free; an equal-weighted cosine variance of
+twelve degrees of freedom). A mismatch whose moment does not follow its force (a shifted centre of
+pressure, i.e. a changed *normal* traction distribution, as a stiffer card under the gel gives: force
+scale 1.18, moment scale 0.48, p 0.006 on the benchmark's thickness step x4 of seed 2; true stiction x2
+and x4 of seeds 0-2: p 0.13-0.96; docs/benchmarks_log.md, session 40, 23loa) is not stiction.
 """
 
 from __future__ import annotations
