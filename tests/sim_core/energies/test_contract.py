@@ -93,7 +93,9 @@ def _declares(cls: type, protocol: type) -> bool:
 
 EXPECTED_CAPABILITIES = {
     ConstantDiagonalHessian: {"InertiaPotential", "ViscousDamping"},
-    PenaltyContact: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact", "PlaneContact", "SphereContact"},
+    # LaggedAdhesion: its open pairs are its active set, which the simplified Newton test compares
+    PenaltyContact: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact", "PlaneContact", "SphereContact",
+                     "LaggedAdhesion"},
     KeepsDerivatives: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
     HingeBending: {"DiscreteShellBending", "KirchhoffBending"},
     ElasticEquivalent: {"MaxwellBranch"},
