@@ -27,19 +27,18 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    drops, no channel's held-out fit is made significantly worse (one parameter drives every
    channel the effect acts on), and two effect sizes: the refit removes at least ``min_explained``
    of the held-out excess energy ``rms^2 - 1`` and at least ``min_gain`` of the held-out mean
-   square (every channel weighted equally: :func:`sysid.diagnose.heldout.channel_weighted`), so that
-   a systematic gap between the simulator and the recording, which many signatures correlate with
-   and which even a nominal recording has, is not named as a missing effect.
+   square, so that a systematic gap between the simulator and the recording, which many signatures
+   correlate with and which even a nominal recording has, is not named as a missing effect.
    Latency must also pass its discriminating test: the cross-correlation lag between the recorded
    and the predicted rates of change agrees with the refitted delay; stiction must pass its line of
    action test: the recorded wrench supports its change at one scale on the force and on the moment
-   axes (:mod:`sysid.diagnose.discriminate`). Candidates are taken greedily (largest held-out gain
-   first: mean square removed, summed over channels), each later one judged on what the accepted
-   ones leave; a candidate that explains the mismatch but is refuted by its discriminating test is
-   not named, yet stays in that sequence as a description of the mismatch, so that a weaker
-   candidate explaining part of the same pattern is not named in its place (``["unexplained"]``
-   when nothing else explains more). The in-sample delta-BIC is reported; it decides only the
-   conditional step when held-out bags are given.
+   axes (:mod:`sysid.diagnose.discriminate`). Candidates are taken greedily
+   (largest held-out gain first: whitened SSE removed, comparable whatever channels a candidate acts
+   on), each later one judged on what the accepted ones leave; a candidate that explains the
+   mismatch but is refuted by its discriminating test is not named, yet stays in that sequence as a
+   description of the mismatch, so that a weaker candidate explaining part of the same pattern is not
+   named in its place (``["unexplained"]`` when nothing else explains more). The in-sample delta-BIC is
+   reported; it decides only the conditional step when held-out bags are given.
    Confusable pairs are reported as ties unless a discriminating test resolves them (latency vs gel
    viscoelasticity: one lag fits every tactile channel and matches the cross-correlation lag).
    Accepted candidates are combined (first order: the sum of their scaled prediction changes).
@@ -545,16 +544,15 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         the refit removes at least ``min_explained`` of the held-out excess energy of its channels and
         ``min_gain`` of their held-out mean square (effect sizes: a candidate that only correlates
         with a larger gap, or with the small systematic mismatch that even a nominal recording has
-        and that a powerful test detects, is not named), every channel weighted equally
-        (:func:`heldout.channel_weighted`: by value count, the benchmark's sheet outweighed markers and wrench).
+        and that a powerful test detects, is not named).
         Latency must also pass its discriminating test (cross-correlation lag agrees with tau), stiction
         its line of action test (:func:`discriminate.line_of_action`: the recorded wrench supports the
         refit's change at one scale on the force and on the moment axes, level ``alpha``).
         The in-sample delta-BIC is reported, not used: counted in time samples (about 24 training
         samples here) its penalty ``q ln n`` and threshold demanded more than 2-sigma effects give.
 
-        Accepted candidates are then taken by held-out gain (mean square removed, summed over the
-        channels: comparable whatever channels they act on), and each later one is judged again on what the
+        Accepted candidates are then taken by held-out gain (whitened SSE removed, comparable across
+        candidates whatever channels they act on), and each later one is judged again on what the
         already accepted ones leave: its prediction change rescaled by least squares on the training
         rows (scale in [0, 1.5]) must pass the same held-out test and effect size, so that a
         candidate that only soaks up part of the first effect is not named as a second one. A
@@ -574,8 +572,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             q = int(rf.beta.shape[0])
             dbic = stats.delta_bic(sse0, sse1, n, q) if sse0 > 0 and sse1 > 0 else 0.0
             lr = stats.likelihood_ratio(sse0, sse1, n) if sse0 > 0 and sse1 > 0 else 0.0
-            _, _, (a, b, c2, nv), per_channel = heldout.evaluate(folds, {}, {e: 1.0}, chans)
-            before, after, gain = heldout.channel_weighted(per_channel)
+            before, after, (a, b, c2, nv), per_channel = heldout.evaluate(folds, {}, {e: 1.0}, chans)
             test = self._heldout_test((a, b, c2, nv), 0.0)
             # consistency across channels: one parameter drives every channel the effect acts on, so a
             # channel whose held-out fit the refit makes significantly worse (supported scale < 1/2)
@@ -585,8 +582,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             contradicted = [ch for ch, rj in zip(worse, rej_worse) if rj]
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
                       "heldout_rms_after": after, "explained_fraction": explained_fraction(before, after),
-                      "heldout_gain": gain, "heldout_sse_removed": float(np.sum(2.0 * a - b)),
-                      "heldout_scale": test.beta,
+                      "heldout_gain": float(np.sum(2.0 * a - b)), "heldout_scale": test.beta,
                       "heldout_statistic": test.statistic, "heldout_p": test.p_value,
                       "channel_scales": {ch: t.beta for ch, t in worse.items()},
                       "contradicted_on": contradicted, "params": rf.params, "scale": 1.0,
@@ -679,8 +675,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         sse0, _, n = sse(self.model, base, chans, train)
         sse1, _, _ = sse(self.model, {**base, **cond}, chans, train)
         dbic = stats.delta_bic(sse0, sse1, n, int(rf.beta.shape[0])) if sse0 > 0 and sse1 > 0 else 0.0
-        _, _, prods, per_channel = heldout.evaluate(folds, base_scales, {**base_scales, e: c}, chans)
-        b, a, _ = heldout.channel_weighted(per_channel)
+        b, a, prods, _ = heldout.evaluate(folds, base_scales, {**base_scales, e: c}, chans)
         frac = explained_fraction(b, a)
         test = self._heldout_test(prods, 0.0)
         ok = bool(c > 0.0 and test.p_value <= s.alpha and a < b and frac >= s.min_explained

@@ -150,31 +150,3 @@ def evaluate(folds: Sequence[HeldoutFold], base: Mapping[str, float], scales: Ma
 
     return (float(math.sqrt(s0 / max(n, 1))), float(math.sqrt(s1 / max(n, 1))), cat(both),
             {ch: cat(v) for ch, v in per.items()})
-
-
-def channel_weighted(per_channel: Mapping[str, Products]) -> tuple[float, float, float]:
-    """Held-out whitened RMS before and after, every channel weighted equally, and the gain.
-
-    A channel's held-out mean square is its whitened sum of squares over its value count; the RMS is
-    the root of the mean of those over the channels, so that a channel of many values (a sheet's
-    points, 69 x 3 per sample in the benchmark) does not outweigh one of few (the wrench's 6) that
-    carries the same evidence in noise units. The gain is the sum over the channels of the mean square
-    removed (comparable whatever channels a candidate acts on: a channel it leaves unchanged adds 0).
-
-    Args:
-        per_channel: channel -> per-time products ``(a, b, c, n)`` of :func:`evaluate` (before ``c``;
-            after ``c - 2 a + b``).
-
-    Returns:
-        ``(rms_before, rms_after, gain)`` (noise units; gain in noise variance units); ``(nan, nan, 0)``
-        without channels.
-    """
-    before, after = [], []
-    for a, b, c, n in per_channel.values():
-        values = max(float(np.sum(n)), 1.0)
-        before.append(float(np.sum(c)) / values)
-        after.append(float(np.sum(c) - 2.0 * np.sum(a) + np.sum(b)) / values)
-    if not before:
-        return math.nan, math.nan, 0.0
-    return (math.sqrt(max(float(np.mean(before)), 0.0)), math.sqrt(max(float(np.mean(after)), 0.0)),
-            float(np.sum(before) - np.sum(after)))
