@@ -35,6 +35,12 @@ dihedral angle exceeds the yield angle (the angles here are computed from the ob
 the solver's from its own vertex positions: equal up to round-off)."""
 
 
+def resume_at(trace: SimTrace, k: int) -> Resume | None:
+    """The start of a replay that takes the first ``k`` steps of ``trace`` (kept states), None for ``k <= 0``
+    (nothing shared: replay from the start)."""
+    return Resume(k, trace.states[k], trace.head(k)) if k > 0 else None
+
+
 class NominalResume:
     """Start of a diagnosis replay from the nominal replay (``ReplayScheduler.resume``).
 
@@ -78,10 +84,7 @@ class NominalResume:
 
     def __call__(self, params: Mapping[str, float]) -> Resume | None:
         """The :class:`~sysid.observation.Resume` of the replay of ``params``, None: from the start."""
-        k = self.start_step(params)
-        if k <= 0:
-            return None
-        return Resume(k, self.trace.states[k], self.trace.head(k))
+        return resume_at(self.trace, self.start_step(params))
 
 
 def elastic_steps(angles: np.ndarray, yield_angle: float) -> int:
@@ -139,7 +142,7 @@ def resume_before_time(trace: SimTrace, t_s: float) -> Resume | None:
         raise ValueError("resume_before_time: the trace has no states (simulate(keep_states=True))")
     t = (np.asarray(trace.t_ns, dtype=np.int64) - int(trace.t_ns[0])) * 1e-9
     k = steps_before(t, t_s)
-    return Resume(k, trace.states[k], trace.head(k)) if k > 0 else None
+    return resume_at(trace, k)
 
 
 class YieldReplays:
@@ -210,7 +213,7 @@ class YieldReplays:
         if self.worker is None or self._pending is not None or k <= 0:
             return
         params = {**self.params, YIELD_PARAMETER: float(yield_angle)}
-        if self.worker.submit(self.nominal, params, Resume(k, self.base.states[k], self.base.head(k))):
+        if self.worker.submit(self.nominal, params, resume_at(self.base, k)):
             self._pending = float(yield_angle)
 
     def __call__(self, yield_angle: float) -> np.ndarray:
@@ -229,7 +232,7 @@ class YieldReplays:
             self.prefetched.append(float(yield_angle))
             trace = made
         elif k > 0:
-            trace = self.model.simulate(params, resume=Resume(k, self.base.states[k], self.base.head(k)))
+            trace = self.model.simulate(params, resume=resume_at(self.base, k))
         elif self.base is None:
             trace = self.model.simulate(params, keep_states=True)
             self._keep(trace)
