@@ -19,7 +19,7 @@ from thinshell_ros.demo import FULL, DemoResult, run_diagnose_stage, run_robot_s
 from thinshell_ros.paths import bundled_scene
 
 # a robot run (about 15 s) and the score engine's diagnosis (about 60-90 s on the 2-core VM): collected first
-pytestmark = [pytest.mark.ros, pytest.mark.early, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.ros, pytest.mark.early, pytest.mark.timeout(1800)]
 
 
 def test_demo_diagnosis_names_the_hidden_gel_viscoelasticity_with_a_heldout_gain(ros_env, tmp_path):
