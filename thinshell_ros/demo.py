@@ -277,6 +277,20 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
                   + (f"; notes: {'; '.join(contents.notes)}" if contents.notes else ""))
 
 
+def run_robot_stage(run: Path, settings: DemoSettings, scene: Path, mode: str, console: Any,
+                    result: DemoResult) -> None:
+    """Stage 1 as the demo runs it: the robot's hidden scene (:func:`~thinshell_ros.demo_loop.write_hidden_scene`
+    of the nominal ``scene``) written to ``<run>/robot_hidden_scene.yaml`` and recorded with the robot's
+    measurement noise (seed 1) into ``result.recorded_bag``, the recording stating ``scene``.
+
+    Raises:
+        ThinShellError: the sim node or the motion failed (:func:`run_simulation_stage`).
+    """
+    result.hidden_scene = write_hidden_scene(scene, run / "robot_hidden_scene.yaml")
+    run_simulation_stage(run, settings, result.hidden_scene, mode, console, result, record_scene=scene,
+                         extra_args=robot_noise_args(seed=1))
+
+
 def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, result: DemoResult,
                     nominal: Path | None = None) -> None:
     """Stage 2: ``thinshell sysid`` on ``bag`` (from the ``nominal`` scene when given) into ``<run>/sysid``,
@@ -485,10 +499,8 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     t0 = time.monotonic()
     run = make_run_dir(Path(out), force)
     result = DemoResult(run_dir=run, recorded_bag=run / "recorded_bag")
-    result.hidden_scene = write_hidden_scene(scene, run / "robot_hidden_scene.yaml")
     console.rule(f"thinshell demo{' --quick' if quick else ''}: {run}")
-    run_simulation_stage(run, settings, result.hidden_scene, mode, console, result, record_scene=scene,
-                         extra_args=robot_noise_args(seed=1))
+    run_robot_stage(run, settings, scene, mode, console, result)
     fit_bag = Path(bag) if bag else result.recorded_bag
     start = scene
     if settings.diagnose_args is not None:

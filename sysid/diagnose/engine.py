@@ -20,7 +20,9 @@ Steps (SYSID.md "Diagnosis"), with the number of replays each costs:
    diverged is retried at a quarter of its size; observation: exact, no replay), on training rows;
    evaluation on held-out bags (replayed at nominal and refitted parameters) or on held-out time
    blocks (every other of ``2 * holdout_blocks`` equal blocks; the rows around a contact event that
-   occurs more than once alternate between training and held-out, :mod:`sysid.diagnose.events`).
+   occurs more than once alternate between training and held-out, and the rows after a kind of event
+   that no training row follows (a last lift-off in the last block) alternate sample by sample,
+   :mod:`sysid.diagnose.events`).
 5. Acceptance, out of sample: a one-sided held-out score test that the held-out residual supports
    the refit's prediction change (:func:`sysid.diagnose.stats.heldout_test`; the larger of the
    Newey-West and the conventional variance; Holm over the refitted candidates), the training SSE
@@ -81,7 +83,7 @@ from sysid.diagnose.resume import NominalResume
 from sysid.diagnose.probing import ProbeCalibration
 from sysid.diagnose.refine import RefitRefinement
 from sysid.diagnose.schema import candidate_entries
-from sysid.diagnose.events import contact_events, event_holdout_rows, heldout_label
+from sysid.diagnose.events import alternated_kinds, contact_events, event_holdout_rows, heldout_label
 from sysid.diagnose.residuals import (explained_fraction, mismatch_declared,
                                       residual, rms_summary, sse, stream_channels, whiten)
 from sysid.diagnose.settings import Settings
@@ -289,6 +291,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         events = contact_events((ctx.trace.t_ns - model.step_times_ns[0]) * 1e-9, ctx.trace.wrench)
         self._events = events
         train = {ch: ~event_holdout_rows(ctx.stamps_s(ch), s.holdout_blocks, span, events) for ch in self.tested}
+        self._alternated = alternated_kinds(ctx.stamps_s(self.tested[0]), s.holdout_blocks, span, events)
         if self.heldout:
             train = {ch: np.ones_like(v) for ch, v in train.items()}
         # a candidate whose test is significant whatever the others' (Holm) is refitted as soon as its
@@ -363,7 +366,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         # recorded vs predicted rates matches the fitted delay) is named before the ones that only
         # lower the residual; otherwise the order is by held-out gain
         accepted = sorted((e for e in decisions["order"] if decisions[e]["accepted"]),
-                          key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["heldout_gain"]))
+                          key=lambda e: (decisions[e].get("xcorr_agrees") is not True, -decisions[e]["effect_gain"]))
         # confusable pairs: one name wins only when a discriminating test resolves the pair
         ties = self._ties(ctx, accepted, refits, tests, train, folds)
         # a nested comparison that resolves a pair names the mechanism that encompasses the other
@@ -426,7 +429,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             "explained_by": explained,
             "refit": {"params": refit_params, "rms": rms_summary(model, final),
                       "heldout_rms_before": ho_before, "heldout_rms_after": ho_after,
-                      "heldout": "bags" if self.heldout else heldout_label(2 * s.holdout_blocks, getattr(self, "_events", [])),
+                      "heldout": "bags" if self.heldout else heldout_label(
+                          2 * s.holdout_blocks, getattr(self, "_events", []), getattr(self, "_alternated", ())),
                       "heldout_unit": "whitened RMS (noise units) over " + ", ".join(eval_channels)},
             "extra": {"tests": [{"effect": t["effect"], "channel": t["channel"],
                                  "statistic": float(t["result"].statistic), "dof": t["result"].dof,
@@ -541,18 +545,19 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         accepted when that test rejects, the training SSE drops too, no channel's held-out fit is made
         significantly worse (consistency: one parameter drives every channel the effect acts on; a
         discriminating test like the two below), and
-        the refit removes at least ``min_explained`` of the held-out excess energy of its channels and
-        ``min_gain`` of their held-out mean square (effect sizes: a candidate that only correlates
-        with a larger gap, or with the small systematic mismatch that even a nominal recording has
-        and that a powerful test detects, is not named).
+        the refit lowers the held-out RMS and removes at least ``min_explained`` of the held-out excess
+        energy and ``min_gain`` of the held-out mean square of the channels whose held-out data support
+        its change, each such channel weighted equally (:func:`heldout.supported_effect`; effect sizes: a
+        candidate that only correlates with a larger gap, or with the small systematic mismatch that even
+        a nominal recording has and that a powerful test detects, is not named).
         Latency must also pass its discriminating test (cross-correlation lag agrees with tau), stiction
         its line of action test (:func:`discriminate.line_of_action`: the recorded wrench supports the
         refit's change at one scale on the force and on the moment axes, level ``alpha``).
         The in-sample delta-BIC is reported, not used: counted in time samples (about 24 training
         samples here) its penalty ``q ln n`` and threshold demanded more than 2-sigma effects give.
 
-        Accepted candidates are then taken by held-out gain (whitened SSE removed, comparable across
-        candidates whatever channels they act on), and each later one is judged again on what the
+        Accepted candidates are then taken by that effect's gain (mean square removed, summed over the
+        supporting channels: comparable whatever channels they act on), and each later one is judged again on what the
         already accepted ones leave: its prediction change rescaled by least squares on the training
         rows (scale in [0, 1.5]) must pass the same held-out test and effect size, so that a
         candidate that only soaks up part of the first effect is not named as a second one. A
@@ -580,8 +585,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             worse = {ch: self._heldout_test(prods, 0.5) for ch, prods in per_channel.items() if np.any(prods[1])}
             p_worse, rej_worse = (stats.holm([t.p_below for t in worse.values()], s.alpha) if worse else ([], []))
             contradicted = [ch for ch, rj in zip(worse, rej_worse) if rj]
+            eff = heldout.supported_effect(per_channel, lambda prods: self._heldout_test(prods, 0.0).p_value <= s.alpha)
             out[e] = {"delta_bic": float(dbic), "likelihood_ratio": float(lr), "heldout_rms_before": before,
-                      "heldout_rms_after": after, "explained_fraction": explained_fraction(before, after),
+                      "heldout_rms_after": after, **eff.figures(),
                       "heldout_gain": float(np.sum(2.0 * a - b)), "heldout_scale": test.beta,
                       "heldout_statistic": test.statistic, "heldout_p": test.p_value,
                       "channel_scales": {ch: t.beta for ch, t in worse.items()},
@@ -604,8 +610,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             d = out[e]
             d["heldout_p_holm"] = float(a)
             explains = bool(rj and d["train_improves"] and d["heldout_rms_after"] < d["heldout_rms_before"]
-                            and d["explained_fraction"] >= s.min_explained
-                            and d["heldout_rms_before"] ** 2 - d["heldout_rms_after"] ** 2 >= s.min_gain)
+                            and d["explained_fraction"] >= s.min_explained and d["supported_ms_removed"] >= s.min_gain)
             refuted = [name for name, ok in (("xcorr", d.get("xcorr_agrees", True)),
                                               ("line_of_action", d.get("line_of_action_p", 1.0) > s.alpha),
                                               ("channel_consistency", not d["contradicted_on"])) if not ok]
@@ -619,7 +624,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
                                       f"recorded wrench supports its change at scale {f_s:.2f} on the force and "
                                       f"{m_s:.2f} on the moment axes (line of action, p {d['line_of_action_p']:.2g}): "
                                       f"not a tangential contact traction, not named")
-        order = sorted(refits, key=lambda e: -out[e]["heldout_gain"])
+        order = sorted(refits, key=lambda e: -out[e]["effect_gain"])
         out["order"] = order
         base = {ch: ctx.prediction[ch].copy() for ch in self.tested}
         base_scales: dict[str, float] = {}

@@ -11,8 +11,16 @@ every effect: the gel is in contact while the nominal contact force exceeds
 :data:`CONTACT_FRACTION` of its peak; a change of that state is a touch-down or a lift-off. For each
 kind of event that occurs at least twice, the rows within half a block of each occurrence are given,
 in time order, alternately to training and held-out (the first to training); rows near no repeated
-event keep the equal blocks. Where the windows of two events overlap, the later event decides. A
-recording with one touch-down and one lift-off keeps the equal blocks unchanged.
+event keep the equal blocks. Where the windows of two events overlap, the later event decides.
+
+A kind of event none of whose occurrences has a training row within half a block after it (a single
+lift-off that falls in the last block, which is a held-out one, as in every recording that ends by
+lifting the gel) would leave the refit of an effect that acts there (adhesion: the sheet carried up
+after the lift-off) nothing to be estimated from: the rows within half a block after its last
+occurrence then alternate sample by sample between training and held-out, the first to training, so
+that both see it (docs/benchmarks_log.md, 2026-11-26, session 40, 23loa: the benchmark's adhesion x4
+on seed 2 clipped to 0 for that reason). A recording whose events all have training rows after them
+keeps the equal blocks unchanged.
 """
 
 from __future__ import annotations
@@ -58,7 +66,8 @@ def contact_events(t_s: np.ndarray, wrench: np.ndarray, fraction: float = CONTAC
 
 def event_holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float],
                        events: Sequence[tuple[float, str]]) -> np.ndarray:
-    """True on held-out rows: equal blocks, with repeated contact events alternated (module docstring).
+    """True on held-out rows: equal blocks, with repeated contact events alternated and the rows after a kind
+    of event that no training row follows alternated sample by sample (module docstring).
 
     Args:
         t_s: stamps of a channel in s, shape ``(T,)``.
@@ -70,6 +79,18 @@ def event_holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float],
         bool rows, shape ``(T,)``.
     """
     t = np.asarray(t_s, dtype=float)
+    rows = _repeated_alternated(t, blocks, span, events)
+    half = 0.5 * (span[1] - span[0]) / (2 * blocks)
+    for kind in _unseen_by_training(t, rows, half, events):
+        last = max(te for te, k in events if k == kind)
+        after = np.flatnonzero((t > last) & (t <= last + half))
+        rows[after] = (np.arange(after.size) % 2) == 1
+    return rows
+
+
+def _repeated_alternated(t: np.ndarray, blocks: int, span: tuple[float, float],
+                         events: Sequence[tuple[float, str]]) -> np.ndarray:
+    """Equal blocks, the rows within half a block of each repeated kind's occurrences alternated."""
     rows = holdout_rows(t, blocks, span)
     half = 0.5 * (span[1] - span[0]) / (2 * blocks)
     kinds = [k for _, k in events]
@@ -83,12 +104,40 @@ def event_holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float],
     return rows
 
 
-def heldout_label(blocks: int, events: Sequence[tuple[float, str]]) -> str:
-    """Report line of the held-out split: ``time blocks (every other of N)`` plus the alternated events."""
+def _unseen_by_training(t: np.ndarray, rows: np.ndarray, half: float,
+                        events: Sequence[tuple[float, str]]) -> list[str]:
+    """Kinds of event with rows after them, none of which (within ``half`` s after any occurrence) is a
+    training row (``rows``: True = held out), in order of first occurrence."""
+    out: list[str] = []
+    for _, kind in sorted(events, key=lambda e: e[0]):
+        if kind in out:
+            continue
+        after = [(t > te) & (t <= te + half) for te, k in events if k == kind]
+        if any(m.any() for m in after) and all(rows[m].all() for m in after):
+            out.append(kind)
+    return out
+
+
+def alternated_kinds(t_s: np.ndarray, blocks: int, span: tuple[float, float],
+                     events: Sequence[tuple[float, str]]) -> list[str]:
+    """Kinds of event whose rows after the last occurrence :func:`event_holdout_rows` alternates sample by
+    sample (no training row after any occurrence otherwise); arguments as there."""
+    t = np.asarray(t_s, dtype=float)
+    return _unseen_by_training(t, _repeated_alternated(t, blocks, span, events),
+                               0.5 * (span[1] - span[0]) / (2 * blocks), events)
+
+
+def heldout_label(blocks: int, events: Sequence[tuple[float, str]], alternated: Sequence[str] = ()) -> str:
+    """Report line of the held-out split: ``time blocks (every other of N)`` plus the alternated events
+    (``alternated``: the kinds of :func:`alternated_kinds`)."""
     kinds = [k for _, k in events]
     repeated = sorted({k for k in kinds if kinds.count(k) >= 2})
     base = f"time blocks (every other of {blocks})"
-    if not repeated:
-        return base
-    return base + "; rows near repeated contact events alternate (" + ", ".join(
-        f"{kinds.count(k)} {'touch-downs' if k == 'touch' else 'lift-offs'}" for k in repeated) + ")"
+    name = lambda k, n: ("touch-down" if k == "touch" else "lift-off") + ("s" if n > 1 else "")  # noqa: E731
+    if repeated:
+        base += "; rows near repeated contact events alternate (" + ", ".join(
+            f"{kinds.count(k)} {name(k, 2)}" for k in repeated) + ")"
+    if alternated:
+        base += "; rows after the last " + " and the last ".join(name(k, 1) for k in alternated) + \
+            " alternate sample by sample (no training row after it otherwise)"
+    return base

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sysid.diagnose.events import contact_events, event_holdout_rows, heldout_label
+from sysid.diagnose.events import alternated_kinds, contact_events, event_holdout_rows, heldout_label
 from sysid.diagnose.residuals import holdout_rows
 
 
@@ -30,11 +30,32 @@ def test_contact_events_are_the_threshold_crossings_of_the_force():
         contact_events(t, np.zeros((19, 6)))
 
 
-def test_one_event_of_each_kind_keeps_the_equal_blocks():
+def test_one_event_of_each_kind_with_training_rows_after_it_keeps_the_equal_blocks():
     t = np.arange(47) * 0.01
-    events = [(0.025, "touch"), (0.425, "lift")]
+    events = [(0.025, "touch"), (0.375, "lift")]  # the lift-off in block 6 (0.345-0.4025 s), a training block
     assert np.array_equal(event_holdout_rows(t, 4, (0.0, 0.46), events), holdout_rows(t, 4, (0.0, 0.46)))
+    assert alternated_kinds(t, 4, (0.0, 0.46), events) == []
     assert heldout_label(8, events) == "time blocks (every other of 8)"
+
+
+def test_a_single_lift_off_in_the_last_heldout_block_is_seen_by_training():
+    """The benchmark's press-slide-lift (47 samples at 10 ms, lift-off at 0.425 s): the last of eight
+    equal blocks (0.4025-0.46 s) is held out, so no training row follows the lift-off. The rows within
+    half a block after it (0.43-0.45 s) alternate, the first to training; the touch-down (training
+    rows after it) and every other row keep the equal blocks."""
+    t = np.arange(47) * 0.01
+    span = (0.0, 0.46)
+    events = [(0.025, "touch"), (0.425, "lift")]
+    eq = holdout_rows(t, 4, span)
+    assert eq[t > 0.41].all()  # the equal blocks hold out everything after the lift-off
+    rows = event_holdout_rows(t, 4, span, events)
+    after = (t > 0.425) & (t <= 0.425 + 0.02875)
+    assert np.flatnonzero(after).tolist() == [43, 44, 45]
+    assert rows[[43, 44, 45]].tolist() == [False, True, False]
+    assert np.array_equal(rows[~after], eq[~after])
+    assert alternated_kinds(t, 4, span, events) == ["lift"]
+    label = heldout_label(8, events, ["lift"])
+    assert label.startswith("time blocks (every other of 8)") and "after the last lift-off alternate" in label
 
 
 def test_repeated_lift_offs_alternate_between_training_and_heldout():

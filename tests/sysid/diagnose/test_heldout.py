@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sysid.diagnose import engine, heldout
+from sysid.diagnose import engine, heldout, stats
 from sysid.diagnose.candidates import Refit
 from tests.sysid.diagnose.test_discriminate import SIGMA, _wrench_change, _wrench_ctx
 
@@ -115,3 +115,45 @@ def test_a_change_rescaled_to_almost_nothing_does_not_resolve_a_pair():
     given = tie["nested"]["stiction_given_anisotropic_bending"]
     assert 0.0 < given["scale"] < 0.1 and given["heldout_p"] < 0.01  # significant, but tiny
     assert not given["adds"] and tie.get("winner") != "stiction"
+
+
+def _products(r: np.ndarray, d: np.ndarray) -> heldout.Products:
+    """Per-time products ``(a, b, c, n)`` of whitened residuals ``r`` and changes ``d``, both ``(T, m)``."""
+    return (np.sum(r * d, axis=1), np.sum(d * d, axis=1), np.sum(r * r, axis=1), np.full(r.shape[0], float(r.shape[1])))
+
+
+def test_supported_effect_weighs_each_supporting_channel_once_and_leaves_out_an_unsupported_one():
+    """Three channels as in the main job's recording: markers (30 values a sample) and a sheet (200) whose
+    held-out residual holds the refit's change, and a wrench (6) that the calibrated model does not follow
+    (a gap of 4 noise units) whose held-out data do not support the change of 5 noise units per value. Pooled
+    over values the sheet outweighs the markers; weighted equally with the wrench, the wrench's doubled
+    mean square cancels both; weighted equally over the supporting channels the figures are the
+    channels' own."""
+    rng = np.random.default_rng(5)
+    t = np.linspace(0.0, 1.0, 24)[:, None]
+    d_m = 1.2 * np.sin(2 * np.pi * t + np.linspace(0, 3, 30)[None])
+    d_s = 0.4 * np.cos(2 * np.pi * t + np.linspace(0, 3, 200)[None])
+    d_w = 5.0 * np.sin(4 * np.pi * t + np.linspace(0, 1, 6)[None])
+    gap_w = 4.0 * np.cos(7 * np.pi * t + np.linspace(0, 1, 6)[None])
+    per = {"markers": _products(d_m + rng.normal(size=d_m.shape), d_m),
+           "sheet": _products(d_s + rng.normal(size=d_s.shape), d_s),
+           "wrench": _products(gap_w + rng.normal(size=d_w.shape), d_w)}
+    supports = lambda p: stats.heldout_test(*p[:2], 0.0, *p[2:]).p_value <= 0.01  # noqa: E731
+    assert [supports(per[ch]) for ch in ("markers", "sheet", "wrench")] == [True, True, False]
+    eff = heldout.supported_effect(per, supports)
+    ms = {ch: (np.sum(c) / np.sum(n), (np.sum(c) - 2 * np.sum(a) + np.sum(b)) / np.sum(n))
+          for ch, (a, b, c, n) in per.items()}
+    assert eff.channels == ("markers", "sheet")
+    assert eff.rms_before == pytest.approx(np.sqrt(np.mean([ms["markers"][0], ms["sheet"][0]])))
+    assert eff.rms_after == pytest.approx(np.sqrt(np.mean([ms["markers"][1], ms["sheet"][1]])))
+    assert eff.gain == pytest.approx(sum(ms[ch][0] - ms[ch][1] for ch in ("markers", "sheet")))
+    assert eff.gain == pytest.approx(0.72 + 0.08, abs=0.1)  # the changes' mean squares: 1.2^2 / 2 and 0.4^2 / 2
+    assert sum(ms[ch][0] - ms[ch][1] for ch in per) < 0  # the wrench, weighted equally, cancels both
+    figures = eff.figures()
+    assert figures["supported_on"] == ["markers", "sheet"] and figures["effect_gain"] == eff.gain
+    assert figures["supported_ms_removed"] == pytest.approx(eff.gain / 2)
+    assert figures["explained_fraction"] > 0.9
+    none = heldout.supported_effect(per, lambda p: False)
+    assert none.channels == () and none.gain == 0.0 and np.isnan(none.rms_before)
+    assert none.figures() == {"explained_fraction": 0.0, "supported_ms_removed": 0.0, "supported_on": [],
+                              "supported_rms": [], "effect_gain": 0.0}
