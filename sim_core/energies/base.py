@@ -185,7 +185,8 @@ class SparseGradient(Protocol):
     def gradient_rows(self, x: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """:meth:`Potential.gradient` at ``x`` ``(vertex_count, 3)`` as ``(vertices, rows)``: the gradient is
         ``rows`` ``(u, 3)`` (N) at the distinct ``vertices`` ``(u,)`` (int) and zero elsewhere; or ``(None, g)``
-        with ``g`` the whole ``(vertex_count, 3)`` gradient. The caller only reads the arrays."""
+        with ``g`` the whole ``(vertex_count, 3)`` gradient (gravity's kept constant, given without a copy). The
+        caller only reads the arrays."""
         ...
 
 

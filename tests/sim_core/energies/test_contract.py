@@ -102,8 +102,8 @@ EXPECTED_CAPABILITIES = {
     ElasticEquivalent: {"MaxwellBranch"},
     SubsetHessian: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
     DeviceHessian: set(),  # the Taichi pair potentials (*kernel modules, not scanned: test_contact_batch.py)
-    # the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
-    SparseGradient: set(),
+    # and the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
+    SparseGradient: {"GravityPotential"},
 }
 
 
