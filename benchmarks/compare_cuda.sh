@@ -9,7 +9,7 @@
 #   bench      thinshell bench batch --lockstep --arch cuda --scene $SCENE --sizes $SIZES --steps $STEPS --json
 #   profile    python3 benchmarks/profile_lockstep.py --arch cuda --B $PROFILE_B --steps $PROFILE_STEPS
 # (PARTS="bench profile" by default; SCENE forming, SIZES "256", STEPS 5, PROFILE_B 256, PROFILE_STEPS 3, PART_TIMEOUT
-# 170 s per process). The JSON lines go to $OUT/NAME_bench.jsonl, the profiles' tails to
+# 170 s per process). The JSON lines go to $OUT/NAME_bench.jsonl, the profiles' tails (last 90 lines) to
 # $OUT/NAME_profile.txt ($OUT: the device tool's folder, else /tmp/compare_cuda_out). The first process
 # compiles Taichi's kernels into the offline cache, which later processes share for unchanged kernels:
 # `thinshell bench batch` reports that compilation apart (jit_s) and times only the steps.
@@ -35,7 +35,7 @@ for part in ${PARTS:-bench profile}; do
             profile)
                 (cd "$dir" && PYTHONPATH=/tmp/site:$dir timeout "${PART_TIMEOUT:-170}" python3 benchmarks/profile_lockstep.py \
                     --arch cuda --B "${PROFILE_B:-256}" --steps "${PROFILE_STEPS:-3}" 2>&1) \
-                    | grep -v '^\[Taichi\]' | grep -v Warning | tail -30 | tee "$out/${name}_profile.txt" ;;
+                    | grep -v '^\[Taichi\]' | grep -v Warning | tail -90 | tee "$out/${name}_profile.txt" ;;
             *) echo "unknown part $part" >&2; exit 2 ;;
         esac
     done

@@ -200,8 +200,11 @@ def _wrap_parts() -> dict:
     from sim_core.elastic import ElasticTerms
     from sim_core.ti_kernels import device_copy
 
+    from sim_core.batch.plasticity import StackedElasticTerms
+
     parts += [(lockstep.LockstepEngine, "step"), (StackedScene, "copy_states"), (StackedScene, "stack_controls"),
-              (NewtonSolver, "boundary"), (ElasticTerms, "plastic_update"), (device_copy, "_copy")]
+              (NewtonSolver, "boundary"), (ElasticTerms, "plastic_update"), (device_copy, "_copy"),
+              (lockstep.LockstepSolver, "boundary"), (StackedElasticTerms, "plastic_update")]
     for cls, name in parts:
         if name not in vars(cls):
             continue

@@ -206,7 +206,7 @@ class ContactSet:
         if x.size == 0:
             return True
         moved = x - x_search
-        if np.maximum.reduce(np.abs(moved), axis=None) <= 0.5 * self.margin:
+        if np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin:  # max |moved| (NaN: False), no |moved| array
             return True
         return self._gaps_hold(moved)
 

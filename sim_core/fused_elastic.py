@@ -401,7 +401,12 @@ class FusedElastic:
         shapes change."""
         buffers = self._buffers
         if buffers is None or buffers[0].shape != shape or buffers[2].size != self.pattern.keys.size:
-            buffers = self._buffers = (np.zeros(shape), np.zeros(shape), np.zeros(self.pattern.keys.size))
+            zeros = np.zeros
+            from sim_core.ti_backend import current_arch
+
+            if current_arch() == "cuda":  # the positions and gradient cross at every evaluation: page-locked memory
+                from sim_core.ti_kernels.device_copy import pinned_zeros as zeros  # Taichi only on a Taichi backend
+            buffers = self._buffers = (zeros(shape), zeros(shape), np.zeros(self.pattern.keys.size))
         return buffers
 
     def evaluate(self, x: np.ndarray) -> None:

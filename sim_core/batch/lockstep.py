@@ -39,6 +39,12 @@ solve times are the stacked step's, ``time_total`` is the step's wall time divid
 copies, and ``energy`` is NaN (the incremental potential is one sum over all copies:
 :attr:`LockstepSolver.last_stacked_info`).
 
+The host's work over the stacked arrays: the iterates are read-only arrays of their own (the terms' caches key
+them by identity, :func:`~sim_core.energies.base.positions_key`, not by their bytes), the stacked gradient takes
+the contact and friction terms' rows at their vertices only (:class:`~sim_core.energies.base.SparseGradient`),
+the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core.batch.effectors`) and the
+plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`).
+
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). Not done: the simplified Newton and rate stopping
 tests (a copy stops on the velocity, force or stalled test), substep retries
@@ -56,7 +62,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim_core.batch.copy_runs import CopyRuns
+from sim_core.batch.effectors import stacked_boundary
 from sim_core.batch.heap import keep_freed_memory
+from sim_core.batch.iterates import frozen, summed_gradient
+from sim_core.batch.plasticity import StackedElasticTerms
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
@@ -148,6 +157,13 @@ class LockstepSolver(NewtonSolver):
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self.last_stacked_info: StepInfo | None = None
 
+    def notify_model_changed(self) -> None:
+        """:meth:`NewtonSolver.notify_model_changed`; on a Taichi backend the elastic terms' plastic update is one
+        kernel over the stacked hinges (:class:`~sim_core.batch.plasticity.StackedElasticTerms`)."""
+        super().notify_model_changed()
+        if uses_taichi(self.backend):
+            self.elastic = StackedElasticTerms(self.model, workspace=self.workspace)
+
     def _projections(self) -> tuple[str, ...]:
         """:meth:`NewtonSolver._projections`; with the batched CG, which tells indefinite copies apart
         (:meth:`_direction_pcg`), the exact Hessian first too (and the fused elastic kernels with it)."""
@@ -157,9 +173,11 @@ class LockstepSolver(NewtonSolver):
         return super()._projections()
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
-        """:meth:`NewtonSolver.boundary`, with the vertices of the :attr:`held` copies fixed at their
-        positions in ``state``."""
-        fixed, x_target, poses, openings, limited = super().boundary(state, control)
+        """:meth:`NewtonSolver.boundary` vectorised over the copies
+        (:func:`~sim_core.batch.effectors.stacked_boundary`), with the vertices of the :attr:`held` copies fixed at
+        their positions in ``state``."""
+        fixed, x_target, poses, openings, limited = stacked_boundary(self.model, self.scene.copies,
+                                                                     self.scene.effector_names, state, control)
         if self.held.any():
             v = self.scene.index[self.held].ravel()
             fixed[v] = True
@@ -222,6 +240,7 @@ class LockstepSolver(NewtonSolver):
         runs = self._runs
         info = StepInfo()
         step, x = self._set_up_step(state_in, control, dt, None, info)
+        x = frozen(x)
         running = ~self.held
         infos = [StepInfo() if running[i] else None for i in range(B)]
         limited = [self.scene.copy_of_effector(name) for name in info.limited_effectors]
@@ -325,13 +344,7 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        terms = step.loop_terms + contact_terms
-        if len(terms) < 2:
-            g = np.array(terms[0].gradient(x), dtype=np.float64).reshape(-1) if terms else np.zeros(3 * len(x))
-        else:  # summed into one new (N, 3) array (the terms' kept gradients are left as they are), not one per term
-            g = np.add(terms[0].gradient(x).reshape(-1), terms[1].gradient(x).reshape(-1), dtype=np.float64)
-            for p in terms[2:]:
-                g += p.gradient(x).reshape(-1)
+        g = summed_gradient(step.loop_terms + contact_terms, x)
         g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
@@ -548,7 +561,7 @@ class LockstepSolver(NewtonSolver):
             if not pending.any():
                 break
             trial = np.where(pending, a, 0.0) + taken
-            x_try = runs.moved(x, d, trial)
+            x_try = frozen(runs.moved(x, d, trial))
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
             last = (trial, x_try, (terms, xs, g_try))
             s_try = runs.dot(g_try, d)
@@ -571,14 +584,14 @@ class LockstepSolver(NewtonSolver):
         if last is not None and np.array_equal(last[0], taken):
             x_new, (terms, xs, g_new) = last[1], last[2]
         else:
-            x_new = runs.moved(x, d, taken)
+            x_new = frozen(runs.moved(x, d, taken))
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
         return x_new, (x_new, g_new), terms, xs, accepted, backtracks
 
     def _energy_with(self, step, x: np.ndarray, d: np.ndarray, alphas: np.ndarray) -> float:
         """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
         stacked update ``d`` ``(N, 3)``."""
-        xm = self._runs.moved(x, d, alphas) if np.any(alphas) else x
+        xm = frozen(self._runs.moved(x, d, alphas)) if np.any(alphas) else x
         terms = self.contact.potentials(xm, step.x_n, step.memory)
         return self._energy(step, xm, terms, self.contact.search_position)
 
@@ -711,6 +724,8 @@ class LockstepEngine:
         step_index = np.array([s.state.step_index for s in sims])
         res = self.solver.step_copies(state_in, out, control, sims[0].dt, run, step_index)
         advanced = np.array([info is not None for info in res.infos])
+        if not advanced.all() and not out.x.flags.writeable:  # the solver's iterate is frozen (iterates.frozen)
+            out.x = out.x.copy()
         for i in np.flatnonzero(~advanced):  # held and failed copies: as they were
             idx = scene.index[i]
             out.x[idx] = state_in.x[idx]

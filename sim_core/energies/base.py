@@ -176,9 +176,23 @@ class DeviceHessian(Protocol):
         ...
 
 
+@runtime_checkable
+class SparseGradient(Protocol):
+    """A potential whose gradient is non-zero on few vertices and can be given as those vertices' rows: the
+    lockstep batch adds the rows into its stacked gradient (:mod:`sim_core.batch.lockstep`) instead of an
+    ``(n, 3)`` array a term (14 MB a term at 1024 stacked Forming copies)."""
+
+    def gradient_rows(self, x: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """:meth:`Potential.gradient` at ``x`` ``(vertex_count, 3)`` as ``(vertices, rows)``: the gradient is
+        ``rows`` ``(u, 3)`` (N) at the distinct ``vertices`` ``(u,)`` (int) and zero elsewhere; or ``(None, g)``
+        with ``g`` the whole ``(vertex_count, 3)`` gradient (gravity's kept constant, given without a copy). The
+        caller only reads the arrays."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
-    DeviceHessian)
+    DeviceHessian, SparseGradient)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 
@@ -298,8 +312,30 @@ def assemble_hessian(
 _F64 = np.dtype(np.float64)
 
 
-def positions_key(x: np.ndarray) -> tuple:
+class FrozenPositionsKey:
+    """The :func:`positions_key` of a frozen positions array: equal to another only for the same array object,
+    which it keeps alive (so that its ``id`` is not reused while a cache holds the key)."""
+
+    __slots__ = ("x",)
+
+    def __init__(self, x: np.ndarray) -> None:
+        self.x = x
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, FrozenPositionsKey) and other.x is self.x
+
+    def __hash__(self) -> int:
+        return id(self.x)
+
+
+def positions_key(x: np.ndarray) -> tuple | FrozenPositionsKey:
     """``(shape, bytes)`` of positions ``x`` as float64 in C order: equal keys are bitwise equal positions.
+
+    A frozen array (a float64 ``np.ndarray`` that owns its memory and is read-only, as the lockstep solver's
+    iterates are, :mod:`sim_core.batch.lockstep`) is keyed by identity instead (:class:`FrozenPositionsKey`):
+    its contents cannot change while it stays read-only, and whoever freezes an array never makes it writeable
+    again. Reading the bytes of a stacked batch's positions (14 MB at 1024 Forming copies) took 28 ms a Newton
+    iteration on the H200 host (docs/benchmarks_log.md, session 40, 28lock).
 
     Kept evaluations are matched by this key: the pair potentials' (:mod:`sim_core.energies.contact.reference`)
     and the fused elastic terms' (:mod:`sim_core.fused_elastic`); a copy of ``x`` compared with
@@ -307,4 +343,6 @@ def positions_key(x: np.ndarray) -> tuple:
     """
     if type(x) is not np.ndarray or x.dtype is not _F64:
         x = np.asarray(x, dtype=np.float64)
+    elif x.base is None and not x.flags.writeable:
+        return FrozenPositionsKey(x)
     return x.shape, x.tobytes()

@@ -50,7 +50,7 @@ from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
-from sim_core.unique import compact_indices, spread_rows
+from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -318,16 +318,17 @@ class PairBatch:
                     g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
-                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._spread(gradients, kind, n))))
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._own_rows(gradients, kind, n))))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
 
-    def _spread(self, gradients: np.ndarray, kind: int, n: int) -> np.ndarray:
-        """A new ``(n, 3)`` array (N): the summed gradient rows of potential ``kind`` (0 vertex-triangle, 1
-        edge-edge) of the kernel's ``gradients`` ``(>= 2 u, 3)`` on the pairs' vertices, zero elsewhere."""
+    def _own_rows(self, gradients: np.ndarray, kind: int, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(own, rows, n)``: the summed gradient rows ``(u, 3)`` (N, a copy) of potential ``kind`` (0 vertex-triangle,
+        1 edge-edge) of the kernel's ``gradients`` ``(>= 2 u, 3)`` on the pairs' distinct vertices ``own``, of an
+        ``(n, 3)`` gradient zero elsewhere (:class:`~sim_core.energies.contact.reference.PairEvaluation`)."""
         u = len(self.own)
-        return spread_rows(self.own, gradients[kind * u:(kind + 1) * u], n)
+        return self.own, gradients[kind * u:(kind + 1) * u].copy(), n
 
 
 def compile_kernels() -> None:

@@ -58,6 +58,12 @@ class _Batched:
             return None
         return DeviceHessianBlocks(evaluation.active_vertices(self.vertices), blocks[1])
 
+    def gradient_rows(self, x: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """:meth:`gradient` as the rows of the pairs' distinct vertices (capability
+        :class:`~sim_core.energies.base.SparseGradient`) where the pair batch summed them there, else
+        ``(None, gradient)``."""
+        return self._evaluation(x, 1).gradient_rows(self.stiffness, self.vertices)
+
     def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
         if self._batch is None:
             return super()._evaluation(x, order)

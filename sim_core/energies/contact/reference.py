@@ -41,6 +41,7 @@ from sim_core.collision.distances import (
 )
 from sim_core.energies.base import HessianBlocks, Projection, positions_key, project_psd, scatter_gradient
 from sim_core.errors import ConfigError
+from sim_core.unique import spread_rows
 from sim_core.workspace import workspace_of
 
 
@@ -115,8 +116,9 @@ class PairEvaluation:
             (N/m), ``(a, 12, 12)``, made with the distances (the batch kernel of
             :mod:`sim_core.energies.contact.batch_kernel`): a NumPy array, or
             :class:`~sim_core.ti_kernels.buffers.DeviceRows` kept where the kernel wrote them.
-        gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, ``(n, 3)``
-            (N), summed as :meth:`gradient` sums it (the batch kernel).
+        gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, summed as
+            :meth:`gradient` sums it (the batch kernel): ``g`` ``(n, 3)`` (N), or ``(vertices, rows, n)``, the
+            rows ``(u, 3)`` of the distinct ``vertices`` ``(u,)`` of an ``(n, 3)`` gradient zero elsewhere.
     """
 
     __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
@@ -152,11 +154,22 @@ class PairEvaluation:
         """``dE/dx = k_c (d - eps) grad d`` summed into a new ``(n, 3)`` array (N), ``n`` the row count
         of the positions (kept per stiffness, returned as a copy)."""
         kept = self._gradient
+        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
+            return spread_rows(*kept[1])
         if kept is None or kept[0] != stiffness:
             dd = self.dd
             g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
-            kept = self._gradient = (stiffness, scatter_gradient(self.key[0][0], self.active_vertices(vertices), g))
+            n = self.key[0][0] if isinstance(self.key, tuple) else len(self.key.x)  # positions_key's shape
+            kept = self._gradient = (stiffness, scatter_gradient(n, self.active_vertices(vertices), g))
         return kept[1].copy()
+
+    def gradient_rows(self, stiffness: float, vertices: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """:meth:`gradient` as :meth:`~sim_core.energies.base.SparseGradient.gradient_rows` gives it: the kept
+        rows of the distinct vertices where the batch kernel summed them, else ``(None, gradient)``."""
+        kept = self._gradient
+        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
+            return kept[1][0], kept[1][1]
+        return None, self.gradient(stiffness, vertices)
 
     def penalty_hessian(self, stiffness: float) -> np.ndarray:
         """Blocks ``k_c (grad d grad d^T + (d - eps) hess d)`` of the active pairs, ``(a, 12, 12)``

@@ -282,25 +282,31 @@ class TiLaggedFriction(LaggedFriction):
         converged positions, where its last iteration took the gradient): that call returns it and
         keeps nothing, so the workspace holds no arrays of a step's friction after the step.
         """
+        return spread_rows(*self.gradient_rows(x), x.shape[0])
+
+    def gradient_rows(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`gradient` as ``(vertices, rows)``: the rows ``(u, 3)`` (N) of the pairs' distinct vertices
+        ``(u,)``, zero elsewhere (capability :class:`~sim_core.energies.base.SparseGradient`; what is kept is
+        :meth:`gradient`'s)."""
         p, m = self.vertices.shape
         if not p:
-            return np.zeros((x.shape[0], 3))
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         arrays = self._kernel_arrays(x)
         workspace = workspace_of(self)
         again = workspace.take(self, "gradient")
         if again is not None and self._matches(again, arrays):
-            return spread_rows(self._own, again[3], x.shape[0])
+            return self._own, again[3]
         kept = self._kept(arrays)
         workspace.take(self, "derivatives")  # consumed
         if kept is not None:  # evaluated at this x: the same launch's gradient and blocks
             workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
             workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
-            return spread_rows(self._own, kept[4], x.shape[0])
+            return self._own, kept[4]
         blocks = np.empty((p, 3 * m, 3 * m))
         own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
         kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
         workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
-        return spread_rows(self._own, own_grad, x.shape[0])
+        return self._own, own_grad
 
     def _matches(self, kept: tuple, arrays: tuple) -> bool:
         """Whether ``kept`` ``(x, coefficients, eps_u, ...)`` is of the kernel ``arrays``' positions and

@@ -30,15 +30,25 @@ class GravityPotential:
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J."""
-        return float(-np.sum(self.vertex_mass[:, None] * x * self.gravity[None, :]))
+        products = self.vertex_mass[:, None] * x  # (m x) g entry by entry, summed: one temporary, not two
+        products *= self.gravity[None, :]
+        return float(-np.sum(products))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """``-m g`` per vertex, shape ``(n, 3)`` (a new array; the constant is computed on the first call
         for ``x``'s shape and dtype and copied afterwards)."""
+        return self._constant_gradient(x).copy()
+
+    def gradient_rows(self, x: np.ndarray) -> tuple[None, np.ndarray]:
+        """``(None, -m g)``: :meth:`gradient` as the kept constant itself, not a copy (capability
+        :class:`~sim_core.energies.base.SparseGradient`: the caller only reads it)."""
+        return None, self._constant_gradient(x)
+
+    def _constant_gradient(self, x: np.ndarray) -> np.ndarray:
         kept = self._gradient
         if kept is None or kept.shape != np.shape(x) or kept.dtype != np.result_type(self.vertex_mass, x):
             kept = self._gradient = -self.vertex_mass[:, None] * self.gravity[None, :] * np.ones_like(x)
-        return kept.copy()
+        return kept
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Zero (the energy is linear)."""

@@ -42,11 +42,16 @@ class InertiaPotential:
     def energy(self, x: np.ndarray) -> float:
         """Energy in J."""
         d = x - self.x_hat
-        return float(0.5 / self.dt**2 * np.sum(self.vertex_mass[:, None] * d * d))
+        products = self.vertex_mass[:, None] * d  # (m d) d entry by entry, in place: the same sum, a temporary less
+        products *= d
+        return float(0.5 / self.dt**2 * np.sum(products))
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """Gradient ``m (x - x_hat) / dt^2``, shape ``(n, 3)``."""
-        return self.vertex_mass[:, None] * (x - self.x_hat) / self.dt**2
+        """Gradient ``m (x - x_hat) / dt^2``, shape ``(n, 3)`` (a new array, computed in place: the same values)."""
+        g = np.subtract(x, self.x_hat)
+        np.multiply(self.vertex_mass[:, None], g, out=g)
+        g /= self.dt**2
+        return g
 
     def hessian_diagonal(self) -> np.ndarray:
         """Diagonal of the Hessian ``m_i / dt^2`` per DoF, shape ``(3 n,)``."""

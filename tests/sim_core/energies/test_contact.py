@@ -264,6 +264,30 @@ def test_kept_evaluation_is_matched_bitwise_and_its_stiffness_terms_per_stiffnes
                                   VertexTriangleContact(pairs, tris, np.ones(len(pairs)), 2.0 * K, EPS).gradient(x))
 
 
+def test_frozen_positions_are_keyed_by_identity_and_give_the_same_evaluation():
+    """A read-only array that owns its memory (the lockstep solver's iterates) is keyed by identity: equal to its
+    own key only, not to an equal frozen copy's nor to the bytes key of the same values; a read-only view or a
+    writeable array is keyed by its bytes. The evaluations are the same either way."""
+    from sim_core.energies.base import positions_key
+
+    rng = np.random.default_rng(17)
+    x, tris, pairs = _vt_scene(rng, list(PointTriangleRegion))
+    frozen, twin = x.copy(), x.copy()
+    frozen.flags.writeable = twin.flags.writeable = False
+    assert positions_key(frozen) == positions_key(frozen) != positions_key(twin)
+    assert positions_key(frozen) != positions_key(x) and positions_key(x) != positions_key(frozen)
+    view = x[:]
+    view.flags.writeable = False
+    assert positions_key(view) == positions_key(x)  # a view: its base may still change, so its bytes
+    assert len({positions_key(frozen), positions_key(frozen)}) == 1
+    pot = VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS)
+    ref = VertexTriangleContact(pairs, tris, np.ones(len(pairs)), K, EPS)
+    np.testing.assert_array_equal(pot.gradient(frozen), ref.gradient(x))
+    kept = workspace_of(pot).get(pot, "evaluation")
+    assert pot.energy(frozen) == ref.energy(x) and workspace_of(pot).get(pot, "evaluation") is kept
+    assert pot.energy(twin) == ref.energy(x) and workspace_of(pot).get(pot, "evaluation") is not kept
+
+
 @pytest.mark.parametrize("projection", ["none", "clamp"])
 def test_hessian_of_marked_vertices_is_the_marked_pairs_blocks(projection):
     """With a vertex mask, the Hessian holds the blocks of the active pairs whose vertices are marked

@@ -15,10 +15,11 @@ import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
 from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, DeviceHessian, ElasticEquivalent,
-                                      HingeBending, KeepsDerivatives, PenaltyContact, Potential, SubsetHessian)
+                                      HingeBending, KeepsDerivatives, PenaltyContact, Potential, SparseGradient,
+                                      SubsetHessian)
 
 NOT_POTENTIALS = {
-    "sim_core.energies.base": {"HessianBlocks", "Potential"} | {c.__name__ for c in CAPABILITIES},
+    "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
     "sim_core.energies.contact.reference": {"ContactFrames", "PairEvaluation"},
     "sim_core.candidates.hook": {"CandidateHook", "StepHook", "GelContactFace"},
 }
@@ -101,6 +102,8 @@ EXPECTED_CAPABILITIES = {
     ElasticEquivalent: {"MaxwellBranch"},
     SubsetHessian: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
     DeviceHessian: set(),  # the Taichi pair potentials (*kernel modules, not scanned: test_contact_batch.py)
+    # and the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
+    SparseGradient: {"GravityPotential"},
 }
 
 

@@ -81,3 +81,18 @@ def test_gravity_gradient_is_a_new_array_of_the_formula_every_call():
     assert gravity.parameter_gradient(x, "mass_scale").tobytes() == reference.tobytes()
     with pytest.raises(ValueError):  # another shape is computed for that shape (and fails to broadcast)
         gravity.gradient(np.zeros((N + 1, 3)))
+
+
+def test_gravity_gradient_rows_are_the_kept_constant_and_the_step_terms_keep_their_formulas():
+    """Gravity's ``gradient_rows`` (SparseGradient) is ``(None, -m g)``, the kept constant itself (equal to
+    :meth:`gradient` bit for bit, not a copy); inertia and gravity energies and the inertia gradient are their
+    formulas bit for bit, in the formulas' order of operations."""
+    inertia, gravity, _ = _terms()
+    x = X_PREV + np.random.default_rng(2).normal(scale=1e-3, size=X_PREV.shape)
+    vertices, rows = gravity.gradient_rows(x)
+    assert vertices is None and rows.tobytes() == gravity.gradient(x).tobytes()
+    assert gravity.gradient_rows(x)[1] is rows
+    d = x - inertia.x_hat
+    assert inertia.energy(x) == float(0.5 / DT**2 * np.sum(MASS[:, None] * d * d))
+    assert inertia.gradient(x).tobytes() == (MASS[:, None] * (x - inertia.x_hat) / DT**2).tobytes()
+    assert gravity.energy(x) == float(-np.sum(MASS[:, None] * x * gravity.gravity[None, :]))

@@ -241,3 +241,19 @@ def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(
         np.testing.assert_array_equal(got, grad)
         assert pot.energy(y) == energy
         np.testing.assert_array_equal(pot.hessian(y, "none").blocks, hess)
+        # the same gradient as the rows of the pairs' distinct vertices (SparseGradient), or dense when not linked
+        vertices, rows = pot.gradient_rows(y)
+        assert len(np.unique(vertices)) == len(vertices) == len(batch.own)
+        spread = np.zeros_like(grad)
+        spread[vertices] = rows
+        np.testing.assert_array_equal(spread, grad)
+    for pot, (grad, _, _) in zip(alone, expected):
+        vertices, rows = pot.gradient_rows(y)
+        assert vertices is None
+        np.testing.assert_array_equal(rows, grad)
+    frozen = y.copy()  # read-only and owning its memory: kept evaluations keyed by identity, the same values
+    frozen.flags.writeable = False
+    for pot, (grad, energy, hess) in zip(linked, expected):
+        np.testing.assert_array_equal(pot.gradient(frozen), grad)
+        assert pot.energy(frozen) == energy
+        np.testing.assert_array_equal(pot.hessian(frozen, "none").blocks, hess)

@@ -84,3 +84,23 @@ def test_zero_sets_every_entry_to_zero_in_order_with_kernels(ti_cpu, dtype_name)
             assert fill(dev, value) is dev
             assert np.array_equal(dev.to_numpy(), want.to_numpy())
         assert not fill(dev, 0.0).to_numpy().tobytes().strip(b"\x00")  # +0.0: every byte 0
+
+
+def test_pinned_host_arrays_are_zeroed_float64_and_copy_both_ways(ti_cpu):
+    """``pinned_zeros``: a zero float64 array of the shape (page-locked on CUDA), writable, that the byte copies
+    take both ways with the values kept; made and dropped many times over (its memory given back each time)."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray, pinned_zeros, to_device, to_host
+
+    rng = np.random.default_rng(4)
+    dev = new_ndarray(ti.f64, (300, 3))
+    for _ in range(50):
+        host = pinned_zeros((300, 3))
+        assert host.shape == (300, 3) and host.dtype == np.float64 and host.flags.writeable
+        assert host.flags.c_contiguous and not np.any(host)
+        values = rng.normal(size=(300, 3))
+        host[:] = values
+        assert to_device(dev, host)
+        back = pinned_zeros((300, 3))
+        assert to_host(back, dev) and np.array_equal(back, values)
+    assert pinned_zeros((0, 3)).shape == (0, 3)

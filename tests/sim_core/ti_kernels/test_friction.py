@@ -208,3 +208,15 @@ def test_pairs_naming_few_vertices_give_the_reference_there_and_zero_elsewhere(t
         assert grad.shape == x.shape and relative_error(grad, expected) < 1e-12 and not np.any(grad[~named])
     assert again is not first and not np.shares_memory(again, first)
     assert relative_error(tik.hessian(x).blocks, ref.hessian(x, "none").blocks) < 1e-12
+    # the same gradient as the rows of the pairs' distinct vertices (SparseGradient): first, again (kept), kept
+    # derivatives'
+    y = x + rng.normal(scale=0.1 * EPS_U, size=x.shape)
+    expected = ref.gradient(y)
+    got = [tik.gradient_rows(y), tik.gradient_rows(y.copy())]
+    tik.keep_derivatives(y)
+    got.append(tik.gradient_rows(y))
+    for vertices, rows in got:
+        assert len(np.unique(vertices)) == len(vertices) == np.count_nonzero(named)
+        spread = np.zeros_like(y)
+        spread[vertices] = rows
+        assert relative_error(spread, expected) < 1e-12
