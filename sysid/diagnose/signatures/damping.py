@@ -33,7 +33,13 @@ at least the smallest lead named (the damping size threshold,
 :func:`~sysid.diagnose.signatures.null.timing_size_threshold`), the replay reaches or leaves that
 deformation later than the recording (e.g. its buckled card keeps pushing the lifting pad), and the
 force's lead there is that gap: the event is left out of the statistic and the size
-(:func:`deformation_lead`).
+(:func:`deformation_lead`). Where the replay's contact is *shorter* than the recording's by as much (its
+deformation behind the recorded one at a release: it lets go of the gel early; ahead at a press: it begins
+late), the force's lead over the replay is the gel's lead less (plus) that gap, and the event is read against
+the replay re-timed to the recorded deformation (:func:`retimed_events`): the force's lead over the gel's own
+deformation. A release only where the gel carries the pad's travel on it as on the press (:func:`gel_share`):
+where a card lifted with the pad carries it, the release's timing is the card's, whose bending differs
+between engines, and the release is read as it is.
 
 Through the calibrated arm drive (:mod:`sysid.replay_drive`) the replay's pad is not the recorded pose:
 in series with the arm's spring ``k_s`` a damped gel of contact stiffness ``k_c`` moves its *deformation*
@@ -132,8 +138,9 @@ def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
 def lead_recording(rec: Recording) -> Recording:
     """The recording with the replay the lead is read against (module docstring): the calibrated replay
     with the recorded pose imposed (``rec.reference``) where the prediction went through the arm drive,
-    else ``rec`` itself; its early releases re-timed to the recorded deformation (:func:`retimed_releases`)."""
-    return retimed_releases(rec)[0]
+    else ``rec`` itself; the events where its contact is shorter than the recording's re-timed to the
+    recorded deformation (:func:`retimed_events`)."""
+    return retimed_events(rec)[0]
 
 
 def _kinematic(rec: Recording) -> Recording:
@@ -210,7 +217,7 @@ release moves the pad along the sensor normal; a slide begins only once the pres
 
 CARRIED_SHARE = 0.5
 """Smallest ratio of the gel's share of the pad's travel on a release to its share on the press before it
-(:func:`gel_share`) at which the release is re-timed to the recorded deformation (:func:`retimed_releases`).
+(:func:`gel_share`) at which the release is re-timed to the recorded deformation (:func:`retimed_events`).
 On the press the card lies on the table and the pad's travel goes into the gel; on a release whose share
 falls below half of that, the pad travels further than the gel unloads (a card lifted with the pad, or
 buckled under it, carries the travel), and the release's timing is the card's, whose bending and buckling
@@ -282,28 +289,33 @@ def gel_share(rec: Recording, window: tuple[float, float] | list[float], normal:
     return float(abs(np.linalg.lstsq(X, depth, rcond=None)[0][0]))
 
 
-def retimed_releases(rec: Recording) -> tuple[Recording, list[dict]]:
+def retimed_events(rec: Recording) -> tuple[Recording, list[dict]]:
     """The recording with the replay the lead is read against (``rec.reference`` where the prediction went
-    through the arm drive), each of its *early* releases re-timed to the recorded deformation.
+    through the arm drive), each event where the replay's contact is *shorter* than the recording's re-timed
+    to the recorded deformation.
 
     A release where the recorded gel's deformation (mean marker depth) runs *behind* the replay's by at least
     the smallest lead named (:func:`deformation_lead` <= ``-timing_size_threshold``) is one where the replay
-    lets go of the gel earlier than the recording does, in deformation as in force: the force's lead over
-    the replay there is the gel's lead less that gap. It is read against the replay delayed by the gap
-    (``y_pred(t + s)``, ``s`` the deformation lead, from the release window's start to the next event
-    window's), so that the lead is the force's lead over the gel's own deformation, as a Kelvin-Voigt gel's
-    is. The mirror of a release whose deformation runs *ahead* (the replay lets go late), which
-    :func:`damping_test` leaves out. Only where the gel carries the pad's travel on the release as on the
-    press before it (:func:`gel_share` ratio >= :data:`CARRIED_SHARE`) and the lead is read on the force.
+    lets go of the gel earlier than the recording does, in deformation as in force; a press where it runs
+    *ahead* by as much, one where the replay's contact begins late (a shallower replay). The force's lead over
+    the replay there is the gel's lead less (at a release) or plus (at a press) that gap, so the event is read
+    against the replay shifted by the gap (``y_pred(t + s)``, ``s`` the deformation lead, from the event
+    window's start to the next event window's): the lead is the force's lead over the gel's own deformation,
+    as a Kelvin-Voigt gel's is. The opposite gaps are not read: a release whose deformation runs ahead (the
+    replay lets go late) is left out by :func:`damping_test`; at a press the recorded marker depth runs 13-35
+    ms behind the replay's on every MuJoCo recording, nominal or not (docs/benchmarks_log.md, session 37,
+    23damp), so it is no timing reference there. A release is re-timed only where the gel carries the pad's
+    travel on it as on the press before it (:func:`gel_share` ratio >= :data:`CARRIED_SHARE`), and only where
+    the lead is read on the force.
 
     Args:
         rec: recording with its calibrated replay.
 
     Returns:
         ``(recording, retimed)``: the recording (``rec`` itself, or its kinematic view, where nothing is
-        re-timed) and one dict per re-timed release (``t_s``, ``window_s``, ``deformation_lead_s``,
-        ``segment_s``: the re-timed span, its end None at the recording's end; ``gel_share``: the release's
-        share over the press's).
+        re-timed) and one dict per re-timed event (``t_s``, ``direction``, ``window_s``, ``deformation_lead_s``,
+        ``segment_s``: the re-timed span, its end None at the recording's end; ``gel_share``: a release's share
+        over the press's, None on a press).
     """
     base = _kinematic(rec)
     sig = timing_signal(base)
@@ -314,19 +326,24 @@ def retimed_releases(rec: Recording) -> tuple[Recording, list[dict]]:
     windows = event_windows(t, yp)
     shifts, normal, press_share = [], None, None
     for k, (te, direction, lo, hi, _) in enumerate(windows):
+        lead = deformation_lead(base, (lo, hi))
+        ratio = None
         if direction > 0:
             normal = press_direction(base, (lo, hi))
             press_share = None if normal is None else gel_share(base, (lo, hi), normal)
-            continue
-        share = None if normal is None else gel_share(base, (lo, hi), normal)
-        lead = deformation_lead(base, (lo, hi))
-        if lead is None or lead > -resolution or press_share is None or share is None or not press_share > 0.0:
-            continue
-        if share / press_share < CARRIED_SHARE:
-            continue
+            if lead is None or lead < resolution:
+                continue
+        else:
+            share = None if normal is None else gel_share(base, (lo, hi), normal)
+            if lead is None or lead > -resolution or press_share is None or share is None or not press_share > 0.0:
+                continue
+            ratio = share / press_share
+            if ratio < CARRIED_SHARE:
+                continue
         end = float(windows[k + 1][2]) if k + 1 < len(windows) else None
-        shifts.append({"t_s": float(te), "window_s": [float(lo), float(hi)], "segment_s": [float(lo), end],
-                       "deformation_lead_s": float(lead), "gel_share": float(share / press_share)})
+        shifts.append({"t_s": float(te), "direction": "rising" if direction > 0 else "falling",
+                       "window_s": [float(lo), float(hi)], "segment_s": [float(lo), end],
+                       "deformation_lead_s": float(lead), "gel_share": ratio})
     if not shifts:
         return base, []
     prediction = {}
@@ -343,9 +360,9 @@ def retimed_releases(rec: Recording) -> tuple[Recording, list[dict]]:
 
 def damping_test(rec: Recording) -> SignatureResult:
     """Gel damping from the lead of the recorded contact force over the calibrated replay with the recorded
-    pose imposed, early releases re-timed (:func:`retimed_releases`; module docstring: statistic, effect size,
-    estimate)."""
-    rec, retimed = retimed_releases(rec)
+    pose imposed, events where its contact is shorter re-timed (:func:`retimed_events`; module docstring:
+    statistic, effect size, estimate)."""
+    rec, retimed = retimed_events(rec)
     fits = lead_fits(rec)
     if fits is None:
         return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")
@@ -378,7 +395,7 @@ def damping_test(rec: Recording) -> SignatureResult:
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
               "sse_lead": float(total[j]), "sse_removed": removed, "dispersion": phi, "leads_s": leads.tolist(),
               "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess),
-              "events_left_out": held, "releases_retimed": retimed}
+              "events_left_out": held, "events_retimed": retimed}
     return SignatureResult(effect=EFFECT, statistic=removed / phi,
                            effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],
