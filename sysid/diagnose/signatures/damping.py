@@ -33,13 +33,7 @@ at least the smallest lead named (the damping size threshold,
 :func:`~sysid.diagnose.signatures.null.timing_size_threshold`), the replay reaches or leaves that
 deformation later than the recording (e.g. its buckled card keeps pushing the lifting pad), and the
 force's lead there is that gap: the event is left out of the statistic and the size
-(:func:`deformation_lead`). Where the replay's contact is *shorter* than the recording's by as much (its
-deformation behind the recorded one at a release: it lets go of the gel early; ahead at a press: it begins
-late), the force's lead over the replay is the gel's lead less (plus) that gap, and the event is read against
-the replay re-timed to the recorded deformation (:func:`retimed_events`): the force's lead over the gel's own
-deformation. A release only where the gel carries the pad's travel on it as on the press (:func:`gel_share`):
-where a card lifted with the pad carries it, the release's timing is the card's, whose bending differs
-between engines, and the release is read as it is.
+(:func:`deformation_lead`).
 
 Through the calibrated arm drive (:mod:`sysid.replay_drive`) the replay's pad is not the recorded pose:
 in series with the arm's spring ``k_s`` a damped gel of contact stiffness ``k_c`` moves its *deformation*
@@ -63,10 +57,9 @@ import dataclasses
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, normal_force, not_applicable
+from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, not_applicable
 from sysid.diagnose.signatures.null import SIZE_TOLERANCE, timing_size_threshold
-from sysid.diagnose.signatures.timing import (TAU_MAX_S, delayed, event_windows, press_sizes, timing_signal,
-                                              timing_size)
+from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, press_sizes, timing_signal, timing_size
 
 EFFECT = "damping"
 
@@ -138,13 +131,7 @@ def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
 def lead_recording(rec: Recording) -> Recording:
     """The recording with the replay the lead is read against (module docstring): the calibrated replay
     with the recorded pose imposed (``rec.reference``) where the prediction went through the arm drive,
-    else ``rec`` itself; the events where its contact is shorter than the recording's re-timed to the
-    recorded deformation (:func:`retimed_events`)."""
-    return retimed_events(rec)[0]
-
-
-def _kinematic(rec: Recording) -> Recording:
-    """``rec`` with the replay the lead is read against as its prediction (the reference where there is one)."""
+    else ``rec`` itself."""
     return rec if rec.reference is None else dataclasses.replace(rec, prediction=rec.reference, reference=None)
 
 
@@ -210,159 +197,10 @@ def deformation_lead(rec: Recording, window: tuple[float, float] | list[float]) 
     return float(shifts[best[np.argmin(np.abs(shifts[best]))]])
 
 
-RAMP_FRACTIONS = (0.1, 0.9)
-"""The part of an event window where the replay's normal force ramps, as fractions of the window's largest
-replay force: where the gel's share of the pad's travel is read (:func:`gel_share`). Inside it a press or a
-release moves the pad along the sensor normal; a slide begins only once the press has ramped."""
-
-CARRIED_SHARE = 0.5
-"""Smallest ratio of the gel's share of the pad's travel on a release to its share on the press before it
-(:func:`gel_share`) at which the release is re-timed to the recorded deformation (:func:`retimed_events`).
-On the press the card lies on the table and the pad's travel goes into the gel; on a release whose share
-falls below half of that, the pad travels further than the gel unloads (a card lifted with the pad, or
-buckled under it, carries the travel), and the release's timing is the card's, whose bending and buckling
-differ between engines (docs/benchmarks_log.md, session 40, 23card): its deformation is no timing
-reference for the gel. A majority criterion, not a value fitted to recordings."""
-
-
-def _ramp(rec: Recording, window: tuple[float, float] | list[float]) -> tuple[np.ndarray, np.ndarray] | None:
-    """Marker-sample rows of ``window`` where the replay's normal force ramps (within :data:`RAMP_FRACTIONS`
-    of the window's largest) and where it is loaded (at least the lower fraction), as boolean masks over
-    ``rec.t["markers_xyz"]``; None where fewer than two samples ramp."""
-    tm = rec.t["markers_xyz"]
-    force = np.interp(tm, rec.t["wrench"], normal_force(rec.prediction["wrench"]))
-    m = (tm >= window[0]) & (tm <= window[1])
-    if not m.any() or not np.max(force[m]) > 0.0:
-        return None
-    low, high = (f * float(np.max(force[m])) for f in RAMP_FRACTIONS)
-    ramp = m & (force >= low) & (force <= high)
-    return (ramp, m & (force >= low)) if ramp.sum() >= 2 else None
-
-
-def _pad_position(rec: Recording) -> np.ndarray:
-    """The recorded pad position at the marker samples, m, shape ``(n, 3)``."""
-    return np.stack([np.interp(rec.t["markers_xyz"], rec.t["pose"], rec.data["pose"][:, k]) for k in range(3)],
-                    axis=1)
-
-
-def press_direction(rec: Recording, window: tuple[float, float] | list[float]) -> np.ndarray | None:
-    """Unit direction ``(3,)`` the recorded pad travels while the replay's force ramps up in a press's
-    ``window`` (:func:`_ramp`): the sensor normal, a press moving the pad into the card before any slide.
-    None without a recorded pose, predicted markers and wrench, a ramp, or travel."""
-    if not (rec.predicted("markers_xyz", "wrench") and rec.has("pose")):
-        return None
-    rows = _ramp(rec, window)
-    if rows is None:
-        return None
-    ramp = np.flatnonzero(rows[0])
-    position = _pad_position(rec)
-    chord = position[ramp[-1]] - position[ramp[0]]
-    length = float(np.linalg.norm(chord))
-    return chord / length if length > 0.0 else None
-
-
-def gel_share(rec: Recording, window: tuple[float, float] | list[float], normal: np.ndarray) -> float | None:
-    """Share of the pad's travel along ``normal`` that the replay's gel takes in ``window``: the least-squares
-    slope of the replay's mean marker depth on the recorded pad position (``rec.data["pose"]``) along
-    ``normal`` (:func:`press_direction`), over the window's samples whose replay normal force is at least the
-    lower of :data:`RAMP_FRACTIONS` of its largest (-; 0.6-1.1 where the gel carries the pad's travel on a
-    card lying on the table, under 0.15 where a card lifted with the pad carries it, on every development
-    recording of docs/benchmarks_log.md, session 41, 23damp). None without a recorded pose, predicted
-    markers and wrench, a ramp, or travel along ``normal``.
-
-    Args:
-        rec: recording with its calibrated replay.
-        window: ``[t0, t1]``, s.
-        normal: unit direction ``(3,)``.
-    """
-    if not (rec.predicted("markers_xyz", "wrench") and rec.has("pose")):
-        return None
-    rows = _ramp(rec, window)
-    if rows is None:
-        return None
-    loaded = rows[1]
-    travel = _pad_position(rec)[loaded] @ np.asarray(normal, dtype=float)
-    if not np.ptp(travel) > 0.0:
-        return None
-    depth = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[loaded, :, 2].mean(axis=1)
-    X = np.stack([travel - travel.mean(), np.ones_like(travel)], axis=1)
-    return float(abs(np.linalg.lstsq(X, depth, rcond=None)[0][0]))
-
-
-def retimed_events(rec: Recording) -> tuple[Recording, list[dict]]:
-    """The recording with the replay the lead is read against (``rec.reference`` where the prediction went
-    through the arm drive), each event where the replay's contact is *shorter* than the recording's re-timed
-    to the recorded deformation.
-
-    A release where the recorded gel's deformation (mean marker depth) runs *behind* the replay's by at least
-    the smallest lead named (:func:`deformation_lead` <= ``-timing_size_threshold``) is one where the replay
-    lets go of the gel earlier than the recording does, in deformation as in force; a press where it runs
-    *ahead* by as much, one where the replay's contact begins late (a shallower replay). The force's lead over
-    the replay there is the gel's lead less (at a release) or plus (at a press) that gap, so the event is read
-    against the replay shifted by the gap (``y_pred(t + s)``, ``s`` the deformation lead, from the event
-    window's start to the next event window's): the lead is the force's lead over the gel's own deformation,
-    as a Kelvin-Voigt gel's is. The opposite gaps are not read: a release whose deformation runs ahead (the
-    replay lets go late) is left out by :func:`damping_test`; at a press the recorded marker depth runs 13-35
-    ms behind the replay's on every MuJoCo recording, nominal or not (docs/benchmarks_log.md, session 37,
-    23damp), so it is no timing reference there. A release is re-timed only where the gel carries the pad's
-    travel on it as on the press before it (:func:`gel_share` ratio >= :data:`CARRIED_SHARE`), and only where
-    the lead is read on the force.
-
-    Args:
-        rec: recording with its calibrated replay.
-
-    Returns:
-        ``(recording, retimed)``: the recording (``rec`` itself, or its kinematic view, where nothing is
-        re-timed) and one dict per re-timed event (``t_s``, ``direction``, ``window_s``, ``deformation_lead_s``,
-        ``segment_s``: the re-timed span, its end None at the recording's end; ``gel_share``: a release's share
-        over the press's, None on a press).
-    """
-    base = _kinematic(rec)
-    sig = timing_signal(base)
-    if sig is None or sig[0] != "wrench" or base.prediction is None:
-        return base, []
-    _, t, _, yp, _ = sig
-    resolution = timing_size_threshold(base) * (1.0 - SIZE_TOLERANCE)
-    windows = event_windows(t, yp)
-    shifts, normal, press_share = [], None, None
-    for k, (te, direction, lo, hi, _) in enumerate(windows):
-        lead = deformation_lead(base, (lo, hi))
-        ratio = None
-        if direction > 0:
-            normal = press_direction(base, (lo, hi))
-            press_share = None if normal is None else gel_share(base, (lo, hi), normal)
-            if lead is None or lead < resolution:
-                continue
-        else:
-            share = None if normal is None else gel_share(base, (lo, hi), normal)
-            if lead is None or lead > -resolution or press_share is None or share is None or not press_share > 0.0:
-                continue
-            ratio = share / press_share
-            if ratio < CARRIED_SHARE:
-                continue
-        end = float(windows[k + 1][2]) if k + 1 < len(windows) else None
-        shifts.append({"t_s": float(te), "direction": "rising" if direction > 0 else "falling",
-                       "window_s": [float(lo), float(hi)], "segment_s": [float(lo), end],
-                       "deformation_lead_s": float(lead), "gel_share": ratio})
-    if not shifts:
-        return base, []
-    prediction = {}
-    for ch, values in base.prediction.items():
-        values = np.asarray(values, dtype=float)
-        out = values.copy()
-        for e in shifts:
-            start, end = e["segment_s"]
-            rows = (base.t[ch] >= start) & (base.t[ch] < (np.inf if end is None else end))
-            out[rows] = delayed(base.t[ch], values, -e["deformation_lead_s"])[rows]
-        prediction[ch] = out
-    return dataclasses.replace(base, prediction=prediction), shifts
-
-
 def damping_test(rec: Recording) -> SignatureResult:
     """Gel damping from the lead of the recorded contact force over the calibrated replay with the recorded
-    pose imposed, events where its contact is shorter re-timed (:func:`retimed_events`; module docstring:
-    statistic, effect size, estimate)."""
-    rec, retimed = retimed_events(rec)
+    pose imposed (:func:`lead_recording`; module docstring: statistic, effect size, estimate)."""
+    rec = lead_recording(rec)
     fits = lead_fits(rec)
     if fits is None:
         return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")
@@ -395,7 +233,7 @@ def damping_test(rec: Recording) -> SignatureResult:
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
               "sse_lead": float(total[j]), "sse_removed": removed, "dispersion": phi, "leads_s": leads.tolist(),
               "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess),
-              "events_left_out": held, "events_retimed": retimed}
+              "events_left_out": held}
     return SignatureResult(effect=EFFECT, statistic=removed / phi,
                            effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],

@@ -362,15 +362,12 @@ def test_latency_read_through_a_replay_with_a_depth_gap_is_named_latency(rng):
 
 
 def test_gel_damping_read_through_a_replay_with_a_depth_gap_is_named_damping(rng):
-    """Through the same shallower replay a 30 ms Kelvin-Voigt lead would read about 55 ms at the press and
-    5 ms at the release (under the 10 ms size). The recorded deformation runs 25 ms ahead of the replay's at
-    the press and 25 ms behind it at the release (the replay's contact is shorter), so both events are read
-    against the replay re-timed to the recorded deformation, and each leads by the time constant. Without
-    damping the gap alone leads one event only, and names nothing."""
+    """Through the same shallower replay a 30 ms Kelvin-Voigt lead is 5 ms at one event (under the
+    10 ms size) and about 55 ms at the other; the press's mean is the time constant. Without damping
+    the gap alone leads one event only, and names nothing."""
     rec = _with_depth_gap(synthetic(rng, damping=0.03, ramp=0.3), 0.025)
     r = damping_test(rec)
-    assert [e["deformation_lead_s"] for e in r.detail["events_retimed"]] == pytest.approx([0.025, -0.025], abs=2e-3)
-    assert r.detail["leads_s"] == pytest.approx([0.03, 0.03], abs=0.005)
+    assert min(r.detail["leads_s"]) < 0.01 < max(r.detail["leads_s"])
     assert r.effect_size == pytest.approx(0.03, abs=0.006)
     assert named(rec) == ["damping"]
     plain = _with_depth_gap(synthetic(np.random.default_rng(5), ramp=0.3), 0.025)
