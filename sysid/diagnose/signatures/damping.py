@@ -33,7 +33,12 @@ at least the smallest lead named (the damping size threshold,
 :func:`~sysid.diagnose.signatures.null.timing_size_threshold`), the replay reaches or leaves that
 deformation later than the recording (e.g. its buckled card keeps pushing the lifting pad), and the
 force's lead there is that gap: the event is left out of the statistic and the size
-(:func:`deformation_lead`).
+(:func:`deformation_lead`). Where it runs *behind* the replay's by as much at a release and the card under
+the pad does too (the replay lets go of the gel and the card early), the force's lead over the replay is the
+gel's lead less that gap, and the release is read against the replay re-timed to the recorded deformation
+(:func:`retimed_releases`): the force's lead over the gel's own deformation. Only where the gel carries the
+pad's travel on the release as on the press (:func:`gel_share`; where a card lifted with the pad carries it,
+the release's timing is the card's, whose bending differs between engines).
 
 Through the calibrated arm drive (:mod:`sysid.replay_drive`) the replay's pad is not the recorded pose:
 in series with the arm's spring ``k_s`` a damped gel of contact stiffness ``k_c`` moves its *deformation*
@@ -57,9 +62,11 @@ import dataclasses
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, not_applicable
+from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, normal_force, not_applicable
 from sysid.diagnose.signatures.null import SIZE_TOLERANCE, timing_size_threshold
-from sysid.diagnose.signatures.timing import TAU_MAX_S, event_windows, press_sizes, timing_signal, timing_size
+from sysid.diagnose.signatures.sheet import RESOLVABLE_SET_SIGMAS
+from sysid.diagnose.signatures.timing import (TAU_MAX_S, delayed, event_windows, press_sizes, timing_signal,
+                                              timing_size)
 
 EFFECT = "damping"
 
@@ -131,7 +138,12 @@ def _window_sse(y: np.ndarray, x: np.ndarray) -> float:
 def lead_recording(rec: Recording) -> Recording:
     """The recording with the replay the lead is read against (module docstring): the calibrated replay
     with the recorded pose imposed (``rec.reference``) where the prediction went through the arm drive,
-    else ``rec`` itself."""
+    else ``rec`` itself; its early releases re-timed to the recorded deformation (:func:`retimed_releases`)."""
+    return retimed_releases(rec)[0]
+
+
+def _kinematic(rec: Recording) -> Recording:
+    """``rec`` with the replay the lead is read against as its prediction (the reference where there is one)."""
     return rec if rec.reference is None else dataclasses.replace(rec, prediction=rec.reference, reference=None)
 
 
@@ -188,19 +200,211 @@ def deformation_lead(rec: Recording, window: tuple[float, float] | list[float]) 
     tm = rec.t["markers_xyz"]
     depth = -np.asarray(rec.data["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
     depth_pred = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
-    m = (tm >= window[0]) & (tm <= window[1])
+    return _best_shift(tm, depth, depth_pred, window)
+
+
+def _best_shift(t: np.ndarray, y: np.ndarray, y_pred: np.ndarray,
+                window: tuple[float, float] | list[float]) -> float | None:
+    """The shift ``s`` (in ``[-TAU_MAX_S, TAU_MAX_S]``, step :data:`SHIFT_STEP_S`) whose ``y_pred(t + s)`` fits
+    ``y`` best in ``window`` with a free gain and offset (the smallest ``|s|`` among equal fits), s; None with
+    fewer than three samples in the window. ``t``, ``y``, ``y_pred``: shape ``(n,)``."""
+    m = (t >= window[0]) & (t <= window[1])
     if m.sum() < 3:
         return None
     shifts = np.arange(-TAU_MAX_S, TAU_MAX_S + 1e-12, SHIFT_STEP_S)
-    sse = np.array([_window_sse(depth[m], np.interp(tm[m] + sh, tm, depth_pred)) for sh in shifts])
+    sse = np.array([_window_sse(y[m], np.interp(t[m] + sh, t, y_pred)) for sh in shifts])
     best = np.flatnonzero(sse <= sse.min() * (1.0 + 1e-12))
     return float(shifts[best[np.argmin(np.abs(shifts[best]))]])
 
 
+CARD_POINTS = 20
+"""Sheet points whose height the card's timing is read from (:func:`card_lead`): those the replay moves most
+in the window, about the pad's footprint on the scenes' 21 x 13 card grid."""
+
+
+def card_lead(rec: Recording, window: tuple[float, float] | list[float]) -> float | None:
+    """How far the recorded card runs ahead of the replay's in ``window``, s: :func:`deformation_lead`'s shift
+    search on the mean height (``z``, world) of the :data:`CARD_POINTS` sheet points whose replayed height
+    spans most in the window (> 0: the recording ahead). None without recorded and predicted sheet points,
+    or where the replay's card moves less in the window than the tracking resolves
+    (:data:`~sysid.diagnose.signatures.sheet.RESOLVABLE_SET_SIGMAS` sheet sigmas): a card lying still is no
+    timing reference.
+
+    Args:
+        rec: recording with its calibrated replay.
+        window: ``[t0, t1]``, s.
+    """
+    if not rec.predicted("sheet_points"):
+        return None
+    ts = rec.t["sheet_points"]
+    m = (ts >= window[0]) & (ts <= window[1])
+    if m.sum() < 3:
+        return None
+    height = np.asarray(rec.data["sheet_points"], dtype=float)[:, :, 2]
+    height_pred = np.asarray(rec.prediction["sheet_points"], dtype=float)[:, :, 2]
+    points = np.argsort(np.ptp(height_pred[m], axis=0))[-CARD_POINTS:]
+    card, card_pred = height[:, points].mean(axis=1), height_pred[:, points].mean(axis=1)
+    if np.ptp(card_pred[m]) < RESOLVABLE_SET_SIGMAS * float(rec.sigma["sheet_points"][2]):
+        return None
+    return _best_shift(ts, card, card_pred, window)
+
+
+RAMP_FRACTIONS = (0.1, 0.9)
+"""The part of an event window where the replay's normal force ramps, as fractions of the window's largest
+replay force: where the gel's share of the pad's travel is read (:func:`gel_share`). Inside it a press or a
+release moves the pad along the sensor normal; a slide begins only once the press has ramped."""
+
+CARRIED_SHARE = 0.5
+"""Smallest ratio of the gel's share of the pad's travel on a release to its share on the press before it
+(:func:`gel_share`) at which the release is re-timed to the recorded deformation (:func:`retimed_releases`).
+On the press the card lies on the table and the pad's travel goes into the gel; on a release whose share
+falls below half of that, the pad travels further than the gel unloads (a card lifted with the pad, or
+buckled under it, carries the travel), and the release's timing is the card's, whose bending and buckling
+differ between engines (docs/benchmarks_log.md, session 40, 23card): its deformation is no timing
+reference for the gel. A majority criterion, not a value fitted to recordings."""
+
+
+def _ramp(rec: Recording, window: tuple[float, float] | list[float]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Marker-sample rows of ``window`` where the replay's normal force ramps (within :data:`RAMP_FRACTIONS`
+    of the window's largest) and where it is loaded (at least the lower fraction), as boolean masks over
+    ``rec.t["markers_xyz"]``; None where fewer than two samples ramp."""
+    tm = rec.t["markers_xyz"]
+    force = np.interp(tm, rec.t["wrench"], normal_force(rec.prediction["wrench"]))
+    m = (tm >= window[0]) & (tm <= window[1])
+    if not m.any() or not np.max(force[m]) > 0.0:
+        return None
+    low, high = (f * float(np.max(force[m])) for f in RAMP_FRACTIONS)
+    ramp = m & (force >= low) & (force <= high)
+    return (ramp, m & (force >= low)) if ramp.sum() >= 2 else None
+
+
+def _pad_position(rec: Recording) -> np.ndarray:
+    """The recorded pad position at the marker samples, m, shape ``(n, 3)``."""
+    return np.stack([np.interp(rec.t["markers_xyz"], rec.t["pose"], rec.data["pose"][:, k]) for k in range(3)],
+                    axis=1)
+
+
+def press_direction(rec: Recording, window: tuple[float, float] | list[float]) -> np.ndarray | None:
+    """Unit direction ``(3,)`` the recorded pad travels while the replay's force ramps up in a press's
+    ``window`` (:func:`_ramp`): the sensor normal, a press moving the pad into the card before any slide.
+    None without a recorded pose, predicted markers and wrench, a ramp, or travel."""
+    if not (rec.predicted("markers_xyz", "wrench") and rec.has("pose")):
+        return None
+    rows = _ramp(rec, window)
+    if rows is None:
+        return None
+    ramp = np.flatnonzero(rows[0])
+    position = _pad_position(rec)
+    chord = position[ramp[-1]] - position[ramp[0]]
+    length = float(np.linalg.norm(chord))
+    return chord / length if length > 0.0 else None
+
+
+def gel_share(rec: Recording, window: tuple[float, float] | list[float], normal: np.ndarray) -> float | None:
+    """Share of the pad's travel along ``normal`` that the replay's gel takes in ``window``: the least-squares
+    slope of the replay's mean marker depth on the recorded pad position (``rec.data["pose"]``) along
+    ``normal`` (:func:`press_direction`), over the window's samples whose replay normal force is at least the
+    lower of :data:`RAMP_FRACTIONS` of its largest (-; 0.6-1.1 where the gel carries the pad's travel on a
+    card lying on the table, under 0.15 where a card lifted with the pad carries it, on every development
+    recording of docs/benchmarks_log.md, session 41, 23damp). None without a recorded pose, predicted
+    markers and wrench, a ramp, or travel along ``normal``.
+
+    Args:
+        rec: recording with its calibrated replay.
+        window: ``[t0, t1]``, s.
+        normal: unit direction ``(3,)``.
+    """
+    if not (rec.predicted("markers_xyz", "wrench") and rec.has("pose")):
+        return None
+    rows = _ramp(rec, window)
+    if rows is None:
+        return None
+    loaded = rows[1]
+    travel = _pad_position(rec)[loaded] @ np.asarray(normal, dtype=float)
+    if not np.ptp(travel) > 0.0:
+        return None
+    depth = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[loaded, :, 2].mean(axis=1)
+    X = np.stack([travel - travel.mean(), np.ones_like(travel)], axis=1)
+    return float(abs(np.linalg.lstsq(X, depth, rcond=None)[0][0]))
+
+
+def retimed_releases(rec: Recording) -> tuple[Recording, list[dict]]:
+    """The recording with the replay the lead is read against (``rec.reference`` where the prediction went
+    through the arm drive), each of its *early* releases re-timed to the recorded deformation.
+
+    A release where the recorded gel's deformation (mean marker depth) runs *behind* the replay's by at least
+    the smallest lead named (:func:`deformation_lead` <= ``-timing_size_threshold``) may be one where the
+    replay lets go of the gel earlier than the recording does, in deformation as in force: the force's lead
+    over the replay there is then the gel's lead less that gap. Two conditions tell it from a damped gel's own
+    slow recovery (which delays the markers too) and from a calibration's depth gap at the gel alone:
+
+    * the card under the pad moves in the window and runs behind the replay's by the resolution too
+      (:func:`card_lead`): the replay that lets go of the gel early lets go of the card early, a timing
+      reference that gel damping cannot move later (a damped gel parts from the card earlier, not later);
+    * the gel carries the pad's travel on the release as on the press before it (:func:`gel_share` ratio >=
+      :data:`CARRIED_SHARE`): where a card lifted with the pad carries it, the release's timing is the card's,
+      whose bending and buckling differ between engines.
+
+    Such a release is read against the replay delayed by the gap (``y_pred(t + s)``, ``s`` the deformation
+    lead, from the release window's start to the next event window's): the lead is the force's lead over the
+    gel's own deformation, as a Kelvin-Voigt gel's is. The mirror of a release whose deformation runs *ahead*
+    (the replay lets go late), which :func:`damping_test` leaves out. Presses are not re-timed: there the
+    recorded marker depth runs 13-35 ms behind the replay's on every MuJoCo recording, nominal or not
+    (docs/benchmarks_log.md, session 37, 23damp), so it is no timing reference. Only where the lead is read
+    on the force.
+
+    Args:
+        rec: recording with its calibrated replay.
+
+    Returns:
+        ``(recording, retimed)``: the recording (``rec`` itself, or its kinematic view, where nothing is
+        re-timed) and one dict per re-timed release (``t_s``, ``window_s``, ``deformation_lead_s``,
+        ``card_lead_s``, ``gel_share``: the release's share over the press's; ``segment_s``: the re-timed
+        span, its end None at the recording's end).
+    """
+    base = _kinematic(rec)
+    sig = timing_signal(base)
+    if sig is None or sig[0] != "wrench" or base.prediction is None:
+        return base, []
+    _, t, _, yp, _ = sig
+    resolution = timing_size_threshold(base) * (1.0 - SIZE_TOLERANCE)
+    windows = event_windows(t, yp)
+    shifts, normal, press_share = [], None, None
+    for k, (te, direction, lo, hi, _) in enumerate(windows):
+        if direction > 0:
+            normal = press_direction(base, (lo, hi))
+            press_share = None if normal is None else gel_share(base, (lo, hi), normal)
+            continue
+        lead = deformation_lead(base, (lo, hi))
+        if lead is None or lead > -resolution or normal is None or not (press_share or 0.0) > 0.0:
+            continue
+        share = gel_share(base, (lo, hi), normal)
+        card = card_lead(base, (lo, hi))
+        if share is None or share / press_share < CARRIED_SHARE or card is None or card > -resolution:
+            continue
+        end = float(windows[k + 1][2]) if k + 1 < len(windows) else None
+        shifts.append({"t_s": float(te), "window_s": [float(lo), float(hi)], "segment_s": [float(lo), end],
+                       "deformation_lead_s": float(lead), "card_lead_s": float(card),
+                       "gel_share": float(share / press_share)})
+    if not shifts:
+        return base, []
+    prediction = {}
+    for ch, values in base.prediction.items():
+        values = np.asarray(values, dtype=float)
+        out = values.copy()
+        for e in shifts:
+            start, end = e["segment_s"]
+            rows = (base.t[ch] >= start) & (base.t[ch] < (np.inf if end is None else end))
+            out[rows] = delayed(base.t[ch], values, -e["deformation_lead_s"])[rows]
+        prediction[ch] = out
+    return dataclasses.replace(base, prediction=prediction), shifts
+
+
 def damping_test(rec: Recording) -> SignatureResult:
     """Gel damping from the lead of the recorded contact force over the calibrated replay with the recorded
-    pose imposed (:func:`lead_recording`; module docstring: statistic, effect size, estimate)."""
-    rec = lead_recording(rec)
+    pose imposed, early releases re-timed (:func:`retimed_releases`; module docstring: statistic, effect size,
+    estimate)."""
+    rec, retimed = retimed_releases(rec)
     fits = lead_fits(rec)
     if fits is None:
         return not_applicable(EFFECT, "needs a predicted wrench or marker positions (a calibrated replay)")
@@ -233,7 +437,7 @@ def damping_test(rec: Recording) -> SignatureResult:
     detail = {"channel": fits["channel"], "events": ev, "samples": samples, "sse0": float(total[0]),
               "sse_lead": float(total[j]), "sse_removed": removed, "dispersion": phi, "leads_s": leads.tolist(),
               "press_leads_s": press_sizes(ev, "lead_s"), "explained_lead": float((total[0] - total[j]) / excess),
-              "events_left_out": held}
+              "events_left_out": held, "releases_retimed": retimed}
     return SignatureResult(effect=EFFECT, statistic=removed / phi,
                            effect_size=timing_size(ev, "lead_s"), effect_unit="s (smallest press lead)",
                            estimate={"tau_s": lead}, windows_s=[e["window_s"] for e in ev],

@@ -8,7 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sysid.diagnose.signatures.damping import contact_force, damping_test, dispersion, kelvin_voigt, lead_recording
+from sysid.diagnose.signatures.damping import (contact_force, damping_test, dispersion, kelvin_voigt, lead_fits,
+                                               lead_recording)
 from sysid.diagnose.signatures.null import default_thresholds
 from sysid.diagnose.signatures.timing import delayed
 from tests.sysid.diagnose.test_signatures import named, press_profile, synthetic
@@ -132,3 +133,84 @@ def test_through_the_arm_drive_the_lead_is_read_against_the_recorded_pose(seed):
     r = damping_test(through_drive)
     assert r.estimate["tau_s"] == pytest.approx(0.03, abs=0.005)
     assert named(through_drive) == ["damping"]
+
+
+def _replay_early_at_the_release(rec, early_s: float, release_travel_m: float | None = None,
+                                 card_m: float = 0.004):
+    """``rec`` (the synthetic press, 1.0-2.5 s, 0.15 s ramps, the pad pressed 2.5 mm) with a replay that lets
+    go of the gel ``early_s`` before the recording, in force and marker depth alike, and of the card tented
+    ``card_m`` under the pad (the card falls back as the gel lets go: MuJoCo dev damped_s705, its recorded
+    marker depth 13 ms and its card 17 ms behind the replay's at the release, the card falling 4.5 mm).
+    ``release_travel_m``: the recorded pad travels this far while the force ramps down (a card lifted with
+    the pad carries the travel), instead of the 2.5 mm it pressed."""
+    rec = _replay_late_at_the_release(rec, 0.0, -early_s)
+    tm = rec.t["sheet_points"]
+    under = np.abs(rec.data["sheet_points"][0, :, 0] - 0.07) < 0.01
+    data, pred = dict(rec.data), dict(rec.prediction)
+    data["sheet_points"], pred["sheet_points"] = data["sheet_points"].copy(), pred["sheet_points"].copy()
+    data["sheet_points"][:, under, 2] += card_m * press_profile(tm)[:, None]
+    pred["sheet_points"][:, under, 2] += card_m * press_profile(tm, t_off=2.5 - early_s)[:, None]
+    if release_travel_m is not None:
+        tw = rec.t["pose"]
+        pose = rec.data["pose"].copy()
+        pose[:, 2] = np.where(tw < 1.75, 0.003 - 0.0025 * press_profile(tw),
+                              0.0005 + release_travel_m * (1.0 - press_profile(tw)))
+        data.update(pose=pose, pose_cmd=pose)
+    return dataclasses.replace(rec, data=data, prediction=pred)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_early_release_is_read_against_the_replay_retimed_to_the_recorded_deformation(seed):
+    """A 30 ms Kelvin-Voigt gel whose replay lets go 30 ms early in force and deformation alike: against
+    the replay as it is, the release shows no lead (30 - 30 ms) and the common lead is about half the gel's
+    (the press keeps its 30 ms). The recorded deformation and card run 30 ms behind the replay's there while
+    the gel carries the pad's travel as on the press, so the release is read against the replay delayed by
+    30 ms: the lead is the gel's 30 ms at both events, and damping is named."""
+    rec = _replay_early_at_the_release(synthetic(np.random.default_rng(seed), damping=0.03), 0.03)
+    fits = lead_fits(rec)  # the replay as it is
+    assert fits["taus_s"][int(np.argmin(fits["sse"].sum(axis=0)))] < 0.022
+    r = damping_test(rec)
+    (retimed,) = r.detail["releases_retimed"]
+    assert retimed["deformation_lead_s"] == pytest.approx(-0.03, abs=4e-3)
+    assert retimed["gel_share"] > 0.9  # the replay unloads the gel over the pad's travel as on the press
+    assert retimed["card_lead_s"] == pytest.approx(-0.03, abs=4e-3)
+    assert [e["lead_s"] for e in r.detail["events"]] == pytest.approx([0.03, 0.03], abs=0.005)
+    assert r.estimate["tau_s"] == pytest.approx(0.03, abs=0.005)
+    assert named(rec) == ["damping"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_an_early_release_without_damping_gains_no_lead_from_the_retiming(seed):
+    """No damping, the replay letting go 30 ms early in force and deformation: the re-timed release leads by
+    nothing (the recorded force is as late as the recorded deformation) and nothing is named."""
+    rec = _replay_early_at_the_release(synthetic(np.random.default_rng(seed)), 0.03)
+    r = damping_test(rec)
+    assert len(r.detail["releases_retimed"]) == 1
+    assert r.estimate["tau_s"] <= 0.005
+    assert "damping" not in named(rec)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_release_whose_travel_a_lifted_card_carries_is_not_retimed(seed):
+    """The same early release, the recorded pad lifting 25 mm while the force ramps down (ten times its
+    press: a card lifted with the pad carries the travel, the gel's share is a tenth of the press's; MuJoCo
+    dev damped_s403, damped_s706 and the reference stiction_s105, shares 0.04-0.11): the deformation is no
+    timing reference for the gel there, the release is read against the replay as it is (as main)."""
+    rec = _replay_early_at_the_release(synthetic(np.random.default_rng(seed), damping=0.03), 0.03, 0.025)
+    r = damping_test(rec)
+    assert r.detail["releases_retimed"] == []
+    plain = lead_fits(rec)
+    assert r.estimate["tau_s"] == pytest.approx(plain["taus_s"][int(np.argmin(plain["sse"].sum(axis=0)))])
+    assert lead_recording(rec) is rec
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_an_early_release_whose_card_lies_still_is_not_retimed(seed):
+    """The same early release over a card lying flat on the table: the gel's deformation alone runs behind
+    the replay's, which a damped gel's slow recovery or a calibration's depth gap at the gel does as well (the
+    reference nominal_s109 through another calibration: its release's marker depth 14 ms behind, its card
+    still), so without the card's timing the release is read against the replay as it is."""
+    rec = _replay_early_at_the_release(synthetic(np.random.default_rng(seed), damping=0.03), 0.03, card_m=0.0)
+    r = damping_test(rec)
+    assert r.detail["releases_retimed"] == []
+    assert lead_recording(rec) is rec
