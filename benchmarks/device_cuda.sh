@@ -5,9 +5,10 @@
 # and PyYAML but no Taichi, and no network. Its Python packages therefore travel as wheels:
 #
 #   benchmarks/device_cuda.sh prepare [WHEELS]   # here, with network: download the cp312 wheels
-#                                                # (Taichi and the two packages `import taichi` loads:
-#                                                # colorama, dill) into WHEELS (default .gpu_wheels/,
-#                                                # ignored by git; 56.4 MB, so that the carried total of
+#                                                # (Taichi, the two packages `import taichi` loads:
+#                                                # colorama, dill, and cma for `thinshell optimise`)
+#                                                # into WHEELS (default .gpu_wheels/, ignored by git;
+#                                                # 56.8 MB, so that the carried total of
 #                                                # the device tool, 64 MiB, also holds the repository)
 #   benchmarks/device_cuda.sh run [WHEELS]       # on the GPU machine, from the repository root,
 #                                                # with WHEELS carried: install them into /tmp/site,
@@ -44,6 +45,11 @@
 #   single_compare         the `forming` bench of the baseline tree BASELINE_ROOT (e.g. the device's copy of main)
 #                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
 #                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
+#   optimise_cuda          thinshell optimise $TASK --method cma --batched --backend B --episodes $OPT_EPISODES
+#                          (default 40: one CMA-ES generation of the task's population, every rollout of it
+#                          stepped together) --seed $OPT_SEED (0) for B in $OPT_BACKENDS (default taichi-cuda):
+#                          the wall time of optimising one task with a batched population (needs the cma wheel
+#                          in WHEELS)
 #   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
 #                          elastic and device-copy kernel tests and the projection of listed blocks by kernels
 #                          (Jacobi and host LAPACK); a file missing from the tree is an error)
@@ -63,7 +69,7 @@ if [ "$mode" = prepare ]; then
     "$PY" -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
         --platform manylinux2014_x86_64 -d "$wheels" \
-        taichi==1.7.4 colorama==0.4.6 dill==0.4.1 || exit 1
+        taichi==1.7.4 colorama==0.4.6 dill==0.4.1 cma==4.5.0 || exit 1
     du -sh "$wheels"
     exit 0
 fi
@@ -150,6 +156,17 @@ for part in $PARTS; do
                             | sed "s/^{/{\"code\": \"$label\", \"round\": $round, /" | tee -a "$out/bench.jsonl"
                     done
                 done
+            done ;;
+        optimise_cuda) for backend in ${OPT_BACKENDS:-taichi-cuda}; do
+                echo "=== optimise_cuda: thinshell optimise $TASK --method cma --batched --backend $backend"
+                timeout "$PART_TIMEOUT" "$PY" -m thinshell_ros.cli optimise "$TASK" --method cma --batched \
+                    --backend "$backend" --episodes "${OPT_EPISODES:-40}" --seed "${OPT_SEED:-0}" \
+                    --out "$out/optimise_$backend" --no-progress > "$out/optimise_$backend.out" 2>&1
+                echo "exit $?"
+                tail -2 "$out/optimise_$backend.out"
+                "$PY" -c "import json, sys; r = json.load(open(sys.argv[1])); print(json.dumps({k: r.get(k) for k in (
+                    'task', 'backend', 'episodes', 'horizon', 'wall_time_s', 'rollouts_per_s', 'best_score',
+                    'success_score', 'stop_reason')}))" "$out/optimise_$backend/result.json" | tee -a "$out/bench.jsonl"
             done ;;
         kernel_tests) echo "=== kernel_tests (THINSHELL_TEST_ARCH=cuda): $KERNEL_TESTS"
             THINSHELL_TEST_ARCH=cuda timeout "$PART_TIMEOUT" "$PY" -m pytest -q -rf -p no:cacheprovider $KERNEL_TESTS \
