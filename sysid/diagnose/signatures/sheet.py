@@ -49,6 +49,10 @@ MIN_CARRIED_S = 0.1
 MIN_FOLLOW_CORRELATION = 0.8
 """Correlation of the sheet's highest point with the effector height over a carried run."""
 
+KEPT_BLOCK_S = FINAL_WINDOW_S / 4.0
+"""Blocks over which a kept bend must hold its sign (:func:`kept_bend`), s: a quarter of the final
+window, so that a final window holds four."""
+
 MEDIAN_MARKER_AT_REST = REST_DISPLACEMENT * float(np.sqrt(chi2_law.median(3) / 3.0))
 """Whitened displacement of the median marker below which the recorded gel counts as at rest:
 :data:`REST_DISPLACEMENT` times what noise alone gives the median marker (a marker's whitened RMS
@@ -159,19 +163,65 @@ def line_curvatures(x: np.ndarray, grid: tuple[int, int], spacing: float) -> np.
     return np.concatenate([along_x, along_y], axis=1) / spacing ** 2
 
 
+def line_resolvable_curvatures(rec: Recording, grid: tuple[int, int], spacing: float) -> np.ndarray:
+    """Per grid line (the order of :func:`line_curvatures`), the curvature whose turning angle over one
+    spacing tilts the shorter side of the sheet beyond the line by a resolvable set
+    (:func:`resolvable_set`), 1/m: at least 6.7 standard errors of a final window's mean
+    (:func:`line_curvatures`) on a 21 x 13 grid of 5 mm sampled 21 times, the most for the middle line.
+
+    Returns:
+        ``(nx - 2 + ny - 2,)``.
+    """
+    nx, ny = grid
+    index = np.r_[np.arange(1, nx - 1), np.arange(1, ny - 1)]
+    count = np.r_[np.full(nx - 2, nx), np.full(ny - 2, ny)]
+    return resolvable_set(rec) / (spacing ** 2 * np.minimum(index, count - 1 - index))
+
+
+def kept_bend(t: np.ndarray, k: np.ndarray, released: np.ndarray, resolvable: np.ndarray) -> np.ndarray | None:
+    """Per grid line, how far it keeps one bend over every :data:`KEPT_BLOCK_S` block of the released rows:
+    the smallest block mean of its curvature, signed as its mean over all released rows, over its
+    resolvable curvature. A plastic hinge keeps its rest angle whatever the sheet's motion (at least 1
+    in every block); an elastic sheet freed from the gel bends only by its motion, through flat and
+    beyond (a free or hinged card carries no static bend a grid spacing resolves: its own weight bends
+    a 100 mm card of the reference's stiffness about 1 1/m at most), so some block of every line falls
+    below 1. A block holds about five sheet samples: its mean's standard error is below a third of the
+    middle line's resolvable curvature, and every block must pass.
+
+    Args:
+        t: sample times ``(n,)`` s.
+        k: line curvatures ``(n, lines)`` 1/m less their initial values (:func:`line_curvatures`).
+        released: boolean mask ``(n,)`` of the released rows after the gel's last contact.
+        resolvable: ``(lines,)`` (:func:`line_resolvable_curvatures`).
+
+    Returns:
+        ``(lines,)``, or None when the released rows span fewer than ``FINAL_WINDOW_S / KEPT_BLOCK_S``
+        blocks of at least two samples.
+    """
+    tr, kr = t[released], k[released]
+    block = np.floor((tr - tr[0]) / KEPT_BLOCK_S).astype(int)
+    ids, counts = np.unique(block, return_counts=True)
+    ids = ids[counts >= 2]
+    if len(ids) < round(FINAL_WINDOW_S / KEPT_BLOCK_S):
+        return None
+    sign = np.sign(kr.mean(axis=0))
+    means = np.stack([kr[block == i].mean(axis=0) for i in ids])
+    return (sign * means).min(axis=0) / resolvable
+
+
 def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final: np.ndarray,
                    initial: np.ndarray) -> dict | None:
-    """Whether the fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
+    """Whether a fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
 
     The fold line is the grid line whose mean height curvature over the gel's contact (``hold``),
     less its initial one, is largest in size (:func:`line_curvatures`). A plastic hinge keeps a rest
     angle of that sign, so the line keeps its bend whatever the card's motion; an elastic card's lines
-    bend by its motion only, through flat and beyond. The fold remains when the line's mean
+    bend by its motion only, through flat and beyond. The fold remains when that line's mean
     curvature, signed as under the gel, over every ``released`` row and over the ``final`` window is
-    at least the curvature whose turning angle over one spacing tilts the shorter side of the sheet
-    beyond the line by a resolvable set (:func:`resolvable_set`): at least 6.7 standard errors of the
-    final window's mean (:func:`line_curvatures`) on a 21 x 13 grid of 5 mm sampled 21 times, the most
-    for the middle line.
+    at least its resolvable curvature (:func:`line_resolvable_curvatures`), or when any grid line keeps
+    one bend of at least its resolvable curvature in every block of the released rows
+    (:func:`kept_bend`): a kink the card kept where it yielded, which need not be the line it bent most
+    under the gel (a tent's kink settles beside the hold's fold line or across it).
 
     Args:
         rec: the recording (sheet points).
@@ -181,8 +231,9 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
 
     Returns:
         ``{"remains", "line", "along", "hold_curvature", "released_curvature", "final_curvature",
-        "resolvable_curvature"}`` (curvatures 1/m, signed), or None when the points are no grid or a
-        mask is empty.
+        "resolvable_curvature", "kept_line", "kept_along", "kept_curvature", "kept_ratio"}`` (curvatures
+        1/m, signed; the kept line is the one with the largest :func:`kept_bend`, None where the
+        released rows are too short), or None when the points are no grid or a mask is empty.
     """
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     if not (hold.any() and released.any() and final.any() and initial.any()):
@@ -195,16 +246,38 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
     spacing = float(np.linalg.norm(x0[1] - x0[0]))
     k = line_curvatures(x, grid, spacing)
     k = k - k[initial].mean(axis=0)
+    resolvable = line_resolvable_curvatures(rec, grid, spacing)
+
+    def named_line(j: int) -> tuple[int, str]:
+        return (j + 1, "x") if j < nx - 2 else (j - (nx - 2) + 1, "y")
+
     k_hold = k[hold].mean(axis=0)
     j = int(np.argmax(np.abs(k_hold)))
     sign = float(np.sign(k_hold[j]))
-    along_x = j < nx - 2
-    index, count = (j + 1, nx) if along_x else (j - (nx - 2) + 1, ny)
-    resolvable = resolvable_set(rec) / (spacing * min(index, count - 1 - index) * spacing)
     kept, kept_final = sign * float(k[released, j].mean()), sign * float(k[final, j].mean())
-    return {"remains": bool(min(kept, kept_final) >= resolvable), "line": index, "along": "x" if along_x else "y",
+    held = bool(min(kept, kept_final) >= resolvable[j])
+    ratio = kept_bend(rec.t["sheet_points"], k, released, resolvable)
+    jk = None if ratio is None else int(np.argmax(ratio))
+    index, along = named_line(j)
+    kept_line, kept_along = (None, None) if jk is None else named_line(jk)
+    return {"remains": held or bool(jk is not None and ratio[jk] >= 1.0), "line": index, "along": along,
             "hold_curvature": float(k_hold[j]), "released_curvature": sign * kept,
-            "final_curvature": sign * kept_final, "resolvable_curvature": resolvable}
+            "final_curvature": sign * kept_final, "resolvable_curvature": float(resolvable[j]),
+            "kept_line": kept_line, "kept_along": kept_along,
+            "kept_curvature": None if jk is None else float(k[released, jk].mean()),
+            "kept_ratio": None if jk is None else float(ratio[jk])}
+
+
+def _fold_words(fold: dict) -> str:
+    """The figures of a :func:`remaining_fold` result, in words."""
+    words = (f"the fold the gel gave it, {fold['along']} line {fold['line']}: {fold['hold_curvature']:.3g} 1/m under "
+             f"the gel, {fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} "
+             "1/m resolvable")
+    if fold["kept_line"] is None:
+        return words + "; the released rows are too short to tell a kept bend"
+    return words + (f"; the line that keeps one bend best, {fold['kept_along']} line {fold['kept_line']}: "
+                    f"{fold['kept_curvature']:.3g} 1/m after the release, its smallest block mean "
+                    f"{fold['kept_ratio']:.2g} times its resolvable curvature")
 
 
 def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
@@ -289,9 +362,7 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         main_start = contacts[-1][0] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[0]
         fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial)
         if fold is None or not fold["remains"]:
-            kept = "" if fold is None else (f", and the fold the gel gave it ({fold['along']} line {fold['line']}, "
-                                            f"{fold['hold_curvature']:.3g} 1/m) does not remain "
-                                            f"({fold['released_curvature']:.3g} 1/m after the release)")
+            kept = "" if fold is None else f", and no fold remains ({_fold_words(fold)})"
             return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
                                           f"({t[final][0]:.2f}-{t[final][-1]:.2f} s){kept}: no rest shape to read "
                                           "a set from")
@@ -331,10 +402,8 @@ def plasticity_test(rec: Recording) -> SignatureResult:
                                       "no free initial window to compare with")
     if fold is not None:
         reason = (f"{reason}; " if reason else "") + (
-            f"the sheet still moves {1e3 * motion:.2g} mm over the final window, but the fold the gel gave it "
-            f"remains ({fold['along']} line {fold['line']}: {fold['hold_curvature']:.3g} 1/m under the gel, "
-            f"{fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} 1/m "
-            "resolvable): the set is read from the moving sheet")
+            f"the sheet still moves {1e3 * motion:.2g} mm over the final window, but a fold remains "
+            f"({_fold_words(fold)}): the set is read from the moving sheet")
     top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
     t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
