@@ -13,7 +13,8 @@
   the lift let it go), no set is read (:func:`final_motion`), unless the fold the gel gave it
   remains while it moves (:func:`remaining_fold`: the grid line that bent most under the gel's last
   contact keeps that bend's sign, by at least a resolvable set, over every released row after the
-  contact; an elastic card's lines bend by its motion only); nor where the sheet is back at its
+  contact, or any grid line keeps one bend in every 0.05 s block since the gel last touched the sheet,
+  :func:`kept_bend`; an elastic card's lines bend by its motion only); nor where the sheet is back at its
   initial shape when the recording ends (:func:`_returned_by_the_end`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
@@ -179,8 +180,8 @@ def line_resolvable_curvatures(rec: Recording, grid: tuple[int, int], spacing: f
 
 
 def kept_bend(t: np.ndarray, k: np.ndarray, released: np.ndarray, resolvable: np.ndarray) -> np.ndarray | None:
-    """Per grid line, how far it keeps one bend over every :data:`KEPT_BLOCK_S` block of the released rows:
-    the smallest block mean of its curvature, signed as its mean over all released rows, over its
+    """Per grid line, how far it keeps one bend over every :data:`KEPT_BLOCK_S` block of ``released``:
+    the smallest block mean of its curvature, signed as its mean over all those rows, over its
     resolvable curvature. A plastic hinge keeps its rest angle whatever the sheet's motion (at least 1
     in every block); an elastic sheet freed from the gel bends only by its motion, through flat and
     beyond (a free or hinged card carries no static bend a grid spacing resolves: its own weight bends
@@ -191,7 +192,7 @@ def kept_bend(t: np.ndarray, k: np.ndarray, released: np.ndarray, resolvable: np
     Args:
         t: sample times ``(n,)`` s.
         k: line curvatures ``(n, lines)`` 1/m less their initial values (:func:`line_curvatures`).
-        released: boolean mask ``(n,)`` of the released rows after the gel's last contact.
+        released: boolean mask ``(n,)`` of rows where the gel has let go of the sheet.
         resolvable: ``(lines,)`` (:func:`line_resolvable_curvatures`).
 
     Returns:
@@ -210,7 +211,7 @@ def kept_bend(t: np.ndarray, k: np.ndarray, released: np.ndarray, resolvable: np
 
 
 def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final: np.ndarray,
-                   initial: np.ndarray) -> dict | None:
+                   initial: np.ndarray, untouched: np.ndarray) -> dict | None:
     """Whether a fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
 
     The fold line is the grid line whose mean height curvature over the gel's contact (``hold``),
@@ -219,15 +220,16 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
     bend by its motion only, through flat and beyond. The fold remains when that line's mean
     curvature, signed as under the gel, over every ``released`` row and over the ``final`` window is
     at least its resolvable curvature (:func:`line_resolvable_curvatures`), or when any grid line keeps
-    one bend of at least its resolvable curvature in every block of the released rows
+    one bend of at least its resolvable curvature in every block of the ``untouched`` rows
     (:func:`kept_bend`): a kink the card kept where it yielded, which need not be the line it bent most
-    under the gel (a tent's kink settles beside the hold's fold line or across it).
+    under the gel (a tent's kink settles beside the hold's fold line or across it) nor where it was
+    before a later touch of the gel (a strike of the lifted pad bends a yielded card again).
 
     Args:
         rec: the recording (sheet points).
-        hold, released, final, initial: boolean masks ``(n,)`` on ``rec.t["sheet_points"]``: the gel's
-            last contact, the released rows after it, the final window, the free rows before the
-            first contact.
+        hold, released, final, initial, untouched: boolean masks ``(n,)`` on ``rec.t["sheet_points"]``:
+            the gel's last contact, the released rows after it, the final window, the free rows before
+            the first contact, the released run that holds the final window (no touch of the gel since).
 
     Returns:
         ``{"remains", "line", "along", "hold_curvature", "released_curvature", "final_curvature",
@@ -256,7 +258,7 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
     sign = float(np.sign(k_hold[j]))
     kept, kept_final = sign * float(k[released, j].mean()), sign * float(k[final, j].mean())
     held = bool(min(kept, kept_final) >= resolvable[j])
-    ratio = kept_bend(rec.t["sheet_points"], k, released, resolvable)
+    ratio = kept_bend(rec.t["sheet_points"], k, untouched, resolvable)
     jk = None if ratio is None else int(np.argmax(ratio))
     index, along = named_line(j)
     kept_line, kept_along = (None, None) if jk is None else named_line(jk)
@@ -264,7 +266,7 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
             "hold_curvature": float(k_hold[j]), "released_curvature": sign * kept,
             "final_curvature": sign * kept_final, "resolvable_curvature": float(resolvable[j]),
             "kept_line": kept_line, "kept_along": kept_along,
-            "kept_curvature": None if jk is None else float(k[released, jk].mean()),
+            "kept_curvature": None if jk is None else float(k[untouched, jk].mean()),
             "kept_ratio": None if jk is None else float(ratio[jk])}
 
 
@@ -274,9 +276,9 @@ def _fold_words(fold: dict) -> str:
              f"the gel, {fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} "
              "1/m resolvable")
     if fold["kept_line"] is None:
-        return words + "; the released rows are too short to tell a kept bend"
+        return words + "; the run since the gel last touched it is too short to tell a kept bend"
     return words + (f"; the line that keeps one bend best, {fold['kept_along']} line {fold['kept_line']}: "
-                    f"{fold['kept_curvature']:.3g} 1/m after the release, its smallest block mean "
+                    f"{fold['kept_curvature']:.3g} 1/m since the gel last touched it, its smallest block mean "
                     f"{fold['kept_ratio']:.2g} times its resolvable curvature")
 
 
@@ -360,7 +362,8 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     if motion > resolvable_set(rec):
         rows = np.arange(len(t))
         main_start = contacts[-1][0] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[0]
-        fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial)
+        fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial,
+                              (rows >= i0) & (rows < i1))
         if fold is None or not fold["remains"]:
             kept = "" if fold is None else f", and no fold remains ({_fold_words(fold)})"
             return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
