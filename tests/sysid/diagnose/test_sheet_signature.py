@@ -274,9 +274,9 @@ def _bent_more_under_the_gel(rec: Recording, curvature: float = 60.0) -> Recordi
 def test_a_kink_kept_beside_the_line_bent_most_under_the_gel_is_a_set():
     """Reference plastic_s102 bent more at x = 60-75 mm than at its tent while the gel holds it (that
     bend springs back at the release) and tilting on after the peel: the line bent most under the gel
-    keeps nothing, but x line 7 (35 mm) keeps its kink in every 0.05 s block of the released rows, so
-    the set is read from the moving sheet and named. Fails where only the line bent most under the gel
-    is followed."""
+    keeps nothing, but x line 7 (35 mm) keeps its kink in every 0.05 s block since the gel last touched
+    the card, so the set is read from the moving sheet and named. Fails where only the line bent most
+    under the gel is followed."""
     rec = _rising_after_release(_bent_more_under_the_gel(_elastic_replay(reference_recording("plastic_s102"))))
     r = plasticity_test(rec)
     assert r.applicable and "a fold remains" in r.reason
@@ -291,8 +291,8 @@ def test_a_kink_kept_beside_the_line_bent_most_under_the_gel_is_a_set():
 
 def test_an_elastic_sheet_bent_more_under_the_gel_that_still_moves_keeps_no_bend():
     """Reference nominal_s109 with the same larger elastic bend under the gel and the same tilt after
-    the peel: no line keeps a bend through the released rows (at most a fifth of its resolvable
-    curvature in its weakest block), not applicable, not named."""
+    the peel: no line keeps one bend in every block since the gel last touched the card, not
+    applicable, not named."""
     rec = _rising_after_release(_bent_more_under_the_gel(_elastic_replay(reference_recording("nominal_s109"))))
     r = plasticity_test(rec)
     assert not r.applicable and "no fold remains" in r.reason
