@@ -313,3 +313,46 @@ def test_a_kept_bend_holds_its_sign_in_every_block(rng):
     assert 2.2 < ratio[0] <= 2.5 and ratio[1] < 0.0
     assert kept_bend(t, k, t < 3.0 * KEPT_BLOCK_S, resolvable) is None
     assert kept_bend(t, -k, np.ones(len(t), bool), resolvable)[0] == pytest.approx(ratio[0], abs=0.3)
+
+
+def _patch_pressed_to_the_end(rec: Recording, sigmas: float = -8.0, load_n: float = 0.0) -> Recording:
+    """``rec`` whose gel markers with x of -2 mm or more (42 of 63) are pushed
+    ``sigmas`` noise sigmas along z from the recorded gel's last loaded sample to the end, and whose
+    wrench gains ``load_n`` N along z there: a card's kept fold standing against the lifted gel to the end
+    (MuJoCo plastic_s812, yield 0.0006: its tent 23.7 mm high at rest, its edge on the gel, median marker
+    1.45-1.77, the wrench 0.4 sigma from its free level), with or without a load."""
+    tm = rec.t["markers_xyz"]
+    xyz = np.asarray(rec.data["markers_xyz"], dtype=float).copy()
+    pressed = tm > tm[np.nonzero(marker_displacement(rec) > REST_DISPLACEMENT)[0][-1]] + 0.05
+    patch = xyz[0, :, 0] >= -2.5e-3
+    xyz[np.ix_(pressed, patch, [2])] += sigmas * rec.sigma["markers_xyz"][2]
+    wrench = np.asarray(rec.data["wrench"], dtype=float).copy()
+    tw = rec.t["wrench"]
+    wrench[tw > tm[pressed][0], 2] += load_n
+    return Recording(t=rec.t, data=dict(rec.data, markers_xyz=xyz, wrench=wrench), prediction=rec.prediction,
+                     sigma=rec.sigma, camera=rec.camera, name=rec.name)
+
+
+def test_a_set_resting_against_the_lifted_gel_without_a_load_is_read():
+    """Reference plastic_s102 whose kept tent touches the lifted gel from the peel to the end (more than
+    two thirds of the markers 8 sigmas off rest, no force): no free final window, but the sheet rests and the
+    wrench is at its free level, so the 9.1 mm set is read over the last 0.2 s and named. Fails where a
+    gel loaded to the end stops the test. The same with 1 N on the gel is a load: not applicable."""
+    rest = _elastic_replay(reference_recording("plastic_s102"))
+    rec = _patch_pressed_to_the_end(rest)
+    assert median_marker_displacement(rec)[-20:].min() > MEDIAN_MARKER_AT_REST
+    r = plasticity_test(rec)
+    assert r.applicable and "kept fold standing against the lifted gel" in r.reason
+    assert r.effect_size == pytest.approx(9.1e-3, abs=0.5e-3)
+    assert "bending_plasticity" in named(rec)
+    loaded = plasticity_test(_patch_pressed_to_the_end(rest, load_n=1.0))
+    assert not loaded.applicable and "does not release" in loaded.reason
+
+
+def test_an_elastic_sheet_flat_under_a_gel_pressed_to_the_end_names_no_set():
+    """Reference nominal_s109 with the same markers pushed to the end and no force: read over the last
+    0.2 s, its sheet is flat (no set), not named."""
+    rec = _patch_pressed_to_the_end(_elastic_replay(reference_recording("nominal_s109")))
+    r = plasticity_test(rec)
+    assert r.applicable and r.effect_size < resolvable_set(rec)
+    assert "bending_plasticity" not in named(rec)
