@@ -351,7 +351,8 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     lasting :data:`FINAL_WINDOW_S` beyond the :data:`FREE_MARGIN_S` margins, else its longest) that
     lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
     touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
-    without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
+    without one it is the recording's last :data:`FINAL_WINDOW_S`, read only where the sheet rests there
+    against a gel that carries no measurable load (:func:`_resting_on_the_gel`). Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
     smaller of the two sets is the size). Where the replay still presses the gel on the sheet in that
     window (its contact outlasts the recorded one, e.g. an elastic fold of the replay leaning on the
