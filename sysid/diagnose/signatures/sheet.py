@@ -13,7 +13,8 @@
   the lift let it go), no set is read (:func:`final_motion`), unless the fold the gel gave it
   remains while it moves (:func:`remaining_fold`: the grid line that bent most under the gel's last
   contact keeps that bend's sign, by at least a resolvable set, over every released row after the
-  contact; an elastic card's lines bend by its motion only); nor where the sheet is back at its
+  contact, or any grid line keeps one bend in every 0.05 s block since the gel last touched the sheet,
+  :func:`kept_bend`; an elastic card's lines bend by its motion only); nor where the sheet is back at its
   initial shape when the recording ends (:func:`_returned_by_the_end`).
 * **Adhesion** (SYSID.md: "tensile force and the sheet following the gel on a lift"): where the
   replay has released the sheet but the recorded gel is still loaded (markers displaced), and the
@@ -48,6 +49,10 @@ MIN_CARRIED_S = 0.1
 
 MIN_FOLLOW_CORRELATION = 0.8
 """Correlation of the sheet's highest point with the effector height over a carried run."""
+
+KEPT_BLOCK_S = FINAL_WINDOW_S / 4.0
+"""Blocks over which a kept bend must hold its sign (:func:`kept_bend`), s: a quarter of the final
+window, so that a final window holds four."""
 
 MEDIAN_MARKER_AT_REST = REST_DISPLACEMENT * float(np.sqrt(chi2_law.median(3) / 3.0))
 """Whitened displacement of the median marker below which the recorded gel counts as at rest:
@@ -159,30 +164,78 @@ def line_curvatures(x: np.ndarray, grid: tuple[int, int], spacing: float) -> np.
     return np.concatenate([along_x, along_y], axis=1) / spacing ** 2
 
 
+def line_resolvable_curvatures(rec: Recording, grid: tuple[int, int], spacing: float) -> np.ndarray:
+    """Per grid line (the order of :func:`line_curvatures`), the curvature whose turning angle over one
+    spacing tilts the shorter side of the sheet beyond the line by a resolvable set
+    (:func:`resolvable_set`), 1/m: at least 6.7 standard errors of a final window's mean
+    (:func:`line_curvatures`) on a 21 x 13 grid of 5 mm sampled 21 times, the most for the middle line.
+
+    Returns:
+        ``(nx - 2 + ny - 2,)``.
+    """
+    nx, ny = grid
+    index = np.r_[np.arange(1, nx - 1), np.arange(1, ny - 1)]
+    count = np.r_[np.full(nx - 2, nx), np.full(ny - 2, ny)]
+    return resolvable_set(rec) / (spacing ** 2 * np.minimum(index, count - 1 - index))
+
+
+def kept_bend(t: np.ndarray, k: np.ndarray, released: np.ndarray, resolvable: np.ndarray) -> np.ndarray | None:
+    """Per grid line, how far it keeps one bend over every :data:`KEPT_BLOCK_S` block of ``released``:
+    the smallest block mean of its curvature, signed as its mean over all those rows, over its
+    resolvable curvature. A plastic hinge keeps its rest angle whatever the sheet's motion (at least 1
+    in every block); an elastic sheet freed from the gel bends only by its motion, through flat and
+    beyond (a free or hinged card carries no static bend a grid spacing resolves: its own weight bends
+    a 100 mm card of the reference's stiffness about 1 1/m at most), so some block of every line falls
+    below 1. A block holds about five sheet samples: its mean's standard error is below a third of the
+    middle line's resolvable curvature, and every block must pass.
+
+    Args:
+        t: sample times ``(n,)`` s.
+        k: line curvatures ``(n, lines)`` 1/m less their initial values (:func:`line_curvatures`).
+        released: boolean mask ``(n,)`` of rows where the gel has let go of the sheet.
+        resolvable: ``(lines,)`` (:func:`line_resolvable_curvatures`).
+
+    Returns:
+        ``(lines,)``, or None when the released rows span fewer than ``FINAL_WINDOW_S / KEPT_BLOCK_S``
+        blocks of at least two samples.
+    """
+    tr, kr = t[released], k[released]
+    block = np.floor((tr - tr[0]) / KEPT_BLOCK_S).astype(int)
+    ids, counts = np.unique(block, return_counts=True)
+    ids = ids[counts >= 2]
+    if len(ids) < round(FINAL_WINDOW_S / KEPT_BLOCK_S):
+        return None
+    sign = np.sign(kr.mean(axis=0))
+    means = np.stack([kr[block == i].mean(axis=0) for i in ids])
+    return (sign * means).min(axis=0) / resolvable
+
+
 def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final: np.ndarray,
-                   initial: np.ndarray) -> dict | None:
-    """Whether the fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
+                   initial: np.ndarray, untouched: np.ndarray) -> dict | None:
+    """Whether a fold the gel gave the sheet remains after the gel let it go, while the sheet moves.
 
     The fold line is the grid line whose mean height curvature over the gel's contact (``hold``),
     less its initial one, is largest in size (:func:`line_curvatures`). A plastic hinge keeps a rest
     angle of that sign, so the line keeps its bend whatever the card's motion; an elastic card's lines
-    bend by its motion only, through flat and beyond. The fold remains when the line's mean
+    bend by its motion only, through flat and beyond. The fold remains when that line's mean
     curvature, signed as under the gel, over every ``released`` row and over the ``final`` window is
-    at least the curvature whose turning angle over one spacing tilts the shorter side of the sheet
-    beyond the line by a resolvable set (:func:`resolvable_set`): at least 6.7 standard errors of the
-    final window's mean (:func:`line_curvatures`) on a 21 x 13 grid of 5 mm sampled 21 times, the most
-    for the middle line.
+    at least its resolvable curvature (:func:`line_resolvable_curvatures`), or when any grid line keeps
+    one bend of at least its resolvable curvature in every block of the ``untouched`` rows
+    (:func:`kept_bend`): a kink the card kept where it yielded, which need not be the line it bent most
+    under the gel (a tent's kink settles beside the hold's fold line or across it) nor where it was
+    before a later touch of the gel (a strike of the lifted pad bends a yielded card again).
 
     Args:
         rec: the recording (sheet points).
-        hold, released, final, initial: boolean masks ``(n,)`` on ``rec.t["sheet_points"]``: the gel's
-            last contact, the released rows after it, the final window, the free rows before the
-            first contact.
+        hold, released, final, initial, untouched: boolean masks ``(n,)`` on ``rec.t["sheet_points"]``:
+            the gel's last contact, the released rows after it, the final window, the free rows before
+            the first contact, the released run that holds the final window (no touch of the gel since).
 
     Returns:
         ``{"remains", "line", "along", "hold_curvature", "released_curvature", "final_curvature",
-        "resolvable_curvature"}`` (curvatures 1/m, signed), or None when the points are no grid or a
-        mask is empty.
+        "resolvable_curvature", "kept_line", "kept_along", "kept_curvature", "kept_ratio"}`` (curvatures
+        1/m, signed; the kept line is the one with the largest :func:`kept_bend`, None where the
+        released rows are too short), or None when the points are no grid or a mask is empty.
     """
     x = np.asarray(rec.data["sheet_points"], dtype=float)
     if not (hold.any() and released.any() and final.any() and initial.any()):
@@ -195,16 +248,38 @@ def remaining_fold(rec: Recording, hold: np.ndarray, released: np.ndarray, final
     spacing = float(np.linalg.norm(x0[1] - x0[0]))
     k = line_curvatures(x, grid, spacing)
     k = k - k[initial].mean(axis=0)
+    resolvable = line_resolvable_curvatures(rec, grid, spacing)
+
+    def named_line(j: int) -> tuple[int, str]:
+        return (j + 1, "x") if j < nx - 2 else (j - (nx - 2) + 1, "y")
+
     k_hold = k[hold].mean(axis=0)
     j = int(np.argmax(np.abs(k_hold)))
     sign = float(np.sign(k_hold[j]))
-    along_x = j < nx - 2
-    index, count = (j + 1, nx) if along_x else (j - (nx - 2) + 1, ny)
-    resolvable = resolvable_set(rec) / (spacing * min(index, count - 1 - index) * spacing)
     kept, kept_final = sign * float(k[released, j].mean()), sign * float(k[final, j].mean())
-    return {"remains": bool(min(kept, kept_final) >= resolvable), "line": index, "along": "x" if along_x else "y",
+    held = bool(min(kept, kept_final) >= resolvable[j])
+    ratio = kept_bend(rec.t["sheet_points"], k, untouched, resolvable)
+    jk = None if ratio is None else int(np.argmax(ratio))
+    index, along = named_line(j)
+    kept_line, kept_along = (None, None) if jk is None else named_line(jk)
+    return {"remains": held or bool(jk is not None and ratio[jk] >= 1.0), "line": index, "along": along,
             "hold_curvature": float(k_hold[j]), "released_curvature": sign * kept,
-            "final_curvature": sign * kept_final, "resolvable_curvature": resolvable}
+            "final_curvature": sign * kept_final, "resolvable_curvature": float(resolvable[j]),
+            "kept_line": kept_line, "kept_along": kept_along,
+            "kept_curvature": None if jk is None else float(k[untouched, jk].mean()),
+            "kept_ratio": None if jk is None else float(ratio[jk])}
+
+
+def _fold_words(fold: dict) -> str:
+    """The figures of a :func:`remaining_fold` result, in words."""
+    words = (f"the fold the gel gave it, {fold['along']} line {fold['line']}: {fold['hold_curvature']:.3g} 1/m under "
+             f"the gel, {fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} "
+             "1/m resolvable")
+    if fold["kept_line"] is None:
+        return words + "; the run since the gel last touched it is too short to tell a kept bend"
+    return words + (f"; the line that keeps one bend best, {fold['kept_along']} line {fold['kept_line']}: "
+                    f"{fold['kept_curvature']:.3g} 1/m since the gel last touched it, its smallest block mean "
+                    f"{fold['kept_ratio']:.2g} times its resolvable curvature")
 
 
 def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
@@ -238,6 +313,36 @@ def _returned_by_the_end(rec: Recording, final: np.ndarray, initial: np.ndarray,
             "the fold did not remain")
 
 
+def _resting_on_the_gel(rec: Recording, final: np.ndarray, t_first_contact: float) -> str:
+    """Why a sheet the gel never lets go of still holds a rest shape, or "": over the recording's last
+    :data:`FINAL_WINDOW_S` (``final``) the sheet is at rest (:func:`final_motion` within
+    :func:`resolvable_set`) and the recorded wrench is at its free level (its whitened RMS about its mean
+    before the first contact at most :data:`REST_DISPLACEMENT`, as a gel at rest), while some markers stay
+    displaced: a kept fold standing up against the lifted gel. Lifted, the gel is above the card: a
+    card held up against it without a measurable force rests on its own kept shape (an elastic card
+    falls flat under its weight), so its shape there is read as in a free final window.
+
+    Args:
+        rec: the recording (sheet points, wrench).
+        final: boolean mask ``(n,)`` of the recording's last :data:`FINAL_WINDOW_S` on ``rec.t["sheet_points"]``.
+        t_first_contact: time of the gel's first contact, s.
+    """
+    if final.sum() < 3 or not rec.has("wrench") or final_motion(rec, final) > resolvable_set(rec):
+        return ""
+    t = rec.t["sheet_points"]
+    tw = rec.t["wrench"]
+    w = np.asarray(rec.data["wrench"], dtype=float) / np.asarray(rec.sigma["wrench"], dtype=float)
+    before, last = tw < t_first_contact, tw >= t[final][0]
+    if before.sum() < 3 or last.sum() < 3:
+        return ""
+    rms = float(np.sqrt(np.mean((w[last] - w[before].mean(axis=0)) ** 2)))
+    if rms > REST_DISPLACEMENT:
+        return ""
+    return (f"the gel's markers stay displaced to the end, but over the last {FINAL_WINDOW_S} s the sheet rests "
+            f"and the wrench is at its free level (whitened RMS {rms:.2g} about it): a kept fold standing against "
+            "the lifted gel, read as a rest shape")
+
+
 def plasticity_test(rec: Recording) -> SignatureResult:
     """Permanent set of the sheet after the gel released it (module docstring).
 
@@ -246,7 +351,8 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     lasting :data:`FINAL_WINDOW_S` beyond the :data:`FREE_MARGIN_S` margins, else its longest) that
     lasts :data:`FINAL_WINDOW_S`, else of the free tail that reaches the recording's end: a
     touch later (a kept fold brushing the lifted pad) neither hides the set nor enters the window;
-    without one it is the recording's last :data:`FINAL_WINDOW_S`. Where the replay has released the sheet
+    without one it is the recording's last :data:`FINAL_WINDOW_S`, read only where the sheet rests there
+    against a gel that carries no measurable load (:func:`_resting_on_the_gel`). Where the replay has released the sheet
     there too, the recorded sheet is compared with the replay's and with its own initial shape (the
     smaller of the two sets is the size). Where the replay still presses the gel on the sheet in that
     window (its contact outlasts the recorded one, e.g. an elastic fold of the replay leaning on the
@@ -277,21 +383,25 @@ def plasticity_test(rec: Recording) -> SignatureResult:
         i0, i1 = runs[-1]
         final[i0:i1] = t[i0:i1] >= t[i1 - 1] - FINAL_WINDOW_S
         last_held = i0 - 1
-    if final.sum() < 3:
-        return not_applicable(effect, "the gel does not release the sheet before the recording ends "
-                                      f"(no free final window of {FINAL_WINDOW_S} s)")
     first_contact = min(int(np.nonzero(contact)[0][0]), int(held[0]))
     initial = free & (np.arange(len(t)) < first_contact)
+    leaning = ""
+    if final.sum() < 3:
+        final = t >= t[-1] - FINAL_WINDOW_S
+        leaning = _resting_on_the_gel(rec, final, float(t[first_contact]))
+        if not leaning:
+            return not_applicable(effect, "the gel does not release the sheet before the recording ends "
+                                          f"(no free final window of {FINAL_WINDOW_S} s)")
+        last_held = int(np.nonzero(final)[0][0]) - 1
     motion = final_motion(rec, final)
     fold = None
     if motion > resolvable_set(rec):
         rows = np.arange(len(t))
         main_start = contacts[-1][0] if contacts else max(loaded, key=lambda seg: t[seg[1] - 1] - t[seg[0]])[0]
-        fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial)
+        fold = remaining_fold(rec, (rows >= main_start) & (rows < main_end), free & (rows >= main_end), final, initial,
+                              (rows >= i0) & (rows < i1))
         if fold is None or not fold["remains"]:
-            kept = "" if fold is None else (f", and the fold the gel gave it ({fold['along']} line {fold['line']}, "
-                                            f"{fold['hold_curvature']:.3g} 1/m) does not remain "
-                                            f"({fold['released_curvature']:.3g} 1/m after the release)")
+            kept = "" if fold is None else f", and no fold remains ({_fold_words(fold)})"
             return not_applicable(effect, f"the sheet still moves {1e3 * motion:.2g} mm over the final window "
                                           f"({t[final][0]:.2f}-{t[final][-1]:.2f} s){kept}: no rest shape to read "
                                           "a set from")
@@ -329,12 +439,12 @@ def plasticity_test(rec: Recording) -> SignatureResult:
     else:
         return not_applicable(effect, "the replay holds the sheet after the recorded release and the sheet has "
                                       "no free initial window to compare with")
+    if leaning:
+        reason = (f"{reason}; " if reason else "") + leaning
     if fold is not None:
         reason = (f"{reason}; " if reason else "") + (
-            f"the sheet still moves {1e3 * motion:.2g} mm over the final window, but the fold the gel gave it "
-            f"remains ({fold['along']} line {fold['line']}: {fold['hold_curvature']:.3g} 1/m under the gel, "
-            f"{fold['released_curvature']:.3g} 1/m after the release, {fold['resolvable_curvature']:.3g} 1/m "
-            "resolvable): the set is read from the moving sheet")
+            f"the sheet still moves {1e3 * motion:.2g} mm over the final window, but a fold remains "
+            f"({_fold_words(fold)}): the set is read from the moving sheet")
     top = np.argsort(per_point)[::-1][: max(3, len(per_point) // 20)]
     t_release, t_end = float(t[last_held]), float(t[final][-1])
     return SignatureResult(
