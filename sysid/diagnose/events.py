@@ -79,8 +79,8 @@ def event_holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float],
         bool rows, shape ``(T,)``.
     """
     t = np.asarray(t_s, dtype=float)
+    half = _half_block(blocks, span)
     rows = _repeated_alternated(t, blocks, span, events)
-    half = 0.5 * (span[1] - span[0]) / (2 * blocks)
     for kind in _unseen_by_training(t, rows, half, events):
         last = max(te for te, k in events if k == kind)
         after = np.flatnonzero((t > last) & (t <= last + half))
@@ -88,11 +88,17 @@ def event_holdout_rows(t_s: np.ndarray, blocks: int, span: tuple[float, float],
     return rows
 
 
+def _half_block(blocks: int, span: tuple[float, float]) -> float:
+    """Half the length of one of the ``2 * blocks`` equal blocks of ``span``, s: how near an event a row
+    is alternated."""
+    return 0.5 * (span[1] - span[0]) / (2 * blocks)
+
+
 def _repeated_alternated(t: np.ndarray, blocks: int, span: tuple[float, float],
                          events: Sequence[tuple[float, str]]) -> np.ndarray:
     """Equal blocks, the rows within half a block of each repeated kind's occurrences alternated."""
     rows = holdout_rows(t, blocks, span)
-    half = 0.5 * (span[1] - span[0]) / (2 * blocks)
+    half = _half_block(blocks, span)
     kinds = [k for _, k in events]
     seen: dict[str, int] = {}
     for te, kind in sorted(events, key=lambda e: e[0]):
@@ -123,8 +129,7 @@ def alternated_kinds(t_s: np.ndarray, blocks: int, span: tuple[float, float],
     """Kinds of event whose rows after the last occurrence :func:`event_holdout_rows` alternates sample by
     sample (no training row after any occurrence otherwise); arguments as there."""
     t = np.asarray(t_s, dtype=float)
-    return _unseen_by_training(t, _repeated_alternated(t, blocks, span, events),
-                               0.5 * (span[1] - span[0]) / (2 * blocks), events)
+    return _unseen_by_training(t, _repeated_alternated(t, blocks, span, events), _half_block(blocks, span), events)
 
 
 def heldout_label(blocks: int, events: Sequence[tuple[float, str]], alternated: Sequence[str] = ()) -> str:
@@ -133,11 +138,15 @@ def heldout_label(blocks: int, events: Sequence[tuple[float, str]], alternated: 
     kinds = [k for _, k in events]
     repeated = sorted({k for k in kinds if kinds.count(k) >= 2})
     base = f"time blocks (every other of {blocks})"
-    name = lambda k, n: ("touch-down" if k == "touch" else "lift-off") + ("s" if n > 1 else "")  # noqa: E731
     if repeated:
         base += "; rows near repeated contact events alternate (" + ", ".join(
-            f"{kinds.count(k)} {name(k, 2)}" for k in repeated) + ")"
+            f"{kinds.count(k)} {_event_name(k)}s" for k in repeated) + ")"
     if alternated:
-        base += "; rows after the last " + " and the last ".join(name(k, 1) for k in alternated) + \
+        base += "; rows after the last " + " and the last ".join(_event_name(k) for k in alternated) + \
             " alternate sample by sample (no training row after it otherwise)"
     return base
+
+
+def _event_name(kind: str) -> str:
+    """A kind of contact event in words: ``touch`` a touch-down, else a lift-off."""
+    return "touch-down" if kind == "touch" else "lift-off"

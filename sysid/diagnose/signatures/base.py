@@ -137,6 +137,12 @@ def normal_force(wrench: np.ndarray) -> np.ndarray:
     return -np.asarray(wrench, dtype=float)[:, 2]
 
 
+def mean_marker_depth(markers: np.ndarray) -> np.ndarray:
+    """Mean marker depth into the gel, m, shape ``(n,)`` from marker positions ``(n, K, 3)`` in the sensor
+    frame (``-z`` averaged over the markers: pressing gives > 0)."""
+    return -np.asarray(markers, dtype=float)[:, :, 2].mean(axis=1)
+
+
 def predicted_contact(rec: Recording, channel: str = "wrench", fraction: float = 0.02) -> np.ndarray | None:
     """Samples of ``channel`` where the nominal replay has the gel in contact (net contact force
     above ``fraction`` of its peak, or marker displacement above that fraction of its peak).

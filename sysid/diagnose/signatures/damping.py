@@ -62,7 +62,8 @@ import dataclasses
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, normal_force, not_applicable
+from sysid.diagnose.signatures.base import (Recording, SignatureResult, dispersion, mean_marker_depth, normal_force,
+                                            not_applicable)
 from sysid.diagnose.signatures.null import SIZE_TOLERANCE, timing_size_threshold
 from sysid.diagnose.signatures.sheet import RESOLVABLE_SET_SIGMAS
 from sysid.diagnose.signatures.timing import (TAU_MAX_S, delayed, event_windows, press_sizes, timing_signal,
@@ -198,9 +199,8 @@ def deformation_lead(rec: Recording, window: tuple[float, float] | list[float]) 
     if not rec.predicted("markers_xyz"):
         return None
     tm = rec.t["markers_xyz"]
-    depth = -np.asarray(rec.data["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
-    depth_pred = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[:, :, 2].mean(axis=1)
-    return _best_shift(tm, depth, depth_pred, window)
+    return _best_shift(tm, mean_marker_depth(rec.data["markers_xyz"]), mean_marker_depth(rec.prediction["markers_xyz"]),
+                       window)
 
 
 def _best_shift(t: np.ndarray, y: np.ndarray, y_pred: np.ndarray,
@@ -323,7 +323,7 @@ def gel_share(rec: Recording, window: tuple[float, float] | list[float], normal:
     travel = _pad_position(rec)[loaded] @ np.asarray(normal, dtype=float)
     if not np.ptp(travel) > 0.0:
         return None
-    depth = -np.asarray(rec.prediction["markers_xyz"], dtype=float)[loaded, :, 2].mean(axis=1)
+    depth = mean_marker_depth(np.asarray(rec.prediction["markers_xyz"])[loaded])
     X = np.stack([travel - travel.mean(), np.ones_like(travel)], axis=1)
     return float(abs(np.linalg.lstsq(X, depth, rcond=None)[0][0]))
 

@@ -41,7 +41,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import savgol_filter
 
-from sysid.diagnose.signatures.base import Recording, SignatureResult, dispersion, normal_force, not_applicable
+from sysid.diagnose.signatures.base import (Recording, SignatureResult, dispersion, mean_marker_depth, normal_force,
+                                            not_applicable)
 
 EVENT_FRACTION = 0.2
 """Contact events: the predicted normal force crossing this fraction of its peak."""
@@ -269,9 +270,9 @@ def timing_signal(rec: Recording) -> tuple[str, np.ndarray, np.ndarray, np.ndarr
                 float(rec.sigma["wrench"][2]))
     if rec.predicted("markers_xyz"):
         t = rec.t["markers_xyz"]
-        depth = lambda x: -np.asarray(x, dtype=float)[:, :, 2].mean(axis=1)  # noqa: E731
         k = rec.data["markers_xyz"].shape[1]
-        return ("markers_xyz", t, depth(rec.data["markers_xyz"]), depth(rec.prediction["markers_xyz"]),
+        return ("markers_xyz", t, mean_marker_depth(rec.data["markers_xyz"]),
+                mean_marker_depth(rec.prediction["markers_xyz"]),
                 float(rec.sigma["markers_xyz"][2]) / np.sqrt(k))
     return None
 
