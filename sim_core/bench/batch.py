@@ -6,8 +6,10 @@ task name (``config/tasks``: a population of the task's reference actions with s
 of 20 % of the per-step bounds, clipped, rolled out with
 :class:`sim_core.tasks.rollout.PopulationRollout`; inverse tasks at their true parameters).
 
-Per size: ``scene_steps_per_s`` (steps of all copies / wall seconds of the batched steps),
-``steps_per_s_per_copy``, the mean Newton iterations, failed copies, ``rss_per_copy_mib`` (growth of
+Per size: ``scene_steps_per_s`` (steps of all copies / wall seconds of the batched steps, the first
+step's set-up included), ``steady_scene_steps_per_s`` (the same over the steps after the first: the rate a
+long rollout approaches once the first step has built the batch's static pattern, fused binds and first
+contact search; None with one step) and ``first_step_s``, ``steps_per_s_per_copy``, the mean Newton iterations, failed copies, ``rss_per_copy_mib`` (growth of
 the process's resident memory from before the batch was built to after its steps, divided by ``B``)
 and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvidia-smi`` reports it,
 divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
@@ -78,19 +80,20 @@ class _FormingRun:
         self.targets = [pose_targets(pose0, offsets * (1.0 - 0.1 * i / B)) for i in range(B)]
         self.steps = steps
 
-    def run(self) -> tuple[int, list[int], int]:
-        """Step; returns (steps done by all copies, Newton iterations of each step, failed copies)."""
+    def run(self) -> tuple[int, list[int], int, list[tuple[int, float]]]:
+        """Step; returns (steps done by all copies, Newton iterations of each step, failed copies, per step
+        its scene-steps and wall seconds)."""
         from sim_core.control import Control
 
         self.batch.warm_up()
-        done, iterations = 0, []
+        done, iterations, per_step = 0, [], []
         for k in range(self.steps):
             res = self.batch.step([Control(effector_pose_target={self.effector: t[k]}) for t in self.targets])
-            for info in res.infos:
-                if info is not None:
-                    done += 1
-                    iterations.append(info.iterations)
-        return done, iterations, int((~self.batch.active).sum())
+            stepped = [info for info in res.infos if info is not None]
+            done += len(stepped)
+            iterations += [info.iterations for info in stepped]
+            per_step.append((len(stepped), res.wall_s))
+        return done, iterations, int((~self.batch.active).sum()), per_step
 
 
 class _TaskRun:
@@ -114,11 +117,20 @@ class _TaskRun:
                                             solver_config=SolverConfig(backend=backend, lockstep=lockstep))
         self.batch = self.population.batch
 
-    def run(self) -> tuple[int, list[int], int]:
+    def run(self) -> tuple[int, list[int], int, list[tuple[int, float]]]:
+        """As :meth:`_FormingRun.run`; a step's wall time is the sum of its members' shares
+        (``StepInfo.time_total``: the batched step's wall time divided among the copies it stepped)."""
         results = self.population.run()
         iterations = [info.iterations for r in results for info in r.step_infos]
         failed = sum(1 for r in results if r.infeasible is not None and r.infeasible.startswith("solver failure"))
-        return sum(r.steps_done for r in results), iterations, failed
+        per_step: dict[int, list] = {}
+        for r in results:
+            for k, info in enumerate(r.step_infos):
+                count_wall = per_step.setdefault(k, [0, 0.0])
+                count_wall[0] += 1
+                count_wall[1] += info.time_total
+        return (sum(r.steps_done for r in results), iterations, failed,
+                [(int(c), float(w)) for _, (c, w) in sorted(per_step.items())])
 
 
 def _make_run(scene: str, B: int, steps: int, backend: str, lockstep: bool):
@@ -193,14 +205,18 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
         run = _make_run(scene, int(B), steps, backend, lockstep)
         build_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        done, iterations, failed = run.run()
+        done, iterations, failed, per_step = run.run()
         wall = time.perf_counter() - t0
+        later = per_step[1:]
+        later_wall = sum(w for _, w in later)
         rss1, gpu1 = current_rss_mib(), gpu_memory_mib()
         out.append({
             "bench": "batch", "scene": scene, "arch": arch, "backend": backend, "dofs": dofs, "B": int(B),
             "mode": "lockstep" if lockstep else "sequential",
             "steps": steps, "scene_steps": done, "wall_s": wall, "build_s": build_s,
             "scene_steps_per_s": done / wall if wall > 0 else 0.0,
+            "steady_scene_steps_per_s": sum(c for c, _ in later) / later_wall if later and later_wall > 0 else None,
+            "first_step_s": per_step[0][1] if per_step else None,
             "steps_per_s_per_copy": done / wall / B if wall > 0 else 0.0,
             "newton_iters_mean": float(np.mean(iterations)) if iterations else 0.0, "failed_copies": failed,
             "rss_per_copy_mib": (rss1 - rss0) / B,
@@ -260,10 +276,11 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
         if r["B"] == (r["auto_B"] if sizes == "auto" else sizes[0]):
             print(f"thinshell bench batch: scene {r['scene']} ({r['dofs']} DoF), arch {r['arch']}, {r['mode']}, {ns.steps} steps per "
                   f"copy, JIT {r['jit_s']:.1f} s")
-            print(f"{'B':>5} {'scene-steps/s':>14} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} {'RSS/copy MiB':>13} "
-                  f"{'GPU/copy MiB':>13} {'build s':>8}")
+            print(f"{'B':>5} {'scene-steps/s':>14} {'steady':>9} {'steps/s/copy':>13} {'iters':>6} {'failed':>6} "
+                  f"{'RSS/copy MiB':>13} {'GPU/copy MiB':>13} {'build s':>8}")
         gpu = "-" if r["gpu_mib_per_copy"] is None else f"{r['gpu_mib_per_copy']:.1f}"
-        print(f"{r['B']:>5} {r['scene_steps_per_s']:>14.2f} {r['steps_per_s_per_copy']:>13.2f} "
+        steady = "-" if r["steady_scene_steps_per_s"] is None else f"{r['steady_scene_steps_per_s']:.2f}"
+        print(f"{r['B']:>5} {r['scene_steps_per_s']:>14.2f} {steady:>9} {r['steps_per_s_per_copy']:>13.2f} "
               f"{r['newton_iters_mean']:>6.2f} {r['failed_copies']:>6} {r['rss_per_copy_mib']:>13.1f} {gpu:>13} "
               f"{r['build_s']:>8.2f}", flush=True)
 

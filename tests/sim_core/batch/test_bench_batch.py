@@ -17,14 +17,17 @@ def test_bench_batch_json_lines_per_size():
     process's resident memory, which stays 0 in a long-lived test process whose allocator reuses the
     memory that earlier tests freed (the order and the xdist worker then decide the figure)."""
     proc = subprocess.run([sys.executable, "-m", "thinshell_ros.bench", "batch", "--arch", "numpy", "--sizes", "1", "2",
-                           "--steps", "1", "--json"], cwd=REPO, capture_output=True, text=True, timeout=300)
+                           "--steps", "2", "--json"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     rows = [json.loads(line) for line in proc.stdout.splitlines()]
     assert [r["B"] for r in rows] == [1, 2]
     for r in rows:
         assert r["scene"] == "forming" and r["dofs"] == 1698 and r["backend"] == "numpy"
-        assert r["scene_steps"] == r["B"] and r["failed_copies"] == 0  # every copy took its step
+        assert r["scene_steps"] == 2 * r["B"] and r["failed_copies"] == 0  # every copy took its steps
         assert r["scene_steps_per_s"] > 0 and r["newton_iters_mean"] >= 1
+        # the steady rate counts the second step alone: B scene-steps over that step's wall time
+        second_wall = r["B"] / r["steady_scene_steps_per_s"]
+        assert 0 < r["first_step_s"] and 0 < second_wall and r["first_step_s"] + second_wall <= r["wall_s"]
         assert r["steps_per_s_per_copy"] == r["scene_steps_per_s"] / r["B"]
         assert r["rss_per_copy_mib"] > 0  # a copy holds its own model, solver and state
         assert r["gpu_mib_per_copy"] is None or r["gpu_mib_per_copy"] >= 0
@@ -52,3 +55,15 @@ def test_bench_batch_auto_size_reports_the_probe(capsys):
     assert "not even one copy fits in host memory" in capsys.readouterr().err
     assert bench_main(["batch", "--arch", "numpy", "--sizes", "auto", "4"]) == 2
     assert "auto alone" in capsys.readouterr().err
+
+
+def test_bench_batch_task_population_steady_rate():
+    """A task population in lockstep: the steady rate is the second step's scene-steps over its wall time,
+    which is the sum of the members' shares of the batched step (``StepInfo.time_total``)."""
+    from sim_core.bench.batch import bench_batch
+
+    (r,) = bench_batch("folding_u", [2], 2, "numpy", lockstep=True)
+    assert r["scene"] == "folding_u" and r["mode"] == "lockstep"
+    assert r["scene_steps"] == 4 and r["failed_copies"] == 0
+    second_wall = 2 / r["steady_scene_steps_per_s"]
+    assert 0 < r["first_step_s"] and 0 < second_wall <= r["wall_s"] - r["first_step_s"] + 1e-9
