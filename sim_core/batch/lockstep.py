@@ -65,6 +65,7 @@ from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.effectors import stacked_boundary
 from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.iterates import frozen, summed_gradient
+from sim_core.batch.lumped import LumpedQuadratic, lumped_loop_terms
 from sim_core.batch.plasticity import StackedElasticTerms
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
@@ -172,6 +173,14 @@ class LockstepSolver(NewtonSolver):
             return ("none", cfg.projection)
         return super()._projections()
 
+    def _set_up_step(self, state_in: State, control: Control, dt: float, guess: np.ndarray | None, info: StepInfo):
+        """:meth:`NewtonSolver._set_up_step`, with the Newton loop's inertia, gravity and damping terms evaluated as
+        one diagonal quadratic (:func:`~sim_core.batch.lumped.lumped_loop_terms`: one read of the stacked positions
+        for the energy and one for the gradient; ``fixed_terms``, the step's record, keeps the terms)."""
+        step, x = super()._set_up_step(state_in, control, dt, guess, info)
+        step.loop_terms = lumped_loop_terms(step.loop_terms)
+        return step, x
+
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
         (:func:`~sim_core.batch.effectors.stacked_boundary`), with the vertices of the :attr:`held` copies fixed at
@@ -259,22 +268,24 @@ class LockstepSolver(NewtonSolver):
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         H = projection = factorization = None
         for it in range(1, cfg.max_iterations + 1):
-            bad = running & ~done & ~runs.all_finite(g)
+            open_ = running & ~done
+            g_max = runs.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
-            open_ = running & ~done
-            rhs = runs.zero_copies(g.copy(), ~open_)  # closed copies take no update: their block of the solution is 0
+            # converged copies take no update: their block of the solution is 0 (a held copy's DoFs are fixed, so its
+            # gradient is 0 already; the solvers do not write the right-hand side)
+            rhs = runs.zero_copies(g.copy(), done) if done.any() else g
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
-            bad = open_ & ~runs.all_finite(d)
+            runs.zero_copies(d, ~open_)
+            step_max = runs.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+            bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
             if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            runs.zero_copies(d, ~open_)
-            step_max = runs.largest_norm(d)
-            g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
                 residual[i] = step_max[i] / dt
                 history[i].append(residual[i])
@@ -344,7 +355,8 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = summed_gradient(step.loop_terms + contact_terms, x)
+        terms = step.loop_terms + contact_terms
+        g = summed_gradient(terms, x, fresh_first=bool(terms) and isinstance(terms[0], LumpedQuadratic))
         g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
