@@ -62,9 +62,8 @@ class LumpedQuadratic:
             k_damping = damping.damping / damping.dt * damping.vertex_mass
             weight = weight + k_damping
             pull += k_damping[:, None] * damping.x_prev
-        massive = weight > 0
         center = np.zeros((n, 3))
-        center[massive] = pull[massive] / weight[massive, None]
+        np.divide(pull, weight[:, None], out=center, where=weight[:, None] > 0)
         # the terms' own energies at the minimum: no cancellation of the large |x_hat|^2 sums
         offset = sum(t.energy(center) for t in (inertia, gravity, damping) if t is not None)
         self.weight = weight
