@@ -5,7 +5,7 @@ Usage: ``python benchmarks/iterations_lockstep.py --arch cpu --B 8 --steps 5 [--
 scaled by ``1 - 0.1 i / B``) for ``--steps`` steps twice, each copy alone (``lockstep=False``: the single
 environment's solver) and in one lockstep batch, and prints per step and copy the Newton iterations, the stopping test
 (``velo``city, ``simp``lified, ...) and the backtracks (``/bK``), the mean iterations a copy-step and the lockstep's
-iterations a step (its slowest copy's: what a lockstep step costs), and the largest distance between the two runs'
+iterations and factorisations a step (its slowest copy's iterations: what a lockstep step costs), and the largest distance between the two runs'
 positions after each step (m).
 
 ``--line-search``: also, at every lockstep line search, the trial step of each copy tested both ways, the lockstep's
@@ -24,7 +24,8 @@ import numpy as np
 
 
 def _run(B: int, steps: int, backend: str, lockstep: bool, on_step=None) -> tuple[np.ndarray, list, list, list]:
-    """Iterations ``(steps, B)``, ``stop/backtracks`` labels, the lockstep's step iterations and positions;
+    """Iterations ``(steps, B)``, ``stop/backtracks`` labels, the lockstep's (iterations, factorisations) a step and
+    the positions;
     ``on_step(k)`` is called before step ``k``."""
     from sim_core.bench.batch import _FormingRun
     from sim_core.control import Control
@@ -41,7 +42,8 @@ def _run(B: int, steps: int, backend: str, lockstep: bool, on_step=None) -> tupl
                        for info in res.infos])
         iterations[k] = [info.iterations for info in res.infos]
         if lockstep:
-            stacked.append(run.batch.lockstep.solver.last_stacked_info.iterations)
+            done = run.batch.lockstep.solver.last_stacked_info
+            stacked.append((done.iterations, done.factorizations))
         positions.append(np.array([s.state.x for s in run.batch.sims]))
     return iterations, labels, stacked, positions
 
@@ -97,7 +99,10 @@ def main() -> int:
         iterations, labels, stacked, positions = _run(args.B, args.steps, backend, lockstep, steps_seen.append)
         runs[name] = positions
         print(f"{name}: {time.perf_counter() - t0:.1f} s, {iterations.mean():.3f} Newton iterations a copy-step, "
-              f"slowest copy's a step {iterations.max(axis=1).tolist()}" + (f" (stacked {stacked})" if stacked else ""))
+              f"slowest copy's a step {iterations.max(axis=1).tolist()}")
+        if stacked:
+            print(f"  lockstep steps: {sum(i for i, _ in stacked)} iterations, {sum(f for _, f in stacked)} "
+                  f"factorisations (a step: {[i for i, _ in stacked]}, {[f for _, f in stacked]})")
         for k in range(args.steps):
             print(f"  step {k}: " + " ".join(f"{n}:{lab}" for n, lab in zip(iterations[k], labels[k])))
     for k in range(args.steps):
