@@ -42,7 +42,8 @@ class LumpedQuadratic:
 
     Attributes:
         weight: ``w`` per vertex, kg/s^2, shape ``(n,)``.
-        center: ``y`` per vertex, m, shape ``(n, 3)`` (0 where ``w = 0``).
+        center: ``y`` per vertex, m, shape ``(n, 3)`` (``x_hat`` where ``w = 0``; the inertia's own array when it is
+            the only term).
         offset: ``E_0``, J.
     """
 
@@ -51,21 +52,26 @@ class LumpedQuadratic:
         m = inertia.vertex_mass
         n = m.shape[0]
         weight = m / inertia.dt ** 2
-        pull = weight[:, None] * inertia.x_hat  # w y: the linear coefficients
-        if gravity is not None:
-            if gravity.vertex_mass.shape != (n,):
-                raise ConfigError(f"LumpedQuadratic: gravity over {gravity.vertex_mass.shape[0]} vertices, not {n}")
-            pull += gravity.vertex_mass[:, None] * gravity.gravity[None, :]
+        if gravity is not None and gravity.vertex_mass.shape != (n,):
+            raise ConfigError(f"LumpedQuadratic: gravity over {gravity.vertex_mass.shape[0]} vertices, not {n}")
+        k_damping = None
         if damping is not None:
             if damping.vertex_mass.shape != (n,) or damping.dt != inertia.dt:
                 raise ConfigError("LumpedQuadratic: damping over other vertices or another time step than the inertia")
             k_damping = damping.damping / damping.dt * damping.vertex_mass
             weight = weight + k_damping
-            pull += k_damping[:, None] * damping.x_prev
-        center = np.zeros((n, 3))
-        np.divide(pull, weight[:, None], out=center, where=weight[:, None] > 0)
-        # the terms' own energies at the minimum: no cancellation of the large |x_hat|^2 sums
-        offset = sum(t.energy(center) for t in (inertia, gravity, damping) if t is not None)
+        if gravity is None and damping is None:  # the inertia alone: y = x_hat, E_0 = 0
+            center, offset = inertia.x_hat, 0.0
+        else:  # y = x_hat + (c m / dt (x^n - x_hat) + m_g g) / w, a vertex without mass at x_hat
+            inverse = np.divide(1.0, weight, out=np.zeros(n), where=weight > 0)
+            shift = np.zeros((n, 3))
+            if gravity is not None:
+                shift += (gravity.vertex_mass * inverse)[:, None] * gravity.gravity[None, :]
+            if damping is not None:
+                shift += (k_damping * inverse)[:, None] * (damping.x_prev - inertia.x_hat)
+            center = inertia.x_hat + shift
+            # the terms' own energies at the minimum: no cancellation of the large |x_hat|^2 sums
+            offset = sum(t.energy(center) for t in (inertia, gravity, damping) if t is not None)
         self.weight = weight
         self.center = center
         self.offset = offset
