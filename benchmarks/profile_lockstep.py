@@ -187,9 +187,13 @@ def _wrap_parts() -> dict:
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.energies.inertia.reference import InertiaPotential
 
-    parts += [(cls, n) for cls in (InertiaPotential, _PairPenalty, TiLaggedFriction) for n in ("gradient", "energy")]
+    from sim_core.batch.lumped import LumpedQuadratic
+    from sim_core.energies.gravity.reference import GravityPotential
+
+    parts += [(cls, n) for cls in (InertiaPotential, GravityPotential, LumpedQuadratic, _PairPenalty, TiLaggedFriction)
+              for n in ("gradient", "energy")]
     parts += [(FusedElastic, "gradient"), (PairBatch, "evaluate"), (ContactSet, "covers"),
-              (lockstep, "projected_subset_blocks")]
+              (lockstep, "projected_subset_blocks"), (lockstep, "summed_gradient")]
     from sim_core.batch.copy_runs import CopyRuns  # the per-copy reductions over the stacked arrays (host NumPy)
 
     parts += [(CopyRuns, n) for n in ("dot", "any_dof", "all_finite", "largest_norm", "largest_abs", "per_dof",

@@ -116,16 +116,19 @@ class CopyRuns:
             sq += v[..., 1] * v[..., 1]
             sq += v[..., 2] * v[..., 2]
             parts.append(sq.max(axis=1))  # a NaN propagates
-        np.maximum.at(out, self.run_copy, self._per_run(parts))
+        with np.errstate(invalid="ignore"):  # a NaN is the answer for its copy
+            np.maximum.at(out, self.run_copy, self._per_run(parts))
         out[~np.isfinite(out)] = np.nan
         return np.sqrt(out)
 
     def largest_abs(self, a: np.ndarray) -> np.ndarray:
-        """Per copy ``max_k |a_k|`` over its DoFs of the stacked ``a`` (``3 N`` entries), shape ``(B,)``."""
+        """Per copy ``max_k |a_k|`` over its DoFs of the stacked ``a`` (``3 N`` entries), shape ``(B,)``: NaN where a
+        copy's ``a`` has a NaN, infinite where it has an infinity and no NaN (so it also tells finite copies)."""
         out = np.zeros(self.copies)
         if self.vertex_count:
             per_run = self._per_run([np.maximum(r.max(axis=1), -r.min(axis=1)) for r in self._rows(a)])
-            np.maximum.at(out, self.run_copy, per_run)
+            with np.errstate(invalid="ignore"):  # a NaN is the answer for its copy
+                np.maximum.at(out, self.run_copy, per_run)
         return out
 
     def per_vertex(self, values: np.ndarray) -> np.ndarray:

@@ -10,12 +10,17 @@ import numpy as np
 from sim_core.energies.base import SparseGradient, declares
 
 
-def summed_gradient(terms: list, x: np.ndarray) -> np.ndarray:
+def summed_gradient(terms: list, x: np.ndarray, fresh_first: bool = False) -> np.ndarray:
     """The sum of the ``terms``' gradients at ``x`` ``(N, 3)``, in term order, as a new ``(3 N,)`` array (J/m): the
     first two dense gradients summed into it (the terms' kept gradients are left as they are), each further term's
     added into it, the rows of a term declaring :class:`~sim_core.energies.base.SparseGradient` at its vertices only
-    (no ``(N, 3)`` array a term; the same sums: the other entries would add 0)."""
+    (no ``(N, 3)`` array a term; the same sums: the other entries would add 0). ``fresh_first``: the first term's
+    gradient is a new float64 array of each call (:class:`~sim_core.batch.lumped.LumpedQuadratic`), so the sum is
+    accumulated into it (one stacked array fewer; the same sums)."""
     g, owned = None, False  # the sum so far; owned: an array of this function's (else a term's, not written)
+    if fresh_first and terms:
+        g, owned = terms[0].gradient(x).reshape(-1), True
+        terms = terms[1:]
     for p in terms:
         vertices, rows = p.gradient_rows(x) if declares(p, SparseGradient) else (None, p.gradient(x))
         if vertices is None:

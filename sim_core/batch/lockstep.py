@@ -7,7 +7,8 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
 ``SolverConfig.linear_solver``). What is per copy:
 
 * convergence: copy ``i``'s scaled Newton update ``max_v |d_iv| / dt`` and gradient are tested by
-  the solver's stopping tests (:func:`sim_core.newton_stop.stop_reason`: velocity, force, stalled); a copy
+  the solver's stopping tests (:func:`sim_core.newton_stop.stop_reason`: velocity, force, stalled; the
+  simplified Newton test, below); a copy
   that has converged takes no further update (its right-hand side is zeroed, so its block of the
   solution is zero) while the others iterate;
 * step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
@@ -21,7 +22,9 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`).
   With one copy this is the separate run's line search; with several, a copy whose own energy test
   fails while its group's holds (another copy's decrease covering it) is accepted: rare, since it must
-  pass the slope test too, but a difference from its separate run;
+  pass the slope test too, but a difference from its separate run. The other difference: a copy whose
+  slope test fails while its own energy falls (a contact switching on near the trial point) halves its step
+  where its separate run takes it (Forming: the lockstep's extra iterations, ``benchmarks/iterations_lockstep.py``);
 * Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
   is not positive definite is factorised again block by block, each copy taking the exact or the
   projected block its own run would take). With the batched CG it is never assembled into one sparse
@@ -46,9 +49,10 @@ the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core
 plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`).
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
-translated apart, :mod:`sim_core.batch.stacked`). Not done: the simplified Newton and rate stopping
-tests (a copy stops on the velocity, force or stalled test), substep retries
-(``dt_halvings_on_failure``) and position guesses. Each copy's result is its separate run's to the
+translated apart, :mod:`sim_core.batch.stacked`). With a direct linear solver a copy also stops on the simplified
+Newton test (:mod:`sim_core.batch.simplified`); with the batched CG it does not (its correction would be a second CG
+solve for the copies that fail it, to save the operator's assembly). Not done: the rate stopping test, substep
+retries (``dt_halvings_on_failure``) and position guesses. Each copy's result is its separate run's to the
 Newton tolerance, not bit for bit (on a scene with several equilibria within reach, a copy whose path
 differs, e.g. by one more iteration, may settle in another one).
 """
@@ -65,7 +69,9 @@ from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.effectors import stacked_boundary
 from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.iterates import frozen, summed_gradient
+from sim_core.batch.lumped import LumpedQuadratic, lumped_loop_terms
 from sim_core.batch.plasticity import StackedElasticTerms
+from sim_core.batch.simplified import SimplifiedNewtonTest
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
@@ -152,6 +158,8 @@ class LockstepSolver(NewtonSolver):
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
         self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
+        self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
+        self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
         self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
@@ -171,6 +179,14 @@ class LockstepSolver(NewtonSolver):
         if self.pcg is not None and cfg.exact_hessian_first and cfg.projection != "none":
             return ("none", cfg.projection)
         return super()._projections()
+
+    def _set_up_step(self, state_in: State, control: Control, dt: float, guess: np.ndarray | None, info: StepInfo):
+        """:meth:`NewtonSolver._set_up_step`, with the Newton loop's inertia, gravity and damping terms evaluated as
+        one diagonal quadratic (:func:`~sim_core.batch.lumped.lumped_loop_terms`: one read of the stacked positions
+        for the energy and one for the gradient; ``fixed_terms``, the step's record, keeps the terms)."""
+        step, x = super()._set_up_step(state_in, control, dt, guess, info)
+        step.loop_terms = lumped_loop_terms(step.loop_terms)
+        return step, x
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
@@ -258,23 +274,41 @@ class LockstepSolver(NewtonSolver):
         self._trial_energy = None
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
         H = projection = factorization = None
+        simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
         for it in range(1, cfg.max_iterations + 1):
-            bad = running & ~done & ~runs.all_finite(g)
+            open_ = running & ~done
+            g_max = runs.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
-            open_ = running & ~done
-            rhs = runs.zero_copies(g.copy(), ~open_)  # closed copies take no update: their block of the solution is 0
+            test = simplified.candidates(open_, contact_terms + step.cand_contact, x)
+            if test.any():  # the simplified Newton test of these copies: one solve with the kept factorisation
+                d_bar = self.linear_solver.solve(runs.zero_copies(g.copy(), ~test))
+                residual_bar = runs.largest_norm(d_bar) / dt
+                for i in np.flatnonzero(test & (residual_bar < cfg.simplified_newton_check * cfg.tol_velocity)):
+                    infos[i].simplified_stops = 1
+                    accept(self.config, infos[i], it, residual_bar[i], "simplified")
+                    done[i] = True
+                open_ = running & ~done
+                if not open_.any():
+                    info.simplified_stops = 1  # the kept matrix is the last iterate's, not x's
+                    break
+            # converged copies take no update: their block of the solution is 0 (a held copy's DoFs are fixed, so its
+            # gradient is 0 already; the solvers do not write the right-hand side)
+            rhs = runs.zero_copies(g.copy(), done) if done.any() else g
+            factorizations = info.factorizations
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
-            bad = open_ & ~runs.all_finite(d)
+            simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
+                                       contact_terms + step.cand_contact, x)
+            runs.zero_copies(d, ~open_)
+            step_max = runs.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+            bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
             if self.pcg is not None and (self.pcg.unconverged | self.pcg.indefinite)[open_].any():
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            runs.zero_copies(d, ~open_)
-            step_max = runs.largest_norm(d)
-            g_max = runs.largest_abs(g)
             for i in np.flatnonzero(open_):
                 residual[i] = step_max[i] / dt
                 history[i].append(residual[i])
@@ -292,6 +326,7 @@ class LockstepSolver(NewtonSolver):
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
                 runs.copy_where(d, -g, uphill)
                 slope[uphill] = -runs.dot(g, g)[uphill]
+            released_before = info.released_sides
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
                 step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
             for i in np.flatnonzero(open_):
@@ -319,6 +354,9 @@ class LockstepSolver(NewtonSolver):
             if np.any(open_ & (backtracks >= cfg.stale_side_backtracks)):
                 self._trial_energy = None
                 info.released_sides += self.contact.release_stale_sides(x_new, step.memory)
+            # the full steps taken along the kept factorisation (none once a released side changed the energies)
+            simplified.after_line_search(open_ & accepted & (alpha == 1.0) & (backtracks == 0)
+                                         & (info.released_sides == released_before))
             x = x_new
             if g_new[1] is None or x is not g_new[0]:
                 contact_terms, x_search, g = self._stacked_gradient(step, x, info)
@@ -344,7 +382,8 @@ class LockstepSolver(NewtonSolver):
         ta = time.perf_counter()
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         x_search = self.contact.search_position
-        g = summed_gradient(step.loop_terms + contact_terms, x)
+        terms = step.loop_terms + contact_terms
+        g = summed_gradient(terms, x, fresh_first=bool(terms) and isinstance(terms[0], LumpedQuadratic))
         g[self._fixed_dofs(step)] = 0.0
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g

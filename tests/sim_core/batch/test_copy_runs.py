@@ -87,6 +87,10 @@ def test_a_non_finite_entry_marks_its_copy_alone(stacked):
     norms = runs.largest_norm(d)
     assert np.isnan(norms[1]) and np.isnan(norms[3])
     assert norms[0] == pytest.approx(np.sqrt(3.0)) and norms[2] == pytest.approx(np.sqrt(3.0))
+    # the largest entry tells the copies apart as all_finite does (the lockstep's gradient test)
+    largest = runs.largest_abs(d)
+    np.testing.assert_array_equal(np.isfinite(largest), runs.all_finite(d))
+    assert np.isnan(largest[1]) and largest[3] == np.inf and largest[0] == largest[2] == 1.0
 
 
 def test_an_index_that_is_not_a_permutation_is_refused():

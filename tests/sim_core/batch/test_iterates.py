@@ -64,6 +64,26 @@ def test_sparse_rows_give_the_dense_sum_in_term_order_bit_for_bit(kinds):
     assert not np.any(summed_gradient([], np.zeros((n, 3))))
 
 
+class _Fresh(_Dense):
+    """A dense term whose gradient is a new array of each call (the lumped-mass quadratic's)."""
+
+    def gradient(self, x):
+        self.last = self.g.copy()
+        return self.last
+
+
+def test_a_fresh_first_gradient_is_summed_into_in_term_order_bit_for_bit():
+    rng = np.random.default_rng(9)
+    n = 50
+    terms = [_Fresh(rng.normal(size=(n, 3)))] + _terms(rng, n, ("dense", "sparse", "dense"))
+    want = summed_gradient([_Dense(terms[0].g)] + terms[1:], np.zeros((n, 3)))
+    got = summed_gradient(terms, np.zeros((n, 3)), fresh_first=True)
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, terms[0].last)  # accumulated into the fresh array: no array of its own
+    for t in terms[1:]:
+        assert not np.shares_memory(got, t.g)
+
+
 def test_a_frozen_iterate_is_read_only():
     x = frozen(np.zeros((4, 3)))
     with pytest.raises(ValueError, match="read-only"):

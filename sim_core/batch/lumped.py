@@ -1,0 +1,112 @@
+"""The step's lumped-mass terms (inertia, gravity, viscous damping) as one diagonal quadratic for the lockstep loop.
+
+The three terms of the incremental potential that act on each vertex alone (DESIGN.md "Time stepping"),
+
+    E_inertia = sum_v m_v / (2 dt^2) |x_v - x_hat_v|^2        (sim_core.energies.inertia.reference)
+    E_gravity = - sum_v m_g,v g . x_v                          (sim_core.energies.gravity.reference)
+    E_damping = sum_v c m_v / (2 dt) |x_v - x^n_v|^2           (sim_core.energies.damping.reference),
+
+sum to one quadratic with a diagonal Hessian, completed to a square:
+
+    E(x) = sum_v w_v / 2 |x_v - y_v|^2 + E_0,   w_v = m_v / dt^2 + c m_v / dt,
+    w_v y_v = m_v / dt^2 x_hat_v + c m_v / dt x^n_v + m_g,v g,
+    E_0 = E_inertia(y) + E_gravity(y) + E_damping(y)   (the sum's minimum, at x = y)
+
+(a vertex without mass has ``w_v = 0`` and no term). Its energy and gradient read the stacked positions once each,
+where the three terms read them five times for the energy and build three ``(N, 3)`` arrays for the gradient.
+The values are the three terms' sums to round-off (not bit for bit: other operations). The lockstep solver evaluates
+it in the Newton loop in place of the three terms (:func:`lumped_loop_terms`); the step's record keeps the terms
+themselves (``StepTerms.fixed_terms``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.energies.damping.reference import ViscousDamping
+from sim_core.energies.gravity.reference import GravityPotential
+from sim_core.energies.inertia.reference import InertiaPotential
+from sim_core.errors import ConfigError
+
+
+class LumpedQuadratic:
+    """The sum of a step's inertia, gravity and damping terms (module docstring for the formula).
+
+    Args:
+        inertia: the step's :class:`InertiaPotential` (masses ``m`` kg ``(n,)``, ``x_hat`` m ``(n, 3)``, ``dt`` s).
+        gravity: its :class:`GravityPotential` (masses ``m_g`` kg ``(n,)``, ``g`` m/s^2 ``(3,)``), or None.
+        damping: its :class:`ViscousDamping` (``c`` 1/s, ``x^n`` m ``(n, 3)``, the same masses and ``dt``), or None.
+
+    Raises:
+        ConfigError: the terms are over different vertex counts, or the damping's time step is not the inertia's.
+
+    Attributes:
+        weight: ``w`` per vertex, kg/s^2, shape ``(n,)``.
+        center: ``y`` per vertex, m, shape ``(n, 3)`` (``x_hat`` where ``w = 0``; the inertia's own array when it is
+            the only term).
+        offset: ``E_0``, J.
+    """
+
+    def __init__(self, inertia: InertiaPotential, gravity: GravityPotential | None = None,
+                 damping: ViscousDamping | None = None) -> None:
+        m = inertia.vertex_mass
+        n = m.shape[0]
+        weight = m / inertia.dt ** 2
+        if gravity is not None and gravity.vertex_mass.shape != (n,):
+            raise ConfigError(f"LumpedQuadratic: gravity over {gravity.vertex_mass.shape[0]} vertices, not {n}")
+        k_damping = None
+        if damping is not None:
+            if damping.vertex_mass.shape != (n,) or damping.dt != inertia.dt:
+                raise ConfigError("LumpedQuadratic: damping over other vertices or another time step than the inertia")
+            k_damping = damping.damping / damping.dt * damping.vertex_mass
+            weight = weight + k_damping
+        if gravity is None and damping is None:  # the inertia alone: y = x_hat, E_0 = 0
+            center, offset = inertia.x_hat, 0.0
+        else:  # y = x_hat + (c m / dt (x^n - x_hat) + m_g g) / w, a vertex without mass at x_hat
+            inverse = np.divide(1.0, weight, out=np.zeros(n), where=weight > 0)
+            shift = np.zeros((n, 3))
+            if gravity is not None:
+                shift += (gravity.vertex_mass * inverse)[:, None] * gravity.gravity[None, :]
+            if damping is not None:
+                shift += (k_damping * inverse)[:, None] * (damping.x_prev - inertia.x_hat)
+            center = inertia.x_hat + shift
+            # the terms' own energies at the minimum: no cancellation of the large |x_hat|^2 sums
+            offset = sum(t.energy(center) for t in (inertia, gravity, damping) if t is not None)
+        self.weight = weight
+        self.center = center
+        self.offset = offset
+        self._weight3 = weight[:, None]
+        self._root3 = np.sqrt(weight)[:, None]
+
+    def energy(self, x: np.ndarray) -> float:
+        """Energy in J at ``x`` ``(n, 3)``: ``sum_v w_v / 2 |x_v - y_v|^2 + E_0``, as the squared norm of
+        ``sqrt(w_v) (x_v - y_v)`` (one temporary; NumPy's own dot product, not BLAS's threads, which contend on a
+        busy host)."""
+        d = np.subtract(x, self.center)
+        d *= self._root3
+        flat = d.reshape(-1)
+        return 0.5 * float(np.einsum("i,i->", flat, flat)) + self.offset
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """Gradient ``w_v (x_v - y_v)`` in J/m, shape ``(n, 3)`` (a new array)."""
+        g = np.subtract(x, self.center)
+        g *= self._weight3
+        return g
+
+
+def lumped_loop_terms(loop_terms: list) -> list:
+    """``loop_terms`` (a step's Newton-loop terms, ``StepTerms.loop_terms``) with its inertia, gravity and damping
+    terms replaced by one :class:`LumpedQuadratic` at the inertia's place; unchanged when it has no inertia term,
+    or more than one of a kind."""
+    kinds = (InertiaPotential, GravityPotential, ViscousDamping)
+    found = {k: [p for p in loop_terms if type(p) is k] for k in kinds}
+    if len(found[InertiaPotential]) != 1 or any(len(v) > 1 for v in found.values()):
+        return loop_terms
+    lumped = LumpedQuadratic(found[InertiaPotential][0], *(found[k][0] if found[k] else None for k in kinds[1:]))
+    out = []
+    for p in loop_terms:
+        if type(p) is InertiaPotential:
+            out.append(lumped)
+        elif type(p) not in kinds:
+            out.append(p)
+    return out

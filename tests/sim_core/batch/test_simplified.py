@@ -1,0 +1,74 @@
+"""The lockstep's simplified Newton test per copy (sim_core.batch.simplified): each copy's touching contacts compared
+as sets, and a lockstep run that ends copies by the test at the iterates and iteration counts of a run without it,
+with fewer factorisations."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.batch import BatchedSimulation
+from sim_core.batch.simplified import active_by_copy, same_active_by_copy
+from sim_core.scenes.task_scene import task_initial_state
+from sim_core.solver_config import SolverConfig
+from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model
+
+
+class _Penalty:
+    """A penalty contact term (capability PenaltyContact): entries touch where their first vertex's z < 0."""
+
+    def __init__(self, vertices):
+        self.vertices = np.asarray(vertices)
+
+    def active_mask(self, x):
+        first = self.vertices if self.vertices.ndim == 1 else self.vertices[:, 0]
+        return x[first, 2] < 0.0
+
+
+def test_each_copys_touching_contacts_are_compared_as_a_set():
+    copy_of = np.repeat(np.arange(4), 5)  # 4 copies of 5 vertices
+    pairs = _Penalty([[0, 1, 2, 3], [5, 6, 7, 8], [10, 11, 12, 13], [11, 10, 12, 13], [1, 0, 2, 4], [7, 5, 6, 8],
+                      [12, 10, 11, 13]])
+    planes = _Penalty([2, 9, 14, 19])
+    x = np.ones((20, 3))
+    x[[0, 1, 5, 10, 11, 14, 19], 2] = -1.0
+    before = active_by_copy([pairs, planes], x, copy_of)
+    assert before[0][0].tolist() == [0, 0, 1, 2, 2] and before[1][0].tolist() == [2, 3]
+    # the same contacts found in another order (a new candidate list): the same for every copy
+    shuffled = active_by_copy([_Penalty(pairs.vertices[::-1]), planes], x, copy_of)
+    np.testing.assert_array_equal(same_active_by_copy(before, shuffled, 4), [True] * 4)
+    # copy 1 gains a pair, copy 2's plane contact lets go, copy 3 has none either way
+    x2 = x.copy()
+    x2[7, 2], x2[14, 2] = -1.0, 1.0
+    after = active_by_copy([pairs, planes], x2, copy_of)
+    np.testing.assert_array_equal(same_active_by_copy(before, after, 4), [True, False, False, True])
+    # as many contacts, one of them another: copy 2's pair [10,11,12,13] lets go and [12,10,11,13] touches
+    x3 = x.copy()
+    x3[10, 2], x3[12, 2] = 1.0, -1.0
+    moved = active_by_copy([pairs, planes], x3, copy_of)
+    assert np.bincount(moved[0][0], minlength=4).tolist() == np.bincount(before[0][0], minlength=4).tolist()
+    np.testing.assert_array_equal(same_active_by_copy(before, moved, 4), [True, True, False, True])
+    assert not same_active_by_copy(before, None, 4).any() and not same_active_by_copy(before, before[:1], 4).any()
+    assert active_by_copy([object()], x, copy_of) is None  # not a penalty contact: no test
+
+
+def test_a_lockstep_run_stops_copies_by_the_simplified_test_at_the_same_iterates_with_fewer_factorisations():
+    model = pad_model()
+    runs = {}
+    for check in (0.25, 0.0):
+        batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
+                                             solver_config=SolverConfig(lockstep=True, simplified_newton_check=check))
+        pose0 = [s.effector_pose["pad"].copy() for s in batch.states]
+        iterations, reasons, factorizations, positions = [], [], 0, []
+        for k in range(STEPS):
+            res = batch.step([control(pose0[i], MOTIONS[i], k) for i in range(3)])
+            iterations.append([info.iterations for info in res.infos])
+            reasons += [info.stop_reason for info in res.infos]
+            factorizations += batch.lockstep.solver.last_stacked_info.factorizations
+            positions.append(batch.positions())
+        runs[check] = iterations, reasons, factorizations, positions
+    (it_on, why_on, f_on, x_on), (it_off, why_off, f_off, x_off) = runs[0.25], runs[0.0]
+    assert it_on == it_off  # each copy stopped at the iteration (and iterate) at which the velocity test stops it
+    assert "simplified" in why_on and "simplified" not in why_off
+    assert f_on < f_off
+    for a, b in zip(x_on, x_off):
+        np.testing.assert_array_equal(a, b)
