@@ -71,6 +71,7 @@ from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.iterates import frozen, summed_gradient
 from sim_core.batch.lumped import LumpedQuadratic, lumped_loop_terms
 from sim_core.batch.plasticity import StackedElasticTerms
+from sim_core.batch.sheet_bands import sheet_band_dofs
 from sim_core.batch.simplified import SimplifiedNewtonTest
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
@@ -150,7 +151,8 @@ class LockstepSolver(NewtonSolver):
 
             segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
             segments[scene.index] = np.arange(scene.copies)[:, None]
-            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL)
+            self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
+                                                       bands=sheet_band_dofs(scene))
         self.scene = scene
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
         # 68 ms a term at B = 256); None: the terms' own projection

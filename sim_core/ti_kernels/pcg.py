@@ -40,6 +40,7 @@ import scipy.sparse as sp
 
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy, transfer
+from sim_core.ti_kernels.band_cholesky import BandBlocks, band_solve
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -251,11 +252,40 @@ def _lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
     return (start[c + 1] - start[c] - k + REDUCTION_LANES - 1) // REDUCTION_LANES
 
 
+@ti.func
+def _copy_sums(u: ti.template(), v: ti.template(), out: ti.template(), active: ti.template(), order: ti.template(),
+               start: ti.template(), copies: ti.i32):
+    """``out[c] += u_c . v_c`` for every active copy ``c`` (:data:`REDUCTION_LANES` threads a copy); one device
+    pass at a kernel's top level."""
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        if active[c] != 0:
+            acc = 0.0
+            for q in range(_lane_count(start, c, k)):
+                t = order[start[c] + k + q * REDUCTION_LANES]
+                acc += u[3 * t] * v[3 * t] + u[3 * t + 1] * v[3 * t + 1] + u[3 * t + 2] * v[3 * t + 2]
+            ti.atomic_add(out[c], acc)
+
+
+@ti.kernel
+def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, band: _F64,
+                  usable: _I32, band_dof: _I32, band_copy: _I32, band_y: _F64, n: ti.i32, copies: ti.i32, nb: ti.i32,
+                  m: ti.i32, w: ti.i32):
+    """After :func:`_start`: ``z = p = M^-1 r`` with the band blocks' solves on their DoFs, per copy ``rz = r.z``."""
+    band_solve(band, usable, band_dof, band_copy, active, band_y, r, z, nb, m, w)
+    for c in range(copies):
+        rz[c] = 0.0
+    _copy_sums(r, z, rz, active, order, start, copies)
+    for i in range(n):
+        p[i] = z[i]
+
+
 @ti.kernel
 def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
                    inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
                    rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
-                   done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32):
+                   done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32,
+                   band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, band_y: _F64, nb: ti.i32, m: ti.i32,
+                   w: ti.i32, banded: ti.template()):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
     ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
     ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
@@ -303,8 +333,12 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                         z[3 * v + a] = acc
                         rz_acc += r[3 * v + a] * acc
                         rr_acc += r[3 * v + a] * r[3 * v + a]
-                ti.atomic_add(rz_new[c], rz_acc)
+                if ti.static(not banded):
+                    ti.atomic_add(rz_new[c], rz_acc)
                 ti.atomic_add(rr[c], rr_acc)
+        if ti.static(banded):  # z = L^-T L^-1 r on the band blocks' DoFs, then per copy r.z
+            band_solve(band, usable, band_dof, band_copy, active, band_y, r, z, nb, m, w)
+            _copy_sums(r, z, rz_new, active, order, start, copies)
         for c in range(copies):
             b = 0.0
             if active[c] != 0:
@@ -442,8 +476,14 @@ class BatchedPCG:
     name = "pcg"
     detects_indefinite = False
 
-    def __init__(self, segments: "np.ndarray | None" = None, rtol: float = 1e-10, max_iterations: int = 5000) -> None:
+    def __init__(self, segments: "np.ndarray | None" = None, rtol: float = 1e-10, max_iterations: int = 5000,
+                 bands: "np.ndarray | None" = None) -> None:
+        if bands is not None and segments is None:
+            raise ValueError("BatchedPCG: band blocks need the segments")
         self.rtol = float(rtol)
+        self._band_dofs = None if bands is None else np.asarray(bands)
+        self.bands: BandBlocks | None = None  # made at the first factorize (Taichi initialised by then)
+        self._banded = False
         self.max_iterations = int(max_iterations)
         self.factorizations = 0
         self.iterations = 0
@@ -555,6 +595,12 @@ class BatchedPCG:
         if self._nblocks:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
+        if self._band_dofs is not None:
+            if self.bands is None:
+                self.bands = BandBlocks(self._band_dofs, seg)
+            a = self._arrays
+            self._banded = bool(full[2]) and self.bands.assemble(
+                a["full_indptr"], a["full_indices"], full_data, (brow, bcol, bval, free, self._nblocks), full)
         return True
 
     def _copy_order(self, seg: np.ndarray) -> None:
@@ -595,6 +641,14 @@ class BatchedPCG:
         self._full = (indptr_h, indices_h, int(full.nnz))
         return self._full
 
+    def _band_arguments(self) -> tuple:
+        """The band blocks' device arrays for the CG kernels, then ``(nb, m, w)``; placeholders when unused."""
+        if self._banded:
+            bands = self.bands
+            return (*bands.arguments(), (bands.count, bands.size, bands.width))
+        one_f, one_i = self._array("band_none", 1), self._array("band_none_i", 1, ti.i32)
+        return one_f, one_i, one_i, one_i, one_f, (0, 1, 0)
+
     def _operator(self) -> tuple:
         a = self._arrays
         return a["full_indptr"], a["full_indices"], a["full_data"], a["brow"], a["bcol"], a["bval"], a["free"]
@@ -633,6 +687,10 @@ class BatchedPCG:
         _reset_copies(per["rz"], per["bb"], per["pap"], per["rz_new"], per["rr"], active, bad, done, B)
         _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], a["seg"], per["rz"], per["bb"],
                n // 3)
+        band = self._band_arguments()
+        if self._banded:
+            _start_banded(vec["r"], vec["z"], vec["p"], per["rz"], active, a["order"], a["start"], *band[:-1], n, B,
+                          *band[-1])
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
         launched = 0
@@ -641,7 +699,8 @@ class BatchedPCG:
                 launched += ITERATIONS_PER_LAUNCH
                 _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"],
                                vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
-                               per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B)
+                               per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B, *band[:-1],
+                               *band[-1], self._banded)
             if int(_copy_out(running)[0]) == 0:  # the host's one wait for the device in these launches
                 break
         self.iterations = int(_copy_out(done).max())

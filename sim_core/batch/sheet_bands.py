@@ -1,0 +1,66 @@
+"""The band blocks of a stacked scene's batched CG: each copy's sheet, its vertices in a band-limiting order.
+
+A thin sheet's Newton matrix is the stiff part of a copy's system: its bending modes are slow under the 3x3 vertex
+block-Jacobi preconditioner, and the CG's iterations go to them. Its own block, factorised exactly
+(:class:`~sim_core.ti_kernels.band_cholesky.BandBlocks`), takes them out: on the Forming scene (a 16 x 8 sheet on a
+gel dome, 825 free DoFs a copy) the CG to a relative residual of 1e-4 takes 28 iterations a solve (mean of 147
+solves) instead of 256 (a SciPy study of the lockstep's matrices, docs/benchmarks_log.md, session 42). Ordered
+along the sheet's long axis (the first principal axis of its rest positions), the grid's rows across the short side
+follow each other, and the bending stencil (a hinge spans two rows) couples DoFs at most ``3 (2 r + 1) - 1`` apart
+for rows of ``r`` vertices: 53 DoFs on the 16 x 8 grid, against 95 in the vertex order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.batch.stacked import StackedScene
+
+
+def long_axis_order(x: np.ndarray) -> np.ndarray:
+    """The order of points along their first principal axis (stable: points at one coordinate keep their order).
+
+    Args:
+        x: points, shape ``(k, 3)`` (m).
+
+    Returns:
+        A permutation of ``0..k-1``, shape ``(k,)``.
+    """
+    centred = x - x.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0] if len(x) > 1 else np.zeros(3)
+    return np.argsort(np.round(centred @ axis, 12), kind="stable")
+
+
+def sheet_band_dofs(scene: StackedScene) -> np.ndarray | None:
+    """Each copy's sheet bodies as band blocks of the stacked DoFs, for
+    :class:`~sim_core.ti_kernels.pcg.BatchedPCG`'s ``bands``.
+
+    Args:
+        scene: the stacked scene (the stacked model's sheet bodies hold whole copies' sheets).
+
+    Returns:
+        ``(blocks, m)`` int64: one row per copy and sheet, that sheet's stacked DoFs (its vertices in
+        :func:`long_axis_order` of the rest positions, three DoFs each), padded with -1 to the largest sheet's
+        ``m``; None when the scene has no sheet.
+    """
+    model = scene.model
+    copy_of = np.full(model.vertex_count, -1, dtype=np.int64)
+    local_of = np.full(model.vertex_count, -1, dtype=np.int64)
+    copy_of[scene.index] = np.arange(scene.copies)[:, None]
+    local_of[scene.index] = np.arange(scene.vertex_count)[None, :]
+    rows = []
+    for body in model.bodies.values():
+        if body.kind != "sheet":
+            continue
+        vertices = body.vertices
+        for c in np.unique(copy_of[vertices]):
+            local = np.sort(local_of[vertices[copy_of[vertices] == c]])
+            stacked = scene.index[c][local]
+            ordered = stacked[long_axis_order(model.x_rest[stacked])]
+            rows.append((3 * ordered[:, None] + np.arange(3)).reshape(-1))
+    if not rows:
+        return None
+    out = np.full((len(rows), max(r.size for r in rows)), -1, dtype=np.int64)
+    for k, r in enumerate(rows):
+        out[k, : r.size] = r
+    return out

@@ -1,0 +1,232 @@
+"""Banded Cholesky blocks of a batched Newton matrix on the device: the preconditioner of the batched CG's larger
+blocks (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`), e.g. each copy's sheet.
+
+A band block is a list of ``m`` DoFs of one copy in a band-limiting order (a sheet's vertices ordered along its long
+axis, so that its bending stencil couples rows at most ``w`` apart). Its matrix ``S = P A P^T`` (``P`` selecting
+the block's DoFs) is kept as its lower band, entries ``S_ij`` with ``0 <= i - j <= w``, ``w`` the largest distance
+between two of the block's DoFs that the assembled pattern couples (contact blocks farther apart than ``w`` are
+left out of the band), factorised ``S = L L^T`` (banded Cholesky: Golub & Van Loan, Matrix Computations, 4th ed.,
+Alg. 4.3.5) and applied as ``z = L^-T L^-1 r`` (forward and back substitution, ``2 m w`` multiply-adds). A
+block whose factorisation meets a pivot that is not positive (a band that left out a coupling it needed) is marked
+not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
+
+One thread runs a block's factorisation or substitutions (their rows depend on each other). The band is stored
+with the blocks interleaved (entry ``(b, i, k)`` at ``(i (w + 1) + k) nb + b``, column ``j = i - w + k``), so that
+the threads of neighbouring blocks read neighbouring addresses on the GPU.
+"""
+
+import numpy as np
+
+from sim_core.ti_backend import ti
+from sim_core.ti_kernels import device_copy
+
+_F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+@ti.func
+def _at(b: ti.i32, i: ti.i32, k: ti.i32, nb: ti.i32, w: ti.i32) -> ti.i32:
+    """Address of band entry ``(b, i, k)`` (row ``i``, column ``i - w + k`` of block ``b``)."""
+    return (i * (w + 1) + k) * nb + b
+
+
+@ti.kernel
+def _band_width(indptr: _I32, indices: _I32, band_dof: _I32, dof_pos: _I32, width: _I32, nb: ti.i32, m: ti.i32):
+    """``width[0]`` = the largest ``|i - j|`` over the matrix entries ``(i, j)`` of a block's rows and columns
+    (``width[0]`` zero on entry)."""
+    for b, i in ti.ndrange(nb, m):
+        g = band_dof[b * m + i]
+        if g >= 0:
+            for e in range(indptr[g], indptr[g + 1]):
+                q = dof_pos[indices[e]]
+                if q >= 0 and q // m == b:
+                    ti.atomic_max(width[0], ti.abs(i - q % m))
+
+
+@ti.kernel
+def _band_from_csr(indptr: _I32, indices: _I32, data: _F64, band_dof: _I32, dof_pos: _I32, band: _F64, nb: ti.i32,
+                   m: ti.i32, w: ti.i32):
+    """Each block's lower band of the both-triangle CSR matrix (one thread a row; entries outside the block or the
+    band left out); a padding row (``band_dof`` -1) is the identity's."""
+    for b, i in ti.ndrange(nb, m):
+        for k in range(w + 1):
+            band[_at(b, i, k, nb, w)] = 0.0
+        g = band_dof[b * m + i]
+        if g < 0:
+            band[_at(b, i, w, nb, w)] = 1.0
+        else:
+            for e in range(indptr[g], indptr[g + 1]):
+                q = dof_pos[indices[e]]
+                if q >= 0 and q // m == b:
+                    j = q % m
+                    if j <= i and i - j <= w:
+                        band[_at(b, i, w - (i - j), nb, w)] += data[e]
+
+
+@ti.kernel
+def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_pos: _I32, band: _F64,
+                            nblocks: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """``band += F E_t F`` of the vertex blocks ``E_t`` (:class:`~sim_core.ti_kernels.pcg.VertexBlocks`) whose
+    rows and columns fall in one block's band (atomic adds)."""
+    for t in range(nblocks):
+        for a in ti.static(range(3)):
+            for c in ti.static(range(3)):
+                gi = 3 * brow[t] + a
+                gj = 3 * bcol[t] + c
+                qi = dof_pos[gi]
+                qj = dof_pos[gj]
+                if qi >= 0 and qj >= 0 and qi // m == qj // m:
+                    i = qi % m
+                    j = qj % m
+                    if j <= i and i - j <= w:
+                        ti.atomic_add(band[_at(qi // m, i, w - (i - j), nb, w)],
+                                      free[gi] * free[gj] * bval[9 * t + 3 * a + c])
+
+
+@ti.kernel
+def _band_factorize(band: _F64, usable: _I32, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """``L`` in place of each block's band (row by row: ``L_ij = (S_ij - sum_l L_il L_jl) / L_jj``,
+    ``L_ii = sqrt(S_ii - sum_l L_il^2)``); ``usable[b]`` 0 where a pivot is not positive."""
+    for b in range(nb):
+        ok = 1
+        for i in range(m):
+            for k in range(w + 1):
+                j = i - w + k
+                if j >= 0:
+                    s = band[_at(b, i, k, nb, w)]
+                    for l in range(ti.max(i - w, 0), j):
+                        s -= band[_at(b, i, l - i + w, nb, w)] * band[_at(b, j, l - j + w, nb, w)]
+                    if j < i:
+                        band[_at(b, i, k, nb, w)] = s / band[_at(b, j, w, nb, w)]
+                    else:
+                        if not s > 0.0:
+                            ok = 0
+                            s = 1.0
+                        band[_at(b, i, w, nb, w)] = ti.sqrt(s)
+        usable[b] = ok
+
+
+@ti.func
+def band_solve(band: ti.template(), usable: ti.template(), band_dof: ti.template(), band_copy: ti.template(),
+               active: ti.template(), y: ti.template(), r: ti.template(), z: ti.template(), nb: ti.i32, m: ti.i32,
+               w: ti.i32):
+    """``z = L^-T L^-1 r`` on the DoFs of every usable block whose copy is active (``y`` the blocks' scratch,
+    ``(nb m,)``); one thread a block. Called at a kernel's top level, it is one device pass."""
+    for b in range(nb):
+        if usable[b] != 0 and active[band_copy[b]] != 0:
+            for i in range(m):
+                g = band_dof[b * m + i]
+                s = 0.0
+                if g >= 0:
+                    s = r[g]
+                for l in range(ti.max(i - w, 0), i):
+                    s -= band[_at(b, i, l - i + w, nb, w)] * y[l * nb + b]
+                y[i * nb + b] = s / band[_at(b, i, w, nb, w)]
+            for ii in range(m):
+                i = m - 1 - ii
+                s = y[i * nb + b]
+                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
+                    s -= band[_at(b, l, i - l + w, nb, w)] * y[l * nb + b]
+                s /= band[_at(b, i, w, nb, w)]
+                y[i * nb + b] = s
+                g = band_dof[b * m + i]
+                if g >= 0:
+                    z[g] = s
+
+
+@ti.kernel
+def _apply(band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, active: _I32, y: _F64, r: _F64, z: _F64,
+           nb: ti.i32, m: ti.i32, w: ti.i32):
+    """:func:`band_solve` as a kernel (:meth:`BandBlocks.apply`)."""
+    band_solve(band, usable, band_dof, band_copy, active, y, r, z, nb, m, w)
+
+
+class BandBlocks:
+    """The band blocks of a batched Newton matrix on the device (module docstring).
+
+    Args:
+        dofs: the blocks' DoFs, shape ``(nb, m)`` int, row ``b`` block ``b``'s DoFs in band order, -1 for padding
+            (an identity row); every DoF in at most one block.
+        segments: the copy of each DoF, shape ``(n,)`` int; a block's DoFs lie in one copy.
+        max_width: the largest half-bandwidth ``w`` (DoFs) kept; a pattern whose band is wider leaves the blocks
+            unused (:attr:`width` 0).
+
+    Raises:
+        ValueError: a DoF outside ``0..n-1`` or in two blocks, or a block over two copies.
+
+    Attributes:
+        count: blocks ``nb``; size: DoFs a block ``m``.
+        width: half-bandwidth ``w`` of the last :meth:`assemble` (0: not measured yet, or wider than
+            ``max_width``: the blocks are then not used).
+    """
+
+    def __init__(self, dofs: np.ndarray, segments: np.ndarray, max_width: int = 128) -> None:
+        dofs = np.asarray(dofs, dtype=np.int64)
+        n = int(np.asarray(segments).shape[0])
+        if dofs.ndim != 2 or dofs.size == 0:
+            raise ValueError(f"BandBlocks: dofs of shape {dofs.shape}, expected (blocks, m) with m > 0")
+        real = dofs[dofs >= 0]
+        if real.size and (real.max() >= n or np.unique(real).size != real.size):
+            raise ValueError("BandBlocks: a DoF outside the matrix or in two blocks")
+        seg = np.asarray(segments)
+        first = np.where(dofs >= 0, dofs, dofs.max(axis=1, keepdims=True))
+        copy = seg[first]
+        if np.any(copy != copy[:, :1]):
+            raise ValueError("BandBlocks: a block's DoFs lie in more than one copy")
+        self.count, self.size = int(dofs.shape[0]), int(dofs.shape[1])
+        self.max_width = int(max_width)
+        self.width = 0
+        pos = np.full(n, -1, dtype=np.int32)
+        pos[real] = np.flatnonzero(dofs.reshape(-1) >= 0).astype(np.int32)
+        self._dof = _device_i32(dofs.reshape(-1))
+        self._pos = _device_i32(pos)
+        self._copy = _device_i32(copy[:, 0])
+        self._usable = device_copy.new_ndarray(ti.i32, (self.count,))
+        self._y = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
+        self._band = None  # the bands, made once the width is known
+        self._measured_for = None  # the full pattern's device indptr the width was measured on
+
+    def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object) -> bool:
+        """The blocks' bands of ``A`` (the both-triangle CSR ndarrays ``indptr``, ``indices``, ``data``, plus the
+        vertex blocks ``blocks = (brow, bcol, bval, free, count)`` or None), factorised; the width is measured
+        again when ``pattern_key`` is another object than at the last call. Returns whether the blocks are used
+        (the band no wider than ``max_width``)."""
+        if self._measured_for is not pattern_key:
+            width = device_copy.new_ndarray(ti.i32, (1,))
+            _band_width(indptr, indices, self._dof, self._pos, width, self.count, self.size)
+            w = int(width.to_numpy()[0])
+            self.width = w if 0 < w <= self.max_width else 0
+            self._measured_for = pattern_key
+            if self.width and (self._band is None or self._band.shape[0] != self.count * self.size * (w + 1)):
+                self._band = device_copy.new_ndarray(ti.f64, (self.count * self.size * (w + 1),))
+        if not self.width:
+            return False
+        nb, m, w = self.count, self.size, self.width
+        _band_from_csr(indptr, indices, data, self._dof, self._pos, self._band, nb, m, w)
+        if blocks is not None and blocks[4]:
+            brow, bcol, bval, free, count = blocks
+            _band_add_vertex_blocks(brow, bcol, bval, free, self._pos, self._band, count, nb, m, w)
+        _band_factorize(self._band, self._usable, nb, m, w)
+        return True
+
+    @property
+    def usable(self) -> np.ndarray:
+        """Blocks whose factorisation succeeded at the last :meth:`assemble`, shape ``(nb,)`` bool."""
+        return self._usable.to_numpy().astype(bool)
+
+    def arguments(self) -> tuple:
+        """``(band, usable, band_dof, band_copy, y)``: the device arrays :func:`band_solve` takes."""
+        return self._band, self._usable, self._dof, self._copy, self._y
+
+    def apply(self, r, z, active) -> None:
+        """``z = L^-T L^-1 r`` on the usable blocks' DoFs of the active copies (device ndarrays ``r``, ``z`` of
+        size ``n``, ``active`` int32 per copy); other entries of ``z`` unchanged."""
+        band, usable, dof, copy, y = self.arguments()
+        _apply(band, usable, dof, copy, active, y, r, z, self.count, self.size, self.width)
+
+
+def _device_i32(host: np.ndarray):
+    """A new int32 device ndarray with ``host``'s values (1-D)."""
+    arr = device_copy.new_ndarray(ti.i32, (max(host.size, 1),))
+    arr.from_numpy(np.ascontiguousarray(host, dtype=np.int32) if host.size else np.zeros(1, np.int32))
+    return arr
