@@ -1,18 +1,21 @@
-"""Banded Cholesky blocks of a batched Newton matrix on the device: the preconditioner of the batched CG's larger
-blocks (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`), e.g. each copy's sheet.
+"""Exact blocks of a batched Newton matrix on the device, the preconditioner of the batched CG's larger blocks
+(:class:`~sim_core.ti_kernels.pcg.BatchedPCG`), e.g. each copy's sheet: a banded Cholesky factorisation and the
+block's inverse from it.
 
 A band block is a list of ``m`` DoFs of one copy in a band-limiting order (a sheet's vertices ordered along its long
 axis, so that its bending stencil couples rows at most ``w`` apart). Its matrix ``S = P A P^T`` (``P`` selecting
 the block's DoFs) is kept as its lower band, entries ``S_ij`` with ``0 <= i - j <= w``, ``w`` the largest distance
 between two of the block's DoFs that the assembled pattern couples (contact blocks farther apart than ``w`` are
-left out of the band), factorised ``S = L L^T`` (banded Cholesky: Golub & Van Loan, Matrix Computations, 4th ed.,
-Alg. 4.3.5) and applied as ``z = L^-T L^-1 r`` (forward and back substitution, ``2 m w`` multiply-adds). A
-block whose factorisation meets a pivot that is not positive (a band that left out a coupling it needed) is marked
+left out of the band). It is factorised ``S = L L^T`` by the right-looking banded elimination (Golub & Van Loan,
+Matrix Computations, 4th ed., Alg. 4.3.5 in outer-product form: one device pass a column, one thread an entry of
+the ``w x w`` window), and ``S^-1 = L^-T L^-1`` is formed column by column (one thread a column: forward, then back
+substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread a row
+(the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
+block whose elimination meets a pivot that is not positive (a band that left out a coupling it needed) is marked
 not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
 
-One thread runs a block's factorisation or substitutions (their rows depend on each other). The band is stored
-with the blocks interleaved (entry ``(b, i, k)`` at ``(i (w + 1) + k) nb + b``, column ``j = i - w + k``), so that
-the threads of neighbouring blocks read neighbouring addresses on the GPU.
+Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``) and the inverse
+``(nb, m, m)``: ``8 m^2`` bytes a block (1.2 MB for a 16 x 8 sheet, ``m = 384``).
 """
 
 import numpy as np
@@ -25,9 +28,9 @@ _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @ti.func
-def _at(b: ti.i32, i: ti.i32, k: ti.i32, nb: ti.i32, w: ti.i32) -> ti.i32:
+def _at(b: ti.i32, i: ti.i32, k: ti.i32, m: ti.i32, w: ti.i32) -> ti.i32:
     """Address of band entry ``(b, i, k)`` (row ``i``, column ``i - w + k`` of block ``b``)."""
-    return (i * (w + 1) + k) * nb + b
+    return (b * m + i) * (w + 1) + k
 
 
 @ti.kernel
@@ -50,17 +53,17 @@ def _band_from_csr(indptr: _I32, indices: _I32, data: _F64, band_dof: _I32, dof_
     band left out); a padding row (``band_dof`` -1) is the identity's."""
     for b, i in ti.ndrange(nb, m):
         for k in range(w + 1):
-            band[_at(b, i, k, nb, w)] = 0.0
+            band[_at(b, i, k, m, w)] = 0.0
         g = band_dof[b * m + i]
         if g < 0:
-            band[_at(b, i, w, nb, w)] = 1.0
+            band[_at(b, i, w, m, w)] = 1.0
         else:
             for e in range(indptr[g], indptr[g + 1]):
                 q = dof_pos[indices[e]]
                 if q >= 0 and q // m == b:
                     j = q % m
                     if j <= i and i - j <= w:
-                        band[_at(b, i, w - (i - j), nb, w)] += data[e]
+                        band[_at(b, i, w - (i - j), m, w)] += data[e]
 
 
 @ti.kernel
@@ -79,66 +82,96 @@ def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_
                     i = qi % m
                     j = qj % m
                     if j <= i and i - j <= w:
-                        ti.atomic_add(band[_at(qi // m, i, w - (i - j), nb, w)],
+                        ti.atomic_add(band[_at(qi // m, i, w - (i - j), m, w)],
                                       free[gi] * free[gj] * bval[9 * t + 3 * a + c])
 
 
+COLUMNS_PER_LAUNCH = 32
+"""Columns of the banded factorisation's right-looking sweep in one launch of :func:`_eliminate_columns` (each its
+own device pass)."""
+
+
 @ti.kernel
-def _band_factorize(band: _F64, usable: _I32, nb: ti.i32, m: ti.i32, w: ti.i32):
-    """``L`` in place of each block's band (row by row: ``L_ij = (S_ij - sum_l L_il L_jl) / L_jj``,
-    ``L_ii = sqrt(S_ii - sum_l L_il^2)``); ``usable[b]`` 0 where a pivot is not positive."""
+def _eliminate_columns(band: _F64, k0: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """Columns ``k0 .. k0 + COLUMNS_PER_LAUNCH - 1`` of the right-looking elimination ``S_ij -= S_ik S_jk / S_kk``
+    (``k < j <= i <= k + w``) of every block, one thread an entry (a block whose pivot is not positive is left as
+    it is from there: :func:`_scale_factor` marks it)."""
+    for kk in ti.static(range(COLUMNS_PER_LAUNCH)):
+        for b, di, dj in ti.ndrange(nb, w, w):
+            k = k0 + kk
+            i = k + 1 + di
+            j = k + 1 + dj
+            if j <= i and i < m:
+                pivot = band[_at(b, k, w, m, w)]
+                if pivot > 0.0:
+                    band[_at(b, i, w - (i - j), m, w)] -= band[_at(b, i, w - (i - k), m, w)] * \
+                        band[_at(b, j, w - (j - k), m, w)] / pivot
+
+
+@ti.kernel
+def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """The eliminated band into ``L`` (``L_ij = S_ij / sqrt(S_jj)``, ``L_jj = sqrt(S_jj)``, ``S_jj`` the pivots);
+    ``usable[b]`` 0 where a pivot is not positive."""
     for b in range(nb):
-        ok = 1
-        for i in range(m):
-            for k in range(w + 1):
-                j = i - w + k
-                if j >= 0:
-                    s = band[_at(b, i, k, nb, w)]
-                    for l in range(ti.max(i - w, 0), j):
-                        s -= band[_at(b, i, l - i + w, nb, w)] * band[_at(b, j, l - j + w, nb, w)]
-                    if j < i:
-                        band[_at(b, i, k, nb, w)] = s / band[_at(b, j, w, nb, w)]
-                    else:
-                        if not s > 0.0:
-                            ok = 0
-                            s = 1.0
-                        band[_at(b, i, w, nb, w)] = ti.sqrt(s)
-        usable[b] = ok
+        usable[b] = 1
+    for b, i in ti.ndrange(nb, m):
+        d = band[_at(b, i, w, m, w)]
+        if not d > 0.0:
+            usable[b] = 0
+            d = 1.0
+        pivots[b * m + i] = ti.sqrt(d)
+    for b, i in ti.ndrange(nb, m):
+        for k in range(w):
+            j = i - w + k
+            if j >= 0:
+                band[_at(b, i, k, m, w)] /= pivots[b * m + j]
+        band[_at(b, i, w, m, w)] = pivots[b * m + i]
+
+
+@ti.kernel
+def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """Column ``c`` of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column: ``L y = e_c`` forward (rows
+    from ``c``), then ``L^T x = y`` back, in place in ``inverse[(b m + i) m + c]``."""
+    for b, c in ti.ndrange(nb, m):
+        if usable[b] != 0:
+            base = b * m * m
+            for i in range(c, m):
+                s = 1.0 if i == c else 0.0
+                for l in range(ti.max(c, i - w), i):
+                    s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
+                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
+            for ii in range(m):
+                i = m - 1 - ii
+                s = 0.0
+                if i >= c:
+                    s = inverse[base + i * m + c]
+                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
+                    s -= band[_at(b, l, i - l + w, m, w)] * inverse[base + l * m + c]
+                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
 
 
 @ti.func
-def band_solve(band: ti.template(), usable: ti.template(), band_dof: ti.template(), band_copy: ti.template(),
-               active: ti.template(), y: ti.template(), r: ti.template(), z: ti.template(), nb: ti.i32, m: ti.i32,
-               w: ti.i32):
-    """``z = L^-T L^-1 r`` on the DoFs of every usable block whose copy is active (``y`` the blocks' scratch,
-    ``(nb m,)``); one thread a block. Called at a kernel's top level, it is one device pass."""
-    for b in range(nb):
-        if usable[b] != 0 and active[band_copy[b]] != 0:
-            for i in range(m):
-                g = band_dof[b * m + i]
-                s = 0.0
-                if g >= 0:
-                    s = r[g]
-                for l in range(ti.max(i - w, 0), i):
-                    s -= band[_at(b, i, l - i + w, nb, w)] * y[l * nb + b]
-                y[i * nb + b] = s / band[_at(b, i, w, nb, w)]
-            for ii in range(m):
-                i = m - 1 - ii
-                s = y[i * nb + b]
-                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
-                    s -= band[_at(b, l, i - l + w, nb, w)] * y[l * nb + b]
-                s /= band[_at(b, i, w, nb, w)]
-                y[i * nb + b] = s
-                g = band_dof[b * m + i]
-                if g >= 0:
-                    z[g] = s
+def band_solve(inverse: ti.template(), usable: ti.template(), band_dof: ti.template(), band_copy: ti.template(),
+               active: ti.template(), r: ti.template(), z: ti.template(), nb: ti.i32, m: ti.i32):
+    """``z = S^-1 r`` on the DoFs of every usable block whose copy is active, one thread a row (``S^-1``
+    symmetric: row ``i`` read as column ``i``, neighbouring threads reading neighbouring addresses). Called at a
+    kernel's top level, it is one device pass."""
+    for b, i in ti.ndrange(nb, m):
+        g = band_dof[b * m + i]
+        if g >= 0 and usable[b] != 0 and active[band_copy[b]] != 0:
+            acc = 0.0
+            for c in range(m):
+                gc = band_dof[b * m + c]
+                if gc >= 0:
+                    acc += inverse[(b * m + c) * m + i] * r[gc]
+            z[g] = acc
 
 
 @ti.kernel
-def _apply(band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, active: _I32, y: _F64, r: _F64, z: _F64,
-           nb: ti.i32, m: ti.i32, w: ti.i32):
+def _apply(inverse: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, active: _I32, r: _F64, z: _F64,
+           nb: ti.i32, m: ti.i32):
     """:func:`band_solve` as a kernel (:meth:`BandBlocks.apply`)."""
-    band_solve(band, usable, band_dof, band_copy, active, y, r, z, nb, m, w)
+    band_solve(inverse, usable, band_dof, band_copy, active, r, z, nb, m)
 
 
 class BandBlocks:
@@ -182,7 +215,8 @@ class BandBlocks:
         self._pos = _device_i32(pos)
         self._copy = _device_i32(copy[:, 0])
         self._usable = device_copy.new_ndarray(ti.i32, (self.count,))
-        self._y = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
+        self._pivots = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
+        self._inverse = device_copy.new_ndarray(ti.f64, (self.count * self.size * self.size,))
         self._band = None  # the bands, made once the width is known
         self._measured_for = None  # the full pattern's device indptr the width was measured on
 
@@ -206,7 +240,10 @@ class BandBlocks:
         if blocks is not None and blocks[4]:
             brow, bcol, bval, free, count = blocks
             _band_add_vertex_blocks(brow, bcol, bval, free, self._pos, self._band, count, nb, m, w)
-        _band_factorize(self._band, self._usable, nb, m, w)
+        for k0 in range(0, m, COLUMNS_PER_LAUNCH):
+            _eliminate_columns(self._band, k0, nb, m, w)
+        _scale_factor(self._band, self._pivots, self._usable, nb, m, w)
+        _invert(self._band, self._usable, self._inverse, nb, m, w)
         return True
 
     @property
@@ -215,14 +252,13 @@ class BandBlocks:
         return self._usable.to_numpy().astype(bool)
 
     def arguments(self) -> tuple:
-        """``(band, usable, band_dof, band_copy, y)``: the device arrays :func:`band_solve` takes."""
-        return self._band, self._usable, self._dof, self._copy, self._y
+        """``(inverse, usable, band_dof, band_copy)``: the device arrays :func:`band_solve` takes."""
+        return self._inverse, self._usable, self._dof, self._copy
 
     def apply(self, r, z, active) -> None:
-        """``z = L^-T L^-1 r`` on the usable blocks' DoFs of the active copies (device ndarrays ``r``, ``z`` of
-        size ``n``, ``active`` int32 per copy); other entries of ``z`` unchanged."""
-        band, usable, dof, copy, y = self.arguments()
-        _apply(band, usable, dof, copy, active, y, r, z, self.count, self.size, self.width)
+        """``z = S^-1 r`` on the usable blocks' DoFs of the active copies (device ndarrays ``r``, ``z`` of size
+        ``n``, ``active`` int32 per copy); other entries of ``z`` unchanged."""
+        _apply(*self.arguments(), active, r, z, self.count, self.size)
 
 
 def _device_i32(host: np.ndarray):

@@ -268,10 +268,9 @@ def _copy_sums(u: ti.template(), v: ti.template(), out: ti.template(), active: t
 
 @ti.kernel
 def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, band: _F64,
-                  usable: _I32, band_dof: _I32, band_copy: _I32, band_y: _F64, n: ti.i32, copies: ti.i32, nb: ti.i32,
-                  m: ti.i32, w: ti.i32):
+                  usable: _I32, band_dof: _I32, band_copy: _I32, n: ti.i32, copies: ti.i32, nb: ti.i32, m: ti.i32):
     """After :func:`_start`: ``z = p = M^-1 r`` with the band blocks' solves on their DoFs, per copy ``rz = r.z``."""
-    band_solve(band, usable, band_dof, band_copy, active, band_y, r, z, nb, m, w)
+    band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
     for c in range(copies):
         rz[c] = 0.0
     _copy_sums(r, z, rz, active, order, start, copies)
@@ -284,8 +283,8 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                    inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
                    rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
                    done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32,
-                   band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, band_y: _F64, nb: ti.i32, m: ti.i32,
-                   w: ti.i32, banded: ti.template()):
+                   band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, nb: ti.i32, m: ti.i32,
+                   banded: ti.template()):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
     ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
     ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
@@ -337,7 +336,7 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                     ti.atomic_add(rz_new[c], rz_acc)
                 ti.atomic_add(rr[c], rr_acc)
         if ti.static(banded):  # z = L^-T L^-1 r on the band blocks' DoFs, then per copy r.z
-            band_solve(band, usable, band_dof, band_copy, active, band_y, r, z, nb, m, w)
+            band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
             _copy_sums(r, z, rz_new, active, order, start, copies)
         for c in range(copies):
             b = 0.0
@@ -642,12 +641,12 @@ class BatchedPCG:
         return self._full
 
     def _band_arguments(self) -> tuple:
-        """The band blocks' device arrays for the CG kernels, then ``(nb, m, w)``; placeholders when unused."""
+        """The band blocks' device arrays for the CG kernels, then ``(nb, m)``; placeholders when unused."""
         if self._banded:
             bands = self.bands
-            return (*bands.arguments(), (bands.count, bands.size, bands.width))
+            return (*bands.arguments(), (bands.count, bands.size))
         one_f, one_i = self._array("band_none", 1), self._array("band_none_i", 1, ti.i32)
-        return one_f, one_i, one_i, one_i, one_f, (0, 1, 0)
+        return one_f, one_i, one_i, one_i, (0, 1)
 
     def _operator(self) -> tuple:
         a = self._arrays
