@@ -91,7 +91,10 @@ method (Dembo, Eisenstat & Steihaug, "Inexact Newton methods", SIAM J. Numer. An
 ``eta`` adds at most a factor ``eta`` to each iteration's linear convergence). On the Forming scene (6 copies, 8
 steps, CPU) the Newton iterations are those of ``rtol = 1e-10`` step by step, the states within 5e-8 m of its states
 (a tenth of the Newton tolerance ``tol_velocity dt``), with a quarter fewer CG iterations (357 -> 267 a solve);
-``1e-2`` adds Newton iterations."""
+``1e-2`` adds Newton iterations. With each copy's sheet an exact block of the preconditioner
+(:func:`~sim_core.batch.sheet_bands.sheet_band_dofs`) the CG reaches it in 31-34 iterations a solve (Forming, B = 4
+on the CPU and 1024 on an H100), the Newton iterations step by step and the states within 5.5e-8 m of the vertex
+block-Jacobi CG's."""
 
 
 class _CopiesFailed(Exception):
