@@ -37,33 +37,18 @@ def main() -> int:
             y[k] = ti.cast(x[k], ti.f32)
 
     @ti.kernel
-    def unrolled(inverse: ti.types.ndarray(ndim=1), band_dof: i32, r: f64, z: f64, nb: ti.i32, m: ti.i32):
+    def product(inverse: ti.types.ndarray(ndim=1), band_dof: i32, r: f64, z: f64, nb: ti.i32, m: ti.i32,
+                unroll: ti.template()):
+        """The module's pass with ``unroll`` columns an iteration (independent sums) and any storage type."""
         for b, i in ti.ndrange(nb, m):
             g = band_dof[b * m + i]
             if g >= 0:
-                a0 = 0.0
-                a1 = 0.0
-                a2 = 0.0
-                a3 = 0.0
-                for q in range(m // 4):
-                    c = 4 * q
-                    a0 += ti.cast(inverse[(b * m + c) * m + i], ti.f64) * r[ti.max(band_dof[b * m + c], 0)]
-                    a1 += ti.cast(inverse[(b * m + c + 1) * m + i], ti.f64) * r[ti.max(band_dof[b * m + c + 1], 0)]
-                    a2 += ti.cast(inverse[(b * m + c + 2) * m + i], ti.f64) * r[ti.max(band_dof[b * m + c + 2], 0)]
-                    a3 += ti.cast(inverse[(b * m + c + 3) * m + i], ti.f64) * r[ti.max(band_dof[b * m + c + 3], 0)]
-                z[g] = a0 + a1 + a2 + a3
-
-    @ti.kernel
-    def plain(inverse: ti.types.ndarray(ndim=1), band_dof: i32, r: f64, z: f64, nb: ti.i32, m: ti.i32):
-        for b, i in ti.ndrange(nb, m):
-            g = band_dof[b * m + i]
-            if g >= 0:
-                acc = 0.0
-                for c in range(m):
-                    gc = band_dof[b * m + c]
-                    if gc >= 0:
-                        acc += ti.cast(inverse[(b * m + c) * m + i], ti.f64) * r[gc]
-                z[g] = acc
+                acc = ti.Vector.zero(ti.f64, unroll)
+                for q in range(m // unroll):
+                    for u in ti.static(range(unroll)):
+                        c = unroll * q + u
+                        acc[u] += ti.cast(inverse[(b * m + c) * m + i], ti.f64) * r[ti.max(band_dof[b * m + c], 0)]
+                z[g] = acc.sum()
 
     inv64 = device_copy.new_ndarray(ti.f64, (nb * m * m,))
     inv32 = device_copy.new_ndarray(ti.f32, (nb * m * m,))
@@ -77,9 +62,9 @@ def main() -> int:
     z = device_copy.new_ndarray(ti.f64, (nb * m,))
 
     runs = {"module (f64)": lambda: bc._apply(inv64, ones, dof, ones, ones, r, z, nb, m),
-            "unrolled 4 (f64)": lambda: unrolled(inv64, dof, r, z, nb, m),
-            "plain (f32 storage)": lambda: plain(inv32, dof, r, z, nb, m),
-            "unrolled 4 (f32 storage)": lambda: unrolled(inv32, dof, r, z, nb, m)}
+            "unrolled 4 (f64)": lambda: product(inv64, dof, r, z, nb, m, 4),
+            "plain (f32 storage)": lambda: product(inv32, dof, r, z, nb, m, 1),
+            "unrolled 4 (f32 storage)": lambda: product(inv32, dof, r, z, nb, m, 4)}
     for name, run in runs.items():
         run()
         ti.sync()

@@ -312,13 +312,7 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                     for b in ti.static(range(3)):
                         acc += bval[9 * t + 3 * a + b] * free[3 * cv + b] * p[3 * cv + b]
                     ti.atomic_add(ap[3 * rv + a], free[3 * rv + a] * acc)
-        for c, k in ti.ndrange(copies, REDUCTION_LANES):
-            if active[c] != 0:
-                acc = 0.0
-                for q in range(_lane_count(start, c, k)):
-                    v = order[start[c] + k + q * REDUCTION_LANES]
-                    acc += p[3 * v] * ap[3 * v] + p[3 * v + 1] * ap[3 * v + 1] + p[3 * v + 2] * ap[3 * v + 2]
-                ti.atomic_add(pap[c], acc)
+        _copy_sums(p, ap, pap, active, order, start, copies)
         for c, k in ti.ndrange(copies, REDUCTION_LANES):
             if active[c] != 0 and pap[c] > 0:
                 alpha = rz[c] / pap[c]
