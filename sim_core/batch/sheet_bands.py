@@ -8,6 +8,10 @@ solves) instead of 256 (a SciPy study of the lockstep's matrices, docs/benchmark
 along the sheet's long axis (the first principal axis of its rest positions), the grid's rows across the short side
 follow each other, and the bending stencil (a hinge spans two rows) couples DoFs at most ``3 (2 r + 1) - 1`` apart
 for rows of ``r`` vertices: 53 DoFs on the 16 x 8 grid, against 95 in the vertex order.
+
+The block's inverse is kept whole on the device (``8 m^2`` bytes a copy for ``m`` DoFs) and formed in ``1.5 m^2 w``
+multiply-adds a copy at each factorisation, which grow faster than the CG work the block saves; sheets of more than
+:data:`MAX_BLOCK_DOFS` DoFs keep the vertex blocks (measured: Forming's 384 DoFs and Folding's 192).
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.batch.stacked import StackedScene
+
+
+MAX_BLOCK_DOFS = 512
+"""The largest sheet (DoFs) taken as one band block: its inverse 2 MiB a copy."""
 
 
 def long_axis_order(x: np.ndarray) -> np.ndarray:
@@ -31,17 +39,18 @@ def long_axis_order(x: np.ndarray) -> np.ndarray:
     return np.argsort(np.round(centred @ axis, 12), kind="stable")
 
 
-def sheet_band_dofs(scene: StackedScene) -> np.ndarray | None:
+def sheet_band_dofs(scene: StackedScene, max_dofs: int = MAX_BLOCK_DOFS) -> np.ndarray | None:
     """Each copy's sheet bodies as band blocks of the stacked DoFs, for
     :class:`~sim_core.ti_kernels.pcg.BatchedPCG`'s ``bands``.
 
     Args:
         scene: the stacked scene (the stacked model's sheet bodies hold whole copies' sheets).
+        max_dofs: sheets of more DoFs are left out (module docstring).
 
     Returns:
         ``(blocks, m)`` int64: one row per copy and sheet, that sheet's stacked DoFs (its vertices in
         :func:`long_axis_order` of the rest positions, three DoFs each), padded with -1 to the largest sheet's
-        ``m``; None when the scene has no sheet.
+        ``m``; None when the scene has no sheet of at most ``max_dofs`` DoFs.
     """
     model = scene.model
     copy_of = np.full(model.vertex_count, -1, dtype=np.int64)
@@ -55,6 +64,8 @@ def sheet_band_dofs(scene: StackedScene) -> np.ndarray | None:
         vertices = body.vertices
         for c in np.unique(copy_of[vertices]):
             local = np.sort(local_of[vertices[copy_of[vertices] == c]])
+            if 3 * local.size > max_dofs:
+                continue
             stacked = scene.index[c][local]
             ordered = stacked[long_axis_order(model.x_rest[stacked])]
             rows.append((3 * ordered[:, None] + np.arange(3)).reshape(-1))

@@ -46,9 +46,12 @@ def test_each_copys_sheet_is_one_block_in_long_axis_order():
     assert _half_bandwidth(sheet.hinges, position) <= _half_bandwidth(sheet.hinges, natural)
 
 
-def test_a_scene_without_a_sheet_has_no_blocks():
+def test_a_scene_without_a_sheet_or_with_a_sheet_over_the_size_limit_has_no_blocks():
     model = pad_model()
     scene = stack_models([model, model])
+    m = 3 * model.bodies["sheet"].vertices.size
+    assert sheet_band_dofs(scene, max_dofs=m).shape == (2, m)
+    assert sheet_band_dofs(scene, max_dofs=m - 1) is None
     for body in scene.model.bodies.values():
         if body.kind == "sheet":
             body.kind = "frozen"
