@@ -417,6 +417,32 @@ class StepLinearization:
         r = dx.shape[2]
         return (self.H @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
 
+    def fixed_row_product(self, w: np.ndarray) -> np.ndarray:
+        """The exact Hessian times ``w`` (shape ``(n, 3)``) on the rows of the fixed vertices, zeros on the
+        other rows: the adjoint's Dirichlet pullback reads no other row. From the element blocks that touch
+        a fixed vertex, without assembling :attr:`H` (unless it is assembled already); equal to
+        :meth:`hessian_product` on those rows up to round-off."""
+        if self._H is not None:
+            out = self.hessian_product(w[:, :, None])[:, :, 0]
+        else:
+            diag = np.zeros(3 * self.n)
+            out = np.zeros((self.n, 3, 1))
+            for p in self.record.terms:
+                if isinstance(p, ConstantDiagonalHessian):
+                    diag += p.hessian_diagonal()
+                    continue
+                hb = p.hessian(self.x, "none")
+                touch = self.fixed[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
+                if not touch.any():
+                    continue
+                v = hb.vertices[touch]
+                k, m = v.shape
+                prod = np.matmul(hb.blocks[touch], w[v].reshape(k, 3 * m, 1))
+                out += _scatter_vertex_rows(self.n, v, prod.reshape(k, m, 3, 1))
+            out = out[:, :, 0] + (diag * w.reshape(-1)).reshape(self.n, 3)
+        out[~self.fixed] = 0.0
+        return out
+
     # ------------------------------------------------------------ parameters
     def mass_gradient(self) -> np.ndarray:
         """d(inertia + gravity + damping gradient)/d m_i per vertex, shape ``(n, 3)``."""
@@ -656,7 +682,8 @@ def rest_angle_adjoint(model: Model, dL_dtheta_bar: dict[str, np.ndarray] | None
 
 
 def reverse_pass(model: Model, trajectory: Trajectory, dL_dx: Sequence[np.ndarray], atb: dict[str, np.ndarray],
-                 parameters: ParameterAdjoint, linear_solver: LinearSolver, backend: str) -> Gradient:
+                 parameters: ParameterAdjoint, linear_solver: LinearSolver, backend: str,
+                 fixed_rows: bool = False) -> Gradient:
     """The adjoint recursion of :func:`rollout_gradient` over a checked trajectory (module docstring).
 
     Per step, from the last: the plastic update's pullback, one solve ``H_ff lambda = a_f`` with the
@@ -674,6 +701,9 @@ def reverse_pass(model: Model, trajectory: Trajectory, dL_dx: Sequence[np.ndarra
         linear_solver: the solver that factorises each step's exact Hessian (LU: it need not be
             positive definite).
         backend: the concrete backend of the contact set that rebuilds the friction frames.
+        fixed_rows: the Dirichlet pullback's Hessian product from the element blocks touching a fixed vertex
+            (:meth:`StepLinearization.fixed_row_product`) instead of the assembled Hessian (the same to
+            round-off; no assembly when the step's record holds the exact Hessian).
 
     Returns:
         the :class:`Gradient` (``params`` empty: they are in ``parameters``; ``loss`` None).
@@ -708,7 +738,7 @@ def reverse_pass(model: Model, trajectory: Trajectory, dL_dx: Sequence[np.ndarra
         for name in atb_n:
             atb_n[name] = atb_n[name] + gtb[name]
         parameters.add_step(lin, w)
-        a_fixed = a_hat + lin.hessian_product(w[:, :, None])[:, :, 0]
+        a_fixed = a_hat + (lin.fixed_row_product(w) if fixed_rows else lin.hessian_product(w[:, :, None])[:, :, 0])
         ax_n[lin.static] += a_fixed[lin.static]
         g_controls[i], g_gripper[i] = {}, {}
         effector_pullback(model, rec, state, control, a_fixed, apose, aopen, g_controls[i], g_gripper[i])

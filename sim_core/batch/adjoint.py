@@ -30,7 +30,8 @@ from sim_core.batch.simulation import BatchedSimulation, BatchStep
 from sim_core.batch.stacked import StackedScene
 from sim_core.control import Control
 from sim_core.errors import ConfigError
-from sim_core.linsolve import make_linear_solver
+from sim_core.backend import uses_taichi
+from sim_core.linsolve import LinearSolver, make_linear_solver
 from sim_core.model import Model
 
 
@@ -222,10 +223,13 @@ class BatchedGradient:
         gradients: per copy its :class:`~sim_core.adjoint.Gradient` (as :func:`~sim_core.adjoint.rollout_gradient`
             gives for its separate rollout), None for a copy without one.
         failures: per copy why it has none (None for a copy with a gradient).
+        solver: the solver of the stacked exact Hessians (its statistics, e.g.
+            :attr:`~sim_core.batch.adjoint_cg.StackedAdjointCG.lu_copies`).
     """
 
     gradients: list[Gradient | None]
     failures: list[str | None]
+    solver: LinearSolver | None = None
 
 
 class _StackedRows:
@@ -255,16 +259,18 @@ def batched_rollout_gradient(recording: BatchedTrajectory, dL_dx: Sequence[np.nd
             asked for that copy).
         params: scene parameter names (``Model.parameter_names``) to differentiate, per copy.
         dL_dtheta_bar: per copy (or None) sheet -> dL/d(rest angles of the final state), shape ``(h,)``.
-        linear_solver: the factorisation of the stacked exact Hessians (:func:`sim_core.linsolve.make_linear_solver`;
-            ``"pcg"`` gets PARDISO's LU).
-        backend: the concrete backend of the contact set that rebuilds the friction frames (the batch's).
+        linear_solver: the solver of the stacked exact Hessians: ``"pardiso"`` or ``"scipy"`` (one LU of the
+            stacked matrix a step, :func:`sim_core.linsolve.make_linear_solver`), or ``"pcg"`` (the batched CG
+            on the Taichi device, a copy whose block is not positive definite by LU:
+            :class:`~sim_core.batch.adjoint_cg.StackedAdjointCG`; a Taichi ``backend`` only).
+        backend: the concrete backend of the batch (the contact set that rebuilds the friction frames, the CG).
 
     Returns:
         the :class:`BatchedGradient`: a gradient for every complete copy whose ``dL_dx`` is given.
 
     Raises:
         ConfigError: lists of the wrong length, a copy's parameters changed since the recording, unknown
-            parameters, or a bad shape (naming the copy).
+            parameters, a bad shape (naming the copy), or ``"pcg"`` on a backend without Taichi.
     """
     B, T, scene = recording.copies, recording.step_count, recording.scene
     n = scene.vertex_count
@@ -294,11 +300,27 @@ def batched_rollout_gradient(recording: BatchedTrajectory, dL_dx: Sequence[np.nd
             h = scene.hinge_counts[sheet]
             atb[scene.group_names[g][sheet]][k * h:(k + 1) * h] = value
     parameters = CopyParameterAdjoint(scene, recording.models, params)
-    stacked = reverse_pass(scene.model, recording.trajectory, _StackedRows(scene, rows), atb, parameters,
-                           make_linear_solver(linear_solver), backend)
+    solver = _adjoint_solver(scene, linear_solver, backend)
+    stacked = reverse_pass(scene.model, recording.trajectory, _StackedRows(scene, rows), atb, parameters, solver,
+                           backend, fixed_rows=True)
     gradients = [None if rows[i] is None else _copy_gradient(scene, stacked, i, parameters.values[i])
                  for i in range(B)]
-    return BatchedGradient(gradients, [None if gr is not None else why for gr, why in zip(gradients, failures)])
+    return BatchedGradient(gradients, [None if gr is not None else why for gr, why in zip(gradients, failures)], solver)
+
+
+def _adjoint_solver(scene: StackedScene, linear_solver: str, backend: str) -> LinearSolver:
+    """The stacked exact Hessians' solver named ``linear_solver`` (:func:`batched_rollout_gradient`).
+
+    Raises:
+        ConfigError: ``"pcg"`` on a backend without Taichi, or an unknown name.
+    """
+    if linear_solver != "pcg":
+        return make_linear_solver(linear_solver)
+    if not uses_taichi(backend):
+        raise ConfigError(f"batched gradient: linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {backend!r}")
+    from sim_core.batch.adjoint_cg import StackedAdjointCG  # Taichi kernels: loaded on a Taichi backend only
+
+    return StackedAdjointCG(scene)
 
 
 def _copy_gradient(scene: StackedScene, stacked: Gradient, i: int, params: dict[str, float]) -> Gradient:

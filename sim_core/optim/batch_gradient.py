@@ -34,7 +34,7 @@ class BatchedEpisodeGradients:
         horizon: steps per episode (default the task's).
         params: global parameter values of the episodes (a call's ``params`` are added to them for it).
         solver_config: Newton settings (default as :class:`~sim_core.optim.episode.Episode`: no dt halving);
-            ``lockstep`` is set. A ``linear_solver="pcg"`` forward pass takes PARDISO's LU for the adjoint.
+            ``lockstep`` is set. The adjoint's solver: :meth:`adjoint_solver`.
 
     Raises:
         ConfigError: a horizon outside ``1..task.horizon``.
@@ -47,6 +47,13 @@ class BatchedEpisodeGradients:
         self.params = dict(params or {})
         self.solver_config = dataclasses.replace(solver_config or SolverConfig(dt_halvings_on_failure=0),
                                                  lockstep=True)
+
+    def adjoint_solver(self, backend: str) -> str:
+        """The batched adjoint's solver on the concrete ``backend``: the batched CG where the lockstep Newton
+        solves take it (``linear_solver="pcg"``, and any setting on ``taichi-cuda``), else the direct solver."""
+        if self.solver_config.linear_solver == "pcg" or backend == "taichi-cuda":
+            return "pcg"
+        return self.solver_config.linear_solver
 
     def reward_gradients(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None,
                          grad_params: Sequence[str] = ()) -> list[tuple[EpisodeResult, np.ndarray, dict[str, float]]]:
@@ -97,7 +104,8 @@ class BatchedEpisodeGradients:
             rows.append(dl)
             dtb.append(gtb)
         grads = batched_rollout_gradient(recorder.trajectory(), rows, grad_params, dtb,
-                                         linear_solver=self.solver_config.linear_solver, backend=rollout.batch.backend)
+                                         linear_solver=self.adjoint_solver(rollout.batch.backend),
+                                         backend=rollout.batch.backend)
         for i, (r, g) in enumerate(zip(results, grads.gradients)):
             if r.feasible:
                 if g is None:

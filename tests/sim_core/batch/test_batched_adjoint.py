@@ -166,3 +166,38 @@ def test_batched_gradients_need_a_lockstep_batch_and_unchanged_parameters(model)
     batch.set_parameter(0, "friction.pad_sheet", 0.4)
     with pytest.raises(ConfigError, match=r"parameters of copies \[0\] changed"):
         batched_rollout_gradient(recording, [_loss_rows(model, i) for i in range(3)])
+
+
+def test_the_adjoint_cg_on_a_taichi_backend_gives_the_direct_solves_gradients(model):
+    """linear_solver="pcg" (the batched CG, as on the GPU) against the stacked LU, on one taichi-cpu recording;
+    and the CG's LU fallback for a copy whose block is not positive definite."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from sim_core.batch.adjoint_cg import StackedAdjointCG
+
+    batch, recording = _batched(model, config=dataclasses.replace(TIGHT, backend="taichi-cpu"))
+    rows = [_loss_rows(model, i) for i in range(3)]
+    direct = batched_rollout_gradient(recording, rows, GRAD_PARAMS, backend=batch.backend)
+    cg = batched_rollout_gradient(recording, rows, GRAD_PARAMS, linear_solver="pcg", backend=batch.backend)
+    for got, want in zip(cg.gradients, direct.gradients):
+        _assert_same_gradient(got, want, rtol=1e-7)
+    assert len(cg.solver.cg_iterations) == STEPS and min(cg.solver.cg_iterations) > 0
+    assert cg.solver.lu_copies < 3 * STEPS  # the CG solved copies itself
+    with pytest.raises(ConfigError, match="Taichi backend"):
+        batched_rollout_gradient(recording, rows, linear_solver="pcg", backend="numpy")
+    # a symmetric block-diagonal matrix whose copy-1 block is negative definite: the CG flags it, LU solves it
+    dofs = recording.scene.dof_index
+    N3 = 3 * recording.scene.model.vertex_count
+    rng = np.random.default_rng(0)
+    sign = np.ones(N3)
+    sign[dofs[1]] = -1.0
+    blocks = sp.block_diag([sp.random(len(d), len(d), density=0.01, random_state=i) for i, d in enumerate(dofs)])
+    perm = np.argsort(np.concatenate(dofs))
+    M = sp.csr_matrix(blocks)[perm][:, perm]
+    A = (sp.diags(sign) @ (M @ M.T + sp.identity(N3))).tocsr()
+    b = rng.normal(size=N3)
+    solver = StackedAdjointCG(recording.scene)
+    solver.factorize(A)
+    np.testing.assert_allclose(solver.solve(b), spla.spsolve(A.tocsc(), b), rtol=1e-7, atol=1e-9)
+    assert solver.lu_copies == 1
