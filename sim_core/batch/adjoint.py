@@ -6,9 +6,11 @@ step's. :class:`TrajectoryRecorder` keeps those records with the stacked states 
 :func:`batched_rollout_gradient` runs :func:`sim_core.adjoint.reverse_pass` once on the stacked model: per
 step, the exact Hessian of all copies is one block-diagonal matrix (block ``i`` is copy ``i``'s exact
 Hessian at its converged step, translated: the incremental potential is invariant under translation),
-factorised once (PARDISO's LU, or SciPy's: a block that is not positive definite is factorised as the
-single path factorises it), one solve gives every copy's adjoint vector, and the pullbacks (previous state,
-rest angles, Dirichlet vertices, effector commands) are evaluated over the stacked arrays. The copies'
+one solve gives every copy's adjoint vector, and the pullbacks (previous state, rest angles, Dirichlet
+vertices, effector commands) are evaluated over the stacked arrays. The solve: one LU of the stacked
+matrix, or each copy's block by its own LU (:class:`~sim_core.batch.adjoint_solvers.CopyBlockLU`, faster on the
+CPU), or the batched CG on a Taichi device (:class:`~sim_core.batch.adjoint_solvers.StackedAdjointCG`); a block
+that is not positive definite is solved by LU, as the single path solves it. The copies'
 blocks never couple, so copy ``i``'s gradient is its separate :func:`sim_core.adjoint.rollout_gradient`
 (to the Newton tolerance of the lockstep forward pass). Parameter derivatives are per copy
 (:class:`CopyParameterAdjoint`: each copy's own material parameters, the shared ones split by copy).
@@ -224,7 +226,7 @@ class BatchedGradient:
             gives for its separate rollout), None for a copy without one.
         failures: per copy why it has none (None for a copy with a gradient).
         solver: the solver of the stacked exact Hessians (its statistics, e.g.
-            :attr:`~sim_core.batch.adjoint_cg.StackedAdjointCG.lu_copies`).
+            :attr:`~sim_core.batch.adjoint_solvers.StackedAdjointCG.lu_copies`).
     """
 
     gradients: list[Gradient | None]
@@ -260,9 +262,11 @@ def batched_rollout_gradient(recording: BatchedTrajectory, dL_dx: Sequence[np.nd
         params: scene parameter names (``Model.parameter_names``) to differentiate, per copy.
         dL_dtheta_bar: per copy (or None) sheet -> dL/d(rest angles of the final state), shape ``(h,)``.
         linear_solver: the solver of the stacked exact Hessians: ``"pardiso"`` or ``"scipy"`` (one LU of the
-            stacked matrix a step, :func:`sim_core.linsolve.make_linear_solver`), or ``"pcg"`` (the batched CG
+            stacked matrix a step, :func:`sim_core.linsolve.make_linear_solver`), ``"pardiso-blocks"`` or
+            ``"scipy-blocks"`` (each copy's block by its own LU,
+            :class:`~sim_core.batch.adjoint_solvers.CopyBlockLU`), or ``"pcg"`` (the batched CG
             on the Taichi device, a copy whose block is not positive definite by LU:
-            :class:`~sim_core.batch.adjoint_cg.StackedAdjointCG`; a Taichi ``backend`` only).
+            :class:`~sim_core.batch.adjoint_solvers.StackedAdjointCG`; a Taichi ``backend`` only).
         backend: the concrete backend of the batch (the contact set that rebuilds the friction frames, the CG).
 
     Returns:
@@ -314,11 +318,15 @@ def _adjoint_solver(scene: StackedScene, linear_solver: str, backend: str) -> Li
     Raises:
         ConfigError: ``"pcg"`` on a backend without Taichi, or an unknown name.
     """
+    if linear_solver.endswith("-blocks"):
+        from sim_core.batch.adjoint_solvers import CopyBlockLU
+
+        return CopyBlockLU(scene, linear_solver.removesuffix("-blocks"))
     if linear_solver != "pcg":
         return make_linear_solver(linear_solver)
     if not uses_taichi(backend):
         raise ConfigError(f"batched gradient: linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {backend!r}")
-    from sim_core.batch.adjoint_cg import StackedAdjointCG  # Taichi kernels: loaded on a Taichi backend only
+    from sim_core.batch.adjoint_solvers import StackedAdjointCG  # Taichi kernels: loaded on a Taichi backend only
 
     return StackedAdjointCG(scene)
 

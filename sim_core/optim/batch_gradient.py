@@ -49,11 +49,12 @@ class BatchedEpisodeGradients:
                                                  lockstep=True)
 
     def adjoint_solver(self, backend: str) -> str:
-        """The batched adjoint's solver on the concrete ``backend``: the batched CG where the lockstep Newton
-        solves take it (``linear_solver="pcg"``, and any setting on ``taichi-cuda``), else the direct solver."""
+        """The batched adjoint's solver (:func:`~sim_core.batch.adjoint.batched_rollout_gradient`) on the concrete
+        ``backend``: the batched CG where the lockstep Newton solves take it (``linear_solver="pcg"``, and any
+        setting on ``taichi-cuda``), else each copy's block by its own LU of the configured direct solver."""
         if self.solver_config.linear_solver == "pcg" or backend == "taichi-cuda":
             return "pcg"
-        return self.solver_config.linear_solver
+        return f"{self.solver_config.linear_solver}-blocks"
 
     def reward_gradients(self, actions: Sequence[np.ndarray], params: Sequence[Mapping[str, float]] | None = None,
                          grad_params: Sequence[str] = ()) -> list[tuple[EpisodeResult, np.ndarray, dict[str, float]]]:

@@ -95,6 +95,11 @@ def test_batched_gradients_of_three_copies_equal_their_separate_gradients(model)
     g = got.gradients
     assert abs(g[1].params["friction.pad_sheet"] - g[2].params["friction.pad_sheet"]) > 1e-3 * abs(
         g[1].params["friction.pad_sheet"])
+    # each copy's block by its own LU: the same solves
+    blocks = batched_rollout_gradient(recording, [_loss_rows(model, i) for i in range(3)], GRAD_PARAMS,
+                                      linear_solver="pardiso-blocks", backend=batch.backend)
+    for i in range(3):
+        _assert_same_gradient(blocks.gradients[i], got.gradients[i], rtol=1e-9)
     # a copy without a loss gets none; a loss of the wrong shape is refused, naming the copy
     partial = batched_rollout_gradient(recording, [None, _loss_rows(model, 1), None], GRAD_PARAMS)
     assert partial.gradients[0] is None and partial.failures[0] == "no loss given"
@@ -174,7 +179,7 @@ def test_the_adjoint_cg_on_a_taichi_backend_gives_the_direct_solves_gradients(mo
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from sim_core.batch.adjoint_cg import StackedAdjointCG
+    from sim_core.batch.adjoint_solvers import StackedAdjointCG
 
     batch, recording = _batched(model, config=dataclasses.replace(TIGHT, backend="taichi-cpu"))
     rows = [_loss_rows(model, i) for i in range(3)]

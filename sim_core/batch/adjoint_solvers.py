@@ -1,12 +1,18 @@
-"""The batched adjoint's solve on a Taichi device: the stacked exact Hessians by the batched conjugate
-gradient, a copy whose matrix is not positive definite by LU.
+"""The batched adjoint's solvers of the stacked exact Hessians (block diagonal by copy), besides one LU of the
+whole stacked matrix (:func:`sim_core.linsolve.make_linear_solver`).
 
 The adjoint needs the EXACT Hessian at each converged step (:mod:`sim_core.adjoint`), which need not be
-positive definite; the single path factorises it by LU (PARDISO's, matrix type 11). Here every copy's block
-is solved by :class:`~sim_core.ti_kernels.pcg.BatchedPCG` (block-Jacobi preconditioned CG, one CG per copy,
-all copies in one launch) to the relative residual :data:`ADJOINT_CG_RTOL`; a copy whose CG meets
-non-positive curvature (``p.Ap <= 0``: its block is not positive definite) or does not converge is solved
-again by the LU of its own block, as the single path solves it.
+positive definite; the single path factorises it by LU (PARDISO's, matrix type 11).
+
+* :class:`CopyBlockLU` (CPU): each copy's block by its own LU, kept per copy from step to step. PARDISO's
+  symbolic analysis of the whole stacked matrix grows faster than its size (8 Folding-U copies: 64 ms a
+  step against 8 x 2.6 ms), so on the CPU the copies' own factorisations are the faster way to one solve
+  of all copies (``docs/benchmarks_log.md``, session 42, 28adj).
+* :class:`StackedAdjointCG` (Taichi device): every copy's block by
+  :class:`~sim_core.ti_kernels.pcg.BatchedPCG` (block-Jacobi preconditioned CG, one CG per copy, all
+  copies in one launch) to the relative residual :data:`ADJOINT_CG_RTOL`. A copy whose CG meets
+  non-positive curvature (``p.Ap <= 0``: its block is not positive definite) or does not converge is
+  solved again by the LU of its own block, as the single path solves it.
 """
 
 from __future__ import annotations
@@ -72,4 +78,39 @@ class StackedAdjointCG:
             lu.factorize(self._A[idx][:, idx])
             x[idx] = lu.solve(b[idx])
             self.lu_copies += 1
+        return x
+
+
+class CopyBlockLU:
+    """A :class:`~sim_core.linsolve.LinearSolver` of a stacked scene's block-diagonal matrices: each copy's block
+    by its own LU (:func:`~sim_core.linsolve.make_linear_solver`), kept per copy from one matrix to the next, so
+    that a copy whose sparsity pattern is unchanged skips the symbolic analysis (PARDISO's analysis of the
+    whole stacked matrix grows faster than its size: its fill-reducing ordering).
+
+    Args:
+        scene: the stacked scene (its copies are the blocks).
+        linear_solver: the copies' LU (``"pardiso"`` or ``"scipy"``).
+    """
+
+    name = "blocks"
+
+    def __init__(self, scene: StackedScene, linear_solver: str = "pardiso") -> None:
+        self.dofs = scene.dof_index
+        self.solvers = [make_linear_solver(linear_solver) for _ in range(scene.copies)]
+        self._order = np.concatenate(list(self.dofs))
+        self._starts = np.concatenate([[0], np.cumsum([len(d) for d in self.dofs])])
+
+    def factorize(self, A: sp.csr_matrix) -> None:
+        """Factorise every copy's diagonal block of ``A`` (shape ``(3 N, 3 N)``, block diagonal by copy)."""
+        P = sp.csr_matrix(A, dtype=float)[self._order][:, self._order].tocsr()
+        for i, solver in enumerate(self.solvers):
+            a, b = self._starts[i], self._starts[i + 1]
+            solver.factorize(P[a:b, a:b])
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``A x = b`` per copy block; ``b`` shape ``(3 N,)`` or ``(3 N, r)``."""
+        b = np.asarray(b, dtype=float)
+        x = np.zeros_like(b)
+        for idx, solver in zip(self.dofs, self.solvers):
+            x[idx] = np.asarray(solver.solve(b[idx])).reshape(b[idx].shape)
         return x
