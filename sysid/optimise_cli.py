@@ -3,7 +3,8 @@
 Usage::
 
     thinshell optimise TASK [--scene SCENE] --method cma|gd|hybrid --episodes N [--workers K]
-                       [--address RAY] [--batched [--batch-size N|auto] [--gd-starts K]] [--horizon H] [--seed S] [--population P] [--sigma S]
+                       [--address RAY] [--batched [--batch-size N|auto] [--gd-starts K]] [--horizon H]
+                       [--seed S] [--population P] [--sigma S]
                        [--control-points K] [--learning-rate A] [--start NAME=VALUE ...]
                        [--max-time S] [--backend numpy|taichi-cpu|taichi-cuda] --out DIR [--force] [--resume]
 

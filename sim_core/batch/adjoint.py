@@ -325,7 +325,8 @@ def _adjoint_solver(scene: StackedScene, linear_solver: str, backend: str) -> Li
     if linear_solver != "pcg":
         return make_linear_solver(linear_solver)
     if not uses_taichi(backend):
-        raise ConfigError(f"batched gradient: linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {backend!r}")
+        raise ConfigError(f"batched gradient: linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, "
+                          f"not {backend!r}")
     from sim_core.batch.adjoint_solvers import StackedAdjointCG  # Taichi kernels: loaded on a Taichi backend only
 
     return StackedAdjointCG(scene)

@@ -125,7 +125,8 @@ def test_batched_hybrid_takes_gradients_at_its_best_cma_candidates_together(tmp_
     gd = [h["reward"] for h in doc["history"][4:]]
     assert len(cma) >= 2 and gd[:len(cma)] == pytest.approx(cma, rel=1e-6)
     with pytest.raises(ConfigError, match="--gd-starts"):
-        optimise_main(ARGS + ["--method", "hybrid", "--episodes", "8", "--out", str(tmp_path / "b"), "--gd-starts", "2"])
+        optimise_main(ARGS + ["--method", "hybrid", "--episodes", "8", "--out", str(tmp_path / "b"),
+                              "--gd-starts", "2"])
 
 
 def test_batch_size_splits_each_population_into_chunks_with_the_serial_scores(tmp_path):

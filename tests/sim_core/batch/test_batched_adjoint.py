@@ -4,7 +4,6 @@ with central differences, and a copy that fails gets none while the others' are 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 
 import numpy as np
@@ -33,7 +32,8 @@ def _weights(model, i: int) -> np.ndarray:
     """Copy ``i``'s loss ``L = sum(W * x_T)`` over the final positions: random weights on the sheet, shape (n, 3)."""
     W = np.zeros((model.vertex_count, 3))
     sheet = model.bodies["sheet"]
-    W[sheet.vertex_start:sheet.vertex_stop] = np.random.default_rng(10 + i).normal(size=(sheet.vertex_stop - sheet.vertex_start, 3))
+    rows = sheet.vertex_stop - sheet.vertex_start
+    W[sheet.vertex_start:sheet.vertex_stop] = np.random.default_rng(10 + i).normal(size=(rows, 3))
     return W
 
 
@@ -56,13 +56,15 @@ def _batched(model, params=PARAMS, config=TIGHT, spoil=None):
     return batch, recorder.trajectory()
 
 
+def _alone(model, params, config=TIGHT) -> Simulation:
+    """A Simulation of its own of ``model`` with ``params``, at the task's initial state."""
+    return BatchedSimulation.from_model(model, 1, params=[params], state=task_initial_state(model),
+                                        solver_config=config).sims[0]
+
+
 def _separate(model, params, motion, weights_of, config=TIGHT):
     """One copy rolled out alone: (its gradient, its loss)."""
-    m = copy.deepcopy(model)
-    for name, value in params.items():
-        m.set_parameter(name, value)
-    sim = Simulation(m, solver_config=config)
-    sim.state = task_initial_state(m)
+    sim = _alone(model, params, config)
     pose0 = sim.state.effector_pose["pad"].copy()
     traj = adjoint.rollout(sim, [control(pose0, motion, k) for k in range(STEPS)])
     W = weights_of
@@ -125,11 +127,7 @@ def test_a_batched_gradient_matches_central_differences(model):
     hz = 1e-6
 
     def loss_with_press(dz: float) -> float:
-        m = copy.deepcopy(model)
-        for name, value in PARAMS[2].items():
-            m.set_parameter(name, value)
-        sim = Simulation(m, solver_config=TIGHT)
-        sim.state = task_initial_state(m)
+        sim = _alone(model, PARAMS[2])
         pose0 = sim.state.effector_pose["pad"].copy()
         for k in range(STEPS):
             c = control(pose0, MOTIONS[2], k)

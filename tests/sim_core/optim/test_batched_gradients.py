@@ -46,7 +46,8 @@ def test_batched_reward_gradients_equal_each_episodes_own():
         assert scale > 0.0
         np.testing.assert_allclose(da, want_da, rtol=1e-6, atol=1e-7 * scale)
         for name in names:
-            assert dp[name] == pytest.approx(want_dp[name], rel=1e-6, abs=1e-9 * abs(want_dp["sheet.bending_stiffness"]))
+            tiny = 1e-9 * abs(want_dp["sheet.bending_stiffness"])
+            assert dp[name] == pytest.approx(want_dp[name], rel=1e-6, abs=tiny), name
     assert np.abs(got[0][1] - got[2][1]).max() > 1e-3 * np.abs(got[0][1]).max()  # the episodes differ
     with pytest.raises(ConfigError, match="2 parameter sets for 3 episodes"):
         BatchedEpisodeGradients(task).reward_gradients(actions, params[:2])
