@@ -112,3 +112,4 @@ def test_hybrid_starts_its_k_runs_at_the_best_feasible_cma_candidates():
     assert [score for score, _ in state.cma_candidates] == best_two
     for (_, point), start in zip(state.cma_candidates, space.batches[0]):
         np.testing.assert_array_equal(point, start)
+
