@@ -43,15 +43,16 @@ Steps retried with dt halving (``SolverConfig.dt_halvings_on_failure``) are not 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 
+from sim_core.adjoint_effectors import (  # noqa: F401
+    LIMITED_POSE_FD_STEP, command_jacobian, driven_jacobian, effector_pullback, rotation_derivative)
 from sim_core.adjoint_friction import FrictionRows, friction_rows, friction_state_jacobian  # noqa: F401
 from sim_core.contact_set import ContactSet
 from sim_core.control import Control
-from sim_core.effector import limit_pose_step
 from sim_core.elastic import ElasticTerms
 from sim_core.energies.base import ConstantDiagonalHessian, HingeBending, assemble_hessian, block_dof_indices
 from sim_core.energies.contact.reference import EdgeEdgeContact, PlaneContact, VertexTriangleContact
@@ -65,11 +66,6 @@ from sim_core.energies.friction.reference import (
     smooth_friction_f2_x_minus_f1_over_x3,
 )
 from sim_core.state import State
-from sim_core.transforms import quat_to_matrix
-
-LIMITED_POSE_FD_STEP = 1e-7
-"""Central-difference step (m, and quaternion units) for the Jacobian of a rate-limited command."""
-
 
 # ============================================================================ records
 @dataclass
@@ -175,68 +171,6 @@ def rollout_step(sim, control: Control | None, index: int, differentiable: bool 
             "its record holds them as Dirichlet and lacks their elastic terms; use SolverConfig(sleeping=False) "
             "for gradients")
     return c
-
-
-def rotation_derivative(q: np.ndarray) -> np.ndarray:
-    """dR/dq of :func:`~sim_core.transforms.quat_to_matrix` (a quadratic form), shape ``(4, 3, 3)``.
-
-    Exact: central differences of a quadratic polynomial carry no truncation error.
-    """
-    q = np.asarray(q, dtype=float)
-    out = np.empty((4, 3, 3))
-    for i in range(4):
-        e = np.zeros(4)
-        e[i] = 0.5
-        out[i] = quat_to_matrix(q + e) - quat_to_matrix(q - e)
-    return out
-
-
-def driven_jacobian(eff, pose: np.ndarray, opening: float) -> tuple[np.ndarray, np.ndarray]:
-    """Derivatives of :func:`~sim_core.effector.driven_positions`.
-
-    Returns:
-        ``(d x / d pose (k, 3, 7), d x / d opening (k, 3))`` for the ``k`` driven vertices.
-    """
-    local = np.array(eff.local_points, dtype=float)
-    d_open = np.zeros_like(local)
-    if eff.finger_sign is not None:
-        local = local + np.outer(eff.finger_sign * 0.5 * (opening - eff.initial_opening), eff.finger_axis)
-        d_open = np.outer(eff.finger_sign * 0.5, eff.finger_axis)
-    R = quat_to_matrix(pose[3:7])
-    dR = rotation_derivative(pose[3:7])
-    J = np.zeros((local.shape[0], 3, 7))
-    J[:, :, :3] = np.eye(3)
-    J[:, :, 3:] = np.einsum("qij,kj->kiq", dR, local)
-    return J, d_open @ R.T
-
-
-def command_jacobian(eff, current: np.ndarray, target: np.ndarray, limited: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobians of the reached pose w.r.t. the previous pose and the commanded target, ``(7, 7)`` each.
-
-    Unlimited: pose = ``[t, q / |q|]`` (exact). Limited: central differences of
-    :func:`~sim_core.effector.limit_pose_step` with step :data:`LIMITED_POSE_FD_STEP`.
-    """
-    target = np.asarray(target, dtype=float)
-    if not limited:
-        qn = np.linalg.norm(target[3:])
-        qh = target[3:] / qn
-        J = np.zeros((7, 7))
-        J[:3, :3] = np.eye(3)
-        J[3:, 3:] = (np.eye(4) - np.outer(qh, qh)) / qn
-        return np.zeros((7, 7)), J
-    h = LIMITED_POSE_FD_STEP
-    lim = (eff.max_translation_per_step, eff.max_rotation_per_step)
-    out = []
-    for which in (0, 1):
-        J = np.zeros((7, 7))
-        for i in range(7):
-            args_p = [np.array(current, dtype=float), target.copy()]
-            args_m = [np.array(current, dtype=float), target.copy()]
-            args_p[which][i] += h
-            args_m[which][i] -= h
-            J[:, i] = (limit_pose_step(*args_p, *lim)[0] - limit_pose_step(*args_m, *lim)[0]) / (2 * h)
-        out.append(J)
-    return out[0], out[1]
 
 
 def theta_stiffness(pot) -> sp.csr_matrix:
@@ -483,6 +417,32 @@ class StepLinearization:
         r = dx.shape[2]
         return (self.H @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
 
+    def fixed_row_product(self, w: np.ndarray) -> np.ndarray:
+        """The exact Hessian times ``w`` (shape ``(n, 3)``) on the rows of the fixed vertices, zeros on the
+        other rows: the adjoint's Dirichlet pullback reads no other row. From the element blocks that touch
+        a fixed vertex, without assembling :attr:`H` (unless it is assembled already); equal to
+        :meth:`hessian_product` on those rows up to round-off."""
+        if self._H is not None:
+            out = self.hessian_product(w[:, :, None])[:, :, 0]
+        else:
+            diag = np.zeros(3 * self.n)
+            out = np.zeros((self.n, 3, 1))
+            for p in self.record.terms:
+                if isinstance(p, ConstantDiagonalHessian):
+                    diag += p.hessian_diagonal()
+                    continue
+                hb = p.hessian(self.x, "none")
+                touch = self.fixed[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
+                if not touch.any():
+                    continue
+                v = hb.vertices[touch]
+                k, m = v.shape
+                prod = np.matmul(hb.blocks[touch], w[v].reshape(k, 3 * m, 1))
+                out += _scatter_vertex_rows(self.n, v, prod.reshape(k, m, 3, 1))
+            out = out[:, :, 0] + (diag * w.reshape(-1)).reshape(self.n, 3)
+        out[~self.fixed] = 0.0
+        return out
+
     # ------------------------------------------------------------ parameters
     def mass_gradient(self) -> np.ndarray:
         """d(inertia + gravity + damping gradient)/d m_i per vertex, shape ``(n, 3)``."""
@@ -628,13 +588,47 @@ def _dof_vertices(eff) -> np.ndarray:
 
 
 # ============================================================================ reverse mode
+class ParameterAdjoint(Protocol):
+    """Where :func:`reverse_pass` accumulates the parameter derivatives ``sum_n w_n^T dg_n/dp``."""
+
+    def add_step(self, lin: StepLinearization, w: np.ndarray) -> None:
+        """Add ``w^T dg/dp`` of one step (``w = -lambda``, shape ``(n, 3)``) for every parameter."""
+
+    def add_yield(self, sheet: str, yielding: np.ndarray, sign: np.ndarray, a: np.ndarray) -> None:
+        """Add the plastic update's ``-sign . a`` over the ``yielding`` hinges of ``sheet`` (shape ``(h,)`` each)
+        to the sheet's yield angle."""
+
+
+class GlobalParameterAdjoint:
+    """:class:`ParameterAdjoint` of one model: global parameter name -> dL/dp (:attr:`values`).
+
+    Args:
+        params: checked global parameter names (:func:`check_parameters`).
+    """
+
+    def __init__(self, params: Sequence[str]) -> None:
+        self.values = {p: 0.0 for p in params}
+
+    def add_step(self, lin: StepLinearization, w: np.ndarray) -> None:
+        """As :meth:`ParameterAdjoint.add_step`."""
+        for p in self.values:
+            self.values[p] += float(np.sum(w * lin.parameter_rhs(p)))
+
+    def add_yield(self, sheet: str, yielding: np.ndarray, sign: np.ndarray, a: np.ndarray) -> None:
+        """As :meth:`ParameterAdjoint.add_yield`."""
+        yname = f"{sheet}.yield_angle"
+        if yname in self.values:
+            self.values[yname] -= float(np.dot(sign[yielding], a[yielding]))
+
+
 def rollout_gradient(sim_or_model, trajectory: Trajectory,
                      dL_dx: np.ndarray | Callable[[Trajectory], tuple[float, np.ndarray]],
                      params: Sequence[str] = (),
                      dL_dtheta_bar: dict[str, np.ndarray] | None = None) -> Gradient:
     """Reverse-mode derivative of a loss of the rollout's positions (adjoint method).
 
-    One linear solve per step with the factorisation of the exact Hessian at the converged step.
+    One linear solve per step with the factorisation of the exact Hessian at the converged step
+    (:func:`reverse_pass`).
 
     Args:
         sim_or_model: the Simulation (its solver's linear solver is used) or the Model of the rollout.
@@ -663,11 +657,20 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
     dL_dx = np.asarray(dL_dx, dtype=float)
     if dL_dx.shape != (T + 1, n, 3):
         raise ConfigError(f"adjoint: dL_dx has shape {dL_dx.shape}, expected {(T + 1, n, 3)}")
-    elastic, contact, mass = ElasticTerms(model), ContactSet(model, backend=backend), model.vertex_mass()
-    linear_solver = make_linear_solver(solver_name)
-    ax = dL_dx[T].copy()
-    av = np.zeros((n, 3))
-    atb = {name: np.zeros(len(model.bodies[name].hinges)) for name in elastic.hinges}
+    atb = rest_angle_adjoint(model, dL_dtheta_bar)
+    parameters = GlobalParameterAdjoint(params)
+    g = reverse_pass(model, trajectory, dL_dx, atb, parameters, make_linear_solver(solver_name), backend)
+    g.params, g.loss = parameters.values, loss
+    return g
+
+
+def rest_angle_adjoint(model: Model, dL_dtheta_bar: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    """The final state's rest-angle adjoint: sheet -> dL/dtheta_bar, shape ``(h,)`` (zeros where not given).
+
+    Raises:
+        ConfigError: a sheet without hinges, or an entry of the wrong shape.
+    """
+    atb = {name: np.zeros(len(model.bodies[name].hinges)) for name in ElasticTerms(model).hinges}
     for name, value in (dL_dtheta_bar or {}).items():
         if name not in atb:
             raise ConfigError(f"adjoint: dL_dtheta_bar names {name!r}, not a sheet with hinges; sheets: {sorted(atb)}")
@@ -675,9 +678,42 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
         if value.shape != atb[name].shape:
             raise ConfigError(f"adjoint: dL_dtheta_bar[{name!r}] has shape {value.shape}, expected {atb[name].shape}")
         atb[name] = value.copy()
+    return atb
+
+
+def reverse_pass(model: Model, trajectory: Trajectory, dL_dx: Sequence[np.ndarray], atb: dict[str, np.ndarray],
+                 parameters: ParameterAdjoint, linear_solver: LinearSolver, backend: str,
+                 fixed_rows: bool = False) -> Gradient:
+    """The adjoint recursion of :func:`rollout_gradient` over a checked trajectory (module docstring).
+
+    Per step, from the last: the plastic update's pullback, one solve ``H_ff lambda = a_f`` with the
+    step's exact Hessian (:class:`StepLinearization`, factorised by ``linear_solver``), then the
+    pullbacks of ``w = -lambda`` to the previous state, the parameters (``parameters``), the Dirichlet
+    vertices and the effector commands.
+
+    Args:
+        model: the rollout's model (for a stacked batch, the stacked model: its copies' blocks are
+            independent, so one factorisation and one solve serve all of them).
+        trajectory: the rollout (records checked by the caller).
+        dL_dx: ``T + 1`` arrays dL/dx of each state, shape ``(n, 3)`` each (indexable by step).
+        atb: sheet -> dL/d(final rest angles), shape ``(h,)`` (:func:`rest_angle_adjoint`).
+        parameters: where the parameter derivatives accumulate.
+        linear_solver: the solver that factorises each step's exact Hessian (LU: it need not be
+            positive definite).
+        backend: the concrete backend of the contact set that rebuilds the friction frames.
+        fixed_rows: the Dirichlet pullback's Hessian product from the element blocks touching a fixed vertex
+            (:meth:`StepLinearization.fixed_row_product`) instead of the assembled Hessian (the same to
+            round-off; no assembly when the step's record holds the exact Hessian).
+
+    Returns:
+        the :class:`Gradient` (``params`` empty: they are in ``parameters``; ``loss`` None).
+    """
+    T, n = trajectory.step_count, model.vertex_count
+    elastic, contact, mass = ElasticTerms(model), ContactSet(model, backend=backend), model.vertex_mass()
+    ax = np.array(dL_dx[T], dtype=float)
+    av = np.zeros((n, 3))
     apose = {k: np.zeros(7) for k in model.effectors}
     aopen = {k: 0.0 for k in model.effectors}
-    aparams = {p: 0.0 for p in params}
     g_controls: list[dict] = [None] * T
     g_gripper: list[dict] = [None] * T
     for i in range(T - 1, -1, -1):
@@ -693,9 +729,7 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
             if np.any(yielding):
                 contrib = gt[yielding] * a[yielding, None, None]
                 np.add.at(a_hat, pot.hinges[yielding].reshape(-1), contrib.reshape(-1, 3))
-                yname = f"{name}.yield_angle"
-                if yname in aparams:
-                    aparams[yname] -= float(np.dot(sign[yielding], a[yielding]))
+                parameters.add_yield(name, yielding, sign, a)
             atb_n[name] = np.where(yielding, 0.0, a)
         lam = lin.solve(a_hat.reshape(-1)).reshape(n, 3)
         w = -lam
@@ -703,38 +737,16 @@ def rollout_gradient(sim_or_model, trajectory: Trajectory,
         ax_n += gx
         for name in atb_n:
             atb_n[name] = atb_n[name] + gtb[name]
-        for p in params:
-            aparams[p] += float(np.sum(w * lin.parameter_rhs(p)))
-        a_fixed = a_hat + lin.hessian_product(w[:, :, None])[:, :, 0]
+        parameters.add_step(lin, w)
+        a_fixed = a_hat + (lin.fixed_row_product(w) if fixed_rows else lin.hessian_product(w[:, :, None])[:, :, 0])
         ax_n[lin.static] += a_fixed[lin.static]
-        # effectors: driven vertices -> reached pose -> command / previous pose
         g_controls[i], g_gripper[i] = {}, {}
-        for name, eff in model.effectors.items():
-            pose = rec.effector_pose[name]
-            opening = rec.gripper_opening[name]
-            Jp, Jo = driven_jacobian(eff, pose, opening)
-            a_v = a_fixed[eff.vertices]
-            a_pose = apose[name] + np.einsum("kdq,kd->q", Jp, a_v)
-            a_open = aopen[name] + float(np.sum(Jo * a_v))
-            target = control.effector_pose_target.get(name)
-            if target is None:
-                g_controls[i][name] = np.zeros(7)
-                apose[name] = a_pose
-            else:
-                J_cur, J_tgt = command_jacobian(eff, state.effector_pose[name], target, name in rec.limited_effectors)
-                g_controls[i][name] = J_tgt.T @ a_pose
-                apose[name] = J_cur.T @ a_pose
-            if name in control.gripper_target:
-                g_gripper[i][name] = a_open
-                aopen[name] = 0.0
-            else:
-                g_gripper[i][name] = 0.0
-                aopen[name] = a_open
+        effector_pullback(model, rec, state, control, a_fixed, apose, aopen, g_controls[i], g_gripper[i])
         ax = ax_n + dL_dx[i]
         av = gv
         atb = atb_n
-    return Gradient(controls=g_controls, gripper=g_gripper, params=aparams, x0=ax, v0=av,
-                    initial_pose=apose, theta_bar0=atb, loss=loss)
+    return Gradient(controls=g_controls, gripper=g_gripper, params={}, x0=ax, v0=av,
+                    initial_pose=apose, theta_bar0=atb)
 
 
 def _model_and_solver(sim_or_model) -> tuple[Model, str, str]:

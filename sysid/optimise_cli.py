@@ -3,7 +3,8 @@
 Usage::
 
     thinshell optimise TASK [--scene SCENE] --method cma|gd|hybrid --episodes N [--workers K]
-                       [--address RAY] [--horizon H] [--seed S] [--population P] [--sigma S]
+                       [--address RAY] [--batched [--batch-size N|auto] [--gd-starts K]] [--horizon H]
+                       [--seed S] [--population P] [--sigma S]
                        [--control-points K] [--learning-rate A] [--start NAME=VALUE ...]
                        [--max-time S] [--backend numpy|taichi-cpu|taichi-cuda] --out DIR [--force] [--resume]
 
@@ -11,7 +12,10 @@ TASK is a task name (``thinshell optimise forming``) or a task file (``config/ta
 ``--scene`` runs it on another scene: a ``kind: task`` scene replaces the task's scene; a scene
 written by ``thinshell sysid --write-scene`` (with ``fitted: {params: ...}``) sets its fitted values
 of the parameters the task's model has. Episodes run serially, or on ``--workers`` local Ray
-workers, or on the Ray cluster at ``--address`` (sim_core.optim.evaluators).
+workers, or on the Ray cluster at ``--address`` (sim_core.optim.evaluators), or as one batch of scene copies
+(``--batched``); with ``--batched`` the gradient phase of ``gd`` and ``hybrid`` follows ``--gd-starts`` K starts
+(default :data:`DEFAULT_BATCHED_GD_STARTS` on a manipulation task), their K gradients per step one batched
+adjoint (sim_core.optim.batch_gradient, sim_core.optim.search).
 
 Outputs in DIR: ``scene.yaml`` (the scene document the run used), ``checkpoint.pkl`` (after every batch; ``--resume`` continues from it, also with a
 larger ``--episodes``), and at the end ``trajectory.yaml`` (docs/trajectory_format.md: the best
@@ -47,6 +51,8 @@ from sim_core.solver_config import SolverConfig
 CHECKPOINT = "checkpoint.pkl"
 OUTPUTS = ("scene.yaml", "trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png")
 RESULT_SCHEMA = "thinshell.optimise.result"
+DEFAULT_BATCHED_GD_STARTS = 4
+"""Gradient runs of ``gd`` / ``hybrid`` with ``--batched`` on a manipulation task when ``--gd-starts`` is not given."""
 
 
 def _batch_size(text: str) -> int | str:
@@ -76,6 +82,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=_batch_size, metavar="N|auto",
                    help="with --batched: the most copies stepped together (a larger population runs in chunks); "
                         "auto: the largest number that fits the device's free memory (sim_core.batch.sizing)")
+    p.add_argument("--gd-starts", type=int, metavar="K",
+                   help="gd / hybrid with --batched: K gradient runs at once, their K gradients a step evaluated "
+                        "together (one batch, its adjoint passes run together): the hybrid's K best feasible CMA-ES "
+                        f"candidates, else restarts around the start (default {DEFAULT_BATCHED_GD_STARTS} with "
+                        "--batched on a manipulation task, else 1)")
     p.add_argument("--horizon", type=int, help="steps per episode (default: the task's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
@@ -193,9 +204,9 @@ def optimise_main(argv: list[str]) -> int:
                               f"this one is {args.method}, {meta}")
         state.episodes = max(state.episodes, int(args.episodes))
         if state.phase == "done" and state.episodes_done < state.episodes:
-            state.phase = "gd" if state.adam is not None else "cma"
+            state.phase = "gd" if state.adam is not None or state.adams is not None else "cma"
     else:
-        state = new_state(args.method, args.episodes, seed=args.seed,
+        state = new_state(args.method, args.episodes, seed=args.seed, gd_starts=_gd_starts(args, task),
                           sigma=args.sigma if args.sigma is not None else task.cma_sigma,
                           population=args.population if args.population is not None else task.cma_population,
                           **({"learning_rate": args.learning_rate} if args.learning_rate is not None else {}), meta=meta)
@@ -216,6 +227,22 @@ def optimise_main(argv: list[str]) -> int:
     print(f"thinshell optimise: {task.name} {state.method}: best reward {state.best_reward:.6g} after "
           f"{state.episodes_done} episodes; wrote {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _gd_starts(args, task) -> int:
+    """The gradient runs of the gradient phase (``--gd-starts``; module docstring).
+
+    Raises:
+        ConfigError: K < 1, or K > 1 without ``--batched``, with ``--method cma`` or on an inverse task.
+    """
+    if args.gd_starts is None:
+        batched = args.batched and args.method != "cma" and task.kind != "inverse"
+        return DEFAULT_BATCHED_GD_STARTS if batched else 1
+    if args.gd_starts < 1:
+        raise ConfigError(f"--gd-starts must be >= 1, got {args.gd_starts}")
+    if args.gd_starts > 1 and (not args.batched or args.method == "cma" or task.kind == "inverse"):
+        raise ConfigError("--gd-starts > 1 applies to --method gd or hybrid with --batched on a manipulation task")
+    return int(args.gd_starts)
 
 
 def _space(task, evaluator, horizon: int, params: dict, start: dict, control_points: int | None,
@@ -307,6 +334,7 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
         paths.append(write_trajectory(out / "trajectory.yaml", traj, force=True))
     doc = {"schema": RESULT_SCHEMA, "schema_version": 1, "task": task.name, "kind": task.kind, "method": state.method,
            "episodes": state.episodes_done, "horizon": task.horizon, "seed": state.seed, "workers": workers,
+           "gd_starts": state.gd_starts,
            "backend": state.meta.get("backend"), "stop_reason": state.stop_reason,
            "wall_time_s": wall_s, "rollouts_per_s": state.episodes_done / wall_s if wall_s > 0 else None,
            "best_reward": _num(state.best_reward), "best_score": _num(state.best_score), "start_reward": _num(before.reward),

@@ -159,22 +159,23 @@ class BatchedEvaluator:
         for start in range(0, len(seqs), size):
             results += rollout_population(self.task, seqs[start:start + size], plist[start:start + size],
                                           solver_config=self.solver_config)
-        return [self._episode_result(r) for r in results]
-
-    def _episode_result(self, r) -> EpisodeResult:
-        """The :class:`EpisodeResult` of a :class:`~sim_core.tasks.rollout.RolloutResult`
-        (:meth:`Episode._result`'s rules)."""
-        infeasible = r.infeasible
-        reward = float(r.reward) if infeasible is None else float("nan")
-        if infeasible is None and not np.isfinite(reward):
-            infeasible = f"reward is {reward}"
-        peak = max((float(np.linalg.norm(w[k, :3])) for w in r.wrench.values() for k in range(1, w.shape[0])),
-                   default=0.0)
-        return EpisodeResult(reward, r.steps_done, self.horizon, infeasible, r.effector_poses, r.gripper,
-                             wrench_peak_N=peak)
+        return [episode_result(r, self.horizon) for r in results]
 
     def close(self) -> None:
         """Nothing to release."""
+
+
+def episode_result(r, horizon: int) -> EpisodeResult:
+    """The :class:`EpisodeResult` of a :class:`~sim_core.tasks.rollout.RolloutResult` of an episode of
+    ``horizon`` steps (:meth:`Episode._result`'s rules: an infeasible episode's reward NaN, a non-finite
+    reward infeasible, ``wrench_peak_N`` over the steps taken)."""
+    infeasible = r.infeasible
+    reward = float(r.reward) if infeasible is None else float("nan")
+    if infeasible is None and not np.isfinite(reward):
+        infeasible = f"reward is {reward}"
+    peak = max((float(np.linalg.norm(w[k, :3])) for w in r.wrench.values() for k in range(1, w.shape[0])),
+               default=0.0)
+    return EpisodeResult(reward, r.steps_done, horizon, infeasible, r.effector_poses, r.gripper, wrench_peak_N=peak)
 
 
 def _actor_class():

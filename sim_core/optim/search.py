@@ -20,6 +20,14 @@
   start, the task's reference trajectory). A gradient that is exactly zero there (the effector
   touches nothing: no action changes the reward to first order) hands the rest of the budget back
   to CMA-ES, which continues its search distribution.
+* ``gd_starts = K > 1`` (``gd`` and ``hybrid``): the gradient phase follows ``K`` Adam runs at once, each
+  with its own moments, step and backtracking as above; every gradient step evaluates their ``K``
+  gradients together (:meth:`BatchedGradientSpace.gd_gradients`: one lockstep batch whose adjoint passes
+  run together, :mod:`sim_core.optim.batch_gradient`) and costs ``K`` episodes (fewer when less budget
+  is left). The starts are the hybrid's ``K`` best feasible CMA-ES candidates (best first); where there
+  are fewer (and for ``gd``), the first start and restarts drawn around it, ``y0 + sigma N(0, I)`` clipped
+  to the bounds (``sigma`` the CMA-ES step size, seeded by ``seed``). A start whose first gradient is
+  exactly zero stops; when every start has stopped, the run goes on as a single start's would.
 
 A :class:`SearchSpace` says what is searched (per-step actions of a manipulation task, material
 parameters of an inverse task) in two coordinate systems: the CMA-ES one (control points,
@@ -76,6 +84,13 @@ class SearchSpace(Protocol):
         """What a point means (per-step actions, parameter values), kept as the best candidate."""
 
 
+class BatchedGradientSpace(SearchSpace, Protocol):
+    """A :class:`SearchSpace` that evaluates several gradients at once (``gd_starts > 1``)."""
+
+    def gd_gradients(self, ys: Sequence[np.ndarray]) -> list[tuple[EpisodeResult, np.ndarray]]:
+        """:meth:`SearchSpace.gd_gradient` of every point of ``ys``, evaluated together."""
+
+
 @dataclass
 class ActionSpace:
     """Per-step actions of a manipulation task.
@@ -94,6 +109,8 @@ class ActionSpace:
         evaluator: batch evaluator (serial or Ray) of the task at the decoder's horizon.
         episode: the in-process episode for gradients (built on first use when None).
         task: the task (for the in-process episode).
+        batched_gradients: the :class:`~sim_core.optim.batch_gradient.BatchedEpisodeGradients` of
+            :meth:`gd_gradients` (built on first use when None).
         params: global parameter values of the in-process episode (as the evaluator's).
         solver_config: Newton settings of the in-process episode (as the evaluator's).
         start: ``"zero"`` or ``"reference"``: what the CMA-ES control points are added to.
@@ -109,6 +126,7 @@ class ActionSpace:
     params: dict | None = None
     solver_config: Any = None
     start: str = "zero"
+    batched_gradients: Any = None
 
     def __post_init__(self) -> None:
         if self.start not in CMA_STARTS:
@@ -158,6 +176,15 @@ class ActionSpace:
             self.episode = Episode(self.task, self.decoder.horizon, self.params, self.solver_config)
         res, da, _ = self.episode.reward_gradient(self.actions(y))
         return res.summary(), (da * self.decoder.units).reshape(-1)
+
+    def gd_gradients(self, ys):
+        if self.batched_gradients is None:
+            from sim_core.optim.batch_gradient import BatchedEpisodeGradients
+
+            self.batched_gradients = BatchedEpisodeGradients(self.task, self.decoder.horizon, self.params,
+                                                             self.solver_config)
+        out = self.batched_gradients.reward_gradients([self.actions(y) for y in ys])
+        return [(res.summary(), (da * self.decoder.units).reshape(-1)) for res, da, _ in out]
 
     def candidate(self, phase, point):
         return self.decode(point) if phase == "cma" else self.actions(point)
@@ -210,6 +237,9 @@ class SearchState:
             no feasible one; the gradient phase then starts where ``gd`` would).
         es: the ``cma.CMAEvolutionStrategy`` (kept through a hybrid's gradient phase).
         adam: ``{y, m, v, t, lr, eps, best_y, best_score}`` while in the gradient phase.
+        gd_starts: Adam runs of the gradient phase ``K`` (module docstring).
+        adams: with ``K > 1``, the ``K`` Adam states (as ``adam``, with ``stopped``) in the gradient phase.
+        cma_candidates: with ``K > 1``, the ``K`` best feasible CMA-ES ``(score, point)``, best first.
         meta: free description of the problem (task name, horizon, ...) checked on resume.
         stop_reason: how the last :func:`optimise` call ended (``episode budget spent``,
             ``deadline``, or CMA-ES's own termination criteria, e.g. ``{'tolfun': 1e-11}``).
@@ -234,6 +264,9 @@ class SearchState:
     adam: dict | None = None
     meta: dict = field(default_factory=dict)
     stop_reason: str | None = None
+    gd_starts: int = 1
+    adams: list[dict] | None = None
+    cma_candidates: list | None = None
 
     @property
     def episodes_done(self) -> int:
@@ -248,13 +281,15 @@ class SearchState:
 
 def new_state(method: str, episodes: int, *, seed: int = 0, sigma: float = 1.0, population: int = 8,
               learning_rate: float = DEFAULT_LEARNING_RATE, hybrid_fraction: float = DEFAULT_HYBRID_FRACTION,
-              meta: dict | None = None) -> SearchState:
+              meta: dict | None = None, gd_starts: int = 1) -> SearchState:
     """A fresh :class:`SearchState`.
 
     Raises:
-        ConfigError: unknown method or non-positive budget / sigma / population / learning rate, or a
-            hybrid fraction outside (0, 1).
+        ConfigError: unknown method or non-positive budget / sigma / population / learning rate, a
+            hybrid fraction outside (0, 1), or ``gd_starts`` < 1 (or > 1 with ``cma``).
     """
+    if int(gd_starts) < 1 or (method == "cma" and int(gd_starts) > 1):
+        raise ConfigError(f"optimiser: gd_starts must be >= 1 (1 with cma), got {gd_starts} with {method!r}")
     if method not in METHODS:
         raise ConfigError(f"optimiser: method must be one of {METHODS}, got {method!r}")
     if int(episodes) < 1 or sigma <= 0 or int(population) < 2 or learning_rate <= 0:
@@ -263,7 +298,8 @@ def new_state(method: str, episodes: int, *, seed: int = 0, sigma: float = 1.0, 
     if not 0.0 < hybrid_fraction < 1.0:
         raise ConfigError(f"optimiser: hybrid fraction must be in (0, 1), got {hybrid_fraction}")
     return SearchState(method, int(episodes), int(seed), float(sigma), int(population), float(learning_rate),
-                       float(hybrid_fraction), phase="gd" if method == "gd" else "cma", meta=dict(meta or {}))
+                       float(hybrid_fraction), phase="gd" if method == "gd" else "cma", meta=dict(meta or {}),
+                       gd_starts=int(gd_starts))
 
 
 def _cma_budget(state: SearchState) -> int:
@@ -283,6 +319,10 @@ def _record(state: SearchState, phase: str, results: Sequence[EpisodeResult], po
             state.best_phase, state.best_point = phase, np.array(point, dtype=float)
             if phase == "cma" and res.feasible:
                 state.best_cma_point = np.array(point, dtype=float)
+        if phase == "cma" and res.feasible and state.gd_starts > 1:
+            kept = (state.cma_candidates or []) + [(float(res.score), np.array(point, dtype=float))]
+            kept.sort(key=lambda entry: -entry[0])
+            state.cma_candidates = kept[:state.gd_starts]
     return logs
 
 
@@ -305,22 +345,38 @@ def _cma_generation(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     return _record(state, "cma", results, points)
 
 
+def _new_adam(state: SearchState, y0: np.ndarray, low: np.ndarray, high: np.ndarray) -> dict:
+    """A fresh Adam state at ``y0`` within ``[low, high]``."""
+    return {"y": y0, "low": low, "high": high, "m": np.zeros_like(y0), "v": np.zeros_like(y0), "t": 0,
+            "lr": state.learning_rate, "eps": None, "best_y": y0.copy(), "best_score": -math.inf}
+
+
 def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     if state.adam is None:
-        y0, low, high = space.gd_start(state.best_cma_point)
-        state.adam = {"y": y0, "low": low, "high": high, "m": np.zeros_like(y0), "v": np.zeros_like(y0), "t": 0,
-                      "lr": state.learning_rate, "eps": None, "best_y": y0.copy(), "best_score": -math.inf}
+        state.adam = _new_adam(state, *space.gd_start(state.best_cma_point))
     a = state.adam
     y = a["y"].copy()
     res, g = space.gd_gradient(y)
     logs = _record(state, "gd", [res], [y])
+    if _adam_update(state, a, y, res, g):
+        _all_starts_flat(state)
+    return logs
+
+
+def _all_starts_flat(state: SearchState) -> None:
+    """Every start's first gradient was exactly zero: back to CMA-ES (hybrid), else the run is done."""
+    if state.es is not None:
+        state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
+    else:
+        state.phase = "done"
+        state.stop_reason = "zero gradient at the start: no action changes the reward to first order"
+
+
+def _adam_update(state: SearchState, a: dict, y: np.ndarray, res: EpisodeResult, g: np.ndarray) -> bool:
+    """One Adam step of the run ``a`` from the episode at ``y`` (result ``res``, gradient ``g``), with the
+    backtracking of the module docstring; True (and no step) when ``g`` is the run's first and exactly zero."""
     if res.feasible and a["t"] == 0 and not np.any(g):
-        if state.es is not None:
-            state.phase = "cma_rest"  # nothing to descend at the CMA-ES best: back to CMA-ES
-        else:
-            state.phase = "done"
-            state.stop_reason = "zero gradient at the start: no action changes the reward to first order"
-        return logs
+        return True
     if res.feasible and res.score > a["best_score"]:
         a["best_score"], a["best_y"], a["best_g"] = res.score, y.copy(), g.copy()
     elif a.get("best_g") is not None:
@@ -332,7 +388,7 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     else:  # infeasible before any feasible step: back to the start with half the step
         a["y"], a["lr"] = a["best_y"].copy(), 0.5 * a["lr"]
         a["m"][:], a["v"][:] = 0.0, 0.0
-        return logs
+        return False
     if a["eps"] is None:
         a["eps"] = ADAM_EPS_FRACTION * max(float(np.sqrt(np.mean(g**2))), np.finfo(float).tiny)
     b1, b2 = ADAM_BETAS
@@ -341,6 +397,33 @@ def _gd_step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
     a["v"] = b2 * a["v"] + (1 - b2) * g**2
     m_hat, v_hat = a["m"] / (1 - b1 ** a["t"]), a["v"] / (1 - b2 ** a["t"])
     a["y"] = np.clip(y + a["lr"] * m_hat / (np.sqrt(v_hat) + a["eps"]), a["low"], a["high"])
+    return False
+
+
+def _gd_starts(state: SearchState, space: SearchSpace) -> list[dict]:
+    """The ``K`` Adam runs of a multi-start gradient phase (module docstring)."""
+    points = [p for _, p in (state.cma_candidates or [])][:state.gd_starts]
+    starts = [space.gd_start(p) for p in points] or [space.gd_start(state.best_cma_point)]
+    y0, low, high = starts[0]
+    rng = np.random.default_rng(state.seed + 2)
+    while len(starts) < state.gd_starts:
+        starts.append((np.clip(y0 + state.sigma * rng.standard_normal(y0.shape), low, high), low, high))
+    return [_new_adam(state, *start) for start in starts]
+
+
+def _gd_batch_step(state: SearchState, space: BatchedGradientSpace) -> list[EpisodeLog]:
+    """One step of every running Adam run, their gradients evaluated together (``gd_starts > 1``)."""
+    if state.adams is None:
+        state.adams = _gd_starts(state, space)
+    running = [a for a in state.adams if not a.get("stopped")]
+    running = running[:max(1, state.episodes - state.episodes_done)]
+    ys = [a["y"].copy() for a in running]
+    pairs = space.gd_gradients(ys)
+    logs = _record(state, "gd", [res for res, _ in pairs], ys)
+    for a, y, (res, g) in zip(running, ys, pairs):
+        a["stopped"] = _adam_update(state, a, y, res, g)
+    if all(a.get("stopped") for a in state.adams):
+        _all_starts_flat(state)
     return logs
 
 
@@ -371,7 +454,7 @@ def step(state: SearchState, space: SearchSpace) -> list[EpisodeLog]:
             return _cma_generation(state, space)
         state.phase = "done"
         return []
-    return _gd_step(state, space)
+    return _gd_step(state, space) if state.gd_starts == 1 else _gd_batch_step(state, space)
 
 
 def optimise(state: SearchState, space: SearchSpace, on_batch: Callable[[SearchState, list[EpisodeLog]], None] | None = None,

@@ -13,11 +13,11 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from sim_core.batch.simulation import BatchedSimulation
+from sim_core.batch.simulation import BatchedSimulation, BatchStep
 from sim_core.control import Control
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.scenes.task_scene import build_task_scene, task_initial_state
@@ -365,8 +365,14 @@ class PopulationRollout:
         self.episodes = [TaskEpisode(task, p, backend, solver_config) for p in plist]
         self.batch = BatchedSimulation([ep.sim for ep in self.episodes], finite_check=False) if B else None
 
-    def run(self) -> list[RolloutResult]:
-        """Step every member through its actions (once); one :class:`RolloutResult` per member."""
+    def run(self, step: Callable[..., BatchStep] | None = None) -> list[RolloutResult]:
+        """Step every member through its actions (once); one :class:`RolloutResult` per member.
+
+        Args:
+            step: what advances the batch, ``step(controls, mask) -> BatchStep``: default
+                :meth:`BatchedSimulation.step`; :meth:`sim_core.batch.adjoint.TrajectoryRecorder.step` records
+                the steps for the batched adjoint.
+        """
         arrays, episodes, batch = self.actions, self.episodes, self.batch
         B = len(arrays)
         if B == 0:
@@ -378,7 +384,7 @@ class PopulationRollout:
             if not mask.any():
                 break
             controls = [episodes[i].command(arrays[i][k]) if mask[i] else None for i in range(B)]
-            res = batch.step(controls, mask)
+            res = (step or batch.step)(controls, mask)
             for i in np.flatnonzero(mask):
                 info = episodes[i].record_step(res.infos[i], batch.failures[i] if i in res.failed_now else None)
                 if info is None:

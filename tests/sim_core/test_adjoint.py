@@ -179,3 +179,47 @@ def test_unknown_parameter_and_stale_trajectory_are_refused(case):
     other.set_parameter("damping", 1.0)
     with pytest.raises(ConfigError, match="model parameters changed since the rollout"):
         rollout_gradient(other, t2, np.zeros((2, other.model.vertex_count, 3)), [])
+
+
+def test_fixed_row_product_equals_the_assembled_hessian_on_the_fixed_rows(case):
+    """StepLinearization.fixed_row_product (the batched reverse pass's Dirichlet pullback, from the element
+    blocks touching a fixed vertex) against the assembled exact Hessian's product, on every step."""
+    sim, traj, _, _ = case
+    model = sim.model
+    rng = np.random.default_rng(1)
+    for rec, state in zip(traj.records, traj.states[:-1]):
+        lin = StepLinearization(model, rec, state, ElasticTerms(model), ContactSet(model), model.vertex_mass(),
+                                factorize=False)
+        assert np.any(lin.static) and np.any(lin.driven)  # the clamped edge and the gel's driven vertices
+        w = rng.normal(size=(model.vertex_count, 3))
+        got = lin.fixed_row_product(w)
+        want = lin.hessian_product(w[:, :, None])[:, :, 0]
+        scale = np.abs(want[lin.fixed]).max()
+        np.testing.assert_allclose(got[lin.fixed], want[lin.fixed], rtol=1e-12, atol=1e-12 * scale)
+        assert not np.any(got[~lin.fixed])
+
+
+def test_rebuilt_friction_rows_accept_the_rounding_of_positions_far_from_the_origin(case):
+    """The adjoint's check of its rebuilt lagged-friction rows against the step's (the normal forces
+    ``k_c (eps - d)``) allows the rounding of ``d`` at the positions' magnitude: a lockstep batch's copies
+    sit up to metres from the origin. Here the step's start is moved 10 km along x (the table plane keeps its
+    distances): the rows rebuilt there are the step's; a normal force changed by 1e-6 is refused."""
+    from sim_core.adjoint_friction import friction_rows
+    from sim_core.energies.friction.reference import LaggedFriction
+    from sim_core.errors import ThinShellError
+
+    sim, traj, _, _ = case
+    model = sim.model
+    rec, state = traj.records[-1], traj.states[-2]
+    friction = next(p for p in rec.terms if isinstance(p, LaggedFriction))
+    moved = state.copy()
+    moved.x = state.x + np.array([1e4, 0.0, 0.0])
+    rows = friction_rows(model, ContactSet(model), moved, friction)
+    np.testing.assert_array_equal(rows.vertices, friction.vertices)
+    lam = friction.lam.copy()
+    try:
+        friction.lam = lam * (1.0 + 1e-6)
+        with pytest.raises(ThinShellError, match="do not match"):
+            friction_rows(model, ContactSet(model), state, friction)
+    finally:
+        friction.lam = lam
