@@ -13,9 +13,8 @@ TASK is a task name (``thinshell optimise forming``) or a task file (``config/ta
 written by ``thinshell sysid --write-scene`` (with ``fitted: {params: ...}``) sets its fitted values
 of the parameters the task's model has. Episodes run serially, or on ``--workers`` local Ray
 workers, or on the Ray cluster at ``--address`` (sim_core.optim.evaluators), or as one batch of scene copies
-(``--batched``); with ``--batched`` the gradient phase of ``gd`` and ``hybrid`` follows ``--gd-starts`` K starts
-(default :data:`DEFAULT_BATCHED_GD_STARTS` on a manipulation task), their K gradients per step one batched
-adjoint (sim_core.optim.batch_gradient, sim_core.optim.search).
+(``--batched``); with ``--batched`` the gradient phase of ``gd`` and ``hybrid`` may follow ``--gd-starts`` K starts
+(default 1), their K gradients per step one batched adjoint (sim_core.optim.batch_gradient, sim_core.optim.search).
 
 Outputs in DIR: ``scene.yaml`` (the scene document the run used), ``checkpoint.pkl`` (after every batch; ``--resume`` continues from it, also with a
 larger ``--episodes``), and at the end ``trajectory.yaml`` (docs/trajectory_format.md: the best
@@ -51,8 +50,6 @@ from sim_core.solver_config import SolverConfig
 CHECKPOINT = "checkpoint.pkl"
 OUTPUTS = ("scene.yaml", "trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png")
 RESULT_SCHEMA = "thinshell.optimise.result"
-DEFAULT_BATCHED_GD_STARTS = 4
-"""Gradient runs of ``gd`` / ``hybrid`` with ``--batched`` on a manipulation task when ``--gd-starts`` is not given."""
 
 
 def _batch_size(text: str) -> int | str:
@@ -85,8 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--gd-starts", type=int, metavar="K",
                    help="gd / hybrid with --batched: K gradient runs at once, their K gradients a step evaluated "
                         "together (one batch, its adjoint passes run together): the hybrid's K best feasible CMA-ES "
-                        f"candidates, else restarts around the start (default {DEFAULT_BATCHED_GD_STARTS} with "
-                        "--batched on a manipulation task, else 1)")
+                        f"candidates, else restarts around the start (default 1: at a fixed episode budget each of K "
+                        "runs takes K times fewer steps)")
     p.add_argument("--horizon", type=int, help="steps per episode (default: the task's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--population", type=int, help="CMA-ES population (default: the task's)")
@@ -236,8 +233,7 @@ def _gd_starts(args, task) -> int:
         ConfigError: K < 1, or K > 1 without ``--batched``, with ``--method cma`` or on an inverse task.
     """
     if args.gd_starts is None:
-        batched = args.batched and args.method != "cma" and task.kind != "inverse"
-        return DEFAULT_BATCHED_GD_STARTS if batched else 1
+        return 1
     if args.gd_starts < 1:
         raise ConfigError(f"--gd-starts must be >= 1, got {args.gd_starts}")
     if args.gd_starts > 1 and (not args.batched or args.method == "cma" or task.kind == "inverse"):

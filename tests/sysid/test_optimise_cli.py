@@ -114,11 +114,12 @@ def test_batched_flag_evaluates_populations_as_one_batch_with_the_serial_scores(
 
 
 def test_batched_hybrid_takes_gradients_at_its_best_cma_candidates_together(tmp_path):
-    """``--method hybrid --batched``: the gradient phase's first batch evaluates the 4 (default --gd-starts)
+    """``--method hybrid --batched``: the gradient phase's first batch evaluates the 4 (--gd-starts 4)
     best feasible CMA-ES candidates' episodes and their gradients together (sim_core.optim.batch_gradient):
     the same episodes, so the same rewards, as the CMA-ES generation gave them."""
     out = tmp_path / "hybrid"
-    assert optimise_main(ARGS + ["--method", "hybrid", "--episodes", "8", "--out", str(out), "--batched"]) == 0
+    assert optimise_main(ARGS + ["--method", "hybrid", "--episodes", "8", "--out", str(out), "--batched",
+                                 "--gd-starts", "4"]) == 0
     doc = json.loads((out / "result.json").read_text())
     assert doc["gd_starts"] == 4 and [h["phase"] for h in doc["history"]] == ["cma"] * 4 + ["gd"] * 4
     cma = sorted((h["reward"] for h in doc["history"][:4] if h["infeasible"] is None), reverse=True)
