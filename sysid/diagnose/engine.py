@@ -172,7 +172,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             warnings.simplefilter("ignore")
             cal = calibrate(self.model, self.params, max_nfev=self.settings.fit_max_nfev,
                             workers=self.settings.workers, max_time=self.settings.calibration_max_time,
-                            max_replays=self.settings.calibration_max_replays)
+                            max_replays=self.settings.calibration_max_replays, batched=self.settings.batched)
         self.timings["fit_s"] = time.perf_counter() - t
         self.calibration = cal
         self.fit_result = cal.fit
@@ -206,7 +206,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         sched = getattr(self, "_scheduler", None)
         n0 = sched.replays if sched is not None else 0
         out = (sched.batch(sets) if sched is not None
-               else replay_many(self.model, sets, self.settings.workers, self.settings.ray_address))
+               else replay_many(self.model, sets, **self.settings.replay_options()))
         self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
         ran = sched.replays - n0 if sched is not None else len(sets)
         self.timings["replays"] = self.timings.get("replays", 0) + ran
@@ -238,7 +238,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         """
         from sysid.diagnose.schedule import ReplayScheduler
 
-        self._scheduler = ReplayScheduler(self.model, self.settings.workers, self.settings.ray_address)
+        self._scheduler = ReplayScheduler(self.model, **self.settings.replay_options())
         try:
             report = self._run_pipeline()
             report["extra"]["timings_s"]["replay_sim_s"] = self._scheduler.sim_s
@@ -530,7 +530,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             return [heldout.block_fold(self.model, ctx.prediction, train, refits)]
         t = time.perf_counter()
         folds = heldout.bag_folds(self._heldout_models(), theta, refits, self.tested, self.model.sigma,
-                                  lambda m, sets: replay_many(m, sets, self.settings.workers, self.settings.ray_address),
+                                  lambda m, sets: replay_many(m, sets, **self.settings.replay_options()),
                                   cands.DiagnosisContext, cands.apply_observation_refit, self.notes)
         self.timings["heldout_replays_s"] = time.perf_counter() - t
         return folds
