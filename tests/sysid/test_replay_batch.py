@@ -136,3 +136,34 @@ def test_a_fit_with_batched_jacobians_gives_the_same_values(press_bag):
         assert abs(batched.values[name] - serial.values[name]) < 0.02 * serial.sigma[name], name
     assert batched.cost_final == pytest.approx(serial.cost_final, rel=1e-3)
     assert abs(serial.values["gel.youngs_modulus"] / true - 1.0) < 0.1
+
+
+def _stiffer(modulus: float):
+    """A diagnosis-like chain: a replay at ``modulus``, then one at a modulus scaled by its peak normal force."""
+    first = yield {"gel.youngs_modulus": modulus}
+    peak = float(np.max(np.abs(first[1]["wrench"][:, 2])))
+    second = yield {"gel.youngs_modulus": modulus * (1.0 + peak / 10.0)}
+    return peak, float(np.max(np.abs(second[1]["wrench"][:, 2])))
+
+
+def test_the_diagnosis_scheduler_batches_each_round_and_gives_the_serial_results(press_bag, monkeypatch):
+    from sysid.diagnose import parallel
+    from sysid.diagnose.schedule import ReplayScheduler
+
+    model = _model(press_bag)
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(len(args[1]))
+        return simulate_batch(*args, **kwargs)
+
+    monkeypatch.setattr(parallel, "simulate_batch", counted)
+    starts = (2.0e5, 3.0e5, 4.5e5)
+    serial = ReplayScheduler(model).run([_stiffer(m) for m in starts])
+    sched = ReplayScheduler(model, workers=2, batched=True)
+    assert not sched.pooled
+    batched = sched.run([_stiffer(m) for m in starts])
+    assert calls == [3, 3]  # two rounds, each one batch of the three chains' replays
+    sigma_z = model.sigma["wrench"][2]
+    for got, ref in zip(batched, serial):
+        assert np.max(np.abs(np.subtract(got, ref))) < 0.25 * sigma_z
