@@ -534,7 +534,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         rows: channel -> rows of the training part for the sensor calibration (None: all).
         max_nfev: function evaluations of the parameter fit.
         workers: processes for its batched replays.
-        batched, batch_size: its finite-difference columns replayed as one batch of scene copies (:func:`sysid.fit.fit`).
+        batched, batch_size: its finite-difference columns replayed as one batch of scene copies
+            (:func:`sysid.fit.fit`).
         max_time: wall-time budget of the parameter fit, s (None: none). Its result depends on the
             machine's speed and load.
         max_replays: replay budget of the parameter fit (:func:`sysid.fit.fit`; None: none). The

@@ -108,8 +108,8 @@ def simulate_batch(model: Any, param_sets: Sequence[Mapping[str, float]], batch_
         :class:`BatchReport`.
 
     Raises:
-        ConfigError: a ``batch_size`` that is neither None, ``"auto"`` nor an integer >= 1; resumes not one per set; unknown parameters or values outside their
-            physical range (as ``simulate``).
+        ConfigError: a ``batch_size`` that is neither None, ``"auto"`` nor an integer >= 1; resumes not one per
+            set; unknown parameters or values outside their physical range (as ``simulate``).
     """
     t0 = time.perf_counter()
     sets = [dict(p) for p in param_sets]

@@ -24,7 +24,9 @@ class Settings:
         workers: processes for independent replays; ray_address: Ray cluster instead.
         batched, batch_size: step independent replays together as one batch of scene copies, at most
             ``batch_size`` (an integer, ``"auto"`` or None: all) at a time, in this process
-            (:func:`sysid.diagnose.parallel.replay_many`; the calibration's fit too, :func:`sysid.fit.fit`).
+            (:func:`sysid.diagnose.parallel.replay_many`; the calibration's fit too, :func:`sysid.fit.fit`). The
+            J_theta forward differences are taken against the nominal replayed in their own batch: a batch copy
+            differs from the serial replay by the Newton tolerance, which a difference would divide by ``fd_step``.
         min_explained: effect-size criterion: a refit is accepted only when it removes at least this
             fraction of the held-out excess energy ``rms^2 - 1`` (whitened, noise units) on its
             channels; a systematic model gap that a candidate merely correlates with fails it.

@@ -94,7 +94,7 @@ class SignatureSettings:
         simulation: overrides of the scene's ``simulation:`` block for the replays.
         workers: processes for the calibration's batched replays.
         batched, batch_size: the calibration's finite-difference columns replayed as one batch of scene copies
-            (:func:`sysid.calibration.calibrate`); the signature tests' replays (resumed, or through a drive) stay serial.
+            (:func:`sysid.calibration.calibrate`); the signature tests' replays (resumed, through a drive) are serial.
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
