@@ -6,7 +6,8 @@ Usage: ``python benchmarks/jacobian_replays.py BAG [--arch cpu|cuda|numpy] [--t-
 compiled), then replays the 2p central difference points ``u +- h e_i`` of ``sysid.fit`` (log coordinates for
 positive parameters) one after another (``ObservationModel.simulate``) and as one lockstep batch
 (``sysid.replay_batch.simulate_batch``), and prints one JSON record: both walls (``--repeat`` times, alternated;
-the speed-up of the fastest of each) and the largest gap between the two per channel in noise units. ``--same``
+the speed-up of the fastest of each), the largest gap between the two per channel in noise units and, per
+parameter, the gap between the two central-difference columns of the whitened residual against the column's norm. ``--same``
 replays 2p copies at the nominal values instead (one material group in the stacked model: what the batch costs
 when its copies share their materials).
 """
@@ -17,6 +18,8 @@ import argparse
 import json
 import time
 import warnings
+
+import numpy as np
 
 
 def main() -> int:
@@ -61,13 +64,21 @@ def main() -> int:
         if ch in model.sigma:
             gaps[ch] = max(float(abs((a.channel(ch) - b.channel(ch)) / model.sigma[ch]).max())
                            for a, b in zip(serial, batched) if a is not None and b is not None)
+    columns = {}  # the central-difference column of each parameter, both ways: their gap against its size
+    for i, spec in enumerate(specs):
+        if not args.same and all(x is not None for x in (*batched[2 * i:2 * i + 2], *serial[2 * i:2 * i + 2])):
+            ends = [[model.residuals(model.predict(t)) for t in pair] for pair in
+                    (serial[2 * i:2 * i + 2], batched[2 * i:2 * i + 2])]
+            col_s, col_b = ((rp - rm) / (2.0 * args.fd_step) for rp, rm in ends)
+            columns[spec.name] = {"norm": float(f"{np.linalg.norm(col_s):.4g}"),
+                                  "relative_gap": float(f"{np.linalg.norm(col_b - col_s) / np.linalg.norm(col_s):.3g}")}
     print(json.dumps({
         "bag": args.bag, "arch": args.arch, "steps": model.step_count, "replays": len(sets), "same": args.same,
         "first_replay_s": round(first, 2), "serial_s": serial_s, "batched_s": batched_s,
         "speedup": round(min(serial_s) / min(batched_s), 3),
         "batches": report.batches, "serial_fallbacks": report.serial,
         "resumed": report.resumed, "max_gap_sigma": {k: float(f"{v:.3g}") for k, v in gaps.items()},
-        "diverged": [i for i, b in enumerate(batched) if b is None],
+        "diverged": [i for i, b in enumerate(batched) if b is None], "jacobian_columns": columns,
     }))
     return 0
 
