@@ -74,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batched", action="store_true",
                    help="replay each finite-difference Jacobian's columns and each global population together as one "
                         "batch of scene copies in this process (sim_core.batch lockstep; on --arch cuda one batched "
-                        "CG); the same fit to the Newton tolerance (sysid.replay_batch; overrides --workers)")
+                        "CG; sysid.replay_batch; overrides --workers). The batch's replays start cold: with "
+                        "--cold-start the fit is the serial one (to 3e-9 sigma on the bundled bag)")
     p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
                    help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

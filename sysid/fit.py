@@ -610,7 +610,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             far (:class:`FitProblem` ``warm_start``); each step still converges to the solver's
             tolerance. The global phase's replays start cold.
         batched, batch_size: replay each finite-difference Jacobian's columns and each global population as
-            one batch of scene copies stepped together (:class:`FitProblem`); the same fit to the Newton tolerance.
+            one batch of scene copies stepped together (:class:`FitProblem`); they start cold, so with
+            ``warm_start=False`` the fit is the serial one to the Newton tolerance.
 
     Returns:
         the :class:`FitResult`.
