@@ -502,7 +502,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               bounds: Mapping[str, tuple[float, float]] | None = None, sensor_first: bool = False,
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
               secant_replays: int = SECANT_REPLAYS, drive: bool = False,
-              secant_first: Callable[[], FirstReplay | None] | None = None) -> CalibrationResult:
+              secant_first: Callable[[], FirstReplay | None] | None = None, batched: bool = False,
+              batch_size: int | str | None = None) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
@@ -533,6 +534,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         rows: channel -> rows of the training part for the sensor calibration (None: all).
         max_nfev: function evaluations of the parameter fit.
         workers: processes for its batched replays.
+        batched, batch_size: its finite-difference columns replayed as one batch of scene copies
+            (:func:`sysid.fit.fit`).
         max_time: wall-time budget of the parameter fit, s (None: none). Its result depends on the
             machine's speed and load.
         max_replays: replay budget of the parameter fit (:func:`sysid.fit.fit`; None: none). The
@@ -583,7 +586,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     if params and not sensor_first:  # the fit's first replay is the one at the scene values
         try:
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
-                         max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels)
+                         max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
+                         batched=batched, batch_size=batch_size)
         except SimulationDivergedError as err:
             raise CalibrationError(f"{model.evidence.source.bag_path}: the replay at the scene values diverged: {err}") from err
         raw = {ch: np.asarray(v, dtype=float) for ch, v in result.prediction_initial.items()}
@@ -604,7 +608,8 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         if sensor_first:
             model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
-                         max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels)
+                         max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
+                         batched=batched, batch_size=batch_size)
         values = {k: float(v) for k, v in result.values.items()}
         model.set_nominal(values)
         if sensor_first:

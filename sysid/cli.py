@@ -25,6 +25,7 @@ from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 from sysid.fit_recording import FitOptions, fit_recording
+from sysid.replay_batch import batch_size_arg
 
 PROG = "thinshell sysid"
 
@@ -70,6 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ (faster, coarser)")
     p.add_argument("--seed", type=int, default=0, help="seed of the global phase")
     p.add_argument("--workers", type=int, default=1, help="processes for batched replays")
+    p.add_argument("--batched", action="store_true",
+                   help="replay each finite-difference Jacobian's columns and each global population together as one "
+                        "batch of scene copies in this process (sim_core.batch lockstep; on --arch cuda one batched "
+                        "CG; sysid.replay_batch; overrides --workers). The batch's replays start cold: with "
+                        "--cold-start the fit is the serial one (to 3e-9 sigma on the bundled bag)")
+    p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
+                   help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibrate", action="store_true",
                    help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
@@ -176,7 +184,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
-                      workers=args.workers, seed=args.seed)
+                      workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:

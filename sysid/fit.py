@@ -41,6 +41,7 @@ from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedErr
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
+from sysid.replay_batch import simulate_batch
 
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 GLOBAL_METHODS = ("cma", "multistart")
@@ -197,6 +198,9 @@ class FitProblem:
         warm_start: start the Newton solves of every serial replay from the vertex positions of
             the best replay so far (``ObservationModel.warm_start``), step by step: nearby
             parameters give nearby trajectories, so each step starts close to its solution.
+        batched, batch_size: :meth:`evaluate_many` steps its replays together in this process as copies of
+            the scene, at most ``batch_size`` at a time (an integer, ``"auto"`` or None: all;
+            :func:`sysid.replay_batch.simulate_batch`, which says what runs serially instead); before ``workers``.
 
     Attributes:
         last_positions: vertex positions ``(K + 1, n, 3)`` of the last serial replay (None when
@@ -210,8 +214,9 @@ class FitProblem:
     def __init__(self, model: ObservationModel, specs: Sequence[ParameterSpec], workers: int = 1,
                  deadline: float | None = None, on_eval: Callable[[Evaluation], None] | None = None,
                  joint: Callable[["FitProblem", np.ndarray], tuple] | None = None, warm_start: bool = False,
-                 max_replays: int | None = None) -> None:
+                 max_replays: int | None = None, batched: bool = False, batch_size: int | str | None = None) -> None:
         self.model = model
+        self.batched, self.batch_size = bool(batched), batch_size
         self.max_replays = max_replays
         self.warm_start = bool(warm_start)
         self.last_positions: np.ndarray | None = None
@@ -343,9 +348,18 @@ class FitProblem:
         return self._jacobians.get(np.asarray(u, dtype=float).tobytes())
 
     def evaluate_many(self, points: Sequence[np.ndarray], phase: str) -> list[np.ndarray | None]:
-        """Residuals at several points (in parallel when ``workers > 1``)."""
+        """Residuals at several points (as one batch with :attr:`batched`, in parallel when ``workers > 1``)."""
         todo = [np.asarray(p, dtype=float) for p in points if np.asarray(p, dtype=float).tobytes() not in self._cache]
-        if self.workers > 1 and len(todo) > 1:
+        if self.batched and len(todo) > 1:
+            todo = list({u.tobytes(): u for u in todo}.values())
+            self._check_time(phase)
+            self.reserve(len(todo), phase)
+            traces, _ = simulate_batch(self.model, [self.values(u) for u in todo], self.batch_size)
+            for u, trace in zip(todo, traces):
+                prediction = None if trace is None else self.model.predict(trace)
+                r = None if prediction is None else self.model.residuals(prediction)
+                self._record(u, r, phase, 0.0 if trace is None else trace.wall_time_s, prediction)
+        elif self.workers > 1 and len(todo) > 1:
             self._check_time(phase)
             self.reserve(len(todo), phase)
             if self._pool is None:
@@ -532,7 +546,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         on_eval: Callable[[Evaluation], None] | None = None, stop_sigma: float | None = STOP_SIGMA,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
-        max_replays: int | None = None, reweight_channels: bool = False) -> FitResult:
+        max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
+        batch_size: int | str | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -594,6 +609,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         warm_start: start the Newton solves of the local phase's replays from the best replay so
             far (:class:`FitProblem` ``warm_start``); each step still converges to the solver's
             tolerance. The global phase's replays start cold.
+        batched, batch_size: replay each finite-difference Jacobian's columns and each global population as
+            one batch of scene copies stepped together (:class:`FitProblem`); they start cold, so with
+            ``warm_start=False`` the fit is the serial one to the Newton tolerance.
 
     Returns:
         the :class:`FitResult`.
@@ -620,7 +638,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     if max_replays is not None and max_replays < 2:
         joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
-                         warm_start=warm_start, max_replays=max_replays)
+                         warm_start=warm_start, max_replays=max_replays, batched=batched, batch_size=batch_size)
     saved_warm_start, model.warm_start = getattr(model, "warm_start", None), None
     saved_scale = getattr(model, "sigma_scale", None)
     if reweight_channels:

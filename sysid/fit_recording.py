@@ -62,6 +62,7 @@ class FitOptions:
             default :data:`sysid.calibration.CALIBRATION_REPLAYS`, as ``thinshell diagnose``).
         workers: processes for batched replays.
         seed: seed of the global phase.
+        batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -87,6 +88,8 @@ class FitOptions:
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     workers: int = 1
     seed: int = 0
+    batched: bool = False
+    batch_size: int | str | None = None
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -196,7 +199,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
-                 stop_rms=options.stop_rms, warm_start=options.warm_start)
+                 stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
+                 batch_size=options.batch_size)
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:

@@ -36,7 +36,6 @@ import dataclasses
 import math
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -55,10 +54,8 @@ from sim_core.solver import SolverConfig
 from sim_core.transforms import quat_to_matrix
 from sysid.evidence import Evidence, resample_pose
 from sysid.replay_drive import ReplayDrive
+from sysid.replay_trace import PREDICTABLE_CHANNELS, Resume, SimTrace
 from sysid.replay_time import held as _held, interpolation as _interpolation
-
-PREDICTABLE_CHANNELS = ("markers_xyz", "markers_uv", "wrench", "sheet_points")
-"""Evidence channels the simulator predicts."""
 
 DEFAULT_FIT_CHANNELS = ("markers_xyz", "wrench", "sheet_points")
 """Channels fitted by default: ``markers_uv`` is a function of ``markers_xyz`` (camera model) and
@@ -83,73 +80,6 @@ dt/2, dt/4, ... down to dt/16 before the replay gives up; ``Simulation.step_tota
 
 class ObservationWarning(UserWarning):
     """A channel cannot be fitted (absent from the recording, or not predictable)."""
-
-
-@dataclass(frozen=True)
-class SimTrace:
-    """Simulated observations at the simulation steps.
-
-    Attributes:
-        t_ns: step times ``(K + 1,)`` int64 ns (recording clock), ``t_ns[0]`` the initial state.
-        markers_xyz: ``(K + 1, k, 3)`` m, sensor frame.
-        markers_uv: ``(K + 1, k, 2)`` px.
-        wrench: ``(K + 1, 6)`` N, N m, on the gel in the sensor frame.
-        sheet_points: ``(K + 1, p, 3)`` m, world.
-        wall_time_s: time spent simulating.
-        positions: ``(K + 1, n, 3)`` m, every vertex of the simulation per step, when the replay
-            was asked to keep them (``ObservationModel.simulate(keep_positions=True)``; the warm
-            start of later replays, :attr:`ObservationModel.warm_start`), else None.
-        states: the ``K + 1`` simulation states (``sim_core.state.State``) when the replay was
-            asked to keep them (``ObservationModel.simulate(keep_states=True)``; the starts of
-            :class:`Resume`), else None.
-        step_totals: how the replay's steps ended (``sim_core.step_info.StepTotals``: substep
-            retries, relaxed acceptances), or None when not recorded.
-        drive: of a replay through a series drive, :meth:`sysid.replay_drive.ReplayDrive.summary`; else None.
-    """
-
-    t_ns: np.ndarray
-    markers_xyz: np.ndarray
-    markers_uv: np.ndarray
-    wrench: np.ndarray
-    sheet_points: np.ndarray
-    wall_time_s: float
-    positions: np.ndarray | None = None
-    states: list | None = None
-    step_totals: Any = None
-    drive: dict | None = None
-
-    def head(self, step: int) -> "SimTrace":
-        """The observations of steps ``0..step`` (no positions, no states; same wall time)."""
-        k = int(step) + 1
-        return SimTrace(self.t_ns[:k].copy(), self.markers_xyz[:k].copy(), self.markers_uv[:k].copy(),
-                        self.wrench[:k].copy(), self.sheet_points[:k].copy(), self.wall_time_s)
-
-    def channel(self, name: str) -> np.ndarray:
-        """The per-step array of evidence channel ``name`` (one of :data:`PREDICTABLE_CHANNELS`)."""
-        if name not in PREDICTABLE_CHANNELS:
-            raise KeyError(f"channel {name!r} is not simulated (simulated: {', '.join(PREDICTABLE_CHANNELS)})")
-        return getattr(self, name)
-
-
-@dataclass(frozen=True)
-class Resume:
-    """Start of a replay that is known to equal another one up to step ``step``.
-
-    A replay whose parameters change the simulation only from some step on (a plastic yield
-    angle above every dihedral angle reached before it: ``sysid.diagnose.resume``) runs the same
-    steps as the replay it differs from until then; :meth:`ObservationModel.simulate` then takes
-    that replay's observations of steps ``0..step`` and its state at ``step`` and simulates the
-    steps after it only.
-
-    Attributes:
-        step: last step taken from the other replay (0 <= step <= K).
-        state: its simulation state after that step (``sim_core.state.State``; copied on use).
-        prefix: its observations of steps ``0..step`` at least (:meth:`SimTrace.head`).
-    """
-
-    step: int
-    state: Any
-    prefix: SimTrace
 
 
 def scene_dict_for(evidence: Evidence, scene: str | Path | Mapping[str, Any] | SceneFile | None = None,
@@ -225,6 +155,8 @@ class ObservationModel:
             step still converges to the solver's tolerance; a start within a few noise units of the
             solution takes about half the Newton iterations. Forked replay workers inherit it.
             Replays whose result must not depend on another one (the nominal) are run with it None.
+        batch_sizing: the ``sim_core.batch.sizing.BatchSizing`` of batched replays of ``batch_size="auto"``
+            (:func:`sysid.replay_batch.simulate_batch`), measured on their first call; None before it.
 
     Raises:
         CalibrationError: no pose channel, no fittable channel, bad ``dt`` / ``t_max``, or a sensor
@@ -271,6 +203,7 @@ class ObservationModel:
         self._build_replay()
         self._sim = None
         self.warm_start: np.ndarray | None = None
+        self.batch_sizing = None
         self.normal_offset = 0.0
         self.nominal_normal_offset = 0.0
         self.sensor_calibration = None
@@ -568,16 +501,18 @@ class ObservationModel:
         guess = self._checked_guess(guess)
         return [self.control(k, guess) for k in range(1, self.step_count + 1)]
 
-    def control(self, k: int, guess: np.ndarray | None = None) -> Control:
-        """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k``; with ``guess``
+    def control(self, k: int, guess: np.ndarray | None = None, normal_offset: float | None = None) -> Control:
+        """Kinematic control of step ``k`` (1-based): the recorded pose at ``t_k`` moved by ``normal_offset`` (m,
+        default the replay's ``sensor.normal_offset``) along the sensor normal; with ``guess``
         ``(K + 1, n, 3)``, row ``k`` is the step's Newton start (``Control.position_guess``)."""
         if self.task:
             return Control({n: c[k].copy() for n, c in self.task_controls.items()},
                            gripper_target={n: float(g[k]) for n, g in self.task_grippers.items()},
                            position_guess=None if guess is None else guess[k])
         pose = self.controls[k].copy()
-        if self.normal_offset:
-            pose[:3] += self.normal_offset * self.sensor_normal(pose)
+        offset = self.normal_offset if normal_offset is None else float(normal_offset)
+        if offset:
+            pose[:3] += offset * self.sensor_normal(pose)
         return Control({self.effector: pose}, position_guess=None if guess is None else guess[k])
 
     def sensor_normal(self, pose: np.ndarray) -> np.ndarray:
@@ -626,7 +561,7 @@ class ObservationModel:
         t_start = time.perf_counter()
         K = self.step_count
         if resume is None:
-            start, obs = 0, [self._observe(sim)]
+            start, obs = 0, [self.observe_step(sim)]
         else:
             start = self._checked_resume(resume, keep_positions or keep_states, sim)
             sim.state = resume.state.copy()
@@ -640,14 +575,14 @@ class ObservationModel:
                 sim.step(self.control(k, guess))
             else:
                 drive.step(sim, self.control(k, guess), k)
-            obs.append(self._observe(sim))
+            obs.append(self.observe_step(sim))
             if positions is not None:
                 positions.append(sim.state.x.copy())
             if states is not None:
                 states.append(sim.state.copy())
             if on_step is not None:
                 on_step(k, K)
-        trace = self._trace(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
+        trace = self.trace_from(obs, time.perf_counter() - t_start, None if positions is None else np.stack(positions))
         trace = dataclasses.replace(trace, step_totals=dataclasses.replace(sim.step_totals),
                                     drive=None if drive is None else drive.summary())
         return trace if states is None else dataclasses.replace(trace, states=states)
@@ -679,9 +614,10 @@ class ObservationModel:
         """
         if len(states) != self.step_count + 1:
             raise ValueError(f"expected {self.step_count + 1} states, got {len(states)}")
-        return self._trace([self._observe(sim, s) for s in states], wall_time_s)
+        return self.trace_from([self.observe_step(sim, s) for s in states], wall_time_s)
 
-    def _trace(self, obs: list, wall_time_s: float, positions: np.ndarray | None = None) -> SimTrace:
+    def trace_from(self, obs: list, wall_time_s: float, positions: np.ndarray | None = None) -> SimTrace:
+        """The :class:`SimTrace` of a replay's per-step observations ``obs`` (:meth:`observe_step` of steps 0..K)."""
         return SimTrace(
             t_ns=self.step_times_ns.copy(),
             markers_xyz=np.stack([o[0] for o in obs]), markers_uv=np.stack([o[1] for o in obs]),
@@ -689,7 +625,9 @@ class ObservationModel:
             wall_time_s=wall_time_s, positions=positions,
         )
 
-    def _observe(self, sim, state=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def observe_step(self, sim, state=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a replay observes of ``sim`` (at ``state``, default its own): markers ``(k, 3)`` m and ``(k, 2)`` px,
+        wrench ``(6,)`` N, N m, sheet points ``(p, 3)`` m (no sensor: empty markers, zero wrench)."""
         o = sim.observe(state=state)
         if self.sensor is None:
             return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(6), np.asarray(o.sheet_points, float)

@@ -46,23 +46,11 @@ from sim_core.errors import ConfigError
 from sim_core.backend import BACKENDS
 from sim_core.optim.search import (CMA_STARTS, METHODS, SearchState, load_checkpoint, new_state, optimise, save_checkpoint)
 from sim_core.solver_config import SolverConfig
+from sysid.replay_batch import batch_size_arg
 
 CHECKPOINT = "checkpoint.pkl"
 OUTPUTS = ("scene.yaml", "trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png")
 RESULT_SCHEMA = "thinshell.optimise.result"
-
-
-def _batch_size(text: str) -> int | str:
-    """``--batch-size``: an integer >= 1 or ``auto``."""
-    if text == "auto":
-        return text
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"an integer >= 1 or auto, got {text!r}")
-    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -76,7 +64,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batched", action="store_true",
                    help="evaluate each CMA-ES population as one batch of scene copies stepped together "
                         "(sim_core.batch; same episodes as the serial evaluator)")
-    p.add_argument("--batch-size", type=_batch_size, metavar="N|auto",
+    p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
                    help="with --batched: the most copies stepped together (a larger population runs in chunks); "
                         "auto: the largest number that fits the device's free memory (sim_core.batch.sizing)")
     p.add_argument("--gd-starts", type=int, metavar="K",

@@ -440,9 +440,7 @@ class LockstepSolver(NewtonSolver):
         todo = np.any(g[dofs] != 0.0, axis=1)
         matrices = {projections[0]: H_first}
         projection = projections[0]
-        for projection in projections:
-            if not todo.any():
-                break
+        for projection in projections:  # ends at the last projection a copy's block was factorised with
             if projection not in matrices:
                 ta = time.perf_counter()
                 matrices[projection] = self._assemble_hessian(step, x, projection, dynamic_terms)
@@ -459,6 +457,8 @@ class LockstepSolver(NewtonSolver):
                     todo[i] = False
                     info.projected_iterations += projection != "none"
             info.time_linear_solve += time.perf_counter() - tl
+            if not todo.any():
+                break
         if todo.any():  # projection="none" and not positive definite: the general LU of each such block
             H = matrices[projections[-1]]
             full = self._full_from_upper(H)

@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``thinshell diagnose``."""
     from sysid.calibration import CALIBRATION_REPLAYS
     from sysid.calibration_secant import SECANT_REPLAYS
+    from sysid.replay_batch import batch_size_arg
 
     p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")
@@ -55,6 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1,
                    help="processes for independent replays (signatures engine: the --baseline recordings are "
                         "prepared in WORKERS - 1 processes beside the recording's own)")
+    p.add_argument("--batched", action="store_true",
+                   help="step independent replays together as one batch of scene copies in this process "
+                        "(sim_core.batch lockstep; on --arch cuda one batched CG): score engine, its rounds of "
+                        "replays; both engines, the calibration's finite-difference columns. Replays a batch cannot "
+                        "take (candidates' physics, resumed replays, a drive) run one after another "
+                        "(sysid.replay_batch; overrides --workers)")
+    p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
+                   help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
     p.add_argument("--one-process", action="store_true",
                    help="make the calibration's replays one after the other in this process (default: its secant "
                         "probe runs in a second process beside its start replay; the same replays and answer)")
@@ -113,7 +122,8 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
     if args.engine == "signatures":
         return _signatures_main(args)
     settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
-                        ray_address=args.ray_address, fit_max_nfev=args.fit_max_nfev, arch=args.arch,
+                        ray_address=args.ray_address, batched=args.batched, batch_size=args.batch_size,
+                        fit_max_nfev=args.fit_max_nfev, arch=args.arch,
                         calibrate=not args.no_calibrate, calibration_max_time=args.calibration_time,
                         calibration_max_replays=args.calibration_replays, warm_start=args.warm_start,
                         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
@@ -154,6 +164,7 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,
         calibration_drive=args.drive, workers=max(1, args.workers), probe_worker=not args.one_process,
+        batched=args.batched, batch_size=args.batch_size,
         simulation=None if args.gel_resolution is None else {"gel_resolution": list(args.gel_resolution)})
 
 

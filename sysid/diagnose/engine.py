@@ -172,7 +172,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             warnings.simplefilter("ignore")
             cal = calibrate(self.model, self.params, max_nfev=self.settings.fit_max_nfev,
                             workers=self.settings.workers, max_time=self.settings.calibration_max_time,
-                            max_replays=self.settings.calibration_max_replays)
+                            max_replays=self.settings.calibration_max_replays, batched=self.settings.batched)
         self.timings["fit_s"] = time.perf_counter() - t
         self.calibration = cal
         self.fit_result = cal.fit
@@ -203,10 +203,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
 
     def _replays(self, sets: Sequence[Mapping[str, float]]) -> list:
         t = time.perf_counter()
-        sched = getattr(self, "_scheduler", None)
+        sched = None if self.settings.batched else getattr(self, "_scheduler", None)  # a batch replays every set
         n0 = sched.replays if sched is not None else 0
-        out = (sched.batch(sets) if sched is not None
-               else replay_many(self.model, sets, self.settings.workers, self.settings.ray_address))
+        out = sched.batch(sets) if sched else replay_many(self.model, sets, **self.settings.replay_options())
         self.timings["replays_s"] = self.timings.get("replays_s", 0.0) + time.perf_counter() - t
         ran = sched.replays - n0 if sched is not None else len(sets)
         self.timings["replays"] = self.timings.get("replays", 0) + ran
@@ -238,7 +237,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         """
         from sysid.diagnose.schedule import ReplayScheduler
 
-        self._scheduler = ReplayScheduler(self.model, self.settings.workers, self.settings.ray_address)
+        self._scheduler = ReplayScheduler(self.model, **self.settings.replay_options())
         try:
             report = self._run_pipeline()
             report["extra"]["timings_s"]["replay_sim_s"] = self._scheduler.sim_s
@@ -270,7 +269,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             angles = cands.hinge_angle_history(model, nominal[0].sheet_points)
             if angles is not None:  # plasticity replays start where the nominal sheet first bends enough
                 self._scheduler.resume = NominalResume(theta, nominal[0], angles)
-        replays = [nominal] + (self._replays(sets) if sets else [])
+        replays = [nominal] + (self._replays([theta, *sets] if s.batched else sets) if sets else [])
+        base = (replays.pop(1) if s.batched and sets else None) or nominal  # batched: the differences' own base
         self.timings["nominal_s"] = time.perf_counter() - t
         self.timings["nominal_cpu_s"] = time.process_time() - cpu
         trace, pred0 = nominal
@@ -279,7 +279,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             noise.raise_to_white_residual(model, self.tested, pred0)
         J_theta: dict[str, np.ndarray] = {}
         for ch in self.tested:
-            cols = [(rep[1][ch] - pred0[ch]) / s.fd_step for rep in replays[1:] if rep is not None]
+            cols = [(rep[1][ch] - base[1][ch]) / s.fd_step for rep in replays[1:] if rep is not None]
             J_theta[ch] = np.stack(cols, axis=-1) if cols else np.zeros(pred0[ch].shape + (0,))
         ctx = cands.DiagnosisContext(model, dict(theta), trace, pred0, self.tested)
         library = cands.default_candidates(ctx)
@@ -530,7 +530,7 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
             return [heldout.block_fold(self.model, ctx.prediction, train, refits)]
         t = time.perf_counter()
         folds = heldout.bag_folds(self._heldout_models(), theta, refits, self.tested, self.model.sigma,
-                                  lambda m, sets: replay_many(m, sets, self.settings.workers, self.settings.ray_address),
+                                  lambda m, sets: replay_many(m, sets, **self.settings.replay_options()),
                                   cands.DiagnosisContext, cands.apply_observation_refit, self.notes)
         self.timings["heldout_replays_s"] = time.perf_counter() - t
         return folds

@@ -1,9 +1,10 @@
-"""Independent replays of one observation model, run serially, in processes or on a Ray cluster.
+"""Independent replays of one observation model, run serially, in processes, on a Ray cluster or as a batch.
 
 Every candidate probe, finite-difference column and candidate refit is one replay of the recording
 with its own parameter values; they do not depend on each other, so they are mapped over a
-``concurrent.futures.ProcessPoolExecutor`` (fork start: the workers inherit the model) or, when a
-Ray address is given, over Ray tasks (``ray`` imported only then).
+``concurrent.futures.ProcessPoolExecutor`` (fork start: the workers inherit the model), over Ray tasks
+when a Ray address is given (``ray`` imported only then), or stepped together as copies of the scene in
+one lockstep batch (:func:`sysid.replay_batch.simulate_batch`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import CalibrationError, SimulationDivergedError
+from sysid.replay_batch import simulate_batch
 
 _MODEL: dict[str, Any] = {}
 """Per-process observation model of a pool worker (set by the pool initializer)."""
@@ -93,8 +95,8 @@ def connected_ray(ray_address: str) -> Any:
 
 
 def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: int = 1,
-                ray_address: str | None = None,
-                resumes: Sequence[Any] | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
+                ray_address: str | None = None, resumes: Sequence[Any] | None = None, batched: bool = False,
+                batch_size: int | str | None = None) -> list[tuple[Any, dict[str, np.ndarray]] | None]:
     """Replay ``model`` once per parameter set.
 
     Args:
@@ -104,6 +106,13 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
         ray_address: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``); overrides workers.
         resumes: per set, None or a ``sysid.observation.Resume`` to start that replay from
             (``ObservationModel.simulate(resume=...)``); default: none.
+        batched: with more than one set and no Ray address, step the replays together in this process as copies
+            of the scene (:func:`sysid.replay_batch.simulate_batch`, ``SolverConfig.lockstep``; ``workers`` is
+            then not used). The replays a batch cannot take run one after another here instead (the module
+            docstring of :mod:`sysid.replay_batch`: resumed replays, a series drive, missing-physics candidates,
+            models the stacking refuses), as does a copy's rest after a step that failed in the batch.
+        batch_size: with ``batched``, the most copies stepped together: an integer >= 1, ``"auto"`` (the most that
+            fit the device's free memory, :func:`sysid.replay_batch.auto_batch_size`) or None (all sets).
 
     Returns:
         ``(trace, prediction)`` per set, None where the replay diverged.
@@ -124,6 +133,9 @@ def replay_many(model: Any, param_sets: Sequence[Mapping[str, float]], workers: 
         task = ray.remote(_replay)
         ref = ray.put(portable)
         return list(ray.get([task.remote(ref, p, r) for p, r in zip(sets, resumes)]))
+    if batched and len(sets) > 1:
+        traces, _ = simulate_batch(model, sets, batch_size, resumes, before_prepare=_reset_candidates)
+        return [None if t is None else (t, model.predict(t)) for t in traces]
     if workers <= 1 or len(sets) == 1:
         return [_replay(model, p, r) for p, r in zip(sets, resumes)]
     compile_before_fork(model)

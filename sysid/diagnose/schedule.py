@@ -110,6 +110,8 @@ class ReplayScheduler:
         model: ``sysid.observation.ObservationModel``.
         workers: processes (1: replays in this process, by rounds).
         ray_address: Ray cluster address: replays as Ray tasks, by rounds (overrides ``workers``).
+        batched, batch_size: replays in this process by rounds, each round's replays stepped together as one
+            batch of scene copies (:func:`sysid.diagnose.parallel.replay_many` ``batched``; overrides ``workers``).
 
     Replays are deterministic, so a parameter set is simulated once per scheduler: a request for a
     set already replayed (or handed in with :meth:`remember`, e.g. the nominal replay run in this
@@ -131,10 +133,12 @@ class ReplayScheduler:
             onto the workers, independent of other load on the machine).
     """
 
-    def __init__(self, model: Any, workers: int = 1, ray_address: str | None = None) -> None:
+    def __init__(self, model: Any, workers: int = 1, ray_address: str | None = None, batched: bool = False,
+                 batch_size: int | str | None = None) -> None:
         self.model = model
         self.workers = max(1, int(workers))
         self.ray_address = ray_address
+        self.batched, self.batch_size = bool(batched), batch_size
         self.replays = 0
         self.reused = 0
         self.resume: Callable[[Mapping[str, float]], Any] | None = None
@@ -146,8 +150,8 @@ class ReplayScheduler:
 
     @property
     def pooled(self) -> bool:
-        """Whether replays go to the persistent process pool (``workers > 1``, no Ray)."""
-        return self.workers > 1 and not self.ray_address
+        """Whether replays go to the persistent process pool (``workers > 1``, no Ray, not batched)."""
+        return self.workers > 1 and not self.ray_address and not self.batched
 
     def remember(self, params: Mapping[str, float], replay: Replay) -> None:
         """Record ``replay`` as the replay of ``params`` (one run elsewhere, e.g. in this process):
@@ -275,7 +279,7 @@ class ReplayScheduler:
         """Replay ``sets`` without the pool (in this process, or as Ray tasks), counted, accounted
         and recorded as known."""
         out = self._account(parallel.replay_many(self.model, sets, self.workers, self.ray_address,
-                                                 [self._resume_of(p) for p in sets]))
+                                                 [self._resume_of(p) for p in sets], self.batched, self.batch_size))
         self.replays += len(sets)
         self._known.update((_key(p), rep) for p, rep in zip(sets, out))
         return out

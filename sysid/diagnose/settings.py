@@ -22,6 +22,11 @@ class Settings:
         fit_max_nfev: function evaluations of the nominal fit.
         fd_step: log step of the J_theta forward differences.
         workers: processes for independent replays; ray_address: Ray cluster instead.
+        batched, batch_size: step independent replays together as one batch of scene copies, at most
+            ``batch_size`` (an integer, ``"auto"`` or None: all) at a time, in this process
+            (:func:`sysid.diagnose.parallel.replay_many`; the calibration's fit too, :func:`sysid.fit.fit`). The
+            J_theta forward differences are taken against the nominal replayed in their own batch: a batch copy
+            differs from the serial replay by the Newton tolerance, which a difference would divide by ``fd_step``.
         min_explained: effect-size criterion: a refit is accepted only when it removes at least this
             fraction of the held-out excess energy ``rms^2 - 1`` (whitened, noise units) on its
             channels; a systematic model gap that a candidate merely correlates with fails it.
@@ -68,6 +73,8 @@ class Settings:
     fd_step: float = 0.05
     workers: int = 1
     ray_address: str | None = None
+    batched: bool = False
+    batch_size: int | str | None = None
     min_explained: float = 0.25
     min_excess: float = 0.1
     secant: bool = True
@@ -82,3 +89,9 @@ class Settings:
     calibrate: bool = False
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
+
+    def replay_options(self) -> dict[str, Any]:
+        """How independent replays run: the keywords ``workers``, ``ray_address``, ``batched`` and ``batch_size``
+        of :func:`sysid.diagnose.parallel.replay_many` and :class:`sysid.diagnose.schedule.ReplayScheduler`."""
+        return {"workers": self.workers, "ray_address": self.ray_address, "batched": self.batched,
+                "batch_size": self.batch_size}

@@ -93,6 +93,8 @@ class SignatureSettings:
             ``2 * holdout_blocks``).
         simulation: overrides of the scene's ``simulation:`` block for the replays.
         workers: processes for the calibration's batched replays.
+        batched, batch_size: the calibration's finite-difference columns replayed as one batch of scene copies
+            (:func:`sysid.calibration.calibrate`); the signature tests' replays (resumed, through a drive) are serial.
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
@@ -115,6 +117,8 @@ class SignatureSettings:
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
     workers: int = 1
+    batched: bool = False
+    batch_size: int | str | None = None
     plasticity_replays: int = 5
     plasticity_max_time: float | None = None
     probe_worker: bool = False
@@ -200,7 +204,8 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                         max_time=settings.calibration_max_time, max_replays=settings.calibration_max_replays,
                         secant_replays=settings.calibration_secant_replays if settings.calibrate else 0,
                         drive=settings.calibration_drive and settings.calibrate,
-                        secant_first=None if worker is None else worker.result)
+                        secant_first=None if worker is None else worker.result, batched=settings.batched,
+                        batch_size=settings.batch_size)
     except (CalibrationError, SimulationDivergedError) as err:
         # keep what the recording alone can tell (the sensor-chain tests) and say why the rest is missing
         notes.append(f"{bag}: no calibrated replay ({err}); only the tests that read the recording alone ran")
