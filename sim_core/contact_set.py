@@ -129,9 +129,10 @@ class ContactSet:
         # vertices held for the step (sleeping bodies, sim_core.sleeping; set by the solver), or None
         self.held: np.ndarray | None = None
         self._held_kept = None  # (candidates, held, candidates without the held pairs apart)
-        self._cache = None  # (memory, candidates, potentials, sides) of the current step
+        self._cache = None  # (memory, candidates, potentials, edge-edge candidate rows kept) of the current step
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
+        self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
         self.min_edge_sine = 0.1
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
@@ -165,8 +166,8 @@ class ContactSet:
             # rebuilt; their kept evaluation is matched against x on use
             pots = cache[2]
         else:
-            pots, remembered = self._search(x, memory, candidates)
-            self._cache = (memory, candidates, pots, remembered)
+            pots, ee_rows = self._search(x, memory, candidates)
+            self._cache = (memory, candidates, pots, ee_rows)
         # the previous iterate's potentials were last evaluated at the accepted line-search point,
         # usually this x: reuse that evaluation where the pairs and sides are unchanged
         for new, old in zip(pots, getattr(self, "_last_pots", ())):
@@ -197,6 +198,11 @@ class ContactSet:
         only while this holds; beyond it a pair missing from the list would make the trial energy
         too low (a penetration the line search cannot see), and Newton then cycles between iterates.
 
+        The answer for two frozen arrays (read-only arrays that own their memory, as the search positions and
+        the lockstep solver's iterates are: :func:`~sim_core.energies.base.positions_key`) is kept for the
+        next call with the same two objects (a Newton iterate's gradient and energy ask twice: half of the
+        calls of a lockstep batch, each reading all copies' positions).
+
         Args:
             x_search: positions of the search ``(n, 3)`` (m) or None (no search yet: False).
             x: positions ``(n, 3)`` (m); NaN gives False.
@@ -205,10 +211,15 @@ class ContactSet:
             return False
         if x.size == 0:
             return True
+        kept = self._covered
+        if kept is not None and kept[0] is x_search and kept[1] is x:
+            return kept[2]
         moved = x - x_search
-        if np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin:  # max |moved| (NaN: False), no |moved| array
-            return True
-        return self._gaps_hold(moved)
+        # max |moved| (NaN: False), no |moved| array; else the general test
+        answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
+        if _frozen(x_search) and _frozen(x):
+            self._covered = (x_search, x, answer)
+        return answer
 
     def _gaps_hold(self, moved: np.ndarray) -> bool:
         """:meth:`covers`' general test: ``c_k(A, B) <= margin`` for every axis and allowed body pair,
@@ -316,15 +327,16 @@ class ContactSet:
         rest of this step) lets one search serve the next step's first iterates too (Forming: 1.18
         -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always
         covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
-        ``lookahead = 0`` the search is at ``x``.
+        ``lookahead = 0`` the search is at ``x``. The array is read-only (:attr:`search_position`).
         """
         x = np.array(x, dtype=float, copy=True)
         if not (0.0 <= self.lookahead_cap <= 0.5):
             raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
-        if self.x_prev is None or self.x_prev.shape != x.shape or self.lookahead == 0.0:
-            return x
-        cap = self.lookahead_cap * self.margin
-        return x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+        if self.x_prev is not None and self.x_prev.shape == x.shape and self.lookahead != 0.0:
+            cap = self.lookahead_cap * self.margin
+            x = x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+        x.flags.writeable = False  # frozen: covers() keeps its answers for it
+        return x
 
     def _grouped_search(self):
         """The box-pair search of the broad phase (``self.broad_phase``; all give the same pairs):
@@ -418,22 +430,29 @@ class ContactSet:
         lists (the same arrays) at equal positions is taken as it is: the converged positions of a step
         are the next one's ``x^n``, and a step starts with the candidate lists it ended with."""
         kept = getattr(self, "_end_geometry", None)
-        if kept is not None and kept[1] is vt and kept[2] is ee and np.array_equal(kept[0], x):
+        if kept is not None and kept[1] is vt and kept[2] is ee and (kept[0] is x or np.array_equal(kept[0], x)):
             return kept[3]
         return self._pair_geometry(x, *self._pair_vertices(vt, ee))
 
-    def _end_geometry_of(self, x: np.ndarray, vt_pairs: np.ndarray, ee_pairs: np.ndarray) -> PairGeometry:
-        """:meth:`_pair_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs
-        ``vt_pairs`` ``(a, 2)`` and ``ee_pairs`` ``(b, 2)``, taken from one measurement of every
-        candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
-        (:meth:`_candidate_geometry`): one launch per step in place of two."""
-        _, vt, ee = self._candidates  # the lists of the potentials evaluated at x
-        geo = self._pair_geometry(x, *self._pair_vertices(vt, ee))
-        self._end_geometry = (np.array(x, dtype=float, copy=True), vt, ee, geo)
-        vt_pos, vt_found = self._lookup((vt, None), vt_pairs)
-        ee_pos, ee_found = self._lookup((ee, None), ee_pairs)
-        if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
-            return self._pair_geometry(x, *self._pair_vertices(vt_pairs, ee_pairs))
+    def _end_geometry_of(self, x: np.ndarray, vt: VertexTriangleContact, vt_active: np.ndarray, ee: EdgeEdgeContact,
+                         ee_active: np.ndarray) -> PairGeometry:
+        """:meth:`_pair_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs, rows
+        ``vt_active`` ``(a,)`` of ``vt`` and ``ee_active`` ``(b,)`` of ``ee`` (the step's potentials), taken from
+        one measurement of every candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
+        (:meth:`_candidate_geometry`): one launch per step in place of two. The potentials' rows are the
+        candidates' rows (the edge-edge ones through the rows :meth:`_search` kept) when they were made from
+        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
+        _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
+        geo = self._pair_geometry(x, *self._pair_vertices(vt_list, ee_list))
+        self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo)
+        cache = self._cache
+        if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
+            vt_pos, ee_pos = vt_active, cache[3][ee_active]
+        else:
+            vt_pos, vt_found = self._lookup((vt_list, None), vt.pairs[vt_active])
+            ee_pos, ee_found = self._lookup((ee_list, None), ee.pairs[ee_active])
+            if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
+                return self._pair_geometry(x, *self._pair_vertices(vt.pairs[vt_active], ee.pairs[ee_active]))
         return PairGeometry(geo.vt_above[vt_pos], geo.vt_side[vt_pos], geo.ee_sine[ee_pos], geo.ee_interior[ee_pos],
                             geo.ee_side[ee_pos])
 
@@ -488,7 +507,9 @@ class ContactSet:
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
         step's previous candidate lists are taken from there (same values, computed once), those of
-        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`)."""
+        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`). Returns the two
+        potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)``
+        (the vertex-triangle potential keeps every candidate, in order)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
@@ -504,7 +525,8 @@ class ContactSet:
         keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
-        ee, ee_sides = ee[keep], ee_sides[keep]
+        ee_rows = np.flatnonzero(keep)
+        ee, ee_sides = ee[ee_rows], ee_sides[ee_rows]
         pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
         for pot in pots:
             pot.workspace = self.workspace
@@ -513,7 +535,7 @@ class ContactSet:
             from sim_core.energies.contact.batch_kernel import PairBatch
 
             PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
-        return pots, (vt_sides, ee_sides)
+        return pots, ee_rows
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:
         """``sides`` ``(p,)`` of ``pairs`` ``(p, 2)`` with the step's released pairs of ``kind`` (0
@@ -681,11 +703,12 @@ class ContactSet:
         """
         vt, ee = self._pairs(x, memory)
         out = memory.copy()
-        vt_keep, ee_keep = (pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool) for pot in (vt, ee))
-        geo = self._end_geometry_of(x, vt.pairs[vt_keep], ee.pairs[ee_keep])
-        for pot, mem, keep, above, geometric in ((vt, out.vertex_triangle, vt_keep, geo.vt_above, geo.vt_side),
-                                                 (ee, out.edge_edge, ee_keep, geo.ee_interior, geo.ee_side)):
-            rows = np.flatnonzero(keep)[above]
+        vt_active, ee_active = (pot.active_distances(x)[0] if len(pot.pairs) else np.zeros(0, np.int64)
+                                for pot in (vt, ee))
+        geo = self._end_geometry_of(x, vt, vt_active, ee, ee_active)
+        for pot, mem, active, above, geometric in ((vt, out.vertex_triangle, vt_active, geo.vt_above, geo.vt_side),
+                                                   (ee, out.edge_edge, ee_active, geo.ee_interior, geo.ee_side)):
+            rows = active[above]
             sides = pot.sides[rows]
             # an unsigned pair takes the side of x itself (the potential's resolved_sides)
             mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
@@ -693,6 +716,12 @@ class ContactSet:
 
 
 _NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+def _frozen(x: np.ndarray) -> bool:
+    """Whether positions ``x`` are a read-only float64 array that owns its memory (keyed by identity, as
+    :func:`~sim_core.energies.base.positions_key` keys it: its values cannot change while it exists)."""
+    return type(x) is np.ndarray and x.dtype == np.float64 and x.base is None and not x.flags.writeable
 
 
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:

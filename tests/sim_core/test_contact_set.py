@@ -127,8 +127,11 @@ def test_a_search_with_one_pair_kind_empty_and_every_pair_known_keeps_the_sides(
     vt, ee = (vt[:0], ee) if empty == "vt" else (vt, ee[:0])
     memory = CollisionMemory()
     cs.begin_step(x0, memory)
-    first, first_sides = cs._search(x0, memory, (x0, vt, ee))
-    again, again_sides = cs._search(x0, memory, (x0, vt, ee))
+    first, first_rows = cs._search(x0, memory, (x0, vt, ee))
+    again, again_rows = cs._search(x0, memory, (x0, vt, ee))
+    np.testing.assert_array_equal(first_rows, again_rows)  # the edge-edge candidates kept
+    np.testing.assert_array_equal(first[1].pairs, ee[first_rows])
+    first_sides, again_sides = [p.sides for p in first], [p.sides for p in again]
     assert len(vt) + len(ee) > 0
     for a, b in zip(first_sides, again_sides):
         assert a.dtype == np.float64

@@ -198,8 +198,7 @@ class PairBatch:
         self.split = int(vt.vertices.shape[0])
         self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        self.own, local = compact_indices(self.vertices)
-        self._local_vertices = np.ascontiguousarray(local, dtype=np.int32)
+        self.own, self._local_vertices = compact_indices(self.vertices, dtype=np.int32)
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
         self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
@@ -256,8 +255,10 @@ class PairBatch:
         n, u = x.shape[0], len(self.own)
         gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
         if m:
-            kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
-            kept_rows[:m] = rows
+            every = rows is self._all  # (kept as an array of the batch's: not copied)
+            kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
+            if not every:
+                kept_rows[:m] = rows
             if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
                 grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
                                                      _ARRAYS.rows("hess_unused", 1, (12, 12)),
@@ -269,7 +270,7 @@ class PairBatch:
             if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
                 x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
                 device = _ARRAYS.device()
-                rows_arg = (on_device(self._device, "all_rows", self._all) if rows is self._all  # sent once a batch
+                rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
                             else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
                 d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                         scratch=True)
@@ -289,12 +290,12 @@ class PairBatch:
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
-            if on_gpu:  # (the regions are read with derivatives only)
-                copy_back(d, d_arg)
+            if on_gpu:  # the launch's rows only (the regions are read with derivatives only)
+                copy_back(d, d_arg, m)
                 if derivatives:
-                    copy_back(region, region_arg)
+                    copy_back(region, region_arg, m)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                copy_back(gradients, gradients_arg)
+                copy_back(gradients, gradients_arg, 2 * u)
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
                 grad[:m] = download(grad_arg)
         else:
