@@ -32,6 +32,7 @@ from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import PenaltyContact, declares
+from sim_core.energies.contact.pair_lists import CandidateVertices
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -374,13 +375,16 @@ class ContactSet:
             return TiVertexTriangleContact, TiEdgeEdgeContact
         return VertexTriangleContact, EdgeEdgeContact
 
-    def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray) -> VertexTriangleContact:
-        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`)."""
-        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps)
+    def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray,
+                         vertices: np.ndarray | None = None) -> VertexTriangleContact:
+        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`) and their vertices
+        (None: computed)."""
+        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices)
 
-    def _edge_edge(self, ee: np.ndarray, sides: np.ndarray) -> EdgeEdgeContact:
-        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`)."""
-        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps)
+    def _edge_edge(self, ee: np.ndarray, sides: np.ndarray, vertices: np.ndarray | None = None) -> EdgeEdgeContact:
+        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`) and their vertices (None:
+        computed)."""
+        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
 
     @staticmethod
     def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory) -> np.ndarray:
@@ -421,7 +425,10 @@ class ContactSet:
 
     def _pair_vertices(self, vt: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global vertices ``[p, a, b, c]`` ``(p, 4)`` of vertex-triangle pairs ``vt`` ``(p, 2)`` and
-        ``[a0, a1, b0, b1]`` ``(q, 4)`` of edge-edge pairs ``ee`` ``(q, 2)``."""
+        ``[a0, a1, b0, b1]`` ``(q, 4)`` of edge-edge pairs ``ee`` ``(q, 2)`` (the kept ones of the candidate lists)."""
+        kept = getattr(self, "_vertices_kept", None)
+        if kept is not None and kept.of(vt, ee):
+            return kept.vt_vertices, kept.ee_vertices
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
     def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> PairGeometry:
@@ -443,7 +450,8 @@ class ContactSet:
         candidates' rows (the edge-edge ones through the rows :meth:`_search` kept) when they were made from
         the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
         _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
-        geo = self._pair_geometry(x, *self._pair_vertices(vt_list, ee_list))
+        lists = self._list_vertices(vt_list, ee_list)
+        geo = self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices)
         self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo)
         cache = self._cache
         if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
@@ -526,16 +534,26 @@ class ContactSet:
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
-        ee, ee_sides = ee[ee_rows], ee_sides[ee_rows]
-        pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        lists = self._list_vertices(vt, ee)
+        pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
+                self._edge_edge(ee[ee_rows], ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows, axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
 
-            PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
+            PairBatch(*pots, compact=lists.batch_indices(ee_rows))  # one launch evaluates both at each new x
         return pots, ee_rows
+
+    def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
+        """The global vertices of candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)``, kept for the last lists
+        asked for (the same arrays: a search's lists serve its step's potentials, the end geometry and the next
+        step's potentials)."""
+        kept = getattr(self, "_vertices_kept", None)
+        if kept is None or not kept.of(vt, ee):
+            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges)
+        return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:
         """``sides`` ``(p,)`` of ``pairs`` ``(p, 2)`` with the step's released pairs of ``kind`` (0

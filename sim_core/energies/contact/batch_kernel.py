@@ -173,6 +173,11 @@ class PairBatch:
             and ``sides`` ``(p,)``).
         ee: an :class:`~sim_core.energies.contact.reference.EdgeEdgeContact` (``(q, 4)``, ``(q,)``).
 
+        compact: ``(own, local)``, the distinct vertices the pairs name ``(u,)`` (sorted; a superset does too:
+            its other rows take no part) and the pairs' vertices as positions in ``own``, int32 ``(p + q, 4)``,
+            when the caller has them (:func:`~sim_core.unique.compact_indices` of the pairs' vertices; a contact set
+            keeps them per candidate list); None: computed here.
+
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation.
 
@@ -192,15 +197,16 @@ class PairBatch:
     only when asked), instead of host arrays that cross to the device and back at the launch; None: on CUDA.
     The values are the same."""
 
-    def __init__(self, vt, ee) -> None:
+    def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
         self.split = int(vt.vertices.shape[0])
-        self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        self.own, self._local_vertices = compact_indices(self.vertices, dtype=np.int32)
+        if compact is None:
+            compact = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
+        self.own, self._local_vertices = compact
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
-        self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
+        self._all = np.arange(self.split + ee.vertices.shape[0], dtype=np.int32)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         vt._batch = ee._batch = self
