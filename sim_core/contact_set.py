@@ -254,7 +254,8 @@ class ContactSet:
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             sheet = self.body_kind == "sheet"
             solid = self.body_kind == "solid"
-            vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
+            vt = np.take(vt, np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
+                                              & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])), axis=0)
         self._candidates = (x_search, vt, ee)
         return self._candidates
 
@@ -408,7 +409,7 @@ class ContactSet:
         """
         sides = np.zeros(len(above))
         rows = np.flatnonzero(above)
-        sides[rows] = memory.resolve(pairs[rows], geometric[rows])
+        sides[rows] = memory.resolve(np.take(pairs, rows, axis=0), geometric[rows])  # (np.take: rows of a 2-D array)
         return sides
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
@@ -536,7 +537,8 @@ class ContactSet:
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(ee[ee_rows], ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows, axis=0)))
+                self._edge_edge(np.take(ee, ee_rows, axis=0), ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows,
+                                                                                          axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
@@ -671,7 +673,7 @@ class ContactSet:
         pots = (vt, ee)
         rows = [pot.active_distances(x_n) for pot in pots]
         split = len(rows[0][0])
-        vertices = np.concatenate([pot.vertices[active] for pot, (active, _) in zip(pots, rows)])
+        vertices = np.concatenate([np.take(pot.vertices, active, axis=0) for pot, (active, _) in zip(pots, rows)])
         if not len(vertices):
             return None
         # column 0 and the second side's column (1 for [p, a, b, c], 2 for [a0, a1, b0, b1]): its two sides
@@ -729,7 +731,7 @@ class ContactSet:
             rows = active[above]
             sides = pot.sides[rows]
             # an unsigned pair takes the side of x itself (the potential's resolved_sides)
-            mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
+            mem.update(np.take(pot.pairs, rows, axis=0), np.where(sides == 0.0, geometric[above], sides))
         return out
 
 
@@ -744,7 +746,7 @@ def _frozen(x: np.ndarray) -> bool:
 
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:
     """The rows of ``pairs`` ``(p, 2)`` not ``found`` (bool ``(p,)``); ``pairs`` itself when none is."""
-    return pairs if not np.any(found) else pairs[~found]
+    return pairs if not np.any(found) else np.take(pairs, np.flatnonzero(~found), axis=0)
 
 
 def _pair_keys(pairs: np.ndarray) -> np.ndarray:

@@ -323,7 +323,8 @@ class PairBatch:
                 if device_hessian:  # the rows are the slice ``part`` of the launch's rows
                     g, h = grad[rows].copy(), DeviceRows(hess_arg, rows.start, rows.stop, shared)
                 else:
-                    g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
+                    g, h = ((grad[rows].copy(), hess[rows].copy()) if known is not None  # (np.take: rows of 2-D arrays)
+                            else (np.take(grad, rows, axis=0), np.take(hess, rows, axis=0)))
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
                     order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._own_rows(gradients, kind, n))))
