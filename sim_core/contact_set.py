@@ -32,6 +32,7 @@ from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import PenaltyContact, declares
+from sim_core.energies.contact.pair_lists import CandidateVertices
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -129,9 +130,10 @@ class ContactSet:
         # vertices held for the step (sleeping bodies, sim_core.sleeping; set by the solver), or None
         self.held: np.ndarray | None = None
         self._held_kept = None  # (candidates, held, candidates without the held pairs apart)
-        self._cache = None  # (memory, candidates, potentials, sides) of the current step
+        self._cache = None  # (memory, candidates, potentials, edge-edge candidate rows kept) of the current step
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
+        self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
         self.min_edge_sine = 0.1
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
@@ -165,8 +167,8 @@ class ContactSet:
             # rebuilt; their kept evaluation is matched against x on use
             pots = cache[2]
         else:
-            pots, remembered = self._search(x, memory, candidates)
-            self._cache = (memory, candidates, pots, remembered)
+            pots, ee_rows = self._search(x, memory, candidates)
+            self._cache = (memory, candidates, pots, ee_rows)
         # the previous iterate's potentials were last evaluated at the accepted line-search point,
         # usually this x: reuse that evaluation where the pairs and sides are unchanged
         for new, old in zip(pots, getattr(self, "_last_pots", ())):
@@ -197,6 +199,11 @@ class ContactSet:
         only while this holds; beyond it a pair missing from the list would make the trial energy
         too low (a penetration the line search cannot see), and Newton then cycles between iterates.
 
+        The answer for two frozen arrays (read-only arrays that own their memory, as the search positions and
+        the lockstep solver's iterates are: :func:`~sim_core.energies.base.positions_key`) is kept for the
+        next call with the same two objects (a Newton iterate's gradient and energy ask twice: half of the
+        calls of a lockstep batch, each reading all copies' positions).
+
         Args:
             x_search: positions of the search ``(n, 3)`` (m) or None (no search yet: False).
             x: positions ``(n, 3)`` (m); NaN gives False.
@@ -205,10 +212,15 @@ class ContactSet:
             return False
         if x.size == 0:
             return True
+        kept = self._covered
+        if kept is not None and kept[0] is x_search and kept[1] is x:
+            return kept[2]
         moved = x - x_search
-        if np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin:  # max |moved| (NaN: False), no |moved| array
-            return True
-        return self._gaps_hold(moved)
+        # max |moved| (NaN: False), no |moved| array; else the general test
+        answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
+        if _frozen(x_search) and _frozen(x):
+            self._covered = (x_search, x, answer)
+        return answer
 
     def _gaps_hold(self, moved: np.ndarray) -> bool:
         """:meth:`covers`' general test: ``c_k(A, B) <= margin`` for every axis and allowed body pair,
@@ -242,7 +254,8 @@ class ContactSet:
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             sheet = self.body_kind == "sheet"
             solid = self.body_kind == "solid"
-            vt = vt[~(sheet[self.vertex_body[vt[:, 0]]] & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])]
+            vt = np.take(vt, np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
+                                              & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])), axis=0)
         self._candidates = (x_search, vt, ee)
         return self._candidates
 
@@ -316,15 +329,16 @@ class ContactSet:
         rest of this step) lets one search serve the next step's first iterates too (Forming: 1.18
         -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always
         covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
-        ``lookahead = 0`` the search is at ``x``.
+        ``lookahead = 0`` the search is at ``x``. The array is read-only (:attr:`search_position`).
         """
         x = np.array(x, dtype=float, copy=True)
         if not (0.0 <= self.lookahead_cap <= 0.5):
             raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
-        if self.x_prev is None or self.x_prev.shape != x.shape or self.lookahead == 0.0:
-            return x
-        cap = self.lookahead_cap * self.margin
-        return x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+        if self.x_prev is not None and self.x_prev.shape == x.shape and self.lookahead != 0.0:
+            cap = self.lookahead_cap * self.margin
+            x = x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+        x.flags.writeable = False  # frozen: covers() keeps its answers for it
+        return x
 
     def _grouped_search(self):
         """The box-pair search of the broad phase (``self.broad_phase``; all give the same pairs):
@@ -362,13 +376,16 @@ class ContactSet:
             return TiVertexTriangleContact, TiEdgeEdgeContact
         return VertexTriangleContact, EdgeEdgeContact
 
-    def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray) -> VertexTriangleContact:
-        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`)."""
-        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps)
+    def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray,
+                         vertices: np.ndarray | None = None) -> VertexTriangleContact:
+        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`) and their vertices
+        (None: computed)."""
+        return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices)
 
-    def _edge_edge(self, ee: np.ndarray, sides: np.ndarray) -> EdgeEdgeContact:
-        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`)."""
-        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps)
+    def _edge_edge(self, ee: np.ndarray, sides: np.ndarray, vertices: np.ndarray | None = None) -> EdgeEdgeContact:
+        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`) and their vertices (None:
+        computed)."""
+        return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
 
     @staticmethod
     def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory) -> np.ndarray:
@@ -392,7 +409,7 @@ class ContactSet:
         """
         sides = np.zeros(len(above))
         rows = np.flatnonzero(above)
-        sides[rows] = memory.resolve(pairs[rows], geometric[rows])
+        sides[rows] = memory.resolve(np.take(pairs, rows, axis=0), geometric[rows])  # (np.take: rows of a 2-D array)
         return sides
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
@@ -409,7 +426,10 @@ class ContactSet:
 
     def _pair_vertices(self, vt: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global vertices ``[p, a, b, c]`` ``(p, 4)`` of vertex-triangle pairs ``vt`` ``(p, 2)`` and
-        ``[a0, a1, b0, b1]`` ``(q, 4)`` of edge-edge pairs ``ee`` ``(q, 2)``."""
+        ``[a0, a1, b0, b1]`` ``(q, 4)`` of edge-edge pairs ``ee`` ``(q, 2)`` (the kept ones of the candidate lists)."""
+        kept = getattr(self, "_vertices_kept", None)
+        if kept is not None and kept.of(vt, ee):
+            return kept.vt_vertices, kept.ee_vertices
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
     def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> PairGeometry:
@@ -418,22 +438,30 @@ class ContactSet:
         lists (the same arrays) at equal positions is taken as it is: the converged positions of a step
         are the next one's ``x^n``, and a step starts with the candidate lists it ended with."""
         kept = getattr(self, "_end_geometry", None)
-        if kept is not None and kept[1] is vt and kept[2] is ee and np.array_equal(kept[0], x):
+        if kept is not None and kept[1] is vt and kept[2] is ee and (kept[0] is x or np.array_equal(kept[0], x)):
             return kept[3]
         return self._pair_geometry(x, *self._pair_vertices(vt, ee))
 
-    def _end_geometry_of(self, x: np.ndarray, vt_pairs: np.ndarray, ee_pairs: np.ndarray) -> PairGeometry:
-        """:meth:`_pair_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs
-        ``vt_pairs`` ``(a, 2)`` and ``ee_pairs`` ``(b, 2)``, taken from one measurement of every
-        candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
-        (:meth:`_candidate_geometry`): one launch per step in place of two."""
-        _, vt, ee = self._candidates  # the lists of the potentials evaluated at x
-        geo = self._pair_geometry(x, *self._pair_vertices(vt, ee))
-        self._end_geometry = (np.array(x, dtype=float, copy=True), vt, ee, geo)
-        vt_pos, vt_found = self._lookup((vt, None), vt_pairs)
-        ee_pos, ee_found = self._lookup((ee, None), ee_pairs)
-        if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
-            return self._pair_geometry(x, *self._pair_vertices(vt_pairs, ee_pairs))
+    def _end_geometry_of(self, x: np.ndarray, vt: VertexTriangleContact, vt_active: np.ndarray, ee: EdgeEdgeContact,
+                         ee_active: np.ndarray) -> PairGeometry:
+        """:meth:`_pair_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs, rows
+        ``vt_active`` ``(a,)`` of ``vt`` and ``ee_active`` ``(b,)`` of ``ee`` (the step's potentials), taken from
+        one measurement of every candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
+        (:meth:`_candidate_geometry`): one launch per step in place of two. The potentials' rows are the
+        candidates' rows (the edge-edge ones through the rows :meth:`_search` kept) when they were made from
+        the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
+        _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
+        lists = self._list_vertices(vt_list, ee_list)
+        geo = self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices)
+        self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo)
+        cache = self._cache
+        if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
+            vt_pos, ee_pos = vt_active, cache[3][ee_active]
+        else:
+            vt_pos, vt_found = self._lookup((vt_list, None), vt.pairs[vt_active])
+            ee_pos, ee_found = self._lookup((ee_list, None), ee.pairs[ee_active])
+            if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
+                return self._pair_geometry(x, *self._pair_vertices(vt.pairs[vt_active], ee.pairs[ee_active]))
         return PairGeometry(geo.vt_above[vt_pos], geo.vt_side[vt_pos], geo.ee_sine[ee_pos], geo.ee_interior[ee_pos],
                             geo.ee_side[ee_pos])
 
@@ -488,7 +516,9 @@ class ContactSet:
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
         step's previous candidate lists are taken from there (same values, computed once), those of
-        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`)."""
+        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`). Returns the two
+        potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)``
+        (the vertex-triangle potential keeps every candidate, in order)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
@@ -504,16 +534,28 @@ class ContactSet:
         keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
-        ee, ee_sides = ee[keep], ee_sides[keep]
-        pots = (self._vertex_triangle(vt, vt_sides), self._edge_edge(ee, ee_sides))
+        ee_rows = np.flatnonzero(keep)
+        lists = self._list_vertices(vt, ee)
+        pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
+                self._edge_edge(np.take(ee, ee_rows, axis=0), ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows,
+                                                                                          axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
 
-            PairBatch(*pots)  # one kernel launch evaluates both potentials at each new x
-        return pots, (vt_sides, ee_sides)
+            PairBatch(*pots, compact=lists.batch_indices(ee_rows))  # one launch evaluates both at each new x
+        return pots, ee_rows
+
+    def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
+        """The global vertices of candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)``, kept for the last lists
+        asked for (the same arrays: a search's lists serve its step's potentials, the end geometry and the next
+        step's potentials)."""
+        kept = getattr(self, "_vertices_kept", None)
+        if kept is None or not kept.of(vt, ee):
+            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges)
+        return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:
         """``sides`` ``(p,)`` of ``pairs`` ``(p, 2)`` with the step's released pairs of ``kind`` (0
@@ -631,7 +673,7 @@ class ContactSet:
         pots = (vt, ee)
         rows = [pot.active_distances(x_n) for pot in pots]
         split = len(rows[0][0])
-        vertices = np.concatenate([pot.vertices[active] for pot, (active, _) in zip(pots, rows)])
+        vertices = np.concatenate([np.take(pot.vertices, active, axis=0) for pot, (active, _) in zip(pots, rows)])
         if not len(vertices):
             return None
         # column 0 and the second side's column (1 for [p, a, b, c], 2 for [a0, a1, b0, b1]): its two sides
@@ -681,23 +723,30 @@ class ContactSet:
         """
         vt, ee = self._pairs(x, memory)
         out = memory.copy()
-        vt_keep, ee_keep = (pot.active_mask(x) if len(pot.pairs) else np.zeros(0, bool) for pot in (vt, ee))
-        geo = self._end_geometry_of(x, vt.pairs[vt_keep], ee.pairs[ee_keep])
-        for pot, mem, keep, above, geometric in ((vt, out.vertex_triangle, vt_keep, geo.vt_above, geo.vt_side),
-                                                 (ee, out.edge_edge, ee_keep, geo.ee_interior, geo.ee_side)):
-            rows = np.flatnonzero(keep)[above]
+        vt_active, ee_active = (pot.active_distances(x)[0] if len(pot.pairs) else np.zeros(0, np.int64)
+                                for pot in (vt, ee))
+        geo = self._end_geometry_of(x, vt, vt_active, ee, ee_active)
+        for pot, mem, active, above, geometric in ((vt, out.vertex_triangle, vt_active, geo.vt_above, geo.vt_side),
+                                                   (ee, out.edge_edge, ee_active, geo.ee_interior, geo.ee_side)):
+            rows = active[above]
             sides = pot.sides[rows]
             # an unsigned pair takes the side of x itself (the potential's resolved_sides)
-            mem.update(pot.pairs[rows], np.where(sides == 0.0, geometric[above], sides))
+            mem.update(np.take(pot.pairs, rows, axis=0), np.where(sides == 0.0, geometric[above], sides))
         return out
 
 
 _NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
+def _frozen(x: np.ndarray) -> bool:
+    """Whether positions ``x`` are a read-only float64 array that owns its memory (keyed by identity, as
+    :func:`~sim_core.energies.base.positions_key` keys it: its values cannot change while it exists)."""
+    return type(x) is np.ndarray and x.dtype == np.float64 and x.base is None and not x.flags.writeable
+
+
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:
     """The rows of ``pairs`` ``(p, 2)`` not ``found`` (bool ``(p,)``); ``pairs`` itself when none is."""
-    return pairs if not np.any(found) else pairs[~found]
+    return pairs if not np.any(found) else np.take(pairs, np.flatnonzero(~found), axis=0)
 
 
 def _pair_keys(pairs: np.ndarray) -> np.ndarray:

@@ -161,21 +161,23 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
     return entry[1]
 
 
-def copy_back(host: np.ndarray, array) -> np.ndarray:
+def copy_back(host: np.ndarray, array, rows: int | None = None) -> np.ndarray:
     """``array``'s values (a Taichi ndarray of ``host``'s shape and dtype, or a NumPy array: what
     :func:`on_device` returned) copied into ``host``, returned: a byte copy
     (:mod:`sim_core.ti_kernels.device_copy`) where one can be made, else through
-    :func:`sim_core.ti_kernels.transfer.download` (float64) or Taichi's ``to_numpy``.
+    :func:`sim_core.ti_kernels.transfer.download` (float64) or Taichi's ``to_numpy``. ``rows``: copy only the
+    first ``rows`` rows (a kept array of a larger capacity whose launch wrote those), the others left as they are.
 
     Raises:
-        ValueError: ``host`` is not a C-contiguous array of ``array``'s shape and dtype.
+        ValueError: ``host`` is not a C-contiguous array of ``array``'s shape and dtype, or ``rows`` is not in
+            ``[0, host.shape[0]]``.
     """
     if isinstance(array, np.ndarray):  # what on_device returns off CUDA: the host array itself, or another
         if array is not host:
-            np.copyto(host, array)
+            np.copyto(host[:rows], array[:rows])
         return host
-    if not device_copy.to_host(host, array):
-        np.copyto(host, _to_numpy(array))
+    if not device_copy.to_host(host, array, rows):
+        np.copyto(host[:rows], _to_numpy(array)[:rows])
     return host
 
 

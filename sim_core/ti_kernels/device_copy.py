@@ -148,14 +148,16 @@ def to_device(array, host: np.ndarray) -> bool:
     return _copy(array, host, True)
 
 
-def to_host(host: np.ndarray, array) -> bool:
+def to_host(host: np.ndarray, array, rows: int | None = None) -> bool:
     """Copy the Taichi ndarray ``array`` into the writable C-contiguous ``host`` (``array``'s dtype and
-    shape); False (nothing copied) where no direct copy is possible here.
+    shape), or only its first ``rows`` rows (along the first axis: the bytes of a prefix; the rest of ``host``
+    is left as it is); False (nothing copied) where no direct copy is possible here.
 
     Raises:
-        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or is read-only.
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or is read-only, or ``rows`` is
+            not in ``[0, host.shape[0]]``.
     """
-    return _copy(array, host, False)
+    return _copy(array, host, False, rows)
 
 
 def zero(array) -> bool:
@@ -176,11 +178,16 @@ def zero(array) -> bool:
     return False
 
 
-def _copy(array, host: np.ndarray, upload: bool) -> bool:
-    """``host`` into ``array`` (``upload``) or back; whether the bytes were copied."""
+def _copy(array, host: np.ndarray, upload: bool, rows: int | None = None) -> bool:
+    """``host`` into ``array`` (``upload``) or back, all of it or its first ``rows`` rows; whether the bytes
+    were copied."""
     nbytes = _checked(array, host)
     if not upload and not host.flags.writeable:
         raise ValueError("device_copy: the host array to copy into is read-only")
+    if rows is not None:
+        if not 0 <= rows <= (host.shape[0] if host.ndim else 1):
+            raise ValueError(f"device_copy: {rows} rows asked of an array of shape {host.shape}")
+        nbytes = nbytes // max(host.shape[0], 1) * rows if host.ndim else nbytes
     if not nbytes:
         return True
     arch = current_arch()

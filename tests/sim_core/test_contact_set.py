@@ -127,8 +127,11 @@ def test_a_search_with_one_pair_kind_empty_and_every_pair_known_keeps_the_sides(
     vt, ee = (vt[:0], ee) if empty == "vt" else (vt, ee[:0])
     memory = CollisionMemory()
     cs.begin_step(x0, memory)
-    first, first_sides = cs._search(x0, memory, (x0, vt, ee))
-    again, again_sides = cs._search(x0, memory, (x0, vt, ee))
+    first, first_rows = cs._search(x0, memory, (x0, vt, ee))
+    again, again_rows = cs._search(x0, memory, (x0, vt, ee))
+    np.testing.assert_array_equal(first_rows, again_rows)  # the edge-edge candidates kept
+    np.testing.assert_array_equal(first[1].pairs, ee[first_rows])
+    first_sides, again_sides = [p.sides for p in first], [p.sides for p in again]
     assert len(vt) + len(ee) > 0
     for a, b in zip(first_sides, again_sides):
         assert a.dtype == np.float64
@@ -243,6 +246,34 @@ def test_a_search_covers_bodies_moving_together_and_no_gap_closing_by_more_than_
     assert not cs.covers(x0, x)
     x[7] = np.nan
     assert not cs.covers(x0, x)
+
+
+def test_covers_keeps_its_answer_for_two_frozen_arrays_and_the_search_position_is_frozen():
+    """Asked again with the same two read-only arrays (frozen: their values cannot change), ``covers`` gives
+    its kept answer without reading the positions; another array, or a writeable one changed in place (the
+    test above), is measured anew. The search position is such a frozen array."""
+    cs = _two_grid_sheets()
+    x0 = cs.model.x_rest.copy()
+    m = cs.margin
+    measured = []
+    gaps_hold = cs._gaps_hold
+    cs._gaps_hold = lambda moved: measured.append(1) or gaps_hold(moved)
+    x_search, x = x0.copy(), x0 + np.array([4.0 * m, 0.0, 0.0])
+    x[25:, 2] -= 0.6 * m
+    x[:25, 2] += 0.5 * m  # the sheets close by 1.1 margin along z
+    for a in (x_search, x):
+        a.flags.writeable = False
+    assert not cs.covers(x_search, x) and not cs.covers(x_search, x)
+    assert len(measured) == 1
+    closer = x.copy()
+    closer[:25, 2] -= 0.2 * m  # by 0.9 margin
+    closer.flags.writeable = False
+    assert cs.covers(x_search, closer) and len(measured) == 2
+    memory = cs.begin_step(x0, None)
+    cs.potentials(x0, x0, memory)
+    assert not cs.search_position.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        cs.search_position[0, 0] = 1.0
 
 
 def test_searches_of_sheets_drifting_together_never_miss_a_close_pair_and_are_fewer():

@@ -52,6 +52,10 @@ def test_compact_indices_are_np_unique_with_the_inverse_in_the_input_shape():
     np.testing.assert_array_equal(own, expected)
     np.testing.assert_array_equal(local, inverse.reshape(pairs.shape))
     np.testing.assert_array_equal(own[local], pairs)
+    own32, local32 = compact_indices(pairs.astype(np.int32), dtype=np.int32)  # a kernel's indices: int32 positions
+    assert local32.dtype == np.int32 and local32.flags.c_contiguous
+    np.testing.assert_array_equal(own32, expected)
+    np.testing.assert_array_equal(local32, local)
     none = compact_indices(np.zeros((0, 4), dtype=np.int32))
     assert none[0].shape == (0,) and none[1].shape == (0, 4)
     with pytest.raises(ValueError, match="must be >= 0"):

@@ -173,6 +173,11 @@ class PairBatch:
             and ``sides`` ``(p,)``).
         ee: an :class:`~sim_core.energies.contact.reference.EdgeEdgeContact` (``(q, 4)``, ``(q,)``).
 
+        compact: ``(own, local)``, the distinct vertices the pairs name ``(u,)`` (sorted; a superset does too:
+            its other rows take no part) and the pairs' vertices as positions in ``own``, int32 ``(p + q, 4)``,
+            when the caller has them (:func:`~sim_core.unique.compact_indices` of the pairs' vertices; a contact set
+            keeps them per candidate list); None: computed here.
+
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation.
 
@@ -192,16 +197,17 @@ class PairBatch:
     only when asked), instead of host arrays that cross to the device and back at the launch; None: on CUDA.
     The values are the same."""
 
-    def __init__(self, vt, ee) -> None:
+    def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
         self.split = int(vt.vertices.shape[0])
-        self.vertices = np.concatenate([vt.vertices, ee.vertices], dtype=np.int32)
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        self.own, local = compact_indices(self.vertices)
-        self._local_vertices = np.ascontiguousarray(local, dtype=np.int32)
+        if compact is None:
+            compact = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
+        self.own, self._local_vertices = compact
         self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
-        self._all = np.arange(self.vertices.shape[0], dtype=np.int32)
+        self._all = np.arange(self.split + ee.vertices.shape[0], dtype=np.int32)
+        self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         vt._batch = ee._batch = self
@@ -216,7 +222,7 @@ class PairBatch:
         u = len(self.own)
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
             xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else new_ndarray(ti.f64, (u, 3))
-            upload(xd, x[self.own])
+            upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
             kept = self._device_x = (key, xd)
         dev, shared = self._device, _ARRAYS.device()
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
@@ -256,8 +262,10 @@ class PairBatch:
         n, u = x.shape[0], len(self.own)
         gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
         if m:
-            kept_rows = _ARRAYS.rows("pair_rows", m, (), np.int32)
-            kept_rows[:m] = rows
+            every = rows is self._all  # (kept as an array of the batch's: not copied)
+            kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
+            if not every:
+                kept_rows[:m] = rows
             if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
                 grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
                                                      _ARRAYS.rows("hess_unused", 1, (12, 12)),
@@ -269,7 +277,7 @@ class PairBatch:
             if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
                 x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
                 device = _ARRAYS.device()
-                rows_arg = (on_device(self._device, "all_rows", self._all) if rows is self._all  # sent once a batch
+                rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
                             else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
                 d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                         scratch=True)
@@ -280,7 +288,7 @@ class PairBatch:
                                                          (("grad_unused", grad_arg), ("hess_unused", hess_arg),
                                                           ("gradients_unused", gradients_arg)))
             else:
-                x_arg, vertices_arg, sides_arg, rows_arg = (_ARRAYS.copy_of("x", x[self.own]), self._local_vertices,
+                x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x), self._local_vertices,
                                                             self.sides, kept_rows)
                 z = _ARRAYS.rows("z", m, (4, 3))
             if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
@@ -289,12 +297,12 @@ class PairBatch:
             _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
                           float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
                           region_arg, grad_arg, hess_arg, gradients_arg)
-            if on_gpu:  # (the regions are read with derivatives only)
-                copy_back(d, d_arg)
+            if on_gpu:  # the launch's rows only (the regions are read with derivatives only)
+                copy_back(d, d_arg, m)
                 if derivatives:
-                    copy_back(region, region_arg)
+                    copy_back(region, region_arg, m)
             if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                copy_back(gradients, gradients_arg)
+                copy_back(gradients, gradients_arg, 2 * u)
             if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
                 grad[:m] = download(grad_arg)
         else:
@@ -315,13 +323,24 @@ class PairBatch:
                 if device_hessian:  # the rows are the slice ``part`` of the launch's rows
                     g, h = grad[rows].copy(), DeviceRows(hess_arg, rows.start, rows.stop, shared)
                 else:
-                    g, h = (grad[rows].copy(), hess[rows].copy()) if known is not None else (grad[rows], hess[rows])
+                    g, h = ((grad[rows].copy(), hess[rows].copy()) if known is not None  # (np.take: rows of 2-D arrays)
+                            else (np.take(grad, rows, axis=0), np.take(hess, rows, axis=0)))
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
                     order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._own_rows(gradients, kind, n))))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+    def _own_positions(self, x: np.ndarray) -> np.ndarray:
+        """The positions ``(u, 3)`` (m) of the pairs' vertices ``own`` taken from ``x`` ``(n, 3)`` into an array kept
+        per batch (bound to the kernel once a batch; ``np.take`` into it: one pass, a third of fancy indexing's
+        time on a stacked batch's vertices)."""
+        kept = self._x_own
+        if kept is None:
+            kept = self._x_own = np.empty((len(self.own), 3))
+        np.take(x, self.own, axis=0, out=kept)
+        return kept
 
     def _own_rows(self, gradients: np.ndarray, kind: int, n: int) -> tuple[np.ndarray, np.ndarray, int]:
         """``(own, rows, n)``: the summed gradient rows ``(u, 3)`` (N, a copy) of potential ``kind`` (0 vertex-triangle,

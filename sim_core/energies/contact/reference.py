@@ -135,7 +135,7 @@ class PairEvaluation:
         """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential
         sharing this evaluation), int64 ``(a, 4)``, kept."""
         if self._vertices is None:
-            self._vertices = vertices[self.active]
+            self._vertices = np.take(vertices, self.active, axis=0)  # (np.take: a third of fancy indexing's time)
         return self._vertices
 
     def holds_hessian(self, stiffness: float) -> bool:
@@ -289,7 +289,8 @@ class _PairPenalty:
         """
         last = None if other is None else workspace_of(other).get(other, "evaluation")
         if (last is not None and type(other) is type(self) and other.eps == self.eps
-                and other.vertices.shape == self.vertices.shape and np.array_equal(other.vertices, self.vertices)
+                and (other.vertices is self.vertices or (other.vertices.shape == self.vertices.shape
+                                                         and np.array_equal(other.vertices, self.vertices)))
                 and np.array_equal(other.sides, self.sides)):
             workspace_of(self).put(self, "evaluation", last)
 
@@ -342,7 +343,7 @@ class _PairPenalty:
         pair_vertices = evaluation.active_vertices(self.vertices)
         if vertices is not None:
             rows = np.flatnonzero(np.asarray(vertices)[pair_vertices[:, 0]])
-            pair_vertices, H = pair_vertices[rows], H[rows]
+            pair_vertices, H = np.take(pair_vertices, rows, axis=0), np.take(H, rows, axis=0)
         return HessianBlocks(pair_vertices, project_psd(H, projection))
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
@@ -363,12 +364,15 @@ class VertexTriangleContact(_PairPenalty):
             when the pair became active (+1 / -1; 0: unsigned, module docstring), shape ``(p,)``.
         stiffness: k_c in N/m (> 0).
         eps: contact offset in m (> 0).
+        vertices: the pairs' global vertices ``(p, 4)`` as :func:`vertex_triangle_vertices` gives them, when the
+            caller has them (a contact set's candidate lists: once per search), else computed here.
 
     Raises:
         ConfigError: bad stiffness, eps, sides or shapes.
     """
 
-    def __init__(self, pairs: np.ndarray, triangles: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+    def __init__(self, pairs: np.ndarray, triangles: np.ndarray, sides: np.ndarray, stiffness: float, eps: float,
+                 vertices: np.ndarray | None = None):
         where = "VertexTriangleContact"
         _check_penalty(stiffness, eps, where)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -377,7 +381,11 @@ class VertexTriangleContact(_PairPenalty):
             raise ConfigError(f"{where}: triangle index out of range [0, {triangles.shape[0]})")
         self.pairs = pairs
         self.sides = _check_sides(sides, pairs.shape[0], where)
-        self.vertices = vertex_triangle_vertices(pairs, triangles)
+        if vertices is None:
+            vertices = vertex_triangle_vertices(pairs, triangles)
+        elif np.shape(vertices) != (pairs.shape[0], 4):
+            raise ConfigError(f"{where}: {pairs.shape[0]} pairs but vertices of shape {np.shape(vertices)}")
+        self.vertices = vertices
         self.stiffness = float(stiffness)
         self.eps = float(eps)
 
@@ -416,12 +424,15 @@ class EdgeEdgeContact(_PairPenalty):
             module docstring), shape ``(p,)``.
         stiffness: k_c in N/m (> 0).
         eps: contact offset in m (> 0).
+        vertices: the pairs' global vertices ``(p, 4)`` as :func:`edge_edge_vertices` gives them, when the
+            caller has them (a contact set's candidate lists: once per search), else computed here.
 
     Raises:
         ConfigError: bad stiffness, eps, sides or shapes.
     """
 
-    def __init__(self, pairs: np.ndarray, edges: np.ndarray, sides: np.ndarray, stiffness: float, eps: float):
+    def __init__(self, pairs: np.ndarray, edges: np.ndarray, sides: np.ndarray, stiffness: float, eps: float,
+                 vertices: np.ndarray | None = None):
         where = "EdgeEdgeContact"
         _check_penalty(stiffness, eps, where)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -430,7 +441,11 @@ class EdgeEdgeContact(_PairPenalty):
             raise ConfigError(f"{where}: edge index out of range [0, {edges.shape[0]})")
         self.pairs = pairs
         self.sides = _check_sides(sides, pairs.shape[0], where)
-        self.vertices = edge_edge_vertices(pairs, edges)
+        if vertices is None:
+            vertices = edge_edge_vertices(pairs, edges)
+        elif np.shape(vertices) != (pairs.shape[0], 4):
+            raise ConfigError(f"{where}: {pairs.shape[0]} pairs but vertices of shape {np.shape(vertices)}")
+        self.vertices = vertices
         self.stiffness = float(stiffness)
         self.eps = float(eps)
 

@@ -74,11 +74,11 @@ _ARRAYS = LaunchArrays()
 """The kernels' arrays (inputs copied in, outputs copied out): launches re-bind none."""
 
 
-def _device_launch(kernel, args: tuple, outputs: tuple[int, ...]) -> None:
+def _device_launch(kernel, args: tuple, outputs: dict[int, int]) -> None:
     """``kernel(*args)``; on CUDA with every array of ``args`` (kept arrays of :data:`_ARRAYS`) replaced by a
-    device copy kept per thread (the inputs sent at every launch, the arrays at positions ``outputs`` only
-    allocated there and copied back after the launch), instead of NumPy arguments that cross to the device
-    and back at each launch."""
+    device copy kept per thread (the inputs sent at every launch, the arrays at the positions of ``outputs``,
+    position -> rows the launch writes, only allocated there and those rows copied back after the launch),
+    instead of NumPy arguments that cross to the device and back at each launch."""
     if current_arch() != "cuda":
         kernel(*args)
         return
@@ -87,8 +87,18 @@ def _device_launch(kernel, args: tuple, outputs: tuple[int, ...]) -> None:
                         refresh=position not in outputs, changed=True) if isinstance(a, np.ndarray) else a
               for position, a in enumerate(args)]
     kernel(*launch)
-    for position in outputs:
-        copy_back(args[position], launch[position])
+    for position, rows in outputs.items():
+        copy_back(args[position], launch[position], rows)
+
+
+def _positions(x: np.ndarray) -> np.ndarray:
+    """The positions argument ``(n, 3)`` (m) of a launch: off CUDA ``x`` itself when it is a C-contiguous float64
+    array (bound by its address: no copy of a stacked batch's positions, 14 MB at 1024 Forming copies, for a
+    rebinding of a few microseconds), else a copy in a kept array (on CUDA its device copy is sent again only
+    when the values changed, :func:`_device_launch`)."""
+    if current_arch() != "cuda" and type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous:
+        return x
+    return _ARRAYS.copy_of("x", x)
 
 
 def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
@@ -119,8 +129,8 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
     above, vt_side = _ARRAYS.rows("above", p, (), np.int32), _ARRAYS.rows("vt_side", p)
     sine, interior, ee_side = _ARRAYS.rows("sine", q), _ARRAYS.rows("interior", q, (), np.int32), _ARRAYS.rows("ee_side", q)
     if p or q:
-        _device_launch(_geometry_kernel, (_ARRAYS.copy_of("x", x), vt, p, ee, q, above, vt_side, sine, interior,
-                                          ee_side), outputs=(5, 6, 7, 8, 9))
+        _device_launch(_geometry_kernel, (_positions(x), vt, p, ee, q, above, vt_side, sine, interior,
+                                          ee_side), outputs={5: p, 6: p, 7: q, 8: q, 9: q})
     return PairGeometry(above[:p].astype(bool), vt_side[:p].copy(), sine[:q].copy(), interior[:q].astype(bool),
                         ee_side[:q].copy())
 
@@ -217,7 +227,7 @@ def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point
     side = _ARRAYS.rows("side", k)
     side[:k] = np.reshape(sides, -1)
     weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
-    _frames_kernel(_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k, bool(point_first), weights,
+    _frames_kernel(_positions(x), _kept_indices("pairs", vertices), side, k, bool(point_first), weights,
                    normal)
     return weights[:k].copy(), normal[:k].copy()
 
@@ -308,8 +318,8 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
     side[:k] = np.reshape(sides, -1)
     weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
     tangent = _ARRAYS.rows("tangent", k, (3, 2))
-    _device_launch(_friction_frames_kernel, (_ARRAYS.copy_of("x", x), _kept_indices("pairs", vertices), side, k,
-                                             int(split), weights, normal, tangent), outputs=(5, 6, 7))
+    _device_launch(_friction_frames_kernel, (_positions(x), _kept_indices("pairs", vertices), side, k,
+                                             int(split), weights, normal, tangent), outputs={5: k, 6: k, 7: k})
     return weights[:k].copy(), normal[:k].copy(), tangent[:k].copy()
 
 

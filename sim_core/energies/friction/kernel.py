@@ -182,11 +182,11 @@ class TiLaggedFriction(LaggedFriction):
         arrays = getattr(self, "_arrays", None)
         if arrays is None or self._n != x.shape[0]:
             require_backend("TiLaggedFriction")
-            own, local = compact_indices(self.vertices)
+            own, local = compact_indices(self.vertices, dtype=np.int32)
             self._own, self._n = own, x.shape[0]
             arrays = (np.empty((len(own), 3)),
                       np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
-                      np.ascontiguousarray(local, dtype=np.int32),
+                      local,
                       np.ascontiguousarray(self.weights, dtype=np.float64),
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))

@@ -45,6 +45,26 @@ def test_copies_refuse_another_shape_or_dtype(ti_cpu):
         to_host(read_only, dev)
 
 
+def test_a_prefix_of_rows_comes_back_and_the_rest_is_left(ti_cpu):
+    """``to_host(..., rows=k)`` and ``buffers.copy_back(..., rows=k)`` copy the first ``k`` rows only (a kept
+    array of a larger capacity whose launch wrote those); a count outside the array is refused."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.buffers import copy_back
+    from sim_core.ti_kernels.device_copy import to_host
+
+    values = np.arange(36, dtype=np.float64).reshape(12, 3)
+    dev = ti.ndarray(ti.f64, shape=(12, 3))
+    dev.from_numpy(values)
+    for copy in (lambda out, k: to_host(out, dev, k), lambda out, k: copy_back(out, dev, k),
+                 lambda out, k: copy_back(out, values, k)):
+        for k in (0, 5, 12):
+            out = np.full((12, 3), -1.0)
+            copy(out, k)
+            assert np.array_equal(out[:k], values[:k]) and np.all(out[k:] == -1.0)
+    with pytest.raises(ValueError, match=r"13 rows asked of an array of shape \(12, 3\)"):
+        to_host(np.zeros((12, 3)), dev, 13)
+
+
 def test_another_thread_copies_or_declines(ti_cpu):
     """From a thread that never launched a kernel the copy is made (CPU) or declined with nothing copied
     (CUDA, where that thread has no current context); the values are right either way."""

@@ -1,0 +1,52 @@
+"""The candidate lists' vertices (sim_core/energies/contact/pair_lists.py): the pairs' global vertices, and the
+pair batch's indices of every vertex-triangle candidate and some edge-edge ones into the vertices all candidates
+name; the potentials built on them equal those that compute their own vertices."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.energies.contact.pair_lists import CandidateVertices
+from sim_core.energies.contact.reference import (EdgeEdgeContact, VertexTriangleContact, edge_edge_vertices,
+                                                 vertex_triangle_vertices)
+from sim_core.errors import ConfigError
+
+
+def _lists():
+    rng = np.random.default_rng(3)
+    triangles = rng.integers(0, 400, size=(60, 3))
+    edges = rng.integers(0, 400, size=(90, 2))
+    vt = np.stack([rng.integers(0, 400, 150), rng.integers(0, 60, 150)], axis=1)
+    ee = np.stack([rng.integers(0, 90, 200), rng.integers(0, 90, 200)], axis=1)
+    return vt, ee, triangles, edges
+
+
+def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_indices_point_at_them():
+    vt, ee, triangles, edges = _lists()
+    lists = CandidateVertices(vt, ee, triangles, edges)
+    assert lists.of(vt, ee) and not lists.of(vt.copy(), ee)
+    np.testing.assert_array_equal(lists.vt_vertices, vertex_triangle_vertices(vt, triangles))
+    np.testing.assert_array_equal(lists.ee_vertices, edge_edge_vertices(ee, edges))
+    rows = np.array([0, 3, 4, 17, 199])
+    for _ in range(2):  # the compaction is made once and kept
+        own, local = lists.batch_indices(rows)
+        assert local.dtype == np.int32 and local.shape == (150 + len(rows), 4)
+        np.testing.assert_array_equal(own, np.unique(np.concatenate([lists.vt_vertices, lists.ee_vertices])))
+        np.testing.assert_array_equal(own[local], np.concatenate([lists.vt_vertices, lists.ee_vertices[rows]]))
+
+
+def test_potentials_given_their_vertices_equal_those_that_compute_them():
+    vt, ee, triangles, edges = _lists()
+    lists = CandidateVertices(vt, ee, triangles, edges)
+    rng = np.random.default_rng(4)
+    x = rng.normal(scale=0.01, size=(400, 3))
+    for cls, pairs, elements, vertices in ((VertexTriangleContact, vt, triangles, lists.vt_vertices),
+                                           (EdgeEdgeContact, ee, edges, lists.ee_vertices)):
+        sides = rng.choice([-1.0, 0.0, 1.0], size=len(pairs))
+        given = cls(pairs, elements, sides, 1e3, 0.01, vertices=vertices)
+        own = cls(pairs, elements, sides, 1e3, 0.01)
+        assert given.vertices is vertices
+        np.testing.assert_array_equal(given.distance(x), own.distance(x))
+        with pytest.raises(ConfigError, match=rf"{len(pairs)} pairs but vertices of shape \(3, 4\)"):
+            cls(pairs, elements, sides, 1e3, 0.01, vertices=vertices[:3])
