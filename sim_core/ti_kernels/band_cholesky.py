@@ -130,21 +130,24 @@ def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32,
 
 @ti.kernel
 def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, w: ti.i32):
-    """Column ``c`` of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column: ``L y = e_c`` forward (rows
-    from ``c``), then ``L^T x = y`` back, in place in ``inverse[(b m + i) m + c]``."""
+    """Column ``c`` of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column: ``L y = e_c`` forward, then
+    ``L^T x = y`` back, in place in ``inverse[(b m + i) m + c]``. Both sweeps take the rows in the same order in
+    every thread (``y_i = 0`` above row ``c`` is stored, not skipped), so that the threads of a warp, neighbouring
+    columns, read neighbouring addresses of the inverse and one address of the band at each step."""
     for b, c in ti.ndrange(nb, m):
         if usable[b] != 0:
             base = b * m * m
-            for i in range(c, m):
-                s = 1.0 if i == c else 0.0
-                for l in range(ti.max(c, i - w), i):
-                    s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
-                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
-            for ii in range(m):
-                i = m - 1 - ii
+            for i in range(m):
                 s = 0.0
                 if i >= c:
-                    s = inverse[base + i * m + c]
+                    s = 1.0 if i == c else 0.0
+                    for l in range(ti.max(i - w, 0), i):
+                        s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
+                    s /= band[_at(b, i, w, m, w)]
+                inverse[base + i * m + c] = s
+            for ii in range(m):
+                i = m - 1 - ii
+                s = inverse[base + i * m + c]
                 for l in range(i + 1, ti.min(i + w, m - 1) + 1):
                     s -= band[_at(b, l, i - l + w, m, w)] * inverse[base + l * m + c]
                 inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]

@@ -32,10 +32,11 @@ top-level loops, which Taichi runs one after the other on the device):
 
 Copies are independent CGs (Hestenes & Stiefel 1952; preconditioned form: Saad, Iterative Methods
 for Sparse Linear Systems, 2nd ed., Alg. 9.1), each with its own step sizes and stopping test, so a
-copy's solution does not depend on the others. The host reads the count of running copies after
-every :data:`LAUNCHES_PER_TEST` launches (its one synchronisation); a copy that has stopped is left
-unchanged by later passes. The matrix must be positive definite (the projected Newton matrix):
-:attr:`BatchedPCG.detects_indefinite` is False, so the solver assembles the PSD-projected Hessian.
+copy's solution does not depend on the others. The host reads the count of running copies (its one
+synchronisation) first after the launches that cover the last solve's iterations, then after every launch
+(:func:`_launches_before_test`); a copy that has stopped is left unchanged by later passes. The matrix must be
+positive definite (the projected Newton matrix): :attr:`BatchedPCG.detects_indefinite` is False, so the solver
+assembles the PSD-projected Hessian.
 """
 
 from typing import Sequence
@@ -242,8 +243,17 @@ ITERATIONS_PER_LAUNCH = 8
 """CG iterations of one launch of :func:`_cg_iterations`."""
 
 LAUNCHES_PER_TEST = 4
-"""Launches of :func:`_cg_iterations` queued on the device before the host reads whether a copy still runs
-(a stopped copy's rows are skipped, so the iterations after the last copy stops cost only their launches)."""
+"""Launches of :func:`_cg_iterations` queued on the device before the host first reads whether a copy still runs,
+where no earlier solve gives the count (:func:`_launches_before_test`)."""
+
+
+def _launches_before_test(previous: int) -> int:
+    """Launches of :func:`_cg_iterations` queued before the host first reads whether a copy still runs: those that
+    cover ``previous``, the iterations of the solver's last solve (the Newton matrices of successive solves are
+    alike), or :data:`LAUNCHES_PER_TEST` at the first solve; the host then reads it after every launch. A stopped
+    copy's rows are skipped, so the iterations past the last copy's stop cost their passes' launches and the
+    skipped threads (about 8 iterations at most, in place of up to ``8 LAUNCHES_PER_TEST - 1``)."""
+    return -(-previous // ITERATIONS_PER_LAUNCH) if previous > 0 else LAUNCHES_PER_TEST
 
 REDUCTION_LANES = 64
 """Threads per copy of the per-copy sums of a CG iteration (:func:`_cg_iterations`): each sums every
@@ -699,8 +709,9 @@ class BatchedPCG:
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
         launched = 0
+        batch = _launches_before_test(self.iterations)
         while launched < self.max_iterations:
-            for _ in range(min(LAUNCHES_PER_TEST, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
+            for _ in range(min(batch, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
                 launched += ITERATIONS_PER_LAUNCH
                 _cg_iterations(*self._operator(), a["inv"], a["seg"], a["order"], a["start"], vec["x"], vec["r"],
                                vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
@@ -708,6 +719,7 @@ class BatchedPCG:
                                *band[-1], self._banded)
             if int(_copy_out(running)[0]) == 0:  # the host's one wait for the device in these launches
                 break
+            batch = 1
         self.iterations = int(_copy_out(done).max())
         self.indefinite = _copy_out(bad).astype(bool)
         self.unconverged = _copy_out(active).astype(bool)
