@@ -11,7 +11,8 @@ for rows of ``r`` vertices: 53 DoFs on the 16 x 8 grid, against 95 in the vertex
 
 The block's inverse is kept whole on the device (``8 m^2`` bytes a copy for ``m`` DoFs) and formed in ``1.5 m^2 w``
 multiply-adds a copy at each factorisation, which grow faster than the CG work the block saves; sheets of more than
-:data:`MAX_BLOCK_DOFS` DoFs keep the vertex blocks (measured: Forming's 384 DoFs and Folding's 192).
+:data:`MAX_BLOCK_DOFS` DoFs keep the vertex blocks (measured: Forming's 384 DoFs, 360 of them free, and Folding's
+192). The model's fixed vertices are left out of the block: fixed at every step, they only widen its inverse.
 """
 
 from __future__ import annotations
@@ -49,8 +50,10 @@ def sheet_band_dofs(scene: StackedScene, max_dofs: int = MAX_BLOCK_DOFS) -> np.n
 
     Returns:
         ``(blocks, m)`` int64: one row per copy and sheet, that sheet's stacked DoFs (its vertices in
-        :func:`long_axis_order` of the rest positions, three DoFs each), padded with -1 to the largest sheet's
-        ``m``; None when the scene has no sheet of at most ``max_dofs`` DoFs.
+        :func:`long_axis_order` of the rest positions, three DoFs each; the model's fixed vertices, ``vertex_fixed``,
+        left out: fixed at every step, their rows are the identity's and the vertex blocks invert them), padded
+        with -1 to the largest sheet's ``m``; None when the scene has no sheet with free vertices and at most
+        ``max_dofs`` DoFs.
     """
     model = scene.model
     copy_of = np.full(model.vertex_count, -1, dtype=np.int64)
@@ -63,7 +66,9 @@ def sheet_band_dofs(scene: StackedScene, max_dofs: int = MAX_BLOCK_DOFS) -> np.n
             continue
         vertices = body.vertices
         for c in np.unique(copy_of[vertices]):
-            local = np.sort(local_of[vertices[copy_of[vertices] == c]])
+            local = np.sort(local_of[vertices[(copy_of[vertices] == c) & ~model.vertex_fixed[vertices]]])
+            if not local.size:
+                continue
             if 3 * local.size > max_dofs:
                 continue
             stacked = scene.index[c][local]

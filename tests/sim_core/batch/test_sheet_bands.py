@@ -46,6 +46,21 @@ def test_each_copys_sheet_is_one_block_in_long_axis_order():
     assert _half_bandwidth(sheet.hinges, position) <= _half_bandwidth(sheet.hinges, natural)
 
 
+def test_the_sheets_fixed_vertices_are_left_out_of_its_block():
+    model = pad_model()
+    sheet = model.bodies["sheet"]
+    held = sheet.vertices[[0, 1, 5]]
+    model.vertex_fixed[held] = True
+    scene = stack_models([model, model])
+    bands = sheet_band_dofs(scene)
+    free = np.setdiff1d(sheet.vertices, held)
+    assert bands.shape == (2, 3 * free.size)
+    for c in range(2):
+        assert np.array_equal(np.sort(bands[c]), np.sort((3 * scene.index[c][free][:, None] + np.arange(3)).ravel()))
+    model.vertex_fixed[sheet.vertices] = True  # a sheet fixed whole: no block
+    assert sheet_band_dofs(stack_models([model, model])) is None
+
+
 def test_a_scene_without_a_sheet_or_with_a_sheet_over_the_size_limit_has_no_blocks():
     model = pad_model()
     scene = stack_models([model, model])
