@@ -32,12 +32,12 @@ def banded_csr(copies: int, m: int, w: int) -> tuple:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--arch", default="cpu")
-    ap.add_argument("--B", type=int, default=64)
-    ap.add_argument("--m", type=int, default=384)
-    ap.add_argument("--w", type=int, default=53)
-    ap.add_argument("--repeat", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arch", default="cpu", help="Taichi arch: cpu or cuda")
+    ap.add_argument("--B", type=int, default=64, help="blocks (one a copy)")
+    ap.add_argument("--m", type=int, default=384, help="DoFs a block")
+    ap.add_argument("--w", type=int, default=53, help="half-bandwidth of a block (DoFs)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each phase")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
