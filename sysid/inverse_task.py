@@ -7,7 +7,11 @@ searched as :func:`sysid.fit.parameter_spec` searches them when fitting a record
 scale parameter (stiffness, friction coefficient) as ``u = ln(theta / theta_0)`` within a factor 1000,
 a Poisson ratio linearly - so CMA-ES steps are relative and a gradient step respects the bounds. The
 episode is the same as a manipulation task's (:class:`sim_core.optim.episode.Episode`); the gradient
-is the adjoint's parameter derivative (``dR/du = dR/dtheta dtheta/du``).
+is the adjoint's parameter derivative (``dR/du = dR/dtheta dtheta/du``). Several points' gradients
+(``gd_starts > 1``, :meth:`ParameterSpace.gd_gradients`) come from one lockstep batch of the replayed
+episode, one copy per point with its own parameter values, whose adjoint passes run together
+(:class:`sim_core.optim.batch_gradient.BatchedEpisodeGradients`: each copy's parameter derivatives are
+those of its episode alone, to the Newton tolerance).
 
 Tied parameters (``TaskSpec.tied``, ``{follower: leader}``) are one coordinate: a follower takes its
 leader's value and its derivative adds to the leader's (``dR/du_leader = sum over the group``).
@@ -25,6 +29,7 @@ import numpy as np
 
 from sim_core.errors import ConfigError
 from sim_core.optim.episode import Episode
+from sim_core.solver_config import SolverConfig
 from sysid.fit import ParameterSpec, parameter_spec
 
 
@@ -33,7 +38,8 @@ class ParameterSpace:
     """The identified parameters of an inverse task as a :class:`sim_core.optim.search.SearchSpace`.
 
     Both CMA-ES and gradient ascent search the sysid coordinates ``u`` (one per searched parameter:
-    every identified one that is not tied to another, 0 at the start values).
+    every identified one that is not tied to another, 0 at the start values). It is a
+    :class:`~sim_core.optim.search.BatchedGradientSpace` (``gd_starts > 1``).
 
     Args:
         task: the inverse task.
@@ -41,6 +47,9 @@ class ParameterSpace:
         evaluator: batch evaluator of the task (serial or Ray) at ``horizon``.
         horizon: steps per episode.
         episode: in-process episode for gradients (built on first use when None).
+        solver_config: Newton settings of the gradient episodes, single and batched (Episode's default when None).
+        batched_gradients: the :class:`~sim_core.optim.batch_gradient.BatchedEpisodeGradients` of
+            :meth:`gd_gradients` (built on first use when None).
     """
 
     task: Any
@@ -48,6 +57,8 @@ class ParameterSpace:
     evaluator: Any
     horizon: int
     episode: Episode | None = None
+    solver_config: SolverConfig | None = None
+    batched_gradients: Any = None
 
     def values(self, u: np.ndarray) -> dict[str, float]:
         """Values of every identified parameter at coordinates ``u`` (followers = their leader)."""
@@ -76,14 +87,36 @@ class ParameterSpace:
 
     def gd_gradient(self, y):
         if self.episode is None:
-            self.episode = Episode(self.task, self.horizon)
+            self.episode = Episode(self.task, self.horizon, solver_config=self.solver_config)
         values = self.values(y)
         self.episode.set_parameters(values)
         res, _, dp = self.episode.reward_gradient(self.actions(), params=list(values))
+        return res.summary(), self.search_gradient(values, dp)
+
+    def gd_gradients(self, ys):
+        if self.batched_gradients is None:
+            from sim_core.optim.batch_gradient import BatchedEpisodeGradients
+
+            self.batched_gradients = BatchedEpisodeGradients(self.task, self.horizon, solver_config=self.solver_config)
+        values = [self.values(y) for y in ys]
+        a = self.actions()
+        out = self.batched_gradients.reward_gradients([a] * len(values), values, list(self.task.identify))
+        return [(res.summary(), self.search_gradient(v, dp)) for v, (res, _, dp) in zip(values, out)]
+
+    def search_gradient(self, values: Mapping[str, float], dp: Mapping[str, float]) -> np.ndarray:
+        """dR/du from the parameter derivatives (module docstring: a follower's derivative adds to its
+        leader's; ``dtheta/du`` is ``theta`` for a log coordinate, the spec's scale for a linear one).
+
+        Args:
+            values: every identified parameter's value at the point (:meth:`values`).
+            dp: dR/d theta of every identified parameter (zeros for an infeasible episode).
+
+        Returns:
+            dR/du, shape ``(len(specs),)``.
+        """
         group = {s.name: dp[s.name] + sum(dp[f] for f, lead in self.task.tied.items() if lead == s.name)
                  for s in self.specs}
-        du = np.array([group[s.name] * (values[s.name] if s.log else s.scale) for s in self.specs])
-        return res.summary(), du
+        return np.array([group[s.name] * (values[s.name] if s.log else s.scale) for s in self.specs])
 
     def candidate(self, phase, point):
         return self.values(point)
@@ -119,4 +152,4 @@ def parameter_space(task, evaluator, horizon: int, start: Mapping[str, float] | 
             raise ConfigError(f"task {task.name}: {follower} is tied to {leader} but starts at {value[follower]} "
                               f"against {value[leader]}")
     specs = tuple(parameter_spec(name, value[name]) for name in task.identify if name not in task.tied)
-    return ParameterSpace(task, specs, evaluator, horizon, ep)
+    return ParameterSpace(task, specs, evaluator, horizon, ep, solver_config)

@@ -191,7 +191,7 @@ def optimise_main(argv: list[str]) -> int:
         if state.phase == "done" and state.episodes_done < state.episodes:
             state.phase = "gd" if state.adam is not None or state.adams is not None else "cma"
     else:
-        state = new_state(args.method, args.episodes, seed=args.seed, gd_starts=_gd_starts(args, task),
+        state = new_state(args.method, args.episodes, seed=args.seed, gd_starts=_gd_starts(args),
                           sigma=args.sigma if args.sigma is not None else task.cma_sigma,
                           population=args.population if args.population is not None else task.cma_population,
                           **({"learning_rate": args.learning_rate} if args.learning_rate is not None else {}), meta=meta)
@@ -214,18 +214,18 @@ def optimise_main(argv: list[str]) -> int:
     return 0
 
 
-def _gd_starts(args, task) -> int:
+def _gd_starts(args) -> int:
     """The gradient runs of the gradient phase (``--gd-starts``; module docstring).
 
     Raises:
-        ConfigError: K < 1, or K > 1 without ``--batched``, with ``--method cma`` or on an inverse task.
+        ConfigError: K < 1, or K > 1 without ``--batched`` or with ``--method cma``.
     """
     if args.gd_starts is None:
         return 1
     if args.gd_starts < 1:
         raise ConfigError(f"--gd-starts must be >= 1, got {args.gd_starts}")
-    if args.gd_starts > 1 and (not args.batched or args.method == "cma" or task.kind == "inverse"):
-        raise ConfigError("--gd-starts > 1 applies to --method gd or hybrid with --batched on a manipulation task")
+    if args.gd_starts > 1 and (not args.batched or args.method == "cma"):
+        raise ConfigError("--gd-starts > 1 applies to --method gd or hybrid with --batched")
     return int(args.gd_starts)
 
 

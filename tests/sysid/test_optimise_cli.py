@@ -130,6 +130,29 @@ def test_batched_hybrid_takes_gradients_at_its_best_cma_candidates_together(tmp_
                               "--gd-starts", "2"])
 
 
+def test_batched_gd_starts_on_an_inverse_task_follow_the_serial_run(tmp_path):
+    """``bouncing --method gd --batched --gd-starts 2`` from twice the hidden bending stiffness: the two runs'
+    gradients come from one batch a step (sysid.inverse_task.ParameterSpace.gd_gradients); the first run's
+    episodes are those of the serial run from the same start (equal to 1e-3 relative: the default Newton
+    tolerances, lockstep against alone; 7e-5 measured), and the runs climb."""
+    from tests.sim_core.optim.task_support import short_task
+
+    truth = short_task("bouncing", 2).true_parameters["sheet.bending_stiffness"]
+    args = ["bouncing", "--horizon", "2", "--method", "gd", "--no-progress", "--backend", "numpy", "--start",
+            f"sheet.bending_stiffness={2.0 * truth}"]
+    serial, batched = tmp_path / "serial", tmp_path / "batched"
+    assert optimise_main(args + ["--episodes", "4", "--batched", "--gd-starts", "2", "--out", str(batched)]) == 0
+    assert optimise_main(args + ["--episodes", "2", "--out", str(serial)]) == 0
+    b = json.loads((batched / "result.json").read_text())
+    a = json.loads((serial / "result.json").read_text())
+    assert b["gd_starts"] == 2 and [h["phase"] for h in b["history"]] == ["gd"] * 4
+    first_run = [h["reward"] for h in b["history"][0::2]]
+    assert first_run == pytest.approx([h["reward"] for h in a["history"]], rel=1e-3)
+    assert b["best_reward"] > max(h["reward"] for h in b["history"][:2])  # the second step improves on the starts
+    with pytest.raises(ConfigError, match="--gd-starts > 1 applies to --method gd or hybrid with --batched"):
+        optimise_main(args + ["--episodes", "4", "--gd-starts", "2", "--out", str(tmp_path / "c")])
+
+
 def test_batch_size_splits_each_population_into_chunks_with_the_serial_scores(tmp_path):
     serial, chunked = tmp_path / "serial", tmp_path / "chunked"
     assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(serial)]) == 0
