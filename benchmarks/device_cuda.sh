@@ -110,7 +110,7 @@ PART_TIMEOUT=${PART_TIMEOUT:-170}
 TASK=${TASK:-folding_u}
 KT=tests/sim_core/ti_kernels
 KERNEL_TESTS=${KERNEL_TESTS:-$KT/test_launch.py $KT/test_transfer.py $KT/test_fused_elastic.py $KT/test_device_copy.py \
-$KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds}
+$KT/test_band_cholesky.py $KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept
     local name=$1; shift
     echo "=== $name: thinshell bench $*"
