@@ -275,8 +275,8 @@ class StepLinearization:
         self._friction_product: tuple[np.ndarray, np.ndarray] | None = None  # (dxn, _friction_apply(dxn))
         self.solver = factorization
         if factorize and factorization is None:
-            if getattr(record, "hessian_exact", False):
-                Hc = sp.csr_matrix(record.hessian)
+            if getattr(record, "hessian_exact", False) and getattr(record, "hessian_upper", None) is not None:
+                Hc = sp.csr_matrix(record.hessian)  # a lockstep step solved by the batched CG keeps none
             else:
                 D = sp.diags(self.free.astype(float))
                 Hc = (D @ self.H @ D + sp.diags((~self.free).astype(float))).tocsr()
