@@ -5,7 +5,8 @@ Usage: ``python benchmarks/iterations_lockstep.py --arch cpu --B 8 --steps 5 [--
 scaled by ``1 - 0.1 i / B``) for ``--steps`` steps twice, each copy alone (``lockstep=False``: the single
 environment's solver) and in one lockstep batch, and prints per step and copy the Newton iterations, the stopping test
 (``velo``city, ``simp``lified, ...) and the backtracks (``/bK``), the mean iterations a copy-step and the lockstep's
-iterations and factorisations a step (its slowest copy's iterations: what a lockstep step costs), and the largest distance between the two runs'
+iterations and factorisations a step (its slowest copy's iterations: what a lockstep step costs), and the largest
+distance between the two runs'
 positions after each step (m).
 
 ``--line-search``: also, at every lockstep line search, the trial step of each copy tested both ways, the lockstep's

@@ -7,7 +7,8 @@ compiled), then replays the 2p central difference points ``u +- h e_i`` of ``sys
 positive parameters) one after another (``ObservationModel.simulate``) and as one lockstep batch
 (``sysid.replay_batch.simulate_batch``), and prints one JSON record: both walls (``--repeat`` times, alternated;
 the speed-up of the fastest of each), the largest gap between the two per channel in noise units and, per
-parameter, the gap between the two central-difference columns of the whitened residual against the column's norm. ``--same``
+parameter, the gap between the two central-difference columns of the whitened residual against the column's norm.
+``--same``
 replays 2p copies at the nominal values instead (one material group in the stacked model: what the batch costs
 when its copies share their materials).
 """

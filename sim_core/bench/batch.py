@@ -9,7 +9,8 @@ of 20 % of the per-step bounds, clipped, rolled out with
 Per size: ``scene_steps_per_s`` (steps of all copies / wall seconds of the batched steps, the first
 step's set-up included), ``steady_scene_steps_per_s`` (the same over the steps after the first: the rate a
 long rollout approaches once the first step has built the batch's static pattern, fused binds and first
-contact search; None with one step) and ``first_step_s``, ``steps_per_s_per_copy``, the mean Newton iterations, failed copies, ``rss_per_copy_mib`` (growth of
+contact search; None with one step) and ``first_step_s``, ``steps_per_s_per_copy``, the mean Newton iterations,
+failed copies, ``rss_per_copy_mib`` (growth of
 the process's resident memory from before the batch was built to after its steps, divided by ``B``)
 and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvidia-smi`` reports it,
 divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
