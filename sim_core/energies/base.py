@@ -190,9 +190,30 @@ class SparseGradient(Protocol):
         ...
 
 
+@runtime_checkable
+class DeviceGradient(Protocol):
+    """A potential that evaluates at positions already in device memory and adds its gradient into a device
+    array: the lockstep batch keeps its iterates and stacked gradient on the device on a Taichi backend
+    (:mod:`sim_core.batch.lockstep`) and reads back per-copy scalars only."""
+
+    def add_gradient_on_device(self, x: np.ndarray, x_device: object, gradient_device: object) -> float | None:
+        """Add :meth:`Potential.gradient` at ``x`` (N) into ``gradient_device``.
+
+        Args:
+            x: the positions ``(vertex_count, 3)`` (m) on the host: the caches' key and the host-side set-up's input
+                (a read-only iterate, :func:`~sim_core.batch.iterates.frozen`).
+            x_device: the same positions as a Taichi float64 ndarray ``(vertex_count, 3)`` (m), only read.
+            gradient_device: a Taichi float64 ndarray ``(vertex_count, 3)`` the gradient is added into.
+
+        Returns:
+            the energy at ``x`` (J) where the kernels computed it along, else None.
+        """
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
-    DeviceHessian, SparseGradient)
+    DeviceHessian, SparseGradient, DeviceGradient)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 

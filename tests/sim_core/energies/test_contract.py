@@ -14,9 +14,9 @@ import pytest
 import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
-from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, DeviceHessian, ElasticEquivalent,
-                                      HingeBending, KeepsDerivatives, PenaltyContact, Potential, SparseGradient,
-                                      SubsetHessian)
+from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, DeviceGradient, DeviceHessian,
+                                      ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
+                                      SparseGradient, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
@@ -105,6 +105,7 @@ EXPECTED_CAPABILITIES = {
     DeviceHessian: set(),  # the Taichi pair potentials (*kernel modules, not scanned: test_contact_batch.py)
     # and the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
     SparseGradient: {"GravityPotential"},
+    DeviceGradient: set(),  # Taichi terms only (the fused elastic terms, the *kernel modules: not scanned)
 }
 
 
