@@ -64,13 +64,34 @@ class _Batched:
         ``(None, gradient)``."""
         return self._evaluation(x, 1).gradient_rows(self.stiffness, self.vertices)
 
-    def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
+    def add_gradient_on_device(self, x: np.ndarray, x_device: object, gradient_device: object) -> float:
+        """Add :meth:`gradient` at ``x`` ``(n, 3)`` (m) into the Taichi float64 ndarray ``gradient_device`` ``(n, 3)``
+        (N) on the device, the pair batch reading the positions from ``x_device`` (their ndarray) when it evaluates
+        (capability :class:`~sim_core.energies.base.DeviceGradient`; the host's ``g[vertices] += rows``, the same
+        sums); returns :meth:`energy` at ``x`` (J). The evaluation of ``x`` is kept as :meth:`gradient` keeps it
+        (the Hessian at ``x`` then needs no launch)."""
+        # optional heavy dependency: the batch's kernels, loaded where a Taichi potential is used
+        from sim_core.energies.contact.batch_kernel import add_rows_on_device
+
+        if self._batch is None:
+            add_rows_on_device(gradient_device, None, self.gradient(x))
+            return self.energy(x)
+        evaluation = self._evaluation(x, 1, x_device)
+        summed = evaluation.summed_rows(self.stiffness)
+        if summed is not None:
+            self._batch.add_gradient(gradient_device, summed)
+        else:  # an evaluation made for another stiffness or without the batch: the host's gradient
+            vertices, rows = evaluation.gradient_rows(self.stiffness, self.vertices)
+            add_rows_on_device(gradient_device, vertices, rows)
+        return evaluation.energy(self.stiffness)
+
+    def _evaluation(self, x: np.ndarray, order: int, x_device: object = None) -> PairEvaluation:
         if self._batch is None:
             return super()._evaluation(x, order)
         key = positions_key(x)
         kept = self._kept(key, order)
         if kept is None:
-            self._batch.evaluate(x, order > 0, key)
+            self._batch.evaluate(x, order > 0, key, x_device)
             kept = workspace_of(self).get(self, "evaluation")
         return kept
 

@@ -150,12 +150,30 @@ class PairEvaluation:
             kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self.dd.d - self.eps) ** 2)))
         return kept[1]
 
+    def summed_rows(self, stiffness: float) -> tuple | None:
+        """The kept gradient for ``stiffness`` (N/m) as the batch kernel summed it, ``(vertices (u,), rows, n)``:
+        ``rows`` ``(u, 3)`` (N) a NumPy array or rows kept on the device (an object with ``to_numpy()``,
+        :class:`~sim_core.ti_kernels.buffers.DeviceRows`); None when there is no such gradient."""
+        kept = self._gradient
+        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
+            return kept[1]
+        return None
+
+    def _host_rows(self, stiffness: float) -> tuple | None:
+        """:meth:`summed_rows` with rows kept on the device read on the host (once, then kept so)."""
+        summed = self.summed_rows(stiffness)
+        if summed is not None and not isinstance(summed[1], np.ndarray):
+            summed = (summed[0], summed[1].to_numpy(), summed[2])
+            self._gradient = (stiffness, summed)
+        return summed
+
     def gradient(self, stiffness: float, vertices: np.ndarray) -> np.ndarray:
         """``dE/dx = k_c (d - eps) grad d`` summed into a new ``(n, 3)`` array (N), ``n`` the row count
         of the positions (kept per stiffness, returned as a copy)."""
+        summed = self._host_rows(stiffness)
+        if summed is not None:
+            return spread_rows(*summed)
         kept = self._gradient
-        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
-            return spread_rows(*kept[1])
         if kept is None or kept[0] != stiffness:
             dd = self.dd
             g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
@@ -166,9 +184,9 @@ class PairEvaluation:
     def gradient_rows(self, stiffness: float, vertices: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """:meth:`gradient` as :meth:`~sim_core.energies.base.SparseGradient.gradient_rows` gives it: the kept
         rows of the distinct vertices where the batch kernel summed them, else ``(None, gradient)``."""
-        kept = self._gradient
-        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
-            return kept[1][0], kept[1][1]
+        summed = self._host_rows(stiffness)
+        if summed is not None:
+            return summed[0], summed[1]
         return None, self.gradient(stiffness, vertices)
 
     def penalty_hessian(self, stiffness: float) -> np.ndarray:

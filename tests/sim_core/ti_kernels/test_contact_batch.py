@@ -257,3 +257,51 @@ def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(
         np.testing.assert_array_equal(pot.gradient(frozen), grad)
         assert pot.energy(frozen) == energy
         np.testing.assert_array_equal(pot.hessian(frozen, "none").blocks, hess)
+
+
+@pytest.mark.parametrize("two_pass, device_gradient", [(False, False), (True, True)])
+def test_gradients_added_on_the_device_are_the_host_gradients_with_the_energy_and_the_kept_hessians(
+        ti_cpu, monkeypatch, two_pass, device_gradient):
+    """``add_gradient_on_device`` (:class:`~sim_core.energies.base.DeviceGradient`) with the positions read from their
+    ndarray (the host array's values are never read: NaN here): a nonzero device array becomes that array plus
+    :meth:`gradient` (bit for bit on the CPU's serial sums), the energy returned is :meth:`energy`, and the Hessian
+    at those positions is then kept (no further launch, the same blocks); through one launch (CPU) or CUDA's two
+    with the sums left in the kernel's ndarray (``PairBatch.device_gradient``), read on the host when asked. A
+    potential not linked to a batch adds its host gradient."""
+    from sim_core.energies.base import DeviceGradient, declares
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.transfer import download, upload
+
+    x, linked, alone = _potentials(vt_rows=slice(0, 150), ee_rows=slice(0, 60))  # pairs naming a third of x
+    rng = np.random.default_rng(24)
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    expected = [(pot.gradient(y), pot.energy(y), pot.hessian(y, "none")) for pot in alone]
+    assert all(np.any(grad != 0.0) and energy > 0.0 for grad, energy, _ in expected)
+    monkeypatch.setattr(PairBatch, "two_pass", two_pass)
+    monkeypatch.setattr(PairBatch, "device_gradient", device_gradient)
+    x_device, g_device = new_ndarray(ti.f64, y.shape), new_ndarray(ti.f64, y.shape)
+    upload(x_device, y)
+    base = rng.normal(size=y.shape)
+    upload(g_device, base)
+    host = np.full_like(y, np.nan)  # frozen: the evaluations are keyed by this object, its values never read
+    host.flags.writeable = False
+    calls = _launches(monkeypatch)
+    total = base.copy()
+    for pot, (grad, energy, _) in zip(linked, expected):
+        assert declares(pot, DeviceGradient)
+        assert pot.add_gradient_on_device(host, x_device, g_device) == energy
+        total += grad
+    np.testing.assert_array_equal(download(g_device), total)
+    assert [derivatives for derivatives, _ in calls] == ([False, True] if two_pass else [True])
+    for pot, (grad, energy, h) in zip(linked, expected):
+        np.testing.assert_array_equal(pot.hessian(host, "none").blocks, h.blocks)
+        np.testing.assert_array_equal(pot.hessian(host, "none").vertices, h.vertices)
+        np.testing.assert_array_equal(pot.gradient(host), grad)  # (device sums: read on the host now)
+        assert pot.energy(host) == energy
+    assert len(calls) == (2 if two_pass else 1)
+    upload(g_device, base)
+    for pot, (grad, energy, _) in zip(alone, expected):
+        assert pot.add_gradient_on_device(y, x_device, g_device) == energy
+    np.testing.assert_array_equal(download(g_device), total)
