@@ -49,7 +49,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download, upload
+from sim_core.ti_kernels.transfer import upload
 from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
@@ -328,18 +328,18 @@ class PairBatch:
         device_gradient = ((on_gpu if self.device_gradient is None else self.device_gradient)
                            and derivatives and x_device is not None and m > 0)
         if m:
-            hess_arg, sums, found = self._launch(x, key, x_device, rows, derivatives, device_hessian,
-                                                 device_gradient)
+            arrays, sums, found = self._launch(x, key, x_device, rows, derivatives, device_hessian, device_gradient)
         else:
-            hess_arg, sums, found = None, _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
+            arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
             sums[:] = 0.0
-        self._keep(x.shape[0], key, derivatives, parts, kept, found, hess_arg, sums, device_hessian, device_gradient)
+        self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
         """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``; the batch's own row
         array: every pair) at ``x``; the distances, regions and distance gradients are left in :func:`work_arrays`.
-        Returns ``(hess, sums, found)``: the Hessian rows' array (a new ndarray with ``device_hessian``), the
+        Returns ``((grad, hess), sums, found)``: the distance gradient and Hessian rows' arrays (new ndarrays with
+        ``device_hessian``), the
         per-vertex gradient sums ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array)
         and, when every pair was measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and
         their distances ``(a,)`` (m), else None."""
@@ -395,21 +395,20 @@ class PairBatch:
                 copy_back(region, region_arg, m)
         if derivatives and not device_gradient and gradients_arg is not gradients:  # summed on the device: copied
             copy_back(gradients, gradients_arg, 2 * u)
-        if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
-            grad[:m] = download(grad_arg)
         found = _sorted_found(listed, listed_arg) if every else None
-        return hess_arg, (gradients_arg if device_gradient else gradients), found
+        return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found
 
-    def _keep(self, n: int, key: tuple, derivatives: bool, parts: tuple, kept: list, found: tuple | None, hess_arg,
+    def _keep(self, n: int, key: tuple, derivatives: bool, parts: tuple, kept: list, found: tuple | None, arrays,
               sums, device_hessian: bool, device_gradient: bool) -> None:
         """Each potential's part of a launch kept as its evaluation of the positions ``key`` (``n`` rows): the rows
         ``parts`` (slices of the launch's rows) of its pairs, its ``kept`` evaluation's active pairs (known) or, for
         a launch over every pair, its active pairs from ``found`` (:meth:`_launch`)."""
         d, region, grad, hess = work_arrays(0)
         u = len(self.own)
+        grad_arg, hess_arg = arrays
         order = 2 if derivatives else 0
         shared: dict = {}  # the device Hessian's host copy, downloaded once for both potentials if asked
-        shared_sums: dict = {}  # the device gradient sums' host copy, likewise
+        shared_sums, shared_grad = {}, {}  # the device gradient sums' and distance gradients' host copies, likewise
         for kind, (pot, part, known) in enumerate(zip((self.vt, self.ee), parts, kept)):
             if pot._kept(key, order) is not None:
                 continue
@@ -422,8 +421,11 @@ class PairBatch:
                 dk = d[rows].copy()  # copies: the kernel's arrays are overwritten by the next evaluation
             stiffness = float(pot.stiffness)
             if derivatives:
-                if device_hessian:  # the rows are the slice ``part`` of the launch's rows
-                    g, h = grad[rows].copy(), DeviceRows(hess_arg, rows.start, rows.stop, shared)
+                grad_rows = None
+                if device_hessian:  # the rows are the slice ``part`` of the launch's rows; the distance gradients
+                    # (read by the adjoint) stay on the device with the Hessians until asked for
+                    g, h = None, DeviceRows(hess_arg, rows.start, rows.stop, shared)
+                    grad_rows = DeviceRows(grad_arg, rows.start, rows.stop, shared_grad)
                 else:
                     g, h = ((grad[rows].copy(), hess[rows].copy()) if known is not None  # (np.take: rows of 2-D arrays)
                             else (np.take(grad, rows, axis=0), np.take(hess, rows, axis=0)))
@@ -431,7 +433,7 @@ class PairBatch:
                           else sums[kind * u:(kind + 1) * u].copy())
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
-                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, (self.own, summed, n))))
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, (self.own, summed, n)), grad_rows))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))

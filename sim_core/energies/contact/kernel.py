@@ -43,7 +43,7 @@ class _Batched:
         """The kept evaluation ``(active, distances)`` of positions ``x`` ``(n, 3)`` if it holds
         derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
         kept = self._kept(positions_key(x), order)
-        return None if kept is None else (kept.active, kept.dd)
+        return None if kept is None else (kept.active, kept.dd if order > 0 else kept.distances)
 
     def hessian_on_device(self, x: np.ndarray) -> DeviceHessianBlocks | None:
         """The unprojected Hessian blocks of the active pairs at ``x`` ``(n, 3)`` (capability

@@ -119,17 +119,36 @@ class PairEvaluation:
         gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, summed as
             :meth:`gradient` sums it (the batch kernel): ``g`` ``(n, 3)`` (N), or ``(vertices, rows, n)``, the
             rows ``(u, 3)`` of the distinct ``vertices`` ``(u,)`` of an ``(n, 3)`` gradient zero elsewhere.
+        grad_rows: None, or the distance gradients ``(a, 12)`` (1) kept where the kernel wrote them (an object with
+            ``to_numpy()``, :class:`~sim_core.ti_kernels.buffers.DeviceRows`; ``dd.grad`` None then): :attr:`dd` reads
+            them on the host when first asked.
     """
 
-    __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
+    __slots__ = ("order", "key", "active", "_dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient",
+                 "_grad_rows")
 
     def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float,
                  hessian_blocks: tuple[float, np.ndarray] | None = None,
-                 gradient: tuple[float, np.ndarray] | None = None) -> None:
-        self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
+                 gradient: tuple[float, np.ndarray] | None = None, grad_rows: object = None) -> None:
+        self.order, self.key, self.active, self._dd, self.eps = order, key, active, dd, eps
         self.hessian_blocks = hessian_blocks
         self._gradient = gradient
+        self._grad_rows = grad_rows
         self._vertices = self._energy = None
+
+    @property
+    def dd(self) -> DistanceDerivatives:
+        """The active pairs' distances (m) and derivatives (distance gradients kept on the device read here)."""
+        if self._grad_rows is not None:
+            self._dd = self._dd._replace(grad=np.array(self._grad_rows.to_numpy()))
+            self._grad_rows = None
+        return self._dd
+
+    @property
+    def distances(self) -> DistanceDerivatives:
+        """:attr:`dd` as it is kept: the distances ``d`` ``(a,)`` (m) and regions; ``grad`` None while the distance
+        gradients are on the device."""
+        return self._dd
 
     def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
         """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential
@@ -141,13 +160,13 @@ class PairEvaluation:
     def holds_hessian(self, stiffness: float) -> bool:
         """Whether :meth:`penalty_hessian` can give the Hessians for ``stiffness`` (N/m)."""
         blocks = self.hessian_blocks
-        return self.dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
+        return self._dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
 
     def energy(self, stiffness: float) -> float:
         """``k_c / 2 sum (d - eps)^2`` in J (kept per stiffness ``k_c``, N/m)."""
         kept = self._energy
         if kept is None or kept[0] != stiffness:
-            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self.dd.d - self.eps) ** 2)))
+            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self._dd.d - self.eps) ** 2)))
         return kept[1]
 
     def summed_rows(self, stiffness: float) -> tuple | None:
@@ -279,7 +298,8 @@ class _PairPenalty:
         ``x`` is bitwise equal (energy, gradient and Hessian of one iterate share one evaluation).
         """
         evaluation = self._evaluation(x, order)
-        return evaluation.active, evaluation.dd
+        # order 0: the distances (derivatives kept on the device stay there)
+        return evaluation.active, (evaluation.dd if order > 0 else evaluation.distances)
 
     _may_touch: staticmethod
     """Exact prefilter ``(z, side, eps) -> (k,) bool``: ``point_triangle_may_touch`` or
@@ -327,6 +347,11 @@ class _PairPenalty:
     def distance(self, x: np.ndarray) -> np.ndarray:
         """Contact distance ``d`` of every pair in m, shape ``(p,)``."""
         return self._distance(x[self.vertices], self.sides, 0).d
+
+    def active_vertices(self, x: np.ndarray) -> np.ndarray:
+        """``vertices[active_mask(x)]``: the vertices of the pairs with ``d < eps`` at ``x`` ``(n, 3)``, int
+        ``(a, 4)``, kept with the evaluation of ``x`` (read only)."""
+        return self._evaluation(x, 0).active_vertices(self.vertices)
 
     def active_mask(self, x: np.ndarray) -> np.ndarray:
         """Pairs with ``d < eps``, bool shape ``(p,)``."""

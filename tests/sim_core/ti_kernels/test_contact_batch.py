@@ -68,6 +68,7 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
     for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
         assert pot.energy(x) == energy
         np.testing.assert_array_equal(pot.active_mask(x), mask)
+        np.testing.assert_array_equal(pot.active_vertices(x), pot.vertices[mask])
         np.testing.assert_array_equal(pot.contact_frames(x).lam, lam)
     total = len(linked[0].pairs) + len(linked[1].pairs)
     active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
@@ -182,11 +183,12 @@ def test_hessians_kept_on_the_device_are_the_host_ones_and_give_the_same_vertex_
     expected = []
     for pot in alone:
         monkeypatch.setattr(PairBatch, "device_hessian", False)
-        expected.append((pot.gradient(y), pot.hessian(y, "none"), pot.hessian(y, "clamp")))
+        expected.append((pot.gradient(y), pot.hessian(y, "none"), pot.hessian(y, "clamp"),
+                         pot.parameter_gradient(y, "stiffness")))
         assert pot.hessian_on_device(y) is None  # held on the host
     monkeypatch.setattr(PairBatch, "device_hessian", True)
     on_device = []
-    for pot, (grad, h_none, h_clamp) in zip(linked, expected):
+    for pot, (grad, h_none, h_clamp, dgrad_dk) in zip(linked, expected):
         assert declares(pot, DeviceHessian)
         np.testing.assert_allclose(pot.gradient(y), grad, rtol=0, atol=1e-13 * np.abs(grad).max())
         kept = pot.hessian_on_device(y)
@@ -195,6 +197,8 @@ def test_hessians_kept_on_the_device_are_the_host_ones_and_give_the_same_vertex_
         np.testing.assert_array_equal(kept.blocks.to_numpy(), h_none.blocks)
         np.testing.assert_array_equal(pot.hessian(y, "none").blocks, h_none.blocks)
         np.testing.assert_array_equal(pot.hessian(y, "clamp").blocks, h_clamp.blocks)
+        assert workspace_of(pot).get(pot, "evaluation").distances.grad is None  # on the device until asked for
+        np.testing.assert_array_equal(pot.parameter_gradient(y, "stiffness"), dgrad_dk)  # (they are read here)
         on_device.append(kept)
     free = np.ones(x.size, dtype=bool)
     free[::7] = False
