@@ -309,3 +309,22 @@ def test_gradients_added_on_the_device_are_the_host_gradients_with_the_energy_an
     for pot, (grad, energy, _) in zip(alone, expected):
         assert pot.add_gradient_on_device(y, x_device, g_device) == energy
     np.testing.assert_array_equal(download(g_device), total)
+
+
+def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu):
+    """On a parallel arch the kernel appends the active pairs in no fixed order: the list is read back sorted by
+    row, each distance with its row (the CPU's serial list, in order already, read as it is)."""
+    from sim_core.energies.contact.batch_kernel import _sorted_found
+
+    rng = np.random.default_rng(25)
+    rows = np.sort(rng.choice(10_000, size=300, replace=False)).astype(np.int32)
+    distances = rng.uniform(0.0, EPS, size=300)
+    for order in (np.arange(300), rng.permutation(300)):
+        listed = (np.concatenate([rows[order], np.full(20, -7, np.int32)]),  # a longer kept array: 300 written
+                  np.concatenate([distances[order], np.full(20, np.nan)]), np.array([300], dtype=np.int32))
+        got_rows, got_d = _sorted_found(listed, listed)
+        assert got_rows.dtype == np.int64
+        np.testing.assert_array_equal(got_rows, rows)
+        np.testing.assert_array_equal(got_d, distances)
+    none = (np.zeros(4, np.int32), np.zeros(4), np.zeros(1, np.int32))
+    assert [len(a) for a in _sorted_found(none, none)] == [0, 0]
