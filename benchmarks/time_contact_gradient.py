@@ -96,8 +96,8 @@ def main() -> int:
     for name, values in times.items():
         if values[1:]:
             ms = [1e3 * v for v in values[1:]]
-            print(f"{name:7s} gradient of both pair potentials at a new trial point: median {statistics.median(ms):.2f} ms, "
-                  f"min {min(ms):.2f} ms over {len(ms)}")
+            print(f"{name:7s} gradient of both pair potentials at a new trial point: "
+                  f"median {statistics.median(ms):.2f} ms, min {min(ms):.2f} ms over {len(ms)}")
     return 0
 
 

@@ -41,6 +41,7 @@ from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as cd
+from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
@@ -159,25 +160,6 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
             region[i], d[i] = -1, ti.math.inf
 
 
-@fast_kernel
-def _gather_rows(x: _F64_2, own: _I32_1, out: _F64_2):
-    """``out[j] = x[own[j]]`` for ``j < len(own)`` (the positions of the pairs' vertices, read where ``x`` is)."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for j in range(own.shape[0]):
-        for c in ti.static(range(3)):
-            out[j, c] = x[own[j], c]
-
-
-@fast_kernel
-def _add_rows(gradient: _F64_2, vertices: _I32_1, rows: _F64_2, first: ti.i32):
-    """``gradient[vertices[j]] += rows[first + j]`` for ``j < len(vertices)`` (distinct vertices: one addition per
-    entry, as the host's ``g[vertices] += rows``)."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for j in range(vertices.shape[0]):
-        for c in ti.static(range(3)):
-            gradient[vertices[j], c] += rows[first + j, c]
-
-
 def _sorted_found(listed: tuple, listed_arg: tuple) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's list of active pairs (host arrays ``listed`` = ``(rows, distances, count)``, ``listed_arg`` the
     launch's: the same, or their device copies on CUDA, whose first ``count`` rows are copied back) as ``(rows
@@ -279,7 +261,7 @@ class PairBatch:
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
             xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else new_ndarray(ti.f64, (u, 3))
             if x_device is not None:
-                _gather_rows(x_device, on_device(self._device, "own", self._own32()), xd)
+                gather_rows(x_device, on_device(self._device, "own", self._own32()), xd)
             else:
                 upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
             kept = self._device_x = (key, xd)
@@ -453,9 +435,9 @@ class PairBatch:
         else:  # an evaluation another batch made (inherited: the same pairs)
             index = vertices.astype(np.int32)
         if isinstance(rows, DeviceRows):
-            _add_rows(gradient_device, index, rows.array, rows.start)
+            add_rows(gradient_device, index, rows.array, rows.start)
         else:
-            _add_rows(gradient_device, index, np.ascontiguousarray(rows, dtype=np.float64), 0)
+            add_rows(gradient_device, index, np.ascontiguousarray(rows, dtype=np.float64), 0)
 
     def _own_positions(self, x: np.ndarray, x_device) -> np.ndarray:
         """The positions ``(u, 3)`` (m) of the pairs' vertices ``own`` taken from ``x`` ``(n, 3)`` (or gathered by a
@@ -467,20 +449,10 @@ class PairBatch:
             kept = self._x_own = np.empty((len(self.own), 3))
         if x_device is not None:
             if len(kept):
-                _gather_rows(x_device, self._own32(), kept)
+                gather_rows(x_device, self._own32(), kept)
         else:
             np.take(x, self.own, axis=0, out=kept)
         return kept
-
-
-def add_rows_on_device(gradient_device, vertices: np.ndarray | None, rows: np.ndarray) -> None:
-    """Add host rows ``rows`` ``(u, 3)`` (N) into the Taichi float64 ndarray ``gradient_device`` ``(n, 3)`` at the
-    distinct ``vertices`` ``(u,)`` (int), or every row (``vertices`` None, ``rows`` ``(n, 3)``), on the device."""
-    if not len(rows):
-        return
-    index = (np.arange(len(rows), dtype=np.int32) if vertices is None
-             else np.ascontiguousarray(vertices, dtype=np.int32))
-    _add_rows(gradient_device, index, np.ascontiguousarray(rows, dtype=np.float64), 0)
 
 
 def compile_kernels() -> None:

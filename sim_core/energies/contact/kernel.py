@@ -20,6 +20,7 @@ import numpy as np
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as contact_distance, setup_kernel as contact_setup
+from sim_core.energies.contact.gradient_kernel import add_rows_on_device
 from sim_core.energies.contact.reference import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks
 from sim_core.workspace import workspace_of
@@ -70,9 +71,6 @@ class _Batched:
         (capability :class:`~sim_core.energies.base.DeviceGradient`; the host's ``g[vertices] += rows``, the same
         sums); returns :meth:`energy` at ``x`` (J). The evaluation of ``x`` is kept as :meth:`gradient` keeps it
         (the Hessian at ``x`` then needs no launch)."""
-        # optional heavy dependency: the batch's kernels, loaded where a Taichi potential is used
-        from sim_core.energies.contact.batch_kernel import add_rows_on_device
-
         if self._batch is None:
             add_rows_on_device(gradient_device, None, self.gradient(x))
             return self.energy(x)
