@@ -112,8 +112,8 @@ def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
-                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2,
-                  active: _F64_2, active_count: _I32_1):
+                  pack_region: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3,
+                  gradients: _F64_2, active: _F64_2, active_count: _I32_1):
     """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
     ``d[i]`` and region (positions gathered into ``z[i]``); the pairs with ``d < eps`` (``eps`` of their kind)
     listed as rows ``[i, d[i]]`` of ``active`` from row 1 on (in no fixed order on a parallel arch, in row order
@@ -127,7 +127,9 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`_scatter_penalty_gradient`).
     A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
-    pair kind are runtime values: one compiled kernel for every request."""
+    pair kind are runtime values: one compiled kernel for every request. With ``pack_region`` (and ``derivatives``)
+    the regions are also written, as floats, after the sums: ``gradients[2 n + i // 3, i % 3] = region[i]`` (the
+    array then has those rows), so that one copy back brings both."""
     n = x.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for j in range(derivatives * 2 * n):
@@ -161,6 +163,9 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
             region[i], d[i] = -1, ti.math.inf
     for _ in range(1):  # after every pair: the count in the list's first row
         active[0, 0] = ti.cast(active_count[0], ti.f64)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(pack_region * derivatives * count):
+        gradients[2 * n + i // 3, i % 3] = ti.cast(region[i], ti.f64)
 
 
 def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +259,8 @@ class PairBatch:
         self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
         vt._batch = ee._batch = self
 
-    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device) -> tuple:
+    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device,
+                          gradient_rows: int) -> tuple:
         """On CUDA, the launch's arguments that need not cross to the device and back at every launch:
         the positions of the pairs' vertices ``x_own`` ``(u, 3)`` (once per ``key``: gathered on the device from
         ``x_device`` when given, else uploaded), pairs and sides (once per batch), the gathered pair positions (device
@@ -271,7 +277,7 @@ class PairBatch:
             kept = self._device_x = (key, xd)
         dev, shared = self._device, _ARRAYS.device()
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", 2 * u, (3,)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
         return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
                 gradients)
@@ -333,7 +339,11 @@ class PairBatch:
         their distances ``(a,)`` (m), else None."""
         m, u = len(rows), len(self.own)
         d, region, grad, hess = work_arrays(m)
-        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
+        on_gpu = current_arch() == "cuda"
+        # on CUDA the regions come back with the gradient sums (one copy) when those are copied back
+        pack = int(on_gpu and derivatives and not device_gradient)
+        gradient_rows = 2 * u + pack * -(-m // 3)
+        gradients = _ARRAYS.rows("gradients", gradient_rows, (3,))  # rows of the pairs' own vertices (and regions)
         listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
         kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
@@ -346,10 +356,9 @@ class PairBatch:
         else:
             grad_arg, hess_arg, gradients_arg = grad, hess, gradients
         d_arg, region_arg, listed_arg, count_arg = d, region, listed, count
-        on_gpu = current_arch() == "cuda"
         if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
             x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives,
-                                                                                         x_device)
+                                                                                         x_device, gradient_rows)
             device = _ARRAYS.device()
             rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
                         else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
@@ -373,12 +382,13 @@ class PairBatch:
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
             gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
         _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps), float(self.ee.eps),
-                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), z, d_arg, region_arg,
-                      grad_arg, hess_arg, gradients_arg, listed_arg, count_arg)
-        if on_gpu and derivatives:  # the launch's rows only (the distances of known pairs: the host keeps them)
+                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), pack, z, d_arg,
+                      region_arg, grad_arg, hess_arg, gradients_arg, listed_arg, count_arg)
+        if pack:  # the sums and, after them, the regions (the launch's rows) in one copy
+            copy_back(gradients, gradients_arg, gradient_rows)
+            region[:m] = gradients[2 * u:gradient_rows].reshape(-1)[:m]
+        elif on_gpu and derivatives:  # the launch's rows only (the distances of known pairs: the host keeps them)
             copy_back(region, region_arg, m)
-        if derivatives and not device_gradient and gradients_arg is not gradients:  # summed on the device: copied
-            copy_back(gradients, gradients_arg, 2 * u)
         found = None
         if every:
             found = _sorted_found(listed, listed_arg, self._found_rows)

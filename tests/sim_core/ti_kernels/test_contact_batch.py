@@ -255,6 +255,11 @@ def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(
         vertices, rows = pot.gradient_rows(y)
         assert vertices is None
         np.testing.assert_array_equal(rows, grad)
+    for pot, twin in zip(linked, alone):  # the regions (on CUDA copied back after the gradient sums, in one copy)
+        got, want = (workspace_of(p).get(p, "evaluation").distances for p in (pot, twin))
+        assert len(np.unique(want.region)) > 3
+        np.testing.assert_array_equal(got.region, want.region)
+        np.testing.assert_array_equal(got.d, want.d)
     frozen = y.copy()  # read-only and owning its memory: kept evaluations keyed by identity, the same values
     frozen.flags.writeable = False
     for pot, (grad, energy, hess) in zip(linked, expected):
