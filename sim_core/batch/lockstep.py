@@ -46,7 +46,12 @@ The host's work over the stacked arrays: the iterates are read-only arrays of th
 them by identity, :func:`~sim_core.energies.base.positions_key`, not by their bytes), the stacked gradient takes
 the contact and friction terms' rows at their vertices only (:class:`~sim_core.energies.base.SparseGradient`),
 the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core.batch.effectors`) and the
-plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`).
+plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`). With the batched
+CG the Newton loop's iterate, update and stacked gradient stay in device memory (:mod:`sim_core.batch.iterates`,
+:mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
+updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
+right-hand side and leaves its update there, and each trial point's positions come down once (the contact search and
+the terms' caches); the direct solvers' path keeps NumPy vectors. The line search is :mod:`sim_core.batch.line_search`.
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). With a direct linear solver a copy also stops on the simplified

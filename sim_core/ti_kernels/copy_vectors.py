@@ -23,6 +23,7 @@ from sim_core.ti_kernels.launch import fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+_I64 = ti.types.ndarray(dtype=ti.i64, ndim=1)
 _VEC = ti.types.ndarray(dtype=ti.f64, ndim=2)  # stacked (N, 3) positions, updates, gradients
 
 REDUCTION_LANES = 64
@@ -90,32 +91,33 @@ def _dots(u: _VEC, v: _VEC, out: _F64, order: _I32, start: _I32, copies: ti.i32)
 
 
 @fast_kernel
-def _extremes(a: _VEC, out: _F64, order: _I32, start: _I32, copies: ti.i32, vertex_norm: ti.template()):
-    """Per copy ``c``: ``out[c]`` the largest finite ``|a_k|`` (``vertex_norm``: the largest finite squared vertex
-    norm ``|a_v|^2``), ``out[copies + c]`` 1 where an entry is NaN (``vertex_norm``: a squared norm not finite), else
-    0."""
+def _extremes(a: _VEC, out: _I64, order: _I32, start: _I32, copies: ti.i32, vertex_norm: ti.template()):
+    """Per copy ``c``: ``out[c]`` the bits of the largest finite ``|a_k|`` (``vertex_norm``: of the largest finite
+    squared vertex norm ``|a_v|^2``), ``out[copies + c]`` 1 where an entry is NaN (``vertex_norm``: a squared norm not
+    finite), else 0. The maxima are taken on the bits as int64 (the order of non-negative float64 values), with the
+    integer atomics every device has."""
     for c in range(2 * copies):
-        out[c] = 0.0
+        out[c] = 0
     for c, k in ti.ndrange(copies, REDUCTION_LANES):
         big = 0.0
-        bad = 0.0
+        bad = 0
         for q in range(lane_count(start, c, k)):
             t = lane_vertex(order, start, c, k, q)
             if ti.static(vertex_norm):
                 s = a[t, 0] * a[t, 0] + a[t, 1] * a[t, 1] + a[t, 2] * a[t, 2]
                 if _not_finite(s):
-                    bad = 1.0
+                    bad = 1
                 else:
                     big = ti.max(big, s)
             else:
                 for j in ti.static(range(3)):
                     e = ti.abs(a[t, j])
                     if _is_nan(e):
-                        bad = 1.0
+                        bad = 1
                     else:
                         big = ti.max(big, e)
-        ti.atomic_max(out[c], big)
-        ti.atomic_max(out[copies + c], bad)
+        ti.atomic_max(out[c], ti.bit_cast(big, ti.i64))
+        ti.atomic_max(out[copies + c], ti.i64(bad))
 
 
 @fast_kernel
@@ -233,7 +235,8 @@ class CopyVectors:
         self._start = self._indices(start)
         self._per_copy = device_copy.new_ndarray(ti.f64, (max(B, 1),))
         self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
-        self._out = device_copy.new_ndarray(ti.f64, (max(2 * B, 1),))
+        self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
+        self._out_host = np.zeros(self._out.shape, dtype=np.int64)
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
@@ -286,8 +289,8 @@ class CopyVectors:
 
     def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
         _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)
-        both = transfer.download(self._out)
-        return both[: self.copies].copy(), both[self.copies: 2 * self.copies] > 0
+        both = self._out_host if device_copy.to_host(self._out_host, self._out) else self._out.to_numpy()
+        return both[: self.copies].view(np.float64).copy(), both[self.copies: 2 * self.copies] > 0
 
     def largest_abs(self, a) -> np.ndarray:
         """Per copy ``max_k |a_k|`` over its DoFs, shape ``(B,)``: NaN where the copy has a NaN, infinite where it has
