@@ -8,11 +8,12 @@ per-copy operations have two homes with one interface:
 
 * :class:`HostIterates`: NumPy arrays (``(3 N,)`` gradients and updates) and the per-copy reductions of
   :class:`~sim_core.batch.copy_runs.CopyRuns`; the direct linear solvers' path;
-* ``DeviceIterates``: ``(N, 3)`` float64 Taichi ndarrays and the kernels of
-  :class:`~sim_core.ti_kernels.copy_vectors.CopyVectors` (:mod:`sim_core.batch.device_iterates`); the host reads back per-copy scalars, and each trial point's
-  positions once (the contact search, the caches' keys). The stacked gradient is summed on the device
-  (:meth:`~sim_core.batch.device_iterates.DeviceIterates.gradient`): a term declaring :class:`~sim_core.energies.base.DeviceGradient` adds into it
-  there, the others' host gradients travel up (the dense ones summed first: one upload).
+* ``DeviceIterates`` (:mod:`sim_core.batch.device_iterates`): ``(N, 3)`` float64 Taichi ndarrays and the kernels of
+  :class:`~sim_core.ti_kernels.copy_vectors.CopyVectors`; the host reads back per-copy scalars, and each trial
+  point's positions once (the contact search, the caches' keys). The stacked gradient is summed on the device
+  (:meth:`~sim_core.batch.device_iterates.DeviceIterates.gradient`): a term declaring
+  :class:`~sim_core.energies.base.DeviceGradient` adds into it there, the others' host gradients travel up (the dense
+  ones summed first: one upload).
 """
 
 from __future__ import annotations

@@ -104,9 +104,9 @@ class LumpedQuadratic:
 
     def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> None:
         """Add :meth:`gradient` at ``x`` into ``gradient_device`` on the device (capability
-        :class:`~sim_core.energies.base.DeviceGradient`; :func:`~sim_core.ti_kernels.copy_vectors.add_diagonal_quadratic`,
-        with ``y`` and ``w`` uploaded at the first call), the energy's partial sums left there for :meth:`energy` at
-        ``x``.
+        :class:`~sim_core.energies.base.DeviceGradient`;
+        :func:`~sim_core.ti_kernels.copy_vectors.add_diagonal_quadratic`, with ``y`` and ``w`` uploaded at the first
+        call), the energy's partial sums left there for :meth:`energy` at ``x``.
 
         Args:
             x: the positions ``(n, 3)`` (m) on the host (the key of the energy kept).

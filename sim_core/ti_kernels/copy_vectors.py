@@ -342,7 +342,8 @@ class CopyVectors:
         return a
 
     def add_rows(self, g, vertices: np.ndarray, rows: np.ndarray):
-        """``g[vertices] += rows`` (``vertices`` distinct, int ``(k,)``; ``rows`` ``(k, 3)``), in place; returns ``g``."""
+        """``g[vertices] += rows`` (``vertices`` distinct, int ``(k,)``; ``rows`` ``(k, 3)``), in place; returns
+        ``g``."""
         k = int(np.size(vertices))
         if not k:
             return g
