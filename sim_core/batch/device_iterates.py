@@ -38,22 +38,24 @@ class DeviceIterates(CopyVectors):
 
     def gradient(self, terms: list, x: Iterate, fixed_dofs: np.ndarray, fresh_first: bool = False):
         """The sum of the ``terms``' gradients at ``x`` (J/m) as a new ``(N, 3)`` ndarray, zero at the flat DoFs
-        ``fixed_dofs``: a term declaring :class:`~sim_core.energies.base.DeviceGradient` adds its own there, a
-        :class:`~sim_core.energies.base.SparseGradient` term's rows are uploaded and added at their vertices, and the
-        other terms' host gradients are summed on the host and uploaded once. The sums are
-        :func:`~sim_core.batch.iterates.summed_gradient`'s in another order (equal to round-off). ``fresh_first``:
-        that function's hint, not needed here."""
-        g = self.new()
-        dense, owned = None, False
+        ``fixed_dofs``: the host terms first, their dense gradients summed on the host and uploaded once as the
+        array's start (no zero fill, no second array), a :class:`~sim_core.energies.base.SparseGradient` term's rows
+        uploaded and added at their vertices, then each term declaring :class:`~sim_core.energies.base.DeviceGradient`
+        adding its own on the device. The sums are :func:`~sim_core.batch.iterates.summed_gradient`'s in another order
+        (equal to round-off). ``fresh_first``: that function's hint, not needed here."""
+        dense, owned, sparse, on_device = None, False, [], []
         for p in terms:
             if declares(p, DeviceGradient):
-                p.add_gradient_on_device(x.host, x.device, g)
+                on_device.append(p)
                 continue
             vertices, rows = p.gradient_rows(x.host) if declares(p, SparseGradient) else (None, p.gradient(x.host))
             if vertices is None:
                 dense, owned = add_dense(dense, owned, rows.reshape(-1))
             else:
-                self.add_rows(g, vertices, rows)
-        if dense is not None:
-            self.add(g, dense)
+                sparse.append((vertices, rows))
+        g = self.new() if dense is None else self.upload(dense)
+        for vertices, rows in sparse:
+            self.add_rows(g, vertices, rows)
+        for p in on_device:
+            p.add_gradient_on_device(x.host, x.device, g)
         return self.zero_dofs(g, fixed_dofs)
