@@ -293,10 +293,16 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
 
 
 def sorted_pairs(out: np.ndarray) -> np.ndarray:
-    """int64 ``(p, 2)`` rows of ``out`` sorted by first, then second column (one sort of int64 keys)."""
-    keys = (out[:, 0].astype(np.int64) << 32) | out[:, 1].astype(np.int64)
+    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (one sort of int64 keys,
+    built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies)."""
+    keys = out[:, 0].astype(np.int64)
+    keys <<= 32
+    keys |= out[:, 1]
     keys.sort()
-    return np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+    pairs = np.empty((len(keys), 2), dtype=np.int64)
+    np.right_shift(keys, 32, out=pairs[:, 0])
+    np.bitwise_and(keys, 0xFFFFFFFF, out=pairs[:, 1])
+    return pairs
 
 
 def _power_of_two(n: int) -> int:
