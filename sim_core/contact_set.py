@@ -362,12 +362,18 @@ class ContactSet:
         covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
         ``lookahead = 0`` the search is at ``x``. The array is read-only (:attr:`search_position`).
         """
-        x = np.array(x, dtype=float, copy=True)
+        x = np.asarray(x, dtype=float)
         if not (0.0 <= self.lookahead_cap <= 0.5):
             raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
         if self.x_prev is not None and self.x_prev.shape == x.shape and self.lookahead != 0.0:
             cap = self.lookahead_cap * self.margin
-            x = x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+            ahead = np.subtract(x, self.x_prev)  # in place from here: one new array of the stacked positions
+            ahead *= self.lookahead
+            np.clip(ahead, -cap, cap, out=ahead)
+            ahead += x
+            x = ahead
+        else:
+            x = np.array(x, dtype=float, copy=True)
         x.flags.writeable = False  # frozen: covers() keeps its answers for it
         return x
 
