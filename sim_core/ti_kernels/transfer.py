@@ -8,7 +8,8 @@ byte copies by address (:mod:`sim_core.ti_kernels.device_copy`: the CUDA driver'
 through :func:`sim_core.ti_kernels.launch.fast_kernel` (its plans bind NumPy arrays and Taichi ndarrays
 alike; on CUDA the NumPy side then crosses to the device and back with the launch, as Taichi copies
 every host array of a launch both ways). A zero fill is a memset, another fill one planned launch. The
-values are the same.
+values are the same. :func:`add_into` adds one array into another where they are (a term's gradient into a
+device-resident sum, :class:`~sim_core.energies.base.DeviceGradient`).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
@@ -75,4 +76,28 @@ def fill(array, value: float):
     value = float(value)
     if int(np.prod(array.shape)) and not (value == 0.0 and not np.signbit(value) and device_copy.zero(array)):
         _fill_f64(array, value)
+    return array
+
+
+@fast_kernel
+def _add_f64(source: _F64_ANY, target: _F64_ANY):
+    """``target[I] += source[I]`` for every index of ``source`` (same shapes)."""
+    for I in ti.grouped(source):
+        target[I] += source[I]
+
+
+def add_into(array, values):
+    """``array += values`` for the float64 ndarray ``array`` and ``values`` of its shape (a float64 ndarray where the
+    kernels run, or a C-contiguous float64 NumPy array: on CUDA Taichi then copies it to the device and back with the
+    launch) in one planned launch; returns ``array``. Each entry is one addition: the sum of
+    ``array.to_numpy() + values`` bit for bit.
+
+    Raises:
+        ValueError: ``values`` has another shape than ``array``.
+    """
+    if tuple(values.shape) != tuple(array.shape):
+        raise ValueError(f"add_into: values of shape {tuple(values.shape)} for an ndarray of shape "
+                         f"{tuple(array.shape)}")
+    if int(np.prod(array.shape)):
+        _add_f64(values, array)
     return array

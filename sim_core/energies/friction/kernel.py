@@ -27,19 +27,19 @@ round-off (tests: 1e-12 relative).
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.base import HessianBlocks, Projection, positions_key
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import LaunchArrays, on_device
+from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download
 from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
-_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_F64_1, _F64_2, _F64_3, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_1, linalg.I32_2
 
 
 @ti.func
@@ -162,6 +162,35 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
             _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
 
 
+@fast_kernel
+def _friction_at_device_positions(x: _F64_2, own: _I32_1, x_own: _F64_2, x_prev: _F64_2, vertices: _I32_2,
+                                  weights: _F64_2, tangent: _F64_3, coefficient: _F64_1, eps_u: ti.f64,
+                                  evaluate: ti.i32, energy: _F64_1, grad_own: _F64_2, blocks: _F64_3,
+                                  gradient: _F64_2):
+    """Where ``evaluate`` is 1: the positions of the pairs' vertices ``own`` ``(u,)`` gathered from the whole
+    positions ``x`` ``(n, 3)`` into ``x_own``, then per pair, in pair order, what :func:`_friction_kernel` computes
+    with every part wanted: ``energy[0]`` (J), the gradient rows ``grad_own`` of ``own`` (N), the blocks (N/m).
+    Always: ``gradient[own[i]] += grad_own[i]`` (``gradient`` ``(n, 3)``; the vertices ``own`` are distinct). The
+    arrays ``x_own``, ``grad_own`` and ``blocks`` may have more rows than are used."""
+    if evaluate:
+        energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(own.shape[0] * evaluate):
+        for d in ti.static(range(3)):
+            x_own[i, d] = x[own[i], d]
+            grad_own[i, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0] * evaluate):
+        u = _tangential_displacement(x_own, x_prev, vertices, weights, tangent, k)
+        energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        _pair_gradient(x_own, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad_own)
+        _pair_hessian(x_own, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(own.shape[0]):
+        for d in ti.static(range(3)):
+            gradient[own[i], d] += grad_own[i, d]
+
+
 class TiLaggedFriction(LaggedFriction):
     """:class:`~sim_core.energies.friction.reference.LaggedFriction` with energy, gradient and Hessian on the
     Taichi kernels of this module (same arguments, errors and parameter derivatives; needs
@@ -179,11 +208,17 @@ class TiLaggedFriction(LaggedFriction):
         """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; the positions of
         the pairs' vertices and the coefficients, ``mu`` may be edited, are copied into kept arrays). The
         kernel's vertex indices are into ``self._own``, the pairs' vertices ``(u,)``."""
+        arrays = self._constant_arrays(x.shape[0])
+        np.take(x, self._own, axis=0, out=arrays[0])
+        return arrays
+
+    def _constant_arrays(self, n: int) -> tuple:
+        """:meth:`_kernel_arrays` for ``n`` vertices with the coefficients refilled and the positions' rows not."""
         arrays = getattr(self, "_arrays", None)
-        if arrays is None or self._n != x.shape[0]:
+        if arrays is None or self._n != n:
             require_backend("TiLaggedFriction")
             own, local = compact_indices(self.vertices, dtype=np.int32)
-            self._own, self._n = own, x.shape[0]
+            self._own, self._n, self._own_index = own, n, own.astype(np.int32)
             arrays = (np.empty((len(own), 3)),
                       np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
                       local,
@@ -191,7 +226,6 @@ class TiLaggedFriction(LaggedFriction):
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))
             self._arrays, self._energy = arrays, np.zeros(1)
-        np.take(x, self._own, axis=0, out=arrays[0])
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
 
@@ -244,6 +278,81 @@ class TiLaggedFriction(LaggedFriction):
             return on_device(device, "coefficient", coefficient, refresh=True)
         return on_device(device, "coefficient", coefficient)
 
+    def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
+        """Add :meth:`gradient` at ``x`` (N) into the Taichi ndarray ``gradient_device``; the energy (J) returned
+        (capability :class:`~sim_core.energies.base.DeviceGradient`).
+
+        One launch of :func:`_friction_at_device_positions`: the pairs' vertices' positions read from ``x_device``
+        (no upload of positions), energy, gradient rows and Hessian blocks in the same sums as :meth:`gradient`'s
+        launch, the rows added at their vertices into ``gradient_device``; then the energy read back. The rows and
+        blocks stay where the kernel wrote them (device memory on CUDA), kept for ``x``
+        (:func:`~sim_core.energies.base.positions_key`) and the current coefficients and ``eps_u`` until this
+        thread's next evaluation here: :meth:`energy`, :meth:`gradient`, :meth:`gradient_rows`, :meth:`hessian` and
+        :meth:`hessian_on_device` at ``x`` read them, and a second call at ``x`` adds the kept rows again (a launch
+        of the last loop only).
+
+        Args:
+            x: positions ``(n, 3)`` (m), the key of the kept evaluation.
+            x_device: the same positions, a float64 Taichi ndarray ``(n, 3)``, only read.
+            gradient_device: a float64 Taichi ndarray ``(n, 3)``, the gradient added into it.
+
+        Raises:
+            ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
+        """
+        shape = np.shape(x)
+        for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
+            if tuple(array.shape) != shape:
+                raise ValueError(f"TiLaggedFriction.add_gradient_on_device: {name} of shape {tuple(array.shape)}, "
+                                 f"positions {shape}")
+        p, m = self.vertices.shape
+        if not p:
+            return 0.0
+        arrays = self._constant_arrays(shape[0])
+        device = _ARRAYS.device()
+        kept = self._device_record(x, arrays[-1])
+        u = len(self._own)
+        x_own = on_device(device, "at_x", _ARRAYS.rows("at_x", u, (3,)), scratch=True)
+        grad_own = on_device(device, "at_grad", _ARRAYS.rows("at_grad", u, (3,)), scratch=True)
+        blocks = on_device(device, "at_blocks", _ARRAYS.rows("at_blocks", p, (3 * m, 3 * m)), scratch=True)
+        energy = on_device(device, "at_energy", self._energy, scratch=True)
+        _friction_at_device_positions(
+            x_device, on_device(device, "own", self._own_index), x_own, on_device(device, "x_prev", arrays[1]),
+            on_device(device, "vertices", arrays[2]), on_device(device, "weights", arrays[3]),
+            on_device(device, "tangent", arrays[4]), self._device_coefficients(device, arrays[-1]), self.eps_u,
+            int(kept is None), energy, grad_own, blocks, gradient_device)
+        if kept is not None:
+            return kept[3]
+        copy_back(self._energy, energy)
+        token = device["at_owner"] = object()  # the thread's arrays now hold this evaluation
+        workspace_of(self).put(self, "at_device", (positions_key(x), arrays[-1].copy(), self.eps_u,
+                                                   float(self._energy[0]), token, grad_own, blocks))
+        return float(self._energy[0])
+
+    def _device_record(self, x: np.ndarray, coefficient: np.ndarray | None = None) -> tuple | None:
+        """The kept :meth:`add_gradient_on_device` evaluation ``(key, coefficients, eps_u, energy, token, rows,
+        blocks)`` when it is of ``x``, the current coefficients ``coefficient`` (None: computed here) and ``eps_u``,
+        and this thread's arrays still hold it; else None."""
+        kept = workspace_of(self).get(self, "at_device")
+        if kept is None or kept[4] is not _ARRAYS.device().get("at_owner") or kept[2] != self.eps_u \
+                or kept[0] != positions_key(x):
+            return None
+        if coefficient is None:
+            coefficient = np.multiply(self.mu, self.lam)
+        return kept if np.array_equal(kept[1], coefficient) else None
+
+    def _device_rows(self, kept: tuple) -> np.ndarray:
+        """The gradient rows ``(u, 3)`` (N) of the kept device evaluation ``kept``, a new host array."""
+        return _host_rows(kept[5], len(self._own))
+
+    def hessian_on_device(self, x: np.ndarray) -> DeviceHessianBlocks | None:
+        """The blocks of :meth:`hessian` at ``x`` left in device memory by :meth:`add_gradient_on_device` (capability
+        :class:`~sim_core.energies.base.DeviceHessian`; PSD by construction, so every projection's), or None where
+        they are not there (no such evaluation of ``x`` kept, or the kernels ran on host arrays)."""
+        kept = self._device_record(x) if self.vertices.shape[0] else None
+        if kept is None or isinstance(kept[6], np.ndarray):
+            return None
+        return DeviceHessianBlocks(self.vertices, DeviceRows(kept[6], 0, self.vertices.shape[0]))
+
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
         workspace (:mod:`sim_core.workspace`) for :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
@@ -266,6 +375,9 @@ class TiLaggedFriction(LaggedFriction):
         """Friction dissipation potential in J."""
         if self.vertices.shape[0] == 0:
             return 0.0
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return at_device[3]
         arrays = self._kernel_arrays(x)
         kept = self._kept(arrays)
         if kept is not None:
@@ -291,6 +403,9 @@ class TiLaggedFriction(LaggedFriction):
         p, m = self.vertices.shape
         if not p:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return self._own, self._device_rows(at_device)
         arrays = self._kernel_arrays(x)
         workspace = workspace_of(self)
         again = workspace.take(self, "gradient")
@@ -319,6 +434,9 @@ class TiLaggedFriction(LaggedFriction):
         p, m = self.vertices.shape
         if p == 0:
             return HessianBlocks.empty(m)
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return HessianBlocks(self.vertices, _host_rows(at_device[6], p))
         arrays = self._kernel_arrays(x)
         kept = workspace_of(self).take(self, "hessian")
         if kept is not None and self._matches(kept, arrays):
@@ -326,6 +444,14 @@ class TiLaggedFriction(LaggedFriction):
         blocks = np.empty((p, 3 * m, 3 * m))
         self._launch(arrays, _HESSIAN, blocks=blocks)
         return HessianBlocks(self.vertices, blocks)
+
+
+def _host_rows(array, rows: int) -> np.ndarray:
+    """The first ``rows`` rows of ``array`` (a kept host array, or its device copy: a Taichi ndarray) as a new
+    host array."""
+    if isinstance(array, np.ndarray):
+        return array[:rows].copy()
+    return copy_back(np.empty(tuple(array.shape)), array, rows)[:rows]
 
 
 def compile_kernels() -> None:
