@@ -21,6 +21,7 @@ from sim_core.ti_kernels import device_copy
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_ANY = ti.types.ndarray(dtype=ti.f64)  # float64 of any rank (a kernel compiled per rank)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
 
 
 @fast_kernel
@@ -80,24 +81,28 @@ def fill(array, value: float):
 
 
 @fast_kernel
-def _add_f64(source: _F64_ANY, target: _F64_ANY):
-    """``target[I] += source[I]`` for every index of ``source`` (same shapes)."""
-    for I in ti.grouped(source):
-        target[I] += source[I]
+def _add_f64_2(source: _F64_2, target: _F64_2):
+    """``target[i, j] += source[i, j]`` (same shapes). A loop over rows and a runtime one over columns: on the CPU
+    arch 8 ms for 580,000 x 3 entries where a ``ti.grouped`` loop took 41 ms (2-core VM)."""
+    for i in range(source.shape[0]):
+        for j in range(source.shape[1]):
+            target[i, j] += source[i, j]
 
 
 def add_into(array, values):
-    """``array += values`` for the float64 ndarray ``array`` and ``values`` of its shape (a float64 ndarray where the
-    kernels run, or a C-contiguous float64 NumPy array: on CUDA Taichi then copies it to the device and back with the
-    launch) in one planned launch; returns ``array``. Each entry is one addition: the sum of
-    ``array.to_numpy() + values`` bit for bit.
+    """``array += values`` for the float64 ndarray ``array`` of rank 2 (e.g. a gradient ``(n, 3)``) and ``values`` of
+    its shape (a float64 ndarray where the kernels run, or a C-contiguous float64 NumPy array: on CUDA Taichi then
+    copies it to the device and back with the launch) in one planned launch; returns ``array``. Each entry is one
+    addition: the sum of ``array.to_numpy() + values`` bit for bit.
 
     Raises:
-        ValueError: ``values`` has another shape than ``array``.
+        ValueError: ``values`` has another shape than ``array``, or the arrays are not of rank 2.
     """
+    if len(array.shape) != 2:
+        raise ValueError(f"add_into: an ndarray of rank 2 is needed; got shape {tuple(array.shape)}")
     if tuple(values.shape) != tuple(array.shape):
         raise ValueError(f"add_into: values of shape {tuple(values.shape)} for an ndarray of shape "
                          f"{tuple(array.shape)}")
     if int(np.prod(array.shape)):
-        _add_f64(values, array)
+        _add_f64_2(values, array)
     return array

@@ -1,0 +1,163 @@
+"""Time the lockstep's gradient terms at a Forming iterate: the host path against the device path (DeviceGradient).
+
+Usage: ``python benchmarks/device_gradient_terms.py --arch cuda --B 256 1024 [--repeat 5] [--kernel-profiler]``.
+
+For each ``B``: builds ``B`` Forming copies, takes two lockstep steps (compilation, contacts), sets up the third
+step (as ``benchmarks/parts_lockstep.py``) and times, at new positions each repetition (a fresh evaluation; median
+of ``--repeat``, in ms):
+
+- **host**: each Newton-loop term's gradient as :func:`sim_core.batch.iterates.summed_gradient` takes it (the fused
+  elastic terms' ``gradient``, the friction's ``gradient_rows``), added into an ``(N, 3)`` host sum;
+- **device** (where the code has :class:`~sim_core.energies.base.DeviceGradient`): ``add_gradient_on_device`` at
+  device positions into a device array, until the device is idle (``ti.sync``);
+- the fused elastic terms' device evaluation split into the host's launches (the fills, the parts' kernels in their
+  :class:`~sim_core.ti_kernels.launch.DeferredSums` block), the wait for their energy sums (the first read waits for
+  the kernels), the gradient's add and the final synchronisation; the launches and summing kernels per evaluation.
+
+``--kernel-profiler``: Taichi's per-task device times of the device path's launches (CUDA).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+
+def _median_ms(fn, repeat: int) -> float:
+    fn()  # warm
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(times))
+
+
+def _set_up(B: int, arch: str):
+    """``(solver, step, x)``: the third step of ``B`` lockstep Forming copies set up on the batched CG."""
+    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
+    from sim_core.control import Control
+    from sim_core.step_info import StepInfo
+    import sim_core.solver_config as sc
+
+    orig = sc.SolverConfig
+    sc.SolverConfig = lambda **kw: orig(**kw, linear_solver="pcg")  # the batched CG on every arch
+    try:
+        run = _FormingRun(B, 4, ARCH_BACKENDS[arch], lockstep=True)
+    finally:
+        sc.SolverConfig = orig
+    run.batch.warm_up()
+    for k in range(2):
+        run.batch.step([Control(effector_pose_target={run.effector: t[k]}) for t in run.targets])
+    eng = run.batch.lockstep
+    solver = eng.solver
+    ctrl = eng.scene.stack_controls([Control(effector_pose_target={run.effector: t[2]}) for t in run.targets])
+    step, x = solver._set_up_step(eng.state, ctrl, run.batch.sims[0].dt, None, StepInfo())
+    return solver, step, x
+
+
+def _fused_split(fused, x: np.ndarray, xd, gd, repeat: int) -> dict:
+    """The fused device evaluation's parts (module docstring), ms, medians over ``repeat`` fresh evaluations."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import add_into, fill
+
+    parts = {"launches": [], "sums read (waits for the kernels)": [], "gradient added": [], "sync": []}
+    counts = {}
+    for k in range(repeat + 1):
+        ti.sync()
+        _, gdev, vdev = fused._device_buffers(x.shape, fused.pattern.keys.size)
+        t0 = time.perf_counter()
+        fill(gdev, 0.0)
+        fill(vdev, 0.0)
+        from sim_core.ti_kernels.launch import DeferredSums
+
+        sums = fused._sums = fused._sums or DeferredSums()
+        with sums:
+            for part in fused._parts:
+                part.evaluate(xd, gdev, vdev)
+        t1 = time.perf_counter()
+        sum(sums.values())
+        t2 = time.perf_counter()
+        add_into(gd, gdev)
+        t3 = time.perf_counter()
+        ti.sync()
+        t4 = time.perf_counter()
+        counts = {"summing kernels": sums.launches, "parts": len(fused._parts)}
+        if k:
+            for name, (a, b) in zip(parts, ((t0, t1), (t1, t2), (t2, t3), (t3, t4))):
+                parts[name].append(1e3 * (b - a))
+    fused._kept = None
+    return {**{name: float(np.median(v)) for name, v in parts.items()}, **counts}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--B", type=int, nargs="+", default=[4])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--kernel-profiler", action="store_true")
+    args = ap.parse_args()
+    from sim_core.batch.iterates import frozen
+    from sim_core.energies.base import DeviceGradient, SparseGradient, declares
+    from sim_core.ti_backend import init_backend, ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.transfer import upload
+
+    init_backend(args.arch, kernel_profiler=args.kernel_profiler)
+    for B in args.B:
+        solver, step, x = _set_up(B, args.arch)
+        N = x.shape[0]
+        shift = iter(np.arange(1, 10 ** 6) * 1e-13)  # new positions each call: no kept evaluation is reused
+
+        def moved():
+            return frozen(x + next(shift))
+
+        total = np.zeros_like(x)
+        gd = new_ndarray(ti.f64, x.shape)
+        rows = []
+        for term in step.loop_terms:
+            name = type(term).__name__
+            if declares(term, SparseGradient):
+                def host(term=term):
+                    v, r = term.gradient_rows(moved())
+                    if v is None:
+                        total.__iadd__(r)
+                    else:
+                        total[v] += r
+            else:
+                def host(term=term):
+                    total.__iadd__(term.gradient(moved()))
+            rows.append((f"host   {name}", _median_ms(host, args.repeat)))
+            if declares(term, DeviceGradient):
+                pairs = [(y, upload(new_ndarray(ti.f64, x.shape), y)) for y in (moved() for _ in range(args.repeat + 1))]
+                it = iter(pairs)
+
+                def device(term=term, it=it):
+                    y, yd = next(it)
+                    term.add_gradient_on_device(y, yd, gd)
+                    ti.sync()
+
+                if args.kernel_profiler:
+                    ti.profiler.clear_kernel_profiler_info()
+                rows.append((f"device {name}", _median_ms(device, args.repeat)))
+                if args.kernel_profiler:
+                    print(f"--- B={B} kernel profile of device {name} ({args.repeat + 1} calls)")
+                    ti.profiler.print_kernel_profiler_info("count")
+        print(f"B={B} arch={args.arch} vertices={N} pairs(friction)="
+              f"{sum(t.vertices.shape[0] for t in step.loop_terms if type(t).__name__ == 'TiLaggedFriction')}")
+        for name, ms in rows:
+            print(f"  {name:50s} {ms:9.3f} ms")
+        fused = step.fused
+        if fused is not None and declares(fused, DeviceGradient) and fused._on_device():
+            y = moved()
+            split = _fused_split(fused, y, upload(new_ndarray(ti.f64, x.shape), y), gd, args.repeat)
+            print("  fused device evaluation: " + ", ".join(
+                f"{k} {v:.3f} ms" if isinstance(v, float) else f"{k} {v}" for k, v in split.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
