@@ -10,14 +10,16 @@ of ``--repeat``, in ms):
   elastic terms' ``gradient``, the friction's ``gradient_rows``), added into an ``(N, 3)`` host sum;
 - **device** (where the code has :class:`~sim_core.energies.base.DeviceGradient`): ``add_gradient_on_device`` at
   device positions into a device array, until the device is idle (``ti.sync``);
-- the fused elastic terms' device evaluation split into the host's launches (the fills, the parts' kernels in their
-  :class:`~sim_core.ti_kernels.launch.DeferredSums` block), the wait for their energy sums (the first read waits for
-  the kernels), the gradient's add and the final synchronisation; the launches and summing kernels per evaluation.
+- on a GPU, the fused elastic terms' device evaluation split into the host's launches (the fills, the parts' kernels
+  in their :class:`~sim_core.ti_kernels.launch.DeferredSums` block), the wait for their energy sums (the first read
+  waits for the kernels), the gradient's add and the final synchronisation; each part's kernel alone and its
+  energy-only kernel, until the device is idle; and a loop of 250,000 / 1,000,000 terms summed into one cell against
+  1024 (the cost of same-address atomic additions).
 
 ``--kernel-profiler``: Taichi's per-task device times of the device path's launches (CUDA).
 """
 
-from __future__ import annotations
+# No ``from __future__ import annotations`` here: Taichi reads the kernel annotations of _atomic_sums as objects.
 
 import argparse
 import sys
@@ -60,20 +62,25 @@ def _set_up(B: int, arch: str):
 
 
 def _fused_split(fused, x: np.ndarray, xd, gd, repeat: int) -> dict:
-    """The fused device evaluation's parts (module docstring), ms, medians over ``repeat`` fresh evaluations."""
+    """The fused device evaluation's parts (module docstring), ms, medians over ``repeat`` fresh evaluations; then
+    each part's kernel alone until the device is idle (``part <name>``)."""
     from sim_core.ti_backend import ti
-    from sim_core.ti_kernels.transfer import add_into, fill
+    from sim_core.ti_kernels.launch import DeferredSums
+    from sim_core.ti_kernels.transfer import fill
+    try:
+        from sim_core.ti_kernels.transfer import add_into
+    except ImportError:  # a tree without it (the baseline): the device gradient's add not timed
+        add_into = None
 
-    parts = {"launches": [], "sums read (waits for the kernels)": [], "gradient added": [], "sync": []}
+    _, gdev, vdev = fused._device_buffers(x.shape, fused.pattern.keys.size)
+    times: dict[str, list] = {"launches": [], "sums read (waits for the kernels)": [], "gradient added": [],
+                              "sync": []}
     counts = {}
     for k in range(repeat + 1):
         ti.sync()
-        _, gdev, vdev = fused._device_buffers(x.shape, fused.pattern.keys.size)
         t0 = time.perf_counter()
         fill(gdev, 0.0)
         fill(vdev, 0.0)
-        from sim_core.ti_kernels.launch import DeferredSums
-
         sums = fused._sums = fused._sums or DeferredSums()
         with sums:
             for part in fused._parts:
@@ -81,16 +88,48 @@ def _fused_split(fused, x: np.ndarray, xd, gd, repeat: int) -> dict:
         t1 = time.perf_counter()
         sum(sums.values())
         t2 = time.perf_counter()
-        add_into(gd, gdev)
+        if add_into is not None:
+            add_into(gd, gdev)
         t3 = time.perf_counter()
         ti.sync()
         t4 = time.perf_counter()
         counts = {"summing kernels": sums.launches, "parts": len(fused._parts)}
         if k:
-            for name, (a, b) in zip(parts, ((t0, t1), (t1, t2), (t2, t3), (t3, t4))):
-                parts[name].append(1e3 * (b - a))
+            for name, (a, b) in zip(times, ((t0, t1), (t1, t2), (t2, t3), (t3, t4))):
+                times[name].append(1e3 * (b - a))
+    for part in fused._parts:
+        def alone(part=part):
+            part.evaluate(xd, gdev, vdev)
+            ti.sync()
+
+        times[f"part {type(part).__name__} ({part.element_count} elements)"] = [_median_ms(alone, repeat)]
+        times[f"energy only {type(part).__name__}"] = [_median_ms(lambda part=part: (part.energy(xd), ti.sync()),
+                                                                  repeat)]
     fused._kept = None
-    return {**{name: float(np.median(v)) for name, v in parts.items()}, **counts}
+    return {**{name: float(np.median(v)) for name, v in times.items()}, **counts}
+
+
+def _atomic_sums(n: int, repeat: int) -> dict:
+    """ms of a parallel loop over ``n`` float64 entries adding ``x[k]^2`` into one cell (``energy[0]``) against
+    ``k % cells`` of 1024 cells, until the device is idle: the cost of same-address atomic additions."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.launch import fast_kernel
+    from sim_core.ti_kernels.transfer import upload
+
+    F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+
+    @fast_kernel
+    def spread_sum(x: F64_1, energy: F64_1):
+        for k in range(x.shape[0]):
+            energy[k % energy.shape[0]] += x[k] * x[k]
+
+    x = upload(new_ndarray(ti.f64, (n,)), np.random.default_rng(0).normal(size=n))
+    out = {}
+    for cells in (1, 1024):
+        energy = new_ndarray(ti.f64, (cells,))
+        out[f"{n} terms into {cells} cell(s)"] = _median_ms(lambda: (spread_sum(x, energy), ti.sync()), repeat)
+    return out
 
 
 def main() -> int:
@@ -151,11 +190,15 @@ def main() -> int:
         for name, ms in rows:
             print(f"  {name:50s} {ms:9.3f} ms")
         fused = step.fused
-        if fused is not None and declares(fused, DeviceGradient) and fused._on_device():
+        if fused is not None and fused._on_device():
             y = moved()
             split = _fused_split(fused, y, upload(new_ndarray(ti.f64, x.shape), y), gd, args.repeat)
-            print("  fused device evaluation: " + ", ".join(
-                f"{k} {v:.3f} ms" if isinstance(v, float) else f"{k} {v}" for k, v in split.items()))
+            for k, v in split.items():
+                print(f"  fused device evaluation: {k:60s} " + (f"{v:9.3f} ms" if isinstance(v, float) else f"{v}"))
+    if args.arch != "cpu":
+        for n in (250_000, 1_000_000):
+            for k, v in _atomic_sums(n, args.repeat).items():
+                print(f"  atomic sums: {k:40s} {v:9.3f} ms")
     return 0
 
 

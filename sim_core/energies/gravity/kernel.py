@@ -27,11 +27,10 @@ _F64_1, _F64_2 = linalg.F64_1, linalg.F64_2
 @summing_kernel
 def gravity_energy_add_gradient(x: _F64_2, constant: _F64_2, gradient: _F64_2, energy: _F64_1):
     """Energy ``sum_i c_i . x_i`` (J, returned) at ``x`` ``(n, 3)`` (m); ``gradient`` ``(n, 3)`` ``+= c`` (N)."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(x.shape[0]):
         for d in ti.static(range(3)):
-            energy[0] += constant[i, d] * x[i, d]
+            energy[i % energy.shape[0]] += constant[i, d] * x[i, d]
             gradient[i, d] += constant[i, d]
 
 
