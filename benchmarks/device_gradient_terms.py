@@ -27,38 +27,13 @@ import time
 
 import numpy as np
 
+from parts_lockstep import _median_ms as median_ms, third_step  # (benchmarks/, the script's folder)
+
 
 def _median_ms(fn, repeat: int) -> float:
-    fn()  # warm
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(times))
-
-
-def _set_up(B: int, arch: str):
-    """``(solver, step, x)``: the third step of ``B`` lockstep Forming copies set up on the batched CG."""
-    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
-    from sim_core.control import Control
-    from sim_core.step_info import StepInfo
-    import sim_core.solver_config as sc
-
-    orig = sc.SolverConfig
-    sc.SolverConfig = lambda **kw: orig(**kw, linear_solver="pcg")  # the batched CG on every arch
-    try:
-        run = _FormingRun(B, 4, ARCH_BACKENDS[arch], lockstep=True)
-    finally:
-        sc.SolverConfig = orig
-    run.batch.warm_up()
-    for k in range(2):
-        run.batch.step([Control(effector_pose_target={run.effector: t[k]}) for t in run.targets])
-    eng = run.batch.lockstep
-    solver = eng.solver
-    ctrl = eng.scene.stack_controls([Control(effector_pose_target={run.effector: t[2]}) for t in run.targets])
-    step, x = solver._set_up_step(eng.state, ctrl, run.batch.sims[0].dt, None, StepInfo())
-    return solver, step, x
+    """:func:`parts_lockstep._median_ms` after one call (compilation, warm-up)."""
+    fn()
+    return median_ms(fn, repeat)
 
 
 def _fused_split(fused, x: np.ndarray, xd, gd, repeat: int) -> dict:
@@ -147,7 +122,7 @@ def main() -> int:
 
     init_backend(args.arch, kernel_profiler=args.kernel_profiler)
     for B in args.B:
-        solver, step, x = _set_up(B, args.arch)
+        solver, step, x = third_step(B, args.arch)
         N = x.shape[0]
         shift = iter(np.arange(1, 10 ** 6) * 1e-13)  # new positions each call: no kept evaluation is reused
 
@@ -171,7 +146,8 @@ def main() -> int:
                     total.__iadd__(term.gradient(moved()))
             rows.append((f"host   {name}", _median_ms(host, args.repeat)))
             if declares(term, DeviceGradient):
-                pairs = [(y, upload(new_ndarray(ti.f64, x.shape), y)) for y in (moved() for _ in range(args.repeat + 1))]
+                ys = [moved() for _ in range(args.repeat + 1)]
+                pairs = [(y, upload(new_ndarray(ti.f64, x.shape), y)) for y in ys]
                 it = iter(pairs)
 
                 def device(term=term, it=it):

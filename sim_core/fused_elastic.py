@@ -342,13 +342,9 @@ class FusedElastic:
             ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
         """
         from sim_core.ti_backend import current_arch
-        from sim_core.ti_kernels.transfer import add_into, upload  # Taichi only on a Taichi backend
+        from sim_core.ti_kernels.transfer import add_into, same_shapes, upload  # Taichi only on a Taichi backend
 
-        shape = np.shape(x)
-        for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
-            if tuple(array.shape) != shape:
-                raise ValueError(f"FusedElastic.add_gradient_on_device: {name} of shape {tuple(array.shape)}, "
-                                 f"positions {shape}")
+        shape = same_shapes("FusedElastic.add_gradient_on_device", x, x_device, gradient_device)
         key = positions_key(x)
         kept = self._kept
         if kept is None or kept[0] != key:

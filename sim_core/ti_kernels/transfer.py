@@ -106,3 +106,17 @@ def add_into(array, values):
     if int(np.prod(array.shape)):
         _add_f64_2(values, array)
     return array
+
+
+def same_shapes(where: str, x: np.ndarray, x_device, gradient_device) -> tuple:
+    """The shape of positions ``x`` ``(n, 3)`` after checking that the device positions ``x_device`` and gradient
+    ``gradient_device`` (the arguments of :class:`~sim_core.energies.base.DeviceGradient`) have it.
+
+    Raises:
+        ValueError: ``x_device`` or ``gradient_device`` is of another shape (the message names ``where``).
+    """
+    shape = np.shape(x)
+    for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
+        if tuple(array.shape) != shape:
+            raise ValueError(f"{where}: {name} of shape {tuple(array.shape)}, positions {shape}")
+    return shape

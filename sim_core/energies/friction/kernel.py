@@ -35,7 +35,7 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download
+from sim_core.ti_kernels.transfer import download, same_shapes
 from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
@@ -299,11 +299,7 @@ class TiLaggedFriction(LaggedFriction):
         Raises:
             ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
         """
-        shape = np.shape(x)
-        for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
-            if tuple(array.shape) != shape:
-                raise ValueError(f"TiLaggedFriction.add_gradient_on_device: {name} of shape {tuple(array.shape)}, "
-                                 f"positions {shape}")
+        shape = same_shapes("TiLaggedFriction.add_gradient_on_device", x, x_device, gradient_device)
         p, m = self.vertices.shape
         if not p:
             return 0.0

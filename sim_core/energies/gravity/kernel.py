@@ -20,6 +20,7 @@ from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.launch import summing_kernel
+from sim_core.ti_kernels.transfer import same_shapes
 
 _F64_1, _F64_2 = linalg.F64_1, linalg.F64_2
 
@@ -56,11 +57,7 @@ class TiGravityPotential(GravityPotential):
         Raises:
             ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
         """
-        shape = np.shape(x)
-        for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
-            if tuple(array.shape) != shape:
-                raise ValueError(f"TiGravityPotential.add_gradient_on_device: {name} of shape "
-                                 f"{tuple(array.shape)}, positions {shape}")
+        same_shapes("TiGravityPotential.add_gradient_on_device", x, x_device, gradient_device)
         constant = np.ascontiguousarray(self._constant_gradient(x), dtype=np.float64)
         if not constant.size:
             return 0.0
