@@ -309,7 +309,8 @@ class TiLaggedFriction(LaggedFriction):
         u = len(self._own)
         x_own = on_device(device, "at_x", _ARRAYS.rows("at_x", u, (3,)), scratch=True)
         grad_own = on_device(device, "at_grad", _ARRAYS.rows("at_grad", u, (3,)), scratch=True)
-        blocks = on_device(device, "at_blocks", _ARRAYS.rows("at_blocks", p, (3 * m, 3 * m)), scratch=True)
+        name = f"at_blocks_{m}"  # (the kept arrays grow in rows only: one per block size)
+        blocks = on_device(device, name, _ARRAYS.rows(name, p, (3 * m, 3 * m)), scratch=True)
         energy = on_device(device, "at_energy", self._energy, scratch=True)
         _friction_at_device_positions(
             x_device, on_device(device, "own", self._own_index), x_own, on_device(device, "x_prev", arrays[1]),

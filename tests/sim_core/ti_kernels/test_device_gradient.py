@@ -207,6 +207,27 @@ def test_friction_reads_the_device_positions_and_keeps_blocks_on_the_device_on_t
     assert empty.hessian_on_device(x) is None
 
 
+def test_friction_pairs_of_one_vertex_after_pairs_of_four(ti_cpu):
+    """Pairs against an obstacle (one block vertex) evaluated on the device path after pairs of four vertices (the
+    thread's kept arrays of another block size): their own blocks ``(p, 3, 3)`` and gradient."""
+    from sim_core.energies.friction.kernel import TiLaggedFriction
+
+    _, (four, _), x4 = _friction(43, 0.5 * ref_tests.EPS_U)
+    four.add_gradient_on_device(x4, _device(x4), _device(np.zeros_like(x4)))
+    rng = np.random.default_rng(44)
+    x_prev = rng.normal(size=(6, 3)) * 1e-3
+    args = (np.array([[0], [2], [5]]), np.ones((3, 1)), np.repeat(np.eye(3)[None, :, :2], 3, axis=0), np.ones(3), 0.4,
+            x_prev, 0.01, 5e-3)
+    one, fresh = TiLaggedFriction(*args), TiLaggedFriction(*args)
+    x = _frozen(x_prev + rng.normal(scale=1e-4, size=x_prev.shape))
+    gd = _device(np.zeros_like(x))
+    assert_same_sums(one.add_gradient_on_device(x, _device(x), gd), fresh.energy(x))
+    assert_same_sums(gd.to_numpy(), fresh.gradient(x))
+    blocks = one.hessian(x).blocks
+    assert blocks.shape == (3, 3, 3)
+    assert_same_sums(blocks, fresh.hessian(x).blocks)
+
+
 def test_gravity_adds_its_constant_gradient(ti_cpu):
     from sim_core.energies.gravity.kernel import TiGravityPotential
     from sim_core.energies.gravity.reference import GravityPotential
