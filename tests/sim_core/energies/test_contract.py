@@ -112,7 +112,9 @@ TAICHI_CAPABILITIES = {
     DeviceHessian: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
                     "sim_core.energies.contact.kernel.TiVertexTriangleContact",
                     "sim_core.energies.friction.kernel.TiLaggedFriction"},
-    DeviceGradient: {"sim_core.fused_elastic.FusedElastic", "sim_core.energies.friction.kernel.TiLaggedFriction",
+    DeviceGradient: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
+                     "sim_core.energies.contact.kernel.TiVertexTriangleContact", "sim_core.fused_elastic.FusedElastic",
+                     "sim_core.energies.friction.kernel.TiLaggedFriction",
                      "sim_core.energies.gravity.kernel.TiGravityPotential"},
 }
 """The classes of the Taichi modules (the energies' and candidates' ``*kernel`` modules and
