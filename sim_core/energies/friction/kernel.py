@@ -14,8 +14,9 @@ about a hundred pairs: the NumPy reference spends its time in a dozen small arra
 call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
-only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
-instead, the constant ones sent once, and copies back only the outputs a request wants. The kernel sees the
+only the output array (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
+instead, the constant ones sent once, and copies back the outputs a request wants in one copy (energy, gradient rows
+and blocks packed into one array: one synchronous copy a launch instead of three). The kernel sees the
 pairs' own vertices only (positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``):
 a Forming step's pairs name 10-17 % of the scene's vertices. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
@@ -35,7 +36,8 @@ from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download, same_shapes
+from sim_core.ti_kernels.device_copy import new_ndarray
+from sim_core.ti_kernels.transfer import same_shapes, upload
 from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
@@ -88,24 +90,22 @@ def _f2_x_minus_f1_over_x3(y, eps_u):
 
 
 @ti.func
-def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
-                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
-    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+def _pair_force(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32):
+    """``c_k (f1(y)/y) T_k u_k`` (3-vector, N) of pair ``k``: its block vertex ``j``'s gradient is ``w_kj`` times it."""
     u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
     scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
     tu = ti.Vector.zero(ti.f64, 3)
     for d in ti.static(range(3)):
         tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
-    for j in range(vertices.shape[1]):
-        v = vertices[k, j]
-        for d in ti.static(range(3)):
-            grad[v, d] += weights[k, j] * tu[d]
+    return tu
 
 
 @ti.func
-def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
-                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
-    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m)."""
+def _pair_tangent_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                          tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32):
+    """``c_k T_k [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T_k^T`` (3x3, N/m) of pair ``k``: its block ``(a, b)`` is
+    ``w_ka w_kb`` times it."""
     u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
     y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
     f1x = _f1_over_x(y, eps_u)
@@ -121,6 +121,25 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
         for i, j in ti.static(ti.ndrange(2, 2)):
             acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
         H3[d, e] = acc * coefficient[k]
+    return H3
+
+
+@ti.func
+def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
+    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+    tu = _pair_force(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            grad[v, d] += weights[k, j] * tu[d]
+
+
+@ti.func
+def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
+    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m) into ``blocks`` ``(p, 3m, 3m)``."""
+    H3 = _pair_tangent_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
     for a in range(vertices.shape[1]):
         for b in range(vertices.shape[1]):
             wab = weights[k, a] * weights[k, b]
@@ -129,37 +148,55 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
 
 
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
-_NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
-_NO_BLOCKS = np.zeros((0, 0, 0))
-_UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
-_UNUSED_BLOCKS = np.zeros((1, 1, 1))
 _ARRAYS = LaunchArrays()
-"""Per thread, the device arrays of the CUDA launches (:meth:`TiLaggedFriction._launch_on_device`)."""
+"""Per thread, the kept arrays of the launches (:meth:`TiLaggedFriction._launch`,
+:meth:`TiLaggedFriction.add_gradient_on_device`) and their device copies."""
+
+
+def packed_size(rows: int, pairs: int, block_vertices: int, want: int) -> int:
+    """Entries of :func:`_friction_kernel`'s ``out`` that a launch for ``want`` writes: the energy, then the gradient
+    rows ``(rows, 3)`` of the pairs' vertices (with ``_GRADIENT`` or ``_HESSIAN``), then the blocks
+    ``(pairs, 3m, 3m)`` (with ``_HESSIAN``; ``m = block_vertices``)."""
+    if want & _HESSIAN:
+        return 1 + 3 * rows + pairs * (3 * block_vertices) ** 2
+    return 1 + 3 * rows if want & _GRADIENT else 1
 
 
 @fast_kernel
 def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, energy: _F64_1, grad: _F64_2,
-                     blocks: _F64_3):
-    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
-    kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
-    ``_GRADIENT`` sets ``grad`` ``(n, 3)`` to ``dE/dx`` (N; zeroed, then the pairs' parts added),
-    ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written
-    to an array rather than returned: a launch then needs no synchronisation for a return value."""
-    energy[0] = 0.0
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1):
+    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled kernel for every
+    request), packed into ``out`` (:func:`packed_size`: one array, so that a GPU launch's results come back in one
+    copy): ``_ENERGY`` sets ``out[0] = sum_k c_k f0(|u_k|)`` (J), ``_GRADIENT`` sets ``out[1:1 + 3 n]`` to ``dE/dx``
+    ``(n, 3)`` (N; zeroed, then the pairs' parts added), ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD
+    by construction) after it, ``n = x.shape[0]``. The energy is written to an array rather than returned: a launch
+    then needs no synchronisation for a return value."""
+    rows = x.shape[0]
+    m = vertices.shape[1]
+    start = 1 + 3 * rows  # of the blocks
+    if want & _ENERGY:
+        out[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for i in range(grad.shape[0] * ((want & _GRADIENT) // _GRADIENT)):
-        for d in ti.static(range(3)):
-            grad[i, d] = 0.0
+    for i in range(3 * rows * ((want & _GRADIENT) // _GRADIENT)):
+        out[1 + i] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
         if want & _ENERGY:
             u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-            energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+            out[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
         if want & _GRADIENT:
-            _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+            tu = _pair_force(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+            for j in range(m):
+                v = vertices[k, j]
+                for d in ti.static(range(3)):
+                    out[1 + 3 * v + d] += weights[k, j] * tu[d]
         if want & _HESSIAN:
-            _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+            H3 = _pair_tangent_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+            for a in range(m):
+                for b in range(m):
+                    wab = weights[k, a] * weights[k, b]
+                    for d, e in ti.static(ti.ndrange(3, 3)):
+                        out[start + (k * 3 * m + 3 * a + d) * 3 * m + 3 * b + e] = wab * H3[d, e]
 
 
 @fast_kernel
@@ -229,45 +266,42 @@ class TiLaggedFriction(LaggedFriction):
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
 
-    def _launch_gradient(self, arrays: tuple, want: int, blocks: np.ndarray) -> tuple[float, np.ndarray]:
-        """One launch of :func:`_friction_kernel` with ``_GRADIENT`` in ``want``: ``(energy, gradient)``, the
-        gradient's rows of the pairs' vertices ``self._own`` ``(u, 3)`` (N)."""
-        own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
-        return self._launch(arrays, want, own_grad, blocks), own_grad
-
-    def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
-                blocks: np.ndarray = _NO_BLOCKS) -> float:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
-        and ``blocks`` where ``want`` asks for them; the energy (J) when ``want`` asks for it."""
+    def _launch(self, arrays: tuple, want: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`): ``(energy, rows, blocks)``,
+        the energy (J; NaN unless ``want`` asks for it), the gradient's rows of the pairs' vertices ``self._own``
+        ``(u, 3)`` (N) and the blocks ``(p, 3m, 3m)`` (N/m), views of one new array (the parts ``want`` does not ask
+        for: not set, or empty)."""
+        p, m = self.vertices.shape
+        u = len(self._own)
+        size = packed_size(u, p, m, want)
         if current_arch() == "cuda":
-            return self._launch_on_device(arrays, want, grad, blocks)
-        _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
-        return float(self._energy[0])
+            out = self._launch_on_device(arrays, want, size)
+        else:
+            out = np.empty(size)
+            _friction_kernel(*arrays, self.eps_u, want, out)
+        energy = float(out[0]) if want & _ENERGY else float("nan")
+        rows = out[1:1 + 3 * u].reshape(-1, 3) if want & (_GRADIENT | _HESSIAN) else np.zeros((0, 3))
+        blocks = out[1 + 3 * u:size].reshape(p, 3 * m, 3 * m) if want & _HESSIAN else np.zeros((0, 3 * m, 3 * m))
+        return energy, rows, blocks
 
-    def _launch_on_device(self, arrays: tuple, want: int, grad: np.ndarray, blocks: np.ndarray) -> float:
-        """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
+    def _launch_on_device(self, arrays: tuple, want: int, size: int) -> np.ndarray:
+        """:meth:`_launch`'s kernel with every argument a Taichi ndarray in device memory (a NumPy argument of a
         CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
         previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
-        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back. The device
-        arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
+        positions and coefficients at each launch, and the ``size`` entries of the packed output ``want`` asks for
+        copied back in one copy, into a new host array (of the device array's length; only those entries
+        written) returned. The device arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction
+        where the shapes agree (the packed output grows only)."""
         device = _ARRAYS.device()
         x, x_prev, vertices, weights, tangent, coefficient = arrays
-        args = (on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
-                on_device(device, "vertices", vertices), on_device(device, "weights", weights),
-                on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
-        outputs = (on_device(device, "energy", self._energy, scratch=True),
-                   on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
-                   else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
-                   on_device(device, "blocks", blocks, scratch=True) if want & _HESSIAN
-                   else on_device(device, "no_blocks", _UNUSED_BLOCKS, scratch=True))
-        _friction_kernel(*args, self.eps_u, want, *outputs)
-        if want & _GRADIENT:
-            download(outputs[1], grad)
-        if want & _HESSIAN:
-            download(outputs[2], blocks)
-        if want & _ENERGY:
-            download(outputs[0], self._energy)
-        return float(self._energy[0])
+        p, m = self.vertices.shape
+        packed = on_device(device, "packed", _ARRAYS.rows("packed", packed_size(len(self._own), p, m, _HESSIAN)),
+                           scratch=True)
+        _friction_kernel(on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
+                         on_device(device, "vertices", vertices), on_device(device, "weights", weights),
+                         on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient),
+                         self.eps_u, want, packed)
+        return copy_back(np.empty(tuple(packed.shape)), packed, size)
 
     def _device_coefficients(self, device: dict, coefficient: np.ndarray):
         """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
@@ -359,8 +393,7 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        blocks = np.empty((p, 3 * m, 3 * m))
-        energy, grad = self._launch_gradient(arrays, _ENERGY | _GRADIENT | _HESSIAN, blocks)
+        energy, grad, blocks = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
@@ -379,7 +412,7 @@ class TiLaggedFriction(LaggedFriction):
         kept = self._kept(arrays)
         if kept is not None:
             return kept[3]
-        return self._launch(arrays, _ENERGY)
+        return self._launch(arrays, _ENERGY)[0]
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
@@ -414,8 +447,7 @@ class TiLaggedFriction(LaggedFriction):
             workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
             workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
             return self._own, kept[4]
-        blocks = np.empty((p, 3 * m, 3 * m))
-        own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
+        _, own_grad, blocks = self._launch(arrays, _GRADIENT | _HESSIAN)
         kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
         workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
         return self._own, own_grad
@@ -438,9 +470,7 @@ class TiLaggedFriction(LaggedFriction):
         kept = workspace_of(self).take(self, "hessian")
         if kept is not None and self._matches(kept, arrays):
             return HessianBlocks(self.vertices, kept[3])
-        blocks = np.empty((p, 3 * m, 3 * m))
-        self._launch(arrays, _HESSIAN, blocks=blocks)
-        return HessianBlocks(self.vertices, blocks)
+        return HessianBlocks(self.vertices, self._launch(arrays, _HESSIAN)[2])
 
 
 def _host_rows(array, rows: int) -> np.ndarray:
@@ -452,7 +482,8 @@ def _host_rows(array, rows: int) -> np.ndarray:
 
 
 def compile_kernels() -> None:
-    """JIT-compile (or load from Taichi's offline cache) the kernel on one pair (every request).
+    """JIT-compile (or load from Taichi's offline cache) the kernels on one pair (every request, and the device
+    positions' kernel).
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
@@ -465,3 +496,5 @@ def compile_kernels() -> None:
     friction.hessian(x + 1e-4)  # the blocks kept by the gradient
     friction.hessian(x + 1e-4)  # the Hessian kernel
     friction.keep_derivatives(x + 2e-4)  # energy, gradient and Hessian in one launch
+    y = x + 3e-4
+    friction.add_gradient_on_device(y, upload(new_ndarray(ti.f64, y.shape), y), new_ndarray(ti.f64, y.shape))

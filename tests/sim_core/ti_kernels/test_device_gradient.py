@@ -183,7 +183,8 @@ def test_friction_adds_its_gradient_and_keeps_the_evaluation(ti_cpu, scale):
 def test_friction_reads_the_device_positions_and_keeps_blocks_on_the_device_on_the_cuda_path(ti_cpu, monkeypatch):
     """With the arch query answering "cuda" (the kernel's arrays as Taichi ndarrays): the positions are read from
     ``x_device``, and the Hessian blocks stay in the kernel's device array (``hessian_on_device``) until the next
-    evaluation at other positions; an empty friction adds nothing."""
+    evaluation at other positions; an empty friction adds nothing. The host path's launches (energy, gradient and
+    blocks packed into one device array, copied back at once) give the twin's values."""
     import sim_core.energies.friction.kernel as friction_kernel
     import sim_core.ti_backend as backend
     from sim_core.ti_kernels.buffers import DeviceHessianBlocks, LaunchArrays
@@ -191,8 +192,16 @@ def test_friction_reads_the_device_positions_and_keeps_blocks_on_the_device_on_t
     ref, (tik, fresh), x = _friction(42, 0.5 * ref_tests.EPS_U)
     y = x + np.random.default_rng(6).normal(scale=0.2 * ref_tests.EPS_U, size=x.shape)
     expected = fresh.gradient(y)
+    z = _frozen(y + 1e-3 * ref_tests.EPS_U)
+    host_path = fresh.energy(z), fresh.gradient(z), fresh.hessian(z).blocks
     monkeypatch.setattr(friction_kernel, "_ARRAYS", LaunchArrays())  # this test's device arrays only
-    monkeypatch.setattr(backend, "current_arch", lambda: "cuda")
+    for module in (backend, friction_kernel):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    host_twin = friction_kernel.TiLaggedFriction(ref.vertices, ref.weights, ref.tangent, ref.lam, ref.mu, ref.x_prev,
+                                                 ref.eps_v, ref.dt)
+    for got, want in zip((host_twin.energy(z), host_twin.gradient(z), host_twin.hessian(z).blocks), host_path):
+        assert_same_sums(got, want)
+    assert not isinstance(friction_kernel._ARRAYS.device()["packed"][1], np.ndarray)  # the device array's path
     gd = _device(np.zeros_like(x))
     energy = tik.add_gradient_on_device(x, _device(y), gd)  # key x, device positions y
     assert energy == pytest.approx(ref.energy(y), rel=1e-12)
