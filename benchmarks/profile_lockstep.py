@@ -92,6 +92,7 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     walls: list = []
     iterations = [0]
     mark = [0.0]
+    prof = cProfile.Profile() if args.cprofile else None
 
     def step(controls, mask):
         k = len(walls)
@@ -99,7 +100,9 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
             _print_parts(f"B={B} step 0 (set-up included)", timers, walls[0])
             for rec in timers.values():
                 rec[0], rec[1] = 0, 0.0
-            cg_iterations.clear()
+            _start_timed(args, cg_iterations)
+            if prof:
+                prof.enable()
             mark[0] = time.perf_counter()
         t = time.perf_counter()
         res = run.batch.step(controls, mask)
@@ -114,15 +117,15 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     for rec in timers.values():
         rec[0], rec[1] = 0, 0.0
     run.population.run(step=step)
+    if prof:
+        prof.disable()
     wall = time.perf_counter() - mark[0]
     stepped = sum(walls[1:])
     print(f"B={B} {len(walls) - 1} steps in {wall:.3f} s ({stepped:.3f} s in the batched steps, {wall - stepped:.3f} s "
           f"the population's host work around them): {B * (len(walls) - 1) / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * stepped / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {len(walls) - 1} timed steps", timers, wall, iterations[0])
-    if cg_iterations:
-        print(f"B={B} CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
-              f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
+    _print_timed(B, args, cg_iterations, prof)
 
 
 def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
@@ -152,11 +155,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
     for rec in timers.values():
         rec[0], rec[1] = 0, 0.0
     iterations[0] = 0
-    cg_iterations.clear()
-    if args.kernel_profiler:
-        from sim_core.ti_backend import ti
-
-        ti.profiler.clear_kernel_profiler_info()
+    _start_timed(args, cg_iterations)
     prof = cProfile.Profile() if args.cprofile else None
     t0 = time.perf_counter()
     if prof:
@@ -169,6 +168,21 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
     print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
+    _print_timed(B, args, cg_iterations, prof)
+
+
+def _start_timed(args, cg_iterations: list) -> None:
+    """Before the timed steps: the CG's iteration counts and (``--kernel-profiler``) the kernel times from zero."""
+    cg_iterations.clear()
+    if args.kernel_profiler:
+        from sim_core.ti_backend import ti
+
+        ti.profiler.clear_kernel_profiler_info()
+
+
+def _print_timed(B: int, args, cg_iterations: list, prof) -> None:
+    """After the timed steps: the CG's iterations per solve, (``--kernel-profiler``) the kernel times and
+    (``--cprofile``) cProfile's tables (written to ``--out`` too)."""
     if cg_iterations:
         print(f"B={B} CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
               f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
