@@ -64,7 +64,7 @@ def main() -> int:
             del warm
     finally:
         sc.SolverConfig = orig
-    timers = _wrap_parts()
+    timers = _wrap_parts(backend)
     cg_iterations = _count_cg_iterations()
     for B in (int(b) for b in str(args.B).split(",")):
         sc.SolverConfig = config
@@ -213,19 +213,19 @@ def _count_cg_iterations() -> list:
     from sim_core.ti_kernels import pcg
 
     counts: list = []
-    solve = pcg.BatchedPCG.solve
+    run = pcg.BatchedPCG._run  # the CG iterations of a host or a device solve
 
-    def counted(self, b):
-        x = solve(self, b)
+    def counted(self):
+        run(self)
         counts.append(self.iterations)
-        return x
 
-    pcg.BatchedPCG.solve = counted
+    pcg.BatchedPCG._run = counted
     return counts
 
 
-def _wrap_parts() -> dict:
-    """Wrap the solver's parts with wall-clock timers; returns name -> [calls, seconds] (filled as they run)."""
+def _wrap_parts(backend: str) -> dict:
+    """Wrap the solver's parts with wall-clock timers (the device vectors' too on a Taichi ``backend``); returns
+    name -> [calls, seconds] (filled as they run)."""
     import functools
 
     from sim_core.batch import lockstep
@@ -242,12 +242,14 @@ def _wrap_parts() -> dict:
     from sim_core.ti_kernels import pcg
 
     timers: dict = {}
-    parts = [(lockstep.LockstepSolver, n) for n in ("_stacked_gradient", "_direction", "_device_operator",
-                                                     "_line_search_copies", "_energy_with", "_moved")]
+    from sim_core.batch.line_search import CopyLineSearch
+
+    parts = [(lockstep.LockstepSolver, n) for n in ("_stacked_gradient", "_direction", "_device_operator")]
+    parts += [(CopyLineSearch, n) for n in ("_line_search_copies", "_energy_with")]
     parts += [(NewtonSolver, n) for n in ("_set_up_step", "_finish_step", "_assemble_hessian", "_energy")]
     parts += [(ContactSet, n) for n in ("potentials", "begin_step", "friction", "end_step")]
     parts += [(FusedElastic, n) for n in ("_evaluate", "energy", "projected_hessian_values")]
-    parts += [(pcg.BatchedPCG, n) for n in ("factorize", "solve")]
+    parts += [(pcg.BatchedPCG, n) for n in ("factorize", "solve", "solve_on_device")]
     parts += [(pcg.VertexBlocks, "from_element_blocks")]
     parts += [(cls, "add_projected") for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean)]
     parts += [(cls, n) for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean) for n in ("bind",)]
@@ -264,11 +266,21 @@ def _wrap_parts() -> dict:
     parts += [(cls, n) for cls in (InertiaPotential, GravityPotential, LumpedQuadratic, _PairPenalty, TiLaggedFriction)
               for n in ("gradient", "energy")]
     parts += [(FusedElastic, "gradient"), (PairBatch, "evaluate"), (ContactSet, "covers"),
-              (lockstep, "projected_subset_blocks"), (lockstep, "summed_gradient")]
+              (lockstep, "projected_subset_blocks")]
+    from sim_core.batch import iterates
     from sim_core.batch.copy_runs import CopyRuns  # the per-copy reductions over the stacked arrays (host NumPy)
 
+    parts += [(iterates, "summed_gradient"), (iterates.HostIterates, "gradient")]
     parts += [(CopyRuns, n) for n in ("dot", "any_dof", "all_finite", "largest_norm", "largest_abs", "per_dof",
                                        "moved")]
+    if backend != "numpy":  # the same on the device's vectors (the batched CG's path)
+        from sim_core.batch.device_iterates import DeviceIterates
+        from sim_core.ti_kernels.copy_vectors import CopyVectors
+
+        parts += [(DeviceIterates, n) for n in ("gradient", "trial", "start")]
+        parts += [(CopyVectors, n) for n in ("dot", "largest_abs", "largest_norm", "blend", "moved", "download",
+                                             "upload", "add", "add_rows", "zero_dofs", "copy", "new")]
+        parts += [(LumpedQuadratic, "add_gradient_on_device")]
     parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
     # the step's host work outside the Newton loop, and the synchronous copies to and from the device
     from sim_core.batch.stacked import StackedScene

@@ -770,7 +770,9 @@ def active_contacts(terms: list, x: np.ndarray) -> list[np.ndarray] | None:
     the Newton matrix changes smoothly between them (:func:`same_active_contacts`)."""
     if not all(declares(p, PenaltyContact) for p in terms):
         return None
-    return [p.vertices[p.active_mask(x)] for p in terms]
+    # a pair potential's from its kept evaluation of x (no pass over every candidate pair)
+    return [p.active_vertices(x) if isinstance(p, (VertexTriangleContact, EdgeEdgeContact))
+            else p.vertices[p.active_mask(x)] for p in terms]
 
 
 def same_active_contacts(a: list[np.ndarray] | None, b: list[np.ndarray] | None) -> bool:

@@ -380,9 +380,10 @@ class HashGrid:
             if current_arch() == "cuda":
                 arrays = self._on_device(arrays)
             self._launch(*arrays[:8], float(radius), self.cell_scale, int(same), *arrays[8:])
-            if arrays[0] is not self.x:  # the outputs read here, copied back from the device
-                for host, device in zip((self.scale, self.out, self.count), arrays[15:18]):
-                    copy_back(host, device)
+            if arrays[0] is not self.x:  # the outputs read here, copied back from the device (the pairs found only)
+                copy_back(self.scale, arrays[15])
+                copy_back(self.count, arrays[17])
+                copy_back(self.out, arrays[16], min(int(self.count[_PAIRS]), self.out.shape[0]))
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             self.cell_size = float(self.scale[0])

@@ -5,6 +5,7 @@ edge-edge and vertex-plane pairs.
   value, gradient and projected Hessian in NumPy (the reference and test oracle).
 - ``kernel.py``: ``TiVertexTriangleContact``, ``TiEdgeEdgeContact``, the pair distances on Taichi.
 - ``batch_kernel.py``: one launch evaluates the step's vertex-triangle and edge-edge potentials.
+- ``gradient_kernel.py``: rows of positions and gradients gathered and added where a Taichi array is.
 - ``distance_kernel.py``: pair distances and their derivatives in Taichi (twin of
   :mod:`sim_core.collision.distances`).
 - ``setup_kernel.py``: start- and end-of-step pair geometry, contact frames and tangent bases in Taichi.

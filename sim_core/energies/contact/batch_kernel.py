@@ -41,6 +41,7 @@ from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as cd
+from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
@@ -49,7 +50,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download, upload
+from sim_core.ti_kernels.transfer import upload
 from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
@@ -111,9 +112,13 @@ def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
-                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2):
+                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2,
+                  active: _I32_1, active_d: _F64_1, active_count: _I32_1):
     """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
-    ``d[i]`` and region (positions gathered into ``z[i]``); with ``derivatives`` the distance gradient
+    ``d[i]`` and region (positions gathered into ``z[i]``); the launch rows ``i`` of the pairs with ``d < eps``
+    (``eps`` of their kind) appended to ``active`` and their distances to ``active_d``, ``active_count[0]`` of
+    them (zeroed first; in no fixed order on a parallel arch, in row order on the CPU's serial loops); with
+    ``derivatives`` the distance gradient
     row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
     ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
     as they are), and their penalty gradients ``k_c (d - eps) grad d`` summed per vertex into
@@ -127,6 +132,8 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     for j in range(derivatives * 2 * n):
         for c in ti.static(range(3)):
             gradients[j, c] = 0.0
+    for _ in range(1):
+        active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
         k = rows[i]
@@ -146,9 +153,33 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
                     cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
                     _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
                     _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
+            if d[i] < eps:  # the distance the host keeps (with derivatives: theirs)
+                slot = ti.atomic_add(active_count[0], 1)
+                active[slot], active_d[slot] = i, d[i]
         else:
             region[i], d[i] = -1, ti.math.inf
 
+
+def _sorted_found(listed: tuple, listed_arg: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's list of active pairs (host arrays ``listed`` = ``(rows, distances, count)``, ``listed_arg`` the
+    launch's: the same, or their device copies on CUDA, whose first ``count`` rows are copied back) as ``(rows
+    int64 (a,), distances (a,))`` in increasing row order (on a parallel arch the kernel appends in no fixed
+    order)."""
+    rows, distances, count = listed
+    if listed_arg[2] is not count:
+        copy_back(count, listed_arg[2], 1)
+    a = int(count[0])
+    if listed_arg[0] is not rows and a:
+        copy_back(rows, listed_arg[0], a)
+        copy_back(distances, listed_arg[1], a)
+    if a < 2 or not np.any(rows[1:a] < rows[:a - 1]):  # (the CPU's serial loop lists them in order)
+        return rows[:a].astype(np.int64), distances[:a].copy()
+    order = np.argsort(rows[:a])
+    return rows[:a][order].astype(np.int64), distances[:a][order]
+
+
+_NONE_FOUND = (np.zeros(0, dtype=np.int64), np.zeros(0))
+"""No active pair (a launch over no pairs)."""
 
 _ARRAYS = LaunchArrays()
 """The batch kernel's work arrays, per thread (:class:`~sim_core.ti_kernels.buffers.LaunchArrays`):
@@ -197,6 +228,12 @@ class PairBatch:
     only when asked), instead of host arrays that cross to the device and back at the launch; None: on CUDA.
     The values are the same."""
 
+    device_gradient: bool | None = None
+    """A derivatives launch at positions given on the device (``x_device`` of :meth:`evaluate`) leaves the per-vertex
+    gradient sums in a new Taichi ndarray where the kernel ran, each potential keeping its rows as
+    :class:`~sim_core.ti_kernels.buffers.DeviceRows` (added into a device gradient there, read on the host only when
+    asked), instead of copying them to the host; None: on CUDA. The values are the same."""
+
     def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
@@ -210,19 +247,23 @@ class PairBatch:
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
+        self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
         vt._batch = ee._batch = self
 
-    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool) -> tuple:
+    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device) -> tuple:
         """On CUDA, the launch's arguments that need not cross to the device and back at every launch:
-        the positions of the pairs' vertices ``x_own`` ``(u, 3)`` (uploaded once per ``key``), pairs and sides (once
-        per batch), the gathered pair positions (device only) and, with ``derivatives``, the per-vertex gradient sums
-        (downloaded after the launch); returns ``(x, vertices, sides, z, gradients)`` device arrays (``gradients``
-        None without derivatives)."""
+        the positions of the pairs' vertices ``x_own`` ``(u, 3)`` (once per ``key``: gathered on the device from
+        ``x_device`` when given, else uploaded), pairs and sides (once per batch), the gathered pair positions (device
+        only) and, with ``derivatives``, the per-vertex gradient sums; returns ``(x, vertices, sides, z, gradients)``
+        device arrays (``gradients`` None without derivatives)."""
         kept = self._device_x
         u = len(self.own)
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
             xd = kept[1] if kept is not None and tuple(kept[1].shape) == (u, 3) else new_ndarray(ti.f64, (u, 3))
-            upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
+            if x_device is not None:
+                gather_rows(x_device, on_device(self._device, "own", self._own32()), xd)
+            else:
+                upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
             kept = self._device_x = (key, xd)
         dev, shared = self._device, _ARRAYS.device()
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
@@ -231,13 +272,23 @@ class PairBatch:
         return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
                 gradients)
 
-    def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None) -> None:
+    def _own32(self) -> np.ndarray:
+        """``own`` as int32 ``(u,)``, made once per batch (the gather and scatter kernels' index)."""
+        if self._own_int32 is None:
+            self._own_int32 = self.own.astype(np.int32)
+        return self._own_int32
+
+    def evaluate(self, x: np.ndarray, derivatives: bool, key: tuple | None = None, x_device=None) -> None:
         """Evaluate both potentials at positions ``x`` ``(n, 3)`` (m) and keep each one's part as its
         evaluation of ``x``: active pairs and distances, with ``derivatives`` also their gradients
         ``(a, 12)`` and Hessians ``(a, 12, 12)``. Derivatives after both kept the distances of ``x``
         are computed for their active pairs only; a potential that already keeps an evaluation of
         ``x`` at least as complete keeps it. ``key``: :func:`~sim_core.energies.base.positions_key`
-        of ``x`` when the caller has it."""
+        of ``x`` when the caller has it. ``x_device``: the same positions as a Taichi float64 ndarray ``(n, 3)``
+        where the caller keeps them (:class:`~sim_core.energies.base.DeviceGradient`), or None: the positions of the
+        pairs' vertices are then gathered from it by a kernel (no host gather, no upload), and with
+        :attr:`device_gradient` the per-vertex gradient sums stay where the kernel wrote them. The active pairs come
+        from the kernel's list of them (no host pass over every pair's distance)."""
         if key is None:
             key = positions_key(x)
         pots = (self.vt, self.ee)
@@ -246,7 +297,7 @@ class PairBatch:
         if derivatives and (kept[0] is None or kept[1] is None) and two_pass:
             # on the GPU every array argument crosses to the device and back at each launch: the
             # distances of all pairs first (no derivative arrays), then derivatives of the active ones
-            self.evaluate(x, False, key)
+            self.evaluate(x, False, key, x_device)
             kept = [pot._kept(key, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
             rows = np.concatenate([kept[0].active, kept[1].active + self.split])
@@ -255,99 +306,153 @@ class PairBatch:
             rows, kept = self._all, [None, None]
             parts = (slice(0, self.split), slice(self.split, len(rows)))
         m = len(rows)
-        d, region, grad, hess = work_arrays(m)
-        device_hessian = ((current_arch() == "cuda" if self.device_hessian is None else self.device_hessian)
+        on_gpu = current_arch() == "cuda"
+        device_hessian = ((on_gpu if self.device_hessian is None else self.device_hessian)
                           and derivatives and kept[0] is not None and m > 0)
-        stiffnesses = (float(self.vt.stiffness), float(self.ee.stiffness))
-        n, u = x.shape[0], len(self.own)
-        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
+        device_gradient = ((on_gpu if self.device_gradient is None else self.device_gradient)
+                           and derivatives and x_device is not None and m > 0)
         if m:
-            every = rows is self._all  # (kept as an array of the batch's: not copied)
-            kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
-            if not every:
-                kept_rows[:m] = rows
-            if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
-                grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
-                                                     _ARRAYS.rows("hess_unused", 1, (12, 12)),
-                                                     _ARRAYS.rows("gradients_unused", 1, (3,)))
-            else:
-                grad_arg, hess_arg, gradients_arg = grad, hess, gradients
-            d_arg, region_arg = d, region
-            on_gpu = current_arch() == "cuda"
-            if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
-                x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives)
-                device = _ARRAYS.device()
-                rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
-                            else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
-                d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
-                                                                                        scratch=True)
-                if derivatives:
-                    grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
-                else:
-                    grad_arg, hess_arg, gradients_arg = (on_device(device, name, host, scratch=True) for name, host in
-                                                         (("grad_unused", grad_arg), ("hess_unused", hess_arg),
-                                                          ("gradients_unused", gradients_arg)))
-            else:
-                x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x), self._local_vertices,
-                                                            self.sides, kept_rows)
-                z = _ARRAYS.rows("z", m, (4, 3))
-            if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
-                grad_arg = new_ndarray(ti.f64, (m, 12))
-                hess_arg = new_ndarray(ti.f64, (m, 12, 12))
-            _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps),
-                          float(self.ee.eps), stiffnesses[0], stiffnesses[1], int(bool(derivatives)), z, d_arg,
-                          region_arg, grad_arg, hess_arg, gradients_arg)
-            if on_gpu:  # the launch's rows only (the regions are read with derivatives only)
-                copy_back(d, d_arg, m)
-                if derivatives:
-                    copy_back(region, region_arg, m)
-            if derivatives and gradients_arg is not gradients:  # summed on the device: copied here once
-                copy_back(gradients, gradients_arg, 2 * u)
-            if device_hessian:  # the distance gradients are read on the host (friction frames, the adjoint)
-                grad[:m] = download(grad_arg)
+            arrays, sums, found = self._launch(x, key, x_device, rows, derivatives, device_hessian, device_gradient)
         else:
-            gradients[: 2 * u] = 0.0
+            arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
+            sums[:] = 0.0
+        self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
+
+    def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
+                device_gradient: bool) -> tuple:
+        """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``; the batch's own row
+        array: every pair) at ``x``; the distances, regions and distance gradients are left in :func:`work_arrays`.
+        Returns ``((grad, hess), sums, found)``: the distance gradient and Hessian rows' arrays (new ndarrays with
+        ``device_hessian``), the
+        per-vertex gradient sums ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array)
+        and, when every pair was measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and
+        their distances ``(a,)`` (m), else None."""
+        m, u = len(rows), len(self.own)
+        d, region, grad, hess = work_arrays(m)
+        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
+        listed = (_ARRAYS.rows("active", m, (), np.int32), _ARRAYS.rows("active_d", m),
+                  _ARRAYS.rows("active_count", 1, (), np.int32))
+        every = rows is self._all  # (kept as an array of the batch's: not copied)
+        kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
+        if not every:
+            kept_rows[:m] = rows
+        if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
+            grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
+                                                 _ARRAYS.rows("hess_unused", 1, (12, 12)),
+                                                 _ARRAYS.rows("gradients_unused", 1, (3,)))
+        else:
+            grad_arg, hess_arg, gradients_arg = grad, hess, gradients
+        d_arg, region_arg, listed_arg = d, region, listed
+        on_gpu = current_arch() == "cuda"
+        if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
+            x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives,
+                                                                                         x_device)
+            device = _ARRAYS.device()
+            rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
+                        else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
+            d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
+                                                                                    scratch=True)
+            listed_arg = tuple(on_device(device, name, host, scratch=True)
+                               for name, host in zip(("active", "active_d", "active_count"), listed))
+            if derivatives:
+                grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
+            else:
+                grad_arg, hess_arg, gradients_arg = (on_device(device, name, host, scratch=True) for name, host in
+                                                     (("grad_unused", grad_arg), ("hess_unused", hess_arg),
+                                                      ("gradients_unused", gradients_arg)))
+        else:
+            x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._local_vertices,
+                                                        self.sides, kept_rows)
+            z = _ARRAYS.rows("z", m, (4, 3))
+        if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid
+            grad_arg = new_ndarray(ti.f64, (m, 12))
+            hess_arg = new_ndarray(ti.f64, (m, 12, 12))
+        if device_gradient:  # likewise: the sums stay where the kernel wrote them
+            gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
+        _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps), float(self.ee.eps),
+                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), z, d_arg, region_arg,
+                      grad_arg, hess_arg, gradients_arg, *listed_arg)
+        if on_gpu:  # the launch's rows only (the distances of known pairs; the regions with derivatives only)
+            if not every:
+                copy_back(d, d_arg, m)
+            if derivatives:
+                copy_back(region, region_arg, m)
+        if derivatives and not device_gradient and gradients_arg is not gradients:  # summed on the device: copied
+            copy_back(gradients, gradients_arg, 2 * u)
+        found = _sorted_found(listed, listed_arg) if every else None
+        return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found
+
+    def _keep(self, n: int, key: tuple, derivatives: bool, parts: tuple, kept: list, found: tuple | None, arrays,
+              sums, device_hessian: bool, device_gradient: bool) -> None:
+        """Each potential's part of a launch kept as its evaluation of the positions ``key`` (``n`` rows): the rows
+        ``parts`` (slices of the launch's rows) of its pairs, its ``kept`` evaluation's active pairs (known) or, for
+        a launch over every pair, its active pairs from ``found`` (:meth:`_launch`)."""
+        d, region, grad, hess = work_arrays(0)
+        u = len(self.own)
+        grad_arg, hess_arg = arrays
         order = 2 if derivatives else 0
         shared: dict = {}  # the device Hessian's host copy, downloaded once for both potentials if asked
-        for kind, (pot, part, known, stiffness) in enumerate(zip(pots, parts, kept, stiffnesses)):
+        shared_sums, shared_grad = {}, {}  # the device gradient sums' and distance gradients' host copies, likewise
+        for kind, (pot, part, known) in enumerate(zip((self.vt, self.ee), parts, kept)):
             if pot._kept(key, order) is not None:
                 continue
-            if known is None:
-                active = np.flatnonzero(d[part] < pot.eps)
-                rows = active + part.start  # rows of the kernel's arrays (fancy indexing: copies)
+            if known is None:  # the kernel's active rows of this kind, in order
+                lo, hi = np.searchsorted(found[0], (part.start, part.stop))
+                rows = found[0][lo:hi]
+                active, dk = rows - part.start, found[1][lo:hi]
             else:  # the rows are the known active pairs, in order
                 active, rows = known.active, part
-            # copies: the kernel's arrays are overwritten by the next evaluation
-            dk = d[rows].copy() if known is not None else d[rows]
+                dk = d[rows].copy()  # copies: the kernel's arrays are overwritten by the next evaluation
+            stiffness = float(pot.stiffness)
             if derivatives:
-                if device_hessian:  # the rows are the slice ``part`` of the launch's rows
-                    g, h = grad[rows].copy(), DeviceRows(hess_arg, rows.start, rows.stop, shared)
+                grad_rows = None
+                if device_hessian:  # the rows are the slice ``part`` of the launch's rows; the distance gradients
+                    # (read by the adjoint) stay on the device with the Hessians until asked for
+                    g, h = None, DeviceRows(hess_arg, rows.start, rows.stop, shared)
+                    grad_rows = DeviceRows(grad_arg, rows.start, rows.stop, shared_grad)
                 else:
                     g, h = ((grad[rows].copy(), hess[rows].copy()) if known is not None  # (np.take: rows of 2-D arrays)
                             else (np.take(grad, rows, axis=0), np.take(hess, rows, axis=0)))
+                summed = (DeviceRows(sums, kind * u, (kind + 1) * u, shared_sums) if device_gradient
+                          else sums[kind * u:(kind + 1) * u].copy())
                 dd = DistanceDerivatives(dk, g, None, region[rows].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
-                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, self._own_rows(gradients, kind, n))))
+                    order, key, active, dd, pot.eps, (stiffness, h), (stiffness, (self.own, summed, n)), grad_rows))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
 
-    def _own_positions(self, x: np.ndarray) -> np.ndarray:
-        """The positions ``(u, 3)`` (m) of the pairs' vertices ``own`` taken from ``x`` ``(n, 3)`` into an array kept
-        per batch (bound to the kernel once a batch; ``np.take`` into it: one pass, a third of fancy indexing's
-        time on a stacked batch's vertices)."""
+    def add_gradient(self, gradient_device, summed: tuple) -> None:
+        """Add summed gradient rows ``summed`` = ``(vertices (u,), rows, n)`` (an evaluation's,
+        :meth:`~sim_core.energies.contact.reference.PairEvaluation.summed_rows`: ``rows`` ``(u, 3)`` (N) on the host
+        or as :class:`~sim_core.ti_kernels.buffers.DeviceRows`) into the Taichi float64 ndarray ``gradient_device``
+        ``(n, 3)`` at ``vertices``, on the device (``gradient[v] += row``: the host's ``g[vertices] += rows``)."""
+        vertices, rows, _ = summed
+        if not len(vertices):
+            return
+        if vertices is self.own:
+            index = on_device(self._device, "own", self._own32())
+        else:  # an evaluation another batch made (inherited: the same pairs)
+            index = vertices.astype(np.int32)
+        if isinstance(rows, DeviceRows):
+            add_rows(gradient_device, index, rows.array, rows.start)
+        else:
+            add_rows(gradient_device, index, np.ascontiguousarray(rows, dtype=np.float64), 0)
+
+    def _own_positions(self, x: np.ndarray, x_device) -> np.ndarray:
+        """The positions ``(u, 3)`` (m) of the pairs' vertices ``own`` taken from ``x`` ``(n, 3)`` (or gathered by a
+        kernel from ``x_device``, its Taichi ndarray, when given) into an array kept per batch (bound to the kernel
+        once a batch; ``np.take`` into it: one pass, a third of fancy indexing's time on a stacked batch's
+        vertices)."""
         kept = self._x_own
         if kept is None:
             kept = self._x_own = np.empty((len(self.own), 3))
-        np.take(x, self.own, axis=0, out=kept)
+        if x_device is not None:
+            if len(kept):
+                gather_rows(x_device, self._own32(), kept)
+        else:
+            np.take(x, self.own, axis=0, out=kept)
         return kept
-
-    def _own_rows(self, gradients: np.ndarray, kind: int, n: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """``(own, rows, n)``: the summed gradient rows ``(u, 3)`` (N, a copy) of potential ``kind`` (0 vertex-triangle,
-        1 edge-edge) of the kernel's ``gradients`` ``(>= 2 u, 3)`` on the pairs' distinct vertices ``own``, of an
-        ``(n, 3)`` gradient zero elsewhere (:class:`~sim_core.energies.contact.reference.PairEvaluation`)."""
-        u = len(self.own)
-        return self.own, gradients[kind * u:(kind + 1) * u].copy(), n
 
 
 def compile_kernels() -> None:

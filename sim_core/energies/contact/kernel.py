@@ -20,6 +20,7 @@ import numpy as np
 from sim_core.collision.distances import DistanceDerivatives
 from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as contact_distance, setup_kernel as contact_setup
+from sim_core.energies.contact.gradient_kernel import add_rows_on_device
 from sim_core.energies.contact.reference import ContactFrames, EdgeEdgeContact, PairEvaluation, VertexTriangleContact
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks
 from sim_core.workspace import workspace_of
@@ -43,7 +44,7 @@ class _Batched:
         """The kept evaluation ``(active, distances)`` of positions ``x`` ``(n, 3)`` if it holds
         derivatives up to ``order`` (0, 1 or 2), else None (see the reference ``_evaluate``)."""
         kept = self._kept(positions_key(x), order)
-        return None if kept is None else (kept.active, kept.dd)
+        return None if kept is None else (kept.active, kept.dd if order > 0 else kept.distances)
 
     def hessian_on_device(self, x: np.ndarray) -> DeviceHessianBlocks | None:
         """The unprojected Hessian blocks of the active pairs at ``x`` ``(n, 3)`` (capability
@@ -64,13 +65,31 @@ class _Batched:
         ``(None, gradient)``."""
         return self._evaluation(x, 1).gradient_rows(self.stiffness, self.vertices)
 
-    def _evaluation(self, x: np.ndarray, order: int) -> PairEvaluation:
+    def add_gradient_on_device(self, x: np.ndarray, x_device: object, gradient_device: object) -> float:
+        """Add :meth:`gradient` at ``x`` ``(n, 3)`` (m) into the Taichi float64 ndarray ``gradient_device`` ``(n, 3)``
+        (N) on the device, the pair batch reading the positions from ``x_device`` (their ndarray) when it evaluates
+        (capability :class:`~sim_core.energies.base.DeviceGradient`; the host's ``g[vertices] += rows``, the same
+        sums); returns :meth:`energy` at ``x`` (J). The evaluation of ``x`` is kept as :meth:`gradient` keeps it
+        (the Hessian at ``x`` then needs no launch)."""
+        if self._batch is None:
+            add_rows_on_device(gradient_device, None, self.gradient(x))
+            return self.energy(x)
+        evaluation = self._evaluation(x, 1, x_device)
+        summed = evaluation.summed_rows(self.stiffness)
+        if summed is not None:
+            self._batch.add_gradient(gradient_device, summed)
+        else:  # an evaluation made for another stiffness or without the batch: the host's gradient
+            vertices, rows = evaluation.gradient_rows(self.stiffness, self.vertices)
+            add_rows_on_device(gradient_device, vertices, rows)
+        return evaluation.energy(self.stiffness)
+
+    def _evaluation(self, x: np.ndarray, order: int, x_device: object = None) -> PairEvaluation:
         if self._batch is None:
             return super()._evaluation(x, order)
         key = positions_key(x)
         kept = self._kept(key, order)
         if kept is None:
-            self._batch.evaluate(x, order > 0, key)
+            self._batch.evaluate(x, order > 0, key, x_device)
             kept = workspace_of(self).get(self, "evaluation")
         return kept
 

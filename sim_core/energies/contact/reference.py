@@ -119,17 +119,36 @@ class PairEvaluation:
         gradient: None, or ``(k_c, g)``: the penalty gradient ``dE/dx`` for stiffness ``k_c``, summed as
             :meth:`gradient` sums it (the batch kernel): ``g`` ``(n, 3)`` (N), or ``(vertices, rows, n)``, the
             rows ``(u, 3)`` of the distinct ``vertices`` ``(u,)`` of an ``(n, 3)`` gradient zero elsewhere.
+        grad_rows: None, or the distance gradients ``(a, 12)`` (1) kept where the kernel wrote them (an object with
+            ``to_numpy()``, :class:`~sim_core.ti_kernels.buffers.DeviceRows`; ``dd.grad`` None then): :attr:`dd` reads
+            them on the host when first asked.
     """
 
-    __slots__ = ("order", "key", "active", "dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient")
+    __slots__ = ("order", "key", "active", "_dd", "eps", "hessian_blocks", "_vertices", "_energy", "_gradient",
+                 "_grad_rows")
 
     def __init__(self, order: int, key: tuple, active: np.ndarray, dd: DistanceDerivatives, eps: float,
                  hessian_blocks: tuple[float, np.ndarray] | None = None,
-                 gradient: tuple[float, np.ndarray] | None = None) -> None:
-        self.order, self.key, self.active, self.dd, self.eps = order, key, active, dd, eps
+                 gradient: tuple[float, np.ndarray] | None = None, grad_rows: object = None) -> None:
+        self.order, self.key, self.active, self._dd, self.eps = order, key, active, dd, eps
         self.hessian_blocks = hessian_blocks
         self._gradient = gradient
+        self._grad_rows = grad_rows
         self._vertices = self._energy = None
+
+    @property
+    def dd(self) -> DistanceDerivatives:
+        """The active pairs' distances (m) and derivatives (distance gradients kept on the device read here)."""
+        if self._grad_rows is not None:
+            self._dd = self._dd._replace(grad=np.array(self._grad_rows.to_numpy()))
+            self._grad_rows = None
+        return self._dd
+
+    @property
+    def distances(self) -> DistanceDerivatives:
+        """:attr:`dd` as it is kept: the distances ``d`` ``(a,)`` (m) and regions; ``grad`` None while the distance
+        gradients are on the device."""
+        return self._dd
 
     def active_vertices(self, vertices: np.ndarray) -> np.ndarray:
         """``vertices[active]`` (``vertices`` ``(p, 4)``: the potential's, the same for every potential
@@ -141,21 +160,39 @@ class PairEvaluation:
     def holds_hessian(self, stiffness: float) -> bool:
         """Whether :meth:`penalty_hessian` can give the Hessians for ``stiffness`` (N/m)."""
         blocks = self.hessian_blocks
-        return self.dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
+        return self._dd.hess is not None or (blocks is not None and blocks[0] == stiffness)
 
     def energy(self, stiffness: float) -> float:
         """``k_c / 2 sum (d - eps)^2`` in J (kept per stiffness ``k_c``, N/m)."""
         kept = self._energy
         if kept is None or kept[0] != stiffness:
-            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self.dd.d - self.eps) ** 2)))
+            kept = self._energy = (stiffness, float(0.5 * stiffness * np.sum((self._dd.d - self.eps) ** 2)))
         return kept[1]
+
+    def summed_rows(self, stiffness: float) -> tuple | None:
+        """The kept gradient for ``stiffness`` (N/m) as the batch kernel summed it, ``(vertices (u,), rows, n)``:
+        ``rows`` ``(u, 3)`` (N) a NumPy array or rows kept on the device (an object with ``to_numpy()``,
+        :class:`~sim_core.ti_kernels.buffers.DeviceRows`); None when there is no such gradient."""
+        kept = self._gradient
+        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
+            return kept[1]
+        return None
+
+    def _host_rows(self, stiffness: float) -> tuple | None:
+        """:meth:`summed_rows` with rows kept on the device read on the host (once, then kept so)."""
+        summed = self.summed_rows(stiffness)
+        if summed is not None and not isinstance(summed[1], np.ndarray):
+            summed = (summed[0], summed[1].to_numpy(), summed[2])
+            self._gradient = (stiffness, summed)
+        return summed
 
     def gradient(self, stiffness: float, vertices: np.ndarray) -> np.ndarray:
         """``dE/dx = k_c (d - eps) grad d`` summed into a new ``(n, 3)`` array (N), ``n`` the row count
         of the positions (kept per stiffness, returned as a copy)."""
+        summed = self._host_rows(stiffness)
+        if summed is not None:
+            return spread_rows(*summed)
         kept = self._gradient
-        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
-            return spread_rows(*kept[1])
         if kept is None or kept[0] != stiffness:
             dd = self.dd
             g = stiffness * (dd.d - self.eps)[:, None] * dd.grad
@@ -166,9 +203,9 @@ class PairEvaluation:
     def gradient_rows(self, stiffness: float, vertices: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """:meth:`gradient` as :meth:`~sim_core.energies.base.SparseGradient.gradient_rows` gives it: the kept
         rows of the distinct vertices where the batch kernel summed them, else ``(None, gradient)``."""
-        kept = self._gradient
-        if kept is not None and kept[0] == stiffness and isinstance(kept[1], tuple):
-            return kept[1][0], kept[1][1]
+        summed = self._host_rows(stiffness)
+        if summed is not None:
+            return summed[0], summed[1]
         return None, self.gradient(stiffness, vertices)
 
     def penalty_hessian(self, stiffness: float) -> np.ndarray:
@@ -261,7 +298,8 @@ class _PairPenalty:
         ``x`` is bitwise equal (energy, gradient and Hessian of one iterate share one evaluation).
         """
         evaluation = self._evaluation(x, order)
-        return evaluation.active, evaluation.dd
+        # order 0: the distances (derivatives kept on the device stay there)
+        return evaluation.active, (evaluation.dd if order > 0 else evaluation.distances)
 
     _may_touch: staticmethod
     """Exact prefilter ``(z, side, eps) -> (k,) bool``: ``point_triangle_may_touch`` or
@@ -309,6 +347,11 @@ class _PairPenalty:
     def distance(self, x: np.ndarray) -> np.ndarray:
         """Contact distance ``d`` of every pair in m, shape ``(p,)``."""
         return self._distance(x[self.vertices], self.sides, 0).d
+
+    def active_vertices(self, x: np.ndarray) -> np.ndarray:
+        """``vertices[active_mask(x)]``: the vertices of the pairs with ``d < eps`` at ``x`` ``(n, 3)``, int
+        ``(a, 4)``, kept with the evaluation of ``x`` (read only)."""
+        return self._evaluation(x, 0).active_vertices(self.vertices)
 
     def active_mask(self, x: np.ndarray) -> np.ndarray:
         """Pairs with ``d < eps``, bool shape ``(p,)``."""

@@ -68,6 +68,7 @@ def test_linked_potentials_equal_separate_ones_bit_for_bit_with_one_launch_per_p
     for pot, (energy, mask, grad, h_none, h_clamp, lam) in zip(linked, expected):
         assert pot.energy(x) == energy
         np.testing.assert_array_equal(pot.active_mask(x), mask)
+        np.testing.assert_array_equal(pot.active_vertices(x), pot.vertices[mask])
         np.testing.assert_array_equal(pot.contact_frames(x).lam, lam)
     total = len(linked[0].pairs) + len(linked[1].pairs)
     active = sum(int(np.count_nonzero(p.active_mask(x))) for p in linked)
@@ -182,11 +183,12 @@ def test_hessians_kept_on_the_device_are_the_host_ones_and_give_the_same_vertex_
     expected = []
     for pot in alone:
         monkeypatch.setattr(PairBatch, "device_hessian", False)
-        expected.append((pot.gradient(y), pot.hessian(y, "none"), pot.hessian(y, "clamp")))
+        expected.append((pot.gradient(y), pot.hessian(y, "none"), pot.hessian(y, "clamp"),
+                         pot.parameter_gradient(y, "stiffness")))
         assert pot.hessian_on_device(y) is None  # held on the host
     monkeypatch.setattr(PairBatch, "device_hessian", True)
     on_device = []
-    for pot, (grad, h_none, h_clamp) in zip(linked, expected):
+    for pot, (grad, h_none, h_clamp, dgrad_dk) in zip(linked, expected):
         assert declares(pot, DeviceHessian)
         np.testing.assert_allclose(pot.gradient(y), grad, rtol=0, atol=1e-13 * np.abs(grad).max())
         kept = pot.hessian_on_device(y)
@@ -195,6 +197,8 @@ def test_hessians_kept_on_the_device_are_the_host_ones_and_give_the_same_vertex_
         np.testing.assert_array_equal(kept.blocks.to_numpy(), h_none.blocks)
         np.testing.assert_array_equal(pot.hessian(y, "none").blocks, h_none.blocks)
         np.testing.assert_array_equal(pot.hessian(y, "clamp").blocks, h_clamp.blocks)
+        assert workspace_of(pot).get(pot, "evaluation").distances.grad is None  # on the device until asked for
+        np.testing.assert_array_equal(pot.parameter_gradient(y, "stiffness"), dgrad_dk)  # (they are read here)
         on_device.append(kept)
     free = np.ones(x.size, dtype=bool)
     free[::7] = False
@@ -257,3 +261,70 @@ def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(
         np.testing.assert_array_equal(pot.gradient(frozen), grad)
         assert pot.energy(frozen) == energy
         np.testing.assert_array_equal(pot.hessian(frozen, "none").blocks, hess)
+
+
+@pytest.mark.parametrize("two_pass, device_gradient", [(False, False), (True, True)])
+def test_gradients_added_on_the_device_are_the_host_gradients_with_the_energy_and_the_kept_hessians(
+        ti_cpu, monkeypatch, two_pass, device_gradient):
+    """``add_gradient_on_device`` (:class:`~sim_core.energies.base.DeviceGradient`) with the positions read from their
+    ndarray (the host array's values are never read: NaN here): a nonzero device array becomes that array plus
+    :meth:`gradient` (bit for bit on the CPU's serial sums), the energy returned is :meth:`energy`, and the Hessian
+    at those positions is then kept (no further launch, the same blocks); through one launch (CPU) or CUDA's two
+    with the sums left in the kernel's ndarray (``PairBatch.device_gradient``), read on the host when asked. A
+    potential not linked to a batch adds its host gradient."""
+    from sim_core.energies.base import DeviceGradient, declares
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.transfer import download, upload
+
+    x, linked, alone = _potentials(vt_rows=slice(0, 150), ee_rows=slice(0, 60))  # pairs naming a third of x
+    rng = np.random.default_rng(24)
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    expected = [(pot.gradient(y), pot.energy(y), pot.hessian(y, "none")) for pot in alone]
+    assert all(np.any(grad != 0.0) and energy > 0.0 for grad, energy, _ in expected)
+    monkeypatch.setattr(PairBatch, "two_pass", two_pass)
+    monkeypatch.setattr(PairBatch, "device_gradient", device_gradient)
+    x_device, g_device = new_ndarray(ti.f64, y.shape), new_ndarray(ti.f64, y.shape)
+    upload(x_device, y)
+    base = rng.normal(size=y.shape)
+    upload(g_device, base)
+    host = np.full_like(y, np.nan)  # frozen: the evaluations are keyed by this object, its values never read
+    host.flags.writeable = False
+    calls = _launches(monkeypatch)
+    total = base.copy()
+    for pot, (grad, energy, _) in zip(linked, expected):
+        assert declares(pot, DeviceGradient)
+        assert pot.add_gradient_on_device(host, x_device, g_device) == energy
+        total += grad
+    np.testing.assert_array_equal(download(g_device), total)
+    assert [derivatives for derivatives, _ in calls] == ([False, True] if two_pass else [True])
+    for pot, (grad, energy, h) in zip(linked, expected):
+        np.testing.assert_array_equal(pot.hessian(host, "none").blocks, h.blocks)
+        np.testing.assert_array_equal(pot.hessian(host, "none").vertices, h.vertices)
+        np.testing.assert_array_equal(pot.gradient(host), grad)  # (device sums: read on the host now)
+        assert pot.energy(host) == energy
+    assert len(calls) == (2 if two_pass else 1)
+    upload(g_device, base)
+    for pot, (grad, energy, _) in zip(alone, expected):
+        assert pot.add_gradient_on_device(y, x_device, g_device) == energy
+    np.testing.assert_array_equal(download(g_device), total)
+
+
+def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu):
+    """On a parallel arch the kernel appends the active pairs in no fixed order: the list is read back sorted by
+    row, each distance with its row (the CPU's serial list, in order already, read as it is)."""
+    from sim_core.energies.contact.batch_kernel import _sorted_found
+
+    rng = np.random.default_rng(25)
+    rows = np.sort(rng.choice(10_000, size=300, replace=False)).astype(np.int32)
+    distances = rng.uniform(0.0, EPS, size=300)
+    for order in (np.arange(300), rng.permutation(300)):
+        listed = (np.concatenate([rows[order], np.full(20, -7, np.int32)]),  # a longer kept array: 300 written
+                  np.concatenate([distances[order], np.full(20, np.nan)]), np.array([300], dtype=np.int32))
+        got_rows, got_d = _sorted_found(listed, listed)
+        assert got_rows.dtype == np.int64
+        np.testing.assert_array_equal(got_rows, rows)
+        np.testing.assert_array_equal(got_d, distances)
+    none = (np.zeros(4, np.int32), np.zeros(4), np.zeros(1, np.int32))
+    assert [len(a) for a in _sorted_found(none, none)] == [0, 0]
