@@ -5,8 +5,9 @@ Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--
 ``--task NAME`` profiles the task's population of ``thinshell bench batch --scene NAME`` (``_TaskRun``: perturbed
 reference actions, stepped by :class:`~sim_core.tasks.rollout.PopulationRollout` as the optimiser steps it, without
 a separate warm-up) and times its build by part too (the episodes' scenes, the stacking, the lockstep solver), and
-the population's host work around each batched step (its episodes' commands and early-stop checks); ``--B 16,64,256``
-profiles each size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so
+the population's host work around each batched step (its episodes' commands and early-stop checks), and per step the
+copies' own Newton iterations beside the lockstep's (a lockstep step runs as many as its slowest copy);
+``--B 16,64,256`` profiles each size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so
 that what grows with ``B`` shows by part.
 Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
 Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
@@ -90,7 +91,7 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     step (set-up included) by part, then ``args.steps`` steps by part, and the population's host work outside the
     batched steps (its episodes' commands, early-stop checks and logs)."""
     walls: list = []
-    iterations = [0]
+    iterations, copy_iterations = [0], [0.0]
     mark = [0.0]
     prof = cProfile.Profile() if args.cprofile else None
 
@@ -108,10 +109,13 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
         res = run.batch.step(controls, mask)
         walls.append(time.perf_counter() - t)
         info = run.batch.lockstep.solver.last_stacked_info
+        own = [i.iterations for i in res.infos if i is not None]  # each stepped copy's own Newton iterations
         if k >= 1:
             iterations[0] += getattr(info, "iterations", 0) or 0
-        print(f"B={B} step {k}: {walls[-1]:.3f} s, iterations {getattr(info, 'iterations', None)}, "
-              f"{int(mask.sum())} copies", flush=True)
+            copy_iterations[0] += sum(own) / max(len(own), 1)
+        print(f"B={B} step {k}: {walls[-1]:.3f} s, iterations {getattr(info, 'iterations', None)} (the copies' own: "
+              f"mean {sum(own) / max(len(own), 1):.2f}, max {max(own, default=0)}), {int(mask.sum())} copies",
+              flush=True)
         return res
 
     for rec in timers.values():
@@ -123,7 +127,9 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     stepped = sum(walls[1:])
     print(f"B={B} {len(walls) - 1} steps in {wall:.3f} s ({stepped:.3f} s in the batched steps, {wall - stepped:.3f} s "
           f"the population's host work around them): {B * (len(walls) - 1) / wall:.2f} scene-steps/s, "
-          f"{iterations[0]} Newton iterations, {1e3 * stepped / max(iterations[0], 1):.1f} ms an iteration")
+          f"{iterations[0]} Newton iterations, {1e3 * stepped / max(iterations[0], 1):.1f} ms an iteration; the "
+          f"copies' own iterations {copy_iterations[0]:.1f} (mean over copies, summed over steps: "
+          f"{100 * copy_iterations[0] / max(iterations[0], 1):.0f} % of the lockstep's)")
     _print_parts(f"B={B} {len(walls) - 1} timed steps", timers, wall, iterations[0])
     _print_timed(B, args, cg_iterations, prof)
 
