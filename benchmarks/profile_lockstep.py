@@ -7,8 +7,8 @@ reference actions, stepped by :class:`~sim_core.tasks.rollout.PopulationRollout`
 a separate warm-up) and times its build by part too (the episodes' scenes, the stacking, the lockstep solver), and
 the population's host work around each batched step (its episodes' commands and early-stop checks), and per step the
 copies' own Newton iterations beside the lockstep's (a lockstep step runs as many as its slowest copy);
-``--B 16,64,256`` profiles each size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so
-that what grows with ``B`` shows by part.
+``--B 16,64,256`` profiles each size in turn in one process (kernels compiled once), each part also per Newton
+iteration (ms), so that what grows with ``B`` shows by part.
 Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
 Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
 times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
