@@ -46,7 +46,12 @@ The host's work over the stacked arrays: the iterates are read-only arrays of th
 them by identity, :func:`~sim_core.energies.base.positions_key`, not by their bytes), the stacked gradient takes
 the contact and friction terms' rows at their vertices only (:class:`~sim_core.energies.base.SparseGradient`),
 the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core.batch.effectors`) and the
-plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`).
+plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`). With the batched
+CG the Newton loop's iterate, update and stacked gradient stay in device memory (:mod:`sim_core.batch.iterates`,
+:mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
+updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
+right-hand side and leaves its update there, and each trial point's positions come down once (the contact search and
+the terms' caches); the direct solvers' path keeps NumPy vectors. The line search is :mod:`sim_core.batch.line_search`.
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). With a direct linear solver a copy also stops on the simplified
@@ -65,10 +70,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim_core.batch.copy_runs import CopyRuns
 from sim_core.batch.effectors import stacked_boundary
 from sim_core.batch.heap import keep_freed_memory
-from sim_core.batch.iterates import frozen, summed_gradient
+from sim_core.batch.iterates import HostIterates, Iterate, frozen
+from sim_core.batch.line_search import CopyLineSearch
 from sim_core.batch.lumped import LumpedQuadratic, lumped_loop_terms
 from sim_core.batch.plasticity import StackedElasticTerms
 from sim_core.batch.sheet_bands import sheet_band_dofs
@@ -120,7 +125,7 @@ class LockstepResult:
     attempts: int = 1
 
 
-class LockstepSolver(NewtonSolver):
+class LockstepSolver(CopyLineSearch, NewtonSolver):
     """Newton's method on all copies of a :class:`StackedScene` at once (module docstring).
 
     Args:
@@ -162,7 +167,8 @@ class LockstepSolver(NewtonSolver):
         self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
         self.held = np.zeros(scene.copies, dtype=bool)
         self._dofs = scene.dof_index  # (B, 3n)
-        self._runs = CopyRuns(scene.index)  # per-copy sums and maxima over the stacked arrays
+        self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
+        self._device_vectors = None  # the same on the device with the batched CG (made at the first step: _vectors)
         self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
         self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
@@ -258,10 +264,10 @@ class LockstepSolver(NewtonSolver):
         """
         cfg = self.config
         B = self.scene.copies
-        runs = self._runs
+        vectors = self._vectors
         info = StepInfo()
         step, x = self._set_up_step(state_in, control, dt, None, info)
-        x = frozen(x)
+        x = vectors.start(x)
         running = ~self.held
         infos = [StepInfo() if running[i] else None for i in range(B)]
         limited = [self.scene.copy_of_effector(name) for name in info.limited_effectors]
@@ -282,14 +288,14 @@ class LockstepSolver(NewtonSolver):
         simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
         for it in range(1, cfg.max_iterations + 1):
             open_ = running & ~done
-            g_max = runs.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
             bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
-            test = simplified.candidates(open_, contact_terms + step.cand_contact, x)
-            if test.any():  # the simplified Newton test of these copies: one solve with the kept factorisation
-                d_bar = self.linear_solver.solve(runs.zero_copies(g.copy(), ~test))
-                residual_bar = runs.largest_norm(d_bar) / dt
+            test = simplified.candidates(open_, contact_terms + step.cand_contact, x.host)
+            if test.any():  # the simplified Newton test of these copies (direct solvers: host vectors): one solve
+                d_bar = self.linear_solver.solve(vectors.zero_copies(g.copy(), ~test))  # with the kept factorisation
+                residual_bar = vectors.largest_norm(d_bar) / dt
                 for i in np.flatnonzero(test & (residual_bar < cfg.simplified_newton_check * cfg.tol_velocity)):
                     infos[i].simplified_stops = 1
                     accept(self.config, infos[i], it, residual_bar[i], "simplified")
@@ -300,13 +306,13 @@ class LockstepSolver(NewtonSolver):
                     break
             # converged copies take no update: their block of the solution is 0 (a held copy's DoFs are fixed, so its
             # gradient is 0 already; the solvers do not write the right-hand side)
-            rhs = runs.zero_copies(g.copy(), done) if done.any() else g
+            rhs = vectors.zero_copies(vectors.copy(g), done) if done.any() else g
             factorizations = info.factorizations
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
-                                       contact_terms + step.cand_contact, x)
-            runs.zero_copies(d, ~open_)
-            step_max = runs.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+                                       contact_terms + step.cand_contact, x.host)
+            vectors.zero_copies(d, ~open_)
+            step_max = vectors.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -326,14 +332,14 @@ class LockstepSolver(NewtonSolver):
                 break
             alpha = np.where(open_ & (step_max > 0),
                              np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = runs.dot(g, d)
+            slope = vectors.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
-                runs.copy_where(d, -g, uphill)
-                slope[uphill] = -runs.dot(g, g)[uphill]
+                vectors.take_steepest(d, g, uphill)
+                slope[uphill] = -vectors.dot(g, g)[uphill]
             released_before = info.released_sides
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
-                step, x, d.reshape(-1, 3), alpha, slope, open_, contact_terms, x_search, info)
+                step, x, d, alpha, slope, open_, contact_terms, x_search, info)
             for i in np.flatnonzero(open_):
                 infos[i].backtracks += int(backtracks[i])
             failed_ls = open_ & ~accepted
@@ -347,7 +353,7 @@ class LockstepSolver(NewtonSolver):
                 stuck = failed_ls & ~relaxed
                 if stuck.any():
                     self._trial_energy = None  # a released side changes the energies
-                    released = self.contact.release_stale_sides(x_new, step.memory)
+                    released = self.contact.release_stale_sides(x_new.host, step.memory)
                     info.released_sides += released
                     if not released:
                         raise fail(stuck, f"line search failed at Newton iteration {it} (no decrease along the "
@@ -355,10 +361,10 @@ class LockstepSolver(NewtonSolver):
                     for i in np.flatnonzero(stuck):
                         infos[i].released_sides += released
                     # the stacked energy changed where the stuck copies stand: their gradient again
-                    x_new = x_new.copy()
+                    x_new = Iterate(frozen(x_new.host.copy()), x_new.device)
             if np.any(open_ & (backtracks >= cfg.stale_side_backtracks)):
                 self._trial_energy = None
-                info.released_sides += self.contact.release_stale_sides(x_new, step.memory)
+                info.released_sides += self.contact.release_stale_sides(x_new.host, step.memory)
             # the full steps taken along the kept factorisation (none once a released side changed the energies)
             simplified.after_line_search(open_ & accepted & (alpha == 1.0) & (backtracks == 0)
                                          & (info.released_sides == released_before))
@@ -369,7 +375,7 @@ class LockstepSolver(NewtonSolver):
                 contact_terms, x_search, g = contact_new, x_search_new, g_new[1]
         else:
             raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
-        self._finish_step(step, x, H, projection, factorization, state_out, info)
+        self._finish_step(step, x.host, H, projection, factorization, state_out, info)
         for i in np.flatnonzero(running):
             st = infos[i]
             st.energy = float("nan")  # one incremental potential of all copies: StepInfo.energy of the stack
@@ -381,15 +387,29 @@ class LockstepSolver(NewtonSolver):
         self.last_stacked_info = info
         return infos
 
-    def _stacked_gradient(self, step, x: np.ndarray, info: StepInfo) -> tuple[list, np.ndarray | None, np.ndarray]:
+    @property
+    def _vectors(self):
+        """The Newton loop's vectors and per-copy operations (:mod:`sim_core.batch.iterates`): on the device with the
+        batched CG (:class:`~sim_core.batch.device_iterates.DeviceIterates`, made at the first use), else on the
+        host."""
+        if self.pcg is None:
+            return self._host_vectors
+        if self._device_vectors is None:
+            from sim_core.batch.device_iterates import DeviceIterates  # Taichi kernels: a Taichi backend only
+
+            self._device_vectors = DeviceIterates(self.scene.index)
+        return self._device_vectors
+
+    def _stacked_gradient(self, step, x: Iterate, info: StepInfo) -> tuple[list, np.ndarray | None, object]:
         """The contact potentials at ``x``, their search position and the free-DoF gradient of the stacked
-        incremental potential (J/m, shape ``(3 N,)``), non-finite entries kept (a copy's own failure)."""
+        incremental potential (J/m; :attr:`_vectors`'s: ``(3 N,)`` on the host, ``(N, 3)`` on the device), non-finite
+        entries kept (a copy's own failure)."""
         ta = time.perf_counter()
-        contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        contact_terms = self.contact.potentials(x.host, step.x_n, step.memory)
         x_search = self.contact.search_position
         terms = step.loop_terms + contact_terms
-        g = summed_gradient(terms, x, fresh_first=bool(terms) and isinstance(terms[0], LumpedQuadratic))
-        g[self._fixed_dofs(step)] = 0.0
+        g = self._vectors.gradient(terms, x, self._fixed_dofs(step),
+                                   fresh_first=bool(terms) and isinstance(terms[0], LumpedQuadratic))
         info.time_assembly += time.perf_counter() - ta
         return contact_terms, x_search, g
 
@@ -400,8 +420,8 @@ class LockstepSolver(NewtonSolver):
             kept = self._fixed = (step.free, np.flatnonzero(~step.free))
         return kept[1]
 
-    def _direction(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
-        """The stacked Newton update ``d = -H^{-1} g`` (m, shape ``(3 N,)``, zero on fixed DoFs), non-finite
+    def _direction(self, step, x: Iterate, g, contact_terms: list, info: StepInfo):
+        """The stacked Newton update ``d = -H^{-1} g`` (m, :attr:`_vectors`'s vector, zero on fixed DoFs), non-finite
         entries kept (a copy's NaN fails that copy alone). With a direct solver: one factorisation of the
         stacked matrix (the exact Hessian first, :meth:`NewtonSolver._projections`) when it is positive
         definite, else each copy's block on its own (:meth:`_direction_per_copy`), so that every copy
@@ -410,6 +430,7 @@ class LockstepSolver(NewtonSolver):
         the others (the blocks are independent, so each copy's update is the one its own solve gives)."""
         if self.pcg is not None:
             return self._direction_pcg(step, x, g, contact_terms, info)
+        x = x.host
         dynamic_terms = contact_terms + step.dynamic_terms
         projections = self._projections()
         ta = time.perf_counter()
@@ -470,17 +491,19 @@ class LockstepSolver(NewtonSolver):
         d[~step.free] = 0.0
         return d, matrices[projection], projection, self.linear_solver
 
-    def _direction_pcg(self, step, x: np.ndarray, g: np.ndarray, contact_terms: list, info: StepInfo):
-        """:meth:`_direction` with the batched CG: exact Hessian first, per copy (see there)."""
-        cfg = self.config
+    def _direction_pcg(self, step, x: Iterate, g, contact_terms: list, info: StepInfo):
+        """:meth:`_direction` with the batched CG, exact Hessian first, per copy (see there): the right-hand side
+        ``-g`` and each solve's update stay on the device (:meth:`~sim_core.ti_kernels.pcg.BatchedPCG.solve_on_device`),
+        the per-copy tests read back as ``(B,)`` arrays."""
         dynamic_terms = contact_terms + step.dynamic_terms
-        runs = self._runs
+        vectors = self._vectors
         pcg = self.pcg
         projections = self._projections()
-        rhs = g
+        fixed = self._fixed_dofs(step)
         d = None  # the update: the first solve's own array when every copy keeps that solve's update
-        todo = runs.any_dof(g)  # copies with an update to find
-        H, projection = None, cfg.projection
+        todo = vectors.any_dof(g)  # copies with an update to find
+        rhs = vectors.new()
+        H, projection = None, self.config.projection
         for k, projection in enumerate(projections):
             ta = time.perf_counter()
             if step.fused is not None:  # the static part's values in its fixed pattern, contacts as blocks
@@ -489,32 +512,32 @@ class LockstepSolver(NewtonSolver):
                 if k > 0:  # the projected matrix is solved for the copies in todo only (the others' rhs is 0)
                     marked = np.zeros(self.scene.model.vertex_count, dtype=bool)
                     marked[self.scene.index[todo]] = True
-                upper, blocks, diagonal = self._device_operator(step, x, projection, dynamic_terms, marked)
+                upper, blocks, diagonal = self._device_operator(step, x.host, projection, dynamic_terms, marked)
             else:
-                H = upper = self._assemble_hessian(step, x, projection, dynamic_terms)
+                H = upper = self._assemble_hessian(step, x.host, projection, dynamic_terms)
                 blocks = diagonal = None
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
             pcg.factorize(upper, blocks, diagonal)
-            dk = pcg.solve(rhs)
-            np.negative(dk, out=dk)  # the solve's own array (no second one of the stacked size)
+            vectors.blend(rhs, g, todo, ~todo, scale=-1.0)  # -g on the copies to solve, 0 elsewhere
+            dk = vectors.new()
+            pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
-            dk[self._fixed_dofs(step)] = 0.0
-            ok = todo & ~pcg.indefinite & ~pcg.unconverged & runs.all_finite(dk)
+            vectors.zero_dofs(dk, fixed)
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & vectors.all_finite(dk)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
-                ok &= runs.dot(g, dk) < 0.0
+                ok &= vectors.dot(g, dk) < 0.0
             if d is None and np.array_equal(ok, todo):
                 d = dk  # every copy with an update keeps this one; the others' right-hand side was 0, so is their dk
             else:
-                d = runs.copy_where(np.zeros_like(g) if d is None else d, dk, ok)
+                d = vectors.copy_where(vectors.new() if d is None else d, dk, ok)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
-                    runs.copy_where(d, dk, todo)
+                    vectors.copy_where(d, dk, todo)
                 break
-            rhs = runs.zero_copies(g.copy(), ~todo)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
@@ -569,97 +592,6 @@ class LockstepSolver(NewtonSolver):
                 return term.hessian_of_vertices(x, projection, vertices)
             return projected_subset_blocks(term, x, projection, vertices, self.subset_projection)
         return term.hessian(x, projection)
-
-    def _line_search_copies(self, step, x: np.ndarray, d: np.ndarray, alpha: np.ndarray, slope: np.ndarray,
-                            open_: np.ndarray, contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
-        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along the stacked update ``d`` ``(N, 3)`` (zero
-        on the copies not in ``open_``): accepted copies
-        keep their step while the others halve theirs (module docstring: the slope test, then the energy
-        test of the copies that passed it, :meth:`_armijo_groups`).
-
-        ``e0``, the energy at ``x``, is the one measured there when ``x`` was the last line search's trial point
-        with these ``contact_terms`` (no contact side released since).
-
-        Returns:
-            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the positions
-            ``(N, 3)`` with every accepted copy moved and the others where they were, the gradient at
-            ``x_new``, its contact terms and search position, accepted copies ``(B,)`` bool and halvings
-            per copy ``(B,)``.
-        """
-        cfg = self.config
-        B = self.scene.copies
-        runs = self._runs
-        kept = self._trial_energy  # the accepted trial point of the last line search is this x: its energy
-        if kept is not None and kept[0] is x and kept[1] is contact_terms:
-            e0 = kept[2]
-        else:
-            e0 = self._energy(step, x, contact_terms, x_search)
-        pending = open_ & (alpha > 0)
-        accepted = open_ & (alpha == 0)
-        a = np.where(pending, alpha, 0.0)
-        taken = np.zeros(B)  # the accepted copies' step sizes
-        backtracks = np.zeros(B, dtype=np.int64)
-        bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
-        last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
-        for _ in range(cfg.max_backtracks):
-            if not pending.any():
-                break
-            trial = np.where(pending, a, 0.0) + taken
-            x_try = frozen(runs.moved(x, d, trial))
-            terms, xs, g_try = self._stacked_gradient(step, x_try, info)
-            last = (trial, x_try, (terms, xs, g_try))
-            s_try = runs.dot(g_try, d)
-            cand = pending & np.isfinite(s_try) & (s_try <= bound)
-            if cand.any():
-                e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
-                if np.array_equal(cand, pending):
-                    e_try = self._energy(step, x_try, terms, xs)
-                    self._trial_energy = (x_try, terms, e_try)
-                    delta = e_try - e_base
-                else:
-                    delta = self._energy_with(step, x, d, taken + np.where(cand, a, 0.0)) - e_base
-                ok = self._armijo_groups(step, x, d, taken, e_base, cand, delta, a, slope, e0)
-                accepted |= ok
-                taken[ok] = a[ok]
-                pending &= ~ok
-            backtracks[pending] += 1
-            info.backtracks += int(pending.sum())
-            a[pending] *= 0.5
-        if last is not None and np.array_equal(last[0], taken):
-            x_new, (terms, xs, g_new) = last[1], last[2]
-        else:
-            x_new = frozen(runs.moved(x, d, taken))
-            terms, xs, g_new = self._stacked_gradient(step, x_new, info)
-        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
-
-    def _energy_with(self, step, x: np.ndarray, d: np.ndarray, alphas: np.ndarray) -> float:
-        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
-        stacked update ``d`` ``(N, 3)``."""
-        xm = frozen(self._runs.moved(x, d, alphas)) if np.any(alphas) else x
-        terms = self.contact.potentials(xm, step.x_n, step.memory)
-        return self._energy(step, xm, terms, self.contact.search_position)
-
-    def _armijo_groups(self, step, x: np.ndarray, d: np.ndarray, base: np.ndarray, e_base: float,
-                       group: np.ndarray, delta: float, a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
-        """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
-        ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
-        by ``base`` (energy ``e_base``, J); the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off of the
-        stacked sum, ``1e-14 |E|``), else it is split in halves (one more evaluation: the other half's
-        change is the difference, the energy being a sum over copies) down to single copies, each then
-        tested alone. A single copy is thus held to its own Armijo condition whenever its group's is not
-        met."""
-        c = self.config.armijo_c
-        if delta <= c * float(np.sum(a[group] * slope[group])) + 1e-14 * abs(e0):
-            return group
-        members = np.flatnonzero(group)
-        if len(members) == 1:
-            return np.zeros_like(group)
-        half = np.zeros_like(group)
-        half[members[: len(members) // 2]] = True
-        rest = group & ~half
-        d_half = self._energy_with(step, x, d, base + np.where(half, a, 0.0)) - e_base
-        return (self._armijo_groups(step, x, d, base, e_base, half, d_half, a, slope, e0)
-                | self._armijo_groups(step, x, d, base, e_base, rest, delta - d_half, a, slope, e0))
 
 
 def projected_subset_blocks(term, x: np.ndarray, projection: str, vertices: np.ndarray, method: str) -> HessianBlocks:

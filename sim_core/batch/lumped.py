@@ -77,11 +77,19 @@ class LumpedQuadratic:
         self.offset = offset
         self._weight3 = weight[:, None]
         self._root3 = np.sqrt(weight)[:, None]
+        self._device: tuple | None = None  # (center, weight) on the device: add_gradient_on_device
+        self._device_energy: tuple | None = None  # (x, partial sums) of the last add_gradient_on_device
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at ``x`` ``(n, 3)``: ``sum_v w_v / 2 |x_v - y_v|^2 + E_0``, as the squared norm of
         ``sqrt(w_v) (x_v - y_v)`` (one temporary; NumPy's own dot product, not BLAS's threads, which contend on a
-        busy host)."""
+        busy host); where ``x`` is the array object of the last :meth:`add_gradient_on_device`, the partial sums that
+        kernel left on the device, read back and added in order (the same value to round-off)."""
+        kept = self._device_energy
+        if kept is not None and kept[0] is x:
+            from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
+
+            return float(np.sum(download(kept[1]))) + self.offset
         d = np.subtract(x, self.center)
         d *= self._root3
         flat = d.reshape(-1)
@@ -92,6 +100,37 @@ class LumpedQuadratic:
         g = np.subtract(x, self.center)
         g *= self._weight3
         return g
+
+
+    def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> None:
+        """Add :meth:`gradient` at ``x`` into ``gradient_device`` on the device (capability
+        :class:`~sim_core.energies.base.DeviceGradient`;
+        :func:`~sim_core.ti_kernels.copy_vectors.add_diagonal_quadratic`, with ``y`` and ``w`` uploaded at the first
+        call), the energy's partial sums left there for :meth:`energy` at ``x``.
+
+        Args:
+            x: the positions ``(n, 3)`` (m) on the host (the key of the energy kept).
+            x_device: the same positions, a Taichi float64 ndarray ``(n, 3)``.
+            gradient_device: a Taichi float64 ndarray ``(n, 3)``, J/m, added into.
+
+        Returns:
+            None (the energy stays on the device until :meth:`energy` asks for it).
+        """
+        from sim_core.ti_backend import ti  # Taichi kernels: a Taichi backend only
+        from sim_core.ti_kernels import copy_vectors, device_copy, transfer
+
+        n = self.weight.shape[0]
+        if self._device is None:
+            weight = device_copy.new_ndarray(ti.f64, (max(n, 1),))
+            transfer.upload(weight, self.weight if n else np.zeros(1))
+            center = transfer.upload(copy_vectors.new_vectors(n), self.center if n else np.zeros((1, 3)))
+            self._device = (center, weight)
+        if not n:
+            return None
+        partial = device_copy.new_ndarray(ti.f64, (copy_vectors.energy_chunks(n),))
+        copy_vectors.add_diagonal_quadratic(x_device, self._device[0], self._device[1], gradient_device, partial)
+        self._device_energy = (x, partial)
+        return None
 
 
 def lumped_loop_terms(loop_terms: list) -> list:

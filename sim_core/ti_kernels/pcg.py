@@ -48,6 +48,8 @@ from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy, transfer
 from sim_core.ti_kernels.band_cholesky import BandBlocks, band_solve
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
+from sim_core.ti_kernels.copy_vectors import REDUCTION_LANES, copy_sums, lane_count, lane_vertex
+from sim_core.ti_kernels.launch import fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -255,31 +257,6 @@ def _launches_before_test(previous: int) -> int:
     skipped threads (about 8 iterations at most, in place of up to ``8 LAUNCHES_PER_TEST - 1``)."""
     return -(-previous // ITERATIONS_PER_LAUNCH) if previous > 0 else LAUNCHES_PER_TEST
 
-REDUCTION_LANES = 64
-"""Threads per copy of the per-copy sums of a CG iteration (:func:`_cg_iterations`): each sums every
-``REDUCTION_LANES``-th vertex of its copy and adds its partial sum once (``B * REDUCTION_LANES`` atomic
-adds a sum, spread over the copies, in place of one per DoF into the same ``B`` addresses)."""
-
-
-@ti.func
-def _lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
-    """How many of copy ``c``'s vertices lane ``k`` visits (its ``k``-th, then every ``REDUCTION_LANES``-th)."""
-    return (start[c + 1] - start[c] - k + REDUCTION_LANES - 1) // REDUCTION_LANES
-
-
-@ti.func
-def _copy_sums(u: ti.template(), v: ti.template(), out: ti.template(), active: ti.template(), order: ti.template(),
-               start: ti.template(), copies: ti.i32):
-    """``out[c] += u_c . v_c`` for every active copy ``c`` (:data:`REDUCTION_LANES` threads a copy); one device
-    pass at a kernel's top level."""
-    for c, k in ti.ndrange(copies, REDUCTION_LANES):
-        if active[c] != 0:
-            acc = 0.0
-            for q in range(_lane_count(start, c, k)):
-                t = order[start[c] + k + q * REDUCTION_LANES]
-                acc += u[3 * t] * v[3 * t] + u[3 * t + 1] * v[3 * t + 1] + u[3 * t + 2] * v[3 * t + 2]
-            ti.atomic_add(out[c], acc)
-
 
 @ti.kernel
 def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, band: _F64,
@@ -288,7 +265,7 @@ def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32
     band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
     for c in range(copies):
         rz[c] = 0.0
-    _copy_sums(r, z, rz, active, order, start, copies)
+    copy_sums(r, z, rz, active, order, start, copies)
     for i in range(n):
         p[i] = z[i]
 
@@ -322,14 +299,14 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                     for b in ti.static(range(3)):
                         acc += bval[9 * t + 3 * a + b] * free[3 * cv + b] * p[3 * cv + b]
                     ti.atomic_add(ap[3 * rv + a], free[3 * rv + a] * acc)
-        _copy_sums(p, ap, pap, active, order, start, copies)
+        copy_sums(p, ap, pap, active, order, start, copies)
         for c, k in ti.ndrange(copies, REDUCTION_LANES):
             if active[c] != 0 and pap[c] > 0:
                 alpha = rz[c] / pap[c]
                 rz_acc = 0.0
                 rr_acc = 0.0
-                for q in range(_lane_count(start, c, k)):
-                    v = order[start[c] + k + q * REDUCTION_LANES]
+                for q in range(lane_count(start, c, k)):
+                    v = lane_vertex(order, start, c, k, q)
                     for a in ti.static(range(3)):
                         i = 3 * v + a
                         x[i] += alpha * p[i]
@@ -346,7 +323,7 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                 ti.atomic_add(rr[c], rr_acc)
         if ti.static(banded):  # z = L^-T L^-1 r on the band blocks' DoFs, then per copy r.z
             band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
-            _copy_sums(r, z, rz_new, active, order, start, copies)
+            copy_sums(r, z, rz_new, active, order, start, copies)
         for c in range(copies):
             b = 0.0
             if active[c] != 0:
@@ -684,7 +661,7 @@ class BatchedPCG:
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` (``b`` shape ``(n,)``) per copy to ``|r_c| <= rtol |b_c|``; returns ``x``."""
-        n, B = self._n, self._copies
+        n = self._n
         if n < 0:
             raise RuntimeError("BatchedPCG: factorize before solve")
         b = np.ascontiguousarray(b, dtype=np.float64)
@@ -692,13 +669,41 @@ class BatchedPCG:
             raise ValueError(f"BatchedPCG: right-hand side of shape {b.shape}, expected ({n},)")
         if n == 0:
             return np.zeros(0)
+        transfer.upload(self._array("b", n), b)
+        self._run()
+        return transfer.download(self._arrays["x"])
+
+    def solve_on_device(self, b, out) -> None:
+        """:meth:`solve` from and into device memory: ``b`` and the solution ``out`` are float64 Taichi ndarrays
+        ``(n / 3, 3)`` (a vertex's three DoFs a row, as the lockstep's stacked vectors,
+        :mod:`sim_core.ti_kernels.copy_vectors`); nothing crosses to the host but the per-copy counts.
+
+        Raises:
+            RuntimeError: no :meth:`factorize` before.
+            ValueError: ``b`` or ``out`` not of shape ``(n / 3, 3)``.
+        """
+        n = self._n
+        if n < 0:
+            raise RuntimeError("BatchedPCG: factorize before solve")
+        for name, a in (("right-hand side", b), ("solution", out)):
+            if tuple(a.shape) != (n // 3, 3):
+                raise ValueError(f"BatchedPCG: {name} of shape {tuple(a.shape)}, expected ({n // 3}, 3)")
+        if n == 0:
+            return
+        _flatten(b, self._array("b", n), n // 3)
+        self._run()
+        _unflatten(self._arrays["x"], out, n // 3)
+
+    def _run(self) -> None:
+        """The CG iterations of every copy from the right-hand side in the ``b`` array into ``x``; sets
+        :attr:`iterations`, :attr:`indefinite` and :attr:`unconverged`."""
+        n, B = self._n, self._copies
         a = self._arrays
         vec = {k: self._array(k, n) for k in ("b", "x", "r", "z", "p", "ap")}
         per = {k: self._array(k, B) for k in ("rz", "bb", "pap", "rz_new", "rr", "beta")}
         active = self._array("active", B, ti.i32)
         bad = self._array("bad", B, ti.i32)
         done = self._array("done", B, ti.i32)
-        transfer.upload(vec["b"], b)
         _reset_copies(per["rz"], per["bb"], per["pap"], per["rz_new"], per["rr"], active, bad, done, B)
         _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], a["seg"], per["rz"], per["bb"],
                n // 3)
@@ -723,7 +728,22 @@ class BatchedPCG:
         self.iterations = int(_copy_out(done).max())
         self.indefinite = _copy_out(bad).astype(bool)
         self.unconverged = _copy_out(active).astype(bool)
-        return transfer.download(vec["x"])
+
+
+@fast_kernel
+def _flatten(rows: ti.types.ndarray(dtype=ti.f64, ndim=2), flat: _F64, nvert: ti.i32):
+    """``flat[3 v + j] = rows[v, j]``."""
+    for v in range(nvert):
+        for j in ti.static(range(3)):
+            flat[3 * v + j] = rows[v, j]
+
+
+@fast_kernel
+def _unflatten(flat: _F64, rows: ti.types.ndarray(dtype=ti.f64, ndim=2), nvert: ti.i32):
+    """``rows[v, j] = flat[3 v + j]``."""
+    for v in range(nvert):
+        for j in ti.static(range(3)):
+            rows[v, j] = flat[3 * v + j]
 
 
 def _copy_in(array, host: np.ndarray) -> None:

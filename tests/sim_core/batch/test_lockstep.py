@@ -18,6 +18,7 @@ from sim_core.solver_config import SolverConfig
 from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
 
 LOCKSTEP = SolverConfig(lockstep=True)
+LOCKSTEP_CG = SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="pcg")  # the GPU's: device vectors
 TOL = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
 
 
@@ -41,8 +42,9 @@ def _run(batch, steps=STEPS):
     return per_step, results
 
 
-def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model):
-    batch = _lockstep_batch(model)
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, config):
+    batch = _lockstep_batch(model, config)
     assert batch.lockstep is not None
     per_step, results = _run(batch)
     solver = batch.lockstep.solver
@@ -70,8 +72,9 @@ def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model):
     assert batch.lockstep.scene.model.bodies["pad#0"].material["youngs_modulus"] == 3e5
 
 
-def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model):
-    batch = _lockstep_batch(model)
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model, config):
+    batch = _lockstep_batch(model, config)
     sheet = model.bodies["sheet"].vertices
     # copy 1 starts from a blown-up state (one sheet vertex with a non-finite velocity): its incremental
     # potential has a non-finite gradient, and its separate run raises

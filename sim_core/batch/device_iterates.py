@@ -1,0 +1,61 @@
+"""The lockstep Newton loop's vectors on a Taichi device (:mod:`sim_core.batch.iterates` for the interface): iterate,
+update and stacked gradient as ``(N, 3)`` float64 ndarrays, the per-copy operations of
+:class:`~sim_core.ti_kernels.copy_vectors.CopyVectors`, and the stacked gradient summed on the device."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.batch.iterates import Iterate, add_dense, frozen
+from sim_core.energies.base import DeviceGradient, SparseGradient, declares
+from sim_core.ti_kernels.copy_vectors import CopyVectors
+
+
+class DeviceIterates(CopyVectors):
+    """:class:`~sim_core.ti_kernels.copy_vectors.CopyVectors` with the Newton loop's iterates and gradient sums
+    (Taichi initialised).
+
+    Args:
+        index: stacked vertex of copy ``i``'s vertex ``v``, shape ``(B, n)`` int.
+
+    Raises:
+        ValueError: ``index`` is not a permutation of the stacked vertices.
+    """
+
+    def start(self, x: np.ndarray) -> Iterate:
+        """The first iterate: ``x`` ``(N, 3)`` (a new array of the caller's, frozen) and its upload."""
+        return Iterate(frozen(x), self.upload(x))
+
+    def trial(self, x: Iterate, d, alphas: np.ndarray) -> Iterate:
+        """``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``), made on the device and downloaded once
+        into a new frozen host array."""
+        device = self.moved(x.device, d, alphas)
+        return Iterate(frozen(self.download(device)), device)
+
+    def take_steepest(self, d, g, mask: np.ndarray):
+        """``d`` with the copies in ``mask`` (bool ``(B,)``) set to ``-g``, in place; returns ``d``."""
+        return self.copy_where(d, g, mask, scale=-1.0)
+
+    def gradient(self, terms: list, x: Iterate, fixed_dofs: np.ndarray, fresh_first: bool = False):
+        """The sum of the ``terms``' gradients at ``x`` (J/m) as a new ``(N, 3)`` ndarray, zero at the flat DoFs
+        ``fixed_dofs``: the host terms first, their dense gradients summed on the host and uploaded once as the
+        array's start (no zero fill, no second array), a :class:`~sim_core.energies.base.SparseGradient` term's rows
+        uploaded and added at their vertices, then each term declaring :class:`~sim_core.energies.base.DeviceGradient`
+        adding its own on the device. The sums are :func:`~sim_core.batch.iterates.summed_gradient`'s in another order
+        (equal to round-off). ``fresh_first``: that function's hint, not needed here."""
+        dense, owned, sparse, on_device = None, False, [], []
+        for p in terms:
+            if declares(p, DeviceGradient):
+                on_device.append(p)
+                continue
+            vertices, rows = p.gradient_rows(x.host) if declares(p, SparseGradient) else (None, p.gradient(x.host))
+            if vertices is None:
+                dense, owned = add_dense(dense, owned, rows.reshape(-1))
+            else:
+                sparse.append((vertices, rows))
+        g = self.new() if dense is None else self.upload(dense)
+        for vertices, rows in sparse:
+            self.add_rows(g, vertices, rows)
+        for p in on_device:
+            p.add_gradient_on_device(x.host, x.device, g)
+        return self.zero_dofs(g, fixed_dofs)

@@ -1,0 +1,109 @@
+"""The lockstep solver's per-copy backtracking line search (:class:`CopyLineSearch`, a part of
+:class:`~sim_core.batch.lockstep.LockstepSolver`; the method in :mod:`sim_core.batch.lockstep`'s docstring).
+
+Its vectors are the solver's (:mod:`sim_core.batch.iterates`): the trial points ``x + a_c d`` are made where the
+update lives (on the device with the batched CG, downloaded once for the contact search and the energies), and the
+slope test's per-copy dot products are read back as ``(B,)`` arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.batch.iterates import Iterate
+from sim_core.step_info import StepInfo
+
+
+class CopyLineSearch:
+    """The per-copy line search of :class:`~sim_core.batch.lockstep.LockstepSolver` (which provides ``config``,
+    ``scene``, ``contact``, ``_vectors``, ``_trial_energy``, ``_energy`` and ``_stacked_gradient``)."""
+
+    def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
+                            contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
+        """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along the stacked update ``d`` (the solver's
+        vector, zero on the copies not in ``open_``): accepted copies keep their step while the others halve theirs
+        (:mod:`sim_core.batch.lockstep`'s docstring: the slope test, then the energy test of the copies that passed
+        it, :meth:`_armijo_groups`).
+
+        ``e0``, the energy at ``x``, is the one measured there when ``x`` was the last line search's trial point
+        with these ``contact_terms`` (no contact side released since).
+
+        Returns:
+            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate` with
+            every accepted copy moved and the others where they were, the gradient at ``x_new``, its contact terms
+            and search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
+        """
+        cfg = self.config
+        B = self.scene.copies
+        vectors = self._vectors
+        kept = self._trial_energy  # the accepted trial point of the last line search is this x: its energy
+        if kept is not None and kept[0] is x.host and kept[1] is contact_terms:
+            e0 = kept[2]
+        else:
+            e0 = self._energy(step, x.host, contact_terms, x_search)
+        pending = open_ & (alpha > 0)
+        accepted = open_ & (alpha == 0)
+        a = np.where(pending, alpha, 0.0)
+        taken = np.zeros(B)  # the accepted copies' step sizes
+        backtracks = np.zeros(B, dtype=np.int64)
+        bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
+        last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
+        for _ in range(cfg.max_backtracks):
+            if not pending.any():
+                break
+            trial = np.where(pending, a, 0.0) + taken
+            x_try = vectors.trial(x, d, trial)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info)
+            last = (trial, x_try, (terms, xs, g_try))
+            s_try = vectors.dot(g_try, d)
+            cand = pending & np.isfinite(s_try) & (s_try <= bound)
+            if cand.any():
+                e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
+                if np.array_equal(cand, pending):
+                    e_try = self._energy(step, x_try.host, terms, xs)
+                    self._trial_energy = (x_try.host, terms, e_try)
+                    delta = e_try - e_base
+                else:
+                    delta = self._energy_with(step, x, d, taken + np.where(cand, a, 0.0)) - e_base
+                ok = self._armijo_groups(step, x, d, taken, e_base, cand, delta, a, slope, e0)
+                accepted |= ok
+                taken[ok] = a[ok]
+                pending &= ~ok
+            backtracks[pending] += 1
+            info.backtracks += int(pending.sum())
+            a[pending] *= 0.5
+        if last is not None and np.array_equal(last[0], taken):
+            x_new, (terms, xs, g_new) = last[1], last[2]
+        else:
+            x_new = vectors.trial(x, d, taken)
+            terms, xs, g_new = self._stacked_gradient(step, x_new, info)
+        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+
+    def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:
+        """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
+        stacked update ``d``."""
+        xm = self._vectors.trial(x, d, alphas).host if np.any(alphas) else x.host
+        terms = self.contact.potentials(xm, step.x_n, step.memory)
+        return self._energy(step, xm, terms, self.contact.search_position)
+
+    def _armijo_groups(self, step, x: Iterate, d, base: np.ndarray, e_base: float, group: np.ndarray, delta: float,
+                       a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:
+        """The copies of ``group`` ``(B,)`` whose steps ``a`` meet the Armijo condition, tested by groups:
+        ``delta`` (J) is the energy change of moving the whole group from the copies' positions ``x`` moved
+        by ``base`` (energy ``e_base``, J); the group passes when ``delta <= c sum_i a_i g_i.d_i`` (plus the round-off
+        of the stacked sum, ``1e-14 |E|``), else it is split in halves (one more evaluation: the other half's
+        change is the difference, the energy being a sum over copies) down to single copies, each then
+        tested alone. A single copy is thus held to its own Armijo condition whenever its group's is not
+        met."""
+        c = self.config.armijo_c
+        if delta <= c * float(np.sum(a[group] * slope[group])) + 1e-14 * abs(e0):
+            return group
+        members = np.flatnonzero(group)
+        if len(members) == 1:
+            return np.zeros_like(group)
+        half = np.zeros_like(group)
+        half[members[: len(members) // 2]] = True
+        rest = group & ~half
+        d_half = self._energy_with(step, x, d, base + np.where(half, a, 0.0)) - e_base
+        return (self._armijo_groups(step, x, d, base, e_base, half, d_half, a, slope, e0)
+                | self._armijo_groups(step, x, d, base, e_base, rest, delta - d_half, a, slope, e0))

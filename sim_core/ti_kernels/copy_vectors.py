@@ -1,0 +1,372 @@
+"""Per-copy operations on the stacked DoF vectors of a lockstep batch held in Taichi ndarrays.
+
+A lockstep batch (:mod:`sim_core.batch.stacked`) stacks ``B`` copies of a scene into ``N`` vertices; its Newton
+iterate, update and gradient are ``(N, 3)`` float64 arrays, and its Newton iteration asks per copy for dot products,
+largest entries, finiteness, trial points ``x + a_c d`` with a step ``a_c`` per copy, and updates of whole copies
+(:class:`~sim_core.batch.copy_runs.CopyRuns` does the same on NumPy arrays). :class:`CopyVectors` does them on
+ndarrays (device memory on CUDA), so that the host reads back ``(B,)`` arrays of per-copy scalars only.
+
+Per-copy reductions run :data:`REDUCTION_LANES` threads a copy: lane ``k`` of copy ``c`` visits the copy's ``k``-th
+vertex, then every ``REDUCTION_LANES``-th (the vertices listed copy by copy, ``order[start[c]:start[c + 1]]``), and
+adds its partial result once (:func:`copy_sums`, shared with the batched CG of :mod:`sim_core.ti_kernels.pcg`). Sums
+are thus taken in another order than NumPy's: equal to :class:`CopyRuns`'s to round-off (and, on CUDA, with the lanes'
+atomic adds in an order that varies from launch to launch); maxima and the other operations are exact.
+"""
+
+# No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
+
+import numpy as np
+
+from sim_core.ti_backend import ti
+from sim_core.ti_kernels import device_copy, transfer
+from sim_core.ti_kernels.launch import fast_kernel
+
+_F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+_I64 = ti.types.ndarray(dtype=ti.i64, ndim=1)
+_VEC = ti.types.ndarray(dtype=ti.f64, ndim=2)  # stacked (N, 3) positions, updates, gradients
+
+REDUCTION_LANES = 64
+"""Threads per copy of a per-copy sum or maximum: each visits every ``REDUCTION_LANES``-th vertex of its copy and adds
+its partial result once (``B * REDUCTION_LANES`` atomic adds a reduction, spread over the copies, in place of one per
+DoF into the same ``B`` addresses)."""
+
+_KEEP, _TAKE, _ZERO = 0, 1, 2  # per-copy actions of _blend
+
+ENERGY_CHUNK = 64
+"""Vertices a thread of :func:`add_diagonal_quadratic` sums the energy of (one partial sum each, added on the host in
+a fixed order: the same energy at every launch)."""
+
+
+@ti.func
+def lane_count(start: ti.template(), c: ti.i32, k: ti.i32) -> ti.i32:
+    """How many of copy ``c``'s vertices lane ``k`` visits (its ``k``-th, then every ``REDUCTION_LANES``-th)."""
+    return (start[c + 1] - start[c] - k + REDUCTION_LANES - 1) // REDUCTION_LANES
+
+
+@ti.func
+def lane_vertex(order: ti.template(), start: ti.template(), c: ti.i32, k: ti.i32, q: ti.i32) -> ti.i32:
+    """The ``q``-th vertex lane ``k`` of copy ``c`` visits."""
+    return order[start[c] + k + q * REDUCTION_LANES]
+
+
+@ti.func
+def copy_sums(u: ti.template(), v: ti.template(), out: ti.template(), active: ti.template(), order: ti.template(),
+              start: ti.template(), copies: ti.i32):
+    """``out[c] += u_c . v_c`` for every active copy ``c`` of flat ``(3 N,)`` vectors (:data:`REDUCTION_LANES` threads
+    a copy); one device pass at a kernel's top level."""
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        if active[c] != 0:
+            acc = 0.0
+            for q in range(lane_count(start, c, k)):
+                t = lane_vertex(order, start, c, k, q)
+                acc += u[3 * t] * v[3 * t] + u[3 * t + 1] * v[3 * t + 1] + u[3 * t + 2] * v[3 * t + 2]
+            ti.atomic_add(out[c], acc)
+
+
+@ti.func
+def _not_finite(x: ti.f64) -> ti.i32:
+    """1 where the float64 ``x`` is a NaN or an infinity (all exponent bits set), else 0: a test of the bits, which no
+    simplification of ``x != x`` can remove."""
+    return ti.i32(((ti.bit_cast(x, ti.u64) >> ti.u64(52)) & ti.u64(0x7FF)) == ti.u64(0x7FF))
+
+
+@ti.func
+def _is_nan(x: ti.f64) -> ti.i32:
+    """1 where the float64 ``x`` is a NaN (all exponent bits set, a mantissa bit set), else 0."""
+    return _not_finite(x) & ti.i32((ti.bit_cast(x, ti.u64) & ti.u64(0xFFFFFFFFFFFFF)) != ti.u64(0))
+
+
+@fast_kernel
+def _dots(u: _VEC, v: _VEC, out: _F64, order: _I32, start: _I32, copies: ti.i32):
+    """``out[c] = sum_k u_k v_k`` over copy ``c``'s DoFs."""
+    for c in range(copies):
+        out[c] = 0.0
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        acc = 0.0
+        for q in range(lane_count(start, c, k)):
+            t = lane_vertex(order, start, c, k, q)
+            acc += u[t, 0] * v[t, 0] + u[t, 1] * v[t, 1] + u[t, 2] * v[t, 2]
+        ti.atomic_add(out[c], acc)
+
+
+@fast_kernel
+def _extremes(a: _VEC, out: _I64, order: _I32, start: _I32, copies: ti.i32, vertex_norm: ti.template()):
+    """Per copy ``c``: ``out[c]`` the bits of the largest finite ``|a_k|`` (``vertex_norm``: of the largest finite
+    squared vertex norm ``|a_v|^2``), ``out[copies + c]`` 1 where an entry is NaN (``vertex_norm``: a squared norm not
+    finite), else 0. The maxima are taken on the bits as int64 (the order of non-negative float64 values), with the
+    integer atomics every device has."""
+    for c in range(2 * copies):
+        out[c] = 0
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        big = 0.0
+        bad = 0
+        for q in range(lane_count(start, c, k)):
+            t = lane_vertex(order, start, c, k, q)
+            if ti.static(vertex_norm):
+                s = a[t, 0] * a[t, 0] + a[t, 1] * a[t, 1] + a[t, 2] * a[t, 2]
+                if _not_finite(s):
+                    bad = 1
+                else:
+                    big = ti.max(big, s)
+            else:
+                for j in ti.static(range(3)):
+                    e = ti.abs(a[t, j])
+                    if _is_nan(e):
+                        bad = 1
+                    else:
+                        big = ti.max(big, e)
+        ti.atomic_max(out[c], ti.bit_cast(big, ti.i64))
+        ti.atomic_max(out[copies + c], ti.i64(bad))
+
+
+@fast_kernel
+def _moved(x: _VEC, d: _VEC, alpha: _F64, vertex_copy: _I32, out: _VEC, n: ti.i32):
+    """``out_v = x_v + alpha_c d_v``, ``c`` vertex ``v``'s copy."""
+    for v in range(n):
+        a = alpha[vertex_copy[v]]
+        for j in ti.static(range(3)):
+            out[v, j] = x[v, j] + a * d[v, j]
+
+
+@fast_kernel
+def _blend(dst: _VEC, src: _VEC, scale: ti.f64, action: _I32, vertex_copy: _I32, n: ti.i32):
+    """Per vertex ``v`` of copy ``c``: ``dst_v = scale src_v`` where ``action[c]`` is 1, ``dst_v = 0`` where it is 2,
+    unchanged where it is 0."""
+    for v in range(n):
+        what = action[vertex_copy[v]]
+        if what == _TAKE:
+            for j in ti.static(range(3)):
+                dst[v, j] = scale * src[v, j]
+        elif what == _ZERO:
+            for j in ti.static(range(3)):
+                dst[v, j] = 0.0
+
+
+@fast_kernel
+def _zero_dofs(a: _VEC, dofs: _I32, count: ti.i32):
+    """``a`` at the flat DoFs ``dofs[:count]`` (``3 v + j``) set to 0."""
+    for k in range(count):
+        a[dofs[k] // 3, dofs[k] % 3] = 0.0
+
+
+@fast_kernel
+def _add_rows(g: _VEC, vertices: _I32, rows: _VEC, count: ti.i32):
+    """``g[vertices[k]] += rows[k]`` for ``k < count`` (distinct vertices)."""
+    for k in range(count):
+        for j in ti.static(range(3)):
+            g[vertices[k], j] += rows[k, j]
+
+
+@fast_kernel
+def _add(g: _VEC, h: _VEC, n: ti.i32):
+    """``g += h`` over ``n`` vertices."""
+    for v in range(n):
+        for j in ti.static(range(3)):
+            g[v, j] += h[v, j]
+
+
+@fast_kernel
+def _diagonal_quadratic(x: _VEC, center: _VEC, weight: _F64, g: _VEC, partial: _F64, n: ti.i32):
+    """``g_v += w_v (x_v - y_v)``; ``partial[k]`` = the sum of ``w_v |x_v - y_v|^2 / 2`` over vertices
+    ``k ENERGY_CHUNK ..`` (one thread a chunk)."""
+    for k in range((n + ENERGY_CHUNK - 1) // ENERGY_CHUNK):
+        acc = 0.0
+        for v in range(k * ENERGY_CHUNK, ti.min(n, (k + 1) * ENERGY_CHUNK)):
+            w = weight[v]
+            for j in ti.static(range(3)):
+                r = x[v, j] - center[v, j]
+                g[v, j] += w * r
+                acc += w * r * r
+        partial[k] = 0.5 * acc
+
+
+def new_vectors(vertex_count: int):
+    """A zero-filled float64 ndarray ``(vertex_count, 3)`` (at least one row)."""
+    return device_copy.new_ndarray(ti.f64, (max(int(vertex_count), 1), 3))
+
+
+def add_diagonal_quadratic(x, center, weight, gradient, partial) -> None:
+    """Add the gradient ``w_v (x_v - y_v)`` (J/m) of the diagonal quadratic ``E = sum_v w_v / 2 |x_v - y_v|^2`` into
+    ``gradient``, and its energy by chunks of :data:`ENERGY_CHUNK` vertices into ``partial`` (J; ``E`` is
+    ``partial``'s sum, in order), all Taichi ndarrays: ``x``, ``center`` (m) and ``gradient`` ``(n, 3)``, ``weight``
+    ``(n,)`` (kg/s^2), ``partial`` at least ``ceil(n / ENERGY_CHUNK)`` entries. The lumped inertia / gravity / damping
+    term of the lockstep loop (:class:`~sim_core.batch.lumped.LumpedQuadratic`)."""
+    _diagonal_quadratic(x, center, weight, gradient, partial, int(weight.shape[0]))
+
+
+def energy_chunks(vertex_count: int) -> int:
+    """Entries of the partial sums of :func:`add_diagonal_quadratic` over ``vertex_count`` vertices (at least 1)."""
+    return max(1, -(-int(vertex_count) // ENERGY_CHUNK))
+
+
+class CopyVectors:
+    """Per-copy operations on stacked ``(N, 3)`` float64 Taichi ndarrays (module docstring); Taichi must be initialised.
+
+    Args:
+        index: stacked vertex of copy ``i``'s vertex ``v``, shape ``(B, n)`` int (every stacked vertex is one copy's).
+
+    Raises:
+        ValueError: ``index`` is not a permutation of ``0 .. B n - 1``.
+
+    Attributes:
+        copies: ``B``.
+        vertex_count: ``N``.
+    """
+
+    def __init__(self, index: np.ndarray) -> None:
+        index = np.asarray(index)
+        B, n = index.shape
+        N = B * n
+        vertex_copy = np.full(N, -1, dtype=np.int32)
+        flat = index.reshape(-1)
+        if N and (flat.min() < 0 or flat.max() >= N):
+            raise ValueError(f"CopyVectors: stacked vertex indices outside 0..{N - 1}")
+        vertex_copy[flat] = np.repeat(np.arange(B, dtype=np.int32), n)
+        if np.any(vertex_copy < 0):
+            raise ValueError("CopyVectors: the copies' vertex indices are not a permutation of the stacked vertices")
+        self.copies = B
+        self.vertex_count = N
+        order = np.argsort(vertex_copy, kind="stable").astype(np.int32)
+        start = np.zeros(B + 1, dtype=np.int32)
+        np.cumsum(np.bincount(vertex_copy, minlength=B), out=start[1:])
+        self._vertex_copy = self._indices(vertex_copy)
+        self._order = self._indices(order)
+        self._start = self._indices(start)
+        self._per_copy = device_copy.new_ndarray(ti.f64, (max(B, 1),))
+        self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
+        self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
+        self._out_host = np.zeros(self._out.shape, dtype=np.int64)
+        self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
+        self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
+        self._scratch = None  # an (N, 3) buffer of add
+
+    @staticmethod
+    def _indices(values: np.ndarray):
+        out = device_copy.new_ndarray(ti.i32, (max(values.size, 1),))
+        host = np.zeros(out.shape, dtype=np.int32)
+        host[: values.size] = values
+        if not device_copy.to_device(out, host):
+            out.from_numpy(host)
+        return out
+
+    def new(self):
+        """A zero-filled ``(N, 3)`` ndarray."""
+        return new_vectors(self.vertex_count)
+
+    def upload(self, host: np.ndarray):
+        """A new ``(N, 3)`` ndarray holding ``host`` (``(N, 3)`` or ``3 N`` entries)."""
+        return transfer.upload(self.new(), np.reshape(host, (-1, 3)))
+
+    def download(self, a, out: np.ndarray | None = None) -> np.ndarray:
+        """``a``'s values in ``out`` (C-contiguous float64 ``(N, 3)``; None: a new array that owns its memory)."""
+        return transfer.download(a, out)
+
+    def copy(self, a):
+        """A new ndarray equal to ``a``."""
+        out = self.new()
+        _add(out, a, self.vertex_count)
+        return out
+
+    def _copy_values(self, values: np.ndarray, dtype=np.float64):
+        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid until the next call)."""
+        target = self._per_copy if dtype == np.float64 else self._actions
+        host = np.ascontiguousarray(values, dtype=dtype)
+        if not device_copy.to_device(target, host):
+            target.from_numpy(host)
+        return target
+
+    def moved(self, x, d, alphas: np.ndarray):
+        """A new ndarray ``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``)."""
+        out = self.new()
+        _moved(x, d, self._copy_values(alphas), self._vertex_copy, out, self.vertex_count)
+        return out
+
+    def dot(self, a, b) -> np.ndarray:
+        """Per copy ``sum_k a_k b_k`` over its DoFs, shape ``(B,)``."""
+        _dots(a, b, self._per_copy, self._order, self._start, self.copies)
+        return transfer.download(self._per_copy)[: self.copies].copy()
+
+    def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
+        _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)
+        both = self._out_host if device_copy.to_host(self._out_host, self._out) else self._out.to_numpy()
+        return both[: self.copies].view(np.float64).copy(), both[self.copies: 2 * self.copies] > 0
+
+    def largest_abs(self, a) -> np.ndarray:
+        """Per copy ``max_k |a_k|`` over its DoFs, shape ``(B,)``: NaN where the copy has a NaN, infinite where it has
+        an infinity and no NaN (:meth:`CopyRuns.largest_abs <sim_core.batch.copy_runs.CopyRuns.largest_abs>`)."""
+        big, nan = self._extremes(a, False)
+        big[nan] = np.nan
+        return big
+
+    def largest_norm(self, a) -> np.ndarray:
+        """Per copy the largest vertex norm ``max_v |a_v|``, shape ``(B,)``; NaN where a copy's entries are not finite
+        (or their squares overflow)."""
+        big, bad = self._extremes(a, True)
+        big[bad] = np.nan
+        return np.sqrt(big)
+
+    def all_finite(self, a) -> np.ndarray:
+        """Per copy whether all its DoFs are finite, shape ``(B,)`` bool."""
+        return np.isfinite(self.largest_abs(a))
+
+    def any_dof(self, a) -> np.ndarray:
+        """Per copy whether any of its DoFs is non-zero (a NaN counts), shape ``(B,)`` bool."""
+        return self.largest_abs(a) != 0.0
+
+    def blend(self, dst, src, take: np.ndarray, zero: np.ndarray | None = None, scale: float = 1.0):
+        """``dst`` with the copies in ``take`` (bool ``(B,)``) set to ``scale src`` and those in ``zero`` to 0, in
+        place; returns ``dst``."""
+        action = np.where(take, _TAKE, _KEEP)
+        if zero is not None:
+            action = np.where(zero & ~take, _ZERO, action)
+        _blend(dst, src, float(scale), self._copy_values(action, np.int32), self._vertex_copy, self.vertex_count)
+        return dst
+
+    def zero_copies(self, a, mask: np.ndarray):
+        """``a`` with the copies in ``mask`` (bool ``(B,)``) set to 0, in place; returns ``a``."""
+        return self.blend(a, a, np.zeros(self.copies, dtype=bool), np.asarray(mask, dtype=bool))
+
+    def copy_where(self, dst, src, mask: np.ndarray, scale: float = 1.0):
+        """``dst`` with the copies in ``mask`` (bool ``(B,)``) taken from ``scale src``, in place; returns ``dst``."""
+        return self.blend(dst, src, np.asarray(mask, dtype=bool), scale=scale)
+
+    def zero_dofs(self, a, dofs: np.ndarray):
+        """``a`` at the flat DoFs ``dofs`` (int ``(f,)``, ``3 v + j``) set to 0, in place; ``dofs`` travels to the
+        device when it is another object than at the last call. Returns ``a``."""
+        kept = self._dofs
+        if kept is None or kept[0] is not dofs:
+            kept = self._dofs = (dofs, self._indices(np.asarray(dofs, dtype=np.int32)))
+        if len(dofs):
+            _zero_dofs(a, kept[1], len(dofs))
+        return a
+
+    def add_rows(self, g, vertices: np.ndarray, rows: np.ndarray):
+        """``g[vertices] += rows`` (``vertices`` distinct, int ``(k,)``; ``rows`` ``(k, 3)``), in place; returns
+        ``g``."""
+        k = int(np.size(vertices))
+        if not k:
+            return g
+        kept = self._rows
+        if kept is None or kept[0] < k:
+            capacity = max(k, 2 * (kept[0] if kept else 0))
+            kept = self._rows = (capacity, device_copy.new_ndarray(ti.i32, (capacity,)),
+                                 device_copy.new_ndarray(ti.f64, (capacity, 3)), np.zeros(capacity, dtype=np.int32),
+                                 np.zeros((capacity, 3)))
+        capacity, v_dev, r_dev, v_host, r_host = kept
+        v_host[:k] = vertices
+        r_host[:k] = np.reshape(rows, (-1, 3))
+        if not device_copy.to_device(v_dev, v_host):
+            v_dev.from_numpy(v_host)
+        transfer.upload(r_dev, r_host)
+        _add_rows(g, v_dev, r_dev, k)
+        return g
+
+    def add(self, g, h: np.ndarray):
+        """``g += h`` (``h`` on the host, ``(N, 3)`` or ``3 N`` entries, through one upload), in place; returns
+        ``g``."""
+        if self._scratch is None:
+            self._scratch = self.new()
+        transfer.upload(self._scratch, np.reshape(h, (-1, 3)))
+        _add(g, self._scratch, self.vertex_count)
+        return g

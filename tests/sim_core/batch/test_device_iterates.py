@@ -1,0 +1,79 @@
+"""The lockstep loop's vectors on the device (sim_core.batch.device_iterates, taichi-cpu): the stacked gradient summed
+there equals the host's sum (a term adding its own gradient on the device, sparse rows and dense host gradients
+uploaded), the lumped quadratic's device gradient and energy equal its host ones, and trial points are made there and
+downloaded once into frozen host arrays."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.batch.iterates import HostIterates, summed_gradient
+from sim_core.batch.lumped import LumpedQuadratic
+from sim_core.batch.stacked import stack_models
+from sim_core.energies.base import DeviceGradient, SparseGradient, declares, positions_key
+from sim_core.energies.damping.reference import ViscousDamping
+from sim_core.energies.gravity.reference import GravityPotential
+from sim_core.energies.inertia.reference import InertiaPotential
+from tests.support.batch_copies import pad_model
+
+
+@pytest.fixture(scope="module")
+def stacked():
+    from sim_core.ti_backend import init_backend
+
+    init_backend("cpu")
+    return stack_models([pad_model() for _ in range(3)])
+
+
+def _terms(stacked, rng):
+    """A lumped quadratic (a device gradient), gravity (sparse rows) and two dense host terms, over the stacked
+    vertices."""
+    n = stacked.model.vertex_count
+    mass = rng.uniform(1e-5, 1e-3, n)
+    x_n = rng.normal(scale=0.05, size=(n, 3))
+    inertia = InertiaPotential(mass, x_n + 1e-3 * rng.normal(size=(n, 3)), 5e-3)
+    damping = ViscousDamping(mass, x_n, 2.0, 5e-3)
+    gravity = GravityPotential(mass, np.array([0.0, 0.0, -9.81]))
+    lumped = LumpedQuadratic(inertia, gravity, damping)
+    assert declares(lumped, DeviceGradient) and declares(gravity, SparseGradient)
+    return [lumped, gravity, InertiaPotential(mass, x_n, 5e-3), damping], x_n
+
+
+def test_device_gradient_sum_equals_the_host_sum(stacked):
+    from sim_core.batch.device_iterates import DeviceIterates
+
+    rng = np.random.default_rng(1)
+    terms, x_n = _terms(stacked, rng)
+    host, device = HostIterates(stacked.index), DeviceIterates(stacked.index)
+    x = x_n + 1e-3 * rng.normal(size=x_n.shape)
+    fixed = np.flatnonzero(rng.uniform(size=3 * len(x)) < 0.1)
+    it = device.start(x.copy())
+    assert not it.host.flags.writeable and not isinstance(positions_key(it.host), tuple)  # keyed by identity
+    g = device.download(device.gradient(terms, it, fixed)).reshape(-1)
+    want = host.gradient(terms, host.start(x.copy()), fixed, fresh_first=True)
+    scale = np.abs(summed_gradient(terms[:1], x)).max()
+    np.testing.assert_allclose(g, want, rtol=0, atol=1e-14 * scale)
+    assert np.all(g[fixed] == 0.0)
+    # the lumped term's energy at the iterate it evaluated on the device: its partial sums, the host's to round-off
+    lumped = terms[0]
+    e_device = lumped.energy(it.host)
+    assert e_device == pytest.approx(lumped.energy(x.copy()), rel=1e-13)
+
+
+def test_trial_points_are_made_on_the_device_and_downloaded_frozen(stacked):
+    from sim_core.batch.device_iterates import DeviceIterates
+
+    rng = np.random.default_rng(2)
+    host, device = HostIterates(stacked.index), DeviceIterates(stacked.index)
+    x, d = rng.normal(size=(2, stacked.model.vertex_count, 3))
+    alphas = np.array([1.0, 0.25, 0.0])
+    got = device.trial(device.start(x.copy()), device.upload(d), alphas)
+    want = host.trial(host.start(x.copy()), d.reshape(-1), alphas)
+    np.testing.assert_array_equal(got.host, want.host)
+    np.testing.assert_array_equal(device.download(got.device), want.host)
+    assert not got.host.flags.writeable and got.host.base is None  # keyed by identity by the terms' caches
+    mask = np.array([False, True, False])
+    steepest = device.take_steepest(device.upload(d), device.upload(x), mask)
+    want = host.take_steepest(d.reshape(-1).copy(), x.reshape(-1), mask)
+    np.testing.assert_array_equal(device.download(steepest).reshape(-1), want)
