@@ -44,7 +44,8 @@ class Simulation:
 
     The :class:`NewtonSolver` is built at the first read of :attr:`solver` (a step, a warm-up, a caller's read):
     a copy of a lockstep batch (:class:`~sim_core.batch.BatchedSimulation`), which a stacked solver steps, never
-    builds one. The settings and the backend are checked at construction all the same.
+    builds one. The backend is resolved at construction all the same (Taichi initialised, a backend that cannot
+    start refused); an unknown linear solver name is refused when the solver is built.
 
     Args:
         model: the scene model.
