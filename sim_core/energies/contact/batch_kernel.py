@@ -135,6 +135,7 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     for j in range(derivatives * 2 * n):
         for c in ti.static(range(3)):
             gradients[j, c] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for _ in range(1):
         active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
@@ -161,6 +162,7 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
                 active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
         else:
             region[i], d[i] = -1, ti.math.inf
+    ti.loop_config(serialize=ti.static(serial_loops()))
     for _ in range(1):  # after every pair: the count in the list's first row
         active[0, 0] = ti.cast(active_count[0], ti.f64)
     ti.loop_config(serialize=ti.static(serial_loops()))
