@@ -36,7 +36,7 @@ from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
-from sim_core.energies.base import KeepsDerivatives, PenaltyContact, declares
+from sim_core.energies.base import FrozenPositionsKey, KeepsDerivatives, PenaltyContact, declares
 from sim_core.energies.damping.reference import ViscousDamping
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.gravity.reference import GravityPotential
@@ -767,8 +767,10 @@ class NewtonSolver:
         self.last_factorization = factorization if exact else None
         info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
+        # the record's arrays: copies, except of frozen arrays (FrozenPositionsKey.holds: the lockstep's iterates)
+        x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
+            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed,
             x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
             gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
             terms=step.fixed_terms + contact_terms,
@@ -781,11 +783,16 @@ class NewtonSolver:
         state_out.v = (x - x_n) / dt
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
-        force = np.zeros_like(x)
-        for p in contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact:
-            force -= p.gradient(x)
-        state_out.contact_force = force
+        state_out.contact_force = self._contact_force(
+            x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
         if self.step_hook is not None:
             state_out.candidate_state = self.step_hook.update_state(model, state_in, x, dt, self.elastic)
+
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N."""
+        force = np.zeros_like(x)
+        for p in terms:
+            force -= p.gradient(x)
+        return force
