@@ -1,8 +1,14 @@
-"""Profile a lockstep batch of the Forming scene: where the wall time of a Newton iteration goes.
+"""Profile a lockstep batch of the Forming scene or of a task's population: where the wall time of a Newton
+iteration goes.
 
-Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg]``; ``--B 16,64,256``
-profiles each size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so
-that what grows with ``B`` shows by part.
+Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg] [--task folding_u]``;
+``--task NAME`` profiles the task's population of ``thinshell bench batch --scene NAME`` (``_TaskRun``: perturbed
+reference actions, stepped by :class:`~sim_core.tasks.rollout.PopulationRollout` as the optimiser steps it, without
+a separate warm-up) and times its build by part too (the episodes' scenes, the stacking, the lockstep solver), and
+the population's host work around each batched step (its episodes' commands and early-stop checks), and per step the
+copies' own Newton iterations beside the lockstep's (a lockstep step runs as many as its slowest copy);
+``--B 16,64,256`` profiles each size in turn in one process (kernels compiled once), each part also per Newton
+iteration (ms), so that what grows with ``B`` shows by part.
 Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
 Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
 times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
@@ -28,13 +34,14 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--linear-solver", default=None)
     ap.add_argument("--top", type=int, default=45)
+    ap.add_argument("--task", default=None, help="a task name: profile its population (default: Forming)")
     ap.add_argument("--out", default=None, help="write the pstats file here")
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend
-    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
+    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun, _TaskRun
 
     backend = ARCH_BACKENDS[args.arch]
     init_backend(args.arch, kernel_profiler=args.kernel_profiler)
@@ -43,12 +50,15 @@ def main() -> int:
     import sim_core.solver_config as sc
 
     orig = sc.SolverConfig
-    sc.SolverConfig = lambda **kw: orig(**kw, **extra)  # _FormingRun imports it at call time
+    def config(**kw):  # the runs import it at call time; only the lockstep batch's settings take --linear-solver
+        return orig(**kw, **(extra if kw.get("lockstep") else {}))
+
+    sc.SolverConfig = config
     try:
         if backend != "numpy":  # every kernel compiled or loaded first, the projected Hessian's too (as bench batch)
             from sim_core.fused_elastic import compile_kernels
 
-            warm = _FormingRun(1, 2, backend, lockstep=True)
+            warm = _TaskRun(args.task, 1, 2, backend, True) if args.task else _FormingRun(1, 2, backend, lockstep=True)
             warm.run()
             sim0 = warm.batch.sims[0]
             compile_kernels(sim0.solver.elastic.potentials(sim0.state.hinge_theta_bar), sim0.model.x_rest)
@@ -58,14 +68,70 @@ def main() -> int:
     timers = _wrap_parts(backend)
     cg_iterations = _count_cg_iterations()
     for B in (int(b) for b in str(args.B).split(",")):
-        sc.SolverConfig = lambda **kw: orig(**kw, **extra)
+        sc.SolverConfig = config
+        for rec in timers.values():
+            rec[0], rec[1] = 0, 0.0
+        t0 = time.perf_counter()
         try:
-            run = _FormingRun(B, args.steps + 1, backend, lockstep=True)
+            run = _TaskRun(args.task, B, args.steps + 1, backend, True) if args.task else \
+                _FormingRun(B, args.steps + 1, backend, lockstep=True)
         finally:
             sc.SolverConfig = orig
-        _profile_size(run, B, args, timers, cg_iterations)
+        _print_parts(f"B={B} build", timers, time.perf_counter() - t0)
+        if args.task:
+            _profile_population(run, B, args, timers, cg_iterations)
+        else:
+            _profile_size(run, B, args, timers, cg_iterations)
         del run
     return 0
+
+
+def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) -> None:
+    """Step a task population ``run`` (``bench.batch._TaskRun``) as :meth:`PopulationRollout.run` does: the first
+    step (set-up included) by part, then ``args.steps`` steps by part, and the population's host work outside the
+    batched steps (its episodes' commands, early-stop checks and logs)."""
+    walls: list = []
+    iterations, copy_iterations = [0], [0.0]
+    mark = [0.0]
+    prof = cProfile.Profile() if args.cprofile else None
+
+    def step(controls, mask):
+        k = len(walls)
+        if k == 1:  # the first step's parts, then the timed steps' from zero
+            _print_parts(f"B={B} step 0 (set-up included)", timers, walls[0])
+            for rec in timers.values():
+                rec[0], rec[1] = 0, 0.0
+            _start_timed(args, cg_iterations)
+            if prof:
+                prof.enable()
+            mark[0] = time.perf_counter()
+        t = time.perf_counter()
+        res = run.batch.step(controls, mask)
+        walls.append(time.perf_counter() - t)
+        info = run.batch.lockstep.solver.last_stacked_info
+        own = [i.iterations for i in res.infos if i is not None]  # each stepped copy's own Newton iterations
+        if k >= 1:
+            iterations[0] += getattr(info, "iterations", 0) or 0
+            copy_iterations[0] += sum(own) / max(len(own), 1)
+        print(f"B={B} step {k}: {walls[-1]:.3f} s, iterations {getattr(info, 'iterations', None)} (the copies' own: "
+              f"mean {sum(own) / max(len(own), 1):.2f}, max {max(own, default=0)}), {int(mask.sum())} copies",
+              flush=True)
+        return res
+
+    for rec in timers.values():
+        rec[0], rec[1] = 0, 0.0
+    run.population.run(step=step)
+    if prof:
+        prof.disable()
+    wall = time.perf_counter() - mark[0]
+    stepped = sum(walls[1:])
+    print(f"B={B} {len(walls) - 1} steps in {wall:.3f} s ({stepped:.3f} s in the batched steps, {wall - stepped:.3f} s "
+          f"the population's host work around them): {B * (len(walls) - 1) / wall:.2f} scene-steps/s, "
+          f"{iterations[0]} Newton iterations, {1e3 * stepped / max(iterations[0], 1):.1f} ms an iteration; the "
+          f"copies' own iterations {copy_iterations[0]:.1f} (mean over copies, summed over steps: "
+          f"{100 * copy_iterations[0] / max(iterations[0], 1):.0f} % of the lockstep's)")
+    _print_parts(f"B={B} {len(walls) - 1} timed steps", timers, wall, iterations[0])
+    _print_timed(B, args, cg_iterations, prof)
 
 
 def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
@@ -95,11 +161,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
     for rec in timers.values():
         rec[0], rec[1] = 0, 0.0
     iterations[0] = 0
-    cg_iterations.clear()
-    if args.kernel_profiler:
-        from sim_core.ti_backend import ti
-
-        ti.profiler.clear_kernel_profiler_info()
+    _start_timed(args, cg_iterations)
     prof = cProfile.Profile() if args.cprofile else None
     t0 = time.perf_counter()
     if prof:
@@ -112,6 +174,21 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
     print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
+    _print_timed(B, args, cg_iterations, prof)
+
+
+def _start_timed(args, cg_iterations: list) -> None:
+    """Before the timed steps: the CG's iteration counts and (``--kernel-profiler``) the kernel times from zero."""
+    cg_iterations.clear()
+    if args.kernel_profiler:
+        from sim_core.ti_backend import ti
+
+        ti.profiler.clear_kernel_profiler_info()
+
+
+def _print_timed(B: int, args, cg_iterations: list, prof) -> None:
+    """After the timed steps: the CG's iterations per solve, (``--kernel-profiler``) the kernel times and
+    (``--cprofile``) cProfile's tables (written to ``--out`` too)."""
     if cg_iterations:
         print(f"B={B} CG iterations per solve: mean {sum(cg_iterations) / len(cg_iterations):.1f}, "
               f"{min(cg_iterations)}-{max(cg_iterations)} over {len(cg_iterations)} solves")
@@ -218,6 +295,16 @@ def _wrap_parts(backend: str) -> dict:
 
     from sim_core.batch.plasticity import StackedElasticTerms
 
+    # a task population's build and host work around its steps (--task)
+    from sim_core.batch import stacked
+    from sim_core.batch.simulation import BatchedSimulation
+    from sim_core.tasks import rollout
+
+    parts += [(rollout.TaskEpisode, n) for n in ("__init__", "command", "record_step", "wrenches")]
+    parts += [(rollout._EpisodeLog, n) for n in ("__init__", "add")]
+    parts += [(rollout, "build_task_simulation"), (rollout, "build_task_scene"), (rollout, "task_initial_state"),
+              (BatchedSimulation, "__init__"), (stacked, "stack_models"), (lockstep.LockstepEngine, "__init__"),
+              (lockstep.LockstepSolver, "__init__"), (StackedScene, "stack_states")]
     parts += [(lockstep.LockstepEngine, "step"), (StackedScene, "copy_states"), (StackedScene, "stack_controls"),
               (NewtonSolver, "boundary"), (ElasticTerms, "plastic_update"), (device_copy, "_copy"),
               (lockstep.LockstepSolver, "boundary"), (StackedElasticTerms, "plastic_update")]
