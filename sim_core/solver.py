@@ -141,11 +141,15 @@ class NewtonSolver:
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
-        self.elastic = ElasticTerms(self.model, workspace=self.workspace)
+        self.elastic = self._new_elastic_terms()
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         self.step_hook = self._resolve_hook()
         self._revision = self.model.revision
+
+    def _new_elastic_terms(self) -> ElasticTerms:
+        """The model's elastic terms (:meth:`notify_model_changed`; a subclass may make its own kind)."""
+        return ElasticTerms(self.model, workspace=self.workspace)
 
     def set_hook(self, hook: StepHook | None) -> None:
         """Use ``hook`` for the extra terms of the next steps (None: the model's candidates, if any).
@@ -450,15 +454,13 @@ class NewtonSolver:
         asleep = frozenset(self._sleep.bodies)
         if asleep:
             fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
-        free = np.repeat(~fixed, 3)
-        x_n = state_in.x
+        free, x_n = np.repeat(~fixed, 3), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
         x[fixed] = x_target[fixed]
-        x_hat = x_n + dt * state_in.v
-        mass = self.vertex_mass
+        x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
         diag = fixed_terms[0].hessian_diagonal()
@@ -767,7 +769,6 @@ class NewtonSolver:
         self.last_factorization = factorization if exact else None
         info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
-        # the record's arrays: copies, except of frozen arrays (FrozenPositionsKey.holds: the lockstep's iterates)
         x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
             dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed,
