@@ -459,7 +459,7 @@ class NewtonSolver:
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
-        x[fixed] = x_target[fixed]
+        np.copyto(x, x_target, where=fixed[:, None])  # the fixed vertices at their targets (one pass, no gather)
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
