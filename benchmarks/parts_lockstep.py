@@ -25,24 +25,18 @@ def _median_ms(fn, repeat: int) -> float:
     return 1e3 * float(np.median(times))
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--arch", default="cpu")
-    ap.add_argument("--B", type=int, default=4)
-    ap.add_argument("--repeat", type=int, default=3)
-    args = ap.parse_args()
+def third_step(B: int, arch: str):
+    """``(solver, step, x)``: ``B`` lockstep Forming copies on the batched CG (every arch; the Taichi backend of
+    ``arch``, initialised by the caller) after two steps (compilation, contacts), the third step set up."""
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
     from sim_core.control import Control
     from sim_core.step_info import StepInfo
-    from sim_core.ti_backend import init_backend
-
-    init_backend(args.arch)
     import sim_core.solver_config as sc
 
     orig = sc.SolverConfig
     sc.SolverConfig = lambda **kw: orig(**kw, linear_solver="pcg")  # the batched CG on every arch
     try:
-        run = _FormingRun(args.B, 4, ARCH_BACKENDS[args.arch], lockstep=True)
+        run = _FormingRun(B, 4, ARCH_BACKENDS[arch], lockstep=True)
     finally:
         sc.SolverConfig = orig
     run.batch.warm_up()
@@ -52,6 +46,20 @@ def main() -> int:
     solver = eng.solver
     ctrl = eng.scene.stack_controls([Control(effector_pose_target={run.effector: t[2]}) for t in run.targets])
     step, x = solver._set_up_step(eng.state, ctrl, run.batch.sims[0].dt, None, StepInfo())
+    return solver, step, x
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--B", type=int, default=4)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args()
+    from sim_core.step_info import StepInfo
+    from sim_core.ti_backend import init_backend
+
+    init_backend(args.arch)
+    solver, step, x = third_step(args.B, args.arch)
     fused = step.fused
     rows = []
 

@@ -22,10 +22,13 @@ Stable Neo-Hookean and StVK membranes use the analytic / Jacobi projections of t
 
 On CUDA every array argument of a launch that is a NumPy array is copied to the device and back;
 there the fused parts keep their constant arrays (elements, rest shapes, slot tables) on the device
-(:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once and
-downloads the gradient and Hessian values once for all parts (:meth:`FusedElastic._on_device`); the parts'
-kernels are launched one after another and their energy sums read after the last
-(:class:`sim_core.ti_kernels.launch.DeferredSums`), so the host does not wait for each part's kernel.
+(:func:`sim_core.ti_kernels.buffers.on_device`), and an evaluation uploads the positions once for all parts
+and leaves the gradient and Hessian values in device memory, copied to the host once each when asked for
+(:meth:`FusedElastic._on_device`); the parts' kernels are launched one after another and their energy sums read
+after the last (:class:`sim_core.ti_kernels.launch.DeferredSums`), so the host does not wait for each part's kernel.
+A caller that keeps its positions and gradient in device memory (the lockstep batch) evaluates through
+:meth:`FusedElastic.add_gradient_on_device` (capability :class:`~sim_core.energies.base.DeviceGradient`): the
+kernels read its positions and the gradient is added into its array there, with no transfer.
 
 Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 """
@@ -178,8 +181,9 @@ class FusedElastic:
     """Energy, gradient and exact Hessian values of a list of elastic potentials, fused per potential.
 
     Build with :meth:`for_terms` once per step (cheap when the terms are those of the last step);
-    then per Newton iterate ``x``: :meth:`gradient` (runs the fused kernels, keeps energy and
-    Hessian values of ``x``), :meth:`hessian_values`, and :meth:`energy` for line-search points.
+    then per Newton iterate ``x``: :meth:`gradient` or :meth:`add_gradient_on_device` (runs the fused
+    kernels, keeps energy and Hessian values of ``x``), :meth:`hessian_values`, and :meth:`energy` for
+    line-search points.
     Follows the energy/gradient half of the potential contract (``sim_core.energies.base``), so
     the solver can sum it with the other terms.
 
@@ -213,6 +217,8 @@ class FusedElastic:
         self._pending: tuple | None = None  # positions_key of a start() whose result is not taken yet
         self._device_kept: tuple | None = None  # on CUDA: device positions, gradient, values (_device_buffers)
         self._values_on_device = False  # the kept evaluation's Hessian values are on the device only
+        self._gradient_on_host = False  # the kept evaluation's gradient is in its host array (_kept[2])
+        self._gradient_on_device = False  # ... in the device gradient array (_device_kept[1], CUDA)
         self._sums = None  # on CUDA: the DeferredSums of the device evaluations (its cells kept)
 
     @classmethod
@@ -254,8 +260,7 @@ class FusedElastic:
             return kept
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
-        self._kept = None
-        self._values_on_device = False
+        self._forget()
         xc, grad, values = self._evaluation_buffers(np.shape(x))
         pending, self._pending = self._pending, None
         if pending is not None:  # every part evaluated in the worker since start()
@@ -265,33 +270,116 @@ class FusedElastic:
                 np.copyto(xc, x)
                 np.copyto(grad, remote_grad)
                 np.copyto(values, remote_values)
-                self._kept = (key, energy, grad, values)
-                return self._kept
+                return self._keep(key, energy, grad, values)
         np.copyto(xc, x)
         remote = self.offloaded_part()
-        energy = 0.0
         if remote is None and self._on_device():
-            # CUDA: positions up, gradient and Hessian values down once per evaluation, not per part
-            from sim_core.ti_kernels.transfer import download, fill, upload  # Taichi only on a Taichi backend
+            # CUDA: positions up once per evaluation, not per part; the gradient and Hessian values stay there
+            # until asked for (gradient, hessian_values)
+            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
 
-            xd, gd, vd = self._device_buffers(xc.shape, values.size)
-            upload(xd, xc)
-            fill(gd, 0.0)
-            fill(vd, 0.0)
-            energy = self._deferred_sum(lambda part: part.evaluate(xd, gd, vd), 0.0)
-            download(gd, grad)
-            self._values_on_device = True  # copied to ``values`` when asked for (hessian_values)
-            self._kept = (key, energy, grad, values)
-            return self._kept
+            xd = upload(self._device_buffers(xc.shape, values.size)[0], xc)
+            return self._evaluate_on_device(key, xd, grad, values)
         grad.fill(0.0)
         values.fill(0.0)
         if remote is None:
+            energy = 0.0
             for part in self._parts:
                 energy += part.evaluate(xc, grad, values)
         else:
             energy = self._evaluate_offloaded(remote, xc, grad, values)
-        self._kept = (key, energy, grad, values)
+        return self._keep(key, energy, grad, values)
+
+    def _forget(self) -> None:
+        """Drop the kept evaluation (its arrays are about to be overwritten)."""
+        self._kept = None
+        self._values_on_device = self._gradient_on_device = self._gradient_on_host = False
+
+    def _keep(self, key, energy: float, grad: np.ndarray, values: np.ndarray, on_device: bool = False) -> tuple:
+        """Keep the evaluation of positions ``key``: energy (J), the gradient and Hessian values in the host arrays
+        ``grad`` and ``values``, or, ``on_device``, in the device arrays of :meth:`_device_buffers` (CUDA)."""
+        self._kept = (key, float(energy), grad, values)
+        self._gradient_on_host = not on_device
+        self._gradient_on_device = self._values_on_device = on_device
         return self._kept
+
+    def _evaluate_on_device(self, key, x_device, grad: np.ndarray, values: np.ndarray) -> tuple:
+        """The parts' kernels at the device positions ``x_device`` ``(n, 3)`` (m) into the zeroed device gradient and
+        Hessian values of :meth:`_device_buffers` (CUDA, every part a device part), kept for positions ``key``; the
+        host arrays ``grad`` and ``values`` are filled from them when asked for. The parts' energy sums are read
+        once, after the last launch (:meth:`_deferred_sum`)."""
+        from sim_core.ti_kernels.transfer import fill  # Taichi only on a Taichi backend
+
+        _, gd, vd = self._device_buffers(grad.shape, values.size)
+        fill(gd, 0.0)
+        fill(vd, 0.0)
+        energy = self._deferred_sum(lambda part: part.evaluate(x_device, gd, vd), 0.0)
+        return self._keep(key, energy, grad, values, on_device=True)
+
+    def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
+        """Add the elastic gradient at ``x`` (N) into the device array ``gradient_device``; the energy (J) returned
+        (capability :class:`~sim_core.energies.base.DeviceGradient`).
+
+        The parts' kernels read the positions from ``x_device`` (no upload) and the evaluation is kept for ``x``
+        (:func:`~sim_core.energies.base.positions_key`) as :meth:`evaluate` keeps it: the next :meth:`energy`,
+        :meth:`gradient`, :meth:`hessian_values` and :meth:`hessian_values_device` at ``x`` read it; an evaluation
+        already kept for ``x`` is added without running the kernels again. On CUDA, with every part a device part,
+        the gradient and Hessian values stay in device memory (the gradient added there by one launch); elsewhere
+        (the CPU arch: ``x_device`` is host memory; parts without a fused kernel read ``x``; an offloaded part or a
+        :meth:`start` pending) the gradient is formed in host memory as :meth:`gradient` forms it and added into
+        ``gradient_device`` by one launch.
+
+        Args:
+            x: positions ``(n, 3)`` (m), the key of the kept evaluation.
+            x_device: the same positions, a float64 Taichi ndarray ``(n, 3)``, only read.
+            gradient_device: a float64 Taichi ndarray ``(n, 3)``, the gradient added into it.
+
+        Returns:
+            the elastic energy at ``x`` (J).
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+            ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
+        """
+        from sim_core.ti_backend import current_arch
+        from sim_core.ti_kernels.transfer import add_into, same_shapes, upload  # Taichi only on a Taichi backend
+
+        shape = same_shapes("FusedElastic.add_gradient_on_device", x, x_device, gradient_device)
+        key = positions_key(x)
+        kept = self._kept
+        if kept is None or kept[0] != key:
+            if self.pattern is None:
+                raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+            if self._pending is not None or self.offloaded_part() is not None:
+                kept = self._evaluate(x)
+            elif self._on_device():
+                self._forget()
+                _, grad, values = self._evaluation_buffers(shape)
+                kept = self._evaluate_on_device(key, x_device, grad, values)
+            elif current_arch() == "cuda":  # a part without a device kernel: the host evaluation
+                kept = self._evaluate(x)
+            else:  # the CPU arch: the kernels read the device (host-memory) positions, into the host arrays
+                kept = self._evaluate_at(key, x, x_device)
+        if self._gradient_on_device:
+            add_into(gradient_device, self._device_kept[1])
+        elif current_arch() == "cuda":  # the host gradient up once into the device gradient array, kept there
+            add_into(gradient_device, upload(self._device_buffers(shape, kept[3].size)[1], kept[2]))
+            self._gradient_on_device = True
+        else:
+            add_into(gradient_device, kept[2])
+        return kept[1]
+
+    def _evaluate_at(self, key, x: np.ndarray, x_device) -> tuple:
+        """:meth:`_evaluate`'s host loop with the fused parts' kernels reading ``x_device`` (a Taichi ndarray in host
+        memory: the CPU arch) and the other parts ``x``: the same kernels on the same values, the same sums."""
+        self._forget()
+        _, grad, values = self._evaluation_buffers(np.shape(x))
+        grad.fill(0.0)
+        values.fill(0.0)
+        energy = 0.0
+        for part in self._parts:
+            energy += part.evaluate(x if isinstance(part, _ReferencePart) else x_device, grad, values)
+        return self._keep(key, energy, grad, values)
 
     def offloaded_part(self):
         """The part evaluated apart (in :attr:`offload`'s worker when it is up): with a worker set, the
@@ -464,8 +552,15 @@ class FusedElastic:
         return total
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too)."""
-        return self._evaluate(x)[2].copy()
+        """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too; on CUDA the
+        gradient of a device evaluation is copied to the host when first asked for)."""
+        kept = self._evaluate(x)
+        if not self._gradient_on_host:
+            from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
+
+            download(self._device_kept[1], kept[2])
+            self._gradient_on_host = True
+        return kept[2].copy()
 
     def hessian_values(self, x: np.ndarray) -> np.ndarray:
         """Exact Hessian entries in N/m summed per slot of :attr:`pattern`, shape ``(pattern.keys.size,)``

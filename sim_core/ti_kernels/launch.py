@@ -296,19 +296,29 @@ def fast_kernel(fn: Callable) -> FastKernel:
     return FastKernel(ti.kernel(fn))
 
 
+SUM_CELLS = 1024
+"""Cells of a :func:`summing_kernel`'s sum array on a GPU (on the CPU: one). A kernel adds element ``k``'s term into
+cell ``k % cells``, so that its parallel loop's atomic additions spread over this many addresses instead of
+serialising on one: Taichi 1.7 keeps a loop's sum into a field in per-thread registers (``make_thread_local``) but
+not a sum into an ndarray element, which is one global atomic addition per element (about a million a fused
+evaluation at 1024 stacked Forming copies)."""
+
+
 def summing_kernel(fn: Callable) -> Callable[..., float]:
     """``@summing_kernel`` in place of ``@fast_kernel`` for a kernel that sums a scalar over its loops
-    (an energy in J): the kernel's last argument is a ``(1,)`` float64 array ``energy`` that it sets to
-    zero and adds into (``energy[0] += ...``); the returned function takes the other arguments, launches
-    the kernel (a :func:`fast_kernel`) with an array kept per thread, and returns ``energy[0]``.
+    (an energy in J): the kernel's last argument is a float64 array ``energy`` of cells, zeroed before each launch,
+    into which it adds element ``k``'s term at cell ``k % energy.shape[0]`` (:data:`SUM_CELLS` cells on a GPU, one
+    on the CPU: ``energy[0] += ...``); the returned function takes the other arguments, launches the kernel (a
+    :func:`fast_kernel`) with an array kept per thread, and returns the sum of the cells (in cell order).
 
     Why not a returned scalar (``-> ti.f64``) summed in a local variable: on CUDA such a kernel's parallel
     loop took 1.9 ms whatever its element count (210 to 1,125 elements, energy alone or with the
     Hessian, Taichi 1.7.4 on an H200: docs/benchmarks_log.md, session 38, 28single), about 40 ms a
-    Forming step, where a sum into an array element takes microseconds. On the CPU (serial loops) the
+    Forming step, where a sum into an array element takes microseconds. On the CPU (serial loops, one cell) the
     additions are the same, in the same order: the same sum bit for bit. On a GPU the array is a Taichi
-    ndarray in device memory, copied back by :func:`sim_core.ti_kernels.device_copy.to_host` (a NumPy
-    argument would make Taichi's launcher copy it to the device and back and synchronise).
+    ndarray in device memory, zeroed by the driver's memset and copied back by
+    :func:`sim_core.ti_kernels.device_copy.to_host` (a NumPy argument would make Taichi's launcher copy it to the
+    device and back and synchronise).
     """
     kernel = fast_kernel(fn)
     cells = threading.local()
@@ -319,23 +329,41 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
         if deferred is not None:  # launched into a cell of the block's own, read after the block
             kernel(*args, deferred._next_cell())
             return float("nan")
-        energy = getattr(cells, "energy", None)
         runtime = _runtime()
-        if energy is None or cells.prog is not runtime.prog:  # (a device cell belongs to one Taichi program)
-            energy = cells.energy = np.zeros(1)
-            cells.device = device_copy.new_ndarray(ti.f64, (1,)) if not _host_arch(runtime) else None
-            cells.prog = runtime.prog
-        if cells.device is None:
-            kernel(*args, energy)
-        else:  # on a GPU: summed in device memory, copied back by the driver (no host array in the launch)
-            kernel(*args, cells.device)
-            if not device_copy.to_host(energy, cells.device):
-                energy[0] = cells.device.to_numpy()[0]
-        return float(energy[0])
+        if getattr(cells, "prog", None) is not runtime.prog:  # (a device array belongs to one Taichi program)
+            cells.array, cells.prog = _new_cells(runtime), runtime.prog
+        _zero_cells(cells.array)
+        kernel(*args, cells.array)
+        return _cells_sum(cells.array)
 
     summed.kernel = kernel  # the FastKernel itself
     return summed
 
+
+def _new_cells(runtime):
+    """A sum array of a :func:`summing_kernel`: ``(1,)`` NumPy on the host arch, a ``(SUM_CELLS,)`` Taichi ndarray
+    in device memory on a GPU."""
+    return np.zeros(1) if _host_arch(runtime) else device_copy.new_ndarray(ti.f64, (SUM_CELLS,))
+
+
+def _zero_cells(array) -> None:
+    """Set the cells of ``array`` (:func:`_new_cells`) to zero (on a GPU by the driver's memset: no kernel launch,
+    ordered after the launches before it)."""
+    if isinstance(array, np.ndarray):
+        array[0] = 0.0
+    elif not device_copy.zero(array):
+        array.fill(0.0)
+
+
+def _cells_sum(array) -> float:
+    """The sum of the cells of ``array`` (:func:`_new_cells`), in cell order (on a GPU: read after the kernels
+    launched before, by the driver's copy)."""
+    if isinstance(array, np.ndarray):
+        return float(array[0])
+    host = np.empty(tuple(array.shape))
+    if not device_copy.to_host(host, array):
+        host = array.to_numpy()
+    return float(np.sum(host))
 
 
 _DEFERRED = threading.local()
@@ -345,8 +373,8 @@ _DEFERRED = threading.local()
 class DeferredSums:
     """A block in which the calling thread's :func:`summing_kernel` launches do not wait for their sums.
 
-    Within ``with DeferredSums() as sums:`` each summing kernel is launched with a cell of its own (a ``(1,)``
-    float64 array kept by this object across blocks: device memory on a GPU, host memory on the CPU) and returns
+    Within ``with DeferredSums() as sums:`` each summing kernel is launched with a sum array of its own (zeroed,
+    kept by this object across blocks: ``(SUM_CELLS,)`` in device memory on a GPU, ``(1,)`` on the CPU) and returns
     NaN at once, so that on a GPU the host launches the next kernel while the device runs this one, instead of
     copying each sum back (a synchronisation) before the next launch. After the block, :meth:`values` reads the
     sums in launch order (the first read waits for the kernels). The sums are those of the plain calls: same
@@ -381,20 +409,12 @@ class DeferredSums:
 
     def _next_cell(self):
         if self._used == len(self._cells):
-            self._cells.append(np.zeros(1) if _host_arch(_runtime()) else device_copy.new_ndarray(ti.f64, (1,)))
+            self._cells.append(_new_cells(_runtime()))
         cell = self._cells[self._used]
+        _zero_cells(cell)
         self._used += 1
         return cell
 
     def values(self) -> list[float]:
         """The sums (J) of the last block's launches, in launch order."""
-        out = []
-        host = np.zeros(1)
-        for cell in self._cells[: self._used]:
-            if isinstance(cell, np.ndarray):
-                out.append(float(cell[0]))
-            elif device_copy.to_host(host, cell):
-                out.append(float(host[0]))
-            else:
-                out.append(float(cell.to_numpy()[0]))
-        return out
+        return [_cells_sum(cell) for cell in self._cells[: self._used]]

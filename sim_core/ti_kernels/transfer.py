@@ -8,7 +8,8 @@ byte copies by address (:mod:`sim_core.ti_kernels.device_copy`: the CUDA driver'
 through :func:`sim_core.ti_kernels.launch.fast_kernel` (its plans bind NumPy arrays and Taichi ndarrays
 alike; on CUDA the NumPy side then crosses to the device and back with the launch, as Taichi copies
 every host array of a launch both ways). A zero fill is a memset, another fill one planned launch. The
-values are the same.
+values are the same. :func:`add_into` adds one array into another where they are (a term's gradient into a
+device-resident sum, :class:`~sim_core.energies.base.DeviceGradient`).
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
@@ -20,6 +21,7 @@ from sim_core.ti_kernels import device_copy
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64_ANY = ti.types.ndarray(dtype=ti.f64)  # float64 of any rank (a kernel compiled per rank)
+_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
 
 
 @fast_kernel
@@ -76,3 +78,45 @@ def fill(array, value: float):
     if int(np.prod(array.shape)) and not (value == 0.0 and not np.signbit(value) and device_copy.zero(array)):
         _fill_f64(array, value)
     return array
+
+
+@fast_kernel
+def _add_f64_2(source: _F64_2, target: _F64_2):
+    """``target[i, j] += source[i, j]`` (same shapes). A loop over rows and a runtime one over columns: on the CPU
+    arch 8 ms for 580,000 x 3 entries where a ``ti.grouped`` loop took 41 ms (2-core VM)."""
+    for i in range(source.shape[0]):
+        for j in range(source.shape[1]):
+            target[i, j] += source[i, j]
+
+
+def add_into(array, values):
+    """``array += values`` for the float64 ndarray ``array`` of rank 2 (e.g. a gradient ``(n, 3)``) and ``values`` of
+    its shape (a float64 ndarray where the kernels run, or a C-contiguous float64 NumPy array: on CUDA Taichi then
+    copies it to the device and back with the launch) in one planned launch; returns ``array``. Each entry is one
+    addition: the sum of ``array.to_numpy() + values`` bit for bit.
+
+    Raises:
+        ValueError: ``values`` has another shape than ``array``, or the arrays are not of rank 2.
+    """
+    if len(array.shape) != 2:
+        raise ValueError(f"add_into: an ndarray of rank 2 is needed; got shape {tuple(array.shape)}")
+    if tuple(values.shape) != tuple(array.shape):
+        raise ValueError(f"add_into: values of shape {tuple(values.shape)} for an ndarray of shape "
+                         f"{tuple(array.shape)}")
+    if int(np.prod(array.shape)):
+        _add_f64_2(values, array)
+    return array
+
+
+def same_shapes(where: str, x: np.ndarray, x_device, gradient_device) -> tuple:
+    """The shape of positions ``x`` ``(n, 3)`` after checking that the device positions ``x_device`` and gradient
+    ``gradient_device`` (the arguments of :class:`~sim_core.energies.base.DeviceGradient`) have it.
+
+    Raises:
+        ValueError: ``x_device`` or ``gradient_device`` is of another shape (the message names ``where``).
+    """
+    shape = np.shape(x)
+    for name, array in (("x_device", x_device), ("gradient_device", gradient_device)):
+        if tuple(array.shape) != shape:
+            raise ValueError(f"{where}: {name} of shape {tuple(array.shape)}, positions {shape}")
+    return shape

@@ -14,8 +14,9 @@ about a hundred pairs: the NumPy reference spends its time in a dozen small arra
 call, here each request is one launch of one kernel (:func:`_friction_kernel`, the parts a request
 wants as a runtime argument; the gradient's launch computes the Hessian blocks too). A friction
 keeps the kernel's input arrays (positions and coefficients copied in), so its launches re-bind
-only the output arrays (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
-instead, the constant ones sent once, and copies back only the outputs a request wants. The kernel sees the
+only the output array (:mod:`sim_core.ti_kernels.launch`); on CUDA it keeps them in device memory
+instead, the constant ones sent once, and copies back the outputs a request wants in one copy (energy, gradient rows
+and blocks packed into one array: one synchronous copy a launch instead of three). The kernel sees the
 pairs' own vertices only (positions and gradient rows of the vertices its pairs name, ``v = unique(vertices)``):
 a Forming step's pairs name 10-17 % of the scene's vertices. Loops are serial on the CPU (the
 energy and the gradient sum in pair order), parallel on CUDA. Results equal the reference to
@@ -27,19 +28,20 @@ round-off (tests: 1e-12 relative).
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.base import HessianBlocks, Projection, positions_key
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import LaunchArrays, on_device
+from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download
+from sim_core.ti_kernels.device_copy import new_ndarray
+from sim_core.ti_kernels.transfer import same_shapes, upload
 from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
-_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_F64_1, _F64_2, _F64_3, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_1, linalg.I32_2
 
 
 @ti.func
@@ -88,24 +90,22 @@ def _f2_x_minus_f1_over_x3(y, eps_u):
 
 
 @ti.func
-def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
-                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
-    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+def _pair_force(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32):
+    """``c_k (f1(y)/y) T_k u_k`` (3-vector, N) of pair ``k``: its block vertex ``j``'s gradient is ``w_kj`` times it."""
     u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
     scale = coefficient[k] * _f1_over_x(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
     tu = ti.Vector.zero(ti.f64, 3)
     for d in ti.static(range(3)):
         tu[d] = (tangent[k, d, 0] * u[0] + tangent[k, d, 1] * u[1]) * scale
-    for j in range(vertices.shape[1]):
-        v = vertices[k, j]
-        for d in ti.static(range(3)):
-            grad[v, d] += weights[k, j] * tu[d]
+    return tu
 
 
 @ti.func
-def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
-                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
-    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m)."""
+def _pair_tangent_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                          tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32):
+    """``c_k T_k [(f1/y) I + ((f1' y - f1) / y^3) u u^T] T_k^T`` (3x3, N/m) of pair ``k``: its block ``(a, b)`` is
+    ``w_ka w_kb`` times it."""
     u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
     y = ti.sqrt(u[0] * u[0] + u[1] * u[1])
     f1x = _f1_over_x(y, eps_u)
@@ -121,6 +121,25 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
         for i, j in ti.static(ti.ndrange(2, 2)):
             acc += tangent[k, d, i] * Hu[i, j] * tangent[k, e, j]
         H3[d, e] = acc * coefficient[k]
+    return H3
+
+
+@ti.func
+def _pair_gradient(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                   tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, grad: ti.template()):
+    """Adds pair ``k``'s part of ``dE/dx`` (N) to ``grad`` (n, 3)."""
+    tu = _pair_force(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+    for j in range(vertices.shape[1]):
+        v = vertices[k, j]
+        for d in ti.static(range(3)):
+            grad[v, d] += weights[k, j] * tu[d]
+
+
+@ti.func
+def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template(), weights: ti.template(),
+                  tangent: ti.template(), coefficient: ti.template(), eps_u: ti.f64, k: ti.i32, blocks: ti.template()):
+    """Writes the block ``(3m, 3m)`` of pair ``k`` (N/m) into ``blocks`` ``(p, 3m, 3m)``."""
+    H3 = _pair_tangent_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
     for a in range(vertices.shape[1]):
         for b in range(vertices.shape[1]):
             wab = weights[k, a] * weights[k, b]
@@ -129,37 +148,84 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
 
 
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
-_NO_GRADIENT = np.zeros((0, 3))  # the output arrays of a launch that does not want them (never written)
-_NO_BLOCKS = np.zeros((0, 0, 0))
-_UNUSED_GRADIENT = np.zeros((1, 3))  # their one-row stand-ins on the device (no empty device arrays)
-_UNUSED_BLOCKS = np.zeros((1, 1, 1))
 _ARRAYS = LaunchArrays()
-"""Per thread, the device arrays of the CUDA launches (:meth:`TiLaggedFriction._launch_on_device`)."""
+"""Per thread, the kept arrays of the launches (:meth:`TiLaggedFriction._launch`,
+:meth:`TiLaggedFriction.add_gradient_on_device`) and their device copies."""
+
+
+def packed_size(rows: int, pairs: int, block_vertices: int, want: int) -> int:
+    """Entries of :func:`_friction_kernel`'s ``out`` that a launch for ``want`` writes: the energy, then the gradient
+    rows ``(rows, 3)`` of the pairs' vertices (with ``_GRADIENT`` or ``_HESSIAN``), then the blocks
+    ``(pairs, 3m, 3m)`` (with ``_HESSIAN``; ``m = block_vertices``)."""
+    if want & _HESSIAN:
+        return 1 + 3 * rows + pairs * (3 * block_vertices) ** 2
+    return 1 + 3 * rows if want & _GRADIENT else 1
 
 
 @fast_kernel
 def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, energy: _F64_1, grad: _F64_2,
-                     blocks: _F64_3):
-    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled
-    kernel for every request): ``_ENERGY`` sets ``energy[0] = sum_k c_k f0(|u_k|)`` (J),
-    ``_GRADIENT`` sets ``grad`` ``(n, 3)`` to ``dE/dx`` (N; zeroed, then the pairs' parts added),
-    ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD by construction). The energy is written
-    to an array rather than returned: a launch then needs no synchronisation for a return value."""
-    energy[0] = 0.0
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1):
+    """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled kernel for every
+    request), packed into ``out`` (:func:`packed_size`: one array, so that a GPU launch's results come back in one
+    copy): ``_ENERGY`` sets ``out[0] = sum_k c_k f0(|u_k|)`` (J), ``_GRADIENT`` sets ``out[1:1 + 3 n]`` to ``dE/dx``
+    ``(n, 3)`` (N; zeroed, then the pairs' parts added), ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD
+    by construction) after it, ``n = x.shape[0]``. The energy is written to an array rather than returned: a launch
+    then needs no synchronisation for a return value."""
+    rows = x.shape[0]
+    m = vertices.shape[1]
+    start = 1 + 3 * rows  # of the blocks
+    if want & _ENERGY:
+        out[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for i in range(grad.shape[0] * ((want & _GRADIENT) // _GRADIENT)):
-        for d in ti.static(range(3)):
-            grad[i, d] = 0.0
+    for i in range(3 * rows * ((want & _GRADIENT) // _GRADIENT)):
+        out[1 + i] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vertices.shape[0]):
         if want & _ENERGY:
             u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
-            energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+            out[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
         if want & _GRADIENT:
-            _pair_gradient(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad)
+            tu = _pair_force(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+            for j in range(m):
+                v = vertices[k, j]
+                for d in ti.static(range(3)):
+                    out[1 + 3 * v + d] += weights[k, j] * tu[d]
         if want & _HESSIAN:
-            _pair_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+            H3 = _pair_tangent_hessian(x, x_prev, vertices, weights, tangent, coefficient, eps_u, k)
+            for a in range(m):
+                for b in range(m):
+                    wab = weights[k, a] * weights[k, b]
+                    for d, e in ti.static(ti.ndrange(3, 3)):
+                        out[start + (k * 3 * m + 3 * a + d) * 3 * m + 3 * b + e] = wab * H3[d, e]
+
+
+@fast_kernel
+def _friction_at_device_positions(x: _F64_2, own: _I32_1, x_own: _F64_2, x_prev: _F64_2, vertices: _I32_2,
+                                  weights: _F64_2, tangent: _F64_3, coefficient: _F64_1, eps_u: ti.f64,
+                                  evaluate: ti.i32, energy: _F64_1, grad_own: _F64_2, blocks: _F64_3,
+                                  gradient: _F64_2):
+    """Where ``evaluate`` is 1: the positions of the pairs' vertices ``own`` ``(u,)`` gathered from the whole
+    positions ``x`` ``(n, 3)`` into ``x_own``, then per pair, in pair order, what :func:`_friction_kernel` computes
+    with every part wanted: ``energy[0]`` (J), the gradient rows ``grad_own`` of ``own`` (N), the blocks (N/m).
+    Always: ``gradient[own[i]] += grad_own[i]`` (``gradient`` ``(n, 3)``; the vertices ``own`` are distinct). The
+    arrays ``x_own``, ``grad_own`` and ``blocks`` may have more rows than are used."""
+    if evaluate:
+        energy[0] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(own.shape[0] * evaluate):
+        for d in ti.static(range(3)):
+            x_own[i, d] = x[own[i], d]
+            grad_own[i, d] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(vertices.shape[0] * evaluate):
+        u = _tangential_displacement(x_own, x_prev, vertices, weights, tangent, k)
+        energy[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+        _pair_gradient(x_own, x_prev, vertices, weights, tangent, coefficient, eps_u, k, grad_own)
+        _pair_hessian(x_own, x_prev, vertices, weights, tangent, coefficient, eps_u, k, blocks)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(own.shape[0]):
+        for d in ti.static(range(3)):
+            gradient[own[i], d] += grad_own[i, d]
 
 
 class TiLaggedFriction(LaggedFriction):
@@ -179,11 +245,17 @@ class TiLaggedFriction(LaggedFriction):
         """The kernel's arrays at ``x``: kept per friction (bound to the compiled kernel once; the positions of
         the pairs' vertices and the coefficients, ``mu`` may be edited, are copied into kept arrays). The
         kernel's vertex indices are into ``self._own``, the pairs' vertices ``(u,)``."""
+        arrays = self._constant_arrays(x.shape[0])
+        np.take(x, self._own, axis=0, out=arrays[0])
+        return arrays
+
+    def _constant_arrays(self, n: int) -> tuple:
+        """:meth:`_kernel_arrays` for ``n`` vertices with the coefficients refilled and the positions' rows not."""
         arrays = getattr(self, "_arrays", None)
-        if arrays is None or self._n != x.shape[0]:
+        if arrays is None or self._n != n:
             require_backend("TiLaggedFriction")
             own, local = compact_indices(self.vertices, dtype=np.int32)
-            self._own, self._n = own, x.shape[0]
+            self._own, self._n, self._own_index = own, n, own.astype(np.int32)
             arrays = (np.empty((len(own), 3)),
                       np.ascontiguousarray(self.x_prev[own], dtype=np.float64),
                       local,
@@ -191,49 +263,45 @@ class TiLaggedFriction(LaggedFriction):
                       np.ascontiguousarray(self.tangent, dtype=np.float64),
                       np.empty(self.vertices.shape[0]))
             self._arrays, self._energy = arrays, np.zeros(1)
-        np.take(x, self._own, axis=0, out=arrays[0])
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
 
-    def _launch_gradient(self, arrays: tuple, want: int, blocks: np.ndarray) -> tuple[float, np.ndarray]:
-        """One launch of :func:`_friction_kernel` with ``_GRADIENT`` in ``want``: ``(energy, gradient)``, the
-        gradient's rows of the pairs' vertices ``self._own`` ``(u, 3)`` (N)."""
-        own_grad = np.empty((len(self._own), 3))  # (set by the kernel)
-        return self._launch(arrays, want, own_grad, blocks), own_grad
-
-    def _launch(self, arrays: tuple, want: int, grad: np.ndarray = _NO_GRADIENT,
-                blocks: np.ndarray = _NO_BLOCKS) -> float:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`) writing ``grad``
-        and ``blocks`` where ``want`` asks for them; the energy (J) when ``want`` asks for it."""
+    def _launch(self, arrays: tuple, want: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`): ``(energy, rows, blocks)``,
+        the energy (J; NaN unless ``want`` asks for it), the gradient's rows of the pairs' vertices ``self._own``
+        ``(u, 3)`` (N) and the blocks ``(p, 3m, 3m)`` (N/m), views of one new array (the parts ``want`` does not ask
+        for: not set, or empty)."""
+        p, m = self.vertices.shape
+        u = len(self._own)
+        size = packed_size(u, p, m, want)
         if current_arch() == "cuda":
-            return self._launch_on_device(arrays, want, grad, blocks)
-        _friction_kernel(*arrays, self.eps_u, want, self._energy, grad, blocks)
-        return float(self._energy[0])
+            out = self._launch_on_device(arrays, want, size)
+        else:
+            out = np.empty(size)
+            _friction_kernel(*arrays, self.eps_u, want, out)
+        energy = float(out[0]) if want & _ENERGY else float("nan")
+        rows = out[1:1 + 3 * u].reshape(-1, 3) if want & (_GRADIENT | _HESSIAN) else np.zeros((0, 3))
+        blocks = out[1 + 3 * u:size].reshape(p, 3 * m, 3 * m) if want & _HESSIAN else np.zeros((0, 3 * m, 3 * m))
+        return energy, rows, blocks
 
-    def _launch_on_device(self, arrays: tuple, want: int, grad: np.ndarray, blocks: np.ndarray) -> float:
-        """:meth:`_launch` with every kernel argument a Taichi ndarray in device memory (a NumPy argument of a
+    def _launch_on_device(self, arrays: tuple, want: int, size: int) -> np.ndarray:
+        """:meth:`_launch`'s kernel with every argument a Taichi ndarray in device memory (a NumPy argument of a
         CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
         previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
-        positions and coefficients at each launch, and only the outputs ``want`` asks for copied back. The device
-        arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree."""
+        positions and coefficients at each launch, and the ``size`` entries of the packed output ``want`` asks for
+        copied back in one copy, into a new host array (of the device array's length; only those entries
+        written) returned. The device arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction
+        where the shapes agree (the packed output grows only)."""
         device = _ARRAYS.device()
         x, x_prev, vertices, weights, tangent, coefficient = arrays
-        args = (on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
-                on_device(device, "vertices", vertices), on_device(device, "weights", weights),
-                on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient))
-        outputs = (on_device(device, "energy", self._energy, scratch=True),
-                   on_device(device, "grad", grad, scratch=True) if want & _GRADIENT
-                   else on_device(device, "no_grad", _UNUSED_GRADIENT, scratch=True),
-                   on_device(device, "blocks", blocks, scratch=True) if want & _HESSIAN
-                   else on_device(device, "no_blocks", _UNUSED_BLOCKS, scratch=True))
-        _friction_kernel(*args, self.eps_u, want, *outputs)
-        if want & _GRADIENT:
-            download(outputs[1], grad)
-        if want & _HESSIAN:
-            download(outputs[2], blocks)
-        if want & _ENERGY:
-            download(outputs[0], self._energy)
-        return float(self._energy[0])
+        p, m = self.vertices.shape
+        packed = on_device(device, "packed", _ARRAYS.rows("packed", packed_size(len(self._own), p, m, _HESSIAN)),
+                           scratch=True)
+        _friction_kernel(on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
+                         on_device(device, "vertices", vertices), on_device(device, "weights", weights),
+                         on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient),
+                         self.eps_u, want, packed)
+        return copy_back(np.empty(tuple(packed.shape)), packed, size)
 
     def _device_coefficients(self, device: dict, coefficient: np.ndarray):
         """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
@@ -244,6 +312,78 @@ class TiLaggedFriction(LaggedFriction):
             return on_device(device, "coefficient", coefficient, refresh=True)
         return on_device(device, "coefficient", coefficient)
 
+    def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
+        """Add :meth:`gradient` at ``x`` (N) into the Taichi ndarray ``gradient_device``; the energy (J) returned
+        (capability :class:`~sim_core.energies.base.DeviceGradient`).
+
+        One launch of :func:`_friction_at_device_positions`: the pairs' vertices' positions read from ``x_device``
+        (no upload of positions), energy, gradient rows and Hessian blocks in the same sums as :meth:`gradient`'s
+        launch, the rows added at their vertices into ``gradient_device``; then the energy read back. The rows and
+        blocks stay where the kernel wrote them (device memory on CUDA), kept for ``x``
+        (:func:`~sim_core.energies.base.positions_key`) and the current coefficients and ``eps_u`` until this
+        thread's next evaluation here: :meth:`energy`, :meth:`gradient`, :meth:`gradient_rows`, :meth:`hessian` and
+        :meth:`hessian_on_device` at ``x`` read them, and a second call at ``x`` adds the kept rows again (a launch
+        of the last loop only).
+
+        Args:
+            x: positions ``(n, 3)`` (m), the key of the kept evaluation.
+            x_device: the same positions, a float64 Taichi ndarray ``(n, 3)``, only read.
+            gradient_device: a float64 Taichi ndarray ``(n, 3)``, the gradient added into it.
+
+        Raises:
+            ValueError: ``x_device`` or ``gradient_device`` is not of ``x``'s shape.
+        """
+        shape = same_shapes("TiLaggedFriction.add_gradient_on_device", x, x_device, gradient_device)
+        p, m = self.vertices.shape
+        if not p:
+            return 0.0
+        arrays = self._constant_arrays(shape[0])
+        device = _ARRAYS.device()
+        kept = self._device_record(x, arrays[-1])
+        u = len(self._own)
+        x_own = on_device(device, "at_x", _ARRAYS.rows("at_x", u, (3,)), scratch=True)
+        grad_own = on_device(device, "at_grad", _ARRAYS.rows("at_grad", u, (3,)), scratch=True)
+        name = f"at_blocks_{m}"  # (the kept arrays grow in rows only: one per block size)
+        blocks = on_device(device, name, _ARRAYS.rows(name, p, (3 * m, 3 * m)), scratch=True)
+        energy = on_device(device, "at_energy", self._energy, scratch=True)
+        _friction_at_device_positions(
+            x_device, on_device(device, "own", self._own_index), x_own, on_device(device, "x_prev", arrays[1]),
+            on_device(device, "vertices", arrays[2]), on_device(device, "weights", arrays[3]),
+            on_device(device, "tangent", arrays[4]), self._device_coefficients(device, arrays[-1]), self.eps_u,
+            int(kept is None), energy, grad_own, blocks, gradient_device)
+        if kept is not None:
+            return kept[3]
+        copy_back(self._energy, energy)
+        token = device["at_owner"] = object()  # the thread's arrays now hold this evaluation
+        workspace_of(self).put(self, "at_device", (positions_key(x), arrays[-1].copy(), self.eps_u,
+                                                   float(self._energy[0]), token, grad_own, blocks))
+        return float(self._energy[0])
+
+    def _device_record(self, x: np.ndarray, coefficient: np.ndarray | None = None) -> tuple | None:
+        """The kept :meth:`add_gradient_on_device` evaluation ``(key, coefficients, eps_u, energy, token, rows,
+        blocks)`` when it is of ``x``, the current coefficients ``coefficient`` (None: computed here) and ``eps_u``,
+        and this thread's arrays still hold it; else None."""
+        kept = workspace_of(self).get(self, "at_device")
+        if kept is None or kept[4] is not _ARRAYS.device().get("at_owner") or kept[2] != self.eps_u \
+                or kept[0] != positions_key(x):
+            return None
+        if coefficient is None:
+            coefficient = np.multiply(self.mu, self.lam)
+        return kept if np.array_equal(kept[1], coefficient) else None
+
+    def _device_rows(self, kept: tuple) -> np.ndarray:
+        """The gradient rows ``(u, 3)`` (N) of the kept device evaluation ``kept``, a new host array."""
+        return _host_rows(kept[5], len(self._own))
+
+    def hessian_on_device(self, x: np.ndarray) -> DeviceHessianBlocks | None:
+        """The blocks of :meth:`hessian` at ``x`` left in device memory by :meth:`add_gradient_on_device` (capability
+        :class:`~sim_core.energies.base.DeviceHessian`; PSD by construction, so every projection's), or None where
+        they are not there (no such evaluation of ``x`` kept, or the kernels ran on host arrays)."""
+        kept = self._device_record(x) if self.vertices.shape[0] else None
+        if kept is None or isinstance(kept[6], np.ndarray):
+            return None
+        return DeviceHessianBlocks(self.vertices, DeviceRows(kept[6], 0, self.vertices.shape[0]))
+
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Energy, gradient and Hessian blocks at ``x`` ``(n, 3)`` (m) in one launch, kept in the
         workspace (:mod:`sim_core.workspace`) for :meth:`energy` and the next :meth:`gradient` (and, through it, :meth:`hessian`) at equal
@@ -253,8 +393,7 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        blocks = np.empty((p, 3 * m, 3 * m))
-        energy, grad = self._launch_gradient(arrays, _ENERGY | _GRADIENT | _HESSIAN, blocks)
+        energy, grad, blocks = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
@@ -266,11 +405,14 @@ class TiLaggedFriction(LaggedFriction):
         """Friction dissipation potential in J."""
         if self.vertices.shape[0] == 0:
             return 0.0
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return at_device[3]
         arrays = self._kernel_arrays(x)
         kept = self._kept(arrays)
         if kept is not None:
             return kept[3]
-        return self._launch(arrays, _ENERGY)
+        return self._launch(arrays, _ENERGY)[0]
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
@@ -291,6 +433,9 @@ class TiLaggedFriction(LaggedFriction):
         p, m = self.vertices.shape
         if not p:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return self._own, self._device_rows(at_device)
         arrays = self._kernel_arrays(x)
         workspace = workspace_of(self)
         again = workspace.take(self, "gradient")
@@ -302,8 +447,7 @@ class TiLaggedFriction(LaggedFriction):
             workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
             workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
             return self._own, kept[4]
-        blocks = np.empty((p, 3 * m, 3 * m))
-        own_grad = self._launch_gradient(arrays, _GRADIENT | _HESSIAN, blocks)[1]
+        _, own_grad, blocks = self._launch(arrays, _GRADIENT | _HESSIAN)
         kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
         workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
         return self._own, own_grad
@@ -319,17 +463,27 @@ class TiLaggedFriction(LaggedFriction):
         p, m = self.vertices.shape
         if p == 0:
             return HessianBlocks.empty(m)
+        at_device = self._device_record(x)
+        if at_device is not None:
+            return HessianBlocks(self.vertices, _host_rows(at_device[6], p))
         arrays = self._kernel_arrays(x)
         kept = workspace_of(self).take(self, "hessian")
         if kept is not None and self._matches(kept, arrays):
             return HessianBlocks(self.vertices, kept[3])
-        blocks = np.empty((p, 3 * m, 3 * m))
-        self._launch(arrays, _HESSIAN, blocks=blocks)
-        return HessianBlocks(self.vertices, blocks)
+        return HessianBlocks(self.vertices, self._launch(arrays, _HESSIAN)[2])
+
+
+def _host_rows(array, rows: int) -> np.ndarray:
+    """The first ``rows`` rows of ``array`` (a kept host array, or its device copy: a Taichi ndarray) as a new
+    host array."""
+    if isinstance(array, np.ndarray):
+        return array[:rows].copy()
+    return copy_back(np.empty(tuple(array.shape)), array, rows)[:rows]
 
 
 def compile_kernels() -> None:
-    """JIT-compile (or load from Taichi's offline cache) the kernel on one pair (every request).
+    """JIT-compile (or load from Taichi's offline cache) the kernels on one pair (every request, and the device
+    positions' kernel).
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
@@ -342,3 +496,5 @@ def compile_kernels() -> None:
     friction.hessian(x + 1e-4)  # the blocks kept by the gradient
     friction.hessian(x + 1e-4)  # the Hessian kernel
     friction.keep_derivatives(x + 2e-4)  # energy, gradient and Hessian in one launch
+    y = x + 3e-4
+    friction.add_gradient_on_device(y, upload(new_ndarray(ti.f64, y.shape), y), new_ndarray(ti.f64, y.shape))

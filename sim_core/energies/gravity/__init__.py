@@ -1,6 +1,7 @@
 """Gravity: ``E = - sum_i m_i g . x_i``.
 
-- ``reference.py``: :class:`GravityPotential` in NumPy (no Taichi kernel: linear, no Hessian).
+- ``reference.py``: :class:`GravityPotential` in NumPy (linear, no Hessian).
+- ``kernel.py``: ``TiGravityPotential``, its constant gradient added into a device array (imports Taichi).
 """
 
 from __future__ import annotations

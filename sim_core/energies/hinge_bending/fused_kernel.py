@@ -36,12 +36,11 @@ _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linal
 @summing_kernel
 def weighted_hinge_energy(x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, weight: _F64_1, energy: _F64_1):
     """``sum_h weight_h (theta_h - theta_bar_h)^2`` in J."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
-        energy[0] += weight[h] * d * d
+        energy[h % energy.shape[0]] += weight[h] * d * d
 
 
 @summing_kernel
@@ -51,13 +50,12 @@ def weighted_hinge_energy_gradient_hessian(
 ):
     """Energy (J, returned); adds the gradient (N) to ``grad`` ``(n, 3)`` and the exact Hessian (N/m)
     to ``values`` at ``slots[h, r, s]`` (``(h, 12, 12)``, -1 = not stored; module docstring)."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         d = _dihedral_angle(x0, x1, x2, x3) - theta_bar[h]
         w = weight[h]
-        energy[0] += w * d * d
+        energy[h % energy.shape[0]] += w * d * d
         g = _theta_gradient(x0, x1, x2, x3)
         f = 2.0 * w * d
         for a in ti.static(range(4)):

@@ -83,12 +83,11 @@ def kirchhoff_energy(
     for h in range(hinges.shape[0]):
         x0, x1, x2, x3 = _hinge_positions(x, hinges, h)
         scratch[h, 0] = _dihedral_angle(x0, x1, x2, x3)
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         for k, l in ti.static(ti.ndrange(3, 3)):
-            energy[0] += d[k] * stiffness[t, k, l] * d[l]
+            energy[t % energy.shape[0]] += d[k] * stiffness[t, k, l] * d[l]
 
 
 @summing_kernel
@@ -113,7 +112,6 @@ def kirchhoff_energy_gradient_hessian(
         g = _theta_gradient(x0, x1, x2, x3)
         for r in ti.static(range(12)):
             scratch[h, 2 + r] = g[r]
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tri_hinge.shape[0]):
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
@@ -121,7 +119,7 @@ def kirchhoff_energy_gradient_hessian(
         for k, l in ti.static(ti.ndrange(3, 3)):
             M[k, l] = stiffness[t, k, l]
         Md = M @ d
-        energy[0] += d.dot(Md)
+        energy[t % energy.shape[0]] += d.dot(Md)
         G = ti.Matrix.zero(ti.f64, 3, 18)
         has_hinge = ti.Vector([1, 1, 1, 0, 0, 0])  # per block vertex: in some hinge of the triangle
         for k in ti.static(range(3)):

@@ -63,16 +63,15 @@ def spring_membrane_energy(
     energy: _F64_1,
 ):
     """Energy in J (module docstring)."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
         l = (linalg.row3(x, edges[e, 1]) - linalg.row3(x, edges[e, 0])).norm()
-        energy[0] += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
+        energy[e % energy.shape[0]] += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         x0 = linalg.row3(x, triangles[t, 0])
         A = 0.5 * (linalg.row3(x, triangles[t, 1]) - x0).cross(linalg.row3(x, triangles[t, 2]) - x0).norm()
-        energy[0] += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
+        energy[t % energy.shape[0]] += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
 
 
 @ti.func
@@ -141,7 +140,6 @@ def spring_membrane_energy_gradient_hessian(
     """Energy (J, returned); adds the gradient (N) to ``grad`` (n, 3) and the exact Hessian (N/m)
     to ``values`` through the packed upper slot table ``upper`` (rows: triangles, then edges; 45
     entries of the 9x9 blocks, :func:`~sim_core.ti_kernels.block_projection.upper_slot_table`)."""
-    energy[0] = 0.0
     t_count = triangles.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for e in range(edges.shape[0]):
@@ -149,7 +147,7 @@ def spring_membrane_energy_gradient_hessian(
         vb = edges[e, 1]
         u, l, f1, f2 = _edge_terms(x, edges, length0, k_length, e)
         l0 = length0[e]
-        energy[0] += k_length * (1.0 - l / l0) ** 2 * l0
+        energy[e % energy.shape[0]] += k_length * (1.0 - l / l0) ** 2 * l0
         for i in ti.static(range(3)):
             grad[vb, i] += f1 * u[i]
             grad[va, i] -= f1 * u[i]
@@ -158,7 +156,7 @@ def spring_membrane_energy_gradient_hessian(
     for t in range(t_count):
         A, g1, g2, n_norm, K, W, dA = _triangle_terms(x, triangles, area0, k_area, t)
         A0 = area0[t]
-        energy[0] += k_area * (1.0 - A / A0) ** 2 * A0
+        energy[t % energy.shape[0]] += k_area * (1.0 - A / A0) ** 2 * A0
         for i in ti.static(range(3)):
             for a in ti.static(range(3)):
                 grad[triangles[t, a], i] += g1 * dA[a][i]

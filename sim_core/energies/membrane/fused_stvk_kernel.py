@@ -57,12 +57,11 @@ def _stress(F, mu, lam):
 def stvk_energy(x: _F64_2, triangles: _I32_2, shape_gradient: _F64_3, weight: _F64_1, mu: ti.f64,
                 lam: ti.f64, energy: _F64_1):
     """Membrane energy in J."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, _ = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, _S = _stress(F, mu, lam)
-        energy[0] += weight[t] * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
+        energy[t % energy.shape[0]] += weight[t] * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
 
 
 @summing_kernel
@@ -72,13 +71,12 @@ def stvk_energy_gradient_hessian(
     energy: _F64_1,
 ):
     """Energy (J, returned); adds the gradient (N) to ``grad`` and the exact Hessian (N/m) to ``values``."""
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(triangles.shape[0]):
         F, D = _triangle_state(x, triangles, shape_gradient, t)
         G, tr, S = _stress(F, mu, lam)
         w = weight[t]
-        energy[0] += w * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
+        energy[t % energy.shape[0]] += w * (mu * (G * G).sum() + 0.5 * lam * tr * tr)
         PD = F @ S @ D.transpose()  # PD[d, a] = (F S D_a)_d
         for a in ti.static(range(3)):
             v = triangles[t, a]

@@ -68,11 +68,10 @@ def _psi(I_C, J, mu, lam, alpha):
 def snh_energy(x: _F64_2, tets: _I32_2, dFdx: _F64_3, vol: _F64_1, mu: ti.f64, lam: ti.f64, energy: _F64_1):
     """``sum_t V_t psi(F_t)`` in J."""
     alpha = 1.0 + 0.75 * mu / lam
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, _ = _tet_state(x, tets, dFdx, t)
-        energy[0] += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
+        energy[t % energy.shape[0]] += vol[t] * _psi((F * F).sum(), F.determinant(), mu, lam, alpha)
 
 
 @ti.func
@@ -107,7 +106,6 @@ def snh_energy_gradient_hessian(
     (:func:`~sim_core.ti_kernels.block_projection.upper_slot_table`; module docstring). Corners
     without a free DoF are skipped (their entries are not stored)."""
     alpha = 1.0 + 0.75 * mu / lam
-    energy[0] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for t in range(tets.shape[0]):
         F, G = _tet_state(x, tets, dFdx, t)
@@ -115,7 +113,7 @@ def snh_energy_gradient_hessian(
         J = F.determinant()
         cof = linalg.cofactor(F)
         V = vol[t]
-        energy[0] += V * _psi(I_C, J, mu, lam, alpha)
+        energy[t % energy.shape[0]] += V * _psi(I_C, J, mu, lam, alpha)
         mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
         stretch = lam * (J - alpha)
         P = mu_t * F + stretch * cof

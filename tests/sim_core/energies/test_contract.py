@@ -102,17 +102,42 @@ EXPECTED_CAPABILITIES = {
     HingeBending: {"DiscreteShellBending", "KirchhoffBending"},
     ElasticEquivalent: {"MaxwellBranch"},
     SubsetHessian: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact"},
-    DeviceHessian: set(),  # the Taichi pair potentials (*kernel modules, not scanned: test_contact_batch.py)
+    DeviceHessian: set(),  # the Taichi terms only (*kernel modules, not scanned: TAICHI_CAPABILITIES)
     # and the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
     SparseGradient: {"GravityPotential"},
-    DeviceGradient: set(),  # Taichi terms only (the fused elastic terms, the *kernel modules: not scanned)
+    DeviceGradient: set(),  # the Taichi terms only (TAICHI_CAPABILITIES)
 }
+
+TAICHI_CAPABILITIES = {
+    DeviceHessian: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
+                    "sim_core.energies.contact.kernel.TiVertexTriangleContact",
+                    "sim_core.energies.friction.kernel.TiLaggedFriction"},
+    DeviceGradient: {"sim_core.energies.contact.kernel._Batched", "sim_core.energies.contact.kernel.TiEdgeEdgeContact",
+                     "sim_core.energies.contact.kernel.TiVertexTriangleContact", "sim_core.fused_elastic.FusedElastic",
+                     "sim_core.energies.friction.kernel.TiLaggedFriction",
+                     "sim_core.energies.gravity.kernel.TiGravityPotential"},
+}
+"""The classes of the Taichi modules (the energies' and candidates' ``*kernel`` modules and
+:mod:`sim_core.fused_elastic`) that declare the device capabilities (the lockstep batch's device-resident path)."""
 
 
 @pytest.mark.parametrize("protocol", CAPABILITIES, ids=lambda p: p.__name__)
 def test_capabilities_are_declared_by_the_potentials_that_have_them(protocol):
     have = {c.__name__ for c in POTENTIAL_CLASSES if _declares(c, protocol)}
     assert have == EXPECTED_CAPABILITIES[protocol]
+
+
+@pytest.mark.parametrize("protocol", list(TAICHI_CAPABILITIES), ids=lambda p: p.__name__)
+def test_the_taichi_terms_that_declare_the_device_capabilities(protocol):
+    """A scan of the Taichi modules (importing them needs no Taichi runtime) finds the listed declarers."""
+    modules = [importlib.import_module("sim_core.fused_elastic")]
+    for package in PACKAGES:
+        modules += [importlib.import_module(info.name) for info in pkgutil.walk_packages(package.__path__,
+                                                                                          package.__name__ + ".")
+                    if info.name.endswith("kernel")]
+    have = {f"{module.__name__}.{name}" for module in modules for name, cls in vars(module).items()
+            if inspect.isclass(cls) and cls.__module__ == module.__name__ and _declares(cls, protocol)}
+    assert have == TAICHI_CAPABILITIES[protocol]
 
 
 def test_isinstance_checks_capabilities_of_instances():

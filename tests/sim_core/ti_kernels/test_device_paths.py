@@ -36,7 +36,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
     from sim_core.ti_backend import ti
 
     # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
-    for module, names in ((friction_kernel, {"x", "x_prev", "coefficient", "grad", "blocks"}),
+    for module, names in ((friction_kernel, {"x", "x_prev", "coefficient", "packed"}),
                           (batch_kernel, {"pair_rows", "d", "region", "gradients"}),
                           (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
         kept = module._ARRAYS.device()

@@ -296,3 +296,34 @@ def test_deferred_sums_are_the_plain_calls_sums_in_launch_order(ti_cpu):
         assert all(np.isnan(r) for r in returned)
         assert sums.values() == plain
         assert summed(x, w) == plain[0]  # outside a block: the plain call again
+
+
+def test_summing_kernel_cells_spread_the_sum_and_are_zeroed_before_each_launch(ti_cpu):
+    """A kernel that adds element ``k`` at cell ``k % cells`` and does not zero its cells returns the sum of its
+    terms, again at a second call and inside a ``DeferredSums`` block after another kernel used the same cells
+    (one cell in loop order on the CPU: bit for bit; ``SUM_CELLS`` cells on a GPU)."""
+    from sim_core.ti_backend import serial_loops
+    from sim_core.ti_kernels.launch import DeferredSums, summing_kernel
+
+    def spread(x: _F64_1, energy: _F64_1):
+        ti.loop_config(serialize=ti.static(serial_loops()))  # serial on the CPU, parallel on a GPU
+        for k in range(x.shape[0]):
+            energy[k % energy.shape[0]] += x[k] * x[k]
+
+    summed = summing_kernel(spread)
+    rng = np.random.default_rng(9)
+    sums = DeferredSums()
+    for n in (3, 5000):
+        x, y = rng.normal(size=n), rng.normal(size=n)
+        in_order = 0.0
+        for k in range(n):
+            in_order += x[k] * x[k]
+        assert_same_sums(summed(x), in_order, rel=1e-14)
+        assert_same_sums(summed(x), in_order, rel=1e-14)  # the cells zeroed again, not added to
+        with sums:
+            summed(y)
+            summed(x)
+        assert_same_sums(sums.values()[1], in_order, rel=1e-14)
+        with sums:  # the block's cells again, zeroed
+            summed(x)
+        assert_same_sums(sums.values()[0], in_order, rel=1e-14)

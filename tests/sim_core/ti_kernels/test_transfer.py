@@ -61,3 +61,22 @@ def test_on_device_with_changed_copies_only_new_contents(ti_cpu, monkeypatch):
     dev[0] = 99  # without ``changed`` every call copies
     on_device(kept, "rows", host, refresh=True)
     assert dev[0] == host[0]
+
+
+def test_add_into_adds_an_ndarray_or_a_numpy_array_entry_by_entry(ti_cpu):
+    """``add_into`` is ``array + values`` bit for bit (one addition an entry), from an ndarray or a NumPy array; it
+    refuses another shape or rank."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.transfer import add_into, download, upload
+
+    rng = np.random.default_rng(8)
+    for shape in ((7, 3), (4, 12)):
+        base, first, second = (rng.normal(size=shape) for _ in range(3))
+        dev = upload(ti.ndarray(ti.f64, shape=shape), base)
+        assert add_into(dev, upload(ti.ndarray(ti.f64, shape=shape), first)) is dev
+        add_into(dev, second)
+        assert np.array_equal(download(dev), (base + first) + second)
+    with pytest.raises(ValueError, match=r"add_into: values of shape \(3, 7\) for an ndarray of shape \(7, 3\)"):
+        add_into(ti.ndarray(ti.f64, shape=(7, 3)), np.zeros((3, 7)))
+    with pytest.raises(ValueError, match=r"add_into: an ndarray of rank 2 is needed; got shape \(21,\)"):
+        add_into(ti.ndarray(ti.f64, shape=(21,)), np.zeros(21))
