@@ -32,7 +32,7 @@ from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
-from sim_core.energies.contact.pair_lists import CandidateVertices
+from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, merge_rows
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -148,7 +148,8 @@ class ContactSet:
         self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
-    def _pairs(self, x: np.ndarray, memory: CollisionMemory) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
+    def _pairs(self, x: np.ndarray, memory: CollisionMemory, x_device=None
+               ) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
         """Contact potentials over the candidate pairs valid at ``x``.
 
         Candidates are searched with radius ``eps + margin`` and reused while no two elements that
@@ -160,7 +161,7 @@ class ContactSet:
         a little ahead of ``x`` along the step's motion (:meth:`_search_position`), so that it
         usually covers the next step's first iterates too.
         """
-        candidates = self._without_held_pairs(self._candidate_pairs(x), x, memory)
+        candidates = self._without_held_pairs(self._candidate_pairs(x, x_device), x, memory)
         cache = getattr(self, "_cache", None)
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             # the step's potentials over these candidates (same pairs, sides and class): reused, not
@@ -182,7 +183,7 @@ class ContactSet:
         """Positions ``(n, 3)`` (m) of the last broad-phase search (None before the first one)."""
         return None if self._candidates is None else self._candidates[0]
 
-    def covers(self, x_search: np.ndarray | None, x: np.ndarray) -> bool:
+    def covers(self, x_search: np.ndarray | None, x: np.ndarray, x_device=None) -> bool:
         """Whether candidates searched at ``x_search`` still hold every pair within ``eps`` at ``x``.
 
         The search lists the element pairs whose bounding boxes come within ``eps + margin`` on
@@ -204,9 +205,18 @@ class ContactSet:
         next call with the same two objects (a Newton iterate's gradient and energy ask twice: half of the
         calls of a lockstep batch, each reading all copies' positions).
 
+        With ``x_device`` (on a Taichi backend) the displacements are bounded where that array is
+        (:class:`~sim_core.ti_kernels.displacement_bounds.DisplacementBounds`: two launches, one small array read
+        back, the search positions sent once per search) instead of reading ``x`` on the host; the same answer.
+
         Args:
             x_search: positions of the search ``(n, 3)`` (m) or None (no search yet: False).
             x: positions ``(n, 3)`` (m); NaN gives False.
+            x_device: ``x`` as a float64 Taichi ndarray ``(n, 3)`` (m; device memory on CUDA), or None (the host's
+                ``x`` is read). Ignored off the Taichi backends.
+
+        Raises:
+            ValueError: ``x_device`` not of ``x``'s shape.
         """
         if x_search is None or x_search.shape != x.shape:
             return False
@@ -215,9 +225,13 @@ class ContactSet:
         kept = self._covered
         if kept is not None and kept[0] is x_search and kept[1] is x:
             return kept[2]
-        moved = x - x_search
-        # max |moved| (NaN: False), no |moved| array; else the general test
-        answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
+        if x_device is not None and self.taichi:
+            high, low, largest = self._displacement_bounds(x_search, x_device)
+            answer = bool(largest <= 0.5 * self.margin) or self._closing_holds(high, low)
+        else:
+            moved = x - x_search
+            # max |moved| (NaN: False), no |moved| array; else the general test
+            answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
         if _frozen(x_search) and _frozen(x):
             self._covered = (x_search, x, answer)
         return answer
@@ -229,16 +243,33 @@ class ContactSet:
         if starts.size == 0:
             return True
         high = np.maximum.reduceat(moved, starts, axis=0)  # (bodies, 3): per body and axis
-        low = np.minimum.reduceat(moved, starts, axis=0)
+        return self._closing_holds(high, np.minimum.reduceat(moved, starts, axis=0))
+
+    def _closing_holds(self, high: np.ndarray, low: np.ndarray) -> bool:
+        """:meth:`_gaps_hold` from the largest and smallest displacements ``(bodies, 3)`` (m) per body segment and
+        axis (NaN: False)."""
+        if high.size == 0:
+            return True
         # [A, B]: A's top moving up to B's bottom; the allowed pairs are symmetric, so [B, A] is read too
         closing = np.max(high[:, None, :] - low[None, :, :], axis=2)
         pairs = self._segment_pairs
         return bool(not pairs.any() or np.max(closing[pairs]) <= self.margin)  # NaN: False
 
-    def _candidate_pairs(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`)."""
+    def _displacement_bounds(self, x_search: np.ndarray, x_device) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(high, low, largest)`` of ``x_device - x_search`` per body segment (:meth:`covers`), on the device."""
+        bounds = getattr(self, "_bounds", None)
+        if bounds is None or bounds.n != len(x_search):
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only
+            from sim_core.ti_kernels.displacement_bounds import DisplacementBounds
+
+            bounds = self._bounds = DisplacementBounds(len(x_search), self._segment_starts)
+        return bounds(x_search, x_device, kept=_frozen(x_search))
+
+    def _candidate_pairs(self, x: np.ndarray, x_device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`;
+        ``x_device``: :meth:`covers`')."""
         found = self._candidates
-        if found is not None and self.covers(found[0], x):
+        if found is not None and self.covers(found[0], x, x_device):
             return found
         x_search = self._search_position(x)
         search = self._grouped_search()
@@ -331,12 +362,18 @@ class ContactSet:
         covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
         ``lookahead = 0`` the search is at ``x``. The array is read-only (:attr:`search_position`).
         """
-        x = np.array(x, dtype=float, copy=True)
+        x = np.asarray(x, dtype=float)
         if not (0.0 <= self.lookahead_cap <= 0.5):
             raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
         if self.x_prev is not None and self.x_prev.shape == x.shape and self.lookahead != 0.0:
             cap = self.lookahead_cap * self.margin
-            x = x + np.clip(self.lookahead * (x - self.x_prev), -cap, cap)
+            ahead = np.subtract(x, self.x_prev)  # in place from here: one new array of the stacked positions
+            ahead *= self.lookahead
+            np.clip(ahead, -cap, cap, out=ahead)
+            ahead += x
+            x = ahead
+        else:
+            x = np.array(x, dtype=float, copy=True)
         x.flags.writeable = False  # frozen: covers() keeps its answers for it
         return x
 
@@ -458,8 +495,8 @@ class ContactSet:
         if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
             vt_pos, ee_pos = vt_active, cache[3][ee_active]
         else:
-            vt_pos, vt_found = self._lookup((vt_list, None), vt.pairs[vt_active])
-            ee_pos, ee_found = self._lookup((ee_list, None), ee.pairs[ee_active])
+            vt_pos, vt_found = lookup_pairs((vt_list, None), vt.pairs[vt_active])
+            ee_pos, ee_found = lookup_pairs((ee_list, None), ee.pairs[ee_active])
             if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
                 return self._pair_geometry(x, *self._pair_vertices(vt.pairs[vt_active], ee.pairs[ee_active]))
         return PairGeometry(geo.vt_above[vt_pos], geo.vt_side[vt_pos], geo.ee_sine[ee_pos], geo.ee_interior[ee_pos],
@@ -482,37 +519,6 @@ class ContactSet:
         ee_sides = self._step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge)
         return vt_sides, keep, ee_sides
 
-    @staticmethod
-    def _lookup(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(pos, found)`` of ``pairs`` ``(p, 2)`` in ``old`` (``(old pairs, old arrays)`` of the same
-        step, sorted: candidate lists are sorted): rows ``pos`` of the old arrays hold the pairs
-        ``found`` (bool ``(p,)``)."""
-        if old is None or not len(old[0]) or not len(pairs):
-            return np.zeros(len(pairs), dtype=np.int64), np.zeros(len(pairs), dtype=bool)
-        old_pairs = old[0]
-        keys = (pairs[:, 0] << 32) | pairs[:, 1]
-        old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]
-        pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-        return pos, old_keys[pos] == keys
-
-    @staticmethod
-    def _merge(old: tuple | None, pos: np.ndarray, found: np.ndarray, fresh: tuple) -> tuple:
-        """Per-pair arrays over a pair list: the rows ``found`` taken from ``old`` (:meth:`_lookup`),
-        the others from ``fresh`` (computed for the pairs not found, in order): the per-pair results
-        do not depend on which other pairs are in the list."""
-        if not np.any(found):
-            return fresh
-        old_values = old[1]
-        if np.all(found):
-            return tuple(v[pos] for v in old_values)
-        out = []
-        for v, f in zip(old_values, fresh):
-            merged = np.empty(len(found), dtype=v.dtype)
-            merged[found] = v[pos[found]]
-            merged[~found] = f
-            out.append(merged)
-        return tuple(out)
-
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
         step's previous candidate lists are taken from there (same values, computed once), those of
@@ -524,14 +530,14 @@ class ContactSet:
         table = getattr(self, "_step_table", None)
         if table is None or table[0] is not memory or table[1] is not x_ref or self.x_prev is None:
             table = (memory, x_ref, None, None)
-        vt_pos, vt_found = self._lookup(table[2], vt)
-        ee_pos, ee_found = self._lookup(table[3], ee)
+        vt_pos, vt_found = lookup_pairs(table[2], vt)
+        ee_pos, ee_found = lookup_pairs(table[3], ee)
         if np.all(vt_found) and np.all(ee_found):  # nothing new (an empty list included)
             fresh = (np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0))
         else:
             fresh = self._pair_sides(x_ref, memory, _unfound(vt, vt_found), _unfound(ee, ee_found))
-        (vt_sides,) = self._merge(table[2], vt_pos, vt_found, fresh[:1])
-        keep, ee_sides = self._merge(table[3], ee_pos, ee_found, fresh[1:])
+        (vt_sides,) = merge_rows(table[2], vt_pos, vt_found, fresh[:1])
+        keep, ee_sides = merge_rows(table[3], ee_pos, ee_found, fresh[1:])
         self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
@@ -605,9 +611,10 @@ class ContactSet:
             self._cache = None  # the next potentials() builds the pairs again, with these sides at 0
         return count
 
-    def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory) -> list:
-        """Contact potentials for the candidates near iterate ``x`` (planes and spheres included)."""
-        vt, ee = self._pairs(x, memory)
+    def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory, x_device=None) -> list:
+        """Contact potentials for the candidates near iterate ``x`` ``(n, 3)`` (m; planes and spheres included);
+        ``x_device``: ``x`` as a float64 Taichi ndarray ``(n, 3)``, where :meth:`covers` then reads it, or None."""
+        vt, ee = self._pairs(x, memory, x_device)
         return [vt, ee] + [p for _, p in self.planes] + [p for _, p in self.spheres]
 
     def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory,

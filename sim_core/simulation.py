@@ -1,7 +1,7 @@
 """Simulation: the facade that the ROS node, the CLI and system identification drive.
 
-It owns a Model, a NewtonSolver and the current State, and turns the state into observations
-(effector poses, tactile readings, sheet points) following INTERFACES.md.
+It owns a Model, a NewtonSolver (built at its first use) and the current State, and turns the state into
+observations (effector poses, tactile readings, sheet points) following INTERFACES.md.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import numpy as np
 
 from sim_core.control import Control
 from sim_core.model import Model
+from sim_core.backend import resolve_backend
 from sim_core.scenes import load_scene
 from sim_core.sensors.tactile import read_tactile
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo, StepTotals
@@ -41,10 +42,18 @@ class Observation(NamedTuple):
 class Simulation:
     """Model + solver + state.
 
+    The :class:`NewtonSolver` is built at the first read of :attr:`solver` (a step, a warm-up, a caller's read):
+    a copy of a lockstep batch (:class:`~sim_core.batch.BatchedSimulation`), which a stacked solver steps, never
+    builds one. The backend is resolved at construction all the same (Taichi initialised, a backend that cannot
+    start refused); an unknown linear solver name is refused when the solver is built.
+
     Args:
         model: the scene model.
         dt: time step in s (default: the scene's ``dt`` in ``model.meta``, else 5 ms).
-        solver_config: Newton settings.
+        solver_config: Newton settings (default ``SolverConfig()``).
+
+    Raises:
+        ConfigError: ``solver_config.backend`` cannot start here (:func:`sim_core.backend.resolve_backend`).
 
     Attributes:
         last_info: the :class:`StepInfo` of the last step (None before one).
@@ -55,7 +64,9 @@ class Simulation:
     def __init__(self, model: Model, dt: float | None = None, solver_config: SolverConfig | None = None) -> None:
         self.model = model
         self.dt = float(dt if dt is not None else model.meta.get("dt", 0.005))
-        self.solver = NewtonSolver(model, solver_config)
+        self._solver_config = solver_config or SolverConfig()
+        self._backend = resolve_backend(self._solver_config.backend)
+        self._solver: NewtonSolver | None = None  # built at the first read of .solver
         self.state: State = model.state()
         self.last_info: StepInfo | None = None
         self.step_totals = StepTotals()
@@ -70,6 +81,25 @@ class Simulation:
             ConfigError: invalid scene (the message names the file and key).
         """
         return cls(load_scene(scene), dt=dt, solver_config=solver_config)
+
+    # ------------------------------------------------------------------ solver
+    @property
+    def solver(self) -> NewtonSolver:
+        """The :class:`NewtonSolver` of :attr:`model` with :attr:`solver_config`, built at the first read."""
+        if self._solver is None:
+            self._solver = NewtonSolver(self.model, self._solver_config)
+        return self._solver
+
+    @property
+    def solver_config(self) -> SolverConfig:
+        """The Newton settings (the solver's ``config`` once built), read without building the solver."""
+        return self._solver_config if self._solver is None else self._solver.config
+
+    @property
+    def backend(self) -> str:
+        """The concrete backend of :attr:`solver_config` (``numpy``, ``taichi-cpu`` or ``taichi-cuda``), read
+        without building the solver."""
+        return self._backend if self._solver is None else self._solver.backend
 
     # ------------------------------------------------------------------ stepping
     @property
@@ -96,7 +126,8 @@ class Simulation:
         (:meth:`NewtonSolver.reset_caches`): the same controls then give the same steps bit for bit.
         :attr:`step_totals` start again from zero."""
         self.state = self.model.state()
-        self.solver.reset_caches()
+        if self._solver is not None:  # a solver not built yet has no caches
+            self._solver.reset_caches()
         self.step_totals = StepTotals()
 
     # ------------------------------------------------------------------ parameters
@@ -112,7 +143,8 @@ class Simulation:
     def set_parameter(self, name: str, value: float) -> None:
         """Set a parameter; the solver rebuilds what depends on it before the next step."""
         self.model.set_parameter(name, value)
-        self.solver.notify_model_changed()
+        if self._solver is not None:  # a solver not built yet reads the model when it is
+            self._solver.notify_model_changed()
 
     @property
     def effector_names(self) -> list[str]:

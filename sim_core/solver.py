@@ -93,13 +93,12 @@ class NewtonSolver:
         self._full_from_upper = SymmetricExpansion()  # Newton matrix (upper triangle) -> full symmetric
         # evaluations the potentials' energy, gradient and Hessian calls share (sim_core.workspace)
         self.workspace = Workspace()
-        self.contact = ContactSet(model, backend=self.backend, workspace=self.workspace)
         self._revision = -1
         self._hook = checked_hook(hook)
         self.step_hook: StepHook | None = None
         # Optional worker process for the largest fused elastic term (sim_core.elastic_worker), None = off.
         self.elastic_worker = None
-        self.notify_model_changed()
+        self.notify_model_changed()  # the elastic terms, and the contact set and other caches (_new_caches)
         # Data of the last converged step, kept for the adjoint.
         self.last_record: StepRecord | None = None
         self.last_free_mask: np.ndarray | None = None

@@ -662,35 +662,37 @@ class LockstepEngine:
             if sim.dt != ref.dt:
                 raise ConfigError(f"batch copy {i}: dt {sim.dt:g} s differs from copy 0's {ref.dt:g} s; a lockstep "
                                   f"batch steps every copy by one dt")
-            if sim.solver.config != ref.solver.config:
+            if sim.solver_config != ref.solver_config:
                 raise ConfigError(f"batch copy {i}: solver settings differ from copy 0's; a lockstep batch has one "
                                   f"solver")
         keep_freed_memory()  # the iterations' stacked temporaries reuse the heap (sim_core.batch.heap)
         self.sims = sims
         self.scene = stack_models([s.model for s in sims])
-        self.solver = LockstepSolver(self.scene, ref.solver.config)
+        self.solver = LockstepSolver(self.scene, ref.solver_config)
+        self._fresh = True  # the solver has not stepped since it was built: its caches are empty
         self._revisions = [s.model.revision for s in sims]
         self.state: State | None = None
         self._written: list = [None] * len(sims)
-        self._fresh = True  # the solver has seen no stacked state yet: nothing of its to reset
 
     def _sync(self) -> None:
-        """Rebuild the stacked scene (changed model) and the stacked state (replaced copy state)."""
+        """Rebuild the stacked scene (changed model) and the stacked state (replaced copy state); a new stacked
+        state clears the caches of a solver that has stepped (:meth:`NewtonSolver.reset_caches`; a solver built
+        since has none). The solver is then used: the caller steps or warms it up."""
         from sim_core.batch.stacked import stack_models
 
         revisions = [s.model.revision for s in self.sims]
         if revisions != self._revisions:
             self.scene = stack_models([s.model for s in self.sims])
-            self.solver = LockstepSolver(self.scene, self.sims[0].solver.config)
+            self.solver = LockstepSolver(self.scene, self.sims[0].solver_config)
+            self._fresh = True
             self._revisions = revisions
             self.state = None
-            self._fresh = True
         if self.state is None or any(s.state is not w for s, w in zip(self.sims, self._written)):
             self.state = self.scene.stack_states([s.state for s in self.sims])
             self._written = [s.state for s in self.sims]
-            if not self._fresh:  # a new solver's caches are fresh (another ContactSet: 0.4 s at B = 256, H100 host)
+            if not self._fresh:
                 self.solver.reset_caches()
-            self._fresh = False
+        self._fresh = False
 
     def warm_up(self) -> None:
         """:meth:`NewtonSolver.warm_up` of the stacked solver at the stacked state."""

@@ -15,7 +15,8 @@ Two executions, chosen by the copies' ``SolverConfig.lockstep``:
   and every step is one Newton solve of all copies together (:mod:`sim_core.batch.lockstep`: one
   evaluation per energy term and one linear solve per iteration for all copies; per-copy convergence,
   line search and failure). Each copy's ``Simulation.state`` is written after every step; each copy's
-  states are those of its separate run to the Newton tolerance. The copies' own solvers are not used.
+  states are those of its separate run to the Newton tolerance. The copies' own solvers are not used (nor built:
+  :attr:`Simulation.solver <sim_core.simulation.Simulation.solver>` is built at its first read).
 
 Sequential execution in detail: Each copy's step is exactly what a
 separate :class:`~sim_core.simulation.Simulation` of the same model, state and control computes (same
@@ -90,8 +91,8 @@ class BatchedSimulation:
     Args:
         simulations: the copies, each a :class:`Simulation` with its own model and solver (built with
             :meth:`from_model` or by the caller, e.g. one per task episode). Their models must be
-            copies of one scene (:func:`same_topology`), their solvers on one backend, and no two
-            copies may share a model, solver or state object.
+            copies of one scene (:func:`same_topology`), their solver settings on one backend, and no two
+            copies may share a model or state object (each builds its own solver).
         finite_check: treat a step that ends with non-finite positions as a failure (the copy keeps
             its last good state). False leaves such a state in place for the caller to judge (the
             task episodes do, as :func:`sim_core.tasks.rollout.rollout` does).
@@ -116,10 +117,10 @@ class BatchedSimulation:
             why = same_topology(ref.model, sim.model)
             if why is not None:
                 raise ConfigError(f"batch copy {i} is not a copy of copy 0's scene: {why}")
-            if sim.solver.backend != ref.solver.backend:
-                raise ConfigError(f"batch copy {i} runs on backend {sim.solver.backend!r}, copy 0 on "
-                                  f"{ref.solver.backend!r}: a batch runs on one backend")
-        for what in ("model", "solver", "state"):
+            if sim.backend != ref.backend:
+                raise ConfigError(f"batch copy {i} runs on backend {sim.backend!r}, copy 0 on "
+                                  f"{ref.backend!r}: a batch runs on one backend")
+        for what in ("model", "state"):
             ids = [id(getattr(s, what)) for s in sims]
             if len(set(ids)) != len(ids):
                 raise ConfigError(f"batch copies share a {what} object: every copy needs its own")
@@ -127,7 +128,7 @@ class BatchedSimulation:
         self.failures: list[str | None] = [None] * len(sims)
         self.finite_check = bool(finite_check)
         self.lockstep = None
-        if ref.solver.config.lockstep:
+        if ref.solver_config.lockstep:
             from sim_core.batch.lockstep import LockstepEngine
 
             self.lockstep = LockstepEngine(sims)
@@ -179,8 +180,8 @@ class BatchedSimulation:
 
     @property
     def backend(self) -> str:
-        """The concrete backend of every copy (:attr:`NewtonSolver.backend`)."""
-        return self.sims[0].solver.backend
+        """The concrete backend of every copy (:attr:`Simulation.backend <sim_core.simulation.Simulation.backend>`)."""
+        return self.sims[0].backend
 
     @property
     def states(self) -> list[State]:

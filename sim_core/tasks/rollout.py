@@ -135,7 +135,7 @@ class TaskEpisode:
         self.task = task
         self.sim = build_task_simulation(task, params, backend, solver_config, scene_model)
         self._initial = self.sim.state.copy()
-        self._start()  # a new solver's caches are fresh: what reset() clears is not there yet
+        self._start()  # the solver, built at its first use, has no caches yet: nothing for reset() to clear
 
     def reset(self) -> None:
         """Back to the initial state (solver caches cleared)."""

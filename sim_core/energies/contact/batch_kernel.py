@@ -112,12 +112,13 @@ def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
-                  z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2,
-                  active: _I32_1, active_d: _F64_1, active_count: _I32_1):
+                  pack_region: ti.i32, z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3,
+                  gradients: _F64_2, active: _F64_2, active_count: _I32_1):
     """Pairs ``k = rows[i]`` for ``i < count`` (``k < split`` vertex-triangle, else edge-edge): distance
-    ``d[i]`` and region (positions gathered into ``z[i]``); the launch rows ``i`` of the pairs with ``d < eps``
-    (``eps`` of their kind) appended to ``active`` and their distances to ``active_d``, ``active_count[0]`` of
-    them (zeroed first; in no fixed order on a parallel arch, in row order on the CPU's serial loops); with
+    ``d[i]`` and region (positions gathered into ``z[i]``); the pairs with ``d < eps`` (``eps`` of their kind)
+    listed as rows ``[i, d[i]]`` of ``active`` from row 1 on (in no fixed order on a parallel arch, in row order
+    on the CPU's serial loops), their count ``a`` in ``active[0, 0]`` (counted in ``active_count[0]``, zeroed
+    first): the list and its length in one array, read back in one copy; with
     ``derivatives`` the distance gradient
     row ``grad[i]`` and the penalty Hessian row ``hess[i]`` (:func:`_penalty_hessian`, with the
     ``eps`` and ``stiffness`` of their kind) of the pairs with ``d < eps`` (the other rows are left
@@ -126,7 +127,9 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     pairs, ``n = x.shape[0]``; zeroed first, sums in pair order: :func:`_scatter_penalty_gradient`).
     A pair that the bounds of :func:`_may_touch` rule out gets ``d[i] = inf`` and region -1
     (farther than ``eps``: not active, as its distance would say). ``derivatives`` (0 or 1) and the
-    pair kind are runtime values: one compiled kernel for every request."""
+    pair kind are runtime values: one compiled kernel for every request. With ``pack_region`` (and ``derivatives``)
+    the regions are also written, as floats, after the sums: ``gradients[2 n + i // 3, i % 3] = region[i]`` (the
+    array then has those rows), so that one copy back brings both."""
     n = x.shape[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for j in range(derivatives * 2 * n):
@@ -154,28 +157,33 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
                     _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
                     _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
             if d[i] < eps:  # the distance the host keeps (with derivatives: theirs)
-                slot = ti.atomic_add(active_count[0], 1)
-                active[slot], active_d[slot] = i, d[i]
+                slot = ti.atomic_add(active_count[0], 1) + 1
+                active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
         else:
             region[i], d[i] = -1, ti.math.inf
+    for _ in range(1):  # after every pair: the count in the list's first row
+        active[0, 0] = ti.cast(active_count[0], ti.f64)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(pack_region * derivatives * count):
+        gradients[2 * n + i // 3, i % 3] = ti.cast(region[i], ti.f64)
 
 
-def _sorted_found(listed: tuple, listed_arg: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel's list of active pairs (host arrays ``listed`` = ``(rows, distances, count)``, ``listed_arg`` the
-    launch's: the same, or their device copies on CUDA, whose first ``count`` rows are copied back) as ``(rows
-    int64 (a,), distances (a,))`` in increasing row order (on a parallel arch the kernel appends in no fixed
-    order)."""
-    rows, distances, count = listed
-    if listed_arg[2] is not count:
-        copy_back(count, listed_arg[2], 1)
-    a = int(count[0])
-    if listed_arg[0] is not rows and a:
-        copy_back(rows, listed_arg[0], a)
-        copy_back(distances, listed_arg[1], a)
-    if a < 2 or not np.any(rows[1:a] < rows[:a - 1]):  # (the CPU's serial loop lists them in order)
-        return rows[:a].astype(np.int64), distances[:a].copy()
-    order = np.argsort(rows[:a])
-    return rows[:a][order].astype(np.int64), distances[:a][order]
+def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's list of active pairs (``listed`` the host array ``(capacity, 2)``: the count in ``[0, 0]``, rows
+    ``[launch row, distance]`` from row 1 on; ``listed_arg`` the launch's: the same, or its device copy on CUDA, of
+    which the first ``rows_read`` rows are copied back, and the rest of the list after them only when it is longer)
+    as ``(rows int64 (a,), distances (a,))`` in increasing row order (on a parallel arch the kernel appends in no
+    fixed order)."""
+    if listed_arg is not listed:
+        copy_back(listed, listed_arg, min(rows_read, len(listed)))
+        if int(listed[0, 0]) + 1 > rows_read:
+            copy_back(listed, listed_arg, int(listed[0, 0]) + 1)
+    a = int(listed[0, 0])
+    rows, distances = listed[1:a + 1, 0].astype(np.int64), listed[1:a + 1, 1].copy()
+    if a < 2 or not np.any(rows[1:] < rows[:-1]):  # (the CPU's serial loop lists them in order)
+        return rows, distances
+    order = np.argsort(rows)
+    return rows[order], distances[order]
 
 
 _NONE_FOUND = (np.zeros(0, dtype=np.int64), np.zeros(0))
@@ -248,9 +256,11 @@ class PairBatch:
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
+        self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
         vt._batch = ee._batch = self
 
-    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device) -> tuple:
+    def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device,
+                          gradient_rows: int) -> tuple:
         """On CUDA, the launch's arguments that need not cross to the device and back at every launch:
         the positions of the pairs' vertices ``x_own`` ``(u, 3)`` (once per ``key``: gathered on the device from
         ``x_device`` when given, else uploaded), pairs and sides (once per batch), the gathered pair positions (device
@@ -267,7 +277,7 @@ class PairBatch:
             kept = self._device_x = (key, xd)
         dev, shared = self._device, _ARRAYS.device()
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", 2 * u, (3,)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
         return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
                 gradients)
@@ -329,9 +339,12 @@ class PairBatch:
         their distances ``(a,)`` (m), else None."""
         m, u = len(rows), len(self.own)
         d, region, grad, hess = work_arrays(m)
-        gradients = _ARRAYS.rows("gradients", 2 * u, (3,))  # rows of the pairs' own vertices
-        listed = (_ARRAYS.rows("active", m, (), np.int32), _ARRAYS.rows("active_d", m),
-                  _ARRAYS.rows("active_count", 1, (), np.int32))
+        on_gpu = current_arch() == "cuda"
+        # on CUDA the regions come back with the gradient sums (one copy) when those are copied back
+        pack = int(on_gpu and derivatives and not device_gradient)
+        gradient_rows = 2 * u + pack * -(-m // 3)
+        gradients = _ARRAYS.rows("gradients", gradient_rows, (3,))  # rows of the pairs' own vertices (and regions)
+        listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
         kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
         if not every:
@@ -342,18 +355,17 @@ class PairBatch:
                                                  _ARRAYS.rows("gradients_unused", 1, (3,)))
         else:
             grad_arg, hess_arg, gradients_arg = grad, hess, gradients
-        d_arg, region_arg, listed_arg = d, region, listed
-        on_gpu = current_arch() == "cuda"
+        d_arg, region_arg, listed_arg, count_arg = d, region, listed, count
         if on_gpu:  # device arrays of the kept arrays' capacity: the rows sent, the distances copied back
             x_arg, vertices_arg, sides_arg, z, gradients_device = self._device_arguments(x, key, m, derivatives,
-                                                                                         x_device)
+                                                                                         x_device, gradient_rows)
             device = _ARRAYS.device()
             rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
                         else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
             d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                     scratch=True)
-            listed_arg = tuple(on_device(device, name, host, scratch=True)
-                               for name, host in zip(("active", "active_d", "active_count"), listed))
+            listed_arg = on_device(device, "active", listed, scratch=True)
+            count_arg = on_device(device, "active_count", count, scratch=True)
             if derivatives:
                 grad_arg, hess_arg, gradients_arg = grad[:m], hess[:m], gradients_device
             else:
@@ -370,16 +382,18 @@ class PairBatch:
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
             gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
         _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps), float(self.ee.eps),
-                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), z, d_arg, region_arg,
-                      grad_arg, hess_arg, gradients_arg, *listed_arg)
-        if on_gpu:  # the launch's rows only (the distances of known pairs; the regions with derivatives only)
-            if not every:
-                copy_back(d, d_arg, m)
-            if derivatives:
-                copy_back(region, region_arg, m)
-        if derivatives and not device_gradient and gradients_arg is not gradients:  # summed on the device: copied
-            copy_back(gradients, gradients_arg, 2 * u)
-        found = _sorted_found(listed, listed_arg) if every else None
+                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), pack, z, d_arg,
+                      region_arg, grad_arg, hess_arg, gradients_arg, listed_arg, count_arg)
+        if pack:  # the sums and, after them, the regions (the launch's rows) in one copy
+            copy_back(gradients, gradients_arg, gradient_rows)
+            region[:m] = gradients[2 * u:gradient_rows].reshape(-1)[:m]
+        elif on_gpu and derivatives:  # the launch's rows only (the distances of known pairs: the host keeps them)
+            copy_back(region, region_arg, m)
+        found = None
+        if every:
+            found = _sorted_found(listed, listed_arg, self._found_rows)
+            self._found_rows = len(found[0]) + len(found[0]) // 4 + 64  # the next read's guess: one copy
+
         return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found
 
     def _keep(self, n: int, key: tuple, derivatives: bool, parts: tuple, kept: list, found: tuple | None, arrays,
@@ -387,7 +401,7 @@ class PairBatch:
         """Each potential's part of a launch kept as its evaluation of the positions ``key`` (``n`` rows): the rows
         ``parts`` (slices of the launch's rows) of its pairs, its ``kept`` evaluation's active pairs (known) or, for
         a launch over every pair, its active pairs from ``found`` (:meth:`_launch`)."""
-        d, region, grad, hess = work_arrays(0)
+        _, region, grad, hess = work_arrays(0)
         u = len(self.own)
         grad_arg, hess_arg = arrays
         order = 2 if derivatives else 0
@@ -400,9 +414,9 @@ class PairBatch:
                 lo, hi = np.searchsorted(found[0], (part.start, part.stop))
                 rows = found[0][lo:hi]
                 active, dk = rows - part.start, found[1][lo:hi]
-            else:  # the rows are the known active pairs, in order
+            else:  # the rows are the known active pairs, in order; their distances those kept (the same values)
                 active, rows = known.active, part
-                dk = d[rows].copy()  # copies: the kernel's arrays are overwritten by the next evaluation
+                dk = known.distances.d
             stiffness = float(pot.stiffness)
             if derivatives:
                 grad_rows = None

@@ -54,3 +54,36 @@ class CandidateVertices:
             self._compact = (own, local[:p], local[p:])
         own, vt_local, ee_local = self._compact
         return own, np.concatenate([vt_local, np.take(ee_local, ee_rows, axis=0)])
+
+
+def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pos, found)`` of ``pairs`` ``(p, 2)`` in ``old`` (``(old pairs, old arrays)``, the old pairs sorted as
+    candidate lists are): rows ``pos`` ``(p,)`` of the old arrays hold the pairs ``found`` (bool ``(p,)``). The same
+    list (the same array object) is found row for row without a search."""
+    if old is None or not len(old[0]) or not len(pairs):
+        return np.zeros(len(pairs), dtype=np.int64), np.zeros(len(pairs), dtype=bool)
+    old_pairs = old[0]
+    if old_pairs is pairs:
+        return np.arange(len(pairs), dtype=np.int64), np.ones(len(pairs), dtype=bool)
+    keys = (pairs[:, 0] << 32) | pairs[:, 1]
+    old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]
+    pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+    return pos, old_keys[pos] == keys
+
+
+def merge_rows(old: tuple | None, pos: np.ndarray, found: np.ndarray, fresh: tuple) -> tuple:
+    """Per-pair arrays over a pair list: the rows ``found`` (bool ``(p,)``) taken from rows ``pos`` ``(p,)`` of the
+    arrays of ``old`` (:func:`lookup_pairs`), the others from ``fresh`` (computed for the pairs not found, in order):
+    the per-pair results do not depend on which other pairs are in the list."""
+    if not np.any(found):
+        return fresh
+    old_values = old[1]
+    if np.all(found):
+        return tuple(v[pos] for v in old_values)
+    out = []
+    for v, f in zip(old_values, fresh):
+        merged = np.empty(len(found), dtype=v.dtype)
+        merged[found] = v[pos[found]]
+        merged[~found] = f
+        out.append(merged)
+    return tuple(out)

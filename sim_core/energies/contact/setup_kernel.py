@@ -35,8 +35,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.launch import fast_kernel
 
-_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
-_I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+_F64_1, _F64_2, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_2
 
 
 @ti.func
@@ -52,22 +51,24 @@ def _unit(v):
 
 
 @fast_kernel
-def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, vt_above: _I32_1, vt_side: _F64_1,
-                     ee_sine: _F64_1, ee_interior: _I32_1, ee_side: _F64_1):
-    """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (kept arrays, :data:`_ARRAYS`)."""
+def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, geometry: _F64_1):
+    """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (kept arrays, :data:`_ARRAYS`), into one array
+    ``geometry`` (copied back in one piece): ``[0, p)`` the vertex-triangle codes ``side * (2 if above else 1)``,
+    ``[p, p + q)`` the edge sines, ``[p + q, p + 2 q)`` the edge-edge codes ``side * (2 if interior else 1)``
+    (``p = vt_count``, ``q = ee_count``; sides are +1 / -1)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
         p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
-        vt_above[k] = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 1, 0)
-        vt_side[k] = cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
+        above = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 2.0, 1.0)
+        geometry[k] = above * cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(ee_count):
         a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
         ea, eb = a1 - a0, b1 - b0
         n = cd._cross(ea, eb)
-        ee_sine[k] = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
-        ee_interior[k] = ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 1, 0)
-        ee_side[k] = cd._resolved_side(0.0, n, a0 - b0)
+        geometry[vt_count + k] = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
+        interior = ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 2.0, 1.0)
+        geometry[vt_count + ee_count + k] = interior * cd._resolved_side(0.0, n, a0 - b0)
 
 
 _ARRAYS = LaunchArrays()
@@ -126,18 +127,18 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
     require_backend("contact set-up kernels")
     vt, ee = _kept_indices("vt", vt_vertices), _kept_indices("ee", ee_vertices)
     p, q = len(vt_vertices), len(ee_vertices)
-    above, vt_side = _ARRAYS.rows("above", p, (), np.int32), _ARRAYS.rows("vt_side", p)
-    sine, interior, ee_side = _ARRAYS.rows("sine", q), _ARRAYS.rows("interior", q, (), np.int32), _ARRAYS.rows("ee_side", q)
+    geometry = _ARRAYS.rows("geometry", p + 2 * q)
     if p or q:
-        _device_launch(_geometry_kernel, (_positions(x), vt, p, ee, q, above, vt_side, sine, interior,
-                                          ee_side), outputs={5: p, 6: p, 7: q, 8: q, 9: q})
-    return PairGeometry(above[:p].astype(bool), vt_side[:p].copy(), sine[:q].copy(), interior[:q].astype(bool),
-                        ee_side[:q].copy())
+        _device_launch(_geometry_kernel, (_positions(x), vt, p, ee, q, geometry), outputs={5: p + 2 * q})
+    vt_code, sine, ee_code = geometry[:p], geometry[p:p + q], geometry[p + q:p + 2 * q]
+    return PairGeometry(np.abs(vt_code) > 1.5, np.sign(vt_code), sine.copy(), np.abs(ee_code) > 1.5, np.sign(ee_code))
 
 
 @ti.func
 def _point_triangle_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side: ti.f64,
-                          weights: ti.template(), normal: ti.template()):
+                          weights: ti.template(), normal: ti.template(), w0: ti.template(), n0: ti.template()):
+    """Row ``k``'s closest-point weights in columns ``w0 ...`` of ``weights`` and unit normal in ``n0 ...`` of
+    ``normal`` (one array may hold both)."""
     p, a, b, c = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
                   _vertex(x, vertices, k, 3))
     region, d1, d2, d3, d4, d5, d6, va, vb, vc = cd._point_triangle_tests(p, a, b, c)
@@ -163,15 +164,16 @@ def _point_triangle_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, 
         n = cd._resolved_side(side, m, p - a) * _unit(m)
     else:
         n = _unit(p - ((bary[0] * a + bary[1] * b) + bary[2] * c))
-    weights[k, 0] = 1.0
+    weights[k, w0] = 1.0
     for j in ti.static(range(3)):
-        weights[k, j + 1] = -bary[j]
-        normal[k, j] = n[j]
+        weights[k, w0 + j + 1] = -bary[j]
+        normal[k, n0 + j] = n[j]
 
 
 @ti.func
 def _edge_edge_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side: ti.f64,
-                     weights: ti.template(), normal: ti.template()):
+                     weights: ti.template(), normal: ti.template(), w0: ti.template(), n0: ti.template()):
+    """As :func:`_point_triangle_frame`, of an edge-edge pair."""
     a0, a1, b0, b1 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
                       _vertex(x, vertices, k, 3))
     s, t, region = cd._edge_edge_closest(a0, a1, b0, b1)
@@ -183,9 +185,9 @@ def _edge_edge_frame(x: ti.template(), vertices: ti.template(), k: ti.i32, side:
     else:
         n = _unit(((w[0] * a0 + w[1] * a1) + w[2] * b0) + w[3] * b1)
     for j in ti.static(range(4)):
-        weights[k, j] = w[j]
+        weights[k, w0 + j] = w[j]
     for j in ti.static(range(3)):
-        normal[k, j] = n[j]
+        normal[k, n0 + j] = n[j]
 
 
 @fast_kernel
@@ -195,9 +197,9 @@ def _frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, poi
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(count):
         if ti.static(point_first):
-            _point_triangle_frame(x, vertices, k, side[k], weights, normal)
+            _point_triangle_frame(x, vertices, k, side[k], weights, normal, 0, 0)
         else:
-            _edge_edge_frame(x, vertices, k, side[k], weights, normal)
+            _edge_edge_frame(x, vertices, k, side[k], weights, normal, 0, 0)
 
 
 def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point_first: bool
@@ -233,9 +235,10 @@ def contact_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, point
 
 
 @ti.func
-def _tangent_frame(normal: ti.template(), k: ti.i32, tangent: ti.template()):
-    """Tangent basis row ``k`` of unit normal row ``k`` (:func:`tangent_basis`)."""
-    n = ti.Vector([normal[k, 0], normal[k, 1], normal[k, 2]], ti.f64)
+def _tangent_frame(normal: ti.template(), k: ti.i32, n0: ti.template(), tangent: ti.template(), t0: ti.template()):
+    """Tangent basis of the unit normal in columns ``n0 ...`` of row ``k`` (:func:`tangent_basis`), written into
+    columns ``t0 + 2 i + j`` of row ``k`` of ``tangent`` (``T[i, j]``)."""
+    n = ti.Vector([normal[k, n0], normal[k, n0 + 1], normal[k, n0 + 2]], ti.f64)
     axis = 0  # the first coordinate axis of least |n_i| (np.argmin)
     if ti.abs(n[1]) < ti.abs(n[0]):
         axis = 1
@@ -246,30 +249,31 @@ def _tangent_frame(normal: ti.template(), k: ti.i32, tangent: ti.template()):
     t1 = _unit(cd._cross(n, e))
     t2 = cd._cross(n, t1)
     for d in ti.static(range(3)):
-        tangent[k, d, 0] = t1[d]
-        tangent[k, d, 1] = t2[d]
+        tangent[k, t0 + 2 * d] = t1[d]
+        tangent[k, t0 + 2 * d + 1] = t2[d]
 
 
 @fast_kernel
-def _tangent_kernel(normal: _F64_2, count: ti.i32, tangent: _F64_3):
-    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`)."""
+def _tangent_kernel(normal: _F64_2, count: ti.i32, tangent: _F64_2):
+    """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`; ``tangent`` ``(k, 6)``: ``T`` row by row)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(count):
-        _tangent_frame(normal, k, tangent)
+        _tangent_frame(normal, k, 0, tangent, 0)
 
 
 @fast_kernel
 def _friction_frames_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, split: ti.i32,
-                            weights: _F64_2, normal: _F64_2, tangent: _F64_3):
+                            frames: _F64_2):
     """Rows ``k < count`` of the kept arrays (:data:`_ARRAYS`): vertex-triangle pairs below ``split``,
-    edge-edge pairs from there; frame, then tangent basis."""
+    edge-edge pairs from there; frame, then tangent basis, in one row of ``frames`` ``(k, 13)``: weights (4),
+    normal (3), ``T`` row by row (6), one array copied back."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(count):
         if k < split:
-            _point_triangle_frame(x, vertices, k, side[k], weights, normal)
+            _point_triangle_frame(x, vertices, k, side[k], frames, frames, 0, 4)
         else:
-            _edge_edge_frame(x, vertices, k, side[k], weights, normal)
-        _tangent_frame(normal, k, tangent)
+            _edge_edge_frame(x, vertices, k, side[k], frames, frames, 0, 4)
+        _tangent_frame(frames, k, 4, frames, 7)
 
 
 def tangent_basis(normal: np.ndarray) -> np.ndarray:
@@ -285,10 +289,10 @@ def tangent_basis(normal: np.ndarray) -> np.ndarray:
     k = len(normal)
     if not k:
         return np.empty((0, 3, 2))
-    kept, tangent = _ARRAYS.rows("normal_in", k, (3,)), _ARRAYS.rows("tangent", k, (3, 2))
+    kept, tangent = _ARRAYS.rows("normal_in", k, (3,)), _ARRAYS.rows("tangent_rows", k, (6,))
     kept[:k] = normal
     _tangent_kernel(kept, k, tangent)
-    return tangent[:k].copy()
+    return tangent[:k].reshape(k, 3, 2).copy()
 
 
 def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, split: int
@@ -316,11 +320,10 @@ def friction_frames(x: np.ndarray, vertices: np.ndarray, sides: np.ndarray, spli
         return np.empty((0, 4)), np.empty((0, 3)), np.empty((0, 3, 2))
     side = _ARRAYS.rows("side", k)
     side[:k] = np.reshape(sides, -1)
-    weights, normal = _ARRAYS.rows("weights", k, (4,)), _ARRAYS.rows("normal", k, (3,))
-    tangent = _ARRAYS.rows("tangent", k, (3, 2))
+    frames = _ARRAYS.rows("frames", k, (13,))
     _device_launch(_friction_frames_kernel, (_positions(x), _kept_indices("pairs", vertices), side, k,
-                                             int(split), weights, normal, tangent), outputs={5: k, 6: k, 7: k})
-    return weights[:k].copy(), normal[:k].copy(), tangent[:k].copy()
+                                             int(split), frames), outputs={5: k})
+    return frames[:k, :4].copy(), frames[:k, 4:7].copy(), frames[:k, 7:].reshape(k, 3, 2).copy()
 
 
 def compile_kernels() -> None:

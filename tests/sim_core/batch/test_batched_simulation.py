@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import sim_core.simulation
+import sim_core.solver
 from sim_core.batch import BatchedSimulation
 from sim_core.control import Control
 from sim_core.errors import ConfigError
@@ -12,6 +14,7 @@ from sim_core.scenes.task_scene import build_task_scene, task_initial_state
 from sim_core.simulation import Simulation
 from sim_core.solver_config import SolverConfig
 from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_model, separate_run
+from tests.support.counting import counting
 from tests.support.press_scenes import pad_scene, paper_sheet
 
 @pytest.fixture(scope="module")
@@ -93,3 +96,25 @@ def test_copies_must_be_copies_of_one_scene(model):
     assert [s.state.step_index for s in two.sims] == [0, 0]  # no copy moved
     with pytest.raises(ConfigError, match="batch_size"):
         BatchedSimulation.from_model(model, 0)
+
+
+def test_lockstep_copies_build_no_solver_and_a_reset_clears_the_stacked_caches(model, monkeypatch):
+    copies_built = counting(monkeypatch, sim_core.simulation, "NewtonSolver")
+    contact_sets = counting(monkeypatch, sim_core.solver, "ContactSet")
+    batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
+                                         solver_config=SolverConfig(lockstep=True))
+    pose0 = batch.states[0].effector_pose["pad"].copy()
+    controls = [control(pose0, MOTIONS[i], 0) for i in range(3)]
+    x0 = batch.positions()
+    first = batch.step(controls)
+    x_first = batch.positions()
+    # the stacked solver's contact set only: no copy built a solver, the fresh stacked solver's caches not reset
+    assert copies_built == [] and len(contact_sets) == 1 and batch.lockstep.solver.contact is contact_sets[0]
+    batch.reset()
+    batch.sims[0].state, batch.sims[1].state, batch.sims[2].state = (task_initial_state(s.model) for s in batch.sims)
+    again = batch.step(controls)
+    # a stepped solver's caches are cleared for the new states: the same controls give the same step bit for bit
+    assert len(contact_sets) == 2 and batch.lockstep.solver.contact is contact_sets[1]
+    np.testing.assert_array_equal(batch.positions(), x_first)
+    assert [i.iterations for i in again.infos] == [i.iterations for i in first.infos]
+    assert np.max(np.abs(x_first - x0)) > 1e-4 and copies_built == []  # the step moved the pads

@@ -255,6 +255,11 @@ def test_pairs_naming_some_vertices_sum_their_gradient_there_and_zero_elsewhere(
         vertices, rows = pot.gradient_rows(y)
         assert vertices is None
         np.testing.assert_array_equal(rows, grad)
+    for pot, twin in zip(linked, alone):  # the regions (on CUDA copied back after the gradient sums, in one copy)
+        got, want = (workspace_of(p).get(p, "evaluation").distances for p in (pot, twin))
+        assert len(np.unique(want.region)) > 3
+        np.testing.assert_array_equal(got.region, want.region)
+        np.testing.assert_array_equal(got.d, want.d)
     frozen = y.copy()  # read-only and owning its memory: kept evaluations keyed by identity, the same values
     frozen.flags.writeable = False
     for pot, (grad, energy, hess) in zip(linked, expected):
@@ -312,19 +317,26 @@ def test_gradients_added_on_the_device_are_the_host_gradients_with_the_energy_an
 
 
 def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu):
-    """On a parallel arch the kernel appends the active pairs in no fixed order: the list is read back sorted by
-    row, each distance with its row (the CPU's serial list, in order already, read as it is)."""
+    """On a parallel arch the kernel appends the active pairs in no fixed order: the list (its length in row 0, then
+    ``[row, distance]`` rows) is read back sorted by row, each distance with its row (the CPU's serial list, in order
+    already, read as it is); from a device copy, a first read shorter than the list reads the rest after it."""
     from sim_core.energies.contact.batch_kernel import _sorted_found
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.transfer import upload
 
     rng = np.random.default_rng(25)
-    rows = np.sort(rng.choice(10_000, size=300, replace=False)).astype(np.int32)
+    rows = np.sort(rng.choice(10_000, size=300, replace=False))
     distances = rng.uniform(0.0, EPS, size=300)
     for order in (np.arange(300), rng.permutation(300)):
-        listed = (np.concatenate([rows[order], np.full(20, -7, np.int32)]),  # a longer kept array: 300 written
-                  np.concatenate([distances[order], np.full(20, np.nan)]), np.array([300], dtype=np.int32))
-        got_rows, got_d = _sorted_found(listed, listed)
-        assert got_rows.dtype == np.int64
-        np.testing.assert_array_equal(got_rows, rows)
-        np.testing.assert_array_equal(got_d, distances)
-    none = (np.zeros(4, np.int32), np.zeros(4), np.zeros(1, np.int32))
-    assert [len(a) for a in _sorted_found(none, none)] == [0, 0]
+        listed = np.full((321, 2), np.nan)  # a longer kept array: 300 written
+        listed[0, 0] = 300
+        listed[1:301, 0], listed[1:301, 1] = rows[order], distances[order]
+        device = upload(new_ndarray(ti.f64, listed.shape), listed)
+        for got_rows, got_d in (_sorted_found(listed, listed, 1), _sorted_found(np.zeros_like(listed), device, 64),
+                                _sorted_found(np.zeros_like(listed), device, 400)):
+            assert got_rows.dtype == np.int64
+            np.testing.assert_array_equal(got_rows, rows)
+            np.testing.assert_array_equal(got_d, distances)
+    none = np.zeros((4, 2))
+    assert [len(a) for a in _sorted_found(none, none, 1)] == [0, 0]
