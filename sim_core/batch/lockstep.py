@@ -420,7 +420,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         incremental potential (J/m; :attr:`_vectors`'s: ``(3 N,)`` on the host, ``(N, 3)`` on the device), non-finite
         entries kept (a copy's own failure)."""
         ta = time.perf_counter()
-        contact_terms = self.contact.potentials(x.host, step.x_n, step.memory)
+        contact_terms = self.contact.potentials(x.host, step.x_n, step.memory, x.device)  # covers on the device
         x_search = self.contact.search_position
         terms = step.loop_terms + contact_terms
         g = self._vectors.gradient(terms, x, self._fixed_dofs(step),
