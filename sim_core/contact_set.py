@@ -31,7 +31,7 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.energies.base import PenaltyContact, declares
+from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, merge_rows
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
@@ -746,9 +746,9 @@ _NO_RELEASES = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
 def _frozen(x: np.ndarray) -> bool:
-    """Whether positions ``x`` are a read-only float64 array that owns its memory (keyed by identity, as
-    :func:`~sim_core.energies.base.positions_key` keys it: its values cannot change while it exists)."""
-    return type(x) is np.ndarray and x.dtype == np.float64 and x.base is None and not x.flags.writeable
+    """Whether positions ``x`` are frozen (:meth:`~sim_core.energies.base.FrozenPositionsKey.holds`: keyed by identity,
+    as :func:`~sim_core.energies.base.positions_key` keys them: their values cannot change while they exist)."""
+    return FrozenPositionsKey.holds(x)
 
 
 def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:

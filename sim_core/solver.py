@@ -36,7 +36,7 @@ from sim_core.control import Control
 from sim_core.fixed_point import FixedPoint, copy_state_into, same_array, same_arrays, same_resting_state
 from sim_core.effector import driven_positions, limit_pose_step
 from sim_core.elastic import ElasticTerms
-from sim_core.energies.base import KeepsDerivatives, PenaltyContact, declares
+from sim_core.energies.base import FrozenPositionsKey, KeepsDerivatives, PenaltyContact, declares
 from sim_core.energies.damping.reference import ViscousDamping
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.energies.gravity.reference import GravityPotential
@@ -140,11 +140,15 @@ class NewtonSolver:
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
-        self.elastic = ElasticTerms(self.model, workspace=self.workspace)
+        self.elastic = self._new_elastic_terms()
         self.vertex_mass = self.model.vertex_mass()
         self._new_caches()
         self.step_hook = self._resolve_hook()
         self._revision = self.model.revision
+
+    def _new_elastic_terms(self) -> ElasticTerms:
+        """The model's elastic terms (:meth:`notify_model_changed`; a subclass may make its own kind)."""
+        return ElasticTerms(self.model, workspace=self.workspace)
 
     def set_hook(self, hook: StepHook | None) -> None:
         """Use ``hook`` for the extra terms of the next steps (None: the model's candidates, if any).
@@ -449,15 +453,13 @@ class NewtonSolver:
         asleep = frozenset(self._sleep.bodies)
         if asleep:
             fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
-        free = np.repeat(~fixed, 3)
-        x_n = state_in.x
+        free, x_n = np.repeat(~fixed, 3), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
-        x[fixed] = x_target[fixed]
-        x_hat = x_n + dt * state_in.v
-        mass = self.vertex_mass
+        np.copyto(x, x_target, where=fixed[:, None])  # the fixed vertices at their targets (one pass, no gather)
+        x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
         diag = fixed_terms[0].hessian_diagonal()
@@ -766,8 +768,9 @@ class NewtonSolver:
         self.last_factorization = factorization if exact else None
         info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
+        x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_n.copy(), v_prev=state_in.v.copy(), x=x.copy(), fixed=step.fixed,
+            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed,
             x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
             gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
             terms=step.fixed_terms + contact_terms,
@@ -780,11 +783,16 @@ class NewtonSolver:
         state_out.v = (x - x_n) / dt
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
-        force = np.zeros_like(x)
-        for p in contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact:
-            force -= p.gradient(x)
-        state_out.contact_force = force
+        state_out.contact_force = self._contact_force(
+            x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
         if self.step_hook is not None:
             state_out.candidate_state = self.step_hook.update_state(model, state_in, x, dt, self.elastic)
+
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N."""
+        force = np.zeros_like(x)
+        for p in terms:
+            force -= p.gradient(x)
+        return force

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.batch.iterates import Iterate, add_dense, frozen
-from sim_core.energies.base import DeviceGradient, SparseGradient, declares
+from sim_core.energies.base import DeviceGradient, FrozenPositionsKey, SparseGradient, declares
 from sim_core.ti_kernels.copy_vectors import CopyVectors
+from sim_core.ti_kernels.device_copy import PinnedBlocks
 
 
 class DeviceIterates(CopyVectors):
@@ -18,9 +19,19 @@ class DeviceIterates(CopyVectors):
     Args:
         index: stacked vertex of copy ``i``'s vertex ``v``, shape ``(B, n)`` int.
 
+    Attributes:
+        trial_blocks: the host blocks trial points are downloaded into
+            (:class:`~sim_core.ti_kernels.device_copy.PinnedBlocks`: page-locked on CUDA, reused once a trial point
+            and its views are gone), or None (a new array each; the default where no page-locked memory is made).
+
     Raises:
         ValueError: ``index`` is not a permutation of the stacked vertices.
     """
+
+    def __init__(self, index: np.ndarray) -> None:
+        super().__init__(index)
+        blocks = PinnedBlocks((max(self.vertex_count, 1), 3))  # the shape of the device arrays (new_vectors)
+        self.trial_blocks: PinnedBlocks | None = blocks if blocks.page_locked else None
 
     def start(self, x: np.ndarray) -> Iterate:
         """The first iterate: ``x`` ``(N, 3)`` (a new array of the caller's, frozen) and its upload."""
@@ -28,9 +39,12 @@ class DeviceIterates(CopyVectors):
 
     def trial(self, x: Iterate, d, alphas: np.ndarray) -> Iterate:
         """``x + alpha_i d`` on copy ``i``'s vertices (``alphas`` ``(B,)``), made on the device and downloaded once
-        into a new frozen host array."""
+        into a frozen host array: over a block of :attr:`trial_blocks` (registered with
+        :meth:`~sim_core.energies.base.FrozenPositionsKey.register`) where set, else a new array of its own."""
         device = self.moved(x.device, d, alphas)
-        return Iterate(frozen(self.download(device)), device)
+        if self.trial_blocks is None:
+            return Iterate(frozen(self.download(device)), device)
+        return Iterate(FrozenPositionsKey.register(self.download(device, self.trial_blocks.take())), device)
 
     def take_steepest(self, d, g, mask: np.ndarray):
         """``d`` with the copies in ``mask`` (bool ``(B,)``) set to ``-g``, in place; returns ``d``."""

@@ -82,9 +82,9 @@ class CopyLineSearch:
     def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:
         """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the
         stacked update ``d``."""
-        xm = self._vectors.trial(x, d, alphas).host if np.any(alphas) else x.host
-        terms = self.contact.potentials(xm, step.x_n, step.memory)
-        return self._energy(step, xm, terms, self.contact.search_position)
+        xm = self._vectors.trial(x, d, alphas) if np.any(alphas) else x
+        terms = self.contact.potentials(xm.host, step.x_n, step.memory, xm.device)  # covers read on the device
+        return self._energy(step, xm.host, terms, self.contact.search_position)
 
     def _armijo_groups(self, step, x: Iterate, d, base: np.ndarray, e_base: float, group: np.ndarray, delta: float,
                        a: np.ndarray, slope: np.ndarray, e0: float) -> np.ndarray:

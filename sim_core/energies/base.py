@@ -14,6 +14,7 @@ projects and assembles into one sparse matrix; nothing n x n is ever dense.
 from __future__ import annotations
 
 import functools
+import weakref
 from typing import Literal, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -335,9 +336,17 @@ _F64 = np.dtype(np.float64)
 
 class FrozenPositionsKey:
     """The :func:`positions_key` of a frozen positions array: equal to another only for the same array object,
-    which it keeps alive (so that its ``id`` is not reused while a cache holds the key)."""
+    which it keeps alive (so that its ``id`` is not reused while a cache holds the key).
+
+    A frozen array is a read-only float64 ``np.ndarray`` whose values cannot change while it exists: one that owns its
+    memory (whoever freezes an array never makes it writeable again), or one :meth:`register` was given (an array over
+    memory of another owner, e.g. a reused page-locked block of
+    :class:`~sim_core.ti_kernels.device_copy.PinnedBlocks`, that no writeable array shares while it exists).
+    """
 
     __slots__ = ("x",)
+
+    _registered: dict = {}  # id(array) -> weakref.ref of the arrays given to register() that still exist
 
     def __init__(self, x: np.ndarray) -> None:
         self.x = x
@@ -348,15 +357,47 @@ class FrozenPositionsKey:
     def __hash__(self) -> int:
         return id(self.x)
 
+    @classmethod
+    def register(cls, x: np.ndarray) -> np.ndarray:
+        """Make ``x`` read-only and key it by identity from now on (:meth:`holds`); returns ``x``. The caller
+        promises that no writeable array over ``x``'s memory exists, or will, while ``x`` exists.
+
+        Raises:
+            ValueError: ``x`` is not a float64 ``np.ndarray``.
+        """
+        if type(x) is not np.ndarray or x.dtype is not _F64:
+            raise ValueError(f"FrozenPositionsKey.register: a float64 np.ndarray is needed, got "
+                             f"{type(x).__name__} {getattr(x, 'dtype', '')}")
+        x.flags.writeable = False
+        key, registered = id(x), cls._registered
+
+        def forget(ref, key=key, registered=registered) -> None:
+            if registered.get(key) is ref:
+                del registered[key]
+
+        registered[key] = weakref.ref(x, forget)
+        return x
+
+    @classmethod
+    def holds(cls, x) -> bool:
+        """Whether ``x`` is frozen (class docstring): a read-only float64 ``np.ndarray`` that owns its memory or was
+        given to :meth:`register`."""
+        if type(x) is not np.ndarray or x.dtype is not _F64 or x.flags.writeable:
+            return False
+        if x.base is None:
+            return True
+        ref = cls._registered.get(id(x))
+        return ref is not None and ref() is x
+
 
 def positions_key(x: np.ndarray) -> tuple | FrozenPositionsKey:
     """``(shape, bytes)`` of positions ``x`` as float64 in C order: equal keys are bitwise equal positions.
 
-    A frozen array (a float64 ``np.ndarray`` that owns its memory and is read-only, as the lockstep solver's
-    iterates are, :mod:`sim_core.batch.lockstep`) is keyed by identity instead (:class:`FrozenPositionsKey`):
-    its contents cannot change while it stays read-only, and whoever freezes an array never makes it writeable
-    again. Reading the bytes of a stacked batch's positions (14 MB at 1024 Forming copies) took 28 ms a Newton
-    iteration on the H200 host (docs/benchmarks_log.md, session 40, 28lock).
+    A frozen array (:meth:`FrozenPositionsKey.holds`: read-only float64 that owns its memory, as the lockstep solver's
+    iterates are, :mod:`sim_core.batch.lockstep`, or that was registered, as its trial points downloaded into
+    page-locked memory on CUDA are) is keyed by identity instead (:class:`FrozenPositionsKey`): its contents cannot
+    change while it exists. Reading the bytes of a stacked batch's positions (14 MB at 1024 Forming copies) took 28 ms
+    a Newton iteration on the H200 host (docs/benchmarks_log.md, session 40, 28lock).
 
     Kept evaluations are matched by this key: the pair potentials' (:mod:`sim_core.energies.contact.reference`)
     and the fused elastic terms' (:mod:`sim_core.fused_elastic`); a copy of ``x`` compared with
@@ -364,6 +405,6 @@ def positions_key(x: np.ndarray) -> tuple | FrozenPositionsKey:
     """
     if type(x) is not np.ndarray or x.dtype is not _F64:
         x = np.asarray(x, dtype=np.float64)
-    elif x.base is None and not x.flags.writeable:
+    elif FrozenPositionsKey.holds(x):
         return FrozenPositionsKey(x)
     return x.shape, x.tobytes()

@@ -113,6 +113,93 @@ def pinned_zeros(shape: tuple[int, ...]) -> np.ndarray:
     return out
 
 
+class PinnedBlocks:
+    """Host arrays of one shape for the results of recurring downloads that are kept while in use (the lockstep
+    solver's trial points): each :meth:`take` hands out a writeable float64 array over a block of its own, and a
+    block is reused once no array over it is left (a ``weakref.finalize`` on the block's buffer object, which the
+    array and its views keep alive). The blocks are page-locked on CUDA (``cuMemHostAlloc``, as :func:`pinned_zeros`),
+    where the driver copies to them directly (a 14 MB download: 0.26 ms against 0.92 ms into pageable memory on the
+    H100 host, docs/benchmarks_log.md, session 43, 28res); ordinary memory elsewhere.
+
+    Args:
+        shape: the arrays' shape.
+        page_locked: None: page-locked where a CUDA context is current here, else ordinary memory; False: ordinary
+            memory (ctypes buffers, reused as the page-locked blocks are).
+
+    Attributes:
+        page_locked: whether the blocks are page-locked.
+        allocated: how many blocks were made so far (the most handed out at once).
+    """
+
+    def __init__(self, shape: tuple[int, ...], page_locked: bool | None = None) -> None:
+        self.shape = tuple(int(n) for n in shape)
+        self._nbytes = max(int(np.prod(self.shape)) * 8, 8)
+        lib = _driver() if page_locked is None and current_arch() == "cuda" else None
+        self.page_locked = lib is not None and _cuda_ready(lib)
+        self._state = _BlockState(lib if self.page_locked else None)
+        self.allocated = 0
+        weakref.finalize(self, self._state.close)
+
+    def take(self) -> np.ndarray:
+        """A writeable float64 array of :attr:`shape` over a block no other array uses (its values: the block's
+        last ones)."""
+        state = self._state
+        if state.free:
+            pointer = state.free.pop()
+        else:
+            pointer = state.allocate(self._nbytes)
+            self.allocated += 1
+        buffer = (ctypes.c_byte * self._nbytes).from_address(pointer)
+        weakref.finalize(buffer, state.release, pointer)
+        return np.ndarray(self.shape, dtype=np.float64, buffer=buffer)
+
+
+class _BlockState:
+    """The blocks of a :class:`PinnedBlocks`: their allocation (page-locked through ``lib``, or ctypes buffers when
+    ``lib`` is None), the free ones, and their release once the owner is gone (a block in use then is freed when its
+    last array goes)."""
+
+    def __init__(self, lib: ctypes.CDLL | None) -> None:
+        self.lib = lib
+        self.free: list[int] = []
+        self.closed = False
+        self._buffers: dict[int, ctypes.Array] = {}  # address -> ctypes buffer (ordinary memory: kept alive here)
+
+    def allocate(self, nbytes: int) -> int:
+        """A new block of ``nbytes``; its address.
+
+        Raises:
+            MemoryError: the driver refused the page-locked allocation.
+        """
+        if self.lib is None:
+            buffer = (ctypes.c_byte * nbytes)()
+            self._buffers[ctypes.addressof(buffer)] = buffer
+            return ctypes.addressof(buffer)
+        pointer = ctypes.c_void_p()
+        if self.lib.cuMemHostAlloc(ctypes.byref(pointer), nbytes, 0) != _CUDA_SUCCESS or not pointer.value:
+            raise MemoryError(f"PinnedBlocks: cuMemHostAlloc of {nbytes} bytes failed")
+        return int(pointer.value)
+
+    def release(self, pointer: int) -> None:
+        """The block at ``pointer`` has no array left: free for reuse, or freed once the owner is gone."""
+        if self.closed:
+            self._free_block(pointer)
+        else:
+            self.free.append(pointer)
+
+    def close(self) -> None:
+        """The owner is gone: free the free blocks now, the others when their last array goes."""
+        self.closed = True
+        while self.free:
+            self._free_block(self.free.pop())
+
+    def _free_block(self, pointer: int) -> None:
+        if self.lib is None:
+            self._buffers.pop(pointer, None)
+        else:
+            self.lib.cuMemFreeHost(pointer)
+
+
 def address(array) -> int:
     """The address of the Taichi ndarray ``array``'s first element (a device pointer on CUDA); read from Taichi
     once per array and kept on it (an ndarray keeps its allocation for its lifetime)."""

@@ -77,3 +77,28 @@ def test_trial_points_are_made_on_the_device_and_downloaded_frozen(stacked):
     steepest = device.take_steepest(device.upload(d), device.upload(x), mask)
     want = host.take_steepest(d.reshape(-1).copy(), x.reshape(-1), mask)
     np.testing.assert_array_equal(device.download(steepest).reshape(-1), want)
+
+
+def test_trial_points_in_reused_host_blocks_are_registered_and_equal(stacked):
+    """With host blocks for the trial points (:class:`PinnedBlocks`; page-locked on CUDA, ordinary memory here) a
+    trial point is the same values in a registered read-only array keyed by identity; its block is reused once it is
+    gone."""
+    from sim_core.batch.device_iterates import DeviceIterates
+    from sim_core.energies.base import FrozenPositionsKey
+    from sim_core.ti_kernels.device_copy import PinnedBlocks
+
+    rng = np.random.default_rng(6)
+    device = DeviceIterates(stacked.index)
+    assert device.trial_blocks is None  # no page-locked memory on the CPU: new arrays of their own
+    device.trial_blocks = PinnedBlocks((stacked.model.vertex_count, 3), page_locked=False)
+    host = HostIterates(stacked.index)
+    x, d = rng.normal(size=(2, stacked.model.vertex_count, 3))
+    start, step = device.start(x.copy()), device.upload(d)
+    for alphas in ([1.0, 0.5, 0.0], [0.25, 0.0, 2.0], [1.0, 1.0, 1.0]):
+        got = device.trial(start, step, np.array(alphas))
+        want = host.trial(host.start(x.copy()), d.reshape(-1), np.array(alphas))
+        np.testing.assert_array_equal(got.host, want.host)
+        assert got.host.base is not None and FrozenPositionsKey.holds(got.host)
+        assert positions_key(got.host) == positions_key(got.host) and not isinstance(positions_key(got.host), tuple)
+        del got
+    assert device.trial_blocks.allocated == 1

@@ -86,7 +86,7 @@ def test_the_lockstep_step_evaluates_the_lumped_term_with_the_step_energy_of_its
     batch.step([control(batch.states[i].effector_pose["pad"], MOTIONS[i], 0) for i in range(3)])
     engine = batch.lockstep
     solver, state = engine.solver, engine.state
-    state.v[:] = np.random.default_rng(6).normal(scale=1e-2, size=state.v.shape)  # x_hat away from x^n
+    state.v = np.random.default_rng(6).normal(scale=1e-2, size=state.v.shape)  # x_hat away from x^n (a new array)
     pose0 = [s.effector_pose["pad"] for s in batch.states]
     stacked = engine.scene.stack_controls([control(pose0[i], MOTIONS[i], 1) for i in range(3)])
     step, x = solver._set_up_step(state, stacked, batch.sims[0].dt, None, StepInfo())

@@ -124,3 +124,34 @@ def test_pinned_host_arrays_are_zeroed_float64_and_copy_both_ways(ti_cpu):
         back = pinned_zeros((300, 3))
         assert to_host(back, dev) and np.array_equal(back, values)
     assert pinned_zeros((0, 3)).shape == (0, 3)
+
+
+def test_pinned_blocks_are_reused_only_once_no_array_over_them_is_left(ti_cpu):
+    """``PinnedBlocks`` hands out a writeable array over a block of its own, that the byte copies fill; a block comes
+    back for reuse when its array and every view of it are gone, not before; the blocks are ordinary memory on the
+    CPU (page-locked on CUDA)."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import PinnedBlocks, new_ndarray, to_device, to_host
+
+    assert not PinnedBlocks((300, 3)).page_locked  # no CUDA context here
+    blocks = PinnedBlocks((300, 3), page_locked=False)
+    rng = np.random.default_rng(5)
+    dev = new_ndarray(ti.f64, (300, 3))
+    values = rng.normal(size=(300, 3))
+    assert to_device(dev, values)
+    a = blocks.take()
+    assert a.shape == (300, 3) and a.dtype == np.float64 and a.flags.writeable and a.flags.c_contiguous
+    assert to_host(a, dev) and np.array_equal(a, values)
+    view = a[10:20]
+    b = blocks.take()
+    assert blocks.allocated == 2 and not np.shares_memory(a, b)
+    del a
+    c = blocks.take()  # a's block is held by its view
+    assert blocks.allocated == 3 and np.array_equal(view, values[10:20])
+    address = view.__array_interface__["data"][0] - 10 * 3 * 8
+    del view
+    d = blocks.take()  # now a's block comes back
+    assert blocks.allocated == 3 and d.__array_interface__["data"][0] == address
+    for _ in range(20):  # b, c and d held: one more block, taken and dropped over again
+        blocks.take()
+    assert blocks.allocated == 4 and not np.shares_memory(b, c) and not np.shares_memory(c, d)
