@@ -133,7 +133,7 @@ def test_pinned_blocks_are_reused_only_once_no_array_over_them_is_left(ti_cpu):
     from sim_core.ti_backend import ti
     from sim_core.ti_kernels.device_copy import PinnedBlocks, new_ndarray, to_device, to_host
 
-    assert not PinnedBlocks((300, 3)).page_locked  # no CUDA context here
+    assert PinnedBlocks((300, 3)).page_locked == (ti_cpu == "cuda")  # page-locked where a CUDA context is
     blocks = PinnedBlocks((300, 3), page_locked=False)
     rng = np.random.default_rng(5)
     dev = new_ndarray(ti.f64, (300, 3))
