@@ -159,14 +159,6 @@ def _add_rows(g: _VEC, vertices: _I32, rows: _VEC, count: ti.i32):
 
 
 @fast_kernel
-def _add(g: _VEC, h: _VEC, n: ti.i32):
-    """``g += h`` over ``n`` vertices."""
-    for v in range(n):
-        for j in ti.static(range(3)):
-            g[v, j] += h[v, j]
-
-
-@fast_kernel
 def _diagonal_quadratic(x: _VEC, center: _VEC, weight: _F64, g: _VEC, partial: _F64, n: ti.i32):
     """``g_v += w_v (x_v - y_v)``; ``partial[k]`` = the sum of ``w_v |x_v - y_v|^2 / 2`` over vertices
     ``k ENERGY_CHUNK ..`` (one thread a chunk)."""
@@ -265,7 +257,7 @@ class CopyVectors:
     def copy(self, a):
         """A new ndarray equal to ``a``."""
         out = self.new()
-        _add(out, a, self.vertex_count)
+        transfer.add_into(out, a)
         return out
 
     def _copy_values(self, values: np.ndarray, dtype=np.float64):
@@ -368,5 +360,5 @@ class CopyVectors:
         if self._scratch is None:
             self._scratch = self.new()
         transfer.upload(self._scratch, np.reshape(h, (-1, 3)))
-        _add(g, self._scratch, self.vertex_count)
+        transfer.add_into(g, self._scratch)
         return g
