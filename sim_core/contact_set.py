@@ -551,7 +551,7 @@ class ContactSet:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
 
-            PairBatch(*pots, compact=lists.batch_indices(ee_rows))  # one launch evaluates both at each new x
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows))  # one launch evaluates both at each new x
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:

@@ -43,6 +43,7 @@ from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as cd
 from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+from sim_core.energies.contact.pair_lists import BatchLayout
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
@@ -214,16 +215,18 @@ class PairBatch:
             and ``sides`` ``(p,)``).
         ee: an :class:`~sim_core.energies.contact.reference.EdgeEdgeContact` (``(q, 4)``, ``(q,)``).
 
-        compact: ``(own, local)``, the distinct vertices the pairs name ``(u,)`` (sorted; a superset does too:
-            its other rows take no part) and the pairs' vertices as positions in ``own``, int32 ``(p + q, 4)``,
-            when the caller has them (:func:`~sim_core.unique.compact_indices` of the pairs' vertices; a contact set
-            keeps them per candidate list); None: computed here.
+        layout: the pairs' vertices as rows of a kept compaction of candidate lists
+            (:class:`~sim_core.energies.contact.pair_lists.BatchLayout`: a contact set's, made once per list and
+            shared, with its device copies, by every batch over the list; its ``rows`` ``(p + q,)``, the
+            vertex-triangle pairs first as rows ``0 .. p - 1``), or None: the compaction of these pairs'
+            vertices (:func:`~sim_core.unique.compact_indices`), made here.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
-    is read at every evaluation.
+    is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
+        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows.
     """
 
     two_pass: bool | None = None
@@ -244,16 +247,25 @@ class PairBatch:
     :class:`~sim_core.ti_kernels.buffers.DeviceRows` (added into a device gradient there, read on the host only when
     asked), instead of copying them to the host; None: on CUDA. The values are the same."""
 
-    def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    def __init__(self, vt, ee, layout: BatchLayout | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
-        self.split = int(vt.vertices.shape[0])
+        self.split = p = int(vt.vertices.shape[0])
+        count = p + int(ee.vertices.shape[0])
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        if compact is None:
-            compact = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
-        self.own, self._local_vertices = compact
-        self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
-        self._all = np.arange(self.split + ee.vertices.shape[0], dtype=np.int32)
+        if layout is None:
+            own, local = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
+            layout = BatchLayout(own, local, np.arange(count, dtype=np.int32), {})
+        rows = layout.rows
+        if len(rows) != count or (p and rows[p - 1] != p - 1) or (count > p and rows[p] < p):
+            raise ValueError(f"PairBatch: a layout of {len(rows)} rows for {p} + {count - p} pairs, the "
+                             f"vertex-triangle pairs not its first rows")
+        self.own, self._local_vertices, self._lists_device = layout.own, layout.local, layout.device
+        self._all = rows  # launch row i (every pair) -> the pair's row of the layout
+        # the sides by layout row (rows of candidates outside the batch: 0, never read)
+        self.sides = np.zeros(len(layout.local))
+        self.sides[:p] = vt.sides
+        np.put(self.sides, rows[p:], ee.sides)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
@@ -281,8 +293,8 @@ class PairBatch:
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
         gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
-        return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
-                gradients)
+        return (kept[1], on_device(self._lists_device, "vertices", self._local_vertices),
+                on_device(dev, "sides", self.sides), z, gradients)
 
     def _own32(self) -> np.ndarray:
         """``own`` as int32 ``(u,)``, made once per batch (the gather and scatter kernels' index)."""
@@ -332,13 +344,13 @@ class PairBatch:
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
-        """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``; the batch's own row
-        array: every pair) at ``x``; the distances, regions and distance gradients are left in :func:`work_arrays`.
-        Returns ``((grad, hess), sums, found)``: the distance gradient and Hessian rows' arrays (new ndarrays with
-        ``device_hessian``), the
-        per-vertex gradient sums ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array)
-        and, when every pair was measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and
-        their distances ``(a,)`` (m), else None."""
+        """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``, pair indices; the
+        batch's own row array :attr:`_all`: every pair, as their rows of the layout) at ``x``; the distances,
+        regions and distance gradients are left in :func:`work_arrays`. Returns ``((grad, hess), sums, found)``: the
+        distance gradient and Hessian rows' arrays (new ndarrays with ``device_hessian``), the per-vertex gradient sums
+        ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array) and, when every pair was
+        measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and their distances ``(a,)`` (m),
+        else None."""
         m, u = len(rows), len(self.own)
         d, region, grad, hess = work_arrays(m)
         on_gpu = current_arch() == "cuda"
@@ -349,8 +361,8 @@ class PairBatch:
         listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
         kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
-        if not every:
-            kept_rows[:m] = rows
+        if not every:  # the pairs' rows of the layout
+            np.take(self._all, rows, out=kept_rows[:m])
         if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
             grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
                                                  _ARRAYS.rows("hess_unused", 1, (12, 12)),

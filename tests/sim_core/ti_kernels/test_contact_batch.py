@@ -340,3 +340,50 @@ def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu
             np.testing.assert_array_equal(got_d, distances)
     none = np.zeros((4, 2))
     assert [len(a) for a in _sorted_found(none, none, 1)] == [0, 0]
+
+
+@pytest.mark.parametrize("two_pass", [False, True])
+def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pairs(ti_cpu, monkeypatch, two_pass):
+    """A batch over the layout of candidate lists (``PairBatch(layout=CandidateVertices.batch_layout(rows))``: every
+    vertex-triangle candidate and some edge-edge ones, read as rows of the compaction of every candidate's vertices)
+    gives the energies, gradients, active pairs, distances and Hessians of a batch over its own pairs (bit for bit on
+    the CPU's serial sums), in one launch or two; a second step's batch over the same lists with other edge-edge rows
+    and sides shares the first's vertex indices and their device cache. A layout whose first rows are not the
+    vertex-triangle pairs is refused."""
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+    from sim_core.energies.contact.pair_lists import CandidateVertices
+
+    x, linked, _ = _potentials()
+    vt_list, ee_list = linked[0].pairs, linked[1].pairs
+    triangles, edges = np.arange(x.shape[0]).reshape(-1, 4)[:, 1:], np.arange(x.shape[0]).reshape(-1, 2)  # as made
+    lists = CandidateVertices(vt_list, ee_list, triangles, edges)
+    rng = np.random.default_rng(25)
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    monkeypatch.setattr(PairBatch, "two_pass", two_pass)
+    batches = []
+    for keep in (rng.random(len(ee_list)) > 0.3, rng.random(len(ee_list)) > 0.5):
+        rows = np.flatnonzero(keep)
+        vt_sides = rng.choice([-1.0, 0.0, 1.0], size=len(vt_list))
+        ee_sides = rng.choice([-1.0, 0.0, 1.0], size=len(rows))
+
+        def make(layout=None):
+            pots = (TiVertexTriangleContact(vt_list, triangles, vt_sides, K, EPS, vertices=lists.vt_vertices),
+                    TiEdgeEdgeContact(ee_list[rows], edges, ee_sides, K, EPS, vertices=lists.ee_vertices[rows]))
+            batches.append(PairBatch(*pots, layout=layout))
+            return pots
+
+        laid, own = make(lists.batch_layout(rows)), make()
+        for pot, twin in zip(laid, own):
+            np.testing.assert_array_equal(pot.gradient(y), twin.gradient(y))
+            assert pot.energy(y) == twin.energy(y)
+            np.testing.assert_array_equal(pot.active_mask(y), twin.active_mask(y))
+            np.testing.assert_array_equal(pot.active_distances(y)[1], twin.active_distances(y)[1])
+            np.testing.assert_array_equal(pot.hessian(y, "none").blocks, twin.hessian(y, "none").blocks)
+            assert pot.energy(x) == twin.energy(x)
+        assert 0 < np.count_nonzero(laid[1].active_mask(y)) < len(rows)
+    assert batches[2]._local_vertices is batches[0]._local_vertices is lists.batch_layout(rows).local
+    assert batches[2]._lists_device is batches[0]._lists_device is lists.device
+    layout = lists.batch_layout(np.arange(len(ee_list)))
+    with pytest.raises(ValueError, match="vertex-triangle pairs not its first rows"):
+        PairBatch(*own, layout=layout._replace(rows=layout.rows[::-1].copy()))
