@@ -104,21 +104,3 @@ def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.n
     old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]
     pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
     return pos, old_keys[pos] == keys
-
-
-def merge_rows(old: tuple | None, pos: np.ndarray, found: np.ndarray, fresh: tuple) -> tuple:
-    """Per-pair arrays over a pair list: the rows ``found`` (bool ``(p,)``) taken from rows ``pos`` ``(p,)`` of the
-    arrays of ``old`` (:func:`lookup_pairs`), the others from ``fresh`` (computed for the pairs not found, in order):
-    the per-pair results do not depend on which other pairs are in the list."""
-    if not np.any(found):
-        return fresh
-    old_values = old[1]
-    if np.all(found):
-        return tuple(v[pos] for v in old_values)
-    out = []
-    for v, f in zip(old_values, fresh):
-        merged = np.empty(len(found), dtype=v.dtype)
-        merged[found] = v[pos[found]]
-        merged[~found] = f
-        out.append(merged)
-    return tuple(out)
