@@ -29,6 +29,7 @@ them, so a launch re-binds no array.
 import numpy as np
 
 from sim_core.collision.pair_geometry import PairGeometry
+from sim_core.energies.base import FrozenPositionsKey
 from sim_core.energies.contact import distance_kernel as cd
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
@@ -81,12 +82,17 @@ def _device_launch(kernel, args: tuple, outputs: dict[int, int], constant: dict[
     position -> rows the launch writes, only allocated there and those rows copied back after the launch),
     instead of NumPy arguments that cross to the device and back at each launch. ``constant``: position ->
     ``(cache, name)`` of input arrays never changed in place, whose device copies ``cache`` keeps (sent only when
-    the array is another object than at the last launch)."""
+    the array is another object than at the last launch); so are frozen positions in ``args[0]``
+    (:meth:`~sim_core.energies.base.FrozenPositionsKey.holds`: a lockstep batch's iterates), which
+    :func:`_positions` passes as they are."""
     if current_arch() != "cuda":
         kernel(*args)
         return
     device = _ARRAYS.device()
-    constant = constant or {}
+    constant = dict(constant or {})
+    if isinstance(args[0], np.ndarray) and FrozenPositionsKey.holds(args[0]):
+        # frozen positions (their values cannot change while they exist): sent once per array object
+        constant[0] = (device, f"frozen_x:{kernel.__name__}")
     launch = [a if not isinstance(a, np.ndarray)
               else on_device(*constant[position], a) if position in constant
               else on_device(device, f"{position}:{kernel.__name__}", a, scratch=position in outputs,
@@ -100,9 +106,11 @@ def _device_launch(kernel, args: tuple, outputs: dict[int, int], constant: dict[
 def _positions(x: np.ndarray) -> np.ndarray:
     """The positions argument ``(n, 3)`` (m) of a launch: off CUDA ``x`` itself when it is a C-contiguous float64
     array (bound by its address: no copy of a stacked batch's positions, 14 MB at 1024 Forming copies, for a
-    rebinding of a few microseconds), else a copy in a kept array (on CUDA its device copy is sent again only
-    when the values changed, :func:`_device_launch`)."""
-    if current_arch() != "cuda" and type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous:
+    rebinding of a few microseconds), on CUDA too when it is also frozen (:func:`_device_launch` sends it once per
+    array object), else a copy in a kept array (on CUDA its device copy is sent again only when the values
+    changed, :func:`_device_launch`)."""
+    if type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous and (
+            current_arch() != "cuda" or FrozenPositionsKey.holds(x)):
         return x
     return _ARRAYS.copy_of("x", x)
 

@@ -71,7 +71,8 @@ def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
 def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkeypatch, device_arguments):
     """``pair_geometry(..., device=cache)`` reads a candidate list's kept int32 indices as they are (through CUDA's
     launch path too, emulated on the CPU arch: their device copies kept in the cache, sent once per array object);
-    the same geometry as the reference, an empty kind included; other index arrays are refused."""
+    the same geometry as the reference, an empty kind included, and at frozen positions taken as they are; other
+    index arrays are refused."""
     from sim_core import ti_backend
     from sim_core.energies.contact import setup_kernel
 
@@ -90,6 +91,15 @@ def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkey
         assert cache["geometry_vt"][0] is vt and cache["geometry_ee"][0] is ee
     else:
         assert not cache
+    # frozen positions (a lockstep batch's iterates) are passed as they are, on CUDA sent once per array object
+    for scale in (1e-3, 2e-3, 2e-3):
+        y = x + scale
+        y.flags.writeable = False
+        ref, got = pair_geometry(y, vt, ee), setup_kernel.pair_geometry(y, vt, ee, device=cache)
+        for name in ref._fields:
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+        if device_arguments:
+            assert setup_kernel._ARRAYS.device()["frozen_x:_geometry_kernel"][0] is y
     with pytest.raises(ValueError, match="C-contiguous int32"):
         setup_kernel.pair_geometry(x, vt.astype(np.int64), ee, device=cache)
 
