@@ -255,17 +255,18 @@ class PairBatch:
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
         if layout is None:
             own, local = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
-            layout = BatchLayout(own, local, np.arange(count, dtype=np.int32), {})
+            layout = BatchLayout(own, local, np.arange(count, dtype=np.int32), np.arange(count - p), {})
         rows = layout.rows
-        if len(rows) != count or (p and rows[p - 1] != p - 1) or (count > p and rows[p] < p):
-            raise ValueError(f"PairBatch: a layout of {len(rows)} rows for {p} + {count - p} pairs, the "
-                             f"vertex-triangle pairs not its first rows")
+        if (len(rows) != count or len(layout.ee_rows) != count - p or (p and rows[p - 1] != p - 1)
+                or (count > p and rows[p] < p)):
+            raise ValueError(f"PairBatch: a layout of {len(rows)} rows ({len(layout.ee_rows)} edge-edge) for {p} + "
+                             f"{count - p} pairs, or the vertex-triangle pairs not its first rows")
         self.own, self._local_vertices, self._lists_device = layout.own, layout.local, layout.device
         self._all = rows  # launch row i (every pair) -> the pair's row of the layout
         # the sides by layout row (rows of candidates outside the batch: 0, never read)
         self.sides = np.zeros(len(layout.local))
         self.sides[:p] = vt.sides
-        np.put(self.sides, rows[p:], ee.sides)
+        self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)

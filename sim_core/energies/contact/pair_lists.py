@@ -66,10 +66,11 @@ class CandidateVertices:
                                             dtype=np.int32)
         own, local = self._compact
         p = len(self.vt_vertices)
+        ee_rows = np.asarray(ee_rows, dtype=np.int64)
         rows = np.empty(p + len(ee_rows), dtype=np.int32)
         rows[:p] = np.arange(p, dtype=np.int32)
         np.add(ee_rows, p, out=rows[p:], casting="unsafe")
-        return BatchLayout(own, local, rows, self.device)
+        return BatchLayout(own, local, rows, ee_rows, self.device)
 
 
 class BatchLayout(NamedTuple):
@@ -82,12 +83,14 @@ class BatchLayout(NamedTuple):
             list's) as positions in ``own``.
         rows: int32 ``(p + r,)``, the batch's pairs as rows of ``local`` (the vertex-triangle pairs ``0 .. p - 1``
             first: a row below ``p`` is a vertex-triangle pair).
+        ee_rows: int64 ``(r,)``, the batch's edge-edge pairs as rows of the edge-edge list (``rows[p:] - p``).
         device: the lists' device cache (:attr:`CandidateVertices.device`), where ``local`` is kept on CUDA.
     """
 
     own: np.ndarray
     local: np.ndarray
     rows: np.ndarray
+    ee_rows: np.ndarray
     device: dict
 
 

@@ -31,8 +31,10 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
     rows = np.array([0, 3, 4, 17, 199])
     layouts = [lists.batch_layout(rows) for _ in range(2)]
     assert layouts[1].local is layouts[0].local and layouts[1].device is lists.device  # made once, kept
-    for own, local, batch_rows, _ in layouts:
+    for own, local, batch_rows, ee_rows, _ in layouts:
         assert local.dtype == np.int32 and local.shape == (150 + 200, 4) and batch_rows.dtype == np.int32
+        np.testing.assert_array_equal(ee_rows, rows)
+        np.testing.assert_array_equal(batch_rows, np.concatenate([np.arange(150), 150 + rows]))
         np.testing.assert_array_equal(own, np.unique(np.concatenate([lists.vt_vertices, lists.ee_vertices])))
         np.testing.assert_array_equal(own[local[batch_rows]],
                                       np.concatenate([lists.vt_vertices, lists.ee_vertices[rows]]))

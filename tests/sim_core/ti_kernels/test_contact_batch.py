@@ -384,6 +384,6 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
         assert 0 < np.count_nonzero(laid[1].active_mask(y)) < len(rows)
     assert batches[2]._local_vertices is batches[0]._local_vertices is lists.batch_layout(rows).local
     assert batches[2]._lists_device is batches[0]._lists_device is lists.device
-    layout = lists.batch_layout(np.arange(len(ee_list)))
+    layout = lists.batch_layout(rows)  # the last step's rows, those of ``own``
     with pytest.raises(ValueError, match="vertex-triangle pairs not its first rows"):
         PairBatch(*own, layout=layout._replace(rows=layout.rows[::-1].copy()))

@@ -71,8 +71,9 @@ def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
 def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkeypatch, device_arguments):
     """``pair_geometry(..., device=cache)`` reads a candidate list's kept int32 indices as they are (through CUDA's
     launch path too, emulated on the CPU arch: their device copies kept in the cache, sent once per array object);
-    the same geometry as the reference, an empty kind included, and at frozen positions taken as they are; other
-    index arrays are refused."""
+    the same geometry as the kernel's launch through its kept arrays (which equals the NumPy reference bit for bit
+    on the CPU, above), an empty kind included, and at frozen positions taken as they are; other index arrays are
+    refused."""
     from sim_core import ti_backend
     from sim_core.energies.contact import setup_kernel
 
@@ -83,7 +84,7 @@ def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkey
             monkeypatch.setattr(module, "current_arch", lambda: "cuda")
     cache: dict = {}
     for vt_rows, ee_rows in ((vt, ee), (vt, ee), (vt[:0], ee), (vt, ee[:0])):
-        ref = pair_geometry(x, vt_rows, ee_rows)
+        ref = setup_kernel.pair_geometry(x, vt_rows.astype(np.int64), ee_rows.astype(np.int64))
         got = setup_kernel.pair_geometry(x, vt_rows, ee_rows, device=cache)
         for name in ref._fields:
             np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
@@ -95,7 +96,8 @@ def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkey
     for scale in (1e-3, 2e-3, 2e-3):
         y = x + scale
         y.flags.writeable = False
-        ref, got = pair_geometry(y, vt, ee), setup_kernel.pair_geometry(y, vt, ee, device=cache)
+        ref = setup_kernel.pair_geometry(y.copy(), vt.astype(np.int64), ee.astype(np.int64))
+        got = setup_kernel.pair_geometry(y, vt, ee, device=cache)
         for name in ref._fields:
             np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
         if device_arguments:
