@@ -24,7 +24,8 @@ from sim_core.energies.membrane.reference import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
-from sim_core.ti_kernels.launch import summing_kernel
+from sim_core.energies.base import sum_by_copy
+from sim_core.ti_kernels.launch import element_terms, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -149,6 +150,14 @@ class FusedStVKMembrane:
             return 0.0
         p = self.potential
         return float(stvk_energy(x, self._triangles, self._shape_gradient, self._weight, p.mu, p.lam))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each triangle's first vertex, J ``(copy_count,)`` (the same kernel, one
+        cell a triangle: :func:`~sim_core.ti_kernels.launch.element_terms`)."""
+        p = self.potential
+        cells = element_terms(stvk_energy, self._triangles.shape[0], x, self._triangles, self._shape_gradient,
+                              self._weight, p.mu, p.lam)
+        return sum_by_copy(copy_of_vertex, self._triangles[:, 0], cells, copy_count)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""
