@@ -65,17 +65,15 @@ class CopyLineSearch:
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
             last = (trial, x_try, (terms, xs, g_try))
             s_try = vectors.dot(g_try, d)
-            if per_copy:  # each copy's Armijo test on its own energy, as its separate run (NewtonSolver._line_search)
+            cand = pending & np.isfinite(s_try) & (s_try <= bound)
+            if per_copy and cand.any():  # each copy's Armijo test on its own energy
                 e_try = self._copy_energies(step, x_try.host, terms, xs)
-                ok = pending & np.isfinite(s_try) & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
+                ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
                 e_new = np.where(ok, e_try, e_new)
                 accepted |= ok
                 taken[ok] = a[ok]
                 pending &= ~ok
-                cand = np.zeros_like(pending)
-            else:
-                cand = pending & np.isfinite(s_try) & (s_try <= bound)
-            if cand.any():
+            elif cand.any():
                 e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
                 if np.array_equal(cand, pending):
                     e_try = self._energy(step, x_try.host, terms, xs)
