@@ -40,8 +40,8 @@ from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
-from sim_core.energies.base import sum_by_copy
-from sim_core.ti_kernels.launch import element_terms, fast_kernel, summing_kernel
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
+from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
@@ -267,15 +267,15 @@ class FusedSpringMembrane:
 
     def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
         """:meth:`energy` split by the copy of each edge's and triangle's first vertex, J ``(copy_count,)`` (the same
-        kernel, one cell an element: :func:`~sim_core.ti_kernels.launch.element_terms`)."""
+        kernel, one sum cell an element, the triangles after the edges:
+        :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
         p = self.potential
         d = self._device
-        count = self._edges.shape[0] + self._triangles.shape[0]
-        cells = element_terms(spring_membrane_energy, count, x, on_device(d, "triangles", self._triangles),
-                              on_device(d, "edges", self._edges), on_device(d, "area0", self._area0),
-                              on_device(d, "length0", self._length0), p.k_length, p.k_area)
-        first = np.concatenate([self._edges[:, 0], self._triangles[:, 0]])
-        return sum_by_copy(copy_of_vertex, first, cells, copy_count)
+        element_copy = element_copies(d, copy_of_vertex, self._edges[:, 0], self._triangles[:, 0])
+        return copy_energies(spring_membrane_energy, element_copy, copy_count, d, x,
+                             on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+                             on_device(d, "area0", self._area0), on_device(d, "length0", self._length0), p.k_length,
+                             p.k_area)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""

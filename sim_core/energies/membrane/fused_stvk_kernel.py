@@ -24,8 +24,8 @@ from sim_core.energies.membrane.reference import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
-from sim_core.energies.base import sum_by_copy
-from sim_core.ti_kernels.launch import element_terms, summing_kernel
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
+from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -126,6 +126,7 @@ class FusedStVKMembrane:
         self.potential = potential
         self.vertices = potential.triangles
         self._triangles = np.ascontiguousarray(potential.triangles, dtype=np.int32)
+        self._copy_kept: dict = {}  # copy_energies' element copies (and their device arrays on a GPU)
         self._shape_gradient = np.ascontiguousarray(potential.triangle_shape_gradient, dtype=np.float64)
         self._weight = np.ascontiguousarray(potential.thickness * potential.triangle_rest_area, dtype=np.float64)
         self._slots: np.ndarray | None = None
@@ -153,11 +154,11 @@ class FusedStVKMembrane:
 
     def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
         """:meth:`energy` split by the copy of each triangle's first vertex, J ``(copy_count,)`` (the same kernel, one
-        cell a triangle: :func:`~sim_core.ti_kernels.launch.element_terms`)."""
+        sum cell a triangle: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
         p = self.potential
-        cells = element_terms(stvk_energy, self._triangles.shape[0], x, self._triangles, self._shape_gradient,
-                              self._weight, p.mu, p.lam)
-        return sum_by_copy(copy_of_vertex, self._triangles[:, 0], cells, copy_count)
+        kept = self._copy_kept
+        return copy_energies(stvk_energy, element_copies(kept, copy_of_vertex, self._triangles[:, 0]), copy_count,
+                             kept, x, self._triangles, self._shape_gradient, self._weight, p.mu, p.lam)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""

@@ -36,8 +36,8 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, upper_index,
                                                   upper_slot_table)
 from sim_core.ti_kernels.buffers import on_device
-from sim_core.energies.base import sum_by_copy
-from sim_core.ti_kernels.launch import element_terms, summing_kernel
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
+from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
@@ -239,12 +239,12 @@ class FusedStableNeoHookean:
 
     def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
         """:meth:`energy` split by the copy of each tet's first vertex, J ``(copy_count,)`` (the same kernel, one
-        cell a tet: :func:`~sim_core.ti_kernels.launch.element_terms`)."""
+        sum cell a tet: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
         p = self.potential
         d = self._device
-        cells = element_terms(snh_energy, self._tets.shape[0], x, on_device(d, "tets", self._tets),
-                              on_device(d, "dFdx", self._dFdx), on_device(d, "vol", self._vol), p.mu, p.lam)
-        return sum_by_copy(copy_of_vertex, self._tets[:, 0], cells, copy_count)
+        return copy_energies(snh_energy, element_copies(d, copy_of_vertex, self._tets[:, 0]), copy_count, d, x,
+                             on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                             on_device(d, "vol", self._vol), p.mu, p.lam)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.

@@ -1,5 +1,5 @@
-"""The fused elastic kernels' energies split by copy (CopyEnergies, launch.element_terms): on two disjoint copies of
-a mesh, each copy's share is the energy of the same potential on that copy alone, and the shares add up to the
+"""The fused elastic kernels' energies split by copy (CopyEnergies, copy_vectors.copy_energies): on disjoint copies of a
+mesh, each copy's share is the energy of the same potential on that copy alone, and the shares add up to the
 stacked energy."""
 
 from __future__ import annotations
@@ -80,22 +80,28 @@ def test_fused_energy_split_by_copy_is_each_copys_own_energy(ti_cpu, kind):
     assert np.ptp(split) > 1e-3 * np.max(np.abs(split))  # the copies' energies differ: a real split
 
 
-def test_element_terms_gives_each_elements_term(ti_cpu):
-    """One cell an element: the cells of the hinge energy kernel are the hinges' own terms, and they sum to the
-    kernel's sum."""
+def test_copy_energies_of_one_element_a_copy_are_the_elements_terms(ti_cpu):
+    """One sum cell an element (launch.element_cells): with each hinge its own copy, the hinge energy kernel's sums by
+    copy are the hinges' own terms, and they add up to the kernel's sum; elements of one copy add up in it."""
     from sim_core.energies.hinge_bending.fused_kernel import weighted_hinge_energy
-    from sim_core.ti_kernels.launch import element_terms
+    from sim_core.ti_kernels.copy_vectors import copy_energies
 
     pot, x_rest, _ = _potential("hinge_reference_part", 1)
     x = x_rest.copy()
     x[:, 2] += 2e-3 * np.sin(150.0 * x_rest[:, 0])
     hinges = np.ascontiguousarray(pot.hinges, dtype=np.int32)
-    weight = np.linspace(1.0, 2.0, hinges.shape[0])
+    h = hinges.shape[0]
+    weight = np.linspace(1.0, 2.0, h)
     theta_bar = np.ascontiguousarray(pot.hinge_theta_bar, dtype=np.float64)
-    cells = element_terms(weighted_hinge_energy, hinges.shape[0], x, hinges, theta_bar, weight)
-    np.testing.assert_allclose(cells, weight * (pot.theta(x) - theta_bar) ** 2, rtol=1e-12, atol=1e-20)
-    assert np.sum(cells) == pytest.approx(weighted_hinge_energy(x, hinges, theta_bar, weight), rel=1e-13)
-    assert element_terms(weighted_hinge_energy, 0, x, hinges, theta_bar, weight).shape == (0,)
+    terms = copy_energies(weighted_hinge_energy, np.arange(h, dtype=np.int32), h, {}, x, hinges, theta_bar, weight)
+    np.testing.assert_allclose(terms, weight * (pot.theta(x) - theta_bar) ** 2, rtol=1e-12, atol=1e-20)
+    assert np.sum(terms) == pytest.approx(weighted_hinge_energy(x, hinges, theta_bar, weight), rel=1e-13)
+    halves = copy_energies(weighted_hinge_energy, (np.arange(h) >= h // 2).astype(np.int32), 3, {}, x, hinges,
+                           theta_bar, weight)
+    np.testing.assert_allclose(halves, [terms[:h // 2].sum(), terms[h // 2:].sum(), 0.0], rtol=1e-13, atol=1e-20)
+    none = copy_energies(weighted_hinge_energy, np.zeros(0, dtype=np.int32), 2, {}, x, hinges[:0], theta_bar[:0],
+                         weight[:0])
+    np.testing.assert_array_equal(none, [0.0, 0.0])
 
 
 def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
@@ -133,3 +139,22 @@ def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
     assert fused_dev._on_device()
     np.testing.assert_allclose(dev, host, rtol=1e-13)
     assert np.sum(host) == pytest.approx(fused_host.energy(x), rel=1e-12)
+
+
+def test_add_by_copy_kernel_on_device_arrays(ti_cpu):
+    """The GPU path's sum by copy (copy_vectors._add_by_copy) on Taichi ndarrays: each value added into its copy."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import device_copy, transfer
+    from sim_core.ti_kernels.copy_vectors import _add_by_copy
+
+    rng = np.random.default_rng(2)
+    values = rng.standard_normal(1000)
+    element_copy = rng.integers(0, 7, 1000).astype(np.int32)
+    values_dev = transfer.upload(device_copy.new_ndarray(ti.f64, (1000,)), values)
+    copy_dev = device_copy.new_ndarray(ti.i32, (1000,))
+    copy_dev.from_numpy(element_copy)
+    sums = device_copy.new_ndarray(ti.f64, (8,))
+    sums.fill(0.0)
+    _add_by_copy(values_dev, copy_dev, sums, 1000)
+    np.testing.assert_allclose(transfer.download(sums), np.bincount(element_copy, weights=values, minlength=8),
+                               rtol=1e-13, atol=1e-13)
