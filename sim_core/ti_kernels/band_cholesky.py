@@ -181,34 +181,70 @@ def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32,
 WARP = 32
 """Columns whose threads share a warp in :func:`_invert` (their sweeps start at the same row)."""
 
+SWEEP_ROWS = 4
+"""Rows of a substitution sweep that :func:`_invert` takes together: each value of the column read once for all
+of them (a fourth of the reads of one row at a time)."""
+
 
 @ti.kernel
 def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, mp: ti.i32, w: ti.i32):
     """The lower triangle of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column ``c`` (``mp``: ``m``
     rounded up to a multiple of :data:`WARP`, so that a warp's threads are the columns ``s .. s + WARP - 1`` of one
-    block, ``s = c - c % WARP``): ``L y = e_c`` forward from row ``s`` (``y_i = 0`` for ``s <= i < c`` stored, not
-    skipped), then ``L^T x = y`` back down to row ``s``, in place in ``inverse[(b m + i) m + c]``. The threads of a
-    warp thus take the same rows at each step: they read neighbouring addresses of the inverse and one address of
-    the band. Rows under ``s`` are not needed: ``x_i`` for ``i >= c`` depends on ``x_l``, ``l > i``, only
-    (:func:`_mirror` fills the upper triangle)."""
+    block, ``s = c - c % WARP``): ``L y = e_c`` forward from row ``s`` (``y_i = 0`` for ``s <= i < c`` stored),
+    then ``L^T x = y`` back down to row ``s``, in place in ``inverse[(b m + i) m + c]``, :data:`SWEEP_ROWS` rows
+    at a time (the earlier rows' values read once for all of them, then the rows among themselves). The threads of
+    a warp thus take the same rows at each step: they read neighbouring addresses of the inverse and one address
+    of the band. Rows under ``s`` are not needed: ``x_i`` for ``i >= c`` depends on ``x_l``, ``l > i``, only
+    (:func:`_mirror` fills the upper triangle). The forward sweep subtracts in the order of one row at a time
+    (increasing ``l``); the back sweep subtracts the rows read before the rows among themselves."""
     for b, c in ti.ndrange(nb, mp):
         if c < m and usable[b] != 0:
             base = b * m * m
             s0 = c - c % WARP
-            for i in range(s0, m):
-                s = 0.0
-                if i >= c:
-                    s = 1.0 if i == c else 0.0
-                    for l in range(ti.max(i - w, s0), i):
-                        s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
-                    s /= band[_at(b, i, w, m, w)]
-                inverse[base + i * m + c] = s
-            for ii in range(m - s0):
-                i = m - 1 - ii
-                s = inverse[base + i * m + c]
-                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
-                    s -= band[_at(b, l, i - l + w, m, w)] * inverse[base + l * m + c]
-                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
+            for blk in range((m - s0 + SWEEP_ROWS - 1) // SWEEP_ROWS):
+                i0 = s0 + blk * SWEEP_ROWS
+                acc = ti.Vector([0.0] * SWEEP_ROWS)
+                for r in ti.static(range(SWEEP_ROWS)):
+                    acc[r] = 1.0 if i0 + r == c else 0.0
+                for l in range(ti.max(i0 - w, s0), i0):
+                    y = inverse[base + l * m + c]
+                    for r in ti.static(range(SWEEP_ROWS)):
+                        i = i0 + r
+                        if l >= i - w and i < m:
+                            acc[r] -= band[_at(b, i, l - i + w, m, w)] * y
+                for r in ti.static(range(SWEEP_ROWS)):
+                    i = i0 + r
+                    if i < m:
+                        v = acc[r]
+                        for q in ti.static(range(r)):
+                            if i0 + q >= i - w:
+                                v -= band[_at(b, i, i0 + q - i + w, m, w)] * acc[q]
+                        v = v / band[_at(b, i, w, m, w)] if i >= c else 0.0
+                        acc[r] = v
+                        inverse[base + i * m + c] = v
+            for blk in range((m - s0 + SWEEP_ROWS - 1) // SWEEP_ROWS):
+                i0 = m - 1 - blk * SWEEP_ROWS  # rows i0, i0 - 1, .. (down to s0)
+                acc = ti.Vector([0.0] * SWEEP_ROWS)
+                for r in ti.static(range(SWEEP_ROWS)):
+                    if i0 - r >= s0:
+                        acc[r] = inverse[base + (i0 - r) * m + c]
+                for l in range(i0 + 1, ti.min(i0 + w, m - 1) + 1):
+                    x = inverse[base + l * m + c]
+                    for r in ti.static(range(SWEEP_ROWS)):
+                        i = i0 - r
+                        if l <= i + w and i >= s0:
+                            acc[r] -= band[_at(b, l, i - l + w, m, w)] * x
+                for r in ti.static(range(SWEEP_ROWS)):
+                    i = i0 - r
+                    if i >= s0:
+                        v = acc[r]
+                        for q in ti.static(range(r)):
+                            l = i0 - r + 1 + q  # the rows of this block after i, in increasing order
+                            if l <= i + w:
+                                v -= band[_at(b, l, i - l + w, m, w)] * acc[r - 1 - q]
+                        v = v / band[_at(b, i, w, m, w)]
+                        acc[r] = v
+                        inverse[base + i * m + c] = v
 
 
 @ti.kernel
