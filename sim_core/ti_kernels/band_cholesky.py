@@ -8,13 +8,12 @@ the block's DoFs) is kept as its lower band, entries ``S_ij`` with ``0 <= i - j 
 between two of the block's DoFs that the assembled pattern couples (contact blocks farther apart than ``w`` are
 left out of the band). Its entries are gathered from the CSR values through each band entry's position in them,
 found once a pattern. It is factorised ``S = L L^T`` by the banded elimination in outer-product form (Golub & Van
-Loan, Matrix Computations, 4th ed., Alg. 4.3.5), blocked by panels of :data:`PANEL` columns (ibid. Sec. 4.2.8 for the
-blocked Cholesky): a panel's columns are finished by its own earlier columns, then they update the ``w x w`` window
-after the panel at once, one thread an entry; three device passes a panel instead of one a column, and every entry
-updated in the column-by-column order. ``S^-1 = L^-T L^-1`` is then formed column by column (one thread a column:
-forward, then back substitution, rows from the column's warp's first on: about ``m w`` multiply-adds), its lower
-triangle only, mirrored into the upper one, so that applying it is one dense product a block, one thread a row (the
-substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
+Loan, Matrix Computations, 4th ed., Alg. 4.3.5), blocked by panels of :data:`PANEL` columns: a panel's columns are
+finished by its own earlier columns, then they update the ``w x w`` window after the panel at once, one thread an
+entry; three device passes a panel instead of one a column, and every entry updated in the column-by-column order
+(the same factor to the bit). ``S^-1 = L^-T L^-1`` is then formed column by column (one thread a column: forward,
+then back substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread
+a row (the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
 block whose elimination meets a pivot that is not positive (a band that left out a coupling it needed) is marked
 not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
 
@@ -71,8 +70,10 @@ def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_
                                       free[gi] * free[gj] * bval[9 * t + 3 * a + c])
 
 
-PANEL = 16
-"""Columns of one panel of the blocked banded elimination (:func:`_eliminate_panels`)."""
+PANEL = 8
+"""Columns of one panel of the blocked banded elimination (:func:`_eliminate_panels`; its diagonal block is one
+thread's chain of about ``PANEL^3 / 6`` updates: on an H100 at 1024 blocks, ``m = 360``, ``w = 53``, 4 and 8 give
+5.7 ms an elimination, 16 gives 10.0 and 32 29.8, against 7.7 column by column)."""
 
 PANELS_PER_LAUNCH = 4
 """Panels of the blocked elimination in one launch of :func:`_eliminate_panels` (three device passes each)."""
@@ -178,84 +179,29 @@ def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32,
         band[_at(b, i, w, m, w)] = pivots[b * m + i]
 
 
-WARP = 32
-"""Columns whose threads share a warp in :func:`_invert` (their sweeps start at the same row)."""
-
-SWEEP_ROWS = 4
-"""Rows of a substitution sweep that :func:`_invert` takes together: each value of the column read once for all
-of them (a fourth of the reads of one row at a time)."""
-
-
 @ti.kernel
-def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, mp: ti.i32, w: ti.i32):
-    """The lower triangle of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column ``c`` (``mp``: ``m``
-    rounded up to a multiple of :data:`WARP`, so that a warp's threads are the columns ``s .. s + WARP - 1`` of one
-    block, ``s = c - c % WARP``): ``L y = e_c`` forward from row ``s`` (``y_i = 0`` for ``s <= i < c`` stored),
-    then ``L^T x = y`` back down to row ``s``, in place in ``inverse[(b m + i) m + c]``, :data:`SWEEP_ROWS` rows
-    at a time (the earlier rows' values read once for all of them, then the rows among themselves). The threads of
-    a warp thus take the same rows at each step: they read neighbouring addresses of the inverse and one address
-    of the band. Rows under ``s`` are not needed: ``x_i`` for ``i >= c`` depends on ``x_l``, ``l > i``, only
-    (:func:`_mirror` fills the upper triangle). The forward sweep subtracts in the order of one row at a time
-    (increasing ``l``); the back sweep subtracts the rows read before the rows among themselves."""
-    for b, c in ti.ndrange(nb, mp):
-        if c < m and usable[b] != 0:
+def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """Column ``c`` of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column: ``L y = e_c`` forward, then
+    ``L^T x = y`` back, in place in ``inverse[(b m + i) m + c]``. Both sweeps take the rows in the same order in
+    every thread (``y_i = 0`` above row ``c`` is stored, not skipped), so that the threads of a warp, neighbouring
+    columns, read neighbouring addresses of the inverse and one address of the band at each step."""
+    for b, c in ti.ndrange(nb, m):
+        if usable[b] != 0:
             base = b * m * m
-            s0 = c - c % WARP
-            for blk in range((m - s0 + SWEEP_ROWS - 1) // SWEEP_ROWS):
-                i0 = s0 + blk * SWEEP_ROWS
-                acc = ti.Vector([0.0] * SWEEP_ROWS)
-                for r in ti.static(range(SWEEP_ROWS)):
-                    acc[r] = 1.0 if i0 + r == c else 0.0
-                for l in range(ti.max(i0 - w, s0), i0):
-                    y = inverse[base + l * m + c]
-                    for r in ti.static(range(SWEEP_ROWS)):
-                        i = i0 + r
-                        if l >= i - w and i < m:
-                            acc[r] -= band[_at(b, i, l - i + w, m, w)] * y
-                for r in ti.static(range(SWEEP_ROWS)):
-                    i = i0 + r
-                    if i < m:
-                        v = acc[r]
-                        for q in ti.static(range(r)):
-                            if i0 + q >= i - w:
-                                v -= band[_at(b, i, i0 + q - i + w, m, w)] * acc[q]
-                        v = v / band[_at(b, i, w, m, w)] if i >= c else 0.0
-                        acc[r] = v
-                        inverse[base + i * m + c] = v
-            for blk in range((m - s0 + SWEEP_ROWS - 1) // SWEEP_ROWS):
-                i0 = m - 1 - blk * SWEEP_ROWS  # rows i0, i0 - 1, .. (down to s0)
-                acc = ti.Vector([0.0] * SWEEP_ROWS)
-                for r in ti.static(range(SWEEP_ROWS)):
-                    if i0 - r >= s0:
-                        acc[r] = inverse[base + (i0 - r) * m + c]
-                for l in range(i0 + 1, ti.min(i0 + w, m - 1) + 1):
-                    x = inverse[base + l * m + c]
-                    for r in ti.static(range(SWEEP_ROWS)):
-                        i = i0 - r
-                        if l <= i + w and i >= s0:
-                            acc[r] -= band[_at(b, l, i - l + w, m, w)] * x
-                for r in ti.static(range(SWEEP_ROWS)):
-                    i = i0 - r
-                    if i >= s0:
-                        v = acc[r]
-                        for q in ti.static(range(r)):
-                            l = i0 - r + 1 + q  # the rows of this block after i, in increasing order
-                            if l <= i + w:
-                                v -= band[_at(b, l, i - l + w, m, w)] * acc[r - 1 - q]
-                        v = v / band[_at(b, i, w, m, w)]
-                        acc[r] = v
-                        inverse[base + i * m + c] = v
-
-
-@ti.kernel
-def _mirror(usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32):
-    """The upper triangle of each usable block's inverse from its lower one (``S^-1`` symmetric: entry ``(i, c)``,
-    ``i < c``, set to ``(c, i)``); one thread an entry, the writes coalesced."""
-    for b, i, c in ti.ndrange(nb, m, m):
-        if c > i and usable[b] != 0:
-            base = b * m * m
-            inverse[base + i * m + c] = inverse[base + c * m + i]
-
+            for i in range(m):
+                s = 0.0
+                if i >= c:
+                    s = 1.0 if i == c else 0.0
+                    for l in range(ti.max(i - w, 0), i):
+                        s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
+                    s /= band[_at(b, i, w, m, w)]
+                inverse[base + i * m + c] = s
+            for ii in range(m):
+                i = m - 1 - ii
+                s = inverse[base + i * m + c]
+                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
+                    s -= band[_at(b, l, i - l + w, m, w)] * inverse[base + l * m + c]
+                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
 
 
 @ti.func
@@ -371,10 +317,8 @@ class BandBlocks:
         _scale_factor(self._band, self._pivots, self._usable, nb, m, w)
 
     def invert(self) -> None:
-        """Each usable block's inverse ``L^-T L^-1`` from its factor (the lower triangle, then its mirror)."""
-        nb, m, w = self.count, self.size, self.width
-        _invert(self._band, self._usable, self._inverse, nb, m, -(-m // WARP) * WARP, w)
-        _mirror(self._usable, self._inverse, nb, m)
+        """Each usable block's inverse ``L^-T L^-1`` from its factor."""
+        _invert(self._band, self._usable, self._inverse, self.count, self.size, self.width)
 
     @property
     def usable(self) -> np.ndarray:

@@ -106,9 +106,9 @@ def test_each_block_is_applied_as_its_exact_inverse_with_the_vertex_blocks_in_it
     np.testing.assert_array_equal(z_dev.to_numpy()[dofs[1]], 7.0)
 
 
-def test_blocks_of_many_panels_are_inverted_exactly_and_symmetrically_as_their_values_change(ti_cpu):
+def test_blocks_of_many_panels_are_inverted_exactly_as_their_values_change(ti_cpu):
     """Blocks of several elimination panels and launches (one padded), as two Newton matrices of one pattern: the
-    second assembly re-uses the first's band positions; each block's inverse is NumPy's, its two triangles equal."""
+    second assembly re-uses the first's band positions; each block's inverse is NumPy's."""
     from sim_core.ti_backend import ti
     from sim_core.ti_kernels import band_cholesky, device_copy
     from sim_core.ti_kernels.band_cholesky import BandBlocks
@@ -139,7 +139,6 @@ def test_blocks_of_many_panels_are_inverted_exactly_and_symmetrically_as_their_v
             d = dofs[c, :k]
             want = np.linalg.inv(dense[np.ix_(d, d)])
             np.testing.assert_allclose(inverse[c, :k, :k], want, rtol=0, atol=1e-10 * np.abs(want).max())
-            np.testing.assert_array_equal(inverse[c], inverse[c].T)
     r = rng.normal(size=n)
     r_dev, z_dev, active = (device_copy.new_ndarray(ti.f64, (n,)), device_copy.new_ndarray(ti.f64, (n,)),
                             device_copy.new_ndarray(ti.i32, (2,)))
