@@ -78,8 +78,8 @@ thread's chain of about ``PANEL^3 / 6`` updates: on an H100 at 1024 blocks, ``m 
 PANELS_PER_LAUNCH = 4
 """Panels of the blocked elimination in one launch of :func:`_eliminate_panels` (three device passes each)."""
 
-_ZERO_ENTRY = -1
-_ONE_ENTRY = -2
+_ZERO_ENTRY = -1  # a band entry's position in the CSR values where the pattern has none: the entry is 0
+_ONE_ENTRY = -2  # a padding row's diagonal: the entry is 1
 
 
 @ti.kernel
