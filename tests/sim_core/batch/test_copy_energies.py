@@ -68,14 +68,17 @@ def test_each_term_of_a_lockstep_step_splits_its_energy_by_copy(model, monkeypat
 @pytest.mark.parametrize("config", [DIRECT, DEVICE_CG], ids=["direct", "device-cg"])
 def test_each_copy_takes_a_step_that_meets_its_own_armijo_condition(model, config, monkeypatch):
     """Copies of their own parameters and motions (they disagree): for every accepted step of every copy,
-    ``E(x with copy i moved) - E(x) <= c a_i g_i.d_i`` on the stacked energy of one evaluation (no split); no
-    Armijo group energy is evaluated."""
+    ``E(x with copy i moved) - E(x) <= c a_i g_i.d_i`` on the stacked energy of one evaluation (no split); the
+    per-copy energies kept for the next search are those of the new iterate; no Armijo group energy is evaluated."""
     checked = []
     line_search = lockstep_module.LockstepSolver._line_search_copies
 
     def spy(self, step, x, d, alpha, slope, open_, terms, x_search, info):
         out = line_search(self, step, x, d, alpha, slope, open_, terms, x_search, info)
         x_new, accepted, backtracks = out[0], out[4], out[5]
+        kept = self._trial_energy  # the next search's e0: each copy's energy where it stands, measured afresh equal
+        assert kept[0] is x_new.host and kept[1] is out[2]
+        np.testing.assert_allclose(kept[2], self._copy_energies(step, x_new.host, out[2], out[3]), rtol=1e-12)
         e0 = _stacked_energy(self, step, x.host)
         for i in np.flatnonzero(accepted & open_ & (alpha > 0)):
             a = alpha[i] * 0.5 ** backtracks[i]
