@@ -3,7 +3,8 @@
 
 Its vectors are the solver's (:mod:`sim_core.batch.iterates`): the trial points ``x + a_c d`` are made where the
 update lives (on the device with the batched CG, downloaded once for the contact search and the energies), and the
-slope test's per-copy dot products are read back as ``(B,)`` arrays.
+slope test's per-copy dot products are read back as ``(B,)`` arrays, with each trial gradient's largest entries (the
+next Newton iteration's force test, where the trial is accepted) in the same read.
 """
 
 from __future__ import annotations
@@ -29,9 +30,10 @@ class CopyLineSearch:
         with these ``contact_terms`` (no contact side released since).
 
         Returns:
-            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate` with
-            every accepted copy moved and the others where they were, the gradient at ``x_new``, its contact terms
-            and search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
+            ``(x_new, (x_new, g_new, g_max), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate`
+            with every accepted copy moved and the others where they were, the gradient at ``x_new`` and its per-copy
+            largest ``|g_k|`` ``(B,)`` where it was read with the slope test (else None), its contact terms and
+            search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
         """
         cfg = self.config
         B = self.scene.copies
@@ -54,8 +56,8 @@ class CopyLineSearch:
             trial = np.where(pending, a, 0.0) + taken
             x_try = vectors.trial(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
-            last = (trial, x_try, (terms, xs, g_try))
-            s_try = vectors.dot(g_try, d)
+            s_try, g_try_max = vectors.slope_and_largest(g_try, d)  # the slope and the next iteration's max |g|
+            last = (trial, x_try, (terms, xs, g_try, g_try_max))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if cand.any():
                 e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
@@ -73,11 +75,12 @@ class CopyLineSearch:
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
         if last is not None and np.array_equal(last[0], taken):
-            x_new, (terms, xs, g_new) = last[1], last[2]
+            x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
-        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+            g_max = None
+        return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
 
     def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:
         """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the

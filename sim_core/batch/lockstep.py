@@ -298,11 +298,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         self._trial_energy = None
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+        g_max = None  # per copy max |g|, where the line search read it with its slope test (one read back)
         H = projection = factorization = None
         simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
         for it in range(1, cfg.max_iterations + 1):
             open_ = running & ~done
-            g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            if g_max is None:
+                g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
             bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
@@ -326,7 +328,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
             vectors.zero_copies(d, ~open_)
-            step_max = vectors.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it
+            slope, step_max = vectors.slope_and_norm(g, d)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -346,7 +349,6 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 break
             alpha = np.where(open_ & (step_max > 0),
                              np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = vectors.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
                 vectors.take_steepest(d, g, uphill)
@@ -385,8 +387,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             x = x_new
             if g_new[1] is None or x is not g_new[0]:
                 contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+                g_max = None
             else:
                 contact_terms, x_search, g = contact_new, x_search_new, g_new[1]
+                g_max = g_new[2]
         else:
             raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
         self._finish_step(step, x.host, H, projection, factorization, state_out, info)
