@@ -289,8 +289,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             if infos[i] is not None:
                 infos[i].limited_effectors.append(name)
         done = np.zeros(B, dtype=bool)
-        history: list[list[float]] = [[] for _ in range(B)]
+        # row it - 1: the residuals of iteration it (a copy is open from the first iteration until it is done, so
+        # its rows 0 .. it - 1 are its history)
+        history = np.zeros((max(cfg.max_iterations, 1), B))
         residual = np.full(B, np.inf)
+        # stop_reason accepts no copy whose residual and largest gradient entry are both above these
+        stop_residual = max(1.0, cfg.stall_tolerance_factor) * cfg.tol_velocity
 
         def fail(mask: np.ndarray, what: str) -> _CopiesFailed:
             return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
@@ -337,10 +341,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            for i in np.flatnonzero(open_):
-                residual[i] = step_max[i] / dt
-                history[i].append(residual[i])
-                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[i])
+            residual[open_] = step_max[open_] / dt
+            history[it - 1, open_] = residual[open_]
+            for i in np.flatnonzero(open_ & ((residual < stop_residual) | (g_max < cfg.tol_force))):
+                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[:it, i])
                 if reason is not None:
                     accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
