@@ -19,7 +19,6 @@ import numpy as np
 
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy, transfer
-from sim_core.ti_kernels.async_upload import AsyncUploads
 from sim_core.ti_kernels.launch import fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -286,7 +285,6 @@ class CopyVectors:
         self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
         self._scalars_out = device_copy.new_ndarray(ti.i64, (max(_SCALARS * B, 1),))
         self._scalars_host = np.zeros(self._scalars_out.shape, dtype=np.int64)
-        self._uploads = AsyncUploads(8 * max(B, 1))
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
@@ -319,13 +317,11 @@ class CopyVectors:
         return out
 
     def _copy_values(self, values: np.ndarray, dtype=np.float64):
-        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid for the kernels launched
-        until the next call), uploaded without the host waiting for the device
-        (:class:`~sim_core.ti_kernels.async_upload.AsyncUploads`)."""
+        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid until the next call)."""
         target = self._per_copy if dtype == np.float64 else self._actions
-        host = np.zeros(target.shape, dtype=dtype)
-        host[: self.copies] = values
-        self._uploads.upload(target, host)
+        host = np.ascontiguousarray(values, dtype=dtype)
+        if not device_copy.to_device(target, host):
+            target.from_numpy(host)
         return target
 
     def moved(self, x, d, alphas: np.ndarray):

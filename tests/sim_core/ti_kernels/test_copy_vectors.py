@@ -83,39 +83,6 @@ def test_scalars_in_one_read_equal_copy_runs(ti_cpu, stacked):
     assert_same_sums(norm, runs.largest_norm(finite))
 
 
-def test_per_copy_values_queued_between_launches_reach_each_launch(ti_cpu, stacked):
-    """Step sizes uploaded into one device buffer before each of many launches (more than the staging slots, no read
-    back in between) reach each launch with its own values."""
-    from sim_core.ti_kernels.copy_vectors import CopyVectors
-
-    runs, vectors = CopyRuns(stacked.index), CopyVectors(stacked.index)
-    rng = np.random.default_rng(3)
-    x, d = rng.normal(size=(2, runs.vertex_count, 3))
-    dx, dd = vectors.upload(x), vectors.upload(d)
-    alphas = rng.uniform(-1.0, 1.0, (20, 4))
-    moved = [vectors.moved(dx, dd, al) for al in alphas]  # 20 uploads queued, then the reads
-    for al, got in zip(alphas, moved):
-        assert_same_sums(vectors.download(got), runs.moved(x, d, al))
-    from sim_core.ti_backend import current_arch
-
-    assert vectors._uploads.queued == (current_arch() == "cuda")
-
-
-def test_async_uploads_refuse_what_does_not_fit(ti_cpu):
-    from sim_core.ti_backend import ti
-    from sim_core.ti_kernels import device_copy
-    from sim_core.ti_kernels.async_upload import AsyncUploads
-
-    uploads = AsyncUploads(16)
-    target = device_copy.new_ndarray(ti.i32, (4,))
-    uploads.upload(target, np.arange(4, dtype=np.int32))
-    np.testing.assert_array_equal(target.to_numpy(), np.arange(4))
-    with pytest.raises(ValueError, match="at most 16 bytes"):
-        uploads.upload(target, np.arange(5, dtype=np.int32))
-    with pytest.raises(ValueError):  # 12 bytes for a 16-byte ndarray
-        uploads.upload(target, np.arange(3, dtype=np.int32))
-
-
 def test_trial_points_and_copy_updates_equal_copy_runs(ti_cpu, stacked):
     from sim_core.ti_kernels.copy_vectors import CopyVectors
 
