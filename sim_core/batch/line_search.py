@@ -3,7 +3,8 @@
 
 Its vectors are the solver's (:mod:`sim_core.batch.iterates`): the trial points ``x + a_c d`` are made where the
 update lives (on the device with the batched CG, downloaded once for the contact search and the energies), and the
-slope test's per-copy dot products are read back as ``(B,)`` arrays.
+slope test's per-copy dot products are read back as ``(B,)`` arrays, with each trial gradient's largest entries (the
+next Newton iteration's force test, where the trial is accepted) in the same read.
 """
 
 from __future__ import annotations
@@ -34,9 +35,10 @@ class CopyLineSearch:
         line search's result with these ``contact_terms`` (no contact side released since).
 
         Returns:
-            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate` with
-            every accepted copy moved and the others where they were, the gradient at ``x_new``, its contact terms
-            and search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
+            ``(x_new, (x_new, g_new, g_max), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate`
+            with every accepted copy moved and the others where they were, the gradient at ``x_new`` and its per-copy
+            largest ``|g_k|`` ``(B,)`` where it was read with the slope test (else None), its contact terms and
+            search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
         """
         cfg = self.config
         B = self.scene.copies
@@ -63,8 +65,8 @@ class CopyLineSearch:
             trial = np.where(pending, a, 0.0) + taken
             x_try = vectors.trial(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
-            last = (trial, x_try, (terms, xs, g_try))
-            s_try = vectors.dot(g_try, d)
+            s_try, g_try_max = vectors.slope_and_largest(g_try, d)  # the slope and the next iteration's max |g|
+            last = (trial, x_try, (terms, xs, g_try, g_try_max))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if per_copy and cand.any():  # each copy's Armijo test on its own energy
                 e_try = self._copy_energies(step, x_try.host, terms, xs)
@@ -89,13 +91,14 @@ class CopyLineSearch:
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
         if last is not None and np.array_equal(last[0], taken):
-            x_new, (terms, xs, g_new) = last[1], last[2]
+            x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
+            g_max = None
         if per_copy:  # a copy's energy depends on its own positions only: x_new's, per copy, are those measured
             self._trial_energy = (x_new.host, terms, e_new)
-        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+        return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
 
     def _copy_energies(self, step, x: np.ndarray, contact_terms: list,
                        x_search: np.ndarray | None) -> np.ndarray | None:

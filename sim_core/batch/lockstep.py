@@ -291,8 +291,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             if infos[i] is not None:
                 infos[i].limited_effectors.append(name)
         done = np.zeros(B, dtype=bool)
-        history: list[list[float]] = [[] for _ in range(B)]
+        # row it - 1: the residuals of iteration it (a copy is open from the first iteration until it is done, so
+        # its rows 0 .. it - 1 are its history)
+        history = np.zeros((max(cfg.max_iterations, 1), B))
         residual = np.full(B, np.inf)
+        # stop_reason accepts no copy whose residual and largest gradient entry are both above these
+        stop_residual = max(1.0, cfg.stall_tolerance_factor) * cfg.tol_velocity
 
         def fail(mask: np.ndarray, what: str) -> _CopiesFailed:
             return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
@@ -300,11 +304,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         self._trial_energy = None
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+        g_max = None  # per copy max |g|, where the line search read it with its slope test (one read back)
         H = projection = factorization = None
         simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
         for it in range(1, cfg.max_iterations + 1):
             open_ = running & ~done
-            g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            if g_max is None:
+                g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
             bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
@@ -328,7 +334,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
             vectors.zero_copies(d, ~open_)
-            step_max = vectors.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it
+            slope, step_max = vectors.slope_and_norm(g, d)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -336,10 +343,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            for i in np.flatnonzero(open_):
-                residual[i] = step_max[i] / dt
-                history[i].append(residual[i])
-                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[i])
+            residual[open_] = step_max[open_] / dt
+            history[it - 1, open_] = residual[open_]
+            for i in np.flatnonzero(open_ & ((residual < stop_residual) | (g_max < cfg.tol_force))):
+                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[:it, i])
                 if reason is not None:
                     accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
@@ -348,7 +355,6 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 break
             alpha = np.where(open_ & (step_max > 0),
                              np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = vectors.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
                 vectors.take_steepest(d, g, uphill)
@@ -387,8 +393,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             x = x_new
             if g_new[1] is None or x is not g_new[0]:
                 contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+                g_max = None
             else:
                 contact_terms, x_search, g = contact_new, x_search_new, g_new[1]
+                g_max = g_new[2]
         else:
             raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
         self._finish_step(step, x.host, H, projection, factorization, state_out, info)

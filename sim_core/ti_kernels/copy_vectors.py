@@ -120,6 +120,59 @@ def _extremes(a: _VEC, out: _I64, order: _I32, start: _I32, copies: ti.i32, vert
         ti.atomic_max(out[copies + c], ti.i64(bad))
 
 
+_SCALARS = 7  # rows of _scalars' output: dot, |a| max, a NaN, |b| max, b NaN, |b_v|^2 max, b_v not finite
+
+
+@fast_kernel
+def _scalars(a: _VEC, b: _VEC, partial: _F64, out: _I64, order: _I32, start: _I32, copies: ti.i32):
+    """Per copy ``c``, into ``out`` (int64, row ``r`` at ``out[r copies + c]``): row 0 the bits of the float64
+    ``sum_k a_k b_k`` over the copy's DoFs (its lanes' partial sums, kept in ``partial``, added in lane order),
+    rows 1 / 2 the bits of the largest non-NaN ``|a_k|`` and 1 where an entry of ``a`` is NaN, rows 3 / 4 the same
+    of ``b``, rows 5 / 6 the bits of the largest finite squared vertex norm ``|b_v|^2`` and 1 where one is not
+    finite (the maxima of :func:`_extremes`)."""
+    for i in range(_SCALARS * copies):
+        out[i] = 0
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        acc = 0.0
+        big_a = 0.0
+        big_b = 0.0
+        big_n = 0.0
+        nan_a = 0
+        nan_b = 0
+        bad_n = 0
+        for q in range(lane_count(start, c, k)):
+            t = lane_vertex(order, start, c, k, q)
+            acc += a[t, 0] * b[t, 0] + a[t, 1] * b[t, 1] + a[t, 2] * b[t, 2]
+            s = b[t, 0] * b[t, 0] + b[t, 1] * b[t, 1] + b[t, 2] * b[t, 2]
+            if _not_finite(s):
+                bad_n = 1
+            else:
+                big_n = ti.max(big_n, s)
+            for j in ti.static(range(3)):
+                ea = ti.abs(a[t, j])
+                eb = ti.abs(b[t, j])
+                if _is_nan(ea):
+                    nan_a = 1
+                else:
+                    big_a = ti.max(big_a, ea)
+                if _is_nan(eb):
+                    nan_b = 1
+                else:
+                    big_b = ti.max(big_b, eb)
+        partial[c * REDUCTION_LANES + k] = acc
+        ti.atomic_max(out[copies + c], ti.bit_cast(big_a, ti.i64))
+        ti.atomic_max(out[2 * copies + c], ti.i64(nan_a))
+        ti.atomic_max(out[3 * copies + c], ti.bit_cast(big_b, ti.i64))
+        ti.atomic_max(out[4 * copies + c], ti.i64(nan_b))
+        ti.atomic_max(out[5 * copies + c], ti.bit_cast(big_n, ti.i64))
+        ti.atomic_max(out[6 * copies + c], ti.i64(bad_n))
+    for c in range(copies):
+        total = 0.0
+        for k in range(REDUCTION_LANES):
+            total += partial[c * REDUCTION_LANES + k]
+        out[c] = ti.bit_cast(total, ti.i64)
+
+
 @fast_kernel
 def _moved(x: _VEC, d: _VEC, alpha: _F64, vertex_copy: _I32, out: _VEC, n: ti.i32):
     """``out_v = x_v + alpha_c d_v``, ``c`` vertex ``v``'s copy."""
@@ -283,6 +336,9 @@ class CopyVectors:
         self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
         self._out_host = np.zeros(self._out.shape, dtype=np.int64)
+        self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
+        self._scalars_out = device_copy.new_ndarray(ti.i64, (max(_SCALARS * B, 1),))
+        self._scalars_host = np.zeros(self._scalars_out.shape, dtype=np.int64)
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
@@ -332,6 +388,25 @@ class CopyVectors:
         """Per copy ``sum_k a_k b_k`` over its DoFs, shape ``(B,)``."""
         _dots(a, b, self._per_copy, self._order, self._start, self.copies)
         return transfer.download(self._per_copy)[: self.copies].copy()
+
+    def scalars(self, a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per copy, in one launch and one read back: ``(dot, largest_abs_a, largest_abs_b, largest_norm_b)``, each
+        ``(B,)``: :meth:`dot` of ``a`` and ``b`` (its lanes' partial sums added in lane order), :meth:`largest_abs` of
+        ``a`` and of ``b``, and :meth:`largest_norm` of ``b`` (what a Newton iteration reads of its gradient and
+        update together)."""
+        B = self.copies
+        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, B)
+        out = self._scalars_host
+        if not device_copy.to_host(out, self._scalars_out):
+            out = self._scalars_out.to_numpy()
+        rows = out[: _SCALARS * B].reshape(_SCALARS, B)
+        values = rows.view(np.float64)
+        dot = values[0].copy()
+        big_a = np.where(rows[2] > 0, np.nan, values[1])
+        big_b = np.where(rows[4] > 0, np.nan, values[3])
+        with np.errstate(invalid="ignore"):
+            norm_b = np.sqrt(np.where(rows[6] > 0, np.nan, values[5]))
+        return dot, big_a, big_b, norm_b
 
     def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
         _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)
