@@ -13,16 +13,18 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   solution is zero) while the others iterate;
 * step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
   a copy keeps a step once it passes, the others halve theirs. The per-copy gradient is a slice of the
-  stacked gradient, but the energy is one sum over all copies, so each trial step is tested twice:
+  stacked gradient, and each term's energy is split by copy (capability
+  :class:`~sim_core.energies.base.CopyEnergies`), so each trial step is tested twice:
   first the Armijo condition with the energy change estimated by the trapezoidal rule of the
   directional derivatives, ``E_i(x + a d) - E_i(x) ~ a (g_i(x).d_i + g_i(x + a d).d_i) / 2`` (exact
   for a quadratic; Nocedal & Wright, Numerical Optimization, 2nd ed., Sec. 3.5), then, for the copies
-  that pass, the Armijo condition on the measured energy change of the group, split in halves
+  that pass, each copy's Armijo condition on its own measured energy change (one energy evaluation a trial
+  point, :meth:`LockstepSolver._copy_energies`). Where a term cannot split its energy (the NumPy backend's elastic
+  terms), the second test is the Armijo condition on the measured energy change of the group, split in halves
   (one energy evaluation a split; the energy being a sum over copies, the other half's change is the
-  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`).
-  With one copy this is the separate run's line search; with several, a copy whose own energy test
-  fails while its group's holds (another copy's decrease covering it) is accepted: rare, since it must
-  pass the slope test too, but a difference from its separate run. The other difference: a copy whose
+  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`): there a copy
+  whose own energy test fails while its group's holds (another copy's decrease covering it) is accepted.
+  With one copy this is the separate run's line search; with several, a copy whose
   slope test fails while its own energy falls (a contact switching on near the trial point) halves its step
   where its separate run takes it (Forming: the lockstep's extra iterations, ``benchmarks/iterations_lockstep.py``);
 * Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that

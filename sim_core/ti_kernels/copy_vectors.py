@@ -17,9 +17,9 @@ atomic adds in an order that varies from launch to launch); maxima and the other
 
 import numpy as np
 
-from sim_core.ti_backend import ti
+from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels import device_copy, transfer
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import element_cells, fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -224,6 +224,60 @@ def _diagonal_quadratic(x: _VEC, center: _VEC, weight: _F64, g: _VEC, partial: _
                 g[v, j] += w * r
                 acc += w * r * r
         partial[k] = 0.5 * acc
+
+
+@fast_kernel
+def _add_by_copy(values: _F64, element_copy: _I32, out: _F64, n: ti.i32):
+    """``out[element_copy[k]] += values[k]`` for ``k < n``."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(n):
+        out[element_copy[k]] += values[k]
+
+
+def element_copies(kept: dict, copy_of_vertex: np.ndarray, *first_vertices: np.ndarray) -> np.ndarray:
+    """The copy of each element, int32 ``(k,)``: ``copy_of_vertex`` (int ``(N,)``) at the elements' first vertices
+    ``first_vertices`` (one array per loop of the kernel, in loop order, concatenated), made once for each
+    ``copy_of_vertex`` object and kept in ``kept``."""
+    entry = kept.get("element_copies")
+    if entry is None or entry[0] is not copy_of_vertex:
+        first = np.concatenate(first_vertices) if len(first_vertices) > 1 else first_vertices[0]
+        entry = kept["element_copies"] = (copy_of_vertex, np.ascontiguousarray(np.take(copy_of_vertex, first),
+                                                                                dtype=np.int32))
+    return entry[1]
+
+
+def copy_energies(summed, element_copy: np.ndarray, copy_count: int, kept: dict, *args) -> np.ndarray:
+    """The terms of the summing kernel ``summed`` (:func:`~sim_core.ti_kernels.launch.summing_kernel`) on ``args``,
+    summed by copy: element ``k``'s term (one sum cell an element,
+    :func:`~sim_core.ti_kernels.launch.element_cells`) added into copy ``element_copy[k]``. On the host arch by
+    ``np.bincount`` (in element order); on a GPU where the terms are (one atomic add an element into ``copy_count``
+    cells), only the sums copied back, ``element_copy`` uploaded once into ``kept``
+    (:func:`~sim_core.ti_kernels.buffers.on_device`).
+
+    Args:
+        summed: a summing-kernel function whose loops number their elements ``0 .. k - 1``.
+        element_copy: the copy of each element, int32 ``(k,)``, never changed in place.
+        copy_count: copies ``B``.
+        kept: the caller's cache of device arrays.
+        args: the kernel's arguments but its sum array.
+
+    Returns:
+        the sums, float64 ``(copy_count,)`` (J for an energy kernel).
+    """
+    from sim_core.ti_kernels.buffers import on_device  # (buffers imports this module's siblings only)
+
+    count = int(element_copy.shape[0])
+    cells = element_cells(summed, count, *args)
+    if isinstance(cells, np.ndarray):
+        return np.bincount(element_copy, weights=cells, minlength=copy_count).astype(np.float64, copy=False)
+    sums = kept.get("copy_sums")
+    if sums is None or sums.shape[0] != copy_count:
+        sums = kept["copy_sums"] = device_copy.new_ndarray(ti.f64, (copy_count,))
+    if not device_copy.zero(sums):
+        sums.fill(0.0)
+    if count:
+        _add_by_copy(cells, on_device(kept, "element_copy", element_copy), sums, count)
+    return transfer.download(sums)
 
 
 def new_vectors(vertex_count: int):
