@@ -285,6 +285,7 @@ def main() -> int:
                     help="the call site that starts the long host stretch (a substring of the trace's), or auto: the "
                          "trace's")
     ap.add_argument("--skip-full", action="store_true")
+    ap.add_argument("--again", action="store_true", help="the sequential halves again after the pipelined ones")
     args = ap.parse_args()
     _B_SITE = args.b_site or None
 
@@ -369,6 +370,27 @@ def main() -> int:
     print(f"pipelined against one after the other: iterations copy by copy equal {same_its}, positions max |dx| "
           f"{dx:.3g} m; wall {wall_seq:.3f} -> {wall_pipe:.3f} s ({100 * (wall_pipe / wall_seq - 1):+.1f} %)"
           + (f"; one engine {results['full'][0]:.3f} s" if "full" in results else ""))
+    if args.again:  # the order's effect: the sequential halves once more, after the pipelined ones
+        for run in runs:
+            run.batch.reset()
+            run.batch.warm_up()
+            _step(run, 0)
+        def sequential():
+            if ctx is not None:
+                from sim_core.ti_kernels import device_copy
+
+                device_copy._driver().cuCtxSetCurrent(ctx)
+            for k in range(1, S + 1):
+                for me in (0, 1):
+                    _step(runs[me], k)
+
+        t0 = time.perf_counter()
+        worker = threading.Thread(target=sequential)  # on a thread of its own, as the pipelined halves
+        worker.start()
+        worker.join()
+        wall = time.perf_counter() - t0
+        print(f"two halves one after the other again, on another thread: {S} steps in {wall:.3f} s, "
+              f"{B * S / wall:.1f} scene-steps/s")
     return 0
 
 
