@@ -544,8 +544,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
+            # -g on the copies to solve, 0 elsewhere: its per-copy values uploaded before the factorisation is queued
+            # (a synchronous upload waits for every kernel queued before it), so that the host waits once, for the
+            # factorisation and the CG together
+            vectors.blend(rhs, g, todo, ~todo, scale=-1.0)
             pcg.factorize(upper, blocks, diagonal)
-            vectors.blend(rhs, g, todo, ~todo, scale=-1.0)  # -g on the copies to solve, 0 elsewhere
             dk = vectors.new()
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
