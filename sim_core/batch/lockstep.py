@@ -48,7 +48,8 @@ The host's work over the stacked arrays: the iterates are read-only arrays of th
 them by identity, :func:`~sim_core.energies.base.positions_key`, not by their bytes), the stacked gradient takes
 the contact and friction terms' rows at their vertices only (:class:`~sim_core.energies.base.SparseGradient`),
 the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core.batch.effectors`) and the
-plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`). With the batched
+plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`; with the batched CG
+on the step's accepted iterate in device memory, no upload). With the batched
 CG the Newton loop's iterate, update and stacked gradient stay in device memory (:mod:`sim_core.batch.iterates`,
 :mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
 updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
