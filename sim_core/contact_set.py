@@ -31,6 +31,7 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
@@ -93,6 +94,7 @@ class ContactSet:
         self.body_names = [b.name for b in bodies]
         self.body_kind = np.array([b.kind for b in bodies])
         self.vertex_body = model.body_of_vertex()
+        self.coulomb = CoulombCoefficients(model, self.body_names, self.vertex_body)  # the pairs' Coulomb mu
         self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
         self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
         self.surface_vertices = np.unique(self.triangles)
@@ -653,7 +655,7 @@ class ContactSet:
         obstacle_frames = []
         for name, obstacle in self.planes + self.spheres:
             f = obstacle.contact_frames(x_n)
-            mu = self._obstacle_mu(name)[self.vertex_body[obstacle.vertices[f.pair_index]]]
+            mu = self.coulomb.obstacle(name)[self.vertex_body[obstacle.vertices[f.pair_index]]]
             if held is not None and len(f.lam):
                 keep = ~held[f.vertices[:, 0]]
                 self.held_friction_energy += float(np.sum(mu[~keep] * f.lam[~keep]) * smooth_friction_f0(0.0, eps_u))
@@ -667,7 +669,7 @@ class ContactSet:
             f = pot.contact_frames(x_n)
             if len(f.lam):
                 frames.append(f)
-                mus.append(self._mu(f.vertices[:, 0], f.vertices[:, second]))
+                mus.append(self.coulomb.between(f.vertices[:, 0], f.vertices[:, second]))
                 sources.append(FrictionRowSource(None, pot, f.pair_index))
         for name, obstacle, f, mu in obstacle_frames:
             if len(f.lam):
@@ -706,7 +708,7 @@ class ContactSet:
         if not len(vertices):
             return None
         # column 0 and the second side's column (1 for [p, a, b, c], 2 for [a0, a1, b0, b1]): its two sides
-        mu = self._mu(vertices[:, 0], np.concatenate([vertices[:split, 1], vertices[split:, 2]]))
+        mu = self.coulomb.between(vertices[:, 0], np.concatenate([vertices[:split, 1], vertices[split:, 2]]))
         if not np.any(mu > 0):
             return None
         sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
@@ -717,32 +719,6 @@ class ContactSet:
         friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
                                 if len(active)]
         return friction
-
-    def _mu(self, vertex_a: np.ndarray, vertex_b: np.ndarray) -> np.ndarray:
-        """Coulomb coefficients ``(p,)`` between the bodies of vertices ``vertex_a`` and ``vertex_b`` ``(p,)``."""
-        return self._mu_table()[self.vertex_body[vertex_a], self.vertex_body[vertex_b]]
-
-    def _mu_table(self) -> np.ndarray:
-        """Coulomb coefficients between the bodies ``(b, b)`` (:meth:`Model.friction_coefficient`), built
-        again only when ``model.friction`` has changed (a generated effect may edit it between steps)."""
-        key = tuple(self.model.friction.items())
-        kept = getattr(self, "_mu_kept", None)
-        if kept is None or kept[0] != key:
-            table = np.array([[self.model.friction_coefficient(a, b) for b in self.body_names] for a in self.body_names],
-                             dtype=float).reshape(len(self.body_names), len(self.body_names))
-            kept = self._mu_kept = (key, table)
-            self._obstacle_mu_kept = {}
-        return kept[1]
-
-    def _obstacle_mu(self, name: str) -> np.ndarray:
-        """Coulomb coefficients ``(b,)`` between each body and the obstacle (plane or sphere) ``name``
-        (:meth:`Model.friction_coefficient`), kept while ``model.friction`` is unchanged."""
-        self._mu_table()  # forgets the kept columns when model.friction has changed
-        column = self._obstacle_mu_kept.get(name)
-        if column is None:
-            column = self._obstacle_mu_kept[name] = np.array(
-                [self.model.friction_coefficient(b, name) for b in self.body_names], dtype=float)
-        return column
 
     def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:
         """Remember the sides of the pairs active at the converged positions ``x``.
