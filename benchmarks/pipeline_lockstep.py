@@ -223,7 +223,8 @@ def trace(run, steps: int, host_arch: bool) -> str:
     print(f"trace: {steps} steps, {iterations} Newton iterations, {wall * 1e3:.1f} ms, {len(ev)} synchronisations "
           f"({len(ev) / max(iterations, 1):.1f} an iteration); host between them {1e3 * host_total / iterations:.1f} "
           f"ms an iteration, inside them {1e3 * sum(inside.values()) / iterations:.1f}")
-    print(f"{'site (kind, caller <- lockstep line)':<100} {'n/it':>5} {'host ms/it':>10} {'max ms':>7} {'wait ms/it':>10}")
+    print(f"{'site (kind, caller <- lockstep line)':<100} {'n/it':>5} {'host ms/it':>10} {'max ms':>7} "
+          f"{'wait ms/it':>10}")
     for key in sorted(after, key=lambda k: -sum(after[k]))[:25]:
         v = after[key]
         print(f"{key[:100]:<100} {len(v) / iterations:5.2f} {1e3 * sum(v) / iterations:10.2f} {1e3 * max(v):7.2f} "

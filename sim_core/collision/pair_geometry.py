@@ -73,7 +73,8 @@ class ListGeometry(NamedTuple):
                    geometry.ee_side)
 
     def rows(self, vt_rows: np.ndarray, ee_rows: np.ndarray) -> "ListGeometry":
-        """The rows ``vt_rows`` ``(a,)`` of the vertex-triangle fields and ``ee_rows`` ``(b,)`` of the edge-edge ones."""
+        """The rows ``vt_rows`` ``(a,)`` of the vertex-triangle fields and ``ee_rows`` ``(b,)`` of the edge-edge
+        ones."""
         return ListGeometry(self.vt_above[vt_rows], self.vt_side[vt_rows], self.ee_keep[ee_rows],
                             self.ee_interior[ee_rows], self.ee_side[ee_rows])
 

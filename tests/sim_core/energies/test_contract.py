@@ -14,9 +14,9 @@ import pytest
 import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
-from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceGradient,
-                                      DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
-                                      SparseGradient, SubsetHessian)
+from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceGradient, DeviceHessian,
+                                    ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
+                                    SparseGradient, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},

@@ -37,7 +37,8 @@ def _potential(kind: str, copies: int):
     if kind == "spring_membrane":
         return SpringMembrane(e["triangles"], e["edges"], x, 1000.0, 800.0), x, n
     if kind == "kirchhoff":
-        return KirchhoffBending(e["triangles"], e["hinges"], x, 2e-3, 0.3, np.tile(np.linspace(-0.3, 0.4, h), copies)), x, n
+        rest_angles = np.tile(np.linspace(-0.3, 0.4, h), copies)
+        return KirchhoffBending(e["triangles"], e["hinges"], x, 2e-3, 0.3, rest_angles), x, n
     if kind == "stvk_membrane":
         return StVKMembrane(e["triangles"], x, 1e6, 0.3, 3e-4), x, n
     bending = DiscreteShellBending(e["hinges"], x, 2e-3, np.tile(np.linspace(0.2, -0.1, h), copies))
