@@ -170,6 +170,78 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
         gradients[2 * n + i // 3, i % 3] = ti.cast(region[i], ti.f64)
 
 
+@fast_kernel
+def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, split: ti.i32, u: ti.i32, eps_vt: ti.f64,
+                   eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32, z: _F64_3,
+                   d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2, slots: _I32_1,
+                   active_count: _I32_1, out: _F64_1):
+    """Every pair ``i < count`` (``i < split`` vertex-triangle, else edge-edge) measured as :func:`_batch_kernel`
+    measures it (the same functions; its work arrays ``z``, ``d``, ``region``, ``grad``, ``hess`` of at least
+    ``count`` rows, ``gradients`` of at least ``2 u`` rows: the sums of the ``u`` vertices of ``x``), then its results
+    packed into ``out`` in increasing pair order, for one copy back: ``out[0]`` the count ``a`` of the pairs with
+    ``d < eps``, then their ``[i, d]`` (``2 a``); with ``derivatives`` then the per-vertex penalty gradient sums
+    ``(2 u, 3)`` (vertex-triangle rows, then edge-edge rows; zeroed first, sums in pair order), the regions ``(a,)``,
+    the distance gradients ``(a, 12)`` and the penalty Hessians ``(a, 12, 12)`` of those pairs. A pair's place in the
+    order is the number of listed pairs before it (the list is built in no fixed order on a parallel arch), so the
+    layout is the same on every arch: :func:`packed_size` entries."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 2 * u):
+        for c in ti.static(range(3)):
+            gradients[j, c] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for _ in range(1):
+        active_count[0] = 0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(count):
+        point_first = 0
+        eps, stiffness, first_row = eps_ee, stiffness_ee, u
+        if i < split:
+            point_first = 1
+            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
+        p0, p1, p2, p3 = (_vertex(x, vertices, i, 0), _vertex(x, vertices, i, 1), _vertex(x, vertices, i, 2),
+                          _vertex(x, vertices, i, 3))
+        if _may_touch(p0, p1, p2, p3, side[i], eps, point_first):
+            for c in ti.static(range(3)):
+                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
+            region[i], d[i] = cd._distance_value(z, i, side[i], point_first)
+            if d[i] < eps:
+                if derivatives:
+                    cd._pair_derivatives(z, i, side[i], point_first, d, region, grad, hess)
+                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
+                    _scatter_penalty_gradient(i, i, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
+                slots[ti.atomic_add(active_count[0], 1)] = i
+        else:
+            region[i], d[i] = -1, ti.math.inf
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for s in range(count):  # the listed pairs into their places
+        a = active_count[0]
+        if s < a:
+            i = slots[s]
+            place = 0
+            for t in range(a):
+                if slots[t] < i:
+                    place += 1
+            out[1 + 2 * place], out[2 + 2 * place] = ti.cast(i, ti.f64), d[i]
+            if derivatives:
+                base = 1 + 2 * a + 6 * u
+                out[base + place] = ti.cast(region[i], ti.f64)
+                for e in range(12):
+                    out[base + a + 12 * place + e] = grad[i, e]
+                for e in range(144):
+                    out[base + 13 * a + 144 * place + e] = hess[i, e // 12, e % 12]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 6 * u):
+        out[1 + 2 * active_count[0] + j] = gradients[j // 3, j % 3]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for _ in range(1):
+        out[0] = ti.cast(active_count[0], ti.f64)
+
+
+def packed_size(active: int, vertices: int, derivatives: bool) -> int:
+    """Entries of :func:`_packed_kernel`'s ``out`` for ``active`` listed pairs over ``vertices`` vertices."""
+    return 1 + 2 * active + (6 * vertices + 157 * active if derivatives else 0)
+
+
 def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's list of active pairs (``listed`` the host array ``(capacity, 2)``: the count in ``[0, 0]``, rows
     ``[launch row, distance]`` from row 1 on; ``listed_arg`` the launch's: the same, or its device copy on CUDA, of
@@ -244,6 +316,12 @@ class PairBatch:
     :class:`~sim_core.ti_kernels.buffers.DeviceRows` (added into a device gradient there, read on the host only when
     asked), instead of copying them to the host; None: on CUDA. The values are the same."""
 
+    packed: bool | None = None
+    """Every pair measured (with derivatives where asked) in one launch of :func:`_packed_kernel`, whose results come
+    back in one copy (two when the active list is longer than the last one by a quarter), instead of the launches of
+    :attr:`two_pass` and their copies; None: on CUDA at positions given on the host (``x_device`` None: a single
+    environment, whose Newton matrix is assembled on the host). The values are the same."""
+
     def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
@@ -268,6 +346,16 @@ class PairBatch:
         ``x_device`` when given, else uploaded), pairs and sides (once per batch), the gathered pair positions (device
         only) and, with ``derivatives``, the per-vertex gradient sums; returns ``(x, vertices, sides, z, gradients)``
         device arrays (``gradients`` None without derivatives)."""
+        dev, shared = self._device, _ARRAYS.device()
+        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
+                     if derivatives else None)
+        return (self._device_positions(x, key, x_device), on_device(dev, "vertices", self._local_vertices),
+                on_device(dev, "sides", self.sides), z, gradients)
+
+    def _device_positions(self, x: np.ndarray, key: tuple, x_device):
+        """On CUDA, the positions of the pairs' vertices ``(u, 3)`` (m) in device memory, once per ``key``: gathered
+        on the device from ``x_device`` when given, else uploaded from ``x``."""
         kept = self._device_x
         u = len(self.own)
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
@@ -277,12 +365,7 @@ class PairBatch:
             else:
                 upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
             kept = self._device_x = (key, xd)
-        dev, shared = self._device, _ARRAYS.device()
-        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
-                     if derivatives else None)
-        return (kept[1], on_device(dev, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
-                gradients)
+        return kept[1]
 
     def _own32(self) -> np.ndarray:
         """``own`` as int32 ``(u,)``, made once per batch (the gather and scatter kernels' index)."""
@@ -303,6 +386,10 @@ class PairBatch:
         from the kernel's list of them (no host pass over every pair's distance)."""
         if key is None:
             key = positions_key(x)
+        packed = (current_arch() == "cuda" and x_device is None) if self.packed is None else self.packed
+        if packed and len(self._all):
+            self._evaluate_packed(x, key, derivatives)
+            return
         pots = (self.vt, self.ee)
         kept = [pot._kept(key, 0) for pot in pots]
         two_pass = current_arch() == "cuda" if self.two_pass is None else self.two_pass
@@ -329,6 +416,57 @@ class PairBatch:
             arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
             sums[:] = 0.0
         self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
+
+    def _evaluate_packed(self, x: np.ndarray, key: tuple, derivatives: bool) -> None:
+        """:meth:`evaluate` of every pair at ``x`` in one launch of :func:`_packed_kernel` (:attr:`packed`), its
+        packed results read back in one copy (a second one when the list is longer than guessed) and kept as each
+        potential's evaluation of ``key``, as :meth:`_keep` keeps a launch over every pair."""
+        p, u = len(self._all), len(self.own)
+        d, region, grad, hess = work_arrays(p)
+        z, gradients = _ARRAYS.rows("z", p, (4, 3)), _ARRAYS.rows("gradients", 2 * u, (3,))
+        slots, count = _ARRAYS.rows("slots", p, (), np.int32), _ARRAYS.rows("active_count", 1, (), np.int32)
+        out = _ARRAYS.rows("packed", packed_size(p, u, derivatives))
+        arrays = (z, d, region, grad, hess, gradients, slots, count, out)
+        if current_arch() == "cuda":  # device arrays of the kept arrays' capacity, the positions uploaded once a key
+            device = _ARRAYS.device()
+            names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
+            arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
+            x_arg = self._device_positions(x, key, None)
+            vertices, sides = on_device(self._device, "vertices", self._local_vertices), on_device(self._device,
+                                                                                                 "sides", self.sides)
+        else:
+            x_arg, vertices, sides = self._own_positions(x, None), self._local_vertices, self.sides
+        _packed_kernel(x_arg, vertices, sides, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
+                       float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
+        read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
+        copy_back(out, arrays[-1], read)
+        a = int(out[0])
+        if packed_size(a, u, derivatives) > read:
+            copy_back(out, arrays[-1], packed_size(a, u, derivatives))
+        _ARRAYS.packed_guess = a + a // 4 + 16  # the next read's guess (this thread's next batch too): one copy
+        listed = out[1:1 + 2 * a].reshape(a, 2)
+        rows, distances = listed[:, 0].astype(np.int64), listed[:, 1].copy()
+        if derivatives:
+            base = 1 + 2 * a
+            sums = out[base:base + 6 * u].reshape(2 * u, 3)
+            base += 6 * u
+            regions, g, h = (out[base:base + a], out[base + a:base + 13 * a].reshape(a, 12),
+                             out[base + 13 * a:base + 157 * a].reshape(a, 12, 12))
+        n, order = x.shape[0], 2 if derivatives else 0
+        for kind, (pot, start, stop) in enumerate(((self.vt, 0, self.split), (self.ee, self.split, p))):
+            if pot._kept(key, order) is not None:
+                continue
+            lo, hi = np.searchsorted(rows, (start, stop))
+            active, dk = rows[lo:hi] - start, distances[lo:hi]
+            if derivatives:
+                stiffness = float(pot.stiffness)
+                dd = DistanceDerivatives(dk, g[lo:hi].copy(), None, regions[lo:hi].astype(np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(
+                    order, key, active, dd, pot.eps, (stiffness, h[lo:hi].copy()),
+                    (stiffness, (self.own, sums[kind * u:(kind + 1) * u].copy(), n))))
+            else:
+                dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
@@ -483,3 +621,6 @@ def compile_kernels() -> None:
     batch = PairBatch(vt, ee)
     for derivatives in (False, True):
         batch.evaluate(x, derivatives)
+    batch.packed = True  # the packed launch too
+    for derivatives in (False, True):
+        batch.evaluate(x + 1e-5, derivatives)

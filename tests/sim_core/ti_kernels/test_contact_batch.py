@@ -340,3 +340,44 @@ def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu
             np.testing.assert_array_equal(got_d, distances)
     none = np.zeros((4, 2))
     assert [len(a) for a in _sorted_found(none, none, 1)] == [0, 0]
+
+
+@pytest.mark.parametrize("device", [False, True])
+def test_packed_launches_equal_the_default_ones_bit_for_bit(ti_cpu, monkeypatch, device):
+    """``PairBatch.packed`` (CUDA's default for a single environment): every pair measured in one launch, its results
+    packed in pair order into one array read back in one copy (a second one when the active list outgrows the guess):
+    the evaluations equal the default launches' (values, then derivatives at new positions; derivatives at once;
+    pairs of one kind only), through device arrays too (``device``: the arch query answering "cuda" on the CPU arch,
+    whose serial loops keep the sums in pair order)."""
+    import importlib
+
+    from sim_core.energies.contact import batch_kernel as contact_batch
+
+    rng = np.random.default_rng(26)
+    for rows in ((slice(None), slice(None)), (slice(0, 0), slice(None)), (slice(None), slice(0, 0))):
+        x, linked, alone = _potentials(300, *rows)
+        points = [x + 0.1 * EPS * rng.normal(size=x.shape) for _ in range(3)]
+        expected = []
+        for y in points:
+            expected.append([(pot.energy(y), pot.active_mask(y), pot.gradient(y), pot.hessian(y, "none").blocks,
+                              pot.contact_frames(y).lam) for pot in alone])
+        monkeypatch.setattr(contact_batch.PairBatch, "packed", True)
+        if device:
+            for name in ("sim_core.ti_backend", "sim_core.energies.contact.batch_kernel"):
+                monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
+        calls = []
+        kernel = contact_batch._packed_kernel
+        monkeypatch.setattr(contact_batch, "_packed_kernel", lambda *a: (calls.append(a[10]), kernel(*a)))
+        contact_batch._ARRAYS.packed_guess = 0  # the first read too short: the rest read after it
+        for k, (y, exp) in enumerate(zip(points, expected)):
+            for pot, (energy, mask, grad, hess, lam) in zip(linked, exp):
+                if k != 1:  # the values first, then the derivatives of the same positions
+                    assert pot.energy(y) == energy
+                    np.testing.assert_array_equal(pot.active_mask(y), mask)
+                np.testing.assert_array_equal(pot.gradient(y), grad)
+                np.testing.assert_array_equal(pot.hessian(y, "none").blocks, hess)
+                assert pot.energy(y) == energy
+                np.testing.assert_array_equal(pot.contact_frames(y).lam, lam)
+        assert calls == [0, 1, 1, 0, 1], calls
+        assert sum(int(np.count_nonzero(exp[1])) for exp in expected[0]) > 0
+        monkeypatch.undo()

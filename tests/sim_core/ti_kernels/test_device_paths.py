@@ -37,7 +37,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
 
     # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
     for module, names in ((friction_kernel, {"x", "x_prev", "coefficient", "packed"}),
-                          (batch_kernel, {"pair_rows", "d", "region", "gradients"}),
+                          (batch_kernel, {"packed", "d", "region", "gradients", "slots"}),
                           (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
         kept = module._ARRAYS.device()
         assert names <= set(kept), module.__name__
