@@ -91,8 +91,8 @@ def main() -> int:
     launch.FastKernel.__call__ = counted_call
     cells_sum = launch._cells_sum
     launch._cells_sum = lambda array: timed("sum read", lambda: cells_sum(array))
-    if args.arch == "cpu":  # a GPU's sum cells: device arrays (one cell: the CPU's sums)
-        launch._new_cells = lambda runtime: device_copy.new_ndarray(ti.f64, (1,))
+    if args.arch == "cpu":  # a GPU's sum arrays: device arrays of SUM_CELLS cells (the sums to round-off)
+        launch._new_cells = lambda runtime: device_copy.new_ndarray(ti.f64, (launch.SUM_CELLS,))
     new = device_copy.new_ndarray
 
     def counted_new(dtype, shape):

@@ -525,8 +525,9 @@ class FusedElastic:
     def _deferred_sum(self, run, start: float):
         """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched
         in one :class:`~sim_core.ti_kernels.launch.DeferredSums` block (on a GPU the launches follow one another
-        without waiting for each sum; the sums are read after the block). A part returns its kernel's sum (NaN
-        inside the block, then read) or its own value (no kernel launched, e.g. no elements).
+        without waiting for each sum, every launch adding into one sum array read after the block in one copy:
+        ``start`` plus that sum, plus the values of the parts that launched nothing). A part returns its kernel's
+        sum (NaN inside the block, then read) or its own value (no kernel launched, e.g. no elements).
 
         Raises:
             RuntimeError: a part launched more than one summing kernel.
@@ -535,7 +536,7 @@ class FusedElastic:
 
         sums = self._sums
         if sums is None:
-            sums = self._sums = DeferredSums()
+            sums = self._sums = DeferredSums(shared=True)
         returned = []  # per part: (True, index of its launch) or (False, the value it returned)
         with sums:
             for part in self._parts:
@@ -545,6 +546,11 @@ class FusedElastic:
                 if launched > 1:
                     raise RuntimeError(f"FusedElastic: {type(part).__name__} launched {launched} summing kernels")
                 returned.append((True, before) if launched else (False, value))
+        if sums.sharing:  # (a GPU) the launched parts' sums in one sum array, read in one copy
+            total = start + sums.total()
+            for launched, item in returned:
+                total += 0.0 if launched else item
+            return total
         values = sums.values()
         total = start
         for launched, item in returned:
