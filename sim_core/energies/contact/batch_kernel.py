@@ -50,7 +50,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import upload
+from sim_core.ti_kernels.transfer import positions_on_device, upload
 from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
@@ -336,6 +336,7 @@ class PairBatch:
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
+        self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)
         self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
         vt._batch = ee._batch = self
 
@@ -421,19 +422,26 @@ class PairBatch:
         """:meth:`evaluate` of every pair at ``x`` in one launch of :func:`_packed_kernel` (:attr:`packed`), its
         packed results read back in one copy (a second one when the list is longer than guessed) and kept as each
         potential's evaluation of ``key``, as :meth:`_keep` keeps a launch over every pair."""
-        p, u = len(self._all), len(self.own)
+        p, n = len(self._all), x.shape[0]
+        on_gpu = current_arch() == "cuda"
+        x_device = positions_on_device(workspace_of(self.vt), x) if on_gpu else None
+        u = len(self.own) if x_device is None else n  # the vertices of the kernel's positions and sums
         d, region, grad, hess = work_arrays(p)
         z, gradients = _ARRAYS.rows("z", p, (4, 3)), _ARRAYS.rows("gradients", 2 * u, (3,))
         slots, count = _ARRAYS.rows("slots", p, (), np.int32), _ARRAYS.rows("active_count", 1, (), np.int32)
         out = _ARRAYS.rows("packed", packed_size(p, u, derivatives))
         arrays = (z, d, region, grad, hess, gradients, slots, count, out)
-        if current_arch() == "cuda":  # device arrays of the kept arrays' capacity, the positions uploaded once a key
+        if on_gpu:  # device arrays of the kept arrays' capacity; the positions where another term holds them, else
+            # uploaded once a key
             device = _ARRAYS.device()
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
-            x_arg = self._device_positions(x, key, None)
-            vertices, sides = on_device(self._device, "vertices", self._local_vertices), on_device(self._device,
-                                                                                                 "sides", self.sides)
+            if x_device is None:
+                x_arg, vertices = self._device_positions(x, key, None), on_device(self._device, "vertices",
+                                                                                 self._local_vertices)
+            else:
+                x_arg, vertices = x_device, on_device(self._device, "vertices_every", self._every_vertex())
+            sides = on_device(self._device, "sides", self.sides)
         else:
             x_arg, vertices, sides = self._own_positions(x, None), self._local_vertices, self.sides
         _packed_kernel(x_arg, vertices, sides, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
@@ -452,7 +460,7 @@ class PairBatch:
             base += 6 * u
             regions, g, h = (out[base:base + a], out[base + a:base + 13 * a].reshape(a, 12),
                              out[base + 13 * a:base + 157 * a].reshape(a, 12, 12))
-        n, order = x.shape[0], 2 if derivatives else 0
+        order = 2 if derivatives else 0
         for kind, (pot, start, stop) in enumerate(((self.vt, 0, self.split), (self.ee, self.split, p))):
             if pot._kept(key, order) is not None:
                 continue
@@ -463,10 +471,22 @@ class PairBatch:
                 dd = DistanceDerivatives(dk, g[lo:hi].copy(), None, regions[lo:hi].astype(np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(
                     order, key, active, dd, pot.eps, (stiffness, h[lo:hi].copy()),
-                    (stiffness, (self.own, sums[kind * u:(kind + 1) * u].copy(), n))))
+                    (stiffness, (self.own, self._own_rows(sums[kind * u:(kind + 1) * u], x_device is not None), n))))
             else:
                 dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
                 workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+    def _own_rows(self, sums: np.ndarray, every: bool) -> np.ndarray:
+        """The rows of the pairs' vertices ``own`` ``(u, 3)``, a new array: of ``sums`` over ``every`` vertex, else
+        ``sums`` itself (over ``own``)."""
+        return np.take(sums, self.own, axis=0) if every else sums.copy()
+
+    def _every_vertex(self) -> np.ndarray:
+        """The pairs' vertices ``(p + q, 4)`` as indices of every vertex, int32, made once per batch (the kernel's
+        where it reads the positions of every vertex)."""
+        if self._vertices_every is None:
+            self._vertices_every = np.concatenate([self.vt.vertices, self.ee.vertices], dtype=np.int32)
+        return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
