@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim_core.ti_backend import ti
-from tests.sim_core.ti_kernels.conftest import assert_same_sums
+from tests.sim_core.ti_kernels.conftest import TEST_ARCH, assert_same_sums
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
@@ -346,12 +346,13 @@ def test_shared_deferred_sums_read_one_sum_array_once(ti_cpu, monkeypatch):
     rng = np.random.default_rng(9)
     x, y, w = rng.normal(size=50), rng.normal(size=50), rng.uniform(0.5, 2.0, size=50)
     plain = [summed(x, w), summed(y, w), summed(x, w)]
-    alone = DeferredSums(shared=True)
-    with alone:
-        summed(x, w)
-        summed(y, w)
-        summed(x, w)
-    assert not alone.sharing and alone.values() == plain and alone.total() == (plain[0] + plain[1]) + plain[2]
+    if TEST_ARCH == "cpu":  # the CPU's one-cell arrays: not shared
+        alone = DeferredSums(shared=True)
+        with alone:
+            summed(x, w)
+            summed(y, w)
+            summed(x, w)
+        assert not alone.sharing and alone.values() == plain and alone.total() == (plain[0] + plain[1]) + plain[2]
     monkeypatch.setattr(launch, "_new_cells", lambda runtime: np.zeros(4))
     reads = []
     cells_sum = launch._cells_sum
@@ -362,7 +363,7 @@ def test_shared_deferred_sums_read_one_sum_array_once(ti_cpu, monkeypatch):
             returned = [summed(x, w), summed(y, w), summed(x, w)]
         assert shared.sharing and shared.launches == 3 and all(np.isnan(r) for r in returned)
         reads.clear()
-        assert shared.total() == pytest.approx(sum(plain), rel=1e-14, abs=0.0)
+        assert shared.total() == pytest.approx(sum(plain), rel=1e-13, abs=0.0)
         assert len(reads) == 1
         with pytest.raises(RuntimeError, match="total"):
             shared.values()
@@ -370,4 +371,4 @@ def test_shared_deferred_sums_read_one_sum_array_once(ti_cpu, monkeypatch):
     with separate:
         summed(x, w)
         summed(y, w)
-    assert not separate.sharing and separate.values() == pytest.approx(plain[:2], rel=1e-14, abs=0.0)
+    assert not separate.sharing and separate.values() == pytest.approx(plain[:2], rel=1e-13, abs=0.0)
