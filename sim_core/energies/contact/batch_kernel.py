@@ -260,6 +260,10 @@ def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.nd
     return rows[order], distances[order]
 
 
+PACKED_MAX_PAIRS = 1 << 16
+"""The most pairs a batch evaluates by default in :func:`_packed_kernel` (:attr:`PairBatch.packed`): a single Forming
+environment has about 1,600 to 1,900 candidate pairs, a stacked batch of copies millions."""
+
 _NONE_FOUND = (np.zeros(0, dtype=np.int64), np.zeros(0))
 """No active pair (a launch over no pairs)."""
 
@@ -319,8 +323,9 @@ class PairBatch:
     packed: bool | None = None
     """Every pair measured (with derivatives where asked) in one launch of :func:`_packed_kernel`, whose results come
     back in one copy (two when the active list is longer than the last one by a quarter), instead of the launches of
-    :attr:`two_pass` and their copies; None: on CUDA at positions given on the host (``x_device`` None: a single
-    environment, whose Newton matrix is assembled on the host). The values are the same."""
+    :attr:`two_pass` and their copies; None: on CUDA at positions given on the host (``x_device`` None) for at most
+    :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
+    orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
     def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         require_backend("PairBatch")
@@ -387,7 +392,8 @@ class PairBatch:
         from the kernel's list of them (no host pass over every pair's distance)."""
         if key is None:
             key = positions_key(x)
-        packed = (current_arch() == "cuda" and x_device is None) if self.packed is None else self.packed
+        packed = ((current_arch() == "cuda" and x_device is None and len(self._all) <= PACKED_MAX_PAIRS)
+                  if self.packed is None else self.packed)
         if packed and len(self._all):
             self._evaluate_packed(x, key, derivatives)
             return
