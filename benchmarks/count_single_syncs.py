@@ -3,10 +3,10 @@
 Usage: ``python benchmarks/count_single_syncs.py [--steps 10] [--top 25] [--arch cpu|cuda]``.
 
 The arch query of every loaded ``sim_core`` module answers "cuda" (as ``tests/sim_core/ti_kernels/test_device_paths.py``
-does; the Taichi program runs on the CPU arch, so the kernels' loops stay serial and the results are the host
-path's), and the Forming trajectory's first ``--steps`` steps are run. Counted per step (inside the steps only), by the ``sim_core``
-function that asked (the innermost one outside the copy helpers), each of which waits for the kernels queued before
-it on a real GPU:
+does; the Taichi program runs on the CPU arch, so the kernels' loops stay serial), the summing kernels' sum arrays
+have a GPU's cells (the sums then to round-off), and the Forming trajectory's first ``--steps`` steps are run.
+Counted per step (inside the steps only), by the ``sim_core`` function that asked (the innermost one outside the
+copy helpers), each of which waits for the kernels queued before it on a real GPU:
 
 - ``download`` / ``upload``: :mod:`sim_core.ti_kernels.device_copy` byte copies (the driver's synchronous copies);
 - ``numpy launch``: a kernel launch with a NumPy array argument (Taichi's CUDA launcher copies it to the device and
