@@ -377,9 +377,15 @@ def test_packed_launches_equal_the_default_ones_bit_for_bit(ti_cpu, monkeypatch,
                     assert_same_sums(pot.energy(y), energy)
                     np.testing.assert_array_equal(pot.active_mask(y), mask)
                 assert_same_sums(pot.gradient(y), grad)
-                assert_same_sums(pot.hessian(y, "none").blocks, hess)
+                blocks = pot.hessian(y, "none").blocks
+                assert blocks.shape == hess.shape
+                if hess.size:  # (a kind without active pairs: no blocks)
+                    assert_same_sums(blocks, hess)
                 assert_same_sums(pot.energy(y), energy)
-                assert_same_sums(pot.contact_frames(y).lam, lam)
+                frames = pot.contact_frames(y).lam
+                assert frames.shape == lam.shape
+                if lam.size:
+                    assert_same_sums(frames, lam)
         assert calls == [0, 1, 1, 0, 1], calls
         assert sum(int(np.count_nonzero(exp[1])) for exp in expected[0]) > 0
         monkeypatch.undo()
