@@ -109,6 +109,37 @@ def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti
             gradients[row, c] += scale * grad[i, 3 * a + c]
 
 
+@ti.func
+def _measure_pair(x: ti.template(), vertices: ti.template(), side: ti.template(), k: ti.i32, i: ti.i32,
+                  split: ti.i32, eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64,
+                  rows_ee: ti.i32, derivatives: ti.i32, z: ti.template(), d: ti.template(), region: ti.template(),
+                  grad: ti.template(), hess: ti.template(), gradients: ti.template()):
+    """Pair ``k`` (``k < split`` vertex-triangle, else edge-edge) into row ``i`` of the work arrays: its positions
+    gathered into ``z[i]``, distance ``d[i]`` and region, or ``d[i] = inf`` and region -1 where the bounds of
+    :func:`_may_touch` rule it out; with ``derivatives`` and ``d < eps`` (``eps`` of its kind) the distance gradient
+    ``grad[i]``, the penalty Hessian ``hess[i]`` and its penalty gradient added per vertex into ``gradients`` (rows
+    ``v``, or ``rows_ee + v`` for an edge-edge pair). Returns 1 where ``d < eps``, else 0."""
+    point_first = 0
+    eps, stiffness, first_row = eps_ee, stiffness_ee, rows_ee
+    if k < split:
+        point_first = 1
+        eps, stiffness, first_row = eps_vt, stiffness_vt, 0
+    p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                      _vertex(x, vertices, k, 3))
+    if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
+        for c in ti.static(range(3)):
+            z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
+        region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
+        if derivatives:
+            if d[i] < eps:
+                cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
+                _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
+                _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
+    else:
+        region[i], d[i] = -1, ti.math.inf
+    return ti.cast(d[i] < eps, ti.i32)
+
+
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
@@ -140,28 +171,10 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
         active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        k = rows[i]
-        point_first = 0
-        eps, stiffness, first_row = eps_ee, stiffness_ee, n
-        if k < split:
-            point_first = 1
-            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
-        p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
-                          _vertex(x, vertices, k, 3))
-        if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
-            for c in ti.static(range(3)):
-                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
-            region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
-            if derivatives:
-                if d[i] < eps:
-                    cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
-                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
-                    _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
-            if d[i] < eps:  # the distance the host keeps (with derivatives: theirs)
-                slot = ti.atomic_add(active_count[0], 1) + 1
-                active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
-        else:
-            region[i], d[i] = -1, ti.math.inf
+        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, n,
+                         derivatives, z, d, region, grad, hess, gradients):  # the distance the host keeps
+            slot = ti.atomic_add(active_count[0], 1) + 1
+            active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for _ in range(1):  # after every pair: the count in the list's first row
         active[0, 0] = ti.cast(active_count[0], ti.f64)
@@ -193,25 +206,9 @@ def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, spl
         active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        point_first = 0
-        eps, stiffness, first_row = eps_ee, stiffness_ee, u
-        if i < split:
-            point_first = 1
-            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
-        p0, p1, p2, p3 = (_vertex(x, vertices, i, 0), _vertex(x, vertices, i, 1), _vertex(x, vertices, i, 2),
-                          _vertex(x, vertices, i, 3))
-        if _may_touch(p0, p1, p2, p3, side[i], eps, point_first):
-            for c in ti.static(range(3)):
-                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
-            region[i], d[i] = cd._distance_value(z, i, side[i], point_first)
-            if d[i] < eps:
-                if derivatives:
-                    cd._pair_derivatives(z, i, side[i], point_first, d, region, grad, hess)
-                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
-                    _scatter_penalty_gradient(i, i, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
-                slots[ti.atomic_add(active_count[0], 1)] = i
-        else:
-            region[i], d[i] = -1, ti.math.inf
+        if _measure_pair(x, vertices, side, i, i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u, derivatives,
+                         z, d, region, grad, hess, gradients):
+            slots[ti.atomic_add(active_count[0], 1)] = i
     ti.loop_config(serialize=ti.static(serial_loops()))
     for s in range(count):  # the listed pairs into their places
         a = active_count[0]
