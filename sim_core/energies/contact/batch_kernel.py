@@ -47,7 +47,7 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import positions_on_device, upload
@@ -435,16 +435,17 @@ class PairBatch:
         out = _ARRAYS.rows("packed", packed_size(p, u, derivatives))
         arrays = (z, d, region, grad, hess, gradients, slots, count, out)
         if on_gpu:  # device arrays of the kept arrays' capacity; the positions where another term holds them, else
-            # uploaded once a key
+            # uploaded once a key; the pairs and sides in this thread's arrays of the batches' capacity (the kernel reads
+            # p rows; a batch is rebuilt every few iterations: one copy each, no allocation)
             device = _ARRAYS.device()
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
             if x_device is None:
-                x_arg, vertices = self._device_positions(x, key, None), on_device(self._device, "vertices",
-                                                                                 self._local_vertices)
+                x_arg, vertices = self._device_positions(x, key, None), rows_on_device(
+                    device, "packed_vertices", self._local_vertices)
             else:
-                x_arg, vertices = x_device, on_device(self._device, "vertices_every", self._every_vertex())
-            sides = on_device(self._device, "sides", self.sides)
+                x_arg, vertices = x_device, rows_on_device(device, "packed_vertices_every", self._every_vertex())
+            sides = rows_on_device(device, "packed_sides", self.sides)
         else:
             x_arg, vertices, sides = self._own_positions(x, None), self._local_vertices, self.sides
         _packed_kernel(x_arg, vertices, sides, p, self.split, u, float(self.vt.eps), float(self.ee.eps),

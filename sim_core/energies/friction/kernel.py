@@ -34,7 +34,8 @@ from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.buffers import (DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device,
+                                        rows_on_device)
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.transfer import positions_on_device, same_shapes, upload
@@ -164,13 +165,14 @@ def packed_size(rows: int, pairs: int, block_vertices: int, want: int) -> int:
 
 @fast_kernel
 def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1):
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1, pairs: ti.i32):
     """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled kernel for every
     request), packed into ``out`` (:func:`packed_size`: one array, so that a GPU launch's results come back in one
     copy): ``_ENERGY`` sets ``out[0] = sum_k c_k f0(|u_k|)`` (J), ``_GRADIENT`` sets ``out[1:1 + 3 n]`` to ``dE/dx``
     ``(n, 3)`` (N; zeroed, then the pairs' parts added), ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD
-    by construction) after it, ``n = x.shape[0]``. The energy is written to an array rather than returned: a launch
-    then needs no synchronisation for a return value."""
+    by construction) after it, ``n = x.shape[0]``, over the first ``pairs`` rows of the pair arrays (which may have
+    more: device arrays kept at a capacity). The energy is written to an array rather than returned: a launch then
+    needs no synchronisation for a return value."""
     rows = x.shape[0]
     m = vertices.shape[1]
     start = 1 + 3 * rows  # of the blocks
@@ -180,7 +182,7 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
     for i in range(3 * rows * ((want & _GRADIENT) // _GRADIENT)):
         out[1 + i] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
+    for k in range(pairs):
         if want & _ENERGY:
             u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
             out[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
@@ -283,7 +285,7 @@ class TiLaggedFriction(LaggedFriction):
             out = self._launch_on_device(arrays, want, size, x_device)
         else:
             out = np.empty(size)
-            _friction_kernel(*arrays, self.eps_u, want, out)
+            _friction_kernel(*arrays, self.eps_u, want, out, p)
         energy = float(out[0]) if want & _ENERGY else float("nan")
         grad = out[1:1 + 3 * rows].reshape(-1, 3) if want & (_GRADIENT | _HESSIAN) else np.zeros((0, 3))
         if x_device is not None and len(grad):
@@ -294,7 +296,9 @@ class TiLaggedFriction(LaggedFriction):
     def _launch_on_device(self, arrays: tuple, want: int, size: int, x_device=None) -> np.ndarray:
         """:meth:`_launch`'s kernel with every argument a Taichi ndarray in device memory (a NumPy argument of a
         CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
-        previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
+        previous positions sent once per friction into this thread's arrays of the frictions' capacity
+        (:func:`~sim_core.ti_kernels.buffers.rows_on_device`: no allocation per friction; the kernel reads ``p``
+        rows), the
         positions and coefficients at each launch, and the ``size`` entries of the packed output ``want`` asks for
         copied back in one copy, into a new host array (of the device array's length; only those entries
         written) returned. ``x_device``: the positions of every vertex already on the device (read there, with
@@ -308,14 +312,15 @@ class TiLaggedFriction(LaggedFriction):
         packed = on_device(device, "packed", _ARRAYS.rows("packed", packed_size(rows, p, m, _HESSIAN)), scratch=True)
         if x_device is None:
             x_arg = on_device(device, "x", x, refresh=True, changed=True)
-            x_prev_arg, vertices_arg = on_device(device, "x_prev", x_prev), on_device(device, "vertices", vertices)
+            x_prev_arg = rows_on_device(device, "rows_x_prev", x_prev)
+            vertices_arg = rows_on_device(device, "rows_vertices", vertices)
         else:
             every = self._every_vertex()
             x_arg, x_prev_arg, vertices_arg = (x_device, on_device(device, "x_prev_every", every[0]),
-                                               on_device(device, "vertices_every", every[1]))
-        _friction_kernel(x_arg, x_prev_arg, vertices_arg, on_device(device, "weights", weights),
-                         on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient),
-                         self.eps_u, want, packed)
+                                               rows_on_device(device, "rows_vertices_every", every[1]))
+        _friction_kernel(x_arg, x_prev_arg, vertices_arg, rows_on_device(device, "rows_weights", weights),
+                         rows_on_device(device, "rows_tangent", tangent), self._device_coefficients(device, coefficient),
+                         self.eps_u, want, packed, p)
         return copy_back(np.empty(tuple(packed.shape)), packed, size)
 
     def _every_vertex(self) -> tuple[np.ndarray, np.ndarray]:
@@ -333,8 +338,8 @@ class TiLaggedFriction(LaggedFriction):
         sent = device.get("coefficient_sent")
         if sent is None or sent[0] is not coefficient or not np.array_equal(sent[1], coefficient):
             device["coefficient_sent"] = (coefficient, coefficient.copy())
-            return on_device(device, "coefficient", coefficient, refresh=True)
-        return on_device(device, "coefficient", coefficient)
+            return rows_on_device(device, "coefficient", coefficient, refresh=True)
+        return rows_on_device(device, "coefficient", coefficient)
 
     def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
         """Add :meth:`gradient` at ``x`` (N) into the Taichi ndarray ``gradient_device``; the energy (J) returned
