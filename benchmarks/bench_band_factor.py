@@ -1,6 +1,6 @@
 """Time the batched CG's band-block factorisation (sim_core.ti_kernels.band_cholesky) phase by phase, at a lockstep
-batch's sizes: the band gathered from the CSR rows, the banded elimination, the scaling into ``L``, and the inverse
-``L^-T L^-1``.
+batch's sizes: the band gathered from the CSR values, the blocked banded elimination with the scaling into ``L``,
+and the inverse ``L^-T L^-1``.
 
 Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 384 --w 53 --repeat 3``. The matrix of a
 block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same in every
@@ -58,12 +58,9 @@ def main() -> int:
     assert blocks.assemble(indptr, indices, data, None, key) and blocks.width == args.w
     w = blocks.width
     phases = {
-        "band from CSR": lambda: bc._band_from_csr(indptr, indices, data, blocks._dof, blocks._pos, blocks._band, nb,
-                                                   m, w),
-        "elimination": lambda: [bc._eliminate_columns(blocks._band, k0, nb, m, w)
-                                for k0 in range(0, m, bc.COLUMNS_PER_LAUNCH)],
-        "scale into L": lambda: bc._scale_factor(blocks._band, blocks._pivots, blocks._usable, nb, m, w),
-        "inverse": lambda: bc._invert(blocks._band, blocks._usable, blocks._inverse, nb, m, w),
+        "band gathered": lambda: blocks.gather(data, None),
+        "elimination": blocks.eliminate,
+        "inverse": blocks.invert,
     }
     times = {name: 0.0 for name in phases}
     for _ in range(args.repeat):

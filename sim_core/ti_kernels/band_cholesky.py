@@ -6,16 +6,20 @@ A band block is a list of ``m`` DoFs of one copy in a band-limiting order (a she
 axis, so that its bending stencil couples rows at most ``w`` apart). Its matrix ``S = P A P^T`` (``P`` selecting
 the block's DoFs) is kept as its lower band, entries ``S_ij`` with ``0 <= i - j <= w``, ``w`` the largest distance
 between two of the block's DoFs that the assembled pattern couples (contact blocks farther apart than ``w`` are
-left out of the band). It is factorised ``S = L L^T`` by the right-looking banded elimination (Golub & Van Loan,
-Matrix Computations, 4th ed., Alg. 4.3.5 in outer-product form: one device pass a column, one thread an entry of
-the ``w x w`` window), and ``S^-1 = L^-T L^-1`` is formed column by column (one thread a column: forward, then back
-substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread a row
-(the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
+left out of the band). Its entries are gathered from the CSR values through each band entry's position in them,
+found once a pattern. It is factorised ``S = L L^T`` by the banded elimination in outer-product form (Golub & Van
+Loan, Matrix Computations, 4th ed., Alg. 4.3.5), blocked by panels of :data:`PANEL` columns: a panel's columns are
+finished by its own earlier columns, then they update the ``w x w`` window after the panel at once, one thread an
+entry; three device passes a panel instead of one a column, and every entry updated in the column-by-column order
+(the same factor to the bit). ``S^-1 = L^-T L^-1`` is then formed column by column (one thread a column: forward,
+then back substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread
+a row (the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
 block whose elimination meets a pivot that is not positive (a band that left out a coupling it needed) is marked
 not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
 
 Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``) and the inverse
-``(nb, m, m)``: ``8 m^2`` bytes a block (1.2 MB for a 16 x 8 sheet, ``m = 384``).
+``(nb, m, m)``: ``8 m^2`` bytes a block (1.0 MB for a 16 x 8 sheet, ``m = 360``), and the band entries' positions
+in the CSR values, int32 ``(nb, m, w + 1)``.
 """
 
 import numpy as np
@@ -47,26 +51,6 @@ def _band_width(indptr: _I32, indices: _I32, band_dof: _I32, dof_pos: _I32, widt
 
 
 @ti.kernel
-def _band_from_csr(indptr: _I32, indices: _I32, data: _F64, band_dof: _I32, dof_pos: _I32, band: _F64, nb: ti.i32,
-                   m: ti.i32, w: ti.i32):
-    """Each block's lower band of the both-triangle CSR matrix (one thread a row; entries outside the block or the
-    band left out); a padding row (``band_dof`` -1) is the identity's."""
-    for b, i in ti.ndrange(nb, m):
-        for k in range(w + 1):
-            band[_at(b, i, k, m, w)] = 0.0
-        g = band_dof[b * m + i]
-        if g < 0:
-            band[_at(b, i, w, m, w)] = 1.0
-        else:
-            for e in range(indptr[g], indptr[g + 1]):
-                q = dof_pos[indices[e]]
-                if q >= 0 and q // m == b:
-                    j = q % m
-                    if j <= i and i - j <= w:
-                        band[_at(b, i, w - (i - j), m, w)] += data[e]
-
-
-@ti.kernel
 def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_pos: _I32, band: _F64,
                             nblocks: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
     """``band += F E_t F`` of the vertex blocks ``E_t`` (:class:`~sim_core.ti_kernels.pcg.VertexBlocks`) whose
@@ -86,26 +70,93 @@ def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_
                                       free[gi] * free[gj] * bval[9 * t + 3 * a + c])
 
 
-COLUMNS_PER_LAUNCH = 32
-"""Columns of the banded factorisation's right-looking sweep in one launch of :func:`_eliminate_columns` (each its
-own device pass)."""
+PANEL = 8
+"""Columns of one panel of the blocked banded elimination (:func:`_eliminate_panels`; its diagonal block is one
+thread's chain of about ``PANEL^3 / 6`` updates: on an H100 at 1024 blocks, ``m = 360``, ``w = 53``, 4 and 8 give
+5.7 ms an elimination, 16 gives 10.0 and 32 29.8, against 7.7 column by column)."""
+
+PANELS_PER_LAUNCH = 4
+"""Panels of the blocked elimination in one launch of :func:`_eliminate_panels` (three device passes each)."""
+
+_ZERO_ENTRY = -1  # a band entry's position in the CSR values where the pattern has none: the entry is 0
+_ONE_ENTRY = -2  # a padding row's diagonal: the entry is 1
 
 
 @ti.kernel
-def _eliminate_columns(band: _F64, k0: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
-    """Columns ``k0 .. k0 + COLUMNS_PER_LAUNCH - 1`` of the right-looking elimination ``S_ij -= S_ik S_jk / S_kk``
-    (``k < j <= i <= k + w``) of every block, one thread an entry (a block whose pivot is not positive is left as
-    it is from there: :func:`_scale_factor` marks it)."""
-    for kk in ti.static(range(COLUMNS_PER_LAUNCH)):
-        for b, di, dj in ti.ndrange(nb, w, w):
-            k = k0 + kk
-            i = k + 1 + di
-            j = k + 1 + dj
+def _band_sources(indptr: _I32, indices: _I32, band_dof: _I32, dof_pos: _I32, src: _I32, nb: ti.i32, m: ti.i32,
+                  w: ti.i32):
+    """``src``, one entry a band entry: the position in the both-triangle CSR data of its matrix entry
+    (``_ZERO_ENTRY`` where the pattern has none, ``_ONE_ENTRY`` on a padding row's diagonal); one thread a row,
+    entries outside the block or the band left out."""
+    for b, i in ti.ndrange(nb, m):
+        for k in range(w + 1):
+            src[_at(b, i, k, m, w)] = _ZERO_ENTRY
+        g = band_dof[b * m + i]
+        if g < 0:
+            src[_at(b, i, w, m, w)] = _ONE_ENTRY
+        else:
+            for e in range(indptr[g], indptr[g + 1]):
+                q = dof_pos[indices[e]]
+                if q >= 0 and q // m == b:
+                    j = q % m
+                    if j <= i and i - j <= w:
+                        src[_at(b, i, w - (i - j), m, w)] = e
+
+
+@ti.kernel
+def _band_gather(data: _F64, src: _I32, band: _F64, size: ti.i32):
+    """``band[k] = data[src[k]]`` (0 or 1 where ``src`` says so: :func:`_band_sources`)."""
+    for k in range(size):
+        s = src[k]
+        v = 0.0
+        if s >= 0:
+            v = data[s]
+        elif s == _ONE_ENTRY:
+            v = 1.0
+        band[k] = v
+
+
+@ti.func
+def _eliminate_entry(band: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, k0: ti.i32, k1: ti.i32, m: ti.i32,
+                     w: ti.i32):
+    """``S_ij -= S_ik S_jk / S_kk`` for the columns ``k0 <= k < k1`` that reach row ``i`` (``k >= i - w``), in
+    increasing ``k``, those with a positive pivot ``S_kk`` only (the right-looking elimination's updates of
+    entry ``(i, j)`` by these columns, in its order)."""
+    s = band[_at(b, i, w - (i - j), m, w)]
+    for k in range(ti.max(k0, i - w), k1):
+        pivot = band[_at(b, k, w, m, w)]
+        if pivot > 0.0:
+            s = s - band[_at(b, i, w - (i - k), m, w)] * band[_at(b, j, w - (j - k), m, w)] / pivot
+    band[_at(b, i, w - (i - j), m, w)] = s
+
+
+@ti.kernel
+def _eliminate_panels(band: _F64, first: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
+    """Panels ``first .. first + PANELS_PER_LAUNCH - 1`` (columns ``p PANEL .. (p + 1) PANEL - 1`` each) of the
+    banded elimination ``S_ij -= S_ik S_jk / S_kk`` (``k < j <= i <= k + w``), blocked: each panel's columns are
+    finished by its own earlier columns (its diagonal block row by row, one thread a block; then the rows below
+    it, one thread a row), then the panel's columns update the window after it at once (one thread an entry).
+    Every entry receives the same updates in the same order as in the column-by-column elimination, so the
+    factor is the same to the bit. A block whose pivot is not positive is left as it is from there
+    (:func:`_scale_factor` marks it)."""
+    for pp in ti.static(range(PANELS_PER_LAUNCH)):
+        k0 = (first + pp) * PANEL
+        k1 = ti.min(k0 + PANEL, m)
+        for b in range(nb):  # the diagonal block, row after row
+            for i in range(k0, k1):
+                for j in range(k0, i + 1):
+                    _eliminate_entry(band, b, i, j, k0, j, m, w)
+        for b, di in ti.ndrange(nb, w):  # the rows below it, each its own thread
+            i = k1 + di
+            if i < m:
+                for j in range(ti.max(k0, i - w), k1):
+                    _eliminate_entry(band, b, i, j, k0, j, m, w)
+        for b, di, dj in ti.ndrange(nb, w, w):  # the window after the panel, by the panel's columns
+            i = k1 + di
+            j = k1 + dj
             if j <= i and i < m:
-                pivot = band[_at(b, k, w, m, w)]
-                if pivot > 0.0:
-                    band[_at(b, i, w - (i - j), m, w)] -= band[_at(b, i, w - (i - k), m, w)] * \
-                        band[_at(b, j, w - (j - k), m, w)] / pivot
+                _eliminate_entry(band, b, i, j, k0, k1, m, w)
+
 
 
 @ti.kernel
@@ -221,33 +272,53 @@ class BandBlocks:
         self._pivots = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
         self._inverse = device_copy.new_ndarray(ti.f64, (self.count * self.size * self.size,))
         self._band = None  # the bands, made once the width is known
+        self._sources = None  # each band entry's position in the CSR data (_band_sources), with the bands
         self._measured_for = None  # the full pattern's device indptr the width was measured on
 
     def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object) -> bool:
-        """The blocks' bands of ``A`` (the both-triangle CSR ndarrays ``indptr``, ``indices``, ``data``, plus the
-        vertex blocks ``blocks = (brow, bcol, bval, free, count)`` or None), factorised; the width is measured
-        again when ``pattern_key`` is another object than at the last call. Returns whether the blocks are used
-        (the band no wider than ``max_width``)."""
+        """The blocks' bands of ``A`` (the both-triangle CSR ndarrays ``indptr``, ``indices``, ``data``, an entry
+        at most once a row, plus the vertex blocks ``blocks = (brow, bcol, bval, free, count)`` or None),
+        factorised and inverted; the width and the band entries' positions in ``data`` are found again when
+        ``pattern_key`` is another object than at the last call. Returns whether the blocks are used (the band no
+        wider than ``max_width``)."""
         if self._measured_for is not pattern_key:
             width = device_copy.new_ndarray(ti.i32, (1,))
             _band_width(indptr, indices, self._dof, self._pos, width, self.count, self.size)
             w = int(width.to_numpy()[0])
             self.width = w if 0 < w <= self.max_width else 0
             self._measured_for = pattern_key
-            if self.width and (self._band is None or self._band.shape[0] != self.count * self.size * (w + 1)):
-                self._band = device_copy.new_ndarray(ti.f64, (self.count * self.size * (w + 1),))
+            if self.width:
+                size = self.count * self.size * (w + 1)
+                if self._band is None or self._band.shape[0] != size:
+                    self._band = device_copy.new_ndarray(ti.f64, (size,))
+                    self._sources = device_copy.new_ndarray(ti.i32, (size,))
+                _band_sources(indptr, indices, self._dof, self._pos, self._sources, self.count, self.size, w)
         if not self.width:
             return False
+        self.gather(data, blocks)
+        self.eliminate()
+        self.invert()
+        return True
+
+    def gather(self, data, blocks: tuple | None) -> None:
+        """The blocks' bands of the CSR values ``data`` (the pattern of the last width measurement) and of the
+        vertex blocks ``blocks`` (:meth:`assemble`)."""
         nb, m, w = self.count, self.size, self.width
-        _band_from_csr(indptr, indices, data, self._dof, self._pos, self._band, nb, m, w)
+        _band_gather(data, self._sources, self._band, nb * m * (w + 1))
         if blocks is not None and blocks[4]:
             brow, bcol, bval, free, count = blocks
             _band_add_vertex_blocks(brow, bcol, bval, free, self._pos, self._band, count, nb, m, w)
-        for k0 in range(0, m, COLUMNS_PER_LAUNCH):
-            _eliminate_columns(self._band, k0, nb, m, w)
+
+    def eliminate(self) -> None:
+        """The gathered bands factorised into ``L`` (blocked elimination, then the scaling; :attr:`usable` set)."""
+        nb, m, w = self.count, self.size, self.width
+        for first in range(0, -(-m // PANEL), PANELS_PER_LAUNCH):
+            _eliminate_panels(self._band, first, nb, m, w)
         _scale_factor(self._band, self._pivots, self._usable, nb, m, w)
-        _invert(self._band, self._usable, self._inverse, nb, m, w)
-        return True
+
+    def invert(self) -> None:
+        """Each usable block's inverse ``L^-T L^-1`` from its factor."""
+        _invert(self._band, self._usable, self._inverse, self.count, self.size, self.width)
 
     @property
     def usable(self) -> np.ndarray:

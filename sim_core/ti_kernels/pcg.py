@@ -221,10 +221,10 @@ def _reset_copies(rz: _F64, bb: _F64, pap: _F64, rz_new: _F64, rr: _F64, active:
 
 
 @ti.kernel
-def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, seg: _I32, rz: _F64, bb: _F64,
-           nvert: ti.i32):
+def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, rz: _F64, bb: _F64, active: _I32,
+           order: _I32, start: _I32, nvert: ti.i32, copies: ti.i32):
     """``x = 0``, ``ap = 0``, ``r = b``, ``z = p = M^-1 b``; per copy ``rz = r.z`` and ``bb = b.b`` (zeroed
-    before)."""
+    before), summed :data:`REDUCTION_LANES` threads a copy (no atomic adds of every DoF into one address)."""
     for v in range(nvert):
         for a in ti.static(range(3)):
             i = 3 * v + a
@@ -236,9 +236,8 @@ def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, seg
             r[i] = b[i]
             z[i] = acc
             p[i] = acc
-            s = seg[i]
-            rz[s] += b[i] * acc
-            bb[s] += b[i] * b[i]
+    copy_sums(r, z, rz, active, order, start, copies)
+    copy_sums(b, b, bb, active, order, start, copies)
 
 
 ITERATIONS_PER_LAUNCH = 8
@@ -705,8 +704,8 @@ class BatchedPCG:
         bad = self._array("bad", B, ti.i32)
         done = self._array("done", B, ti.i32)
         _reset_copies(per["rz"], per["bb"], per["pap"], per["rz_new"], per["rr"], active, bad, done, B)
-        _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], a["seg"], per["rz"], per["bb"],
-               n // 3)
+        _start(vec["b"], vec["x"], vec["r"], vec["z"], vec["p"], vec["ap"], a["inv"], per["rz"], per["bb"], active,
+               a["order"], a["start"], n // 3, B)
         band = self._band_arguments()
         if self._banded:
             _start_banded(vec["r"], vec["z"], vec["p"], per["rz"], active, a["order"], a["start"], *band[:-1], n, B,
