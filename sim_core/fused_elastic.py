@@ -603,7 +603,11 @@ class FusedElastic:
         if self._values_on_device:
             from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
 
-            kept[3][:] = download(self._device_kept[2])[: kept[3].size]
+            device = self._device_kept[2]
+            if tuple(device.shape) == kept[3].shape:  # (the device array has one entry at least) straight into it
+                download(device, kept[3])
+            else:
+                kept[3][:] = download(device)[: kept[3].size]
             self._values_on_device = False
         return kept[3]
 
