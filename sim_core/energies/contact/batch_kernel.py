@@ -435,8 +435,8 @@ class PairBatch:
         out = _ARRAYS.rows("packed", packed_size(p, u, derivatives))
         arrays = (z, d, region, grad, hess, gradients, slots, count, out)
         if on_gpu:  # device arrays of the kept arrays' capacity; the positions where another term holds them, else
-            # uploaded once a key; the pairs and sides in this thread's arrays of the batches' capacity (the kernel reads
-            # p rows; a batch is rebuilt every few iterations: one copy each, no allocation)
+            # uploaded once a key; the pairs and sides in this thread's arrays of the batches' capacity (the kernel
+            # reads p rows; a batch is rebuilt every few iterations: one copy each, no allocation)
             device = _ARRAYS.device()
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))

@@ -318,9 +318,10 @@ class TiLaggedFriction(LaggedFriction):
             every = self._every_vertex()
             x_arg, x_prev_arg, vertices_arg = (x_device, on_device(device, "x_prev_every", every[0]),
                                                rows_on_device(device, "rows_vertices_every", every[1]))
-        _friction_kernel(x_arg, x_prev_arg, vertices_arg, rows_on_device(device, "rows_weights", weights),
-                         rows_on_device(device, "rows_tangent", tangent), self._device_coefficients(device, coefficient),
-                         self.eps_u, want, packed, p)
+        weights_arg, tangent_arg = (rows_on_device(device, "rows_weights", weights),
+                                    rows_on_device(device, "rows_tangent", tangent))
+        _friction_kernel(x_arg, x_prev_arg, vertices_arg, weights_arg, tangent_arg,
+                         self._device_coefficients(device, coefficient), self.eps_u, want, packed, p)
         return copy_back(np.empty(tuple(packed.shape)), packed, size)
 
     def _every_vertex(self) -> tuple[np.ndarray, np.ndarray]:

@@ -39,9 +39,10 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
         if device:
             # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
             own = {"x", "rows_vertices"} if not offered else {"x_prev_every", "rows_vertices_every"}
-            pairs = {"packed_vertices"} if not offered else {"packed_vertices_every"}
-            for module, names in ((friction_kernel, own | {"coefficient", "packed", "rows_weights", "rows_tangent"}),
-                                  (batch_kernel, pairs | {"packed", "packed_sides", "d", "region", "gradients", "slots"}),
+            own |= {"coefficient", "packed", "rows_weights", "rows_tangent"}
+            pairs = {"packed_vertices" if not offered else "packed_vertices_every", "packed_sides"}
+            for module, names in ((friction_kernel, own),
+                                  (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
                                   (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
                 kept = module._ARRAYS.device()
                 assert names <= set(kept), module.__name__
