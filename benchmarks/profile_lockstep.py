@@ -288,6 +288,21 @@ def _wrap_parts(backend: str) -> dict:
                                              "upload", "add", "add_rows", "zero_dofs", "copy", "new")]
         parts += [(LumpedQuadratic, "add_gradient_on_device")]
     parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
+    # the contact set's own parts: the search, the step's potentials and pair batch, friction set-up, the step's end
+    from sim_core import contact_set
+    from sim_core.energies.contact import pair_lists, setup_kernel
+    from sim_core.ti_kernels import hash_grid
+
+    parts += [(ContactSet, n) for n in ("_candidate_pairs", "_search", "_pair_sides", "_pair_geometry",
+                                        "_list_vertices", "_pair_friction", "_end_geometry_of")]
+    parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs"), (PairBatch, "__init__"),
+              (PairBatch, "_launch"), (pair_lists.CandidateVertices, "__init__"),
+              (pair_lists.CandidateVertices, "batch_indices"), (setup_kernel, "friction_frames"),
+              (pair_lists, "lookup_pairs"), (pair_lists, "merge_rows")]
+    if backend != "numpy":
+        from sim_core.energies.contact import batch_kernel
+
+        parts += [(batch_kernel, "_sorted_found"), (PairBatch, "_device_arguments")]
     # the step's host work outside the Newton loop, and the synchronous copies to and from the device
     from sim_core.batch.stacked import StackedScene
     from sim_core.elastic import ElasticTerms
@@ -330,6 +345,10 @@ def _wrap_parts(backend: str) -> dict:
             return wrapped
 
         setattr(cls, name, classmethod(make()) if is_cm else make())
+    # module functions the contact set calls by the names it imported
+    for name in ("lookup_pairs", "merge_rows"):
+        if hasattr(contact_set, name):
+            setattr(contact_set, name, getattr(pair_lists, name))
     return timers
 
 

@@ -32,7 +32,7 @@ from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
-from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, merge_rows
+from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -144,7 +144,7 @@ class ContactSet:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
-        self._step_table = None  # (memory, x^n, vt (pairs, sides), ee (pairs, (keep, sides))) of the step's last search
+        self._step_table = None  # (memory, x^n, vt pairs, ee pairs, (vt sides, ee keep, ee sides)) of the last search
         self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
@@ -449,16 +449,20 @@ class ContactSet:
         sides[rows] = memory.resolve(np.take(pairs, rows, axis=0), geometric[rows])  # (np.take: rows of a 2-D array)
         return sides
 
-    def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
+    def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
+                       lists: CandidateVertices | None = None) -> PairGeometry:
         """Side-memory geometry (:func:`sim_core.collision.pair_geometry.pair_geometry`) of vertex-triangle
         ``(p, 4)`` and edge-edge ``(q, 4)`` pair vertices at ``x``: on a Taichi backend one
-        kernel launch for both kinds (:func:`sim_core.energies.contact.setup_kernel.pair_geometry`), else the
-        NumPy reference."""
-        if self.taichi:
-            # optional heavy dependency: Taichi, loaded on a Taichi backend only
-            from sim_core.energies.contact.setup_kernel import pair_geometry as geometry
-        else:
-            geometry = pair_geometry
+        kernel launch for both kinds (:func:`sim_core.energies.contact.setup_kernel.pair_geometry`; with ``lists``,
+        the candidate lists whose vertices these are, their int32 indices, kept on the device once per list), else
+        the NumPy reference."""
+        if not self.taichi:
+            return pair_geometry(x, vt_vertices, ee_vertices)
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.contact.setup_kernel import pair_geometry as geometry
+
+        if lists is not None:
+            return geometry(x, *lists.int32_vertices(), device=lists.device)
         return geometry(x, vt_vertices, ee_vertices)
 
     def _pair_vertices(self, vt: np.ndarray, ee: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -470,14 +474,15 @@ class ContactSet:
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
     def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> PairGeometry:
-        """:meth:`_pair_geometry` of vertex-triangle pairs ``vt`` ``(p, 2)`` and edge-edge pairs ``ee``
-        ``(q, 2)`` at ``x`` ``(n, 3)``; the geometry :meth:`end_step` measured of the same candidate
-        lists (the same arrays) at equal positions is taken as it is: the converged positions of a step
-        are the next one's ``x^n``, and a step starts with the candidate lists it ended with."""
+        """:meth:`_pair_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
+        the geometry :meth:`end_step` measured of the same candidate lists (the same arrays) at equal positions is
+        taken as it is: the converged positions of a step are the next one's ``x^n``, and a step starts with the
+        candidate lists it ended with."""
         kept = getattr(self, "_end_geometry", None)
         if kept is not None and kept[1] is vt and kept[2] is ee and (kept[0] is x or np.array_equal(kept[0], x)):
             return kept[3]
-        return self._pair_geometry(x, *self._pair_vertices(vt, ee))
+        lists = self._list_vertices(vt, ee)
+        return self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices, lists)
 
     def _end_geometry_of(self, x: np.ndarray, vt: VertexTriangleContact, vt_active: np.ndarray, ee: EdgeEdgeContact,
                          ee_active: np.ndarray) -> PairGeometry:
@@ -489,7 +494,7 @@ class ContactSet:
         the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
         _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
         lists = self._list_vertices(vt_list, ee_list)
-        geo = self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices)
+        geo = self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices, lists)
         self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo)
         cache = self._cache
         if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
@@ -504,8 +509,8 @@ class ContactSet:
 
     def _pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(vt sides, ee keep, ee sides)`` of vertex-triangle pairs ``vt`` ``(p, 2)`` and edge-edge
-        pairs ``ee`` ``(q, 2)`` at ``x_ref``, shapes ``(p,)``, ``(q,)``, ``(q,)``.
+        """``(vt sides, ee keep, ee sides)`` of the candidate lists ``vt`` ``(p, 2)`` (vertex-triangle) and ``ee``
+        ``(q, 2)`` (edge-edge) at ``x_ref``, shapes ``(p,)``, ``(q,)``, ``(q,)``.
 
         ``vt sides``: the step sides (:meth:`_step_sides`). Near-parallel edge pairs have no
         well-defined side (the cross product of their directions vanishes) and switch distance
@@ -520,25 +525,19 @@ class ContactSet:
         return vt_sides, keep, ee_sides
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
-        """Potentials over ``candidates`` with the step's sides; the sides of pairs already in the
-        step's previous candidate lists are taken from there (same values, computed once), those of
-        the others in one geometry evaluation for both pair kinds (:meth:`_pair_sides`). Returns the two
-        potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)``
-        (the vertex-triangle potential keeps every candidate, in order)."""
+        """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
+        evaluation for both pair kinds; those of the step's last lists when these are the same arrays). Returns the
+        two potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)`` (the
+        vertex-triangle potential keeps every candidate, in order)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
-        if table is None or table[0] is not memory or table[1] is not x_ref or self.x_prev is None:
-            table = (memory, x_ref, None, None)
-        vt_pos, vt_found = lookup_pairs(table[2], vt)
-        ee_pos, ee_found = lookup_pairs(table[3], ee)
-        if np.all(vt_found) and np.all(ee_found):  # nothing new (an empty list included)
-            fresh = (np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0))
+        if (table is not None and table[0] is memory and table[1] is x_ref and self.x_prev is not None
+                and table[2] is vt and table[3] is ee):
+            vt_sides, keep, ee_sides = table[4]
         else:
-            fresh = self._pair_sides(x_ref, memory, _unfound(vt, vt_found), _unfound(ee, ee_found))
-        (vt_sides,) = merge_rows(table[2], vt_pos, vt_found, fresh[:1])
-        keep, ee_sides = merge_rows(table[3], ee_pos, ee_found, fresh[1:])
-        self._step_table = (memory, x_ref, (vt, (vt_sides,)), (ee, (keep, ee_sides)))
+            vt_sides, keep, ee_sides = self._pair_sides(x_ref, memory, vt, ee)
+            self._step_table = (memory, x_ref, vt, ee, (vt_sides, keep, ee_sides))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
@@ -551,7 +550,7 @@ class ContactSet:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
 
-            PairBatch(*pots, compact=lists.batch_indices(ee_rows))  # one launch evaluates both at each new x
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows))  # one launch evaluates both at each new x
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
@@ -749,11 +748,6 @@ def _frozen(x: np.ndarray) -> bool:
     """Whether positions ``x`` are frozen (:meth:`~sim_core.energies.base.FrozenPositionsKey.holds`: keyed by identity,
     as :func:`~sim_core.energies.base.positions_key` keys them: their values cannot change while they exist)."""
     return FrozenPositionsKey.holds(x)
-
-
-def _unfound(pairs: np.ndarray, found: np.ndarray) -> np.ndarray:
-    """The rows of ``pairs`` ``(p, 2)`` not ``found`` (bool ``(p,)``); ``pairs`` itself when none is."""
-    return pairs if not np.any(found) else np.take(pairs, np.flatnonzero(~found), axis=0)
 
 
 def _pair_keys(pairs: np.ndarray) -> np.ndarray:

@@ -43,7 +43,7 @@ import numpy as np
 
 from sim_core.assembly import HessianAssembler, StaticPattern
 from sim_core.energies import kirchhoff_bending, membrane, neohookean
-from sim_core.energies.base import ElasticEquivalent, positions_key
+from sim_core.energies.base import CopyEnergies, ElasticEquivalent, declares, positions_key
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.energies.neohookean.reference import StableNeoHookean
@@ -143,6 +143,13 @@ class _ReferencePart:
     def energy(self, x: np.ndarray) -> float:
         """The reference energy in J."""
         return float(self.potential.energy(x))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray | None:
+        """The reference potential's energy split by copy (J, ``(copy_count,)``) where it declares
+        :class:`~sim_core.energies.base.CopyEnergies`, else None."""
+        if not declares(self.potential, CopyEnergies):
+            return None
+        return self.potential.copy_energies(x, copy_of_vertex, copy_count)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy (returned); adds the reference gradient to ``grad`` and the exact blocks to ``values``.
@@ -548,6 +555,29 @@ class FusedElastic:
             xd = self._upload_positions(xc, positions_key(x), self.pattern.keys.size)
             return float(self._deferred_sum(lambda part: part.energy(xd), 0))
         return float(sum(part.energy(xc) for part in self._parts))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray | None:
+        """:meth:`energy` at ``x`` ``(n, 3)`` split by copy, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`): each part's energy kernel with one sum cell an element, its
+        cells summed by the copy of the element's first vertex (on CUDA the positions travel to the device once for
+        all parts); None when a part cannot split its energy.
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called (CUDA).
+        """
+        xc = np.ascontiguousarray(x, dtype=np.float64)
+        if self.pattern is not None and self._on_device():
+            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
+
+            xc = upload(self._device_buffers(xc.shape, self.pattern.keys.size)[0], xc)
+        total = np.zeros(copy_count)
+        for part in self._parts:
+            part_energies = part.copy_energies(xc if not isinstance(part, _ReferencePart) else x, copy_of_vertex,
+                                               copy_count)
+            if part_energies is None:
+                return None
+            total += part_energies
+        return total
 
     def _deferred_sum(self, run, start: float):
         """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched

@@ -46,6 +46,18 @@ class DeviceIterates(CopyVectors):
             return Iterate(frozen(self.download(device)), device)
         return Iterate(FrozenPositionsKey.register(self.download(device, self.trial_blocks.take())), device)
 
+    def slope_and_norm(self, g, d) -> tuple[np.ndarray, np.ndarray]:
+        """Per copy ``(g.d, max_v |d_v|)``, each ``(B,)`` (NaN where ``d`` is not finite), in one launch and one read
+        back (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.scalars`)."""
+        dot, _, _, norm = self.scalars(g, d)
+        return dot, norm
+
+    def slope_and_largest(self, g, d) -> tuple[np.ndarray, np.ndarray]:
+        """Per copy ``(g.d, max_k |g_k|)``, each ``(B,)`` (NaN where ``g`` has a NaN, infinite where it has an
+        infinity), in one launch and one read back (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.scalars`)."""
+        dot, largest, _, _ = self.scalars(g, d)
+        return dot, largest
+
     def take_steepest(self, d, g, mask: np.ndarray):
         """``d`` with the copies in ``mask`` (bool ``(B,)``) set to ``-g``, in place; returns ``d``."""
         return self.copy_where(d, g, mask, scale=-1.0)

@@ -103,6 +103,16 @@ class HostIterates(CopyRuns):
         g[fixed_dofs] = 0.0
         return g
 
+    def slope_and_norm(self, g: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per copy ``(g.d, max_v |d_v|)``, each ``(B,)`` (:meth:`dot`, :meth:`largest_norm`: NaN where ``d`` is not
+        finite)."""
+        return self.dot(g, d), self.largest_norm(d)
+
+    def slope_and_largest(self, g: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per copy ``(g.d, max_k |g_k|)``, each ``(B,)`` (:meth:`dot`, :meth:`largest_abs`: NaN where ``g`` has a
+        NaN, infinite where it has an infinity)."""
+        return self.dot(g, d), self.largest_abs(g)
+
     def copy(self, a: np.ndarray) -> np.ndarray:
         """A copy of ``a``."""
         return a.copy()

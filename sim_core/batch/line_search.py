@@ -3,7 +3,8 @@
 
 Its vectors are the solver's (:mod:`sim_core.batch.iterates`): the trial points ``x + a_c d`` are made where the
 update lives (on the device with the batched CG, downloaded once for the contact search and the energies), and the
-slope test's per-copy dot products are read back as ``(B,)`` arrays.
+slope test's per-copy dot products are read back as ``(B,)`` arrays, with each trial gradient's largest entries (the
+next Newton iteration's force test, where the trial is accepted) in the same read.
 """
 
 from __future__ import annotations
@@ -11,27 +12,33 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.batch.iterates import Iterate
+from sim_core.energies.base import CopyEnergies, declares
 from sim_core.step_info import StepInfo
 
 
 class CopyLineSearch:
     """The per-copy line search of :class:`~sim_core.batch.lockstep.LockstepSolver` (which provides ``config``,
-    ``scene``, ``contact``, ``_vectors``, ``_trial_energy``, ``_energy`` and ``_stacked_gradient``)."""
+    ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_trial_energy``, ``_energy`` and
+    ``_stacked_gradient``)."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
                             contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
         """Per-copy backtracking (halving) from ``alpha`` ``(B,)`` along the stacked update ``d`` (the solver's
         vector, zero on the copies not in ``open_``): accepted copies keep their step while the others halve theirs
-        (:mod:`sim_core.batch.lockstep`'s docstring: the slope test, then the energy test of the copies that passed
-        it, :meth:`_armijo_groups`).
+        (:mod:`sim_core.batch.lockstep`'s docstring). Where every term splits its energy by copy
+        (:meth:`_copy_energies`), each copy passes on its own Armijo condition
+        ``E_i(x + a_i d) <= E_i(x) + c a_i g_i.d_i`` (plus ``1e-14 |E_i(x)|`` of round-off), as in its separate run,
+        one energy evaluation a trial point; else the slope test, then the energy test of the copies that passed
+        it (:meth:`_armijo_groups`).
 
-        ``e0``, the energy at ``x``, is the one measured there when ``x`` was the last line search's trial point
-        with these ``contact_terms`` (no contact side released since).
+        ``e0``, the energy at ``x`` (per copy, or the stacked sum), is the one measured there when ``x`` was the last
+        line search's result with these ``contact_terms`` (no contact side released since).
 
         Returns:
-            ``(x_new, (x_new, g_new), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate` with
-            every accepted copy moved and the others where they were, the gradient at ``x_new``, its contact terms
-            and search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
+            ``(x_new, (x_new, g_new, g_max), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate`
+            with every accepted copy moved and the others where they were, the gradient at ``x_new`` and its per-copy
+            largest ``|g_k|`` ``(B,)`` where it was read with the slope test (else None), its contact terms and
+            search position, accepted copies ``(B,)`` bool and halvings per copy ``(B,)``.
         """
         cfg = self.config
         B = self.scene.copies
@@ -40,7 +47,11 @@ class CopyLineSearch:
         if kept is not None and kept[0] is x.host and kept[1] is contact_terms:
             e0 = kept[2]
         else:
-            e0 = self._energy(step, x.host, contact_terms, x_search)
+            e0 = self._copy_energies(step, x.host, contact_terms, x_search)
+            if e0 is None:
+                e0 = self._energy(step, x.host, contact_terms, x_search)
+        per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
+        e_new = e0  # per copy: the energy where each copy stands after the accepted steps
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
         a = np.where(pending, alpha, 0.0)
@@ -54,10 +65,17 @@ class CopyLineSearch:
             trial = np.where(pending, a, 0.0) + taken
             x_try = vectors.trial(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
-            last = (trial, x_try, (terms, xs, g_try))
-            s_try = vectors.dot(g_try, d)
+            s_try, g_try_max = vectors.slope_and_largest(g_try, d)  # the slope and the next iteration's max |g|
+            last = (trial, x_try, (terms, xs, g_try, g_try_max))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
-            if cand.any():
+            if per_copy and cand.any():  # each copy's Armijo test on its own energy
+                e_try = self._copy_energies(step, x_try.host, terms, xs)
+                ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
+                e_new = np.where(ok, e_try, e_new)
+                accepted |= ok
+                taken[ok] = a[ok]
+                pending &= ~ok
+            elif cand.any():
                 e_base = e0 if not np.any(taken) else self._energy_with(step, x, d, taken)
                 if np.array_equal(cand, pending):
                     e_try = self._energy(step, x_try.host, terms, xs)
@@ -73,11 +91,31 @@ class CopyLineSearch:
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
         if last is not None and np.array_equal(last[0], taken):
-            x_new, (terms, xs, g_new) = last[1], last[2]
+            x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info)
-        return x_new, (x_new, g_new), terms, xs, accepted, backtracks
+            g_max = None
+        if per_copy:  # a copy's energy depends on its own positions only: x_new's, per copy, are those measured
+            self._trial_energy = (x_new.host, terms, e_new)
+        return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
+
+    def _copy_energies(self, step, x: np.ndarray, contact_terms: list,
+                       x_search: np.ndarray | None) -> np.ndarray | None:
+        """The stacked incremental potential at ``x`` ``(N, 3)`` split by copy (J, ``(B,)``): each term's
+        :meth:`~sim_core.energies.base.CopyEnergies.copy_energies` (the contact terms those of a new search where
+        ``x_search``'s candidates do not cover ``x``, as :meth:`NewtonSolver._energy`); None when a term cannot split
+        its energy (then the line search tests the stacked sum by groups)."""
+        B = self.scene.copies
+        total = np.zeros(B)
+        if not self.contact.covers(x_search, x):
+            contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        for p in step.loop_terms + contact_terms:
+            part = p.copy_energies(x, self._copy_of_vertex, B) if declares(p, CopyEnergies) else None
+            if part is None:
+                return None
+            total += part
+        return total
 
     def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:
         """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the

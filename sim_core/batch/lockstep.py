@@ -13,16 +13,18 @@ per term (one kernel launch per fused energy on a Taichi backend), assembles one
   solution is zero) while the others iterate;
 * step size: the displacement cap ``max_displacement`` and the backtracking line search act per copy:
   a copy keeps a step once it passes, the others halve theirs. The per-copy gradient is a slice of the
-  stacked gradient, but the energy is one sum over all copies, so each trial step is tested twice:
+  stacked gradient, and each term's energy is split by copy (capability
+  :class:`~sim_core.energies.base.CopyEnergies`), so each trial step is tested twice:
   first the Armijo condition with the energy change estimated by the trapezoidal rule of the
   directional derivatives, ``E_i(x + a d) - E_i(x) ~ a (g_i(x).d_i + g_i(x + a d).d_i) / 2`` (exact
   for a quadratic; Nocedal & Wright, Numerical Optimization, 2nd ed., Sec. 3.5), then, for the copies
-  that pass, the Armijo condition on the measured energy change of the group, split in halves
+  that pass, each copy's Armijo condition on its own measured energy change (one energy evaluation a trial
+  point, :meth:`LockstepSolver._copy_energies`). Where a term cannot split its energy (the NumPy backend's elastic
+  terms), the second test is the Armijo condition on the measured energy change of the group, split in halves
   (one energy evaluation a split; the energy being a sum over copies, the other half's change is the
-  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`).
-  With one copy this is the separate run's line search; with several, a copy whose own energy test
-  fails while its group's holds (another copy's decrease covering it) is accepted: rare, since it must
-  pass the slope test too, but a difference from its separate run. The other difference: a copy whose
+  difference) down to single copies wherever a group fails (:meth:`LockstepSolver._armijo_groups`): there a copy
+  whose own energy test fails while its group's holds (another copy's decrease covering it) is accepted.
+  With one copy this is the separate run's line search; with several, a copy whose
   slope test fails while its own energy falls (a contact switching on near the trial point) halves its step
   where its separate run takes it (Forming: the lockstep's extra iterations, ``benchmarks/iterations_lockstep.py``);
 * Newton matrix: the exact Hessian first as in a separate run, chosen per copy (a stacked matrix that
@@ -289,8 +291,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             if infos[i] is not None:
                 infos[i].limited_effectors.append(name)
         done = np.zeros(B, dtype=bool)
-        history: list[list[float]] = [[] for _ in range(B)]
+        # row it - 1: the residuals of iteration it (a copy is open from the first iteration until it is done, so
+        # its rows 0 .. it - 1 are its history)
+        history = np.zeros((max(cfg.max_iterations, 1), B))
         residual = np.full(B, np.inf)
+        # stop_reason accepts no copy whose residual and largest gradient entry are both above these
+        stop_residual = max(1.0, cfg.stall_tolerance_factor) * cfg.tol_velocity
 
         def fail(mask: np.ndarray, what: str) -> _CopiesFailed:
             return _CopiesFailed({int(i): f"step {int(step_index[i])} (t = {state_in.t:.6g} s): {what}"
@@ -298,11 +304,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         self._trial_energy = None
         contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+        g_max = None  # per copy max |g|, where the line search read it with its slope test (one read back)
         H = projection = factorization = None
         simplified = SimplifiedNewtonTest(self._copy_of_vertex, B, step.simplified and self.pcg is None)
         for it in range(1, cfg.max_iterations + 1):
             open_ = running & ~done
-            g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
+            if g_max is None:
+                g_max = vectors.largest_abs(g)  # NaN or infinite where a copy's gradient is not finite
             bad = open_ & ~np.isfinite(g_max)
             if bad.any():
                 raise fail(bad, f"non-finite gradient at Newton iteration {it}")
@@ -326,7 +334,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
             vectors.zero_copies(d, ~open_)
-            step_max = vectors.largest_norm(d)  # NaN where a copy's update is not finite (or its squares overflow)
+            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it
+            slope, step_max = vectors.slope_and_norm(g, d)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -334,10 +343,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 raise fail(open_ & (self.pcg.unconverged | self.pcg.indefinite),
                            f"conjugate gradient did not converge at Newton iteration {it} "
                            f"({self.pcg.max_iterations} iterations)")
-            for i in np.flatnonzero(open_):
-                residual[i] = step_max[i] / dt
-                history[i].append(residual[i])
-                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[i])
+            residual[open_] = step_max[open_] / dt
+            history[it - 1, open_] = residual[open_]
+            for i in np.flatnonzero(open_ & ((residual < stop_residual) | (g_max < cfg.tol_force))):
+                reason = stop_reason(self.config, residual[i], g_max[i:i + 1], history[:it, i])
                 if reason is not None:
                     accept(self.config, infos[i], it, residual[i], reason)
                     done[i] = True
@@ -346,7 +355,6 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 break
             alpha = np.where(open_ & (step_max > 0),
                              np.minimum(1.0, step.max_displacement / np.maximum(step_max, 1e-300)), 0.0)
-            slope = vectors.dot(g, d)
             uphill = open_ & (slope >= 0)
             if uphill.any():  # not a descent direction (should not happen with a PD matrix): steepest descent
                 vectors.take_steepest(d, g, uphill)
@@ -385,8 +393,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             x = x_new
             if g_new[1] is None or x is not g_new[0]:
                 contact_terms, x_search, g = self._stacked_gradient(step, x, info)
+                g_max = None
             else:
                 contact_terms, x_search, g = contact_new, x_search_new, g_new[1]
+                g_max = g_new[2]
         else:
             raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
         self._finish_step(step, x.host, H, projection, factorization, state_out, info)
@@ -534,8 +544,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             tl = time.perf_counter()
             info.time_assembly += tl - ta
             info.factorizations += 1
+            # -g on the copies to solve, 0 elsewhere: its per-copy values uploaded before the factorisation is queued
+            # (a synchronous upload waits for every kernel queued before it), so that the host waits once, for the
+            # factorisation and the CG together
+            vectors.blend(rhs, g, todo, ~todo, scale=-1.0)
             pcg.factorize(upper, blocks, diagonal)
-            vectors.blend(rhs, g, todo, ~todo, scale=-1.0)  # -g on the copies to solve, 0 elsewhere
             dk = vectors.new()
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl

@@ -60,6 +60,7 @@ class LumpedQuadratic:
                 raise ConfigError("LumpedQuadratic: damping over other vertices or another time step than the inertia")
             k_damping = damping.damping / damping.dt * damping.vertex_mass
             weight = weight + k_damping
+        vertex_offset = np.zeros(n)  # E_0 per vertex (copy_energies)
         if gravity is None and damping is None:  # the inertia alone: y = x_hat, E_0 = 0
             center, offset = inertia.x_hat, 0.0
         else:  # y = x_hat + (c m / dt (x^n - x_hat) + m_g g) / w, a vertex without mass at x_hat
@@ -79,6 +80,12 @@ class LumpedQuadratic:
                 pull = np.subtract(center, damping.x_prev)
                 offset += 0.5 * damping.damping / damping.dt * float(np.einsum("i,ij,ij->", damping.vertex_mass, pull,
                                                                                    pull))
+            vertex_offset = 0.5 / inertia.dt ** 2 * m * np.einsum("ij,ij->i", shift, shift)
+            if gravity is not None:
+                vertex_offset -= gravity.vertex_mass * (center @ gravity.gravity)
+            if damping is not None:
+                vertex_offset += 0.5 * damping.damping / damping.dt * damping.vertex_mass * np.einsum("ij,ij->i", pull,
+                                                                                                      pull)
         self.weight = weight
         self.center = center
         self.offset = offset
@@ -86,6 +93,8 @@ class LumpedQuadratic:
         self._root3 = np.sqrt(weight)[:, None]
         self._device: tuple | None = None  # (center, weight) on the device: add_gradient_on_device
         self._device_energy: tuple | None = None  # (x, partial sums) of the last add_gradient_on_device
+        self._vertex_offset = vertex_offset
+        self._copy_offset: tuple | None = None  # (copy_of_vertex, E_0 per copy) of copy_energies
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at ``x`` ``(n, 3)``: ``sum_v w_v / 2 |x_v - y_v|^2 + E_0``, as the squared norm of
@@ -101,6 +110,19 @@ class LumpedQuadratic:
         d *= self._root3
         flat = d.reshape(-1)
         return 0.5 * float(np.einsum("i,i->", flat, flat)) + self.offset
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each vertex, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`): ``sum_v w_v / 2 |x_v - y_v|^2`` and ``E_0`` per copy, the
+        latter as the three terms' energies at ``y`` per vertex (made at the first call for ``copy_of_vertex``)."""
+        kept = self._copy_offset
+        if kept is None or kept[0] is not copy_of_vertex:
+            kept = self._copy_offset = (copy_of_vertex, np.bincount(copy_of_vertex, weights=self._vertex_offset,
+                                                                    minlength=copy_count))
+        d = np.subtract(x, self.center)
+        d *= d
+        quadratic = np.bincount(copy_of_vertex, weights=0.5 * self.weight * d.sum(axis=1), minlength=copy_count)
+        return quadratic + kept[1]
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """Gradient ``w_v (x_v - y_v)`` in J/m, shape ``(n, 3)`` (a new array)."""

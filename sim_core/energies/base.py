@@ -212,9 +212,23 @@ class DeviceGradient(Protocol):
         ...
 
 
+@runtime_checkable
+class CopyEnergies(Protocol):
+    """A potential whose energy on a stacked model of disconnected copies (:mod:`sim_core.batch.stacked`) can be
+    given per copy: each element's energy added to the copy of its first vertex (an element never joins two
+    copies). The lockstep batch tests each copy's line-search step on its own energy
+    (:mod:`sim_core.batch.line_search`)."""
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray | None:
+        """:meth:`Potential.energy` at ``x`` ``(vertex_count, 3)`` split by copy (J), shape ``(copy_count,)``:
+        its sum is the energy to round-off. ``copy_of_vertex``: the copy of each vertex, int ``(vertex_count,)``.
+        None where the term cannot split its energy (e.g. a part without element energies)."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
-    DeviceHessian, SparseGradient, DeviceGradient)
+    DeviceHessian, SparseGradient, DeviceGradient, CopyEnergies)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 
@@ -233,6 +247,14 @@ def _capability_members(cls: type, capability: type) -> tuple[bool, tuple[str, .
     data = tuple(getattr(capability, "__annotations__", {}))
     methods = [name for name, value in vars(capability).items() if callable(value) and not name.startswith("_")]
     return all(callable(getattr(cls, name, None)) for name in methods), data
+
+
+def sum_by_copy(copy_of_vertex: np.ndarray, vertices: np.ndarray, values: np.ndarray, copy_count: int) -> np.ndarray:
+    """Per-element ``values`` ``(k,)`` summed by the copy of each element's vertex ``vertices`` ``(k,)`` (int; its
+    first vertex: :class:`CopyEnergies`), shape ``(copy_count,)`` (one ``np.bincount``, in element order)."""
+    if not len(values):
+        return np.zeros(copy_count)
+    return np.bincount(np.take(copy_of_vertex, vertices), weights=values, minlength=copy_count)
 
 
 def project_psd(blocks: np.ndarray, projection: Projection = "clamp") -> np.ndarray:

@@ -17,9 +17,9 @@ atomic adds in an order that varies from launch to launch); maxima and the other
 
 import numpy as np
 
-from sim_core.ti_backend import ti
+from sim_core.ti_backend import serial_loops, ti
 from sim_core.ti_kernels import device_copy, transfer
-from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.launch import element_cells, fast_kernel
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -120,6 +120,59 @@ def _extremes(a: _VEC, out: _I64, order: _I32, start: _I32, copies: ti.i32, vert
         ti.atomic_max(out[copies + c], ti.i64(bad))
 
 
+_SCALARS = 7  # rows of _scalars' output: dot, |a| max, a NaN, |b| max, b NaN, |b_v|^2 max, b_v not finite
+
+
+@fast_kernel
+def _scalars(a: _VEC, b: _VEC, partial: _F64, out: _I64, order: _I32, start: _I32, copies: ti.i32):
+    """Per copy ``c``, into ``out`` (int64, row ``r`` at ``out[r copies + c]``): row 0 the bits of the float64
+    ``sum_k a_k b_k`` over the copy's DoFs (its lanes' partial sums, kept in ``partial``, added in lane order),
+    rows 1 / 2 the bits of the largest non-NaN ``|a_k|`` and 1 where an entry of ``a`` is NaN, rows 3 / 4 the same
+    of ``b``, rows 5 / 6 the bits of the largest finite squared vertex norm ``|b_v|^2`` and 1 where one is not
+    finite (the maxima of :func:`_extremes`)."""
+    for i in range(_SCALARS * copies):
+        out[i] = 0
+    for c, k in ti.ndrange(copies, REDUCTION_LANES):
+        acc = 0.0
+        big_a = 0.0
+        big_b = 0.0
+        big_n = 0.0
+        nan_a = 0
+        nan_b = 0
+        bad_n = 0
+        for q in range(lane_count(start, c, k)):
+            t = lane_vertex(order, start, c, k, q)
+            acc += a[t, 0] * b[t, 0] + a[t, 1] * b[t, 1] + a[t, 2] * b[t, 2]
+            s = b[t, 0] * b[t, 0] + b[t, 1] * b[t, 1] + b[t, 2] * b[t, 2]
+            if _not_finite(s):
+                bad_n = 1
+            else:
+                big_n = ti.max(big_n, s)
+            for j in ti.static(range(3)):
+                ea = ti.abs(a[t, j])
+                eb = ti.abs(b[t, j])
+                if _is_nan(ea):
+                    nan_a = 1
+                else:
+                    big_a = ti.max(big_a, ea)
+                if _is_nan(eb):
+                    nan_b = 1
+                else:
+                    big_b = ti.max(big_b, eb)
+        partial[c * REDUCTION_LANES + k] = acc
+        ti.atomic_max(out[copies + c], ti.bit_cast(big_a, ti.i64))
+        ti.atomic_max(out[2 * copies + c], ti.i64(nan_a))
+        ti.atomic_max(out[3 * copies + c], ti.bit_cast(big_b, ti.i64))
+        ti.atomic_max(out[4 * copies + c], ti.i64(nan_b))
+        ti.atomic_max(out[5 * copies + c], ti.bit_cast(big_n, ti.i64))
+        ti.atomic_max(out[6 * copies + c], ti.i64(bad_n))
+    for c in range(copies):
+        total = 0.0
+        for k in range(REDUCTION_LANES):
+            total += partial[c * REDUCTION_LANES + k]
+        out[c] = ti.bit_cast(total, ti.i64)
+
+
 @fast_kernel
 def _moved(x: _VEC, d: _VEC, alpha: _F64, vertex_copy: _I32, out: _VEC, n: ti.i32):
     """``out_v = x_v + alpha_c d_v``, ``c`` vertex ``v``'s copy."""
@@ -171,6 +224,60 @@ def _diagonal_quadratic(x: _VEC, center: _VEC, weight: _F64, g: _VEC, partial: _
                 g[v, j] += w * r
                 acc += w * r * r
         partial[k] = 0.5 * acc
+
+
+@fast_kernel
+def _add_by_copy(values: _F64, element_copy: _I32, out: _F64, n: ti.i32):
+    """``out[element_copy[k]] += values[k]`` for ``k < n``."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(n):
+        out[element_copy[k]] += values[k]
+
+
+def element_copies(kept: dict, copy_of_vertex: np.ndarray, *first_vertices: np.ndarray) -> np.ndarray:
+    """The copy of each element, int32 ``(k,)``: ``copy_of_vertex`` (int ``(N,)``) at the elements' first vertices
+    ``first_vertices`` (one array per loop of the kernel, in loop order, concatenated), made once for each
+    ``copy_of_vertex`` object and kept in ``kept``."""
+    entry = kept.get("element_copies")
+    if entry is None or entry[0] is not copy_of_vertex:
+        first = np.concatenate(first_vertices) if len(first_vertices) > 1 else first_vertices[0]
+        entry = kept["element_copies"] = (copy_of_vertex, np.ascontiguousarray(np.take(copy_of_vertex, first),
+                                                                                dtype=np.int32))
+    return entry[1]
+
+
+def copy_energies(summed, element_copy: np.ndarray, copy_count: int, kept: dict, *args) -> np.ndarray:
+    """The terms of the summing kernel ``summed`` (:func:`~sim_core.ti_kernels.launch.summing_kernel`) on ``args``,
+    summed by copy: element ``k``'s term (one sum cell an element,
+    :func:`~sim_core.ti_kernels.launch.element_cells`) added into copy ``element_copy[k]``. On the host arch by
+    ``np.bincount`` (in element order); on a GPU where the terms are (one atomic add an element into ``copy_count``
+    cells), only the sums copied back, ``element_copy`` uploaded once into ``kept``
+    (:func:`~sim_core.ti_kernels.buffers.on_device`).
+
+    Args:
+        summed: a summing-kernel function whose loops number their elements ``0 .. k - 1``.
+        element_copy: the copy of each element, int32 ``(k,)``, never changed in place.
+        copy_count: copies ``B``.
+        kept: the caller's cache of device arrays.
+        args: the kernel's arguments but its sum array.
+
+    Returns:
+        the sums, float64 ``(copy_count,)`` (J for an energy kernel).
+    """
+    from sim_core.ti_kernels.buffers import on_device  # (buffers imports this module's siblings only)
+
+    count = int(element_copy.shape[0])
+    cells = element_cells(summed, count, *args)
+    if isinstance(cells, np.ndarray):
+        return np.bincount(element_copy, weights=cells, minlength=copy_count).astype(np.float64, copy=False)
+    sums = kept.get("copy_sums")
+    if sums is None or sums.shape[0] != copy_count:
+        sums = kept["copy_sums"] = device_copy.new_ndarray(ti.f64, (copy_count,))
+    if not device_copy.zero(sums):
+        sums.fill(0.0)
+    if count:
+        _add_by_copy(cells, on_device(kept, "element_copy", element_copy), sums, count)
+    return transfer.download(sums)
 
 
 def new_vectors(vertex_count: int):
@@ -229,6 +336,9 @@ class CopyVectors:
         self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
         self._out_host = np.zeros(self._out.shape, dtype=np.int64)
+        self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
+        self._scalars_out = device_copy.new_ndarray(ti.i64, (max(_SCALARS * B, 1),))
+        self._scalars_host = np.zeros(self._scalars_out.shape, dtype=np.int64)
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
         self._scratch = None  # an (N, 3) buffer of add
@@ -278,6 +388,25 @@ class CopyVectors:
         """Per copy ``sum_k a_k b_k`` over its DoFs, shape ``(B,)``."""
         _dots(a, b, self._per_copy, self._order, self._start, self.copies)
         return transfer.download(self._per_copy)[: self.copies].copy()
+
+    def scalars(self, a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per copy, in one launch and one read back: ``(dot, largest_abs_a, largest_abs_b, largest_norm_b)``, each
+        ``(B,)``: :meth:`dot` of ``a`` and ``b`` (its lanes' partial sums added in lane order), :meth:`largest_abs` of
+        ``a`` and of ``b``, and :meth:`largest_norm` of ``b`` (what a Newton iteration reads of its gradient and
+        update together)."""
+        B = self.copies
+        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, B)
+        out = self._scalars_host
+        if not device_copy.to_host(out, self._scalars_out):
+            out = self._scalars_out.to_numpy()
+        rows = out[: _SCALARS * B].reshape(_SCALARS, B)
+        values = rows.view(np.float64)
+        dot = values[0].copy()
+        big_a = np.where(rows[2] > 0, np.nan, values[1])
+        big_b = np.where(rows[4] > 0, np.nan, values[3])
+        with np.errstate(invalid="ignore"):
+            norm_b = np.sqrt(np.where(rows[6] > 0, np.nan, values[5]))
+        return dot, big_a, big_b, norm_b
 
     def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
         _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)

@@ -43,7 +43,7 @@ import numpy as np
 from sim_core.errors import ConfigError
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import copy_back, copy_into, on_device
+from sim_core.ti_kernels.buffers import copy_back, on_device
 from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
 
@@ -313,8 +313,8 @@ class HashGrid:
     """The buffers of :func:`_hash_pairs` for one kind of search, kept (and grown) between searches.
 
     Each search needs a bucket table (a power of 2, about twice the boxes of set B), the entries of
-    B's boxes (one per overlapped cell), B's boxes and the output pairs; kept as the same arrays, and
-    the positions copied into a kept array, they are bound to the compiled kernel once: each grid
+    B's boxes (one per overlapped cell), B's boxes and the output pairs; kept as the same arrays, they are
+    bound to the compiled kernel once (the positions are bound as given, a new binding per search): each grid
     launches through its own :class:`~sim_core.ti_kernels.launch.FastKernel` of the one compiled
     kernel, whose launch plan keeps its arrays bound (:mod:`sim_core.ti_kernels.launch`), so the
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
@@ -324,7 +324,6 @@ class HashGrid:
 
     def __init__(self, cell_scale: float = 1.0) -> None:
         self._launch = FastKernel(_hash_pairs.kernel)
-        self.x = np.zeros((0, 3), dtype=np.float64)
         self.bucket_start = self.bucket_fill = self.chunk_total = np.zeros(0, dtype=np.int32)
         self.entry_item = self.entry_lower = np.zeros(0, dtype=np.int32)
         self.entry_cell = np.zeros(0, dtype=np.int64)
@@ -361,7 +360,10 @@ class HashGrid:
             b_vertices, b_body = a_vertices, a_body
         if a_vertices.shape[0] == 0 or b_vertices.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.int64)
-        self.x = copy_into(self.x, x)
+        # the positions as given when they are a C-contiguous float64 array (bound by address on the CPU, sent
+        # straight into the kept device array on CUDA: no host copy and no comparison with the last search's)
+        positions = x if type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous \
+            else np.ascontiguousarray(x, dtype=np.float64)
         nb = b_vertices.shape[0]
         bodies = allowed.shape[0]
         buckets = _power_of_two(2 * nb) * bodies
@@ -379,13 +381,13 @@ class HashGrid:
             self.out = np.empty((max(1024, 2 * (a_vertices.shape[0] + nb)), 2), dtype=np.int32)
         while True:
             self.count[_PAIRS] = 0
-            arrays = (self.x, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, self.bucket_start,
+            arrays = (positions, a_vertices, a_body, a_key, b_vertices, b_body, allowed, rest_keys, self.bucket_start,
                       self.bucket_fill, self.entry_item, self.entry_cell, self.entry_lower, self.box, self.body_box,
                       self.scale, self.out, self.count, self.chunk_total)
             if current_arch() == "cuda":
                 arrays = self._on_device(arrays)
             self._launch(*arrays[:8], float(radius), self.cell_scale, int(same), *arrays[8:])
-            if arrays[0] is not self.x:  # the outputs read here, copied back from the device (the pairs found only)
+            if arrays[0] is not positions:  # the outputs read here, copied back from the device (the pairs found only)
                 copy_back(self.count, arrays[17])
                 copy_back(self.out, arrays[16], min(int(self.count[_PAIRS]), self.out.shape[0]))
             if self.count[_BAD]:
@@ -409,8 +411,7 @@ class HashGrid:
                  "bucket_start", "bucket_fill", "entry_item", "entry_cell", "entry_lower", "box", "body_box", "scale",
                  "out", "count", "chunk_total")
         device = self.__dict__.setdefault("_device", {})
-        return tuple(on_device(device, name, host, refresh=name in ("x", "count"), changed=name == "x")
-                     for name, host in zip(names, arrays))
+        return tuple(on_device(device, name, host, refresh=name in ("x", "count")) for name, host in zip(names, arrays))
 
     def _grow_entries(self, size: int) -> None:
         self.entry_item = np.zeros(size, dtype=np.int32)

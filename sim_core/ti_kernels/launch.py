@@ -340,6 +340,34 @@ def summing_kernel(fn: Callable) -> Callable[..., float]:
     return summed
 
 
+def element_cells(summed: Callable, count: int, *args: Any):
+    """``summed`` (a :func:`summing_kernel` function) launched on ``args`` with a zeroed sum array of ``count`` cells,
+    so that element ``k < count`` adds its term into cell ``k`` alone (:data:`SUM_CELLS`'s rule ``k % cells``; for a
+    kernel whose loops number their elements ``0 .. count - 1``). Returns the cells: float64 ``(count,)``, a NumPy
+    array on the host arch, else a Taichi ndarray in device memory kept per thread and size (valid until the next
+    call for that size). :func:`~sim_core.ti_kernels.copy_vectors.copy_energies` sums them by copy where they are."""
+    runtime = _runtime()
+    if _host_arch(runtime):
+        cells = np.zeros(max(count, 1))
+        if count > 0:
+            summed.kernel(*args, cells)
+        return cells[:count]
+    kept = getattr(_ELEMENT_CELLS, "arrays", None)
+    if kept is None or kept[0] is not runtime.prog:  # (a device array belongs to one Taichi program)
+        kept = _ELEMENT_CELLS.arrays = (runtime.prog, {})
+    array = kept[1].get(count)
+    if array is None:
+        array = kept[1][count] = device_copy.new_ndarray(ti.f64, (max(count, 1),))
+    _zero_cells(array)
+    if count > 0:
+        summed.kernel(*args, array)
+    return array
+
+
+_ELEMENT_CELLS = threading.local()
+"""Per thread: ``arrays``, ``(Taichi program, {count: device array})`` of :func:`element_cells` on a GPU."""
+
+
 def _new_cells(runtime):
     """A sum array of a :func:`summing_kernel`: ``(1,)`` NumPy on the host arch, a ``(SUM_CELLS,)`` Taichi ndarray
     in device memory on a GPU."""

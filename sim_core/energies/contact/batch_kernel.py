@@ -43,6 +43,7 @@ from sim_core.energies.base import positions_key
 from sim_core.energies.contact import distance_kernel as cd
 from sim_core.energies.contact.gradient_kernel import add_rows, gather_rows
 from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+from sim_core.energies.contact.pair_lists import BatchLayout
 from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
@@ -184,11 +185,12 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
 
 
 @fast_kernel
-def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, split: ti.i32, u: ti.i32, eps_vt: ti.f64,
-                   eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32, z: _F64_3,
-                   d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2, slots: _I32_1,
-                   active_count: _I32_1, out: _F64_1):
-    """Every pair ``i < count`` (``i < split`` vertex-triangle, else edge-edge) measured as :func:`_batch_kernel`
+def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32, u: ti.i32,
+                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
+                   z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2,
+                   slots: _I32_1, active_count: _I32_1, out: _F64_1):
+    """Every pair ``i < count`` (``i < split`` vertex-triangle, else edge-edge; its vertices and side at row
+    ``rows[i]`` of ``vertices`` and ``side``, the batch's layout) measured as :func:`_batch_kernel`
     measures it (the same functions; its work arrays ``z``, ``d``, ``region``, ``grad``, ``hess`` of at least
     ``count`` rows, ``gradients`` of at least ``2 u`` rows: the sums of the ``u`` vertices of ``x``), then its results
     packed into ``out`` in increasing pair order, for one copy back: ``out[0]`` the count ``a`` of the pairs with
@@ -206,8 +208,8 @@ def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, count: ti.i32, spl
         active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        if _measure_pair(x, vertices, side, i, i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u, derivatives,
-                         z, d, region, grad, hess, gradients):
+        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u,
+                         derivatives, z, d, region, grad, hess, gradients):
             slots[ti.atomic_add(active_count[0], 1)] = i
     ti.loop_config(serialize=ti.static(serial_loops()))
     for s in range(count):  # the listed pairs into their places
@@ -287,16 +289,18 @@ class PairBatch:
             and ``sides`` ``(p,)``).
         ee: an :class:`~sim_core.energies.contact.reference.EdgeEdgeContact` (``(q, 4)``, ``(q,)``).
 
-        compact: ``(own, local)``, the distinct vertices the pairs name ``(u,)`` (sorted; a superset does too:
-            its other rows take no part) and the pairs' vertices as positions in ``own``, int32 ``(p + q, 4)``,
-            when the caller has them (:func:`~sim_core.unique.compact_indices` of the pairs' vertices; a contact set
-            keeps them per candidate list); None: computed here.
+        layout: the pairs' vertices as rows of a kept compaction of candidate lists
+            (:class:`~sim_core.energies.contact.pair_lists.BatchLayout`: a contact set's, made once per list and
+            shared, with its device copies, by every batch over the list; its ``rows`` ``(p + q,)``, the
+            vertex-triangle pairs first as rows ``0 .. p - 1``), or None: the compaction of these pairs'
+            vertices (:func:`~sim_core.unique.compact_indices`), made here.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
-    is read at every evaluation.
+    is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
+        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows.
     """
 
     two_pass: bool | None = None
@@ -324,16 +328,26 @@ class PairBatch:
     :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
     orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
-    def __init__(self, vt, ee, compact: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    def __init__(self, vt, ee, layout: BatchLayout | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
-        self.split = int(vt.vertices.shape[0])
+        self.split = p = int(vt.vertices.shape[0])
+        count = p + int(ee.vertices.shape[0])
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
-        if compact is None:
-            compact = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
-        self.own, self._local_vertices = compact
-        self.sides = np.concatenate([vt.sides, ee.sides], dtype=np.float64)
-        self._all = np.arange(self.split + ee.vertices.shape[0], dtype=np.int32)
+        if layout is None:
+            own, local = compact_indices(np.concatenate([vt.vertices, ee.vertices], dtype=np.int32), dtype=np.int32)
+            layout = BatchLayout(own, local, np.arange(count, dtype=np.int32), np.arange(count - p), {})
+        rows = layout.rows
+        if (len(rows) != count or len(layout.ee_rows) != count - p or (p and rows[p - 1] != p - 1)
+                or (count > p and rows[p] < p)):
+            raise ValueError(f"PairBatch: a layout of {len(rows)} rows ({len(layout.ee_rows)} edge-edge) for {p} + "
+                             f"{count - p} pairs, or the vertex-triangle pairs not its first rows")
+        self.own, self._local_vertices, self._lists_device = layout.own, layout.local, layout.device
+        self._all = rows  # launch row i (every pair) -> the pair's row of the layout
+        # the sides by layout row (rows of candidates outside the batch: 0, never read)
+        self.sides = np.zeros(len(layout.local))
+        self.sides[:p] = vt.sides
+        self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
@@ -353,8 +367,9 @@ class PairBatch:
         z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
         gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
-        return (self._device_positions(x, key, x_device), on_device(dev, "vertices", self._local_vertices),
-                on_device(dev, "sides", self.sides), z, gradients)
+        return (self._device_positions(x, key, x_device),
+                on_device(self._lists_device, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
+                gradients)
 
     def _device_positions(self, x: np.ndarray, key: tuple, x_device):
         """On CUDA, the positions of the pairs' vertices ``(u, 3)`` (m) in device memory, once per ``key``: gathered
@@ -440,15 +455,16 @@ class PairBatch:
             device = _ARRAYS.device()
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
-            if x_device is None:
-                x_arg, vertices = self._device_positions(x, key, None), rows_on_device(
-                    device, "packed_vertices", self._local_vertices)
+            if x_device is None:  # the lists' vertices, kept with them (as the other launches read them)
+                x_arg, vertices = self._device_positions(x, key, None), on_device(self._lists_device, "vertices",
+                                                                                 self._local_vertices)
             else:
                 x_arg, vertices = x_device, rows_on_device(device, "packed_vertices_every", self._every_vertex())
-            sides = rows_on_device(device, "packed_sides", self.sides)
+            sides, rows_arg = (rows_on_device(device, "packed_sides", self.sides),
+                               rows_on_device(device, "packed_rows", self._all))
         else:
-            x_arg, vertices, sides = self._own_positions(x, None), self._local_vertices, self.sides
-        _packed_kernel(x_arg, vertices, sides, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
+            x_arg, vertices, sides, rows_arg = self._own_positions(x, None), self._local_vertices, self.sides, self._all
+        _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
                        float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
         read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
         copy_back(out, arrays[-1], read)
@@ -486,21 +502,21 @@ class PairBatch:
         return np.take(sums, self.own, axis=0) if every else sums.copy()
 
     def _every_vertex(self) -> np.ndarray:
-        """The pairs' vertices ``(p + q, 4)`` as indices of every vertex, int32, made once per batch (the kernel's
-        where it reads the positions of every vertex)."""
+        """The layout's vertices (every row of ``local``, the pairs' at their rows) as indices of every vertex, int32,
+        made once per batch (the packed kernel's where it reads the positions of every vertex)."""
         if self._vertices_every is None:
-            self._vertices_every = np.concatenate([self.vt.vertices, self.ee.vertices], dtype=np.int32)
+            self._vertices_every = np.take(self.own, self._local_vertices).astype(np.int32)
         return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
-        """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``; the batch's own row
-        array: every pair) at ``x``; the distances, regions and distance gradients are left in :func:`work_arrays`.
-        Returns ``((grad, hess), sums, found)``: the distance gradient and Hessian rows' arrays (new ndarrays with
-        ``device_hessian``), the
-        per-vertex gradient sums ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array)
-        and, when every pair was measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and
-        their distances ``(a,)`` (m), else None."""
+        """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``, pair indices; the
+        batch's own row array :attr:`_all`: every pair, as their rows of the layout) at ``x``; the distances,
+        regions and distance gradients are left in :func:`work_arrays`. Returns ``((grad, hess), sums, found)``: the
+        distance gradient and Hessian rows' arrays (new ndarrays with ``device_hessian``), the per-vertex gradient sums
+        ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array) and, when every pair was
+        measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and their distances ``(a,)`` (m),
+        else None."""
         m, u = len(rows), len(self.own)
         d, region, grad, hess = work_arrays(m)
         on_gpu = current_arch() == "cuda"
@@ -511,8 +527,8 @@ class PairBatch:
         listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
         kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
-        if not every:
-            kept_rows[:m] = rows
+        if not every:  # the pairs' rows of the layout
+            np.take(self._all, rows, out=kept_rows[:m])
         if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
             grad_arg, hess_arg, gradients_arg = (_ARRAYS.rows("grad_unused", 1, (12,)),
                                                  _ARRAYS.rows("hess_unused", 1, (12, 12)),

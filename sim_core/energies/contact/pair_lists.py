@@ -10,10 +10,15 @@ again with new sides. :class:`CandidateVertices` keeps, for one pair of lists, t
 the distinct vertices they name (:func:`~sim_core.unique.compact_indices`: the pair batch's kernel indices,
 :class:`~sim_core.energies.contact.batch_kernel.PairBatch`), so that a stacked batch of 1024 Forming copies (1.75
 million candidate pairs) gathers and compacts them once per search instead of at every potential, batch and
-geometry measurement.
+geometry measurement. A step's pair batch indexes the kept compaction of every candidate through its own rows
+(:class:`BatchLayout`: the near-parallel edge-edge pairs a step leaves out are skipped, not cut out), so that the
+vertex indices, and on CUDA their device copies (:attr:`CandidateVertices.device`), serve every step's batch over
+the same lists.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -29,6 +34,8 @@ class CandidateVertices:
         vt, ee: the lists (the arrays given: :meth:`of` matches them by identity).
         vt_vertices: ``[p, a, b, c]`` int64 ``(p, 4)``.
         ee_vertices: ``[a0, a1, b0, b1]`` int64 ``(q, 4)``.
+        device: the device copies of this list's index arrays (a :func:`~sim_core.ti_kernels.buffers.on_device`
+            cache; empty off CUDA), shared by the kernels that read them.
     """
 
     def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> None:
@@ -36,24 +43,55 @@ class CandidateVertices:
         self.vt_vertices = vertex_triangle_vertices(vt, triangles)
         self.ee_vertices = edge_edge_vertices(ee, edges)
         self._compact: tuple | None = None
+        self._int32: tuple | None = None
+        self.device: dict = {}
 
     def of(self, vt: np.ndarray, ee: np.ndarray) -> bool:
         """Whether these are the vertices of the lists ``vt`` and ``ee`` (the same array objects)."""
         return vt is self.vt and ee is self.ee
 
-    def batch_indices(self, ee_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(own, local)`` of the pairs of every vertex-triangle candidate and the edge-edge candidates ``ee_rows``
-        (int ``(r,)``), in that order: ``own`` int64 ``(u,)`` the sorted distinct vertices every candidate names (a
-        superset of those of the chosen pairs), ``local`` int32 ``(p + r, 4)`` the pairs' vertices as positions in
-        ``own`` (the argument ``compact`` of :class:`~sim_core.energies.contact.batch_kernel.PairBatch`); the
-        compaction of every candidate's vertices is made on first use and kept."""
+    def int32_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`vt_vertices` and :attr:`ee_vertices` as C-contiguous int32 arrays ``(p, 4)``, ``(q, 4)`` (the
+        geometry kernel's indices, :func:`~sim_core.energies.contact.setup_kernel.pair_geometry`), made once."""
+        if self._int32 is None:
+            self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+        return self._int32
+
+    def batch_layout(self, ee_rows: np.ndarray) -> "BatchLayout":
+        """The :class:`BatchLayout` of a pair batch over every vertex-triangle candidate and the edge-edge candidates
+        ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
+        first use and kept."""
         if self._compact is None:
-            p = len(self.vt_vertices)
-            own, local = compact_indices(np.concatenate([self.vt_vertices, self.ee_vertices], dtype=np.int32),
-                                         dtype=np.int32)
-            self._compact = (own, local[:p], local[p:])
-        own, vt_local, ee_local = self._compact
-        return own, np.concatenate([vt_local, np.take(ee_local, ee_rows, axis=0)])
+            self._compact = compact_indices(np.concatenate([self.vt_vertices, self.ee_vertices], dtype=np.int32),
+                                            dtype=np.int32)
+        own, local = self._compact
+        p = len(self.vt_vertices)
+        ee_rows = np.asarray(ee_rows, dtype=np.int64)
+        rows = np.empty(p + len(ee_rows), dtype=np.int32)
+        rows[:p] = np.arange(p, dtype=np.int32)
+        np.add(ee_rows, p, out=rows[p:], casting="unsafe")
+        return BatchLayout(own, local, rows, ee_rows, self.device)
+
+
+class BatchLayout(NamedTuple):
+    """The indices of a pair batch (:class:`~sim_core.energies.contact.batch_kernel.PairBatch`, its argument
+    ``layout``) over the kept compaction of candidate lists: pair ``k`` of the batch is row ``rows[k]`` of ``local``.
+
+    Attributes:
+        own: int64 ``(u,)``, the sorted distinct vertices every candidate names (a superset of the batch's).
+        local: int32 ``(p + q, 4)``, every candidate's vertices (the vertex-triangle list's, then the edge-edge
+            list's) as positions in ``own``.
+        rows: int32 ``(p + r,)``, the batch's pairs as rows of ``local`` (the vertex-triangle pairs ``0 .. p - 1``
+            first: a row below ``p`` is a vertex-triangle pair).
+        ee_rows: int64 ``(r,)``, the batch's edge-edge pairs as rows of the edge-edge list (``rows[p:] - p``).
+        device: the lists' device cache (:attr:`CandidateVertices.device`), where ``local`` is kept on CUDA.
+    """
+
+    own: np.ndarray
+    local: np.ndarray
+    rows: np.ndarray
+    ee_rows: np.ndarray
+    device: dict
 
 
 def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,21 +107,3 @@ def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.n
     old_keys = (old_pairs[:, 0] << 32) | old_pairs[:, 1]
     pos = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
     return pos, old_keys[pos] == keys
-
-
-def merge_rows(old: tuple | None, pos: np.ndarray, found: np.ndarray, fresh: tuple) -> tuple:
-    """Per-pair arrays over a pair list: the rows ``found`` (bool ``(p,)``) taken from rows ``pos`` ``(p,)`` of the
-    arrays of ``old`` (:func:`lookup_pairs`), the others from ``fresh`` (computed for the pairs not found, in order):
-    the per-pair results do not depend on which other pairs are in the list."""
-    if not np.any(found):
-        return fresh
-    old_values = old[1]
-    if np.all(found):
-        return tuple(v[pos] for v in old_values)
-    out = []
-    for v, f in zip(old_values, fresh):
-        merged = np.empty(len(found), dtype=v.dtype)
-        merged[found] = v[pos[found]]
-        merged[~found] = f
-        out.append(merged)
-    return tuple(out)

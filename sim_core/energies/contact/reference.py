@@ -39,7 +39,8 @@ from sim_core.collision.distances import (
     point_triangle_contact_distance,
     point_triangle_side,
 )
-from sim_core.energies.base import HessianBlocks, Projection, positions_key, project_psd, scatter_gradient
+from sim_core.energies.base import (HessianBlocks, Projection, positions_key, project_psd, scatter_gradient,
+                                   sum_by_copy)
 from sim_core.errors import ConfigError
 from sim_core.unique import spread_rows
 from sim_core.workspace import workspace_of
@@ -364,6 +365,14 @@ class _PairPenalty:
         """Penalty energy in J."""
         return self._evaluation(x, 0).energy(self.stiffness)
 
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each active pair's first vertex, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`; the kept evaluation of ``x`` when there is one)."""
+        evaluation = self._evaluation(x, 0)
+        gap = evaluation.distances.d - evaluation.eps
+        first = np.take(self.vertices[:, 0], evaluation.active)
+        return 0.5 * self.stiffness * sum_by_copy(copy_of_vertex, first, gap * gap, copy_count)
+
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``."""
         return self._evaluation(x, 1).gradient(self.stiffness, self.vertices)
@@ -563,6 +572,12 @@ class PlaneContact:
         """Penalty energy in J."""
         gap = np.minimum(self.distance(x) - self.eps, 0.0)
         return float(0.5 * self.stiffness * np.sum(gap * gap))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each vertex, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`)."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        return 0.5 * self.stiffness * sum_by_copy(copy_of_vertex, self.vertices, gap * gap, copy_count)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """``k_c (d - eps) n`` on active vertices, N, shape ``(n, 3)``."""

@@ -29,6 +29,7 @@ them, so a launch re-binds no array.
 import numpy as np
 
 from sim_core.collision.pair_geometry import PairGeometry
+from sim_core.energies.base import FrozenPositionsKey
 from sim_core.energies.contact import distance_kernel as cd
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
@@ -75,17 +76,27 @@ _ARRAYS = LaunchArrays()
 """The kernels' arrays (inputs copied in, outputs copied out): launches re-bind none."""
 
 
-def _device_launch(kernel, args: tuple, outputs: dict[int, int]) -> None:
+def _device_launch(kernel, args: tuple, outputs: dict[int, int], constant: dict[int, tuple] | None = None) -> None:
     """``kernel(*args)``; on CUDA with every array of ``args`` (kept arrays of :data:`_ARRAYS`) replaced by a
     device copy kept per thread (the inputs sent at every launch, the arrays at the positions of ``outputs``,
     position -> rows the launch writes, only allocated there and those rows copied back after the launch),
-    instead of NumPy arguments that cross to the device and back at each launch."""
+    instead of NumPy arguments that cross to the device and back at each launch. ``constant``: position ->
+    ``(cache, name)`` of input arrays never changed in place, whose device copies ``cache`` keeps (sent only when
+    the array is another object than at the last launch); so are frozen positions in ``args[0]``
+    (:meth:`~sim_core.energies.base.FrozenPositionsKey.holds`: a lockstep batch's iterates), which
+    :func:`_positions` passes as they are."""
     if current_arch() != "cuda":
         kernel(*args)
         return
     device = _ARRAYS.device()
-    launch = [on_device(device, f"{position}:{kernel.__name__}", a, scratch=position in outputs,
-                        refresh=position not in outputs, changed=True) if isinstance(a, np.ndarray) else a
+    constant = dict(constant or {})
+    if isinstance(args[0], np.ndarray) and FrozenPositionsKey.holds(args[0]):
+        # frozen positions (their values cannot change while they exist): sent once per array object
+        constant[0] = (device, f"frozen_x:{kernel.__name__}")
+    launch = [a if not isinstance(a, np.ndarray)
+              else on_device(*constant[position], a) if position in constant
+              else on_device(device, f"{position}:{kernel.__name__}", a, scratch=position in outputs,
+                             refresh=position not in outputs, changed=True)
               for position, a in enumerate(args)]
     kernel(*launch)
     for position, rows in outputs.items():
@@ -95,9 +106,11 @@ def _device_launch(kernel, args: tuple, outputs: dict[int, int]) -> None:
 def _positions(x: np.ndarray) -> np.ndarray:
     """The positions argument ``(n, 3)`` (m) of a launch: off CUDA ``x`` itself when it is a C-contiguous float64
     array (bound by its address: no copy of a stacked batch's positions, 14 MB at 1024 Forming copies, for a
-    rebinding of a few microseconds), else a copy in a kept array (on CUDA its device copy is sent again only
-    when the values changed, :func:`_device_launch`)."""
-    if current_arch() != "cuda" and type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous:
+    rebinding of a few microseconds), on CUDA too when it is also frozen (:func:`_device_launch` sends it once per
+    array object), else a copy in a kept array (on CUDA its device copy is sent again only when the values
+    changed, :func:`_device_launch`)."""
+    if type(x) is np.ndarray and x.dtype == np.float64 and x.flags.c_contiguous and (
+            current_arch() != "cuda" or FrozenPositionsKey.holds(x)):
         return x
     return _ARRAYS.copy_of("x", x)
 
@@ -110,13 +123,29 @@ def _kept_indices(name: str, vertices: np.ndarray) -> np.ndarray:
     return kept
 
 
-def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
+def _int32_rows(vertices: np.ndarray) -> np.ndarray:
+    """``vertices`` itself, checked to be a C-contiguous int32 array ``(k, 4)``.
+
+    Raises:
+        ValueError: another dtype, shape or layout."""
+    if vertices.dtype != np.int32 or vertices.ndim != 2 or vertices.shape[1] != 4 or not vertices.flags.c_contiguous:
+        raise ValueError(f"pair_geometry: kept indices must be C-contiguous int32 (k, 4), got {vertices.dtype} "
+                         f"{vertices.shape}")
+    return vertices
+
+
+def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
+                  device: dict | None = None) -> PairGeometry:
     """Taichi twin of :func:`sim_core.collision.pair_geometry.pair_geometry` (same arguments and result).
 
     Args:
         x: positions, shape ``(n, 3)`` (m).
         vt_vertices: ``[p, a, b, c]`` global vertex indices, shape ``(p, 4)``.
         ee_vertices: ``[a0, a1, b0, b1]`` global vertex indices, shape ``(q, 4)``.
+        device: None, or a cache of device copies (:func:`~sim_core.ti_kernels.buffers.on_device`) for index
+            arrays that are C-contiguous int32 and never changed in place (a candidate list's,
+            :meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.int32_vertices`): the kernel then reads
+            them as they are (no copy into the kept arrays), on CUDA sent once per array object.
 
     Returns:
         :class:`~sim_core.collision.pair_geometry.PairGeometry`.
@@ -125,11 +154,19 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
         ConfigError: the Taichi backend is not initialised.
     """
     require_backend("contact set-up kernels")
-    vt, ee = _kept_indices("vt", vt_vertices), _kept_indices("ee", ee_vertices)
     p, q = len(vt_vertices), len(ee_vertices)
+    indices, constant = [], {}
+    for position, name, given in ((1, "vt", vt_vertices), (3, "ee", ee_vertices)):
+        if device is not None and len(given):  # the given array itself (an empty one: a kept array)
+            indices.append(_int32_rows(given))
+            constant[position] = (device, f"geometry_{name}")
+        else:
+            indices.append(_kept_indices(name, given))
+    vt, ee = indices
     geometry = _ARRAYS.rows("geometry", p + 2 * q)
     if p or q:
-        _device_launch(_geometry_kernel, (_positions(x), vt, p, ee, q, geometry), outputs={5: p + 2 * q})
+        _device_launch(_geometry_kernel, (_positions(x), vt, p, ee, q, geometry), outputs={5: p + 2 * q},
+                       constant=constant)
     vt_code, sine, ee_code = geometry[:p], geometry[p:p + q], geometry[p + q:p + 2 * q]
     return PairGeometry(np.abs(vt_code) > 1.5, np.sign(vt_code), sine.copy(), np.abs(ee_code) > 1.5, np.sign(ee_code))
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
+from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient, sum_by_copy
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.errors import ConfigError
 
@@ -132,6 +132,15 @@ class LaggedFriction:
         """Friction dissipation potential in J."""
         y = np.linalg.norm(self.tangential_displacement(x), axis=1)
         return float(np.sum(self.mu * self.lam * smooth_friction_f0(y, self.eps_u)))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each pair's first vertex, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`; the pairs' terms on the host)."""
+        if not self.vertices.shape[0]:
+            return np.zeros(copy_count)
+        y = np.linalg.norm(self.tangential_displacement(x), axis=1)
+        return sum_by_copy(copy_of_vertex, self.vertices[:, 0], self.mu * self.lam * smooth_friction_f0(y, self.eps_u),
+                           copy_count)
 
     def _pair_gradient(self, x: np.ndarray, coefficient: np.ndarray) -> np.ndarray:
         """``coefficient f1(y)/y w_j T u`` per pair vertex, shape ``(p, m, 3)``."""

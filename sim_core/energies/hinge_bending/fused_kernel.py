@@ -28,6 +28,7 @@ from sim_core.energies.hinge_bending.kernel import _dihedral_angle, _hinge_posit
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
 
 _F64_1, _F64_2, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.I32_2, linalg.I32_3
@@ -95,6 +96,7 @@ class FusedAnisotropicBending:
         require_backend("FusedAnisotropicBending")
         self.vertices = potential.vertices
         self._hinges = np.ascontiguousarray(potential.vertices, dtype=np.int32)
+        self._copy_kept: dict = {}  # copy_energies' element copies (and their device arrays on a GPU)
         self._slots: np.ndarray | None = None
         self.potential = None
         self.update(potential)
@@ -122,6 +124,13 @@ class FusedAnisotropicBending:
         if self._hinges.shape[0] == 0:
             return 0.0
         return float(weighted_hinge_energy(x, self._hinges, self._theta_bar, self._weight))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each hinge's first vertex, J ``(copy_count,)`` (the same kernel, one
+        sum cell a hinge: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
+        kept = self._copy_kept
+        return copy_energies(weighted_hinge_energy, element_copies(kept, copy_of_vertex, self._hinges[:, 0]),
+                             copy_count, kept, x, self._hinges, self._theta_bar, self._weight)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.

@@ -27,6 +27,7 @@ from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
@@ -301,6 +302,17 @@ class FusedKirchhoffBending:
         return float(kirchhoff_energy(x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
                                       on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "stiffness", self._stiffness),
                                       on_device(d, "scratch", self._scratch, scratch=True)))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each triangle's first vertex, J ``(copy_count,)`` (the same kernel, one
+        sum cell a triangle: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
+        if self._hinges.shape[0] == 0:
+            return np.zeros(copy_count)
+        d = self._device
+        return copy_energies(kirchhoff_energy, element_copies(d, copy_of_vertex, self.vertices[:, 0]), copy_count, d,
+                             x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
+                             on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "stiffness", self._stiffness),
+                             on_device(d, "scratch", self._scratch, scratch=True))
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""

@@ -40,6 +40,7 @@ from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.transfer import download, fill
@@ -68,10 +69,10 @@ def spring_membrane_energy(
         l = (linalg.row3(x, edges[e, 1]) - linalg.row3(x, edges[e, 0])).norm()
         energy[e % energy.shape[0]] += k_length * (1.0 - l / length0[e]) ** 2 * length0[e]
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for t in range(triangles.shape[0]):
+    for t in range(triangles.shape[0]):  # the triangles numbered after the edges (element_terms' cells)
         x0 = linalg.row3(x, triangles[t, 0])
         A = 0.5 * (linalg.row3(x, triangles[t, 1]) - x0).cross(linalg.row3(x, triangles[t, 2]) - x0).norm()
-        energy[t % energy.shape[0]] += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
+        energy[(edges.shape[0] + t) % energy.shape[0]] += k_area * (1.0 - A / area0[t]) ** 2 * area0[t]
 
 
 @ti.func
@@ -263,6 +264,18 @@ class FusedSpringMembrane:
         return float(spring_membrane_energy(x, on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
                                             on_device(d, "area0", self._area0), on_device(d, "length0", self._length0),
                                             p.k_length, p.k_area))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each edge's and triangle's first vertex, J ``(copy_count,)`` (the same
+        kernel, one sum cell an element, the triangles after the edges:
+        :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
+        p = self.potential
+        d = self._device
+        element_copy = element_copies(d, copy_of_vertex, self._edges[:, 0], self._triangles[:, 0])
+        return copy_energies(spring_membrane_energy, element_copy, copy_count, d, x,
+                             on_device(d, "triangles", self._triangles), on_device(d, "edges", self._edges),
+                             on_device(d, "area0", self._area0), on_device(d, "length0", self._length0), p.k_length,
+                             p.k_area)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""

@@ -24,6 +24,7 @@ from sim_core.energies.membrane.reference import StVKMembrane
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import add_blocks
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 
@@ -125,6 +126,7 @@ class FusedStVKMembrane:
         self.potential = potential
         self.vertices = potential.triangles
         self._triangles = np.ascontiguousarray(potential.triangles, dtype=np.int32)
+        self._copy_kept: dict = {}  # copy_energies' element copies (and their device arrays on a GPU)
         self._shape_gradient = np.ascontiguousarray(potential.triangle_shape_gradient, dtype=np.float64)
         self._weight = np.ascontiguousarray(potential.thickness * potential.triangle_rest_area, dtype=np.float64)
         self._slots: np.ndarray | None = None
@@ -149,6 +151,14 @@ class FusedStVKMembrane:
             return 0.0
         p = self.potential
         return float(stvk_energy(x, self._triangles, self._shape_gradient, self._weight, p.mu, p.lam))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each triangle's first vertex, J ``(copy_count,)`` (the same kernel, one
+        sum cell a triangle: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
+        p = self.potential
+        kept = self._copy_kept
+        return copy_energies(stvk_energy, element_copies(kept, copy_of_vertex, self._triangles[:, 0]), copy_count,
+                             kept, x, self._triangles, self._shape_gradient, self._weight, p.mu, p.lam)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``."""

@@ -36,6 +36,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, upper_index,
                                                   upper_slot_table)
 from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.transfer import download, fill
@@ -235,6 +236,15 @@ class FusedStableNeoHookean:
         d = self._device
         return float(snh_energy(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
                                 on_device(d, "vol", self._vol), p.mu, p.lam))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each tet's first vertex, J ``(copy_count,)`` (the same kernel, one
+        sum cell a tet: :func:`~sim_core.ti_kernels.copy_vectors.copy_energies`)."""
+        p = self.potential
+        d = self._device
+        return copy_energies(snh_energy, element_copies(d, copy_of_vertex, self._tets[:, 0]), copy_count, d, x,
+                             on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                             on_device(d, "vol", self._vol), p.mu, p.lam)
 
     def evaluate(self, x: np.ndarray, grad: np.ndarray, values: np.ndarray) -> float:
         """Energy in J (returned); adds dE/dx to ``grad`` ``(n, 3)`` and the exact Hessian to ``values``.

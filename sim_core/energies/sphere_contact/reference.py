@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_core.energies.base import HessianBlocks, Projection
+from sim_core.energies.base import HessianBlocks, Projection, sum_by_copy
 from sim_core.energies.contact.reference import ContactFrames
 from sim_core.errors import ConfigError
 
@@ -83,6 +83,12 @@ class SphereContact:
         """Penalty energy in J."""
         gap = np.minimum(self.distance(x) - self.eps, 0.0)
         return float(0.5 * self.stiffness * np.sum(gap * gap))
+
+    def copy_energies(self, x: np.ndarray, copy_of_vertex: np.ndarray, copy_count: int) -> np.ndarray:
+        """:meth:`energy` split by the copy of each vertex, J ``(copy_count,)`` (capability
+        :class:`~sim_core.energies.base.CopyEnergies`; the sphere's centre is of the same copy)."""
+        gap = np.minimum(self.distance(x) - self.eps, 0.0)
+        return 0.5 * self.stiffness * sum_by_copy(copy_of_vertex, self.vertices, gap * gap, copy_count)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """``k_c (d - eps) n`` on each active vertex and minus their sum on the centre, N, ``(n, 3)``."""

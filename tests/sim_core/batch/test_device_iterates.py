@@ -102,3 +102,25 @@ def test_trial_points_in_reused_host_blocks_are_registered_and_equal(stacked):
         assert positions_key(got.host) == positions_key(got.host) and not isinstance(positions_key(got.host), tuple)
         del got
     assert device.trial_blocks.allocated == 1
+
+
+def test_slopes_with_norms_and_maxima_equal_the_host_ones(stacked):
+    """One read back of the device's slope and step norm, or slope and gradient maxima, gives the host vectors'
+    values (a copy with a NaN, one with an infinity, one zero)."""
+    from sim_core.batch.device_iterates import DeviceIterates
+
+    host, device = HostIterates(stacked.index), DeviceIterates(stacked.index)
+    rng = np.random.default_rng(6)
+    g, d = rng.normal(size=(2, stacked.model.vertex_count, 3))
+    g[stacked.index[1][4], 0] = np.nan
+    d[stacked.index[2]] = 0.0
+    d[stacked.index[0][1], 2] = np.inf
+    dg, dd = device.upload(g), device.upload(d)
+    for got, want in ((device.slope_and_norm(dg, dd), host.slope_and_norm(g.reshape(-1), d.reshape(-1))),
+                      (device.slope_and_largest(dg, dd), host.slope_and_largest(g.reshape(-1), d.reshape(-1)))):
+        with np.errstate(invalid="ignore"):
+            np.testing.assert_allclose(got[0], want[0], rtol=1e-13, atol=1e-13)
+        np.testing.assert_array_equal(got[1], want[1])
+    slope, norm = host.slope_and_norm(g.reshape(-1), d.reshape(-1))
+    assert np.isnan(slope[1]) and np.isnan(norm[0]) and norm[2] == 0.0 and np.isfinite(norm[1])
+    assert np.isnan(host.slope_and_largest(g.reshape(-1), d.reshape(-1))[1][1])

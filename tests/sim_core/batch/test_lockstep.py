@@ -100,6 +100,24 @@ def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model, 
     assert list(batch.active) == [True, True, True] and batch.states[1].step_index == 0
 
 
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+def test_a_copy_stops_by_the_force_test_where_its_gradient_is_below_tol_force(model, config):
+    """The per-copy stopping tests include the force test: with ``tol_force`` above every copy's largest gradient
+    entry each copy stops at its first iteration by "force" (its residual far above ``tol_velocity``), as its separate
+    run does."""
+    from dataclasses import replace
+
+    loose = replace(config, tol_force=1e12)
+    _, results = _run(_lockstep_batch(model, loose), steps=2)
+    for res in results:
+        assert [(info.iterations, info.stop_reason) for info in res.infos] == [(1, "force")] * 3
+        assert all(info.residual_velocity > loose.tol_velocity for info in res.infos)
+    alone = Simulation(copy.deepcopy(model), solver_config=replace(SolverConfig(), tol_force=1e12))
+    alone.state = task_initial_state(model)
+    info = alone.step(control(alone.state.effector_pose["pad"], MOTIONS[0], 0))
+    assert (info.iterations, info.stop_reason) == (1, "force")
+
+
 def test_stacked_model_keeps_the_copies_apart_and_shares_one_term_per_energy(model):
     same = stack_models([copy.deepcopy(model) for _ in range(4)])
     n = model.vertex_count

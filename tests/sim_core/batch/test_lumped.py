@@ -44,6 +44,28 @@ def test_lumped_quadratic_is_the_sum_of_the_three_terms(with_gravity, damping):
     assert lumped.energy(x1) - lumped.energy(x0) == pytest.approx(want, rel=1e-6)
 
 
+@pytest.mark.parametrize("with_gravity, damping", [(True, 2.5), (False, 0.0)])
+def test_lumped_energy_split_by_copy_is_each_copys_terms(with_gravity, damping):
+    """Per copy (CopyEnergies): the three terms' energies over that copy's vertices (the others' masses zero)."""
+    rng = np.random.default_rng(5)
+    inertia, gravity, damp, x_n = _terms(rng, damping=damping)
+    copy_of_vertex = rng.integers(0, 3, len(x_n))
+    lumped = LumpedQuadratic(inertia, gravity if with_gravity else None, damp)
+    x = x_n + rng.normal(scale=1e-3, size=x_n.shape)
+    split = lumped.copy_energies(x, copy_of_vertex, 4)
+    assert split.shape == (4,) and split[3] == 0.0  # copy 3 has no vertex
+    for c in range(3):
+        own = copy_of_vertex == c
+        terms = [InertiaPotential(np.where(own, inertia.vertex_mass, 0.0), inertia.x_hat, inertia.dt)]
+        if with_gravity:
+            terms.append(GravityPotential(np.where(own, gravity.vertex_mass, 0.0), gravity.gravity))
+        if damp is not None:
+            terms.append(ViscousDamping(np.where(own, damp.vertex_mass, 0.0), damp.x_prev, damp.damping, damp.dt))
+        scale = sum(abs(t.energy(x)) for t in terms)
+        assert split[c] == pytest.approx(sum(t.energy(x) for t in terms), rel=0, abs=1e-13 * scale)
+    assert np.sum(split) == pytest.approx(lumped.energy(x), rel=1e-13)
+
+
 def test_lumped_gradient_matches_finite_differences_of_its_energy():
     rng = np.random.default_rng(4)
     inertia, gravity, damp, x_n = _terms(rng)

@@ -14,8 +14,8 @@ import pytest
 import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
-from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, DeviceGradient, DeviceHessian,
-                                      ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
+from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceGradient,
+                                      DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
                                       SparseGradient, SubsetHessian)
 
 NOT_POTENTIALS = {
@@ -106,6 +106,9 @@ EXPECTED_CAPABILITIES = {
     # and the Taichi pair and friction potentials (not scanned: test_contact_batch.py, test_friction.py)
     SparseGradient: {"GravityPotential"},
     DeviceGradient: set(),  # the Taichi terms only (TAICHI_CAPABILITIES)
+    # the lockstep batch's per-copy Armijo test: the terms of a stacked model's Newton loop on a Taichi backend
+    CopyEnergies: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact", "PlaneContact", "SphereContact",
+                   "LaggedFriction"},
 }
 
 TAICHI_CAPABILITIES = {
@@ -116,6 +119,16 @@ TAICHI_CAPABILITIES = {
                      "sim_core.energies.contact.kernel.TiVertexTriangleContact", "sim_core.fused_elastic.FusedElastic",
                      "sim_core.energies.friction.kernel.TiLaggedFriction",
                      "sim_core.energies.gravity.kernel.TiGravityPotential"},
+    # the fused parts give their kernels' element energies (one sum cell an element: launch.element_terms)
+    CopyEnergies: {"sim_core.energies.contact.kernel.TiEdgeEdgeContact",
+                   "sim_core.energies.contact.kernel.TiVertexTriangleContact",
+                   "sim_core.energies.friction.kernel.TiLaggedFriction",
+                   "sim_core.energies.hinge_bending.fused_kernel.FusedAnisotropicBending",
+                   "sim_core.energies.kirchhoff_bending.fused_kernel.FusedKirchhoffBending",
+                   "sim_core.energies.membrane.fused_spring_kernel.FusedSpringMembrane",
+                   "sim_core.energies.membrane.fused_stvk_kernel.FusedStVKMembrane",
+                   "sim_core.energies.neohookean.fused_kernel.FusedStableNeoHookean",
+                   "sim_core.fused_elastic.FusedElastic", "sim_core.fused_elastic._ReferencePart"},
 }
 """The classes of the Taichi modules (the energies' and candidates' ``*kernel`` modules and
 :mod:`sim_core.fused_elastic`) that declare the device capabilities (the lockstep batch's device-resident path)."""

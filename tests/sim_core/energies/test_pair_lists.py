@@ -1,6 +1,6 @@
 """The candidate lists' vertices (sim_core/energies/contact/pair_lists.py): the pairs' global vertices, and the
-pair batch's indices of every vertex-triangle candidate and some edge-edge ones into the vertices all candidates
-name; the potentials built on them equal those that compute their own vertices."""
+pair batch's layout (every vertex-triangle candidate and some edge-edge ones as rows of the compaction of every
+candidate's vertices); the potentials built on them equal those that compute their own vertices."""
 
 from __future__ import annotations
 
@@ -22,18 +22,26 @@ def _lists():
     return vt, ee, triangles, edges
 
 
-def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_indices_point_at_them():
+def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_at_them():
     vt, ee, triangles, edges = _lists()
     lists = CandidateVertices(vt, ee, triangles, edges)
     assert lists.of(vt, ee) and not lists.of(vt.copy(), ee)
     np.testing.assert_array_equal(lists.vt_vertices, vertex_triangle_vertices(vt, triangles))
     np.testing.assert_array_equal(lists.ee_vertices, edge_edge_vertices(ee, edges))
     rows = np.array([0, 3, 4, 17, 199])
-    for _ in range(2):  # the compaction is made once and kept
-        own, local = lists.batch_indices(rows)
-        assert local.dtype == np.int32 and local.shape == (150 + len(rows), 4)
+    layouts = [lists.batch_layout(rows) for _ in range(2)]
+    assert layouts[1].local is layouts[0].local and layouts[1].device is lists.device  # made once, kept
+    for own, local, batch_rows, ee_rows, _ in layouts:
+        assert local.dtype == np.int32 and local.shape == (150 + 200, 4) and batch_rows.dtype == np.int32
+        np.testing.assert_array_equal(ee_rows, rows)
+        np.testing.assert_array_equal(batch_rows, np.concatenate([np.arange(150), 150 + rows]))
         np.testing.assert_array_equal(own, np.unique(np.concatenate([lists.vt_vertices, lists.ee_vertices])))
-        np.testing.assert_array_equal(own[local], np.concatenate([lists.vt_vertices, lists.ee_vertices[rows]]))
+        np.testing.assert_array_equal(own[local[batch_rows]],
+                                      np.concatenate([lists.vt_vertices, lists.ee_vertices[rows]]))
+    vt32, ee32 = lists.int32_vertices()
+    assert vt32.dtype == ee32.dtype == np.int32 and lists.int32_vertices()[0] is vt32
+    np.testing.assert_array_equal(vt32, lists.vt_vertices)
+    np.testing.assert_array_equal(ee32, lists.ee_vertices)
 
 
 def test_potentials_given_their_vertices_equal_those_that_compute_them():

@@ -369,7 +369,7 @@ def test_packed_launches_equal_the_default_ones_bit_for_bit(ti_cpu, monkeypatch,
                 monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
         calls = []
         kernel = contact_batch._packed_kernel
-        monkeypatch.setattr(contact_batch, "_packed_kernel", lambda *a: (calls.append(a[10]), kernel(*a)))
+        monkeypatch.setattr(contact_batch, "_packed_kernel", lambda *a: (calls.append(a[11]), kernel(*a)))
         contact_batch._ARRAYS.packed_guess = 0  # the first read too short: the rest read after it
         for k, (y, exp) in enumerate(zip(points, expected)):
             for pot, (energy, mask, grad, hess, lam) in zip(linked, exp):
@@ -389,3 +389,58 @@ def test_packed_launches_equal_the_default_ones_bit_for_bit(ti_cpu, monkeypatch,
         assert calls == [0, 1, 1, 0, 1], calls
         assert sum(int(np.count_nonzero(exp[1])) for exp in expected[0]) > 0
         monkeypatch.undo()
+
+
+@pytest.mark.parametrize("two_pass", [False, True, "packed", "packed on device"])
+def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pairs(ti_cpu, monkeypatch, two_pass):
+    """A batch over the layout of candidate lists (``PairBatch(layout=CandidateVertices.batch_layout(rows))``: every
+    vertex-triangle candidate and some edge-edge ones, read as rows of the compaction of every candidate's vertices)
+    gives the energies, gradients, active pairs, distances and Hessians of a batch over its own pairs (bit for bit on
+    the CPU's serial sums), in one launch or two, or in the packed launch (``PairBatch.packed``, the laid batch only;
+    "on device": the arch query answering "cuda" on the CPU arch, the device arrays' paths); a second step's batch over
+    the same lists with other edge-edge rows and sides shares the first's vertex indices and their device cache. A
+    layout whose first rows are not the vertex-triangle pairs is refused."""
+    import importlib
+
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+    from sim_core.energies.contact.pair_lists import CandidateVertices
+
+    x, linked, _ = _potentials()
+    vt_list, ee_list = linked[0].pairs, linked[1].pairs
+    triangles, edges = np.arange(x.shape[0]).reshape(-1, 4)[:, 1:], np.arange(x.shape[0]).reshape(-1, 2)  # as made
+    lists = CandidateVertices(vt_list, ee_list, triangles, edges)
+    rng = np.random.default_rng(25)
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    packed = two_pass in ("packed", "packed on device")
+    monkeypatch.setattr(PairBatch, "two_pass", False if packed else two_pass)
+    if two_pass == "packed on device":
+        for name in ("sim_core.ti_backend", "sim_core.energies.contact.batch_kernel"):
+            monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
+    batches = []
+    for keep in (rng.random(len(ee_list)) > 0.3, rng.random(len(ee_list)) > 0.5):
+        rows = np.flatnonzero(keep)
+        vt_sides = rng.choice([-1.0, 0.0, 1.0], size=len(vt_list))
+        ee_sides = rng.choice([-1.0, 0.0, 1.0], size=len(rows))
+
+        def make(layout=None):
+            pots = (TiVertexTriangleContact(vt_list, triangles, vt_sides, K, EPS, vertices=lists.vt_vertices),
+                    TiEdgeEdgeContact(ee_list[rows], edges, ee_sides, K, EPS, vertices=lists.ee_vertices[rows]))
+            batches.append(PairBatch(*pots, layout=layout))
+            batches[-1].packed = packed and layout is not None  # (the batch over its own pairs: the default launches)
+            return pots
+
+        laid, own = make(lists.batch_layout(rows)), make()
+        for pot, twin in zip(laid, own):
+            np.testing.assert_array_equal(pot.gradient(y), twin.gradient(y))
+            assert pot.energy(y) == twin.energy(y)
+            np.testing.assert_array_equal(pot.active_mask(y), twin.active_mask(y))
+            np.testing.assert_array_equal(pot.active_distances(y)[1], twin.active_distances(y)[1])
+            np.testing.assert_array_equal(pot.hessian(y, "none").blocks, twin.hessian(y, "none").blocks)
+            assert pot.energy(x) == twin.energy(x)
+        assert 0 < np.count_nonzero(laid[1].active_mask(y)) < len(rows)
+    assert batches[2]._local_vertices is batches[0]._local_vertices is lists.batch_layout(rows).local
+    assert batches[2]._lists_device is batches[0]._lists_device is lists.device
+    layout = lists.batch_layout(rows)  # the last step's rows, those of ``own``
+    with pytest.raises(ValueError, match="vertex-triangle pairs not its first rows"):
+        PairBatch(*own, layout=layout._replace(rows=layout.rows[::-1].copy()))

@@ -67,6 +67,45 @@ def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
     np.testing.assert_array_equal(only_ee.ee_sine, ref.ee_sine[:5])
 
 
+@pytest.mark.parametrize("device_arguments", [False, True])
+def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkeypatch, device_arguments):
+    """``pair_geometry(..., device=cache)`` reads a candidate list's kept int32 indices as they are (through CUDA's
+    launch path too, emulated on the CPU arch: their device copies kept in the cache, sent once per array object);
+    the same geometry as the kernel's launch through its kept arrays (which equals the NumPy reference bit for bit
+    on the CPU, above), an empty kind included, and at frozen positions taken as they are; other index arrays are
+    refused."""
+    from sim_core import ti_backend
+    from sim_core.energies.contact import setup_kernel
+
+    x, vertices = _batch(5)
+    vt, ee = vertices[: len(vertices) // 2].astype(np.int32), vertices[len(vertices) // 3:].astype(np.int32)
+    if device_arguments:
+        for module in (setup_kernel, ti_backend):
+            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    cache: dict = {}
+    for vt_rows, ee_rows in ((vt, ee), (vt, ee), (vt[:0], ee), (vt, ee[:0])):
+        ref = setup_kernel.pair_geometry(x, vt_rows.astype(np.int64), ee_rows.astype(np.int64))
+        got = setup_kernel.pair_geometry(x, vt_rows, ee_rows, device=cache)
+        for name in ref._fields:
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    if device_arguments:
+        assert cache["geometry_vt"][0] is vt and cache["geometry_ee"][0] is ee
+    else:
+        assert not cache
+    # frozen positions (a lockstep batch's iterates) are passed as they are, on CUDA sent once per array object
+    for scale in (1e-3, 2e-3, 2e-3):
+        y = x + scale
+        y.flags.writeable = False
+        ref = setup_kernel.pair_geometry(y.copy(), vt.astype(np.int64), ee.astype(np.int64))
+        got = setup_kernel.pair_geometry(y, vt, ee, device=cache)
+        for name in ref._fields:
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+        if device_arguments:
+            assert setup_kernel._ARRAYS.device()["frozen_x:_geometry_kernel"][0] is y
+    with pytest.raises(ValueError, match="C-contiguous int32"):
+        setup_kernel.pair_geometry(x, vt.astype(np.int64), ee, device=cache)
+
+
 @pytest.mark.parametrize("point_first", [True, False])
 def test_contact_frames_kernel_equals_the_reference(ti_cpu, point_first):
     from sim_core.energies.contact.setup_kernel import contact_frames

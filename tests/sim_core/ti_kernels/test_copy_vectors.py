@@ -55,6 +55,34 @@ def test_per_copy_reductions_equal_copy_runs(ti_cpu, stacked):
     assert np.all(np.isnan(vectors.largest_norm(vectors.upload(huge))))
 
 
+def test_scalars_in_one_read_equal_copy_runs(ti_cpu, stacked):
+    """The dot product, both arrays' largest entries and the second's largest vertex norm of one launch equal
+    CopyRuns's (NaN and infinite copies in either array) and the single-purpose kernels'."""
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+
+    runs, vectors = CopyRuns(stacked.index), CopyVectors(stacked.index)
+    a, b = _arrays(stacked, np.random.default_rng(11))
+    b[stacked.index[0][3], 2] = np.inf  # b: copy 0 infinite, copy 2 zero
+    for u, v in ((a, b), (b, a)):
+        du, dv = vectors.upload(u), vectors.upload(v)
+        dot, big_u, big_v, norm_v = vectors.scalars(du, dv)
+        with np.errstate(invalid="ignore"):
+            np.testing.assert_allclose(dot, runs.dot(u, v), rtol=1e-13, atol=1e-13)
+        np.testing.assert_array_equal(big_u, runs.largest_abs(u))
+        np.testing.assert_array_equal(big_v, runs.largest_abs(v))
+        np.testing.assert_array_equal(big_u, vectors.largest_abs(du))
+        finite = np.isfinite(norm_v)
+        np.testing.assert_array_equal(finite, runs.all_finite(v))  # NaN where v is not finite
+        np.testing.assert_array_equal(np.isnan(vectors.largest_norm(dv)), ~finite)
+        assert_same_sums(norm_v[finite], runs.largest_norm(v)[finite])
+    finite = np.nan_to_num(a, nan=0.5, posinf=1.0, neginf=-1.0)
+    dot, big, _, norm = vectors.scalars(vectors.upload(finite), vectors.upload(finite))
+    np.testing.assert_allclose(dot, runs.dot(finite, finite), rtol=1e-13)
+    np.testing.assert_allclose(dot, vectors.dot(vectors.upload(finite), vectors.upload(finite)), rtol=1e-14)
+    np.testing.assert_array_equal(big, runs.largest_abs(finite))
+    assert_same_sums(norm, runs.largest_norm(finite))
+
+
 def test_trial_points_and_copy_updates_equal_copy_runs(ti_cpu, stacked):
     from sim_core.ti_kernels.copy_vectors import CopyVectors
 

@@ -40,7 +40,7 @@ def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
             # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
             own = {"x", "rows_vertices"} if not offered else {"x_prev_every", "rows_vertices_every"}
             own |= {"coefficient", "packed", "rows_weights", "rows_tangent"}
-            pairs = {"packed_vertices" if not offered else "packed_vertices_every", "packed_sides"}
+            pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
             for module, names in ((friction_kernel, own),
                                   (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
                                   (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):

@@ -1,0 +1,160 @@
+"""The fused elastic kernels' energies split by copy (CopyEnergies, copy_vectors.copy_energies): on disjoint copies of a
+mesh, each copy's share is the energy of the same potential on that copy alone, and the shares add up to the
+stacked energy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_core.assembly import HessianAssembler
+from sim_core.energies.hinge_bending.reference import DiscreteShellBending
+from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
+from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
+from sim_core.energies.neohookean.reference import StableNeoHookean
+from sim_core.mesh.sheet import grid_sheet, sheet_topology
+from sim_core.mesh.tet import tet_box
+
+KINDS = ("snh", "spring_membrane", "kirchhoff", "stvk_membrane", "anisotropic_bending", "hinge_reference_part")
+
+
+def _potential(kind: str, copies: int):
+    """(potential over ``copies`` disjoint copies of one mesh, its rest positions, one copy's vertex count); copy
+    ``c``'s vertices are rows ``c n .. (c + 1) n - 1``, translated by ``0.1 c`` m along x."""
+    if kind == "snh":
+        mesh = tet_box((0.01, 0.01, 0.01), (3, 3, 3), (0.0, 0.0, 0.0))
+        elements = {"tets": mesh.tets}
+    else:
+        mesh = grid_sheet((0.02, 0.015), (4, 3), (0.0, 0.0, 0.0))
+        topo = sheet_topology(mesh.triangles)
+        elements = {"triangles": mesh.triangles, "edges": topo.edges, "hinges": topo.hinges}
+    n = mesh.x.shape[0]
+    e = {k: np.concatenate([v + c * n for c in range(copies)]) for k, v in elements.items()}
+    x = np.concatenate([mesh.x + [0.1 * c, 0.0, 0.0] for c in range(copies)])
+    if kind == "snh":
+        return StableNeoHookean(e["tets"], x, 3e5, 0.45), x, n
+    h = elements["hinges"].shape[0]  # one copy's hinges; their rest angles the same in every copy
+    if kind == "spring_membrane":
+        return SpringMembrane(e["triangles"], e["edges"], x, 1000.0, 800.0), x, n
+    if kind == "kirchhoff":
+        return KirchhoffBending(e["triangles"], e["hinges"], x, 2e-3, 0.3, np.tile(np.linspace(-0.3, 0.4, h), copies)), x, n
+    if kind == "stvk_membrane":
+        return StVKMembrane(e["triangles"], x, 1e6, 0.3, 3e-4), x, n
+    bending = DiscreteShellBending(e["hinges"], x, 2e-3, np.tile(np.linspace(0.2, -0.1, h), copies))
+    if kind == "anisotropic_bending":
+        from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
+
+        return AnisotropicBendingCorrection(bending, x, 0.4), x, n
+    return bending, x, n  # no fused kernel: a reference part, which does not split its energy
+
+
+def _fused(pot, x_rest: np.ndarray):
+    from sim_core.fused_elastic import FusedElastic
+
+    fused = FusedElastic([pot])
+    fused.bind(HessianAssembler(x_rest.size).static_pattern(fused.block_vertex_arrays(x_rest),
+                                                            np.ones(x_rest.size, bool)))
+    return fused
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_fused_energy_split_by_copy_is_each_copys_own_energy(ti_cpu, kind):
+    copies = 3
+    stacked, x_rest, n = _potential(kind, copies)
+    one, one_rest, _ = _potential(kind, 1)
+    rng = np.random.default_rng(7)
+    x = x_rest + 1.5e-3 * rng.standard_normal(x_rest.shape)
+    x[:, 2] += 2e-3 * np.sin(150.0 * x_rest[:, 0])
+    copy_of_vertex = np.repeat(np.arange(copies), n)
+    fused = _fused(stacked, x_rest)
+    split = fused.copy_energies(x, copy_of_vertex, copies)
+    if kind == "hinge_reference_part":
+        assert split is None  # DiscreteShellBending has no per-copy energies: the caller falls back
+        return
+    assert split.shape == (copies,)
+    alone = _fused(one, one_rest)
+    for c in range(copies):  # copy c alone, moved back to the first copy's place (the energies are translation-free)
+        own = alone.energy(x[c * n:(c + 1) * n] - [0.1 * c, 0.0, 0.0])
+        assert split[c] == pytest.approx(own, rel=1e-11, abs=1e-18)
+    assert np.sum(split) == pytest.approx(fused.energy(x), rel=1e-12)
+    assert np.ptp(split) > 1e-3 * np.max(np.abs(split))  # the copies' energies differ: a real split
+
+
+def test_copy_energies_of_one_element_a_copy_are_the_elements_terms(ti_cpu):
+    """One sum cell an element (launch.element_cells): with each hinge its own copy, the hinge energy kernel's sums by
+    copy are the hinges' own terms, and they add up to the kernel's sum; elements of one copy add up in it."""
+    from sim_core.energies.hinge_bending.fused_kernel import weighted_hinge_energy
+    from sim_core.ti_kernels.copy_vectors import copy_energies
+
+    pot, x_rest, _ = _potential("hinge_reference_part", 1)
+    x = x_rest.copy()
+    x[:, 2] += 2e-3 * np.sin(150.0 * x_rest[:, 0])
+    hinges = np.ascontiguousarray(pot.hinges, dtype=np.int32)
+    h = hinges.shape[0]
+    weight = np.linspace(1.0, 2.0, h)
+    theta_bar = np.ascontiguousarray(pot.hinge_theta_bar, dtype=np.float64)
+    terms = copy_energies(weighted_hinge_energy, np.arange(h, dtype=np.int32), h, {}, x, hinges, theta_bar, weight)
+    np.testing.assert_allclose(terms, weight * (pot.theta(x) - theta_bar) ** 2, rtol=1e-12, atol=1e-20)
+    assert np.sum(terms) == pytest.approx(weighted_hinge_energy(x, hinges, theta_bar, weight), rel=1e-13)
+    halves = copy_energies(weighted_hinge_energy, (np.arange(h) >= h // 2).astype(np.int32), 3, {}, x, hinges,
+                           theta_bar, weight)
+    np.testing.assert_allclose(halves, [terms[:h // 2].sum(), terms[h // 2:].sum(), 0.0], rtol=1e-13, atol=1e-20)
+    none = copy_energies(weighted_hinge_energy, np.zeros(0, dtype=np.int32), 2, {}, x, hinges[:0], theta_bar[:0],
+                         weight[:0])
+    np.testing.assert_array_equal(none, [0.0, 0.0])
+
+
+def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
+    """The CUDA path (positions uploaded once, the parts' constant arrays as Taichi ndarrays), run on the CPU arch
+    with the arch query answering "cuda": the same per-copy energies as the NumPy-argument path."""
+    import sim_core.energies.kirchhoff_bending.fused_kernel as kirchhoff_kernel
+    import sim_core.energies.membrane.fused_spring_kernel as spring_kernel
+    import sim_core.ti_backend as backend
+    from sim_core.fused_elastic import FusedElastic
+
+    if ti_cpu == "cuda":
+        pytest.skip("the reference is the NumPy-argument path, which runs on the CPU arch only")
+    copies = 2
+    parts = [_potential(kind, copies) for kind in ("snh", "spring_membrane", "kirchhoff")]
+    offsets = np.cumsum([0] + [x.shape[0] for _, x, _ in parts])
+    x_rest = np.concatenate([x for _, x, _ in parts])
+    # one model of three disjoint bodies, each of two copies: copy c is copy c of every body
+    pots = [StableNeoHookean(parts[0][0].tets, x_rest, 3e5, 0.45),
+            SpringMembrane(parts[1][0].triangles + offsets[1], parts[1][0].edges + offsets[1], x_rest, 1000.0, 800.0),
+            KirchhoffBending(parts[2][0].triangles + offsets[2], parts[2][0].hinges + offsets[2], x_rest, 2e-3, 0.3,
+                             parts[2][0].hinge_theta_bar)]
+    copy_of_vertex = np.concatenate([np.repeat(np.arange(copies), n) for _, _, n in parts])
+    x = x_rest + 1e-3 * np.random.default_rng(3).standard_normal(x_rest.shape)
+
+    def split():
+        fused = FusedElastic(pots)
+        fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x_rest), np.ones(x.size, bool)))
+        return fused, fused.copy_energies(x, copy_of_vertex, copies)
+
+    fused_host, host = split()
+    assert not fused_host._on_device()
+    for module in (backend, kirchhoff_kernel, spring_kernel):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    fused_dev, dev = split()
+    assert fused_dev._on_device()
+    np.testing.assert_allclose(dev, host, rtol=1e-13)
+    assert np.sum(host) == pytest.approx(fused_host.energy(x), rel=1e-12)
+
+
+def test_add_by_copy_kernel_on_device_arrays(ti_cpu):
+    """The GPU path's sum by copy (copy_vectors._add_by_copy) on Taichi ndarrays: each value added into its copy."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import device_copy, transfer
+    from sim_core.ti_kernels.copy_vectors import _add_by_copy
+
+    rng = np.random.default_rng(2)
+    values = rng.standard_normal(1000)
+    element_copy = rng.integers(0, 7, 1000).astype(np.int32)
+    values_dev = transfer.upload(device_copy.new_ndarray(ti.f64, (1000,)), values)
+    copy_dev = device_copy.new_ndarray(ti.i32, (1000,))
+    copy_dev.from_numpy(element_copy)
+    sums = device_copy.new_ndarray(ti.f64, (8,))
+    sums.fill(0.0)
+    _add_by_copy(values_dev, copy_dev, sums, 1000)
+    np.testing.assert_allclose(transfer.download(sums), np.bincount(element_copy, weights=values, minlength=8),
+                               rtol=1e-13, atol=1e-13)
