@@ -29,7 +29,7 @@ from sim_core.backend import uses_taichi
 from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
                                 vertex_triangle_candidates)
 from sim_core.collision.candidates import grouped_box_pairs_hash
-from sim_core.collision.pair_geometry import PairGeometry, pair_geometry
+from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs
@@ -425,7 +425,8 @@ class ContactSet:
         return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
 
     @staticmethod
-    def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory) -> np.ndarray:
+    def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory,
+                    keys: np.ndarray | None = None) -> np.ndarray:
         """Sides of the step, fixed for all its Newton iterates, shape ``(p,)``.
 
         A pair above the face (vertex-triangle) or with both closest points interior (edge-edge)
@@ -443,7 +444,16 @@ class ContactSet:
             pairs: the pairs, shape ``(p, 2)`` (sorted, as the candidate lists: the memory's fast lookup).
             geometric: their side at ``x^n``, shape ``(p,)``, taken where ``memory`` has none.
             memory: the side memory of the pairs' kind (only the pairs ``above`` are looked up).
+            keys: ``pairs``' packed keys, sorted and unique (:meth:`CandidateVertices.keys`), or None: the remembered
+                pairs are then placed among them (:meth:`ContactMemory.found_in`) instead of every pair ``above``
+                being looked up; the same sides.
         """
+        if keys is not None:
+            sides = np.where(above, geometric, 0.0)
+            rows, remembered = memory.found_in(keys)
+            mask = above[rows]
+            sides[rows[mask]] = remembered[mask]
+            return sides
         sides = np.zeros(len(above))
         rows = np.flatnonzero(above)
         sides[rows] = memory.resolve(np.take(pairs, rows, axis=0), geometric[rows])  # (np.take: rows of a 2-D array)
@@ -473,20 +483,32 @@ class ContactSet:
             return kept.vt_vertices, kept.ee_vertices
         return vertex_triangle_vertices(vt, self.triangles), edge_edge_vertices(ee, self.edges)
 
-    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> PairGeometry:
-        """:meth:`_pair_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
+    def _list_geometry(self, x: np.ndarray, lists: CandidateVertices) -> ListGeometry:
+        """The :class:`ListGeometry` of candidate lists ``lists`` at ``x`` ``(n, 3)`` (edge-edge pairs kept above
+        :attr:`min_edge_sine`): on a Taichi backend one launch over the lists' kept int32 indices that copies back
+        one int32 code a pair (:func:`sim_core.energies.contact.setup_kernel.pair_codes`), else from
+        :meth:`_pair_geometry`."""
+        if not self.taichi:
+            return ListGeometry.of(self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices), self.min_edge_sine)
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.contact.setup_kernel import pair_codes
+
+        return pair_codes(x, *lists.int32_vertices(), self.min_edge_sine, lists.device)
+
+    def _candidate_geometry(self, x: np.ndarray, vt: np.ndarray, ee: np.ndarray) -> ListGeometry:
+        """:meth:`_list_geometry` of the candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` at ``x`` ``(n, 3)``;
         the geometry :meth:`end_step` measured of the same candidate lists (the same arrays) at equal positions is
         taken as it is: the converged positions of a step are the next one's ``x^n``, and a step starts with the
         candidate lists it ended with."""
         kept = getattr(self, "_end_geometry", None)
-        if kept is not None and kept[1] is vt and kept[2] is ee and (kept[0] is x or np.array_equal(kept[0], x)):
+        if (kept is not None and kept[1] is vt and kept[2] is ee and kept[4] == self.min_edge_sine
+                and (kept[0] is x or np.array_equal(kept[0], x))):
             return kept[3]
-        lists = self._list_vertices(vt, ee)
-        return self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices, lists)
+        return self._list_geometry(x, self._list_vertices(vt, ee))
 
     def _end_geometry_of(self, x: np.ndarray, vt: VertexTriangleContact, vt_active: np.ndarray, ee: EdgeEdgeContact,
-                         ee_active: np.ndarray) -> PairGeometry:
-        """:meth:`_pair_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs, rows
+                         ee_active: np.ndarray) -> ListGeometry | PairGeometry:
+        """:meth:`_list_geometry` at the converged positions ``x`` ``(n, 3)`` of the active pairs, rows
         ``vt_active`` ``(a,)`` of ``vt`` and ``ee_active`` ``(b,)`` of ``ee`` (the step's potentials), taken from
         one measurement of every candidate pair at ``x``, which is kept for the next step's sides at its ``x^n``
         (:meth:`_candidate_geometry`): one launch per step in place of two. The potentials' rows are the
@@ -494,8 +516,9 @@ class ContactSet:
         the candidate lists themselves (no held pair left out), else the pairs are looked up in the lists."""
         _, vt_list, ee_list = self._candidates  # the lists of the potentials evaluated at x
         lists = self._list_vertices(vt_list, ee_list)
-        geo = self._pair_geometry(x, lists.vt_vertices, lists.ee_vertices, lists)
-        self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo)
+        geo = self._list_geometry(x, lists)
+        self._end_geometry = (x if _frozen(x) else np.array(x, dtype=float, copy=True), vt_list, ee_list, geo,
+                              self.min_edge_sine)
         cache = self._cache
         if cache is not None and cache[1] is self._candidates and cache[2][0] is vt and cache[2][1] is ee:
             vt_pos, ee_pos = vt_active, cache[3][ee_active]
@@ -504,8 +527,7 @@ class ContactSet:
             ee_pos, ee_found = lookup_pairs((ee_list, None), ee.pairs[ee_active])
             if not (np.all(vt_found) and np.all(ee_found)):  # pairs outside the lists (none expected)
                 return self._pair_geometry(x, *self._pair_vertices(vt.pairs[vt_active], ee.pairs[ee_active]))
-        return PairGeometry(geo.vt_above[vt_pos], geo.vt_side[vt_pos], geo.ee_sine[ee_pos], geo.ee_interior[ee_pos],
-                            geo.ee_side[ee_pos])
+        return geo.rows(vt_pos, ee_pos)
 
     def _pair_sides(self, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray, ee: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -519,9 +541,10 @@ class ContactSet:
         is fixed within the step). ``ee sides``: the step sides of the kept pairs.
         """
         geo = self._candidate_geometry(x_ref, vt, ee)
-        vt_sides = self._step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle)
-        keep = geo.ee_sine > self.min_edge_sine
-        ee_sides = self._step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge)
+        vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
+        vt_sides = self._step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys)
+        keep = geo.ee_keep
+        ee_sides = self._step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys)
         return vt_sides, keep, ee_sides
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:

@@ -48,7 +48,8 @@ The host's work over the stacked arrays: the iterates are read-only arrays of th
 them by identity, :func:`~sim_core.energies.base.positions_key`, not by their bytes), the stacked gradient takes
 the contact and friction terms' rows at their vertices only (:class:`~sim_core.energies.base.SparseGradient`),
 the effectors' Dirichlet data is computed for all copies at once (:mod:`sim_core.batch.effectors`) and the
-plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`). With the batched
+plastic update after a step is one kernel on a Taichi backend (:mod:`sim_core.batch.plasticity`; with the batched CG
+on the step's accepted iterate in device memory, no upload). With the batched
 CG the Newton loop's iterate, update and stacked gradient stay in device memory (:mod:`sim_core.batch.iterates`,
 :mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
 updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
@@ -285,12 +286,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         step, x = self._set_up_step(state_in, control, dt, None, info)
         x = vectors.start(x)
         running = ~self.held
-        infos = [StepInfo() if running[i] else None for i in range(B)]
+        infos = [StepInfo() if r else None for r in running.tolist()]
         limited = [self.scene.copy_of_effector(name) for name in info.limited_effectors]
         for i, name in limited:
             if infos[i] is not None:
                 infos[i].limited_effectors.append(name)
         done = np.zeros(B, dtype=bool)
+        backtracked = np.zeros(B, dtype=np.int64)  # per copy its line searches' backtracks (StepInfo.backtracks)
         # row it - 1: the residuals of iteration it (a copy is open from the first iteration until it is done, so
         # its rows 0 .. it - 1 are its history)
         history = np.zeros((max(cfg.max_iterations, 1), B))
@@ -362,8 +364,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             released_before = info.released_sides
             x_new, g_new, contact_new, x_search_new, accepted, backtracks = self._line_search_copies(
                 step, x, d, alpha, slope, open_, contact_terms, x_search, info)
-            for i in np.flatnonzero(open_):
-                infos[i].backtracks += int(backtracks[i])
+            backtracked[open_] += np.asarray(backtracks, dtype=np.int64)[open_]
             failed_ls = open_ & ~accepted
             if failed_ls.any():
                 for i in np.flatnonzero(failed_ls):
@@ -399,10 +400,18 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                 g_max = g_new[2]
         else:
             raise fail(running & ~done, f"Newton did not converge in {cfg.max_iterations} iterations")
-        self._finish_step(step, x.host, H, projection, factorization, state_out, info)
+        elastic = self.elastic
+        if isinstance(elastic, StackedElasticTerms) and x.device is not None:  # the plastic update reads x there
+            elastic.device_positions = (x.host, x.device)
+        try:
+            self._finish_step(step, x.host, H, projection, factorization, state_out, info)
+        finally:
+            if isinstance(elastic, StackedElasticTerms):
+                elastic.device_positions = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
-        for i in np.flatnonzero(running):
+        for i in np.flatnonzero(running).tolist():
             st = infos[i]
+            st.backtracks = int(backtracked[i])
             st.energy = float("nan")  # one incremental potential of all copies: StepInfo.energy of the stack
             st.factorizations = info.factorizations
             st.projected_iterations = info.projected_iterations

@@ -234,8 +234,7 @@ class BatchedSimulation:
         run = self.active if mask is None else np.asarray(mask, dtype=bool) & self.active
         if run.shape != (B,):
             raise ConfigError(f"batch step: mask of shape {run.shape} for a batch of {B}")
-        for i in np.flatnonzero(run):  # the caller's errors before any copy moves
-            _check_control(self.sims[i].model, controls[i], int(i))
+        _check_controls(self.sims, controls, run)  # the caller's errors before any copy moves
         if self.lockstep is not None:
             infos, failures = self.lockstep.step(controls, run)
             for i, why in failures.items():
@@ -280,6 +279,28 @@ class BatchedSimulation:
             self.sims[copy_index].set_parameter(name, value)
         except ConfigError as err:
             raise ConfigError(f"batch copy {copy_index}: {err}") from err
+
+
+def _check_controls(sims: list, controls: list, run: np.ndarray) -> None:
+    """:func:`_check_control` of each copy in ``run`` (bool ``(B,)``) with its model: the pose targets' finiteness
+    tested in one array; where a name is unknown or a target not finite (or the targets are not one array), each
+    copy's own test in copy order, which raises for the first such copy as before."""
+    targets, known = [], True
+    for i in np.flatnonzero(run).tolist():
+        control = controls[i]
+        if control is None:
+            continue
+        effectors = sims[i].model.effectors
+        for name, target in control.effector_pose_target.items():
+            known &= name in effectors
+            targets.append(target)
+    try:
+        finite = bool(np.isfinite(np.asarray(targets, dtype=float)).all())
+    except (TypeError, ValueError):
+        finite = False
+    if not (known and finite):
+        for i in np.flatnonzero(run):
+            _check_control(sims[i].model, controls[i], int(i))
 
 
 def _check_control(model: Model, control: Control | None, index: int) -> None:

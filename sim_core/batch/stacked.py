@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import copy as _copy
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -126,25 +127,73 @@ class StackedScene:
         index ``step_index[j]``: positions, velocities and contact forces gathered from the stacked arrays at
         once (each state's arrays are views of one ``(k, n, 3)`` array a quantity)."""
         copies = np.asarray(copies, dtype=np.int64)
-        idx = self.index[copies].reshape(-1)
-        shape = (len(copies), self.vertex_count, 3)
-        x = np.take(stacked.x, idx, axis=0).reshape(shape)
+        gather = self._copy_rows(copies)
+        x = gather(stacked.x)
         x -= self.offset[copies][:, None, :]
-        v = np.take(stacked.v, idx, axis=0).reshape(shape)
-        force = None if stacked.contact_force is None else np.take(stacked.contact_force, idx, axis=0).reshape(shape)
-        out = []
-        for j, i in enumerate(copies):
-            g, k = int(self.group_of_copy[i]), int(self.slot_in_group[i])
-            out.append(State(
-                t=float(t[j]), x=x[j], v=v[j],
-                hinge_theta_bar={sheet: np.array(stacked.hinge_theta_bar[self.group_names[g][sheet]][k * h:(k + 1) * h])
-                                 for sheet, h in self.hinge_counts.items()},
-                effector_pose={n: _moved_pose(stacked.effector_pose[f"{n}#{i}"], -self.offset[i])
-                               for n in self.effector_names},
-                gripper_opening={n: stacked.gripper_opening[f"{n}#{i}"] for n in self.effector_names
-                                 if f"{n}#{i}" in stacked.gripper_opening},
-                contact_force=None if force is None else force[j], step_index=int(step_index[j]),
-            ))
+        v = gather(stacked.v)
+        force = None if stacked.contact_force is None else gather(stacked.contact_force)
+        # the effectors' poses translated back, one (k, 7) array an effector (its rows the copies' poses)
+        poses = {n: np.array([stacked.effector_pose[f"{n}#{i}"] for i in copies], dtype=float).reshape(len(copies), 7)
+                 for n in self.effector_names}
+        for pose in poses.values():
+            pose[:, :3] -= self.offset[copies]
+        theta = self._copy_rest_angles(stacked.hinge_theta_bar, copies)
+        t, step_index = np.asarray(t, dtype=float).tolist(), np.asarray(step_index).astype(np.int64).tolist()
+        names, openings = self.effector_names, stacked.gripper_opening
+        return [State(t=t[j], x=x[j], v=v[j], hinge_theta_bar={sheet: rows[j] for sheet, rows in theta.items()},
+                      effector_pose={n: poses[n][j] for n in names},
+                      gripper_opening={n: openings[f"{n}#{i}"] for n in names if f"{n}#{i}" in openings},
+                      contact_force=None if force is None else force[j], step_index=step_index[j])
+                for j, i in enumerate(copies.tolist())]
+
+    @cached_property
+    def _blocks(self) -> list[tuple[int, int, int]] | None:
+        """The layout of :attr:`index` as blocks: ``(a, b, start)`` a segment of a copy's vertices ``a .. b - 1``
+        (a body, or the whole copy) such that copy ``i``'s are the stacked rows ``start + i (b - a) + (0 .. b - a -
+        1)``, the segments covering ``0 .. n``; None where the index has no such layout."""
+        index = self.index
+        B, n = index.shape
+        if n == 0 or B == 0:
+            return None
+        edges = [0, *(np.flatnonzero(np.any(np.diff(index, axis=1) != 1, axis=0)) + 1).tolist(), n]
+        blocks = []
+        for a, b in zip(edges[:-1], edges[1:]):
+            start = int(index[0, a])
+            if not np.array_equal(index[:, a], start + (b - a) * np.arange(B)):
+                return None
+            blocks.append((a, b, start))
+        return blocks
+
+    def _copy_rows(self, copies: np.ndarray):
+        """A function taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)`` array as a new
+        ``(k, n, 3)`` array: by whole blocks of rows (:attr:`_blocks`: each body's copies stacked one after another)
+        where the index has that layout, else by a gather of :attr:`index`'s rows; the same values."""
+        shape = (len(copies), self.vertex_count, 3)
+        blocks = self._blocks
+        if blocks is None:
+            idx = self.index[copies].reshape(-1)
+            return lambda a: np.take(a, idx, axis=0).reshape(shape)
+
+        def gather(a: np.ndarray) -> np.ndarray:
+            out = np.empty(shape, dtype=a.dtype)
+            for lo, hi, start in blocks:
+                out[:, lo:hi] = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)[copies]
+            return out
+        return gather
+
+    def _copy_rest_angles(self, theta_bar: dict, copies: np.ndarray) -> dict[str, np.ndarray]:
+        """Per scene sheet, the rest angles of ``copies`` (int ``(k,)``) as one new ``(k, h)`` array (row ``j``:
+        copy ``copies[j]``'s), read from the stacked ``theta_bar`` (stacked sheet name -> its groups' copies' angles
+        in slot order)."""
+        out = {}
+        for sheet, h in self.hinge_counts.items():
+            rows = np.empty((len(copies), h))
+            for g, names in enumerate(self.group_names):
+                mine = np.flatnonzero(self.group_of_copy[copies] == g)
+                if len(mine):
+                    angles = np.asarray(theta_bar[names[sheet]]).reshape(-1, h)
+                    rows[mine] = angles[self.slot_in_group[copies[mine]]]
+            out[sheet] = rows
         return out
 
     def stack_controls(self, controls: Sequence[Control | None]) -> Control:

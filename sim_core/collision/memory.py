@@ -73,6 +73,18 @@ class ContactMemory:
         found[at[hit]] = True
         return sides, found
 
+    def found_in(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The remembered pairs among ``keys``, packed pair keys ``(p,)`` sorted and unique (a candidate list's,
+        :meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.keys`): ``(rows, sides)``, the rows of
+        ``keys`` that are remembered, int64 ``(f,)`` increasing, and their remembered sides ``(f,)``; the
+        remembered keys are placed among ``keys`` (one search per remembered pair, no pass over ``keys``)."""
+        m, p = len(self), keys.shape[0]
+        if not m or not p:
+            return np.zeros(0, dtype=np.int64), np.zeros(0)
+        at = np.minimum(np.searchsorted(keys, self._keys), p - 1)
+        hit = keys[at] == self._keys
+        return at[hit], self._sides[hit]
+
     def resolve(self, pairs: np.ndarray, current_sides: np.ndarray) -> np.ndarray:
         """Remembered side where the pair is known, else ``current_sides``; shape ``(p,)``."""
         sides, found = self.lookup(pairs)

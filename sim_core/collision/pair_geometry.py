@@ -50,6 +50,34 @@ class PairGeometry(NamedTuple):
     ee_side: np.ndarray
 
 
+class ListGeometry(NamedTuple):
+    """What a step's sides need of a candidate list's :class:`PairGeometry` (shapes ``(p,)`` and ``(q,)``): its fields
+    with ``ee_sine`` compared with the contact set's least edge sine (``ee_keep``: the edge-edge pairs not
+    near-parallel, :meth:`sim_core.contact_set.ContactSet._pair_sides`).
+
+    Attributes:
+        vt_above, vt_side, ee_interior, ee_side: as :class:`PairGeometry`'s (sides float64).
+        ee_keep: ``ee_sine > min_sine``, bool.
+    """
+
+    vt_above: np.ndarray
+    vt_side: np.ndarray
+    ee_keep: np.ndarray
+    ee_interior: np.ndarray
+    ee_side: np.ndarray
+
+    @classmethod
+    def of(cls, geometry: PairGeometry, min_sine: float) -> "ListGeometry":
+        """The list geometry of ``geometry`` with edge-edge pairs kept where ``ee_sine > min_sine``."""
+        return cls(geometry.vt_above, geometry.vt_side, geometry.ee_sine > min_sine, geometry.ee_interior,
+                   geometry.ee_side)
+
+    def rows(self, vt_rows: np.ndarray, ee_rows: np.ndarray) -> "ListGeometry":
+        """The rows ``vt_rows`` ``(a,)`` of the vertex-triangle fields and ``ee_rows`` ``(b,)`` of the edge-edge ones."""
+        return ListGeometry(self.vt_above[vt_rows], self.vt_side[vt_rows], self.ee_keep[ee_rows],
+                            self.ee_interior[ee_rows], self.ee_side[ee_rows])
+
+
 def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray) -> PairGeometry:
     """Side-memory geometry of the pairs at positions ``x`` (module docstring).
 

@@ -44,6 +44,7 @@ class CandidateVertices:
         self.ee_vertices = edge_edge_vertices(ee, edges)
         self._compact: tuple | None = None
         self._int32: tuple | None = None
+        self._keys: tuple | None = None
         self.device: dict = {}
 
     def of(self, vt: np.ndarray, ee: np.ndarray) -> bool:
@@ -56,6 +57,14 @@ class CandidateVertices:
         if self._int32 is None:
             self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
         return self._int32
+
+    def keys(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The lists' pairs as packed keys ``first << 32 | second``, int64 ``(p,)`` and ``(q,)``
+        (:class:`~sim_core.collision.memory.ContactMemory`'s keys), made once; None for a list whose keys are not
+        sorted and unique or whose indices are out of the keys' range (its pairs are then looked up one by one)."""
+        if self._keys is None:
+            self._keys = tuple(_sorted_keys(pairs) for pairs in (self.vt, self.ee))
+        return self._keys
 
     def batch_layout(self, ee_rows: np.ndarray) -> "BatchLayout":
         """The :class:`BatchLayout` of a pair batch over every vertex-triangle candidate and the edge-edge candidates
@@ -71,6 +80,15 @@ class CandidateVertices:
         rows[:p] = np.arange(p, dtype=np.int32)
         np.add(ee_rows, p, out=rows[p:], casting="unsafe")
         return BatchLayout(own, local, rows, ee_rows, self.device)
+
+
+def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
+    """:meth:`CandidateVertices.keys` of one list ``(p, 2)``."""
+    pairs = np.asarray(pairs).reshape(-1, 2)
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= 1 << 31):
+        return None
+    keys = (pairs[:, 0].astype(np.int64) << 32) | pairs[:, 1].astype(np.int64)
+    return keys if len(keys) < 2 or bool(np.all(keys[1:] > keys[:-1])) else None
 
 
 class BatchLayout(NamedTuple):

@@ -72,6 +72,27 @@ def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, 
     assert batch.lockstep.scene.model.bodies["pad#0"].material["youngs_modulus"] == 3e5
 
 
+def test_copy_states_by_blocks_equal_the_gather_of_the_index(model):
+    same = stack_models([copy.deepcopy(model) for _ in range(3)])
+    assert len(same._blocks) == len(model.bodies)  # one material group: each body's copies one block
+    rng = np.random.default_rng(3)
+    stacked = same.stack_states([task_initial_state(model)] * 3)
+    stacked.x = stacked.x + 1e-3 * rng.normal(size=stacked.x.shape)
+    stacked.v = rng.normal(size=stacked.x.shape)
+    stacked.contact_force = rng.normal(size=stacked.x.shape)
+    stacked.hinge_theta_bar = {k: rng.normal(size=v.shape) for k, v in stacked.hinge_theta_bar.items()}
+    args = (stacked, np.array([2, 0]), np.array([0.1, 0.2]), np.array([4, 5]))
+    blocks = same.copy_states(*args)
+    same._blocks = None  # the gather of any layout
+    for a, b in zip(blocks, same.copy_states(*args)):
+        for name in ("x", "v", "contact_force"):
+            assert np.array_equal(getattr(a, name), getattr(b, name))
+        assert a.hinge_theta_bar.keys() == b.hinge_theta_bar.keys() and a.effector_pose.keys() == b.effector_pose.keys()
+        assert all(np.array_equal(a.hinge_theta_bar[k], b.hinge_theta_bar[k]) for k in a.hinge_theta_bar)
+        assert all(np.array_equal(a.effector_pose[k], b.effector_pose[k]) for k in a.effector_pose)
+        assert (a.t, a.step_index, a.gripper_opening) == (b.t, b.step_index, b.gripper_opening)
+
+
 @pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
 def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model, config):
     batch = _lockstep_batch(model, config)

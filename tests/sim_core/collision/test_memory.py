@@ -66,3 +66,20 @@ def test_update_keeps_remembered_sides_sorts_and_rejects_duplicates():
         memory.update(np.array([[1, 1], [1, 1]]), np.ones(2))
     with pytest.raises(ConfigError, match="signs must be"):
         memory.update(np.array([[1, 1]]), np.array([0.5]))
+
+
+def test_found_in_sorted_keys_gives_the_lookups_of_the_keys():
+    """``found_in`` of sorted unique keys (a candidate list's) names the remembered keys' rows and sides, as looking
+    every key up does; empty memories and lists give nothing."""
+    rng = np.random.default_rng(3)
+    pairs = np.unique(rng.integers(0, 40, size=(300, 2)), axis=0)
+    keys = (pairs[:, 0] << 32) | pairs[:, 1]
+    m = ContactMemory()
+    assert [len(a) for a in m.found_in(keys)] == [0, 0]
+    remembered = np.concatenate([pairs[rng.choice(len(pairs), 25, replace=False)], [[50, 1], [41, 0], [0, 45]]])
+    m.update(remembered, rng.choice([-1.0, 1.0], size=len(remembered)))
+    rows, sides = m.found_in(keys)
+    want, found = m.lookup(pairs)
+    np.testing.assert_array_equal(rows, np.flatnonzero(found))
+    np.testing.assert_array_equal(sides, want[found])
+    assert len(rows) == 25 and [len(a) for a in m.found_in(keys[:0])] == [0, 0]

@@ -44,6 +44,34 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
     np.testing.assert_array_equal(ee32, lists.ee_vertices)
 
 
+def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
+    """``CandidateVertices.keys``: the packed keys of sorted unique lists (None for a list that is not: its pairs are
+    then looked up one by one), made once; ``ContactSet._step_sides`` through them gives the sides, bit for bit, of
+    looking every pair above its face up in the memory."""
+    from sim_core.collision.memory import ContactMemory
+    from sim_core.contact_set import ContactSet
+
+    vt, ee, triangles, edges = _lists()
+    vt, ee = np.unique(vt, axis=0), np.unique(ee, axis=0)
+    lists = CandidateVertices(vt, ee, triangles, edges)
+    keys = lists.keys()
+    assert lists.keys() is keys
+    for pairs, k in zip((vt, ee), keys):
+        np.testing.assert_array_equal(k, (pairs[:, 0] << 32) | pairs[:, 1])
+    assert CandidateVertices(vt[::-1], ee, triangles, edges).keys()[0] is None
+    rng = np.random.default_rng(4)
+    for pairs, k in zip((vt, ee), keys):
+        memory = ContactMemory()
+        remembered = np.concatenate([pairs[rng.choice(len(pairs), 30, replace=False)], [[399, 59], [1000, 2]]])
+        memory.update(remembered, rng.choice([-1.0, 1.0], size=len(remembered)))
+        above = rng.random(len(pairs)) < 0.5
+        geometric = rng.choice([-1.0, 1.0], size=len(pairs))
+        want = ContactSet._step_sides(above, pairs, geometric, memory)
+        got = ContactSet._step_sides(above, pairs, geometric, memory, k)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+        assert np.any(got[above] != geometric[above])  # remembered sides taken
+
+
 def test_potentials_given_their_vertices_equal_those_that_compute_them():
     vt, ee, triangles, edges = _lists()
     lists = CandidateVertices(vt, ee, triangles, edges)

@@ -67,6 +67,19 @@ def test_pair_geometry_kernel_equals_the_reference_bit_for_bit(ti_cpu):
     np.testing.assert_array_equal(only_ee.ee_sine, ref.ee_sine[:5])
 
 
+def _int32_lists(seed: int, monkeypatch, device_arguments: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions and two overlapping int32 pair-vertex lists of ``_batch(seed)``, as a candidate list keeps them;
+    with ``device_arguments`` the set-up kernels' CUDA launch path emulated on the CPU arch."""
+    from sim_core import ti_backend
+    from sim_core.energies.contact import setup_kernel
+
+    x, vertices = _batch(seed)
+    if device_arguments:
+        for module in (setup_kernel, ti_backend):
+            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    return x, vertices[: len(vertices) // 2].astype(np.int32), vertices[len(vertices) // 3:].astype(np.int32)
+
+
 @pytest.mark.parametrize("device_arguments", [False, True])
 def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkeypatch, device_arguments):
     """``pair_geometry(..., device=cache)`` reads a candidate list's kept int32 indices as they are (through CUDA's
@@ -74,14 +87,9 @@ def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkey
     the same geometry as the kernel's launch through its kept arrays (which equals the NumPy reference bit for bit
     on the CPU, above), an empty kind included, and at frozen positions taken as they are; other index arrays are
     refused."""
-    from sim_core import ti_backend
     from sim_core.energies.contact import setup_kernel
 
-    x, vertices = _batch(5)
-    vt, ee = vertices[: len(vertices) // 2].astype(np.int32), vertices[len(vertices) // 3:].astype(np.int32)
-    if device_arguments:
-        for module in (setup_kernel, ti_backend):
-            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    x, vt, ee = _int32_lists(5, monkeypatch, device_arguments)
     cache: dict = {}
     for vt_rows, ee_rows in ((vt, ee), (vt, ee), (vt[:0], ee), (vt, ee[:0])):
         ref = setup_kernel.pair_geometry(x, vt_rows.astype(np.int64), ee_rows.astype(np.int64))
@@ -104,6 +112,30 @@ def test_pair_geometry_of_kept_int32_indices_equals_the_reference(ti_cpu, monkey
             assert setup_kernel._ARRAYS.device()["frozen_x:_geometry_kernel"][0] is y
     with pytest.raises(ValueError, match="C-contiguous int32"):
         setup_kernel.pair_geometry(x, vt.astype(np.int64), ee, device=cache)
+
+
+@pytest.mark.parametrize("device_arguments", [False, True])
+def test_pair_codes_equal_the_geometry_with_the_sines_compared(ti_cpu, monkeypatch, device_arguments):
+    """``pair_codes`` (one int32 code a pair copied back) gives ``pair_geometry``'s sides and regions and its sines
+    compared with the least sine (host and emulated CUDA launch paths; empty kinds; thresholds at, between and
+    beyond the measured sines); sides are float64 as the geometry's."""
+    from sim_core.collision.pair_geometry import ListGeometry
+    from sim_core.energies.contact import setup_kernel
+
+    x, vt, ee = _int32_lists(6, monkeypatch, device_arguments)
+    cache: dict = {}
+    ref = setup_kernel.pair_geometry(x, vt, ee, device=cache)
+    sines = np.sort(ref.ee_sine)
+    for min_sine in (0.0, sines[len(sines) // 2], 0.5 * (sines[1] + sines[2]), 1.0, 0.1):
+        for vt_rows, ee_rows in ((vt, ee), (vt[:0], ee), (vt, ee[:0])):
+            want = ListGeometry.of(setup_kernel.pair_geometry(x, vt_rows, ee_rows, device=cache), min_sine)
+            got = setup_kernel.pair_codes(x, vt_rows, ee_rows, min_sine, cache)
+            for name in want._fields:
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+                assert getattr(got, name).dtype == getattr(want, name).dtype, name
+    assert 0 < int(np.sum(ref.ee_sine > 0.1)) < len(ee)  # both kinds of pairs at the last threshold
+    with pytest.raises(ValueError, match="C-contiguous int32"):
+        setup_kernel.pair_codes(x, vt.astype(np.int64), ee, 0.1, cache)
 
 
 @pytest.mark.parametrize("point_first", [True, False])

@@ -63,3 +63,25 @@ def test_stacked_elastic_terms_update_as_the_elastic_terms(ti_cpu):
     model.bodies["sheet"].material["yield_angle"] = -0.1
     with pytest.raises(ConfigError, match="yield_angle must be >= 0 rad"):
         StackedElasticTerms(model).plastic_update(x, theta_bar)
+
+
+def test_stacked_plastic_update_reads_the_device_positions_of_its_very_positions(ti_cpu):
+    from sim_core.batch.plasticity import StackedElasticTerms
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.buffers import DeviceArray
+    from sim_core.ti_kernels.transfer import upload
+
+    rng = np.random.default_rng(11)
+    model, x = _folded_sheet(rng)
+    theta_bar = {"sheet": 0.02 * rng.normal(size=len(model.bodies["sheet"].hinges))}
+    model.bodies["sheet"].material["yield_angle"] = 0.05
+    terms = StackedElasticTerms(model)
+    want = terms.plastic_update(x, theta_bar)["sheet"]
+    other = x.copy()
+    other[:, 2] *= 1.5  # other values on the device: shows which positions the kernel read
+    terms.device_positions = (x, upload(DeviceArray(ti.f64).ensure(x.shape), other))
+    got = terms.plastic_update(x, theta_bar)["sheet"]
+    assert np.array_equal(got, StackedElasticTerms(model).plastic_update(other, theta_bar)["sheet"])
+    assert not np.array_equal(got, want)
+    # positions of another array (equal values): uploaded as before
+    assert np.array_equal(terms.plastic_update(x.copy(), theta_bar)["sheet"], want)
