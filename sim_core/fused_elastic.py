@@ -227,6 +227,7 @@ class FusedElastic:
         self._gradient_on_host = False  # the kept evaluation's gradient is in its host array (_kept[2])
         self._gradient_on_device = False  # ... in the device gradient array (_device_kept[1], CUDA)
         self._sums = None  # on CUDA: the DeferredSums of the device evaluations (its cells kept)
+        self._device_x_key = None  # on CUDA: positions_key of the positions in the device positions array
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -283,9 +284,7 @@ class FusedElastic:
         if remote is None and self._on_device():
             # CUDA: positions up once per evaluation, not per part; the gradient and Hessian values stay there
             # until asked for (gradient, hessian_values)
-            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
-
-            xd = upload(self._device_buffers(xc.shape, values.size)[0], xc)
+            xd = self._upload_positions(xc, key, values.size)
             return self._evaluate_on_device(key, xd, grad, values)
         grad.fill(0.0)
         values.fill(0.0)
@@ -479,12 +478,42 @@ class FusedElastic:
 
         return current_arch() == "cuda" and all(getattr(p, "_device", None) is not None for p in self._parts)
 
+    def _upload_positions(self, xc: np.ndarray, key, nnz: int):
+        """``xc`` ``(n, 3)`` (m) copied into the device positions array of :meth:`_device_buffers` (``nnz`` Hessian
+        values), kept as the positions of ``key`` (:meth:`device_positions`); the array returned."""
+        from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
+
+        xd = self._device_buffers(xc.shape, nnz)[0]
+        self._device_x_key = None
+        upload(xd, xc)
+        self._device_x_key = key
+        return xd
+
+    def device_positions(self, x: np.ndarray):
+        """The device array (a float64 Taichi ndarray ``(n, 3)``, only to be read) that holds the positions ``x``
+        (m) where the last evaluation here copied them (CUDA), or None: other terms' kernels may read them there
+        instead of copying them again (:func:`~sim_core.ti_kernels.transfer.positions_on_device`)."""
+        kept = self._device_kept
+        if kept is None or self._device_x_key is None or self._device_x_key != positions_key(x):
+            return None
+        return kept[0]
+
+    def offer_positions(self, workspace) -> None:
+        """On CUDA, let the terms sharing ``workspace`` (:class:`~sim_core.workspace.Workspace`) read the positions this
+        evaluator copies to the device (:meth:`device_positions`,
+        :func:`~sim_core.ti_kernels.transfer.offer_positions`); elsewhere nothing is done."""
+        if self._on_device():
+            from sim_core.ti_kernels.transfer import offer_positions  # Taichi only on a Taichi backend
+
+            offer_positions(workspace, self)
+
     def _device_buffers(self, shape: tuple, nnz: int) -> tuple:
         """Device arrays (Taichi ndarrays) for positions ``shape``, gradient ``shape`` and ``nnz`` Hessian values."""
         from sim_core.ti_backend import ti
 
         kept = self._device_kept
         if kept is None or tuple(kept[0].shape) != tuple(shape) or kept[2].shape != (max(nnz, 1),):
+            self._device_x_key = None
             kept = self._device_kept = (ti.ndarray(ti.f64, shape=tuple(shape)), ti.ndarray(ti.f64, shape=tuple(shape)),
                                         ti.ndarray(ti.f64, shape=(max(nnz, 1),)))
         return kept
@@ -523,9 +552,7 @@ class FusedElastic:
             return kept[1]
         xc = np.ascontiguousarray(x, dtype=np.float64)
         if self.pattern is not None and self.offloaded_part() is None and self._on_device():
-            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
-
-            xd = upload(self._device_buffers(xc.shape, self.pattern.keys.size)[0], xc)
+            xd = self._upload_positions(xc, positions_key(x), self.pattern.keys.size)
             return float(self._deferred_sum(lambda part: part.energy(xd), 0))
         return float(sum(part.energy(xc) for part in self._parts))
 
@@ -555,8 +582,9 @@ class FusedElastic:
     def _deferred_sum(self, run, start: float):
         """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched
         in one :class:`~sim_core.ti_kernels.launch.DeferredSums` block (on a GPU the launches follow one another
-        without waiting for each sum; the sums are read after the block). A part returns its kernel's sum (NaN
-        inside the block, then read) or its own value (no kernel launched, e.g. no elements).
+        without waiting for each sum, every launch adding into one sum array read after the block in one copy:
+        ``start`` plus that sum, plus the values of the parts that launched nothing). A part returns its kernel's
+        sum (NaN inside the block, then read) or its own value (no kernel launched, e.g. no elements).
 
         Raises:
             RuntimeError: a part launched more than one summing kernel.
@@ -565,7 +593,7 @@ class FusedElastic:
 
         sums = self._sums
         if sums is None:
-            sums = self._sums = DeferredSums()
+            sums = self._sums = DeferredSums(shared=True)
         returned = []  # per part: (True, index of its launch) or (False, the value it returned)
         with sums:
             for part in self._parts:
@@ -575,6 +603,11 @@ class FusedElastic:
                 if launched > 1:
                     raise RuntimeError(f"FusedElastic: {type(part).__name__} launched {launched} summing kernels")
                 returned.append((True, before) if launched else (False, value))
+        if sums.sharing:  # (a GPU) the launched parts' sums in one sum array, read in one copy
+            total = start + sums.total()
+            for launched, item in returned:
+                total += 0.0 if launched else item
+            return total
         values = sums.values()
         total = start
         for launched, item in returned:
@@ -600,7 +633,11 @@ class FusedElastic:
         if self._values_on_device:
             from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
 
-            kept[3][:] = download(self._device_kept[2])[: kept[3].size]
+            device = self._device_kept[2]
+            if tuple(device.shape) == kept[3].shape:  # (the device array has one entry at least) straight into it
+                download(device, kept[3])
+            else:
+                kept[3][:] = download(device)[: kept[3].size]
             self._values_on_device = False
         return kept[3]
 
@@ -642,9 +679,7 @@ class FusedElastic:
         values = np.zeros(self.pattern.keys.size)
         remote = self.offloaded_part()
         if remote is None and self._on_device():  # CUDA: the positions up once for every part's kernels
-            from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
-
-            xc = upload(self._device_buffers(xc.shape, values.size)[0], xc)
+            xc = self._upload_positions(xc, positions_key(x), values.size)
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
                 if vertices is not None and getattr(part, "projects_subsets", False):

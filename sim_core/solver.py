@@ -49,7 +49,7 @@ from sim_core.solver_config import SolverConfig
 from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
 from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
-from sim_core.step_terms import StepTerms
+from sim_core.step_terms import StepTerms, contact_force
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
@@ -489,6 +489,8 @@ class NewtonSolver:
         fused_body = [p for p in cand_body if fusable(p)] if self._fused_path() else []
         if fused is None:
             fused = self._fused_elastic(elastic_terms + fused_body, x, free)
+        if fused is not None:  # the friction and contact kernels read the positions it copies to the device
+            fused.offer_positions(self.workspace)
         # the terms the Newton loop evaluates: the fused elastic evaluator in place of the elastic terms,
         # and no gravity term in zero gravity (its energy and gradient are zeros: the sums are the same)
         replaced = (elastic_terms + fused_body if fused is not None else []) + (
@@ -625,10 +627,11 @@ class NewtonSolver:
             SimulationDivergedError: the gradient is not finite.
         """
         ta = time.perf_counter()
+        first = None if step.fused is None else step.fused.gradient(x)  # (x then on the device for the others)
         contact_terms = self.contact.potentials(x, step.x_n, step.memory)
         self._check_asleep_unreached(contact_terms, x)
         x_search = self.contact.search_position
-        g = sum(p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
+        g = sum(first if p is step.fused else p.gradient(x) for p in step.loop_terms + contact_terms).reshape(-1)
         g[~step.free] = 0.0
         if not np.all(np.isfinite(g)):
             raise self._diverged(step, f"non-finite gradient at Newton iteration {it}")
@@ -701,8 +704,10 @@ class NewtonSolver:
     def _energy(self, step: StepTerms, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None) -> float:
         """The incremental potential at ``x`` (J): the loop terms' energy, kept for the same array
         object (the accepted line-search point is the next iteration's ``e0``), plus the contacts'."""
-        if step.loop_energy_x is not x:
-            step.loop_energy_x, step.loop_energy = x, sum(p.energy(x) for p in step.loop_terms)
+        if step.loop_energy_x is not x:  # the fused terms first (x then on the device for the others), summed in order
+            first = None if step.fused is None else step.fused.energy(x)
+            step.loop_energy_x = x
+            step.loop_energy = sum(first if p is step.fused else p.energy(x) for p in step.loop_terms)
         if not self.contact.covers(x_search, x):
             # a trial point beyond the iterate's candidate list: search again, so that every
             # trial point is measured with the same energy (no pair left out)
@@ -783,16 +788,9 @@ class NewtonSolver:
         state_out.v = (x - x_n) / dt
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
-        state_out.contact_force = self._contact_force(
+        state_out.contact_force = contact_force(
             x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)
         if self.step_hook is not None:
             state_out.candidate_state = self.step_hook.update_state(model, state_in, x, dt, self.elastic)
-
-    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
-        """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N."""
-        force = np.zeros_like(x)
-        for p in terms:
-            force -= p.gradient(x)
-        return force

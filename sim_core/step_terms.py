@@ -1,6 +1,6 @@
 """The incremental potential of one Newton step, set up once before its iterations: the data record
 the solver's step functions share (:class:`StepTerms`, built by ``NewtonSolver._set_up_step`` in
-:mod:`sim_core.solver`)."""
+:mod:`sim_core.solver`), and the contact force of a step's result (:func:`contact_force`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 from sim_core.fused_elastic import FusedElastic
 from sim_core.state import State
 
-__all__ = ["StepTerms"]
+__all__ = ["StepTerms", "contact_force"]
 
 
 @dataclass
@@ -69,3 +69,11 @@ class StepTerms:
     loop_energy_x: np.ndarray | None = None
     loop_energy: float = 0.0
     last_update: np.ndarray | None = None
+
+
+def contact_force(x: np.ndarray, terms: list) -> np.ndarray:
+    """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N."""
+    force = np.zeros_like(x)
+    for p in terms:
+        force -= p.gradient(x)
+    return force

@@ -161,6 +161,46 @@ def on_device(kept: dict, name: str, host: np.ndarray, scratch: bool = False, re
     return entry[1]
 
 
+def rows_on_device(kept: dict, name: str, host: np.ndarray, refresh: bool = False):
+    """:func:`on_device` for a kernel that takes its row count as an argument (and reads no more rows): on CUDA a
+    Taichi ndarray kept in ``kept[name]`` of at least ``host``'s rows (``host.shape[0]``, the other dimensions and
+    the dtype equal), whose first rows hold ``host`` (copied when ``host`` is another object than at the last call),
+    replaced by one of twice the rows at least only when it has fewer; elsewhere ``host`` itself. A constant array
+    of an owner that is rebuilt every few Newton iterations (a contact pair batch, a friction) then costs one copy
+    per owner and no allocation: a device allocation and its release cost about 30 us of Python each (2-core VM),
+    a copy of a few thousand entries about 2 us.
+
+    Args:
+        kept: the caller's cache (one per thread: the array is shared by every owner that names it).
+        name: the array's name in it.
+        host: the array, C-contiguous (float64, int32 or int64), at least one-dimensional, never changed in place
+            while it is used here (a changed array is a new object) unless ``refresh``.
+        refresh: copy ``host`` at this call even when it is the last call's object (its contents changed in place).
+    """
+    entry = kept.get(name)
+    if entry is not None and entry[0] is host and not refresh:  # (only CUDA keeps entries)
+        return entry[1]
+    from sim_core.ti_backend import current_arch, ti
+
+    if current_arch() != "cuda":
+        return host
+    rows, tail = host.shape[0], host.shape[1:]
+    dtype = {np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32, np.dtype(np.int64): ti.i64}[host.dtype]
+    if entry is not None and entry[1].dtype == dtype and tuple(entry[1].shape[1:]) == tail \
+            and entry[1].shape[0] >= rows:
+        dev, staging = entry[1], entry[2]
+    else:
+        capacity = max(rows, 16, 2 * entry[1].shape[0] if entry is not None else 0)
+        dev = device_copy.new_ndarray(dtype, (capacity,) + tail)
+        staging = np.zeros((capacity,) + tail, dtype=host.dtype)
+    if rows:
+        staging[:rows] = host
+        if not device_copy.to_device(dev, staging, rows):
+            dev.from_numpy(staging)
+    kept[name] = (host, dev, staging)
+    return dev
+
+
 def copy_back(host: np.ndarray, array, rows: int | None = None) -> np.ndarray:
     """``array``'s values (a Taichi ndarray of ``host``'s shape and dtype, or a NumPy array: what
     :func:`on_device` returned) copied into ``host``, returned: a byte copy

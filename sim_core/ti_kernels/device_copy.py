@@ -225,14 +225,16 @@ def _checked(array, host: np.ndarray) -> int:
     return host.nbytes
 
 
-def to_device(array, host: np.ndarray) -> bool:
-    """Copy the C-contiguous ``host`` (``array``'s dtype and shape) into the Taichi ndarray ``array``; False
-    (nothing copied) where no direct copy is possible here (module docstring).
+def to_device(array, host: np.ndarray, rows: int | None = None) -> bool:
+    """Copy the C-contiguous ``host`` (``array``'s dtype and shape) into the Taichi ndarray ``array``, or only its
+    first ``rows`` rows (along the first axis; the rest of ``array`` is left as it is); False (nothing copied) where
+    no direct copy is possible here (module docstring).
 
     Raises:
-        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype.
+        ValueError: ``host`` is not C-contiguous of ``array``'s shape and dtype, or ``rows`` is not in
+            ``[0, host.shape[0]]``.
     """
-    return _copy(array, host, True)
+    return _copy(array, host, True, rows)
 
 
 def to_host(host: np.ndarray, array, rows: int | None = None) -> bool:

@@ -378,7 +378,7 @@ def _zero_cells(array) -> None:
     """Set the cells of ``array`` (:func:`_new_cells`) to zero (on a GPU by the driver's memset: no kernel launch,
     ordered after the launches before it)."""
     if isinstance(array, np.ndarray):
-        array[0] = 0.0
+        array.fill(0.0)
     elif not device_copy.zero(array):
         array.fill(0.0)
 
@@ -387,7 +387,7 @@ def _cells_sum(array) -> float:
     """The sum of the cells of ``array`` (:func:`_new_cells`), in cell order (on a GPU: read after the kernels
     launched before, by the driver's copy)."""
     if isinstance(array, np.ndarray):
-        return float(array[0])
+        return float(array[0]) if array.size == 1 else float(np.sum(array))
     host = np.empty(tuple(array.shape))
     if not device_copy.to_host(host, array):
         host = array.to_numpy()
@@ -408,14 +408,23 @@ class DeferredSums:
     sums in launch order (the first read waits for the kernels). The sums are those of the plain calls: same
     kernels, same arguments, each into a zeroed cell of its own.
 
+    With ``shared`` on a GPU (sum arrays of :data:`SUM_CELLS` cells) every launch of a block adds into one sum array
+    instead, zeroed once, and :meth:`total` reads the block's sum in one copy back: one zero fill and one copy a block
+    instead of one of each a launch; the sum is then the terms' in another order (on a GPU the order of a
+    parallel loop's atomic additions is not fixed anyway). On the CPU (one cell) each launch keeps its own cell.
+
+    Args:
+        shared: share one sum array among a block's launches where the arrays have several cells.
+
     Raises:
         RuntimeError: a block entered while another one is active on the same thread.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, shared: bool = False) -> None:
         self._cells: list = []
         self._used = 0
         self._prog = None
+        self.shared = shared
 
     def __enter__(self) -> "DeferredSums":
         if getattr(_DEFERRED, "active", None) is not None:
@@ -435,7 +444,19 @@ class DeferredSums:
         """Summing-kernel launches in the current (or last) block."""
         return self._used
 
+    @property
+    def sharing(self) -> bool:
+        """Whether the launches of a block add into one sum array (``shared`` where the arrays have several cells)."""
+        if not self.shared:
+            return False
+        if not self._cells:
+            self._cells.append(_new_cells(_runtime()))
+        return int(np.prod(self._cells[0].shape)) > 1
+
     def _next_cell(self):
+        if self._used and self.sharing:  # (zeroed at the block's first launch)
+            self._used += 1
+            return self._cells[0]
         if self._used == len(self._cells):
             self._cells.append(_new_cells(_runtime()))
         cell = self._cells[self._used]
@@ -444,5 +465,23 @@ class DeferredSums:
         return cell
 
     def values(self) -> list[float]:
-        """The sums (J) of the last block's launches, in launch order."""
+        """The sums (J) of the last block's launches, in launch order.
+
+        Raises:
+            RuntimeError: the launches shared one sum array (:attr:`sharing`: read :meth:`total`).
+        """
+        if self._used > 1 and self.sharing:
+            raise RuntimeError("DeferredSums: the launches shared one sum array; read total()")
         return [_cells_sum(cell) for cell in self._cells[: self._used]]
+
+    def total(self) -> float:
+        """The sum (J) of the last block's launches: with :attr:`sharing`, the one sum array's cells added in cell
+        order (one copy back); else the sums of :meth:`values` added in launch order (0.0 without a launch)."""
+        if not self._used:
+            return 0.0
+        if self.sharing:
+            return _cells_sum(self._cells[0])
+        total = 0.0
+        for value in self.values():
+            total += value
+        return total

@@ -9,7 +9,9 @@ through :func:`sim_core.ti_kernels.launch.fast_kernel` (its plans bind NumPy arr
 alike; on CUDA the NumPy side then crosses to the device and back with the launch, as Taichi copies
 every host array of a launch both ways). A zero fill is a memset, another fill one planned launch. The
 values are the same. :func:`add_into` adds one array into another where they are (a term's gradient into a
-device-resident sum, :class:`~sim_core.energies.base.DeviceGradient`).
+device-resident sum, :class:`~sim_core.energies.base.DeviceGradient`). :func:`offer_positions` and
+:func:`positions_on_device` let the terms of one solver read positions already copied to the device by another
+(a single environment's fused elastic terms copy every iterate and trial point there) instead of copying them again.
 """
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
@@ -120,3 +122,22 @@ def same_shapes(where: str, x: np.ndarray, x_device, gradient_device) -> tuple:
         if tuple(array.shape) != shape:
             raise ValueError(f"{where}: {name} of shape {tuple(array.shape)}, positions {shape}")
     return shape
+
+
+_POSITIONS = "positions on the device"
+"""The workspace entry of :func:`offer_positions` (owned by the workspace itself)."""
+
+
+def offer_positions(workspace, source) -> None:
+    """Let the terms sharing ``workspace`` (a :class:`~sim_core.workspace.Workspace`) read positions from ``source``:
+    an object whose ``device_positions(x)`` gives the float64 ndarray ``(n, 3)`` holding the positions ``x`` where it
+    copied them last, or None (:meth:`~sim_core.fused_elastic.FusedElastic.device_positions`). Forgetting the entry
+    (the workspace's ``clear``) only brings back the copies."""
+    workspace.put(workspace, _POSITIONS, source)
+
+
+def positions_on_device(workspace, x: np.ndarray):
+    """The float64 ndarray ``(n, 3)`` (only to be read) that holds the positions ``x`` ``(n, 3)`` (m) on the device,
+    offered in ``workspace`` (:func:`offer_positions`; None: no workspace), or None where none holds them now."""
+    source = None if workspace is None else workspace.get(workspace, _POSITIONS)
+    return None if source is None else source.device_positions(x)

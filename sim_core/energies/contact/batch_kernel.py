@@ -48,10 +48,10 @@ from sim_core.energies.contact.reference import PairEvaluation
 from sim_core.energies.contact.setup_kernel import _vertex
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.buffers import DeviceRows, LaunchArrays, copy_back, on_device, rows_on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import upload
+from sim_core.ti_kernels.transfer import positions_on_device, upload
 from sim_core.unique import compact_indices
 from sim_core.workspace import workspace_of
 
@@ -110,6 +110,37 @@ def _scatter_penalty_gradient(i: ti.i32, k: ti.i32, scale: ti.f64, first_row: ti
             gradients[row, c] += scale * grad[i, 3 * a + c]
 
 
+@ti.func
+def _measure_pair(x: ti.template(), vertices: ti.template(), side: ti.template(), k: ti.i32, i: ti.i32,
+                  split: ti.i32, eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64,
+                  rows_ee: ti.i32, derivatives: ti.i32, z: ti.template(), d: ti.template(), region: ti.template(),
+                  grad: ti.template(), hess: ti.template(), gradients: ti.template()):
+    """Pair ``k`` (``k < split`` vertex-triangle, else edge-edge) into row ``i`` of the work arrays: its positions
+    gathered into ``z[i]``, distance ``d[i]`` and region, or ``d[i] = inf`` and region -1 where the bounds of
+    :func:`_may_touch` rule it out; with ``derivatives`` and ``d < eps`` (``eps`` of its kind) the distance gradient
+    ``grad[i]``, the penalty Hessian ``hess[i]`` and its penalty gradient added per vertex into ``gradients`` (rows
+    ``v``, or ``rows_ee + v`` for an edge-edge pair). Returns 1 where ``d < eps``, else 0."""
+    point_first = 0
+    eps, stiffness, first_row = eps_ee, stiffness_ee, rows_ee
+    if k < split:
+        point_first = 1
+        eps, stiffness, first_row = eps_vt, stiffness_vt, 0
+    p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
+                      _vertex(x, vertices, k, 3))
+    if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
+        for c in ti.static(range(3)):
+            z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
+        region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
+        if derivatives:
+            if d[i] < eps:
+                cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
+                _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
+                _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
+    else:
+        region[i], d[i] = -1, ti.math.inf
+    return ti.cast(d[i] < eps, ti.i32)
+
+
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
@@ -141,34 +172,73 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
         active_count[0] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
-        k = rows[i]
-        point_first = 0
-        eps, stiffness, first_row = eps_ee, stiffness_ee, n
-        if k < split:
-            point_first = 1
-            eps, stiffness, first_row = eps_vt, stiffness_vt, 0
-        p0, p1, p2, p3 = (_vertex(x, vertices, k, 0), _vertex(x, vertices, k, 1), _vertex(x, vertices, k, 2),
-                          _vertex(x, vertices, k, 3))
-        if _may_touch(p0, p1, p2, p3, side[k], eps, point_first):
-            for c in ti.static(range(3)):
-                z[i, 0, c], z[i, 1, c], z[i, 2, c], z[i, 3, c] = p0[c], p1[c], p2[c], p3[c]
-            region[i], d[i] = cd._distance_value(z, i, side[k], point_first)  # inlined once, both kinds
-            if derivatives:
-                if d[i] < eps:
-                    cd._pair_derivatives(z, i, side[k], point_first, d, region, grad, hess)
-                    _penalty_hessian(i, d[i] - eps, stiffness, grad, hess)
-                    _scatter_penalty_gradient(i, k, stiffness * (d[i] - eps), first_row, vertices, grad, gradients)
-            if d[i] < eps:  # the distance the host keeps (with derivatives: theirs)
-                slot = ti.atomic_add(active_count[0], 1) + 1
-                active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
-        else:
-            region[i], d[i] = -1, ti.math.inf
+        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, n,
+                         derivatives, z, d, region, grad, hess, gradients):  # the distance the host keeps
+            slot = ti.atomic_add(active_count[0], 1) + 1
+            active[slot, 0], active[slot, 1] = ti.cast(i, ti.f64), d[i]
     ti.loop_config(serialize=ti.static(serial_loops()))
     for _ in range(1):  # after every pair: the count in the list's first row
         active[0, 0] = ti.cast(active_count[0], ti.f64)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(pack_region * derivatives * count):
         gradients[2 * n + i // 3, i % 3] = ti.cast(region[i], ti.f64)
+
+
+@fast_kernel
+def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32, u: ti.i32,
+                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
+                   z: _F64_3, d: _F64_1, region: _I32_1, grad: _F64_2, hess: _F64_3, gradients: _F64_2,
+                   slots: _I32_1, active_count: _I32_1, out: _F64_1):
+    """Every pair ``i < count`` (``i < split`` vertex-triangle, else edge-edge; its vertices and side at row
+    ``rows[i]`` of ``vertices`` and ``side``, the batch's layout) measured as :func:`_batch_kernel`
+    measures it (the same functions; its work arrays ``z``, ``d``, ``region``, ``grad``, ``hess`` of at least
+    ``count`` rows, ``gradients`` of at least ``2 u`` rows: the sums of the ``u`` vertices of ``x``), then its results
+    packed into ``out`` in increasing pair order, for one copy back: ``out[0]`` the count ``a`` of the pairs with
+    ``d < eps``, then their ``[i, d]`` (``2 a``); with ``derivatives`` then the per-vertex penalty gradient sums
+    ``(2 u, 3)`` (vertex-triangle rows, then edge-edge rows; zeroed first, sums in pair order), the regions ``(a,)``,
+    the distance gradients ``(a, 12)`` and the penalty Hessians ``(a, 12, 12)`` of those pairs. A pair's place in the
+    order is the number of listed pairs before it (the list is built in no fixed order on a parallel arch), so the
+    layout is the same on every arch: :func:`packed_size` entries."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 2 * u):
+        for c in ti.static(range(3)):
+            gradients[j, c] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for _ in range(1):
+        active_count[0] = 0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i in range(count):
+        if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u,
+                         derivatives, z, d, region, grad, hess, gradients):
+            slots[ti.atomic_add(active_count[0], 1)] = i
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for s in range(count):  # the listed pairs into their places
+        a = active_count[0]
+        if s < a:
+            i = slots[s]
+            place = 0
+            for t in range(a):
+                if slots[t] < i:
+                    place += 1
+            out[1 + 2 * place], out[2 + 2 * place] = ti.cast(i, ti.f64), d[i]
+            if derivatives:
+                base = 1 + 2 * a + 6 * u
+                out[base + place] = ti.cast(region[i], ti.f64)
+                for e in range(12):
+                    out[base + a + 12 * place + e] = grad[i, e]
+                for e in range(144):
+                    out[base + 13 * a + 144 * place + e] = hess[i, e // 12, e % 12]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(derivatives * 6 * u):
+        out[1 + 2 * active_count[0] + j] = gradients[j // 3, j % 3]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for _ in range(1):
+        out[0] = ti.cast(active_count[0], ti.f64)
+
+
+def packed_size(active: int, vertices: int, derivatives: bool) -> int:
+    """Entries of :func:`_packed_kernel`'s ``out`` for ``active`` listed pairs over ``vertices`` vertices."""
+    return 1 + 2 * active + (6 * vertices + 157 * active if derivatives else 0)
 
 
 def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.ndarray, np.ndarray]:
@@ -188,6 +258,10 @@ def _sorted_found(listed: np.ndarray, listed_arg, rows_read: int) -> tuple[np.nd
     order = np.argsort(rows)
     return rows[order], distances[order]
 
+
+PACKED_MAX_PAIRS = 1 << 16
+"""The most pairs a batch evaluates by default in :func:`_packed_kernel` (:attr:`PairBatch.packed`): a single Forming
+environment has about 1,600 to 1,900 candidate pairs, a stacked batch of copies millions."""
 
 _NONE_FOUND = (np.zeros(0, dtype=np.int64), np.zeros(0))
 """No active pair (a launch over no pairs)."""
@@ -247,6 +321,13 @@ class PairBatch:
     :class:`~sim_core.ti_kernels.buffers.DeviceRows` (added into a device gradient there, read on the host only when
     asked), instead of copying them to the host; None: on CUDA. The values are the same."""
 
+    packed: bool | None = None
+    """Every pair measured (with derivatives where asked) in one launch of :func:`_packed_kernel`, whose results come
+    back in one copy (two when the active list is longer than the last one by a quarter), instead of the launches of
+    :attr:`two_pass` and their copies; None: on CUDA at positions given on the host (``x_device`` None) for at most
+    :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
+    orders the active pairs in ``a^2`` comparisons). The values are the same."""
+
     def __init__(self, vt, ee, layout: BatchLayout | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
@@ -271,6 +352,7 @@ class PairBatch:
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
         self._own_int32: np.ndarray | None = None  # ``own`` as int32 (_own32)
+        self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)
         self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
         vt._batch = ee._batch = self
 
@@ -281,6 +363,17 @@ class PairBatch:
         ``x_device`` when given, else uploaded), pairs and sides (once per batch), the gathered pair positions (device
         only) and, with ``derivatives``, the per-vertex gradient sums; returns ``(x, vertices, sides, z, gradients)``
         device arrays (``gradients`` None without derivatives)."""
+        dev, shared = self._device, _ARRAYS.device()
+        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
+        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
+                     if derivatives else None)
+        return (self._device_positions(x, key, x_device),
+                on_device(self._lists_device, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
+                gradients)
+
+    def _device_positions(self, x: np.ndarray, key: tuple, x_device):
+        """On CUDA, the positions of the pairs' vertices ``(u, 3)`` (m) in device memory, once per ``key``: gathered
+        on the device from ``x_device`` when given, else uploaded from ``x``."""
         kept = self._device_x
         u = len(self.own)
         if kept is None or kept[0] != key or tuple(kept[1].shape) != (u, 3):
@@ -290,12 +383,7 @@ class PairBatch:
             else:
                 upload(xd, np.take(x, self.own, axis=0))  # (np.take: a third of fancy indexing's time)
             kept = self._device_x = (key, xd)
-        dev, shared = self._device, _ARRAYS.device()
-        z = on_device(shared, "z", _ARRAYS.rows("z", m, (4, 3)), scratch=True)
-        gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
-                     if derivatives else None)
-        return (kept[1], on_device(self._lists_device, "vertices", self._local_vertices),
-                on_device(dev, "sides", self.sides), z, gradients)
+        return kept[1]
 
     def _own32(self) -> np.ndarray:
         """``own`` as int32 ``(u,)``, made once per batch (the gather and scatter kernels' index)."""
@@ -316,6 +404,11 @@ class PairBatch:
         from the kernel's list of them (no host pass over every pair's distance)."""
         if key is None:
             key = positions_key(x)
+        packed = ((current_arch() == "cuda" and x_device is None and len(self._all) <= PACKED_MAX_PAIRS)
+                  if self.packed is None else self.packed)
+        if packed and len(self._all):
+            self._evaluate_packed(x, key, derivatives)
+            return
         pots = (self.vt, self.ee)
         kept = [pot._kept(key, 0) for pot in pots]
         two_pass = current_arch() == "cuda" if self.two_pass is None else self.two_pass
@@ -342,6 +435,78 @@ class PairBatch:
             arrays, sums, found = (None, None), _ARRAYS.rows("gradients", 2 * len(self.own), (3,)), _NONE_FOUND
             sums[:] = 0.0
         self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
+
+    def _evaluate_packed(self, x: np.ndarray, key: tuple, derivatives: bool) -> None:
+        """:meth:`evaluate` of every pair at ``x`` in one launch of :func:`_packed_kernel` (:attr:`packed`), its
+        packed results read back in one copy (a second one when the list is longer than guessed) and kept as each
+        potential's evaluation of ``key``, as :meth:`_keep` keeps a launch over every pair."""
+        p, n = len(self._all), x.shape[0]
+        on_gpu = current_arch() == "cuda"
+        x_device = positions_on_device(workspace_of(self.vt), x) if on_gpu else None
+        u = len(self.own) if x_device is None else n  # the vertices of the kernel's positions and sums
+        d, region, grad, hess = work_arrays(p)
+        z, gradients = _ARRAYS.rows("z", p, (4, 3)), _ARRAYS.rows("gradients", 2 * u, (3,))
+        slots, count = _ARRAYS.rows("slots", p, (), np.int32), _ARRAYS.rows("active_count", 1, (), np.int32)
+        out = _ARRAYS.rows("packed", packed_size(p, u, derivatives))
+        arrays = (z, d, region, grad, hess, gradients, slots, count, out)
+        if on_gpu:  # device arrays of the kept arrays' capacity; the positions where another term holds them, else
+            # uploaded once a key; the pairs and sides in this thread's arrays of the batches' capacity (the kernel
+            # reads p rows; a batch is rebuilt every few iterations: one copy each, no allocation)
+            device = _ARRAYS.device()
+            names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
+            arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
+            if x_device is None:  # the lists' vertices, kept with them (as the other launches read them)
+                x_arg, vertices = self._device_positions(x, key, None), on_device(self._lists_device, "vertices",
+                                                                                 self._local_vertices)
+            else:
+                x_arg, vertices = x_device, rows_on_device(device, "packed_vertices_every", self._every_vertex())
+            sides, rows_arg = (rows_on_device(device, "packed_sides", self.sides),
+                               rows_on_device(device, "packed_rows", self._all))
+        else:
+            x_arg, vertices, sides, rows_arg = self._own_positions(x, None), self._local_vertices, self.sides, self._all
+        _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
+                       float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
+        read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
+        copy_back(out, arrays[-1], read)
+        a = int(out[0])
+        if packed_size(a, u, derivatives) > read:
+            copy_back(out, arrays[-1], packed_size(a, u, derivatives))
+        _ARRAYS.packed_guess = a + a // 4 + 16  # the next read's guess (this thread's next batch too): one copy
+        listed = out[1:1 + 2 * a].reshape(a, 2)
+        rows, distances = listed[:, 0].astype(np.int64), listed[:, 1].copy()
+        if derivatives:
+            base = 1 + 2 * a
+            sums = out[base:base + 6 * u].reshape(2 * u, 3)
+            base += 6 * u
+            regions, g, h = (out[base:base + a], out[base + a:base + 13 * a].reshape(a, 12),
+                             out[base + 13 * a:base + 157 * a].reshape(a, 12, 12))
+        order = 2 if derivatives else 0
+        for kind, (pot, start, stop) in enumerate(((self.vt, 0, self.split), (self.ee, self.split, p))):
+            if pot._kept(key, order) is not None:
+                continue
+            lo, hi = np.searchsorted(rows, (start, stop))
+            active, dk = rows[lo:hi] - start, distances[lo:hi]
+            if derivatives:
+                stiffness = float(pot.stiffness)
+                dd = DistanceDerivatives(dk, g[lo:hi].copy(), None, regions[lo:hi].astype(np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(
+                    order, key, active, dd, pot.eps, (stiffness, h[lo:hi].copy()),
+                    (stiffness, (self.own, self._own_rows(sums[kind * u:(kind + 1) * u], x_device is not None), n))))
+            else:
+                dd = DistanceDerivatives(dk, None, None, np.zeros(active.shape, np.int64))
+                workspace_of(pot).put(pot, "evaluation", PairEvaluation(order, key, active, dd, pot.eps))
+
+    def _own_rows(self, sums: np.ndarray, every: bool) -> np.ndarray:
+        """The rows of the pairs' vertices ``own`` ``(u, 3)``, a new array: of ``sums`` over ``every`` vertex, else
+        ``sums`` itself (over ``own``)."""
+        return np.take(sums, self.own, axis=0) if every else sums.copy()
+
+    def _every_vertex(self) -> np.ndarray:
+        """The layout's vertices (every row of ``local``, the pairs' at their rows) as indices of every vertex, int32,
+        made once per batch (the packed kernel's where it reads the positions of every vertex)."""
+        if self._vertices_every is None:
+            self._vertices_every = np.take(self.own, self._local_vertices).astype(np.int32)
+        return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
                 device_gradient: bool) -> tuple:
@@ -496,3 +661,6 @@ def compile_kernels() -> None:
     batch = PairBatch(vt, ee)
     for derivatives in (False, True):
         batch.evaluate(x, derivatives)
+    batch.packed = True  # the packed launch too
+    for derivatives in (False, True):
+        batch.evaluate(x + 1e-5, derivatives)

@@ -342,8 +342,9 @@ class _PairPenalty:
     def keep_derivatives(self, x: np.ndarray) -> None:
         """Evaluate the pairs at positions ``x`` ``(n, 3)`` with distance derivatives and keep the result
         (:meth:`_evaluate`): the energy, gradient and Hessian at ``x`` then reuse it. The solver calls
-        this at a line search's first trial point, which once accepted is the next Newton iterate."""
-        self._evaluate(x, 2)
+        this at a line search's first trial point, which once accepted is the next Newton iterate. Distance
+        gradients kept on the device stay there (:attr:`PairEvaluation.dd` reads them when asked)."""
+        self._evaluation(x, 2)
 
     def distance(self, x: np.ndarray) -> np.ndarray:
         """Contact distance ``d`` of every pair in m, shape ``(p,)``."""

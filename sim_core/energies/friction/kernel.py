@@ -34,10 +34,11 @@ from sim_core.energies.contact.setup_kernel import tangent_basis
 from sim_core.energies.friction.reference import LaggedFriction
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device
+from sim_core.ti_kernels.buffers import (DeviceHessianBlocks, DeviceRows, LaunchArrays, copy_back, on_device,
+                                        rows_on_device)
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.device_copy import new_ndarray
-from sim_core.ti_kernels.transfer import same_shapes, upload
+from sim_core.ti_kernels.transfer import positions_on_device, same_shapes, upload
 from sim_core.unique import compact_indices, spread_rows
 from sim_core.workspace import workspace_of
 
@@ -164,13 +165,14 @@ def packed_size(rows: int, pairs: int, block_vertices: int, want: int) -> int:
 
 @fast_kernel
 def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
-                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1):
+                     coefficient: _F64_1, eps_u: ti.f64, want: ti.i32, out: _F64_1, pairs: ti.i32):
     """Per pair, in pair order, the parts ``want`` asks for (bits, runtime values: one compiled kernel for every
     request), packed into ``out`` (:func:`packed_size`: one array, so that a GPU launch's results come back in one
     copy): ``_ENERGY`` sets ``out[0] = sum_k c_k f0(|u_k|)`` (J), ``_GRADIENT`` sets ``out[1:1 + 3 n]`` to ``dE/dx``
     ``(n, 3)`` (N; zeroed, then the pairs' parts added), ``_HESSIAN`` writes the pair blocks ``(p, 3m, 3m)`` (N/m, PSD
-    by construction) after it, ``n = x.shape[0]``. The energy is written to an array rather than returned: a launch
-    then needs no synchronisation for a return value."""
+    by construction) after it, ``n = x.shape[0]``, over the first ``pairs`` rows of the pair arrays (which may have
+    more: device arrays kept at a capacity). The energy is written to an array rather than returned: a launch then
+    needs no synchronisation for a return value."""
     rows = x.shape[0]
     m = vertices.shape[1]
     start = 1 + 3 * rows  # of the blocks
@@ -180,7 +182,7 @@ def _friction_kernel(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_
     for i in range(3 * rows * ((want & _GRADIENT) // _GRADIENT)):
         out[1 + i] = 0.0
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(vertices.shape[0]):
+    for k in range(pairs):
         if want & _ENERGY:
             u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
             out[0] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
@@ -266,42 +268,70 @@ class TiLaggedFriction(LaggedFriction):
         np.multiply(self.mu, self.lam, out=arrays[-1])
         return arrays
 
-    def _launch(self, arrays: tuple, want: int) -> tuple[float, np.ndarray, np.ndarray]:
-        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays`): ``(energy, rows, blocks)``,
-        the energy (J; NaN unless ``want`` asks for it), the gradient's rows of the pairs' vertices ``self._own``
-        ``(u, 3)`` (N) and the blocks ``(p, 3m, 3m)`` (N/m), views of one new array (the parts ``want`` does not ask
-        for: not set, or empty)."""
+    def _launch(self, arrays: tuple, want: int, x: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+        """One launch of :func:`_friction_kernel` on ``arrays`` (:meth:`_kernel_arrays` of the positions ``x``):
+        ``(energy, rows, blocks)``, the energy (J; NaN unless ``want`` asks for it), the gradient's rows of the pairs'
+        vertices ``self._own`` ``(u, 3)`` (N) and the blocks ``(p, 3m, 3m)`` (N/m), views of one new array (the parts
+        ``want`` does not ask for: not set, or empty). On CUDA, where another term of the solver holds ``x`` on the
+        device (:func:`~sim_core.ti_kernels.transfer.positions_on_device`), the kernel reads them there, over every
+        vertex (the same sums at the pairs' vertices), instead of the pairs' vertices' positions being copied."""
         p, m = self.vertices.shape
         u = len(self._own)
-        size = packed_size(u, p, m, want)
-        if current_arch() == "cuda":
-            out = self._launch_on_device(arrays, want, size)
+        on_gpu = current_arch() == "cuda"
+        x_device = positions_on_device(workspace_of(self), x) if on_gpu and x is not None else None
+        rows = u if x_device is None else x.shape[0]
+        size = packed_size(rows, p, m, want)
+        if on_gpu:
+            out = self._launch_on_device(arrays, want, size, x_device)
         else:
             out = np.empty(size)
-            _friction_kernel(*arrays, self.eps_u, want, out)
+            _friction_kernel(*arrays, self.eps_u, want, out, p)
         energy = float(out[0]) if want & _ENERGY else float("nan")
-        rows = out[1:1 + 3 * u].reshape(-1, 3) if want & (_GRADIENT | _HESSIAN) else np.zeros((0, 3))
-        blocks = out[1 + 3 * u:size].reshape(p, 3 * m, 3 * m) if want & _HESSIAN else np.zeros((0, 3 * m, 3 * m))
-        return energy, rows, blocks
+        grad = out[1:1 + 3 * rows].reshape(-1, 3) if want & (_GRADIENT | _HESSIAN) else np.zeros((0, 3))
+        if x_device is not None and len(grad):
+            grad = np.take(grad, self._own, axis=0)
+        blocks = out[1 + 3 * rows:size].reshape(p, 3 * m, 3 * m) if want & _HESSIAN else np.zeros((0, 3 * m, 3 * m))
+        return energy, grad, blocks
 
-    def _launch_on_device(self, arrays: tuple, want: int, size: int) -> np.ndarray:
+    def _launch_on_device(self, arrays: tuple, want: int, size: int, x_device=None) -> np.ndarray:
         """:meth:`_launch`'s kernel with every argument a Taichi ndarray in device memory (a NumPy argument of a
         CUDA launch is copied to the device and back at each launch): the pairs, weights, tangent bases and
-        previous positions sent once per friction (:func:`~sim_core.ti_kernels.buffers.on_device`), the
+        previous positions sent once per friction into this thread's arrays of the frictions' capacity
+        (:func:`~sim_core.ti_kernels.buffers.rows_on_device`: no allocation per friction; the kernel reads ``p``
+        rows), the
         positions and coefficients at each launch, and the ``size`` entries of the packed output ``want`` asks for
         copied back in one copy, into a new host array (of the device array's length; only those entries
-        written) returned. The device arrays are kept per thread (:data:`_ARRAYS`) and reused by the next friction
-        where the shapes agree (the packed output grows only)."""
+        written) returned. ``x_device``: the positions of every vertex already on the device (read there, with
+        the pairs' vertices and every previous position, each sent once per friction), or None. The device arrays
+        are kept per thread (:data:`_ARRAYS`) and reused by the next friction where the shapes agree (the packed
+        output grows only)."""
         device = _ARRAYS.device()
         x, x_prev, vertices, weights, tangent, coefficient = arrays
         p, m = self.vertices.shape
-        packed = on_device(device, "packed", _ARRAYS.rows("packed", packed_size(len(self._own), p, m, _HESSIAN)),
-                           scratch=True)
-        _friction_kernel(on_device(device, "x", x, refresh=True, changed=True), on_device(device, "x_prev", x_prev),
-                         on_device(device, "vertices", vertices), on_device(device, "weights", weights),
-                         on_device(device, "tangent", tangent), self._device_coefficients(device, coefficient),
-                         self.eps_u, want, packed)
+        rows = len(self._own) if x_device is None else max(len(self._own), x_device.shape[0])
+        packed = on_device(device, "packed", _ARRAYS.rows("packed", packed_size(rows, p, m, _HESSIAN)), scratch=True)
+        if x_device is None:
+            x_arg = on_device(device, "x", x, refresh=True, changed=True)
+            x_prev_arg = rows_on_device(device, "rows_x_prev", x_prev)
+            vertices_arg = rows_on_device(device, "rows_vertices", vertices)
+        else:
+            every = self._every_vertex()
+            x_arg, x_prev_arg, vertices_arg = (x_device, on_device(device, "x_prev_every", every[0]),
+                                               rows_on_device(device, "rows_vertices_every", every[1]))
+        weights_arg, tangent_arg = (rows_on_device(device, "rows_weights", weights),
+                                    rows_on_device(device, "rows_tangent", tangent))
+        _friction_kernel(x_arg, x_prev_arg, vertices_arg, weights_arg, tangent_arg,
+                         self._device_coefficients(device, coefficient), self.eps_u, want, packed, p)
         return copy_back(np.empty(tuple(packed.shape)), packed, size)
+
+    def _every_vertex(self) -> tuple[np.ndarray, np.ndarray]:
+        """The previous positions of every vertex ``(n, 3)`` (m) and the pairs' vertices ``(p, m)`` (int32, indices of
+        every vertex), made once per friction (the kernel's arrays where it reads the positions of every vertex)."""
+        kept = getattr(self, "_every", None)
+        if kept is None:
+            kept = self._every = (np.ascontiguousarray(self.x_prev, dtype=np.float64),
+                                  np.ascontiguousarray(self.vertices, dtype=np.int32))
+        return kept
 
     def _device_coefficients(self, device: dict, coefficient: np.ndarray):
         """The device copy of the kept ``coefficient`` array ``c_k = mu_k lam_k``, sent again only when its
@@ -309,8 +339,8 @@ class TiLaggedFriction(LaggedFriction):
         sent = device.get("coefficient_sent")
         if sent is None or sent[0] is not coefficient or not np.array_equal(sent[1], coefficient):
             device["coefficient_sent"] = (coefficient, coefficient.copy())
-            return on_device(device, "coefficient", coefficient, refresh=True)
-        return on_device(device, "coefficient", coefficient)
+            return rows_on_device(device, "coefficient", coefficient, refresh=True)
+        return rows_on_device(device, "coefficient", coefficient)
 
     def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
         """Add :meth:`gradient` at ``x`` (N) into the Taichi ndarray ``gradient_device``; the energy (J) returned
@@ -393,7 +423,7 @@ class TiLaggedFriction(LaggedFriction):
         if not p:
             return
         arrays = self._kernel_arrays(x)
-        energy, grad, blocks = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN)
+        energy, grad, blocks = self._launch(arrays, _ENERGY | _GRADIENT | _HESSIAN, x)
         workspace_of(self).put(self, "derivatives", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, energy, grad, blocks))
 
     def _kept(self, arrays: tuple) -> tuple | None:
@@ -412,7 +442,7 @@ class TiLaggedFriction(LaggedFriction):
         kept = self._kept(arrays)
         if kept is not None:
             return kept[3]
-        return self._launch(arrays, _ENERGY)[0]
+        return self._launch(arrays, _ENERGY, x)[0]
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N (minus the friction force), shape ``(n, 3)``.
@@ -447,7 +477,7 @@ class TiLaggedFriction(LaggedFriction):
             workspace.put(self, "hessian", (kept[0], kept[1], kept[2], kept[5]))
             workspace.put(self, "gradient", (kept[0], kept[1], kept[2], kept[4]))
             return self._own, kept[4]
-        _, own_grad, blocks = self._launch(arrays, _GRADIENT | _HESSIAN)
+        _, own_grad, blocks = self._launch(arrays, _GRADIENT | _HESSIAN, x)
         kept_hessian = workspace.put(self, "hessian", (arrays[0].copy(), arrays[-1].copy(), self.eps_u, blocks))
         workspace.put(self, "gradient", kept_hessian[:3] + (own_grad,))
         return self._own, own_grad
@@ -470,7 +500,7 @@ class TiLaggedFriction(LaggedFriction):
         kept = workspace_of(self).take(self, "hessian")
         if kept is not None and self._matches(kept, arrays):
             return HessianBlocks(self.vertices, kept[3])
-        return HessianBlocks(self.vertices, self._launch(arrays, _HESSIAN)[2])
+        return HessianBlocks(self.vertices, self._launch(arrays, _HESSIAN, x)[2])
 
 
 def _host_rows(array, rows: int) -> np.ndarray:

@@ -8,6 +8,7 @@ import pytest
 
 from sim_core.workspace import workspace_of
 
+from tests.sim_core.ti_kernels.conftest import assert_same_sums
 from tests.sim_core.ti_kernels.test_contact_distance import EPS, _near_parallel_edges, _random_pairs
 
 K = 1.0e4
@@ -342,14 +343,65 @@ def test_the_kernels_list_of_active_pairs_is_read_in_increasing_row_order(ti_cpu
     assert [len(a) for a in _sorted_found(none, none, 1)] == [0, 0]
 
 
-@pytest.mark.parametrize("two_pass", [False, True])
+@pytest.mark.parametrize("device", [False, True])
+def test_packed_launches_equal_the_default_ones_bit_for_bit(ti_cpu, monkeypatch, device):
+    """``PairBatch.packed`` (CUDA's default for a single environment): every pair measured in one launch, its results
+    packed in pair order into one array read back in one copy (a second one when the active list outgrows the guess):
+    the evaluations equal the default launches' (values, then derivatives at new positions; derivatives at once;
+    pairs of one kind only), through device arrays too (``device``: the arch query answering "cuda" on the CPU arch,
+    whose serial loops keep the sums in pair order). Bit for bit on the CPU; on CUDA the sums to round-off
+    (``assert_same_sums``)."""
+    import importlib
+
+    from sim_core.energies.contact import batch_kernel as contact_batch
+
+    rng = np.random.default_rng(26)
+    for rows in ((slice(None), slice(None)), (slice(0, 0), slice(None)), (slice(None), slice(0, 0))):
+        x, linked, alone = _potentials(300, *rows)
+        points = [x + 0.1 * EPS * rng.normal(size=x.shape) for _ in range(3)]
+        expected = []
+        for y in points:
+            expected.append([(pot.energy(y), pot.active_mask(y), pot.gradient(y), pot.hessian(y, "none").blocks,
+                              pot.contact_frames(y).lam) for pot in alone])
+        monkeypatch.setattr(contact_batch.PairBatch, "packed", True)
+        if device:
+            for name in ("sim_core.ti_backend", "sim_core.energies.contact.batch_kernel"):
+                monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
+        calls = []
+        kernel = contact_batch._packed_kernel
+        monkeypatch.setattr(contact_batch, "_packed_kernel", lambda *a: (calls.append(a[11]), kernel(*a)))
+        contact_batch._ARRAYS.packed_guess = 0  # the first read too short: the rest read after it
+        for k, (y, exp) in enumerate(zip(points, expected)):
+            for pot, (energy, mask, grad, hess, lam) in zip(linked, exp):
+                if k != 1:  # the values first, then the derivatives of the same positions
+                    assert_same_sums(pot.energy(y), energy)
+                    np.testing.assert_array_equal(pot.active_mask(y), mask)
+                assert_same_sums(pot.gradient(y), grad)
+                blocks = pot.hessian(y, "none").blocks
+                assert blocks.shape == hess.shape
+                if hess.size:  # (a kind without active pairs: no blocks)
+                    assert_same_sums(blocks, hess)
+                assert_same_sums(pot.energy(y), energy)
+                frames = pot.contact_frames(y).lam
+                assert frames.shape == lam.shape
+                if lam.size:
+                    assert_same_sums(frames, lam)
+        assert calls == [0, 1, 1, 0, 1], calls
+        assert sum(int(np.count_nonzero(exp[1])) for exp in expected[0]) > 0
+        monkeypatch.undo()
+
+
+@pytest.mark.parametrize("two_pass", [False, True, "packed", "packed on device"])
 def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pairs(ti_cpu, monkeypatch, two_pass):
     """A batch over the layout of candidate lists (``PairBatch(layout=CandidateVertices.batch_layout(rows))``: every
     vertex-triangle candidate and some edge-edge ones, read as rows of the compaction of every candidate's vertices)
     gives the energies, gradients, active pairs, distances and Hessians of a batch over its own pairs (bit for bit on
-    the CPU's serial sums), in one launch or two; a second step's batch over the same lists with other edge-edge rows
-    and sides shares the first's vertex indices and their device cache. A layout whose first rows are not the
-    vertex-triangle pairs is refused."""
+    the CPU's serial sums), in one launch or two, or in the packed launch (``PairBatch.packed``, the laid batch only;
+    "on device": the arch query answering "cuda" on the CPU arch, the device arrays' paths); a second step's batch over
+    the same lists with other edge-edge rows and sides shares the first's vertex indices and their device cache. A
+    layout whose first rows are not the vertex-triangle pairs is refused."""
+    import importlib
+
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
     from sim_core.energies.contact.pair_lists import CandidateVertices
@@ -360,7 +412,11 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
     lists = CandidateVertices(vt_list, ee_list, triangles, edges)
     rng = np.random.default_rng(25)
     y = x + 0.1 * EPS * rng.normal(size=x.shape)
-    monkeypatch.setattr(PairBatch, "two_pass", two_pass)
+    packed = two_pass in ("packed", "packed on device")
+    monkeypatch.setattr(PairBatch, "two_pass", False if packed else two_pass)
+    if two_pass == "packed on device":
+        for name in ("sim_core.ti_backend", "sim_core.energies.contact.batch_kernel"):
+            monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
     batches = []
     for keep in (rng.random(len(ee_list)) > 0.3, rng.random(len(ee_list)) > 0.5):
         rows = np.flatnonzero(keep)
@@ -371,6 +427,7 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
             pots = (TiVertexTriangleContact(vt_list, triangles, vt_sides, K, EPS, vertices=lists.vt_vertices),
                     TiEdgeEdgeContact(ee_list[rows], edges, ee_sides, K, EPS, vertices=lists.ee_vertices[rows]))
             batches.append(PairBatch(*pots, layout=layout))
+            batches[-1].packed = packed and layout is not None  # (the batch over its own pairs: the default launches)
             return pots
 
         laid, own = make(lists.batch_layout(rows)), make()

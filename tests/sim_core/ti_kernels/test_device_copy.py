@@ -155,3 +155,33 @@ def test_pinned_blocks_are_reused_only_once_no_array_over_them_is_left(ti_cpu):
     for _ in range(20):  # b, c and d held: one more block, taken and dropped over again
         blocks.take()
     assert blocks.allocated == 4 and not np.shares_memory(b, c) and not np.shares_memory(c, d)
+
+
+def test_rows_on_device_keeps_one_array_of_the_owners_capacity(ti_cpu, monkeypatch):
+    """``buffers.rows_on_device`` (the CUDA branch, run on the CPU arch): the first rows of a kept ndarray hold the
+    host array; the same object again is neither copied nor reallocated, another object of no more rows is copied into
+    the same ndarray (the rows after it left as they are), a longer one gets a new ndarray of twice the rows at least;
+    ``refresh`` copies an array edited in place; ``to_device`` with ``rows`` copies that prefix only."""
+    import sim_core.ti_backend as backend
+    from sim_core.ti_kernels import buffers, device_copy
+
+    monkeypatch.setattr(backend, "current_arch", lambda: "cuda")
+    kept: dict = {}
+    first = np.arange(40, dtype=np.int32).reshape(10, 4)
+    dev = buffers.rows_on_device(kept, "v", first)
+    assert tuple(dev.shape) == (16, 4) and np.array_equal(dev.to_numpy()[:10], first)
+    copies = []
+    monkeypatch.setattr(device_copy, "_copy", lambda *a, _copy=device_copy._copy: (copies.append(a[3]), _copy(*a))[1])
+    assert buffers.rows_on_device(kept, "v", first) is dev and copies == []
+    second = -np.arange(12, dtype=np.int32).reshape(3, 4)
+    assert buffers.rows_on_device(kept, "v", second) is dev and copies == [3]
+    assert np.array_equal(dev.to_numpy()[:3], second) and np.array_equal(dev.to_numpy()[3:10], first[3:])
+    second[0, 0] = 99
+    assert buffers.rows_on_device(kept, "v", second, refresh=True) is dev and dev.to_numpy()[0, 0] == 99
+    longer = np.ones((20, 4), dtype=np.int32)
+    grown = buffers.rows_on_device(kept, "v", longer)
+    assert grown is not dev and tuple(grown.shape) == (32, 4) and np.array_equal(grown.to_numpy()[:20], longer)
+    assert buffers.rows_on_device(kept, "w", np.zeros((0, 3))).shape == (16, 3)
+    monkeypatch.setattr(backend, "current_arch", lambda: "cpu")
+    other: dict = {}
+    assert buffers.rows_on_device(other, "v", first) is first and other == {}

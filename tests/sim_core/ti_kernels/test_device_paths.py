@@ -1,6 +1,7 @@
 """The CUDA launch paths of the contact, friction and broad-phase kernels' callers (device arrays kept by
-``buffers.on_device``, outputs copied back) give the host path's Forming steps; run here on the CPU arch with
-the arch query answering "cuda" (the loops stay serial, so the sums are the same: bit for bit)."""
+``buffers.on_device``, outputs copied back; the positions read where the fused elastic terms copied them, or
+copied by each) give the host path's Forming steps; run here on the CPU arch with the arch query answering "cuda"
+(the loops stay serial, so the sums are the same: bit for bit)."""
 
 from __future__ import annotations
 
@@ -21,24 +22,33 @@ _CALLERS = ("sim_core.ti_backend", "sim_core.energies.friction.kernel", "sim_cor
 def test_device_launch_paths_equal_the_host_paths(ti_cpu, monkeypatch):
     import importlib
 
-    runs = []
-    for device in (False, True):
-        if device:
-            for name in _CALLERS:
-                monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
-        sim, iterations = _forming_steps("taichi-cpu", 5)
-        runs.append((sim.state.x.copy(), iterations))
-    (x_host, it_host), (x_device, it_device) = runs
-    assert it_device == it_host and sum(it_host) > 5
-    np.testing.assert_array_equal(x_device, x_host)
     from sim_core.energies.contact import batch_kernel, setup_kernel
     from sim_core.energies.friction import kernel as friction_kernel
     from sim_core.ti_backend import ti
 
-    # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
-    for module, names in ((friction_kernel, {"x", "x_prev", "coefficient", "packed"}),
-                          (batch_kernel, {"pair_rows", "d", "region", "gradients"}),
-                          (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
-        kept = module._ARRAYS.device()
-        assert names <= set(kept), module.__name__
-        assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)
+    runs = []
+    for device, offered in ((False, False), (True, True), (True, False)):
+        if device:
+            for name in _CALLERS:
+                monkeypatch.setattr(importlib.import_module(name), "current_arch", lambda: "cuda")
+        if device and not offered:  # the friction's and pair batch's own copies of the positions, not the fused terms'
+            monkeypatch.setattr(friction_kernel, "positions_on_device", lambda workspace, x: None)
+            monkeypatch.setattr(batch_kernel, "positions_on_device", lambda workspace, x: None)
+        sim, iterations = _forming_steps("taichi-cpu", 5)
+        runs.append((sim.state.x.copy(), iterations))
+        if device:
+            # the device paths ran: their per-thread caches hold Taichi ndarrays of the launches' arrays
+            own = {"x", "rows_vertices"} if not offered else {"x_prev_every", "rows_vertices_every"}
+            own |= {"coefficient", "packed", "rows_weights", "rows_tangent"}
+            pairs = {"packed_sides", "packed_rows"} | ({"packed_vertices_every"} if offered else set())
+            for module, names in ((friction_kernel, own),
+                                  (batch_kernel, pairs | {"packed", "d", "region", "gradients", "slots"}),
+                                  (setup_kernel, {"5:_friction_frames_kernel", "5:_geometry_kernel"})):
+                kept = module._ARRAYS.device()
+                assert names <= set(kept), module.__name__
+                assert all(isinstance(kept[name][1], ti.lang._ndarray.ScalarNdarray) for name in names)
+    (x_host, it_host), *device_runs = runs
+    assert sum(it_host) > 5
+    for x_device, it_device in device_runs:
+        assert it_device == it_host
+        np.testing.assert_array_equal(x_device, x_host)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim_core.ti_backend import ti
-from tests.sim_core.ti_kernels.conftest import assert_same_sums
+from tests.sim_core.ti_kernels.conftest import TEST_ARCH, assert_same_sums
 
 _F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
@@ -327,3 +327,48 @@ def test_summing_kernel_cells_spread_the_sum_and_are_zeroed_before_each_launch(t
         with sums:  # the block's cells again, zeroed
             summed(x)
         assert_same_sums(sums.values()[0], in_order, rel=1e-14)
+
+
+def test_shared_deferred_sums_read_one_sum_array_once(ti_cpu, monkeypatch):
+    """``DeferredSums(shared=True)``: where the sum arrays have several cells (a GPU's; here host arrays of 4 cells),
+    every launch of a block adds into one array, zeroed once, and ``total()`` is the plain calls' sum (to round-off:
+    the terms in another order) read in one copy; ``values()`` is refused then. With one cell (the CPU's) each launch
+    keeps its own cell: ``values()`` are the plain calls' sums and ``total()`` their sum in launch order."""
+    from sim_core.ti_kernels import launch
+    from sim_core.ti_kernels.launch import DeferredSums, summing_kernel
+
+    def squares(x: _F64_1, w: _F64_1, energy: _F64_1):
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            energy[k % energy.shape[0]] += w[k] * x[k] * x[k]
+
+    summed = summing_kernel(squares)
+    rng = np.random.default_rng(9)
+    x, y, w = rng.normal(size=50), rng.normal(size=50), rng.uniform(0.5, 2.0, size=50)
+    plain = [summed(x, w), summed(y, w), summed(x, w)]
+    if TEST_ARCH == "cpu":  # the CPU's one-cell arrays: not shared
+        alone = DeferredSums(shared=True)
+        with alone:
+            summed(x, w)
+            summed(y, w)
+            summed(x, w)
+        assert not alone.sharing and alone.values() == plain and alone.total() == (plain[0] + plain[1]) + plain[2]
+    monkeypatch.setattr(launch, "_new_cells", lambda runtime: np.zeros(4))
+    reads = []
+    cells_sum = launch._cells_sum
+    monkeypatch.setattr(launch, "_cells_sum", lambda array: (reads.append(array), cells_sum(array))[1])
+    shared = DeferredSums(shared=True)
+    for _ in range(2):  # the array zeroed again by the next block
+        with shared:
+            returned = [summed(x, w), summed(y, w), summed(x, w)]
+        assert shared.sharing and shared.launches == 3 and all(np.isnan(r) for r in returned)
+        reads.clear()
+        assert shared.total() == pytest.approx(sum(plain), rel=1e-13, abs=0.0)
+        assert len(reads) == 1
+        with pytest.raises(RuntimeError, match="total"):
+            shared.values()
+    separate = DeferredSums()
+    with separate:
+        summed(x, w)
+        summed(y, w)
+    assert not separate.sharing and separate.values() == pytest.approx(plain[:2], rel=1e-13, abs=0.0)
