@@ -114,7 +114,9 @@ def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
     from sim_core.fused_elastic import FusedElastic
 
     if ti_cpu == "cuda":
-        pytest.skip("the reference is the NumPy-argument path, which runs on the CPU arch only")
+        pytest.skip("emulates the CUDA path on the CPU arch (the arch query patched) to compare it with the "
+                    "NumPy-argument path, which only the CPU arch runs; under THINSHELL_TEST_ARCH=cuda the real "
+                    "device path runs in this file's other tests (each copy's own energy, the sum by copy)")
     copies = 2
     parts = [_potential(kind, copies) for kind in ("snh", "spring_membrane", "kirchhoff")]
     offsets = np.cumsum([0] + [x.shape[0] for _, x, _ in parts])
