@@ -5,7 +5,9 @@ hold every close pair at an iterate ``x``: from the displacements ``u = x - x_se
 ``|u|`` over all vertices and, per body segment (a run of vertices) and axis, the largest and smallest ``u``.
 :class:`DisplacementBounds` computes these where a Taichi ndarray of ``x`` is (device memory on CUDA: the
 lockstep batch's iterates) and reads back one small array (segments + 1 rows of 7 numbers) instead of
-reading every position on the host. Two launches: per chunk of at most :data:`CHUNK` vertices of one segment,
+reading every position on the host. Two launches, every array argument in device memory on CUDA (the chunk and
+segment tables are sent once, with :func:`~sim_core.ti_kernels.buffers.on_device`: a NumPy argument of a CUDA launch
+is copied to the device and back, and waited for, at each launch): per chunk of at most :data:`CHUNK` vertices of one segment,
 its bounds (:func:`_chunk_bounds`); per segment, those of its chunks (:func:`_segment_bounds`). Maxima and
 minima are exact (no rounding, any order), and ``u`` is the host's ``x - x_search`` entry by entry, so the
 bounds equal the host's ``np.maximum.reduceat`` / ``np.minimum.reduceat`` bit for bit where they are finite; a
@@ -19,6 +21,7 @@ import numpy as np
 
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import linalg
+from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
@@ -112,6 +115,7 @@ class DisplacementBounds:
         self._out = new_ndarray(ti.f64, (self.segments + 1, 8))
         self._host = np.empty((self.segments + 1, 8))
         self._search = None  # (x_search, its ndarray) of the last upload
+        self._device: dict = {}  # on CUDA: the device copies of the chunk and segment tables (buffers.on_device)
 
     def __call__(self, x_search: np.ndarray, x_device, kept: bool) -> tuple[np.ndarray, np.ndarray, float]:
         """``(high, low, largest)``: per segment and axis the largest and smallest ``u`` ``(s, 3)`` (m; NaN in a
@@ -134,8 +138,10 @@ class DisplacementBounds:
             array = search[1] if search is not None else new_ndarray(ti.f64, (self.n, 3))
             upload(array, x_search)
             search = self._search = (x_search if kept else None, array)
-        _chunk_bounds(x_device, search[1], self._chunk_start, self._chunk_bounds)
-        _segment_bounds(self._chunk_bounds, self._first_chunk, self._stop_chunk, self._out)
+        dev = self._device
+        _chunk_bounds(x_device, search[1], on_device(dev, "chunk_start", self._chunk_start), self._chunk_bounds)
+        _segment_bounds(self._chunk_bounds, on_device(dev, "first_chunk", self._first_chunk),
+                        on_device(dev, "stop_chunk", self._stop_chunk), self._out)
         out = download(self._out, self._host)
         segments = out[:-1]
         nan = segments[:, _NAN] > 0.0

@@ -18,12 +18,25 @@ def _on_device(x: np.ndarray):
     return upload(new_ndarray(ti.f64, x.shape), x)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_bounds_equal_the_hosts_per_segment_and_flag_nan(ti_cpu, seed):
+@pytest.mark.parametrize("seed, device_tables", [(0, False), (1, False), (0, True)])
+def test_bounds_equal_the_hosts_per_segment_and_flag_nan(ti_cpu, monkeypatch, seed, device_tables):
     """Per segment and axis the largest and smallest ``x - x_search`` and the largest ``|x - x_search|`` equal
     NumPy's ``reduceat`` bit for bit (segments longer than a chunk, vertices before the first segment counted
-    in the largest only); a NaN coordinate makes its segment's bounds and the largest NaN, no other's."""
+    in the largest only); a NaN coordinate makes its segment's bounds and the largest NaN, no other's. With
+    ``device_tables`` the arch query answers "cuda" (the CPU arch's loops stay serial): the chunk and segment
+    tables are Taichi ndarrays sent once, no NumPy argument reaches a launch, and the bounds are the same."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import displacement_bounds as module
     from sim_core.ti_kernels.displacement_bounds import CHUNK, DisplacementBounds
+
+    if device_tables:
+        import sim_core.ti_backend
+
+        monkeypatch.setattr(sim_core.ti_backend, "current_arch", lambda: "cuda")
+        launches = []
+        for name in ("_chunk_bounds", "_segment_bounds"):
+            kernel = getattr(module, name)
+            monkeypatch.setattr(module, name, lambda *a, kernel=kernel: (launches.append(a), kernel(*a))[1])
 
     rng = np.random.default_rng(seed)
     n = 3 * CHUNK + 77
@@ -43,6 +56,12 @@ def test_bounds_equal_the_hosts_per_segment_and_flag_nan(ti_cpu, seed):
     assert np.all(np.isnan(high[2])) and np.all(np.isnan(low[2]))
     others = [0, 1, 3]
     np.testing.assert_array_equal(high[others], np.maximum.reduceat(moved, starts, axis=0)[others])
+    if device_tables:
+        assert len(launches) == 4 and not any(isinstance(a, np.ndarray) for args in launches for a in args)
+        tables = {name: entry[1] for name, entry in bounds._device.items()}
+        assert set(tables) == {"chunk_start", "first_chunk", "stop_chunk"}
+        assert all(isinstance(t, ti.lang._ndarray.ScalarNdarray) for t in tables.values())
+        assert launches[2][2] is tables["chunk_start"] and launches[3][1] is tables["first_chunk"]  # sent once
     with pytest.raises(ValueError, match="increase"):
         DisplacementBounds(n, np.array([4, 4]))
 
