@@ -58,7 +58,8 @@ def _firsts(ordered: np.ndarray) -> np.ndarray:
     return first
 
 
-def compact_indices(indices: np.ndarray, dtype: type = np.int64) -> tuple[np.ndarray, np.ndarray]:
+def compact_indices(indices: np.ndarray | tuple[np.ndarray, ...],
+                    dtype: type = np.int64) -> tuple[np.ndarray, np.ndarray]:
     """The distinct values of non-negative integer ``indices`` and each index's position among them, as
     ``np.unique(indices, return_inverse=True)`` (the inverse in ``indices``' shape), from a presence mask
     of length ``max + 1`` instead of a sort: ``O(k + max)``; a stacked batch's contact pairs name a
@@ -66,27 +67,45 @@ def compact_indices(indices: np.ndarray, dtype: type = np.int64) -> tuple[np.nda
     ``np.take`` from a table of ``dtype`` (int32 for a kernel's indices: half the bytes written, and no
     conversion pass after).
 
+    ``indices`` may also be a tuple of arrays with the same trailing shape, read as their concatenation along the
+    first axis (``np.concatenate(indices)``): each part's positions are gathered by its own indices into their rows
+    of one array, with no concatenated copy of the indices (a gather by int32 indices first converts them to int64:
+    a temporary of their size; the contact set's int64 pair vertices are gathered as they are).
+
     Args:
-        indices: integer array of any shape, values ``>= 0``.
+        indices: integer array of any shape, values ``>= 0``; or a tuple of such arrays, at least 1-D, with equal
+            shapes after the first axis.
         dtype: the positions' integer dtype (``np.int64`` or ``np.int32``; int32 needs fewer than 2**31 values).
 
     Returns:
         ``(own, local)``: ``own`` int64 ``(u,)`` sorted distinct values; ``local`` of ``dtype`` and of ``indices'``
-        shape, ``own[local] == indices``.
+        shape (of the concatenation's for a tuple), ``own[local] == indices``.
 
     Raises:
-        ValueError: a negative index.
+        ValueError: a negative index, or parts of unequal trailing shapes.
     """
-    indices = np.asarray(indices)
-    if indices.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(indices.shape, dtype=dtype)
-    if indices.min() < 0:
+    parts = tuple(np.asarray(part) for part in indices) if isinstance(indices, tuple) else (np.asarray(indices),)
+    if len(parts) > 1 and any(part.ndim < 1 or part.shape[1:] != parts[0].shape[1:] for part in parts):
+        raise ValueError("compact_indices: parts must be at least 1-D with equal shapes after the first axis")
+    shape = ((sum(len(part) for part in parts),) + parts[0].shape[1:]) if len(parts) > 1 else parts[0].shape
+    filled = [part for part in parts if part.size]
+    if not filled:
+        return np.zeros(0, dtype=np.int64), np.zeros(shape, dtype=dtype)
+    if min(int(part.min()) for part in filled) < 0:
         raise ValueError("compact_indices: indices must be >= 0")
-    named = np.zeros(int(indices.max()) + 1, dtype=bool)
-    named[indices.ravel()] = True
+    named = np.zeros(max(int(part.max()) for part in filled) + 1, dtype=bool)
+    for part in filled:
+        named[part.ravel()] = True
     position = np.cumsum(named, dtype=dtype)
     position -= 1
-    return np.flatnonzero(named), np.take(position, indices)
+    if len(parts) == 1:
+        return np.flatnonzero(named), np.take(position, parts[0])
+    local = np.empty(shape, dtype=dtype)
+    start = 0
+    for part in parts:
+        np.take(position, part, out=local[start:start + len(part)])
+        start += len(part)
+    return np.flatnonzero(named), local
 
 
 def spread_rows(own: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:

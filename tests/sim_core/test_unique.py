@@ -62,6 +62,31 @@ def test_compact_indices_are_np_unique_with_the_inverse_in_the_input_shape():
         compact_indices(np.array([[0, -1]]))
 
 
+def test_compact_indices_of_parts_equal_those_of_their_concatenation():
+    """A tuple of index arrays (int64, int32, an empty part, the largest index in the second) gives what their
+    concatenation gives, bit for bit and in the same dtypes; parts of unequal trailing shapes and a negative index
+    in any part are refused."""
+    from sim_core.unique import compact_indices
+
+    rng = np.random.default_rng(5)
+    parts = (rng.integers(0, 3000, size=(400, 4)), np.zeros((0, 4), dtype=np.int64),
+             rng.integers(2000, 6000, size=(300, 4)))
+    for dtype in (np.int64, np.int32):
+        for cast in (np.int64, np.int32):
+            cast_parts = tuple(part.astype(cast) for part in parts)
+            own, local = compact_indices(cast_parts, dtype=dtype)
+            own_c, local_c = compact_indices(np.concatenate(cast_parts), dtype=dtype)
+            assert own.dtype == own_c.dtype and local.dtype == local_c.dtype == dtype and local.shape == (700, 4)
+            np.testing.assert_array_equal(own, own_c)
+            np.testing.assert_array_equal(local, local_c)
+    empty = compact_indices((np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4), dtype=np.int64)), dtype=np.int32)
+    assert empty[0].shape == (0,) and empty[1].shape == (0, 4) and empty[1].dtype == np.int32
+    with pytest.raises(ValueError, match="equal shapes"):
+        compact_indices((np.zeros((2, 4), dtype=np.int64), np.zeros((2, 2), dtype=np.int64)))
+    with pytest.raises(ValueError, match="must be >= 0"):
+        compact_indices((parts[0], np.array([[1, 2, -3, 4]])))
+
+
 def test_spread_rows_inverts_the_gather_of_compact_indices():
     """Rows gathered on the named indices and spread back give the full array on those rows, zero elsewhere."""
     from sim_core.unique import compact_indices, spread_rows

@@ -71,8 +71,7 @@ class CandidateVertices:
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
         first use and kept."""
         if self._compact is None:
-            self._compact = compact_indices(np.concatenate([self.vt_vertices, self.ee_vertices], dtype=np.int32),
-                                            dtype=np.int32)
+            self._compact = compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32)
         own, local = self._compact
         p = len(self.vt_vertices)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
