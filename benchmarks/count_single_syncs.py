@@ -1,6 +1,12 @@
-"""Count the host-device round trips of a single Forming environment's CUDA path, emulated on the CPU arch.
+"""Count the host-device round trips of a single Forming environment's CUDA path, emulated on the CPU arch (or of a
+lockstep batch's, ``--B``).
 
-Usage: ``python benchmarks/count_single_syncs.py [--steps 10] [--top 25] [--arch cpu|cuda]``.
+Usage: ``python benchmarks/count_single_syncs.py [--steps 10] [--top 25] [--arch cpu|cuda] [--B 64]``.
+
+``--B`` counts a lockstep batch of ``B`` Forming copies instead (``bench.batch._FormingRun`` with the batched CG, as on
+CUDA), per Newton iteration, by the Newton loop's phase that asked (the stacked gradient, the line search, the
+direction, the step's set-up and finish: the outermost of them on the stack) and by caller; the first step (set-up
+included) is not counted.
 
 The arch query of every loaded ``sim_core`` module answers "cuda" (as ``tests/sim_core/ti_kernels/test_device_paths.py``
 does; the Taichi program runs on the CPU arch, so the kernels' loops stay serial), the summing kernels' sum arrays
@@ -47,6 +53,7 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--arch", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--B", type=int, default=0, help="count a lockstep batch of B copies (0: one environment)")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend
 
@@ -62,6 +69,7 @@ def main() -> int:
     counts: collections.Counter = collections.Counter()
     seconds: collections.Counter = collections.Counter()
     enabled = [False]
+    phase = ["step"]  # the lockstep phase that asked (--B)
     skip = ("ti_kernels/device_copy", "ti_kernels/transfer", "ti_kernels/buffers", "ti_kernels/launch")
 
     def timed(kind, call):
@@ -73,7 +81,7 @@ def main() -> int:
             return call()
         finally:
             spent = time.perf_counter() - t0  # (the caller's look-up below is not counted)
-            key = (kind, _caller(skip))
+            key = (kind, f"{phase[0]:16s} {_caller(skip)}" if args.B else _caller(skip))
             counts[key] += 1
             seconds[key] += spent
 
@@ -104,7 +112,10 @@ def main() -> int:
     scene = bundled_scene("forming")
     if args.arch == "cpu":  # the emulation: every arch query but the byte copies' answers "cuda"
         device_copy.current_arch = lambda: "cpu"
-        run_forming(scene, 2, arch="cpu")  # compile, import
+        if args.B:
+            _lockstep_run(1, 2, "cpu").run()  # compile, import
+        else:
+            run_forming(scene, 2, arch="cpu")  # compile, import
         query = ti_backend.current_arch
         for module in list(sys.modules.values()):
             if getattr(module, "__name__", "").startswith("sim_core") and module is not device_copy \
@@ -113,8 +124,15 @@ def main() -> int:
         for module in list(sys.modules.values()):
             if getattr(module, "new_ndarray", None) is new:
                 module.new_ndarray = counted_new
+    elif args.B:
+        _lockstep_run(1, 2, args.arch).run()  # compile, caches
+        for module in list(sys.modules.values()):  # (the modules the run imported)
+            if getattr(module, "new_ndarray", None) is new:
+                module.new_ndarray = counted_new
     else:
         run_forming(scene, args.steps, arch=args.arch)  # compile, caches
+    if args.B:
+        return _count_lockstep(args, counts, seconds, enabled, phase)
     from sim_core.simulation import Simulation
 
     step = Simulation.step
@@ -132,19 +150,77 @@ def main() -> int:
     wall = result["forward_total_s"]
     print(f"{steps} steps, {result['newton_iters_mean']:.2f} Newton iterations a step, "
           f"{1e3 * wall / steps:.2f} ms a step ({result['steps_per_s']:.2f} steps/s)")
+    _print_counts(counts, seconds, steps, "step", args.top)
+    return 0
+
+
+def _lockstep_run(B: int, steps: int, arch: str):
+    """A lockstep Forming batch of ``B`` copies for ``steps`` steps (``bench.batch._FormingRun``), with the batched CG
+    (what a lockstep batch takes on CUDA) on the CPU arch too."""
+    import sim_core.solver_config as sc
+    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
+
+    orig = sc.SolverConfig
+    sc.SolverConfig = lambda **kw: orig(**kw, **({"linear_solver": "pcg"} if kw.get("lockstep") else {}))
+    try:
+        return _FormingRun(B, steps, ARCH_BACKENDS[arch], lockstep=True)
+    finally:
+        sc.SolverConfig = orig
+
+
+def _count_lockstep(args, counts, seconds, enabled: list, phase: list) -> int:
+    """``--B``: step a lockstep batch, the first step uncounted, then ``args.steps`` steps counted by phase."""
+    from sim_core.batch import lockstep
+    from sim_core.batch.line_search import CopyLineSearch
+    from sim_core.control import Control
+    from sim_core.solver import NewtonSolver
+
+    run = _lockstep_run(args.B, args.steps + 1, args.arch)
+    for cls, name, label in ((lockstep.LockstepSolver, "_stacked_gradient", "stacked_gradient"),
+                             (CopyLineSearch, "_line_search_copies", "line_search"),
+                             (lockstep.LockstepSolver, "_direction", "direction"),
+                             (NewtonSolver, "_set_up_step", "set_up"), (NewtonSolver, "_finish_step", "finish")):
+        def tagged(*a, raw=vars(cls)[name], label=label, **k):
+            outer = phase[0]
+            phase[0] = label if outer == "step" else outer
+            try:
+                return raw(*a, **k)
+            finally:
+                phase[0] = outer
+
+        setattr(cls, name, tagged)
+    run.batch.warm_up()
+    iterations, wall = 0, 0.0
+    for k in range(args.steps + 1):
+        enabled[0] = k > 0
+        t = time.perf_counter()
+        run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
+        enabled[0] = False
+        info = run.batch.lockstep.solver.last_stacked_info
+        if k > 0:
+            iterations += info.iterations
+            wall += time.perf_counter() - t
+    print(f"B={args.B}: {args.steps} steps, {iterations} Newton iterations, {1e3 * wall / max(iterations, 1):.1f} ms "
+          f"an iteration (with the counting)")
+    _print_counts(counts, seconds, max(iterations, 1), "Newton iteration", args.top)
+    return 0
+
+
+def _print_counts(counts, seconds, per: int, unit: str, top: int) -> None:
+    """The counts and seconds by kind, then by caller, per ``unit`` (``per`` of them)."""
+    steps = per
     kinds, kind_s = collections.Counter(), collections.Counter()
     for (kind, _), n in counts.items():
         short = kind.split(" ")[0] if kind.startswith("numpy launch") else kind
         kinds[short] += n
         kind_s[short] += seconds[(kind, _)]
     for kind, n in sorted(kinds.items()):
-        print(f"{kind:28s} {n / steps:8.1f} a step {1e3 * kind_s[kind] / steps:8.3f} ms a step")
+        print(f"{kind:28s} {n / steps:8.1f} a {unit} {1e3 * kind_s[kind] / steps:8.3f} ms a {unit}")
     syncs = sum(n for kind, n in kinds.items() if kind in ("download", "upload", "numpy"))  # (a sum read: a download)
-    print(f"{'round trips (sync)':28s} {syncs / steps:8.1f} a step")
-    print("by caller (a step: calls, ms):")
-    for (kind, where), n in counts.most_common(args.top):
+    print(f"{'round trips (sync)':28s} {syncs / steps:8.1f} a {unit}")
+    print(f"by caller (a {unit}: calls, ms):")
+    for (kind, where), n in counts.most_common(top):
         print(f"  {n / steps:6.1f} {1e3 * seconds[(kind, where)] / steps:7.3f}  {kind:34s} {where}")
-    return 0
 
 
 if __name__ == "__main__":
