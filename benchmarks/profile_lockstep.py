@@ -298,11 +298,13 @@ def _wrap_parts(backend: str) -> dict:
     parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs"), (PairBatch, "__init__"),
               (PairBatch, "_launch"), (pair_lists.CandidateVertices, "__init__"),
               (pair_lists.CandidateVertices, "batch_indices"), (setup_kernel, "friction_frames"),
-              (pair_lists, "lookup_pairs"), (pair_lists, "merge_rows")]
+              (pair_lists, "lookup_pairs"), (pair_lists, "merge_rows"), (pair_lists.CandidateVertices, "batch_layout"),
+              (pair_lists.CandidateVertices, "keys"), (setup_kernel, "pair_codes")]
     if backend != "numpy":
         from sim_core.energies.contact import batch_kernel
+        from sim_core.ti_kernels.displacement_bounds import DisplacementBounds
 
-        parts += [(batch_kernel, "_sorted_found"), (PairBatch, "_device_arguments")]
+        parts += [(batch_kernel, "_sorted_found"), (PairBatch, "_device_arguments"), (DisplacementBounds, "__call__")]
     # the step's host work outside the Newton loop, and the synchronous copies to and from the device
     from sim_core.batch.stacked import StackedScene
     from sim_core.elastic import ElasticTerms
