@@ -282,6 +282,7 @@ def _wrap_parts(backend: str) -> dict:
     parts += [(cls, "copy_energies") for cls in (LumpedQuadratic, FusedElastic, _PairPenalty, LaggedFriction,
                                                  PlaneContact, SphereContact, FusedKirchhoffBending,
                                                  FusedSpringMembrane, FusedStableNeoHookean)]
+    parts += [(cls, "add_copy_energies_on_device") for cls in (LumpedQuadratic, FusedElastic, TiLaggedFriction)]
     from sim_core.batch import iterates
     from sim_core.batch.copy_runs import CopyRuns  # the per-copy reductions over the stacked arrays (host NumPy)
 
@@ -296,6 +297,10 @@ def _wrap_parts(backend: str) -> dict:
         parts += [(CopyVectors, n) for n in ("dot", "largest_abs", "largest_norm", "blend", "moved", "download",
                                              "upload", "add", "add_rows", "zero_dofs", "copy", "new")]
         parts += [(LumpedQuadratic, "add_gradient_on_device")]
+        from sim_core.ti_kernels import copy_vectors
+
+        copy_sums = getattr(copy_vectors, "CopySums", None)  # the per-copy energies' one read (where there is one)
+        parts += [(copy_sums, "read")] if copy_sums is not None else []
     parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
     # the contact set's own parts: the search, the step's potentials and pair batch, friction set-up, the step's end
     from sim_core import contact_set
