@@ -309,8 +309,8 @@ class CopySums:
     host array beside them.
 
     The sums keep what was added until :meth:`zero`. Within ``with sums:`` (one block at a time on a thread),
-    :func:`copy_energies` adds its element terms into these sums and returns zeros, so that a term made of several summing kernels (the fused elastic parts) adds them all
-    here without a read each.
+    :func:`copy_energies` adds its element terms into these sums and returns zeros, so that a term made of several
+    summing kernels (the fused elastic parts) adds them all here without a read each.
 
     Args:
         copy_of_vertex: the copy of each stacked vertex, int ``(N,)`` (its int32 device copy is made once:

@@ -15,8 +15,8 @@ import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
 from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceCopyEnergies,
-                                    DeviceGradient, DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
-                                    SparseGradient, SubsetHessian)
+                                    DeviceGradient, DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives,
+                                    PenaltyContact, Potential, SparseGradient, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
