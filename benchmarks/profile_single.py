@@ -15,6 +15,12 @@ of the Newton loop. Parts:
   (memset) of :mod:`sim_core.ti_kernels.device_copy`;
 - ``linear solve``: the symmetric solver's ``factorize`` / ``solve`` and the general LU's.
 
+With ``--phases`` the trajectory runs once more with inclusive wall-clock timers (each call timed whole, nested
+ones too) on the Newton loop's parts (``NewtonSolver._gradient``, ``_newton_direction``, ``_line_search``, ...), the
+linear solver, the fused elastic terms, the contact set, the pair batch and pair terms, the friction, the device
+copies and the kernel launches: calls a step, ms a step and us a call of each, to set the CUDA and CPU paths side by
+side (docs/benchmarks_log.md, session 45, 28single).
+
 Also printed: kernel calls and NumPy array arguments per step; with ``--kernel-profiler`` Taichi's
 per-kernel device time (it synchronises every launch: the timed run is then slower than the bench's);
 a launch micro-benchmark (one kernel, one array of 5,094 float64 passed as a NumPy array vs as a
@@ -66,6 +72,63 @@ class _Parts:
         self.arrays = 0
 
 
+def _phase_timers() -> dict[str, list]:
+    """Wrap the parts ``--phases`` times with inclusive timers; name -> [calls, seconds], zeroed."""
+    from taichi.lang import kernel_impl
+
+    from sim_core import contact_set, fused_elastic, linsolve, solver
+    from sim_core.energies.contact import batch_kernel, reference
+    from sim_core.energies.friction import kernel as friction_kernel
+    from sim_core.ti_kernels import device_copy, launch
+
+    totals: dict[str, list] = {}
+
+    def wrap(owner, attribute: str, name: str) -> None:
+        original = getattr(owner, attribute)
+        record = totals.setdefault(name, [0, 0.0])
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                record[1] += time.perf_counter() - t0
+                record[0] += 1
+
+        setattr(owner, attribute, timed)
+
+    targets = [(solver.NewtonSolver, ("_set_up_step", "_gradient", "_assemble_hessian", "_newton_direction", "_energy",
+                                      "_line_search", "_finish_step", "_simplified_correction"), "solver"),
+               (fused_elastic.FusedElastic, ("evaluate", "energy", "gradient", "hessian_values",
+                                             "projected_hessian_values"), "fused"),
+               (contact_set.ContactSet, ("covers", "potentials", "friction", "end_step"), "contact_set"),
+               (batch_kernel.PairBatch, ("evaluate",), "PairBatch"),
+               (reference._PairPenalty, ("keep_derivatives", "energy", "gradient", "hessian"), "pairs"),
+               (friction_kernel.TiLaggedFriction, ("_launch", "keep_derivatives", "energy", "gradient", "hessian"),
+                "friction"),
+               (device_copy, ("to_device", "to_host", "zero", "new_ndarray"), "device_copy"),
+               (launch.FastKernel, ("__call__",), "FastKernel"), (kernel_impl.Kernel, ("__call__",), "ti.Kernel")]
+    for cls in (linsolve.PardisoCholesky, linsolve.ScipySymmetric, linsolve.PardisoSolver, linsolve.ScipySolver):
+        targets.append((cls, ("factorize", "solve"), cls.__name__))
+    for owner, attributes, label in targets:
+        for attribute in attributes:
+            wrap(owner, attribute, f"{label}.{attribute}")
+    return totals
+
+
+def _print_phases(totals: dict[str, list], result: dict) -> None:
+    """The inclusive timers of one run, most time first."""
+    steps = result["steps"]
+    print(f"phases (inclusive): {result['steps_per_s']:.2f} steps/s, "
+          f"{1e3 * result['forward_total_s'] / steps:.2f} ms/step, {result['newton_iters_mean']:.4f} Newton "
+          f"iterations a step")
+    print(f"{'part':44s} {'calls/step':>10s} {'ms/step':>8s} {'us/call':>8s}")
+    for name, (calls, seconds) in sorted(totals.items(), key=lambda kv: -kv[1][1]):
+        if calls:
+            print(f"{name:44s} {calls / steps:10.2f} {1e3 * seconds / steps:8.3f} {1e6 * seconds / calls:8.1f}")
+
+
 def _launch_microbenchmark(ti, repeats: int = 500) -> None:
     import numpy as np
 
@@ -110,6 +173,8 @@ def main() -> int:
     ap.add_argument("--kernel-profiler", action="store_true")
     ap.add_argument("--cprofile", type=int, default=0, metavar="N",
                     help="run the trajectory a third time under cProfile; print its N functions of most own time")
+    ap.add_argument("--phases", action="store_true",
+                    help="run the trajectory once more with inclusive timers of the solver's parts (module docstring)")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
@@ -159,6 +224,9 @@ def main() -> int:
         print(f"kernel device time (Taichi kernel profiler): {1e3 * device / steps:.2f} ms/step")
         ti.profiler.print_kernel_profiler_info("count")
     _launch_microbenchmark(ti)
+    if args.phases:
+        totals = _phase_timers()
+        _print_phases(totals, run_forming(scene, args.steps, arch=args.arch))
     if args.cprofile:
         import cProfile
         import pstats
