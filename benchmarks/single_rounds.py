@@ -15,7 +15,9 @@ predates this script works too); ``--site`` is put before the tree on the worker
 Taichi wheels).
 
 Printed, per tree and arch: the median, lowest and highest steps/s of all runs, the median of each round (the spread
-between rounds), and the Newton iterations a step (the same in every run: the steps are deterministic); per tree, the
+between rounds), the Newton iterations a step (the same in every run: the steps are deterministic), and the ms a step
+split into the linear solve (factorisations and solves on the host, the same code on both archs) and the rest; per
+tree, the
 median over rounds of each round's ratio of the first arch's median to the second's (``cuda / cpu``), with its range:
 the figure of record, since runs one after another on one machine drift together. Every run is also written as one
 JSON line to ``--out`` (keys: ``tree``, ``arch``, ``round``, ``run``, ``steps_per_s``, ``forward_total_s`` (s),
@@ -122,6 +124,11 @@ def _summary(records: list[dict], trees: list[str], archs: list[str]) -> int:
             its = sorted({r["newton_iters_mean"] for r in mine})
             print(f"{tree:12s} {arch:6s} {len(mine):4d} {_spread([r['steps_per_s'] for r in mine]):>24s}  {rounds:32s} "
                   f"{', '.join(f'{i:.4f}' for i in its)}")
+            if all("forward_total_s" in r and "linear_solve_share" in r for r in mine):
+                step_ms = [1e3 / r["steps_per_s"] for r in mine]
+                solve_ms = [s * r["linear_solve_share"] for s, r in zip(step_ms, mine)]
+                print(f"{'':12s} {'':6s} ms a step: {_spread(step_ms)}, of which the linear solve "
+                      f"{_spread(solve_ms)} and the rest {_spread([a - b for a, b in zip(step_ms, solve_ms)])}")
     if len(archs) >= 2:
         first, second = archs[0], archs[1]
         for tree in trees:

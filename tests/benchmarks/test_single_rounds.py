@@ -27,6 +27,15 @@ def test_summary_gives_per_round_ratios_of_round_medians(capsys):
     assert "main         cuda      6      27.00 (20.00-36.00)  22.00 33.00" in out
 
 
+def test_summary_splits_the_step_into_linear_solve_and_rest(capsys):
+    records = _records({("main", "cuda"): [[20.0, 25.0]]})
+    for r, share in zip(records, (0.5, 0.6)):
+        r.update(forward_total_s=1.0, linear_solve_share=share)
+    assert _summary(records, ["main"], ["cuda"]) == 0
+    assert "ms a step: 45.00 (40.00-50.00), of which the linear solve 24.50 (24.00-25.00) and the rest 20.50 " \
+           "(16.00-25.00)" in capsys.readouterr().out
+
+
 def test_summary_fails_when_iterations_differ(capsys):
     records = _records({("main", "cuda"): [[20.0]]}) + _records({("main", "cpu"): [[20.0]]}, iterations=5.0)
     assert _summary(records, ["main"], ["cuda", "cpu"]) == 1
