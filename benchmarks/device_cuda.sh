@@ -41,7 +41,8 @@
 #                          (single-environment figures; FORMING_ARCHS default "cuda cpu numpy", FORMING_REPEAT 1)
 #   single_profile         benchmarks/profile_single.py --arch A for A in $FORMING_ARCHS but numpy (where a
 #                          single environment's step goes: kernel launches, transfers, linear solve, the rest;
-#                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0)
+#                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0; PROFILE_SINGLE_ARGS adds options,
+#                          e.g. "--phases --launch-costs": the parts side by side, a launch's host time by its parts)
 #   single_compare         the `forming` bench of the baseline tree BASELINE_ROOT (e.g. the device's copy of main)
 #                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
 #                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
@@ -148,10 +149,10 @@ for part in $PARTS; do
                 [ "$arch" = numpy ] && continue
                 flag=; [ "$arch" = cuda ] && [ "${KERNEL_PROFILER:-1}" = 1 ] && flag=--kernel-profiler
                 echo "=== single_profile $arch"
-                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
+                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag ${PROFILE_SINGLE_ARGS:-} \
                     > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
-                grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
+                grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -120
             done ;;
         single_compare) [ -n "${BASELINE_ROOT:-}" ] || { echo "single_compare needs BASELINE_ROOT" >&2; exit 2; }
             for round in $(seq "${SINGLE_ROUNDS:-1}"); do
