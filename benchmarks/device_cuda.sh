@@ -48,9 +48,10 @@
 #                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
 #   single_rounds          benchmarks/single_rounds.py: one worker process per tree (BASELINE_ROOT as "baseline" when
 #                          set, then this tree) and arch of $FORMING_ARCHS (default "cuda cpu"), the Forming
-#                          trajectory $FORMING_REPEAT times (default 3) per worker a round, SINGLE_ROUNDS rounds (default
-#                          5) with the workers' order turned each round; medians, ranges and the per-round cuda / cpu
-#                          ratio (the figure of record for "no slower"); every run in $out/single_rounds.jsonl
+#                          trajectory $FORMING_REPEAT times (default 3) per worker a round, SINGLE_ROUNDS rounds
+#                          (default 5) with the workers' order turned each round; medians, ranges, the per-round
+#                          cuda / cpu ratio (the figure of record for "no slower"); every run in
+#                          $out/single_rounds.jsonl
 #                          (about 4 x 10 s of start-up, then 2-3 s a run on an H100: PART_TIMEOUT=400 for the defaults)
 #   optimise_cuda          thinshell optimise $TASK --method cma --batched --backend B --episodes $OPT_EPISODES
 #                          (default 40: one CMA-ES generation of the task's population, every rollout of it
@@ -149,8 +150,8 @@ for part in $PARTS; do
                 [ "$arch" = numpy ] && continue
                 flag=; [ "$arch" = cuda ] && [ "${KERNEL_PROFILER:-1}" = 1 ] && flag=--kernel-profiler
                 echo "=== single_profile $arch"
-                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag ${PROFILE_SINGLE_ARGS:-} \
-                    > "$out/profile_single_$arch.out" 2>&1
+                timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
+                    ${PROFILE_SINGLE_ARGS:-} > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
                 grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -120
             done ;;
@@ -171,9 +172,9 @@ for part in $PARTS; do
             done ;;
         single_rounds) trees="this=."; [ -n "${BASELINE_ROOT:-}" ] && trees="baseline=$BASELINE_ROOT $trees"
             echo "=== single_rounds: $trees, archs ${FORMING_ARCHS:-cuda cpu}"
-            timeout "$PART_TIMEOUT" "$PY" benchmarks/single_rounds.py --trees $trees --archs ${FORMING_ARCHS:-cuda cpu} \
-                --rounds "${SINGLE_ROUNDS:-5}" --repeat "${FORMING_REPEAT:-3}" --site /tmp/site \
-                --out "$out/single_rounds.jsonl" > "$out/single_rounds.out" 2>&1
+            timeout "$PART_TIMEOUT" "$PY" benchmarks/single_rounds.py --trees $trees \
+                --archs ${FORMING_ARCHS:-cuda cpu} --rounds "${SINGLE_ROUNDS:-5}" --repeat "${FORMING_REPEAT:-3}" \
+                --site /tmp/site --out "$out/single_rounds.jsonl" > "$out/single_rounds.out" 2>&1
             echo "exit $?"
             grep -v '^{' "$out/single_rounds.out" | grep -v '^\[Taichi\]' | tail -30 ;;
         optimise_cuda) for backend in ${OPT_BACKENDS:-taichi-cuda}; do
