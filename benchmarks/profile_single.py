@@ -131,6 +131,8 @@ def _launch_costs(ti, repeats: int = 1000) -> None:
                                                                                                   context())),
              ("10 ndarrays, then a download of 5,094 float64", lambda: (k10(*arrays, 1.0, 16),
                                                                      device_copy.to_host(host, arrays[0]))),
+             ("10 ndarrays, then ti.sync() (where a memory pool releases freed memory)",
+              lambda: (k10(*arrays, 1.0, 16), ti.sync())),
              ("download of 5,094 float64", lambda: device_copy.to_host(host, arrays[0])),
              ("memset of 5,094 float64", lambda: device_copy.zero(arrays[1])),
              ("new_ndarray of 5,094 float64 (and its release)", lambda: device_copy.new_ndarray(ti.f64, (5094,))))
