@@ -39,12 +39,14 @@ import time
 
 
 class _Parts:
-    """Outermost-wins wall-clock accumulators: name -> [calls, seconds]."""
+    """Outermost-wins wall-clock accumulators: name -> [calls, seconds]; with ``inclusive`` every call is timed
+    whole, nested ones too (``--phases``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, inclusive: bool = False) -> None:
         self.totals: dict[str, list] = {}
         self.depth = 0
         self.arrays = 0
+        self.inclusive = inclusive
 
     def wrap(self, owner, attribute: str, name: str, count_arrays: bool = False) -> None:
         original = getattr(owner, attribute)
@@ -53,7 +55,7 @@ class _Parts:
 
         @functools.wraps(original)
         def timed(*args, **kwargs):
-            if parts.depth:
+            if parts.depth and not parts.inclusive:
                 return original(*args, **kwargs)
             if count_arrays:
                 import numpy as np
@@ -172,23 +174,7 @@ def _phase_timers() -> dict[str, list]:
     from sim_core.energies.friction import kernel as friction_kernel
     from sim_core.ti_kernels import device_copy, launch
 
-    totals: dict[str, list] = {}
-
-    def wrap(owner, attribute: str, name: str) -> None:
-        original = getattr(owner, attribute)
-        record = totals.setdefault(name, [0, 0.0])
-
-        @functools.wraps(original)
-        def timed(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return original(*args, **kwargs)
-            finally:
-                record[1] += time.perf_counter() - t0
-                record[0] += 1
-
-        setattr(owner, attribute, timed)
-
+    parts = _Parts(inclusive=True)
     targets = [(solver.NewtonSolver, ("_set_up_step", "_gradient", "_assemble_hessian", "_newton_direction", "_energy",
                                       "_line_search", "_finish_step", "_simplified_correction"), "solver"),
                (fused_elastic.FusedElastic, ("evaluate", "energy", "gradient", "hessian_values",
@@ -204,8 +190,8 @@ def _phase_timers() -> dict[str, list]:
         targets.append((cls, ("factorize", "solve"), cls.__name__))
     for owner, attributes, label in targets:
         for attribute in attributes:
-            wrap(owner, attribute, f"{label}.{attribute}")
-    return totals
+            parts.wrap(owner, attribute, f"{label}.{attribute}")
+    return parts.totals
 
 
 def _print_phases(totals: dict[str, list], result: dict) -> None:
