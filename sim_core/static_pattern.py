@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.energies.base import block_dof_indices
+from sim_core.slot_translation import translated
 from sim_core.unique import sorted_unique
 
 
@@ -188,7 +189,8 @@ class StaticPattern:
         """
         vertices = np.asarray(vertices)
         k, m = vertices.shape
-        parts = [table if offsets is None else translated(table, offsets) for table, offsets in self.slot_runs(vertices)]
+        parts = [table if offsets is None else translated(table, offsets)
+                 for table, offsets in self.slot_runs(vertices)]
         if len(parts) == 1:
             return parts[0]
         return np.concatenate(parts) if parts else np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
@@ -197,9 +199,9 @@ class StaticPattern:
         """:meth:`slot_map` of ``vertices`` ``(k, m)`` in runs, in element order: ``(table, offsets)``, where
         ``table`` is the int32 slot map ``(k0, 3 m, 3 m)`` of the run's first chunk of ``k0`` elements and
         ``offsets`` int32 ``(P,)`` the slot shifts of its ``P`` translated chunks (a stacked scene's copies:
-        ``translated(table, offsets)`` is the run's map), or None where ``table`` is the map of the run's
-        elements themselves. A caller that derives a table from the slot map elementwise (moving with the
-        slots) derives it from each run's ``table`` only.
+        the run's map is :func:`~sim_core.slot_translation.translated` of the two), or None where ``table`` is
+        the map of the run's elements themselves. A caller that derives a table from the slot map entry by
+        entry, moving with the slots, derives it from each run's ``table`` only.
 
         Raises:
             ValueError: a kept entry that is not in the pattern (its elements were not part of it).
@@ -313,17 +315,3 @@ class StaticPattern:
         kept = _BLOCK_KEPT[kind].transpose(0, 1, 3, 2, 4)  # (k, m, 3, m, 3)
         out = np.where(kept, base[..., None] + np.arange(3, dtype=np.int32), np.int32(-1))
         return out.reshape(k, 3 * m, 3 * m)
-
-
-def translated(table: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """A slot table ``(k0, ...)`` int32 (a slot map, :meth:`StaticPattern.slot_map`, or a table packed from one:
-    ``>= 0`` a slot, ``-1`` none, ``<= -2`` the slot ``-2 - entry``) for each of ``P`` chunks whose slots are
-    the table's moved by ``offsets`` ``(P,)`` int32 (:meth:`StaticPattern.slot_runs`): int32 ``(P k0, ...)``,
-    chunk ``j`` the table with every slot moved by ``offsets[j]`` (``-1`` kept). Written in place of one
-    output array (a product and a sum), no temporaries of its size."""
-    table = np.asarray(table, dtype=np.int32)
-    step = np.sign(table + 1, dtype=np.int32)  # +1 where a slot, -1 where a packed slot (<= -2), 0 at -1
-    out = np.empty((offsets.size,) + table.shape, dtype=np.int32)
-    np.multiply(np.asarray(offsets, dtype=np.int32).reshape((-1,) + (1,) * table.ndim), step[None], out=out)
-    out += table[None]
-    return out.reshape((-1,) + table.shape[1:])

@@ -50,7 +50,7 @@ import functools
 
 import numpy as np
 
-from sim_core.static_pattern import translated
+from sim_core.slot_translation import translated
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceArray
@@ -124,7 +124,7 @@ class SlotTables:
     ``(k, 3 m, 3 m)``) that only the projected blocks read, made at its first read. Both are the tables of those
     two functions, made for the first chunk of each run of translated chunks
     (:meth:`~sim_core.static_pattern.StaticPattern.slot_runs`: a stacked scene's copies) and moved chunk by
-    chunk (:func:`~sim_core.static_pattern.translated`), not folded over every copy's map.
+    chunk (:func:`~sim_core.slot_translation.translated`), not folded over every copy's map.
 
     Raises:
         ValueError: a kept entry that is not in the pattern (its elements were not part of it).

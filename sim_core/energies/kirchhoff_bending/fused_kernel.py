@@ -297,8 +297,8 @@ class FusedKirchhoffBending:
 
     @property
     def _tri_slots(self) -> np.ndarray | None:
-        """The full slot map of the triangle blocks (:attr:`SlotTables.full`, for the projected blocks): made at its first
-        read; None before :meth:`bind`."""
+        """The full slot map of the triangle blocks (:attr:`SlotTables.full`, for the projected blocks): made at
+        its first read; None before :meth:`bind`."""
         return None if self._tri_tables is None else self._tri_tables.full
 
     def energy(self, x: np.ndarray) -> float:
