@@ -41,10 +41,18 @@
 #                          (single-environment figures; FORMING_ARCHS default "cuda cpu numpy", FORMING_REPEAT 1)
 #   single_profile         benchmarks/profile_single.py --arch A for A in $FORMING_ARCHS but numpy (where a
 #                          single environment's step goes: kernel launches, transfers, linear solve, the rest;
-#                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0)
+#                          with --kernel-profiler on cuda unless KERNEL_PROFILER=0; PROFILE_SINGLE_ARGS adds options,
+#                          e.g. "--phases --launch-costs": the parts side by side, a launch's host time by its parts)
 #   single_compare         the `forming` bench of the baseline tree BASELINE_ROOT (e.g. the device's copy of main)
 #                          and of this tree, alternated, for A in $FORMING_ARCHS, SINGLE_ROUNDS times (default 1),
 #                          --repeat $FORMING_REPEAT (default 3 here): same machine, same call
+#   single_rounds          benchmarks/single_rounds.py: one worker process per tree (BASELINE_ROOT as "baseline" when
+#                          set, then this tree) and arch of $FORMING_ARCHS (default "cuda cpu"), the Forming
+#                          trajectory $FORMING_REPEAT times (default 3) per worker a round, SINGLE_ROUNDS rounds
+#                          (default 5) with the workers' order turned each round; medians, ranges, the per-round
+#                          cuda / cpu ratio (the figure of record for "no slower"); every run in
+#                          $out/single_rounds.jsonl
+#                          (about 4 x 10 s of start-up, then 2-3 s a run on an H100: PART_TIMEOUT=400 for the defaults)
 #   optimise_cuda          thinshell optimise $TASK --method cma --batched --backend B --episodes $OPT_EPISODES
 #                          (default 40: one CMA-ES generation of the task's population, every rollout of it
 #                          stepped together) --seed $OPT_SEED (0) for B in $OPT_BACKENDS (default taichi-cuda):
@@ -143,9 +151,9 @@ for part in $PARTS; do
                 flag=; [ "$arch" = cuda ] && [ "${KERNEL_PROFILER:-1}" = 1 ] && flag=--kernel-profiler
                 echo "=== single_profile $arch"
                 timeout "$PART_TIMEOUT" "$PY" benchmarks/profile_single.py --arch "$arch" $flag \
-                    > "$out/profile_single_$arch.out" 2>&1
+                    ${PROFILE_SINGLE_ARGS:-} > "$out/profile_single_$arch.out" 2>&1
                 echo "exit $?"
-                grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -60
+                grep -v '^\[Taichi\]' "$out/profile_single_$arch.out" | grep -v Warning | head -120
             done ;;
         single_compare) [ -n "${BASELINE_ROOT:-}" ] || { echo "single_compare needs BASELINE_ROOT" >&2; exit 2; }
             for round in $(seq "${SINGLE_ROUNDS:-1}"); do
@@ -162,6 +170,13 @@ for part in $PARTS; do
                     done
                 done
             done ;;
+        single_rounds) trees="this=."; [ -n "${BASELINE_ROOT:-}" ] && trees="baseline=$BASELINE_ROOT $trees"
+            echo "=== single_rounds: $trees, archs ${FORMING_ARCHS:-cuda cpu}"
+            timeout "$PART_TIMEOUT" "$PY" benchmarks/single_rounds.py --trees $trees \
+                --archs ${FORMING_ARCHS:-cuda cpu} --rounds "${SINGLE_ROUNDS:-5}" --repeat "${FORMING_REPEAT:-3}" \
+                --site /tmp/site --out "$out/single_rounds.jsonl" > "$out/single_rounds.out" 2>&1
+            echo "exit $?"
+            grep -v '^{' "$out/single_rounds.out" | grep -v '^\[Taichi\]' | tail -30 ;;
         optimise_cuda) for backend in ${OPT_BACKENDS:-taichi-cuda}; do
                 echo "=== optimise_cuda: thinshell optimise $TASK --method cma --batched --backend $backend"
                 timeout "$PART_TIMEOUT" "$PY" -m thinshell_ros.cli optimise "$TASK" --method cma --batched \
