@@ -273,6 +273,16 @@ def _wrap_parts(backend: str) -> dict:
               for n in ("gradient", "energy")]
     parts += [(FusedElastic, "gradient"), (PairBatch, "evaluate"), (ContactSet, "covers"),
               (lockstep, "projected_subset_blocks")]
+    # the line search's per-copy energies (each term's split by copy) and its trial points' own work
+    from sim_core.energies.contact.reference import PlaneContact
+    from sim_core.energies.friction.reference import LaggedFriction
+    from sim_core.energies.sphere_contact.reference import SphereContact
+
+    parts += [(CopyLineSearch, "_copy_energies")]
+    parts += [(cls, "copy_energies") for cls in (LumpedQuadratic, FusedElastic, _PairPenalty, LaggedFriction,
+                                                 PlaneContact, SphereContact, FusedKirchhoffBending,
+                                                 FusedSpringMembrane, FusedStableNeoHookean)]
+    parts += [(cls, "add_copy_energies_on_device") for cls in (LumpedQuadratic, FusedElastic, TiLaggedFriction)]
     from sim_core.batch import iterates
     from sim_core.batch.copy_runs import CopyRuns  # the per-copy reductions over the stacked arrays (host NumPy)
 
@@ -283,10 +293,14 @@ def _wrap_parts(backend: str) -> dict:
         from sim_core.batch.device_iterates import DeviceIterates
         from sim_core.ti_kernels.copy_vectors import CopyVectors
 
-        parts += [(DeviceIterates, n) for n in ("gradient", "trial", "start")]
+        parts += [(DeviceIterates, n) for n in ("gradient", "trial", "start", "slope_and_largest")]
         parts += [(CopyVectors, n) for n in ("dot", "largest_abs", "largest_norm", "blend", "moved", "download",
                                              "upload", "add", "add_rows", "zero_dofs", "copy", "new")]
         parts += [(LumpedQuadratic, "add_gradient_on_device")]
+        from sim_core.ti_kernels import copy_vectors
+
+        copy_sums = getattr(copy_vectors, "CopySums", None)  # the per-copy energies' one read (where there is one)
+        parts += [(copy_sums, "read")] if copy_sums is not None else []
     parts += [(lockstep.LockstepSolver, "_direction_pcg"), (lockstep.LockstepSolver, "_term_hessian")]
     # the contact set's own parts: the search, the step's potentials and pair batch, friction set-up, the step's end
     from sim_core import contact_set
@@ -345,11 +359,47 @@ def _wrap_parts(backend: str) -> dict:
             return wrapped
 
         setattr(cls, name, classmethod(make()) if is_cm else make())
+    _time_within(timers, CopyLineSearch, "_line_search_copies", lockstep.LockstepSolver, "_stacked_gradient")
+    _time_within(timers, CopyLineSearch, "_line_search_copies", device_copy, "_copy")
     # module functions the contact set calls by the names it imported
     for name in ("lookup_pairs", "merge_rows"):
         if hasattr(contact_set, name):
             setattr(contact_set, name, getattr(pair_lists, name))
     return timers
+
+
+def _time_within(timers: dict, outer_cls, outer: str, cls, name: str) -> None:
+    """Add a timer ``cls.name (in outer)`` of the (wrapped) ``cls.name``'s calls made while the (wrapped)
+    ``outer_cls.outer`` runs, e.g. the line search's trial points' gradients apart from the Newton iterates'."""
+    import functools
+
+    label = f"{getattr(cls, '__name__', cls)}.{name} (in {outer})"
+    timers[label] = [0, 0.0]
+    depth = [0]
+    outer_fn, inner_fn = vars(outer_cls)[outer], vars(cls)[name]
+
+    @functools.wraps(outer_fn)
+    def outer_wrapped(*a, **kw):
+        depth[0] += 1
+        try:
+            return outer_fn(*a, **kw)
+        finally:
+            depth[0] -= 1
+
+    @functools.wraps(inner_fn)
+    def inner_wrapped(*a, **kw):
+        if not depth[0]:
+            return inner_fn(*a, **kw)
+        t = time.perf_counter()
+        try:
+            return inner_fn(*a, **kw)
+        finally:
+            rec = timers[label]
+            rec[0] += 1
+            rec[1] += time.perf_counter() - t
+
+    setattr(outer_cls, outer, outer_wrapped)
+    setattr(cls, name, inner_wrapped)
 
 
 if __name__ == "__main__":

@@ -560,11 +560,7 @@ class FusedElastic:
         """:meth:`energy` at ``x`` ``(n, 3)`` split by copy, J ``(copy_count,)`` (capability
         :class:`~sim_core.energies.base.CopyEnergies`): each part's energy kernel with one sum cell an element, its
         cells summed by the copy of the element's first vertex (on CUDA the positions travel to the device once for
-        all parts); None when a part cannot split its energy.
-
-        Raises:
-            RuntimeError: :meth:`bind` was not called (CUDA).
-        """
+        all parts); None when a part cannot split its energy. Raises RuntimeError: :meth:`bind` not called (CUDA)."""
         xc = np.ascontiguousarray(x, dtype=np.float64)
         if self.pattern is not None and self._on_device():
             from sim_core.ti_kernels.transfer import upload  # Taichi only on a Taichi backend
@@ -578,6 +574,17 @@ class FusedElastic:
                 return None
             total += part_energies
         return total
+
+    def add_copy_energies_on_device(self, x: np.ndarray, x_device, copy_of_vertex: np.ndarray, sums) -> bool:
+        """:meth:`copy_energies` at ``x`` added into ``sums`` (a :class:`~sim_core.ti_kernels.copy_vectors.CopySums`;
+        capability :class:`~sim_core.energies.base.DeviceCopyEnergies`): the parts' kernels reading ``x_device``, their
+        cells added where they are; False (nothing added) with a part that has no fused kernel."""
+        if any(isinstance(part, _ReferencePart) for part in self._parts):
+            return False
+        with sums:
+            for part in self._parts:
+                part.copy_energies(x_device, copy_of_vertex, sums.copy_count)
+        return True
 
     def _deferred_sum(self, run, start: float):
         """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched

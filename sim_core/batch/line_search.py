@@ -12,13 +12,13 @@ from __future__ import annotations
 import numpy as np
 
 from sim_core.batch.iterates import Iterate
-from sim_core.energies.base import CopyEnergies, declares
+from sim_core.energies.base import CopyEnergies, DeviceCopyEnergies, declares
 from sim_core.step_info import StepInfo
 
 
 class CopyLineSearch:
     """The per-copy line search of :class:`~sim_core.batch.lockstep.LockstepSolver` (which provides ``config``,
-    ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_trial_energy``, ``_energy`` and
+    ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_copy_sums``, ``_trial_energy``, ``_energy`` and
     ``_stacked_gradient``)."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
@@ -47,7 +47,7 @@ class CopyLineSearch:
         if kept is not None and kept[0] is x.host and kept[1] is contact_terms:
             e0 = kept[2]
         else:
-            e0 = self._copy_energies(step, x.host, contact_terms, x_search)
+            e0 = self._copy_energies(step, x.host, contact_terms, x_search, x.device)
             if e0 is None:
                 e0 = self._energy(step, x.host, contact_terms, x_search)
         per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
@@ -69,7 +69,7 @@ class CopyLineSearch:
             last = (trial, x_try, (terms, xs, g_try, g_try_max))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if per_copy and cand.any():  # each copy's Armijo test on its own energy
-                e_try = self._copy_energies(step, x_try.host, terms, xs)
+                e_try = self._copy_energies(step, x_try.host, terms, xs, x_try.device)
                 ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
                 e_new = np.where(ok, e_try, e_new)
                 accepted |= ok
@@ -100,21 +100,38 @@ class CopyLineSearch:
             self._trial_energy = (x_new.host, terms, e_new)
         return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
 
-    def _copy_energies(self, step, x: np.ndarray, contact_terms: list,
-                       x_search: np.ndarray | None) -> np.ndarray | None:
+    def _copy_energies(self, step, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None,
+                       x_device=None) -> np.ndarray | None:
         """The stacked incremental potential at ``x`` ``(N, 3)`` split by copy (J, ``(B,)``): each term's
         :meth:`~sim_core.energies.base.CopyEnergies.copy_energies` (the contact terms those of a new search where
         ``x_search``'s candidates do not cover ``x``, as :meth:`NewtonSolver._energy`); None when a term cannot split
-        its energy (then the line search tests the stacked sum by groups)."""
+        its energy (then the line search tests the stacked sum by groups). With ``x_device`` (``x`` as a Taichi
+        float64 ndarray: the batched CG's iterates), the terms declaring
+        :class:`~sim_core.energies.base.DeviceCopyEnergies` add theirs where their kernels run, into one
+        :class:`~sim_core.ti_kernels.copy_vectors.CopySums` read back once after the others (the sum in another
+        order: equal to round-off)."""
         B = self.scene.copies
         total = np.zeros(B)
         if not self.contact.covers(x_search, x):
             contact_terms = self.contact.potentials(x, step.x_n, step.memory)
+        sums = None
+        if x_device is not None:
+            sums = self._copy_sums
+            if sums is None:
+                from sim_core.ti_kernels.copy_vectors import CopySums  # Taichi kernels: a Taichi backend only
+
+                sums = self._copy_sums = CopySums(self._copy_of_vertex, B)
+            sums.zero()
         for p in step.loop_terms + contact_terms:
+            if sums is not None and declares(p, DeviceCopyEnergies) and p.add_copy_energies_on_device(
+                    x, x_device, self._copy_of_vertex, sums):
+                continue
             part = p.copy_energies(x, self._copy_of_vertex, B) if declares(p, CopyEnergies) else None
             if part is None:
                 return None
             total += part
+        if sums is not None:
+            total += sums.read()
         return total
 
     def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:

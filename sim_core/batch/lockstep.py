@@ -177,6 +177,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
         self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
+        self._copy_sums = None  # the line search's per-copy sums on the device (CopySums, made at the first use)
         self.last_stacked_info: StepInfo | None = None
 
     def _new_elastic_terms(self):

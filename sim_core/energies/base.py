@@ -226,9 +226,24 @@ class CopyEnergies(Protocol):
         ...
 
 
+@runtime_checkable
+class DeviceCopyEnergies(Protocol):
+    """A :class:`CopyEnergies` term whose per-copy energies can be added where its kernels run, into sums shared by
+    the terms and read back once (:class:`~sim_core.ti_kernels.copy_vectors.CopySums`): the lockstep line search's
+    trial points on the device (:mod:`sim_core.batch.line_search`)."""
+
+    def add_copy_energies_on_device(self, x: np.ndarray, x_device: object, copy_of_vertex: np.ndarray,
+                                    sums: object) -> bool:
+        """Add :meth:`CopyEnergies.copy_energies` at ``x`` ``(vertex_count, 3)`` (J by copy) into ``sums`` (a
+        :class:`~sim_core.ti_kernels.copy_vectors.CopySums` over ``copy_of_vertex``), reading the positions from
+        ``x_device`` (the same positions, a Taichi float64 ndarray); False where it cannot (nothing added: the caller
+        asks :meth:`CopyEnergies.copy_energies`)."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
-    DeviceHessian, SparseGradient, DeviceGradient, CopyEnergies)
+    DeviceHessian, SparseGradient, DeviceGradient, CopyEnergies, DeviceCopyEnergies)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 

@@ -15,9 +15,11 @@ atomic adds in an order that varies from launch to launch); maxima and the other
 
 # No ``from __future__ import annotations`` here: Taichi reads kernel annotations as objects.
 
+import threading
+
 import numpy as np
 
-from sim_core.ti_backend import serial_loops, ti
+from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import device_copy, transfer
 from sim_core.ti_kernels.launch import element_cells, fast_kernel
 
@@ -234,6 +236,16 @@ def _add_by_copy(values: _F64, element_copy: _I32, out: _F64, n: ti.i32):
         out[element_copy[k]] += values[k]
 
 
+@fast_kernel
+def _diagonal_quadratic_by_copy(x: _VEC, center: _VEC, weight: _F64, vertex_copy: _I32, out: _F64, n: ti.i32):
+    """``out[c] += w_v / 2 |x_v - y_v|^2`` for every vertex ``v < n`` of copy ``c = vertex_copy[v]``."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for v in range(n):
+        w = 0.5 * weight[v]
+        r0, r1, r2 = x[v, 0] - center[v, 0], x[v, 1] - center[v, 1], x[v, 2] - center[v, 2]
+        out[vertex_copy[v]] += ((r0 * r0 + r1 * r1) + r2 * r2) * w
+
+
 def element_copies(kept: dict, copy_of_vertex: np.ndarray, *first_vertices: np.ndarray) -> np.ndarray:
     """The copy of each element, int32 ``(k,)``: ``copy_of_vertex`` (int ``(N,)``) at the elements' first vertices
     ``first_vertices`` (one array per loop of the kernel, in loop order, concatenated), made once for each
@@ -268,6 +280,10 @@ def copy_energies(summed, element_copy: np.ndarray, copy_count: int, kept: dict,
 
     count = int(element_copy.shape[0])
     cells = element_cells(summed, count, *args)
+    block = getattr(_COPY_SUMS, "active", None)
+    if block is not None:  # added where the cells are, read with the block's other terms
+        block.add_cells(cells, element_copy, kept)
+        return np.zeros(copy_count)
     if isinstance(cells, np.ndarray):
         return np.bincount(element_copy, weights=cells, minlength=copy_count).astype(np.float64, copy=False)
     sums = kept.get("copy_sums")
@@ -278,6 +294,108 @@ def copy_energies(summed, element_copy: np.ndarray, copy_count: int, kept: dict,
     if count:
         _add_by_copy(cells, on_device(kept, "element_copy", element_copy), sums, count)
     return transfer.download(sums)
+
+
+_COPY_SUMS = threading.local()
+"""Per thread: ``active``, the :class:`CopySums` whose block is running, or None."""
+
+
+class CopySums:
+    """Per-copy sums ``(B,)`` (J) that the terms of a lockstep batch add into where their values are, read back in one
+    copy for all of them: the line search's per-copy energies
+    (:class:`~sim_core.energies.base.DeviceCopyEnergies`). On a GPU the sums are a Taichi ndarray in device memory
+    (each term's kernels add into it, no copy back a term); on the host arch a NumPy array (the same additions, in
+    the same order as :func:`copy_energies`'s ``np.bincount``). Host values (a term's constant part) are added into a
+    host array beside them.
+
+    The sums keep what was added until :meth:`zero`. Within ``with sums:`` (one block at a time on a thread),
+    :func:`copy_energies` adds its element terms into these sums and returns zeros, so that a term made of several
+    summing kernels (the fused elastic parts) adds them all here without a read each.
+
+    Args:
+        copy_of_vertex: the copy of each stacked vertex, int ``(N,)`` (its int32 device copy is made once:
+            :attr:`vertex_copy`).
+        copy_count: copies ``B``.
+
+    Raises:
+        RuntimeError: a block entered while another one is active on the same thread.
+    """
+
+    def __init__(self, copy_of_vertex: np.ndarray, copy_count: int) -> None:
+        self.copy_of_vertex = copy_of_vertex
+        self.copy_count = int(copy_count)
+        self._host = np.zeros(self.copy_count)  # values added on the host
+        self._kept: dict = {}  # device arrays: the sums, the vertices' copies, the element copies' (copy_energies)
+
+    def __enter__(self) -> "CopySums":
+        if getattr(_COPY_SUMS, "active", None) is not None:
+            raise RuntimeError("CopySums: a block is already active on this thread")
+        _COPY_SUMS.active = self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        _COPY_SUMS.active = None
+
+    def _device_sums(self):
+        """The sums on a GPU (a float64 ndarray ``(B,)`` kept), or None on the host arch."""
+        if current_arch() != "cuda":
+            return None
+        sums = self._kept.get("sums")
+        if sums is None:
+            sums = self._kept["sums"] = device_copy.new_ndarray(ti.f64, (max(self.copy_count, 1),))
+        return sums
+
+    @property
+    def values(self):
+        """The array a kernel adds into: the float64 ``(B,)`` ndarray in device memory on a GPU, else the host
+        array."""
+        sums = self._device_sums()
+        return self._host if sums is None else sums
+
+    @property
+    def vertex_copy(self):
+        """The copy of each vertex, int32 ``(N,)``, where the kernels read it (device memory on a GPU: copied once)."""
+        from sim_core.ti_kernels.buffers import on_device  # (buffers imports this module's siblings only)
+
+        host = self._kept.get("vertex_copy_host")
+        if host is None:
+            host = self._kept["vertex_copy_host"] = np.ascontiguousarray(self.copy_of_vertex, dtype=np.int32)
+        return on_device(self._kept, "vertex_copy", host)
+
+    def zero(self) -> None:
+        """Every sum set to 0."""
+        self._host.fill(0.0)
+        sums = self._device_sums()
+        if sums is not None and not device_copy.zero(sums):
+            sums.fill(0.0)
+
+    def add(self, values: np.ndarray) -> None:
+        """Add host values ``(B,)`` (J)."""
+        self._host += values
+
+    def add_cells(self, cells, element_copy: np.ndarray, kept: dict) -> None:
+        """Add the cells ``(k,)`` of :func:`~sim_core.ti_kernels.launch.element_cells` (a NumPy array on the host arch,
+        else a device ndarray) by the copy of each element ``element_copy`` (int32 ``(k,)``; its device copy kept in
+        the caller's ``kept``)."""
+        from sim_core.ti_kernels.buffers import on_device  # (buffers imports this module's siblings only)
+
+        count = int(element_copy.shape[0])
+        if isinstance(cells, np.ndarray):
+            self._host += np.bincount(element_copy, weights=cells, minlength=self.copy_count)
+        elif count:
+            _add_by_copy(cells, on_device(kept, "element_copy", element_copy), self.values, count)
+
+    def add_diagonal_quadratic(self, x, center, weight) -> None:
+        """Add ``sum_v w_v / 2 |x_v - y_v|^2`` (J) by the copy of each vertex: ``x``, ``center`` ``(N, 3)`` (m) and
+        ``weight`` ``(N,)`` (kg/s^2) where the kernels read them (Taichi ndarrays; NumPy arrays on the host arch)."""
+        n = int(weight.shape[0])
+        if n:
+            _diagonal_quadratic_by_copy(x, center, weight, self.vertex_copy, self.values, n)
+
+    def read(self) -> np.ndarray:
+        """The sums, float64 ``(B,)`` (J), a new array (on a GPU one copy back, after the kernels before it)."""
+        sums = self._device_sums()
+        return self._host.copy() if sums is None else transfer.download(sums) + self._host
 
 
 def new_vectors(vertex_count: int):

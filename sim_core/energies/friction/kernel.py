@@ -148,6 +148,16 @@ def _pair_hessian(x: ti.template(), x_prev: ti.template(), vertices: ti.template
                 blocks[k, 3 * a + d, 3 * b + e] = wab * H3[d, e]
 
 
+@fast_kernel
+def _friction_energy_by_copy(x: _F64_2, x_prev: _F64_2, vertices: _I32_2, weights: _F64_2, tangent: _F64_3,
+                             coefficient: _F64_1, eps_u: ti.f64, pair_copy: _I32_1, out: _F64_1, pairs: ti.i32):
+    """``out[pair_copy[k]] += c_k f0(|u_k|)`` (J) for every pair ``k < pairs`` (in pair order on the CPU)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(pairs):
+        u = _tangential_displacement(x, x_prev, vertices, weights, tangent, k)
+        out[pair_copy[k]] += coefficient[k] * _f0(ti.sqrt(u[0] * u[0] + u[1] * u[1]), eps_u)
+
+
 _ENERGY, _GRADIENT, _HESSIAN = 1, 2, 4  # bits of _friction_kernel's ``want``
 _ARRAYS = LaunchArrays()
 """Per thread, the kept arrays of the launches (:meth:`TiLaggedFriction._launch`,
@@ -388,6 +398,31 @@ class TiLaggedFriction(LaggedFriction):
         workspace_of(self).put(self, "at_device", (positions_key(x), arrays[-1].copy(), self.eps_u,
                                                    float(self._energy[0]), token, grad_own, blocks))
         return float(self._energy[0])
+
+    def add_copy_energies_on_device(self, x: np.ndarray, x_device, copy_of_vertex: np.ndarray, sums) -> bool:
+        """:meth:`copy_energies` at ``x`` (J by copy) added into ``sums`` (a
+        :class:`~sim_core.ti_kernels.copy_vectors.CopySums` over ``copy_of_vertex``; capability
+        :class:`~sim_core.energies.base.DeviceCopyEnergies`): where :meth:`add_gradient_on_device` evaluated ``x`` (its
+        gather of the pairs' vertices' positions kept), one launch adding each pair's ``c_k f0(|u_k|)`` into the copy
+        of its first vertex; False (nothing added) where no such evaluation is kept."""
+        p = self.vertices.shape[0]
+        if not p:
+            return True
+        if self._device_record(x) is None:
+            return False
+        arrays = self._constant_arrays(x.shape[0])
+        device = _ARRAYS.device()
+        kept = getattr(self, "_pair_copy", None)
+        if kept is None or kept[0] is not copy_of_vertex:
+            kept = self._pair_copy = (copy_of_vertex, np.ascontiguousarray(np.take(copy_of_vertex, self.vertices[:, 0]),
+                                                                           dtype=np.int32))
+        _friction_energy_by_copy(
+            on_device(device, "at_x", _ARRAYS.rows("at_x", len(self._own), (3,)), scratch=True),
+            on_device(device, "x_prev", arrays[1]), on_device(device, "vertices", arrays[2]),
+            on_device(device, "weights", arrays[3]), on_device(device, "tangent", arrays[4]),
+            self._device_coefficients(device, arrays[-1]), self.eps_u, rows_on_device(device, "pair_copy", kept[1]),
+            sums.values, p)
+        return True
 
     def _device_record(self, x: np.ndarray, coefficient: np.ndarray | None = None) -> tuple | None:
         """The kept :meth:`add_gradient_on_device` evaluation ``(key, coefficients, eps_u, energy, token, rows,

@@ -113,3 +113,34 @@ def test_copies_that_agree_take_the_steps_of_the_group_test(model, config, monke
     for i in range(3):
         np.testing.assert_allclose(batch.states[i].x, grouped.states[i].x, rtol=0,
                                    atol=0.0 if config is DIRECT else 1e-14)
+
+
+def test_the_device_terms_add_their_copy_energies_into_one_sum_read_once(model, monkeypatch):
+    """With the device CG's iterates, the lumped, friction and fused elastic terms add their per-copy energies into
+    one :class:`CopySums` where their kernels run (at the iterate of their last gradient): each term's share equals its
+    host split, and the line search's per-copy energies those of the host path, to round-off."""
+    from sim_core.energies.base import DeviceCopyEnergies, declares
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    seen = {}
+    line_search = lockstep_module.LockstepSolver._line_search_copies
+
+    def spy(self, step, x, d, alpha, slope, open_, terms, x_search, info):
+        B = self.scene.copies
+        assert x.device is not None
+        sums = CopySums(self._copy_of_vertex, B)
+        for p in step.loop_terms + terms:
+            if not declares(p, DeviceCopyEnergies):
+                continue
+            sums.zero()
+            assert p.add_copy_energies_on_device(x.host, x.device, self._copy_of_vertex, sums), type(p).__name__
+            host = p.copy_energies(x.host, self._copy_of_vertex, B)
+            np.testing.assert_allclose(sums.read(), host, rtol=1e-12, atol=1e-15 * np.max(np.abs(host)))
+            seen[type(p).__name__] = seen.get(type(p).__name__, 0) + 1
+        np.testing.assert_allclose(self._copy_energies(step, x.host, terms, x_search, x.device),
+                                   self._copy_energies(step, x.host, terms, x_search), rtol=1e-12)
+        return line_search(self, step, x, d, alpha, slope, open_, terms, x_search, info)
+
+    monkeypatch.setattr(lockstep_module.LockstepSolver, "_line_search_copies", spy)
+    _run(model, DEVICE_CG, steps=1)
+    assert set(seen) == {"LumpedQuadratic", "TiLaggedFriction", "FusedElastic"}

@@ -14,9 +14,9 @@ import pytest
 import sim_core.candidates
 import sim_core.energies
 from sim_core.energies import base
-from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceGradient, DeviceHessian,
-                                    ElasticEquivalent, HingeBending, KeepsDerivatives, PenaltyContact, Potential,
-                                    SparseGradient, SubsetHessian)
+from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceCopyEnergies,
+                                    DeviceGradient, DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives,
+                                    PenaltyContact, Potential, SparseGradient, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
@@ -109,6 +109,7 @@ EXPECTED_CAPABILITIES = {
     # the lockstep batch's per-copy Armijo test: the terms of a stacked model's Newton loop on a Taichi backend
     CopyEnergies: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact", "PlaneContact", "SphereContact",
                    "LaggedFriction"},
+    DeviceCopyEnergies: set(),  # the Taichi terms only (TAICHI_CAPABILITIES; and batch.lumped.LumpedQuadratic)
 }
 
 TAICHI_CAPABILITIES = {
@@ -129,6 +130,8 @@ TAICHI_CAPABILITIES = {
                    "sim_core.energies.membrane.fused_stvk_kernel.FusedStVKMembrane",
                    "sim_core.energies.neohookean.fused_kernel.FusedStableNeoHookean",
                    "sim_core.fused_elastic.FusedElastic", "sim_core.fused_elastic._ReferencePart"},
+    # the line search's per-copy energies added where the kernels run, read once (copy_vectors.CopySums)
+    DeviceCopyEnergies: {"sim_core.energies.friction.kernel.TiLaggedFriction", "sim_core.fused_elastic.FusedElastic"},
 }
 """The classes of the Taichi modules (the energies' and candidates' ``*kernel`` modules and
 :mod:`sim_core.fused_elastic`) that declare the device capabilities (the lockstep batch's device-resident path)."""

@@ -161,3 +161,111 @@ def test_add_by_copy_kernel_on_device_arrays(ti_cpu):
     _add_by_copy(values_dev, copy_dev, sums, 1000)
     np.testing.assert_allclose(transfer.download(sums), np.bincount(element_copy, weights=values, minlength=8),
                                rtol=1e-13, atol=1e-13)
+
+
+def _device(values: np.ndarray):
+    """A float64 Taichi ndarray holding ``values``."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.device_copy import new_ndarray
+    from sim_core.ti_kernels.transfer import upload
+
+    return upload(new_ndarray(ti.f64, values.shape), values)
+
+
+def test_fused_parts_add_their_copy_energies_into_one_copy_sums(ti_cpu):
+    """``FusedElastic.add_copy_energies_on_device`` (DeviceCopyEnergies): the parts' kernels at the device positions
+    add into one CopySums (on CUDA in device memory, read once), on top of what it holds: its sums are the host split;
+    a fused term with a reference part adds nothing and says so."""
+    from sim_core.energies.base import DeviceCopyEnergies, declares
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    copies = 3
+    kinds = ("snh", "spring_membrane", "kirchhoff", "stvk_membrane", "anisotropic_bending")
+    parts = [_potential(kind, copies) for kind in kinds]
+    x_rest = np.concatenate([x for _, x, _ in parts])
+    offsets = np.cumsum([0] + [x.shape[0] for _, x, _ in parts])
+    copy_of_vertex = np.concatenate([np.repeat(np.arange(copies), n) for _, _, n in parts])
+    x = x_rest + 1e-3 * np.random.default_rng(5).standard_normal(x_rest.shape)
+    sums = CopySums(copy_of_vertex, copies)
+    base = np.array([1.0, -2.0, 0.5])
+    for k, kind in enumerate(kinds):  # one body at a time, at its rows of the whole positions
+        pot, body_rest, _ = _potential(kind, copies)
+        rows = slice(offsets[k], offsets[k + 1])
+        fused = _fused(pot, body_rest)
+        assert declares(fused, DeviceCopyEnergies)
+        host = fused.copy_energies(x[rows], copy_of_vertex[rows], copies)
+        sums.zero()
+        sums.add(base)
+        assert fused.add_copy_energies_on_device(x[rows], _device(np.ascontiguousarray(x[rows])), copy_of_vertex[rows],
+                                                 sums)
+        np.testing.assert_allclose(sums.read(), base + host, rtol=1e-12)
+    reference, body_rest, n = _potential("hinge_reference_part", copies)
+    sums.zero()
+    assert not _fused(reference, body_rest).add_copy_energies_on_device(body_rest, _device(body_rest),
+                                                                        np.repeat(np.arange(copies), n), sums)
+    np.testing.assert_array_equal(sums.read(), np.zeros(copies))
+
+
+def test_copy_sums_block_is_one_at_a_time(ti_cpu):
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    first, second = CopySums(np.zeros(3, np.int64), 1), CopySums(np.zeros(3, np.int64), 1)
+    with first:
+        with pytest.raises(RuntimeError, match="already active"):
+            second.__enter__()
+    with second:  # the first block has ended
+        assert second.read().shape == (1,)
+
+
+def test_lumped_quadratic_adds_its_copy_energies_by_vertex_copy(ti_cpu):
+    """The lumped inertia / gravity / damping term (DeviceCopyEnergies): ``w_v / 2 |x_v - y_v|^2`` of the device
+    positions summed by copy in one launch, ``E_0`` per copy on the host: its host split, which sums to its energy."""
+    from sim_core.batch.lumped import LumpedQuadratic
+    from sim_core.energies.damping.reference import ViscousDamping
+    from sim_core.energies.gravity.reference import GravityPotential
+    from sim_core.energies.inertia.reference import InertiaPotential
+    from sim_core.ti_kernels.copy_vectors import CopySums
+
+    rng = np.random.default_rng(11)
+    n, copies, dt = 500, 7, 5e-3
+    mass = rng.uniform(1e-4, 1e-3, n)
+    mass[[3, 40]] = 0.0  # vertices without mass: no term
+    x_prev = rng.standard_normal((n, 3)) * 1e-2
+    x_hat = x_prev + 1e-4 * rng.standard_normal((n, 3))
+    lumped = LumpedQuadratic(InertiaPotential(mass, x_hat, dt), GravityPotential(mass, np.array([0.0, 0.0, -9.81])),
+                             ViscousDamping(mass, x_prev, 2.0, dt))
+    copy_of_vertex = np.sort(rng.integers(0, copies - 1, n))  # the last copy has no vertex
+    x = x_hat + 3e-4 * rng.standard_normal((n, 3))
+    host = lumped.copy_energies(x, copy_of_vertex, copies)
+    sums = CopySums(copy_of_vertex, copies)
+    sums.zero()
+    assert lumped.add_copy_energies_on_device(x, _device(x), copy_of_vertex, sums)
+    got = sums.read()
+    np.testing.assert_allclose(got, host, rtol=1e-12, atol=1e-15 * np.max(np.abs(host)))
+    assert got[-1] == 0.0 and np.sum(got) == pytest.approx(lumped.energy(x), rel=1e-12)
+
+
+@pytest.mark.parametrize("scale", [0.3, 20.0])  # times eps_u: the mollified and the sliding branch of f0
+def test_friction_adds_its_copy_energies_at_its_kept_device_evaluation(ti_cpu, scale):
+    """The Taichi friction (DeviceCopyEnergies): at the positions its last ``add_gradient_on_device`` evaluated, one
+    launch adds each pair's ``c_k f0(|u_k|)`` into its first vertex's copy: the reference split by copy; at other
+    positions (no kept evaluation) it adds nothing and says so."""
+    from sim_core.energies.friction.kernel import TiLaggedFriction
+    from sim_core.ti_kernels.copy_vectors import CopySums
+    from tests.sim_core.energies import test_friction as ref_tests
+
+    rng = np.random.default_rng(17)
+    ref, x_prev = ref_tests._random_friction(rng, p=40, n=60)
+    tik = TiLaggedFriction(ref.vertices, ref.weights, ref.tangent, ref.lam, ref.mu, ref.x_prev, ref.eps_v, ref.dt)
+    x = x_prev + rng.normal(scale=scale * ref_tests.EPS_U, size=x_prev.shape)
+    x.flags.writeable = False
+    copies = 4
+    copy_of_vertex = rng.integers(0, copies, x.shape[0])
+    sums = CopySums(copy_of_vertex, copies)
+    sums.zero()
+    assert not tik.add_copy_energies_on_device(x, _device(x), copy_of_vertex, sums)
+    tik.add_gradient_on_device(x, _device(x), _device(np.zeros_like(x)))
+    assert tik.add_copy_energies_on_device(x, _device(x), copy_of_vertex, sums)
+    want = ref.copy_energies(x, copy_of_vertex, copies)
+    np.testing.assert_allclose(sums.read(), want, rtol=1e-12, atol=1e-15 * np.max(np.abs(want)))
+    assert np.ptp(want) > 0
