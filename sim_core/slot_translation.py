@@ -34,3 +34,10 @@ def translated(table: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     np.multiply(np.asarray(offsets, dtype=np.int32).reshape((-1,) + (1,) * table.ndim), step[None], out=out)
     out += table[None]
     return out.reshape((-1,) + table.shape[1:])
+
+
+def joined(runs: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
+    """The table of consecutive runs ``(table, offsets)`` (:meth:`~sim_core.static_pattern.StaticPattern.slot_runs`:
+    ``offsets`` None where ``table`` is the run's own), one after another: int32 ``(k, ...)``; at least one run."""
+    parts = [table if offsets is None else translated(table, offsets) for table, offsets in runs]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)

@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.energies.base import block_dof_indices
-from sim_core.slot_translation import translated
+from sim_core.slot_translation import joined
 from sim_core.unique import sorted_unique
 
 
@@ -188,12 +188,11 @@ class StaticPattern:
             ValueError: a kept entry that is not in the pattern (its elements were not part of it).
         """
         vertices = np.asarray(vertices)
-        k, m = vertices.shape
-        parts = [table if offsets is None else translated(table, offsets)
-                 for table, offsets in self.slot_runs(vertices)]
-        if len(parts) == 1:
-            return parts[0]
-        return np.concatenate(parts) if parts else np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
+        runs = self.slot_runs(vertices)
+        if not runs:
+            m = vertices.shape[1]
+            return np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
+        return joined(runs)
 
     def slot_runs(self, vertices: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """:meth:`slot_map` of ``vertices`` ``(k, m)`` in runs, in element order: ``(table, offsets)``, where

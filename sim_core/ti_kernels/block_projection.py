@@ -50,7 +50,7 @@ import functools
 
 import numpy as np
 
-from sim_core.slot_translation import translated
+from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceArray
@@ -133,20 +133,15 @@ class SlotTables:
     def __init__(self, pattern, vertices: np.ndarray) -> None:
         m = np.shape(vertices)[1]
         self._runs = pattern.slot_runs(vertices) or [(np.zeros((0, 3 * m, 3 * m), dtype=np.int32), None)]
-        self.upper = self._joined([(upper_slot_table(table), offsets) for table, offsets in self._runs])
+        self.upper = joined([(upper_slot_table(table), offsets) for table, offsets in self._runs])
         self._full: np.ndarray | None = None
 
     @property
     def full(self) -> np.ndarray:
         """The slot map (class docstring), int32 ``(k, 3 m, 3 m)``; made at the first read, then kept."""
         if self._full is None:
-            self._full = self._joined(self._runs)
+            self._full = joined(self._runs)
         return self._full
-
-    @staticmethod
-    def _joined(runs: list) -> np.ndarray:
-        parts = [table if offsets is None else translated(table, offsets) for table, offsets in runs]
-        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 @ti.func
