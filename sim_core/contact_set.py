@@ -39,6 +39,7 @@ from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact,
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
 from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.model import Model, check_broad_phase
+from sim_core.unique import sorted_unique
 from sim_core.workspace import Workspace
 
 
@@ -97,7 +98,7 @@ class ContactSet:
         self.coulomb = CoulombCoefficients(model, self.body_names, self.vertex_body)  # the pairs' Coulomb mu
         self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
         self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
-        self.surface_vertices = np.unique(self.triangles)
+        self.surface_vertices = sorted_unique(self.triangles.ravel())
         nb = len(bodies)
         allowed = np.ones((nb, nb), dtype=bool)
         for i, b in enumerate(bodies):
@@ -118,7 +119,9 @@ class ContactSet:
         # the rest-distance exclusion never changes: its close pairs, found once
         self.rest_exclusion = RestExclusion(self.filter, self.surface_vertices, self.triangles, self.edges)
         movable = np.concatenate([b.vertices for b in bodies if b.kind != "frozen"] or [np.zeros(0, np.int64)])
-        movable = np.intersect1d(movable, np.concatenate([self.surface_vertices, _sheet_vertices(model)]))
+        movable = np.intersect1d(sorted_unique(movable), sorted_unique(np.concatenate([self.surface_vertices,
+                                                                                     _sheet_vertices(model)])),
+                                 assume_unique=True)
         self.planes = [
             (name, PlaneContact(movable, p.normal, p.offset, self.stiffness, self.eps))
             for name, p in model.planes.items()

@@ -19,6 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_core.energies.base import block_dof_indices
+from sim_core.slot_translation import joined
 from sim_core.unique import sorted_unique
 
 
@@ -101,10 +102,11 @@ class StaticPattern:
                 continue
             v = v.astype(np.int64)
             in_element[v.ravel()] = True
-            u = np.broadcast_to(v[:, :, None], (k, m, m)).ravel()
-            w = np.broadcast_to(v[:, None, :], (k, m, m)).ravel()
-            kept = (u < w) & vertex_free[u] & vertex_free[w]
-            pair_keys.append(u[kept] * N + w[kept])
+            for a in range(m):  # each local pair once: its vertices in increasing order
+                for b in range(a + 1, m):
+                    u, w = np.minimum(v[:, a], v[:, b]), np.maximum(v[:, a], v[:, b])
+                    kept = (u < w) & vertex_free[u] & vertex_free[w]
+                    pair_keys.append(u[kept] * N + w[kept])
         pairs = sorted_unique(np.concatenate(pair_keys)) if pair_keys else np.zeros(0, dtype=np.int64)
         pu, pw = pairs // N, pairs % N
         pair_start = np.zeros(N + 1, dtype=np.int64)
@@ -115,19 +117,20 @@ class StaticPattern:
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum((own + 3 * neighbours[:, None]).ravel(), out=indptr[1:])
         keys = np.empty(int(indptr[-1]), dtype=np.int64)
-        rows = np.arange(n, dtype=np.int64)
-        # own entries: row 3 u + a, columns 3 u + a ... (3 u + 2 when full), at the row's start
-        own_len = own.ravel()
-        own_row = np.repeat(rows, own_len)
-        own_pos = np.arange(own_row.size) - np.repeat(np.cumsum(own_len) - own_len, own_len)
-        keys[indptr[own_row] + own_pos] = own_row * n + own_row + own_pos
+        start = indptr[:-1].reshape(N, 3)  # row 3 u + a starts at start[u, a]
+        u_all = np.arange(N, dtype=np.int64)
+        # own entries: row 3 u + a, columns 3 u + c for c = a (every vertex) and c > a (full ones), at the row's start
+        for a in range(3):
+            for c in range(a, 3):
+                u = u_all if c == a else u_all[full]
+                keys[start[u, a] + (c - a)] = (3 * u + a) * n + 3 * u + c
         # pair (u, w), rank t in u's list: rows 3 u + a, columns 3 w + b, at own + 3 t + b
         if pairs.size:
-            t = np.arange(pairs.size) - pair_start[pu]
-            a = np.arange(3)
-            r = 3 * pu[:, None, None] + a[None, :, None]  # (P, 3, 1)
-            pos = indptr[r] + own[pu][:, :, None] + 3 * t[:, None, None] + a[None, None, :]
-            keys[pos] = r * n + 3 * pw[:, None, None] + a[None, None, :]
+            first = (start + own)[pu] + 3 * (np.arange(pairs.size) - pair_start[pu])[:, None]  # (P, 3): column 3 w
+            for a in range(3):
+                value = (3 * pu + a) * n + 3 * pw
+                for b in range(3):
+                    keys[first[:, a] + b] = value + b
         self._vertex = (N, vertex_free, full, own, pairs, pair_start, indptr)
         return keys, indptr
 
@@ -185,24 +188,38 @@ class StaticPattern:
             ValueError: a kept entry that is not in the pattern (its elements were not part of it).
         """
         vertices = np.asarray(vertices)
+        runs = self.slot_runs(vertices)
+        if not runs:
+            m = vertices.shape[1]
+            return np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
+        return joined(runs)
+
+    def slot_runs(self, vertices: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """:meth:`slot_map` of ``vertices`` ``(k, m)`` in runs, in element order: ``(table, offsets)``, where
+        ``table`` is the int32 slot map ``(k0, 3 m, 3 m)`` of the run's first chunk of ``k0`` elements and
+        ``offsets`` int32 ``(P,)`` the slot shifts of its ``P`` translated chunks (a stacked scene's copies:
+        the run's map is :func:`~sim_core.slot_translation.translated` of the two), or None where ``table`` is
+        the map of the run's elements themselves. A caller that derives a table from the slot map entry by
+        entry, moving with the slots, derives it from each run's ``table`` only.
+
+        Raises:
+            ValueError: a kept entry that is not in the pattern (its elements were not part of it).
+        """
+        vertices = np.asarray(vertices)
         k, m = vertices.shape
         if self._vertex is None:
             rows, cols = block_keys(vertices, self.dof_count)
-            return self.lookup(rows, cols).reshape(k, 3 * m, 3 * m)
-        parts, at = [], 0
+            return [(self.lookup(rows, cols).reshape(k, 3 * m, 3 * m), None)]
+        runs, at = [], 0
         while at < k:  # runs of translated chunks (a stacked scene's copies: sim_core.batch.stacked), each
             run = self._translated_chunks(vertices[at:])  # made from its first chunk, moved
             if run is None:
-                parts.append(self._pair_slot_map(vertices[at:]))
+                runs.append((self._pair_slot_map(vertices[at:]), None))
                 break
             k0, offsets = run
-            first = self._pair_slot_map(vertices[at:at + k0])
-            parts.append(np.where(first[None] >= 0, first[None] + offsets[:, None, None, None], np.int32(-1))
-                         .reshape(-1, 3 * m, 3 * m))
+            runs.append((self._pair_slot_map(vertices[at:at + k0]), offsets))
             at += k0 * offsets.size
-        if len(parts) == 1:
-            return parts[0]
-        return np.concatenate(parts) if parts else np.zeros((0, 3 * m, 3 * m), dtype=np.int32)
+        return runs
 
     _CHUNK_TRIES = 16
     """Chunk lengths :meth:`_translated_chunks` tries at most."""

@@ -68,7 +68,6 @@ class MaxwellBranch:
         Fr_inv = np.linalg.inv(Fr)
         # dF_e/dx = (dF/dx) F_r^{-1}: tet_dFdx[t, a, j] -> sum_l tet_dFdx[t, a, l] F_r^{-1}[t, l, j].
         branch.tet_dFdx = np.einsum("tal,tlj->taj", solid.tet_dFdx, Fr_inv)
-        branch.tet_dvecF_dx = np.einsum("ic,taj->tijac", np.eye(3), branch.tet_dFdx).reshape(k, 9, 12)
         self.branch = branch
         self._equivalent: StableNeoHookean | None = None
 

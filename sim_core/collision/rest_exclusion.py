@@ -18,6 +18,7 @@ import numpy as np
 
 from sim_core.collision.candidates import PairFilter, box_pairs_kdtree
 from sim_core.collision.distances import edge_edge_distance, point_triangle_distance
+from sim_core.unique import sorted_unique
 
 
 def _keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -79,7 +80,7 @@ class RestExclusion:
         allowed = (np.ones((int(body.max()) + 1,) * 2, dtype=bool) if pair_filter.body_pair_allowed is None
                    else np.asarray(pair_filter.body_pair_allowed, dtype=bool))
         vt_keys, ee_keys = [], []
-        for k in np.unique(body):
+        for k in sorted_unique(body):
             if not allowed[k, k]:
                 continue
             vs = self.vertices[body[self.vertices] == k]
@@ -103,9 +104,9 @@ class RestExclusion:
                     d = edge_edge_distance(xr[ea[:, 0]], xr[ea[:, 1]], xr[eb[:, 0]], xr[eb[:, 1]])
                     ee_keys.append(_keys(i[d < r], j[d < r]))
         if vt_keys:
-            self.vertex_triangle_keys = np.unique(np.concatenate(vt_keys))
+            self.vertex_triangle_keys = sorted_unique(np.concatenate(vt_keys))
         if ee_keys:
-            self.edge_edge_keys = np.unique(np.concatenate(ee_keys))
+            self.edge_edge_keys = sorted_unique(np.concatenate(ee_keys))
 
     def matches(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> bool:
         """Whether this table was built for these vertex, triangle and edge arrays (same values)."""

@@ -26,6 +26,7 @@ import numpy as np
 
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy
+from sim_core.unique import sorted_unique
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -253,7 +254,7 @@ class BandBlocks:
         if dofs.ndim != 2 or dofs.size == 0:
             raise ValueError(f"BandBlocks: dofs of shape {dofs.shape}, expected (blocks, m) with m > 0")
         real = dofs[dofs >= 0]
-        if real.size and (real.max() >= n or np.unique(real).size != real.size):
+        if real.size and (real.max() >= n or sorted_unique(real).size != real.size):
             raise ValueError("BandBlocks: a DoF outside the matrix or in two blocks")
         seg = np.asarray(segments)
         first = np.where(dofs >= 0, dofs, dofs.max(axis=1, keepdims=True))

@@ -50,6 +50,7 @@ import functools
 
 import numpy as np
 
+from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceArray
@@ -113,6 +114,34 @@ def upper_slot_table(slots: np.ndarray) -> np.ndarray:
     packed = np.where(upper >= 0, upper, lower)
     packed = np.where((upper >= 0) & (lower >= 0), -2 - upper, packed)
     return np.ascontiguousarray(packed, dtype=np.int32)
+
+
+class SlotTables:
+    """The slot tables of the element blocks over ``vertices`` ``(k, m)`` in ``pattern``
+    (:class:`sim_core.static_pattern.StaticPattern`): :attr:`upper`, the packed upper table the fused kernels'
+    exact blocks read (:func:`upper_slot_table` of the slot map, int32 ``(k, 3 m (3 m + 1) / 2)``), made here, and
+    :attr:`full`, the slot map itself (:meth:`~sim_core.static_pattern.StaticPattern.slot_map`, int32
+    ``(k, 3 m, 3 m)``) that only the projected blocks read, made at its first read. Both are the tables of those
+    two functions, made for the first chunk of each run of translated chunks
+    (:meth:`~sim_core.static_pattern.StaticPattern.slot_runs`: a stacked scene's copies) and moved chunk by
+    chunk (:func:`~sim_core.slot_translation.translated`), not folded over every copy's map.
+
+    Raises:
+        ValueError: a kept entry that is not in the pattern (its elements were not part of it).
+    """
+
+    def __init__(self, pattern, vertices: np.ndarray) -> None:
+        m = np.shape(vertices)[1]
+        self._runs = pattern.slot_runs(vertices) or [(np.zeros((0, 3 * m, 3 * m), dtype=np.int32), None)]
+        self.upper = joined([(upper_slot_table(table), offsets) for table, offsets in self._runs])
+        self._full: np.ndarray | None = None
+
+    @property
+    def full(self) -> np.ndarray:
+        """The slot map (class docstring), int32 ``(k, 3 m, 3 m)``; made at the first read, then kept."""
+        if self._full is None:
+            self._full = joined(self._runs)
+        return self._full
 
 
 @ti.func

@@ -31,8 +31,8 @@ from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
-from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, upper_index,
-                                                  upper_slot_table)
+from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, SlotTables,
+                                                  upper_index)
 from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
                                          _theta_hessian_unsymmetrized)
 
@@ -253,7 +253,7 @@ class FusedKirchhoffBending:
         self._stiffness = np.ascontiguousarray(potential.triangle_stiffness, dtype=np.float64)
         self._scratch = np.zeros((self._hinges.shape[0], SCRATCH_COLUMNS))
         self._theta_bar = np.array(potential.hinge_theta_bar, dtype=np.float64, order="C")  # own copy
-        self._tri_slots: np.ndarray | None = None
+        self._tri_tables: SlotTables | None = None  # the triangle blocks' slot tables of the bound pattern (bind)
         self._tri_upper: np.ndarray | None = None
         self._hinge_upper: np.ndarray | None = None
         self._blocks = np.zeros((self._tri_hinge.shape[0], 18, 18))
@@ -288,11 +288,18 @@ class FusedKirchhoffBending:
         return self._recipe
 
     def bind(self, pattern) -> None:
-        """Slot maps of the triangle blocks (full, for the projected blocks, and packed upper) and of
-        the hinge blocks (packed upper) in ``pattern``."""
-        self._tri_slots = pattern.slot_map(self.vertices)
-        self._tri_upper = upper_slot_table(self._tri_slots)
-        self._hinge_upper = upper_slot_table(pattern.slot_map(self.potential.hinges))
+        """The slot tables of the triangle blocks (:class:`~sim_core.ti_kernels.block_projection.SlotTables`: packed
+        upper now; full, for the projected blocks, at their first use) and of the hinge blocks (packed upper) in
+        ``pattern``."""
+        self._tri_tables = SlotTables(pattern, self.vertices)
+        self._tri_upper = self._tri_tables.upper
+        self._hinge_upper = SlotTables(pattern, self.potential.hinges).upper
+
+    @property
+    def _tri_slots(self) -> np.ndarray | None:
+        """The full slot map of the triangle blocks (:attr:`SlotTables.full`, for the projected blocks): made at
+        its first read; None before :meth:`bind`."""
+        return None if self._tri_tables is None else self._tri_tables.full
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""

@@ -241,7 +241,7 @@ class KirchhoffBending:
         # construction; one dict shared by the copies that replace the rest angles)
         self._parameter_matrices: dict[str, sp.csr_matrix] = {}
 
-        self._hinge_scatter = self._hessian_scatter()
+        self._scatter_kept: list = []  # _hinge_scatter, made at the first NumPy Hessian (shared by the copies)
 
         # Hessian block vertices: the triangle + the neighbour opposite each edge (own vertex k on
         # a boundary edge k, whose rows stay zero).
@@ -274,6 +274,14 @@ class KirchhoffBending:
         kk = self._known[:, :, None] & self._known[:, None, :]
         Rt = np.swapaxes(R, 1, 2)
         return np.where(kk, Rt @ W @ R, 0.0), np.where(kk, Rt @ dW @ R, 0.0)
+
+    @property
+    def _hinge_scatter(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`_hessian_scatter`, made at the first read and kept in a list that the copies replacing the rest
+        angles share (the fused kernels do not read it: 3 x 144 int64 a triangle)."""
+        if not self._scatter_kept:
+            self._scatter_kept.extend(self._hessian_scatter())
+        return self._scatter_kept
 
     def _hessian_scatter(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Per triangle edge k, where each hinge's derivatives go in the triangle's 18-DoF arrays.

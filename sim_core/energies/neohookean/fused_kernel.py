@@ -33,8 +33,8 @@ from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, upper_index,
-                                                  upper_slot_table)
+from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, SlotTables,
+                                                  upper_index)
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
@@ -199,7 +199,7 @@ class FusedStableNeoHookean:
         self._tets = np.ascontiguousarray(potential.tets, dtype=np.int32)
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
-        self._slots: np.ndarray | None = None
+        self._tables: SlotTables | None = None  # the slot tables of the bound pattern (bind)
         self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
         self._recipe: tuple | None = None  # the last offload_recipe()
@@ -223,10 +223,17 @@ class FusedStableNeoHookean:
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
 
     def bind(self, pattern) -> None:
-        """Slot map of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`; full, for the
-        projected blocks, and packed upper, for the exact ones)."""
-        self._slots = pattern.slot_map(self.vertices)
-        self._upper = upper_slot_table(self._slots)
+        """The slot tables of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`,
+        :class:`~sim_core.ti_kernels.block_projection.SlotTables`): packed upper, for the exact blocks, now; full,
+        for the projected ones, at their first use."""
+        self._tables = SlotTables(pattern, self.vertices)
+        self._upper = self._tables.upper
+
+    @property
+    def _slots(self) -> np.ndarray | None:
+        """The full slot map of the tets' blocks (:attr:`SlotTables.full`, for the projected blocks): made at its first
+        read; None before :meth:`bind`."""
+        return None if self._tables is None else self._tables.full
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""

@@ -141,9 +141,20 @@ class StableNeoHookean:
         Dm_inv = np.linalg.inv(Dm)
         # tet_dFdx[t, a, j] = dF_ij / dx_{a,i} (same for every i): rows 1..3 are D_m^{-1}, row 0 minus their sum.
         self.tet_dFdx = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
-        # The same map as a matrix: tet_dvecF_dx[t, 3 i + j, 3 a + c] = delta_ic tet_dFdx[t, a, j].
-        k = self.tets.shape[0]
-        self.tet_dvecF_dx = np.einsum("ic,taj->tijac", np.eye(3), self.tet_dFdx).reshape(k, 9, 12)
+        self._dvecF_dx: tuple[np.ndarray, np.ndarray] | None = None  # (tet_dFdx, tet_dvecF_dx) made from it
+
+    @property
+    def tet_dvecF_dx(self) -> np.ndarray:
+        """:attr:`tet_dFdx` as a matrix, ``(k, 9, 12)``: ``[t, 3 i + j, 3 a + c] = delta_ic tet_dFdx[t, a, j]``
+        (``d vec(F) / d x`` of each tet, for the NumPy Hessian). Made at the first read from the current
+        ``tet_dFdx`` and kept with it (a new ``tet_dFdx`` object gets a new matrix); the fused kernels do not
+        read it (108 floats a tet)."""
+        kept = self.__dict__.get("_dvecF_dx")
+        if kept is None or kept[0] is not self.tet_dFdx:
+            k = self.tet_dFdx.shape[0]
+            kept = (self.tet_dFdx, np.einsum("ic,taj->tijac", np.eye(3), self.tet_dFdx).reshape(k, 9, 12))
+            self._dvecF_dx = kept
+        return kept[1]
 
     # ------------------------------------------------------------------ kinematics and densities
     def _edge_matrix(self, x: np.ndarray) -> np.ndarray:

@@ -242,3 +242,27 @@ def test_kept_deformation_is_reused_only_at_equal_positions() -> None:
     clone.__dict__.update(snh.__dict__)
     clone.tet_dFdx = 1.1 * snh.tet_dFdx
     assert clone.energy(x) != snh.energy(x)
+
+
+def test_dvecF_dx_is_the_matrix_of_the_current_dFdx() -> None:
+    # tet_dvecF_dx[t, 3 i + j, 3 a + c] = delta_ic tet_dFdx[t, a, j], made at the first read from the tet_dFdx then
+    # held; a copy whose tet_dFdx is replaced (a Maxwell branch) reads the matrix of its own
+    mesh = _small_block()
+    snh = StableNeoHookean(mesh.tets, mesh.x, E_GEL, 0.3)
+
+    def matrix(dFdx):
+        M = np.zeros((dFdx.shape[0], 9, 12))
+        for i in range(3):
+            for j in range(3):
+                for a in range(4):
+                    M[:, 3 * i + j, 3 * a + i] = dFdx[:, a, j]
+        return M
+
+    M = snh.tet_dvecF_dx
+    assert M.shape == (mesh.tets.shape[0], 9, 12) and snh.tet_dvecF_dx is M
+    np.testing.assert_array_equal(M, matrix(snh.tet_dFdx))
+    clone = object.__new__(StableNeoHookean)
+    clone.__dict__.update(snh.__dict__)
+    clone.tet_dFdx = 1.1 * snh.tet_dFdx
+    np.testing.assert_array_equal(clone.tet_dvecF_dx, matrix(clone.tet_dFdx))
+    assert snh.tet_dvecF_dx is M
