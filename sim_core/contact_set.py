@@ -280,8 +280,12 @@ class ContactSet:
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
         lists = self._candidate_lists(search) if rest is not None else None
+        keys = [None, None]  # the lists' packed keys when the search's sort made them (CandidateVertices.keys)
         if lists is not None:  # the exclusions inside the hash / sweep kernel, same lists
             vt, ee = lists.vertex_triangle(x_search, self.radius), lists.edge_edge(x_search, self.radius)
+            keys_of = getattr(lists, "keys_of", None)
+            if keys_of is not None:
+                keys = [keys_of(vt), keys_of(ee)]
         else:
             vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
                                             self.filter, grouped_search=search, rest_exclusion=rest)
@@ -290,9 +294,13 @@ class ContactSet:
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
             sheet = self.body_kind == "sheet"
             solid = self.body_kind == "solid"
-            vt = np.take(vt, np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
-                                              & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])), axis=0)
+            rows = np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
+                                    & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]]))
+            vt = np.take(vt, rows, axis=0)
+            if keys[0] is not None:
+                keys[0] = np.take(keys[0], rows)
         self._candidates = (x_search, vt, ee)
+        self._list_keys = (vt, ee, tuple(keys))
         return self._candidates
 
     def _without_held_pairs(self, candidates: tuple, x: np.ndarray, memory: CollisionMemory) -> tuple:
@@ -570,8 +578,8 @@ class ContactSet:
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(np.take(ee, ee_rows, axis=0), ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows,
-                                                                                          axis=0)))
+                self._edge_edge(np.take(ee, ee_rows, axis=0), np.take(ee_sides, ee_rows),
+                                np.take(lists.ee_vertices, ee_rows, axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
@@ -587,7 +595,10 @@ class ContactSet:
         step's potentials)."""
         kept = getattr(self, "_vertices_kept", None)
         if kept is None or not kept.of(vt, ee):
-            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges)
+            known = getattr(self, "_list_keys", None)  # the keys of the search's lists (the same arrays)
+            keys = known[2] if known is not None and known[0] is vt and known[1] is ee else (None, None)
+            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges, keys=keys,
+                                                           vertex_count=self.model.vertex_count)
         return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:

@@ -66,6 +66,12 @@ class HashCandidates(CandidateElements):
         return self.ee_grid.pairs(x, self._edge_elements, self._edge_body, self._edge_keys, None, None, self.allowed,
                                   self._ee_rest, radius)
 
+    def keys_of(self, pairs: np.ndarray) -> np.ndarray | None:
+        """The packed keys ``first << 32 | second`` (int64 ``(p,)``, increasing) of a list the last
+        :meth:`vertex_triangle` or :meth:`edge_edge` returned (the same array: :meth:`HashGrid.keys_of`), else None."""
+        keys = self.vt_grid.keys_of(pairs)
+        return self.ee_grid.keys_of(pairs) if keys is None else keys
+
 
 def compile_kernels() -> None:
     """JIT-compile (or load from Taichi's offline cache) the kernel on two small sheets' lists.

@@ -293,8 +293,16 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
 
 
 def sorted_pairs(out: np.ndarray) -> np.ndarray:
-    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (one sort of int64 keys,
-    built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies)."""
+    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (:func:`sorted_pairs_and_keys`'
+    pairs)."""
+    return sorted_pairs_and_keys(out)[0]
+
+
+def sorted_pairs_and_keys(out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pairs, keys)``: the int64 ``(p, 2)`` rows of ``out`` ``(p, 2)`` (int32, non-negative) sorted by first, then
+    second column, and their packed keys ``first << 32 | second``, int64 ``(p,)`` in the same order (one sort of the
+    keys, built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies; the keys
+    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in)."""
     keys = out[:, 0].astype(np.int64)
     keys <<= 32
     keys |= out[:, 1]
@@ -302,7 +310,7 @@ def sorted_pairs(out: np.ndarray) -> np.ndarray:
     pairs = np.empty((len(keys), 2), dtype=np.int64)
     np.right_shift(keys, 32, out=pairs[:, 0])
     np.bitwise_and(keys, 0xFFFFFFFF, out=pairs[:, 1])
-    return pairs
+    return pairs, keys
 
 
 def _power_of_two(n: int) -> int:
@@ -333,6 +341,7 @@ class HashGrid:
         self.scale = np.zeros(5, dtype=np.float64)
         self.cell_scale = cell_scale
         self.count = np.zeros(3, dtype=np.int32)
+        self._last: tuple | None = None  # (pairs, keys) of the last search (keys_of)
 
     def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
               b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
@@ -399,7 +408,15 @@ class HashGrid:
             if found > self.out.shape[0]:
                 self.out = np.empty((found + found // 4, 2), dtype=np.int32)
                 continue
-            return sorted_pairs(self.out[:found])
+            pairs, keys = sorted_pairs_and_keys(self.out[:found])
+            self._last = (pairs, keys)
+            return pairs
+
+    def keys_of(self, pairs: np.ndarray) -> np.ndarray | None:
+        """The packed keys ``first << 32 | second`` (int64 ``(p,)``, increasing) of ``pairs`` when they are the array
+        the last :meth:`pairs` returned (the same object), made by its sort; else None."""
+        last = self._last
+        return last[1] if last is not None and last[0] is pairs else None
 
     def _on_device(self, arrays: tuple) -> tuple:
         """The launch's arrays (the order of :func:`_hash_pairs`' array arguments) as Taichi ndarrays in device

@@ -30,6 +30,10 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
     np.testing.assert_array_equal(lists.ee_vertices, edge_edge_vertices(ee, edges))
     rows = np.array([0, 3, 4, 17, 199])
     layouts = [lists.batch_layout(rows) for _ in range(2)]
+    sized = CandidateVertices(vt, ee, triangles, edges, vertex_count=400).batch_layout(rows)  # the vertex count known
+    for got, want in zip(sized[:4], layouts[0][:4]):  # own, local, rows, ee_rows
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
     assert layouts[1].local is layouts[0].local and layouts[1].device is lists.device  # made once, kept
     for own, local, batch_rows, ee_rows, _ in layouts:
         assert local.dtype == np.int32 and local.shape == (150 + 200, 4) and batch_rows.dtype == np.int32
@@ -59,6 +63,11 @@ def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
     for pairs, k in zip((vt, ee), keys):
         np.testing.assert_array_equal(k, (pairs[:, 0] << 32) | pairs[:, 1])
     assert CandidateVertices(vt[::-1], ee, triangles, edges).keys()[0] is None
+    # keys given (a search's sort made them): taken as they are when increasing; a list given none makes its own
+    given = CandidateVertices(vt, ee, triangles, edges, keys=(keys[0].copy(), None)).keys()
+    np.testing.assert_array_equal(given[0], keys[0])
+    np.testing.assert_array_equal(given[1], keys[1])
+    assert CandidateVertices(vt[::-1], ee, triangles, edges, keys=(keys[0][::-1], keys[1])).keys()[0] is None
     rng = np.random.default_rng(4)
     for pairs, k in zip((vt, ee), keys):
         memory = ContactMemory()
