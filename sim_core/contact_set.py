@@ -33,7 +33,7 @@ from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_ge
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
-from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs
+from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, sheet_vertices_off_solids
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -95,10 +95,12 @@ class ContactSet:
         self.body_names = [b.name for b in bodies]
         self.body_kind = np.array([b.kind for b in bodies])
         self.vertex_body = model.body_of_vertex()
+        self._sheet_vertex = (self.body_kind == "sheet")[self.vertex_body]  # the sheet-vs-solid filter's tables
         self.coulomb = CoulombCoefficients(model, self.body_names, self.vertex_body)  # the pairs' Coulomb mu
         self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
         self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
         self.surface_vertices = sorted_unique(self.triangles.ravel())
+        self._solid_triangle = (self.body_kind == "solid")[self.vertex_body[self.triangles[:, 0]]]
         nb = len(bodies)
         allowed = np.ones((nb, nb), dtype=bool)
         for i, b in enumerate(bodies):
@@ -292,13 +294,7 @@ class ContactSet:
             ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
                                       rest_exclusion=rest)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            sheet = self.body_kind == "sheet"
-            solid = self.body_kind == "solid"
-            rows = np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
-                                    & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]]))
-            vt = np.take(vt, rows, axis=0)
-            if keys[0] is not None:
-                keys[0] = np.take(keys[0], rows)
+            vt, keys[0] = sheet_vertices_off_solids(vt, keys[0], self._sheet_vertex, self._solid_triangle)
         self._candidates = (x_search, vt, ee)
         self._list_keys = (vt, ee, tuple(keys))
         return self._candidates

@@ -293,8 +293,8 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
 
 
 def sorted_pairs(out: np.ndarray) -> np.ndarray:
-    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (:func:`sorted_pairs_and_keys`'
-    pairs)."""
+    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (the pairs of
+    :func:`sorted_pairs_and_keys`)."""
     return sorted_pairs_and_keys(out)[0]
 
 

@@ -133,6 +133,17 @@ class BatchLayout(NamedTuple):
     device: dict
 
 
+def sheet_vertices_off_solids(vt: np.ndarray, keys: np.ndarray | None, sheet_vertex: np.ndarray,
+                              solid_triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(vt, keys)``: the vertex-triangle candidates ``vt`` ``(p, 2)`` (``[vertex, triangle row]``) without the pairs
+    of a sheet's vertex and a solid's triangle (:class:`~sim_core.model.ContactSettings` ``sheet_vertices_vs_solids``
+    off), new arrays in the same order, and their packed keys (``keys`` int64 ``(p,)`` of the same rows, or None)
+    likewise. ``sheet_vertex``: bool ``(n,)``, whether each vertex is a sheet's; ``solid_triangle``: bool ``(t,)``,
+    whether each triangle is a solid's (tables made once: two lookups a pair)."""
+    rows = np.flatnonzero(~(np.take(sheet_vertex, vt[:, 0]) & np.take(solid_triangle, vt[:, 1])))
+    return np.take(vt, rows, axis=0), None if keys is None else np.take(keys, rows)
+
+
 def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pos, found)`` of ``pairs`` ``(p, 2)`` in ``old`` (``(old pairs, old arrays)``, the old pairs sorted as
     candidate lists are): rows ``pos`` ``(p,)`` of the old arrays hold the pairs ``found`` (bool ``(p,)``). The same

@@ -95,3 +95,21 @@ def test_potentials_given_their_vertices_equal_those_that_compute_them():
         np.testing.assert_array_equal(given.distance(x), own.distance(x))
         with pytest.raises(ConfigError, match=rf"{len(pairs)} pairs but vertices of shape \(3, 4\)"):
             cls(pairs, elements, sides, 1e3, 0.01, vertices=vertices[:3])
+
+
+def test_sheet_vertices_off_solids_drops_the_pairs_of_a_sheet_vertex_and_a_solid_triangle_with_their_keys():
+    """The filter's rows are the pairs whose vertex is not a sheet's or whose triangle is not a solid's, in order;
+    the keys follow the pairs (None stays None)."""
+    from sim_core.energies.contact.pair_lists import sheet_vertices_off_solids
+
+    vt, _, triangles, _ = _lists()
+    vt = np.unique(vt, axis=0)
+    rng = np.random.default_rng(6)
+    sheet_vertex, solid_triangle = rng.random(400) < 0.5, rng.random(60) < 0.5
+    want = np.array([pair for pair in vt if not (sheet_vertex[pair[0]] and solid_triangle[pair[1]])])
+    assert 0 < len(want) < len(vt)
+    keys = (vt[:, 0] << 32) | vt[:, 1]
+    got, got_keys = sheet_vertices_off_solids(vt, keys, sheet_vertex, solid_triangle)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_keys, (want[:, 0] << 32) | want[:, 1])
+    assert sheet_vertices_off_solids(vt, None, sheet_vertex, solid_triangle)[1] is None
