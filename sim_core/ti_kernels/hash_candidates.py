@@ -40,7 +40,8 @@ class HashCandidates(CandidateElements):
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
                  rest_exclusion: RestExclusion) -> None:
         super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion)
-        self.vt_grid, self.ee_grid = HashGrid(), HashGrid()
+        positions: dict = {}  # the two grids search the same positions in turn: one device copy of frozen ones
+        self.vt_grid, self.ee_grid = HashGrid(positions=positions), HashGrid(positions=positions)
 
     def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:
         """``[global vertex, triangle row]`` pairs within ``radius`` (m) at ``x`` ``(n, 3)`` (m), int64

@@ -328,9 +328,16 @@ class HashGrid:
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
     On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), and copies back only the
     pair count and the pairs (the scale the kernel computes stays there).
+
+    Args:
+        cell_scale: the factor of the cell size's mean-width term (:func:`_hash_pairs`).
+        positions: the cache of the positions' device copy (a :func:`~sim_core.ti_kernels.buffers.on_device` dict),
+            shared by the grids that search the same positions in turn (a contact set's two lists), or None for one
+            of this grid's own.
     """
 
-    def __init__(self, cell_scale: float = 1.0) -> None:
+    def __init__(self, cell_scale: float = 1.0, positions: dict | None = None) -> None:
+        self._positions = {} if positions is None else positions
         self._launch = FastKernel(_hash_pairs.kernel)
         self.bucket_start = self.bucket_fill = self.chunk_total = np.zeros(0, dtype=np.int32)
         self.entry_item = self.entry_lower = np.zeros(0, dtype=np.int32)
@@ -420,15 +427,20 @@ class HashGrid:
 
     def _on_device(self, arrays: tuple) -> tuple:
         """The launch's arrays (the order of :func:`_hash_pairs`' array arguments) as Taichi ndarrays in device
-        memory (:func:`~sim_core.ti_kernels.buffers.on_device`, kept per grid): the positions and the pair count
-        sent at every launch, the element lists when they are other objects than at the last launch (never
-        edited in place), the work arrays when the host replaced them (grown: the device copy starts from the
-        same zeros and keeps what the kernel leaves in it, as the host array does on the CPU)."""
+        memory (:func:`~sim_core.ti_kernels.buffers.on_device`, kept per grid): the pair count sent at every launch,
+        the positions at every launch unless they are frozen (a read-only array that owns its memory, whose values
+        cannot change while it exists: sent once into the positions' cache, which the grids searching it in turn
+        share), the element lists when they are other objects than at the last launch (never edited in place), the
+        work arrays when the host replaced them (grown: the device copy starts from the same zeros and keeps what the
+        kernel leaves in it, as the host array does on the CPU)."""
         names = ("x", "a_vertices", "a_body", "a_key", "b_vertices", "b_body", "allowed", "rest_keys",
                  "bucket_start", "bucket_fill", "entry_item", "entry_cell", "entry_lower", "box", "body_box", "scale",
                  "out", "count", "chunk_total")
         device = self.__dict__.setdefault("_device", {})
-        return tuple(on_device(device, name, host, refresh=name in ("x", "count")) for name, host in zip(names, arrays))
+        x = arrays[0]
+        frozen = not x.flags.writeable and x.base is None
+        return (on_device(self._positions, "x", x, refresh=not frozen),) + tuple(
+            on_device(device, name, host, refresh=name == "count") for name, host in zip(names[1:], arrays[1:]))
 
     def _grow_entries(self, size: int) -> None:
         self.entry_item = np.zeros(size, dtype=np.int32)

@@ -123,6 +123,39 @@ def test_the_search_keeps_the_sorted_keys_of_its_lists_and_the_contact_set_takes
         np.testing.assert_array_equal(k, _sorted_keys(pairs))
 
 
+def test_the_lists_two_grids_send_frozen_positions_to_the_device_once(ti_cpu, monkeypatch):
+    """CUDA launch path (emulated on the CPU arch: the arch queries answer "cuda", the copies stay host copies): the
+    vertex-triangle and edge-edge grids share the positions' device copy; frozen positions (read-only, owning their
+    memory) are sent once for both lists and a later search of the same array, writeable ones at every launch; the
+    lists equal the host path's."""
+    from sim_core import ti_backend
+    from sim_core.ti_kernels import buffers, hash_grid
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    x, vertices, triangles, edges, pair_filter = _scene(2)
+    make = lambda: HashCandidates(vertices, triangles, edges, pair_filter,  # noqa: E731
+                                  RestExclusion(pair_filter, vertices, triangles, edges))
+    host = make()
+    want = (host.vertex_triangle(x, 0.002), host.edge_edge(x, 0.002))
+    assert len(want[0]) > 20 and len(want[1]) > 20
+    for module in (hash_grid, ti_backend):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    sent = []
+    from_numpy = buffers._from_numpy
+    monkeypatch.setattr(buffers, "_from_numpy", lambda dev, host: (sent.append(host), from_numpy(dev, host))[1])
+    lists = make()
+    assert lists.vt_grid._positions is lists.ee_grid._positions
+    frozen = x.copy()
+    frozen.flags.writeable = False
+    for positions, uploads in ((frozen, (1, 0)), (x.copy(), (2, 2))):  # two searches of the same array each
+        for expected in uploads:
+            sent.clear()
+            got = (lists.vertex_triangle(positions, 0.002), lists.edge_edge(positions, 0.002))
+            for pairs, reference in zip(got, want):
+                np.testing.assert_array_equal(pairs, reference)
+            assert sum(host is positions for host in sent) == expected
+
+
 def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_cpu):
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 
