@@ -274,7 +274,8 @@ class ContactSet:
 
     def _candidate_pairs(self, x: np.ndarray, x_device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`;
-        ``x_device``: :meth:`covers`')."""
+        ``x_device``: :meth:`covers`'). The lists' packed keys, where the hash search's sort made them, are kept
+        with them for their :class:`CandidateVertices` (:meth:`_list_vertices`)."""
         found = self._candidates
         if found is not None and self.covers(found[0], x, x_device):
             return found

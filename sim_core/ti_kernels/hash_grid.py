@@ -27,7 +27,8 @@ lower index, as the reference does. The kernel also applies the candidate exclus
 :mod:`sim_core.ti_kernels.hash_candidates` when given element vertices and rest keys: pairs of
 elements that share a vertex, and same-body pairs whose key ``first << 32 | second`` is in the
 sorted rest-distance keys. The pairs are therefore exactly the reference's; they are returned
-sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort).
+sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort), and the sorted keys are kept
+for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up among them).
 
 Loops run serially on the CPU (entries and pairs in box order), in parallel on CUDA (atomic
 counters; the sort makes the result the same). The entry and output buffers are kept by a
