@@ -293,12 +293,6 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                                         out[k, 1] = pair[2]
 
 
-def sorted_pairs(out: np.ndarray) -> np.ndarray:
-    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (the pairs of
-    :func:`sorted_pairs_and_keys`)."""
-    return sorted_pairs_and_keys(out)[0]
-
-
 def sorted_pairs_and_keys(out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pairs, keys)``: the int64 ``(p, 2)`` rows of ``out`` ``(p, 2)`` (int32, non-negative) sorted by first, then
     second column, and their packed keys ``first << 32 | second``, int64 ``(p,)`` in the same order (one sort of the
