@@ -308,7 +308,7 @@ def _wrap_parts(backend: str) -> dict:
 
     parts += [(ContactSet, n) for n in ("_candidate_pairs", "_search", "_pair_sides", "_pair_geometry",
                                         "_list_vertices", "_pair_friction", "_end_geometry_of")]
-    parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs"), (PairBatch, "__init__"),
+    parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs_and_keys"), (PairBatch, "__init__"),
               (PairBatch, "_launch"), (pair_lists.CandidateVertices, "__init__"),
               (pair_lists.CandidateVertices, "batch_indices"), (setup_kernel, "friction_frames"),
               (pair_lists, "lookup_pairs"), (pair_lists, "merge_rows"), (pair_lists.CandidateVertices, "batch_layout"),
