@@ -72,17 +72,19 @@ def keep_step_start_distances(previous: tuple | None, current: tuple | None, x: 
     if (any(k is None for k in kept) or any(pot._kept(key, 0) is not None for pot in new)
             or any(type(a) is not type(b) or a.eps != b.eps for a, b in zip(old, new))):
         return False
-    old_rows, new_rows = (None, previous[3]), (None, current[3])
-    same = [_same_sides(o.sides, n.sides, r, s) for o, n, r, s in zip(old, new, old_rows, new_rows)]
+    q = len(current[1][2])  # the candidates' edge-edge pairs, whose rows the edge-edge potentials keep
+    old_table, new_table = _table(previous[3], q), _table(current[3], q)
+    same = (_same_sides(old[0].sides, new[0].sides, None, None),
+            _same_sides(old[1].sides, new[1].sides, old_table, current[3]))
     if same[0] is None:
         return False
     changed = np.flatnonzero(~same[0]), np.flatnonzero(~same[1])
     found, d = batch.measure(x, np.concatenate([changed[0], changed[1] + batch.split]), key)
     cut = int(np.searchsorted(found, batch.split))
     measured = ((found[:cut], d[:cut]), (found[cut:] - batch.split, d[cut:]))
-    for kind, (pot, evaluation) in enumerate(zip(new, kept)):
-        rows, dist = _reused(evaluation, same[kind], old_rows[kind], new_rows[kind])
-        active, dist = np.concatenate([rows, measured[kind][0]]), np.concatenate([dist, measured[kind][1]])
+    reused = _reused(kept[0], same[0], None, None), _reused(kept[1], same[1], previous[3], new_table)
+    for pot, (rows, dist), (more, more_d) in zip(new, reused, measured):
+        active, dist = np.concatenate([rows, more]), np.concatenate([dist, more_d])
         order = np.argsort(active, kind="stable")  # (disjoint rows: unchanged sides, then measured)
         active, dist = np.take(active, order), np.take(dist, order)
         dd = DistanceDerivatives(dist, None, None, np.zeros(active.shape, np.int64))
@@ -90,40 +92,43 @@ def keep_step_start_distances(previous: tuple | None, current: tuple | None, x: 
     return True
 
 
-def _same_sides(old_sides: np.ndarray, new_sides: np.ndarray, old_rows: np.ndarray | None,
+def _table(rows: np.ndarray, count: int) -> np.ndarray:
+    """int64 ``(count,)``: the potential's row of each of ``count`` candidates, -1 where the potential has none
+    (``rows``: its candidates' rows, int ``(r,)``, distinct)."""
+    table = np.full(count, -1, dtype=np.int64)
+    table[rows] = np.arange(len(rows), dtype=np.int64)
+    return table
+
+
+def _same_sides(old_sides: np.ndarray, new_sides: np.ndarray, old_table: np.ndarray | None,
                 new_rows: np.ndarray | None) -> np.ndarray | None:
-    """Bool ``(r,)``: whether each pair of the new potential (sides ``new_sides`` ``(r,)``; its pairs the candidate
-    rows ``new_rows``, increasing, or None: rows ``0 .. r - 1``) was a pair of the old one (``old_sides``,
-    ``old_rows`` likewise) with the same side, bit for bit; None where the rows are None and the lengths differ."""
+    """Bool ``(r,)``: whether each pair of the new potential (sides ``new_sides`` ``(r,)``, its pairs the candidates
+    ``new_rows`` int ``(r,)``, or None: candidates ``0 .. r - 1``) was a pair of the old one (sides ``old_sides``; its
+    row of each candidate ``old_table``, :func:`_table`, or None: as the new one's) with the same side, bit for bit;
+    None where ``old_table`` is None and the lengths differ."""
     old_bits, new_bits = np.ascontiguousarray(old_sides).view(np.int64), np.ascontiguousarray(new_sides).view(np.int64)
-    if old_rows is None:
+    if old_table is None:
         return old_bits == new_bits if len(old_bits) == len(new_bits) else None
-    if not len(old_rows):
-        return np.zeros(len(new_rows), dtype=bool)
-    pos = np.searchsorted(old_rows, new_rows)
-    np.minimum(pos, len(old_rows) - 1, out=pos)
-    same = np.take(old_rows, pos) == new_rows
-    same &= np.take(old_bits, pos) == new_bits
+    pos = np.take(old_table, new_rows)
+    same = pos >= 0
+    if len(old_bits):
+        same &= np.take(old_bits, pos) == new_bits  # (-1: the last row, ruled out by ``same``)
     return same
 
 
 def _reused(evaluation: PairEvaluation, same: np.ndarray, old_rows: np.ndarray | None,
-            new_rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The active pairs of ``evaluation`` (the old potential's) that are pairs of the new potential with the same
-    side (``same``, :func:`_same_sides`), as new rows int64 ``(a,)`` (in increasing order), and their distances."""
-    active, dist = evaluation.active, evaluation.distances.d
-    if old_rows is None:
-        rows = np.asarray(active, dtype=np.int64)
-    elif not len(new_rows):
-        return np.zeros(0, dtype=np.int64), np.zeros(0)
-    else:
-        listed = np.take(old_rows, active)
-        rows = np.searchsorted(new_rows, listed)
-        np.minimum(rows, len(new_rows) - 1, out=rows)
-        keep = np.take(new_rows, rows) == listed
-        rows, dist = rows[keep], dist[keep]
-    keep = np.take(same, rows)
-    return rows[keep], dist[keep]
+            new_table: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The active pairs of ``evaluation`` (the old potential's, over the candidates ``old_rows``, or None: candidates
+    ``0 ..``) that are pairs of the new potential (its row of each candidate ``new_table``, :func:`_table`, or None:
+    the old one's rows) with the same side (``same``, :func:`_same_sides`), as new rows int64 ``(a,)`` (in
+    increasing order), and their distances."""
+    active, dist = np.asarray(evaluation.active, dtype=np.int64), evaluation.distances.d
+    if old_rows is not None:
+        active = np.take(new_table, np.take(old_rows, active))
+        keep = active >= 0
+        active, dist = active[keep], dist[keep]
+    keep = np.take(same, active)
+    return active[keep], dist[keep]
 
 
 def pair_friction(contact, x_n: np.ndarray, dt: float, vt, ee):
