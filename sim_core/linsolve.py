@@ -22,6 +22,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.symmetric_pattern import both_triangles
 
 
 @functools.lru_cache(maxsize=1)
@@ -153,61 +154,6 @@ class SymmetricSolver(Protocol):
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve ``A x = b`` with the last successful factorisation; ``b`` shape ``(n,)``."""
         ...
-
-
-def both_triangles(indptr: np.ndarray, indices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The CSR pattern of ``U + U^T - diag(U)`` (both triangles) of an upper triangle ``U``'s CSR index arrays,
-    with the position in ``U``'s data of each of its entries.
-
-    Row ``i`` of the result is row ``i`` of ``U^T`` less its diagonal (one transposition, SciPy's C
-    ``csr_tocsc``: those columns are below ``i``, in increasing order) followed by row ``i`` of ``U`` (sorted
-    first where it is not), written into the output by two masked placements; no sort of the entries. Entries
-    stored twice stay twice, explicit zeros stay.
-
-    Args:
-        indptr: ``U``'s row offsets, int ``(n + 1,)``.
-        indices: ``U``'s column indices, int ``(nnz,)`` or longer (entries past ``indptr[-1]`` are ignored).
-        n: rows (and columns) of ``U``.
-
-    Returns:
-        ``(full_indptr, full_indices, source)``: int ``(n + 1,)``, ``(f,)`` and ``(f,)`` (int32 when ``f`` and
-        ``n`` fit, else int64), the result's rows in increasing column order and, per entry, the position in
-        ``U``'s data of the entry it copies.
-
-    Raises:
-        ValueError: ``U`` has an entry below the diagonal.
-    """
-    nnz = int(indptr[-1])
-    wide = max(n, 2 * nnz) >= np.iinfo(np.int32).max
-    dtype = np.int64 if wide else np.int32
-    upper = sp.csr_matrix((np.arange(nnz, dtype=dtype), np.asarray(indices)[:nnz], indptr), shape=(n, n))
-    counts = np.diff(upper.indptr)
-    rows = np.repeat(np.arange(n, dtype=dtype), counts)
-    if np.any(upper.indices < rows):
-        raise ValueError("the matrix has entries below the diagonal (not an upper triangle)")
-    if not upper.has_sorted_indices:
-        upper = upper.copy()  # not the caller's indices
-        upper.sort_indices()  # data (the positions) moves with the indices
-    diagonal = np.bincount(rows[upper.indices == rows], minlength=n)
-    del rows
-    lower = upper.T.tocsr()  # U^T: row i holds the columns j <= i of U's column i, increasing
-    lower_rows = np.repeat(np.arange(n, dtype=dtype), np.diff(lower.indptr))
-    strict = lower.indices != lower_rows
-    del lower_rows
-    lower_counts = np.diff(lower.indptr) - diagonal
-    full_indptr = np.zeros(n + 1, dtype=dtype)
-    np.cumsum(lower_counts + counts, out=full_indptr[1:])
-    runs = np.empty(2 * n, dtype=np.int64)  # per row: its U^T run, then its U run
-    runs[0::2], runs[1::2] = lower_counts, counts
-    from_upper = np.repeat(np.tile(np.array([False, True]), n), runs)
-    from_lower = ~from_upper
-    full_indices = np.empty(from_upper.size, dtype=dtype)
-    source = np.empty(from_upper.size, dtype=dtype)
-    full_indices[from_upper] = upper.indices
-    full_indices[from_lower] = lower.indices[strict]
-    source[from_upper] = upper.data
-    source[from_lower] = lower.data[strict]
-    return full_indptr, full_indices, source
 
 
 def full_from_upper(upper: sp.csr_matrix) -> sp.csr_matrix:

@@ -43,7 +43,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sim_core.linsolve import both_triangles
+from sim_core.symmetric_pattern import both_triangles
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy, transfer
 from sim_core.ti_kernels.band_cholesky import BandBlocks, band_solve
@@ -609,7 +609,7 @@ class BatchedPCG:
         self._uploaded["order_of"] = seg
 
     def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int) -> tuple:
-        """The pattern of ``U + U^T - diag(U)`` (both triangles, :func:`~sim_core.linsolve.both_triangles`) of the
+        """The pattern of ``U + U^T - diag(U)`` (both triangles, :func:`~sim_core.symmetric_pattern.both_triangles`) of the
         upper-triangle CSR arrays: its ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``,
         and ``full_src``, the position in ``U``'s data of each entry, so that the CG's product needs no atomics (one
         thread a row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.

@@ -1,4 +1,4 @@
-"""The both-triangle pattern of an upper triangle (:func:`sim_core.linsolve.both_triangles`) against its definition."""
+"""The both-triangle pattern of an upper triangle (:func:`sim_core.symmetric_pattern.both_triangles`) against its definition."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from sim_core.linsolve import both_triangles
+from sim_core.symmetric_pattern import both_triangles
 
 
 def _definition(indptr: np.ndarray, indices: np.ndarray, n: int):
