@@ -37,18 +37,25 @@ def both_triangles(indptr: np.ndarray, indices: np.ndarray, n: int) -> tuple[np.
     dtype = np.int64 if wide else np.int32
     upper = sp.csr_matrix((np.arange(nnz, dtype=dtype), np.asarray(indices)[:nnz], indptr), shape=(n, n))
     counts = np.diff(upper.indptr)
-    rows = np.repeat(np.arange(n, dtype=dtype), counts)
-    if np.any(upper.indices < rows):
-        raise ValueError("the matrix has entries below the diagonal (not an upper triangle)")
     if not upper.has_sorted_indices:
         upper = upper.copy()  # not the caller's indices
         upper.sort_indices()  # data (the positions) moves with the indices
-    diagonal = np.bincount(rows[upper.indices == rows], minlength=n)
-    del rows
-    lower = upper.T.tocsr()  # U^T: row i holds the columns j <= i of U's column i, increasing
-    lower_rows = np.repeat(np.arange(n, dtype=dtype), np.diff(lower.indptr))
-    strict = lower.indices != lower_rows
-    del lower_rows
+    row = np.arange(n, dtype=dtype)
+    # each row's smallest column, at its start (sorted rows): an entry below the diagonal shows there
+    first = np.where(counts > 0, upper.indices[np.minimum(upper.indptr[:-1], max(nnz - 1, 0))], n) if nnz else row + n
+    if np.any(first < row):
+        raise ValueError("the matrix has entries below the diagonal (not an upper triangle)")
+    diagonal = first == row
+    twice = diagonal & (counts > 1)
+    twice[twice] = upper.indices[upper.indptr[:-1][twice] + 1] == row[twice]
+    lower = upper.T.tocsr()  # U^T: row i holds the columns j <= i of U's column i, increasing (the diagonal last)
+    if twice.any():  # a diagonal stored more than once: every such entry found
+        rows = np.repeat(row, counts)
+        diagonal = np.bincount(rows[upper.indices == rows], minlength=n)
+        strict = lower.indices != np.repeat(row, np.diff(lower.indptr))
+    else:
+        strict = np.ones(nnz, dtype=bool)
+        strict[lower.indptr[1:][diagonal] - 1] = False
     lower_counts = np.diff(lower.indptr) - diagonal
     full_indptr = np.zeros(n + 1, dtype=dtype)
     np.cumsum(lower_counts + counts, out=full_indptr[1:])
