@@ -56,7 +56,7 @@ def main() -> int:
     sc.SolverConfig = config
     try:
         if backend != "numpy":  # every kernel compiled or loaded first, the projected Hessian's too (as bench batch)
-            from sim_core.fused_elastic import compile_kernels
+            from sim_core.kernel_compile import compile_kernels
 
             warm = _TaskRun(args.task, 1, 2, backend, True) if args.task else _FormingRun(1, 2, backend, lockstep=True)
             warm.run()
@@ -232,7 +232,6 @@ def _count_cg_iterations() -> list:
 def _wrap_parts(backend: str) -> dict:
     """Wrap the solver's parts with wall-clock timers (the device vectors' too on a Taichi ``backend``); returns
     name -> [calls, seconds] (filled as they run)."""
-    import functools
 
     from sim_core.batch import lockstep
     from sim_core.assembly import HessianAssembler
@@ -309,7 +308,7 @@ def _wrap_parts(backend: str) -> dict:
 
     parts += [(ContactSet, n) for n in ("_candidate_pairs", "_search", "_pair_sides", "_pair_geometry",
                                         "_list_vertices", "_pair_friction", "_end_geometry_of")]
-    parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs"), (PairBatch, "__init__"),
+    parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs_and_keys"), (PairBatch, "__init__"),
               (PairBatch, "_launch"), (pair_lists.CandidateVertices, "__init__"),
               (pair_lists.CandidateVertices, "batch_indices"), (setup_kernel, "friction_frames"),
               (pair_lists, "lookup_pairs"), (pair_lists, "merge_rows"), (pair_lists.CandidateVertices, "batch_layout"),
@@ -348,19 +347,8 @@ def _wrap_parts(backend: str) -> dict:
         is_cm = isinstance(fn, classmethod)
         raw = fn.__func__ if is_cm else fn
 
-        def make(raw=raw, label=label):
-            @functools.wraps(raw)
-            def wrapped(*a, **kw):
-                t = time.perf_counter()
-                try:
-                    return raw(*a, **kw)
-                finally:
-                    rec = timers[label]
-                    rec[0] += 1
-                    rec[1] += time.perf_counter() - t
-            return wrapped
-
-        setattr(cls, name, classmethod(make()) if is_cm else make())
+        wrapped = _timed(raw, timers[label])
+        setattr(cls, name, classmethod(wrapped) if is_cm else wrapped)
     _time_within(timers, CopyLineSearch, "_line_search_copies", lockstep.LockstepSolver, "_stacked_gradient")
     _time_within(timers, CopyLineSearch, "_line_search_copies", device_copy, "_copy")
     # module functions the contact set calls by the names it imported
@@ -368,6 +356,21 @@ def _wrap_parts(backend: str) -> dict:
         if hasattr(contact_set, name):
             setattr(contact_set, name, getattr(pair_lists, name))
     return timers
+
+
+def _timed(fn, record: list):
+    """``fn`` wrapped to add each call to ``record`` (``[calls, seconds]``)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapped(*a, **kw):
+        t = time.perf_counter()
+        try:
+            return fn(*a, **kw)
+        finally:
+            record[0] += 1
+            record[1] += time.perf_counter() - t
+    return wrapped
 
 
 def _time_within(timers: dict, outer_cls, outer: str, cls, name: str) -> None:
@@ -388,17 +391,11 @@ def _time_within(timers: dict, outer_cls, outer: str, cls, name: str) -> None:
         finally:
             depth[0] -= 1
 
+    timed = _timed(inner_fn, timers[label])
+
     @functools.wraps(inner_fn)
     def inner_wrapped(*a, **kw):
-        if not depth[0]:
-            return inner_fn(*a, **kw)
-        t = time.perf_counter()
-        try:
-            return inner_fn(*a, **kw)
-        finally:
-            rec = timers[label]
-            rec[0] += 1
-            rec[1] += time.perf_counter() - t
+        return (timed if depth[0] else inner_fn)(*a, **kw)
 
     setattr(outer_cls, outer, outer_wrapped)
     setattr(cls, name, inner_wrapped)

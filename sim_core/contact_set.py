@@ -33,7 +33,7 @@ from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_ge
 from sim_core.collision.rest_exclusion import RestExclusion
 from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
-from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs
+from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, sheet_vertices_off_solids
 from sim_core.energies.contact.reference import (ContactFrames, EdgeEdgeContact, PlaneContact, VertexTriangleContact,
                                                  concatenate_frames, edge_edge_vertices, vertex_triangle_vertices)
 from sim_core.energies.friction.reference import LaggedFriction, smooth_friction_f0
@@ -95,10 +95,12 @@ class ContactSet:
         self.body_names = [b.name for b in bodies]
         self.body_kind = np.array([b.kind for b in bodies])
         self.vertex_body = model.body_of_vertex()
+        self._sheet_vertex = (self.body_kind == "sheet")[self.vertex_body]  # the sheet-vs-solid filter's tables
         self.coulomb = CoulombCoefficients(model, self.body_names, self.vertex_body)  # the pairs' Coulomb mu
         self.triangles = np.concatenate([b.triangles for b in bodies]).astype(np.int64)
         self.edges = np.concatenate([b.edges for b in bodies]).astype(np.int64)
         self.surface_vertices = sorted_unique(self.triangles.ravel())
+        self._solid_triangle = (self.body_kind == "solid")[self.vertex_body[self.triangles[:, 0]]]
         nb = len(bodies)
         allowed = np.ones((nb, nb), dtype=bool)
         for i, b in enumerate(bodies):
@@ -272,7 +274,8 @@ class ContactSet:
 
     def _candidate_pairs(self, x: np.ndarray, x_device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`;
-        ``x_device``: :meth:`covers`')."""
+        ``x_device``: :meth:`covers`'). The lists' packed keys, where the hash search's sort made them, are kept
+        with them for their :class:`CandidateVertices` (:meth:`_list_vertices`)."""
         found = self._candidates
         if found is not None and self.covers(found[0], x, x_device):
             return found
@@ -280,19 +283,21 @@ class ContactSet:
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
         lists = self._candidate_lists(search) if rest is not None else None
+        keys = [None, None]  # the lists' packed keys when the search's sort made them (CandidateVertices.keys)
         if lists is not None:  # the exclusions inside the hash / sweep kernel, same lists
             vt, ee = lists.vertex_triangle(x_search, self.radius), lists.edge_edge(x_search, self.radius)
+            keys_of = getattr(lists, "keys_of", None)
+            if keys_of is not None:
+                keys = [keys_of(vt), keys_of(ee)]
         else:
             vt = vertex_triangle_candidates(x_search, self.surface_vertices, self.triangles, self.radius,
                                             self.filter, grouped_search=search, rest_exclusion=rest)
             ee = edge_edge_candidates(x_search, self.edges, self.radius, self.filter, grouped_search=search,
                                       rest_exclusion=rest)
         if len(vt) and not self.model.contact.sheet_vertices_vs_solids:
-            sheet = self.body_kind == "sheet"
-            solid = self.body_kind == "solid"
-            vt = np.take(vt, np.flatnonzero(~(sheet[self.vertex_body[vt[:, 0]]]
-                                              & solid[self.vertex_body[self.triangles[vt[:, 1], 0]]])), axis=0)
+            vt, keys[0] = sheet_vertices_off_solids(vt, keys[0], self._sheet_vertex, self._solid_triangle)
         self._candidates = (x_search, vt, ee)
+        self._list_keys = (vt, ee, tuple(keys))
         return self._candidates
 
     def _without_held_pairs(self, candidates: tuple, x: np.ndarray, memory: CollisionMemory) -> tuple:
@@ -570,8 +575,8 @@ class ContactSet:
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(np.take(ee, ee_rows, axis=0), ee_sides[ee_rows], np.take(lists.ee_vertices, ee_rows,
-                                                                                          axis=0)))
+                self._edge_edge(np.take(ee, ee_rows, axis=0), np.take(ee_sides, ee_rows),
+                                np.take(lists.ee_vertices, ee_rows, axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
@@ -587,7 +592,10 @@ class ContactSet:
         step's potentials)."""
         kept = getattr(self, "_vertices_kept", None)
         if kept is None or not kept.of(vt, ee):
-            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges)
+            known = getattr(self, "_list_keys", None)  # the keys of the search's lists (the same arrays)
+            keys = known[2] if known is not None and known[0] is vt and known[1] is ee else (None, None)
+            kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges, keys=keys,
+                                                           vertex_count=self.model.vertex_count)
         return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:

@@ -59,7 +59,7 @@ def _firsts(ordered: np.ndarray) -> np.ndarray:
 
 
 def compact_indices(indices: np.ndarray | tuple[np.ndarray, ...],
-                    dtype: type = np.int64) -> tuple[np.ndarray, np.ndarray]:
+                    dtype: type = np.int64, size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The distinct values of non-negative integer ``indices`` and each index's position among them, as
     ``np.unique(indices, return_inverse=True)`` (the inverse in ``indices``' shape), from a presence mask
     of length ``max + 1`` instead of a sort: ``O(k + max)``; a stacked batch's contact pairs name a
@@ -76,13 +76,17 @@ def compact_indices(indices: np.ndarray | tuple[np.ndarray, ...],
         indices: integer array of any shape, values ``>= 0``; or a tuple of such arrays, at least 1-D, with equal
             shapes after the first axis.
         dtype: the positions' integer dtype (``np.int64`` or ``np.int32``; int32 needs fewer than 2**31 values).
+        size: a bound the caller knows, every index in ``[0, size)`` (a model's vertex count), or None; with it the
+            presence mask has ``size`` entries and the indices are not read for their range first (an index
+            ``>= size`` raises IndexError, a negative one is not detected); the same results.
 
     Returns:
         ``(own, local)``: ``own`` int64 ``(u,)`` sorted distinct values; ``local`` of ``dtype`` and of ``indices'``
         shape (of the concatenation's for a tuple), ``own[local] == indices``.
 
     Raises:
-        ValueError: a negative index, or parts of unequal trailing shapes.
+        ValueError: a negative index (without ``size``), or parts of unequal trailing shapes.
+        IndexError: an index ``>= size``.
     """
     parts = tuple(np.asarray(part) for part in indices) if isinstance(indices, tuple) else (np.asarray(indices),)
     if len(parts) > 1 and any(part.ndim < 1 or part.shape[1:] != parts[0].shape[1:] for part in parts):
@@ -91,9 +95,11 @@ def compact_indices(indices: np.ndarray | tuple[np.ndarray, ...],
     filled = [part for part in parts if part.size]
     if not filled:
         return np.zeros(0, dtype=np.int64), np.zeros(shape, dtype=dtype)
-    if min(int(part.min()) for part in filled) < 0:
-        raise ValueError("compact_indices: indices must be >= 0")
-    named = np.zeros(max(int(part.max()) for part in filled) + 1, dtype=bool)
+    if size is None:
+        if min(int(part.min()) for part in filled) < 0:
+            raise ValueError("compact_indices: indices must be >= 0")
+        size = max(int(part.max()) for part in filled) + 1
+    named = np.zeros(size, dtype=bool)
     for part in filled:
         named[part.ravel()] = True
     position = np.cumsum(named, dtype=dtype)

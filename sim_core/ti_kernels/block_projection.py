@@ -144,6 +144,28 @@ class SlotTables:
         return self._full
 
 
+class BoundSlotTables:
+    """The slot tables of a fused elastic kernel whose element blocks are those of its ``vertices`` ``(k, m)``
+    (a mixin of the fused kernels): :meth:`bind` makes them for a pattern, ``_upper`` is the packed upper table the
+    exact blocks read, ``_slots`` the full slot map the projected blocks read (made at its first read)."""
+
+    _tables: SlotTables | None = None
+    _upper: np.ndarray | None = None
+
+    def bind(self, pattern) -> None:
+        """The slot tables of the blocks in ``pattern`` (:class:`sim_core.static_pattern.StaticPattern`,
+        :class:`SlotTables`): packed upper, for the exact blocks, now; full, for the projected ones, at their first
+        use."""
+        self._tables = SlotTables(pattern, self.vertices)
+        self._upper = self._tables.upper
+
+    @property
+    def _slots(self) -> np.ndarray | None:
+        """The full slot map of the blocks (:attr:`SlotTables.full`): made at its first read; None before
+        :meth:`bind`."""
+        return None if self._tables is None else self._tables.full
+
+
 @ti.func
 def upper_index(n: ti.template(), r, s):
     """Position of the local upper entry ``(r, s)``, ``r <= s``, of an ``n x n`` block in the rows of

@@ -40,7 +40,8 @@ class HashCandidates(CandidateElements):
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray, pair_filter: PairFilter,
                  rest_exclusion: RestExclusion) -> None:
         super().__init__(vertices, triangles, edges, pair_filter, rest_exclusion)
-        self.vt_grid, self.ee_grid = HashGrid(), HashGrid()
+        positions: dict = {}  # the two grids search the same positions in turn: one device copy of frozen ones
+        self.vt_grid, self.ee_grid = HashGrid(positions=positions), HashGrid(positions=positions)
 
     def vertex_triangle(self, x: np.ndarray, radius: float) -> np.ndarray:
         """``[global vertex, triangle row]`` pairs within ``radius`` (m) at ``x`` ``(n, 3)`` (m), int64
@@ -65,6 +66,12 @@ class HashCandidates(CandidateElements):
             return np.zeros((0, 2), dtype=np.int64)
         return self.ee_grid.pairs(x, self._edge_elements, self._edge_body, self._edge_keys, None, None, self.allowed,
                                   self._ee_rest, radius)
+
+    def keys_of(self, pairs: np.ndarray) -> np.ndarray | None:
+        """The packed keys ``first << 32 | second`` (int64 ``(p,)``, increasing) of a list the last
+        :meth:`vertex_triangle` or :meth:`edge_edge` returned (the same array: :meth:`HashGrid.keys_of`), else None."""
+        keys = self.vt_grid.keys_of(pairs)
+        return self.ee_grid.keys_of(pairs) if keys is None else keys
 
 
 def compile_kernels() -> None:

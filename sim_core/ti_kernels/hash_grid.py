@@ -27,7 +27,8 @@ lower index, as the reference does. The kernel also applies the candidate exclus
 :mod:`sim_core.ti_kernels.hash_candidates` when given element vertices and rest keys: pairs of
 elements that share a vertex, and same-body pairs whose key ``first << 32 | second`` is in the
 sorted rest-distance keys. The pairs are therefore exactly the reference's; they are returned
-sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort).
+sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort), and the sorted keys are kept
+for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up among them).
 
 Loops run serially on the CPU (entries and pairs in box order), in parallel on CUDA (atomic
 counters; the sort makes the result the same). The entry and output buffers are kept by a
@@ -292,9 +293,11 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                                         out[k, 1] = pair[2]
 
 
-def sorted_pairs(out: np.ndarray) -> np.ndarray:
-    """int64 ``(p, 2)`` rows of ``out`` (non-negative) sorted by first, then second column (one sort of int64 keys,
-    built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies)."""
+def sorted_pairs_and_keys(out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pairs, keys)``: the int64 ``(p, 2)`` rows of ``out`` ``(p, 2)`` (int32, non-negative) sorted by first, then
+    second column, and their packed keys ``first << 32 | second``, int64 ``(p,)`` in the same order (one sort of the
+    keys, built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies; the keys
+    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in)."""
     keys = out[:, 0].astype(np.int64)
     keys <<= 32
     keys |= out[:, 1]
@@ -302,7 +305,7 @@ def sorted_pairs(out: np.ndarray) -> np.ndarray:
     pairs = np.empty((len(keys), 2), dtype=np.int64)
     np.right_shift(keys, 32, out=pairs[:, 0])
     np.bitwise_and(keys, 0xFFFFFFFF, out=pairs[:, 1])
-    return pairs
+    return pairs, keys
 
 
 def _power_of_two(n: int) -> int:
@@ -320,9 +323,16 @@ class HashGrid:
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
     On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), and copies back only the
     pair count and the pairs (the scale the kernel computes stays there).
+
+    Args:
+        cell_scale: the factor of the cell size's mean-width term (:func:`_hash_pairs`).
+        positions: the cache of the positions' device copy (a :func:`~sim_core.ti_kernels.buffers.on_device` dict),
+            shared by the grids that search the same positions in turn (a contact set's two lists), or None for one
+            of this grid's own.
     """
 
-    def __init__(self, cell_scale: float = 1.0) -> None:
+    def __init__(self, cell_scale: float = 1.0, positions: dict | None = None) -> None:
+        self._positions = {} if positions is None else positions
         self._launch = FastKernel(_hash_pairs.kernel)
         self.bucket_start = self.bucket_fill = self.chunk_total = np.zeros(0, dtype=np.int32)
         self.entry_item = self.entry_lower = np.zeros(0, dtype=np.int32)
@@ -333,6 +343,7 @@ class HashGrid:
         self.scale = np.zeros(5, dtype=np.float64)
         self.cell_scale = cell_scale
         self.count = np.zeros(3, dtype=np.int32)
+        self._last: tuple | None = None  # (pairs, keys) of the last search (keys_of)
 
     def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
               b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
@@ -399,19 +410,32 @@ class HashGrid:
             if found > self.out.shape[0]:
                 self.out = np.empty((found + found // 4, 2), dtype=np.int32)
                 continue
-            return sorted_pairs(self.out[:found])
+            pairs, keys = sorted_pairs_and_keys(self.out[:found])
+            self._last = (pairs, keys)
+            return pairs
+
+    def keys_of(self, pairs: np.ndarray) -> np.ndarray | None:
+        """The packed keys ``first << 32 | second`` (int64 ``(p,)``, increasing) of ``pairs`` when they are the array
+        the last :meth:`pairs` returned (the same object), made by its sort; else None."""
+        last = self._last
+        return last[1] if last is not None and last[0] is pairs else None
 
     def _on_device(self, arrays: tuple) -> tuple:
         """The launch's arrays (the order of :func:`_hash_pairs`' array arguments) as Taichi ndarrays in device
-        memory (:func:`~sim_core.ti_kernels.buffers.on_device`, kept per grid): the positions and the pair count
-        sent at every launch, the element lists when they are other objects than at the last launch (never
-        edited in place), the work arrays when the host replaced them (grown: the device copy starts from the
-        same zeros and keeps what the kernel leaves in it, as the host array does on the CPU)."""
+        memory (:func:`~sim_core.ti_kernels.buffers.on_device`, kept per grid): the pair count sent at every launch,
+        the positions at every launch unless they are frozen (a read-only array that owns its memory, whose values
+        cannot change while it exists: sent once into the positions' cache, which the grids searching it in turn
+        share), the element lists when they are other objects than at the last launch (never edited in place), the
+        work arrays when the host replaced them (grown: the device copy starts from the same zeros and keeps what the
+        kernel leaves in it, as the host array does on the CPU)."""
         names = ("x", "a_vertices", "a_body", "a_key", "b_vertices", "b_body", "allowed", "rest_keys",
                  "bucket_start", "bucket_fill", "entry_item", "entry_cell", "entry_lower", "box", "body_box", "scale",
                  "out", "count", "chunk_total")
         device = self.__dict__.setdefault("_device", {})
-        return tuple(on_device(device, name, host, refresh=name in ("x", "count")) for name, host in zip(names, arrays))
+        x = arrays[0]
+        frozen = not x.flags.writeable and x.base is None
+        return (on_device(self._positions, "x", x, refresh=not frozen),) + tuple(
+            on_device(device, name, host, refresh=name == "count") for name, host in zip(names[1:], arrays[1:]))
 
     def _grow_entries(self, size: int) -> None:
         self.entry_item = np.zeros(size, dtype=np.int32)

@@ -64,8 +64,8 @@ def test_compact_indices_are_np_unique_with_the_inverse_in_the_input_shape():
 
 def test_compact_indices_of_parts_equal_those_of_their_concatenation():
     """A tuple of index arrays (int64, int32, an empty part, the largest index in the second) gives what their
-    concatenation gives, bit for bit and in the same dtypes; parts of unequal trailing shapes and a negative index
-    in any part are refused."""
+    concatenation gives, bit for bit and in the same dtypes, also with a bound ``size`` given; parts of unequal
+    trailing shapes, a negative index in any part and an index not below a given bound are refused."""
     from sim_core.unique import compact_indices
 
     rng = np.random.default_rng(5)
@@ -79,6 +79,13 @@ def test_compact_indices_of_parts_equal_those_of_their_concatenation():
             assert own.dtype == own_c.dtype and local.dtype == local_c.dtype == dtype and local.shape == (700, 4)
             np.testing.assert_array_equal(own, own_c)
             np.testing.assert_array_equal(local, local_c)
+            for size in (6000, 9000):  # a known bound (at and above the largest index + 1): the same arrays
+                own_s, local_s = compact_indices(cast_parts, dtype=dtype, size=size)
+                assert own_s.dtype == own.dtype and local_s.dtype == dtype
+                np.testing.assert_array_equal(own_s, own)
+                np.testing.assert_array_equal(local_s, local)
+    with pytest.raises(IndexError):
+        compact_indices(parts, size=int(parts[2].max()))  # the largest index is not below the bound
     empty = compact_indices((np.zeros((0, 4), dtype=np.int64), np.zeros((0, 4), dtype=np.int64)), dtype=np.int32)
     assert empty[0].shape == (0,) and empty[1].shape == (0, 4) and empty[1].dtype == np.int32
     with pytest.raises(ValueError, match="equal shapes"):

@@ -36,15 +36,28 @@ class CandidateVertices:
         ee_vertices: ``[a0, a1, b0, b1]`` int64 ``(q, 4)``.
         device: the device copies of this list's index arrays (a :func:`~sim_core.ti_kernels.buffers.on_device`
             cache; empty off CUDA), shared by the kernels that read them.
+
+    Args:
+        vt, ee, triangles, edges: as above (int ``(p, 2)``, ``(q, 2)``, ``(t, 3)``, ``(e, 2)``).
+        keys: the lists' packed keys ``first << 32 | second`` (int64 ``(p,)``, ``(q,)``, each list's or None) when
+            the caller has them (the candidate search's sort: :meth:`~sim_core.ti_kernels.hash_grid.HashGrid.keys_of`),
+            taken by :meth:`keys` instead of being made from the pairs again.
+        vertex_count: the number of vertices (every index of ``vt``'s first column, ``triangles`` and ``edges`` lies in
+            ``[0, vertex_count)``), or None; with it the compaction (:meth:`batch_layout`) sizes its table without a
+            pass over the indices for their range.
     """
 
-    def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> None:
+    def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
+                 keys: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+                 vertex_count: int | None = None) -> None:
         self.vt, self.ee = vt, ee
         self.vt_vertices = vertex_triangle_vertices(vt, triangles)
         self.ee_vertices = edge_edge_vertices(ee, edges)
         self._compact: tuple | None = None
         self._int32: tuple | None = None
+        self._given_keys = keys
         self._keys: tuple | None = None
+        self._vertex_count = vertex_count
         self.device: dict = {}
 
     def of(self, vt: np.ndarray, ee: np.ndarray) -> bool:
@@ -63,7 +76,8 @@ class CandidateVertices:
         (:class:`~sim_core.collision.memory.ContactMemory`'s keys), made once; None for a list whose keys are not
         sorted and unique or whose indices are out of the keys' range (its pairs are then looked up one by one)."""
         if self._keys is None:
-            self._keys = tuple(_sorted_keys(pairs) for pairs in (self.vt, self.ee))
+            self._keys = tuple(_sorted_keys(pairs) if given is None else _increasing(given)
+                               for pairs, given in zip((self.vt, self.ee), self._given_keys))
         return self._keys
 
     def batch_layout(self, ee_rows: np.ndarray) -> "BatchLayout":
@@ -71,7 +85,8 @@ class CandidateVertices:
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
         first use and kept."""
         if self._compact is None:
-            self._compact = compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32)
+            self._compact = compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32,
+                                            size=self._vertex_count)
         own, local = self._compact
         p = len(self.vt_vertices)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
@@ -86,7 +101,14 @@ def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
     pairs = np.asarray(pairs).reshape(-1, 2)
     if pairs.size and (pairs.min() < 0 or pairs.max() >= 1 << 31):
         return None
-    keys = (pairs[:, 0].astype(np.int64) << 32) | pairs[:, 1].astype(np.int64)
+    keys = pairs[:, 0].astype(np.int64)  # (a new array, shifted and combined in place)
+    keys <<= 32
+    keys |= pairs[:, 1]
+    return _increasing(keys)
+
+
+def _increasing(keys: np.ndarray) -> np.ndarray | None:
+    """``keys`` ``(p,)`` when strictly increasing (sorted and unique), else None."""
     return keys if len(keys) < 2 or bool(np.all(keys[1:] > keys[:-1])) else None
 
 
@@ -109,6 +131,17 @@ class BatchLayout(NamedTuple):
     rows: np.ndarray
     ee_rows: np.ndarray
     device: dict
+
+
+def sheet_vertices_off_solids(vt: np.ndarray, keys: np.ndarray | None, sheet_vertex: np.ndarray,
+                              solid_triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(vt, keys)``: the vertex-triangle candidates ``vt`` ``(p, 2)`` (``[vertex, triangle row]``) without the pairs
+    of a sheet's vertex and a solid's triangle (:class:`~sim_core.model.ContactSettings` ``sheet_vertices_vs_solids``
+    off), new arrays in the same order, and their packed keys (``keys`` int64 ``(p,)`` of the same rows, or None)
+    likewise. ``sheet_vertex``: bool ``(n,)``, whether each vertex is a sheet's; ``solid_triangle``: bool ``(t,)``,
+    whether each triangle is a solid's (tables made once: two lookups a pair)."""
+    rows = np.flatnonzero(~(np.take(sheet_vertex, vt[:, 0]) & np.take(solid_triangle, vt[:, 1])))
+    return np.take(vt, rows, axis=0), None if keys is None else np.take(keys, rows)
 
 
 def lookup_pairs(old: tuple | None, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -89,7 +89,10 @@ def vertex_triangle_vertices(pairs: np.ndarray, triangles: np.ndarray) -> np.nda
     """Global vertices ``[p, a, b, c]`` ``(k, 4)`` of vertex-triangle pairs ``(vertex, triangle)`` ``(k, 2)``
     over ``triangles`` ``(t, 3)`` (``np.take`` of rows: several times faster than fancy indexing by a
     strided index column)."""
-    return np.concatenate([pairs[:, :1], np.take(triangles, pairs[:, 1], axis=0)], axis=1)
+    out = np.empty((len(pairs), 4), dtype=np.result_type(pairs, triangles))  # (one array: no (k, 3) copy after)
+    out[:, 0] = pairs[:, 0]
+    out[:, 1:] = np.take(triangles, pairs[:, 1], axis=0)
+    return out
 
 
 def edge_edge_vertices(pairs: np.ndarray, edges: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ from sim_core.ti_kernels.linalg import projection_code
 from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
-    TranslationFreeProjector, add_upper_entry, SlotTables, upper_index,
+    TranslationFreeProjector, add_upper_entry, BoundSlotTables, upper_index,
 )
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -214,7 +214,7 @@ def remote_evaluate(args: tuple, x: np.ndarray, grad: np.ndarray, values: np.nda
                                                          grad, values))
 
 
-class FusedSpringMembrane:
+class FusedSpringMembrane(BoundSlotTables):
     """Fused Newton-loop evaluation of a :class:`SpringMembrane` (module docstring).
 
     Args:
@@ -235,8 +235,6 @@ class FusedSpringMembrane:
         self._edges = np.ascontiguousarray(potential.edges, dtype=np.int32)
         self._area0 = np.ascontiguousarray(potential.triangle_rest_area, dtype=np.float64)
         self._length0 = np.ascontiguousarray(potential.edge_rest_length, dtype=np.float64)
-        self._tables: SlotTables | None = None  # the slot tables of the bound pattern (bind)
-        self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # triangle blocks of the projected Hessian, (t, 9, 9)
         self._projector = TranslationFreeProjector(3)
         self._recipe: tuple | None = None  # the last offload_recipe()
@@ -250,19 +248,6 @@ class FusedSpringMembrane:
 
     def update(self, potential) -> None:
         """Nothing changes between steps."""
-
-    def bind(self, pattern) -> None:
-        """The slot tables of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`,
-        :class:`~sim_core.ti_kernels.block_projection.SlotTables`): packed upper, for the exact blocks, now; full,
-        for the projected ones, at their first use."""
-        self._tables = SlotTables(pattern, self.vertices)
-        self._upper = self._tables.upper
-
-    @property
-    def _slots(self) -> np.ndarray | None:
-        """The full slot map of the blocks (:attr:`SlotTables.full`, for the projected blocks): made at its first
-        read; None before :meth:`bind`."""
-        return None if self._tables is None else self._tables.full
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""

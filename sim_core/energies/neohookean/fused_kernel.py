@@ -33,7 +33,7 @@ from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, SlotTables,
+from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, BoundSlotTables,
                                                   upper_index)
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
@@ -177,7 +177,7 @@ def remote_add_projected(args: tuple, x: np.ndarray, grad: np.ndarray, values: n
     return 0.0
 
 
-class FusedStableNeoHookean:
+class FusedStableNeoHookean(BoundSlotTables):
     """Fused Newton-loop evaluation of a :class:`StableNeoHookean` (module docstring).
 
     Args:
@@ -199,8 +199,6 @@ class FusedStableNeoHookean:
         self._tets = np.ascontiguousarray(potential.tets, dtype=np.int32)
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
-        self._tables: SlotTables | None = None  # the slot tables of the bound pattern (bind)
-        self._upper: np.ndarray | None = None
         self._blocks: np.ndarray | None = None  # projected blocks (k, 12, 12), allocated on first use
         self._recipe: tuple | None = None  # the last offload_recipe()
         self._projected_recipe: tuple | None = None  # the last offload_projected_recipe()
@@ -221,19 +219,6 @@ class FusedStableNeoHookean:
         self.potential = potential
         self._dFdx = np.ascontiguousarray(potential.tet_dFdx, dtype=np.float64)
         self._vol = np.ascontiguousarray(potential.tet_rest_volume, dtype=np.float64)
-
-    def bind(self, pattern) -> None:
-        """The slot tables of the blocks in ``pattern`` (:class:`sim_core.assembly.StaticPattern`,
-        :class:`~sim_core.ti_kernels.block_projection.SlotTables`): packed upper, for the exact blocks, now; full,
-        for the projected ones, at their first use."""
-        self._tables = SlotTables(pattern, self.vertices)
-        self._upper = self._tables.upper
-
-    @property
-    def _slots(self) -> np.ndarray | None:
-        """The full slot map of the tets' blocks (:attr:`SlotTables.full`, for the projected blocks): made at its first
-        read; None before :meth:`bind`."""
-        return None if self._tables is None else self._tables.full
 
     def energy(self, x: np.ndarray) -> float:
         """Energy in J at positions ``x`` ``(n, 3)``."""

@@ -30,6 +30,10 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
     np.testing.assert_array_equal(lists.ee_vertices, edge_edge_vertices(ee, edges))
     rows = np.array([0, 3, 4, 17, 199])
     layouts = [lists.batch_layout(rows) for _ in range(2)]
+    sized = CandidateVertices(vt, ee, triangles, edges, vertex_count=400).batch_layout(rows)  # the vertex count known
+    for got, want in zip(sized[:4], layouts[0][:4]):  # own, local, rows, ee_rows
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
     assert layouts[1].local is layouts[0].local and layouts[1].device is lists.device  # made once, kept
     for own, local, batch_rows, ee_rows, _ in layouts:
         assert local.dtype == np.int32 and local.shape == (150 + 200, 4) and batch_rows.dtype == np.int32
@@ -59,6 +63,11 @@ def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
     for pairs, k in zip((vt, ee), keys):
         np.testing.assert_array_equal(k, (pairs[:, 0] << 32) | pairs[:, 1])
     assert CandidateVertices(vt[::-1], ee, triangles, edges).keys()[0] is None
+    # keys given (a search's sort made them): taken as they are when increasing; a list given none makes its own
+    given = CandidateVertices(vt, ee, triangles, edges, keys=(keys[0].copy(), None)).keys()
+    np.testing.assert_array_equal(given[0], keys[0])
+    np.testing.assert_array_equal(given[1], keys[1])
+    assert CandidateVertices(vt[::-1], ee, triangles, edges, keys=(keys[0][::-1], keys[1])).keys()[0] is None
     rng = np.random.default_rng(4)
     for pairs, k in zip((vt, ee), keys):
         memory = ContactMemory()
@@ -86,3 +95,21 @@ def test_potentials_given_their_vertices_equal_those_that_compute_them():
         np.testing.assert_array_equal(given.distance(x), own.distance(x))
         with pytest.raises(ConfigError, match=rf"{len(pairs)} pairs but vertices of shape \(3, 4\)"):
             cls(pairs, elements, sides, 1e3, 0.01, vertices=vertices[:3])
+
+
+def test_sheet_vertices_off_solids_drops_the_pairs_of_a_sheet_vertex_and_a_solid_triangle_with_their_keys():
+    """The filter's rows are the pairs whose vertex is not a sheet's or whose triangle is not a solid's, in order;
+    the keys follow the pairs (None stays None)."""
+    from sim_core.energies.contact.pair_lists import sheet_vertices_off_solids
+
+    vt, _, triangles, _ = _lists()
+    vt = np.unique(vt, axis=0)
+    rng = np.random.default_rng(6)
+    sheet_vertex, solid_triangle = rng.random(400) < 0.5, rng.random(60) < 0.5
+    want = np.array([pair for pair in vt if not (sheet_vertex[pair[0]] and solid_triangle[pair[1]])])
+    assert 0 < len(want) < len(vt)
+    keys = (vt[:, 0] << 32) | vt[:, 1]
+    got, got_keys = sheet_vertices_off_solids(vt, keys, sheet_vertex, solid_triangle)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_keys, (want[:, 0] << 32) | want[:, 1])
+    assert sheet_vertices_off_solids(vt, None, sheet_vertex, solid_triangle)[1] is None

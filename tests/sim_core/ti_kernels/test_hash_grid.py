@@ -90,6 +90,71 @@ def test_lists_equal_the_reference_lists(ti_cpu, seed):
         lists.edge_edge(y, 0.001)
 
 
+def test_the_search_keeps_the_sorted_keys_of_its_lists_and_the_contact_set_takes_them(ti_cpu):
+    """``HashCandidates.keys_of``: the packed keys ``first << 32 | second`` of the lists its last searches returned
+    (made by the sort: increasing, equal to the keys made from the pairs again), None for any other array; the
+    contact set's candidate lists take them (the vertex-triangle keys through the sheet-vs-solid filter's rows):
+    :meth:`CandidateVertices.keys` equal the keys made from the lists."""
+    from sim_core.contact_set import ContactSet
+    from sim_core.energies.contact.pair_lists import _sorted_keys
+    from sim_core.ti_kernels.hash_grid import sorted_pairs_and_keys
+    from tests.sim_core.test_contact_set import _forming_model_deformed
+
+    rng = np.random.default_rng(0)
+    out = rng.integers(0, 1 << 31, size=(500, 2), dtype=np.int32)
+    out[:, 0] = rng.integers(0, 7, size=500)  # pairs sharing a first index, ordered by the second
+    out = np.unique(out, axis=0)[rng.permutation(len(np.unique(out, axis=0)))]
+    pairs, keys = sorted_pairs_and_keys(out)
+    np.testing.assert_array_equal(pairs, np.unique(out.astype(np.int64), axis=0))
+    np.testing.assert_array_equal(keys, (pairs[:, 0] << 32) | pairs[:, 1])
+    model, x = _forming_model_deformed(1)
+    cs = ContactSet(model, broad_phase="spatial_hash", backend="taichi-cpu")
+    _, vt, ee = cs._candidate_pairs(x)
+    search = cs._candidate_lists(None)
+    assert len(vt) > 50 and len(ee) > 50
+    np.testing.assert_array_equal(search.keys_of(ee), _sorted_keys(ee))
+    assert search.keys_of(ee.copy()) is None
+    if not model.contact.sheet_vertices_vs_solids:  # the filtered list is a new array: keys taken by its rows
+        assert search.keys_of(vt) is None
+    lists = cs._list_vertices(vt, ee)
+    assert lists.keys()[1] is search.keys_of(ee)
+    for pairs, k in zip((vt, ee), lists.keys()):
+        np.testing.assert_array_equal(k, _sorted_keys(pairs))
+
+
+def test_the_lists_two_grids_send_frozen_positions_to_the_device_once(ti_cpu, monkeypatch):
+    """CUDA launch path (emulated on the CPU arch: the arch queries answer "cuda", the copies stay host copies): the
+    vertex-triangle and edge-edge grids share the positions' device copy; frozen positions (read-only, owning their
+    memory) are sent once for both lists and a later search of the same array, writeable ones at every launch; the
+    lists equal the host path's."""
+    from sim_core import ti_backend
+    from sim_core.ti_kernels import buffers, hash_grid
+    from sim_core.ti_kernels.hash_candidates import HashCandidates
+
+    x, vertices, triangles, edges, pair_filter = _scene(2)
+    make = lambda: HashCandidates(vertices, triangles, edges, pair_filter,  # noqa: E731
+                                  RestExclusion(pair_filter, vertices, triangles, edges))
+    host = make()
+    want = (host.vertex_triangle(x, 0.002), host.edge_edge(x, 0.002))
+    assert len(want[0]) > 20 and len(want[1]) > 20
+    for module in (hash_grid, ti_backend):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    sent = []
+    from_numpy = buffers._from_numpy
+    monkeypatch.setattr(buffers, "_from_numpy", lambda dev, host: (sent.append(host), from_numpy(dev, host))[1])
+    lists = make()
+    assert lists.vt_grid._positions is lists.ee_grid._positions
+    frozen = x.copy()
+    frozen.flags.writeable = False
+    for positions, uploads in ((frozen, (1, 0)), (x.copy(), (2, 2))):  # two searches of the same array each
+        for expected in uploads:
+            sent.clear()
+            got = (lists.vertex_triangle(positions, 0.002), lists.edge_edge(positions, 0.002))
+            for pairs, reference in zip(got, want):
+                np.testing.assert_array_equal(pairs, reference)
+            assert sum(host is positions for host in sent) == expected
+
+
 def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_cpu):
     from sim_core.ti_kernels.hash_candidates import HashCandidates
 
@@ -102,9 +167,9 @@ def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_c
 
 
 def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
-    """``fused_elastic.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
+    """``kernel_compile.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
     from sim_core.energies.membrane.reference import SpringMembrane
-    from sim_core.fused_elastic import compile_kernels
+    from sim_core.kernel_compile import compile_kernels
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.ti_kernels import hash_candidates, hash_grid
 
