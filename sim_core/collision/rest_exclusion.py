@@ -10,6 +10,10 @@ the close pairs as sorted integer keys; a candidate search then looks its pairs 
 
 Completeness: a pair at distance ``d < r`` has, on every axis, a gap between its bounding boxes of
 at most ``d``, so its boxes inflated by ``r`` overlap and the box search returns it.
+
+A body made of translated copies apart from each other (a stacked scene's, :mod:`sim_core.batch.stacked`) is
+searched on its first copy and the candidate pairs moved into every copy, each pair's distance measured in its own
+copy (:func:`_translated_copies`): the k-d tree of one copy instead of all, the same keys.
 """
 
 from __future__ import annotations
@@ -57,11 +61,10 @@ def _translated_copies(x: np.ndarray, vertices: np.ndarray, triangles: np.ndarra
     stacked scene's copies of a body, :mod:`sim_core.batch.stacked`; triangle counts tried shortest first, at
     most four), the chunks' positions chunk 0's moved by one offset up to ``delta`` (m, largest coordinate
     difference) with ``delta <= r / 64``, and no two chunks' boxes within ``r + 4 delta`` (no pair across
-    copies); else ``(1, r)``. ``reach = r + 4 delta`` is the
-    radius of the broad phase on chunk 0 whose candidates, moved into every chunk, hold every pair of that chunk
-    closer than ``r`` (a pair's distance in chunk 0 differs from its distance in chunk ``c`` by at most
-    ``2 sqrt(3) delta``); each pair's distance is then measured in its own chunk, so the keys are those of a
-    search of the whole body."""
+    copies); else ``(1, r)``. ``reach = r + 4 delta`` is the radius of the broad phase on chunk 0 whose
+    candidates, moved into every chunk, hold every pair of that chunk closer than ``r`` (a pair's distance in chunk
+    0 differs from its distance in chunk ``c`` by at most ``2 sqrt(3) delta``); each pair's distance is then
+    measured in its own chunk, so the keys are those of a search of the whole body."""
     whole = (1, r)
     if len(triangles) < 2:
         return whole
