@@ -300,7 +300,7 @@ def main() -> int:
     orig = sc.SolverConfig
     sc.SolverConfig = lambda **kw: orig(**kw, **({"linear_solver": "pcg"} if kw.get("lockstep") else {}))
     t0 = time.perf_counter()
-    from sim_core.fused_elastic import compile_kernels
+    from sim_core.kernel_compile import compile_kernels
 
     warm = _forming(1, 2, backend)
     warm.run()

@@ -56,7 +56,7 @@ def main() -> int:
     sc.SolverConfig = config
     try:
         if backend != "numpy":  # every kernel compiled or loaded first, the projected Hessian's too (as bench batch)
-            from sim_core.fused_elastic import compile_kernels
+            from sim_core.kernel_compile import compile_kernels
 
             warm = _TaskRun(args.task, 1, 2, backend, True) if args.task else _FormingRun(1, 2, backend, lockstep=True)
             warm.run()

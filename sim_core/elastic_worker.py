@@ -60,7 +60,7 @@ from typing import Callable
 import numpy as np
 
 from sim_core.errors import ConfigError
-from sim_core.fused_elastic import compile_offload_kernels
+from sim_core.kernel_compile import compile_offload_kernels
 from sim_core.worker_recipe import Recipe, part_recipe, same_recipe  # noqa: F401 (re-exported)
 
 LOG = logging.getLogger(__name__)

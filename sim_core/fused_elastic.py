@@ -36,19 +36,13 @@ Needs :func:`sim_core.ti_backend.init_backend` (``--arch cpu|cuda``).
 from __future__ import annotations
 
 import importlib
-import time
 from typing import Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from sim_core.assembly import HessianAssembler, StaticPattern
+from sim_core.assembly import StaticPattern
 from sim_core.energies import kirchhoff_bending, membrane, neohookean
 from sim_core.energies.base import CopyEnergies, ElasticEquivalent, declares, positions_key
-from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
-from sim_core.energies.membrane.reference import SpringMembrane
-from sim_core.energies.neohookean.reference import StableNeoHookean
-from sim_core.mesh.sheet import grid_sheet, sheet_topology
-from sim_core.mesh.tet import tet_box
 from sim_core.worker_recipe import Recipe
 
 
@@ -711,90 +705,3 @@ class FusedElastic:
             remote_values = result[2]
         values += remote_values
         return values
-
-
-
-def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clamp") -> float:
-    """JIT-compile (or load from Taichi's offline cache) the kernels a Newton step on ``potentials`` uses.
-
-    Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
-    this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
-    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``), and the contact
-    distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the broad phase (and its candidate-list
-    kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
-    ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
-
-    Args:
-        potentials: the elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`).
-        x: positions ``(n, 3)`` in m (the rest shape will do).
-        projection: the solver's PSD projection.
-
-    Returns:
-        seconds spent.
-
-    Raises:
-        ConfigError: the Taichi backend is not initialised.
-    """
-    # optional heavy dependency: Taichi, loaded on a Taichi backend only
-    from sim_core.ti_backend import require_backend
-
-    require_backend("compile_kernels")
-    t0 = time.perf_counter()
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    fused = FusedElastic(potentials)
-    fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x), np.ones(x.size, bool)))
-    fused.gradient(x)
-    fused._kept = None
-    fused.energy(x)
-    if projection != "none":
-        fused.projected_hessian_values(x, projection)
-    for p in potentials:
-        if type(p).__module__.endswith(".kernel"):  # a Taichi twin (sim_core/energies/<energy>/kernel.py)
-            p.hessian(x, projection)
-    # optional heavy dependency: Taichi, loaded on a Taichi backend only
-    from sim_core.energies.contact import batch_kernel as contact_batch
-    from sim_core.energies.contact import distance_kernel as contact_distance
-    from sim_core.energies.contact import setup_kernel as contact_setup
-    from sim_core.energies.friction import kernel as friction
-    from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
-    from sim_core.ti_kernels import broad_phase, hash_candidates, sweep_candidates
-
-    fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
-    contact_distance.compile_kernels()
-    contact_batch.compile_kernels()
-    contact_setup.compile_kernels()
-    broad_phase.compile_kernels()
-    sweep_candidates.compile_kernels()
-    hash_candidates.compile_kernels()
-    friction.compile_kernels()
-    return time.perf_counter() - t0
-
-
-def compile_offload_kernels() -> float:
-    """JIT-compile (or load from Taichi's offline cache) the kernels an
-    :class:`~sim_core.elastic_worker.ElasticWorker` may run (the parts with an ``offload_recipe``:
-    spring membrane, Kirchhoff bending and Stable Neo-Hookean, the last also projected), on a small
-    sheet and tet box; seconds spent (the worker does this before it reports ready).
-
-    Raises:
-        ConfigError: the Taichi backend is not initialised.
-    """
-    # optional heavy dependency: Taichi, loaded on a Taichi backend only
-    from sim_core.ti_backend import require_backend
-
-    require_backend("compile_offload_kernels")
-    t0 = time.perf_counter()
-    sheet = grid_sheet((0.02, 0.02), (3, 3), (0.0, 0.0, 0.0))
-    topo = sheet_topology(sheet.triangles)
-    box = tet_box((0.01, 0.01, 0.01), (2, 2, 2), (0.0, 0.0, 0.02))
-    x = np.concatenate([sheet.x, box.x])
-    tets = box.tets + sheet.x.shape[0]
-    terms = [SpringMembrane(sheet.triangles, topo.edges, sheet.x, 1000.0, 800.0),
-             KirchhoffBending(sheet.triangles, topo.hinges, sheet.x, 2e-3, 0.3, np.zeros(topo.hinges.shape[0])),
-             StableNeoHookean(tets, x, 3e5, 0.45)]
-    fused = FusedElastic(terms)
-    fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x), np.ones(x.size, bool)))
-    fused.gradient(x)
-    for projection in ("clamp", "abs"):
-        fused.projected_hessian_values(x, projection)
-    return time.perf_counter() - t0

@@ -22,6 +22,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from sim_core.errors import ConfigError, SimulationDivergedError
+from sim_core.symmetric_pattern import both_triangles
 
 
 @functools.lru_cache(maxsize=1)
@@ -198,20 +199,11 @@ class SymmetricExpansion:
 
     @staticmethod
     def _index_map(upper: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = upper.shape[0]
-        rows = np.repeat(np.arange(n), np.diff(upper.indptr))
-        cols = upper.indices
-        if np.any(cols < rows):
-            raise ValueError("SymmetricExpansion: the matrix has entries below the diagonal (not an upper triangle)")
-        slot = np.arange(cols.size)
-        strict = cols > rows
-        r = np.concatenate([rows, cols[strict]])
-        c = np.concatenate([cols, rows[strict]])
-        src = np.concatenate([slot, slot[strict]])
-        order = np.lexsort((c, r))
-        indptr = np.zeros(n + 1, dtype=upper.indptr.dtype)
-        np.cumsum(np.bincount(r, minlength=n), out=indptr[1:])
-        return src[order], indptr, c[order].astype(upper.indices.dtype)
+        try:
+            indptr, indices, source = both_triangles(upper.indptr, upper.indices, upper.shape[0])
+        except ValueError as err:
+            raise ValueError(f"SymmetricExpansion: {err}") from None
+        return source, indptr.astype(upper.indptr.dtype, copy=False), indices.astype(upper.indices.dtype, copy=False)
 
 
 class PardisoHandle:

@@ -63,6 +63,7 @@ class StaticPattern:
         self._arrays = [np.asarray(v) for v in vertex_arrays]
         self._entries: tuple[np.ndarray, np.ndarray] | None = None  # (entry_index, slot)
         self._vertex: tuple | None = None  # the vertex-pair tables (_by_vertex_pairs)
+        self._csr: tuple[np.ndarray, np.ndarray] | None = None  # (indptr, indices) of csr(), made at its first call
         idx = np.arange(dof_count)
         vertex_free = np.asarray(free, dtype=bool).reshape(-1, 3) if dof_count % 3 == 0 else None
         if vertex_free is not None and np.array_equal(vertex_free, np.repeat(vertex_free[:, :1], 3, axis=1)):
@@ -133,6 +134,34 @@ class StaticPattern:
                     keys[first[:, a] + b] = value + b
         self._vertex = (N, vertex_free, full, own, pairs, pair_start, indptr)
         return keys, indptr
+
+    _CSR_ROWS = 1 << 16
+    """Rows whose columns :meth:`csr` writes at a time (its temporaries: that many rows' keys)."""
+
+    def csr(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pattern as CSR index arrays ``(indptr, indices)``: int32 ``(dof_count + 1,)`` and ``(nnz,)``, the
+        columns of each row in increasing order (the keys' order; a row's first entry is its diagonal). Made at
+        the first call (the rows' offsets from the vertex pairs' tables, or by bisection of the keys; the
+        columns the keys less their rows' ``row * dof_count``, a block of rows at a time), then the same objects.
+
+        Raises:
+            ValueError: a pattern too large for int32 indices.
+        """
+        if self._csr is not None:
+            return self._csr
+        n, keys = self.dof_count, self.keys
+        if max(n, keys.size) >= np.iinfo(np.int32).max:
+            raise ValueError(f"StaticPattern.csr: {keys.size} entries of {n} rows do not fit int32 indices")
+        indptr = (self._vertex[6] if self._vertex is not None
+                  else np.searchsorted(keys, np.arange(n + 1, dtype=np.int64) * n))
+        indices = np.empty(keys.size, dtype=np.int32)
+        for r0 in range(0, n, self._CSR_ROWS):
+            r1 = min(n, r0 + self._CSR_ROWS)
+            s, e = int(indptr[r0]), int(indptr[r1])
+            row_keys = np.repeat(np.arange(r0 * n, r1 * n, n, dtype=np.int64), np.diff(indptr[r0:r1 + 1]))
+            indices[s:e] = keys[s:e] - row_keys
+        self._csr = (indptr.astype(np.int32), indices)
+        return self._csr
 
     @property
     def entry_index(self) -> np.ndarray:

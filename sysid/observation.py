@@ -44,7 +44,7 @@ import numpy as np
 from sim_core.backend import backend_of_arch
 from sim_core.control import Control
 from sim_core.errors import CalibrationError
-from sim_core.fused_elastic import compile_kernels
+from sim_core.kernel_compile import compile_kernels
 from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import SceneFile, load_scene_file
 from sim_core.scenes.task_file import TaskSceneFile, is_task_scene, load_any_scene_file
@@ -389,7 +389,7 @@ class ObservationModel:
         compiled kernels. A kernel that a forked child has to compile itself, because the parent never
         ran it and Taichi's offline cache does not hold it yet, hangs the child: Taichi's compile thread
         pool does not survive ``fork``. So pools call this before they fork
-        (:func:`sim_core.fused_elastic.compile_kernels`: fused elastic terms, the projected fallback,
+        (:func:`sim_core.kernel_compile.compile_kernels`: fused elastic terms, the projected fallback,
         contact, broad-phase and friction kernels).
 
         Raises:

@@ -175,7 +175,6 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
         self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
-        self._pattern_csr: tuple | None = None  # (static pattern, its CSR indptr and indices) of _device_operator
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self._copy_sums = None  # the line search's per-copy sums on the device (CopySums, made at the first use)
         self.last_stacked_info: StepInfo | None = None
@@ -604,16 +603,10 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))
-        cached = self._pattern_csr
-        if cached is None or cached[0] is not pattern:
-            n = pattern.dof_count
-            rows = pattern.keys // n
-            indptr = np.zeros(n + 1, dtype=np.int32)
-            np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-            cached = self._pattern_csr = (pattern, indptr, (pattern.keys % n).astype(np.int32))
+        indptr, indices = pattern.csr()  # the same objects for the pattern: they travel once
         blocks = VertexBlocks.from_element_blocks(
             [self._term_hessian(p, x, projection, vertices) for p in dynamic_terms], step.free)
-        return (cached[1], cached[2], values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
+        return (indptr, indices, values), blocks, (pattern.diag_slots, step.diag, pattern.fixed_diag_slots)
 
     def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
         """A contact or friction term's Hessian blocks at ``x`` for :meth:`_device_operator`: the exact blocks

@@ -180,7 +180,7 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
     warm.run()
     sim0 = warm.batch.sims[0]
     if backend != "numpy":  # the projected-Hessian kernels too, which the short warm-up may not reach
-        from sim_core.fused_elastic import compile_kernels
+        from sim_core.kernel_compile import compile_kernels
 
         compile_kernels(sim0.solver.elastic.potentials(sim0.state.hinge_theta_bar), sim0.model.x_rest)
     dofs = int(sim0.model.dof_count)

@@ -21,7 +21,7 @@ from sim_core.backend import backend_of_arch
 from sim_core.bench.process import peak_rss_mib, process_start_time
 from sim_core.control import Control
 from sim_core.elastic_worker import ElasticWorker
-from sim_core.fused_elastic import compile_kernels
+from sim_core.kernel_compile import compile_kernels
 from sim_core.scenes.task_scene import load_task_scene, task_initial_state
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig

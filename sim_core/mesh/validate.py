@@ -48,14 +48,17 @@ def _check_indices(elements: np.ndarray, vertex_count: int, m: int, kind: str, w
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             raise MeshError(f"{where}: {kind} vertex indices must be integers")
     arr = arr.astype(np.int64)
-    out_of_range = np.flatnonzero(np.any((arr < 0) | (arr >= vertex_count), axis=1))
-    if out_of_range.size:
-        e = int(out_of_range[0])
+    if arr.size and (arr.min() < 0 or arr.max() >= vertex_count):
+        e = int(np.flatnonzero(np.any((arr < 0) | (arr >= vertex_count), axis=1))[0])
         raise MeshError(
             f"{where}: {kind} {e} has vertex index out of range [0, {vertex_count}): {arr[e].tolist()}"
         )
-    s = np.sort(arr, axis=1)
-    repeated = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
+    columns = arr.T.copy()  # (m, k): each pair of columns compared once
+    same = np.zeros(arr.shape[0], dtype=bool)
+    for i in range(m):
+        for j in range(i + 1, m):
+            same |= columns[i] == columns[j]
+    repeated = np.flatnonzero(same)
     if repeated.size:
         e = int(repeated[0])
         raise MeshError(f"{where}: {kind} {e} repeats a vertex: {arr[e].tolist()}")
@@ -78,11 +81,22 @@ def tet_signed_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def _max_edge_length(x: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """The longest edge of each element in m, ``(k,)``: the square root of the largest squared length (each a sum of
+    the three squared coordinate differences in axis order, as ``np.linalg.norm`` sums them), by coordinate
+    columns."""
     m = elements.shape[1]
-    lengths = [
-        np.linalg.norm(x[elements[:, i]] - x[elements[:, j]], axis=1) for i in range(m) for j in range(i + 1, m)
-    ]
-    return np.max(np.stack(lengths, axis=1), axis=1)
+    coords = [np.ascontiguousarray(x[:, a]) for a in range(3)]
+    corners = [[c[elements[:, i]] for c in coords] for i in range(m)]
+    longest = None
+    for i in range(m):
+        for j in range(i + 1, m):
+            d = corners[i][0] - corners[j][0]
+            squared = d * d
+            for a in (1, 2):
+                d = corners[i][a] - corners[j][a]
+                squared += d * d
+            longest = squared if longest is None else np.maximum(longest, squared, out=longest)
+    return np.sqrt(longest) if longest is not None else np.zeros(elements.shape[0])
 
 
 def validate_triangles(
@@ -137,10 +151,17 @@ def validate_tets(x: np.ndarray, tets: np.ndarray, where: str, min_volume: float
         MeshError: non-finite vertex, wrong shape, index out of range, repeated vertex, inverted
             (negative volume) or degenerate tet; the message names the tet index and its signed volume.
     """
+    return validated_tet_volumes(x, tets, where, min_volume)[0]
+
+
+def validated_tet_volumes(x: np.ndarray, tets: np.ndarray, where: str,
+                          min_volume: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`validate_tets` that also returns the signed volumes it checked: ``(tets, volumes)``, int64
+    ``(k, 4)`` and m^3 ``(k,)`` (:func:`tet_signed_volumes`). Raises as :func:`validate_tets`."""
     x = validate_vertices(x, where)
     t = _check_indices(tets, x.shape[0], 4, "tet", where)
     if t.shape[0] == 0:
-        return t
+        return t, np.zeros(0)
     vol = tet_signed_volumes(x, t)
     if min_volume is None:
         limit = RELATIVE_DEGENERACY_TOL * _max_edge_length(x, t) ** 3
@@ -154,4 +175,4 @@ def validate_tets(x: np.ndarray, tets: np.ndarray, where: str, min_volume: float
             f"{where}: tet {e} {t[e].tolist()} is {kind} (signed volume {vol[e]:.3e} m^3, "
             f"{bad.size} non-positive tets)"
         )
-    return t
+    return t, vol

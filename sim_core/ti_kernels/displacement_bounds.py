@@ -7,8 +7,8 @@ hold every close pair at an iterate ``x``: from the displacements ``u = x - x_se
 lockstep batch's iterates) and reads back one small array (segments + 1 rows of 7 numbers) instead of
 reading every position on the host. Two launches, every array argument in device memory on CUDA (the chunk and
 segment tables are sent once, with :func:`~sim_core.ti_kernels.buffers.on_device`: a NumPy argument of a CUDA launch
-is copied to the device and back, and waited for, at each launch): per chunk of at most :data:`CHUNK` vertices of one segment,
-its bounds (:func:`_chunk_bounds`); per segment, those of its chunks (:func:`_segment_bounds`). Maxima and
+is copied to the device and back, and waited for, at each launch): per chunk of at most :data:`CHUNK` vertices of
+one segment, its bounds (:func:`_chunk_bounds`); per segment, those of its chunks (:func:`_segment_bounds`). Maxima and
 minima are exact (no rounding, any order), and ``u`` is the host's ``x - x_search`` entry by entry, so the
 bounds equal the host's ``np.maximum.reduceat`` / ``np.minimum.reduceat`` bit for bit where they are finite; a
 NaN or infinite ``u`` is flagged per segment (and overall) and read as NaN (``covers`` then answers as the host

@@ -42,8 +42,8 @@ assembles the PSD-projected Hessian.
 from typing import Sequence
 
 import numpy as np
-import scipy.sparse as sp
 
+from sim_core.symmetric_pattern import both_triangles
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy, transfer
 from sim_core.ti_kernels.band_cholesky import BandBlocks, band_solve
@@ -557,7 +557,7 @@ class BatchedPCG:
         nvert = n // 3
         blk = self._array("blk", max(3 * n, 1))
         _diag_blocks_csr(indptr, indices, data, blk, nvert)
-        full = self._full_pattern(indptr_h, indices_h, n, nnz)
+        full = self._full_pattern(indptr_h, indices_h, n)
         full_data = self._array("full_data", max(full[2], 1))
         if full[2]:
             _gather(data, self._arrays["full_src"], full_data, full[2])
@@ -608,28 +608,23 @@ class BatchedPCG:
         self._upload("start", start, ti.i32)
         self._uploaded["order_of"] = seg
 
-    def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int, nnz: int) -> tuple:
-        """The pattern of ``U + U^T - diag(U)`` (both triangles) of the upper-triangle CSR arrays: its
-        ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``, and ``full_src``, the
-        position in ``U``'s data of each entry, so that the CG's product needs no atomics (one thread a
-        row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.
+    def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int) -> tuple:
+        """The pattern of ``U + U^T - diag(U)`` (both triangles, :func:`~sim_core.symmetric_pattern.both_triangles`) of the
+        upper-triangle CSR arrays: its ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``,
+        and ``full_src``, the position in ``U``'s data of each entry, so that the CG's product needs no atomics (one
+        thread a row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.
         Returns ``(indptr_h, indices_h, full nnz)``."""
         kept = self._full
         if kept is not None and kept[0] is indptr_h and kept[1] is indices_h:
             return kept
-        upper = sp.csr_matrix((np.arange(1, nnz + 1, dtype=np.int64), indices_h[:nnz], indptr_h), shape=(n, n))
-        lower = upper.T.tocsr()
-        lower.setdiag(0)
-        lower.eliminate_zeros()
-        full = (upper + lower).tocsr()
-        full.sort_indices()
-        _copy_in(self._array("full_indptr", n + 1, ti.i32), full.indptr.astype(np.int32))
-        size = max(full.nnz, 1)
+        full_indptr, full_indices, source = both_triangles(indptr_h, indices_h, n)
+        _copy_in(self._array("full_indptr", n + 1, ti.i32), full_indptr.astype(np.int32, copy=False))
+        size = max(full_indices.size, 1)
         _copy_in(self._array("full_indices", size, ti.i32),
-                 full.indices.astype(np.int32) if full.nnz else np.zeros(1, np.int32))
+                 full_indices.astype(np.int32, copy=False) if full_indices.size else np.zeros(1, np.int32))
         _copy_in(self._array("full_src", size, ti.i32),
-                 (full.data - 1).astype(np.int32) if full.nnz else np.zeros(1, np.int32))
-        self._full = (indptr_h, indices_h, int(full.nnz))
+                 source.astype(np.int32, copy=False) if source.size else np.zeros(1, np.int32))
+        self._full = (indptr_h, indices_h, int(full_indices.size))
         return self._full
 
     def _band_arguments(self) -> tuple:

@@ -62,6 +62,29 @@ def test_pattern_and_slots_are_those_of_the_definition(mask):
         _assert_slots_of_definition(pattern, v, free)
 
 
+@pytest.mark.parametrize("mask", ["all free", "fixed vertices", "split vertices"])
+def test_csr_arrays_are_the_keys_rows_and_columns(mask, monkeypatch):
+    """``csr()``: int32 row offsets and columns of the keys (``key // n``, ``key % n``) for both constructions,
+    written a block of rows at a time (a block shorter than the rows here), the same objects at a second call."""
+    rng = np.random.default_rng(8)
+    vertex_count = 60
+    free = np.ones(3 * vertex_count, dtype=bool)
+    if mask == "fixed vertices":
+        free = np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
+    elif mask == "split vertices":
+        free = rng.uniform(size=3 * vertex_count) > 0.3
+    n = free.size
+    monkeypatch.setattr(StaticPattern, "_CSR_ROWS", 7)
+    pattern = StaticPattern(_elements(rng, vertex_count), free, n)
+    indptr, indices = pattern.csr()
+    assert indptr.dtype == np.int32 and indices.dtype == np.int32
+    np.testing.assert_array_equal(indptr, np.searchsorted(pattern.keys, np.arange(n + 1) * n))
+    np.testing.assert_array_equal(np.repeat(np.arange(n), np.diff(indptr)), pattern.keys // n)
+    np.testing.assert_array_equal(indices, pattern.keys % n)
+    again = pattern.csr()
+    assert again[0] is indptr and again[1] is indices
+
+
 @pytest.mark.parametrize("mask", ["fixed vertices", "split vertices"])
 def test_slot_map_of_elements_outside_the_pattern_is_refused(mask):
     """A block between free vertices that no element of the pattern joins, or a free vertex's own block

@@ -153,7 +153,7 @@ class FusedAnisotropicBending:
 
 def compile_kernels() -> None:
     """Compile both kernels on one hinge (processes that fork replay workers call this first:
-    :func:`sim_core.fused_elastic.compile_kernels`)."""
+    :func:`sim_core.kernel_compile.compile_kernels`)."""
     require_backend("fused_hinge.compile_kernels")
     x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.5, -1.0, 0.1]])
     hinges = np.array([[0, 1, 2, 3]], dtype=np.int32)

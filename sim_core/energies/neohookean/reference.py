@@ -33,7 +33,7 @@ import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
 from sim_core.errors import ConfigError
-from sim_core.mesh.validate import tet_signed_volumes, validate_tets
+from sim_core.mesh.validate import validated_tet_volumes
 from sim_core.workspace import workspace_of
 
 _PAIRS = ((1, 2), (2, 0), (0, 1))
@@ -131,12 +131,11 @@ class StableNeoHookean:
         if not (np.isfinite(nu) and -1.0 < nu < 0.5):
             raise ConfigError(f"StableNeoHookean poisson_ratio must lie in (-1, 0.5), got {poisson_ratio!r}")
         x_rest = np.asarray(x_rest, dtype=float)
-        self.tets = validate_tets(x_rest, tets, "StableNeoHookean rest shape")
+        self.tets, self.tet_rest_volume = validated_tet_volumes(x_rest, tets, "StableNeoHookean rest shape")
         self.youngs_modulus = E
         self.poisson_ratio = nu
         self.mu, self.lam = snh_lame_parameters(E, nu)
         self.alpha = 1.0 + 0.75 * self.mu / self.lam
-        self.tet_rest_volume = tet_signed_volumes(x_rest, self.tets)
         Dm = self._edge_matrix(x_rest)
         Dm_inv = np.linalg.inv(Dm)
         # tet_dFdx[t, a, j] = dF_ij / dx_{a,i} (same for every i): rows 1..3 are D_m^{-1}, row 0 minus their sum.

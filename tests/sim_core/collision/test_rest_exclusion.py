@@ -82,3 +82,39 @@ def test_batched_distances_give_the_same_table():
     assert len(whole.vertex_triangle_keys) > 100 and len(whole.edge_edge_keys) > 100
     with pytest.raises(ValueError, match="chunk must be >= 1"):
         RestExclusion(filt, verts, tris, edges, chunk=0)
+
+
+def _brute_force_keys(x, verts, tris, edges, r):
+    """The vertex-triangle and edge-edge keys of every pair closer than ``r`` (one body), pair by pair."""
+    v, t = (a.ravel() for a in np.meshgrid(verts, np.arange(len(tris)), indexing="ij"))
+    d = point_triangle_distance(x[v], *(x[tris[t, k]] for k in range(3)))
+    vt = np.sort((v[d < r] << 32) | t[d < r])
+    i, j = np.triu_indices(len(edges), 1)
+    d = edge_edge_distance(x[edges[i, 0]], x[edges[i, 1]], x[edges[j, 0]], x[edges[j, 1]])
+    return vt, np.sort((i[d < r] << 32) | j[d < r])
+
+
+@pytest.mark.parametrize("gap", [0.05, 0.001])
+def test_translated_copies_of_a_body_give_the_keys_of_every_pair(gap):
+    """A body made of five translated copies of a sheet (a stacked scene's): searched on its first copy and moved
+    (the copies apart, at offsets that round the positions) or as a whole (the copies closer than the rest
+    distance: pairs across copies); either way its keys are those of every pair closer than the rest distance."""
+    from sim_core.collision.rest_exclusion import _translated_copies
+
+    x0, tris0, edges0 = _grid_sheet(9, 7, 0.002)
+    n, copies, r = len(x0), 5, 0.0045
+    width = float(np.ptp(x0[:, 0]))
+    x = np.concatenate([x0 + np.array([c * (width + gap), 0.1 / 3.0, 0.0]) for c in range(copies)])
+    tris = np.concatenate([tris0 + c * n for c in range(copies)])
+    edges = np.concatenate([edges0 + c * n for c in range(copies)])
+    verts = np.arange(len(x))
+    filt = PairFilter(vertex_body=np.zeros(len(x), np.int64), body_pair_allowed=np.ones((1, 1), bool), x_rest=x,
+                      self_rest_distance=r)
+    found, reach = _translated_copies(x, verts, tris, edges, r)
+    assert found == (copies if gap > r else 1) and r <= reach <= r * (1 + 1e-9)
+    rest = RestExclusion(filt, verts, tris, edges)
+    vt, ee = _brute_force_keys(x, verts, tris, edges, r)
+    np.testing.assert_array_equal(rest.vertex_triangle_keys, vt)
+    np.testing.assert_array_equal(rest.edge_edge_keys, ee)
+    across = (ee >> 32) // len(edges0) != (ee & 0xFFFFFFFF) // len(edges0)
+    assert across.any() == (gap < r)

@@ -182,7 +182,7 @@ def test_solver_steps_equal_reference_path(ti_cpu):
 
 def test_compile_kernels_runs_every_fused_kernel(ti_cpu):
     from sim_core.energies.neohookean.kernel import TiStableNeoHookean
-    from sim_core.fused_elastic import compile_kernels
+    from sim_core.kernel_compile import compile_kernels
 
     mesh, topo = _sheet(3, 3)
     tet = np.array([[0.0, 0.0, -0.01], [0.01, 0.0, -0.01], [0.0, 0.01, -0.01], [0.0, 0.0, 0.0]])

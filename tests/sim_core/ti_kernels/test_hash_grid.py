@@ -167,9 +167,9 @@ def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_c
 
 
 def test_the_kernel_is_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
-    """``fused_elastic.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
+    """``kernel_compile.compile_kernels`` (run before replay workers fork) compiles the hash kernel too."""
     from sim_core.energies.membrane.reference import SpringMembrane
-    from sim_core.fused_elastic import compile_kernels
+    from sim_core.kernel_compile import compile_kernels
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.ti_kernels import hash_candidates, hash_grid
 

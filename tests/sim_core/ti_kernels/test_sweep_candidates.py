@@ -117,10 +117,10 @@ def test_filter_without_body_table_or_another_filters_rest_table_is_refused(ti_c
 
 
 def test_the_kernel_is_compiled_with_the_step_kernels_before_any_fork(ti_cpu, monkeypatch):
-    """``fused_elastic.compile_kernels`` (run in a parent before it forks replay workers) compiles
+    """``kernel_compile.compile_kernels`` (run in a parent before it forks replay workers) compiles
     the candidate kernel too; its own compile call leaves a launch plan for the lists' signature."""
     from sim_core.energies.membrane.reference import SpringMembrane
-    from sim_core.fused_elastic import compile_kernels
+    from sim_core.kernel_compile import compile_kernels
     from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.ti_kernels import sweep_candidates
 
