@@ -540,7 +540,9 @@ class PairBatch:
         gradients = _ARRAYS.rows("gradients", gradient_rows, (3,))  # rows of the pairs' own vertices (and regions)
         listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
-        kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
+        # a measurement's rows apart from the derivatives launches' (whose device copy it would make stale)
+        rows_name = "measured_rows" if find else "pair_rows"
+        kept_rows = self._all if every else _ARRAYS.rows(rows_name, m, (), np.int32)
         if not every:  # the pairs' rows of the layout
             np.take(self._all, rows, out=kept_rows[:m])
         if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
@@ -555,7 +557,7 @@ class PairBatch:
                                                                                          x_device, gradient_rows)
             device = _ARRAYS.device()
             rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
-                        else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
+                        else on_device(device, rows_name, kept_rows, refresh=True, changed=True))
             d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                     scratch=True)
             listed_arg = on_device(device, "active", listed, scratch=True)
