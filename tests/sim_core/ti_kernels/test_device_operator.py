@@ -79,6 +79,9 @@ def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu, monke
 
     monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
     monkeypatch.setattr(PairBatch, "device_hessian", device_hessian)
+    # the potentials below are evaluated at host positions, which on CUDA would take the single environment's packed
+    # launch (host Hessians); the lockstep's Newton loop evaluates them at its device iterate
+    monkeypatch.setattr(PairBatch, "packed", False)
     model = pad_model()
     config = SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True, linear_solver="pcg")
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model), solver_config=config)

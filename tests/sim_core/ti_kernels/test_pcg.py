@@ -167,7 +167,7 @@ def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_c
     model = pad_model()
     steps = 2
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
-                                         solver_config=SolverConfig(backend="taichi-cpu", lockstep=True,
+                                         solver_config=SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True,
                                                                     linear_solver="pcg"))
     assert batch.lockstep.solver.pcg is not None
     if device_hessian:
