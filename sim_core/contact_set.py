@@ -21,6 +21,8 @@ friction potentials, as the Newton solver uses them:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from sim_core.backend import uses_taichi
@@ -29,7 +31,6 @@ from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
-from sim_core.contact_friction_setup import FrictionRowSource, keep_step_start_distances, pair_friction
 from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, sheet_vertices_off_solids
@@ -40,6 +41,23 @@ from sim_core.energies.sphere_contact.reference import SphereContact
 from sim_core.model import Model, check_broad_phase
 from sim_core.unique import sorted_unique
 from sim_core.workspace import Workspace
+
+
+class FrictionRowSource(NamedTuple):
+    """Where a run of consecutive rows of a :class:`LaggedFriction` built by :meth:`ContactSet.friction`
+    comes from (kept as ``LaggedFriction.row_sources``, in row order, so that the adjoint
+    differentiates the frozen frames without searching the pairs again).
+
+    Attributes:
+        obstacle: the plane / sphere body name, None for vertex-triangle and edge-edge pairs.
+        potential: the step's contact potential of the rows (``VertexTriangleContact``,
+            ``EdgeEdgeContact``, ``PlaneContact`` or ``SphereContact``; its sides fixed for the step).
+        pair_index: the rows' pair (vertex) indices in ``potential``, int64 shape ``(r,)``.
+    """
+
+    obstacle: str | None
+    potential: object
+    pair_index: np.ndarray
 
 
 class ContactSet:
@@ -120,7 +138,6 @@ class ContactSet:
         self.held: np.ndarray | None = None
         self._held_kept = None  # (candidates, held, candidates without the held pairs apart)
         self._cache = None  # (memory, candidates, potentials, edge-edge candidate rows kept) of the current step
-        self._ended = None  # the last step's _cache, from begin_step until friction()
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
@@ -133,7 +150,6 @@ class ContactSet:
     def begin_step(self, x_n: np.ndarray, memory: CollisionMemory | None) -> CollisionMemory:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
-        self._ended = self._cache  # the last step's potentials, for friction() at x_n
         self._cache = None
         self._step_table = None  # (memory, x^n, vt pairs, ee pairs, (vt sides, ee keep, ee sides)) of the last search
         self._released = _NO_RELEASES
@@ -643,13 +659,8 @@ class ContactSet:
         ``held``: vertices held at ``x^n`` for the whole step (sleeping bodies, :mod:`sim_core.sleeping`),
         bool ``(n,)``, or None; the rows of a vertex and an obstacle with the vertex held are left out
         (its tangential displacement is zero all step: no force, and the constant energy
-        ``mu lam f0(0)`` of each, kept as :attr:`held_friction_energy`). On a Taichi backend the pair potentials'
-        distances at ``x_n`` are those :meth:`end_step` kept where a pair's side is unchanged
-        (:func:`~sim_core.contact_friction_setup.keep_step_start_distances`)."""
-        previous, self._ended = self._ended, None  # the last step's potentials (begin_step)
+        ``mu lam f0(0)`` of each, kept as :attr:`held_friction_energy`)."""
         vt, ee = self._pairs(x_n, memory)
-        if self.taichi:
-            keep_step_start_distances(previous, self._cache, x_n)
         self.held_friction_energy = 0.0
         eps_u = self.model.contact.eps_v * dt
         obstacle_frames = []
@@ -662,7 +673,7 @@ class ContactSet:
                 f, mu = ContactFrames(*(a[keep] for a in f)), mu[keep]
             obstacle_frames.append((name, obstacle, f, mu))
         if self.taichi and not any(len(f.lam) for _, _, f, _ in obstacle_frames):
-            return pair_friction(self, x_n, dt, vt, ee)
+            return self._pair_friction(x_n, dt, vt, ee)
         frames, mus, sources = [], [], []
         # a pair's vertices: [p, a, b, c] / [a0, a1, b0, b1]; column 0 and ``second`` are on its two sides
         for pot, second in ((vt, 1), (ee, 2)):
@@ -689,6 +700,35 @@ class ContactSet:
         friction = friction_class.from_frames(all_frames, mu, x_n, self.model.contact.eps_v, dt)
         friction.workspace = self.workspace
         friction.row_sources = sources  # for the adjoint (sim_core.adjoint_friction.friction_rows)
+        return friction
+
+    def _pair_friction(self, x_n: np.ndarray, dt: float, vt: VertexTriangleContact, ee: EdgeEdgeContact
+                       ) -> LaggedFriction | None:
+        """:meth:`friction` on the Taichi backend when only pair contacts touch: the frames and tangent
+        bases of the active pairs of both kinds from one launch
+        (:func:`sim_core.energies.contact.setup_kernel.friction_frames`; the values of the pair potentials'
+        ``contact_frames`` and of ``tangent_basis``, bit for bit), rows in the same order."""
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only
+        from sim_core.energies.contact.setup_kernel import friction_frames
+        from sim_core.energies.friction.kernel import TiLaggedFriction
+
+        pots = (vt, ee)
+        rows = [pot.active_distances(x_n) for pot in pots]
+        split = len(rows[0][0])
+        vertices = np.concatenate([np.take(pot.vertices, active, axis=0) for pot, (active, _) in zip(pots, rows)])
+        if not len(vertices):
+            return None
+        # column 0 and the second side's column (1 for [p, a, b, c], 2 for [a0, a1, b0, b1]): its two sides
+        mu = self.coulomb.between(vertices[:, 0], np.concatenate([vertices[:split, 1], vertices[split:, 2]]))
+        if not np.any(mu > 0):
+            return None
+        sides = np.concatenate([pot.sides[active] for pot, (active, _) in zip(pots, rows)])
+        weights, normal, tangent = friction_frames(x_n, vertices, sides, split)
+        lam = np.concatenate([pot.stiffness * (pot.eps - d) for pot, (_, d) in zip(pots, rows)])
+        friction = TiLaggedFriction(vertices, weights, tangent, lam, mu, x_n, self.model.contact.eps_v, dt)
+        friction.workspace = self.workspace
+        friction.row_sources = [FrictionRowSource(None, pot, active) for pot, (active, _) in zip(pots, rows)
+                                if len(active)]
         return friction
 
     def end_step(self, x: np.ndarray, memory: CollisionMemory) -> CollisionMemory:

@@ -436,20 +436,6 @@ class PairBatch:
             sums[:] = 0.0
         self._keep(x.shape[0], key, derivatives, parts, kept, found, arrays, sums, device_hessian, device_gradient)
 
-    def measure(self, x: np.ndarray, pairs: np.ndarray, key: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The pairs ``pairs`` (int ``(m,)``, increasing pair indices: a vertex-triangle pair ``k < split``, an
-        edge-edge pair ``split + j``) measured at positions ``x`` ``(n, 3)`` (m) in one launch of the kernel that
-        :meth:`evaluate` launches over every pair (the same distances bit for bit): those with ``d < eps`` as pair
-        indices int64 ``(a,)``, increasing, and their distances ``(a,)`` (m). Nothing is kept as an evaluation.
-        ``key``: :func:`~sim_core.energies.base.positions_key` of ``x`` when the caller has it."""
-        if not len(pairs):
-            return _NONE_FOUND
-        if key is None:
-            key = positions_key(x)
-        pairs = np.asarray(pairs, dtype=np.int64)
-        _, _, found = self._launch(x, key, None, pairs, False, False, False, find=True)
-        return np.take(pairs, found[0]), found[1]
-
     def _evaluate_packed(self, x: np.ndarray, key: tuple, derivatives: bool) -> None:
         """:meth:`evaluate` of every pair at ``x`` in one launch of :func:`_packed_kernel` (:attr:`packed`), its
         packed results read back in one copy (a second one when the list is longer than guessed) and kept as each
@@ -523,14 +509,14 @@ class PairBatch:
         return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
-                device_gradient: bool, find: bool = False) -> tuple:
+                device_gradient: bool) -> tuple:
         """One launch of :func:`_batch_kernel` over the pairs ``rows`` (int ``(m,)``, ``m > 0``, pair indices; the
         batch's own row array :attr:`_all`: every pair, as their rows of the layout) at ``x``; the distances,
         regions and distance gradients are left in :func:`work_arrays`. Returns ``((grad, hess), sums, found)``: the
         distance gradient and Hessian rows' arrays (new ndarrays with ``device_hessian``), the per-vertex gradient sums
         ``(>= 2 u, 3)`` (a new ndarray with ``device_gradient``, else the host's kept array) and, when every pair was
-        measured (or with ``find``), the active pairs' launch rows int64 ``(a,)`` in increasing order and their
-        distances ``(a,)`` (m), else None."""
+        measured, the active pairs' launch rows int64 ``(a,)`` in increasing order and their distances ``(a,)`` (m),
+        else None."""
         m, u = len(rows), len(self.own)
         d, region, grad, hess = work_arrays(m)
         on_gpu = current_arch() == "cuda"
@@ -540,9 +526,7 @@ class PairBatch:
         gradients = _ARRAYS.rows("gradients", gradient_rows, (3,))  # rows of the pairs' own vertices (and regions)
         listed, count = _ARRAYS.rows("active", m + 1, (2,)), _ARRAYS.rows("active_count", 1, (), np.int32)
         every = rows is self._all  # (kept as an array of the batch's: not copied)
-        # a measurement's rows apart from the derivatives launches' (whose device copy it would make stale)
-        rows_name = "measured_rows" if find else "pair_rows"
-        kept_rows = self._all if every else _ARRAYS.rows(rows_name, m, (), np.int32)
+        kept_rows = self._all if every else _ARRAYS.rows("pair_rows", m, (), np.int32)
         if not every:  # the pairs' rows of the layout
             np.take(self._all, rows, out=kept_rows[:m])
         if not derivatives:  # the kernel writes no derivatives: one-row stand-ins for their arrays
@@ -557,7 +541,7 @@ class PairBatch:
                                                                                          x_device, gradient_rows)
             device = _ARRAYS.device()
             rows_arg = (on_device(self._device, "all_rows", self._all) if every  # sent once a batch
-                        else on_device(device, rows_name, kept_rows, refresh=True, changed=True))
+                        else on_device(device, "pair_rows", kept_rows, refresh=True, changed=True))
             d_arg, region_arg = on_device(device, "d", d, scratch=True), on_device(device, "region", region,
                                                                                     scratch=True)
             listed_arg = on_device(device, "active", listed, scratch=True)
@@ -589,8 +573,6 @@ class PairBatch:
         if every:
             found = _sorted_found(listed, listed_arg, self._found_rows)
             self._found_rows = len(found[0]) + len(found[0]) // 4 + 64  # the next read's guess: one copy
-        elif find:
-            found = _sorted_found(listed, listed_arg, min(self._found_rows, m + 1))
 
         return (grad_arg, hess_arg), (gradients_arg if device_gradient else gradients), found
 
