@@ -25,8 +25,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
 
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
-    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``), and the contact
-    distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the broad phase (and its candidate-list
+    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``), and the
+    contact distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the broad phase (and its candidate-list
     kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
     ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 

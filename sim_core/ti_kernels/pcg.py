@@ -609,8 +609,9 @@ class BatchedPCG:
         self._uploaded["order_of"] = seg
 
     def _full_pattern(self, indptr_h: np.ndarray, indices_h: np.ndarray, n: int) -> tuple:
-        """The pattern of ``U + U^T - diag(U)`` (both triangles, :func:`~sim_core.symmetric_pattern.both_triangles`) of the
-        upper-triangle CSR arrays: its ``indptr`` and ``indices`` on the device as ``full_indptr``, ``full_indices``,
+        """The pattern of ``U + U^T - diag(U)`` (both triangles,
+        :func:`~sim_core.symmetric_pattern.both_triangles`) of the upper-triangle CSR arrays: its ``indptr`` and
+        ``indices`` on the device as ``full_indptr``, ``full_indices``,
         and ``full_src``, the position in ``U``'s data of each entry, so that the CG's product needs no atomics (one
         thread a row). Made again only when ``indptr_h`` or ``indices_h`` are other objects than at the last call.
         Returns ``(indptr_h, indices_h, full nnz)``."""

@@ -37,6 +37,16 @@ def _definition(arrays: list[np.ndarray], free: np.ndarray):
     return np.unique(r[keep] * n + c[keep]), np.flatnonzero(keep), r, c
 
 
+def _free_mask(rng, mask: str, vertex_count: int) -> np.ndarray:
+    """The DoF mask ``(3 vertex_count,)`` of a mask kind: every DoF free, whole vertices fixed, or DoFs fixed one by
+    one (split vertices)."""
+    if mask == "fixed vertices":
+        return np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
+    if mask == "split vertices":
+        return rng.uniform(size=3 * vertex_count) > 0.3
+    return np.ones(3 * vertex_count, dtype=bool)
+
+
 @pytest.mark.parametrize("mask", ["all free", "fixed vertices", "split vertices"])
 def test_pattern_and_slots_are_those_of_the_definition(mask):
     """Keys, diagonal slots, the kept entries' slots and every element's slot map equal the definition's,
@@ -44,11 +54,7 @@ def test_pattern_and_slots_are_those_of_the_definition(mask):
     rng = np.random.default_rng(5)
     vertex_count = 60
     arrays = _elements(rng, vertex_count)
-    free = np.ones(3 * vertex_count, dtype=bool)
-    if mask == "fixed vertices":
-        free = np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
-    elif mask == "split vertices":
-        free = rng.uniform(size=3 * vertex_count) > 0.3
+    free = _free_mask(rng, mask, vertex_count)
     n = free.size
     pattern = StaticPattern(arrays, free, n)
     keys, entry_index, r, c = _definition(arrays, free)
@@ -68,11 +74,7 @@ def test_csr_arrays_are_the_keys_rows_and_columns(mask, monkeypatch):
     written a block of rows at a time (a block shorter than the rows here), the same objects at a second call."""
     rng = np.random.default_rng(8)
     vertex_count = 60
-    free = np.ones(3 * vertex_count, dtype=bool)
-    if mask == "fixed vertices":
-        free = np.repeat(rng.uniform(size=vertex_count) > 0.3, 3)
-    elif mask == "split vertices":
-        free = rng.uniform(size=3 * vertex_count) > 0.3
+    free = _free_mask(rng, mask, vertex_count)
     n = free.size
     monkeypatch.setattr(StaticPattern, "_CSR_ROWS", 7)
     pattern = StaticPattern(_elements(rng, vertex_count), free, n)

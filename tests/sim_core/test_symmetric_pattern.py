@@ -1,4 +1,5 @@
-"""The both-triangle pattern of an upper triangle (:func:`sim_core.symmetric_pattern.both_triangles`) against its definition."""
+"""The both-triangle pattern of an upper triangle (:func:`sim_core.symmetric_pattern.both_triangles`) against its
+definition."""
 
 from __future__ import annotations
 
