@@ -106,19 +106,17 @@ def test_copy_energies_of_one_element_a_copy_are_the_elements_terms(ti_cpu):
 
 
 def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
-    """The CUDA path (positions uploaded once, the parts' constant arrays as Taichi ndarrays), run on the CPU arch
-    with the arch query answering "cuda": the same per-copy energies as the NumPy-argument path."""
+    """The CUDA path (positions uploaded once, the parts' constant arrays as Taichi ndarrays) of three fused parts
+    together gives each copy's own energy; on the CPU arch, run there with the arch query answering "cuda", it also
+    gives the same per-copy energies as the NumPy-argument path (which only the CPU arch runs)."""
     import sim_core.energies.kirchhoff_bending.fused_kernel as kirchhoff_kernel
     import sim_core.energies.membrane.fused_spring_kernel as spring_kernel
     import sim_core.ti_backend as backend
     from sim_core.fused_elastic import FusedElastic
 
-    if ti_cpu == "cuda":
-        pytest.skip("emulates the CUDA path on the CPU arch (the arch query patched) to compare it with the "
-                    "NumPy-argument path, which only the CPU arch runs; under THINSHELL_TEST_ARCH=cuda the real "
-                    "device path runs in this file's other tests (each copy's own energy, the sum by copy)")
     copies = 2
-    parts = [_potential(kind, copies) for kind in ("snh", "spring_membrane", "kirchhoff")]
+    kinds = ("snh", "spring_membrane", "kirchhoff")
+    parts = [_potential(kind, copies) for kind in kinds]
     offsets = np.cumsum([0] + [x.shape[0] for _, x, _ in parts])
     x_rest = np.concatenate([x for _, x, _ in parts])
     # one model of three disjoint bodies, each of two copies: copy c is copy c of every body
@@ -134,14 +132,22 @@ def test_device_array_split_equals_the_host_one(ti_cpu, monkeypatch):
         fused.bind(HessianAssembler(x.size).static_pattern(fused.block_vertex_arrays(x_rest), np.ones(x.size, bool)))
         return fused, fused.copy_energies(x, copy_of_vertex, copies)
 
-    fused_host, host = split()
-    assert not fused_host._on_device()
-    for module in (backend, kirchhoff_kernel, spring_kernel):
-        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    if ti_cpu != "cuda":  # the NumPy-argument path first, then the CUDA path emulated
+        fused_host, host = split()
+        assert not fused_host._on_device()
+        for module in (backend, kirchhoff_kernel, spring_kernel):
+            monkeypatch.setattr(module, "current_arch", lambda: "cuda")
     fused_dev, dev = split()
     assert fused_dev._on_device()
-    np.testing.assert_allclose(dev, host, rtol=1e-13)
-    assert np.sum(host) == pytest.approx(fused_host.energy(x), rel=1e-12)
+    if ti_cpu != "cuda":
+        np.testing.assert_allclose(dev, host, rtol=1e-13)
+        assert np.sum(host) == pytest.approx(fused_host.energy(x), rel=1e-12)
+    # each copy's own energy: every body's copy c alone, moved back to the first copy's place
+    alone = [(_fused(*_potential(kind, 1)[:2]), n) for kind, (_, _, n) in zip(kinds, parts)]
+    for c in range(copies):
+        own = sum(part.energy(x[start + c * n:start + (c + 1) * n] - [0.1 * c, 0.0, 0.0])
+                  for (part, n), start in zip(alone, offsets[:-1]))
+        assert dev[c] == pytest.approx(own, rel=1e-11, abs=1e-18)
 
 
 def test_add_by_copy_kernel_on_device_arrays(ti_cpu):
