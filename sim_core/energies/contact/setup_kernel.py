@@ -51,6 +51,27 @@ def _unit(v):
     return v / ti.sqrt(cd._dot(v, v))
 
 
+@ti.func
+def _vertex_triangle_code(x: ti.template(), vt: ti.template(), k: ti.i32) -> ti.f64:
+    """Row ``k`` of ``vt`` (vertex, triangle): its side (+1 / -1) times 2 where the vertex lies above the face's
+    interior, else times 1."""
+    p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
+    above = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 2.0, 1.0)
+    return above * cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
+
+
+@ti.func
+def _edge_edge_measures(x: ti.template(), ee: ti.template(), k: ti.i32):
+    """Row ``k`` of ``ee`` (two edges): ``[sine of the edges' angle, 1 if their closest points are interior to both
+    else 0, side (+1 / -1)]``, a float64 3-vector."""
+    a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
+    ea, eb = a1 - a0, b1 - b0
+    n = cd._cross(ea, eb)
+    sine = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
+    interior = ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 1.0, 0.0)
+    return ti.Vector([sine, interior, cd._resolved_side(0.0, n, a0 - b0)], ti.f64)
+
+
 @fast_kernel
 def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count: ti.i32, geometry: _F64_1):
     """Rows ``k < vt_count`` of ``vt`` and ``k < ee_count`` of ``ee`` (kept arrays, :data:`_ARRAYS`), into one array
@@ -59,17 +80,12 @@ def _geometry_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_cou
     (``p = vt_count``, ``q = ee_count``; sides are +1 / -1)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
-        p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
-        above = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 2.0, 1.0)
-        geometry[k] = above * cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a)
+        geometry[k] = _vertex_triangle_code(x, vt, k)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(ee_count):
-        a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
-        ea, eb = a1 - a0, b1 - b0
-        n = cd._cross(ea, eb)
-        geometry[vt_count + k] = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
-        interior = ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 2.0, 1.0)
-        geometry[vt_count + ee_count + k] = interior * cd._resolved_side(0.0, n, a0 - b0)
+        m = _edge_edge_measures(x, ee, k)
+        geometry[vt_count + k] = m[0]
+        geometry[vt_count + ee_count + k] = (1.0 + m[1]) * m[2]
 
 
 @fast_kernel
@@ -81,18 +97,12 @@ def _codes_kernel(x: _F64_2, vt: _I32_2, vt_count: ti.i32, ee: _I32_2, ee_count:
     +1 / -1; the sine and the side as :func:`_geometry_kernel` computes them)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(vt_count):
-        p, a, b, c = _vertex(x, vt, k, 0), _vertex(x, vt, k, 1), _vertex(x, vt, k, 2), _vertex(x, vt, k, 3)
-        above = ti.select(cd._point_triangle_region(p, a, b, c) == cd._PT_FACE, 2, 1)
-        codes[k] = above * ti.cast(cd._resolved_side(0.0, cd._cross(b - a, c - a), p - a), ti.i32)
+        codes[k] = ti.cast(_vertex_triangle_code(x, vt, k), ti.i32)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(ee_count):
-        a0, a1, b0, b1 = _vertex(x, ee, k, 0), _vertex(x, ee, k, 1), _vertex(x, ee, k, 2), _vertex(x, ee, k, 3)
-        ea, eb = a1 - a0, b1 - b0
-        n = cd._cross(ea, eb)
-        sine = ti.sqrt(cd._dot(n, n)) / (ti.sqrt(cd._dot(ea, ea)) * ti.sqrt(cd._dot(eb, eb)))
-        code = 1 + ti.select(cd._edge_edge_region(a0, a1, b0, b1) == cd._EE_INTERIOR, 1, 0) \
-            + ti.select(sine > min_sine, 2, 0)
-        codes[vt_count + k] = code * ti.cast(cd._resolved_side(0.0, n, a0 - b0), ti.i32)
+        m = _edge_edge_measures(x, ee, k)
+        code = 1 + ti.cast(m[1], ti.i32) + ti.select(m[0] > min_sine, 2, 0)
+        codes[vt_count + k] = code * ti.cast(m[2], ti.i32)
 
 
 _ARRAYS = LaunchArrays()
