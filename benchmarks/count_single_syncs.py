@@ -60,10 +60,9 @@ def main() -> int:
     init_backend(args.arch)
     import numpy as np
 
-    import sim_core.ti_backend as ti_backend
+    from emulated_cuda import answer_cuda, gpu_sum_cells  # (benchmarks/, the script's folder)
     from sim_core.bench.forming import run_forming
-    from sim_core.ti_backend import ti
-    from sim_core.ti_kernels import buffers, device_copy, launch
+    from sim_core.ti_kernels import device_copy, launch
     from thinshell_ros.paths import bundled_scene
 
     counts: collections.Counter = collections.Counter()
@@ -100,7 +99,7 @@ def main() -> int:
     cells_sum = launch._cells_sum
     launch._cells_sum = lambda array: timed("sum read", lambda: cells_sum(array))
     if args.arch == "cpu":  # a GPU's sum arrays: device arrays of SUM_CELLS cells (the sums to round-off)
-        launch._new_cells = lambda runtime: device_copy.new_ndarray(ti.f64, (launch.SUM_CELLS,))
+        gpu_sum_cells()
     new = device_copy.new_ndarray
 
     def counted_new(dtype, shape):
@@ -111,16 +110,11 @@ def main() -> int:
             module.new_ndarray = counted_new
     scene = bundled_scene("forming")
     if args.arch == "cpu":  # the emulation: every arch query but the byte copies' answers "cuda"
-        device_copy.current_arch = lambda: "cpu"
         if args.B:
             _lockstep_run(1, 2, "cpu").run()  # compile, import
         else:
             run_forming(scene, 2, arch="cpu")  # compile, import
-        query = ti_backend.current_arch
-        for module in list(sys.modules.values()):
-            if getattr(module, "__name__", "").startswith("sim_core") and module is not device_copy \
-                    and getattr(module, "current_arch", None) is query:
-                module.current_arch = lambda: "cuda"
+        answer_cuda()
         for module in list(sys.modules.values()):
             if getattr(module, "new_ndarray", None) is new:
                 module.new_ndarray = counted_new

@@ -1,21 +1,33 @@
 """Profile a lockstep batch of the Forming scene or of a task's population: where the wall time of a Newton
-iteration goes.
+iteration and of a step goes.
 
-Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 3 [--linear-solver pcg] [--task folding_u]``;
-``--task NAME`` profiles the task's population of ``thinshell bench batch --scene NAME`` (``_TaskRun``: perturbed
-reference actions, stepped by :class:`~sim_core.tasks.rollout.PopulationRollout` as the optimiser steps it, without
-a separate warm-up) and times its build by part too (the episodes' scenes, the stacking, the lockstep solver), and
-the population's host work around each batched step (its episodes' commands and early-stop checks), and per step the
-copies' own Newton iterations beside the lockstep's (a lockstep step runs as many as its slowest copy);
-``--B 16,64,256`` profiles each size in turn in one process (kernels compiled once), each part also per Newton
-iteration (ms), so that what grows with ``B`` shows by part.
-Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected
-Hessian's kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
-times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time, Newton iterations and assembly / solve times, and
-over all of them the inclusive wall time and calls of the solver's parts (wrapped with timers: the
-gradient with its contact search, the Newton matrix, the CG's set-up and solve, the line search and its
-energies, the step's set-up and finish) and the CG's iterations per solve. ``--cprofile`` adds cProfile's tables (incomplete on Python
-3.12 with Taichi's compiler in the profiled region).
+Usage: ``python benchmarks/profile_lockstep.py --arch cuda --B 256 --steps 4 [--linear-solver pcg] [--task
+folding_u]``; ``--arch cpu --emulate-cuda`` runs the CUDA paths on the CPU arch (every ``sim_core`` arch query
+answering "cuda", :mod:`emulated_cuda`). ``--task NAME`` profiles the task's population of ``thinshell bench batch
+--scene NAME`` (``_TaskRun``: perturbed reference actions, stepped by
+:class:`~sim_core.tasks.rollout.PopulationRollout` as the optimiser steps it, without a separate warm-up) and times
+its build by part too (the episodes' scenes, the stacking, the lockstep solver), and the population's host work
+around each batched step (its episodes' commands and early-stop checks), and per step the copies' own Newton
+iterations beside the lockstep's (a lockstep step runs as many as its slowest copy); ``--B 16,64,256`` profiles each
+size in turn in one process (kernels compiled once), each part also per Newton iteration (ms), so that what grows
+with ``B`` shows by part.
+
+Compiles the kernels on one copy first (as ``thinshell bench batch``: two steps and the projected Hessian's
+kernels), builds ``B`` copies (``sim_core.bench.batch._FormingRun``), sets up and steps once (timed by part), then
+times ``--steps`` more steps (``--kernel-profiler``: with Taichi's per-task device times): per step its wall time,
+Newton iterations, CG iterations and assembly / solve times, and over all of them the inclusive wall time and calls
+of the solver's parts (wrapped with timers: the gradient with its contact search, the Newton matrix, the CG's set-up
+and solve, the line search and its energies, the step's set-up and finish) and the CG's iterations per solve.
+
+Forming: each step's wall time is also split into exclusive phases that add up to it (``_StepPhases``): the Newton
+iterations (the stacked gradient, the line search, the factorisation, the CG, the projected retries' elastic
+Hessian and pair blocks, the rest), the step's set-up (boundary, the contact set's ``begin_step`` and
+``friction``, the rest), its finish (the contact potentials, the energy, the contact force, ``end_step``, the
+plastic update, the rest), the engine's and the batch's work around the solver (``_sync``, ``stack_controls``,
+``copy_states``, the per-copy write-back), the run loop's controls and the garbage collector; per step and as a
+mean, with the steady rate that ``thinshell bench batch`` reports for the same steps (``--steps 4``: its steady steps
+of ``--steps 5``). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
+profiled region).
 """
 
 from __future__ import annotations
@@ -39,12 +51,20 @@ def main() -> int:
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
+    ap.add_argument("--emulate-cuda", action="store_true",
+                    help="on the CPU arch: every sim_core arch query answers cuda (the CUDA paths, emulated)")
     args = ap.parse_args()
+    if args.emulate_cuda and args.arch != "cpu":
+        ap.error("--emulate-cuda emulates the CUDA paths on the CPU arch: --arch cpu")
     from sim_core.ti_backend import init_backend
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun, _TaskRun
 
     backend = ARCH_BACKENDS[args.arch]
     init_backend(args.arch, kernel_profiler=args.kernel_profiler)
+    if args.emulate_cuda:
+        from emulated_cuda import gpu_sum_cells  # (benchmarks/, the script's folder)
+
+        gpu_sum_cells()
 
     extra = {"linear_solver": args.linear_solver} if args.linear_solver else {}
     import sim_core.solver_config as sc
@@ -65,7 +85,12 @@ def main() -> int:
             del warm
     finally:
         sc.SolverConfig = orig
+    if args.emulate_cuda:  # after the compilation run: the modules the steps call are imported
+        from emulated_cuda import answer_cuda  # (benchmarks/, the script's folder)
+
+        answer_cuda()
     timers = _wrap_parts(backend)
+    phases = _StepPhases(_phase_specs(backend))
     cg_iterations = _count_cg_iterations()
     for B in (int(b) for b in str(args.B).split(",")):
         sc.SolverConfig = config
@@ -81,7 +106,7 @@ def main() -> int:
         if args.task:
             _profile_population(run, B, args, timers, cg_iterations)
         else:
-            _profile_size(run, B, args, timers, cg_iterations)
+            _profile_size(run, B, args, timers, cg_iterations, phases)
         del run
     return 0
 
@@ -134,22 +159,40 @@ def _profile_population(run, B: int, args, timers: dict, cg_iterations: list) ->
     _print_timed(B, args, cg_iterations, prof)
 
 
-def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
-    """Set up and step ``run`` (``B`` copies) once, then time ``args.steps`` steps by part."""
+def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: _StepPhases) -> None:
+    """Set up and step ``run`` (``B`` copies) once, then time ``args.steps`` steps by part: each step's wall time
+    split into its phases (:class:`_StepPhases`), and the steady rate ``thinshell bench batch`` reports for the same
+    steps (its ``steady_scene_steps_per_s``: the stepped copies over ``BatchStep.wall_s``)."""
     from sim_core.control import Control
 
     iterations = [0]
+    per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
 
     def step(k):
+        solves = len(cg_iterations)
+        phases.mark(_LOOP)
         t = time.perf_counter()
         res = run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
         wall = time.perf_counter() - t
+        parts = phases.take()
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
-        iterations[0] += getattr(info, "iterations", 0) or 0
-        print(f"B={B} step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)}, assembly "
+        its = getattr(info, "iterations", 0) or 0
+        iterations[0] += its
+        own = [i.iterations for i in res.infos if i is not None]
+        print(f"B={B} step {k}: {wall:.3f} s, iterations {getattr(info, 'iterations', None)} (the copies' own: mean "
+              f"{sum(own) / max(len(own), 1):.2f}), assembly "
               f"{getattr(info, 'time_assembly', 0):.3f} s, solve {getattr(info, 'time_linear_solve', 0):.3f} s, "
               f"factorizations {getattr(info, 'factorizations', None)}", flush=True)
+        g = _group_phases(parts)
+        print(f"B={B} step {k}: wall {1e3 * wall:.1f} ms: Newton iterations {1e3 * g['iterations']:.1f} "
+              f"({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up {1e3 * g['set-up']:.1f}, finish "
+              f"{1e3 * g['finish']:.1f}, outside the solver {1e3 * g['outside']:.1f}, garbage collection "
+              f"{1e3 * g['gc']:.1f} (the phases' sum {1e3 * sum(g.values()):.1f}); the bench's wall_s "
+              f"{1e3 * res.wall_s:.1f}; CG iterations {sum(cg_iterations[solves:])} in "
+              f"{len(cg_iterations) - solves} solves", flush=True)
+        if k > 0:
+            per_step.append((parts, wall, res.wall_s, len(own), its))
         return res
 
     for rec in timers.values():
@@ -174,7 +217,158 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list) -> None:
     print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
+    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step])
+    groups = [_group_phases(p) for p, *_ in per_step]
+    n = max(len(per_step), 1)
+    bench_wall = sum(b for _, _, b, _, _ in per_step)
+    print(f"B={B} per step (mean of steps 1-{args.steps}): wall {1e3 * wall / n:.1f} ms, of it Newton iterations "
+          f"{1e3 * sum(g['iterations'] for g in groups) / n:.1f} ({iterations[0] / n:.2f} a step), set-up "
+          f"{1e3 * sum(g['set-up'] for g in groups) / n:.1f}, finish {1e3 * sum(g['finish'] for g in groups) / n:.1f}, "
+          f"outside the solver {1e3 * sum(g['outside'] for g in groups) / n:.1f}, garbage collection "
+          f"{1e3 * sum(g['gc'] for g in groups) / n:.1f} ms")
+    print(f"B={B} steps 1-{args.steps}: {B * args.steps / wall:.2f} scene-steps/s over the run loop's wall; "
+          f"thinshell bench batch would report steady {sum(c for *_, c, _ in per_step) / bench_wall:.2f} "
+          f"(the stepped copies over BatchStep.wall_s, {bench_wall:.3f} s; with --steps 4 these are the bench's "
+          f"steady steps of --steps 5)")
     _print_timed(B, args, cg_iterations, prof)
+
+
+class _StepPhases:
+    """A step's wall time split into exclusive phases that add up to it: each wrapped function is a phase (where
+    the phase it is called from is one of its ``parents``), its time less its inner phases' its own; Python's
+    garbage collections are a phase of their own. :meth:`mark` starts a step's phases from zero under the
+    outermost phase ``label`` (the run loop's own work) and :meth:`take` returns label -> seconds since then."""
+
+    def __init__(self, specs: list) -> None:
+        import gc
+
+        self.stack: list = []
+        self.seconds: dict = {}
+        self.last = time.perf_counter()
+        for owner, name, label, parents in specs:
+            raw = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
+            setattr(owner, name, self._phase(raw, label, parents))
+        gc.callbacks.append(self._collector)
+
+    def _switch(self, push: str | None) -> None:
+        now = time.perf_counter()
+        if self.stack:
+            top = self.stack[-1]
+            self.seconds[top] = self.seconds.get(top, 0.0) + now - self.last
+        self.last = now
+        if push is None:
+            self.stack.pop()
+        else:
+            self.stack.append(push)
+
+    def _phase(self, fn, label: str, parents):
+        import functools
+
+        @functools.wraps(fn)
+        def wrapped(*a, **kw):
+            if not self.stack or (parents is not None and self.stack[-1] not in parents):
+                return fn(*a, **kw)
+            self._switch(label)
+            try:
+                return fn(*a, **kw)
+            finally:
+                self._switch(None)
+        return wrapped
+
+    def _collector(self, event: str, info: dict) -> None:
+        if self.stack and event == "start":
+            self._switch(f"garbage collection (generation {info['generation']})")
+        elif self.stack and event == "stop" and self.stack[-1].startswith("garbage collection"):
+            self._switch(None)
+
+    def mark(self, label: str) -> None:
+        self.stack, self.seconds, self.last = [label], {}, time.perf_counter()
+
+    def take(self) -> dict:
+        self._switch(None)
+        seconds, self.stack, self.seconds = self.seconds, [], {}
+        return seconds
+
+
+_LOOP = "run loop: the copies' controls (outside BatchedSimulation.step)"
+_SET_UP = "set-up: the rest (inertia, gravity, elastic terms, fused start, lumped terms)"
+_NEWTON = "Newton: the rest (the exact operator, the per-copy tests, the loop's own)"
+_FINISH = "finish: the rest (StepRecord, velocities, poses)"
+_ENGINE = "engine: the rest (output state, per-copy write-back, StepTotals)"
+
+
+def _phase_specs(backend: str) -> list:
+    """``(owner, name, label, parents)`` of :class:`_StepPhases`: a lockstep step's set-up, Newton iterations and
+    finish, the engine's and the batch's work around the solver, each with its larger parts."""
+    from sim_core import solver
+    from sim_core.batch import lockstep
+    from sim_core.batch.simulation import BatchedSimulation
+    from sim_core.batch.stacked import StackedScene
+    from sim_core.contact_set import ContactSet
+    from sim_core.elastic import ElasticTerms
+    from sim_core.solver import NewtonSolver
+
+    from sim_core.batch.plasticity import StackedElasticTerms
+
+    engine, setup, finish = _ENGINE, _SET_UP, _FINISH
+    batch = "BatchedSimulation.step: the controls' checks"
+    specs = [(BatchedSimulation, "step", batch, {_LOOP}),
+             (lockstep.LockstepEngine, "step", engine, {batch}),
+             (lockstep.LockstepEngine, "_sync", "engine: _sync", {engine}),
+             (StackedScene, "stack_controls", "engine: stack_controls", {engine}),
+             (StackedScene, "copy_states", "engine: copy_states", {engine}),
+             (lockstep.LockstepSolver, "step_copies", "solver: step_copies (outside the attempt)", {engine}),
+             (lockstep.LockstepSolver, "_lockstep_step", _NEWTON, None),
+             (lockstep.LockstepSolver, "_set_up_step", setup, {_NEWTON}),
+             (lockstep.LockstepSolver, "boundary", "set-up: boundary (effectors)", {setup}),
+             (ContactSet, "begin_step", "set-up: ContactSet.begin_step", {setup}),
+             (ContactSet, "friction", "set-up: ContactSet.friction", {setup}),
+             (NewtonSolver, "_finish_step", finish, {_NEWTON}),
+             (ContactSet, "potentials", "finish: ContactSet.potentials", {finish}),
+             (NewtonSolver, "_energy", "finish: the energy", {finish}),
+             (solver, "contact_force", "finish: contact force", {finish}),
+             (ContactSet, "end_step", "finish: ContactSet.end_step", {finish})]
+    specs += [(cls, "plastic_update", "finish: plastic update", {finish})
+              for cls in (ElasticTerms, StackedElasticTerms)]
+    # the Newton iterations' larger parts (the projected retry's elastic Hessian and pair blocks apart)
+    from sim_core.batch.line_search import CopyLineSearch
+    from sim_core.fused_elastic import FusedElastic
+
+    specs += [(lockstep.LockstepSolver, "_stacked_gradient", "Newton: the stacked gradient", {_NEWTON}),
+              (CopyLineSearch, "_line_search_copies", "Newton: the line search", {_NEWTON}),
+              (FusedElastic, "projected_hessian_values", "Newton: the projected elastic Hessian (retries)", {_NEWTON}),
+              (lockstep, "projected_subset_blocks", "Newton: the projected pair blocks (retries)", {_NEWTON})]
+    if backend != "numpy":
+        from sim_core.ti_kernels import pcg
+
+        specs += [(pcg.BatchedPCG, "factorize", "Newton: BatchedPCG.factorize", {_NEWTON}),
+                  (pcg.BatchedPCG, "solve_on_device", "Newton: BatchedPCG.solve_on_device", {_NEWTON})]
+    return specs
+
+
+def _print_phases(B: int, per_step: list, walls: list) -> None:
+    """The timed steps' phases (:class:`_StepPhases`), ms a step (mean) and per step, grouped."""
+    steps = len(per_step)
+    labels = sorted({k for p in per_step for k in p}, key=lambda k: -sum(p.get(k, 0.0) for p in per_step))
+    total = sum(walls)
+    print(f"{'phase (exclusive), B=' + str(B):66s} {'ms/step':>9s} {'% wall':>7s}  per step (ms)")
+    for label in labels:
+        each = [1e3 * p.get(label, 0.0) for p in per_step]
+        print(f"{label:66s} {sum(each) / steps:9.2f} {100 * sum(each) / 1e3 / total:7.1f}  "
+              + " ".join(f"{e:8.2f}" for e in each))
+    print(f"{'sum of the phases':66s} {1e3 * sum(sum(p.values()) for p in per_step) / steps:9.2f}"
+          f" {100 * sum(sum(p.values()) for p in per_step) / total:7.1f}")
+
+
+def _group_phases(phases: dict) -> dict:
+    """A step's phases (:class:`_StepPhases`) in the groups of the step's summary line: Newton iterations, set-up,
+    finish, outside the solver (the engine, the batch, the run loop) and the garbage collector."""
+    groups = {"iterations": 0.0, "set-up": 0.0, "finish": 0.0, "outside": 0.0, "gc": 0.0}
+    for label, s in phases.items():
+        key = ("iterations" if label.startswith("Newton:") else "set-up" if label.startswith("set-up") else
+               "finish" if label.startswith("finish") else "gc" if label.startswith("garbage") else "outside")
+        groups[key] += s
+    return groups
 
 
 def _start_timed(args, cg_iterations: list) -> None:

@@ -1,0 +1,39 @@
+"""The CUDA paths of ``sim_core`` emulated on Taichi's CPU arch, for the benchmark scripts of this folder.
+
+:func:`gpu_sum_cells` gives the summing kernels a GPU's sum arrays (device arrays of ``launch.SUM_CELLS`` cells: the
+sums then equal the CPU arch's to round-off only); :func:`answer_cuda`, called once the modules in question are
+imported (after a first run: the kernels compiled), makes the arch query of every loaded ``sim_core`` module but the
+byte copies' (:mod:`sim_core.ti_kernels.device_copy`, which must copy host memory on the CPU arch) answer "cuda", as
+``tests/sim_core/ti_kernels/test_device_paths.py`` does. The Taichi program still runs on the CPU arch, so the
+kernels' loops stay serial where a single environment asks for it.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def gpu_sum_cells() -> None:
+    """The summing kernels' sum arrays with a GPU's ``SUM_CELLS`` cells (before the first sum is made), and the byte
+    copies' own arch query kept on the CPU arch (:func:`answer_cuda` leaves it)."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import device_copy, launch
+
+    launch._new_cells = lambda runtime: device_copy.new_ndarray(ti.f64, (launch.SUM_CELLS,))
+    device_copy.current_arch = lambda: "cpu"
+
+
+def answer_cuda() -> int:
+    """Every loaded ``sim_core`` module whose ``current_arch`` is :func:`sim_core.ti_backend.current_arch` answers
+    "cuda" from now on (:mod:`sim_core.ti_kernels.device_copy` excepted); returns how many modules were changed."""
+    import sim_core.ti_backend as ti_backend
+    from sim_core.ti_kernels import device_copy
+
+    query = ti_backend.current_arch
+    changed = 0
+    for module in list(sys.modules.values()):
+        if getattr(module, "__name__", "").startswith("sim_core") and module is not device_copy \
+                and getattr(module, "current_arch", None) is query:
+            module.current_arch = lambda: "cuda"
+            changed += 1
+    return changed
