@@ -43,7 +43,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--B", default="8", help="copies; a comma-separated list profiles each size in turn")
-    ap.add_argument("--steps", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=4,
+                    help="timed steps after the first (default 4: the steady steps of thinshell bench batch --steps 5)")
     ap.add_argument("--linear-solver", default=None)
     ap.add_argument("--top", type=int, default=45)
     ap.add_argument("--task", default=None, help="a task name: profile its population (default: Forming)")
@@ -185,7 +186,9 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
               f"{getattr(info, 'time_assembly', 0):.3f} s, solve {getattr(info, 'time_linear_solve', 0):.3f} s, "
               f"factorizations {getattr(info, 'factorizations', None)}", flush=True)
         g = _group_phases(parts)
-        print(f"B={B} step {k}: wall {1e3 * wall:.1f} ms: Newton iterations {1e3 * g['iterations']:.1f} "
+        retries = (getattr(info, "factorizations", 0) or 0) - its  # the projected retries' factorisations
+        kind = f"projection step ({retries} projected retries)" if retries > 0 else "no projection"
+        print(f"B={B} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations {1e3 * g['iterations']:.1f} "
               f"({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up {1e3 * g['set-up']:.1f}, finish "
               f"{1e3 * g['finish']:.1f}, outside the solver {1e3 * g['outside']:.1f}, garbage collection "
               f"{1e3 * g['gc']:.1f} (the phases' sum {1e3 * sum(g.values()):.1f}); the bench's wall_s "
