@@ -84,7 +84,7 @@ from sim_core.batch.simplified import SimplifiedNewtonTest
 from sim_core.batch.stacked import StackedScene
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, HessianBlocks, SparseGradient, SubsetHessian, declares
+from sim_core.energies.base import DeviceHessian, HessianBlocks, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -202,19 +202,6 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         step, x = super()._set_up_step(state_in, control, dt, guess, info)
         step.loop_terms = lumped_loop_terms(step.loop_terms)
         return step, x
-
-    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
-        """:meth:`NewtonSolver._contact_force` with the rows of a term declaring
-        :class:`~sim_core.energies.base.SparseGradient` subtracted at its vertices only (as the stacked gradient adds
-        them: no ``(N, 3)`` array a term)."""
-        force = np.zeros_like(x)
-        for p in terms:
-            vertices, rows = p.gradient_rows(x) if declares(p, SparseGradient) else (None, p.gradient(x))
-            if vertices is None:
-                force -= rows
-            else:
-                force[vertices] -= rows
-        return force
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
