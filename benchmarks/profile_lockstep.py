@@ -168,6 +168,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
 
     iterations = [0]
     per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
+    step_copies: list = []  # the timed steps' synchronous copies by phase (_StepPhases.copies)
 
     def step(k):
         solves = len(cg_iterations)
@@ -176,6 +177,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         res = run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
         wall = time.perf_counter() - t
         parts = phases.take()
+        copies = {label: list(rec) for label, rec in phases.copies.items()}
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
         its = getattr(info, "iterations", 0) or 0
@@ -193,9 +195,12 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
               f"{1e3 * g['finish']:.1f}, outside the solver {1e3 * g['outside']:.1f}, garbage collection "
               f"{1e3 * g['gc']:.1f} (the phases' sum {1e3 * sum(g.values()):.1f}); the bench's wall_s "
               f"{1e3 * res.wall_s:.1f}; CG iterations {sum(cg_iterations[solves:])} in "
-              f"{len(cg_iterations) - solves} solves", flush=True)
+              f"{len(cg_iterations) - solves} solves; synchronous copies {sum(c[0] for c in copies.values())}, "
+              f"{sum(c[1] for c in copies.values()) / 1e6:.1f} MB, {1e3 * sum(c[2] for c in copies.values()):.1f} ms",
+              flush=True)
         if k > 0:
             per_step.append((parts, wall, res.wall_s, len(own), its))
+            step_copies.append(copies)
         return res
 
     for rec in timers.values():
@@ -220,7 +225,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     print(f"B={B} {args.steps} steps in {wall:.3f} s: {B * args.steps / wall:.2f} scene-steps/s, "
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
-    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step])
+    _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies)
     groups = [_group_phases(p) for p, *_ in per_step]
     n = max(len(per_step), 1)
     bench_wall = sum(b for _, _, b, _, _ in per_step)
@@ -252,6 +257,28 @@ class _StepPhases:
             raw = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
             setattr(owner, name, self._phase(raw, label, parents))
         gc.callbacks.append(self._collector)
+        self.copies: dict = {}  # phase -> [calls, bytes, seconds] of the synchronous byte copies (device_copy._copy)
+        self._count_copies()
+
+    def _count_copies(self) -> None:
+        """Count each synchronous byte copy to or from the device (``device_copy._copy``: calls, bytes, seconds) under
+        the phase that made it."""
+        from sim_core.ti_kernels import device_copy
+
+        copy = device_copy._copy
+
+        def counted(array, host, upload, rows=None):
+            t = time.perf_counter()
+            try:
+                return copy(array, host, upload, rows)
+            finally:
+                if self.stack:
+                    rec = self.copies.setdefault(self.stack[-1], [0, 0, 0.0])
+                    rec[0] += 1
+                    rec[1] += host.nbytes if rows is None or not host.ndim else host.nbytes // max(len(host), 1) * rows
+                    rec[2] += time.perf_counter() - t
+
+        device_copy._copy = counted
 
     def _switch(self, push: str | None) -> None:
         now = time.perf_counter()
@@ -285,9 +312,11 @@ class _StepPhases:
             self._switch(None)
 
     def mark(self, label: str) -> None:
-        self.stack, self.seconds, self.last = [label], {}, time.perf_counter()
+        self.stack, self.seconds, self.copies, self.last = [label], {}, {}, time.perf_counter()
 
     def take(self) -> dict:
+        """The step's phases: label -> seconds (its synchronous byte copies stay in :attr:`copies` until the next
+        :meth:`mark`)."""
         self._switch(None)
         seconds, self.stack, self.seconds = self.seconds, [], {}
         return seconds
@@ -349,16 +378,19 @@ def _phase_specs(backend: str) -> list:
     return specs
 
 
-def _print_phases(B: int, per_step: list, walls: list) -> None:
-    """The timed steps' phases (:class:`_StepPhases`), ms a step (mean) and per step, grouped."""
-    steps = len(per_step)
+def _print_phases(B: int, per_step: list, walls: list, copies: list) -> None:
+    """The timed steps' phases (:class:`_StepPhases`), ms a step (mean) and per step, with the synchronous byte
+    copies each made (calls and MB a step, their ms a step: ``copies``, one dict a step)."""
+    steps = max(len(per_step), 1)
     labels = sorted({k for p in per_step for k in p}, key=lambda k: -sum(p.get(k, 0.0) for p in per_step))
     total = sum(walls)
-    print(f"{'phase (exclusive), B=' + str(B):66s} {'ms/step':>9s} {'% wall':>7s}  per step (ms)")
+    print(f"{'phase (exclusive), B=' + str(B):66s} {'ms/step':>9s} {'% wall':>7s} {'copies':>7s} {'MB':>7s} "
+          f"{'ms':>7s}  per step (ms)")
     for label in labels:
         each = [1e3 * p.get(label, 0.0) for p in per_step]
-        print(f"{label:66s} {sum(each) / steps:9.2f} {100 * sum(each) / 1e3 / total:7.1f}  "
-              + " ".join(f"{e:8.2f}" for e in each))
+        calls, nbytes, secs = (sum(c.get(label, [0, 0, 0.0])[j] for c in copies) / steps for j in range(3))
+        print(f"{label:66s} {sum(each) / steps:9.2f} {100 * sum(each) / 1e3 / total:7.1f} {calls:7.1f} "
+              f"{nbytes / 1e6:7.1f} {1e3 * secs:7.2f}  " + " ".join(f"{e:8.2f}" for e in each))
     print(f"{'sum of the phases':66s} {1e3 * sum(sum(p.values()) for p in per_step) / steps:9.2f}"
           f" {100 * sum(sum(p.values()) for p in per_step) / total:7.1f}")
 
