@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_core.energies.base import SparseGradient, declares
 from sim_core.fused_elastic import FusedElastic
 from sim_core.state import State
 
@@ -73,14 +72,8 @@ class StepTerms:
 
 
 def contact_force(x: np.ndarray, terms: list) -> np.ndarray:
-    """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N. A term
-    declaring :class:`~sim_core.energies.base.SparseGradient` is subtracted at its vertices only (its gradient is
-    zero elsewhere: the same values, without an ``(n, 3)`` array a term)."""
+    """Minus the sum of the contact ``terms``' gradients at the accepted ``x`` ``(n, 3)``: a new array, N."""
     force = np.zeros_like(x)
     for p in terms:
-        vertices, rows = p.gradient_rows(x) if declares(p, SparseGradient) else (None, p.gradient(x))
-        if vertices is None:
-            force -= rows
-        else:
-            force[vertices] -= rows
+        force -= p.gradient(x)
     return force
