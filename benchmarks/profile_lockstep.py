@@ -169,6 +169,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     iterations = [0]
     per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
     step_copies: list = []  # the timed steps' synchronous copies by phase (_StepPhases.copies)
+    lines: list = []  # the timed steps' summary lines, printed again at the end (a tail of the output holds them)
 
     def step(k):
         solves = len(cg_iterations)
@@ -190,17 +191,19 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         g = _group_phases(parts)
         retries = (getattr(info, "factorizations", 0) or 0) - its  # the projected retries' factorisations
         kind = f"projection step ({retries} projected retries)" if retries > 0 else "no projection"
-        print(f"B={B} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations {1e3 * g['iterations']:.1f} "
-              f"({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up {1e3 * g['set-up']:.1f}, finish "
-              f"{1e3 * g['finish']:.1f}, outside the solver {1e3 * g['outside']:.1f}, garbage collection "
-              f"{1e3 * g['gc']:.1f} (the phases' sum {1e3 * sum(g.values()):.1f}); the bench's wall_s "
-              f"{1e3 * res.wall_s:.1f}; CG iterations {sum(cg_iterations[solves:])} in "
-              f"{len(cg_iterations) - solves} solves; synchronous copies {sum(c[0] for c in copies.values())}, "
-              f"{sum(c[1] for c in copies.values()) / 1e6:.1f} MB, {1e3 * sum(c[2] for c in copies.values()):.1f} ms",
-              flush=True)
+        line = (f"B={B} step {k}: {kind}; wall {1e3 * wall:.1f} ms: {its} Newton iterations "
+                f"{1e3 * g['iterations']:.1f} ({1e3 * g['iterations'] / max(its, 1):.1f} ms each), set-up "
+                f"{1e3 * g['set-up']:.1f}, finish {1e3 * g['finish']:.1f}, outside the solver "
+                f"{1e3 * g['outside']:.1f}, garbage collection {1e3 * g['gc']:.1f} (the phases' sum "
+                f"{1e3 * sum(g.values()):.1f}); the bench's wall_s {1e3 * res.wall_s:.1f}; CG iterations "
+                f"{sum(cg_iterations[solves:])} in {len(cg_iterations) - solves} solves; synchronous copies "
+                f"{sum(c[0] for c in copies.values())}, {sum(c[1] for c in copies.values()) / 1e6:.1f} MB, "
+                f"{1e3 * sum(c[2] for c in copies.values()):.1f} ms")
+        print(line, flush=True)
         if k > 0:
             per_step.append((parts, wall, res.wall_s, len(own), its))
             step_copies.append(copies)
+            lines.append(line)
         return res
 
     for rec in timers.values():
@@ -226,6 +229,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
     _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies)
+    print("\n".join(lines))
     groups = [_group_phases(p) for p, *_ in per_step]
     n = max(len(per_step), 1)
     bench_wall = sum(b for _, _, b, _, _ in per_step)
