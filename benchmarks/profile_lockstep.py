@@ -256,6 +256,7 @@ class _StepPhases:
 
         self.stack: list = []
         self.seconds: dict = {}
+        self._busy = False
         self.last = time.perf_counter()
         for owner, name, label, parents in specs:
             raw = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
@@ -285,15 +286,21 @@ class _StepPhases:
         device_copy._copy = counted
 
     def _switch(self, push: str | None) -> None:
-        now = time.perf_counter()
-        if self.stack:
-            top = self.stack[-1]
-            self.seconds[top] = self.seconds.get(top, 0.0) + now - self.last
-        self.last = now
-        if push is None:
-            self.stack.pop()
-        else:
-            self.stack.append(push)
+        """Close the running phase's interval, then enter ``push`` (None: leave the running phase). A collection
+        that starts in here is left to the running phase (``_busy``: the stack is being changed)."""
+        self._busy = True
+        try:
+            now = time.perf_counter()
+            if self.stack:
+                top = self.stack[-1]
+                self.seconds[top] = self.seconds.get(top, 0.0) + now - self.last
+            self.last = now
+            if push is None:
+                self.stack.pop()
+            else:
+                self.stack.append(push)
+        finally:
+            self._busy = False
 
     def _phase(self, fn, label: str, parents):
         import functools
@@ -310,9 +317,11 @@ class _StepPhases:
         return wrapped
 
     def _collector(self, event: str, info: dict) -> None:
-        if self.stack and event == "start":
+        if self._busy or not self.stack:
+            return
+        if event == "start":
             self._switch(f"garbage collection (generation {info['generation']})")
-        elif self.stack and event == "stop" and self.stack[-1].startswith("garbage collection"):
+        elif event == "stop" and self.stack[-1].startswith("garbage collection"):
             self._switch(None)
 
     def mark(self, label: str) -> None:
