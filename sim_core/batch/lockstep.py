@@ -583,13 +583,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         ``(upper, blocks, diagonal)`` for :meth:`~sim_core.ti_kernels.pcg.BatchedPCG.factorize`:
         ``upper = (indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian
         values in their static pattern (fixed for the step's elements and free mask: its index arrays travel
-        to the device once; the exact values stay on the device where the fused kernels ran there), to which
-        the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the contact
-        and friction Hessians (``dynamic_terms``, projected by ``projection``) as
+        to the device once; the exact and the projected values stay on the device where the fused kernels ran
+        there), to which the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the
+        contact and friction Hessians (``dynamic_terms``, projected by ``projection``) as
         :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG (the exact blocks of
         the contact pairs left in device memory where the pair kernel wrote them, :meth:`_term_hessian`).
-        The sum is the
-        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
+        The sum is the matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
         contact pair blocks (terms declaring :class:`~sim_core.energies.base.SubsetHessian`, projected for
@@ -599,7 +598,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         fused = step.fused
         pattern = fused.pattern
-        values = None if projection != "none" else fused.hessian_values_device(x)
+        values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
+                  else fused.projected_hessian_values_device(x, projection, vertices))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))
