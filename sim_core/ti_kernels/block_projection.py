@@ -13,7 +13,7 @@ orthonormal basis of the complement gives the same projection),
 
 The work is split where each part is cheapest (measured, docs/benchmarks_log.md):
 
-* :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy):
+* :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy, the host path):
   ``B^T H B`` and ``B R B^T`` as stacked matrix products with a constant ``B`` (about 0.25 ms for
   480 blocks of 18 x 18; a Taichi loop per element took 3 ms, and one large GEMM over the stacked
   rows, 0.4 ms alone, took 25 ms inside a replay on the loaded 2-core VM: OpenBLAS threads it).
@@ -22,14 +22,22 @@ The work is split where each part is cheapest (measured, docs/benchmarks_log.md)
   Jacobi eigen-solver was slower than LAPACK there for the 15 x 15 reduced Kirchhoff blocks, and a
   Cholesky test that skips the eigen-decomposition of definite blocks pays nothing: at the
   replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15. On
-  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread) for many
+  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread, the block index the
+  last and fastest of its arrays so that a warp's loads and stores are coalesced) for many
   blocks: a lockstep batch of 256 Forming copies projects 10^5 such blocks per fallback, several
   seconds of LAPACK; one environment's few hundred blocks go to LAPACK on the host instead
   (:data:`HOST_PROJECTION_MAX_BLOCKS`), where they take less time than the kernel's serial thread.
-* :func:`add_blocks` (Taichi): the projected blocks added into the values of the solver's static
+* :func:`add_blocks` (Taichi, the host path): the projected blocks added into the values of the solver's static
   pattern through the per-element slot map (:meth:`sim_core.assembly.StaticPattern.slot_map`:
   entry ``[e, r, s]`` is a slot or -1), in element order on the CPU (bitwise reproducible), with
   no ``np.bincount`` over the block entries.
+* The device path (:meth:`TranslationFreeProjector.add_projected_rows`, :func:`add_upper_block_rows`): the
+  reduction, the Jacobi projection and the expansion of the listed blocks as kernels where the blocks are, the
+  upper triangles added through the packed upper slot table of the exact Hessian (:func:`upper_slot_table`,
+  below; already on the device), so that no block, no full slot map (a lockstep batch of 1024 Forming copies:
+  1.2 GB of int32 over its three elastic terms) and no partial sum crosses between host and device.
+  :class:`BlockRowsProjector` projects listed blocks of a device array (the contact pairs' of a lockstep batch's
+  retried copies) and leaves them there.
 
 The result equals the reference's projected blocks to round-off: the reference reconstructs every
 block of a batch in which some block has a negative eigenvalue, and returns the symmetrised block
@@ -364,7 +372,34 @@ def add_upper_block_rows(blocks: _F64_3, upper: _I32_2, rows: _I32_1, count: ti.
             add_upper_entry(values, upper[e, i * n - i * (i - 1) // 2 + j - i], blocks[e, i, j])
 
 
-class TranslationFreeProjector:
+class KeptArrays:
+    """Taichi ndarrays kept by name between calls (a mixin): :meth:`_kept` of a fixed shape, :meth:`_columns` of a
+    block-last array that grows with the largest block count asked for (no allocation while the count does not
+    grow)."""
+
+    _device: dict | None = None
+
+    def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
+        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes), holding
+        ``host`` when given (copied only when it differs from the last copy: the Helmert basis once, one
+        environment's rows while they stay the same)."""
+        if self._device is None:
+            self._device = {}
+        kept = self._device.get(name)
+        if kept is None:
+            kept = self._device[name] = DeviceArray(dtype)
+        if host is None or not host.size:
+            return kept.ensure(shape)
+        return kept.upload(host)
+
+    def _columns(self, name: str, lead: tuple, count: int):
+        """The float64 ndarray ``name`` of shape ``lead + (c,)``, ``c >= count`` the largest count asked for."""
+        kept = None if self._device is None else self._device.get(name)
+        held = 0 if kept is None or kept.shape is None or kept.shape[:-1] != tuple(lead) else kept.shape[-1]
+        return self._kept(name, tuple(lead) + (max(int(count), held),), ti.f64)
+
+
+class TranslationFreeProjector(KeptArrays):
     """Projects translation-invariant element blocks and adds them into slot values (module docstring).
 
     Args:
@@ -441,9 +476,8 @@ class TranslationFreeProjector:
             add_upper_block_rows(blocks, upper, rows_arg, count, values)
             return
         size = self.basis.shape[1]
-        kept = self._device.get("reduced")
-        shape = (size, size, max(count, 0 if kept is None or kept.shape is None else kept.shape[2]))
-        reduced = self._kept("reduced", shape, ti.f64)
+        reduced = self._columns("reduced", (size, size), count)
+        shape = tuple(reduced.shape)
         helmert = self._kept("helmert", self.helmert.shape, ti.f64, self.helmert)
         reduce_block_rows(blocks, helmert, rows_arg, count, reduced)
         if method == "lapack" or (method is None and count <= HOST_PROJECTION_MAX_BLOCKS):
@@ -459,13 +493,47 @@ class TranslationFreeProjector:
             jacobi_project_blocks(reduced, work, vectors, count, code)
         expand_add_upper_rows(reduced, helmert, upper, rows_arg, count, values)
 
-    def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
-        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes), holding
-        ``host`` when given (copied only when it differs from the last copy: the Helmert basis once, one
-        environment's rows while they stay the same)."""
-        kept = self._device.get(name)
-        if kept is None:
-            kept = self._device[name] = DeviceArray(dtype)
-        if host is None or not host.size:
-            return kept.ensure(shape)
-        return kept.upload(host)
+
+@fast_kernel
+def _gather_block_columns(blocks: _F64_3, start: ti.i32, rows: _I32_1, count: ti.i32, columns: _F64_3):
+    """``columns[i, j, r] = blocks[start + rows[r], i, j]``, ``r < count``: listed blocks in the layout of
+    :func:`jacobi_project_blocks` (block index last)."""
+    for i, j, r in ti.ndrange(blocks.shape[1], blocks.shape[2], count):
+        columns[i, j, r] = blocks[start + rows[r], i, j]
+
+
+@fast_kernel
+def _block_rows(columns: _F64_3, count: ti.i32, blocks: _F64_3):
+    """``blocks[r, i, j] = columns[i, j, r]``, ``r < count`` (the inverse of :func:`_gather_block_columns`)."""
+    for r, i, j in ti.ndrange(count, columns.shape[0], columns.shape[1]):
+        blocks[r, i, j] = columns[i, j, r]
+
+
+class BlockRowsProjector(KeptArrays):
+    """PSD projection of listed symmetric blocks of an array where the kernels run (a device array on CUDA), the
+    result left there: the blocks gathered into the Jacobi kernel's layout, projected by
+    :func:`jacobi_project_blocks` and written back in rows, into arrays kept here (no block crosses to the host;
+    :func:`project_reduced_blocks` with ``method="jacobi"`` to round-off, bit for bit the same arithmetic)."""
+
+    def project(self, blocks, start: int, rows: np.ndarray, projection: str):
+        """The ``projection`` ("none", "clamp", "abs") of the blocks ``blocks[start + rows[r]]``, ``r < c``, of
+        ``blocks`` (float64 ``(k, n, n)`` ndarray, symmetric blocks) as the first ``c`` rows of a float64 ndarray
+        ``(c', n, n)``, ``c' >= c``, kept here (the next call overwrites it); ``rows`` int ``(c,)``.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = linalg.projection_code(projection)
+        count = int(rows.shape[0])
+        n = int(blocks.shape[1])
+        columns = self._columns("columns", (n, n), count)
+        capacity = int(columns.shape[2])
+        out = self._kept("out", (capacity, n, n), ti.f64)
+        if count:
+            listed = self._kept("rows", (count,), ti.i32, np.ascontiguousarray(rows, dtype=np.int32))
+            _gather_block_columns(blocks, int(start), listed, count, columns)
+            if code:
+                jacobi_project_blocks(columns, self._columns("work", (n, n), count),
+                                      self._columns("vectors", (n, n), count), count, code)
+            _block_rows(columns, count, out)
+        return out
