@@ -31,15 +31,17 @@ def test_jacobi_projected_subset_blocks_equal_the_terms_own(ti_cpu, projection):
 
 @pytest.mark.parametrize("projection", ["clamp", "abs"])
 def test_projected_subset_blocks_left_on_the_device_equal_the_terms_own(ti_cpu, monkeypatch, projection):
-    """With the pair kernel's exact blocks kept where it ran (CUDA's defaults, here on the CPU arch) and a
-    ``BlockRowsProjector``, the marked pairs' blocks are gathered, projected by the Jacobi kernel and left there:
-    the pair potentials' own projected blocks, for every marked set in turn (the kept arrays grown, then reused)."""
+    """With the pair kernel's exact blocks kept where it ran (CUDA's defaults in a lockstep batch, whose pair batch
+    reads device positions and so takes no packed launch; here on any arch) and a ``BlockRowsProjector``, the marked
+    pairs' blocks are gathered, projected by the Jacobi kernel and left there: the pair potentials' own projected
+    blocks, for every marked set in turn (the kept arrays grown, then reused)."""
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.ti_kernels.block_projection import BlockRowsProjector
     from sim_core.ti_kernels.buffers import DeviceHessianBlocks
 
     monkeypatch.setattr(PairBatch, "two_pass", True)
     monkeypatch.setattr(PairBatch, "device_hessian", True)
+    monkeypatch.setattr(PairBatch, "packed", False)  # (the packed launch, CUDA's for few pairs, keeps them on the host)
     x, linked, alone = _potentials(200)
     projector = BlockRowsProjector()
     every, half, none = (np.zeros(x.shape[0], dtype=bool) for _ in range(3))
