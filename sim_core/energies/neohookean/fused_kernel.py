@@ -297,22 +297,20 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        if self._blocks is None:
-            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
-        d = self._device
-        sums = on_device(d, "sums", values, scratch=True)
+        sums = on_device(self._device, "sums", values, scratch=True)
         if sums is not values:  # CUDA: the blocks made and added into sums on the device, the sums downloaded
             fill(sums, 0.0)
             self.add_projected_on_device(x, projection, sums, vertices)
             values += download(sums)
             return
         p = self.potential
-        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, self._blocks)
+        blocks = self._block_buffer()
+        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, blocks)
         if vertices is None:
-            add_blocks(self._blocks, self._slots, values)
+            add_blocks(blocks, self._slots, values)
         else:  # the tets touching a marked vertex
             rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32)
-            add_block_rows(self._blocks, self._slots, rows, rows.size, values)
+            add_block_rows(blocks, self._slots, rows, rows.size, values)
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
         """The projected blocks of :meth:`add_projected` made and added into ``values`` ``(pattern.keys.size,)`` where
@@ -327,11 +325,9 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        if self._blocks is None:
-            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
         p = self.potential
         d = self._device
-        blocks = on_device(d, "blocks", self._blocks, scratch=True)
+        blocks = on_device(d, "blocks", self._block_buffer(), scratch=True)
         evaluate_snh_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
                              on_device(d, "vol", self._vol), p.mu, p.lam, code, blocks)
         rows = (np.arange(self._tets.shape[0], dtype=np.int32) if vertices is None  # else the tets touching a marked vertex
@@ -339,3 +335,10 @@ class FusedStableNeoHookean(BoundSlotTables):
         if rows.size:
             add_upper_block_rows(blocks, on_device(d, "upper", self._upper), on_device(d, "rows", rows), rows.size,
                                  values)
+
+    def _block_buffer(self) -> np.ndarray:
+        """The kept host array of the tets' projected blocks ``(t, 12, 12)`` (allocated at its first use; on CUDA only
+        its shape is read, for the device array)."""
+        if self._blocks is None:
+            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
+        return self._blocks
