@@ -35,7 +35,7 @@ The work is split where each part is cheapest (measured, docs/benchmarks_log.md)
   reduction, the Jacobi projection and the expansion of the listed blocks as kernels where the blocks are, the
   upper triangles added through the packed upper slot table of the exact Hessian (:func:`upper_slot_table`,
   below; already on the device), so that no block, no full slot map (a lockstep batch of 1024 Forming copies:
-  1.2 GB of int32 over its three elastic terms) and no partial sum crosses between host and device.
+  1.1 GB of int32 over its three elastic terms) and no partial sum crosses between host and device.
   :class:`BlockRowsProjector` projects listed blocks of a device array (the contact pairs' of a lockstep batch's
   retried copies) and leaves them there.
 
