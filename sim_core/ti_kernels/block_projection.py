@@ -62,6 +62,7 @@ from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceArray
+from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
 
@@ -511,14 +512,15 @@ def _block_rows(columns: _F64_3, count: ti.i32, blocks: _F64_3):
 
 class BlockRowsProjector(KeptArrays):
     """PSD projection of listed symmetric blocks of an array where the kernels run (a device array on CUDA), the
-    result left there: the blocks gathered into the Jacobi kernel's layout, projected by
-    :func:`jacobi_project_blocks` and written back in rows, into arrays kept here (no block crosses to the host;
+    result left there: the blocks gathered into the Jacobi kernel's layout (scratch arrays kept here), projected by
+    :func:`jacobi_project_blocks` and written back in rows into a new array (no block crosses to the host;
     :func:`project_reduced_blocks` with ``method="jacobi"`` to round-off, bit for bit the same arithmetic)."""
 
     def project(self, blocks, start: int, rows: np.ndarray, projection: str):
         """The ``projection`` ("none", "clamp", "abs") of the blocks ``blocks[start + rows[r]]``, ``r < c``, of
-        ``blocks`` (float64 ``(k, n, n)`` ndarray, symmetric blocks) as the first ``c`` rows of a float64 ndarray
-        ``(c', n, n)``, ``c' >= c``, kept here (the next call overwrites it); ``rows`` int ``(c,)``.
+        ``blocks`` (float64 ``(k, n, n)`` ndarray, symmetric blocks) as a new float64 ndarray ``(max(c, 1), n, n)``
+        (its first ``c`` rows; a new one at each call, so that the blocks of several terms projected in turn stay
+        valid together, as the pair kernel's own arrays do); ``rows`` int ``(c,)``.
 
         Raises:
             ValueError: unknown projection.
@@ -526,10 +528,9 @@ class BlockRowsProjector(KeptArrays):
         code = linalg.projection_code(projection)
         count = int(rows.shape[0])
         n = int(blocks.shape[1])
-        columns = self._columns("columns", (n, n), count)
-        capacity = int(columns.shape[2])
-        out = self._kept("out", (capacity, n, n), ti.f64)
+        out = new_ndarray(ti.f64, (max(count, 1), n, n))
         if count:
+            columns = self._columns("columns", (n, n), count)
             listed = self._kept("rows", (count,), ti.i32, np.ascontiguousarray(rows, dtype=np.int32))
             _gather_block_columns(blocks, int(start), listed, count, columns)
             if code:

@@ -34,7 +34,8 @@ def test_projected_subset_blocks_left_on_the_device_equal_the_terms_own(ti_cpu, 
     """With the pair kernel's exact blocks kept where it ran (CUDA's defaults in a lockstep batch, whose pair batch
     reads device positions and so takes no packed launch; here on any arch) and a ``BlockRowsProjector``, the marked
     pairs' blocks are gathered, projected by the Jacobi kernel and left there: the pair potentials' own projected
-    blocks, for every marked set in turn (the kept arrays grown, then reused)."""
+    blocks, for every marked set in turn (the scratch arrays grown, then reused), each result still valid after the
+    later ones."""
     from sim_core.energies.contact.batch_kernel import PairBatch
     from sim_core.ti_kernels.block_projection import BlockRowsProjector
     from sim_core.ti_kernels.buffers import DeviceHessianBlocks
@@ -47,15 +48,17 @@ def test_projected_subset_blocks_left_on_the_device_equal_the_terms_own(ti_cpu, 
     every, half, none = (np.zeros(x.shape[0], dtype=bool) for _ in range(3))
     every[:] = True
     half[: x.shape[0] // 2] = True
+    results = []  # every result kept to the end: a later projection must not overwrite an earlier one's blocks
     for marked in (half, every, half, none):
         for term, own in zip(linked, alone):
-            want = own.hessian_of_vertices(x, projection, marked)
-            got = projected_subset_blocks(term, x, projection, marked, "jacobi", projector)
-            assert isinstance(got, DeviceHessianBlocks)
-            np.testing.assert_array_equal(got.vertices, want.vertices)
-            assert got.blocks.shape == want.blocks.shape and (len(want.blocks) > 10 or marked is none)
-            blocks = got.blocks.to_numpy()
-            scale = np.abs(want.blocks).max(axis=(1, 2), keepdims=True)
-            assert np.all(np.abs(blocks - want.blocks) <= 1e-10 * scale), term
+            results.append((projected_subset_blocks(term, x, projection, marked, "jacobi", projector),
+                            own.hessian_of_vertices(x, projection, marked), marked is none))
+    for got, want, empty in results:
+        assert isinstance(got, DeviceHessianBlocks)
+        np.testing.assert_array_equal(got.vertices, want.vertices)
+        assert got.blocks.shape == want.blocks.shape and (len(want.blocks) > 10 or empty)
+        blocks = got.blocks.to_numpy()
+        scale = np.abs(want.blocks).max(axis=(1, 2), keepdims=True)
+        assert np.all(np.abs(blocks - want.blocks) <= 1e-10 * scale)
     with pytest.raises(ValueError, match="projection"):
         projected_subset_blocks(linked[0], x, "flip", half, "jacobi", projector)
