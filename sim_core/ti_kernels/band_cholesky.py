@@ -1,6 +1,6 @@
 """Exact blocks of a batched Newton matrix on the device, the preconditioner of the batched CG's larger blocks
 (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`), e.g. each copy's sheet: a banded Cholesky factorisation and the
-block's inverse from it.
+block's solve ``S^-1 r`` by tiled substitutions.
 
 A band block is a list of ``m`` DoFs of one copy in a band-limiting order (a sheet's vertices ordered along its long
 axis, so that its bending stencil couples rows at most ``w`` apart). Its matrix ``S = P A P^T`` (``P`` selecting
@@ -11,15 +11,22 @@ found once a pattern. It is factorised ``S = L L^T`` by the banded elimination i
 Loan, Matrix Computations, 4th ed., Alg. 4.3.5), blocked by panels of :data:`PANEL` columns: a panel's columns are
 finished by its own earlier columns, then they update the ``w x w`` window after the panel at once, one thread an
 entry; three device passes a panel instead of one a column, and every entry updated in the column-by-column order
-(the same factor to the bit). ``S^-1 = L^-T L^-1`` is then formed column by column (one thread a column: forward,
-then back substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread
-a row (the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
-block whose elimination meets a pivot that is not positive (a band that left out a coupling it needed) is marked
-not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
+(the same factor to the bit). A block whose elimination meets a pivot that is not positive (a band that left out a
+coupling it needed) is marked not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
 
-Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``) and the inverse
-``(nb, m, m)``: ``8 m^2`` bytes a block (1.0 MB for a 16 x 8 sheet, ``m = 360``), and the band entries' positions
-in the CSR values, int32 ``(nb, m, w + 1)``.
+The solve ``L^-T L^-1 r`` is taken by tiles of ``t >= w`` rows (:func:`tiling`, at most :data:`TILES` a block), so
+that ``L`` is block lower bidiagonal: diagonal tiles ``D_T`` (lower triangular) and, left of them, ``C_T``. Forward,
+``y_T = D_T^-1 r_T - G_T y_{T-1}`` with ``G_T = D_T^-1 C_T``; back, ``x_T = D_T^-T y_T - H_T x_{T+1}`` with ``H_T =
+D_T^-T C_{T+1}^T`` (block forward and back substitution, Golub & Van Loan, Sec. 3.1 and 4.5). The factorisation
+forms ``D_T^-1``, ``G_T`` and ``H_T`` (one thread a column of a tile, chains of ``t^2 / 2``, then one thread an
+entry); the solve is a pass over every tile for each ``D_T^-1`` product and ``nt - 1`` dependent passes each way
+(one thread a row of a tile, ``t`` multiply-adds), every read coalesced: a dense inverse ``L^-T L^-1`` instead would
+cost ``m^2`` reads a solve and, to form, a chain of ``2 m w`` dependent steps a column.
+
+Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``), the tiles'
+``D_T^-1``, ``G_T``, ``H_T`` ``(nb, nt, t, t)`` each (0.47 MB a block for a 16 x 8 sheet, ``m = 360``, ``w = t =
+53``, ``nt = 7``; a dense inverse 1.04 MB) and the solve's two scratch vectors ``(nb, nt t)``, and the band entries'
+positions in the CSR values, int32 ``(nb, m, w + 1)``.
 """
 
 import numpy as np
@@ -254,7 +261,7 @@ def _tile_couplings(band: _F64, usable: _I32, diag_inv: _F64, fwd: _F64, back: _
                     g += diag_inv[base + k * t + a] * _factor_entry(band, b, top + k, top - t + c, m, w)
             fwd[base + c * t + a] = g
             h = 0.0
-            if tt + 1 < nt:  # sum_k D^-1[k, a] C_{T+1}[c, k], C_{T+1}[c, k] = L(top + t + c, top + k) (0 for t + c - k > w)
+            if tt + 1 < nt:  # sum_k D^-1[k, a] C_{T+1}[c, k], C_{T+1}[c, k] = L(top + t + c, top + k)
                 for k in range(ti.max(t + c - w, 0), t):
                     if k >= a:
                         h += diag_inv[base + k * t + a] * _factor_entry(band, b, top + t + c, top + k, m, w)
@@ -292,11 +299,7 @@ def band_solve(diag_inv: ti.template(), fwd: ti.template(), back: ti.template(),
     for tt in ti.static(range(1, TILES)):
         for b, a in ti.ndrange(nb, t):
             if tt < nt and _solving(usable, band_copy, active, b):
-                base = (b * nt + tt) * t * t
-                acc = 0.0
-                for c in range(t):
-                    acc += fwd[base + c * t + a] * y[(b * nt + tt - 1) * t + c]
-                y[(b * nt + tt) * t + a] -= acc
+                y[(b * nt + tt) * t + a] -= _tile_product(fwd, (b * nt + tt) * t * t, a, y, (b * nt + tt - 1) * t, t)
     for b, tt, a in ti.ndrange(nb, nt, t):
         if _solving(usable, band_copy, active, b):
             base = (b * nt + tt) * t * t
@@ -311,12 +314,25 @@ def band_solve(diag_inv: ti.template(), fwd: ti.template(), back: ti.template(),
         for b, a in ti.ndrange(nb, t):
             tt = nt - 2 - q
             if tt >= 0 and _solving(usable, band_copy, active, b):
-                base = (b * nt + tt) * t * t
-                acc = 0.0
-                for c in range(t):
-                    acc += back[base + c * t + a] * x[(b * nt + tt + 1) * t + c]
-                x[(b * nt + tt) * t + a] -= acc
+                x[(b * nt + tt) * t + a] -= _tile_product(back, (b * nt + tt) * t * t, a, x, (b * nt + tt + 1) * t, t)
                 _band_out(band_dof, x, z, b, tt, a, m, t, nt)
+
+
+CHAIN_UNROLL = 4
+"""Independent partial sums of a thread's product in a dependent pass of :func:`band_solve` (one thread a row of a
+tile, a few warps an SM: its loads issued ahead of the sums they feed)."""
+
+
+@ti.func
+def _tile_product(mat: ti.template(), base: ti.i32, a: ti.i32, v: ti.template(), off: ti.i32, t: ti.i32) -> ti.f64:
+    """``sum_c mat[base + c t + a] v[off + c]`` over ``c < t``, in :data:`CHAIN_UNROLL` partial sums."""
+    acc = ti.Vector.zero(ti.f64, CHAIN_UNROLL)
+    for q in range((t + CHAIN_UNROLL - 1) // CHAIN_UNROLL):
+        for u in ti.static(range(CHAIN_UNROLL)):
+            c = CHAIN_UNROLL * q + u
+            if c < t:
+                acc[u] += mat[base + c * t + a] * v[off + c]
+    return acc.sum()
 
 
 @ti.func

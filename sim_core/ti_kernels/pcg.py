@@ -25,7 +25,8 @@ top-level loops, which Taichi runs one after the other on the device):
   copy's vertices (listed copy by copy, made once per segmentation) and adding its partial sum once;
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
   ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``, by the same threads (with band blocks: ``z`` on
-  their DoFs by a pass of one thread a block row, then per copy ``r.z`` by a pass of its own);
+  their DoFs by the blocks' tiled substitutions, :func:`~sim_core.ti_kernels.band_cholesky.band_solve`, then per
+  copy ``r.z`` by a pass of its own);
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
   a matrix not positive definite on that copy, which :attr:`BatchedPCG.indefinite` reports);
 * ``p = z + beta_c p``.
@@ -633,7 +634,7 @@ class BatchedPCG:
         return self._full
 
     def _band_arguments(self) -> tuple:
-        """The band blocks' device arrays for the CG kernels, then ``(nb, m)``; placeholders when unused."""
+        """The band blocks' device arrays for the CG kernels, then ``(nb, m, t, nt)``; placeholders when unused."""
         if self._banded:
             bands = self.bands
             return (*bands.arguments(), bands.sizes())
