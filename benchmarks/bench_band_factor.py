@@ -1,11 +1,13 @@
-"""Time the batched CG's band-block factorisation (sim_core.ti_kernels.band_cholesky) phase by phase, at a lockstep
-batch's sizes: the band gathered from the CSR values, the blocked banded elimination with the scaling into ``L``,
-and what the product takes of the factor (:meth:`BandBlocks.invert`).
+"""Time the batched CG's band blocks (sim_core.ti_kernels.band_cholesky) at a lockstep batch's sizes: the
+factorisation phase by phase (the band gathered from the CSR values, the blocked banded elimination with the scaling
+into ``L``, and what the product takes of the factor, :meth:`BandBlocks.invert`), then the product ``z = S^-1 r``
+that the CG takes at each iteration (:meth:`BandBlocks.apply`).
 
-Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 360 --w 53 --repeat 3``. The matrix of a
-block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same in every
-copy. Prints ms a phase (mean of ``repeat`` runs, each ended by a synchronisation) and the largest relative error
-of the first block's product ``S^-1 r`` against NumPy's solve.
+Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 360 --w 53 --repeat 3 --products 30``. The
+matrix of a block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same
+in every copy. Prints ms a phase (mean of ``repeat`` runs, each ended by a synchronisation), ms a product (mean of
+``products`` after one unmeasured, ended by a synchronisation) and the largest relative error of the first block's
+product against NumPy's solve.
 """
 
 import argparse
@@ -38,6 +40,7 @@ def main() -> int:
     ap.add_argument("--m", type=int, default=360, help="DoFs a block")
     ap.add_argument("--w", type=int, default=53, help="half-bandwidth of a block (DoFs)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each phase")
+    ap.add_argument("--products", type=int, default=20, help="products timed")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
@@ -79,6 +82,12 @@ def main() -> int:
     r.from_numpy(r_h)
     active.from_numpy(np.ones(nb, dtype=np.int32))
     blocks.apply(r, z, active)
+    ti.sync()
+    t = time.perf_counter()
+    for _ in range(args.products):
+        blocks.apply(r, z, active)
+    ti.sync()
+    print(f"B={nb} m={m} w={w} {'product':14s} {1e3 * (time.perf_counter() - t) / max(args.products, 1):9.3f} ms")
     want = np.linalg.solve(block, r_h[:m])
     got = z.to_numpy()[:m]
     print(f"first block's product: largest relative error {np.abs(got - want).max() / np.abs(want).max():.2e}")
