@@ -41,12 +41,17 @@ def main() -> int:
     ap.add_argument("--w", type=int, default=53, help="half-bandwidth of a block (DoFs)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each phase")
     ap.add_argument("--products", type=int, default=20, help="products timed")
+    ap.add_argument("--tiles", type=int, default=None,
+                    help="band_cholesky.TILES for this run (the tiled product's largest tile count), where it has one")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
     init_backend(args.arch)
     from sim_core.ti_kernels import band_cholesky as bc
     from sim_core.ti_kernels import device_copy
+
+    if args.tiles is not None:  # read when the kernels compile, below
+        bc.TILES = args.tiles
 
     nb, m = args.B, args.m
     indptr_h, indices_h, data_h, block = banded_csr(nb, m, args.w)
