@@ -342,10 +342,10 @@ class PairBatch:
                 or (count > p and rows[p] < p)):
             raise ValueError(f"PairBatch: a layout of {len(rows)} rows ({len(layout.ee_rows)} edge-edge) for {p} + "
                              f"{count - p} pairs, or the vertex-triangle pairs not its first rows")
-        self.own, self._local_vertices, self._lists_device = layout.own, layout.local, layout.device
+        self.own, self._layout = layout.own, layout
         self._all = rows  # launch row i (every pair) -> the pair's row of the layout
         # the sides by layout row (rows of candidates outside the batch: 0, never read)
-        self.sides = np.zeros(len(layout.local))
+        self.sides = np.zeros(layout.local.shape[0])
         self.sides[:p] = vt.sides
         self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
@@ -368,7 +368,7 @@ class PairBatch:
         gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
         return (self._device_positions(x, key, x_device),
-                on_device(self._lists_device, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
+                self._layout.local_on_device(), on_device(dev, "sides", self.sides), z,
                 gradients)
 
     def _device_positions(self, x: np.ndarray, key: tuple, x_device):
@@ -456,14 +456,14 @@ class PairBatch:
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
             if x_device is None:  # the lists' vertices, kept with them (as the other launches read them)
-                x_arg, vertices = self._device_positions(x, key, None), on_device(self._lists_device, "vertices",
-                                                                                 self._local_vertices)
+                x_arg, vertices = self._device_positions(x, key, None), self._layout.local_on_device()
             else:
                 x_arg, vertices = x_device, rows_on_device(device, "packed_vertices_every", self._every_vertex())
             sides, rows_arg = (rows_on_device(device, "packed_sides", self.sides),
                                rows_on_device(device, "packed_rows", self._all))
         else:
-            x_arg, vertices, sides, rows_arg = self._own_positions(x, None), self._local_vertices, self.sides, self._all
+            x_arg, vertices, sides, rows_arg = (self._own_positions(x, None), self._layout.host_local(), self.sides,
+                                                self._all)
         _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
                        float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
         read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
@@ -505,7 +505,7 @@ class PairBatch:
         """The layout's vertices (every row of ``local``, the pairs' at their rows) as indices of every vertex, int32,
         made once per batch (the packed kernel's where it reads the positions of every vertex)."""
         if self._vertices_every is None:
-            self._vertices_every = np.take(self.own, self._local_vertices).astype(np.int32)
+            self._vertices_every = np.take(self.own, self._layout.host_local()).astype(np.int32)
         return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
@@ -553,7 +553,7 @@ class PairBatch:
                                                      (("grad_unused", grad_arg), ("hess_unused", hess_arg),
                                                       ("gradients_unused", gradients_arg)))
         else:
-            x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._local_vertices,
+            x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._layout.host_local(),
                                                         self.sides, kept_rows)
             z = _ARRAYS.rows("z", m, (4, 3))
         if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid

@@ -26,6 +26,11 @@ from sim_core.energies.contact.reference import edge_edge_vertices, vertex_trian
 from sim_core.unique import compact_indices
 
 
+DEVICE_INDEX_NAMES = ("geometry_vt", "geometry_ee")
+"""The names of a list's int32 vertices (:meth:`CandidateVertices.int32_vertices`) in its device cache
+(:attr:`CandidateVertices.device`), under which every kernel that reads them finds their device copies."""
+
+
 class CandidateVertices:
     """The global vertices of candidate lists ``vt`` ``(p, 2)`` (``[vertex, triangle row]``) and ``ee`` ``(q, 2)``
     (``[edge row, edge row]``) over ``triangles`` ``(t, 3)`` and ``edges`` ``(e, 2)``.
@@ -85,8 +90,7 @@ class CandidateVertices:
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
         first use and kept."""
         if self._compact is None:
-            self._compact = compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32,
-                                            size=self._vertex_count)
+            self._compact = self._compaction()
         own, local = self._compact
         p = len(self.vt_vertices)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
@@ -94,6 +98,21 @@ class CandidateVertices:
         rows[:p] = np.arange(p, dtype=np.int32)
         np.add(ee_rows, p, out=rows[p:], casting="unsafe")
         return BatchLayout(own, local, rows, ee_rows, self.device)
+
+    def _compaction(self) -> tuple[np.ndarray, object]:
+        """``(own, local)`` of every candidate's vertices (:func:`~sim_core.unique.compact_indices`): on CUDA, with the
+        vertex count known, made where the lists' int32 vertices are kept (:attr:`device`, under
+        :data:`DEVICE_INDEX_NAMES`; :func:`~sim_core.ti_kernels.compaction.compact_on_device`: ``local`` stays there),
+        else on the host. The same values."""
+        if self._vertex_count is not None and len(self.vt) + len(self.ee):
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only (where pair batches are made)
+            from sim_core.ti_backend import current_arch
+
+            if current_arch() == "cuda":
+                from sim_core.ti_kernels.compaction import compact_on_device
+
+                return compact_on_device(*self.int32_vertices(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
+        return compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32, size=self._vertex_count)
 
 
 def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
@@ -119,7 +138,8 @@ class BatchLayout(NamedTuple):
     Attributes:
         own: int64 ``(u,)``, the sorted distinct vertices every candidate names (a superset of the batch's).
         local: int32 ``(p + q, 4)``, every candidate's vertices (the vertex-triangle list's, then the edge-edge
-            list's) as positions in ``own``.
+            list's) as positions in ``own``: a NumPy array, or on CUDA a Taichi ndarray in device memory where the
+            compaction was made there (:meth:`local_on_device`, :meth:`host_local`).
         rows: int32 ``(p + r,)``, the batch's pairs as rows of ``local`` (the vertex-triangle pairs ``0 .. p - 1``
             first: a row below ``p`` is a vertex-triangle pair).
         ee_rows: int64 ``(r,)``, the batch's edge-edge pairs as rows of the edge-edge list (``rows[p:] - p``).
@@ -127,10 +147,30 @@ class BatchLayout(NamedTuple):
     """
 
     own: np.ndarray
-    local: np.ndarray
+    local: object
     rows: np.ndarray
     ee_rows: np.ndarray
     device: dict
+
+    def local_on_device(self) -> object:
+        """:attr:`local` where a launch reads it: on CUDA a Taichi ndarray in device memory (a NumPy ``local`` sent
+        once per list, kept in :attr:`device`), elsewhere the NumPy array."""
+        if not isinstance(self.local, np.ndarray):
+            return self.local
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only (where pair batches are made)
+        from sim_core.ti_kernels.buffers import on_device
+
+        return on_device(self.device, "vertices", self.local)
+
+    def host_local(self) -> np.ndarray:
+        """:attr:`local` as a NumPy int32 array ``(p + q, 4)`` (one kept in device memory copied back once per
+        list)."""
+        if isinstance(self.local, np.ndarray):
+            return self.local
+        kept = self.device.get("host_local")
+        if kept is None or kept[0] is not self.local:
+            kept = self.device["host_local"] = (self.local, self.local.to_numpy())
+        return kept[1]
 
 
 def sheet_vertices_off_solids(vt: np.ndarray, keys: np.ndarray | None, sheet_vertex: np.ndarray,

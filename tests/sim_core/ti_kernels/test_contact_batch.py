@@ -409,7 +409,7 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
     x, linked, _ = _potentials()
     vt_list, ee_list = linked[0].pairs, linked[1].pairs
     triangles, edges = np.arange(x.shape[0]).reshape(-1, 4)[:, 1:], np.arange(x.shape[0]).reshape(-1, 2)  # as made
-    lists = CandidateVertices(vt_list, ee_list, triangles, edges)
+    lists = CandidateVertices(vt_list, ee_list, triangles, edges, vertex_count=len(x))  # (on device: compacted there)
     rng = np.random.default_rng(25)
     y = x + 0.1 * EPS * rng.normal(size=x.shape)
     packed = two_pass in ("packed", "packed on device")
@@ -439,8 +439,8 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
             np.testing.assert_array_equal(pot.hessian(y, "none").blocks, twin.hessian(y, "none").blocks)
             assert pot.energy(x) == twin.energy(x)
         assert 0 < np.count_nonzero(laid[1].active_mask(y)) < len(rows)
-    assert batches[2]._local_vertices is batches[0]._local_vertices is lists.batch_layout(rows).local
-    assert batches[2]._lists_device is batches[0]._lists_device is lists.device
+    assert batches[2]._layout.local is batches[0]._layout.local is lists.batch_layout(rows).local
+    assert batches[2]._layout.device is batches[0]._layout.device is lists.device
     layout = lists.batch_layout(rows)  # the last step's rows, those of ``own``
     with pytest.raises(ValueError, match="vertex-triangle pairs not its first rows"):
         PairBatch(*own, layout=layout._replace(rows=layout.rows[::-1].copy()))
