@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.backend import uses_taichi
 from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
                                 vertex_triangle_candidates)
@@ -141,6 +142,7 @@ class ContactSet:
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
+        self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
@@ -595,7 +597,7 @@ class ContactSet:
             known = getattr(self, "_list_keys", None)  # the keys of the search's lists (the same arrays)
             keys = known[2] if known is not None and known[0] is vt and known[1] is ee else (None, None)
             kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges, keys=keys,
-                                                           vertex_count=self.model.vertex_count)
+                                                           vertex_count=self.model.vertex_count, pool=self._pool)
         return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:

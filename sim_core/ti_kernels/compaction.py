@@ -1,4 +1,5 @@
-"""The compaction of integer indices where their Taichi copies are: :func:`sim_core.unique.compact_indices` on the device.
+"""The compaction of integer indices where their Taichi copies are (:func:`sim_core.unique.compact_indices` on the
+device).
 
 :func:`~sim_core.unique.compact_indices` of a contact set's candidate lists (``(own, local)``: the distinct vertices
 that the pairs name, sorted, and every pair's vertices as positions among them; the pair batch's indices,

@@ -29,7 +29,8 @@ elements that share a vertex, and same-body pairs whose key ``first << 32 | seco
 sorted rest-distance keys. The pairs are therefore exactly the reference's; they are returned
 sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort; on CUDA a counting sort by the first
 index and an insertion sort of each index's few partners on the device, :func:`sorted_on_device`: the same keys), and
-the sorted keys are kept for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up among them).
+the sorted keys are kept for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up
+among them).
 
 Loops run serially on the CPU (entries and pairs in box order), in parallel on CUDA (atomic
 counters; the sort makes the result the same). The entry and output buffers are kept by a
@@ -42,6 +43,7 @@ runs again on a larger one.
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.errors import ConfigError
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
@@ -297,9 +299,9 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
 @fast_kernel
 def _sort_pairs(out: _I32_2, found: ti.i32, first_count: ti.i32, start: _I32_1, fill: _I32_1, chunk_total: _I32_1,
                 keys: _I64_1):
-    """``keys[:found]``: the packed keys ``first << 32 | second`` of the rows ``out[:found]`` (int32 ``[first, second]``,
-    distinct, ``0 <= first < first_count``, ``second >= 0``), increasing: a counting sort of the rows by ``first``
-    (``start`` ``(first_count + 1,)``: each first's run, by a chunked prefix sum of the counts as in
+    """``keys[:found]``: the packed keys ``first << 32 | second`` of the rows ``out[:found]`` (int32
+    ``[first, second]``, distinct, ``0 <= first < first_count``, ``second >= 0``), increasing: a counting sort of the
+    rows by ``first`` (``start`` ``(first_count + 1,)``: each first's run, by a chunked prefix sum of the counts as in
     :func:`_hash_pairs`; ``fill`` ``(first_count,)``: the runs' next free slots), then each run sorted by insertion in
     one thread (a run is the candidates of one vertex or edge: tens). Scratch ``chunk_total``
     ``(ceil(first_count / _SCAN_CHUNK),)``. The result does not depend on the threads' order."""
@@ -349,32 +351,41 @@ def _sort_pairs(out: _I32_2, found: ti.i32, first_count: ti.i32, start: _I32_1, 
             keys[t] = key
 
 
-def sorted_pairs_and_keys(out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sorted_pairs_and_keys(out: np.ndarray, pool: ArrayPool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(pairs, keys)``: the int64 ``(p, 2)`` rows of ``out`` ``(p, 2)`` (int32, non-negative) sorted by first, then
     second column, and their packed keys ``first << 32 | second``, int64 ``(p,)`` in the same order (one sort of the
     keys, built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies; the keys
-    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in)."""
-    keys = out[:, 0].astype(np.int64)
+    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in).
+    ``pool``: where the two arrays are made (:class:`~sim_core.array_pool.ArrayPool`, a grid's: blocks of earlier
+    searches that nothing holds any more), or None: fresh arrays."""
+    if pool is None:
+        keys = out[:, 0].astype(np.int64)
+    else:
+        keys = pool.empty("keys", (len(out),), np.int64)
+        np.copyto(keys, out[:, 0], casting="unsafe")
     keys <<= 32
     keys |= out[:, 1]
     keys.sort()
-    return _pairs_of(keys), keys
+    return _pairs_of(keys, pool), keys
 
 
-def _pairs_of(keys: np.ndarray) -> np.ndarray:
-    """The int64 pairs ``(p, 2)`` ``[first, second]`` of packed keys ``first << 32 | second`` ``(p,)`` (non-negative)."""
-    pairs = np.empty((len(keys), 2), dtype=np.int64)
+def _pairs_of(keys: np.ndarray, pool: ArrayPool | None) -> np.ndarray:
+    """The int64 pairs ``(p, 2)`` ``[first, second]`` of packed keys ``first << 32 | second`` ``(p,)`` (non-negative),
+    in an array of ``pool`` (or a fresh one)."""
+    pairs = np.empty((len(keys), 2), dtype=np.int64) if pool is None else pool.empty("pairs", (len(keys), 2), np.int64)
     np.right_shift(keys, 32, out=pairs[:, 0])
     np.bitwise_and(keys, 0xFFFFFFFF, out=pairs[:, 1])
     return pairs
 
 
-def sorted_on_device(out, found: int, first_count: int, device: dict) -> tuple[np.ndarray, np.ndarray]:
+def sorted_on_device(out, found: int, first_count: int, device: dict, pool: ArrayPool | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sorted_pairs_and_keys` of the rows ``out[:found]`` where ``out`` is (int32 ``(capacity, 2)``, distinct
     rows, first column in ``[0, first_count)``: a Taichi ndarray in device memory on CUDA, else a NumPy array), sorted
     there by one launch of :func:`_sort_pairs`; only the sorted keys are copied back (the host sort of a 1024-copy
     Forming batch's 1.8 million keys took 43 ms on an H100's host: docs/benchmarks_log.md, session 45, 28grad). The
-    same arrays. ``device``: the cache of the kernel's work arrays (:func:`~sim_core.ti_kernels.buffers.on_device`)."""
+    same arrays. ``device``: the cache of the kernel's work arrays (:func:`~sim_core.ti_kernels.buffers.on_device`);
+    ``pool``: as :func:`sorted_pairs_and_keys`'."""
     arrays = device.setdefault("sort_host", {})
     starts = arrays.get("start")
     if starts is None or starts.shape[0] < first_count + 1:
@@ -386,8 +397,15 @@ def sorted_on_device(out, found: int, first_count: int, device: dict) -> tuple[n
     work = [on_device(device, f"sort_{name}", arrays[name], scratch=True)
             for name in ("start", "fill", "chunk_total", "keys")]
     _sort_pairs(out, int(found), int(first_count), *work)
-    keys = copy_back(arrays["keys"], work[3], found)[:found].copy()
-    return _pairs_of(keys), keys
+    kept = copy_back(arrays["keys"], work[3], found)[:found]
+    keys = kept.copy() if pool is None else _copied(pool.empty("keys", (found,), np.int64), kept)
+    return _pairs_of(keys, pool), keys
+
+
+def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``out`` holding ``values``."""
+    np.copyto(out, values)
+    return out
 
 
 def _power_of_two(n: int) -> int:
@@ -427,6 +445,7 @@ class HashGrid:
         self.cell_scale = cell_scale
         self.count = np.zeros(3, dtype=np.int32)
         self._last: tuple | None = None  # (pairs, keys) of the last search (keys_of)
+        self._pool = ArrayPool()  # the sorted pairs and keys, reused once no list or cache holds them
 
     def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
               b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
@@ -495,9 +514,9 @@ class HashGrid:
                 continue
             if on_gpu:
                 first_count = a_vertices.shape[0] if same else self._first_count(a_key)
-                pairs, keys = sorted_on_device(arrays[16], found, first_count, self.__dict__["_device"])
+                pairs, keys = sorted_on_device(arrays[16], found, first_count, self.__dict__["_device"], self._pool)
             else:
-                pairs, keys = sorted_pairs_and_keys(self.out[:found])
+                pairs, keys = sorted_pairs_and_keys(self.out[:found], self._pool)
             self._last = (pairs, keys)
             return pairs
 

@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.energies.contact.reference import edge_edge_vertices, vertex_triangle_vertices
 from sim_core.unique import compact_indices
 
@@ -50,14 +51,23 @@ class CandidateVertices:
         vertex_count: the number of vertices (every index of ``vt``'s first column, ``triangles`` and ``edges`` lies in
             ``[0, vertex_count)``), or None; with it the compaction (:meth:`batch_layout`) sizes its table without a
             pass over the indices for their range.
+        pool: where the vertex arrays are made (:class:`~sim_core.array_pool.ArrayPool`: the blocks of earlier lists
+            that nothing holds any more, written again; a contact set's), or None: fresh arrays. The same values.
+
+    Raises:
+        IndexError: a triangle or edge row out of range.
     """
 
     def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
                  keys: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-                 vertex_count: int | None = None) -> None:
+                 vertex_count: int | None = None, pool: ArrayPool | None = None) -> None:
         self.vt, self.ee = vt, ee
-        self.vt_vertices = vertex_triangle_vertices(vt, triangles)
-        self.ee_vertices = edge_edge_vertices(ee, edges)
+        self._pool = pool
+        if pool is None:
+            self.vt_vertices = vertex_triangle_vertices(vt, triangles)
+            self.ee_vertices = edge_edge_vertices(ee, edges)
+        else:
+            self.vt_vertices, self.ee_vertices = _pooled_vertices(pool, vt, ee, triangles, edges)
         self._compact: tuple | None = None
         self._int32: tuple | None = None
         self._given_keys = keys
@@ -73,7 +83,11 @@ class CandidateVertices:
         """:attr:`vt_vertices` and :attr:`ee_vertices` as C-contiguous int32 arrays ``(p, 4)``, ``(q, 4)`` (the
         geometry kernel's indices, :func:`~sim_core.energies.contact.setup_kernel.pair_geometry`), made once."""
         if self._int32 is None:
-            self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+            if self._pool is None:
+                self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+            else:
+                self._int32 = tuple(_copied(self._pool.empty(name, v.shape, np.int32), v)
+                                    for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
         return self._int32
 
     def keys(self) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -113,6 +127,32 @@ class CandidateVertices:
 
                 return compact_on_device(*self.int32_vertices(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
         return compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32, size=self._vertex_count)
+
+
+def _pooled_vertices(pool: ArrayPool, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~sim_core.energies.contact.reference.vertex_triangle_vertices` and
+    :func:`~sim_core.energies.contact.reference.edge_edge_vertices` (int64 ``(p, 4)``, ``(q, 4)``; the same values)
+    written into arrays of ``pool``; the rows checked to lie in ``triangles`` and ``edges`` first (the gathers into
+    given arrays do not check them).
+
+    Raises:
+        IndexError: a triangle or edge row out of range."""
+    for rows, count in ((vt[:, 1], len(triangles)), (ee, len(edges))):
+        if len(rows) and (rows.min() < 0 or rows.max() >= count):
+            raise IndexError(f"CandidateVertices: a row out of range [0, {count})")
+    vt_vertices = pool.empty("vt_vertices", (len(vt), 4), np.int64)
+    vt_vertices[:, 0] = vt[:, 0]
+    np.take(triangles, vt[:, 1], axis=0, out=vt_vertices[:, 1:], mode="clip")  # (clip: no buffered copy; checked)
+    ee_vertices = pool.empty("ee_vertices", (len(ee), 4), np.int64)
+    np.take(edges, ee, axis=0, out=ee_vertices.reshape(-1, 2, 2), mode="clip")
+    return vt_vertices, ee_vertices
+
+
+def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``out`` holding ``values`` (converted to its dtype)."""
+    np.copyto(out, values, casting="unsafe")
+    return out
 
 
 def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
