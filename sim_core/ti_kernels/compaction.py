@@ -32,6 +32,17 @@ CHUNK = 1024
 _COUNT, _BAD = 0, 1  # count: [0] the distinct vertices, [1] 1 if an index lies outside [0, size)
 
 
+@ti.func
+def _index(first: ti.template(), first_count: ti.i32, second: ti.template(), k: ti.i32, c: ti.i32) -> ti.i32:
+    """Entry ``c`` of row ``k`` of the rows of ``first`` (its first ``first_count``) followed by those of ``second``."""
+    v = 0
+    if k < first_count:
+        v = first[k, c]
+    else:
+        v = second[k - first_count, c]
+    return v
+
+
 @fast_kernel
 def _compact_kernel(first: _I32_2, first_count: ti.i32, second: _I32_2, second_count: ti.i32, size: ti.i32,
                     position: _I32_1, chunk_total: _I32_1, own: _I32_1, count: _I32_1, local: _I32_2):
@@ -48,19 +59,11 @@ def _compact_kernel(first: _I32_2, first_count: ti.i32, second: _I32_2, second_c
     for _ in range(1):
         count[_BAD] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(first_count):
+    for k in range(first_count + second_count):
         for c in range(first.shape[1]):
-            v = first[k, c]
+            v = _index(first, first_count, second, k, c)
             if 0 <= v < size:
                 position[v] = 1  # (the same value from every thread that marks v)
-            else:
-                count[_BAD] = 1
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(second_count):
-        for c in range(second.shape[1]):
-            v = second[k, c]
-            if 0 <= v < size:
-                position[v] = 1
             else:
                 count[_BAD] = 1
     chunks = (size + CHUNK - 1) // CHUNK
@@ -89,15 +92,13 @@ def _compact_kernel(first: _I32_2, first_count: ti.i32, second: _I32_2, second_c
             else:
                 position[v] = -1
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(first_count):
+    for k in range(first_count + second_count):
         for c in range(first.shape[1]):
-            v = first[k, c]
-            local[k, c] = position[v] if 0 <= v < size else -1
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(second_count):
-        for c in range(second.shape[1]):
-            v = second[k, c]
-            local[first_count + k, c] = position[v] if 0 <= v < size else -1
+            v = _index(first, first_count, second, k, c)
+            rank = -1
+            if 0 <= v < size:  # (a statement, not a select: no read of position outside its range)
+                rank = position[v]
+            local[k, c] = rank
 
 
 _ARRAYS = LaunchArrays()
