@@ -8,9 +8,9 @@ million indices at 1024 stacked Forming copies) whose ``local`` (29 MB) is then 
 int32 vertices are already there (the candidate geometry's launch reads them), so :func:`compact_on_device` makes the
 compaction there in one launch of :func:`_compact_kernel` and copies back only ``own`` (the distinct vertices, a few
 hundred thousand) and their count; ``local`` stays in device memory. The steps are those of the host function: a
-presence mark per vertex, the marks' exclusive prefix sum (by chunks of :data:`CHUNK` vertices: each chunk's total,
-the totals' prefix sum in one thread, then each chunk's running sum), the marked vertices written at their ranks, and
-every index replaced by its vertex's rank. Integer arithmetic only: the results equal the host's exactly, in any
+presence mark per vertex, the marks' running sums, the marked vertices written at their ranks, and
+every index replaced by its vertex's rank (the prefix sum by :func:`~sim_core.ti_kernels.scan.running_sums`). Integer
+arithmetic only: the results equal the host's exactly, in any
 order of the threads.
 """
 
@@ -23,11 +23,9 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.scan import SCAN_CHUNK, running_sums
 
 _I32_1, _I32_2 = linalg.I32_1, linalg.I32_2
-
-CHUNK = 1024
-"""Vertices a thread of the prefix sum's chunk loops reads."""
 
 _COUNT, _BAD = 0, 1  # count: [0] the distinct vertices, [1] 1 if an index lies outside [0, size)
 
@@ -49,11 +47,11 @@ def _compact_kernel(first: _I32_2, first_count: ti.i32, second: _I32_2, second_c
     """``own[:count[0]]``: the distinct values of rows ``0 .. first_count - 1`` of ``first`` and ``0 .. second_count
     - 1`` of ``second`` (int32 ``(k, m)``, values in ``[0, size)``), increasing; ``local`` ``(first_count +
     second_count, m)``: each of those indices' position in ``own`` (``first``'s rows, then ``second``'s).
-    ``count[1]`` = 1 when an index lies outside ``[0, size)`` (it is then neither marked nor ranked; ``local``
-    holds -1 there). Scratch: ``position`` (at least ``size``: a vertex's mark, then its rank or -1),
-    ``chunk_total`` (at least ``ceil(size / CHUNK)``)."""
+    ``count[1]`` = 1 when an index lies outside ``[0, size)`` (it is then not marked; ``local`` holds -1 there).
+    Scratch: ``position`` (at least ``size + 1``: vertex ``v``'s mark at ``v + 1``, then the number of marked vertices
+    below ``v`` at ``v``), ``chunk_total`` (at least ``ceil(size / SCAN_CHUNK)``)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for v in range(size):
+    for v in range(size + 1):
         position[v] = 0
     ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
     for _ in range(1):
@@ -63,34 +61,14 @@ def _compact_kernel(first: _I32_2, first_count: ti.i32, second: _I32_2, second_c
         for c in range(first.shape[1]):
             v = _index(first, first_count, second, k, c)
             if 0 <= v < size:
-                position[v] = 1  # (the same value from every thread that marks v)
+                position[v + 1] = 1  # (the same value from every thread that marks v)
             else:
                 count[_BAD] = 1
-    chunks = (size + CHUNK - 1) // CHUNK
+    running_sums(position, size, chunk_total, count, _COUNT)  # the ranks; the distinct vertices into count[0]
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for h in range(chunks):
-        total = 0
-        for v in range(h * CHUNK, ti.min((h + 1) * CHUNK, size)):
-            total += position[v]
-        chunk_total[h] = total
-    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
-    for _ in range(1):
-        total = 0
-        for h in range(chunks):
-            part = chunk_total[h]
-            chunk_total[h] = total
-            total += part
-        count[_COUNT] = total
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for h in range(chunks):
-        rank = chunk_total[h]
-        for v in range(h * CHUNK, ti.min((h + 1) * CHUNK, size)):
-            if position[v] != 0:
-                own[rank] = v
-                position[v] = rank
-                rank += 1
-            else:
-                position[v] = -1
+    for v in range(size):
+        if position[v + 1] != position[v]:  # marked
+            own[position[v]] = v
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(first_count + second_count):
         for c in range(first.shape[1]):
@@ -139,8 +117,8 @@ def compact_on_device(first: np.ndarray, second: np.ndarray, size: int, device: 
         return np.zeros(0, dtype=np.int64), np.zeros((p + q, m), dtype=np.int32)
     size = int(size)
     device = {} if device is None else device
-    position, own = _ARRAYS.rows("position", size, (), np.int32), _ARRAYS.rows("own", size, (), np.int32)
-    chunk_total = _ARRAYS.rows("chunk_total", -(-size // CHUNK), (), np.int32)
+    position, own = _ARRAYS.rows("position", size + 1, (), np.int32), _ARRAYS.rows("own", size, (), np.int32)
+    chunk_total = _ARRAYS.rows("chunk_total", -(-size // SCAN_CHUNK), (), np.int32)
     count = _ARRAYS.rows("count", 2, (), np.int32)
     stand_in = _ARRAYS.rows(f"empty_{m}", 1, (m,), np.int32)  # a part without rows (the kernel reads none)
     parts = [on_device(device, name, part) if len(part) else on_device(_ARRAYS.device(), f"empty_{m}", stand_in)

@@ -50,6 +50,7 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import copy_back, on_device
 from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
+from sim_core.ti_kernels.scan import SCAN_CHUNK, running_sums
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
@@ -58,7 +59,6 @@ _KEY_OFFSET = 1 << 20  # cell indices are packed as 21-bit unsigned fields of on
 _CELL_LIMIT = float(1 << 18)  # the cell size keeps |cell index| <= 2^18 + 1
 _WIDEST_CELLS = 256.0  # the widest box overlaps at most 257 cells per axis
 _P1, _P2, _P3 = 73856093, 19349663, 83492791  # Teschner et al. 2003
-_SCAN_CHUNK = 512  # buckets per chunk of the bucket counts' prefix sum (chunks summed in parallel on CUDA)
 # count: [0] pairs found, [1] entries needed, [2] 1 if a coordinate is not finite
 _PAIRS, _ENTRIES, _BAD = 0, 1, 2
 
@@ -133,7 +133,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
     a box visits only the entries of the bodies it may touch, and of those only within the cell range
     of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
-    Scratch ``chunk_total`` ``(ceil(buckets / _SCAN_CHUNK),)``: the bucket counts' prefix sum by chunks.
+    Scratch ``chunk_total`` ``(ceil(buckets / SCAN_CHUNK),)``: the bucket counts' prefix sum by chunks.
     Scratch ``box`` ``(nb, 6)``: B's boxes (lower, upper corner); ``entry_lower`` (as ``entry_item``):
     bit ``d`` set when the entry's cell is its box's lowest along axis ``d``. ``scale``: scratch,
     ``[cell size, 1 / cell size, sum of box widths, widest box, largest |coordinate|]``; the
@@ -207,29 +207,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 for c1 in range(lo[1], hi[1] + 1):
                     for c2 in range(lo[2], hi[2] + 1):
                         ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
-    # prefix sum of the counts in chunks of _SCAN_CHUNK buckets: the chunks' totals (in parallel), their
-    # exclusive prefix sum (one thread), then each chunk's running sum from its offset (in parallel)
-    chunks = (buckets + _SCAN_CHUNK - 1) // _SCAN_CHUNK
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(chunks):
-        total = 0
-        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
-            total += bucket_start[h + 1]
-        chunk_total[k] = total
-    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
-    for _ in range(1):
-        total = 0
-        for k in range(chunks):
-            part = chunk_total[k]
-            chunk_total[k] = total
-            total += part
-        count[_ENTRIES] = total
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(chunks):
-        total = chunk_total[k]
-        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
-            total += bucket_start[h + 1]
-            bucket_start[h + 1] = total
+    running_sums(bucket_start, buckets, chunk_total, count, _ENTRIES)  # the buckets' offsets, the entries needed
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(buckets):
         bucket_fill[h] = bucket_start[h]
@@ -301,36 +279,17 @@ def _sort_pairs(out: _I32_2, found: ti.i32, first_count: ti.i32, start: _I32_1, 
                 keys: _I64_1):
     """``keys[:found]``: the packed keys ``first << 32 | second`` of the rows ``out[:found]`` (int32
     ``[first, second]``, distinct, ``0 <= first < first_count``, ``second >= 0``), increasing: a counting sort of the
-    rows by ``first`` (``start`` ``(first_count + 1,)``: each first's run, by a chunked prefix sum of the counts as in
-    :func:`_hash_pairs`; ``fill`` ``(first_count,)``: the runs' next free slots), then each run sorted by insertion in
-    one thread (a run is the candidates of one vertex or edge: tens). Scratch ``chunk_total``
-    ``(ceil(first_count / _SCAN_CHUNK),)``. The result does not depend on the threads' order."""
+    rows by ``first`` (``start`` ``(first_count + 1,)``: each first's run, by the counts' running sums,
+    :func:`~sim_core.ti_kernels.scan.running_sums`; ``fill`` ``(first_count,)``: the runs' next free slots), then
+    each run sorted by insertion in one thread (a run is the candidates of one vertex or edge: tens). Scratch ``chunk_total``
+    ``(ceil(first_count / SCAN_CHUNK),)``. The result does not depend on the threads' order."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for a in range(first_count + 1):
         start[a] = 0
     ti.loop_config(serialize=ti.static(serial_loops()))
     for k in range(found):
         ti.atomic_add(start[out[k, 0] + 1], 1)
-    chunks = (first_count + _SCAN_CHUNK - 1) // _SCAN_CHUNK
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for c in range(chunks):
-        total = 0
-        for a in range(c * _SCAN_CHUNK, ti.min((c + 1) * _SCAN_CHUNK, first_count)):
-            total += start[a + 1]
-        chunk_total[c] = total
-    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
-    for _ in range(1):
-        total = 0
-        for c in range(chunks):
-            part = chunk_total[c]
-            chunk_total[c] = total
-            total += part
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for c in range(chunks):
-        total = chunk_total[c]
-        for a in range(c * _SCAN_CHUNK, ti.min((c + 1) * _SCAN_CHUNK, first_count)):
-            total += start[a + 1]
-            start[a + 1] = total
+    running_sums(start, first_count, chunk_total, fill, 0)  # the runs' offsets (the total into fill[0], set below)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for a in range(first_count):
         fill[a] = start[a]
@@ -391,7 +350,7 @@ def sorted_on_device(out, found: int, first_count: int, device: dict, pool: Arra
     if starts is None or starts.shape[0] < first_count + 1:
         arrays["start"] = np.zeros(first_count + 1 + first_count // 4, dtype=np.int32)
         arrays["fill"] = np.zeros(arrays["start"].shape[0], dtype=np.int32)
-        arrays["chunk_total"] = np.zeros(-(-arrays["start"].shape[0] // _SCAN_CHUNK), dtype=np.int32)
+        arrays["chunk_total"] = np.zeros(-(-arrays["start"].shape[0] // SCAN_CHUNK), dtype=np.int32)
     if arrays.get("keys") is None or arrays["keys"].shape[0] < found:
         arrays["keys"] = np.zeros(max(found + found // 4, 16), dtype=np.int64)
     work = [on_device(device, f"sort_{name}", arrays[name], scratch=True)
@@ -485,7 +444,7 @@ class HashGrid:
         if self.bucket_fill.shape[0] != buckets:
             self.bucket_fill = np.zeros(buckets, dtype=np.int32)
             self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
-            self.chunk_total = np.zeros(-(-buckets // _SCAN_CHUNK), dtype=np.int32)
+            self.chunk_total = np.zeros(-(-buckets // SCAN_CHUNK), dtype=np.int32)
         if self.box.shape[0] != nb:
             self.box = np.zeros((nb, 6), dtype=np.float64)
         if self.entry_item.shape[0] < 4 * nb:

@@ -46,7 +46,8 @@ def test_the_device_compaction_equals_the_hosts(ti_cpu, monkeypatch, emulated, p
     second's) equal ``compact_indices`` of the two parts' concatenation exactly; with device copies (emulated or a
     GPU) ``local`` stays a Taichi ndarray, no NumPy array reaches the launch, and the parts' copies are kept in the
     given cache under the given names (sent once: a second call finds them)."""
-    from sim_core.ti_kernels.compaction import CHUNK, compact_on_device
+    from sim_core.ti_kernels.compaction import compact_on_device
+    from sim_core.ti_kernels.scan import SCAN_CHUNK as CHUNK
 
     launches = _emulate_cuda(monkeypatch) if emulated else None
     first, second = _parts(p + q + size, p, q, size, m)
