@@ -294,13 +294,18 @@ class PairBatch:
             shared, with its device copies, by every batch over the list; its ``rows`` ``(p + q,)``, the
             vertex-triangle pairs first as rows ``0 .. p - 1``), or None: the compaction of these pairs'
             vertices (:func:`~sim_core.unique.compact_indices`), made here.
+        sides: with ``layout``, the pairs' sides by row of its ``local`` (float64 ``(len(local),)``: ``vt``'s, then
+            each edge-edge candidate's, ``ee``'s at the rows ``layout.ee_rows``, any value elsewhere: never read) when
+            the caller has them in one array (the contact set's step sides), taken as they are (never written); None:
+            made here from the potentials' sides.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
-        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows.
+        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows, or
+            ``sides`` not float64 of the layout's rows.
     """
 
     two_pass: bool | None = None
@@ -328,7 +333,7 @@ class PairBatch:
     :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
     orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
-    def __init__(self, vt, ee, layout: BatchLayout | None = None) -> None:
+    def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
         self.split = p = int(vt.vertices.shape[0])
@@ -345,9 +350,15 @@ class PairBatch:
         self.own, self._layout = layout.own, layout
         self._all = rows  # launch row i (every pair) -> the pair's row of the layout
         # the sides by layout row (rows of candidates outside the batch: 0, never read)
-        self.sides = np.zeros(layout.local.shape[0])
-        self.sides[:p] = vt.sides
-        self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
+        if sides is not None:
+            if sides.shape != (layout.local.shape[0],) or sides.dtype != np.float64:
+                raise ValueError(f"PairBatch: sides of shape {sides.shape} ({sides.dtype}) for a layout of "
+                                 f"{layout.local.shape[0]} rows")
+            self.sides = sides
+        else:
+            self.sides = np.zeros(layout.local.shape[0])
+            self.sides[:p] = vt.sides
+            self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
