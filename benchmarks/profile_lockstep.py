@@ -253,10 +253,12 @@ def _wrap_parts(backend: str) -> dict:
     parts += [(CopyLineSearch, n) for n in ("_line_search_copies", "_energy_with")]
     parts += [(NewtonSolver, n) for n in ("_set_up_step", "_finish_step", "_assemble_hessian", "_energy")]
     parts += [(ContactSet, n) for n in ("potentials", "begin_step", "friction", "end_step")]
-    parts += [(FusedElastic, n) for n in ("_evaluate", "energy", "projected_hessian_values")]
+    parts += [(FusedElastic, n) for n in ("_evaluate", "energy", "projected_hessian_values",
+                                          "projected_hessian_values_device")]
     parts += [(pcg.BatchedPCG, n) for n in ("factorize", "solve", "solve_on_device")]
     parts += [(pcg.VertexBlocks, "from_element_blocks")]
-    parts += [(cls, "add_projected") for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean)]
+    parts += [(cls, n) for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean)
+              for n in ("add_projected", "add_projected_on_device")]
     parts += [(cls, n) for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean) for n in ("bind",)]
     parts += [(_PairPenalty, "hessian"), (TiLaggedFriction, "hessian"), (HessianAssembler, "static_pattern"),
               (StaticPattern, "__init__"), (StaticPattern, "slot_map")]

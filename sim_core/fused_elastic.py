@@ -222,6 +222,7 @@ class FusedElastic:
         self._gradient_on_device = False  # ... in the device gradient array (_device_kept[1], CUDA)
         self._sums = None  # on CUDA: the DeferredSums of the device evaluations (its cells kept)
         self._device_x_key = None  # on CUDA: positions_key of the positions in the device positions array
+        self._projected_device = None  # on CUDA: the projected Hessian values (projected_hessian_values_device)
 
     @classmethod
     def for_terms(cls, current: "FusedElastic | None", potentials: Sequence) -> "FusedElastic":
@@ -649,6 +650,38 @@ class FusedElastic:
         self._evaluate(x)
         return self._device_kept[2] if self._values_on_device else None
 
+    def projected_hessian_values_device(self, x: np.ndarray, projection: str, vertices: np.ndarray | None = None):
+        """The values of :meth:`projected_hessian_values` summed on the device, as a float64 Taichi ndarray of
+        ``max(pattern.keys.size, 1)`` entries kept here (the next call overwrites it; the exact values of
+        :meth:`hessian_values_device` are kept apart), or None where the parts do not all run on device arrays
+        (:meth:`_on_device`: CUDA, every part a fused kernel part, none offloaded). The positions go up once; each
+        part adds its projected blocks there (``add_projected_on_device``), through the packed upper slot tables of
+        the exact Hessian, with no block and no partial sum crossing to the host.
+
+        Raises:
+            RuntimeError: :meth:`bind` was not called.
+            ValueError: unknown projection.
+        """
+        if self.pattern is None:
+            raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+        if self.offloaded_part() is not None or not self._on_device() or not all(
+                hasattr(part, "add_projected_on_device") for part in self._parts):
+            return None
+        from sim_core.ti_backend import ti  # Taichi only on a Taichi backend
+        from sim_core.ti_kernels.linalg import projection_code
+        from sim_core.ti_kernels.transfer import fill
+
+        projection_code(projection)
+        nnz = self.pattern.keys.size
+        xd = self._upload_positions(np.ascontiguousarray(x, dtype=np.float64), positions_key(x), nnz)
+        if self._projected_device is None or tuple(self._projected_device.shape) != (max(nnz, 1),):
+            self._projected_device = ti.ndarray(ti.f64, shape=(max(nnz, 1),))
+        values = fill(self._projected_device, 0.0)
+        for part in self._parts:
+            part.add_projected_on_device(xd, projection, values,
+                                         vertices if getattr(part, "projects_subsets", False) else None)
+        return values
+
     def projected_hessian_values(self, x: np.ndarray, projection: str,
                                  vertices: np.ndarray | None = None) -> np.ndarray:
         """Hessian entries in N/m with PSD-projected element blocks, summed per slot of :attr:`pattern`.
@@ -676,11 +709,15 @@ class FusedElastic:
         """
         if self.pattern is None:
             raise RuntimeError("FusedElastic: bind(pattern) before evaluating")
+        device = self.projected_hessian_values_device(x, projection, vertices)
+        if device is not None:  # CUDA: every part's blocks summed on the device, the sums downloaded once
+            from sim_core.ti_kernels.transfer import download  # Taichi only on a Taichi backend
+
+            values = download(device)
+            return values if values.size == self.pattern.keys.size else values[: self.pattern.keys.size].copy()
         xc = np.ascontiguousarray(x, dtype=np.float64)
         values = np.zeros(self.pattern.keys.size)
         remote = self.offloaded_part()
-        if remote is None and self._on_device():  # CUDA: the positions up once for every part's kernels
-            xc = self._upload_positions(xc, positions_key(x), values.size)
         if remote is None or not isinstance(remote, OffloadableProjected):
             for part in self._parts:
                 if vertices is not None and getattr(part, "projects_subsets", False):

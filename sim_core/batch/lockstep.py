@@ -82,9 +82,10 @@ from sim_core.batch.plasticity import StackedElasticTerms
 from sim_core.batch.sheet_bands import sheet_band_dofs
 from sim_core.batch.simplified import SimplifiedNewtonTest
 from sim_core.batch.stacked import StackedScene
+from sim_core.batch.subset_projection import projected_subset_blocks
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, HessianBlocks, SparseGradient, SubsetHessian, declares
+from sim_core.energies.base import DeviceHessian, SparseGradient, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -154,16 +155,18 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
     def __init__(self, scene: StackedScene, config: SolverConfig | None = None) -> None:
         config = config or SolverConfig()
         super().__init__(scene.model, config)
-        self.pcg = None
+        self.pcg = self._block_rows = None
         if config.linear_solver == "pcg" or (self.backend == "taichi-cuda" and config.linear_solver == "pardiso"):
             if not uses_taichi(self.backend):
                 raise ConfigError(f"linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {self.backend!r}")
-            from sim_core.ti_kernels.pcg import BatchedPCG  # Taichi kernels: loaded on a Taichi backend only
+            from sim_core.ti_kernels.block_projection import BlockRowsProjector  # Taichi kernels: a Taichi backend
+            from sim_core.ti_kernels.pcg import BatchedPCG
 
             segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
             segments[scene.index] = np.arange(scene.copies)[:, None]
             self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
                                                        bands=sheet_band_dofs(scene))
+            self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
         # 68 ms a term at B = 256); None: the terms' own projection
@@ -583,13 +586,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         ``(upper, blocks, diagonal)`` for :meth:`~sim_core.ti_kernels.pcg.BatchedPCG.factorize`:
         ``upper = (indptr, indices, data)``, the upper triangle (CSR) of the fused elastic terms' Hessian
         values in their static pattern (fixed for the step's elements and free mask: its index arrays travel
-        to the device once; the exact values stay on the device where the fused kernels ran there), to which
-        the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the contact
-        and friction Hessians (``dynamic_terms``, projected by ``projection``) as
+        to the device once; the exact and the projected values stay on the device where the fused kernels ran
+        there), to which the CG adds ``diagonal``, the inertia / damping diagonal, and sets 1 on fixed DoFs; and the
+        contact and friction Hessians (``dynamic_terms``, projected by ``projection``) as
         :class:`~sim_core.ti_kernels.pcg.VertexBlocks`, applied matrix-free by the CG (the exact blocks of
         the contact pairs left in device memory where the pair kernel wrote them, :meth:`_term_hessian`).
-        The sum is the
-        matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
+        The sum is the matrix :meth:`_assemble_hessian` assembles (the same entries, summed in another order). With
         ``vertices`` (bool ``(N,)``, whole copies) the projected elastic blocks are those of the marked
         copies only (:meth:`~sim_core.fused_elastic.FusedElastic.projected_hessian_values`), and so are the
         contact pair blocks (terms declaring :class:`~sim_core.energies.base.SubsetHessian`, projected for
@@ -599,7 +601,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
         fused = step.fused
         pattern = fused.pattern
-        values = None if projection != "none" else fused.hessian_values_device(x)
+        values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
+                  else fused.projected_hessian_values_device(x, projection, vertices))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))
@@ -621,26 +624,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         if vertices is not None and declares(term, SubsetHessian):
             if projection == "none" or self.subset_projection is None:
                 return term.hessian_of_vertices(x, projection, vertices)
-            return projected_subset_blocks(term, x, projection, vertices, self.subset_projection)
+            return projected_subset_blocks(term, x, projection, vertices, self.subset_projection, self._block_rows)
         return term.hessian(x, projection)
-
-
-def projected_subset_blocks(term, x: np.ndarray, projection: str, vertices: np.ndarray, method: str) -> HessianBlocks:
-    """The PSD-projected blocks of a :class:`~sim_core.energies.base.SubsetHessian` term whose projection is per
-    block (the contact pair penalties: ``project_psd`` of each exact ``(12, 12)`` block): the term's exact blocks
-    of the marked ``vertices`` (bool ``(N,)``), projected by
-    :func:`~sim_core.ti_kernels.block_projection.project_reduced_blocks` with ``method`` (``"jacobi"``: the cyclic
-    Jacobi kernel, every block at once on the device; ``"lapack"``), which rebuilds only the blocks with a negative
-    eigenvalue. Equal to ``term.hessian_of_vertices(x, projection, vertices)`` to round-off.
-
-    Raises:
-        ValueError: unknown projection or method.
-    """
-    from sim_core.ti_kernels.block_projection import project_reduced_blocks  # Taichi kernels: a Taichi backend
-
-    exact = term.hessian_of_vertices(x, "none", vertices)
-    blocks = np.array(exact.blocks, dtype=np.float64)  # an own copy, projected in place
-    return HessianBlocks(exact.vertices, project_reduced_blocks(blocks, projection, method))
 
 
 def _copy_state(state_in: State, state_out: State, dt: float) -> None:

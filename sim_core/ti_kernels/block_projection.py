@@ -13,7 +13,7 @@ orthonormal basis of the complement gives the same projection),
 
 The work is split where each part is cheapest (measured, docs/benchmarks_log.md):
 
-* :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy):
+* :meth:`TranslationFreeProjector.reduced` / :meth:`~TranslationFreeProjector.expanded` (NumPy, the host path):
   ``B^T H B`` and ``B R B^T`` as stacked matrix products with a constant ``B`` (about 0.25 ms for
   480 blocks of 18 x 18; a Taichi loop per element took 3 ms, and one large GEMM over the stacked
   rows, 0.4 ms alone, took 25 ms inside a replay on the loaded 2-core VM: OpenBLAS threads it).
@@ -22,14 +22,22 @@ The work is split where each part is cheapest (measured, docs/benchmarks_log.md)
   Jacobi eigen-solver was slower than LAPACK there for the 15 x 15 reduced Kirchhoff blocks, and a
   Cholesky test that skips the eigen-decomposition of definite blocks pays nothing: at the
   replay's fallback iterates every Kirchhoff block has about 7 negative eigenvalues out of 15. On
-  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread) for many
+  CUDA the cyclic Jacobi kernel (:func:`jacobi_project_blocks`, one block per GPU thread, the block index the
+  last and fastest of its arrays so that a warp's loads and stores are coalesced) for many
   blocks: a lockstep batch of 256 Forming copies projects 10^5 such blocks per fallback, several
   seconds of LAPACK; one environment's few hundred blocks go to LAPACK on the host instead
   (:data:`HOST_PROJECTION_MAX_BLOCKS`), where they take less time than the kernel's serial thread.
-* :func:`add_blocks` (Taichi): the projected blocks added into the values of the solver's static
+* :func:`add_blocks` (Taichi, the host path): the projected blocks added into the values of the solver's static
   pattern through the per-element slot map (:meth:`sim_core.assembly.StaticPattern.slot_map`:
   entry ``[e, r, s]`` is a slot or -1), in element order on the CPU (bitwise reproducible), with
   no ``np.bincount`` over the block entries.
+* The device path (:meth:`TranslationFreeProjector.add_projected_rows`, :func:`add_upper_block_rows`): the
+  reduction, the Jacobi projection and the expansion of the listed blocks as kernels where the blocks are, the
+  upper triangles added through the packed upper slot table of the exact Hessian (:func:`upper_slot_table`,
+  below; already on the device), so that no block, no full slot map (a lockstep batch of 1024 Forming copies:
+  1.1 GB of int32 over its three elastic terms) and no partial sum crosses between host and device.
+  :class:`BlockRowsProjector` projects listed blocks of a device array (the contact pairs' of a lockstep batch's
+  retried copies) and leaves them there.
 
 The result equals the reference's projected blocks to round-off: the reference reconstructs every
 block of a batch in which some block has a negative eigenvalue, and returns the symmetrised block
@@ -54,10 +62,11 @@ from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import DeviceArray
+from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
 from sim_core.ti_kernels.transfer import download, upload
 
-_F64_1, _F64_3, _I32_3 = linalg.F64_1, linalg.F64_3, linalg.I32_3
+_F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
@@ -197,24 +206,28 @@ the GPU is full, so a lockstep batch's tens of thousands of blocks stay on the d
 
 
 @fast_kernel
-def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, code: ti.i32):
+def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: ti.i32, code: ti.i32):
     """PSD projection of symmetric blocks in place by the cyclic Jacobi eigenvalue method (Golub & Van
     Loan, Matrix Computations, 4th ed., Sec. 8.5.3; the rotation of their Alg. 8.5.1), one block per
     thread: rotations ``A <- J^T A J`` of a copy (``work``) zero its off-diagonal entries in turn until
     their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``; a block with a
     negative eigenvalue (a diagonal entry of the rotated copy) is replaced by ``V f(w) V^T`` (``code`` 1
-    clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries. ``work`` and
-    ``vectors`` are scratch arrays of the blocks' shape. On the GPU all blocks run at once (no host
+    clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries.
+
+    The block index is the last (fastest) one: ``blocks`` ``(n, n, k)``, block ``e`` is ``blocks[:, :, e]``, so
+    that the threads of a warp, which handle consecutive blocks and run the same rotation, read and write
+    consecutive addresses (coalesced on a GPU); the first ``count`` blocks are projected (``count <= k``).
+    ``work`` and ``vectors`` are scratch arrays of the blocks' shape. On the GPU all blocks run at once (no host
     round trip for LAPACK)."""
-    for e in range(blocks.shape[0]):
-        n = blocks.shape[1]
+    for e in range(count):
+        n = blocks.shape[0]
         total = 0.0
         off = 0.0
         for i in range(n):
             for j in range(n):
-                vectors[e, i, j] = 1.0 if i == j else 0.0
-                a = 0.5 * (blocks[e, i, j] + blocks[e, j, i])
-                work[e, i, j] = a
+                vectors[i, j, e] = 1.0 if i == j else 0.0
+                a = 0.5 * (blocks[i, j, e] + blocks[j, i, e])
+                work[i, j, e] = a
                 total += a * a
                 if j > i:
                     off += a * a
@@ -223,48 +236,48 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, code: t
             sweep += 1
             for p in range(n - 1):
                 for q in range(p + 1, n):
-                    apq = work[e, p, q]
+                    apq = work[p, q, e]
                     if apq != 0.0:
-                        theta = (work[e, q, q] - work[e, p, p]) / (2.0 * apq)
+                        theta = (work[q, q, e] - work[p, p, e]) / (2.0 * apq)
                         t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
                         if theta < 0.0:
                             t = -t
                         c = 1.0 / ti.sqrt(t * t + 1.0)
                         s = t * c
                         for k in range(n):  # columns p, q: A J
-                            akp = work[e, k, p]
-                            akq = work[e, k, q]
-                            work[e, k, p] = c * akp - s * akq
-                            work[e, k, q] = s * akp + c * akq
+                            akp = work[k, p, e]
+                            akq = work[k, q, e]
+                            work[k, p, e] = c * akp - s * akq
+                            work[k, q, e] = s * akp + c * akq
                         for k in range(n):  # rows p, q: J^T (A J)
-                            apk = work[e, p, k]
-                            aqk = work[e, q, k]
-                            work[e, p, k] = c * apk - s * aqk
-                            work[e, q, k] = s * apk + c * aqk
+                            apk = work[p, k, e]
+                            aqk = work[q, k, e]
+                            work[p, k, e] = c * apk - s * aqk
+                            work[q, k, e] = s * apk + c * aqk
                         for k in range(n):  # V J
-                            vkp = vectors[e, k, p]
-                            vkq = vectors[e, k, q]
-                            vectors[e, k, p] = c * vkp - s * vkq
-                            vectors[e, k, q] = s * vkp + c * vkq
+                            vkp = vectors[k, p, e]
+                            vkq = vectors[k, q, e]
+                            vectors[k, p, e] = c * vkp - s * vkq
+                            vectors[k, q, e] = s * vkp + c * vkq
             off = 0.0
             for i in range(n):
                 for j in range(i + 1, n):
-                    off += work[e, i, j] * work[e, i, j]
+                    off += work[i, j, e] * work[i, j, e]
         negative = 0
         for k in range(n):
-            if work[e, k, k] < 0.0:
+            if work[k, k, e] < 0.0:
                 negative = 1
         if negative == 1:
             for k in range(n):
-                w = work[e, k, k]
-                work[e, k, k] = ti.max(w, 0.0) if code == 1 else ti.abs(w)
+                w = work[k, k, e]
+                work[k, k, e] = ti.max(w, 0.0) if code == 1 else ti.abs(w)
             for i in range(n):
                 for j in range(i, n):
                     acc = 0.0
                     for k in range(n):
-                        acc += vectors[e, i, k] * work[e, k, k] * vectors[e, j, k]
-                    blocks[e, i, j] = acc
-                    blocks[e, j, i] = acc
+                        acc += vectors[i, k, e] * work[k, k, e] * vectors[j, k, e]
+                    blocks[i, j, e] = acc
+                    blocks[j, i, e] = acc
 
 
 def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | None = None) -> np.ndarray:
@@ -289,10 +302,9 @@ def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | No
     if code == 0 or blocks.shape[0] == 0:
         return blocks
     if method == "jacobi" or (method is None and current_arch() == "cuda"):
-        out = np.ascontiguousarray(blocks, dtype=np.float64)
-        jacobi_project_blocks(out, np.empty_like(out), np.empty_like(out), code)
-        if out is not blocks:
-            blocks[:] = out
+        out = np.ascontiguousarray(np.moveaxis(blocks, 0, -1), dtype=np.float64)  # the kernel's layout (n, n, k)
+        jacobi_project_blocks(out, np.empty_like(out), np.empty_like(out), out.shape[2], code)
+        blocks[:] = np.moveaxis(out, -1, 0)
         return blocks
     w, q = np.linalg.eigh(blocks)
     negative = np.any(w < 0.0, axis=1)
@@ -306,17 +318,15 @@ def project_reduced_blocks(blocks: np.ndarray, projection: str, method: str | No
     return blocks
 
 
-_F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
-
-
 @fast_kernel
 def reduce_block_rows(blocks: _F64_3, helmert: _F64_2, rows: _I32_1, count: ti.i32, reduced: _F64_3):
-    """``reduced[r] = sym(B^T H B)`` of the blocks ``H = blocks[rows[r]]`` ``(3 m, 3 m)``, ``r < count``, with
+    """``reduced[:, :, r] = sym(B^T H B)`` of the blocks ``H = blocks[rows[r]]`` ``(3 m, 3 m)``, ``r < count``, with
     ``B = helmert (x) I_3`` (``helmert`` ``(m, m - 1)``) and ``sym(A) = (A + A^T) / 2``: one thread an entry,
-    ``B^T H B`` summed over the vertex pairs ``(u, v)`` of the Kronecker factor."""
+    ``B^T H B`` summed over the vertex pairs ``(u, v)`` of the Kronecker factor. ``reduced`` ``(3 m - 3, 3 m - 3,
+    c)`` is in the layout of :func:`jacobi_project_blocks` (the block index last)."""
     m = helmert.shape[0]
     size = 3 * (m - 1)
-    for r, a, b in ti.ndrange(count, size, size):
+    for a, b, r in ti.ndrange(size, size, count):
         e = rows[r]
         pa, ca, pb, cb = a // 3, a % 3, b // 3, b % 3
         acc = 0.0
@@ -324,27 +334,73 @@ def reduce_block_rows(blocks: _F64_3, helmert: _F64_2, rows: _I32_1, count: ti.i
             for v in range(m):
                 acc += helmert[u, pa] * helmert[v, pb] * (blocks[e, 3 * u + ca, 3 * v + cb]
                                                          + blocks[e, 3 * v + cb, 3 * u + ca])
-        reduced[r, a, b] = 0.5 * acc
+        reduced[a, b, r] = 0.5 * acc
 
 
 @fast_kernel
-def expand_add_block_rows(reduced: _F64_3, helmert: _F64_2, slots: _I32_3, rows: _I32_1, count: ti.i32,
+def expand_add_upper_rows(reduced: _F64_3, helmert: _F64_2, upper: _I32_2, rows: _I32_1, count: ti.i32,
                           values: _F64_1):
-    """``values[slots[rows[r], i, j]] += (B R B^T)[i, j]`` for ``R = reduced[r]``, ``r < count``, where the slot is
-    >= 0 (``B = helmert (x) I_3``): one thread an entry."""
+    """Add ``(B R B^T)[i, j]``, ``i <= j``, for ``R = reduced[:, :, r]``, ``r < count`` (``B = helmert (x) I_3``), at
+    the packed slot ``upper[rows[r], upper_index(3 m, i, j)]`` (:func:`upper_slot_table`, :func:`add_upper_entry`):
+    one thread an entry of the upper triangle. ``B R B^T`` is symmetric, so this adds what the full slot map adds
+    (to round-off: the entry ``[j, i]`` is summed in another order), with half the expansions."""
     m = helmert.shape[0]
-    for r, i, j in ti.ndrange(count, 3 * m, 3 * m):
-        k = slots[rows[r], i, j]
-        if k >= 0:
-            u, ci, v, cj = i // 3, i % 3, j // 3, j % 3
-            acc = 0.0
-            for p in range(m - 1):
-                for q in range(m - 1):
-                    acc += helmert[u, p] * helmert[v, q] * reduced[r, 3 * p + ci, 3 * q + cj]
-            values[k] += acc
+    n = 3 * m
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for i, j, r in ti.ndrange(n, n, count):
+        if i <= j:
+            slot = upper[rows[r], i * n - i * (i - 1) // 2 + j - i]
+            if slot != -1:
+                u, ci, v, cj = i // 3, i % 3, j // 3, j % 3
+                acc = 0.0
+                for p in range(m - 1):
+                    for q in range(m - 1):
+                        acc += helmert[u, p] * helmert[v, q] * reduced[3 * p + ci, 3 * q + cj, r]
+                add_upper_entry(values, slot, acc)
 
 
-class TranslationFreeProjector:
+@fast_kernel
+def add_upper_block_rows(blocks: _F64_3, upper: _I32_2, rows: _I32_1, count: ti.i32, values: _F64_1):
+    """Add the upper triangles of the symmetric blocks ``blocks[rows[r]]`` ``(n, n)``, ``r < count``, at their packed
+    slots ``upper[rows[r], upper_index(n, i, j)]`` (:func:`upper_slot_table`, :func:`add_upper_entry`): for
+    blocks symmetric bit for bit, the values :func:`add_block_rows` adds through the full slot map, from half the
+    entries and a table of half the size."""
+    n = blocks.shape[1]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for r, i, j in ti.ndrange(count, n, n):
+        if i <= j:
+            e = rows[r]
+            add_upper_entry(values, upper[e, i * n - i * (i - 1) // 2 + j - i], blocks[e, i, j])
+
+
+class KeptArrays:
+    """Taichi ndarrays kept by name between calls (a mixin): :meth:`_kept` of a fixed shape, :meth:`_columns` of a
+    block-last array that grows with the largest block count asked for (no allocation while the count does not
+    grow)."""
+
+    _device: dict | None = None
+
+    def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
+        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes), holding
+        ``host`` when given (copied only when it differs from the last copy: the Helmert basis once, one
+        environment's rows while they stay the same)."""
+        if self._device is None:
+            self._device = {}
+        kept = self._device.get(name)
+        if kept is None:
+            kept = self._device[name] = DeviceArray(dtype)
+        if host is None or not host.size:
+            return kept.ensure(shape)
+        return kept.upload(host)
+
+    def _columns(self, name: str, lead: tuple, count: int):
+        """The float64 ndarray ``name`` of shape ``lead + (c,)``, ``c >= count`` the largest count asked for."""
+        kept = None if self._device is None else self._device.get(name)
+        held = 0 if kept is None or kept.shape is None or kept.shape[:-1] != tuple(lead) else kept.shape[-1]
+        return self._kept(name, tuple(lead) + (max(int(count), held),), ti.f64)
+
+
+class TranslationFreeProjector(KeptArrays):
     """Projects translation-invariant element blocks and adds them into slot values (module docstring).
 
     Args:
@@ -391,14 +447,17 @@ class TranslationFreeProjector:
             return
         add_blocks(self.project(blocks, projection), slots, values)
 
-    def add_projected_rows(self, blocks, projection: str, slots, rows: np.ndarray, values,
+    def add_projected_rows(self, blocks, projection: str, upper, rows: np.ndarray, values,
                            method: str | None = None) -> None:
         """:meth:`add_projected` of the blocks ``rows`` (int32 ``(c,)``) of ``blocks`` by kernels where the arrays
-        are (Taichi ndarrays on the device): the reduction ``B^T H B`` and the expansion and scatter as kernels;
-        the reduced blocks' projection by :func:`jacobi_project_blocks` where they are, or on the host
-        (:func:`project_reduced_blocks` with LAPACK: the reduced blocks downloaded, projected and uploaded, two
-        copies of ``c (3 m - 3)^2`` float64). ``blocks`` ``(k, 3 m, 3 m)``, ``slots`` int32 ``(k, 3 m, 3 m)``,
-        ``values``: ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off.
+        are (Taichi ndarrays on the device), through the packed upper slot table ``upper`` (int32
+        ``(k, 3 m (3 m + 1) / 2)``, :func:`upper_slot_table` of the slot map): the reduction ``B^T H B``
+        (:func:`reduce_block_rows`) and the expansion and scatter of the upper triangles
+        (:func:`expand_add_upper_rows`) as kernels; the reduced blocks' projection by :func:`jacobi_project_blocks`
+        where they are, or on the host (:func:`project_reduced_blocks` with LAPACK: the reduced blocks downloaded,
+        projected and uploaded, two copies of ``c (3 m - 3)^2`` float64). ``blocks`` ``(k, 3 m, 3 m)``, ``values``:
+        ndarrays or NumPy arrays; the sums equal :meth:`add_projected`'s to round-off. The reduced blocks' arrays
+        are kept and grow with the largest ``c`` asked for (no allocation while the count does not grow).
 
         Args:
             method: ``"jacobi"`` (the kernel), ``"lapack"`` (the host) or None: LAPACK for at most
@@ -415,29 +474,67 @@ class TranslationFreeProjector:
             return
         rows_arg = self._kept("rows", rows.shape, ti.i32, rows)
         if code == 0:
-            add_block_rows(blocks, slots, rows_arg, count, values)
+            add_upper_block_rows(blocks, upper, rows_arg, count, values)
             return
         size = self.basis.shape[1]
-        reduced = self._kept("reduced", (count, size, size), ti.f64)
+        reduced = self._columns("reduced", (size, size), count)
+        shape = tuple(reduced.shape)
         helmert = self._kept("helmert", self.helmert.shape, ti.f64, self.helmert)
         reduce_block_rows(blocks, helmert, rows_arg, count, reduced)
         if method == "lapack" or (method is None and count <= HOST_PROJECTION_MAX_BLOCKS):
-            kept = self._host_reduced
-            if kept is None or kept.shape != (count, size, size):
-                kept = self._host_reduced = np.empty((count, size, size))
-            upload(reduced, project_reduced_blocks(download(reduced, kept), projection, method="lapack"))
+            host = self._host_reduced
+            if host is None or host.shape != shape:
+                host = self._host_reduced = np.empty(shape)
+            download(reduced, host)
+            listed = np.moveaxis(host[:, :, :count], -1, 0).copy()  # (count, size, size)
+            host[:, :, :count] = np.moveaxis(project_reduced_blocks(listed, projection, method="lapack"), 0, -1)
+            upload(reduced, host)
         else:
-            work, vectors = (self._kept(name, (count, size, size), ti.f64) for name in ("work", "vectors"))
-            jacobi_project_blocks(reduced, work, vectors, code)
-        expand_add_block_rows(reduced, helmert, slots, rows_arg, count, values)
+            work, vectors = (self._kept(name, shape, ti.f64) for name in ("work", "vectors"))
+            jacobi_project_blocks(reduced, work, vectors, count, code)
+        expand_add_upper_rows(reduced, helmert, upper, rows_arg, count, values)
 
-    def _kept(self, name: str, shape: tuple, dtype, host: np.ndarray | None = None):
-        """A Taichi ndarray ``name`` of ``shape`` kept between calls (reallocated when the shape changes), holding
-        ``host`` when given (copied only when it differs from the last copy: the Helmert basis once, one
-        environment's rows while they stay the same)."""
-        kept = self._device.get(name)
-        if kept is None:
-            kept = self._device[name] = DeviceArray(dtype)
-        if host is None or not host.size:
-            return kept.ensure(shape)
-        return kept.upload(host)
+
+@fast_kernel
+def _gather_block_columns(blocks: _F64_3, start: ti.i32, rows: _I32_1, count: ti.i32, columns: _F64_3):
+    """``columns[i, j, r] = blocks[start + rows[r], i, j]``, ``r < count``: listed blocks in the layout of
+    :func:`jacobi_project_blocks` (block index last)."""
+    for i, j, r in ti.ndrange(blocks.shape[1], blocks.shape[2], count):
+        columns[i, j, r] = blocks[start + rows[r], i, j]
+
+
+@fast_kernel
+def _block_rows(columns: _F64_3, count: ti.i32, blocks: _F64_3):
+    """``blocks[r, i, j] = columns[i, j, r]``, ``r < count`` (the inverse of :func:`_gather_block_columns`)."""
+    for r, i, j in ti.ndrange(count, columns.shape[0], columns.shape[1]):
+        blocks[r, i, j] = columns[i, j, r]
+
+
+class BlockRowsProjector(KeptArrays):
+    """PSD projection of listed symmetric blocks of an array where the kernels run (a device array on CUDA), the
+    result left there: the blocks gathered into the Jacobi kernel's layout (scratch arrays kept here), projected by
+    :func:`jacobi_project_blocks` and written back in rows into a new array (no block crosses to the host;
+    :func:`project_reduced_blocks` with ``method="jacobi"`` to round-off, bit for bit the same arithmetic)."""
+
+    def project(self, blocks, start: int, rows: np.ndarray, projection: str):
+        """The ``projection`` ("none", "clamp", "abs") of the blocks ``blocks[start + rows[r]]``, ``r < c``, of
+        ``blocks`` (float64 ``(k, n, n)`` ndarray, symmetric blocks) as a new float64 ndarray ``(max(c, 1), n, n)``
+        (its first ``c`` rows; a new one at each call, so that the blocks of several terms projected in turn stay
+        valid together, as the pair kernel's own arrays do); ``rows`` int ``(c,)``.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = linalg.projection_code(projection)
+        count = int(rows.shape[0])
+        n = int(blocks.shape[1])
+        out = new_ndarray(ti.f64, (max(count, 1), n, n))
+        if count:
+            columns = self._columns("columns", (n, n), count)
+            listed = self._kept("rows", (count,), ti.i32, np.ascontiguousarray(rows, dtype=np.int32))
+            _gather_block_columns(blocks, int(start), listed, count, columns)
+            if code:
+                jacobi_project_blocks(columns, self._columns("work", (n, n), count),
+                                      self._columns("vectors", (n, n), count), count, code)
+            _block_rows(columns, count, out)
+        return out

@@ -363,19 +363,16 @@ class FusedKirchhoffBending:
         """Add the ``projection`` ("none", "clamp", "abs") of the per-triangle blocks into ``values``
         (:class:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector`: the eigen-decomposition
         in the translation-free 15-dimensional space); with ``vertices`` (bool ``(n,)``) only the
-        triangles whose stencil touches a marked vertex.
+        triangles whose stencil touches a marked vertex. On CUDA by :meth:`add_projected_on_device` into sums kept
+        there, downloaded once.
 
         Raises:
             ValueError: unknown projection.
         """
         if self._hinges.shape[0] and current_arch() == "cuda":  # every stage on the device, the sums downloaded
-            blocks = self._triangle_hessians_where_run(x)
-            rows = (np.arange(self._blocks.shape[0], dtype=np.int32) if vertices is None
-                    else np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1)).astype(np.int32))
             sums = on_device(self._device, "sums", values, scratch=True)
             fill(sums, 0.0)
-            self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_slots", self._tri_slots),
-                                               rows, sums)
+            self.add_projected_on_device(x, projection, sums, vertices)
             values += download(sums)
             return
         blocks, slots = self.triangle_hessians(x), self._tri_slots
@@ -383,3 +380,23 @@ class FusedKirchhoffBending:
             rows = np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1))
             blocks, slots = blocks[rows], slots[rows]
         self._projector.add_projected(blocks, projection, slots, values)
+
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+        """:meth:`add_projected` by kernels where they run (on CUDA the device; on the CPU arch the same kernels on
+        host arrays), into ``values`` there (``(pattern.keys.size,)``, a device array on CUDA): the triangles'
+        exact blocks (:func:`kirchhoff_triangle_hessians`) reduced, projected and scattered through the packed
+        upper slot table of the exact Hessian
+        (:meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows`), nothing
+        crossing to the host. The sums equal the host path's to round-off.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        linalg.projection_code(projection)
+        if self._hinges.shape[0] == 0:
+            return
+        blocks = self._triangle_hessians_where_run(x)
+        rows = (np.arange(self._blocks.shape[0], dtype=np.int32) if vertices is None
+                else np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1)).astype(np.int32))
+        self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_upper", self._tri_upper),
+                                           rows, values)

@@ -329,12 +329,28 @@ class FusedSpringMembrane(BoundSlotTables):
     def add_projected_by_kernels(self, x: np.ndarray, projection: str, values: np.ndarray,
                                  vertices: np.ndarray | None = None) -> None:
         """:meth:`add_projected` by kernels alone (what it runs on CUDA; on the CPU arch the same kernels on
-        host arrays): the triangles' exact blocks (:func:`spring_membrane_triangle_blocks`) reduced,
-        projected by the Jacobi kernel and scattered by
-        :meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows`, the edges'
-        closed form (:func:`spring_membrane_projected_edges`), all into one array of sums kept where the
-        kernels run (on CUDA the device: the blocks never cross to the host), then added to ``values``
-        ``(pattern.keys.size,)`` (one download). The sums equal :meth:`add_projected`'s host path to round-off.
+        host arrays): :meth:`add_projected_on_device` into one array of sums kept where the kernels run (on CUDA the
+        device: the blocks never cross to the host), then added to ``values`` ``(pattern.keys.size,)`` (one
+        download). The sums equal :meth:`add_projected`'s host path to round-off.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        sums = on_device(self._device, "sums", values, scratch=True)
+        if sums is values:  # host arrays (CPU arch): the kernels add into values directly
+            self.add_projected_on_device(x, projection, values, vertices)
+            return
+        fill(sums, 0.0)
+        self.add_projected_on_device(x, projection, sums, vertices)
+        values += download(sums)
+
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+        """The projected blocks added into ``values`` ``(pattern.keys.size,)`` where the kernels run (on CUDA a device
+        array; on the CPU arch the same kernels on host arrays): the triangles' exact blocks
+        (:func:`spring_membrane_triangle_blocks`) reduced, projected by the Jacobi kernel and scattered through the
+        packed upper slot table by
+        :meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows` (with ``vertices``
+        the triangles touching a marked vertex), the edges' closed form (:func:`spring_membrane_projected_edges`).
 
         Raises:
             ValueError: unknown projection.
@@ -343,12 +359,7 @@ class FusedSpringMembrane(BoundSlotTables):
         p = self.potential
         d = self._device
         t_count = self._triangles.shape[0]
-        sums = on_device(d, "sums", values, scratch=True)
-        if sums is values:  # host arrays (CPU arch): the kernels add into values directly
-            sums = None
-        else:
-            fill(sums, 0.0)
-        target = values if sums is None else sums
+        upper = on_device(d, "upper", self._upper)
         if t_count:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
@@ -357,9 +368,7 @@ class FusedSpringMembrane(BoundSlotTables):
                                             on_device(d, "area0", self._area0), p.k_area, blocks)
             rows = (np.arange(t_count, dtype=np.int32) if vertices is None
                     else np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1)).astype(np.int32))
-            self._projector.add_projected_rows(blocks, projection, on_device(d, "slots", self._slots), rows, target)
+            self._projector.add_projected_rows(blocks, projection, upper, rows, values)
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),
-                                            on_device(d, "upper", self._upper), t_count, p.k_length, code, target)
-        if sums is not None:
-            values += download(sums)
+                                            upper, t_count, p.k_length, code, values)

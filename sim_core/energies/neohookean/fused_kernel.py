@@ -33,8 +33,8 @@ from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_entry, BoundSlotTables,
-                                                  upper_index)
+from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_block_rows, add_upper_entry,
+                                                  BoundSlotTables, upper_index)
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
@@ -288,7 +288,8 @@ class FusedStableNeoHookean(BoundSlotTables):
         eigensystem of d2psi/dF2 (Smith et al. 2018, section 4.2) of the Taichi twin
         (:func:`sim_core.energies.neohookean.kernel.evaluate_snh_hessian`), the reference's projection.
 
-        With ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex are added.
+        With ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex are added. On CUDA by
+        :meth:`add_projected_on_device` into sums kept there, downloaded once.
 
         Raises:
             ValueError: unknown projection.
@@ -296,24 +297,48 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        if self._blocks is None:
-            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
+        sums = on_device(self._device, "sums", values, scratch=True)
+        if sums is not values:  # CUDA: the blocks made and added into sums on the device, the sums downloaded
+            fill(sums, 0.0)
+            self.add_projected_on_device(x, projection, sums, vertices)
+            values += download(sums)
+            return
         p = self.potential
-        d = self._device  # on CUDA: the blocks made and added into the values on the device, the values downloaded
-        blocks = on_device(d, "blocks", self._blocks, scratch=True)
+        blocks = self._block_buffer()
+        evaluate_snh_hessian(x, self._tets, self._dFdx, self._vol, p.mu, p.lam, code, blocks)
+        if vertices is None:
+            add_blocks(blocks, self._slots, values)
+        else:  # the tets touching a marked vertex
+            rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32)
+            add_block_rows(blocks, self._slots, rows, rows.size, values)
+
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+        """The projected blocks of :meth:`add_projected` made and added into ``values`` ``(pattern.keys.size,)`` where
+        the kernels run (on CUDA a device array; on the CPU arch the same kernels on host arrays) through the
+        packed upper slot table of the exact Hessian (:func:`~sim_core.ti_kernels.block_projection.
+        add_upper_block_rows`: the blocks are symmetric bit for bit, so the sums are the full slot map's); with
+        ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex.
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        code = projection_code(projection)
+        if self._tets.shape[0] == 0:
+            return
+        p = self.potential
+        d = self._device
+        blocks = on_device(d, "blocks", self._block_buffer(), scratch=True)
         evaluate_snh_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
                              on_device(d, "vol", self._vol), p.mu, p.lam, code, blocks)
         rows = (np.arange(self._tets.shape[0], dtype=np.int32) if vertices is None  # else the tets touching a marked vertex
                 else np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32))
-        if blocks is self._blocks:
-            if vertices is None:
-                add_blocks(self._blocks, self._slots, values)
-            else:
-                add_block_rows(self._blocks, self._slots, rows, rows.size, values)
-            return
-        if rows.size == 0:
-            return
-        sums = on_device(d, "sums", values, scratch=True)
-        fill(sums, 0.0)
-        add_block_rows(blocks, on_device(d, "slots", self._slots), on_device(d, "rows", rows), rows.size, sums)
-        values += download(sums)
+        if rows.size:
+            add_upper_block_rows(blocks, on_device(d, "upper", self._upper), on_device(d, "rows", rows), rows.size,
+                                 values)
+
+    def _block_buffer(self) -> np.ndarray:
+        """The kept host array of the tets' projected blocks ``(t, 12, 12)`` (allocated at its first use; on CUDA only
+        its shape is read, for the device array)."""
+        if self._blocks is None:
+            self._blocks = np.zeros((self._tets.shape[0], 12, 12))
+        return self._blocks

@@ -199,27 +199,37 @@ def test_projected_hessian_of_marked_vertices_sums_the_elements_touching_them(ti
 @pytest.mark.parametrize("method", ("jacobi", "lapack", None))
 @pytest.mark.parametrize("projection", ("none", "clamp", "abs"))
 def test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds(ti_cpu, projection, method):
-    """``add_projected_rows`` (reduction, expansion and scatter as kernels, the path of device arrays; the reduced
-    blocks projected by the Jacobi kernel or by LAPACK on the host) adds, for the listed blocks, the sums
-    ``add_projected`` adds for those blocks (NumPy reduction and LAPACK), to round-off; the unlisted blocks add
-    nothing."""
-    from sim_core.ti_kernels.block_projection import TranslationFreeProjector
+    """``add_projected_rows`` (reduction, expansion and scatter of the upper triangles through the packed upper slot
+    table as kernels, the path of device arrays; the reduced blocks projected by the Jacobi kernel or by LAPACK on
+    the host) adds, for the listed blocks, the sums ``add_projected`` adds for those blocks through the full slot
+    map (NumPy reduction and LAPACK), to round-off; the unlisted blocks add nothing. The slot map keeps one entry
+    of each local pair, the upper or the lower one (as the assembler's), or both in one slot for a DoF repeated in
+    an element (added twice)."""
+    from sim_core.ti_kernels.block_projection import TranslationFreeProjector, upper_slot_table
 
     rng = np.random.default_rng(11)
     m, k, nnz = 6, 40, 500
+    n = 3 * m
     projector = TranslationFreeProjector(m)
-    reduced = rng.normal(size=(k, 3 * m - 3, 3 * m - 3))
+    reduced = rng.normal(size=(k, n - 3, n - 3))
     reduced = reduced + reduced.transpose(0, 2, 1)  # indefinite symmetric blocks
-    blocks = np.ascontiguousarray(projector.expanded(reduced) + 1e-3 * rng.normal(size=(k, 3 * m, 3 * m)))
-    slots = rng.integers(-1, nnz, size=(k, 3 * m, 3 * m)).astype(np.int32)
+    noise = rng.normal(size=(k, n, n))
+    blocks = np.ascontiguousarray(projector.expanded(reduced) + 1e-3 * (noise + noise.transpose(0, 2, 1)))
+    slots = rng.integers(-1, nnz, size=(k, n, n)).astype(np.int32)
+    strict_upper = np.triu(np.ones((n, n), dtype=bool), 1)
+    side = rng.random((k, n, n)) < 0.5  # per pair r < s: the upper entry kept, else the lower one
+    slots = np.where(strict_upper & ~side, -1, slots)
+    slots = np.where(strict_upper.T & side.transpose(0, 2, 1), -1, slots).astype(np.int32)
+    slots[3, 1, 4] = slots[3, 4, 1] = slots[3, 1, 1] = slots[3, 4, 4] = 7  # local DoFs 1 and 4 one global DoF
     rows = np.array([3, 0, 17, 39, 5], dtype=np.int32)
     want = np.zeros(nnz)
     projector.add_projected(blocks[rows], projection, slots[rows], want)
     got = np.zeros(nnz)
-    projector.add_projected_rows(blocks, projection, slots, rows, got, method=method)
+    upper = upper_slot_table(slots)
+    projector.add_projected_rows(blocks, projection, upper, rows, got, method=method)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
     with pytest.raises(ValueError, match="add_projected_rows: unknown method 'qr'"):
-        projector.add_projected_rows(blocks, projection, slots, rows, got, method="qr")
+        projector.add_projected_rows(blocks, projection, upper, rows, got, method="qr")
     if projection != "none":  # the projection changed the blocks (they have negative eigenvalues)
         plain = np.zeros(nnz)
         projector.add_projected(blocks[rows], "none", slots[rows], plain)

@@ -446,6 +446,7 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     e_host, g_host, v_host, fused_host = evaluate()
     p_host = fused_host.projected_hessian_values(x, "clamp")
     assert not fused_host._on_device()
+    assert fused_host.projected_hessian_values_device(x, "clamp") is None  # host arrays: no device values
     import sim_core.energies.kirchhoff_bending.fused_kernel as kirchhoff_kernel
     import sim_core.energies.membrane.fused_spring_kernel as spring_kernel
 
@@ -475,3 +476,18 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     p_dev = fused_dev.projected_hessian_values(x, "clamp")
     assert relative_error(p_dev, p_host) < 1e-12
     assert relative_error(p_host, v_host) > 1e-6  # the projection changed the matrix
+    # the values left on the device, the reduced blocks projected there by the Jacobi kernel (as a lockstep batch's
+    # many blocks), of every element and of the elements touching the marked vertices (the last body's)
+    from sim_core.ti_kernels import block_projection
+
+    monkeypatch.setattr(block_projection, "HOST_PROJECTION_MAX_BLOCKS", 0)
+    marked = np.zeros(x.shape[0], dtype=bool)
+    marked[terms[2][2]:] = True
+    for vertices in (None, marked):
+        want = fused_host.projected_hessian_values(x, "abs", vertices)
+        device = fused_dev.projected_hessian_values_device(x, "abs", vertices)
+        assert not isinstance(device, np.ndarray) and device.shape == want.shape
+        assert relative_error(device.to_numpy(), want) < 1e-12
+    assert relative_error(want, p_host) > 1e-6  # the marked body's blocks only
+    with pytest.raises(ValueError, match="projection"):
+        fused_dev.projected_hessian_values_device(x, "flip")
