@@ -52,7 +52,8 @@ class CandidateVertices:
             ``[0, vertex_count)``), or None; with it the compaction (:meth:`batch_layout`) sizes its table without a
             pass over the indices for their range.
         pool: where the vertex arrays are made (:class:`~sim_core.array_pool.ArrayPool`: the blocks of earlier lists
-            that nothing holds any more, written again; a contact set's), or None: fresh arrays. The same values.
+            that nothing holds any more, written again; a contact set's; for int64 lists and elements), or None: fresh
+            arrays. The same values.
 
     Raises:
         IndexError: a triangle or edge row out of range.
@@ -63,7 +64,7 @@ class CandidateVertices:
                  vertex_count: int | None = None, pool: ArrayPool | None = None) -> None:
         self.vt, self.ee = vt, ee
         self._pool = pool
-        if pool is None:
+        if pool is None or not all(a.dtype == np.int64 for a in (vt, ee, triangles, edges)):
             self.vt_vertices = vertex_triangle_vertices(vt, triangles)
             self.ee_vertices = edge_edge_vertices(ee, edges)
         else:
