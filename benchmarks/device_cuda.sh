@@ -122,7 +122,7 @@ TASK=${TASK:-folding_u}
 KT=tests/sim_core/ti_kernels
 KERNEL_TESTS=${KERNEL_TESTS:-$KT/test_launch.py $KT/test_transfer.py $KT/test_fused_elastic.py $KT/test_device_copy.py \
 $KT/test_band_cholesky.py $KT/test_copy_vectors.py $KT/test_device_gradient.py $KT/test_displacement_bounds.py \
-$KT/test_copy_energies.py \
+$KT/test_copy_energies.py $KT/test_compaction.py $KT/test_sorted_pairs.py \
 $KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds \
 $KT/test_block_projection.py::test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds \
 $KT/test_jacobi_projection.py $KT/test_projected_subset.py \
