@@ -58,12 +58,12 @@
 #                          stepped together) --seed $OPT_SEED (0) for B in $OPT_BACKENDS (default taichi-cuda):
 #                          the wall time of optimising one task with a batched population (needs the cma wheel
 #                          in WHEELS)
-#   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
-#                          elastic, device-copy, band-block, per-copy vector, device-gradient, displacement-bound,
-#                          per-copy energy, compaction, sorted-pair, batched CG and CG operator kernel tests, the projection of listed blocks by kernels (Jacobi
-#                          and host LAPACK; the spring membrane's; the Jacobi kernel against LAPACK; the contact
-#                          pair blocks of marked copies left on the device) and the contact pair batch's packed
-#                          launch; a file missing from the tree is an error)
+#   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused elastic,
+#                          device-copy, band-block, per-copy vector, device-gradient, displacement-bound, per-copy
+#                          energy, compaction, sorted-pair, batched CG and CG operator kernel tests, the projection of
+#                          listed blocks by kernels (Jacobi and host LAPACK; the spring membrane's; the Jacobi kernel
+#                          against LAPACK; the contact pair blocks of marked copies left on the device) and the contact
+#                          pair batch's packed launch; a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
 # ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
