@@ -1,11 +1,13 @@
-"""Time the batched CG's band-block factorisation (sim_core.ti_kernels.band_cholesky) phase by phase, at a lockstep
-batch's sizes: the band gathered from the CSR values, the blocked banded elimination with the scaling into ``L``,
-and the inverse ``L^-T L^-1``.
+"""Time the batched CG's band blocks (sim_core.ti_kernels.band_cholesky) at a lockstep batch's sizes: the
+factorisation phase by phase (the band gathered from the CSR values, the blocked banded elimination with the scaling
+into ``L``, and what the product takes of the factor, :meth:`BandBlocks.invert`), then the product ``z = S^-1 r``
+that the CG takes at each iteration (:meth:`BandBlocks.apply`).
 
-Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 384 --w 53 --repeat 3``. The matrix of a
-block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same in every
-copy. Prints ms a phase (mean of ``repeat`` runs, each ended by a synchronisation) and the largest relative error
-of the first block's inverse against NumPy's.
+Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 360 --w 53 --repeat 3 --products 30``. The
+matrix of a block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same
+in every copy. Prints ms a phase (mean of ``repeat`` runs, each ended by a synchronisation), ms a product (mean of
+``products`` after one unmeasured, ended by a synchronisation) and the largest relative error of the first block's
+product against NumPy's solve.
 """
 
 import argparse
@@ -35,15 +37,21 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", default="cpu", help="Taichi arch: cpu or cuda")
     ap.add_argument("--B", type=int, default=64, help="blocks (one a copy)")
-    ap.add_argument("--m", type=int, default=384, help="DoFs a block")
+    ap.add_argument("--m", type=int, default=360, help="DoFs a block")
     ap.add_argument("--w", type=int, default=53, help="half-bandwidth of a block (DoFs)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each phase")
+    ap.add_argument("--products", type=int, default=20, help="products timed")
+    ap.add_argument("--tiles", type=int, default=None,
+                    help="band_cholesky.TILES for this run (the tiled product's largest tile count), where it has one")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
     init_backend(args.arch)
     from sim_core.ti_kernels import band_cholesky as bc
     from sim_core.ti_kernels import device_copy
+
+    if args.tiles is not None:  # read when the kernels compile, below
+        bc.TILES = args.tiles
 
     nb, m = args.B, args.m
     indptr_h, indices_h, data_h, block = banded_csr(nb, m, args.w)
@@ -60,7 +68,7 @@ def main() -> int:
     phases = {
         "band gathered": lambda: blocks.gather(data, None),
         "elimination": blocks.eliminate,
-        "inverse": blocks.invert,
+        "invert": blocks.invert,
     }
     times = {name: 0.0 for name in phases}
     for _ in range(args.repeat):
@@ -73,9 +81,21 @@ def main() -> int:
     for name, total in times.items():
         print(f"B={nb} m={m} w={w} {name:14s} {1e3 * total / args.repeat:9.3f} ms")
     print(f"B={nb} m={m} w={w} {'all':14s} {1e3 * sum(times.values()) / args.repeat:9.3f} ms")
-    first = blocks._inverse.to_numpy()[: m * m].reshape(m, m)
-    exact = np.linalg.inv(block)
-    print(f"first block's inverse: largest relative error {np.abs(first - exact).max() / np.abs(exact).max():.2e}")
+    r_h = np.random.default_rng(0).normal(size=nb * m)
+    r, z, active = (device_copy.new_ndarray(ti.f64, (nb * m,)), device_copy.new_ndarray(ti.f64, (nb * m,)),
+                    device_copy.new_ndarray(ti.i32, (nb,)))
+    r.from_numpy(r_h)
+    active.from_numpy(np.ones(nb, dtype=np.int32))
+    blocks.apply(r, z, active)
+    ti.sync()
+    t = time.perf_counter()
+    for _ in range(args.products):
+        blocks.apply(r, z, active)
+    ti.sync()
+    print(f"B={nb} m={m} w={w} {'product':14s} {1e3 * (time.perf_counter() - t) / max(args.products, 1):9.3f} ms")
+    want = np.linalg.solve(block, r_h[:m])
+    got = z.to_numpy()[:m]
+    print(f"first block's product: largest relative error {np.abs(got - want).max() / np.abs(want).max():.2e}")
     return 0
 
 

@@ -58,12 +58,12 @@
 #                          stepped together) --seed $OPT_SEED (0) for B in $OPT_BACKENDS (default taichi-cuda):
 #                          the wall time of optimising one task with a batched population (needs the cma wheel
 #                          in WHEELS)
-#   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused
-#                          elastic, device-copy, band-block, per-copy vector, device-gradient, displacement-bound
-#                          and per-copy energy kernel tests, the projection of listed blocks by kernels (Jacobi
-#                          and host LAPACK; the spring membrane's; the Jacobi kernel against LAPACK; the contact
-#                          pair blocks of marked copies left on the device) and the contact pair batch's packed
-#                          launch; a file missing from the tree is an error)
+#   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused elastic,
+#                          device-copy, band-block, per-copy vector, device-gradient, displacement-bound, per-copy
+#                          energy, compaction, sorted-pair, batched CG and CG operator kernel tests, the projection of
+#                          listed blocks by kernels (Jacobi and host LAPACK; the spring membrane's; the Jacobi kernel
+#                          against LAPACK; the contact pair blocks of marked copies left on the device) and the contact
+#                          pair batch's packed launch; a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
 # ("1 4 16"), TASK (folding_u), TASK_SIZES ("1 4 16"), PART_TIMEOUT (seconds per benchmark, 170; a
@@ -122,7 +122,7 @@ TASK=${TASK:-folding_u}
 KT=tests/sim_core/ti_kernels
 KERNEL_TESTS=${KERNEL_TESTS:-$KT/test_launch.py $KT/test_transfer.py $KT/test_fused_elastic.py $KT/test_device_copy.py \
 $KT/test_band_cholesky.py $KT/test_copy_vectors.py $KT/test_device_gradient.py $KT/test_displacement_bounds.py \
-$KT/test_copy_energies.py \
+$KT/test_copy_energies.py $KT/test_compaction.py $KT/test_sorted_pairs.py $KT/test_pcg.py $KT/test_device_operator.py \
 $KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds \
 $KT/test_block_projection.py::test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds \
 $KT/test_jacobi_projection.py $KT/test_projected_subset.py \

@@ -564,6 +564,9 @@ def _wrap_parts(backend: str) -> dict:
         from sim_core.ti_kernels.displacement_bounds import DisplacementBounds
 
         parts += [(batch_kernel, "_sorted_found"), (PairBatch, "_device_arguments"), (DisplacementBounds, "__call__")]
+        from sim_core.ti_kernels import compaction
+
+        parts += [(hash_grid, "sorted_on_device"), (compaction, "compact_on_device")]  # (CUDA: the search's device parts)
     # the step's host work outside the Newton loop, and the synchronous copies to and from the device
     from sim_core.batch.stacked import StackedScene
     from sim_core.elastic import ElasticTerms

@@ -25,12 +25,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.backend import uses_taichi
-from sim_core.collision import (CollisionMemory, ContactMemory, PairFilter, edge_edge_candidates,
+from sim_core.collision import (CollisionMemory, PairFilter, edge_edge_candidates,
                                 vertex_triangle_candidates)
 from sim_core.collision.candidates import grouped_box_pairs_hash
 from sim_core.collision.pair_geometry import ListGeometry, PairGeometry, pair_geometry
 from sim_core.collision.rest_exclusion import RestExclusion
+from sim_core.collision.step_sides import step_sides
 from sim_core.coulomb_coefficients import CoulombCoefficients
 from sim_core.energies.base import FrozenPositionsKey, PenaltyContact, declares
 from sim_core.energies.contact.pair_lists import CandidateVertices, lookup_pairs, sheet_vertices_off_solids
@@ -141,6 +143,7 @@ class ContactSet:
         self._released = _NO_RELEASES  # sorted pair keys (vt, ee) unsigned for the step (release_stale_sides)
         self._candidates = None  # (x at the search, vt pairs, ee pairs): positions only, kept across steps
         self._covered = None  # (x at the search, x, covers' answer) of the last covers() of two frozen arrays
+        self._pool = ArrayPool()  # the lists' vertex arrays, reused once no list, potential or cache holds them
         self.min_edge_sine = 0.1
         # searches look ahead along the step's motion (see _search_position)
         self.lookahead = 0.5
@@ -434,40 +437,7 @@ class ContactSet:
         computed)."""
         return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
 
-    @staticmethod
-    def _step_sides(above: np.ndarray, pairs: np.ndarray, geometric: np.ndarray, memory: ContactMemory,
-                    keys: np.ndarray | None = None) -> np.ndarray:
-        """Sides of the step, fixed for all its Newton iterates, shape ``(p,)``.
-
-        A pair above the face (vertex-triangle) or with both closest points interior (edge-edge)
-        at ``x^n`` (``above``) keeps its remembered side, so a vertex that slips through the face
-        during the step is pushed back to where it came from. Any other pair is unsigned (0): at
-        ``x^n`` it is beside its triangle or beyond an end of its edges, where the side of the
-        triangle's plane (of the line-line normal) does not tell which way it is approaching, and a
-        sheet may wrap round a free edge. Before, sides were re-derived at every Newton iterate from
-        its region; the energy then changed from iterate to iterate, and a pair that entered the
-        interior on the geometrically other side of the lines than at ``x^n`` jumped to
-        ``d = -2 eps``, which made Newton cycle (a sysid replay failed at t = 1.87 s).
-
-        Args:
-            above: pairs in the face / interior region at ``x^n``, shape ``(p,)`` bool.
-            pairs: the pairs, shape ``(p, 2)`` (sorted, as the candidate lists: the memory's fast lookup).
-            geometric: their side at ``x^n``, shape ``(p,)``, taken where ``memory`` has none.
-            memory: the side memory of the pairs' kind (only the pairs ``above`` are looked up).
-            keys: ``pairs``' packed keys, sorted and unique (:meth:`CandidateVertices.keys`), or None: the remembered
-                pairs are then placed among them (:meth:`ContactMemory.found_in`) instead of every pair ``above``
-                being looked up; the same sides.
-        """
-        if keys is not None:
-            sides = np.where(above, geometric, 0.0)
-            rows, remembered = memory.found_in(keys)
-            mask = above[rows]
-            sides[rows[mask]] = remembered[mask]
-            return sides
-        sides = np.zeros(len(above))
-        rows = np.flatnonzero(above)
-        sides[rows] = memory.resolve(np.take(pairs, rows, axis=0), geometric[rows])  # (np.take: rows of a 2-D array)
-        return sides
+    _step_sides = staticmethod(step_sides)  # (sim_core.collision.step_sides)
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
                        lists: CandidateVertices | None = None) -> PairGeometry:
@@ -552,9 +522,10 @@ class ContactSet:
         """
         geo = self._candidate_geometry(x_ref, vt, ee)
         vt_keys, ee_keys = self._list_vertices(vt, ee).keys()
-        vt_sides = self._step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys)
+        block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array: the pair batch's (_search)
+        vt_sides = step_sides(geo.vt_above, vt, geo.vt_side, memory.vertex_triangle, vt_keys, block[:len(vt)])
         keep = geo.ee_keep
-        ee_sides = self._step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys)
+        ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
         return vt_sides, keep, ee_sides
 
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
@@ -583,7 +554,10 @@ class ContactSet:
             # optional heavy dependency: Taichi, loaded on a Taichi backend only
             from sim_core.energies.contact.batch_kernel import PairBatch
 
-            PairBatch(*pots, layout=lists.batch_layout(ee_rows))  # one launch evaluates both at each new x
+            # one launch evaluates both at each new x; its sides by layout row are both lists' (0 where a pair is left
+            # out), the one array of _pair_sides unless a release copied a part
+            whole = vt_sides.base if vt_sides.base is not None and vt_sides.base is ee_sides.base else None
+            PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole)
         return pots, ee_rows
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
@@ -595,7 +569,7 @@ class ContactSet:
             known = getattr(self, "_list_keys", None)  # the keys of the search's lists (the same arrays)
             keys = known[2] if known is not None and known[0] is vt and known[1] is ee else (None, None)
             kept = self._vertices_kept = CandidateVertices(vt, ee, self.triangles, self.edges, keys=keys,
-                                                           vertex_count=self.model.vertex_count)
+                                                           vertex_count=self.model.vertex_count, pool=self._pool)
         return kept
 
     def _without_released(self, pairs: np.ndarray, sides: np.ndarray, kind: int) -> np.ndarray:

@@ -63,7 +63,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     from sim_core.energies.contact import setup_kernel as contact_setup
     from sim_core.energies.friction import kernel as friction
     from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
-    from sim_core.ti_kernels import broad_phase, hash_candidates, sweep_candidates
+    from sim_core.ti_kernels import broad_phase, compaction, hash_candidates, sweep_candidates
 
     fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
     contact_distance.compile_kernels()
@@ -72,6 +72,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     broad_phase.compile_kernels()
     sweep_candidates.compile_kernels()
     hash_candidates.compile_kernels()
+    compaction.compile_kernels()
     friction.compile_kernels()
     return time.perf_counter() - t0
 

@@ -1,6 +1,6 @@
 """Exact blocks of a batched Newton matrix on the device, the preconditioner of the batched CG's larger blocks
 (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`), e.g. each copy's sheet: a banded Cholesky factorisation and the
-block's inverse from it.
+block's solve ``S^-1 r`` by tiled substitutions.
 
 A band block is a list of ``m`` DoFs of one copy in a band-limiting order (a sheet's vertices ordered along its long
 axis, so that its bending stencil couples rows at most ``w`` apart). Its matrix ``S = P A P^T`` (``P`` selecting
@@ -11,15 +11,22 @@ found once a pattern. It is factorised ``S = L L^T`` by the banded elimination i
 Loan, Matrix Computations, 4th ed., Alg. 4.3.5), blocked by panels of :data:`PANEL` columns: a panel's columns are
 finished by its own earlier columns, then they update the ``w x w`` window after the panel at once, one thread an
 entry; three device passes a panel instead of one a column, and every entry updated in the column-by-column order
-(the same factor to the bit). ``S^-1 = L^-T L^-1`` is then formed column by column (one thread a column: forward,
-then back substitution, ``(2 m - c) w`` multiply-adds), so that applying it is one dense product a block, one thread
-a row (the substitutions themselves run row after row, a chain too long for a GPU thread at every CG iteration). A
-block whose elimination meets a pivot that is not positive (a band that left out a coupling it needed) is marked
-not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
+(the same factor to the bit). A block whose elimination meets a pivot that is not positive (a band that left out a
+coupling it needed) is marked not usable, and the CG keeps the vertex block-Jacobi preconditioner on its DoFs.
 
-Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``) and the inverse
-``(nb, m, m)``: ``8 m^2`` bytes a block (1.0 MB for a 16 x 8 sheet, ``m = 360``), and the band entries' positions
-in the CSR values, int32 ``(nb, m, w + 1)``.
+The solve ``L^-T L^-1 r`` is taken by tiles of ``t >= w`` rows (:func:`tiling`, at most :data:`TILES` a block), so
+that ``L`` is block lower bidiagonal: diagonal tiles ``D_T`` (lower triangular) and, left of them, ``C_T``. Forward,
+``y_T = D_T^-1 r_T - G_T y_{T-1}`` with ``G_T = D_T^-1 C_T``; back, ``x_T = D_T^-T y_T - H_T x_{T+1}`` with ``H_T =
+D_T^-T C_{T+1}^T`` (block forward and back substitution, Golub & Van Loan, Sec. 3.1 and 4.5). The factorisation
+forms ``D_T^-1``, ``G_T`` and ``H_T`` (one thread a column of a tile, chains of ``t^2 / 2``, then one thread an
+entry); the solve is a pass over every tile for each ``D_T^-1`` product and ``nt - 1`` dependent passes each way
+(one thread a row of a tile, ``t`` multiply-adds), every read coalesced: a dense inverse ``L^-T L^-1`` instead costs
+``m^2`` reads a solve and, to form, a chain of ``2 m w`` dependent steps a column.
+
+Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``), the tiles'
+``D_T^-1``, ``G_T``, ``H_T`` ``(nb, nt, t, t)`` each (0.78 MB a block for a 16 x 8 sheet, ``m = 360``, ``w = 53``,
+``t = 90``, ``nt = 4``; a dense inverse 1.04 MB) and the solve's two scratch vectors ``(nb, nt t)``, and the band
+entries' positions in the CSR values, int32 ``(nb, m, w + 1)``.
 """
 
 import numpy as np
@@ -172,61 +179,181 @@ def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32,
             usable[b] = 0
             d = 1.0
         pivots[b * m + i] = ti.sqrt(d)
-    for b, i in ti.ndrange(nb, m):
-        for k in range(w):
-            j = i - w + k
-            if j >= 0:
-                band[_at(b, i, k, m, w)] /= pivots[b * m + j]
-        band[_at(b, i, w, m, w)] = pivots[b * m + i]
+    for b, i, k in ti.ndrange(nb, m, w + 1):  # one thread an entry (neighbouring threads, neighbouring entries)
+        j = i - w + k
+        if k == w:
+            band[_at(b, i, w, m, w)] = pivots[b * m + i]
+        elif j >= 0:
+            band[_at(b, i, k, m, w)] /= pivots[b * m + j]
 
 
-@ti.kernel
-def _invert(band: _F64, usable: _I32, inverse: _F64, nb: ti.i32, m: ti.i32, w: ti.i32):
-    """Column ``c`` of ``S^-1 = L^-T L^-1`` of each usable block, one thread a column: ``L y = e_c`` forward, then
-    ``L^T x = y`` back, in place in ``inverse[(b m + i) m + c]``. Both sweeps take the rows in the same order in
-    every thread (``y_i = 0`` above row ``c`` is stored, not skipped), so that the threads of a warp, neighbouring
-    columns, read neighbouring addresses of the inverse and one address of the band at each step."""
-    for b, c in ti.ndrange(nb, m):
-        if usable[b] != 0:
-            base = b * m * m
-            for i in range(m):
-                s = 0.0
-                if i >= c:
-                    s = 1.0 if i == c else 0.0
-                    for l in range(ti.max(i - w, 0), i):
-                        s -= band[_at(b, i, l - i + w, m, w)] * inverse[base + l * m + c]
-                    s /= band[_at(b, i, w, m, w)]
-                inverse[base + i * m + c] = s
-            for ii in range(m):
-                i = m - 1 - ii
-                s = inverse[base + i * m + c]
-                for l in range(i + 1, ti.min(i + w, m - 1) + 1):
-                    s -= band[_at(b, l, i - l + w, m, w)] * inverse[base + l * m + c]
-                inverse[base + i * m + c] = s / band[_at(b, i, w, m, w)]
+TILES = 4
+"""Tiles of a block at most (:func:`band_solve`): a block of ``m`` DoFs is cut into ``nt = ceil(m / t)`` tiles of
+``t = max(w, ceil(m / TILES))`` rows, so that its factor couples only neighbouring tiles; the substitutions are
+``TILES - 1`` dependent passes each way (one thread a row of a tile; those past ``nt - 1`` do nothing). Fewer tiles,
+fewer passes but larger ones (about ``3 m t`` entries read a solve). On an H100 at 1024 blocks of ``m = 360``, ``w =
+53`` (Forming's sheet): 4 tiles of 90 rows, a solve 0.41 ms and the tiles formed in 5.1 ms; 7 tiles of 53 rows, 0.58
+and 3.4 ms (the dependent passes' latency outweighs the fewer bytes); a dense inverse, 0.44 and 13.5 ms."""
+
+
+def tiling(m: int, w: int) -> tuple[int, int]:
+    """``(t, nt)``: rows a tile and tiles a block of ``m`` DoFs and half-bandwidth ``w`` (:data:`TILES`)."""
+    t = max(w, -(-m // TILES), 1)
+    return t, -(-m // t)
 
 
 @ti.func
-def band_solve(inverse: ti.template(), usable: ti.template(), band_dof: ti.template(), band_copy: ti.template(),
-               active: ti.template(), r: ti.template(), z: ti.template(), nb: ti.i32, m: ti.i32):
-    """``z = S^-1 r`` on the DoFs of every usable block whose copy is active, one thread a row (``S^-1``
-    symmetric: row ``i`` read as column ``i``, neighbouring threads reading neighbouring addresses). Called at a
-    kernel's top level, it is one device pass."""
-    for b, i in ti.ndrange(nb, m):
-        g = band_dof[b * m + i]
-        if g >= 0 and usable[b] != 0 and active[band_copy[b]] != 0:
-            acc = 0.0
-            for c in range(m):
-                gc = band_dof[b * m + c]
-                if gc >= 0:
-                    acc += inverse[(b * m + c) * m + i] * r[gc]
-            z[g] = acc
+def _factor_entry(band: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, m: ti.i32, w: ti.i32) -> ti.f64:
+    """``L_ij`` of block ``b`` (0 outside the band; on the padding rows ``i >= m`` of the last tile, the identity's)."""
+    v = 0.0
+    if i >= m:
+        if i == j:
+            v = 1.0
+    elif j <= i and i - j <= w:
+        v = band[_at(b, i, w - (i - j), m, w)]
+    return v
 
 
 @ti.kernel
-def _apply(inverse: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, active: _I32, r: _F64, z: _F64,
-           nb: ti.i32, m: ti.i32):
+def _tile_inverses(band: _F64, usable: _I32, diag_inv: _F64, nb: ti.i32, m: ti.i32, w: ti.i32, t: ti.i32,
+                   nt: ti.i32):
+    """Column ``c`` of ``D_T^-1`` of each usable block's tile ``T`` (``D_T`` the factor's diagonal tile, lower
+    triangular), one thread a column: ``D_T y = e_c`` forward, into ``diag_inv[base + a t + c]`` (``base = (b nt
+    + T) t^2``; 0 above the diagonal). Every thread takes the rows ``0 .. t-1`` in the same order (zeros stored, not
+    skipped), so that a warp's threads read neighbouring addresses."""
+    for b, tt, c in ti.ndrange(nb, nt, t):
+        if usable[b] != 0:
+            base = (b * nt + tt) * t * t
+            top = tt * t
+            for a in range(t):
+                s = 0.0
+                if a >= c:
+                    s = 1.0 if a == c else 0.0
+                    for k in range(ti.max(a - w, 0), a):
+                        s -= _factor_entry(band, b, top + a, top + k, m, w) * diag_inv[base + k * t + c]
+                    s /= _factor_entry(band, b, top + a, top + a, m, w)
+                diag_inv[base + a * t + c] = s
+
+
+@ti.kernel
+def _mirror_tiles(diag_inv: _F64, usable: _I32, nb: ti.i32, t: ti.i32, nt: ti.i32):
+    """``diag_inv[base + p t + q] = diag_inv[base + q t + p]`` for ``p < q``: each tile's array then holds
+    ``D_T^-1[a, c]`` at ``c t + a`` (``a >= c``) and ``D_T^-1[c, a]`` at ``c t + a`` (``c >= a``), so that both
+    :func:`band_solve`'s products with ``D_T^-1`` and ``D_T^-T`` read it with neighbouring threads on neighbouring
+    addresses."""
+    for b, tt, p, q in ti.ndrange(nb, nt, t, t):
+        if usable[b] != 0 and p < q:
+            base = (b * nt + tt) * t * t
+            diag_inv[base + p * t + q] = diag_inv[base + q * t + p]
+
+
+@ti.kernel
+def _tile_couplings(band: _F64, usable: _I32, diag_inv: _F64, fwd: _F64, back: _F64, nb: ti.i32, m: ti.i32,
+                    w: ti.i32, t: ti.i32, nt: ti.i32):
+    """The tiles' coupling matrices of each usable block, entry ``(a, c)`` of tile ``T`` at ``base + c t + a``, one
+    thread an entry: ``fwd`` ``G_T = D_T^-1 C_T`` (``T >= 1``) and ``back`` ``H_T = D_T^-T C_{T+1}^T``
+    (``T < nt - 1``), ``C_T`` the factor's tile left of ``D_T`` (rows of tile ``T``, columns of tile ``T - 1``:
+    upper triangular where ``t = w``); 0 elsewhere."""
+    for b, tt, c, a in ti.ndrange(nb, nt, t, t):
+        if usable[b] != 0:
+            base = (b * nt + tt) * t * t
+            top = tt * t
+            g = 0.0
+            if tt >= 1:  # sum_k D^-1[a, k] C_T[k, c], C_T[k, c] = L(top + k, top - t + c) (0 for t + k - c > w)
+                for k in range(ti.min(a, c + w - t) + 1):
+                    g += diag_inv[base + k * t + a] * _factor_entry(band, b, top + k, top - t + c, m, w)
+            fwd[base + c * t + a] = g
+            h = 0.0
+            if tt + 1 < nt:  # sum_k D^-1[k, a] C_{T+1}[c, k], C_{T+1}[c, k] = L(top + t + c, top + k)
+                for k in range(ti.max(t + c - w, 0), t):
+                    if k >= a:
+                        h += diag_inv[base + k * t + a] * _factor_entry(band, b, top + t + c, top + k, m, w)
+            back[base + c * t + a] = h
+
+
+@ti.func
+def _solving(usable: ti.template(), band_copy: ti.template(), active: ti.template(), b: ti.i32) -> ti.i32:
+    """Whether block ``b`` is applied: usable, and its copy active."""
+    return usable[b] != 0 and active[band_copy[b]] != 0
+
+
+@ti.func
+def band_solve(diag_inv: ti.template(), fwd: ti.template(), back: ti.template(), y: ti.template(),
+               x: ti.template(), usable: ti.template(), band_dof: ti.template(), band_copy: ti.template(),
+               active: ti.template(), r: ti.template(), z: ti.template(), nb: ti.i32, m: ti.i32, t: ti.i32,
+               nt: ti.i32):
+    """``z = S^-1 r = L^-T L^-1 r`` on the DoFs of every usable block whose copy is active, by tiles of ``t`` rows
+    (:meth:`BandBlocks.invert`): ``L y = r`` as ``y_T = D_T^-1 r_T - G_T y_{T-1}``, then ``L^T x = y`` as ``x_T =
+    D_T^-T y_T - H_T x_{T+1}``; ``y``, ``x`` scratch of ``nb nt t`` entries. One thread a row of a tile: a pass
+    over every tile (``D_T^-1 r_T``), ``TILES - 1`` dependent passes forward (one tile each), a pass over every
+    tile (``D_T^-T y_T``), ``TILES - 1`` dependent passes back, each writing its tile's rows of ``z``. Called at
+    a kernel's top level, each loop is one device pass."""
+    for b, tt, a in ti.ndrange(nb, nt, t):
+        if _solving(usable, band_copy, active, b):
+            base = (b * nt + tt) * t * t
+            acc = 0.0
+            for c in range(a + 1):
+                i = tt * t + c
+                if i < m:
+                    g = band_dof[b * m + i]
+                    if g >= 0:
+                        acc += diag_inv[base + c * t + a] * r[g]
+            y[(b * nt + tt) * t + a] = acc
+    for tt in ti.static(range(1, TILES)):
+        for b, a in ti.ndrange(nb, t):
+            if tt < nt and _solving(usable, band_copy, active, b):
+                y[(b * nt + tt) * t + a] -= _tile_product(fwd, (b * nt + tt) * t * t, a, y, (b * nt + tt - 1) * t, t)
+    for b, tt, a in ti.ndrange(nb, nt, t):
+        if _solving(usable, band_copy, active, b):
+            base = (b * nt + tt) * t * t
+            acc = 0.0
+            for c in range(t):
+                if c >= a:
+                    acc += diag_inv[base + c * t + a] * y[(b * nt + tt) * t + c]
+            x[(b * nt + tt) * t + a] = acc
+            if tt == nt - 1:
+                _band_out(band_dof, x, z, b, tt, a, m, t, nt)
+    for q in ti.static(range(TILES - 1)):
+        for b, a in ti.ndrange(nb, t):
+            tt = nt - 2 - q
+            if tt >= 0 and _solving(usable, band_copy, active, b):
+                x[(b * nt + tt) * t + a] -= _tile_product(back, (b * nt + tt) * t * t, a, x, (b * nt + tt + 1) * t, t)
+                _band_out(band_dof, x, z, b, tt, a, m, t, nt)
+
+
+CHAIN_UNROLL = 4
+"""Independent partial sums of a thread's product in a dependent pass of :func:`band_solve` (one thread a row of a
+tile, a few warps an SM: its loads issued ahead of the sums they feed)."""
+
+
+@ti.func
+def _tile_product(mat: ti.template(), base: ti.i32, a: ti.i32, v: ti.template(), off: ti.i32, t: ti.i32) -> ti.f64:
+    """``sum_c mat[base + c t + a] v[off + c]`` over ``c < t``, in :data:`CHAIN_UNROLL` partial sums."""
+    acc = ti.Vector.zero(ti.f64, CHAIN_UNROLL)
+    for q in range((t + CHAIN_UNROLL - 1) // CHAIN_UNROLL):
+        for u in ti.static(range(CHAIN_UNROLL)):
+            c = CHAIN_UNROLL * q + u
+            if c < t:
+                acc[u] += mat[base + c * t + a] * v[off + c]
+    return acc.sum()
+
+
+@ti.func
+def _band_out(band_dof: ti.template(), x: ti.template(), z: ti.template(), b: ti.i32, tt: ti.i32, a: ti.i32,
+              m: ti.i32, t: ti.i32, nt: ti.i32):
+    """``z`` at the DoF of row ``tt t + a`` of block ``b`` (none on padding) = its finished entry of ``x``."""
+    i = tt * t + a
+    if i < m:
+        g = band_dof[b * m + i]
+        if g >= 0:
+            z[g] = x[(b * nt + tt) * t + a]
+
+
+@ti.kernel
+def _apply(diag_inv: _F64, fwd: _F64, back: _F64, y: _F64, x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
+           active: _I32, r: _F64, z: _F64, nb: ti.i32, m: ti.i32, t: ti.i32, nt: ti.i32):
     """:func:`band_solve` as a kernel (:meth:`BandBlocks.apply`)."""
-    band_solve(inverse, usable, band_dof, band_copy, active, r, z, nb, m)
+    band_solve(diag_inv, fwd, back, y, x, usable, band_dof, band_copy, active, r, z, nb, m, t, nt)
 
 
 class BandBlocks:
@@ -271,8 +398,9 @@ class BandBlocks:
         self._copy = _device_i32(copy[:, 0])
         self._usable = device_copy.new_ndarray(ti.i32, (self.count,))
         self._pivots = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
-        self._inverse = device_copy.new_ndarray(ti.f64, (self.count * self.size * self.size,))
         self._band = None  # the bands, made once the width is known
+        self.tile, self.tiles = 1, 1  # rows a tile, tiles a block (tiling), set with the width
+        self._tile_arrays = None  # (diag_inv, fwd, back, y, x) of the tiles (invert, band_solve), with the bands
         self._sources = None  # each band entry's position in the CSR data (_band_sources), with the bands
         self._measured_for = None  # the full pattern's device indptr the width was measured on
 
@@ -293,6 +421,11 @@ class BandBlocks:
                 if self._band is None or self._band.shape[0] != size:
                     self._band = device_copy.new_ndarray(ti.f64, (size,))
                     self._sources = device_copy.new_ndarray(ti.i32, (size,))
+                t, nt = tiling(self.size, w)
+                if self._tile_arrays is None or (self.tile, self.tiles) != (t, nt):
+                    self._tile_arrays = tuple(device_copy.new_ndarray(ti.f64, (k,)) for k in
+                                              3 * (self.count * nt * t * t,) + 2 * (self.count * nt * t,))
+                self.tile, self.tiles = t, nt
                 _band_sources(indptr, indices, self._dof, self._pos, self._sources, self.count, self.size, w)
         if not self.width:
             return False
@@ -318,8 +451,13 @@ class BandBlocks:
         _scale_factor(self._band, self._pivots, self._usable, nb, m, w)
 
     def invert(self) -> None:
-        """Each usable block's inverse ``L^-T L^-1`` from its factor."""
-        _invert(self._band, self._usable, self._inverse, self.count, self.size, self.width)
+        """What :func:`band_solve` takes of each usable block's factor ``L``, by tiles of :attr:`tile` rows: each
+        diagonal tile's inverse ``D_T^-1`` and the couplings ``G_T = D_T^-1 C_T``, ``H_T = D_T^-T C_{T+1}^T``."""
+        diag_inv, fwd, back = self._tile_arrays[:3]
+        nb, m, w, t, nt = self.count, self.size, self.width, self.tile, self.tiles
+        _tile_inverses(self._band, self._usable, diag_inv, nb, m, w, t, nt)
+        _mirror_tiles(diag_inv, self._usable, nb, t, nt)
+        _tile_couplings(self._band, self._usable, diag_inv, fwd, back, nb, m, w, t, nt)
 
     @property
     def usable(self) -> np.ndarray:
@@ -327,13 +465,18 @@ class BandBlocks:
         return self._usable.to_numpy().astype(bool)
 
     def arguments(self) -> tuple:
-        """``(inverse, usable, band_dof, band_copy)``: the device arrays :func:`band_solve` takes."""
-        return self._inverse, self._usable, self._dof, self._copy
+        """``(diag_inv, fwd, back, y, x, usable, band_dof, band_copy)``: the device arrays :func:`band_solve`
+        takes (after :meth:`assemble` with a width)."""
+        return (*self._tile_arrays, self._usable, self._dof, self._copy)
+
+    def sizes(self) -> tuple[int, int, int, int]:
+        """``(nb, m, t, nt)``: the sizes :func:`band_solve` takes."""
+        return self.count, self.size, self.tile, self.tiles
 
     def apply(self, r, z, active) -> None:
         """``z = S^-1 r`` on the usable blocks' DoFs of the active copies (device ndarrays ``r``, ``z`` of size
         ``n``, ``active`` int32 per copy); other entries of ``z`` unchanged."""
-        _apply(*self.arguments(), active, r, z, self.count, self.size)
+        _apply(*self.arguments(), active, r, z, *self.sizes())
 
 
 def _device_i32(host: np.ndarray):

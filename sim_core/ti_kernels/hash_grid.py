@@ -27,8 +27,10 @@ lower index, as the reference does. The kernel also applies the candidate exclus
 :mod:`sim_core.ti_kernels.hash_candidates` when given element vertices and rest keys: pairs of
 elements that share a vertex, and same-body pairs whose key ``first << 32 | second`` is in the
 sorted rest-distance keys. The pairs are therefore exactly the reference's; they are returned
-sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort), and the sorted keys are kept
-for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up among them).
+sorted (one ``np.sort`` of int64 keys, the order of the reference's lexsort; on CUDA a counting sort by the first
+index and an insertion sort of each index's few partners on the device, :func:`sorted_on_device`: the same keys), and
+the sorted keys are kept for the caller (:meth:`HashGrid.keys_of`: the contact set's side memory looks its pairs up
+among them).
 
 Loops run serially on the CPU (entries and pairs in box order), in parallel on CUDA (atomic
 counters; the sort makes the result the same). The entry and output buffers are kept by a
@@ -41,12 +43,14 @@ runs again on a larger one.
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.errors import ConfigError
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import copy_back, on_device
 from sim_core.ti_kernels.launch import FastKernel, fast_kernel
 from sim_core.ti_kernels.pair_filters import kept_pair
+from sim_core.ti_kernels.scan import SCAN_CHUNK, running_sums
 
 _F64_1, _F64_2, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.I32_1, linalg.I32_2
 _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
@@ -55,7 +59,6 @@ _KEY_OFFSET = 1 << 20  # cell indices are packed as 21-bit unsigned fields of on
 _CELL_LIMIT = float(1 << 18)  # the cell size keeps |cell index| <= 2^18 + 1
 _WIDEST_CELLS = 256.0  # the widest box overlaps at most 257 cells per axis
 _P1, _P2, _P3 = 73856093, 19349663, 83492791  # Teschner et al. 2003
-_SCAN_CHUNK = 512  # buckets per chunk of the bucket counts' prefix sum (chunks summed in parallel on CUDA)
 # count: [0] pairs found, [1] entries needed, [2] 1 if a coordinate is not finite
 _PAIRS, _ENTRIES, _BAD = 0, 1, 2
 
@@ -130,7 +133,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
     (``bucket_fill.shape[0] = cells * bodies``, cells a power of 2; ``bucket_start``: one longer), so
     a box visits only the entries of the bodies it may touch, and of those only within the cell range
     of the body's bounding box (scratch ``body_box`` ``(bodies, 6)``: lower, upper corner).
-    Scratch ``chunk_total`` ``(ceil(buckets / _SCAN_CHUNK),)``: the bucket counts' prefix sum by chunks.
+    Scratch ``chunk_total`` ``(ceil(buckets / SCAN_CHUNK),)``: the bucket counts' prefix sum by chunks.
     Scratch ``box`` ``(nb, 6)``: B's boxes (lower, upper corner); ``entry_lower`` (as ``entry_item``):
     bit ``d`` set when the entry's cell is its box's lowest along axis ``d``. ``scale``: scratch,
     ``[cell size, 1 / cell size, sum of box widths, widest box, largest |coordinate|]``; the
@@ -204,29 +207,7 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                 for c1 in range(lo[1], hi[1] + 1):
                     for c2 in range(lo[2], hi[2] + 1):
                         ti.atomic_add(bucket_start[_bucket(c0, c1, c2, mask) * bodies + body_j + 1], 1)
-    # prefix sum of the counts in chunks of _SCAN_CHUNK buckets: the chunks' totals (in parallel), their
-    # exclusive prefix sum (one thread), then each chunk's running sum from its offset (in parallel)
-    chunks = (buckets + _SCAN_CHUNK - 1) // _SCAN_CHUNK
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(chunks):
-        total = 0
-        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
-            total += bucket_start[h + 1]
-        chunk_total[k] = total
-    ti.loop_config(serialize=True)  # one thread; never the CPU thread pool (a forked worker hangs there)
-    for _ in range(1):
-        total = 0
-        for k in range(chunks):
-            part = chunk_total[k]
-            chunk_total[k] = total
-            total += part
-        count[_ENTRIES] = total
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for k in range(chunks):
-        total = chunk_total[k]
-        for h in range(k * _SCAN_CHUNK, ti.min((k + 1) * _SCAN_CHUNK, buckets)):
-            total += bucket_start[h + 1]
-            bucket_start[h + 1] = total
+    running_sums(bucket_start, buckets, chunk_total, count, _ENTRIES)  # the buckets' offsets, the entries needed
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(buckets):
         bucket_fill[h] = bucket_start[h]
@@ -293,19 +274,97 @@ def _hash_pairs(x: _F64_2, a_vertices: _I32_2, a_body: _I32_1, a_key: _I32_1, b_
                                         out[k, 1] = pair[2]
 
 
-def sorted_pairs_and_keys(out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@fast_kernel
+def _sort_pairs(out: _I32_2, found: ti.i32, first_count: ti.i32, start: _I32_1, fill: _I32_1, chunk_total: _I32_1,
+                keys: _I64_1):
+    """``keys[:found]``: the packed keys ``first << 32 | second`` of the rows ``out[:found]`` (int32
+    ``[first, second]``, distinct, ``0 <= first < first_count``, ``second >= 0``), increasing: a counting sort of the
+    rows by ``first`` (``start`` ``(first_count + 1,)``: each first's run, by the counts' running sums,
+    :func:`~sim_core.ti_kernels.scan.running_sums`; ``fill`` ``(first_count,)``: the runs' next free slots), then
+    each run sorted by insertion in one thread (a run is the candidates of one vertex or edge: tens). Scratch ``chunk_total``
+    ``(ceil(first_count / SCAN_CHUNK),)``. The result does not depend on the threads' order."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for a in range(first_count + 1):
+        start[a] = 0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(found):
+        ti.atomic_add(start[out[k, 0] + 1], 1)
+    running_sums(start, first_count, chunk_total, fill, 0)  # the runs' offsets (the total into fill[0], set below)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for a in range(first_count):
+        fill[a] = start[a]
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for k in range(found):
+        first = out[k, 0]
+        slot = ti.atomic_add(fill[first], 1)
+        keys[slot] = (ti.cast(first, ti.i64) << 32) | ti.cast(out[k, 1], ti.i64)
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for a in range(first_count):
+        low = start[a]
+        for s in range(low + 1, start[a + 1]):
+            key = keys[s]
+            t = s
+            while t > low and keys[t - 1] > key:
+                keys[t] = keys[t - 1]
+                t -= 1
+            keys[t] = key
+
+
+def sorted_pairs_and_keys(out: np.ndarray, pool: ArrayPool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(pairs, keys)``: the int64 ``(p, 2)`` rows of ``out`` ``(p, 2)`` (int32, non-negative) sorted by first, then
     second column, and their packed keys ``first << 32 | second``, int64 ``(p,)`` in the same order (one sort of the
     keys, built and split in place: no temporaries of the 1.75 million pairs of 1024 stacked Forming copies; the keys
-    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in)."""
-    keys = out[:, 0].astype(np.int64)
+    are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in).
+    ``pool``: where the two arrays are made (:class:`~sim_core.array_pool.ArrayPool`, a grid's: blocks of earlier
+    searches that nothing holds any more), or None: fresh arrays."""
+    if pool is None:
+        keys = out[:, 0].astype(np.int64)
+    else:
+        keys = pool.empty("keys", (len(out),), np.int64)
+        np.copyto(keys, out[:, 0], casting="unsafe")
     keys <<= 32
     keys |= out[:, 1]
     keys.sort()
-    pairs = np.empty((len(keys), 2), dtype=np.int64)
+    return _pairs_of(keys, pool), keys
+
+
+def _pairs_of(keys: np.ndarray, pool: ArrayPool | None) -> np.ndarray:
+    """The int64 pairs ``(p, 2)`` ``[first, second]`` of packed keys ``first << 32 | second`` ``(p,)`` (non-negative),
+    in an array of ``pool`` (or a fresh one)."""
+    pairs = np.empty((len(keys), 2), dtype=np.int64) if pool is None else pool.empty("pairs", (len(keys), 2), np.int64)
     np.right_shift(keys, 32, out=pairs[:, 0])
     np.bitwise_and(keys, 0xFFFFFFFF, out=pairs[:, 1])
-    return pairs, keys
+    return pairs
+
+
+def sorted_on_device(out, found: int, first_count: int, device: dict, pool: ArrayPool | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sorted_pairs_and_keys` of the rows ``out[:found]`` where ``out`` is (int32 ``(capacity, 2)``, distinct
+    rows, first column in ``[0, first_count)``: a Taichi ndarray in device memory on CUDA, else a NumPy array), sorted
+    there by one launch of :func:`_sort_pairs`; only the sorted keys are copied back (the host sort of a 1024-copy
+    Forming batch's 1.8 million keys took 43 ms on an H100's host: docs/benchmarks_log.md, session 45, 28grad). The
+    same arrays. ``device``: the cache of the kernel's work arrays (:func:`~sim_core.ti_kernels.buffers.on_device`);
+    ``pool``: as :func:`sorted_pairs_and_keys`'."""
+    arrays = device.setdefault("sort_host", {})
+    starts = arrays.get("start")
+    if starts is None or starts.shape[0] < first_count + 1:
+        arrays["start"] = np.zeros(first_count + 1 + first_count // 4, dtype=np.int32)
+        arrays["fill"] = np.zeros(arrays["start"].shape[0], dtype=np.int32)
+        arrays["chunk_total"] = np.zeros(-(-arrays["start"].shape[0] // SCAN_CHUNK), dtype=np.int32)
+    if arrays.get("keys") is None or arrays["keys"].shape[0] < found:
+        arrays["keys"] = np.zeros(max(found + found // 4, 16), dtype=np.int64)
+    work = [on_device(device, f"sort_{name}", arrays[name], scratch=True)
+            for name in ("start", "fill", "chunk_total", "keys")]
+    _sort_pairs(out, int(found), int(first_count), *work)
+    kept = copy_back(arrays["keys"], work[3], found)[:found]
+    keys = kept.copy() if pool is None else _copied(pool.empty("keys", (found,), np.int64), kept)
+    return _pairs_of(keys, pool), keys
+
+
+def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``out`` holding ``values``."""
+    np.copyto(out, values)
+    return out
 
 
 def _power_of_two(n: int) -> int:
@@ -321,8 +380,9 @@ class HashGrid:
     launches through its own :class:`~sim_core.ti_kernels.launch.FastKernel` of the one compiled
     kernel, whose launch plan keeps its arrays bound (:mod:`sim_core.ti_kernels.launch`), so the
     contact set's two grids, searched in turn, do not re-bind each other's arrays at every launch.
-    On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), and copies back only the
-    pair count and the pairs (the scale the kernel computes stays there).
+    On CUDA the grid keeps them in device memory instead (:meth:`_on_device`), sorts the pairs there
+    (:func:`sorted_on_device`) and copies back only the pair count and the sorted keys (the scale the kernel computes
+    stays there).
 
     Args:
         cell_scale: the factor of the cell size's mean-width term (:func:`_hash_pairs`).
@@ -344,6 +404,7 @@ class HashGrid:
         self.cell_scale = cell_scale
         self.count = np.zeros(3, dtype=np.int32)
         self._last: tuple | None = None  # (pairs, keys) of the last search (keys_of)
+        self._pool = ArrayPool()  # the sorted pairs and keys, reused once no list or cache holds them
 
     def pairs(self, x: np.ndarray, a_vertices: np.ndarray, a_body: np.ndarray, a_key: np.ndarray,
               b_vertices: np.ndarray | None, b_body: np.ndarray | None, allowed: np.ndarray, rest_keys: np.ndarray,
@@ -383,7 +444,7 @@ class HashGrid:
         if self.bucket_fill.shape[0] != buckets:
             self.bucket_fill = np.zeros(buckets, dtype=np.int32)
             self.bucket_start = np.zeros(buckets + 1, dtype=np.int32)
-            self.chunk_total = np.zeros(-(-buckets // _SCAN_CHUNK), dtype=np.int32)
+            self.chunk_total = np.zeros(-(-buckets // SCAN_CHUNK), dtype=np.int32)
         if self.box.shape[0] != nb:
             self.box = np.zeros((nb, 6), dtype=np.float64)
         if self.entry_item.shape[0] < 4 * nb:
@@ -398,9 +459,9 @@ class HashGrid:
             if current_arch() == "cuda":
                 arrays = self._on_device(arrays)
             self._launch(*arrays[:8], float(radius), self.cell_scale, int(same), *arrays[8:])
-            if arrays[0] is not positions:  # the outputs read here, copied back from the device (the pairs found only)
+            on_gpu = arrays[0] is not positions
+            if on_gpu:  # the count copied back from the device (the pairs are sorted there, below)
                 copy_back(self.count, arrays[17])
-                copy_back(self.out, arrays[16], min(int(self.count[_PAIRS]), self.out.shape[0]))
             if self.count[_BAD]:
                 raise ConfigError("spatial-hash broad phase: bounding boxes contain NaN or infinite coordinates")
             entries, found = int(self.count[_ENTRIES]), int(self.count[_PAIRS])
@@ -410,9 +471,21 @@ class HashGrid:
             if found > self.out.shape[0]:
                 self.out = np.empty((found + found // 4, 2), dtype=np.int32)
                 continue
-            pairs, keys = sorted_pairs_and_keys(self.out[:found])
+            if on_gpu:
+                first_count = a_vertices.shape[0] if same else self._first_count(a_key)
+                pairs, keys = sorted_on_device(arrays[16], found, first_count, self.__dict__["_device"], self._pool)
+            else:
+                pairs, keys = sorted_pairs_and_keys(self.out[:found], self._pool)
             self._last = (pairs, keys)
             return pairs
+
+    def _first_count(self, a_key: np.ndarray) -> int:
+        """``max(a_key) + 1`` (the bound of the pairs' first column between two sets), kept per ``a_key`` object
+        (the element lists are never edited in place)."""
+        kept = getattr(self, "_first_bound", None)
+        if kept is None or kept[0] is not a_key:
+            kept = self._first_bound = (a_key, int(a_key.max()) + 1 if len(a_key) else 0)
+        return kept[1]
 
     def keys_of(self, pairs: np.ndarray) -> np.ndarray | None:
         """The packed keys ``first << 32 | second`` (int64 ``(p,)``, increasing) of ``pairs`` when they are the array
@@ -511,3 +584,4 @@ def compile_kernels() -> None:
     """
     lo = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     grouped_box_pairs(lo, lo + 1.0, np.zeros(2, np.int32), None, None, None, 0.1, np.ones((1, 1), bool))
+    sorted_on_device(np.array([[1, 0], [0, 2]], dtype=np.int32), 2, 2, {})  # (CUDA's sort of the pairs)

@@ -25,7 +25,7 @@ top-level loops, which Taichi runs one after the other on the device):
   copy's vertices (listed copy by copy, made once per segmentation) and adding its partial sum once;
 * the update ``x += alpha_c p``, ``r -= alpha_c Ap``, ``z = M^-1 r`` with each copy's own
   ``alpha_c = r.z / p.Ap``, and per copy ``r.z`` and ``r.r``, by the same threads (with band blocks: ``z`` on
-  their DoFs by a pass of one thread a block row, then per copy ``r.z`` by a pass of its own);
+  their DoFs by the band blocks' tiled substitutions, then per copy ``r.z`` by a pass of its own);
 * per copy: ``beta_c``, and the copy stops when ``|r_c| <= rtol |b_c|`` (or after ``p.Ap <= 0``:
   a matrix not positive definite on that copy, which :attr:`BatchedPCG.indefinite` reports);
 * ``p = z + beta_c p``.
@@ -258,10 +258,11 @@ def _launches_before_test(previous: int) -> int:
 
 
 @ti.kernel
-def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, band: _F64,
-                  usable: _I32, band_dof: _I32, band_copy: _I32, n: ti.i32, copies: ti.i32, nb: ti.i32, m: ti.i32):
+def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, diag_inv: _F64,
+                  fwd: _F64, back: _F64, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
+                  n: ti.i32, copies: ti.i32, nb: ti.i32, m: ti.i32, tile: ti.i32, tiles: ti.i32):
     """After :func:`_start`: ``z = p = M^-1 r`` with the band blocks' solves on their DoFs, per copy ``rz = r.z``."""
-    band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
+    band_solve(diag_inv, fwd, back, sub_y, sub_x, usable, band_dof, band_copy, active, r, z, nb, m, tile, tiles)
     for c in range(copies):
         rz[c] = 0.0
     copy_sums(r, z, rz, active, order, start, copies)
@@ -274,8 +275,8 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                    inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
                    rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
                    done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32,
-                   band: _F64, usable: _I32, band_dof: _I32, band_copy: _I32, nb: ti.i32, m: ti.i32,
-                   banded: ti.template()):
+                   diag_inv: _F64, fwd: _F64, back: _F64, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32,
+                   band_copy: _I32, nb: ti.i32, m: ti.i32, tile: ti.i32, tiles: ti.i32, banded: ti.template()):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
     ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
     ``order[start[c]:start[c + 1]]``. Each top-level loop is one device pass, run in order: ``Ap`` (``ap``
@@ -321,7 +322,7 @@ def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I
                     ti.atomic_add(rz_new[c], rz_acc)
                 ti.atomic_add(rr[c], rr_acc)
         if ti.static(banded):  # z = L^-T L^-1 r on the band blocks' DoFs, then per copy r.z
-            band_solve(band, usable, band_dof, band_copy, active, r, z, nb, m)
+            band_solve(diag_inv, fwd, back, sub_y, sub_x, usable, band_dof, band_copy, active, r, z, nb, m, tile, tiles)
             copy_sums(r, z, rz_new, active, order, start, copies)
         for c in range(copies):
             b = 0.0
@@ -629,12 +630,11 @@ class BatchedPCG:
         return self._full
 
     def _band_arguments(self) -> tuple:
-        """The band blocks' device arrays for the CG kernels, then ``(nb, m)``; placeholders when unused."""
+        """The band blocks' device arrays for the CG kernels, then ``(nb, m, t, nt)``; placeholders when unused."""
         if self._banded:
-            bands = self.bands
-            return (*bands.arguments(), (bands.count, bands.size))
+            return (*self.bands.arguments(), self.bands.sizes())
         one_f, one_i = self._array("band_none", 1), self._array("band_none_i", 1, ti.i32)
-        return one_f, one_i, one_i, one_i, (0, 1)
+        return one_f, one_f, one_f, one_f, one_f, one_i, one_i, one_i, (0, 1, 1, 1)
 
     def _operator(self) -> tuple:
         a = self._arrays

@@ -294,13 +294,18 @@ class PairBatch:
             shared, with its device copies, by every batch over the list; its ``rows`` ``(p + q,)``, the
             vertex-triangle pairs first as rows ``0 .. p - 1``), or None: the compaction of these pairs'
             vertices (:func:`~sim_core.unique.compact_indices`), made here.
+        sides: with ``layout``, the pairs' sides by row of its ``local`` (float64 ``(len(local),)``: ``vt``'s, then
+            each edge-edge candidate's, ``ee``'s at the rows ``layout.ee_rows``, any value elsewhere: never read) when
+            the caller has them in one array (the contact set's step sides), taken as they are (never written); None:
+            made here from the potentials' sides.
 
     Pairs and sides are fixed at construction (as the potentials' are); each potential's own ``eps``
     is read at every evaluation. The kernel reads pair ``k``'s vertices and side at row ``layout.rows[k]``.
 
     Raises:
         ConfigError: the Taichi backend is not initialised.
-        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows.
+        ValueError: a ``layout`` whose rows are not the vertex-triangle rows ``0 .. p - 1`` and then ``q`` rows, or
+            ``sides`` not float64 of the layout's rows.
     """
 
     two_pass: bool | None = None
@@ -328,7 +333,7 @@ class PairBatch:
     :data:`PACKED_MAX_PAIRS` pairs (a single environment, whose Newton matrix is assembled on the host; the kernel
     orders the active pairs in ``a^2`` comparisons). The values are the same."""
 
-    def __init__(self, vt, ee, layout: BatchLayout | None = None) -> None:
+    def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None) -> None:
         require_backend("PairBatch")
         self.vt, self.ee = vt, ee
         self.split = p = int(vt.vertices.shape[0])
@@ -342,12 +347,18 @@ class PairBatch:
                 or (count > p and rows[p] < p)):
             raise ValueError(f"PairBatch: a layout of {len(rows)} rows ({len(layout.ee_rows)} edge-edge) for {p} + "
                              f"{count - p} pairs, or the vertex-triangle pairs not its first rows")
-        self.own, self._local_vertices, self._lists_device = layout.own, layout.local, layout.device
+        self.own, self._layout = layout.own, layout
         self._all = rows  # launch row i (every pair) -> the pair's row of the layout
         # the sides by layout row (rows of candidates outside the batch: 0, never read)
-        self.sides = np.zeros(len(layout.local))
-        self.sides[:p] = vt.sides
-        self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
+        if sides is not None:
+            if sides.shape != (layout.local.shape[0],) or sides.dtype != np.float64:
+                raise ValueError(f"PairBatch: sides of shape {sides.shape} ({sides.dtype}) for a layout of "
+                                 f"{layout.local.shape[0]} rows")
+            self.sides = sides
+        else:
+            self.sides = np.zeros(layout.local.shape[0])
+            self.sides[:p] = vt.sides
+            self.sides[p:][layout.ee_rows] = ee.sides  # (int64 rows: no index conversion)
         self._x_own: np.ndarray | None = None  # off CUDA: the kernel's positions of ``own`` (_own_positions)
         self._device: dict = {}  # on CUDA: device copies of the pairs and device work arrays (buffers.on_device)
         self._device_x: tuple | None = None  # on CUDA: (positions key, device positions)
@@ -368,7 +379,7 @@ class PairBatch:
         gradients = (on_device(shared, "gradients", _ARRAYS.rows("gradients", gradient_rows, (3,)), scratch=True)
                      if derivatives else None)
         return (self._device_positions(x, key, x_device),
-                on_device(self._lists_device, "vertices", self._local_vertices), on_device(dev, "sides", self.sides), z,
+                self._layout.local_on_device(), on_device(dev, "sides", self.sides), z,
                 gradients)
 
     def _device_positions(self, x: np.ndarray, key: tuple, x_device):
@@ -456,14 +467,14 @@ class PairBatch:
             names = ("z", "d", "region", "grad", "hess", "gradients", "slots", "active_count", "packed")
             arrays = tuple(on_device(device, name, host, scratch=True) for name, host in zip(names, arrays))
             if x_device is None:  # the lists' vertices, kept with them (as the other launches read them)
-                x_arg, vertices = self._device_positions(x, key, None), on_device(self._lists_device, "vertices",
-                                                                                 self._local_vertices)
+                x_arg, vertices = self._device_positions(x, key, None), self._layout.local_on_device()
             else:
                 x_arg, vertices = x_device, rows_on_device(device, "packed_vertices_every", self._every_vertex())
             sides, rows_arg = (rows_on_device(device, "packed_sides", self.sides),
                                rows_on_device(device, "packed_rows", self._all))
         else:
-            x_arg, vertices, sides, rows_arg = self._own_positions(x, None), self._local_vertices, self.sides, self._all
+            x_arg, vertices, sides, rows_arg = (self._own_positions(x, None), self._layout.host_local(), self.sides,
+                                                self._all)
         _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
                        float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
         read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
@@ -505,7 +516,7 @@ class PairBatch:
         """The layout's vertices (every row of ``local``, the pairs' at their rows) as indices of every vertex, int32,
         made once per batch (the packed kernel's where it reads the positions of every vertex)."""
         if self._vertices_every is None:
-            self._vertices_every = np.take(self.own, self._local_vertices).astype(np.int32)
+            self._vertices_every = np.take(self.own, self._layout.host_local()).astype(np.int32)
         return self._vertices_every
 
     def _launch(self, x: np.ndarray, key: tuple, x_device, rows: np.ndarray, derivatives: bool, device_hessian: bool,
@@ -553,7 +564,7 @@ class PairBatch:
                                                      (("grad_unused", grad_arg), ("hess_unused", hess_arg),
                                                       ("gradients_unused", gradients_arg)))
         else:
-            x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._local_vertices,
+            x_arg, vertices_arg, sides_arg, rows_arg = (self._own_positions(x, x_device), self._layout.host_local(),
                                                         self.sides, kept_rows)
             z = _ARRAYS.rows("z", m, (4, 3))
         if device_hessian:  # a new array per launch: an earlier evaluation's rows stay valid

@@ -22,8 +22,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sim_core.array_pool import ArrayPool
 from sim_core.energies.contact.reference import edge_edge_vertices, vertex_triangle_vertices
 from sim_core.unique import compact_indices
+
+
+DEVICE_INDEX_NAMES = ("geometry_vt", "geometry_ee")
+"""The names of a list's int32 vertices (:meth:`CandidateVertices.int32_vertices`) in its device cache
+(:attr:`CandidateVertices.device`), under which every kernel that reads them finds their device copies."""
 
 
 class CandidateVertices:
@@ -45,14 +51,24 @@ class CandidateVertices:
         vertex_count: the number of vertices (every index of ``vt``'s first column, ``triangles`` and ``edges`` lies in
             ``[0, vertex_count)``), or None; with it the compaction (:meth:`batch_layout`) sizes its table without a
             pass over the indices for their range.
+        pool: where the vertex arrays are made (:class:`~sim_core.array_pool.ArrayPool`: the blocks of earlier lists
+            that nothing holds any more, written again; a contact set's; for int64 lists and elements), or None: fresh
+            arrays. The same values.
+
+    Raises:
+        IndexError: a triangle or edge row out of range.
     """
 
     def __init__(self, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
                  keys: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-                 vertex_count: int | None = None) -> None:
+                 vertex_count: int | None = None, pool: ArrayPool | None = None) -> None:
         self.vt, self.ee = vt, ee
-        self.vt_vertices = vertex_triangle_vertices(vt, triangles)
-        self.ee_vertices = edge_edge_vertices(ee, edges)
+        self._pool = pool
+        if pool is None or not all(a.dtype == np.int64 for a in (vt, ee, triangles, edges)):
+            self.vt_vertices = vertex_triangle_vertices(vt, triangles)
+            self.ee_vertices = edge_edge_vertices(ee, edges)
+        else:
+            self.vt_vertices, self.ee_vertices = _pooled_vertices(pool, vt, ee, triangles, edges)
         self._compact: tuple | None = None
         self._int32: tuple | None = None
         self._given_keys = keys
@@ -68,7 +84,11 @@ class CandidateVertices:
         """:attr:`vt_vertices` and :attr:`ee_vertices` as C-contiguous int32 arrays ``(p, 4)``, ``(q, 4)`` (the
         geometry kernel's indices, :func:`~sim_core.energies.contact.setup_kernel.pair_geometry`), made once."""
         if self._int32 is None:
-            self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+            if self._pool is None:
+                self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
+            else:
+                self._int32 = tuple(_copied(self._pool.empty(name, v.shape, np.int32), v)
+                                    for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
         return self._int32
 
     def keys(self) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -85,8 +105,7 @@ class CandidateVertices:
         ``ee_rows`` (int ``(r,)``, increasing), in that order; the compaction of every candidate's vertices is made on
         first use and kept."""
         if self._compact is None:
-            self._compact = compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32,
-                                            size=self._vertex_count)
+            self._compact = self._compaction()
         own, local = self._compact
         p = len(self.vt_vertices)
         ee_rows = np.asarray(ee_rows, dtype=np.int64)
@@ -94,6 +113,47 @@ class CandidateVertices:
         rows[:p] = np.arange(p, dtype=np.int32)
         np.add(ee_rows, p, out=rows[p:], casting="unsafe")
         return BatchLayout(own, local, rows, ee_rows, self.device)
+
+    def _compaction(self) -> tuple[np.ndarray, object]:
+        """``(own, local)`` of every candidate's vertices (:func:`~sim_core.unique.compact_indices`): on CUDA, with the
+        vertex count known, made where the lists' int32 vertices are kept (:attr:`device`, under
+        :data:`DEVICE_INDEX_NAMES`; :func:`~sim_core.ti_kernels.compaction.compact_on_device`: ``local`` stays there),
+        else on the host. The same values."""
+        if self._vertex_count is not None and len(self.vt) + len(self.ee):
+            # optional heavy dependency: Taichi, loaded on a Taichi backend only (where pair batches are made)
+            from sim_core.ti_backend import current_arch
+
+            if current_arch() == "cuda":
+                from sim_core.ti_kernels.compaction import compact_on_device
+
+                return compact_on_device(*self.int32_vertices(), self._vertex_count, self.device, DEVICE_INDEX_NAMES)
+        return compact_indices((self.vt_vertices, self.ee_vertices), dtype=np.int32, size=self._vertex_count)
+
+
+def _pooled_vertices(pool: ArrayPool, vt: np.ndarray, ee: np.ndarray, triangles: np.ndarray, edges: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~sim_core.energies.contact.reference.vertex_triangle_vertices` and
+    :func:`~sim_core.energies.contact.reference.edge_edge_vertices` (int64 ``(p, 4)``, ``(q, 4)``; the same values)
+    written into arrays of ``pool``; the rows checked to lie in ``triangles`` and ``edges`` first (the gathers into
+    given arrays do not check them).
+
+    Raises:
+        IndexError: a triangle or edge row out of range."""
+    for rows, count in ((vt[:, 1], len(triangles)), (ee, len(edges))):
+        if len(rows) and (rows.min() < 0 or rows.max() >= count):
+            raise IndexError(f"CandidateVertices: a row out of range [0, {count})")
+    vt_vertices = pool.empty("vt_vertices", (len(vt), 4), np.int64)
+    vt_vertices[:, 0] = vt[:, 0]
+    np.take(triangles, vt[:, 1], axis=0, out=vt_vertices[:, 1:], mode="clip")  # (clip: no buffered copy; checked)
+    ee_vertices = pool.empty("ee_vertices", (len(ee), 4), np.int64)
+    np.take(edges, ee, axis=0, out=ee_vertices.reshape(-1, 2, 2), mode="clip")
+    return vt_vertices, ee_vertices
+
+
+def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``out`` holding ``values`` (converted to its dtype)."""
+    np.copyto(out, values, casting="unsafe")
+    return out
 
 
 def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
@@ -119,7 +179,8 @@ class BatchLayout(NamedTuple):
     Attributes:
         own: int64 ``(u,)``, the sorted distinct vertices every candidate names (a superset of the batch's).
         local: int32 ``(p + q, 4)``, every candidate's vertices (the vertex-triangle list's, then the edge-edge
-            list's) as positions in ``own``.
+            list's) as positions in ``own``: a NumPy array, or on CUDA a Taichi ndarray in device memory where the
+            compaction was made there (:meth:`local_on_device`, :meth:`host_local`).
         rows: int32 ``(p + r,)``, the batch's pairs as rows of ``local`` (the vertex-triangle pairs ``0 .. p - 1``
             first: a row below ``p`` is a vertex-triangle pair).
         ee_rows: int64 ``(r,)``, the batch's edge-edge pairs as rows of the edge-edge list (``rows[p:] - p``).
@@ -127,10 +188,30 @@ class BatchLayout(NamedTuple):
     """
 
     own: np.ndarray
-    local: np.ndarray
+    local: object
     rows: np.ndarray
     ee_rows: np.ndarray
     device: dict
+
+    def local_on_device(self) -> object:
+        """:attr:`local` where a launch reads it: on CUDA a Taichi ndarray in device memory (a NumPy ``local`` sent
+        once per list, kept in :attr:`device`), elsewhere the NumPy array."""
+        if not isinstance(self.local, np.ndarray):
+            return self.local
+        # optional heavy dependency: Taichi, loaded on a Taichi backend only (where pair batches are made)
+        from sim_core.ti_kernels.buffers import on_device
+
+        return on_device(self.device, "vertices", self.local)
+
+    def host_local(self) -> np.ndarray:
+        """:attr:`local` as a NumPy int32 array ``(p + q, 4)`` (one kept in device memory copied back once per
+        list)."""
+        if isinstance(self.local, np.ndarray):
+            return self.local
+        kept = self.device.get("host_local")
+        if kept is None or kept[0] is not self.local:
+            kept = self.device["host_local"] = (self.local, self.local.to_numpy())
+        return kept[1]
 
 
 def sheet_vertices_off_solids(vt: np.ndarray, keys: np.ndarray | None, sheet_vertex: np.ndarray,

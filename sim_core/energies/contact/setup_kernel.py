@@ -31,6 +31,7 @@ import numpy as np
 from sim_core.collision.pair_geometry import ListGeometry, PairGeometry
 from sim_core.energies.base import FrozenPositionsKey
 from sim_core.energies.contact import distance_kernel as cd
+from sim_core.energies.contact.pair_lists import DEVICE_INDEX_NAMES
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import LaunchArrays, copy_back, on_device
@@ -189,10 +190,10 @@ def pair_geometry(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarra
     require_backend("contact set-up kernels")
     p, q = len(vt_vertices), len(ee_vertices)
     indices, constant = [], {}
-    for position, name, given in ((1, "vt", vt_vertices), (3, "ee", ee_vertices)):
+    for position, name, given in ((1, DEVICE_INDEX_NAMES[0], vt_vertices), (3, DEVICE_INDEX_NAMES[1], ee_vertices)):
         if device is not None and len(given):  # the given array itself (an empty one: a kept array)
             indices.append(_int32_rows(given))
-            constant[position] = (device, f"geometry_{name}")
+            constant[position] = (device, name)
         else:
             indices.append(_kept_indices(name, given))
     vt, ee = indices
@@ -219,10 +220,10 @@ def pair_codes(x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray, 
     require_backend("contact set-up kernels")
     p, q = len(vt_vertices), len(ee_vertices)
     indices, constant = [], {}
-    for position, name, given in ((1, "vt", vt_vertices), (3, "ee", ee_vertices)):
+    for position, name, given in ((1, DEVICE_INDEX_NAMES[0], vt_vertices), (3, DEVICE_INDEX_NAMES[1], ee_vertices)):
         if len(given):
             indices.append(_int32_rows(given))
-            constant[position] = (device, f"geometry_{name}")
+            constant[position] = (device, name)
         else:
             indices.append(_kept_indices(name, given))
     vt, ee = indices

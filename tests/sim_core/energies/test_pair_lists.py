@@ -79,6 +79,10 @@ def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
         got = ContactSet._step_sides(above, pairs, geometric, memory, k)
         assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
         assert np.any(got[above] != geometric[above])  # remembered sides taken
+        for keys_given in (None, k):  # written into a given array (part of a larger one, holding other values before)
+            block = np.full(len(pairs) + 3, 5.0)
+            written = ContactSet._step_sides(above, pairs, geometric, memory, keys_given, block[2:-1])
+            assert written.base is block and written.tobytes() == want.tobytes() and block[0] == block[-1] == 5.0
 
 
 def test_potentials_given_their_vertices_equal_those_that_compute_them():

@@ -107,8 +107,8 @@ def test_each_block_is_applied_as_its_exact_inverse_with_the_vertex_blocks_in_it
 
 
 def test_blocks_of_many_panels_are_inverted_exactly_as_their_values_change(ti_cpu):
-    """Blocks of several elimination panels and launches (one padded), as two Newton matrices of one pattern: the
-    second assembly re-uses the first's band positions; each block's inverse is NumPy's."""
+    """Blocks of several elimination panels and launches and of several tiles (one padded), as two Newton matrices of
+    one pattern: the second assembly re-uses the first's band positions; each block applied is NumPy's inverse."""
     from sim_core.ti_backend import ti
     from sim_core.ti_kernels import band_cholesky, device_copy
     from sim_core.ti_kernels.band_cholesky import BandBlocks
@@ -127,23 +127,28 @@ def test_blocks_of_many_panels_are_inverted_exactly_as_their_values_change(ti_cp
     key = object()
     rng = np.random.default_rng(5)
     scale = sp.diags(rng.uniform(0.5, 2.0, size=n))
+    r_dev, z_dev, active = (device_copy.new_ndarray(ti.f64, (n,)), device_copy.new_ndarray(ti.f64, (n,)),
+                            device_copy.new_ndarray(ti.i32, (2,)))
+    active.from_numpy(np.ones(2, np.int32))
     for values in (a, (scale @ a @ scale).tocsr()):  # the second, D A D: the same pattern, positive definite
         values.sort_indices()
         assert np.array_equal(values.indices, a.indices) and np.array_equal(values.indptr, a.indptr)
         data.from_numpy(values.data)
         assert bands.assemble(indptr, indices, data, None, key)
         assert bands.width == w and bands.usable.all()
-        inverse = bands._inverse.to_numpy().reshape(2, m, m)
+        assert bands.tile * bands.tiles >= m and bands.tile >= w and bands.tiles > 2  # several tiles each way
+        inverse = np.empty((n, n))
+        for j in range(n):  # the blocks applied to each unit vector: the columns of their inverse
+            r_dev.from_numpy(np.eye(1, n, j)[0])
+            bands.apply(r_dev, z_dev, active)
+            inverse[:, j] = z_dev.to_numpy()
         dense = values.toarray()
         for c, k in enumerate(sizes):
             d = dofs[c, :k]
             want = np.linalg.inv(dense[np.ix_(d, d)])
-            np.testing.assert_allclose(inverse[c, :k, :k], want, rtol=0, atol=1e-10 * np.abs(want).max())
+            np.testing.assert_allclose(inverse[np.ix_(d, d)], want, rtol=0, atol=1e-10 * np.abs(want).max())
     r = rng.normal(size=n)
-    r_dev, z_dev, active = (device_copy.new_ndarray(ti.f64, (n,)), device_copy.new_ndarray(ti.f64, (n,)),
-                            device_copy.new_ndarray(ti.i32, (2,)))
     r_dev.from_numpy(r)
-    active.from_numpy(np.ones(2, np.int32))
     bands.apply(r_dev, z_dev, active)
     want = np.linalg.solve(dense, r)  # the blocks are the whole matrix
     np.testing.assert_allclose(z_dev.to_numpy(), want, rtol=0, atol=1e-9 * np.abs(want).max())

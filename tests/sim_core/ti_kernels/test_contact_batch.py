@@ -409,7 +409,7 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
     x, linked, _ = _potentials()
     vt_list, ee_list = linked[0].pairs, linked[1].pairs
     triangles, edges = np.arange(x.shape[0]).reshape(-1, 4)[:, 1:], np.arange(x.shape[0]).reshape(-1, 2)  # as made
-    lists = CandidateVertices(vt_list, ee_list, triangles, edges)
+    lists = CandidateVertices(vt_list, ee_list, triangles, edges, vertex_count=len(x))  # (on device: compacted there)
     rng = np.random.default_rng(25)
     y = x + 0.1 * EPS * rng.normal(size=x.shape)
     packed = two_pass in ("packed", "packed on device")
@@ -439,8 +439,55 @@ def test_batches_over_a_candidate_lists_layout_equal_batches_over_their_own_pair
             np.testing.assert_array_equal(pot.hessian(y, "none").blocks, twin.hessian(y, "none").blocks)
             assert pot.energy(x) == twin.energy(x)
         assert 0 < np.count_nonzero(laid[1].active_mask(y)) < len(rows)
-    assert batches[2]._local_vertices is batches[0]._local_vertices is lists.batch_layout(rows).local
-    assert batches[2]._lists_device is batches[0]._lists_device is lists.device
+    assert batches[2]._layout.local is batches[0]._layout.local is lists.batch_layout(rows).local
+    assert batches[2]._layout.device is batches[0]._layout.device is lists.device
     layout = lists.batch_layout(rows)  # the last step's rows, those of ``own``
     with pytest.raises(ValueError, match="vertex-triangle pairs not its first rows"):
         PairBatch(*own, layout=layout._replace(rows=layout.rows[::-1].copy()))
+
+
+def test_a_batch_takes_its_sides_by_layout_row_from_the_caller(ti_cpu):
+    """``PairBatch(..., sides=...)``: the sides of every layout row in one array (the vertex-triangle pairs', then every
+    edge-edge candidate's; rows outside the batch never read) are taken as they are, and the batch evaluates as one
+    that scatters the potentials' sides itself, bit for bit; sides of another length or dtype are refused. The contact
+    set's step sides are that array (one array for both kinds: ``ContactSet._pair_sides``)."""
+    from sim_core.contact_set import ContactSet
+    from sim_core.energies.contact.batch_kernel import PairBatch
+    from sim_core.energies.contact.kernel import TiEdgeEdgeContact, TiVertexTriangleContact
+    from sim_core.energies.contact.pair_lists import CandidateVertices
+    from tests.sim_core.test_contact_set import _forming_model_deformed
+
+    x, linked, _ = _potentials()
+    vt_list, ee_list = linked[0].pairs, linked[1].pairs
+    triangles, edges = np.arange(x.shape[0]).reshape(-1, 4)[:, 1:], np.arange(x.shape[0]).reshape(-1, 2)  # as made
+    lists = CandidateVertices(vt_list, ee_list, triangles, edges)
+    rng = np.random.default_rng(26)
+    rows = np.flatnonzero(rng.random(len(ee_list)) > 0.3)
+    whole = rng.choice([-1.0, 0.0, 1.0], size=len(vt_list) + len(ee_list))
+    y = x + 0.1 * EPS * rng.normal(size=x.shape)
+    results = []
+    for given in (None, whole):
+        pots = (TiVertexTriangleContact(vt_list, triangles, whole[:len(vt_list)], K, EPS, vertices=lists.vt_vertices),
+                TiEdgeEdgeContact(ee_list[rows], edges, whole[len(vt_list):][rows], K, EPS,
+                                  vertices=lists.ee_vertices[rows]))
+        batch = PairBatch(*pots, layout=lists.batch_layout(rows), sides=given)
+        assert (batch.sides is whole) == (given is not None)
+        results.append([(pot.energy(y), pot.gradient(y), pot.hessian(y, "none").blocks) for pot in pots])
+    for want, got in zip(*results):
+        assert want[0] == got[0]
+        np.testing.assert_array_equal(want[1], got[1])
+        np.testing.assert_array_equal(want[2], got[2])
+    for wrong in (whole[1:], whole.astype(np.float32)):
+        with pytest.raises(ValueError, match="sides of shape"):
+            PairBatch(*pots, layout=lists.batch_layout(rows), sides=wrong)
+    model, xf = _forming_model_deformed(1)
+    cs = ContactSet(model, broad_phase="spatial_hash", backend="taichi-cpu")
+    cs.begin_step(xf, None)
+    vt, ee = cs.potentials(xf, xf, cs.begin_step(xf, None))[:2]
+    assert len(vt.pairs) > 50 and len(ee.pairs) > 50
+    assert vt._batch.sides is vt.sides.base  # the step sides' one array
+    _, vt_list, ee_list = cs._candidates
+    made = np.zeros(len(vt_list) + len(ee_list))
+    made[:len(vt_list)] = vt.sides
+    made[len(vt_list):][cs._cache[3]] = ee.sides
+    np.testing.assert_array_equal(vt._batch.sides, made)
