@@ -20,11 +20,19 @@ def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
     blocks[:8] = np.matmul(a[:8], np.swapaxes(a[:8], 1, 2)) + 0.1 * np.eye(n)
     blocks[8] = np.outer(a[8, 0], a[8, 0]) - np.outer(a[8, 1], a[8, 1])
     blocks[9] = np.diag(rng.normal(size=n))
+    # positive semi-definite, singular (the Cholesky test fails, the rotations run): kept to round-off
+    blocks[10] = np.outer(a[10, 0], a[10, 0]) + np.outer(a[10, 1], a[10, 1])
+    # definite with a smallest eigenvalue near round-off, and indefinite by about as much
+    q = np.linalg.qr(a[11])[0]
+    blocks[11] = (q * np.r_[1e-14, np.ones(n - 1)]) @ q.T
+    blocks[12] = (q * np.r_[-1e-6, np.ones(n - 1)]) @ q.T
     want = project_reduced_blocks(blocks.copy(), projection, method="lapack")
     got = project_reduced_blocks(blocks.copy(), projection, method="jacobi")
     scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
     assert np.all(np.abs(got - want) <= 1e-12 * scale)
     np.testing.assert_array_equal(got[:8], blocks[:8])
+    np.testing.assert_allclose(got[10:12], blocks[10:12], rtol=0, atol=1e-12 * scale.max())
+    assert np.abs(got[12] - blocks[12]).max() > 1e-7  # its negative eigenvalue clamped
     w = np.linalg.eigvalsh(got)
     assert w.min() >= -1e-12 * scale.max()
     if projection == "abs":  # |H| has the absolute eigenvalues of H
