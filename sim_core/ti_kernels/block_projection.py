@@ -205,43 +205,17 @@ while LAPACK takes about 10 us a 15 x 15 block on one core. Its time hardly grow
 the GPU is full, so a lockstep batch's tens of thousands of blocks stay on the device."""
 
 
-@ti.func
-def _cholesky_succeeds(work: ti.template(), lower: ti.template(), e, n):
-    """1 if the Cholesky factorisation ``A = L L^T`` of the symmetric block ``A = work[:, :, e]`` ``(n, n)`` finds
-    every pivot positive in floating point (``A`` positive definite up to a backward error of order ``n eps |A|``,
-    Higham, Accuracy and Stability of Numerical Algorithms, 2nd ed., Thm. 10.3), else 0; ``L`` is written into
-    the lower triangle of ``lower[:, :, e]`` (scratch). About ``n^3 / 6`` multiply-adds, stopping at the first
-    pivot that is not positive."""
-    ok = 1
-    for j in range(n):
-        if ok == 1:
-            d = work[j, j, e]
-            for k in range(j):
-                d -= lower[j, k, e] * lower[j, k, e]
-            if d > 0.0:
-                root = ti.sqrt(d)
-                lower[j, j, e] = root
-                for i in range(j + 1, n):
-                    acc = work[i, j, e]
-                    for k in range(j):
-                        acc -= lower[i, k, e] * lower[j, k, e]
-                    lower[i, j, e] = acc / root
-            else:
-                ok = 0
-    return ok
-
-
 @fast_kernel
 def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: ti.i32, code: ti.i32):
     """PSD projection of symmetric blocks in place by the cyclic Jacobi eigenvalue method (Golub & Van
     Loan, Matrix Computations, 4th ed., Sec. 8.5.3; the rotation of their Alg. 8.5.1), one block per
     thread: rotations ``A <- J^T A J`` of a copy (``work``) zero its off-diagonal entries in turn until
-    their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``; a block with a
+    their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``. A rotation updates
+    only the upper triangle of the symmetric copy: rows / columns ``p``, ``q`` outside the ``2 x 2`` block, and
+    that block by ``a_pp - t a_pq``, ``a_qq + t a_pq``, ``0`` (their Sec. 8.5.2; ``t = tan`` of the angle), 4
+    ``n`` loads and stores of ``work`` instead of 8 ``n`` for the full ``J^T A J``. A block with a
     negative eigenvalue (a diagonal entry of the rotated copy) is replaced by ``V f(w) V^T`` (``code`` 1
-    clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries. A block whose Cholesky
-    factorisation finds every pivot positive (:func:`_cholesky_succeeds`) is kept without rotations: its diagonal
-    is positive, and an eigenvalue Jacobi could find negative is at most of the order of ``n eps`` of the block's
-    norm, as is the change its projection would make (the same blocks to round-off).
+    clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries.
 
     The block index is the last (fastest) one: ``blocks`` ``(n, n, k)``, block ``e`` is ``blocks[:, :, e]``, so
     that the threads of a warp, which handle consecutive blocks and run the same rotation, read and write
@@ -254,18 +228,14 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
         off = 0.0
         for i in range(n):
             for j in range(n):
+                vectors[i, j, e] = 1.0 if i == j else 0.0
                 a = 0.5 * (blocks[i, j, e] + blocks[j, i, e])
                 work[i, j, e] = a
                 total += a * a
                 if j > i:
                     off += a * a
-        definite = _cholesky_succeeds(work, vectors, e, n)
-        if definite == 0:
-            for i in range(n):
-                for j in range(n):
-                    vectors[i, j, e] = 1.0 if i == j else 0.0
         sweep = 0
-        while definite == 0 and sweep < JACOBI_SWEEPS and off > 1e-30 * total:
+        while sweep < JACOBI_SWEEPS and off > 1e-30 * total:
             sweep += 1
             for p in range(n - 1):
                 for q in range(p + 1, n):
@@ -277,16 +247,17 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
                             t = -t
                         c = 1.0 / ti.sqrt(t * t + 1.0)
                         s = t * c
-                        for k in range(n):  # columns p, q: A J
-                            akp = work[k, p, e]
-                            akq = work[k, q, e]
-                            work[k, p, e] = c * akp - s * akq
-                            work[k, q, e] = s * akp + c * akq
-                        for k in range(n):  # rows p, q: J^T (A J)
-                            apk = work[p, k, e]
-                            aqk = work[q, k, e]
-                            work[p, k, e] = c * apk - s * aqk
-                            work[q, k, e] = s * apk + c * aqk
+                        for k in range(n):  # rows / columns p, q of J^T A J off the 2 x 2 block, upper triangle
+                            if k != p and k != q:
+                                kp0, kp1 = ti.min(k, p), ti.max(k, p)
+                                kq0, kq1 = ti.min(k, q), ti.max(k, q)
+                                akp = work[kp0, kp1, e]
+                                akq = work[kq0, kq1, e]
+                                work[kp0, kp1, e] = c * akp - s * akq
+                                work[kq0, kq1, e] = s * akp + c * akq
+                        work[p, p, e] = work[p, p, e] - t * apq  # the 2 x 2 block diagonalised
+                        work[q, q, e] = work[q, q, e] + t * apq
+                        work[p, q, e] = 0.0
                         for k in range(n):  # V J
                             vkp = vectors[k, p, e]
                             vkq = vectors[k, q, e]
