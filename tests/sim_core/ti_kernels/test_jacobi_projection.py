@@ -43,3 +43,22 @@ def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
 def test_projection_method_is_checked(ti_cpu):
     with pytest.raises(ValueError, match="method"):
         project_reduced_blocks(np.eye(3)[None], "clamp", method="qr")
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_small_blocks_in_registers_equal_the_array_kernel(ti_cpu, n):
+    from sim_core.ti_kernels import block_projection as bp
+
+    assert n <= bp.REGISTER_JACOBI_MAX_SIZE
+    rng = np.random.default_rng(10 + n)
+    a = rng.normal(size=(n, n, 70))
+    blocks = a + np.swapaxes(a, 0, 1)
+    blocks[:, :, :5] = np.einsum("ikb,jkb->ijb", a[:, :, :5], a[:, :, :5]) + 0.1 * np.eye(n)[:, :, None]  # kept
+    blocks[:, :, -1] = 7.0  # beyond count: untouched
+    in_arrays, in_registers = blocks.copy(), blocks.copy()
+    bp._jacobi_in_arrays(in_arrays, np.empty_like(blocks), np.empty_like(blocks), 69, 1)
+    bp.jacobi_project_blocks(in_registers, np.empty((0, 0, 0)), np.empty((0, 0, 0)), 69, 1)
+    np.testing.assert_allclose(in_registers, in_arrays, rtol=0, atol=1e-13 * np.abs(blocks).max())
+    np.testing.assert_array_equal(in_registers[:, :, :5], blocks[:, :, :5])
+    np.testing.assert_array_equal(in_registers[:, :, -1], 7.0)
+    assert np.linalg.eigvalsh(np.moveaxis(in_registers[:, :, :69], -1, 0)).min() >= -1e-12 * np.abs(blocks).max()
