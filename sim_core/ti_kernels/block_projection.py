@@ -205,92 +205,8 @@ while LAPACK takes about 10 us a 15 x 15 block on one core. Its time hardly grow
 the GPU is full, so a lockstep batch's tens of thousands of blocks stay on the device."""
 
 
-REGISTER_JACOBI_MAX_SIZE = 6
-"""Blocks up to this size ``n`` are projected by :func:`_jacobi_in_registers` (the reduced spring-membrane triangles'
-6 x 6): the upper triangle and ``V``, ``n (n + 1) / 2 + n^2`` float64, fit a GPU thread's registers; larger blocks
-would spill them and go through the scratch arrays of :func:`_jacobi_in_arrays`."""
-
-
-def jacobi_project_blocks(blocks, work, vectors, count: int, code: int) -> None:
-    """PSD projection of the first ``count`` symmetric blocks of ``blocks`` ``(n, n, k)`` (ndarray or NumPy array,
-    the block index last) in place by the cyclic Jacobi method, ``code`` 1 clamp, 2 abs: :func:`_jacobi_in_arrays`
-    (``work`` and ``vectors``, scratch arrays of the blocks' shape), or for ``n <= REGISTER_JACOBI_MAX_SIZE``
-    :func:`_jacobi_in_registers` (the same arithmetic on values held in registers; the scratch arrays unused)."""
-    n = int(blocks.shape[0])
-    if n <= REGISTER_JACOBI_MAX_SIZE:
-        _jacobi_in_registers(blocks, count, code, n)
-    else:
-        _jacobi_in_arrays(blocks, work, vectors, count, code)
-
-
 @fast_kernel
-def _jacobi_in_registers(blocks: _F64_3, count: ti.i32, code: ti.i32, n: ti.template()):
-    """:func:`_jacobi_in_arrays` for blocks of a compile-time size ``n``: every loop unrolled, so that the block's
-    upper triangle and ``V`` are local matrices with constant indices (registers on a GPU, no scratch arrays).
-    The same operations in the same order as :func:`_jacobi_in_arrays`."""
-    for e in range(count):
-        a = ti.Matrix.zero(ti.f64, n, n)  # the upper triangle is used
-        v = ti.Matrix.identity(ti.f64, n)
-        total = 0.0
-        off = 0.0
-        for i in ti.static(range(n)):
-            for j in ti.static(range(n)):
-                x = 0.5 * (blocks[i, j, e] + blocks[j, i, e])
-                total += x * x
-                if ti.static(j > i):
-                    off += x * x
-                if ti.static(j >= i):
-                    a[i, j] = x
-        sweep = 0
-        while sweep < JACOBI_SWEEPS and off > 1e-30 * total:
-            sweep += 1
-            for p in ti.static(range(n - 1)):
-                for q in ti.static(range(p + 1, n)):
-                    apq = a[p, q]
-                    if apq != 0.0:
-                        theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                        t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
-                        if theta < 0.0:
-                            t = -t
-                        c = 1.0 / ti.sqrt(t * t + 1.0)
-                        s = t * c
-                        for k in ti.static(range(n)):
-                            if ti.static(k != p and k != q):
-                                akp = a[min(k, p), max(k, p)]
-                                akq = a[min(k, q), max(k, q)]
-                                a[min(k, p), max(k, p)] = c * akp - s * akq
-                                a[min(k, q), max(k, q)] = s * akp + c * akq
-                        a[p, p] = a[p, p] - t * apq
-                        a[q, q] = a[q, q] + t * apq
-                        a[p, q] = 0.0
-                        for k in ti.static(range(n)):
-                            vkp = v[k, p]
-                            vkq = v[k, q]
-                            v[k, p] = c * vkp - s * vkq
-                            v[k, q] = s * vkp + c * vkq
-            off = 0.0
-            for i in ti.static(range(n)):
-                for j in ti.static(range(i + 1, n)):
-                    off += a[i, j] * a[i, j]
-        negative = 0
-        for k in ti.static(range(n)):
-            if a[k, k] < 0.0:
-                negative = 1
-        if negative == 1:
-            for k in ti.static(range(n)):
-                w = a[k, k]
-                a[k, k] = ti.max(w, 0.0) if code == 1 else ti.abs(w)
-            for i in ti.static(range(n)):
-                for j in ti.static(range(i, n)):
-                    acc = 0.0
-                    for k in ti.static(range(n)):
-                        acc += v[i, k] * a[k, k] * v[j, k]
-                    blocks[i, j, e] = acc
-                    blocks[j, i, e] = acc
-
-
-@fast_kernel
-def _jacobi_in_arrays(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: ti.i32, code: ti.i32):
+def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: ti.i32, code: ti.i32):
     """PSD projection of symmetric blocks in place by the cyclic Jacobi eigenvalue method (Golub & Van
     Loan, Matrix Computations, 4th ed., Sec. 8.5.3; the rotation of their Alg. 8.5.1), one block per
     thread: rotations ``A <- J^T A J`` of a copy (``work``) zero its off-diagonal entries in turn until
@@ -627,3 +543,30 @@ class BlockRowsProjector(KeptArrays):
                                       self._columns("vectors", (n, n), count), count, code)
             _block_rows(columns, count, out)
         return out
+
+
+def compile_kernels() -> None:
+    """On CUDA, JIT-compile (or load from Taichi's offline cache) the device path's kernels on one-block Taichi
+    ndarrays: the Jacobi projection, the reduction and expansion of :meth:`TranslationFreeProjector.add_projected_rows`,
+    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs, which take them
+    only in tests. One environment's projection runs on the host (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without
+    this a lockstep batch compiles them at its first projected iteration (in its timed steps).
+
+    Raises:
+        ConfigError: the Taichi backend is not initialised.
+    """
+    if current_arch() != "cuda":
+        return
+    m, n = 2, 6
+    blocks, columns = new_ndarray(ti.f64, (1, n, n)), new_ndarray(ti.f64, (n, n, 1))
+    reduced, work, vectors = (new_ndarray(ti.f64, (n - 3, n - 3, 1)) for _ in range(3))
+    rows, values = new_ndarray(ti.i32, (1,)), new_ndarray(ti.f64, (1,))
+    upper = new_ndarray(ti.i32, (1, n * (n + 1) // 2))
+    helmert = new_ndarray(ti.f64, (m, m - 1))
+    upload(helmert, helmert_array(m))
+    reduce_block_rows(blocks, helmert, rows, 1, reduced)
+    jacobi_project_blocks(reduced, work, vectors, 1, 1)
+    expand_add_upper_rows(reduced, helmert, upper, rows, 1, values)
+    add_upper_block_rows(blocks, upper, rows, 1, values)
+    _gather_block_columns(blocks, 0, rows, 1, columns)
+    _block_rows(columns, 1, blocks)

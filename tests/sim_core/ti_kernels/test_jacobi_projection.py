@@ -45,20 +45,23 @@ def test_projection_method_is_checked(ti_cpu):
         project_reduced_blocks(np.eye(3)[None], "clamp", method="qr")
 
 
-@pytest.mark.parametrize("n", [3, 6])
-def test_small_blocks_in_registers_equal_the_array_kernel(ti_cpu, n):
+def test_the_device_projection_kernels_are_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
+    """``kernel_compile.compile_kernels`` compiles the device projection's kernels (on CUDA: emulated here), which
+    one environment's projected Hessian (on the host) does not run."""
+    from sim_core.energies.membrane.reference import SpringMembrane
+    from sim_core.kernel_compile import compile_kernels
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
     from sim_core.ti_kernels import block_projection as bp
 
-    assert n <= bp.REGISTER_JACOBI_MAX_SIZE
-    rng = np.random.default_rng(10 + n)
-    a = rng.normal(size=(n, n, 70))
-    blocks = a + np.swapaxes(a, 0, 1)
-    blocks[:, :, :5] = np.einsum("ikb,jkb->ijb", a[:, :, :5], a[:, :, :5]) + 0.1 * np.eye(n)[:, :, None]  # kept
-    blocks[:, :, -1] = 7.0  # beyond count: untouched
-    in_arrays, in_registers = blocks.copy(), blocks.copy()
-    bp._jacobi_in_arrays(in_arrays, np.empty_like(blocks), np.empty_like(blocks), 69, 1)
-    bp.jacobi_project_blocks(in_registers, np.empty((0, 0, 0)), np.empty((0, 0, 0)), 69, 1)
-    np.testing.assert_allclose(in_registers, in_arrays, rtol=0, atol=1e-13 * np.abs(blocks).max())
-    np.testing.assert_array_equal(in_registers[:, :, :5], blocks[:, :, :5])
-    np.testing.assert_array_equal(in_registers[:, :, -1], 7.0)
-    assert np.linalg.eigvalsh(np.moveaxis(in_registers[:, :, :69], -1, 0)).min() >= -1e-12 * np.abs(blocks).max()
+    monkeypatch.setattr(bp, "current_arch", lambda: "cuda")
+    bp.compile_kernels()
+    for kernel in (bp.jacobi_project_blocks, bp.reduce_block_rows, bp.expand_add_upper_rows, bp.add_upper_block_rows,
+                   bp._gather_block_columns, bp._block_rows):
+        assert kernel._primal.compiled_kernels
+    calls = []
+    monkeypatch.setattr(bp, "compile_kernels", lambda: calls.append(1))
+    sheet = grid_sheet((0.01, 0.01), (3, 3))
+    membrane = SpringMembrane(sheet.triangles, sheet_topology(sheet.triangles)[0], sheet.x, 1.0, 1.0)
+    compile_kernels([membrane], sheet.x)
+    compile_kernels([membrane], sheet.x, projection="none")
+    assert calls == [1]
