@@ -548,13 +548,10 @@ class BlockRowsProjector(KeptArrays):
 def compile_kernels() -> None:
     """On CUDA, JIT-compile (or load from Taichi's offline cache) the device path's kernels on one-block Taichi
     ndarrays: the Jacobi projection, the reduction and expansion of :meth:`TranslationFreeProjector.add_projected_rows`,
-    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs, which take them
-    only in tests. One environment's projection runs on the host (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without
-    this a lockstep batch compiles them at its first projected iteration (in its timed steps).
-
-    Raises:
-        ConfigError: the Taichi backend is not initialised.
-    """
+    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs (which take them
+    only in tests) or before :func:`sim_core.ti_backend.init_backend`. One environment's projection runs on the host
+    (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without this a lockstep batch compiles them at its first projected
+    iteration (in its timed steps)."""
     if current_arch() != "cuda":
         return
     m, n = 2, 6
