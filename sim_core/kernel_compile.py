@@ -25,10 +25,11 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
 
     Taichi compiles a kernel on its first call, so the first Newton step would otherwise pay for it:
     this runs the fused kernels once at ``x``, their ``projection`` Hessian of the projected
-    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``), and the
-    contact distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the broad phase (and its candidate-list
-    kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels. Kernels take
-    ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
+    fallback (and that of the potentials that are Taichi twins, ``sim_core/energies/<energy>/kernel.py``; on CUDA
+    also the device projection's kernels of a lockstep batch, :func:`sim_core.ti_kernels.block_projection.
+    compile_kernels`), and the contact distance kernels (:mod:`sim_core.energies.contact.distance_kernel`), the
+    broad phase (and its candidate-list kernel, :mod:`sim_core.ti_kernels.sweep_candidates`) and friction kernels.
+    Kernels take ``ti.types.ndarray`` arguments, so they compile once per dtype and rank, not per problem size.
 
     Args:
         potentials: the elastic potentials (:meth:`sim_core.elastic.ElasticTerms.potentials`).
@@ -63,7 +64,7 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     from sim_core.energies.contact import setup_kernel as contact_setup
     from sim_core.energies.friction import kernel as friction
     from sim_core.energies.hinge_bending import fused_kernel as fused_hinge
-    from sim_core.ti_kernels import broad_phase, compaction, hash_candidates, sweep_candidates
+    from sim_core.ti_kernels import block_projection, broad_phase, compaction, hash_candidates, sweep_candidates
 
     fused_hinge.compile_kernels()  # the anisotropic bending candidate's part
     contact_distance.compile_kernels()
@@ -74,6 +75,8 @@ def compile_kernels(potentials: Sequence, x: np.ndarray, projection: str = "clam
     hash_candidates.compile_kernels()
     compaction.compile_kernels()
     friction.compile_kernels()
+    if projection != "none":
+        block_projection.compile_kernels()  # on CUDA: the device projection of a lockstep batch's blocks
     return time.perf_counter() - t0
 
 

@@ -210,7 +210,10 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
     """PSD projection of symmetric blocks in place by the cyclic Jacobi eigenvalue method (Golub & Van
     Loan, Matrix Computations, 4th ed., Sec. 8.5.3; the rotation of their Alg. 8.5.1), one block per
     thread: rotations ``A <- J^T A J`` of a copy (``work``) zero its off-diagonal entries in turn until
-    their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``; a block with a
+    their norm is below ``1e-15`` of the block's, ``V`` (``vectors``) accumulating ``J``. A rotation updates
+    only the upper triangle of the symmetric copy: rows / columns ``p``, ``q`` outside the ``2 x 2`` block, and
+    that block by ``a_pp - t a_pq``, ``a_qq + t a_pq``, ``0`` (their Sec. 8.5.2; ``t = tan`` of the angle), 4
+    ``n`` loads and stores of ``work`` instead of 8 ``n`` for the full ``J^T A J``. A block with a
     negative eigenvalue (a diagonal entry of the rotated copy) is replaced by ``V f(w) V^T`` (``code`` 1
     clamp: ``f(w) = max(w, 0)``, 2 abs: ``|w|``), the others keep their entries.
 
@@ -227,10 +230,11 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
             for j in range(n):
                 vectors[i, j, e] = 1.0 if i == j else 0.0
                 a = 0.5 * (blocks[i, j, e] + blocks[j, i, e])
-                work[i, j, e] = a
                 total += a * a
                 if j > i:
                     off += a * a
+                if j >= i:  # the upper triangle is used
+                    work[i, j, e] = a
         sweep = 0
         while sweep < JACOBI_SWEEPS and off > 1e-30 * total:
             sweep += 1
@@ -244,16 +248,17 @@ def jacobi_project_blocks(blocks: _F64_3, work: _F64_3, vectors: _F64_3, count: 
                             t = -t
                         c = 1.0 / ti.sqrt(t * t + 1.0)
                         s = t * c
-                        for k in range(n):  # columns p, q: A J
-                            akp = work[k, p, e]
-                            akq = work[k, q, e]
-                            work[k, p, e] = c * akp - s * akq
-                            work[k, q, e] = s * akp + c * akq
-                        for k in range(n):  # rows p, q: J^T (A J)
-                            apk = work[p, k, e]
-                            aqk = work[q, k, e]
-                            work[p, k, e] = c * apk - s * aqk
-                            work[q, k, e] = s * apk + c * aqk
+                        for k in range(n):  # rows / columns p, q of J^T A J off the 2 x 2 block, upper triangle
+                            if k != p and k != q:
+                                kp0, kp1 = ti.min(k, p), ti.max(k, p)
+                                kq0, kq1 = ti.min(k, q), ti.max(k, q)
+                                akp = work[kp0, kp1, e]
+                                akq = work[kq0, kq1, e]
+                                work[kp0, kp1, e] = c * akp - s * akq
+                                work[kq0, kq1, e] = s * akp + c * akq
+                        work[p, p, e] = work[p, p, e] - t * apq  # the 2 x 2 block diagonalised
+                        work[q, q, e] = work[q, q, e] + t * apq
+                        work[p, q, e] = 0.0
                         for k in range(n):  # V J
                             vkp = vectors[k, p, e]
                             vkq = vectors[k, q, e]
@@ -538,3 +543,27 @@ class BlockRowsProjector(KeptArrays):
                                       self._columns("vectors", (n, n), count), count, code)
             _block_rows(columns, count, out)
         return out
+
+
+def compile_kernels() -> None:
+    """On CUDA, JIT-compile (or load from Taichi's offline cache) the device path's kernels on one-block Taichi
+    ndarrays: the Jacobi projection, the reduction and expansion of :meth:`TranslationFreeProjector.add_projected_rows`,
+    the upper-triangle scatter and :class:`BlockRowsProjector`'s gathers; nothing on other archs (which take them
+    only in tests) or before :func:`sim_core.ti_backend.init_backend`. One environment's projection runs on the host
+    (:data:`HOST_PROJECTION_MAX_BLOCKS`), so without this a lockstep batch compiles them at its first projected
+    iteration (in its timed steps)."""
+    if current_arch() != "cuda":
+        return
+    m, n = 2, 6
+    blocks, columns = new_ndarray(ti.f64, (1, n, n)), new_ndarray(ti.f64, (n, n, 1))
+    reduced, work, vectors = (new_ndarray(ti.f64, (n - 3, n - 3, 1)) for _ in range(3))
+    rows, values = new_ndarray(ti.i32, (1,)), new_ndarray(ti.f64, (1,))
+    upper = new_ndarray(ti.i32, (1, n * (n + 1) // 2))
+    helmert = new_ndarray(ti.f64, (m, m - 1))
+    upload(helmert, helmert_array(m))
+    reduce_block_rows(blocks, helmert, rows, 1, reduced)
+    jacobi_project_blocks(reduced, work, vectors, 1, 1)
+    expand_add_upper_rows(reduced, helmert, upper, rows, 1, values)
+    add_upper_block_rows(blocks, upper, rows, 1, values)
+    _gather_block_columns(blocks, 0, rows, 1, columns)
+    _block_rows(columns, 1, blocks)

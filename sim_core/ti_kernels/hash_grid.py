@@ -281,8 +281,8 @@ def _sort_pairs(out: _I32_2, found: ti.i32, first_count: ti.i32, start: _I32_1, 
     ``[first, second]``, distinct, ``0 <= first < first_count``, ``second >= 0``), increasing: a counting sort of the
     rows by ``first`` (``start`` ``(first_count + 1,)``: each first's run, by the counts' running sums,
     :func:`~sim_core.ti_kernels.scan.running_sums`; ``fill`` ``(first_count,)``: the runs' next free slots), then
-    each run sorted by insertion in one thread (a run is the candidates of one vertex or edge: tens). Scratch ``chunk_total``
-    ``(ceil(first_count / SCAN_CHUNK),)``. The result does not depend on the threads' order."""
+    each run sorted by insertion in one thread (a run is the candidates of one vertex or edge: tens). Scratch
+    ``chunk_total`` ``(ceil(first_count / SCAN_CHUNK),)``. The result does not depend on the threads' order."""
     ti.loop_config(serialize=ti.static(serial_loops()))
     for a in range(first_count + 1):
         start[a] = 0

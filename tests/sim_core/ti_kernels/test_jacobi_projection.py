@@ -20,11 +20,19 @@ def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
     blocks[:8] = np.matmul(a[:8], np.swapaxes(a[:8], 1, 2)) + 0.1 * np.eye(n)
     blocks[8] = np.outer(a[8, 0], a[8, 0]) - np.outer(a[8, 1], a[8, 1])
     blocks[9] = np.diag(rng.normal(size=n))
+    # positive semi-definite, singular (the Cholesky test fails, the rotations run): kept to round-off
+    blocks[10] = np.outer(a[10, 0], a[10, 0]) + np.outer(a[10, 1], a[10, 1])
+    # definite with a smallest eigenvalue near round-off, and indefinite by about as much
+    q = np.linalg.qr(a[11])[0]
+    blocks[11] = (q * np.r_[1e-14, np.ones(n - 1)]) @ q.T
+    blocks[12] = (q * np.r_[-1e-6, np.ones(n - 1)]) @ q.T
     want = project_reduced_blocks(blocks.copy(), projection, method="lapack")
     got = project_reduced_blocks(blocks.copy(), projection, method="jacobi")
     scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
     assert np.all(np.abs(got - want) <= 1e-12 * scale)
     np.testing.assert_array_equal(got[:8], blocks[:8])
+    np.testing.assert_allclose(got[10:12], blocks[10:12], rtol=0, atol=1e-12 * scale.max())
+    assert np.abs(got[12] - blocks[12]).max() > 1e-7  # its negative eigenvalue clamped
     w = np.linalg.eigvalsh(got)
     assert w.min() >= -1e-12 * scale.max()
     if projection == "abs":  # |H| has the absolute eigenvalues of H
@@ -35,3 +43,25 @@ def test_jacobi_projection_matches_lapack(ti_cpu, n, projection):
 def test_projection_method_is_checked(ti_cpu):
     with pytest.raises(ValueError, match="method"):
         project_reduced_blocks(np.eye(3)[None], "clamp", method="qr")
+
+
+def test_the_device_projection_kernels_are_compiled_with_the_step_kernels(ti_cpu, monkeypatch):
+    """``kernel_compile.compile_kernels`` compiles the device projection's kernels (on CUDA: emulated here), which
+    one environment's projected Hessian (on the host) does not run."""
+    from sim_core.energies.membrane.reference import SpringMembrane
+    from sim_core.kernel_compile import compile_kernels
+    from sim_core.mesh.sheet import grid_sheet, sheet_topology
+    from sim_core.ti_kernels import block_projection as bp
+
+    monkeypatch.setattr(bp, "current_arch", lambda: "cuda")
+    bp.compile_kernels()
+    for kernel in (bp.jacobi_project_blocks, bp.reduce_block_rows, bp.expand_add_upper_rows, bp.add_upper_block_rows,
+                   bp._gather_block_columns, bp._block_rows):
+        assert kernel._primal.compiled_kernels
+    calls = []
+    monkeypatch.setattr(bp, "compile_kernels", lambda: calls.append(1))
+    sheet = grid_sheet((0.01, 0.01), (3, 3))
+    membrane = SpringMembrane(sheet.triangles, sheet_topology(sheet.triangles)[0], sheet.x, 1.0, 1.0)
+    compile_kernels([membrane], sheet.x)
+    compile_kernels([membrane], sheet.x, projection="none")
+    assert calls == [1]
