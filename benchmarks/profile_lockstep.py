@@ -503,7 +503,7 @@ def _wrap_parts(backend: str) -> dict:
     parts += [(pcg.VertexBlocks, "from_element_blocks")]
     parts += [(cls, n) for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean)
               for n in ("add_projected", "add_projected_on_device")]
-    parts += [(cls, n) for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean) for n in ("bind",)]
+    parts += [(cls, "bind") for cls in (FusedKirchhoffBending, FusedSpringMembrane, FusedStableNeoHookean)]
     parts += [(_PairPenalty, "hessian"), (TiLaggedFriction, "hessian"), (HessianAssembler, "static_pattern"),
               (StaticPattern, "__init__"), (StaticPattern, "slot_map")]
     parts += [(lockstep.LockstepEngine, "_sync"), (NewtonSolver, "warm_up"), (NewtonSolver, "_fused_elastic")]
@@ -566,7 +566,8 @@ def _wrap_parts(backend: str) -> dict:
         parts += [(batch_kernel, "_sorted_found"), (PairBatch, "_device_arguments"), (DisplacementBounds, "__call__")]
         from sim_core.ti_kernels import compaction
 
-        parts += [(hash_grid, "sorted_on_device"), (compaction, "compact_on_device")]  # (CUDA: the search's device parts)
+        # CUDA: the search's device parts
+        parts += [(hash_grid, "sorted_on_device"), (compaction, "compact_on_device")]
     # the step's host work outside the Newton loop, and the synchronous copies to and from the device
     from sim_core.batch.stacked import StackedScene
     from sim_core.elastic import ElasticTerms
