@@ -141,6 +141,19 @@ def _measure_pair(x: ti.template(), vertices: ti.template(), side: ti.template()
     return ti.cast(d[i] < eps, ti.i32)
 
 
+@ti.func
+def _zero_sums(gradients: ti.template(), rows: ti.i32, active_count: ti.template()):
+    """The pair kernels' preamble: ``gradients[:rows] = 0`` and ``active_count[0] = 0``. Called at a kernel's top level,
+    so that its two loops are top-level loops of the kernel (parallel on a GPU, serial where :func:`serial_loops`)."""
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for j in range(rows):
+        for c in ti.static(range(3)):
+            gradients[j, c] = 0.0
+    ti.loop_config(serialize=ti.static(serial_loops()))
+    for _ in range(1):
+        active_count[0] = 0
+
+
 @fast_kernel
 def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count: ti.i32, split: ti.i32,
                   eps_vt: ti.f64, eps_ee: ti.f64, stiffness_vt: ti.f64, stiffness_ee: ti.f64, derivatives: ti.i32,
@@ -163,13 +176,7 @@ def _batch_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, count
     the regions are also written, as floats, after the sums: ``gradients[2 n + i // 3, i % 3] = region[i]`` (the
     array then has those rows), so that one copy back brings both."""
     n = x.shape[0]
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for j in range(derivatives * 2 * n):
-        for c in ti.static(range(3)):
-            gradients[j, c] = 0.0
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for _ in range(1):
-        active_count[0] = 0
+    _zero_sums(gradients, derivatives * 2 * n, active_count)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
         if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, n,
@@ -199,13 +206,7 @@ def _packed_kernel(x: _F64_2, vertices: _I32_2, side: _F64_1, rows: _I32_1, coun
     the distance gradients ``(a, 12)`` and the penalty Hessians ``(a, 12, 12)`` of those pairs. A pair's place in the
     order is the number of listed pairs before it (the list is built in no fixed order on a parallel arch), so the
     layout is the same on every arch: :func:`packed_size` entries."""
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for j in range(derivatives * 2 * u):
-        for c in ti.static(range(3)):
-            gradients[j, c] = 0.0
-    ti.loop_config(serialize=ti.static(serial_loops()))
-    for _ in range(1):
-        active_count[0] = 0
+    _zero_sums(gradients, derivatives * 2 * u, active_count)
     ti.loop_config(serialize=ti.static(serial_loops()))
     for i in range(count):
         if _measure_pair(x, vertices, side, rows[i], i, split, eps_vt, eps_ee, stiffness_vt, stiffness_ee, u,
