@@ -26,7 +26,9 @@ Hessian and pair blocks, the rest), the step's set-up (boundary, the contact set
 plastic update, the rest), the engine's and the batch's work around the solver (``_sync``, ``stack_controls``,
 ``copy_states``, the per-copy write-back), the run loop's controls and the garbage collector; per step and as a
 mean, with the steady rate that ``thinshell bench batch`` reports for the same steps (``--steps 4``: its steady steps
-of ``--steps 5``). ``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
+of ``--steps 5``). ``--copy-sites`` adds, for each phase, its synchronous copies by call site (each copy's direction and
+its innermost ``sim_core`` frames, a copy a step and MB a step), which shows which copies carry whole arrays.
+``--cprofile`` adds cProfile's tables (incomplete on Python 3.12 with Taichi's compiler in the
 profiled region).
 """
 
@@ -50,6 +52,8 @@ def main() -> int:
     ap.add_argument("--task", default=None, help="a task name: profile its population (default: Forming)")
     ap.add_argument("--out", default=None, help="write the pstats file here")
     ap.add_argument("--cprofile", action="store_true")
+    ap.add_argument("--copy-sites", type=int, default=0, metavar="FRAMES",
+                    help="Forming: each phase's synchronous copies by call site (this many sim_core frames)")
     ap.add_argument("--kernel-profiler", action="store_true",
                     help="print the device time of each Taichi kernel task over the timed steps")
     ap.add_argument("--emulate-cuda", action="store_true",
@@ -91,7 +95,7 @@ def main() -> int:
 
         answer_cuda()
     timers = _wrap_parts(backend)
-    phases = _StepPhases(_phase_specs(backend))
+    phases = _StepPhases(_phase_specs(backend), args.copy_sites)
     cg_iterations = _count_cg_iterations()
     for B in (int(b) for b in str(args.B).split(",")):
         sc.SolverConfig = config
@@ -169,6 +173,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     iterations = [0]
     per_step: list = []  # the timed steps' (phases, wall, BatchStep.wall_s, stepped copies, iterations)
     step_copies: list = []  # the timed steps' synchronous copies by phase (_StepPhases.copies)
+    step_sites: list = []  # and by call site (_StepPhases.sites, with --copy-sites)
     lines: list = []  # the timed steps' summary lines, printed again at the end (a tail of the output holds them)
 
     def step(k):
@@ -179,6 +184,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         wall = time.perf_counter() - t
         parts = phases.take()
         copies = {label: list(rec) for label, rec in phases.copies.items()}
+        sites = {key: list(rec) for key, rec in phases.sites.items()}
         eng = run.batch.lockstep
         info = eng.solver.last_stacked_info if eng is not None else None
         its = getattr(info, "iterations", 0) or 0
@@ -203,6 +209,7 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
         if k > 0:
             per_step.append((parts, wall, res.wall_s, len(own), its))
             step_copies.append(copies)
+            step_sites.append(sites)
             lines.append(line)
         return res
 
@@ -229,6 +236,8 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
           f"{iterations[0]} Newton iterations, {1e3 * wall / max(iterations[0], 1):.1f} ms an iteration")
     _print_parts(f"B={B} {args.steps} timed steps", timers, wall, iterations[0])
     _print_phases(B, [p for p, *_ in per_step], [w for _, w, *_ in per_step], step_copies)
+    if args.copy_sites:
+        _print_sites(B, step_sites)
     print("\n".join(lines))
     groups = [_group_phases(p) for p, *_ in per_step]
     n = max(len(per_step), 1)
@@ -251,7 +260,7 @@ class _StepPhases:
     garbage collections are a phase of their own. :meth:`mark` starts a step's phases from zero under the
     outermost phase ``label`` (the run loop's own work) and :meth:`take` returns label -> seconds since then."""
 
-    def __init__(self, specs: list) -> None:
+    def __init__(self, specs: list, site_frames: int = 0) -> None:
         import gc
 
         self.stack: list = []
@@ -263,14 +272,19 @@ class _StepPhases:
             setattr(owner, name, self._phase(raw, label, parents))
         gc.callbacks.append(self._collector)
         self.copies: dict = {}  # phase -> [calls, bytes, seconds] of the synchronous byte copies (device_copy._copy)
+        self.site_frames = site_frames
+        self.sites: dict = {}  # (phase, direction, call site) -> [calls, bytes], with site_frames > 0
         self._count_copies()
 
     def _count_copies(self) -> None:
         """Count each synchronous byte copy to or from the device (``device_copy._copy``: calls, bytes, seconds) under
-        the phase that made it."""
+        the phase that made it, and with :attr:`site_frames` by call site (:attr:`sites`)."""
         from sim_core.ti_kernels import device_copy
 
         copy = device_copy._copy
+
+        def rec_bytes(host, rows):
+            return host.nbytes if rows is None or not host.ndim else host.nbytes // max(len(host), 1) * rows
 
         def counted(array, host, upload, rows=None):
             t = time.perf_counter()
@@ -280,8 +294,13 @@ class _StepPhases:
                 if self.stack:
                     rec = self.copies.setdefault(self.stack[-1], [0, 0, 0.0])
                     rec[0] += 1
-                    rec[1] += host.nbytes if rows is None or not host.ndim else host.nbytes // max(len(host), 1) * rows
+                    rec[1] += rec_bytes(host, rows)
                     rec[2] += time.perf_counter() - t
+                    if self.site_frames:
+                        site = self.sites.setdefault((self.stack[-1], "up" if upload else "down", _site(
+                            self.site_frames)), [0, 0])
+                        site[0] += 1
+                        site[1] += rec_bytes(host, rows)
 
         device_copy._copy = counted
 
@@ -326,6 +345,7 @@ class _StepPhases:
 
     def mark(self, label: str) -> None:
         self.stack, self.seconds, self.copies, self.last = [label], {}, {}, time.perf_counter()
+        self.sites = {}
 
     def take(self) -> dict:
         """The step's phases: label -> seconds (its synchronous byte copies stay in :attr:`copies` until the next
@@ -408,6 +428,37 @@ def _print_phases(B: int, per_step: list, walls: list, copies: list) -> None:
               f"{nbytes / 1e6:7.1f} {1e3 * secs:7.2f}  " + " ".join(f"{e:8.2f}" for e in each))
     print(f"{'sum of the phases':66s} {1e3 * sum(sum(p.values()) for p in per_step) / steps:9.2f}"
           f" {100 * sum(sum(p.values()) for p in per_step) / total:7.1f}")
+
+
+def _site(frames: int) -> str:
+    """The caller's innermost ``frames`` frames in ``sim_core`` (outside ``device_copy.py``), outermost first:
+    ``module.function:line`` joined by `` > ``."""
+    import traceback
+
+    found = []
+    for f in reversed(traceback.extract_stack()):
+        path = f.filename.replace("\\", "/")
+        if "/sim_core/" in path and not path.endswith("/device_copy.py"):
+            found.append(f"{path.rsplit('/sim_core/', 1)[1][:-3].replace('/', '.')}.{f.name}:{f.lineno}")
+            if len(found) == frames:
+                break
+    return " > ".join(reversed(found)) or "(outside sim_core)"
+
+
+def _print_sites(B: int, per_step: list) -> None:
+    """The timed steps' synchronous copies by phase, direction and call site (``--copy-sites``): calls and MB a
+    step (mean), the phases in order of their MB, each phase's sites in order of their MB then calls."""
+    steps = max(len(per_step), 1)
+    keys = {k for s in per_step for k in s}
+    total = {k: [sum(s.get(k, [0, 0])[j] for s in per_step) / steps for j in range(2)] for k in keys}
+    by_phase: dict = {}
+    for (phase, direction, site), (calls, nbytes) in total.items():
+        by_phase.setdefault(phase, []).append((nbytes, calls, direction, site))
+    print(f"synchronous copies by call site, B={B} (a step, mean of {len(per_step)}): copies, MB, direction, site")
+    for phase, rows in sorted(by_phase.items(), key=lambda kv: -sum(r[0] for r in kv[1])):
+        print(f"  {phase}")
+        for nbytes, calls, direction, site in sorted(rows, key=lambda r: (-r[0], -r[1])):
+            print(f"    {calls:6.1f} {nbytes / 1e6:8.2f}  {direction:4s} {site}")
 
 
 def _group_phases(phases: dict) -> dict:
