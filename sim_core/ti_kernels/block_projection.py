@@ -61,10 +61,10 @@ import numpy as np
 from sim_core.slot_translation import joined
 from sim_core.ti_backend import current_arch, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import DeviceArray
+from sim_core.ti_kernels.buffers import DeviceArray, on_device
 from sim_core.ti_kernels.device_copy import new_ndarray
 from sim_core.ti_kernels.launch import fast_kernel
-from sim_core.ti_kernels.transfer import download, upload
+from sim_core.ti_kernels.transfer import download, fill, upload
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
 _I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -376,6 +376,33 @@ def add_upper_block_rows(blocks: _F64_3, upper: _I32_2, rows: _I32_1, count: ti.
         if i <= j:
             e = rows[r]
             add_upper_entry(values, upper[e, i * n - i * (i - 1) // 2 + j - i], blocks[e, i, j])
+
+
+def marked_rows(elements: np.ndarray, vertices: np.ndarray | None) -> np.ndarray:
+    """The rows of ``elements`` ``(k, m)`` (vertex indices) with a vertex marked in ``vertices`` (bool ``(n,)``), int32
+    increasing; every row ``0 .. k - 1`` with None."""
+    if vertices is None:
+        return np.arange(elements.shape[0], dtype=np.int32)
+    return np.flatnonzero(np.asarray(vertices)[elements].any(axis=1)).astype(np.int32)
+
+
+def add_projected_where_run(part, x: np.ndarray, projection: str, values: np.ndarray,
+                            vertices: np.ndarray | None = None) -> None:
+    """``values`` ``(pattern.keys.size,)`` (host) += a fused part's projected blocks made by its kernels
+    (``part.add_projected_on_device``, with ``vertices`` as it takes them): on CUDA summed into device sums kept in
+    ``part._device`` under ``"sums"`` (:func:`~sim_core.ti_kernels.buffers.on_device`) and downloaded once, so that
+    no block crosses to the host; elsewhere the kernels add into ``values`` directly.
+
+    Raises:
+        ValueError: unknown projection (the part's).
+    """
+    sums = on_device(part._device, "sums", values, scratch=True)
+    if sums is values:  # host arrays (CPU arch)
+        part.add_projected_on_device(x, projection, values, vertices)
+        return
+    fill(sums, 0.0)
+    part.add_projected_on_device(x, projection, sums, vertices)
+    values += download(sums)
 
 
 class KeptArrays:

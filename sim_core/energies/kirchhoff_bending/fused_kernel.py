@@ -29,10 +29,9 @@ from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
-from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
-from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_upper_entry, SlotTables,
-                                                  upper_index)
+from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_projected_where_run, add_upper_entry,
+                                                  SlotTables, marked_rows, upper_index)
 from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
                                          _theta_hessian_unsymmetrized)
 
@@ -370,14 +369,11 @@ class FusedKirchhoffBending:
             ValueError: unknown projection.
         """
         if self._hinges.shape[0] and current_arch() == "cuda":  # every stage on the device, the sums downloaded
-            sums = on_device(self._device, "sums", values, scratch=True)
-            fill(sums, 0.0)
-            self.add_projected_on_device(x, projection, sums, vertices)
-            values += download(sums)
+            add_projected_where_run(self, x, projection, values, vertices)
             return
         blocks, slots = self.triangle_hessians(x), self._tri_slots
         if vertices is not None:
-            rows = np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1))
+            rows = marked_rows(self.vertices, vertices)
             blocks, slots = blocks[rows], slots[rows]
         self._projector.add_projected(blocks, projection, slots, values)
 
@@ -396,7 +392,6 @@ class FusedKirchhoffBending:
         if self._hinges.shape[0] == 0:
             return
         blocks = self._triangle_hessians_where_run(x)
-        rows = (np.arange(self._blocks.shape[0], dtype=np.int32) if vertices is None
-                else np.flatnonzero(np.asarray(vertices)[self.vertices].any(axis=1)).astype(np.int32))
+        rows = marked_rows(self.vertices, vertices)
         self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_upper", self._tri_upper),
                                            rows, values)

@@ -43,10 +43,9 @@ from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
-from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 from sim_core.ti_kernels.block_projection import (
-    TranslationFreeProjector, add_upper_entry, BoundSlotTables, upper_index,
+    TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, upper_index,
 )
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
@@ -319,7 +318,7 @@ class FusedSpringMembrane(BoundSlotTables):
             spring_membrane_triangle_blocks(x, self._triangles, self._area0, p.k_area, self._blocks)
             blocks, slots = self._blocks, self._slots[:t_count]
             if vertices is not None:
-                rows = np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1))
+                rows = marked_rows(self._triangles, vertices)
                 blocks, slots = blocks[rows], slots[rows]
             self._projector.add_projected(blocks, projection, slots, values)
         if self._edges.shape[0]:
@@ -336,13 +335,7 @@ class FusedSpringMembrane(BoundSlotTables):
         Raises:
             ValueError: unknown projection.
         """
-        sums = on_device(self._device, "sums", values, scratch=True)
-        if sums is values:  # host arrays (CPU arch): the kernels add into values directly
-            self.add_projected_on_device(x, projection, values, vertices)
-            return
-        fill(sums, 0.0)
-        self.add_projected_on_device(x, projection, sums, vertices)
-        values += download(sums)
+        add_projected_where_run(self, x, projection, values, vertices)
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
         """The projected blocks added into ``values`` ``(pattern.keys.size,)`` where the kernels run (on CUDA a device
@@ -366,8 +359,7 @@ class FusedSpringMembrane(BoundSlotTables):
             blocks = on_device(d, "blocks", self._blocks, scratch=True)
             spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles),
                                             on_device(d, "area0", self._area0), p.k_area, blocks)
-            rows = (np.arange(t_count, dtype=np.int32) if vertices is None
-                    else np.flatnonzero(np.asarray(vertices)[self._triangles].any(axis=1)).astype(np.int32))
+            rows = marked_rows(self._triangles, vertices)
             self._projector.add_projected_rows(blocks, projection, upper, rows, values)
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),

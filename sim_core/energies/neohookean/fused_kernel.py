@@ -31,15 +31,15 @@ import numpy as np
 
 from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
 from sim_core.energies.neohookean.reference import StableNeoHookean
-from sim_core.ti_backend import require_backend, serial_loops, ti
+from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_upper_block_rows, add_upper_entry,
-                                                  BoundSlotTables, upper_index)
+from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_projected_where_run,
+                                                  add_upper_block_rows, add_upper_entry, BoundSlotTables,
+                                                  marked_rows, upper_index)
 from sim_core.ti_kernels.buffers import on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
-from sim_core.ti_kernels.transfer import download, fill
 from sim_core.worker_recipe import part_recipe
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
@@ -297,11 +297,8 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        sums = on_device(self._device, "sums", values, scratch=True)
-        if sums is not values:  # CUDA: the blocks made and added into sums on the device, the sums downloaded
-            fill(sums, 0.0)
-            self.add_projected_on_device(x, projection, sums, vertices)
-            values += download(sums)
+        if current_arch() == "cuda":  # the blocks made and added into sums on the device, the sums downloaded
+            add_projected_where_run(self, x, projection, values, vertices)
             return
         p = self.potential
         blocks = self._block_buffer()
@@ -309,7 +306,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         if vertices is None:
             add_blocks(blocks, self._slots, values)
         else:  # the tets touching a marked vertex
-            rows = np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32)
+            rows = marked_rows(self._tets, vertices)
             add_block_rows(blocks, self._slots, rows, rows.size, values)
 
     def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
@@ -330,8 +327,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         blocks = on_device(d, "blocks", self._block_buffer(), scratch=True)
         evaluate_snh_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
                              on_device(d, "vol", self._vol), p.mu, p.lam, code, blocks)
-        rows = (np.arange(self._tets.shape[0], dtype=np.int32) if vertices is None  # else the tets touching a marked vertex
-                else np.flatnonzero(np.asarray(vertices)[self._tets].any(axis=1)).astype(np.int32))
+        rows = marked_rows(self._tets, vertices)  # with vertices: the tets touching a marked vertex
         if rows.size:
             add_upper_block_rows(blocks, on_device(d, "upper", self._upper), on_device(d, "rows", rows), rows.size,
                                  values)
