@@ -164,6 +164,7 @@ class SolverConfig:
     sleeping: bool = False
     sleep_velocity: float = 1e-7
     carried_start: bool = False
+    cg_precision: str = "double"
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
@@ -188,5 +189,7 @@ class SolverConfig:
                               "(a lockstep batch starts every copy at x^n)")
         if self.sleeping and self.lockstep:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
+        if self.cg_precision not in ("double", "mixed"):
+            raise ConfigError(f"solver cg_precision must be double|mixed, got {self.cg_precision!r}")
         if self.dt_halvings_on_failure < 0:
             raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")

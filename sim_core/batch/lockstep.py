@@ -165,7 +165,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
             segments[scene.index] = np.arange(scene.copies)[:, None]
             self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
-                                                       bands=sheet_band_dofs(scene))
+                                                       bands=sheet_band_dofs(scene), precision=config.cg_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took

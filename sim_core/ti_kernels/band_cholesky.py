@@ -33,6 +33,7 @@ import numpy as np
 
 from sim_core.ti_backend import ti
 from sim_core.ti_kernels import device_copy
+from sim_core.ti_kernels.precision import VALUES, stored
 from sim_core.unique import sorted_unique
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
@@ -59,7 +60,7 @@ def _band_width(indptr: _I32, indices: _I32, band_dof: _I32, dof_pos: _I32, widt
 
 
 @ti.kernel
-def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: _F64, free: _F64, dof_pos: _I32, band: _F64,
+def _band_add_vertex_blocks(brow: _I32, bcol: _I32, bval: VALUES, free: _F64, dof_pos: _I32, band: _F64,
                             nblocks: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
     """``band += F E_t F`` of the vertex blocks ``E_t`` (:class:`~sim_core.ti_kernels.pcg.VertexBlocks`) whose
     rows and columns fall in one block's band (atomic adds)."""
@@ -109,6 +110,16 @@ def _band_sources(indptr: _I32, indices: _I32, band_dof: _I32, dof_pos: _I32, sr
                     j = q % m
                     if j <= i and i - j <= w:
                         src[_at(b, i, w - (i - j), m, w)] = e
+
+
+@ti.kernel
+def _compose_sources(src: _I32, data_index: _I32, size: ti.i32):
+    """``src[k] = data_index[src[k]]`` where ``src[k]`` is a position (>= 0): positions in the both-triangle pattern
+    made positions in another array of its values."""
+    for k in range(size):
+        s = src[k]
+        if s >= 0:
+            src[k] = data_index[s]
 
 
 @ti.kernel
@@ -215,7 +226,7 @@ def _factor_entry(band: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, m: ti.i3
 
 
 @ti.kernel
-def _tile_inverses(band: _F64, usable: _I32, diag_inv: _F64, nb: ti.i32, m: ti.i32, w: ti.i32, t: ti.i32,
+def _tile_inverses(band: _F64, usable: _I32, diag_inv: VALUES, nb: ti.i32, m: ti.i32, w: ti.i32, t: ti.i32,
                    nt: ti.i32):
     """Column ``c`` of ``D_T^-1`` of each usable block's tile ``T`` (``D_T`` the factor's diagonal tile, lower
     triangular), one thread a column: ``D_T y = e_c`` forward, into ``diag_inv[base + a t + c]`` (``base = (b nt
@@ -232,11 +243,11 @@ def _tile_inverses(band: _F64, usable: _I32, diag_inv: _F64, nb: ti.i32, m: ti.i
                     for k in range(ti.max(a - w, 0), a):
                         s -= _factor_entry(band, b, top + a, top + k, m, w) * diag_inv[base + k * t + c]
                     s /= _factor_entry(band, b, top + a, top + a, m, w)
-                diag_inv[base + a * t + c] = s
+                diag_inv[base + a * t + c] = stored(s, diag_inv)
 
 
 @ti.kernel
-def _mirror_tiles(diag_inv: _F64, usable: _I32, nb: ti.i32, t: ti.i32, nt: ti.i32):
+def _mirror_tiles(diag_inv: VALUES, usable: _I32, nb: ti.i32, t: ti.i32, nt: ti.i32):
     """``diag_inv[base + p t + q] = diag_inv[base + q t + p]`` for ``p < q``: each tile's array then holds
     ``D_T^-1[a, c]`` at ``c t + a`` (``a >= c``) and ``D_T^-1[c, a]`` at ``c t + a`` (``c >= a``), so that both
     :func:`band_solve`'s products with ``D_T^-1`` and ``D_T^-T`` read it with neighbouring threads on neighbouring
@@ -248,7 +259,7 @@ def _mirror_tiles(diag_inv: _F64, usable: _I32, nb: ti.i32, t: ti.i32, nt: ti.i3
 
 
 @ti.kernel
-def _tile_couplings(band: _F64, usable: _I32, diag_inv: _F64, fwd: _F64, back: _F64, nb: ti.i32, m: ti.i32,
+def _tile_couplings(band: _F64, usable: _I32, diag_inv: VALUES, fwd: VALUES, back: VALUES, nb: ti.i32, m: ti.i32,
                     w: ti.i32, t: ti.i32, nt: ti.i32):
     """The tiles' coupling matrices of each usable block, entry ``(a, c)`` of tile ``T`` at ``base + c t + a``, one
     thread an entry: ``fwd`` ``G_T = D_T^-1 C_T`` (``T >= 1``) and ``back`` ``H_T = D_T^-T C_{T+1}^T``
@@ -262,13 +273,13 @@ def _tile_couplings(band: _F64, usable: _I32, diag_inv: _F64, fwd: _F64, back: _
             if tt >= 1:  # sum_k D^-1[a, k] C_T[k, c], C_T[k, c] = L(top + k, top - t + c) (0 for t + k - c > w)
                 for k in range(ti.min(a, c + w - t) + 1):
                     g += diag_inv[base + k * t + a] * _factor_entry(band, b, top + k, top - t + c, m, w)
-            fwd[base + c * t + a] = g
+            fwd[base + c * t + a] = stored(g, fwd)
             h = 0.0
             if tt + 1 < nt:  # sum_k D^-1[k, a] C_{T+1}[c, k], C_{T+1}[c, k] = L(top + t + c, top + k)
                 for k in range(ti.max(t + c - w, 0), t):
                     if k >= a:
                         h += diag_inv[base + k * t + a] * _factor_entry(band, b, top + t + c, top + k, m, w)
-            back[base + c * t + a] = h
+            back[base + c * t + a] = stored(h, back)
 
 
 @ti.func
@@ -350,7 +361,7 @@ def _band_out(band_dof: ti.template(), x: ti.template(), z: ti.template(), b: ti
 
 
 @ti.kernel
-def _apply(diag_inv: _F64, fwd: _F64, back: _F64, y: _F64, x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
+def _apply(diag_inv: VALUES, fwd: VALUES, back: VALUES, y: _F64, x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
            active: _I32, r: _F64, z: _F64, nb: ti.i32, m: ti.i32, t: ti.i32, nt: ti.i32):
     """:func:`band_solve` as a kernel (:meth:`BandBlocks.apply`)."""
     band_solve(diag_inv, fwd, back, y, x, usable, band_dof, band_copy, active, r, z, nb, m, t, nt)
@@ -365,6 +376,8 @@ class BandBlocks:
         segments: the copy of each DoF, shape ``(n,)`` int; a block's DoFs lie in one copy.
         max_width: the largest half-bandwidth ``w`` (DoFs) kept; a pattern whose band is wider leaves the blocks
             unused (:attr:`width` 0).
+        dtype: the tiles' storage type (``ti.f64``, or ``ti.f32``: each tile entry computed in float64 from the
+            float64 factor and rounded once, :mod:`~sim_core.ti_kernels.precision`).
 
     Raises:
         ValueError: a DoF outside ``0..n-1`` or in two blocks, or a block over two copies.
@@ -375,7 +388,7 @@ class BandBlocks:
             ``max_width``: the blocks are then not used).
     """
 
-    def __init__(self, dofs: np.ndarray, segments: np.ndarray, max_width: int = 128) -> None:
+    def __init__(self, dofs: np.ndarray, segments: np.ndarray, max_width: int = 128, dtype=ti.f64) -> None:
         dofs = np.asarray(dofs, dtype=np.int64)
         n = int(np.asarray(segments).shape[0])
         if dofs.ndim != 2 or dofs.size == 0:
@@ -390,6 +403,7 @@ class BandBlocks:
             raise ValueError("BandBlocks: a block's DoFs lie in more than one copy")
         self.count, self.size = int(dofs.shape[0]), int(dofs.shape[1])
         self.max_width = int(max_width)
+        self.dtype = dtype
         self.width = 0
         pos = np.full(n, -1, dtype=np.int32)
         pos[real] = np.flatnonzero(dofs.reshape(-1) >= 0).astype(np.int32)
@@ -404,12 +418,14 @@ class BandBlocks:
         self._sources = None  # each band entry's position in the CSR data (_band_sources), with the bands
         self._measured_for = None  # the full pattern's device indptr the width was measured on
 
-    def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object) -> bool:
+    def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object, data_index=None) -> bool:
         """The blocks' bands of ``A`` (the both-triangle CSR ndarrays ``indptr``, ``indices``, ``data``, an entry
         at most once a row, plus the vertex blocks ``blocks = (brow, bcol, bval, free, count)`` or None),
         factorised and inverted; the width and the band entries' positions in ``data`` are found again when
-        ``pattern_key`` is another object than at the last call. Returns whether the blocks are used (the band no
-        wider than ``max_width``)."""
+        ``pattern_key`` is another object than at the last call. With ``data_index`` (int32 ndarray, one entry
+        an entry of the pattern), ``data`` is another float64 array of the values, the pattern's entry ``e`` at
+        ``data[data_index[e]]`` (e.g. the upper triangle's values). Returns whether the blocks are used (the band
+        no wider than ``max_width``)."""
         if self._measured_for is not pattern_key:
             width = device_copy.new_ndarray(ti.i32, (1,))
             _band_width(indptr, indices, self._dof, self._pos, width, self.count, self.size)
@@ -423,10 +439,13 @@ class BandBlocks:
                     self._sources = device_copy.new_ndarray(ti.i32, (size,))
                 t, nt = tiling(self.size, w)
                 if self._tile_arrays is None or (self.tile, self.tiles) != (t, nt):
-                    self._tile_arrays = tuple(device_copy.new_ndarray(ti.f64, (k,)) for k in
-                                              3 * (self.count * nt * t * t,) + 2 * (self.count * nt * t,))
+                    self._tile_arrays = tuple(device_copy.new_ndarray(dtype, (k,)) for dtype, k in
+                                              3 * ((self.dtype, self.count * nt * t * t),)
+                                              + 2 * ((ti.f64, self.count * nt * t),))
                 self.tile, self.tiles = t, nt
                 _band_sources(indptr, indices, self._dof, self._pos, self._sources, self.count, self.size, w)
+                if data_index is not None:
+                    _compose_sources(self._sources, data_index, size)
         if not self.width:
             return False
         self.gather(data, blocks)

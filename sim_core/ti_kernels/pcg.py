@@ -50,6 +50,7 @@ from sim_core.ti_kernels.band_cholesky import BandBlocks, band_solve
 from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
 from sim_core.ti_kernels.copy_vectors import REDUCTION_LANES, copy_sums, lane_count, lane_vertex
 from sim_core.ti_kernels.launch import fast_kernel
+from sim_core.ti_kernels.precision import VALUES, storage_dtype, stored
 
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -67,10 +68,10 @@ def _full_csr_matvec(indptr: ti.template(), indices: ti.template(), data: ti.tem
 
 
 @ti.kernel
-def _gather(src: _F64, index: _I32, out: _F64, count: ti.i32):
-    """``out[k] = src[index[k]]`` for ``k < count``."""
+def _gather(src: _F64, index: _I32, out: VALUES, count: ti.i32):
+    """``out[k] = src[index[k]]`` for ``k < count`` (rounded to ``out``'s type)."""
     for k in range(count):
-        out[k] = src[index[k]]
+        out[k] = stored(src[index[k]], out)
 
 
 @ti.func
@@ -90,10 +91,10 @@ def _vertex_blocks_matvec(brow: ti.template(), bcol: ti.template(), bval: ti.tem
 
 
 @ti.kernel
-def _copy_values(src: _F64, dst: _F64, count: ti.i32):
-    """``dst[k] = src[k]`` for ``k < count``."""
+def _copy_values(src: _F64, dst: VALUES, count: ti.i32):
+    """``dst[k] = src[k]`` for ``k < count`` (rounded to ``dst``'s type)."""
     for k in range(count):
-        dst[k] = src[k]
+        dst[k] = stored(src[k], dst)
 
 
 @ti.kernel
@@ -138,7 +139,7 @@ def _element_block_position(vertices: ti.template(), t: ti.i32, m: ti.i32, at: t
 
 @ti.kernel
 def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32,
-                           bval: _F64):
+                           bval: VALUES):
     """Vertex blocks ``at + (e m + a) m + b`` of ``count`` element blocks over ``m`` vertices: row vertex
     ``vertices[e m + a]``, column vertex ``vertices[e m + b]``, values ``blocks`` of element ``e`` (row-major
     ``(3m, 3m)``) at rows ``3 a + i``, columns ``3 b + j``."""
@@ -146,23 +147,23 @@ def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i3
         e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
-                bval[9 * k + 3 * i + j] = blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j]
+                bval[9 * k + 3 * i + j] = stored(blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j], bval)
 
 
 @ti.kernel
 def _expand_device_rows(vertices: _I32, blocks: ti.types.ndarray(dtype=ti.f64, ndim=3), start: ti.i32, count: ti.i32,
-                        m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32, bval: _F64):
+                        m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32, bval: VALUES):
     """:func:`_expand_element_blocks` of element blocks held as rows ``start .. start + count`` of a
     ``(rows, 3m, 3m)`` ndarray (:class:`~sim_core.ti_kernels.buffers.DeviceRows`)."""
     for t in range(count * m * m):
         e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
-                bval[9 * k + 3 * i + j] = blocks[start + e, 3 * a + i, 3 * b + j]
+                bval[9 * k + 3 * i + j] = stored(blocks[start + e, 3 * a + i, 3 * b + j], bval)
 
 
 @ti.kernel
-def _diag_blocks_add(brow: _I32, bcol: _I32, bval: _F64, free: _F64, blk: _F64, nblocks: ti.i32):
+def _diag_blocks_add(brow: _I32, bcol: _I32, bval: VALUES, free: _F64, blk: _F64, nblocks: ti.i32):
     """``blk += F E_t F`` for every vertex block ``E_t`` on the diagonal (``brow[t] == bcol[t]``)."""
     for t in range(nblocks):
         v = brow[t]
@@ -173,9 +174,9 @@ def _diag_blocks_add(brow: _I32, bcol: _I32, bval: _F64, free: _F64, blk: _F64, 
 
 
 @ti.kernel
-def _invert_blocks(blk: _F64, inv: _F64, nvert: ti.i32):
+def _invert_blocks(blk: _F64, inv: VALUES, nvert: ti.i32):
     """``inv`` ``(9 nvert,)``: the inverse of each 3x3 block of ``blk`` (its diagonal's inverse when the
-    block is singular, 1 where the diagonal is zero)."""
+    block is singular, 1 where the diagonal is zero), rounded to ``inv``'s type."""
     for v in range(nvert):
         m = ti.Matrix.zero(ti.f64, 3, 3)
         for a in ti.static(range(3)):
@@ -191,11 +192,11 @@ def _invert_blocks(blk: _F64, inv: _F64, nvert: ti.i32):
                 out[a, a] = 1.0 / m[a, a] if m[a, a] > 0 else 1.0
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
-                inv[9 * v + 3 * a + b] = out[a, b]
+                inv[9 * v + 3 * a + b] = stored(out[a, b], inv)
 
 
 @ti.kernel
-def _apply(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64, p: _F64,
+def _apply(indptr: _I32, indices: _I32, data: VALUES, brow: _I32, bcol: _I32, bval: VALUES, free: _F64, p: _F64,
            ap: _F64, n: ti.i32, nblocks: ti.i32):
     """``ap = A p`` (``ap`` zeroed here) for the operator of :meth:`BatchedPCG.factorize`."""
     for i in range(n):
@@ -221,7 +222,7 @@ def _reset_copies(rz: _F64, bb: _F64, pap: _F64, rz_new: _F64, rr: _F64, active:
 
 
 @ti.kernel
-def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: _F64, rz: _F64, bb: _F64, active: _I32,
+def _start(b: _F64, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64, inv: VALUES, rz: _F64, bb: _F64, active: _I32,
            order: _I32, start: _I32, nvert: ti.i32, copies: ti.i32):
     """``x = 0``, ``ap = 0``, ``r = b``, ``z = p = M^-1 b``; per copy ``rz = r.z`` and ``bb = b.b`` (zeroed
     before), summed :data:`REDUCTION_LANES` threads a copy (no atomic adds of every DoF into one address)."""
@@ -258,8 +259,8 @@ def _launches_before_test(previous: int) -> int:
 
 
 @ti.kernel
-def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, diag_inv: _F64,
-                  fwd: _F64, back: _F64, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
+def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32, start: _I32, diag_inv: VALUES,
+                  fwd: VALUES, back: VALUES, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32, band_copy: _I32,
                   n: ti.i32, copies: ti.i32, nb: ti.i32, m: ti.i32, tile: ti.i32, tiles: ti.i32):
     """After :func:`_start`: ``z = p = M^-1 r`` with the band blocks' solves on their DoFs, per copy ``rz = r.z``."""
     band_solve(diag_inv, fwd, back, sub_y, sub_x, usable, band_dof, band_copy, active, r, z, nb, m, tile, tiles)
@@ -271,11 +272,11 @@ def _start_banded(r: _F64, z: _F64, p: _F64, rz: _F64, active: _I32, order: _I32
 
 
 @ti.kernel
-def _cg_iterations(indptr: _I32, indices: _I32, data: _F64, brow: _I32, bcol: _I32, bval: _F64, free: _F64,
-                   inv: _F64, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
+def _cg_iterations(indptr: _I32, indices: _I32, data: VALUES, brow: _I32, bcol: _I32, bval: VALUES, free: _F64,
+                   inv: VALUES, seg: _I32, order: _I32, start: _I32, x: _F64, r: _F64, z: _F64, p: _F64, ap: _F64,
                    rz: _F64, rz_new: _F64, rr: _F64, bb: _F64, pap: _F64, beta: _F64, active: _I32, bad: _I32,
                    done: _I32, running: _I32, rtol2: ti.f64, n: ti.i32, nblocks: ti.i32, copies: ti.i32,
-                   diag_inv: _F64, fwd: _F64, back: _F64, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32,
+                   diag_inv: VALUES, fwd: VALUES, back: VALUES, sub_y: _F64, sub_x: _F64, usable: _I32, band_dof: _I32,
                    band_copy: _I32, nb: ti.i32, m: ti.i32, tile: ti.i32, tiles: ti.i32, banded: ti.template()):
     """:data:`ITERATIONS_PER_LAUNCH` CG iterations of every running copy; ``done[c]`` += the iterations copy
     ``c`` ran, ``running[0]`` = copies still running after them. ``order`` lists the vertices copy by copy, copy ``c``'s at
@@ -450,9 +451,13 @@ class BatchedPCG:
             last iterate, and :attr:`unconverged` lists them).
         bands: None, or blocks of DoFs preconditioned by their own matrix, shape ``(nb, m)`` int, each row one
             copy's DoFs in a band-limiting order, -1 padding (:class:`~sim_core.ti_kernels.band_cholesky.BandBlocks`).
+        precision: ``"double"``, or ``"mixed"``: the operator's stored values (the both-triangle CSR values, the
+            vertex blocks) and the preconditioner (the vertex inverses, the band blocks' tiles) kept as float32,
+            the vectors and sums float64 (:mod:`~sim_core.ti_kernels.precision`; for a loose ``rtol`` only).
 
     Raises:
         ValueError: ``bands`` without ``segments``.
+        ConfigError: an unknown ``precision``.
 
     Attributes:
         name: ``"pcg"``.
@@ -469,9 +474,11 @@ class BatchedPCG:
     detects_indefinite = False
 
     def __init__(self, segments: "np.ndarray | None" = None, rtol: float = 1e-10, max_iterations: int = 5000,
-                 bands: "np.ndarray | None" = None) -> None:
+                 bands: "np.ndarray | None" = None, precision: str = "double") -> None:
         if bands is not None and segments is None:
             raise ValueError("BatchedPCG: band blocks need the segments")
+        self.precision = precision
+        self._dtype = storage_dtype(precision)  # of the stored matrices: full_data, bval, inv, the band tiles
         self.rtol = float(rtol)
         self._band_dofs = None if bands is None else np.asarray(bands)
         self.bands: BandBlocks | None = None  # made at the first factorize (Taichi initialised by then)
@@ -559,13 +566,13 @@ class BatchedPCG:
         blk = self._array("blk", max(3 * n, 1))
         _diag_blocks_csr(indptr, indices, data, blk, nvert)
         full = self._full_pattern(indptr_h, indices_h, n)
-        full_data = self._array("full_data", max(full[2], 1))
+        full_data = self._array("full_data", max(full[2], 1), self._dtype)
         if full[2]:
             _gather(data, self._arrays["full_src"], full_data, full[2])
         self._nblocks = 0 if blocks is None else int(blocks.count)
         brow = self._array("brow", max(self._nblocks, 1), ti.i32)
         bcol = self._array("bcol", max(self._nblocks, 1), ti.i32)
-        bval = self._array("bval", max(9 * self._nblocks, 1))
+        bval = self._array("bval", max(9 * self._nblocks, 1), self._dtype)
         free = self._upload("free", np.ones(1) if blocks is None else blocks.free, ti.f64)
         if self._nblocks and blocks.sets is not None:  # element sets uploaded as they are, expanded here
             at = 0
@@ -583,16 +590,19 @@ class BatchedPCG:
         elif self._nblocks:
             _copy_in(brow, np.ascontiguousarray(blocks.rows))
             _copy_in(bcol, np.ascontiguousarray(blocks.cols))
-            transfer.upload(bval, blocks.values.reshape(-1))
+            staged = self._array("bval_host", max(9 * self._nblocks, 1))
+            transfer.upload(staged, blocks.values.reshape(-1))
+            _copy_values(staged, bval, 9 * self._nblocks)
         if self._nblocks:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
-        _invert_blocks(blk, self._array("inv", max(3 * n, 1)), nvert)
+        _invert_blocks(blk, self._array("inv", max(3 * n, 1), self._dtype), nvert)
         if self._band_dofs is not None:
             if self.bands is None:
-                self.bands = BandBlocks(self._band_dofs, seg)
+                self.bands = BandBlocks(self._band_dofs, seg, dtype=self._dtype)
             a = self._arrays
             self._banded = bool(full[2]) and self.bands.assemble(
-                a["full_indptr"], a["full_indices"], full_data, (brow, bcol, bval, free, self._nblocks), full)
+                a["full_indptr"], a["full_indices"], data, (brow, bcol, bval, free, self._nblocks), full,
+                data_index=a["full_src"])
         return True
 
     def _copy_order(self, seg: np.ndarray) -> None:
@@ -633,8 +643,9 @@ class BatchedPCG:
         """The band blocks' device arrays for the CG kernels, then ``(nb, m, t, nt)``; placeholders when unused."""
         if self._banded:
             return (*self.bands.arguments(), self.bands.sizes())
-        one_f, one_i = self._array("band_none", 1), self._array("band_none_i", 1, ti.i32)
-        return one_f, one_f, one_f, one_f, one_f, one_i, one_i, one_i, (0, 1, 1, 1)
+        one_v, one_f = self._array("band_none_v", 1, self._dtype), self._array("band_none", 1)
+        one_i = self._array("band_none_i", 1, ti.i32)
+        return one_v, one_v, one_v, one_f, one_f, one_i, one_i, one_i, (0, 1, 1, 1)
 
     def _operator(self) -> tuple:
         a = self._arrays
