@@ -7,7 +7,8 @@ Usage: ``python benchmarks/bench_band_factor.py --arch cuda --B 1024 --m 360 --w
 matrix of a block is banded (half-bandwidth ``w``), symmetric and diagonally dominant (positive definite), the same
 in every copy. Prints ms a phase (mean of ``repeat`` runs, each ended by a synchronisation), ms a product (mean of
 ``products`` after one unmeasured, ended by a synchronisation) and the largest relative error of the first block's
-product against NumPy's solve.
+product against NumPy's solve. ``--precision mixed``: the tiles stored as float32 (the batched CG's mixed precision,
+:mod:`sim_core.ti_kernels.precision`), on a tree that has it.
 """
 
 import argparse
@@ -43,6 +44,7 @@ def main() -> int:
     ap.add_argument("--products", type=int, default=20, help="products timed")
     ap.add_argument("--tiles", type=int, default=None,
                     help="band_cholesky.TILES for this run (the tiled product's largest tile count), where it has one")
+    ap.add_argument("--precision", default=None, help="double or mixed: the tiles' storage, where the tree has it")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
 
@@ -61,7 +63,12 @@ def main() -> int:
         arr.from_numpy(host)
         arrays.append(arr)
     indptr, indices, data = arrays
-    blocks = bc.BandBlocks(np.arange(nb * m).reshape(nb, m), np.repeat(np.arange(nb), m))
+    options = {}
+    if args.precision is not None:
+        from sim_core.ti_kernels.precision import storage_dtype
+
+        options["dtype"] = storage_dtype(args.precision)
+    blocks = bc.BandBlocks(np.arange(nb * m).reshape(nb, m), np.repeat(np.arange(nb), m), **options)
     key = object()
     assert blocks.assemble(indptr, indices, data, None, key) and blocks.width == args.w
     w = blocks.width
@@ -79,7 +86,7 @@ def main() -> int:
             ti.sync()
             times[name] += time.perf_counter() - t
     for name, total in times.items():
-        print(f"B={nb} m={m} w={w} {name:14s} {1e3 * total / args.repeat:9.3f} ms")
+        print(f"B={nb} m={m} w={w} {name:14s} {1e3 * total / args.repeat:9.3f} ms {args.precision or ''}")
     print(f"B={nb} m={m} w={w} {'all':14s} {1e3 * sum(times.values()) / args.repeat:9.3f} ms")
     r_h = np.random.default_rng(0).normal(size=nb * m)
     r, z, active = (device_copy.new_ndarray(ti.f64, (nb * m,)), device_copy.new_ndarray(ti.f64, (nb * m,)),
@@ -92,7 +99,8 @@ def main() -> int:
     for _ in range(args.products):
         blocks.apply(r, z, active)
     ti.sync()
-    print(f"B={nb} m={m} w={w} {'product':14s} {1e3 * (time.perf_counter() - t) / max(args.products, 1):9.3f} ms")
+    print(f"B={nb} m={m} w={w} {'product':14s} {1e3 * (time.perf_counter() - t) / max(args.products, 1):9.3f} ms "
+          f"{args.precision or ''}")
     want = np.linalg.solve(block, r_h[:m])
     got = z.to_numpy()[:m]
     print(f"first block's product: largest relative error {np.abs(got - want).max() / np.abs(want).max():.2e}")

@@ -164,7 +164,7 @@ class SolverConfig:
     sleeping: bool = False
     sleep_velocity: float = 1e-7
     carried_start: bool = False
-    cg_precision: str = "double"
+    cg_precision: str = "mixed"
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")

@@ -1,0 +1,85 @@
+"""The lockstep's batched CG in double and in mixed precision on one real Newton matrix, side by side.
+
+Usage: ``python benchmarks/bench_cg_precision.py --arch cuda --B 1024 --repeat 5``. Builds ``B`` lockstep Forming
+copies on the batched CG (``parts_lockstep.third_step``: two steps taken, the third set up), takes the Newton matrix
+at the third step's first iterate (the fused elastic values and the contact and friction blocks, projected by
+``--projection``), and for each precision (:mod:`sim_core.ti_kernels.precision`) a fresh
+:class:`~sim_core.ti_kernels.pcg.BatchedPCG` as the lockstep makes it (each copy's sheet a band block,
+``LOCKSTEP_CG_RTOL``) factorises it and solves a right-hand side (seeded, zero on fixed DoFs): ms a factorisation and
+a solve (medians of ``--repeat``, each ended by a synchronisation), CG iterations (of the slowest copy), ms a CG
+iteration, band blocks not usable, copies unconverged or indefinite, and each precision's largest per-copy relative
+residual ``|A x_c - b_c| / |b_c|`` and difference from the double solution ``|A (x_c - x_c^double)| / |b_c|``,
+both with the double operator's product.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--B", type=int, default=4)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--projection", default="clamp", help="the contact blocks' projection: clamp or none")
+    args = ap.parse_args()
+    from parts_lockstep import third_step  # (benchmarks/, the script's folder)
+
+    from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
+    from sim_core.batch.sheet_bands import sheet_band_dofs
+    from sim_core.ti_backend import init_backend, ti
+    from sim_core.ti_kernels.pcg import BatchedPCG
+    from sim_core.ti_kernels.precision import PRECISIONS
+
+    init_backend(args.arch)
+    solver, step, x = third_step(args.B, args.arch)
+    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
+    operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
+    scene = solver.scene
+    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+    segments[scene.index] = np.arange(scene.copies)[:, None]
+    dof_copy = np.repeat(segments, 3)
+    b = np.random.default_rng(0).normal(size=dof_copy.size) * step.free
+
+    def timed(fn) -> float:
+        times = []
+        for _ in range(args.repeat):
+            ti.sync()
+            t = time.perf_counter()
+            fn()
+            ti.sync()
+            times.append(time.perf_counter() - t)
+        return 1e3 * float(np.median(times))
+
+    solutions, reference = {}, None
+    for precision in PRECISIONS:
+        pcg = BatchedPCG(dof_copy, rtol=LOCKSTEP_CG_RTOL, bands=sheet_band_dofs(scene), precision=precision)
+        pcg.factorize(*operator)  # compilation
+        pcg.solve(b)
+        factorize_ms = timed(lambda: pcg.factorize(*operator))
+        solve_ms = timed(lambda: pcg.solve(b))
+        solutions[precision] = pcg.solve(b)
+        if reference is None:
+            reference = pcg  # the double operator's product
+        unusable = int((~pcg.bands.usable).sum()) if pcg.bands is not None else -1
+        print(f"B={args.B} {precision:6s} factorize {factorize_ms:8.2f} ms  solve {solve_ms:8.2f} ms  "
+              f"CG iterations {pcg.iterations}  ms an iteration {solve_ms / max(pcg.iterations, 1):.3f}  "
+              f"band blocks not usable {unusable}  unconverged {int(pcg.unconverged.sum())}  "
+              f"indefinite {int(pcg.indefinite.sum())}", flush=True)
+    b_norm = np.sqrt(np.bincount(dof_copy, weights=b * b))
+    for precision, xs in solutions.items():
+        residual = np.sqrt(np.bincount(dof_copy, weights=(reference.matvec(xs) - b) ** 2)) / np.maximum(b_norm, 1e-300)
+        diff = reference.matvec(xs - solutions["double"])
+        change = np.sqrt(np.bincount(dof_copy, weights=diff * diff)) / np.maximum(b_norm, 1e-300)
+        print(f"B={args.B} {precision:6s} largest relative residual {residual.max():.3e}  largest |A (x - x_double)| / "
+              f"|b| {change.max():.3e}  (rtol {LOCKSTEP_CG_RTOL:g})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
