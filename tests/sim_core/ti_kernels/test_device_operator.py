@@ -83,7 +83,7 @@ def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu, monke
     # launch (host Hessians); the lockstep's Newton loop evaluates them at its device iterate
     monkeypatch.setattr(PairBatch, "packed", False)
     model = pad_model()
-    config = SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True, linear_solver="pcg")
+    config = SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True, linear_solver="pcg", cg_precision="double")
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model), solver_config=config)
     pose0 = batch.states[0].effector_pose["pad"].copy()
     for k in range(3):  # press until the pad and the table touch the sheet

@@ -156,6 +156,58 @@ def test_band_blocks_of_the_plates_cut_the_iterations_and_each_copy_is_solved_to
     assert 3 * iterations["bands"] < iterations["jacobi"], iterations
 
 
+@pytest.mark.parametrize("rtol", [1e-4, 1e-7])  # the lockstep's; one near float32's rounding times the condition
+def test_mixed_precision_solves_to_the_tolerance_and_equals_the_double_solution_within_it(ti_cpu, rtol):
+    """Stored in float32 (operator, vertex inverses, band tiles), the CG solves the stiff plate-and-gel copies
+    (condition ~1e5) to the tolerance plus the operator's rounding ``2^-24 |A| |x|``, within that of the float64
+    CG's solution, in about as many iterations; its product is the matrix's to float32 rounding, not exactly."""
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    nx, ny, solid = 12, 5, 20
+    blocks = [np.pi * _plate_and_solid(nx, ny, solid, s) for s in (1e3, 3e3, 1e4)]  # entries not float32's
+    A = sp.block_diag(blocks, format="csr")
+    n_copy = 3 * (nx * ny + solid)
+    segments = np.repeat(np.arange(3), n_copy)
+    bands = np.stack([n_copy * c + np.arange(3 * nx * ny) for c in range(3)])
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    rng = np.random.default_rng(8)
+    b = rng.normal(size=A.shape[0])
+    b[n_copy:2 * n_copy] = 0.0
+    x, iterations = {}, {}
+    for precision in ("double", "mixed"):
+        solver = BatchedPCG(segments, rtol=rtol, bands=bands, precision=precision)
+        solver.factorize(upper)
+        x[precision] = solver.solve(b)
+        iterations[precision] = solver.iterations
+        assert solver.bands.usable.all() and not solver.indefinite.any() and not solver.unconverged.any()
+        for c in (0, 2):
+            part = slice(n_copy * c, n_copy * (c + 1))
+            rounding = 2.0 ** -24 * np.linalg.norm(abs(A[part, part]) @ np.abs(x[precision][part]))  # |A~ - A| |x|
+            residual = np.linalg.norm(A[part, part] @ x[precision][part] - b[part])
+            assert residual <= 1.01 * rtol * np.linalg.norm(b[part]) + (rounding if precision == "mixed" else 0.0)
+        np.testing.assert_array_equal(x[precision][n_copy:2 * n_copy], 0.0)
+    for c in (0, 2):
+        part = slice(n_copy * c, n_copy * (c + 1))
+        change = A[part, part] @ (x["mixed"][part] - x["double"][part])
+        assert np.linalg.norm(change) <= 2.0 * rtol * np.linalg.norm(b[part]) + 2.0 ** -23 * np.linalg.norm(
+            abs(A[part, part]) @ np.abs(x["mixed"][part]))
+    assert iterations["mixed"] <= iterations["double"] + 3, iterations
+    p = rng.normal(size=A.shape[0])
+    rounding = np.abs(solver.matvec(p) - A @ p)
+    assert 0.0 < rounding.max() and np.all(rounding <= 2.0 ** -23 * (abs(A) @ np.abs(p)))
+
+
+def test_an_unknown_precision_is_refused(ti_cpu):
+    from sim_core.errors import ConfigError
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    with pytest.raises(ConfigError, match="precision"):
+        BatchedPCG(np.zeros(3, np.int32), precision="half")
+    with pytest.raises(ConfigError, match="cg_precision"):
+        SolverConfig(backend=f"taichi-{ti_cpu}", cg_precision="single")
+
+
 @pytest.mark.parametrize("device_hessian", [False, True])
 def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian):
     """With ``device_hessian`` (CUDA's defaults) the CG takes the contact Hessians from the pair kernel's ndarray,
