@@ -139,6 +139,14 @@ class SolverConfig:
             moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks'
             and the replays' steps are those from ``x^n``); the sim node turns it on. Not with
             ``lockstep``; ignored with a position guess (``Control.position_guess``).
+        cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``, or ``"pardiso"`` on
+            ``taichi-cuda``): ``"mixed"`` (default) keeps its operator's values and its preconditioner as float32 on
+            the device, its vectors, sums and factorisations float64 (:mod:`sim_core.ti_kernels.precision`);
+            ``"double"`` everything float64. Its solves stop at the relative residual ``LOCKSTEP_CG_RTOL`` (1e-4),
+            far above float32's rounding: on the CPU arch the Newton iterations are double's copy by copy and step
+            by step, the states within 1.1e-8 m of double's (Forming, 8 copies, 5 steps; Folding-U, 4 copies, 20
+            steps), a fiftieth of the Newton tolerance, with 0.3-0.6 more CG iterations a solve
+            (docs/benchmarks_log.md, session 47, 28f32). Other solvers ignore it.
     """
 
     tol_velocity: float = 1e-4

@@ -23,10 +23,11 @@ entry); the solve is a pass over every tile for each ``D_T^-1`` product and ``nt
 (one thread a row of a tile, ``t`` multiply-adds), every read coalesced: a dense inverse ``L^-T L^-1`` instead costs
 ``m^2`` reads a solve and, to form, a chain of ``2 m w`` dependent steps a column.
 
-Storage, float64: the band ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``), the tiles'
-``D_T^-1``, ``G_T``, ``H_T`` ``(nb, nt, t, t)`` each (0.78 MB a block for a 16 x 8 sheet, ``m = 360``, ``w = 53``,
-``t = 90``, ``nt = 4``; a dense inverse 1.04 MB) and the solve's two scratch vectors ``(nb, nt t)``, and the band
-entries' positions in the CSR values, int32 ``(nb, m, w + 1)``.
+Storage: the band, float64 ``(nb, m, w + 1)`` (entry ``(b, i, k)`` at column ``j = i - w + k``), the tiles'
+``D_T^-1``, ``G_T``, ``H_T`` ``(nb, nt, t, t)`` each, float64 or float32 (:class:`BandBlocks`' ``dtype``: computed in
+float64 from the float64 factor, each entry rounded once where stored; 0.78 MB a block in float64 for a 16 x 8 sheet,
+``m = 360``, ``w = 53``, ``t = 90``, ``nt = 4``, 0.39 MB in float32; a dense inverse 1.04 MB) and the solve's two
+scratch vectors, float64 ``(nb, nt t)``, and the band entries' positions in the CSR values, int32 ``(nb, m, w + 1)``.
 """
 
 import numpy as np

@@ -13,9 +13,10 @@ of ``A`` (from ``U`` and the diagonal blocks ``E_t``), inverted, and, where band
 e.g. each copy's sheet, :func:`~sim_core.batch.sheet_bands.sheet_band_dofs`), on their DoFs the block's own
 matrix inverted exactly (:class:`~sim_core.ti_kernels.band_cholesky.BandBlocks`: a block-Jacobi preconditioner
 whose large blocks take out the sheet's slow bending modes; on the Forming scene 269 -> 31 CG iterations a solve
-at B = 1024). The matrix, the preconditioner and
-every CG vector stay in Taichi ndarrays (device memory on CUDA); each iteration is five passes over
-all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its
+at B = 1024). The matrix, the preconditioner and every CG vector stay in Taichi ndarrays (device memory on CUDA;
+the stored matrices float64, or float32 with ``precision="mixed"``, :mod:`~sim_core.ti_kernels.precision`; the
+vectors and sums float64 either way; the band blocks gathered from the float64 upper triangle); each iteration is
+five passes over all copies, and one kernel launch runs :data:`ITERATIONS_PER_LAUNCH` iterations (the passes are its
 top-level loops, which Taichi runs one after the other on the device):
 
 * ``A p``: the rows of ``U + U^T - diag(U)`` (one thread a row), then each vertex block ``E_t``

@@ -154,6 +154,40 @@ def test_blocks_of_many_panels_are_inverted_exactly_as_their_values_change(ti_cp
     np.testing.assert_allclose(z_dev.to_numpy(), want, rtol=0, atol=1e-9 * np.abs(want).max())
 
 
+def test_float32_tiles_apply_each_block_inverse_to_float32_rounding_times_its_condition(ti_cpu):
+    """Tiles stored as float32 (factorised in float64, each tile entry rounded once): the product solves each block
+    to about ``2^-24 cond`` (condition ~170 here), not exactly; the same blocks with float64 tiles to ~1e-15."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import band_cholesky, device_copy
+    from sim_core.ti_kernels.band_cholesky import BandBlocks
+
+    m, w = 3 * band_cholesky.PANEL * band_cholesky.PANELS_PER_LAUNCH - 5, 20
+    sizes = (m, m - 9)
+    blocks = [np.pi * _banded_spd(k, w, 7 + c) for c, k in enumerate(sizes)]  # entries not float32's
+    a = sp.block_diag([sp.csr_matrix(block) for block in blocks], format="csr")
+    a.eliminate_zeros()
+    n = a.shape[0]
+    dofs = np.full((2, m), -1)
+    dofs[0] = np.arange(m)
+    dofs[1, :sizes[1]] = m + np.arange(sizes[1])
+    r = np.random.default_rng(1).normal(size=n)
+    r_dev, z_dev, active = (device_copy.new_ndarray(ti.f64, (n,)), device_copy.new_ndarray(ti.f64, (n,)),
+                            device_copy.new_ndarray(ti.i32, (2,)))
+    r_dev.from_numpy(r)
+    active.from_numpy(np.ones(2, np.int32))
+    want = np.linalg.solve(a.toarray(), r)
+    cond = max(np.linalg.cond(block) for block in blocks)
+    for dtype, bound in ((ti.f64, 1e-13), (ti.f32, 2.0 ** -24 * cond)):
+        bands = BandBlocks(dofs, np.repeat([0, 1], sizes), dtype=dtype)
+        assert bands.assemble(*_operator(a), None, object()) and bands.usable.all()
+        bands.apply(r_dev, z_dev, active)
+        z = z_dev.to_numpy()
+        error = np.abs(z - want).max() / np.abs(want).max()
+        assert error <= bound, (dtype, error, bound)
+        assert np.linalg.norm(a @ z - r) <= bound * np.linalg.norm(r)
+    assert error > 1e-12  # float32 tiles: rounded
+
+
 def test_a_block_that_is_not_positive_definite_is_reported_and_left_out(ti_cpu):
     from sim_core.ti_backend import ti
     from sim_core.ti_kernels import device_copy

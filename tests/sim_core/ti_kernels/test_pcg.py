@@ -208,10 +208,11 @@ def test_an_unknown_precision_is_refused(ti_cpu):
         SolverConfig(backend=f"taichi-{ti_cpu}", cg_precision="single")
 
 
-@pytest.mark.parametrize("device_hessian", [False, True])
-def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian):
+@pytest.mark.parametrize("device_hessian, precision", [(False, "mixed"), (True, "mixed"), (False, "double")])
+def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_cpu, monkeypatch, device_hessian,
+                                                                              precision):
     """With ``device_hessian`` (CUDA's defaults) the CG takes the contact Hessians from the pair kernel's ndarray,
-    and the projected retry projects the contact pair blocks by the Jacobi kernel."""
+    and the projected retry projects the contact pair blocks by the Jacobi kernel; the CG in either precision."""
     from sim_core.energies.contact.batch_kernel import PairBatch
 
     monkeypatch.setattr(PairBatch, "two_pass", True if device_hessian else PairBatch.two_pass)
@@ -220,8 +221,8 @@ def test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs(ti_c
     steps = 2
     batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
                                          solver_config=SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True,
-                                                                    linear_solver="pcg"))
-    assert batch.lockstep.solver.pcg is not None
+                                                                    linear_solver="pcg", cg_precision=precision))
+    assert batch.lockstep.solver.pcg.precision == precision
     if device_hessian:
         batch.lockstep.solver.subset_projection = "jacobi"
     pose0 = batch.states[0].effector_pose["pad"].copy()
