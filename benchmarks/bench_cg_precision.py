@@ -9,7 +9,8 @@ at the third step's first iterate (the fused elastic values and the contact and 
 a solve (medians of ``--repeat``, each ended by a synchronisation), CG iterations (of the slowest copy), ms a CG
 iteration, band blocks not usable, copies unconverged or indefinite, and each precision's largest per-copy relative
 residual ``|A x_c - b_c| / |b_c|`` and difference from the double solution ``|A (x_c - x_c^double)| / |b_c|``,
-both with the double operator's product.
+both with the double operator's product. Two more variants tell the parts apart: ``mixed/band64`` (the operator and
+the vertex inverses float32, the band tiles float64) and ``double/band32`` (only the band tiles float32).
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ def main() -> int:
     from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
     from sim_core.batch.sheet_bands import sheet_band_dofs
     from sim_core.ti_backend import init_backend, ti
+    from sim_core.ti_kernels.band_cholesky import BandBlocks
     from sim_core.ti_kernels.pcg import BatchedPCG
-    from sim_core.ti_kernels.precision import PRECISIONS
 
     init_backend(args.arch)
     solver, step, x = third_step(args.B, args.arch)
@@ -57,26 +58,31 @@ def main() -> int:
         return 1e3 * float(np.median(times))
 
     solutions, reference = {}, None
-    for precision in PRECISIONS:
-        pcg = BatchedPCG(dof_copy, rtol=LOCKSTEP_CG_RTOL, bands=sheet_band_dofs(scene), precision=precision)
+    variants = {"double": ("double", None), "mixed": ("mixed", None), "mixed/band64": ("mixed", ti.f64),
+                "double/band32": ("double", ti.f32)}
+    for name, (precision, band_dtype) in variants.items():
+        bands = sheet_band_dofs(scene)
+        pcg = BatchedPCG(dof_copy, rtol=LOCKSTEP_CG_RTOL, bands=bands, precision=precision)
+        if band_dtype is not None:  # the band tiles in the other precision than the rest
+            pcg.bands = BandBlocks(bands, dof_copy, dtype=band_dtype)
         pcg.factorize(*operator)  # compilation
         pcg.solve(b)
         factorize_ms = timed(lambda: pcg.factorize(*operator))
         solve_ms = timed(lambda: pcg.solve(b))
-        solutions[precision] = pcg.solve(b)
+        solutions[name] = pcg.solve(b)
         if reference is None:
             reference = pcg  # the double operator's product
         unusable = int((~pcg.bands.usable).sum()) if pcg.bands is not None else -1
-        print(f"B={args.B} {precision:6s} factorize {factorize_ms:8.2f} ms  solve {solve_ms:8.2f} ms  "
+        print(f"B={args.B} {name:13s} factorize {factorize_ms:8.2f} ms  solve {solve_ms:8.2f} ms  "
               f"CG iterations {pcg.iterations}  ms an iteration {solve_ms / max(pcg.iterations, 1):.3f}  "
               f"band blocks not usable {unusable}  unconverged {int(pcg.unconverged.sum())}  "
               f"indefinite {int(pcg.indefinite.sum())}", flush=True)
     b_norm = np.sqrt(np.bincount(dof_copy, weights=b * b))
-    for precision, xs in solutions.items():
+    for name, xs in solutions.items():
         residual = np.sqrt(np.bincount(dof_copy, weights=(reference.matvec(xs) - b) ** 2)) / np.maximum(b_norm, 1e-300)
         diff = reference.matvec(xs - solutions["double"])
         change = np.sqrt(np.bincount(dof_copy, weights=diff * diff)) / np.maximum(b_norm, 1e-300)
-        print(f"B={args.B} {precision:6s} largest relative residual {residual.max():.3e}  largest |A (x - x_double)| / "
+        print(f"B={args.B} {name:13s} largest relative residual {residual.max():.3e}  largest |A (x - x_double)| / "
               f"|b| {change.max():.3e}  (rtol {LOCKSTEP_CG_RTOL:g})")
     return 0
 

@@ -9,10 +9,12 @@ along the sheet's long axis (the first principal axis of its rest positions), th
 follow each other, and the bending stencil (a hinge spans two rows) couples DoFs at most ``3 (2 r + 1) - 1`` apart
 for rows of ``r`` vertices: 53 DoFs on the 16 x 8 grid, against 95 in the vertex order.
 
-The block's inverse is kept whole on the device (``8 m^2`` bytes a copy for ``m`` DoFs) and formed in ``1.5 m^2 w``
-multiply-adds a copy at each factorisation, which grow faster than the CG work the block saves; sheets of more than
-:data:`MAX_BLOCK_DOFS` DoFs keep the vertex blocks (measured: Forming's 384 DoFs, 360 of them free, and Folding's
-192). The model's fixed vertices are left out of the block: fixed at every step, they only widen its inverse.
+The block's factor is kept on the device as tiles (:mod:`~sim_core.ti_kernels.band_cholesky`: about ``3 m t``
+entries a copy for ``m`` DoFs in tiles of ``t >= w`` rows, float64 or, in the batched CG's mixed precision, float32),
+made at each factorisation by work (the banded elimination's ``m w^2 / 2`` multiply-adds and the tiles') that grows
+faster than the CG work the block saves; sheets of more than :data:`MAX_BLOCK_DOFS` DoFs keep the vertex blocks
+(measured: Forming's 384 DoFs, 360 of them free, and Folding's 192). The model's fixed vertices are left out of the
+block: fixed at every step, they only enlarge it.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from sim_core.batch.stacked import StackedScene
 
 
 MAX_BLOCK_DOFS = 512
-"""The largest sheet (DoFs) taken as one band block: its inverse 2 MiB a copy."""
+"""The largest sheet (DoFs) taken as one band block."""
 
 
 def long_axis_order(x: np.ndarray) -> np.ndarray:
