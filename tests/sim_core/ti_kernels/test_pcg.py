@@ -124,19 +124,24 @@ def _plate_and_solid(nx: int, ny: int, solid: int, stiffness: float) -> sp.csr_m
     return a.tocsr()
 
 
+def _plate_copies(scale: float = 1.0) -> tuple:
+    """Three plate-and-gel copies (:func:`_plate_and_solid`, plate stiffness 1e3, 3e3, 1e4) times ``scale``:
+    ``(A, upper triangle CSR, segments, each copy's plate as a band block, DoFs a copy)``."""
+    nx, ny, solid = 12, 5, 20
+    A = sp.block_diag([scale * _plate_and_solid(nx, ny, solid, s) for s in (1e3, 3e3, 1e4)], format="csr")
+    n_copy = 3 * (nx * ny + solid)
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
+    bands = np.stack([n_copy * c + np.arange(3 * nx * ny) for c in range(3)])
+    return A, upper, np.repeat(np.arange(3), n_copy), bands, n_copy
+
+
 def test_band_blocks_of_the_plates_cut_the_iterations_and_each_copy_is_solved_to_its_tolerance(ti_cpu):
     """Each copy's plate as a band block (its vertices along the grid's long axis): the solution is SciPy's to the
     tolerance, in fewer than a third of the block-Jacobi iterations; a copy with nothing to solve stays at zero."""
     from sim_core.ti_kernels.pcg import BatchedPCG
 
-    nx, ny, solid = 12, 5, 20
-    blocks = [_plate_and_solid(nx, ny, solid, s) for s in (1e3, 3e3, 1e4)]
-    A = sp.block_diag(blocks, format="csr")
-    n_copy = 3 * (nx * ny + solid)
-    segments = np.repeat(np.arange(3), n_copy)
-    bands = np.stack([n_copy * c + np.arange(3 * nx * ny) for c in range(3)])
-    upper = sp.triu(A, format="csr")
-    upper.sort_indices()
+    A, upper, segments, bands, n_copy = _plate_copies()
     b = np.random.default_rng(4).normal(size=A.shape[0])
     b[n_copy:2 * n_copy] = 0.0
     want = spla.spsolve(A.tocsc(), b)
@@ -152,7 +157,7 @@ def test_band_blocks_of_the_plates_cut_the_iterations_and_each_copy_is_solved_to
             assert np.linalg.norm(x[part] - want[part]) <= 1e-6 * np.linalg.norm(want[part]), (name, c)
         np.testing.assert_array_equal(x[n_copy:2 * n_copy], 0.0)
         assert not solver.indefinite.any() and not solver.unconverged.any()
-    assert solver.bands.width == 3 * 2 * ny and solver.bands.usable.all()  # L^2 couples rows ix and ix + 2
+    assert solver.bands.width == 3 * 2 * 5 and solver.bands.usable.all()  # L^2 couples rows ix and ix + 2 (ny = 5)
     assert 3 * iterations["bands"] < iterations["jacobi"], iterations
 
 
@@ -163,14 +168,7 @@ def test_mixed_precision_solves_to_the_tolerance_and_equals_the_double_solution_
     CG's solution, in about as many iterations; its product is the matrix's to float32 rounding, not exactly."""
     from sim_core.ti_kernels.pcg import BatchedPCG
 
-    nx, ny, solid = 12, 5, 20
-    blocks = [np.pi * _plate_and_solid(nx, ny, solid, s) for s in (1e3, 3e3, 1e4)]  # entries not float32's
-    A = sp.block_diag(blocks, format="csr")
-    n_copy = 3 * (nx * ny + solid)
-    segments = np.repeat(np.arange(3), n_copy)
-    bands = np.stack([n_copy * c + np.arange(3 * nx * ny) for c in range(3)])
-    upper = sp.triu(A, format="csr")
-    upper.sort_indices()
+    A, upper, segments, bands, n_copy = _plate_copies(np.pi)  # entries not float32's
     rng = np.random.default_rng(8)
     b = rng.normal(size=A.shape[0])
     b[n_copy:2 * n_copy] = 0.0
