@@ -592,13 +592,9 @@ class FusedElastic:
         return True
 
     def _deferred_sum(self, run, start: float, read: bool = True):
-        """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched
-        in one :class:`~sim_core.ti_kernels.launch.DeferredSums` block (on a GPU the launches follow one another
-        without waiting for each sum, every launch adding into one sum array read after the block in one copy:
-        ``start`` plus that sum, plus the values of the parts that launched nothing). A part returns its kernel's
-        sum (NaN inside the block, then read) or its own value (no kernel launched, e.g. no elements). ``read``
-        False: a callable returning that sum instead, valid until the next block (a kept evaluation's pending
-        energy, :meth:`_kept_energy`, is read before a block reuses the sum arrays).
+        """:meth:`~sim_core.ti_kernels.launch.DeferredSums.sum_of` the parts (``run(part)`` each, in one block of
+        this term's sums, added to ``start``; ``read`` False: a callable reading the sum, valid until the next block):
+        a kept evaluation's energy still on the device (:meth:`_kept_energy`) is read first.
 
         Raises:
             RuntimeError: a part launched more than one summing kernel.
@@ -607,32 +603,9 @@ class FusedElastic:
 
         if self._kept is not None and callable(self._kept[1]):
             self._kept_energy()
-        sums = self._sums
-        if sums is None:
-            sums = self._sums = DeferredSums(shared=True)
-        returned = []  # per part: (True, index of its launch) or (False, the value it returned)
-        with sums:
-            for part in self._parts:
-                before = sums.launches
-                value = run(part)
-                launched = sums.launches - before
-                if launched > 1:
-                    raise RuntimeError(f"FusedElastic: {type(part).__name__} launched {launched} summing kernels")
-                returned.append((True, before) if launched else (False, value))
-
-        def total() -> float:
-            if sums.sharing:  # (a GPU) the launched parts' sums in one sum array, read in one copy
-                out = start + sums.total()
-                for launched, item in returned:
-                    out += 0.0 if launched else item
-                return out
-            values = sums.values()
-            out = start
-            for launched, item in returned:
-                out += values[item] if launched else item
-            return out
-
-        return total() if read else total
+        if self._sums is None:
+            self._sums = DeferredSums(shared=True)
+        return self._sums.sum_of(self._parts, run, start, read)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too; on CUDA the
