@@ -25,23 +25,34 @@ def _median_ms(fn, repeat: int) -> float:
     return 1e3 * float(np.median(times))
 
 
-def third_step(B: int, arch: str):
-    """``(solver, step, x)``: ``B`` lockstep Forming copies on the batched CG (every arch; the Taichi backend of
-    ``arch``, initialised by the caller) after two steps (compilation, contacts), the third step set up."""
+def stepped_forming(B: int, arch: str, horizon: int = 4, pcg: bool = False):
+    """A lockstep Forming run of ``B`` copies (``sim_core.bench.batch._FormingRun``, ``horizon`` steps planned) on
+    the Taichi backend of ``arch`` (initialised by the caller), warmed up and stepped twice (compilation,
+    contacts); ``pcg``: the batched CG on every arch (``linear_solver="pcg"``), else the arch's default solver."""
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
     from sim_core.control import Control
-    from sim_core.step_info import StepInfo
     import sim_core.solver_config as sc
 
     orig = sc.SolverConfig
-    sc.SolverConfig = lambda **kw: orig(**kw, linear_solver="pcg")  # the batched CG on every arch
+    if pcg:
+        sc.SolverConfig = lambda **kw: orig(**kw, linear_solver="pcg")
     try:
-        run = _FormingRun(B, 4, ARCH_BACKENDS[arch], lockstep=True)
+        run = _FormingRun(B, horizon, ARCH_BACKENDS[arch], lockstep=True)
     finally:
         sc.SolverConfig = orig
     run.batch.warm_up()
     for k in range(2):
         run.batch.step([Control(effector_pose_target={run.effector: t[k]}) for t in run.targets])
+    return run
+
+
+def third_step(B: int, arch: str):
+    """``(solver, step, x)``: ``B`` lockstep Forming copies on the batched CG (every arch; the Taichi backend of
+    ``arch``, initialised by the caller) after two steps (:func:`stepped_forming`), the third step set up."""
+    from sim_core.control import Control
+    from sim_core.step_info import StepInfo
+
+    run = stepped_forming(B, arch, pcg=True)
     eng = run.batch.lockstep
     solver = eng.solver
     ctrl = eng.scene.stack_controls([Control(effector_pose_target={run.effector: t[2]}) for t in run.targets])
@@ -82,7 +93,7 @@ def main() -> int:
         row(f"gradient {type(p).__name__} (new x)", lambda p=p: p.gradient(x + next(shift)))
         row(f"energy {type(p).__name__} (new x)", lambda p=p: p.energy(x + next(shift)))
     row("stacked gradient (contact potentials + every gradient, new x)",
-        lambda: solver._stacked_gradient(step, x + next(shift), StepInfo()))
+        lambda: solver._stacked_gradient(step, solver._vectors.start(x + next(shift)), StepInfo()))
     row("stacked energy (new x)", lambda: solver._energy(step, x + next(shift), contact_terms, solver.contact.search_position))
     for p in contact_terms + step.dynamic_terms:
         for proj in ("none", "clamp"):

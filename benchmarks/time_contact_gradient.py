@@ -1,7 +1,7 @@
 """Time the contact pair potentials' gradient at new trial points of a lockstep batch: host rows against the device.
 
 Usage: ``python benchmarks/time_contact_gradient.py --arch cuda --B 1024 [--trials 8]``.
-Steps ``B`` Forming copies in lockstep twice (``sim_core.bench.batch._FormingRun``), takes the contact set's pair
+Steps ``B`` Forming copies in lockstep twice (``parts_lockstep.stepped_forming``), takes the contact set's pair
 potentials of the last iterate and the stacked positions ``x`` (``(N, 3)``, m), and evaluates their gradient at
 ``--trials`` new trial points (``x`` plus 1 um of noise, each a new read-only array, as the lockstep's trial
 points are):
@@ -32,16 +32,14 @@ def main() -> int:
     ap.add_argument("--B", type=int, default=16)
     ap.add_argument("--trials", type=int, default=8)
     args = ap.parse_args()
-    from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
-    from sim_core.control import Control
+    from sim_core.energies import base
     from sim_core.energies.base import declares
     from sim_core.ti_backend import init_backend, ti
 
+    from parts_lockstep import stepped_forming  # (benchmarks/, the script's folder)
+
     init_backend(args.arch)
-    run = _FormingRun(args.B, 2, ARCH_BACKENDS[args.arch], lockstep=True)
-    run.batch.warm_up()
-    for k in range(2):
-        run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
+    run = stepped_forming(args.B, args.arch, horizon=2)
     engine = run.batch.lockstep
     vt, ee = engine.solver.contact._last_pots
     x0 = np.array(engine.state.x, dtype=np.float64)
@@ -69,10 +67,7 @@ def main() -> int:
         t = time.perf_counter()
         results["host"] = host(x)
         times["host"].append(time.perf_counter() - t)
-    from sim_core.energies import base
-
-    capability = getattr(base, "DeviceGradient", None)
-    if capability is not None and declares(vt, capability):
+    if declares(vt, base.DeviceGradient):
         from sim_core.ti_kernels.device_copy import new_ndarray
         from sim_core.ti_kernels.transfer import download, upload
 
