@@ -341,8 +341,8 @@ def reduce_block_rows(blocks: _F64_3, helmert: _F64_2, rows: _I32_1, count: ti.i
     ``B^T H B`` summed over the vertex pairs ``(u, v)`` of the Kronecker factor. ``reduced`` ``(3 m - 3, 3 m - 3,
     c)`` is in the layout of :func:`jacobi_project_blocks` (the block index last). The entry indices are the fastest
     of the loop, so that the threads of a warp read one block (``blocks`` is block index first: ``3 m x 3 m``
-    consecutive entries, read 72 times a thread) and write one store each; the block index fastest made each of a
-    warp's loads touch 32 blocks."""
+    consecutive entries, read 72 times a thread) and write one store each (with the block index fastest, each of a
+    warp's loads would touch 32 blocks)."""
     m = helmert.shape[0]
     size = 3 * (m - 1)
     for r, a, b in ti.ndrange(count, size, size):
