@@ -2,7 +2,8 @@
 lockstep batch's block counts, on whichever ``sim_core`` is first on the path (run it with two checkouts' paths to
 compare them).
 
-Usage: ``python benchmarks/bench_jacobi.py --arch cuda --blocks 15:161280,6:161280,12:50624 --repeat 3 [--save F]``.
+Usage: ``python benchmarks/bench_jacobi.py --arch cuda --blocks 15:161280,6:161280,12:50624 --repeat 3 [--save F]
+[--reduce 6:161280,3:161280]``.
 Each ``n:count`` is ``count`` symmetric ``n x n`` blocks with entries from a seeded normal distribution (indefinite:
 as every reduced Kirchhoff, spring-membrane triangle and contact-pair block of the Forming batch's projected
 iterations), in the kernel's layout ``(n, n, count)`` on the device. Prints per size the kernel's ms (each run ended
@@ -22,9 +23,11 @@ def main() -> int:
     ap.add_argument("--blocks", default="15:4096,6:4096,12:4096", help="n:count,... (block size and count)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--save", default=None, help="write the first 2000 projected blocks of each size here (.npz)")
+    ap.add_argument("--reduce", default="", help="m:count,... (vertices of a block and count): reduce_block_rows")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend, ti
-    from sim_core.ti_kernels.block_projection import jacobi_project_blocks
+    from sim_core.ti_kernels.block_projection import jacobi_project_blocks, reduce_block_rows
+    from sim_core.ti_kernels.linalg import helmert_basis
     from sim_core.ti_kernels.device_copy import new_ndarray
     from sim_core.ti_kernels.transfer import download, upload
 
@@ -50,6 +53,27 @@ def main() -> int:
         smallest = (np.linalg.eigvalsh(first).min(axis=1) / np.abs(first).max(axis=(1, 2))).min()
         print(f"n={n} count={count}: ms {' '.join(f'{t:.2f}' for t in times[1:])} (first {times[0]:.0f}),"
               f" smallest eigenvalue / largest entry {smallest:.2e}", flush=True)
+    for spec in filter(None, args.reduce.split(",")):
+        m, count = (int(v) for v in spec.split(":"))
+        a = np.random.default_rng(m).normal(size=(count, 3 * m, 3 * m))
+        blocks = new_ndarray(ti.f64, a.shape)
+        upload(blocks, np.ascontiguousarray(a + np.swapaxes(a, 1, 2)))
+        helmert, rows = new_ndarray(ti.f64, (m, m - 1)), new_ndarray(ti.i32, (count,))
+        upload(helmert, np.ascontiguousarray(helmert_basis(m)))
+        rows.from_numpy(np.arange(count, dtype=np.int32))
+        reduced = new_ndarray(ti.f64, (3 * m - 3, 3 * m - 3, count))
+        times = []
+        for run in range(args.repeat + 1):  # the first run compiles
+            ti.sync()
+            start = time.perf_counter()
+            reduce_block_rows(blocks, helmert, rows, count, reduced)
+            ti.sync()
+            times.append(1e3 * (time.perf_counter() - start))
+        out = np.empty(tuple(reduced.shape))
+        download(reduced, out)
+        saved[f"reduced{m}"] = np.moveaxis(out[:, :, :2000], -1, 0)
+        print(f"reduce m={m} count={count}: ms {' '.join(f'{t:.2f}' for t in times[1:])} (first {times[0]:.0f})",
+              flush=True)
     if args.save:
         np.savez(args.save, **saved)
     return 0

@@ -297,9 +297,10 @@ class FusedElastic:
         self._values_on_device = self._gradient_on_device = self._gradient_on_host = False
 
     def _keep(self, key, energy: float, grad: np.ndarray, values: np.ndarray, on_device: bool = False) -> tuple:
-        """Keep the evaluation of positions ``key``: energy (J), the gradient and Hessian values in the host arrays
-        ``grad`` and ``values``, or, ``on_device``, in the device arrays of :meth:`_device_buffers` (CUDA)."""
-        self._kept = (key, float(energy), grad, values)
+        """Keep the evaluation of positions ``key``: energy (J; or a callable reading it, :meth:`_deferred_sum`'s
+        ``read=False``), the gradient and Hessian values in the host arrays ``grad`` and ``values``, or, ``on_device``,
+        in the device arrays of :meth:`_device_buffers` (CUDA)."""
+        self._kept = (key, energy if callable(energy) else float(energy), grad, values)
         self._gradient_on_host = not on_device
         self._gradient_on_device = self._values_on_device = on_device
         return self._kept
@@ -308,13 +309,14 @@ class FusedElastic:
         """The parts' kernels at the device positions ``x_device`` ``(n, 3)`` (m) into the zeroed device gradient and
         Hessian values of :meth:`_device_buffers` (CUDA, every part a device part), kept for positions ``key``; the
         host arrays ``grad`` and ``values`` are filled from them when asked for. The parts' energy sums are read
-        once, after the last launch (:meth:`_deferred_sum`)."""
+        when first asked for (:meth:`_kept_energy`: one copy back, after the last launch; :meth:`_deferred_sum`), so
+        that the host goes on launching while the device runs them."""
         from sim_core.ti_kernels.transfer import fill  # Taichi only on a Taichi backend
 
         _, gd, vd = self._device_buffers(grad.shape, values.size)
         fill(gd, 0.0)
         fill(vd, 0.0)
-        energy = self._deferred_sum(lambda part: part.evaluate(x_device, gd, vd), 0.0)
+        energy = self._deferred_sum(lambda part: part.evaluate(x_device, gd, vd), 0.0, read=False)
         return self._keep(key, energy, grad, values, on_device=True)
 
     def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
@@ -336,7 +338,8 @@ class FusedElastic:
             gradient_device: a float64 Taichi ndarray ``(n, 3)``, the gradient added into it.
 
         Returns:
-            the elastic energy at ``x`` (J).
+            the elastic energy at ``x`` (J), or None where the device evaluation's energy was not read yet (on CUDA:
+            :meth:`energy` at ``x`` reads it).
 
         Raises:
             RuntimeError: :meth:`bind` was not called.
@@ -368,6 +371,13 @@ class FusedElastic:
             self._gradient_on_device = True
         else:
             add_into(gradient_device, kept[2])
+        return None if callable(kept[1]) else kept[1]
+
+    def _kept_energy(self) -> float:
+        """The kept evaluation's energy (J), read from the device where it is still there (one copy back)."""
+        kept = self._kept
+        if callable(kept[1]):
+            kept = self._kept = (kept[0], float(kept[1]()), kept[2], kept[3])
         return kept[1]
 
     def _evaluate_at(self, key, x: np.ndarray, x_device) -> tuple:
@@ -544,7 +554,7 @@ class FusedElastic:
         CUDA the positions travel to the device once for all parts)."""
         kept = self._kept
         if kept is not None and kept[0] == positions_key(x):
-            return kept[1]
+            return self._kept_energy()
         xc = np.ascontiguousarray(x, dtype=np.float64)
         if self.pattern is not None and self.offloaded_part() is None and self._on_device():
             xd = self._upload_positions(xc, positions_key(x), self.pattern.keys.size)
@@ -581,40 +591,21 @@ class FusedElastic:
                 part.copy_energies(x_device, copy_of_vertex, sums.copy_count)
         return True
 
-    def _deferred_sum(self, run, start: float):
-        """``start`` plus ``run(part)`` of every part, added in part order, with the parts' summing kernels launched
-        in one :class:`~sim_core.ti_kernels.launch.DeferredSums` block (on a GPU the launches follow one another
-        without waiting for each sum, every launch adding into one sum array read after the block in one copy:
-        ``start`` plus that sum, plus the values of the parts that launched nothing). A part returns its kernel's
-        sum (NaN inside the block, then read) or its own value (no kernel launched, e.g. no elements).
+    def _deferred_sum(self, run, start: float, read: bool = True):
+        """:meth:`~sim_core.ti_kernels.launch.DeferredSums.sum_of` the parts (``run(part)`` each, in one block of
+        this term's sums, added to ``start``; ``read`` False: a callable reading the sum, valid until the next block):
+        a kept evaluation's energy still on the device (:meth:`_kept_energy`) is read first.
 
         Raises:
             RuntimeError: a part launched more than one summing kernel.
         """
         from sim_core.ti_kernels.launch import DeferredSums  # Taichi only on a Taichi backend
 
-        sums = self._sums
-        if sums is None:
-            sums = self._sums = DeferredSums(shared=True)
-        returned = []  # per part: (True, index of its launch) or (False, the value it returned)
-        with sums:
-            for part in self._parts:
-                before = sums.launches
-                value = run(part)
-                launched = sums.launches - before
-                if launched > 1:
-                    raise RuntimeError(f"FusedElastic: {type(part).__name__} launched {launched} summing kernels")
-                returned.append((True, before) if launched else (False, value))
-        if sums.sharing:  # (a GPU) the launched parts' sums in one sum array, read in one copy
-            total = start + sums.total()
-            for launched, item in returned:
-                total += 0.0 if launched else item
-            return total
-        values = sums.values()
-        total = start
-        for launched, item in returned:
-            total += values[item] if launched else item
-        return total
+        if self._kept is not None and callable(self._kept[1]):
+            self._kept_energy()
+        if self._sums is None:
+            self._sums = DeferredSums(shared=True)
+        return self._sums.sum_of(self._parts, run, start, read)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)`` (a new array; evaluates energy and Hessian of ``x`` too; on CUDA the

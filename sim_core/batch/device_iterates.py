@@ -58,6 +58,13 @@ class DeviceIterates(CopyVectors):
         dot, largest, _, _ = self.scalars(g, d)
         return dot, largest
 
+    def slope_largest_and_sums(self, g, d, sums) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`slope_and_largest` and the per-copy sums ``(B,)`` of ``sums`` (a
+        :class:`~sim_core.ti_kernels.copy_vectors.CopySums`, :meth:`~sim_core.ti_kernels.copy_vectors.CopySums.read`)
+        in one launch and one read back: a line search's trial point's slope test and energies together."""
+        dot, largest, _, _, read = self.scalars(g, d, sums)
+        return dot, largest, read
+
     def take_steepest(self, d, g, mask: np.ndarray):
         """``d`` with the copies in ``mask`` (bool ``(B,)``) set to ``-g``, in place; returns ``d``."""
         return self.copy_where(d, g, mask, scale=-1.0)

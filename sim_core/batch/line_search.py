@@ -4,7 +4,10 @@
 Its vectors are the solver's (:mod:`sim_core.batch.iterates`): the trial points ``x + a_c d`` are made where the
 update lives (on the device with the batched CG, downloaded once for the contact search and the energies), and the
 slope test's per-copy dot products are read back as ``(B,)`` arrays, with each trial gradient's largest entries (the
-next Newton iteration's force test, where the trial is accepted) in the same read.
+next Newton iteration's force test, where the trial is accepted) in the same read; on the device, where each copy has
+its own energy, the trial point's per-copy energies are launched before that read and come back in it too (one copy
+back a trial point for the slope and Armijo tests; the energies are then measured even where no copy passes the slope
+test, which changes no result).
 """
 
 from __future__ import annotations
@@ -65,11 +68,19 @@ class CopyLineSearch:
             trial = np.where(pending, a, 0.0) + taken
             x_try = vectors.trial(x, d, trial)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info)
-            s_try, g_try_max = vectors.slope_and_largest(g_try, d)  # the slope and the next iteration's max |g|
+            launched = (self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
+                        if per_copy and x_try.device is not None else None)
+            e_try = None
+            if launched is not None and launched[1] is not None:  # the energies read with the slope: one copy back
+                s_try, g_try_max, device_sums = vectors.slope_largest_and_sums(g_try, d, launched[1])
+                e_try = launched[0] + device_sums
+            else:
+                s_try, g_try_max = vectors.slope_and_largest(g_try, d)  # the slope and the next iteration's max |g|
             last = (trial, x_try, (terms, xs, g_try, g_try_max))
             cand = pending & np.isfinite(s_try) & (s_try <= bound)
             if per_copy and cand.any():  # each copy's Armijo test on its own energy
-                e_try = self._copy_energies(step, x_try.host, terms, xs, x_try.device)
+                if e_try is None:
+                    e_try = self._copy_energies(step, x_try.host, terms, xs, x_try.device)
                 ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
                 e_new = np.where(ok, e_try, e_new)
                 accepted |= ok
@@ -109,7 +120,21 @@ class CopyLineSearch:
         float64 ndarray: the batched CG's iterates), the terms declaring
         :class:`~sim_core.energies.base.DeviceCopyEnergies` add theirs where their kernels run, into one
         :class:`~sim_core.ti_kernels.copy_vectors.CopySums` read back once after the others (the sum in another
-        order: equal to round-off)."""
+        order: equal to round-off): :meth:`_launch_copy_energies`, then that read."""
+        launched = self._launch_copy_energies(step, x, contact_terms, x_search, x_device)
+        if launched is None:
+            return None
+        total, sums = launched
+        if sums is not None:
+            total += sums.read()
+        return total
+
+    def _launch_copy_energies(self, step, x: np.ndarray, contact_terms: list, x_search: np.ndarray | None,
+                              x_device=None) -> tuple[np.ndarray, object] | None:
+        """:meth:`_copy_energies` up to its read: ``(total, sums)``, the host terms' energies by copy (J, ``(B,)``)
+        and, with ``x_device``, the :class:`~sim_core.ti_kernels.copy_vectors.CopySums` the device terms added into
+        (its :meth:`~sim_core.ti_kernels.copy_vectors.CopySums.read` added to ``total`` gives the energies; else
+        None); None when a term cannot split its energy."""
         B = self.scene.copies
         total = np.zeros(B)
         if not self.contact.covers(x_search, x):
@@ -130,9 +155,7 @@ class CopyLineSearch:
             if part is None:
                 return None
             total += part
-        if sums is not None:
-            total += sums.read()
-        return total
+        return total, sums
 
     def _energy_with(self, step, x: Iterate, d, alphas: np.ndarray) -> float:
         """The stacked incremental potential (J) with copy ``i`` moved by ``alphas[i]`` times its part of the

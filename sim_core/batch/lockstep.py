@@ -601,10 +601,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
     def _term_hessian(self, term, x: np.ndarray, projection: str, vertices: np.ndarray | None):
         """A contact or friction term's Hessian blocks at ``x`` for :meth:`_device_operator`: the exact blocks
         left on the device where the term declares :class:`~sim_core.energies.base.DeviceHessian` and has them
-        there, the marked copies' blocks of a :class:`~sim_core.energies.base.SubsetHessian` term (projected
-        by :attr:`subset_projection` where set, :func:`projected_subset_blocks`), else
-        ``term.hessian(x, projection)``."""
-        if projection == "none" and vertices is None and declares(term, DeviceHessian):
+        there (for every projection and every copy where the term's Hessian is PSD by construction, its
+        ``psd_hessian``: the friction's, as ``term.hessian(x, projection)`` gives them), the marked copies' blocks of
+        a :class:`~sim_core.energies.base.SubsetHessian` term (projected by :attr:`subset_projection` where set,
+        :func:`projected_subset_blocks`), else ``term.hessian(x, projection)``."""
+        if declares(term, DeviceHessian) and (projection == "none" and vertices is None
+                                              or getattr(term, "psd_hessian", False)):
             kept = term.hessian_on_device(x)
             if kept is not None:
                 return kept

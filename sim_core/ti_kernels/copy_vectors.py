@@ -126,12 +126,14 @@ _SCALARS = 7  # rows of _scalars' output: dot, |a| max, a NaN, |b| max, b NaN, |
 
 
 @fast_kernel
-def _scalars(a: _VEC, b: _VEC, partial: _F64, out: _I64, order: _I32, start: _I32, copies: ti.i32):
+def _scalars(a: _VEC, b: _VEC, partial: _F64, out: _I64, order: _I32, start: _I32, copies: ti.i32, extra: _F64,
+             with_extra: ti.i32):
     """Per copy ``c``, into ``out`` (int64, row ``r`` at ``out[r copies + c]``): row 0 the bits of the float64
     ``sum_k a_k b_k`` over the copy's DoFs (its lanes' partial sums, kept in ``partial``, added in lane order),
     rows 1 / 2 the bits of the largest non-NaN ``|a_k|`` and 1 where an entry of ``a`` is NaN, rows 3 / 4 the same
     of ``b``, rows 5 / 6 the bits of the largest finite squared vertex norm ``|b_v|^2`` and 1 where one is not
-    finite (the maxima of :func:`_extremes`)."""
+    finite (the maxima of :func:`_extremes`); with ``with_extra``, row 7 the bits of ``extra[c]`` (per-copy values
+    read back in the same copy)."""
     for i in range(_SCALARS * copies):
         out[i] = 0
     for c, k in ti.ndrange(copies, REDUCTION_LANES):
@@ -173,6 +175,8 @@ def _scalars(a: _VEC, b: _VEC, partial: _F64, out: _I64, order: _I32, start: _I3
         for k in range(REDUCTION_LANES):
             total += partial[c * REDUCTION_LANES + k]
         out[c] = ti.bit_cast(total, ti.i64)
+        if with_extra:
+            out[_SCALARS * copies + c] = ti.bit_cast(extra[c], ti.i64)
 
 
 @fast_kernel
@@ -392,10 +396,20 @@ class CopySums:
         if n:
             _diagonal_quadratic_by_copy(x, center, weight, self.vertex_copy, self.values, n)
 
-    def read(self) -> np.ndarray:
-        """The sums, float64 ``(B,)`` (J), a new array (on a GPU one copy back, after the kernels before it)."""
+    @property
+    def device_values(self):
+        """The float64 ``(B,)`` ndarray in device memory the kernels add into on a GPU, or None on the host arch
+        (:attr:`values` is then the host array)."""
+        return self._device_sums()
+
+    def read(self, device_read: np.ndarray | None = None) -> np.ndarray:
+        """The sums, float64 ``(B,)`` (J), a new array (on a GPU one copy back, after the kernels before it).
+        ``device_read``: :attr:`device_values` already read back (float64 ``(B,)``, e.g. in one copy with other
+        per-copy scalars: :meth:`CopyVectors.scalars`), then no copy here."""
         sums = self._device_sums()
-        return self._host.copy() if sums is None else transfer.download(sums) + self._host
+        if sums is None:
+            return self._host.copy()
+        return (transfer.download(sums) if device_read is None else device_read) + self._host
 
 
 def new_vectors(vertex_count: int):
@@ -455,7 +469,7 @@ class CopyVectors:
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
         self._out_host = np.zeros(self._out.shape, dtype=np.int64)
         self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
-        self._scalars_out = device_copy.new_ndarray(ti.i64, (max(_SCALARS * B, 1),))
+        self._scalars_out = device_copy.new_ndarray(ti.i64, (max((_SCALARS + 1) * B, 1),))  # (+ scalars' extra)
         self._scalars_host = np.zeros(self._scalars_out.shape, dtype=np.int64)
         self._dofs: tuple | None = None  # (host DoF indices, their device copy) of zero_dofs
         self._rows: tuple | None = None  # (capacity, vertices, rows) device buffers of add_rows
@@ -507,24 +521,30 @@ class CopyVectors:
         _dots(a, b, self._per_copy, self._order, self._start, self.copies)
         return transfer.download(self._per_copy)[: self.copies].copy()
 
-    def scalars(self, a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def scalars(self, a, b, sums: CopySums | None = None) -> tuple:
         """Per copy, in one launch and one read back: ``(dot, largest_abs_a, largest_abs_b, largest_norm_b)``, each
         ``(B,)``: :meth:`dot` of ``a`` and ``b`` (its lanes' partial sums added in lane order), :meth:`largest_abs` of
         ``a`` and of ``b``, and :meth:`largest_norm` of ``b`` (what a Newton iteration reads of its gradient and
-        update together)."""
+        update together). With ``sums`` (a :class:`CopySums` of the ``B`` copies), a fifth entry: its
+        :meth:`CopySums.read`, its device sums read back in the same copy (after the kernels launched before)."""
         B = self.copies
-        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, B)
+        device_sums = None if sums is None else sums.device_values
+        extra = self._per_copy if device_sums is None else device_sums
+        _scalars(a, b, self._partial, self._scalars_out, self._order, self._start, B, extra,
+                 int(device_sums is not None))
         out = self._scalars_host
         if not device_copy.to_host(out, self._scalars_out):
             out = self._scalars_out.to_numpy()
-        rows = out[: _SCALARS * B].reshape(_SCALARS, B)
+        rows = out[: (_SCALARS + 1) * B].reshape(_SCALARS + 1, B)
         values = rows.view(np.float64)
         dot = values[0].copy()
         big_a = np.where(rows[2] > 0, np.nan, values[1])
         big_b = np.where(rows[4] > 0, np.nan, values[3])
         with np.errstate(invalid="ignore"):
             norm_b = np.sqrt(np.where(rows[6] > 0, np.nan, values[5]))
-        return dot, big_a, big_b, norm_b
+        if sums is None:
+            return dot, big_a, big_b, norm_b
+        return dot, big_a, big_b, norm_b, sums.read(None if device_sums is None else values[_SCALARS].copy())
 
     def _extremes(self, a, vertex_norm: bool) -> tuple[np.ndarray, np.ndarray]:
         _extremes(a, self._out, self._order, self._start, self.copies, vertex_norm)

@@ -464,6 +464,41 @@ class DeferredSums:
         self._used += 1
         return cell
 
+    def sum_of(self, items, run, start: float = 0.0, read: bool = True):
+        """``start`` plus ``run(item)`` of every item of ``items``, added in order, their summing kernels launched in
+        one block of these sums (on a GPU the launches follow one another without waiting for each sum; with
+        :attr:`sharing` every launch adds into one sum array, read after the block in one copy: ``start`` plus that
+        sum, plus the values of the items that launched nothing). An item's ``run`` returns its kernel's sum (NaN
+        inside the block, then read) or its own value (no kernel launched, e.g. no elements). ``read`` False: a
+        callable returning that sum instead (its read then), valid until the next block of these sums.
+
+        Raises:
+            RuntimeError: an item launched more than one summing kernel.
+        """
+        returned = []  # per item: (True, index of its launch) or (False, the value it returned)
+        with self:
+            for item in items:
+                before = self._used
+                value = run(item)
+                launched = self._used - before
+                if launched > 1:
+                    raise RuntimeError(f"DeferredSums: {type(item).__name__} launched {launched} summing kernels")
+                returned.append((True, before) if launched else (False, value))
+
+        def total() -> float:
+            if self.sharing:  # (a GPU) the launched items' sums in one sum array, read in one copy
+                out = start + self.total()
+                for launched, item in returned:
+                    out += 0.0 if launched else item
+                return out
+            values = self.values()
+            out = start
+            for launched, item in returned:
+                out += values[item] if launched else item
+            return out
+
+        return total() if read else total
+
     def values(self) -> list[float]:
         """The sums (J) of the last block's launches, in launch order.
 

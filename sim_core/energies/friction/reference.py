@@ -84,6 +84,9 @@ class LaggedFriction:
     """
 
     parameter_names: tuple[str, ...] = ("mu",)
+    psd_hessian = True
+    """:meth:`hessian` is PSD by construction, the same blocks for every ``projection`` (the lockstep batch's projected
+    retry takes the exact blocks where they are, :meth:`sim_core.batch.lockstep.LockstepSolver._term_hessian`)."""
 
     def __init__(
         self,

@@ -329,3 +329,21 @@ def test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds(ti_c
         exact = np.zeros(fused.pattern.keys.size)
         part.add_projected(x, "none", exact, vertices=vertices)
         assert np.abs(exact - want).max() > 1e-6 * np.abs(want).max()
+
+
+def test_marked_rows_are_the_elements_touching_a_marked_vertex():
+    """``marked_rows``: the rows with any vertex marked (a mask not closed under the elements too), increasing int32;
+    every row without a mask."""
+    from sim_core.ti_kernels.block_projection import marked_rows
+
+    rng = np.random.default_rng(5)
+    for m in (1, 3, 4, 6):
+        elements = rng.integers(0, 200, size=(500, m)).astype(np.int32)
+        mask = rng.random(200) < 0.1
+        before = mask.copy()
+        got = marked_rows(elements, mask)
+        np.testing.assert_array_equal(mask, before)  # the mask is read only
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.flatnonzero([mask[e].any() for e in elements]))
+        np.testing.assert_array_equal(marked_rows(elements, None), np.arange(500))
+        assert marked_rows(elements[:0], mask).size == 0

@@ -83,6 +83,48 @@ def test_scalars_in_one_read_equal_copy_runs(ti_cpu, stacked):
     assert_same_sums(norm, runs.largest_norm(finite))
 
 
+@pytest.mark.parametrize("device_sums", [False, True])
+def test_scalars_read_a_copy_sums_in_the_same_copy(ti_cpu, stacked, monkeypatch, device_sums):
+    """``scalars(a, b, sums)``: the four scalars of ``scalars(a, b)`` and, fifth, ``sums.read()`` bit for bit (the
+    sums' kernel and host values, read in the scalars' one copy back where they are device arrays: on CUDA, and
+    here on the test arch with the arch query of :mod:`~sim_core.ti_kernels.copy_vectors` answering "cuda")."""
+    from sim_core.ti_kernels import copy_vectors
+    from sim_core.ti_kernels.copy_vectors import CopySums, CopyVectors
+
+    if device_sums:
+        monkeypatch.setattr(copy_vectors, "current_arch", lambda: "cuda")
+    vectors = CopyVectors(stacked.index)
+    a, b = _arrays(stacked, np.random.default_rng(17))
+    copy_of_vertex = np.empty(vectors.vertex_count, dtype=np.int64)
+    for c, vertices in enumerate(stacked.index):
+        copy_of_vertex[vertices] = c
+    sums = CopySums(copy_of_vertex, vectors.copies)
+    assert (sums.device_values is not None) == (device_sums or ti_cpu == "cuda")
+    rng = np.random.default_rng(19)
+    y, w = rng.normal(size=a.shape), rng.uniform(0.5, 2.0, len(a))
+    for _ in range(2):  # the second time over sums zeroed again and another scalars' launch before
+        sums.zero()
+        finite = np.nan_to_num(b)
+        sums.add_diagonal_quadratic(vectors.upload(finite), vectors.upload(y), _weights(w))
+        sums.add(np.arange(vectors.copies, dtype=np.float64))
+        expected = sums.read()
+        assert np.all(expected > 0)
+        du, dv = vectors.upload(a), vectors.upload(b)
+        *four, read = vectors.scalars(du, dv, sums)
+        for got, want in zip(four, vectors.scalars(du, dv)):
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(read, expected)
+
+
+def _weights(w: np.ndarray):
+    """``w`` ``(n,)`` as a float64 Taichi ndarray."""
+    from sim_core.ti_backend import ti
+
+    out = ti.ndarray(ti.f64, shape=w.shape)
+    out.from_numpy(w)
+    return out
+
+
 def test_trial_points_and_copy_updates_equal_copy_runs(ti_cpu, stacked):
     from sim_core.ti_kernels.copy_vectors import CopyVectors
 

@@ -58,7 +58,9 @@ def test_fused_elastic_adds_its_gradient_and_keeps_the_evaluation(ti_cpu, monkey
     assert energy == pytest.approx(pot.energy(x), rel=1e-12) and np.abs(g).max() > 0
     base = np.random.default_rng(3).normal(scale=np.abs(g).max(), size=g.shape)
     gd = _device(base)
-    assert_same_sums(fused.add_gradient_on_device(x, _device(x), gd), energy)
+    returned = fused.add_gradient_on_device(x, _device(x), gd)
+    assert (returned is None) == fused._on_device()  # on CUDA the energy stays on the device until asked for
+    assert_same_sums(fused.energy(x), energy)
     assert_same_sums(gd.to_numpy(), base + g)
     assert_same_sums(fused.hessian_values(x), fresh.hessian_values(x))
     assert_same_sums(fused.gradient(x), g)
@@ -83,7 +85,8 @@ def test_fused_kernels_read_the_device_positions(ti_cpu, kind):
     read = y if ti_cpu == "cpu" or fused._on_device() else x
     assert fused._on_device() == (ti_cpu == "cuda" and kind in ("snh", "spring_membrane", "kirchhoff"))
     gd = _device(np.zeros_like(x))
-    assert fused.add_gradient_on_device(x, _device(y), gd) == pytest.approx(pot.energy(read), rel=1e-12)
+    fused.add_gradient_on_device(x, _device(y), gd)
+    assert fused.energy(x) == pytest.approx(pot.energy(read), rel=1e-12)
     assert relative_error(gd.to_numpy(), pot.gradient(read)) < 1e-12
     assert relative_error(pot.gradient(y), pot.gradient(x)) > 1e-3
 
@@ -120,7 +123,9 @@ def test_fused_elastic_keeps_gradient_and_values_on_the_device_on_the_cuda_path(
         assert fused._on_device() == (len(terms) == 2)
         base = np.random.default_rng(5).normal(size=g.shape)
         gd = _device(base)
-        assert_same_sums(fused.add_gradient_on_device(x, _device(x), gd), energy)
+        returned = fused.add_gradient_on_device(x, _device(x), gd)
+        assert (returned is None) == (len(terms) == 2)  # the device evaluation's energy not read yet
+        assert_same_sums(fused.energy(x), energy)
         assert_same_sums(gd.to_numpy(), base + g)
         device_values = fused.hessian_values_device(x)
         assert (device_values is not None) == (len(terms) == 2)
@@ -137,6 +142,16 @@ def test_fused_elastic_keeps_gradient_and_values_on_the_device_on_the_cuda_path(
     gd = _device(np.zeros_like(y))
     fused.add_gradient_on_device(y, _device(y), gd)
     assert relative_error(gd.to_numpy(), membrane.gradient(y) + bending.gradient(y)) < 1e-12
+    monkeypatch.undo()
+    for module in (backend, kirchhoff_kernel, spring_kernel):
+        monkeypatch.setattr(module, "current_arch", lambda: "cuda")
+    # a device evaluation's energy left unread is read before the next evaluation reuses the sum cells
+    z = _frozen(deformed(7))
+    fused.add_gradient_on_device(z, _device(z), _device(np.zeros_like(z)))
+    assert callable(fused._kept[1])
+    assert fused.energy(y) == pytest.approx(membrane.energy(y) + bending.energy(y), rel=1e-12)  # another block
+    assert not callable(fused._kept[1])
+    assert fused.energy(z) == pytest.approx(membrane.energy(z) + bending.energy(z), rel=1e-12)
 
 
 def _friction(seed: int, scale: float):

@@ -459,7 +459,7 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     assert relative_error(v_dev, v_host) < 1e-13
     assert abs(v_host).max() > 0
     # a GPU's sum arrays of several cells (here 4, in host memory): every part's energy added into one array, read
-    # once an evaluation (the energy-only kernels, then the fused ones)
+    # once an evaluation (the energy-only kernels), the fused evaluation's only when its energy is asked for
     from sim_core.ti_kernels import launch
 
     monkeypatch.setattr(launch, "_new_cells", lambda runtime: np.zeros(4))
@@ -467,8 +467,10 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     cells_sum = launch._cells_sum
     monkeypatch.setattr(launch, "_cells_sum", lambda array: (reads.append(array), cells_sum(array))[1])
     e_shared, g_shared, v_shared, fused_shared = evaluate()
-    assert fused_shared._sums.sharing and len(reads) == 2
+    assert fused_shared._sums.sharing and len(reads) == 1
     assert e_shared == pytest.approx(e_host, rel=1e-13)
+    assert fused_shared.energy(x) == pytest.approx(e_host, rel=1e-13) and len(reads) == 2  # the evaluation's, once
+    assert fused_shared.energy(x) == pytest.approx(e_host, rel=1e-13) and len(reads) == 2
     np.testing.assert_array_equal(g_shared, g_dev)
     np.testing.assert_array_equal(v_shared, v_dev)
     # the projected Hessian: positions uploaded once, every part's blocks made, reduced and scattered by kernels on

@@ -372,3 +372,40 @@ def test_shared_deferred_sums_read_one_sum_array_once(ti_cpu, monkeypatch):
         summed(x, w)
         summed(y, w)
     assert not separate.sharing and separate.values() == pytest.approx(plain[:2], rel=1e-13, abs=0.0)
+
+
+@pytest.mark.parametrize("cells", [1, 4])  # the CPU's one cell a launch; a GPU's shared sum array (host cells here)
+def test_deferred_sums_sum_of_items_read_now_or_later(ti_cpu, monkeypatch, cells):
+    """``DeferredSums.sum_of``: ``start`` plus each item's sum (a summing kernel's, or the value of an item that
+    launched none) in one block; with ``read`` False a callable that reads the same sum later, with no read before
+    it is called; an item launching two summing kernels is refused."""
+    from sim_core.ti_kernels import launch
+    from sim_core.ti_kernels.launch import DeferredSums, summing_kernel
+
+    def squares(x: _F64_1, energy: _F64_1):
+        ti.loop_config(serialize=True)
+        for k in range(x.shape[0]):
+            energy[k % energy.shape[0]] += x[k] * x[k]
+
+    summed = summing_kernel(squares)
+    rng = np.random.default_rng(12)
+    xs = [rng.normal(size=40), None, rng.normal(size=7)]  # the middle item launches nothing: its value 2.5
+    plain = [summed(xs[0]), 2.5, summed(xs[2])]
+    if cells > 1:
+        monkeypatch.setattr(launch, "_new_cells", lambda runtime: np.zeros(cells))
+    reads = []
+    cells_sum = launch._cells_sum
+    monkeypatch.setattr(launch, "_cells_sum", lambda array: (reads.append(array), cells_sum(array))[1])
+    sums = DeferredSums(shared=True)
+
+    def run(x):
+        return 2.5 if x is None else summed(x)
+
+    now = sums.sum_of(xs, run, 1.0)
+    assert now == pytest.approx(1.0 + sum(plain), rel=1e-13, abs=0.0)
+    reads.clear()
+    later = sums.sum_of(xs, run, 1.0, read=False)
+    assert callable(later) and not reads
+    assert later() == now and reads
+    with pytest.raises(RuntimeError, match="launched 2 summing kernels"):
+        sums.sum_of([xs[0]], lambda x: summed(x) + summed(x))

@@ -62,3 +62,70 @@ def test_projected_subset_blocks_left_on_the_device_equal_the_terms_own(ti_cpu, 
         assert np.all(np.abs(blocks - want.blocks) <= 1e-10 * scale)
     with pytest.raises(ValueError, match="projection"):
         projected_subset_blocks(linked[0], x, "flip", half, "jacobi", projector)
+
+
+class _KeptTerm:
+    """A term whose exact blocks are kept on the device (``hessian_on_device``), PSD by construction or not: records
+    what the operator asked it for."""
+
+    def __init__(self, psd: bool, on_device: bool = True) -> None:
+        self.psd_hessian = psd
+        self.on_device = on_device
+        self.asked: list[str] = []
+
+    def hessian_on_device(self, x):
+        self.asked.append("device")
+        return "device blocks" if self.on_device else None
+
+    def hessian(self, x, projection="clamp"):
+        self.asked.append(projection)
+        return "host blocks"
+
+
+def test_projected_retry_takes_the_device_blocks_of_psd_terms_only():
+    """The projected retry's operator (``LockstepSolver._term_hessian`` with a projection and marked copies) takes a
+    term's exact blocks where they are kept when the term's Hessian is PSD by construction (``psd_hessian``: the
+    projection changes nothing), and the term's projected ``hessian`` otherwise or where nothing is kept."""
+    from types import SimpleNamespace
+
+    from sim_core.batch.lockstep import LockstepSolver
+
+    solver = SimpleNamespace(subset_projection=None, _block_rows=None)
+    x = np.zeros((4, 3))
+    marked = np.ones(4, dtype=bool)
+    for psd, on_device, projection, vertices, want, asked in (
+            (True, True, "clamp", marked, "device blocks", ["device"]),
+            (True, True, "abs", None, "device blocks", ["device"]),
+            (True, False, "clamp", marked, "host blocks", ["device", "clamp"]),
+            (False, True, "clamp", marked, "host blocks", ["clamp"]),
+            (False, True, "none", None, "device blocks", ["device"]),
+            (False, True, "none", marked, "host blocks", ["none"])):
+        term = _KeptTerm(psd, on_device)
+        assert LockstepSolver._term_hessian(solver, term, x, projection, vertices) == want
+        assert term.asked == asked, (psd, on_device, projection)
+
+
+def test_friction_blocks_are_the_same_for_every_projection(ti_cpu):
+    """The friction's ``psd_hessian``: its blocks (reference and kernels) are the same whatever the projection asked,
+    and PSD (smallest eigenvalue above -1e-12 of the largest entry), in the mollified and the sliding regime."""
+    from sim_core.energies.friction.kernel import TiLaggedFriction
+    from sim_core.energies.friction.reference import LaggedFriction, tangent_basis
+
+    rng = np.random.default_rng(3)
+    p, n = 40, 30
+    vertices = np.stack([rng.choice(n, size=4, replace=False) for _ in range(p)])
+    weights = np.concatenate([np.ones((p, 1)), -rng.dirichlet(np.ones(3), size=p)], axis=1)
+    normal = rng.normal(size=(p, 3))
+    tangent = tangent_basis(normal / np.linalg.norm(normal, axis=1, keepdims=True))
+    lam, mu = rng.uniform(0.5, 3.0, size=p), rng.uniform(0.2, 1.0, size=p)
+    x_prev = rng.uniform(-0.01, 0.01, size=(n, 3))
+    dt, eps_v = 5e-3, 0.01
+    for cls in (LaggedFriction, TiLaggedFriction):
+        friction = cls(vertices, weights, tangent, lam, mu, x_prev, eps_v, dt)
+        assert friction.psd_hessian
+        for scale in (0.3 * eps_v * dt, 20 * eps_v * dt):
+            x = x_prev + rng.normal(scale=scale, size=x_prev.shape)
+            exact = np.array(friction.hessian(x, "none").blocks)
+            for projection in ("clamp", "abs"):
+                np.testing.assert_array_equal(friction.hessian(x, projection).blocks, exact)
+            assert np.linalg.eigvalsh(exact).min() >= -1e-12 * np.abs(exact).max()
