@@ -9,6 +9,9 @@ import numpy as np
 from sim_core.backend import check_backend
 from sim_core.errors import ConfigError
 
+CG_PRECISIONS = ("double", "mixed")
+"""The batched CG's storage precisions (``SolverConfig.cg_precision``, :mod:`sim_core.ti_kernels.precision`)."""
+
 
 @dataclass
 class SolverConfig:
@@ -198,7 +201,7 @@ class SolverConfig:
                               "(a lockstep batch starts every copy at x^n)")
         if self.sleeping and self.lockstep:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
-        if self.cg_precision not in ("double", "mixed"):
-            raise ConfigError(f"solver cg_precision must be double|mixed, got {self.cg_precision!r}")
+        if self.cg_precision not in CG_PRECISIONS:
+            raise ConfigError(f"solver cg_precision must be {'|'.join(CG_PRECISIONS)}, got {self.cg_precision!r}")
         if self.dt_halvings_on_failure < 0:
             raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")

@@ -15,10 +15,8 @@ meant for the lockstep's inexact Newton solves (``rtol`` 1e-4); ``"double"`` kee
 """
 
 from sim_core.errors import ConfigError
+from sim_core.solver_config import CG_PRECISIONS
 from sim_core.ti_backend import ti
-
-PRECISIONS = ("double", "mixed")
-"""The batched CG's storage precisions (module docstring)."""
 
 VALUES = ti.types.ndarray(ndim=1)
 """The annotation of a stored value array of the batched CG: a 1-D ndarray of float64 or float32 (each kernel is
@@ -26,13 +24,14 @@ compiled once per dtype)."""
 
 
 def storage_dtype(precision: str):
-    """The Taichi dtype of the batched CG's stored matrices in ``precision`` (:data:`PRECISIONS`).
+    """The Taichi dtype of the batched CG's stored matrices in ``precision`` (one of
+    :data:`~sim_core.solver_config.CG_PRECISIONS`).
 
     Raises:
         ConfigError: an unknown precision.
     """
-    if precision not in PRECISIONS:
-        raise ConfigError(f"batched CG precision must be one of {'|'.join(PRECISIONS)}, got {precision!r}")
+    if precision not in CG_PRECISIONS:
+        raise ConfigError(f"batched CG precision must be one of {'|'.join(CG_PRECISIONS)}, got {precision!r}")
     return ti.f64 if precision == "double" else ti.f32
 
 
