@@ -61,3 +61,14 @@ class ArrayPool:
         if len(blocks) > self.keep:
             del blocks[0]
         return block[:shape[0]]
+
+    def copy_of(self, name: str, values: np.ndarray, dtype=None) -> np.ndarray:
+        """:meth:`empty` of ``values``' shape holding ``values`` converted to ``dtype`` (``values``' own by default;
+        converted as ``astype`` does): a pooled ``values.astype(dtype)``.
+
+        Raises:
+            ValueError: a 0-dimensional ``values``.
+        """
+        out = self.empty(name, values.shape, values.dtype if dtype is None else dtype)
+        np.copyto(out, values, casting="unsafe")
+        return out

@@ -317,11 +317,7 @@ def sorted_pairs_and_keys(out: np.ndarray, pool: ArrayPool | None = None) -> tup
     are :class:`~sim_core.collision.memory.ContactMemory`'s, which the contact set looks its remembered pairs up in).
     ``pool``: where the two arrays are made (:class:`~sim_core.array_pool.ArrayPool`, a grid's: blocks of earlier
     searches that nothing holds any more), or None: fresh arrays."""
-    if pool is None:
-        keys = out[:, 0].astype(np.int64)
-    else:
-        keys = pool.empty("keys", (len(out),), np.int64)
-        np.copyto(keys, out[:, 0], casting="unsafe")
+    keys = out[:, 0].astype(np.int64) if pool is None else pool.copy_of("keys", out[:, 0], np.int64)
     keys <<= 32
     keys |= out[:, 1]
     keys.sort()
@@ -357,14 +353,8 @@ def sorted_on_device(out, found: int, first_count: int, device: dict, pool: Arra
             for name in ("start", "fill", "chunk_total", "keys")]
     _sort_pairs(out, int(found), int(first_count), *work)
     kept = copy_back(arrays["keys"], work[3], found)[:found]
-    keys = kept.copy() if pool is None else _copied(pool.empty("keys", (found,), np.int64), kept)
+    keys = kept.copy() if pool is None else pool.copy_of("keys", kept)
     return _pairs_of(keys, pool), keys
-
-
-def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """``out`` holding ``values``."""
-    np.copyto(out, values)
-    return out
 
 
 def _power_of_two(n: int) -> int:

@@ -71,3 +71,18 @@ def test_pooled_list_vertices_equal_fresh_ones_and_never_overwrite_held_lists():
     wrong[3, 1] = len(edges)
     with pytest.raises(IndexError, match="out of range"):
         CandidateVertices(vt, wrong, triangles, edges, pool=pool)
+
+
+def test_copy_of_holds_the_values_converted_and_is_a_block_of_the_pool():
+    """``ArrayPool.copy_of``: ``values.astype(dtype)`` (``values``' dtype by default) in a pooled block, which a later
+    call of the same name writes again once nothing holds it."""
+    pool = ArrayPool()
+    values = np.array([[1, 2], [3, -4]], dtype=np.int64)
+    got = pool.copy_of("v", values, np.int32)
+    assert got.dtype == np.int32 and np.array_equal(got, values.astype(np.int32))
+    block = id(got.base)  # (an id: a reference would hold the block)
+    del got
+    again = pool.copy_of("v", values[:1], np.int32)
+    assert id(again.base) == block and np.array_equal(again, values[:1])
+    same = pool.copy_of("w", values)
+    assert same.dtype == np.int64 and np.array_equal(same, values)

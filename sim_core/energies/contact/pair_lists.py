@@ -87,7 +87,7 @@ class CandidateVertices:
             if self._pool is None:
                 self._int32 = (self.vt_vertices.astype(np.int32), self.ee_vertices.astype(np.int32))
             else:
-                self._int32 = tuple(_copied(self._pool.empty(name, v.shape, np.int32), v)
+                self._int32 = tuple(self._pool.copy_of(name, v, np.int32)
                                     for name, v in (("vt_int32", self.vt_vertices), ("ee_int32", self.ee_vertices)))
         return self._int32
 
@@ -148,12 +148,6 @@ def _pooled_vertices(pool: ArrayPool, vt: np.ndarray, ee: np.ndarray, triangles:
     ee_vertices = pool.empty("ee_vertices", (len(ee), 4), np.int64)
     np.take(edges, ee, axis=0, out=ee_vertices.reshape(-1, 2, 2), mode="clip")
     return vt_vertices, ee_vertices
-
-
-def _copied(out: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """``out`` holding ``values`` (converted to its dtype)."""
-    np.copyto(out, values, casting="unsafe")
-    return out
 
 
 def _sorted_keys(pairs: np.ndarray) -> np.ndarray | None:
