@@ -6,7 +6,7 @@ friction potentials, as the Newton solver uses them:
 - :meth:`ContactSet.begin_step` takes the side memory of the state at ``x^n``;
 - :meth:`ContactSet.potentials` returns the penalty potentials (vertex-triangle, edge-edge,
   vertex-plane) for the candidate pairs near an iterate ``x``, with sides fixed for the whole
-  step (:meth:`ContactSet._step_sides`): a pair above the face (interior) at ``x^n`` keeps its
+  step (:func:`step_sides`): a pair above the face (interior) at ``x^n`` keeps its
   remembered side, or takes its side at ``x^n``, so a vertex that slipped through a triangle during
   an iterate is pulled back to the side it came from; any other pair is unsigned;
 - :meth:`ContactSet.friction` freezes normal forces and tangent bases at ``x^n`` (lagged IPC friction,
@@ -428,16 +428,14 @@ class ContactSet:
 
     def _vertex_triangle(self, vt: np.ndarray, sides: np.ndarray,
                          vertices: np.ndarray | None = None) -> VertexTriangleContact:
-        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:meth:`_step_sides`) and their vertices
+        """Vertex-triangle penalty over pairs ``vt`` with the step's sides (:func:`step_sides`) and their vertices
         (None: computed)."""
         return self._pair_classes()[0](vt, self.triangles, sides, self.stiffness, self.eps, vertices=vertices)
 
     def _edge_edge(self, ee: np.ndarray, sides: np.ndarray, vertices: np.ndarray | None = None) -> EdgeEdgeContact:
-        """Edge-edge penalty over pairs ``ee`` with the step's sides (:meth:`_step_sides`) and their vertices (None:
+        """Edge-edge penalty over pairs ``ee`` with the step's sides (:func:`step_sides`) and their vertices (None:
         computed)."""
         return self._pair_classes()[1](ee, self.edges, sides, self.stiffness, self.eps, vertices=vertices)
-
-    _step_sides = staticmethod(step_sides)  # (sim_core.collision.step_sides)
 
     def _pair_geometry(self, x: np.ndarray, vt_vertices: np.ndarray, ee_vertices: np.ndarray,
                        lists: CandidateVertices | None = None) -> PairGeometry:
@@ -514,7 +512,7 @@ class ContactSet:
         """``(vt sides, ee keep, ee sides)`` of the candidate lists ``vt`` ``(p, 2)`` (vertex-triangle) and ``ee``
         ``(q, 2)`` (edge-edge) at ``x_ref``, shapes ``(p,)``, ``(q,)``, ``(q,)``.
 
-        ``vt sides``: the step sides (:meth:`_step_sides`). Near-parallel edge pairs have no
+        ``vt sides``: the step sides (:func:`step_sides`). Near-parallel edge pairs have no
         well-defined side (the cross product of their directions vanishes) and switch distance
         definitions as they rotate; their contact is carried by the vertex-triangle pairs of the
         same configuration, so they are left out (``keep`` False, side 0; decided at x^n, so the set
@@ -586,7 +584,7 @@ class ContactSet:
         """Unsign, for the rest of the step, the pairs whose side has gone stale at iterate ``x``.
 
         A side is kept from ``x^n`` so that a vertex that slips through a face during the step is
-        pushed back (:meth:`_step_sides`). But a pair can also get to the other geometric side
+        pushed back (:func:`step_sides`). But a pair can also get to the other geometric side
         without crossing: a vertex round a triangle's free edge, or an edge past the end of the
         other, where the lines of the two edges cross beyond an end (easy for edge pairs; the
         distance is unsigned there). Such a pair sits beside its face (beyond an edge's end) with
@@ -709,7 +707,7 @@ class ContactSet:
         """Remember the sides of the pairs active at the converged positions ``x``.
 
         Only pairs above the face (interior) are remembered: elsewhere a side has no meaning
-        (:meth:`_step_sides`); a remembered pair keeps its side while it stays so.
+        (:func:`step_sides`); a remembered pair keeps its side while it stays so.
         """
         vt, ee = self._pairs(x, memory)
         out = memory.copy()

@@ -50,10 +50,10 @@ def test_candidate_vertices_are_the_pairs_vertices_and_the_batch_layout_points_a
 
 def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
     """``CandidateVertices.keys``: the packed keys of sorted unique lists (None for a list that is not: its pairs are
-    then looked up one by one), made once; ``ContactSet._step_sides`` through them gives the sides, bit for bit, of
+    then looked up one by one), made once; ``step_sides`` through them gives the sides, bit for bit, of
     looking every pair above its face up in the memory."""
     from sim_core.collision.memory import ContactMemory
-    from sim_core.contact_set import ContactSet
+    from sim_core.collision.step_sides import step_sides
 
     vt, ee, triangles, edges = _lists()
     vt, ee = np.unique(vt, axis=0), np.unique(ee, axis=0)
@@ -75,13 +75,13 @@ def test_list_keys_and_the_step_sides_through_them_equal_the_lookups():
         memory.update(remembered, rng.choice([-1.0, 1.0], size=len(remembered)))
         above = rng.random(len(pairs)) < 0.5
         geometric = rng.choice([-1.0, 1.0], size=len(pairs))
-        want = ContactSet._step_sides(above, pairs, geometric, memory)
-        got = ContactSet._step_sides(above, pairs, geometric, memory, k)
+        want = step_sides(above, pairs, geometric, memory)
+        got = step_sides(above, pairs, geometric, memory, k)
         assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
         assert np.any(got[above] != geometric[above])  # remembered sides taken
         for keys_given in (None, k):  # written into a given array (part of a larger one, holding other values before)
             block = np.full(len(pairs) + 3, 5.0)
-            written = ContactSet._step_sides(above, pairs, geometric, memory, keys_given, block[2:-1])
+            written = step_sides(above, pairs, geometric, memory, keys_given, block[2:-1])
             assert written.base is block and written.tobytes() == want.tobytes() and block[0] == block[-1] == 5.0
 
 
