@@ -71,7 +71,7 @@ class CopyLineSearch:
             launched = (self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
                         if per_copy and x_try.device is not None else None)
             e_try = None
-            if launched is not None and launched[1] is not None:  # the energies read with the slope: one copy back
+            if launched is not None:  # the energies read with the slope: one copy back (with x_device, sums are made)
                 s_try, g_try_max, device_sums = vectors.slope_largest_and_sums(g_try, d, launched[1])
                 e_try = launched[0] + device_sums
             else:
