@@ -547,7 +547,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             # (a synchronous upload waits for every kernel queued before it), so that the host waits once, for the
             # factorisation and the CG together
             vectors.blend(rhs, g, todo, ~todo, scale=-1.0)
-            pcg.factorize(upper, blocks, diagonal)
+            pcg.factorize(upper, blocks, diagonal, None if k == 0 else todo)  # a retry: its copies' band blocks only
             dk = vectors.new()
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
