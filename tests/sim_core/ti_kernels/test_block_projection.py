@@ -331,6 +331,48 @@ def test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds(ti_c
         assert np.abs(exact - want).max() > 1e-6 * np.abs(want).max()
 
 
+@pytest.mark.parametrize("kind", ("snh", "spring_membrane", "kirchhoff"))
+def test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit(ti_cpu, kind):
+    """The fused parts' block kernels over listed rows (a lockstep retry's marked elements: the Neo-Hookean
+    projected blocks, the spring membrane's and Kirchhoff bending's exact triangle blocks) write each listed block bit
+    for bit as the evaluation of every element does, and leave the other blocks as they were."""
+    from sim_core.energies.kirchhoff_bending.fused_kernel import FusedKirchhoffBending
+    from sim_core.energies.membrane.fused_spring_kernel import FusedSpringMembrane, spring_membrane_triangle_blocks
+    from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean
+    from sim_core.energies.neohookean.kernel import evaluate_snh_hessian, evaluate_snh_hessian_rows
+
+    pot, x_rest, deformed = _potentials(kind)
+    fused, _ = _fused(pot, x_rest, np.ones(x_rest.size, bool))
+    x = np.ascontiguousarray(deformed(5))
+    part = {"snh": FusedStableNeoHookean, "spring_membrane": FusedSpringMembrane,
+            "kirchhoff": FusedKirchhoffBending}[kind](pot)
+    part.bind(fused.pattern)
+    if kind == "snh":
+        def blocks_of(rows, out):
+            evaluate_snh_hessian_rows(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, rows, rows.size, out)
+            return out
+        whole = np.zeros((part._tets.shape[0], 12, 12))
+        evaluate_snh_hessian(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, whole)
+    elif kind == "spring_membrane":
+        def blocks_of(rows, out):
+            spring_membrane_triangle_blocks(x, part._triangles, part._area0, pot.k_area, rows, rows.size, out)
+            return out
+        whole = blocks_of(np.arange(part._triangles.shape[0], dtype=np.int32),
+                          np.zeros((part._triangles.shape[0], 9, 9)))
+    else:
+        def blocks_of(rows, out):
+            part._blocks[...] = out
+            return part._triangle_hessians_where_run(x, rows).copy()
+        whole = part.triangle_hessians(x).copy()
+    k = whole.shape[0]
+    rows = np.flatnonzero(np.random.default_rng(1).random(k) < 0.4).astype(np.int32)
+    assert 0 < rows.size < k and np.abs(whole).max() > 0.0
+    got = blocks_of(rows, np.full(whole.shape, 7.0))
+    np.testing.assert_array_equal(got[rows], whole[rows])
+    others = np.setdiff1d(np.arange(k), rows)
+    np.testing.assert_array_equal(got[others], 7.0)
+
+
 def test_marked_rows_are_the_elements_touching_a_marked_vertex():
     """``marked_rows``: the rows with any vertex marked (a mask not closed under the elements too), increasing int32;
     every row without a mask."""
