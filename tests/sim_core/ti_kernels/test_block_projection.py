@@ -336,7 +336,7 @@ def test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit(ti_c
     """The fused parts' block kernels over listed rows (a lockstep retry's marked elements: the Neo-Hookean
     projected blocks, the spring membrane's and Kirchhoff bending's exact triangle blocks) write each listed block bit
     for bit as the evaluation of every element does, and leave the other blocks as they were."""
-    from sim_core.energies.kirchhoff_bending.fused_kernel import FusedKirchhoffBending
+    from sim_core.energies.kirchhoff_bending.fused_kernel import FusedKirchhoffBending, kirchhoff_triangle_hessians
     from sim_core.energies.membrane.fused_spring_kernel import FusedSpringMembrane, spring_membrane_triangle_blocks
     from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean
     from sim_core.energies.neohookean.kernel import evaluate_snh_hessian, evaluate_snh_hessian_rows
@@ -348,29 +348,33 @@ def test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit(ti_c
             "kirchhoff": FusedKirchhoffBending}[kind](pot)
     part.bind(fused.pattern)
     if kind == "snh":
+        k, m = part._tets.shape[0], 12
+
         def blocks_of(rows, out):
             evaluate_snh_hessian_rows(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, rows, rows.size, out)
-            return out
-        whole = np.zeros((part._tets.shape[0], 12, 12))
-        evaluate_snh_hessian(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, whole)
     elif kind == "spring_membrane":
+        k, m = part._triangles.shape[0], 9
+
         def blocks_of(rows, out):
             spring_membrane_triangle_blocks(x, part._triangles, part._area0, pot.k_area, rows, rows.size, out)
-            return out
-        whole = blocks_of(np.arange(part._triangles.shape[0], dtype=np.int32),
-                          np.zeros((part._triangles.shape[0], 9, 9)))
     else:
+        k, m = part._tri_hinge.shape[0], 18
+
         def blocks_of(rows, out):
-            part._blocks[...] = out
-            return part._triangle_hessians_where_run(x, rows).copy()
-        whole = part.triangle_hessians(x).copy()
-    k = whole.shape[0]
+            kirchhoff_triangle_hessians(x, part._hinges, part._theta_bar, part._tri_hinge, part._tri_local,
+                                        part._stiffness, np.zeros_like(part._scratch), rows, rows.size, out)
+    whole = np.zeros((k, m, m))
+    blocks_of(np.arange(k, dtype=np.int32), whole)
+    if kind == "snh":
+        every = np.zeros((k, m, m))
+        evaluate_snh_hessian(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, every)
+        np.testing.assert_array_equal(whole, every)
     rows = np.flatnonzero(np.random.default_rng(1).random(k) < 0.4).astype(np.int32)
     assert 0 < rows.size < k and np.abs(whole).max() > 0.0
-    got = blocks_of(rows, np.full(whole.shape, 7.0))
+    got = np.full(whole.shape, 7.0)
+    blocks_of(rows, got)
     np.testing.assert_array_equal(got[rows], whole[rows])
-    others = np.setdiff1d(np.arange(k), rows)
-    np.testing.assert_array_equal(got[others], 7.0)
+    np.testing.assert_array_equal(got[np.setdiff1d(np.arange(k), rows)], 7.0)
 
 
 def test_marked_rows_are_the_elements_touching_a_marked_vertex():
