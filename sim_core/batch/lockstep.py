@@ -589,7 +589,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         fused = step.fused
         pattern = fused.pattern
         values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
-                  else fused.projected_hessian_values_device(x, projection, vertices))
+                  else fused.projected_hessian_values_device(x, projection, vertices, closed=True))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))

@@ -381,13 +381,15 @@ class FusedKirchhoffBending:
             blocks, slots = blocks[rows], slots[rows]
         self._projector.add_projected(blocks, projection, slots, values)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """:meth:`add_projected` by kernels where they run (on CUDA the device; on the CPU arch the same kernels on
         host arrays), into ``values`` there (``(pattern.keys.size,)``, a device array on CUDA): the triangles'
         exact blocks (:func:`kirchhoff_triangle_hessians`, of the triangles added only) reduced, projected and
         scattered through the packed upper slot table of the exact Hessian
         (:meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows`), nothing
-        crossing to the host. The sums equal the host path's to round-off.
+        crossing to the host. The sums equal the host path's to round-off. ``closed``: ``vertices`` closed under the
+        triangles' stencils (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             ValueError: unknown projection.
@@ -395,7 +397,7 @@ class FusedKirchhoffBending:
         linalg.projection_code(projection)
         if self._hinges.shape[0] == 0:
             return
-        rows = marked_rows(self.vertices, vertices)
+        rows = marked_rows(self.vertices, vertices, closed)
         blocks = self._triangle_hessians_where_run(x, rows)  # the blocks of the triangles projected only
         self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_upper", self._tri_upper),
                                            rows, values)

@@ -340,13 +340,16 @@ class FusedSpringMembrane(BoundSlotTables):
         """
         add_projected_where_run(self, x, projection, values, vertices)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """The projected blocks added into ``values`` ``(pattern.keys.size,)`` where the kernels run (on CUDA a device
         array; on the CPU arch the same kernels on host arrays): the triangles' exact blocks
         (:func:`spring_membrane_triangle_blocks`) reduced, projected by the Jacobi kernel and scattered through the
         packed upper slot table by
         :meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows` (with ``vertices``
-        the triangles touching a marked vertex), the edges' closed form (:func:`spring_membrane_projected_edges`).
+        the triangles touching a marked vertex, whose blocks alone are made; ``closed``: ``vertices`` closed under the
+        triangles, :func:`~sim_core.ti_kernels.block_projection.marked_rows`), the edges' closed form
+        (:func:`spring_membrane_projected_edges`).
 
         Raises:
             ValueError: unknown projection.
@@ -360,7 +363,7 @@ class FusedSpringMembrane(BoundSlotTables):
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
             blocks = on_device(d, "blocks", self._blocks, scratch=True)
-            rows = marked_rows(self._triangles, vertices)  # the blocks of these triangles made only
+            rows = marked_rows(self._triangles, vertices, closed)  # the blocks of these triangles made only
             spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles),
                                             on_device(d, "area0", self._area0), p.k_area,
                                             rows_on_device(d, "triangle_rows", rows), rows.size, blocks)

@@ -309,13 +309,15 @@ class FusedStableNeoHookean(BoundSlotTables):
             rows = marked_rows(self._tets, vertices)
             add_block_rows(blocks, self._slots, rows, rows.size, values)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """The projected blocks of :meth:`add_projected` made and added into ``values`` ``(pattern.keys.size,)`` where
         the kernels run (on CUDA a device array; on the CPU arch the same kernels on host arrays) through the
         packed upper slot table of the exact Hessian (:func:`~sim_core.ti_kernels.block_projection.
         add_upper_block_rows`: the blocks are symmetric bit for bit, so the sums are the full slot map's); with
         ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex, whose blocks alone are made
-        (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian_rows`).
+        (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian_rows`; ``closed``: ``vertices`` closed under
+        the tets, :func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             ValueError: unknown projection.
@@ -323,7 +325,7 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
-        rows = marked_rows(self._tets, vertices)  # with vertices: the tets touching a marked vertex
+        rows = marked_rows(self._tets, vertices, closed)  # with vertices: the tets touching a marked vertex
         if rows.size == 0:
             return
         p = self.potential

@@ -379,7 +379,7 @@ def test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit(ti_c
 
 def test_marked_rows_are_the_elements_touching_a_marked_vertex():
     """``marked_rows``: the rows with any vertex marked (a mask not closed under the elements too), increasing int32;
-    every row without a mask."""
+    every row without a mask; a mask closed under the elements gives the same rows by the first vertex alone."""
     from sim_core.ti_kernels.block_projection import marked_rows
 
     rng = np.random.default_rng(5)
@@ -393,3 +393,11 @@ def test_marked_rows_are_the_elements_touching_a_marked_vertex():
         np.testing.assert_array_equal(got, np.flatnonzero([mask[e].any() for e in elements]))
         np.testing.assert_array_equal(marked_rows(elements, None), np.arange(500))
         assert marked_rows(elements[:0], mask).size == 0
+    # a mask closed under the elements (whole copies of 20 vertices, each element within one copy): by the first
+    # vertex alone, the same rows
+    copy_of = rng.integers(0, 10, size=500)
+    elements = (20 * copy_of[:, None] + rng.integers(0, 20, size=(500, 4))).astype(np.int32)
+    mask = np.repeat(rng.random(10) < 0.4, 20)
+    want = marked_rows(elements, mask)
+    assert 0 < want.size < 500
+    np.testing.assert_array_equal(marked_rows(elements, mask, closed=True), want)
