@@ -415,8 +415,10 @@ class BandBlocks:
         self._pos = _device_i32(pos)
         self._copy = _device_i32(copy[:, 0])
         self._copy_of_block = copy[:, 0].copy()
-        self._wanted = _device_i32(np.ones(self.count, np.int32))  # the blocks eliminate() factorises
-        self._wanted_of: np.ndarray | None = None  # the copies mask of the last selection (None: every block)
+        self._every = _device_i32(np.ones(self.count, np.int32))  # every block selected (select(None))
+        self._wanted = _device_i32(np.ones(self.count, np.int32))  # the blocks of a selection of copies
+        self._wanted_of: np.ndarray | None = None  # the copies mask whose blocks _wanted holds
+        self._selected = False  # whether eliminate() takes _wanted (else every block)
         self._usable = device_copy.new_ndarray(ti.i32, (self.count,))
         self._pivots = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
         self._band = None  # the bands, made once the width is known
@@ -475,23 +477,24 @@ class BandBlocks:
     def select(self, copies: np.ndarray | None) -> None:
         """The blocks :meth:`eliminate` factorises from now on: those of the copies marked in ``copies`` (bool, one
         entry a copy: e.g. a Newton iteration's retried copies, the only ones with a right-hand side), or every
-        block with None; the mask travels to the device only when it changes."""
-        kept = self._wanted_of
-        if copies is None and kept is None or copies is not None and kept is not None and np.array_equal(copies, kept):
+        block with None (a constant device array: no copy); a selection's mask travels to the device when it
+        changes."""
+        self._selected = copies is not None
+        if copies is None or self._wanted_of is not None and np.array_equal(copies, self._wanted_of):
             return
-        wanted = np.ones(self.count, np.int32) if copies is None else np.asarray(copies, bool)[
-            self._copy_of_block].astype(np.int32)
+        wanted = np.asarray(copies, bool)[self._copy_of_block].astype(np.int32)
         if not device_copy.to_device(self._wanted, wanted):
             self._wanted.from_numpy(wanted)
-        self._wanted_of = None if copies is None else np.array(copies, dtype=bool)
+        self._wanted_of = np.array(copies, dtype=bool)
 
     def eliminate(self) -> None:
         """The gathered bands of the selected blocks (:meth:`select`) factorised into ``L`` (blocked elimination,
         then the scaling; :attr:`usable` set, 0 for the blocks not selected)."""
         nb, m, w = self.count, self.size, self.width
+        wanted = self._wanted if self._selected else self._every
         for first in range(0, -(-m // PANEL), PANELS_PER_LAUNCH):
-            _eliminate_panels(self._band, self._wanted, first, nb, m, w)
-        _scale_factor(self._band, self._pivots, self._usable, self._wanted, nb, m, w)
+            _eliminate_panels(self._band, wanted, first, nb, m, w)
+        _scale_factor(self._band, self._pivots, self._usable, wanted, nb, m, w)
 
     def invert(self) -> None:
         """What :func:`band_solve` takes of each usable block's factor ``L``, by tiles of :attr:`tile` rows: each
