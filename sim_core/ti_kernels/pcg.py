@@ -550,6 +550,8 @@ class BatchedPCG:
         if blocks is not None and blocks.free.shape != (n,):
             raise ValueError(f"BatchedPCG: vertex blocks with a free mask of shape {blocks.free.shape}, expected ({n},)")
         self.factorizations += 1
+        if self.bands is not None:  # a selection's mask copied before the launches below (a copy waits for them)
+            self.bands.select(copies)
         self._n = n
         seg = self._segments if self._segments is not None else np.zeros(n, dtype=np.int32)
         self._copies = int(seg.max()) + 1 if n else 1
