@@ -35,8 +35,8 @@ from sim_core.ti_kernels.block_projection import (TranslationFreeProjector, add_
 from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_positions, _theta_gradient, _theta_hessian,
                                          _theta_hessian_unsymmetrized)
 
-_F64_1, _F64_2, _F64_3, _I32_1, _I32_2, _I32_3 = (linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_1, linalg.I32_2,
-                                                   linalg.I32_3)
+_F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
+_I32_1 = linalg.I32_1
 
 SCRATCH_COLUMNS = 14
 """Per-hinge scratch: ``[theta, f_h, dtheta/dx (12)]``."""

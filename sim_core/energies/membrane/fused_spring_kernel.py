@@ -48,7 +48,8 @@ from sim_core.ti_kernels.block_projection import (
     TranslationFreeProjector, add_projected_where_run, add_upper_entry, BoundSlotTables, marked_rows, upper_index,
 )
 
-_F64_1, _F64_2, _F64_3, _I32_1, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_1, linalg.I32_2
+_F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_I32_1 = linalg.I32_1
 
 
 @ti.func
