@@ -49,7 +49,7 @@ from sim_core.solver_config import SolverConfig
 from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
 from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
-from sim_core.step_terms import StepTerms, contact_force
+from sim_core.step_terms import FreeDofs, StepTerms, contact_force
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
@@ -137,6 +137,7 @@ class NewtonSolver:
         self._sleep = SleepSet(self.model, self.config.sleep_velocity)
         self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
         self._last_contact_terms: list = []  # the contact terms at the last step's result
+        self._free_dofs = FreeDofs()  # the step's free DoFs and fixed rows, kept for a read-only boundary mask
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -452,13 +453,13 @@ class NewtonSolver:
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
         asleep = frozenset(self._sleep.bodies)
         if asleep:
-            fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
-        free, x_n = np.repeat(~fixed, 3), state_in.x
+            fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
+        (free, fixed_rows), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
-        np.copyto(x, x_target, where=fixed[:, None])  # the fixed vertices at their targets (one pass, no gather)
+        x[fixed_rows] = np.take(x_target, fixed_rows, axis=0)  # the fixed vertices at their targets (their rows only)
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
@@ -785,7 +786,8 @@ class NewtonSolver:
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
-        state_out.v = (x - x_n) / dt
+        state_out.v = np.subtract(x, x_n)
+        state_out.v /= dt  # ((x - x_n) / dt in place: no second array)
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
         state_out.contact_force = contact_force(

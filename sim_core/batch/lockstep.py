@@ -73,7 +73,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim_core.batch.effectors import stacked_boundary
+from sim_core.batch.effectors import StackedBoundary
 from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.iterates import HostIterates, Iterate, frozen
 from sim_core.batch.line_search import CopyLineSearch
@@ -168,6 +168,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                                                        bands=sheet_band_dofs(scene), precision=config.cg_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
+        self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
         # 68 ms a term at B = 256); None: the terms' own projection
         self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
@@ -208,12 +209,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
-        (:func:`~sim_core.batch.effectors.stacked_boundary`), with the vertices of the :attr:`held` copies fixed at
+        (:class:`~sim_core.batch.effectors.StackedBoundary`), with the vertices of the :attr:`held` copies fixed at
         their positions in ``state``."""
-        fixed, x_target, poses, openings, limited = stacked_boundary(self.model, self.scene.copies,
-                                                                     self.scene.effector_names, state, control)
+        fixed, x_target, poses, openings, limited = self._boundary(state, control)
         if self.held.any():
             v = self.scene.index[self.held].ravel()
+            fixed = fixed.copy()  # (the boundary's own mask is read-only, the same array every step)
             fixed[v] = True
             x_target[v] = state.x[v]
         return fixed, x_target, poses, openings, limited

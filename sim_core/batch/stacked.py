@@ -124,26 +124,31 @@ class StackedScene:
 
     def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray) -> list[State]:
         """:meth:`copy_state` of each copy in ``copies`` (int ``(k,)``) with its own time ``t[j]`` (s) and step
-        index ``step_index[j]``: positions, velocities and contact forces gathered from the stacked arrays at
-        once (each state's arrays are views of one ``(k, n, 3)`` array a quantity)."""
+        index ``step_index[j]``: positions (less the copies' offsets, in the same pass), velocities and contact forces
+        gathered from the stacked arrays at once (each state's arrays are views of one ``(k, n, 3)`` array a
+        quantity)."""
         copies = np.asarray(copies, dtype=np.int64)
         gather = self._copy_rows(copies)
-        x = gather(stacked.x)
-        x -= self.offset[copies][:, None, :]
+        offsets = self.offset[copies]
+        x = gather(stacked.x, offsets)
         v = gather(stacked.v)
         force = None if stacked.contact_force is None else gather(stacked.contact_force)
         # the effectors' poses translated back, one (k, 7) array an effector (its rows the copies' poses)
         poses = {n: np.array([stacked.effector_pose[f"{n}#{i}"] for i in copies], dtype=float).reshape(len(copies), 7)
                  for n in self.effector_names}
         for pose in poses.values():
-            pose[:, :3] -= self.offset[copies]
+            pose[:, :3] -= offsets
         theta = self._copy_rest_angles(stacked.hinge_theta_bar, copies)
         t, step_index = np.asarray(t, dtype=float).tolist(), np.asarray(step_index).astype(np.int64).tolist()
         names, openings = self.effector_names, stacked.gripper_opening
-        return [State(t=t[j], x=x[j], v=v[j], hinge_theta_bar={sheet: rows[j] for sheet, rows in theta.items()},
-                      effector_pose={n: poses[n][j] for n in names},
+        # the rows as lists of views, made once (an array's iteration), not indexed copy by copy
+        xs, vs, forces = list(x), list(v), [None] * len(copies) if force is None else list(force)
+        theta_rows = [(sheet, list(rows)) for sheet, rows in theta.items()]
+        pose_rows = [(n, list(poses[n])) for n in names]
+        return [State(t=t[j], x=xs[j], v=vs[j], hinge_theta_bar={sheet: rows[j] for sheet, rows in theta_rows},
+                      effector_pose={n: rows[j] for n, rows in pose_rows},
                       gripper_opening={n: openings[f"{n}#{i}"] for n in names if f"{n}#{i}" in openings},
-                      contact_force=None if force is None else force[j], step_index=step_index[j])
+                      contact_force=forces[j], step_index=step_index[j])
                 for j, i in enumerate(copies.tolist())]
 
     @cached_property
@@ -165,19 +170,33 @@ class StackedScene:
         return blocks
 
     def _copy_rows(self, copies: np.ndarray):
-        """A function taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)`` array as a new
-        ``(k, n, 3)`` array: by whole blocks of rows (:attr:`_blocks`: each body's copies stacked one after another)
-        where the index has that layout, else by a gather of :attr:`index`'s rows; the same values."""
+        """A function ``gather(a, minus=None)`` taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)``
+        array as a new ``(k, n, 3)`` array, less ``minus[j]`` (``(k, 3)``) in copy ``j``'s rows where given: by whole
+        blocks of rows (:attr:`_blocks`: each body's copies stacked one after another; no gather where ``copies`` are
+        all of them in order) where the index has that layout, else by a gather of :attr:`index`'s rows; the same
+        values."""
         shape = (len(copies), self.vertex_count, 3)
         blocks = self._blocks
         if blocks is None:
             idx = self.index[copies].reshape(-1)
-            return lambda a: np.take(a, idx, axis=0).reshape(shape)
 
-        def gather(a: np.ndarray) -> np.ndarray:
+            def taken(a: np.ndarray, minus: np.ndarray | None = None) -> np.ndarray:
+                out = np.take(a, idx, axis=0).reshape(shape)
+                if minus is not None:
+                    out -= minus[:, None, :]
+                return out
+            return taken
+        every = len(copies) == self.copies and bool(np.all(copies == np.arange(self.copies)))
+
+        def gather(a: np.ndarray, minus: np.ndarray | None = None) -> np.ndarray:
             out = np.empty(shape, dtype=a.dtype)
             for lo, hi, start in blocks:
-                out[:, lo:hi] = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)[copies]
+                rows = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)
+                rows = rows if every else rows[copies]
+                if minus is None:
+                    out[:, lo:hi] = rows
+                else:
+                    np.subtract(rows, minus[:, None, :], out=out[:, lo:hi])
             return out
         return gather
 
