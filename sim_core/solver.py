@@ -759,6 +759,10 @@ class NewtonSolver:
         return SimulationDivergedError(f"step {state.step_index} (t = {state.t:.6g} s): {what}",
                                        step_index=state.step_index, t=state.t)
 
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """:func:`~sim_core.step_terms.contact_force` of the step's contact ``terms`` at its result ``x``."""
+        return contact_force(x, terms)
+
     def _finish_step(self, step: StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
                      factorization: LinearSolver | SymmetricSolver, state_out: State, info: StepInfo) -> None:
         """Write the step's outputs at the accepted positions ``x`` ``(n, 3)`` into ``state_out``, its
@@ -776,21 +780,19 @@ class NewtonSolver:
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed,
-            x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
-            gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
-            terms=step.fixed_terms + contact_terms,
+            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed, x_target=step.x_target,
+            effector_pose={k: np.array(v) for k, v in step.poses.items()}, gripper_opening=dict(step.openings),
+            limited_effectors=list(info.limited_effectors), terms=step.fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
             free_dofs=step.free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
         )
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
-        state_out.v = np.subtract(x, x_n)
-        state_out.v /= dt  # ((x - x_n) / dt in place: no second array)
+        state_out.v = np.true_divide(v := np.subtract(x, x_n), dt, out=v)  # (x - x_n) / dt, one new array
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
-        state_out.contact_force = contact_force(
+        state_out.contact_force = self._contact_force(
             x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)

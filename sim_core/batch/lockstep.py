@@ -85,7 +85,7 @@ from sim_core.batch.stacked import StackedScene
 from sim_core.batch.subset_projection import projected_subset_blocks
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, SubsetHessian, declares
+from sim_core.energies.base import DeviceGradient, DeviceHessian, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -182,6 +182,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self._copy_sums = None  # the line search's per-copy sums on the device (CopySums, made at the first use)
         self.last_stacked_info: StepInfo | None = None
+        self._finish_iterate: Iterate | None = None  # the step's result while _finish_step runs
 
     def _new_elastic_terms(self):
         """:meth:`NewtonSolver._new_elastic_terms`; on a Taichi backend the elastic terms' plastic update is one
@@ -394,9 +395,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         elastic = self.elastic
         if isinstance(elastic, StackedElasticTerms) and x.device is not None:  # the plastic update reads x there
             elastic.device_positions = (x.host, x.device)
+        self._finish_iterate = x  # the contact force summed where x is (_contact_force)
         try:
             self._finish_step(step, x.host, H, projection, factorization, state_out, info)
         finally:
+            self._finish_iterate = None
             if isinstance(elastic, StackedElasticTerms):
                 elastic.device_positions = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
@@ -411,6 +414,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         info.iterations = max((st.iterations for st in infos if st is not None), default=0)
         self.last_stacked_info = info
         return infos
+
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and every term
+        declaring :class:`~sim_core.energies.base.DeviceGradient`, summed there and downloaded once
+        (:meth:`~sim_core.batch.device_iterates.DeviceIterates.contact_force`: the same values)."""
+        it = self._finish_iterate
+        if it is None or it.device is None or it.host is not x or not all(declares(p, DeviceGradient) for p in terms):
+            return super()._contact_force(x, terms)
+        return self._vectors.contact_force(terms, it)
 
     @property
     def _vectors(self):

@@ -225,15 +225,19 @@ class StackedScene:
         if len(controls) != self.copies:
             raise ConfigError(f"stacked scene: {len(controls)} controls for {self.copies} copies")
         out = Control()
+        keys, targets, copies = [], [], []
         for i, c in enumerate(controls):
             if c is None:
                 continue
             if c.position_guess is not None:
                 raise ConfigError(f"batch copy {i}: a lockstep batch takes no Control.position_guess")
             for name, target in c.effector_pose_target.items():
-                out.effector_pose_target[f"{name}#{i}"] = _moved_pose(np.asarray(target, dtype=float), self.offset[i])
+                keys.append(f"{name}#{i}")
+                targets.append(target)
+                copies.append(i)
             for name, opening in c.gripper_target.items():
                 out.gripper_target[f"{name}#{i}"] = float(opening)
+        out.effector_pose_target.update(zip(keys, _moved_poses(targets, self.offset[copies])))
         return out
 
     def copy_of_effector(self, stacked_name: str) -> tuple[int, str]:
@@ -247,6 +251,19 @@ def _moved_pose(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     out = np.array(pose, dtype=float)
     out[:3] += offset
     return out
+
+
+def _moved_poses(poses: list, offsets: np.ndarray) -> list[np.ndarray]:
+    """:func:`_moved_pose` of each pose ``poses[j]`` by ``offsets[j]`` (``(k, 3)``, m): as the rows of one new
+    ``(k, 7)`` array where every pose has 7 numbers, else pose by pose."""
+    try:
+        rows = np.array(poses, dtype=float)
+    except ValueError:  # poses of different shapes
+        rows = None
+    if rows is None or rows.shape != (len(poses), 7):
+        return [_moved_pose(np.asarray(p, dtype=float), o) for p, o in zip(poses, offsets)]
+    rows[:, :3] += offsets
+    return list(rows)
 
 
 def _material_key(model: Model) -> tuple:
