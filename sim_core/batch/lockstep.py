@@ -416,11 +416,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         return infos
 
     def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
-        """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and every term
-        declaring :class:`~sim_core.energies.base.DeviceGradient`, summed there and downloaded once
-        (:meth:`~sim_core.batch.device_iterates.DeviceIterates.contact_force`: the same values)."""
+        """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and a first term
+        declaring :class:`~sim_core.energies.base.DeviceGradient`, the leading such terms summed there and downloaded
+        once (:meth:`~sim_core.batch.device_iterates.DeviceIterates.contact_force`: the same values)."""
         it = self._finish_iterate
-        if it is None or it.device is None or it.host is not x or not all(declares(p, DeviceGradient) for p in terms):
+        if it is None or it.device is None or it.host is not x or not terms or not declares(terms[0], DeviceGradient):
             return super()._contact_force(x, terms)
         return self._vectors.contact_force(terms, it)
 
