@@ -149,7 +149,8 @@ class StackedBoundary:
                 limited += [k for k, hit in zip(np.asarray(keys)[aimed], was_limited) if hit]
             opening = np.array([float(control.gripper_target.get(k, state.gripper_opening.get(k, ref.initial_opening)))
                                 for k in keys])
-            local = np.broadcast_to(np.asarray(ref.local_points, dtype=float), (self.copies,) + np.shape(ref.local_points))
+            points = np.asarray(ref.local_points, dtype=float)
+            local = np.broadcast_to(points, (self.copies,) + points.shape)
             if ref.finger_sign is not None:
                 local = local + (0.5 * (opening - ref.initial_opening))[:, None, None] * np.outer(
                     ref.finger_sign, ref.finger_axis)[None]
