@@ -137,7 +137,7 @@ class NewtonSolver:
         self._sleep = SleepSet(self.model, self.config.sleep_velocity)
         self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
         self._last_contact_terms: list = []  # the contact terms at the last step's result
-        self._free_dofs = FreeDofs()  # the step's free DoFs and fixed rows, kept for a read-only boundary mask
+        self._free_dofs = FreeDofs()  # the step's free and fixed DoFs, kept for a read-only boundary mask
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -454,12 +454,12 @@ class NewtonSolver:
         asleep = frozenset(self._sleep.bodies)
         if asleep:
             fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
-        (free, fixed_rows), x_n = self._free_dofs(fixed), state_in.x
+        (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
-        x[fixed_rows] = np.take(x_target, fixed_rows, axis=0)  # the fixed vertices at their targets (their rows only)
+        np.copyto(x, x_target, where=fixed_dofs)  # the fixed vertices at their targets (one pass, no gather)
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
@@ -789,7 +789,7 @@ class NewtonSolver:
         state_out.t = state_in.t + dt
         state_out.step_index = state_in.step_index + 1
         state_out.x = x
-        state_out.v = np.true_divide(v := np.subtract(x, x_n), dt, out=v)  # (x - x_n) / dt, one new array
+        state_out.v = (x - x_n) / dt
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
         state_out.contact_force = self._contact_force(

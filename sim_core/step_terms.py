@@ -73,21 +73,23 @@ class StepTerms:
 
 
 class FreeDofs:
-    """The free DoFs and fixed rows of a step's fixed-vertex mask, kept while the boundary gives the same read-only
-    mask object from step to step (a stacked scene's, :class:`~sim_core.batch.effectors.StackedBoundary`): the
-    step's free mask is then the same object too (the solver's caches keyed by it hold)."""
+    """The free DoFs of a step's fixed-vertex mask and that mask by DoF, kept while the boundary gives the same
+    read-only mask object from step to step (a stacked scene's, :class:`~sim_core.batch.effectors.StackedBoundary`):
+    the step's free mask is then the same object too (the solver's caches keyed by it hold)."""
 
     def __init__(self) -> None:
-        self._kept: tuple | None = None  # (fixed mask, free DoFs, fixed rows)
+        self._kept: tuple | None = None  # (fixed mask, free DoFs, fixed DoFs)
 
     def __call__(self, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(free, rows)`` of ``fixed`` ``(n,)`` bool: the free DoFs ``(3 n,)`` bool (read-only) and the fixed
-        vertices ``(f,)`` int64; kept when ``fixed`` is read-only (made anew for a writeable mask)."""
+        """``(free, fixed_dofs)`` of ``fixed`` ``(n,)`` bool: the free DoFs ``(3 n,)`` bool and the fixed ones as an
+        ``(n, 3)`` bool mask (``np.copyto``'s ``where`` without broadcasting: a tenth of the time of a ``(n, 1)``
+        mask's), both read-only; kept when ``fixed`` is read-only (made anew for a writeable mask)."""
         kept = self._kept
         if kept is None or kept[0] is not fixed:
             free = np.repeat(~fixed, 3)
-            free.flags.writeable = False
-            kept = (fixed, free, np.flatnonzero(fixed))
+            fixed_dofs = ~free.reshape(-1, 3)
+            free.flags.writeable = fixed_dofs.flags.writeable = False
+            kept = (fixed, free, fixed_dofs)
             self._kept = None if fixed.flags.writeable else kept
         return kept[1], kept[2]
 

@@ -124,8 +124,8 @@ class StackedScene:
 
     def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray) -> list[State]:
         """:meth:`copy_state` of each copy in ``copies`` (int ``(k,)``) with its own time ``t[j]`` (s) and step
-        index ``step_index[j]``: positions (less the copies' offsets, in the same pass), velocities and contact forces
-        gathered from the stacked arrays at once (each state's arrays are views of one ``(k, n, 3)`` array a
+        index ``step_index[j]``: positions (less the copies' offsets), velocities and contact forces gathered from the
+        stacked arrays at once (each state's arrays are views of one ``(k, n, 3)`` array a
         quantity)."""
         copies = np.asarray(copies, dtype=np.int64)
         gather = self._copy_rows(copies)
@@ -173,30 +173,25 @@ class StackedScene:
         """A function ``gather(a, minus=None)`` taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)``
         array as a new ``(k, n, 3)`` array, less ``minus[j]`` (``(k, 3)``) in copy ``j``'s rows where given: by whole
         blocks of rows (:attr:`_blocks`: each body's copies stacked one after another; no gather where ``copies`` are
-        all of them in order) where the index has that layout, else by a gather of :attr:`index`'s rows; the same
+        all of them in order) where the index has that layout, else by a gather of :attr:`index`'s rows; ``minus``
+        subtracted a coordinate at a time (inner loops over the vertices, not over three numbers); the same
         values."""
         shape = (len(copies), self.vertex_count, 3)
         blocks = self._blocks
-        if blocks is None:
-            idx = self.index[copies].reshape(-1)
-
-            def taken(a: np.ndarray, minus: np.ndarray | None = None) -> np.ndarray:
-                out = np.take(a, idx, axis=0).reshape(shape)
-                if minus is not None:
-                    out -= minus[:, None, :]
-                return out
-            return taken
+        idx = self.index[copies].reshape(-1) if blocks is None else None
         every = len(copies) == self.copies and bool(np.all(copies == np.arange(self.copies)))
 
         def gather(a: np.ndarray, minus: np.ndarray | None = None) -> np.ndarray:
-            out = np.empty(shape, dtype=a.dtype)
-            for lo, hi, start in blocks:
-                rows = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)
-                rows = rows if every else rows[copies]
-                if minus is None:
-                    out[:, lo:hi] = rows
-                else:
-                    np.subtract(rows, minus[:, None, :], out=out[:, lo:hi])
+            if blocks is None:
+                out = np.take(a, idx, axis=0).reshape(shape)
+            else:
+                out = np.empty(shape, dtype=a.dtype)
+                for lo, hi, start in blocks:
+                    rows = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)
+                    out[:, lo:hi] = rows if every else rows[copies]
+            if minus is not None:
+                for c in range(3):
+                    out[:, :, c] -= minus[:, c, None]
             return out
         return gather
 
