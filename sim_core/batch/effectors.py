@@ -3,7 +3,7 @@ driven vertex positions, vectorised over the ``B`` copies of each scene effector
 
 :meth:`sim_core.solver.NewtonSolver.boundary` walks the stacked model's effectors one by one (``B`` per scene
 effector, ``<name>#<copy>``): 130 ms a step at 1024 Forming copies on the H200 host (docs/benchmarks_log.md,
-session 40, 28lock). :func:`stacked_boundary` gives the same Dirichlet data with one NumPy expression per
+session 40, 28lock). :class:`StackedBoundary` gives the same Dirichlet data with one NumPy expression per
 quantity over the copies: the pose limit of :func:`sim_core.effector.limit_pose_step` (translation clipped to
 ``max_translation_per_step``; the rotation ``q_t q_c^-1`` as a rotation vector clipped to
 ``max_rotation_per_step``) and the driven positions of :func:`sim_core.effector.driven_positions`
@@ -159,19 +159,3 @@ class StackedBoundary:
             poses.update(zip(keys, pose))
             openings.update(zip(keys, opening.tolist()))
         return self.fixed(), x_target, poses, openings, limited
-
-
-def stacked_boundary(model, copies: int, names: list[str], state: State,
-                     control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
-    """:meth:`StackedBoundary.__call__` of a :class:`StackedBoundary` made for this call (its fixed mask a new,
-    writeable array).
-
-    Returns:
-        ``(fixed (N,) bool, x_target (N, 3) m, poses, openings, limited_effector_names)`` as
-        :meth:`~sim_core.solver.NewtonSolver.boundary` returns them.
-
-    Raises:
-        ConfigError: a copy's target pose is not finite or its quaternion not of unit norm.
-    """
-    fixed, *rest = StackedBoundary(model, copies, names)(state, control)
-    return (fixed.copy(), *rest)
