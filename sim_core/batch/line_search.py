@@ -35,7 +35,9 @@ class CopyLineSearch:
         it (:meth:`_armijo_groups`).
 
         ``e0``, the energy at ``x`` (per copy, or the stacked sum), is the one measured there when ``x`` was the last
-        line search's result with these ``contact_terms`` (no contact side released since).
+        line search's result with these ``contact_terms`` (no contact side released since). A trial point's contact
+        potentials are asked for with ``x`` as the segment's start, so that a candidate search it needs also covers
+        the first halving where one search can (:meth:`~sim_core.contact_set.ContactSet._search_position`).
 
         Returns:
             ``(x_new, (x_new, g_new, g_max), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate`
