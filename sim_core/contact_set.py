@@ -240,12 +240,15 @@ class ContactSet:
             high, low, largest = self._displacement_bounds(x_search, x_device)
             answer = bool(largest <= 0.5 * self.margin) or self._closing_holds(high, low)
         else:
-            moved = x - x_search
-            # max |moved| (NaN: False), no |moved| array; else the general test
-            answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
+            answer = self._moved_holds(x - x_search)
         if _frozen(x_search) and _frozen(x):
             self._covered = (x_search, x, answer)
         return answer
+
+    def _moved_holds(self, moved: np.ndarray) -> bool:
+        """:meth:`covers`' test on the host from the displacements ``moved`` ``(n, 3)`` (m) since the search: no
+        ``|moved|`` above ``margin / 2`` (no ``|moved|`` array), else :meth:`_gaps_hold` (NaN: False)."""
+        return bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
 
     def _gaps_hold(self, moved: np.ndarray) -> bool:
         """:meth:`covers`' general test: ``c_k(A, B) <= margin`` for every axis and allowed body pair,
@@ -389,15 +392,17 @@ class ContactSet:
         """
         x = np.asarray(x, dtype=float)
         ahead = self._ahead_of(x)
-        if segment_start is None or segment_start.shape != x.shape:
+        if segment_start is None or segment_start.shape != x.shape or x.size == 0:
             return ahead
-        half = np.add(segment_start, x)
+        # h and its displacement from the search in two kept blocks of the pool (fresh memory costs page faults)
+        half = self._pool.empty("segment_point", x.shape, np.float64)
+        np.add(segment_start, x, out=half)
         half *= 0.5
-        if self.covers(ahead, half):
+        if self._moved_holds(np.subtract(half, ahead, out=self._pool.empty("segment_moved", x.shape, np.float64))):
             return ahead
-        three_quarters = np.add(half, x)
-        three_quarters *= 0.5
-        between = self._ahead_of(three_quarters)
+        half += x  # the point 3/4 of the way, in the same block
+        half *= 0.5
+        between = self._ahead_of(half)
         return between if self.covers(between, x) else ahead
 
     def _ahead_of(self, x: np.ndarray) -> np.ndarray:
