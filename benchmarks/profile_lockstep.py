@@ -376,7 +376,6 @@ _ENGINE = "engine: the rest (output state, per-copy write-back, StepTotals)"
 def _phase_specs(backend: str) -> list:
     """``(owner, name, label, parents)`` of :class:`_StepPhases`: a lockstep step's set-up, Newton iterations and
     finish, the engine's and the batch's work around the solver, each with its larger parts."""
-    from sim_core import solver
     from sim_core.batch import lockstep
     from sim_core.batch.simulation import BatchedSimulation
     from sim_core.batch.stacked import StackedScene
@@ -402,7 +401,8 @@ def _phase_specs(backend: str) -> list:
              (NewtonSolver, "_finish_step", finish, {_NEWTON}),
              (ContactSet, "potentials", "finish: ContactSet.potentials", {finish}),
              (NewtonSolver, "_energy", "finish: the energy", {finish}),
-             (solver, "contact_force", "finish: contact force", {finish}),
+             (NewtonSolver, "_contact_force", "finish: contact force", {finish}),
+             (lockstep.LockstepSolver, "_contact_force", "finish: contact force", {finish}),
              (ContactSet, "end_step", "finish: ContactSet.end_step", {finish})]
     specs += [(cls, "plastic_update", "finish: plastic update", {finish})
               for cls in (ElasticTerms, StackedElasticTerms)]

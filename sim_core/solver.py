@@ -49,7 +49,7 @@ from sim_core.solver_config import SolverConfig
 from sim_core.sleeping import SleepSet, Woken
 from sim_core.state import State
 from sim_core.newton_stop import accept, largest_move, line_search_failure_acceptance, rate_stops, stop_reason
-from sim_core.step_terms import StepTerms, contact_force
+from sim_core.step_terms import FreeDofs, StepTerms, contact_force
 from sim_core.step_info import RELAXED_STOPS, STRICT_STOPS, StepInfo, StepRecord, StepTotals
 from sim_core.workspace import Workspace
 
@@ -137,6 +137,7 @@ class NewtonSolver:
         self._sleep = SleepSet(self.model, self.config.sleep_velocity)
         self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
         self._last_contact_terms: list = []  # the contact terms at the last step's result
+        self._free_dofs = FreeDofs()  # the step's free and fixed DoFs, kept for a read-only boundary mask
 
     def notify_model_changed(self) -> None:
         """Rebuild everything that depends on material parameters (call after ``set_parameter``)."""
@@ -452,13 +453,13 @@ class NewtonSolver:
         fixed, x_target, poses, openings, info.limited_effectors = self.boundary(state_in, control)
         asleep = frozenset(self._sleep.bodies)
         if asleep:
-            fixed |= self._sleep.mask  # held at their positions (x_target is state_in.x there)
-        free, x_n = np.repeat(~fixed, 3), state_in.x
+            fixed = fixed | self._sleep.mask  # held at their positions (x_target is state_in.x there)
+        (free, fixed_dofs), x_n = self._free_dofs(fixed), state_in.x
         x = x_n.copy() if guess is None else guess.copy()
         if cfg.carried_start and guess is None:  # the effectors' solids moved with them (sim_core.carried_start)
             carry_driven_bodies(model, x_n, state_in.v, dt, state_in.effector_pose, state_in.gripper_opening, poses,
                                 openings, fixed, x_target, x)
-        np.copyto(x, x_target, where=fixed[:, None])  # the fixed vertices at their targets (one pass, no gather)
+        np.copyto(x, x_target, where=fixed_dofs)  # the fixed vertices at their targets (one pass, no gather)
         x_hat, mass = x_n + dt * state_in.v, self.vertex_mass
         gravity_mass = mass if model.vertex_gravity_scale is None else mass * model.vertex_gravity_scale
         fixed_terms = [InertiaPotential(mass, x_hat, dt), GravityPotential(gravity_mass, model.gravity)]
@@ -758,6 +759,10 @@ class NewtonSolver:
         return SimulationDivergedError(f"step {state.step_index} (t = {state.t:.6g} s): {what}",
                                        step_index=state.step_index, t=state.t)
 
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """:func:`~sim_core.step_terms.contact_force` of the step's contact ``terms`` at its result ``x``."""
+        return contact_force(x, terms)
+
     def _finish_step(self, step: StepTerms, x: np.ndarray, H: sp.csr_matrix, projection: str,
                      factorization: LinearSolver | SymmetricSolver, state_out: State, info: StepInfo) -> None:
         """Write the step's outputs at the accepted positions ``x`` ``(n, 3)`` into ``state_out``, its
@@ -775,10 +780,9 @@ class NewtonSolver:
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))
         self.last_record = StepRecord(
-            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed,
-            x_target=step.x_target, effector_pose={k: np.array(v) for k, v in step.poses.items()},
-            gripper_opening=dict(step.openings), limited_effectors=list(info.limited_effectors),
-            terms=step.fixed_terms + contact_terms,
+            dt=dt, x_prev=x_prev, v_prev=v_prev, x=x_kept, fixed=step.fixed, x_target=step.x_target,
+            effector_pose={k: np.array(v) for k, v in step.poses.items()}, gripper_opening=dict(step.openings),
+            limited_effectors=list(info.limited_effectors), terms=step.fixed_terms + contact_terms,
             hinge_theta_bar={k: np.array(v) for k, v in state_in.hinge_theta_bar.items()}, hessian_upper=H,
             free_dofs=step.free, hessian_exact=exact, asleep=self._sleep.names, expansion=self._full_from_upper,
         )
@@ -788,7 +792,7 @@ class NewtonSolver:
         state_out.v = (x - x_n) / dt
         state_out.effector_pose = {k: np.array(v) for k, v in step.poses.items()}
         state_out.gripper_opening = dict(step.openings)
-        state_out.contact_force = contact_force(
+        state_out.contact_force = self._contact_force(
             x, contact_terms + ([step.friction] if step.friction is not None else []) + step.cand_contact)
         state_out.contact_memory = self.contact.end_step(x, step.memory)
         state_out.hinge_theta_bar = self.elastic.plastic_update(x, state_in.hinge_theta_bar)

@@ -69,6 +69,23 @@ class DeviceIterates(CopyVectors):
         """``d`` with the copies in ``mask`` (bool ``(B,)``) set to ``-g``, in place; returns ``d``."""
         return self.copy_where(d, g, mask, scale=-1.0)
 
+    def contact_force(self, terms: list, x: Iterate) -> np.ndarray:
+        """Minus the sum of the ``terms``' gradients at ``x`` (N, a new host ``(N, 3)`` array): the gradients of the
+        leading terms that declare :class:`~sim_core.energies.base.DeviceGradient` added into one zeroed device array
+        in the terms' order, downloaded once and negated (``0 - g``) on the host, then the other terms' host gradients
+        subtracted in order. The values are :func:`~sim_core.step_terms.contact_force`'s bit for bit: the same
+        additions at each vertex in the same order, and ``((0 - a) - b) - c = 0 - ((a + b) + c)`` in IEEE arithmetic
+        (rounding is symmetric under negation, and neither side's partial sums are ever ``-0``)."""
+        lead = next((k for k, p in enumerate(terms) if not declares(p, DeviceGradient)), len(terms))
+        g = self.new()
+        for p in terms[:lead]:
+            p.add_gradient_on_device(x.host, x.device, g)
+        force = self.download(g)
+        np.subtract(0.0, force, out=force)
+        for p in terms[lead:]:
+            force -= p.gradient(x.host)
+        return force
+
     def gradient(self, terms: list, x: Iterate, fixed_dofs: np.ndarray, fresh_first: bool = False):
         """The sum of the ``terms``' gradients at ``x`` (J/m) as a new ``(N, 3)`` ndarray, zero at the flat DoFs
         ``fixed_dofs``: the host terms first, their dense gradients summed on the host and uploaded once as the

@@ -3,7 +3,7 @@ driven vertex positions, vectorised over the ``B`` copies of each scene effector
 
 :meth:`sim_core.solver.NewtonSolver.boundary` walks the stacked model's effectors one by one (``B`` per scene
 effector, ``<name>#<copy>``): 130 ms a step at 1024 Forming copies on the H200 host (docs/benchmarks_log.md,
-session 40, 28lock). :func:`stacked_boundary` gives the same Dirichlet data with one NumPy expression per
+session 40, 28lock). :class:`StackedBoundary` gives the same Dirichlet data with one NumPy expression per
 quantity over the copies: the pose limit of :func:`sim_core.effector.limit_pose_step` (translation clipped to
 ``max_translation_per_step``; the rotation ``q_t q_c^-1`` as a rotation vector clipped to
 ``max_rotation_per_step``) and the driven positions of :func:`sim_core.effector.driven_positions`
@@ -92,43 +92,70 @@ def limit_pose_steps(current: np.ndarray, target: np.ndarray, max_translation: f
     return np.concatenate([p_c + dp, q_new], axis=1), moved | turned
 
 
-def stacked_boundary(model, copies: int, names: list[str], state: State,
-                     control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
-    """:meth:`sim_core.solver.NewtonSolver.boundary` of a stacked model whose effectors are the scene's ``names``
-    per copy (``<name>#<copy>``, :mod:`sim_core.batch.stacked`), vectorised over the ``copies`` (module docstring).
-    A copy without a pose target keeps its pose.
+class StackedBoundary:
+    """:meth:`sim_core.solver.NewtonSolver.boundary` of a stacked model whose effectors are the scene's ``names`` per
+    copy (``<name>#<copy>``, :mod:`sim_core.batch.stacked`), vectorised over the ``copies`` (module docstring), with
+    what does not change between steps made once: each scene effector's stacked names and vertices, and the fixed
+    mask (the static one and every effector's vertices: the same read-only array at every call while the model's
+    ``vertex_fixed`` is unchanged). A copy without a pose target keeps its pose.
 
-    Returns:
-        ``(fixed (N,) bool, x_target (N, 3) m, poses, openings, limited_effector_names)`` as
-        :meth:`~sim_core.solver.NewtonSolver.boundary` returns them.
-
-    Raises:
-        ConfigError: a copy's target pose is not finite or its quaternion not of unit norm.
+    Args:
+        model: the stacked model.
+        copies: the number of copies ``B``.
+        names: the scene's effector names.
     """
-    fixed = model.vertex_fixed.copy()
-    x_target = state.x.copy()
-    poses, openings, limited = {}, {}, []
-    for name in names:
-        keys = [f"{name}#{i}" for i in range(copies)]
-        ref = model.effectors[keys[0]]
-        pose = np.array([state.effector_pose[k] for k in keys], dtype=float)
-        aimed = np.array([k in control.effector_pose_target for k in keys])
-        if aimed.any():
-            targets = np.array([control.effector_pose_target[k] for k in np.asarray(keys)[aimed]], dtype=float)
-            pose[aimed], was_limited = limit_pose_steps(pose[aimed], targets.reshape(-1, 7),
-                                                        ref.max_translation_per_step, ref.max_rotation_per_step)
-            limited += [k for k, hit in zip(np.asarray(keys)[aimed], was_limited) if hit]
-        opening = np.array([float(control.gripper_target.get(k, state.gripper_opening.get(k, ref.initial_opening)))
-                            for k in keys])
-        local = np.broadcast_to(np.asarray(ref.local_points, dtype=float), (copies,) + np.shape(ref.local_points))
-        if ref.finger_sign is not None:
-            local = local + (0.5 * (opening - ref.initial_opening))[:, None, None] * np.outer(
-                ref.finger_sign, ref.finger_axis)[None]
-        driven = np.matmul(local, np.swapaxes(quat_to_matrix(pose[:, 3:7]), 1, 2)) + pose[:, None, :3]
-        vertices = np.stack([model.effectors[k].vertices for k in keys])
-        fixed[vertices] = True
-        x_target[vertices.ravel()] = driven.reshape(-1, 3)
-        for k, p, o in zip(keys, pose, opening):
-            poses[k] = p
-            openings[k] = float(o)
-    return fixed, x_target, poses, openings, limited
+
+    def __init__(self, model, copies: int, names: list[str]) -> None:
+        self.model, self.copies = model, copies
+        self._effectors = []  # per scene effector: (stacked names, copy 0's effector, their vertices (B k,))
+        for name in names:
+            keys = [f"{name}#{i}" for i in range(copies)]
+            vertices = np.stack([model.effectors[k].vertices for k in keys]).ravel()
+            self._effectors.append((keys, model.effectors[keys[0]], vertices))
+        self._static: np.ndarray | None = None  # the model's vertex_fixed the mask was made of
+        self._fixed: np.ndarray | None = None
+
+    def fixed(self) -> np.ndarray:
+        """The fixed-vertex mask ``(N,)`` bool (read-only): the model's ``vertex_fixed`` and every effector's
+        vertices; the same array object while ``vertex_fixed`` holds the same values."""
+        static = self.model.vertex_fixed
+        if self._fixed is None or not np.array_equal(static, self._static):
+            fixed = static.copy()
+            for _, _, vertices in self._effectors:
+                fixed[vertices] = True
+            fixed.flags.writeable = False
+            self._static, self._fixed = static.copy(), fixed
+        return self._fixed
+
+    def __call__(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
+        """The Dirichlet data at ``state`` under ``control``.
+
+        Returns:
+            ``(fixed (N,) bool (read-only, :meth:`fixed`), x_target (N, 3) m, poses, openings,
+            limited_effector_names)`` as :meth:`~sim_core.solver.NewtonSolver.boundary` returns them.
+
+        Raises:
+            ConfigError: a copy's target pose is not finite or its quaternion not of unit norm.
+        """
+        x_target = state.x.copy()
+        poses, openings, limited = {}, {}, []
+        for keys, ref, vertices in self._effectors:
+            pose = np.array([state.effector_pose[k] for k in keys], dtype=float)
+            aimed = np.array([k in control.effector_pose_target for k in keys])
+            if aimed.any():
+                targets = np.array([control.effector_pose_target[k] for k in np.asarray(keys)[aimed]], dtype=float)
+                pose[aimed], was_limited = limit_pose_steps(pose[aimed], targets.reshape(-1, 7),
+                                                            ref.max_translation_per_step, ref.max_rotation_per_step)
+                limited += [k for k, hit in zip(np.asarray(keys)[aimed], was_limited) if hit]
+            opening = np.array([float(control.gripper_target.get(k, state.gripper_opening.get(k, ref.initial_opening)))
+                                for k in keys])
+            points = np.asarray(ref.local_points, dtype=float)
+            local = np.broadcast_to(points, (self.copies,) + points.shape)
+            if ref.finger_sign is not None:
+                local = local + (0.5 * (opening - ref.initial_opening))[:, None, None] * np.outer(
+                    ref.finger_sign, ref.finger_axis)[None]
+            driven = np.matmul(local, np.swapaxes(quat_to_matrix(pose[:, 3:7]), 1, 2)) + pose[:, None, :3]
+            x_target[vertices] = driven.reshape(-1, 3)
+            poses.update(zip(keys, pose))
+            openings.update(zip(keys, opening.tolist()))
+        return self.fixed(), x_target, poses, openings, limited

@@ -73,7 +73,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim_core.batch.effectors import stacked_boundary
+from sim_core.batch.effectors import StackedBoundary
 from sim_core.batch.heap import keep_freed_memory
 from sim_core.batch.iterates import HostIterates, Iterate, frozen
 from sim_core.batch.line_search import CopyLineSearch
@@ -85,7 +85,7 @@ from sim_core.batch.stacked import StackedScene
 from sim_core.batch.subset_projection import projected_subset_blocks
 from sim_core.backend import uses_taichi
 from sim_core.control import Control
-from sim_core.energies.base import DeviceHessian, SubsetHessian, declares
+from sim_core.energies.base import DeviceGradient, DeviceHessian, SubsetHessian, declares
 from sim_core.errors import ConfigError
 from sim_core.newton_stop import accept, stop_reason
 from sim_core.solver import NewtonSolver
@@ -168,6 +168,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
                                                        bands=sheet_band_dofs(scene), precision=config.cg_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
+        self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
         # 68 ms a term at B = 256); None: the terms' own projection
         self.subset_projection = "jacobi" if self.backend == "taichi-cuda" else None
@@ -181,6 +182,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._trial_energy: tuple | None = None  # (x, contact terms, J): the last trial point's measured energy
         self._copy_sums = None  # the line search's per-copy sums on the device (CopySums, made at the first use)
         self.last_stacked_info: StepInfo | None = None
+        self._finish_iterate: Iterate | None = None  # the step's result while _finish_step runs
 
     def _new_elastic_terms(self):
         """:meth:`NewtonSolver._new_elastic_terms`; on a Taichi backend the elastic terms' plastic update is one
@@ -208,12 +210,12 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
 
     def boundary(self, state: State, control: Control) -> tuple[np.ndarray, np.ndarray, dict, dict, list[str]]:
         """:meth:`NewtonSolver.boundary` vectorised over the copies
-        (:func:`~sim_core.batch.effectors.stacked_boundary`), with the vertices of the :attr:`held` copies fixed at
+        (:class:`~sim_core.batch.effectors.StackedBoundary`), with the vertices of the :attr:`held` copies fixed at
         their positions in ``state``."""
-        fixed, x_target, poses, openings, limited = stacked_boundary(self.model, self.scene.copies,
-                                                                     self.scene.effector_names, state, control)
+        fixed, x_target, poses, openings, limited = self._boundary(state, control)
         if self.held.any():
             v = self.scene.index[self.held].ravel()
+            fixed = fixed.copy()  # (the boundary's own mask is read-only, the same array every step)
             fixed[v] = True
             x_target[v] = state.x[v]
         return fixed, x_target, poses, openings, limited
@@ -393,9 +395,11 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         elastic = self.elastic
         if isinstance(elastic, StackedElasticTerms) and x.device is not None:  # the plastic update reads x there
             elastic.device_positions = (x.host, x.device)
+        self._finish_iterate = x  # the contact force summed where x is (_contact_force)
         try:
             self._finish_step(step, x.host, H, projection, factorization, state_out, info)
         finally:
+            self._finish_iterate = None
             if isinstance(elastic, StackedElasticTerms):
                 elastic.device_positions = None
         frozen(state_out.v)  # a new array of the step's: the next step's record keeps it without a copy
@@ -410,6 +414,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         info.iterations = max((st.iterations for st in infos if st is not None), default=0)
         self.last_stacked_info = info
         return infos
+
+    def _contact_force(self, x: np.ndarray, terms: list) -> np.ndarray:
+        """:meth:`NewtonSolver._contact_force`; with the step's result on the device (the batched CG) and a first term
+        declaring :class:`~sim_core.energies.base.DeviceGradient`, the leading such terms summed there and downloaded
+        once (:meth:`~sim_core.batch.device_iterates.DeviceIterates.contact_force`: the same values)."""
+        it = self._finish_iterate
+        if it is None or it.device is None or it.host is not x or not terms or not declares(terms[0], DeviceGradient):
+            return super()._contact_force(x, terms)
+        return self._vectors.contact_force(terms, it)
 
     @property
     def _vectors(self):

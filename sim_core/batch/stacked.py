@@ -124,26 +124,31 @@ class StackedScene:
 
     def copy_states(self, stacked: State, copies: np.ndarray, t: np.ndarray, step_index: np.ndarray) -> list[State]:
         """:meth:`copy_state` of each copy in ``copies`` (int ``(k,)``) with its own time ``t[j]`` (s) and step
-        index ``step_index[j]``: positions, velocities and contact forces gathered from the stacked arrays at
-        once (each state's arrays are views of one ``(k, n, 3)`` array a quantity)."""
+        index ``step_index[j]``: positions (less the copies' offsets), velocities and contact forces gathered from the
+        stacked arrays at once (each state's arrays are views of one ``(k, n, 3)`` array a
+        quantity)."""
         copies = np.asarray(copies, dtype=np.int64)
         gather = self._copy_rows(copies)
-        x = gather(stacked.x)
-        x -= self.offset[copies][:, None, :]
+        offsets = self.offset[copies]
+        x = gather(stacked.x, offsets)
         v = gather(stacked.v)
         force = None if stacked.contact_force is None else gather(stacked.contact_force)
         # the effectors' poses translated back, one (k, 7) array an effector (its rows the copies' poses)
         poses = {n: np.array([stacked.effector_pose[f"{n}#{i}"] for i in copies], dtype=float).reshape(len(copies), 7)
                  for n in self.effector_names}
         for pose in poses.values():
-            pose[:, :3] -= self.offset[copies]
+            pose[:, :3] -= offsets
         theta = self._copy_rest_angles(stacked.hinge_theta_bar, copies)
         t, step_index = np.asarray(t, dtype=float).tolist(), np.asarray(step_index).astype(np.int64).tolist()
         names, openings = self.effector_names, stacked.gripper_opening
-        return [State(t=t[j], x=x[j], v=v[j], hinge_theta_bar={sheet: rows[j] for sheet, rows in theta.items()},
-                      effector_pose={n: poses[n][j] for n in names},
+        # the rows as lists of views, made once (an array's iteration), not indexed copy by copy
+        xs, vs, forces = list(x), list(v), [None] * len(copies) if force is None else list(force)
+        theta_rows = [(sheet, list(rows)) for sheet, rows in theta.items()]
+        pose_rows = [(n, list(poses[n])) for n in names]
+        return [State(t=t[j], x=xs[j], v=vs[j], hinge_theta_bar={sheet: rows[j] for sheet, rows in theta_rows},
+                      effector_pose={n: rows[j] for n, rows in pose_rows},
                       gripper_opening={n: openings[f"{n}#{i}"] for n in names if f"{n}#{i}" in openings},
-                      contact_force=None if force is None else force[j], step_index=step_index[j])
+                      contact_force=forces[j], step_index=step_index[j])
                 for j, i in enumerate(copies.tolist())]
 
     @cached_property
@@ -165,19 +170,28 @@ class StackedScene:
         return blocks
 
     def _copy_rows(self, copies: np.ndarray):
-        """A function taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)`` array as a new
-        ``(k, n, 3)`` array: by whole blocks of rows (:attr:`_blocks`: each body's copies stacked one after another)
-        where the index has that layout, else by a gather of :attr:`index`'s rows; the same values."""
+        """A function ``gather(a, minus=None)`` taking the rows of ``copies`` (int ``(k,)``) from a stacked ``(N, 3)``
+        array as a new ``(k, n, 3)`` array, less ``minus[j]`` (``(k, 3)``) in copy ``j``'s rows where given: by whole
+        blocks of rows (:attr:`_blocks`: each body's copies stacked one after another; no gather where ``copies`` are
+        all of them in order) where the index has that layout, else by a gather of :attr:`index`'s rows; ``minus``
+        subtracted a coordinate at a time (inner loops over the vertices, not over three numbers); the same
+        values."""
         shape = (len(copies), self.vertex_count, 3)
         blocks = self._blocks
-        if blocks is None:
-            idx = self.index[copies].reshape(-1)
-            return lambda a: np.take(a, idx, axis=0).reshape(shape)
+        idx = self.index[copies].reshape(-1) if blocks is None else None
+        every = len(copies) == self.copies and bool(np.all(copies == np.arange(self.copies)))
 
-        def gather(a: np.ndarray) -> np.ndarray:
-            out = np.empty(shape, dtype=a.dtype)
-            for lo, hi, start in blocks:
-                out[:, lo:hi] = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)[copies]
+        def gather(a: np.ndarray, minus: np.ndarray | None = None) -> np.ndarray:
+            if blocks is None:
+                out = np.take(a, idx, axis=0).reshape(shape)
+            else:
+                out = np.empty(shape, dtype=a.dtype)
+                for lo, hi, start in blocks:
+                    rows = a[start:start + self.copies * (hi - lo)].reshape(self.copies, hi - lo, 3)
+                    out[:, lo:hi] = rows if every else rows[copies]
+            if minus is not None:
+                for c in range(3):
+                    out[:, :, c] -= minus[:, c, None]
             return out
         return gather
 
@@ -206,15 +220,19 @@ class StackedScene:
         if len(controls) != self.copies:
             raise ConfigError(f"stacked scene: {len(controls)} controls for {self.copies} copies")
         out = Control()
+        keys, targets, copies = [], [], []
         for i, c in enumerate(controls):
             if c is None:
                 continue
             if c.position_guess is not None:
                 raise ConfigError(f"batch copy {i}: a lockstep batch takes no Control.position_guess")
             for name, target in c.effector_pose_target.items():
-                out.effector_pose_target[f"{name}#{i}"] = _moved_pose(np.asarray(target, dtype=float), self.offset[i])
+                keys.append(f"{name}#{i}")
+                targets.append(target)
+                copies.append(i)
             for name, opening in c.gripper_target.items():
                 out.gripper_target[f"{name}#{i}"] = float(opening)
+        out.effector_pose_target.update(zip(keys, _moved_poses(targets, self.offset[copies])))
         return out
 
     def copy_of_effector(self, stacked_name: str) -> tuple[int, str]:
@@ -228,6 +246,19 @@ def _moved_pose(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     out = np.array(pose, dtype=float)
     out[:3] += offset
     return out
+
+
+def _moved_poses(poses: list, offsets: np.ndarray) -> list[np.ndarray]:
+    """:func:`_moved_pose` of each pose ``poses[j]`` by ``offsets[j]`` (``(k, 3)``, m): as the rows of one new
+    ``(k, 7)`` array where every pose has 7 numbers, else pose by pose."""
+    try:
+        rows = np.array(poses, dtype=float)
+    except ValueError:  # poses of different shapes
+        rows = None
+    if rows is None or rows.shape != (len(poses), 7):
+        return [_moved_pose(np.asarray(p, dtype=float), o) for p, o in zip(poses, offsets)]
+    rows[:, :3] += offsets
+    return list(rows)
 
 
 def _material_key(model: Model) -> tuple:

@@ -35,6 +35,8 @@ Hessian equals theirs bit for bit (tests).
 # No ``from __future__ import annotations`` here: Taichi reads kernel and ti.func annotations as
 # objects (string annotations are rejected).
 
+import weakref
+
 import numpy as np
 
 from sim_core.collision.distance_bounds import MIN_SINE_SQUARED, RELATIVE_SLACK
@@ -336,7 +338,10 @@ class PairBatch:
 
     def __init__(self, vt, ee, layout: BatchLayout | None = None, sides: np.ndarray | None = None) -> None:
         require_backend("PairBatch")
-        self.vt, self.ee = vt, ee
+        # the potentials hold the batch (_batch) and it holds them weakly: no reference cycle, so that a step's
+        # batches, their device arrays and candidate layouts go when their potentials go (not at a full collection)
+        self._pots = (weakref.ref(vt), weakref.ref(ee))
+        self._parameters = [(vt.eps, vt.stiffness), (ee.eps, ee.stiffness)]  # (eps, stiffness) last read of each
         self.split = p = int(vt.vertices.shape[0])
         count = p + int(ee.vertices.shape[0])
         # the kernel's vertex indices are into ``own``, the vertices the pairs name
@@ -367,6 +372,25 @@ class PairBatch:
         self._vertices_every: np.ndarray | None = None  # the pairs' vertices, int32 (_every_vertex)
         self._found_rows = 8192  # rows of the active list read back in the first copy (_sorted_found)
         vt._batch = ee._batch = self
+
+    @property
+    def vt(self):
+        """The vertex-triangle potential, or None once it is gone (it holds the batch; the batch holds it weakly)."""
+        return self._pots[0]()
+
+    @property
+    def ee(self):
+        """The edge-edge potential, or None once it is gone."""
+        return self._pots[1]()
+
+    def _kernel_parameters(self) -> tuple[float, float, float, float]:
+        """``(eps_vt, eps_ee, k_vt, k_ee)`` for a launch: each potential's own ``eps`` and ``stiffness``, read now, or
+        the last read of one that is gone (its pairs' results are then not kept)."""
+        for kind, pot in enumerate((self.vt, self.ee)):
+            if pot is not None:
+                self._parameters[kind] = (pot.eps, pot.stiffness)
+        (eps_vt, k_vt), (eps_ee, k_ee) = self._parameters
+        return float(eps_vt), float(eps_ee), float(k_vt), float(k_ee)
 
     def _device_arguments(self, x: np.ndarray, key: tuple, m: int, derivatives: bool, x_device,
                           gradient_rows: int) -> tuple:
@@ -422,13 +446,13 @@ class PairBatch:
             self._evaluate_packed(x, key, derivatives)
             return
         pots = (self.vt, self.ee)
-        kept = [pot._kept(key, 0) for pot in pots]
+        kept = [None if pot is None else pot._kept(key, 0) for pot in pots]
         two_pass = current_arch() == "cuda" if self.two_pass is None else self.two_pass
         if derivatives and (kept[0] is None or kept[1] is None) and two_pass:
             # on the GPU every array argument crosses to the device and back at each launch: the
             # distances of all pairs first (no derivative arrays), then derivatives of the active ones
             self.evaluate(x, False, key, x_device)
-            kept = [pot._kept(key, 0) for pot in pots]
+            kept = [None if pot is None else pot._kept(key, 0) for pot in pots]
         if derivatives and kept[0] is not None and kept[1] is not None:
             rows = np.concatenate([kept[0].active, kept[1].active + self.split])
             parts = (slice(0, len(kept[0].active)), slice(len(kept[0].active), len(rows)))
@@ -454,7 +478,8 @@ class PairBatch:
         potential's evaluation of ``key``, as :meth:`_keep` keeps a launch over every pair."""
         p, n = len(self._all), x.shape[0]
         on_gpu = current_arch() == "cuda"
-        x_device = positions_on_device(workspace_of(self.vt), x) if on_gpu else None
+        live = self.vt if self.vt is not None else self.ee
+        x_device = positions_on_device(workspace_of(live), x) if on_gpu else None
         u = len(self.own) if x_device is None else n  # the vertices of the kernel's positions and sums
         d, region, grad, hess = work_arrays(p)
         z, gradients = _ARRAYS.rows("z", p, (4, 3)), _ARRAYS.rows("gradients", 2 * u, (3,))
@@ -476,8 +501,8 @@ class PairBatch:
         else:
             x_arg, vertices, sides, rows_arg = (self._own_positions(x, None), self._layout.host_local(), self.sides,
                                                 self._all)
-        _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, float(self.vt.eps), float(self.ee.eps),
-                       float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), *arrays)
+        _packed_kernel(x_arg, vertices, sides, rows_arg, p, self.split, u, *self._kernel_parameters(),
+                       int(bool(derivatives)), *arrays)
         read = min(packed_size(getattr(_ARRAYS, "packed_guess", 64), u, derivatives), out.size)
         copy_back(out, arrays[-1], read)
         a = int(out[0])
@@ -494,7 +519,7 @@ class PairBatch:
                              out[base + 13 * a:base + 157 * a].reshape(a, 12, 12))
         order = 2 if derivatives else 0
         for kind, (pot, start, stop) in enumerate(((self.vt, 0, self.split), (self.ee, self.split, p))):
-            if pot._kept(key, order) is not None:
+            if pot is None or pot._kept(key, order) is not None:
                 continue
             lo, hi = np.searchsorted(rows, (start, stop))
             active, dk = rows[lo:hi] - start, distances[lo:hi]
@@ -573,8 +598,8 @@ class PairBatch:
             hess_arg = new_ndarray(ti.f64, (m, 12, 12))
         if device_gradient:  # likewise: the sums stay where the kernel wrote them
             gradients_arg = new_ndarray(ti.f64, (2 * u, 3))
-        _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, float(self.vt.eps), float(self.ee.eps),
-                      float(self.vt.stiffness), float(self.ee.stiffness), int(bool(derivatives)), pack, z, d_arg,
+        _batch_kernel(x_arg, vertices_arg, sides_arg, rows_arg, m, self.split, *self._kernel_parameters(),
+                      int(bool(derivatives)), pack, z, d_arg,
                       region_arg, grad_arg, hess_arg, gradients_arg, listed_arg, count_arg)
         if pack:  # the sums and, after them, the regions (the launch's rows) in one copy
             copy_back(gradients, gradients_arg, gradient_rows)
@@ -600,7 +625,7 @@ class PairBatch:
         shared: dict = {}  # the device Hessian's host copy, downloaded once for both potentials if asked
         shared_sums, shared_grad = {}, {}  # the device gradient sums' and distance gradients' host copies, likewise
         for kind, (pot, part, known) in enumerate(zip((self.vt, self.ee), parts, kept)):
-            if pot._kept(key, order) is not None:
+            if pot is None or pot._kept(key, order) is not None:
                 continue
             if known is None:  # the kernel's active rows of this kind, in order
                 lo, hi = np.searchsorted(found[0], (part.start, part.stop))

@@ -9,13 +9,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim_core.batch.effectors import limit_pose_steps, stacked_boundary
+from sim_core.batch.effectors import StackedBoundary, limit_pose_steps
 from sim_core.batch.stacked import stack_models
 from sim_core.control import Control
 from sim_core.effector import limit_pose_step
 from sim_core.errors import ConfigError
 from sim_core.scenes.task_scene import task_initial_state
 from sim_core.solver import NewtonSolver
+from sim_core.step_terms import FreeDofs
 from tests.support.batch_copies import pad_model
 
 
@@ -79,7 +80,7 @@ def test_stacked_boundary_is_the_solvers_boundary_of_the_stacked_model():
         target[:, :3] += current[:, :3]
         control = Control(effector_pose_target={f"pad#{i}": target[i] for i in (0, 1, 3, 4)},  # copy 2: none
                           gripper_target={"pad#3": 0.004})
-        got = stacked_boundary(scene.model, 5, scene.effector_names, state, control)
+        got = StackedBoundary(scene.model, 5, scene.effector_names)(state, control)
         want = NewtonSolver.boundary(SimpleNamespace(model=scene.model), state, control)
         assert np.array_equal(got[0], want[0])
         np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-15)
@@ -88,3 +89,29 @@ def test_stacked_boundary_is_the_solvers_boundary_of_the_stacked_model():
             np.testing.assert_allclose(got[2][k], want[2][k], rtol=0, atol=1e-15)
         assert sorted(got[4]) == sorted(want[4]) and "pad#2" not in got[4]
         assert np.array_equal(got[2]["pad#2"], state.effector_pose["pad#2"])
+
+
+def test_a_stacked_boundary_makes_its_fixed_mask_once_and_the_free_dofs_are_kept_for_it():
+    """The mask is the same read-only array at every call (the step's free DoFs then kept by identity, FreeDofs),
+    made anew when the model's static mask changes."""
+    model = pad_model()
+    scene = stack_models([model] * 3)
+    state = scene.stack_states([task_initial_state(model)] * 3)
+    control = Control(effector_pose_target={"pad#1": state.effector_pose["pad#1"] + np.r_[1e-3, 0, 0, 0, 0, 0, 0]})
+    boundary = StackedBoundary(scene.model, 3, scene.effector_names)
+    first, again = boundary(state, control), boundary(state, control)
+    assert first[0] is again[0] and not first[0].flags.writeable and first[0].sum() > scene.model.vertex_fixed.sum()
+    assert not np.array_equal(first[1], state.x) and np.array_equal(again[1], first[1])  # copy 1's pad moved
+    free_dofs = FreeDofs()
+    free, fixed_dofs = free_dofs(first[0])
+    assert free_dofs(again[0])[0] is free and free_dofs(again[0])[1] is fixed_dofs and not free.flags.writeable
+    assert np.array_equal(free, np.repeat(~first[0], 3)) and not fixed_dofs.flags.writeable
+    assert np.array_equal(fixed_dofs, np.broadcast_to(first[0][:, None], (len(first[0]), 3)))
+    writeable = first[0].copy()
+    assert free_dofs(writeable)[0] is not free_dofs(writeable)[0]  # a mask that may change: made at each call
+    static = scene.model.vertex_fixed.copy()
+    static[np.flatnonzero(~first[0])[0]] = True
+    scene.model.vertex_fixed = static
+    changed = boundary(state, control)[0]
+    assert changed is not first[0] and changed.sum() == first[0].sum() + 1
+    assert free_dofs(changed)[0] is not free

@@ -11,6 +11,7 @@ import pytest
 
 from sim_core.batch import BatchedSimulation
 from sim_core.batch.stacked import stack_models
+from sim_core.control import Control
 from sim_core.errors import ConfigError, SimulationDivergedError
 from sim_core.scenes.task_scene import task_initial_state
 from sim_core.simulation import Simulation
@@ -72,7 +73,8 @@ def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, 
     assert batch.lockstep.scene.model.bodies["pad#0"].material["youngs_modulus"] == 3e5
 
 
-def test_copy_states_by_blocks_equal_the_gather_of_the_index(model):
+@pytest.mark.parametrize("copies", [[2, 0], [0, 1, 2]], ids=["some", "every"])
+def test_copy_states_by_blocks_equal_the_gather_of_the_index(model, copies):
     same = stack_models([copy.deepcopy(model) for _ in range(3)])
     assert len(same._blocks) == len(model.bodies)  # one material group: each body's copies one block
     rng = np.random.default_rng(3)
@@ -81,7 +83,7 @@ def test_copy_states_by_blocks_equal_the_gather_of_the_index(model):
     stacked.v = rng.normal(size=stacked.x.shape)
     stacked.contact_force = rng.normal(size=stacked.x.shape)
     stacked.hinge_theta_bar = {k: rng.normal(size=v.shape) for k, v in stacked.hinge_theta_bar.items()}
-    args = (stacked, np.array([2, 0]), np.array([0.1, 0.2]), np.array([4, 5]))
+    args = (stacked, np.array(copies), 0.1 * np.arange(1, len(copies) + 1), np.arange(4, 4 + len(copies)))
     blocks = same.copy_states(*args)
     same._blocks = None  # the gather of any layout
     for a, b in zip(blocks, same.copy_states(*args)):
@@ -91,6 +93,42 @@ def test_copy_states_by_blocks_equal_the_gather_of_the_index(model):
         assert all(np.array_equal(a.hinge_theta_bar[k], b.hinge_theta_bar[k]) for k in a.hinge_theta_bar)
         assert all(np.array_equal(a.effector_pose[k], b.effector_pose[k]) for k in a.effector_pose)
         assert (a.t, a.step_index, a.gripper_opening) == (b.t, b.step_index, b.gripper_opening)
+    for j, i in enumerate(copies):  # the copy's rows less its offset (positions and poses), the stacked rows else
+        rows = same.index[i]
+        assert np.array_equal(blocks[j].x, stacked.x[rows] - same.offset[i])
+        assert np.array_equal(blocks[j].v, stacked.v[rows]) and np.array_equal(blocks[j].contact_force,
+                                                                               stacked.contact_force[rows])
+        pose = stacked.effector_pose[f"pad#{i}"]
+        assert np.array_equal(blocks[j].effector_pose["pad"], np.concatenate([pose[:3] - same.offset[i], pose[3:]]))
+
+
+def test_the_device_contact_force_of_a_lockstep_step_is_the_host_sum_bit_for_bit(model, monkeypatch):
+    """With the batched CG each step's contact force is summed on the device where the pair terms' gradients are
+    (DeviceIterates.contact_force; the plane's and friction's then subtracted on the host): bit for bit the host's
+    sum of the same terms at the same positions (step_terms.contact_force), signed zeros included."""
+    from sim_core.batch.device_iterates import DeviceIterates
+    from sim_core.batch.lockstep import LockstepSolver
+    from sim_core.energies.base import DeviceGradient, declares
+    from sim_core.solver import NewtonSolver
+
+    summed, checked = LockstepSolver._contact_force, []
+
+    def both(self, x, terms):
+        got = summed(self, x, terms)
+        want = NewtonSolver._contact_force(self, x, terms)
+        assert got.tobytes() == want.tobytes()
+        on_device = [declares(p, DeviceGradient) for p in terms]
+        checked.append((on_device[0], not all(on_device), bool(np.any(want != 0.0))))
+        return got
+
+    device_sums = []
+    original = DeviceIterates.contact_force
+    monkeypatch.setattr(DeviceIterates, "contact_force",
+                        lambda self, *a: (device_sums.append(1), original(self, *a))[1])
+    monkeypatch.setattr(LockstepSolver, "_contact_force", both)
+    _run(_lockstep_batch(model, LOCKSTEP_CG), 3)
+    assert len(checked) == len(device_sums) == 3
+    assert all(first and mixed for first, mixed, _ in checked) and any(nonzero for *_, nonzero in checked)
 
 
 @pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
@@ -213,3 +251,21 @@ def test_lockstep_settings_are_checked(model):
     guess.position_guess = batch.states[0].x.copy()
     with pytest.raises(ConfigError, match="batch copy 0: a lockstep batch takes no Control.position_guess"):
         batch.step([guess, None])
+
+
+def test_stacked_controls_move_each_copys_pose_targets_by_its_offset(model):
+    """stack_controls: the pose targets of copies with a control, translated by their copy's offset (as one array of
+    7-number poses, pose by pose otherwise), the gripper targets under the stacked names; a copy without none."""
+    scene = stack_models([copy.deepcopy(model) for _ in range(3)])
+    rng = np.random.default_rng(5)
+    poses = [np.r_[rng.normal(size=3), 0.0, 0.0, 0.0, 1.0] for _ in range(3)]
+    last = Control(effector_pose_target={"pad": list(poses[2])}, gripper_target={"pad": 0.01})
+    stacked = scene.stack_controls([Control(effector_pose_target={"pad": poses[0]}), None, last])
+    assert list(stacked.effector_pose_target) == ["pad#0", "pad#2"] and stacked.gripper_target == {"pad#2": 0.01}
+    for i in (0, 2):
+        assert np.array_equal(stacked.effector_pose_target[f"pad#{i}"],
+                              np.r_[poses[i][:3] + scene.offset[i], poses[i][3:]])
+    odd = scene.stack_controls([Control(effector_pose_target={"pad": poses[0][:6]}), None,
+                                Control(effector_pose_target={"pad": poses[2]})])  # (a 6-number target: pose by pose)
+    assert np.array_equal(odd.effector_pose_target["pad#0"], np.r_[poses[0][:3] + scene.offset[0], poses[0][3:6]])
+    assert np.array_equal(odd.effector_pose_target["pad#2"], np.r_[poses[2][:3] + scene.offset[2], poses[2][3:]])

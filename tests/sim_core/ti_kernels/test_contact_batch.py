@@ -491,3 +491,28 @@ def test_a_batch_takes_its_sides_by_layout_row_from_the_caller(ti_cpu):
     made[:len(vt_list)] = vt.sides
     made[len(vt_list):][cs._cache[3]] = ee.sides
     np.testing.assert_array_equal(vt._batch.sides, made)
+
+
+def test_a_batch_holds_its_potentials_weakly_and_goes_with_them(ti_cpu):
+    """No reference cycle between a batch and its potentials: with the collector off, the batch is freed with
+    them; with one of them gone, the other still evaluates through it, bit for bit as on its own."""
+    import gc
+    import weakref
+
+    x, linked, alone = _potentials()
+    vt = linked[0]
+    batch = weakref.ref(vt._batch)
+    y = x + 0.1 * EPS * np.random.default_rng(30).normal(size=x.shape)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del linked  # the edge-edge potential is gone
+        assert batch() is not None and batch().ee is None and batch().vt is vt
+        np.testing.assert_array_equal(vt.gradient(y), alone[0].gradient(y))
+        assert vt.energy(y) == alone[0].energy(y)
+        np.testing.assert_array_equal(vt.hessian(y, "none").blocks, alone[0].hessian(y, "none").blocks)
+        del vt
+        assert batch() is None
+    finally:
+        if enabled:
+            gc.enable()
