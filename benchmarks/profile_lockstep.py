@@ -176,13 +176,21 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
     step_sites: list = []  # and by call site (_StepPhases.sites, with --copy-sites)
     lines: list = []  # the timed steps' summary lines, printed again at the end (a tail of the output holds them)
 
+    counted = ("LockstepSolver._stacked_gradient (in _line_search_copies)", "ContactSet._search_position",
+               "ContactSet._search_position (in _line_search_copies)",
+               "ContactSet._candidate_pairs (in _line_search_copies)", "ContactSet._search (in _line_search_copies)",
+               "Taichi launches", "Taichi new ndarrays")
+
     def step(k):
         solves = len(cg_iterations)
+        before = [list(timers.get(label, (0, 0.0))) for label in counted]
         phases.mark(_LOOP)
         t = time.perf_counter()
         res = run.batch.step([Control(effector_pose_target={run.effector: tg[k]}) for tg in run.targets])
         wall = time.perf_counter() - t
         parts = phases.take()
+        trials, searches, in_ls, pairs_ls, search_ls, launches, made = (
+            [a - b for a, b in zip(timers.get(label, (0, 0.0)), rec)] for label, rec in zip(counted, before))
         copies = {label: list(rec) for label, rec in phases.copies.items()}
         sites = {key: list(rec) for key, rec in phases.sites.items()}
         eng = run.batch.lockstep
@@ -204,7 +212,10 @@ def _profile_size(run, B: int, args, timers: dict, cg_iterations: list, phases: 
                 f"{1e3 * sum(g.values()):.1f}); the bench's wall_s {1e3 * res.wall_s:.1f}; CG iterations "
                 f"{sum(cg_iterations[solves:])} in {len(cg_iterations) - solves} solves; synchronous copies "
                 f"{sum(c[0] for c in copies.values())}, {sum(c[1] for c in copies.values()) / 1e6:.1f} MB, "
-                f"{1e3 * sum(c[2] for c in copies.values()):.1f} ms")
+                f"{1e3 * sum(c[2] for c in copies.values()):.1f} ms; line search: {trials[0]} trial points, "
+                f"{getattr(info, 'backtracks', 0)} backtracks (copies), candidate searches {searches[0]} "
+                f"({in_ls[0]} at its trial points: {1e3 * pairs_ls[1]:.1f} ms in _candidate_pairs, "
+                f"{1e3 * search_ls[1]:.1f} in _search); Taichi launches {launches[0]}, new ndarrays {made[0]}")
         print(line, flush=True)
         if k > 0:
             per_step.append((parts, wall, res.wall_s, len(own), its))
@@ -652,11 +663,34 @@ def _wrap_parts(backend: str) -> dict:
         setattr(cls, name, classmethod(wrapped) if is_cm else wrapped)
     _time_within(timers, CopyLineSearch, "_line_search_copies", lockstep.LockstepSolver, "_stacked_gradient")
     _time_within(timers, CopyLineSearch, "_line_search_copies", device_copy, "_copy")
+    # the candidate searches (one _search_position each), those of the line search's trial points apart
+    timers["ContactSet._search_position"] = [0, 0.0]
+    setattr(ContactSet, "_search_position", _timed(vars(ContactSet)["_search_position"],
+                                                   timers["ContactSet._search_position"]))
+    for name in ("_search_position", "_candidate_pairs", "_search"):
+        _time_within(timers, CopyLineSearch, "_line_search_copies", ContactSet, name)
+    timers.update(_count_taichi_calls())
     # module functions the contact set calls by the names it imported
     for name in ("lookup_pairs", "merge_rows"):
         if hasattr(contact_set, name):
             setattr(contact_set, name, getattr(pair_lists, name))
     return timers
+
+
+def _count_taichi_calls() -> dict:
+    """Count Taichi's kernel launches and new ndarrays (``Program.launch_kernel`` / ``create_ndarray``, through which
+    every launch and device array goes); returns ``{"Taichi launches": [calls, 0.0], "Taichi new ndarrays": ...}``."""
+    from taichi._lib.core.taichi_python import Program
+
+    counts = {}
+    for label, name in (("Taichi launches", "launch_kernel"), ("Taichi new ndarrays", "create_ndarray")):
+        record = counts[label] = [0, 0.0]
+
+        def counted(self, *a, _fn=getattr(Program, name), _record=record, **kw):
+            _record[0] += 1
+            return _fn(self, *a, **kw)
+        setattr(Program, name, counted)
+    return counts
 
 
 def _timed(fn, record: list):

@@ -158,7 +158,7 @@ class ContactSet:
         self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
-    def _pairs(self, x: np.ndarray, memory: CollisionMemory, x_device=None
+    def _pairs(self, x: np.ndarray, memory: CollisionMemory, x_device=None, segment_start: np.ndarray | None = None
                ) -> tuple[VertexTriangleContact, EdgeEdgeContact]:
         """Contact potentials over the candidate pairs valid at ``x``.
 
@@ -169,9 +169,10 @@ class ContactSet:
         a step are the next step's ``x^n``); the sides and the near-parallel edge filter, which
         depend on the step's memory and ``x^n``, are redone per step. The search is done at a point
         a little ahead of ``x`` along the step's motion (:meth:`_search_position`), so that it
-        usually covers the next step's first iterates too.
+        usually covers the next step's first iterates too (and, for a line search's trial point, its
+        segment's first halving where one search can: ``segment_start``, :meth:`_search_position`).
         """
-        candidates = self._without_held_pairs(self._candidate_pairs(x, x_device), x, memory)
+        candidates = self._without_held_pairs(self._candidate_pairs(x, x_device, segment_start), x, memory)
         cache = getattr(self, "_cache", None)
         if cache is not None and cache[0] is memory and cache[1] is candidates:
             # the step's potentials over these candidates (same pairs, sides and class): reused, not
@@ -239,12 +240,15 @@ class ContactSet:
             high, low, largest = self._displacement_bounds(x_search, x_device)
             answer = bool(largest <= 0.5 * self.margin) or self._closing_holds(high, low)
         else:
-            moved = x - x_search
-            # max |moved| (NaN: False), no |moved| array; else the general test
-            answer = bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
+            answer = self._moved_holds(x - x_search)
         if _frozen(x_search) and _frozen(x):
             self._covered = (x_search, x, answer)
         return answer
+
+    def _moved_holds(self, moved: np.ndarray) -> bool:
+        """:meth:`covers`' test on the host from the displacements ``moved`` ``(n, 3)`` (m) since the search: no
+        ``|moved|`` above ``margin / 2`` (no ``|moved|`` array), else :meth:`_gaps_hold` (NaN: False)."""
+        return bool(np.maximum(moved.max(), -moved.min()) <= 0.5 * self.margin) or self._gaps_hold(moved)
 
     def _gaps_hold(self, moved: np.ndarray) -> bool:
         """:meth:`covers`' general test: ``c_k(A, B) <= margin`` for every axis and allowed body pair,
@@ -275,14 +279,16 @@ class ContactSet:
             bounds = self._bounds = DisplacementBounds(len(x_search), self._segment_starts)
         return bounds(x_search, x_device, kept=_frozen(x_search))
 
-    def _candidate_pairs(self, x: np.ndarray, x_device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _candidate_pairs(self, x: np.ndarray, x_device=None, segment_start: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(x at the search, vertex-triangle pairs, edge-edge pairs)`` valid at ``x`` (see :meth:`_pairs`;
-        ``x_device``: :meth:`covers`'). The lists' packed keys, where the hash search's sort made them, are kept
-        with them for their :class:`CandidateVertices` (:meth:`_list_vertices`)."""
+        ``x_device``: :meth:`covers`'; ``segment_start``: :meth:`_search_position`'). The lists' packed keys, where
+        the hash search's sort made them, are kept with them for their :class:`CandidateVertices`
+        (:meth:`_list_vertices`)."""
         found = self._candidates
         if found is not None and self.covers(found[0], x, x_device):
             return found
-        x_search = self._search_position(x)
+        x_search = self._search_position(x, segment_start)
         search = self._grouped_search()
         rest = self.rest_exclusion if self.rest_exclusion.pair_filter is self.filter else None
         lists = self._candidate_lists(search) if rest is not None else None
@@ -358,9 +364,10 @@ class ContactSet:
                                                     self.rest_exclusion, search))
         return self._lists[1]
 
-    def _search_position(self, x: np.ndarray) -> np.ndarray:
+    def _search_position(self, x: np.ndarray, segment_start: np.ndarray | None = None) -> np.ndarray:
         """Where to search for the candidates of ``x`` ``(n, 3)`` (m): a new array
-        ``x + clip(lookahead * (x - x^n), -c, c)`` per coordinate, ``c = lookahead_cap * margin``.
+        ``x + clip(lookahead * (x - x^n), -c, c)`` per coordinate, ``c = lookahead_cap * margin``
+        (:meth:`_ahead_of`).
 
         Any search position whose list covers ``x`` is exact (:meth:`covers` is checked at every
         evaluated point, and a point it refuses is searched again), so the position only decides
@@ -374,8 +381,32 @@ class ContactSet:
         -> 1.04 searches per step with the ``margin / 2`` test alone). ``x`` itself is always
         covered (``lookahead_cap <= 0.5``); with no step started (``x^n`` unknown) or
         ``lookahead = 0`` the search is at ``x``. The array is read-only (:attr:`search_position`).
+
+        ``segment_start`` ``(n, 3)`` (m): where the line search that evaluates ``x`` started, or None. Its
+        trial points lie on the segment from there to ``x`` (a backtrack halves the step), so where that position
+        does not cover the segment's first halving ``h = (segment_start + x) / 2`` (:meth:`covers`; then the
+        whole segment from ``h`` to ``x``, the test being convex along it), the search is made ahead of the point
+        ``3/4`` of the way instead, if its list covers ``x``: one search then serves a backtracked trial too, where
+        the position ahead of ``x`` would need a second one (Forming lockstep, B = 8, steps 8-13 of 16: two
+        searches a step -> one; the same states bit for bit: a pair beyond ``eps`` adds exact zeros).
         """
         x = np.asarray(x, dtype=float)
+        ahead = self._ahead_of(x)
+        if segment_start is None or segment_start.shape != x.shape or x.size == 0:
+            return ahead
+        # h and its displacement from the search in two kept blocks of the pool (fresh memory costs page faults)
+        half = self._pool.empty("segment_point", x.shape, np.float64)
+        np.add(segment_start, x, out=half)
+        half *= 0.5
+        if self._moved_holds(np.subtract(half, ahead, out=self._pool.empty("segment_moved", x.shape, np.float64))):
+            return ahead
+        half += x  # the point 3/4 of the way, in the same block
+        half *= 0.5
+        between = self._ahead_of(half)
+        return between if self.covers(between, x) else ahead
+
+    def _ahead_of(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`_search_position` of ``x`` ``(n, 3)`` float64 (m) alone: a new read-only array."""
         if not (0.0 <= self.lookahead_cap <= 0.5):
             raise ValueError(f"ContactSet: lookahead_cap must be in [0, 0.5], got {self.lookahead_cap}")
         if self.x_prev is not None and self.x_prev.shape == x.shape and self.lookahead != 0.0:
@@ -618,10 +649,12 @@ class ContactSet:
             self._cache = None  # the next potentials() builds the pairs again, with these sides at 0
         return count
 
-    def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory, x_device=None) -> list:
+    def potentials(self, x: np.ndarray, x_n: np.ndarray, memory: CollisionMemory, x_device=None,
+                   segment_start: np.ndarray | None = None) -> list:
         """Contact potentials for the candidates near iterate ``x`` ``(n, 3)`` (m; planes and spheres included);
-        ``x_device``: ``x`` as a float64 Taichi ndarray ``(n, 3)``, where :meth:`covers` then reads it, or None."""
-        vt, ee = self._pairs(x, memory, x_device)
+        ``x_device``: ``x`` as a float64 Taichi ndarray ``(n, 3)``, where :meth:`covers` then reads it, or None;
+        ``segment_start``: where the line search of trial point ``x`` started (:meth:`_search_position`), or None."""
+        vt, ee = self._pairs(x, memory, x_device, segment_start)
         return [vt, ee] + [p for _, p in self.planes] + [p for _, p in self.spheres]
 
     def friction(self, x_n: np.ndarray, dt: float, memory: CollisionMemory,

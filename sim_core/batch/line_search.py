@@ -35,7 +35,9 @@ class CopyLineSearch:
         it (:meth:`_armijo_groups`).
 
         ``e0``, the energy at ``x`` (per copy, or the stacked sum), is the one measured there when ``x`` was the last
-        line search's result with these ``contact_terms`` (no contact side released since).
+        line search's result with these ``contact_terms`` (no contact side released since). A trial point's contact
+        potentials are asked for with ``x`` as the segment's start, so that a candidate search it needs also covers
+        the first halving where one search can (:meth:`~sim_core.contact_set.ContactSet._search_position`).
 
         Returns:
             ``(x_new, (x_new, g_new, g_max), contact_terms, x_search, accepted, backtracks)``: the :class:`Iterate`
@@ -67,7 +69,7 @@ class CopyLineSearch:
                 break
             trial = np.where(pending, a, 0.0) + taken
             x_try = vectors.trial(x, d, trial)
-            terms, xs, g_try = self._stacked_gradient(step, x_try, info)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info, x.host)  # a search covering the segment
             launched = (self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
                         if per_copy and x_try.device is not None else None)
             e_try = None
@@ -105,7 +107,7 @@ class CopyLineSearch:
             x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
-            terms, xs, g_new = self._stacked_gradient(step, x_new, info)
+            terms, xs, g_new = self._stacked_gradient(step, x_new, info, x.host)
             g_max = None
         if per_copy:  # a copy's energy depends on its own positions only: x_new's, per copy, are those measured
             self._trial_energy = (x_new.host, terms, e_new)

@@ -437,12 +437,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             self._device_vectors = DeviceIterates(self.scene.index)
         return self._device_vectors
 
-    def _stacked_gradient(self, step, x: Iterate, info: StepInfo) -> tuple[list, np.ndarray | None, object]:
+    def _stacked_gradient(self, step, x: Iterate, info: StepInfo, segment_start: np.ndarray | None = None
+                          ) -> tuple[list, np.ndarray | None, object]:
         """The contact potentials at ``x``, their search position and the free-DoF gradient of the stacked
         incremental potential (J/m; :attr:`_vectors`'s: ``(3 N,)`` on the host, ``(N, 3)`` on the device), non-finite
-        entries kept (a copy's own failure)."""
+        entries kept (a copy's own failure); ``segment_start``: the line search's start where ``x`` is its trial point
+        (:meth:`~sim_core.contact_set.ContactSet.potentials`)."""
         ta = time.perf_counter()
-        contact_terms = self.contact.potentials(x.host, step.x_n, step.memory, x.device)  # covers on the device
+        contact_terms = self.contact.potentials(x.host, step.x_n, step.memory, x.device,  # covers on the device
+                                                segment_start)
         x_search = self.contact.search_position
         terms = step.loop_terms + contact_terms
         g = self._vectors.gradient(terms, x, self._fixed_dofs(step),

@@ -336,6 +336,52 @@ def test_the_search_position_is_ahead_of_the_motion_and_covers_its_point():
         cs._search_position(x)
 
 
+def test_a_trial_point_is_searched_where_the_list_also_covers_its_line_search_segment_first_halving():
+    """Sheet b 1.1 mm above sheet a at x^n (the line search's start), its trial point 1.6 margin further down: the
+    search ahead of the trial point (``x + clip(lookahead (x - x^n))``) does not cover the segment's first halving
+    ``h`` (b 0.3 mm above a, in contact), so a backtrack to it would search again; given the segment's start, the
+    search is made ahead of the point 3/4 of the way, whose list covers both the trial point and ``h`` (every pair
+    within eps at either, by brute force): one search for both. A trial point whose own search covers ``h`` is
+    searched there, as without a segment."""
+    cs = _two_grid_sheets()
+    m = cs.margin
+    start = cs.model.x_rest.copy()
+    start[25:, 2] -= 0.004 - 1.1e-3  # sheet b (vertices 25-49) 1.1 mm above sheet a
+    start.flags.writeable = False
+    memory = cs.begin_step(start, None)
+    trial = start.copy()
+    trial[25:, 2] -= 1.6 * m
+    trial.flags.writeable = False
+    half = 0.5 * (start + trial)
+    ahead = cs._search_position(trial)
+    assert cs.covers(ahead, trial) and not cs.covers(ahead, half)
+    searched = cs._search_position(trial, start)
+    assert cs.covers(searched, trial) and cs.covers(searched, half)
+
+    cs.potentials(trial, start, memory, segment_start=start)
+    lists = cs._candidates
+    assert cs.search_position is not None and cs.covers(cs.search_position, half)
+    cs.potentials(half, start, memory)
+    assert cs._candidates is lists  # no second search at the first halving
+    for x in (trial, half):
+        close_vt, close_ee = _brute_force_close_pairs(cs, x, cs.eps)
+        assert close_vt <= {tuple(p) for p in lists[1].tolist()}
+        assert close_ee <= {tuple(p) for p in lists[2].tolist()}
+    assert len(_brute_force_close_pairs(cs, half, cs.eps)[0]) > 0  # the sheets touch at h
+
+    plain = _two_grid_sheets()  # without the segment: a second search at h
+    memory = plain.begin_step(start, None)
+    plain.potentials(trial, start, memory)
+    first = plain._candidates
+    plain.potentials(half, start, memory)
+    assert plain._candidates is not first
+
+    near = start.copy()
+    near[25:, 2] -= 0.6 * m  # a short segment: the search ahead of the trial point covers its halving
+    near.flags.writeable = False
+    np.testing.assert_array_equal(cs._search_position(near, start), cs._search_position(near))
+
+
 def test_a_side_gone_stale_beyond_an_edge_end_is_released_for_the_rest_of_the_step():
     """Edge b above the middle of edge a at x^n (interior: the pair keeps the side +1 for the step).
     At the iterate x, b has moved beyond the end of a and below the line of a: the lines crossed
