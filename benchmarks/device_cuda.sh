@@ -61,8 +61,9 @@
 #   kernel_tests           THINSHELL_TEST_ARCH=cuda pytest $KERNEL_TESTS (default: the launch, transfer, fused elastic,
 #                          device-copy, band-block, per-copy vector, device-gradient, displacement-bound, per-copy
 #                          energy, compaction, sorted-pair, batched CG and CG operator kernel tests, the projection of
-#                          listed blocks by kernels (Jacobi and host LAPACK; the spring membrane's; the Jacobi kernel
-#                          against LAPACK; the contact pair blocks of marked copies left on the device) and the contact
+#                          listed blocks by kernels (Jacobi and host LAPACK; the spring membrane's; the fused parts'
+#                          blocks of listed elements; the Jacobi kernel against LAPACK; the contact pair blocks of
+#                          marked copies left on the device) and the contact
 #                          pair batch's packed launch; a file missing from the tree is an error)
 # each batch part with --steps $STEPS. Environment overrides: PARTS, STEPS (10), LOCK_SIZES ("1 16 64 256 1024"),
 # LOCK_TASK_SIZES ("1 16 64 256"), LOCK_CPU_SIZES ("1 16 64"), CUDA_SIZES ("1 2 4 8 16 32"), CPU_SIZES
@@ -125,6 +126,7 @@ $KT/test_band_cholesky.py $KT/test_copy_vectors.py $KT/test_device_gradient.py $
 $KT/test_copy_energies.py $KT/test_compaction.py $KT/test_sorted_pairs.py $KT/test_pcg.py $KT/test_device_operator.py \
 $KT/test_block_projection.py::test_projection_of_listed_blocks_by_kernels_adds_what_the_host_projection_adds \
 $KT/test_block_projection.py::test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds \
+$KT/test_block_projection.py::test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit \
 $KT/test_jacobi_projection.py $KT/test_projected_subset.py \
 $KT/test_contact_batch.py::test_packed_launches_equal_the_default_ones_bit_for_bit}
 bench() {  # bench NAME ARGS...: one benchmark process, its JSON lines kept

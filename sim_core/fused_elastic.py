@@ -641,13 +641,16 @@ class FusedElastic:
         self._evaluate(x)
         return self._device_kept[2] if self._values_on_device else None
 
-    def projected_hessian_values_device(self, x: np.ndarray, projection: str, vertices: np.ndarray | None = None):
+    def projected_hessian_values_device(self, x: np.ndarray, projection: str, vertices: np.ndarray | None = None,
+                                        closed: bool = False):
         """The values of :meth:`projected_hessian_values` summed on the device, as a float64 Taichi ndarray of
         ``max(pattern.keys.size, 1)`` entries kept here (the next call overwrites it; the exact values of
         :meth:`hessian_values_device` are kept apart), or None where the parts do not all run on device arrays
         (:meth:`_on_device`: CUDA, every part a fused kernel part, none offloaded). The positions go up once; each
         part adds its projected blocks there (``add_projected_on_device``), through the packed upper slot tables of
-        the exact Hessian, with no block and no partial sum crossing to the host.
+        the exact Hessian, with no block and no partial sum crossing to the host. ``closed``: the caller's promise
+        that ``vertices`` is closed under every part's elements (whole copies of a stacked scene), so that each part
+        finds its marked elements by their first vertex (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             RuntimeError: :meth:`bind` was not called.
@@ -669,8 +672,10 @@ class FusedElastic:
             self._projected_device = ti.ndarray(ti.f64, shape=(max(nnz, 1),))
         values = fill(self._projected_device, 0.0)
         for part in self._parts:
-            part.add_projected_on_device(xd, projection, values,
-                                         vertices if getattr(part, "projects_subsets", False) else None)
+            if getattr(part, "projects_subsets", False):
+                part.add_projected_on_device(xd, projection, values, vertices, closed)
+            else:
+                part.add_projected_on_device(xd, projection, values, None)
         return values
 
     def projected_hessian_values(self, x: np.ndarray, projection: str,

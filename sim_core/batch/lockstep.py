@@ -563,7 +563,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             # (a synchronous upload waits for every kernel queued before it), so that the host waits once, for the
             # factorisation and the CG together
             vectors.blend(rhs, g, todo, ~todo, scale=-1.0)
-            pcg.factorize(upper, blocks, diagonal)
+            pcg.factorize(upper, blocks, diagonal, None if k == 0 else todo)  # a retry: its copies' band blocks only
             dk = vectors.new()
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
@@ -605,7 +605,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         fused = step.fused
         pattern = fused.pattern
         values = (fused.hessian_values_device(x) if projection == "none"  # the values where the kernels wrote them
-                  else fused.projected_hessian_values_device(x, projection, vertices))
+                  else fused.projected_hessian_values_device(x, projection, vertices, closed=True))
         if values is None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection, vertices))

@@ -151,52 +151,55 @@ def _eliminate_entry(band: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32, k0: t
 
 
 @ti.kernel
-def _eliminate_panels(band: _F64, first: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
+def _eliminate_panels(band: _F64, wanted: _I32, first: ti.i32, nb: ti.i32, m: ti.i32, w: ti.i32):
     """Panels ``first .. first + PANELS_PER_LAUNCH - 1`` (columns ``p PANEL .. (p + 1) PANEL - 1`` each) of the
     banded elimination ``S_ij -= S_ik S_jk / S_kk`` (``k < j <= i <= k + w``), blocked: each panel's columns are
     finished by its own earlier columns (its diagonal block row by row, one thread a block; then the rows below
     it, one thread a row), then the panel's columns update the window after it at once (one thread an entry).
     Every entry receives the same updates in the same order as in the column-by-column elimination, so the
     factor is the same to the bit. A block whose pivot is not positive is left as it is from there
-    (:func:`_scale_factor` marks it)."""
+    (:func:`_scale_factor` marks it); so is a block with ``wanted[b] == 0``."""
     for pp in ti.static(range(PANELS_PER_LAUNCH)):
         k0 = (first + pp) * PANEL
         k1 = ti.min(k0 + PANEL, m)
         for b in range(nb):  # the diagonal block, row after row
-            for i in range(k0, k1):
-                for j in range(k0, i + 1):
-                    _eliminate_entry(band, b, i, j, k0, j, m, w)
+            if wanted[b] != 0:
+                for i in range(k0, k1):
+                    for j in range(k0, i + 1):
+                        _eliminate_entry(band, b, i, j, k0, j, m, w)
         for b, di in ti.ndrange(nb, w):  # the rows below it, each its own thread
             i = k1 + di
-            if i < m:
+            if i < m and wanted[b] != 0:
                 for j in range(ti.max(k0, i - w), k1):
                     _eliminate_entry(band, b, i, j, k0, j, m, w)
         for b, di, dj in ti.ndrange(nb, w, w):  # the window after the panel, by the panel's columns
             i = k1 + di
             j = k1 + dj
-            if j <= i and i < m:
+            if j <= i and i < m and wanted[b] != 0:
                 _eliminate_entry(band, b, i, j, k0, k1, m, w)
 
 
 
 @ti.kernel
-def _scale_factor(band: _F64, pivots: _F64, usable: _I32, nb: ti.i32, m: ti.i32, w: ti.i32):
+def _scale_factor(band: _F64, pivots: _F64, usable: _I32, wanted: _I32, nb: ti.i32, m: ti.i32, w: ti.i32):
     """The eliminated band into ``L`` (``L_ij = S_ij / sqrt(S_jj)``, ``L_jj = sqrt(S_jj)``, ``S_jj`` the pivots);
-    ``usable[b]`` 0 where a pivot is not positive."""
+    ``usable[b]`` 0 where a pivot is not positive, and for a block with ``wanted[b] == 0`` (not scaled)."""
     for b in range(nb):
-        usable[b] = 1
+        usable[b] = ti.select(wanted[b] != 0, 1, 0)
     for b, i in ti.ndrange(nb, m):
-        d = band[_at(b, i, w, m, w)]
-        if not d > 0.0:
-            usable[b] = 0
-            d = 1.0
-        pivots[b * m + i] = ti.sqrt(d)
+        if wanted[b] != 0:
+            d = band[_at(b, i, w, m, w)]
+            if not d > 0.0:
+                usable[b] = 0
+                d = 1.0
+            pivots[b * m + i] = ti.sqrt(d)
     for b, i, k in ti.ndrange(nb, m, w + 1):  # one thread an entry (neighbouring threads, neighbouring entries)
-        j = i - w + k
-        if k == w:
-            band[_at(b, i, w, m, w)] = pivots[b * m + i]
-        elif j >= 0:
-            band[_at(b, i, k, m, w)] /= pivots[b * m + j]
+        if wanted[b] != 0:
+            j = i - w + k
+            if k == w:
+                band[_at(b, i, w, m, w)] = pivots[b * m + i]
+            elif j >= 0:
+                band[_at(b, i, k, m, w)] /= pivots[b * m + j]
 
 
 TILES = 4
@@ -411,6 +414,11 @@ class BandBlocks:
         self._dof = _device_i32(dofs.reshape(-1))
         self._pos = _device_i32(pos)
         self._copy = _device_i32(copy[:, 0])
+        self._copy_of_block = copy[:, 0].copy()
+        self._every = _device_i32(np.ones(self.count, np.int32))  # every block selected (select(None))
+        self._wanted = _device_i32(np.ones(self.count, np.int32))  # the blocks of a selection of copies
+        self._wanted_of: np.ndarray | None = None  # the copies mask whose blocks _wanted holds
+        self._selected = False  # whether eliminate() takes _wanted (else every block)
         self._usable = device_copy.new_ndarray(ti.i32, (self.count,))
         self._pivots = device_copy.new_ndarray(ti.f64, (self.count * self.size,))
         self._band = None  # the bands, made once the width is known
@@ -419,14 +427,16 @@ class BandBlocks:
         self._sources = None  # each band entry's position in the CSR data (_band_sources), with the bands
         self._measured_for = None  # the full pattern's device indptr the width was measured on
 
-    def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object, data_index=None) -> bool:
+    def assemble(self, indptr, indices, data, blocks: tuple | None, pattern_key: object, data_index=None,
+                 copies: np.ndarray | None = None) -> bool:
         """The blocks' bands of ``A`` (the both-triangle CSR ndarrays ``indptr``, ``indices``, ``data``, an entry
         at most once a row, plus the vertex blocks ``blocks = (brow, bcol, bval, free, count)`` or None),
         factorised and inverted; the width and the band entries' positions in ``data`` are found again when
         ``pattern_key`` is another object than at the last call. With ``data_index`` (int32 ndarray, one entry
         an entry of the pattern), ``data`` is another float64 array of the values, the pattern's entry ``e`` at
-        ``data[data_index[e]]`` (e.g. the upper triangle's values). Returns whether the blocks are used (the band
-        no wider than ``max_width``)."""
+        ``data[data_index[e]]`` (e.g. the upper triangle's values). With ``copies`` (bool, one entry a copy) only
+        the blocks of the copies marked are factorised and inverted, the others marked not usable
+        (:meth:`select`). Returns whether the blocks are used (the band no wider than ``max_width``)."""
         if self._measured_for is not pattern_key:
             width = device_copy.new_ndarray(ti.i32, (1,))
             _band_width(indptr, indices, self._dof, self._pos, width, self.count, self.size)
@@ -449,6 +459,7 @@ class BandBlocks:
                     _compose_sources(self._sources, data_index, size)
         if not self.width:
             return False
+        self.select(copies)
         self.gather(data, blocks)
         self.eliminate()
         self.invert()
@@ -463,12 +474,27 @@ class BandBlocks:
             brow, bcol, bval, free, count = blocks
             _band_add_vertex_blocks(brow, bcol, bval, free, self._pos, self._band, count, nb, m, w)
 
+    def select(self, copies: np.ndarray | None) -> None:
+        """The blocks :meth:`eliminate` factorises from now on: those of the copies marked in ``copies`` (bool, one
+        entry a copy: e.g. a Newton iteration's retried copies, the only ones with a right-hand side), or every
+        block with None (a constant device array: no copy); a selection's mask travels to the device when it
+        changes."""
+        self._selected = copies is not None
+        if copies is None or self._wanted_of is not None and np.array_equal(copies, self._wanted_of):
+            return
+        wanted = np.asarray(copies, bool)[self._copy_of_block].astype(np.int32)
+        if not device_copy.to_device(self._wanted, wanted):
+            self._wanted.from_numpy(wanted)
+        self._wanted_of = np.array(copies, dtype=bool)
+
     def eliminate(self) -> None:
-        """The gathered bands factorised into ``L`` (blocked elimination, then the scaling; :attr:`usable` set)."""
+        """The gathered bands of the selected blocks (:meth:`select`) factorised into ``L`` (blocked elimination,
+        then the scaling; :attr:`usable` set, 0 for the blocks not selected)."""
         nb, m, w = self.count, self.size, self.width
+        wanted = self._wanted if self._selected else self._every
         for first in range(0, -(-m // PANEL), PANELS_PER_LAUNCH):
-            _eliminate_panels(self._band, first, nb, m, w)
-        _scale_factor(self._band, self._pivots, self._usable, nb, m, w)
+            _eliminate_panels(self._band, wanted, first, nb, m, w)
+        _scale_factor(self._band, self._pivots, self._usable, wanted, nb, m, w)
 
     def invert(self) -> None:
         """What :func:`band_solve` takes of each usable block's factor ``L``, by tiles of :attr:`tile` rows: each

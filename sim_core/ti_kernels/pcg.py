@@ -515,7 +515,8 @@ class BatchedPCG:
             self._uploaded[name] = host
         return arr
 
-    def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None) -> bool:
+    def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None,
+                  copies: "np.ndarray | None" = None) -> bool:
         """Keep the matrix ``A = U + U^T - diag(U) + sum_t F E_t F`` on the device and build its block-Jacobi
         preconditioner (each vertex's 3x3 diagonal block of ``A``, inverted); True.
 
@@ -530,6 +531,9 @@ class BatchedPCG:
                 anything else: ``data[slots] += values`` (int ``(m,)`` distinct positions in ``data``,
                 float ``(m,)``), then ``data[fixed] = 1`` (int ``(f,)``). Index arrays of the same objects
                 as at the last call travel once.
+            copies: None, or bool ``(B,)``: the band blocks of these copies only are factorised (the others' not
+                used by the next solves, which take the vertex blocks' inverses there: for copies solved with a zero
+                right-hand side, which stop at once either way, e.g. a Newton iteration's copies not retried).
 
         Raises:
             ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
@@ -546,6 +550,8 @@ class BatchedPCG:
         if blocks is not None and blocks.free.shape != (n,):
             raise ValueError(f"BatchedPCG: vertex blocks with a free mask of shape {blocks.free.shape}, expected ({n},)")
         self.factorizations += 1
+        if self.bands is not None:  # a selection's mask copied before the launches below (a copy waits for them)
+            self.bands.select(copies)
         self._n = n
         seg = self._segments if self._segments is not None else np.zeros(n, dtype=np.int32)
         self._copies = int(seg.max()) + 1 if n else 1
@@ -603,7 +609,7 @@ class BatchedPCG:
             a = self._arrays
             self._banded = bool(full[2]) and self.bands.assemble(
                 a["full_indptr"], a["full_indices"], data, (brow, bcol, bval, free, self._nblocks), full,
-                data_index=a["full_src"])
+                data_index=a["full_src"], copies=copies)
         return True
 
     def _copy_order(self, seg: np.ndarray) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.buffers import on_device, rows_on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.worker_recipe import part_recipe
@@ -36,6 +36,7 @@ from sim_core.energies.hinge_bending.kernel import (_dihedral_angle, _hinge_posi
                                          _theta_hessian_unsymmetrized)
 
 _F64_1, _F64_2, _F64_3, _I32_2, _I32_3 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2, linalg.I32_3
+_I32_1 = linalg.I32_1
 
 SCRATCH_COLUMNS = 14
 """Per-hinge scratch: ``[theta, f_h, dtheta/dx (12)]``."""
@@ -162,15 +163,15 @@ def kirchhoff_energy_gradient_hessian(
 @fast_kernel
 def kirchhoff_triangle_hessians(
     x: _F64_2, hinges: _I32_2, theta_bar: _F64_1, tri_hinge: _I32_2, tri_local: _I32_3, stiffness: _F64_3,
-    scratch: _F64_2, blocks: _F64_3,
+    scratch: _F64_2, rows: _I32_1, count: ti.i32, blocks: _F64_3,
 ):
-    """The exact per-triangle Hessian blocks (N/m) of the reference, ``blocks`` (t, 18, 18) over the
-    triangle's block vertices::
+    """The exact per-triangle Hessian blocks (N/m) of the reference, ``blocks[t]`` (18, 18) over the
+    triangle's block vertices, for the triangles ``t = rows[r]``, ``r < count`` (the other blocks left as they are)::
 
         H_T = 2 G_T^T M_T G_T + sum_{k: edge k has hinge h} 2 (M_T d_T)_k d2theta_h/dx2
 
     (the reference's split of the Hessian between triangles; the fused kernel above sums the same
-    terms per hinge). ``scratch`` (h, 14) is overwritten.
+    terms per hinge). ``scratch`` (h, 14) is overwritten (every hinge's angle and gradient).
     """
     ti.loop_config(serialize=ti.static(serial_loops()))
     for h in range(hinges.shape[0]):
@@ -180,7 +181,8 @@ def kirchhoff_triangle_hessians(
         for r in ti.static(range(12)):
             scratch[h, 2 + r] = g[r]
     ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
-    for t in range(tri_hinge.shape[0]):
+    for r_t in range(count):
+        t = rows[r_t]
         d = _triangle_deviation(scratch, theta_bar, tri_hinge, t)
         M = ti.Matrix.zero(ti.f64, 3, 3)
         for k, l in ti.static(ti.ndrange(3, 3)):
@@ -338,20 +340,22 @@ class FusedKirchhoffBending:
         if self._hinges.shape[0] == 0:
             self._blocks[:] = 0.0
             return self._blocks
-        blocks = self._triangle_hessians_where_run(x)
+        blocks = self._triangle_hessians_where_run(x, marked_rows(self.vertices, None))
         if blocks is not self._blocks:
             self._blocks[...] = blocks.to_numpy()
         return self._blocks
 
-    def _triangle_hessians_where_run(self, x: np.ndarray):
-        """The blocks of :meth:`triangle_hessians` in the array the kernel wrote: on CUDA a device array
-        (the constant arrays kept there, :func:`~sim_core.ti_kernels.buffers.on_device`), else the kept buffer."""
+    def _triangle_hessians_where_run(self, x: np.ndarray, rows: np.ndarray):
+        """The blocks of :meth:`triangle_hessians` of the triangles ``rows`` (int32 ``(c,)``; the other blocks left
+        as they are) in the array the kernel wrote: on CUDA a device array (the constant arrays kept there,
+        :func:`~sim_core.ti_kernels.buffers.on_device`), else the kept buffer."""
         d = self._device
         blocks = on_device(d, "blocks", self._blocks, scratch=True)
         kirchhoff_triangle_hessians(x, on_device(d, "hinges", self._hinges), on_device(d, "theta_bar", self._theta_bar),
                                     on_device(d, "tri_hinge", self._tri_hinge), on_device(d, "tri_local", self._tri_local),
                                     on_device(d, "stiffness", self._stiffness),
-                                    on_device(d, "scratch", self._scratch, scratch=True), blocks)
+                                    on_device(d, "scratch", self._scratch, scratch=True),
+                                    rows_on_device(d, "triangle_rows", rows), rows.size, blocks)
         return blocks
 
     projects_subsets = True
@@ -377,13 +381,15 @@ class FusedKirchhoffBending:
             blocks, slots = blocks[rows], slots[rows]
         self._projector.add_projected(blocks, projection, slots, values)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """:meth:`add_projected` by kernels where they run (on CUDA the device; on the CPU arch the same kernels on
         host arrays), into ``values`` there (``(pattern.keys.size,)``, a device array on CUDA): the triangles'
-        exact blocks (:func:`kirchhoff_triangle_hessians`) reduced, projected and scattered through the packed
-        upper slot table of the exact Hessian
+        exact blocks (:func:`kirchhoff_triangle_hessians`, of the triangles added only) reduced, projected and
+        scattered through the packed upper slot table of the exact Hessian
         (:meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows`), nothing
-        crossing to the host. The sums equal the host path's to round-off.
+        crossing to the host. The sums equal the host path's to round-off. ``closed``: ``vertices`` closed under the
+        triangles' stencils (:func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             ValueError: unknown projection.
@@ -391,7 +397,7 @@ class FusedKirchhoffBending:
         linalg.projection_code(projection)
         if self._hinges.shape[0] == 0:
             return
-        blocks = self._triangle_hessians_where_run(x)
-        rows = marked_rows(self.vertices, vertices)
+        rows = marked_rows(self.vertices, vertices, closed)
+        blocks = self._triangle_hessians_where_run(x, rows)  # the blocks of the triangles projected only
         self._projector.add_projected_rows(blocks, projection, on_device(self._device, "tri_upper", self._tri_upper),
                                            rows, values)

@@ -39,7 +39,7 @@ import numpy as np
 from sim_core.energies.membrane.reference import SpringMembrane
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
-from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.buffers import on_device, rows_on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import fast_kernel, summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
@@ -49,6 +49,7 @@ from sim_core.ti_kernels.block_projection import (
 )
 
 _F64_1, _F64_2, _F64_3, _I32_2 = linalg.F64_1, linalg.F64_2, linalg.F64_3, linalg.I32_2
+_I32_1 = linalg.I32_1
 
 
 @ti.func
@@ -191,10 +192,13 @@ def spring_membrane_projected_edges(
 
 
 @fast_kernel
-def spring_membrane_triangle_blocks(x: _F64_2, triangles: _I32_2, area0: _F64_1, k_area: ti.f64, blocks: _F64_3):
-    """The exact 9x9 area blocks (N/m) of the triangles into ``blocks`` ``(t, 9, 9)`` (local DoF ``3 a + c``)."""
+def spring_membrane_triangle_blocks(x: _F64_2, triangles: _I32_2, area0: _F64_1, k_area: ti.f64, rows: _I32_1,
+                                    count: ti.i32, blocks: _F64_3):
+    """The exact 9x9 area blocks (N/m) of the triangles ``t = rows[r]``, ``r < count``, into ``blocks[t]`` (local DoF
+    ``3 a + c``; the other blocks left as they are)."""
     ti.loop_config(serialize=ti.static(serial_loops()))
-    for t in range(triangles.shape[0]):
+    for r in range(count):
+        t = rows[r]
         A, g1, g2, n_norm, K, W, dA = _triangle_terms(x, triangles, area0, k_area, t)
         for a in ti.static(range(3)):
             for b in ti.static(range(a, 3)):
@@ -315,10 +319,10 @@ class FusedSpringMembrane(BoundSlotTables):
         if t_count:
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
-            spring_membrane_triangle_blocks(x, self._triangles, self._area0, p.k_area, self._blocks)
+            rows = marked_rows(self._triangles, vertices)
+            spring_membrane_triangle_blocks(x, self._triangles, self._area0, p.k_area, rows, rows.size, self._blocks)
             blocks, slots = self._blocks, self._slots[:t_count]
             if vertices is not None:
-                rows = marked_rows(self._triangles, vertices)
                 blocks, slots = blocks[rows], slots[rows]
             self._projector.add_projected(blocks, projection, slots, values)
         if self._edges.shape[0]:
@@ -337,13 +341,16 @@ class FusedSpringMembrane(BoundSlotTables):
         """
         add_projected_where_run(self, x, projection, values, vertices)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """The projected blocks added into ``values`` ``(pattern.keys.size,)`` where the kernels run (on CUDA a device
         array; on the CPU arch the same kernels on host arrays): the triangles' exact blocks
         (:func:`spring_membrane_triangle_blocks`) reduced, projected by the Jacobi kernel and scattered through the
         packed upper slot table by
         :meth:`~sim_core.ti_kernels.block_projection.TranslationFreeProjector.add_projected_rows` (with ``vertices``
-        the triangles touching a marked vertex), the edges' closed form (:func:`spring_membrane_projected_edges`).
+        the triangles touching a marked vertex, whose blocks alone are made; ``closed``: ``vertices`` closed under the
+        triangles, :func:`~sim_core.ti_kernels.block_projection.marked_rows`), the edges' closed form
+        (:func:`spring_membrane_projected_edges`).
 
         Raises:
             ValueError: unknown projection.
@@ -357,9 +364,10 @@ class FusedSpringMembrane(BoundSlotTables):
             if self._blocks is None:
                 self._blocks = np.zeros((t_count, 9, 9))
             blocks = on_device(d, "blocks", self._blocks, scratch=True)
+            rows = marked_rows(self._triangles, vertices, closed)  # the blocks of these triangles made only
             spring_membrane_triangle_blocks(x, on_device(d, "triangles", self._triangles),
-                                            on_device(d, "area0", self._area0), p.k_area, blocks)
-            rows = marked_rows(self._triangles, vertices)
+                                            on_device(d, "area0", self._area0), p.k_area,
+                                            rows_on_device(d, "triangle_rows", rows), rows.size, blocks)
             self._projector.add_projected_rows(blocks, projection, upper, rows, values)
         if self._edges.shape[0]:
             spring_membrane_projected_edges(x, on_device(d, "edges", self._edges), on_device(d, "length0", self._length0),

@@ -29,14 +29,14 @@ slots are then in element order, so results are bitwise reproducible run to run.
 
 import numpy as np
 
-from sim_core.energies.neohookean.kernel import evaluate_snh_hessian
+from sim_core.energies.neohookean.kernel import evaluate_snh_hessian, evaluate_snh_hessian_rows
 from sim_core.energies.neohookean.reference import StableNeoHookean
 from sim_core.ti_backend import current_arch, require_backend, serial_loops, ti
 from sim_core.ti_kernels import linalg
 from sim_core.ti_kernels.block_projection import (add_block_rows, add_blocks, add_projected_where_run,
                                                   add_upper_block_rows, add_upper_entry, BoundSlotTables,
                                                   marked_rows, upper_index)
-from sim_core.ti_kernels.buffers import on_device
+from sim_core.ti_kernels.buffers import on_device, rows_on_device
 from sim_core.ti_kernels.copy_vectors import copy_energies, element_copies
 from sim_core.ti_kernels.launch import summing_kernel
 from sim_core.ti_kernels.linalg import projection_code
@@ -309,12 +309,15 @@ class FusedStableNeoHookean(BoundSlotTables):
             rows = marked_rows(self._tets, vertices)
             add_block_rows(blocks, self._slots, rows, rows.size, values)
 
-    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None) -> None:
+    def add_projected_on_device(self, x, projection: str, values, vertices: np.ndarray | None = None,
+                                closed: bool = False) -> None:
         """The projected blocks of :meth:`add_projected` made and added into ``values`` ``(pattern.keys.size,)`` where
         the kernels run (on CUDA a device array; on the CPU arch the same kernels on host arrays) through the
         packed upper slot table of the exact Hessian (:func:`~sim_core.ti_kernels.block_projection.
         add_upper_block_rows`: the blocks are symmetric bit for bit, so the sums are the full slot map's); with
-        ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex.
+        ``vertices`` (bool ``(n,)``) only the tets touching a marked vertex, whose blocks alone are made
+        (:func:`~sim_core.energies.neohookean.kernel.evaluate_snh_hessian_rows`; ``closed``: ``vertices`` closed under
+        the tets, :func:`~sim_core.ti_kernels.block_projection.marked_rows`).
 
         Raises:
             ValueError: unknown projection.
@@ -322,15 +325,16 @@ class FusedStableNeoHookean(BoundSlotTables):
         code = projection_code(projection)
         if self._tets.shape[0] == 0:
             return
+        rows = marked_rows(self._tets, vertices, closed)  # with vertices: the tets touching a marked vertex
+        if rows.size == 0:
+            return
         p = self.potential
         d = self._device
         blocks = on_device(d, "blocks", self._block_buffer(), scratch=True)
-        evaluate_snh_hessian(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
-                             on_device(d, "vol", self._vol), p.mu, p.lam, code, blocks)
-        rows = marked_rows(self._tets, vertices)  # with vertices: the tets touching a marked vertex
-        if rows.size:
-            add_upper_block_rows(blocks, on_device(d, "upper", self._upper), on_device(d, "rows", rows), rows.size,
-                                 values)
+        rows_dev = rows_on_device(d, "rows", rows)
+        evaluate_snh_hessian_rows(x, on_device(d, "tets", self._tets), on_device(d, "dFdx", self._dFdx),
+                                  on_device(d, "vol", self._vol), p.mu, p.lam, code, rows_dev, rows.size, blocks)
+        add_upper_block_rows(blocks, on_device(d, "upper", self._upper), rows_dev, rows.size, values)
 
     def _block_buffer(self) -> np.ndarray:
         """The kept host array of the tets' projected blocks ``(t, 12, 12)`` (allocated at its first use; on CUDA only

@@ -129,68 +129,89 @@ def evaluate_snh_gradient(
                 ti.atomic_add(grad[v, i], vol[t] * acc)
 
 
+@ti.func
+def _snh_projected_block(x: ti.template(), tets: ti.template(), dFdx: ti.template(), vol: ti.template(), mu: ti.f64,
+                         lam: ti.f64, code: ti.i32, t: ti.i32, blocks: ti.template()):
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) of tet ``t`` from the analytic eigensystem."""
+    alpha = 1.0 + 0.75 * mu / lam
+    F = _tet_deformation_gradient(x, tets, dFdx, t)
+    U, sigma, V = _rotation_variant_svd(F)
+    I_C = sigma.dot(sigma)
+    J = sigma[0] * sigma[1] * sigma[2]
+    mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
+    stretch = lam * (J - alpha)
+    dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
+    S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
+    for i in ti.static(range(3)):
+        S[i, i] += mu_t
+    # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
+    S[1, 2] += stretch * sigma[0]
+    S[2, 1] += stretch * sigma[0]
+    S[2, 0] += stretch * sigma[1]
+    S[0, 2] += stretch * sigma[1]
+    S[0, 1] += stretch * sigma[2]
+    S[1, 0] += stretch * sigma[2]
+    Z = ti.Matrix.zero(ti.f64, 3, 3)
+    jacobi_eigh(S, Z)
+    # h[a, :] = V^T g_a with g_a = dFdx[t, a]
+    h = ti.Matrix.zero(ti.f64, 4, 3)
+    for a in ti.static(range(4)):
+        for i in ti.static(range(3)):
+            acc = 0.0
+            for j in ti.static(range(3)):
+                acc += V[j, i] * dFdx[t, a, j]
+            h[a, i] = acc
+    Y = ti.Matrix.zero(ti.f64, 12, 9)  # column m: (dvecF/dx)^T q_m
+    w = ti.Vector.zero(ti.f64, 9)
+    for m in ti.static(range(3)):
+        w[m] = filter_eigenvalue(S[m, m], code)
+        for a in ti.static(range(4)):
+            for c in ti.static(range(3)):
+                Y[3 * a + c, m] = (Z[0, m] * U[c, 0] * h[a, 0] + Z[1, m] * U[c, 1] * h[a, 1]
+                                   + Z[2, m] * U[c, 2] * h[a, 2])
+    for k in ti.static(range(3)):
+        i = ti.static((1, 2, 0)[k])
+        j = ti.static((2, 0, 1)[k])
+        w[3 + k] = filter_eigenvalue(mu_t + stretch * sigma[k], code)
+        w[6 + k] = filter_eigenvalue(mu_t - stretch * sigma[k], code)
+        for a in ti.static(range(4)):
+            for c in ti.static(range(3)):
+                p = U[c, i] * h[a, j]
+                q = U[c, j] * h[a, i]
+                Y[3 * a + c, 3 + k] = _INV_SQRT2 * (p - q)
+                Y[3 * a + c, 6 + k] = _INV_SQRT2 * (p + q)
+    for r in range(12):
+        for s in range(r, 12):
+            acc = 0.0
+            for m in ti.static(range(9)):
+                acc += Y[r, m] * w[m] * Y[s, m]
+            acc *= vol[t]
+            blocks[t, r, s] = acc
+            blocks[t, s, r] = acc
+
+
 @fast_kernel
 def evaluate_snh_hessian(
     x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
     mu: ti.f64, lam: ti.f64, code: ti.i32, blocks: ti.types.ndarray(),
 ):
-    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) from the analytic eigensystem."""
-    alpha = 1.0 + 0.75 * mu / lam
+    """``blocks[t] = V_t sum_m f(w_m) y_m y_m^T`` (12x12, N/m) from the analytic eigensystem, every tet."""
     ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
     for t in range(tets.shape[0]):
-        F = _tet_deformation_gradient(x, tets, dFdx, t)
-        U, sigma, V = _rotation_variant_svd(F)
-        I_C = sigma.dot(sigma)
-        J = sigma[0] * sigma[1] * sigma[2]
-        mu_t = mu * (1.0 - 1.0 / (I_C + 1.0))
-        stretch = lam * (J - alpha)
-        dJ = ti.Vector([sigma[1] * sigma[2], sigma[2] * sigma[0], sigma[0] * sigma[1]])
-        S = (2.0 * mu / (I_C + 1.0) ** 2) * sigma.outer_product(sigma) + lam * dJ.outer_product(dJ)
-        for i in ti.static(range(3)):
-            S[i, i] += mu_t
-        # pairs (i, j) of the twist/flip modes; the third index c: (1, 2) -> 0, (2, 0) -> 1, (0, 1) -> 2
-        S[1, 2] += stretch * sigma[0]
-        S[2, 1] += stretch * sigma[0]
-        S[2, 0] += stretch * sigma[1]
-        S[0, 2] += stretch * sigma[1]
-        S[0, 1] += stretch * sigma[2]
-        S[1, 0] += stretch * sigma[2]
-        Z = ti.Matrix.zero(ti.f64, 3, 3)
-        jacobi_eigh(S, Z)
-        # h[a, :] = V^T g_a with g_a = dFdx[t, a]
-        h = ti.Matrix.zero(ti.f64, 4, 3)
-        for a in ti.static(range(4)):
-            for i in ti.static(range(3)):
-                acc = 0.0
-                for j in ti.static(range(3)):
-                    acc += V[j, i] * dFdx[t, a, j]
-                h[a, i] = acc
-        Y = ti.Matrix.zero(ti.f64, 12, 9)  # column m: (dvecF/dx)^T q_m
-        w = ti.Vector.zero(ti.f64, 9)
-        for m in ti.static(range(3)):
-            w[m] = filter_eigenvalue(S[m, m], code)
-            for a in ti.static(range(4)):
-                for c in ti.static(range(3)):
-                    Y[3 * a + c, m] = Z[0, m] * U[c, 0] * h[a, 0] + Z[1, m] * U[c, 1] * h[a, 1] + Z[2, m] * U[c, 2] * h[a, 2]
-        for k in ti.static(range(3)):
-            i = ti.static((1, 2, 0)[k])
-            j = ti.static((2, 0, 1)[k])
-            w[3 + k] = filter_eigenvalue(mu_t + stretch * sigma[k], code)
-            w[6 + k] = filter_eigenvalue(mu_t - stretch * sigma[k], code)
-            for a in ti.static(range(4)):
-                for c in ti.static(range(3)):
-                    p = U[c, i] * h[a, j]
-                    q = U[c, j] * h[a, i]
-                    Y[3 * a + c, 3 + k] = _INV_SQRT2 * (p - q)
-                    Y[3 * a + c, 6 + k] = _INV_SQRT2 * (p + q)
-        for r in range(12):
-            for s in range(r, 12):
-                acc = 0.0
-                for m in ti.static(range(9)):
-                    acc += Y[r, m] * w[m] * Y[s, m]
-                acc *= vol[t]
-                blocks[t, r, s] = acc
-                blocks[t, s, r] = acc
+        _snh_projected_block(x, tets, dFdx, vol, mu, lam, code, t, blocks)
+
+
+@fast_kernel
+def evaluate_snh_hessian_rows(
+    x: ti.types.ndarray(), tets: ti.types.ndarray(), dFdx: ti.types.ndarray(), vol: ti.types.ndarray(),
+    mu: ti.f64, lam: ti.f64, code: ti.i32, rows: ti.types.ndarray(dtype=ti.i32, ndim=1), count: ti.i32,
+    blocks: ti.types.ndarray(),
+):
+    """:func:`evaluate_snh_hessian` of the tets ``t = rows[r]``, ``r < count`` only (the other blocks left as they
+    are): the blocks a projection of some copies' tets adds."""
+    ti.loop_config(serialize=ti.static(serial_loops()))  # CPU: serial (a forked replay worker hangs in a parallel loop)
+    for r in range(count):
+        _snh_projected_block(x, tets, dFdx, vol, mu, lam, code, rows[r], blocks)
 
 
 class TiStableNeoHookean(StableNeoHookean):

@@ -211,6 +211,49 @@ def test_a_block_that_is_not_positive_definite_is_reported_and_left_out(ti_cpu):
     assert np.all(z[dofs[2][dofs[2] >= 0]] == 0.0) and np.all(z[dofs[0]] != 0.0)
 
 
+def test_a_selection_of_copies_factorises_their_blocks_alone_to_the_bit(ti_cpu):
+    """``assemble(..., copies=)`` (a lockstep retry's copies): the selected copies' blocks are applied bit for bit as
+    when every block is factorised, the others are not usable (their DoFs left by ``apply``); without a selection
+    every block is factorised again. The blocks' values change between the assemblies (a matrix not positive
+    definite at the unselected block is never factorised)."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import device_copy
+    from sim_core.ti_kernels.band_cholesky import BandBlocks
+
+    a, dofs, seg, _ = _system(4)
+    n = a.shape[0]
+    bands = BandBlocks(dofs, seg)
+    indptr, indices, data = _operator(a)
+    key = object()
+    r_dev, z_dev, active = (device_copy.new_ndarray(ti.f64, (n,)), device_copy.new_ndarray(ti.f64, (n,)),
+                            device_copy.new_ndarray(ti.i32, (3,)))
+    r_dev.from_numpy(np.random.default_rng(2).normal(size=n))
+    active.from_numpy(np.ones(3, np.int32))
+
+    def applied(copies, values) -> np.ndarray:
+        data.from_numpy(values)
+        assert bands.assemble(indptr, indices, data, None, key, copies=copies)
+        z_dev.from_numpy(np.full(n, 7.0))
+        bands.apply(r_dev, z_dev, active)
+        return z_dev.to_numpy()
+
+    every = applied(None, a.data)
+    assert bands.usable.all()
+    broken = a.tolil()
+    for k in dofs[1][dofs[1] >= 0]:
+        broken[k, k] = -50.0  # copy 1's block indefinite: left out of the selection, never factorised
+    broken = broken.tocsr()
+    assert np.array_equal(broken.indices, a.indices)
+    some = applied(np.array([True, False, True]), broken.data)
+    assert list(bands.usable) == [True, False, True]
+    for c in (0, 2):
+        d = dofs[c][dofs[c] >= 0]
+        np.testing.assert_array_equal(some[d], every[d])
+    np.testing.assert_array_equal(some[dofs[1]], 7.0)
+    np.testing.assert_array_equal(applied(None, a.data), every)
+    assert bands.usable.all()
+
+
 def test_a_band_wider_than_the_limit_is_not_used(ti_cpu):
     from sim_core.ti_kernels.band_cholesky import BandBlocks
 

@@ -331,9 +331,55 @@ def test_spring_membrane_projection_by_kernels_adds_what_the_host_path_adds(ti_c
         assert np.abs(exact - want).max() > 1e-6 * np.abs(want).max()
 
 
+@pytest.mark.parametrize("kind", ("snh", "spring_membrane", "kirchhoff"))
+def test_the_blocks_of_listed_elements_are_the_whole_evaluations_to_the_bit(ti_cpu, kind):
+    """The fused parts' block kernels over listed rows (a lockstep retry's marked elements: the Neo-Hookean
+    projected blocks, the spring membrane's and Kirchhoff bending's exact triangle blocks) write each listed block bit
+    for bit as the evaluation of every element does, and leave the other blocks as they were."""
+    from sim_core.energies.kirchhoff_bending.fused_kernel import FusedKirchhoffBending, kirchhoff_triangle_hessians
+    from sim_core.energies.membrane.fused_spring_kernel import FusedSpringMembrane, spring_membrane_triangle_blocks
+    from sim_core.energies.neohookean.fused_kernel import FusedStableNeoHookean
+    from sim_core.energies.neohookean.kernel import evaluate_snh_hessian, evaluate_snh_hessian_rows
+
+    pot, x_rest, deformed = _potentials(kind)
+    fused, _ = _fused(pot, x_rest, np.ones(x_rest.size, bool))
+    x = np.ascontiguousarray(deformed(5))
+    part = {"snh": FusedStableNeoHookean, "spring_membrane": FusedSpringMembrane,
+            "kirchhoff": FusedKirchhoffBending}[kind](pot)
+    part.bind(fused.pattern)
+    if kind == "snh":
+        k, m = part._tets.shape[0], 12
+
+        def blocks_of(rows, out):
+            evaluate_snh_hessian_rows(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, rows, rows.size, out)
+    elif kind == "spring_membrane":
+        k, m = part._triangles.shape[0], 9
+
+        def blocks_of(rows, out):
+            spring_membrane_triangle_blocks(x, part._triangles, part._area0, pot.k_area, rows, rows.size, out)
+    else:
+        k, m = part._tri_hinge.shape[0], 18
+
+        def blocks_of(rows, out):
+            kirchhoff_triangle_hessians(x, part._hinges, part._theta_bar, part._tri_hinge, part._tri_local,
+                                        part._stiffness, np.zeros_like(part._scratch), rows, rows.size, out)
+    whole = np.zeros((k, m, m))
+    blocks_of(np.arange(k, dtype=np.int32), whole)
+    if kind == "snh":
+        every = np.zeros((k, m, m))
+        evaluate_snh_hessian(x, part._tets, part._dFdx, part._vol, pot.mu, pot.lam, 1, every)
+        np.testing.assert_array_equal(whole, every)
+    rows = np.flatnonzero(np.random.default_rng(1).random(k) < 0.4).astype(np.int32)
+    assert 0 < rows.size < k and np.abs(whole).max() > 0.0
+    got = np.full(whole.shape, 7.0)
+    blocks_of(rows, got)
+    np.testing.assert_array_equal(got[rows], whole[rows])
+    np.testing.assert_array_equal(got[np.setdiff1d(np.arange(k), rows)], 7.0)
+
+
 def test_marked_rows_are_the_elements_touching_a_marked_vertex():
     """``marked_rows``: the rows with any vertex marked (a mask not closed under the elements too), increasing int32;
-    every row without a mask."""
+    every row without a mask; a mask closed under the elements gives the same rows by the first vertex alone."""
     from sim_core.ti_kernels.block_projection import marked_rows
 
     rng = np.random.default_rng(5)
@@ -347,3 +393,11 @@ def test_marked_rows_are_the_elements_touching_a_marked_vertex():
         np.testing.assert_array_equal(got, np.flatnonzero([mask[e].any() for e in elements]))
         np.testing.assert_array_equal(marked_rows(elements, None), np.arange(500))
         assert marked_rows(elements[:0], mask).size == 0
+    # a mask closed under the elements (whole copies of 20 vertices, each element within one copy): by the first
+    # vertex alone, the same rows
+    copy_of = rng.integers(0, 10, size=500)
+    elements = (20 * copy_of[:, None] + rng.integers(0, 20, size=(500, 4))).astype(np.int32)
+    mask = np.repeat(rng.random(10) < 0.4, 20)
+    want = marked_rows(elements, mask)
+    assert 0 < want.size < 500
+    np.testing.assert_array_equal(marked_rows(elements, mask, closed=True), want)

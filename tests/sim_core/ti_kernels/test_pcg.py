@@ -243,3 +243,50 @@ def test_pcg_needs_a_taichi_backend():
 
     with pytest.raises(ConfigError, match="pcg"):
         SolverConfig(linear_solver="pcg")
+
+
+def test_a_retry_of_some_copies_factorises_their_band_blocks_alone_with_the_same_steps(ti_cpu, monkeypatch):
+    """A lockstep batch whose projected retries take some of its copies only (the pad batch's first two steps: one,
+    two or three of the three copies): each retry factorises the band blocks of its copies alone
+    (``BatchedPCG.factorize(..., copies=)``), and the steps equal those with every copy's band blocks factorised at every retry (the same Newton iterations copy by
+    copy, positions to the CPU arch's parallel round-off; the batch against each copy's separate run with these
+    retries: :func:`test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs`)."""
+    from sim_core.ti_kernels.band_cholesky import BandBlocks
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    model = pad_model()
+    steps = 2
+    selections = []
+    factorize = BatchedPCG.factorize
+
+    def recorded(self, upper, blocks=None, diagonal=None, copies=None):
+        selections.append(None if copies is None else np.array(copies))
+        return factorize(self, upper, blocks, diagonal, copies)
+
+    monkeypatch.setattr(BatchedPCG, "factorize", recorded)
+
+    def run() -> tuple[list, list]:
+        batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
+                                             solver_config=SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True,
+                                                                        linear_solver="pcg"))
+        pose0 = batch.states[0].effector_pose["pad"].copy()
+        states, iterations = [], []
+        for k in range(steps):
+            res = batch.step([control(pose0, MOTIONS[i], k) for i in range(3)])
+            assert res.failed_now == []
+            states.append([s.x.copy() for s in batch.states])
+            iterations.append([info.iterations for info in res.infos])
+        return states, iterations
+
+    states, iterations = run()
+    some = [c for c in selections if c is not None]
+    assert any(0 < c.sum() < c.size for c in some)  # retries of some copies only
+    selections.clear()
+    select = BandBlocks.select
+    monkeypatch.setattr(BandBlocks, "select", lambda self, copies: select(self, None))  # every block each time
+    every, every_iterations = run()
+    assert any(c is not None for c in selections)
+    assert iterations == every_iterations
+    for k in range(steps):
+        for i in range(3):
+            assert np.max(np.abs(states[k][i] - every[k][i])) <= 1e-9, (k, i)
