@@ -248,9 +248,10 @@ def test_pcg_needs_a_taichi_backend():
 def test_a_retry_of_some_copies_factorises_their_band_blocks_alone_with_the_same_steps(ti_cpu, monkeypatch):
     """A lockstep batch whose projected retries take some of its copies only (the pad batch's first two steps: one,
     two or three of the three copies): each retry factorises the band blocks of its copies alone
-    (``BatchedPCG.factorize(..., copies=)``), and the steps equal those with every copy's band blocks factorised at every retry (the same Newton iterations copy by
-    copy, positions to the CPU arch's parallel round-off; the batch against each copy's separate run with these
-    retries: :func:`test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs`)."""
+    (``BatchedPCG.factorize(..., copies=)``), and the steps equal those with every copy's band blocks factorised at
+    every retry (the same Newton iterations copy by copy, positions to the CPU arch's parallel round-off; the batch
+    against each copy's separate run with these retries:
+    :func:`test_lockstep_batch_with_the_conjugate_gradient_gives_the_separate_runs`)."""
     from sim_core.ti_kernels.band_cholesky import BandBlocks
     from sim_core.ti_kernels.pcg import BatchedPCG
 
