@@ -9,7 +9,11 @@
 #                                                # colorama, dill, and cma for `thinshell optimise`)
 #                                                # into WHEELS (default .gpu_wheels/, ignored by git;
 #                                                # 56.8 MB, so that the carried total of
-#                                                # the device tool, 64 MiB, also holds the repository)
+#                                                # the device tool, 64 MiB, also holds the repository;
+#                                                # the tracked tree is ~10 MB in 4 KiB blocks, so the
+#                                                # whole folder no longer fits beside it: carry a folder
+#                                                # of the Taichi, dill and colorama wheels alone (56.4 MB)
+#                                                # unless a part runs `thinshell optimise`)
 #   benchmarks/device_cuda.sh run [WHEELS]       # on the GPU machine, from the repository root,
 #                                                # with WHEELS carried: install them into /tmp/site,
 #                                                # then run the benchmarks below
