@@ -387,8 +387,8 @@ class ContactSet:
         does not cover the segment's first halving ``h = (segment_start + x) / 2`` (:meth:`covers`; then the
         whole segment from ``h`` to ``x``, the test being convex along it), the search is made ahead of the point
         ``3/4`` of the way instead, if its list covers ``x``: one search then serves a backtracked trial too, where
-        the position ahead of ``x`` would need a second one (Forming lockstep, B = 8, steps 8-13 of 16: two
-        searches a step -> one; the same states bit for bit: a pair beyond ``eps`` adds exact zeros).
+        the position ahead of ``x`` would need a second one. The states are those of any other covering position
+        bit for bit: a listed pair beyond ``eps`` adds exact zeros.
         """
         x = np.asarray(x, dtype=float)
         ahead = self._ahead_of(x)

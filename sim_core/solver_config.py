@@ -146,11 +146,9 @@ class SolverConfig:
             ``taichi-cuda``): ``"mixed"`` (default) keeps its operator's values and its preconditioner as float32 on
             the device, its vectors, sums and factorisations float64 (:mod:`sim_core.ti_kernels.precision`);
             ``"double"`` everything float64. Its solves stop at the relative residual ``LOCKSTEP_CG_RTOL`` (1e-4),
-            far above float32's rounding: on the CPU arch the Newton iterations are double's copy by copy and step
-            by step, the states within 1.1e-8 m of double's (Forming, 8 copies, 5 steps; Folding-U, 4 copies, 20
-            steps), a fiftieth of the Newton tolerance, with 0.3-0.6 more CG iterations a solve; on an H100 at
-            1024 Forming copies a CG iteration 0.97 -> 0.81 ms and the steady step +4 % with the same Newton
-            iterations (docs/benchmarks_log.md, session 47, 28f32). Other solvers ignore it.
+            far above float32's rounding, so a solve meets that tolerance as in ``"double"`` and a lockstep batch's
+            copies give their separate runs' states (tests: ``tests/sim_core/ti_kernels/test_pcg.py``). Other
+            solvers ignore it.
     """
 
     tol_velocity: float = 1e-4
