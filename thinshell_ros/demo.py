@@ -553,7 +553,8 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     console.print(f"  summary:       {run / 'demo.json'}")
     console.print(f"  wall time:     {result.timings['total_s']:.1f} s "
                   f"(robot {result.timings.get('sim_start_s', 0) + result.timings.get('motion_s', 0):.1f} s, "
-                  f"sysid {result.timings.get('sysid_s', 0):.1f} s, deploy {result.timings.get('deploy_s', 0):.1f} s, "
+                  + (f"diagnose {result.timings['diagnose_s']:.1f} s, " if "diagnose_s" in result.timings else "")
+                  + f"sysid {result.timings.get('sysid_s', 0):.1f} s, deploy {result.timings.get('deploy_s', 0):.1f} s, "
                   f"compare {result.timings.get('compare_s', 0):.1f} s, task "
                   f"{sum(v for k, v in result.timings.items() if k.startswith('task_')):.1f} s)")
     return result
