@@ -3,7 +3,8 @@
 Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
-                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
+                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S]
+                        [--robust hac|block_bootstrap|none] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
@@ -23,6 +24,7 @@ from typing import Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
+from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.replay_batch import batch_size_arg
@@ -78,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "--cold-start the fit is the serial one (to 3e-9 sigma on the bundled bag)")
     p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
                    help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
+    p.add_argument("--robust", choices=(*ROBUST_METHODS, "none"), default=DEFAULT_ROBUST_METHOD,
+                   help="uncertainty reported beside the Gauss-Newton sigma, valid when the model does not follow "
+                        "the recording exactly (sysid.covariance): hac = Newey-West sandwich over the residuals' "
+                        "time correlation, block_bootstrap = moving-block bootstrap over time windows; none: off "
+                        "(default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibrate", action="store_true",
                    help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
@@ -184,7 +191,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
-                      workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size)
+                      workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
+                      robust=None if args.robust == "none" else args.robust)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -208,10 +216,14 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     result = outcome.result
     if outcome.scene is not None:
         print(f"fitted scene: {outcome.scene}")
+    print(f"  replayed at dt = {result.dt:g} s ({result.step_count} steps)")
+    method = result.robust.method if result.robust is not None else None
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
+        sr = (result.sigma_robust or {}).get(name)
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
-              + (f" +- {s:.3g}" if s is not None else ""))
+              + (f" +- {s:.3g} (Gauss-Newton)" if s is not None else "")
+              + (f" +- {sr:.3g} ({method})" if sr is not None else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
     print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "

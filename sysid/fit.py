@@ -20,7 +20,11 @@ Uncertainty: Gauss-Newton covariance ``Cov(u) = (J^T W J)^-1 = (J_r^T J_r)^-1`` 
 (``J_r`` the Jacobian of the whitened residual); 1-sigma of a log parameter is ``theta sigma_u``
 (first order) and the correlation matrix is the same in both coordinates. It assumes white noise
 of the estimated level and a correct model; ``reduced_chi2`` > 1 says by how much that fails, and
-``sigma_scaled = sigma sqrt(reduced_chi2)`` is the usual inflated estimate.
+``sigma_scaled = sigma sqrt(reduced_chi2)`` is the usual inflated estimate. Beside it the fit reports
+a robust covariance (:mod:`sysid.covariance`, ``robust="hac"`` by default: the Newey-West sandwich
+``H^-1 S H^-1`` with the residuals' time correlation; or ``"block_bootstrap"``), whose sigma
+(``sigma_robust``) holds when the residual is a structured, time-correlated model misfit rather
+than white noise.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from scipy.optimize import least_squares
 from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
+from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -416,6 +421,9 @@ class FitResult:
         model: the observation model (not serialised).
         sigma_scale: channel -> the factor on its noise level in the fit's residual
             (``reweight_channels``), or None.
+        sigma_robust: 1-sigma per parameter in its units from :attr:`robust` (None when not computed).
+        robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
+            method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
     """
 
     names: tuple[str, ...]
@@ -452,6 +460,8 @@ class FitResult:
     warnings: list[str] = field(default_factory=list)
     model: ObservationModel | None = None
     sigma_scale: dict[str, float] | None = None
+    sigma_robust: dict[str, float] | None = None
+    robust: RobustCovariance | None = None
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -547,7 +557,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
-        batch_size: int | str | None = None) -> FitResult:
+        batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -612,6 +622,10 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         batched, batch_size: replay each finite-difference Jacobian's columns and each global population as
             one batch of scene copies stepped together (:class:`FitProblem`); they start cold, so with
             ``warm_start=False`` the fit is the serial one to the Newton tolerance.
+        robust: covariance that holds under model error, reported beside the Gauss-Newton one
+            (:data:`sysid.covariance.ROBUST_METHODS`: ``"hac"``, the Newey-West sandwich with the
+            residuals' time correlation, default; ``"block_bootstrap"``; None: none). Computed from
+            the Jacobian and residual at the optimum: no extra replay.
 
     Returns:
         the :class:`FitResult`.
@@ -635,6 +649,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     joint = getattr(provider, "joint", None)
     if max_replays is not None and not max_replays >= 1:
         raise ConfigError(f"max_replays must be >= 1, got {max_replays!r}")
+    if robust is not None and robust not in ROBUST_METHODS:
+        raise ConfigError(f"unknown robust covariance method {robust!r} (choose from {', '.join(ROBUST_METHODS)})")
     if max_replays is not None and max_replays < 2:
         joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
@@ -759,6 +775,15 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         notes.append(f"covariance: {jac_note}")
     values = problem.values(u_best)
     sigma, sigma_log, scaled, corr = _covariance_summary(specs, values, cov, chi2_red)
+    robust_cov, sigma_robust = None, None
+    r_best = problem._cache.get(np.asarray(u_best, dtype=float).tobytes())
+    if robust is not None and cov is not None and r_best is not None:
+        try:
+            robust_cov = model_robust_covariance(model, J, r_best, robust, seed)
+        except CalibrationError as err:
+            notes.append(f"robust covariance: {err}")
+        else:
+            sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
@@ -768,8 +793,14 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
-        sigma_scale=channel_scale,
+        sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov,
     )
+
+
+def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:
+    """1-sigma per parameter in its units from a covariance of the coordinates (first order for log ones)."""
+    su = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
+    return {s.name: float(abs(values[s.name]) * sd if s.log else s.scale * sd) for s, sd in zip(specs, su)}
 
 
 def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:

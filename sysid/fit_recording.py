@@ -22,6 +22,7 @@ from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -63,6 +64,8 @@ class FitOptions:
         workers: processes for batched replays.
         seed: seed of the global phase.
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
+        robust: covariance reported beside the Gauss-Newton one (:data:`sysid.covariance.ROBUST_METHODS`,
+            default ``hac``; None: none).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -90,6 +93,7 @@ class FitOptions:
     seed: int = 0
     batched: bool = False
     batch_size: int | str | None = None
+    robust: str | None = DEFAULT_ROBUST_METHOD
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -110,6 +114,8 @@ class FitOptions:
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
+        if self.robust is not None and self.robust not in ROBUST_METHODS:
+            raise ConfigError(f"FitOptions: robust must be one of {', '.join(ROBUST_METHODS)} or None, got {self.robust!r}")
         if self.gel_resolution is not None and (len(self.gel_resolution) != 3
                                                 or any(int(n) < 1 for n in self.gel_resolution)):
             raise ConfigError(f"FitOptions: gel_resolution must be three positive integers, got {self.gel_resolution}")
@@ -200,7 +206,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size)
+                 batch_size=options.batch_size, robust=options.robust)
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
