@@ -25,7 +25,8 @@ from typing import Sequence
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
-from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
+from sysid.fit import (DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
+                       STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.replay_batch import batch_size_arg
 
@@ -59,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-rms", type=float, default=STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
                         "(default: %(default)s = 0.05 %%; 0: off)")
+    p.add_argument("--stop-robust-sigma", type=float, default=STOP_ROBUST_SIGMA,
+                   help="stop once the Gauss-Newton step is below this fraction of the robust 1-sigma (--robust) in "
+                        "every parameter (0: off; default: %(default)s)")
     p.add_argument("--cold-start", action="store_true",
                    help="start every replay's Newton solves from the previous step (default: from the best replay "
                         "so far, which converges to the same tolerance in fewer iterations)")
@@ -187,7 +191,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       global_method=args.global_method if args.global_search else None,
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
-                      stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
+                      stop_rms=args.stop_rms or None, stop_robust_sigma=args.stop_robust_sigma or None,
+                      warm_start=not args.cold_start,
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,

@@ -251,8 +251,8 @@ def residual_bin_s(model: "ObservationModel") -> float:
     return max(periods) if periods else 1.0
 
 
-def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndarray, method: str = DEFAULT_ROBUST_METHOD,
-                            seed: int = 0) -> RobustCovariance:
+def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndarray,
+                            method: str = DEFAULT_ROBUST_METHOD, seed: int = 0) -> RobustCovariance:
     """Robust covariance (:func:`sysid.covariance.robust_covariance`) of a fit of ``model``: whitened Jacobian
     ``J (m, p)`` and residual ``r (m,)`` in :meth:`sysid.observation.ObservationModel.residuals` order, each residual
     placed at its sample's stamp, binned at :func:`residual_bin_s`."""

@@ -60,6 +60,10 @@ cost."""
 STOP_RMS = 5.0e-4
 """Default RMS stop of :func:`fit`: the local phase ends at an accepted point that lowered the whitened
 RMS by less than 0.05 % from the previous accepted point."""
+STOP_ROBUST_SIGMA = 0.1
+"""Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
+once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
+coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -557,7 +561,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
-        batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD) -> FitResult:
+        batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
+        stop_robust_sigma: float | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -626,6 +631,13 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             (:data:`sysid.covariance.ROBUST_METHODS`: ``"hac"``, the Newey-West sandwich with the
             residuals' time correlation, default; ``"block_bootstrap"``; None: none). Computed from
             the Jacobian and residual at the optimum: no extra replay.
+        stop_robust_sigma: also stop the local phase at an accepted point whose Gauss-Newton step is
+            below ``stop_robust_sigma`` times the robust 1-sigma (method ``robust``, computed from the
+            same Jacobian and residual) in every coordinate. Where the model does not follow the
+            recording exactly the robust sigma is many times the Gauss-Newton one and ``stop_sigma``
+            asks for a precision far below what the fit can claim; each further iteration is a
+            replay. None or 0 (or ``robust=None``): off. ``thinshell sysid``:
+            :data:`STOP_ROBUST_SIGMA`.
 
     Returns:
         the :class:`FitResult`.
@@ -699,7 +711,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if (stop_sigma or stop_trial_sigma or stop_rms) and r is not None:
+                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma) and r is not None:
                     step, sigma_u = gauss_newton_step(J, r)
                     cost = 0.5 * float(r @ r)
                     # the trial-step stop measures steps in the reported (residual-scaled) 1-sigma
@@ -710,6 +722,15 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                     if stop_sigma and sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
+                            raise _WithinNoise()
+                    if stop_robust_sigma and robust is not None and sigma_u is not None and inside:
+                        try:
+                            rob = model_robust_covariance(model, J, r, robust, seed)
+                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
+                        except CalibrationError:
+                            sigma_rob = None
+                        if sigma_rob is not None and np.all(np.abs(step) <= stop_robust_sigma * sigma_rob):
+                            jac_at["step_in_robust_sigma"] = float(np.max(np.abs(step) / sigma_rob))
                             raise _WithinNoise()
                     previous = jac_at.get("accepted_cost")
                     jac_at["accepted_cost"] = cost
@@ -737,6 +758,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 if "rms_gain" in jac_at:
                     message = (f"the last accepted step lowered the RMS by {100 * jac_at['rms_gain']:.2g} %, below "
                                f"the stop fraction {100 * stop_rms:g} % (the replays' numerical noise)")
+                elif "step_in_robust_sigma" in jac_at:
+                    message = (f"the Gauss-Newton step is {jac_at['step_in_robust_sigma']:.2g} robust sigma ({robust}) "
+                               f"at most, below the stop fraction {stop_robust_sigma:g}")
                 elif "trial_in_sigma" in jac_at:
                     message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} scaled sigma at most (below {stop_trial_sigma:g}) "
                                "did not lower the cost: flat to within the replay's numerical noise")

@@ -24,7 +24,8 @@ from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.evidence import load_evidence
-from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
+from sysid.fit import (DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
+                       FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
@@ -49,7 +50,8 @@ class FitOptions:
         global_evals: replay budget of the global phase (None: its default).
         max_time: wall-time budget in s (None: none).
         max_nfev: function evaluations of the local phase.
-        stop_sigma, stop_trial_sigma, stop_rms: stopping rules of :func:`sysid.fit.fit` (None: off).
+        stop_sigma, stop_trial_sigma, stop_rms, stop_robust_sigma: stopping rules of :func:`sysid.fit.fit`
+            (None: off; ``stop_robust_sigma`` default :data:`sysid.fit.STOP_ROBUST_SIGMA`).
         warm_start: start each replay's Newton solves from the best replay so far.
         sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
             the scene's sensor calibration).
@@ -84,6 +86,7 @@ class FitOptions:
     stop_sigma: float | None = STOP_SIGMA
     stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
     stop_rms: float | None = STOP_RMS
+    stop_robust_sigma: float | None = STOP_ROBUST_SIGMA
     warm_start: bool = True
     sensor_calibration: bool = True
     calibration_params: tuple[str, ...] = ()
@@ -206,7 +209,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size, robust=options.robust)
+                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma)
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
