@@ -63,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-robust-sigma", type=float, default=STOP_ROBUST_SIGMA,
                    help="stop once the Gauss-Newton step is below this fraction of the robust 1-sigma (--robust) in "
                         "every parameter (0: off; default: %(default)s)")
+    p.add_argument("--stop-trial-scaled", action="store_true",
+                   help="measure --stop-trial-sigma's trial step in the scaled 1-sigma only (default: in the larger of "
+                        "it and the robust 1-sigma of --robust)")
     p.add_argument("--cold-start", action="store_true",
                    help="start every replay's Newton solves from the previous step (default: from the best replay "
                         "so far, which converges to the same tolerance in fewer iterations)")
@@ -192,6 +195,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
                       stop_rms=args.stop_rms or None, stop_robust_sigma=args.stop_robust_sigma or None,
+                      stop_trial_robust=not args.stop_trial_scaled,
                       warm_start=not args.cold_start,
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),

@@ -52,6 +52,7 @@ class FitOptions:
         max_nfev: function evaluations of the local phase.
         stop_sigma, stop_trial_sigma, stop_rms, stop_robust_sigma: stopping rules of :func:`sysid.fit.fit`
             (None: off; ``stop_robust_sigma`` default :data:`sysid.fit.STOP_ROBUST_SIGMA`).
+        stop_trial_robust: the trial-step stop measured in the robust sigma where larger (:func:`sysid.fit.fit`).
         warm_start: start each replay's Newton solves from the best replay so far.
         sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
             the scene's sensor calibration).
@@ -87,6 +88,7 @@ class FitOptions:
     stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
     stop_rms: float | None = STOP_RMS
     stop_robust_sigma: float | None = STOP_ROBUST_SIGMA
+    stop_trial_robust: bool = True
     warm_start: bool = True
     sensor_calibration: bool = True
     calibration_params: tuple[str, ...] = ()
@@ -209,7 +211,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma)
+                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
+                 stop_trial_robust=options.stop_trial_robust)
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
