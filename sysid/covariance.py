@@ -62,6 +62,9 @@ class RobustCovariance:
         inflation: ``sqrt(diag(Cov) / diag((J^T J)^-1))`` per coordinate, ``(p,)``: how many formal
             sigmas one robust sigma is.
         resamples: bootstrap resamples (0 for HAC).
+        time_covariance_u: with a nuisance part (:meth:`with_nuisance`), the time-correlation part alone.
+        nuisance_prior: nuisance name -> prior 1-sigma (relative / parameter units), or None.
+        nuisance_shift_u: nuisance name -> ``d u / d phi`` column of ``A`` ``(p,)`` (search coordinates).
     """
 
     method: str
@@ -72,11 +75,32 @@ class RobustCovariance:
     inflation: np.ndarray
     resamples: int = 0
 
+    time_covariance_u: np.ndarray | None = None
+    nuisance_prior: dict[str, float] | None = None
+    nuisance_shift_u: dict[str, np.ndarray] | None = None
+
+    def with_nuisance(self, cov_u: np.ndarray, prior: Mapping[str, float],
+                      shift_u: Mapping[str, np.ndarray]) -> "RobustCovariance":
+        """This covariance plus the propagated nuisance covariance ``cov_u`` (:func:`nuisance_covariance`);
+        method ``<method>+nuisance``, the time-correlation part kept in :attr:`time_covariance_u`."""
+        total = self.covariance_u + cov_u
+        base = self.covariance_u if self.time_covariance_u is None else self.time_covariance_u
+        formal_var = np.diag(self.covariance_u) / self.inflation ** 2
+        return RobustCovariance(f"{self.method}+nuisance", total, self.lag_bins, self.bin_s, self.bins,
+                                np.sqrt(np.diag(total) / formal_var), self.resamples, base, dict(prior),
+                                {k: np.asarray(v, dtype=float) for k, v in shift_u.items()})
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready description (without the matrix)."""
-        return {"method": self.method, "lag_bins": int(self.lag_bins), "lag_s": float(self.lag_bins * self.bin_s),
-                "bin_s": float(self.bin_s), "bins": int(self.bins), "resamples": int(self.resamples),
-                "inflation": [float(v) for v in self.inflation]}
+        out = {"method": self.method, "lag_bins": int(self.lag_bins), "lag_s": float(self.lag_bins * self.bin_s),
+               "bin_s": float(self.bin_s), "bins": int(self.bins), "resamples": int(self.resamples),
+               "inflation": [float(v) for v in self.inflation]}
+        if self.nuisance_prior is not None:
+            out["nuisance_prior"] = dict(self.nuisance_prior)
+            out["nuisance_shift_u"] = {k: [float(x) for x in v] for k, v in (self.nuisance_shift_u or {}).items()}
+            out["time_inflation"] = [float(v) for v in np.sqrt(np.diag(self.time_covariance_u)
+                                                               / (np.diag(self.covariance_u) / self.inflation ** 2))]
+        return out
 
 
 def time_bins(times_s: np.ndarray, bin_s: float) -> np.ndarray:
@@ -218,6 +242,37 @@ def robust_covariance(method: str, J: np.ndarray, r: np.ndarray, times_s: np.nda
     if method == "block_bootstrap":
         return block_bootstrap_covariance(J, r, times_s, bin_s, seed=seed)
     raise ConfigError(f"unknown robust covariance method {method!r} (choose from {', '.join(ROBUST_METHODS)})")
+
+
+def nuisance_covariance(J: np.ndarray, J_nuisance: np.ndarray, prior_sigma_u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of the fitted coordinates from the prior uncertainty of parameters the fit holds fixed.
+
+    A fixed (nuisance) parameter ``phi`` off its true value by ``d phi`` moves the least-squares optimum
+    by ``d u = A d phi`` to first order, ``A = -(J^T J)^-1 J^T J_phi`` (the Gauss-Newton step of the
+    residual change ``J_phi d phi``). With independent priors of 1-sigma ``s_phi`` the fitted
+    coordinates get ``Cov = A diag(s_phi^2) A^T`` (propagation of the nuisance uncertainty, e.g.
+    Seber & Wild 2003, "Nonlinear Regression", ch. 5; Kennedy & O'Hagan 2001 for its role as a
+    model-form term). It is the part of a model error that the fitted parameters absorb and the
+    residual therefore cannot show: no sandwich sees it.
+
+    Args:
+        J: whitened Jacobian of the fitted coordinates ``(m, p)``.
+        J_nuisance: whitened Jacobian of the nuisance coordinates ``(m, q)`` at the same point.
+        prior_sigma_u: prior 1-sigma of each nuisance coordinate ``(q,)``.
+
+    Returns:
+        ``(Cov (p, p), A (p, q))``.
+
+    Raises:
+        CalibrationError: mismatched shapes or a singular ``J^T J``.
+    """
+    J, Jn = np.asarray(J, dtype=float), np.asarray(J_nuisance, dtype=float)
+    s = np.asarray(prior_sigma_u, dtype=float).reshape(-1)
+    if Jn.ndim != 2 or Jn.shape[0] != J.shape[0] or Jn.shape[1] != s.size:
+        raise CalibrationError(f"nuisance Jacobian {Jn.shape} does not match J {J.shape} and {s.size} prior sigmas")
+    A = -_bread(J) @ (J.T @ Jn)
+    cov = (A * s ** 2) @ A.T
+    return 0.5 * (cov + cov.T), A
 
 
 def residual_times_s(stamps_ns: Mapping[str, np.ndarray], sizes: Mapping[str, int],

@@ -42,7 +42,8 @@ from scipy.optimize import least_squares
 from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance
+from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
+                              nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -562,7 +563,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
-        stop_robust_sigma: float | None = None, stop_trial_robust: bool = False) -> FitResult:
+        stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
+        nuisance: Mapping[str, float] | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -638,6 +640,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             asks for a precision far below what the fit can claim; each further iteration is a
             replay. None or 0 (or ``robust=None``): off. ``thinshell sysid``:
             :data:`STOP_ROBUST_SIGMA`.
+        nuisance: parameters the fit holds fixed whose values are uncertain, name -> prior 1-sigma
+            (relative for a positive scale parameter, in the parameter's units for a Poisson ratio or
+            a zero-start one; :func:`nuisance_prior_u`): their propagated covariance
+            (:func:`sysid.covariance.nuisance_covariance`, one more replay with tangents at the
+            optimum) is added to the robust one (method ``<robust>+nuisance``). None or empty: off.
         stop_trial_robust: measure the ``stop_trial_sigma`` rule's trial step in the larger of the
             scaled and the robust 1-sigma (``robust``): a rejected trial step within the uncertainty
             the fit reports ends the fit. On nominal_s101 (``thinshell sysid`` defaults, 2026-11-27)
@@ -669,6 +676,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     joint = getattr(provider, "joint", None)
     if max_replays is not None and not max_replays >= 1:
         raise ConfigError(f"max_replays must be >= 1, got {max_replays!r}")
+    nuisance = {n: float(v) for n, v in (nuisance or {}).items() if n not in names}
+    for n, v in nuisance.items():
+        nuisance_prior_u(n, model.parameter_value(n), v)  # unknown names and bad priors fail before any replay
     if robust is not None and robust not in ROBUST_METHODS:
         raise ConfigError(f"unknown robust covariance method {robust!r} (choose from {', '.join(ROBUST_METHODS)})")
     if max_replays is not None and max_replays < 2:
@@ -798,6 +808,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J, jac_note = jac_at["J"], f"Jacobian of the last accepted iterate ({spent} budget spent)"
             elif J is None:
                 J, jac_note = None, f"no Jacobian computed before the {spent} budget ran out"
+            J_nuisance, nuisance_runs = None, 0
+            if nuisance and robust is not None and J is not None:
+                J_nuisance, nuisance_runs = _nuisance_jacobian(problem, u_best, nuisance, fd_step, notes)
         finally:
             problem.close()
             model.warm_start = saved_warm_start
@@ -820,18 +833,53 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         except CalibrationError as err:
             notes.append(f"robust covariance: {err}")
         else:
+            if J_nuisance is not None:
+                prior = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
+                ncov, A = nuisance_covariance(J, J_nuisance, prior)
+                robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
+                                                      {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
         reduced_chi2=chi2_red, rms_initial=model.channel_rms(prediction0), rms_final=model.channel_rms(prediction_best),
         prediction_initial=prediction0, prediction_final=prediction_best, history=problem.history,
-        iterations=max(njev - 1, 0), nfev=nfev, njev=njev, sim_runs=problem.sim_runs,
+        iterations=max(njev - 1, 0), nfev=nfev, njev=njev, sim_runs=problem.sim_runs + nuisance_runs,
         sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
         sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov,
     )
+
+
+def nuisance_prior_u(name: str, value: float, prior: float) -> float:
+    """Prior 1-sigma of nuisance parameter ``name`` (nominal ``value``) in its search coordinate: ``prior``
+    is relative for a positive scale parameter (log coordinate), in the parameter's units otherwise.
+
+    Raises:
+        CalibrationError: a prior that is not a positive number.
+    """
+    if not (math.isfinite(prior) and prior > 0.0):
+        raise CalibrationError(f"nuisance prior of {name} must be a positive number, got {prior!r}")
+    spec = parameter_spec(name, value)
+    return float(prior) if spec.log else float(prior) / spec.scale
+
+
+def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mapping[str, float], fd_step: float,
+                       notes: list[str]) -> tuple[np.ndarray | None, int]:
+    """Whitened Jacobian ``(m, q)`` of the nuisance parameters at the fitted point (one replay with tangents
+    where the sensitivity provider is available, else finite differences), and the replays it took."""
+    model = problem.model
+    ext = FitProblem(model, list(problem.specs) + [parameter_spec(n, model.parameter_value(n)) for n in nuisance])
+    try:
+        J = make_jacobian("auto", fd_step)(ext, np.concatenate([np.asarray(u_best, dtype=float),
+                                                                np.zeros(len(nuisance))]))
+    except (CalibrationError, ConfigError, SimulationDivergedError) as err:
+        notes.append(f"robust covariance: nuisance Jacobian not computed ({err}); the time-correlation part only")
+        return None, ext.sim_runs
+    finally:
+        ext.close()
+    return J[:, len(problem.specs):], ext.sim_runs
 
 
 def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:

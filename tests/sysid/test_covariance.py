@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim_core.errors import CalibrationError, ConfigError
-from sysid.covariance import (andrews_bandwidth, bin_scores, block_bootstrap_covariance, hac_covariance,
+from sysid.covariance import (andrews_bandwidth, bin_scores, block_bootstrap_covariance, hac_covariance, nuisance_covariance,
                               residual_times_s, robust_covariance, time_bins)
 
 
@@ -123,3 +123,20 @@ def test_errors_name_what_failed() -> None:
         robust_covariance("jackknife", np.eye(3), np.ones(3), np.arange(3.0), 1.0)
     with pytest.raises(CalibrationError, match="bin width"):
         time_bins(np.arange(3.0), 0.0)
+
+
+def test_nuisance_shift_is_exact_for_a_linear_model_and_its_covariance_is_the_propagated_prior() -> None:
+    """y = X b + z phi with phi held at a wrong value: the fitted b moves by exactly A (phi_held - phi_true),
+    A = -(X^T X)^-1 X^T J_phi with J_phi = dr/dphi = -z; the prior 1-sigma s gives Cov = A s^2 A^T."""
+    rng = np.random.default_rng(6)
+    n = 200
+    X = np.column_stack([np.ones(n), rng.standard_normal(n)])
+    z = np.sin(np.linspace(0.0, 3.0, n)) + 0.3 * rng.standard_normal(n)
+    b_true, phi_true, phi_held = np.array([1.0, 2.0]), 0.7, 0.2
+    y = X @ b_true + z * phi_true
+    b_fit = np.linalg.lstsq(X, y - z * phi_held, rcond=None)[0]
+    cov, A = nuisance_covariance(-X, -z[:, None], np.array([0.25]))
+    np.testing.assert_allclose(b_fit - b_true, -A[:, 0] * (phi_true - phi_held), rtol=1e-10)
+    np.testing.assert_allclose(cov, np.outer(A[:, 0], A[:, 0]) * 0.25 ** 2, rtol=1e-12)
+    with pytest.raises(CalibrationError, match="nuisance Jacobian"):
+        nuisance_covariance(-X, -z[:, None], np.array([0.25, 0.1]))
