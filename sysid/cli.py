@@ -25,7 +25,7 @@ from typing import Sequence
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
-from sysid.fit import (DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.replay_batch import batch_size_arg
@@ -92,6 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the recording exactly (sysid.covariance): hac = Newey-West sandwich over the residuals' "
                         "time correlation, block_bootstrap = moving-block bootstrap over time windows; none: off "
                         "(default: %(default)s)")
+    p.add_argument("--nuisance", metavar="NAME=PRIOR,...|none",
+                   help="fixed parameters whose prior uncertainty (1-sigma: relative for positive scale parameters, "
+                        "in its units for a Poisson ratio) is propagated into the robust sigma, one replay with tangents "
+                        "at the optimum (default: " + ",".join(f"{k}={v:g}" for k, v in DEFAULT_NUISANCE.items())
+                   + ", less names the scene lacks; none: off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibrate", action="store_true",
                    help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
@@ -177,6 +182,28 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
+def _nuisance_arg(text: str | None) -> tuple[tuple[str, float], ...] | None:
+    """``--nuisance``: None (default set), () for ``none``, else ``(name, prior)`` pairs.
+
+    Raises:
+        ConfigError: an item that is not ``NAME=NUMBER``.
+    """
+    if text is None:
+        return None
+    if text.strip().lower() == "none":
+        return ()
+    out = []
+    for item in _split(text) or []:
+        name, sep, value = item.partition("=")
+        try:
+            out.append((name.strip(), float(value)))
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip():
+            raise ConfigError(f"--nuisance: {item!r} is not NAME=PRIOR (e.g. friction.sheet_table=0.3)")
+    return tuple(out)
+
+
 def fit_options(args: argparse.Namespace) -> FitOptions:
     """The :class:`~sysid.fit_recording.FitOptions` of parsed ``thinshell sysid`` arguments.
 
@@ -188,7 +215,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
     if resolution is not None and len(resolution) != 3:
         raise ValueError(args.gel_resolution)
     channels = _split(args.channels)
-    return FitOptions(params=tuple(_split(args.params) or ()), scene=args.scene, dt=args.dt, t_max=args.t_max,
+    return FitOptions(nuisance=_nuisance_arg(args.nuisance), params=tuple(_split(args.params) or ()), scene=args.scene, dt=args.dt, t_max=args.t_max,
                       channels=None if channels is None else tuple(channels), gel_resolution=resolution,
                       arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
                       global_method=args.global_method if args.global_search else None,

@@ -65,6 +65,12 @@ STOP_ROBUST_SIGMA = 0.1
 """Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
 once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
 coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
+DEFAULT_NUISANCE = {"friction.sheet_table": 0.3, "gel.poisson_ratio": 0.03, "contact.stiffness": 0.5}
+"""Default nuisance priors of ``thinshell sysid`` (:func:`fit` ``nuisance``; names the scene lacks or the fit
+fits are left out): parameters a cell's data sheet does not give and the default fit holds fixed. The
+sheet-table friction to +-30 % (1-sigma; paper and card on a table range over 0.2-0.5), the gel's
+Poisson ratio to +-0.03 (silicone gels 0.42-0.49, rarely on a data sheet) and the contact's penalty
+stiffness to a factor 1.65 (a numerical compliance with no physical value to look up)."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 

@@ -15,6 +15,7 @@ modelled effect).
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +25,7 @@ from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.evidence import load_evidence
-from sysid.fit import (DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
@@ -53,6 +54,9 @@ class FitOptions:
         stop_sigma, stop_trial_sigma, stop_rms, stop_robust_sigma: stopping rules of :func:`sysid.fit.fit`
             (None: off; ``stop_robust_sigma`` default :data:`sysid.fit.STOP_ROBUST_SIGMA`).
         stop_trial_robust: the trial-step stop measured in the robust sigma where larger (:func:`sysid.fit.fit`).
+        nuisance: ``(name, prior 1-sigma)`` pairs of fixed parameters whose uncertainty enters the robust
+            sigma (:func:`sysid.fit.fit` ``nuisance``); None: :data:`sysid.fit.DEFAULT_NUISANCE` less the
+            names the scene lacks; empty: none.
         warm_start: start each replay's Newton solves from the best replay so far.
         sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
             the scene's sensor calibration).
@@ -89,6 +93,7 @@ class FitOptions:
     stop_rms: float | None = STOP_RMS
     stop_robust_sigma: float | None = STOP_ROBUST_SIGMA
     stop_trial_robust: bool = True
+    nuisance: tuple[tuple[str, float], ...] | None = None
     warm_start: bool = True
     sensor_calibration: bool = True
     calibration_params: tuple[str, ...] = ()
@@ -119,6 +124,9 @@ class FitOptions:
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
+        for name, prior in self.nuisance or ():
+            if not (math.isfinite(float(prior)) and float(prior) > 0.0):
+                raise ConfigError(f"FitOptions: nuisance prior of {name} must be a positive number, got {prior!r}")
         if self.robust is not None and self.robust not in ROBUST_METHODS:
             raise ConfigError(f"FitOptions: robust must be one of {', '.join(ROBUST_METHODS)} or None, got {self.robust!r}")
         if self.gel_resolution is not None and (len(self.gel_resolution) != 3
@@ -149,6 +157,27 @@ class FitOutcome:
     warnings: tuple[str, ...]
     sensor: CalibrationResult | None = None
     scene: Path | None = None
+
+
+def nuisance_of(model: ObservationModel, options: FitOptions) -> dict[str, float]:
+    """The nuisance priors of a fit: ``options.nuisance``, or :data:`sysid.fit.DEFAULT_NUISANCE` less the
+    parameters the model's scene does not have (a task scene names its bodies otherwise) and the fitted ones.
+
+    Raises:
+        ConfigError: an explicitly named parameter the scene does not have.
+    """
+    if options.nuisance is not None:
+        return {n: float(v) for n, v in options.nuisance if n not in options.params}
+    out = {}
+    for name, prior in DEFAULT_NUISANCE.items():
+        if name in options.params:
+            continue
+        try:
+            model.parameter_value(name)
+        except ConfigError:
+            continue
+        out[name] = prior
+    return out
 
 
 def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOptions(), *, force: bool = False,
@@ -212,7 +241,7 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                  batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                 stop_trial_robust=options.stop_trial_robust)
+                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:

@@ -226,13 +226,17 @@ def robust_note(doc: Mapping[str, Any]) -> str:
     robust = doc["fit"].get("robust")
     if not robust:
         return "No robust covariance was computed."
-    what = ("Newey-West (HAC) sandwich H^-1 S H^-1 with Bartlett weights" if robust["method"] == "hac"
+    what = ("Newey-West (HAC) sandwich H^-1 S H^-1 with Bartlett weights" if robust["method"].startswith("hac")
             else f"moving-block bootstrap ({robust['resamples']} resamples) of the linearised estimate")
-    return (f"The robust 1-sigma is the {what} over the residuals' time correlation (lag window "
-            f"{robust['lag_s']:.3g} s = {robust['lag_bins']} bins of {robust['bin_s']:.3g} s, Andrews 1991); "
-            f"it is {', '.join(f'{v:.3g}' for v in robust['inflation'])} times the Gauss-Newton 1-sigma. "
-            "It holds when the residual is a time-correlated model misfit; a misfit that biases every time "
-            "window alike is not in it.")
+    text = (f"The robust 1-sigma ({robust['method']}) is the {what} over the residuals' time correlation (lag "
+            f"window {robust['lag_s']:.3g} s = {robust['lag_bins']} bins of {robust['bin_s']:.3g} s, Andrews 1991)")
+    prior = robust.get("nuisance_prior")
+    if prior:
+        text += (", plus the propagated prior uncertainty of the parameters held fixed ("
+                 + ", ".join(f"{k} +-{v:g}" for k, v in prior.items()) + "; sysid.covariance.nuisance_covariance): "
+                 "the part of a model error the fitted values absorb, which no residual shows")
+    return (text + f"; it is {', '.join(f'{v:.3g}' for v in robust['inflation'])} times the Gauss-Newton 1-sigma. "
+            "A model error beyond these (a physics the model lacks, a prior that is too narrow) is not in it.")
 
 
 def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
