@@ -55,6 +55,8 @@ class EvidenceSource:
         sha256: hex SHA-256 of the MCAP file.
         scene_path: scene file used, or None.
         topics: channel -> topic it came from.
+        recording_map: the recording map the bag was read through (its topics are then the map's,
+            not INTERFACES.md's), or None.
     """
 
     bag_path: Path
@@ -62,6 +64,7 @@ class EvidenceSource:
     sha256: str
     scene_path: Path | None
     topics: dict[str, str]
+    recording_map: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -295,7 +298,7 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         namespace = config.namespace if isinstance(config, BagConfig) else load_bag_config(config).namespace
         effectors = read_effector_streams(bag.path, scene.effector_names, namespace)
     return Evidence(
-        source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics),
+        source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics, bag.recording_map),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
         channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors, **arrays,
     )
