@@ -171,3 +171,43 @@ def test_sysid_and_diagnose_answer_the_same_on_both(bags, tmp_path, capsys):
         assert diagnose_main([str(bags / name), *diag, "--json", str(out)]) == 0, capsys.readouterr().err
         docs.append(json.loads(out.read_text()))
     assert docs[0]["explained_by"] == docs[1]["explained_by"]
+
+
+def test_a_pose_topic_in_base_link_of_another_link_is_carried_to_the_effector_in_world(bags, tmp_path):
+    rmap = real_cell.recording_map()
+    rmap["pose"] = {"topic": real_cell.TOPICS["pose_cmd"], "link": "tool0", "stamp": "log"}
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(rmap))
+    plain, cell = _evidence(bags / "plain"), _evidence(bags / "cell", recording_map=tmp_path / "m.yaml")
+    a, b = plain.pose_cmd, cell.pose.copy()
+    b[:, 3:] *= np.sign(np.sum(a[:, 3:] * b[:, 3:], axis=1))[:, None]
+    np.testing.assert_allclose(b, a, rtol=0, atol=TOL)
+
+
+def test_deploy_replays_the_same_command_stream_from_the_real_cell_bag(bags):
+    from thinshell_ros.deploy_plan import trajectory_from_bag
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain, cell = trajectory_from_bag(bags / "plain"), trajectory_from_bag(bags / "cell")
+    np.testing.assert_array_equal(cell.t, plain.t)
+    a, b = plain.poses["ee"], cell.poses["ee"].copy()
+    b[:, 3:] *= np.sign(np.sum(a[:, 3:] * b[:, 3:], axis=1))[:, None]
+    np.testing.assert_allclose(b, a, rtol=0, atol=TOL)
+
+
+def test_the_example_map_is_valid():
+    from thinshell_ros.paths import config_dir
+
+    rmap = load_recording_map(config_dir() / "recording_maps" / "ur5e_gsmini_ft.yaml")
+    assert rmap.pose == "tf" and rmap.wrench.tare_window == (0.0, 0.5) and rmap.image.stamp == "auto"
+
+
+def test_split_files_must_be_those_metadata_lists(bags, tmp_path):
+    import shutil
+
+    bag = tmp_path / "cell"
+    shutil.copytree(bags / "cell", bag)
+    (bag / "cell_1.mcap").rename(bag / "other.mcap")
+    with pytest.raises(BagReadError, match=r"2 .mcap files in the bag directory but metadata.yaml lists "
+                                           r"\['cell_0.mcap', 'cell_1.mcap'\]"):
+        open_bag(bag)
