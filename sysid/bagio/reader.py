@@ -26,8 +26,10 @@ Stamps are header stamps (the time the quantity was true), log time for messages
 ``/clock`` is stamped with the clock value it carries.
 
 Images may be ``sensor_msgs/Image`` of any encoding of :data:`sysid.bagio.images.ENCODINGS` or
-``sensor_msgs/CompressedImage``; they are read as grey frames. A pose (``pose`` / ``pose_cmd``) whose
-header frame_id is not ``world`` is an error naming the topic and both frames.
+``sensor_msgs/CompressedImage``; they are read as grey frames. A measured pose whose header frame_id
+is not ``world`` is an error naming the topic and both frames; so are commands all in another frame,
+while a few commands in another frame among ``world`` ones (refused by the robot, kept by the
+recorder) are dropped with a warning.
 
 A real cell's recording is read through a **recording map** (:mod:`sysid.bagio.recording_map`):
 ``recording_map=`` or a ``recording.yaml`` in the bag directory; the roles then come from the
@@ -548,6 +550,8 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
                 raise BagReadError(f"topic {topic} (role {role}) has type {info.msgtype}, expected "
                                    f"{' or '.join(ROLE_ACCEPTED[role])} in {path}")
             items = raw.get(topic, [])
+            if role == "pose_cmd" and items:
+                items = _commands_in_world(topic, items, warn)
             if items:
                 decoded[role] = (topic, info.msgtype, _decode(role, topic, items, info.msgtype, check_world=True))
 
@@ -584,6 +588,19 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
         start_ns=start, end_ns=end, notes=tuple(notes), mcap_paths=tuple(files),
         recording_map=map_path.absolute() if map_path is not None else None, camera=camera,
     )
+
+
+def _commands_in_world(topic: str, items: list[tuple[int, Any]], warn: Callable[[str], None]) -> list[tuple[int, Any]]:
+    """The commands stamped in ``world``; the others (a robot refuses them, a recorder keeps them) dropped
+    with a warning. All in another frame: left for :func:`_decode` to refuse (a recording map is needed)."""
+    frames = [str(m.header.frame_id) for _, m in items]
+    keep = [f == WORLD_FRAME for f in frames]
+    if any(keep) and not all(keep):
+        other = sorted({f for f, k in zip(frames, keep) if not k})
+        warn(f"topic {topic}: dropped {len(keep) - sum(keep)} of {len(keep)} commands in frame(s) {other} instead of "
+             f"{WORLD_FRAME!r}")
+        return [item for item, k in zip(items, keep) if k]
+    return items
 
 
 def _window(series: dict[str, Series], window_s: tuple[float | None, float | None], path: Path) -> dict[str, Series]:

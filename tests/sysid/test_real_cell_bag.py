@@ -211,3 +211,15 @@ def test_split_files_must_be_those_metadata_lists(bags, tmp_path):
     with pytest.raises(BagReadError, match=r"2 .mcap files in the bag directory but metadata.yaml lists "
                                            r"\['cell_0.mcap', 'cell_1.mcap'\]"):
         open_bag(bag)
+
+
+def test_commands_in_another_frame_among_world_ones_are_dropped_with_a_warning(tmp_path):
+    with BagWriter(tmp_path / "bag") as w:
+        for k in range(4):
+            pose = np.array([0.0, 0, 0.1 * k, 0, 0, 0, 1])
+            w.write_pose("/thinshell/ee/pose", k * 1_000_000, pose)
+            w.write_pose("/thinshell/ee/pose_cmd", k * 1_000_000, pose, "map" if k == 2 else "world")
+    with pytest.warns(UserWarning, match=r"topic /thinshell/ee/pose_cmd: dropped 1 of 4 commands in frame\(s\) "
+                                         r"\['map'\] instead of 'world'"):
+        bag = open_bag(tmp_path / "bag")
+    np.testing.assert_array_equal(bag.series["pose_cmd"].t_ns, [0, 1_000_000, 3_000_000])
