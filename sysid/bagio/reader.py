@@ -576,6 +576,11 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
 
     if window_s is not None and series:
         series = _window(series, window_s, path)
+        for role in decoded:
+            if role not in series:
+                missing.append(role)
+                warn(f"topic {decoded[role][0]} (role {role}) has no sample in the time window {list(window_s)} s; "
+                     "the evidence lacks that channel")
     for s in series.values():
         s.t_ns.setflags(write=False)
         s.values.setflags(write=False)
