@@ -161,9 +161,13 @@ def test_sysid_and_diagnose_answer_the_same_on_both(bags, tmp_path, capsys):
     fast = [*CHEAP, "5,4,2", "--params", "gel.youngs_modulus", "--max-nfev", "3", "--quiet"]
     assert sysid_main([str(bags / "plain"), "--out", str(tmp_path / "fp"), *fast]) == 0
     assert sysid_main([str(bags / "cell"), "--out", str(tmp_path / "fc"), *fast]) == 0
+    prov = json.loads((tmp_path / "fc" / "fit.json").read_text())["provenance"]
+    assert prov["recording_map"] == str(bags / "cell" / "recording.yaml")
     fp, fc = _fit(tmp_path / "fp"), _fit(tmp_path / "fc")
     assert "gel.youngs_modulus" in fp["fit"]["parameters"]
     _assert_close(fp, fc)
+    assert sysid_main([str(bags / "cell"), "--out", str(tmp_path / "fx"), "--recording-map", "nowhere.yaml"]) == 2
+    assert "recording map not found: nowhere.yaml" in capsys.readouterr().err
     diag = [*CHEAP, "5", "4", "2", "--no-calibrate"]
     docs = []
     for name in ("plain", "cell"):
