@@ -41,12 +41,22 @@ class MarkerBlobs(NamedTuple):
     """Unordered marker blobs found in one image.
 
     Attributes:
-        uv: sub-pixel blob centres, shape ``(m, 2)``, px.
-        area: blob areas above the threshold, shape ``(m,)``, px^2.
+        uv: sub-pixel blob centres, shape ``(m, 2)``, px; for a blob cut by the image border, the
+            centre of the whole marker estimated from its visible part (:func:`clipped_centre`),
+            which may lie outside the image.
+        area: blob areas above the threshold, shape ``(m,)``, px^2 (the visible part when clipped).
+        visible: fraction of the marker's area inside the image, shape ``(m,)``, in ``[0, 1]``;
+            1 for a blob clear of the border.
     """
 
     uv: np.ndarray
     area: np.ndarray
+    visible: np.ndarray
+
+    @property
+    def clipped(self) -> np.ndarray:
+        """Blobs cut by the image border, shape ``(m,)`` bool."""
+        return self.visible < 1.0
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -71,13 +81,16 @@ def _odd(n: float) -> int:
     return k if k % 2 == 1 else k + 1
 
 
-def find_marker_blobs(image: np.ndarray, spacing_px: float) -> MarkerBlobs:
+def find_marker_blobs(image: np.ndarray, spacing_px: float, keep_clipped: bool = False) -> MarkerBlobs:
     """Dark round marker blobs of a tactile image, unordered (module docstring, steps 1-5).
 
     Args:
         image: mono or BGR/BGRA image (:func:`to_gray`).
         spacing_px: approximate marker spacing, px; sets the smoothing, the background disc
             (0.9 spacing) and the smallest accepted blob.
+        keep_clipped: also return blobs cut by the image border, their centres estimated from the
+            visible part (:func:`clipped_centre`) and ``visible < 1``; by default they are dropped
+            (a grid is ordered from whole markers only).
 
     Returns:
         the blobs; empty when the image has no marker contrast.
@@ -96,14 +109,15 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float) -> MarkerBlobs:
     background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, disc, borderType=cv2.BORDER_REFLECT)
     contrast = np.maximum(background - smooth, 0.0)
     peak = float(contrast.max()) if contrast.size else 0.0
-    empty = MarkerBlobs(np.zeros((0, 2)), np.zeros(0))
+    empty = MarkerBlobs(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     if peak < MIN_CONTRAST:
         return empty
     scaled = np.clip(contrast * (255.0 / peak), 0, 255).astype(np.uint8)
     _, binary = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     x0, y0, w, h, area = (stats[1:, j] for j in range(5))
-    on_border = (x0 == 0) | (y0 == 0) | (x0 + w >= W) | (y0 + h >= H)
+    edges = np.stack([x0 == 0, y0 == 0, x0 + w >= W, y0 + h >= H], axis=1)  # left, top, right, bottom
+    on_border = edges.any(axis=1)
     min_area = np.pi * (0.05 * spacing_px) ** 2
     candidates = np.nonzero(~on_border & (area >= min_area))[0]
     if candidates.size == 0:
@@ -111,8 +125,9 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float) -> MarkerBlobs:
     median = float(np.median(area[candidates]))
     keep = candidates[(area[candidates] >= 0.25 * median) & (area[candidates] <= 4.0 * median)]
     grow = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
-    uv = np.zeros((keep.size, 2))
-    for n, c in enumerate(keep):
+
+    def centroid(c: int) -> tuple[float, float]:
+        # contrast-weighted centre over the blob grown by two pixels (module docstring, step 5)
         label = c + 1
         ya, yb = max(y0[c] - 3, 0), min(y0[c] + h[c] + 3, H)
         xa, xb = max(x0[c] - 3, 0), min(x0[c] + w[c] + 3, W)
@@ -122,8 +137,75 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float) -> MarkerBlobs:
         weight = contrast[ya:yb, xa:xb] * mask
         vv, uu = np.mgrid[ya:yb, xa:xb]
         total = float(weight.sum())
-        uv[n] = (float((weight * uu).sum()) / total, float((weight * vv).sum()) / total)
-    return MarkerBlobs(uv, area[keep].astype(float))
+        return float((weight * uu).sum()) / total, float((weight * vv).sum()) / total
+
+    uv = np.array([centroid(c) for c in keep]).reshape(-1, 2)
+    visible = np.ones(keep.size)
+    areas = area[keep].astype(float)
+    if keep_clipped and keep.size:
+        cut = np.nonzero(on_border & (area >= min_area) & (area <= 4.0 * median))[0]
+        if cut.size:
+            # each cut marker's own size is unknown: take the median area of the (up to) four nearest
+            # whole blobs, so that vignetting towards the border is followed
+            near = cKDTree(uv).query(np.column_stack([x0[cut] + 0.5 * w[cut], y0[cut] + 0.5 * h[cut]]),
+                                     k=min(4, keep.size))[1].reshape(cut.size, -1)
+            radius = np.sqrt(np.median(areas[near], axis=1) / np.pi)
+            extra_uv, extra_vis = [], []
+            for n, c in enumerate(cut):
+                centre, fraction = clipped_centre(centroid(c), float(area[c]), float(radius[n]),
+                                                  edges[c], (int(x0[c]), int(y0[c]), int(w[c]), int(h[c])), (H, W))
+                extra_uv.append(centre)
+                extra_vis.append(fraction)
+            uv = np.concatenate([uv, np.array(extra_uv)])
+            visible = np.concatenate([visible, np.array(extra_vis)])
+            areas = np.concatenate([areas, area[cut].astype(float)])
+    return MarkerBlobs(uv, areas, visible)
+
+
+_CHORD_X = np.linspace(-1.0, 1.0, 401)
+_CHORD_FRACTION = (np.pi - np.arccos(_CHORD_X) + _CHORD_X * np.sqrt(1.0 - _CHORD_X**2)) / np.pi
+"""Visible fraction of a disc whose centre lies ``x`` radii inside a straight cut (circular segment)."""
+
+
+def clipped_centre(centroid: tuple[float, float], area: float, radius: float, edges: np.ndarray,
+                   box: tuple[int, int, int, int], shape: tuple[int, int]) -> tuple[tuple[float, float], float]:
+    """Centre of a round marker cut by the image border, from its visible part.
+
+    Along the border the visible part is symmetric about the centre, so its (contrast-weighted)
+    centroid is kept. Across one cutting edge, the visible area ``A`` of a disc of radius ``r``
+    whose centre lies ``h`` inside the edge line is the circular-segment area
+    ``A = r^2 (pi - acos(h/r)) + h sqrt(r^2 - h^2)``, inverted for ``h``. At a corner (two cutting
+    edges) each coordinate comes from the visible extent ``d`` across its edge, ``h = d - r``.
+    The edge lines are the outer pixel boundaries, ``u = -0.5`` and ``u = W - 0.5`` (likewise v).
+
+    Args:
+        centroid: ``(u, v)`` px, weighted centroid of the visible part.
+        area: visible area above the threshold, px^2.
+        radius: the marker's radius at that threshold, px (> 0).
+        edges: ``(4,)`` bool, the blob touches the left, top, right, bottom border.
+        box: the visible part's bounding box ``(x0, y0, w, h)`` px.
+        shape: image ``(H, W)``.
+
+    Returns:
+        ``((u, v), visible)``: the estimated centre, px (it may lie outside the image), and the
+        visible fraction ``A / (pi r^2)`` clipped to ``[0, 1]``.
+    """
+    H, W = shape
+    x0, y0, w, h = box
+    fraction = float(np.clip(area / (np.pi * radius**2), 0.0, 1.0))
+    centre = [float(centroid[0]), float(centroid[1])]
+    single = int(np.count_nonzero(edges)) == 1
+    # (axis, inward sign, edge line, visible extent across the edge)
+    cuts = ((0, 1.0, -0.5, x0 + w), (1, 1.0, -0.5, y0 + h), (0, -1.0, W - 0.5, W - x0), (1, -1.0, H - 0.5, H - y0))
+    for touched, (axis, inward, line, extent) in zip(edges, cuts):
+        if not touched:
+            continue
+        if single:
+            depth = radius * float(np.interp(fraction, _CHORD_FRACTION, _CHORD_X))
+        else:
+            depth = float(np.clip(extent - radius, -radius, radius))
+        centre[axis] = line + inward * depth
+    return (centre[0], centre[1]), fraction
 
 
 def _lattice_basis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
