@@ -6,14 +6,29 @@ Pipeline of :func:`find_marker_blobs`:
 2. local background by a grey-level morphological closing with a disc wider than a marker
    (dark spots smaller than the disc are filled in), so uneven illumination cancels;
 3. contrast ``d = background - image`` (markers positive), Otsu threshold, connected components;
-4. components touching the image border, specks and merged blobs (area far from the median) dropped;
-5. sub-pixel centre of each blob: the ``d``-weighted centroid over the blob grown by two pixels.
+4. specks and merged blobs (area far from the median) dropped, and components touching the image
+   border unless ``keep_clipped`` (step 6);
+5. sub-pixel centre of each blob: the ``d``-weighted centroid over the blob grown by two pixels; a
+   blob larger than 1.5 times the median (a marker with dark gel shading attached, e.g. the edge of
+   a contact) is re-centred on the part within one median marker radius of its centre until the
+   centre stops moving (a symmetric window: a round marker's centre stays where it is);
+6. with ``keep_clipped``, blobs cut by the image border too, the whole marker's centre estimated
+   from the visible part (:func:`clipped_centre`).
 
 :func:`detect_markers` then orders the blobs as the marker grid, ``i = iy * nx + ix`` (rows by image
 ``v``, columns by ``u``), by labelling the lattice: the grid direction comes from the four-fold
 symmetric mean of nearest-neighbour directions, lattice vectors from the median neighbour steps, and
 integer coordinates spread from the centre by breadth-first search along accepted unit steps, each
 point carrying a local lattice basis so that mild rotation, perspective and indentation are tolerated.
+
+:class:`MarkerTracker` and :func:`track_markers` follow the ordered markers through a stream: the
+nearest blobs (Hungarian assignment within a gate), checked against the lattice neighbours' motion,
+blobs cut by the border included, and every marker still not found interpolated from its lattice
+neighbours. Each marker of each frame carries a status (:data:`MEASURED`, :data:`CLIPPED`,
+:data:`INTERPOLATED`, :data:`LOST`) and a weight in ``[0, 1]`` for a fit (1 whole, the visible
+fraction when cut by the border, 0 when not seen), so that interpolated positions can be
+down-weighted or dropped; :func:`track_marker_stream` gives the measured positions alone (NaN
+where a marker was not seen).
 
 Pixel convention: OpenCV's (pixel (row i, column j) centred at ``(u, v) = (j, i)``).
 """
@@ -32,6 +47,10 @@ from sim_core.errors import CalibrationError
 
 MIN_CONTRAST = 5.0
 """Grey levels: below this peak marker contrast the image is taken to hold no markers."""
+
+TRIM_ITERATIONS = 20
+"""Most re-centring passes on a disc of one marker radius for a blob with gel shading attached
+(:func:`find_marker_blobs`, step 5); they stop when the centre moves less than 0.01 px."""
 
 STEP_TOLERANCE = 0.3
 """Largest deviation (in lattice units) of a neighbour step from a unit lattice step."""
@@ -132,6 +151,8 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float, keep_clipped: bool =
     median = float(np.median(area[candidates]))
     keep = candidates[(area[candidates] >= 0.25 * median) & (area[candidates] <= 4.0 * median)]
     grow = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
+    trim_area = 1.5 * median  # px^2: blobs above this are trimmed to a marker's disc
+    trim_radius = float(np.sqrt(median / np.pi))
 
     def centroid(c: int) -> tuple[float, float]:
         # contrast-weighted centre over the blob grown by two pixels (module docstring, step 5)
@@ -144,7 +165,23 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float, keep_clipped: bool =
         weight = contrast[ya:yb, xa:xb] * mask
         vv, uu = np.mgrid[ya:yb, xa:xb]
         total = float(weight.sum())
-        return float((weight * uu).sum()) / total, float((weight * vv).sum()) / total
+        u, v = float((weight * uu).sum()) / total, float((weight * vv).sum()) / total
+        if area[c] <= trim_area:
+            return u, v
+        # a blob larger than a marker has dark gel shading (a contact edge, a ridge) attached: keep
+        # re-centring on the part within a marker's radius of the centre (a symmetric window), which
+        # leaves a round marker's centre where it is and drops what hangs off it
+        for _ in range(TRIM_ITERATIONS):
+            inside = weight * ((uu - u) ** 2 + (vv - v) ** 2 <= trim_radius**2)
+            total = float(inside.sum())
+            if total <= 0.0:
+                break
+            u_new, v_new = float((inside * uu).sum()) / total, float((inside * vv).sum()) / total
+            moved = abs(u_new - u) + abs(v_new - v)
+            u, v = u_new, v_new
+            if moved < 0.01:
+                break
+        return u, v
 
     uv = np.array([centroid(c) for c in keep]).reshape(-1, 2)
     visible = np.ones(keep.size)

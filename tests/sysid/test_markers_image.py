@@ -197,3 +197,20 @@ def test_blobs_touching_the_border_are_dropped() -> None:
     uv = np.array([[1.0, 120.0], [160.0, 120.0]])
     blobs = find_marker_blobs(render_marker_image(uv, CAM, marker_radius_px=RADIUS_PX), spacing_px=24.0)
     np.testing.assert_allclose(blobs.uv, uv[1:], atol=0.02)
+
+
+def test_shading_attached_to_a_marker_does_not_pull_its_centre() -> None:
+    """A dark streak of gel shading (a contact edge) touching a marker merges with its blob; the
+    centre is re-centred on a marker's disc and stays on the marker."""
+    uv = CAM.project(marker_grid(GRID, PITCH))
+    image = render_marker_image(uv, CAM, marker_radius_px=RADIUS_PX, blur=0.7)
+    u, v = uv[31]
+    streak = image.copy()
+    cv2.line(streak, (int(u + 3), int(v + 3)), (int(u + 14), int(v + 14)), int(image.min()), thickness=4)
+    clean = find_marker_blobs(image, spacing_px=24.0)
+    blobs = find_marker_blobs(streak, spacing_px=24.0)
+    i = int(np.argmin(np.linalg.norm(blobs.uv - uv[31], axis=1)))
+    assert blobs.area[i] > 1.5 * np.median(clean.area)  # the streak is part of the blob
+    # 6 px off without the re-centring; within a quarter of the marker radius with it
+    assert np.linalg.norm(blobs.uv[i] - uv[31]) < 0.25 * RADIUS_PX, f"centre pulled by {np.linalg.norm(blobs.uv[i] - uv[31]):.2f} px"
+    np.testing.assert_allclose(np.delete(blobs.uv, i, axis=0), np.delete(clean.uv, i, axis=0), atol=1e-9)
