@@ -6,7 +6,8 @@ cut by the image border during the press; see ``shared/data/real/README.md``: GP
 No ground-truth tracks come with it, so the checks are physical: every marker is seen on every
 frame, the lattice keeps its order and orientation (no identity swap), the tracks are continuous
 within bounds set by the marker size and pitch, and the press shows as a displacement field that
-rises from the sensor noise and relaxes after the release. The video is decoded and tracked once
+rises from the sensor noise and relaxes after the release; a marker painted out under the contact is
+interpolated from its lattice neighbours, flagged, and found again. The video is decoded and tracked once
 per module.
 """
 
@@ -20,6 +21,7 @@ import pytest
 
 from sysid.markers_image import (
     CLIPPED,
+    INTERPOLATED,
     MEASURED,
     MarkerTracks,
     find_marker_blobs,
@@ -123,3 +125,29 @@ def test_the_press_shows_as_a_displacement_field(tracks, scale) -> None:
     assert np.median(disp[peak]) > 0.1 * pitch and np.median(disp[peak]) > 20.0 * noise
     assert np.max(disp[peak]) > 3.0 * np.min(disp[peak]), "the press moves the markers unevenly"
     assert np.max(disp[-1]) < 0.1 * pitch, "after the release the markers return near their rest"
+
+
+def test_a_marker_hidden_under_contact_is_interpolated_then_found_again(frames, tracks, scale) -> None:
+    """Marker 34 (in the contact patch) painted over with the gel's colour around it for 31 frames of
+    the press, as a marker merged into contact shading would vanish: it is followed through the gap
+    by interpolation from its lattice neighbours (flagged, weight 0), within a marker radius of where
+    it really was, and taken up again from its own blob afterwards."""
+    _, radius = scale
+    hidden, gap = 34, slice(85, 116)
+    painted = frames.copy()
+    for f in range(gap.start, gap.stop):
+        centre = tuple(int(round(c)) for c in tracks.uv[f, hidden])
+        ring = np.zeros(frames.shape[1:3], np.uint8)
+        cv2.circle(ring, centre, int(2.5 * radius), 1, -1)
+        cv2.circle(ring, centre, int(1.8 * radius), 0, -1)
+        colour = np.median(frames[f][ring.astype(bool)], axis=0)
+        cv2.circle(painted[f], centre, int(1.8 * radius), tuple(int(c) for c in colour), -1)
+    out = track_markers(painted, GRID)
+    assert np.all(out.status[gap, hidden] == INTERPOLATED) and np.all(out.weight[gap, hidden] == 0.0)
+    assert np.all(np.isnan(out.measured[gap, hidden]))
+    others = np.delete(np.arange(GRID[0] * GRID[1]), hidden)
+    assert np.all(out.status[:, others] <= CLIPPED)
+    assert np.all(out.status[: gap.start, hidden] == MEASURED) and np.all(out.status[gap.stop :, hidden] == MEASURED)
+    err = np.linalg.norm(out.uv[:, hidden] - tracks.uv[:, hidden], axis=1)
+    assert np.max(err[gap]) < radius, f"interpolated marker off by up to {np.max(err[gap]):.2f} px"
+    assert np.max(err[gap.stop :]) < 0.1, "the marker must be found again on its own blob"
