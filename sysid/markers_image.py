@@ -163,7 +163,7 @@ def find_marker_blobs(image: np.ndarray, spacing_px: float, keep_clipped: bool =
         mask = cv2.dilate((region == label).astype(np.uint8), grow, iterations=2).astype(bool)
         mask &= (region == 0) | (region == label)
         weight = contrast[ya:yb, xa:xb] * mask
-        vv, uu = np.mgrid[ya:yb, xa:xb]
+        vv, uu = np.arange(ya, yb, dtype=float)[:, None], np.arange(xa, xb, dtype=float)[None, :]
         total = float(weight.sum())
         u, v = float((weight * uu).sum()) / total, float((weight * vv).sum()) / total
         if area[c] <= trim_area:
