@@ -181,7 +181,9 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 
 def _with_camera(scene: SceneFile, camera: Mapping[str, float]) -> SceneFile:
-    """The scene with its only sensor's intrinsics (fx fy cx cy width height) from a recorded camera_info.
+    """The scene with its only sensor's camera from a recorded camera_info: intrinsics (fx fy cx cy width
+    height) and, when the info gives a distortion, the radial ``k1 k2`` (a zero where the scene has none
+    stays none: both mean no distortion).
 
     Raises:
         BagReadError: the scene has not exactly one sensor (which camera the info belongs to is unknown).
@@ -190,7 +192,13 @@ def _with_camera(scene: SceneFile, camera: Mapping[str, float]) -> SceneFile:
         raise BagReadError(f"{scene.source}: a recorded camera_info needs a scene with one tactile sensor, it has "
                            f"{len(scene.sensors)}")
     name, sensor = next(iter(scene.sensors.items()))
-    cam = dataclasses.replace(sensor.camera, **{k: type(getattr(sensor.camera, k))(v) for k, v in camera.items()})
+    values: dict[str, Any] = {}
+    for key, value in camera.items():
+        if key in ("k1", "k2"):
+            values[key] = None if value == 0.0 and getattr(sensor.camera, key) is None else float(value)
+        else:
+            values[key] = type(getattr(sensor.camera, key))(value)
+    cam = dataclasses.replace(sensor.camera, **values)
     return dataclasses.replace(scene, sensors={name: dataclasses.replace(sensor, camera=cam)})
 
 
@@ -232,7 +240,8 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
             frames (:func:`markers_from_images`).
         recording_map: where each role of a real cell's recording comes from (docs/recording_map.md);
             None = ``recording.yaml`` in the bag directory when there is one, else today's contract.
-            A ``camera_info`` topic in the map replaces the scene's camera intrinsics.
+            A ``camera_info`` topic in the map replaces the scene's camera intrinsics and, when it
+            gives a distortion, its radial ``k1 k2`` (:func:`sysid.bagio.images.parse_camera_info`).
         t_start, t_end: keep only the samples from ``t_start`` to ``t_end`` s after the recording's
             first stamp (None = open); the noise is estimated inside that window.
 

@@ -8,13 +8,16 @@ names and returns, per role, the samples the contract would have recorded:
   any TF frame, carried to the effector frame by TF (``world_T_eff = world_T_link link_T_eff``);
 - ``pose_cmd``: the same for the command topic (e.g. a Cartesian controller's target of ``tool0`` in ``base``);
 - ``markers``: a PointCloud2 in the sensor frame (checked);
-- ``wrench``: the F/T wrench in its own frame, tool weight removed by orientation
+- ``wrench``: the F/T wrench in its own frame, negated when the sensor reports the reaction
+  (``sign: on_environment``), tool weight removed by orientation
   (``F_g = R_wf^T m g``, ``tau_g = c x F_g``), tared (known offset, or the mean of the
   weight-compensated samples over a pre-contact window), then carried to the sensor frame
   (``F_s = R F_f``, ``tau_s = R tau_f + t x F_s``, :func:`~sysid.bagio.tf_buffer.wrench_transform`);
 - ``sheet_points``: points in any frame, carried to ``world``;
 - ``image``: any encoding or CompressedImage, as grey frames;
-- ``clock``.
+- ``clock``;
+- the camera: the first ``camera_info``'s intrinsics and radial distortion ``k1 k2``
+  (:func:`~sysid.bagio.images.parse_camera_info`; other distortion terms left out with a warning).
 
 Every header frame_id is checked against the map: a mismatch is a :class:`BagReadError` naming the
 topic and both frames. Stamps follow each topic's policy (``header`` | ``log`` | ``auto``).
@@ -167,13 +170,16 @@ class _Mapper:
         t = _stamps(TopicSource(src.topic, src.stamp), header, np.asarray([log for log, _ in items], dtype=np.int64))
         w = np.stack([p[1] for p in parsed])
         finite = np.all(np.isfinite(w), axis=1)
+        sign = -1.0 if src.sign == "on_environment" else 1.0  # the reaction: negated first (recording_map.py)
+        if sign < 0.0:
+            w = -w
         if src.tool is not None and src.tool.mass > 0.0:
             world_T_f = self.world_T(src.frame, t)
             weight = src.tool.mass * np.asarray(src.tool.gravity, dtype=np.float64)
             f_g = quat_rotate(pose_inverse(world_T_f)[:, 3:], np.broadcast_to(weight, (t.shape[0], 3)))
             w = w - np.concatenate([f_g, np.cross(np.asarray(src.tool.com), f_g)], axis=1)
-        if src.tare_offset is not None:
-            w = w - np.asarray(src.tare_offset, dtype=np.float64)
+        if src.tare_offset is not None:  # in the message's own sign
+            w = w - sign * np.asarray(src.tare_offset, dtype=np.float64)
         elif src.tare_window is not None:
             t0 = int(t[finite].min()) if finite.any() else 0
             lo, hi = (t0 + int(round(s * 1e9)) for s in src.tare_window)
@@ -259,8 +265,14 @@ def decode_mapped(rmap: RecordingMap, raw: dict[str, list[tuple[int, Any]]], top
             out[role] = (src.topic, msgtype, m.clock(src))
     camera = None
     if has(rmap.camera_info):
+        info = raw[rmap.camera_info.topic][0][1]
         try:
-            camera = images.parse_camera_info(raw[rmap.camera_info.topic][0][1])
+            camera = images.parse_camera_info(info)
+            left, px = images.distortion_left_out(info)
         except ValueError as err:
             raise BagReadError(f"topic {rmap.camera_info.topic}: {err}") from err
+        if left:
+            terms = ", ".join(f"{n}={v:.6g}" for n, v in left.items())
+            warn(f"topic {rmap.camera_info.topic}: distortion terms {terms} are not in the camera model (radial k1 k2 "
+                 f"only) and are left out: they move the image corners by up to {px:.3g} px")
     return out, camera

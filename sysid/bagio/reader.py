@@ -144,7 +144,8 @@ class BagContents:
         notes: the warnings emitted while reading, as text.
         mcap_paths: every MCAP file of the bag, in ``metadata.yaml`` order.
         recording_map: the recording map file used, or None (today's contract).
-        camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``), or None.
+        camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``, and ``k1 k2``
+            when it gives a distortion), or None.
     """
 
     path: Path

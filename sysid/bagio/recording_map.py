@@ -22,6 +22,7 @@ dataclasses below; unknown keys are errors (house rule 7). Schema version 1::
       topic: T
       frame: ft_sensor
       stamp: header
+      sign: on_gel                    # or on_environment: the sensor reports the reaction
       tare: {window: [0.0, 0.2]}      # s after the first wrench sample; or {offset: [6 values]}
       tool: {mass: 0.25, com: [0, 0, 0.03], gravity: [0, 0, -9.81]}
     sheet_points: {topic: T, frame: base_link, stamp: header}
@@ -48,6 +49,9 @@ MAP_FILENAME = "recording.yaml"
 STAMP_POLICIES = ("header", "log", "auto")
 IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 STANDARD_GRAVITY = (0.0, 0.0, -9.80665)
+WRENCH_SIGNS = ("on_gel", "on_environment")
+"""``wrench.sign``: the message is the wrench ON the tool side (the gel, the contract's sign), or the
+wrench the tool exerts ON the environment (the reaction, its negative)."""
 
 _TOP_KEYS = ("version", "frames", "pose", "pose_cmd", "markers", "image", "camera_info", "wrench", "sheet_points",
              "clock", "tf")
@@ -97,6 +101,10 @@ class WrenchSource:
             sensor's offset, subtracted from every sample; ``None`` with ``tare_offset`` or no tare.
         tare_offset: a known offset ``(6,)`` N, N m in ``frame``, subtracted from every sample.
         tool: :class:`ToolWeight` compensated by orientation, or None.
+        sign: ``on_gel`` (default): the message is the force and torque the tool side receives (the
+            contract's sign: pressing gives F_z < 0 in the sensor frame); ``on_environment``: the sensor
+            reports the reaction, the wrench the tool exerts on what it touches, and the reader negates it
+            before the tool weight and the tare (``tare_offset`` stays in the message's own sign).
     """
 
     topic: str
@@ -105,6 +113,7 @@ class WrenchSource:
     tare_window: tuple[float, float] | None = None
     tare_offset: tuple[float, ...] | None = None
     tool: ToolWeight | None = None
+    sign: str = "on_gel"
 
 
 @dataclass(frozen=True)
@@ -219,7 +228,10 @@ def _topic(source: str, role: str, data: Any, allowed: tuple[str, ...]) -> Topic
 def _wrench(source: str, data: Any) -> WrenchSource | None:
     if data is None:
         return None
-    s = _Section(source, "wrench", data, ("topic", "frame", "stamp", "tare", "tool"))
+    s = _Section(source, "wrench", data, ("topic", "frame", "stamp", "sign", "tare", "tool"))
+    sign = data.get("sign", "on_gel")
+    if sign not in WRENCH_SIGNS:
+        raise ConfigError(f"{source}: wrench.sign must be one of {', '.join(WRENCH_SIGNS)}, got {sign!r}")
     base = _topic(source, "wrench", {k: v for k, v in data.items() if k in ("topic", "stamp")}, ("topic", "stamp"))
     window = offset = None
     if data.get("tare") is not None:
@@ -239,7 +251,7 @@ def _wrench(source: str, data: Any) -> WrenchSource | None:
         tool = ToolWeight(mass=float(mass), com=t.numbers("com", 3, required=True),
                           gravity=t.numbers("gravity", 3, default=STANDARD_GRAVITY))
     return WrenchSource(topic=base.topic, frame=s.text("frame", required=True), stamp=base.stamp,
-                        tare_window=window, tare_offset=offset, tool=tool)
+                        tare_window=window, tare_offset=offset, tool=tool, sign=sign)
 
 
 def parse_recording_map(data: Mapping[str, Any], source: str = "<dict>") -> RecordingMap:
