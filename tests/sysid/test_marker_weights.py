@@ -12,6 +12,7 @@ import pytest
 from sim_core.sensors.camera import PinholeCamera
 from sim_core.sensors.image import render_marker_image
 from sysid.bagio import BagWriter
+from sysid.diagnose.residuals import residual as diagnosis_residual, whiten
 from sysid.evidence import load_evidence
 from sysid.fit import fit
 from sysid.observation import ObservationModel
@@ -82,6 +83,9 @@ def test_a_frame_with_an_interpolated_marker_is_kept_and_its_residual_has_zero_w
     J = model.whiten_derivative("markers_uv", d).reshape(ev.markers_uv.shape + (2,))
     np.testing.assert_array_equal(J[frame, marker], 0.0)
     assert np.all(J[seen] != 0.0)
+    # the diagnosis whitens the same way (its residuals and candidate signatures)
+    np.testing.assert_array_equal(diagnosis_residual(model, "markers_uv", off["markers_uv"]), r)
+    np.testing.assert_array_equal(whiten(model, "markers_uv", -d).reshape(J.shape), J)
 
 
 def test_a_clipped_marker_counts_by_its_visible_fraction(image_bag):
