@@ -321,7 +321,8 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
     effectors = {}
     if isinstance(scene, TaskSceneFile):
         namespace = config.namespace if isinstance(config, BagConfig) else load_bag_config(config).namespace
-        effectors = read_effector_streams(bag.path, scene.effector_names, namespace)
+        mapped = recording_map if isinstance(recording_map, RecordingMap) else bag.recording_map
+        effectors = read_effector_streams(bag.path, scene.effector_names, namespace, recording_map=mapped)
     return Evidence(
         source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics, bag.recording_map),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,

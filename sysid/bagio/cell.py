@@ -112,8 +112,8 @@ class _Mapper:
         return self.raw.get(src.topic, [])
 
     # ---------------------------------------------------------------------------------- roles
-    def pose_from_tf(self) -> Decoded:
-        eff = self.rmap.effector_frame
+    def pose_from_tf(self, eff: str | None = None) -> Decoded:
+        eff = eff or self.rmap.effector_frame
         t = self.tf.dynamic_stamps(self.rmap.base_frame, eff)
         if t.shape[0] == 0:
             raise BagReadError(f"{self.path}: the TF chain {self.rmap.base_frame} -> {eff} has no dynamic samples on "
@@ -121,7 +121,8 @@ class _Mapper:
         pose = pose_compose(self.world_T_base, self.tf.lookup(self.rmap.base_frame, eff, t))
         return t, hemisphere_continuous(pose), (), self.rmap.world_frame
 
-    def pose_from_topic(self, src: TopicSource) -> Decoded:
+    def pose_from_topic(self, src: TopicSource, eff: str | None = None) -> Decoded:
+        eff = eff or self.rmap.effector_frame
         items = self.items(src)
         parsed = [codec.parse_pose_stamped(m) for _, m in items]
         header = np.asarray([p[0] for p in parsed], dtype=np.int64)
@@ -138,8 +139,8 @@ class _Mapper:
         for frame in frames:
             sel = np.asarray([p[2].lstrip("/") == frame for p in parsed])
             world[sel] = pose_compose(self.world_T(frame, t[sel]), poses[sel])
-        link = src.link or self.rmap.effector_frame
-        world = pose_compose(world, self.lookup(link, self.rmap.effector_frame, t))
+        link = src.link or eff
+        world = pose_compose(world, self.lookup(link, eff, t))
         return t, hemisphere_continuous(world), (), self.rmap.world_frame
 
     def markers(self, src: TopicSource, decode: Callable[[str, str, list], Decoded]) -> Decoded:
@@ -276,3 +277,62 @@ def decode_mapped(rmap: RecordingMap, raw: dict[str, list[tuple[int, Any]]], top
             warn(f"topic {rmap.camera_info.topic}: distortion terms {terms} are not in the camera model (radial k1 k2 "
                  f"only) and are left out: they move the image corners by up to {px:.3g} px")
     return out, camera
+
+
+def decode_mapped_effectors(rmap: RecordingMap, raw: dict[str, list[tuple[int, Any]]], topic_types: dict[str, str],
+                            path: str, effectors: list[str]) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Every effector's streams of a task scene's recording, through the map's ``effectors`` section.
+
+    Per effector (:class:`~sysid.bagio.recording_map.EffectorSource`): ``pose`` in world from TF (at the
+    chain's dynamic stamps) or a pose topic (its stamp policy); ``pose_cmd`` carried from its ``link`` to
+    the effector frame, stamped with log time (when the robot took it); ``gripper_cmd`` openings (m), log
+    time. Samples in file order, not yet cleaned.
+
+    Args:
+        rmap: the recording map (``rmap.effectors`` non-empty).
+        raw: topic -> ``[(log_ns, message)]`` of the TF topics and the effectors' topics.
+        topic_types: topic -> message type of every topic in the bag.
+        path: the bag (for messages).
+        effectors: the scene's effector names.
+
+    Returns:
+        effector -> ``"pose"`` / ``"pose_cmd"`` / ``"gripper_cmd"`` -> ``(t_ns (N,), values)``: poses ``(N, 7)``
+        in world, openings ``(N,)``; streams without messages are absent.
+
+    Raises:
+        BagReadError: the map names an effector the scene does not have, a topic of another type, a frame
+            or TF lookup that contradicts the map (each names the topic, effector or frame).
+    """
+    unknown = sorted(set(rmap.effectors) - set(effectors))
+    if unknown:
+        raise BagReadError(f"{rmap.source}: effectors.{unknown[0]} is not an effector of the scene "
+                           f"(effectors: {', '.join(effectors)})")
+    expected = {"pose": (codec.POSE_STAMPED,), "pose_cmd": (codec.POSE_STAMPED,), "gripper_cmd": (codec.FLOAT64,)}
+    m = _Mapper(rmap, raw, path, lambda message: None)
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for name, spec in rmap.effectors.items():
+        streams: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for kind in ("pose", "pose_cmd", "gripper_cmd"):
+            src = getattr(spec, kind)
+            if src is None or (src == "tf" and not raw.get(rmap.tf_topic)):
+                continue
+            if src == "tf":
+                t, values, _, _ = m.pose_from_tf(spec.frame)
+                streams[kind] = (t, values)
+                continue
+            items = raw.get(src.topic, [])
+            if not items:
+                continue
+            msgtype = topic_types.get(src.topic)
+            if msgtype not in expected[kind]:
+                raise BagReadError(f"topic {src.topic} (effectors.{name}.{kind} of {rmap.source}) has type {msgtype}, "
+                                   f"expected {expected[kind][0]} in {path}")
+            log = np.asarray([t for t, _ in items], dtype=np.int64)
+            if kind == "gripper_cmd":
+                streams[kind] = (log, np.asarray([codec.parse_float64(msg) for _, msg in items], dtype=np.float64))
+                continue
+            t, values, _, _ = m.pose_from_topic(src, spec.frame)
+            streams[kind] = (log if kind == "pose_cmd" else t, values)
+        if streams:
+            out[name] = streams
+    return out
