@@ -91,7 +91,8 @@ def bags(tmp_path_factory):
     with BagWriter(root / "cell", scene=scene) as bag:
         bag.write_message("/tf_static", "tf2_msgs/msg/TFMessage", int(T_NS[0]), _tf(
             [_transform(f"{e}_flange", f"{e}_gel", int(T_NS[0]), FLANGE_T_GEL) for e in ("grip", "push")]
-            + [_transform(f"{e}_gel", f"{e}_tool0", int(T_NS[0]), pose_inverse(TOOL0_T_GEL)) for e in ("grip", "push")]))
+            + [_transform(f"{e}_gel", f"{e}_tool0", int(T_NS[0]), pose_inverse(TOOL0_T_GEL))
+               for e in ("grip", "push")]))
         for i, t in enumerate(T_NS):
             t = int(t)
             base_T_gel = pose_compose(base_T_world, pose["grip"][i])
