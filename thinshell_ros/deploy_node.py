@@ -60,6 +60,7 @@ from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
@@ -112,6 +113,9 @@ FLOAT_PARAMETERS: dict[str, tuple[float, str, float, float]] = {
     "retract_distance": (0.01, "on_abort retract: lift by this along minus the sensor normal, m", 0.0, 1.0),
     "abort_hold_time": (0.5, "s the abort's last command is repeated before the node exits", 0.0, 60.0),
     "twist_gain": (5.0, "command_interface twist: proportional gain on the pose error, 1/s", 0.0, 1000.0),
+    "settle_tolerance": (0.0002, "command_interface twist: after the last waypoint, feedback twists until the "
+                                 "measured position is this close to it, m", 1e-7, 0.1),
+    "settle_angle_tolerance": (0.005, "command_interface twist: the same for the orientation, rad", 1e-6, 1.0),
 }
 STRING_PARAMETERS: dict[str, tuple[str, str]] = {
     "command_interface": ("thinshell", "thinshell (<effector>/pose_cmd in world_frame) | pose_target (PoseStamped "
@@ -175,9 +179,9 @@ class DeployNode(Node):
              for name, (default, desc, low, high) in FLOAT_PARAMETERS.items()}
         text = {name: str(self.declare_parameter(name, default, _descriptor(desc)).value)
                 for name, (default, desc) in STRING_PARAMETERS.items()}
-        poses = {name: list(self.declare_parameter(name, [] if name == "sensor_mount" else list(IDENTITY),
-                                                   _descriptor(desc)).value or [])
-                 for name, desc in POSE_PARAMETERS.items()}
+        poses = {name: list(self.declare_parameter(
+            name, Parameter.Type.DOUBLE_ARRAY if name == "sensor_mount" else list(IDENTITY), _descriptor(desc)).value or [])
+            for name, desc in POSE_PARAMETERS.items()}
         ws_min = list(self.declare_parameter("workspace_min", [-0.5, -0.5, -0.1], _descriptor(
             "[x, y, z] lower corner of the allowed effector positions, m in world")).value)
         ws_max = list(self.declare_parameter("workspace_max", [0.5, 0.5, 0.5], _descriptor(
@@ -215,6 +219,8 @@ class DeployNode(Node):
         self.tare = WrenchTare(p["tare_max_force"]) if p["tare_window"] > 0 else None
         self.tare_window, self.retract_distance = p["tare_window"], p["retract_distance"]
         self.abort_hold_time, self.twist_gain = p["abort_hold_time"], p["twist_gain"]
+        self.settle_tolerance, self.settle_angle_tolerance = p["settle_tolerance"], p["settle_angle_tolerance"]
+        self._settle_since: float | None = None
         self.wrench_frame = text["wrench_frame"]
         self.ft_in_sensor = checked_pose(poses["wrench_in_sensor"], "wrench_in_sensor")
         if trajectory is None:
@@ -262,6 +268,7 @@ class DeployNode(Node):
                 msg_type, topic or DEFAULT_COMMAND_TOPICS[self.interface], COMMAND_QOS)}
         self._pub_grip = {e: self.create_publisher(Float64, f"{e}/gripper_cmd", COMMAND_QOS) for e in trajectory.gripper}
         self._pub_status = self.create_publisher(String, "~/status", STATUS_QOS)
+        self._resolved = {t: self.resolve_topic_name(t) for t in [f"{e}/pose" for e in effectors] + self.wrench_topics}
         for e in effectors:
             self.create_subscription(PoseStamped, f"{e}/pose", self._pose_callback(e), SENSOR_QOS)
         for t in self.wrench_topics:
@@ -305,8 +312,10 @@ class DeployNode(Node):
 
     @property
     def _watched(self) -> list[str]:
-        """Streams the watchdog watches while running: every effector's pose, every required wrench."""
-        return [f"{e}/pose" for e in self.trajectory.effectors] + (list(self.wrench_topics) if self.require_wrench else [])
+        """Streams (resolved topic names) the watchdog watches while running: every effector's pose, every
+        required wrench."""
+        topics = [f"{e}/pose" for e in self.trajectory.effectors] + (list(self.wrench_topics) if self.require_wrench else [])
+        return [self._resolved[t] for t in topics]
 
     def status(self) -> dict[str, Any]:
         """The status document published on ``~/status``."""
@@ -391,10 +400,12 @@ class DeployNode(Node):
                 nxt = self.frames.tool_in_base(self.trajectory.sample_pose(effector, tau + dt / self.time_scale))
                 twist = servo_twist(target, nxt, dt, measured_tool, self.twist_gain, self.limits.max_linear_speed,
                                     self.limits.max_angular_speed)
-            else:
+            else:  # a pure translation (retract) or a stop: exactly zero angular velocity
                 v = np.zeros(3) if velocity is None else self.frames.vector_to_base(velocity)
-                twist = servo_twist(target, np.concatenate([target[:3] + v, target[3:]]), 1.0, None, 0.0,
-                                    self.limits.max_linear_speed, self.limits.max_angular_speed)
+                speed = float(np.linalg.norm(v))
+                if speed > self.limits.max_linear_speed:
+                    v = v * (self.limits.max_linear_speed / speed)
+                twist = np.concatenate([v, np.zeros(3)])
             pub.publish(cv.twist_to_msg(twist, stamp, self.frames.base_frame))
 
     def _publish_abort(self, now: float) -> None:
@@ -449,7 +460,7 @@ class DeployNode(Node):
                 return
             now = self._now()
             if now is not None:
-                self.watchdog.seen(topic, now)
+                self.watchdog.seen(self._resolved[topic], now)
             self._measured[effector] = pose
             if self.state == "running":
                 reason = None if now is None else self.monitor.check_pose(effector, now, pose)
@@ -467,7 +478,7 @@ class DeployNode(Node):
                 return
             now = self._now()
             if now is not None:
-                self.watchdog.seen(topic, now)
+                self.watchdog.seen(self._resolved[topic], now)
             self._wrench_seen.add(topic)
             wrench = wrench_in_sensor(cv.wrench_from_msg(msg)[1], self.ft_in_sensor)
             if self.tare is not None and self._tare_span is not None and now is not None \
@@ -577,11 +588,40 @@ class DeployNode(Node):
                 self._pub_grip[e].publish(Float64(data=float(g)))
             self.published += 1
         if self.schedule.finished:
+            if self.interface == "twist" and not self._settled(now):
+                return
             if self.interface == "twist":  # the end of the motion: stop (Servo would keep the last twist until its timeout)
                 for e in self.trajectory.effectors:
                     self._send(e, self.trajectory.poses[e][-1], cv.seconds_to_ns(now))
             self._finish("completed", f"{self.published} commands published over "
                                       f"{self.schedule.end - self.schedule.t0:.3f} s")
+
+    def _settled(self, now: float) -> bool:
+        """Twist interface after the last tick: True once every measured pose is within the settle tolerances of
+        the final pose; until then a feedback twist towards it (no feed-forward) each tick.
+
+        Raises:
+            ThinShellError: not settled within ``start_timeout`` s of steady time (the tick aborts).
+        """
+        if self._settle_since is None:
+            self._settle_since = time.monotonic()
+        far = []
+        for e in self.trajectory.effectors:
+            final, measured = self.trajectory.poses[e][-1], self._measured[e]
+            dist, angle = start_pose_error(measured, final)
+            if dist > self.settle_tolerance or angle > self.settle_angle_tolerance:
+                far.append((e, dist, angle))
+                tool = self.frames.tool_in_base(final)
+                twist = servo_twist(tool, tool, 1.0, self.frames.tool_in_base(measured), self.twist_gain,
+                                    self.limits.max_linear_speed, self.limits.max_angular_speed)
+                self._pub_cmd[e].publish(cv.twist_to_msg(twist, cv.seconds_to_ns(now), self.frames.base_frame))
+        if far and time.monotonic() - self._settle_since > self.start_timeout:
+            e, dist, angle = far[0]
+            raise ThinShellError(f"effector {e!r} did not settle at the final pose within start_timeout "
+                                 f"{self.start_timeout:g} s: {dist * 1e3:.3g} mm and {angle:.3g} rad away "
+                                 f"(settle_tolerance {self.settle_tolerance * 1e3:g} mm, settle_angle_tolerance "
+                                 f"{self.settle_angle_tolerance:g} rad)")
+        return not far
 
 
 def deploy_main(argv: Sequence[str] | None = None) -> int:
