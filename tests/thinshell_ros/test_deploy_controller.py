@@ -232,3 +232,22 @@ def test_a_measured_pose_in_an_unknown_frame_is_refused_naming_both(ros_context)
         assert robot.received["pose_target"] == []
     finally:
         _close(ex, node, robot)
+
+
+def test_the_per_cell_template_is_a_valid_params_file(ros_context):
+    """config/nodes/deploy_node.yaml: every key is a parameter the node declares, and the node takes the file."""
+    from tests.thinshell_ros.conftest import REPO
+
+    path = REPO / "config" / "nodes" / "deploy_node.yaml"
+    keys = set(__import__("yaml").safe_load(path.read_text())["/**/thinshell_deploy"]["ros__parameters"])
+    node = DeployNode(trajectory=_line(dx=0.002), context=ros_context,
+                      cli_args=["--ros-args", "--params-file", str(path), "-p", "dry_run:=true"])
+    try:
+        assert keys <= set(node._parameters), keys - set(node._parameters)
+        assert node.state == "completed", node.reason
+        assert node.interface == "pose_target" and node.on_abort_action == "retract"
+        assert node.get_parameter("torque_limit").value == 0.3 and node.guard.torque == 0.3
+        np.testing.assert_allclose(node.frames.sensor_in_tool, [0.0, 0.0, 0.065, 0.0, 0.0, 0.0, 1.0])
+        assert "pose_target ('tool0' in 'base_link' on /cartesian_motion_controller/target_frame)" in node.reason
+    finally:
+        node.destroy_node()
