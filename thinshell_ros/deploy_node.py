@@ -21,7 +21,7 @@ says so; ``require_wrench:=false`` deploys without force monitoring, logged as a
 commands on the clock grid -> ``completed``. During the motion every measured wrench whose force
 exceeds ``wrench_limit`` and every measured pose farther than ``pose_lag_tolerance`` from all
 commands of the last ``pose_lag_window`` s aborts at once (in the measurement's callback, so within
-one control period of its arrival; nothing is published after an abort). ``~/abort``
+one control period of its arrival; no trajectory command follows an abort, ``on_abort`` does). ``~/abort``
 (``std_srvs/Trigger``) aborts on request. ``dry_run`` checks and reports without publishing commands.
 
 Status: ``~/status`` (``std_msgs/String``, JSON, reliable + transient local, 10 Hz and at every
