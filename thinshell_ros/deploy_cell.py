@@ -228,7 +228,12 @@ class WrenchGuard:
 
 
 class Watchdog:
-    """The newest message's arrival per stream, on the robot's clock.
+    """The newest message's arrival per stream, on the robot's clock and on a steady clock.
+
+    A stream is stale when its newest message is older than the timeout on both clocks: on a cell the
+    robot's clock is wall time and the two agree; in simulation (``/clock``) a simulator slower than
+    real time is not taken for a dead sensor (robot clock), nor a jump of ``/clock`` taken before the
+    messages queued behind it (steady clock).
 
     Args:
         timeout: s; a stream whose newest message is older than this is stale.
@@ -239,18 +244,23 @@ class Watchdog:
             raise ConfigError(f"sensor_timeout must be finite and > 0, got {timeout}")
         self.timeout = float(timeout)
         self.last: dict[str, float] = {}
+        self._last_steady: dict[str, float] = {}
 
-    def seen(self, stream: str, now: float) -> None:
-        """A message of ``stream`` arrived at clock reading ``now`` (s)."""
+    def seen(self, stream: str, now: float, steady: float | None = None) -> None:
+        """A message of ``stream`` arrived at robot clock reading ``now`` and steady clock reading ``steady`` (s;
+        default: ``now``)."""
         self.last[stream] = float(now)
+        self._last_steady[stream] = float(now if steady is None else steady)
 
-    def stale(self, streams: Sequence[str], now: float) -> str | None:
-        """Reason to abort when a stream of ``streams`` has no message, or its newest is older than the timeout."""
+    def stale(self, streams: Sequence[str], now: float, steady: float | None = None) -> str | None:
+        """Reason to abort when a stream of ``streams`` has no message, or its newest is older than the timeout on
+        the robot's clock (``now``) and on the steady clock (``steady``, default ``now``)."""
+        steady = now if steady is None else steady
         for s in streams:
             t = self.last.get(s)
             if t is None:
                 return f"no message on {s} (sensor_timeout {self.timeout:g} s)"
-            if now - t > self.timeout:
+            if now - t > self.timeout and steady - self._last_steady[s] > self.timeout:
                 return f"the newest message on {s} is {now - t:.3g} s old (> sensor_timeout {self.timeout:g} s)"
         return None
 

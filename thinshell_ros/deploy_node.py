@@ -460,7 +460,7 @@ class DeployNode(Node):
                 return
             now = self._now()
             if now is not None:
-                self.watchdog.seen(self._resolved[topic], now)
+                self.watchdog.seen(self._resolved[topic], now, time.monotonic())
             self._measured[effector] = pose
             if self.state == "running":
                 reason = None if now is None else self.monitor.check_pose(effector, now, pose)
@@ -478,7 +478,7 @@ class DeployNode(Node):
                 return
             now = self._now()
             if now is not None:
-                self.watchdog.seen(self._resolved[topic], now)
+                self.watchdog.seen(self._resolved[topic], now, time.monotonic())
             self._wrench_seen.add(topic)
             wrench = wrench_in_sensor(cv.wrench_from_msg(msg)[1], self.ft_in_sensor)
             if self.tare is not None and self._tare_span is not None and now is not None \
@@ -499,7 +499,7 @@ class DeployNode(Node):
                 self._try_start()
             if self.state == "running":
                 now = self._now()
-                reason = None if now is None else self.watchdog.stale(self._watched, now)
+                reason = None if now is None else self.watchdog.stale(self._watched, now, time.monotonic())
                 if reason:
                     self.abort(reason)
                 else:

@@ -111,6 +111,11 @@ def test_watchdog_names_the_stale_stream():
     assert dog.stale(["/a", "/b"], 10.2) is None
     assert dog.stale(["/a", "/b"], 10.25) == "the newest message on /a is 0.25 s old (> sensor_timeout 0.2 s)"
     assert dog.stale(["/c"], 10.0) == "no message on /c (sensor_timeout 0.2 s)"
+    # on /clock: stale only when old on the robot's clock and on the steady clock
+    dog.seen("/a", 10.0, steady=100.0)
+    assert dog.stale(["/a"], 10.5, steady=100.1) is None  # /clock jumped ahead of the queued messages
+    assert dog.stale(["/a"], 10.1, steady=101.0) is None  # the simulator runs slower than real time
+    assert "/a is 0.5 s old" in dog.stale(["/a"], 10.5, steady=100.5)
     with pytest.raises(ConfigError, match="sensor_timeout must be finite and > 0"):
         Watchdog(0.0)
 
