@@ -16,6 +16,7 @@ from tests.thinshell_ros.cell_controller import (SENSOR_IN_TOOL, WORLD_IN_BASE, 
                                                  tool_in_base_truth)
 from tests.thinshell_ros.conftest import spin_until
 from tests.thinshell_ros.fake_sim import HOME
+from thinshell_ros import conversions as cv
 from thinshell_ros.deploy_node import DeployNode
 from thinshell_ros.deploy_plan import rotation_angle
 
@@ -99,8 +100,14 @@ def test_twist_commands_drive_the_tool_link_along_the_trajectory(ros_context):
         # the first twist, the robot at the start (no feedback): the tool origin 5 cm and 1 cm off the gel
         # (r = (0.05, 0, 0.01) m in world) moves at v_ee + w x r = (0.005, 0.0125, 0) m/s in world, i.e.
         # (-0.0125, 0.005, 0) in base; the yaw about world z is a rotation about base z (0.25 rad/s)
-        np.testing.assert_allclose(twists[0], [-0.0125, 0.005, 0.0, 0.0, 0.0, 0.25], atol=1e-4)
-        assert np.abs(twists[:, 3:5]).max() < 1e-9 and np.all(twists[:node.published - 1, 5] > 0.15)  # the last tick: no feed-forward
+        # (a busy process may skip tick 0; later ticks add the feedback on a lagging arm)
+        stamps = [st for _, _, st in robot.received["twist"]]
+        if cv.seconds_to_ns(node.schedule.t0) in stamps:
+            first = twists[stamps.index(cv.seconds_to_ns(node.schedule.t0))]
+            np.testing.assert_allclose(first, [-0.0125, 0.005, 0.0, 0.0, 0.0, 0.25], atol=1e-4)
+        during = twists[:node.published - 1]  # the last tick has no feed-forward
+        assert np.abs(twists[:, 3:5]).max() < 1e-9 and np.all(during[:, 5] > 0.15)
+        assert 0.2 < np.median(during[:, 5]) < 0.4 and np.all(during[:, 0] < 0) and np.all(during[:, 1] > 0)
         # completed once settled: the measured pose within settle_tolerance 0.2 mm / 0.005 rad of the end; the
         # arm then runs on for the zero twist's latency (the line ends at full speed: 5 mm/s, 0.25 rad/s)
         end = traj.poses["ee"][-1]
