@@ -244,6 +244,7 @@ class DeployNode(Node):
         self.published = 0
         self.abort_published = 0
         self.abort_action = ""  # "holding" | "retracting" once aborted while running
+        self.aborted_at: float | None = None
         self._measured: dict[str, np.ndarray] = {}
         self._wrench_seen: set[str] = set()
         self._warned_no_wrench = False
@@ -361,6 +362,7 @@ class DeployNode(Node):
             self._finish("aborted", reason)
             return
         self.state, self.reason = "aborted", reason
+        self.aborted_at = time.monotonic()  # steady clock, s: when the abort was decided
         start = {e: self._measured.get(e, self.trajectory.sample_pose(e, 0.0)) for e in self.trajectory.effectors}
         plans: dict[str, RetractPlan] = {}
         if self.on_abort_action == "retract":
