@@ -245,6 +245,7 @@ class DeployNode(Node):
         self.abort_published = 0
         self.abort_action = ""  # "holding" | "retracting" once aborted while running
         self.aborted_at: float | None = None
+        self._last_tick: float | None = None
         self._measured: dict[str, np.ndarray] = {}
         self._wrench_seen: set[str] = set()
         self._warned_no_wrench = False
@@ -496,12 +497,17 @@ class DeployNode(Node):
     def _on_tick(self) -> None:
         if self.done.is_set():
             return
+        steady = time.monotonic()
+        # a tick late by half the timeout means this process stalled: the messages queued meanwhile are taken
+        # after this tick (one executor), so the watchdog's verdict waits for the next tick
+        stalled = self._last_tick is not None and steady - self._last_tick > 0.5 * self.watchdog.timeout
+        self._last_tick = steady
         try:
             if self.state == "waiting":
                 self._try_start()
             if self.state == "running":
                 now = self._now()
-                reason = None if now is None else self.watchdog.stale(self._watched, now, time.monotonic())
+                reason = None if now is None or stalled else self.watchdog.stale(self._watched, now, steady)
                 if reason:
                     self.abort(reason)
                 else:

@@ -108,7 +108,8 @@ def _close(ex, *nodes) -> None:
 @pytest.mark.realtime
 def test_commands_on_time_at_100_hz_and_the_sim_follows(ros_context, sim_process):
     robot = _Nothing(ros_context)
-    node, obs, ex = _setup(ros_context, robot, _line(dx=0.02, duration=2.0, n=21), rate=100.0, start_timeout=15.0)
+    node, obs, ex = _setup(ros_context, robot, _line(dx=0.02, duration=2.0, n=21), rate=100.0, start_timeout=15.0,
+                           sensor_timeout=2.0)
     try:
         assert spin_until(ex, node.done.is_set, 20.0), node.status()
         spin_until(ex, lambda: False, 0.2)
