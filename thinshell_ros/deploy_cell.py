@@ -315,16 +315,16 @@ def scene_mount(scene_path: str | None) -> tuple[np.ndarray, str]:
     """The mount of the scene's first tactile sensor ``(7,)`` and where it came from.
 
     Args:
-        scene_path: the trajectory's scene file, or None.
+        scene_path: the trajectory's scene file (a version-1 scene or a task scene), or None.
 
     Raises:
-        ConfigError: an unreadable scene file (named).
+        ConfigError: a missing or unreadable scene file (named).
     """
     if not scene_path:
         return np.array(IDENTITY), "identity (the trajectory names no scene)"
-    from sim_core.scenes.scene_file import load_scene_file
+    from sim_core.scenes.task_file import load_any_scene_file
 
-    scene = load_scene_file(scene_path)
+    scene = load_any_scene_file(scene_path)
     for name, spec in scene.sensors.items():
         if spec.mount is not None:
             return checked_pose(spec.mount, f"{scene_path}: sensors.{name}.mount"), f"{scene_path}: sensors.{name}.mount"

@@ -230,7 +230,15 @@ class DeployNode(Node):
         if poses["sensor_mount"]:
             mount, mount_from = checked_pose(poses["sensor_mount"], "sensor_mount"), "parameter sensor_mount"
         else:
-            mount, mount_from = scene_mount(trajectory.scene_path)
+            try:
+                mount, mount_from = scene_mount(trajectory.scene_path)
+            except ConfigError as err:
+                if text["command_interface"] != "thinshell":  # the commanded tool pose depends on it
+                    raise ConfigError(f"the sensor mount of the trajectory's scene: {err}; set parameter "
+                                      "'sensor_mount'") from err
+                mount, mount_from = np.array(IDENTITY), f"identity (the trajectory's scene is unreadable: {err})"
+                self.get_logger().warning(f"sensor mount {mount_from}; on_abort retract lifts along the effector's "
+                                          "-z; set parameter 'sensor_mount'")
         self.frames = CellFrames(world_frame=text["world_frame"], base_frame=text["base_frame"],
                                  tool_link=text["tool_link"], world_in_base=poses["world_in_base"],
                                  sensor_in_tool=poses["sensor_in_tool"], sensor_mount=mount)
@@ -576,6 +584,9 @@ class DeployNode(Node):
                 break
         self.trajectory = traj
         self.schedule = DeploySchedule(traj, now, self.rate, self.time_scale)
+        for stream in self._watched:  # measured before the first /clock: its age counts from the start
+            if stream not in self.watchdog.last:
+                self.watchdog.seen(stream, now, time.monotonic())
         self.state = "running"
         self.get_logger().info(f"running: {self.schedule.tick_count} commands from t={now:.3f} s")
         self._publish_status()
