@@ -214,14 +214,20 @@ class WrenchGuard:
             if math.isnan(value) or value <= 0:
                 raise ConfigError(f"wrench limit {name} must be > 0, got {value}")
 
+    def _figures(self, wrench: np.ndarray) -> tuple[tuple[str, float, float, str, str], ...]:
+        w = np.asarray(wrench, float)
+        return (("force", float(np.linalg.norm(w[:3])), self.force_norm, "wrench_limit", "N"),
+                ("normal force", abs(float(w[2])), self.normal_force, "normal_force_limit", "N"),
+                ("shear force", float(np.hypot(w[0], w[1])), self.shear_force, "shear_force_limit", "N"),
+                ("torque", float(np.linalg.norm(w[3:6])), self.torque, "torque_limit", "N*m"))
+
+    def margins(self, wrench: np.ndarray) -> dict[str, float]:
+        """Parameter name -> limit minus the measured value (N or N*m) of every limit that is on."""
+        return {name: limit - value for _, value, limit, name, _ in self._figures(wrench) if math.isfinite(limit)}
+
     def check(self, topic: str, wrench: np.ndarray) -> str | None:
         """Reason to abort when ``wrench`` ``[fx fy fz tx ty tz]`` (sensor frame) breaks a limit, else None."""
-        w = np.asarray(wrench, float)
-        figures = (("force", float(np.linalg.norm(w[:3])), self.force_norm, "wrench_limit", "N"),
-                   ("normal force", abs(float(w[2])), self.normal_force, "normal_force_limit", "N"),
-                   ("shear force", float(np.hypot(w[0], w[1])), self.shear_force, "shear_force_limit", "N"),
-                   ("torque", float(np.linalg.norm(w[3:6])), self.torque, "torque_limit", "N*m"))
-        for what, value, limit, name, unit in figures:
+        for what, value, limit, name, unit in self._figures(wrench):
             if not math.isfinite(value) or value > limit:
                 return f"measured {what} {value:.4g} {unit} on {topic} exceeds {name} {limit:g} {unit}"
         return None

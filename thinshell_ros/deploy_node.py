@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
@@ -77,6 +78,9 @@ from thinshell_ros.runtime import COMMAND_QOS, SENSOR_QOS, ros_session, spin_unt
 
 DEFAULT_NAMESPACE = "/thinshell"
 STATES = ("waiting", "running", "completed", "aborted", "refused")
+DIAGNOSTICS_TOPIC = "/diagnostics"
+DIAGNOSTIC_LEVELS = {"waiting": DiagnosticStatus.OK, "running": DiagnosticStatus.OK, "completed": DiagnosticStatus.OK,
+                     "aborted": DiagnosticStatus.ERROR, "refused": DiagnosticStatus.WARN}
 DEFAULT_COMMAND_TOPICS = {"pose_target": "/cartesian_motion_controller/target_frame",
                           "twist": "/servo_node/delta_twist_cmds"}
 """Where the FZI cartesian_motion_controller takes its target (``<controller name>/target_frame``) and
@@ -288,8 +292,11 @@ class DeployNode(Node):
         for t in self.wrench_topics:
             self.create_subscription(WrenchStamped, t, self._wrench_callback(t), SENSOR_QOS)
         self.create_service(Trigger, "~/abort", self._on_abort)
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._wrench_now: dict[str, np.ndarray] = {}  # topic -> newest wrench in the sensor frame, tared
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / self.rate, self._on_tick, clock=self._steady)
+        self.create_timer(1.0, self._publish_diagnostics, clock=self._steady)
 
         try:
             self.trajectory = check_trajectory(trajectory, self.limits, self.time_scale, self.source)
@@ -348,6 +355,31 @@ class DeployNode(Node):
         else:
             doc["progress"] = 1.0 if self.state == "completed" else 0.0
         return doc
+
+    def diagnostic(self) -> DiagnosticStatus:
+        """The node's ``diagnostic_msgs/DiagnosticStatus`` (1 Hz on ``/diagnostics``): ``OK`` while waiting,
+        running or completed, ``WARN`` refused, ``ERROR`` aborted; the message is the state and reason; values
+        ``state``, ``progress``, ``command_interface``, ``abort_action``, ``force_margin_N`` (the smallest
+        margin of any wrench limit that is on, over the wrench topics: limit minus the newest tared value),
+        ``force_margin_limit`` (which limit) and ``age_s <topic>`` per watched stream (robot clock)."""
+        doc = self.status()
+        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: deploy", hardware_id="thinshell",
+                                  level=DIAGNOSTIC_LEVELS[self.state],
+                                  message=self.state + (f": {self.reason}" if self.reason else ""))
+        values = {"state": self.state, "progress": f"{doc['progress']:.4f}", "command_interface": self.interface,
+                  "abort_action": self.abort_action}
+        margins = [(m, name) for w in self._wrench_now.values() for name, m in self.guard.margins(w).items()]
+        if margins:
+            m, name = min(margins)
+            values.update(force_margin_N=f"{m:.6g}", force_margin_limit=name)
+        values.update({f"age_s {k}": f"{v:.4f}" for k, v in doc.get("sensor_age_s", {}).items()})
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        return status
+
+    def _publish_diagnostics(self) -> None:
+        msg = DiagnosticArray(status=[self.diagnostic()])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diagnostics.publish(msg)
 
     def _publish_status(self) -> None:
         self._last_status = time.monotonic()
@@ -499,9 +531,11 @@ class DeployNode(Node):
             if self.tare is not None and self._tare_span is not None and now is not None \
                     and self._tare_span[0] <= now <= self._tare_span[1]:
                 self.tare.add(topic, wrench)
+            if self.tare is not None:
+                wrench = self.tare.apply(topic, wrench)
+            self._wrench_now[topic] = wrench
             if self.state == "running":
-                reason = self.guard.check(self.resolve_topic_name(topic), self.tare.apply(topic, wrench)
-                                          if self.tare is not None else wrench)
+                reason = self.guard.check(self._resolved[topic], wrench)
                 if reason:
                     self.abort(reason)
         return on_wrench

@@ -85,6 +85,9 @@ def test_wrench_guard_names_the_limit(wrench, words):
                         shear_force=2.0 if wrench[0] != 9.0 else math.inf, torque=0.04)
     assert guard.check("w", np.array(wrench)) == words
     assert WrenchGuard(force_norm=10.0).check("w", np.array([0.0, 3.0, -9.0, 5.0, 0, 0])) is None  # others off
+    margins = WrenchGuard(force_norm=10.0, normal_force=4.0, torque=0.5).margins(np.array([0.6, 0.8, -3.0, 0.3, 0.4, 0]))
+    assert margins == pytest.approx({"wrench_limit": 10.0 - math.sqrt(10.0), "normal_force_limit": 1.0,
+                                     "torque_limit": 0.0})  # the shear limit is off: no margin
     with pytest.raises(ConfigError, match="wrench limit torque must be > 0"):
         WrenchGuard(torque=0.0)
 

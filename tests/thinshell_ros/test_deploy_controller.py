@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from sim_core.errors import ConfigError
@@ -209,6 +211,17 @@ def test_wrench_tare_and_the_normal_force_limit(ros_context):
             assert node.state == state and words in node.reason, node.reason
             if state == "completed":
                 np.testing.assert_allclose(node.tare.offset["tactile/wrench"], offset, atol=1e-12)
+                # the 1 Hz diagnostics: state, the smallest force margin (tared: the whole normal limit), ages
+                diag = {kv.key: kv.value for kv in node.diagnostic().values}
+                assert diag["state"] == "completed" and diag["force_margin_limit"] == "normal_force_limit"
+                assert float(diag["force_margin_N"]) == pytest.approx(2.0, abs=1e-9)
+                assert float(diag["age_s /thinshell/tactile/wrench"]) < 2.0 and "age_s /thinshell/ee/pose" in diag
+                got = []
+                probe = Node("diag_probe", context=ros_context)
+                probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: got.extend(m.status), 10)
+                ex.add_node(probe)
+                assert spin_until(ex, lambda: any(st.name == "/thinshell/thinshell_deploy: deploy" for st in got), 5.0)
+                probe.destroy_node()
         finally:
             _close(ex, node, robot)
 
@@ -258,3 +271,29 @@ def test_the_per_cell_template_is_a_valid_params_file(ros_context):
         assert "pose_target ('tool0' in 'base_link' on /cartesian_motion_controller/target_frame)" in node.reason
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize("interface, topic", [("pose_target", "/thinshell/ee/pose_cmd"),
+                                              ("twist", "/thinshell/ee/twist_cmd")])
+def test_the_sim_node_stands_in_for_the_controller(ros_context, interface, topic):
+    """The sim node as the controller: its world is the base frame (base_frame:=world, identity transforms)
+    and the command topic is remapped onto its own pose_cmd / twist_cmd."""
+    from tests.thinshell_ros.fake_sim import FakeSimulation
+    from thinshell_ros.sim_node import SimNode
+
+    sim = SimNode(sim=FakeSimulation(), context=ros_context, parameter_overrides=[
+        Parameter("mode", value="realtime"), Parameter("mesh_rate", value=0.0)])
+    traj = _line(dx=0.003, duration=0.6, n=7, yaw=0.1)
+    node, ex = _run(ros_context, sim, traj, command_interface=interface, command_topic=topic, base_frame="world",
+                    sensor_timeout=2.0, start_timeout=20.0)
+    try:
+        assert spin_until(ex, node.done.is_set, 30.0), node.status()
+        assert node.state == "completed", node.reason
+        spin_until(ex, lambda: False, 0.2)
+        end, got = traj.poses["ee"][-1], sim.sim.state.effector_pose["ee"]
+        if interface == "pose_target":
+            np.testing.assert_allclose(got, end, atol=1e-12)
+        else:  # settled within 0.2 mm / 0.005 rad, then the zero twist's latency at 5 mm/s, 0.17 rad/s
+            assert np.linalg.norm(got[:3] - end[:3]) < 1e-3 and rotation_angle(got[3:], end[3:]) < 0.03
+    finally:
+        _close(ex, node, sim)
