@@ -411,8 +411,9 @@ class DeployNode(Node):
         start = {e: self._measured.get(e, self.trajectory.sample_pose(e, 0.0)) for e in self.trajectory.effectors}
         plans: dict[str, RetractPlan] = {}
         if self.on_abort_action == "retract":
-            plans = {e: RetractPlan(p, -self.frames.sensor_normal_in_world(p), self.approach_speed,
-                                    self.retract_distance, now, self.limits.workspace) for e, p in start.items()}
+            speed = min(self.approach_speed, self.limits.max_linear_speed)  # inside the limits
+            plans = {e: RetractPlan(p, -self.frames.sensor_normal_in_world(p), speed, self.retract_distance, now,
+                                    self.limits.workspace) for e, p in start.items()}
         lift = max((plan.duration for plan in plans.values()), default=0.0)
         self._abort = {"t0": now, "start": start, "plans": plans, "end": now + lift + self.abort_hold_time,
                        "steady_end": time.monotonic() + lift + self.abort_hold_time + self.start_timeout}
@@ -420,7 +421,7 @@ class DeployNode(Node):
         self.get_logger().error(
             f"deploy aborted: {reason}; on_abort {self.on_abort_action}: "
             + ("; ".join(f"{e}: lift {plan.reach * 1e3:.3g} mm along {np.round(plan.direction, 4).tolist()} in world "
-                         f"at {self.approach_speed * 1e3:g} mm/s" for e, plan in plans.items())
+                         f"at {plan.speed * 1e3:g} mm/s" for e, plan in plans.items())
                if plans else f"commanding the measured pose for {self.abort_hold_time:g} s"))
         self._publish_abort(now)
         self._publish_status()
