@@ -251,6 +251,7 @@ class Watchdog:
         self.timeout = float(timeout)
         self.last: dict[str, float] = {}
         self._last_steady: dict[str, float] = {}
+        self._resumed = -math.inf
 
     def seen(self, stream: str, now: float, steady: float | None = None) -> None:
         """A message of ``stream`` arrived at robot clock reading ``now`` and steady clock reading ``steady`` (s;
@@ -258,15 +259,21 @@ class Watchdog:
         self.last[stream] = float(now)
         self._last_steady[stream] = float(now if steady is None else steady)
 
+    def resumed(self, steady: float) -> None:
+        """The watching process itself stalled until steady clock reading ``steady`` (s): the steady ages count
+        from there (what arrived meanwhile may still wait in its queue, what was not sent could not be)."""
+        self._resumed = float(steady)
+
     def stale(self, streams: Sequence[str], now: float, steady: float | None = None) -> str | None:
         """Reason to abort when a stream of ``streams`` has no message, or its newest is older than the timeout on
-        the robot's clock (``now``) and on the steady clock (``steady``, default ``now``)."""
+        the robot's clock (``now``) and on the steady clock (``steady``, default ``now``; counted from the last
+        :meth:`resumed` at most)."""
         steady = now if steady is None else steady
         for s in streams:
             t = self.last.get(s)
             if t is None:
                 return f"no message on {s} (sensor_timeout {self.timeout:g} s)"
-            if now - t > self.timeout and steady - self._last_steady[s] > self.timeout:
+            if now - t > self.timeout and steady - max(self._last_steady[s], self._resumed) > self.timeout:
                 return f"the newest message on {s} is {now - t:.3g} s old (> sensor_timeout {self.timeout:g} s)"
         return None
 

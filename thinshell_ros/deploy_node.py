@@ -545,10 +545,12 @@ class DeployNode(Node):
         if self.done.is_set():
             return
         steady = time.monotonic()
-        # a tick late by half the timeout means this process stalled: the messages queued meanwhile are taken
-        # after this tick (one executor), so the watchdog's verdict waits for the next tick
+        # a tick late by half the timeout means this process stalled (the sensors' messages wait behind this tick,
+        # or a robot in this process sent none): the watchdog's steady ages restart now
         stalled = self._last_tick is not None and steady - self._last_tick > 0.5 * self.watchdog.timeout
         self._last_tick = steady
+        if stalled:
+            self.watchdog.resumed(steady)
         try:
             if self.state == "waiting":
                 self._try_start()

@@ -119,6 +119,10 @@ def test_watchdog_names_the_stale_stream():
     assert dog.stale(["/a"], 10.5, steady=100.1) is None  # /clock jumped ahead of the queued messages
     assert dog.stale(["/a"], 10.1, steady=101.0) is None  # the simulator runs slower than real time
     assert "/a is 0.5 s old" in dog.stale(["/a"], 10.5, steady=100.5)
+    # the watcher itself stalled until steady 101: the steady age restarts there
+    dog.resumed(101.0)
+    assert dog.stale(["/a"], 11.1, steady=101.1) is None
+    assert "/a is 1.3 s old" in dog.stale(["/a"], 11.3, steady=101.3)
     with pytest.raises(ConfigError, match="sensor_timeout must be finite and > 0"):
         Watchdog(0.0)
 

@@ -297,3 +297,25 @@ def test_the_sim_node_stands_in_for_the_controller(ros_context, interface, topic
             assert np.linalg.norm(got[:3] - end[:3]) < 1e-3 and rotation_angle(got[3:], end[3:]) < 0.03
     finally:
         _close(ex, node, sim)
+
+
+def test_a_stall_of_the_deploy_process_is_not_a_dead_sensor(ros_context):
+    """The test process (robot and deploy node on one executor) stops for twice the sensor_timeout mid-motion,
+    its queues drained first: the robot could send nothing meanwhile. The late tick restarts the watchdog's
+    ages (the node's stall is not the sensor's) and the motion completes."""
+    import time
+
+    robot = CellController(ros_context, pose_in_base=True)
+    node, ex = _run(ros_context, robot, _line(dx=0.004, duration=1.5, n=16), command_interface="pose_target",
+                    sensor_timeout=0.4, start_timeout=20.0, **CELL)
+    try:
+        assert spin_until(ex, lambda: node.published > 20 or node.done.is_set(), 30.0), node.status()
+        assert node.state == "running", node.reason
+        robot.publish_pose = robot.publish_wrench = False  # take what is queued, then the process stops
+        spin_until(ex, lambda: False, 0.05)
+        time.sleep(0.8)
+        robot.publish_pose = robot.publish_wrench = True
+        assert spin_until(ex, node.done.is_set, 30.0), node.status()
+        assert node.state == "completed", node.reason
+    finally:
+        _close(ex, node, robot)
