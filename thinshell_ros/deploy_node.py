@@ -599,8 +599,15 @@ class DeployNode(Node):
             except ConfigError as err:
                 self._finish("refused", str(err))
                 return
+            # the newest wrenches were kept before there was an offset: tare them too
+            self._wrench_now = {t: self.tare.apply(t, w) for t, w in self._wrench_now.items()}
             self.get_logger().info("wrench tare: " + "; ".join(
                 f"{self.resolve_topic_name(t)} offset {np.round(w, 4).tolist()}" for t, w in offsets.items()))
+        for topic, wrench in self._wrench_now.items():  # a cell already beyond a limit is not driven
+            reason = self.guard.check(self._resolved[topic], wrench)
+            if reason:
+                self._finish("refused", f"before the start: {reason}")
+                return
         if not self.require_wrench and not self._warned_no_wrench:
             self._warned_no_wrench = True
             self.get_logger().warning("require_wrench is false: the wrench limit is not enforced unless a wrench "
