@@ -8,7 +8,9 @@ at the third step's first iterate (projected by ``--projection``), and for each 
 right-hand side (the negative gradient) to ``--rtol`` (default the lockstep's ``LOCKSTEP_CG_RTOL``) and to 1e-10:
 per layout the half-bandwidth ``w`` (DoFs), the tiles (``t`` rows, ``nt`` of them), the band's and tiles' device
 MiB a copy, ms a factorisation and a solve (medians of ``--repeat``, each ended by a synchronisation), CG iterations
-(of the slowest copy), band blocks not usable, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|``.
+(of the slowest copy), band blocks not usable, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|``;
+and at the next Newton matrix (a full step along the first solve) the CG iterations with its own band factors and
+with the first matrix's kept (``BatchedPCG.factorize(..., keep_bands=True)``: factorised once a step).
 The whole copy's order (:func:`sim_core.batch.sheet_bands.copy_band_dofs`) comes from the elastic pattern alone or
 with the contact and friction blocks' vertex pairs of this matrix (``copy+contacts``).
 """
@@ -87,15 +89,30 @@ def main() -> int:
             factorize_ms = timed(lambda: pcg.factorize(*operator))
             solve_ms = timed(lambda: pcg.solve(b))
             xs = pcg.solve(b)
+            iterations = pcg.iterations
             if reference is None:
                 reference = pcg  # the operator's product
             residual = np.sqrt(np.bincount(dof_copy, weights=(reference.matvec(xs) - b) ** 2)) / np.maximum(b_norm, 1e-300)
+            if tol == rtol:  # the next Newton matrix (a full step along this solve), its bands fresh and kept
+                x1 = x + xs.reshape(x.shape)
+                terms1 = solver.contact.potentials(x1, step.x_n, step.memory)
+                operator1 = solver._device_operator(step, x1, args.projection, terms1 + step.dynamic_terms)
+                g1 = solver._stacked_gradient(step, solver._vectors.start(x1), StepInfo())[2]
+                b1 = -np.asarray(g1 if isinstance(g1, np.ndarray) else g1.to_numpy()).reshape(-1) * step.free
+                pcg.factorize(*operator1, keep_bands=True)
+                pcg.solve(b1)
+                kept = pcg.iterations
+                pcg.factorize(*operator1)
+                pcg.solve(b1)
+                print(f"B={args.B} {name:14s} next Newton matrix: CG iterations {pcg.iterations} with its own band "
+                      f"factors, {kept} with the last matrix's kept", flush=True)
+                pcg.factorize(*operator)
             bb = pcg.bands
             mib = (bb.size * (bb.width + 1) * 12 + 3 * bb.tiles * bb.tile ** 2 * (4 if bb.dtype == ti.f32 else 8)) \
                 / 2 ** 20 * bb.count / max(args.B, 1)
             print(f"B={args.B} {name:14s} rtol {tol:.0e} m {bb.size} w {bb.width} t {bb.tile} nt {bb.tiles} "
                   f"MiB a copy {mib:.2f}  factorize {factorize_ms:8.2f} ms  solve {solve_ms:8.2f} ms  "
-                  f"CG iterations {pcg.iterations}  ms an iteration {solve_ms / max(pcg.iterations, 1):.3f}  "
+                  f"CG iterations {iterations}  ms an iteration {solve_ms / max(iterations, 1):.3f}  "
                   f"not usable {int((~bb.usable).sum())}  unconverged {int(pcg.unconverged.sum())}  "
                   f"largest residual {residual.max():.2e}", flush=True)
     return 0
