@@ -106,8 +106,19 @@ def main() -> int:
                 pcg.solve(b1)
                 print(f"B={args.B} {name:14s} next Newton matrix: CG iterations {pcg.iterations} with its own band "
                       f"factors, {kept} with the last matrix's kept", flush=True)
+                # the matrix at x again (on CUDA the values of the next one were written over its device arrays)
+                contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
+                operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
                 pcg.factorize(*operator)
             bb = pcg.bands
+            if tol == rtol:  # the factorisation's parts: the band's gather, the elimination, the tiles
+                a = pcg._arrays
+                vertex_blocks = (a["brow"], a["bcol"], a["bval"], a["free"], pcg._nblocks)
+                parts = [lambda: bb.gather(a["data"], vertex_blocks), bb.eliminate, bb.invert]
+                ms = [timed(lambda k=k: [part() for part in parts[:k]]) for k in (1, 2, 3)]
+                print(f"B={args.B} {name:14s} factorisation's parts: gather {ms[0]:.2f} ms, elimination "
+                      f"{ms[1] - ms[0]:.2f} ms, tiles {ms[2] - ms[1]:.2f} ms", flush=True)
+                pcg.factorize(*operator)
             mib = (bb.size * (bb.width + 1) * 12 + 3 * bb.tiles * bb.tile ** 2 * (4 if bb.dtype == ti.f32 else 8)) \
                 / 2 ** 20 * bb.count / max(args.B, 1)
             print(f"B={args.B} {name:14s} rtol {tol:.0e} m {bb.size} w {bb.width} t {bb.tile} nt {bb.tiles} "
