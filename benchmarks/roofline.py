@@ -245,6 +245,49 @@ def markdown(rows: list[dict], copies: int, device: dict) -> str:
     return "\n".join(lines)
 
 
+def envelope(order: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Row widths of the lower envelope of a symmetric pattern in an order: ``widths[p] = p - min{q <= p : (p, q)
+    coupled} + 1`` (the diagonal included) at position ``p`` of ``order`` (the DoFs in order); ``rows``, ``cols`` the
+    coupled DoF pairs (either triangle or both; pairs with a DoF outside ``order`` left out). The envelope (profile)
+    Cholesky factorisation fills nothing outside it (George & Liu, Computer Solution of Large Sparse Positive
+    Definite Systems, 1981, Ch. 4): its factor has ``widths.sum()`` entries, row ``p`` costs ``(widths[p] - 1)
+    widths[p] / 2`` multiply-adds, and a triangular solve reads each entry once.
+
+    Returns:
+        ``(len(order),)`` int64.
+    """
+    order = np.asarray(order, dtype=np.int64)
+    pos = np.full(max(int(order.max()), int(np.max(rows, initial=0)), int(np.max(cols, initial=0))) + 1, -1)
+    pos[order] = np.arange(order.size)
+    pr, pc = pos[np.asarray(rows)], pos[np.asarray(cols)]
+    keep = (pr >= 0) & (pc >= 0)
+    hi, lo = np.maximum(pr[keep], pc[keep]), np.minimum(pr[keep], pc[keep])
+    first = np.arange(order.size)
+    np.minimum.at(first, hi, lo)
+    return np.arange(order.size) - first + 1
+
+
+def envelope_table(s: LockstepSizes, widths: np.ndarray, counts: dict, device: dict, copies: int) -> list[dict]:
+    """:func:`phase_table` with the linear solve a direct envelope Cholesky of each copy's whole system (row widths
+    ``widths``, :func:`envelope`; float64 factor): one factorisation a Newton iteration and projected retry (the
+    envelope gathered and its factor written; ``sum (w - 1) w`` flops), one forward and one back substitution a Newton
+    iteration (the factor read twice, ``4 sum w`` flops); no band block, no CG iterations."""
+    rows = [r for r in phase_table(s, counts, device, copies)
+            if r["phase"] not in ("band factorisation", "linear solve (CG iterations)")]
+    entries = float(widths.sum())
+    factor = (entries * (8 + 4 + 8), float(np.sum((widths - 1.0) * widths)) + widths.size)
+    solve = (2 * entries * 8 + 4 * widths.size * 8, 4.0 * entries)
+    for name, count, (nbytes, flops) in (("envelope factorisation", counts["factorizations"], factor),
+                                         ("envelope solves", counts["newton"], solve)):
+        step_bytes, step_flops = count * nbytes, count * flops
+        floor_s = max(copies * step_bytes / device["bandwidth"], copies * step_flops / device["fp64"])
+        rows.insert(-1, {"phase": name, "count": count, "bytes_a_pass": nbytes, "flops_a_pass": flops,
+                         "bytes_a_scene_step": step_bytes, "flops_a_scene_step": step_flops,
+                         "intensity": step_flops / max(step_bytes, 1.0), "floor_ms": 1e3 * floor_s,
+                         "measured_ms": None})
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", default="cpu")
@@ -267,6 +310,31 @@ def main() -> int:
     print("per-copy sizes:", asdict(sizes))
     counts = {key: getattr(args, key) for key in MEASURED_COUNTS}
     print(markdown(phase_table(sizes, counts, DEVICES[args.device], args.at), args.at, DEVICES[args.device]))
+    # the whole copy's envelope in reverse Cuthill-McKee order, the contact and friction blocks' couplings included
+    from sim_core.batch.sheet_bands import copy_band_dofs
+
+    engine = run.batch.lockstep
+    pcg = engine.solver.pcg
+    indptr, indices = pcg._full[0], pcg._full[1]
+    nblocks = pcg._nblocks
+    vertex_pairs = np.stack([pcg._arrays["brow"].to_numpy()[:nblocks], pcg._arrays["bcol"].to_numpy()[:nblocks]], 1)
+    free = pcg._uploaded["free"]
+    upper_rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
+    d = np.arange(3)
+    pair_rows = (3 * vertex_pairs[:, :1] + d[None, :]).repeat(3, axis=1).ravel()
+    pair_cols = np.tile(3 * vertex_pairs[:, 1:] + d[None, :], (1, 3)).ravel()
+    rows = np.concatenate([upper_rows, pair_rows])
+    cols = np.concatenate([np.asarray(indices)[: upper_rows.size], pair_cols])
+    for label, pairs in (("elastic pattern", None), ("with the contact pairs", vertex_pairs)):
+        order = copy_band_dofs(engine.scene, free, indptr, indices, pairs)[0]
+        widths = envelope(order, rows, cols)
+        print(f"\nthe whole copy as a direct envelope Cholesky, reverse Cuthill-McKee order of the {label} "
+              f"(contact and friction couplings of the last factorisation inside the envelope): m {widths.size}, "
+              f"half-bandwidth {int(widths.max()) - 1}, envelope {int(widths.sum())} entries, "
+              f"{int(np.sum((widths - 1) * widths // 2)):,d} multiply-adds a factorisation "
+              f"(a band of that width: {widths.size * (int(widths.max()) - 1) ** 2 // 2:,d})")
+        print(markdown(envelope_table(sizes, widths, counts, DEVICES[args.device], args.at), args.at,
+                       DEVICES[args.device]))
     for spec in args.variant:
         print(f"\nvariant {spec}:")
         print(markdown(phase_table(*variant(sizes, counts, spec), DEVICES[args.device], args.at), args.at,

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.roofline import (DEVICES, MEASURED_COUNTS, LockstepSizes, band_factorisation, cg_iteration,
-                                 lockstep_sizes, markdown, phase_table)
+from benchmarks.roofline import (DEVICES, MEASURED_COUNTS, LockstepSizes, band_factorisation, cg_iteration, envelope,
+                                 envelope_table, lockstep_sizes, markdown, phase_table)
 from sim_core.batch import BatchedSimulation
 from sim_core.scenes.task_scene import task_initial_state
 from sim_core.solver_config import SolverConfig
@@ -35,6 +35,24 @@ def test_the_factorisations_counts_are_the_kernels_loops():
         _, flops = band_factorisation(s)
         # two flops a multiply-add, one more a division of the elimination's updates, m square roots
         assert flops == 2.0 * (elimination + inverse + couplings) + elimination + m, (m, w, t, nt)
+
+
+def test_the_envelope_is_each_rows_reach_to_its_first_coupled_column_in_the_order():
+    m = 6
+    chain = (np.arange(m - 1), np.arange(1, m))  # a tridiagonal pattern (one triangle given)
+    np.testing.assert_array_equal(envelope(np.arange(m), *chain), [1, 2, 2, 2, 2, 2])
+    arrow = (np.full(m - 1, m - 1), np.arange(m - 1))  # the last DoF coupled to all: its row is full, the others 1
+    np.testing.assert_array_equal(envelope(np.arange(m), *arrow), [1, 1, 1, 1, 1, m])
+    np.testing.assert_array_equal(envelope(np.arange(m)[::-1], *arrow), [1, 2, 3, 4, 5, 6])  # it first: it fills
+    # DoFs outside the order are left out; a Cholesky of the arrow fills nothing outside its envelope
+    np.testing.assert_array_equal(envelope(np.array([0, 5]), *arrow), [1, 2])
+    a = np.eye(m) * m
+    a[m - 1, :] = a[:, m - 1] = 1.0
+    a[m - 1, m - 1] = m
+    widths = envelope(np.arange(m), *arrow)
+    factor = np.linalg.cholesky(a)
+    outside = np.arange(m)[None, :] < (np.arange(m) - widths + 1)[:, None]
+    assert np.all(factor[outside] == 0.0)
 
 
 def test_sizes_of_a_real_lockstep_and_the_tables_floors():
@@ -71,5 +89,9 @@ def test_sizes_of_a_real_lockstep_and_the_tables_floors():
         assert r["bytes_a_scene_step"] > 0 and r["flops_a_scene_step"] > 0
     cg = rows[3]
     assert cg["bytes_a_scene_step"] == MEASURED_COUNTS["cg"] * cg_iteration(s)[0]
+    widths = np.full(s.free_dofs, 10)
+    direct = envelope_table(s, widths, MEASURED_COUNTS, device, 10)
+    assert [r["phase"] for r in direct][2:4] == ["envelope factorisation", "envelope solves"]
+    assert direct[2]["flops_a_pass"] == s.free_dofs * (9 * 10 + 1)  # sum (w - 1) w flops and the square roots
     text = markdown(phase_table(s, MEASURED_COUNTS, DEVICES["h100-sxm"], 1024), 1024, DEVICES["h100-sxm"])
     assert "3.35 TB/s" in text and "scene-steps/s at B = 1024" in text
