@@ -245,6 +245,21 @@ def markdown(rows: list[dict], copies: int, device: dict) -> str:
     return "\n".join(lines)
 
 
+def coupled_dofs(pcg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, cols, vertex_pairs)``: the DoF pairs the batched CG's matrix of its last factorisation couples (its
+    assembled upper triangle's entries and every DoF pair of its contact and friction vertex blocks), and those
+    blocks' vertex pairs ``(K, 2)``."""
+    indptr, indices = pcg._full[0], pcg._full[1]
+    nblocks = pcg._nblocks
+    vertex_pairs = np.stack([pcg._arrays["brow"].to_numpy()[:nblocks], pcg._arrays["bcol"].to_numpy()[:nblocks]], 1)
+    upper_rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
+    d = np.arange(3)
+    pair_rows = (3 * vertex_pairs[:, :1] + d[None, :]).repeat(3, axis=1).ravel()
+    pair_cols = np.tile(3 * vertex_pairs[:, 1:] + d[None, :], (1, 3)).ravel()
+    return (np.concatenate([upper_rows, pair_rows]), np.concatenate([np.asarray(indices)[: upper_rows.size], pair_cols]),
+            vertex_pairs)
+
+
 def envelope(order: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Row widths of the lower envelope of a symmetric pattern in an order: ``widths[p] = p - min{q <= p : (p, q)
     coupled} + 1`` (the diagonal included) at position ``p`` of ``order`` (the DoFs in order); ``rows``, ``cols`` the
@@ -316,15 +331,8 @@ def main() -> int:
     engine = run.batch.lockstep
     pcg = engine.solver.pcg
     indptr, indices = pcg._full[0], pcg._full[1]
-    nblocks = pcg._nblocks
-    vertex_pairs = np.stack([pcg._arrays["brow"].to_numpy()[:nblocks], pcg._arrays["bcol"].to_numpy()[:nblocks]], 1)
+    rows, cols, vertex_pairs = coupled_dofs(pcg)
     free = pcg._uploaded["free"]
-    upper_rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
-    d = np.arange(3)
-    pair_rows = (3 * vertex_pairs[:, :1] + d[None, :]).repeat(3, axis=1).ravel()
-    pair_cols = np.tile(3 * vertex_pairs[:, 1:] + d[None, :], (1, 3)).ravel()
-    rows = np.concatenate([upper_rows, pair_rows])
-    cols = np.concatenate([np.asarray(indices)[: upper_rows.size], pair_cols])
     for label, pairs in (("elastic pattern", None), ("with the contact pairs", vertex_pairs)):
         order = copy_band_dofs(engine.scene, free, indptr, indices, pairs)[0]
         widths = envelope(order, rows, cols)

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.roofline import (DEVICES, MEASURED_COUNTS, LockstepSizes, band_factorisation, cg_iteration, envelope,
-                                 envelope_table, lockstep_sizes, markdown, phase_table)
+from benchmarks.roofline import (DEVICES, MEASURED_COUNTS, LockstepSizes, band_factorisation, cg_iteration,
+                                 coupled_dofs, envelope, envelope_table, lockstep_sizes, markdown, phase_table)
+from sim_core.batch.sheet_bands import copy_band_dofs
 from sim_core.batch import BatchedSimulation
 from sim_core.scenes.task_scene import task_initial_state
 from sim_core.solver_config import SolverConfig
@@ -93,5 +94,16 @@ def test_sizes_of_a_real_lockstep_and_the_tables_floors():
     direct = envelope_table(s, widths, MEASURED_COUNTS, device, 10)
     assert [r["phase"] for r in direct][2:4] == ["envelope factorisation", "envelope solves"]
     assert direct[2]["flops_a_pass"] == s.free_dofs * (9 * 10 + 1)  # sum (w - 1) w flops and the square roots
+    # the envelope of copy 0's real Newton matrix in the reverse Cuthill-McKee order (contact couplings inside): its
+    # Cholesky factor has no entry outside it, and the factor solves the copy's system
+    rows_, cols_, pairs = coupled_dofs(pcg)
+    order = copy_band_dofs(engine.scene, pcg._uploaded["free"], indptr, indices, pairs)[0]
+    columns = np.eye(pcg._n)[:, order]
+    dense = np.stack([pcg.matvec(columns[:, k]) for k in range(order.size)], axis=1)[order]  # A[order][:, order]
+    factor = np.linalg.cholesky(dense)
+    widths = envelope(order, rows_, cols_)
+    outside = np.arange(order.size)[None, :] < (np.arange(order.size) - widths + 1)[:, None]
+    assert np.abs(factor[outside]).max(initial=0.0) <= 1e-12 * np.abs(factor).max()
+    assert outside.any() and len(pairs)  # an envelope, not the dense triangle; contact blocks in the matrix
     text = markdown(phase_table(s, MEASURED_COUNTS, DEVICES["h100-sxm"], 1024), 1024, DEVICES["h100-sxm"])
     assert "3.35 TB/s" in text and "scene-steps/s at B = 1024" in text
