@@ -333,7 +333,7 @@ def main() -> int:
     indptr, indices = pcg._full[0], pcg._full[1]
     rows, cols, vertex_pairs = coupled_dofs(pcg)
     free = pcg._uploaded["free"]
-    for label, pairs in (("elastic pattern", None), ("with the contact pairs", vertex_pairs)):
+    for label, pairs in (("elastic pattern", None), ("elastic pattern and the contact pairs", vertex_pairs)):
         order = copy_band_dofs(engine.scene, free, indptr, indices, pairs)[0]
         widths = envelope(order, rows, cols)
         print(f"\nthe whole copy as a direct envelope Cholesky, reverse Cuthill-McKee order of the {label} "

@@ -1,4 +1,7 @@
-"""The band blocks of a stacked scene's batched CG: each copy's sheet, its vertices in a band-limiting order.
+"""The band blocks of a stacked scene's batched CG: each copy's sheet, its vertices in a band-limiting order
+(:func:`sheet_band_dofs`, the lockstep's), or each copy's whole free system in reverse Cuthill-McKee order
+(:func:`copy_band_dofs`: measured in ``benchmarks/bench_copy_bands.py`` and docs/gpu_roofline.md, not the lockstep's:
+its wider band costs more a factorisation than the CG iterations it saves with today's kernels).
 
 A thin sheet's Newton matrix is the stiff part of a copy's system: its bending modes are slow under the 3x3 vertex
 block-Jacobi preconditioner, and the CG's iterations go to them. Its own block, factorised exactly
