@@ -791,7 +791,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                     message = (f"the Gauss-Newton step is {jac_at['step_in_robust_sigma']:.2g} robust sigma ({robust}) "
                                f"at most, below the stop fraction {stop_robust_sigma:g}")
                 elif "trial_in_sigma" in jac_at:
-                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} scaled sigma at most (below {stop_trial_sigma:g}) "
+                    unit = "sigma (the larger of scaled and robust)" if stop_trial_robust else "scaled sigma"
+                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} {unit} at most (below {stop_trial_sigma:g}) "
                                "did not lower the cost: flat to within the replay's numerical noise")
                 else:
                     message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
