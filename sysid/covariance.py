@@ -301,9 +301,21 @@ def residual_times_s(stamps_ns: Mapping[str, np.ndarray], sizes: Mapping[str, in
 def residual_bin_s(model: "ObservationModel") -> float:
     """Time bin of the robust covariance: the longest median sample period of the fitted channels, s
     (every bin then holds a sample of every channel)."""
-    periods = [float(np.median(np.diff(model.evidence.t_ns[ch]))) * 1e-9 for ch in model.channels
-               if model.evidence.t_ns[ch].size > 1]
+    stamps = _channel_stamps(model)
+    periods = [float(np.median(np.diff(stamps[ch]))) * 1e-9 for ch in model.channels if stamps[ch].size > 1]
     return max(periods) if periods else 1.0
+
+
+def _channel_stamps(model: "ObservationModel") -> dict[str, np.ndarray]:
+    """Stamps (ns) of every fitted channel of ``model``.
+
+    Raises:
+        CalibrationError: a fitted channel without stamps in the evidence (named).
+    """
+    missing = [ch for ch in model.channels if ch not in model.evidence.t_ns]
+    if missing:
+        raise CalibrationError(f"no stamps for fitted channel(s) {', '.join(missing)}: no robust covariance")
+    return {ch: np.asarray(model.evidence.t_ns[ch]) for ch in model.channels}
 
 
 def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndarray,
@@ -312,7 +324,7 @@ def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndar
     ``J (m, p)`` and residual ``r (m,)`` in :meth:`sysid.observation.ObservationModel.residuals` order, each residual
     placed at its sample's stamp, binned at :func:`residual_bin_s`."""
     slices = model.channel_slices()
-    times = residual_times_s(model.evidence.t_ns, {ch: sl.stop - sl.start for ch, sl in slices.items()},
+    times = residual_times_s(_channel_stamps(model), {ch: sl.stop - sl.start for ch, sl in slices.items()},
                              model.channels)
     return robust_covariance(method, J, r, times, residual_bin_s(model), seed=seed)
 
