@@ -9,8 +9,11 @@ Schema ``thinshell.sysid.fit`` version 1::
                               "space": "log"|"linear", "lower", "upper"}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
-        "robust": {"method": "hac"|"block_bootstrap", "lag_bins", "lag_s", "bin_s", "bins", "resamples",
-                   "inflation": [...], "covariance_u": [[...]]} | null   # sysid.covariance
+        "robust": {"method": "hac"|"block_bootstrap"|"hac+nuisance"|..., "lag_bins", "lag_s", "bin_s", "bins",
+                   "resamples", "inflation": [...], "covariance_u": [[...]],
+                   # with "+nuisance" (sysid.fit.fit nuisance): the priors, d u / d phi and the time part's inflation
+                   "nuisance_prior": {name: s}, "nuisance_shift_u": {name: [...]}, "time_inflation": [...]
+                  } | null   # sysid.covariance
       },
       "metrics": {"cost_initial", "cost_final", "reduced_chi2", "residual_count",
                   "rms_initial": {channel: {...}}, "rms_final": {channel: {...}}},
