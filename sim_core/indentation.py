@@ -438,3 +438,99 @@ def run_depth_sweep(
     fv = np.asarray(forces)
     return IndentationResult(depths, fv[:, 2].copy(), fv, np.asarray(surf), steps, iterations,
                              time.perf_counter() - t0)
+
+
+# ---------------------------------------------------------------------------------- slide
+@dataclass
+class SlideResult:
+    """Forces of a quasi-static press-then-slide at constant depth.
+
+    Attributes:
+        depth: prescribed indenter displacement along -z held during the slide, m.
+        pressed_force: net contact + friction force on the indenter at the end of the press, N, ``(3,)``.
+        displacement: tangential displacement of the indenter from the pressed pose along
+            ``direction``, m, shape ``(k,)``.
+        force_vector: net contact + friction force on the indenter after each slide step, N,
+            shape ``(k, 3)`` (``[:, 2]`` is the normal force, +z).
+        direction: unit slide direction in the plane, shape ``(2,)``.
+        steps: solver steps taken (press and slide).
+        newton_iterations: total Newton iterations.
+        runtime: wall time, s.
+    """
+
+    depth: float
+    pressed_force: np.ndarray
+    displacement: np.ndarray
+    force_vector: np.ndarray
+    direction: np.ndarray
+    steps: int
+    newton_iterations: int
+    runtime: float
+
+    @property
+    def tangential_force(self) -> np.ndarray:
+        """Force of the gel on the indenter along ``-direction`` (resisting the slide), N, ``(k,)``."""
+        return -self.force_vector[:, :2] @ self.direction
+
+
+def run_slide(
+    setup: IndentationSetup, depth: float, displacements, press_increment: float, dt: float = 1.0,
+    direction=(1.0, 0.0),
+) -> SlideResult:
+    """Press the indenter to ``depth``, then move it tangentially at that depth, quasi-statically.
+
+    The press lowers the effector pose by at most ``press_increment`` per step (as
+    :func:`run_depth_sweep`); then each step moves it to the next of ``displacements`` along
+    ``direction`` in the plane, z held. With ``dt`` large and the friction's ``eps_v dt`` small
+    against the slide increments, each step is a static equilibrium of the lagged Coulomb friction
+    of :mod:`sim_core.energies.friction.reference`.
+
+    Args:
+        setup: from :func:`build_indentation` (with ``friction`` > 0 for a frictional slide).
+        depth: indentation depth held during the slide, m (> 0).
+        displacements: increasing tangential displacements from the pressed pose, m, shape ``(k,)``.
+        press_increment: largest depth increment per press step, m (> 0).
+        dt: time step, s.
+        direction: slide direction in the plane (normalised here), shape ``(2,)``.
+
+    Returns:
+        :class:`SlideResult`.
+
+    Raises:
+        ConfigError: non-positive depth or increment, displacements not increasing from > 0, a zero
+            direction.
+    """
+    steps_to = np.asarray(displacements, dtype=float).reshape(-1)
+    direction = np.asarray(direction, dtype=float).reshape(2)
+    norm = float(np.linalg.norm(direction))
+    if not (depth > 0 and press_increment > 0 and steps_to.size and steps_to[0] > 0
+            and np.all(np.diff(steps_to) > 0) and norm > 0):
+        raise ConfigError(f"slide: need depth > 0, press_increment > 0, displacements positive and increasing and "
+                          f"a non-zero direction; got {depth}, {press_increment}, {steps_to.tolist()}, "
+                          f"{direction.tolist()}")
+    direction = direction / norm
+    t0 = time.perf_counter()
+    sim = setup.simulation(dt)
+    ind = setup.model.bodies[setup.indenter_body]
+    pose0 = sim.state.effector_pose[setup.effector].copy()
+    control = Control()
+    steps = iterations = 0
+
+    def step_to(z: float, s: float) -> np.ndarray:
+        nonlocal steps, iterations
+        pose = pose0.copy()
+        pose[2] -= z
+        pose[:2] += s * direction
+        control.effector_pose_target[setup.effector] = pose
+        info = sim.step(control)
+        steps += 1
+        iterations += info.iterations
+        return sim.state.contact_force[ind.vertex_start : ind.vertex_stop].sum(axis=0)
+
+    n_press = int(np.ceil(depth / press_increment - 1e-9))
+    for i in range(1, n_press + 1):
+        pressed = step_to(depth * i / n_press, 0.0)
+    pressed = step_to(depth, 0.0)  # a second step at rest: the friction's lagged state settles
+    forces = np.array([step_to(depth, s) for s in steps_to])
+    return SlideResult(float(depth), pressed, steps_to, forces, direction, steps, iterations,
+                       time.perf_counter() - t0)
