@@ -12,11 +12,11 @@ at small strain (depth / contact radius <= 0.14):
   a / h = 5 (16 mm block): the punch's rim on a grid that does not follow it is not resolved on a CI mesh
   (docs/known_answers.md, "not done").
 
-The 3 % target holds only on meshes too large for CI: on the 30 mm block at h 0.1 mm (85.7k DoF, 180 s)
-the sphere's F / (F_Hertz x layer factor) is 1.022 / 1.019, at h 0.15 mm 1.044 / 1.029
-(docs/known_answers.md, benchmarks log 2026-11-21 and session 50). CI asserts what a CI mesh gives, with
-the tolerance stated at each test, and the thickness law separately: two blocks of the same surface mesh,
-2 and 8 mm thick, differ by the layer factor (the discretisation error is common to both).
+The 3 % target needs a / h >= 5-7: on the 30 mm block at h 0.1 mm (85.7k DoF, 180 s) the sphere's
+F / (F_Hertz x layer factor) is 1.022 / 1.019; in CI the 8 mm block at h 0.12 mm gives 1.036 / 1.030 and
+is asserted within 4 % with the error falling from h 0.2 mm (docs/known_answers.md, benchmarks log
+session 50). The thickness law is checked separately: two blocks of the same surface mesh, 2 and 8 mm
+thick, differ by the layer factor (the discretisation error is common to both).
 """
 
 from __future__ import annotations
@@ -34,9 +34,10 @@ TIGHT = SolverConfig(tol_velocity=1e-9, max_iterations=100, projection="abs")
 """Newton stop at max |dx| < 1 nm (dt 1 s): 0.01 % of the smallest depth here."""
 
 
-def _sphere_sweep(thickness: float, radius: float = 5e-3, d_max: float = 1e-4) -> tuple[ind.IndentationResult, float]:
+def _sphere_sweep(thickness: float, h: float = 2e-4, radius: float = 5e-3,
+                  d_max: float = 1e-4) -> tuple[ind.IndentationResult, float]:
     a = np.sqrt(radius * d_max)
-    gel = ind.graded_gel_block(6e-3, thickness, 2e-4, 1.3 * a, 0.6 * a, 1.6)
+    gel = ind.graded_gel_block(6e-3, thickness, h, 1.3 * a, 0.6 * a, 1.6)
     eps = 1e-2 * d_max
     contact = ContactSettings(stiffness=1e4, eps=eps, eps_v=1e-3, self_contact=False, candidate_margin=d_max + eps)
     sphere = ind.RigidSphere(np.array([0.0, 0.0, radius]), radius)
@@ -76,6 +77,24 @@ def test_sphere_on_a_bonded_layer_matches_hertz_times_the_layer_factor(sphere_la
     assert np.all((ratio > 1.0) & (ratio < 1.12)), ratio
     exponent = np.log(res.force[1] / res.force[0]) / np.log(res.depth[1] / res.depth[0])
     assert exponent == pytest.approx(1.5, abs=0.06)
+
+
+def _corrected(res: ind.IndentationResult, radius: float, thickness: float) -> np.ndarray:
+    return res.force / (ind.hertz_force(res.depth, radius, E, NU)
+                        * ind.bonded_layer_sphere_factor(res.depth, radius, thickness, NU))
+
+
+def test_hertz_error_falls_with_the_mesh_to_four_percent(sphere_layers):
+    """Refining the 8 mm block from h 0.2 to 0.12 mm near the contact (a / h 4.2-5.9, 30.3k DoF) brings F /
+    (F_Hertz x layer factor) from 1.068 / 1.047 to 1.036 / 1.030: within 4 %, the error smaller at both
+    depths. The sequence h 0.3 / 0.25 / 0.2 / 0.15 / 0.12 / 0.1 mm gives 1.084 / 1.061 / 1.047 / 1.038 /
+    1.030 / 1.031 at 0.1 mm (benchmarks log): the 3 % target needs h <= 0.12 mm here, and the 30 mm block
+    (no lateral edge within 20 a) reaches 1.022 / 1.019 at h 0.1 mm."""
+    coarse = _corrected(*sphere_layers[8e-3], 8e-3)
+    res, radius = _sphere_sweep(8e-3, h=1.2e-4)
+    fine = _corrected(res, radius, 8e-3)
+    assert np.all(fine < coarse), (fine, coarse)
+    assert np.all(np.abs(fine - 1.0) < 0.04), fine
 
 
 def test_layer_factors_reduce_to_the_half_space_and_match_hand_values():
