@@ -127,7 +127,7 @@ def _linear_rise(mu: float) -> float:
 
 
 @lru_cache(maxsize=None)
-def _card_press_then_slide(mu: float, direction: float) -> tuple[float, float]:
+def _card_press_then_slide(mu: float, direction: float) -> tuple[float, float, float]:
     """press_slide.yaml's clamped card under the same pad (gel-card friction ``mu``), pressed 0.1 mm
     into the card's top and slid 10 mm along ``direction`` (+1: away from the clamp at x = 0): normal
     force pressed and sliding (N), and the card's highest point after the slide (m)."""
@@ -144,7 +144,8 @@ def _card_press_then_slide(mu: float, direction: float) -> tuple[float, float]:
         sim.step(Control({"ee": np.array([x0 + x, 0.0, z, 1.0, 0.0, 0.0, 0.0])}))
         forces.append(-sim.observe().tactile["tactile"].wrench[2])
     sheet = sim.model.bodies["sheet"]
-    return float(forces[29]), float(np.mean(forces[-10:])), float(sim.state.x[sheet.vertex_start:sheet.vertex_stop, 2].max())
+    card_top = float(sim.state.x[sheet.vertex_start:sheet.vertex_stop, 2].max())
+    return float(forces[29]), float(np.mean(forces[-10:])), card_top
 
 
 @pytest.mark.parametrize("direction", [1.0, -1.0], ids=["away_from_clamp", "towards_clamp"])
