@@ -102,7 +102,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, PointCloud2
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker
 
@@ -112,8 +112,9 @@ from sim_core.settle import SettleInfo, settle
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
-from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
-from thinshell_ros.node_status import settle_status, solver_status
+from thinshell_ros.command_intake import POSE_REJECTION_KINDS, ErrorThrottle, PoseBatch, pose_from_cdr, pose_rejections
+from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, check_pose, unknown_effector_topics
+from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
@@ -147,6 +148,18 @@ MAX_CONSECUTIVE_FAILURES = 3
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 """Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
+
+DEFAULT_ERROR_LOG_PERIOD = 1.0
+"""Default of the ``error_log_period`` parameter: s between two error lines of one kind."""
+
+STATUS_PERIOD = 1.0
+"""s of wall time between two ``<node name>: status`` diagnostics (the ROS diagnostics convention, 1 Hz)."""
+
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+"""ROS type of the pose commands, recorded as the CDR bytes they arrive in."""
+
+MAX_STEP_N = 100_000
+"""Most steps one ``~/step_n`` message or the ``step_count`` parameter may ask for."""
 
 
 class SimNode(Node):
@@ -205,6 +218,14 @@ class SimNode(Node):
                                         "'scene'")).value)
         if settle_steps_max < 0:
             raise ConfigError(f"parameter 'settle_steps_max' must be >= 0, got {settle_steps_max}")
+        error_log_period = float(self.declare_parameter("error_log_period", DEFAULT_ERROR_LOG_PERIOD, ParameterDescriptor(
+            read_only=True, description="s of wall time between two error lines of one kind (rejected commands "
+                                        "by topic and reason, recording errors); each line counts the ones it "
+                                        "stands for")).value)
+        if not (math.isfinite(error_log_period) and error_log_period > 0):
+            raise ConfigError(f"parameter 'error_log_period' must be > 0 s, got {error_log_period}")
+        self.step_count = self._checked_step_count(self.declare_parameter("step_count", 1, ParameterDescriptor(
+            description="steps one call of ~/step takes (>= 1; settable at runtime)")).value)
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if self.executor_name not in EXECUTORS:
@@ -237,8 +258,12 @@ class SimNode(Node):
                 max_rotation_per_step=float(getattr(eff, "max_rotation_per_step", 0.02)),
                 timeout=timeout, workspace=self.workspace)
         self.arbiter = CommandArbiter(limits)
+        self.arbiter_limits = limits
         self.paused = self.mode == "stepped"
         self.rejected_commands = 0
+        self.rejected_by_kind: dict[str, int] = {}
+        self._error_throttle = ErrorThrottle(error_log_period, time.monotonic)
+        self._status = RuntimeStats(wall_clock=time.monotonic, sim_time=float(sim.t))
         self.failed_steps = 0
         self.consecutive_failures = 0
         self.relaxed_steps = 0  # steps accepted above the strict tolerance or retried in substeps
@@ -267,18 +292,19 @@ class SimNode(Node):
         self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._command_subs = []
+        self._pose_batches = {e: PoseBatch() for e in sim.effector_names}
+        self._command_handlers: list[tuple[Any, Callable[[Any], None]]] = []  # (subscription, handler)
         for e in sim.effector_names:
-            self._command_subs += [
-                self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._stepping(self._pose_callback(e)),
-                                         COMMAND_QOS),
-                self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd",
-                                         self._stepping(self._twist_callback(e)), COMMAND_QOS),
-                self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._stepping(self._gripper_callback(e)),
-                                         COMMAND_QOS)]
+            for msg_type, suffix, handler in ((PoseStamped, "pose_cmd", self._pose_handler(e)),
+                                              (TwistStamped, "twist_cmd", self._twist_handler(e)),
+                                              (Float64, "gripper_cmd", self._gripper_handler(e))):
+                sub = self.create_subscription(msg_type, f"{prefix}{e}/{suffix}", self._stepping(handler), COMMAND_QOS,
+                                               raw=msg_type is PoseStamped)
+                self._command_handlers.append((sub, handler))
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
+        self.create_subscription(UInt32, "~/step_n", self._on_step_n, COMMAND_QOS)
         if self.mode != "stepped":
             self.create_timer(self.dt if self.mode == "realtime" else 0.0, self._on_timer)
         # realtime: wakes the node when a command that arrived one step ahead of the schedule may start
@@ -288,6 +314,7 @@ class SimNode(Node):
         self.create_timer(0.2, self._clock_heartbeat)
         self.create_timer(1.0, self._check_graph)
         self.create_timer(5.0, self._log_progress)
+        self.create_timer(STATUS_PERIOD, self._publish_runtime_status)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_settle_status()
         self.publish_outputs(force=True)
@@ -328,6 +355,7 @@ class SimNode(Node):
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate and apply material parameters atomically (all or none)."""
         applied: list[tuple[str, float]] = []
+        step_count = self.step_count
         try:
             for p in params:
                 if p.name not in self.material_names:
@@ -339,6 +367,8 @@ class SimNode(Node):
                 applied.append((p.name, old))
                 self.get_logger().info(f"parameter {p.name} = {float(p.value):g}")
             for p in params:
+                if p.name == "step_count":
+                    step_count = self._checked_step_count(p.value)
                 if p.name == "publish_image":
                     if not isinstance(p.value, bool):
                         raise ConfigError(f"parameter 'publish_image' must be a bool, got {p.value!r}")
@@ -348,47 +378,94 @@ class SimNode(Node):
                 self.sim.set_parameter(name, old)
             self.get_logger().error(f"parameter change rejected: {err}")
             return SetParametersResult(successful=False, reason=str(err))
+        self.step_count = step_count
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------ commands
-    def _reject(self, reason: str) -> None:
-        self.rejected_commands += 1
-        self.get_logger().error(reason)
+    def _reject(self, kind: str, reason: str, count: int = 1) -> None:
+        """Count ``count`` rejected commands of ``kind`` and log ``reason`` (the newest) through the
+        error throttle (:class:`~thinshell_ros.command_intake.ErrorThrottle`)."""
+        self.rejected_commands += count
+        self.rejected_by_kind[kind] = self.rejected_by_kind.get(kind, 0) + count
+        line = self._error_throttle.report(kind, reason, count)
+        if line is not None:
+            self.get_logger().error(line)
+
+    def _log_error(self, kind: str, line: str) -> None:
+        """Log an error line of ``kind`` through the error throttle."""
+        out = self._error_throttle.report(kind, line)
+        if out is not None:
+            self.get_logger().error(out)
 
     def _record_input(self, topic: str, msg: Any) -> None:
         if self.recorder is not None and not self.recorder.closed:
             try:
-                self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
+                if isinstance(msg, bytes):
+                    self.recorder.write_serialized(topic, POSE_TYPE, cv.seconds_to_ns(self.sim.t), msg)
+                else:
+                    self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
             except ThinShellError as err:
-                self.get_logger().error(f"recording {topic}: {err}")
+                self._log_error(f"recording {topic}", f"recording {topic}: {err}")
 
-    def _pose_callback(self, effector: str):
+    def _pose_handler(self, effector: str):
+        """Handler of ``<effector>/pose_cmd`` (a raw subscription: CDR bytes): record the bytes and queue
+        the pose in the effector's :class:`~thinshell_ros.command_intake.PoseBatch` (checked with the
+        batch, :meth:`_submit_poses`)."""
         topic = f"{self.namespace}/{effector}/pose_cmd"
+        batch = self._pose_batches[effector]
 
-        def on_pose(msg: PoseStamped) -> None:
+        def on_pose(cdr: bytes) -> None:
             try:
-                self._record_input(topic, msg)
-                res = self.arbiter.submit_pose(effector, cv.pose_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
-                if not res.accepted:
-                    self._reject(res.reason)
+                self._record_input(topic, cdr)
+                pose, frame = pose_from_cdr(cdr)
+                batch.add(pose, frame, self.sim.t)
             except Exception as err:  # noqa: BLE001 - never die on input
-                self._reject(f"{topic}: unusable message: {err}")
+                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
         return on_pose
 
-    def _twist_callback(self, effector: str):
+    def _submit_poses(self, effector: str) -> None:
+        """Check the effector's queued pose commands at once (:func:`pose_rejections`), count and report
+        the rejected ones (one throttled line per kind, the newest's reason) and submit the newest
+        valid one to the arbiter (the earlier ones would be replaced by it before any step reads them)."""
+        batch = self._pose_batches[effector]
+        if not len(batch):
+            return
+        received = batch.received
+        poses, frames = batch.take()
+        limits = self.arbiter_limits[effector]
+        codes = pose_rejections(poses, frames, limits.quaternion_tolerance, limits.workspace)
+        if codes.any():
+            for code in np.unique(codes[codes > 0]):
+                where = np.flatnonzero(codes == code)
+                i = int(where[-1])
+                reason = check_pose(poses[i], frames[i], limits.quaternion_tolerance, limits.workspace)
+                self._reject(f"{effector}/pose_cmd {POSE_REJECTION_KINDS[code]}",
+                             f"{effector}/pose_cmd rejected: {reason}", len(where))
+        valid = np.flatnonzero(codes == 0)
+        if valid.size:
+            res = self.arbiter.submit_pose(effector, poses[valid[-1]], received, frames[valid[-1]])
+            if not res.accepted:
+                self._reject(f"{effector}/pose_cmd", res.reason)
+
+    def _submit_all_poses(self) -> None:
+        for effector in self._pose_batches:
+            self._submit_poses(effector)
+
+    def _twist_handler(self, effector: str):
         topic = f"{self.namespace}/{effector}/twist_cmd"
 
         def on_twist(msg: TwistStamped) -> None:
             try:
                 self._record_input(topic, msg)
+                self._submit_poses(effector)  # the pose commands that came before it first
                 res = self.arbiter.submit_twist(effector, cv.twist_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
                 if not res.accepted:
-                    self._reject(res.reason)
+                    self._reject(f"{topic} rejected", res.reason)
             except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic}: unusable message: {err}")
+                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
         return on_twist
 
-    def _gripper_callback(self, effector: str):
+    def _gripper_handler(self, effector: str):
         topic = f"{self.namespace}/{effector}/gripper_cmd"
 
         def on_gripper(msg: Float64) -> None:
@@ -396,17 +473,20 @@ class SimNode(Node):
                 self._record_input(topic, msg)
                 res = self.arbiter.submit_gripper(effector, msg.data)
                 if not res.accepted:
-                    self._reject(res.reason)
+                    self._reject(f"{topic} rejected", res.reason)
             except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic}: unusable message: {err}")
+                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
         return on_gripper
 
     def _stepping(self, handle):
-        """The subscription callback of a command topic: ``handle`` the message, then, in ``realtime``
-        mode, start the step that applies it when it may start now (:meth:`_step_for_command`)."""
+        """The subscription callback of a command topic: ``handle`` the message, take every other
+        queued command (:meth:`take_pending_commands`: one executor turn for a burst, not one per
+        message), then, in ``realtime`` mode, start the step that applies them when it may start now
+        (:meth:`_step_for_command`)."""
 
         def on_command(msg: Any) -> None:
             handle(msg)
+            self.take_pending_commands()
             self._step_for_command()
         return on_command
 
@@ -432,20 +512,22 @@ class SimNode(Node):
         self._step_for_command()
 
     def take_pending_commands(self) -> int:
-        """Take every command message queued on the command subscriptions and handle it (record, submit).
+        """Take every command message queued on the command subscriptions, handle it (record, queue or
+        submit) and submit the newest valid pose command of each effector (:meth:`_submit_poses`).
 
         rclpy's executors take one message per ready subscription per wait, and the ``fast`` mode's step
         timer runs before the subscriptions of the same wait: without this, a command that arrived during
-        a step waits behind the next step, and with a shallow queue a newer one replaces it unseen. Each
-        step therefore starts by taking all queued commands (in arrival order, oldest first; the newest
-        one controls the step). Taking uses the subscription's handle as rclpy's executor does
+        a step waits behind the next step, and with a shallow queue a newer one replaces it unseen; under
+        a burst, each message would cost an executor turn (a wait-set rebuild). Each step, and each
+        command callback, therefore takes all queued commands (in arrival order, oldest first; the newest
+        valid one controls the step). Taking uses the subscription's handle as rclpy's executor does
         (``Executor._take_subscription``).
 
         Returns:
             the number of messages taken.
         """
         taken = 0
-        for sub in self._command_subs:
+        for sub, handle in self._command_handlers:
             while True:
                 try:
                     with sub.handle:
@@ -454,8 +536,9 @@ class SimNode(Node):
                     break
                 if msg_info is None:
                     break
-                sub.callback(msg_info[0])
+                handle(msg_info[0])
                 taken += 1
+        self._submit_all_poses()
         return taken
 
     def _check_graph(self) -> None:
@@ -490,7 +573,9 @@ class SimNode(Node):
             control.effector_pose_target.update(targets.effector_pose_target)
             control.gripper_target.update(targets.gripper_target)
             t = float(self.sim.t)
+            start = time.perf_counter()
             info = self.sim.step(control)
+            self._status.stepped(time.perf_counter() - start)
             self._steps += 1
             self.consecutive_failures = 0
         except Exception as err:  # noqa: BLE001 - a failed step keeps the last state; the node lives on
@@ -564,6 +649,17 @@ class SimNode(Node):
             self._pub_diagnostics.publish(msg)
         except Exception as err:  # noqa: BLE001 - a diagnostic never stops the node
             self.get_logger().error(f"publishing {DIAGNOSTICS_TOPIC} failed: {err}", throttle_duration_sec=1.0)
+
+    def _publish_runtime_status(self) -> None:
+        """The 1 Hz ``<node name>: status`` (:meth:`RuntimeStats.status`: real-time factor, step p95,
+        rejected commands) on ``/diagnostics``, and the error lines the throttle held back a period."""
+        for line in self._error_throttle.flush():
+            self.get_logger().error(line)
+        counters = {"rejected_commands": self.rejected_commands, "failed_steps": self.failed_steps,
+                    "relaxed_steps": self.relaxed_steps, "error_lines": self._error_throttle.lines}
+        status = self._status.status(f"{self.get_name()}: status", float(self.sim.t), self.rejected_by_kind,
+                                     counters, self.mode, self.paused)
+        self._publish_solver_status(status, track_level=False)
 
     def _measured_poses(self) -> dict[str, Any]:
         state = getattr(self.sim, "state", None)
@@ -702,10 +798,40 @@ class SimNode(Node):
         return response
 
     def _on_step(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        ok = self.advance()
-        response.success = ok
-        response.message = f"t={self.sim.t:.6f} s" if ok else f"step failed at t={self.sim.t:.6f} s (see log)"
+        """``~/step``: take ``step_count`` steps (parameter, default 1); fails at the first failed step."""
+        done = self.step_n(self.step_count)
+        response.success = done == self.step_count
+        response.message = (f"{done} steps, t={self.sim.t:.6f} s" if response.success
+                            else f"step failed at t={self.sim.t:.6f} s after {done} steps (see log)")
         return response
+
+    def _on_step_n(self, msg: UInt32) -> None:
+        """``~/step_n`` (``std_msgs/UInt32``): take ``msg.data`` steps (at most :data:`MAX_STEP_N`)."""
+        try:
+            n = self._checked_step_count(int(msg.data))
+        except ConfigError as err:
+            self._log_error("~/step_n", f"~/step_n: {err}")
+            return
+        done = self.step_n(n)
+        self.get_logger().info(f"~/step_n: {done} of {n} steps taken, t={self.sim.t:.6f} s")
+
+    def step_n(self, n: int) -> int:
+        """Take up to ``n`` steps, stopping at the first failed one; returns the steps that succeeded."""
+        for k in range(n):
+            if not self.advance():
+                return k
+        return n
+
+    @staticmethod
+    def _checked_step_count(n: Any) -> int:
+        """``n`` as a step count in ``1..MAX_STEP_N``.
+
+        Raises:
+            ConfigError: not an integer in that range.
+        """
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_STEP_N:
+            raise ConfigError(f"parameter 'step_count' / ~/step_n must be an integer in 1..{MAX_STEP_N}, got {n!r}")
+        return n
 
     # ------------------------------------------------------------------------------ shutdown
     def make_executor(self) -> Any:
