@@ -12,10 +12,12 @@ form, a process of its own) and counts them during the burst and for ``--seconds
 checks that the node follows the burst's last command (a valid pose, 1 mm above its start).
 
 The flood client publishes ``R`` PoseStamped per second (paced every millisecond, reliable keep-last
-:data:`~thinshell_ros.runtime.COMMAND_QOS`) for ``S`` s: ``F`` of them bad, in turn NaN, inf, out of
+:data:`~thinshell_ros.runtime.COMMAND_QOS`) for ``S`` s (bounded in count, ``R S``, and in time: the
+final pose is published when ``S`` s have passed even if the count was not reached): ``F`` of them bad, in turn NaN, inf, out of
 the workspace (1 m up), a zero quaternion and a frame other than ``world``; the valid ones circle
 0.5 mm around the start pose; the last one is the valid "final" pose. It prints one JSON line:
-``{"sent": N, "seconds": wall s, "bad": n}``.
+``{"sent": N, "seconds": wall s, "bad": n, "t_start": s, "t_end": s}`` (``time.monotonic``, shared by
+the processes of one machine: the burst's window).
 
 Writes ``OUT.json``: output rates (``before``, ``during``, ``after``, 1/s of wall time), their
 ratios, the commands sent, the node's error lines in total and per kind (the first words after
@@ -114,16 +116,20 @@ def publish_main(args: argparse.Namespace) -> int:
     msgs = flood_messages(start[0], count, args.bad_fraction)
     t0 = time.monotonic()
     sent = 0
-    while sent < count:
-        due = min(count, int((time.monotonic() - t0) * args.rate) + 1)
+    while sent < count - 1 and time.monotonic() - t0 < args.seconds:
+        due = min(count - 1, int((time.monotonic() - t0) * args.rate) + 1)
         while sent < due:
             pub.publish(msgs[sent])
             sent += 1
         time.sleep(0.001)
-    seconds = time.monotonic() - t0
+    pub.publish(msgs[-1])  # the final valid pose, also when time ran out first
+    sent += 1
+    t_end = time.monotonic()
+    seconds = t_end - t0
     time.sleep(0.5)  # the reliable writer's last samples out before the participant goes
     period = int(round(1.0 / args.bad_fraction)) if args.bad_fraction > 0 else 0
-    print(json.dumps({"sent": sent, "seconds": seconds, "bad": (count - 1) // period if period else 0}), flush=True)
+    bad = sum(1 for k in range(sent - 1) if period and k % period == period - 1)
+    print(json.dumps({"sent": sent, "seconds": seconds, "bad": bad, "t_start": t0, "t_end": t_end}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
@@ -190,14 +196,12 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         flood = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "publish", "--rate", str(args.rate),
                                   "--seconds", str(args.seconds), "--bad-fraction", str(args.bad_fraction),
                                   "--effector", args.effector], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
-        # the burst starts once the client has found the node; its first poses mark it
         spin_for(60.0, lambda: flood.poll() is not None or _moved(poses, start))
-        t_during = time.monotonic()
         cpu.append(_cpu_seconds(proc.pid))
         spin_for(args.seconds + 60.0, lambda: flood.poll() is not None)
-        t_after = time.monotonic()
         cpu.append(_cpu_seconds(proc.pid))
         summary = json.loads(flood.stdout.read().strip().splitlines()[-1])
+        t_during, t_after = summary["t_start"], summary["t_end"]  # the burst, as the client timed it
         spin_for(args.seconds)
         t_end = time.monotonic()
         cpu.append(_cpu_seconds(proc.pid))
@@ -226,9 +230,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     return {"node": module, "node_params": args.node_param, "commands": summary,
             "command_rate": summary["sent"] / summary["seconds"],
             "output_rate": {"before": before, "during": during, "after": after},
-            "node_cpu_per_s": {"before": (cpu[1] - cpu[0]) / (t_during - t_before),
-                               "during": (cpu[2] - cpu[1]) / (t_after - t_during),
-                               "after": (cpu[3] - cpu[2]) / (t_end - t_after)},
+            "node_cpu_seconds": {"before_and_start": cpu[1] - cpu[0], "during": cpu[2] - cpu[1],
+                                 "after": cpu[3] - cpu[2]},
             "during_over_before": during / before, "after_over_before": after / before,
             "error_lines": sum(kinds.values()), "error_lines_per_kind": kinds,
             "reached_final_pose": reached, "load_average": os.getloadavg(), "node_log": str(log_path)}
