@@ -1,6 +1,7 @@
-"""The sim node's diagnostic statuses (``diagnostic_msgs/DiagnosticStatus``): how the start-up settling
-and each solver step ended, and the 1 Hz runtime status (real-time factor, step p95, rejected commands;
-:class:`RuntimeStats`) (:mod:`thinshell_ros.sim_node` publishes them on ``/diagnostics``)."""
+"""The nodes' diagnostic statuses (``diagnostic_msgs/DiagnosticStatus``, published on ``/diagnostics``):
+the sim node's (how the start-up settling and each solver step ended, and its 1 Hz runtime status:
+real-time factor, step p95, rejected commands, :class:`RuntimeStats`) and the sysid node's 1 Hz
+progress (:func:`sysid_status`)."""
 
 from __future__ import annotations
 
@@ -141,3 +142,35 @@ class RuntimeStats:
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         self.restart(sim_time, rejected_by_kind)
         return status
+
+
+def sysid_status(name: str, state: str, elapsed: float, budget: float, fits_done: int, fits_failed: int,
+                 last: str, bag: str) -> DiagnosticStatus:
+    """The sysid node's 1 Hz progress status.
+
+    Args:
+        name: status name.
+        state: ``idle`` | ``fitting`` | ``applying``.
+        elapsed: wall s since the running fit started (0 when idle).
+        budget: the fit's wall-time budget, s (``max_time``; 0: none).
+        fits_done, fits_failed: fits finished so far, and of them those that failed.
+        last: the last fit's outcome (``ok``, ``error: ...``; empty before the first).
+        bag: the recording being fitted (or last fitted).
+
+    Returns:
+        ``ERROR`` when the last fit failed and none runs, else ``OK``; values ``state``,
+        ``elapsed_s``, ``budget_s``, ``budget_fraction`` (``elapsed / budget``, empty without a
+        budget), ``fits_done``, ``fits_failed``, ``last``, ``bag``.
+    """
+    status = DiagnosticStatus(name=name, hardware_id="thinshell")
+    failed = state == "idle" and last.startswith("error")
+    status.level = DiagnosticStatus.ERROR if failed else DiagnosticStatus.OK
+    if state == "idle":
+        status.message = f"idle; last fit: {last}" if last else "idle; no fit yet"
+    else:
+        status.message = f"{state} {bag} for {elapsed:.0f} s" + (f" of a {budget:g} s budget" if budget > 0 else "")
+    values = {"state": state, "elapsed_s": f"{elapsed:.3f}", "budget_s": f"{budget:g}",
+              "budget_fraction": f"{elapsed / budget:.4f}" if budget > 0 else "", "fits_done": str(fits_done),
+              "fits_failed": str(fits_failed), "last": last, "bag": bag}
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    return status

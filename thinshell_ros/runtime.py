@@ -19,6 +19,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
+DIAGNOSTICS_TOPIC = "/diagnostics"
+"""Topic of the nodes' ``diagnostic_msgs/DiagnosticArray`` statuses (where ROS diagnostic tools listen)."""
+
+STATUS_PERIOD = 1.0
+"""s of wall time between two runtime statuses of a node on :data:`DIAGNOSTICS_TOPIC` (1 Hz, the
+ROS diagnostics convention)."""
+
 COMMAND_DEPTH = 10
 """Keep-last depth of the command topics: every command published while the receiving node is busy
 (a solver step) stays queued until it is taken; the sim node takes all queued commands before each
@@ -33,6 +40,11 @@ SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=Re
                         durability=DurabilityPolicy.VOLATILE)
 # the profile rclpy's TimeSource subscribes /clock with (best-effort, keep-last 1)
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+# a camera's calibration, with each image: reliable, kept for subscribers that join later (transient
+# local), the depth of SENSOR_QOS; a volatile or best-effort subscriber (image_transport's sensor-data
+# profile) matches it too
+CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # visualisation (RViz subscribes reliable by default)
 MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE)
 

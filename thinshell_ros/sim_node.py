@@ -101,7 +101,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker
@@ -118,8 +118,8 @@ from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, freeze_start_up_objects, ros_session,
-                                   spin_until_stopped, topic_namespace)
+from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, MARKER_QOS, SENSOR_QOS, STATUS_PERIOD,
+                                   freeze_start_up_objects, ros_session, spin_until_stopped, topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
 
@@ -146,14 +146,8 @@ bundled scene's 5 ms steps; it settles in 5)."""
 MAX_CONSECUTIVE_FAILURES = 3
 """Failed steps in a row (with the effectors held) after which the node pauses itself."""
 
-DIAGNOSTICS_TOPIC = "/diagnostics"
-"""Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
-
 DEFAULT_ERROR_LOG_PERIOD = 1.0
 """Default of the ``error_log_period`` parameter: s between two error lines of one kind."""
-
-STATUS_PERIOD = 1.0
-"""s of wall time between two ``<node name>: status`` diagnostics (the ROS diagnostics convention, 1 Hz)."""
 
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 """ROS type of the pose commands, recorded as the CDR bytes they arrive in."""
@@ -288,6 +282,8 @@ class SimNode(Node):
         self._pub_markers = {s: self.create_publisher(PointCloud2, f"{prefix}{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
         self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{prefix}{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
         self._pub_image = {s: self.create_publisher(Image, f"{prefix}{s}/image", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_camera_info = {s: self.create_publisher(CameraInfo, f"{prefix}{s}/camera_info", CAMERA_INFO_QOS)
+                                 for s in sim.sensor_names if self._camera(s) is not None}
         self._pub_points = self.create_publisher(PointCloud2, f"{prefix}sheet/points", SENSOR_QOS)
         self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
@@ -317,6 +313,7 @@ class SimNode(Node):
         self.create_timer(STATUS_PERIOD, self._publish_runtime_status)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_settle_status()
+        self.publish_camera_info()
         self.publish_outputs(force=True)
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
@@ -379,6 +376,8 @@ class SimNode(Node):
             self.get_logger().error(f"parameter change rejected: {err}")
             return SetParametersResult(successful=False, reason=str(err))
         self.step_count = step_count
+        if applied:
+            self.publish_camera_info()  # a camera parameter may have changed
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------ commands
@@ -753,6 +752,8 @@ class SimNode(Node):
                     self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
                 if image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
+                    if s in self._pub_camera_info:  # the image's calibration, with its stamp (the ROS convention)
+                        self._publish(self._pub_camera_info[s], cv.camera_info_msg(self._camera(s), t_ns, s), t_ns)
             if len(obs.sheet_points):
                 if points:
                     self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns,
@@ -764,6 +765,22 @@ class SimNode(Node):
                                       t_ns)
         except Exception as err:  # noqa: BLE001
             self.get_logger().error(f"publishing at t={t:.4f} s failed: {err}", throttle_duration_sec=1.0)
+
+    def _camera(self, sensor: str) -> Any | None:
+        """The tactile camera of ``sensor`` (its current intrinsics, which material parameters may
+        change), or None for a simulation without one (a stand-in)."""
+        model_sensor = getattr(getattr(self.sim, "model", None), "sensors", {}).get(sensor)
+        return getattr(model_sensor, "camera", None)
+
+    def publish_camera_info(self) -> None:
+        """Publish (and record) each tactile camera's ``<sensor>/camera_info`` at the current sim time
+        (:func:`thinshell_ros.conversions.camera_info_msg`; kept for late subscribers, CAMERA_INFO_QOS)."""
+        t_ns = cv.seconds_to_ns(float(self.sim.t))
+        for s, pub in self._pub_camera_info.items():
+            try:
+                self._publish(pub, cv.camera_info_msg(self._camera(s), t_ns, s), t_ns)
+            except Exception as err:  # noqa: BLE001 - an output never stops the node
+                self._log_error("camera_info", f"publishing {s}/camera_info failed: {err}")
 
     def _log_progress(self) -> None:
         wall = time.monotonic() - self._wall0
@@ -783,6 +800,7 @@ class SimNode(Node):
             self._pacer.restart()
             self.consecutive_failures = 0
             self._next_publish_t = self._next_mesh_t = 0.0
+            self.publish_camera_info()
             self.publish_outputs(force=True)
             response.success, response.message = True, f"reset to t={self.sim.t:g} s"
         except Exception as err:  # noqa: BLE001
