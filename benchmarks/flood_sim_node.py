@@ -7,7 +7,9 @@
 The first form starts the sim node (``python -m thinshell_ros.sim_node``, realtime mode, ``rate 0``,
 ``mesh_rate 0``; ``--fake``: the kinematic stand-in of ``tests/thinshell_ros/fake_sim_process.py``)
 on its own ROS domain, localhost only, waits for its outputs, counts its ``<effector>/pose`` messages
-(one per step at ``rate 0``) for ``--seconds`` before the burst, starts the flood client (the second
+(one per step at ``rate 0``) for ``--seconds`` before the burst (with ``--baseline-rate B``: while a
+client sends ``B`` valid pose commands/s, so that the pad moves before the burst as it does during
+it: a moving pad costs the solver Newton iterations, a resting one repeats its fixed point), starts the flood client (the second
 form, a process of its own) and counts them during the burst and for ``--seconds`` after it, then
 checks that the node follows the burst's last command (a valid pose, 1 mm above its start).
 
@@ -16,8 +18,8 @@ The flood client publishes ``R`` PoseStamped per second (paced every millisecond
 final pose is published when ``S`` s have passed even if the count was not reached): ``F`` of them bad, in turn NaN, inf, out of
 the workspace (1 m up), a zero quaternion and a frame other than ``world``; the valid ones circle
 0.5 mm around the start pose; the last one is the valid "final" pose. It prints one JSON line:
-``{"sent": N, "seconds": wall s, "bad": n, "t_start": s, "t_end": s}`` (``time.monotonic``, shared by
-the processes of one machine: the burst's window).
+``{"sent": N, "seconds": wall s, "bad": n, "t_start": s, "t_end": s, "final": pose}`` (the burst's
+window in ``time.monotonic``, shared by the processes of one machine).
 
 Writes ``OUT.json``: output rates (``before``, ``during``, ``after``, 1/s of wall time), their
 ratios, the commands sent, the node's error lines in total and per kind (the first words after
@@ -129,7 +131,9 @@ def publish_main(args: argparse.Namespace) -> int:
     time.sleep(0.5)  # the reliable writer's last samples out before the participant goes
     period = int(round(1.0 / args.bad_fraction)) if args.bad_fraction > 0 else 0
     bad = sum(1 for k in range(sent - 1) if period and k % period == period - 1)
-    print(json.dumps({"sent": sent, "seconds": seconds, "bad": bad, "t_start": t0, "t_end": t_end}), flush=True)
+    final = cv.pose_from_msg(msgs[-1])[1].tolist()
+    print(json.dumps({"sent": sent, "seconds": seconds, "bad": bad, "t_start": t0, "t_end": t_end, "final": final}),
+          flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
@@ -189,13 +193,22 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         if len(poses) <= 50:
             raise RuntimeError(f"the sim node published no poses within {args.start_timeout} s: "
                                f"{log_path.read_text()[-2000:]}")
-        start = poses[-1][1]
-        t_before = time.monotonic()
+        client_args = [sys.executable, str(Path(__file__).resolve()), "publish", "--seconds", str(args.seconds),
+                       "--effector", args.effector]
         cpu = [_cpu_seconds(proc.pid)]
-        spin_for(args.seconds)
-        flood = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "publish", "--rate", str(args.rate),
-                                  "--seconds", str(args.seconds), "--bad-fraction", str(args.bad_fraction),
-                                  "--effector", args.effector], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
+        if args.baseline_rate > 0:  # the "before" window: the pad moving under a gentle valid stream
+            gentle = subprocess.run([*client_args, "--rate", str(args.baseline_rate), "--bad-fraction", "0"], cwd=REPO,
+                                    env=env, capture_output=True, text=True, timeout=args.seconds + 120.0)
+            baseline = json.loads(gentle.stdout.strip().splitlines()[-1])
+            t_before, t_baseline_end = baseline["t_start"], baseline["t_end"]
+            spin_for(1.0)
+        else:
+            t_before = time.monotonic()
+            spin_for(args.seconds)
+            t_baseline_end = time.monotonic()
+        start = poses[-1][1]
+        flood = subprocess.Popen([*client_args, "--rate", str(args.rate), "--bad-fraction", str(args.bad_fraction)],
+                                 cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
         spin_for(60.0, lambda: flood.poll() is not None or _moved(poses, start))
         cpu.append(_cpu_seconds(proc.pid))
         spin_for(args.seconds + 60.0, lambda: flood.poll() is not None)
@@ -205,9 +218,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         spin_for(args.seconds)
         t_end = time.monotonic()
         cpu.append(_cpu_seconds(proc.pid))
-        final = start.copy()
-        final[2] += FINAL_OFFSET
-        reached = bool(np.allclose(poses[-1][1][:3], final[:3], atol=1e-6))
+        reached = bool(np.allclose(poses[-1][1][:3], summary["final"][:3], atol=1e-6))
     finally:
         if flood is not None and flood.poll() is None:
             flood.kill()
@@ -224,10 +235,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     def rate(a: float, b: float) -> float:
         return float(np.count_nonzero((stamps >= a) & (stamps < b)) / (b - a))
 
-    before, during, after = rate(t_before, t_during), rate(t_during, t_after), rate(t_after, t_end)
+    before, during, after = rate(t_before, t_baseline_end), rate(t_during, t_after), rate(t_after, t_end)
     log = log_path.read_text()
     kinds = error_kinds(log)
-    return {"node": module, "node_params": args.node_param, "commands": summary,
+    return {"node": module, "node_params": args.node_param, "baseline_rate": args.baseline_rate, "commands": summary,
             "command_rate": summary["sent"] / summary["seconds"],
             "output_rate": {"before": before, "during": during, "after": after},
             "node_cpu_seconds": {"before_and_start": cpu[1] - cpu[0], "during": cpu[2] - cpu[1],
@@ -266,6 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=15.0)
     p.add_argument("--bad-fraction", type=float, default=0.2)
     p.add_argument("--fake", action="store_true", help="the kinematic stand-in instead of the bundled scene")
+    p.add_argument("--baseline-rate", type=float, default=0.0,
+                   help="valid pose commands/s during the 'before' window (0: none, the scene at rest); the pad "
+                        "then moves before the burst as during it, and the ratio compares like with like")
     p.add_argument("--node-param", action="append", default=[], help="NAME:=VALUE passed to the node")
     p.add_argument("--effector", default="ee")
     p.add_argument("--domain", type=int, default=77)

@@ -1,4 +1,4 @@
-"""Cheap intake of bursts of commands, free of rclpy: batched pose checks and throttled error lines.
+"""The sim node's intake of commands, cheap under bursts: batched pose checks and throttled error lines.
 
 A node on a real network gets bursts (issue 50 item 7: 7.3k pose commands/s, a fifth of them bad).
 The sim node therefore does not check and log each pose command as it arrives; it takes it as CDR
@@ -10,17 +10,19 @@ before a step, or once it has drained its subscriptions, checks the whole batch 
 :func:`thinshell_ros.commands.check_pose`) and submits only the newest valid one (earlier ones would be
 overwritten by it before any step reads them). Every command is still checked and counted; each
 rejected one is reported through an :class:`ErrorThrottle`: one line per kind per period, carrying
-the count of the lines it stood for.
+the count of the lines it stood for. :class:`CommandIntake` puts these together for the node's
+command topics (free of rclpy: the node hands it the messages it takes).
 """
 
 from __future__ import annotations
 
 import struct
-from typing import Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from thinshell_ros.commands import ACCEPTED_FRAMES, Workspace
+from thinshell_ros import conversions as cv
+from thinshell_ros.commands import ACCEPTED_FRAMES, CommandArbiter, CommandLimits, Workspace, check_pose
 
 POSE_REJECTION_KINDS = ("valid", "non_finite", "frame", "quaternion", "workspace")
 """Codes of :func:`pose_rejections` (index = code), in :func:`~thinshell_ros.commands.check_pose`'s order."""
@@ -52,7 +54,7 @@ def pose_from_cdr(cdr: bytes) -> tuple[PoseTuple, str]:
 
 
 def pose_rejections(poses: np.ndarray, frames: Sequence[str], quaternion_tolerance: float = 1e-3,
-                    workspace: Workspace | None = None) -> np.ndarray:
+                    workspace: Workspace | None = None, accepted_frames: Sequence[str] = ACCEPTED_FRAMES) -> np.ndarray:
     """Why each pose command of a batch is unusable, as codes into :data:`POSE_REJECTION_KINDS`.
 
     The rules of :func:`thinshell_ros.commands.check_pose`, evaluated for the whole batch at once, and
@@ -65,6 +67,7 @@ def pose_rejections(poses: np.ndarray, frames: Sequence[str], quaternion_toleran
         frames: the header ``frame_id`` per command, length ``n``.
         quaternion_tolerance: accepted ``| |q| - 1 |``.
         workspace: allowed positions (m in ``world``), or None.
+        accepted_frames: the header frames meaning ``world``.
 
     Returns:
         int codes, shape ``(n,)``; 0: valid.
@@ -82,7 +85,7 @@ def pose_rejections(poses: np.ndarray, frames: Sequence[str], quaternion_toleran
     with np.errstate(invalid="ignore", over="ignore"):
         norm = np.sqrt(np.einsum("ij,ij->i", poses[:, 3:], poses[:, 3:]))
         codes[~(np.abs(norm - 1.0) <= quaternion_tolerance)] = 3
-    accepted = frozenset(ACCEPTED_FRAMES)
+    accepted = frozenset(accepted_frames)
     codes[np.fromiter((f not in accepted for f in frames), dtype=bool, count=len(frames))] = 2
     codes[~np.all(np.isfinite(poses), axis=1)] = 1
     return codes
@@ -167,3 +170,97 @@ class ErrorThrottle:
         if count <= 1:
             return line
         return f"{line} ({count} of this kind " + (f"in the last {since:.2g} s)" if since > 0 else "at once)")
+
+
+class CommandIntake:
+    """The sim node's command topics: each message recorded, checked and submitted to the arbiter,
+    each rejection counted and reported through an :class:`ErrorThrottle`.
+
+    Pose commands (CDR bytes, :meth:`on_pose`) are queued per effector and checked as a batch by
+    :meth:`submit_poses` (the node calls :meth:`submit_all` once it has taken every queued message,
+    and before each step); twist and gripper commands (rclpy messages) are checked one by one, a
+    twist after the pose commands queued before it.
+
+    Args:
+        arbiter: the node's :class:`~thinshell_ros.commands.CommandArbiter`.
+        limits: effector -> its :class:`~thinshell_ros.commands.CommandLimits` (the arbiter's).
+        sim_time: the simulation's time now, s (when a command is taken).
+        record: ``(effector, suffix, message or CDR bytes) -> None``: records a taken command.
+        log_error: logs one error line.
+        throttle: the node's error throttle.
+    """
+
+    def __init__(self, arbiter: CommandArbiter, limits: Mapping[str, CommandLimits], sim_time: Callable[[], float],
+                 record: Callable[[str, str, Any], None], log_error: Callable[[str], None],
+                 throttle: ErrorThrottle) -> None:
+        self.arbiter, self.limits = arbiter, dict(limits)
+        self._sim_time, self._record, self._log_error, self.throttle = sim_time, record, log_error, throttle
+        self._batches = {e: PoseBatch() for e in self.limits}
+        self.rejected_commands = 0
+        self.rejected_by_kind: dict[str, int] = {}
+
+    def reject(self, kind: str, reason: str, count: int = 1) -> None:
+        """Count ``count`` rejected commands of ``kind`` (``<effector>/<suffix> <why>``) and report
+        ``reason`` (the newest one's) through the throttle."""
+        self.rejected_commands += count
+        self.rejected_by_kind[kind] = self.rejected_by_kind.get(kind, 0) + count
+        line = self.throttle.report(kind, reason, count)
+        if line is not None:
+            self._log_error(line)
+
+    def handler(self, effector: str, suffix: str) -> Callable[[Any], None]:
+        """The handler of ``<effector>/<suffix>`` (``pose_cmd``: CDR bytes; ``twist_cmd``, ``gripper_cmd``:
+        rclpy messages); it never raises."""
+        handle = {"pose_cmd": self._on_pose, "twist_cmd": self._on_twist, "gripper_cmd": self._on_gripper}[suffix]
+
+        def on_message(msg: Any) -> None:
+            try:
+                self._record(effector, suffix, msg)
+                handle(effector, msg)
+            except Exception as err:  # noqa: BLE001 - never die on input
+                self.reject(f"{effector}/{suffix} unusable", f"{effector}/{suffix}: unusable message: {err}")
+        return on_message
+
+    def _on_pose(self, effector: str, cdr: bytes) -> None:
+        pose, frame = pose_from_cdr(cdr)
+        self._batches[effector].add(pose, frame, self._sim_time())
+
+    def _on_twist(self, effector: str, msg: Any) -> None:
+        self.submit_poses(effector)  # the pose commands that came before it first
+        res = self.arbiter.submit_twist(effector, cv.twist_from_msg(msg)[1], self._sim_time(), msg.header.frame_id)
+        if not res.accepted:
+            self.reject(f"{effector}/twist_cmd invalid", res.reason)
+
+    def _on_gripper(self, effector: str, msg: Any) -> None:
+        res = self.arbiter.submit_gripper(effector, msg.data)
+        if not res.accepted:
+            self.reject(f"{effector}/gripper_cmd invalid", res.reason)
+
+    def submit_poses(self, effector: str) -> None:
+        """Check the effector's queued pose commands at once (:func:`pose_rejections`), count and report
+        the rejected ones (one throttled line per kind, the newest one's reason as
+        :func:`~thinshell_ros.commands.check_pose` words it) and submit the newest valid one to the
+        arbiter (the earlier ones would be replaced by it before any step reads them)."""
+        batch = self._batches[effector]
+        if not len(batch):
+            return
+        received = batch.received
+        poses, frames = batch.take()
+        lim = self.limits[effector]
+        codes = pose_rejections(poses, frames, lim.quaternion_tolerance, lim.workspace)
+        for code in np.unique(codes[codes > 0]):
+            where = np.flatnonzero(codes == code)
+            i = int(where[-1])
+            reason = check_pose(poses[i], frames[i], lim.quaternion_tolerance, lim.workspace)
+            self.reject(f"{effector}/pose_cmd {POSE_REJECTION_KINDS[code]}", f"{effector}/pose_cmd rejected: {reason}",
+                        len(where))
+        valid = np.flatnonzero(codes == 0)
+        if valid.size:
+            res = self.arbiter.submit_pose(effector, poses[valid[-1]], received, frames[valid[-1]])
+            if not res.accepted:
+                self.reject(f"{effector}/pose_cmd invalid", res.reason)
+
+    def submit_all(self) -> None:
+        """:meth:`submit_poses` for every effector."""
+        for effector in self._batches:
+            self.submit_poses(effector)

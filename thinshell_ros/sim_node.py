@@ -57,21 +57,38 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
+- ``error_log_period`` (s of wall time, default :data:`DEFAULT_ERROR_LOG_PERIOD`): at most one error
+  line per kind (rejected commands by effector, topic and reason; recording errors) per period, each
+  with the count of the errors it stands for (:class:`~thinshell_ros.command_intake.ErrorThrottle`).
+- ``step_count`` (int, default 1, settable at runtime): the steps one call of ``~/step`` takes.
+
 - ``executor`` (str): the executor :func:`main` spins the node in, ``single`` (default: rclpy's
   ``SingleThreadedExecutor``) or ``events`` (rclpy's ``EventsExecutor``, ``rclpy.experimental``:
   callbacks one at a time in arrival order from a C++ event queue, no wait-set rebuild per spin;
   lower command-to-output latency, docs/benchmarks.md "Sim node through DDS").
 
 Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
-:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
-(:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
-controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
+:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step, and every command callback, starts by taking
+all queued commands (:meth:`SimNode.take_pending_commands`: one executor turn for a burst), each
+recorded at the sim time it is taken; pose commands are taken as CDR bytes and checked as a batch,
+the newest valid one submitted (:class:`~thinshell_ros.command_intake.CommandIntake`, cheap under a
+flood: docs/ros.md); the newest valid command controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
 the commands it took; a command that arrives during a step is taken by the next one, which in
 ``realtime`` mode starts as soon as the step in progress has ended and the schedule lets it (at most
 one step ahead of the wall clock).
 
-Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
-Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
+Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger: ``step_count`` steps);
+topic ``~/step_n`` (``std_msgs/UInt32``: that many steps, at most :data:`MAX_STEP_N`).
+Bad input never stops the node: it is logged (with the reason, throttled per kind) and the last
+valid command stays.
+
+Camera: ``<sensor>/camera_info`` (``sensor_msgs/CameraInfo`` of the tactile camera,
+:func:`thinshell_ros.conversions.camera_info_msg`; reliable, transient local) at start-up, after
+``~/reset`` or a parameter change, and with every ``<sensor>/image`` (same stamp).
+
+Runtime status: every :data:`~thinshell_ros.runtime.STATUS_PERIOD` s a ``<node name>: status`` on
+``/diagnostics`` (:meth:`thinshell_ros.node_status.RuntimeStats.status`: real-time factor, step p95,
+rejected commands).
 
 Solver diagnostics: a step accepted above the solver's strict tolerance (``StepInfo.converged_strict``
 false: a stalled residual or a failed line search accepted at a relaxed tolerance) or taken in
@@ -112,8 +129,8 @@ from sim_core.settle import SettleInfo, settle
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
-from thinshell_ros.command_intake import POSE_REJECTION_KINDS, ErrorThrottle, PoseBatch, pose_from_cdr, pose_rejections
-from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, check_pose, unknown_effector_topics
+from thinshell_ros.command_intake import CommandIntake, ErrorThrottle
+from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
 from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
@@ -252,11 +269,10 @@ class SimNode(Node):
                 max_rotation_per_step=float(getattr(eff, "max_rotation_per_step", 0.02)),
                 timeout=timeout, workspace=self.workspace)
         self.arbiter = CommandArbiter(limits)
-        self.arbiter_limits = limits
         self.paused = self.mode == "stepped"
-        self.rejected_commands = 0
-        self.rejected_by_kind: dict[str, int] = {}
         self._error_throttle = ErrorThrottle(error_log_period, time.monotonic)
+        self.intake = CommandIntake(self.arbiter, limits, lambda: float(self.sim.t), self._record_input,
+                                    self.get_logger().error, self._error_throttle)
         self._status = RuntimeStats(wall_clock=time.monotonic, sim_time=float(sim.t))
         self.failed_steps = 0
         self.consecutive_failures = 0
@@ -288,12 +304,10 @@ class SimNode(Node):
         self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._pose_batches = {e: PoseBatch() for e in sim.effector_names}
         self._command_handlers: list[tuple[Any, Callable[[Any], None]]] = []  # (subscription, handler)
         for e in sim.effector_names:
-            for msg_type, suffix, handler in ((PoseStamped, "pose_cmd", self._pose_handler(e)),
-                                              (TwistStamped, "twist_cmd", self._twist_handler(e)),
-                                              (Float64, "gripper_cmd", self._gripper_handler(e))):
+            for msg_type, suffix in ((PoseStamped, "pose_cmd"), (TwistStamped, "twist_cmd"), (Float64, "gripper_cmd")):
+                handler = self.intake.handler(e, suffix)
                 sub = self.create_subscription(msg_type, f"{prefix}{e}/{suffix}", self._stepping(handler), COMMAND_QOS,
                                                raw=msg_type is PoseStamped)
                 self._command_handlers.append((sub, handler))
@@ -381,14 +395,10 @@ class SimNode(Node):
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------ commands
-    def _reject(self, kind: str, reason: str, count: int = 1) -> None:
-        """Count ``count`` rejected commands of ``kind`` and log ``reason`` (the newest) through the
-        error throttle (:class:`~thinshell_ros.command_intake.ErrorThrottle`)."""
-        self.rejected_commands += count
-        self.rejected_by_kind[kind] = self.rejected_by_kind.get(kind, 0) + count
-        line = self._error_throttle.report(kind, reason, count)
-        if line is not None:
-            self.get_logger().error(line)
+    @property
+    def rejected_commands(self) -> int:
+        """Commands rejected so far (:class:`~thinshell_ros.command_intake.CommandIntake`)."""
+        return self.intake.rejected_commands
 
     def _log_error(self, kind: str, line: str) -> None:
         """Log an error line of ``kind`` through the error throttle."""
@@ -396,8 +406,10 @@ class SimNode(Node):
         if out is not None:
             self.get_logger().error(out)
 
-    def _record_input(self, topic: str, msg: Any) -> None:
+    def _record_input(self, effector: str, suffix: str, msg: Any) -> None:
+        """Record a taken command (rclpy message, or CDR bytes of a pose command) at the sim time now."""
         if self.recorder is not None and not self.recorder.closed:
+            topic = f"{self.namespace}/{effector}/{suffix}"
             try:
                 if isinstance(msg, bytes):
                     self.recorder.write_serialized(topic, POSE_TYPE, cv.seconds_to_ns(self.sim.t), msg)
@@ -405,77 +417,6 @@ class SimNode(Node):
                     self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
             except ThinShellError as err:
                 self._log_error(f"recording {topic}", f"recording {topic}: {err}")
-
-    def _pose_handler(self, effector: str):
-        """Handler of ``<effector>/pose_cmd`` (a raw subscription: CDR bytes): record the bytes and queue
-        the pose in the effector's :class:`~thinshell_ros.command_intake.PoseBatch` (checked with the
-        batch, :meth:`_submit_poses`)."""
-        topic = f"{self.namespace}/{effector}/pose_cmd"
-        batch = self._pose_batches[effector]
-
-        def on_pose(cdr: bytes) -> None:
-            try:
-                self._record_input(topic, cdr)
-                pose, frame = pose_from_cdr(cdr)
-                batch.add(pose, frame, self.sim.t)
-            except Exception as err:  # noqa: BLE001 - never die on input
-                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
-        return on_pose
-
-    def _submit_poses(self, effector: str) -> None:
-        """Check the effector's queued pose commands at once (:func:`pose_rejections`), count and report
-        the rejected ones (one throttled line per kind, the newest's reason) and submit the newest
-        valid one to the arbiter (the earlier ones would be replaced by it before any step reads them)."""
-        batch = self._pose_batches[effector]
-        if not len(batch):
-            return
-        received = batch.received
-        poses, frames = batch.take()
-        limits = self.arbiter_limits[effector]
-        codes = pose_rejections(poses, frames, limits.quaternion_tolerance, limits.workspace)
-        if codes.any():
-            for code in np.unique(codes[codes > 0]):
-                where = np.flatnonzero(codes == code)
-                i = int(where[-1])
-                reason = check_pose(poses[i], frames[i], limits.quaternion_tolerance, limits.workspace)
-                self._reject(f"{effector}/pose_cmd {POSE_REJECTION_KINDS[code]}",
-                             f"{effector}/pose_cmd rejected: {reason}", len(where))
-        valid = np.flatnonzero(codes == 0)
-        if valid.size:
-            res = self.arbiter.submit_pose(effector, poses[valid[-1]], received, frames[valid[-1]])
-            if not res.accepted:
-                self._reject(f"{effector}/pose_cmd", res.reason)
-
-    def _submit_all_poses(self) -> None:
-        for effector in self._pose_batches:
-            self._submit_poses(effector)
-
-    def _twist_handler(self, effector: str):
-        topic = f"{self.namespace}/{effector}/twist_cmd"
-
-        def on_twist(msg: TwistStamped) -> None:
-            try:
-                self._record_input(topic, msg)
-                self._submit_poses(effector)  # the pose commands that came before it first
-                res = self.arbiter.submit_twist(effector, cv.twist_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
-                if not res.accepted:
-                    self._reject(f"{topic} rejected", res.reason)
-            except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
-        return on_twist
-
-    def _gripper_handler(self, effector: str):
-        topic = f"{self.namespace}/{effector}/gripper_cmd"
-
-        def on_gripper(msg: Float64) -> None:
-            try:
-                self._record_input(topic, msg)
-                res = self.arbiter.submit_gripper(effector, msg.data)
-                if not res.accepted:
-                    self._reject(f"{topic} rejected", res.reason)
-            except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic} unusable", f"{topic}: unusable message: {err}")
-        return on_gripper
 
     def _stepping(self, handle):
         """The subscription callback of a command topic: ``handle`` the message, take every other
@@ -537,7 +478,7 @@ class SimNode(Node):
                     break
                 handle(msg_info[0])
                 taken += 1
-        self._submit_all_poses()
+        self.intake.submit_all()
         return taken
 
     def _check_graph(self) -> None:
@@ -656,7 +597,7 @@ class SimNode(Node):
             self.get_logger().error(line)
         counters = {"rejected_commands": self.rejected_commands, "failed_steps": self.failed_steps,
                     "relaxed_steps": self.relaxed_steps, "error_lines": self._error_throttle.lines}
-        status = self._status.status(f"{self.get_name()}: status", float(self.sim.t), self.rejected_by_kind,
+        status = self._status.status(f"{self.get_name()}: status", float(self.sim.t), self.intake.rejected_by_kind,
                                      counters, self.mode, self.paused)
         self._publish_solver_status(status, track_level=False)
 
