@@ -197,9 +197,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                        "--effector", args.effector]
         cpu = [_cpu_seconds(proc.pid)]
         if args.baseline_rate > 0:  # the "before" window: the pad moving under a gentle valid stream
-            gentle = subprocess.run([*client_args, "--rate", str(args.baseline_rate), "--bad-fraction", "0"], cwd=REPO,
-                                    env=env, capture_output=True, text=True, timeout=args.seconds + 120.0)
-            baseline = json.loads(gentle.stdout.strip().splitlines()[-1])
+            gentle = subprocess.Popen([*client_args, "--rate", str(args.baseline_rate), "--bad-fraction", "0"], cwd=REPO,
+                                      env=env, stdout=subprocess.PIPE, text=True)
+            spin_for(args.seconds + 120.0, lambda: gentle.poll() is not None)
+            baseline = json.loads(gentle.stdout.read().strip().splitlines()[-1])
             t_before, t_baseline_end = baseline["t_start"], baseline["t_end"]
             spin_for(1.0)
         else:

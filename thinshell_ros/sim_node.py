@@ -135,7 +135,7 @@ from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, MARKER_QOS, SENSOR_QOS, STATUS_PERIOD,
+from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, BurstGate, MARKER_QOS, SENSOR_QOS, STATUS_PERIOD,
                                    freeze_start_up_objects, ros_session, spin_until_stopped, topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
@@ -165,6 +165,11 @@ MAX_CONSECUTIVE_FAILURES = 3
 
 DEFAULT_ERROR_LOG_PERIOD = 1.0
 """Default of the ``error_log_period`` parameter: s between two error lines of one kind."""
+
+BURST_MESSAGES = 3
+"""Command messages taken in one executor turn from which the sim node treats the traffic as a burst
+and holds its command subscriptions out of the executor for one step (:meth:`SimNode._stepping`); a
+commander at a steady rate delivers one per turn."""
 
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 """ROS type of the pose commands, recorded as the CDR bytes they arrive in."""
@@ -272,7 +277,7 @@ class SimNode(Node):
         self.paused = self.mode == "stepped"
         self._error_throttle = ErrorThrottle(error_log_period, time.monotonic)
         self.intake = CommandIntake(self.arbiter, limits, lambda: float(self.sim.t), self._record_input,
-                                    self.get_logger().error, self._error_throttle)
+                                    lambda line: self.get_logger().error(line), self._error_throttle)
         self._status = RuntimeStats(wall_clock=time.monotonic, sim_time=float(sim.t))
         self.failed_steps = 0
         self.consecutive_failures = 0
@@ -305,11 +310,12 @@ class SimNode(Node):
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self._command_handlers: list[tuple[Any, Callable[[Any], None]]] = []  # (subscription, handler)
+        self.command_gate = BurstGate()  # holds the command subscriptions out of the executor after a burst
         for e in sim.effector_names:
             for msg_type, suffix in ((PoseStamped, "pose_cmd"), (TwistStamped, "twist_cmd"), (Float64, "gripper_cmd")):
                 handler = self.intake.handler(e, suffix)
                 sub = self.create_subscription(msg_type, f"{prefix}{e}/{suffix}", self._stepping(handler), COMMAND_QOS,
-                                               raw=msg_type is PoseStamped)
+                                               raw=msg_type is PoseStamped, callback_group=self.command_gate)
                 self._command_handlers.append((sub, handler))
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
@@ -422,11 +428,15 @@ class SimNode(Node):
         """The subscription callback of a command topic: ``handle`` the message, take every other
         queued command (:meth:`take_pending_commands`: one executor turn for a burst, not one per
         message), then, in ``realtime`` mode, start the step that applies them when it may start now
-        (:meth:`_step_for_command`)."""
+        (:meth:`_step_for_command`). A turn that found :data:`BURST_MESSAGES` or more holds the command
+        subscriptions out of the executor for one step (:class:`~thinshell_ros.runtime.BurstGate`):
+        during a flood the next step takes what queued meanwhile (the newest
+        :data:`~thinshell_ros.runtime.COMMAND_DEPTH` per topic), and the executor's turns go to the steps."""
 
         def on_command(msg: Any) -> None:
             handle(msg)
-            self.take_pending_commands()
+            if 1 + self.take_pending_commands() >= BURST_MESSAGES:
+                self.command_gate.hold(self.dt)
             self._step_for_command()
         return on_command
 

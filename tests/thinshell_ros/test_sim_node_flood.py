@@ -131,3 +131,40 @@ def test_flood_keeps_half_the_output_rate_follows_the_last_command_and_throttles
     total = int({kv.key: kv.value for kv in statuses[-1].values}["rejected_commands"])
     assert sum(rejected.values()) == total == sum(_counted(line) for line in lines) > 0, (rejected, total)
     assert set(rejected) == {f"ee/pose_cmd {k}" for k in ("non_finite", "frame", "quaternion", "workspace")}
+
+
+def test_a_held_burst_gate_keeps_its_subscription_out_of_the_executor(ros_context):
+    """While held, a message queued on the gated subscription does not run its callback (the executor
+    does not wait on it); it stays queued, the newest ones of a keep-last queue, until released."""
+    from std_msgs.msg import Float64
+
+    from thinshell_ros.runtime import COMMAND_DEPTH, COMMAND_QOS, BurstGate
+
+    now = [0.0]
+    gate = BurstGate(clock=lambda: now[0])
+    node = Node("gated", context=ros_context)
+    got: list[float] = []
+    sub = node.create_subscription(Float64, "gated", lambda m: got.append(m.data), COMMAND_QOS, callback_group=gate)
+    pub = node.create_publisher(Float64, "gated", COMMAND_QOS)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    try:
+        assert spin_until(ex, lambda: pub.get_subscription_count() > 0, 5.0)
+        gate.hold(1.0)
+        assert gate.held and gate.holds == 1
+        for k in range(3 * COMMAND_DEPTH):
+            pub.publish(Float64(data=float(k)))
+        spin_until(ex, lambda: bool(got), 0.5)
+        assert got == []  # held: the executor never took them
+        now[0] += 1.0  # the hold has passed
+        assert not gate.held
+        assert spin_until(ex, lambda: len(got) == COMMAND_DEPTH, 5.0), got
+        assert got == [float(k) for k in range(2 * COMMAND_DEPTH, 3 * COMMAND_DEPTH)]  # the newest, in order
+        gate.hold(1.0)
+        gate.release()
+        pub.publish(Float64(data=-1.0))
+        assert spin_until(ex, lambda: got[-1] == -1.0, 5.0)
+        assert sub.callback_group is gate
+    finally:
+        ex.shutdown(timeout_sec=0)
+        node.destroy_node()
