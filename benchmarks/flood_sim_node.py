@@ -1,8 +1,8 @@
 """The sim node under a flood of pose commands: its output rate before, during and after the burst.
 
     python benchmarks/flood_sim_node.py OUT.json [--rate 7300] [--seconds 15] [--bad-fraction 0.2]
-                                                 [--fake] [--node-param NAME:=VALUE ...]
-    python benchmarks/flood_sim_node.py publish --rate R --seconds S [--bad-fraction F] [--namespace NS]
+                                                 [--fake] [--baseline-rate B] [--still] [--node-param NAME:=VALUE ...]
+    python benchmarks/flood_sim_node.py publish --rate R --seconds S [--bad-fraction F] [--namespace NS] [--still]
 
 The first form starts the sim node (``python -m thinshell_ros.sim_node``, realtime mode, ``rate 0``,
 ``mesh_rate 0``; ``--fake``: the kinematic stand-in of ``tests/thinshell_ros/fake_sim_process.py``)
@@ -47,10 +47,10 @@ FINAL_OFFSET = 1e-3
 BAD_KINDS = ("nan", "inf", "workspace", "zero_quaternion", "frame")
 
 
-def flood_messages(start: np.ndarray, count: int, bad_fraction: float) -> list[Any]:
+def flood_messages(start: np.ndarray, count: int, bad_fraction: float, still: bool = False) -> list[Any]:
     """``count`` PoseStamped commands around ``start`` ``[x y z qx qy qz qw]``: every ``1/bad_fraction``-th
-    one bad (:data:`BAD_KINDS` in turn), the others on a 0.5 mm circle; the last one is the valid
-    final pose ``start + FINAL_OFFSET`` along z."""
+    one bad (:data:`BAD_KINDS` in turn), the others on a 0.5 mm circle (``still``: ``start`` itself,
+    the pad at rest); the last one is the valid final pose ``start + FINAL_OFFSET`` along z."""
     from thinshell_ros import conversions as cv
 
     period = int(round(1.0 / bad_fraction)) if bad_fraction > 0 else 0
@@ -70,7 +70,7 @@ def flood_messages(start: np.ndarray, count: int, bad_fraction: float) -> list[A
                 pose[3:] = 0.0
             else:
                 frame = "base_link"
-        else:
+        elif not still:
             a = 2 * np.pi * k / 400
             pose[:2] += 5e-4 * np.array([np.cos(a), np.sin(a)])
         msgs.append(cv.pose_to_msg(pose, 0, frame) if frame == "world" and np.all(np.isfinite(pose))
@@ -115,7 +115,7 @@ def publish_main(args: argparse.Namespace) -> int:
         print(f"flood client: no subscriber on {topic} within 60 s", file=sys.stderr)
         return 1
     count = max(2, int(round(args.rate * args.seconds)))
-    msgs = flood_messages(start[0], count, args.bad_fraction)
+    msgs = flood_messages(start[0], count, args.bad_fraction, args.still)
     t0 = time.monotonic()
     sent = 0
     while sent < count - 1 and time.monotonic() - t0 < args.seconds:
@@ -208,9 +208,11 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             spin_for(args.seconds)
             t_baseline_end = time.monotonic()
         start = poses[-1][1]
-        flood = subprocess.Popen([*client_args, "--rate", str(args.rate), "--bad-fraction", str(args.bad_fraction)],
+        flood = subprocess.Popen([*client_args, "--rate", str(args.rate), "--bad-fraction", str(args.bad_fraction),
+                                  *(["--still"] if args.still else [])],
                                  cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
-        spin_for(60.0, lambda: flood.poll() is not None or _moved(poses, start))
+        if not args.still:  # the burst has begun when its first poses move the pad
+            spin_for(60.0, lambda: flood.poll() is not None or _moved(poses, start))
         cpu.append(_cpu_seconds(proc.pid))
         spin_for(args.seconds + 60.0, lambda: flood.poll() is not None)
         cpu.append(_cpu_seconds(proc.pid))
@@ -239,7 +241,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     before, during, after = rate(t_before, t_baseline_end), rate(t_during, t_after), rate(t_after, t_end)
     log = log_path.read_text()
     kinds = error_kinds(log)
-    return {"node": module, "node_params": args.node_param, "baseline_rate": args.baseline_rate, "commands": summary,
+    return {"node": module, "node_params": args.node_param, "baseline_rate": args.baseline_rate, "still": args.still,
+            "commands": summary,
             "command_rate": summary["sent"] / summary["seconds"],
             "output_rate": {"before": before, "during": during, "after": after},
             "node_cpu_seconds": {"before_and_start": cpu[1] - cpu[0], "during": cpu[2] - cpu[1],
@@ -271,6 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.add_argument("--bad-fraction", type=float, default=0.2)
         p.add_argument("--namespace", default="/thinshell")
         p.add_argument("--effector", default="ee")
+        p.add_argument("--still", action="store_true", help="the valid commands hold the start pose")
         return publish_main(p.parse_args(argv[1:]))
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("out")
@@ -282,6 +286,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="valid pose commands/s during the 'before' window (0: none, the scene at rest); the pad "
                         "then moves before the burst as during it, and the ratio compares like with like")
     p.add_argument("--node-param", action="append", default=[], help="NAME:=VALUE passed to the node")
+    p.add_argument("--still", action="store_true",
+                   help="the burst's valid commands hold the start pose (the pad at rest: the flood's cost alone)")
     p.add_argument("--effector", default="ee")
     p.add_argument("--domain", type=int, default=77)
     p.add_argument("--start-timeout", type=float, default=300.0)
