@@ -14,13 +14,16 @@ from launch_ros.substitutions import FindPackageShare
 
 
 def generate_launch_description() -> LaunchDescription:
-    """The sysid node with its parameter file and the ``bag``, ``params``, ``out`` and ``apply_to`` arguments."""
+    """The sysid node with its parameter file and the ``bag``, ``params``, ``out``, ``apply_to`` and
+    ``recording_map`` arguments."""
     params_file = PathJoinSubstitution([FindPackageShare("thinshell"), "config", "nodes", "sysid_node.yaml"])
     return LaunchDescription([
         DeclareLaunchArgument("bag", default_value="", description="recording to fit (rosbag2 directory)"),
         DeclareLaunchArgument("params", default_value="", description="comma-separated parameters (empty: defaults)"),
         DeclareLaunchArgument("out", default_value="", description="report directory (empty: a new one)"),
         DeclareLaunchArgument("apply_to", default_value="", description="sim node to set the fitted values on"),
+        DeclareLaunchArgument("recording_map", default_value="",
+                              description="a real cell's recording map (empty: the bag's recording.yaml, if any)"),
         Node(
             package="thinshell",
             executable="thinshell-sysid-node",
@@ -31,6 +34,7 @@ def generate_launch_description() -> LaunchDescription:
                 "params": LaunchConfiguration("params"),
                 "out": LaunchConfiguration("out"),
                 "apply_to": LaunchConfiguration("apply_to"),
+                "recording_map": LaunchConfiguration("recording_map"),
             }],
         ),
     ])
