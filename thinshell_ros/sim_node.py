@@ -770,7 +770,7 @@ class SimNode(Node):
         """``~/step``: take ``step_count`` steps (parameter, default 1); fails at the first failed step."""
         done = self.step_n(self.step_count)
         response.success = done == self.step_count
-        response.message = (f"{done} steps, t={self.sim.t:.6f} s" if response.success
+        response.message = (f"t={self.sim.t:.6f} s" + (f" after {done} steps" if done > 1 else "") if response.success
                             else f"step failed at t={self.sim.t:.6f} s after {done} steps (see log)")
         return response
 

@@ -82,7 +82,7 @@ def test_sim_node_camera_info_stepping_by_n_and_runtime_status(ros_context):
         bad = set_params(Parameter("step_count", value=0)).results[0]
         assert not bad.successful and "1..100000" in bad.reason and node.step_count == 3
         res = _call(ex, client, Trigger, "/thinshell_sim/step", Trigger.Request())
-        assert res.success and res.message.startswith("3 steps") and node.sim.t == pytest.approx(t0 + 3 * dt)
+        assert res.success and res.message.endswith(" s after 3 steps") and node.sim.t == pytest.approx(t0 + 3 * dt)
         # every image comes with its calibration, same stamp
         assert spin_until(ex, lambda: len(images) >= 3 and len(infos) >= 4, 10.0), (len(images), len(infos))
         assert [i.header.stamp for i in infos[-3:]] == [i.header.stamp for i in images[-3:]]
