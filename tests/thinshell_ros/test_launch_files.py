@@ -90,7 +90,11 @@ def _launch_nodes(path: Path) -> tuple[list[dict[str, Any]], set[str], set[str]]
 
 def _params_file(tree: ast.AST, item: ast.AST) -> list[str]:
     """The path parts of a parameter file given as ``PathJoinSubstitution([FindPackageShare("thinshell"), ...])``,
-    inline or through a local name."""
+    inline, through a local name, or as the default of a launch argument (``LaunchConfiguration``)."""
+    if _name(item) == "LaunchConfiguration":
+        name = _const(item.args[0])
+        declare = next(c for c in ast.walk(tree) if _name(c) == "DeclareLaunchArgument" and _const(c.args[0]) == name)
+        item = next(k.value for k in declare.keywords if k.arg == "default_value")
     if isinstance(item, ast.Name):
         item = next(a.value for a in ast.walk(tree) if isinstance(a, ast.Assign)
                     and any(isinstance(t, ast.Name) and t.id == item.id for t in a.targets))
@@ -142,11 +146,11 @@ CLI_SUBCOMMANDS = {"record": ("thinshell_ros.recorder", "record_main")}
 def test_the_launch_files_exist_and_are_installed(monkeypatch):
     kwargs = _setup_kwargs(monkeypatch)
     names = {p.name for p in LAUNCH_FILES}
-    assert {"sim.launch.py", "sysid.launch.py", "record.launch.py"} <= names, names
+    assert {"sim.launch.py", "sysid.launch.py", "record.launch.py", "deploy.launch.py"} <= names, names
     installed = _installed(kwargs)
     assert {f"share/thinshell/launch/{n}" for n in names} <= installed
     params_files = {p.name for p in (REPO / "config" / "nodes").glob("*.yaml")}
-    assert {"sim_node.yaml", "sysid_node.yaml"} <= params_files
+    assert {"sim_node.yaml", "sysid_node.yaml", "deploy_node.yaml"} <= params_files
     assert {f"share/thinshell/config/nodes/{n}" for n in params_files} <= installed
     package = ET.parse(REPO / "package.xml").getroot()
     assert {d.text for d in package.iter("exec_depend")} >= {"launch", "launch_ros", "diagnostic_msgs"}
@@ -185,11 +189,13 @@ def test_every_node_executable_parameter_and_argument_the_launch_files_name_exis
                 assert file.is_file(), f"{where}: no {'/'.join(parts)}"
                 assert f"share/thinshell/{'/'.join(parts[:-1])}/{parts[-1]}" in installed, f"{where}: {file} not installed"
                 doc = yaml.safe_load(file.read_text())
-                assert list(doc) == [node["name"]], f"{file.name}: node key {list(doc)} is not {node['name']!r}"
-                keys = set(doc[node["name"]]["ros__parameters"])
+                # the node's key: its name, or its name in any namespace (ROS 2 wildcards)
+                assert len(doc) == 1 and next(iter(doc)) in (node["name"], f"/**/{node['name']}"), \
+                    f"{file.name}: node key {list(doc)} is not {node['name']!r}"
+                keys = set(next(iter(doc.values()))["ros__parameters"])
                 assert keys <= known, f"{file.name}: undeclared parameters {sorted(keys - known)}"
             checked += 1
-    assert checked >= 3
+    assert checked >= 4
 
 
 def test_the_checks_catch_a_wrong_name(monkeypatch, ros_context, tmp_path):
