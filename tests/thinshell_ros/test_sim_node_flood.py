@@ -112,6 +112,8 @@ def test_flood_keeps_half_the_output_rate_follows_the_last_command_and_throttles
     stamps = np.array([t for t, _ in poses])
     before = np.count_nonzero((stamps >= t_before) & (stamps < burst["t_start"])) / (burst["t_start"] - t_before)
     during = np.count_nonzero((stamps >= burst["t_start"]) & (stamps < burst["t_end"])) / burst["seconds"]
+    print(f"flood: {burst['sent'] / burst['seconds']:.0f} commands/s for {burst['seconds']:.2f} s; node outputs "
+          f"{before:.1f}/s before, {during:.1f}/s during ({during / before:.2f})")
     assert before > 100.0, before  # the node kept up before the burst (200 steps/s of 5 ms)
     assert during >= 0.5 * before, (during, before)
 
