@@ -9,15 +9,17 @@ The first form starts the sim node (``python -m thinshell_ros.sim_node``, realti
 on its own ROS domain, localhost only, waits for its outputs, counts its ``<effector>/pose`` messages
 (one per step at ``rate 0``) for ``--seconds`` before the burst (with ``--baseline-rate B``: while a
 client sends ``B`` valid pose commands/s, so that the pad moves before the burst as it does during
-it: a moving pad costs the solver Newton iterations, a resting one repeats its fixed point), starts the flood client (the second
-form, a process of its own) and counts them during the burst and for ``--seconds`` after it, then
-checks that the node follows the burst's last command (a valid pose, 1 mm above its start).
+it: a moving pad costs the solver Newton iterations, a resting one repeats its fixed point), starts
+the flood client (the second form, a process of its own) and counts them during the burst and for
+``--seconds`` after it, then checks that the node follows the burst's last command (a valid pose,
+1 mm above its start).
 
 The flood client publishes ``R`` PoseStamped per second (paced every millisecond, reliable keep-last
 :data:`~thinshell_ros.runtime.COMMAND_QOS`) for ``S`` s (bounded in count, ``R S``, and in time: the
-final pose is published when ``S`` s have passed even if the count was not reached): ``F`` of them bad, in turn NaN, inf, out of
-the workspace (1 m up), a zero quaternion and a frame other than ``world``; the valid ones circle
-0.5 mm around the start pose; the last one is the valid "final" pose. It prints one JSON line:
+final pose is published when ``S`` s have passed even if the count was not reached): ``F`` of them
+bad, in turn NaN, inf, out of the workspace (1 m up), a zero quaternion and a frame other than
+``world``; the valid ones circle 0.5 mm around the start pose (``--still``: hold it); the last one is
+the valid "final" pose. It prints one JSON line:
 ``{"sent": N, "seconds": wall s, "bad": n, "t_start": s, "t_end": s, "final": pose}`` (the burst's
 window in ``time.monotonic``, shared by the processes of one machine).
 
@@ -197,8 +199,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                        "--effector", args.effector]
         cpu = [_cpu_seconds(proc.pid)]
         if args.baseline_rate > 0:  # the "before" window: the pad moving under a gentle valid stream
-            gentle = subprocess.Popen([*client_args, "--rate", str(args.baseline_rate), "--bad-fraction", "0"], cwd=REPO,
-                                      env=env, stdout=subprocess.PIPE, text=True)
+            gentle = subprocess.Popen([*client_args, "--rate", str(args.baseline_rate), "--bad-fraction", "0"],
+                                      cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
             spin_for(args.seconds + 120.0, lambda: gentle.poll() is not None)
             baseline = json.loads(gentle.stdout.read().strip().splitlines()[-1])
             t_before, t_baseline_end = baseline["t_start"], baseline["t_end"]

@@ -1,4 +1,4 @@
-"""Launch the thinshell deploy node (``ros2 launch thinshell deploy.launch.py trajectory:=FILE [params_file:=CELL.yaml]``).
+"""Launch the thinshell deploy node (``ros2 launch thinshell deploy.launch.py trajectory:=FILE``).
 
 Parameters come from a cell's copy of ``config/nodes/deploy_node.yaml`` (``params_file``; default the
 installed template, whose values marked MEASURE are placeholders: docs/deploy.md), then the

@@ -72,8 +72,8 @@ Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, kee
 all queued commands (:meth:`SimNode.take_pending_commands`: one executor turn for a burst), each
 recorded at the sim time it is taken; pose commands are taken as CDR bytes and checked as a batch,
 the newest valid one submitted (:class:`~thinshell_ros.command_intake.CommandIntake`, cheap under a
-flood: docs/ros.md); the newest valid command controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
-the commands it took; a command that arrives during a step is taken by the next one, which in
+flood: docs/ros.md); the newest valid command controls the step. The outputs a step publishes
+(stamped with its end time) are the first to reflect the commands it took; a command that arrives during a step is taken by the next one, which in
 ``realtime`` mode starts as soon as the step in progress has ended and the schedule lets it (at most
 one step ahead of the wall clock).
 
@@ -135,8 +135,9 @@ from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, BurstGate, MARKER_QOS, SENSOR_QOS, STATUS_PERIOD,
-                                   freeze_start_up_objects, ros_session, spin_until_stopped, topic_namespace)
+from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, MARKER_QOS, SENSOR_QOS,
+                                   STATUS_PERIOD, BurstGate, freeze_start_up_objects, ros_session, spin_until_stopped,
+                                   topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
 

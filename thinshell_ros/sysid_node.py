@@ -289,8 +289,8 @@ class SysidNode(Node):
         last = self.results[-1] if self.results else None
         outcome = "" if last is None else ("ok" if last["status"] == "ok" else f"error: {last.get('error', '')}")
         budget = float(job.options.max_time or 0.0) if job is not None else 0.0
-        status = sysid_status(f"{self.get_name()}: progress", state, time.monotonic() - self._started if running else 0.0,
-                              budget, len(self.results), sum(r["status"] != "ok" for r in self.results), outcome,
+        elapsed = time.monotonic() - self._started if running else 0.0
+        status = sysid_status(f"{self.get_name()}: progress", state, elapsed, budget, len(self.results), sum(r["status"] != "ok" for r in self.results), outcome,
                               str(job.bag) if job is not None else "")
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

@@ -166,7 +166,8 @@ def test_every_node_executable_parameter_and_argument_the_launch_files_name_exis
     checked = 0
     for path in LAUNCH_FILES:
         nodes, declared_args, read_args = _launch_nodes(path)
-        assert read_args <= declared_args, f"{path.name}: undeclared launch arguments {sorted(read_args - declared_args)}"
+        assert read_args <= declared_args, \
+            f"{path.name}: undeclared launch arguments {sorted(read_args - declared_args)}"
         assert nodes, f"{path.name}: starts no node"
         for node in nodes:
             where = f"{path.name}: {node['executable']}"
@@ -187,7 +188,7 @@ def test_every_node_executable_parameter_and_argument_the_launch_files_name_exis
             for parts in node["params_files"]:
                 file = REPO.joinpath(*parts)
                 assert file.is_file(), f"{where}: no {'/'.join(parts)}"
-                assert f"share/thinshell/{'/'.join(parts[:-1])}/{parts[-1]}" in installed, f"{where}: {file} not installed"
+                assert f"share/thinshell/{'/'.join(parts)}" in installed, f"{where}: {file} not installed"
                 doc = yaml.safe_load(file.read_text())
                 # the node's key: its name, or its name in any namespace (ROS 2 wildcards)
                 assert len(doc) == 1 and next(iter(doc)) in (node["name"], f"/**/{node['name']}"), \

@@ -58,12 +58,13 @@ def test_sim_node_camera_info_stepping_by_n_and_runtime_status(ros_context):
                                    CAMERA_INFO_QOS)  # a late joiner asks for the kept samples
         client.create_subscription(Image, "/thinshell/tactile/image", images.append, SENSOR_QOS)
         client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
-                                   lambda m: statuses.extend(s for s in m.status if s.name == "thinshell_sim: status"), 10)
+                                   lambda m: statuses.extend(s for s in m.status if s.name == "thinshell_sim: status"),
+                                   10)
         assert spin_until(ex, lambda: bool(infos), 10.0)
         info = infos[0]
         assert (info.width, info.height, info.header.frame_id) == (camera["width"], camera["height"], "tactile")
-        assert np.allclose(np.reshape(info.k, (3, 3)), [[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]],
-                                                         [0, 0, 1]])
+        K = [[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]]
+        assert np.allclose(np.reshape(info.k, (3, 3)), K)
         assert info.distortion_model == "plumb_bob" and np.allclose(info.d, [camera.get("k1", 0.0),
                                                                              camera.get("k2", 0.0), 0, 0, 0])
         # the calibration projects as the simulator's camera does (the camera centre at z = -distance of the
