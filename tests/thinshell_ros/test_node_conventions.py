@@ -67,6 +67,15 @@ def test_sim_node_camera_info_stepping_by_n_and_runtime_status(ros_context):
         assert np.allclose(np.reshape(info.k, (3, 3)), K)
         assert info.distortion_model == "plumb_bob" and np.allclose(info.d, [camera.get("k1", 0.0),
                                                                              camera.get("k2", 0.0), 0, 0, 0])
+        # what a recording of it gives the bag reader (sysid.bagio, a recorded camera_info) is the scene's camera
+        from rclpy.serialization import serialize_message
+
+        from sysid.bagio.codec import deserialize
+        from sysid.bagio.images import parse_camera_info
+        read = parse_camera_info(deserialize(serialize_message(info), "sensor_msgs/msg/CameraInfo"))
+        assert {k: read[k] for k in ("fx", "fy", "cx", "cy", "width", "height")} == \
+            {k: camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}
+        assert (read.get("k1", 0.0), read.get("k2", 0.0)) == (camera.get("k1", 0.0), camera.get("k2", 0.0))
         # the calibration projects as the simulator's camera does (the camera centre at z = -distance of the
         # sensor frame): points of the gel, 0-2 mm deep, seen through P
         points = np.array([[0.0, 0.0, 0.0], [1e-3, -2e-3, 0.0], [-4e-3, 3e-3, -2e-3]])
