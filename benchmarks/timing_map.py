@@ -3,7 +3,7 @@ applied in memory to saved calibrated replays.
 
 ``benchmarks/synthetic_diagnose.py SET OUT`` saves each recording's :class:`Recording` (the recorded
 streams and their calibrated nominal replay) as ``OUT/NAME.pkl``. This script applies a tactile
-latency or a first-order creep (the data-level effects of :mod:`sysid.synthetic_effects`, on the
+latency or a first-order creep (the data-level effects of :mod:`benchmarks.synthetic_effects`, on the
 markers and the wrench) to the recorded streams of each saved recording, keeps its replay (the
 timing tests fit a gain and an offset per event window, so the sensor calibration a re-calibration
 would refit does not enter them), runs the signature tests and reports the first timing effect
@@ -24,7 +24,7 @@ import numpy as np
 
 from sysid.diagnose.signatures import run_signature_tests
 from sysid.diagnose.signatures.null import decide, default_thresholds
-from sysid.synthetic_effects import creep, delayed
+from benchmarks.synthetic_effects import creep, delayed
 
 LATENCIES_S = (0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08)
 CREEP_TAUS_S = (0.03, 0.05, 0.065, 0.1, 0.13, 0.2, 0.26)

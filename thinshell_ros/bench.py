@@ -3,11 +3,11 @@
 * ``bench forming``, ``bench scale``: the simulator's speed (:mod:`sim_core.bench`, no ROS needed);
   ``forming`` runs the bundled ``forming.yaml`` unless ``--scene`` is given.
 * ``bench node``: the sim node's stepping rate and latency through DDS (:mod:`thinshell_ros.bench_node`).
-* ``bench diagnose``: the missing-physics diagnosis on a labelled set (:mod:`sysid.diagnose_bench`).
-* ``bench sysid``: a 3-parameter fit on a whole recording (:mod:`sysid.bench_fit`).
+* ``bench diagnose``: the missing-physics diagnosis on a labelled set (:mod:`benchmarks.diagnose_bench`).
+* ``bench sysid``: a 3-parameter fit on a whole recording (:mod:`benchmarks.bench_fit`).
 * ``bench tasks``: the ten ThinShellLab tasks' reference trajectories, rewards vs Table A
   (:mod:`sim_core.tasks.bench`).
-* ``bench optimise``: the optimisers on the ThinShellLab tasks vs Table A (:mod:`sysid.optimise_bench`).
+* ``bench optimise``: the optimisers on the ThinShellLab tasks vs Table A (:mod:`sim_core.optim.bench`).
 * ``bench batch``: B copies of a scene stepped together, scene-steps/s against B (:mod:`sim_core.bench.batch`).
 """
 
@@ -57,7 +57,7 @@ def bench_main(argv: list[str] | None = None) -> int:
         return int(bench_node_main(rest) or 0)
     # kept lazy: bench forming's cold start counts this process's imports
     if which == "diagnose":
-        from sysid.diagnose_bench import bench_diagnose_main
+        from benchmarks.diagnose_bench import bench_diagnose_main
 
         return int(bench_diagnose_main(rest) or 0)
     if which == "batch":
@@ -65,10 +65,10 @@ def bench_main(argv: list[str] | None = None) -> int:
 
         return int(bench_batch_main(rest) or 0)
     if which == "optimise":
-        from sysid.optimise_bench import bench_optimise_main
+        from sim_core.optim.bench import bench_optimise_main
 
         return int(bench_optimise_main(rest) or 0)
-    from sysid.bench_fit import bench_sysid_main
+    from benchmarks.bench_fit import bench_sysid_main
     from thinshell_ros.paths import bundled_bag
 
     return int(bench_sysid_main(rest, default_bag=bundled_bag()) or 0)

@@ -4,9 +4,9 @@ adjoint, the hybrid, and parallel rollouts on Ray.
 Why in sim_core (DESIGN.md puts the differentiable simulator and its consumers' numerical core
 here): the optimisers need nothing but a task (scene + reward), the simulation and its adjoint -
 all sim_core - and no recording, sensor model or ROS. Keeping them here lets sysid (the inverse
-tasks share its parameter coordinates and drive them through :mod:`sysid.inverse_task`) and the
+tasks share its parameter coordinates and drive them through :mod:`sim_core.optim.inverse_task`) and the
 ROS nodes use them along the one-way dependency thinshell_ros -> sysid -> sim_core. The command
-line (``thinshell optimise``) lives in :mod:`sysid.optimise_cli`, which can dispatch an inverse
+line (``thinshell optimise``) lives in :mod:`sim_core.optim.cli`, which can dispatch an inverse
 task to sysid's parameter coordinates.
 
 Modules: :mod:`~sim_core.optim.actions` (action layout, control points, targets, chain rule),

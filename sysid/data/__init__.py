@@ -5,7 +5,7 @@
   :func:`sysid.noise.noise_config`).
 - ``feats_indentation.yaml``: the FEATS indentation data set of ``thinshell indent``
   (:func:`sysid.indentation_fit.load_indentation_config`).
-- ``bench_card.yaml``: the scene of the diagnosis benchmark (:mod:`sysid.diagnose_bench`).
+- ``bench_card.yaml``: the scene of the diagnosis benchmark (:mod:`benchmarks.diagnose_bench`).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ from sim_core.control import Control
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
-from sysid.diagnose_bench import load_bench_scene
+from benchmarks.diagnose_bench import load_bench_scene
 
 NS = "/thinshell"
 DT = 0.01

@@ -6,7 +6,7 @@ SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwel
 ``sysid.diagnose``:
 
 - physics, through a solver hook (:class:`~sim_core.candidates.hook.StepHook`, given to the solver
-  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
+  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`benchmarks.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
@@ -61,11 +61,11 @@ from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import load_yaml
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
-from sysid.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
+from benchmarks.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
 from sysid.data import BENCH_SCENE, data_file
-from sysid.diagnose.reference_bench import bench_reference, format_reference
-from sysid.diagnose.scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
+from benchmarks.reference_bench import bench_reference, format_reference
+from benchmarks.diagnose_scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
                                     top1)
 from sysid.diagnose.signature_engine import SignatureSettings
 
@@ -138,7 +138,7 @@ def rollout(scene: Mapping[str, Any], targets: np.ndarray, hook: Any | None = No
         scene: scene dict.
         targets: effector targets ``(K, 7)``.
         hook: effect hook (a :class:`~sim_core.candidates.hook.StepHook`: ``terms`` /
-            ``update_state``, see :class:`~sysid.bench_effects.PhysicsEffect`), or None for the
+            ``update_state``, see :class:`~benchmarks.bench_effects.PhysicsEffect`), or None for the
             nominal model.
 
     Returns:
@@ -711,7 +711,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _reference_main(args: argparse.Namespace) -> int:
-    """``--labelled DIR`` on a reference set (``labels.yaml``): :mod:`sysid.diagnose.reference_bench`."""
+    """``--labelled DIR`` on a reference set (``labels.yaml``): :mod:`benchmarks.reference_bench`."""
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
     try:
         result = bench_reference(args.labelled, SignatureSettings(dt=DT), log=log)

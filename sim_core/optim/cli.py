@@ -232,7 +232,7 @@ def _gd_starts(args) -> int:
 def _space(task, evaluator, horizon: int, params: dict, start: dict, control_points: int | None,
            solver_config: SolverConfig, cma_start: str = "zero"):
     if task.kind == "inverse":
-        from sysid.inverse_task import parameter_space
+        from sim_core.optim.inverse_task import parameter_space
 
         return parameter_space(task, evaluator, horizon, start, solver_config)
     if start:

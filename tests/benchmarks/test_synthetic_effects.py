@@ -1,4 +1,4 @@
-"""The semi-synthetic validation generator (:mod:`sysid.synthetic_effects`) applies the effect it
+"""The semi-synthetic validation generator (:mod:`benchmarks.synthetic_effects`) applies the effect it
 says: a delay of whole samples, a radial pattern about the principal point, the stated bias values,
 a first-order creep that keeps the recorded noise; and writes bags of the same contract."""
 
@@ -10,7 +10,7 @@ import yaml
 
 from sysid.bagio import open_bag
 from sysid.noise import estimate_noise
-from sysid.synthetic_effects import (Item, apply_effect, creep, delayed, force_bias, force_bias_params, make_set,
+from benchmarks.synthetic_effects import (Item, apply_effect, creep, delayed, force_bias, force_bias_params, make_set,
                                      radial_distortion, write_like)
 from tests.sysid.conftest import synthetic_streams, write_synthetic
 
