@@ -38,12 +38,12 @@ from scipy.optimize import least_squares
 from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sim_core.parameter_coordinates import LOG_SPAN, ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
-from sim_core.parameter_coordinates import parameter_spec as coordinate_spec
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 from sysid.replay_batch import simulate_batch
+from sim_core.parameter_coordinates import ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
+from sim_core.parameter_coordinates import parameter_spec as coordinate_spec
 
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 GLOBAL_METHODS = ("cma", "multistart")
@@ -57,6 +57,8 @@ cost."""
 STOP_RMS = 5.0e-4
 """Default RMS stop of :func:`fit`: the local phase ends at an accepted point that lowered the whitened
 RMS by less than 0.05 % from the previous accepted point."""
+LOG_SPAN = math.log(1.0e3)
+"""Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
 
 # ====================================================================================== parameters
