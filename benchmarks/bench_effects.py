@@ -1,4 +1,4 @@
-"""Physics effects of the diagnosis benchmark (``thinshell bench diagnose``).
+"""Physics effects of the diagnosis benchmark (``python -m benchmarks.diagnose_bench``).
 
 Each effect is a solver hook with its own terms and rules, written independently of the candidate
 models of ``sim_core.candidates`` and ``sysid.diagnose`` (SYSID.md "Benchmark protocol"): a

@@ -1,4 +1,4 @@
-"""``thinshell bench diagnose``: a labelled set of recordings with concealed effects, and its score.
+"""``python -m benchmarks.diagnose_bench``: a labelled set of recordings with concealed effects, and its score.
 
 SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwell-lift
 (:data:`SEGMENTS`; coarse gel, dt 10 ms) and is written as a rosbag2 bag plus the
@@ -590,12 +590,12 @@ def _diagnose_one(engine: str, path: str, heldout: Sequence[str] = ()) -> Mappin
 
 
 def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
-    """``thinshell bench diagnose [--quick] [--json] [--out DIR] [--seed N] [--generate-only]``.
+    """``python -m benchmarks.diagnose_bench [--quick] [--json] [--out DIR] [--seed N] [--generate-only]``.
 
     Returns:
         0 on success, 2 when the diagnosis engine cannot be imported.
     """
-    ap = argparse.ArgumentParser(prog="thinshell bench diagnose", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.diagnose_bench", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="three effects at 4 sigma and one nominal recording")
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     ap.add_argument("--out", type=Path, default=None, help="directory for the bags (default: a temporary one)")
@@ -624,17 +624,17 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.merge is not None:
         if args.out is None:
-            print("thinshell bench diagnose: --merge needs --out DIR", file=sys.stderr)
+            print("python -m benchmarks.diagnose_bench: --merge needs --out DIR", file=sys.stderr)
             return 2
         try:
             count = merge_sets(args.merge, args.out)
         except (OSError, ValueError) as err:
-            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
             return 2
         print(f"merged {count} recordings into {args.out} (labels.json)")
         return 0
     if args.jobs < 1 or any(not k > 0 for k in args.strengths):
-        print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
+        print("python -m benchmarks.diagnose_bench: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
         return 2
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
@@ -645,11 +645,11 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         try:
             recs = load_labelled_set(out)
         except FileNotFoundError as err:
-            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
             return 2
         if args.add_heldout:
             if any(r.heldout for r in recs) or (out / HELDOUT_DIR).exists():
-                print(f"thinshell bench diagnose: {out} already has held-out companions", file=sys.stderr)
+                print(f"python -m benchmarks.diagnose_bench: {out} already has held-out companions", file=sys.stderr)
                 return 2
             add_companions(out, recs, seed=args.seed, log=log)
     else:
@@ -672,7 +672,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         try:
             diagnose = _engine(args.engine)
         except (ImportError, AttributeError) as err:
-            print(f"thinshell bench diagnose: cannot import the diagnosis engine {args.engine!r}: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: cannot import the diagnosis engine {args.engine!r}: {err}", file=sys.stderr)
             return 2
         t1 = time.perf_counter()
         if args.jobs == 1:
@@ -716,7 +716,7 @@ def _reference_main(args: argparse.Namespace) -> int:
     try:
         result = bench_reference(args.labelled, SignatureSettings(dt=DT), log=log)
     except (FileNotFoundError, ValueError) as err:
-        print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+        print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
         return 2
     print(json.dumps(result, default=float) if args.json else format_reference(result))
     return 0

@@ -1,4 +1,4 @@
-"""``thinshell bench diagnose --labelled DIR`` on a reference set: recordings made by another
+"""``python -m benchmarks.diagnose_bench --labelled DIR`` on a reference set: recordings made by another
 engine, labelled in a ``labels.yaml`` (``../shared/data/reference_bags``), diagnosed with the
 signature engine both alone and against a baseline null, leave one out.
 

@@ -45,7 +45,7 @@ the figure the reference set's labels give.
 
 ``python -m benchmarks.synthetic_effects OUT_DIR`` writes the validation set of
 :data:`DEFAULT_PLAN` from the shared reference recordings, with a ``labels.yaml`` in the reference
-set's format (``thinshell bench diagnose --labelled OUT_DIR`` reads it).
+set's format (``python -m benchmarks.diagnose_bench --labelled OUT_DIR`` reads it).
 """
 
 from __future__ import annotations

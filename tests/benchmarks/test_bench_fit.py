@@ -1,4 +1,4 @@
-"""``thinshell bench sysid`` (benchmarks.bench_fit): one JSON record of a real (tiny) fit on the bundled bag."""
+"""``python -m benchmarks.bench_fit`` (benchmarks.bench_fit): one JSON record of a real (tiny) fit on the bundled bag."""
 
 from __future__ import annotations
 
