@@ -86,3 +86,12 @@ def test_sync_gpu_src_copies_the_code_and_the_kernel_tests_only(tmp_path):
     assert run.returncode == 0, run.stderr
     assert (dest / "sim_core" / "solver.py").is_file() and (dest / "tests" / "sim_core" / "ti_kernels").is_dir()
     assert not (dest / "docs").exists() and not (dest / "bags").exists() and not (dest / "tests" / "sysid").exists()
+
+
+@pytest.mark.parametrize(("old", "module"), [("diagnose", "benchmarks.diagnose_bench"), ("sysid", "benchmarks.bench_fit")])
+def test_the_former_bench_subcommands_name_their_checkout_module(old, module, capsys):
+    from thinshell_ros.bench import bench_main
+
+    assert bench_main([old, "--quick"]) == 2
+    err = capsys.readouterr().err
+    assert f"thinshell bench {old}: moved out of the installed package; run `python -m {module}`" in err
