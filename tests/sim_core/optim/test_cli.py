@@ -65,7 +65,7 @@ def test_scene_argument_task_scene_or_sysid_fitted_values(tmp_path):
     from sim_core.optim.cli import load_target
 
     # a kind: task scene replaces the task's scene
-    doc = yaml.safe_load(open(Path(__file__).resolve().parents[2] / "config/scenes/forming.yaml"))
+    doc = yaml.safe_load(open(Path(__file__).resolve().parents[3] / "config/scenes/forming.yaml"))
     doc["friction"][0]["mu"] = 2.0
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(doc))
