@@ -23,7 +23,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "diagnose": ("sysid.diagnose_cli", "diagnose_main", "find, name and model missing physics in recorded bags"),
     "compare": ("sysid.compare", "compare_main", "replay a recording's motion in scene(s): RMS per channel, overlay plots, report"),
     "deploy": ("thinshell_ros.deploy_node", "deploy_main", "play a trajectory.yaml (or a bag's pose_cmd stream) on the robot over DDS, with limits and an abort"),
-    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, optimise, batch"),
+    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, tasks, optimise, batch"),
     "optimise": ("sim_core.optim.cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
 }
 
