@@ -63,7 +63,6 @@ from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
 from benchmarks.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
-from sysid.data import BENCH_SCENE, data_file
 from benchmarks.reference_bench import bench_reference, format_reference
 from benchmarks.diagnose_scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
                                     top1)
@@ -76,9 +75,9 @@ NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array(
          "sheet_points": np.array([50e-6] * 3)}
 """1-sigma white noise per channel axis (the reference bags' levels)."""
 
-SCENE_PATH = data_file(BENCH_SCENE)
-"""The benchmark's scene file (scene v1, packaged ``sysid/data/bench_card.yaml``): a small card and a
-coarse tactile pad."""
+SCENE_PATH = Path(__file__).resolve().with_name("bench_card.yaml")
+"""The benchmark's scene file (scene v1, ``benchmarks/bench_card.yaml``): a small card and a coarse
+tactile pad."""
 
 
 def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
