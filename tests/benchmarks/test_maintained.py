@@ -1,7 +1,7 @@
 """benchmarks/ keeps maintained benchmarks only: each script has a line in benchmarks/README.md and starts
 (``--help``, a tiny input, or for the GPU machine's shell scripts a syntax check); ``sync_gpu_src.sh`` copies
 a real tree. The heavier benchmarks (diagnose_bench, bench_fit, synthetic_effects, single_rounds,
-node_latency_trace, mujoco_world) have test modules of their own beside this one."""
+node_latency_trace, roofline, mujoco_world) have test modules of their own beside this one."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 BENCHMARKS = REPO / "benchmarks"
-SCRIPTS = ("bench_band_factor", "bench_cg_precision", "count_single_syncs", "iterations_lockstep", "parts_lockstep",
-           "pipeline_lockstep", "profile_lockstep", "profile_single", "single_rounds", "synthetic_diagnose",
-           "time_batched_gradients", "node_latency_trace")
+SCRIPTS = ("bench_band_factor", "bench_cg_precision", "bench_copy_bands", "roofline", "count_single_syncs",
+           "iterations_lockstep", "parts_lockstep", "pipeline_lockstep", "profile_lockstep", "profile_single",
+           "single_rounds", "synthetic_diagnose", "time_batched_gradients", "node_latency_trace")
 """Scripts run as ``python benchmarks/NAME.py``."""
 MODULES = ("diagnose_bench", "bench_fit", "synthetic_effects")
 """Benchmarks run as ``python -m benchmarks.NAME``."""
