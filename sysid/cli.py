@@ -28,7 +28,7 @@ from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
-from sysid.replay_batch import batch_size_arg
+from sim_core.batch.sizing import batch_size_arg
 
 PROG = "thinshell sysid"
 
