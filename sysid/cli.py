@@ -3,7 +3,8 @@
 Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
-                        [--dt DT] [--t-max SECONDS] [--recording-map FILE] [--t-start S] [--t-end S] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
+                        [--dt DT] [--t-max SECONDS] [--recording-map FILE] [--t-start S] [--t-end S] [--jacobian auto|fd|sensitivity] [--write-scene S]
+                        [--robust hac|block_bootstrap|none] [--nuisance NAME=PRIOR,...|none] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
@@ -23,7 +24,9 @@ from typing import Sequence
 
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
-from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
+from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
+                       STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
 from sim_core.batch.sizing import batch_size_arg
 
@@ -57,6 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-rms", type=float, default=STOP_RMS,
                    help="stop when an accepted step lowered the whitened RMS by less than this fraction "
                         "(default: %(default)s = 0.05 %%; 0: off)")
+    p.add_argument("--stop-robust-sigma", type=float, default=STOP_ROBUST_SIGMA,
+                   help="stop once the Gauss-Newton step is below this fraction of the robust 1-sigma (--robust) in "
+                        "every parameter (0: off; default: %(default)s)")
+    p.add_argument("--stop-trial-scaled", action="store_true",
+                   help="measure --stop-trial-sigma's trial step in the scaled 1-sigma only (default: in the larger of "
+                        "it and the robust 1-sigma of --robust)")
     p.add_argument("--cold-start", action="store_true",
                    help="start every replay's Newton solves from the previous step (default: from the best replay "
                         "so far, which converges to the same tolerance in fewer iterations)")
@@ -84,6 +93,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "--cold-start the fit is the serial one (to 3e-9 sigma on the bundled bag)")
     p.add_argument("--batch-size", type=batch_size_arg, metavar="N|auto",
                    help="with --batched: the most copies stepped together; auto: the most that fit the free memory")
+    p.add_argument("--robust", choices=(*ROBUST_METHODS, "none"), default=DEFAULT_ROBUST_METHOD,
+                   help="uncertainty reported beside the Gauss-Newton sigma, valid when the model does not follow "
+                        "the recording exactly (sysid.covariance): hac = Newey-West sandwich over the residuals' "
+                        "time correlation, block_bootstrap = moving-block bootstrap over time windows; none: off "
+                        "(default: %(default)s)")
+    p.add_argument("--nuisance", metavar="NAME=PRIOR,...|none",
+                   help="fixed parameters whose prior uncertainty (1-sigma: relative for positive scale parameters, "
+                        "in its units for a Poisson ratio) is propagated into the robust sigma, one replay with tangents "
+                        "at the optimum (default: " + ",".join(f"{k}={v:g}" for k, v in DEFAULT_NUISANCE.items())
+                   + ", less names the scene lacks; none: off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--calibrate", action="store_true",
                    help="before the fit, calibrate the model as thinshell diagnose does: the simulator parameters of "
@@ -171,6 +190,28 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
+def _nuisance_arg(text: str | None) -> tuple[tuple[str, float], ...] | None:
+    """``--nuisance``: None (default set), () for ``none``, else ``(name, prior)`` pairs.
+
+    Raises:
+        ConfigError: an item that is not ``NAME=NUMBER``.
+    """
+    if text is None:
+        return None
+    if text.strip().lower() == "none":
+        return ()
+    out = []
+    for item in _split(text) or []:
+        name, sep, value = item.partition("=")
+        try:
+            out.append((name.strip(), float(value)))
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip():
+            raise ConfigError(f"--nuisance: {item!r} is not NAME=PRIOR (e.g. friction.sheet_table=0.3)")
+    return tuple(out)
+
+
 def fit_options(args: argparse.Namespace) -> FitOptions:
     """The :class:`~sysid.fit_recording.FitOptions` of parsed ``thinshell sysid`` arguments.
 
@@ -184,16 +225,20 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
     channels = _split(args.channels)
     return FitOptions(params=tuple(_split(args.params) or ()), scene=args.scene, dt=args.dt, t_max=args.t_max,
                       recording_map=args.recording_map, t_start=args.t_start, t_end=args.t_end,
+                      nuisance=_nuisance_arg(args.nuisance),
                       channels=None if channels is None else tuple(channels), gel_resolution=resolution,
                       arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
                       global_method=args.global_method if args.global_search else None,
                       global_evals=args.global_evals, max_time=args.max_time, max_nfev=args.max_nfev,
                       stop_sigma=args.stop_sigma or None, stop_trial_sigma=args.stop_trial_sigma or None,
-                      stop_rms=args.stop_rms or None, warm_start=not args.cold_start,
+                      stop_rms=args.stop_rms or None, stop_robust_sigma=args.stop_robust_sigma or None,
+                      stop_trial_robust=not args.stop_trial_scaled,
+                      warm_start=not args.cold_start,
                       sensor_calibration=not args.no_sensor_calibration,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
-                      workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size)
+                      workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
+                      robust=None if args.robust == "none" else args.robust)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -217,10 +262,14 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     result = outcome.result
     if outcome.scene is not None:
         print(f"fitted scene: {outcome.scene}")
+    print(f"  replayed at dt = {result.dt:g} s ({result.step_count} steps)")
+    method = result.robust.method if result.robust is not None else None
     for name in result.names:
         s = result.sigma[name] if result.sigma else None
+        sr = (result.sigma_robust or {}).get(name)
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
-              + (f" +- {s:.3g}" if s is not None else ""))
+              + (f" +- {s:.3g} (Gauss-Newton)" if s is not None else "")
+              + (f" +- {sr:.3g} ({method})" if sr is not None else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
     print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "

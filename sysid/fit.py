@@ -20,7 +20,11 @@ Uncertainty: Gauss-Newton covariance ``Cov(u) = (J^T W J)^-1 = (J_r^T J_r)^-1`` 
 (``J_r`` the Jacobian of the whitened residual); 1-sigma of a log parameter is ``theta sigma_u``
 (first order) and the correlation matrix is the same in both coordinates. It assumes white noise
 of the estimated level and a correct model; ``reduced_chi2`` > 1 says by how much that fails, and
-``sigma_scaled = sigma sqrt(reduced_chi2)`` is the usual inflated estimate.
+``sigma_scaled = sigma sqrt(reduced_chi2)`` is the usual inflated estimate. Beside it the fit reports
+a robust covariance (:mod:`sysid.covariance`, ``robust="hac"`` by default: the Newey-West sandwich
+``H^-1 S H^-1`` with the residuals' time correlation; or ``"block_bootstrap"``), whose sigma
+(``sigma_robust``) holds when the residual is a structured, time-correlated model misfit rather
+than white noise.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from scipy.optimize import least_squares
 from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
+from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
+                              nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -57,6 +63,16 @@ cost."""
 STOP_RMS = 5.0e-4
 """Default RMS stop of :func:`fit`: the local phase ends at an accepted point that lowered the whitened
 RMS by less than 0.05 % from the previous accepted point."""
+STOP_ROBUST_SIGMA = 0.1
+"""Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
+once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
+coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
+DEFAULT_NUISANCE = {"friction.sheet_table": 0.3, "gel.poisson_ratio": 0.03, "contact.stiffness": 0.5}
+"""Default nuisance priors of ``thinshell sysid`` (:func:`fit` ``nuisance``; names the scene lacks or the fit
+fits are left out): parameters a cell's data sheet does not give and the default fit holds fixed. The
+sheet-table friction to +-30 % (1-sigma; paper and card on a table range over 0.2-0.5), the gel's
+Poisson ratio to +-0.03 (silicone gels 0.42-0.49, rarely on a data sheet) and the contact's penalty
+stiffness to a factor 1.65 (a numerical compliance with no physical value to look up)."""
 LOG_SPAN = math.log(1.0e3)
 """Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
@@ -352,6 +368,9 @@ class FitResult:
         model: the observation model (not serialised).
         sigma_scale: channel -> the factor on its noise level in the fit's residual
             (``reweight_channels``), or None.
+        sigma_robust: 1-sigma per parameter in its units from :attr:`robust` (None when not computed).
+        robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
+            method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
     """
 
     names: tuple[str, ...]
@@ -388,6 +407,8 @@ class FitResult:
     warnings: list[str] = field(default_factory=list)
     model: ObservationModel | None = None
     sigma_scale: dict[str, float] | None = None
+    sigma_robust: dict[str, float] | None = None
+    robust: RobustCovariance | None = None
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -483,7 +504,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         stop_trial_sigma: float | None = STOP_TRIAL_SIGMA, stop_rms: float | None = STOP_RMS,
         warm_start: bool = True, bounds: Mapping[str, tuple[float, float]] | None = None,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
-        batch_size: int | str | None = None) -> FitResult:
+        batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
+        stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
+        nuisance: Mapping[str, float] | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -548,6 +571,30 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         batched, batch_size: replay each finite-difference Jacobian's columns and each global population as
             one batch of scene copies stepped together (:class:`FitProblem`); they start cold, so with
             ``warm_start=False`` the fit is the serial one to the Newton tolerance.
+        robust: covariance that holds under model error, reported beside the Gauss-Newton one
+            (:data:`sysid.covariance.ROBUST_METHODS`: ``"hac"``, the Newey-West sandwich with the
+            residuals' time correlation, default; ``"block_bootstrap"``; None: none). Computed from
+            the Jacobian and residual at the optimum: no extra replay.
+        stop_robust_sigma: also stop the local phase at an accepted point whose Gauss-Newton step is
+            below ``stop_robust_sigma`` times the robust 1-sigma (method ``robust``, computed from the
+            same Jacobian and residual) in every coordinate. Where the model does not follow the
+            recording exactly the robust sigma is many times the Gauss-Newton one and ``stop_sigma``
+            asks for a precision far below what the fit can claim; each further iteration is a
+            replay. None or 0 (or ``robust=None``): off. ``thinshell sysid``:
+            :data:`STOP_ROBUST_SIGMA`.
+        nuisance: parameters the fit holds fixed whose values are uncertain, name -> prior 1-sigma
+            (relative for a positive scale parameter, in the parameter's units for a Poisson ratio or
+            a zero-start one; :func:`nuisance_prior_u`): their propagated covariance
+            (:func:`sysid.covariance.nuisance_covariance`, one more replay with tangents at the
+            optimum) is added to the robust one (method ``<robust>+nuisance``). None or empty: off.
+        stop_trial_robust: measure the ``stop_trial_sigma`` rule's trial step in the larger of the
+            scaled and the robust 1-sigma (``robust``): a rejected trial step within the uncertainty
+            the fit reports ends the fit. On nominal_s101 (``thinshell sysid`` defaults, 2026-11-27)
+            the last five of nine replays were trial steps from the final point, each rejected, of
+            1.15, 0.32, 0.11, 0.04 and 0.01 robust sigma (15.5, 8.5, 4.8, 1.8 and 0.5 scaled sigma;
+            the HAC sigma 14-59 times the Gauss-Newton one): this rule ends that fit after the second
+            of them with the same result. False:
+            the scaled sigma only (``thinshell sysid``: True).
 
     Returns:
         the :class:`FitResult`.
@@ -571,6 +618,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
     joint = getattr(provider, "joint", None)
     if max_replays is not None and not max_replays >= 1:
         raise ConfigError(f"max_replays must be >= 1, got {max_replays!r}")
+    nuisance = {n: float(v) for n, v in (nuisance or {}).items() if n not in names}
+    for n, v in nuisance.items():
+        nuisance_prior_u(n, model.parameter_value(n), v)  # unknown names and bad priors fail before any replay
+    if robust is not None and robust not in ROBUST_METHODS:
+        raise ConfigError(f"unknown robust covariance method {robust!r} (choose from {', '.join(ROBUST_METHODS)})")
     if max_replays is not None and max_replays < 2:
         joint = None  # no replay left for a step or a difference column: the start's tangents would go unused
     problem = FitProblem(model, specs, workers=workers, deadline=None, on_eval=on_eval, joint=joint,
@@ -619,7 +671,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if (stop_sigma or stop_trial_sigma or stop_rms) and r is not None:
+                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust) and r is not None:
                     step, sigma_u = gauss_newton_step(J, r)
                     cost = 0.5 * float(r @ r)
                     # the trial-step stop measures steps in the reported (residual-scaled) 1-sigma
@@ -630,6 +682,20 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                     if stop_sigma and sigma_u is not None and np.all(np.abs(step) <= stop_sigma * sigma_u):
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
+                            raise _WithinNoise()
+                    sigma_rob = None
+                    if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
+                        try:
+                            rob = model_robust_covariance(model, J, r, robust, seed)
+                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
+                        except CalibrationError:
+                            sigma_rob = None
+                    if stop_trial_robust and sigma_rob is not None:
+                        # the trial-step stop measures steps in the robust 1-sigma where it is the larger
+                        jac_at["sigma_trial"] = np.maximum(jac_at["sigma_trial"], sigma_rob)
+                    if stop_robust_sigma and sigma_rob is not None and inside:
+                        if np.all(np.abs(step) <= stop_robust_sigma * sigma_rob):
+                            jac_at["step_in_robust_sigma"] = float(np.max(np.abs(step) / sigma_rob))
                             raise _WithinNoise()
                     previous = jac_at.get("accepted_cost")
                     jac_at["accepted_cost"] = cost
@@ -657,8 +723,12 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 if "rms_gain" in jac_at:
                     message = (f"the last accepted step lowered the RMS by {100 * jac_at['rms_gain']:.2g} %, below "
                                f"the stop fraction {100 * stop_rms:g} % (the replays' numerical noise)")
+                elif "step_in_robust_sigma" in jac_at:
+                    message = (f"the Gauss-Newton step is {jac_at['step_in_robust_sigma']:.2g} robust sigma ({robust}) "
+                               f"at most, below the stop fraction {stop_robust_sigma:g}")
                 elif "trial_in_sigma" in jac_at:
-                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} scaled sigma at most (below {stop_trial_sigma:g}) "
+                    unit = "sigma (the larger of scaled and robust)" if stop_trial_robust else "scaled sigma"
+                    message = (f"a trial step of {jac_at['trial_in_sigma']:.2g} {unit} at most (below {stop_trial_sigma:g}) "
                                "did not lower the cost: flat to within the replay's numerical noise")
                 else:
                     message = (f"the Gauss-Newton step is {jac_at['step_in_sigma']:.2g} sigma at most, below the stop "
@@ -681,6 +751,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J, jac_note = jac_at["J"], f"Jacobian of the last accepted iterate ({spent} budget spent)"
             elif J is None:
                 J, jac_note = None, f"no Jacobian computed before the {spent} budget ran out"
+            J_nuisance, nuisance_runs = None, 0
+            if nuisance and robust is not None and J is not None:
+                J_nuisance, nuisance_runs = _nuisance_jacobian(problem, u_best, nuisance, fd_step, notes)
         finally:
             problem.close()
             model.warm_start = saved_warm_start
@@ -695,17 +768,67 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         notes.append(f"covariance: {jac_note}")
     values = problem.values(u_best)
     sigma, sigma_log, scaled, corr = _covariance_summary(specs, values, cov, chi2_red)
+    robust_cov, sigma_robust = None, None
+    r_best = problem._cache.get(np.asarray(u_best, dtype=float).tobytes())
+    if robust is not None and cov is not None and r_best is not None:
+        try:
+            robust_cov = model_robust_covariance(model, J, r_best, robust, seed)
+        except CalibrationError as err:
+            notes.append(f"robust covariance: {err}")
+        else:
+            if J_nuisance is not None:
+                prior = np.array([nuisance_prior_u(n, problem.model.parameter_value(n), s) for n, s in nuisance.items()])
+                ncov, A = nuisance_covariance(J, J_nuisance, prior)
+                robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
+                                                      {n: A[:, k] for k, n in enumerate(nuisance)})
+            sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
         reduced_chi2=chi2_red, rms_initial=model.channel_rms(prediction0), rms_final=model.channel_rms(prediction_best),
         prediction_initial=prediction0, prediction_final=prediction_best, history=problem.history,
-        iterations=max(njev - 1, 0), nfev=nfev, njev=njev, sim_runs=problem.sim_runs,
+        iterations=max(njev - 1, 0), nfev=nfev, njev=njev, sim_runs=problem.sim_runs + nuisance_runs,
         sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
-        sigma_scale=channel_scale,
+        sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov,
     )
+
+
+def nuisance_prior_u(name: str, value: float, prior: float) -> float:
+    """Prior 1-sigma of nuisance parameter ``name`` (nominal ``value``) in its search coordinate: ``prior``
+    is relative for a positive scale parameter (log coordinate), in the parameter's units otherwise.
+
+    Raises:
+        CalibrationError: a prior that is not a positive number.
+    """
+    if not (math.isfinite(prior) and prior > 0.0):
+        raise CalibrationError(f"nuisance prior of {name} must be a positive number, got {prior!r}")
+    spec = parameter_spec(name, value)
+    return float(prior) if spec.log else float(prior) / spec.scale
+
+
+def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mapping[str, float], fd_step: float,
+                       notes: list[str]) -> tuple[np.ndarray | None, int]:
+    """Whitened Jacobian ``(m, q)`` of the nuisance parameters at the fitted point (one replay with tangents
+    where the sensitivity provider is available, else finite differences), and the replays it took."""
+    model = problem.model
+    ext = FitProblem(model, list(problem.specs) + [parameter_spec(n, model.parameter_value(n)) for n in nuisance])
+    try:
+        J = make_jacobian("auto", fd_step)(ext, np.concatenate([np.asarray(u_best, dtype=float),
+                                                                np.zeros(len(nuisance))]))
+    except (CalibrationError, ConfigError, SimulationDivergedError) as err:
+        notes.append(f"robust covariance: nuisance Jacobian not computed ({err}); the time-correlation part only")
+        return None, ext.sim_runs
+    finally:
+        ext.close()
+    return J[:, len(problem.specs):], ext.sim_runs
+
+
+def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:
+    """1-sigma per parameter in its units from a covariance of the coordinates (first order for log ones)."""
+    su = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
+    return {s.name: float(abs(values[s.name]) * sd if s.log else s.scale * sd) for s, sd in zip(specs, su)}
 
 
 def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:

@@ -15,6 +15,7 @@ modelled effect).
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,8 +23,10 @@ from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.evidence import load_evidence
-from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
+                       FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
 from sysid.report import write_report
@@ -52,7 +55,12 @@ class FitOptions:
         global_evals: replay budget of the global phase (None: its default).
         max_time: wall-time budget in s (None: none).
         max_nfev: function evaluations of the local phase.
-        stop_sigma, stop_trial_sigma, stop_rms: stopping rules of :func:`sysid.fit.fit` (None: off).
+        stop_sigma, stop_trial_sigma, stop_rms, stop_robust_sigma: stopping rules of :func:`sysid.fit.fit`
+            (None: off; ``stop_robust_sigma`` default :data:`sysid.fit.STOP_ROBUST_SIGMA`).
+        stop_trial_robust: the trial-step stop measured in the robust sigma where larger (:func:`sysid.fit.fit`).
+        nuisance: ``(name, prior 1-sigma)`` pairs of fixed parameters whose uncertainty enters the robust
+            sigma (:func:`sysid.fit.fit` ``nuisance``); None: :data:`sysid.fit.DEFAULT_NUISANCE` less the
+            names the scene lacks; empty: none.
         warm_start: start each replay's Newton solves from the best replay so far.
         sensor_calibration: calibrate the sensor in closed form before the fit (False: fit against
             the scene's sensor calibration).
@@ -67,6 +75,8 @@ class FitOptions:
         workers: processes for batched replays.
         seed: seed of the global phase.
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
+        robust: covariance reported beside the Gauss-Newton one (:data:`sysid.covariance.ROBUST_METHODS`,
+            default ``hac``; None: none).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -88,6 +98,9 @@ class FitOptions:
     stop_sigma: float | None = STOP_SIGMA
     stop_trial_sigma: float | None = STOP_TRIAL_SIGMA
     stop_rms: float | None = STOP_RMS
+    stop_robust_sigma: float | None = STOP_ROBUST_SIGMA
+    stop_trial_robust: bool = True
+    nuisance: tuple[tuple[str, float], ...] | None = None
     warm_start: bool = True
     sensor_calibration: bool = True
     calibration_params: tuple[str, ...] = ()
@@ -97,6 +110,7 @@ class FitOptions:
     seed: int = 0
     batched: bool = False
     batch_size: int | str | None = None
+    robust: str | None = DEFAULT_ROBUST_METHOD
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -117,6 +131,11 @@ class FitOptions:
         for name in ("max_nfev", "workers"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"FitOptions: {name} must be >= 1, got {getattr(self, name)}")
+        for name, prior in self.nuisance or ():
+            if not (math.isfinite(float(prior)) and float(prior) > 0.0):
+                raise ConfigError(f"FitOptions: nuisance prior of {name} must be a positive number, got {prior!r}")
+        if self.robust is not None and self.robust not in ROBUST_METHODS:
+            raise ConfigError(f"FitOptions: robust must be one of {', '.join(ROBUST_METHODS)} or None, got {self.robust!r}")
         if self.gel_resolution is not None and (len(self.gel_resolution) != 3
                                                 or any(int(n) < 1 for n in self.gel_resolution)):
             raise ConfigError(f"FitOptions: gel_resolution must be three positive integers, got {self.gel_resolution}")
@@ -145,6 +164,27 @@ class FitOutcome:
     warnings: tuple[str, ...]
     sensor: CalibrationResult | None = None
     scene: Path | None = None
+
+
+def nuisance_of(model: ObservationModel, options: FitOptions) -> dict[str, float]:
+    """The nuisance priors of a fit: ``options.nuisance``, or :data:`sysid.fit.DEFAULT_NUISANCE` less the
+    parameters the model's scene does not have (a task scene names its bodies otherwise) and the fitted ones.
+
+    Raises:
+        ConfigError: an explicitly named parameter the scene does not have.
+    """
+    if options.nuisance is not None:
+        return {n: float(v) for n, v in options.nuisance if n not in options.params}
+    out = {}
+    for name, prior in DEFAULT_NUISANCE.items():
+        if name in options.params:
+            continue
+        try:
+            model.parameter_value(name)
+        except ConfigError:
+            continue
+        out[name] = prior
+    return out
 
 
 def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOptions(), *, force: bool = False,
@@ -208,7 +248,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
-                 batch_size=options.batch_size)
+                 batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
+                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
     result.warnings[:0] = list(notes)
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:

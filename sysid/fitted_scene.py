@@ -7,6 +7,8 @@ fitted global parameter put into the scene key that sets it (:data:`SCENE_KEYS`)
     fitted:
       params: {gel.youngs_modulus: 2.7e5}        # the fitted values (also in the scene's keys)
       sigma: {gel.youngs_modulus: 3.1e3}         # 1-sigma (Gauss-Newton), null when not computed
+      sigma_robust: {gel.youngs_modulus: 2.4e4}  # 1-sigma under model error (sysid.covariance), and its
+      sigma_robust_method: hac                   # method; absent when not computed
       initial: {gel.youngs_modulus: 3.0e5}
       effects: [stiction]                        # modelled missing physics: fitted candidate.* parameters and
                                                  # the candidate terms the scene carries (simulation.candidates)
@@ -285,7 +287,10 @@ def fitted_scene_from_result(result: Any, evidence: Any, t_max: float | None = N
         # the fit was judged through this sensor calibration (thinshell sysid's default): it is part of the fit
         record["sensor_calibration"] = model.sensor_calibration.as_dict()
     values = {**{k: float(v) for k, v in (calibrated or {}).items()}, **result.values}
-    sigma = {**{k: None for k in (calibrated or {})}, **result.sigma}
+    sigma = {**{k: None for k in (calibrated or {})}, **(result.sigma or {})}
+    if getattr(result, "robust", None) is not None and result.sigma_robust:
+        record["sigma_robust"] = {k: float(v) for k, v in result.sigma_robust.items()}
+        record["sigma_robust_method"] = result.robust.method
     if calibrated:
         record["calibrated"] = sorted(k for k in calibrated if k not in result.values)
     return fitted_scene_document(model.scene, values, sigma, sensor=model.sensor, record=record)

@@ -215,9 +215,35 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _interval(value: Any, sigma: Any) -> str:
+    if value is None or sigma is None:
+        return "-"
+    return f"[{value - 2.0 * sigma:.4g}, {value + 2.0 * sigma:.4g}]"
+
+
+def robust_note(doc: Mapping[str, Any]) -> str:
+    """One sentence naming the robust covariance method of a ``fit.json`` document and its lag window."""
+    robust = doc["fit"].get("robust")
+    if not robust:
+        return "No robust covariance was computed."
+    what = ("Newey-West (HAC) sandwich H^-1 S H^-1 with Bartlett weights" if robust["method"].startswith("hac")
+            else f"moving-block bootstrap ({robust['resamples']} resamples) of the linearised estimate")
+    text = (f"The robust 1-sigma ({robust['method']}) is the {what} over the residuals' time correlation (lag "
+            f"window {robust['lag_s']:.3g} s = {robust['lag_bins']} bins of {robust['bin_s']:.3g} s, Andrews 1991)")
+    prior = robust.get("nuisance_prior")
+    if prior:
+        text += (", plus the propagated prior uncertainty of the parameters held fixed ("
+                 + ", ".join(f"{k} +-{v:g}" for k, v in prior.items()) + "; sysid.covariance.nuisance_covariance): "
+                 "the part of a model error the fitted values absorb, which no residual shows")
+    return (text + f"; it is {', '.join(f'{v:.3g}' for v in robust['inflation'])} times the Gauss-Newton 1-sigma. "
+            "A model error beyond these (a physics the model lacks, a prior that is too narrow) is not in it.")
+
+
 def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
     params = doc["fit"]["parameters"]
-    p_rows = [[n, _fmt(p["initial"]), _fmt(p["value"]), _fmt(p["sigma"]), _fmt(p["sigma_scaled"]), p["space"]]
+    robust = doc["fit"].get("robust")
+    p_rows = [[n, _fmt(p["initial"]), _fmt(p["value"]), _fmt(p["sigma"]), _fmt(p["sigma_scaled"]),
+               _fmt(p.get("sigma_robust")), _interval(p["value"], p.get("sigma_robust")), p["space"]]
               for n, p in params.items()]
     m = doc["metrics"]
     r_rows = []
@@ -225,8 +251,9 @@ def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]
         after = m["rms_final"][ch]
         r_rows.append([ch, before["unit"], _fmt(before["rms"]), _fmt(after["rms"]), _fmt(before["whitened_rms"]),
                        _fmt(after["whitened_rms"]), "yes" if after["fitted"] else "no"])
-    tables = [("Parameters", ["parameter", "nominal", "fitted", "1-sigma (GN)", "1-sigma x sqrt(chi2_red)", "space"],
-               p_rows),
+    method = robust["method"] if robust else "robust"
+    tables = [("Parameters", ["parameter", "nominal", "fitted", "1-sigma (GN)", "1-sigma x sqrt(chi2_red)",
+                              f"1-sigma ({method})", f"2-sigma interval ({method})", "space"], p_rows),
               ("Per-channel RMS (recording - simulation)",
                ["channel", "unit", "RMS nominal", "RMS fitted", "whitened nominal", "whitened fitted", "fitted"], r_rows)]
     corr = doc["fit"]["correlation"]
@@ -261,8 +288,8 @@ def write_markdown(doc: Mapping[str, Any], plots: list[Path], path: Path) -> Pat
     if warnings:
         lines += ["## Warnings", ""] + [f"- {w}" for w in warnings] + [""]
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots] + [""]
-    lines += ["1-sigma is the Gauss-Newton estimate (J^T W J)^-1 with the noise levels estimated from the "
-              "recording; it assumes white noise and a correct model (see the reduced chi^2).", ""]
+    lines += ["1-sigma (GN) is the Gauss-Newton estimate (J^T W J)^-1 with the noise levels estimated from the "
+              "recording; it assumes white noise and a correct model (see the reduced chi^2). " + robust_note(doc), ""]
     path.write_text("\n".join(lines), encoding="utf-8")
     return path
 

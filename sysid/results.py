@@ -5,10 +5,15 @@ Schema ``thinshell.sysid.fit`` version 1::
     {
       "schema": "thinshell.sysid.fit", "schema_version": 1,
       "fit": {
-        "parameters": {name: {"initial", "value", "sigma", "sigma_scaled", "sigma_log", "space": "log"|"linear",
-                              "lower", "upper"}},
+        "parameters": {name: {"initial", "value", "sigma", "sigma_scaled", "sigma_robust", "sigma_log",
+                              "space": "log"|"linear", "lower", "upper"}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
-        "covariance_u": [[...]] | null        # Gauss-Newton (J^T W J)^-1 in the search coordinates
+        "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
+        "robust": {"method": "hac"|"block_bootstrap"|"hac+nuisance"|..., "lag_bins", "lag_s", "bin_s", "bins",
+                   "resamples", "inflation": [...], "covariance_u": [[...]],
+                   # with "+nuisance" (sysid.fit.fit nuisance): the priors, d u / d phi and the time part's inflation
+                   "nuisance_prior": {name: s}, "nuisance_shift_u": {name: [...]}, "time_inflation": [...]
+                  } | null   # sysid.covariance
       },
       "metrics": {"cost_initial", "cost_final", "reduced_chi2", "residual_count",
                   "rms_initial": {channel: {...}}, "rms_final": {channel: {...}}},
@@ -19,7 +24,9 @@ Schema ``thinshell.sysid.fit`` version 1::
                      "versions": {...}, "command", "created_utc", "host"}
     }
 
-Infinite costs (failed replays) are written as null.
+Infinite costs (failed replays) are written as null. ``fit.robust`` and ``sigma_robust`` (the 1-sigma
+that holds under model error, :mod:`sysid.covariance`) were added within version 1: a document
+without them still validates (they read as null).
 """
 
 from __future__ import annotations
@@ -106,6 +113,7 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
             "initial": result.initial[n], "value": result.values[n],
             "sigma": result.sigma[n] if result.sigma else None,
             "sigma_scaled": result.sigma_scaled[n] if result.sigma_scaled else None,
+            "sigma_robust": (getattr(result, "sigma_robust", None) or {}).get(n),
             "sigma_log": (result.sigma_log or {}).get(n), "space": "log" if spec.log else "linear",
             "lower": spec.lower, "upper": spec.upper,
         }
@@ -115,9 +123,11 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
     history = [{"eval": i, "phase": e.phase, "cost": e.cost, "time_s": e.time_s,
                 "values": {s.name: s.to_value(float(u)) for s, u in zip(result.specs, e.u)}}
                for i, e in enumerate(result.history)]
+    robust = getattr(result, "robust", None)
+    robust_doc = None if robust is None else {**robust.summary(), "covariance_u": robust.covariance_u}
     doc = {
         "schema": SCHEMA, "schema_version": SCHEMA_VERSION,
-        "fit": {"parameters": params, "correlation": corr, "covariance_u": result.covariance_u},
+        "fit": {"parameters": params, "correlation": corr, "covariance_u": result.covariance_u, "robust": robust_doc},
         "metrics": {"cost_initial": result.cost_initial, "cost_final": result.cost_final,
                     "reduced_chi2": result.reduced_chi2, "residual_count": result.residual_count,
                     "rms_initial": result.rms_initial, "rms_final": result.rms_final},

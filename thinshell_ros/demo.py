@@ -406,13 +406,17 @@ def write_run_report(run: Path, result: DemoResult, hidden: dict[str, float]) ->
              f"5. Deployed on the robot: {(result.deploy or {}).get('state')} "
              f"({(result.deploy or {}).get('reason')}), recorded: [{rel(result.deployed_bag)}]({rel(result.deployed_bag)})",
              f"6. Comparison: [compare report]({rel(result.compare_out)}/report.html)", "",
-             "## Fit vs hidden truth", "", "| parameter | nominal | fitted | sigma | hidden |", "|---|---|---|---|---|"]
+             "## Fit vs hidden truth", "", f"Replayed at dt = {fit.get('dt', '-')} s; sigma (GN) is the Gauss-Newton "
+             f"1-sigma, the robust interval value +- 2 sigma ({fit.get('robust_method') or 'not computed'}, "
+             "sysid.covariance) holds under model error.", "",
+             "| parameter | nominal | fitted | sigma (GN) | robust 2-sigma interval | hidden |", "|---|---|---|---|---|---|"]
     for name, value in fit.get("params", {}).items():
-        sigma = fit.get("sigma", {}).get(name)
+        sigma, robust = fit.get("sigma", {}).get(name), (fit.get("sigma_robust") or {}).get(name)
+        interval = "-" if robust is None else f"[{value - 2.0 * robust:.4g}, {value + 2.0 * robust:.4g}]"
         lines.append(f"| {name} | {fit['initial'][name]:.4g} | {value:.4g} | "
-                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {hidden.get(name, '-')} |")
+                     f"{'-' if sigma is None else f'{sigma:.2g}'} | {interval} | {hidden.get(name, '-')} |")
     for name, value in ((result.diagnosis or {}).get("terms") or {}).items():
-        lines.append(f"| {name} (diagnosed) | 0 | {value:.4g} | - | {hidden.get(name, '-')} |")
+        lines.append(f"| {name} (diagnosed) | 0 | {value:.4g} | - | - | {hidden.get(name, '-')} |")
     modelled = set(fit.get("params", {})) | set(((result.diagnosis or {}).get("terms") or {}))
     hidden_only = [n for n in hidden if n not in modelled]
     if hidden_only:

@@ -136,7 +136,10 @@ def summarise_fit(out: Path) -> dict[str, Any]:
 
     Returns:
         ``{"params": {name: value}, "initial": {name: value}, "sigma": {name: sigma | None},
-        "fit_status", "message", "rms_final": {channel: rms}, "out", "report", "files"}``.
+        "sigma_robust": {name: sigma | None}, "robust_method": "hac" | "block_bootstrap" | None, "dt": s,
+        "fit_status", "message", "rms_final": {channel: rms}, "out", "report", "files"}``
+        (``sigma_robust``: the 1-sigma that holds under model error, :mod:`sysid.covariance`; ``dt``:
+        the step the fit replayed at).
 
     Raises:
         CalibrationError: missing or invalid ``out/fit.json`` (:func:`sysid.results.load_fit_json`).
@@ -148,6 +151,8 @@ def summarise_fit(out: Path) -> dict[str, Any]:
     return {"params": {n: p["value"] for n, p in params.items()},
             "initial": {n: p["initial"] for n, p in params.items()},
             "sigma": {n: p["sigma"] for n, p in params.items()},
+            "sigma_robust": {n: p.get("sigma_robust") for n, p in params.items()},
+            "robust_method": (doc["fit"].get("robust") or {}).get("method"), "dt": diag["dt"],
             "fit_status": diag["status"], "message": diag["message"],
             "rms_final": {ch: v.get("rms") for ch, v in (doc["metrics"]["rms_final"] or {}).items()},
             "out": str(out), "report": str(out / "report.html"), "files": sorted(p.name for p in out.iterdir())}

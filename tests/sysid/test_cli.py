@@ -42,6 +42,12 @@ def test_reference_bag_truncated_runs_end_to_end(tmp_path, capsys):
     assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
     assert f"report: {out / 'report.html'}" in captured.out
     assert [p.name for p in tmp_path.iterdir()] == ["fit_nominal"]  # no staging directory left behind
+    # the replay step and the robust sigma (time correlation + the default nuisance priors) are reported
+    assert "replayed at dt = 0.05 s (6 steps)" in captured.out and "(hac+nuisance)" in captured.out
+    robust = doc["fit"]["robust"]
+    assert robust["method"] == "hac+nuisance" and set(robust["nuisance_prior"]) == {
+        "friction.sheet_table", "gel.poisson_ratio", "contact.stiffness"}
+    assert doc["fit"]["parameters"]["gel.youngs_modulus"]["sigma_robust"] > 0.0
 
 
 def test_existing_output_is_refused_without_force_and_replaced_with_it(press_bag, tmp_path, capsys):
@@ -59,6 +65,16 @@ def test_existing_output_is_refused_without_force_and_replaced_with_it(press_bag
     p = doc["fit"]["parameters"]["gel.youngs_modulus"]
     assert p["initial"] == 6.0e5 and p["value"] < 6.0e5  # moved toward the true 3e5
     assert sorted(x.name for x in tmp_path.iterdir()) == ["out"]
+
+
+def test_bad_nuisance_option_is_one_line_naming_it(press_bag, tmp_path, capsys):
+    rc = sysid_main([str(press_bag), "--out", str(tmp_path / "o"), "--nuisance", "gel.poisson_ratio"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--nuisance: 'gel.poisson_ratio' is not NAME=PRIOR" in err and err.count("\n") == 1
+    rc = sysid_main([str(press_bag), "--out", str(tmp_path / "o"), "--nuisance", "gel.poisson_ratio=-1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "nuisance prior of gel.poisson_ratio must be a positive number" in err
+    assert not (tmp_path / "o").exists()
 
 
 def test_missing_bag_is_one_line_naming_it(tmp_path, capsys):
