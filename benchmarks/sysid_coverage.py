@@ -33,10 +33,18 @@ KINDS = ("sigma", "sigma_scaled", "sigma_hac", "sigma_boot", "sigma_robust")
 
 
 def main(argv: list[str]) -> int:
-    out = Path(argv[0])
+    import argparse
+
+    p = argparse.ArgumentParser(prog="sysid_coverage.py", description=__doc__.split("\n")[0])
+    p.add_argument("out", help="output folder (recordings and rows.json)")
+    p.add_argument("concealed", nargs="?", default=",".join(CONCEALED),
+                   help="comma list of concealed differences (default: all of tests/sysid/concealed.py)")
+    p.add_argument("seeds", nargs="?", default="1,2", help="comma list of seeds (default 1,2)")
+    args = p.parse_args(argv)
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    concealed = argv[1].split(",") if len(argv) > 1 else list(CONCEALED)
-    seeds = [int(s) for s in argv[2].split(",")] if len(argv) > 2 else [1, 2]
+    concealed = args.concealed.split(",")
+    seeds = [int(s) for s in args.seeds.split(",")]
     captured = {}
 
     def capture(model, J, r, method="hac", seed=0):  # the final J and r of the fit, for the bootstrap

@@ -48,7 +48,7 @@ from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianP
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 from sysid.replay_batch import simulate_batch
-from sim_core.parameter_coordinates import ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
+from sim_core.parameter_coordinates import LOG_SPAN, ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
 from sim_core.parameter_coordinates import parameter_spec as coordinate_spec
 
 DEFAULT_PARAMETERS = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
@@ -73,8 +73,6 @@ fits are left out): parameters a cell's data sheet does not give and the default
 sheet-table friction to +-30 % (1-sigma; paper and card on a table range over 0.2-0.5), the gel's
 Poisson ratio to +-0.03 (silicone gels 0.42-0.49, rarely on a data sheet) and the contact's penalty
 stiffness to a factor 1.65 (a numerical compliance with no physical value to look up)."""
-LOG_SPAN = math.log(1.0e3)
-"""Log-space bound half-width: a positive parameter is searched within a factor 1000 of its start."""
 
 
 # ====================================================================================== parameters
