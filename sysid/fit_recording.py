@@ -15,6 +15,7 @@ modelled effect).
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,7 @@ from typing import Callable, Sequence
 
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
+from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.fit import DEFAULT_PARAMETERS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation, FitResult, fit
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -63,6 +65,11 @@ class FitOptions:
         workers: processes for batched replays.
         seed: seed of the global phase.
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
+        drive: fit the effector's drive along the sensor normal (:func:`sysid.drive_calibration.fit_drive`: a
+            spring and damper, chosen over a kinematic arm by delta-BIC) and make every replay, the calibration's
+            and the fit's, take it where the data choose it; the fit's Jacobian is then taken by finite
+            differences (``jacobian="auto"``; a replay through the drive has no tangents). False: the recorded
+            pose driven kinematically.
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -90,6 +97,7 @@ class FitOptions:
     seed: int = 0
     batched: bool = False
     batch_size: int | str | None = None
+    drive: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -187,21 +195,32 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
         model.parameter_value(name)
+    drive = fit_drive(model) if options.drive and model.sensor is not None else None
+    if drive is not None:
+        model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+    jacobian = options.jacobian
+    if math.isfinite(model.drive_stiffness):
+        if jacobian == "sensitivity":
+            raise ConfigError(f"{bag}: the replays go through the fitted drive ({drive.stiffness:.4g} N/m), which has "
+                              "no tangents: use --jacobian fd or auto, or --no-drive")
+        jacobian = "fd" if jacobian == "auto" else jacobian
     if on_model is not None:
         on_model(model, notes)
     sensor = None
     if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
         sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
-                           max_replays=options.calibration_max_replays)
+                           max_replays=options.calibration_max_replays, drive=options.drive)
         if on_calibration is not None:
             on_calibration(sensor)
-    result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,
+    result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                  batch_size=options.batch_size)
     result.warnings[:0] = list(notes)
+    if sensor is not None:  # a gain on its prior's bound is a model gap, not the sensor's gain
+        result.warnings.extend(f["cause"] for f in (sensor.gain_flags or {}).values() if f.get("at_bound"))
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
             result.warnings.append(f"the fit does not improve channel {ch}: RMS {before['rms']:.4g} -> "
@@ -211,6 +230,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     doc = fit_document(result, provenance(evidence, options.seed, options.t_max, command, options.scene))
     if sensor is not None:
         doc["diagnostics"]["sensor_calibration"] = sensor.summary()
+    if drive is not None:
+        doc["diagnostics"]["drive"] = drive.summary()
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)
