@@ -163,11 +163,11 @@ def test_a_prediction_below_the_noise_keeps_the_scene_gain():
     rest, xyz, wrench = _synthetic(rng)
     # the markers barely move (1 um against 15 um noise): the recording does not determine the scales
     still = rest + (xyz - rest) * 0.01
-    data = {"markers_xyz": rest + rng.normal(size=xyz.shape) * 15e-6, "wrench": 0.6 * wrench}
+    data = {"markers_xyz": rest + rng.normal(size=xyz.shape) * 15e-6, "wrench": 0.9 * wrench}
     sigma = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
     fitted = fit_sensor_calibration(data, {"markers_xyz": still, "wrench": wrench}, sigma, rest, SensorCalibration())
     assert fitted.marker_scale_xy == 1.0 and fitted.marker_scale_z == 1.0
-    assert fitted.force_gain == pytest.approx(0.6)
+    assert fitted.force_gain == pytest.approx(0.9)
 
 
 def test_derivative_matches_finite_difference_of_apply():
@@ -205,7 +205,9 @@ def test_calibrate_lowers_the_weighted_cost_and_sets_the_model(tmp_path):
     assert set(summary) >= {"params", "sensor", "whitened_rms_before", "whitened_rms_after"}
 
 
-def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
+def test_undetermined_intrinsics_keep_the_scene_camera_and_an_implausible_focal_stops_on_its_prior():
+    """A line the data do not determine keeps the scene's intrinsics; a focal length 3x the scene's stops on
+    its prior's bound (1.15x by default), flagged, with the principal point refitted at that slope."""
     nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
     still = np.zeros((10, 1, 3))  # one marker that never moves: no spread, the line is undetermined
     data = {"markers_xyz": still, "markers_uv": np.full((10, 1, 2), 150.0)}
@@ -213,9 +215,13 @@ def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
     assert (fitted.fx, fitted.cx, fitted.fy, fitted.cy) == (300.0, 160.0, 300.0, 120.0)
     rng = np.random.default_rng(3)
     rest, xyz, _ = _synthetic(rng)
-    far = SensorCalibration(fx=900.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)  # fx x3: outside the bounds
-    fitted = fit_sensor_calibration({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
-    assert fitted.fx == 300.0 and fitted.cx == 160.0
+    far = SensorCalibration(fx=900.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)  # fx x3: outside the prior
+    fitted, asked = fit_sensor_gains({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
+    a = xyz[..., 0] / (xyz[..., 2] + 0.025)
+    assert fitted.fx == pytest.approx(345.0) and fitted.cx == pytest.approx(160.0 + 555.0 * a.mean())
+    assert asked["fx"] == pytest.approx(900.0)
+    flags = gain_flags(fitted.as_dict(), asked, {"fx": 300.0, "fy": 300.0}, GainPrior())
+    assert flags["fx"]["at_bound"] == "high" and flags["fy"]["at_bound"] is None
     assert fitted.fy == pytest.approx(300.0) and fitted.cy == pytest.approx(120.0)
 
 
