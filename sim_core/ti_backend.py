@@ -19,10 +19,18 @@ Taichi's ``offline_cache`` option) makes the second process start without LLVM w
 frontend (the AST walk that builds each kernel's IR and cache key) still runs, made cheaper by
 :func:`sim_core.ti_frontend.memoize_source_positions` and
 :func:`~sim_core.ti_frontend.memoize_function_sources`, which :func:`init_backend` installs.
+
+Taichi writes the kernels a process compiled into the offline cache only when its program is
+finalised (``ti.reset()``, or the program object's destruction at exit). A process that moved its
+long-lived objects to the collector's permanent generation (``gc.freeze``, as the ROS nodes do) never
+destroys the program, so it would compile every kernel again on each start and leave nothing for
+the next process: :func:`init_backend` therefore registers :func:`write_offline_cache` to run at
+the initialising process's exit.
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import sys
@@ -102,9 +110,31 @@ def init_backend(arch: str = "cpu", offline_cache: bool = True, offline_cache_di
         raise ConfigError(f"init_backend: Taichi arch {arch!r} is not available on this machine ({err})") from err
     _STATE.arch = arch
     _STATE.offline_cache = bool(offline_cache)
+    if offline_cache:
+        atexit.register(write_offline_cache, os.getpid())
     memoize_source_positions()
     memoize_function_sources()
     return arch
+
+
+def write_offline_cache(owner_pid: int | None = None) -> bool:
+    """Finalise the Taichi program, which writes the kernels compiled in this process into the offline
+    cache (module docstring); registered at exit by :func:`init_backend`. After it Taichi is
+    uninitialised in this process.
+
+    Args:
+        owner_pid: the process that initialised Taichi; in any other process (a forked child that runs
+            its parent's exit handlers) nothing is done, since a child's copy of the runtime has no
+            worker threads to finalise with.
+
+    Returns:
+        whether the program was finalised.
+    """
+    if _STATE.arch is None or not _STATE.offline_cache or (owner_pid is not None and os.getpid() != owner_pid):
+        return False
+    ti.reset()
+    _STATE.arch = None
+    return True
 
 
 def current_arch() -> str | None:

@@ -3,7 +3,7 @@
 Usage::
 
     thinshell sysid BAG [--scene S] [--params a,b,c] [--out DIR] [--force] [--global] [--max-time T]
-                        [--dt DT] [--t-max SECONDS] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
+                        [--dt DT] [--t-max SECONDS] [--recording-map FILE] [--t-start S] [--t-end S] [--jacobian auto|fd|sensitivity] [--write-scene S] [...]
 
 Parses the options into :class:`sysid.fit_recording.FitOptions` and runs
 :func:`sysid.fit_recording.fit_recording`: the bag is read into an evidence bundle, its effector
@@ -62,6 +62,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "so far, which converges to the same tolerance in fewer iterations)")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
     p.add_argument("--t-max", type=float, help="fit only the first T seconds of the recording")
+    p.add_argument("--recording-map", metavar="FILE",
+                   help="recording map of a real cell's bag: where each role comes from (TF, topics, frames, F/T "
+                        "tare; docs/recording_map.md); default: recording.yaml in the bag directory, else the "
+                        "INTERFACES.md topics")
+    p.add_argument("--t-start", type=float, help="read the recording from T_START s after its first stamp")
+    p.add_argument("--t-end", type=float, help="read the recording up to T_END s after its first stamp")
     p.add_argument("--jacobian", choices=JACOBIAN_KINDS, default="auto", help="Jacobian provider")
     p.add_argument("--fd-step", type=float, default=0.01, help="finite-difference step (log units)")
     p.add_argument("--channels", help="comma-separated channels to fit (markers_xyz, markers_uv, wrench, sheet_points)")
@@ -154,6 +160,8 @@ def sysid_main(argv: Sequence[str] | None = None) -> int:
         return _error(f"scene file {args.write_scene} exists (use --force to replace it)")
     if args.t_max is not None and not args.t_max > 0:
         return _error(f"--t-max must be > 0 s, got {args.t_max}")
+    if args.recording_map is not None and not Path(args.recording_map).is_file():
+        return _error(f"recording map not found: {args.recording_map}")
     if args.max_time is not None and not args.max_time > 0:
         return _error(f"--max-time must be > 0 s, got {args.max_time}")
     try:
@@ -181,6 +189,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
         raise ValueError(args.gel_resolution)
     channels = _split(args.channels)
     return FitOptions(params=tuple(_split(args.params) or ()), scene=args.scene, dt=args.dt, t_max=args.t_max,
+                      recording_map=args.recording_map, t_start=args.t_start, t_end=args.t_end,
                       channels=None if channels is None else tuple(channels), gel_resolution=resolution,
                       arch=args.arch, jacobian=args.jacobian, fd_step=args.fd_step,
                       global_method=args.global_method if args.global_search else None,

@@ -94,7 +94,8 @@ class Comparison:
 def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | None]], *, dt: float = 0.01,
                       t_max: float | None = None, arch: str = "cpu",
                       simulation: dict | None = None, task: str | None = None,
-                      horizon: int | None = None) -> Comparison:
+                      horizon: int | None = None, recording_map: str | Path | None = None,
+                      t_start: float | None = None, t_end: float | None = None) -> Comparison:
     """Replay ``bag``'s motion in every scene and compare the predictions with the recording.
 
     Args:
@@ -104,13 +105,16 @@ def compare_recording(bag: str | Path, scenes: Sequence[tuple[str, str | Path | 
         simulation: overrides of every scene's ``simulation:`` block (e.g. a coarser ``gel_resolution``).
         task: a task name or file: also the task's reward achieved and predicted (:func:`task_rewards`).
         horizon: the task at this many steps (``thinshell optimise --horizon``; None: the task's).
+        recording_map: recording map of a real cell's bag (docs/recording_map.md); None: the bag's
+            ``recording.yaml``, else the INTERFACES.md topics.
+        t_start, t_end: read only the samples from ``t_start`` to ``t_end`` s after the first stamp.
 
     Raises:
         BagReadError: unreadable bag. ConfigError: invalid scene, or a task whose reward cannot be
             measured on the recording. CalibrationError: nothing to compare.
         SimulationDivergedError: a replay failed (names the step).
     """
-    evidence = load_evidence(bag, include_image="auto")
+    evidence = load_evidence(bag, include_image="auto", recording_map=recording_map, t_start=t_start, t_end=t_end)
     out = Comparison(Path(bag), [], {}, {}, {}, {}, {})
     for label, scene in scenes:
         model = ObservationModel(evidence, scene=scene, dt=dt, t_max=t_max, simulation=simulation, arch=arch)
@@ -303,6 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing output directory")
     p.add_argument("--dt", type=float, default=0.01, help="replay step in s (default: %(default)s)")
     p.add_argument("--t-max", type=float, help="compare only the first T seconds")
+    p.add_argument("--recording-map", metavar="FILE",
+                   help="recording map of a real cell's bag (docs/recording_map.md); default: recording.yaml in the "
+                        "bag directory, else the INTERFACES.md topics")
+    p.add_argument("--t-start", type=float, help="read the recording from T_START s after its first stamp")
+    p.add_argument("--t-end", type=float, help="read the recording up to T_END s after its first stamp")
     p.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu", help="elastic terms of the replays")
     p.add_argument("--gel-resolution", help="override the gel tet resolution NX,NY,NZ of every scene")
     p.add_argument("--task", help="task name or file: also its reward achieved on the recording and predicted by every "
@@ -319,7 +328,7 @@ def compare_main(argv: Sequence[str] | None = None) -> int:
     if (out.exists() or out.is_symlink()) and not args.force:
         print(f"{PROG}: error: output directory {out} exists (use --force to replace it)", file=sys.stderr)
         return 2
-    for path in (args.bag, args.scene, args.scene_nominal):
+    for path in (args.bag, args.scene, args.scene_nominal, args.recording_map):
         if path is not None and not Path(path).exists():
             print(f"{PROG}: error: not found: {path}", file=sys.stderr)
             return 2
@@ -337,7 +346,8 @@ def compare_main(argv: Sequence[str] | None = None) -> int:
                 raise ThinShellError("--label must differ from 'nominal'")
             cmp = compare_recording(args.bag, [(args.label, args.scene), ("nominal", args.scene_nominal)], dt=args.dt,
                                     t_max=args.t_max, arch=args.arch, simulation=simulation, task=args.task,
-                                    horizon=args.horizon)
+                                    horizon=args.horizon, recording_map=args.recording_map,
+                                    t_start=args.t_start, t_end=args.t_end)
         for w in caught:
             print(f"{PROG}: warning: {w.message}", file=sys.stderr)
         doc = comparison_document(cmp, argv, args.dt, args.t_max)

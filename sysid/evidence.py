@@ -36,6 +36,7 @@ from sim_core.scenes.scene_file import SceneFile
 from sysid.bagio import BagWarning
 from sim_core.scenes.task_file import TaskSceneFile
 from sysid.bagio.reader import BagConfig, BagContents, load_bag_config, open_bag, read_effector_streams
+from sysid.bagio.recording_map import RecordingMap
 from sysid.noise import estimate_noise, noise_config
 
 CHANNELS = ("pose", "pose_cmd", "markers_xyz", "markers_uv", "wrench", "sheet_points", "image")
@@ -54,6 +55,8 @@ class EvidenceSource:
         sha256: hex SHA-256 of the MCAP file.
         scene_path: scene file used, or None.
         topics: channel -> topic it came from.
+        recording_map: the recording map the bag was read through (its topics are then the map's,
+            not INTERFACES.md's), or None.
     """
 
     bag_path: Path
@@ -61,6 +64,7 @@ class EvidenceSource:
     sha256: str
     scene_path: Path | None
     topics: dict[str, str]
+    recording_map: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -162,9 +166,25 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _with_camera(scene: SceneFile, camera: Mapping[str, float]) -> SceneFile:
+    """The scene with its only sensor's intrinsics (fx fy cx cy width height) from a recorded camera_info.
+
+    Raises:
+        BagReadError: the scene has not exactly one sensor (which camera the info belongs to is unknown).
+    """
+    if len(scene.sensors) != 1:
+        raise BagReadError(f"{scene.source}: a recorded camera_info needs a scene with one tactile sensor, it has "
+                           f"{len(scene.sensors)}")
+    name, sensor = next(iter(scene.sensors.items()))
+    cam = dataclasses.replace(sensor.camera, **{k: type(getattr(sensor.camera, k))(v) for k, v in camera.items()})
+    return dataclasses.replace(scene, sensors={name: dataclasses.replace(sensor, camera=cam)})
+
+
 def _check_against_scene(bag: BagContents, scene: SceneFile) -> None:
     """Point counts must match the scene (marker grid, sheet resolution)."""
     sensors = [s for s in scene.sensors.values() if bag.roles["markers"].rstrip("/").endswith(f"{s.name}/markers")]
+    if bag.recording_map is not None and len(scene.sensors) == 1:  # a map names topics freely: the only sensor
+        sensors = list(scene.sensors.values())
     markers = bag.series.get("markers")
     if markers is not None and sensors:
         k = markers.values.shape[1]
@@ -182,7 +202,9 @@ def _check_against_scene(bag: BagContents, scene: SceneFile) -> None:
 
 def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | None = None,
                   roles: Mapping[str, str] | None = None, config: BagConfig | str | Path | None = None,
-                  include_image: bool | Literal["auto"] = True) -> Evidence:
+                  include_image: bool | Literal["auto"] = True,
+                  recording_map: str | Path | RecordingMap | None = None,
+                  t_start: float | None = None, t_end: float | None = None) -> Evidence:
     """Read a recording into an :class:`Evidence` bundle and estimate each channel's noise.
 
     Args:
@@ -194,6 +216,11 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
             recording has no markers topic (``"auto"``: the image stream is then the marker source).
             When the image is decoded and there is no markers topic, ``markers_uv`` is read off the
             frames (:func:`markers_from_images`).
+        recording_map: where each role of a real cell's recording comes from (docs/recording_map.md);
+            None = ``recording.yaml`` in the bag directory when there is one, else today's contract.
+            A ``camera_info`` topic in the map replaces the scene's camera intrinsics.
+        t_start, t_end: keep only the samples from ``t_start`` to ``t_end`` s after the recording's
+            first stamp (None = open); the noise is estimated inside that window.
 
     Returns:
         the bundle; arrays are read-only.
@@ -205,16 +232,20 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
     """
     config_path = config if isinstance(config, (str, Path)) else None
     auto = include_image == "auto"
+    window = None if t_start is None and t_end is None else (t_start, t_end)
     bag = open_bag(bag_path, roles=roles, config=config, skip_roles=() if include_image is True else ("image",),
-                   scene=scene_path)
+                   scene=scene_path, recording_map=recording_map, window_s=window)
     if auto and "markers" not in bag.series and bag.roles["image"] in bag.topics:
         # no markers topic: the camera frames are the marker source (a real sensor's image stream);
         # the first reading already warned about everything this one would
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            bag = open_bag(bag_path, roles=roles, config=config, scene=scene_path)
+            bag = open_bag(bag_path, roles=roles, config=config, scene=scene_path, recording_map=recording_map,
+                           window_s=window)
     order = int(noise_config(config_path)["difference_order"])
     scene = bag.scene
+    if scene is not None and bag.camera is not None:
+        scene = _with_camera(scene, bag.camera)
     if scene is not None:
         _check_against_scene(bag, scene)
     outputs = ("pose", "markers", "wrench", "sheet_points")
@@ -267,7 +298,7 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         namespace = config.namespace if isinstance(config, BagConfig) else load_bag_config(config).namespace
         effectors = read_effector_streams(bag.path, scene.effector_names, namespace)
     return Evidence(
-        source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics),
+        source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics, bag.recording_map),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
         channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors, **arrays,
     )

@@ -41,6 +41,10 @@ class FitOptions:
         scene: scene file overriding the bag's ``scene.yaml``, or None.
         dt: replay step in s.
         t_max: fit only the first ``t_max`` s of the recording (None: all).
+        recording_map: recording map file saying where each role of a real cell's bag comes from
+            (docs/recording_map.md); None: ``recording.yaml`` in the bag directory, else INTERFACES.md.
+        t_start, t_end: read only the samples from ``t_start`` to ``t_end`` s after the recording's
+            first stamp (None: open); ``t_max`` counts from that window's start.
         channels: channels to fit (None: all the recording has).
         gel_resolution: gel tet resolution ``(NX, NY, NZ)`` overriding the scene's, or None.
         arch: elastic terms of the replays: ``cpu`` / ``cuda`` (Taichi) or ``numpy``.
@@ -76,6 +80,9 @@ class FitOptions:
     scene: str | None = None
     dt: float = 0.01
     t_max: float | None = None
+    recording_map: str | None = None
+    t_start: float | None = None
+    t_end: float | None = None
     channels: tuple[str, ...] | None = None
     gel_resolution: tuple[int, int, int] | None = None
     arch: str = "cpu"
@@ -187,7 +194,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     simulation = None if options.gel_resolution is None else {"gel_resolution": [int(n) for n in options.gel_resolution]}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        evidence = load_evidence(bag, scene_path=options.scene, include_image="auto")
+        evidence = load_evidence(bag, scene_path=options.scene, include_image="auto",
+                                 recording_map=options.recording_map, t_start=options.t_start, t_end=options.t_end)
         model = ObservationModel(evidence, scene=options.scene, dt=options.dt, t_max=options.t_max,
                                  channels=None if options.channels is None else list(options.channels),
                                  simulation=simulation, arch=options.arch)

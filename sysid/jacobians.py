@@ -9,15 +9,12 @@ from __future__ import annotations
 import importlib
 import time
 import warnings as _warnings
-from typing import TYPE_CHECKING, Any, Mapping, Protocol
+from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
-from sysid.observation import SENSOR_PARAMETERS
-
-if TYPE_CHECKING:
-    from sysid.fit import FitProblem
+from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
@@ -36,18 +33,45 @@ a central one), so a 1 % step measures that roughness rather than the slope."""
 
 
 # ====================================================================================== Jacobians
+class ReplayProblem(Protocol):
+    """What a Jacobian provider needs of a fit problem (:class:`sysid.fit.FitProblem` is one): the
+    whitened residual ``r(u)``, shape ``(m,)``, of search coordinates ``u``, shape ``(p,)``, and its
+    replay bookkeeping."""
+
+    model: ObservationModel
+    specs: Sequence[Any]
+    names: Sequence[str]
+    bounds: tuple[np.ndarray, np.ndarray]
+    sim_runs: int
+    sim_time_s: float
+    warm_start: bool
+    last_positions: np.ndarray | None
+
+    def values(self, u: np.ndarray) -> dict[str, float]: ...
+
+    def residual(self, u: np.ndarray, phase: str = "local") -> np.ndarray | None: ...
+
+    def evaluate_many(self, points: Sequence[np.ndarray], phase: str) -> list[np.ndarray | None]: ...
+
+    def reserve(self, count: int, phase: str) -> None: ...
+
+    def keep_jacobian(self, u: np.ndarray, J: np.ndarray) -> None: ...
+
+    def cached_jacobian(self, u: np.ndarray) -> np.ndarray | None: ...
+
+
 class JacobianProvider(Protocol):
     """Computes ``J = d r / d u``, shape ``(m, p)``, of the whitened residual at coordinates ``u``."""
 
     name: str
 
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray: ...
+    def __call__(self, problem: ReplayProblem, u: np.ndarray) -> np.ndarray: ...
 
 
 class FiniteDifferenceJacobian:
     """Central differences ``(r(u + h e_i) - r(u - h e_i)) / 2h`` in the search coordinates.
 
-    2p replays per Jacobian, batched through :meth:`FitProblem.evaluate_many`; one-sided at a bound
+    2p replays per Jacobian, batched through :meth:`ReplayProblem.evaluate_many`; one-sided at a bound
     or where one side diverged.
 
     Args:
@@ -64,7 +88,7 @@ class FiniteDifferenceJacobian:
             raise ConfigError(f"finite-difference step must be > 0, got {step!r}")
         self.step = float(step)
 
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
+    def __call__(self, problem: ReplayProblem, u: np.ndarray) -> np.ndarray:
         u = np.asarray(u, dtype=float)
         lb, ub = problem.bounds
         points, steps = [], []
@@ -117,7 +141,7 @@ class SensitivityJacobian:
         self.module = load_sensitivity()
         self.fallback = FiniteDifferenceJacobian(fd_step)
 
-    def __call__(self, problem: FitProblem, u: np.ndarray) -> np.ndarray:
+    def __call__(self, problem: ReplayProblem, u: np.ndarray) -> np.ndarray:
         u = np.asarray(u, dtype=float)
         names, other = self._split(problem)
         J = problem.cached_jacobian(u)
@@ -148,14 +172,14 @@ class SensitivityJacobian:
         J = self._whitened(problem, values, sim, traj, dX, dF)
         return self._with_difference_columns(problem, u, J, other, None)
 
-    def _split(self, problem: FitProblem) -> tuple[list[str], list[int]]:
+    def _split(self, problem: ReplayProblem) -> tuple[list[str], list[int]]:
         """Names with simulator sensitivities, and the indices of the parameters without them,
         whose columns are forward differences (:data:`DIFFERENCE_PARAMETERS`)."""
         names = [n for n in problem.names if n not in DIFFERENCE_PARAMETERS]
         other = [i for i, n in enumerate(problem.names) if n in DIFFERENCE_PARAMETERS]
         return names, other
 
-    def _with_difference_columns(self, problem: FitProblem, u: np.ndarray, J: np.ndarray, other: list[int],
+    def _with_difference_columns(self, problem: ReplayProblem, u: np.ndarray, J: np.ndarray, other: list[int],
                                  r0: np.ndarray | None) -> np.ndarray:
         """``J`` ``(m, p - len(other))`` completed with forward-difference columns at ``other``."""
         if not other:
@@ -187,7 +211,7 @@ class SensitivityJacobian:
             full[:, i] = (r - r0) / h
         return full
 
-    def joint(self, problem: FitProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    def joint(self, problem: ReplayProblem, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Residual, Jacobian and prediction at ``u`` from one replay (``FitProblem(joint=...)``).
 
         The tangents are solved step by step with the Newton factorisation of each step
@@ -211,7 +235,7 @@ class SensitivityJacobian:
         t = time.perf_counter()
         traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names,
                                                          contact_force=True)
-        if getattr(problem, "warm_start", False):  # the start of the next replays (FitProblem)
+        if problem.warm_start:  # the start of the next replays
             problem.last_positions = np.stack([s.x for s in traj.states])
         prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
         r = model.residuals(prediction)
@@ -219,7 +243,7 @@ class SensitivityJacobian:
         J[:, [i for i in range(len(problem.names)) if i not in other]] = self._whitened(problem, values, sim, traj, dX, dF)
         return r, J, prediction
 
-    def _whitened(self, problem: FitProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
+    def _whitened(self, problem: ReplayProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
                   dF: np.ndarray) -> np.ndarray:
         """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
         model = problem.model

@@ -225,7 +225,8 @@ class ObservationModel:
                      topic.rstrip("/").endswith(f"{n}/wrench")), next(iter(sensors)))
         effector = sensors[name]["effector"]
         pose_topic = self.evidence.source.topics.get("pose", "")
-        if pose_topic and not pose_topic.rstrip("/").endswith(f"{effector}/pose"):
+        mapped = self.evidence.source.recording_map is not None  # a map names the effector's frame, not its topic
+        if pose_topic and not mapped and not pose_topic.rstrip("/").endswith(f"{effector}/pose"):
             warnings.warn(f"pose topic {pose_topic} does not name effector {effector!r} of sensor {name!r}; "
                           "replaying it on that effector", ObservationWarning, stacklevel=3)
         return name, effector

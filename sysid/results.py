@@ -97,11 +97,13 @@ def package_versions(packages: Sequence[str] = VERSIONED_PACKAGES) -> dict[str, 
 
 def provenance(evidence: Any, seed: int, t_max: float | None, argv: Sequence[str] | None = None,
                scene: str | None = None) -> dict[str, Any]:
-    """Provenance block: bag path and SHA-256 (from the evidence), scene, seed, git, versions, command."""
+    """Provenance block: bag path and SHA-256 (from the evidence), the recording map it was read through (or
+    None), scene, seed, git, versions, command."""
     rev, dirty = git_revision()
     src = evidence.source
     return {
         "bag": str(src.bag_path), "bag_sha256": src.sha256,
+        "recording_map": str(src.recording_map) if src.recording_map is not None else None,
         "scene": scene if scene is not None else (str(src.scene_path) if src.scene_path else None),
         "t_max": t_max, "seed": int(seed), "git_revision": rev, "git_dirty": dirty, "versions": package_versions(),
         "command": list(argv) if argv is not None else list(sys.argv),

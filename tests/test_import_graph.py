@@ -3,8 +3,9 @@ the layers of STYLE.md (sim_core <- sysid <- thinshell_ros): sim_core imports ne
 libraries nor the packages above it, sysid does not import thinshell_ros, only ``sysid.bagio`` opens
 bags (rosbags / mcap), at any level of a module (function-level imports included).
 
-Function-level imports close no cycle either (imports under ``if TYPE_CHECKING:``, never executed,
-are not counted). ``tests/test_import_linter.py`` checks the same rules with import-linter
+Function-level imports close no cycle either, and neither do imports under ``if TYPE_CHECKING:``
+(never executed, but a circle all the same for a reader: the annotation names a module that imports
+this one; a ``Protocol`` of what is needed breaks it). ``tests/test_import_linter.py`` checks the same rules with import-linter
 (``.importlinter``), which also forbids cycles between sibling packages.
 
 A module-level import is one executed when the module is imported: in the module body, also inside
@@ -51,9 +52,12 @@ def _is_type_checking(test: ast.expr) -> bool:
         isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def _import_nodes(tree: ast.Module, module_level: bool) -> list[ast.Import | ast.ImportFrom]:
-    """The import statements of a module: all of them but those under ``if TYPE_CHECKING:`` (never
-    executed), or only those run at import time."""
+def _import_nodes(tree: ast.Module, module_level: bool,
+                  type_checking: bool = False) -> list[ast.Import | ast.ImportFrom]:
+    """The import statements of a module: every one (``type_checking``), all of them but those under
+    ``if TYPE_CHECKING:`` (never executed), or only those run at import time (``module_level``)."""
+    if type_checking:
+        return [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
     if not module_level:
         typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If) and _is_type_checking(block.test)
                        for stmt in block.body for n in ast.walk(stmt)}
@@ -95,13 +99,14 @@ def _imported_names(module: str, path: Path, node: ast.Import | ast.ImportFrom, 
     return [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
 
 
-def import_graph(module_level: bool = True) -> dict[str, set[str]]:
-    """Module -> the names it imports (modules of the tree, or external names as written)."""
+def import_graph(module_level: bool = True, type_checking: bool = False) -> dict[str, set[str]]:
+    """Module -> the names it imports (modules of the tree, or external names as written); the
+    imports counted as in :func:`_import_nodes`."""
     modules = _modules()
     graph: dict[str, set[str]] = {}
     for module, path in modules.items():
         tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-        graph[module] = {name for node in _import_nodes(tree, module_level)
+        graph[module] = {name for node in _import_nodes(tree, module_level, type_checking)
                          for name in _imported_names(module, path, node, modules)}
     return graph
 
@@ -177,6 +182,20 @@ def test_no_cycle_through_function_level_imports():
     there is no cycle either."""
     cycles = import_cycles(import_graph(module_level=False))
     assert not cycles, "import cycles (all imports):\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_no_cycle_through_annotation_imports():
+    """Counting every import statement, those under ``if TYPE_CHECKING:`` included, there is no cycle."""
+    cycles = import_cycles(import_graph(type_checking=True))
+    assert not cycles, "import cycles (every import statement):\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_annotation_imports_are_counted(tmp_path):
+    """An import under ``if TYPE_CHECKING:`` is an edge of the full graph, not of the executed one."""
+    tree = ast.parse("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import sysid.fit\n")
+    assert [n.names[0].name for n in _import_nodes(tree, False, type_checking=True) if isinstance(n, ast.Import)] \
+        == ["sysid.fit"]
+    assert not [n for n in _import_nodes(tree, False) if isinstance(n, ast.Import)]
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))

@@ -90,15 +90,16 @@ def _descriptor(description: str, low: float | None = None, high: float | None =
     return desc
 
 
-def load_deploy_source(path: str | Path) -> Trajectory:
-    """A trajectory file, or a bag's ``pose_cmd`` stream when ``path`` is a bag directory / ``.mcap``.
+def load_deploy_source(path: str | Path, recording_map: str | Path | None = None) -> Trajectory:
+    """A trajectory file, or a bag's ``pose_cmd`` stream when ``path`` is a bag directory / ``.mcap``
+    (a real cell's bag read through ``recording_map``, docs/recording_map.md).
 
     Raises:
         ConfigError: missing or invalid file (named). BagReadError: unreadable bag.
     """
     path = Path(path)
     if path.is_dir() or path.suffix == ".mcap":
-        return trajectory_from_bag(path)
+        return trajectory_from_bag(path, recording_map)
     return read_trajectory(path)
 
 
@@ -121,6 +122,9 @@ class DeployNode(Node):
         super().__init__(node_name, namespace=namespace, **kwargs)
         source = str(self.declare_parameter("trajectory", "", _descriptor(
             "trajectory.yaml, or a bag (directory or .mcap) whose pose_cmd stream is replayed")).value)
+        recording_map = str(self.declare_parameter("recording_map", "", _descriptor(
+            "recording map of a real cell's bag given as trajectory (docs/recording_map.md); empty: the bag's "
+            "recording.yaml, else the INTERFACES.md topics")).value).strip()
         p = {name: float(self.declare_parameter(name, default, _descriptor(desc, low, high)).value)
              for name, (default, desc, low, high) in FLOAT_PARAMETERS.items()}
         ws_min = list(self.declare_parameter("workspace_min", [-0.5, -0.5, -0.1], _descriptor(
@@ -152,7 +156,7 @@ class DeployNode(Node):
         if trajectory is None:
             if not source:
                 raise ConfigError("parameter 'trajectory' (a trajectory.yaml or a bag) is required")
-            trajectory = load_deploy_source(source)
+            trajectory = load_deploy_source(source, recording_map or None)
         self.source = source or "<given>"
         self.trajectory = trajectory
         self.state = "waiting"
@@ -358,6 +362,8 @@ def deploy_main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--dry-run", action="store_true", help="check and report, publish nothing")
     parser.add_argument("--approach", action="store_true", help="plan a slow approach to the start pose")
     parser.add_argument("--time-scale", type=float, default=None, help="factor on the trajectory's times")
+    parser.add_argument("--recording-map", metavar="FILE",
+                        help="recording map of a real cell's bag given as trajectory (docs/recording_map.md)")
     args = parser.parse_args(own)
     params = ["-p", f"trajectory:={args.trajectory}"]
     if args.dry_run:
@@ -366,6 +372,8 @@ def deploy_main(argv: Sequence[str] | None = None) -> int:
         params += ["-p", "approach:=true"]
     if args.time_scale is not None:
         params += ["-p", f"time_scale:={args.time_scale}"]
+    if args.recording_map is not None:
+        params += ["-p", f"recording_map:={args.recording_map}"]
     ros = ros_args + params if ros_args else ["--ros-args", *params]
     return main(["thinshell-deploy-node", *ros])
 

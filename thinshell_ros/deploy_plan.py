@@ -282,21 +282,31 @@ class SafetyMonitor:
         return None
 
 
-def trajectory_from_bag(path: str | Path) -> Trajectory:
+def trajectory_from_bag(path: str | Path, recording_map: str | Path | None = None) -> Trajectory:
     """The ``pose_cmd`` stream of a recording as a trajectory (times from its first command).
 
     Args:
         path: rosbag2 directory or ``.mcap`` file (read by :func:`sysid.bagio.open_bag`; the effector
             named by its ``scene.yaml``).
+        recording_map: recording map of a real cell's bag (its command topic and link, carried to the
+            effector frame in ``world``; docs/recording_map.md); None: the bag's ``recording.yaml``, else
+            the INTERFACES.md topics.
 
     Raises:
         BagReadError: unreadable bag. ConfigError: no ``pose_cmd`` messages, or bad poses (named).
     """
-    bag = open_bag(path, skip_roles=("image", "markers", "sheet_points", "wrench", "clock", "pose"))
+    bag = open_bag(path, skip_roles=("image", "markers", "sheet_points", "wrench", "clock", "pose"),
+                   recording_map=recording_map)
     series = bag.series.get("pose_cmd")
     if series is None or len(series) == 0:
         raise ConfigError(f"{path}: no pose_cmd messages to replay (topic {bag.roles['pose_cmd']})")
     effector = bag.roles["pose_cmd"].rstrip("/").split("/")[-2]
+    if bag.recording_map is not None:  # a map's command topic is the controller's; the scene names the effector
+        sensors = list(bag.scene.sensors.values()) if bag.scene is not None else []
+        if len(sensors) != 1:
+            raise ConfigError(f"{path}: a recording map's pose_cmd needs a scene.yaml with one tactile sensor (whose "
+                              "effector it commands)")
+        effector = sensors[0].effector
     t = (series.t_ns - series.t_ns[0]) * 1e-9
     traj = Trajectory(t=t, poses={effector: np.array(series.values, dtype=float)},
                       scene_path=str(bag.scene_path) if bag.scene_path else None,

@@ -15,6 +15,8 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
   (:class:`sysid.fit_recording.FitOptions`; the fit runs :func:`sysid.fit_recording.fit_recording`).
 - ``write_scene`` (str): also write the fitted scene there (``thinshell sysid --write-scene``;
   replaced only with ``force``); empty: none. The result's ``scene`` names it.
+- ``recording_map`` (str): recording map of a real cell's bag (``thinshell sysid --recording-map``;
+  docs/recording_map.md); empty: the bag's ``recording.yaml``, else the INTERFACES.md topics.
 - ``apply_to`` (str): fully qualified name of a running simulator node (``/thinshell_sim`` for
   ``thinshell-sim-node`` started without a ROS namespace); empty: do not apply.
 - ``apply_timeout`` (s): how long to wait for ``<apply_to>/set_parameters``.
@@ -162,7 +164,8 @@ class SysidNode(Node):
                               ("dt", 0.0), ("max_nfev", FitOptions.max_nfev), ("max_time", 0.0),
                               ("global_search", False), ("gel_resolution", ""), ("workers", 1),
                               ("arch", FitOptions.arch), ("sensor_calibration", FitOptions.sensor_calibration),
-                              ("apply_to", ""), ("apply_timeout", 10.0), ("write_scene", "")):
+                              ("apply_to", ""), ("apply_timeout", 10.0), ("write_scene", ""),
+                              ("recording_map", "")):
             self.declare_parameter(name, default)
         self.namespace, prefix = topic_namespace(self, str(self.declare_parameter("namespace", "/thinshell").value))
         self._pub = self.create_publisher(String, f"{prefix}sysid/result", RESULT_QOS)
@@ -203,13 +206,17 @@ class SysidNode(Node):
         except ValueError as err:
             raise ConfigError(f"parameter 'gel_resolution' must be NX,NY,NZ (integers), got {resolution!r}") from err
         params = parse_params(str(self._param("params")))
+        recording_map = str(self._param("recording_map")).strip()
+        if recording_map and not Path(recording_map).is_file():
+            raise ConfigError(f"parameter 'recording_map': {recording_map} does not exist")
         defaults = FitOptions()
         options = FitOptions(params=params or defaults.params, dt=dt or defaults.dt, t_max=t_max or None,
                              max_nfev=int(self._param("max_nfev")), max_time=max_time or None,
                              global_method="cma" if self._param("global_search") else None,
                              gel_resolution=gel_resolution, workers=int(self._param("workers")),
                              arch=str(self._param("arch")),
-                             sensor_calibration=bool(self._param("sensor_calibration")))
+                             sensor_calibration=bool(self._param("sensor_calibration")),
+                             recording_map=recording_map or None)
         out = str(self._param("out")).strip()
         scene = str(self._param("write_scene")).strip()
         return FitRequest(Path(bag), Path(out) if out else None, bool(self._param("force")), options,

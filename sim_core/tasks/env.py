@@ -27,13 +27,10 @@ from gymnasium import spaces
 import numpy as np
 
 from sim_core.errors import ConfigError
-from sim_core.tasks.registry import TASK_NAMES, load_task
+from sim_core.tasks.registry import load_task
 from sim_core.tasks.rollout import TaskEpisode
 from sim_core.tasks.spec import TaskSpec
 from sim_core.transforms import inverse_transform_points
-
-ENV_NAMESPACE = "thinshell"
-
 
 def _strided(n: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(n, count)).round().astype(np.int64))
@@ -145,23 +142,3 @@ class ThinShellTaskEnv(gym.Env):
         ax.set_ylabel("y (m)")
         canvas.draw()
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
-
-
-def env_id(task_name: str) -> str:
-    """Gymnasium id of a task: ``thinshell/<Name>-v0`` (``"folding_l"`` -> ``thinshell/Folding-L-v0``)."""
-    names = {"folding_l": "Folding-L", "folding_u": "Folding-U", "pick_folding": "Pick-Folding"}
-    return f"{ENV_NAMESPACE}/{names.get(task_name, task_name.capitalize())}-v0"
-
-
-def register_envs() -> list[str]:
-    """Register the ten task environments with Gymnasium (idempotent); returns their ids."""
-    ids = []
-    for name in TASK_NAMES:
-        eid = env_id(name)
-        if eid not in gym.registry:
-            gym.register(id=eid, entry_point="sim_core.tasks.env:ThinShellTaskEnv", kwargs={"task": name})
-        ids.append(eid)
-    return ids
-
-
-register_envs()

@@ -4,6 +4,9 @@
   Float64, String, PointCloud2, Image mono8, Clock), CDR via the ``rosbags`` Jazzy type store.
 - :mod:`sysid.bagio.writer`: :class:`BagWriter`, atomic rosbag2 MCAP directories plus ``scene.yaml``.
 - :mod:`sysid.bagio.reader`: :func:`open_bag` -> :class:`BagContents` of per-role :class:`Series`.
+- :mod:`sysid.bagio.recording_map`: :class:`RecordingMap`, where each role of a real cell's bag comes from
+  (``recording.yaml``; docs/recording_map.md), read by :mod:`sysid.bagio.cell` with the TF buffer of
+  :mod:`sysid.bagio.tf_buffer` and the frames of :mod:`sysid.bagio.images`.
 - :mod:`sysid.bagio.errors`: :class:`BagExistsError`, :class:`BagWriteError`, :class:`BagWarning`
   (reading errors are :class:`sim_core.errors.BagReadError`).
 """
@@ -21,9 +24,11 @@ from sysid.bagio.reader import (
     open_bag,
     resolve_roles,
 )
+from sysid.bagio.recording_map import RecordingMap, load_recording_map
 from sysid.bagio.writer import BagWriter
 
 __all__ = [
     "ROLES", "BagConfig", "BagContents", "BagExistsError", "BagReadError", "BagWarning", "BagWriteError",
-    "BagWriter", "Series", "TopicInfo", "load_bag_config", "open_bag", "resolve_roles",
+    "BagWriter", "RecordingMap", "Series", "TopicInfo", "load_bag_config", "load_recording_map", "open_bag",
+    "resolve_roles",
 ]

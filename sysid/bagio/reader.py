@@ -24,23 +24,36 @@ Checks (errors are :class:`BagReadError`, one line naming the file or topic; rep
 
 Stamps are header stamps (the time the quantity was true), log time for messages without header;
 ``/clock`` is stamped with the clock value it carries.
+
+Images may be ``sensor_msgs/Image`` of any encoding of :data:`sysid.bagio.images.ENCODINGS` or
+``sensor_msgs/CompressedImage``; they are read as grey frames. A measured pose whose header frame_id
+is not ``world`` is an error naming the topic and both frames; so are commands all in another frame,
+while a few commands in another frame among ``world`` ones (refused by the robot, kept by the
+recorder) are dropped with a warning.
+
+A real cell's recording is read through a **recording map** (:mod:`sysid.bagio.recording_map`):
+``recording_map=`` or a ``recording.yaml`` in the bag directory; the roles then come from the
+map's topics and TF (:mod:`sysid.bagio.cell`) instead of the topic names above. A bag split into
+several ``.mcap`` files (``ros2 bag record --max-bag-size``) is read through its ``metadata.yaml``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from sim_core.errors import BagReadError, ConfigError
 from sim_core.scenes.scene_file import SceneFile, load_yaml
 from sim_core.scenes.task_file import TaskSceneFile, load_any_scene_file
-from sysid.bagio import codec
+from sysid.bagio import cell, codec, images
 from sysid.bagio.errors import BagWarning
+from sysid.bagio.recording_map import RecordingMap, find_recording_map, load_recording_map
 from sysid.data import DEFAULT_CONFIG, data_file
 
 ROLES = ("pose", "pose_cmd", "markers", "wrench", "sheet_points", "image", "clock")
@@ -49,6 +62,10 @@ ROLE_MSGTYPES = {
     "pose": codec.POSE_STAMPED, "pose_cmd": codec.POSE_STAMPED, "markers": codec.POINT_CLOUD2,
     "wrench": codec.WRENCH_STAMPED, "sheet_points": codec.POINT_CLOUD2, "image": codec.IMAGE, "clock": codec.CLOCK,
 }
+ROLE_ACCEPTED = {**{r: (t,) for r, t in ROLE_MSGTYPES.items()}, "image": images.IMAGE_TYPES}
+"""Message types each role takes (an image may also be a ``sensor_msgs/CompressedImage``)."""
+WORLD_FRAME = "world"
+"""Frame of a PoseStamped under today's contract (no recording map)."""
 ROLE_TEMPLATES = {
     "pose": "{effector}/pose", "pose_cmd": "{effector}/pose_cmd", "markers": "{sensor}/markers",
     "wrench": "{sensor}/wrench", "sheet_points": "sheet/points", "image": "{sensor}/image", "clock": "/clock",
@@ -115,8 +132,8 @@ class BagContents:
 
     Attributes:
         path: the path given (bag directory or ``.mcap`` file), absolute.
-        mcap_path: the MCAP file read.
-        sha256: hex SHA-256 of the MCAP file.
+        mcap_path: the MCAP file read (the first one of a split bag).
+        sha256: hex SHA-256 of the MCAP file (of the files' bytes in order, for a split bag).
         topics: every topic in the bag, ``name -> TopicInfo``.
         roles: role -> topic name used for this bag.
         series: role -> :class:`Series` for every role topic present with usable samples.
@@ -125,6 +142,9 @@ class BagContents:
         scene_path: where it was read from, or None.
         start_ns, end_ns: first and last stamp over all role series, ns.
         notes: the warnings emitted while reading, as text.
+        mcap_paths: every MCAP file of the bag, in ``metadata.yaml`` order.
+        recording_map: the recording map file used, or None (today's contract).
+        camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``), or None.
     """
 
     path: Path
@@ -139,6 +159,9 @@ class BagContents:
     start_ns: int
     end_ns: int
     notes: tuple[str, ...] = field(default=())
+    mcap_paths: tuple[Path, ...] = ()
+    recording_map: Path | None = None
+    camera: dict[str, float] | None = None
 
     @property
     def message_count(self) -> int:
@@ -279,20 +302,48 @@ def _metadata_counts(bag_dir: Path) -> dict[str, int] | None:
         raise BagReadError(f"{meta}: unreadable rosbag2 metadata ({err})") from err
 
 
-def _locate(path: Path) -> tuple[Path, Path, Path | None]:
-    """``(mcap_path, directory holding scene.yaml, metadata dir or None)``."""
+def _metadata_files(bag_dir: Path) -> list[str]:
+    meta = bag_dir / "metadata.yaml"
+    try:
+        info = load_yaml(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        return [str(p) for p in (info.get("relative_file_paths") or [])]
+    except (OSError, KeyError, TypeError, ValueError, AttributeError) as err:
+        raise BagReadError(f"{meta}: unreadable rosbag2 metadata ({err})") from err
+
+
+def locate_files(path: Path) -> tuple[list[Path], Path, Path | None]:
+    """``(mcap files in order, directory holding scene.yaml, metadata dir or None)``.
+
+    A directory holds one ``.mcap`` file, or several (a split bag) when ``metadata.yaml`` lists
+    exactly those in ``relative_file_paths``.
+
+    Raises:
+        BagReadError: missing path, no ``metadata.yaml``, files that disagree with it.
+    """
     if not path.exists():
         raise BagReadError(f"{path}: bag path does not exist")
     if path.is_dir():
         if not (path / "metadata.yaml").is_file():
             raise BagReadError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
         mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) > 1:
+            listed = _metadata_files(path)
+            if sorted(listed) != sorted(p.name for p in mcaps):
+                raise BagReadError(f"{path}: {len(mcaps)} .mcap files in the bag directory but metadata.yaml lists "
+                                   f"{listed} (relative_file_paths)")
+            return [path / name for name in listed], path, path
         if len(mcaps) != 1:
             raise BagReadError(f"{path}: expected one .mcap file in the bag directory, found {len(mcaps)}")
-        return mcaps[0], path, path
+        return mcaps, path, path
     if path.suffix != ".mcap":
         raise BagReadError(f"{path}: not a bag directory nor a .mcap file")
-    return path, path.parent, None
+    return [path], path.parent, None
+
+
+def _locate(path: Path) -> tuple[Path, Path, Path | None]:
+    """``(first mcap_path, directory holding scene.yaml, metadata dir or None)``."""
+    files, scene_dir, meta_dir = locate_files(path)
+    return files[0], scene_dir, meta_dir
 
 
 def _read_raw(path: Path, mcap_path: Path, is_dir: bool, wanted: set[str]) -> tuple[dict[str, TopicInfo], dict]:
@@ -308,18 +359,23 @@ def _read_raw(path: Path, mcap_path: Path, is_dir: bool, wanted: set[str]) -> tu
     raise BagReadError(f"{mcap_path}: corrupt or truncated MCAP file ({'; '.join(errors)})")
 
 
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    """Hex SHA-256 of a file."""
+def sha256_file(path: Path | Sequence[Path], chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file (or of several files' bytes, in the given order)."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(chunk), b""):
-            h.update(block)
+    for one in ([path] if isinstance(path, (str, Path)) else path):
+        with open(one, "rb") as fh:
+            for block in iter(lambda: fh.read(chunk), b""):
+                h.update(block)
     return h.hexdigest()
 
 
 # ------------------------------------------------------------------------------------ decoding
-def _decode(role: str, topic: str, items: list[tuple[int, Any]]) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], str]:
-    """Decode messages of one role into ``(t_ns, values, field_names, frame_id)`` (file order)."""
+def _decode(role: str, topic: str, items: list[tuple[int, Any]], msgtype: str = "",
+            check_world: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], str]:
+    """Decode messages of one role into ``(t_ns, values, field_names, frame_id)`` (file order).
+
+    ``msgtype`` tells an Image from a CompressedImage; ``check_world`` makes a pose in another frame
+    than ``world`` an error."""
     stamps: list[int] = []
     rows: list[np.ndarray] = []
     names: tuple[str, ...] = ()
@@ -327,6 +383,10 @@ def _decode(role: str, topic: str, items: list[tuple[int, Any]]) -> tuple[np.nda
     if role in ("pose", "pose_cmd"):
         for _, m in items:
             t, v, frame = codec.parse_pose_stamped(m)
+            if check_world and frame != WORLD_FRAME:
+                raise BagReadError(f"topic {topic}: header frame_id is {frame!r} at stamp {t} ns, expected "
+                                   f"{WORLD_FRAME!r} (INTERFACES.md); a pose in another frame needs a recording map "
+                                   "(docs/recording_map.md)")
             stamps.append(t)
             rows.append(v)
     elif role == "wrench":
@@ -356,7 +416,7 @@ def _decode(role: str, topic: str, items: list[tuple[int, Any]]) -> tuple[np.nda
     elif role == "image":
         for _, m in items:
             try:
-                t, img, frame = codec.parse_image_mono8(m)
+                t, img, frame = images.parse_any_image(msgtype or codec.IMAGE, m)
             except ValueError as err:
                 raise BagReadError(f"topic {topic}: {err}") from err
             stamps.append(t)
@@ -402,22 +462,31 @@ def _clean(role: str, topic: str, t_ns: np.ndarray, values: np.ndarray,
 
 # ------------------------------------------------------------------------------------- facade
 def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: BagConfig | str | Path | None = None,
-             skip_roles: tuple[str, ...] = (), scene: str | Path | SceneFile | None = None) -> BagContents:
+             skip_roles: tuple[str, ...] = (), scene: str | Path | SceneFile | None = None,
+             recording_map: str | Path | RecordingMap | None = None,
+             window_s: tuple[float | None, float | None] | None = None) -> BagContents:
     """Open a recording and read its role topics.
 
     Args:
-        path: rosbag2 directory (``metadata.yaml`` + one ``.mcap``) or a bare ``.mcap`` file.
-        roles: role -> topic overrides for this call (relative names join the namespace).
+        path: rosbag2 directory (``metadata.yaml`` + one ``.mcap``, or the several files of a split
+            bag that ``metadata.yaml`` lists) or a bare ``.mcap`` file.
+        roles: role -> topic overrides for this call (relative names join the namespace); not with a map.
         config: :class:`BagConfig`, a sysid config file, or None for ``sysid/data/default.yaml``.
         skip_roles: roles not to decode (e.g. ``("image",)`` to save time).
         scene: scene file (or parsed scene) to use instead of the ``scene.yaml`` beside the bag.
+        recording_map: recording map (file or parsed) saying where each role comes from
+            (:mod:`sysid.bagio.recording_map`); None = ``recording.yaml`` in the bag directory when
+            there is one, else today's contract (INTERFACES.md).
+        window_s: ``(t_start, t_end)`` s after the recording's first role stamp (either None = open):
+            only the samples inside are kept.
 
     Returns:
         :class:`BagContents`.
 
     Raises:
         BagReadError: see the module docstring (each message names the file or the topic).
-        ConfigError: invalid ``scene.yaml`` beside the bag, or invalid role overrides.
+        ConfigError: invalid ``scene.yaml`` beside the bag, invalid role overrides, an invalid recording
+            map, or an empty / inverted window.
     """
     path = Path(path).absolute()
     notes: list[str] = []
@@ -426,7 +495,8 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
         notes.append(message)
         warnings.warn(message, BagWarning, stacklevel=3)
 
-    mcap_path, scene_dir, meta_dir = _locate(path)
+    files, scene_dir, meta_dir = locate_files(path)
+    mcap_path = files[0]
     if scene is not None:
         scene_path = Path(scene.source) if isinstance(scene, (SceneFile, TaskSceneFile)) else Path(scene).absolute()
         scene = load_any_scene_file(scene)
@@ -435,10 +505,26 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
         scene = load_any_scene_file(scene_path) if scene_path.is_file() else None
     if isinstance(scene, TaskSceneFile) and not scene.sensors:
         skip_roles = (*skip_roles, "markers", "wrench", "image")  # a task scene without a tactile sensor
+    map_path = None
+    if recording_map is None and meta_dir is not None:
+        recording_map = find_recording_map(meta_dir)
+    if recording_map is not None:
+        map_path = Path(recording_map.source) if isinstance(recording_map, RecordingMap) else Path(recording_map)
+        recording_map = load_recording_map(recording_map)
+        if roles:
+            raise ConfigError(f"role topic overrides ({', '.join(roles)}) and a recording map ({map_path}) exclude "
+                              "each other: name the topics in the map")
     if not isinstance(config, BagConfig):
         config = load_bag_config(config)
-    role_topics = resolve_roles(config, scene, roles)
-    wanted = {t for r, t in role_topics.items() if r not in skip_roles}
+    if recording_map is not None:
+        mapped = recording_map.topics()
+        role_topics = {r: mapped.get(r, "") for r in ROLES}
+        if recording_map.pose == "tf":
+            role_topics["pose"] = recording_map.tf_topic
+        wanted = {t for r, t in mapped.items() if r not in skip_roles}
+    else:
+        role_topics = resolve_roles(config, scene, roles)
+        wanted = {t for r, t in role_topics.items() if r not in skip_roles}
     topics, raw = _read_raw(path, mcap_path, meta_dir is not None, wanted)
 
     if meta_dir is not None:
@@ -449,37 +535,101 @@ def open_bag(path: str | Path, roles: Mapping[str, str] | None = None, config: B
     if sum(t.message_count for t in topics.values()) == 0:
         raise BagReadError(f"{path}: bag is empty (no messages)")
 
+    decoded: dict[str, tuple[str, str, tuple]] = {}
+    camera = None
+    if recording_map is not None:
+        decoded, camera = cell.decode_mapped(recording_map, raw, {t: i.msgtype for t, i in topics.items()}, str(path),
+                                             _decode, warn, skip_roles)
+    else:
+        for role in ROLES:
+            topic = role_topics[role]
+            if role in skip_roles:
+                continue
+            info = topics.get(topic)
+            if info is not None and info.msgtype not in ROLE_ACCEPTED[role]:
+                raise BagReadError(f"topic {topic} (role {role}) has type {info.msgtype}, expected "
+                                   f"{' or '.join(ROLE_ACCEPTED[role])} in {path}")
+            items = raw.get(topic, [])
+            if role == "pose_cmd" and items:
+                items = _commands_in_world(topic, items, warn)
+            if items:
+                decoded[role] = (topic, info.msgtype, _decode(role, topic, items, info.msgtype, check_world=True))
+
     series: dict[str, Series] = {}
     missing: list[str] = []
     for role in ROLES:
-        topic = role_topics[role]
         if role in skip_roles:
             continue
-        info = topics.get(topic)
-        if info is not None and info.msgtype != ROLE_MSGTYPES[role]:
-            raise BagReadError(f"topic {topic} (role {role}) has type {info.msgtype}, expected {ROLE_MSGTYPES[role]} "
-                               f"in {path}")
-        items = raw.get(topic, [])
-        if not items:
+        if role not in decoded:
             missing.append(role)
+            topic = role_topics[role]
             if role in MEASUREMENT_ROLES:
-                state = "has no messages" if info is not None else "is missing"
-                warn(f"topic {topic} (role {role}) {state} in {path}; the evidence lacks that channel")
+                if not topic:
+                    warn(f"role {role} has no topic in the recording map {map_path}; the evidence lacks that channel")
+                else:
+                    state = "has no messages" if topic in topics else "is missing"
+                    warn(f"topic {topic} (role {role}) {state} in {path}; the evidence lacks that channel")
             continue
-        t_ns, values, names, frame = _decode(role, topic, items)
+        topic, msgtype, (t_ns, values, names, frame) = decoded[role]
         t_ns, values, dropped, resorted = _clean(role, topic, t_ns, values, warn)
-        t_ns.setflags(write=False)
-        values.setflags(write=False)
-        series[role] = Series(role, topic, ROLE_MSGTYPES[role], t_ns, values, names, frame, dropped, resorted)
+        series[role] = Series(role, topic, msgtype, t_ns, values, names, frame, dropped, resorted)
 
+    if window_s is not None and series:
+        series = _window(series, window_s, path)
+        for role in decoded:
+            if role not in series:
+                missing.append(role)
+                warn(f"topic {decoded[role][0]} (role {role}) has no sample in the time window {list(window_s)} s; "
+                     "the evidence lacks that channel")
+    for s in series.values():
+        s.t_ns.setflags(write=False)
+        s.values.setflags(write=False)
     stamps = [s.t_ns for s in series.values()]
     start = int(min(s[0] for s in stamps)) if stamps else 0
     end = int(max(s[-1] for s in stamps)) if stamps else 0
     return BagContents(
-        path=path, mcap_path=mcap_path, sha256=sha256_file(mcap_path), topics=topics, roles=role_topics,
+        path=path, mcap_path=mcap_path, sha256=sha256_file(files), topics=topics, roles=role_topics,
         series=series, missing_roles=tuple(missing), scene=scene, scene_path=scene_path if scene else None,
-        start_ns=start, end_ns=end, notes=tuple(notes),
+        start_ns=start, end_ns=end, notes=tuple(notes), mcap_paths=tuple(files),
+        recording_map=map_path.absolute() if map_path is not None else None, camera=camera,
     )
+
+
+def _commands_in_world(topic: str, items: list[tuple[int, Any]], warn: Callable[[str], None]) -> list[tuple[int, Any]]:
+    """The commands stamped in ``world``; the others (a robot refuses them, a recorder keeps them) dropped
+    with a warning. All in another frame: left for :func:`_decode` to refuse (a recording map is needed)."""
+    frames = [str(m.header.frame_id) for _, m in items]
+    keep = [f == WORLD_FRAME for f in frames]
+    if any(keep) and not all(keep):
+        other = sorted({f for f, k in zip(frames, keep) if not k})
+        warn(f"topic {topic}: dropped {len(keep) - sum(keep)} of {len(keep)} commands in frame(s) {other} instead of "
+             f"{WORLD_FRAME!r}")
+        return [item for item, k in zip(items, keep) if k]
+    return items
+
+
+def _window(series: dict[str, Series], window_s: tuple[float | None, float | None], path: Path) -> dict[str, Series]:
+    """Every series cut to ``[start + t_start, start + t_end]`` (start: the first role stamp).
+
+    Raises:
+        ConfigError: ``t_end <= t_start`` or a negative bound.
+        BagReadError: the window holds no sample of any role.
+    """
+    t_start, t_end = window_s
+    if (t_start is not None and t_start < 0) or (t_end is not None and t_end <= 0) or \
+            (t_start is not None and t_end is not None and t_end <= t_start):
+        raise ConfigError(f"time window --t-start {t_start} / --t-end {t_end} s must satisfy 0 <= t_start < t_end")
+    first = min(int(s.t_ns[0]) for s in series.values())
+    lo = first + (int(round(t_start * 1e9)) if t_start is not None else 0)
+    hi = first + int(round(t_end * 1e9)) if t_end is not None else np.iinfo(np.int64).max
+    out = {}
+    for role, s in series.items():
+        keep = (s.t_ns >= lo) & (s.t_ns <= hi)
+        if keep.any():
+            out[role] = dataclasses.replace(s, t_ns=s.t_ns[keep], values=s.values[keep])
+    if not out:
+        raise BagReadError(f"{path}: no sample in the time window [{t_start}, {t_end}] s after the first stamp")
+    return out
 
 
 EFFECTOR_STREAMS = {"pose": codec.POSE_STAMPED, "pose_cmd": codec.POSE_STAMPED, "gripper_cmd": codec.FLOAT64}

@@ -69,6 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", help="run the replays (signatures engine: the --baseline recordings' "
                                          "preparation) as Ray tasks on this cluster")
     p.add_argument("--t-max", type=float, help="use only the first T_MAX s of each recording")
+    p.add_argument("--recording-map", metavar="FILE",
+                   help="recording map for every recording (a real cell's topics, TF, frames, F/T tare; "
+                        "docs/recording_map.md); default: each bag's recording.yaml, else the INTERFACES.md topics")
+    p.add_argument("--t-start", type=float, help="read each recording from T_START s after its first stamp")
+    p.add_argument("--t-end", type=float, help="read each recording up to T_END s after its first stamp")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step, s (default 0.01)")
     p.add_argument("--params", nargs="*", default=[],
                    help="simulator parameters of the calibration (default: sysid.calibration.CALIBRATION_PARAMETERS: "
@@ -115,7 +120,8 @@ def diagnose_main(argv: Sequence[str] | None = None) -> int:
         return 2
     if args.engine == "signatures":
         return _signatures_main(args)
-    settings = Settings(dt=args.dt, t_max=args.t_max, alpha=args.alpha, workers=max(1, args.workers),
+    settings = Settings(dt=args.dt, t_max=args.t_max, recording_map=args.recording_map, t_start=args.t_start,
+                        t_end=args.t_end, alpha=args.alpha, workers=max(1, args.workers),
                         ray_address=args.ray_address, batched=args.batched, batch_size=args.batch_size,
                         fit_max_nfev=args.fit_max_nfev, arch=args.arch,
                         calibrate=not args.no_calibrate, calibration_max_time=args.calibration_time,
@@ -153,7 +159,8 @@ def signature_settings(args: argparse.Namespace) -> SignatureSettings:
     from sysid.diagnose.signature_engine import SignatureSettings
 
     return SignatureSettings(
-        dt=args.dt, t_max=args.t_max, arch=args.arch, calibrate=not args.no_calibrate,
+        dt=args.dt, t_max=args.t_max, recording_map=args.recording_map, t_start=args.t_start, t_end=args.t_end,
+        arch=args.arch, calibrate=not args.no_calibrate,
         calibration_params=tuple(args.params) if args.params else CALIBRATION_PARAMETERS,
         calibration_max_nfev=args.fit_max_nfev, calibration_max_time=args.calibration_time,
         calibration_max_replays=args.calibration_replays, calibration_secant_replays=args.calibration_secant_replays,

@@ -134,7 +134,8 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         self.bag = str(bag)
         self.settings = settings or Settings()
         s = self.settings
-        self.evidence = load_evidence(bag, include_image="auto")
+        self.evidence = load_evidence(bag, include_image="auto", recording_map=s.recording_map, t_start=s.t_start,
+                                      t_end=s.t_end)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.model = ObservationModel(self.evidence, dt=s.dt, t_max=s.t_max, simulation=s.simulation,
@@ -516,7 +517,9 @@ class BagDiagnosis(ProbeCalibration, RefitRefinement):
         for h in self.heldout:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                out.append(ObservationModel(load_evidence(h, include_image="auto"), dt=self.settings.dt,
+                out.append(ObservationModel(load_evidence(h, include_image="auto", recording_map=self.settings.recording_map,
+                                                          t_start=self.settings.t_start, t_end=self.settings.t_end),
+                                            dt=self.settings.dt,
                                             t_max=self.settings.t_max, simulation=self.settings.simulation,
                                             arch=self.settings.arch))
                 if self.settings.denoise_window:

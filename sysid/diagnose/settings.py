@@ -15,6 +15,10 @@ class Settings:
     Attributes:
         dt: simulation step, s.
         t_max: use the first t_max s of each recording (None: all).
+        recording_map: recording map file for every recording (docs/recording_map.md); None: each bag's
+            own ``recording.yaml``, else the INTERFACES.md topics.
+        t_start, t_end: read only the samples from ``t_start`` to ``t_end`` s after each recording's
+            first stamp (None: open).
         alpha: family-wise error rate of the Holm correction.
         bic_threshold: delta-BIC needed to accept a later candidate conditionally on the accepted
             ones when held-out bags are given (otherwise acceptance is by the held-out test).
@@ -66,6 +70,9 @@ class Settings:
 
     dt: float = 0.01
     t_max: float | None = None
+    recording_map: str | None = None
+    t_start: float | None = None
+    t_end: float | None = None
     alpha: float = 0.01
     bic_threshold: float = 10.0
     holdout_blocks: int = 4

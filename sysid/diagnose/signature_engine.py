@@ -71,6 +71,10 @@ class SignatureSettings:
     Attributes:
         dt: replay step, s.
         t_max: use the first t_max s of each recording (None: all).
+        recording_map: recording map file for every recording (docs/recording_map.md); None: each bag's
+            own ``recording.yaml``, else the INTERFACES.md topics.
+        t_start, t_end: read only the samples from ``t_start`` to ``t_end`` s after each recording's
+            first stamp (None: open).
         arch: elastic terms of the replays (``numpy``, ``cpu``, ``cuda``).
         calibrate: fit the simulator parameters (``calibration_params``) as well as the sensor
             calibration; False: the sensor calibration only (one replay).
@@ -106,6 +110,9 @@ class SignatureSettings:
 
     dt: float = 0.01
     t_max: float | None = None
+    recording_map: str | None = None
+    t_start: float | None = None
+    t_end: float | None = None
     arch: str = "cpu"
     calibrate: bool = True
     calibration_params: tuple[str, ...] = CALIBRATION_PARAMETERS
@@ -194,7 +201,8 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
         ConfigError: invalid scene.
     """
     t_start = time.monotonic()
-    evidence = load_evidence(bag, include_image="auto")
+    evidence = load_evidence(bag, include_image="auto", recording_map=settings.recording_map,
+                             t_start=settings.t_start, t_end=settings.t_end)
     model = ObservationModel(evidence, dt=settings.dt, t_max=settings.t_max, simulation=settings.simulation,
                              arch=settings.arch)
     params = tuple(settings.calibration_params) if settings.calibrate else ()

@@ -13,7 +13,15 @@ from sim_core.sensors.camera import PinholeCamera
 from sim_core.sensors.image import render_marker_image
 from sim_core.sensors.markers import marker_grid
 from sim_core.transforms import quat_from_rotvec, transform_points
-from sysid.markers_image import MarkerTracker, detect_markers, find_marker_blobs, order_marker_grid
+from sysid.markers_image import (
+    CLIPPED,
+    INTERPOLATED,
+    MEASURED,
+    MarkerTracker,
+    detect_markers,
+    find_marker_blobs,
+    order_marker_grid,
+)
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared"
 REAL_FRAME = SHARED / "data" / "real" / "feats" / "gelsight_mini_cuboid_press.png"
@@ -99,26 +107,36 @@ def test_tracker_follows_a_sliding_sequence() -> None:
     uv0 = CAM.project(marker_grid(GRID, PITCH))
     velocity = np.array([6.0, 1.0])  # px per frame; 72 px in total, three marker pitches
     tracker = MarkerTracker(GRID, max_displacement_px=10.0)
-    saw_lost = False
+    saw_lost = saw_clipped = False
     for t in range(13):
         truth = uv0 + t * velocity
         drawn = truth.copy()
         if t == 5:
             drawn[10] = np.nan  # marker 10 occluded for one frame
         image = render_marker_image(drawn, CAM, marker_radius_px=RADIUS_PX, blur=0.7)
-        tracked = tracker.update(image)
-        assert tracked.shape == (63, 2)
+        frame = tracker.update(image)
+        tracked = frame.measured
+        assert tracked.shape == (63, 2) and frame.status.shape == frame.weight.shape == (63,)
         inside = (truth[:, 0] > RADIUS_PX + 2) & (truth[:, 0] < CAM.width - RADIUS_PX - 3)
         outside = truth[:, 0] - RADIUS_PX > CAM.width
         visible = inside & ~np.isnan(drawn[:, 0])
         ok = ~np.isnan(tracked[:, 0])
         assert np.all(ok[visible]), f"frame {t}: visible markers lost"
+        assert np.all(frame.status[visible] == MEASURED) and np.all(frame.weight[visible] == 1.0)
         assert np.max(np.linalg.norm(tracked[visible] - truth[visible], axis=1)) < 0.15, f"frame {t}: order lost"
         assert np.all(np.isnan(tracked[outside])), f"frame {t}: markers out of frame must be NaN"
+        # ... yet followed: interpolated from their lattice neighbours (a rigid slide: exactly), weight 0
+        assert np.all(frame.status[outside] == INTERPOLATED) and np.all(frame.weight[outside] == 0.0)
+        cut = frame.status == CLIPPED  # partly out of the image: centre from the visible part
+        err = np.linalg.norm(frame.uv - truth, axis=1)
+        assert np.all(err[~cut] < 0.3) and np.all(err[cut] < 0.25 * RADIUS_PX), f"frame {t}: a marker not followed"
+        assert np.all((frame.weight[cut] > 0.0) & (frame.weight[cut] < 1.0))
+        assert np.all(~cut[inside])
         if t == 5:
-            assert np.all(np.isnan(tracked[10]))
+            assert np.all(np.isnan(tracked[10])) and frame.status[10] == INTERPOLATED
         saw_lost |= bool(np.any(outside))
-    assert saw_lost  # the right column left the image
+        saw_clipped |= bool(np.any(cut))
+    assert saw_lost and saw_clipped  # the right column left the image
     first = render_marker_image(uv0, CAM, marker_radius_px=RADIUS_PX, blur=0.7)
     np.testing.assert_array_equal(tracker.reference, detect_markers(first, GRID))
 
@@ -128,16 +146,72 @@ def test_tracker_with_initial_points_and_gate() -> None:
     tracker = MarkerTracker((3, 2), max_displacement_px=5.0, initial_uv=uv0)
     moved = uv0 + [2.0, -1.0]
     moved[4] += [0.0, 60.0]  # jumps farther than the gate, away from every other marker
-    out = tracker.update_points(moved[::-1])
-    np.testing.assert_allclose(out[[0, 1, 2, 3, 5]], moved[[0, 1, 2, 3, 5]])
-    assert np.all(np.isnan(out[4]))
+    frame = tracker.update_points(moved[::-1])
+    np.testing.assert_allclose(frame.uv[[0, 1, 2, 3, 5]], moved[[0, 1, 2, 3, 5]])
+    assert np.all(np.isnan(frame.measured[4])) and frame.status[4] == INTERPOLATED
+    np.testing.assert_allclose(frame.uv[4], uv0[4] + [2.0, -1.0], atol=1e-9)  # moved with its neighbours
     with pytest.raises(CalibrationError, match="max_displacement_px must be > 0"):
         MarkerTracker((3, 2), max_displacement_px=0.0)
     with pytest.raises(CalibrationError, match="no reference frame"):
         MarkerTracker((3, 2), max_displacement_px=5.0).update_points(uv0)
+    with pytest.raises(CalibrationError, match=r"visible must have shape \(6,\)"):
+        tracker.update_points(uv0, visible=np.ones(3))
+
+
+def test_a_detection_that_disagrees_with_its_lattice_neighbours_is_not_taken() -> None:
+    """A spurious dark spot nearer to a marker's last position than its own blob (inside the gate):
+    the nearest-blob assignment takes it, the lattice check undoes it, and the marker's own blob,
+    found where its neighbours' motion says, is taken instead."""
+    uv0 = CAM.project(marker_grid(GRID, PITCH))
+    tracker = MarkerTracker(GRID, max_displacement_px=10.0, initial_uv=uv0, marker_radius_px=RADIUS_PX)
+    truth = uv0 + [7.0, 0.0]  # everything slides 7 px
+    spurious = uv0[31] + [-2.0, 1.0]  # 2.2 px from marker 31's last position, 9 px from its blob
+    frame = tracker.update_points(np.concatenate([truth, spurious[None]]))
+    np.testing.assert_allclose(frame.uv, truth)
+    assert np.all(frame.status == MEASURED)
+    # without its own blob, the marker is interpolated, not put on the spot
+    tracker = MarkerTracker(GRID, max_displacement_px=10.0, initial_uv=uv0, marker_radius_px=RADIUS_PX)
+    frame = tracker.update_points(np.concatenate([np.delete(truth, 31, axis=0), spurious[None]]))
+    assert frame.status[31] == INTERPOLATED
+    np.testing.assert_allclose(frame.uv[31], truth[31], atol=1e-9)
+
+
+def test_blobs_cut_by_the_border_give_the_whole_marker_centre() -> None:
+    """A marker cut by the image border: its centre from the visible part (circular segment) agrees
+    with the drawn centre to a small part of the radius, also when less than half is visible."""
+    radius = 5.5
+    for centre in ([316.0, 120.0], [319.5, 120.0], [322.0, 120.0], [160.0, 2.0], [-1.5, 60.0], [318.0, 237.0]):
+        uv = np.array([centre, [160.0, 120.0], [130.0, 120.0], [160.0, 90.0]])
+        image = render_marker_image(uv, CAM, marker_radius_px=radius, blur=0.7)
+        whole = find_marker_blobs(image, spacing_px=30.0)
+        assert whole.uv.shape[0] == 3 and np.all(whole.visible == 1.0)
+        blobs = find_marker_blobs(image, spacing_px=30.0, keep_clipped=True)
+        cut = np.nonzero(blobs.clipped)[0]
+        assert cut.size == 1, centre
+        err = np.linalg.norm(blobs.uv[cut[0]] - uv[0])
+        assert err < 0.25 * radius, f"marker at {centre}: centre off by {err:.2f} px"
+        assert 0.0 < blobs.visible[cut[0]] < 1.0
 
 
 def test_blobs_touching_the_border_are_dropped() -> None:
     uv = np.array([[1.0, 120.0], [160.0, 120.0]])
     blobs = find_marker_blobs(render_marker_image(uv, CAM, marker_radius_px=RADIUS_PX), spacing_px=24.0)
     np.testing.assert_allclose(blobs.uv, uv[1:], atol=0.02)
+
+
+def test_shading_attached_to_a_marker_does_not_pull_its_centre() -> None:
+    """A dark streak of gel shading (a contact edge) touching a marker merges with its blob; the
+    centre is re-centred on a marker's disc and stays on the marker."""
+    uv = CAM.project(marker_grid(GRID, PITCH))
+    image = render_marker_image(uv, CAM, marker_radius_px=RADIUS_PX, blur=0.7)
+    u, v = uv[31]
+    streak = image.copy()
+    cv2.line(streak, (int(u + 3), int(v + 3)), (int(u + 14), int(v + 14)), int(image.min()), thickness=4)
+    clean = find_marker_blobs(image, spacing_px=24.0)
+    blobs = find_marker_blobs(streak, spacing_px=24.0)
+    i = int(np.argmin(np.linalg.norm(blobs.uv - uv[31], axis=1)))
+    assert blobs.area[i] > 1.5 * np.median(clean.area)  # the streak is part of the blob
+    # 6 px off without the re-centring; within a quarter of the marker radius with it
+    pulled = float(np.linalg.norm(blobs.uv[i] - uv[31]))
+    assert pulled < 0.25 * RADIUS_PX, f"centre pulled by {pulled:.2f} px"
+    np.testing.assert_allclose(np.delete(blobs.uv, i, axis=0), np.delete(clean.uv, i, axis=0), atol=1e-9)

@@ -181,3 +181,18 @@ def test_real_fit_is_published_and_applied_to_a_live_sim_node(ros_context, heavy
         assert Simulation.from_scene(result["scene"]).get_parameter("sheet.density") == pytest.approx(rho)
     finally:
         h.close()
+
+
+def test_recording_map_parameter_reaches_the_fit(ros_context, tmp_path):
+    jobs: list = []
+    h = Harness(ros_context, lambda job: jobs.append(job) or {"params": {}}, bag=str(tmp_path),
+                recording_map=str(tmp_path / "absent.yaml"))
+    try:
+        assert "parameter 'recording_map': " in h.fit().message
+        (tmp_path / "recording.yaml").write_text("version: 1\n")
+        h.node.set_parameters([Parameter("recording_map", value=str(tmp_path / "recording.yaml"))])
+        assert h.fit().success
+        assert spin_until(h.ex, lambda: bool(jobs), 5.0)
+        assert jobs[0].options.recording_map == str(tmp_path / "recording.yaml")
+    finally:
+        h.close()

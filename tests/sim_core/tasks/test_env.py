@@ -9,7 +9,11 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from sim_core.tasks.env import ThinShellTaskEnv, env_id, register_envs
+import subprocess
+import sys
+
+from sim_core.tasks.env import ThinShellTaskEnv
+from sim_core.tasks.gym_ids import env_id, register_envs
 from sim_core.tasks.registry import load_task, task_names
 
 
@@ -37,6 +41,19 @@ def test_ids_registered_and_make_builds_the_task():
     env = gym.make("thinshell/Folding-L-v0", horizon=1)
     assert env.unwrapped.task.name == "Folding-L"
     env.close()
+
+
+@pytest.mark.parametrize("code", [
+    "import gymnasium as gym, sim_core.tasks; gym.register_envs(sim_core.tasks); e = gym.make('thinshell/Forming-v0')",
+    "import gymnasium as gym; e = gym.make('sim_core.tasks:thinshell/Forming-v0')",
+])
+def test_gym_make_in_a_fresh_interpreter(code):
+    """The Gymnasium forms a user types work from a fresh interpreter: registration comes with the
+    package import (or the ``module:id`` form), not with a side import of the environment module."""
+    probe = code + "; print(type(e.unwrapped).__name__, e.unwrapped.task.name, e.spec.id); e.close()"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["ThinShellTaskEnv", "Forming", "thinshell/Forming-v0"]
 
 
 def test_episode_ends_with_the_task_reward_and_renders_a_frame():
