@@ -25,7 +25,8 @@ load no lag can tell (``F_n = F_0``: one parameter), against the compliant one (
 The drive counts as compliant (:attr:`DriveCalibration.compliant`) when ``delta_BIC`` exceeds
 :data:`DRIVE_MIN_DELTA_BIC` (SYSID.md's threshold for an added term), the spring law describes the load (the
 lag explains at least :data:`DRIVE_MIN_EXPLAINED` of its variance: a model that wins the criterion but leaves
-a tenth of the load's variance is not the arm's) and ``k_s`` is positive. A kinematic drive (the pose equal
+a tenth of the load's variance is not the arm's), ``k_s`` is positive and the load lasts
+:data:`DRIVE_MIN_LOADED_SAMPLES` samples. A kinematic drive (the pose equal
 to its command, as in this simulator's own recordings) leaves the lag at the pose noise, explains nothing, and
 keeps the replay kinematic (``inf``). Every motion takes it, lifts included: the lag explains 0.94-0.99 of
 the load on the nine reference recordings, press-slides and lift-and-folds alike, at 2,856-3,017 N/m (the
@@ -60,6 +61,11 @@ FREE_LOAD_SIGMAS = 2.0
 LOADED_FRACTION = 0.2
 """The pad counts as loaded above this fraction of the peak normal load (the contact events' level of
 :mod:`sysid.diagnose.signatures.timing`)."""
+
+DRIVE_MIN_LOADED_SAMPLES = 20
+"""Fewest wrench samples under load (above :data:`LOADED_FRACTION` of the peak) for the data to choose the
+drive: 0.1 s at 200 Hz. On a handful of samples (a recording of a few steps) a press's own lag of the pose
+behind its command correlates with the load as a spring's would, and the criterion cannot tell them apart."""
 
 DRIVE_MIN_DELTA_BIC = 10.0
 """Smallest ``delta_BIC`` of the compliant drive over the kinematic one (module docstring) for the replay to
@@ -113,15 +119,20 @@ class DriveCalibration:
         return max(self.damping, 0.0) if self.compliant else 0.0
 
     def summary(self) -> dict:
-        """JSON-ready."""
-        return {"stiffness": float(self.stiffness), "stiffness_sigma": float(self.stiffness_sigma),
-                "damping": float(self.damping), "damping_sigma": float(self.damping_sigma),
-                "replay_damping": float(self.replay_damping),
-                "offset": float(self.offset), "explained": float(self.explained), "samples": int(self.samples),
-                "residual_rms": float(self.residual_rms), "delta_bic": float(self.delta_bic),
-                "min_delta_bic": DRIVE_MIN_DELTA_BIC, "slide_m": float(self.slide),
+        """JSON-ready (strict JSON: a value not fitted, nan or infinite, is None)."""
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {"stiffness": num(self.stiffness), "stiffness_sigma": num(self.stiffness_sigma),
+                "damping": num(self.damping), "damping_sigma": num(self.damping_sigma),
+                "replay_damping": num(self.replay_damping),
+                "offset": num(self.offset), "explained": num(self.explained), "samples": int(self.samples),
+                "residual_rms": num(self.residual_rms), "delta_bic": num(self.delta_bic),
+                "min_delta_bic": DRIVE_MIN_DELTA_BIC, "slide_m": num(self.slide),
                 "decision": "compliant" if self.compliant else "kinematic",
-                "compliant": bool(self.compliant), "replay_stiffness": float(self.replay_stiffness), "why": self.why}
+                "compliant": bool(self.compliant),
+                "replay_stiffness": num(self.replay_stiffness),  # None: kinematic
+                "why": self.why}
 
 
 def _free_motion_time_constant(lag: np.ndarray, velocity: np.ndarray, command_velocity: np.ndarray,
@@ -203,14 +214,20 @@ def fit_drive(model) -> DriveCalibration:
     # tau_d and F_0 (p = 3)
     delta_bic = n * math.log(spread / max(rss, 1e-300)) - 2.0 * math.log(n)
     slide = loaded_slide(pose, normal, load)
-    compliant = delta_bic > DRIVE_MIN_DELTA_BIC and explained >= DRIVE_MIN_EXPLAINED and k > 0.0
+    loaded = int(np.sum(load > LOADED_FRACTION * float(np.max(load)))) if np.max(load) > 0.0 else 0
+    compliant = (delta_bic > DRIVE_MIN_DELTA_BIC and explained >= DRIVE_MIN_EXPLAINED and k > 0.0
+                 and loaded >= DRIVE_MIN_LOADED_SAMPLES)
     if compliant:
         why = ""
+    elif loaded < DRIVE_MIN_LOADED_SAMPLES:
+        why = (f"{loaded} wrench samples under load (< {DRIVE_MIN_LOADED_SAMPLES}): too few to tell an arm's "
+               "compliance from the press's own lag")
     elif not delta_bic > DRIVE_MIN_DELTA_BIC:
         why = (f"delta-BIC of the compliant drive over the kinematic one {delta_bic:.3g} <= {DRIVE_MIN_DELTA_BIC:g}: "
                "the lag of the measured pose behind its command does not tell the load")
+    elif not k > 0.0:
+        why = f"k_s = {k:.3g} N/m <= 0: the pose does not lag its command under load as a spring's would"
     else:
-        why = (f"the lag explains {explained:.2f} of the load's variance (< {DRIVE_MIN_EXPLAINED}) "
-               f"or k_s = {k:.3g} N/m <= 0")
+        why = f"the lag explains {explained:.2f} of the load's variance (< {DRIVE_MIN_EXPLAINED})"
     return DriveCalibration(k, k_sigma, tau * k, abs(tau) * k_sigma, f0, explained, n, compliant, why,
                             float(np.sqrt(rss / n)), float(delta_bic), slide)

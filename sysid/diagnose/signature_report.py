@@ -186,9 +186,12 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
         lines.append(f"\nParameter fit: {cal['status']}, {cal.get('fit_replays')} replays.")
     drive = cal.get("drive")
     if drive:
-        lines.append(f"\nEffector drive: {drive['decision']} (delta-BIC {drive['delta_bic']:.4g} against a kinematic arm, "
-                     f"threshold {drive['min_delta_bic']:g}); k_s {drive['stiffness']:.4g} +- {drive['stiffness_sigma']:.2g} "
-                     f"N/m, c_d {drive['damping']:.4g} +- {drive['damping_sigma']:.2g} N s/m"
+        def g(key: str, spec: str = ".4g") -> str:
+            return "n/a" if drive.get(key) is None else format(drive[key], spec)
+
+        lines.append(f"\nEffector drive: {drive['decision']} (delta-BIC {g('delta_bic')} against a kinematic arm, "
+                     f"threshold {drive['min_delta_bic']:g}); k_s {g('stiffness')} +- {g('stiffness_sigma', '.2g')} "
+                     f"N/m, c_d {g('damping')} +- {g('damping_sigma', '.2g')} N s/m"
                      + (f"; {drive['why']}" if drive.get("why") else "") + ".")
     gains = cal.get("gains") or {}
     if gains:
