@@ -22,6 +22,8 @@ $(STAMP): requirements.txt setup.py package.xml
 	@echo "thinshell: installing the dependencies into $(VENV) (first run only; about 1-3 min with a warm pip cache)"
 	$(PY) -m pip install --progress-bar on -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps -e .
+	@echo "thinshell: compiling the simulator's kernels into Taichi's offline cache (first set-up only; about 1-4 min)"
+	$(PY) -m thinshell_ros.cli compile
 	@touch $(STAMP)
 
 demo: $(STAMP)

@@ -108,3 +108,80 @@ def compile_offload_kernels() -> float:
     for projection in ("clamp", "abs"):
         fused.projected_hessian_values(x, projection)
     return time.perf_counter() - t0
+
+
+COMPILE_SCENES: tuple[str, ...] = ("scenes/press_slide.yaml", "scenes/forming.yaml")
+"""The bundled scenes (relative to :func:`sim_core.bundled.config_dir`) whose kernels ``thinshell compile``
+compiles by default: the tactile scene of the sim node, sysid and the main job, and a ThinShellLab task scene."""
+
+
+def compile_scene(scene, steps: int = 4, press: float = 2.0e-4, arch: str = "cpu") -> dict:
+    """Compile (or load from the offline cache) the Taichi kernels a simulator node on ``scene`` runs.
+
+    Builds the simulation as the sim node does (``SolverConfig`` with fixed points, sleeping and the
+    carried start; :meth:`Simulation.warm_up`), runs :func:`compile_kernels` on its elastic potentials
+    and takes ``steps`` steps with every effector moved ``press`` m a step along -z of ``world``
+    (towards the table in the bundled scenes), so the step's own paths run once.
+
+    Args:
+        scene: scene file path.
+        steps: steps to take (>= 0).
+        press: effector displacement a step, m.
+        arch: ``cpu`` or ``cuda``.
+
+    Returns:
+        ``{"scene": name, "compile_s": s, "steps_s": s}``.
+
+    Raises:
+        ConfigError: invalid scene, or the Taichi backend cannot start.
+    """
+    # optional heavy dependency: the simulation and its solver settings, loaded when compiling
+    from sim_core.backend import backend_of_arch
+    from sim_core.control import Control
+    from sim_core.simulation import Simulation
+    from sim_core.solver_config import SolverConfig
+
+    t0 = time.perf_counter()
+    sim = Simulation.from_scene(scene, solver_config=SolverConfig(
+        backend=backend_of_arch(arch), repeat_fixed_points=True, sleeping=True, carried_start=True))
+    sim.warm_up()
+    compile_kernels(sim.solver.elastic.potentials(sim.state.hinge_theta_bar), sim.state.x, sim.solver.config.projection)
+    t1 = time.perf_counter()
+    start = {name: np.array(sim.state.effector_pose[name], dtype=float) for name in sim.effector_names}
+    for k in range(1, steps + 1):
+        target = {name: pose + np.array([0.0, 0.0, -press * k, 0.0, 0.0, 0.0, 0.0]) for name, pose in start.items()}
+        sim.step(Control(effector_pose_target=target))
+    return {"scene": str(getattr(scene, "name", scene)), "compile_s": t1 - t0, "steps_s": time.perf_counter() - t1}
+
+
+def compile_main(argv: Sequence[str]) -> int:
+    """``thinshell compile [--scene S ...] [--arch cpu|cuda] [--steps N]``: compile the simulator's Taichi
+    kernels once, ahead of the first run, into Taichi's offline cache (``make setup`` runs it); later
+    processes load them instead of compiling. Prints one line a scene and the total time."""
+    import argparse
+
+    # optional heavy dependency: the bundled scenes and the Taichi runtime, loaded when compiling
+    from sim_core.bundled import config_dir
+    from sim_core.ti_backend import init_backend
+
+    p = argparse.ArgumentParser(prog="thinshell compile", description=compile_main.__doc__.split("\n")[0])
+    p.add_argument("--scene", nargs="+", default=None, help="scene files (default: the bundled "
+                   + ", ".join(COMPILE_SCENES) + ")")
+    p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--steps", type=int, default=4, help="steps taken on each scene after compiling (default 4)")
+    args = p.parse_args(list(argv))
+    if args.steps < 0:
+        p.error("--steps must be >= 0")
+    scenes = args.scene or [config_dir() / name for name in COMPILE_SCENES]
+    t0 = time.perf_counter()
+    init_backend(args.arch)
+    print(f"thinshell compile: compiling the simulator's kernels for {len(scenes)} scene(s) into Taichi's "
+          f"offline cache (once per machine; later runs load them)", flush=True)
+    t_offload = compile_offload_kernels()
+    print(f"  elastic worker kernels: {t_offload:.1f} s", flush=True)
+    for scene in scenes:
+        out = compile_scene(scene, steps=args.steps, arch=args.arch)
+        print(f"  {out['scene']}: {out['compile_s']:.1f} s compile, {out['steps_s']:.1f} s for {args.steps} steps",
+              flush=True)
+    print(f"thinshell compile: done in {time.perf_counter() - t0:.1f} s", flush=True)
+    return 0

@@ -151,7 +151,8 @@ def secant_calibration(model, base: Mapping[str, float], raw0: Mapping[str, np.n
 
     def whitened(raw: Mapping[str, np.ndarray], scale: Mapping[str, float]) -> np.ndarray:
         pred = calibrated(raw)
-        return np.concatenate([((data[ch] - pred[ch]) / (model.sigma[ch] * scale[ch])).reshape(-1) for ch in channels])
+        return np.concatenate([((data[ch] - pred[ch]) / (model.sigma[ch] * scale[ch]) * model.residual_weight_root(ch))
+                               .reshape(-1) for ch in channels])
 
     unit = {ch: 1.0 for ch in channels}
     r_unit = whitened(raw0, unit)

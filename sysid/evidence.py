@@ -19,6 +19,14 @@ wrench         ``(W, 6)``           Fx Fy Fz (N) Tx Ty Tz (N m) on the gel, sens
 sheet_points   ``(S, p, 3)``        tracked sheet points in ``world`` (m)
 image          ``(F, h, w)`` uint8  rendered / camera marker image (optional)
 ============== ==================== ===========================================================
+
+``markers_uv_weight`` ``(M, k)`` goes with ``markers_uv`` (its stamps): a per-marker, per-sample factor
+in ``[0, 1]`` on the inverse variance of both pixel coordinates of that marker, which the fit's whitened
+residual is multiplied by the square root of (:meth:`sysid.observation.ObservationModel.residuals`).
+Pixels read off images (:func:`markers_from_images`) carry the tracker's weights
+(:func:`sysid.markers_image.track_markers`): 1 for a marker found whole, the visible fraction of a
+marker cut by the image border, 0 for a marker not seen and interpolated from its lattice neighbours.
+Pixels from a markers topic have ``markers_uv_weight = None``, meaning weight 1 everywhere.
 """
 
 from __future__ import annotations
@@ -76,6 +84,9 @@ class Evidence:
         scene: the parsed scene file, or None when the bag has none.
         t_ns: channel -> stamps ``(n,)`` int64 ns, strictly increasing (present channels only).
         pose, pose_cmd, markers_xyz, markers_uv, wrench, sheet_points, image: arrays or None.
+        markers_uv_weight: ``(M, k)`` per-marker weights in ``[0, 1]`` of ``markers_uv`` (module
+            docstring): the tracker's when the pixels were read off images, None (weight 1
+            everywhere) when they came from a markers topic.
         clock_t_ns: ``/clock`` values (ns) when recorded, else None.
         noise: channel -> estimated white-noise standard deviation per last axis (SI / px), e.g.
             ``noise["markers_xyz"]`` is ``(3,)`` m and ``noise["wrench"]`` is ``(6,)`` N, N m.
@@ -99,6 +110,7 @@ class Evidence:
     wrench: np.ndarray | None = None
     sheet_points: np.ndarray | None = None
     image: np.ndarray | None = None
+    markers_uv_weight: np.ndarray | None = None
     clock_t_ns: np.ndarray | None = None
     noise: dict[str, np.ndarray] = field(default_factory=dict)
     channels_present: tuple[str, ...] = ()
@@ -143,6 +155,8 @@ class Evidence:
                 raise ValueError(f"window [{start_ns}, {end_ns}] ns holds no {ch} sample")
             t_new[ch] = _frozen(t[keep])
             arrays[ch] = _frozen(getattr(self, ch)[keep])
+            if ch == "markers_uv" and self.markers_uv_weight is not None:
+                arrays["markers_uv_weight"] = _frozen(self.markers_uv_weight[keep])
         clock = self.clock_t_ns
         if clock is not None:
             clock = _frozen(clock[(clock >= start_ns) & (clock <= end_ns)])
@@ -167,7 +181,9 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 
 def _with_camera(scene: SceneFile, camera: Mapping[str, float]) -> SceneFile:
-    """The scene with its only sensor's intrinsics (fx fy cx cy width height) from a recorded camera_info.
+    """The scene with its only sensor's camera from a recorded camera_info: intrinsics (fx fy cx cy width
+    height) and, when the info gives a distortion, the radial ``k1 k2`` (a zero where the scene has none
+    stays none: both mean no distortion).
 
     Raises:
         BagReadError: the scene has not exactly one sensor (which camera the info belongs to is unknown).
@@ -176,7 +192,13 @@ def _with_camera(scene: SceneFile, camera: Mapping[str, float]) -> SceneFile:
         raise BagReadError(f"{scene.source}: a recorded camera_info needs a scene with one tactile sensor, it has "
                            f"{len(scene.sensors)}")
     name, sensor = next(iter(scene.sensors.items()))
-    cam = dataclasses.replace(sensor.camera, **{k: type(getattr(sensor.camera, k))(v) for k, v in camera.items()})
+    values: dict[str, Any] = {}
+    for key, value in camera.items():
+        if key in ("k1", "k2"):
+            values[key] = None if value == 0.0 and getattr(sensor.camera, key) is None else float(value)
+        else:
+            values[key] = type(getattr(sensor.camera, key))(value)
+    cam = dataclasses.replace(sensor.camera, **values)
     return dataclasses.replace(scene, sensors={name: dataclasses.replace(sensor, camera=cam)})
 
 
@@ -218,7 +240,8 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
             frames (:func:`markers_from_images`).
         recording_map: where each role of a real cell's recording comes from (docs/recording_map.md);
             None = ``recording.yaml`` in the bag directory when there is one, else today's contract.
-            A ``camera_info`` topic in the map replaces the scene's camera intrinsics.
+            A ``camera_info`` topic in the map replaces the scene's camera intrinsics and, when it
+            gives a distortion, its radial ``k1 k2`` (:func:`sysid.bagio.images.parse_camera_info`).
         t_start, t_end: keep only the samples from ``t_start`` to ``t_end`` s after the recording's
             first stamp (None = open); the noise is estimated inside that window.
 
@@ -281,10 +304,12 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
         arrays[ch] = _frozen(value)
         topics[ch] = s.topic
     notes = list(bag.notes)
+    weight = None
     if "markers_uv" not in arrays and "image" in bag.series and scene is not None:
         decoded = markers_from_images(bag.series["image"].t_ns, arrays["image"], scene, bag.roles["image"], notes)
         if decoded is not None:
             t_ns["markers_uv"], arrays["markers_uv"] = decoded[0], _frozen(decoded[1])
+            weight = _frozen(decoded[2])
             topics["markers_uv"] = bag.roles["image"]
             missing.pop("markers_uv", None)
     noise = {}
@@ -296,22 +321,27 @@ def load_evidence(bag_path: str | Path, scene_path: str | Path | SceneFile | Non
     effectors = {}
     if isinstance(scene, TaskSceneFile):
         namespace = config.namespace if isinstance(config, BagConfig) else load_bag_config(config).namespace
-        effectors = read_effector_streams(bag.path, scene.effector_names, namespace)
+        mapped = recording_map if isinstance(recording_map, RecordingMap) else bag.recording_map
+        effectors = read_effector_streams(bag.path, scene.effector_names, namespace, recording_map=mapped)
     return Evidence(
         source=EvidenceSource(bag.path, bag.mcap_path, bag.sha256, bag.scene_path, topics, bag.recording_map),
         scene=scene, t_ns=t_ns, clock_t_ns=clock.t_ns if clock is not None else None, noise=noise,
-        channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors, **arrays,
+        channels_present=present, channels_missing=missing, notes=tuple(notes), effectors=effectors,
+        markers_uv_weight=weight, **arrays,
     )
 
 
 def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, topic: str,
-                        notes: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The ``markers_uv`` channel read off a tactile image stream (OpenCV blob detection and
-    frame-to-frame tracking in the fixed marker order, :func:`sysid.markers_image.track_marker_stream`).
+                        notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The ``markers_uv`` channel and its weights read off a tactile image stream (OpenCV blob detection
+    and frame-to-frame tracking in the fixed marker order, :func:`sysid.markers_image.track_markers`).
 
     The sensor is the scene's sensor whose name the topic ends with (``<sensor>/image``), or the
-    scene's only sensor; its ``marker_grid`` is the expected grid. Frames in which a marker was lost
-    are dropped (as NaN samples of a topic are), and counted in a note.
+    scene's only sensor; its ``marker_grid`` is the expected grid. A marker not seen in a frame but
+    interpolated from its lattice neighbours (``INTERPOLATED``) keeps its frame, with weight 0; a
+    marker cut by the image border (``CLIPPED``) has the visible fraction of its blob as weight. A
+    frame with a marker that could not even be interpolated (``LOST``, no position) is dropped (as
+    NaN samples of a topic are). Both are counted in a note.
 
     Args:
         t_ns: frame stamps ``(F,)`` ns.
@@ -321,12 +351,13 @@ def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, 
         notes: the bundle's notes; what was done (or why nothing could be) is appended.
 
     Returns:
-        ``(stamps (M,), uv (M, k, 2) px)`` of the frames with every marker found, or None (with a
-        :class:`~sysid.bagio.BagWarning` naming the topic) when the markers cannot be read: no
-        matching sensor, the first frame does not show the grid, or fewer than two frames remain.
+        ``(stamps (M,), uv (M, k, 2) px, weight (M, k) in [0, 1])`` of the frames where every marker
+        has a position, or None (with a :class:`~sysid.bagio.BagWarning` naming the topic) when the
+        markers cannot be read: no matching sensor, the first frame does not show the grid, or fewer
+        than two frames remain.
     """
     # optional heavy dependency: OpenCV (through markers_image), for images only
-    from sysid.markers_image import track_marker_stream
+    from sysid.markers_image import CLIPPED, INTERPOLATED, track_markers
 
     def give_up(why: str) -> None:
         message = f"topic {topic}: no markers decoded from the images ({why}); the evidence lacks markers_uv"
@@ -340,18 +371,22 @@ def markers_from_images(t_ns: np.ndarray, images: np.ndarray, scene: SceneFile, 
         give_up(f"no sensor of {scene.source} matches the topic")
         return None
     try:
-        uv = track_marker_stream(images, tuple(sensor.marker_grid))
+        tracks = track_markers(images, tuple(sensor.marker_grid))
     except CalibrationError as err:
         give_up(str(err))
         return None
-    complete = np.all(np.isfinite(uv), axis=(1, 2))
+    complete = np.all(np.isfinite(tracks.uv), axis=(1, 2))
     if int(complete.sum()) < 2:
-        give_up(f"only {int(complete.sum())} of {uv.shape[0]} frames show every marker")
+        give_up(f"only {int(complete.sum())} of {tracks.uv.shape[0]} frames have a position for every marker")
         return None
-    notes.append(f"topic {topic}: markers_uv decoded from {uv.shape[0]} images ({sensor.marker_grid[0]}x"
+    kept = tracks.status[complete]
+    counts = [(int((kept == INTERPOLATED).sum()), "interpolated marker positions with weight 0"),
+              (int((kept == CLIPPED).sum()), "border-cut markers weighted by their visible fraction"),
+              (int((~complete).sum()), "frames with a lost marker dropped")]
+    notes.append(f"topic {topic}: markers_uv decoded from {tracks.uv.shape[0]} images ({sensor.marker_grid[0]}x"
                  f"{sensor.marker_grid[1]} grid of sensor {sensor.name})"
-                 + (f"; {int((~complete).sum())} frames with a lost marker dropped" if not complete.all() else ""))
-    return np.asarray(t_ns)[complete], uv[complete]
+                 + "".join(f"; {n} {what}" for n, what in counts if n))
+    return np.asarray(t_ns)[complete], tracks.uv[complete], tracks.weight[complete]
 
 
 # ---------------------------------------------------------------------------------- alignment

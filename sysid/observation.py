@@ -26,7 +26,10 @@ has no ``markers_*`` / ``wrench`` channels; ``sheet_points`` are the vertices of
 
 Residuals are whitened per channel and axis by the white-noise level estimated from the recording
 (``Evidence.noise``, :mod:`sysid.noise`): ``r = (y_data - y_sim) / sigma``, so that weighted least
-squares with ``W = diag(1 / sigma^2)`` is ordinary least squares on ``r``.
+squares with ``W = diag(1 / sigma^2)`` is ordinary least squares on ``r``. Marker pixels read off
+images carry a per-marker weight ``w`` in ``[0, 1]`` (``Evidence.markers_uv_weight``: 0 for a marker the
+tracker interpolated, the visible fraction for one cut by the image border): their residual is
+``r = sqrt(w) (y_data - y_sim) / sigma``, so an interpolated marker does not count.
 """
 
 from __future__ import annotations
@@ -686,10 +689,16 @@ class ObservationModel:
         return out
 
     def residuals(self, prediction: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Whitened residual ``r = (y_data - y_sim) / (sigma s)`` over the fitted channels, ``(m,)``
-        (``s`` the channel's :attr:`sigma_scale`, 1 without one)."""
-        return np.concatenate([((self.data(ch) - prediction[ch]) / (self.sigma[ch] * self._scale(ch))).reshape(-1)
-                               for ch in self.channels])
+        """Whitened residual ``r = sqrt(w) (y_data - y_sim) / (sigma s)`` over the fitted channels, ``(m,)``
+        (``s`` the channel's :attr:`sigma_scale`, 1 without one; ``w`` :meth:`residual_weight_root` squared)."""
+        return np.concatenate([((self.data(ch) - prediction[ch]) / (self.sigma[ch] * self._scale(ch))
+                                * self.residual_weight_root(ch)).reshape(-1) for ch in self.channels])
+
+    def residual_weight_root(self, channel: str) -> np.ndarray | float:
+        """``sqrt(w)`` of every sample of ``channel``, broadcastable to its data ``(n, k, 1)``: the markers' weights
+        of pixels read off images (``Evidence.markers_uv_weight``), else 1.0."""
+        weight = self.evidence.markers_uv_weight if channel == "markers_uv" else None
+        return 1.0 if weight is None else np.sqrt(np.asarray(weight, dtype=float))[..., None]
 
     def _scale(self, channel: str) -> float:
         return 1.0 if self.sigma_scale is None else float(self.sigma_scale.get(channel, 1.0))
@@ -710,7 +719,9 @@ class ObservationModel:
             ``(n * ... * axes, p)`` (the sign of ``r = data - sim`` applied).
         """
         p = d_prediction.shape[-1]
-        return (-d_prediction / (self.sigma[channel][:, None] * self._scale(channel))).reshape(-1, p)
+        root = self.residual_weight_root(channel)
+        root = root if isinstance(root, float) else root[..., None]
+        return (-d_prediction / (self.sigma[channel][:, None] * self._scale(channel)) * root).reshape(-1, p)
 
     def channel_rms(self, prediction: Mapping[str, np.ndarray]) -> dict[str, dict[str, Any]]:
         """Per-channel RMS of ``data - prediction`` over every predictable channel present.

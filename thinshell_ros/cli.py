@@ -1,6 +1,6 @@
 """The ``thinshell`` command line: one entry point, subcommands per job.
 
-``thinshell demo | sim | record | sysid | indent | diagnose | compare | deploy | optimise | bench {forming,scale,node,diagnose,sysid,tasks,optimise,batch}``.
+``thinshell demo | sim | record | sysid | indent | diagnose | compare | deploy | optimise | compile | bench {forming,scale,node,diagnose,sysid,tasks,optimise,batch}``.
 Each subcommand's implementation lives in the module that owns the job; this file only parses
 arguments and dispatches (imports are lazy so ``thinshell bench forming`` never loads rclpy).
 """
@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "diagnose": ("sysid.diagnose_cli", "diagnose_main", "find, name and model missing physics in recorded bags"),
     "compare": ("sysid.compare", "compare_main", "replay a recording's motion in scene(s): RMS per channel, overlay plots, report"),
     "deploy": ("thinshell_ros.deploy_node", "deploy_main", "play a trajectory.yaml (or a bag's pose_cmd stream) on the robot over DDS, with limits and an abort"),
+    "compile": ("sim_core.kernel_compile", "compile_main", "compile the simulator's Taichi kernels into the offline cache ahead of the first run (make setup does)"),
     "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, optimise, batch"),
     "optimise": ("sysid.optimise_cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
 }

@@ -69,7 +69,9 @@ class DemoSettings:
         diagnose_args: ``thinshell diagnose`` options besides the bag and ``--json`` (None: no diagnosis).
         deploy_motion: the deployed press-slide-lift (same keys as ``motion``).
         compare_args: ``thinshell compare`` options besides the bag, scenes and ``--out``.
-        start_timeout: s of wall time for the sim node to come up and the plan to be made.
+        start_timeout: s of wall time for the sim node to come up and the plan to be made (its first start
+            on a machine compiles the simulator's kernels, minutes on two loaded cores, unless
+            ``thinshell compile`` has, as ``make setup`` does).
         motion_timeout: s of wall time for the scripted motion.
         task: the task stage's knobs (:mod:`thinshell_ros.demo_task`).
     """
@@ -79,7 +81,7 @@ class DemoSettings:
     diagnose_args: tuple[str, ...] | None = None
     deploy_motion: dict[str, float] = field(default_factory=dict)
     compare_args: tuple[str, ...] = ()
-    start_timeout: float = 120.0
+    start_timeout: float = 600.0
     motion_timeout: float = 600.0
     task: TaskStageSettings = TaskStageSettings()
 
@@ -215,7 +217,7 @@ def run_simulation_stage(run: Path, settings: DemoSettings, scene: Path, mode: s
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         with _progress(console) as progress:
-            start = progress.add_task("starting the sim node", total=None, info="")
+            start = progress.add_task("starting the sim node (a first start compiles its kernels)", total=None, info="")
             deadline = time.monotonic() + settings.start_timeout
             while node.schedule is None and not node.done.is_set():
                 if proc.poll() is not None:

@@ -1,4 +1,7 @@
-"""The band blocks of a stacked scene's batched CG: each copy's sheet, its vertices in a band-limiting order.
+"""The band blocks of a stacked scene's batched CG: each copy's sheet, its vertices in a band-limiting order
+(:func:`sheet_band_dofs`, the lockstep's), or each copy's whole free system in reverse Cuthill-McKee order
+(:func:`copy_band_dofs`: measured in ``benchmarks/bench_copy_bands.py`` and docs/gpu_roofline.md, not the lockstep's:
+its wider band costs more a factorisation than the CG iterations it saves with today's kernels).
 
 A thin sheet's Newton matrix is the stiff part of a copy's system: its bending modes are slow under the 3x3 vertex
 block-Jacobi preconditioner, and the CG's iterations go to them. Its own block, factorised exactly
@@ -82,3 +85,49 @@ def sheet_band_dofs(scene: StackedScene, max_dofs: int = MAX_BLOCK_DOFS) -> np.n
     for k, r in enumerate(rows):
         out[k, : r.size] = r
     return out
+
+
+def copy_band_dofs(scene: StackedScene, free: np.ndarray, indptr: np.ndarray, indices: np.ndarray,
+                   pairs: np.ndarray | None = None) -> np.ndarray:
+    """Each copy's free DoFs (its sheet and its gel together) as one band block, for
+    :class:`~sim_core.ti_kernels.pcg.BatchedPCG`'s ``bands``: the free vertices of copy 0 in the reverse
+    Cuthill-McKee order (Cuthill & McKee 1969; George & Liu, Computer Solution of Large Sparse Positive Definite
+    Systems, 1981, Sec. 4.3) of the graph that couples two vertices where the assembled pattern or ``pairs`` does,
+    the same local order for every copy.
+
+    Args:
+        scene: the stacked scene.
+        free: the free-DoF mask, ``(3 N,)`` (a vertex with a free DoF is in its copy's block).
+        indptr, indices: the assembled pattern's CSR arrays over the stacked DoFs (an upper triangle or both).
+        pairs: None, or more coupled vertex pairs, int ``(K, 2)`` of stacked vertices (e.g. contact blocks' rows and
+            columns): those of copy 0 join the graph.
+
+    Returns:
+        ``(B, m)`` int64: row ``c`` copy ``c``'s free DoFs, three a vertex, in that order (every copy has the same
+        free vertices in a lockstep batch).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    n_local = scene.vertex_count
+    local_of = np.full(scene.model.vertex_count, -1, dtype=np.int64)
+    local_of[scene.index[0]] = np.arange(n_local)
+    vertex_free = np.asarray(free, dtype=bool).reshape(-1, 3).any(axis=1)
+    rows = np.repeat(np.arange(np.asarray(indptr).size - 1), np.diff(indptr)) // 3
+    cols = np.asarray(indices)[: rows.size] // 3
+    if pairs is not None and len(pairs):
+        rows = np.concatenate([rows, np.asarray(pairs)[:, 0]])
+        cols = np.concatenate([cols, np.asarray(pairs)[:, 1]])
+    a, c = local_of[rows], local_of[cols]
+    keep = (a >= 0) & (c >= 0)
+    kept_local = np.flatnonzero(vertex_free[scene.index[0]])
+    compact = np.full(n_local, -1, dtype=np.int64)
+    compact[kept_local] = np.arange(kept_local.size)
+    a, c = compact[a[keep]], compact[c[keep]]
+    both = (a >= 0) & (c >= 0)
+    k = kept_local.size
+    graph = coo_matrix((np.ones(2 * int(both.sum())), (np.concatenate([a[both], c[both]]),
+                                                      np.concatenate([c[both], a[both]]))), shape=(k, k)).tocsr()
+    order = kept_local[reverse_cuthill_mckee(graph, symmetric_mode=True)]
+    stacked = scene.index[:, order]  # (B, k)
+    return (3 * stacked[:, :, None] + np.arange(3)).reshape(scene.copies, -1)

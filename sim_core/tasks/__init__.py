@@ -11,10 +11,11 @@ demand; importing this package registers the ids ``thinshell/<Task>-v0``, :mod:`
 
 from __future__ import annotations
 
-from sim_core.tasks.gym_ids import register_envs
+from sim_core.tasks.gym_ids import gymnasium_installed, register_envs
 from sim_core.tasks.rewards import crease_columns, folding_reward, forming_reward
 from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
 
 __all__ = ["crease_columns", "folding_reward", "forming_reward", "forming_benchmark_offsets", "pose_targets"]
 
-register_envs()
+if gymnasium_installed():  # the environments' ids, where Gymnasium is there to make them
+    register_envs()

@@ -14,7 +14,7 @@ The environment class is :class:`sim_core.tasks.env.ThinShellTaskEnv`.
 
 from __future__ import annotations
 
-import gymnasium as gym
+import importlib.util
 
 from sim_core.tasks.registry import TASK_NAMES
 
@@ -28,8 +28,20 @@ def env_id(task_name: str) -> str:
     return f"{ENV_NAMESPACE}/{_DISPLAY_NAMES.get(task_name, task_name.capitalize())}-v0"
 
 
+def gymnasium_installed() -> bool:
+    """Whether Gymnasium can be imported (a requirement of thinshell; a minimal install for the
+    simulator alone, such as the GPU machine's, may lack it)."""
+    return importlib.util.find_spec("gymnasium") is not None
+
+
 def register_envs() -> list[str]:
-    """Register the ten task environments with Gymnasium (idempotent); returns their ids."""
+    """Register the ten task environments with Gymnasium (idempotent); returns their ids.
+
+    Raises:
+        ModuleNotFoundError: Gymnasium is not installed.
+    """
+    import gymnasium as gym  # optional heavy dependency: Gymnasium, for the environments only
+
     ids = []
     for name in TASK_NAMES:
         eid = env_id(name)

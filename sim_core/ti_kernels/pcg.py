@@ -516,7 +516,7 @@ class BatchedPCG:
         return arr
 
     def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None,
-                  copies: "np.ndarray | None" = None) -> bool:
+                  copies: "np.ndarray | None" = None, keep_bands: bool = False) -> bool:
         """Keep the matrix ``A = U + U^T - diag(U) + sum_t F E_t F`` on the device and build its block-Jacobi
         preconditioner (each vertex's 3x3 diagonal block of ``A``, inverted); True.
 
@@ -534,6 +534,9 @@ class BatchedPCG:
             copies: None, or bool ``(B,)``: the band blocks of these copies only are factorised (the others' not
                 used by the next solves, which take the vertex blocks' inverses there: for copies solved with a zero
                 right-hand side, which stop at once either way, e.g. a Newton iteration's copies not retried).
+            keep_bands: the band blocks' factors of the last call that made them kept as they are (not gathered from
+                this matrix nor factorised again): the CG solves this matrix with a preconditioner of an earlier one
+                (e.g. of the step's first Newton matrix); ignored before the band blocks were first factorised.
 
         Raises:
             ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
@@ -550,7 +553,8 @@ class BatchedPCG:
         if blocks is not None and blocks.free.shape != (n,):
             raise ValueError(f"BatchedPCG: vertex blocks with a free mask of shape {blocks.free.shape}, expected ({n},)")
         self.factorizations += 1
-        if self.bands is not None:  # a selection's mask copied before the launches below (a copy waits for them)
+        keep_bands = keep_bands and self._banded
+        if self.bands is not None and not keep_bands:  # a selection's mask copied before the launches below
             self.bands.select(copies)
         self._n = n
         seg = self._segments if self._segments is not None else np.zeros(n, dtype=np.int32)
@@ -603,7 +607,7 @@ class BatchedPCG:
         if self._nblocks:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1), self._dtype), nvert)
-        if self._band_dofs is not None:
+        if self._band_dofs is not None and not keep_bands:
             if self.bands is None:
                 self.bands = BandBlocks(self._band_dofs, seg, dtype=self._dtype)
             a = self._arrays

@@ -8,13 +8,16 @@ names and returns, per role, the samples the contract would have recorded:
   any TF frame, carried to the effector frame by TF (``world_T_eff = world_T_link link_T_eff``);
 - ``pose_cmd``: the same for the command topic (e.g. a Cartesian controller's target of ``tool0`` in ``base``);
 - ``markers``: a PointCloud2 in the sensor frame (checked);
-- ``wrench``: the F/T wrench in its own frame, tool weight removed by orientation
+- ``wrench``: the F/T wrench in its own frame, negated when the sensor reports the reaction
+  (``sign: on_environment``), tool weight removed by orientation
   (``F_g = R_wf^T m g``, ``tau_g = c x F_g``), tared (known offset, or the mean of the
   weight-compensated samples over a pre-contact window), then carried to the sensor frame
   (``F_s = R F_f``, ``tau_s = R tau_f + t x F_s``, :func:`~sysid.bagio.tf_buffer.wrench_transform`);
 - ``sheet_points``: points in any frame, carried to ``world``;
 - ``image``: any encoding or CompressedImage, as grey frames;
-- ``clock``.
+- ``clock``;
+- the camera: the first ``camera_info``'s intrinsics and radial distortion ``k1 k2``
+  (:func:`~sysid.bagio.images.parse_camera_info`; other distortion terms left out with a warning).
 
 Every header frame_id is checked against the map: a mismatch is a :class:`BagReadError` naming the
 topic and both frames. Stamps follow each topic's policy (``header`` | ``log`` | ``auto``).
@@ -109,8 +112,8 @@ class _Mapper:
         return self.raw.get(src.topic, [])
 
     # ---------------------------------------------------------------------------------- roles
-    def pose_from_tf(self) -> Decoded:
-        eff = self.rmap.effector_frame
+    def pose_from_tf(self, eff: str | None = None) -> Decoded:
+        eff = eff or self.rmap.effector_frame
         t = self.tf.dynamic_stamps(self.rmap.base_frame, eff)
         if t.shape[0] == 0:
             raise BagReadError(f"{self.path}: the TF chain {self.rmap.base_frame} -> {eff} has no dynamic samples on "
@@ -118,7 +121,8 @@ class _Mapper:
         pose = pose_compose(self.world_T_base, self.tf.lookup(self.rmap.base_frame, eff, t))
         return t, hemisphere_continuous(pose), (), self.rmap.world_frame
 
-    def pose_from_topic(self, src: TopicSource) -> Decoded:
+    def pose_from_topic(self, src: TopicSource, eff: str | None = None) -> Decoded:
+        eff = eff or self.rmap.effector_frame
         items = self.items(src)
         parsed = [codec.parse_pose_stamped(m) for _, m in items]
         header = np.asarray([p[0] for p in parsed], dtype=np.int64)
@@ -135,8 +139,8 @@ class _Mapper:
         for frame in frames:
             sel = np.asarray([p[2].lstrip("/") == frame for p in parsed])
             world[sel] = pose_compose(self.world_T(frame, t[sel]), poses[sel])
-        link = src.link or self.rmap.effector_frame
-        world = pose_compose(world, self.lookup(link, self.rmap.effector_frame, t))
+        link = src.link or eff
+        world = pose_compose(world, self.lookup(link, eff, t))
         return t, hemisphere_continuous(world), (), self.rmap.world_frame
 
     def markers(self, src: TopicSource, decode: Callable[[str, str, list], Decoded]) -> Decoded:
@@ -167,13 +171,16 @@ class _Mapper:
         t = _stamps(TopicSource(src.topic, src.stamp), header, np.asarray([log for log, _ in items], dtype=np.int64))
         w = np.stack([p[1] for p in parsed])
         finite = np.all(np.isfinite(w), axis=1)
+        sign = -1.0 if src.sign == "on_environment" else 1.0  # the reaction: negated first (recording_map.py)
+        if sign < 0.0:
+            w = -w
         if src.tool is not None and src.tool.mass > 0.0:
             world_T_f = self.world_T(src.frame, t)
             weight = src.tool.mass * np.asarray(src.tool.gravity, dtype=np.float64)
             f_g = quat_rotate(pose_inverse(world_T_f)[:, 3:], np.broadcast_to(weight, (t.shape[0], 3)))
             w = w - np.concatenate([f_g, np.cross(np.asarray(src.tool.com), f_g)], axis=1)
-        if src.tare_offset is not None:
-            w = w - np.asarray(src.tare_offset, dtype=np.float64)
+        if src.tare_offset is not None:  # in the message's own sign
+            w = w - sign * np.asarray(src.tare_offset, dtype=np.float64)
         elif src.tare_window is not None:
             t0 = int(t[finite].min()) if finite.any() else 0
             lo, hi = (t0 + int(round(s * 1e9)) for s in src.tare_window)
@@ -259,8 +266,73 @@ def decode_mapped(rmap: RecordingMap, raw: dict[str, list[tuple[int, Any]]], top
             out[role] = (src.topic, msgtype, m.clock(src))
     camera = None
     if has(rmap.camera_info):
+        info = raw[rmap.camera_info.topic][0][1]
         try:
-            camera = images.parse_camera_info(raw[rmap.camera_info.topic][0][1])
+            camera = images.parse_camera_info(info)
+            left, px = images.distortion_left_out(info)
         except ValueError as err:
             raise BagReadError(f"topic {rmap.camera_info.topic}: {err}") from err
+        if left:
+            terms = ", ".join(f"{n}={v:.6g}" for n, v in left.items())
+            warn(f"topic {rmap.camera_info.topic}: distortion terms {terms} are not in the camera model (radial k1 k2 "
+                 f"only) and are left out: they move the image corners by up to {px:.3g} px")
     return out, camera
+
+
+def decode_mapped_effectors(rmap: RecordingMap, raw: dict[str, list[tuple[int, Any]]], topic_types: dict[str, str],
+                            path: str, effectors: list[str]) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Every effector's streams of a task scene's recording, through the map's ``effectors`` section.
+
+    Per effector (:class:`~sysid.bagio.recording_map.EffectorSource`): ``pose`` in world from TF (at the
+    chain's dynamic stamps) or a pose topic (its stamp policy); ``pose_cmd`` carried from its ``link`` to
+    the effector frame, stamped with log time (when the robot took it); ``gripper_cmd`` openings (m), log
+    time. Samples in file order, not yet cleaned.
+
+    Args:
+        rmap: the recording map (``rmap.effectors`` non-empty).
+        raw: topic -> ``[(log_ns, message)]`` of the TF topics and the effectors' topics.
+        topic_types: topic -> message type of every topic in the bag.
+        path: the bag (for messages).
+        effectors: the scene's effector names.
+
+    Returns:
+        effector -> ``"pose"`` / ``"pose_cmd"`` / ``"gripper_cmd"`` -> ``(t_ns (N,), values)``: poses ``(N, 7)``
+        in world, openings ``(N,)``; streams without messages are absent.
+
+    Raises:
+        BagReadError: the map names an effector the scene does not have, a topic of another type, a frame
+            or TF lookup that contradicts the map (each names the topic, effector or frame).
+    """
+    unknown = sorted(set(rmap.effectors) - set(effectors))
+    if unknown:
+        raise BagReadError(f"{rmap.source}: effectors.{unknown[0]} is not an effector of the scene "
+                           f"(effectors: {', '.join(effectors)})")
+    expected = {"pose": (codec.POSE_STAMPED,), "pose_cmd": (codec.POSE_STAMPED,), "gripper_cmd": (codec.FLOAT64,)}
+    m = _Mapper(rmap, raw, path, lambda message: None)
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for name, spec in rmap.effectors.items():
+        streams: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for kind in ("pose", "pose_cmd", "gripper_cmd"):
+            src = getattr(spec, kind)
+            if src is None or (src == "tf" and not raw.get(rmap.tf_topic)):
+                continue
+            if src == "tf":
+                t, values, _, _ = m.pose_from_tf(spec.frame)
+                streams[kind] = (t, values)
+                continue
+            items = raw.get(src.topic, [])
+            if not items:
+                continue
+            msgtype = topic_types.get(src.topic)
+            if msgtype not in expected[kind]:
+                raise BagReadError(f"topic {src.topic} (effectors.{name}.{kind} of {rmap.source}) has type {msgtype}, "
+                                   f"expected {expected[kind][0]} in {path}")
+            log = np.asarray([t for t, _ in items], dtype=np.int64)
+            if kind == "gripper_cmd":
+                streams[kind] = (log, np.asarray([codec.parse_float64(msg) for _, msg in items], dtype=np.float64))
+                continue
+            t, values, _, _ = m.pose_from_topic(src, spec.frame)
+            streams[kind] = (log if kind == "pose_cmd" else t, values)
+        if streams:
+            out[name] = streams
+    return out

@@ -144,7 +144,8 @@ class BagContents:
         notes: the warnings emitted while reading, as text.
         mcap_paths: every MCAP file of the bag, in ``metadata.yaml`` order.
         recording_map: the recording map file used, or None (today's contract).
-        camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``), or None.
+        camera: intrinsics from the map's ``camera_info`` topic (``fx fy cx cy width height``, and ``k1 k2``
+            when it gives a distortion), or None.
     """
 
     path: Path
@@ -636,7 +637,8 @@ EFFECTOR_STREAMS = {"pose": codec.POSE_STAMPED, "pose_cmd": codec.POSE_STAMPED, 
 """Per-effector streams of a task-scene recording (``<namespace>/<effector>/<stream>``) and their types."""
 
 
-def read_effector_streams(path: str | Path, effectors: list[str], namespace: str = "/thinshell"
+def read_effector_streams(path: str | Path, effectors: list[str], namespace: str = "/thinshell",
+                          recording_map: str | Path | RecordingMap | None = None
                           ) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Every effector's ``pose``, ``pose_cmd`` and ``gripper_cmd`` stream of a recording.
 
@@ -647,6 +649,10 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
         path: rosbag2 directory or ``.mcap`` file.
         effectors: effector names of the scene.
         namespace: topic prefix.
+        recording_map: a real cell's map whose ``effectors`` section says where each effector's streams
+            come from (TF or pose topics in any frame, commands of another link;
+            :func:`sysid.bagio.cell.decode_mapped_effectors`); None, or a map without that section: the
+            topics above.
 
     Returns:
         effector -> stream -> ``(t_ns (N,) int64, values)``, values ``(N, 7)`` poses [x y z qx qy
@@ -662,6 +668,9 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
     """
     path = Path(path).absolute()
     mcap_path, _, meta_dir = _locate(path)
+    rmap = load_recording_map(recording_map) if recording_map is not None else None
+    if rmap is not None and rmap.effectors:
+        return _read_mapped_effector_streams(path, mcap_path, meta_dir is not None, rmap, effectors)
     topic_of = {(e, k): _join(namespace, f"{e}/{k}") for e in effectors for k in EFFECTOR_STREAMS}
     topics, raw = _read_raw(path, mcap_path, meta_dir is not None, set(topic_of.values()))
     out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -682,4 +691,23 @@ def read_effector_streams(path: str | Path, effectors: list[str], namespace: str
         t_ns, values, _, _ = _clean(kind, topic, t_ns, values, lambda m: warnings.warn(m, BagWarning, stacklevel=3),
                                     keep="first" if kind == "pose" else "last")
         out.setdefault(effector, {})[kind] = (t_ns, values)
+    return out
+
+
+def _read_mapped_effector_streams(path: Path, mcap_path: Path, is_dir: bool, rmap: RecordingMap,
+                                  effectors: list[str]) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """:func:`read_effector_streams` through a recording map's ``effectors`` section (cleaned the same way)."""
+    wanted = {rmap.tf_topic, rmap.tf_static_topic}
+    for spec in rmap.effectors.values():
+        wanted |= {src.topic for src in (spec.pose, spec.pose_cmd, spec.gripper_cmd)
+                   if src is not None and not isinstance(src, str)}
+    topics, raw = _read_raw(path, mcap_path, is_dir, wanted)
+    decoded = cell.decode_mapped_effectors(rmap, raw, {t: i.msgtype for t, i in topics.items()}, str(path), effectors)
+    out: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for effector, streams in decoded.items():
+        for kind, (t_ns, values) in streams.items():
+            t_ns, values, _, _ = _clean(kind, f"effectors.{effector}.{kind} of {rmap.source}", t_ns, values,
+                                        lambda m: warnings.warn(m, BagWarning, stacklevel=3),
+                                        keep="first" if kind == "pose" else "last")
+            out.setdefault(effector, {})[kind] = (t_ns, values)
     return out

@@ -22,11 +22,18 @@ dataclasses below; unknown keys are errors (house rule 7). Schema version 1::
       topic: T
       frame: ft_sensor
       stamp: header
+      sign: on_gel                    # or on_environment: the sensor reports the reaction
       tare: {window: [0.0, 0.2]}      # s after the first wrench sample; or {offset: [6 values]}
       tool: {mass: 0.25, com: [0, 0, 0.03], gravity: [0, 0, -9.81]}
     sheet_points: {topic: T, frame: base_link, stamp: header}
     clock: {topic: /clock}
     tf: {dynamic: /tf, static: /tf_static}
+    effectors:                        # a task scene's (kind: task) effectors, each on its own
+      left:
+        frame: left_gel               # TF frame of the effector's frame
+        pose: {tf: true}              # or {topic: T, link: L, stamp: header}
+        pose_cmd: {topic: T, link: left_tool0}    # taken at its log time
+        gripper_cmd: {topic: T}                   # std_msgs/Float64 opening (m), taken at its log time
 
 Stamp policies: ``header`` (the header stamp, today's contract), ``log`` (the time the recorder
 logged the message), ``auto`` (log time for a topic whose header stamps are zero or not increasing,
@@ -36,7 +43,7 @@ else the header stamp).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -48,9 +55,12 @@ MAP_FILENAME = "recording.yaml"
 STAMP_POLICIES = ("header", "log", "auto")
 IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 STANDARD_GRAVITY = (0.0, 0.0, -9.80665)
+WRENCH_SIGNS = ("on_gel", "on_environment")
+"""``wrench.sign``: the message is the wrench ON the tool side (the gel, the contract's sign), or the
+wrench the tool exerts ON the environment (the reaction, its negative)."""
 
 _TOP_KEYS = ("version", "frames", "pose", "pose_cmd", "markers", "image", "camera_info", "wrench", "sheet_points",
-             "clock", "tf")
+             "clock", "tf", "effectors")
 _FRAME_KEYS = ("base", "world_in_base", "world", "sensor", "effector")
 
 
@@ -97,6 +107,10 @@ class WrenchSource:
             sensor's offset, subtracted from every sample; ``None`` with ``tare_offset`` or no tare.
         tare_offset: a known offset ``(6,)`` N, N m in ``frame``, subtracted from every sample.
         tool: :class:`ToolWeight` compensated by orientation, or None.
+        sign: ``on_gel`` (default): the message is the force and torque the tool side receives (the
+            contract's sign: pressing gives F_z < 0 in the sensor frame); ``on_environment``: the sensor
+            reports the reaction, the wrench the tool exerts on what it touches, and the reader negates it
+            before the tool weight and the tare (``tare_offset`` stays in the message's own sign).
     """
 
     topic: str
@@ -105,6 +119,26 @@ class WrenchSource:
     tare_window: tuple[float, float] | None = None
     tare_offset: tuple[float, ...] | None = None
     tool: ToolWeight | None = None
+    sign: str = "on_gel"
+
+
+@dataclass(frozen=True)
+class EffectorSource:
+    """One effector of a task scene (``kind: task``) in a real cell's recording.
+
+    Attributes:
+        frame: TF frame of the effector's frame (the frame ``effectors.<e>.initial_pose`` places in world).
+        pose: ``"tf"`` (the TF chain ``base -> frame``, sampled at the chain's dynamic edges' stamps), a
+            :class:`TopicSource` (a PoseStamped of ``link``, default ``frame``), or None.
+        pose_cmd: :class:`TopicSource` of the command, a PoseStamped of ``link`` (e.g. ``tool0``) carried to
+            ``frame`` by TF; stamped with its log time (when the robot took it), as the contract's task reader.
+        gripper_cmd: :class:`TopicSource` of ``std_msgs/Float64`` finger openings (m), stamped with log time.
+    """
+
+    frame: str
+    pose: str | TopicSource | None = None
+    pose_cmd: TopicSource | None = None
+    gripper_cmd: TopicSource | None = None
 
 
 @dataclass(frozen=True)
@@ -121,6 +155,8 @@ class RecordingMap:
         wrench: :class:`WrenchSource` or None.
         tf_topic, tf_static_topic: TF topics.
         source: the file it came from.
+        effectors: of a task scene, effector name -> :class:`EffectorSource` (empty: the task scene's
+            effector streams come from INTERFACES.md's topics).
     """
 
     base_frame: str
@@ -139,6 +175,7 @@ class RecordingMap:
     tf_topic: str = "/tf"
     tf_static_topic: str = "/tf_static"
     source: str = "<dict>"
+    effectors: dict[str, EffectorSource] = field(default_factory=dict)
 
     def topics(self) -> dict[str, str]:
         """Every topic the map reads: role -> topic (``tf`` / ``tf_static`` included)."""
@@ -219,7 +256,10 @@ def _topic(source: str, role: str, data: Any, allowed: tuple[str, ...]) -> Topic
 def _wrench(source: str, data: Any) -> WrenchSource | None:
     if data is None:
         return None
-    s = _Section(source, "wrench", data, ("topic", "frame", "stamp", "tare", "tool"))
+    s = _Section(source, "wrench", data, ("topic", "frame", "stamp", "sign", "tare", "tool"))
+    sign = data.get("sign", "on_gel")
+    if sign not in WRENCH_SIGNS:
+        raise ConfigError(f"{source}: wrench.sign must be one of {', '.join(WRENCH_SIGNS)}, got {sign!r}")
     base = _topic(source, "wrench", {k: v for k, v in data.items() if k in ("topic", "stamp")}, ("topic", "stamp"))
     window = offset = None
     if data.get("tare") is not None:
@@ -239,7 +279,35 @@ def _wrench(source: str, data: Any) -> WrenchSource | None:
         tool = ToolWeight(mass=float(mass), com=t.numbers("com", 3, required=True),
                           gravity=t.numbers("gravity", 3, default=STANDARD_GRAVITY))
     return WrenchSource(topic=base.topic, frame=s.text("frame", required=True), stamp=base.stamp,
-                        tare_window=window, tare_offset=offset, tool=tool)
+                        tare_window=window, tare_offset=offset, tool=tool, sign=sign)
+
+
+def _pose_source(source: str, where: str, data: Any) -> str | TopicSource | None:
+    """``{tf: true}`` -> ``"tf"``, else a pose topic ``{topic, link, stamp}``."""
+    if isinstance(data, Mapping) and set(data) == {"tf"}:
+        if data["tf"] is not True:
+            raise ConfigError(f"{source}: {where}.tf must be true (or give {where}.topic)")
+        return "tf"
+    return _topic(source, where, data, ("topic", "link", "stamp"))
+
+
+def _effectors(source: str, data: Any) -> dict[str, EffectorSource]:
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping) or not data:
+        raise ConfigError(f"{source}: effectors must be a mapping of effector names, got {data!r}")
+    out = {}
+    for name, spec in data.items():
+        where = f"effectors.{name}"
+        s = _Section(source, where, spec, ("frame", "pose", "pose_cmd", "gripper_cmd"))
+        effector = EffectorSource(
+            frame=s.text("frame", required=True), pose=_pose_source(source, f"{where}.pose", spec.get("pose")),
+            pose_cmd=_topic(source, f"{where}.pose_cmd", spec.get("pose_cmd"), ("topic", "link")),
+            gripper_cmd=_topic(source, f"{where}.gripper_cmd", spec.get("gripper_cmd"), ("topic",)))
+        if effector.pose is None and effector.pose_cmd is None:
+            raise ConfigError(f"{source}: {where} needs pose or pose_cmd (its motion cannot be replayed without)")
+        out[str(name)] = effector
+    return out
 
 
 def parse_recording_map(data: Mapping[str, Any], source: str = "<dict>") -> RecordingMap:
@@ -256,14 +324,7 @@ def parse_recording_map(data: Mapping[str, Any], source: str = "<dict>") -> Reco
     world_in_base = _pose7(source, "frames.world_in_base",
                            frames.numbers("world_in_base", 7, required=True))
     sensor = frames.text("sensor", required=True)
-    pose_data = data.get("pose")
-    pose: str | TopicSource | None
-    if isinstance(pose_data, Mapping) and set(pose_data) == {"tf"}:
-        if pose_data["tf"] is not True:
-            raise ConfigError(f"{source}: pose.tf must be true (or give pose.topic)")
-        pose = "tf"
-    else:
-        pose = _topic(source, "pose", pose_data, ("topic", "link", "stamp"))
+    pose = _pose_source(source, "pose", data.get("pose"))
     tf = _Section(source, "tf", data.get("tf") or {}, ("dynamic", "static"))
     del top
     return RecordingMap(
@@ -277,7 +338,7 @@ def parse_recording_map(data: Mapping[str, Any], source: str = "<dict>") -> Reco
         sheet_points=_topic(source, "sheet_points", data.get("sheet_points"), ("topic", "frame", "stamp")),
         clock=_topic(source, "clock", data.get("clock"), ("topic",)),
         tf_topic=tf.text("dynamic", default="/tf"), tf_static_topic=tf.text("static", default="/tf_static"),
-        source=source,
+        source=source, effectors=_effectors(source, data.get("effectors")),
     )
 
 

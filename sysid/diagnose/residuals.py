@@ -1,7 +1,7 @@
 """Residual arithmetic of the diagnosis: whitening, SSE, held-out rows, RMS summaries, effect size.
 
 Pure functions over an observation model (``sysid.observation.ObservationModel`` or anything with
-``data(channel)``, ``sigma`` and ``evidence.channels_present``) and channel -> prediction maps;
+``data(channel)``, ``sigma``, ``residual_weight_root(channel)`` and ``evidence.channels_present``) and channel -> prediction maps;
 :mod:`sysid.diagnose.engine` composes them.
 """
 
@@ -21,10 +21,16 @@ RMS_KEYS = {"markers_uv": "markers_px", "markers_xyz": "markers_m", "wrench": "w
 
 
 def whiten(model: Any, channel: str, a: np.ndarray) -> np.ndarray:
-    """Divide the last data axis by the channel noise; ``a`` is ``(T, ..., axes)`` or ``(T, ..., axes, q)``."""
+    """Divide the last data axis by the channel noise and multiply each sample by the square root of its weight
+    (``ObservationModel.residual_weight_root``: the image tracker's marker weights, 0 for an interpolated marker);
+    ``a`` is ``(T, ..., axes)`` or ``(T, ..., axes, q)``."""
     s = model.sigma[channel]
     data_ndim = model.data(channel).ndim
-    return a / s.reshape((-1,) + (1,) * (a.ndim - data_ndim)) if a.ndim > data_ndim else a / s
+    root = model.residual_weight_root(channel) if channel == "markers_uv" else 1.0  # only pixels carry weights
+    if a.ndim > data_ndim:
+        extra = (1,) * (a.ndim - data_ndim)
+        return a / s.reshape((-1,) + extra) * (root if isinstance(root, float) else root.reshape(root.shape + extra))
+    return a / s * root
 
 
 def residual(model: Any, channel: str, prediction: np.ndarray) -> np.ndarray:

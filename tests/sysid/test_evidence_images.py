@@ -67,6 +67,7 @@ def test_markers_are_read_off_the_images_when_the_bag_has_no_markers_topic(tmp_p
     assert "markers_uv" in ev.channels_present and "markers_xyz" not in ev.channels_present
     assert ev.markers_uv.shape == truth.shape
     assert np.max(np.linalg.norm(ev.markers_uv - truth, axis=2)) < 0.2  # px, fixed order kept
+    np.testing.assert_array_equal(ev.markers_uv_weight, np.ones(truth.shape[:2]))  # every marker whole
     np.testing.assert_array_equal(ev.t_ns["markers_uv"], ev.t_ns["image"])
     assert ev.source.topics["markers_uv"] == f"{NS}/tactile/image"
     assert np.all(np.isfinite(ev.noise["markers_uv"]))
@@ -80,14 +81,18 @@ def test_markers_are_read_off_the_images_when_the_bag_has_no_markers_topic(tmp_p
     assert "not decoded" in plain.channels_missing["image"]
 
 
-def test_a_frame_with_a_lost_marker_is_dropped_and_counted(tmp_path, scene_dict):
+def test_a_frame_with_an_unseen_marker_is_kept_with_the_marker_interpolated_at_weight_zero(tmp_path, scene_dict):
     scene = _scene(scene_dict)
     truth = _truth(10, _camera(scene))
     _write(tmp_path / "bag", scene, truth, lose=(4, 30))
     ev = load_evidence(tmp_path / "bag", include_image="auto")
-    assert ev.markers_uv.shape[0] == 9
-    assert np.max(np.linalg.norm(ev.markers_uv - np.delete(truth, 4, axis=0), axis=2)) < 0.2
-    assert any("1 frames with a lost marker dropped" in n for n in ev.notes)
+    assert ev.markers_uv.shape == truth.shape and ev.markers_uv_weight.shape == truth.shape[:2]
+    # the occluded marker is interpolated from its lattice neighbours (the press is affine: near exact)
+    assert np.max(np.linalg.norm(ev.markers_uv - truth, axis=2)) < 0.2
+    assert ev.markers_uv_weight[4, 30] == 0.0
+    weight = ev.markers_uv_weight
+    assert np.count_nonzero(weight == 0.0) == 1 and np.all(weight[weight > 0.0] == 1.0)
+    assert any("1 interpolated marker positions with weight 0" in n for n in ev.notes)
 
 
 def test_images_without_the_expected_grid_give_a_warning_naming_the_topic(tmp_path, scene_dict):

@@ -108,7 +108,8 @@ def _close(ex, *nodes) -> None:
 @pytest.mark.realtime
 def test_commands_on_time_at_100_hz_and_the_sim_follows(ros_context, sim_process):
     robot = _Nothing(ros_context)
-    node, obs, ex = _setup(ros_context, robot, _line(dx=0.02, duration=2.0, n=21), rate=100.0, start_timeout=15.0)
+    node, obs, ex = _setup(ros_context, robot, _line(dx=0.02, duration=2.0, n=21), rate=100.0, start_timeout=15.0,
+                           sensor_timeout=2.0)
     try:
         assert spin_until(ex, node.done.is_set, 20.0), node.status()
         spin_until(ex, lambda: False, 0.2)
@@ -132,24 +133,30 @@ def test_commands_on_time_at_100_hz_and_the_sim_follows(ros_context, sim_process
         _close(ex, node, obs.n, robot)
 
 
-def test_wrench_limit_aborts_within_one_period_and_nothing_follows(ros_context, sim_process):
+def test_wrench_limit_aborts_within_one_period_and_only_the_hold_follows(ros_context, sim_process):
     # plane at z = 0.3 mm, 1000 N/m: 0.8 N at the bottom of this press
     robot = _Nothing(ros_context)
     node, obs, ex = _setup(ros_context, robot, _line(dz=-0.0045, duration=1.0), rate=100.0, wrench_limit=0.3,
-                           start_timeout=15.0)
+                           start_timeout=15.0, sensor_timeout=2.0, abort_hold_time=0.3)
     obs.limit = 0.3
     try:
-        assert spin_until(ex, node.done.is_set, 20.0), node.status()
+        assert spin_until(ex, lambda: node.state == "aborted", 20.0), node.status()
         n_at_abort = node.published
-        t_abort = time.monotonic()
-        spin_until(ex, lambda: False, 0.5)
-        assert node.state == "aborted" and "exceeds wrench_limit 0.3 N" in node.reason, node.reason
+        t_abort = node.aborted_at  # monotonic, in the wrench callback that decided it
+        assert spin_until(ex, node.done.is_set, 10.0), node.status()
+        spin_until(ex, lambda: len(obs.cmds) >= n_at_abort + node.abort_published, 2.0)
+        assert node.reason.startswith("measured force") and "exceeds wrench_limit 0.3 N" in node.reason, node.reason
         assert obs.over, "the sim never exceeded the limit"
         assert t_abort - obs.over[0] < PERIOD  # aborted within one control period of the measurement
-        assert node.published == n_at_abort, "a command was published after the abort"
-        assert len(obs.cmds) == n_at_abort  # and every one published was delivered (none in flight later)
+        assert node.published == n_at_abort, "a trajectory command was published after the abort"
         assert node.published < node.schedule.tick_count
+        # on_abort hold (default): every later command is the pose measured at the abort, not deeper
+        assert node.abort_published >= 2 and len(obs.cmds) == n_at_abort + node.abort_published
+        held = np.array([p for _, _, p in obs.cmds[n_at_abort:]])
+        assert np.ptp(held, axis=0).max() == 0.0
+        assert held[0][2] >= min(p[2] for _, _, p in obs.cmds[:n_at_abort]) - 1e-12
         assert obs.status[-1]["state"] == "aborted" and "wrench_limit" in obs.status[-1]["reason"]
+        assert spin_until(ex, lambda: obs.status[-1]["abort_action"] == "done", 3.0), obs.status[-1]
     finally:
         _close(ex, node, obs.n, robot)
 

@@ -46,7 +46,8 @@ def make_ctx(n_steps=400, data=None, tau=0.0):
     model = SimpleNamespace(step_times_ns=steps, evidence=evidence, scene={"sensors": {"tactile": {"camera": CAMERA}}},
                             sensor="tactile", data=lambda ch: data[ch] if data else pred[ch],
                             sigma={"markers_xyz": np.full(3, 15e-6), "markers_uv": np.full(2, 0.15),
-                                   "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])})
+                                   "wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])},
+                            residual_weight_root=lambda ch: 1.0)
     return DiagnosisContext(model, {}, trace, pred, ("markers_xyz", "markers_uv", "wrench"))
 
 
