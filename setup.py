@@ -3,8 +3,9 @@
 Installs the Python packages ``sim_core``, ``sysid`` and ``thinshell_ros`` with their package data
 (``sysid/data``; ``config/`` as the package data of ``sim_core.bundled`` and ``bags/`` as that of
 ``thinshell_ros.bundled``, which :mod:`thinshell_ros.paths` reads with ``importlib.resources``), the ament resource-index marker,
-``package.xml`` and every file under ``config/`` into ``share/thinshell`` (the ROS convention, for
-``ros2 launch`` / parameter files), and the console scripts (also under ``lib/thinshell`` for
+``package.xml``, every file under ``config/`` (parameter files: ``config/nodes``) and the launch
+files under ``launch/`` into ``share/thinshell`` (the ROS convention, for ``ros2 launch thinshell
+sim.launch.py`` and ``--params-file``), and the console scripts (also under ``lib/thinshell`` for
 ``ros2 run``, see ``setup.cfg``).
 """
 
@@ -19,10 +20,11 @@ PACKAGE = "thinshell"
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def config_data_files() -> list[tuple[str, list[str]]]:
-    """``(install dir, [files])`` for every file under ``config/``, keeping the folder layout."""
+def tree_data_files(folder: str) -> list[tuple[str, list[str]]]:
+    """``(install dir, [files])`` for every file under ``folder`` (``config``, ``launch``), keeping the
+    folder layout under ``share/thinshell``."""
     groups: dict[str, list[str]] = {}
-    for path in sorted(glob(os.path.join("config", "**", "*"), recursive=True, root_dir=HERE)):
+    for path in sorted(glob(os.path.join(folder, "**", "*"), recursive=True, root_dir=HERE)):
         if os.path.isfile(os.path.join(HERE, path)):
             groups.setdefault(os.path.join("share", PACKAGE, os.path.dirname(path)), []).append(path)
     return sorted(groups.items())
@@ -41,7 +43,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         (os.path.join("share", PACKAGE), ["package.xml"]),
-        *config_data_files(),
+        *tree_data_files("config"),
+        *tree_data_files("launch"),
     ],
     install_requires=["numpy", "scipy", "pyyaml"],
     zip_safe=False,

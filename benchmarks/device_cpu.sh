@@ -17,7 +17,7 @@
 #                                typing_extensions)
 #                   bags         the reference bags, copied to DIR/data/reference_bags
 #                   optimise     = taichi cma      (thinshell optimise / bench optimise)
-#                   diagnose     = taichi-slim rosbags bags  (thinshell bench diagnose --labelled, whose
+#                   diagnose     = taichi-slim rosbags bags  (python -m benchmarks.diagnose_bench --labelled, whose
 #                                replays run on Taichi CPU)
 #   DIR/jobs.txt  the commands, one a line (written by the caller, kept by `prepare`; see below)
 #
@@ -44,7 +44,7 @@
 #       timeout_s=600)
 # Lines of jobs.txt, e.g.
 #   python -m thinshell_ros.cli bench optimise --tasks forming --methods cma --seeds 1 --first-seed 1 --episodes 60 --population 8 --max-time 400 --json
-#   python -m thinshell_ros.cli bench diagnose --labelled $DATA/reference_bags --json
+#   python -m benchmarks.diagnose_bench --labelled $DATA/reference_bags --json
 # Put the longest jobs first: they start first.
 set -u
 mode=${1:-}

@@ -1,6 +1,6 @@
 """Run ``thinshell diagnose`` (signature engine, the command's defaults, alone) on every recording of
 a labelled set (``labels.yaml`` in the reference set's format, e.g. one written by
-``python -m sysid.synthetic_effects``), one at a time, and print the confusion table.
+``python -m benchmarks.synthetic_effects``), one at a time, and print the confusion table.
 
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR [--only NAME ...]
     python benchmarks/synthetic_diagnose.py SET_DIR OUT_DIR --table
@@ -35,7 +35,7 @@ import yaml
 
 from sysid.diagnose.cli import build_parser, signature_settings
 from sysid.diagnose.signatures.base import TACTILE_CHANNELS
-from sysid.diagnose.reference_bench import VARIANT_EFFECT
+from benchmarks.reference_bench import VARIANT_EFFECT
 from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, guard_names, prepare
 from sysid.diagnose.signatures import run_signature_tests
 from sysid.diagnose.signatures.null import decide, default_thresholds

@@ -112,6 +112,80 @@ def hertz_force(depth, radius: float, youngs_modulus: float, poisson_ratio: floa
     return 4.0 / 3.0 * e_star * np.sqrt(radius) * d**1.5
 
 
+def flat_punch_force(depth, radius: float, youngs_modulus: float, poisson_ratio: float) -> np.ndarray:
+    """Normal force of a rigid flat-ended cylindrical punch on an elastic half-space.
+
+    ``F = 2 a E* d`` with ``E* = E / (1 - nu^2)`` (Sneddon 1965, Int. J. Eng. Sci. 3, 47-57;
+    Boussinesq's problem, Johnson, *Contact Mechanics*, 1985, eq. 3.38 for the load of a flat punch),
+    for a frictionless punch of radius ``a`` on a body large compared with ``a``.
+
+    Args:
+        depth: indentation depth(s) d in m (>= 0), scalar or array.
+        radius: punch radius a in m.
+        youngs_modulus: E in Pa.
+        poisson_ratio: nu.
+
+    Returns:
+        force(s) in N, same shape as ``depth``.
+    """
+    d = np.clip(np.asarray(depth, dtype=float), 0.0, None)
+    return 2.0 * radius * youngs_modulus / (1.0 - poisson_ratio**2) * d
+
+
+def bonded_layer_coefficients(poisson_ratio: float) -> tuple[float, float]:
+    """Dimitriadis et al.'s constants ``(alpha_0, beta_0)`` of a layer bonded to a rigid base.
+
+    ``alpha_0 = -(1.2876 - 1.4678 nu + 1.3442 nu^2) / (1 - nu)``,
+    ``beta_0 = (0.6387 - 1.0277 nu + 1.5164 nu^2) / (1 - nu)`` (Dimitriadis, Horkay, Maresca,
+    Kachar & Chadwick, "Determination of elastic moduli of thin layers of soft material using the
+    atomic force microscope", Biophys. J. 82, 2798-2810, 2002, eq. 12-13): the leading terms of the
+    layer's surface kernel against the half-space's, fitted for 0 <= nu <= 0.5.
+    """
+    nu = float(poisson_ratio)
+    return (-(1.2876 - 1.4678 * nu + 1.3442 * nu**2) / (1.0 - nu),
+            (0.6387 - 1.0277 * nu + 1.5164 * nu**2) / (1.0 - nu))
+
+
+def bonded_layer_sphere_factor(depth, radius: float, thickness: float, poisson_ratio: float) -> np.ndarray:
+    """F / F_Hertz of a rigid sphere on an elastic layer of ``thickness`` bonded to a rigid base.
+
+    With ``chi = sqrt(R d) / h`` (Dimitriadis et al. 2002, eq. 11; error < 1 % against the exact
+    solution for ``chi <= 1``; see :func:`bonded_layer_coefficients`):
+    ``1 - 2 a0/pi chi + 4 a0^2/pi^2 chi^2 - 8/pi^3 (a0^3 + 4 pi^2 b0/15) chi^3
+    + 16 a0/pi^4 (a0^3 + 3 pi^2 b0/5) chi^4``.
+
+    Args:
+        depth: indentation depth(s) d in m, scalar or array.
+        radius: sphere radius R in m.
+        thickness: layer thickness h in m.
+        poisson_ratio: nu of the layer.
+
+    Returns:
+        the factor (>= 1 for a bonded layer), same shape as ``depth``.
+    """
+    a0, b0 = bonded_layer_coefficients(poisson_ratio)
+    chi = np.sqrt(radius * np.clip(np.asarray(depth, dtype=float), 0.0, None)) / thickness
+    pi = np.pi
+    return (1.0 - 2.0 * a0 / pi * chi + 4.0 * a0**2 / pi**2 * chi**2
+            - 8.0 / pi**3 * (a0**3 + 4.0 * pi**2 * b0 / 15.0) * chi**3
+            + 16.0 * a0 / pi**4 * (a0**3 + 3.0 * pi**2 * b0 / 5.0) * chi**4)
+
+
+def bonded_layer_punch_factor(radius: float, thickness: float, poisson_ratio: float) -> float:
+    """F / F_Sneddon of a frictionless flat punch of radius ``a`` on a layer bonded to a rigid base,
+    to first order in ``a / h``: ``1 - 2 alpha_0 / pi (a / h)``.
+
+    The layer's surface kernel differs from the half-space's, near the axis, by a constant (the
+    ``alpha_0`` term of :func:`bonded_layer_coefficients`): a uniform extra compliance under any
+    frictionless axisymmetric contact, which gives the first-order term of Dimitriadis et al.'s
+    sphere expansion (:func:`bonded_layer_sphere_factor`, ``chi = a / h``) and the same term for a
+    punch. Use only for ``a / h`` small enough that the neglected ``(a / h)^2`` term (about
+    ``(2 alpha_0 / pi)^2 (a / h)^2``) is within the tolerance.
+    """
+    a0, _ = bonded_layer_coefficients(poisson_ratio)
+    return float(1.0 - 2.0 * a0 / np.pi * radius / thickness)
+
+
 # ---------------------------------------------------------------------------------- geometry
 def graded_axis(extent: float, h_fine: float, fine_extent: float, growth: float) -> np.ndarray:
     """1-D coordinates from 0 to ``extent``: spacing ``h_fine`` up to ``fine_extent``, then geometric.
@@ -438,3 +512,99 @@ def run_depth_sweep(
     fv = np.asarray(forces)
     return IndentationResult(depths, fv[:, 2].copy(), fv, np.asarray(surf), steps, iterations,
                              time.perf_counter() - t0)
+
+
+# ---------------------------------------------------------------------------------- slide
+@dataclass
+class SlideResult:
+    """Forces of a quasi-static press-then-slide at constant depth.
+
+    Attributes:
+        depth: prescribed indenter displacement along -z held during the slide, m.
+        pressed_force: net contact + friction force on the indenter at the end of the press, N, ``(3,)``.
+        displacement: tangential displacement of the indenter from the pressed pose along
+            ``direction``, m, shape ``(k,)``.
+        force_vector: net contact + friction force on the indenter after each slide step, N,
+            shape ``(k, 3)`` (``[:, 2]`` is the normal force, +z).
+        direction: unit slide direction in the plane, shape ``(2,)``.
+        steps: solver steps taken (press and slide).
+        newton_iterations: total Newton iterations.
+        runtime: wall time, s.
+    """
+
+    depth: float
+    pressed_force: np.ndarray
+    displacement: np.ndarray
+    force_vector: np.ndarray
+    direction: np.ndarray
+    steps: int
+    newton_iterations: int
+    runtime: float
+
+    @property
+    def tangential_force(self) -> np.ndarray:
+        """Force of the gel on the indenter along ``-direction`` (resisting the slide), N, ``(k,)``."""
+        return -self.force_vector[:, :2] @ self.direction
+
+
+def run_slide(
+    setup: IndentationSetup, depth: float, displacements, press_increment: float, dt: float = 1.0,
+    direction=(1.0, 0.0),
+) -> SlideResult:
+    """Press the indenter to ``depth``, then move it tangentially at that depth, quasi-statically.
+
+    The press lowers the effector pose by at most ``press_increment`` per step (as
+    :func:`run_depth_sweep`); then each step moves it to the next of ``displacements`` along
+    ``direction`` in the plane, z held. With ``dt`` large and the friction's ``eps_v dt`` small
+    against the slide increments, each step is a static equilibrium of the lagged Coulomb friction
+    of :mod:`sim_core.energies.friction.reference`.
+
+    Args:
+        setup: from :func:`build_indentation` (with ``friction`` > 0 for a frictional slide).
+        depth: indentation depth held during the slide, m (> 0).
+        displacements: increasing tangential displacements from the pressed pose, m, shape ``(k,)``.
+        press_increment: largest depth increment per press step, m (> 0).
+        dt: time step, s.
+        direction: slide direction in the plane (normalised here), shape ``(2,)``.
+
+    Returns:
+        :class:`SlideResult`.
+
+    Raises:
+        ConfigError: non-positive depth or increment, displacements not increasing from > 0, a zero
+            direction.
+    """
+    steps_to = np.asarray(displacements, dtype=float).reshape(-1)
+    direction = np.asarray(direction, dtype=float).reshape(2)
+    norm = float(np.linalg.norm(direction))
+    if not (depth > 0 and press_increment > 0 and steps_to.size and steps_to[0] > 0
+            and np.all(np.diff(steps_to) > 0) and norm > 0):
+        raise ConfigError(f"slide: need depth > 0, press_increment > 0, displacements positive and increasing and "
+                          f"a non-zero direction; got {depth}, {press_increment}, {steps_to.tolist()}, "
+                          f"{direction.tolist()}")
+    direction = direction / norm
+    t0 = time.perf_counter()
+    sim = setup.simulation(dt)
+    ind = setup.model.bodies[setup.indenter_body]
+    pose0 = sim.state.effector_pose[setup.effector].copy()
+    control = Control()
+    steps = iterations = 0
+
+    def step_to(z: float, s: float) -> np.ndarray:
+        nonlocal steps, iterations
+        pose = pose0.copy()
+        pose[2] -= z
+        pose[:2] += s * direction
+        control.effector_pose_target[setup.effector] = pose
+        info = sim.step(control)
+        steps += 1
+        iterations += info.iterations
+        return sim.state.contact_force[ind.vertex_start : ind.vertex_stop].sum(axis=0)
+
+    n_press = int(np.ceil(depth / press_increment - 1e-9))
+    for i in range(1, n_press + 1):
+        pressed = step_to(depth * i / n_press, 0.0)
+    pressed = step_to(depth, 0.0)  # a second step at rest: the friction's lagged state settles
+    forces = np.array([step_to(depth, s) for s in steps_to])
+    return SlideResult(float(depth), pressed, steps_to, forces, direction, steps, iterations,
+                       time.perf_counter() - t0)

@@ -25,7 +25,7 @@ from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.fit import DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_SIGMA, STOP_TRIAL_SIGMA
 from sysid.fit_recording import FitOptions, fit_recording
-from sysid.replay_batch import batch_size_arg
+from sim_core.batch.sizing import batch_size_arg
 
 PROG = "thinshell sysid"
 

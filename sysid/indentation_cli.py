@@ -26,9 +26,10 @@ import numpy as np
 
 from sim_core.errors import ThinShellError
 from sim_core.indentation import run_depth_sweep
+from sim_core.provenance import git_revision
 from sysid.data import FEATS_INDENTATION, data_file
 from sysid.indentation_fit import build_indentation_setup, fit_youngs_modulus, load_indentation_config
-from sysid.results import git_revision, package_versions, staged_directory
+from sysid.results import package_versions, staged_directory
 
 PROG = "thinshell indent"
 DEFAULT_CONFIG = data_file(FEATS_INDENTATION)

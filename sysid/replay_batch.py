@@ -34,7 +34,6 @@ the step: take both ends of a difference from one batch.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import math
@@ -237,20 +236,3 @@ def _run_batch(model: Any, sets: list[dict], index: list[int], report: BatchRepo
         trace = model.trace_from(obs[j], share)
         out.append(dataclasses.replace(trace, step_totals=dataclasses.replace(sims[j].step_totals)))
     return out
-
-
-def batch_size_arg(text: str) -> int | str:
-    """A ``--batch-size`` command-line value (an ``argparse`` type): an integer >= 1 or ``auto``.
-
-    Raises:
-        argparse.ArgumentTypeError: anything else.
-    """
-    if text == "auto":
-        return text
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"an integer >= 1 or auto, got {text!r}")
-    return value

@@ -31,7 +31,6 @@ import math
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import uuid
 from importlib import metadata
@@ -41,6 +40,7 @@ from typing import Any, Iterator, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import CalibrationError
+from sim_core.provenance import git_revision
 
 SCHEMA = "thinshell.sysid.fit"
 SCHEMA_VERSION = 1
@@ -68,20 +68,6 @@ def _finite(x: Any) -> Any:
     if isinstance(x, (list, tuple)):
         return [_finite(v) for v in x]
     return x
-
-
-def git_revision(repo: Path | None = None) -> tuple[str | None, bool | None]:
-    """``(commit hash, working tree dirty)`` of the thinshell checkout, ``(None, None)`` outside git."""
-    repo = repo or Path(__file__).resolve().parents[1]
-    try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
-        if rev.returncode != 0:
-            return None, None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
-                               capture_output=True, text=True, timeout=10)
-        return rev.stdout.strip(), bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        return None, None
 
 
 def package_versions(packages: Sequence[str] = VERSIONED_PACKAGES) -> dict[str, str | None]:

@@ -26,10 +26,12 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("sim_core", "sysid", "thinshell_ros")
 
 FORBIDDEN = {
-    "sim_core": ("rclpy", "rosbags", "mcap", "mcap_ros2", "sysid", "thinshell_ros"),
-    "sysid": ("rclpy", "thinshell_ros"),
+    "sim_core": ("rclpy", "rosbags", "mcap", "mcap_ros2", "sysid", "thinshell_ros", "benchmarks"),
+    "sysid": ("rclpy", "thinshell_ros", "benchmarks"),
+    "thinshell_ros": ("benchmarks",),
 }
-"""Package -> top-level names its modules never import (at any level)."""
+"""Package -> top-level names its modules never import (at any level): the layers, and no product
+package imports the checkout's benchmark and test-set tooling (``benchmarks/``, not installed)."""
 
 BAG_LIBRARIES = ("rosbags", "mcap", "mcap_ros2")
 BAG_READER_PACKAGE = "sysid.bagio"

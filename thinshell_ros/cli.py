@@ -24,8 +24,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "compare": ("sysid.compare", "compare_main", "replay a recording's motion in scene(s): RMS per channel, overlay plots, report"),
     "deploy": ("thinshell_ros.deploy_node", "deploy_main", "play a trajectory.yaml (or a bag's pose_cmd stream) on the robot over DDS, with limits and an abort"),
     "compile": ("sim_core.kernel_compile", "compile_main", "compile the simulator's Taichi kernels into the offline cache ahead of the first run (make setup does)"),
-    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, diagnose, sysid, tasks, optimise, batch"),
-    "optimise": ("sysid.optimise_cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
+    "bench": ("thinshell_ros.bench", "bench_main", "benchmarks: forming, scale, node, tasks, optimise, batch"),
+    "optimise": ("sim_core.optim.cli", "optimise_main", "optimise a task's trajectory (CMA-ES, adjoint gradient, hybrid; Ray workers) or an inverse task's parameters"),
 }
 
 

@@ -11,13 +11,13 @@ NumPy structured dtype, so no ``sensor_msgs_py`` is needed (the Jazzy wheels do 
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped, WrenchStamped
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker
 
@@ -211,6 +211,29 @@ def image_to_msg(image: np.ndarray, t_ns: int, frame_id: str) -> Image:
     msg.is_bigendian = 0
     msg.step = int(image.shape[1])
     msg.data = np.ascontiguousarray(image).tobytes()
+    return msg
+
+
+def camera_info_msg(camera: Any, t_ns: int, frame_id: str) -> CameraInfo:
+    """``sensor_msgs/CameraInfo`` of a tactile sensor's pinhole camera (:class:`sim_core.sensors.camera.PinholeCamera`).
+
+    ``K = [fx 0 cx; 0 fy cy; 0 0 1]``, ``distortion_model`` ``plumb_bob`` with ``D = [k1 k2 0 0 0]``
+    (the camera's Brown-Conrady radial terms; no tangential terms), ``R = I`` and
+    ``P = [fx 0 cx 0; 0 fy cy 0; 0 0 1 0]`` (a monocular camera), ``width``/``height`` in px, no
+    binning and a full ROI. Pixel convention: OpenCV's, as the ROS ``CameraInfo`` one. The header's
+    frame is the image's (the sensor frame: the camera sits at ``z = -distance`` on its axis and looks
+    along ``+z``, sim_core/sensors/camera.py).
+    """
+    msg = CameraInfo()
+    msg.header.stamp = stamp_from_ns(t_ns)
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = int(camera.width), int(camera.height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [float(camera.k1), float(camera.k2), 0.0, 0.0, 0.0]
+    fx, fy, cx, cy = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    msg.k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     return msg
 
 

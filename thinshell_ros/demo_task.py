@@ -41,6 +41,7 @@ import numpy as np
 import yaml
 
 from sim_core.errors import ThinShellError
+from sim_core.optim.cli import optimise_main
 from sim_core.optim.episode import Episode
 from sim_core.optim.tasks import task_at_horizon
 from sim_core.plain import plain
@@ -49,7 +50,6 @@ from sysid.cli import sysid_main
 from sysid.compare import compare_main
 from sysid.evidence import load_evidence
 from sysid.fitted_scene import scene_with_values
-from sysid.optimise_cli import optimise_main
 from sysid.task_reward import TaskRewardProbe, reward_sample_index
 from thinshell_ros.demo_loop import rms_table, run_deploy_stage
 

@@ -212,10 +212,12 @@ def record_main(argv: Sequence[str]) -> int:
     parser.add_argument("--topics", nargs="+", default=None, help="absolute (or namespace-relative) topics; default: "
                         "every INTERFACES.md topic found under the namespace, and /clock")
     parser.add_argument("--namespace", default="/thinshell")
-    parser.add_argument("--scene", default=None, help="scene file copied into the bag as scene.yaml")
+    parser.add_argument("--scene", default=None, help="scene file copied into the bag as scene.yaml (empty: none, "
+                        "as a launch file's default passes it)")
     parser.add_argument("--force", action="store_true", help="replace an existing bag directory")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     args = parser.parse_args(remove_ros_args(args=["thinshell-record", *argv])[1:])
+    args.scene = args.scene or None
     recorder = BagRecorder(args.out, scene=args.scene, force=args.force)
     try:
         with ros_session(["thinshell-record", *argv]) as stop:

@@ -8,16 +8,26 @@ within ``poll`` seconds and the caller closes its recording in ``finally``.
 from __future__ import annotations
 
 import gc
+import math
 import signal
 import threading
+import time
 from contextlib import contextmanager
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import rclpy
+from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
+
+DIAGNOSTICS_TOPIC = "/diagnostics"
+"""Topic of the nodes' ``diagnostic_msgs/DiagnosticArray`` statuses (where ROS diagnostic tools listen)."""
+
+STATUS_PERIOD = 1.0
+"""s of wall time between two runtime statuses of a node on :data:`DIAGNOSTICS_TOPIC` (1 Hz, the
+ROS diagnostics convention)."""
 
 COMMAND_DEPTH = 10
 """Keep-last depth of the command topics: every command published while the receiving node is busy
@@ -33,8 +43,58 @@ SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=Re
                         durability=DurabilityPolicy.VOLATILE)
 # the profile rclpy's TimeSource subscribes /clock with (best-effort, keep-last 1)
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+# a camera's calibration, with each image: reliable, kept for subscribers that join later (transient
+# local), the depth of SENSOR_QOS; a volatile or best-effort subscriber (image_transport's sensor-data
+# profile) matches it too
+CAMERA_INFO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # visualisation (RViz subscribes reliable by default)
 MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class BurstGate(CallbackGroup):
+    """A callback group whose entities can be held out of the executor's wait set for a while.
+
+    rclpy's executors wait only on the entities whose group ``can_execute`` them
+    (``Executor._wait_for_ready_callbacks``); while held, a subscription of this group does not wake
+    the executor, its messages stay queued in its reader (keep-last: the newest ones), and the node
+    takes them itself when it wants them (the sim node: at its next step). Otherwise the group is
+    reentrant (no exclusion). The sim node holds its command subscriptions after a turn that found a
+    burst (:meth:`thinshell_ros.sim_node.SimNode.take_pending_commands`), so that a flood of commands
+    costs at most one executor turn per hold instead of one per message, and the steps go first.
+
+    Args:
+        clock: the clock of :meth:`hold`, s (default ``time.monotonic``).
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__()
+        self._clock = clock
+        self._until = -math.inf
+        self.holds = 0
+
+    def hold(self, seconds: float) -> None:
+        """Keep the group's entities out of the wait set for ``seconds`` from now."""
+        self._until = self._clock() + seconds
+        self.holds += 1
+
+    def release(self) -> None:
+        """End a hold now."""
+        self._until = -math.inf
+
+    @property
+    def held(self) -> bool:
+        """Whether a hold is in force."""
+        return self._clock() < self._until
+
+    def can_execute(self, entity: Any) -> bool:
+        return not self.held
+
+    def beginning_execution(self, entity: Any) -> bool:
+        return True
+
+    def ending_execution(self, entity: Any) -> None:
+        pass
 
 
 @contextmanager

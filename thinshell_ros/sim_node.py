@@ -57,21 +57,38 @@ Parameters (``--ros-args -p name:=value``; a file in ``config/nodes/sim_node.yam
 - every material parameter of the scene by its global name (``sheet.youngs_modulus``,
   ``friction.gel_sheet``, ...): settable at runtime, validated by the simulation.
 
+- ``error_log_period`` (s of wall time, default :data:`DEFAULT_ERROR_LOG_PERIOD`): at most one error
+  line per kind (rejected commands by effector, topic and reason; recording errors) per period, each
+  with the count of the errors it stands for (:class:`~thinshell_ros.command_intake.ErrorThrottle`).
+- ``step_count`` (int, default 1, settable at runtime): the steps one call of ``~/step`` takes.
+
 - ``executor`` (str): the executor :func:`main` spins the node in, ``single`` (default: rclpy's
   ``SingleThreadedExecutor``) or ``events`` (rclpy's ``EventsExecutor``, ``rclpy.experimental``:
   callbacks one at a time in arrival order from a C++ event queue, no wait-set rebuild per spin;
   lower command-to-output latency, docs/benchmarks.md "Sim node through DDS").
 
 Commands (``<effector>/pose_cmd``, ``twist_cmd``, ``gripper_cmd``; reliable, keep-last
-:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step starts by taking all queued commands
-(:meth:`SimNode.take_pending_commands`), each recorded at the sim time it is taken; the newest one
-controls the step. The outputs a step publishes (stamped with its end time) are the first to reflect
-the commands it took; a command that arrives during a step is taken by the next one, which in
+:data:`thinshell_ros.runtime.COMMAND_DEPTH`): every step, and every command callback, starts by taking
+all queued commands (:meth:`SimNode.take_pending_commands`: one executor turn for a burst), each
+recorded at the sim time it is taken; pose commands are taken as CDR bytes and checked as a batch,
+the newest valid one submitted (:class:`~thinshell_ros.command_intake.CommandIntake`, cheap under a
+flood: docs/ros.md); the newest valid command controls the step. The outputs a step publishes
+(stamped with its end time) are the first to reflect the commands it took; a command that arrives during a step is taken by the next one, which in
 ``realtime`` mode starts as soon as the step in progress has ended and the schedule lets it (at most
 one step ahead of the wall clock).
 
-Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger).
-Bad input never stops the node: it is logged (with the reason) and the last valid command stays.
+Services: ``~/reset`` (Trigger), ``~/pause`` (SetBool), ``~/step`` (Trigger: ``step_count`` steps);
+topic ``~/step_n`` (``std_msgs/UInt32``: that many steps, at most :data:`MAX_STEP_N`).
+Bad input never stops the node: it is logged (with the reason, throttled per kind) and the last
+valid command stays.
+
+Camera: ``<sensor>/camera_info`` (``sensor_msgs/CameraInfo`` of the tactile camera,
+:func:`thinshell_ros.conversions.camera_info_msg`; reliable, transient local) at start-up, after
+``~/reset`` or a parameter change, and with every ``<sensor>/image`` (same stamp).
+
+Runtime status: every :data:`~thinshell_ros.runtime.STATUS_PERIOD` s a ``<node name>: status`` on
+``/diagnostics`` (:meth:`thinshell_ros.node_status.RuntimeStats.status`: real-time factor, step p95,
+rejected commands).
 
 Solver diagnostics: a step accepted above the solver's strict tolerance (``StepInfo.converged_strict``
 false: a stalled residual or a failed line search accepted at a relaxed tolerance) or taken in
@@ -101,8 +118,8 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Image, PointCloud2
-from std_msgs.msg import Float64
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Float64, UInt32
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker
 
@@ -112,13 +129,15 @@ from sim_core.settle import SettleInfo, settle
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig, StepInfo
 from thinshell_ros import conversions as cv
+from thinshell_ros.command_intake import CommandIntake, ErrorThrottle
 from thinshell_ros.commands import CommandArbiter, CommandLimits, Workspace, unknown_effector_topics
-from thinshell_ros.node_status import settle_status, solver_status
+from thinshell_ros.node_status import RuntimeStats, settle_status, solver_status
 from thinshell_ros.paths import bundled_scene
 from thinshell_ros.pacing import RealtimePacer
 from thinshell_ros.recorder import BagRecorder
-from thinshell_ros.runtime import (CLOCK_QOS, COMMAND_QOS, MARKER_QOS, SENSOR_QOS, freeze_start_up_objects, ros_session,
-                                   spin_until_stopped, topic_namespace)
+from thinshell_ros.runtime import (CAMERA_INFO_QOS, CLOCK_QOS, COMMAND_QOS, DIAGNOSTICS_TOPIC, MARKER_QOS, SENSOR_QOS,
+                                   STATUS_PERIOD, BurstGate, freeze_start_up_objects, ros_session, spin_until_stopped,
+                                   topic_namespace)
 
 MODES = ("realtime", "fast", "stepped")
 
@@ -145,8 +164,19 @@ bundled scene's 5 ms steps; it settles in 5)."""
 MAX_CONSECUTIVE_FAILURES = 3
 """Failed steps in a row (with the effectors held) after which the node pauses itself."""
 
-DIAGNOSTICS_TOPIC = "/diagnostics"
-"""Topic of the solver's ``diagnostic_msgs/DiagnosticArray`` (where ROS diagnostic tools listen)."""
+DEFAULT_ERROR_LOG_PERIOD = 1.0
+"""Default of the ``error_log_period`` parameter: s between two error lines of one kind."""
+
+BURST_MESSAGES = 3
+"""Command messages taken in one executor turn from which the sim node treats the traffic as a burst
+and holds its command subscriptions out of the executor for one step (:meth:`SimNode._stepping`); a
+commander at a steady rate delivers one per turn."""
+
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+"""ROS type of the pose commands, recorded as the CDR bytes they arrive in."""
+
+MAX_STEP_N = 100_000
+"""Most steps one ``~/step_n`` message or the ``step_count`` parameter may ask for."""
 
 
 class SimNode(Node):
@@ -205,6 +235,14 @@ class SimNode(Node):
                                         "'scene'")).value)
         if settle_steps_max < 0:
             raise ConfigError(f"parameter 'settle_steps_max' must be >= 0, got {settle_steps_max}")
+        error_log_period = float(self.declare_parameter("error_log_period", DEFAULT_ERROR_LOG_PERIOD, ParameterDescriptor(
+            read_only=True, description="s of wall time between two error lines of one kind (rejected commands "
+                                        "by topic and reason, recording errors); each line counts the ones it "
+                                        "stands for")).value)
+        if not (math.isfinite(error_log_period) and error_log_period > 0):
+            raise ConfigError(f"parameter 'error_log_period' must be > 0 s, got {error_log_period}")
+        self.step_count = self._checked_step_count(self.declare_parameter("step_count", 1, ParameterDescriptor(
+            description="steps one call of ~/step takes (>= 1; settable at runtime)")).value)
         if self.mode not in MODES:
             raise ConfigError(f"parameter 'mode' must be one of {MODES}, got {self.mode!r}")
         if self.executor_name not in EXECUTORS:
@@ -238,7 +276,10 @@ class SimNode(Node):
                 timeout=timeout, workspace=self.workspace)
         self.arbiter = CommandArbiter(limits)
         self.paused = self.mode == "stepped"
-        self.rejected_commands = 0
+        self._error_throttle = ErrorThrottle(error_log_period, time.monotonic)
+        self.intake = CommandIntake(self.arbiter, limits, lambda: float(self.sim.t), self._record_input,
+                                    lambda line: self.get_logger().error(line), self._error_throttle)
+        self._status = RuntimeStats(wall_clock=time.monotonic, sim_time=float(sim.t))
         self.failed_steps = 0
         self.consecutive_failures = 0
         self.relaxed_steps = 0  # steps accepted above the strict tolerance or retried in substeps
@@ -263,22 +304,24 @@ class SimNode(Node):
         self._pub_markers = {s: self.create_publisher(PointCloud2, f"{prefix}{s}/markers", SENSOR_QOS) for s in sim.sensor_names}
         self._pub_wrench = {s: self.create_publisher(WrenchStamped, f"{prefix}{s}/wrench", SENSOR_QOS) for s in sim.sensor_names}
         self._pub_image = {s: self.create_publisher(Image, f"{prefix}{s}/image", SENSOR_QOS) for s in sim.sensor_names}
+        self._pub_camera_info = {s: self.create_publisher(CameraInfo, f"{prefix}{s}/camera_info", CAMERA_INFO_QOS)
+                                 for s in sim.sensor_names if self._camera(s) is not None}
         self._pub_points = self.create_publisher(PointCloud2, f"{prefix}sheet/points", SENSOR_QOS)
         self._pub_mesh = self.create_publisher(Marker, f"{prefix}sheet/mesh", MARKER_QOS)
         self._pub_clock = self.create_publisher(Clock, "/clock", CLOCK_QOS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._command_subs = []
+        self._command_handlers: list[tuple[Any, Callable[[Any], None]]] = []  # (subscription, handler)
+        self.command_gate = BurstGate()  # holds the command subscriptions out of the executor after a burst
         for e in sim.effector_names:
-            self._command_subs += [
-                self.create_subscription(PoseStamped, f"{prefix}{e}/pose_cmd", self._stepping(self._pose_callback(e)),
-                                         COMMAND_QOS),
-                self.create_subscription(TwistStamped, f"{prefix}{e}/twist_cmd",
-                                         self._stepping(self._twist_callback(e)), COMMAND_QOS),
-                self.create_subscription(Float64, f"{prefix}{e}/gripper_cmd", self._stepping(self._gripper_callback(e)),
-                                         COMMAND_QOS)]
+            for msg_type, suffix in ((PoseStamped, "pose_cmd"), (TwistStamped, "twist_cmd"), (Float64, "gripper_cmd")):
+                handler = self.intake.handler(e, suffix)
+                sub = self.create_subscription(msg_type, f"{prefix}{e}/{suffix}", self._stepping(handler), COMMAND_QOS,
+                                               raw=msg_type is PoseStamped, callback_group=self.command_gate)
+                self._command_handlers.append((sub, handler))
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(SetBool, "~/pause", self._on_pause)
         self.create_service(Trigger, "~/step", self._on_step)
+        self.create_subscription(UInt32, "~/step_n", self._on_step_n, COMMAND_QOS)
         if self.mode != "stepped":
             self.create_timer(self.dt if self.mode == "realtime" else 0.0, self._on_timer)
         # realtime: wakes the node when a command that arrived one step ahead of the schedule may start
@@ -288,8 +331,10 @@ class SimNode(Node):
         self.create_timer(0.2, self._clock_heartbeat)
         self.create_timer(1.0, self._check_graph)
         self.create_timer(5.0, self._log_progress)
+        self.create_timer(STATUS_PERIOD, self._publish_runtime_status)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._publish_settle_status()
+        self.publish_camera_info()
         self.publish_outputs(force=True)
         self.get_logger().info(
             f"thinshell sim node: scene {self.scene_path or '<given>'}, mode {self.mode}, dt {self.dt:g} s, "
@@ -328,6 +373,7 @@ class SimNode(Node):
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate and apply material parameters atomically (all or none)."""
         applied: list[tuple[str, float]] = []
+        step_count = self.step_count
         try:
             for p in params:
                 if p.name not in self.material_names:
@@ -339,6 +385,8 @@ class SimNode(Node):
                 applied.append((p.name, old))
                 self.get_logger().info(f"parameter {p.name} = {float(p.value):g}")
             for p in params:
+                if p.name == "step_count":
+                    step_count = self._checked_step_count(p.value)
                 if p.name == "publish_image":
                     if not isinstance(p.value, bool):
                         raise ConfigError(f"parameter 'publish_image' must be a bool, got {p.value!r}")
@@ -348,65 +396,48 @@ class SimNode(Node):
                 self.sim.set_parameter(name, old)
             self.get_logger().error(f"parameter change rejected: {err}")
             return SetParametersResult(successful=False, reason=str(err))
+        self.step_count = step_count
+        if applied:
+            self.publish_camera_info()  # a camera parameter may have changed
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------ commands
-    def _reject(self, reason: str) -> None:
-        self.rejected_commands += 1
-        self.get_logger().error(reason)
+    @property
+    def rejected_commands(self) -> int:
+        """Commands rejected so far (:class:`~thinshell_ros.command_intake.CommandIntake`)."""
+        return self.intake.rejected_commands
 
-    def _record_input(self, topic: str, msg: Any) -> None:
+    def _log_error(self, kind: str, line: str) -> None:
+        """Log an error line of ``kind`` through the error throttle."""
+        out = self._error_throttle.report(kind, line)
+        if out is not None:
+            self.get_logger().error(out)
+
+    def _record_input(self, effector: str, suffix: str, msg: Any) -> None:
+        """Record a taken command (rclpy message, or CDR bytes of a pose command) at the sim time now."""
         if self.recorder is not None and not self.recorder.closed:
+            topic = f"{self.namespace}/{effector}/{suffix}"
             try:
-                self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
+                if isinstance(msg, bytes):
+                    self.recorder.write_serialized(topic, POSE_TYPE, cv.seconds_to_ns(self.sim.t), msg)
+                else:
+                    self.recorder.write(topic, msg, cv.seconds_to_ns(self.sim.t))
             except ThinShellError as err:
-                self.get_logger().error(f"recording {topic}: {err}")
-
-    def _pose_callback(self, effector: str):
-        topic = f"{self.namespace}/{effector}/pose_cmd"
-
-        def on_pose(msg: PoseStamped) -> None:
-            try:
-                self._record_input(topic, msg)
-                res = self.arbiter.submit_pose(effector, cv.pose_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
-                if not res.accepted:
-                    self._reject(res.reason)
-            except Exception as err:  # noqa: BLE001 - never die on input
-                self._reject(f"{topic}: unusable message: {err}")
-        return on_pose
-
-    def _twist_callback(self, effector: str):
-        topic = f"{self.namespace}/{effector}/twist_cmd"
-
-        def on_twist(msg: TwistStamped) -> None:
-            try:
-                self._record_input(topic, msg)
-                res = self.arbiter.submit_twist(effector, cv.twist_from_msg(msg)[1], self.sim.t, msg.header.frame_id)
-                if not res.accepted:
-                    self._reject(res.reason)
-            except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic}: unusable message: {err}")
-        return on_twist
-
-    def _gripper_callback(self, effector: str):
-        topic = f"{self.namespace}/{effector}/gripper_cmd"
-
-        def on_gripper(msg: Float64) -> None:
-            try:
-                self._record_input(topic, msg)
-                res = self.arbiter.submit_gripper(effector, msg.data)
-                if not res.accepted:
-                    self._reject(res.reason)
-            except Exception as err:  # noqa: BLE001
-                self._reject(f"{topic}: unusable message: {err}")
-        return on_gripper
+                self._log_error(f"recording {topic}", f"recording {topic}: {err}")
 
     def _stepping(self, handle):
-        """The subscription callback of a command topic: ``handle`` the message, then, in ``realtime``
-        mode, start the step that applies it when it may start now (:meth:`_step_for_command`)."""
+        """The subscription callback of a command topic: ``handle`` the message, take every other
+        queued command (:meth:`take_pending_commands`: one executor turn for a burst, not one per
+        message), then, in ``realtime`` mode, start the step that applies them when it may start now
+        (:meth:`_step_for_command`). A turn that found :data:`BURST_MESSAGES` or more holds the command
+        subscriptions out of the executor for one step (:class:`~thinshell_ros.runtime.BurstGate`):
+        during a flood the next step takes what queued meanwhile (the newest
+        :data:`~thinshell_ros.runtime.COMMAND_DEPTH` per topic), and the executor's turns go to the steps."""
 
         def on_command(msg: Any) -> None:
             handle(msg)
+            if 1 + self.take_pending_commands() >= BURST_MESSAGES:
+                self.command_gate.hold(self.dt)
             self._step_for_command()
         return on_command
 
@@ -432,20 +463,22 @@ class SimNode(Node):
         self._step_for_command()
 
     def take_pending_commands(self) -> int:
-        """Take every command message queued on the command subscriptions and handle it (record, submit).
+        """Take every command message queued on the command subscriptions, handle it (record, queue or
+        submit) and submit the newest valid pose command of each effector (:meth:`_submit_poses`).
 
         rclpy's executors take one message per ready subscription per wait, and the ``fast`` mode's step
         timer runs before the subscriptions of the same wait: without this, a command that arrived during
-        a step waits behind the next step, and with a shallow queue a newer one replaces it unseen. Each
-        step therefore starts by taking all queued commands (in arrival order, oldest first; the newest
-        one controls the step). Taking uses the subscription's handle as rclpy's executor does
+        a step waits behind the next step, and with a shallow queue a newer one replaces it unseen; under
+        a burst, each message would cost an executor turn (a wait-set rebuild). Each step, and each
+        command callback, therefore takes all queued commands (in arrival order, oldest first; the newest
+        valid one controls the step). Taking uses the subscription's handle as rclpy's executor does
         (``Executor._take_subscription``).
 
         Returns:
             the number of messages taken.
         """
         taken = 0
-        for sub in self._command_subs:
+        for sub, handle in self._command_handlers:
             while True:
                 try:
                     with sub.handle:
@@ -454,8 +487,9 @@ class SimNode(Node):
                     break
                 if msg_info is None:
                     break
-                sub.callback(msg_info[0])
+                handle(msg_info[0])
                 taken += 1
+        self.intake.submit_all()
         return taken
 
     def _check_graph(self) -> None:
@@ -490,7 +524,9 @@ class SimNode(Node):
             control.effector_pose_target.update(targets.effector_pose_target)
             control.gripper_target.update(targets.gripper_target)
             t = float(self.sim.t)
+            start = time.perf_counter()
             info = self.sim.step(control)
+            self._status.stepped(time.perf_counter() - start)
             self._steps += 1
             self.consecutive_failures = 0
         except Exception as err:  # noqa: BLE001 - a failed step keeps the last state; the node lives on
@@ -564,6 +600,17 @@ class SimNode(Node):
             self._pub_diagnostics.publish(msg)
         except Exception as err:  # noqa: BLE001 - a diagnostic never stops the node
             self.get_logger().error(f"publishing {DIAGNOSTICS_TOPIC} failed: {err}", throttle_duration_sec=1.0)
+
+    def _publish_runtime_status(self) -> None:
+        """The 1 Hz ``<node name>: status`` (:meth:`RuntimeStats.status`: real-time factor, step p95,
+        rejected commands) on ``/diagnostics``, and the error lines the throttle held back a period."""
+        for line in self._error_throttle.flush():
+            self.get_logger().error(line)
+        counters = {"rejected_commands": self.rejected_commands, "failed_steps": self.failed_steps,
+                    "relaxed_steps": self.relaxed_steps, "error_lines": self._error_throttle.lines}
+        status = self._status.status(f"{self.get_name()}: status", float(self.sim.t), self.intake.rejected_by_kind,
+                                     counters, self.mode, self.paused)
+        self._publish_solver_status(status, track_level=False)
 
     def _measured_poses(self) -> dict[str, Any]:
         state = getattr(self.sim, "state", None)
@@ -657,6 +704,8 @@ class SimNode(Node):
                     self._publish(self._pub_wrench[s], cv.wrench_to_msg(wrench, t_ns, s), t_ns)
                 if image and reading.image is not None:
                     self._publish(self._pub_image[s], cv.image_to_msg(reading.image, t_ns, s), t_ns)
+                    if s in self._pub_camera_info:  # the image's calibration, with its stamp (the ROS convention)
+                        self._publish(self._pub_camera_info[s], cv.camera_info_msg(self._camera(s), t_ns, s), t_ns)
             if len(obs.sheet_points):
                 if points:
                     self._publish(self._pub_points, cv.points_to_msg(self._noisy(obs.sheet_points, "points"), t_ns,
@@ -668,6 +717,22 @@ class SimNode(Node):
                                       t_ns)
         except Exception as err:  # noqa: BLE001
             self.get_logger().error(f"publishing at t={t:.4f} s failed: {err}", throttle_duration_sec=1.0)
+
+    def _camera(self, sensor: str) -> Any | None:
+        """The tactile camera of ``sensor`` (its current intrinsics, which material parameters may
+        change), or None for a simulation without one (a stand-in)."""
+        model_sensor = getattr(getattr(self.sim, "model", None), "sensors", {}).get(sensor)
+        return getattr(model_sensor, "camera", None)
+
+    def publish_camera_info(self) -> None:
+        """Publish (and record) each tactile camera's ``<sensor>/camera_info`` at the current sim time
+        (:func:`thinshell_ros.conversions.camera_info_msg`; kept for late subscribers, CAMERA_INFO_QOS)."""
+        t_ns = cv.seconds_to_ns(float(self.sim.t))
+        for s, pub in self._pub_camera_info.items():
+            try:
+                self._publish(pub, cv.camera_info_msg(self._camera(s), t_ns, s), t_ns)
+            except Exception as err:  # noqa: BLE001 - an output never stops the node
+                self._log_error("camera_info", f"publishing {s}/camera_info failed: {err}")
 
     def _log_progress(self) -> None:
         wall = time.monotonic() - self._wall0
@@ -687,6 +752,7 @@ class SimNode(Node):
             self._pacer.restart()
             self.consecutive_failures = 0
             self._next_publish_t = self._next_mesh_t = 0.0
+            self.publish_camera_info()
             self.publish_outputs(force=True)
             response.success, response.message = True, f"reset to t={self.sim.t:g} s"
         except Exception as err:  # noqa: BLE001
@@ -702,10 +768,40 @@ class SimNode(Node):
         return response
 
     def _on_step(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        ok = self.advance()
-        response.success = ok
-        response.message = f"t={self.sim.t:.6f} s" if ok else f"step failed at t={self.sim.t:.6f} s (see log)"
+        """``~/step``: take ``step_count`` steps (parameter, default 1); fails at the first failed step."""
+        done = self.step_n(self.step_count)
+        response.success = done == self.step_count
+        response.message = (f"t={self.sim.t:.6f} s" + (f" after {done} steps" if done > 1 else "") if response.success
+                            else f"step failed at t={self.sim.t:.6f} s after {done} steps (see log)")
         return response
+
+    def _on_step_n(self, msg: UInt32) -> None:
+        """``~/step_n`` (``std_msgs/UInt32``): take ``msg.data`` steps (at most :data:`MAX_STEP_N`)."""
+        try:
+            n = self._checked_step_count(int(msg.data))
+        except ConfigError as err:
+            self._log_error("~/step_n", f"~/step_n: {err}")
+            return
+        done = self.step_n(n)
+        self.get_logger().info(f"~/step_n: {done} of {n} steps taken, t={self.sim.t:.6f} s")
+
+    def step_n(self, n: int) -> int:
+        """Take up to ``n`` steps, stopping at the first failed one; returns the steps that succeeded."""
+        for k in range(n):
+            if not self.advance():
+                return k
+        return n
+
+    @staticmethod
+    def _checked_step_count(n: Any) -> int:
+        """``n`` as a step count in ``1..MAX_STEP_N``.
+
+        Raises:
+            ConfigError: not an integer in that range.
+        """
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_STEP_N:
+            raise ConfigError(f"parameter 'step_count' / ~/step_n must be an integer in 1..{MAX_STEP_N}, got {n!r}")
+        return n
 
     # ------------------------------------------------------------------------------ shutdown
     def make_executor(self) -> Any:

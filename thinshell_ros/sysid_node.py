@@ -23,6 +23,11 @@ Parameters (read at every fit request, so ``ros2 param set`` between fits takes 
 - ``namespace`` (str, default ``/thinshell``): prefix of the result topic in the root namespace (a node
   given a ROS namespace publishes ``sysid/result`` relative to it: :func:`thinshell_ros.runtime.topic_namespace`).
 
+Diagnostics: a ``diagnostic_msgs/DiagnosticArray`` with the status ``<node name>: progress`` on
+``/diagnostics`` every second (:func:`thinshell_ros.node_status.sysid_status`: idle / fitting /
+applying, the running fit's wall time and its share of ``max_time``, fits done and failed, the last
+outcome).
+
 Service ``~/fit`` (std_srvs/Trigger) starts a fit in a worker thread and answers at once (the node
 keeps spinning); a second request while one runs is refused. When the fit ends, the fitted values
 are set on ``apply_to`` through its standard parameter service (``rcl_interfaces/srv/SetParameters``)
@@ -44,6 +49,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -54,7 +60,8 @@ from std_srvs.srv import Trigger
 from sim_core.errors import ConfigError
 from sysid.fit_recording import FitOptions, fit_recording
 from sysid.results import load_fit_json
-from thinshell_ros.runtime import topic_namespace
+from thinshell_ros.node_status import sysid_status
+from thinshell_ros.runtime import DIAGNOSTICS_TOPIC, STATUS_PERIOD, topic_namespace
 
 RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -177,8 +184,11 @@ class SysidNode(Node):
         self._pending_apply: dict[str, Any] | None = None
         self._set_param_clients: dict[str, Any] = {}
         self.results: list[dict[str, Any]] = []
+        self._job: FitRequest | None = None
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.create_service(Trigger, "~/fit", self._on_fit)
         self.create_timer(0.05, self._poll)
+        self.create_timer(STATUS_PERIOD, self._publish_progress)
         self.get_logger().info(f"sysid node: call {self.get_fully_qualified_name()}/fit; results on {self.result_topic}")
 
     @property
@@ -235,6 +245,7 @@ class SysidNode(Node):
                 response.success, response.message = False, str(err)
                 return response
             self._started = time.monotonic()
+            self._job = job
             self._worker = threading.Thread(target=self._work, args=(job,), name="sysid-fit", daemon=True)
             self._worker.start()
         names = ",".join(job.options.params)
@@ -269,6 +280,21 @@ class SysidNode(Node):
                 self._publish(result)
         if self._pending_apply is not None:
             self._try_apply()
+
+    def _publish_progress(self) -> None:
+        """The 1 Hz ``<node name>: progress`` status (:func:`sysid_status`) on ``/diagnostics``."""
+        with self._lock:
+            running, job = self._worker is not None, self._job
+        state = "idle" if not running else ("applying" if self._pending_apply is not None else "fitting")
+        last = self.results[-1] if self.results else None
+        outcome = "" if last is None else ("ok" if last["status"] == "ok" else f"error: {last.get('error', '')}")
+        budget = float(job.options.max_time or 0.0) if job is not None else 0.0
+        elapsed = time.monotonic() - self._started if running else 0.0
+        status = sysid_status(f"{self.get_name()}: progress", state, elapsed, budget, len(self.results), sum(r["status"] != "ok" for r in self.results), outcome,
+                              str(job.bag) if job is not None else "")
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diagnostics.publish(msg)
 
     def _client(self, target: str):
         service = f"{target.rstrip('/')}/set_parameters"

@@ -1,7 +1,7 @@
 """Run ``thinshell diagnose`` (defaults) on every recording of a generated set and print the table.
 
 ``ok``: the first named effect (``none`` when nothing is named) is the label's effect
-(``EXPECTED``, the vocabulary of ``sysid.diagnose.reference_bench.VARIANT_EFFECT``); on a lift-fold
+(``EXPECTED``, the vocabulary of ``benchmarks.reference_bench.VARIANT_EFFECT``); on a lift-fold
 an ``adhesion`` beside it is not counted (issue 23: adhesion may be named beside the effect on a lift).
 
     python benchmarks/mujoco_world/diagnose_set.py SET_DIR RUNS_DIR [--python PY] [--wait N] [--jobs N]

@@ -11,6 +11,7 @@ this process uses (CUDA: ``nvidia-smi --query-compute-apps``; host: resident set
 
 from __future__ import annotations
 
+import argparse
 import gc
 import os
 import shutil
@@ -282,3 +283,20 @@ def choose_batch_size(per_copy_bytes: dict, cap: int | None = None, reserve_frac
     if cap is not None and int(cap) < B:
         B, limit = int(cap), "cap"
     return BatchSizing(B, dict(per_copy_bytes), frees, limit)
+
+
+def batch_size_arg(text: str) -> int | str:
+    """A ``--batch-size`` command-line value (an ``argparse`` type): an integer >= 1 or ``auto``.
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"an integer >= 1 or auto, got {text!r}")
+    return value

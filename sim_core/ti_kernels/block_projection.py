@@ -332,7 +332,7 @@ def reduce_block_rows(blocks: _F64_3, helmert: _F64_2, rows: _I32_1, count: ti.i
     of the loop, so that the threads of a warp read one block (``blocks`` is block index first: ``3 m x 3 m``
     consecutive entries, read 72 times a thread) and write one store each: 161,280 Kirchhoff blocks (``m = 6``) in
     2.7 ms on an H100, against 54 ms with the block index fastest, where each of a warp's loads touches 32 blocks
-    (``benchmarks/bench_jacobi.py --reduce``)."""
+    (measured in session 46: docs/benchmarks_log.md)."""
     m = helmert.shape[0]
     size = 3 * (m - 1)
     for r, a, b in ti.ndrange(count, size, size):

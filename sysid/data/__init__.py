@@ -5,7 +5,6 @@
   :func:`sysid.noise.noise_config`).
 - ``feats_indentation.yaml``: the FEATS indentation data set of ``thinshell indent``
   (:func:`sysid.indentation_fit.load_indentation_config`).
-- ``bench_card.yaml``: the scene of the diagnosis benchmark (:mod:`sysid.diagnose_bench`).
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ from sim_core.errors import ConfigError
 
 DEFAULT_CONFIG = "default.yaml"
 FEATS_INDENTATION = "feats_indentation.yaml"
-BENCH_SCENE = "bench_card.yaml"
 
 
 def data_file(name: str) -> Path:

@@ -18,7 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``thinshell diagnose``."""
     from sysid.calibration import CALIBRATION_REPLAYS
     from sysid.calibration_secant import SECANT_REPLAYS
-    from sysid.replay_batch import batch_size_arg
+    from sim_core.batch.sizing import batch_size_arg
 
     p = argparse.ArgumentParser(prog="thinshell diagnose", description="Locate and name missing physics in recordings.")
     p.add_argument("bags", nargs="+", help="rosbag2 directories (the first one is reported at the top level)")

@@ -622,7 +622,7 @@ def diagnose_one(bag: str | Path, baselines: Sequence[str | Path] = (), settings
 
 def diagnose(bags: Sequence[str | Path], dt: float = 0.01, heldout: Sequence[str | Path] | None = None,
              **kwargs: Any) -> dict[str, Any]:
-    """``thinshell bench diagnose --engine sysid.diagnose.signature_engine:diagnose`` entry: the report
+    """``python -m benchmarks.diagnose_bench --engine sysid.diagnose.signature_engine:diagnose`` entry: the report
     of the first recording (``heldout`` recordings are not used: the engine holds out events and
     time blocks of the recording itself)."""
     del heldout

@@ -19,7 +19,7 @@ from sim_core.control import Control
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
-from sysid.diagnose_bench import load_bench_scene
+from benchmarks.diagnose_bench import load_bench_scene
 
 NS = "/thinshell"
 DT = 0.01
@@ -28,7 +28,7 @@ NOISE = {"markers_xy": 15e-6, "markers_z": 20e-6, "uv": 0.15, "force_xy": 0.1, "
          "pose": 5e-6, "sheet": 50e-6}
 
 CARD_SCENE = {**load_bench_scene(), "name": "small_card_press_slide"}
-"""The benchmark's card scene (packaged sysid/data/bench_card.yaml)."""
+"""The benchmark's card scene (benchmarks/bench_card.yaml)."""
 
 
 PRESS_ONLY = (((0.0, 0.0, -0.00105), 3), ((0.0, 0.0, -0.0001), 1))

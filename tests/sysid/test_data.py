@@ -7,12 +7,12 @@ import pytest
 
 from sim_core.errors import ConfigError
 from sysid.bagio.reader import load_bag_config
-from sysid.data import BENCH_SCENE, DEFAULT_CONFIG, FEATS_INDENTATION, data_file
+from sysid.data import DEFAULT_CONFIG, FEATS_INDENTATION, data_file
 from sysid.noise import noise_config
 
 
 def test_the_packaged_files_are_found_and_read():
-    for name in (DEFAULT_CONFIG, FEATS_INDENTATION, BENCH_SCENE):
+    for name in (DEFAULT_CONFIG, FEATS_INDENTATION):
         path = data_file(name)
         assert path.is_file() and path.parent.name == "data" and path.parent.parent.name == "sysid"
     assert load_bag_config().namespace == "/thinshell"

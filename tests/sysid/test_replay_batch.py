@@ -16,7 +16,7 @@ from sysid.diagnose.parallel import replay_many
 from sysid.evidence import load_evidence
 from sysid.fit import fit
 from sysid.observation import ObservationModel
-from sysid.replay_batch import batch_refusal, batch_size_arg, simulate_batch
+from sysid.replay_batch import batch_refusal, simulate_batch
 from sysid.replay_trace import PREDICTABLE_CHANNELS, Resume
 from tests.sysid.simbag import DT, PRESS_ONLY, PRESS_SLIDE, TRUE_PARAMS, make_recording
 
@@ -117,7 +117,6 @@ def test_replays_a_batch_cannot_take_run_serially_with_the_reason(press_bag):
     assert batch_refusal(model, {}).startswith("a replay through a series drive")
     with pytest.raises(ConfigError, match="batch_size"):
         simulate_batch(model, [{}, {}], batch_size=0)
-    assert batch_size_arg("auto") == "auto" and batch_size_arg("4") == 4
 
 
 def test_a_fit_with_batched_jacobians_gives_the_same_values(press_bag):

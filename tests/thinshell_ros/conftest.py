@@ -79,7 +79,7 @@ def call_trigger_collecting_diagnostics(context, node, service: str, client_name
                                         timeout: float = 10.0) -> tuple[object, list]:
     """Call the ``std_srvs/Trigger`` service ``service`` of ``node`` from a new client node while
     collecting the ``diagnostic_msgs/DiagnosticStatus`` entries ``node`` publishes on its diagnostics
-    topic; the client and its executor are gone on return.
+    topic (all but its 1 Hz runtime status); the client and its executor are gone on return.
 
     Returns:
         the service's response and the statuses received (at least one).
@@ -96,7 +96,9 @@ def call_trigger_collecting_diagnostics(context, node, service: str, client_name
 
     client = Node(client_name, context=context)
     got: list = []
-    sub = client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, lambda m: got.extend(m.status), 10)
+    # the node's 1 Hz runtime status ("<name>: status") is not what a service call publishes
+    sub = client.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+                                     lambda m: got.extend(s for s in m.status if not s.name.endswith(": status")), 10)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     executor.add_node(client)

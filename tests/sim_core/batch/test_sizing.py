@@ -4,12 +4,14 @@ memory of a probe (a real resident-set measurement of known allocations), the fr
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 import pytest
 
 from sim_core.batch import sizing
-from sim_core.batch.sizing import (MIB, auto_batch_size, choose_batch_size, host_available_bytes, measure_per_copy,
-                                   per_copy_from_probe, resources_of)
+from sim_core.batch.sizing import (MIB, auto_batch_size, batch_size_arg, choose_batch_size, host_available_bytes,
+                                   measure_per_copy, per_copy_from_probe, resources_of)
 from sim_core.errors import ConfigError, InsufficientMemoryError
 
 
@@ -35,6 +37,13 @@ def test_auto_batch_size_errors():
         with pytest.raises(ConfigError, match=match):
             auto_batch_size(per, free, cap, reserve)
     assert issubclass(InsufficientMemoryError, ConfigError)  # a CLI reports it as a usage error
+
+
+def test_batch_size_arg_takes_a_positive_integer_or_auto():
+    assert batch_size_arg("auto") == "auto" and batch_size_arg("4") == 4
+    for bad in ("0", "-2", "four", "2.5"):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"an integer >= 1 or auto, got '{bad}'"):
+            batch_size_arg(bad)
 
 
 def test_per_copy_from_probe_takes_the_larger_figure():

@@ -16,7 +16,7 @@ from sim_core.errors import ConfigError
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sim_core.solver import NewtonSolver, SolverConfig
-from sysid.diagnose_bench import load_bench_scene
+from benchmarks.diagnose_bench import load_bench_scene
 
 DT = 0.01
 

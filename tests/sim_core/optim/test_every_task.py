@@ -1,5 +1,5 @@
 """On every manipulation task of ``config/tasks``, a short CMA-ES run (2- or 3-step episodes,
-2 generations of 3) beats the zero trajectory. Inverse tasks: tests/sysid/test_inverse_task.py."""
+2 generations of 3) beats the zero trajectory. Inverse tasks: tests/sim_core/optim/test_inverse_task.py."""
 
 from __future__ import annotations
 

@@ -226,7 +226,7 @@ def test_adhesion_probe_scale_is_the_sheet_weight_per_face_vertex():
     assert np.isnan(adhesion_weight_scale(model))
 
     from sim_core.scenes import load_scene
-    from sysid.diagnose_bench import load_bench_scene
+    from benchmarks.diagnose_bench import load_bench_scene
 
     w = adhesion_weight_scale(load_scene(load_bench_scene()))
     assert w == pytest.approx(9.81 * 700.0 * 0.0003 * 0.05 * 0.03 / 20, rel=1e-6)

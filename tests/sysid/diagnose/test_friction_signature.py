@@ -415,10 +415,10 @@ def test_report_says_in_words_how_much_the_contact_sticks_and_plots_the_breakawa
 # ---------------------------------------------------------------- this project's simulator
 def test_own_simulator_stribeck_friction_named_and_coulomb_silent():
     """The benchmark scene pressed and slid 10 mm at 20 mm/s (100 Hz, kinematic effector), with the
-    driver-level Stribeck law of :class:`sysid.bench_effects.StribeckFriction` at a = 0.5 (static 1.5
+    driver-level Stribeck law of :class:`benchmarks.bench_effects.StribeckFriction` at a = 0.5 (static 1.5
     times kinetic) and without it (Coulomb friction), the reference noise added."""
-    from sysid.bench_effects import StribeckFriction
-    from sysid.diagnose_bench import NOISE, SCENE, effector_targets, rollout
+    from benchmarks.bench_effects import StribeckFriction
+    from benchmarks.diagnose_bench import NOISE, SCENE, effector_targets, rollout
 
     segments = (((0.0, 0.0, -0.00105), 3), ((0.0, 0.0, 0.0), 10), ((-0.010, 0.0, 0.0), 50), ((0.0, 0.0, 0.0), 10))
     targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"], segments)

@@ -1,5 +1,5 @@
 """``thinshell diagnose`` on semi-synthetic recordings: a data-level effect applied to a reference
-recording of the independent engine by :mod:`sysid.synthetic_effects` (code that shares nothing
+recording of the independent engine by :mod:`benchmarks.synthetic_effects` (code that shares nothing
 with the diagnosis's candidate models), then the default command (calibration included, alone).
 
 None of the nine reference recordings has a data-level effect on a lift-and-fold; here a 40 ms
@@ -17,7 +17,7 @@ import pytest
 from sysid.bagio import open_bag
 from sysid.diagnose.schema import validate_report
 from sysid.diagnose_cli import diagnose_main
-from sysid.synthetic_effects import apply_effect, write_like
+from benchmarks.synthetic_effects import apply_effect, write_like
 from tests.sysid.conftest import reference_bag
 
 # one full diagnosis, calibration included: longer than pytest.ini's per-test 600 s on a loaded 2-core machine

@@ -595,7 +595,7 @@ def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
     out only, the drift extrapolated over the press."""
     from sysid.diagnose.signature_engine import refit_force_bias
     from sysid.diagnose.signatures.sensor import RELAXATION_S
-    from sysid.synthetic_effects import force_bias
+    from benchmarks.synthetic_effects import force_bias
 
     rec = synthetic(np.random.default_rng(seed), duration=2.85 + RELAXATION_S)
     tw = rec.t["wrench"]

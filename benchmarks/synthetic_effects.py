@@ -43,9 +43,9 @@ and the creep, less the mean square the same operator gives white noise of that 
 it does to the recorded noise is no part of the effect),
 the figure the reference set's labels give.
 
-``python -m sysid.synthetic_effects OUT_DIR`` writes the validation set of
+``python -m benchmarks.synthetic_effects OUT_DIR`` writes the validation set of
 :data:`DEFAULT_PLAN` from the shared reference recordings, with a ``labels.yaml`` in the reference
-set's format (``thinshell bench diagnose --labelled OUT_DIR`` reads it).
+set's format (``python -m benchmarks.diagnose_bench --labelled OUT_DIR`` reads it).
 """
 
 from __future__ import annotations
@@ -444,7 +444,7 @@ DEFAULT_PLAN: tuple[Item, ...] = (
     # the large end on the lift
     *_source_items("nominal_s109", latency_s=(0.06,), k1=(0.15,), scale_sigma=((7.0, 4),), tau_s=(0.26,)),
 )
-"""The validation set written by ``python -m sysid.synthetic_effects`` (in this order: the
+"""The validation set written by ``python -m benchmarks.synthetic_effects`` (in this order: the
 diagnosis runner takes them one by one)."""
 
 WIDE_PLAN: tuple[Item, ...] = (
@@ -466,7 +466,7 @@ WIDE_PLAN: tuple[Item, ...] = (
 )
 """A wider set: the data effects on press-slides of the independent MuJoCo world and on the
 reference recordings, over the magnitude ranges a hidden set of the reference's kind may use
-(``python -m sysid.synthetic_effects OUT --plan wide --source REF_DIR --source MUJOCO_DIR``)."""
+(``python -m benchmarks.synthetic_effects OUT --plan wide --source REF_DIR --source MUJOCO_DIR``)."""
 
 LIFT_PLAN: tuple[Item, ...] = (
     # lift-and-folds of the independent MuJoCo world (benchmarks/mujoco_world: nominal_s301, 8 tack
@@ -481,7 +481,7 @@ LIFT_PLAN: tuple[Item, ...] = (
     *_source_items("nominal_s213", control=True, latency_s=(0.015, 0.02), k1=(0.02,), scale_sigma=((1.5, 27),),
                    tau_s=(0.04,)),
 )
-"""Lifts and the low end (``python -m sysid.synthetic_effects OUT --plan lift --source REF_DIR
+"""Lifts and the low end (``python -m benchmarks.synthetic_effects OUT --plan lift --source REF_DIR
 --source MUJOCO_LIFT_DIR --source MUJOCO_SLIDE_DIR``)."""
 
 PLANS = {"default": DEFAULT_PLAN, "wide": WIDE_PLAN, "lift": LIFT_PLAN}
@@ -550,8 +550,8 @@ def make_set(source_dir: str | Path | Sequence[str | Path], out_dir: str | Path,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m sysid.synthetic_effects OUT_DIR [--source DIR] [--force]``."""
-    p = argparse.ArgumentParser(prog="python -m sysid.synthetic_effects", description=__doc__.split("\n")[0])
+    """``python -m benchmarks.synthetic_effects OUT_DIR [--source DIR] [--force]``."""
+    p = argparse.ArgumentParser(prog="python -m benchmarks.synthetic_effects", description=__doc__.split("\n")[0])
     p.add_argument("out", type=Path, help="directory of the validation set")
     p.add_argument("--source", type=Path, action="append",
                    help="directory the sources are read from (repeatable; the first holding a source is used; "

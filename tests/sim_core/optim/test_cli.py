@@ -11,7 +11,7 @@ import pytest
 
 from sim_core.errors import ConfigError
 from sim_core.trajectory_file import read_trajectory
-from sysid.optimise_cli import optimise_main
+from sim_core.optim.cli import optimise_main
 from thinshell_ros.cli import COMMANDS
 
 ARGS = ["forming", "--horizon", "3", "--population", "4", "--control-points", "1", "--no-progress", "--seed", "2",
@@ -20,7 +20,7 @@ ARGS = ["forming", "--horizon", "3", "--population", "4", "--control-points", "1
 
 def test_optimise_writes_trajectory_report_and_checkpoint_and_resumes(tmp_path):
     out = tmp_path / "run"
-    assert COMMANDS["optimise"][:2] == ("sysid.optimise_cli", "optimise_main")
+    assert COMMANDS["optimise"][:2] == ("sim_core.optim.cli", "optimise_main")
     assert optimise_main(ARGS + ["--method", "cma", "--episodes", "4", "--out", str(out)]) == 0
     for name in ("trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png", "checkpoint.pkl", "scene.yaml"):
         assert (out / name).is_file(), name
@@ -62,10 +62,10 @@ def test_bad_arguments_are_named(tmp_path):
 def test_scene_argument_task_scene_or_sysid_fitted_values(tmp_path):
     import yaml
 
-    from sysid.optimise_cli import load_target
+    from sim_core.optim.cli import load_target
 
     # a kind: task scene replaces the task's scene
-    doc = yaml.safe_load(open(Path(__file__).resolve().parents[2] / "config/scenes/forming.yaml"))
+    doc = yaml.safe_load(open(Path(__file__).resolve().parents[3] / "config/scenes/forming.yaml"))
     doc["friction"][0]["mu"] = 2.0
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(doc))
@@ -132,7 +132,7 @@ def test_batched_hybrid_takes_gradients_at_its_best_cma_candidates_together(tmp_
 
 def test_batched_gd_starts_on_an_inverse_task_follow_the_serial_run(tmp_path):
     """``bouncing --method gd --batched --gd-starts 2`` from twice the hidden bending stiffness: the two runs'
-    gradients come from one batch a step (sysid.inverse_task.ParameterSpace.gd_gradients); the first run's
+    gradients come from one batch a step (sim_core.optim.inverse_task.ParameterSpace.gd_gradients); the first run's
     episodes are those of the serial run from the same start (equal to 1e-3 relative: the default Newton
     tolerances, lockstep against alone; 7e-5 measured), and the runs climb."""
     from tests.sim_core.optim.task_support import short_task
@@ -183,7 +183,7 @@ def test_cma_start_reference_evaluates_the_reference_first(tmp_path):
 
 
 def test_bench_optimise_starts_inverse_tasks_away_from_the_truth_and_reports_the_parameter_error(capsys):
-    from sysid.optimise_bench import bench_optimise_main, parameter_error
+    from sim_core.optim.bench import bench_optimise_main, parameter_error
 
     assert parameter_error({"a": 1.04, "b": 2.0}, {"a": 1.0, "b": 2.0}) == pytest.approx(0.04)
     with pytest.raises(ConfigError, match="'c' missing"):
@@ -199,7 +199,7 @@ def test_bench_optimise_starts_inverse_tasks_away_from_the_truth_and_reports_the
 
 
 def test_bench_optimise_first_seed_runs_the_seeds_from_there(monkeypatch, capsys):
-    import sysid.optimise_bench as bench
+    import sim_core.optim.bench as bench
 
     seen = []
 

@@ -1,14 +1,14 @@
-"""``thinshell bench sysid``: time a material fit on a whole recording (issue: 3 parameters, 4 s).
+"""``python -m benchmarks.bench_fit``: time a material fit on a whole recording (issue: 3 parameters, 4 s).
 
-Runs ``thinshell sysid`` in-process on a bag (``thinshell bench sysid`` passes the bundled
-``bags/nominal_s101``, a 3.6 s press-slide recording made by an independent engine, as the default) with the three default parameters (bending
+Runs ``thinshell sysid`` in-process on a bag (default: the bundled ``bags/nominal_s101``, a 3.6 s
+press-slide recording made by an independent engine) with the three default parameters (bending
 stiffness, gel modulus, gel-sheet friction) over the whole recording, into a temporary output
 directory (or ``--out``), and prints the wall time with the fit's own figures. Results are recorded
 by hand in ``docs/benchmarks_log.md``.
 
 Usage::
 
-    thinshell bench sysid [--bag DIR] [--params a,b,c] [--t-max S] [--dt S] [--json] [--out DIR]
+    python -m benchmarks.bench_fit [--bag DIR] [--params a,b,c] [--t-max S] [--dt S] [--json] [--out DIR]
                           [-- extra thinshell sysid options]
 """
 
@@ -31,11 +31,11 @@ DEFAULT_PARAMS = "sheet.bending_stiffness,gel.youngs_modulus,friction.gel_sheet"
 
 
 def build_parser(default_bag: str | Path | None = None) -> argparse.ArgumentParser:
-    """The argument parser of ``thinshell bench sysid``; ``default_bag`` is the ``--bag`` default
+    """The argument parser of ``python -m benchmarks.bench_fit``; ``default_bag`` is the ``--bag`` default
     (required when None)."""
-    p = argparse.ArgumentParser(prog="thinshell bench sysid", description="time a material fit on a recording")
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_fit", description="time a material fit on a recording")
     p.add_argument("--bag", default=None if default_bag is None else str(default_bag), required=default_bag is None,
-                   help="bag directory (default: the caller's, the bundled nominal_s101 for `thinshell bench sysid`)")
+                   help="bag directory (default: the caller's; the bundled nominal_s101 when run as a script)")
     p.add_argument("--params", default=DEFAULT_PARAMS, help="parameters to fit (default: %(default)s)")
     p.add_argument("--t-max", type=float, default=None, help="fit only the first T s (default: whole recording)")
     p.add_argument("--dt", type=float, default=0.01, help="simulation step in s (default: %(default)s)")
@@ -68,7 +68,7 @@ def bench_sysid_main(argv: Sequence[str] | None = None, default_bag: str | Path 
             code = sysid_main(cmd)
         wall = time.perf_counter() - t0
         if code != 0:
-            print(f"thinshell bench sysid: thinshell sysid failed (exit {code})", file=sys.stderr)
+            print(f"python -m benchmarks.bench_fit: thinshell sysid failed (exit {code})", file=sys.stderr)
             return code
         doc = json.loads((out / "fit.json").read_text(encoding="utf-8"))
     diag, metrics = doc["diagnostics"], doc["metrics"]
@@ -84,7 +84,7 @@ def bench_sysid_main(argv: Sequence[str] | None = None, default_bag: str | Path 
     if args.json:
         print(json.dumps(record))
     else:
-        print(f"thinshell bench sysid: {record['bag']}: {len(record['params'])} parameters, "
+        print(f"python -m benchmarks.bench_fit: {record['bag']}: {len(record['params'])} parameters, "
               f"{record['duration_s']:.2f} s of recording ({record['steps']} steps of {record['dt']} s)")
         for name, (a, b) in record["values"].items():
             print(f"  {name}: {a:.6g} -> {b:.6g}")
@@ -95,3 +95,9 @@ def bench_sysid_main(argv: Sequence[str] | None = None, default_bag: str | Path 
 
 def _cpus() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+if __name__ == "__main__":
+    from thinshell_ros.paths import bundled_bag
+
+    sys.exit(bench_sysid_main(default_bag=bundled_bag()))

@@ -46,7 +46,7 @@ from sim_core.errors import ConfigError
 from sim_core.backend import BACKENDS
 from sim_core.optim.search import (CMA_STARTS, METHODS, SearchState, load_checkpoint, new_state, optimise, save_checkpoint)
 from sim_core.solver_config import SolverConfig
-from sysid.replay_batch import batch_size_arg
+from sim_core.batch.sizing import batch_size_arg
 
 CHECKPOINT = "checkpoint.pkl"
 OUTPUTS = ("scene.yaml", "trajectory.yaml", "result.json", "report.html", "reward.png", "before_after.png")
@@ -232,7 +232,7 @@ def _gd_starts(args) -> int:
 def _space(task, evaluator, horizon: int, params: dict, start: dict, control_points: int | None,
            solver_config: SolverConfig, cma_start: str = "zero"):
     if task.kind == "inverse":
-        from sysid.inverse_task import parameter_space
+        from sim_core.optim.inverse_task import parameter_space
 
         return parameter_space(task, evaluator, horizon, start, solver_config)
     if start:
@@ -289,7 +289,7 @@ def write_outputs(out: Path, task, state: SearchState, space, params: dict, scen
     """``trajectory.yaml``, ``result.json``, ``reward.png``, ``before_after.png``, ``report.html``."""
     from sim_core.optim.prediction import contact_summary
     from sim_core.trajectory_file import Trajectory, write_trajectory
-    from sysid.results import git_revision
+    from sim_core.provenance import git_revision
 
     if state.best_candidate is None:
         raise ConfigError(f"task {task.name}: no episode was evaluated")

@@ -1,4 +1,4 @@
-"""``thinshell bench diagnose``: a labelled set of recordings with concealed effects, and its score.
+"""``python -m benchmarks.diagnose_bench``: a labelled set of recordings with concealed effects, and its score.
 
 SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwell-lift
 (:data:`SEGMENTS`; coarse gel, dt 10 ms) and is written as a rosbag2 bag plus the
@@ -6,7 +6,7 @@ SYSID.md "Benchmark protocol". Every recording replays one card press-slide-dwel
 ``sysid.diagnose``:
 
 - physics, through a solver hook (:class:`~sim_core.candidates.hook.StepHook`, given to the solver
-  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`sysid.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
+  with :meth:`~sim_core.solver.NewtonSolver.set_hook`; the terms and rules of :mod:`benchmarks.bench_effects`): ``bending_plasticity`` (rate-dependent Perzyna-type yield,
   not the library's instantaneous return), ``damping`` (drag on the sheet only),
   ``stiction`` (a driver-level Stribeck law: the gel-sheet coefficient is set before each step from
   the previous step's slip speed), ``gel_viscoelasticity`` (a two-term Prony series of small-strain
@@ -61,11 +61,10 @@ from sim_core.scenes import load_scene
 from sim_core.scenes.scene_file import load_yaml
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
-from sysid.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
+from benchmarks.bench_effects import (BondAdhesion, HingeStiffness, PronyGel, RatePlasticity, SheetDrag,
                                  StribeckFriction)
-from sysid.data import BENCH_SCENE, data_file
-from sysid.diagnose.reference_bench import bench_reference, format_reference
-from sysid.diagnose.scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
+from benchmarks.reference_bench import bench_reference, format_reference
+from benchmarks.diagnose_scoring import (Recording, format_score, heldout_excess_reduction, interval_iou, score,  # noqa: F401
                                     top1)
 from sysid.diagnose.signature_engine import SignatureSettings
 
@@ -76,9 +75,9 @@ NOISE = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array(
          "sheet_points": np.array([50e-6] * 3)}
 """1-sigma white noise per channel axis (the reference bags' levels)."""
 
-SCENE_PATH = data_file(BENCH_SCENE)
-"""The benchmark's scene file (scene v1, packaged ``sysid/data/bench_card.yaml``): a small card and a
-coarse tactile pad."""
+SCENE_PATH = Path(__file__).resolve().with_name("bench_card.yaml")
+"""The benchmark's scene file (scene v1, ``benchmarks/bench_card.yaml``): a small card and a coarse
+tactile pad."""
 
 
 def load_bench_scene(path: Path = SCENE_PATH) -> dict[str, Any]:
@@ -138,7 +137,7 @@ def rollout(scene: Mapping[str, Any], targets: np.ndarray, hook: Any | None = No
         scene: scene dict.
         targets: effector targets ``(K, 7)``.
         hook: effect hook (a :class:`~sim_core.candidates.hook.StepHook`: ``terms`` /
-            ``update_state``, see :class:`~sysid.bench_effects.PhysicsEffect`), or None for the
+            ``update_state``, see :class:`~benchmarks.bench_effects.PhysicsEffect`), or None for the
             nominal model.
 
     Returns:
@@ -590,12 +589,12 @@ def _diagnose_one(engine: str, path: str, heldout: Sequence[str] = ()) -> Mappin
 
 
 def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
-    """``thinshell bench diagnose [--quick] [--json] [--out DIR] [--seed N] [--generate-only]``.
+    """``python -m benchmarks.diagnose_bench [--quick] [--json] [--out DIR] [--seed N] [--generate-only]``.
 
     Returns:
         0 on success, 2 when the diagnosis engine cannot be imported.
     """
-    ap = argparse.ArgumentParser(prog="thinshell bench diagnose", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.diagnose_bench", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="three effects at 4 sigma and one nominal recording")
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     ap.add_argument("--out", type=Path, default=None, help="directory for the bags (default: a temporary one)")
@@ -624,17 +623,17 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.merge is not None:
         if args.out is None:
-            print("thinshell bench diagnose: --merge needs --out DIR", file=sys.stderr)
+            print("python -m benchmarks.diagnose_bench: --merge needs --out DIR", file=sys.stderr)
             return 2
         try:
             count = merge_sets(args.merge, args.out)
         except (OSError, ValueError) as err:
-            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
             return 2
         print(f"merged {count} recordings into {args.out} (labels.json)")
         return 0
     if args.jobs < 1 or any(not k > 0 for k in args.strengths):
-        print("thinshell bench diagnose: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
+        print("python -m benchmarks.diagnose_bench: --jobs must be >= 1 and --strengths > 0", file=sys.stderr)
         return 2
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
@@ -645,11 +644,11 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         try:
             recs = load_labelled_set(out)
         except FileNotFoundError as err:
-            print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
             return 2
         if args.add_heldout:
             if any(r.heldout for r in recs) or (out / HELDOUT_DIR).exists():
-                print(f"thinshell bench diagnose: {out} already has held-out companions", file=sys.stderr)
+                print(f"python -m benchmarks.diagnose_bench: {out} already has held-out companions", file=sys.stderr)
                 return 2
             add_companions(out, recs, seed=args.seed, log=log)
     else:
@@ -672,7 +671,7 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
         try:
             diagnose = _engine(args.engine)
         except (ImportError, AttributeError) as err:
-            print(f"thinshell bench diagnose: cannot import the diagnosis engine {args.engine!r}: {err}", file=sys.stderr)
+            print(f"python -m benchmarks.diagnose_bench: cannot import the diagnosis engine {args.engine!r}: {err}", file=sys.stderr)
             return 2
         t1 = time.perf_counter()
         if args.jobs == 1:
@@ -711,12 +710,12 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _reference_main(args: argparse.Namespace) -> int:
-    """``--labelled DIR`` on a reference set (``labels.yaml``): :mod:`sysid.diagnose.reference_bench`."""
+    """``--labelled DIR`` on a reference set (``labels.yaml``): :mod:`benchmarks.reference_bench`."""
     log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr, flush=True))
     try:
         result = bench_reference(args.labelled, SignatureSettings(dt=DT), log=log)
     except (FileNotFoundError, ValueError) as err:
-        print(f"thinshell bench diagnose: {err}", file=sys.stderr)
+        print(f"python -m benchmarks.diagnose_bench: {err}", file=sys.stderr)
         return 2
     print(json.dumps(result, default=float) if args.json else format_reference(result))
     return 0

@@ -1,8 +1,10 @@
-"""The semi-synthetic validation generator (:mod:`sysid.synthetic_effects`) applies the effect it
+"""The semi-synthetic validation generator (:mod:`benchmarks.synthetic_effects`) applies the effect it
 says: a delay of whole samples, a radial pattern about the principal point, the stated bias values,
 a first-order creep that keeps the recorded noise; and writes bags of the same contract."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 import pytest
@@ -10,16 +12,16 @@ import yaml
 
 from sysid.bagio import open_bag
 from sysid.noise import estimate_noise
-from sysid.synthetic_effects import (Item, apply_effect, creep, delayed, force_bias, force_bias_params, make_set,
-                                     radial_distortion, write_like)
-from tests.sysid.conftest import synthetic_streams, write_synthetic
+from benchmarks.synthetic_effects import (Item, apply_effect, creep, delayed, force_bias, force_bias_params, make_set,
+                                          radial_distortion, write_like)
+from tests.sysid.conftest import SCENE, synthetic_streams, write_synthetic
 
 CAMERA = {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0}
 
 
 @pytest.fixture
-def bag(tmp_path, scene_dict):
-    return write_synthetic(tmp_path / "src", synthetic_streams(n=60), scene=scene_dict)
+def bag(tmp_path):
+    return write_synthetic(tmp_path / "src", synthetic_streams(n=60), scene=copy.deepcopy(SCENE))
 
 
 def test_delay_is_a_shift_of_whole_samples_at_multiples_of_the_period():

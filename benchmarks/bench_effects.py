@@ -1,4 +1,4 @@
-"""Physics effects of the diagnosis benchmark (``thinshell bench diagnose``).
+"""Physics effects of the diagnosis benchmark (``python -m benchmarks.diagnose_bench``).
 
 Each effect is a solver hook with its own terms and rules, written independently of the candidate
 models of ``sim_core.candidates`` and ``sysid.diagnose`` (SYSID.md "Benchmark protocol"): a
@@ -6,7 +6,7 @@ rate-dependent Perzyna-type yield instead of the library's instantaneous return,
 only, a driver-level Stribeck law, a two-term Prony series for the gel instead of the finite-strain
 SLS, cohesive-zone point bonds (Needleman's polynomial law with irreversible damage), orthotropic hinges with the grain 15 degrees off x, and,
 outside the library, a thickness step (stiffer hinges on the far part of the card). The effect table
-and the generation of the labelled set live in :mod:`sysid.diagnose_bench`.
+and the generation of the labelled set live in :mod:`benchmarks.diagnose_bench`.
 """
 
 from __future__ import annotations

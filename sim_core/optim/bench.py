@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def run_one(task: str, method: str, seed: int, args) -> dict[str, Any]:
     """One ``thinshell optimise`` run; its ``result.json`` summary."""
-    from sysid.optimise_cli import optimise_main
+    from sim_core.optim.cli import optimise_main
 
     with tempfile.TemporaryDirectory(prefix="thinshell-bench-") as tmp:
         out = Path(tmp) / "run"

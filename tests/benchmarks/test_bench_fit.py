@@ -1,4 +1,4 @@
-"""``thinshell bench sysid`` (sysid.bench_fit): one JSON record of a real (tiny) fit on the bundled bag."""
+"""``python -m benchmarks.bench_fit`` (benchmarks.bench_fit): one JSON record of a real (tiny) fit on the bundled bag."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from sysid.bench_fit import bench_sysid_main
+from benchmarks.bench_fit import bench_sysid_main
 from thinshell_ros.paths import bundled_bag
 
 

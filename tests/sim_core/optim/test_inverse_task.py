@@ -1,4 +1,4 @@
-"""Inverse tasks through sysid's parameter coordinates (sysid.inverse_task): the search gradient
+"""Inverse tasks through sysid's parameter coordinates (sim_core.optim.inverse_task): the search gradient
 dR/du (adjoint, u = ln theta / theta_0) against central differences of the reward (Bouncing; Card's
 three bending stiffnesses, tied and untied), several points' gradients from one batch against each
 point's own (Bouncing; Card tied), and a short CMA-ES run from twice the hidden bending stiffness that
@@ -14,7 +14,7 @@ import pytest
 from sim_core.optim.evaluators import SerialEvaluator
 from sim_core.optim.search import new_state, optimise
 from sim_core.solver_config import SolverConfig
-from sysid.inverse_task import parameter_space
+from sim_core.optim.inverse_task import parameter_space
 from tests.sim_core.optim.task_support import short_task
 
 NAME = "sheet.bending_stiffness"

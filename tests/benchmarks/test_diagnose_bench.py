@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sysid import diagnose_bench as db
+from benchmarks import diagnose_bench as db
 
 
 def _streams(n=101):
@@ -131,7 +131,7 @@ def test_quick_benchmark_end_to_end(tmp_path, capsys):
 
 
 def test_heldout_excess_reduction_counts_the_part_above_the_noise():
-    from sysid.diagnose_bench import heldout_excess_reduction
+    from benchmarks.diagnose_bench import heldout_excess_reduction
 
     assert heldout_excess_reduction(2.0, 1.0) == pytest.approx(1.0)
     assert heldout_excess_reduction(2.0, 2.0) == pytest.approx(0.0)
@@ -140,7 +140,7 @@ def test_heldout_excess_reduction_counts_the_part_above_the_noise():
 
 def test_benchmark_effect_hooks_run_in_the_candidate_solver():
     # the benchmark's effects are hooks without the library's damping_terms (regression: a62d1bc)
-    from sysid.bench_effects import SheetDrag
+    from benchmarks.bench_effects import SheetDrag
 
     targets = db.effector_targets(db.SCENE["effectors"]["ee"]["initial_pose"])[:3]
     out = db.rollout(db.SCENE, targets, SheetDrag(10.0))
@@ -148,7 +148,7 @@ def test_benchmark_effect_hooks_run_in_the_candidate_solver():
 
 
 def _cohesive_case(openings, s_max, f_max=0.004, delta_c=1e-4):
-    from sysid.bench_effects import _CohesiveBonds
+    from benchmarks.bench_effects import _CohesiveBonds
 
     rng = np.random.default_rng(3)
     k = len(openings)
@@ -210,8 +210,8 @@ def test_bench_adhesion_signature_grows_with_the_peak_traction():
     """Below the magnitude at which the bonds carry the card away, the bench adhesion's recorded
     signature (the generator's whitened strength) grows monotonically and smoothly with the peak
     traction (measured 0.016 / 0.027 / 0.060 at 0.5 / 0.75 / 1.1 mN, docs/benchmarks_log.md)."""
-    from sysid.diagnose_bench import SCENE, effect_strength, effector_targets, rollout
-    from sysid.bench_effects import BondAdhesion
+    from benchmarks.diagnose_bench import SCENE, effect_strength, effector_targets, rollout
+    from benchmarks.bench_effects import BondAdhesion
 
     targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"])
     base = rollout(SCENE, targets)
@@ -222,8 +222,8 @@ def test_bench_adhesion_signature_grows_with_the_peak_traction():
 def test_bench_adhesion_acts_through_the_candidate_solver():
     """A hook's contact terms reach the Newton step (they were dropped unless they were the
     library's adhesion): on lift-off the bonds pull the sheet, so the wrench changes."""
-    from sysid.diagnose_bench import SCENE, effector_targets, rollout
-    from sysid.bench_effects import BondAdhesion
+    from benchmarks.diagnose_bench import SCENE, effector_targets, rollout
+    from benchmarks.bench_effects import BondAdhesion
 
     targets = effector_targets(SCENE["effectors"]["ee"]["initial_pose"])
     base = rollout(SCENE, targets)
@@ -240,7 +240,7 @@ def test_calibration_reaches_a_power_law_and_brackets_a_threshold():
     within the tolerance; a threshold response (no change below m = 1, then strength 0.5 + 2 m) is
     bisected towards the jump instead of crawling along the secant, and a try of strength 0 is never
     taken as the closest one."""
-    from sysid.diagnose_bench import CALIBRATION_STEPS, CALIBRATION_TOLERANCE, next_magnitude, strength_error
+    from benchmarks.diagnose_bench import CALIBRATION_STEPS, CALIBRATION_TOLERANCE, next_magnitude, strength_error
 
     def calibrate(response, k, m0):
         tried = [(m0, response(m0))]
@@ -373,7 +373,7 @@ def test_bench_bonds_damage_fail_and_reform_only_after_leaving_contact():
     within the contact offset; once the vertex has left contact it bonds again on its next touch."""
     from types import SimpleNamespace
 
-    from sysid.bench_effects import BondAdhesion
+    from benchmarks.bench_effects import BondAdhesion
 
     eps = 4e-4
     model = SimpleNamespace(sensors={"tactile": SimpleNamespace(contact_triangles=np.array([[0, 0, 0]]))},

@@ -1,8 +1,8 @@
 """Scoring of diagnoses against labelled recordings: confusion matrix, top-1 accuracy per strength,
 false alarms, located-window IoU and held-out RMS reduction (SYSID.md "Benchmark protocol").
 
-Shared by the own-simulator benchmark (:mod:`sysid.diagnose_bench`) and the reference sets of
-another engine (:mod:`sysid.diagnose.reference_bench`).
+Shared by the own-simulator benchmark (:mod:`benchmarks.diagnose_bench`) and the reference sets of
+another engine (:mod:`benchmarks.reference_bench`).
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 
 An inverse task (``TaskSpec.kind == "inverse"``) replays its reference trajectory and rewards the
 final state's closeness to the state observed at the hidden ``true_parameters``. The parameters are
-searched as :func:`sysid.fit.parameter_spec` searches them when fitting a recording - a positive
-scale parameter (stiffness, friction coefficient) as ``u = ln(theta / theta_0)`` within a factor 1000,
+searched as ``thinshell sysid`` searches them when fitting a recording
+(:func:`sim_core.parameter_coordinates.parameter_spec`) - a positive scale parameter (stiffness, friction coefficient) as ``u = ln(theta / theta_0)`` within a factor 1000,
 a Poisson ratio linearly - so CMA-ES steps are relative and a gradient step respects the bounds. The
 episode is the same as a manipulation task's (:class:`sim_core.optim.episode.Episode`); the gradient
 is the adjoint's parameter derivative (``dR/du = dR/dtheta dtheta/du``). Several points' gradients
@@ -30,7 +30,7 @@ import numpy as np
 from sim_core.errors import ConfigError
 from sim_core.optim.episode import Episode
 from sim_core.solver_config import SolverConfig
-from sysid.fit import ParameterSpec, parameter_spec
+from sim_core.parameter_coordinates import ParameterSpec, parameter_spec
 
 
 @dataclass
@@ -43,7 +43,7 @@ class ParameterSpace:
 
     Args:
         task: the inverse task.
-        specs: one :class:`~sysid.fit.ParameterSpec` per searched parameter (start = ``initial``).
+        specs: one :class:`~sim_core.parameter_coordinates.ParameterSpec` per searched parameter (start = ``initial``).
         evaluator: batch evaluator of the task (serial or Ray) at ``horizon``.
         horizon: steps per episode.
         episode: in-process episode for gradients (built on first use when None).

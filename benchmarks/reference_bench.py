@@ -1,4 +1,4 @@
-"""``thinshell bench diagnose --labelled DIR`` on a reference set: recordings made by another
+"""``python -m benchmarks.diagnose_bench --labelled DIR`` on a reference set: recordings made by another
 engine, labelled in a ``labels.yaml`` (``../shared/data/reference_bags``), diagnosed with the
 signature engine both alone and against a baseline null, leave one out.
 
@@ -18,7 +18,7 @@ from typing import Any, Callable
 import yaml
 
 from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare
-from sysid.diagnose.scoring import Recording, format_score, score
+from benchmarks.diagnose_scoring import Recording, format_score, score
 
 VARIANT_EFFECT = {"nominal": "none", "plastic": "bending_plasticity", "latency": "latency", "damped": "damping",
                   "stiction": "stiction", "lens": "lens_distortion", "force_bias": "force_bias",
@@ -63,7 +63,7 @@ def bench_reference(directory: str | Path, settings: SignatureSettings | None = 
 
     Returns:
         ``{"alone": score, "baseline_loo": score, "reports": {...}, "wall_s": ...}`` where each score
-        is :func:`sysid.diagnose_bench.score`'s (confusion matrix, top-1 accuracy, false alarms).
+        is :func:`benchmarks.diagnose_bench.score`'s (confusion matrix, top-1 accuracy, false alarms).
     """
     settings = settings or SignatureSettings()
     recs = load_reference_set(directory)
