@@ -22,7 +22,7 @@ squares) to a recording, with no replay (SYSID.md "Diagnosis", step 1):
   anywhere on the card), and while sliding their spin torque ``T_z`` has the opposite sign of the
   replay's. Where a delay or a torque bias dominates the torque's residual (latency_s103,
   force_bias_s107) the fit gives +1. A separate torque gain with the contract's sign alone ends on the
-  lower bound of :data:`GAIN_BOUNDS` on such recordings;
+  lower bound of its prior on such recordings;
 - markers (sensor frame): ``x_rec = x0 + s_xy (x_sim - x0)``, ``y`` alike, ``z_rec = z0 + s_z (z_sim - z0)``
   with ``x0`` the rest position of each marker (the prediction's first sample, before contact);
 - pixels: the pinhole ``u = f_x x / (z + d) + c_x``, ``v = f_y y / (z + d) + c_y`` (d the camera
@@ -30,8 +30,11 @@ squares) to a recording, with no replay (SYSID.md "Diagnosis", step 1):
   pixels when it has both (the camera maps what the sensor measured; a model gap in the simulated
   marker motion then cannot bias the intrinsics), else to the simulated positions.
 
-Gains and scales are kept within :data:`GAIN_BOUNDS` (a calibration off by more than that is a
-different sensor, not a calibration error). The fit uses the rows given (the training part of a
+Gains, scales and focal lengths are kept within the sensor's declared prior (:mod:`sysid.gain_prior`:
++-15 % by default, per sensor in the sysid config file): a calibration off by more than that is a model
+gap, not a calibration error. A gain the data push past its prior stops on the bound and is flagged, with
+the value the data asked for and the likely physical cause (:attr:`CalibrationResult.gain_flags`), so
+that a report never presents the bound as the answer. The fit uses the rows given (the training part of a
 recording); the result is applied to any prediction of the same recording.
 """
 
@@ -48,9 +51,7 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS, FirstReplay, secant_calibration
 from sysid.drive_calibration import fit_drive
 from sysid.fit import fit
-
-GAIN_BOUNDS = (0.5, 2.0)
-"""Range of a fitted gain or marker scale (-)."""
+from sysid.gain_prior import GainPrior, gain_flags, load_gain_prior
 
 TORQUE_ARM_BOUND = 5.0e-3
 """Largest offset (m, per sensor-frame axis) of the torque reference point: a quarter of the gel
@@ -159,15 +160,18 @@ gain's standard error is ``1 / sqrt`` of it (0.1 here). Below, the recording doe
 gain (no contact, markers that do not move) and the scene's value 1 is kept."""
 
 
-def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray) -> float:
-    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2), bounded;
-    1 when the prediction carries less than :data:`MIN_GAIN_INFORMATION`."""
+def _gain(data: np.ndarray, pred: np.ndarray, sigma: np.ndarray, bounds: tuple[float, float]) -> tuple[float, float | None]:
+    """Weighted least-squares gain ``g`` of ``data ~ g pred`` (per-axis weights 1/sigma^2): the value within
+    ``bounds`` (the least-squares optimum of a one-parameter quadratic on an interval is the clipped one)
+    and the unbounded optimum; ``(1, None)`` when the prediction carries less than
+    :data:`MIN_GAIN_INFORMATION` (not fitted)."""
     d = data / sigma
     p = pred / sigma
     den = float(np.sum(p * p))
     if not math.isfinite(den) or den < MIN_GAIN_INFORMATION:
-        return 1.0
-    return float(np.clip(np.sum(d * p) / den, *GAIN_BOUNDS))
+        return 1.0, None
+    asked = float(np.sum(d * p) / den)
+    return float(np.clip(asked, *bounds)), asked
 
 
 def _torque_calibration(data: np.ndarray, torque: np.ndarray, force: np.ndarray, gain: float,
@@ -229,8 +233,17 @@ def _affine(a: np.ndarray, b: np.ndarray) -> tuple[float, float] | None:
 def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[str, np.ndarray],
                            sigma: Mapping[str, np.ndarray], marker_rest: np.ndarray | None,
                            nominal: SensorCalibration, rows: Mapping[str, np.ndarray] | None = None,
-                           fit_camera: bool = True) -> SensorCalibration:
-    """Fit the sensor calibration to a recording (closed form, no replay).
+                           fit_camera: bool = True, prior: GainPrior = GainPrior()) -> SensorCalibration:
+    """Fit the sensor calibration to a recording (closed form, no replay): :func:`fit_sensor_gains`'s
+    calibration."""
+    return fit_sensor_gains(data, prediction, sigma, marker_rest, nominal, rows, fit_camera, prior)[0]
+
+
+def fit_sensor_gains(data: Mapping[str, np.ndarray], prediction: Mapping[str, np.ndarray],
+                     sigma: Mapping[str, np.ndarray], marker_rest: np.ndarray | None,
+                     nominal: SensorCalibration, rows: Mapping[str, np.ndarray] | None = None,
+                     fit_camera: bool = True, prior: GainPrior = GainPrior()) -> tuple[SensorCalibration, dict[str, float]]:
+    """Fit the sensor calibration to a recording (closed form, no replay), within the gains' prior.
 
     Args:
         data: channel -> recorded values (shapes as in :meth:`SensorCalibration.apply`).
@@ -240,19 +253,30 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
         nominal: the scene's calibration (camera intrinsics and distance; start values).
         rows: channel -> boolean mask of the rows to fit on (the training part); None: all rows.
         fit_camera: fit the camera intrinsics (else keep ``nominal``'s).
+        prior: the gains' prior (:class:`sysid.gain_prior.GainPrior`; focal lengths relative to ``nominal``'s).
 
     Returns:
-        the fitted :class:`SensorCalibration`; an intrinsic pair (f, c) that the rows do not determine
-        (fewer than three samples, markers that never move) or whose focal length leaves
-        :data:`GAIN_BOUNDS` times the scene's keeps the scene's values.
+        the fitted :class:`SensorCalibration` and, per gain fitted (``force_gain``, ``marker_scale_xy``,
+        ``marker_scale_z``, ``fx``, ``fy``), the value the data asked for before the prior bounded it (for
+        :func:`sysid.gain_prior.gain_flags`). An intrinsic pair (f, c) that the rows do not determine (fewer than
+        three samples, markers that never move) keeps the scene's values; a focal length the data push past its
+        prior stops on the bound, with the principal point refitted for it.
     """
     def pick(ch: str, arr: np.ndarray) -> np.ndarray:
         return arr if rows is None or ch not in rows else arr[rows[ch]]
 
     fields: dict[str, Any] = nominal.as_dict()
+    asked: dict[str, float] = {}
+
+    def gain(key: str, d: np.ndarray, p: np.ndarray, s: np.ndarray, bounds_key: str) -> float:
+        value, wanted = _gain(d, p, s, prior.bounds(bounds_key))
+        if wanted is not None:
+            asked[key] = wanted
+        return value
+
     if "wrench" in data and "wrench" in prediction:
         d, p, s = pick("wrench", data["wrench"]), pick("wrench", prediction["wrench"]), sigma["wrench"]
-        fields["force_gain"] = _gain(d[:, :3], p[:, :3], s[:3])
+        fields["force_gain"] = gain("force_gain", d[:, :3], p[:, :3], s[:3], "force_gain")
         sign, arm = _torque_calibration(d[:, 3:], p[:, 3:], fields["force_gain"] * p[:, :3], fields["force_gain"],
                                         s[3:], s[:3])
         fields["torque_sign"] = sign
@@ -261,8 +285,8 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
         d = pick("markers_xyz", data["markers_xyz"]) - marker_rest
         p = pick("markers_xyz", prediction["markers_xyz"]) - marker_rest
         s = sigma["markers_xyz"]
-        fields["marker_scale_xy"] = _gain(d[..., :2], p[..., :2], s[:2])
-        fields["marker_scale_z"] = _gain(d[..., 2:], p[..., 2:], s[2:])
+        fields["marker_scale_xy"] = gain("marker_scale_xy", d[..., :2], p[..., :2], s[:2], "marker_scale")
+        fields["marker_scale_z"] = gain("marker_scale_z", d[..., 2:], p[..., 2:], s[2:], "marker_scale")
     if fit_camera and "markers_uv" in data:
         xyz = data.get("markers_xyz")
         if xyz is None and "markers_xyz" in prediction:
@@ -273,12 +297,18 @@ def fit_sensor_calibration(data: Mapping[str, np.ndarray], prediction: Mapping[s
             uv = pick("markers_uv", data["markers_uv"])
             w = xyz[..., 2] + nominal.distance
             for axis, (f_key, c_key) in enumerate((("fx", "cx"), ("fy", "cy"))):
-                line = _affine(xyz[..., axis] / w, uv[..., axis])
+                a, b = xyz[..., axis] / w, uv[..., axis]
+                line = _affine(a, b)
+                if line is None:  # an undetermined line keeps the scene's
+                    continue
                 ref = getattr(nominal, f_key)
-                # an undetermined line or a focal length off by more than the gain bounds keeps the scene's
-                if line is not None and GAIN_BOUNDS[0] * ref <= line[0] <= GAIN_BOUNDS[1] * ref:
-                    fields[f_key], fields[c_key] = line
-    return SensorCalibration(**fields)
+                low, high = (ref * v for v in prior.bounds("focal"))
+                asked[f_key] = line[0]
+                f = float(np.clip(line[0], low, high))
+                ok = np.isfinite(a) & np.isfinite(b)
+                # the principal point for a bounded focal length: the least-squares offset at that slope
+                fields[f_key], fields[c_key] = (line if f == line[0] else (f, float(np.mean(b[ok] - f * a[ok]))))
+    return SensorCalibration(**fields), asked
 
 
 # ====================================================================================== calibration
@@ -384,6 +414,9 @@ class CalibrationResult:
             :data:`FOLLOWED_RMS` after calibration (None: not computed).
         drive: the :class:`sysid.drive_calibration.DriveCalibration` every replay took (None: the
             kinematic drive, not calibrated).
+        gain_prior: the sensor gains' :class:`sysid.gain_prior.GainPrior` (None: not recorded).
+        gain_flags: per fitted gain, :func:`sysid.gain_prior.gain_flags` (value, the value the data asked for,
+            bounds, whether it stopped on a bound and the likely physical cause).
     """
 
     params: dict[str, float]
@@ -397,6 +430,13 @@ class CalibrationResult:
     secant: Any = None
     not_followed_where: dict[str, Any] | None = None
     drive: Any = None
+    gain_prior: Any = None
+    gain_flags: dict[str, Any] | None = None
+
+    @property
+    def gains_at_bound(self) -> list[str]:
+        """The gains that stopped on a bound of their prior (their values are not answers)."""
+        return [k for k, v in (self.gain_flags or {}).items() if v.get("at_bound")]
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary: parameters, sensor calibration, whitened RMS before and after, and,
@@ -434,6 +474,11 @@ class CalibrationResult:
             out["secant"] = self.secant.summary()
         if self.drive is not None:
             out["drive"] = self.drive.summary()
+        if self.gain_prior is not None:
+            out["gain_prior"] = self.gain_prior.as_dict()
+        if self.gain_flags is not None:
+            out["gains"] = self.gain_flags
+            out["gains_at_bound"] = self.gains_at_bound
         return out
 
 
@@ -503,7 +548,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
               reweight_channels: bool = True, secant_params=SECANT_PARAMETERS,
               secant_replays: int = SECANT_REPLAYS, drive: bool = False,
               secant_first: Callable[[], FirstReplay | None] | None = None, batched: bool = False,
-              batch_size: int | str | None = None) -> CalibrationResult:
+              batch_size: int | str | None = None, prior: GainPrior | None = None) -> CalibrationResult:
     """Calibrate a replay to its recording: the simulator parameters ``params`` (weighted least
     squares, :func:`sysid.fit.fit`, within bounds around the scene's values) and the sensor
     calibration (closed form, :func:`fit_sensor_calibration`).
@@ -555,12 +600,16 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             parameter fit. In the summary under ``secant``.
         secant_replays: replay budget of that stage (0: none), a count as ``max_replays``.
         drive: calibrate the effector's drive along the sensor normal first, in closed form
-            (:func:`sysid.drive_calibration.fit_drive`), and make every replay, the first included,
-            take it (:meth:`~sysid.observation.ObservationModel.set_drive_stiffness`); False: the
+            (:func:`sysid.drive_calibration.fit_drive`, which chooses the compliant or the kinematic drive by
+            delta-BIC), and make every replay, the first included, take it
+            (:meth:`~sysid.observation.ObservationModel.set_drive_stiffness`; the parameter fit's Jacobian is
+            then taken by finite differences: a replay through the drive has no tangents); False: the
             recorded pose driven kinematically (the scene's prior).
         secant_first: gives the secant stage's first replay made beforehand (in another process beside
             the fit's start replay: :mod:`sysid.diagnose.probe_worker`), taken only where its parameters
             are bitwise the stage's first ones (:func:`sysid.calibration_secant.secant_calibration` ``first``).
+        prior: the sensor gains' prior (None: the sensor's in the packaged sysid config,
+            :func:`sysid.gain_prior.load_gain_prior`).
 
     Returns:
         the :class:`CalibrationResult`.
@@ -577,9 +626,11 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     channels = [ch for ch in model.sigma]
     model.sensor_calibration = None
     model.reset_nominal()
+    prior = load_gain_prior(model.sensor) if prior is None else prior
     drive_fit = fit_drive(model) if drive else None
     model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf,
                               drive_fit.replay_damping if drive_fit is not None else 0.0)
+    jacobian = "auto" if math.isinf(model.drive_stiffness) else "fd"  # a replay through the drive has no tangents
     limits = calibration_bounds(model, params) if params and bounds is None else dict(bounds or {})
     totals: dict[str, Any] = {}
     result = None
@@ -587,7 +638,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         try:
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
                          max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
-                         batched=batched, batch_size=batch_size)
+                         batched=batched, batch_size=batch_size, jacobian=jacobian)
         except SimulationDivergedError as err:
             raise CalibrationError(f"{model.evidence.source.bag_path}: the replay at the scene values diverged: {err}") from err
         raw = {ch: np.asarray(v, dtype=float) for ch, v in result.prediction_initial.items()}
@@ -606,10 +657,11 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     values: dict[str, float] = {}
     if params:
         if sensor_first:
-            model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
+            model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows,
+                                                              prior=prior)
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
                          max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
-                         batched=batched, batch_size=batch_size)
+                         batched=batched, batch_size=batch_size, jacobian=jacobian)
         values = {k: float(v) for k, v in result.values.items()}
         model.set_nominal(values)
         if sensor_first:
@@ -625,7 +677,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     secant_names = tuple(n for n in secant_params if n not in tuple(params))
     if secant_names and secant_replays:
         def sensor_calibrated(prediction):
-            cal = fit_sensor_calibration(data, prediction, model.sigma, model.marker_rest, nominal, rows)
+            cal = fit_sensor_calibration(data, prediction, model.sigma, model.marker_rest, nominal, rows, prior=prior)
             return cal.apply(prediction, model.marker_rest)
 
         stage_bounds = {**calibration_bounds(model, secant_names), **dict(bounds or {})}
@@ -636,7 +688,10 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             model.set_nominal(values)
             raw = stage.raw
             totals["calibrated"] = None
-    model.sensor_calibration = fit_sensor_calibration(data, raw, model.sigma, model.marker_rest, nominal, rows)
+    model.sensor_calibration, asked = fit_sensor_gains(data, raw, model.sigma, model.marker_rest, nominal, rows,
+                                                       prior=prior)
+    flags = gain_flags(model.sensor_calibration.as_dict(), asked,
+                       {"fx": nominal.fx, "fy": nominal.fy}, prior)
     calibrated = model.sensor_calibration.apply(raw, model.marker_rest)
     after = whitened_rms(model, calibrated, channels)
     ev = model.evidence
@@ -646,7 +701,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         t = (np.asarray(ev.t_ns[ch], dtype=np.int64)[:len(y)] - ev.start_ns) * 1e-9
         where[ch] = not_followed_windows(t, y - calibrated[ch], model.sigma[ch])
     return CalibrationResult(values, model.sensor_calibration, before, after, result, dict(calibrated), totals,
-                             time.perf_counter() - t_start, stage, where, drive_fit)
+                             time.perf_counter() - t_start, stage, where, drive_fit, prior, flags)
 
 
 def kinematic_reference(model, result: CalibrationResult) -> dict[str, np.ndarray] | None:

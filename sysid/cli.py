@@ -114,6 +114,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration-time", type=float,
                    help="also a wall-time budget of --calibrate's parameter fit, s (default: none; with one, the "
                         "calibration depends on the machine's load)")
+    p.add_argument("--drive", action=argparse.BooleanOptionalAction, default=False,
+                   help="fit the arm's impedance along the sensor normal (spring and damper) from the recorded command "
+                        "and measured pose (ee/pose_cmd, ee/pose) and the normal load, and replay the pad through it "
+                        "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian is then taken "
+                        "by finite differences); kept kinematic, with the reason in fit.json, elsewhere. Default: off (the "
+                        "recorded pose driven kinematically): through the drive the finite-difference fit is not yet "
+                        "fast or stable enough (sysid.fit_recording.FitOptions.drive); thinshell diagnose takes it by "
+                        "default")
     p.add_argument("--no-sensor-calibration", action="store_true",
                    help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
                         "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
@@ -238,7 +246,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
-                      robust=None if args.robust == "none" else args.robust)
+                      robust=None if args.robust == "none" else args.robust, drive=args.drive)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -251,6 +259,14 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     def calibrated(sensor) -> None:
         print(f"{PROG}: sensor calibration: " + ", ".join(f"{k} {v:.4g}" for k, v in sensor.sensor.as_dict().items()),
               file=sys.stderr)
+        if sensor.drive is not None:
+            d = sensor.drive
+            print(f"{PROG}: drive: {'compliant' if d.compliant else 'kinematic'}, k_s {d.stiffness:.4g} +- "
+                  f"{d.stiffness_sigma:.2g} N/m, c_d {d.damping:.4g} +- {d.damping_sigma:.2g} N s/m, delta-BIC "
+                  f"{d.delta_bic:.4g}" + (f" ({d.why})" if d.why else ""), file=sys.stderr)
+        for name, flag in (sensor.gain_flags or {}).items():
+            if flag.get("at_bound"):
+                print(f"{PROG}: warning: {flag['cause']}", file=sys.stderr)
 
     progress = _Progress(not args.quiet)
     try:

@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 from sim_core.errors import ConfigError
 from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
+from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit)
@@ -77,6 +78,15 @@ class FitOptions:
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
         robust: covariance reported beside the Gauss-Newton one (:data:`sysid.covariance.ROBUST_METHODS`,
             default ``hac``; None: none).
+        drive: fit the effector's drive along the sensor normal (:func:`sysid.drive_calibration.fit_drive`: a
+            spring and damper, chosen over a kinematic arm by delta-BIC) and make every replay, the calibration's
+            and the fit's, take it where the data choose it; the fit's Jacobian is then taken by finite
+            differences (``jacobian="auto"``; a replay through the drive has no tangents). False (the default
+            of ``thinshell sysid``): the recorded pose driven kinematically. Off by default here, unlike in
+            ``thinshell diagnose``: with finite-difference Jacobians through the drive a fit of a 3.6 s
+            MuJoCo press-slide (nominal_s101) did not finish in 560 s on 16 cores, and on a lift
+            (nominal_s109) it moved the bending stiffness x4.8 in 12 replays (docs/benchmarks_log.md,
+            session 50, 49drive).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -111,6 +121,7 @@ class FitOptions:
     batched: bool = False
     batch_size: int | str | None = None
     robust: str | None = DEFAULT_ROBUST_METHOD
+    drive: bool = False
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -235,15 +246,24 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     calibrated = tuple(p for p in options.calibration_params if p not in options.params)
     for name in (*options.params, *calibrated):  # an unknown name fails here, before the calibration's replay
         model.parameter_value(name)
+    drive = fit_drive(model) if options.drive and model.sensor is not None else None
+    if drive is not None:
+        model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
+    jacobian = options.jacobian
+    if math.isfinite(model.drive_stiffness):
+        if jacobian == "sensitivity":
+            raise ConfigError(f"{bag}: the replays go through the fitted drive ({drive.stiffness:.4g} N/m), which has "
+                              "no tangents: use --jacobian fd or auto, or --no-drive")
+        jacobian = "fd" if jacobian == "auto" else jacobian
     if on_model is not None:
         on_model(model, notes)
     sensor = None
     if (options.sensor_calibration or calibrated) and model.sensor is not None:  # a task scene may have no sensor
         sensor = calibrate(model, params=calibrated, max_time=options.calibration_max_time,
-                           max_replays=options.calibration_max_replays)
+                           max_replays=options.calibration_max_replays, drive=options.drive)
         if on_calibration is not None:
             on_calibration(sensor)
-    result = fit(model, list(options.params), jacobian=options.jacobian, global_method=options.global_method,
+    result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
@@ -251,6 +271,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                  stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
     result.warnings[:0] = list(notes)
+    if sensor is not None:  # a gain on its prior's bound is a model gap, not the sensor's gain
+        result.warnings.extend(f["cause"] for f in (sensor.gain_flags or {}).values() if f.get("at_bound"))
     for ch, before in result.rms_initial.items():
         if ch in result.rms_final and result.rms_final[ch]["rms"] > before["rms"]:
             result.warnings.append(f"the fit does not improve channel {ch}: RMS {before['rms']:.4g} -> "
@@ -260,6 +282,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     doc = fit_document(result, provenance(evidence, options.seed, options.t_max, command, options.scene))
     if sensor is not None:
         doc["diagnostics"]["sensor_calibration"] = sensor.summary()
+    if drive is not None:
+        doc["diagnostics"]["drive"] = drive.summary()
     # the fitted scene is built (and checked) before anything is written
     scene_doc = None if write_scene is None else fitted_scene_from_result(
         result, evidence, options.t_max, calibrated=None if sensor is None else sensor.params)

@@ -256,6 +256,12 @@ def _tables(doc: Mapping[str, Any]) -> list[tuple[str, list[str], list[list[str]
                               f"1-sigma ({method})", f"2-sigma interval ({method})", "space"], p_rows),
               ("Per-channel RMS (recording - simulation)",
                ["channel", "unit", "RMS nominal", "RMS fitted", "whitened nominal", "whitened fitted", "fitted"], r_rows)]
+    gains = (doc["diagnostics"].get("sensor_calibration") or {}).get("gains") or {}
+    if gains:
+        tables.append(("Sensor gains (within their declared prior)", ["gain", "fitted", "data asked for", "prior",
+                                                                       "on a bound"],
+                       [[g, _fmt(f["value"]), _fmt(f["unbounded"]), f"{f['bounds'][0]:.4g}-{f['bounds'][1]:.4g}",
+                         f["at_bound"] or "no"] for g, f in gains.items()]))
     corr = doc["fit"]["correlation"]
     if corr is not None:
         names = corr["names"]
@@ -274,7 +280,15 @@ def _summary_lines(doc: Mapping[str, Any]) -> list[str]:
         f"({d['sim_time_s']:.1f} s simulating), wall time {d['wall_time_s']:.1f} s, Jacobian: {d['jacobian']}",
         f"cost 0.5|r|^2: {_fmt(m['cost_initial'])} -> {_fmt(m['cost_final'])}; reduced chi^2 {_fmt(m['reduced_chi2'])}",
         f"git {p['git_revision']}{' (dirty)' if p['git_dirty'] else ''}; seed {p['seed']}",
-    ]
+    ] + ([_drive_line(d["drive"])] if d.get("drive") else [])
+
+
+def _drive_line(drive: Mapping[str, Any]) -> str:
+    """The effector drive's decision and fitted values (:meth:`sysid.drive_calibration.DriveCalibration.summary`)."""
+    return (f"effector drive: {drive['decision']} (delta-BIC {_fmt(drive['delta_bic'])} against a kinematic arm, "
+            f"threshold {_fmt(drive['min_delta_bic'])}); k_s {_fmt(drive['stiffness'])} +- "
+            f"{_fmt(drive['stiffness_sigma'])} N/m, c_d {_fmt(drive['damping'])} +- {_fmt(drive['damping_sigma'])} "
+            f"N s/m" + (f"; {drive['why']}" if drive.get("why") else ""))
 
 
 def write_markdown(doc: Mapping[str, Any], plots: list[Path], path: Path) -> Path:

@@ -46,6 +46,7 @@ from sim_core.errors import CalibrationError, SimulationDivergedError
 from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, CalibrationResult, calibrate,
                                kinematic_reference, nominal_sensor_calibration)
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
+from sysid.drive_calibration import fit_drive
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.probe_worker import ProbeWorker
@@ -89,7 +90,7 @@ class SignatureSettings:
             :data:`sysid.calibration_secant.SECANT_REPLAYS`; none when ``calibrate`` is False).
         calibration_drive: calibrate the arm's drive along the sensor normal (a spring about the
             recorded command and a damper, :func:`sysid.drive_calibration.fit_drive`) and replay through
-            it where it is compliant; False (the default): the recorded pose driven kinematically.
+            it where the data choose it (the default); False: the recorded pose driven kinematically.
         baseline_factor: a baseline-calibrated statistic threshold is this factor times the largest
             statistic the test reaches on the baselines (the effect-size thresholds stay the
             instrument's resolution).
@@ -119,7 +120,7 @@ class SignatureSettings:
     calibration_max_replays: int | None = CALIBRATION_REPLAYS
     calibration_max_time: float | None = None
     calibration_secant_replays: int = SECANT_REPLAYS
-    calibration_drive: bool = False
+    calibration_drive: bool = True
     baseline_factor: float = 2.0
     holdout_blocks: int = 4
     simulation: dict[str, Any] | None = None
@@ -206,6 +207,10 @@ def prepare(bag: str | Path, settings: SignatureSettings) -> Prepared:
                              arch=settings.arch)
     params = tuple(settings.calibration_params) if settings.calibrate else ()
     notes: list[str] = []
+    if settings.calibration_drive and settings.calibrate:
+        # the drive first (closed form, as the calibration fits it again), so that a forked probe replays through it
+        drive = fit_drive(model)
+        model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     worker = probe_worker_for(model, params, settings)
     try:
         cal = calibrate(model, params, max_nfev=settings.calibration_max_nfev, workers=settings.workers,
@@ -250,13 +255,13 @@ def without_replays(p: Prepared) -> Prepared:
 def probe_worker_for(model: ObservationModel, params: Sequence[str], settings: SignatureSettings) -> ProbeWorker | None:
     """A :class:`~sysid.diagnose.probe_worker.ProbeWorker` for the calibration of ``model``, or None where
     its replay would not be the secant stage's first one or cannot run: ``settings.probe_worker`` off,
-    no calibration or no secant replay, a drive calibration (its replays take the fitted drive), a
-    parameter fit that may step (a budget other than one replay, or a time budget), or Taichi already
-    started here (a forked child could not run it)."""
+    no calibration or no secant replay, a parameter fit that may step (a budget other than one replay, or a
+    time budget), or Taichi already started here (a forked child could not run it). Through a drive the child
+    replays through the one ``model`` holds when it is forked (:func:`prepare` sets it first)."""
     from sim_core.ti_backend import current_arch
 
     if not (settings.probe_worker and settings.calibrate and settings.calibration_secant_replays > 0
-            and not settings.calibration_drive and settings.calibration_max_time is None
+            and settings.calibration_max_time is None
             and (not params or settings.calibration_max_replays == 1) and current_arch() is None):
         return None
     names = tuple(n for n in SECANT_PARAMETERS if n not in tuple(params))

@@ -184,6 +184,21 @@ def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
                   "(weight 1 / RMS^2), so such a channel did not drive the fitted parameters."]
     if cal.get("status"):
         lines.append(f"\nParameter fit: {cal['status']}, {cal.get('fit_replays')} replays.")
+    drive = cal.get("drive")
+    if drive:
+        def g(key: str, spec: str = ".4g") -> str:
+            return "n/a" if drive.get(key) is None else format(drive[key], spec)
+
+        lines.append(f"\nEffector drive: {drive['decision']} (delta-BIC {g('delta_bic')} against a kinematic arm, "
+                     f"threshold {drive['min_delta_bic']:g}); k_s {g('stiffness')} +- {g('stiffness_sigma', '.2g')} "
+                     f"N/m, c_d {g('damping')} +- {g('damping_sigma', '.2g')} N s/m"
+                     + (f"; {drive['why']}" if drive.get("why") else "") + ".")
+    gains = cal.get("gains") or {}
+    if gains:
+        lines += ["", "| sensor gain | fitted | data asked for | prior | on a bound |", "|---|---|---|---|---|"]
+        lines += [f"| {g} | {f['value']:.4g} | {f['unbounded']:.4g} | {f['bounds'][0]:.4g}-{f['bounds'][1]:.4g} | "
+                  f"{f['at_bound'] or 'no'} |" for g, f in gains.items()]
+        lines += [f"- **{g} is not the sensor's gain**: {f['cause']}." for g, f in gains.items() if f.get("at_bound")]
     lines += ["", f"Fitted parameters: `{json.dumps(doc['baseline']['params'])}`", "",
               "## Where", "", f"windows (s): {doc['mismatch']['windows_s']}; channels: {doc['mismatch']['channels']}; "
               f"markers: {doc['mismatch']['markers']}", "", "## Signature tests", "",

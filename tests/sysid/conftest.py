@@ -86,14 +86,15 @@ def synthetic_streams(n: int = 20, seed: int = 0) -> dict:
 
 def write_synthetic(out_dir: Path, streams: dict, scene: dict | None = None, skip: tuple[str, ...] = (),
                     namespace: str = NS) -> Path:
-    """Write the synthetic streams as a bag with the INTERFACES.md topics."""
+    """Write the synthetic streams as a bag with the INTERFACES.md topics (``pose_cmd`` from
+    ``streams["pose_cmd"]`` when given, else the pose: a kinematic arm)."""
     with BagWriter(out_dir, scene=scene) as bag:
         for i, t in enumerate(streams["t_ns"]):
             t = int(t)
             if "pose" not in skip:
                 bag.write_pose(f"{namespace}/ee/pose", t, streams["pose"][i], "world")
             if "pose_cmd" not in skip:
-                bag.write_pose(f"{namespace}/ee/pose_cmd", t, streams["pose"][i], "world")
+                bag.write_pose(f"{namespace}/ee/pose_cmd", t, streams.get("pose_cmd", streams["pose"])[i], "world")
             if "wrench" not in skip:
                 bag.write_wrench(f"{namespace}/tactile/wrench", t, streams["wrench"][i], "tactile")
             if "markers" not in skip:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sysid.calibration import GAIN_BOUNDS, SensorCalibration, fit_sensor_calibration, scale_markers
+from sysid.calibration import SensorCalibration, fit_sensor_calibration, fit_sensor_gains, scale_markers
+from sysid.gain_prior import GainPrior, gain_flags
 
 
 def _synthetic(rng, n=200, k=12):
@@ -23,8 +24,8 @@ def test_recovers_known_calibration_exactly():
     rng = np.random.default_rng(0)
     rest, xyz, wrench = _synthetic(rng)
     nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
-    truth = SensorCalibration(force_gain=0.8, torque_sign=-1.0, torque_arm_x=-7e-4, torque_arm_y=4e-4,
-                              torque_arm_z=2e-3, marker_scale_xy=0.9, marker_scale_z=1.2,
+    truth = SensorCalibration(force_gain=0.88, torque_sign=-1.0, torque_arm_x=-7e-4, torque_arm_y=4e-4,
+                              torque_arm_z=2e-3, marker_scale_xy=0.9, marker_scale_z=1.12,
                               fx=310.0, fy=295.0, cx=158.0, cy=121.5, distance=0.025)
     prediction = {"markers_xyz": xyz, "wrench": wrench, "markers_uv": nominal.project(xyz)}
     data = truth.apply(prediction, rest)
@@ -39,19 +40,33 @@ def test_recovers_known_calibration_exactly():
         np.testing.assert_allclose(calibrated[ch], data[ch], atol=1e-9)
 
 
-def test_gains_are_bounded_and_rows_select_the_training_part():
+def test_gains_stop_on_their_prior_flagged_with_a_cause_and_rows_select_the_training_part():
+    """A recording 10x the prediction asks for a force gain of 10: the gain stops on the prior's upper bound
+    (default +-15 %), and the flag says so, with the value asked for and a physical cause, so that no report
+    takes 1.15 for the sensor's gain; a wider prior declared for the sensor moves the bound; a gain inside the
+    prior is not flagged."""
     rng = np.random.default_rng(1)
     rest, xyz, wrench = _synthetic(rng)
     nominal = SensorCalibration()
     data = {"wrench": 10.0 * wrench}
     sigma = {"wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
-    fitted = fit_sensor_calibration(data, {"wrench": wrench}, sigma, None, nominal)
-    assert fitted.force_gain == GAIN_BOUNDS[1]
-    # only the first half is the training part: its gain is 0.7, the other half's 1.4
-    data = {"wrench": np.concatenate([0.7 * wrench[:100], 1.4 * wrench[100:]])}
+    fitted, asked = fit_sensor_gains(data, {"wrench": wrench}, sigma, None, nominal)
+    assert fitted.force_gain == 1.15 and asked["force_gain"] == pytest.approx(10.0)
+    flag = gain_flags(fitted.as_dict(), asked, {}, GainPrior())["force_gain"]
+    assert flag["at_bound"] == "high" and flag["bounds"] == [0.85, 1.15]
+    assert "data asked for 10" in flag["cause"] and "too compliant in the model" in flag["cause"]
+    wide = GainPrior(force_gain=0.5)
+    assert fit_sensor_calibration({"wrench": 0.6 * wrench}, {"wrench": wrench}, sigma, None, nominal,
+                                  prior=wide).force_gain == pytest.approx(0.6)
+    low, asked = fit_sensor_gains({"wrench": 0.6 * wrench}, {"wrench": wrench}, sigma, None, nominal)
+    flag = gain_flags(low.as_dict(), asked, {}, GainPrior())["force_gain"]
+    assert low.force_gain == 0.85 and flag["at_bound"] == "low" and "too stiff" in flag["cause"]
+    # only the first half is the training part: its gain is 0.9, the other half's 1.1
+    data = {"wrench": np.concatenate([0.9 * wrench[:100], 1.1 * wrench[100:]])}
     rows = {"wrench": np.arange(200) < 100}
-    fitted = fit_sensor_calibration(data, {"wrench": wrench}, sigma, None, nominal, rows)
-    assert fitted.force_gain == pytest.approx(0.7)
+    fitted, asked = fit_sensor_gains(data, {"wrench": wrench}, sigma, None, nominal, rows)
+    assert fitted.force_gain == pytest.approx(0.9)
+    assert gain_flags(fitted.as_dict(), asked, {}, GainPrior())["force_gain"]["at_bound"] is None
 
 
 def test_torque_reference_offset_is_the_moment_transport_and_is_bounded():
@@ -86,13 +101,13 @@ def test_torque_sign_convention_of_a_reaction_wrench_is_recovered_not_absorbed_b
     (``g sum f``, on the gel). The calibration recovers the sign -1, the gain g (on forces and torques
     alike: the moment of the same forces) and ``a`` exactly; a recording that follows the contract
     keeps +1, and so does one whose torques the recording does not determine. A separate torque gain
-    with the contract's sign (the calibration before) ends on GAIN_BOUNDS[0] on such a recording, as it
-    did on every reference recording."""
+    with the contract's sign (the calibration before) ends on the lower bound of its prior on such a
+    recording, as it did on every reference recording."""
     from scipy.optimize import lsq_linear
 
     rng = np.random.default_rng(7)
     points, forces = rng.normal(scale=3e-3, size=(60, 5, 3)), rng.normal(size=(60, 5, 3))
-    a, g = np.array([-4e-4, 3e-4, -2.5e-3]), 0.7
+    a, g = np.array([-4e-4, 3e-4, -2.5e-3]), 0.9
     sim = np.concatenate([forces.sum(1), np.cross(points, forces).sum(1)], axis=1)
     reaction = np.concatenate([g * forces.sum(1), np.cross(points - a, -g * forces).sum(1)], axis=1)
     sigma = {"wrench": np.array([0.1, 0.1, 0.2, 4e-4, 4e-4, 4e-4])}
@@ -115,9 +130,9 @@ def test_torque_sign_convention_of_a_reaction_wrench_is_recovered_not_absorbed_b
     arm_cols = [np.stack([zero, f[:, 2], -f[:, 1]], 1), np.stack([-f[:, 2], zero, f[:, 0]], 1),
                 np.stack([f[:, 1], -f[:, 0], zero], 1)]
     A = np.concatenate([np.concatenate([sim[:, 3 + k:4 + k], arm_cols[k]], 1) / 4e-4 for k in range(3)])
-    bounded = lsq_linear(A, (reaction[:, 3:] / 4e-4).T.reshape(-1), bounds=([GAIN_BOUNDS[0], -1, -1, -1],
-                                                                            [GAIN_BOUNDS[1], 1, 1, 1]))
-    assert bounded.x[0] == pytest.approx(GAIN_BOUNDS[0])
+    low, high = GainPrior().bounds("force_gain")
+    bounded = lsq_linear(A, (reaction[:, 3:] / 4e-4).T.reshape(-1), bounds=([low, -1, -1, -1], [high, 1, 1, 1]))
+    assert bounded.x[0] == pytest.approx(low)
 
 
 def test_not_followed_windows_locate_a_gap_and_split_the_rms():
@@ -148,11 +163,11 @@ def test_a_prediction_below_the_noise_keeps_the_scene_gain():
     rest, xyz, wrench = _synthetic(rng)
     # the markers barely move (1 um against 15 um noise): the recording does not determine the scales
     still = rest + (xyz - rest) * 0.01
-    data = {"markers_xyz": rest + rng.normal(size=xyz.shape) * 15e-6, "wrench": 0.6 * wrench}
+    data = {"markers_xyz": rest + rng.normal(size=xyz.shape) * 15e-6, "wrench": 0.9 * wrench}
     sigma = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "wrench": np.array([1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4])}
     fitted = fit_sensor_calibration(data, {"markers_xyz": still, "wrench": wrench}, sigma, rest, SensorCalibration())
     assert fitted.marker_scale_xy == 1.0 and fitted.marker_scale_z == 1.0
-    assert fitted.force_gain == pytest.approx(0.6)
+    assert fitted.force_gain == pytest.approx(0.9)
 
 
 def test_derivative_matches_finite_difference_of_apply():
@@ -190,7 +205,9 @@ def test_calibrate_lowers_the_weighted_cost_and_sets_the_model(tmp_path):
     assert set(summary) >= {"params", "sensor", "whitened_rms_before", "whitened_rms_after"}
 
 
-def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
+def test_undetermined_intrinsics_keep_the_scene_camera_and_an_implausible_focal_stops_on_its_prior():
+    """A line the data do not determine keeps the scene's intrinsics; a focal length 3x the scene's stops on
+    its prior's bound (1.15x by default), flagged, with the principal point refitted at that slope."""
     nominal = SensorCalibration(fx=300.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)
     still = np.zeros((10, 1, 3))  # one marker that never moves: no spread, the line is undetermined
     data = {"markers_xyz": still, "markers_uv": np.full((10, 1, 2), 150.0)}
@@ -198,9 +215,13 @@ def test_undetermined_or_implausible_intrinsics_keep_the_scene_camera():
     assert (fitted.fx, fitted.cx, fitted.fy, fitted.cy) == (300.0, 160.0, 300.0, 120.0)
     rng = np.random.default_rng(3)
     rest, xyz, _ = _synthetic(rng)
-    far = SensorCalibration(fx=900.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)  # fx x3: outside the bounds
-    fitted = fit_sensor_calibration({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
-    assert fitted.fx == 300.0 and fitted.cx == 160.0
+    far = SensorCalibration(fx=900.0, fy=300.0, cx=160.0, cy=120.0, distance=0.025)  # fx x3: outside the prior
+    fitted, asked = fit_sensor_gains({"markers_xyz": xyz, "markers_uv": far.project(xyz)}, {}, {}, None, nominal)
+    a = xyz[..., 0] / (xyz[..., 2] + 0.025)
+    assert fitted.fx == pytest.approx(345.0) and fitted.cx == pytest.approx(160.0 + 555.0 * a.mean())
+    assert asked["fx"] == pytest.approx(900.0)
+    flags = gain_flags(fitted.as_dict(), asked, {"fx": 300.0, "fy": 300.0}, GainPrior())
+    assert flags["fx"]["at_bound"] == "high" and flags["fy"]["at_bound"] is None
     assert fitted.fy == pytest.approx(300.0) and fitted.cy == pytest.approx(120.0)
 
 

@@ -152,17 +152,23 @@ def test_calibrations_are_bounded_by_a_replay_count_not_by_seconds(capsys):
     assert "--calibration-secant-replays must be >= 0" in capsys.readouterr().err
 
 
-def test_diagnose_drive_flag_reaches_the_calibration_and_needs_one_replay(capsys):
-    """``thinshell diagnose`` replays the recorded pose kinematically by default, asks the calibration for
-    the arm's drive with ``--drive``, and refuses with it a replay budget the drive cannot take (its replays
-    have no tangents)."""
-    from sysid.diagnose.cli import build_parser as diagnose_parser, diagnose_main, signature_settings
+def test_diagnose_takes_the_drive_by_default_and_sysid_on_request():
+    """``thinshell diagnose`` (signatures engine) asks the calibration for the arm's drive by default (the data
+    then choose it, :func:`sysid.drive_calibration.fit_drive`), replays the recorded pose kinematically with
+    ``--no-drive``, and takes a calibration budget that steps through the drive (its Jacobian by finite
+    differences); ``thinshell sysid`` takes the drive with ``--drive`` (off by default: ``FitOptions.drive``)."""
+    from sysid.cli import build_parser as sysid_parser, fit_options
+    from sysid.diagnose.cli import build_parser as diagnose_parser, signature_settings
     from sysid.diagnose.signature_engine import SignatureSettings
+    from sysid.fit_recording import FitOptions
 
-    assert not SignatureSettings().calibration_drive
-    assert not signature_settings(diagnose_parser().parse_args(["bag"])).calibration_drive
+    assert SignatureSettings().calibration_drive and not FitOptions().drive
+    assert signature_settings(diagnose_parser().parse_args(["bag"])).calibration_drive
     assert signature_settings(diagnose_parser().parse_args(["bag", "--drive"])).calibration_drive
     assert not signature_settings(diagnose_parser().parse_args(["bag", "--no-drive"])).calibration_drive
-    assert diagnose_main(["no_such_bag", "--drive", "--calibration-replays", "2"]) == 2
-    assert "--drive takes one calibration replay" in capsys.readouterr().err
+    stepping = signature_settings(diagnose_parser().parse_args(["bag", "--calibration-replays", "4"]))
+    assert stepping.calibration_drive and stepping.calibration_max_replays == 4
+    assert not fit_options(sysid_parser().parse_args(["bag"])).drive
+    assert fit_options(sysid_parser().parse_args(["bag", "--drive"])).drive
+    assert not fit_options(sysid_parser().parse_args(["bag", "--no-drive"])).drive
     assert "--no-drive" in diagnose_parser().format_help()

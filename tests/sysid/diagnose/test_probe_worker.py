@@ -64,15 +64,15 @@ def test_probe_made_in_a_forked_process_is_the_replay_made_here():
 
 
 def test_probe_worker_only_where_its_replay_is_the_secant_stage_first_one():
-    """None without the setting, with a drive, with a fit that may step, with a time budget, or with
-    the stick regularisation among the fitted parameters; no fork once Taichi runs here."""
+    """None without the setting, with a fit that may step, with a time budget, or with the stick
+    regularisation among the fitted parameters; no fork once Taichi runs here. A drive does not stop it (the
+    child replays through the drive the model holds when forked: signature_engine.prepare sets it first)."""
     from sim_core.ti_backend import current_arch
     from sysid.diagnose.probe_worker import ProbeWorker
 
     on = SignatureSettings(probe_worker=True)
     params = ("gel.youngs_modulus",)
-    for settings in (SignatureSettings(), dataclasses.replace(on, calibration_drive=True),
-                     dataclasses.replace(on, calibration_max_replays=3),
+    for settings in (SignatureSettings(), dataclasses.replace(on, calibration_max_replays=3),
                      dataclasses.replace(on, calibration_max_time=10.0),
                      dataclasses.replace(on, calibration_secant_replays=0), dataclasses.replace(on, calibrate=False)):
         assert probe_worker_for(None, params, settings) is None
