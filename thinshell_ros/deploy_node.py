@@ -498,11 +498,9 @@ class DeployNode(Node):
             if self.done.is_set():
                 return
             frame, pose = msg.header.frame_id, cv.pose_from_msg(msg)[1]
-            if frame in (self.frames.world_frame, ""):
-                pass
-            elif frame == self.frames.base_frame:  # the tool link's pose in the robot's base frame
-                pose = self.frames.effector_in_world(pose)
-            else:
+            if frame == self.frames.base_frame and frame not in (self.frames.world_frame, ""):
+                pose = self.frames.effector_in_world(pose)  # the tool link's pose in the robot's base frame
+            elif frame not in (self.frames.world_frame, ""):
                 self._reject(f"{self.resolve_topic_name(topic)}: frame_id {frame!r} is neither world_frame "
                              f"{self.frames.world_frame!r} nor base_frame {self.frames.base_frame!r}")
                 return

@@ -94,7 +94,7 @@ class BurstGate(CallbackGroup):
         return True
 
     def ending_execution(self, entity: Any) -> None:
-        pass
+        """Nothing to release: the gate holds no per-entity state."""
 
 
 @contextmanager
