@@ -97,16 +97,10 @@ def test_sliding_rise_of_the_normal_force_is_the_linear_elasticity_of_the_pad():
     compression with the contact offset, 6 % strain; at 0.3 mm, 11 % strain, the finite strain adds 2 %);
     the linear answer itself is a rise of 4 % / 14 %, so a simulator without the coupling, or with a
     defect of the size of the rise, fails."""
-    model = load_scene(_scene(0.0))
-    gel = model.bodies["gel"]
-    x = model.x_rest[gel.vertex_start:gel.vertex_stop]
-    stiffness = linear_stiffness(x, gel.tets - gel.vertex_start, 3.0e5, 0.45)
-    top = np.flatnonzero(np.isclose(x[:, 2], x[:, 2].max()))
-    bottom = np.flatnonzero(np.isclose(x[:, 2], x[:, 2].min()))
-    frictionless = sliding_block_reaction(stiffness, top, bottom, 1e-4, 0.0)[2]
+    frictionless = _linear_reaction(0.0)[2]
     base, _ = _press_then_slide(0.0, 1e-4)
     for mu in (0.4, 0.8):
-        reaction = sliding_block_reaction(stiffness, top, bottom, 1e-4, mu)
+        reaction = _linear_reaction(mu)
         assert reaction[0] == pytest.approx(-mu * reaction[2], rel=1e-9)  # full slip: Coulomb everywhere
         linear = reaction[2] / frictionless
         _, sliding = _press_then_slide(mu, 1e-4)
@@ -114,16 +108,21 @@ def test_sliding_rise_of_the_normal_force_is_the_linear_elasticity_of_the_pad():
         assert sliding / base == pytest.approx(linear, abs=0.015), (mu, sliding / base, linear)
 
 
-def _linear_rise(mu: float) -> float:
-    """Linear elasticity's steady-slide normal force over the frictionless one for the 6 x 5 x 3 pad."""
+def _linear_reaction(mu: float) -> np.ndarray:
+    """Linear elasticity's steady-slide reaction (N, shape (3,)) of the scene's 6 x 5 x 3 pad pressed 0.1 mm
+    (:func:`tests.support.linear_fe.sliding_block_reaction`)."""
     model = load_scene(_scene(0.0))
     gel = model.bodies["gel"]
     x = model.x_rest[gel.vertex_start:gel.vertex_stop]
     stiffness = linear_stiffness(x, gel.tets - gel.vertex_start, 3.0e5, 0.45)
     top = np.flatnonzero(np.isclose(x[:, 2], x[:, 2].max()))
     bottom = np.flatnonzero(np.isclose(x[:, 2], x[:, 2].min()))
-    return sliding_block_reaction(stiffness, top, bottom, 1e-4, mu)[2] / sliding_block_reaction(
-        stiffness, top, bottom, 1e-4, 0.0)[2]
+    return sliding_block_reaction(stiffness, top, bottom, 1e-4, mu)
+
+
+def _linear_rise(mu: float) -> float:
+    """Linear elasticity's steady-slide normal force over the frictionless one for the 6 x 5 x 3 pad."""
+    return _linear_reaction(mu)[2] / _linear_reaction(0.0)[2]
 
 
 @lru_cache(maxsize=None)
