@@ -167,6 +167,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
                                                        bands=sheet_band_dofs(scene), precision=config.cg_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
+        elif config.linear_solver == "envelope":  # (SolverConfig: a Taichi backend)
+            from sim_core.ti_kernels.block_projection import BlockRowsProjector
+            from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+            segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+            segments[scene.index] = np.arange(scene.copies)[:, None]
+            self.pcg = self.linear_solver = BatchedEnvelope(np.repeat(segments, 3),
+                                                            precision=config.envelope_precision)
+            self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)
         # the projected retry's contact pair blocks by the Jacobi kernel on the GPU (LAPACK on the host took
