@@ -1,7 +1,7 @@
 """The batched envelope Cholesky (sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope): each copy's block of a
 block-diagonal system solved exactly (against SciPy's sparse solve), with matrix-free vertex blocks outside the
-assembled pattern widening the envelope, an indefinite copy reported, float32 factors refined to float64 accuracy;
-and a lockstep batch whose Newton systems it solves gives the separate runs' states."""
+assembled pattern widening the envelope, an indefinite copy reported, float32 factors refined to float64 accuracy. A lockstep batch whose Newton systems it solves gives the separate runs'
+states, and isolates a diverging copy: ``tests/sim_core/batch/test_lockstep.py`` (its ``envelope`` cases)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from sim_core.batch import BatchedSimulation
-from sim_core.scenes.task_scene import task_initial_state
 from sim_core.solver_config import SolverConfig
-from tests.support.batch_copies import MOTIONS, PARAMS, control, pad_model, separate_run
 
 
 def _grid_block(nx: int, ny: int, seed: int, shift: float) -> sp.csr_matrix:
@@ -141,28 +138,6 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
         assert solver.iterations == 1 + refinements
     assert 1e-9 < errors[0] < 1e-3  # float32 factors alone: float32's accuracy times the condition
     assert errors[1] < 1e-12
-
-
-def test_lockstep_batch_with_the_envelope_solve_gives_the_separate_runs(ti_cpu):
-    model = pad_model()
-    steps = 2
-    batch = BatchedSimulation.from_model(model, 3, params=PARAMS, state=task_initial_state(model),
-                                         solver_config=SolverConfig(backend=f"taichi-{ti_cpu}", lockstep=True,
-                                                                    linear_solver="envelope"))
-    solver = batch.lockstep.solver.pcg
-    assert solver.name == "envelope"
-    pose0 = batch.states[0].effector_pose["pad"].copy()
-    got = []
-    for k in range(steps):
-        res = batch.step([control(pose0, MOTIONS[i], k) for i in range(3)])
-        assert res.failed_now == []
-        got.append([s.x.copy() for s in batch.states])
-    assert solver.factorizations > 0 and solver.entries > 0
-    tol = SolverConfig().tol_velocity * 0.005
-    for i in range(3):
-        alone = separate_run(model, PARAMS[i], MOTIONS[i])
-        for k in range(steps):
-            assert np.max(np.abs(got[k][i] - alone[k].x)) <= tol, (i, k)
 
 
 def test_envelope_needs_a_taichi_backend():
