@@ -402,3 +402,4 @@ class BatchedEnvelope(BatchedPCG):
                 self._substitute_into(r, dx)
                 _add(x, dx, n)
         self.iterations = 1 + self.refinements
+        self.total_iterations += self.iterations
