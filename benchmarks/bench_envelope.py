@@ -7,7 +7,7 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by
+copy in float64 (each ``--schedules``: how a copy's threads share a column's update) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by
 a synchronisation) of the factorisation and the solve, the envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
 """
@@ -29,6 +29,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--projection", default="clamp", help="the contact blocks' projection: clamp or none")
     ap.add_argument("--lanes", default="1", help="threads a copy, comma-separated (1: one thread a copy)")
+    ap.add_argument("--schedules", default="pairs,rows", help="how a copy's threads share a column (comma-separated)")
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
                     help="also float32 factors with two refinements (at the first --lanes)")
     args = ap.parse_args()
@@ -82,9 +83,13 @@ def main() -> int:
     report({"solver": "pcg", "factorize_ms": timed(lambda: cg.factorize(*operator)),
             "solve_ms": timed(lambda: cg.solve(b)), "iterations": cg.iterations, "residual": residual(cg.solve(b))})
     lanes_list = [int(v) for v in args.lanes.split(",")]
-    variants = [(lanes, "double") for lanes in lanes_list] + ([(lanes_list[0], "mixed")] if args.mixed else [])
-    for lanes, precision in variants:
-        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes)
+    schedules = args.schedules.split(",")
+    variants = [(lanes, "double", schedule) for schedule in schedules for lanes in lanes_list] + (
+        [(lanes_list[0], "mixed", schedules[0])] if args.mixed else [])
+    for lanes, precision, schedule in variants:
+        if lanes == 1 and schedule != schedules[0]:
+            continue  # (one thread a copy: the same work either way)
+        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule)
         t = time.perf_counter()
         env.factorize(*operator)  # compilation, the order and the envelope
         xs = env.solve(b)
@@ -93,7 +98,8 @@ def main() -> int:
         solve_ms = timed(lambda: env.solve(b))
         xs = env.solve(b)
         bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
-        report({"solver": "envelope", "precision": precision, "lanes": lanes, "factorize_ms": factor_ms,
+        report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
+                "factorize_ms": factor_ms,
                 "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,
                 "widest_row": int((np.arange(env._m) - env._first).max()) + 1, "widenings": env.widenings,
                 "envelope_mib_a_copy": bytes_a_copy / 2 ** 20, "indefinite": int(env.indefinite.sum()),

@@ -21,8 +21,9 @@ multiply-adds a factorisation (``benchmarks/roofline.py``).
 Factorisation. Right-looking (outer-product) elimination kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower
 triangular, ``W_jj = d_j`` (the pivots): column ``j``'s pivot ``d_j`` is final after the columns before it, and its
 update ``a_ik -= a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in the envelope's reach of ``j``) writes only columns
-after ``j``, one thread a row ``i``; so ``lanes`` threads of one copy (one CUDA thread block, a block-level
-synchronisation a column) share a column's rows, and a copy is ``m`` synchronised passes. On the CPU one thread runs a
+after ``j``, each entry ``(i, k)`` once; so ``lanes`` threads of one copy (one CUDA thread block, a block-level
+synchronisation a column) share a column's entries (the pairs ``j < k <= i`` listed row by row, a lane every
+``lanes``-th: a column's longest row is not one thread's chain), and a copy is ``m`` synchronised passes. On the CPU one thread runs a
 copy's whole elimination (``lanes = 1``, no synchronisation). ``L = W D^-1/2`` is the Cholesky factor (Golub & Van
 Loan, Matrix Computations, 4th ed., Alg. 4.2.2 in outer-product form). A pivot that is not positive (or not finite)
 marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact, unlike the CG's
@@ -36,8 +37,9 @@ refinement in float64 (``x += A^-1 (b - A x)``, the residual by the CG's float64
 Sec. 3.5.3): one "iteration" a solve and one a refinement (:attr:`BatchedPCG.iterations`).
 
 Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
-``(m,)``; shared: ``off``, ``first``, ``last`` int32 ``(m,)``, each DoF's position, int32 ``(n,)``, and each ``U``
-entry's slot in the envelopes, int32 ``(nnz,)``.
+``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's position, int32 ``(n,)``, and each ``U``
+entry's row, int32 ``(nnz,)`` (its place in the envelope found by the gather, so that a widening moves no host
+array).
 """
 
 import numpy as np
@@ -50,7 +52,7 @@ from sim_core.ti_kernels.precision import VALUES, stored
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
-CUDA_LANES = 64
+CUDA_LANES = 128
 """Threads of one copy (one CUDA thread block) in the factorisation and the solves on CUDA."""
 
 
@@ -82,17 +84,19 @@ def _mark_outside(brow: _I32, bcol: _I32, free: _F64, nblocks: ti.i32, pos: _I32
 
 
 @ti.kernel
-def _assemble(data: _F64, slot: _I32, nnz: ti.i32, brow: _I32, bcol: _I32, bval: VALUES, free: _F64,
-              nblocks: ti.i32, pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32,
+def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, brow: _I32, bcol: _I32, bval: VALUES,
+              free: _F64, nblocks: ti.i32, pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32,
               padded: _I32, npadded: ti.i32, size: ti.i32):
-    """The copies' envelopes of ``A``: zeroed, ``U``'s entries at their slots, the vertex blocks' entries in the lower
-    triangle of the order added (free DoFs only), 1 on the diagonal of padded rows (``padded``: envelope indices)."""
+    """The copies' envelopes of ``A``: zeroed, ``U``'s entries (row ``urow[k]``, column ``indices[k]``) at their
+    place, the vertex blocks' entries in the lower triangle of the order added (free DoFs only), 1 on the diagonal of
+    padded rows (``padded``: envelope indices)."""
     for k in range(total):
         env[k] = stored(0.0, env)
     for k in range(nnz):
-        s = slot[k]
-        if s >= 0:
-            env[s] = stored(data[k], env)
+        r = urow[k]
+        i = ti.max(pos[r], pos[indices[k]])
+        j = ti.min(pos[r], pos[indices[k]])
+        env[seg[r] * size + off[i] + j - first[i]] = stored(data[k], env)
     for t in range(nblocks):
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
@@ -107,11 +111,36 @@ def _assemble(data: _F64, slot: _I32, nnz: ti.i32, brow: _I32, bcol: _I32, bval:
         env[padded[k]] = stored(1.0, env)
 
 
+@ti.func
+def _pair(t):
+    """The ``t``-th pair ``(p, q)``, ``0 <= q <= p``, of the lower triangle listed row by row (``t = p (p + 1) / 2 +
+    q``)."""
+    p = ti.cast((ti.sqrt(8.0 * ti.cast(t, ti.f64) + 1.0) - 1.0) * 0.5, ti.i32)
+    while (p + 1) * (p + 2) // 2 <= t:
+        p += 1
+    while p * (p + 1) // 2 > t:
+        p -= 1
+    return p, t - p * (p + 1) // 2
+
+
+@ti.func
+def _update(env: ti.template(), off: ti.template(), first: ti.template(), base, i, k, j, d):
+    """``a_ik -= a_ij a_kj / d_j`` in a copy's envelope (``base`` its first entry)."""
+    row = base + off[i] - first[i]
+    a = ti.cast(env[row + j], ti.f64)
+    if a != 0.0:
+        env[row + k] = stored(env[row + k] - a / d * env[base + off[k] - first[k] + j], env)
+
+
 @ti.kernel
-def _factor(env: VALUES, off: _I32, first: _I32, last: _I32, todo: _I32, bad: _I32, m: ti.i32, size: ti.i32,
-            copies: ti.i32, lanes: ti.template()):
+def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32, m: ti.i32,
+            size: ti.i32, copies: ti.i32, lanes: ti.template(), by_rows: ti.template()):
     """Each copy's envelope eliminated in place into ``W`` (module docstring); ``bad[c] = 1`` where a pivot of copy
-    ``c`` is not positive; copies with ``todo[c] == 0`` skipped. ``lanes`` threads a copy (a CUDA block)."""
+    ``c`` is not positive; copies with ``todo[c] == 0`` skipped. Column ``j``'s front, the rows below it that reach it,
+    is ``frows[fptr[j]:fptr[j + 1]]`` (increasing); ``lanes`` threads a copy (a CUDA block) share the column's update:
+    ``by_rows``, a lane a row of the front (its entries ``k <= i`` in turn), else entry by entry (the pairs ``k <= i``
+    of the front listed row by row, a lane every ``lanes``-th, so that the front's longest row is not one thread's
+    chain)."""
     ti.loop_config(block_dim=lanes)
     for t in range(copies * lanes):
         c = t // lanes
@@ -125,28 +154,34 @@ def _factor(env: VALUES, off: _I32, first: _I32, last: _I32, todo: _I32, bad: _I
                 d = _pivot(raw)
                 if lane == 0 and not ti.cast(raw, ti.f64) > 0.0:
                     bad[c] = 1
-                i = j + 1 + lane
-                while i <= last[j]:
-                    fi = first[i]
-                    if fi <= j:
-                        row = base + off[i] - fi
-                        a = ti.cast(env[row + j], ti.f64) / d
-                        if a != 0.0:
-                            for k in range(j + 1, i + 1):
-                                fk = first[k]
-                                if fk <= j:
-                                    env[row + k] = stored(env[row + k] - a * env[base + off[k] - fk + j], env)
-                    i += lanes
+                start = fptr[j]
+                front = fptr[j + 1] - start
+                if ti.static(by_rows):
+                    p = lane
+                    while p < front:
+                        i = frows[start + p]
+                        for q in range(p + 1):
+                            _update(env, off, first, base, i, frows[start + q], j, d)
+                        p += lanes
+                else:
+                    p, q = _pair(lane)
+                    while p < front:
+                        _update(env, off, first, base, frows[start + p], frows[start + q], j, d)
+                        q += lanes
+                        while q > p:
+                            p += 1
+                            q -= p
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
 
 
 @ti.kernel
-def _substitute(env: VALUES, off: _I32, first: _I32, last: _I32, todo: _I32, order: _I32, b: _F64, x: _F64,
+def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
+                x: _F64,
                 w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
     """``x = A^-1 b`` per copy from the factor ``W`` (forward, then back substitution; module docstring); ``b`` and
-    ``x`` over the stacked DoFs, ``order[c m + i]`` the DoF at position ``i`` of copy ``c`` (-1: padding); copies with
-    ``todo[c] == 0`` get ``x = 0``."""
+    ``x`` over the stacked DoFs, ``order[c m + i]`` the DoF at position ``i`` of copy ``c`` (-1: padding), the fronts
+    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``."""
     ti.loop_config(block_dim=lanes)
     for t in range(copies * lanes):
         c = t // lanes
@@ -167,12 +202,11 @@ def _substitute(env: VALUES, off: _I32, first: _I32, last: _I32, todo: _I32, ord
         if todo[c] != 0:
             for j in range(m):
                 u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
-                i = j + 1 + lane
-                while i <= last[j]:
-                    fi = first[i]
-                    if fi <= j:
-                        w[vb + i] -= ti.cast(env[base + off[i] - fi + j], ti.f64) * u
-                    i += lanes
+                e = fptr[j] + lane
+                while e < fptr[j + 1]:
+                    i = frows[e]
+                    w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
+                    e += lanes
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
             for jj in range(m):
@@ -247,19 +281,22 @@ def envelope_order(indptr: np.ndarray, indices: np.ndarray, seg: np.ndarray) -> 
     return order, pos
 
 
-def envelope_rows(first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(off, last)`` of an envelope with rows ``first[i] .. i``: ``off`` int64 ``(m + 1,)`` each row's start (row
-    ``i``'s entry of column ``j`` at ``off[i] + j - first[i]``; ``off[m]`` the entries), ``last[j]`` the last row whose
-    envelope reaches column ``j`` (``j`` itself where none below does)."""
+def envelope_rows(first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(off, fptr, frows)`` of an envelope with rows ``first[i] .. i``: ``off`` int64 ``(m + 1,)`` each row's start
+    (row ``i``'s entry of column ``j`` at ``off[i] + j - first[i]``; ``off[m]`` the entries); column ``j``'s front, the
+    rows ``i > j`` with ``first[i] <= j``, increasing, is ``frows[fptr[j]:fptr[j + 1]]`` (``fptr`` int64 ``(m + 1,)``,
+    ``frows`` int64 ``(off[m] - m,)``)."""
     m = first.size
+    widths = np.arange(m) - first  # entries left of the diagonal a row
     off = np.zeros(m + 1, dtype=np.int64)
-    np.cumsum(np.arange(m) - first + 1, out=off[1:])
-    reach = np.arange(m)
-    # last[j] = max{i : first[i] <= j}: the running maximum over j of the rows starting at or before j
-    start_max = np.full(m, -1, dtype=np.int64)
-    np.maximum.at(start_max, first, np.arange(m))
-    last = np.maximum(np.maximum.accumulate(start_max), reach)
-    return off, last
+    np.cumsum(widths + 1, out=off[1:])
+    rows = np.repeat(np.arange(m, dtype=np.int64), widths)
+    cols = np.repeat(first.astype(np.int64), widths) + (np.arange(rows.size) - np.repeat(off[:-1] - np.arange(m),
+                                                                                         widths))
+    by_column = np.lexsort((rows, cols))
+    fptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cols, minlength=m), out=fptr[1:])
+    return off, fptr, rows[by_column]
 
 
 class BatchedEnvelope(BatchedPCG):
@@ -273,6 +310,8 @@ class BatchedEnvelope(BatchedPCG):
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
         lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
+        schedule: how a copy's threads share a column's update: ``"pairs"`` (entry by entry) or ``"rows"`` (a thread a
+            row); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
 
     Raises:
         ConfigError: an unknown ``precision``.
@@ -289,7 +328,7 @@ class BatchedEnvelope(BatchedPCG):
     name = "envelope"
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -297,11 +336,21 @@ class BatchedEnvelope(BatchedPCG):
         self._env_dtype = storage_dtype(precision)
         self.refinements = int(refinements) if precision != "double" else 0
         self.lanes = lanes
+        if schedule not in (None, "pairs", "rows"):
+            raise ValueError(f"BatchedEnvelope: schedule must be pairs or rows, got {schedule!r}")
+        self._schedule = schedule
         self.entries = 0
         self.widenings = 0
         self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
         self._first: np.ndarray | None = None
         self._todo = np.ones(0, dtype=np.int32)
+
+    @property
+    def schedule(self) -> str:
+        """``"pairs"`` or ``"rows"`` (the class docstring)."""
+        if self._schedule is not None:
+            return self._schedule
+        return "pairs" if self._lane_count() > 1 else "rows"
 
     def _lane_count(self) -> int:
         if self.lanes is not None:
@@ -337,12 +386,13 @@ class BatchedEnvelope(BatchedPCG):
         todo_dev = self._upload("env_todo", todo, ti.i32)
         env = self._array("env", max(B * size, 1), self._env_dtype)
         nnz = int(np.asarray(indptr_h)[-1])
-        _assemble(a["data"], a["env_slot"], nnz, a["brow"], a["bcol"], a["bval"], a["free"], self._nblocks,
+        _assemble(a["data"], a["env_urow"], a["indices"], nnz, a["brow"], a["bcol"], a["bval"], a["free"], self._nblocks,
                   a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size, a["env_padded"],
                   self._npadded, size)
         bad = self._array("env_bad", B, ti.i32)
         _copy_in(bad, np.zeros(B, np.int32))
-        _factor(env, a["env_off"], a["env_first"], a["env_last"], todo_dev, bad, m, size, B, self._lane_count())
+        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo_dev, bad, m, size, B, self._lane_count(),
+                self.schedule == "rows")
         self.indefinite = _copy_out(bad).astype(bool)
         self.unconverged = np.zeros(B, dtype=bool)
         return True
@@ -357,26 +407,23 @@ class BatchedEnvelope(BatchedPCG):
         hi, lo = np.maximum(pos[rows], pos[cols]), np.minimum(pos[rows], pos[cols])
         first = 3 * (np.arange(self._m) // 3)  # a vertex's 3x3 diagonal block in the envelope
         np.minimum.at(first, hi, lo)
-        self._rows_hi_lo = (seg[rows].astype(np.int32), hi.astype(np.int32), lo.astype(np.int32))
+        _copy_in(self._array("env_urow", max(rows.size, 1), ti.i32), rows.astype(np.int32) if rows.size
+                 else np.zeros(1, np.int32))
         _copy_in(self._array("env_pos", max(self._n, 1), ti.i32), pos.astype(np.int32))
         _copy_in(self._array("env_order", max(order.size, 1), ti.i32), order.reshape(-1).astype(np.int32))
         self._layout = (indptr_h, indices_h)
         self._set_envelope(first)
 
     def _set_envelope(self, first: np.ndarray) -> None:
-        """The envelope with rows ``first[i] .. i``: its offsets, reach and ``U``'s slots on the device."""
+        """The envelope with rows ``first[i] .. i``: its offsets and reach on the device."""
         self._first = first.astype(np.int64)
-        off, last = envelope_rows(self._first)
+        off, fptr, frows = envelope_rows(self._first)
         self.entries = int(off[-1])
-        row_copy, hi, lo = self._rows_hi_lo
-        slot = row_copy.astype(np.int64) * self.entries + off[hi] + lo - self._first[hi]
-        if slot.size and slot.max() >= 2 ** 31:
+        if self._copies * self.entries >= 2 ** 31:
             raise ValueError(f"BatchedEnvelope: {self._copies} copies of {self.entries} envelope entries exceed int32 "
                              f"indices")
-        for name, host in (("env_off", off), ("env_first", self._first), ("env_last", last)):
+        for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
-        _copy_in(self._array("env_slot", max(slot.size, 1), ti.i32),
-                 slot.astype(np.int32) if slot.size else np.full(1, -1, np.int32))
         padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
         diag = (padded // self._m) * self.entries + off[padded % self._m] + padded % self._m - self._first[padded % self._m]
         self._npadded = int(diag.size)
@@ -385,7 +432,7 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
-        _substitute(a["env"], a["env_off"], a["env_first"], a["env_last"], a["env_todo"], a["env_order"], b, x,
+        _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"], a["env_order"], b, x,
                     self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
                     self._lane_count())
 

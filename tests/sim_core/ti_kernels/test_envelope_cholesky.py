@@ -41,14 +41,17 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu):
+@pytest.mark.parametrize("schedule", ["rows", "pairs"])
+def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
+    """Either way of sharing a column's update (one thread a copy here: the entries' order is CUDA's by lane)."""
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
     blocks = [_grid_block(12, 4, seed, shift) for seed, shift in ((0, 1e-3), (1, 1.0), (2, 10.0))]
     A = sp.block_diag(blocks, format="csr")
     m = blocks[0].shape[0]
     segments = np.repeat(np.arange(3), m)
-    solver = BatchedEnvelope(segments)
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    assert solver.schedule == schedule
     assert solver.factorize(_upper(A))
     b = np.random.default_rng(5).normal(size=A.shape[0])
     b[m:2 * m] = 0.0
