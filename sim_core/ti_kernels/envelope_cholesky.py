@@ -240,16 +240,20 @@ def _add(x: _F64, dx: _F64, n: ti.i32):
         x[i] += dx[i]
 
 
-def envelope_order(indptr: np.ndarray, indices: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each copy's DoFs in the reverse Cuthill-McKee order of the union of the copies' vertex graphs of a pattern.
+def envelope_order(indptr: np.ndarray, indices: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                        np.ndarray]:
+    """Each copy's DoFs in the reverse Cuthill-McKee order of the union of the copies' vertex graphs of a pattern, and
+    the envelope of that union in it.
 
     Args:
         indptr, indices: CSR arrays of a pattern over the stacked DoFs (one triangle or both), ``n + 1`` and ``nnz``.
         seg: the copy of each DoF, ``(n,)`` int, constant over a vertex's three DoFs; every copy the same count.
 
     Returns:
-        ``(order, pos)``: ``order`` int64 ``(B, m)``, row ``c`` copy ``c``'s DoFs in that order (a vertex's three DoFs
-        consecutive); ``pos`` int64 ``(n,)``, each DoF's position in its copy's row.
+        ``(order, pos, first)``: ``order`` int64 ``(B, m)``, row ``c`` copy ``c``'s DoFs in that order (a vertex's
+        three DoFs consecutive); ``pos`` int64 ``(n,)``, each DoF's position in its copy's row; ``first`` int64
+        ``(m,)``, the first column of each position's envelope row (the vertex graph's: a coupled vertex pair couples
+        its six DoFs, a vertex its three).
 
     Raises:
         ValueError: copies with different numbers of DoFs.
@@ -267,18 +271,26 @@ def envelope_order(indptr: np.ndarray, indices: np.ndarray, seg: np.ndarray) -> 
     local = np.empty(n // 3, dtype=np.int64)  # a vertex's index within its copy (vertices in increasing order)
     by_copy = np.argsort(vcopy, kind="stable")
     local[by_copy] = np.tile(np.arange(nv), copies)
-    rows = np.repeat(np.arange(n, dtype=np.int64) // 3, np.diff(np.asarray(indptr)))
-    cols = np.asarray(indices, dtype=np.int64)[: rows.size] // 3
-    keys = np.unique(local[rows] * max(nv, 1) + local[cols])
-    a, c = keys // max(nv, 1), keys % max(nv, 1)
-    graph = coo_matrix((np.ones(2 * a.size), (np.concatenate([a, c]), np.concatenate([c, a]))), shape=(nv, nv)).tocsr()
+    rows = local[np.repeat(np.arange(n // 3, dtype=np.int64), np.diff(np.asarray(indptr)).reshape(-1, 3).sum(1))]
+    cols = local[np.asarray(indices, dtype=np.int64)[: rows.size] // 3]
+    if nv * nv <= 1 << 27:  # the local vertex pairs marked in a dense (nv, nv) mask: no sort of the stacked entries
+        mask = np.zeros((nv, nv), dtype=bool)
+        mask[rows, cols] = True
+        a, c = np.nonzero(mask | mask.T)
+    else:
+        keys = np.unique(rows * nv + cols)
+        a, c = np.concatenate([keys // nv, keys % nv]), np.concatenate([keys % nv, keys // nv])
+    graph = coo_matrix((np.ones(a.size), (a, c)), shape=(nv, nv)).tocsr()
     vorder = reverse_cuthill_mckee(graph, symmetric_mode=True).astype(np.int64)  # local vertices in order
     rank = np.empty(nv, dtype=np.int64)
     rank[vorder] = np.arange(nv)
     stacked = by_copy.reshape(copies, nv)  # copy c's vertices by local index
     order = (3 * stacked[:, vorder][:, :, None] + np.arange(3)).reshape(copies, 3 * nv)
     pos = (3 * rank[local][:, None] + np.arange(3)).reshape(-1)
-    return order, pos
+    vfirst = np.arange(nv)
+    np.minimum.at(vfirst, np.maximum(rank[a], rank[c]), np.minimum(rank[a], rank[c]))
+    first = np.repeat(3 * vfirst, 3)
+    return order, pos, first
 
 
 def envelope_rows(first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -399,16 +411,11 @@ class BatchedEnvelope(BatchedPCG):
 
     def _new_layout(self, indptr_h: np.ndarray, indices_h: np.ndarray, seg: np.ndarray) -> None:
         """The order and the envelope of ``U``'s pattern (module docstring), on the device."""
-        order, pos = envelope_order(indptr_h, indices_h, seg)
+        order, pos, first = envelope_order(indptr_h, indices_h, seg)
         self._order, self._pos = order, pos
         self._m = order.shape[1]
-        rows = np.repeat(np.arange(self._n, dtype=np.int64), np.diff(np.asarray(indptr_h)))
-        cols = np.asarray(indices_h, dtype=np.int64)[: rows.size]
-        hi, lo = np.maximum(pos[rows], pos[cols]), np.minimum(pos[rows], pos[cols])
-        first = 3 * (np.arange(self._m) // 3)  # a vertex's 3x3 diagonal block in the envelope
-        np.minimum.at(first, hi, lo)
-        _copy_in(self._array("env_urow", max(rows.size, 1), ti.i32), rows.astype(np.int32) if rows.size
-                 else np.zeros(1, np.int32))
+        rows = np.repeat(np.arange(self._n, dtype=np.int32), np.diff(np.asarray(indptr_h)))
+        _copy_in(self._array("env_urow", max(rows.size, 1), ti.i32), rows if rows.size else np.zeros(1, np.int32))
         _copy_in(self._array("env_pos", max(self._n, 1), ti.i32), pos.astype(np.int32))
         _copy_in(self._array("env_order", max(order.size, 1), ti.i32), order.reshape(-1).astype(np.int32))
         self._layout = (indptr_h, indices_h)
