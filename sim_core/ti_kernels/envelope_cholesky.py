@@ -13,8 +13,9 @@ George & Liu, Computer Solution of Large Sparse Positive Definite Systems, 1981,
 of their vertex graphs of ``U``'s pattern (a vertex's three DoFs consecutive), made again only when ``U``'s index
 arrays are other objects than at the last call. Row ``i`` of the envelope holds columns ``first[i] .. i``, ``first[i]``
 the smallest position ``i`` is coupled to, over every copy: the pattern's couplings, and the vertex blocks' of every
-factorisation so far (a device pass marks a block outside the envelope; the host then widens it, which the next
-factorisations keep: the envelope only grows). The Cholesky of an envelope matrix fills nothing outside it (George &
+factorisation so far (a device pass marks a block outside the envelope, read with the next solve's flags, one wait
+a Newton iteration; the host then widens the envelope, factorises and solves again, and the next factorisations keep
+it: the envelope only grows). The Cholesky of an envelope matrix fills nothing outside it (George &
 Liu, Ch. 4), so the factor has exactly these entries: 58,017 a Forming copy in the elastic pattern's order, 3.13 M
 multiply-adds a factorisation (``benchmarks/roofline.py``).
 
@@ -67,9 +68,13 @@ def _pivot(value):
 
 @ti.kernel
 def _mark_outside(brow: _I32, bcol: _I32, free: _F64, nblocks: ti.i32, pos: _I32, first: _I32, need: _I32,
-                  outside: _I32):
-    """``need[i] = min(need[i], j)`` and ``outside[0] = 1`` for each vertex blocks' coupling ``(i, j)`` (positions,
-    ``i >= j``, both DoFs free) left of the envelope row ``i`` (``j < first[i]``)."""
+                  flags: _I32, m: ti.i32, copies: ti.i32):
+    """``need = first``, then ``need[i] = min(need[i], j)`` and ``flags[copies] = 1`` (else 0) for each vertex blocks'
+    coupling ``(i, j)`` (positions, ``i >= j``, both DoFs free) left of the envelope row ``i`` (``j < first[i]``)."""
+    for i in range(m):
+        need[i] = first[i]
+    for _ in range(1):
+        flags[copies] = 0
     for t in range(nblocks):
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
@@ -80,7 +85,7 @@ def _mark_outside(brow: _I32, bcol: _I32, free: _F64, nblocks: ti.i32, pos: _I32
                     j = ti.min(pos[r], pos[c])
                     if j < first[i]:
                         ti.atomic_min(need[i], j)
-                        outside[0] = 1
+                        flags[copies] = 1
 
 
 @ti.kernel
@@ -105,7 +110,7 @@ def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, brow: _I32, bc
                 w = free[r] * free[c] * ti.cast(bval[9 * t + 3 * a + b], ti.f64)
                 i = pos[r]
                 j = pos[c]
-                if w != 0.0 and i >= j:
+                if w != 0.0 and i >= j and j >= first[i]:  # (one outside: the envelope is widened, this done again)
                     ti.atomic_add(env[seg[r] * size + off[i] + j - first[i]], stored(w, env))
     for k in range(npadded):
         env[padded[k]] = stored(1.0, env)
@@ -145,10 +150,10 @@ def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: 
     for t in range(copies * lanes):
         c = t // lanes
         lane = t % lanes
+        if lane == 0:
+            bad[c] = 0
         if todo[c] != 0:
             base = c * size
-            if lane == 0:
-                bad[c] = 0
             for j in range(m):
                 raw = env[base + off[j] + j - first[j]]
                 d = _pivot(raw)
@@ -331,9 +336,10 @@ class BatchedEnvelope(BatchedPCG):
     Attributes:
         name: ``"envelope"``.
         entries: the envelope's entries a copy (0 before the first :meth:`factorize`).
-        widenings: times a factorisation's vertex blocks widened the envelope.
+        widenings: times a factorisation's vertex blocks widened the envelope (found by the solve after it).
         iterations: solves of the last :meth:`solve` (1, plus its refinements).
-        indefinite: copies whose last factorisation met a pivot that is not positive, ``(B,)`` bool.
+        indefinite: copies whose last factorisation met a pivot that is not positive, ``(B,)`` bool (set by the solve
+            after it).
         unconverged: all False ``(B,)`` (a direct solve).
     """
 
@@ -356,6 +362,8 @@ class BatchedEnvelope(BatchedPCG):
         self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
         self._first: np.ndarray | None = None
         self._todo = np.ones(0, dtype=np.int32)
+        self._nnz = 0
+        self._checked = True
 
     @property
     def schedule(self) -> str:
@@ -373,7 +381,9 @@ class BatchedEnvelope(BatchedPCG):
                   keep_bands: bool = False) -> bool:
         """:meth:`BatchedPCG.factorize` (the operator on the device), then each copy's envelope Cholesky factor of it
         (of the copies in ``copies`` only, where given: the others' next solves give 0); ``keep_bands`` is ignored.
-        True; :attr:`indefinite` marks the copies whose matrix is not positive definite."""
+        True; nothing is read back here: the next solve's one read gives :attr:`indefinite` (the copies whose matrix is
+        not positive definite) and whether the vertex blocks fell outside the envelope (then widened, this
+        factorisation and that solve done again)."""
         super().factorize(upper, blocks, diagonal)
         if isinstance(upper, tuple):
             indptr_h, indices_h = upper[0], upper[1]
@@ -383,31 +393,32 @@ class BatchedEnvelope(BatchedPCG):
         if self._layout is None or self._layout[0] is not indptr_h or self._layout[1] is not indices_h:
             self._new_layout(indptr_h, indices_h, seg)
         a = self._arrays
-        if self._nblocks:
-            need = self._array("env_need", self._m, ti.i32)
-            outside = self._array("env_outside", 1, ti.i32)
-            _copy_in(need, self._first.astype(np.int32))
-            _copy_in(outside, np.zeros(1, np.int32))
-            _mark_outside(a["brow"], a["bcol"], a["free"], self._nblocks, a["env_pos"], a["env_first"], need, outside)
-            if int(_copy_out(outside)[0]):
-                self.widenings += 1
-                self._set_envelope(np.minimum(self._first, _copy_out(need).astype(np.int64)))
-        B, m, size = self._copies, self._m, self.entries
-        todo = np.ones(B, dtype=np.int32) if copies is None else np.asarray(copies, dtype=np.int32)
-        self._todo = todo
-        todo_dev = self._upload("env_todo", todo, ti.i32)
-        env = self._array("env", max(B * size, 1), self._env_dtype)
-        nnz = int(np.asarray(indptr_h)[-1])
-        _assemble(a["data"], a["env_urow"], a["indices"], nnz, a["brow"], a["bcol"], a["bval"], a["free"], self._nblocks,
-                  a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size, a["env_padded"],
-                  self._npadded, size)
-        bad = self._array("env_bad", B, ti.i32)
-        _copy_in(bad, np.zeros(B, np.int32))
-        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo_dev, bad, m, size, B, self._lane_count(),
-                self.schedule == "rows")
-        self.indefinite = _copy_out(bad).astype(bool)
+        B = self._copies
+        flags = self._array("env_flags", B + 1, ti.i32)  # each copy's "not positive definite", then "outside"
+        _mark_outside(a["brow"], a["bcol"], a["free"], self._nblocks, a["env_pos"], a["env_first"],
+                      self._array("env_need", self._m, ti.i32), flags, self._m, B)
+        if copies is None:  # every copy: the same host array each time (uploaded once)
+            if self._todo.shape != (B,) or not self._todo.all():
+                self._todo = np.ones(B, dtype=np.int32)
+        else:
+            self._todo = np.asarray(copies, dtype=np.int32)
+        self._nnz = int(np.asarray(indptr_h)[-1])
+        self._eliminate()
+        self._checked = False  # the "outside" flag is read with the next solve's (one wait for both)
         self.unconverged = np.zeros(B, dtype=bool)
         return True
+
+    def _eliminate(self) -> None:
+        """Gather each copy's envelope (of :attr:`_todo`'s copies) and factorise it."""
+        a = self._arrays
+        B, m, size = self._copies, self._m, self.entries
+        env = self._array("env", max(B * size, 1), self._env_dtype)
+        _assemble(a["data"], a["env_urow"], a["indices"], self._nnz, a["brow"], a["bcol"], a["bval"], a["free"],
+                  self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
+                  a["env_padded"], self._npadded, size)
+        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"],
+                self._upload("env_todo", self._todo, ti.i32), a["env_flags"], m, size, B, self._lane_count(),
+                self.schedule == "rows")
 
     def _new_layout(self, indptr_h: np.ndarray, indices_h: np.ndarray, seg: np.ndarray) -> None:
         """The order and the envelope of ``U``'s pattern (module docstring), on the device."""
@@ -437,16 +448,9 @@ class BatchedEnvelope(BatchedPCG):
         _copy_in(self._array("env_padded", max(diag.size, 1), ti.i32),
                  diag.astype(np.int32) if diag.size else np.zeros(1, np.int32))
 
-    def _substitute_into(self, b, x) -> None:
-        a = self._arrays
-        _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"], a["env_order"], b, x,
-                    self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
-                    self._lane_count())
-
-    def _run(self) -> None:
-        """``x = A^-1 b`` per copy from the ``b`` array into ``x`` (with the refinements in ``"mixed"``)."""
+    def _solve_into(self, b, x) -> None:
+        """``x = A^-1 b`` from the factors, refined in ``"mixed"``."""
         n = self._n
-        b, x = self._array("b", n), self._array("x", n)
         self._substitute_into(b, x)
         if self.refinements:
             ax, r, dx = self._array("env_ax", n), self._array("env_r", n), self._array("env_dx", n)
@@ -455,5 +459,28 @@ class BatchedEnvelope(BatchedPCG):
                 _residual_step(b, ax, r, n)
                 self._substitute_into(r, dx)
                 _add(x, dx, n)
+
+    def _substitute_into(self, b, x) -> None:
+        a = self._arrays
+        _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"], a["env_order"], b, x,
+                    self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
+                    self._lane_count())
+
+    def _run(self) -> None:
+        """``x = A^-1 b`` per copy from the ``b`` array into ``x`` (with the refinements in ``"mixed"``); then the
+        flags, one read: where the last factorisation's vertex blocks fell outside the envelope, it is widened, the
+        factorisation and this solve done again; :attr:`indefinite`."""
+        n, B = self._n, self._copies
+        b, x = self._array("b", n), self._array("x", n)
+        self._solve_into(b, x)
+        flags = _copy_out(self._arrays["env_flags"])
+        if not self._checked and flags[B]:
+            self.widenings += 1
+            self._set_envelope(np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64)))
+            self._eliminate()
+            self._solve_into(b, x)
+            flags = _copy_out(self._arrays["env_flags"])
+        self._checked = True
+        self.indefinite = flags[:B].astype(bool)
         self.iterations = 1 + self.refinements
         self.total_iterations += self.iterations

@@ -114,9 +114,9 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     solver = BatchedEnvelope(segments)
     vb = VertexBlocks.from_element_blocks([HessianBlocks(verts, vals)], free)
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
-    assert solver.widenings == 1 and not solver.indefinite.any()
     b = rng.normal(size=n)
     x = solver.solve(b)
+    assert solver.widenings == 1 and not solver.indefinite.any()  # found with the solve's read, then done again
     want = spla.spsolve(A, b)
     np.testing.assert_allclose(x, want, rtol=0, atol=1e-10 * np.abs(want).max())
     # the same blocks again: no widening
