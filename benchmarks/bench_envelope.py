@@ -7,7 +7,8 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 (each ``--schedules``: how a copy's threads share a column's update) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by
+copy in float64 (each ``--schedules``: how a copy's threads share a column's update) and, at the first lanes,
+float32 factors with two refinements: medians of ``--repeat`` (each ended by
 a synchronisation) of the factorisation and the solve, the envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
 """

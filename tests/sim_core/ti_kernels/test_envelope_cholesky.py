@@ -1,7 +1,8 @@
 """The batched envelope Cholesky (sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope): each copy's block of a
 block-diagonal system solved exactly (against SciPy's sparse solve), with matrix-free vertex blocks outside the
-assembled pattern widening the envelope, an indefinite copy reported, float32 factors refined to float64 accuracy. A lockstep batch whose Newton systems it solves gives the separate runs'
-states, and isolates a diverging copy: ``tests/sim_core/batch/test_lockstep.py`` (its ``envelope`` cases)."""
+assembled pattern widening the envelope, an indefinite copy reported, float32 factors refined to float64 accuracy.
+A lockstep batch whose Newton systems it solves gives the separate runs' states, and isolates a diverging copy:
+``tests/sim_core/batch/test_lockstep.py`` (its ``envelope`` cases)."""
 
 from __future__ import annotations
 
