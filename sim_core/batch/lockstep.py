@@ -137,7 +137,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
             ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
             (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix, each copy solved to
-            the relative residual :data:`LOCKSTEP_CG_RTOL`); else the named direct solver on the stacked matrix.
+            the relative residual :data:`LOCKSTEP_CG_RTOL`); ``"envelope"``, each copy's system solved directly on the
+            device (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`, in the CG's place: the same
+            operator, the same per-copy tests); else the named direct solver on the stacked matrix.
 
     Raises:
         ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
