@@ -252,6 +252,123 @@ def graded_gel_block(
     return TetMesh(x, index.tets)
 
 
+def ring_radii(rim: float, outer: float, h_rim: float, fine: float, growth: float) -> np.ndarray:
+    """Radii of the node rings of a disc mesh graded towards a rim: spacing ``h_rim`` within ``fine`` of
+    ``rim`` on both sides, then geometric (:func:`graded_axis`) inwards to the centre and outwards to
+    ``outer``.
+
+    Args:
+        rim: radius to resolve (a ring lies on it), m (0 < rim < outer).
+        outer: outermost radius, m.
+        h_rim: ring spacing at the rim, m.
+        fine: half width of the uniformly fine band about the rim, m.
+        growth: ratio of consecutive spacings outside the band (>= 1).
+
+    Returns:
+        increasing radii, shape ``(k,)``, first 0 (the centre), one equal to ``rim``, last ``outer``.
+    """
+    if not 0 < rim < outer:
+        raise ConfigError(f"ring_radii: need 0 < rim < outer, got {rim}, {outer}")
+    inner = rim - graded_axis(rim, h_rim, fine, growth)[::-1]
+    outside = rim + graded_axis(outer - rim, h_rim, fine, growth)
+    return np.concatenate([inner, outside[1:]])
+
+
+def ringed_gel_cylinder(
+    outer_radius: float, thickness: float, rim: float, h_rim: float, fine: float, growth: float = 1.3,
+    aspect: float = 4.0, min_segments: int = 6,
+) -> TetMesh:
+    """A gel cylinder ``r <= outer_radius``, ``-thickness <= z <= 0`` whose node rings follow a circle.
+
+    A flat punch's contact edge is a circle of radius ``rim`` where the pressure has an inverse
+    square-root singularity (Sneddon 1965): a Cartesian grid cannot follow it (the contact set is a
+    staircase and its effective radius grows by about half a cell). Here the top face is a Delaunay
+    triangulation of concentric node rings (:func:`ring_radii`: one ring on ``rim``, spacing ``h_rim``
+    at it, geometric away from it), ``ceil(2 pi r / (aspect s))`` nodes on a ring of radial spacing
+    ``s`` (at least 6; the singular field is axisymmetric, so the tangential spacing may exceed the
+    radial one by ``aspect``). The surface is extruded along -z through layers graded from ``h_rim`` at
+    the top (:func:`graded_axis` with the same ``fine`` and ``growth``), and each triangular prism is
+    split into 3 tets by the global vertex order (the diagonal of a side face joins its lower-index
+    bottom vertex to its higher-index top vertex, so neighbouring prisms share their faces' diagonals).
+
+    Args:
+        outer_radius: cylinder radius, m.
+        thickness: cylinder height, m (the bottom ``z = -thickness`` is the face to clamp).
+        rim: radius of the ring to resolve, m.
+        h_rim: ring and layer spacing at the rim and the top, m.
+        fine: half width of the band about ``rim`` (and depth of the top layer) at spacing ``h_rim``, m.
+        growth: spacing ratio outside the band.
+        aspect: largest tangential / radial spacing on a ring.
+
+    Returns:
+        :class:`TetMesh` (positively oriented tets).
+    """
+    radii = ring_radii(rim, outer_radius, h_rim, fine, growth)
+    spacing = np.gradient(radii)
+    pts = [np.zeros((1, 2))]
+    for k in range(1, len(radii)):
+        n = max(min_segments, int(np.ceil(2.0 * np.pi * radii[k] / (aspect * spacing[k]))))
+        phi = 2.0 * np.pi * (np.arange(n) + 0.5 * (k % 2)) / n
+        pts.append(radii[k] * np.stack([np.cos(phi), np.sin(phi)], axis=1))
+    xy = np.concatenate(pts)
+    tri = np.sort(Delaunay(xy).simplices.astype(np.int64), axis=1)
+    area = np.cross(xy[tri[:, 1]] - xy[tri[:, 0]], xy[tri[:, 2]] - xy[tri[:, 0]])
+    tri = tri[np.abs(area) > 1e-12 * np.max(np.abs(area))]
+    z = -graded_axis(thickness, h_rim, fine, growth)
+    m = len(xy)
+    x = np.concatenate([np.column_stack([xy, np.full(m, zk)]) for zk in z])
+    tets = []
+    for layer in range(len(z) - 1):
+        i, j, k = (tri + layer * m).T  # i < j < k, layer "layer" at the top
+        ip, jp, kp = i + m, j + m, k + m
+        tets += [np.stack([i, j, k, kp], 1), np.stack([i, j, jp, kp], 1), np.stack([i, ip, jp, kp], 1)]
+    tets = np.concatenate(tets)
+    e = x[tets[:, 1:]] - x[tets[:, :1]]
+    negative = np.einsum("ij,ij->i", np.cross(e[:, 0], e[:, 1]), e[:, 2]) < 0
+    tets[negative] = tets[negative][:, [0, 2, 1, 3]]
+    return TetMesh(x, tets)
+
+
+def flat_disc(radius: float, angles) -> TriMesh:
+    """A flat disc in the plane z = 0, normals down (-z): the face of a flat punch.
+
+    A fan of triangles about the centre through rim vertices at ``radius`` and the polar ``angles``
+    (e.g. :func:`rim_angles` of the gel under it, so that the punch's rim lies on the gel's node ring:
+    the polygon is inscribed in the circle, its edges' midpoints at ``radius cos(pi / segments)`` for
+    evenly spaced angles).
+
+    Args:
+        radius: rim radius, m (> 0).
+        angles: polar angles of the rim vertices, rad, shape ``(k,)``, ``k >= 3``, distinct.
+
+    Returns:
+        :class:`TriMesh` with ``k + 1`` vertices and ``k`` triangles.
+    """
+    phi = np.sort(np.mod(np.asarray(angles, dtype=float).reshape(-1), 2.0 * np.pi))
+    if not (radius > 0 and phi.size >= 3 and np.all(np.diff(phi) > 0)):
+        raise ConfigError(f"flat_disc: need radius > 0 and at least 3 distinct angles, got {radius}, {phi.size}")
+    x = np.concatenate([np.zeros((1, 3)), np.column_stack([radius * np.cos(phi), radius * np.sin(phi),
+                                                           np.zeros(phi.size)])])
+    rim = 1 + np.arange(phi.size)
+    tri = np.stack([np.zeros(phi.size, dtype=np.int64), np.roll(rim, -1), rim], axis=1)
+    return TriMesh(x, tri)
+
+
+def rim_angles(gel: TetMesh, rim: float, rel_tol: float = 1e-9) -> np.ndarray:
+    """Polar angles (rad, ``(k,)``, sorted) of the top-face vertices (z = max) of ``gel`` on the circle
+    ``r = rim`` (within ``rel_tol`` of it), e.g. the rim ring of :func:`ringed_gel_cylinder`.
+
+    Raises:
+        MeshError: fewer than 3 vertices on that circle.
+    """
+    x = np.asarray(gel.x)
+    top = np.isclose(x[:, 2], x[:, 2].max(), rtol=0.0, atol=rel_tol * np.ptp(x[:, 2]))
+    on = top & np.isclose(np.hypot(x[:, 0], x[:, 1]), rim, rtol=rel_tol, atol=0.0)
+    if np.count_nonzero(on) < 3:
+        raise MeshError(f"rim_angles: {np.count_nonzero(on)} top vertices on r = {rim} m (need >= 3)")
+    return np.sort(np.mod(np.arctan2(x[on, 1], x[on, 0]), 2.0 * np.pi))
+
+
 def sphere_cap(radius: float, cap_radius: float, h: float) -> TriMesh:
     """Triangulated lower cap of a sphere whose lowest point is the origin.
 
