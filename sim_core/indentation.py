@@ -282,11 +282,12 @@ def ringed_gel_cylinder(
 
     A flat punch's contact edge is a circle of radius ``rim`` where the pressure has an inverse
     square-root singularity (Sneddon 1965): a Cartesian grid cannot follow it (the contact set is a
-    staircase and its effective radius grows by about half a cell). Here the top face is a Delaunay
-    triangulation of concentric node rings (:func:`ring_radii`: one ring on ``rim``, spacing ``h_rim``
+    staircase and its effective radius grows by about half a cell). Here the top face is a Delaunay triangulation
+    of concentric node rings (:func:`ring_radii`: one ring on ``rim``, spacing ``h_rim``
     at it, geometric away from it), ``ceil(2 pi r / (aspect s))`` nodes on a ring of radial spacing
     ``s`` (at least 6; the singular field is axisymmetric, so the tangential spacing may exceed the
-    radial one by ``aspect``). The surface is extruded along -z through layers graded from ``h_rim`` at
+    radial one by ``aspect``; a Delaunay triangulation, which keeps the triangles' angles away from 180
+    degrees: rings zipped chord by chord at that aspect pressed 15 % harder). The surface is extruded along -z through layers graded from ``h_rim`` at
     the top (:func:`graded_axis` with the same ``fine`` and ``growth``), and each triangular prism is
     split into 3 tets by the global vertex order (the diagonal of a side face joins its lower-index
     bottom vertex to its higher-index top vertex, so neighbouring prisms share their faces' diagonals).
@@ -312,7 +313,8 @@ def ringed_gel_cylinder(
         pts.append(radii[k] * np.stack([np.cos(phi), np.sin(phi)], axis=1))
     xy = np.concatenate(pts)
     tri = np.sort(Delaunay(xy).simplices.astype(np.int64), axis=1)
-    area = np.cross(xy[tri[:, 1]] - xy[tri[:, 0]], xy[tri[:, 2]] - xy[tri[:, 0]])
+    e1, e2 = xy[tri[:, 1]] - xy[tri[:, 0]], xy[tri[:, 2]] - xy[tri[:, 0]]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     tri = tri[np.abs(area) > 1e-12 * np.max(np.abs(area))]
     z = -graded_axis(thickness, h_rim, fine, growth)
     m = len(xy)
@@ -329,44 +331,61 @@ def ringed_gel_cylinder(
     return TetMesh(x, tets)
 
 
-def flat_disc(radius: float, angles) -> TriMesh:
-    """A flat disc in the plane z = 0, normals down (-z): the face of a flat punch.
+def _face_triangles(gel: TetMesh, rim: float) -> np.ndarray:
+    """The gel's top-face triangles (gel vertex indices, ``(k, 3)``) with every corner within ``rim``."""
+    tris = tet_boundary_triangles(gel.tets, gel.x)
+    x = np.asarray(gel.x, dtype=float)
+    top = np.isclose(x[:, 2], x[:, 2].max(), rtol=0.0, atol=1e-9 * np.ptp(x[:, 2]))
+    inside = top & (np.hypot(x[:, 0], x[:, 1]) <= rim * (1.0 + 1e-9))
+    face = tris[np.all(inside[tris], axis=1)]
+    if face.shape[0] == 0:
+        raise MeshError(f"punch_face: no top-face triangle of the gel lies within r = {rim} m")
+    return face
 
-    A fan of triangles about the centre through rim vertices at ``radius`` and the polar ``angles``
-    (e.g. :func:`rim_angles` of the gel under it, so that the punch's rim lies on the gel's node ring:
-    the polygon is inscribed in the circle, its edges' midpoints at ``radius cos(pi / segments)`` for
-    evenly spaced angles).
+
+def punch_face_vertices(gel: TetMesh, rim: float) -> np.ndarray:
+    """Sorted gel vertex indices ``(k,)`` that a :func:`punch_face` of radius ``rim`` touches: the corners of
+    the gel's top-face triangles within ``rim`` (a vertex with ``r <= rim`` that is no such triangle's corner
+    is not touched)."""
+    return np.unique(_face_triangles(gel, rim))
+
+
+def punch_face(gel: TetMesh, rim: float, clearance: float) -> TriMesh:
+    """The face of a rigid flat punch of radius ``rim`` triangulated as the gel's top face under it.
+
+    The gel's top-face triangles (z = the mesh's maximum) whose corners all lie within ``rim`` (the rim
+    ring of :func:`ringed_gel_cylinder` included), their corners moved radially out by ``clearance`` and
+    put in the plane z = 0, normals down (-z). The face's edges are then parallel to the gel's (the
+    contact's edge-edge pairs leave near-parallel pairs out) and no gel edge crosses the face's outline,
+    so the contact set is exactly those triangles' vertices (:func:`punch_face_vertices`): the discrete
+    punch problem that a linear-elastic solver can state on the same mesh. A face that is not the gel's
+    own triangulation (a fan through the same rim vertices) has rim chords that the gel's edges joining
+    the rings either side of the rim cross; the edge-edge contact holds those crossings at the face (a
+    rigid rim on a piecewise-linear surface), which pulls the next ring down: 10 % more force on a
+    ``ringed_gel_cylinder`` at 0.16 a rim spacing (session 51, docs/known_answers.md).
 
     Args:
-        radius: rim radius, m (> 0).
-        angles: polar angles of the rim vertices, rad, shape ``(k,)``, ``k >= 3``, distinct.
+        gel: gel mesh with a node ring on ``r = rim`` in its top face (m).
+        rim: punch radius, m.
+        clearance: radial offset of the face's rim beyond the gel's ring, m (small against the ring
+            spacing, larger than the ring's inward displacement under the punch: about 1 % of it).
 
     Returns:
-        :class:`TriMesh` with ``k + 1`` vertices and ``k`` triangles.
-    """
-    phi = np.sort(np.mod(np.asarray(angles, dtype=float).reshape(-1), 2.0 * np.pi))
-    if not (radius > 0 and phi.size >= 3 and np.all(np.diff(phi) > 0)):
-        raise ConfigError(f"flat_disc: need radius > 0 and at least 3 distinct angles, got {radius}, {phi.size}")
-    x = np.concatenate([np.zeros((1, 3)), np.column_stack([radius * np.cos(phi), radius * np.sin(phi),
-                                                           np.zeros(phi.size)])])
-    rim = 1 + np.arange(phi.size)
-    tri = np.stack([np.zeros(phi.size, dtype=np.int64), np.roll(rim, -1), rim], axis=1)
-    return TriMesh(x, tri)
-
-
-def rim_angles(gel: TetMesh, rim: float, rel_tol: float = 1e-9) -> np.ndarray:
-    """Polar angles (rad, ``(k,)``, sorted) of the top-face vertices (z = max) of ``gel`` on the circle
-    ``r = rim`` (within ``rel_tol`` of it), e.g. the rim ring of :func:`ringed_gel_cylinder`.
+        :class:`TriMesh` (m).
 
     Raises:
-        MeshError: fewer than 3 vertices on that circle.
+        MeshError: no top-face triangle within ``rim``.
     """
-    x = np.asarray(gel.x)
-    top = np.isclose(x[:, 2], x[:, 2].max(), rtol=0.0, atol=rel_tol * np.ptp(x[:, 2]))
-    on = top & np.isclose(np.hypot(x[:, 0], x[:, 1]), rim, rtol=rel_tol, atol=0.0)
-    if np.count_nonzero(on) < 3:
-        raise MeshError(f"rim_angles: {np.count_nonzero(on)} top vertices on r = {rim} m (need >= 3)")
-    return np.sort(np.mod(np.arctan2(x[on, 1], x[on, 0]), 2.0 * np.pi))
+    face = _face_triangles(gel, rim)
+    x = np.asarray(gel.x, dtype=float)
+    used, compact = np.unique(face, return_inverse=True)
+    tri = compact.reshape(face.shape).astype(np.int64)
+    fx = x[used].copy()
+    fx[:, :2] *= 1.0 + clearance / rim
+    fx[:, 2] = 0.0
+    normal_z = np.cross(fx[tri[:, 1]] - fx[tri[:, 0]], fx[tri[:, 2]] - fx[tri[:, 0]])[:, 2]
+    tri[normal_z > 0] = tri[normal_z > 0][:, [0, 2, 1]]
+    return TriMesh(fx, tri)
 
 
 def sphere_cap(radius: float, cap_radius: float, h: float) -> TriMesh:
