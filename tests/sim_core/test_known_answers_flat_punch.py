@@ -18,12 +18,12 @@ simulator's answer converge to Sneddon's:
    linear-elastic punch problem on the same tets, solved independently by :mod:`tests.support.linear_fe`
    (Hooke's P1 stiffness, ``u_z = -d`` on the punch face's vertices, ``u_x, u_y`` free there, base
    clamped; nothing of sim_core's energies or contact): measured 1.0021 on the CI mesh (2.4k vertices),
-   1.0013 at 9.0k vertices (session 51).
-2. That linear problem converges to Sneddon x layer factor as the rim-graded mesh is refined (spacing at
-   the rim h_r and growth g away from it): 1.132 / 1.074 / 1.020 at (h_r, g) = (0.16 a, 1.48) / (0.1 a,
-   1.3) / (0.06 a, 1.15) (2.4k / 5.0k / 14.3k vertices); finer, 1.014 at (0.05 a, 1.12) (21k vertices), and
-   the series' Richardson limit is 0.993 (docs/known_answers.md). So 3 % needs a / h_r >= 16 at the rim
-   and g <= 1.15; the simulator itself on the 14.3k-vertex mesh is in the benchmarks log (too slow for CI).
+   1.0016 / 1.0013 / 1.0014 at 5.0k / 9.0k / 14.3k vertices (session 51).
+2. That linear problem converges to Sneddon x layer factor as the rim-graded mesh is refined (rim spacing
+   h_r, growth g away from it): 1.132 / 1.074 / 1.017 at (h_r, g) = (0.16 a, 1.48) / (0.1 a, 1.3) /
+   (0.06 a, 1.15) (2.4k / 5.0k / 14.3k vertices); finer, 1.012 at (0.05 a, 1.12) (21.4k vertices). 3 %
+   needs about a / h_r >= 16 at the rim and g <= 1.15 away from it. The simulator itself on the 14.3k-vertex
+   mesh gives 1.021 / 1.018 at d = 1 / 2 um (docs/benchmarks_log.md, session 51; too slow for CI).
 
 A structured (Kuhn) grid cannot follow the rim: there the same punch read 1.11-1.15 (session 50).
 """
