@@ -303,7 +303,7 @@ def ringed_gel_cylinder(
         growth: spacing ratio outside the band.
         aspect: largest tangential / radial spacing on a ring.
         min_segments: fewest nodes on a ring (the outer rings' tangential resolution; a punch's force at
-            20 a against 48: +5 % with 6, +0.9 % with 12, +0.4 % with 24).
+            20 a against 48: +3.6 % with 6, +0.9 % with 12, +0.4 % with 24).
 
     Returns:
         :class:`TetMesh` (positively oriented tets).
