@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from sim_core.errors import ThinShellError
 
@@ -213,6 +213,27 @@ def options_from_args(args: argparse.Namespace) -> PipelineOptions:
                            baseline=list(args.baseline), heldout=list(args.heldout), params=list(args.params),
                            project=args.project, candidates=args.candidates, ray_address=args.ray_address,
                            given=given)
+
+
+def diagnose(bags: Sequence[str | Path], dt: float = 0.01, heldout: Sequence[str | Path] | None = None,
+             **kwargs: Any) -> dict[str, Any]:
+    """``python -m benchmarks.diagnose_bench``'s default engine (``sysid.diagnose.cli:diagnose``): the first
+    recording's report with ``thinshell diagnose``'s defaults (``kwargs``: other command-line options by their
+    ``argparse`` names, e.g. ``workers=2``).
+
+    Raises:
+        TypeError: an unknown option.
+    """
+    from sysid.diagnose.pipeline import diagnose_recordings
+
+    args = build_parser().parse_args([str(b) for b in bags])
+    args.dt, args.heldout = dt, [str(h) for h in (heldout or ())]
+    for k, v in kwargs.items():
+        if not hasattr(args, k):
+            raise TypeError(f"diagnose: unknown option {k!r}")
+        setattr(args, k, v)
+    docs, _ = diagnose_recordings(args.bags, options_from_args(args))
+    return docs[0]
 
 
 if __name__ == "__main__":

@@ -192,23 +192,6 @@ def top_report(docs: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return top
 
 
-def diagnose(bags: Sequence[str | Path], dt: float = 0.01, heldout: Sequence[str | Path] | None = None,
-             **kwargs: Any) -> dict[str, Any]:
-    """``python -m benchmarks.diagnose_bench --engine sysid.diagnose.pipeline:diagnose`` entry: the first
-    recording's report with ``thinshell diagnose``'s defaults (``kwargs``: :func:`options_from_args`'s
-    command-line options by their ``argparse`` names, e.g. ``workers=2``)."""
-    from sysid.diagnose.cli import build_parser, options_from_args
-
-    args = build_parser().parse_args([str(b) for b in bags])
-    args.dt, args.heldout = dt, [str(h) for h in (heldout or ())]
-    for k, v in kwargs.items():
-        if not hasattr(args, k):
-            raise TypeError(f"diagnose: unknown option {k!r}")
-        setattr(args, k, v)
-    docs, _ = diagnose_recordings(args.bags, options_from_args(args))
-    return docs[0]
-
-
 def with_stage(doc: dict[str, Any]) -> str:
     """The stage that made a report (``extra.pipeline.stage``)."""
     return str(doc["extra"]["pipeline"]["stage"])
@@ -231,5 +214,5 @@ def write_report(doc: dict[str, Any], run: Any, out_dir: str | Path) -> list[Pat
     return write_signature_report(doc, run, out_dir)
 
 
-__all__ = ["PipelineOptions", "Premise", "SCHEMA_VERSION", "STAGES", "diagnose", "diagnose_recordings", "premise",
+__all__ = ["PipelineOptions", "Premise", "SCHEMA_VERSION", "STAGES", "diagnose_recordings", "premise",
            "top_report", "with_stage", "write_report"]

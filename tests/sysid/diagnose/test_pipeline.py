@@ -23,13 +23,13 @@ from sysid.diagnose.cli import build_parser, diagnose_main, options_from_args
 from sysid.diagnose.pipeline import PipelineOptions, premise
 from sysid.diagnose.schema import SCHEMA_VERSION, validate_report
 from tests.sysid.conftest import reference_bag
-from tests.sysid.simbag import (CARD_SCENE, NOISE, PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with,
+from tests.sysid.simbag import (NOISE, PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with,
                                 simulate_streams, targets_from_segments, write_bag)
 
 DRIFT_N = 1.2
 """Concealed drift of the force sensor's F_z over the recording, N: 6 of its noise levels (0.2 N) at the end."""
 
-SLOW_PRESS_SLIDE = tuple(((dx / 2, dy / 2, dz / 2), 2 * n) for (dx, dy, dz), n in PRESS_SLIDE)
+SLOW_PRESS_SLIDE = tuple((displacement, 2 * steps) for displacement, steps in PRESS_SLIDE)
 """:data:`tests.sysid.simbag.PRESS_SLIDE` at half the speed (57 steps): enough samples under load for the
 drive's criterion (:data:`sysid.drive_calibration.DRIVE_MIN_LOADED_SAMPLES`)."""
 
