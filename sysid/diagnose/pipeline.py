@@ -94,8 +94,9 @@ class Premise:
         return {"stage": self.stage, "drive": dict(self.drive), "why": self.why}
 
 
-def premise(bag: str | Path, options: PipelineOptions) -> Premise:
-    """The stage of ``bag`` from its effector's drive (module docstring); reads the recording once, no replay.
+def premise(bag: str | Path, settings: SignatureSettings) -> Premise:
+    """The stage of ``bag`` from its effector's drive (module docstring); reads the recording once (as
+    ``settings`` say: recording map, time span, step), no replay.
 
     Raises:
         BagReadError: unreadable recording.
@@ -105,7 +106,7 @@ def premise(bag: str | Path, options: PipelineOptions) -> Premise:
     from sysid.evidence import load_evidence
     from sysid.observation import ObservationModel
 
-    s = options.signatures
+    s = settings
     evidence = load_evidence(bag, include_image=False, recording_map=s.recording_map, t_start=s.t_start,
                              t_end=s.t_end)
     with warnings.catch_warnings():
@@ -162,7 +163,7 @@ def diagnose_recordings(bags: Sequence[str | Path], options: PipelineOptions) ->
     from sysid.diagnose.schema import validate_report
     from sysid.diagnose.signature_engine import diagnose_one
 
-    premises = [premise(b, options) for b in bags]
+    premises = [premise(b, options.signatures) for b in bags]
     docs: list[dict[str, Any]] = []
     runs: list[Any] = []
     baselines = None

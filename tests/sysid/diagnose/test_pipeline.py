@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 
 from sysid.diagnose.cli import build_parser, diagnose_main, options_from_args
-from sysid.diagnose.pipeline import PipelineOptions, premise
+from sysid.diagnose.pipeline import premise
 from sysid.diagnose.schema import SCHEMA_VERSION, validate_report
+from sysid.diagnose.signature_engine import SignatureSettings
 from tests.sysid.conftest import reference_bag
 from tests.sysid.simbag import (NOISE, PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with,
                                 simulate_streams, targets_from_segments, write_bag)
@@ -46,8 +47,8 @@ def _bag(tmp_path: Path, streams: dict, name: str) -> Path:
     return write_bag(tmp_path / name, scene_with(TRUE_PARAMS), streams)
 
 
-def _options(bag: Path) -> PipelineOptions:
-    return options_from_args(build_parser().parse_args([str(bag)]))
+def _options(bag: Path) -> SignatureSettings:
+    return options_from_args(build_parser().parse_args([str(bag)])).signatures
 
 
 def test_one_option_set_gives_both_stages_the_same_calibration(capsys):
