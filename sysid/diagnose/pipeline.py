@@ -40,12 +40,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from sysid.diagnose.schema import SCHEMA_VERSION
+from sysid.diagnose.schema import SCHEMA_VERSION, STAGES
 from sysid.diagnose.settings import Settings
 from sysid.diagnose.signature_engine import SignatureSettings
 
-SCORE, SIGNATURES = "score", "signatures"
-STAGES = (SCORE, SIGNATURES)
+SCORE, SIGNATURES = STAGES
 
 
 @dataclass

@@ -24,6 +24,7 @@ SCHEMA_VERSION = 2
 TOP_KEYS = ("schema_version", "bag", "baseline", "mismatch", "candidates", "explained_by", "refit")
 PIPELINE_KEYS = ("stage", "drive", "why", "not_applied")
 STAGES = ("score", "signatures")
+"""The pipeline's stages (:mod:`sysid.diagnose.pipeline`), the values of ``extra.pipeline.stage``."""
 SUB_KEYS = {"baseline": ("params", "rms"), "mismatch": ("detected", "windows_s", "channels", "markers"),
             "refit": ("params", "rms", "heldout_rms_before", "heldout_rms_after")}
 CANDIDATE_KEYS = ("effect", "statistic", "p_value")
