@@ -187,6 +187,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._dofs = scene.dof_index  # (B, 3n)
         self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
         self._device_vectors = None  # the same on the device with the batched CG (made at the first step: _vectors)
+        self._direction_scalars = None  # (d, slope (B,), largest |d_v| (B,)) read by _direction_pcg with its tests
         self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
         self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
@@ -339,8 +340,13 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
             vectors.zero_copies(d, ~open_)
-            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it
-            slope, step_max = vectors.slope_and_norm(g, d)
+            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it (the
+            # batched solvers' direction read both with its own tests: no read here; the closed copies' d is 0)
+            kept, self._direction_scalars = self._direction_scalars, None
+            if kept is not None and kept[0] is d:
+                slope, step_max = np.where(open_, kept[1], 0.0), np.where(open_, kept[2], 0.0)
+            else:
+                slope, step_max = vectors.slope_and_norm(g, d)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -579,19 +585,28 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
             vectors.zero_dofs(dk, fixed)
-            ok = todo & ~pcg.indefinite & ~pcg.unconverged & vectors.all_finite(dk)
+            # the slope g.dk and the largest |dk_v| (NaN where dk is not finite) in one read: the finite test, the
+            # descent test and the Newton loop's slope and step size (kept in _direction_scalars)
+            slope_k, norm_k = vectors.slope_and_norm(g, dk)
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.isfinite(norm_k)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
-                ok &= vectors.dot(g, dk) < 0.0
+                ok &= slope_k < 0.0
             if d is None and np.array_equal(ok, todo):
                 d = dk  # every copy with an update keeps this one; the others' right-hand side was 0, so is their dk
+                slope, norm = slope_k, norm_k
             else:
-                d = vectors.copy_where(vectors.new() if d is None else d, dk, ok)
+                if d is None:
+                    d, slope, norm = vectors.new(), np.zeros(len(ok)), np.zeros(len(ok))
+                d = vectors.copy_where(d, dk, ok)
+                slope, norm = np.where(ok, slope_k, slope), np.where(ok, norm_k, norm)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
                     vectors.copy_where(d, dk, todo)
+                    slope, norm = np.where(todo, slope_k, slope), np.where(todo, norm_k, norm)
                 break
+        self._direction_scalars = (d, slope, norm)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,
