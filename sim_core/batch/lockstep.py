@@ -188,6 +188,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
         self._device_vectors = None  # the same on the device with the batched CG (made at the first step: _vectors)
         self._direction_scalars = None  # (d, slope (B,), largest |d_v| (B,)) read by _direction_pcg with its tests
+        self._direction_todo = None  # (B,) bool: the copies of the next _direction_pcg with a non-zero gradient
         self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
         self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
@@ -336,6 +337,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             # gradient is 0 already; the solvers do not write the right-hand side)
             rhs = vectors.zero_copies(vectors.copy(g), done) if done.any() else g
             factorizations = info.factorizations
+            # the copies with an update to find: those whose gradient has a non-zero (or NaN) entry, from g_max, read
+            # already (the batched solvers' direction then reads nothing before its solve)
+            self._direction_todo = open_ & (g_max != 0.0)
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
@@ -558,7 +562,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         projections = self._projections()
         fixed = self._fixed_dofs(step)
         d = None  # the update: the first solve's own array when every copy keeps that solve's update
-        todo = vectors.any_dof(g)  # copies with an update to find
+        todo, self._direction_todo = self._direction_todo, None  # copies with an update to find (the Newton loop's)
+        if todo is None:
+            todo = vectors.any_dof(g)
         rhs = vectors.new()
         H, projection = None, self.config.projection
         for k, projection in enumerate(projections):
