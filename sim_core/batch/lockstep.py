@@ -54,7 +54,11 @@ CG the Newton loop's iterate, update and stacked gradient stay in device memory 
 :mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
 updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
 right-hand side and leaves its update there, and each trial point's positions come down once (the contact search and
-the terms' caches); the direct solvers' path keeps NumPy vectors. The line search is :mod:`sim_core.batch.line_search`.
+the terms' caches); the direct solvers' path keeps NumPy vectors. A Newton iteration's reads around the batched solve:
+none before it (the copies to solve are those whose gradient's largest entry, read with the last slope test, is not
+0), the solver's per-copy flags (one int32 array a CG poll, :class:`~sim_core.ti_kernels.pcg.BatchedPCG`), then one
+``(B,)`` read of ``g.d`` and the largest ``|d_v|`` a solve, which give the solve's finite and descent tests and the
+loop's slope and step size. The line search is :mod:`sim_core.batch.line_search`.
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). With a direct linear solver a copy also stops on the simplified
