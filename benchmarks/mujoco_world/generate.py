@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bond-wrench", default="reference", choices=["reference", "physical"],
                     help="tack bonds in the wrench: the force on the card as the reference records it, or on the gel")
     ap.add_argument("--short", action="store_true",
-                    help="a short press_slide (about 2.3 s: shortest rests, 10-12 mm slide; motion.SHORT_PRESS_SLIDE)")
+                    help="a short press_slide (2.3-2.7 s: shortest rests, 10-12 mm slide; motion.SHORT_PRESS_SLIDE)")
     ap.add_argument("--stiction-switch", default="speed", choices=["speed", "load"],
                     help="static -> kinetic friction when the contact layer moves (speed, the default) or at gross "
                          "breakaway, the load at the static limit (load); world.py's docstring")

@@ -178,7 +178,7 @@ def lift_fold_like(m: dict[str, Any], contact_z: float, rest0: float = 0.15, tac
 SHORT_PRESS_SLIDE = {"length": (0.010, 0.012), "rests": (0.10, 0.30, 0.20, 0.20), "depth": (0.0015, 0.0025),
                      "height": (0.0035, 0.0040), "v_press": (0.007, 0.008), "v_slide": (0.018, 0.020),
                      "v_lift": (0.017, 0.019)}
-"""Ranges of a short press_slide (``sample_press_slide(short=True)``, about 2.3 s instead of 3-5 s): the
+"""Ranges of a short press_slide (``sample_press_slide(short=True)``, 2.3-2.7 s instead of 3-5 s): the
 shortest rests, approach and fastest speeds of the reference's ranges, and a 10-12 mm slide (past gross
 slip: the patch slides after 1-3 mm at these depths). For a small bundled test recording."""
 
