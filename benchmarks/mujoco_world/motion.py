@@ -210,9 +210,9 @@ def sample_press_slide(rng: np.random.Generator, contact_z: float, direction: st
         raise ValueError(f"no slide {direction} fits on the card")
     if short:
         r = SHORT_PRESS_SLIDE
-        return press_slide((x0, y0), rng.uniform(*r["depth"]), (length * u[0], length * u[1]), rng.uniform(*r["height"]),
-                           rng.uniform(*r["v_press"]), rng.uniform(*r["v_slide"]), rng.uniform(*r["v_lift"]),
-                           contact_z, r["rests"])
+        return press_slide((x0, y0), rng.uniform(*r["depth"]), (length * u[0], length * u[1]),
+                           rng.uniform(*r["height"]), rng.uniform(*r["v_press"]), rng.uniform(*r["v_slide"]),
+                           rng.uniform(*r["v_lift"]), contact_z, r["rests"])
     rests = (rng.uniform(0.09, 0.16), rng.uniform(0.35, 0.6), rng.uniform(0.25, 0.6), 0.3)
     return press_slide((x0, y0), rng.uniform(0.001, 0.003), (length * u[0], length * u[1]),
                        rng.uniform(0.0035, 0.0075), rng.uniform(0.004, 0.008), rng.uniform(0.008, 0.020),

@@ -38,8 +38,8 @@ def job_lines(plan: Path, sets: str = ".*", diag_args: str = "") -> list[str]:
         if not f or raw.lstrip().startswith("#"):
             continue
         if len(f) < 6 or not set(f[7:]) <= {"short", "load"}:
-            raise ValueError(f"{plan}:{k}: expected 'set name variant magnitude motion seed [direction] [short] [load]',"
-                             f" got {raw!r}")
+            raise ValueError(f"{plan}:{k}: expected 'set name variant magnitude motion seed [direction] [short] "
+                             f"[load]', got {raw!r}")
         if not re.fullmatch(sets, f[0]):
             continue
         name, variant, mag, motion, seed = f[1:6]
