@@ -80,13 +80,12 @@ class FitOptions:
             default ``hac``; None: none).
         drive: fit the effector's drive along the sensor normal (:func:`sysid.drive_calibration.fit_drive`: a
             spring and damper, chosen over a kinematic arm by delta-BIC) and make every replay, the calibration's
-            and the fit's, take it where the data choose it; the fit's Jacobian is then taken by finite
-            differences (``jacobian="auto"``; a replay through the drive has no tangents). False (the default
-            of ``thinshell sysid``): the recorded pose driven kinematically. Off by default here, unlike in
-            ``thinshell diagnose``: with finite-difference Jacobians through the drive a fit of a 3.6 s
-            MuJoCo press-slide (nominal_s101) did not finish in 560 s on 16 cores, and on a lift
-            (nominal_s109) it moved the bending stiffness x4.8 in 12 replays (docs/benchmarks_log.md,
-            session 50, 49drive).
+            and the fit's, take it where the data choose it (True, the default, as in ``thinshell diagnose``);
+            the fit's Jacobian is then analytic through the drive (:func:`sysid.replay_drive.drive_sensitivities`).
+            False: the recorded pose driven kinematically. (Until session 51 the Jacobian through the drive was
+            taken by finite differences, whose columns carry the drive's force tolerance over the difference
+            step: on nominal_s101 up to 93 % off the tangent, and the fit did not finish in 560 s;
+            docs/benchmarks_log.md, session 51, 49sysdrive.)
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -121,7 +120,7 @@ class FitOptions:
     batched: bool = False
     batch_size: int | str | None = None
     robust: str | None = DEFAULT_ROBUST_METHOD
-    drive: bool = False
+    drive: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -250,11 +249,6 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     jacobian = options.jacobian
-    if math.isfinite(model.drive_stiffness):
-        if jacobian == "sensitivity":
-            raise ConfigError(f"{bag}: the replays go through the fitted drive ({drive.stiffness:.4g} N/m), which has "
-                              "no tangents: use --jacobian fd or auto, or --no-drive")
-        jacobian = "fd" if jacobian == "auto" else jacobian
     if on_model is not None:
         on_model(model, notes)
     sensor = None
