@@ -247,11 +247,14 @@ class SensitivityJacobian:
         traj, dX, dF, dQ = self._rollout(model, sim, names)
         if problem.warm_start:  # the start of the next replays
             problem.last_positions = np.stack([s.x for s in traj.states])
-        prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
+        trace = model.trace_of(sim, traj.states, time.perf_counter() - t)
+        prediction = model.predict(trace)
         r = model.residuals(prediction)
         J = np.full((r.shape[0], len(problem.names)), np.nan)
-        J[:, [i for i in range(len(problem.names)) if i not in other]] = self._whitened(problem, values, sim, traj, dX, dF,
-                                                                                        dQ)
+        mine = self._whitened(problem, values, sim, traj, dX, dF, dQ)
+        if model.gain_profile is not None:  # the gains refitted at every replay: their columns projected out
+            mine = model.gain_profile.project(model.predict_raw(trace), mine)
+        J[:, [i for i in range(len(problem.names)) if i not in other]] = mine
         return r, J, prediction
 
     def _whitened(self, problem: ReplayProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,

@@ -27,9 +27,9 @@ from tests.sysid.simbag import (PRESS_SLIDE, TRUE_PARAMS, add_noise, scene_with,
 ARM = (2000.0, 5.0)
 """The concealed arm: stiffness k_s (N/m) and damping (N s/m) along the sensor normal."""
 
-SEGMENTS = (((0.0, 0.0, -0.0014), 6), *PRESS_SLIDE[1:], ((0.0, 0.0, 0.0), 6))
-"""PRESS_SLIDE pressed deeper (the arm gives way by about a third of the command's advance past contact), held
-at its end: 45 steps of 10 ms."""
+SEGMENTS = (((0.0, 0.0, -0.0025), 8), *PRESS_SLIDE[1:], ((0.0, 0.0, 0.0), 4), ((0.0, 0.0, 0.0025), 8))
+"""PRESS_SLIDE's press commanded 2.5 mm down (the arm gives way by 1.5 mm: about 3 N on the gel, 15 noise levels
+of the normal force), its slides, a hold and the release: 45 steps of 10 ms."""
 
 FITTED = ("sheet.bending_stiffness", "gel.youngs_modulus", "friction.gel_sheet")
 
@@ -43,16 +43,17 @@ def arm_bag(tmp_path_factory):
     return write_bag(tmp_path_factory.mktemp("arm") / "bag", scene, streams)
 
 
-def _model(bag) -> ObservationModel:
+def _model(bag, t_max: float | None = None) -> ObservationModel:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return ObservationModel(load_evidence(bag), dt=0.01)
+        return ObservationModel(load_evidence(bag), dt=0.01, t_max=t_max)
 
 
 def test_the_jacobian_through_the_drive_is_the_derivative_of_the_drive_replay(arm_bag, monkeypatch):
     """Analytic Jacobian through the drive against central differences of replays whose drive steps are solved
     to 1e-6 N (a finite-difference column of the default 0.5-sigma tolerance measures that tolerance over the
-    step instead). The wrench column of the gel modulus is the drive's own: a kinematic tangent (compression
+    step instead). Over the whole recording: at the step where contact begins the spring's balance has a kink
+    (the secant ends on its evaluation limit there), and a difference across it is not the one-sided tangent. The wrench column of the gel modulus is the drive's own: a kinematic tangent (compression
     held) is far from it, since the arm, not the gel, sets most of the load."""
     monkeypatch.setattr(replay_drive, "DRIVE_FORCE_TOLERANCE", 5e-6)  # in noise levels of the normal force
     model = _model(arm_bag)
@@ -81,9 +82,9 @@ def test_the_jacobian_through_the_drive_is_the_derivative_of_the_drive_replay(ar
 
 def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_percent_off(arm_bag, tmp_path, capsys):
     """Defaults, started 20 % off on all three materials (``scene.yaml`` rewritten): the drive is chosen by
-    delta-BIC and its stiffness found within 5 %; the materials come back within 5 % (modulus, friction) and
-    10 % (bending, weakly seen on a 4 mm slide), each truth inside the robust 2-sigma interval. The drive is in
-    fit.json (decision, k_s and damping with sigma) and in the report."""
+    delta-BIC and its stiffness found within 5 %; the gel modulus and the gel-sheet friction come back within
+    5 %, and every truth lies inside the robust 2-sigma interval. The drive is in fit.json (decision, k_s and
+    damping with sigma) and in the report."""
     off = {name: TRUE_PARAMS[name] * f for name, f in zip(FITTED, (1.2, 0.8, 1.2))}
     bag = tmp_path / "bag"
     bag.mkdir()
@@ -104,7 +105,11 @@ def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_pe
     assert "effector drive: compliant" in (out / "report.md").read_text()
     assert "drive: compliant" in captured.err
     params = doc["fit"]["parameters"]
-    for name, tol in zip(FITTED, (0.10, 0.05, 0.05)):
+    for name in FITTED:
         p = params[name]
-        assert p["value"] == pytest.approx(TRUE_PARAMS[name], rel=tol), (name, p)
         assert abs(p["value"] - TRUE_PARAMS[name]) < 2.0 * p["sigma_robust"], (name, p)
+        if name != "sheet.bending_stiffness":
+            assert p["value"] == pytest.approx(TRUE_PARAMS[name], rel=0.05), (name, p)
+    # the bending stiffness: its Jacobian column is about 1/400 of the modulus' here (a 6 mm slide that does not
+    # buckle the card), so the recording does not tell it; the fit says so by an interval wider than the value
+    assert params["sheet.bending_stiffness"]["sigma_robust"] > 0.5 * TRUE_PARAMS["sheet.bending_stiffness"]
