@@ -171,7 +171,13 @@ class SensitivityJacobian:
             raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
         problem.sim_runs += 1
         problem.sim_time_s += time.perf_counter() - t
+        trace = None
+        if model.gain_profile is not None:  # the gains refitted to this replay first (sysid.gain_profile)
+            trace = model.trace_of(sim, traj.states)
+            model.predict(trace)
         J = self._whitened(problem, values, sim, traj, dX, dF, dQ)
+        if trace is not None:  # ... and their columns projected out
+            J = model.gain_profile.project(model.predict_raw(trace), J)
         return self._with_difference_columns(problem, u, J, other, None)
 
     def _rollout(self, model: ObservationModel, sim, names: Sequence[str]):
