@@ -105,7 +105,7 @@ FULL = DemoSettings(
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
     compare_args=("--dt", "0.01"),
-    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 6 gradient steps
+    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 5 gradient steps
     task=TaskStageSettings())
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
@@ -575,9 +575,10 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     start = scene
     # the diagnosis (a subprocess) beside the robot runs that need no fit: the deployment and the task's
     # identification run (their robots' start-ups and DDS waits leave the cores to the diagnosis)
-    phase = Phase("diagnose | deploy, task identification run",
-                  ("diagnose", "deploy", "task_id_run") if settings.diagnose_args is not None else ("deploy", "task_id_run"))
-    diagnosis = start_diagnose_stage(run, settings, fit_bag, console) if settings.diagnose_args is not None else None
+    diagnosed = settings.diagnose_args is not None
+    phase = Phase(("diagnose | " if diagnosed else "") + "deploy, task identification run",
+                  ("diagnose", "deploy", "task_id_run") if diagnosed else ("deploy", "task_id_run"))
+    diagnosis = start_diagnose_stage(run, settings, fit_bag, console) if diagnosed else None
     try:
         run_deploy_stages(run, settings, scene, console, result)
         task = start_task_stages(run, settings.task, HIDDEN, console)

@@ -7,7 +7,8 @@ loaded machine still says where the work goes (the load stretches wall time, not
 - :class:`Phase`: wall and CPU s of a stretch of the demo (one stage, or stages running side by side).
 - :class:`BackgroundTool`: a ``thinshell`` command (``diagnose``, ``compare``) run as a subprocess beside
   the demo's own work, its output in a log file; :meth:`BackgroundTool.wait` gives its exit code,
-  wall and CPU s (the child's and its own children's, read from ``/proc`` before it is reaped).
+  wall s to its exit and CPU s (the child's and its own children's, read from ``/proc`` when it exits, before
+  it is reaped).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import os
 import resource
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,27 +89,34 @@ class BackgroundTool:
                                          stdout=out, stderr=subprocess.STDOUT)
         self.wall_s: float | None = None
         self.cpu_s: float | None = None
+        self._watch = threading.Thread(target=self._on_exit, name=f"thinshell {tool} watch", daemon=True)
+        self._watch.start()
 
     @property
     def command(self) -> str:
         return f"thinshell {self.tool} {' '.join(self.args)}"
 
+    def _on_exit(self) -> None:
+        """Wait for the child's exit without reaping it; then its wall and CPU s (readable until reaped)."""
+        try:
+            os.waitid(os.P_PID, self.proc.pid, os.WEXITED | os.WNOWAIT)
+        except ChildProcessError:   # reaped already (a wait elsewhere): only the wall time is known
+            pass
+        else:
+            self.cpu_s = _proc_cpu(self.proc.pid)
+        self.wall_s = time.monotonic() - self._t0
+
     def wait(self) -> int:
-        """Wait for the tool to end; returns its exit code and sets :attr:`wall_s` and :attr:`cpu_s`."""
-        if self.wall_s is None:
-            try:   # the exited child's CPU time is readable until it is reaped
-                os.waitid(os.P_PID, self.proc.pid, os.WEXITED | os.WNOWAIT)
-                self.cpu_s = _proc_cpu(self.proc.pid)
-            except ChildProcessError:
-                pass
-            self.proc.wait()
-            self.wall_s = time.monotonic() - self._t0
-        return self.proc.returncode
+        """Wait for the tool to end; returns its exit code (:attr:`wall_s`: s from its start to its exit and
+        :attr:`cpu_s`: its CPU s, are then set)."""
+        self._watch.join()
+        return self.proc.wait()
 
     def stop(self) -> None:
         """End the tool if it still runs (SIGTERM, then SIGKILL)."""
         if self.proc.poll() is None:
             self.proc.terminate()
+            self._watch.join(timeout=10.0)
             try:
                 self.proc.wait(timeout=10.0)
             except subprocess.TimeoutExpired:

@@ -99,7 +99,7 @@ class TaskStageSettings:
     task: str = TASK
     horizon: int | None = None
     sysid_args: tuple[str, ...] = ("--params", "sheet.bending_stiffness", "--max-nfev", "4")
-    episodes: int = 6
+    episodes: int = 5
     optimise_args: tuple[str, ...] = ("--method", "gd")
     compare_args: tuple[str, ...] = ()
     timeout: float = 300.0

@@ -3,6 +3,8 @@ gives its exit code, its log, and the CPU seconds the kernel accounts to it."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from thinshell_ros.demo_clock import BackgroundTool, Phase, cpu_seconds
@@ -13,7 +15,11 @@ def test_a_background_tools_cpu_seconds_are_those_the_kernel_accounts_to_it_when
     phase = Phase("compare", ("compare",))
     before = cpu_seconds()
     tool = BackgroundTool("compare", ["--help"], tmp_path / "compare.log")
+    tool._watch.join()                                    # the tool has exited (not reaped yet) ...
+    time.sleep(0.5)
+    waited = time.monotonic() - tool._t0
     assert tool.wait() == 0 and tool.wait() == 0          # a second wait returns the same code
+    assert tool.wall_s <= waited - 0.5                    # ... its wall time ends at its exit, not at the wait
     reaped = cpu_seconds() - before
     phase.stop()
     assert tool.cpu_s is not None and tool.cpu_s > 0.05, tool.cpu_s
