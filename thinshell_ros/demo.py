@@ -23,6 +23,12 @@
    prediction error on the deployed run and the task reward achieved on the robot against the predicted
    ones (``<run>/task/``).
 
+Stages that need nothing of the diagnosis or the fit run beside them, in four phases: the robot; the
+diagnosis (a ``thinshell diagnose`` subprocess, ``<run>/diagnose.log``) beside the deployment and the task's
+identification run (:func:`thinshell_ros.demo_task.start_task_stages`); the fit; the comparison (a
+``thinshell compare`` subprocess, ``<run>/compare.log``) beside the rest of the task stage. Each phase's
+wall and CPU seconds are in ``demo.json`` (``phases``, :mod:`thinshell_ros.demo_clock`).
+
 ``<run>/report.md`` links every step and reveals the hidden values; ``<run>/demo.json`` keeps the
 timings, message counts, fit summary, deploy status and the comparison. ``<run>`` is
 ``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten without
