@@ -4,7 +4,7 @@ lockstep batch's, ``--B``).
 Usage: ``python benchmarks/count_single_syncs.py [--steps 10] [--top 25] [--arch cpu|cuda] [--B 64]``.
 
 ``--B`` counts a lockstep batch of ``B`` Forming copies instead (``bench.batch._FormingRun`` with the batched CG, as on
-CUDA), per Newton iteration, by the Newton loop's phase that asked (the stacked gradient, the line search, the
+CUDA, or ``--linear-solver envelope``), per Newton iteration, by the Newton loop's phase that asked (the stacked gradient, the line search, the
 direction, the step's set-up and finish: the outermost of them on the stack) and by caller; the first step (set-up
 included) is not counted.
 
@@ -54,6 +54,8 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--arch", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--B", type=int, default=0, help="count a lockstep batch of B copies (0: one environment)")
+    ap.add_argument("--linear-solver", default="pcg", choices=("pcg", "envelope"),
+                    help="with --B: the lockstep's device solver (default pcg, the batched CG)")
     args = ap.parse_args()
     from sim_core.ti_backend import init_backend
 
@@ -148,18 +150,12 @@ def main() -> int:
     return 0
 
 
-def _lockstep_run(B: int, steps: int, arch: str):
+def _lockstep_run(B: int, steps: int, arch: str, linear_solver: str = "pcg"):
     """A lockstep Forming batch of ``B`` copies for ``steps`` steps (``bench.batch._FormingRun``), with the batched CG
-    (what a lockstep batch takes on CUDA) on the CPU arch too."""
-    import sim_core.solver_config as sc
+    (what a lockstep batch takes on CUDA) on the CPU arch too, or ``linear_solver``."""
     from sim_core.bench.batch import ARCH_BACKENDS, _FormingRun
 
-    orig = sc.SolverConfig
-    sc.SolverConfig = lambda **kw: orig(**kw, **({"linear_solver": "pcg"} if kw.get("lockstep") else {}))
-    try:
-        return _FormingRun(B, steps, ARCH_BACKENDS[arch], lockstep=True)
-    finally:
-        sc.SolverConfig = orig
+    return _FormingRun(B, steps, ARCH_BACKENDS[arch], lockstep=True, linear_solver=linear_solver)
 
 
 def _count_lockstep(args, counts, seconds, enabled: list, phase: list) -> int:
@@ -169,7 +165,7 @@ def _count_lockstep(args, counts, seconds, enabled: list, phase: list) -> int:
     from sim_core.control import Control
     from sim_core.solver import NewtonSolver
 
-    run = _lockstep_run(args.B, args.steps + 1, args.arch)
+    run = _lockstep_run(args.B, args.steps + 1, args.arch, args.linear_solver)
     for cls, name, label in ((lockstep.LockstepSolver, "_stacked_gradient", "stacked_gradient"),
                              (CopyLineSearch, "_line_search_copies", "line_search"),
                              (lockstep.LockstepSolver, "_direction", "direction"),

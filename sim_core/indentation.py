@@ -252,6 +252,146 @@ def graded_gel_block(
     return TetMesh(x, index.tets)
 
 
+def ring_radii(rim: float, outer: float, h_rim: float, fine: float, growth: float) -> np.ndarray:
+    """Radii of the node rings of a disc mesh graded towards a rim: spacing ``h_rim`` within ``fine`` of
+    ``rim`` on both sides, then geometric (:func:`graded_axis`) inwards to the centre and outwards to
+    ``outer``.
+
+    Args:
+        rim: radius to resolve (a ring lies on it), m (0 < rim < outer).
+        outer: outermost radius, m.
+        h_rim: ring spacing at the rim, m.
+        fine: half width of the uniformly fine band about the rim, m.
+        growth: ratio of consecutive spacings outside the band (>= 1).
+
+    Returns:
+        increasing radii, shape ``(k,)``, first 0 (the centre), one equal to ``rim``, last ``outer``.
+    """
+    if not 0 < rim < outer:
+        raise ConfigError(f"ring_radii: need 0 < rim < outer, got {rim}, {outer}")
+    inner = rim - graded_axis(rim, h_rim, fine, growth)[::-1]
+    outside = rim + graded_axis(outer - rim, h_rim, fine, growth)
+    return np.concatenate([inner, outside[1:]])
+
+
+def ringed_gel_cylinder(
+    outer_radius: float, thickness: float, rim: float, h_rim: float, fine: float, growth: float = 1.3,
+    aspect: float = 4.0, min_segments: int = 6,
+) -> TetMesh:
+    """A gel cylinder ``r <= outer_radius``, ``-thickness <= z <= 0`` whose node rings follow a circle.
+
+    A flat punch's contact edge is a circle of radius ``rim`` where the pressure has an inverse
+    square-root singularity (Sneddon 1965): a Cartesian grid cannot follow it (the contact set is a
+    staircase and its effective radius grows by about half a cell). Here the top face is a triangulation
+    of concentric node rings (:func:`ring_radii`: one ring on ``rim``, spacing ``h_rim`` at it, geometric
+    away from it), ``ceil(2 pi r / (aspect s))`` nodes on a ring of radial spacing ``s`` (at least
+    ``min_segments``; the singular field is axisymmetric, so the tangential spacing may exceed the radial
+    one by ``aspect``). The triangulation is Delaunay, which keeps the triangles' angles away from 180
+    degrees (rings zipped chord by chord at aspect 8 pressed 15 % harder), so the rim ring's chords need
+    not be edges: :func:`punch_face` takes the triangles within the rim. The surface is extruded along -z
+    through layers graded from ``h_rim`` at the top (:func:`graded_axis` with the same ``fine`` and
+    ``growth``), and each triangular prism is split into 3 tets by the global vertex order (the diagonal
+    of a side face joins its lower-index bottom vertex to its higher-index top vertex, so neighbouring
+    prisms share their faces' diagonals).
+
+    Args:
+        outer_radius: cylinder radius, m.
+        thickness: cylinder height, m (the bottom ``z = -thickness`` is the face to clamp).
+        rim: radius of the ring to resolve, m.
+        h_rim: ring and layer spacing at the rim and the top, m.
+        fine: half width of the band about ``rim`` (and depth of the top layer) at spacing ``h_rim``, m.
+        growth: spacing ratio outside the band.
+        aspect: largest tangential / radial spacing on a ring.
+        min_segments: fewest nodes on a ring (the outer rings' tangential resolution; a punch's force at
+            20 a against 48: +3.6 % with 6, +0.9 % with 12, +0.4 % with 24).
+
+    Returns:
+        :class:`TetMesh` (positively oriented tets).
+    """
+    radii = ring_radii(rim, outer_radius, h_rim, fine, growth)
+    spacing = np.gradient(radii)
+    pts = [np.zeros((1, 2))]
+    for k in range(1, len(radii)):
+        n = max(min_segments, int(np.ceil(2.0 * np.pi * radii[k] / (aspect * spacing[k]))))
+        phi = 2.0 * np.pi * (np.arange(n) + 0.5 * (k % 2)) / n
+        pts.append(radii[k] * np.stack([np.cos(phi), np.sin(phi)], axis=1))
+    xy = np.concatenate(pts)
+    tri = np.sort(Delaunay(xy).simplices.astype(np.int64), axis=1)
+    e1, e2 = xy[tri[:, 1]] - xy[tri[:, 0]], xy[tri[:, 2]] - xy[tri[:, 0]]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    tri = tri[np.abs(area) > 1e-12 * np.max(np.abs(area))]
+    z = -graded_axis(thickness, h_rim, fine, growth)
+    m = len(xy)
+    x = np.concatenate([np.column_stack([xy, np.full(m, zk)]) for zk in z])
+    tets = []
+    for layer in range(len(z) - 1):
+        i, j, k = (tri + layer * m).T  # i < j < k, layer "layer" at the top
+        ip, jp, kp = i + m, j + m, k + m
+        tets += [np.stack([i, j, k, kp], 1), np.stack([i, j, jp, kp], 1), np.stack([i, ip, jp, kp], 1)]
+    tets = np.concatenate(tets)
+    e = x[tets[:, 1:]] - x[tets[:, :1]]
+    negative = np.einsum("ij,ij->i", np.cross(e[:, 0], e[:, 1]), e[:, 2]) < 0
+    tets[negative] = tets[negative][:, [0, 2, 1, 3]]
+    return TetMesh(x, tets)
+
+
+def _face_triangles(gel: TetMesh, rim: float) -> np.ndarray:
+    """The gel's top-face triangles (gel vertex indices, ``(k, 3)``) with every corner within ``rim``."""
+    tris = tet_boundary_triangles(gel.tets, gel.x)
+    x = np.asarray(gel.x, dtype=float)
+    top = np.isclose(x[:, 2], x[:, 2].max(), rtol=0.0, atol=1e-9 * np.ptp(x[:, 2]))
+    inside = top & (np.hypot(x[:, 0], x[:, 1]) <= rim * (1.0 + 1e-9))
+    face = tris[np.all(inside[tris], axis=1)]
+    if face.shape[0] == 0:
+        raise MeshError(f"punch_face: no top-face triangle of the gel lies within r = {rim} m")
+    return face
+
+
+def punch_face_vertices(gel: TetMesh, rim: float) -> np.ndarray:
+    """Sorted gel vertex indices ``(k,)`` that a :func:`punch_face` of radius ``rim`` touches: the corners of
+    the gel's top-face triangles within ``rim`` (a vertex with ``r <= rim`` that is no such triangle's corner
+    is not touched)."""
+    return np.unique(_face_triangles(gel, rim))
+
+
+def punch_face(gel: TetMesh, rim: float, clearance: float) -> TriMesh:
+    """The face of a rigid flat punch of radius ``rim`` triangulated as the gel's top face under it.
+
+    The gel's top-face triangles (z = the mesh's maximum) whose corners all lie within ``rim`` (the rim
+    ring of :func:`ringed_gel_cylinder` included), their corners moved radially out by ``clearance`` and
+    put in the plane z = 0, normals down (-z). The face's edges are then parallel to the gel's (the
+    contact's edge-edge pairs leave near-parallel pairs out) and no gel edge crosses the face's outline,
+    so the contact set is exactly those triangles' vertices (:func:`punch_face_vertices`): the discrete
+    punch problem that a linear-elastic solver can state on the same mesh. A face that is not the gel's
+    own triangulation (a fan through the same rim vertices) has rim chords that the gel's edges joining
+    the rings either side of the rim cross; the edge-edge contact holds those crossings at the face (a
+    rigid rim on a piecewise-linear surface), which pulls the next ring down: 10 % more force on a
+    ``ringed_gel_cylinder`` at 0.16 a rim spacing (session 51, docs/known_answers.md).
+
+    Args:
+        gel: gel mesh with a node ring on ``r = rim`` in its top face (m).
+        rim: punch radius, m.
+        clearance: radial offset of the face's rim beyond the gel's ring, m (small against the ring
+            spacing, larger than the ring's inward displacement under the punch: about 1 % of it).
+
+    Returns:
+        :class:`TriMesh` (m).
+
+    Raises:
+        MeshError: no top-face triangle within ``rim``.
+    """
+    face = _face_triangles(gel, rim)
+    x = np.asarray(gel.x, dtype=float)
+    used, compact = np.unique(face, return_inverse=True)
+    tri = compact.reshape(face.shape).astype(np.int64)
+    fx = x[used].copy()
+    fx[:, :2] *= 1.0 + clearance / rim
+    fx[:, 2] = 0.0
+    normal_z = np.cross(fx[tri[:, 1]] - fx[tri[:, 0]], fx[tri[:, 2]] - fx[tri[:, 0]])[:, 2]
+    tri[normal_z > 0] = tri[normal_z > 0][:, [0, 2, 1]]
+    return TriMesh(fx, tri)
+
+
 def sphere_cap(radius: float, cap_radius: float, h: float) -> TriMesh:
     """Triangulated lower cap of a sphere whose lowest point is the origin.
 

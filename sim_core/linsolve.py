@@ -526,8 +526,9 @@ class ScipySymmetric:
 
 def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:
     """Symmetric solver by name: ``"pardiso"`` (:class:`PardisoCholesky`, SciPy when pypardiso is
-    unavailable), ``"scipy"`` (:class:`ScipySymmetric`) or ``"pcg"`` (the block-Jacobi conjugate
-    gradient in Taichi, :class:`sim_core.ti_kernels.pcg.BatchedPCG`; Taichi must be initialised).
+    unavailable), ``"scipy"`` (:class:`ScipySymmetric`), ``"pcg"`` (the block-Jacobi conjugate
+    gradient in Taichi, :class:`sim_core.ti_kernels.pcg.BatchedPCG`; Taichi must be initialised) or ``"envelope"``
+    (the envelope Cholesky in Taichi, :class:`sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`).
 
     Raises:
         ConfigError: unknown name.
@@ -543,17 +544,21 @@ def make_symmetric_solver(name: str = "pardiso") -> SymmetricSolver:
         from sim_core.ti_kernels.pcg import BatchedPCG  # optional heavy dependency: Taichi
 
         return BatchedPCG()
-    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso', 'scipy' or 'pcg'")
+    if name == "envelope":
+        from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope  # optional heavy dependency: Taichi
+
+        return BatchedEnvelope()
+    raise ConfigError(f"unknown linear solver {name!r}; use 'pardiso', 'scipy', 'pcg' or 'envelope'")
 
 
 def make_linear_solver(name: str = "pardiso") -> LinearSolver:
     """Create a solver by name: ``"pardiso"`` (falls back to SciPy if unavailable) or ``"scipy"``;
-    ``"pcg"`` (a configuration whose Newton systems take the conjugate gradient) gets PARDISO's LU.
+    ``"pcg"`` and ``"envelope"`` (configurations whose Newton systems take a batched Taichi solver) get PARDISO's LU.
 
     Raises:
         ConfigError: unknown name.
     """
-    if name in ("pardiso", "pcg"):
+    if name in ("pardiso", "pcg", "envelope"):
         try:
             return PardisoSolver()
         except (ImportError, OSError, AttributeError):

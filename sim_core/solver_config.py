@@ -47,7 +47,8 @@ class SolverConfig:
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
         linear_solver: "pardiso" or "scipy"; in a lockstep batch also "pcg" (the batched conjugate
             gradient on the Taichi device, :mod:`sim_core.ti_kernels.pcg`; a lockstep batch on
-            ``taichi-cuda`` takes it for "pardiso").
+            ``taichi-cuda`` takes it for "pardiso") and "envelope" (each copy's system solved directly on the
+            device by the envelope Cholesky, :mod:`sim_core.ti_kernels.envelope_cholesky`; ``envelope_precision``).
         backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
             the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
             fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
@@ -149,6 +150,9 @@ class SolverConfig:
             far above float32's rounding, so a solve meets that tolerance as in ``"double"`` and a lockstep batch's
             copies give their separate runs' states (tests: ``tests/sim_core/ti_kernels/test_pcg.py``). Other
             solvers ignore it.
+        envelope_precision: the factors of a lockstep batch's envelope Cholesky (``linear_solver="envelope"``):
+            ``"double"`` (default) float64; ``"mixed"`` float32, each solve refined twice in float64 against the
+            float64 operator. Other solvers ignore it.
     """
 
     tol_velocity: float = 1e-4
@@ -175,11 +179,13 @@ class SolverConfig:
     sleep_velocity: float = 1e-7
     carried_start: bool = False
     cg_precision: str = "mixed"
+    envelope_precision: str = "double"
 
     def __post_init__(self) -> None:
         check_backend(self.backend, "solver backend")
-        if self.linear_solver == "pcg" and self.backend == "numpy":
-            raise ConfigError("solver linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not 'numpy'")
+        if self.linear_solver in ("pcg", "envelope") and self.backend == "numpy":
+            raise ConfigError(f"solver linear_solver {self.linear_solver!r} runs in Taichi: it needs a Taichi backend, "
+                              f"not 'numpy'")
         if self.tol_velocity <= 0 or self.max_iterations < 1:
             raise ConfigError("solver tol_velocity must be > 0 and max_iterations >= 1")
         if self.stale_side_backtracks < 1:
@@ -201,5 +207,8 @@ class SolverConfig:
             raise ConfigError("solver sleeping is not available with lockstep (a lockstep batch solves every copy's bodies)")
         if self.cg_precision not in CG_PRECISIONS:
             raise ConfigError(f"solver cg_precision must be {'|'.join(CG_PRECISIONS)}, got {self.cg_precision!r}")
+        if self.envelope_precision not in CG_PRECISIONS:
+            raise ConfigError(f"solver envelope_precision must be {'|'.join(CG_PRECISIONS)}, "
+                              f"got {self.envelope_precision!r}")
         if self.dt_halvings_on_failure < 0:
             raise ConfigError(f"solver dt_halvings_on_failure must be >= 0, got {self.dt_halvings_on_failure}")

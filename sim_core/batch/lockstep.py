@@ -137,7 +137,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
             ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
             (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix, each copy solved to
-            the relative residual :data:`LOCKSTEP_CG_RTOL`); else the named direct solver on the stacked matrix.
+            the relative residual :data:`LOCKSTEP_CG_RTOL`); ``"envelope"``, each copy's system solved directly on the
+            device (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`, in the CG's place: the same
+            operator, the same per-copy tests); else the named direct solver on the stacked matrix.
 
     Raises:
         ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
@@ -166,6 +168,15 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             segments[scene.index] = np.arange(scene.copies)[:, None]
             self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
                                                        bands=sheet_band_dofs(scene), precision=config.cg_precision)
+            self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
+        elif config.linear_solver == "envelope":  # (SolverConfig: a Taichi backend)
+            from sim_core.ti_kernels.block_projection import BlockRowsProjector
+            from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+            segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+            segments[scene.index] = np.arange(scene.copies)[:, None]
+            self.pcg = self.linear_solver = BatchedEnvelope(np.repeat(segments, 3),
+                                                            precision=config.envelope_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
         self.scene = scene
         self._boundary = StackedBoundary(scene.model, scene.copies, scene.effector_names)

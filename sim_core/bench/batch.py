@@ -10,7 +10,9 @@ Per size: ``scene_steps_per_s`` (steps of all copies / wall seconds of the batch
 step's set-up included), ``steady_scene_steps_per_s`` (the same over the steps after the first: the rate a
 long rollout approaches once the first step has built the batch's static pattern, fused binds and first
 contact search; None with one step) and ``first_step_s``, ``steps_per_s_per_copy``, the mean Newton iterations,
-failed copies, ``rss_per_copy_mib`` (growth of
+failed copies, with a lockstep batch's device solver its name (``device_solver``: ``pcg``, ``envelope``) and its
+``linear_iterations_per_step`` (CG iterations, or an envelope solve's one plus its refinements, summed over the
+step's solves) and ``factorizations_per_step``, ``rss_per_copy_mib`` (growth of
 the process's resident memory from before the batch was built to after its steps, divided by ``B``)
 and, on CUDA, ``gpu_mib_per_copy`` (growth of this process's GPU memory as ``nvidia-smi`` reports it,
 divided by ``B``; Taichi's preallocated memory pool is in the baseline, so this counts only what
@@ -66,14 +68,13 @@ def _forming_scene() -> Path:
 class _FormingRun:
     """``B`` copies of the Forming benchmark scene on one backend, each on its scaled trajectory."""
 
-    def __init__(self, B: int, steps: int, backend: str, lockstep: bool = False) -> None:
+    def __init__(self, B: int, steps: int, backend: str, lockstep: bool = False, linear_solver: str | None = None) -> None:
         from sim_core.batch.simulation import BatchedSimulation
         from sim_core.scenes.task_scene import load_task_scene, task_initial_state
-        from sim_core.solver_config import SolverConfig
         from sim_core.tasks.trajectories import forming_benchmark_offsets, pose_targets
 
         model = load_task_scene(_forming_scene())
-        self.batch = BatchedSimulation.from_model(model, B, solver_config=SolverConfig(backend=backend, lockstep=lockstep),
+        self.batch = BatchedSimulation.from_model(model, B, solver_config=_config(backend, lockstep, linear_solver),
                                                   state=task_initial_state(model))
         self.effector = next(iter(model.effectors))
         pose0 = model.effectors[self.effector].initial_pose
@@ -100,9 +101,9 @@ class _FormingRun:
 class _TaskRun:
     """A population of ``B`` perturbed reference trajectories of a task (:class:`PopulationRollout`)."""
 
-    def __init__(self, name: str, B: int, steps: int, backend: str, lockstep: bool = False, seed: int = 0) -> None:
+    def __init__(self, name: str, B: int, steps: int, backend: str, lockstep: bool = False, seed: int = 0,
+                 linear_solver: str | None = None) -> None:
         from sim_core.errors import ConfigError
-        from sim_core.solver_config import SolverConfig
         from sim_core.tasks.registry import load_task
         from sim_core.tasks.rollout import PopulationRollout
 
@@ -115,7 +116,7 @@ class _TaskRun:
         actions = [ref] + [np.clip(ref + rng.uniform(-1.0, 1.0, ref.shape) * span, task.action_low, task.action_high)
                            for _ in range(B - 1)]
         self.population = PopulationRollout(task, actions, task.true_parameters or None, backend=backend,
-                                            solver_config=SolverConfig(backend=backend, lockstep=lockstep))
+                                            solver_config=_config(backend, lockstep, linear_solver))
         self.batch = self.population.batch
 
     def run(self) -> tuple[int, list[int], int, list[tuple[int, float]]]:
@@ -134,14 +135,33 @@ class _TaskRun:
                 [(int(c), float(w)) for _, (c, w) in sorted(per_step.items())])
 
 
-def _make_run(scene: str, B: int, steps: int, backend: str, lockstep: bool):
+def _config(backend: str, lockstep: bool, linear_solver: str | None):
+    """The copies' :class:`~sim_core.solver_config.SolverConfig`: ``linear_solver`` where given, else the default."""
+    from sim_core.solver_config import SolverConfig
+
+    extra = {} if linear_solver is None else {"linear_solver": linear_solver}
+    return SolverConfig(backend=backend, lockstep=lockstep, **extra)
+
+
+def _make_run(scene: str, B: int, steps: int, backend: str, lockstep: bool, linear_solver: str | None = None):
     if scene == "forming":
-        return _FormingRun(B, steps, backend, lockstep)
-    return _TaskRun(scene, B, steps, backend, lockstep)
+        return _FormingRun(B, steps, backend, lockstep, linear_solver)
+    return _TaskRun(scene, B, steps, backend, lockstep, linear_solver=linear_solver)
+
+
+def _solver_counts(run) -> tuple[str | None, int, int]:
+    """``(name, total linear iterations, factorisations)`` of a lockstep batch's device solver (``(None, 0, 0)``
+    without one)."""
+    engine = getattr(run.batch, "lockstep", None)
+    solver = None if engine is None else engine.solver.pcg
+    if solver is None:
+        return None, 0, 0
+    return solver.name, int(solver.total_iterations), int(solver.factorizations)
 
 
 def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_row=None, lockstep: bool = False,
-                max_size: int | None = None, reserve_fraction: float = 0.2) -> list[dict]:
+                max_size: int | None = None, reserve_fraction: float = 0.2,
+                linear_solver: str | None = None) -> list[dict]:
     """Time batches of each size in ``sizes`` (one after the other, each built, stepped and dropped).
 
     Args:
@@ -156,6 +176,8 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
             when it is stopped), or None.
         lockstep: step the copies together (``SolverConfig.lockstep``, :mod:`sim_core.batch.lockstep`)
             instead of one after another.
+        linear_solver: ``SolverConfig.linear_solver`` of the copies (None: its default; a lockstep batch on CUDA
+            then takes the batched CG), e.g. ``"envelope"``.
 
     Returns:
         one record per size (keys in the module docstring, plus ``B``, ``steps``, ``scene``, ``arch``,
@@ -176,7 +198,7 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
         raise ConfigError(f"--sizes must be integers >= 1 or auto, got {sizes}")
     backend = resolve_backend(ARCH_BACKENDS[arch])
     t0 = time.perf_counter()
-    warm = _make_run(scene, 1, min(2, steps), backend, lockstep)  # JIT of every kernel the steps call
+    warm = _make_run(scene, 1, min(2, steps), backend, lockstep, linear_solver)  # JIT of every kernel the steps call
     warm.run()
     sim0 = warm.batch.sims[0]
     if backend != "numpy":  # the projected-Hessian kernels too, which the short warm-up may not reach
@@ -191,7 +213,7 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
         from sim_core.batch.sizing import choose_batch_size, measure_per_copy, resources_of
 
         def probe(B: int):
-            run = _make_run(scene, B, steps, backend, lockstep)
+            run = _make_run(scene, B, steps, backend, lockstep, linear_solver)
             run.run()
             return run
 
@@ -203,11 +225,13 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
         gc.collect()
         rss0, gpu0 = current_rss_mib(), gpu_memory_mib()
         t0 = time.perf_counter()
-        run = _make_run(scene, int(B), steps, backend, lockstep)
+        run = _make_run(scene, int(B), steps, backend, lockstep, linear_solver)
         build_s = time.perf_counter() - t0
         t0 = time.perf_counter()
+        solver_name, linear0, factorizations0 = _solver_counts(run)
         done, iterations, failed, per_step = run.run()
         wall = time.perf_counter() - t0
+        _, linear1, factorizations1 = _solver_counts(run)
         later = per_step[1:]
         later_wall = sum(w for _, w in later)
         rss1, gpu1 = current_rss_mib(), gpu_memory_mib()
@@ -220,6 +244,10 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
             "first_step_s": per_step[0][1] if per_step else None,
             "steps_per_s_per_copy": done / wall / B if wall > 0 else 0.0,
             "newton_iters_mean": float(np.mean(iterations)) if iterations else 0.0, "failed_copies": failed,
+            "device_solver": solver_name,
+            "linear_iterations_per_step": (linear1 - linear0) / max(len(per_step), 1) if solver_name else None,
+            "factorizations_per_step": (factorizations1 - factorizations0) / max(len(per_step), 1) if solver_name
+            else None,
             "rss_per_copy_mib": (rss1 - rss0) / B,
             "gpu_mib_per_copy": None if gpu0 is None or gpu1 is None else (gpu1 - gpu0) / B,
             "gpu_mib_process": gpu1, "jit_s": jit_s if not out else 0.0,
@@ -251,6 +279,9 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON line per size")
     p.add_argument("--lockstep", action="store_true",
                    help="step the copies together: one Newton iteration for all (SolverConfig.lockstep)")
+    p.add_argument("--linear-solver", choices=("pardiso", "scipy", "pcg", "envelope"),
+                   help="the copies' linear solver (default: SolverConfig's; a lockstep batch on cuda takes the batched "
+                        "CG): envelope, each copy's system solved directly on the device (a Taichi arch)")
     ns = p.parse_args(argv)
     if ns.sizes == ["auto"]:
         sizes: list[int] | str = "auto"
@@ -287,7 +318,7 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
 
     try:
         rows = bench_batch(ns.scene, sizes, ns.steps, ns.arch, on_row=show, lockstep=ns.lockstep,
-                           max_size=ns.max_size, reserve_fraction=ns.reserve)
+                           max_size=ns.max_size, reserve_fraction=ns.reserve, linear_solver=ns.linear_solver)
     except ConfigError as err:
         print(f"thinshell bench batch: {err}", file=sys.stderr)
         return 2

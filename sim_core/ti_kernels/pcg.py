@@ -465,6 +465,7 @@ class BatchedPCG:
         detects_indefinite: False (the Newton solver then assembles the projected Hessian).
         factorizations: :meth:`factorize` calls.
         iterations: CG iterations of the last solve (of the copy that ran the most).
+        total_iterations: :attr:`iterations` summed over every solve so far.
         indefinite: copies whose matrix showed ``p.Ap <= 0`` in the last solve, shape ``(B,)`` bool.
         unconverged: copies still running after ``max_iterations``, shape ``(B,)`` bool.
         bands: the band blocks on the device (:class:`~sim_core.ti_kernels.band_cholesky.BandBlocks`, made at the
@@ -487,6 +488,7 @@ class BatchedPCG:
         self.max_iterations = int(max_iterations)
         self.factorizations = 0
         self.iterations = 0
+        self.total_iterations = 0
         self._segments = None if segments is None else np.ascontiguousarray(segments, dtype=np.int32)
         self._arrays: dict[str, object] = {}
         self._uploaded: dict[str, np.ndarray] = {}  # name -> the host array last uploaded there
@@ -743,6 +745,7 @@ class BatchedPCG:
                 break
             batch = 1
         self.iterations = int(_copy_out(done).max())
+        self.total_iterations += self.iterations
         self.indefinite = _copy_out(bad).astype(bool)
         self.unconverged = _copy_out(active).astype(bool)
 

@@ -8,9 +8,8 @@ at small strain (depth / contact radius <= 0.14):
   (Biophys. J. 82, 2798-2810, 2002, eq. 11-13; :func:`sim_core.indentation.bonded_layer_sphere_factor`).
 - **Flat punch, Sneddon.** ``F = 2 a E* d`` (Sneddon 1965; Johnson eq. 3.38) times the first-order
   bonded-layer factor ``1 - 2 alpha_0 / pi (a / h)`` (:func:`sim_core.indentation.bonded_layer_punch_factor`):
-  only the formulas are checked here. A meshed flat disc on the structured tet block reads 1.11 of it at
-  a / h = 5 (16 mm block): the punch's rim on a grid that does not follow it is not resolved on a CI mesh
-  (docs/known_answers.md, "not done").
+  only the formulas are checked here; the punch itself is :mod:`tests.sim_core.test_known_answers_flat_punch`
+  (a gel whose node rings follow the rim: a structured grid read 1.11 of it at a / h = 5).
 
 The 3 % target needs a / h >= 5-7: on the 30 mm block at h 0.1 mm (85.7k DoF, 180 s) the sphere's
 F / (F_Hertz x layer factor) is 1.022 / 1.019; in CI the 8 mm block at h 0.12 mm gives 1.036 / 1.030 and

@@ -20,6 +20,7 @@ from tests.support.batch_copies import MOTIONS, PARAMS, STEPS, control, pad_mode
 
 LOCKSTEP = SolverConfig(lockstep=True)
 LOCKSTEP_CG = SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="pcg")  # the GPU's: device vectors
+LOCKSTEP_ENVELOPE = SolverConfig(lockstep=True, backend="taichi-cpu", linear_solver="envelope")  # direct, on the device
 TOL = SolverConfig().tol_velocity * 0.005  # the Newton tolerance as a displacement per 5 ms step, m
 
 
@@ -43,7 +44,7 @@ def _run(batch, steps=STEPS):
     return per_step, results
 
 
-@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["direct", "device-cg", "envelope"])
 def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, config):
     batch = _lockstep_batch(model, config)
     assert batch.lockstep is not None
@@ -131,7 +132,7 @@ def test_the_device_contact_force_of_a_lockstep_step_is_the_host_sum_bit_for_bit
     assert all(first and mixed for first, mixed, _ in checked) and any(nonzero for *_, nonzero in checked)
 
 
-@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["direct", "device-cg", "envelope"])
 def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model, config):
     batch = _lockstep_batch(model, config)
     sheet = model.bodies["sheet"].vertices
@@ -159,7 +160,7 @@ def test_a_lockstep_copy_that_diverges_is_reported_and_the_others_finish(model, 
     assert list(batch.active) == [True, True, True] and batch.states[1].step_index == 0
 
 
-@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG], ids=["direct", "device-cg"])
+@pytest.mark.parametrize("config", [LOCKSTEP, LOCKSTEP_CG, LOCKSTEP_ENVELOPE], ids=["direct", "device-cg", "envelope"])
 def test_a_copy_stops_by_the_force_test_where_its_gradient_is_below_tol_force(model, config):
     """The per-copy stopping tests include the force test: with ``tol_force`` above every copy's largest gradient
     entry each copy stops at its first iteration by "force" (its residual far above ``tol_velocity``), as its separate

@@ -1,0 +1,113 @@
+"""The envelope Cholesky of each copy (``linear_solver="envelope"``) against the lockstep's batched CG on one real
+Newton matrix: ms a factorisation and a solve, threads a copy, float64 and float32 factors, the accuracy.
+
+Usage: ``python benchmarks/bench_envelope.py --arch cuda --B 1024 --lanes 1,32,64,128 --repeat 3``. Builds ``B``
+lockstep Forming copies on the batched CG (``parts_lockstep.third_step``: two steps taken, the third set up), takes
+the Newton matrix at the third step's first iterate (projected by ``--projection``) and its right-hand side (the
+negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
+factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
+envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
+copy in float64 (each ``--schedules``: how a copy's threads share a column's update) and, at the first lanes,
+float32 factors with two refinements: medians of ``--repeat`` (each ended by
+a synchronisation) of the factorisation and the solve, the envelope's entries and device MiB a copy, the copies
+marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arch", default="cpu")
+    ap.add_argument("--B", type=int, default=4)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--projection", default="clamp", help="the contact blocks' projection: clamp or none")
+    ap.add_argument("--lanes", default="1", help="threads a copy, comma-separated (1: one thread a copy)")
+    ap.add_argument("--schedules", default="pairs,rows", help="how a copy's threads share a column (comma-separated)")
+    ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
+                    help="also float32 factors with two refinements (at the first --lanes)")
+    args = ap.parse_args()
+    from parts_lockstep import third_step  # (benchmarks/, the script's folder)
+
+    from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
+    from sim_core.batch.sheet_bands import sheet_band_dofs
+    from sim_core.step_info import StepInfo
+    from sim_core.ti_backend import init_backend, ti
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+    from sim_core.ti_kernels.pcg import BatchedPCG
+
+    init_backend(args.arch)
+    t0 = time.perf_counter()
+    solver, step, x = third_step(args.B, args.arch)
+    print(f"set-up {time.perf_counter() - t0:.1f} s", flush=True)
+    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
+    operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
+    scene = solver.scene
+    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+    segments[scene.index] = np.arange(scene.copies)[:, None]
+    dof_copy = np.repeat(segments, 3)
+    g = solver._stacked_gradient(step, solver._vectors.start(x), StepInfo())[2]
+    g = g if isinstance(g, np.ndarray) else g.to_numpy()
+    b = -np.asarray(g, dtype=np.float64).reshape(-1) * step.free
+    b_norm = np.sqrt(np.bincount(dof_copy, weights=b * b))
+
+    def timed(fn) -> float:
+        times = []
+        for _ in range(args.repeat):
+            ti.sync()
+            t = time.perf_counter()
+            fn()
+            ti.sync()
+            times.append(time.perf_counter() - t)
+        return 1e3 * float(np.median(times))
+
+    reference = BatchedPCG(dof_copy, rtol=1e-10, precision="double")
+    reference.factorize(*operator)
+
+    def residual(xs: np.ndarray) -> float:
+        r = np.sqrt(np.bincount(dof_copy, weights=(reference.matvec(xs) - b) ** 2)) / np.maximum(b_norm, 1e-300)
+        return float(r[b_norm > 0].max())
+
+    def report(record: dict) -> None:
+        print(json.dumps({"bench": "envelope", "arch": args.arch, "B": args.B, **record}), flush=True)
+
+    cg = BatchedPCG(dof_copy, rtol=LOCKSTEP_CG_RTOL, bands=sheet_band_dofs(scene), precision="mixed")
+    cg.factorize(*operator)
+    cg.solve(b)  # compilation
+    report({"solver": "pcg", "factorize_ms": timed(lambda: cg.factorize(*operator)),
+            "solve_ms": timed(lambda: cg.solve(b)), "iterations": cg.iterations, "residual": residual(cg.solve(b))})
+    lanes_list = [int(v) for v in args.lanes.split(",")]
+    schedules = args.schedules.split(",")
+    variants = [(lanes, "double", schedule) for schedule in schedules for lanes in lanes_list] + (
+        [(lanes_list[0], "mixed", schedules[0])] if args.mixed else [])
+    for lanes, precision, schedule in variants:
+        if lanes == 1 and schedule != schedules[0]:
+            continue  # (one thread a copy: the same work either way)
+        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule)
+        t = time.perf_counter()
+        env.factorize(*operator)  # compilation, the order and the envelope
+        xs = env.solve(b)
+        first_s = time.perf_counter() - t
+        factor_ms = timed(lambda: env.factorize(*operator))
+        solve_ms = timed(lambda: env.solve(b))
+        xs = env.solve(b)
+        bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
+        report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
+                "factorize_ms": factor_ms,
+                "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,
+                "widest_row": int((np.arange(env._m) - env._first).max()) + 1, "widenings": env.widenings,
+                "envelope_mib_a_copy": bytes_a_copy / 2 ** 20, "indefinite": int(env.indefinite.sum()),
+                "residual": residual(xs), "iterations": env.iterations})
+        del env
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

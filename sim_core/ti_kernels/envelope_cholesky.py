@@ -1,0 +1,488 @@
+"""A direct solve of the lockstep's block-diagonal Newton system on the device: each copy's whole system (sheet, gel,
+contact and friction couplings) factorised by the envelope (profile) Cholesky in a reverse Cuthill-McKee order, one
+copy a thread group (issue 52's design with a floor under the goal, docs/gpu_roofline.md).
+
+:class:`BatchedEnvelope` is a :class:`~sim_core.ti_kernels.pcg.BatchedPCG` whose solve is exact: the same
+``factorize`` contract and operator ``A = U + U^T - diag(U) + sum_t F E_t F`` (the assembled upper triangle ``U``,
+the contact and friction vertex blocks ``E_t``, the free mask ``F``), kept on the device by the CG's own
+``factorize``; then, per copy, ``A_c`` gathered into its lower envelope and factorised, and each solve a forward and
+a back substitution. Every copy has the same number of DoFs; all copies share one layout.
+
+Order and envelope. The vertices of every copy are ordered by the reverse Cuthill-McKee order (Cuthill & McKee 1969;
+George & Liu, Computer Solution of Large Sparse Positive Definite Systems, 1981, Sec. 4.3) of the union over copies
+of their vertex graphs of ``U``'s pattern (a vertex's three DoFs consecutive), made again only when ``U``'s index
+arrays are other objects than at the last call. Row ``i`` of the envelope holds columns ``first[i] .. i``, ``first[i]``
+the smallest position ``i`` is coupled to, over every copy: the pattern's couplings, and the vertex blocks' of every
+factorisation so far (a device pass marks a block outside the envelope, read with the next solve's flags, one wait
+a Newton iteration; the host then widens the envelope, factorises and solves again, and the next factorisations keep
+it: the envelope only grows). The Cholesky of an envelope matrix fills nothing outside it (George &
+Liu, Ch. 4), so the factor has exactly these entries: 58,017 a Forming copy in the elastic pattern's order, 3.13 M
+multiply-adds a factorisation (``benchmarks/roofline.py``).
+
+Factorisation. Right-looking (outer-product) elimination kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower
+triangular, ``W_jj = d_j`` (the pivots): column ``j``'s pivot ``d_j`` is final after the columns before it, and its
+update ``a_ik -= a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in the envelope's reach of ``j``) writes only columns
+after ``j``, each entry ``(i, k)`` once; so ``lanes`` threads of one copy (one CUDA thread block, a block-level
+synchronisation a column) share a column's entries (the pairs ``j < k <= i`` listed row by row, a lane every
+``lanes``-th: a column's longest row is not one thread's chain), and a copy is ``m`` synchronised passes. On the CPU
+one thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). ``L = W D^-1/2`` is the Cholesky
+factor (Golub & Van Loan, Matrix Computations, 4th ed., Alg. 4.2.2 in outer-product form). A pivot that is not
+positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
+unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
+
+Solve. Forward ``W u = b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front,
+one thread a row); then ``W^T x = D u``, whose right-hand side is the forward pass's final ``b`` (``d_j u_j``),
+backward by rows of ``W`` (``x_j = v_j / d_j``, then ``v_k -= a_jk x_j`` for ``k`` in row ``j``'s envelope). With
+``precision="mixed"`` the envelope is stored and factorised in float32 and each solve is followed by ``refinements``
+steps of iterative refinement in float64 (``x += A^-1 (b - A x)``, the residual by the CG's float64 operator product;
+Golub & Van Loan, Sec. 3.5.3): one "iteration" a solve and one a refinement (:attr:`BatchedPCG.iterations`).
+
+Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
+``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
+position, int32 ``(n,)``, and each ``U`` entry's row, int32 ``(nnz,)`` (its place in the envelope found by the gather,
+so that a widening moves no host array). Forming (``benchmarks/bench_envelope.py``, third step, all 1,698 DoFs of a
+copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in float64.
+"""
+
+import numpy as np
+
+from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
+from sim_core.ti_kernels.precision import VALUES, stored
+
+_F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+_I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+CUDA_LANES = 128
+"""Threads of one copy (one CUDA thread block) in the factorisation and the solves on CUDA."""
+
+
+@ti.func
+def _pivot(value):
+    """A pivot as the elimination uses it: ``value`` where positive, 1 where not (its copy is then reported)."""
+    d = ti.cast(value, ti.f64)
+    if not d > 0.0:
+        d = 1.0
+    return d
+
+
+@ti.kernel
+def _mark_outside(brow: _I32, bcol: _I32, free: _F64, nblocks: ti.i32, pos: _I32, first: _I32, need: _I32,
+                  flags: _I32, m: ti.i32, copies: ti.i32):
+    """``need = first``, then ``need[i] = min(need[i], j)`` and ``flags[copies] = 1`` (else 0) for each vertex blocks'
+    coupling ``(i, j)`` (positions, ``i >= j``, both DoFs free) left of the envelope row ``i`` (``j < first[i]``)."""
+    for i in range(m):
+        need[i] = first[i]
+    for _ in range(1):
+        flags[copies] = 0
+    for t in range(nblocks):
+        for a in ti.static(range(3)):
+            for b in ti.static(range(3)):
+                r = 3 * brow[t] + a
+                c = 3 * bcol[t] + b
+                if free[r] * free[c] != 0.0:
+                    i = ti.max(pos[r], pos[c])
+                    j = ti.min(pos[r], pos[c])
+                    if j < first[i]:
+                        ti.atomic_min(need[i], j)
+                        flags[copies] = 1
+
+
+@ti.kernel
+def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, brow: _I32, bcol: _I32, bval: VALUES,
+              free: _F64, nblocks: ti.i32, pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32,
+              padded: _I32, npadded: ti.i32, size: ti.i32):
+    """The copies' envelopes of ``A``: zeroed, ``U``'s entries (row ``urow[k]``, column ``indices[k]``) at their
+    place, the vertex blocks' entries in the lower triangle of the order added (free DoFs only), 1 on the diagonal of
+    padded rows (``padded``: envelope indices)."""
+    for k in range(total):
+        env[k] = stored(0.0, env)
+    for k in range(nnz):
+        r = urow[k]
+        i = ti.max(pos[r], pos[indices[k]])
+        j = ti.min(pos[r], pos[indices[k]])
+        env[seg[r] * size + off[i] + j - first[i]] = stored(data[k], env)
+    for t in range(nblocks):
+        for a in ti.static(range(3)):
+            for b in ti.static(range(3)):
+                r = 3 * brow[t] + a
+                c = 3 * bcol[t] + b
+                w = free[r] * free[c] * ti.cast(bval[9 * t + 3 * a + b], ti.f64)
+                i = pos[r]
+                j = pos[c]
+                if w != 0.0 and i >= j and j >= first[i]:  # (one outside: the envelope is widened, this done again)
+                    ti.atomic_add(env[seg[r] * size + off[i] + j - first[i]], stored(w, env))
+    for k in range(npadded):
+        env[padded[k]] = stored(1.0, env)
+
+
+@ti.func
+def _pair(t):
+    """The ``t``-th pair ``(p, q)``, ``0 <= q <= p``, of the lower triangle listed row by row (``t = p (p + 1) / 2 +
+    q``)."""
+    p = ti.cast((ti.sqrt(8.0 * ti.cast(t, ti.f64) + 1.0) - 1.0) * 0.5, ti.i32)
+    while (p + 1) * (p + 2) // 2 <= t:
+        p += 1
+    while p * (p + 1) // 2 > t:
+        p -= 1
+    return p, t - p * (p + 1) // 2
+
+
+@ti.func
+def _update(env: ti.template(), off: ti.template(), first: ti.template(), base, i, k, j, d):
+    """``a_ik -= a_ij a_kj / d_j`` in a copy's envelope (``base`` its first entry)."""
+    row = base + off[i] - first[i]
+    a = ti.cast(env[row + j], ti.f64)
+    if a != 0.0:
+        env[row + k] = stored(env[row + k] - a / d * env[base + off[k] - first[k] + j], env)
+
+
+@ti.kernel
+def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32, m: ti.i32,
+            size: ti.i32, copies: ti.i32, lanes: ti.template(), by_rows: ti.template()):
+    """Each copy's envelope eliminated in place into ``W`` (module docstring); ``bad[c] = 1`` where a pivot of copy
+    ``c`` is not positive; copies with ``todo[c] == 0`` skipped. Column ``j``'s front, the rows below it that reach it,
+    is ``frows[fptr[j]:fptr[j + 1]]`` (increasing); ``lanes`` threads a copy (a CUDA block) share the column's update:
+    ``by_rows``, a lane a row of the front (its entries ``k <= i`` in turn), else entry by entry (the pairs ``k <= i``
+    of the front listed row by row, a lane every ``lanes``-th, so that the front's longest row is not one thread's
+    chain)."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        if lane == 0:
+            bad[c] = 0
+        if todo[c] != 0:
+            base = c * size
+            for j in range(m):
+                raw = env[base + off[j] + j - first[j]]
+                d = _pivot(raw)
+                if lane == 0 and not ti.cast(raw, ti.f64) > 0.0:
+                    bad[c] = 1
+                start = fptr[j]
+                front = fptr[j + 1] - start
+                if ti.static(by_rows):
+                    p = lane
+                    while p < front:
+                        i = frows[start + p]
+                        for q in range(p + 1):
+                            _update(env, off, first, base, i, frows[start + q], j, d)
+                        p += lanes
+                else:
+                    p, q = _pair(lane)
+                    while p < front:
+                        _update(env, off, first, base, frows[start + p], frows[start + q], j, d)
+                        q += lanes
+                        while q > p:
+                            p += 1
+                            q -= p
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.kernel
+def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
+                x: _F64,
+                w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+    """``x = A^-1 b`` per copy from the factor ``W`` (forward, then back substitution; module docstring); ``b`` and
+    ``x`` over the stacked DoFs, ``order[c m + i]`` the DoF at position ``i`` of copy ``c`` (-1: padding), the fronts
+    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        base = c * size
+        vb = c * m
+        p = lane
+        while p < m:
+            dof = order[vb + p]
+            w[vb + p] = 0.0
+            if dof >= 0:
+                if todo[c] != 0:
+                    w[vb + p] = b[dof]
+                x[dof] = 0.0
+            p += lanes
+        if ti.static(lanes > 1):
+            ti.simt.block.sync()
+        if todo[c] != 0:
+            for j in range(m):
+                u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
+                e = fptr[j] + lane
+                while e < fptr[j + 1]:
+                    i = frows[e]
+                    w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
+                    e += lanes
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+            for jj in range(m):
+                j = m - 1 - jj
+                fj = first[j]
+                row = base + off[j] - fj
+                xj = w[vb + j] / _pivot(env[row + j])
+                if lane == 0:
+                    dof = order[vb + j]
+                    if dof >= 0:
+                        x[dof] = xj
+                k = fj + lane
+                while k < j:
+                    w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
+                    k += lanes
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.kernel
+def _residual_step(b: _F64, ax: _F64, r: _F64, n: ti.i32):
+    """``r = b - A x``."""
+    for i in range(n):
+        r[i] = b[i] - ax[i]
+
+
+@ti.kernel
+def _add(x: _F64, dx: _F64, n: ti.i32):
+    """``x += dx``."""
+    for i in range(n):
+        x[i] += dx[i]
+
+
+def envelope_order(indptr: np.ndarray, indices: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                        np.ndarray]:
+    """Each copy's DoFs in the reverse Cuthill-McKee order of the union of the copies' vertex graphs of a pattern, and
+    the envelope of that union in it.
+
+    Args:
+        indptr, indices: CSR arrays of a pattern over the stacked DoFs (one triangle or both), ``n + 1`` and ``nnz``.
+        seg: the copy of each DoF, ``(n,)`` int, constant over a vertex's three DoFs; every copy the same count.
+
+    Returns:
+        ``(order, pos, first)``: ``order`` int64 ``(B, m)``, row ``c`` copy ``c``'s DoFs in that order (a vertex's
+        three DoFs consecutive); ``pos`` int64 ``(n,)``, each DoF's position in its copy's row; ``first`` int64
+        ``(m,)``, the first column of each position's envelope row (the vertex graph's: a coupled vertex pair couples
+        its six DoFs, a vertex its three).
+
+    Raises:
+        ValueError: copies with different numbers of DoFs.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    seg = np.asarray(seg, dtype=np.int64)
+    n = seg.size
+    vcopy = seg[::3]
+    counts = np.bincount(vcopy)
+    if counts.size and (counts != counts[0]).any():
+        raise ValueError(f"BatchedEnvelope: copies with different vertex counts {sorted(set(counts.tolist()))}")
+    copies, nv = counts.size, int(counts[0]) if counts.size else 0
+    local = np.empty(n // 3, dtype=np.int64)  # a vertex's index within its copy (vertices in increasing order)
+    by_copy = np.argsort(vcopy, kind="stable")
+    local[by_copy] = np.tile(np.arange(nv), copies)
+    rows = local[np.repeat(np.arange(n // 3, dtype=np.int64), np.diff(np.asarray(indptr)).reshape(-1, 3).sum(1))]
+    cols = local[np.asarray(indices, dtype=np.int64)[: rows.size] // 3]
+    if nv * nv <= 1 << 27:  # the local vertex pairs marked in a dense (nv, nv) mask: no sort of the stacked entries
+        mask = np.zeros((nv, nv), dtype=bool)
+        mask[rows, cols] = True
+        a, c = np.nonzero(mask | mask.T)
+    else:
+        keys = np.unique(rows * nv + cols)
+        a, c = np.concatenate([keys // nv, keys % nv]), np.concatenate([keys % nv, keys // nv])
+    graph = coo_matrix((np.ones(a.size), (a, c)), shape=(nv, nv)).tocsr()
+    vorder = reverse_cuthill_mckee(graph, symmetric_mode=True).astype(np.int64)  # local vertices in order
+    rank = np.empty(nv, dtype=np.int64)
+    rank[vorder] = np.arange(nv)
+    stacked = by_copy.reshape(copies, nv)  # copy c's vertices by local index
+    order = (3 * stacked[:, vorder][:, :, None] + np.arange(3)).reshape(copies, 3 * nv)
+    pos = (3 * rank[local][:, None] + np.arange(3)).reshape(-1)
+    vfirst = np.arange(nv)
+    np.minimum.at(vfirst, np.maximum(rank[a], rank[c]), np.minimum(rank[a], rank[c]))
+    first = np.repeat(3 * vfirst, 3)
+    return order, pos, first
+
+
+def envelope_rows(first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(off, fptr, frows)`` of an envelope with rows ``first[i] .. i``: ``off`` int64 ``(m + 1,)`` each row's start
+    (row ``i``'s entry of column ``j`` at ``off[i] + j - first[i]``; ``off[m]`` the entries); column ``j``'s front, the
+    rows ``i > j`` with ``first[i] <= j``, increasing, is ``frows[fptr[j]:fptr[j + 1]]`` (``fptr`` int64 ``(m + 1,)``,
+    ``frows`` int64 ``(off[m] - m,)``)."""
+    m = first.size
+    widths = np.arange(m) - first  # entries left of the diagonal a row
+    off = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(widths + 1, out=off[1:])
+    rows = np.repeat(np.arange(m, dtype=np.int64), widths)
+    cols = np.repeat(first.astype(np.int64), widths) + (np.arange(rows.size) - np.repeat(off[:-1] - np.arange(m),
+                                                                                         widths))
+    by_column = np.lexsort((rows, cols))
+    fptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cols, minlength=m), out=fptr[1:])
+    return off, fptr, rows[by_column]
+
+
+class BatchedEnvelope(BatchedPCG):
+    """Each copy's Newton system solved directly by the envelope Cholesky on the device (module docstring); Taichi
+    must be initialised.
+
+    Args:
+        segments: the copy of each DoF, shape ``(n,)`` int, ``0..B-1``, constant over a vertex's three DoFs, every copy
+            the same count; None: one copy.
+        precision: ``"double"`` (float64 envelope and factor) or ``"mixed"`` (float32 envelope and factor, float64
+            iterative refinement).
+        refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
+        lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
+        schedule: how a copy's threads share a column's update: ``"pairs"`` (entry by entry) or ``"rows"`` (a thread a
+            row); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
+
+    Raises:
+        ConfigError: an unknown ``precision``.
+
+    Attributes:
+        name: ``"envelope"``.
+        entries: the envelope's entries a copy (0 before the first :meth:`factorize`).
+        widenings: times a factorisation's vertex blocks widened the envelope (found by the solve after it).
+        iterations: solves of the last :meth:`solve` (1, plus its refinements).
+        indefinite: copies whose last factorisation met a pivot that is not positive, ``(B,)`` bool (set by the solve
+            after it).
+        unconverged: all False ``(B,)`` (a direct solve).
+    """
+
+    name = "envelope"
+
+    def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
+                 lanes: int | None = None, schedule: str | None = None) -> None:
+        super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
+        from sim_core.ti_kernels.precision import storage_dtype
+
+        self.envelope_precision = precision
+        self._env_dtype = storage_dtype(precision)
+        self.refinements = int(refinements) if precision != "double" else 0
+        self.lanes = lanes
+        if schedule not in (None, "pairs", "rows"):
+            raise ValueError(f"BatchedEnvelope: schedule must be pairs or rows, got {schedule!r}")
+        self._schedule = schedule
+        self.entries = 0
+        self.widenings = 0
+        self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
+        self._first: np.ndarray | None = None
+        self._todo = np.ones(0, dtype=np.int32)
+        self._nnz = 0
+        self._checked = True
+
+    @property
+    def schedule(self) -> str:
+        """``"pairs"`` or ``"rows"`` (the class docstring)."""
+        if self._schedule is not None:
+            return self._schedule
+        return "pairs" if self._lane_count() > 1 else "rows"
+
+    def _lane_count(self) -> int:
+        if self.lanes is not None:
+            return int(self.lanes)
+        return CUDA_LANES if require_backend("BatchedEnvelope") == "cuda" else 1
+
+    def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies: "np.ndarray | None" = None,
+                  keep_bands: bool = False) -> bool:
+        """:meth:`BatchedPCG.factorize` (the operator on the device), then each copy's envelope Cholesky factor of it
+        (of the copies in ``copies`` only, where given: the others' next solves give 0); ``keep_bands`` is ignored.
+        True; nothing is read back here: the next solve's one read gives :attr:`indefinite` (the copies whose matrix is
+        not positive definite) and whether the vertex blocks fell outside the envelope (then widened, this
+        factorisation and that solve done again)."""
+        super().factorize(upper, blocks, diagonal)
+        if isinstance(upper, tuple):
+            indptr_h, indices_h = upper[0], upper[1]
+        else:
+            indptr_h, indices_h = upper.indptr, upper.indices
+        seg = self._segments if self._segments is not None else np.zeros(self._n, dtype=np.int32)
+        if self._layout is None or self._layout[0] is not indptr_h or self._layout[1] is not indices_h:
+            self._new_layout(indptr_h, indices_h, seg)
+        a = self._arrays
+        B = self._copies
+        flags = self._array("env_flags", B + 1, ti.i32)  # each copy's "not positive definite", then "outside"
+        _mark_outside(a["brow"], a["bcol"], a["free"], self._nblocks, a["env_pos"], a["env_first"],
+                      self._array("env_need", self._m, ti.i32), flags, self._m, B)
+        if copies is None:  # every copy: the same host array each time (uploaded once)
+            if self._todo.shape != (B,) or not self._todo.all():
+                self._todo = np.ones(B, dtype=np.int32)
+        else:
+            self._todo = np.asarray(copies, dtype=np.int32)
+        self._nnz = int(np.asarray(indptr_h)[-1])
+        self._eliminate()
+        self._checked = False  # the "outside" flag is read with the next solve's (one wait for both)
+        self.unconverged = np.zeros(B, dtype=bool)
+        return True
+
+    def _eliminate(self) -> None:
+        """Gather each copy's envelope (of :attr:`_todo`'s copies) and factorise it."""
+        a = self._arrays
+        B, m, size = self._copies, self._m, self.entries
+        env = self._array("env", max(B * size, 1), self._env_dtype)
+        _assemble(a["data"], a["env_urow"], a["indices"], self._nnz, a["brow"], a["bcol"], a["bval"], a["free"],
+                  self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
+                  a["env_padded"], self._npadded, size)
+        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"],
+                self._upload("env_todo", self._todo, ti.i32), a["env_flags"], m, size, B, self._lane_count(),
+                self.schedule == "rows")
+
+    def _new_layout(self, indptr_h: np.ndarray, indices_h: np.ndarray, seg: np.ndarray) -> None:
+        """The order and the envelope of ``U``'s pattern (module docstring), on the device."""
+        order, pos, first = envelope_order(indptr_h, indices_h, seg)
+        self._order = order
+        self._m = order.shape[1]
+        rows = np.repeat(np.arange(self._n, dtype=np.int32), np.diff(np.asarray(indptr_h)))
+        _copy_in(self._array("env_urow", max(rows.size, 1), ti.i32), rows if rows.size else np.zeros(1, np.int32))
+        _copy_in(self._array("env_pos", max(self._n, 1), ti.i32), pos.astype(np.int32))
+        _copy_in(self._array("env_order", max(order.size, 1), ti.i32), order.reshape(-1).astype(np.int32))
+        self._layout = (indptr_h, indices_h)
+        self._set_envelope(first)
+
+    def _set_envelope(self, first: np.ndarray) -> None:
+        """The envelope with rows ``first[i] .. i``: its offsets and reach on the device."""
+        self._first = first.astype(np.int64)
+        off, fptr, frows = envelope_rows(self._first)
+        self.entries = int(off[-1])
+        if self._copies * self.entries >= 2 ** 31:
+            raise ValueError(f"BatchedEnvelope: {self._copies} copies of {self.entries} envelope entries exceed int32 "
+                             f"indices")
+        for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
+            _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
+        padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
+        row = padded % self._m
+        diag = (padded // self._m) * self.entries + off[row] + row - self._first[row]
+        self._npadded = int(diag.size)
+        _copy_in(self._array("env_padded", max(diag.size, 1), ti.i32),
+                 diag.astype(np.int32) if diag.size else np.zeros(1, np.int32))
+
+    def _solve_into(self, b, x) -> None:
+        """``x = A^-1 b`` from the factors, refined in ``"mixed"``."""
+        n = self._n
+        self._substitute_into(b, x)
+        if self.refinements:
+            ax, r, dx = self._array("env_ax", n), self._array("env_r", n), self._array("env_dx", n)
+            for _ in range(self.refinements):
+                _apply(*self._operator(), x, ax, n, self._nblocks)
+                _residual_step(b, ax, r, n)
+                self._substitute_into(r, dx)
+                _add(x, dx, n)
+
+    def _substitute_into(self, b, x) -> None:
+        a = self._arrays
+        _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
+                    a["env_order"], b, x,
+                    self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
+                    self._lane_count())
+
+    def _run(self) -> None:
+        """``x = A^-1 b`` per copy from the ``b`` array into ``x`` (with the refinements in ``"mixed"``); then the
+        flags, one read: where the last factorisation's vertex blocks fell outside the envelope, it is widened, the
+        factorisation and this solve done again; :attr:`indefinite`."""
+        n, B = self._n, self._copies
+        b, x = self._array("b", n), self._array("x", n)
+        self._solve_into(b, x)
+        flags = _copy_out(self._arrays["env_flags"])
+        if not self._checked and flags[B]:
+            self.widenings += 1
+            self._set_envelope(np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64)))
+            self._eliminate()
+            self._solve_into(b, x)
+            flags = _copy_out(self._arrays["env_flags"])
+        self._checked = True
+        self.indefinite = flags[:B].astype(bool)
+        self.iterations = 1 + self.refinements
+        self.total_iterations += self.iterations

@@ -1,0 +1,151 @@
+"""The batched envelope Cholesky (sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope): each copy's block of a
+block-diagonal system solved exactly (against SciPy's sparse solve), with matrix-free vertex blocks outside the
+assembled pattern widening the envelope, an indefinite copy reported, float32 factors refined to float64 accuracy.
+A lockstep batch whose Newton systems it solves gives the separate runs' states, and isolates a diverging copy:
+``tests/sim_core/batch/test_lockstep.py`` (its ``envelope`` cases)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from sim_core.solver_config import SolverConfig
+
+
+def _grid_block(nx: int, ny: int, seed: int, shift: float) -> sp.csr_matrix:
+    """A symmetric positive definite matrix of a ``nx x ny`` vertex grid (3 DoFs a vertex, 3x3 blocks coupling grid
+    neighbours and diagonals), its vertices numbered in one random order for every ``seed`` (so that the order
+    matters; the copies of a lockstep batch share their pattern), its values by ``seed``."""
+    rng = np.random.default_rng(seed)
+    nv = nx * ny
+    ij = np.arange(nv).reshape(nx, ny)
+    pairs = [(ij[:-1, :].ravel(), ij[1:, :].ravel()), (ij[:, :-1].ravel(), ij[:, 1:].ravel()),
+             (ij[:-1, :-1].ravel(), ij[1:, 1:].ravel())]
+    perm = np.random.default_rng(99).permutation(nv)
+    lap = sp.lil_matrix((nv, nv))
+    for a, b in pairs:
+        for u, v in zip(perm[a], perm[b]):
+            w = rng.uniform(0.5, 2.0)
+            lap[u, v] -= w
+            lap[v, u] -= w
+            lap[u, u] += w
+            lap[v, v] += w
+    m3 = rng.normal(size=(3, 3))
+    return (sp.kron(lap.tocsr(), np.eye(3) + 0.2 * (m3 @ m3.T)) + shift * sp.eye(3 * nv)).tocsr()
+
+
+def _upper(A: sp.spmatrix) -> sp.csr_matrix:
+    u = sp.triu(A, format="csr")
+    u.sort_indices()
+    return u
+
+
+@pytest.mark.parametrize("schedule", ["rows", "pairs"])
+def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
+    """Either way of sharing a column's update (one thread a copy here: the entries' order is CUDA's by lane)."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(12, 4, seed, shift) for seed, shift in ((0, 1e-3), (1, 1.0), (2, 10.0))]
+    A = sp.block_diag(blocks, format="csr")
+    m = blocks[0].shape[0]
+    segments = np.repeat(np.arange(3), m)
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    assert solver.schedule == schedule
+    assert solver.factorize(_upper(A))
+    b = np.random.default_rng(5).normal(size=A.shape[0])
+    b[m:2 * m] = 0.0
+    x = solver.solve(b)
+    want = spla.spsolve(A.tocsc(), b)
+    np.testing.assert_allclose(x, want, rtol=0, atol=1e-10 * np.abs(want).max())
+    np.testing.assert_array_equal(x[m:2 * m], 0.0)
+    assert not solver.indefinite.any() and solver.iterations == 1
+    assert solver.entries < m * (m + 1) // 2 / 3  # the envelope of the RCM order, far under the dense triangle
+    # a copy whose block is indefinite is reported; the others are still solved exactly
+    blocks[2] = (blocks[2] - 50.0 * sp.eye(m)).tocsr()
+    solver.factorize(_upper(sp.block_diag(blocks, format="csr")))
+    x = solver.solve(b)
+    assert list(solver.indefinite) == [False, False, True]
+    np.testing.assert_allclose(x[:m], want[:m], rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu):
+    """Contact-like 3x3 blocks between far vertices of a copy (matrix-free in the CG) are factorised exactly: the
+    envelope widens to hold them; the inertia diagonal and the fixed DoFs' 1 are applied on the device; the fixed
+    DoFs' blocks are masked out."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+    from sim_core.energies.base import HessianBlocks
+    from sim_core.ti_kernels.pcg import VertexBlocks
+
+    blocks = [_grid_block(5, 4, seed, 0.0) for seed in (3, 4)]
+    A0 = sp.block_diag(blocks, format="csr")
+    n = A0.shape[0]
+    m = blocks[0].shape[0]
+    segments = np.repeat(np.arange(2), m)
+    rng = np.random.default_rng(7)
+    # two-vertex element blocks (6x6, PSD) between vertices far apart in each copy
+    verts = np.array([[0, 19], [2, 17], [20 + 1, 20 + 18]], dtype=np.int64)
+    vals = []
+    for _ in verts:
+        g = rng.normal(size=(6, 6))
+        vals.append(g @ g.T)
+    vals = np.array(vals)
+    free = np.ones(n)
+    free[3 * 5: 3 * 5 + 3] = 0.0  # vertex 5 of copy 0 fixed
+    upper = _upper(A0)
+    rows = np.repeat(np.arange(n), np.diff(upper.indptr))
+    upper.data[((free[rows] == 0) | (free[upper.indices] == 0)) & (rows != upper.indices)] = 0.0  # as the elastic
+    # pattern of a step, which couples no fixed DoF
+    diag_values = rng.uniform(1.0, 2.0, size=n)
+    diag_slots = np.array([upper.indptr[i] for i in range(n)], dtype=np.int32)  # the diagonal is each row's first
+    assert np.array_equal(upper.indices[diag_slots], np.arange(n))
+    fixed = diag_slots[free == 0.0]
+    # the matrix the CG's operator applies
+    F = sp.diags(free)
+    E = sp.lil_matrix((n, n))
+    for (u, v), blk in zip(verts, vals):
+        idx = np.concatenate([3 * u + np.arange(3), 3 * v + np.arange(3)])
+        E[np.ix_(idx, idx)] = E[np.ix_(idx, idx)].toarray() + blk
+    U = upper.copy()
+    U.data = U.data.copy()
+    U.data[diag_slots] += diag_values
+    U.data[fixed] = 1.0
+    A = (U + U.T - sp.diags(U.diagonal()) + F @ E.tocsr() @ F).tocsc()
+    solver = BatchedEnvelope(segments)
+    vb = VertexBlocks.from_element_blocks([HessianBlocks(verts, vals)], free)
+    solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
+    b = rng.normal(size=n)
+    x = solver.solve(b)
+    assert solver.widenings == 1 and not solver.indefinite.any()  # found with the solve's read, then done again
+    want = spla.spsolve(A, b)
+    np.testing.assert_allclose(x, want, rtol=0, atol=1e-10 * np.abs(want).max())
+    # the same blocks again: no widening
+    solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
+    assert solver.widenings == 1
+    np.testing.assert_allclose(solver.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(6, 5, seed, shift) for seed, shift in ((8, 1e-2), (9, 1.0))]
+    A = sp.block_diag(blocks, format="csr")
+    segments = np.repeat(np.arange(2), blocks[0].shape[0])
+    b = np.random.default_rng(1).normal(size=A.shape[0])
+    want = spla.spsolve(A.tocsc(), b)
+    errors = []
+    for refinements in (0, 3):
+        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements)
+        solver.factorize(_upper(A))
+        errors.append(np.abs(solver.solve(b) - want).max() / np.abs(want).max())
+        assert solver.iterations == 1 + refinements
+    assert 1e-9 < errors[0] < 1e-3  # float32 factors alone: float32's accuracy times the condition
+    assert errors[1] < 1e-12
+
+
+def test_envelope_needs_a_taichi_backend():
+    from sim_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="envelope"):
+        SolverConfig(linear_solver="envelope")
