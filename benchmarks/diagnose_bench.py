@@ -601,7 +601,9 @@ def bench_diagnose_main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--nominal", type=int, default=6, help="nominal recordings")
     ap.add_argument("--effects", nargs="*", default=None, help="restrict to these labels")
-    ap.add_argument("--engine", default="sysid.diagnose.engine:diagnose", help="module:function of the diagnosis")
+    ap.add_argument("--engine", default="sysid.diagnose.cli:diagnose",
+                    help="module:function of the diagnosis (default: thinshell diagnose's pipeline with its defaults; "
+                         "sysid.diagnose.engine:diagnose: the score stage alone, uncalibrated)")
     ap.add_argument("--generate-only", action="store_true", help="write the labelled set, do not diagnose")
     ap.add_argument("--strengths", type=float, nargs="+", default=[1.0, 2.0, 4.0],
                     help="target strengths in noise units (default: 1 2 4)")

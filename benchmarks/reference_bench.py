@@ -1,6 +1,9 @@
 """``python -m benchmarks.diagnose_bench --labelled DIR`` on a reference set: recordings made by another
 engine, labelled in a ``labels.yaml`` (``../shared/data/reference_bags``), diagnosed with the
-signature engine both alone and against a baseline null, leave one out.
+signature stage of ``thinshell diagnose``'s pipeline both alone and against a baseline null, leave one out.
+Each recording's premise (:func:`sysid.diagnose.pipeline.premise`) is reported beside it: a recording for which
+the pipeline would take the score stage (its pose is its command) is logged and marked ``stage: score`` in
+the reports, as its figures here are not the pipeline's.
 
 Alone, each recording is diagnosed with the default thresholds (nothing from the other recordings
 enters its decision). With baselines, each recording's null is calibrated on the set's nominal
@@ -17,6 +20,7 @@ from typing import Any, Callable
 
 import yaml
 
+from sysid.diagnose.pipeline import premise
 from sysid.diagnose.signature_engine import Prepared, SignatureSettings, diagnose_one, prepare
 from benchmarks.diagnose_scoring import Recording, format_score, score
 
@@ -69,7 +73,11 @@ def bench_reference(directory: str | Path, settings: SignatureSettings | None = 
     recs = load_reference_set(directory)
     t0 = time.perf_counter()
     prepared: dict[str, Prepared] = {}
+    stages = {r.name: premise(r.path, settings).stage for r in recs}
     for r in recs:
+        if stages[r.name] != "signatures":
+            log(f"{r.name}: thinshell diagnose would take the {stages[r.name]} stage (its pose is its command); "
+                "its signature-stage figures here are not the pipeline's")
         log(f"calibrating and replaying {r.name} ...")
         prepared[r.name] = prepare(r.path, settings)
     alone, loo = [], []
@@ -81,7 +89,7 @@ def bench_reference(directory: str | Path, settings: SignatureSettings | None = 
         loo.append(doc_b)
         log(f"{r.name} ({r.label}): alone {doc['explained_by']}, with baselines {doc_b['explained_by']}")
     return {"alone": score(recs, alone), "baseline_loo": score(recs, loo),
-            "reports": {r.name: {"alone": a["explained_by"], "baseline_loo": b["explained_by"],
+            "reports": {r.name: {"alone": a["explained_by"], "baseline_loo": b["explained_by"], "stage": stages[r.name],
                                  "calibrated_rms": a["baseline"]["whitened_rms_after"],
                                  "scene_rms": a["baseline"]["whitened_rms_before"],
                                  "heldout_rms_before": a["refit"]["heldout_rms_before"],

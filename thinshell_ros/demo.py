@@ -103,11 +103,10 @@ FULL = DemoSettings(
     # from explaining physics with sensor gains
     sysid_args=("--params", "gel.youngs_modulus,friction.gel_sheet", "--dt", "0.01", "--max-nfev", "8",
                 "--max-time", "180", "--no-sensor-calibration"),
-    # thinshell diagnose as a user runs it: the score engine's defaults (its calibration, held-out time
-    # blocks) and the whole candidate library; the named effect's refitted term goes into the scene the fit
-    # starts from. (The default signatures engine names nothing on this short recording, with any calibration
-    # budget: docs/benchmarks_log.md, 2026-11-27, session 50.) Two processes for the independent replays
-    diagnose_args=("--engine", "score", "--workers", "2"),
+    # thinshell diagnose as a user runs it: its defaults (the pipeline picks the score stage on this recording,
+    # whose pose is its command: the whole candidate library, its calibration, held-out time blocks); the named
+    # effect's refitted term goes into the scene the fit starts from. Two processes for the independent replays
+    diagnose_args=("--workers", "2"),
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
     compare_args=("--dt", "0.01"),

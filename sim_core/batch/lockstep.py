@@ -54,7 +54,11 @@ CG the Newton loop's iterate, update and stacked gradient stay in device memory 
 :mod:`sim_core.batch.device_iterates`): trial points, per-copy dot products and norms, finiteness tests and copy
 updates are kernels whose host side reads back ``(B,)`` arrays, the stacked gradient is summed there, the CG reads its
 right-hand side and leaves its update there, and each trial point's positions come down once (the contact search and
-the terms' caches); the direct solvers' path keeps NumPy vectors. The line search is :mod:`sim_core.batch.line_search`.
+the terms' caches); the direct solvers' path keeps NumPy vectors. A Newton iteration's reads around the batched solve:
+none before it (the copies to solve are those whose gradient's largest entry, read with the last slope test, is not
+0), the solver's per-copy flags (one int32 array a CG poll, :class:`~sim_core.ti_kernels.pcg.BatchedPCG`), then one
+``(B,)`` read of ``g.d`` and the largest ``|d_v|`` a solve, which give the solve's finite and descent tests and the
+loop's slope and step size. The line search is :mod:`sim_core.batch.line_search`.
 
 The copies' contact sets are one stacked contact set whose candidates never pair two copies (they are
 translated apart, :mod:`sim_core.batch.stacked`). With a direct linear solver a copy also stops on the simplified
@@ -187,6 +191,8 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         self._dofs = scene.dof_index  # (B, 3n)
         self._host_vectors = HostIterates(scene.index)  # per-copy sums and maxima over the stacked NumPy arrays
         self._device_vectors = None  # the same on the device with the batched CG (made at the first step: _vectors)
+        self._direction_scalars = None  # (d, slope (B,), largest |d_v| (B,)) read by _direction_pcg with its tests
+        self._direction_todo = None  # (B,) bool: the copies of the next _direction_pcg with a non-zero gradient
         self._copy_of_vertex = np.empty(scene.model.vertex_count, dtype=np.int64)
         self._copy_of_vertex[scene.index] = np.arange(scene.copies)[:, None]
         self._fixed: tuple | None = None  # (step.free, its fixed DoFs as indices): _fixed_dofs
@@ -335,12 +341,20 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             # gradient is 0 already; the solvers do not write the right-hand side)
             rhs = vectors.zero_copies(vectors.copy(g), done) if done.any() else g
             factorizations = info.factorizations
+            # the copies with an update to find: those whose gradient has a non-zero (or NaN) entry, from g_max, read
+            # already (the batched solvers' direction then reads nothing before its solve)
+            self._direction_todo = open_ & (g_max != 0.0)
             d, H, projection, factorization = self._direction(step, x, rhs, contact_terms, info)
             simplified.after_direction(projection == "none" and info.factorizations == factorizations + 1,
                                        contact_terms + step.cand_contact, x.host)
             vectors.zero_copies(d, ~open_)
-            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it
-            slope, step_max = vectors.slope_and_norm(g, d)
+            # NaN where a copy's update is not finite (or its squares overflow); the slope g.d read with it (the
+            # batched solvers' direction read both with its own tests: no read here; the closed copies' d is 0)
+            kept, self._direction_scalars = self._direction_scalars, None
+            if kept is not None and kept[0] is d:
+                slope, step_max = np.where(open_, kept[1], 0.0), np.where(open_, kept[2], 0.0)
+            else:
+                slope, step_max = vectors.slope_and_norm(g, d)
             bad = open_ & ~np.isfinite(step_max)
             if bad.any():
                 raise fail(bad, f"linear solve produced NaN at iteration {it}")
@@ -552,7 +566,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         projections = self._projections()
         fixed = self._fixed_dofs(step)
         d = None  # the update: the first solve's own array when every copy keeps that solve's update
-        todo = vectors.any_dof(g)  # copies with an update to find
+        todo, self._direction_todo = self._direction_todo, None  # copies with an update to find (the Newton loop's)
+        if todo is None:
+            todo = vectors.any_dof(g)
         rhs = vectors.new()
         H, projection = None, self.config.projection
         for k, projection in enumerate(projections):
@@ -579,19 +595,28 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             pcg.solve_on_device(rhs, dk)
             info.time_linear_solve += time.perf_counter() - tl
             vectors.zero_dofs(dk, fixed)
-            ok = todo & ~pcg.indefinite & ~pcg.unconverged & vectors.all_finite(dk)
+            # the slope g.dk and the largest |dk_v| (NaN where dk is not finite) in one read: the finite test, the
+            # descent test and the Newton loop's slope and step size (kept in _direction_scalars)
+            slope_k, norm_k = vectors.slope_and_norm(g, dk)
+            ok = todo & ~pcg.indefinite & ~pcg.unconverged & np.isfinite(norm_k)
             if k + 1 < len(projections):  # the exact Hessian's update must descend to be kept
-                ok &= vectors.dot(g, dk) < 0.0
+                ok &= slope_k < 0.0
             if d is None and np.array_equal(ok, todo):
                 d = dk  # every copy with an update keeps this one; the others' right-hand side was 0, so is their dk
+                slope, norm = slope_k, norm_k
             else:
-                d = vectors.copy_where(vectors.new() if d is None else d, dk, ok)
+                if d is None:
+                    d, slope, norm = vectors.new(), np.zeros(len(ok)), np.zeros(len(ok))
+                d = vectors.copy_where(d, dk, ok)
+                slope, norm = np.where(ok, slope_k, slope), np.where(ok, norm_k, norm)
             info.projected_iterations += projection != "none" and bool(ok.any())
             todo &= ~ok
             if not todo.any() or k + 1 == len(projections):
                 if todo.any():  # last try: keep what it gave (a NaN or a CG failure fails the copy)
                     vectors.copy_where(d, dk, todo)
+                    slope, norm = np.where(todo, slope_k, slope), np.where(todo, norm_k, norm)
                 break
+        self._direction_scalars = (d, slope, norm)
         return d, H, projection, pcg
 
     def _device_operator(self, step, x: np.ndarray, projection: str, dynamic_terms: list,

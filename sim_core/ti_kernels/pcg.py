@@ -33,7 +33,8 @@ top-level loops, which Taichi runs one after the other on the device):
 
 Copies are independent CGs (Hestenes & Stiefel 1952; preconditioned form: Saad, Iterative Methods
 for Sparse Linear Systems, 2nd ed., Alg. 9.1), each with its own step sizes and stopping test, so a
-copy's solution does not depend on the others. The host reads the count of running copies (its one
+copy's solution does not depend on the others. The host reads the count of running copies, with the per-copy
+flags packed beside it (iterations run, indefinite, still running: one int32 array of ``1 + 3 B``, its one
 synchronisation) first after the launches that cover the last solve's iterations, then after every launch
 (:func:`_launches_before_test`); a copy that has stopped is left unchanged by later passes. The matrix must be
 positive definite (the projected Newton matrix): :attr:`BatchedPCG.detects_indefinite` is False, so the solver
@@ -732,8 +733,10 @@ class BatchedPCG:
                           *band[-1])
         rtol2 = self.rtol ** 2
         running = self._array("running", 1, ti.i32)
+        flags = self._array("flags", 1 + 3 * B, ti.i32)
         launched = 0
         batch = _launches_before_test(self.iterations)
+        read = None
         while launched < self.max_iterations:
             for _ in range(min(batch, -(-(self.max_iterations - launched) // ITERATIONS_PER_LAUNCH))):
                 launched += ITERATIONS_PER_LAUNCH
@@ -741,13 +744,30 @@ class BatchedPCG:
                                vec["z"], vec["p"], vec["ap"], per["rz"], per["rz_new"], per["rr"], per["bb"], per["pap"],
                                per["beta"], active, bad, done, running, rtol2, n, self._nblocks, B, *band[:-1],
                                *band[-1], self._banded)
-            if int(_copy_out(running)[0]) == 0:  # the host's one wait for the device in these launches
+            _pack_flags(running, done, bad, active, flags, B)
+            read = _copy_out(flags)  # the host's one wait for the device in these launches: the count and the flags
+            if int(read[0]) == 0:
                 break
             batch = 1
-        self.iterations = int(_copy_out(done).max())
+        if read is None:  # (no iteration allowed: the flags as _reset_copies left them)
+            _pack_flags(running, done, bad, active, flags, B)
+            read = _copy_out(flags)
+        self.iterations = int(read[1:1 + B].max()) if B else 0
         self.total_iterations += self.iterations
-        self.indefinite = _copy_out(bad).astype(bool)
-        self.unconverged = _copy_out(active).astype(bool)
+        self.indefinite = read[1 + B:1 + 2 * B].astype(bool)
+        self.unconverged = read[1 + 2 * B:1 + 3 * B].astype(bool)
+
+
+@fast_kernel
+def _pack_flags(running: _I32, done: _I32, bad: _I32, active: _I32, flags: _I32, copies: ti.i32):
+    """The CG's count of running copies and its per-copy flags in one int32 array of ``1 + 3 B``, so that the host
+    reads them in one copy (:meth:`BatchedPCG._run`): ``flags[0]`` the running copies (``running[0]``), then
+    ``done`` (iterations a copy ran), ``bad`` (indefinite) and ``active`` (still running), ``B`` entries each."""
+    flags[0] = running[0]
+    for c in range(copies):
+        flags[1 + c] = done[c]
+        flags[1 + copies + c] = bad[c]
+        flags[1 + 2 * copies + c] = active[c]
 
 
 @fast_kernel

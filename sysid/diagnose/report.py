@@ -54,8 +54,23 @@ def plot_residuals(diagnosis: Any, out_dir: Path) -> list[Path]:
     return paths
 
 
+def pipeline_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The report's "Pipeline" section: the stage that named and why (``extra.pipeline``,
+    :mod:`sysid.diagnose.pipeline`); empty for a report without it."""
+    pipe = (doc.get("extra") or {}).get("pipeline")
+    if not pipe:
+        return []
+    drive = pipe.get("drive") or {}
+    lines = ["## Pipeline", "", f"- stage: **{pipe['stage']}** ({'score tests and refits of the candidate library' if pipe['stage'] == 'score' else 'signature tests against a calibrated null, refits of the named effects'})",
+             f"- why: {pipe['why']}",
+             f"- effector drive: {drive.get('decision', '?')} (delta-BIC {drive.get('delta_bic')})"]
+    if pipe.get("not_applied"):
+        lines.append(f"- options not applied (they act on the other stage): {', '.join(pipe['not_applied'])}")
+    return lines + [""]
+
+
 def _markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
-    lines = [f"# Diagnosis of `{doc['bag']}`", ""]
+    lines = [f"# Diagnosis of `{doc['bag']}`", ""] + pipeline_lines(doc)
     ex = doc["explained_by"]
     verdict = "nothing detected" if not ex else ("mismatch detected, no candidate explains it" if ex == ["unexplained"]
                                                  else "explained by " + ", ".join(ex))

@@ -1,8 +1,13 @@
 """The JSON contract of ``thinshell diagnose`` (SYSID.md "Output contract") and its validation.
 
-Top-level keys exactly ``bag, baseline, mismatch, candidates, explained_by, refit`` plus an optional
-``extra``; each object holds at least the sub-keys of the contract (more keys are allowed inside
-the objects). ``explained_by`` is ``[]``, ``["unexplained"]`` or effect names of the vocabulary.
+Top-level keys exactly ``schema_version, bag, baseline, mismatch, candidates, explained_by, refit`` plus
+``extra``; each object holds at least the sub-keys of the contract (more keys are allowed inside the objects).
+``explained_by`` is ``[]``, ``["unexplained"]`` or effect names of the vocabulary. ``schema_version`` is
+:data:`SCHEMA_VERSION`; ``extra.pipeline`` says which stage of the one pipeline named
+(:mod:`sysid.diagnose.pipeline`: ``stage``, the ``drive`` that decided it, ``why``, ``not_applied``).
+
+Versions: 1 (to session 50): no ``schema_version``; two engines, ``extra.engine`` on the signature engine's
+reports only. 2: one pipeline, ``schema_version`` and ``extra.pipeline`` on every report.
 """
 
 from __future__ import annotations
@@ -13,7 +18,13 @@ from typing import Any, Mapping
 from sim_core.errors import CalibrationError
 from sysid.diagnose.candidates import EFFECTS
 
-TOP_KEYS = ("bag", "baseline", "mismatch", "candidates", "explained_by", "refit")
+SCHEMA_VERSION = 2
+"""Version of the report's schema (module docstring)."""
+
+TOP_KEYS = ("schema_version", "bag", "baseline", "mismatch", "candidates", "explained_by", "refit")
+PIPELINE_KEYS = ("stage", "drive", "why", "not_applied")
+STAGES = ("score", "signatures")
+"""The pipeline's stages (:mod:`sysid.diagnose.pipeline`), the values of ``extra.pipeline.stage``."""
 SUB_KEYS = {"baseline": ("params", "rms"), "mismatch": ("detected", "windows_s", "channels", "markers"),
             "refit": ("params", "rms", "heldout_rms_before", "heldout_rms_after")}
 CANDIDATE_KEYS = ("effect", "statistic", "p_value")
@@ -40,8 +51,18 @@ def validate_report(doc: Mapping[str, Any]) -> None:
     unknown = sorted(set(doc) - set(TOP_KEYS) - {"extra"})
     if unknown:
         fail(f"unknown top-level key {unknown[0]!r} (extra keys belong under 'extra')")
+    if doc["schema_version"] != SCHEMA_VERSION:
+        fail(f"'schema_version' is {doc['schema_version']!r}; this version of thinshell reads {SCHEMA_VERSION}")
     if not isinstance(doc["bag"], str):
         fail("'bag' must be a string")
+    pipe = doc.get("extra", {}).get("pipeline") if isinstance(doc.get("extra"), Mapping) else None
+    if not isinstance(pipe, Mapping):
+        fail("missing object 'extra.pipeline' (the stage that named, and why)")
+    for k in PIPELINE_KEYS:
+        if k not in pipe:
+            fail(f"missing key 'extra.pipeline.{k}'")
+    if pipe["stage"] not in STAGES:
+        fail(f"'extra.pipeline.stage' = {pipe['stage']!r} is none of {', '.join(STAGES)}")
     for obj, keys in SUB_KEYS.items():
         if not isinstance(doc[obj], Mapping):
             fail(f"'{obj}' must be an object")

@@ -427,7 +427,7 @@ def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings,
     the calibrated parameters (:func:`sysid.diagnose.plasticity_refit.refit_plasticity`; training and
     held-out sheet points in a checkerboard of the grid, rows of the effect's windows). Adhesion: the
     carried height located, with the sheet's whitened RMS in its windows, not refitted (its bonds
-    are refitted by ``thinshell diagnose --engine score``). Where adhesion is named too (``named``),
+    are refitted by the score stage, :mod:`sysid.diagnose.engine`). Where adhesion is named too (``named``),
     the plasticity refit starts from the replay in which the gel's tack carries the card up to the
     recorded peel (:func:`sysid.diagnose.plasticity_refit.tack_base`)."""
     rec = p.recording

@@ -13,7 +13,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sysid.diagnose.report import write_report_files
+from sysid.diagnose.report import pipeline_lines, write_report_files
 from sysid.diagnose.signatures.damping import contact_force, lead_recording
 from sysid.diagnose.signatures.friction import breakaways, decay_columns, decay_taus, fit_breakaway, shear_breakaway
 from sysid.diagnose.signatures.sensor import apply_force_bias, apply_lens
@@ -156,7 +156,7 @@ WORDS = {
 
 def markdown(doc: Mapping[str, Any], images: list[Path]) -> str:
     """The report's text."""
-    lines = [f"# Diagnosis of `{doc['bag']}`", ""]
+    lines = [f"# Diagnosis of `{doc['bag']}`", ""] + pipeline_lines(doc)
     ex = doc["explained_by"]
     lines.append("**Named:** " + (", ".join(ex) if ex else "nothing (the calibrated model explains the recording)"))
     for e in (e for e in ex if e != "unexplained"):

@@ -72,6 +72,30 @@ def test_a_copy_not_converged_within_the_iteration_limit_is_reported_with_the_it
     assert 1e-14 * np.linalg.norm(b[:90]) < r < np.linalg.norm(b[:90])  # copy 0 progressed, not to tolerance
 
 
+def test_the_count_and_every_copys_flags_come_back_in_one_read_a_poll(ti_cpu, monkeypatch):
+    """The host's reads of a solve: one int32 array a poll of the running count, holding every copy's iterations,
+    indefinite and unconverged flags too (copy 0 unconverged at the limit, copy 1 done in one iteration, copy 2
+    indefinite), each flag the copy's own."""
+    from sim_core.ti_kernels import pcg as pcg_module
+    from sim_core.ti_kernels.pcg import ITERATIONS_PER_LAUNCH, LAUNCHES_PER_TEST, BatchedPCG
+
+    blocks = [_spd_block(90, 0, 1e-3), sp.eye(90, format="csr"), (_spd_block(90, 3, 1.0) - 50.0 * sp.eye(90)).tocsr()]
+    upper = sp.triu(sp.block_diag(blocks, format="csr"), format="csr")
+    upper.sort_indices()
+    limit = ITERATIONS_PER_LAUNCH * (LAUNCHES_PER_TEST + 2)
+    solver = BatchedPCG(np.repeat(np.arange(3), 90), rtol=1e-14, max_iterations=limit)
+    solver.factorize(upper)
+    reads = []
+    copy_out = pcg_module._copy_out
+    monkeypatch.setattr(pcg_module, "_copy_out", lambda array: reads.append(array.shape) or copy_out(array))
+    solver.solve(np.random.default_rng(2).normal(size=270))
+    # a first poll after LAUNCHES_PER_TEST launches, then one a launch up to the limit: 3 polls, 3 reads
+    assert reads == [(1 + 3 * 3,)] * 3
+    assert list(solver.unconverged) == [True, False, False]
+    assert list(solver.indefinite) == [False, False, True]
+    assert solver.iterations == limit
+
+
 def test_values_on_the_device_and_the_diagonal_added_there_give_the_matrix_with_that_diagonal(ti_cpu):
     """``factorize`` with ``U``'s values as a Taichi ndarray and a diagonal (added at given slots, 1 at the
     fixed ones) on the device multiplies and solves as the matrix assembled on the host, and leaves the

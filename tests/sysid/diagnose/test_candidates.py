@@ -145,6 +145,7 @@ def test_marker_attribution_names_the_markers_that_carry_the_effect():
 
 
 VALID = {
+    "schema_version": 2,
     "bag": "path",
     "baseline": {"params": {"bending_stiffness": 0.008}, "rms": {"markers_px": 0.9, "wrench_N": 0.05}},
     "mismatch": {"detected": True, "windows_s": [[1.2, 2.8]], "channels": ["tactile/markers"], "markers": [3, 4, 12]},
@@ -152,12 +153,14 @@ VALID = {
     "explained_by": ["latency"],
     "refit": {"params": {"latency_s": 0.041}, "rms": {"markers_px": 0.21},
               "heldout_rms_before": 0.95, "heldout_rms_after": 0.24},
+    "extra": {"pipeline": {"stage": "score", "drive": {"decision": "kinematic"}, "why": "the pose is its command",
+                           "not_applied": []}},
 }
 
 
 def test_contract_example_validates_and_violations_are_named():
     validate_report(VALID)
-    validate_report({**VALID, "extra": {"anything": 1}})
+    validate_report({**VALID, "extra": {**VALID["extra"], "anything": 1}})
     cases = [
         (lambda d: d.pop("refit"), "missing top-level key 'refit'"),
         (lambda d: d.update(score=1), "unknown top-level key 'score'"),
@@ -168,6 +171,10 @@ def test_contract_example_validates_and_violations_are_named():
         (lambda d: d["mismatch"].update(windows_s=[[2.0, 1.0]]), "start <= end"),
         (lambda d: (d["mismatch"].update(detected=False)), "detected' is false"),
         (lambda d: d.update(explained_by=[]), "use \\[\"unexplained\"\\]"),
+        (lambda d: d.update(schema_version=1), "'schema_version' is 1; this version of thinshell reads 2"),
+        (lambda d: d.pop("extra"), "missing object 'extra.pipeline'"),
+        (lambda d: d["extra"]["pipeline"].pop("why"), "missing key 'extra.pipeline.why'"),
+        (lambda d: d["extra"]["pipeline"].update(stage="engine"), "is none of score, signatures"),
     ]
     for mutate, msg in cases:
         d = copy.deepcopy(VALID)

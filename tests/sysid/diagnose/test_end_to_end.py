@@ -39,6 +39,8 @@ def reports(tmp_path_factory):
 def test_default_diagnosis_names_the_concealed_effect(reports, name):
     doc, d = reports[name]
     validate_report(doc)
+    # the independent engine's arm holds the pad through a spring: the pipeline takes the signature stage
+    assert doc["extra"]["pipeline"]["stage"] == "signatures" and doc["extra"]["pipeline"]["drive"]["compliant"]
     assert doc["explained_by"] == EXPECTED[name]
     assert doc["mismatch"]["detected"] is bool(EXPECTED[name])
     assert (d / "report" / "report.md").is_file() and (d / "report" / "calibration_rms.png").is_file()
