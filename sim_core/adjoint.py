@@ -417,6 +417,33 @@ class StepLinearization:
         r = dx.shape[2]
         return (self.H @ dx.reshape(3 * self.n, r)).reshape(self.n, 3, r)
 
+    def support_product(self, dx: np.ndarray) -> np.ndarray:
+        """The exact Hessian times ``dx`` (shape ``(n, 3, r)``) on the free rows, zeros on the fixed rows, from
+        the element blocks that touch a vertex where ``dx`` is non-zero, without assembling :attr:`H` (unless
+        it is assembled already): the right-hand side ``H_fd dx_d`` of a Dirichlet tangent supported on a few
+        vertices (an effector's, :class:`sim_core.sensitivity.DriveStep`). Equal to :meth:`hessian_product` on
+        the free rows up to round-off; the constant diagonal terms (inertia, damping) couple no two vertices
+        and add nothing there."""
+        if self._H is not None:
+            out = self.hessian_product(dx)
+            out[self.fixed] = 0.0
+            return out
+        support = np.any(dx != 0.0, axis=(1, 2))
+        out = np.zeros(dx.shape)
+        for p in self.record.terms:
+            if isinstance(p, ConstantDiagonalHessian):
+                continue
+            hb = p.hessian(self.x, "none")
+            touch = support[hb.vertices].any(axis=1) if len(hb.vertices) else np.zeros(0, bool)
+            if not touch.any():
+                continue
+            v = hb.vertices[touch]
+            k, m = v.shape
+            prod = np.matmul(hb.blocks[touch], dx[v].reshape(k, 3 * m, -1))
+            out += _scatter_vertex_rows(self.n, v, prod.reshape(k, m, 3, -1))
+        out[self.fixed] = 0.0
+        return out
+
     def fixed_row_product(self, w: np.ndarray) -> np.ndarray:
         """The exact Hessian times ``w`` (shape ``(n, 3)``) on the rows of the fixed vertices, zeros on the
         other rows: the adjoint's Dirichlet pullback reads no other row. From the element blocks that touch

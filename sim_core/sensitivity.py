@@ -10,10 +10,25 @@ sides per step):
 
 with the controls held fixed (driven vertices have zero tangent; clamped vertices keep the tangent
 of ``x^n``). What is differentiated and what is held fixed is listed in :mod:`sim_core.adjoint`.
+
+An effector on a series spring along an axis ``n`` (:mod:`sim_core.series_drive`: the step's compression
+``b`` solves ``h(b) = F(x^{n+1}(b)) - K b + (c / dt) (a - q^n) . n = 0``, ``F`` the contact load on the
+tool along ``-n``, ``K = k_s + c / dt``, ``q^n`` the tool's position at the step's start) is not a
+fixed control: its driven vertices move by ``-db n``. The step's tangent is then the fixed-control tangent
+``dx^0`` plus ``db`` times the response ``u`` to a unit compression (one more right-hand side with the
+same factorisation, ``H_ff u_f = -H_fd e``, ``e = -n`` on the driven vertices), and the implicit function
+theorem on ``h = 0`` gives
+
+    db = (dF^0 - (c / dt) n . dq^n) / (K - dF/db),   dF/db = -n . sum_load (df of u)  (<= 0),
+
+``dF^0`` the load's tangent with the compression held (:class:`DriveStep`, :meth:`TangentPropagation.advance`).
+The tool's position tangent ``dq = -db n`` moves the sensor frame of the observations
+(:func:`observation_sensitivities` ``effector_position``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
@@ -28,6 +43,25 @@ from sim_core.model import Model
 from sim_core.state import State
 from sim_core.sensors.markers import marker_vertex_weights
 from sim_core.transforms import compose_poses, quat_to_matrix
+
+
+@dataclass(frozen=True)
+class DriveStep:
+    """One step of an effector on a series spring along an axis (module docstring), as its tangent needs it.
+
+    Attributes:
+        vertices: global indices of the effector's driven vertices, shape ``(m,)``.
+        load_vertices: global indices of the vertices whose contact forces load the tool, shape ``(l,)``.
+        axis: unit axis ``n`` (3,), world, pointing into the contact.
+        stiffness: ``K = k_s + c / dt``, N/m (the spring and the damper's spring to the tool's last position).
+        damping_rate: ``c / dt``, N/m (0 without a damper).
+    """
+
+    vertices: np.ndarray
+    load_vertices: np.ndarray
+    axis: np.ndarray
+    stiffness: float
+    damping_rate: float = 0.0
 
 
 class TangentPropagation:
@@ -47,6 +81,9 @@ class TangentPropagation:
         dx: tangent of the current positions, ``(n, 3, P)`` m per parameter unit.
         dv: tangent of the current velocities, ``(n, 3, P)``.
         dtb: sheet -> tangent of the rest angles, ``(h, P)``.
+        dq: tangent of the position of the effector on a series spring in the current state, ``(3, P)``
+            (zero after a step without one, :class:`DriveStep`).
+        db: tangent of the spring's compression in the last step, ``(P,)`` (zero without one).
     """
 
     def __init__(self, model: Model, params: Sequence[str], contact_force: bool = False, backend: str = "numpy") -> None:
@@ -57,6 +94,8 @@ class TangentPropagation:
         self.dx = np.zeros((n, 3, P))
         self.dv = np.zeros((n, 3, P))
         self.dtb = {name: np.zeros((len(model.bodies[name].hinges), P)) for name in self.elastic.hinges}
+        self.dq = np.zeros((3, P))
+        self.db = np.zeros(P)
         self.dyield = {}
         for name in self.elastic.hinges:
             key = f"{name}.yield_angle"
@@ -69,8 +108,12 @@ class TangentPropagation:
         return StepLinearization(self.model, record, state, self.elastic, self.contact, self.mass, linear_solver,
                                  factorization=factorization)
 
-    def advance(self, lin: StepLinearization) -> tuple[np.ndarray, np.ndarray | None]:
+    def advance(self, lin: StepLinearization, drive: DriveStep | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Propagate the tangents through the step of ``lin``.
+
+        Args:
+            lin: the step's linearisation.
+            drive: the step's series drive (module docstring), or None: every effector held at its control.
 
         Returns:
             ``(dx^{n+1} (n, 3, P), df^{n+1} (n, 3, P) or None)``; the held tangents advance too.
@@ -84,16 +127,40 @@ class TangentPropagation:
         dx_d[lin.static] = dxn[lin.static]
         if np.any(dx_d):  # static clamps keep x^n: their tangent stays 0 from a zero start
             rhs += lin.hessian_product(dx_d)
-        dx_new = -lin.solve(rhs.reshape(3 * n, P)).reshape(n, 3, P)
+        unit = None
+        if drive is not None:  # the response to a unit compression: the driven vertices moved by -n
+            unit = np.zeros((n, 3, 1))
+            unit[drive.vertices, :, 0] = -np.asarray(drive.axis, dtype=float)
+            rhs = np.concatenate([rhs, lin.support_product(unit)], axis=2)
+        solved = -lin.solve(rhs.reshape(3 * n, rhs.shape[2])).reshape(n, 3, rhs.shape[2])
+        dx_new = solved[:, :, :P]
         dx_new[lin.fixed] = dx_d[lin.fixed]
+        df = None
+        if self.contact_force or drive is not None:
+            dpar = np.stack([lin.contact_parameter_rhs(p) for p in self.params], axis=2) if P else np.zeros((n, 3, 0))
+            df = lin.contact_force_tangent(dx_new, dxn, dpar)
+        if drive is not None:
+            response = solved[:, :, P:]
+            response[lin.fixed] = unit[lin.fixed]
+            df_unit = -lin.contact_hessian_product(response)
+            axis = np.asarray(drive.axis, dtype=float)
+
+            def load(f: np.ndarray) -> np.ndarray:  # tangent of F = -n . sum_load f, (r,)
+                return -np.einsum("d,dr->r", axis, f[drive.load_vertices].sum(axis=0))
+
+            slope = float(load(df_unit)[0])  # dF/db <= 0: the load falls as the tool backs off
+            pull = -drive.damping_rate * (axis @ self.dq)  # d[(c/dt) (a - q^n) . n]
+            self.db = (load(df) + pull) / (drive.stiffness - slope)
+            dx_new = dx_new + response * self.db[None, None, :]
+            df = df + df_unit * self.db[None, None, :]
+            self.dq = -np.outer(axis, self.db)
+        else:
+            self.db = np.zeros(P)
+            self.dq = np.zeros((3, P))
         self.dv = (dx_new - dxn) / lin.dt
         self.dtb = lin.plastic_tangent(dx_new, self.dtb, self.dyield)
         self.dx = dx_new
-        df = None
-        if self.contact_force:
-            dpar = np.stack([lin.contact_parameter_rhs(p) for p in self.params], axis=2) if P else np.zeros((n, 3, 0))
-            df = lin.contact_force_tangent(dx_new, dxn, dpar)
-        return dx_new, df
+        return dx_new, df if self.contact_force else None
 
 
 def parameter_sensitivities(sim, controls: Sequence[Control | None] | None, params: Sequence[str],
@@ -202,7 +269,8 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
 
 
 def observation_sensitivities(model: Model, trajectory: Trajectory, dX: np.ndarray, dF: np.ndarray | None = None,
-                              sensor: str | None = None) -> dict[str, np.ndarray]:
+                              sensor: str | None = None, effector_position: np.ndarray | None = None
+                              ) -> dict[str, np.ndarray]:
     """Map state tangents to tangents of the observations (``Simulation.observe``), controls fixed.
 
     Markers: ``p = sum_j b_j x_j`` on the gel's contact surface, in the sensor frame
@@ -218,6 +286,9 @@ def observation_sensitivities(model: Model, trajectory: Trajectory, dX: np.ndarr
         dF: contact-force tangents ``(T + 1, n, 3, P)`` (``contact_force=True``); the wrench is only
             returned when given.
         sensor: tactile sensor name (default: the first one; none when the model has no sensor).
+        effector_position: tangent ``(T + 1, 3, P)`` of the position of the sensor's effector
+            (:attr:`TangentPropagation.dq`, an effector on a series spring); None: held (zero). The sensor
+            frame moves with it: ``dxyz = R^T (dp - dq)``, the torque's arms by ``dx_i - dq``.
 
     Returns:
         ``sheet_points`` ``(T + 1, p, 3, P)`` (body ``sheet``, when present), ``markers_xyz``
@@ -249,6 +320,9 @@ def observation_sensitivities(model: Model, trajectory: Trajectory, dX: np.ndarr
         pose = compose_poses(state.effector_pose[s.effector], s.mount)
         R = quat_to_matrix(pose[3:7])
         dp = np.einsum("kj,kjdr->kdr", weights, dX[i][verts])
+        dq = None if effector_position is None else effector_position[i]
+        if dq is not None:
+            dp = dp - dq[None]
         xyz_t[i] = np.einsum("ed,kdr->ker", R, dp)
         p_world = np.einsum("kj,kjd->kd", weights, state.x[verts])
         xyz = (p_world - pose[:3]) @ R
@@ -256,7 +330,7 @@ def observation_sensitivities(model: Model, trajectory: Trajectory, dX: np.ndarr
         if dF is not None and state.contact_force is not None:
             f = state.contact_force[gel]
             arm = state.x[gel] - pose[:3]
-            df, dx = dF[i][gel], dX[i][gel]
+            df, dx = dF[i][gel], dX[i][gel] if dq is None else dX[i][gel] - dq[None]
             force = df.sum(axis=0)
             torque = (np.cross(dx, f[:, :, None], axisa=1, axisb=1, axisc=1)
                       + np.cross(arm[:, :, None], df, axisa=1, axisb=1, axisc=1)).sum(axis=0)

@@ -603,7 +603,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
             (:func:`sysid.drive_calibration.fit_drive`, which chooses the compliant or the kinematic drive by
             delta-BIC), and make every replay, the first included, take it
             (:meth:`~sysid.observation.ObservationModel.set_drive_stiffness`; the parameter fit's Jacobian is
-            then taken by finite differences: a replay through the drive has no tangents); False: the
+            then analytic through the drive, :func:`sysid.replay_drive.drive_sensitivities`); False: the
             recorded pose driven kinematically (the scene's prior).
         secant_first: gives the secant stage's first replay made beforehand (in another process beside
             the fit's start replay: :mod:`sysid.diagnose.probe_worker`), taken only where its parameters
@@ -630,7 +630,6 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
     drive_fit = fit_drive(model) if drive else None
     model.set_drive_stiffness(drive_fit.replay_stiffness if drive_fit is not None else math.inf,
                               drive_fit.replay_damping if drive_fit is not None else 0.0)
-    jacobian = "auto" if math.isinf(model.drive_stiffness) else "fd"  # a replay through the drive has no tangents
     limits = calibration_bounds(model, params) if params and bounds is None else dict(bounds or {})
     totals: dict[str, Any] = {}
     result = None
@@ -638,7 +637,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
         try:
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
                          max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
-                         batched=batched, batch_size=batch_size, jacobian=jacobian)
+                         batched=batched, batch_size=batch_size)
         except SimulationDivergedError as err:
             raise CalibrationError(f"{model.evidence.source.bag_path}: the replay at the scene values diverged: {err}") from err
         raw = {ch: np.asarray(v, dtype=float) for ch, v in result.prediction_initial.items()}
@@ -661,7 +660,7 @@ def calibrate(model, params=CALIBRATION_PARAMETERS, *, rows: Mapping[str, np.nda
                                                               prior=prior)
             result = fit(model, tuple(params), max_nfev=max_nfev, workers=workers, max_time=max_time,
                          max_replays=max_replays, bounds=limits, reweight_channels=reweight_channels,
-                         batched=batched, batch_size=batch_size, jacobian=jacobian)
+                         batched=batched, batch_size=batch_size)
         values = {k: float(v) for k, v in result.values.items()}
         model.set_nominal(values)
         if sensor_first:

@@ -114,14 +114,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration-time", type=float,
                    help="also a wall-time budget of --calibrate's parameter fit, s (default: none; with one, the "
                         "calibration depends on the machine's load)")
-    p.add_argument("--drive", action=argparse.BooleanOptionalAction, default=False,
+    p.add_argument("--drive", action=argparse.BooleanOptionalAction, default=True,
                    help="fit the arm's impedance along the sensor normal (spring and damper) from the recorded command "
                         "and measured pose (ee/pose_cmd, ee/pose) and the normal load, and replay the pad through it "
-                        "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian is then taken "
-                        "by finite differences); kept kinematic, with the reason in fit.json, elsewhere. Default: off (the "
-                        "recorded pose driven kinematically): through the drive the finite-difference fit is not yet "
-                        "fast or stable enough (sysid.fit_recording.FitOptions.drive); thinshell diagnose takes it by "
-                        "default")
+                        "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian stays "
+                        "analytic through the drive); kept kinematic, with the reason in fit.json, elsewhere. "
+                        "Default: on, as in thinshell diagnose; --no-drive: the recorded pose driven kinematically")
+    p.add_argument("--fixed-gains", action="store_true",
+                   help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
+                        "within their prior and in closed form, to every replay, so that gains calibrated at an off "
+                        "start do not bias the materials: sysid.gain_profile)")
     p.add_argument("--no-sensor-calibration", action="store_true",
                    help="fit against the scene's sensor calibration (default: the wrench gains, marker scales and "
                         "camera intrinsics are first calibrated in closed form, as thinshell diagnose does)")
@@ -242,7 +244,7 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       stop_rms=args.stop_rms or None, stop_robust_sigma=args.stop_robust_sigma or None,
                       stop_trial_robust=not args.stop_trial_scaled,
                       warm_start=not args.cold_start,
-                      sensor_calibration=not args.no_sensor_calibration,
+                      sensor_calibration=not args.no_sensor_calibration, profile_gains=not args.fixed_gains,
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,

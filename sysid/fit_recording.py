@@ -26,6 +26,7 @@ from sysid.calibration import CALIBRATION_REPLAYS, CalibrationResult, calibrate
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
+from sysid.gain_profile import GainProfile
 from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
@@ -78,15 +79,18 @@ class FitOptions:
         batched, batch_size: replay the fit's independent replays as batches of scene copies (:func:`sysid.fit.fit`).
         robust: covariance reported beside the Gauss-Newton one (:data:`sysid.covariance.ROBUST_METHODS`,
             default ``hac``; None: none).
+        profile_gains: refit the sensor gains (within their prior) to every replay of the fit, in closed form
+            (:mod:`sysid.gain_profile`; True, the default), so that gains fitted at an off start do not bias the
+            materials; fit.json's sensor calibration is then the one at the fitted values. False: the gains of
+            the calibration at the start are held through the fit.
         drive: fit the effector's drive along the sensor normal (:func:`sysid.drive_calibration.fit_drive`: a
             spring and damper, chosen over a kinematic arm by delta-BIC) and make every replay, the calibration's
-            and the fit's, take it where the data choose it; the fit's Jacobian is then taken by finite
-            differences (``jacobian="auto"``; a replay through the drive has no tangents). False (the default
-            of ``thinshell sysid``): the recorded pose driven kinematically. Off by default here, unlike in
-            ``thinshell diagnose``: with finite-difference Jacobians through the drive a fit of a 3.6 s
-            MuJoCo press-slide (nominal_s101) did not finish in 560 s on 16 cores, and on a lift
-            (nominal_s109) it moved the bending stiffness x4.8 in 12 replays (docs/benchmarks_log.md,
-            session 50, 49drive).
+            and the fit's, take it where the data choose it (True, the default, as in ``thinshell diagnose``);
+            the fit's Jacobian is then analytic through the drive (:func:`sysid.replay_drive.drive_sensitivities`).
+            False: the recorded pose driven kinematically. (Until session 51 the Jacobian through the drive was
+            taken by finite differences, whose columns carry the drive's force tolerance over the difference
+            step: on nominal_s101 up to 93 % off the tangent, and the fit did not finish in 560 s;
+            docs/benchmarks_log.md, session 51, 49sysdrive.)
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -121,7 +125,8 @@ class FitOptions:
     batched: bool = False
     batch_size: int | str | None = None
     robust: str | None = DEFAULT_ROBUST_METHOD
-    drive: bool = False
+    drive: bool = True
+    profile_gains: bool = True
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -250,11 +255,6 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
     if drive is not None:
         model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     jacobian = options.jacobian
-    if math.isfinite(model.drive_stiffness):
-        if jacobian == "sensitivity":
-            raise ConfigError(f"{bag}: the replays go through the fitted drive ({drive.stiffness:.4g} N/m), which has "
-                              "no tangents: use --jacobian fd or auto, or --no-drive")
-        jacobian = "fd" if jacobian == "auto" else jacobian
     if on_model is not None:
         on_model(model, notes)
     sensor = None
@@ -263,6 +263,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                            max_replays=options.calibration_max_replays, drive=options.drive)
         if on_calibration is not None:
             on_calibration(sensor)
+    if sensor is not None and options.profile_gains:
+        model.gain_profile = GainProfile(model, sensor.gain_prior)
     result = fit(model, list(options.params), jacobian=jacobian, global_method=options.global_method,
                  global_evals=options.global_evals, max_time=options.max_time, max_nfev=options.max_nfev,
                  fd_step=options.fd_step, workers=options.workers, seed=options.seed, on_eval=on_eval,
@@ -271,6 +273,14 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
                  stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
     result.warnings[:0] = list(notes)
+    if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
+        found = model.gain_profile.calibration_of(result.prediction_final)
+        model.gain_profile = None
+        if found is not None:
+            model.sensor_calibration = found[0]
+            sensor = dataclasses.replace(sensor, sensor=found[0], prediction=dict(result.prediction_final),
+                                         gain_flags=GainProfile.flags_of(found, sensor.gain_prior, model),
+                                         whitened_rms_after={ch: v["whitened_rms"] for ch, v in result.rms_final.items()})
     if sensor is not None:  # a gain on its prior's bound is a model gap, not the sensor's gain
         result.warnings.extend(f["cause"] for f in (sensor.gain_flags or {}).values() if f.get("at_bound"))
     for ch, before in result.rms_initial.items():

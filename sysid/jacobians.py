@@ -1,12 +1,14 @@
 """Jacobians of the whitened fit residual ``r(u)`` (:mod:`sysid.fit`): central finite differences
 in the search coordinates, or forward sensitivities through the simulator
 (``sim_core.sensitivity``: implicit differentiation of each Newton step with its converged
-factorisation), alone or joint with the residual replay.
+factorisation; through the effector's series drive where the replay takes one,
+:func:`sysid.replay_drive.drive_sensitivities`), alone or joint with the residual replay.
 """
 
 from __future__ import annotations
 
 import importlib
+import math
 import time
 import warnings as _warnings
 from typing import Any, Mapping, Protocol, Sequence
@@ -15,6 +17,7 @@ import numpy as np
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
+from sysid.replay_drive import drive_sensitivities
 
 JACOBIAN_KINDS = ("auto", "sensitivity", "fd")
 
@@ -159,8 +162,7 @@ class SensitivityJacobian:
         t = time.perf_counter()
         try:
             sim = model.prepare(values)
-            traj, dX, dF = self.module.parameter_sensitivities(sim, model.controls_list(), names,
-                                                               contact_force=True)
+            traj, dX, dF, dQ = self._rollout(model, sim, names)
         except ConfigError as err:
             _warnings.warn(f"sensitivity Jacobian unavailable for this replay ({err}); finite differences used",
                            stacklevel=2)
@@ -169,8 +171,23 @@ class SensitivityJacobian:
             raise CalibrationError(f"sensitivity Jacobian: the replay diverged at {values} ({err})") from err
         problem.sim_runs += 1
         problem.sim_time_s += time.perf_counter() - t
-        J = self._whitened(problem, values, sim, traj, dX, dF)
+        trace = None
+        if model.gain_profile is not None:  # the gains refitted to this replay first (sysid.gain_profile)
+            trace = model.trace_of(sim, traj.states)
+            model.predict(trace)
+        J = self._whitened(problem, values, sim, traj, dX, dF, dQ)
+        if trace is not None:  # ... and their columns projected out
+            J = model.gain_profile.project(model.predict_raw(trace), J)
         return self._with_difference_columns(problem, u, J, other, None)
+
+    def _rollout(self, model: ObservationModel, sim, names: Sequence[str]):
+        """One replay of ``model`` from the :meth:`~ObservationModel.prepare`'d ``sim`` with its tangents:
+        ``(trajectory, dX, dF, dQ)``, ``dQ`` the tangents of the position of an effector on a series drive
+        (:func:`sysid.replay_drive.drive_sensitivities`; None for a kinematic replay)."""
+        if math.isfinite(model.drive_stiffness):
+            return drive_sensitivities(model, sim, names)
+        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names, contact_force=True)
+        return traj, dX, dF, None
 
     def _split(self, problem: ReplayProblem) -> tuple[list[str], list[int]]:
         """Names with simulator sensitivities, and the indices of the parameters without them,
@@ -233,21 +250,25 @@ class SensitivityJacobian:
             raise ConfigError("no parameter with simulator sensitivities: a plain replay gives the residual")
         sim = model.prepare(values)
         t = time.perf_counter()
-        traj, dX, dF = self.module.rollout_sensitivities(sim, model.controls_list(), names,
-                                                         contact_force=True)
+        traj, dX, dF, dQ = self._rollout(model, sim, names)
         if problem.warm_start:  # the start of the next replays
             problem.last_positions = np.stack([s.x for s in traj.states])
-        prediction = model.predict(model.trace_of(sim, traj.states, time.perf_counter() - t))
+        trace = model.trace_of(sim, traj.states, time.perf_counter() - t)
+        prediction = model.predict(trace)
         r = model.residuals(prediction)
         J = np.full((r.shape[0], len(problem.names)), np.nan)
-        J[:, [i for i in range(len(problem.names)) if i not in other]] = self._whitened(problem, values, sim, traj, dX, dF)
+        mine = self._whitened(problem, values, sim, traj, dX, dF, dQ)
+        if model.gain_profile is not None:  # the gains refitted at every replay: their columns projected out
+            mine = model.gain_profile.project(model.predict_raw(trace), mine)
+        J[:, [i for i in range(len(problem.names)) if i not in other]] = mine
         return r, J, prediction
 
     def _whitened(self, problem: ReplayProblem, values: Mapping[str, float], sim, traj, dX: np.ndarray,
-                  dF: np.ndarray) -> np.ndarray:
-        """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents."""
+                  dF: np.ndarray, dQ: np.ndarray | None = None) -> np.ndarray:
+        """Whitened residual Jacobian ``(m, p)`` in the search coordinates from the state tangents (``dQ``: those
+        of the sensor's effector position on a series drive, :meth:`_rollout`)."""
         model = problem.model
-        obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor)
+        obs = self.module.observation_sensitivities(sim.model, traj, dX, dF, sensor=model.sensor, effector_position=dQ)
         dtheta_du = np.array([abs(values[s.name]) if s.log else s.scale for s in problem.specs
                               if s.name not in DIFFERENCE_PARAMETERS])
         cal = getattr(model, "sensor_calibration", None)

@@ -210,6 +210,7 @@ class ObservationModel:
         self.normal_offset = 0.0
         self.nominal_normal_offset = 0.0
         self.sensor_calibration = None
+        self.gain_profile = None  # sysid.gain_profile.GainProfile: the gains refitted at every predict
         self.marker_rest: np.ndarray | None = None
         self.sigma_scale: dict[str, float] | None = None
         self.drive_stiffness = math.inf
@@ -655,12 +656,17 @@ class ObservationModel:
 
     def predict(self, trace: SimTrace) -> dict[str, np.ndarray]:
         """Predictions aligned to every predictable channel the recording holds, through the
-        sensor calibration (:attr:`sensor_calibration`, :mod:`sysid.calibration`) when one is set.
+        sensor calibration (:attr:`sensor_calibration`, :mod:`sysid.calibration`) when one is set; with a
+        :attr:`gain_profile` the gains are refitted to this prediction first (and kept as :attr:`sensor_calibration`).
 
         Returns:
             channel -> array shaped like ``evidence.values(channel)``.
         """
         raw = self.predict_raw(trace)
+        if self.gain_profile is not None:  # the gains refitted to this prediction (sysid.gain_profile)
+            out = self.gain_profile(raw)
+            self.sensor_calibration = self.gain_profile.last[0]
+            return out
         if self.sensor_calibration is None:
             return raw
         return self.sensor_calibration.apply(raw, self.marker_rest)

@@ -121,8 +121,12 @@ def _motion_from_labels(m: Mapping[str, Any], contact_z: float) -> motion_mod.Mo
 
 def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: float | None, seed: int,
              motion_kind: str = "press_slide", direction: str | None = None, jitter_frac: float = 0.1,
-             like: Mapping[str, Any] | None = None, log=print, bond_wrench: str = "reference") -> dict[str, Any]:
-    """Simulate and write one recording; returns its labels entry (reference format)."""
+             like: Mapping[str, Any] | None = None, log=print, bond_wrench: str = "reference",
+             short: bool = False, stiction_switch: str = "speed") -> dict[str, Any]:
+    """Simulate and write one recording; returns its labels entry (reference format).
+
+    ``short``: a short press_slide (:data:`benchmarks.mujoco_world.motion.SHORT_PRESS_SLIDE`);
+    ``stiction_switch``: :func:`benchmarks.mujoco_world.world.run`'s (written to the label)."""
     from benchmarks.mujoco_world.bagwrite import write_bag
     from benchmarks.mujoco_world.world import run
 
@@ -141,12 +145,12 @@ def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: floa
             effects = {"latency": {"tactile_latency_s": magnitude}, "lens": {"k1": magnitude},
                        "gel_creep": {"gel_creep_tau_s": magnitude}, "force_bias": {"force_bias": effect_params}}[variant]
     else:
-        motion = (motion_mod.sample_press_slide(rng, contact_z, direction) if motion_kind == "press_slide"
+        motion = (motion_mod.sample_press_slide(rng, contact_z, direction, short) if motion_kind == "press_slide"
                   else motion_mod.sample_lift_fold(rng, contact_z))
         truth = jitter(nominal_truth(scene), rng, jitter_frac)
         truth, effects, effect_params = apply_variant(truth, variant, magnitude, rng)
     log(f"{out_dir.name}: {variant} {magnitude} {motion.kind} {motion.duration_s:.2f}s")
-    rec = run(scene, truth, motion, log=log, bond_wrench=bond_wrench)
+    rec = run(scene, truth, motion, log=log, bond_wrench=bond_wrench, stiction_switch=stiction_switch)
     streams = observe(rec, scene, motion.duration_s, effects, rng)
     out_scene = copy.deepcopy(scene)
     out_scene["dt"] = float(truth["timestep"])
@@ -160,6 +164,8 @@ def generate(out_dir: Path, scene: dict[str, Any], variant: str, magnitude: floa
              "messages": counts, "generator": "benchmarks/mujoco_world (thinshell), MuJoCo 4.0.0"}
     if motion.tack_on_s is not None:
         label["bond_wrench"] = bond_wrench
+    if variant == "stiction":
+        label["stiction_switch"] = stiction_switch
     (out_dir / "label.yaml").write_text(yaml.safe_dump({out_dir.name: label}, sort_keys=False), encoding="utf-8")
     return label
 
@@ -187,6 +193,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--like", help="LABELS.yaml:NAME: re-run that labelled recording's variant, motion and values")
     ap.add_argument("--bond-wrench", default="reference", choices=["reference", "physical"],
                     help="tack bonds in the wrench: the force on the card as the reference records it, or on the gel")
+    ap.add_argument("--short", action="store_true",
+                    help="a short press_slide (2.3-2.7 s: shortest rests, 10-12 mm slide; motion.SHORT_PRESS_SLIDE)")
+    ap.add_argument("--stiction-switch", default="speed", choices=["speed", "load"],
+                    help="static -> kinetic friction when the contact layer moves (speed, the default) or at gross "
+                         "breakaway, the load at the static limit (load); world.py's docstring")
     a = ap.parse_args(argv)
     scene = yaml.safe_load(a.scene.read_text(encoding="utf-8"))
     like = None
@@ -194,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         path, name = a.like.rsplit(":", 1)
         like = yaml.safe_load(Path(path).read_text(encoding="utf-8"))[name]
     generate(a.out_dir, scene, a.variant, a.magnitude, a.seed, a.motion, a.direction, a.jitter, like,
-             bond_wrench=a.bond_wrench)
+             bond_wrench=a.bond_wrench, short=a.short,
+             stiction_switch=a.stiction_switch)
     return 0
 
 

@@ -175,19 +175,29 @@ def lift_fold_like(m: dict[str, Any], contact_z: float, rest0: float = 0.15, tac
     return lift_fold(*args, rests=(rest0, dwell1, hold, tail), tack_lead_s=tack_lead_s, lift_first=m.get("lift_first"))
 
 
-def sample_press_slide(rng: np.random.Generator, contact_z: float, direction: str | None = None) -> Motion:
+SHORT_PRESS_SLIDE = {"length": (0.010, 0.012), "rests": (0.10, 0.30, 0.20, 0.20), "depth": (0.0015, 0.0025),
+                     "height": (0.0035, 0.0040), "v_press": (0.007, 0.008), "v_slide": (0.018, 0.020),
+                     "v_lift": (0.017, 0.019)}
+"""Ranges of a short press_slide (``sample_press_slide(short=True)``, 2.3-2.7 s instead of 3-5 s): the
+shortest rests, approach and fastest speeds of the reference's ranges, and a 10-12 mm slide (past gross
+slip: the patch slides after 1-3 mm at these depths). For a small bundled test recording."""
+
+
+def sample_press_slide(rng: np.random.Generator, contact_z: float, direction: str | None = None,
+                       short: bool = False) -> Motion:
     """A random press_slide in the reference's ranges (labels.yaml of the nine recordings).
 
     Start x 40-72 mm, y -15..17 mm; depth 1-3 mm; slide 13-28 mm along +-x, +-y or a diagonal
     (``direction`` one of ``+x -x +y -y diag``, drawn when None), kept on the card's interior;
-    approach height 3.5-7.5 mm; mean speeds press 4-8, slide 8-20, lift 9-19 mm/s.
+    approach height 3.5-7.5 mm; mean speeds press 4-8, slide 8-20, lift 9-19 mm/s. ``short``: the
+    ranges of :data:`SHORT_PRESS_SLIDE` (rests fixed) instead.
     """
     dirs = {"+x": (1.0, 0.0), "-x": (-1.0, 0.0), "+y": (0.0, 1.0), "-y": (0.0, -1.0)}
     if direction is None:
         direction = str(rng.choice(["+x", "-x", "+y", "-y", "diag"]))
     for _ in range(1000):
         x0, y0 = rng.uniform(0.040, 0.072), rng.uniform(-0.015, 0.017)
-        length = rng.uniform(0.013, 0.028)
+        length = rng.uniform(*SHORT_PRESS_SLIDE["length"]) if short else rng.uniform(0.013, 0.028)
         if direction == "diag":
             ang = rng.uniform(0, 2 * np.pi)
             u = (np.cos(ang), np.sin(ang))
@@ -198,6 +208,11 @@ def sample_press_slide(rng: np.random.Generator, contact_z: float, direction: st
             break
     else:
         raise ValueError(f"no slide {direction} fits on the card")
+    if short:
+        r = SHORT_PRESS_SLIDE
+        return press_slide((x0, y0), rng.uniform(*r["depth"]), (length * u[0], length * u[1]),
+                           rng.uniform(*r["height"]), rng.uniform(*r["v_press"]), rng.uniform(*r["v_slide"]),
+                           rng.uniform(*r["v_lift"]), contact_z, r["rests"])
     rests = (rng.uniform(0.09, 0.16), rng.uniform(0.35, 0.6), rng.uniform(0.25, 0.6), 0.3)
     return press_slide((x0, y0), rng.uniform(0.001, 0.003), (length * u[0], length * u[1]),
                        rng.uniform(0.0035, 0.0075), rng.uniform(0.004, 0.008), rng.uniform(0.008, 0.020),

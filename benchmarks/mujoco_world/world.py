@@ -13,7 +13,14 @@ What is recorded (every ``timestep``, world frame unless said):
 Stiction (static > kinetic gel-card friction): MuJoCo has one Coulomb coefficient per contact,
 so the gel's coefficient is switched before every step: static while the gel's contact layer sticks
 to the card (mean tangential speed of the gel vertices touching the card below ``STICK_SPEED``),
-kinetic once it slips (above ``SLIP_SPEED``), with hysteresis between.
+kinetic once it slips (above ``SLIP_SPEED``), with hysteresis between (``stiction_switch="speed"``,
+the default). Partial slip at the patch's edge brings that mean speed over ``SLIP_SPEED`` long before the
+tangential load nears the static limit, so the load never overshoots its sliding level by much
+(``sysid/diagnose/signatures/friction.py``, "Known limits"). ``stiction_switch="load"`` switches to
+kinetic at gross breakaway instead: once the tangential load on the gel reaches ``SLIP_LOAD_FRACTION`` of
+the static limit ``mu_s F_n``, or the contact layer moves at ``SLIP_CMD_FRACTION`` of the command's
+tangential speed (at least ``SLIP_GROSS_SPEED``); it sticks again below ``STICK_SPEED``. That is the
+textbook stick-slip (the load rises to ``mu_s F_n`` and falls to ``mu_k F_n`` at breakaway).
 
 Tack (lift_fold, :mod:`benchmarks.mujoco_world.tack`): at ``tack_on_s`` every candidate bond whose
 card vertex lies under the gel footprint is re-anchored at the current relative position and
@@ -41,6 +48,15 @@ SLIP_SPEED = 2.0e-3
 STICK_SPEED = 0.5e-3
 """... and below which it sticks again (static friction), m/s."""
 
+SLIP_LOAD_FRACTION = 0.97
+"""``stiction_switch="load"``: kinetic once the tangential load reaches this fraction of ``mu_s F_n``."""
+
+SLIP_CMD_FRACTION, SLIP_GROSS_SPEED = 0.5, 5.0e-3
+"""``stiction_switch="load"``: ... or once the contact layer's mean tangential speed exceeds this fraction of the
+command's tangential speed and this speed (m/s): gross slip where the load saturates below the fraction."""
+
+STICTION_SWITCHES = ("speed", "load")
+
 PEEL_SUBSTEPS = 2
 """From the peel on, each recorded step is this many MuJoCo steps of ``timestep / PEEL_SUBSTEPS``: the
 release of the stretched bonds is a stiff transient that the 1 ms step does not integrate here
@@ -66,16 +82,20 @@ class Recording:
 
 
 def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=print, probe=None,
-        bond_wrench: str = "reference") -> Recording:
+        bond_wrench: str = "reference", stiction_switch: str = "speed") -> Recording:
     """Simulate ``motion`` in the world of ``scene`` with the true values ``truth`` (labels' ``mujoco``).
 
     ``bond_wrench``: how the tack bonds enter the wrench (``tack.BOND_WRENCH_CONVENTIONS``).
 
     ``probe(k, t, model, data)``, when given, is called after every step (diagnostics).
+    ``stiction_switch``: when the gel's friction passes from static to kinetic (module docstring).
 
     Raises:
         RuntimeError: the simulation produced a non-finite state.
+        ValueError: an unknown ``stiction_switch``.
     """
+    if stiction_switch not in STICTION_SWITCHES:
+        raise ValueError(f"stiction_switch must be one of {STICTION_SWITCHES}, got {stiction_switch!r}")
     tack = (tack_mod.tack_candidates(scene, motion.start[:2], gel_bottom_rest(scene))
             if motion.tack_on_s is not None else [])
     model = mujoco.MjModel.from_xml_string(build_mjcf(scene, truth, motion.start, tack))
@@ -137,7 +157,15 @@ def run(scene: Mapping[str, Any], truth: Mapping[str, Any], motion: Motion, log=
             touching = gel_now[:, 2] < contact_z + CONTACT_BAND + 2e-4
             if prev_gel is not None and touching.any():
                 speed = np.linalg.norm((gel_now[touching, :2] - prev_gel[touching, :2]).mean(axis=0)) / dt
-                new = speed > SLIP_SPEED if not slipping else speed > STICK_SPEED
+                if slipping:
+                    new = speed > STICK_SPEED
+                elif stiction_switch == "speed":
+                    new = speed > SLIP_SPEED
+                else:
+                    v_cmd = np.linalg.norm(cmd[k, :2] - cmd[max(k - 1, 0), :2]) / dt
+                    f_t, f_n = np.linalg.norm(rec_w[k, :2]), abs(rec_w[k, 2])
+                    new = bool(f_t >= SLIP_LOAD_FRACTION * mu_s * f_n > 0.0
+                               or speed > max(SLIP_CMD_FRACTION * v_cmd, SLIP_GROSS_SPEED))
                 n_switch += int(new != slipping)
                 slipping = new
             elif not touching.any():

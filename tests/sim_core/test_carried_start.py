@@ -127,7 +127,8 @@ def test_a_pad_moved_in_the_air_takes_one_newton_iteration_and_reaches_the_same_
     x_plain, plain = _probe_run(False)
     x_carried, carried = _probe_run(True)
     moves = slice(0, None, 2)
-    assert [i.iterations for i in plain[moves]] == [3] * 8
+    # from x^n: 4 iterations on the default gel's four layers (3 on the two-layer mesh before session 51)
+    assert [i.iterations for i in plain[moves]] == [4] * 8
     assert [i.iterations for i in carried[moves]] == [1] * 8
     assert all(i.converged_strict for i in plain + carried)
     tol = SolverConfig().tol_velocity * 0.005  # m: the Newton tolerance over the scene's 5 ms step

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from sim_core.control import Control
+from sim_core.series_drive import SeriesSpringDrive
+from sim_core.transforms import quat_to_matrix
 from sim_core.scenes import load_scene
 from sim_core.simulation import Simulation
 from sysid.bagio import BagWriter
@@ -53,11 +55,24 @@ def targets_from_segments(start: np.ndarray, segments=PRESS_SLIDE) -> np.ndarray
     return np.array(out)
 
 
-def simulate_streams(scene: dict, params: dict, targets: np.ndarray) -> dict[str, np.ndarray]:
-    """Noise-free streams of a replay: stamps (ns), poses, markers xyz / uv, wrench, sheet points."""
+def simulate_streams(scene: dict, params: dict, targets: np.ndarray,
+                     drive: tuple[float, float] | None = None) -> dict[str, np.ndarray]:
+    """Noise-free streams of a replay: stamps (ns), poses, markers xyz / uv, wrench, sheet points.
+
+    ``drive``: ``(k_s N/m, c N s/m)`` of an impedance-controlled arm (:class:`sim_core.series_drive.SeriesSpringDrive`
+    along the sensor's +z, solved to 1e-6 N): the targets are its commands (``pose_cmd``) and ``pose`` is where
+    the pad went; None: a kinematic arm (``pose`` = ``pose_cmd``).
+    """
     sim = Simulation(load_scene(scene), dt=scene["dt"])
     for k, v in params.items():
         sim.set_parameter(k, v)
+    spring = None
+    if drive is not None:
+        sensor = sim.model.sensors["tactile"]
+        spring = SeriesSpringDrive("ee", drive[0], sim.model.bodies[sensor.gel_body].vertices, force_tolerance=1e-6,
+                                   damping=drive[1], max_evaluations=40)
+        axis = quat_to_matrix(targets[0][3:7]) @ quat_to_matrix(sensor.mount[3:7]) @ np.array([0.0, 0.0, 1.0])
+        carried = (0.0, 0.0)
     rows = []
 
     def observe() -> None:
@@ -67,7 +82,11 @@ def simulate_streams(scene: dict, params: dict, targets: np.ndarray) -> dict[str
 
     observe()
     for target in targets:
-        sim.step(Control({"ee": target}))
+        if spring is None:
+            sim.step(Control({"ee": target}))
+        else:
+            step = spring.step(sim, Control({"ee": target}), axis, start=carried[0], contact_slope=carried[1])
+            carried = (step.compression, step.contact_slope)
         observe()
     n = len(rows)
     t_ns = np.arange(n, dtype=np.int64) * int(round(scene["dt"] * 1e9))

@@ -152,23 +152,23 @@ def test_calibrations_are_bounded_by_a_replay_count_not_by_seconds(capsys):
     assert "--calibration-secant-replays must be >= 0" in capsys.readouterr().err
 
 
-def test_diagnose_takes_the_drive_by_default_and_sysid_on_request():
+def test_diagnose_and_sysid_take_the_drive_by_default():
     """``thinshell diagnose`` (signatures engine) asks the calibration for the arm's drive by default (the data
     then choose it, :func:`sysid.drive_calibration.fit_drive`), replays the recorded pose kinematically with
-    ``--no-drive``, and takes a calibration budget that steps through the drive (its Jacobian by finite
-    differences); ``thinshell sysid`` takes the drive with ``--drive`` (off by default: ``FitOptions.drive``)."""
+    ``--no-drive``, and takes a calibration budget that steps through the drive; so does ``thinshell sysid``
+    (``FitOptions.drive``; its Jacobian analytic through the drive, tests/sysid/test_sysid_drive.py)."""
     from sysid.cli import build_parser as sysid_parser, fit_options
     from sysid.diagnose.cli import build_parser as diagnose_parser, signature_settings
     from sysid.diagnose.signature_engine import SignatureSettings
     from sysid.fit_recording import FitOptions
 
-    assert SignatureSettings().calibration_drive and not FitOptions().drive
+    assert SignatureSettings().calibration_drive and FitOptions().drive
     assert signature_settings(diagnose_parser().parse_args(["bag"])).calibration_drive
     assert signature_settings(diagnose_parser().parse_args(["bag", "--drive"])).calibration_drive
     assert not signature_settings(diagnose_parser().parse_args(["bag", "--no-drive"])).calibration_drive
     stepping = signature_settings(diagnose_parser().parse_args(["bag", "--calibration-replays", "4"]))
     assert stepping.calibration_drive and stepping.calibration_max_replays == 4
-    assert not fit_options(sysid_parser().parse_args(["bag"])).drive
+    assert fit_options(sysid_parser().parse_args(["bag"])).drive
     assert fit_options(sysid_parser().parse_args(["bag", "--drive"])).drive
     assert not fit_options(sysid_parser().parse_args(["bag", "--no-drive"])).drive
-    assert "--no-drive" in diagnose_parser().format_help()
+    assert "--no-drive" in diagnose_parser().format_help() and "--no-drive" in sysid_parser().format_help()

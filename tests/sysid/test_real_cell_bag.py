@@ -158,7 +158,10 @@ def _assert_close(a, b, where=""):
 
 
 def test_sysid_and_diagnose_answer_the_same_on_both(bags, tmp_path, capsys):
-    fast = [*CHEAP, "5,4,2", "--params", "gel.youngs_modulus", "--max-nfev", "3", "--quiet"]
+    # --fixed-gains: with the gains refitted at every replay (the default), six steps of 50 ms leave the gel modulus
+    # to the marker scales (robust sigma ~3e12 Pa, so its digits past the sixth are round-off of a near-singular
+    # covariance); held, the two bags' fits agree to 1e-7 as the evidence does
+    fast = [*CHEAP, "5,4,2", "--params", "gel.youngs_modulus", "--max-nfev", "3", "--quiet", "--fixed-gains"]
     assert sysid_main([str(bags / "plain"), "--out", str(tmp_path / "fp"), *fast]) == 0
     assert sysid_main([str(bags / "cell"), "--out", str(tmp_path / "fc"), *fast]) == 0
     prov = json.loads((tmp_path / "fc" / "fit.json").read_text())["provenance"]

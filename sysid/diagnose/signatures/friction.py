@@ -69,18 +69,19 @@ during a tested slide, the fold formed while sliding: the breakaway is the sheet
 effect size is 0 (the result's ``reason`` and ``detail["sheet_yield"]`` say so). Stiction and
 plasticity together on one slide toward a clamped edge are then read as plasticity alone.
 
-A yield is also read while it happens, without a released window (a kept fold that still touches
-the lifted pad leaves none): past the breakaway's decay (:data:`TAU_MAX_S` after its peak) to the
-slide's end, the sheet's crest (its highest point) rises by at least the resolvable set while the
-tangential load falls with it. A card carried by the pad that buckles elastically passes a load
-that stays at or above its buckling load as the fold grows (the elastica's post-buckling branch);
-a card that yields passes what its plastic hinge resists, ``M_p`` over the fold's lever arm, which
-falls as the fold rises; friction at the kinetic level follows the normal load and not the fold.
-The mean marker shear and the normal force are each regressed on the crest's height over that
-part of the slide (:func:`load_against_fold`); the yield is read where the shear's relative fall
-over the crest's rise exceeds the normal force's by :data:`RESOLVABLE_SIGMAS` standard deviations
-of the difference (each from its regression's residual dispersion, which takes in the tactile
-roughness of a sliding contact beyond the white noise model).
+A yield is also read while it happens, without a released window (a kept fold that still touches the
+lifted pad leaves none; where the recording does release the sheet and it keeps no resolvable set,
+:func:`released_flat`, the sheet did not yield and this reading is not made): past the breakaway's
+decay (:data:`TAU_MAX_S` after its peak) to the slide's end, the sheet's crest (its highest point)
+rises by at least the resolvable set while the tangential load falls with it. A card carried by the
+pad that buckles elastically passes a load that stays at or above its buckling load as the fold
+grows (the elastica's post-buckling branch); a card that yields passes what its plastic hinge
+resists, ``M_p`` over the fold's lever arm, which falls as the fold rises; friction at the kinetic
+level follows the normal load and not the fold. The mean marker shear and the normal force are each
+regressed on the crest's height over that part of the slide (:func:`load_against_fold`); the yield
+is read where the shear's relative fall over the crest's rise exceeds the normal force's by
+:data:`RESOLVABLE_SIGMAS` standard deviations of the difference (each from its regression's residual
+dispersion, which takes in the tactile roughness of a sliding contact beyond the white noise model).
 
 Sensitivity: on the reference engine's stiction recording (static/kinetic 1.66, an overshoot of the
 mean marker shear 42 um or 5.6 % above the sliding line at its peak) the test names the breakaway with
@@ -99,7 +100,9 @@ it through press, stick and breakaway to 0.5 marker-noise sigmas (RMS over the m
 difference; the calibrated replay's own gap there is 7.5-7.8 sigmas); where the static coefficient
 comes back at the slide's end or during it, the twins part by 1.2-3.9 sigmas while sliding and after,
 as a tangential load a few per cent higher, which a kinetic coefficient a few per cent higher gives
-as well (docs/benchmarks_log.md, sessions 37 and 41). Tactile latency or creep on top of stiction
+as well (docs/benchmarks_log.md, sessions 37 and 41). Switched at gross breakaway instead
+(``generate --stiction-switch load``) the breakaway shows, and is named on 0/3, 1/3, 2/3 and 3/3 press-slides
+at 1.1, 1.25, 1.45 and 1.7 (session 51). Tactile latency or creep on top of stiction
 delays the shear against the pose, so the window starts on the shear's rise and the decay is not found.
 """
 
@@ -676,6 +679,27 @@ def load_against_fold(rec: Recording, fit: dict) -> dict | None:
             "window_s": [float(tm[m][0]), float(tm[m][-1])]}
 
 
+def released_flat(rec: Recording) -> dict | None:
+    """Whether the recording shows the sheet released and without a permanent set: the plasticity test reads
+    a released window (:func:`sysid.diagnose.signatures.sheet.plasticity_test` applicable) and finds a set
+    under :func:`sysid.diagnose.signatures.sheet.resolvable_set`. A sheet that yielded keeps its fold, so a
+    tangential load that fell while a fold rose during the slide was not the sheet yielding there
+    (:func:`falling_load_yield` reads the yield only where no released window tells; module docstring,
+    "Sheet yield").
+
+    Returns:
+        None when the recording has no released window to read or keeps a resolvable set; else
+        ``{"set_m", "resolvable_m"}``.
+    """
+    if not rec.predicted("sheet_points") or "sheet_points" not in rec.sigma:
+        return None
+    r = plasticity_test(rec)
+    floor = resolvable_set(rec)
+    if not r.applicable or r.effect_size >= floor:
+        return None
+    return {"set_m": float(r.effect_size), "resolvable_m": float(floor)}
+
+
 def falling_load_yield(rec: Recording, fits: list[dict]) -> dict | None:
     """Whether the tangential load fell as the sheet's fold rose past a breakaway's decay (module
     docstring, "Sheet yield"): the crest rose by at least
@@ -733,13 +757,16 @@ def stiction_test(rec: Recording) -> SignatureResult:
     detail = {"breakaways": events, "resolvable_excess": RESOLVABLE_SIGMAS * float(best["excess_sigma"])}
     reason = ""
     yielded = sheet_yield(rec, fits) if size > 0.0 else None
-    falling = falling_load_yield(rec, fits) if size > 0.0 and yielded is None else None
+    flat = released_flat(rec) if size > 0.0 and yielded is None else None
+    falling = falling_load_yield(rec, fits) if size > 0.0 and yielded is None and flat is None else None
     if yielded is not None:
         detail["sheet_yield"] = yielded
         set_mm = 1e3 * yielded["set_m"]
         size, reason = 0.0, (f"the sheet folded for good while sliding (its set of {set_mm:.3g} mm rose "
                              f"{1e3 * yielded['rise_m']:.3g} mm during the slide): the tangential load's drop is the "
                              "sheet yielding, not static friction")
+    elif flat is not None:
+        detail["sheet_released_flat"] = flat
     elif falling is not None:
         detail["sheet_yield"] = falling
         size, reason = 0.0, (f"the tangential load kept falling as the sheet's fold rose after the breakaway "

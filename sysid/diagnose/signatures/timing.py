@@ -381,6 +381,19 @@ def timing_size(events: list[dict], key: str) -> float:
     return float(min(press_sizes(events, key)))
 
 
+def explained_share(sse0: float, sse_fit: float, samples: float) -> float:
+    """Share of the event windows' excess energy ``sse0 - samples`` (whitened SSE beyond the noise's
+    expectation) that a fit removes, ``(sse0 - sse_fit) / (sse0 - samples)``, in [0, 1]: a fit that removes more
+    than the excess (the noise's share included) explains all of it, and where the windows hold no excess
+    (``sse0 <= samples``) the share is 1 if the fit removes anything (the statistic, not this share, then
+    decides) and 0 otherwise (session 51: it read 1e11-1e13 there, the excess floored at 1e-12)."""
+    removed = max(float(sse0) - float(sse_fit), 0.0)
+    excess = float(sse0) - float(samples)
+    if removed <= 0.0:
+        return 0.0
+    return float(min(removed / excess, 1.0)) if excess > 0.0 else 1.0
+
+
 def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
     """The latency and the gel viscoelasticity results from one set of :func:`timing_fits`."""
     fits = timing_fits(rec)
@@ -394,10 +407,10 @@ def timing_tests(rec: Recording) -> tuple[SignatureResult, SignatureResult]:
     windows = [e["window_s"] for e in ev]
     delays = np.array([e["delay_s"] for e in ev])
     lag_taus = np.array([e["lag_tau_s"] for e in ev])
-    excess = max(fits["sse0"] - fits["samples"], 1e-12)
     detail = {"channel": fits["channel"], "events": ev, "samples": fits["samples"], "sse0": fits["sse0"],
-              "explained_delay": float((fits["sse0"] - fits["sse_delay"]) / excess),
-              "explained_lag": float((fits["sse0"] - fits["sse_lag"]) / excess), "sse_delay": fits["sse_delay"],
+              "explained_delay": explained_share(fits["sse0"], fits["sse_delay"], fits["samples"]),
+              "explained_lag": explained_share(fits["sse0"], fits["sse_lag"], fits["samples"]),
+              "sse_delay": fits["sse_delay"],
               "sse_lag": fits["sse_lag"],
               # shape: the paired z, > 0 when the first-order lag fits the events better than a pure delay
               "shape_z": fits["shape_z"], "shape_z_blocks": fits["shape_z_blocks"]}

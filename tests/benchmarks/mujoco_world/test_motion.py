@@ -77,3 +77,13 @@ def test_sampled_slides_stay_on_the_card_and_refuse_bad_moves():
         assert 0.001 <= m.params["depth"] <= 0.003
     with pytest.raises(ValueError, match="positive length and speed"):
         mm.press_slide((0.05, 0.0), 0.002, (0.0, 0.0), 0.004, 0.008, 0.02, 0.01, 3.0e-4)
+
+
+def test_a_short_press_slide_keeps_the_shortest_rests_and_slides_past_gross_slip():
+    for seed in range(6):
+        m = mm.sample_press_slide(np.random.default_rng(seed), 3.0e-4, None, short=True)
+        assert 2.2 < m.duration_s < 2.8  # the bundled CI recording: 2.42 s (tests/data/mujoco_world)
+        assert 0.010 <= np.hypot(*m.params["slide"]) <= 0.012
+        assert 0.0015 <= m.params["depth"] <= 0.0025
+        end = m.command(m.duration_s)
+        assert 0.035 <= end[0] <= 0.085 and -0.018 <= end[1] <= 0.018

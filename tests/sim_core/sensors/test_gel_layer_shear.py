@@ -19,10 +19,11 @@ from sim_core.indentation import build_indentation
 from sim_core.mesh.sheet import TriMesh
 from sim_core.mesh.tet import tet_box
 from sim_core.model import ContactSettings
+from sim_core.scenes.tactile_scene import default_gel_resolution
 
 GEL = (0.0186, 0.0143, 0.004)  # m, the reference scenes' gel_size
 E, NU = 3.0e5, 0.45
-DEFAULT_RESOLUTION = (10, 8, 3)  # sim_core.scenes.tactile_scene's rule for a 2 mm marker pitch
+DEFAULT_RESOLUTION = tuple(default_gel_resolution(GEL, 0.002))  # the scene's default mesh at a 2 mm marker pitch
 
 
 def test_the_default_gel_shears_as_a_bonded_layer():

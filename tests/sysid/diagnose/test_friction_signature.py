@@ -25,8 +25,8 @@ import pytest
 from sysid.diagnose.signature_engine import refit_stiction
 from sysid.diagnose.signatures import Recording, run_signature_tests
 from sysid.diagnose.signatures.base import normal_force
-from sysid.diagnose.signatures.friction import (breakaway_fits, breakaways, friction_ratio, load_against_fold,
-                                                marker_shear, resolvable_excess, stiction_test)
+from sysid.diagnose.signatures.friction import (breakaway_fits, breakaways, falling_load_yield, friction_ratio,
+                                                load_against_fold, marker_shear, resolvable_excess, stiction_test)
 from sysid.diagnose.signatures.null import decide, default_thresholds
 
 SIGMA = {"markers_xyz": np.array([15e-6, 15e-6, 20e-6]), "markers_uv": np.array([0.15, 0.15]),
@@ -436,7 +436,8 @@ def test_own_simulator_stribeck_friction_named_and_coulomb_silent():
     assert named == {0.0: [], 0.5: ["stiction"]}
 
 
-def slide_then_lift(rng: np.random.Generator, mu_s: float, fold: float) -> Recording:
+def slide_then_lift(rng: np.random.Generator, mu_s: float, fold: float, limit=None,
+                    springs_back: bool = False) -> Recording:
     """:func:`press_slide` with a released start and end, the tracked sheet and a replay.
 
     The gel is loaded from 0.5 s to 2.6 s (the slide runs 1.0-2.2 s); outside that the wrench reads
@@ -444,9 +445,10 @@ def slide_then_lift(rng: np.random.Generator, mu_s: float, fold: float) -> Recor
     ``fold`` ahead of the pad: it rises with the slide's travel and stays after the lift (a card that
     yields). The replay is the same contact with a flat, elastic sheet. With ``fold > 0`` the load's
     rise and fall at slide onset (``mu_s > mu_k`` of the stick-slip law) is the card's yield load
-    falling to what its growing fold resists.
+    falling to what its growing fold resists. ``limit``: :func:`stick_slip`'s; ``springs_back``: the fold
+    is gone once the gel lets go (an elastic card).
     """
-    rec = press_slide(rng, mu_s)
+    rec = press_slide(rng, mu_s, limit=limit)
     tw, tm = rec.t["wrench"], rec.t["markers_xyz"]
     loaded_w, loaded_m = (tw >= 0.5) & (tw <= 2.6), (tm >= 0.5) & (tm <= 2.6)
     w = rec.data["wrench"].copy()
@@ -459,6 +461,8 @@ def slide_then_lift(rng: np.random.Generator, mu_s: float, fold: float) -> Recor
     sheet_pred = np.repeat(sheet0[None], len(tm), axis=0)
     sheet = sheet_pred.copy()
     growth = np.clip((tm - 1.0) / 1.2, 0.0, 1.0)                     # the slide's travel, 0 -> 1
+    if springs_back:
+        growth[~loaded_m & (tm > 2.6)] = 0.0
     ahead = np.abs(sheet0[:, 0] - 0.075) < 0.01
     sheet[:, ahead, 2] += fold * growth[:, None]
     sigma = dict(SIGMA, sheet_points=np.array([5e-5, 5e-5, 5e-5]))
@@ -489,6 +493,30 @@ def test_a_breakaway_beside_a_sheet_that_returns_flat_stays_stiction():
     results = run_signature_tests(rec)
     assert results["stiction"].estimate["static_over_kinetic"] == pytest.approx(1.8, rel=0.1)
     assert "sheet_yield" not in results["stiction"].detail
+    assert decide(results, default_thresholds(rec)).explained_by == ["stiction"]
+
+
+def test_a_load_that_falls_as_a_fold_rises_on_a_card_released_flat_stays_stiction():
+    """Own MuJoCo world, stiction_s619 (static/kinetic 1.45, switched at gross breakaway, session 51): the
+    breakaway was resolved (statistic 246, excess 0.22) but read as the card yielding, because the shear fell
+    by 4 % as the card's crest rose 2.6 mm while sliding; after the lift the card kept no set (0.045 mm, the
+    resolvable set 0.5 mm), so it had not yielded. The same here: the load falls with a rising fold after a
+    static-friction breakaway, and the fold is gone once the gel lets go."""
+    mu_s = 1.5 * MU_K
+
+    def falling(t: float, t_b: float) -> float:  # the load falls as the fold rises (growth from 1.0 s to 2.2 s)
+        rise = 0.008 * (min(max((t - 1.0) / 1.2, 0.0), 1.0) - min(max((t_b - 1.0) / 1.2, 0.0), 1.0))
+        return MU_K * F_N * FOLD_LEVER_M / (FOLD_LEVER_M + rise)
+
+    rec = slide_then_lift(np.random.default_rng(21), mu_s, fold=0.008, limit=falling, springs_back=True)
+    results = run_signature_tests(rec)
+    r = results["stiction"]
+    plastic = results["bending_plasticity"]
+    assert plastic.applicable and not plastic.detected  # released, and flat again
+    fits = breakaway_fits(rec)
+    assert falling_load_yield(rec, fits) is not None  # without the released window it would read as a yield
+    assert "sheet_yield" not in r.detail and r.detail["sheet_released_flat"]["set_m"] < 1e-4
+    assert r.effect_size > 0.2
     assert decide(results, default_thresholds(rec)).explained_by == ["stiction"]
 
 

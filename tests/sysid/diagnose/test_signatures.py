@@ -613,3 +613,18 @@ def test_force_bias_refit_holds_out_blocks_of_the_free_rows(seed):
     assert fit["heldout_rms_after"] < 1.3
     assert fit["params"]["offset_Fz"] + fit["params"]["drift_Fz_per_s"] * (0.0 - fit["params"]["t_ref_s"]) == \
         pytest.approx(3.0 * s[2] + 0.8 * s[2] * np.sin(1.0), abs=1.0 * s[2])
+
+
+def test_the_explained_share_of_the_event_windows_excess_stays_a_share():
+    """Session 51 (own MuJoCo world, 8 of 18 recordings without creep): where the windows' whitened SSE is below
+    its sample count the share read 1e11-1e13 (the excess floored at 1e-12); it is a share in [0, 1]."""
+    from sysid.diagnose.signatures.timing import explained_share
+
+    assert explained_share(300.0, 200.0, 100.0) == pytest.approx(0.5)
+    assert explained_share(300.0, 50.0, 100.0) == 1.0          # removes the noise's share too: all of the excess
+    assert explained_share(90.0, 89.0, 100.0) == 1.0           # no excess: whatever it removes is all of it
+    assert explained_share(90.0, 90.0, 100.0) == 0.0
+    for seed in range(4):                                      # a recording without a timing effect
+        lat, visco = timing_tests(synthetic(np.random.default_rng(seed)))
+        for r, key in ((lat, "explained_delay"), (visco, "explained_lag")):
+            assert 0.0 <= r.detail[key] <= 1.0
