@@ -23,6 +23,12 @@
    prediction error on the deployed run and the task reward achieved on the robot against the predicted
    ones (``<run>/task/``).
 
+Stages that need nothing of the diagnosis or the fit run beside them, in four phases: the robot; the
+diagnosis (a ``thinshell diagnose`` subprocess, ``<run>/diagnose.log``) beside the deployment and the task's
+identification run (:func:`thinshell_ros.demo_task.start_task_stages`); the fit; the comparison (a
+``thinshell compare`` subprocess, ``<run>/compare.log``) beside the rest of the task stage. Each phase's
+wall and CPU seconds are in ``demo.json`` (``phases``, :mod:`thinshell_ros.demo_clock`).
+
 ``<run>/report.md`` links every step and reveals the hidden values; ``<run>/demo.json`` keeps the
 timings, message counts, fit summary, deploy status and the comparison. ``<run>`` is
 ``<out>/<YYYYmmdd-HHMMSS>`` (``--out`` default ``demo_out``); nothing is overwritten without
@@ -51,10 +57,12 @@ from sysid.cli import sysid_main
 from sysid.compare import compare_main
 from sysid.diagnose.cli import diagnose_main
 from sysid.fitted_scene import scene_with_values
+from thinshell_ros.demo_clock import BackgroundTool, Phase
 from thinshell_ros.demo_loop import (CONCEALED, HIDDEN, deploy_trajectory_from_bag, log_tail, rms_table,
                                      robot_noise_args, run_deploy_stage, start_sim_node, stop_process,
                                      write_hidden_scene)
-from thinshell_ros.demo_task import SHARED, TASK_HIDDEN, TaskStageResult, TaskStageSettings, run_task_stages
+from thinshell_ros.demo_task import (SHARED, TASK_HIDDEN, TaskStageResult, TaskStageSettings, finish_task_stages,
+                                     start_task_stages)
 from thinshell_ros.paths import DEFAULT_BAG, bundled_scene
 
 
@@ -102,7 +110,7 @@ FULL = DemoSettings(
     deploy_motion={"depth": 5.0e-4, "slide": 0.008, "release": 5.0e-4, "approach_speed": 0.04, "press_speed": 0.005,
                    "slide_speed": 0.02, "hold": 0.1},
     compare_args=("--dt", "0.01"),
-    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 6 gradient steps
+    # Forming at its 50 steps; the sheet's bending stiffness from the reference run (4 replays); 5 gradient steps
     task=TaskStageSettings())
 QUICK = DemoSettings(
     motion={"depth": 3.0e-4, "slide": 0.001, "release": 2.0e-4, "approach_speed": 0.08, "press_speed": 0.005,
@@ -133,6 +141,8 @@ class DemoResult:
         deploy: the deploy node's final status.
         compare_out: the comparison report directory; comparison: its ``compare.json``.
         task: the task stage's outputs (:class:`thinshell_ros.demo_task.TaskStageResult`).
+        phases: the run's phases in order (:class:`thinshell_ros.demo_clock.Phase`: wall and CPU s of the
+            stages that ran in each, side by side where several).
     """
 
     run_dir: Path
@@ -151,6 +161,7 @@ class DemoResult:
     compare_out: Path | None = None
     comparison: dict[str, Any] | None = None
     task: TaskStageResult | None = None
+    phases: list[Phase] = field(default_factory=list)
 
 
 def make_run_dir(out: Path, force: bool, stamp: str | None = None) -> Path:
@@ -319,10 +330,26 @@ def run_sysid_stage(run: Path, settings: DemoSettings, bag: Path, console: Any, 
     result.fit = summarise_fit(out)
 
 
+def diagnose_command(run: Path, settings: DemoSettings, bag: Path) -> list[str]:
+    """``thinshell diagnose``'s arguments in the demo (``<run>/diagnosis.json``)."""
+    return [str(bag), *settings.diagnose_args, "--json", str(run / "diagnosis.json")]
+
+
+def start_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, console: Any) -> BackgroundTool:
+    """Stage 2a started as a subprocess (``thinshell diagnose``, its output in ``<run>/diagnose.log``), to
+    run beside the stages that do not need it; :func:`run_diagnose_stage` with ``started`` waits for it."""
+    tool = BackgroundTool("diagnose", diagnose_command(run, settings, bag), run / "diagnose.log")
+    console.print(f"[bold]2/6 diagnose[/bold] (in the background, log {tool.log}): {tool.command}")
+    return tool
+
+
 def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Path, console: Any,
-                       result: DemoResult) -> Path:
+                       result: DemoResult, started: BackgroundTool | None = None) -> Path:
     """Stage 2a: ``thinshell diagnose`` on ``bag``; the named effects' refitted terms are written into a copy
     of ``nominal`` (``<run>/diagnosed_scene.yaml``), the scene the fit starts from.
+
+    ``started``: the diagnosis already running in the background (:func:`start_diagnose_stage`), waited for
+    here; None: it runs here, in this process.
 
     Returns:
         the scene the fit starts from (``nominal`` when nothing was named).
@@ -331,13 +358,20 @@ def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Pa
         ThinShellError: the diagnosis failed.
     """
     out = run / "diagnosis.json"
-    args = [str(bag), *settings.diagnose_args, "--json", str(out)]
-    console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
-    t0 = time.monotonic()
-    code = diagnose_main(args)
-    result.timings["diagnose_s"] = time.monotonic() - t0
+    if started is None:
+        args = diagnose_command(run, settings, bag)
+        console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
+        t0 = time.monotonic()
+        code = diagnose_main(args)
+        result.timings["diagnose_s"] = time.monotonic() - t0
+    else:
+        code = started.wait()
+        result.timings["diagnose_s"] = started.wall_s
+        if started.cpu_s is not None:
+            result.timings["diagnose_cpu_s"] = started.cpu_s
     if code != 0:
-        raise ThinShellError(f"thinshell diagnose exited with code {code}")
+        raise ThinShellError(f"thinshell diagnose exited with code {code}"
+                             + (f" (log {started.log}):\n{started.log_tail()}" if started is not None else ""))
     doc = json.loads(out.read_text())
     named = list(doc.get("explained_by") or [])
     refit = (doc.get("refit") or {}).get("params") or {}
@@ -354,11 +388,12 @@ def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Pa
     return result.diagnosed_scene
 
 
-def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult) -> None:
-    """Stages 3-5: trajectory file, deployment on the robot (recorded), comparison fitted vs nominal.
+def run_deploy_stages(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult) -> None:
+    """Stages 4-5: the trajectory file (planned from the recording's start) and its deployment on the
+    robot (recorded). They need nothing of the diagnosis or the fit.
 
     Raises:
-        ThinShellError: a stage failed.
+        ThinShellError: the deployment did not complete.
     """
     result.trajectory = deploy_trajectory_from_bag(result.recorded_bag, nominal, run / "trajectory.yaml",
                                                    settings.deploy_motion)
@@ -372,15 +407,47 @@ def run_loop_stages(run: Path, settings: DemoSettings, nominal: Path, console: A
     result.timings["deploy_s"] = time.monotonic() - t0
     if result.deploy["state"] != "completed":
         raise ThinShellError(f"the deployment {result.deploy['state']}: {result.deploy['reason']}")
+
+
+def compare_command(run: Path, settings: DemoSettings, nominal: Path, result: DemoResult) -> list[str]:
+    """``thinshell compare``'s arguments in the demo: the deployed run, fitted vs nominal, into ``<run>/compare``."""
     result.compare_out = run / "compare"
-    args = [str(result.deployed_bag), "--scene", str(result.fitted_scene), "--scene-nominal", str(nominal),
+    return [str(result.deployed_bag), "--scene", str(result.fitted_scene), "--scene-nominal", str(nominal),
             "--label", "fitted", "--out", str(result.compare_out), *settings.compare_args]
-    console.print(f"[bold]6/6 compare[/bold]: thinshell compare {' '.join(args)}")
-    t0 = time.monotonic()
-    code = compare_main(args)
-    result.timings["compare_s"] = time.monotonic() - t0
+
+
+def start_compare_stage(run: Path, settings: DemoSettings, nominal: Path, console: Any,
+                        result: DemoResult) -> BackgroundTool:
+    """Stage 6 started as a subprocess (``thinshell compare``, output in ``<run>/compare.log``), to run beside
+    the task stage; :func:`run_compare_stage` with ``started`` waits for it."""
+    tool = BackgroundTool("compare", compare_command(run, settings, nominal, result), run / "compare.log")
+    console.print(f"[bold]6/6 compare[/bold] (in the background, log {tool.log}): {tool.command}")
+    return tool
+
+
+def run_compare_stage(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult,
+                      started: BackgroundTool | None = None) -> None:
+    """Stage 6: ``thinshell compare`` replays the deployed run in the fitted and the nominal scene
+    (``<run>/compare``); ``started``: the comparison already running (:func:`start_compare_stage`), waited
+    for here; None: it runs here.
+
+    Raises:
+        ThinShellError: the comparison failed.
+    """
+    if started is None:
+        args = compare_command(run, settings, nominal, result)
+        console.print(f"[bold]6/6 compare[/bold]: thinshell compare {' '.join(args)}")
+        t0 = time.monotonic()
+        code = compare_main(args)
+        result.timings["compare_s"] = time.monotonic() - t0
+    else:
+        code = started.wait()
+        result.timings["compare_s"] = started.wall_s
+        if started.cpu_s is not None:
+            result.timings["compare_cpu_s"] = started.cpu_s
     if code != 0:
-        raise ThinShellError(f"thinshell compare exited with code {code}")
+        raise ThinShellError(f"thinshell compare exited with code {code}"
+                             + (f" (log {started.log}):\n{started.log_tail()}" if started is not None else ""))
     doc = json.loads((result.compare_out / "compare.json").read_text())
     result.comparison = {"rms": rms_table(doc), "better": doc["better"]}
 
@@ -506,14 +573,38 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     run = make_run_dir(Path(out), force)
     result = DemoResult(run_dir=run, recorded_bag=run / "recorded_bag")
     console.rule(f"thinshell demo{' --quick' if quick else ''}: {run}")
+    phase = Phase("robot", ("robot",))
     run_robot_stage(run, settings, scene, mode, console, result)
+    result.phases.append(phase.stop())
     fit_bag = Path(bag) if bag else result.recorded_bag
     start = scene
-    if settings.diagnose_args is not None:
-        start = run_diagnose_stage(run, settings, fit_bag, scene, console, result)
+    # the diagnosis (a subprocess) beside the robot runs that need no fit: the deployment and the task's
+    # identification run (their robots' start-ups and DDS waits leave the cores to the diagnosis)
+    diagnosed = settings.diagnose_args is not None
+    phase = Phase(("diagnose | " if diagnosed else "") + "deploy, task identification run",
+                  ("diagnose", "deploy", "task_id_run") if diagnosed else ("deploy", "task_id_run"))
+    diagnosis = start_diagnose_stage(run, settings, fit_bag, console) if diagnosed else None
+    try:
+        run_deploy_stages(run, settings, scene, console, result)
+        task = start_task_stages(run, settings.task, HIDDEN, console)
+        if diagnosis is not None:
+            start = run_diagnose_stage(run, settings, fit_bag, scene, console, result, started=diagnosis)
+    finally:
+        if diagnosis is not None:
+            diagnosis.stop()
+    result.phases.append(phase.stop())
+    phase = Phase("sysid", ("sysid",))
     run_sysid_stage(run, settings, fit_bag, console, result, nominal=start)
-    run_loop_stages(run, settings, scene, console, result)
-    result.task = run_task_stages(run, settings.task, (result.fit or {}).get("params", {}), HIDDEN, console)
+    result.phases.append(phase.stop())
+    # the comparison of the deployed run (a subprocess) beside the task's fit, optimisation and deployment
+    phase = Phase("compare | task", ("compare", "task_sysid", "task_optimise", "task_deploy", "task_compare"))
+    comparison = start_compare_stage(run, settings, scene, console, result)
+    try:
+        result.task = finish_task_stages(task, settings.task, (result.fit or {}).get("params", {}), console)
+        run_compare_stage(run, settings, scene, console, result, started=comparison)
+    finally:
+        comparison.stop()
+    result.phases.append(phase.stop())
     result.timings.update(result.task.timings)
     result.timings["total_s"] = time.monotonic() - t0
     hidden = {**HIDDEN, **CONCEALED}
@@ -527,7 +618,8 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
                "deployed_bag": str(result.deployed_bag), "deploy": result.deploy,
                "compare_out": str(result.compare_out), "comparison": result.comparison, "task": task_summary(result.task),
                "report": str(report),
-               "timings_s": {k: round(v, 2) for k, v in result.timings.items()}}
+               "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
+               "phases": {ph.name: ph.as_dict() for ph in result.phases}}
     (run / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
     console.rule("done")
     for name, value in (result.fit or {}).get("params", {}).items():
@@ -557,8 +649,10 @@ def run_demo(out: Path, force: bool = False, quick: bool = False, mode: str = "f
     stages = [("robot", t.get("sim_start_s", 0) + t.get("motion_s", 0)), ("diagnose", t.get("diagnose_s")),
               ("sysid", t.get("sysid_s", 0)), ("deploy", t.get("deploy_s", 0)), ("compare", t.get("compare_s", 0)),
               ("task", sum(v for k, v in t.items() if k.startswith("task_")))]
-    console.print(f"  wall time:     {t['total_s']:.1f} s ("
+    console.print(f"  wall time:     {t['total_s']:.1f} s (stages: "
                   + ", ".join(f"{name} {sec:.1f} s" for name, sec in stages if sec is not None) + ")")
+    console.print("  phases:        " + "; ".join(f"{ph.name} {ph.wall_s:.1f} s wall, {ph.cpu_s:.1f} CPU s"
+                                                   for ph in result.phases))
     return result
 
 

@@ -140,7 +140,8 @@ def deploy_trajectory_from_bag(bag: Path, nominal: Path, out: Path, motion: Mapp
 
 def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: Path, log_path: Path,
                      timeout: float, console: Any, limits: Mapping[str, float] | None = None,
-                     settle: float = 0.0, require_wrench: bool = True) -> dict[str, Any]:
+                     settle: float = 0.0, require_wrench: bool = True,
+                     robot_args: Sequence[str] = ()) -> dict[str, Any]:
     """Start the robot (sim node on the hidden scene, ``fast`` mode, recording into ``bag``), deploy
     ``trajectory`` on it with the deploy node in sim time, stop the robot (SIGINT closes the bag).
 
@@ -168,7 +169,7 @@ def run_deploy_stage(hidden_scene: Path, nominal: Path, trajectory: Path, bag: P
     t0 = time.monotonic()
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    proc = start_sim_node(hidden_scene, bag, nominal, log_path, extra_args=robot_noise_args(seed=2))
+    proc = start_sim_node(hidden_scene, bag, nominal, log_path, extra_args=[*robot_noise_args(seed=2), *robot_args])
     node = executor = None
     try:
         node = DeployNode(context=ctx, parameter_overrides=[

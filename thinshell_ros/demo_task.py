@@ -7,6 +7,9 @@ sheet towards a target shape) with hidden values: the gel modulus of the tactile
 (:data:`thinshell_ros.demo_loop.HIDDEN`, the same gel) and a sheet of another bending stiffness than
 the task's nominal one (:data:`TASK_HIDDEN`, a sheet the tactile stage never touched). Stages:
 
+``thinshell demo`` runs stage 2's robot run (:func:`start_task_stages`) beside the tactile diagnosis: it
+needs nothing of the tactile fit; the rest follows the fit (:func:`finish_task_stages`).
+
 1. **Carry**: the tactile fit's shared values (:data:`SHARED`: the gel modulus, fitted by the tactile
    stage) are written into the task's nominal scene: ``<run>/task/start_scene.yaml``.
 2. **Identify**: the task's reference (human-designed) trajectory is deployed on the task robot by
@@ -69,6 +72,12 @@ TASK_DEPLOY_LIMITS = {"max_linear_speed": 0.25, "max_angular_speed": 5.0, "max_l
 """The task cell's deploy limits: ThinShellLab's tasks move the dome up to 1 mm per 5 ms step (0.2 m/s)."""
 
 
+TASK_ROBOT_ARGS = ("-p", "settle_steps_max:=0")
+"""``--ros-args`` of the task robot (sim node): no start-up settling. The task's hairpin sheet does not come to
+rest within the node's 400-step cap (it is still moving at 1.5 mm/s), so the node settled for 400 Forming
+steps (45 s at load 11) and then started from the scene's own state anyway; the optimiser's rollouts and
+``thinshell compare --task`` start from that state too (:class:`sim_core.optim.episode.Episode` does not settle)."""
+
 SETTLE = 0.05
 """s of robot (sim) time the task robot keeps running after the last command: the state it produced is
 recorded (the reward is measured there, :mod:`sysid.task_reward`)."""
@@ -90,7 +99,7 @@ class TaskStageSettings:
     task: str = TASK
     horizon: int | None = None
     sysid_args: tuple[str, ...] = ("--params", "sheet.bending_stiffness", "--max-nfev", "4")
-    episodes: int = 6
+    episodes: int = 5
     optimise_args: tuple[str, ...] = ("--method", "gd")
     compare_args: tuple[str, ...] = ()
     timeout: float = 300.0
@@ -188,7 +197,9 @@ def recorded_reward(task: Any, bag: Path) -> float:
 
 def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[str, float],
                     hidden_gel: Mapping[str, float], console: Any) -> TaskStageResult:
-    """Stages 1-5 of the module docstring in ``<run>/task``.
+    """Stages 1-5 of the module docstring in ``<run>/task``: :func:`start_task_stages` (the identification
+    run, which needs no fit) then :func:`finish_task_stages` (``thinshell demo`` runs the first beside the
+    tactile diagnosis).
 
     Args:
         run: the demo's run directory.
@@ -200,31 +211,60 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     Raises:
         ThinShellError: a stage failed (a tool's exit code, a deployment that did not complete).
     """
+    res = start_task_stages(run, settings, hidden_gel, console)
+    return finish_task_stages(res, settings, fit_params, console)
+
+
+def start_task_stages(run: Path, settings: TaskStageSettings, hidden_gel: Mapping[str, float],
+                      console: Any) -> TaskStageResult:
+    """Stage 2's robot run (module docstring) in ``<run>/task``: the task scenes written, the task's
+    reference trajectory deployed on the task robot and recorded. It needs nothing of the tactile fit
+    (the robot's gel is hidden; the reference is rolled out in the nominal scene).
+
+    Raises:
+        ThinShellError: the reference is infeasible or the identification run did not complete.
+    """
     out = run / "task"
     out.mkdir()
     task = task_at_horizon(settings.task, settings.horizon)
     hidden = {**carried_values(hidden_gel), **TASK_HIDDEN}
     nominal, hidden_scene = write_task_scenes(task, out, hidden)
     res = TaskStageResult(nominal_scene=nominal, hidden_scene=hidden_scene)
-    res.carried = carried_values(fit_params)
-    res.start_scene = _write_scene(out / "start_scene.yaml", scene_with_values(task.scene, res.carried),
-                                   f"task {task.name}'s scene with the values carried from the tactile fit {res.carried}")
-    console.print(f"[bold]task 1/5 carry[/bold]: {task.name}, robot gel from the tactile fit {res.carried} -> "
-                  f"{res.start_scene}")
     limits = {**TASK_DEPLOY_LIMITS, "rate": 1.0 / task.dt}
 
     t0 = time.monotonic()
     res.reference_trajectory = reference_trajectory(task, out / "reference_trajectory.yaml", nominal)
     res.id_bag = out / "id_bag"
-    console.print(f"[bold]task 2/5 identify[/bold]: the reference trajectory deployed on the task robot, recording "
-                  f"into {res.id_bag}")
+    console.print(f"[bold]task 1/5 identification run[/bold]: {task.name}'s reference trajectory deployed on the task robot, "
+                  f"recording into {res.id_bag}")
     res.id_deploy = run_deploy_stage(hidden_scene, nominal, res.reference_trajectory, res.id_bag, out / "robot_id.log",
                                      settings.timeout, console, limits=limits,
-                                     settle=SETTLE, require_wrench=False)
+                                     settle=SETTLE, require_wrench=False, robot_args=TASK_ROBOT_ARGS)
     if res.id_deploy["state"] != "completed":
         raise ThinShellError(f"the identification run {res.id_deploy['state']}: {res.id_deploy['reason']}")
     res.id_reward = recorded_reward(task, res.id_bag)
     res.timings["task_id_run_s"] = time.monotonic() - t0
+    return res
+
+
+def finish_task_stages(res: TaskStageResult, settings: TaskStageSettings, fit_params: Mapping[str, float],
+                       console: Any) -> TaskStageResult:
+    """Stages 1 and 2's fit to 5 (module docstring) after :func:`start_task_stages`: the tactile fit's
+    shared values carried into the task scene, the sheet fitted from the identification run, the task
+    optimised on the fitted scene, deployed on the task robot and compared.
+
+    Raises:
+        ThinShellError: a stage failed (a tool's exit code, a deployment that did not complete).
+    """
+    out = res.nominal_scene.parent
+    task = task_at_horizon(settings.task, settings.horizon)
+    nominal, hidden_scene = res.nominal_scene, res.hidden_scene
+    limits = {**TASK_DEPLOY_LIMITS, "rate": 1.0 / task.dt}
+    res.carried = carried_values(fit_params)
+    res.start_scene = _write_scene(out / "start_scene.yaml", scene_with_values(task.scene, res.carried),
+                                   f"task {task.name}'s scene with the values carried from the tactile fit {res.carried}")
+    console.print(f"[bold]task 2/5 carry and fit[/bold]: {task.name}, robot gel from the tactile fit {res.carried} -> "
+                  f"{res.start_scene}")
 
     from thinshell_ros.sysid_node import summarise_fit  # optional heavy dependency: ROS 2 nodes (rclpy)
 
@@ -258,7 +298,7 @@ def run_task_stages(run: Path, settings: TaskStageSettings, fit_params: Mapping[
     t0 = time.monotonic()
     res.deploy = run_deploy_stage(hidden_scene, nominal, res.trajectory, res.deployed_bag, out / "robot_deploy.log",
                                   settings.timeout, console, limits=limits,
-                                  settle=SETTLE, require_wrench=False)
+                                  settle=SETTLE, require_wrench=False, robot_args=TASK_ROBOT_ARGS)
     res.timings["task_deploy_s"] = time.monotonic() - t0
     if res.deploy["state"] != "completed":
         raise ThinShellError(f"the task deployment {res.deploy['state']}: {res.deploy['reason']}")

@@ -171,6 +171,14 @@ def test_quick_demo_records_a_bag_and_writes_a_sysid_report(ros_env, tmp_path):
     assert {"report.html", "report.md"} <= {p.name for p in (run / "sysid").iterdir()}
     summary = json.loads((run / "demo.json").read_text())
     assert summary["message_counts"] == counts and summary["timings_s"]["total_s"] > 0
+    # the phases (thinshell_ros.demo_clock): the deployment and the task's identification run beside the
+    # diagnosis (none with --quick), the comparison beside the task; each with its wall and CPU seconds
+    phases = summary["phases"]
+    assert list(phases) == ["robot", "deploy, task identification run", "sysid", "compare | task"]
+    assert phases["compare | task"]["stages"][0] == "compare" and "task_optimise" in phases["compare | task"]["stages"]
+    assert all(ph["cpu_s"] > 0 and ph["wall_s"] > 0 for ph in phases.values()), phases
+    assert sum(ph["wall_s"] for ph in phases.values()) <= summary["timings_s"]["total_s"]
+    assert (run / "compare.log").is_file() and summary["timings_s"]["compare_cpu_s"] > 0
     # the loop: the recording states the nominal scene, the robot ran the hidden one
     from sim_core.scenes.scene_file import load_scene_file
     from sim_core.simulation import Simulation

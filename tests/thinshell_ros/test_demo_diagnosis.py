@@ -17,7 +17,7 @@ import json
 import pytest
 
 from sysid.diagnose.candidates import EFFECTS
-from thinshell_ros.demo import FULL, DemoResult, run_diagnose_stage, run_robot_stage
+from thinshell_ros.demo import FULL, DemoResult, run_diagnose_stage, run_robot_stage, start_diagnose_stage
 from thinshell_ros.paths import bundled_scene
 
 # a robot run (about 15 s) and the score stage's diagnosis over the whole library (619 s at load 8-9 on the
@@ -32,7 +32,10 @@ def test_demo_diagnosis_names_the_hidden_gel_viscoelasticity_with_a_heldout_gain
     scene = bundled_scene()
     result = DemoResult(run_dir=tmp_path, recorded_bag=tmp_path / "recorded_bag")
     run_robot_stage(tmp_path, FULL, scene, "fast", console, result)
-    start = run_diagnose_stage(tmp_path, FULL, result.recorded_bag, scene, console, result)
+    # as the demo runs it: a `thinshell diagnose` subprocess in the background, waited for
+    started = start_diagnose_stage(tmp_path, FULL, result.recorded_bag, console)
+    start = run_diagnose_stage(tmp_path, FULL, result.recorded_bag, scene, console, result, started=started)
+    assert started.wait() == 0 and result.timings["diagnose_cpu_s"] > 0 and started.log.is_file()
 
     doc = json.loads((tmp_path / "diagnosis.json").read_text())
     assert doc["extra"]["pipeline"]["stage"] == "score", doc["extra"]["pipeline"]

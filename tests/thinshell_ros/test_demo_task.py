@@ -22,6 +22,29 @@ from thinshell_ros.demo_task import TASK_HIDDEN, TaskStageSettings, carried_valu
 TINY = TaskStageSettings(horizon=10, episodes=1, sysid_args=("--params", "sheet.bending_stiffness", "--max-nfev", "2"))
 
 
+def test_the_task_robot_starts_from_the_scene_state_as_it_would_after_the_nodes_settling(tmp_path):
+    """The task robot runs with ``settle_steps_max:=0`` (TASK_ROBOT_ARGS): the sim node's start-up settling
+    (its cap, the solver it builds) does not bring the Forming sheet to rest and puts it back to the scene's
+    own state, the state the optimiser's rollouts and the task replays start from; off, it starts there at
+    once instead of after 400 Forming steps."""
+    from sim_core.optim.tasks import task_at_horizon
+    from sim_core.settle import settle
+    from sim_core.simulation import Simulation
+    from sim_core.solver_config import SolverConfig
+    from thinshell_ros.demo_task import TASK_ROBOT_ARGS, write_task_scenes
+    from thinshell_ros.sim_node import DEFAULT_SETTLE_STEPS_MAX
+
+    assert TASK_ROBOT_ARGS == ("-p", "settle_steps_max:=0")
+    _, hidden = write_task_scenes(task_at_horizon("forming", None), tmp_path, {**carried_values(HIDDEN), **TASK_HIDDEN})
+    sim = Simulation.from_scene(hidden, solver_config=SolverConfig(repeat_fixed_points=True, sleeping=True,
+                                                                   carried_start=True))
+    x_file = sim.state.x.copy()
+    info = settle(sim, DEFAULT_SETTLE_STEPS_MAX)
+    assert not info.settled and info.steps == DEFAULT_SETTLE_STEPS_MAX, info
+    assert info.displacement > 1e-4, info       # the sheet keeps moving (0.02 m after 400 steps)
+    assert np.array_equal(sim.state.x, x_file) and not np.any(sim.state.v) and sim.state.step_index == 0
+
+
 def test_carried_values_map_the_tactile_gel_onto_the_task_dome():
     assert carried_values({"gel.youngs_modulus": 4.1e5, "friction.gel_sheet": 0.6}) == {"dome.youngs_modulus": 4.1e5}
     assert carried_values({"friction.gel_sheet": 0.6}) == {}
