@@ -328,3 +328,32 @@ def model_robust_covariance(model: "ObservationModel", J: np.ndarray, r: np.ndar
                              model.channels)
     return robust_covariance(method, J, r, times, residual_bin_s(model), seed=seed)
 
+
+def not_identified(specs: Sequence[Any], values: Mapping[str, float],
+                   sigma_robust: Mapping[str, float] | None) -> tuple[str, ...]:
+    """The positive parameters that a recording does not identify: those whose robust 2-sigma interval
+    ``value +- 2 sigma_robust`` (as the reports print it) reaches zero. The data then leave even the size of
+    the parameter open, and the fitted value is where the optimiser stopped along a direction the residual
+    barely sees, not a measurement.
+
+    Args:
+        specs: the fitted parameters (:class:`sim_core.parameter_coordinates.ParameterSpec`; only those searched
+            in a log coordinate, positive by definition, are judged).
+        values: fitted value per name.
+        sigma_robust: robust 1-sigma per name (:func:`model_robust_covariance`), or None (nothing is judged).
+
+    Returns:
+        The names, in ``specs`` order.
+    """
+    if not sigma_robust:
+        return ()
+    return tuple(s.name for s in specs if s.log and s.name in sigma_robust
+                 and values[s.name] - 2.0 * sigma_robust[s.name] <= 0.0)
+
+
+def not_identified_note(name: str, value: float, sigma_robust: float) -> str:
+    """The warning for a parameter of :func:`not_identified`: its interval and what a user can do."""
+    return (f"{name} is not identified by this recording: its robust 2-sigma interval {value:.4g} +- "
+            f"{2.0 * sigma_robust:.3g} reaches zero, so the fitted value is where the fit stopped along a direction "
+            "the data barely see, not a measurement; keep the data-sheet value (leave it out of --params) or "
+            "record a motion that loads it")

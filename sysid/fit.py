@@ -43,7 +43,7 @@ from scipy.stats import qmc
 
 from sim_core.errors import CalibrationError, ConfigError, SimulationDivergedError
 from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovariance, model_robust_covariance,
-                              nuisance_covariance)
+                              not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
@@ -367,6 +367,8 @@ class FitResult:
         sigma_scale: channel -> the factor on its noise level in the fit's residual
             (``reweight_channels``), or None.
         sigma_robust: 1-sigma per parameter in its units from :attr:`robust` (None when not computed).
+        not_identified: the positive parameters whose robust 2-sigma interval reaches zero
+            (:func:`sysid.covariance.not_identified`); each has a line in ``warnings``.
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
     """
@@ -406,6 +408,7 @@ class FitResult:
     model: ObservationModel | None = None
     sigma_scale: dict[str, float] | None = None
     sigma_robust: dict[str, float] | None = None
+    not_identified: tuple[str, ...] = ()
     robust: RobustCovariance | None = None
 
 
@@ -780,6 +783,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
+    unidentified = not_identified(specs, values, sigma_robust)
+    notes.extend(not_identified_note(n, values[n], sigma_robust[n]) for n in unidentified)
     return FitResult(
         names=names, specs=tuple(specs), initial=start, values=values, sigma=sigma, sigma_log=sigma_log,
         sigma_scaled=scaled, covariance_u=cov, correlation=corr, cost_initial=cost0, cost_final=cost_best,
@@ -789,7 +794,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         sim_time_s=problem.sim_time_s, wall_time_s=time.perf_counter() - t0, status=status, message=message,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
-        sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov,
+        sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov, not_identified=unidentified,
     )
 
 

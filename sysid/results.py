@@ -6,7 +6,10 @@ Schema ``thinshell.sysid.fit`` version 1::
       "schema": "thinshell.sysid.fit", "schema_version": 1,
       "fit": {
         "parameters": {name: {"initial", "value", "sigma", "sigma_scaled", "sigma_robust", "sigma_log",
-                              "space": "log"|"linear", "lower", "upper"}},
+                              "space": "log"|"linear", "lower", "upper",
+                              "identified": false where the robust 2-sigma interval of a positive parameter
+                                            reaches zero (sysid.covariance.not_identified), else true; null
+                                            without a robust sigma or for a linear-coordinate parameter}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
         "robust": {"method": "hac"|"block_bootstrap"|"hac+nuisance"|..., "lag_bins", "lag_s", "bin_s", "bins",
@@ -115,6 +118,8 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
             "sigma_scaled": result.sigma_scaled[n] if result.sigma_scaled else None,
             "sigma_robust": (getattr(result, "sigma_robust", None) or {}).get(n),
             "sigma_log": (result.sigma_log or {}).get(n), "space": "log" if spec.log else "linear",
+            "identified": (None if not getattr(result, "sigma_robust", None) or not spec.log
+                           else n not in getattr(result, "not_identified", ())),
             "lower": spec.lower, "upper": spec.upper,
         }
     corr = None

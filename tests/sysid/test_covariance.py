@@ -140,3 +140,19 @@ def test_nuisance_shift_is_exact_for_a_linear_model_and_its_covariance_is_the_pr
     np.testing.assert_allclose(cov, np.outer(A[:, 0], A[:, 0]) * 0.25 ** 2, rtol=1e-12)
     with pytest.raises(CalibrationError, match="nuisance Jacobian"):
         nuisance_covariance(-X, -z[:, None], np.array([0.25, 0.1]))
+
+
+def test_a_positive_parameter_whose_robust_interval_reaches_zero_is_not_identified() -> None:
+    """``value - 2 sigma_robust <= 0`` marks a log-coordinate parameter; a linear one (an offset, which may be
+    negative) is never judged, and nothing is without a robust sigma."""
+    from sim_core.parameter_coordinates import ParameterSpec
+    from sysid.covariance import not_identified, not_identified_note
+
+    specs = [ParameterSpec("a", 1.0, True, 1e-3, 1e3), ParameterSpec("b", 1.0, True, 1e-3, 1e3),
+             ParameterSpec("c", 0.0, False, -1.0, 1.0)]
+    values = {"a": 0.1, "b": 2.0, "c": 0.01}
+    assert not_identified(specs, values, {"a": 0.05, "b": 0.99, "c": 1.0}) == ("a",)   # 0.1 - 0.1 reaches 0
+    assert not_identified(specs, values, {"a": 0.049, "b": 1.0, "c": 1.0}) == ("b",)
+    assert not_identified(specs, values, None) == ()
+    note = not_identified_note("a", 0.1, 0.05)
+    assert note.startswith("a is not identified") and "0.1 +- 0.1" in note

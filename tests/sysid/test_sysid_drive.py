@@ -113,3 +113,7 @@ def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_pe
     # the bending stiffness: its Jacobian column is about 1/400 of the modulus' here (a 6 mm slide that does not
     # buckle the card), so the recording does not tell it; the fit says so by an interval wider than the value
     assert params["sheet.bending_stiffness"]["sigma_robust"] > 0.5 * TRUE_PARAMS["sheet.bending_stiffness"]
+    # ... and names it: not identified (its robust 2-sigma interval reaches zero), with a warning; the others are
+    assert params["sheet.bending_stiffness"]["identified"] is False
+    assert any(w.startswith("sheet.bending_stiffness is not identified") for w in doc["diagnostics"]["warnings"])
+    assert all(params[n]["identified"] is True for n in FITTED if n != "sheet.bending_stiffness")
