@@ -287,7 +287,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
         sr = (result.sigma_robust or {}).get(name)
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
               + (f" +- {s:.3g} (Gauss-Newton)" if s is not None else "")
-              + (f" +- {sr:.3g} ({method})" if sr is not None else ""))
+              + (f" +- {sr:.3g} ({method})" if sr is not None else "")
+              + (" NOT IDENTIFIED (robust 2-sigma interval reaches zero)" if name in result.not_identified else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
     print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "

@@ -116,4 +116,5 @@ def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_pe
     # ... and names it: not identified (its robust 2-sigma interval reaches zero), with a warning; the others are
     assert params["sheet.bending_stiffness"]["identified"] is False
     assert any(w.startswith("sheet.bending_stiffness is not identified") for w in doc["diagnostics"]["warnings"])
+    assert "NOT IDENTIFIED" in next(l for l in captured.out.splitlines() if "sheet.bending_stiffness:" in l)
     assert all(params[n]["identified"] is True for n in FITTED if n != "sheet.bending_stiffness")
