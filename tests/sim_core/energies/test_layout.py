@@ -19,7 +19,7 @@ ENERGIES = ("neohookean", "membrane", "hinge_bending", "kirchhoff_bending", "con
             "inertia", "gravity", "sphere_contact")
 ROOT = Path(sim_core.energies.__file__).parent
 SHARED_TAICHI = {"__init__", "buffers", "launch", "linalg", "block_projection", "broad_phase", "hash_grid",
-                 "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "transfer",
+                 "hash_candidates", "sweep_candidates", "pair_filters", "pcg", "band_cholesky", "envelope_cholesky", "transfer",
                  "copy_vectors", "device_copy", "displacement_bounds", "compaction", "scan", "precision"}
 
 
