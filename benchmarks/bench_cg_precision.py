@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 
 import numpy as np
 
@@ -29,7 +28,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--projection", default="clamp", help="the contact blocks' projection: clamp or none")
     args = ap.parse_args()
-    from parts_lockstep import third_step  # (benchmarks/, the script's folder)
+    from parts_lockstep import newton_system, synced_median_ms  # (benchmarks/, the script's folder)
 
     from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
     from sim_core.batch.sheet_bands import sheet_band_dofs
@@ -38,24 +37,12 @@ def main() -> int:
     from sim_core.ti_kernels.pcg import BatchedPCG
 
     init_backend(args.arch)
-    solver, step, x = third_step(args.B, args.arch)
-    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
-    operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
+    solver, step, x, operator, dof_copy = newton_system(args.B, args.arch, args.projection)
     scene = solver.scene
-    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
-    segments[scene.index] = np.arange(scene.copies)[:, None]
-    dof_copy = np.repeat(segments, 3)
     b = np.random.default_rng(0).normal(size=dof_copy.size) * step.free
 
     def timed(fn) -> float:
-        times = []
-        for _ in range(args.repeat):
-            ti.sync()
-            t = time.perf_counter()
-            fn()
-            ti.sync()
-            times.append(time.perf_counter() - t)
-        return 1e3 * float(np.median(times))
+        return synced_median_ms(fn, args.repeat)
 
     solutions, reference = {}, None
     variants = {"double": ("double", None), "mixed": ("mixed", None), "mixed/band64": ("mixed", ti.f64),

@@ -34,29 +34,21 @@ def main() -> int:
     ap.add_argument("--layouts", default="sheet,copy,copy+contacts")
     ap.add_argument("--precision", default="mixed")
     args = ap.parse_args()
-    from parts_lockstep import third_step  # (benchmarks/, the script's folder)
+    from parts_lockstep import newton_rhs, newton_system, synced_median_ms  # (benchmarks/, the script's folder)
 
     from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
     from sim_core.batch.sheet_bands import copy_band_dofs, sheet_band_dofs
-    from sim_core.step_info import StepInfo
     from sim_core.ti_backend import init_backend, ti
     from sim_core.ti_kernels.band_cholesky import BandBlocks
     from sim_core.ti_kernels.pcg import BatchedPCG
 
     init_backend(args.arch)
     t0 = time.perf_counter()
-    solver, step, x = third_step(args.B, args.arch)
+    solver, step, x, operator, dof_copy = newton_system(args.B, args.arch, args.projection)
     print(f"set-up {time.perf_counter() - t0:.1f} s", flush=True)
-    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
-    operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
     blocks = operator[1]
     scene = solver.scene
-    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
-    segments[scene.index] = np.arange(scene.copies)[:, None]
-    dof_copy = np.repeat(segments, 3)
-    g = solver._stacked_gradient(step, solver._vectors.start(x), StepInfo())[2]
-    g = g if isinstance(g, np.ndarray) else g.to_numpy()
-    b = -np.asarray(g, dtype=np.float64).reshape(-1) * step.free
+    b = newton_rhs(solver, step, x)
     rtol = LOCKSTEP_CG_RTOL if args.rtol is None else args.rtol
     pairs = np.zeros((0, 2), dtype=np.int64)  # the contact and friction elements' vertex pairs
     for verts, _ in (blocks.sets or []) if blocks is not None else []:
@@ -68,17 +60,7 @@ def main() -> int:
                "copy+contacts": lambda: copy_band_dofs(scene, step.free, operator[0][0], operator[0][1], pairs)}
 
     def timed(fn, before=()) -> float:
-        """Median ms of ``fn`` (``before``'s calls made first, untimed, each time)."""
-        times = []
-        for _ in range(args.repeat):
-            for call in before:
-                call()
-            ti.sync()
-            t = time.perf_counter()
-            fn()
-            ti.sync()
-            times.append(time.perf_counter() - t)
-        return 1e3 * float(np.median(times))
+        return synced_median_ms(fn, args.repeat, before)
 
     reference = None
     b_norm = np.sqrt(np.bincount(dof_copy, weights=b * b))
@@ -100,8 +82,7 @@ def main() -> int:
                 x1 = x + xs.reshape(x.shape)
                 terms1 = solver.contact.potentials(x1, step.x_n, step.memory)
                 operator1 = solver._device_operator(step, x1, args.projection, terms1 + step.dynamic_terms)
-                g1 = solver._stacked_gradient(step, solver._vectors.start(x1), StepInfo())[2]
-                b1 = -np.asarray(g1 if isinstance(g1, np.ndarray) else g1.to_numpy()).reshape(-1) * step.free
+                b1 = newton_rhs(solver, step, x1)
                 pcg.factorize(*operator1, keep_bands=True)
                 pcg.solve(b1)
                 kept = pcg.iterations

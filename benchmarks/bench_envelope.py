@@ -34,39 +34,24 @@ def main() -> int:
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
                     help="also float32 factors with two refinements (at the first --lanes)")
     args = ap.parse_args()
-    from parts_lockstep import third_step  # (benchmarks/, the script's folder)
+    from parts_lockstep import newton_rhs, newton_system, synced_median_ms  # (benchmarks/, the script's folder)
 
     from sim_core.batch.lockstep import LOCKSTEP_CG_RTOL
     from sim_core.batch.sheet_bands import sheet_band_dofs
-    from sim_core.step_info import StepInfo
-    from sim_core.ti_backend import init_backend, ti
+    from sim_core.ti_backend import init_backend
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
     from sim_core.ti_kernels.pcg import BatchedPCG
 
     init_backend(args.arch)
     t0 = time.perf_counter()
-    solver, step, x = third_step(args.B, args.arch)
+    solver, step, x, operator, dof_copy = newton_system(args.B, args.arch, args.projection)
     print(f"set-up {time.perf_counter() - t0:.1f} s", flush=True)
-    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
-    operator = solver._device_operator(step, x, args.projection, contact_terms + step.dynamic_terms)
     scene = solver.scene
-    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
-    segments[scene.index] = np.arange(scene.copies)[:, None]
-    dof_copy = np.repeat(segments, 3)
-    g = solver._stacked_gradient(step, solver._vectors.start(x), StepInfo())[2]
-    g = g if isinstance(g, np.ndarray) else g.to_numpy()
-    b = -np.asarray(g, dtype=np.float64).reshape(-1) * step.free
+    b = newton_rhs(solver, step, x)
     b_norm = np.sqrt(np.bincount(dof_copy, weights=b * b))
 
     def timed(fn) -> float:
-        times = []
-        for _ in range(args.repeat):
-            ti.sync()
-            t = time.perf_counter()
-            fn()
-            ti.sync()
-            times.append(time.perf_counter() - t)
-        return 1e3 * float(np.median(times))
+        return synced_median_ms(fn, args.repeat)
 
     reference = BatchedPCG(dof_copy, rtol=1e-10, precision="double")
     reference.factorize(*operator)

@@ -60,6 +60,45 @@ def third_step(B: int, arch: str):
     return solver, step, x
 
 
+def newton_system(B: int, arch: str, projection: str):
+    """``(solver, step, x, operator, dof_copy)``: :func:`third_step`, its Newton matrix as the batched solver's
+    device operator (contact blocks projected by ``projection``: ``clamp`` or ``none``), and each DoF's copy
+    (shape ``(3 n,)``, int32)."""
+    solver, step, x = third_step(B, arch)
+    contact_terms = solver.contact.potentials(x, step.x_n, step.memory)
+    operator = solver._device_operator(step, x, projection, contact_terms + step.dynamic_terms)
+    scene = solver.scene
+    segments = np.zeros(scene.model.vertex_count, dtype=np.int32)
+    segments[scene.index] = np.arange(scene.copies)[:, None]
+    return solver, step, x, operator, np.repeat(segments, 3)
+
+
+def newton_rhs(solver, step, x) -> np.ndarray:
+    """The Newton step's right-hand side ``-g`` at ``x`` on the free DoFs, float64, shape ``(3 n,)``."""
+    from sim_core.step_info import StepInfo
+
+    g = solver._stacked_gradient(step, solver._vectors.start(x), StepInfo())[2]
+    g = g if isinstance(g, np.ndarray) else g.to_numpy()
+    return -np.asarray(g, dtype=np.float64).reshape(-1) * step.free
+
+
+def synced_median_ms(fn, repeat: int, before=()) -> float:
+    """Median ms of ``fn`` over ``repeat`` calls, the device synchronised around each (``before``'s calls made
+    first, untimed, each time)."""
+    from sim_core.ti_backend import ti
+
+    times = []
+    for _ in range(repeat):
+        for call in before:
+            call()
+        ti.sync()
+        t = time.perf_counter()
+        fn()
+        ti.sync()
+        times.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(times))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--arch", default="cpu")

@@ -46,7 +46,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import yaml
 
@@ -358,20 +358,8 @@ def run_diagnose_stage(run: Path, settings: DemoSettings, bag: Path, nominal: Pa
         ThinShellError: the diagnosis failed.
     """
     out = run / "diagnosis.json"
-    if started is None:
-        args = diagnose_command(run, settings, bag)
-        console.print(f"[bold]2/6 diagnose[/bold]: thinshell diagnose {' '.join(args)}")
-        t0 = time.monotonic()
-        code = diagnose_main(args)
-        result.timings["diagnose_s"] = time.monotonic() - t0
-    else:
-        code = started.wait()
-        result.timings["diagnose_s"] = started.wall_s
-        if started.cpu_s is not None:
-            result.timings["diagnose_cpu_s"] = started.cpu_s
-    if code != 0:
-        raise ThinShellError(f"thinshell diagnose exited with code {code}"
-                             + (f" (log {started.log}):\n{started.log_tail()}" if started is not None else ""))
+    _tool_stage("diagnose", "2/6 diagnose", lambda: diagnose_command(run, settings, bag), diagnose_main, started,
+                console, result)
     doc = json.loads(out.read_text())
     named = list(doc.get("explained_by") or [])
     refit = (doc.get("refit") or {}).get("params") or {}
@@ -425,6 +413,31 @@ def start_compare_stage(run: Path, settings: DemoSettings, nominal: Path, consol
     return tool
 
 
+def _tool_stage(tool: str, title: str, argv: Callable[[], list[str]], tool_main: Callable[[list[str]], int],
+                started: BackgroundTool | None, console: Any, result: DemoResult) -> None:
+    """Run ``thinshell TOOL`` in this process (``started`` None: its arguments from ``argv()``, printed under
+    ``title``) or wait for it where it already runs in the background; its wall (and, from the background, CPU)
+    seconds into ``result.timings`` as ``TOOL_s`` (``TOOL_cpu_s``).
+
+    Raises:
+        ThinShellError: the tool exited with a non-zero code (named, with the background log's tail).
+    """
+    if started is None:
+        args = argv()
+        console.print(f"[bold]{title}[/bold]: thinshell {tool} {' '.join(args)}")
+        t0 = time.monotonic()
+        code = tool_main(args)
+        result.timings[f"{tool}_s"] = time.monotonic() - t0
+    else:
+        code = started.wait()
+        result.timings[f"{tool}_s"] = started.wall_s
+        if started.cpu_s is not None:
+            result.timings[f"{tool}_cpu_s"] = started.cpu_s
+    if code != 0:
+        raise ThinShellError(f"thinshell {tool} exited with code {code}"
+                             + (f" (log {started.log}):\n{started.log_tail()}" if started is not None else ""))
+
+
 def run_compare_stage(run: Path, settings: DemoSettings, nominal: Path, console: Any, result: DemoResult,
                       started: BackgroundTool | None = None) -> None:
     """Stage 6: ``thinshell compare`` replays the deployed run in the fitted and the nominal scene
@@ -434,20 +447,8 @@ def run_compare_stage(run: Path, settings: DemoSettings, nominal: Path, console:
     Raises:
         ThinShellError: the comparison failed.
     """
-    if started is None:
-        args = compare_command(run, settings, nominal, result)
-        console.print(f"[bold]6/6 compare[/bold]: thinshell compare {' '.join(args)}")
-        t0 = time.monotonic()
-        code = compare_main(args)
-        result.timings["compare_s"] = time.monotonic() - t0
-    else:
-        code = started.wait()
-        result.timings["compare_s"] = started.wall_s
-        if started.cpu_s is not None:
-            result.timings["compare_cpu_s"] = started.cpu_s
-    if code != 0:
-        raise ThinShellError(f"thinshell compare exited with code {code}"
-                             + (f" (log {started.log}):\n{started.log_tail()}" if started is not None else ""))
+    _tool_stage("compare", "6/6 compare", lambda: compare_command(run, settings, nominal, result), compare_main,
+                started, console, result)
     doc = json.loads((result.compare_out / "compare.json").read_text())
     result.comparison = {"rms": rms_table(doc), "better": doc["better"]}
 

@@ -13,6 +13,7 @@ loaded machine still says where the work goes (the load stretches wall time, not
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import subprocess
@@ -98,11 +99,8 @@ class BackgroundTool:
 
     def _on_exit(self) -> None:
         """Wait for the child's exit without reaping it; then its wall and CPU s (readable until reaped)."""
-        try:
+        with contextlib.suppress(ChildProcessError):   # reaped already (a wait elsewhere): only the wall time
             os.waitid(os.P_PID, self.proc.pid, os.WEXITED | os.WNOWAIT)
-        except ChildProcessError:   # reaped already (a wait elsewhere): only the wall time is known
-            pass
-        else:
             self.cpu_s = _proc_cpu(self.proc.pid)
         self.wall_s = time.monotonic() - self._t0
 
