@@ -29,6 +29,8 @@ SNH is defined for inverted tets (``J <= 0``): no log of ``J`` appears, so no Na
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
@@ -224,11 +226,30 @@ class StableNeoHookean:
         element_grad = self.tet_rest_volume[:, None, None] * np.einsum("kij,kaj->kai", P, self.tet_dFdx)
         return scatter_gradient(x.shape[0], self.tets, element_grad)
 
-    def d2psi_dF2(self, F: np.ndarray) -> np.ndarray:
+    def with_lame(self, mu: float, lam: float) -> "StableNeoHookean":
+        """A copy with the SNH Lamé parameters ``(mu, lam)`` in Pa (both > 0) in place of the ones of
+        its ``E`` and ``nu``, sharing the tets and ``dF/dx`` (so the workspace's deformation memo): the
+        shear part of :class:`~sim_core.energies.nodal_pressure.reference.NodalPressureNeoHookean`, whose
+        ``lam`` has a Poisson ratio of -1 that ``E``, ``nu`` cannot name. Its ``parameter_gradient``
+        stays that of the original's ``E``, ``nu`` and must not be used.
+
+        Raises:
+            ConfigError: ``mu`` or ``lam`` not finite and > 0.
+        """
+        if not (np.isfinite(mu) and mu > 0 and np.isfinite(lam) and lam > 0):
+            raise ConfigError(f"StableNeoHookean Lamé parameters must be finite and > 0 Pa, got mu={mu!r}, lam={lam!r}")
+        out = copy.copy(self)
+        out.mu, out.lam = float(mu), float(lam)
+        out.alpha = 1.0 + 0.75 * out.mu / out.lam
+        return out
+
+    def d2psi_dF2(self, F: np.ndarray, pressure: np.ndarray | None = None) -> np.ndarray:
         """``d2psi / dF_ij dF_kl``, shape ``(k, 3, 3, 3, 3)`` (symmetric as a 9x9 matrix).
 
         ``mu (1 - 1/(I_C+1)) I + 2 mu/(I_C+1)^2 F (x) F + lam cof (x) cof + lam (J - alpha) d2J/dF2``
         with ``d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn`` (Smith et al. 2018, eqs. 19-21).
+        ``pressure`` ``(k,)`` in Pa, if given, adds ``p d2J/dF2`` per tet (the second derivative of a
+        pressure's work ``p J`` at fixed ``p``: the nodal-pressure element's averaged pressure).
         """
         I_C, J, cof = self._invariants(F)
         k = F.shape[0]
@@ -239,10 +260,12 @@ class StableNeoHookean:
         A += self.lam * (c[:, :, None] * c[:, None, :])
         A = A.reshape(k, 81)
         # d2J has 36 non-zeros +-F_mn (see _d2J_gather): a gather instead of a 9x9x9 contraction
-        A[:, _D2J_POS] += (self.lam * (J - self.alpha))[:, None] * (_D2J_SIGN * f[:, _D2J_SRC])
+        stretch = self.lam * (J - self.alpha) if pressure is None else self.lam * (J - self.alpha) + pressure
+        A[:, _D2J_POS] += stretch[:, None] * (_D2J_SIGN * f[:, _D2J_SRC])
         return A.reshape(k, 3, 3, 3, 3)
 
-    def d2psi_dF2_eigensystem(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def d2psi_dF2_eigensystem(self, F: np.ndarray,
+                              pressure: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Analytic eigen-decomposition of the 9x9 ``d2psi/dF2`` (Smith et al. 2018, section 4.2).
 
         With the rotation-variant SVD ``F = U diag(sigma) V^T`` and ``mu_t = mu (1 - 1/(I_C+1))``:
@@ -256,6 +279,8 @@ class StableNeoHookean:
 
         Args:
             F: deformation gradients, shape ``(k, 3, 3)``.
+            pressure: ``(k,)`` in Pa or None: adds ``p d2J/dF2`` as :meth:`d2psi_dF2` does; the
+                eigenvectors are the same, ``p`` joins ``lam (J - alpha)`` in every eigenvalue.
 
         Returns:
             ``(eigenvalues (k, 9) in Pa, eigenvectors (k, 9, 9))``; column ``m`` of the eigenvector
@@ -266,7 +291,7 @@ class StableNeoHookean:
         I_C = np.sum(sigma**2, axis=1)
         J = np.prod(sigma, axis=1)
         mu_t = self.mu * (1.0 - 1.0 / (I_C + 1.0))
-        stretch = self.lam * (J - self.alpha)
+        stretch = self.lam * (J - self.alpha) if pressure is None else self.lam * (J - self.alpha) + pressure
         dJ = np.stack([sigma[:, 1] * sigma[:, 2], sigma[:, 2] * sigma[:, 0], sigma[:, 0] * sigma[:, 1]], axis=1)
         S = (2.0 * self.mu / (I_C + 1.0) ** 2)[:, None, None] * sigma[:, :, None] * sigma[:, None, :]
         S += self.lam * dJ[:, :, None] * dJ[:, None, :]

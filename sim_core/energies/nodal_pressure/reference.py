@@ -1,0 +1,228 @@
+"""Average-nodal-pressure Stable Neo-Hookean tetrahedra: a gel element that does not lock at nu -> 0.5.
+
+Linear tets lock when nearly incompressible: each tet's volume is penalised on its own, so a mesh has
+about as many volume constraints as vertices and bends too little (the four-layer default gel is 1.11x /
+1.13x too stiff in compression at nu = 0.45, tests/sim_core/test_known_answers_gel_compression.py). The
+average nodal pressure tetrahedron (Bonet and Burton, "A simple average nodal pressure tetrahedral element
+for incompressible and nearly incompressible dynamic explicit applications", Commun. Numer. Meth. Eng. 14,
+437-449, 1998, eqs. 9-14; Bonet, Marriott, Hassan, "An averaged nodal deformation gradient linear
+tetrahedral element for large strain explicit dynamic applications", Commun. Numer. Meth. Eng. 17,
+551-561, 2001) keeps the shear per tet and takes the volume change per *node*::
+
+    E(x) = sum_t V_t psi_s(F_t) + sum_a V_a U(J_a),
+    V_a  = sum_{t ∋ a} V_t / 4,   v_a(x) = sum_{t ∋ a} v_t(x) / 4,   J_a = v_a / V_a,
+    U(J) = kappa / 2 (J - 1)^2,
+
+with ``v_t = V_t det F_t`` the current tet volume: one volume constraint per vertex ring, which no
+longer locks (Bonet and Burton, section 3).
+
+The split of Stable Neo-Hookean (Smith, de Goes, Kim 2018, eq. 14, the gel's law in
+:mod:`sim_core.energies.neohookean.reference`) used here: with ``alpha = 1 + 3 mu / (4 lam)``,
+``lam / 2 (J - alpha)^2 = lam / 2 (J - 1)^2 - 3 mu / 4 (J - 1) + const``, so for every ``lam_s``::
+
+    psi_SNH(F; mu, lam) = psi_SNH(F; mu, lam_s) + (lam - lam_s) / 2 (J - 1)^2 + const.
+
+The shear part ``psi_s`` is Stable Neo-Hookean with ``lam_s = mu / 8``, and ``kappa = lam - mu / 8``.
+This ``lam_s`` is the one whose linearisation has zero bulk modulus (``lam_LE,s = lam_s - 5 mu / 8 =
+-2/3 mu_LE``: ``psi_s`` is purely deviatoric at small strain, its 9x9 ``d2psi_s/dF2`` at rest PSD with one
+zero eigenvalue, the dilation), and ``kappa = lam_LE + 2/3 mu_LE`` is the small-strain bulk modulus
+``E / (3 (1 - 2 nu))``. So under a uniform deformation (every ``J_a = J_t``) the element's energy *is*
+Stable Neo-Hookean's with the same ``E``, ``nu`` at any strain (the patch test), and at small strain its
+material is linear elasticity with ``E``, ``nu``.
+
+Derivatives (``g_t = d v_t / dx = V_t cof(F_t) dF/dx``, ``b_a = d v_a / dx = sum_{t ∋ a} g_t / 4``):
+
+- gradient: ``sum_t V_t (P_s(F_t) + p_t cof F_t) dF/dx`` with the tet's averaged pressure
+  ``p_t = sum_{a ∈ t} U'(J_a) / 4`` (Bonet and Burton, eq. 14: the nodal pressures averaged back to the tet);
+- Hessian: ``sum_t V_t (dF/dx)^T (d2psi_s/dF2 + p_t d2J/dF2) (dF/dx) + sum_a U''(J_a) / V_a b_a b_a^T``.
+  The second sum couples every vertex of node ``a``'s tet ring (up to 15 vertices on the structured
+  ``tet_box``; ``b_a`` is zero outside it): the Hessian's sparsity reaches the vertices two edges apart.
+
+PSD projection, by construction: the per-tet 9x9 ``d2psi_s/dF2 + p_t d2J/dF2`` has Stable Neo-Hookean's
+analytic eigensystem with ``p_t`` added to the ``lam (J - alpha)`` of every eigenvalue
+(:meth:`~sim_core.energies.neohookean.reference.StableNeoHookean.d2psi_dF2_eigensystem`); its negative
+eigenvalues are clamped (or flipped) and the result mapped by ``dF/dx`` (a congruence, PSD per tet). The
+nodal term ``kappa / V_a b_a b_a^T`` is PSD as it is (``U'' = kappa > 0``). A sum of PSD blocks is PSD. At
+rest ``p_t = 0`` and the projection changes nothing: the linear response is exact.
+
+Hessian blocks: one block per node over its ring (:attr:`NodalPressureNeoHookean.ring`, ``(nodes, m)``,
+padded with the node itself where a ring has fewer than ``m`` vertices, those entries zero), holding the
+node's ``b_a b_a^T`` term and the per-tet blocks of the tets whose first vertex it is (every vertex of a tet
+lies in the ring of each of its vertices).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
+from sim_core.energies.neohookean.reference import StableNeoHookean, _snh_lame_derivatives
+
+
+def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
+    """``(lam_s, kappa)`` in Pa of the split of an SNH ``(mu, lam)``: ``lam_s = mu / 8`` (the shear part's,
+    zero small-strain bulk modulus) and ``kappa = lam - mu / 8`` (the nodal volumetric part's)."""
+    return mu / 8.0, lam - mu / 8.0
+
+
+class NodalPressureNeoHookean:
+    """Stable Neo-Hookean tets with an average nodal pressure (module docstring): the same ``E``, ``nu``
+    and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
+
+    Args:
+        tets: global vertex indices, shape ``(k, 4)``, positively oriented at rest.
+        x_rest: global rest positions in m, shape ``(n, 3)``.
+        youngs_modulus: ``E`` in Pa, > 0 (small-strain modulus).
+        poisson_ratio: ``nu``, -1 < nu < 0.5 (small-strain ratio).
+
+    Attributes:
+        nodes: the global vertices of the tets, sorted, ``(nodes,)``.
+        node_rest_volume: ``V_a`` in m^3, ``(nodes,)``.
+        ring: global vertices of each node's tet ring, ``(nodes, m)`` (the Hessian blocks' vertices).
+
+    Raises:
+        ConfigError: ``E`` not finite and > 0, ``nu`` outside (-1, 0.5).
+        MeshError: bad indices, non-finite rest positions, inverted or degenerate rest tets.
+    """
+
+    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+
+    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
+        whole = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
+        self.youngs_modulus, self.poisson_ratio = whole.youngs_modulus, whole.poisson_ratio
+        self.mu, self.lam = whole.mu, whole.lam
+        lam_s, self.kappa = nodal_pressure_moduli(whole.mu, whole.lam)
+        self.shear = whole.with_lame(whole.mu, lam_s)
+        self.tets, self.tet_rest_volume = whole.tets, whole.tet_rest_volume
+        self.nodes, node_of = np.unique(self.tets, return_inverse=True)
+        self._node_of = node_of.reshape(self.tets.shape)  # (k, 4) node index of each tet corner
+        count = self.nodes.size
+        self.node_rest_volume = np.bincount(self._node_of.ravel(), weights=np.repeat(self.tet_rest_volume / 4.0, 4),
+                                            minlength=count)
+        self._build_rings(count)
+
+    def _build_rings(self, count: int) -> None:
+        """:attr:`ring` and the scatter maps of the ring-vector ``b_a`` and of the per-tet blocks into it."""
+        k = self.tets.shape[0]
+        owner = np.repeat(self._node_of, 4, axis=1).ravel()  # (k 16): node a = corner i of tet t, for each j
+        member = np.tile(self._node_of, (1, 4)).ravel()  # node of corner j
+        pairs = np.unique(owner * count + member)
+        a, b = np.divmod(pairs, count)
+        size = np.bincount(a, minlength=count)
+        m = int(size.max())
+        start = np.concatenate([[0], np.cumsum(size)[:-1]])
+        pos = np.arange(pairs.size) - start[a]
+        ring_nodes = np.repeat(np.arange(count)[:, None], m, axis=1)  # padding: the node itself
+        ring_nodes[a, pos] = b
+        self.ring = self.nodes[ring_nodes]
+        self.ring_size = m
+
+        def ring_position(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+            return pos[np.searchsorted(pairs, rows * count + cols)]
+
+        # b_a: corner j of tet t contributes g_t[j] / 4 to b_a at a's ring position of corner j, for each corner a
+        self._b_row = owner
+        self._b_pos = ring_position(owner, member)  # (k 16,)
+        # per-tet 12x12 blocks into the block of the tet's first corner
+        first = np.repeat(self._node_of[:, :1], 4, axis=1)
+        local = ring_position(first.ravel(), self._node_of.ravel()).reshape(k, 4)  # (k, 4)
+        dof = (3 * local[:, :, None] + np.arange(3)).reshape(k, 12)
+        w = 3 * m
+        self._tet_slot = (self._node_of[:, :1, None] * w * w + dof[:, :, None] * w + dof[:, None, :]).ravel()
+
+    # ------------------------------------------------------------------ nodal volumes and pressures
+    @property
+    def workspace(self):
+        """The shear part's workspace (the solver's, set by the terms that built this potential)."""
+        return self.shear.__dict__.get("workspace")
+
+    @workspace.setter
+    def workspace(self, value) -> None:
+        self.shear.workspace = value
+
+    def _kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(F (k,3,3), cof F (k,3,3), J_a - 1 (nodes,), p_t / kappa (k,))`` at ``x``."""
+        F = self.shear._deformation(np.asarray(x, dtype=float))
+        _, J, cof = self.shear._invariants(F)
+        v_change = np.bincount(self._node_of.ravel(), weights=np.repeat(self.tet_rest_volume * (J - 1.0) / 4.0, 4),
+                               minlength=self.nodes.size)
+        strain = v_change / self.node_rest_volume
+        return F, cof, strain, strain[self._node_of].mean(axis=1)
+
+    def nodal_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``J_a`` of every node, ``(nodes,)`` (order of :attr:`nodes`)."""
+        return 1.0 + self._kinematics(x)[2]
+
+    def _forces(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """``V_t P_t dF/dx`` scattered to ``(n, 3)`` for per-tet stresses ``P`` ``(k, 3, 3)`` in Pa."""
+        return self.shear._forces_from_pk1(x, P)
+
+    # ------------------------------------------------------------------ Potential contract
+    def energy(self, x: np.ndarray) -> float:
+        """``sum_t V_t psi_s(F_t) + sum_a V_a kappa / 2 (J_a - 1)^2`` in J at ``x`` ``(n, 3)`` (0 at rest)."""
+        _, _, strain, _ = self._kinematics(x)
+        return self.shear.energy(x) + 0.5 * self.kappa * float(np.dot(self.node_rest_volume, strain**2))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``: ``V_t (P_s(F_t) + p_t cof F_t) dF/dx`` summed per vertex."""
+        x = np.asarray(x, dtype=float)
+        F, cof, _, p = self._kinematics(x)
+        return self._forces(x, self.shear.first_piola(F) + (self.kappa * p)[:, None, None] * cof)
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Per-node Hessian blocks over :attr:`ring` in N/m (module docstring).
+
+        Args:
+            x: positions ``(n, 3)``.
+            projection: ``"none"`` (exact), ``"clamp"`` or ``"abs"``: applied to each tet's 9x9
+                ``d2psi_s/dF2 + p_t d2J/dF2``; the nodal ``kappa / V_a b_a b_a^T`` is PSD as it is.
+
+        Returns:
+            :class:`HessianBlocks` with ``vertices = ring`` ``(nodes, m)`` and blocks ``(nodes, 3m, 3m)``.
+        """
+        F, cof, _, p = self._kinematics(x)
+        k = F.shape[0]
+        pressure = self.kappa * p
+        if projection == "none":
+            A = self.shear.d2psi_dF2(F, pressure).reshape(k, 9, 9)
+        elif projection in ("clamp", "abs"):
+            w, Q = self.shear.d2psi_dF2_eigensystem(F, pressure)
+            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
+            A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
+        else:
+            raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+        M = self.shear.tet_dvecF_dx
+        H_tet = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
+        count, m = self.ring.shape
+        w3 = 3 * m
+        blocks = np.bincount(self._tet_slot, weights=H_tet.ravel(), minlength=count * w3 * w3).reshape(count, w3, w3)
+        # g_t[j] = V_t cof(F_t) dF/dx_j, (k, 4, 3); b_a in ring coordinates, (nodes, m, 3)
+        g = self.tet_rest_volume[:, None, None] * np.einsum("kij,kaj->kai", cof, self.shear.tet_dFdx)
+        b = np.zeros((count * m, 3))
+        rows = self._b_row * m + self._b_pos
+        corner = np.tile(np.arange(4), 4 * k)  # corner j of (t, i, j), matching _b_row and _b_pos
+        gt = g[np.repeat(np.arange(k), 16), corner] / 4.0
+        for d in range(3):
+            b[:, d] = np.bincount(rows, weights=gt[:, d], minlength=count * m)
+        b = b.reshape(count, w3)
+        blocks += (self.kappa / self.node_rest_volume)[:, None, None] * (b[:, :, None] * b[:, None, :])
+        return HessianBlocks(self.ring, blocks)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)``.
+
+        The gradient is linear in ``(mu, lam_s, kappa)`` = ``(mu, mu / 8, lam - mu / 8)``, each a function of
+        ``E``, ``nu`` through :func:`~sim_core.energies.neohookean.reference.snh_lame_parameters`.
+
+        Raises:
+            KeyError: unknown parameter name.
+        """
+        if name not in self.parameter_names:
+            raise KeyError(f"NodalPressureNeoHookean has no parameter {name!r}; known: {self.parameter_names}")
+        x = np.asarray(x, dtype=float)
+        dmu, dlam = _snh_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
+        F, cof, _, p = self._kinematics(x)
+        P_mu, P_lam = self.shear._pk1_parts(F)
+        dP = dmu * P_mu + dmu / 8.0 * P_lam + ((dlam - dmu / 8.0) * p)[:, None, None] * cof
+        return self._forces(x, dP)
+
