@@ -7,6 +7,11 @@ for the adjoint.
 Sheet bending model: ``"kirchhoff"`` (default, :class:`KirchhoffBending`: plate energy with the
 sheet's Poisson ratio) or ``"hinge"`` (:class:`DiscreteShellBending`), from the constructor argument
 or else ``model.meta["bending_model"]`` (one name for all sheets, or a dict sheet name -> name).
+
+Solid element: ``model.meta["solid_element"]`` (one name for all solids, or a dict solid name -> name), one
+of :data:`SOLID_ELEMENTS`; default ``"stable_neohookean"`` (linear tets, which lock at nu -> 0.5);
+``"nodal_pressure_neohookean"`` is the average-nodal-pressure tet that does not
+(:mod:`sim_core.energies.nodal_pressure`).
 """
 
 from __future__ import annotations
@@ -18,10 +23,14 @@ import numpy as np
 from sim_core.energies.hinge_bending.reference import DiscreteShellBending, plastic_update
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
-from sim_core.energies.neohookean.reference import StableNeoHookean
+from sim_core.energies.registry import make_elastic_potential
 from sim_core.errors import ConfigError
 from sim_core.model import Model
 from sim_core.workspace import Workspace
+
+
+SOLID_ELEMENTS: tuple[str, ...] = ("stable_neohookean", "nodal_pressure_neohookean")
+"""Elastic kinds (:data:`sim_core.energies.registry.ELASTIC_KINDS`) a solid body may take."""
 
 
 class ElasticTerms:
@@ -35,7 +44,7 @@ class ElasticTerms:
             solver's), or None for one of these terms' own.
 
     Raises:
-        ConfigError: unknown bending model name.
+        ConfigError: unknown bending model or solid element name.
     """
 
     BENDING_MODELS = ("kirchhoff", "hinge")
@@ -46,7 +55,7 @@ class ElasticTerms:
         choice = model.meta.get("bending_model", "kirchhoff") if bending_model is None else bending_model
         self.bending_model: dict[str, str] = {}
         self.membranes: dict[str, StVKMembrane] = {}
-        self.solids: dict[str, StableNeoHookean] = {}
+        self.solids: dict[str, object] = {}  # StableNeoHookean or NodalPressureNeoHookean
         self.hinges: dict[str, np.ndarray] = {}
         self._bending: dict[str, KirchhoffBending | DiscreteShellBending] = {}
         for b in model.bodies.values():
@@ -69,7 +78,12 @@ class ElasticTerms:
                     raise ConfigError(f"sheet {b.name!r}: unknown bending_model {kind!r}; use one of {self.BENDING_MODELS}")
                 self.bending_model[b.name] = kind
             elif b.kind == "solid":
-                self.solids[b.name] = StableNeoHookean(b.tets, model.x_rest, m["youngs_modulus"], m["poisson_ratio"])
+                element = model.meta.get("solid_element", "stable_neohookean")
+                element = element.get(b.name, "stable_neohookean") if isinstance(element, dict) else element
+                if element not in SOLID_ELEMENTS:
+                    raise ConfigError(f"solid {b.name!r}: unknown solid_element {element!r}; use one of {SOLID_ELEMENTS}")
+                self.solids[b.name] = make_elastic_potential(element, b.tets, model.x_rest, m["youngs_modulus"],
+                                                             m["poisson_ratio"])
         for pot in [*self.membranes.values(), *self.solids.values()]:
             pot.workspace = self.workspace
 

@@ -503,6 +503,7 @@ def build_indentation(
     indenter_lift: float | None = 0.0,
     solver_config: SolverConfig | None = None,
     indenter_vertices_vs_gel: bool = True,
+    gel_element: str = "stable_neohookean",
 ) -> IndentationSetup:
     """Build a gel + rigid indenter model, no gravity.
 
@@ -526,6 +527,7 @@ def build_indentation(
             triangles (needed when the indenter is coarser than the gel, e.g. a sphere cap whose tip
             is one vertex; a gel surface finer than the indenter is sampled by its own vertices,
             and testing both directions there makes Newton's active set chatter).
+        gel_element: the gel's element, one of :data:`sim_core.elastic.SOLID_ELEMENTS`.
 
     Returns:
         :class:`IndentationSetup`.
@@ -557,7 +559,7 @@ def build_indentation(
     b.add_effector(INDENTER_EFFECTOR, INDENTER_BODY, driven, [0, 0, 0, 0, 0, 0, 1], max_translation_per_step=1.0)
     if friction > 0:
         b.set_friction(GEL_BODY, INDENTER_BODY, friction)
-    model = b.finalize(gravity=(0.0, 0.0, 0.0), contact=contact)
+    model = b.finalize(gravity=(0.0, 0.0, 0.0), contact=contact, meta={"solid_element": gel_element})
     gel_b = model.bodies[GEL_BODY]
     surface = np.unique(gel_b.triangles)
     gap, tip_vertex = _initial_gap(model.x_rest, surface, ind_x, contact.eps)

@@ -15,6 +15,7 @@ Optional extension block (not in INTERFACES.md v1; every key optional)::
       contact_eps_v: 0.01          # m/s, friction's stick speed (IPC mollifier)
       contact_eps: null            # m; default: half the sheet thickness
       gel_resolution: [8, 6, 5]    # gel tet-box vertices along sensor x, y, z (default_gel_resolution)
+      gel_element: stable_neohookean   # or nodal_pressure_neohookean (does not lock; sim_core.energies.nodal_pressure)
       sheet_yield_angle: .inf      # rad, bending plasticity threshold
       damping: 0.0                 # 1/s, mass-proportional
       max_translation_per_step: 0.001   # m
@@ -33,6 +34,7 @@ import numpy as np
 
 from sim_core.builder import ModelBuilder
 from sim_core.candidates.parameters import validate_candidate_parameters
+from sim_core.elastic import SOLID_ELEMENTS
 from sim_core.errors import ConfigError
 from sim_core.mesh.sheet import grid_sheet
 from sim_core.mesh.tet import tet_box
@@ -47,6 +49,7 @@ SIMULATION_KEYS = {
     "contact_eps_v": 0.01,
     "contact_eps": None,
     "gel_resolution": None,
+    "gel_element": "stable_neohookean",
     "sheet_yield_angle": float("inf"),
     "damping": 0.0,
     "max_translation_per_step": 1.0e-3,
@@ -137,6 +140,13 @@ def simulation_options(scene: dict) -> dict:
     return out
 
 
+def _gel_element(name) -> str:
+    """``simulation.gel_element``, checked: one of :data:`sim_core.elastic.SOLID_ELEMENTS`."""
+    if name not in SOLID_ELEMENTS:
+        raise ConfigError(f"scene: simulation.gel_element must be one of {SOLID_ELEMENTS}, got {name!r}")
+    return name
+
+
 def build_tactile_scene(scene: dict) -> Model:
     """Build the Model of a validated scene v1 dictionary.
 
@@ -208,7 +218,8 @@ def build_tactile_scene(scene: dict) -> Model:
                               self_contact=bool(opts["self_contact"]),
                               broad_phase=check_broad_phase(opts["broad_phase"], "simulation.broad_phase"))
     model = b.finalize(gravity=scene.get("gravity", (0, 0, -9.81)), contact=contact, damping=float(opts["damping"]),
-                       meta={"name": scene.get("name", ""), "dt": float(scene["dt"]), "sheet_grid": (nx, ny)})
+                       meta={"name": scene.get("name", ""), "dt": float(scene["dt"]), "sheet_grid": (nx, ny),
+                             "solid_element": _gel_element(opts["gel_element"])})
     model.sensors = sensors
     if opts["candidates"]:
         if not isinstance(opts["candidates"], dict):

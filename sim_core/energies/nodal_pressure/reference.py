@@ -79,6 +79,8 @@ class NodalPressureNeoHookean:
         nodes: the global vertices of the tets, sorted, ``(nodes,)``.
         node_rest_volume: ``V_a`` in m^3, ``(nodes,)``.
         ring: global vertices of each node's tet ring, ``(nodes, m)`` (the Hessian blocks' vertices).
+        shear: the shear part, a :class:`StableNeoHookean` with ``lam_s = mu / 8``.
+        per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` (per-tet volume; locks).
 
     Raises:
         ConfigError: ``E`` not finite and > 0, ``nu`` outside (-1, 0.5).
@@ -93,6 +95,7 @@ class NodalPressureNeoHookean:
         self.mu, self.lam = whole.mu, whole.lam
         lam_s, self.kappa = nodal_pressure_moduli(whole.mu, whole.lam)
         self.shear = whole.with_lame(whole.mu, lam_s)
+        self.per_tet = whole  # the plain Stable Neo-Hookean of the same E, nu (the gel's Maxwell branch uses it)
         self.tets, self.tet_rest_volume = whole.tets, whole.tet_rest_volume
         self.nodes, node_of = np.unique(self.tets, return_inverse=True)
         self._node_of = node_of.reshape(self.tets.shape)  # (k, 4) node index of each tet corner
