@@ -30,7 +30,7 @@ from sim_core.mesh.sheet import TriMesh
 from sim_core.mesh.tet import TetMesh, tet_box
 from sim_core.model import ContactSettings
 from sim_core.scenes.tactile_scene import default_gel_resolution
-from tests.support.linear_fe import linear_stiffness
+from tests.support.linear_fe import linear_stiffness, nodal_pressure_stiffness
 
 GEL = (0.0186, 0.0143, 0.004)  # m, the reference scenes' gel_size
 PITCH = 0.002  # m, their marker pitch
@@ -43,11 +43,12 @@ def _box(resolution) -> "tuple[np.ndarray, np.ndarray]":
     return mesh.x, mesh.tets
 
 
-def linear_slip_stiffness(resolution, delta: float = 1.0e-6) -> float:
+def linear_slip_stiffness(resolution, delta: float = 1.0e-6, element=linear_stiffness) -> float:
     """``F_z / delta`` (N/m) of the block pressed by ``delta`` on a frictionless face (u_z = -delta, tangential
-    traction free), back face held, by the independent linear solver on a ``tet_box`` of ``resolution``."""
+    traction free), back face held, by the independent linear solver on a ``tet_box`` of ``resolution``
+    (``element``: P1 tets, or the linearised average nodal pressure tet, ``nodal_pressure_stiffness``)."""
     x, tets = _box(resolution)
-    stiffness = linear_stiffness(x, tets, E, NU).tocsr()
+    stiffness = element(x, tets, E, NU).tocsr()
     back = np.flatnonzero(np.isclose(x[:, 2], -GEL[2]))
     face = np.flatnonzero(np.isclose(x[:, 2], 0.0))
     u = np.zeros(3 * len(x))
@@ -60,9 +61,10 @@ def linear_slip_stiffness(resolution, delta: float = 1.0e-6) -> float:
     return float(-(stiffness @ u)[3 * face + 2].sum() / delta)
 
 
-def simulated_slip_stiffness(resolution, depth: float = 5.0e-5) -> float:
+def simulated_slip_stiffness(resolution, depth: float = 5.0e-5, gel_element: str = "stable_neohookean") -> float:
     """``F_z`` over the mean normal displacement of the face's marker region (N/m), sim_core's gel (Stable
-    Neo-Hookean tets) pressed ``depth`` by a rigid frictionless plate through the penalty contact, quasi-static."""
+    Neo-Hookean tets, or ``gel_element``) pressed ``depth`` by a rigid frictionless plate through the penalty
+    contact, quasi-static."""
     x, tets = _box(resolution)
     gt = GEL[2]
     half = 0.03
@@ -70,7 +72,7 @@ def simulated_slip_stiffness(resolution, depth: float = 5.0e-5) -> float:
                     np.array([[0, 1, 2], [0, 2, 3]]))
     setup = build_indentation(TetMesh(x, tets), np.flatnonzero(np.isclose(x[:, 2], -gt)), plate, E, NU,
                               ContactSettings(stiffness=2.0e5, eps=4.0e-4, eps_v=1.0e-6, self_contact=False),
-                              friction=0.0, indenter_lift=None, indenter_vertices_vs_gel=False)
+                              friction=0.0, indenter_lift=None, indenter_vertices_vs_gel=False, gel_element=gel_element)
     sim = setup.simulation(1.0)  # dt = 1 s: each step a static equilibrium
     plate_body = setup.model.bodies[setup.indenter_body]
     face = np.flatnonzero(np.isclose(x[:, 2], 0.0))
@@ -118,3 +120,28 @@ def test_the_default_gel_is_within_fifteen_percent_of_the_converged_layer_in_com
 def test_the_two_layer_mesh_is_too_stiff_in_compression(converged):
     """The mesh the default was until session 51 (lateral spacing = the marker pitch, two layers): it locks."""
     assert linear_slip_stiffness((10, 8, 3)) / converged > 1.18
+
+
+def test_the_nodal_pressure_gel_does_not_lock_on_the_default_mesh(converged):
+    """The average nodal pressure tet (``simulation.gel_element: nodal_pressure_neohookean``,
+    :mod:`sim_core.energies.nodal_pressure`) on the default mesh: sim_core's gel through the penalty contact is the
+    linearised element's answer on the same mesh (the independent assembly of tests/support/linear_fe.py), which
+    measures 1.074x the converged layer (Stable Neo-Hookean's linear tets: 1.112x; the two-layer mesh 1.103x
+    against 1.220x). What remains is not locking: the same first-order error of a coarse mesh at nu = 0.3 is
+    1.02x. Asserted: within 9 % and at least 3 points closer than the linear tets."""
+    resolution = tuple(default_gel_resolution(GEL, PITCH))
+    linear = linear_slip_stiffness(resolution, element=nodal_pressure_stiffness)
+    assert simulated_slip_stiffness(resolution, gel_element="nodal_pressure_neohookean") == pytest.approx(linear, rel=0.02)
+    assert 1.0 < linear / converged < 1.09
+    assert linear / converged < linear_slip_stiffness(resolution) / converged - 0.03
+
+
+def test_the_nodal_pressure_gel_converges_to_the_same_layer(converged):
+    """Refined (spacing h and h/2 as the fixture's), the nodal-pressure element converges from above to the P1
+    tets' limit: its own first-order extrapolation is the converged answer within 1 % (measured 0.2 %), and it
+    stays the closer of the two on each mesh."""
+    coarse = linear_slip_stiffness((10, 8, 5), element=nodal_pressure_stiffness)
+    fine = linear_slip_stiffness((19, 15, 9), element=nodal_pressure_stiffness)
+    assert converged < fine < coarse
+    assert 2.0 * fine - coarse == pytest.approx(converged, rel=0.01)
+    assert fine < linear_slip_stiffness((19, 15, 9))

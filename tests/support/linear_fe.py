@@ -31,16 +31,9 @@ def hooke_matrix(youngs_modulus: float, poisson_ratio: float) -> np.ndarray:
     return d
 
 
-def linear_stiffness(x: np.ndarray, tets: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> sp.csr_matrix:
-    """Assembled P1 stiffness ``K`` (N/m), shape ``(3 n, 3 n)``, DoF ``3 i + axis``.
-
-    Args:
-        x: rest positions, m, shape ``(n, 3)``.
-        tets: vertex indices, shape ``(k, 4)``.
-        youngs_modulus: E in Pa.
-        poisson_ratio: nu.
-    """
-    d = hooke_matrix(youngs_modulus, poisson_ratio)
+def _p1_operators(x: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(B (k, 6, 12), volume (k,), dof (k, 12))``: the P1 strain-displacement matrices in Voigt order,
+    the tet volumes (m^3) and the element DoFs."""
     corners = x[tets]  # (k, 4, 3)
     m = np.concatenate([np.ones((len(tets), 4, 1)), corners], axis=2)
     grads = np.linalg.inv(m)[:, 1:, :].transpose(0, 2, 1)  # (k, 4, 3): gradient of each shape function
@@ -53,12 +46,58 @@ def linear_stiffness(x: np.ndarray, tets: np.ndarray, youngs_modulus: float, poi
         b[:, 3, c], b[:, 3, c + 1] = gy, gx
         b[:, 4, c + 1], b[:, 4, c + 2] = gz, gy
         b[:, 5, c], b[:, 5, c + 2] = gz, gx
-    ke = volume[:, None, None] * np.einsum("kji,jl,klm->kim", b, d, b)
-    dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
-    rows = np.repeat(dof, 12, axis=1).reshape(-1)
-    cols = np.tile(dof, (1, 12)).reshape(-1)
+    return b, volume, (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+
+
+def _assembled(x: np.ndarray, dof: np.ndarray, ke: np.ndarray) -> sp.csr_matrix:
+    """Sum of element matrices ``ke`` ``(k, w, w)`` over DoFs ``dof`` ``(k, w)`` into ``(3 n, 3 n)``."""
+    w = dof.shape[1]
+    rows = np.repeat(dof, w, axis=1).reshape(-1)
+    cols = np.tile(dof, (1, w)).reshape(-1)
     n = 3 * len(x)
     return sp.csr_matrix((ke.reshape(-1), (rows, cols)), shape=(n, n))
+
+
+def linear_stiffness(x: np.ndarray, tets: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> sp.csr_matrix:
+    """Assembled P1 stiffness ``K`` (N/m), shape ``(3 n, 3 n)``, DoF ``3 i + axis``.
+
+    Args:
+        x: rest positions, m, shape ``(n, 3)``.
+        tets: vertex indices, shape ``(k, 4)``.
+        youngs_modulus: E in Pa.
+        poisson_ratio: nu.
+    """
+    b, volume, dof = _p1_operators(x, tets)
+    ke = volume[:, None, None] * np.einsum("kji,jl,klm->kim", b, hooke_matrix(youngs_modulus, poisson_ratio), b)
+    return _assembled(x, dof, ke)
+
+
+def nodal_pressure_stiffness(x: np.ndarray, tets: np.ndarray, youngs_modulus: float,
+                             poisson_ratio: float) -> sp.csr_matrix:
+    """Small-strain stiffness (N/m, ``(3 n, 3 n)``) of the average nodal pressure tetrahedron (Bonet and
+    Burton, Commun. Numer. Meth. Eng. 14, 1998, linearised): the deviatoric Hooke tensor per tet,
+    ``2 mu (I - m m^T / 3)`` in Voigt form, and the bulk modulus ``K = lam + 2 mu / 3`` on the nodal
+    volume strain ``theta_a = sum_{e ∋ a} V_e div u_e / 4 / V_a`` with ``V_a = sum_{e ∋ a} V_e / 4``:
+    ``K_vol = sum_a K V_a grad(theta_a)^T grad(theta_a)``. Assembled here from the P1 ``B`` matrices, nothing
+    of sim_core."""
+    lam = youngs_modulus * poisson_ratio / ((1 + poisson_ratio) * (1 - 2 * poisson_ratio))
+    mu = youngs_modulus / (2 * (1 + poisson_ratio))
+    b, volume, dof = _p1_operators(x, tets)
+    trace = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    deviatoric = hooke_matrix(youngs_modulus, poisson_ratio) - lam * np.outer(trace, trace)
+    deviatoric -= 2.0 * mu / 3.0 * np.outer(trace, trace)
+    shear = _assembled(x, dof, volume[:, None, None] * np.einsum("kji,jl,klm->kim", b, deviatoric, b))
+    n = len(x)
+    # rows: nodes; theta_a = (1 / V_a) sum_e V_e / 4 (trace . B_e u_e)
+    div = volume[:, None] * np.einsum("j,kjm->km", trace, b) / 4.0  # (k, 12)
+    nodal_volume = np.bincount(tets.ravel(), weights=np.repeat(volume / 4.0, 4), minlength=n)
+    rows = np.repeat(tets, 12, axis=1).reshape(-1)
+    cols = np.tile(dof, (1, 4)).reshape(-1)
+    weights = np.repeat(div[:, None, :], 4, axis=1).reshape(-1)
+    volume_change = sp.csr_matrix((weights, (rows, cols)), shape=(n, 3 * n))  # d v_a / d u
+    used = nodal_volume > 0
+    scale = sp.diags(np.where(used, (lam + 2.0 * mu / 3.0) / np.where(used, nodal_volume, 1.0), 0.0))
+    return (shear + volume_change.T @ scale @ volume_change).tocsr()
 
 
 def sliding_block_reaction(stiffness: sp.csr_matrix, top: np.ndarray, bottom: np.ndarray, delta: float,

@@ -61,7 +61,7 @@ CONTRACT = {
 def test_the_scan_finds_the_potentials():
     names = {c.__name__ for c in POTENTIAL_CLASSES}
     assert {"InertiaPotential", "GravityPotential", "ViscousDamping", "StVKMembrane", "SpringMembrane",
-            "DiscreteShellBending", "KirchhoffBending", "StableNeoHookean", "VertexTriangleContact",
+            "DiscreteShellBending", "KirchhoffBending", "StableNeoHookean", "NodalPressureNeoHookean", "VertexTriangleContact",
             "EdgeEdgeContact", "PlaneContact", "SphereContact", "LaggedFriction", "LaggedAdhesion",
             "MaxwellBranch", "SheetDamping", "StictionFriction", "AnisotropicBendingCorrection",
             } <= names

@@ -15,7 +15,7 @@ import sim_core.energies
 from sim_core import fused_elastic
 from sim_core.energies import registry
 
-ENERGIES = ("neohookean", "membrane", "hinge_bending", "kirchhoff_bending", "contact", "friction", "damping",
+ENERGIES = ("neohookean", "nodal_pressure", "membrane", "hinge_bending", "kirchhoff_bending", "contact", "friction", "damping",
             "inertia", "gravity", "sphere_contact")
 ROOT = Path(sim_core.energies.__file__).parent
 SHARED_TAICHI = {"__init__", "buffers", "launch", "linalg", "block_projection", "broad_phase", "hash_grid",
@@ -51,7 +51,8 @@ def test_the_registries_are_made_of_the_folders_registrations():
         package = importlib.import_module(f"sim_core.energies.{energy}")
         assert package.FUSED_KERNELS.items() <= fused_elastic.FUSED_KERNELS.items()
         assert package.ELASTIC_KINDS.items() <= registry.ELASTIC_KINDS.items()
-    assert set(registry.ELASTIC_KINDS) == {"stvk_membrane", "discrete_shell_bending", "stable_neohookean"}
+    assert set(registry.ELASTIC_KINDS) == {"stvk_membrane", "discrete_shell_bending", "stable_neohookean",
+                                           "nodal_pressure_neohookean"}
 
 
 def test_the_shared_taichi_package_holds_infrastructure_only():
