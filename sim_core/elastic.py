@@ -20,6 +20,7 @@ import copy
 
 import numpy as np
 
+from sim_core.energies.base import SplitPotential, declares
 from sim_core.energies.hinge_bending.reference import DiscreteShellBending, plastic_update
 from sim_core.energies.kirchhoff_bending.reference import KirchhoffBending
 from sim_core.energies.membrane.reference import SpringMembrane, StVKMembrane
@@ -118,7 +119,9 @@ class ElasticTerms:
         """The elastic potentials for one step, given the rest angles of the state: all of them, but
         those of the bodies named in ``skip`` (sleeping bodies, :mod:`sim_core.sleeping`)."""
         out: list = [p for name, p in self.membranes.items() if name not in skip]
-        out += [p for name, p in self.solids.items() if name not in skip]
+        # a split solid (the nodal-pressure gel) enters as its parts, so a fused kernel takes its shear part
+        out += [q for name, p in self.solids.items() if name not in skip
+                for q in (p.parts() if declares(p, SplitPotential) else (p,))]
         out += [self.bending(name, hinge_theta_bar.get(name)) for name in self.hinges if name not in skip]
         return out
 

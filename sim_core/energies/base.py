@@ -241,9 +241,20 @@ class DeviceCopyEnergies(Protocol):
         ...
 
 
+@runtime_checkable
+class SplitPotential(Protocol):
+    """A potential that the solver evaluates as the sum of other potentials (the nodal-pressure gel: a Stable
+    Neo-Hookean shear part, which a fused kernel takes, and its nodal volumetric term,
+    :mod:`sim_core.energies.nodal_pressure`); energy, gradient and exact Hessian are the parts' sums."""
+
+    def parts(self) -> tuple:
+        """The potentials whose sum this one is."""
+        ...
+
+
 CAPABILITIES: tuple[type, ...] = (
     ConstantDiagonalHessian, PenaltyContact, KeepsDerivatives, HingeBending, ElasticEquivalent, SubsetHessian,
-    DeviceHessian, SparseGradient, DeviceGradient, CopyEnergies, DeviceCopyEnergies)
+    DeviceHessian, SparseGradient, DeviceGradient, CopyEnergies, DeviceCopyEnergies, SplitPotential)
 """The optional capabilities a potential may declare (each a ``runtime_checkable`` Protocol)."""
 
 

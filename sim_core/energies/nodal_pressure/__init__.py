@@ -2,13 +2,14 @@
 Burton 1998): the shear per tet, the volume change per vertex ring.
 
 - ``reference.py``: :class:`NodalPressureNeoHookean`, value, gradient and projected Hessian in NumPy (the
-  reference and test oracle), and ``parameter_gradient`` for the adjoint. No fused kernel is registered:
-  on the Taichi backends the solver evaluates it through this reference (``FusedElastic``'s reference part).
+  reference and test oracle), and ``parameter_gradient`` for the adjoint; its two parts for the solver:
+  the shear part, a Stable Neo-Hookean (on the Taichi backends the fused Stable Neo-Hookean kernel), and
+  :class:`NodalVolume`, the nodal volumetric term, NumPy on every backend (``FusedElastic``'s reference part).
 """
 
 from __future__ import annotations
 
-from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean, nodal_pressure_moduli
+from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean, NodalVolume, nodal_pressure_moduli
 
 ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
     'nodal_pressure_neohookean':
@@ -19,4 +20,7 @@ ELASTIC_KINDS: dict[str, tuple[tuple[str, str], tuple[str, str]]] = {
 read by :func:`sim_core.energies.registry.make_elastic_potential` (no Taichi twin yet: the NumPy class on
 both backends)."""
 
-__all__ = ['NodalPressureNeoHookean', 'nodal_pressure_moduli', 'ELASTIC_KINDS']
+FUSED_KERNELS: dict[tuple[str, str], tuple[str, str]] = {}
+"""No fused kernel of its own (its shear part takes Stable Neo-Hookean's)."""
+
+__all__ = ['NodalPressureNeoHookean', 'NodalVolume', 'nodal_pressure_moduli', 'ELASTIC_KINDS', 'FUSED_KERNELS']

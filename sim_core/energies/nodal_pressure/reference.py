@@ -45,6 +45,13 @@ eigenvalues are clamped (or flipped) and the result mapped by ``dF/dx`` (a congr
 nodal term ``kappa / V_a b_a b_a^T`` is PSD as it is (``U'' = kappa > 0``). A sum of PSD blocks is PSD. At
 rest ``p_t = 0`` and the projection changes nothing: the linear response is exact.
 
+Two parts for the solver (:meth:`NodalPressureNeoHookean.parts`, read by
+:meth:`sim_core.elastic.ElasticTerms.potentials`): the shear part is a plain :class:`StableNeoHookean` (with
+``lam = lam_s``: the fused Stable Neo-Hookean kernel evaluates it on the Taichi backends) and
+:class:`NodalVolume` the nodal term with its ``p_t d2J`` (NumPy). Their sum is the element's energy, gradient
+and exact Hessian; projected apart, each is PSD (``p_t d2J/dF2`` alone clamped per tet), a PSD matrix no
+tighter than the joint projection of :meth:`NodalPressureNeoHookean.hessian`.
+
 Hessian blocks: one block per node over its ring (:attr:`NodalPressureNeoHookean.ring`, ``(nodes, m)``,
 padded with the node itself where a ring has fewer than ``m`` vertices, those entries zero), holding the
 node's ``b_a b_a^T`` term and the per-tet blocks of the tets whose first vertex it is (every vertex of a tet
@@ -53,10 +60,13 @@ lies in the ring of each of its vertices).
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
-from sim_core.energies.neohookean.reference import StableNeoHookean, _snh_lame_derivatives
+from sim_core.energies.neohookean.reference import (_D2J_POS, _D2J_SIGN, _D2J_SRC, StableNeoHookean,
+                                                    _snh_lame_derivatives)
 
 
 def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
@@ -65,38 +75,27 @@ def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
     return mu / 8.0, lam - mu / 8.0
 
 
-class NodalPressureNeoHookean:
-    """Stable Neo-Hookean tets with an average nodal pressure (module docstring): the same ``E``, ``nu``
-    and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
+class NodalVolume:
+    """The nodal volumetric term ``sum_a V_a kappa / 2 (J_a - 1)^2`` of :class:`NodalPressureNeoHookean` as a
+    potential of its own (module docstring): value, gradient, Hessian blocks over the vertex rings.
 
     Args:
-        tets: global vertex indices, shape ``(k, 4)``, positively oriented at rest.
-        x_rest: global rest positions in m, shape ``(n, 3)``.
-        youngs_modulus: ``E`` in Pa, > 0 (small-strain modulus).
-        poisson_ratio: ``nu``, -1 < nu < 0.5 (small-strain ratio).
+        shear: the shear part, whose tets, rest volumes, ``dF/dx`` and deformation memo this term reads.
+        kappa: bulk modulus in Pa, > 0.
 
     Attributes:
         nodes: the global vertices of the tets, sorted, ``(nodes,)``.
         node_rest_volume: ``V_a`` in m^3, ``(nodes,)``.
-        ring: global vertices of each node's tet ring, ``(nodes, m)`` (the Hessian blocks' vertices).
-        shear: the shear part, a :class:`StableNeoHookean` with ``lam_s = mu / 8``.
-        per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` (per-tet volume; locks).
-
-    Raises:
-        ConfigError: ``E`` not finite and > 0, ``nu`` outside (-1, 0.5).
-        MeshError: bad indices, non-finite rest positions, inverted or degenerate rest tets.
+        ring: global vertices of each node's tet ring, ``(nodes, m)`` (the Hessian blocks' vertices), padded
+            with the node itself.
     """
 
-    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+    parameter_names: tuple[str, ...] = ()
 
-    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
-        whole = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
-        self.youngs_modulus, self.poisson_ratio = whole.youngs_modulus, whole.poisson_ratio
-        self.mu, self.lam = whole.mu, whole.lam
-        lam_s, self.kappa = nodal_pressure_moduli(whole.mu, whole.lam)
-        self.shear = whole.with_lame(whole.mu, lam_s)
-        self.per_tet = whole  # the plain Stable Neo-Hookean of the same E, nu (the gel's Maxwell branch uses it)
-        self.tets, self.tet_rest_volume = whole.tets, whole.tet_rest_volume
+    def __init__(self, shear: StableNeoHookean, kappa: float) -> None:
+        self.shear = shear
+        self.kappa = float(kappa)
+        self.tets, self.tet_rest_volume = shear.tets, shear.tet_rest_volume
         self.nodes, node_of = np.unique(self.tets, return_inverse=True)
         self._node_of = node_of.reshape(self.tets.shape)  # (k, 4) node index of each tet corner
         count = self.nodes.size
@@ -118,14 +117,13 @@ class NodalPressureNeoHookean:
         ring_nodes = np.repeat(np.arange(count)[:, None], m, axis=1)  # padding: the node itself
         ring_nodes[a, pos] = b
         self.ring = self.nodes[ring_nodes]
-        self.ring_size = m
 
         def ring_position(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
             return pos[np.searchsorted(pairs, rows * count + cols)]
 
-        # b_a: corner j of tet t contributes g_t[j] / 4 to b_a at a's ring position of corner j, for each corner a
-        self._b_row = owner
-        self._b_pos = ring_position(owner, member)  # (k 16,)
+        # b_a: corner j of tet t adds g_t[j] / 4 to b_a at a's ring position of corner j, for each corner a of t
+        self._b_index = owner * m + ring_position(owner, member)  # (k 16,) flat (node, ring position)
+        self._b_source = (np.repeat(np.arange(k), 16), np.tile(np.arange(4), 4 * k))  # (tet, corner j)
         # per-tet 12x12 blocks into the block of the tet's first corner
         first = np.repeat(self._node_of[:, :1], 4, axis=1)
         local = ring_position(first.ravel(), self._node_of.ravel()).reshape(k, 4)  # (k, 4)
@@ -133,7 +131,130 @@ class NodalPressureNeoHookean:
         w = 3 * m
         self._tet_slot = (self._node_of[:, :1, None] * w * w + dof[:, :, None] * w + dof[:, None, :]).ravel()
 
-    # ------------------------------------------------------------------ nodal volumes and pressures
+    @property
+    def workspace(self):
+        """The shear part's workspace (the solver's, set by the terms that built the potential)."""
+        return self.shear.__dict__.get("workspace")
+
+    @workspace.setter
+    def workspace(self, value) -> None:
+        self.shear.workspace = value
+
+    def kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(F (k,3,3), cof F (k,3,3), J_a - 1 (nodes,), sum_{a in t} (J_a - 1) / 4 (k,))`` at ``x`` ``(n, 3)``
+        (the last times ``kappa`` is the tet's averaged pressure ``p_t``)."""
+        F = self.shear._deformation(np.asarray(x, dtype=float))
+        _, J, cof = self.shear._invariants(F)
+        v_change = np.bincount(self._node_of.ravel(), weights=np.repeat(self.tet_rest_volume * (J - 1.0) / 4.0, 4),
+                               minlength=self.nodes.size)
+        strain = v_change / self.node_rest_volume
+        return F, cof, strain, strain[self._node_of].mean(axis=1)
+
+    def ring_blocks(self, tet_blocks: np.ndarray, cof: np.ndarray) -> HessianBlocks:
+        """The per-tet blocks ``(k, 12, 12)`` (N/m) placed in the ring blocks, plus ``kappa / V_a b_a b_a^T``."""
+        count, m = self.ring.shape
+        w = 3 * m
+        blocks = np.bincount(self._tet_slot, weights=tet_blocks.ravel(), minlength=count * w * w).reshape(count, w, w)
+        # g_t[j] = V_t cof(F_t) dF/dx_j, (k, 4, 3); b_a in ring coordinates, (nodes, m, 3)
+        g = self.tet_rest_volume[:, None, None] * np.einsum("kij,kaj->kai", cof, self.shear.tet_dFdx)
+        part = g[self._b_source] / 4.0
+        b = np.stack([np.bincount(self._b_index, weights=part[:, d], minlength=count * m) for d in range(3)], axis=1)
+        b = b.reshape(count, w)
+        blocks += (self.kappa / self.node_rest_volume)[:, None, None] * (b[:, :, None] * b[:, None, :])
+        return HessianBlocks(self.ring, blocks)
+
+    def energy(self, x: np.ndarray) -> float:
+        """``sum_a V_a kappa / 2 (J_a - 1)^2`` in J at ``x`` ``(n, 3)``."""
+        strain = self.kinematics(x)[2]
+        return 0.5 * self.kappa * float(np.dot(self.node_rest_volume, strain**2))
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        """dE/dx in N, shape ``(n, 3)``: ``V_t p_t cof F_t dF/dx`` summed per vertex."""
+        x = np.asarray(x, dtype=float)
+        _, cof, _, p = self.kinematics(x)
+        return self.shear._forces_from_pk1(x, (self.kappa * p)[:, None, None] * cof)
+
+    def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
+        """Ring blocks in N/m: ``V_t (dF/dx)^T p_t d2J/dF2 (dF/dx)`` per tet (its eigenvalues ``+-p_t sigma_k``
+        clamped or flipped per ``projection``: the Stable Neo-Hookean eigensystem with ``mu = lam = 0``)
+        plus ``kappa / V_a b_a b_a^T`` (PSD)."""
+        F, cof, _, p = self.kinematics(x)
+        pressure = self.kappa * p
+        if projection == "none":
+            A = _pressure_d2J(F, pressure)
+        elif projection in ("clamp", "abs"):
+            w, Q = _pressure_d2J_eigensystem(self.shear, F, pressure)
+            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
+            A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
+        else:
+            raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+        return self.ring_blocks(_mapped(self.shear, A), cof)
+
+    def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
+        """No parameters of its own (:class:`NodalPressureNeoHookean` carries ``E``, ``nu``).
+
+        Raises:
+            KeyError: always.
+        """
+        raise KeyError(f"NodalVolume has no parameter {name!r}; the element's E and nu are NodalPressureNeoHookean's")
+
+
+def _pressure_d2J(F: np.ndarray, pressure: np.ndarray) -> np.ndarray:
+    """``p d2J/dF2`` per tet, ``(k, 9, 9)`` (``eps_ikm eps_jln F_mn``)."""
+    k = F.shape[0]
+    A = np.zeros((k, 81))
+    A[:, _D2J_POS] = pressure[:, None] * (_D2J_SIGN * F.reshape(k, 9)[:, _D2J_SRC])
+    return A.reshape(k, 9, 9)
+
+
+def _pressure_d2J_eigensystem(shear: StableNeoHookean, F: np.ndarray,
+                              pressure: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigensystem of ``p d2J/dF2`` per tet: Stable Neo-Hookean's (Smith et al. 2018, section 4.2) with
+    ``mu = lam = 0`` and the pressure as its ``lam (J - alpha)``."""
+    zero = copy.copy(shear)  # the eigensystem reads no memo (its SVD is of F itself)
+    zero.mu, zero.lam, zero.alpha = 0.0, 0.0, 0.0
+    return zero.d2psi_dF2_eigensystem(F, pressure)
+
+
+def _mapped(snh: StableNeoHookean, A: np.ndarray) -> np.ndarray:
+    """``V_t (dF/dx)^T A (dF/dx)`` per tet, ``(k, 12, 12)`` N/m, for ``A`` ``(k, 9, 9)`` Pa."""
+    M = snh.tet_dvecF_dx
+    return np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * snh.tet_rest_volume[:, None, None]
+
+
+class NodalPressureNeoHookean:
+    """Stable Neo-Hookean tets with an average nodal pressure (module docstring): the same ``E``, ``nu``
+    and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
+
+    Args:
+        tets: global vertex indices, shape ``(k, 4)``, positively oriented at rest.
+        x_rest: global rest positions in m, shape ``(n, 3)``.
+        youngs_modulus: ``E`` in Pa, > 0 (small-strain modulus).
+        poisson_ratio: ``nu``, -1 < nu < 0.5 (small-strain ratio).
+
+    Attributes:
+        shear: the shear part, a :class:`StableNeoHookean` with ``lam_s = mu / 8``.
+        volume: the nodal volumetric part, :class:`NodalVolume` (its ``ring`` is this element's block vertices).
+        per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` (per-tet volume; locks).
+
+    Raises:
+        ConfigError: ``E`` not finite and > 0, ``nu`` outside (-1, 0.5).
+        MeshError: bad indices, non-finite rest positions, inverted or degenerate rest tets.
+    """
+
+    parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
+
+    def __init__(self, tets: np.ndarray, x_rest: np.ndarray, youngs_modulus: float, poisson_ratio: float) -> None:
+        whole = StableNeoHookean(tets, x_rest, youngs_modulus, poisson_ratio)  # validates E, nu, the mesh
+        self.youngs_modulus, self.poisson_ratio = whole.youngs_modulus, whole.poisson_ratio
+        self.mu, self.lam = whole.mu, whole.lam
+        lam_s, self.kappa = nodal_pressure_moduli(whole.mu, whole.lam)
+        self.shear = whole.with_lame(whole.mu, lam_s)
+        self.volume = NodalVolume(self.shear, self.kappa)
+        self.per_tet = whole  # the plain Stable Neo-Hookean of the same E, nu (the gel's Maxwell branch uses it)
+        self.tets, self.tet_rest_volume = whole.tets, whole.tet_rest_volume
+        self.ring = self.volume.ring
+
     @property
     def workspace(self):
         """The shear part's workspace (the solver's, set by the terms that built this potential)."""
@@ -143,34 +264,25 @@ class NodalPressureNeoHookean:
     def workspace(self, value) -> None:
         self.shear.workspace = value
 
-    def _kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(F (k,3,3), cof F (k,3,3), J_a - 1 (nodes,), p_t / kappa (k,))`` at ``x``."""
-        F = self.shear._deformation(np.asarray(x, dtype=float))
-        _, J, cof = self.shear._invariants(F)
-        v_change = np.bincount(self._node_of.ravel(), weights=np.repeat(self.tet_rest_volume * (J - 1.0) / 4.0, 4),
-                               minlength=self.nodes.size)
-        strain = v_change / self.node_rest_volume
-        return F, cof, strain, strain[self._node_of].mean(axis=1)
+    def parts(self) -> tuple[StableNeoHookean, NodalVolume]:
+        """The two potentials whose sum this is, for the solver (module docstring): the shear part (a Stable
+        Neo-Hookean: the fused kernel takes it) and the nodal volumetric part."""
+        return self.shear, self.volume
 
     def nodal_jacobian(self, x: np.ndarray) -> np.ndarray:
-        """``J_a`` of every node, ``(nodes,)`` (order of :attr:`nodes`)."""
-        return 1.0 + self._kinematics(x)[2]
-
-    def _forces(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """``V_t P_t dF/dx`` scattered to ``(n, 3)`` for per-tet stresses ``P`` ``(k, 3, 3)`` in Pa."""
-        return self.shear._forces_from_pk1(x, P)
+        """``J_a`` of every node, ``(nodes,)`` (order of ``volume.nodes``)."""
+        return 1.0 + self.volume.kinematics(x)[2]
 
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """``sum_t V_t psi_s(F_t) + sum_a V_a kappa / 2 (J_a - 1)^2`` in J at ``x`` ``(n, 3)`` (0 at rest)."""
-        _, _, strain, _ = self._kinematics(x)
-        return self.shear.energy(x) + 0.5 * self.kappa * float(np.dot(self.node_rest_volume, strain**2))
+        return self.shear.energy(x) + self.volume.energy(x)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """dE/dx in N, shape ``(n, 3)``: ``V_t (P_s(F_t) + p_t cof F_t) dF/dx`` summed per vertex."""
         x = np.asarray(x, dtype=float)
-        F, cof, _, p = self._kinematics(x)
-        return self._forces(x, self.shear.first_piola(F) + (self.kappa * p)[:, None, None] * cof)
+        F, cof, _, p = self.volume.kinematics(x)
+        return self.shear._forces_from_pk1(x, self.shear.first_piola(F) + (self.kappa * p)[:, None, None] * cof)
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
         """Per-node Hessian blocks over :attr:`ring` in N/m (module docstring).
@@ -178,12 +290,12 @@ class NodalPressureNeoHookean:
         Args:
             x: positions ``(n, 3)``.
             projection: ``"none"`` (exact), ``"clamp"`` or ``"abs"``: applied to each tet's 9x9
-                ``d2psi_s/dF2 + p_t d2J/dF2``; the nodal ``kappa / V_a b_a b_a^T`` is PSD as it is.
+                ``d2psi_s/dF2 + p_t d2J/dF2`` (jointly); the nodal ``kappa / V_a b_a b_a^T`` is PSD as it is.
 
         Returns:
             :class:`HessianBlocks` with ``vertices = ring`` ``(nodes, m)`` and blocks ``(nodes, 3m, 3m)``.
         """
-        F, cof, _, p = self._kinematics(x)
+        F, cof, _, p = self.volume.kinematics(x)
         k = F.shape[0]
         pressure = self.kappa * p
         if projection == "none":
@@ -194,22 +306,7 @@ class NodalPressureNeoHookean:
             A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
         else:
             raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
-        M = self.shear.tet_dvecF_dx
-        H_tet = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * self.tet_rest_volume[:, None, None]
-        count, m = self.ring.shape
-        w3 = 3 * m
-        blocks = np.bincount(self._tet_slot, weights=H_tet.ravel(), minlength=count * w3 * w3).reshape(count, w3, w3)
-        # g_t[j] = V_t cof(F_t) dF/dx_j, (k, 4, 3); b_a in ring coordinates, (nodes, m, 3)
-        g = self.tet_rest_volume[:, None, None] * np.einsum("kij,kaj->kai", cof, self.shear.tet_dFdx)
-        b = np.zeros((count * m, 3))
-        rows = self._b_row * m + self._b_pos
-        corner = np.tile(np.arange(4), 4 * k)  # corner j of (t, i, j), matching _b_row and _b_pos
-        gt = g[np.repeat(np.arange(k), 16), corner] / 4.0
-        for d in range(3):
-            b[:, d] = np.bincount(rows, weights=gt[:, d], minlength=count * m)
-        b = b.reshape(count, w3)
-        blocks += (self.kappa / self.node_rest_volume)[:, None, None] * (b[:, :, None] * b[:, None, :])
-        return HessianBlocks(self.ring, blocks)
+        return self.volume.ring_blocks(_mapped(self.shear, A), cof)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/dp for ``p`` in :attr:`parameter_names`, shape ``(n, 3)``.
@@ -224,8 +321,7 @@ class NodalPressureNeoHookean:
             raise KeyError(f"NodalPressureNeoHookean has no parameter {name!r}; known: {self.parameter_names}")
         x = np.asarray(x, dtype=float)
         dmu, dlam = _snh_lame_derivatives(self.youngs_modulus, self.poisson_ratio, name)
-        F, cof, _, p = self._kinematics(x)
+        F, cof, _, p = self.volume.kinematics(x)
         P_mu, P_lam = self.shear._pk1_parts(F)
         dP = dmu * P_mu + dmu / 8.0 * P_lam + ((dlam - dmu / 8.0) * p)[:, None, None] * cof
-        return self._forces(x, dP)
-
+        return self.shear._forces_from_pk1(x, dP)

@@ -16,7 +16,7 @@ import sim_core.energies
 from sim_core.energies import base
 from sim_core.energies.base import (CAPABILITIES, ConstantDiagonalHessian, CopyEnergies, DeviceCopyEnergies,
                                     DeviceGradient, DeviceHessian, ElasticEquivalent, HingeBending, KeepsDerivatives,
-                                    PenaltyContact, Potential, SparseGradient, SubsetHessian)
+                                    PenaltyContact, Potential, SparseGradient, SplitPotential, SubsetHessian)
 
 NOT_POTENTIALS = {
     "sim_core.energies.base": {"HessianBlocks", "Potential", "FrozenPositionsKey"} | {c.__name__ for c in CAPABILITIES},
@@ -61,7 +61,7 @@ CONTRACT = {
 def test_the_scan_finds_the_potentials():
     names = {c.__name__ for c in POTENTIAL_CLASSES}
     assert {"InertiaPotential", "GravityPotential", "ViscousDamping", "StVKMembrane", "SpringMembrane",
-            "DiscreteShellBending", "KirchhoffBending", "StableNeoHookean", "NodalPressureNeoHookean", "VertexTriangleContact",
+            "DiscreteShellBending", "KirchhoffBending", "StableNeoHookean", "NodalPressureNeoHookean", "NodalVolume", "VertexTriangleContact",
             "EdgeEdgeContact", "PlaneContact", "SphereContact", "LaggedFriction", "LaggedAdhesion",
             "MaxwellBranch", "SheetDamping", "StictionFriction", "AnisotropicBendingCorrection",
             } <= names
@@ -110,6 +110,7 @@ EXPECTED_CAPABILITIES = {
     CopyEnergies: {"_PairPenalty", "VertexTriangleContact", "EdgeEdgeContact", "PlaneContact", "SphereContact",
                    "LaggedFriction"},
     DeviceCopyEnergies: set(),  # the Taichi terms only (TAICHI_CAPABILITIES; and batch.lumped.LumpedQuadratic)
+    SplitPotential: {"NodalPressureNeoHookean"},
 }
 
 TAICHI_CAPABILITIES = {

@@ -116,6 +116,26 @@ def test_the_widened_pattern_assembles_through_the_solver() -> None:
     assert tet_pairs < ring_pairs
 
 
+def test_the_solvers_two_parts_sum_to_the_element() -> None:
+    """The shear part (a Stable Neo-Hookean, for the fused kernel) plus the nodal volume term: the element's
+    energy, gradient and exact Hessian; projected apart, their sum is PSD where the exact Hessian is not."""
+    mesh = _block()
+    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    shear, volume = pot.parts()
+    assert type(shear) is StableNeoHookean
+    x = _deformed(mesh.x, 5, 6e-4)
+    n = x.shape[0]
+    assert shear.energy(x) + volume.energy(x) == pytest.approx(pot.energy(x), rel=1e-12)
+    assert relative_error(shear.gradient(x) + volume.gradient(x), pot.gradient(x)) < 1e-12
+    exact = dense_hessian(shear.hessian(x, "none"), n) + dense_hessian(volume.hessian(x, "none"), n)
+    assert relative_error(exact, dense_hessian(pot.hessian(x, "none"), n)) < 1e-12
+    assert relative_error(dense_hessian(volume.hessian(x, "none"), n),
+                          fd_hessian(volume.gradient, x, h=1e-9)) < 1e-5
+    projected = dense_hessian(shear.hessian(x, "clamp"), n) + dense_hessian(volume.hessian(x, "clamp"), n)
+    w = np.linalg.eigvalsh(projected)
+    assert np.linalg.eigvalsh(exact).min() < -1e-3 * w.max() and w.min() >= -1e-10 * w.max()
+
+
 def test_bad_parameters_name_the_element() -> None:
     mesh = _block()
     with pytest.raises(ConfigError, match="poisson_ratio"):
