@@ -493,3 +493,39 @@ def test_device_array_evaluation_equals_the_host_one(ti_cpu, monkeypatch):
     assert relative_error(want, p_host) > 1e-6  # the marked body's blocks only
     with pytest.raises(ValueError, match="projection"):
         fused_dev.projected_hessian_values_device(x, "flip")
+
+
+def test_a_nodal_pressure_gel_steps_alike_on_the_fused_path(ti_cpu):
+    """A nodal-pressure gel (:mod:`sim_core.energies.nodal_pressure`) pressed by a plate: its shear part goes to
+    the fused Stable Neo-Hookean kernel and its nodal term to a reference part, and the steps equal the NumPy
+    path's."""
+    from sim_core.control import Control
+    from sim_core.fused_elastic import _ReferencePart
+    from sim_core.indentation import build_indentation
+    from sim_core.mesh.sheet import TriMesh
+    from sim_core.mesh.tet import TetMesh
+    from sim_core.model import ContactSettings
+    from sim_core.simulation import Simulation
+    from sim_core.solver import SolverConfig
+
+    gel = tet_box((0.01, 0.008, 0.004), (5, 4, 3), (-0.005, -0.004, -0.004))
+    plate = TriMesh(np.array([[-0.02, -0.02, 0.0], [0.02, -0.02, 0.0], [0.02, 0.02, 0.0], [-0.02, 0.02, 0.0]]),
+                    np.array([[0, 1, 2], [0, 2, 3]]))
+    setup = build_indentation(TetMesh(gel.x, gel.tets), np.flatnonzero(np.isclose(gel.x[:, 2], -0.004)), plate,
+                              3e5, 0.45, ContactSettings(stiffness=2e5, eps=4e-4, eps_v=1e-6, self_contact=False),
+                              indenter_lift=None, indenter_vertices_vs_gel=False, gel_element="nodal_pressure_neohookean")
+    runs = []
+    for backend in ("numpy", TEST_BACKEND):
+        sim = Simulation(setup.model, dt=1.0, solver_config=SolverConfig(tol_velocity=1e-9, max_iterations=50,
+                                                                         projection="abs", backend=backend))
+        pose = sim.state.effector_pose[setup.effector].copy()
+        for k in range(1, 3):
+            control = Control()
+            control.effector_pose_target[setup.effector] = pose - np.array([0, 0, 3e-5 * k, 0, 0, 0, 0])
+            sim.step(control)
+        runs.append(sim.state.x.copy())
+        if backend != "numpy":
+            parts = [type(p).__name__ for p in sim.solver._fused._parts]
+            assert "FusedStableNeoHookean" in parts and any(isinstance(p, _ReferencePart) for p in sim.solver._fused._parts)
+    assert np.max(np.abs(runs[1] - runs[0])) < 1e-10
+    assert np.abs(runs[0][: len(gel.x)] - setup.model.x_rest[: len(gel.x)]).max() > 2e-5  # the gel was pressed
