@@ -46,11 +46,15 @@ def _stiffness(markers: np.ndarray, fz: np.ndarray, window: slice) -> tuple[floa
     return float(-fz[window].mean() / depth.mean()), float(outward.mean() / depth.mean())
 
 
-def test_the_pressed_gels_depth_per_newton_is_the_recordings():
+def _simulated_over_recorded(simulation: dict | None = None) -> tuple[float, float, float, float]:
+    """``(k_recorded, k_simulated, outward_recorded, outward_simulated)`` over the press dwell: stiffness in N/m
+    and the edge markers' outward motion over the depth, the scene's ``simulation`` block overridden by
+    ``simulation``."""
     evidence = load_evidence(BAG, include_image="auto")
     window = _press_dwell(evidence)
     t_markers = evidence.t_ns["markers_xyz"]
-    model = ObservationModel(evidence, dt=0.01, t_max=t_markers[window.stop] / 1e9 + 0.05, arch="cpu")
+    model = ObservationModel(evidence, dt=0.01, t_max=t_markers[window.stop] / 1e9 + 0.05, arch="cpu",
+                             simulation=simulation)
     drive = fit_drive(model)
     model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     prediction = model.predict_raw(model.simulate({"contact.eps_v": STICK_SPEED}))
@@ -59,6 +63,20 @@ def test_the_pressed_gels_depth_per_newton_is_the_recordings():
     simulated_fz = resample(evidence.t_ns["wrench"][:prediction["wrench"].shape[0]], prediction["wrench"], t_markers[:n])[:, 2]
     k_recorded, out_recorded = _stiffness(evidence.markers_xyz[:n], recorded_fz, window)
     k_simulated, out_simulated = _stiffness(prediction["markers_xyz"], simulated_fz, window)
+    return k_recorded, k_simulated, out_recorded, out_simulated
+
+
+def test_the_pressed_gels_depth_per_newton_is_the_recordings():
+    k_recorded, k_simulated, out_recorded, out_simulated = _simulated_over_recorded()
     assert out_recorded > 0.8 and out_simulated > 0.8  # both faces slide out while pressed (Coulomb-stuck: 0.3)
     assert k_recorded == pytest.approx(31.9e3, rel=0.02)
     assert k_simulated / k_recorded == pytest.approx(1.0, abs=0.08)
+
+
+def test_the_nodal_pressure_gel_meets_the_recordings_depth_per_newton():
+    """The same replay with the gel element that does not lock (``simulation.gel_element:
+    nodal_pressure_neohookean``) on the same default mesh: measured 1.013x the recording's stiffness, where the
+    default Stable Neo-Hookean tets give 1.044x. Asserted within 3 %, which the default element fails."""
+    k_recorded, k_simulated, _, out_simulated = _simulated_over_recorded({"gel_element": "nodal_pressure_neohookean"})
+    assert out_simulated > 0.8
+    assert k_simulated / k_recorded == pytest.approx(1.0, abs=0.03)
