@@ -168,3 +168,22 @@ def test_dict_input_is_validated_too():
 
 def test_yaml_loader_reads_yaml12_floats():
     assert load_yaml("a: 3.0e9\nb: 1e-3\nc: 7\nd: '3.0e9'\n") == {"a": 3.0e9, "b": 1e-3, "c": 7, "d": "3.0e9"}
+
+
+def test_the_gel_element_is_chosen_in_the_simulation_block():
+    """``simulation.gel_element`` picks the gel's element (default Stable Neo-Hookean tets); a name that is none
+    of :data:`sim_core.elastic.SOLID_ELEMENTS` is refused naming the key."""
+    from sim_core.elastic import ElasticTerms
+    from sim_core.energies.neohookean.reference import StableNeoHookean
+    from sim_core.energies.nodal_pressure.reference import NodalPressureNeoHookean
+    from sim_core.scenes.tactile_scene import build_tactile_scene
+
+    data = load_yaml(INTERFACES_EXAMPLE)
+    assert type(ElasticTerms(build_tactile_scene(data)).solids["gel"]) is StableNeoHookean
+    data["simulation"] = {"gel_element": "nodal_pressure_neohookean"}
+    model = build_tactile_scene(data)
+    assert model.meta["solid_element"] == "nodal_pressure_neohookean"
+    assert type(ElasticTerms(model).solids["gel"]) is NodalPressureNeoHookean
+    data["simulation"] = {"gel_element": "mixed_p2"}
+    with pytest.raises(ConfigError, match="simulation.gel_element"):
+        build_tactile_scene(data)
