@@ -140,3 +140,15 @@ def test_bad_parameters_name_the_element() -> None:
     mesh = _block()
     with pytest.raises(ConfigError, match="poisson_ratio"):
         NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, 0.5)
+
+
+def test_a_nodal_pressure_gels_maxwell_branch_is_its_per_tet_neohookean() -> None:
+    """The viscoelastic candidate's branch on a nodal-pressure gel is beta times the per-tet Stable Neo-Hookean of
+    the same E, nu (at the identity relaxed state)."""
+    from sim_core.candidates.gel_viscoelasticity import MaxwellBranch
+
+    mesh = _block()
+    pot = NodalPressureNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL)
+    branch = MaxwellBranch(pot, np.tile(np.eye(3), (mesh.tets.shape[0], 1, 1)), 0.5)
+    x = _deformed(mesh.x, 6)
+    assert branch.energy(x) == pytest.approx(0.5 * StableNeoHookean(mesh.tets, mesh.x, E_GEL, NU_GEL).energy(x), rel=1e-12)
