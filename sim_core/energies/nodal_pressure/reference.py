@@ -65,8 +65,7 @@ import copy
 import numpy as np
 
 from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
-from sim_core.energies.neohookean.reference import (_D2J_POS, _D2J_SIGN, _D2J_SRC, StableNeoHookean,
-                                                    _snh_lame_derivatives)
+from sim_core.energies.neohookean.reference import StableNeoHookean, _snh_lame_derivatives
 
 
 def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
@@ -159,8 +158,9 @@ class NodalVolume:
         g = self.tet_rest_volume[:, None, None] * np.einsum("kij,kaj->kai", cof, self.shear.tet_dFdx)
         part = g[self._b_source] / 4.0
         b = np.stack([np.bincount(self._b_index, weights=part[:, d], minlength=count * m) for d in range(3)], axis=1)
-        b = b.reshape(count, w)
-        blocks += (self.kappa / self.node_rest_volume)[:, None, None] * (b[:, :, None] * b[:, None, :])
+        c = b.reshape(count, w) * np.sqrt(self.kappa / self.node_rest_volume)[:, None]
+        for j in range(w):  # column by column: no (nodes, 3m, 3m) temporary (fresh pages cost more than the sums)
+            blocks[:, :, j] += c * c[:, j:j + 1]
         return HessianBlocks(self.ring, blocks)
 
     def energy(self, x: np.ndarray) -> float:
@@ -181,14 +181,13 @@ class NodalVolume:
         F, cof, _, p = self.kinematics(x)
         pressure = self.kappa * p
         if projection == "none":
-            A = _pressure_d2J(F, pressure)
-        elif projection in ("clamp", "abs"):
+            return self.ring_blocks(_pressure_blocks(self.shear, F, pressure), cof)
+        if projection in ("clamp", "abs"):
             w, Q = _pressure_d2J_eigensystem(self.shear, F, pressure)
             w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
             A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
-        else:
-            raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
-        return self.ring_blocks(_mapped(self.shear, A), cof)
+            return self.ring_blocks(_mapped(self.shear, A), cof)
+        raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """No parameters of its own (:class:`NodalPressureNeoHookean` carries ``E``, ``nu``).
@@ -199,12 +198,19 @@ class NodalVolume:
         raise KeyError(f"NodalVolume has no parameter {name!r}; the element's E and nu are NodalPressureNeoHookean's")
 
 
-def _pressure_d2J(F: np.ndarray, pressure: np.ndarray) -> np.ndarray:
-    """``p d2J/dF2`` per tet, ``(k, 9, 9)`` (``eps_ikm eps_jln F_mn``)."""
-    k = F.shape[0]
-    A = np.zeros((k, 81))
-    A[:, _D2J_POS] = pressure[:, None] * (_D2J_SIGN * F.reshape(k, 9)[:, _D2J_SRC])
-    return A.reshape(k, 9, 9)
+def _pressure_blocks(snh: StableNeoHookean, F: np.ndarray, pressure: np.ndarray) -> np.ndarray:
+    """``V_t p_t d2J/dx2`` per tet, ``(k, 12, 12)`` N/m: the vertex block ``(a, b)`` is ``V_t p_t [F (g_a x g_b)]_x``
+    (``d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn`` contracted with ``g_a = dF/dx_a``; ``[w]_x`` the cross-product matrix,
+    ``[w]_x[i, j] = -eps_ijm w_m``), as the fused Stable Neo-Hookean kernel forms it."""
+    g = snh.tet_dFdx  # (k, 4, 3)
+    k = g.shape[0]
+    w = np.einsum("kmn,kabn->kabm", F, np.cross(g[:, :, None, :], g[:, None, :, :]))  # (k, 4, 4, 3)
+    w *= (snh.tet_rest_volume * pressure)[:, None, None, None]
+    H = np.zeros((k, 4, 3, 4, 3))
+    for i, j, m in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        H[:, :, i, :, j] = w[..., m]
+        H[:, :, j, :, i] = -w[..., m]
+    return H.reshape(k, 12, 12)
 
 
 def _pressure_d2J_eigensystem(shear: StableNeoHookean, F: np.ndarray,
