@@ -74,7 +74,23 @@ def nodal_pressure_moduli(mu: float, lam: float) -> tuple[float, float]:
     return mu / 8.0, lam - mu / 8.0
 
 
-class NodalVolume:
+class _ShearWorkspace:
+    """The ``workspace`` of a potential built on a shear part (``self.shear``): the shear part's, whose memo of the
+    deformation gradients both read (:mod:`sim_core.workspace`; the solver's, set by the terms that built it)."""
+
+    shear: StableNeoHookean
+
+    @property
+    def workspace(self):
+        """The shear part's workspace, or None before one is given."""
+        return self.shear.__dict__.get("workspace")
+
+    @workspace.setter
+    def workspace(self, value) -> None:
+        self.shear.workspace = value
+
+
+class NodalVolume(_ShearWorkspace):
     """The nodal volumetric term ``sum_a V_a kappa / 2 (J_a - 1)^2`` of :class:`NodalPressureNeoHookean` as a
     potential of its own (module docstring): value, gradient, Hessian blocks over the vertex rings.
 
@@ -129,15 +145,6 @@ class NodalVolume:
         dof = (3 * local[:, :, None] + np.arange(3)).reshape(k, 12)
         w = 3 * m
         self._tet_slot = (self._node_of[:, :1, None] * w * w + dof[:, :, None] * w + dof[:, None, :]).ravel()
-
-    @property
-    def workspace(self):
-        """The shear part's workspace (the solver's, set by the terms that built the potential)."""
-        return self.shear.__dict__.get("workspace")
-
-    @workspace.setter
-    def workspace(self, value) -> None:
-        self.shear.workspace = value
 
     def kinematics(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(F (k,3,3), cof F (k,3,3), J_a - 1 (nodes,), sum_{a in t} (J_a - 1) / 4 (k,))`` at ``x`` ``(n, 3)``
@@ -228,7 +235,7 @@ def _mapped(snh: StableNeoHookean, A: np.ndarray) -> np.ndarray:
     return np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M)) * snh.tet_rest_volume[:, None, None]
 
 
-class NodalPressureNeoHookean:
+class NodalPressureNeoHookean(_ShearWorkspace):
     """Stable Neo-Hookean tets with an average nodal pressure (module docstring): the same ``E``, ``nu``
     and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
 
@@ -260,15 +267,6 @@ class NodalPressureNeoHookean:
         self.per_tet = whole  # the plain Stable Neo-Hookean of the same E, nu (the gel's Maxwell branch uses it)
         self.tets, self.tet_rest_volume = whole.tets, whole.tet_rest_volume
         self.ring = self.volume.ring
-
-    @property
-    def workspace(self):
-        """The shear part's workspace (the solver's, set by the terms that built this potential)."""
-        return self.shear.__dict__.get("workspace")
-
-    @workspace.setter
-    def workspace(self, value) -> None:
-        self.shear.workspace = value
 
     def parts(self) -> tuple[StableNeoHookean, NodalVolume]:
         """The two potentials whose sum this is, for the solver (module docstring): the shear part (a Stable

@@ -23,8 +23,9 @@ NOT_POTENTIALS = {
     "sim_core.energies.contact.reference": {"ContactFrames", "PairEvaluation"},
     "sim_core.energies.contact.pair_lists": {"CandidateVertices", "BatchLayout"},
     "sim_core.candidates.hook": {"CandidateHook", "StepHook", "GelContactFace"},
+    "sim_core.energies.nodal_pressure.reference": {"_ShearWorkspace"},
 }
-"""Public classes of the scanned packages that are not potentials (records, protocols, the hook)."""
+"""Public classes of the scanned packages that are not potentials (records, protocols, the hook, a mixin)."""
 
 PACKAGES = (sim_core.energies, sim_core.candidates)
 
