@@ -283,8 +283,9 @@ def _shared_settings(ref: Model, other: Model, i: int) -> None:
         ("planes", list(ref.planes) == list(other.planes) and all(
             np.array_equal(p.normal, other.planes[n].normal) and p.offset == other.planes[n].offset
             for n, p in ref.planes.items())),
-        ("membrane / bending model", ref.meta.get("membrane") == other.meta.get("membrane")
-         and ref.meta.get("bending_model") == other.meta.get("bending_model")),
+        ("membrane / bending model / solid element", ref.meta.get("membrane") == other.meta.get("membrane")
+         and ref.meta.get("bending_model") == other.meta.get("bending_model")
+         and ref.meta.get("solid_element") == other.meta.get("solid_element")),
         ("vertex_fixed", np.array_equal(ref.vertex_fixed, other.vertex_fixed)),
     ]
     for what, same in checks:
@@ -404,7 +405,7 @@ def stack_models(models: Sequence[Model], margin: float = DEFAULT_MARGIN) -> Sta
         for pair, mu in models[members[g][0]].friction.items():
             friction[frozenset(group_names[g].get(p, p) for p in pair)] = float(mu)
     meta = {"dt": ref.meta.get("dt"), "stacked_copies": B}
-    for key in ("membrane", "bending_model"):
+    for key in ("membrane", "bending_model", "solid_element"):
         form = ref.meta.get(key)
         if isinstance(form, dict):
             meta[key] = {names[body]: value for names in group_names for body, value in form.items() if body in names}
