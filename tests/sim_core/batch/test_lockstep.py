@@ -247,6 +247,11 @@ def test_lockstep_settings_are_checked(model):
     other.set_parameter("contact.stiffness", 1e3)
     with pytest.raises(ConfigError, match="batch copy 1: its contact settings differ"):
         stack_models([model, other])
+    nodal = copy.deepcopy(model)
+    nodal.meta["solid_element"] = "nodal_pressure_neohookean"
+    with pytest.raises(ConfigError, match="batch copy 1: its membrane / bending model / solid element differ"):
+        stack_models([model, nodal])
+    assert stack_models([nodal, copy.deepcopy(nodal)]).model.meta["solid_element"] == "nodal_pressure_neohookean"
     batch = _lockstep_batch(model, params=[{}, {}])
     guess = control(batch.states[0].effector_pose["pad"], MOTIONS[0], 0)
     guess.position_guess = batch.states[0].x.copy()
