@@ -122,13 +122,14 @@ def test_the_two_layer_mesh_is_too_stiff_in_compression(converged):
     assert linear_slip_stiffness((10, 8, 3)) / converged > 1.18
 
 
-def test_the_nodal_pressure_gel_does_not_lock_on_the_default_mesh(converged):
+def test_the_nodal_pressure_gel_locks_less_on_the_default_mesh(converged):
     """The average nodal pressure tet (``simulation.gel_element: nodal_pressure_neohookean``,
     :mod:`sim_core.energies.nodal_pressure`) on the default mesh: sim_core's gel through the penalty contact is the
     linearised element's answer on the same mesh (the independent assembly of tests/support/linear_fe.py), which
     measures 1.074x the converged layer (Stable Neo-Hookean's linear tets: 1.112x; the two-layer mesh 1.103x
-    against 1.220x). What remains is not locking: the same first-order error of a coarse mesh at nu = 0.3 is
-    1.02x. Asserted: within 9 % and at least 3 points closer than the linear tets."""
+    against 1.220x). Not all of it is gone: at nu = 0.3 both elements give 1.02x on this mesh, so about half of what
+    nu = 0.45 adds remains (240 nodal volume constraints on 528 free DoFs). Asserted: within 9 % and at least 3
+    points closer than the linear tets."""
     resolution = tuple(default_gel_resolution(GEL, PITCH))
     linear = linear_slip_stiffness(resolution, element=nodal_pressure_stiffness)
     assert simulated_slip_stiffness(resolution, gel_element="nodal_pressure_neohookean") == pytest.approx(linear, rel=0.02)
