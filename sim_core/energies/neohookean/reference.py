@@ -314,6 +314,23 @@ class StableNeoHookean:
             vectors[:, :, 6 + c] = r * (outer[:, i, j] + outer[:, j, i])
         return values, vectors
 
+    def d2psi_dF2_projected(self, F: np.ndarray, projection: Projection,
+                            pressure: np.ndarray | None = None) -> np.ndarray:
+        """The 9x9 ``d2psi/dF2`` (plus ``p d2J/dF2`` for a ``pressure`` ``(k,)`` in Pa) per tet, ``(k, 9, 9)``:
+        exact (``"none"``) or with the negative eigenvalues of :meth:`d2psi_dF2_eigensystem` clamped to 0
+        (``"clamp"``) or flipped (``"abs"``).
+
+        Raises:
+            ValueError: unknown projection.
+        """
+        if projection == "none":
+            return self.d2psi_dF2(F, pressure).reshape(F.shape[0], 9, 9)
+        if projection in ("clamp", "abs"):
+            w, Q = self.d2psi_dF2_eigensystem(F, pressure)
+            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
+            return np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
+        raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+
     # ------------------------------------------------------------------ Potential contract
     def energy(self, x: np.ndarray) -> float:
         """Energy ``sum_t V_t psi(F_t)`` in J at positions ``x`` ``(n, 3)`` (0 at rest)."""
@@ -337,16 +354,8 @@ class StableNeoHookean:
             :class:`HessianBlocks` with ``vertices = tets`` ``(k, 4)`` and blocks ``(k, 12, 12)``.
         """
         F = self._deformation(x)
-        k = F.shape[0]
         M = self.tet_dvecF_dx
-        if projection == "none":
-            A = self.d2psi_dF2(F).reshape(k, 9, 9)
-        elif projection in ("clamp", "abs"):
-            w, Q = self.d2psi_dF2_eigensystem(F)
-            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
-            A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
-        else:
-            raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+        A = self.d2psi_dF2_projected(F, projection)
         H = np.matmul(np.swapaxes(M, 1, 2), np.matmul(A, M))  # (k, 12, 12) = M^T A M
         H *= self.tet_rest_volume[:, None, None]
         return HessianBlocks(self.tets, H)

@@ -191,12 +191,8 @@ class NodalVolume(_ShearWorkspace):
         pressure = self.kappa * p
         if projection == "none":
             return self.ring_blocks(_pressure_blocks(self.shear, F, pressure), cof)
-        if projection in ("clamp", "abs"):
-            w, Q = _pressure_d2J_eigensystem(self.shear, F, pressure)
-            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
-            A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
-            return self.ring_blocks(_mapped(self.shear, A), cof)
-        raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+        return self.ring_blocks(_mapped(self.shear, _pressure_only(self.shear).d2psi_dF2_projected(F, projection,
+                                                                                                     pressure)), cof)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """No parameters of its own (:class:`NodalPressureNeoHookean` carries ``E``, ``nu``).
@@ -222,13 +218,13 @@ def _pressure_blocks(snh: StableNeoHookean, F: np.ndarray, pressure: np.ndarray)
     return H.reshape(k, 12, 12)
 
 
-def _pressure_d2J_eigensystem(shear: StableNeoHookean, F: np.ndarray,
-                              pressure: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eigensystem of ``p d2J/dF2`` per tet: Stable Neo-Hookean's (Smith et al. 2018, section 4.2) with
-    ``mu = lam = 0`` and the pressure as its ``lam (J - alpha)``."""
-    zero = copy.copy(shear)  # the eigensystem reads no memo (its SVD is of F itself)
+def _pressure_only(shear: StableNeoHookean) -> StableNeoHookean:
+    """``shear`` with ``mu = lam = 0``: its ``d2psi/dF2`` with a pressure is ``p d2J/dF2`` alone, whose eigensystem
+    is Stable Neo-Hookean's (Smith et al. 2018, section 4.2) with the pressure as its ``lam (J - alpha)``. Only its
+    pressure's Hessian may be read (the projection reads no memo: its SVD is of ``F`` itself)."""
+    zero = copy.copy(shear)
     zero.mu, zero.lam, zero.alpha = 0.0, 0.0, 0.0
-    return zero.d2psi_dF2_eigensystem(F, pressure)
+    return zero
 
 
 def _mapped(snh: StableNeoHookean, A: np.ndarray) -> np.ndarray:
@@ -242,19 +238,13 @@ class NodalPressureNeoHookean(_ShearWorkspace):
     and constructor as :class:`~sim_core.energies.neohookean.reference.StableNeoHookean`.
 
     Args:
-        tets: global vertex indices, shape ``(k, 4)``, positively oriented at rest.
-        x_rest: global rest positions in m, shape ``(n, 3)``.
-        youngs_modulus: ``E`` in Pa, > 0 (small-strain modulus).
-        poisson_ratio: ``nu``, -1 < nu < 0.5 (small-strain ratio).
+        tets, x_rest, youngs_modulus, poisson_ratio: as :class:`StableNeoHookean`'s (tets ``(k, 4)``, rest positions
+            ``(n, 3)`` m, small-strain ``E`` in Pa and ``nu``), and raising as it does.
 
     Attributes:
         shear: the shear part, a :class:`StableNeoHookean` with ``lam_s = mu / 8``.
         volume: the nodal volumetric part, :class:`NodalVolume` (its ``ring`` is this element's block vertices).
         per_tet: the Stable Neo-Hookean of the same ``E``, ``nu`` (per-tet volume; locks).
-
-    Raises:
-        ConfigError: ``E`` not finite and > 0, ``nu`` outside (-1, 0.5).
-        MeshError: bad indices, non-finite rest positions, inverted or degenerate rest tets.
     """
 
     parameter_names: tuple[str, ...] = ("youngs_modulus", "poisson_ratio")
@@ -302,16 +292,7 @@ class NodalPressureNeoHookean(_ShearWorkspace):
             :class:`HessianBlocks` with ``vertices = ring`` ``(nodes, m)`` and blocks ``(nodes, 3m, 3m)``.
         """
         F, cof, _, p = self.volume.kinematics(x)
-        k = F.shape[0]
-        pressure = self.kappa * p
-        if projection == "none":
-            A = self.shear.d2psi_dF2(F, pressure).reshape(k, 9, 9)
-        elif projection in ("clamp", "abs"):
-            w, Q = self.shear.d2psi_dF2_eigensystem(F, pressure)
-            w = np.maximum(w, 0.0) if projection == "clamp" else np.abs(w)
-            A = np.matmul(Q * w[:, None, :], np.swapaxes(Q, 1, 2))
-        else:
-            raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
+        A = self.shear.d2psi_dF2_projected(F, projection, self.kappa * p)
         return self.volume.ring_blocks(_mapped(self.shear, A), cof)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
