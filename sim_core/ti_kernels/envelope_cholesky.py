@@ -56,6 +56,12 @@ _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 CUDA_LANES = 128
 """Threads of one copy (one CUDA thread block) in the factorisation and the solves on CUDA."""
 
+CUDA_GROUP = 4
+"""Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA."""
+
+SCHEDULES = ("pairs", "rows", "dots")
+"""How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
+
 
 @ti.func
 def _pivot(value):
@@ -176,6 +182,80 @@ def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: 
                         while q > p:
                             p += 1
                             q -= p
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.func
+def _group_sum(value, lane, group: ti.template()):
+    """The sum of ``value`` over the ``group`` consecutive lanes of a warp that hold ``lane`` (a power of two, at most
+    32; every lane of the group gets it): a butterfly of warp shuffles of the float64's two 32-bit halves (Taichi's
+    shuffles are 32-bit), the group's lanes only in the mask, so that other groups of the warp may have left."""
+    total = value
+    if ti.static(group > 1):
+        low = (lane % 32) // group * group
+        mask = -1
+        if ti.static(group < 32):
+            mask = ((1 << group) - 1) << low
+        offset = group // 2
+        while offset > 0:
+            bits = ti.bit_cast(total, ti.i64)
+            lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
+            hi = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits >> 32, ti.i32), offset)
+            other = (ti.cast(hi, ti.i64) << 32) | ti.cast(ti.cast(lo, ti.u32), ti.i64)
+            total += ti.bit_cast(other, ti.f64)
+            offset //= 2
+    return total
+
+
+@ti.kernel
+def _factor_dots(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32, inv: _F64,
+                 m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(), group: ti.template()):
+    """Each copy's envelope factorised in place into ``W`` by columns, left-looking (module docstring, "dots"):
+    column ``j``'s entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of its front, ``k`` from
+    ``max(first[i], first[j])`` to ``j - 1``: two contiguous row segments of the envelope) are independent dot
+    products, each taken by ``group`` lanes of a warp (``group`` consecutive ``k`` a pass, a shuffle sum), the
+    ``lanes / group`` groups of a copy sharing the column's entries; a block synchronisation a column, each factor
+    entry written once. ``inv[c m + j] = 1 / d_j`` (the pivots as :func:`_pivot` uses them); ``bad`` and ``todo`` as
+    for :func:`_factor`."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        sub = lane % group
+        groups = lanes // group
+        if lane == 0:
+            bad[c] = 0
+        if todo[c] != 0:
+            base = c * size
+            vb = c * m
+            for j in range(m):
+                fj = first[j]
+                rowj = base + off[j] - fj
+                start = fptr[j]
+                front = fptr[j + 1] - start
+                task = lane // group
+                while task <= front:  # task 0 the pivot, task p the front's p-th row
+                    i = j
+                    if task > 0:
+                        i = frows[start + task - 1]
+                    fi = first[i]
+                    rowi = base + off[i] - fi
+                    acc = 0.0
+                    k = ti.max(fi, fj) + sub
+                    while k < j:
+                        acc += ti.cast(env[rowi + k], ti.f64) * ti.cast(env[rowj + k], ti.f64) * inv[vb + k]
+                        k += group
+                    acc = _group_sum(acc, lane, group)
+                    if sub == 0:
+                        v = ti.cast(env[rowi + j], ti.f64) - acc
+                        env[rowi + j] = stored(v, env)
+                        if task == 0:
+                            stored_v = ti.cast(env[rowi + j], ti.f64)
+                            inv[vb + j] = 1.0 / _pivot(stored_v)
+                            if not stored_v > 0.0:
+                                bad[c] = 1
+                    task += groups
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
 
@@ -327,11 +407,16 @@ class BatchedEnvelope(BatchedPCG):
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
         lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
-        schedule: how a copy's threads share a column's update: ``"pairs"`` (entry by entry) or ``"rows"`` (a thread a
-            row); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
+        schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
+            by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
+            two rows, ``group`` lanes each); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
+        group: lanes of one dot product with ``schedule="dots"``, a power of two of at most 32 dividing the lanes;
+            None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
 
     Raises:
         ConfigError: an unknown ``precision``.
+        ValueError: an unknown ``schedule``, or a ``group`` that is not a power of two of at most 32 dividing the
+            lanes.
 
     Attributes:
         name: ``"envelope"``.
@@ -346,7 +431,7 @@ class BatchedEnvelope(BatchedPCG):
     name = "envelope"
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None, schedule: str | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -354,9 +439,12 @@ class BatchedEnvelope(BatchedPCG):
         self._env_dtype = storage_dtype(precision)
         self.refinements = int(refinements) if precision != "double" else 0
         self.lanes = lanes
-        if schedule not in (None, "pairs", "rows"):
-            raise ValueError(f"BatchedEnvelope: schedule must be pairs or rows, got {schedule!r}")
+        if schedule not in (None, *SCHEDULES):
+            raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
+        self._group = group
+        if group is not None:
+            self.group  # (checked against the lanes now)
         self.entries = 0
         self.widenings = 0
         self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
@@ -371,6 +459,16 @@ class BatchedEnvelope(BatchedPCG):
         if self._schedule is not None:
             return self._schedule
         return "pairs" if self._lane_count() > 1 else "rows"
+
+    @property
+    def group(self) -> int:
+        """Lanes of one dot product with ``schedule="dots"`` (the class docstring)."""
+        lanes = self._lane_count()
+        group = self._group if self._group is not None else min(CUDA_GROUP, lanes) if lanes > 1 else 1
+        if group < 1 or group > 32 or group & (group - 1) or lanes % group:
+            raise ValueError(f"BatchedEnvelope: group must be a power of two of at most 32 dividing the {lanes} lanes, "
+                             f"got {group}")
+        return group
 
     def _lane_count(self) -> int:
         if self.lanes is not None:
@@ -416,9 +514,13 @@ class BatchedEnvelope(BatchedPCG):
         _assemble(a["data"], a["env_urow"], a["indices"], self._nnz, a["brow"], a["bcol"], a["bval"], a["free"],
                   self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
                   a["env_padded"], self._npadded, size)
-        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"],
-                self._upload("env_todo", self._todo, ti.i32), a["env_flags"], m, size, B, self._lane_count(),
-                self.schedule == "rows")
+        todo = self._upload("env_todo", self._todo, ti.i32)
+        if self.schedule == "dots":
+            _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
+                         self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
+        else:
+            _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"], m, size,
+                    B, self._lane_count(), self.schedule == "rows")
 
     def _new_layout(self, indptr_h: np.ndarray, indices_h: np.ndarray, seg: np.ndarray) -> None:
         """The order and the envelope of ``U``'s pattern (module docstring), on the device."""

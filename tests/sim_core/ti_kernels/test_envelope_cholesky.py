@@ -42,7 +42,7 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-@pytest.mark.parametrize("schedule", ["rows", "pairs"])
+@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
     """Either way of sharing a column's update (one thread a copy here: the entries' order is CUDA's by lane)."""
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
