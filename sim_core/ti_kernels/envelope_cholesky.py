@@ -242,11 +242,16 @@ def _factor_dots(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, t
                     fi = first[i]
                     rowi = base + off[i] - fi
                     acc = 0.0
+                    other = 0.0  # (a second sum: two chains of loads in flight)
                     k = ti.max(fi, fj) + sub
-                    while k < j:
+                    while k + group < j:
                         acc += ti.cast(env[rowi + k], ti.f64) * ti.cast(env[rowj + k], ti.f64) * inv[vb + k]
-                        k += group
-                    acc = _group_sum(acc, lane, group)
+                        other += (ti.cast(env[rowi + k + group], ti.f64) * ti.cast(env[rowj + k + group], ti.f64)
+                                  * inv[vb + k + group])
+                        k += 2 * group
+                    if k < j:
+                        acc += ti.cast(env[rowi + k], ti.f64) * ti.cast(env[rowj + k], ti.f64) * inv[vb + k]
+                    acc = _group_sum(acc + other, lane, group)
                     if sub == 0:
                         v = ti.cast(env[rowi + j], ti.f64) - acc
                         env[rowi + j] = stored(v, env)
@@ -299,6 +304,66 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
                 fj = first[j]
                 row = base + off[j] - fj
                 xj = w[vb + j] / _pivot(env[row + j])
+                if lane == 0:
+                    dof = order[vb + j]
+                    if dof >= 0:
+                        x[dof] = xj
+                k = fj + lane
+                while k < j:
+                    w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
+                    k += lanes
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.kernel
+def _substitute_rows(env: VALUES, off: _I32, first: _I32, inv: _F64, todo: _I32, order: _I32, b: _F64, x: _F64,
+                     w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+    """``x = A^-1 b`` per copy from the factor ``W`` and ``inv`` (``1 / d``) of :func:`_factor_dots`, both passes by the
+    envelope's rows (contiguous): forward ``u_i = (b_i - sum_k w_ik u_k) / d_i`` a row at a time, the sum shared by
+    the ``lanes`` (at most 32: one warp a copy, a shuffle sum); then ``v = D u`` and backward ``x_j = v_j / d_j``,
+    ``v_k -= w_jk x_j`` over row ``j``. ``b``, ``x``, ``order`` and ``todo`` as for :func:`_substitute`."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        base = c * size
+        vb = c * m
+        p = lane
+        while p < m:
+            dof = order[vb + p]
+            if dof >= 0:
+                x[dof] = 0.0
+            p += lanes
+        if todo[c] != 0:
+            for i in range(m):
+                fi = first[i]
+                row = base + off[i] - fi
+                acc = 0.0
+                k = fi + lane
+                while k < i:
+                    acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
+                    k += lanes
+                acc = _group_sum(acc, lane, lanes)
+                if lane == 0:
+                    dof = order[vb + i]
+                    rhs = 0.0
+                    if dof >= 0:
+                        rhs = b[dof]
+                    w[vb + i] = (rhs - acc) * inv[vb + i]
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+            p = lane
+            while p < m:
+                w[vb + p] = w[vb + p] / inv[vb + p]
+                p += lanes
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+            for jj in range(m):
+                j = m - 1 - jj
+                fj = first[j]
+                row = base + off[j] - fj
+                xj = w[vb + j] * inv[vb + j]
                 if lane == 0:
                     dof = order[vb + j]
                     if dof >= 0:
@@ -409,7 +474,7 @@ class BatchedEnvelope(BatchedPCG):
         lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
-            two rows, ``group`` lanes each); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
+            two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy); None: ``"dots"``.
         group: lanes of one dot product with ``schedule="dots"``, a power of two of at most 32 dividing the lanes;
             None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
 
@@ -456,9 +521,7 @@ class BatchedEnvelope(BatchedPCG):
     @property
     def schedule(self) -> str:
         """``"pairs"`` or ``"rows"`` (the class docstring)."""
-        if self._schedule is not None:
-            return self._schedule
-        return "pairs" if self._lane_count() > 1 else "rows"
+        return self._schedule if self._schedule is not None else "dots"
 
     @property
     def group(self) -> int:
@@ -565,6 +628,11 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
+        if self.schedule == "dots":
+            _substitute_rows(a["env"], a["env_off"], a["env_first"], a["env_inv"], a["env_todo"], a["env_order"], b, x,
+                             self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                             self._copies, min(self._lane_count(), 32))
+            return
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x,
                     self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
