@@ -197,14 +197,12 @@ def _group_sum(value, lane, group: ti.template()):
         mask = -1
         if ti.static(group < 32):
             mask = ((1 << group) - 1) << low
-        offset = group // 2
-        while offset > 0:
+        for offset in ti.static([group >> s for s in range(1, group.bit_length())]):
             bits = ti.bit_cast(total, ti.i64)
             lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
             hi = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits >> 32, ti.i32), offset)
             other = (ti.cast(hi, ti.i64) << 32) | ti.cast(ti.cast(lo, ti.u32), ti.i64)
             total += ti.bit_cast(other, ti.f64)
-            offset //= 2
     return total
 
 
