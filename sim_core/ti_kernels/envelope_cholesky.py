@@ -194,9 +194,9 @@ def _group_sum(value, lane, group: ti.template()):
     total = value
     if ti.static(group > 1):
         low = (lane % 32) // group * group
-        mask = -1
+        mask = ti.cast(-1, ti.u32)
         if ti.static(group < 32):
-            mask = ((1 << group) - 1) << low
+            mask = ti.cast((1 << group) - 1, ti.u32) << ti.cast(low, ti.u32)
         for offset in ti.static([group >> s for s in range(1, group.bit_length())]):
             bits = ti.bit_cast(total, ti.i64)
             lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
