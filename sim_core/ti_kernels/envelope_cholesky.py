@@ -19,26 +19,41 @@ it: the envelope only grows). The Cholesky of an envelope matrix fills nothing o
 Liu, Ch. 4), so the factor has exactly these entries: 58,017 a Forming copy in the elastic pattern's order, 3.13 M
 multiply-adds a factorisation (``benchmarks/roofline.py``).
 
-Factorisation. Right-looking (outer-product) elimination kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower
-triangular, ``W_jj = d_j`` (the pivots): column ``j``'s pivot ``d_j`` is final after the columns before it, and its
-update ``a_ik -= a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in the envelope's reach of ``j``) writes only columns
-after ``j``, each entry ``(i, k)`` once; so ``lanes`` threads of one copy (one CUDA thread block, a block-level
-synchronisation a column) share a column's entries (the pairs ``j < k <= i`` listed row by row, a lane every
-``lanes``-th: a column's longest row is not one thread's chain), and a copy is ``m`` synchronised passes. On the CPU
-one thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). ``L = W D^-1/2`` is the Cholesky
-factor (Golub & Van Loan, Matrix Computations, 4th ed., Alg. 4.2.2 in outer-product form). A pivot that is not
+Factorisation. Kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower triangular, ``W_jj = d_j`` (the pivots; ``L = W
+D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed., Sec. 4.2), ``lanes`` threads a copy
+(one CUDA thread block, a block-level synchronisation a column), a copy ``m`` synchronised passes; on the CPU one
+thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Two orders of the same arithmetic
+(``schedule``):
+
+- ``"dots"`` (the default), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
+  entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of ``j``'s front, ``k`` from ``max(first[i],
+  first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
+  ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
+  copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
+  kept per copy (``(B m,)`` float64) for the later columns and the solves.
+- ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
+  a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
+  a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.
+
+On the H100 (B = 1024, one Forming Newton matrix, ``benchmarks/bench_envelope.py``, session 52) ``"dots"`` factorises
+in 27.7 ms at 256 threads a copy (group 4) against ``"pairs"``'s 36.5 (43.1 at 128), still ~80x its 0.35 ms floor:
+latency-bound, each pass of a dot product a dependent wait on the L2 (docs/gpu_roofline.md). A pivot that is not
 positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
 unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
 
-Solve. Forward ``W u = b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front,
-one thread a row); then ``W^T x = D u``, whose right-hand side is the forward pass's final ``b`` (``d_j u_j``),
-backward by rows of ``W`` (``x_j = v_j / d_j``, then ``v_k -= a_jk x_j`` for ``k`` in row ``j``'s envelope). With
-``precision="mixed"`` the envelope is stored and factorised in float32 and each solve is followed by ``refinements``
-steps of iterative refinement in float64 (``x += A^-1 (b - A x)``, the residual by the CG's float64 operator product;
-Golub & Van Loan, Sec. 3.5.3): one "iteration" a solve and one a refinement (:attr:`BatchedPCG.iterations`).
+Solve. With ``"dots"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
+d_i`` a row at a time (the row's sum shared by the warp's lanes, a shuffle sum), then ``v = D u`` and backward ``x_j =
+v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns). Otherwise forward ``W u =
+b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front, one thread a row) and the
+same backward pass. With ``precision="mixed"`` the envelope is stored and factorised in float32 (the dot products
+summed in float64) and each solve is followed by ``refinements`` steps of iterative refinement in float64 (``x +=
+A^-1 (b - A x)``, the residual by the CG's float64 operator product; Golub & Van Loan, Sec. 3.5.3): one "iteration" a
+solve and one a refinement (:attr:`BatchedPCG.iterations`). CI runs both schedules on the CPU (one thread a copy);
+the lanes' sharing (the groups' shuffle sums, the synchronisations) runs on CUDA only, checked there by the
+benchmark's residual against the float64 operator (1.2e-13).
 
 Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
-``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
+``(m,)``, with ``"dots"`` the pivots' inverses float64 ``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
 position, int32 ``(n,)``, and each ``U`` entry's row, int32 ``(nnz,)`` (its place in the envelope found by the gather,
 so that a widening moves no host array). Forming (``benchmarks/bench_envelope.py``, third step, all 1,698 DoFs of a
 copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in float64.
@@ -53,11 +68,13 @@ from sim_core.ti_kernels.precision import VALUES, stored
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
-CUDA_LANES = 128
-"""Threads of one copy (one CUDA thread block) in the factorisation and the solves on CUDA."""
+CUDA_LANES = 256
+"""Threads of one copy (one CUDA thread block) in the factorisation on CUDA (and the column solve; the row solve of
+``"dots"`` takes one warp): 27.7 ms a Forming factorisation at B = 1024 on the H100 against 32.1 at 128 (session 52)."""
 
 CUDA_GROUP = 4
-"""Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA."""
+"""Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
+and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
 
 SCHEDULES = ("pairs", "rows", "dots")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""

@@ -44,7 +44,8 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
 
 @pytest.mark.parametrize("schedule", ["rows", "pairs", "dots"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
-    """Either way of sharing a column's update (one thread a copy here: the entries' order is CUDA's by lane)."""
+    """Each order of the elimination: right-looking entry by entry or by rows, left-looking by dot products (one thread
+    a copy here: the entries' order is CUDA's by lane)."""
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
     blocks = [_grid_block(12, 4, seed, shift) for seed, shift in ((0, 1e-3), (1, 1.0), (2, 10.0))]
@@ -142,6 +143,19 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
         assert solver.iterations == 1 + refinements
     assert 1e-9 < errors[0] < 1e-3  # float32 factors alone: float32's accuracy times the condition
     assert errors[1] < 1e-12
+
+
+def test_a_dot_products_group_must_be_a_power_of_two_dividing_the_lanes(ti_cpu):
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    segments = np.zeros(6, dtype=np.int32)
+    assert BatchedEnvelope(segments).group == 1  # one thread a copy on the CPU
+    assert BatchedEnvelope(segments, lanes=256, group=8).group == 8
+    for lanes, group in ((128, 3), (128, 64), (16, 32)):
+        with pytest.raises(ValueError, match=f"dividing the {lanes} lanes, got {group}"):
+            BatchedEnvelope(segments, lanes=lanes, group=group)
+    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots, got .columns."):
+        BatchedEnvelope(segments, schedule="columns")
 
 
 def test_envelope_needs_a_taichi_backend():
