@@ -30,7 +30,7 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Two 
   first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
   copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
-  kept per copy (``(B m,)`` float64) for the later columns and the solves.
+  kept per copy (``(B m,)`` float64) for the later columns.
 - ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
   a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
   a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.
@@ -280,13 +280,39 @@ def _factor_dots(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, t
                     ti.simt.block.sync()
 
 
+@ti.func
+def _back_substitute(env: ti.template(), off: ti.template(), first: ti.template(), order: ti.template(),
+                     x: ti.template(), w: ti.template(), base, vb, m, lane, lanes: ti.template()):
+    """The back substitution ``W^T x = v`` of a copy (``v`` in ``w[vb:vb + m]`` on entry, overwritten) by rows of
+    ``W``: ``x_j = v_j / d_j``, then ``v_k -= w_jk x_j`` over row ``j``, the ``lanes`` sharing a row, a synchronisation
+    a row; ``x`` at the DoFs of ``order`` (lane 0)."""
+    for jj in range(m):
+        j = m - 1 - jj
+        fj = first[j]
+        row = base + off[j] - fj
+        xj = w[vb + j] / _pivot(env[row + j])
+        if lane == 0:
+            dof = order[vb + j]
+            if dof >= 0:
+                x[dof] = xj
+        k = fj + lane
+        while k < j:
+            w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
+            k += lanes
+        if ti.static(lanes > 1):
+            ti.simt.block.sync()
+
+
 @ti.kernel
 def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
-                x: _F64,
-                w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+                x: _F64, w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
+                by_rows: ti.template()):
     """``x = A^-1 b`` per copy from the factor ``W`` (forward, then back substitution; module docstring); ``b`` and
     ``x`` over the stacked DoFs, ``order[c m + i]`` the DoF at position ``i`` of copy ``c`` (-1: padding), the fronts
-    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``."""
+    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``. The forward pass ``W u = b`` by columns
+    (``u_j = b_j / d_j``, then ``b_i -= w_ij u_j`` over ``j``'s front, a lane a row), or ``by_rows`` (``u_i = (b_i -
+    sum_k w_ik u_k) / d_i`` a row at a time, the row's sum shared by the ``lanes``, at most 32: one warp a copy, a
+    shuffle sum; then ``v = D u``); the backward pass by rows (:func:`_back_substitute`)."""
     ti.loop_config(block_dim=lanes)
     for t in range(copies * lanes):
         c = t // lanes
@@ -305,90 +331,37 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
         if ti.static(lanes > 1):
             ti.simt.block.sync()
         if todo[c] != 0:
-            for j in range(m):
-                u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
-                e = fptr[j] + lane
-                while e < fptr[j + 1]:
-                    i = frows[e]
-                    w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
-                    e += lanes
+            if ti.static(by_rows):
+                for i in range(m):
+                    fi = first[i]
+                    row = base + off[i] - fi
+                    acc = 0.0
+                    k = fi + lane
+                    while k < i:
+                        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
+                        k += lanes
+                    acc = _group_sum(acc, lane, lanes)
+                    if lane == 0:
+                        w[vb + i] = (w[vb + i] - acc) / _pivot(env[row + i])
+                    if ti.static(lanes > 1):
+                        ti.simt.block.sync()
+                p = lane
+                while p < m:
+                    w[vb + p] = w[vb + p] * _pivot(env[base + off[p] + p - first[p]])
+                    p += lanes
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
-            for jj in range(m):
-                j = m - 1 - jj
-                fj = first[j]
-                row = base + off[j] - fj
-                xj = w[vb + j] / _pivot(env[row + j])
-                if lane == 0:
-                    dof = order[vb + j]
-                    if dof >= 0:
-                        x[dof] = xj
-                k = fj + lane
-                while k < j:
-                    w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
-                    k += lanes
-                if ti.static(lanes > 1):
-                    ti.simt.block.sync()
-
-
-@ti.kernel
-def _substitute_rows(env: VALUES, off: _I32, first: _I32, inv: _F64, todo: _I32, order: _I32, b: _F64, x: _F64,
-                     w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
-    """``x = A^-1 b`` per copy from the factor ``W`` and ``inv`` (``1 / d``) of :func:`_factor_dots`, both passes by the
-    envelope's rows (contiguous): forward ``u_i = (b_i - sum_k w_ik u_k) / d_i`` a row at a time, the sum shared by
-    the ``lanes`` (at most 32: one warp a copy, a shuffle sum); then ``v = D u`` and backward ``x_j = v_j / d_j``,
-    ``v_k -= w_jk x_j`` over row ``j``. ``b``, ``x``, ``order`` and ``todo`` as for :func:`_substitute`."""
-    ti.loop_config(block_dim=lanes)
-    for t in range(copies * lanes):
-        c = t // lanes
-        lane = t % lanes
-        base = c * size
-        vb = c * m
-        p = lane
-        while p < m:
-            dof = order[vb + p]
-            if dof >= 0:
-                x[dof] = 0.0
-            p += lanes
-        if todo[c] != 0:
-            for i in range(m):
-                fi = first[i]
-                row = base + off[i] - fi
-                acc = 0.0
-                k = fi + lane
-                while k < i:
-                    acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
-                    k += lanes
-                acc = _group_sum(acc, lane, lanes)
-                if lane == 0:
-                    dof = order[vb + i]
-                    rhs = 0.0
-                    if dof >= 0:
-                        rhs = b[dof]
-                    w[vb + i] = (rhs - acc) * inv[vb + i]
-                if ti.static(lanes > 1):
-                    ti.simt.block.sync()
-            p = lane
-            while p < m:
-                w[vb + p] = w[vb + p] / inv[vb + p]
-                p += lanes
-            if ti.static(lanes > 1):
-                ti.simt.block.sync()
-            for jj in range(m):
-                j = m - 1 - jj
-                fj = first[j]
-                row = base + off[j] - fj
-                xj = w[vb + j] * inv[vb + j]
-                if lane == 0:
-                    dof = order[vb + j]
-                    if dof >= 0:
-                        x[dof] = xj
-                k = fj + lane
-                while k < j:
-                    w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
-                    k += lanes
-                if ti.static(lanes > 1):
-                    ti.simt.block.sync()
+            else:
+                for j in range(m):
+                    u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
+                    e = fptr[j] + lane
+                    while e < fptr[j + 1]:
+                        i = frows[e]
+                        w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
+                        e += lanes
+                    if ti.static(lanes > 1):
+                        ti.simt.block.sync()
+            _back_substitute(env, off, first, order, x, w, base, vb, m, lane, lanes)
 
 
 @ti.kernel
@@ -643,15 +616,10 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
-        if self.schedule == "dots":
-            _substitute_rows(a["env"], a["env_off"], a["env_first"], a["env_inv"], a["env_todo"], a["env_order"], b, x,
-                             self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
-                             self._copies, min(self._lane_count(), 32))
-            return
+        by_rows = self.schedule == "dots"
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
-                    a["env_order"], b, x,
-                    self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
-                    self._lane_count())
+                    a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                    self._copies, min(self._lane_count(), 32) if by_rows else self._lane_count(), by_rows)
 
     def _run(self) -> None:
         """``x = A^-1 b`` per copy from the ``b`` array into ``x`` (with the refinements in ``"mixed"``); then the
