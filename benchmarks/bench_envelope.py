@@ -80,7 +80,7 @@ def main() -> int:
     schedules = args.schedules.split(",")
     groups = [int(v) for v in args.groups.split(",")] if args.groups else [None]
     caches = [int(v) for v in args.caches.split(",")] if args.caches else [None]
-    left = ("dots", "window")
+    left = ("dots", "window", "panels")
     variants = [(lanes, "double", schedule, group, cache) for schedule in schedules for lanes in lanes_list
                 for group in (groups if schedule in left else [None])
                 for cache in (caches if schedule == "window" else [None])

@@ -76,7 +76,7 @@ CUDA_GROUP = 4
 """Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
 and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
 
-SCHEDULES = ("pairs", "rows", "dots", "window")
+SCHEDULES = ("pairs", "rows", "dots", "window", "panels")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
 DEFAULT_SCHEDULE = "dots"
@@ -410,6 +410,140 @@ def _factor_window(env: VALUES, off: _I32, first: _I32, fptr: _I32, torigin: _I3
 
 
 @ti.func
+def _dot3(env: ti.template(), piv: ti.template(), pb, rowi, rowj, rowj1, rowj2, k, j, sub, lane,
+          group: ti.template(), pmask: ti.template()):
+    """``(s0, s1, s2)``: ``sum_k w_ik w_(j+q)k / d_k`` for ``q = 0, 1, 2`` over ``k`` from ``k`` (this lane's first,
+    ``sub`` past the group's) to ``j - 1``, the three pivot rows' column 0 at ``rowj``, ``rowj1``, ``rowj2`` of the
+    envelope (a vertex's rows, of one first column), summed over the ``group`` lanes."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    k += sub
+    while k < j:
+        wi = ti.cast(env[rowi + k], ti.f64) * piv[pb + (k & pmask)]
+        s0 += wi * ti.cast(env[rowj + k], ti.f64)
+        s1 += wi * ti.cast(env[rowj1 + k], ti.f64)
+        s2 += wi * ti.cast(env[rowj2 + k], ti.f64)
+        k += group
+    return _group_sum(s0, lane, group), _group_sum(s1, lane, group), _group_sum(s2, lane, group)
+
+
+@ti.func
+def _panels_copy(env: ti.template(), piv: ti.template(), blk: ti.template(), pb, bb, c, lane, off: ti.template(),
+                 first: ti.template(), fptr: ti.template(), frows: ti.template(), todo: ti.template(),
+                 bad: ti.template(), m, size, lanes: ti.template(), group: ti.template(), pcap: ti.template()):
+    """One copy's factorisation by :func:`_factor_panels` (its docstring), ``piv`` the copy's ring of pivots' inverses
+    from ``pb``, ``blk`` its vertex block's six partial entries from ``bb``."""
+    sub = lane % group
+    groups = lanes // group
+    pmask = ti.static(pcap - 1)
+    if lane == 0:
+        bad[c] = 0
+    if todo[c] != 0:
+        base = c * size
+        for v in range(m // 3):
+            j = 3 * v
+            fj = first[j]
+            rowj = base + off[j] - fj  # (the vertex's three rows share their first column)
+            rowj1 = base + off[j + 1] - fj
+            rowj2 = base + off[j + 2] - fj
+            start = fptr[j]
+            front = fptr[j + 1] - start  # rows j + 1 and j + 2 its first two
+            task = lane // group
+            while task <= front:  # the three columns' dot products over k < j, one pass over row i
+                i = j
+                if task > 0:
+                    i = frows[start + task - 1]
+                fi = first[i]
+                rowi = base + off[i] - fi
+                s0, s1, s2 = _dot3(env, piv, pb, rowi, rowj, rowj1, rowj2, ti.max(fi, fj), j, sub, lane, group,
+                                    pmask)
+                if sub == 0:
+                    t0 = ti.cast(env[rowi + j], ti.f64) - s0
+                    if i == j:
+                        blk[bb] = t0
+                    elif i == j + 1:
+                        blk[bb + 1] = t0
+                        blk[bb + 2] = ti.cast(env[rowi + j + 1], ti.f64) - s1
+                    elif i == j + 2:
+                        blk[bb + 3] = t0
+                        blk[bb + 4] = ti.cast(env[rowi + j + 1], ti.f64) - s1
+                        blk[bb + 5] = ti.cast(env[rowi + j + 2], ti.f64) - s2
+                    else:
+                        env[rowi + j] = stored(t0, env)
+                        env[rowi + j + 1] = stored(ti.cast(env[rowi + j + 1], ti.f64) - s1, env)
+                        env[rowi + j + 2] = stored(ti.cast(env[rowi + j + 2], ti.f64) - s2, env)
+                task += groups
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+            # the vertex block's W D^-1 W^T (every task the same arithmetic), then each row's three entries
+            d0 = ti.cast(stored(blk[bb], env), ti.f64)
+            inv0 = 1.0 / _pivot(d0)
+            w10 = ti.cast(stored(blk[bb + 1], env), ti.f64)
+            w20 = ti.cast(stored(blk[bb + 3], env), ti.f64)
+            d1 = ti.cast(stored(blk[bb + 2] - w10 * w10 * inv0, env), ti.f64)
+            inv1 = 1.0 / _pivot(d1)
+            w21 = ti.cast(stored(blk[bb + 4] - w20 * w10 * inv0, env), ti.f64)
+            d2 = ti.cast(stored(blk[bb + 5] - w20 * w20 * inv0 - w21 * w21 * inv1, env), ti.f64)
+            task = lane // group
+            while task <= front:
+                if sub == 0:
+                    i = j
+                    if task > 0:
+                        i = frows[start + task - 1]
+                    rowi = base + off[i] - first[i]
+                    if i == j:
+                        env[rowi + j] = stored(d0, env)
+                        piv[pb + (j & pmask)] = inv0
+                        piv[pb + ((j + 1) & pmask)] = inv1
+                        piv[pb + ((j + 2) & pmask)] = 1.0 / _pivot(d2)
+                        if not (d0 > 0.0 and d1 > 0.0 and d2 > 0.0):
+                            bad[c] = 1
+                    elif i == j + 1:
+                        env[rowi + j] = stored(w10, env)
+                        env[rowi + j + 1] = stored(d1, env)
+                    elif i == j + 2:
+                        env[rowi + j] = stored(w20, env)
+                        env[rowi + j + 1] = stored(w21, env)
+                        env[rowi + j + 2] = stored(d2, env)
+                    else:
+                        w0 = ti.cast(env[rowi + j], ti.f64)
+                        w1 = ti.cast(stored(ti.cast(env[rowi + j + 1], ti.f64) - w0 * w10 * inv0, env), ti.f64)
+                        env[rowi + j + 1] = stored(w1, env)
+                        env[rowi + j + 2] = stored(ti.cast(env[rowi + j + 2], ti.f64) - w0 * w20 * inv0
+                                                   - w1 * w21 * inv1, env)
+                task += groups
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+
+
+@ti.kernel
+def _factor_panels(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32,
+                   pscratch: _F64, bscratch: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
+                   group: ti.template(), pcap: ti.template(), shared: ti.template()):
+    """Each copy's envelope factorised in place into ``W`` left-looking by vertices (module docstring,
+    ``"panels"``): the three columns ``j = 3 v .. 3 v + 2`` of vertex ``v`` (one first column, nested fronts) in two
+    synchronised passes: each row ``i`` of the vertex and its front takes its three dot products with the vertex's
+    rows over ``k < j`` in one pass (``group`` lanes, a shuffle sum each) and leaves the partial entries (the vertex's
+    own six in ``blk``); then every task eliminates the vertex's 3x3 block and finishes its row's three entries. The
+    pivots' inverses in a ring of ``pcap`` (a power of two above the widest row). ``shared``: ``piv`` and ``blk`` in
+    the CUDA block's shared memory, else in ``pscratch`` / ``bscratch`` (``(copies pcap,)``, ``(copies 8,)``); ``bad``
+    and ``todo`` as for :func:`_factor`; the envelope's first columns equal over a vertex's DoFs."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        if ti.static(shared):
+            piv = ti.simt.block.SharedArray((pcap,), ti.f64)
+            blk = ti.simt.block.SharedArray((8,), ti.f64)
+            _panels_copy(env, piv, blk, 0, 0, c, lane, off, first, fptr, frows, todo, bad, m, size, lanes, group,
+                         pcap)
+        else:
+            _panels_copy(env, pscratch, bscratch, c * pcap, c * 8, c, lane, off, first, fptr, frows, todo, bad, m,
+                         size, lanes, group, pcap)
+
+
+@ti.func
 def _back_substitute(env: ti.template(), off: ti.template(), first: ti.template(), order: ti.template(),
                      x: ti.template(), w: ti.template(), base, vb, m, lane, lanes: ti.template()):
     """The back substitution ``W^T x = v`` of a copy (``v`` in ``w[vb:vb + m]`` on entry, overwritten) by rows of
@@ -709,6 +843,12 @@ class BatchedEnvelope(BatchedPCG):
                            self._array("env_ring", 1 if shared else max(B * window["cap"], 1)),
                            self._array("env_pring", 1 if shared else B * window["pcap"]), m, size, B, lanes,
                            self.group, window["cap"], window["pcap"], shared)
+        elif self.schedule == "panels":
+            pcap = window["pcap"]
+            _factor_panels(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
+                           self._array("env_pring", 1 if shared else B * pcap),
+                           self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
+                           pcap, shared)
         elif self.schedule in ("dots", "window"):
             _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
                          self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
@@ -780,7 +920,7 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
-        by_rows = self.schedule in ("dots", "window")
+        by_rows = self.schedule in ("dots", "window", "panels")
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
                     self._copies, min(self._lane_count(), 32) if by_rows else self._lane_count(), by_rows)
@@ -795,7 +935,9 @@ class BatchedEnvelope(BatchedPCG):
         flags = _copy_out(self._arrays["env_flags"])
         if not self._checked and flags[B]:
             self.widenings += 1
-            self._set_envelope(np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64)))
+            need = np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64))
+            self._set_envelope(np.repeat(need.reshape(-1, 3).min(axis=1) // 3 * 3, 3))  # (a vertex's rows one first
+            # column, a vertex's first DoF: as the order makes them, so that "panels" takes a vertex's columns at once)
             self._eliminate()
             self._solve_into(b, x)
             flags = _copy_out(self._arrays["env_flags"])

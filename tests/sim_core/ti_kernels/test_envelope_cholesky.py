@@ -42,7 +42,7 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "window"])
+@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "window", "panels"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
     """Each order of the elimination: right-looking entry by entry or by rows, left-looking by dot products (one thread
     a copy here: the entries' order is CUDA's by lane)."""
@@ -102,7 +102,8 @@ def test_the_window_schedules_rows_in_a_ring_or_from_the_envelope_give_the_same_
     assert solver._window["pcap"] > (np.arange(m) - solver._first).max() + 1
 
 
-def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu):
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu, schedule):
     """Contact-like 3x3 blocks between far vertices of a copy (matrix-free in the CG) are factorised exactly: the
     envelope widens to hold them; the inertia diagonal and the fixed DoFs' 1 are applied on the device; the fixed
     DoFs' blocks are masked out."""
@@ -144,7 +145,7 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     U.data[diag_slots] += diag_values
     U.data[fixed] = 1.0
     A = (U + U.T - sp.diags(U.diagonal()) + F @ E.tocsr() @ F).tocsc()
-    solver = BatchedEnvelope(segments)
+    solver = BatchedEnvelope(segments, schedule=schedule)
     vb = VertexBlocks.from_element_blocks([HessianBlocks(verts, vals)], free)
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
     b = rng.normal(size=n)
@@ -185,7 +186,7 @@ def test_a_dot_products_group_must_be_a_power_of_two_dividing_the_lanes(ti_cpu):
     for lanes, group in ((128, 3), (128, 64), (16, 32)):
         with pytest.raises(ValueError, match=f"dividing the {lanes} lanes, got {group}"):
             BatchedEnvelope(segments, lanes=lanes, group=group)
-    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|window, got .columns."):
+    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|window\|panels, got .columns."):
         BatchedEnvelope(segments, schedule="columns")
     with pytest.raises(ValueError, match="cache must be 0 or a power of two, got 100"):
         BatchedEnvelope(segments, schedule="window", cache=100)
