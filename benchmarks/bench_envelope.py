@@ -7,11 +7,11 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots`` and ``window``
-each ``--groups`` lanes of a dot product, with ``window`` each ``--caches`` entries of a copy's ring of rows) and, at
-the first lanes,
-float32 factors with two refinements: medians of ``--repeat`` (each ended by
-a synchronisation) of the factorisation and the solve, the envelope's entries and device MiB a copy, the copies
+copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots``, ``window`` and
+``panels`` each ``--groups`` lanes of a dot product, with ``window`` each ``--caches`` entries of a copy's ring of
+rows) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a
+synchronisation) of the factorisation (and, alone, of its gather and elimination kernels: ``eliminate_ms``) and the
+solve, the envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
 """
 
@@ -101,13 +101,14 @@ def main() -> int:
             continue
         first_s = time.perf_counter() - t
         factor_ms = timed(lambda: env.factorize(*operator))
+        eliminate_ms = timed(env._eliminate)  # (the gather and the factorisation's kernels alone)
         solve_ms = timed(lambda: env.solve(b))
         xs = env.solve(b)
         bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
         report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
                 "group": env.group if schedule in left else None,
                 "cache": env.cache if schedule == "window" else None,
-                "factorize_ms": factor_ms,
+                "factorize_ms": factor_ms, "eliminate_ms": eliminate_ms,
                 "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,
                 "widest_row": int((np.arange(env._m) - env._first).max()) + 1, "widenings": env.widenings,
                 "envelope_mib_a_copy": bytes_a_copy / 2 ** 20, "indefinite": int(env.indefinite.sum()),
