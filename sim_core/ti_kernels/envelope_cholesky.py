@@ -79,8 +79,8 @@ and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, se
 SCHEDULES = ("pairs", "rows", "dots", "window", "panels")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
-DEFAULT_SCHEDULE = "dots"
-"""The schedule of a :class:`BatchedEnvelope` given none."""
+CUDA_SCHEDULE = "dots"
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"``)."""
 
 CUDA_CACHE = 4096
 """Envelope entries of a copy's ring of rows with ``schedule="window"`` (a power of two; float64, 32 KiB of the CUDA
@@ -777,7 +777,9 @@ class BatchedEnvelope(BatchedPCG):
     @property
     def schedule(self) -> str:
         """``"pairs"``, ``"rows"``, ``"dots"`` or ``"window"`` (the class docstring)."""
-        return self._schedule if self._schedule is not None else DEFAULT_SCHEDULE
+        if self._schedule is not None:
+            return self._schedule
+        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else "dots"
 
     @property
     def group(self) -> int:
