@@ -7,9 +7,8 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots``, ``window`` and
-``panels`` each ``--groups`` lanes of a dot product, with ``window`` each ``--caches`` entries of a copy's ring of
-rows) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a
+copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots`` and ``panels``
+each ``--groups`` lanes of a dot product) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a
 synchronisation) of the factorisation (and, alone, of its gather and elimination kernels: ``eliminate_ms``) and the
 solve, the envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
@@ -36,9 +35,6 @@ def main() -> int:
                     help="how a copy's threads share the factorisation (comma-separated)")
     ap.add_argument("--groups", default="",
                     help="lanes of a dot product with the dots schedule, comma-separated (default: the solver's)")
-    ap.add_argument("--caches", default="",
-                    help="entries of a copy's ring of rows with the window schedule, comma-separated (default: the "
-                         "solver's)")
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
                     help="also float32 factors with two refinements (at the first --lanes)")
     args = ap.parse_args()
@@ -79,24 +75,21 @@ def main() -> int:
     lanes_list = [int(v) for v in args.lanes.split(",")]
     schedules = args.schedules.split(",")
     groups = [int(v) for v in args.groups.split(",")] if args.groups else [None]
-    caches = [int(v) for v in args.caches.split(",")] if args.caches else [None]
-    left = ("dots", "window", "panels")
-    variants = [(lanes, "double", schedule, group, cache) for schedule in schedules for lanes in lanes_list
+    left = ("dots", "panels")
+    variants = [(lanes, "double", schedule, group) for schedule in schedules for lanes in lanes_list
                 for group in (groups if schedule in left else [None])
-                for cache in (caches if schedule == "window" else [None])
                 if group is None or (group <= lanes and lanes % group == 0)] + (
-        [(lanes_list[0], "mixed", schedules[0], groups[0] if schedules[0] in left else None,
-          caches[0] if schedules[0] == "window" else None)] if args.mixed else [])
-    for lanes, precision, schedule, group, cache in variants:
+        [(lanes_list[0], "mixed", schedules[0], groups[0] if schedules[0] in left else None)] if args.mixed else [])
+    for lanes, precision, schedule, group in variants:
         if lanes == 1 and schedule not in (schedules[0], *left):
             continue  # (one thread a copy: the same work for the right-looking schedules)
-        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule, group=group, cache=cache)
+        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule, group=group)
         t = time.perf_counter()
         try:
             env.factorize(*operator)  # compilation, the order and the envelope
             xs = env.solve(b)
         except Exception as exc:  # (a variant the device cannot compile or launch: reported, the others still run)
-            report({"solver": "envelope", "lanes": lanes, "schedule": schedule, "cache": cache,
+            report({"solver": "envelope", "lanes": lanes, "schedule": schedule, "group": group,
                     "error": f"{type(exc).__name__}: {exc}"[:300]})
             continue
         first_s = time.perf_counter() - t
@@ -107,7 +100,6 @@ def main() -> int:
         bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
         report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
                 "group": env.group if schedule in left else None,
-                "cache": env.cache if schedule == "window" else None,
                 "factorize_ms": factor_ms, "eliminate_ms": eliminate_ms,
                 "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,
                 "widest_row": int((np.arange(env._m) - env._first).max()) + 1, "widenings": env.widenings,

@@ -76,19 +76,12 @@ CUDA_GROUP = 4
 """Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
 and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
 
-SCHEDULES = ("pairs", "rows", "dots", "window", "panels")
+SCHEDULES = ("pairs", "rows", "dots", "panels")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
 CUDA_SCHEDULE = "dots"
 """The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"``)."""
 
-CUDA_CACHE = 4096
-"""Envelope entries of a copy's ring of rows with ``schedule="window"`` (a power of two; float64, 32 KiB of the CUDA
-block's shared memory, beside the pivots' ring)."""
-
-SHARED_BYTES = 227 * 1024
-"""Shared memory one CUDA block may hold (the H100's opt-in limit): a ``"window"`` layout whose rings exceed it is
-factorised by ``"dots"``."""
 
 
 @ti.func
@@ -289,124 +282,6 @@ def _factor_dots(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, t
                     task += groups
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
-
-
-@ti.func
-def _row_entry(env: ti.template(), cache: ti.template(), cb, base, origin, cached, k, mask: ti.template()):
-    """Entry ``k`` of the envelope row whose column 0 sits at ``origin`` (``off[i] - first[i]``) of a copy: from the
-    copy's ring of rows where ``cached`` (slot ``(origin + k) & mask`` past ``cb``), else from the envelope at
-    ``base``."""
-    value = 0.0
-    if cached != 0:
-        value = cache[cb + ((origin + k) & mask)]
-    else:
-        value = ti.cast(env[base + origin + k], ti.f64)
-    return value
-
-
-@ti.func
-def _window_copy(env: ti.template(), cache: ti.template(), piv: ti.template(), cb, pb, c, lane, off: ti.template(),
-                 first: ti.template(), fptr: ti.template(), torigin: ti.template(), tk0: ti.template(),
-                 cached: ti.template(), eptr: ti.template(), erows: ti.template(), todo: ti.template(),
-                 bad: ti.template(), m, size, lanes: ti.template(), group: ti.template(), cap: ti.template(),
-                 pcap: ti.template()):
-    """One copy's left-looking factorisation by :func:`_factor_window` (its docstring), ``cache`` and ``piv`` the
-    copy's ring of rows and of pivots' inverses from ``cb`` and ``pb``."""
-    sub = lane % group
-    groups = lanes // group
-    mask = ti.static(max(cap, 1) - 1)
-    pmask = ti.static(pcap - 1)
-    if lane == 0:
-        bad[c] = 0
-    if todo[c] != 0:
-        base = c * size
-        if ti.static(cap > 0):  # the rows that enter at column 0 (their span fits from the start)
-            for r in range(eptr[0], eptr[1]):
-                i = erows[r]
-                e = off[i] + lane
-                while e < off[i + 1]:
-                    cache[cb + (e & mask)] = ti.cast(env[base + e], ti.f64)
-                    e += lanes
-            if ti.static(lanes > 1):
-                ti.simt.block.sync()
-        for j in range(m):
-            fj = first[j]
-            oj = off[j] - fj
-            cj = cached[j]
-            start = fptr[j]
-            front = fptr[j + 1] - start
-            task = lane // group
-            while task <= front:  # task 0 the pivot, task p the front's p-th row
-                oi = oj
-                ci = cj
-                k = fj + sub
-                if task > 0:
-                    oi = torigin[start + task - 1]
-                    ci = tk0[start + task - 1] >> 30
-                    k = (tk0[start + task - 1] & 0x3FFFFFFF) + sub
-                acc = 0.0
-                other = 0.0  # (a second sum: two chains of loads in flight)
-                while k + group < j:
-                    acc += (_row_entry(env, cache, cb, base, oi, ci, k, mask)
-                            * _row_entry(env, cache, cb, base, oj, cj, k, mask) * piv[pb + (k & pmask)])
-                    other += (_row_entry(env, cache, cb, base, oi, ci, k + group, mask)
-                              * _row_entry(env, cache, cb, base, oj, cj, k + group, mask)
-                              * piv[pb + ((k + group) & pmask)])
-                    k += 2 * group
-                if k < j:
-                    acc += (_row_entry(env, cache, cb, base, oi, ci, k, mask)
-                            * _row_entry(env, cache, cb, base, oj, cj, k, mask) * piv[pb + (k & pmask)])
-                acc = _group_sum(acc + other, lane, group)
-                if sub == 0:
-                    v = ti.cast(stored(_row_entry(env, cache, cb, base, oi, ci, j, mask) - acc, env), ti.f64)
-                    env[base + oi + j] = stored(v, env)
-                    if ti.static(cap > 0):
-                        if ci != 0:
-                            cache[cb + ((oi + j) & mask)] = v
-                    if task == 0:
-                        piv[pb + (j & pmask)] = 1.0 / _pivot(v)
-                        if not v > 0.0:
-                            bad[c] = 1
-                task += groups
-            if ti.static(cap > 0):  # the rows that enter at column j + 1, into slots no live row holds
-                if j + 1 < m:
-                    for r in range(eptr[j + 1], eptr[j + 2]):
-                        i = erows[r]
-                        e = off[i] + lane
-                        while e < off[i + 1]:
-                            cache[cb + (e & mask)] = ti.cast(env[base + e], ti.f64)
-                            e += lanes
-            if ti.static(lanes > 1):
-                ti.simt.block.sync()
-
-
-@ti.kernel
-def _factor_window(env: VALUES, off: _I32, first: _I32, fptr: _I32, torigin: _I32, tk0: _I32, cached: _I32,
-                   eptr: _I32, erows: _I32, todo: _I32, bad: _I32, scratch: _F64, pscratch: _F64, m: ti.i32,
-                   size: ti.i32, copies: ti.i32, lanes: ti.template(), group: ti.template(), cap: ti.template(),
-                   pcap: ti.template(), shared: ti.template()):
-    """Each copy's envelope factorised in place into ``W`` left-looking, as :func:`_factor_dots`, with a copy's
-    working set near its threads (module docstring, ``"window"``): the pivots' inverses in a ring of ``pcap`` (a power
-    of two above the widest row), the rows whose span fits (``cached[i]``) in a ring of ``cap`` envelope entries
-    (slot: the entry's index modulo ``cap``; a row loaded from the envelope during the column before its first,
-    its entries written to both), each column's tasks described by the layout (``torigin[e]``, ``off[i] - first[i]``
-    of the front's ``e``-th row ``i``; ``tk0[e]``, the dot product's first column ``max(first[i], first[j])``, its
-    row's ``cached`` in bit 30), the rows entering at column ``j`` ``erows[eptr[j]:eptr[j + 1]]``. ``shared``: the
-    rings in the CUDA block's shared memory, else in ``scratch`` / ``pscratch`` (``(copies cap,)`` and ``(copies
-    pcap,)``, float64: the CPU's one thread a copy, the same arithmetic); ``bad`` and ``todo`` as for
-    :func:`_factor`."""
-    ti.loop_config(block_dim=lanes)
-    for t in range(copies * lanes):
-        c = t // lanes
-        lane = t % lanes
-        if ti.static(shared):
-            cache = ti.simt.block.SharedArray((ti.static(max(cap, 1)),), ti.f64)
-            piv = ti.simt.block.SharedArray((pcap,), ti.f64)
-            _window_copy(env, cache, piv, 0, 0, c, lane, off, first, fptr, torigin, tk0, cached, eptr, erows, todo,
-                         bad, m, size, lanes, group, cap, pcap)
-        else:
-            _window_copy(env, scratch, pscratch, c * cap, c * pcap, c, lane, off, first, fptr, torigin, tk0, cached,
-                         eptr, erows, todo, bad, m, size, lanes, group, cap, pcap)
 
 
 @ti.func
@@ -747,8 +622,7 @@ class BatchedEnvelope(BatchedPCG):
     name = "envelope"
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None, schedule: str | None = None, group: int | None = None,
-                 cache: int | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -762,10 +636,7 @@ class BatchedEnvelope(BatchedPCG):
         self._group = group
         if group is not None:
             self.group  # (checked against the lanes now)
-        if cache is not None and (cache < 0 or cache & (cache - 1)):
-            raise ValueError(f"BatchedEnvelope: cache must be 0 or a power of two, got {cache}")
-        self.cache = CUDA_CACHE if cache is None else int(cache)
-        self._window: dict = {}
+        self._pcap = 1
         self.entries = 0
         self.widenings = 0
         self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
@@ -776,7 +647,7 @@ class BatchedEnvelope(BatchedPCG):
 
     @property
     def schedule(self) -> str:
-        """``"pairs"``, ``"rows"``, ``"dots"`` or ``"window"`` (the class docstring)."""
+        """``"pairs"``, ``"rows"``, ``"dots"`` or ``"panels"`` (the class docstring)."""
         if self._schedule is not None:
             return self._schedule
         return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else "dots"
@@ -836,22 +707,14 @@ class BatchedEnvelope(BatchedPCG):
                   self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
                   a["env_padded"], self._npadded, size)
         todo = self._upload("env_todo", self._todo, ti.i32)
-        window = self._window
-        shared = require_backend("BatchedEnvelope") == "cuda"
-        if self.schedule == "window" and (not shared or 8 * (window["cap"] + window["pcap"]) <= SHARED_BYTES):
-            lanes = self._lane_count()
-            _factor_window(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_torigin"], a["env_tk0"],
-                           a["env_cached"], a["env_eptr"], a["env_erows"], todo, a["env_flags"],
-                           self._array("env_ring", 1 if shared else max(B * window["cap"], 1)),
-                           self._array("env_pring", 1 if shared else B * window["pcap"]), m, size, B, lanes,
-                           self.group, window["cap"], window["pcap"], shared)
-        elif self.schedule == "panels":
-            pcap = window["pcap"]
+        if self.schedule == "panels":
+            shared = require_backend("BatchedEnvelope") == "cuda"
+            pcap = self._pcap
             _factor_panels(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
                            self._array("env_pring", 1 if shared else B * pcap),
                            self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
                            pcap, shared)
-        elif self.schedule in ("dots", "window"):
+        elif self.schedule == "dots":
             _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
                          self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
         else:
@@ -880,33 +743,14 @@ class BatchedEnvelope(BatchedPCG):
                              f"indices")
         for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
-        self._set_window(off, fptr, frows)
+        widest = int((np.arange(self._m) - self._first).max()) + 1 if self._m else 1
+        self._pcap = 1 << widest.bit_length()  # (the pivots' ring of "panels": a power of two above the widest row)
         padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
         row = padded % self._m
         diag = (padded // self._m) * self.entries + off[row] + row - self._first[row]
         self._npadded = int(diag.size)
         _copy_in(self._array("env_padded", max(diag.size, 1), ti.i32),
                  diag.astype(np.int32) if diag.size else np.zeros(1, np.int32))
-
-    def _set_window(self, off: np.ndarray, fptr: np.ndarray, frows: np.ndarray) -> None:
-        """The layout of ``"window"`` (:func:`_factor_window`) on the device: each row's ``cached`` (its span, from the
-        row before its first column to its end, within :attr:`cache` entries), the front rows' origins and first
-        columns (flagged), the cached rows grouped by their first column; the rings' sizes."""
-        first, m = self._first, self._m
-        span = off[1:] - off[np.maximum(first - 1, 0)]
-        cached = (span <= self.cache) if self.cache else np.zeros(m, dtype=bool)
-        column = np.repeat(np.arange(m, dtype=np.int64), np.diff(fptr))
-        k0 = np.maximum(first[frows], first[column]) | (cached[frows].astype(np.int64) << 30)
-        entering = np.flatnonzero(cached)
-        entering = entering[np.argsort(first[entering], kind="stable")]
-        eptr = np.zeros(m + 1, dtype=np.int64)
-        np.cumsum(np.bincount(first[entering], minlength=m), out=eptr[1:])
-        widest = int((np.arange(m) - first).max()) + 1 if m else 1
-        self._window = {"cap": self.cache, "pcap": 1 << widest.bit_length()}
-        for name, host in (("env_torigin", off[frows] - first[frows]), ("env_tk0", k0), ("env_cached", cached),
-                           ("env_eptr", eptr), ("env_erows", entering)):
-            _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32) if host.size
-                     else np.zeros(1, np.int32))
 
     def _solve_into(self, b, x) -> None:
         """``x = A^-1 b`` from the factors, refined in ``"mixed"``."""
@@ -922,7 +766,7 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
-        by_rows = self.schedule in ("dots", "window", "panels")
+        by_rows = self.schedule in ("dots", "panels")
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
                     a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
                     self._copies, min(self._lane_count(), 32) if by_rows else self._lane_count(), by_rows)

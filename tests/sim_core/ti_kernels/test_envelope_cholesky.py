@@ -42,7 +42,7 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "window", "panels"])
+@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "panels"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
     """Each order of the elimination: right-looking entry by entry or by rows, left-looking by dot products (one thread
     a copy here: the entries' order is CUDA's by lane)."""
@@ -69,37 +69,6 @@ def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cp
     x = solver.solve(b)
     assert list(solver.indefinite) == [False, False, True]
     np.testing.assert_allclose(x[:m], want[:m], rtol=0, atol=1e-10 * np.abs(want).max())
-
-
-@pytest.mark.parametrize("cache", [0, 64, 256])
-def test_the_window_schedules_rows_in_a_ring_or_from_the_envelope_give_the_same_exact_solution(ti_cpu, cache):
-    """``schedule="window"`` with a ring of rows too small for some (those read from the envelope: 64 entries, a few
-    rows cached), large enough for most (256), none (0): every copy solved as SciPy does, an indefinite copy reported
-    and the others still exact; the ring's rows are the ones whose span fits."""
-    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
-    from sim_core.ti_kernels.pcg import _copy_out
-
-    blocks = [_grid_block(10, 5, seed, shift) for seed, shift in ((11, 1e-3), (12, 1.0), (13, 5.0))]
-    m = blocks[0].shape[0]
-    segments = np.repeat(np.arange(3), m)
-    b = np.random.default_rng(6).normal(size=3 * m)
-    solver = BatchedEnvelope(segments, schedule="window", cache=cache)
-    for shift in (0.0, -40.0):
-        blocks[1] = (blocks[1] + shift * sp.eye(m)).tocsr()
-        A = sp.block_diag(blocks, format="csr")
-        solver.factorize(_upper(A))
-        x = solver.solve(b)
-        want = spla.spsolve(A.tocsc(), b)
-        assert list(solver.indefinite) == [False, shift != 0.0, False]
-        for c in (0, 2):
-            part = slice(c * m, (c + 1) * m)
-            np.testing.assert_allclose(x[part], want[part], rtol=0, atol=1e-10 * np.abs(want[part]).max())
-    cached = _copy_out(solver._arrays["env_cached"]).astype(bool)
-    off = np.concatenate([[0], np.cumsum(np.arange(m) - solver._first + 1)])
-    span = off[1:] - off[np.maximum(solver._first - 1, 0)]
-    np.testing.assert_array_equal(cached, span <= cache if cache else False)
-    assert (0 < cached.mean() < 1) if cache == 64 else True
-    assert solver._window["pcap"] > (np.arange(m) - solver._first).max() + 1
 
 
 @pytest.mark.parametrize("schedule", ["dots", "panels"])
@@ -186,10 +155,8 @@ def test_a_dot_products_group_must_be_a_power_of_two_dividing_the_lanes(ti_cpu):
     for lanes, group in ((128, 3), (128, 64), (16, 32)):
         with pytest.raises(ValueError, match=f"dividing the {lanes} lanes, got {group}"):
             BatchedEnvelope(segments, lanes=lanes, group=group)
-    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|window\|panels, got .columns."):
+    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|panels, got .columns."):
         BatchedEnvelope(segments, schedule="columns")
-    with pytest.raises(ValueError, match="cache must be 0 or a power of two, got 100"):
-        BatchedEnvelope(segments, schedule="window", cache=100)
 
 
 def test_envelope_needs_a_taichi_backend():
