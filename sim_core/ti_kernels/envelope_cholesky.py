@@ -22,7 +22,7 @@ multiply-adds a factorisation (``benchmarks/roofline.py``).
 Factorisation. Kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower triangular, ``W_jj = d_j`` (the pivots; ``L = W
 D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed., Sec. 4.2), ``lanes`` threads a copy
 (one CUDA thread block, a block-level synchronisation a column), a copy ``m`` synchronised passes; on the CPU one
-thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Two orders of the same arithmetic
+thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Three orders of the same arithmetic
 (``schedule``):
 
 - ``"dots"`` (the default), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
@@ -31,17 +31,28 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Two 
   ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
   copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
   kept per copy (``(B m,)`` float64) for the later columns.
+- ``"panels"``, left-looking by vertices (a supernode of three columns: a vertex's rows have one first column and its
+  columns nested fronts, ``front(j + 1) = front(j) - {j + 1}``, so long as a row's first column is a vertex's first
+  DoF, as the order makes it and a widening keeps it): two synchronised passes a vertex instead of three. In the
+  first each row ``i`` of the vertex and of its front takes its three dot products with the vertex's rows over ``k <
+  j`` in one pass over row ``i`` (``group`` lanes, three shuffle sums) and leaves its partial entries (the vertex's own
+  six in the block's shared memory); in the second every task eliminates the vertex's 3x3 block (the same few
+  operations in every thread) and finishes its row's three entries. The pivots' inverses in a ring of shared memory
+  (a power of two above the widest row: 512 float64 for Forming); on the CPU the same arithmetic with both in
+  scratch arrays.
 - ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
   a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
   a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.
 
-On the H100 (B = 1024, one Forming Newton matrix, ``benchmarks/bench_envelope.py``, session 52) ``"dots"`` factorises
-in 27.7 ms at 256 threads a copy (group 4) against ``"pairs"``'s 36.5 (43.1 at 128), still ~80x its 0.35 ms floor:
-latency-bound, each pass of a dot product a dependent wait on the L2 (docs/gpu_roofline.md). A pivot that is not
+On the H100 (B = 1024, one Forming Newton matrix, ``benchmarks/bench_envelope.py``, session 52) :meth:`factorize`
+takes 26-28 ms with ``"dots"`` at 256 threads a copy (group 4; ``"pairs"`` 36.5, 43.1 at 128), but its gather and
+elimination kernels alone 8.1 ms (``"panels"`` 6.4; B = 256: 3.6 / 2.7): the rest of the call is the operator's
+set-up it shares with the CG (docs/gpu_roofline.md). ``"dots"`` stays the default on CUDA: the lockstep's steady
+Forming rate at B = 1024 read 1,724 scene-steps/s with it against 1,573 with ``"panels"`` in the same call. A pivot that is not
 positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
 unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
 
-Solve. With ``"dots"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
+Solve. With ``"dots"`` and ``"panels"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
 d_i`` a row at a time (the row's sum shared by the warp's lanes, a shuffle sum), then ``v = D u`` and backward ``x_j =
 v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns). Otherwise forward ``W u =
 b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front, one thread a row) and the
@@ -53,7 +64,8 @@ the lanes' sharing (the groups' shuffle sums, the synchronisations) runs on CUDA
 benchmark's residual against the float64 operator (1.2e-13).
 
 Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
-``(m,)``, with ``"dots"`` the pivots' inverses float64 ``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
+``(m,)``, with ``"dots"`` the pivots' inverses float64 ``(m,)`` (``"panels"``: a ring of them and the vertex block's
+six partial entries in a CUDA block's shared memory, 4.1 KiB for Forming); shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
 position, int32 ``(n,)``, and each ``U`` entry's row, int32 ``(nnz,)`` (its place in the envelope found by the gather,
 so that a widening moves no host array). Forming (``benchmarks/bench_envelope.py``, third step, all 1,698 DoFs of a
 copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in float64.
@@ -70,7 +82,8 @@ _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 CUDA_LANES = 256
 """Threads of one copy (one CUDA thread block) in the factorisation on CUDA (and the column solve; the row solve of
-``"dots"`` takes one warp): 27.7 ms a Forming factorisation at B = 1024 on the H100 against 32.1 at 128 (session 52)."""
+``"dots"`` takes one warp): 27.7 ms a Forming factorisation at B = 1024 on the H100 against 32.1 at 128 (session 52);
+its gather and elimination kernels alone 8.1 against 12.9 (``"panels"`` 6.4 against 7.4)."""
 
 CUDA_GROUP = 4
 """Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
@@ -80,7 +93,9 @@ SCHEDULES = ("pairs", "rows", "dots", "panels")
 """How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
 
 CUDA_SCHEDULE = "dots"
-"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"``)."""
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"`` too). ``"panels"``' kernels
+are faster (6.4 against 8.1 ms at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did
+not follow in the one A/B made (1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in."""
 
 
 
@@ -600,8 +615,9 @@ class BatchedEnvelope(BatchedPCG):
         lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
         schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
             by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
-            two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy); None: ``"dots"``.
-        group: lanes of one dot product with ``schedule="dots"``, a power of two of at most 32 dividing the lanes;
+            two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
+            columns at once, the same substitutions); None: :data:`CUDA_SCHEDULE` on CUDA, ``"dots"`` elsewhere.
+        group: lanes of one dot product with ``schedule="dots"`` or ``"panels"``, a power of two of at most 32 dividing the lanes;
             None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
 
     Raises:
