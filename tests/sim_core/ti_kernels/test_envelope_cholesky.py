@@ -164,3 +164,33 @@ def test_envelope_needs_a_taichi_backend():
 
     with pytest.raises(ConfigError, match="envelope"):
         SolverConfig(linear_solver="envelope")
+
+
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedule):
+    """A copy whose matrix holds NaN (a diverged copy of a lockstep batch) is reported and leaves the others exact; the
+    copies left out of a factorisation (``copies``) get a zero solution, the others the exact one."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(6, 4, seed, 1.0) for seed in (21, 22, 23)]
+    m = blocks[0].shape[0]
+    segments = np.repeat(np.arange(3), m)
+    b = np.random.default_rng(8).normal(size=3 * m)
+    A = sp.block_diag(blocks, format="csr")
+    want = spla.spsolve(A.tocsc(), b)
+    upper = _upper(A)
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    diverged = upper.copy()
+    rows = np.repeat(np.arange(3 * m), np.diff(upper.indptr))
+    diverged.data = np.where(rows // m == 1, np.nan, upper.data)
+    solver.factorize(diverged)
+    x = solver.solve(b)
+    assert list(solver.indefinite) == [False, True, False]
+    for c in (0, 2):
+        part = slice(c * m, (c + 1) * m)
+        np.testing.assert_allclose(x[part], want[part], rtol=0, atol=1e-10 * np.abs(want[part]).max())
+    solver.factorize(upper, copies=np.array([True, False, True]))
+    x = solver.solve(b)
+    assert not solver.indefinite.any()
+    np.testing.assert_array_equal(x[m:2 * m], 0.0)
+    np.testing.assert_allclose(x, np.where(segments == 1, 0.0, want), rtol=0, atol=1e-10 * np.abs(want).max())
