@@ -128,7 +128,8 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     np.testing.assert_allclose(solver.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu, schedule):
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
     blocks = [_grid_block(6, 5, seed, shift) for seed, shift in ((8, 1e-2), (9, 1.0))]
@@ -138,7 +139,7 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
     want = spla.spsolve(A.tocsc(), b)
     errors = []
     for refinements in (0, 3):
-        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements)
+        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements, schedule=schedule)
         solver.factorize(_upper(A))
         errors.append(np.abs(solver.solve(b) - want).max() / np.abs(want).max())
         assert solver.iterations == 1 + refinements
