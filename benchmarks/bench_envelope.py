@@ -7,9 +7,10 @@ the Newton matrix at the third step's first iterate (projected by ``--projection
 negative gradient on the free DoFs), and prints one JSON line per solver: the CG as the lockstep makes it (its
 factorisation, which builds the sheets' band blocks, and its solve to ``LOCKSTEP_CG_RTOL``, its iterations), then the
 envelope Cholesky (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`) with each ``--lanes`` threads a
-copy in float64 (each ``--schedules``: how a copy's threads share a column's update) and, at the first lanes,
-float32 factors with two refinements: medians of ``--repeat`` (each ended by
-a synchronisation) of the factorisation and the solve, the envelope's entries and device MiB a copy, the copies
+copy in float64 (each ``--schedules``: how a copy's threads share the factorisation; with ``dots`` and ``panels``
+each ``--groups`` lanes of a dot product) and, at the first lanes, float32 factors with two refinements: medians of ``--repeat`` (each ended by a
+synchronisation) of the factorisation (and, alone, of its gather and elimination kernels: ``eliminate_ms``) and the
+solve, the envelope's entries and device MiB a copy, the copies
 marked indefinite, and the largest per-copy relative residual ``|A x_c - b_c| / |b_c|`` (the CG's float64 product).
 """
 
@@ -30,7 +31,10 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--projection", default="clamp", help="the contact blocks' projection: clamp or none")
     ap.add_argument("--lanes", default="1", help="threads a copy, comma-separated (1: one thread a copy)")
-    ap.add_argument("--schedules", default="pairs,rows", help="how a copy's threads share a column (comma-separated)")
+    ap.add_argument("--schedules", default="pairs,rows,dots",
+                    help="how a copy's threads share the factorisation (comma-separated)")
+    ap.add_argument("--groups", default="",
+                    help="lanes of a dot product with the dots schedule, comma-separated (default: the solver's)")
     ap.add_argument("--mixed", action=argparse.BooleanOptionalAction, default=True,
                     help="also float32 factors with two refinements (at the first --lanes)")
     args = ap.parse_args()
@@ -70,22 +74,33 @@ def main() -> int:
             "solve_ms": timed(lambda: cg.solve(b)), "iterations": cg.iterations, "residual": residual(cg.solve(b))})
     lanes_list = [int(v) for v in args.lanes.split(",")]
     schedules = args.schedules.split(",")
-    variants = [(lanes, "double", schedule) for schedule in schedules for lanes in lanes_list] + (
-        [(lanes_list[0], "mixed", schedules[0])] if args.mixed else [])
-    for lanes, precision, schedule in variants:
-        if lanes == 1 and schedule != schedules[0]:
-            continue  # (one thread a copy: the same work either way)
-        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule)
+    groups = [int(v) for v in args.groups.split(",")] if args.groups else [None]
+    left = ("dots", "panels")
+    variants = [(lanes, "double", schedule, group) for schedule in schedules for lanes in lanes_list
+                for group in (groups if schedule in left else [None])
+                if group is None or (group <= lanes and lanes % group == 0)] + (
+        [(lanes_list[0], "mixed", schedules[0], groups[0] if schedules[0] in left else None)] if args.mixed else [])
+    for lanes, precision, schedule, group in variants:
+        if lanes == 1 and schedule not in (schedules[0], *left):
+            continue  # (one thread a copy: the same work for the right-looking schedules)
+        env = BatchedEnvelope(dof_copy, precision=precision, lanes=lanes, schedule=schedule, group=group)
         t = time.perf_counter()
-        env.factorize(*operator)  # compilation, the order and the envelope
-        xs = env.solve(b)
+        try:
+            env.factorize(*operator)  # compilation, the order and the envelope
+            xs = env.solve(b)
+        except Exception as exc:  # (a variant the device cannot compile or launch: reported, the others still run)
+            report({"solver": "envelope", "lanes": lanes, "schedule": schedule, "group": group,
+                    "error": f"{type(exc).__name__}: {exc}"[:300]})
+            continue
         first_s = time.perf_counter() - t
         factor_ms = timed(lambda: env.factorize(*operator))
+        eliminate_ms = timed(env._eliminate)  # (the gather and the factorisation's kernels alone)
         solve_ms = timed(lambda: env.solve(b))
         xs = env.solve(b)
         bytes_a_copy = env.entries * (4 if precision == "mixed" else 8)
         report({"solver": "envelope", "precision": precision, "lanes": lanes, "schedule": schedule,
-                "factorize_ms": factor_ms,
+                "group": env.group if schedule in left else None,
+                "factorize_ms": factor_ms, "eliminate_ms": eliminate_ms,
                 "solve_ms": solve_ms, "first_call_s": first_s, "entries": env.entries, "m": env._m,
                 "widest_row": int((np.arange(env._m) - env._first).max()) + 1, "widenings": env.widenings,
                 "envelope_mib_a_copy": bytes_a_copy / 2 ** 20, "indefinite": int(env.indefinite.sum()),

@@ -46,9 +46,9 @@ class SolverConfig:
             discards negative curvature the neighbours would compensate, so projected Newton only
             converges linearly where it matters (Forming: 8.7 -> 4.9 iterations per step).
         linear_solver: "pardiso" or "scipy"; in a lockstep batch also "pcg" (the batched conjugate
-            gradient on the Taichi device, :mod:`sim_core.ti_kernels.pcg`; a lockstep batch on
-            ``taichi-cuda`` takes it for "pardiso") and "envelope" (each copy's system solved directly on the
-            device by the envelope Cholesky, :mod:`sim_core.ti_kernels.envelope_cholesky`; ``envelope_precision``).
+            gradient on the Taichi device, :mod:`sim_core.ti_kernels.pcg`) and "envelope" (each copy's system
+            solved directly on the device by the envelope Cholesky, :mod:`sim_core.ti_kernels.envelope_cholesky`;
+            ``envelope_precision``; a lockstep batch on ``taichi-cuda`` takes it for "pardiso" since session 52).
         backend: the compute backend (:mod:`sim_core.backend`): ``"numpy"`` (the NumPy reference,
             the default: no Taichi, no kernel compilation), ``"taichi-cpu"``, ``"taichi-cuda"`` (the
             fused Taichi kernels: what ``thinshell bench forming`` measures), or ``"auto"`` (the
@@ -143,14 +143,14 @@ class SolverConfig:
             moved 0.2 mm in the air: 1 Newton iteration instead of 3). Off by default (the benchmarks'
             and the replays' steps are those from ``x^n``); the sim node turns it on. Not with
             ``lockstep``; ignored with a position guess (``Control.position_guess``).
-        cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``, or ``"pardiso"`` on
-            ``taichi-cuda``): ``"mixed"`` (default) keeps its operator's values and its preconditioner as float32 on
-            the device, its vectors, sums and factorisations float64 (:mod:`sim_core.ti_kernels.precision`);
-            ``"double"`` everything float64. Its solves stop at the relative residual ``LOCKSTEP_CG_RTOL`` (1e-4),
-            far above float32's rounding, so a solve meets that tolerance as in ``"double"`` and a lockstep batch's
-            copies give their separate runs' states (tests: ``tests/sim_core/ti_kernels/test_pcg.py``). Other
-            solvers ignore it.
-        envelope_precision: the factors of a lockstep batch's envelope Cholesky (``linear_solver="envelope"``):
+        cg_precision: the storage of a lockstep batch's batched CG (``linear_solver="pcg"``): ``"mixed"`` (default)
+            keeps its operator's values and its preconditioner as float32 on the device, its vectors, sums and
+            factorisations float64 (:mod:`sim_core.ti_kernels.precision`); ``"double"`` everything float64. Its solves
+            stop at the relative residual ``LOCKSTEP_CG_RTOL`` (1e-4), far above float32's rounding, so a solve meets
+            that tolerance as in ``"double"`` and a lockstep batch's copies give their separate runs' states (tests:
+            ``tests/sim_core/ti_kernels/test_pcg.py``). Other solvers ignore it.
+        envelope_precision: the factors of a lockstep batch's envelope Cholesky (``linear_solver="envelope"``, or
+            ``"pardiso"`` on ``taichi-cuda``):
             ``"double"`` (default) float64; ``"mixed"`` float32, each solve refined twice in float64 against the
             float64 operator. Other solvers ignore it.
     """

@@ -133,17 +133,23 @@ class LockstepResult:
     attempts: int = 1
 
 
+CUDA_DEVICE_SOLVER = "envelope"
+"""The device solver a lockstep batch on ``taichi-cuda`` takes for the default ``linear_solver="pardiso"``: the envelope
+Cholesky won against the batched CG at both sizes measured (Forming, H100, same call, session 52: steady 1,246 against
+983 scene-steps/s at B = 256, 1,865 against 1,471 at B = 1024; docs/gpu_roofline.md)."""
+
+
 class LockstepSolver(CopyLineSearch, NewtonSolver):
     """Newton's method on all copies of a :class:`StackedScene` at once (module docstring).
 
     Args:
         scene: the stacked scene.
-        config: solver settings of every copy. The linear solver: ``linear_solver="pcg"``, and on
-            ``taichi-cuda`` the default ``"pardiso"`` too, is the batched block-Jacobi CG on the device
-            (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton matrix, each copy solved to
-            the relative residual :data:`LOCKSTEP_CG_RTOL`); ``"envelope"``, each copy's system solved directly on the
-            device (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`, in the CG's place: the same
-            operator, the same per-copy tests); else the named direct solver on the stacked matrix.
+        config: solver settings of every copy. The linear solver: ``linear_solver="pcg"`` is the batched
+            block-Jacobi CG on the device (:class:`~sim_core.ti_kernels.pcg.BatchedPCG`, with the PSD-projected Newton
+            matrix, each copy solved to the relative residual :data:`LOCKSTEP_CG_RTOL`); ``"envelope"``, and on
+            ``taichi-cuda`` the default ``"pardiso"`` too (:data:`CUDA_DEVICE_SOLVER`), each copy's system solved
+            directly on the device (:class:`~sim_core.ti_kernels.envelope_cholesky.BatchedEnvelope`, in the CG's
+            place: the same operator, the same per-copy tests); else the named direct solver on the stacked matrix.
 
     Raises:
         ConfigError: ``linear_solver="pcg"`` on the NumPy backend.
@@ -162,7 +168,9 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
         config = config or SolverConfig()
         super().__init__(scene.model, config)
         self.pcg = self._block_rows = None
-        if config.linear_solver == "pcg" or (self.backend == "taichi-cuda" and config.linear_solver == "pardiso"):
+        device_solver = config.linear_solver if config.linear_solver in ("pcg", "envelope") else (
+            CUDA_DEVICE_SOLVER if self.backend == "taichi-cuda" and config.linear_solver == "pardiso" else None)
+        if device_solver == "pcg":
             if not uses_taichi(self.backend):
                 raise ConfigError(f"linear_solver 'pcg' runs in Taichi: it needs a Taichi backend, not {self.backend!r}")
             from sim_core.ti_kernels.block_projection import BlockRowsProjector  # Taichi kernels: a Taichi backend
@@ -173,7 +181,7 @@ class LockstepSolver(CopyLineSearch, NewtonSolver):
             self.pcg = self.linear_solver = BatchedPCG(np.repeat(segments, 3), rtol=LOCKSTEP_CG_RTOL,
                                                        bands=sheet_band_dofs(scene), precision=config.cg_precision)
             self._block_rows = BlockRowsProjector()  # the projected retry's pair blocks (projected_subset_blocks)
-        elif config.linear_solver == "envelope":  # (SolverConfig: a Taichi backend)
+        elif device_solver == "envelope":  # (SolverConfig, or taichi-cuda: a Taichi backend)
             from sim_core.ti_kernels.block_projection import BlockRowsProjector
             from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 

@@ -177,7 +177,7 @@ def bench_batch(scene: str, sizes: list[int] | str, steps: int, arch: str, on_ro
         lockstep: step the copies together (``SolverConfig.lockstep``, :mod:`sim_core.batch.lockstep`)
             instead of one after another.
         linear_solver: ``SolverConfig.linear_solver`` of the copies (None: its default; a lockstep batch on CUDA
-            then takes the batched CG), e.g. ``"envelope"``.
+            then takes the envelope Cholesky), e.g. ``"pcg"``.
 
     Returns:
         one record per size (keys in the module docstring, plus ``B``, ``steps``, ``scene``, ``arch``,
@@ -280,8 +280,9 @@ def bench_batch_main(argv: list[str] | None = None) -> int:
     p.add_argument("--lockstep", action="store_true",
                    help="step the copies together: one Newton iteration for all (SolverConfig.lockstep)")
     p.add_argument("--linear-solver", choices=("pardiso", "scipy", "pcg", "envelope"),
-                   help="the copies' linear solver (default: SolverConfig's; a lockstep batch on cuda takes the batched "
-                        "CG): envelope, each copy's system solved directly on the device (a Taichi arch)")
+                   help="the copies' linear solver (default: SolverConfig's; a lockstep batch on cuda takes the envelope "
+                        "Cholesky): envelope, each copy's system solved directly on the device (a Taichi arch); pcg, "
+                        "the batched CG")
     ns = p.parse_args(argv)
     if ns.sizes == ["auto"]:
         sizes: list[int] | str = "auto"

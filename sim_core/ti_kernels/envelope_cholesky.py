@@ -19,26 +19,53 @@ it: the envelope only grows). The Cholesky of an envelope matrix fills nothing o
 Liu, Ch. 4), so the factor has exactly these entries: 58,017 a Forming copy in the elastic pattern's order, 3.13 M
 multiply-adds a factorisation (``benchmarks/roofline.py``).
 
-Factorisation. Right-looking (outer-product) elimination kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower
-triangular, ``W_jj = d_j`` (the pivots): column ``j``'s pivot ``d_j`` is final after the columns before it, and its
-update ``a_ik -= a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in the envelope's reach of ``j``) writes only columns
-after ``j``, each entry ``(i, k)`` once; so ``lanes`` threads of one copy (one CUDA thread block, a block-level
-synchronisation a column) share a column's entries (the pairs ``j < k <= i`` listed row by row, a lane every
-``lanes``-th: a column's longest row is not one thread's chain), and a copy is ``m`` synchronised passes. On the CPU
-one thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). ``L = W D^-1/2`` is the Cholesky
-factor (Golub & Van Loan, Matrix Computations, 4th ed., Alg. 4.2.2 in outer-product form). A pivot that is not
+Factorisation. Kept unscaled, ``A = W D^-1 W^T`` with ``W`` lower triangular, ``W_jj = d_j`` (the pivots; ``L = W
+D^-1/2`` is the Cholesky factor, Golub & Van Loan, Matrix Computations, 4th ed., Sec. 4.2), ``lanes`` threads a copy
+(one CUDA thread block, a block-level synchronisation a column), a copy ``m`` synchronised passes; on the CPU one
+thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Three orders of the same arithmetic
+(``schedule``):
+
+- ``"dots"`` (the default), left-looking by columns (George & Liu, Sec. 4.2's inner-product form): column ``j``'s
+  entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of ``j``'s front, ``k`` from ``max(first[i],
+  first[j])`` to ``j - 1``) are dot products of two contiguous segments of envelope rows, independent of each other;
+  ``group`` lanes of a warp take one (``group`` consecutive ``k`` a pass, two sums in flight, then a shuffle sum), the
+  copy's ``lanes / group`` groups share the column's entries, and each factor entry is written once. ``1 / d_j`` is
+  kept per copy (``(B m,)`` float64) for the later columns.
+- ``"panels"``, left-looking by vertices (a supernode of three columns: a vertex's rows have one first column and its
+  columns nested fronts, ``front(j + 1) = front(j) - {j + 1}``, so long as a row's first column is a vertex's first
+  DoF, as the order makes it and a widening keeps it): two synchronised passes a vertex instead of three. In the
+  first each row ``i`` of the vertex and of its front takes its three dot products with the vertex's rows over ``k <
+  j`` in one pass over row ``i`` (``group`` lanes, three shuffle sums) and leaves its partial entries (the vertex's own
+  six in the block's shared memory); in the second every task eliminates the vertex's 3x3 block (the same few
+  operations in every thread) and finishes its row's three entries. The pivots' inverses in a ring of shared memory
+  (a power of two above the widest row: 512 float64 for Forming); on the CPU the same arithmetic with both in
+  scratch arrays.
+- ``"pairs"`` / ``"rows"`` (session 51), right-looking (outer-product) elimination: column ``j``'s update ``a_ik -=
+  a_ij a_kj / d_j`` (``j < k <= i``, rows ``i, k`` in ``j``'s front) shared entry by entry (the pairs listed row by row,
+  a lane every ``lanes``-th) or a thread a row; every update a read-modify-write of the envelope.
+
+On the H100 (B = 1024, one Forming Newton matrix, ``benchmarks/bench_envelope.py``, session 52) :meth:`factorize`
+takes 26-28 ms with ``"dots"`` at 256 threads a copy (group 4; ``"pairs"`` 36.5, 43.1 at 128), but its gather and
+elimination kernels alone 8.1 ms (``"panels"`` 6.4; B = 256: 3.6 / 2.7): the rest of the call is the operator's
+set-up it shares with the CG (docs/gpu_roofline.md). ``"dots"`` stays the default on CUDA: the lockstep's steady
+Forming rate at B = 1024 read 1,724 scene-steps/s with it against 1,573 with ``"panels"`` in the same call. A pivot that is not
 positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
 unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
 
-Solve. Forward ``W u = b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front,
-one thread a row); then ``W^T x = D u``, whose right-hand side is the forward pass's final ``b`` (``d_j u_j``),
-backward by rows of ``W`` (``x_j = v_j / d_j``, then ``v_k -= a_jk x_j`` for ``k`` in row ``j``'s envelope). With
-``precision="mixed"`` the envelope is stored and factorised in float32 and each solve is followed by ``refinements``
-steps of iterative refinement in float64 (``x += A^-1 (b - A x)``, the residual by the CG's float64 operator product;
-Golub & Van Loan, Sec. 3.5.3): one "iteration" a solve and one a refinement (:attr:`BatchedPCG.iterations`).
+Solve. With ``"dots"`` and ``"panels"``, both passes by the envelope's rows, one warp a copy: forward ``u_i = (b_i - sum_k w_ik u_k) /
+d_i`` a row at a time (the row's sum shared by the warp's lanes, a shuffle sum), then ``v = D u`` and backward ``x_j =
+v_j / d_j``, ``v_k -= w_jk x_j`` over row ``j`` (6.4 ms at B = 1024 against 7.1 by columns). Otherwise forward ``W u =
+b`` by columns (``u_j = b_j / d_j``, then ``b_i -= a_ij u_j`` for the rows of ``j``'s front, one thread a row) and the
+same backward pass. With ``precision="mixed"`` the envelope is stored and factorised in float32 (the dot products
+summed in float64) and each solve is followed by ``refinements`` steps of iterative refinement in float64 (``x +=
+A^-1 (b - A x)``, the residual by the CG's float64 operator product; Golub & Van Loan, Sec. 3.5.3): one "iteration" a
+solve and one a refinement (:attr:`BatchedPCG.iterations`). CI runs both schedules on the CPU (one thread a copy);
+the lanes' sharing (the groups' shuffle sums, the synchronisations) runs on CUDA only, checked there by the
+benchmark's residual against the float64 operator (1.2e-13).
 
 Storage a copy: the envelope, float64 or float32 ``(E,)`` (``E`` the envelope's entries), the solve's vector float64
-``(m,)``; shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
+``(m,)``, with ``"dots"`` the pivots' inverses float64 ``(m,)`` (``"panels"``: a ring of them and the vertex block's
+six partial entries in a CUDA block's shared memory, 4.1 KiB for Forming); shared: ``off``, ``first``, ``fptr`` int32 ``(m,)``, the columns' fronts int32 ``(E - m,)``, each DoF's
 position, int32 ``(n,)``, and each ``U`` entry's row, int32 ``(nnz,)`` (its place in the envelope found by the gather,
 so that a widening moves no host array). Forming (``benchmarks/bench_envelope.py``, third step, all 1,698 DoFs of a
 copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in float64.
@@ -53,8 +80,23 @@ from sim_core.ti_kernels.precision import VALUES, stored
 _F64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 _I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
-CUDA_LANES = 128
-"""Threads of one copy (one CUDA thread block) in the factorisation and the solves on CUDA."""
+CUDA_LANES = 256
+"""Threads of one copy (one CUDA thread block) in the factorisation on CUDA (and the column solve; the row solve of
+``"dots"`` takes one warp): 27.7 ms a Forming factorisation at B = 1024 on the H100 against 32.1 at 128 (session 52);
+its gather and elimination kernels alone 8.1 against 12.9 (``"panels"`` 6.4 against 7.4)."""
+
+CUDA_GROUP = 4
+"""Lanes of one dot product in the left-looking factorisation (``schedule="dots"``) on CUDA: at 256 threads a copy 4
+and 8 tie (27.7 / 27.6 ms), 2 and 16 are slower (32.6 / 34.3; H100, B = 1024, session 52)."""
+
+SCHEDULES = ("pairs", "rows", "dots", "panels")
+"""How a copy's threads share its factorisation (:class:`BatchedEnvelope`)."""
+
+CUDA_SCHEDULE = "dots"
+"""The schedule of a :class:`BatchedEnvelope` given none on CUDA (elsewhere ``"dots"`` too). ``"panels"``' kernels
+are faster (6.4 against 8.1 ms at B = 1024, 2.7 against 3.6 at 256, H100) but the lockstep's steady Forming rate did
+not follow in the one A/B made (1,573 against 1,724 scene-steps/s at B = 1024, session 52): opt-in."""
+
 
 
 @ti.func
@@ -180,13 +222,250 @@ def _factor(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: 
                     ti.simt.block.sync()
 
 
+@ti.func
+def _group_sum(value, lane, group: ti.template()):
+    """The sum of ``value`` over the ``group`` consecutive lanes of a warp that hold ``lane`` (a power of two, at most
+    32; every lane of the group gets it): a butterfly of warp shuffles of the float64's two 32-bit halves (Taichi's
+    shuffles are 32-bit), the group's lanes only in the mask, so that other groups of the warp may have left."""
+    total = value
+    if ti.static(group > 1):
+        low = (lane % 32) // group * group
+        mask = ti.cast(-1, ti.u32)
+        if ti.static(group < 32):
+            mask = ti.cast((1 << group) - 1, ti.u32) << ti.cast(low, ti.u32)
+        for offset in ti.static([group >> s for s in range(1, group.bit_length())]):
+            bits = ti.bit_cast(total, ti.i64)
+            lo = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits, ti.i32), offset)
+            hi = ti.simt.warp.shfl_xor_i32(mask, ti.cast(bits >> 32, ti.i32), offset)
+            other = (ti.cast(hi, ti.i64) << 32) | ti.cast(ti.cast(lo, ti.u32), ti.i64)
+            total += ti.bit_cast(other, ti.f64)
+    return total
+
+
+@ti.kernel
+def _factor_dots(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32, inv: _F64,
+                 m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(), group: ti.template()):
+    """Each copy's envelope factorised in place into ``W`` by columns, left-looking (module docstring, "dots"):
+    column ``j``'s entries ``w_ij = a_ij - sum_k w_ik w_jk / d_k`` (``i = j`` and the rows of its front, ``k`` from
+    ``max(first[i], first[j])`` to ``j - 1``: two contiguous row segments of the envelope) are independent dot
+    products, each taken by ``group`` lanes of a warp (``group`` consecutive ``k`` a pass, a shuffle sum), the
+    ``lanes / group`` groups of a copy sharing the column's entries; a block synchronisation a column, each factor
+    entry written once. ``inv[c m + j] = 1 / d_j`` (the pivots as :func:`_pivot` uses them); ``bad`` and ``todo`` as
+    for :func:`_factor`."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        sub = lane % group
+        groups = lanes // group
+        if lane == 0:
+            bad[c] = 0
+        if todo[c] != 0:
+            base = c * size
+            vb = c * m
+            for j in range(m):
+                fj = first[j]
+                rowj = base + off[j] - fj
+                start = fptr[j]
+                front = fptr[j + 1] - start
+                task = lane // group
+                while task <= front:  # task 0 the pivot, task p the front's p-th row
+                    i = j
+                    if task > 0:
+                        i = frows[start + task - 1]
+                    fi = first[i]
+                    rowi = base + off[i] - fi
+                    acc = 0.0
+                    other = 0.0  # (a second sum: two chains of loads in flight)
+                    k = ti.max(fi, fj) + sub
+                    while k + group < j:
+                        acc += ti.cast(env[rowi + k], ti.f64) * ti.cast(env[rowj + k], ti.f64) * inv[vb + k]
+                        other += (ti.cast(env[rowi + k + group], ti.f64) * ti.cast(env[rowj + k + group], ti.f64)
+                                  * inv[vb + k + group])
+                        k += 2 * group
+                    if k < j:
+                        acc += ti.cast(env[rowi + k], ti.f64) * ti.cast(env[rowj + k], ti.f64) * inv[vb + k]
+                    acc = _group_sum(acc + other, lane, group)
+                    if sub == 0:
+                        v = ti.cast(env[rowi + j], ti.f64) - acc
+                        env[rowi + j] = stored(v, env)
+                        if task == 0:
+                            stored_v = ti.cast(env[rowi + j], ti.f64)
+                            inv[vb + j] = 1.0 / _pivot(stored_v)
+                            if not stored_v > 0.0:
+                                bad[c] = 1
+                    task += groups
+                if ti.static(lanes > 1):
+                    ti.simt.block.sync()
+
+
+@ti.func
+def _dot3(env: ti.template(), piv: ti.template(), pb, rowi, rowj, rowj1, rowj2, k, j, sub, lane,
+          group: ti.template(), pmask: ti.template()):
+    """``(s0, s1, s2)``: ``sum_k w_ik w_(j+q)k / d_k`` for ``q = 0, 1, 2`` over ``k`` from ``k`` (this lane's first,
+    ``sub`` past the group's) to ``j - 1``, the three pivot rows' column 0 at ``rowj``, ``rowj1``, ``rowj2`` of the
+    envelope (a vertex's rows, of one first column), summed over the ``group`` lanes."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    k += sub
+    while k < j:
+        wi = ti.cast(env[rowi + k], ti.f64) * piv[pb + (k & pmask)]
+        s0 += wi * ti.cast(env[rowj + k], ti.f64)
+        s1 += wi * ti.cast(env[rowj1 + k], ti.f64)
+        s2 += wi * ti.cast(env[rowj2 + k], ti.f64)
+        k += group
+    return _group_sum(s0, lane, group), _group_sum(s1, lane, group), _group_sum(s2, lane, group)
+
+
+@ti.func
+def _panels_copy(env: ti.template(), piv: ti.template(), blk: ti.template(), pb, bb, c, lane, off: ti.template(),
+                 first: ti.template(), fptr: ti.template(), frows: ti.template(), todo: ti.template(),
+                 bad: ti.template(), m, size, lanes: ti.template(), group: ti.template(), pcap: ti.template()):
+    """One copy's factorisation by :func:`_factor_panels` (its docstring), ``piv`` the copy's ring of pivots' inverses
+    from ``pb``, ``blk`` its vertex block's six partial entries from ``bb``."""
+    sub = lane % group
+    groups = lanes // group
+    pmask = ti.static(pcap - 1)
+    if lane == 0:
+        bad[c] = 0
+    if todo[c] != 0:
+        base = c * size
+        for v in range(m // 3):
+            j = 3 * v
+            fj = first[j]
+            rowj = base + off[j] - fj  # (the vertex's three rows share their first column)
+            rowj1 = base + off[j + 1] - fj
+            rowj2 = base + off[j + 2] - fj
+            start = fptr[j]
+            front = fptr[j + 1] - start  # rows j + 1 and j + 2 its first two
+            task = lane // group
+            while task <= front:  # the three columns' dot products over k < j, one pass over row i
+                i = j
+                if task > 0:
+                    i = frows[start + task - 1]
+                fi = first[i]
+                rowi = base + off[i] - fi
+                s0, s1, s2 = _dot3(env, piv, pb, rowi, rowj, rowj1, rowj2, ti.max(fi, fj), j, sub, lane, group,
+                                    pmask)
+                if sub == 0:
+                    t0 = ti.cast(env[rowi + j], ti.f64) - s0
+                    if i == j:
+                        blk[bb] = t0
+                    elif i == j + 1:
+                        blk[bb + 1] = t0
+                        blk[bb + 2] = ti.cast(env[rowi + j + 1], ti.f64) - s1
+                    elif i == j + 2:
+                        blk[bb + 3] = t0
+                        blk[bb + 4] = ti.cast(env[rowi + j + 1], ti.f64) - s1
+                        blk[bb + 5] = ti.cast(env[rowi + j + 2], ti.f64) - s2
+                    else:
+                        env[rowi + j] = stored(t0, env)
+                        env[rowi + j + 1] = stored(ti.cast(env[rowi + j + 1], ti.f64) - s1, env)
+                        env[rowi + j + 2] = stored(ti.cast(env[rowi + j + 2], ti.f64) - s2, env)
+                task += groups
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+            # the vertex block's W D^-1 W^T (every task the same arithmetic), then each row's three entries
+            d0 = ti.cast(stored(blk[bb], env), ti.f64)
+            inv0 = 1.0 / _pivot(d0)
+            w10 = ti.cast(stored(blk[bb + 1], env), ti.f64)
+            w20 = ti.cast(stored(blk[bb + 3], env), ti.f64)
+            d1 = ti.cast(stored(blk[bb + 2] - w10 * w10 * inv0, env), ti.f64)
+            inv1 = 1.0 / _pivot(d1)
+            w21 = ti.cast(stored(blk[bb + 4] - w20 * w10 * inv0, env), ti.f64)
+            d2 = ti.cast(stored(blk[bb + 5] - w20 * w20 * inv0 - w21 * w21 * inv1, env), ti.f64)
+            task = lane // group
+            while task <= front:
+                if sub == 0:
+                    i = j
+                    if task > 0:
+                        i = frows[start + task - 1]
+                    rowi = base + off[i] - first[i]
+                    if i == j:
+                        env[rowi + j] = stored(d0, env)
+                        piv[pb + (j & pmask)] = inv0
+                        piv[pb + ((j + 1) & pmask)] = inv1
+                        piv[pb + ((j + 2) & pmask)] = 1.0 / _pivot(d2)
+                        if not (d0 > 0.0 and d1 > 0.0 and d2 > 0.0):
+                            bad[c] = 1
+                    elif i == j + 1:
+                        env[rowi + j] = stored(w10, env)
+                        env[rowi + j + 1] = stored(d1, env)
+                    elif i == j + 2:
+                        env[rowi + j] = stored(w20, env)
+                        env[rowi + j + 1] = stored(w21, env)
+                        env[rowi + j + 2] = stored(d2, env)
+                    else:
+                        w0 = ti.cast(env[rowi + j], ti.f64)
+                        w1 = ti.cast(stored(ti.cast(env[rowi + j + 1], ti.f64) - w0 * w10 * inv0, env), ti.f64)
+                        env[rowi + j + 1] = stored(w1, env)
+                        env[rowi + j + 2] = stored(ti.cast(env[rowi + j + 2], ti.f64) - w0 * w20 * inv0
+                                                   - w1 * w21 * inv1, env)
+                task += groups
+            if ti.static(lanes > 1):
+                ti.simt.block.sync()
+
+
+@ti.kernel
+def _factor_panels(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, bad: _I32,
+                   pscratch: _F64, bscratch: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
+                   group: ti.template(), pcap: ti.template(), shared: ti.template()):
+    """Each copy's envelope factorised in place into ``W`` left-looking by vertices (module docstring,
+    ``"panels"``): the three columns ``j = 3 v .. 3 v + 2`` of vertex ``v`` (one first column, nested fronts) in two
+    synchronised passes: each row ``i`` of the vertex and its front takes its three dot products with the vertex's
+    rows over ``k < j`` in one pass (``group`` lanes, a shuffle sum each) and leaves the partial entries (the vertex's
+    own six in ``blk``); then every task eliminates the vertex's 3x3 block and finishes its row's three entries. The
+    pivots' inverses in a ring of ``pcap`` (a power of two above the widest row). ``shared``: ``piv`` and ``blk`` in
+    the CUDA block's shared memory, else in ``pscratch`` / ``bscratch`` (``(copies pcap,)``, ``(copies 8,)``); ``bad``
+    and ``todo`` as for :func:`_factor`; the envelope's first columns equal over a vertex's DoFs."""
+    ti.loop_config(block_dim=lanes)
+    for t in range(copies * lanes):
+        c = t // lanes
+        lane = t % lanes
+        if ti.static(shared):
+            piv = ti.simt.block.SharedArray((pcap,), ti.f64)
+            blk = ti.simt.block.SharedArray((8,), ti.f64)
+            _panels_copy(env, piv, blk, 0, 0, c, lane, off, first, fptr, frows, todo, bad, m, size, lanes, group,
+                         pcap)
+        else:
+            _panels_copy(env, pscratch, bscratch, c * pcap, c * 8, c, lane, off, first, fptr, frows, todo, bad, m,
+                         size, lanes, group, pcap)
+
+
+@ti.func
+def _back_substitute(env: ti.template(), off: ti.template(), first: ti.template(), order: ti.template(),
+                     x: ti.template(), w: ti.template(), base, vb, m, lane, lanes: ti.template()):
+    """The back substitution ``W^T x = v`` of a copy (``v`` in ``w[vb:vb + m]`` on entry, overwritten) by rows of
+    ``W``: ``x_j = v_j / d_j``, then ``v_k -= w_jk x_j`` over row ``j``, the ``lanes`` sharing a row, a synchronisation
+    a row; ``x`` at the DoFs of ``order`` (lane 0)."""
+    for jj in range(m):
+        j = m - 1 - jj
+        fj = first[j]
+        row = base + off[j] - fj
+        xj = w[vb + j] / _pivot(env[row + j])
+        if lane == 0:
+            dof = order[vb + j]
+            if dof >= 0:
+                x[dof] = xj
+        k = fj + lane
+        while k < j:
+            w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
+            k += lanes
+        if ti.static(lanes > 1):
+            ti.simt.block.sync()
+
+
 @ti.kernel
 def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, todo: _I32, order: _I32, b: _F64,
-                x: _F64,
-                w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template()):
+                x: _F64, w: _F64, m: ti.i32, size: ti.i32, copies: ti.i32, lanes: ti.template(),
+                by_rows: ti.template()):
     """``x = A^-1 b`` per copy from the factor ``W`` (forward, then back substitution; module docstring); ``b`` and
     ``x`` over the stacked DoFs, ``order[c m + i]`` the DoF at position ``i`` of copy ``c`` (-1: padding), the fronts
-    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``."""
+    as for :func:`_factor`; copies with ``todo[c] == 0`` get ``x = 0``. The forward pass ``W u = b`` by columns
+    (``u_j = b_j / d_j``, then ``b_i -= w_ij u_j`` over ``j``'s front, a lane a row), or ``by_rows`` (``u_i = (b_i -
+    sum_k w_ik u_k) / d_i`` a row at a time, the row's sum shared by the ``lanes``, at most 32: one warp a copy, a
+    shuffle sum; then ``v = D u``); the backward pass by rows (:func:`_back_substitute`)."""
     ti.loop_config(block_dim=lanes)
     for t in range(copies * lanes):
         c = t // lanes
@@ -205,30 +484,37 @@ def _substitute(env: VALUES, off: _I32, first: _I32, fptr: _I32, frows: _I32, to
         if ti.static(lanes > 1):
             ti.simt.block.sync()
         if todo[c] != 0:
-            for j in range(m):
-                u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
-                e = fptr[j] + lane
-                while e < fptr[j + 1]:
-                    i = frows[e]
-                    w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
-                    e += lanes
+            if ti.static(by_rows):
+                for i in range(m):
+                    fi = first[i]
+                    row = base + off[i] - fi
+                    acc = 0.0
+                    k = fi + lane
+                    while k < i:
+                        acc += ti.cast(env[row + k], ti.f64) * w[vb + k]
+                        k += lanes
+                    acc = _group_sum(acc, lane, lanes)
+                    if lane == 0:
+                        w[vb + i] = (w[vb + i] - acc) / _pivot(env[row + i])
+                    if ti.static(lanes > 1):
+                        ti.simt.block.sync()
+                p = lane
+                while p < m:
+                    w[vb + p] = w[vb + p] * _pivot(env[base + off[p] + p - first[p]])
+                    p += lanes
                 if ti.static(lanes > 1):
                     ti.simt.block.sync()
-            for jj in range(m):
-                j = m - 1 - jj
-                fj = first[j]
-                row = base + off[j] - fj
-                xj = w[vb + j] / _pivot(env[row + j])
-                if lane == 0:
-                    dof = order[vb + j]
-                    if dof >= 0:
-                        x[dof] = xj
-                k = fj + lane
-                while k < j:
-                    w[vb + k] -= ti.cast(env[row + k], ti.f64) * xj
-                    k += lanes
-                if ti.static(lanes > 1):
-                    ti.simt.block.sync()
+            else:
+                for j in range(m):
+                    u = w[vb + j] / _pivot(env[base + off[j] + j - first[j]])
+                    e = fptr[j] + lane
+                    while e < fptr[j + 1]:
+                        i = frows[e]
+                        w[vb + i] -= ti.cast(env[base + off[i] - first[i] + j], ti.f64) * u
+                        e += lanes
+                    if ti.static(lanes > 1):
+                        ti.simt.block.sync()
+            _back_substitute(env, off, first, order, x, w, base, vb, m, lane, lanes)
 
 
 @ti.kernel
@@ -327,11 +613,17 @@ class BatchedEnvelope(BatchedPCG):
             iterative refinement).
         refinements: refinement steps a solve with ``precision="mixed"`` (ignored with ``"double"``).
         lanes: threads a copy; None: :data:`CUDA_LANES` on CUDA, 1 elsewhere.
-        schedule: how a copy's threads share a column's update: ``"pairs"`` (entry by entry) or ``"rows"`` (a thread a
-            row); None: ``"pairs"`` with several threads a copy, ``"rows"`` with one.
+        schedule: how a copy's threads share its factorisation: right-looking, a column's update ``"pairs"`` (entry
+            by entry) or ``"rows"`` (a thread a row); or left-looking ``"dots"`` (a column's entries as dot products of
+            two rows, ``group`` lanes each, and both substitutions by rows, a warp a copy) or ``"panels"`` (a vertex's three
+            columns at once, the same substitutions); None: :data:`CUDA_SCHEDULE` on CUDA, ``"dots"`` elsewhere.
+        group: lanes of one dot product with ``schedule="dots"`` or ``"panels"``, a power of two of at most 32 dividing the lanes;
+            None: :data:`CUDA_GROUP` with several threads a copy (at most the lanes), 1 with one.
 
     Raises:
         ConfigError: an unknown ``precision``.
+        ValueError: an unknown ``schedule``, or a ``group`` that is not a power of two of at most 32 dividing the
+            lanes.
 
     Attributes:
         name: ``"envelope"``.
@@ -346,7 +638,7 @@ class BatchedEnvelope(BatchedPCG):
     name = "envelope"
 
     def __init__(self, segments: "np.ndarray | None" = None, precision: str = "double", refinements: int = 2,
-                 lanes: int | None = None, schedule: str | None = None) -> None:
+                 lanes: int | None = None, schedule: str | None = None, group: int | None = None) -> None:
         super().__init__(segments, precision="double")  # the operator (for the refinement's residual) in float64
         from sim_core.ti_kernels.precision import storage_dtype
 
@@ -354,9 +646,13 @@ class BatchedEnvelope(BatchedPCG):
         self._env_dtype = storage_dtype(precision)
         self.refinements = int(refinements) if precision != "double" else 0
         self.lanes = lanes
-        if schedule not in (None, "pairs", "rows"):
-            raise ValueError(f"BatchedEnvelope: schedule must be pairs or rows, got {schedule!r}")
+        if schedule not in (None, *SCHEDULES):
+            raise ValueError(f"BatchedEnvelope: schedule must be one of {'|'.join(SCHEDULES)}, got {schedule!r}")
         self._schedule = schedule
+        self._group = group
+        if group is not None:
+            self.group  # (checked against the lanes now)
+        self._pcap = 1
         self.entries = 0
         self.widenings = 0
         self._layout: tuple | None = None  # (indptr_h, indices_h): the pattern the order and slots belong to
@@ -367,10 +663,20 @@ class BatchedEnvelope(BatchedPCG):
 
     @property
     def schedule(self) -> str:
-        """``"pairs"`` or ``"rows"`` (the class docstring)."""
+        """``"pairs"``, ``"rows"``, ``"dots"`` or ``"panels"`` (the class docstring)."""
         if self._schedule is not None:
             return self._schedule
-        return "pairs" if self._lane_count() > 1 else "rows"
+        return CUDA_SCHEDULE if require_backend("BatchedEnvelope") == "cuda" else "dots"
+
+    @property
+    def group(self) -> int:
+        """Lanes of one dot product with ``schedule="dots"`` (the class docstring)."""
+        lanes = self._lane_count()
+        group = self._group if self._group is not None else min(CUDA_GROUP, lanes) if lanes > 1 else 1
+        if group < 1 or group > 32 or group & (group - 1) or lanes % group:
+            raise ValueError(f"BatchedEnvelope: group must be a power of two of at most 32 dividing the {lanes} lanes, "
+                             f"got {group}")
+        return group
 
     def _lane_count(self) -> int:
         if self.lanes is not None:
@@ -416,9 +722,20 @@ class BatchedEnvelope(BatchedPCG):
         _assemble(a["data"], a["env_urow"], a["indices"], self._nnz, a["brow"], a["bcol"], a["bval"], a["free"],
                   self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
                   a["env_padded"], self._npadded, size)
-        _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"],
-                self._upload("env_todo", self._todo, ti.i32), a["env_flags"], m, size, B, self._lane_count(),
-                self.schedule == "rows")
+        todo = self._upload("env_todo", self._todo, ti.i32)
+        if self.schedule == "panels":
+            shared = require_backend("BatchedEnvelope") == "cuda"
+            pcap = self._pcap
+            _factor_panels(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
+                           self._array("env_pring", 1 if shared else B * pcap),
+                           self._array("env_blk", 1 if shared else 8 * B), m, size, B, self._lane_count(), self.group,
+                           pcap, shared)
+        elif self.schedule == "dots":
+            _factor_dots(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"],
+                         self._array("env_inv", max(B * m, 1)), m, size, B, self._lane_count(), self.group)
+        else:
+            _factor(env, a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], todo, a["env_flags"], m, size,
+                    B, self._lane_count(), self.schedule == "rows")
 
     def _new_layout(self, indptr_h: np.ndarray, indices_h: np.ndarray, seg: np.ndarray) -> None:
         """The order and the envelope of ``U``'s pattern (module docstring), on the device."""
@@ -442,6 +759,8 @@ class BatchedEnvelope(BatchedPCG):
                              f"indices")
         for name, host in (("env_off", off), ("env_first", self._first), ("env_fptr", fptr), ("env_frows", frows)):
             _copy_in(self._array(name, max(host.size, 1), ti.i32), host.astype(np.int32))
+        widest = int((np.arange(self._m) - self._first).max()) + 1 if self._m else 1
+        self._pcap = 1 << widest.bit_length()  # (the pivots' ring of "panels": a power of two above the widest row)
         padded = np.flatnonzero(self._order.reshape(-1) < 0)  # (none while every copy has the same count)
         row = padded % self._m
         diag = (padded // self._m) * self.entries + off[row] + row - self._first[row]
@@ -463,10 +782,10 @@ class BatchedEnvelope(BatchedPCG):
 
     def _substitute_into(self, b, x) -> None:
         a = self._arrays
+        by_rows = self.schedule in ("dots", "panels")
         _substitute(a["env"], a["env_off"], a["env_first"], a["env_fptr"], a["env_frows"], a["env_todo"],
-                    a["env_order"], b, x,
-                    self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries, self._copies,
-                    self._lane_count())
+                    a["env_order"], b, x, self._array("env_w", max(self._copies * self._m, 1)), self._m, self.entries,
+                    self._copies, min(self._lane_count(), 32) if by_rows else self._lane_count(), by_rows)
 
     def _run(self) -> None:
         """``x = A^-1 b`` per copy from the ``b`` array into ``x`` (with the refinements in ``"mixed"``); then the
@@ -478,7 +797,9 @@ class BatchedEnvelope(BatchedPCG):
         flags = _copy_out(self._arrays["env_flags"])
         if not self._checked and flags[B]:
             self.widenings += 1
-            self._set_envelope(np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64)))
+            need = np.minimum(self._first, _copy_out(self._arrays["env_need"]).astype(np.int64))
+            self._set_envelope(np.repeat(need.reshape(-1, 3).min(axis=1) // 3 * 3, 3))  # (a vertex's rows one first
+            # column, a vertex's first DoF: as the order makes them, so that "panels" takes a vertex's columns at once)
             self._eliminate()
             self._solve_into(b, x)
             flags = _copy_out(self._arrays["env_flags"])

@@ -42,9 +42,10 @@ def _upper(A: sp.spmatrix) -> sp.csr_matrix:
     return u
 
 
-@pytest.mark.parametrize("schedule", ["rows", "pairs"])
+@pytest.mark.parametrize("schedule", ["rows", "pairs", "dots", "panels"])
 def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cpu, schedule):
-    """Either way of sharing a column's update (one thread a copy here: the entries' order is CUDA's by lane)."""
+    """Each order of the elimination: right-looking entry by entry or by rows, left-looking by dot products (one thread
+    a copy here: the entries' order is CUDA's by lane)."""
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
     blocks = [_grid_block(12, 4, seed, shift) for seed, shift in ((0, 1e-3), (1, 1.0), (2, 10.0))]
@@ -70,7 +71,8 @@ def test_each_copy_is_solved_exactly_and_a_zero_right_hand_side_gives_zero(ti_cp
     np.testing.assert_allclose(x[:m], want[:m], rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu):
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_is_applied(ti_cpu, schedule):
     """Contact-like 3x3 blocks between far vertices of a copy (matrix-free in the CG) are factorised exactly: the
     envelope widens to hold them; the inertia diagonal and the fixed DoFs' 1 are applied on the device; the fixed
     DoFs' blocks are masked out."""
@@ -112,7 +114,7 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     U.data[diag_slots] += diag_values
     U.data[fixed] = 1.0
     A = (U + U.T - sp.diags(U.diagonal()) + F @ E.tocsr() @ F).tocsc()
-    solver = BatchedEnvelope(segments)
+    solver = BatchedEnvelope(segments, schedule=schedule)
     vb = VertexBlocks.from_element_blocks([HessianBlocks(verts, vals)], free)
     solver.factorize((upper.indptr, upper.indices, upper.data.copy()), vb, (diag_slots, diag_values, fixed))
     b = rng.normal(size=n)
@@ -126,7 +128,8 @@ def test_vertex_blocks_outside_the_pattern_widen_the_envelope_and_the_diagonal_i
     np.testing.assert_allclose(solver.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
 
 
-def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu, schedule):
     from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
 
     blocks = [_grid_block(6, 5, seed, shift) for seed, shift in ((8, 1e-2), (9, 1.0))]
@@ -136,7 +139,7 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
     want = spla.spsolve(A.tocsc(), b)
     errors = []
     for refinements in (0, 3):
-        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements)
+        solver = BatchedEnvelope(segments, precision="mixed", refinements=refinements, schedule=schedule)
         solver.factorize(_upper(A))
         errors.append(np.abs(solver.solve(b) - want).max() / np.abs(want).max())
         assert solver.iterations == 1 + refinements
@@ -144,8 +147,51 @@ def test_float32_factors_with_refinement_reach_the_float64_solution(ti_cpu):
     assert errors[1] < 1e-12
 
 
+def test_a_dot_products_group_must_be_a_power_of_two_dividing_the_lanes(ti_cpu):
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    segments = np.zeros(6, dtype=np.int32)
+    assert BatchedEnvelope(segments).group == 1  # one thread a copy on the CPU
+    assert BatchedEnvelope(segments, lanes=256, group=8).group == 8
+    for lanes, group in ((128, 3), (128, 64), (16, 32)):
+        with pytest.raises(ValueError, match=f"dividing the {lanes} lanes, got {group}"):
+            BatchedEnvelope(segments, lanes=lanes, group=group)
+    with pytest.raises(ValueError, match=r"schedule must be one of pairs\|rows\|dots\|panels, got .columns."):
+        BatchedEnvelope(segments, schedule="columns")
+
+
 def test_envelope_needs_a_taichi_backend():
     from sim_core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="envelope"):
         SolverConfig(linear_solver="envelope")
+
+
+@pytest.mark.parametrize("schedule", ["dots", "panels"])
+def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedule):
+    """A copy whose matrix holds NaN (a diverged copy of a lockstep batch) is reported and leaves the others exact; the
+    copies left out of a factorisation (``copies``) get a zero solution, the others the exact one."""
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(6, 4, seed, 1.0) for seed in (21, 22, 23)]
+    m = blocks[0].shape[0]
+    segments = np.repeat(np.arange(3), m)
+    b = np.random.default_rng(8).normal(size=3 * m)
+    A = sp.block_diag(blocks, format="csr")
+    want = spla.spsolve(A.tocsc(), b)
+    upper = _upper(A)
+    solver = BatchedEnvelope(segments, schedule=schedule)
+    diverged = upper.copy()
+    rows = np.repeat(np.arange(3 * m), np.diff(upper.indptr))
+    diverged.data = np.where(rows // m == 1, np.nan, upper.data)
+    solver.factorize(diverged)
+    x = solver.solve(b)
+    assert list(solver.indefinite) == [False, True, False]
+    for c in (0, 2):
+        part = slice(c * m, (c + 1) * m)
+        np.testing.assert_allclose(x[part], want[part], rtol=0, atol=1e-10 * np.abs(want[part]).max())
+    solver.factorize(upper, copies=np.array([True, False, True]))
+    x = solver.solve(b)
+    assert not solver.indefinite.any()
+    np.testing.assert_array_equal(x[m:2 * m], 0.0)
+    np.testing.assert_allclose(x, np.where(segments == 1, 0.0, want), rtol=0, atol=1e-10 * np.abs(want).max())
