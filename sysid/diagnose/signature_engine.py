@@ -362,7 +362,8 @@ def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     """Delay (latency), first-order lag (gel viscoelasticity) or Kelvin-Voigt time constant (damping:
     the replay's force plus tau times its rate, never tensile: :func:`contact_force`) fitted on all
-    contact events but one and evaluated on that one, for every event (leave one event out)."""
+    contact events but one and evaluated on that one, for every event (leave one event out,
+    :func:`leave_one_event_out`)."""
     latency, lead = r.effect == "latency", r.effect == "damping"
     rec = lead_recording(p.recording) if lead else p.recording  # the damping test's replay
     fits = timing_fits(rec)
@@ -370,32 +371,62 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     channel, t, y, yp, sigma = timing_signal(rec)
     if not lead:  # the delay and the lag read the replay as the tests do (Kelvin-Voigt filters it itself)
         yp = smoothed_replay(t, yp)
-    y, yp = y[:, None], yp[:, None]
-    sig = np.array([sigma])
     taus = np.arange(0.0, 0.3 + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     fracs = np.linspace(0.0, 1.0, 11)
 
     def transformed(theta: tuple[float, float]) -> np.ndarray:
         if lead:
-            return contact_force(t, yp, theta[0])
-        return delayed(t, yp, theta[0]) if latency else first_order(t, yp, theta[0], theta[1])
+            return contact_force(t, yp[:, None], theta[0])[:, 0]
+        return delayed(t, yp[:, None], theta[0])[:, 0] if latency else first_order(t, yp[:, None], theta[0], theta[1])[:, 0]
+
+    grid = [(float(a), 0.0) for a in taus] if latency or lead else [(float(a), float(b)) for a in taus[1:] for b in fracs]
+    out = leave_one_event_out(t, y, yp, sigma, [e["window_s"] for e in events], grid, transformed)
+    best_all = out.pop("theta")
+    params = ({"latency_s": best_all[0]} if latency else {"tau_s": best_all[0]} if lead
+              else {"tau_s": best_all[0], "fraction": best_all[1]})
+    observable = "normal force" if channel == "wrench" else "mean marker depth"
+    return {"params": params, "observable": f"{observable} in the contact events' windows",
+            "heldout": "leave one contact event out", "per_event": out.pop("per_event"),
+            "rms": {channel: out.pop("rms")}, **out}
+
+
+def leave_one_event_out(t: np.ndarray, y: np.ndarray, yp: np.ndarray, sigma: float, windows: Sequence[Sequence[float]],
+                        grid: Sequence[tuple[float, ...]], transformed) -> dict[str, Any]:
+    """A timing model fitted on all contact events but one and evaluated on that one, for every event.
+
+    In each event's window the recorded signal is regressed on the model's prediction with a gain and
+    an offset per window, fitted before and after alike (the amplitude gap between the calibrated replay
+    and the recording is not the timing effect).
+
+    Args:
+        t: sample times, s, ``(n,)``.
+        y, yp: recorded and replayed signal ``(n,)`` (normal force N or mean marker depth m).
+        sigma: its noise, same unit.
+        windows: the events' windows ``[t0, t1]`` s.
+        grid: the model's parameter values searched.
+        transformed: parameter value -> the model's prediction ``(n,)``.
+
+    Returns:
+        ``theta`` (best on all events), ``per_event`` (best on the others, per held-out event), ``rms``
+        (whitened, at ``theta`` on all events), ``heldout_rms_before`` (the replay ``yp`` itself) and
+        ``heldout_rms_after``.
+    """
+    masks = [(t >= a) & (t <= b) for a, b in windows]
+    preds: dict[tuple[float, ...], np.ndarray] = {}
 
     def sse(theta, rows, pred=None) -> float:
-        # a gain and an offset per event window, fitted before and after alike: the amplitude gap
-        # between the calibrated replay and the recording is not the timing effect
-        z = transformed(theta) if pred is None else pred
+        if pred is None:
+            pred = preds.setdefault(theta, np.asarray(transformed(theta), dtype=float))
         total = 0.0
         for m in masks:
             mm = m & rows
             if mm.sum() < 3:
                 continue
-            X = np.stack([z[mm, 0], np.ones(int(mm.sum()))], axis=1)
-            c, *_ = np.linalg.lstsq(X, y[mm, 0], rcond=None)
-            total += float(np.sum(((y[mm, 0] - X @ c) / sig[0]) ** 2))
+            X = np.stack([pred[mm], np.ones(int(mm.sum()))], axis=1)
+            c, *_ = np.linalg.lstsq(X, y[mm], rcond=None)
+            total += float(np.sum(((y[mm] - X @ c) / sigma) ** 2))
         return total
 
-    masks = [(t >= e["window_s"][0]) & (t <= e["window_s"][1]) for e in events]
-    grid = [(float(a), 0.0) for a in taus] if latency or lead else [(float(a), float(b)) for a in taus[1:] for b in fracs]
     before, after, thetas = [], [], []
     for i, m in enumerate(masks):
         train = np.zeros(len(t), bool)
@@ -408,15 +439,11 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
         thetas.append(best)
         before.append(sse(None, m, pred=yp))
         after.append(sse(best, m))
-    n_held = sum(int(m.sum()) * sig.shape[0] for m in masks)
+    n_held = sum(int(m.sum()) for m in masks)
     all_rows = np.any(masks, axis=0) if masks else np.ones(len(t), bool)
     best_all = min(grid, key=lambda th: sse(th, all_rows))
-    params = ({"latency_s": best_all[0]} if latency else {"tau_s": best_all[0]} if lead
-              else {"tau_s": best_all[0], "fraction": best_all[1]})
-    observable = "normal force" if channel == "wrench" else "mean marker depth"
-    return {"params": params, "observable": f"{observable} in the contact events' windows",
-            "heldout": "leave one contact event out", "per_event": [list(th) for th in thetas],
-            "rms": {channel: math.sqrt(sse(best_all, all_rows) / max(int(all_rows.sum()) * sig.shape[0], 1))},
+    return {"theta": best_all, "per_event": [list(th) for th in thetas],
+            "rms": math.sqrt(sse(best_all, all_rows) / max(int(all_rows.sum()), 1)),
             "heldout_rms_before": math.sqrt(sum(before) / max(n_held, 1)),
             "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
 
