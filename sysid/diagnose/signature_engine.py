@@ -47,6 +47,7 @@ from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, Cali
                                kinematic_reference, nominal_sensor_calibration)
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.drive_calibration import fit_drive
+from sysid.diagnose.damping_refit import refit_damping
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.probe_worker import ProbeWorker
@@ -103,6 +104,8 @@ class SignatureSettings:
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
+        damping_replays: most replays of the gel damping refit with its term
+            (:mod:`sysid.diagnose.damping_refit`; 0: the replay's lead fitted instead, no replay).
         probe_worker: make the calibration's secant probe in a second process beside its start replay
             (:class:`sysid.diagnose.probe_worker.ProbeWorker`; the same replays, about one replay less
             wall time on two cores), where it applies (:func:`probe_worker_for`); False: one process.
@@ -128,6 +131,7 @@ class SignatureSettings:
     batched: bool = False
     batch_size: int | str | None = None
     plasticity_replays: int = 5
+    damping_replays: int = 2
     plasticity_max_time: float | None = None
     probe_worker: bool = False
 
@@ -531,6 +535,12 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: S
         return refit_lens(p, r, settings.holdout_blocks)
     if r.effect == "force_bias":
         return refit_force_bias(p, r, settings.holdout_blocks)
+    if r.effect == "damping" and p.calibration.prediction and settings.damping_replays > 0:
+        out = refit_damping(p.model, p.calibration.params, p.recording, r.estimate.get("tau_s"), settings.damping_replays)
+        if out is not None:
+            return out
+        p.notes.append("damping: not refitted with the gel's dashpot (no such term, no contact event, or its replay "
+                       "diverged); the replay's lead fitted instead")
     if r.effect in ("latency", "gel_viscoelasticity", "damping"):
         return refit_timing(p, r)
     if r.effect == "stiction":
