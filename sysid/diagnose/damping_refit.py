@@ -15,6 +15,13 @@ one the lead is read against: with the recorded pose imposed where the calibrate
 the arm drive (through a drive of 3 N/mm a contact of 35-40 N/mm leads by a tenth of the gel's time
 constant, :mod:`sysid.diagnose.signatures.damping`), else the calibrated replay itself.
 
+The replay imposes the recorded pose, whose noise the dashpot turns into a force of ``alpha k`` times
+the pose noise's rate (0.7 N, 3.6 noise units, for 20 ms on damped_s104's 50 N/mm contact and 5 um of
+pose noise at 10 ms steps) that grows with ``alpha`` and pulls the fit to a smaller one; the term's
+change is therefore read through the damping signature's quadratic Savitzky-Golay filter (its value,
+:func:`sysid.diagnose.signatures.damping.kelvin_voigt` at 0, over
+:data:`~sysid.diagnose.signatures.damping.RATE_WINDOW_S`).
+
 Training and held-out data as for the other timing effects: the normal force (else the mean marker
 depth) in the contact events' windows, ``alpha`` fitted on all events but one and evaluated on that
 one, with a gain and an offset per window before and after alike
@@ -163,7 +170,7 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
         ``heldout_rms_before`` / ``_after``, ``detail``), or None where the simulator has no gel damping,
         the recording no timing signal or no event, or the probe replay diverged.
     """
-    from sysid.diagnose.signatures.damping import lead_recording
+    from sysid.diagnose.signatures.damping import kelvin_voigt, lead_recording
     from sysid.diagnose.signatures.timing import TAU_MAX_S, timing_fits, timing_signal
 
     try:
@@ -186,7 +193,10 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
         pred = replay(alpha)
         if pred is None:
             return None
-        return yp + timing_signal(dataclasses.replace(recording, prediction=pred, reference=None))[3] - unretimed
+        change = timing_signal(dataclasses.replace(recording, prediction=pred, reference=None))[3] - unretimed
+        # the replay imposes the recorded pose, noise included; the dashpot turns that noise into
+        # alpha k (pose noise) / dt, a force the recorded pad never felt: the change is read smoothed
+        return yp + kelvin_voigt(t, change, 0.0)
 
     probe = float(estimate_s) if estimate_s is not None and estimate_s > 0.0 else PROBE_FALLBACK_S
     grid = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 4.0, 5e-4))
