@@ -18,9 +18,9 @@ constant, :mod:`sysid.diagnose.signatures.damping`), else the calibrated replay 
 The replay imposes the recorded pose, whose noise the dashpot turns into a force of ``alpha k`` times
 the pose noise's rate (0.7 N, 3.6 noise units, for 20 ms on damped_s104's 50 N/mm contact and 5 um of
 pose noise at 10 ms steps) that grows with ``alpha`` and pulls the fit to a smaller one; the term's
-change is therefore read through the damping signature's quadratic Savitzky-Golay filter (its value,
-:func:`sysid.diagnose.signatures.damping.kelvin_voigt` at 0, over
-:data:`~sysid.diagnose.signatures.damping.RATE_WINDOW_S`).
+change, and the replay without it (``k`` times the pose noise), are therefore read through the damping
+signature's quadratic Savitzky-Golay filter (its value, :func:`sysid.diagnose.signatures.damping.kelvin_voigt`
+at 0, over :data:`~sysid.diagnose.signatures.damping.RATE_WINDOW_S`), before and after alike.
 
 Training and held-out data as for the other timing effects: the normal force (else the mean marker
 depth) in the contact events' windows, ``alpha`` fitted on all events but one and evaluated on that
@@ -188,6 +188,7 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
     unretimed = timing_signal(dataclasses.replace(recording, prediction=recording.reference, reference=None)
                               if through_drive else recording)[3]
     replay = lead_replay(model, params, through_drive)
+    base = kelvin_voigt(t, yp, 0.0)  # the elastic replay's pose noise, read as the change is
 
     def signal(alpha: float) -> np.ndarray | None:
         pred = replay(alpha)
@@ -196,11 +197,11 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
         change = timing_signal(dataclasses.replace(recording, prediction=pred, reference=None))[3] - unretimed
         # the replay imposes the recorded pose, noise included; the dashpot turns that noise into
         # alpha k (pose noise) / dt, a force the recorded pad never felt: the change is read smoothed
-        return yp + kelvin_voigt(t, change, 0.0)
+        return base + kelvin_voigt(t, change, 0.0)
 
     probe = float(estimate_s) if estimate_s is not None and estimate_s > 0.0 else PROBE_FALLBACK_S
     grid = np.arange(0.0, TAU_MAX_S + 1e-9, max(rec.sample_period(channel) / 4.0, 5e-4))
-    f = refit_gel_damping(signal, t, y, yp, sigma, [e["window_s"] for e in fits["events"]], probe, grid, max_replays)
+    f = refit_gel_damping(signal, t, y, base, sigma, [e["window_s"] for e in fits["events"]], probe, grid, max_replays)
     if f["tau_s"] is None:
         return None
     observable = "normal force" if channel == "wrench" else "mean marker depth"

@@ -28,7 +28,8 @@ still leaves a structured gap many times the noise, and every candidate can abso
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
    of ``2 * holdout_blocks`` blocks), a checkerboard of the sheet grid after the release for
    plasticity (its yield angle refitted by replays, :mod:`sysid.diagnose.plasticity_refit`), and
-   every other marker sample of each breakaway window for stiction.
+   the other channel at each breakaway for stiction (:mod:`sysid.diagnose.stiction_refit`); gel damping
+   is refitted by replays of the gel's dashpot (:mod:`sysid.diagnose.damping_refit`).
 """
 
 from __future__ import annotations
@@ -52,8 +53,7 @@ from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.probe_worker import ProbeWorker
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
-from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
-                                                normal_load_excess, shear_breakaway)
+from sysid.diagnose.stiction_refit import cross_channel_refit
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.damping import contact_force, lead_recording
@@ -485,47 +485,18 @@ def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings,
 
 
 def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Static over kinetic friction fitted on every other marker sample of each breakaway window
-    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the mean
-    marker shear against the slide (the tangential load's most precise measure) with the kinetic
-    level alone (Coulomb friction: a level with a linear trend) and with the breakaway decay
-    (:mod:`sysid.diagnose.signatures.friction`). The ratio is ``1 +`` the training fit's relative
-    excess minus the normal force's over the same window (:func:`normal_load_excess`)."""
-    rec = p.recording
-    taus = decay_taus(rec)
-    before = after = fit_sse = 0.0
-    n_held = n_fit = 0
-    ratios, decays = [], []
-    for b in breakaways(rec):
-        bs = shear_breakaway(rec, b)
-        if bs is None:
-            continue
-        train = np.arange(len(bs.t)) % 2 == 0
-        held = ~train
-        if held.sum() < 2:
-            continue
-        f = fit_breakaway(bs, taus, train)
-        cols = decay_columns(bs.t[held], bs.t0, f["tau_s"])
-        c0, c1 = f["coef0"], f["coef1"]
-        pred0 = cols[0] * c0[0] + cols[1] * c0[1]
-        pred1 = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
-        z = bs.sigma[held]
-        before += float(np.sum(((bs.q[held] - pred0) / z) ** 2))
-        after += float(np.sum(((bs.q[held] - pred1) / z) ** 2))
-        n_held += int(held.sum())
-        fit_sse += f["sse1"]
-        n_fit += int(train.sum())
-        if f["level"] > 0.0:
-            normal = normal_load_excess(rec, bs, f["tau_s"])[0] if f["tau_s"] > 0.0 else 0.0
-            ratios.append(1.0 + max(f["excess"] / f["level"] - normal, 0.0))
-            decays.append(f["tau_s"])
-    params = {"static_over_kinetic": float(np.median(ratios)) if ratios else 1.0,
-              "decay_s": float(np.median(decays)) if decays else 0.0}
-    return {"params": params, "observable": "mean marker shear against the slide at each breakaway",
-            "heldout": "every other marker sample of each breakaway window",
-            "rms": {"markers_xyz": math.sqrt(fit_sse / max(n_fit, 1))},
-            "heldout_rms_before": math.sqrt(before / n_held) if n_held else None,
-            "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
+    """Static over kinetic friction from each breakaway's decay, held out across channels: the decay's
+    shape (relative excess, decay time) fitted on the friction ratio along the slide predicts the mean
+    marker shear against the slide and the other way round, each channel's sliding level and trend fitted
+    there before and after alike (:func:`sysid.diagnose.stiction_refit.cross_channel_refit`). The ratio
+    is ``1 +`` the marker shear's relative excess minus the normal force's over the same window
+    (:func:`~sysid.diagnose.signatures.friction.normal_load_excess`)."""
+    out = cross_channel_refit(p.recording)
+    return {"params": out["params"], "observable": "tangential load at each breakaway (friction ratio and marker shear)",
+            "heldout": "the other channel: the decay fitted on the friction ratio predicts the marker shear and the "
+                       "other way round",
+            "rms": out["rms"], "heldout_rms_before": out["heldout_rms_before"],
+            "heldout_rms_after": out["heldout_rms_after"], "per_breakaway": out["per_breakaway"]}
 
 
 def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: Sequence[str] = ()) -> dict[str, Any]:
