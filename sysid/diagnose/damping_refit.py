@@ -90,7 +90,7 @@ def refit_gel_damping(replay: Callable[[float], np.ndarray | None], t: np.ndarra
 
     Returns:
         dict with ``tau_s`` (None when the probe replay diverged), ``replayed_s`` (the time constants
-        replayed), ``per_event``, ``rms``, ``heldout_rms_before`` / ``_after`` (as
+        replayed), ``signal`` (the prediction at ``tau_s``, ``(n,)``), ``per_event``, ``rms``, ``heldout_rms_before`` / ``_after`` (as
         :func:`sysid.diagnose.signature_engine.leave_one_event_out`) and ``notes``.
 
     Raises:
@@ -126,7 +126,9 @@ def refit_gel_damping(replay: Callable[[float], np.ndarray | None], t: np.ndarra
     if (max_replays >= 2 and first > 0.0
             and not probe_s / SECOND_REPLAY_FACTOR <= first <= probe_s * SECOND_REPLAY_FACTOR and add(first)):
         out = fit()
-    return {"tau_s": float(out.pop("theta")[0]), "replayed_s": [a for a in alphas if a > 0.0], "notes": notes, **out}
+    tau = float(out.pop("theta")[0])
+    return {"tau_s": tau, "replayed_s": [a for a in alphas if a > 0.0], "notes": notes,
+            "signal": interpolated(alphas, signals)(tau), **out}
 
 
 def lead_replay(model: Any, params: Mapping[str, float], through_drive: bool) -> Callable[[float], Mapping[str, np.ndarray] | None]:
@@ -171,7 +173,8 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
 
     Returns:
         the refit block of the report (``params``, ``observable``, ``heldout``, ``rms``,
-        ``heldout_rms_before`` / ``_after``, ``detail``), or None where the simulator has no gel damping,
+        ``heldout_rms_before`` / ``_after``, ``detail``) and ``prediction`` (``timing_signal``: the timing
+        signal with the fitted term, ``(n,)``; popped by the caller), or None where the simulator has no gel damping,
         the recording no timing signal or no event, or the probe replay diverged.
     """
     from sysid.diagnose.signatures.damping import kelvin_voigt, lead_recording
@@ -213,4 +216,5 @@ def refit_damping(model: Any, params: Mapping[str, float], recording: Any, estim
             "per_event": f["per_event"], "rms": {channel: f["rms"]}, "heldout_rms_before": f["heldout_rms_before"],
             "heldout_rms_after": f["heldout_rms_after"],
             "detail": {"replayed_s": f["replayed_s"], "probe_s": probe, "notes": f["notes"],
-                       "through_drive": through_drive}}
+                       "through_drive": through_drive},
+            "prediction": {"timing_signal": f["signal"]}}

@@ -150,7 +150,8 @@ class Prepared:
         wall_s: seconds spent.
         notes: what could not be done, and why.
         refit_predictions: effect -> channel -> the replay with the effect's term, for the refits
-            that replay the simulator (the report plots them).
+            that replay the simulator (the report plots them; the damping refit's ``timing_signal``: the
+            normal force or mean marker depth with the fitted dashpot, :mod:`sysid.diagnose.damping_refit`).
         replays: the calibration's probe process, kept for the refits' replays
             (:class:`~sysid.diagnose.probe_worker.ProbeWorker` ``submit`` / ``collect``), or None; closed by
             :func:`diagnose_one` (:func:`without_replays`).
@@ -509,6 +510,7 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: S
     if r.effect == "damping" and p.calibration.prediction and settings.damping_replays > 0:
         out = refit_damping(p.model, p.calibration.params, p.recording, r.estimate.get("tau_s"), settings.damping_replays)
         if out is not None:
+            p.refit_predictions[r.effect] = out.pop("prediction")
             return out
         p.notes.append("damping: not refitted with the gel's dashpot (no such term, no contact event, or its replay "
                        "diverged); the replay's lead fitted instead")

@@ -15,6 +15,7 @@ import pytest
 
 from sysid.diagnose.damping_refit import interpolated, refit_gel_damping
 from sysid.diagnose.signature_engine import SignatureSettings, diagnose_one, refit_timing
+from sysid.diagnose.signature_report import write_signature_report
 from tests.sysid.simbag import TRUE_PARAMS, add_noise, scene_with, simulate_streams, targets_from_segments, write_bag
 
 TRUE_ALPHA = 0.03
@@ -48,6 +49,13 @@ def test_refit_recovers_the_time_constant_and_most_of_the_held_out_excess(damped
     # the first-order lead on the replay's filtered force recovers less of it at its best time constant
     lead = refit_timing(prepared, prepared.results["damping"])
     assert after < lead["heldout_rms_after"]
+
+
+def test_report_plots_the_replayed_dashpot(damped_diagnosis, tmp_path):
+    doc, prepared = damped_diagnosis
+    signal = prepared.refit_predictions["damping"]["timing_signal"]
+    assert signal.shape == prepared.recording.t["wrench"].shape
+    assert tmp_path / "report" / "signature_damping.png" in write_signature_report(doc, prepared, tmp_path / "report")
 
 
 def test_fit_on_a_signal_linear_in_alpha_finds_it_from_one_probe():
