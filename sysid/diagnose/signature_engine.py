@@ -105,7 +105,8 @@ class SignatureSettings:
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
         damping_replays: most replays of the gel damping refit with its term
-            (:mod:`sysid.diagnose.damping_refit`; 0: the replay's lead fitted instead, no replay).
+            (:mod:`sysid.diagnose.damping_refit`; one more without it; 0: the replay's lead fitted instead,
+            no replay).
         probe_worker: make the calibration's secant probe in a second process beside its start replay
             (:class:`sysid.diagnose.probe_worker.ProbeWorker`; the same replays, about one replay less
             wall time on two cores), where it applies (:func:`probe_worker_for`); False: one process.

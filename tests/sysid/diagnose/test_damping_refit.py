@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sysid.diagnose.damping_refit import interpolated, refit_gel_damping
+from sysid.diagnose.damping_refit import interpolated, refit_gel_damping, smoothed_controls
 from sysid.diagnose.signature_engine import SignatureSettings, diagnose_one, refit_timing
 from sysid.diagnose.signature_report import write_signature_report
 from tests.sysid.simbag import TRUE_PARAMS, add_noise, scene_with, simulate_streams, targets_from_segments, write_bag
@@ -78,3 +78,19 @@ def test_fit_on_a_signal_linear_in_alpha_finds_it_from_one_probe():
     assert f["heldout_rms_after"] < 1.2 < f["heldout_rms_before"]
     assert calls[0] == 0.012 and len(calls) <= 2
     assert interpolated([0.0, 0.01], [base, base + 0.01 * d])(0.03) == pytest.approx(base + 0.03 * d)
+
+
+def test_smoothed_controls_keep_a_ramp_and_the_orientation_and_halve_the_pose_noise():
+    """The quadratic Savitzky-Golay filter over 50 ms (5 steps of 10 ms) reproduces a press ramp
+    exactly and passes white pose noise with a variance of 17/35 (its centre weight)."""
+    rng = np.random.default_rng(0)
+    k = np.arange(400)
+    ramp = np.zeros((400, 7))
+    ramp[:, 2] = -1e-5 * k
+    ramp[:, 3:7] = [0.0, 0.0, 0.0, 1.0]
+    np.testing.assert_allclose(smoothed_controls(ramp, 0.01), ramp, atol=1e-15)
+    noisy = ramp.copy()
+    noisy[:, :3] += rng.normal(0.0, 5e-6, (400, 3))
+    out = smoothed_controls(noisy, 0.01)
+    np.testing.assert_array_equal(out[:, 3:7], noisy[:, 3:7])
+    assert np.std(out[:, :3] - ramp[:, :3]) ** 2 == pytest.approx(17.0 / 35.0 * 25e-12, rel=0.15)
