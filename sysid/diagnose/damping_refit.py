@@ -7,12 +7,12 @@ within a few samples (the corners of a press and a release, where a dashpot's fo
 velocity) nor where the contact grows: on this simulator's own press-release with a concealed
 Kelvin-Voigt gel of 30 ms (``tests/sysid/diagnose/test_damping_refit.py``) the filtered lead fits 25 ms
 and leaves a held-out whitened RMS of 11.6 of 24.7 (0.55 of the excess recovered); the replayed term
-fits 30 ms and leaves 4.4 (0.86).
+fits 30 ms and leaves 5.0 of 24.9 (0.83).
 Here the term itself is replayed: the calibrated replay with the gel's dashpot
 (:mod:`sim_core.candidates.gel_damping`, parameter ``candidate.gel_damping``, s) at a probe time
 constant, then at the first fit where it lies far from the probe; the prediction at any ``alpha`` is
 interpolated linearly between the replays (exact to first order in ``alpha``). The replay is the
-one the lead is read against: with the recorded pose imposed where the calibrated replay went through
+one the lead is read against: kinematic (the pad imposed) also where the calibrated replay went through
 the arm drive (through a drive of 3 N/mm a contact of 35-40 N/mm leads by a tenth of the gel's time
 constant, :mod:`sysid.diagnose.signatures.damping`), else the calibrated replay itself.
 
