@@ -15,10 +15,12 @@ the breakaway excess one sensor shows is where and how large the other shows it.
 relative excess includes the normal load's own excess at the breakaway, the friction ratio does not
 (:func:`~sysid.diagnose.signatures.friction.normal_load_excess` converts).
 
-Which split to use was chosen on a null model, this simulator's own press-slides without and with
-stiction (``tests/sysid/diagnose/test_stiction_refit.py``; docs/benchmarks_log.md, session 52): the
-held-out gain of the decay on nominal recordings (a kept name there is a false keep) and on stiction
-recordings (a withdrawn one is a false withdrawal).
+Which split to use was chosen on a null model (``tests/sysid/diagnose/test_stiction_refit.py``;
+docs/benchmarks_log.md, session 52): the held-out gain of the decay on Coulomb-friction press-slides
+(a kept name there is a false keep; the friction tests' stick-slip and brush recordings, 20 noise draws
+each: every other marker sample keeps 4/20, the other channel 1/20) and on stiction recordings (a
+withdrawn name is a false withdrawal: 0/20 and at most 2/20 on the same models; on this simulator's
+press-slide with a Stribeck friction of static 1.5 times kinetic, 3/10 and 1/10).
 """
 
 from __future__ import annotations
