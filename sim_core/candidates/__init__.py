@@ -10,6 +10,7 @@ incremental potential (and, for the viscoelastic gel and the adhesion bonds, a s
 | ``adhesion`` | :mod:`.adhesion` | bond strength per pair, N | ``adhesion.delta`` (0.25 mm), ``adhesion.reach`` (0.01 delta: bonds form in contact), ``adhesion.release`` (5 delta: a bonded vertex keeps its pair up to it), ``adhesion.release_time`` (s; default never: from it on every bond is broken, the peel) |
 | ``anisotropic_bending`` | :mod:`.anisotropic_bending` | grain anisotropy, abs < 1 | |
 | ``damping`` | :mod:`.sheet_damping` | drag on the sheets' vertices, 1/s | |
+| ``gel_damping`` | :mod:`.gel_damping` | the gels' Kelvin-Voigt (stiffness-proportional) time constant, s | |
 
 :class:`~sim_core.candidates.hook.CandidateHook` builds the terms of each step and owns the
 post-step state update; it is a :class:`~sim_core.candidates.hook.StepHook`, the one way terms are
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 from sim_core.candidates.adhesion import LaggedAdhesion, adhesion_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection, hinge_grain_cosine
+from sim_core.candidates.gel_damping import kelvin_voigt_branch
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
 from sim_core.candidates.hook import CandidateHook, StepHook
 from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
@@ -42,5 +44,5 @@ value for the secant signature (damping and adhesion: raised / set from the scen
 __all__ = [
     "AnisotropicBendingCorrection", "CANDIDATE_NAMES", "DIAGNOSIS_CANDIDATES", "CANDIDATE_SETTINGS", "CandidateHook",
     "LaggedAdhesion", "MaxwellBranch", "SheetDamping", "StepHook", "StictionFriction", "adhesion_pairs",
-    "hinge_grain_cosine", "relax_state", "sheet_vertices", "validate_candidate_parameters",
+    "hinge_grain_cosine", "kelvin_voigt_branch", "relax_state", "sheet_vertices", "validate_candidate_parameters",
 ]

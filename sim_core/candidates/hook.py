@@ -27,6 +27,7 @@ import numpy as np
 
 from sim_core.candidates.adhesion import LaggedAdhesion, bonded_after, bonded_pairs
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
+from sim_core.candidates.gel_damping import kelvin_voigt_branch
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
 from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
 from sim_core.candidates.sheet_damping import SheetDamping, sheet_vertices
@@ -158,13 +159,18 @@ class CandidateHook:
             friction: the step's lagged friction, or None.
         """
         return (self.contact_terms(model, x_prev, friction, state),
-                self.body_terms(model, state, elastic) + self.damping_terms(model, x_prev, dt))
+                self.body_terms(model, state, elastic) + self.damping_terms(model, x_prev, dt, elastic))
 
-    def damping_terms(self, model, x_prev: np.ndarray, dt: float) -> list:
-        """The sheets' viscous drag (:class:`SheetDamping`) when ``damping`` is set."""
-        if "damping" not in self.params:
-            return []
-        return [SheetDamping(sheet_vertices(model), model.vertex_mass(), x_prev, self.params["damping"], dt)]
+    def damping_terms(self, model, x_prev: np.ndarray, dt: float, elastic=None) -> list:
+        """The sheets' viscous drag (:class:`SheetDamping`) when ``damping`` is set; the gels'
+        Kelvin-Voigt dashpots (:func:`~sim_core.candidates.gel_damping.kelvin_voigt_branch`) when
+        ``gel_damping`` is set (``elastic``: the solver's elastic terms, whose solids are the gels)."""
+        out: list = []
+        if "damping" in self.params:
+            out.append(SheetDamping(sheet_vertices(model), model.vertex_mass(), x_prev, self.params["damping"], dt))
+        if "gel_damping" in self.params and elastic is not None:
+            out += [kelvin_voigt_branch(solid, x_prev, self.params["gel_damping"], dt) for solid in elastic.solids.values()]
+        return out
 
     def contact_terms(self, model, x_prev: np.ndarray, friction, state=None) -> list:
         """Stiction (on the step's friction pairs) and adhesion (pairs found at ``x_prev``: gel vertices

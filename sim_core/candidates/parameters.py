@@ -9,7 +9,7 @@ import numpy as np
 
 from sim_core.errors import ConfigError
 
-CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_bending", "damping")
+CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_bending", "damping", "gel_damping")
 """Physics-level candidates (SYSID.md effect vocabulary)."""
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
@@ -39,7 +39,7 @@ def validate_candidate_parameters(params: Mapping[str, float] | None) -> dict[st
             raise ConfigError(f"candidate parameter {name!r} must be finite, got {value}")
         if name == "anisotropic_bending" and not abs(v) < 1.0:
             raise ConfigError(f"candidate parameter 'anisotropic_bending' must satisfy |beta| < 1, got {v}")
-        if name in ("stiction", "gel_viscoelasticity", "adhesion", "damping") and v < 0:
+        if name in ("stiction", "gel_viscoelasticity", "adhesion", "damping", "gel_damping") and v < 0:
             raise ConfigError(f"candidate parameter {name!r} must be >= 0 (0 = off), got {v}")
         if name in CANDIDATE_SETTINGS and v <= 0:
             raise ConfigError(f"candidate setting {name!r} must be > 0, got {v}")

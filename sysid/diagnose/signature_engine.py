@@ -28,7 +28,8 @@ still leaves a structured gap many times the noise, and every candidate can abso
    the delay or lag fitted on the others), held-out time blocks for the sensor effects (every other
    of ``2 * holdout_blocks`` blocks), a checkerboard of the sheet grid after the release for
    plasticity (its yield angle refitted by replays, :mod:`sysid.diagnose.plasticity_refit`), and
-   every other marker sample of each breakaway window for stiction.
+   the other channel at each breakaway for stiction (:mod:`sysid.diagnose.stiction_refit`); gel damping
+   is refitted by replays of the gel's dashpot (:mod:`sysid.diagnose.damping_refit`).
 """
 
 from __future__ import annotations
@@ -47,12 +48,12 @@ from sysid.calibration import (CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS, Cali
                                kinematic_reference, nominal_sensor_calibration)
 from sysid.calibration_secant import SECANT_PARAMETERS, SECANT_REPLAYS
 from sysid.drive_calibration import fit_drive
+from sysid.diagnose.damping_refit import refit_damping
 from sysid.diagnose.gain_guard import split_by_gain
 from sysid.diagnose.plasticity_refit import refit_plasticity
 from sysid.diagnose.probe_worker import ProbeWorker
 from sysid.diagnose.signatures import Recording, SignatureResult, run_signature_tests
-from sysid.diagnose.signatures.friction import (breakaways, decay_columns, decay_taus, fit_breakaway,
-                                                normal_load_excess, shear_breakaway)
+from sysid.diagnose.stiction_refit import cross_channel_refit
 from sysid.diagnose.signatures.null import (Decision, Thresholds, calibrated_thresholds, decide,
                                             default_thresholds)
 from sysid.diagnose.signatures.damping import contact_force, lead_recording
@@ -103,6 +104,9 @@ class SignatureSettings:
         plasticity_replays: most replays of the bending-plasticity refit (its yield-angle search).
         plasticity_max_time: wall-time budget of that search, s (None, the default: none; the
             replay count bounds it).
+        damping_replays: most replays of the gel damping refit with its term
+            (:mod:`sysid.diagnose.damping_refit`; one more without it; 0: the replay's lead fitted instead,
+            no replay).
         probe_worker: make the calibration's secant probe in a second process beside its start replay
             (:class:`sysid.diagnose.probe_worker.ProbeWorker`; the same replays, about one replay less
             wall time on two cores), where it applies (:func:`probe_worker_for`); False: one process.
@@ -128,6 +132,7 @@ class SignatureSettings:
     batched: bool = False
     batch_size: int | str | None = None
     plasticity_replays: int = 5
+    damping_replays: int = 2
     plasticity_max_time: float | None = None
     probe_worker: bool = False
 
@@ -146,7 +151,8 @@ class Prepared:
         wall_s: seconds spent.
         notes: what could not be done, and why.
         refit_predictions: effect -> channel -> the replay with the effect's term, for the refits
-            that replay the simulator (the report plots them).
+            that replay the simulator (the report plots them; the damping refit's ``timing_signal``: the
+            normal force or mean marker depth with the fitted dashpot, :mod:`sysid.diagnose.damping_refit`).
         replays: the calibration's probe process, kept for the refits' replays
             (:class:`~sysid.diagnose.probe_worker.ProbeWorker` ``submit`` / ``collect``), or None; closed by
             :func:`diagnose_one` (:func:`without_replays`).
@@ -362,7 +368,8 @@ def refit_force_bias(p: Prepared, r: SignatureResult, k: int) -> dict[str, Any]:
 def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     """Delay (latency), first-order lag (gel viscoelasticity) or Kelvin-Voigt time constant (damping:
     the replay's force plus tau times its rate, never tensile: :func:`contact_force`) fitted on all
-    contact events but one and evaluated on that one, for every event (leave one event out)."""
+    contact events but one and evaluated on that one, for every event (leave one event out,
+    :func:`leave_one_event_out`)."""
     latency, lead = r.effect == "latency", r.effect == "damping"
     rec = lead_recording(p.recording) if lead else p.recording  # the damping test's replay
     fits = timing_fits(rec)
@@ -370,32 +377,62 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
     channel, t, y, yp, sigma = timing_signal(rec)
     if not lead:  # the delay and the lag read the replay as the tests do (Kelvin-Voigt filters it itself)
         yp = smoothed_replay(t, yp)
-    y, yp = y[:, None], yp[:, None]
-    sig = np.array([sigma])
     taus = np.arange(0.0, 0.3 + 1e-9, max(rec.sample_period(channel) / 2.0, 1e-3))
     fracs = np.linspace(0.0, 1.0, 11)
 
     def transformed(theta: tuple[float, float]) -> np.ndarray:
         if lead:
-            return contact_force(t, yp, theta[0])
-        return delayed(t, yp, theta[0]) if latency else first_order(t, yp, theta[0], theta[1])
+            return contact_force(t, yp[:, None], theta[0])[:, 0]
+        return delayed(t, yp[:, None], theta[0])[:, 0] if latency else first_order(t, yp[:, None], theta[0], theta[1])[:, 0]
+
+    grid = [(float(a), 0.0) for a in taus] if latency or lead else [(float(a), float(b)) for a in taus[1:] for b in fracs]
+    out = leave_one_event_out(t, y, yp, sigma, [e["window_s"] for e in events], grid, transformed)
+    best_all = out.pop("theta")
+    params = ({"latency_s": best_all[0]} if latency else {"tau_s": best_all[0]} if lead
+              else {"tau_s": best_all[0], "fraction": best_all[1]})
+    observable = "normal force" if channel == "wrench" else "mean marker depth"
+    return {"params": params, "observable": f"{observable} in the contact events' windows",
+            "heldout": "leave one contact event out", "per_event": out.pop("per_event"),
+            "rms": {channel: out.pop("rms")}, **out}
+
+
+def leave_one_event_out(t: np.ndarray, y: np.ndarray, yp: np.ndarray, sigma: float, windows: Sequence[Sequence[float]],
+                        grid: Sequence[tuple[float, ...]], transformed) -> dict[str, Any]:
+    """A timing model fitted on all contact events but one and evaluated on that one, for every event.
+
+    In each event's window the recorded signal is regressed on the model's prediction with a gain and
+    an offset per window, fitted before and after alike (the amplitude gap between the calibrated replay
+    and the recording is not the timing effect).
+
+    Args:
+        t: sample times, s, ``(n,)``.
+        y, yp: recorded and replayed signal ``(n,)`` (normal force N or mean marker depth m).
+        sigma: its noise, same unit.
+        windows: the events' windows ``[t0, t1]`` s.
+        grid: the model's parameter values searched.
+        transformed: parameter value -> the model's prediction ``(n,)``.
+
+    Returns:
+        ``theta`` (best on all events), ``per_event`` (best on the others, per held-out event), ``rms``
+        (whitened, at ``theta`` on all events), ``heldout_rms_before`` (the replay ``yp`` itself) and
+        ``heldout_rms_after``.
+    """
+    masks = [(t >= a) & (t <= b) for a, b in windows]
+    preds: dict[tuple[float, ...], np.ndarray] = {}
 
     def sse(theta, rows, pred=None) -> float:
-        # a gain and an offset per event window, fitted before and after alike: the amplitude gap
-        # between the calibrated replay and the recording is not the timing effect
-        z = transformed(theta) if pred is None else pred
+        if pred is None:
+            pred = preds.setdefault(theta, np.asarray(transformed(theta), dtype=float))
         total = 0.0
         for m in masks:
             mm = m & rows
             if mm.sum() < 3:
                 continue
-            X = np.stack([z[mm, 0], np.ones(int(mm.sum()))], axis=1)
-            c, *_ = np.linalg.lstsq(X, y[mm, 0], rcond=None)
-            total += float(np.sum(((y[mm, 0] - X @ c) / sig[0]) ** 2))
+            X = np.stack([pred[mm], np.ones(int(mm.sum()))], axis=1)
+            c, *_ = np.linalg.lstsq(X, y[mm], rcond=None)
+            total += float(np.sum(((y[mm] - X @ c) / sigma) ** 2))
         return total
 
-    masks = [(t >= e["window_s"][0]) & (t <= e["window_s"][1]) for e in events]
-    grid = [(float(a), 0.0) for a in taus] if latency or lead else [(float(a), float(b)) for a in taus[1:] for b in fracs]
     before, after, thetas = [], [], []
     for i, m in enumerate(masks):
         train = np.zeros(len(t), bool)
@@ -408,15 +445,11 @@ def refit_timing(p: Prepared, r: SignatureResult) -> dict[str, Any]:
         thetas.append(best)
         before.append(sse(None, m, pred=yp))
         after.append(sse(best, m))
-    n_held = sum(int(m.sum()) * sig.shape[0] for m in masks)
+    n_held = sum(int(m.sum()) for m in masks)
     all_rows = np.any(masks, axis=0) if masks else np.ones(len(t), bool)
     best_all = min(grid, key=lambda th: sse(th, all_rows))
-    params = ({"latency_s": best_all[0]} if latency else {"tau_s": best_all[0]} if lead
-              else {"tau_s": best_all[0], "fraction": best_all[1]})
-    observable = "normal force" if channel == "wrench" else "mean marker depth"
-    return {"params": params, "observable": f"{observable} in the contact events' windows",
-            "heldout": "leave one contact event out", "per_event": [list(th) for th in thetas],
-            "rms": {channel: math.sqrt(sse(best_all, all_rows) / max(int(all_rows.sum()) * sig.shape[0], 1))},
+    return {"theta": best_all, "per_event": [list(th) for th in thetas],
+            "rms": math.sqrt(sse(best_all, all_rows) / max(int(all_rows.sum()), 1)),
             "heldout_rms_before": math.sqrt(sum(before) / max(n_held, 1)),
             "heldout_rms_after": math.sqrt(sum(after) / max(n_held, 1))}
 
@@ -454,47 +487,18 @@ def refit_sheet(p: Prepared, r: SignatureResult, settings: SignatureSettings,
 
 
 def refit_stiction(p: Prepared, r: SignatureResult) -> dict[str, Any]:
-    """Static over kinetic friction fitted on every other marker sample of each breakaway window
-    (even samples) and evaluated on the others (odd samples): held-out whitened RMS of the mean
-    marker shear against the slide (the tangential load's most precise measure) with the kinetic
-    level alone (Coulomb friction: a level with a linear trend) and with the breakaway decay
-    (:mod:`sysid.diagnose.signatures.friction`). The ratio is ``1 +`` the training fit's relative
-    excess minus the normal force's over the same window (:func:`normal_load_excess`)."""
-    rec = p.recording
-    taus = decay_taus(rec)
-    before = after = fit_sse = 0.0
-    n_held = n_fit = 0
-    ratios, decays = [], []
-    for b in breakaways(rec):
-        bs = shear_breakaway(rec, b)
-        if bs is None:
-            continue
-        train = np.arange(len(bs.t)) % 2 == 0
-        held = ~train
-        if held.sum() < 2:
-            continue
-        f = fit_breakaway(bs, taus, train)
-        cols = decay_columns(bs.t[held], bs.t0, f["tau_s"])
-        c0, c1 = f["coef0"], f["coef1"]
-        pred0 = cols[0] * c0[0] + cols[1] * c0[1]
-        pred1 = cols[0] * c1[0] + cols[1] * c1[1] + (cols[2] * c1[2] if len(cols) > 2 else 0.0)
-        z = bs.sigma[held]
-        before += float(np.sum(((bs.q[held] - pred0) / z) ** 2))
-        after += float(np.sum(((bs.q[held] - pred1) / z) ** 2))
-        n_held += int(held.sum())
-        fit_sse += f["sse1"]
-        n_fit += int(train.sum())
-        if f["level"] > 0.0:
-            normal = normal_load_excess(rec, bs, f["tau_s"])[0] if f["tau_s"] > 0.0 else 0.0
-            ratios.append(1.0 + max(f["excess"] / f["level"] - normal, 0.0))
-            decays.append(f["tau_s"])
-    params = {"static_over_kinetic": float(np.median(ratios)) if ratios else 1.0,
-              "decay_s": float(np.median(decays)) if decays else 0.0}
-    return {"params": params, "observable": "mean marker shear against the slide at each breakaway",
-            "heldout": "every other marker sample of each breakaway window",
-            "rms": {"markers_xyz": math.sqrt(fit_sse / max(n_fit, 1))},
-            "heldout_rms_before": math.sqrt(before / n_held) if n_held else None,
-            "heldout_rms_after": math.sqrt(after / n_held) if n_held else None}
+    """Static over kinetic friction from each breakaway's decay, held out across channels: the decay's
+    shape (relative excess, decay time) fitted on the friction ratio along the slide predicts the mean
+    marker shear against the slide and the other way round, each channel's sliding level and trend fitted
+    there before and after alike (:func:`sysid.diagnose.stiction_refit.cross_channel_refit`). The ratio
+    is ``1 +`` the marker shear's relative excess minus the normal force's over the same window
+    (:func:`~sysid.diagnose.signatures.friction.normal_load_excess`)."""
+    out = cross_channel_refit(p.recording)
+    return {"params": out["params"], "observable": "tangential load at each breakaway (friction ratio and marker shear)",
+            "heldout": "the other channel: the decay fitted on the friction ratio predicts the marker shear and the "
+                       "other way round",
+            "rms": out["rms"], "heldout_rms_before": out["heldout_rms_before"],
+            "heldout_rms_after": out["heldout_rms_after"], "per_breakaway": out["per_breakaway"]}
 
 
 def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: Sequence[str] = ()) -> dict[str, Any]:
@@ -504,6 +508,13 @@ def refit(p: Prepared, r: SignatureResult, settings: SignatureSettings, named: S
         return refit_lens(p, r, settings.holdout_blocks)
     if r.effect == "force_bias":
         return refit_force_bias(p, r, settings.holdout_blocks)
+    if r.effect == "damping" and p.calibration.prediction and settings.damping_replays > 0:
+        out = refit_damping(p.model, p.calibration.params, p.recording, r.estimate.get("tau_s"), settings.damping_replays)
+        if out is not None:
+            p.refit_predictions[r.effect] = out.pop("prediction")
+            return out
+        p.notes.append("damping: not refitted with the gel's dashpot (no such term, no contact event, or its replay "
+                       "diverged); the replay's lead fitted instead")
     if r.effect in ("latency", "gel_viscoelasticity", "damping"):
         return refit_timing(p, r)
     if r.effect == "stiction":

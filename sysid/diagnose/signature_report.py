@@ -41,7 +41,8 @@ def _plot_effect(doc: Mapping[str, Any], prepared: Any, effect: str, out: Path) 
         if effect == "gel_viscoelasticity":
             after = first_order(t, yp, params.get("tau_s", 0.0), params.get("fraction", 0.0))
         elif effect == "damping":
-            after = contact_force(t, yp, params.get("tau_s", 0.0))
+            replayed = getattr(prepared, "refit_predictions", {}).get(effect, {}).get("timing_signal")
+            after = contact_force(t, yp, params.get("tau_s", 0.0)) if replayed is None else replayed
         else:
             after = delayed(t, yp, params.get("latency_s", 0.0))
         ax.plot(t, y, "k.", ms=2, label="recorded")

@@ -277,15 +277,19 @@ def test_a_small_excess_is_not_named_and_the_resolvable_size_comes_from_the_nois
 
 
 def test_refit_lowers_the_heldout_residual_of_a_breakaway():
+    """Held out across channels (:mod:`sysid.diagnose.stiction_refit`): the decay fitted on one channel
+    removes most of the other's excess (30.9 -> 2.9 here: the wrench's noisier shape, 0.56 against the
+    markers' 0.50, leaves the precise marker shear a few noise units); on Coulomb friction a decay fitted
+    to one channel's noise makes the other worse, so the guard withdraws the name."""
     rec = press_slide(np.random.default_rng(5), mu_s=1.5 * MU_K)
     r = stiction_test(rec)
     fit = refit_stiction(types.SimpleNamespace(recording=rec), r)
-    assert fit["heldout_rms_after"] < 0.8 * fit["heldout_rms_before"]
-    assert fit["heldout_rms_after"] < 1.5  # noise level on the held-out samples
+    assert fit["heldout_rms_after"] < 0.2 * fit["heldout_rms_before"]
     assert fit["params"]["static_over_kinetic"] == pytest.approx(1.5, rel=0.15)
     coulomb = press_slide(np.random.default_rng(5), mu_s=MU_K)
     fit0 = refit_stiction(types.SimpleNamespace(recording=coulomb), stiction_test(coulomb))
-    assert fit0["heldout_rms_after"] == pytest.approx(fit0["heldout_rms_before"], rel=0.1)
+    assert fit0["heldout_rms_before"] == pytest.approx(1.0, abs=0.15)
+    assert fit0["heldout_rms_after"] > fit0["heldout_rms_before"]
 
 
 def test_a_press_without_slide_or_a_contact_that_never_slips_is_not_applicable():
