@@ -466,6 +466,7 @@ class CopyVectors:
         self._start = self._indices(start)
         self._per_copy = device_copy.new_ndarray(ti.f64, (max(B, 1),))
         self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
+        self._actions_sent: np.ndarray | None = None  # the values the actions buffer holds (_copy_values)
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
         self._out_host = np.zeros(self._out.shape, dtype=np.int64)
         self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
@@ -503,11 +504,17 @@ class CopyVectors:
         return out
 
     def _copy_values(self, values: np.ndarray, dtype=np.float64):
-        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid until the next call)."""
+        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid until the next call). The
+        int32 buffer (the blends' actions) is written by these uploads only, so values equal to those it holds are not
+        sent again (a Newton iteration's blends mostly repeat the last one's copies)."""
         target = self._per_copy if dtype == np.float64 else self._actions
         host = np.ascontiguousarray(values, dtype=dtype)
+        if target is self._actions and self._actions_sent is not None and np.array_equal(self._actions_sent, host):
+            return target
         if not device_copy.to_device(target, host):
             target.from_numpy(host)
+        if target is self._actions:
+            self._actions_sent = host.copy()
         return target
 
     def moved(self, x, d, alphas: np.ndarray):
