@@ -203,9 +203,10 @@ def test_cg_solve_on_device_equals_the_host_solve(ti_cpu):
 
 
 def test_blends_send_their_actions_only_when_they_change(ti_cpu, stacked, monkeypatch):
-    """The blends' per-copy actions go up only when they differ from those the device holds: a repeated mask makes no
-    upload and still gives the masked result, another mask (and a mask back to an earlier one) one upload each; the
-    trial points' step sizes (the float64 buffer, which kernels also write) are sent every time."""
+    """The blends' per-copy actions go up only when no action buffer holds them: a repeated mask, or two masks in turn
+    (the Newton loop's right-hand side and update), make no upload and still give the masked result; a third mask
+    takes the buffer used least lately (one upload); the trial points' step sizes (the float64 buffer, which kernels
+    also write) are sent every time."""
     from sim_core.ti_kernels import copy_vectors as module
     from sim_core.ti_kernels.copy_vectors import CopyVectors
 
@@ -216,12 +217,16 @@ def test_blends_send_their_actions_only_when_they_change(ti_cpu, stacked, monkey
     sent = []
     to_device = module.device_copy.to_device
     monkeypatch.setattr(module.device_copy, "to_device", lambda array, host, *a: sent.append(array) or to_device(array, host, *a))
-    first, second = np.array([True, False, False, True]), np.array([False, True, False, True])
-    for mask, uploads in ((first, 1), (first, 0), (second, 1), (second, 0), (first, 1)):
+    assert module.ACTION_BUFFERS == 2
+    buffers = [buffer for buffer, _ in vectors._actions]
+    first, second, third = (np.array(m) for m in ([True, False, False, True], [False, True, False, True],
+                                                   [True, True, False, False]))
+    for k, (mask, uploads) in enumerate(((first, 1), (first, 0), (second, 1), (second, 0), (first, 0), (third, 1),
+                                         (first, 0), (second, 1), (third, 1), (first, 1))):
         sent.clear()
         want = runs.zero_copies(x.copy(), mask)
         got = vectors.zero_copies(vectors.copy(dx), mask)
-        assert sum(s is vectors._actions for s in sent) == uploads
+        assert sum(any(s is b for b in buffers) for s in sent) == uploads, k
         np.testing.assert_array_equal(vectors.download(got), want)
     alphas = np.array([0.5, 0.0, 2.0, -0.25])
     for _ in range(2):
