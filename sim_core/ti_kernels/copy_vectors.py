@@ -516,7 +516,8 @@ class CopyVectors:
             target = self._per_copy
         else:
             slots = self._actions
-            hit = next((k for k, (_, sent) in enumerate(slots) if sent is not None and np.array_equal(sent, host)), None)
+            hit = next((k for k, (_, sent) in enumerate(slots)
+                        if sent is not None and np.array_equal(sent, host)), None)
             slots.append(slots.pop(0 if hit is None else hit))  # the one used least lately is written; latest last
             if hit is not None:
                 return slots[-1][0]

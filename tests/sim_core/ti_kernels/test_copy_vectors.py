@@ -216,7 +216,8 @@ def test_blends_send_their_actions_only_when_they_change(ti_cpu, stacked, monkey
     dx, dd = vectors.upload(x), vectors.upload(d)
     sent = []
     to_device = module.device_copy.to_device
-    monkeypatch.setattr(module.device_copy, "to_device", lambda array, host, *a: sent.append(array) or to_device(array, host, *a))
+    monkeypatch.setattr(module.device_copy, "to_device",
+                        lambda array, host, *a: sent.append(array) or to_device(array, host, *a))
     assert module.ACTION_BUFFERS == 2
     buffers = [buffer for buffer, _ in vectors._actions]
     first, second, third = (np.array(m) for m in ([True, False, False, True], [False, True, False, True],

@@ -114,7 +114,8 @@ def test_contact_blocks_stay_resident_while_their_count_changes(ti_cpu, monkeypa
     made, uploads = [], []
     new, to_device = device_copy.new_ndarray, device_copy.to_device
     monkeypatch.setattr(pcg_module.device_copy, "new_ndarray", lambda *a: made.append(a) or new(*a))
-    monkeypatch.setattr(pcg_module.device_copy, "to_device", lambda *a, **k: uploads.append(a[0]) or to_device(*a, **k))
+    monkeypatch.setattr(pcg_module.device_copy, "to_device",
+                        lambda *a, **k: uploads.append(a[0]) or to_device(*a, **k))
     solver = BatchedPCG()
     # the largest count first, then smaller and mixed ones
     for turn, shapes in enumerate((((9, 2), (5, 4), (6, 1)), ((2, 2), (1, 4)), ((7, 2),), ((3, 2), (4, 4), (1, 1)))):
