@@ -34,6 +34,8 @@ its partial result once (``B * REDUCTION_LANES`` atomic adds a reduction, spread
 DoF into the same ``B`` addresses)."""
 
 _KEEP, _TAKE, _ZERO = 0, 1, 2  # per-copy actions of _blend
+ACTION_BUFFERS = 2
+"""Device buffers of per-copy blend actions that remember what they hold (:meth:`CopyVectors._copy_values`)."""
 
 ENERGY_CHUNK = 64
 """Vertices a thread of :func:`add_diagonal_quadratic` sums the energy of (one partial sum each, added on the host in
@@ -465,7 +467,8 @@ class CopyVectors:
         self._order = self._indices(order)
         self._start = self._indices(start)
         self._per_copy = device_copy.new_ndarray(ti.f64, (max(B, 1),))
-        self._actions = device_copy.new_ndarray(ti.i32, (max(B, 1),))
+        # (device buffer, the values it holds or None), the one used latest last (_copy_values)
+        self._actions = [(device_copy.new_ndarray(ti.i32, (max(B, 1),)), None) for _ in range(ACTION_BUFFERS)]
         self._out = device_copy.new_ndarray(ti.i64, (max(2 * B, 1),))
         self._out_host = np.zeros(self._out.shape, dtype=np.int64)
         self._partial = device_copy.new_ndarray(ti.f64, (max(B, 1) * REDUCTION_LANES,))
@@ -503,11 +506,27 @@ class CopyVectors:
         return out
 
     def _copy_values(self, values: np.ndarray, dtype=np.float64):
-        """The per-copy ``values`` ``(B,)`` on the device (one shared buffer per dtype: valid until the next call)."""
-        target = self._per_copy if dtype == np.float64 else self._actions
+        """The per-copy ``values`` ``(B,)`` on the device: float64 in one shared buffer (valid until the next call);
+        int32 (the blends' actions) in one of :data:`ACTION_BUFFERS` buffers written by these uploads only, each
+        remembering the values it holds, so values equal to a buffer's are not sent again (valid until
+        :data:`ACTION_BUFFERS` other values have been sent: a Newton iteration's blends, the right-hand side's and the
+        update's, repeat the last iteration's while no copy converges)."""
         host = np.ascontiguousarray(values, dtype=dtype)
+        if dtype == np.float64:
+            target = self._per_copy
+        else:
+            slots = self._actions
+            hit = next((k for k, (_, sent) in enumerate(slots)
+                        if sent is not None and np.array_equal(sent, host)), None)
+            slots.append(slots.pop(0 if hit is None else hit))  # the one used least lately is written; latest last
+            if hit is not None:
+                return slots[-1][0]
+            target = slots[-1][0]
+            slots[-1] = (target, None)  # (until the copy below has been made)
         if not device_copy.to_device(target, host):
             target.from_numpy(host)
+        if dtype != np.float64:
+            self._actions[-1] = (target, host.copy())
         return target
 
     def moved(self, x, d, alphas: np.ndarray):

@@ -125,40 +125,40 @@ def _diag_blocks_csr(indptr: _I32, indices: _I32, data: _F64, blk: _F64, nvert: 
 
 
 @ti.func
-def _element_block_position(vertices: ti.template(), t: ti.i32, m: ti.i32, at: ti.i32, brow: ti.template(),
-                            bcol: ti.template()):
-    """Vertex block ``t = (e m + a) m + b`` of element blocks over ``m`` vertices: writes its row vertex
-    ``vertices[e m + a]`` and column vertex ``vertices[e m + b]`` at ``brow[at + t]``, ``bcol[at + t]``, and
-    returns ``(e, a, b, at + t)``."""
+def _element_block_position(vertices: ti.template(), first: ti.i32, t: ti.i32, m: ti.i32, at: ti.i32,
+                            brow: ti.template(), bcol: ti.template()):
+    """Vertex block ``t = (e m + a) m + b`` of element blocks over ``m`` vertices listed from ``vertices[first]``:
+    writes its row vertex ``vertices[first + e m + a]`` and column vertex ``vertices[first + e m + b]`` at
+    ``brow[at + t]``, ``bcol[at + t]``, and returns ``(e, a, b, at + t)``."""
     e = t // (m * m)
     a = (t // m) % m
     b = t % m
     k = at + t
-    brow[k] = vertices[e * m + a]
-    bcol[k] = vertices[e * m + b]
+    brow[k] = vertices[first + e * m + a]
+    bcol[k] = vertices[first + e * m + b]
     return e, a, b, k
 
 
 @ti.kernel
-def _expand_element_blocks(vertices: _I32, blocks: _F64, count: ti.i32, m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32,
-                           bval: VALUES):
+def _expand_element_blocks(vertices: _I32, first: ti.i32, blocks: _F64, offset: ti.i32, count: ti.i32, m: ti.i32,
+                           at: ti.i32, brow: _I32, bcol: _I32, bval: VALUES):
     """Vertex blocks ``at + (e m + a) m + b`` of ``count`` element blocks over ``m`` vertices: row vertex
-    ``vertices[e m + a]``, column vertex ``vertices[e m + b]``, values ``blocks`` of element ``e`` (row-major
-    ``(3m, 3m)``) at rows ``3 a + i``, columns ``3 b + j``."""
+    ``vertices[first + e m + a]``, column vertex ``vertices[first + e m + b]``, values ``blocks`` of element ``e``
+    (row-major ``(3m, 3m)`` from ``blocks[offset]``) at rows ``3 a + i``, columns ``3 b + j``."""
     for t in range(count * m * m):
-        e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
+        e, a, b, k = _element_block_position(vertices, first, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
-                bval[9 * k + 3 * i + j] = stored(blocks[(e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j], bval)
+                bval[9 * k + 3 * i + j] = stored(blocks[offset + (e * 3 * m + 3 * a + i) * 3 * m + 3 * b + j], bval)
 
 
 @ti.kernel
-def _expand_device_rows(vertices: _I32, blocks: ti.types.ndarray(dtype=ti.f64, ndim=3), start: ti.i32, count: ti.i32,
-                        m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32, bval: VALUES):
+def _expand_device_rows(vertices: _I32, first: ti.i32, blocks: ti.types.ndarray(dtype=ti.f64, ndim=3), start: ti.i32,
+                        count: ti.i32, m: ti.i32, at: ti.i32, brow: _I32, bcol: _I32, bval: VALUES):
     """:func:`_expand_element_blocks` of element blocks held as rows ``start .. start + count`` of a
     ``(rows, 3m, 3m)`` ndarray (:class:`~sim_core.ti_kernels.buffers.DeviceRows`)."""
     for t in range(count * m * m):
-        e, a, b, k = _element_block_position(vertices, t, m, at, brow, bcol)
+        e, a, b, k = _element_block_position(vertices, first, t, m, at, brow, bcol)
         for i in ti.static(range(3)):
             for j in ti.static(range(3)):
                 bval[9 * k + 3 * i + j] = stored(blocks[start + e, 3 * a + i, 3 * b + j], bval)
@@ -493,6 +493,7 @@ class BatchedPCG:
         self._segments = None if segments is None else np.ascontiguousarray(segments, dtype=np.int32)
         self._arrays: dict[str, object] = {}
         self._uploaded: dict[str, np.ndarray] = {}  # name -> the host array last uploaded there
+        self._staging: dict[str, np.ndarray] = {}  # name -> the host staging array of a _staged device array
         self._nblocks = 0
         self._full: tuple | None = None  # (indptr, indices, nnz) of the both-triangle pattern (_full_pattern)
         self._n = -1
@@ -516,6 +517,34 @@ class BatchedPCG:
             np_type = np.int32 if dtype == ti.i32 else np.float64
             _copy_in(arr, np.ascontiguousarray(host, dtype=np_type) if host.size else np.zeros(1, np_type))
             self._uploaded[name] = host
+        return arr
+
+    def _resident(self, name: str, size: int, dtype=ti.f64):
+        """A 1-D device array ``name`` of at least ``size`` entries, kept while it is large enough and else made
+        anew with half again the room (so that a count that changes every Newton iteration, e.g. the contact
+        blocks', allocates nothing in the steady state: the kernels take the count, not the array's length)."""
+        arr = self._arrays.get(name)
+        if arr is None or arr.shape[0] < size or arr.dtype != dtype:
+            kept = 0 if arr is None or arr.dtype != dtype else arr.shape[0]
+            arr = self._arrays[name] = device_copy.new_ndarray(dtype, (max(size, kept + kept // 2, 1),))
+        return arr
+
+    def _staged(self, name: str, parts: Sequence[np.ndarray], dtype) -> object:
+        """The 1-D arrays ``parts`` one after the other in the device array ``name`` (:meth:`_resident`), in one
+        upload of their total from a host staging array of the same capacity (kept beside it); returns the device
+        array (entries past the total are left as they were)."""
+        total = sum(int(part.size) for part in parts)
+        arr = self._resident(name, total, dtype)
+        np_type = np.int32 if dtype == ti.i32 else np.float64
+        host = self._staging.get(name)
+        if host is None or host.shape != tuple(arr.shape):
+            host = self._staging[name] = np.zeros(arr.shape, dtype=np_type)
+        at = 0
+        for part in parts:
+            host[at: at + part.size] = part
+            at += part.size
+        if total and not device_copy.to_device(arr, host, rows=total):
+            arr.from_numpy(host)
         return arr
 
     def factorize(self, upper, blocks: "VertexBlocks | None" = None, diagonal: tuple | None = None,
@@ -584,29 +613,29 @@ class BatchedPCG:
         if full[2]:
             _gather(data, self._arrays["full_src"], full_data, full[2])
         self._nblocks = 0 if blocks is None else int(blocks.count)
-        brow = self._array("brow", max(self._nblocks, 1), ti.i32)
-        bcol = self._array("bcol", max(self._nblocks, 1), ti.i32)
-        bval = self._array("bval", max(9 * self._nblocks, 1), self._dtype)
+        # the vertex blocks' arrays keep their capacity (the contact set's count changes every Newton iteration)
+        brow = self._resident("brow", self._nblocks, ti.i32)
+        bcol = self._resident("bcol", self._nblocks, ti.i32)
+        bval = self._resident("bval", 9 * self._nblocks, self._dtype)
         free = self._upload("free", np.ones(1) if blocks is None else blocks.free, ti.f64)
         if self._nblocks and blocks.sets is not None:  # element sets uploaded as they are, expanded here
-            at = 0
-            for s, (verts, vals) in enumerate(blocks.sets):
+            verts_dev = self._staged("element_vertices", [verts.reshape(-1) for verts, _ in blocks.sets], ti.i32)
+            host_sets = [vals.reshape(-1) for _, vals in blocks.sets if not isinstance(vals, DeviceRows)]
+            vals_dev = self._staged("element_blocks", host_sets, ti.f64) if host_sets else None
+            at = first = offset = 0
+            for verts, vals in blocks.sets:
                 k, m = verts.shape
-                verts_dev = self._array(f"element_vertices_{s}", verts.size, ti.i32)
-                _copy_in(verts_dev, verts.reshape(-1))
                 if isinstance(vals, DeviceRows):  # already on the device: no transfer
-                    _expand_device_rows(verts_dev, vals.array, vals.start, k, m, at, brow, bcol, bval)
+                    _expand_device_rows(verts_dev, first, vals.array, vals.start, k, m, at, brow, bcol, bval)
                 else:
-                    vals_dev = self._array(f"element_blocks_{s}", vals.size)
-                    transfer.upload(vals_dev, vals.reshape(-1))
-                    _expand_element_blocks(verts_dev, vals_dev, k, m, at, brow, bcol, bval)
+                    _expand_element_blocks(verts_dev, first, vals_dev, offset, k, m, at, brow, bcol, bval)
+                    offset += vals.size
+                first += verts.size
                 at += k * m * m
         elif self._nblocks:
-            _copy_in(brow, np.ascontiguousarray(blocks.rows))
-            _copy_in(bcol, np.ascontiguousarray(blocks.cols))
-            staged = self._array("bval_host", max(9 * self._nblocks, 1))
-            transfer.upload(staged, blocks.values.reshape(-1))
-            _copy_values(staged, bval, 9 * self._nblocks)
+            self._staged("brow", [blocks.rows], ti.i32)
+            self._staged("bcol", [blocks.cols], ti.i32)
+            _copy_values(self._staged("bval_host", [blocks.values.reshape(-1)], ti.f64), bval, 9 * self._nblocks)
         if self._nblocks:
             _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
         _invert_blocks(blk, self._array("inv", max(3 * n, 1), self._dtype), nvert)

@@ -354,11 +354,13 @@ class TiLaggedFriction(LaggedFriction):
 
     def add_gradient_on_device(self, x: np.ndarray, x_device, gradient_device) -> float:
         """Add :meth:`gradient` at ``x`` (N) into the Taichi ndarray ``gradient_device``; the energy (J) returned
-        (capability :class:`~sim_core.energies.base.DeviceGradient`).
+        where it is on the host already (the CPU arch), else None (capability
+        :class:`~sim_core.energies.base.DeviceGradient`).
 
         One launch of :func:`_friction_at_device_positions`: the pairs' vertices' positions read from ``x_device``
         (no upload of positions), energy, gradient rows and Hessian blocks in the same sums as :meth:`gradient`'s
-        launch, the rows added at their vertices into ``gradient_device``; then the energy read back. The rows and
+        launch, the rows added at their vertices into ``gradient_device``; on a GPU the energy is read back only when
+        :meth:`energy` asks for it (no synchronisation here). The rows and
         blocks stay where the kernel wrote them (device memory on CUDA), kept for ``x``
         (:func:`~sim_core.energies.base.positions_key`) and the current coefficients and ``eps_u`` until this
         thread's next evaluation here: :meth:`energy`, :meth:`gradient`, :meth:`gradient_rows`, :meth:`hessian` and
@@ -392,12 +394,24 @@ class TiLaggedFriction(LaggedFriction):
             on_device(device, "tangent", arrays[4]), self._device_coefficients(device, arrays[-1]), self.eps_u,
             int(kept is None), energy, grad_own, blocks, gradient_device)
         if kept is not None:
-            return kept[3]
-        copy_back(self._energy, energy)
+            return kept[3] if isinstance(kept[3], float) else None
+        # the energy: in the host array on the CPU arch; on a GPU left where the kernel wrote it until asked for
+        # (:meth:`energy`; the lockstep's line search sums the copies' energies on the device instead), so that no
+        # read waits for the kernel here
+        value = float(self._energy[0]) if isinstance(energy, np.ndarray) else energy
         token = device["at_owner"] = object()  # the thread's arrays now hold this evaluation
-        workspace_of(self).put(self, "at_device", (positions_key(x), arrays[-1].copy(), self.eps_u,
-                                                   float(self._energy[0]), token, grad_own, blocks))
-        return float(self._energy[0])
+        workspace_of(self).put(self, "at_device", (positions_key(x), arrays[-1].copy(), self.eps_u, value, token,
+                                                   grad_own, blocks))
+        return value if isinstance(value, float) else None
+
+    def _device_energy(self, kept: tuple) -> float:
+        """The energy (J) of the kept device evaluation ``kept`` (:meth:`_device_record`): read back at the first
+        call where the kernel left it on the device (:meth:`add_gradient_on_device`), and kept as a float then."""
+        value = kept[3]
+        if not isinstance(value, float):
+            value = float(copy_back(self._energy, value)[0])
+            workspace_of(self).put(self, "at_device", kept[:3] + (value,) + kept[4:])
+        return value
 
     def add_copy_energies_on_device(self, x: np.ndarray, x_device, copy_of_vertex: np.ndarray, sums) -> bool:
         """:meth:`copy_energies` at ``x`` (J by copy) added into ``sums`` (a
@@ -472,7 +486,7 @@ class TiLaggedFriction(LaggedFriction):
             return 0.0
         at_device = self._device_record(x)
         if at_device is not None:
-            return at_device[3]
+            return self._device_energy(at_device)
         arrays = self._kernel_arrays(x)
         kept = self._kept(arrays)
         if kept is not None:

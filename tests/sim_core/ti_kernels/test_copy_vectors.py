@@ -200,3 +200,37 @@ def test_cg_solve_on_device_equals_the_host_solve(ti_cpu):
     np.testing.assert_allclose(A @ want, b, atol=1e-9 * np.abs(b).max())
     with pytest.raises(ValueError, match="right-hand side of shape"):
         solver.solve_on_device(copy_vectors.new_vectors(nvert + 1), out)
+
+
+def test_blends_send_their_actions_only_when_they_change(ti_cpu, stacked, monkeypatch):
+    """The blends' per-copy actions go up only when no action buffer holds them: a repeated mask, or two masks in turn
+    (the Newton loop's right-hand side and update), make no upload and still give the masked result; a third mask
+    takes the buffer used least lately (one upload); the trial points' step sizes (the float64 buffer, which kernels
+    also write) are sent every time."""
+    from sim_core.ti_kernels import copy_vectors as module
+    from sim_core.ti_kernels.copy_vectors import CopyVectors
+
+    runs, vectors = CopyRuns(stacked.index), CopyVectors(stacked.index)
+    rng = np.random.default_rng(8)
+    x, d = rng.normal(size=(2, runs.vertex_count, 3))
+    dx, dd = vectors.upload(x), vectors.upload(d)
+    sent = []
+    to_device = module.device_copy.to_device
+    monkeypatch.setattr(module.device_copy, "to_device",
+                        lambda array, host, *a: sent.append(array) or to_device(array, host, *a))
+    assert module.ACTION_BUFFERS == 2
+    buffers = [buffer for buffer, _ in vectors._actions]
+    first, second, third = (np.array(m) for m in ([True, False, False, True], [False, True, False, True],
+                                                   [True, True, False, False]))
+    for k, (mask, uploads) in enumerate(((first, 1), (first, 0), (second, 1), (second, 0), (first, 0), (third, 1),
+                                         (first, 0), (second, 1), (third, 1), (first, 1))):
+        sent.clear()
+        want = runs.zero_copies(x.copy(), mask)
+        got = vectors.zero_copies(vectors.copy(dx), mask)
+        assert sum(any(s is b for b in buffers) for s in sent) == uploads, k
+        np.testing.assert_array_equal(vectors.download(got), want)
+    alphas = np.array([0.5, 0.0, 2.0, -0.25])
+    for _ in range(2):
+        sent.clear()
+        assert_same_sums(vectors.download(vectors.moved(dx, dd, alphas)), runs.moved(x, d, alphas))
+        assert sum(s is vectors._per_copy for s in sent) == 1

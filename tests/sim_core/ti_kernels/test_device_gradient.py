@@ -218,8 +218,14 @@ def test_friction_reads_the_device_positions_and_keeps_blocks_on_the_device_on_t
         assert_same_sums(got, want)
     assert not isinstance(friction_kernel._ARRAYS.device()["packed"][1], np.ndarray)  # the device array's path
     gd = _device(np.zeros_like(x))
-    energy = tik.add_gradient_on_device(x, _device(y), gd)  # key x, device positions y
-    assert energy == pytest.approx(ref.energy(y), rel=1e-12)
+    reads = []
+    copy_back = friction_kernel.copy_back
+    monkeypatch.setattr(friction_kernel, "copy_back", lambda *a, **k: reads.append(a[1]) or copy_back(*a, **k))
+    # key x, device positions y: nothing read back (the energy stays on the device until asked for)
+    assert tik.add_gradient_on_device(x, _device(y), gd) is None and reads == []
+    assert tik.add_gradient_on_device(x, _device(y), _device(np.zeros_like(x))) is None and reads == []  # kept rows
+    assert tik.energy(x) == pytest.approx(ref.energy(y), rel=1e-12) and len(reads) == 1
+    assert tik.energy(x) == pytest.approx(ref.energy(y), rel=1e-12) and len(reads) == 1  # read once, then kept
     assert relative_error(gd.to_numpy(), expected) < 1e-12
     kept = tik.hessian_on_device(x)
     assert isinstance(kept, DeviceHessianBlocks) and np.array_equal(kept.vertices, tik.vertices)

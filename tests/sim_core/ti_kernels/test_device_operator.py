@@ -71,6 +71,79 @@ def test_vertex_blocks_product_is_the_assembled_element_blocks_product(ti_cpu):
         _assert_block_jacobi(solver, want)
 
 
+def _random_sets(rng, nvert: int, shapes) -> list:
+    """Positive semi-definite element Hessians ``HessianBlocks`` of ``k`` elements over ``m`` distinct vertices each,
+    per ``(k, m)`` of ``shapes``."""
+    sets = []
+    for k, m in shapes:
+        verts = np.array([rng.choice(nvert, m, replace=False) for _ in range(k)]).reshape(k, m)
+        a = rng.normal(size=(k, 3 * m, 3 * m))
+        sets.append(HessianBlocks(verts, a @ a.transpose(0, 2, 1)))
+    return sets
+
+
+def _dense_sum(sets, free: np.ndarray) -> np.ndarray:
+    """Every element block entry at its DoFs summed into a dense matrix, fixed DoFs' rows and columns dropped."""
+    n = free.size
+    want = np.zeros((n, n))
+    for b in sets:
+        dofs = (3 * b.vertices[:, :, None] + np.arange(3)).reshape(b.vertices.shape[0], -1)
+        for e in range(dofs.shape[0]):
+            want[np.ix_(dofs[e], dofs[e])] += b.blocks[e]
+    return want * np.outer(free, free)
+
+
+def test_contact_blocks_stay_resident_while_their_count_changes(ti_cpu, monkeypatch):
+    """One solver factorised in turn with contact sets whose counts change (as a Newton loop's contact set does, some
+    sets' blocks left on the device as ``DeviceRows``): every product equals the assembled matrix's, and once the
+    arrays have grown to the largest count no device array is made again (the vertex blocks and the packed element
+    sets keep their capacity, their counts passed to the kernels), and the element sets travel in one upload of
+    vertices and one of host blocks a factorisation."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels import device_copy, pcg as pcg_module
+    from sim_core.ti_kernels.buffers import DeviceHessianBlocks, DeviceRows
+    from sim_core.ti_kernels.pcg import BatchedPCG, VertexBlocks
+
+    rng = np.random.default_rng(11)
+    nvert = 9
+    n = 3 * nvert
+    free = np.ones(n, dtype=bool)
+    free[6:9] = False  # vertex 2 fixed
+    diag = rng.uniform(1.0, 2.0, n)
+    upper = sp.csr_matrix(np.diag(diag))
+    made, uploads = [], []
+    new, to_device = device_copy.new_ndarray, device_copy.to_device
+    monkeypatch.setattr(pcg_module.device_copy, "new_ndarray", lambda *a: made.append(a) or new(*a))
+    monkeypatch.setattr(pcg_module.device_copy, "to_device",
+                        lambda *a, **k: uploads.append(a[0]) or to_device(*a, **k))
+    solver = BatchedPCG()
+    # the largest count first, then smaller and mixed ones
+    for turn, shapes in enumerate((((9, 2), (5, 4), (6, 1)), ((2, 2), (1, 4)), ((7, 2),), ((3, 2), (4, 4), (1, 1)))):
+        sets = _random_sets(rng, nvert, shapes)
+        element = []
+        for j, b in enumerate(sets):  # every other set's blocks left on the device, as the contact pairs' are
+            if j % 2:
+                rows = device_copy.new_ndarray(ti.f64, (b.blocks.shape[0] + 2, *b.blocks.shape[1:]))
+                rows.from_numpy(np.concatenate([np.zeros((2, *b.blocks.shape[1:])), b.blocks]))
+                element.append(DeviceHessianBlocks(b.vertices, DeviceRows(rows, 2, b.blocks.shape[0])))
+            else:
+                element.append(b)
+        want = _dense_sum(sets, free) + np.diag(diag)
+        made.clear()
+        uploads.clear()
+        solver.factorize(upper, VertexBlocks.from_element_blocks(element, free))
+        if turn > 0:
+            assert made == [], f"turn {turn}: device arrays made again: {made}"
+            into = [sum(u is solver._arrays[name] for u in uploads) for name in ("element_vertices", "element_blocks")]
+            assert into == [1, 1], into  # every set's vertices in one upload, the host sets' blocks in one
+        for _ in range(2):
+            p = rng.normal(size=n)
+            np.testing.assert_allclose(solver.matvec(p), want @ p, rtol=1e-13, atol=1e-12 * np.abs(want).sum())
+        _assert_block_jacobi(solver, want)
+        x = rng.normal(size=n)
+        np.testing.assert_allclose(solver.solve(want @ x), x, rtol=1e-7, atol=1e-7 * np.abs(x).max())
+
+
 @pytest.mark.parametrize("device_hessian", [False, True])
 def test_newton_operator_with_contacts_equals_the_assembled_matrix(ti_cpu, monkeypatch, device_hessian):
     """With ``device_hessian`` the exact contact Hessians reach the CG without leaving the kernel's ndarray."""
