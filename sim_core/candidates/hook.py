@@ -25,7 +25,8 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from sim_core.candidates.adhesion import Anchors, LaggedAdhesion, anchored_after, anchored_pairs, no_anchors
+from sim_core.candidates.adhesion import (Anchors, LaggedAdhesion, anchored_after, anchored_pairs, bonded_after,
+                                          bonded_pairs, no_anchors)
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
 from sim_core.candidates.parameters import CANDIDATE_NAMES, CANDIDATE_SETTINGS, validate_candidate_parameters
@@ -116,7 +117,7 @@ class CandidateHook:
         if name == "adhesion.reach" and v is None:
             return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
         if name == "adhesion.shear" and v is None:
-            return self.setting("adhesion.delta")
+            return math.inf
         if name == "adhesion.release" and v is None:
             return max(ADHESION_RELEASE_FRACTION * self.setting("adhesion.delta"), self.setting("adhesion.reach"))
         if name == "adhesion.release_time" and v is None:
@@ -180,10 +181,16 @@ class CandidateHook:
         if "stiction" in p and friction is not None:
             out.append(StictionFriction(friction, p["stiction"], self.setting("stiction.slip_scale")))
         if "adhesion" in p and not self.peeled(state):
-            v, w, n = anchored_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
-                                     self.setting("adhesion.reach"), self.anchors(state))
+            shear = self.setting("adhesion.shear")
+            if math.isinf(shear):
+                v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
+                                       self.setting("adhesion.reach"), self.setting("adhesion.release"),
+                                       self.bonded(state))
+            else:
+                v, w, n = anchored_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model),
+                                         model.contact.eps, self.setting("adhesion.reach"), self.anchors(state))
             out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta"),
-                                      self.setting("adhesion.shear")))
+                                      None if math.isinf(shear) else shear))
         return out
 
     @staticmethod
@@ -217,12 +224,18 @@ class CandidateHook:
     def update_state(self, model, state_in, x: np.ndarray, dt: float, elastic) -> dict[str, Any]:
         """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation, adhesion bonds)."""
         out = dict(state_in.candidate_state or {})
-        if "adhesion" in self.params:
+        shear = self.setting("adhesion.shear")
+        if "adhesion" in self.params and math.isinf(shear):
+            out[_ADHESION_KEY] = (np.zeros(0, np.int64) if self.peeled(state_in) else
+                                  bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model),
+                                               model.contact.eps, self.setting("adhesion.reach"),
+                                               self.setting("adhesion.release"), self.bonded(state_in)))
+        elif "adhesion" in self.params:
+            release = self.setting("adhesion.release")
             anchors = (no_anchors() if self.peeled(state_in) else
                        anchored_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
-                                      self.setting("adhesion.reach"), self.setting("adhesion.release"),
-                                      self.setting("adhesion.release") * self.setting("adhesion.shear")
-                                      / self.setting("adhesion.delta"), self.anchors(state_in)))
+                                      self.setting("adhesion.reach"), release,
+                                      release * shear / self.setting("adhesion.delta"), self.anchors(state_in)))
             out[_ADHESION_KEY], out[_ANCHOR_TRIANGLE_KEY], out[_ANCHOR_WEIGHTS_KEY] = anchors
         if "gel_viscoelasticity" in self.params:
             Fr = self.relaxed_states(model, state_in, elastic)
