@@ -134,13 +134,16 @@ def nominal_tack(model, params: dict[str, float] | None = None) -> TackDecision:
     data = np.asarray(ev.values("sheet_points"), dtype=float)
     tack = tack_with_peel(model, dict(params or {}), t_sheet, data, beta, keep_carried=True)
     if tack is None:
+        _drop_tack(sim.model)
         return TackDecision(False, "the card rises with the gel in the recording but no peel was found (the recorded "
                                    "card never leaves the gel)", int(rows.sum()))
     held = t_sheet <= tack["peel_s"]
     sigma = np.asarray(model.sigma["sheet_points"], dtype=float)
     with_tack = _sheet_rms(model.predict(tack["carried"])["sheet_points"], data, sigma, held)
-    without = _sheet_rms(model.predict(model.simulate(dict(params or {})))["sheet_points"], data, sigma, held)
+    plain = model.simulate({**dict(params or {}), ADHESION_PARAMETER: 0.0})
+    without = _sheet_rms(model.predict(plain)["sheet_points"], data, sigma, held)
     if not with_tack < without:
+        _drop_tack(sim.model)
         return TackDecision(False, f"the card rises with the gel in the recording, but a replay with the tack follows "
                                    f"it no better up to the peel (sheet points whitened RMS {with_tack:.3g} against "
                                    f"{without:.3g} without: the card springs back on its own)", int(rows.sum()))
@@ -152,6 +155,15 @@ def nominal_tack(model, params: dict[str, float] | None = None) -> TackDecision:
                               f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel "
                               f"{tack['peel_s']:.3f} s (sheet points whitened RMS up to the peel {without:.3g} -> "
                               f"{with_tack:.3g})", int(rows.sum()), float(beta), float(tack["peel_s"]), values)
+
+
+def _drop_tack(sim_model) -> None:
+    """Take the trial's tack out of the simulator's candidates (a candidate at 0 would still make every step
+    search for its pairs, and keep replays out of lockstep batches)."""
+    kept = {k: v for k, v in sim_model.candidates.items() if not k.startswith("adhesion")}
+    if kept != sim_model.candidates:
+        sim_model.candidates = kept
+        sim_model.revision += 1
 
 
 def _sheet_rms(pred: np.ndarray, data: np.ndarray, sigma: np.ndarray, rows: np.ndarray) -> float:
