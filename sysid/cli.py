@@ -284,6 +284,9 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     finally:
         progress.close()
     result = outcome.result
+    tack = outcome.document["diagnostics"].get("tack")
+    if tack is not None:
+        print(f"  tack: {'on' if tack['on'] else 'off'} ({tack['why']})")
     if outcome.scene is not None:
         print(f"fitted scene: {outcome.scene}")
     print(f"  replayed at dt = {result.dt:g} s ({result.step_count} steps)")
