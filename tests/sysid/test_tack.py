@@ -65,3 +65,13 @@ def test_a_press_slide_gets_no_tack(tmp_path):
     assert not decision.on and "never carried" in decision.why
     assert model.parameter_value(ADHESION_PARAMETER) == 0.0
     assert decision.summary()["bond_strength_N"] is None
+
+
+def test_thinshell_sysid_takes_the_tack_by_default():
+    """``thinshell sysid`` decides the tack by default (``FitOptions.tack``) and leaves it out with ``--no-tack``."""
+    from sysid.cli import build_parser, fit_options
+    from sysid.fit_recording import FitOptions
+
+    assert FitOptions().tack and fit_options(build_parser().parse_args(["bag"])).tack
+    assert not fit_options(build_parser().parse_args(["bag", "--no-tack"])).tack
+    assert "--no-tack" in build_parser().format_help()
