@@ -95,7 +95,12 @@ class FitOptions:
         tack: where the recording shows the card carried by the gel (a lift), make the gel's tack part of the
             nominal model, released at the recorded peel (:func:`sysid.tack.nominal_tack`; True, the default);
             fit.json ``diagnostics.tack`` says what was decided and why. False: no tack (before session 52 a lift's
-            card stayed on the table in every replay: nominal_s109's sheet points at whitened RMS 82).
+            card stayed on the table in every replay: nominal_s109's sheet points at whitened RMS 82). With the
+            tack the channels are weighed by the model's gap at the start (:func:`sysid.fit.fit`
+            ``reweight_channels``, as the calibration does): the fold's sheet points, which the tack's bonds follow
+            only to whitened RMS 32 on nominal_s109 (they let the card slide along the gel where the recorded card
+            arches), otherwise drove the materials far off (bending x110, friction +11 % from the scene start;
+            bending x600, friction x3 from +30 %; docs/benchmarks_log.md, session 52).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -278,7 +283,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                  batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
+                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
+                 reweight_channels=tack is not None and tack.on)
     result.warnings[:0] = list(notes)
     if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
         found = model.gain_profile.calibration_of(result.prediction_final)
