@@ -120,11 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian stays "
                         "analytic through the drive); kept kinematic, with the reason in fit.json, elsewhere. "
                         "Default: on, as in thinshell diagnose; --no-drive: the recorded pose driven kinematically")
-    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
-                        "diagnostics.tack). Default: on; --no-tack: no tack (a lifted card stays on the table)")
+                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the fold's residual "
+                        "they leave drives the materials off: docs/benchmarks_log.md, session 52)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "
