@@ -8,7 +8,8 @@ the card on the table while the recording shows it 20 mm up. Measured on nominal
 "4 mm" of session 51), the replay's card staying flat while the recorded one rises with the gel. The gel's
 markers and wrench hardly see it (2.56 / 3.62 / 2.09), so a fit of the materials cannot find it.
 
-The nominal model therefore has the tack wherever the recording shows the card carried:
+``thinshell sysid --tack`` (:class:`sysid.fit_recording.FitOptions` ``tack``; off by default, see there) gives
+the nominal model the tack wherever the recording shows the card carried:
 
 1. from the recording alone (:func:`carried_rows`): rows where the gel's face (its footprint at the measured
    pose) stands more than the bond's release opening above where the card under it lay at the start, and the
@@ -23,6 +24,10 @@ The nominal model therefore has the tack wherever the recording shows the card c
    the strength (:func:`sysid.diagnose.candidates.adhesion_weight_scale`).
 
 Every later replay (calibration and fit) takes the tack (:meth:`sysid.observation.ObservationModel.set_nominal`).
+With it nominal_s109 at the engine's values reads 32 (own MuJoCo world's lift-fold nominal_s301: 43 -> 13); what
+is left is the fold, where these normal-only bonds let the card slide along the gel while the recorded card
+arches on bonds that hold it in shear (the anchored shear bonds of :mod:`sim_core.candidates.adhesion`, rigid, read
+41 and 58: the reference world's bonds are 8.3 N/m springs that lag the gel by 5-12 mm).
 """
 
 from __future__ import annotations
