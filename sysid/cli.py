@@ -124,8 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
                         "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
                         "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
-                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the fold's residual "
-                        "they leave drives the materials off: docs/benchmarks_log.md, session 52)")
+                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the "
+                        "fold's residual they leave drives the materials off: docs/benchmarks_log.md, session 52)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "

@@ -36,8 +36,8 @@ aligned with the bonded vertices); every later step pairs the vertex with that a
 anchored triangle's unit normal at ``x^n`` (towards the gel vertex). The tangential opening is
 ``t = |P d|`` with ``d = p - sum_j b_j x_j`` and ``P = I - n n^T``, and the energy is Xu & Needleman's
 coupled cohesive potential (Xu & Needleman 1994, "Numerical simulations of fast crack growth in
-brittle solids", J. Mech. Phys. Solids 42(9), 1397-1434: the exponential normal-tangential potential) with equal normal and tangential works
-(``q = 1``, where it no longer depends on ``r``):
+brittle solids", J. Mech. Phys. Solids 42(9), 1397-1434: the exponential normal-tangential potential)
+with equal normal and tangential works (``q = 1``, where it no longer depends on ``r``):
 
     E = sum_k beta delta e (1 - (1 + r_k) exp(-r_k - t_k^2 / delta_t^2)),
 

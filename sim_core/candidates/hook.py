@@ -205,7 +205,8 @@ class CandidateHook:
         stored = {} if state is None else (state.candidate_state or {})
         if _ANCHOR_TRIANGLE_KEY not in stored:
             return no_anchors()
-        return (np.asarray(stored[_ADHESION_KEY], dtype=np.int64), np.asarray(stored[_ANCHOR_TRIANGLE_KEY], dtype=np.int64),
+        return (np.asarray(stored[_ADHESION_KEY], dtype=np.int64),
+                np.asarray(stored[_ANCHOR_TRIANGLE_KEY], dtype=np.int64),
                 np.asarray(stored[_ANCHOR_WEIGHTS_KEY], dtype=float).reshape(-1, 3))
 
     def body_terms(self, model, state, elastic) -> list:

@@ -132,8 +132,8 @@ def test_shear_gradient_and_hessian_match_finite_differences(shift):
 
 
 def test_shear_force_of_a_closed_bond_is_the_coupled_cohesive_law():
-    """Known answer: Xu & Needleman (1994) with q = 1 at zero normal opening, E = beta delta e (1 - exp(-t^2/delta_t^2)),
-    so the shear force is 2 e beta delta t / delta_t^2 exp(-t^2 / delta_t^2): stiffness 2 e beta delta / delta_t^2 at
+    """Known answer: Xu & Needleman (1994, J. Mech. Phys. Solids 42(9)) with q = 1 at zero normal opening,
+    E = beta delta e (1 - exp(-t^2/delta_t^2)), so the shear force is 2 e beta delta t / delta_t^2 exp(-t^2 / delta_t^2): stiffness 2 e beta delta / delta_t^2 at
     rest and the peak sqrt(2 e) beta delta / delta_t at t = delta_t / sqrt(2). The normal-only law (delta_t None)
     has no shear force at all."""
     beta, delta_t = 0.2, 1.5 * DELTA
