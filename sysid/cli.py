@@ -120,6 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "where the data choose it (delta-BIC over a kinematic arm > 10; the fit's Jacobian stays "
                         "analytic through the drive); kept kinematic, with the reason in fit.json, elsewhere. "
                         "Default: on, as in thinshell diagnose; --no-drive: the recorded pose driven kinematically")
+    p.add_argument("--tack", action=argparse.BooleanOptionalAction, default=False,
+                   help="where the recording shows the card carried up by the gel (a lift), replay the gel's tack "
+                        "(adhesion bonds of four card weights a pair) released at the peel read from the recording, "
+                        "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
+                        "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the "
+                        "fold's residual they leave drives the materials off: docs/benchmarks_log.md, session 52)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "
@@ -248,7 +254,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       calibration_params=CALIBRATION_PARAMETERS if args.calibrate else (),
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
-                      robust=None if args.robust == "none" else args.robust, drive=args.drive)
+                      robust=None if args.robust == "none" else args.robust, drive=args.drive,
+                      tack=args.tack)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -278,6 +285,9 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
     finally:
         progress.close()
     result = outcome.result
+    tack = outcome.document["diagnostics"].get("tack")
+    if tack is not None:
+        print(f"  tack: {'on' if tack['on'] else 'off'} ({tack['why']})")
     if outcome.scene is not None:
         print(f"fitted scene: {outcome.scene}")
     print(f"  replayed at dt = {result.dt:g} s ({result.step_count} steps)")

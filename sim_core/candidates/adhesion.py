@@ -27,6 +27,30 @@ no longer in contact, so a tacky gel can carry a light card up for several steps
 does. A vertex that was never in contact (or was released) forms no pair across a gap (the card
 that buckled away from the gel is not pulled). The set is the state ``candidate_state["adhesion"]``
 (sorted global gel vertex indices); it depends on positions only, not on ``beta``.
+
+Shear (anchored bonds, :func:`anchored_pairs`, :func:`anchored_after`): a bond holds the sheet's
+material point it formed on, not whichever point is nearest now. When a gel vertex first bonds, the
+closest point's sheet triangle and barycentric weights are its anchor (state
+``candidate_state["adhesion_anchor_triangle"]`` ``(b,)`` and ``["adhesion_anchor_weights"]`` ``(b, 3)``,
+aligned with the bonded vertices); every later step pairs the vertex with that anchor, ``n`` the
+anchored triangle's unit normal at ``x^n`` (towards the gel vertex). The tangential opening is
+``t = |P d|`` with ``d = p - sum_j b_j x_j`` and ``P = I - n n^T``, and the energy is Xu & Needleman's
+coupled cohesive potential (Xu & Needleman 1994, "Numerical simulations of fast crack growth in
+brittle solids", J. Mech. Phys. Solids 42(9), 1397-1434: the exponential normal-tangential potential)
+with equal normal and tangential works (``q = 1``, where it no longer depends on ``r``):
+
+    E = sum_k beta delta e (1 - (1 + r_k) exp(-r_k - t_k^2 / delta_t^2)),
+
+which is the normal law above at ``t = 0``; its shear stiffness at rest is ``2 e beta delta / delta_t^2``
+per pair and the peak shear traction ``sqrt(2 e) beta delta / delta_t`` at ``t = delta_t / sqrt 2``.
+A bond breaks past the release opening in either direction (``s`` or ``t delta / delta_t`` above it).
+Shear is opt-in (``adhesion.shear``, the candidate setting of ``delta_t``; None, the default, is the
+normal-only law above). With normal-only bonds a card hanging from the gel slides along it: on a lift-and-fold
+the card stays a straight ramp where the recorded one arches (nominal_s109 at the engine's values: sheet points
+whitened RMS 32, 6 mm mean error in the fold's hold). Rigid shear bonds (``delta_t = delta``) carry the card back
+with the gel and arch it too high (41 on nominal_s109, 58 on the own MuJoCo world's nominal_s301, against 32
+and 13 normal-only): the reference world's tack bonds are soft springs that lag the gel by 5-12 mm;
+docs/benchmarks_log.md, session 52.
 """
 
 from __future__ import annotations
@@ -39,23 +63,11 @@ from sim_core.energies.base import HessianBlocks, Projection, scatter_gradient
 from sim_core.errors import ConfigError
 
 
-def adhesion_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray,
-                   eps: float, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lagged gel-vertex / sheet-triangle pairs whose opening at ``x_prev`` is below ``reach``.
-
-    Args:
-        x_prev: positions at the start of the step, m, shape ``(n, 3)``.
-        gel_vertices: global indices of the gel's contact-face vertices, shape ``(v,)``.
-        sheet_triangles: global sheet triangles, shape ``(t, 3)``.
-        eps: contact offset in m.
-        reach: largest opening ``s`` (m) at which a pair is formed.
-
-    Returns:
-        ``(vertices (p, 4) [gel vertex, a, b, c], weights (p, 4) [1, -b_a, -b_b, -b_c],
-        normal (p, 3))``; each gel vertex keeps only its nearest triangle.
-    """
+def _nearest_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray,
+                   eps: float, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`adhesion_pairs` plus each pair's row in ``sheet_triangles``, ``(p,)`` int64."""
     pairs = vertex_triangle_candidates(x_prev, gel_vertices, sheet_triangles, eps + reach)
-    empty = (np.zeros((0, 4), np.int64), np.zeros((0, 4)), np.zeros((0, 3)))
+    empty = (np.zeros((0, 4), np.int64), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0, np.int64))
     if pairs.shape[0] == 0:
         return empty
     tri = sheet_triangles[pairs[:, 1]]
@@ -73,7 +85,25 @@ def adhesion_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles
     vertices = np.concatenate([pairs[keep, :1], tri[keep]], axis=1)
     weights = np.concatenate([np.ones((keep.size, 1)), -bary[keep]], axis=1)
     normal = (p[keep] - q[keep]) / dist[keep, None]
-    return vertices, weights, normal
+    return vertices, weights, normal, pairs[keep, 1].astype(np.int64)
+
+
+def adhesion_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray,
+                   eps: float, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lagged gel-vertex / sheet-triangle pairs whose opening at ``x_prev`` is below ``reach``.
+
+    Args:
+        x_prev: positions at the start of the step, m, shape ``(n, 3)``.
+        gel_vertices: global indices of the gel's contact-face vertices, shape ``(v,)``.
+        sheet_triangles: global sheet triangles, shape ``(t, 3)``.
+        eps: contact offset in m.
+        reach: largest opening ``s`` (m) at which a pair is formed.
+
+    Returns:
+        ``(vertices (p, 4) [gel vertex, a, b, c], weights (p, 4) [1, -b_a, -b_b, -b_c],
+        normal (p, 3))``; each gel vertex keeps only its nearest triangle.
+    """
+    return _nearest_pairs(x_prev, gel_vertices, sheet_triangles, eps, reach)[:3]
 
 
 def bonded_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray, eps: float,
@@ -108,25 +138,97 @@ def bonded_after(x: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.nd
     return np.unique(v[:, 0]).astype(np.int64)
 
 
+Anchors = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""Anchored bonds: ``(gel vertex (b,) int64, sheet triangle row (b,) int64, barycentric weights (b, 3))``."""
+
+
+def no_anchors() -> Anchors:
+    """An empty :data:`Anchors`."""
+    return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+
+
+def _anchored_geometry(x: np.ndarray, sheet_triangles: np.ndarray, anchors: Anchors, side: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of anchored bonds at ``x``: ``(vertices (b, 4), weights (b, 4), unit normal (b, 3) of the anchored
+    triangle towards the gel vertex (or along ``side`` (b,) +-1 when given), d = p - q (b, 3))``."""
+    gel, tri_row, bary = anchors
+    tri = sheet_triangles[tri_row]
+    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+    q = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
+    d = x[gel] - q
+    nrm = np.cross(b - a, c - a)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    sign = np.where(np.einsum("kd,kd->k", nrm, d) >= 0.0, 1.0, -1.0) if side is None else side
+    vertices = np.concatenate([gel[:, None], tri], axis=1)
+    weights = np.concatenate([np.ones((gel.size, 1)), -bary], axis=1)
+    return vertices, weights, nrm * sign[:, None], d
+
+
+def anchored_pairs(x_prev: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray, eps: float,
+                   reach: float, anchors: Anchors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The step's pairs: each anchored bond with its anchor (module docstring, shear), and the gel vertices in
+    contact that hold no anchor yet with their nearest point (:func:`adhesion_pairs`).
+
+    Args:
+        x_prev, gel_vertices, sheet_triangles, eps, reach: as :func:`adhesion_pairs`.
+        anchors: the bonds of the state (:data:`Anchors`).
+
+    Returns:
+        ``(vertices (p, 4), weights (p, 4), normal (p, 3))`` as :func:`adhesion_pairs`.
+    """
+    v, w, n = adhesion_pairs(x_prev, gel_vertices, sheet_triangles, eps, reach)
+    if anchors[0].size == 0:
+        return v, w, n
+    new = ~np.isin(v[:, 0], anchors[0])
+    av, aw, an, _ = _anchored_geometry(x_prev, sheet_triangles, anchors)
+    return (np.concatenate([av, v[new]]), np.concatenate([aw, w[new]]), np.concatenate([an, n[new]]))
+
+
+def anchored_after(x: np.ndarray, gel_vertices: np.ndarray, sheet_triangles: np.ndarray, eps: float, reach: float,
+                   release: float, release_shear: float, anchors: Anchors) -> Anchors:
+    """The bonds after a step that ended at ``x``: the anchored ones whose normal opening is still below
+    ``release`` and tangential opening below ``release_shear``, and a new anchor (the nearest point) for each
+    gel vertex in contact (opening below ``reach``) that holds none.
+
+    Returns:
+        :data:`Anchors`, sorted by gel vertex.
+    """
+    gel, tri_row, bary = anchors
+    if gel.size:
+        _, _, n, d = _anchored_geometry(x, sheet_triangles, anchors)
+        s_n = np.einsum("kd,kd->k", d, n) - eps
+        t = np.linalg.norm(d - np.einsum("kd,kd->k", d, n)[:, None] * n, axis=1)
+        held = (s_n < release) & (t < release_shear)
+        gel, tri_row, bary = gel[held], tri_row[held], bary[held]
+    v, w, _, rows = _nearest_pairs(x, gel_vertices, sheet_triangles, eps, reach)
+    new = ~np.isin(v[:, 0], gel)
+    gel = np.concatenate([gel, v[new, 0]])
+    tri_row = np.concatenate([tri_row, rows[new]])
+    bary = np.concatenate([bary, -w[new, 1:]])
+    order = np.argsort(gel, kind="stable")
+    return gel[order].astype(np.int64), tri_row[order].astype(np.int64), bary[order]
+
+
 class LaggedAdhesion:
     """Cohesive gel-sheet adhesion over lagged pairs (module docstring).
 
     Args:
         vertices: ``(p, 4)`` global indices ``[gel vertex, a, b, c]``.
-        weights: ``(p, 4)`` closest-point weights ``[1, -b_a, -b_b, -b_c]``.
+        weights: ``(p, 4)`` weights ``[1, -b_a, -b_b, -b_c]`` of the sheet point (nearest or anchored).
         normal: ``(p, 3)`` unit normals from the sheet point to the gel vertex.
         eps: contact offset in m (> 0): the opening is measured from it.
         beta: bond strength per pair in N (>= 0; 0 = off).
         delta: opening at peak force in m (> 0).
+        delta_t: tangential length ``delta_t`` of the coupled law in m (> 0), or None: normal bonds only.
 
     Raises:
-        ConfigError: negative / non-finite ``beta``, non-positive ``delta`` or ``eps``, bad shapes.
+        ConfigError: negative / non-finite ``beta``, non-positive ``delta``, ``delta_t`` or ``eps``, bad shapes.
     """
 
     parameter_names: tuple[str, ...] = ("beta",)
 
     def __init__(self, vertices: np.ndarray, weights: np.ndarray, normal: np.ndarray, eps: float,
-                 beta: float, delta: float) -> None:
+                 beta: float, delta: float, delta_t: float | None = None) -> None:
         beta, delta, eps = float(beta), float(delta), float(eps)
         if not (np.isfinite(beta) and beta >= 0):
             raise ConfigError(f"LaggedAdhesion: bond strength beta must be finite and >= 0 N, got {beta}")
@@ -134,58 +236,87 @@ class LaggedAdhesion:
             raise ConfigError(f"LaggedAdhesion: delta (opening at peak force) must be > 0 m, got {delta}")
         if not (np.isfinite(eps) and eps > 0):
             raise ConfigError(f"LaggedAdhesion: contact eps must be > 0 m, got {eps}")
+        if delta_t is not None and not (np.isfinite(delta_t) and delta_t > 0):
+            raise ConfigError(f"LaggedAdhesion: delta_t (tangential length) must be > 0 m, got {delta_t}")
         self.vertices = np.asarray(vertices, dtype=np.int64).reshape(-1, 4)
         p = self.vertices.shape[0]
         self.weights = np.asarray(weights, dtype=float).reshape(p, 4)
         self.normal = np.asarray(normal, dtype=float).reshape(p, 3)
         self.eps, self.beta, self.delta = eps, beta, delta
+        self.delta_t = None if delta_t is None else float(delta_t)
+
+    def _d(self, x: np.ndarray) -> np.ndarray:
+        """``d = sum_j w_j x_j`` (gel vertex minus sheet point) per pair in m, shape ``(p, 3)``."""
+        return np.einsum("kj,kjd->kd", self.weights, x[self.vertices])
 
     def opening(self, x: np.ndarray) -> np.ndarray:
         """``s = n . (sum_j w_j x_j) - eps`` per pair in m, shape ``(p,)``."""
-        rel = np.einsum("kj,kjd->kd", self.weights, x[self.vertices])
-        return np.einsum("kd,kd->k", rel, self.normal) - self.eps
+        return np.einsum("kd,kd->k", self._d(x), self.normal) - self.eps
 
     def active_mask(self, x: np.ndarray) -> np.ndarray:
-        """Whether each pair is open (``s > 0``) at ``x`` ``(n, 3)`` m, ``(p,)`` bool: its Hessian block is
-        non-zero there and switches off where the pair closes, as a penalty contact's switches on below its
+        """Whether each pair is open (``s > 0``) at ``x`` ``(n, 3)`` m, ``(p,)`` bool: its normal Hessian part
+        is non-zero there and switches off where the pair closes, as a penalty contact's switches on below its
         offset (:class:`~sim_core.energies.base.PenaltyContact`: the simplified Newton test compares the
         open pairs of two iterates, :func:`sim_core.contact_set.active_contacts`)."""
         return self.opening(x) > 0.0
 
-    def _r(self, x: np.ndarray) -> np.ndarray:
-        return np.maximum(self.opening(x), 0.0) / self.delta
+    def _terms(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(r (p,), tangential part of d (p, 3), tt = t^2 / delta_t^2 (p,), g = exp(-r - tt) (p,))``."""
+        d = self._d(x)
+        dn = np.einsum("kd,kd->k", d, self.normal)
+        r = np.maximum(dn - self.eps, 0.0) / self.delta
+        if self.delta_t is None:
+            return r, np.zeros_like(d), np.zeros_like(r), np.exp(-r)
+        dt = d - dn[:, None] * self.normal
+        tt = np.einsum("kd,kd->k", dt, dt) / self.delta_t ** 2
+        return r, dt, tt, np.exp(-r - tt)
 
     def energy(self, x: np.ndarray) -> float:
-        """Adhesion energy in J (0 when every pair is pressed, negative of the work of separation)."""
-        r = self._r(x)
-        return float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * np.exp(-r)))
+        """Adhesion energy in J (0 when every pair is pressed without shear, negative of the work of separation)."""
+        r, _, _, g = self._terms(x)
+        return float(self.beta * self.delta * np.e * np.sum(1.0 - (1.0 + r) * g))
 
     def _gradient_with(self, x: np.ndarray, beta: float) -> np.ndarray:
-        r = self._r(x)
-        force = beta * r * np.exp(1.0 - r)  # phi'(s), N
-        g = (force[:, None, None] * self.weights[:, :, None]) * self.normal[:, None, :]
-        return scatter_gradient(x.shape[0], self.vertices, g)
+        r, dt, _, g = self._terms(x)
+        # dE/dd = beta e r g n + beta delta e (1 + r) g 2 P d / delta_t^2
+        f = beta * np.e * r * g
+        gd = f[:, None] * self.normal
+        if self.delta_t is not None:
+            gd = gd + (2.0 * beta * self.delta * np.e * (1.0 + r) * g / self.delta_t ** 2)[:, None] * dt
+        return scatter_gradient(x.shape[0], self.vertices, self.weights[:, :, None] * gd[:, None, :])
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        """dE/dx in N: ``phi'(s) w_j n`` (the tensile bond force is its negative), shape ``(n, 3)``."""
+        """dE/dx in N (the bond force is its negative), shape ``(n, 3)``."""
         return self._gradient_with(x, self.beta)
 
     def hessian(self, x: np.ndarray, projection: Projection = "clamp") -> HessianBlocks:
-        """Blocks ``phi''(s) (w w^T) (x) n n^T`` of the open pairs, shape ``(a, 12, 12)``."""
+        """Blocks ``(w w^T) (x) H_d`` with ``H_d`` the 3 x 3 Hessian of the pair's energy in ``d`` (projected per
+        pair: a rank-one ``w w^T`` keeps it PSD), of the open pairs (every pair with shear), shape ``(a, 12, 12)``."""
         if projection not in ("none", "clamp", "abs"):
             raise ValueError(f"unknown PSD projection {projection!r}; use 'none', 'clamp' or 'abs'")
-        s = self.opening(x)
-        act = np.flatnonzero(s > 0)
+        r, dt, _, g = self._terms(x)
+        act = np.flatnonzero(r > 0) if self.delta_t is None else np.arange(r.size)
         if act.size == 0:
             return HessianBlocks.empty(4)
-        r = s[act] / self.delta
-        k = self.beta / self.delta * (1.0 - r) * np.exp(1.0 - r)
-        if projection == "clamp":
-            k = np.maximum(k, 0.0)
-        elif projection == "abs":
-            k = np.abs(k)
-        wn = (self.weights[act][:, :, None] * self.normal[act][:, None, :]).reshape(act.size, 12)
-        return HessianBlocks(self.vertices[act], k[:, None, None] * wn[:, :, None] * wn[:, None, :])
+        r, dt, g, n = r[act], dt[act], g[act], self.normal[act]
+        A = self.beta * self.delta * np.e
+        open_ = (r > 0).astype(float)
+        gn = open_[:, None] * n / self.delta  # grad r
+        nn = np.einsum("ki,kj->kij", gn, gn)
+        H = (A * (1.0 - r) * g)[:, None, None] * nn
+        if self.delta_t is not None:
+            gT = 2.0 * dt / self.delta_t ** 2  # grad of t^2 / delta_t^2
+            P = np.eye(3)[None] - np.einsum("ki,kj->kij", n, n)
+            H = H + (A * -r * g)[:, None, None] * (np.einsum("ki,kj->kij", gn, gT) + np.einsum("ki,kj->kij", gT, gn))
+            H = H + (A * -(1.0 + r) * g)[:, None, None] * np.einsum("ki,kj->kij", gT, gT)
+            H = H + (A * (1.0 + r) * g * 2.0 / self.delta_t ** 2)[:, None, None] * P
+        if projection != "none":
+            lam, V = np.linalg.eigh(H)
+            lam = np.maximum(lam, 0.0) if projection == "clamp" else np.abs(lam)
+            H = np.einsum("kij,kj,klj->kil", V, lam, V)
+        w = self.weights[act]
+        blocks = np.einsum("ka,kb,kij->kaibj", w, w, H).reshape(act.size, 12, 12)
+        return HessianBlocks(self.vertices[act], blocks)
 
     def parameter_gradient(self, x: np.ndarray, name: str) -> np.ndarray:
         """d(dE/dx)/d beta (linear in beta), dimensionless force per N, shape ``(n, 3)``.

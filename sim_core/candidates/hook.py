@@ -25,7 +25,8 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from sim_core.candidates.adhesion import LaggedAdhesion, bonded_after, bonded_pairs
+from sim_core.candidates.adhesion import (Anchors, LaggedAdhesion, anchored_after, anchored_pairs, bonded_after,
+                                          bonded_pairs, no_anchors)
 from sim_core.candidates.anisotropic_bending import AnisotropicBendingCorrection
 from sim_core.candidates.gel_damping import kelvin_voigt_branch
 from sim_core.candidates.gel_viscoelasticity import MaxwellBranch, relax_state
@@ -56,6 +57,8 @@ RELEASE_TIME_TOLERANCE = 1e-9
 """Tolerance (s) of the comparison of the simulated time with ``adhesion.release_time``."""
 
 _ADHESION_KEY = "adhesion"
+_ANCHOR_TRIANGLE_KEY = "adhesion_anchor_triangle"
+_ANCHOR_WEIGHTS_KEY = "adhesion_anchor_weights"
 
 
 @runtime_checkable
@@ -114,6 +117,8 @@ class CandidateHook:
         v = self.params.get(name, CANDIDATE_SETTINGS[name])
         if name == "adhesion.reach" and v is None:
             return ADHESION_REACH_FRACTION * self.setting("adhesion.delta")
+        if name == "adhesion.shear" and v is None:
+            return math.inf
         if name == "adhesion.release" and v is None:
             return max(ADHESION_RELEASE_FRACTION * self.setting("adhesion.delta"), self.setting("adhesion.reach"))
         if name == "adhesion.release_time" and v is None:
@@ -182,10 +187,16 @@ class CandidateHook:
         if "stiction" in p and friction is not None:
             out.append(StictionFriction(friction, p["stiction"], self.setting("stiction.slip_scale")))
         if "adhesion" in p and not self.peeled(state):
-            v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
-                                   self.setting("adhesion.reach"), self.setting("adhesion.release"),
-                                   self.bonded(state))
-            out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta")))
+            shear = self.setting("adhesion.shear")
+            if math.isinf(shear):
+                v, w, n = bonded_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
+                                       self.setting("adhesion.reach"), self.setting("adhesion.release"),
+                                       self.bonded(state))
+            else:
+                v, w, n = anchored_pairs(x_prev, _gel_contact_vertices(model), _sheet_triangles(model),
+                                         model.contact.eps, self.setting("adhesion.reach"), self.anchors(state))
+            out.append(LaggedAdhesion(v, w, n, model.contact.eps, p["adhesion"], self.setting("adhesion.delta"),
+                                      None if math.isinf(shear) else shear))
         return out
 
     @staticmethod
@@ -193,6 +204,16 @@ class CandidateHook:
         """Bonded gel vertices of ``state`` (``candidate_state["adhesion"]``; none when absent), ``(b,)``."""
         stored = {} if state is None else (state.candidate_state or {})
         return np.asarray(stored.get(_ADHESION_KEY, ()), dtype=np.int64)
+
+    @staticmethod
+    def anchors(state) -> Anchors:
+        """The anchored bonds of ``state`` (:data:`sim_core.candidates.adhesion.Anchors`; none when absent)."""
+        stored = {} if state is None else (state.candidate_state or {})
+        if _ANCHOR_TRIANGLE_KEY not in stored:
+            return no_anchors()
+        return (np.asarray(stored[_ADHESION_KEY], dtype=np.int64),
+                np.asarray(stored[_ANCHOR_TRIANGLE_KEY], dtype=np.int64),
+                np.asarray(stored[_ANCHOR_WEIGHTS_KEY], dtype=float).reshape(-1, 3))
 
     def body_terms(self, model, state, elastic) -> list:
         """The gels' Maxwell branches and the sheets' anisotropic bending parts."""
@@ -210,12 +231,19 @@ class CandidateHook:
     def update_state(self, model, state_in, x: np.ndarray, dt: float, elastic) -> dict[str, Any]:
         """New ``candidate_state`` after a step that ended at ``x`` (viscoelastic relaxation, adhesion bonds)."""
         out = dict(state_in.candidate_state or {})
-        if "adhesion" in self.params and self.peeled(state_in):
-            out[_ADHESION_KEY] = np.zeros(0, np.int64)
+        shear = self.setting("adhesion.shear")
+        if "adhesion" in self.params and math.isinf(shear):
+            out[_ADHESION_KEY] = (np.zeros(0, np.int64) if self.peeled(state_in) else
+                                  bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model),
+                                               model.contact.eps, self.setting("adhesion.reach"),
+                                               self.setting("adhesion.release"), self.bonded(state_in)))
         elif "adhesion" in self.params:
-            out[_ADHESION_KEY] = bonded_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
-                                              self.setting("adhesion.reach"), self.setting("adhesion.release"),
-                                              self.bonded(state_in))
+            release = self.setting("adhesion.release")
+            anchors = (no_anchors() if self.peeled(state_in) else
+                       anchored_after(x, _gel_contact_vertices(model), _sheet_triangles(model), model.contact.eps,
+                                      self.setting("adhesion.reach"), release,
+                                      release * shear / self.setting("adhesion.delta"), self.anchors(state_in)))
+            out[_ADHESION_KEY], out[_ANCHOR_TRIANGLE_KEY], out[_ANCHOR_WEIGHTS_KEY] = anchors
         if "gel_viscoelasticity" in self.params:
             Fr = self.relaxed_states(model, state_in, elastic)
             tau = self.setting("gel_viscoelasticity.tau")

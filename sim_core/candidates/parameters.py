@@ -13,10 +13,13 @@ CANDIDATE_NAMES = ("stiction", "gel_viscoelasticity", "adhesion", "anisotropic_b
 """Physics-level candidates (SYSID.md effect vocabulary)."""
 
 CANDIDATE_SETTINGS = {"stiction.slip_scale": 2.0, "gel_viscoelasticity.tau": 0.3, "adhesion.delta": 2.5e-4,
-                      "adhesion.reach": None, "adhesion.release": None, "adhesion.release_time": None}
+                      "adhesion.reach": None, "adhesion.release": None, "adhesion.release_time": None,
+                      "adhesion.shear": None}
 """Secondary settings and their defaults (``adhesion.reach`` None = ``ADHESION_REACH_FRACTION``
 ``adhesion.delta``, ``adhesion.release`` None = ``ADHESION_RELEASE_FRACTION`` ``adhesion.delta``;
-``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
+``adhesion.shear`` None = no shear: the tangential length ``delta_t`` (m) of the anchored bonds' coupled
+law (:mod:`sim_core.candidates.adhesion`, shear), the bonds hold the sheet's point in every direction; by
+default a bond pulls along the normal only; ``adhesion.release_time`` None = never: from that simulated time (s) on, every bond is broken and
 none forms, the peel of a gel whose tack is lost;
 :meth:`sim_core.candidates.hook.CandidateHook.setting`)."""
 

@@ -109,3 +109,63 @@ def test_bond_memory_keeps_a_touched_vertex_bonded_up_to_the_release_opening():
     assert released.size == 0 and bonded_pairs(far, gel, tri, EPS, reach, release, bonded)[0].shape == (0, 4)
     assert bonded_after(at(EPS + 2 * DELTA), gel, tri, EPS, reach, release, released).size == 0
     assert bonded_after(at(0.95 * EPS), gel, tri, EPS, reach, release, released).tolist() == [0]
+
+
+def _anchored_pair(shift):
+    """Gel vertex 0 at the contact offset above the sheet triangle (1, 2, 3) in z = 0, moved by ``shift`` (m)."""
+    x = np.array([[0.2e-2, 0.2e-2, EPS], [0, 0, 0], [1e-2, 0, 0], [0, 1e-2, 0]], dtype=float)
+    v, w, n = adhesion_pairs(x, np.array([0]), np.array([[1, 2, 3]]), EPS, 5 * DELTA)
+    x = x.copy()
+    x[0] += shift
+    return x, v, w, n
+
+
+@pytest.mark.parametrize("shift", [(0.3, 0.2, 0.5), (1.0, -0.4, 0.0), (0.2, 0.1, 2.0), (0.5, 0.5, -0.2)])
+def test_shear_gradient_and_hessian_match_finite_differences(shift):
+    x, v, w, n = _anchored_pair(np.asarray(shift) * DELTA)
+    ad = LaggedAdhesion(v, w, n, EPS, beta=0.2, delta=DELTA, delta_t=1.5 * DELTA)
+    x = x + np.random.default_rng(5).normal(scale=1e-7, size=x.shape)
+    assert relative_error(ad.gradient(x), fd_gradient(ad.energy, x, h=1e-9)) < 1e-5
+    H = dense_hessian(ad.hessian(x, "none"), 4)
+    assert relative_error(H, fd_hessian(ad.gradient, x, h=1e-9)) < 1e-5
+    assert np.linalg.eigvalsh(dense_hessian(ad.hessian(x, "clamp"), 4)).min() > -1e-9 * np.abs(H).max()
+
+
+def test_shear_force_of_a_closed_bond_is_the_coupled_cohesive_law():
+    """Known answer: Xu & Needleman (1994, J. Mech. Phys. Solids 42(9)) with q = 1 at zero normal opening,
+    E = beta delta e (1 - exp(-t^2/delta_t^2)), so the shear force is 2 e beta delta t / delta_t^2 exp(-t^2 / delta_t^2): stiffness 2 e beta delta / delta_t^2 at
+    rest and the peak sqrt(2 e) beta delta / delta_t at t = delta_t / sqrt(2). The normal-only law (delta_t None)
+    has no shear force at all."""
+    beta, delta_t = 0.2, 1.5 * DELTA
+    for t in np.array([0.01, 0.5, 1.0, 2.0]) * delta_t:
+        x, v, w, n = _anchored_pair(np.array([t, 0.0, 0.0]))
+        ad = LaggedAdhesion(v, w, n, EPS, beta=beta, delta=DELTA, delta_t=delta_t)
+        force_on_gel = -ad.gradient(x)[0]
+        expected = 2 * np.e * beta * DELTA * t / delta_t ** 2 * np.exp(-(t / delta_t) ** 2)
+        assert force_on_gel[0] == pytest.approx(-expected, rel=1e-9)  # pulls the gel back over its anchor
+        assert abs(force_on_gel[2]) < 1e-12 * expected
+        assert not LaggedAdhesion(v, w, n, EPS, beta=beta, delta=DELTA).gradient(x).any()
+    peak = np.sqrt(2 * np.e) * beta * DELTA / delta_t
+    x, v, w, n = _anchored_pair(np.array([delta_t / np.sqrt(2), 0.0, 0.0]))
+    assert -LaggedAdhesion(v, w, n, EPS, beta, DELTA, delta_t).gradient(x)[0, 0] == pytest.approx(-peak, rel=1e-9)
+
+
+def test_anchored_bonds_hold_their_sheet_point_until_the_shear_release():
+    """A bond keeps the sheet point it formed on while the gel slides (the nearest point would follow the gel),
+    and breaks once the tangential opening passes the shear release."""
+    from sim_core.candidates.adhesion import anchored_after, anchored_pairs, no_anchors
+
+    gel, tri = np.array([0]), np.array([[1, 2, 3]])
+    x0, _, _, _ = _anchored_pair(np.zeros(3))
+    reach, release, release_t = 0.01 * DELTA, 5 * DELTA, 5 * DELTA
+    anchors = anchored_after(x0, gel, tri, EPS, reach, release, release_t, no_anchors())
+    assert anchors[0].tolist() == [0] and np.allclose(anchors[2], [[0.6, 0.2, 0.2]])
+    slid = x0.copy()
+    slid[0] += [3 * DELTA, 0.0, 2 * DELTA]  # off the table and sideways: out of reach of a new bond
+    kept = anchored_after(slid, gel, tri, EPS, reach, release, release_t, anchors)
+    assert np.allclose(kept[2], anchors[2])  # the same sheet point, not the one now nearest
+    v, w, n = anchored_pairs(slid, gel, tri, EPS, reach, kept)
+    assert np.allclose(w, [[1.0, -0.6, -0.2, -0.2]]) and np.allclose(n, [[0, 0, 1]])
+    far = x0.copy()
+    far[0] += [6 * DELTA, 0.0, 2 * DELTA]
+    assert anchored_after(far, gel, tri, EPS, reach, release, release_t, anchors)[0].size == 0

@@ -1,0 +1,176 @@
+"""The gel's tack in the nominal model of a lift recording: the card the gel carries up, let go at the recorded peel.
+
+On a lift-and-fold the gel's tack carries the card (the reference world bonds the card to the gel at every
+lift_fold, its nominal ones included: ``shared/data/reference_bags/README.md``); a replay without it leaves
+the card on the table while the recording shows it 20 mm up. Measured on nominal_s109 at the engine's values
+(labels.yaml; drive from the data; docs/benchmarks_log.md, session 52): the sheet points' whitened RMS is
+0.98-1.0 in every window before the tack forms at 1.63 s and 8-182 after it (82 over the recording, the
+"4 mm" of session 51), the replay's card staying flat while the recorded one rises with the gel. The gel's
+markers and wrench hardly see it (2.56 / 3.62 / 2.09), so a fit of the materials cannot find it.
+
+``thinshell sysid --tack`` (:class:`sysid.fit_recording.FitOptions` ``tack``; off by default, see there) gives
+the nominal model the tack wherever the recording shows the card carried:
+
+1. from the recording alone (:func:`carried_rows`): rows where the gel's face (its footprint at the measured
+   pose) stands more than the bond's release opening above where the card under it lay at the start, and the
+   recorded card under it has risen by more than that opening and is within it of the face: the card rises
+   with the gel. No row: no tack, no extra replay (seven of the nine reference recordings; the press-slides
+   stiction_s105 and gel_creep_s108 have rows: their buckled card springs up under the lifting pad);
+2. the diagnosis' tack (:func:`sysid.diagnose.peel.tack_with_peel`): bonds of strength
+   :data:`~sysid.diagnose.candidates.ADHESION_PROBE_WEIGHTS` card weights a pair, released at the peel read
+   from the recording, kept where its replay follows the recorded sheet points up to the peel better than
+   the replay without it (a buckled card that springs up under a lifting pad rises on its own). Two
+   replays. The bonds' strength is not fitted: above the card's weight the card follows the gel whatever
+   the strength (:func:`sysid.diagnose.candidates.adhesion_weight_scale`).
+
+Every later replay (calibration and fit) takes the tack (:meth:`sysid.observation.ObservationModel.set_nominal`).
+With it nominal_s109 at the engine's values reads 32 (own MuJoCo world's lift-fold nominal_s301: 43 -> 13); what
+is left is the fold, where these normal-only bonds let the card slide along the gel while the recorded card
+arches on bonds that hold it in shear (the anchored shear bonds of :mod:`sim_core.candidates.adhesion`, rigid, read
+41 and 58: the reference world's bonds are 8.3 N/m springs that lag the gel by 5-12 mm).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim_core.candidates.hook import CandidateHook
+from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
+from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING, face_gap, tack_with_peel
+from sysid.evidence import resample_pose
+from sim_core.transforms import quat_to_matrix
+
+
+@dataclass(frozen=True)
+class TackDecision:
+    """Whether the nominal model of a recording has the gel's tack, and why.
+
+    Attributes:
+        on: the tack is part of the nominal model.
+        why: the reason, in words.
+        carried_rows: sheet-point rows where the recording shows the card carried by the gel.
+        beta: bond strength per pair, N (nan when off).
+        peel_s: the recorded peel, s from the recording's start (nan when off).
+        params: the simulator parameters of the tack (empty when off).
+    """
+
+    on: bool
+    why: str
+    carried_rows: int = 0
+    beta: float = math.nan
+    peel_s: float = math.nan
+    params: dict[str, float] | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """fit.json's ``diagnostics.tack``."""
+        return {"on": self.on, "why": self.why, "carried_rows": self.carried_rows,
+                "bond_strength_N": None if math.isnan(self.beta) else self.beta,
+                "peel_s": None if math.isnan(self.peel_s) else self.peel_s}
+
+
+def _face_corners(model) -> np.ndarray:
+    """The gel's undeformed contact face in the sensor frame: a 5 x 5 grid over ``gel_size`` (x, y), ``(25, 3)`` m."""
+    sx, sy = (float(v) for v in model.scene["sensors"][model.sensor]["gel_size"][:2])
+    gx, gy = np.meshgrid(np.linspace(-sx / 2, sx / 2, 5), np.linspace(-sy / 2, sy / 2, 5))
+    return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+
+
+def carried_rows(model, opening: float) -> np.ndarray:
+    """Sheet-point rows in which the recording shows the card carried by the gel (module docstring, step 1).
+
+    Args:
+        model: the :class:`~sysid.observation.ObservationModel` (``sheet_points`` and ``pose`` recorded).
+        opening: the bonds' release opening, m (> 0).
+
+    Returns:
+        bool ``(n,)`` over the recorded sheet-point rows (all False without sheet points or a sensor).
+    """
+    ev = model.evidence
+    if model.sensor is None or "sheet_points" not in ev.channels_present:
+        return np.zeros(0, bool)
+    t = np.asarray(ev.t_ns["sheet_points"], dtype=np.int64)
+    sheet = np.asarray(ev.values("sheet_points"), dtype=float)
+    pose = resample_pose(ev.t_ns["pose"], ev.pose, t, outside="clamp")
+    mount = model.simulation().model.sensors[model.sensor].mount
+    local = _face_corners(model)
+    rest_z = sheet[0, :, 2]
+    out = np.zeros(t.size, bool)
+    for k in range(t.size):
+        R = quat_to_matrix(pose[k, 3:7]) @ quat_to_matrix(mount[3:7])
+        face = pose[k, :3] + (R @ (local + mount[:3]).T).T
+        lo, hi = face[:, :2].min(axis=0), face[:, :2].max(axis=0)
+        under = np.all((sheet[k, :, :2] >= lo) & (sheet[k, :, :2] <= hi), axis=1)
+        if not under.any():
+            continue
+        lifted = float(face[:, 2].min() - rest_z[under].max()) > opening  # the gel off where the card lay
+        risen = float(np.max(sheet[k, under, 2] - rest_z[under])) > opening  # and the card off the table
+        out[k] = lifted and risen and face_gap(sheet[k], face) < opening
+    return out
+
+
+def nominal_tack(model, params: dict[str, float] | None = None) -> TackDecision:
+    """Decide the tack of ``model``'s recording and, where on, make it part of the model's nominal.
+
+    Args:
+        model: the :class:`~sysid.observation.ObservationModel` (its drive already set: the tack's replay takes it).
+        params: simulator parameters of the tack's replay (None: the scene's).
+
+    Returns:
+        the :class:`TackDecision`.
+
+    Raises:
+        SimulationDivergedError: the replay with the bonds diverged.
+    """
+    sim = model.simulation()
+    beta = ADHESION_PROBE_WEIGHTS * adhesion_weight_scale(sim.model)
+    if not (math.isfinite(beta) and beta > 0.0):
+        return TackDecision(False, "no card weight to carry (no sheet, gravity or gel face)")
+    opening = CandidateHook({"adhesion": beta}).setting("adhesion.release")
+    rows = carried_rows(model, opening)
+    if not rows.any():
+        return TackDecision(False, "the recorded card is never carried by the gel (it stays within "
+                                   f"{opening * 1e3:.2g} mm of where it lay wherever the gel is over it)")
+    ev = model.evidence
+    t_sheet = (np.asarray(ev.t_ns["sheet_points"], dtype=np.int64) - int(ev.start_ns)) * 1e-9
+    data = np.asarray(ev.values("sheet_points"), dtype=float)
+    tack = tack_with_peel(model, dict(params or {}), t_sheet, data, beta, keep_carried=True)
+    if tack is None:
+        _drop_tack(sim.model)
+        return TackDecision(False, "the card rises with the gel in the recording but no peel was found (the recorded "
+                                   "card never leaves the gel)", int(rows.sum()))
+    held = t_sheet <= tack["peel_s"]
+    sigma = np.asarray(model.sigma["sheet_points"], dtype=float)
+    with_tack = _sheet_rms(model.predict(tack["carried"])["sheet_points"], data, sigma, held)
+    plain = model.simulate({**dict(params or {}), ADHESION_PARAMETER: 0.0})
+    without = _sheet_rms(model.predict(plain)["sheet_points"], data, sigma, held)
+    if not with_tack < without:
+        _drop_tack(sim.model)
+        return TackDecision(False, f"the card rises with the gel in the recording, but a replay with the tack follows "
+                                   f"it no better up to the peel (sheet points whitened RMS {with_tack:.3g} against "
+                                   f"{without:.3g} without: the card springs back on its own)", int(rows.sum()))
+    values = {ADHESION_PARAMETER: float(beta), RELEASE_TIME_SETTING: float(tack["params"][RELEASE_TIME_SETTING])}
+    for name, value in values.items():  # known to the simulator before the nominal takes them
+        sim.set_parameter(name, value)
+    model.set_nominal(values)
+    return TackDecision(True, f"the recording shows the card carried by the gel in {int(rows.sum())} rows: bonds of "
+                              f"{ADHESION_PROBE_WEIGHTS:g} card weights a pair, released at the recorded peel "
+                              f"{tack['peel_s']:.3f} s (sheet points whitened RMS up to the peel {without:.3g} -> "
+                              f"{with_tack:.3g})", int(rows.sum()), float(beta), float(tack["peel_s"]), values)
+
+
+def _drop_tack(sim_model) -> None:
+    """Take the trial's tack out of the simulator's candidates (a candidate at 0 would still make every step
+    search for its pairs, and keep replays out of lockstep batches)."""
+    kept = {k: v for k, v in sim_model.candidates.items() if not k.startswith("adhesion")}
+    if kept != sim_model.candidates:
+        sim_model.candidates = kept
+        sim_model.revision += 1
+
+
+def _sheet_rms(pred: np.ndarray, data: np.ndarray, sigma: np.ndarray, rows: np.ndarray) -> float:
+    """Whitened RMS of the sheet points over ``rows``."""
+    return float(np.sqrt(np.mean(((np.asarray(pred)[rows] - data[rows]) / sigma) ** 2)))
