@@ -1,6 +1,7 @@
 """Profile one replay of a recording as ``thinshell sysid`` makes it: where a step's CPU time goes.
 
-Usage: ``python -m benchmarks.profile_replay BAG [--no-drive] [--tangents] [--dt 0.01] [--top 25] [--out PROF]``.
+Usage: ``python -m benchmarks.profile_replay BAG [--no-drive] [--tangents] [--dt 0.01] [--arch cpu] [--top 25]
+[--out PROF]``.
 
 Builds the replay as :func:`sysid.fit_recording.fit_recording` does (the bag's scene, ``--dt`` steps, the
 effector's drive fitted in closed form unless ``--no-drive``), replays it once untimed (kernels compiled or
@@ -46,6 +47,8 @@ def _options() -> argparse.Namespace:
     parser.add_argument("--dt", type=float, default=0.01, help="replay step, s (thinshell sysid's default)")
     parser.add_argument("--no-drive", action="store_true", help="replay the measured pose (kinematic drive)")
     parser.add_argument("--tangents", action="store_true", help="time the fit's joint replay with tangents")
+    parser.add_argument("--arch", choices=("numpy", "cpu", "cuda"), default="cpu",
+                        help="elastic terms of the replay (thinshell sysid's default: cpu)")
     parser.add_argument("--t-max", type=float, default=None, help="replay only the first T_MAX s")
     parser.add_argument("--top", type=int, default=25, help="functions listed by own CPU time")
     parser.add_argument("--out", default=None, help="write the cProfile statistics to this file")
@@ -59,8 +62,14 @@ def _pardiso_counter(counts: collections.Counter):
     original = PardisoHandle._call
 
     def counted(self, phase, data, b=None):
-        counts[phase] += 1
-        return original(self, phase, data, b)
+        key = f"type {self.matrix_type} phase {phase}"
+        counts[key] += 1
+        counts[f"n {key}"] += self._n
+        c0 = time.process_time()
+        try:
+            return original(self, phase, data, b)
+        finally:
+            counts[f"cpu {key}"] += time.process_time() - c0
 
     PardisoHandle._call = counted
     return lambda: setattr(PardisoHandle, "_call", original)
@@ -89,7 +98,8 @@ def main() -> None:
     from sysid.replay_drive import drive_sensitivities
 
     evidence = load_evidence(opts.bag, include_image="auto")
-    model = ObservationModel(evidence, dt=opts.dt, t_max=opts.t_max)
+    model = ObservationModel(evidence, dt=opts.dt, t_max=opts.t_max, arch=opts.arch)
+    model.compile_kernels()
     if not opts.no_drive and model.sensor is not None:
         drive = fit_drive(model)
         if drive is not None:
@@ -137,7 +147,11 @@ def main() -> None:
                         ("", ""))]
     print(f"step evaluations {solver_steps} ({solver_steps / K:.2f} a step); Newton directions {newton} "
           f"({newton / max(solver_steps, 1):.2f} an evaluation); steps {totals.steps}")
-    print("PARDISO calls a step: " + ", ".join(f"phase {p}: {counts[p] / K:.2f}" for p in (11, 22, 33, -1)))
+    print("PARDISO calls a step (type 2: Cholesky, 11: LU; phase 11: analysis, 22: factorisation, 33: solve), "
+          "CPU ms a call, mean rows:")
+    for key in sorted(k for k in counts if k.startswith("type")):
+        print(f"  {key}: {counts[key] / K:.2f} a step, {1e3 * counts['cpu ' + key] / counts[key]:.2f} ms, "
+              f"{counts['n ' + key] / counts[key]:.0f} rows")
     print(f"Taichi launches a step (FastKernel): {counts['launches'] / K:.0f}")
     print("parts (cumulative CPU s; nested parts overlap):")
     for part, (fragment, fname) in PARTS.items():

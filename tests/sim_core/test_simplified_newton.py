@@ -70,18 +70,23 @@ def _recording_infos(sim: Simulation) -> list:
 def test_simplified_stop_keeps_no_exact_factorisation_and_the_tangents_stay_exact():
     """A step ended by the simplified test holds the factorisation of the iterate before ``x``:
     it is not offered as the exact Hessian at ``x`` (``hessian_exact`` False, no
-    ``last_factorization``), so the sensitivities assemble the Hessian at ``x`` and equal those of
-    the re-linearised recorded trajectory."""
+    ``last_factorization``), so the sensitivities have the solver assemble the Hessian at ``x`` and
+    Cholesky-factorise it (``exact_factorization``, by an assembler and a solver of its own: no general
+    LU is made) and equal those of the re-linearised recorded trajectory; the positions are bit for bit
+    those of a rollout without tangents (the Newton loop's pattern and ordering untouched)."""
     config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8)
     sim = Simulation.from_scene(_scene(), solver_config=config)
     infos = _recording_infos(sim)
     held = []
     traj_a, dX_a = rollout_sensitivities(sim, _controls()[:4], PARAMS, on_step=lambda k, T: held.append(
-        (sim.solver.last_record.hessian_exact, sim.solver.last_factorization is not None)))
+        (sim.solver.last_record.hessian_exact, sim.solver.last_factorization is not None,
+         sim.solver.exact_factorization())))
     assert any(i.simplified_stops for i in infos)
-    for info, (exact, factorization) in zip(infos, held):
+    for info, (exact, factorization, refactorised) in zip(infos, held):
         if info.simplified_stops:
             assert not exact and not factorization
+            assert refactorised is not None and refactorised is not sim.solver.linear_solver
+    assert sim.solver._general_solver is None  # every step's tangents solved with a Cholesky factorisation
     sim_b = Simulation.from_scene(_scene(), solver_config=config)
     traj_b = rollout(sim_b, _controls()[:4])
     for rec in traj_b.records:
