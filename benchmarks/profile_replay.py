@@ -25,6 +25,8 @@ import math
 import pstats
 import time
 
+import numpy as np
+
 PARTS = {  # part -> (module path fragment, function name): cumulative CPU time of the outermost calls
     "Newton iterations": ("sim_core/solver.py", "_newton_iterations"),
     "step set-up (contact begin, friction)": ("sim_core/solver.py", "_set_up_step"),
@@ -52,6 +54,9 @@ def _options() -> argparse.Namespace:
     parser.add_argument("--t-max", type=float, default=None, help="replay only the first T_MAX s")
     parser.add_argument("--top", type=int, default=25, help="functions listed by own CPU time")
     parser.add_argument("--out", default=None, help="write the cProfile statistics to this file")
+    parser.add_argument("--no-profile", action="store_true",
+                        help="time the replay without cProfile (its CPU seconds without the profiler's overhead)")
+    parser.add_argument("--repeat", type=int, default=1, help="timed replays (the CPU seconds of each are printed)")
     return parser.parse_args()
 
 
@@ -106,9 +111,13 @@ def main() -> None:
             model.set_drive_stiffness(drive.replay_stiffness, drive.replay_damping)
     params = {name: model.parameter_value(name) for name in DEFAULT_PARAMETERS}
 
+    step_cpu = [time.process_time()]
+
     def replay():
         if not opts.tangents:
-            return model.simulate(params)
+            step_cpu[1:] = []
+            step_cpu[0] = time.process_time()
+            return model.simulate(params, on_step=lambda k, K: step_cpu.append(time.process_time()))
         sim = model.prepare(params)
         if math.isfinite(model.drive_stiffness):
             drive_sensitivities(model, sim, list(params))
@@ -120,23 +129,36 @@ def main() -> None:
     counts: collections.Counter = collections.Counter()
     undo = [_pardiso_counter(counts), _launch_counter(counts)]
     profile = cProfile.Profile(time.process_time)
-    c0, w0 = time.process_time(), time.perf_counter()
-    profile.enable()
-    result = replay()
-    profile.disable()
-    cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    cpus = []
+    for _ in range(max(opts.repeat, 1)):
+        c0, w0 = time.process_time(), time.perf_counter()
+        if not opts.no_profile:
+            profile.enable()
+        result = replay()
+        profile.disable()
+        cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+        cpus.append(cpu)
+    counts = collections.Counter({k: v / len(cpus) for k, v in counts.items()})
     for u in undo:
         u()
     sim = model.simulation() if opts.tangents else None
     totals = (sim.step_totals if sim is not None else result.step_totals)
     K = model.step_count
-    stats = pstats.Stats(profile)
-    if opts.out:
-        stats.dump_stats(opts.out)
     print(f"replay of {opts.bag}: {K} steps of {opts.dt:g} s, drive "
           f"{'kinematic' if math.isinf(model.drive_stiffness) else f'{model.drive_stiffness:.0f} N/m'}, "
           f"tangents {opts.tangents}")
-    print(f"CPU {cpu:.2f} s (wall {wall:.2f} s, under the profiler): {1e3 * cpu / K:.1f} ms CPU a step")
+    print(f"CPU {', '.join(f'{c:.2f}' for c in cpus)} s (last wall {wall:.2f} s"
+          f"{'' if opts.no_profile else ', under the profiler'}): {1e3 * min(cpus) / K:.1f} ms CPU a step (least)")
+    print("PARDISO calls a step (type 2: Cholesky, 11: LU; phase 11: analysis, 22: factorisation, 33: solve), "
+          "CPU ms a call, mean rows:")
+    for key in sorted(k for k in counts if k.startswith("type")):
+        print(f"  {key}: {counts[key] / K:.2f} a step, {1e3 * counts['cpu ' + key] / counts[key]:.2f} ms, "
+              f"{counts['n ' + key] / counts[key]:.0f} rows")
+    if opts.no_profile:
+        return
+    stats = pstats.Stats(profile)
+    if opts.out:
+        stats.dump_stats(opts.out)
     raw = stats.stats  # (file, line, name) -> (cc, nc, tt, ct, callers)
     calls = collections.Counter()
     for (file, _, name), (_, nc, _, _, _) in raw.items():
@@ -147,17 +169,20 @@ def main() -> None:
                         ("", ""))]
     print(f"step evaluations {solver_steps} ({solver_steps / K:.2f} a step); Newton directions {newton} "
           f"({newton / max(solver_steps, 1):.2f} an evaluation); steps {totals.steps}")
-    print("PARDISO calls a step (type 2: Cholesky, 11: LU; phase 11: analysis, 22: factorisation, 33: solve), "
-          "CPU ms a call, mean rows:")
-    for key in sorted(k for k in counts if k.startswith("type")):
-        print(f"  {key}: {counts[key] / K:.2f} a step, {1e3 * counts['cpu ' + key] / counts[key]:.2f} ms, "
-              f"{counts['n ' + key] / counts[key]:.0f} rows")
     print(f"Taichi launches a step (FastKernel): {counts['launches'] / K:.0f}")
     print("parts (cumulative CPU s; nested parts overlap):")
     for part, (fragment, fname) in PARTS.items():
         ct = sum(v[3] for (file, _, name), v in raw.items() if file.endswith(fragment) and name == fname)
         print(f"  {part:50s} {ct:8.2f} s  {1e3 * ct / K:7.2f} ms a step")
-    stats.sort_stats("tottime").print_stats(opts.top)
+    if not opts.tangents:  # CPU a step (profiled) of the steps with and without a load on the sensor
+        per_step = np.diff(np.asarray(step_cpu))
+        loaded = np.linalg.norm(np.asarray(result.wrench)[1:, :3], axis=1) > 0.0
+        for name, mask in (("without contact", ~loaded), ("in contact", loaded)):
+            if mask.any():
+                print(f"steps {name}: {int(mask.sum())}, CPU median {1e3 * np.median(per_step[mask]):.1f} ms, "
+                      f"mean {1e3 * per_step[mask].mean():.1f} ms (profiled)")
+    if opts.top:
+        stats.sort_stats("tottime").print_stats(opts.top)
 
 
 if __name__ == "__main__":

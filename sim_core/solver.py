@@ -692,6 +692,8 @@ class NewtonSolver:
         if self._exact_parts is None:
             self._exact_parts = (HessianAssembler(self.model.dof_count), make_symmetric_solver(self.config.linear_solver))
         assembler, solver = self._exact_parts
+        if step.fused is not None:  # its values are in the slots of the Newton loop's static pattern
+            assembler.use_pattern(step.fused.pattern)
         H = self._assemble_hessian(step, x, "none", self._last_contact_terms + step.dynamic_terms, assembler)
         self._refactorised = solver if solver.factorize(H) else None
         return self._refactorised
