@@ -157,3 +157,30 @@ def test_simplified_stops_with_adhesion_pairs_reach_the_ordinary_result():
         assert info.factorizations == info.iterations - info.simplified_stops + info.projected_iterations
         assert np.max(np.abs(x - x_ref)) < tol_dx
     assert sum(r[0].factorizations for r in runs) < sum(r[0].factorizations for r in ref)
+
+
+def test_tangents_on_the_fused_taichi_path_solve_with_the_refactorised_exact_hessian():
+    """On the Taichi CPU backend the step's elastic Hessian comes from the fused kernels, whose values sit in
+    the slots of the Newton loop's static pattern: the refactorisation at ``x`` of a step ended by the
+    simplified test assembles them with an assembler of its own (``HessianAssembler.use_pattern``). The
+    positions are bit for bit those of a rollout without tangents, every step's tangents solve with a
+    Cholesky factorisation, and they equal those of the recorded trajectory linearised again (its exact
+    Hessian assembled element by element, a general LU) to round-off."""
+    config = SolverConfig(backend="taichi-cpu", tol_velocity=1e-9, tol_force=5e-8)
+    sim = Simulation.from_scene(_scene(), solver_config=config)
+    infos = _recording_infos(sim)
+    held = []
+    traj_a, dX_a, dF_a = rollout_sensitivities(sim, _controls()[:4], PARAMS, contact_force=True,
+                                               on_step=lambda k, T: held.append(sim.solver.exact_factorization()))
+    assert sim.solver.backend == "taichi-cpu" and any(i.simplified_stops for i in infos)
+    assert all(h is not None for h in held) and sim.solver._general_solver is None
+    sim_b = Simulation.from_scene(_scene(), solver_config=config)
+    traj_b = rollout(sim_b, _controls()[:4])
+    for rec in traj_b.records:
+        rec.hessian_exact = False
+    _, dX_b, dF_b = parameter_sensitivities(sim_b, None, PARAMS, trajectory=traj_b, contact_force=True)
+    np.testing.assert_array_equal(traj_a.x, traj_b.x)
+    for got, ref in ((dX_a, dX_b), (dF_a, dF_b)):
+        scale = np.abs(ref).reshape(-1, len(PARAMS)).max(axis=0)
+        assert np.all(scale > 0)
+        assert np.max(np.abs(got - ref).reshape(-1, len(PARAMS)) / scale) < 1e-8
