@@ -44,7 +44,7 @@ PARTS = {  # part -> (module path fragment, function name): cumulative CPU time 
 
 
 def _options() -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_replay", description=__doc__.split("\n\n")[0])
     parser.add_argument("bag", help="rosbag2 directory with its scene.yaml")
     parser.add_argument("--dt", type=float, default=0.01, help="replay step, s (thinshell sysid's default)")
     parser.add_argument("--no-drive", action="store_true", help="replay the measured pose (kinematic drive)")
