@@ -76,6 +76,18 @@ class HessianAssembler:
         self._static = kept[0]
         return self._static
 
+    def use_pattern(self, pattern: StaticPattern) -> None:
+        """Make ``pattern``, a static pattern of another assembler of the same ``dof_count`` (e.g. the one a
+        fused evaluator is bound to, :mod:`sim_core.fused_elastic`), this one's current static pattern, for
+        :meth:`assemble_upper_values` with this assembler's own union of dynamic entries.
+
+        Raises:
+            ValueError: the pattern is of another DoF count.
+        """
+        if pattern.dof_count != self.dof_count:
+            raise ValueError(f"use_pattern: pattern of {pattern.dof_count} DoFs, assembler of {self.dof_count}")
+        self._static = pattern
+
     def assemble_upper(
         self,
         static: Sequence[HessianBlocks],

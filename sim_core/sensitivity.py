@@ -213,10 +213,11 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
                           on_step: Callable[[int, int], None] | None = None):
     """Roll out ``sim`` through ``controls`` and propagate ``dX/dp`` in the same pass.
 
-    After each step the tangents are solved with the factorisation the Newton solver already holds
-    (``NewtonSolver.last_factorization``: the constrained exact Hessian at the converged
-    positions, the matrix of the final Newton iteration); only when that iteration used a
-    PSD-projected matrix is the exact Hessian assembled and factorised again. The states and the
+    After each step the tangents are solved with the factorisation of the constrained exact Hessian at the
+    converged positions (``NewtonSolver.exact_factorization``: the matrix of the final Newton iteration the
+    solver already holds; where the step ended on the simplified Newton test or a projected matrix, the
+    exact one assembled by the solver's fused kernels and Cholesky-factorised once); only where that
+    Hessian is not positive definite is it assembled again and LU-factorised. The states and the
     tangents are those of :func:`sim_core.adjoint.rollout` followed by :func:`parameter_sensitivities`
     on the recorded trajectory, up to round-off.
 
@@ -249,7 +250,7 @@ def rollout_sensitivities(sim, controls: Sequence[Control | None], params: Seque
     for i, c in enumerate(controls):
         c = rollout_step(sim, c, i)
         rec = sim.solver.last_record
-        factorization = sim.solver.last_factorization
+        factorization = sim.solver.exact_factorization()
         if factorization is None:
             fallback = fallback or sim.solver.general_solver()
         lin = tangents.linearization(rec, states[-1], fallback, factorization=factorization)

@@ -137,6 +137,11 @@ class NewtonSolver:
         self._sleep = SleepSet(self.model, self.config.sleep_velocity)
         self._last_update: np.ndarray | None = None  # the last step's StepTerms.last_update
         self._last_contact_terms: list = []  # the contact terms at the last step's result
+        # (step terms, accepted x) of the last step when its Newton matrix is not the exact Hessian at x,
+        # and the assembler and solver that factorise that Hessian on request (exact_factorization)
+        self._inexact_step: tuple[StepTerms, np.ndarray] | None = None
+        self._exact_parts: tuple[HessianAssembler, SymmetricSolver] | None = None
+        self._refactorised: SymmetricSolver | None = None
         self._free_dofs = FreeDofs()  # the step's free and fixed DoFs, kept for a read-only boundary mask
 
     def notify_model_changed(self) -> None:
@@ -649,18 +654,49 @@ class NewtonSolver:
         return largest_move(d_bar) / step.dt, d_bar
 
     def _assemble_hessian(self, step: StepTerms, x: np.ndarray, projection: str,
-                          dynamic_terms: list) -> sp.csr_matrix:
+                          dynamic_terms: list, assembler: HessianAssembler | None = None) -> sp.csr_matrix:
         """Upper triangle (CSR) of the constrained Newton matrix at ``x`` with element Hessians
-        projected by ``projection`` ("none": exact)."""
+        projected by ``projection`` ("none": exact), by ``assembler`` (default: the Newton loop's)."""
+        assembler = self.assembler if assembler is None else assembler
         fused = step.fused
         if fused is not None:
             values = (fused.hessian_values(x) if projection == "none"
                       else fused.projected_hessian_values(x, projection))
-            return self.assembler.assemble_upper_values(fused.pattern, values,
-                                                        [p.hessian(x, projection) for p in dynamic_terms],
-                                                        step.diag, step.free)
-        return self.assembler.assemble_upper([p.hessian(x, projection) for p in step.elastic_terms],
-                                             [p.hessian(x, projection) for p in dynamic_terms], step.diag, step.free)
+            return assembler.assemble_upper_values(fused.pattern, values,
+                                                   [p.hessian(x, projection) for p in dynamic_terms],
+                                                   step.diag, step.free)
+        return assembler.assemble_upper([p.hessian(x, projection) for p in step.elastic_terms],
+                                        [p.hessian(x, projection) for p in dynamic_terms], step.diag, step.free)
+
+    def exact_factorization(self) -> LinearSolver | SymmetricSolver | None:
+        """A solver holding the factorisation of the constrained exact Hessian at the last step's accepted
+        positions, the matrix forward tangents solve with (:mod:`sim_core.sensitivity`); valid until the next step.
+
+        That is :attr:`last_factorization` where the step's last Newton matrix is that Hessian. Otherwise (a step
+        ended by the simplified Newton test holds the matrix of the iterate before ``x``; a projected matrix)
+        the exact Hessian at ``x`` is assembled from the step's own terms (fused elastic kernels, contacts at
+        ``x``) and Cholesky-factorised once, by an assembler and a solver of their own, so that the Newton
+        loop's union pattern and PARDISO's ordering, and so the next steps, are those of a replay without
+        tangents; the step's record and :attr:`last_factorization` are left as they are.
+
+        Returns:
+            the solver; None before a step, with a linear solver other than ``pardiso`` / ``scipy``, or where
+            the exact Hessian at ``x`` is not positive definite (the caller factorises the general way).
+        """
+        if self.last_factorization is not None or self._inexact_step is None:
+            return self.last_factorization or self._refactorised
+        step, x = self._inexact_step
+        self._inexact_step = None
+        if self.config.linear_solver not in ("pardiso", "scipy"):
+            return None
+        if self._exact_parts is None:
+            self._exact_parts = (HessianAssembler(self.model.dof_count), make_symmetric_solver(self.config.linear_solver))
+        assembler, solver = self._exact_parts
+        if step.fused is not None:  # its values are in the slots of the Newton loop's static pattern
+            assembler.use_pattern(step.fused.pattern)
+        H = self._assemble_hessian(step, x, "none", self._last_contact_terms + step.dynamic_terms, assembler)
+        self._refactorised = solver if solver.factorize(H) else None
+        return self._refactorised
 
     def _newton_direction(self, step: StepTerms, x: np.ndarray, g: np.ndarray, contact_terms: list, it: int,
                           info: StepInfo) -> tuple[np.ndarray, sp.csr_matrix, str, LinearSolver | SymmetricSolver]:
@@ -776,6 +812,7 @@ class NewtonSolver:
         self._last_contact_terms = contact_terms
         self.last_free_mask = step.free
         self.last_factorization = factorization if exact else None
+        self._inexact_step, self._refactorised = (None if exact else (step, x)), None
         info.energy = (self._energy(step, x, contact_terms, self.contact.search_position) + self._sleep.energy
                        + (self.contact.held_friction_energy if self._sleep.bodies else 0.0))
         x_prev, v_prev, x_kept = (a if FrozenPositionsKey.holds(a) else a.copy() for a in (x_n, state_in.v, x))

@@ -122,7 +122,7 @@ def drive_sensitivities(model, sim, params: Sequence[str]
 
     Each step is solved by :meth:`ReplayDrive.step` (its Newton solves start from ``model.warm_start`` when
     set); its tangents are solved with the factorisation of the step's accepted evaluation
-    (``NewtonSolver.last_factorization``) and carried through the spring's compression
+    (``NewtonSolver.exact_factorization``) and carried through the spring's compression
     (:meth:`sim_core.sensitivity.TangentPropagation.advance` with a :class:`~sim_core.sensitivity.DriveStep`).
 
     Args:
@@ -159,7 +159,7 @@ def drive_sensitivities(model, sim, params: Sequence[str]
         if abs(float(record.dt) - float(sim.dt)) > 1e-12 * float(sim.dt):
             raise ConfigError(f"drive replay step {k}: the solver halved dt (dt {record.dt:g} s of {sim.dt:g} s); "
                               "such a step is not differentiable")
-        factorization = sim.solver.last_factorization
+        factorization = sim.solver.exact_factorization()
         if factorization is None:
             fallback = fallback or sim.solver.general_solver()
         lin = tangents.linearization(record, states[-1], fallback, factorization=factorization)

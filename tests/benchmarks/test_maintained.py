@@ -20,7 +20,7 @@ SCRIPTS = ("bench_band_factor", "bench_cg_precision", "bench_copy_bands", "bench
            "single_rounds", "synthetic_diagnose", "time_batched_gradients", "node_latency_trace", "flood_sim_node",
            "sysid_coverage")
 """Scripts run as ``python benchmarks/NAME.py``."""
-MODULES = ("diagnose_bench", "bench_fit", "synthetic_effects")
+MODULES = ("diagnose_bench", "bench_fit", "synthetic_effects", "profile_replay")
 """Benchmarks run as ``python -m benchmarks.NAME``."""
 SHELL = ("device_cpu.sh", "device_cuda.sh", "compare_cuda.sh", "sync_gpu_src.sh")
 

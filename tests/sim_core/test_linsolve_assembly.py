@@ -77,6 +77,32 @@ def test_cached_dynamic_map_and_static_values_path_match_reference():
         np.testing.assert_allclose(full_from_upper(V).toarray(), ref, rtol=1e-13, atol=1e-12)
 
 
+def test_a_second_assembler_on_the_first_ones_static_pattern_assembles_the_same_matrix():
+    """A second assembler given the first one's static pattern (``use_pattern``: the slots fused kernels write
+    into) assembles the same matrix from those slot values, with a union of dynamic entries of its own (the
+    first one's union pattern is left as it was); a pattern of another DoF count is refused by name."""
+    rng = np.random.default_rng(5)
+    n_v = 18
+    static = [_random_blocks(rng, n_v, 14, 3)]
+    first, second = HessianAssembler(3 * n_v), HessianAssembler(3 * n_v)
+    diag = rng.uniform(1.0, 2.0, 3 * n_v)
+    free = np.repeat(rng.uniform(size=n_v) > 0.25, 3)
+    pattern = first.static_pattern([b.vertices for b in static], free)
+    slots = pattern.slot_map(static[0].vertices)
+    values = np.bincount(slots[slots >= 0], weights=static[0].blocks[slots >= 0], minlength=pattern.keys.size)
+    kept = [_random_blocks(rng, n_v, 4, 4)]
+    U_before = first.assemble_upper_values(pattern, values, kept, diag, free)
+    other = [_random_blocks(rng, n_v, 5, 4)]
+    second.use_pattern(pattern)
+    V = second.assemble_upper_values(pattern, values, other, diag, free)
+    np.testing.assert_allclose(full_from_upper(V).toarray(), _reference(static + other, diag, free), rtol=1e-13,
+                               atol=1e-12)
+    U_after = first.assemble_upper_values(pattern, values, kept, diag, free)
+    assert np.array_equal(U_after.indptr, U_before.indptr) and np.array_equal(U_after.indices, U_before.indices)
+    with pytest.raises(ValueError, match="use_pattern: pattern of 54 DoFs, assembler of 9"):
+        HessianAssembler(9).use_pattern(pattern)
+
+
 def _spd_upper(rng, n: int, shift: float = 0.0):
     a = sp.random(n, n, density=0.05, random_state=int(rng.integers(1 << 30)))
     A = (a @ a.T + sp.eye(n)).toarray()

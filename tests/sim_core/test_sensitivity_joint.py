@@ -24,6 +24,26 @@ CONFIGS = {"exact_first": SolverConfig(tol_velocity=1e-9, tol_force=5e-8),
            "projection_none": CONFIG}
 
 
+def relinearised(config: SolverConfig, controls: list) -> tuple:
+    """The reference of the joint tangents: ``controls`` rolled out on the card with ``config`` and every recorded
+    step linearised again (exact Hessian assembled element by element, a general LU); ``(sim, trajectory, dX, dF)``."""
+    sim_b = Simulation.from_scene(_scene(), solver_config=config)
+    traj_b = rollout(sim_b, controls)
+    for rec in traj_b.records:
+        rec.hessian_exact = False
+    _, dX_b, dF_b = parameter_sensitivities(sim_b, None, PARAMS, trajectory=traj_b, contact_force=True)
+    return sim_b, traj_b, dX_b, dF_b
+
+
+def assert_tangents_equal(pairs, rtol: float = 1e-8) -> None:
+    """Each ``(got, ref)`` tangent pair ``(K + 1, n, 3, P)`` equal within ``rtol`` of the reference's largest entry
+    per parameter (each parameter moving something)."""
+    for got, ref in pairs:
+        scale = np.abs(ref).reshape(-1, len(PARAMS)).max(axis=0)
+        assert np.all(scale > 0)
+        assert np.max(np.abs(got - ref).reshape(-1, len(PARAMS)) / scale) < rtol
+
+
 @pytest.mark.parametrize("config", sorted(CONFIGS))
 def test_joint_rollout_tangents_equal_recorded_linearisation(config):
     sim_a = Simulation.from_scene(_scene(), solver_config=CONFIGS[config])
@@ -31,17 +51,9 @@ def test_joint_rollout_tangents_equal_recorded_linearisation(config):
     traj_a, dX_a, dF_a = rollout_sensitivities(sim_a, _controls(), PARAMS, contact_force=True,
                                                on_step=lambda k, T: steps.append((k, T)))
     assert steps == [(k, 4) for k in range(1, 5)] and traj_a.records is None
-    sim_b = Simulation.from_scene(_scene(), solver_config=CONFIGS[config])
-    traj_b = rollout(sim_b, _controls())
-    # reference: re-assembled exact Hessian, general LU, every step
-    for rec in traj_b.records:
-        rec.hessian_exact = False
-    _, dX_b, dF_b = parameter_sensitivities(sim_b, None, PARAMS, trajectory=traj_b, contact_force=True)
+    sim_b, traj_b, dX_b, dF_b = relinearised(CONFIGS[config], _controls())
     np.testing.assert_array_equal(traj_a.x, traj_b.x)
-    for got, ref in ((dX_a, dX_b), (dF_a, dF_b)):
-        scale = np.abs(ref).reshape(-1, len(PARAMS)).max(axis=0)
-        assert np.all(scale > 0)
-        assert np.max(np.abs(got - ref).reshape(-1, len(PARAMS)) / scale) < 1e-8
+    assert_tangents_equal(((dX_a, dX_b), (dF_a, dF_b)))
     obs_a = observation_sensitivities(sim_a.model, traj_a, dX_a, dF_a)
     obs_b = observation_sensitivities(sim_b.model, traj_b, dX_b, dF_b)
     for key in obs_b:

@@ -21,6 +21,7 @@ from sim_core.sensitivity import parameter_sensitivities, rollout_sensitivities
 from sim_core.simulation import Simulation
 from sim_core.solver import SolverConfig
 from tests.sim_core.test_adjoint import PARAMS, _scene
+from tests.sim_core.test_sensitivity_joint import assert_tangents_equal, relinearised
 
 
 def _controls() -> list[Control]:
@@ -70,18 +71,23 @@ def _recording_infos(sim: Simulation) -> list:
 def test_simplified_stop_keeps_no_exact_factorisation_and_the_tangents_stay_exact():
     """A step ended by the simplified test holds the factorisation of the iterate before ``x``:
     it is not offered as the exact Hessian at ``x`` (``hessian_exact`` False, no
-    ``last_factorization``), so the sensitivities assemble the Hessian at ``x`` and equal those of
-    the re-linearised recorded trajectory."""
+    ``last_factorization``), so the sensitivities have the solver assemble the Hessian at ``x`` and
+    Cholesky-factorise it (``exact_factorization``, by an assembler and a solver of its own: no general
+    LU is made) and equal those of the re-linearised recorded trajectory; the positions are bit for bit
+    those of a rollout without tangents (the Newton loop's pattern and ordering untouched)."""
     config = SolverConfig(tol_velocity=1e-9, tol_force=5e-8)
     sim = Simulation.from_scene(_scene(), solver_config=config)
     infos = _recording_infos(sim)
     held = []
     traj_a, dX_a = rollout_sensitivities(sim, _controls()[:4], PARAMS, on_step=lambda k, T: held.append(
-        (sim.solver.last_record.hessian_exact, sim.solver.last_factorization is not None)))
+        (sim.solver.last_record.hessian_exact, sim.solver.last_factorization is not None,
+         sim.solver.exact_factorization())))
     assert any(i.simplified_stops for i in infos)
-    for info, (exact, factorization) in zip(infos, held):
+    for info, (exact, factorization, refactorised) in zip(infos, held):
         if info.simplified_stops:
             assert not exact and not factorization
+            assert refactorised is not None and refactorised is not sim.solver.linear_solver
+    assert sim.solver._general_solver is None  # every step's tangents solved with a Cholesky factorisation
     sim_b = Simulation.from_scene(_scene(), solver_config=config)
     traj_b = rollout(sim_b, _controls()[:4])
     for rec in traj_b.records:
@@ -152,3 +158,23 @@ def test_simplified_stops_with_adhesion_pairs_reach_the_ordinary_result():
         assert info.factorizations == info.iterations - info.simplified_stops + info.projected_iterations
         assert np.max(np.abs(x - x_ref)) < tol_dx
     assert sum(r[0].factorizations for r in runs) < sum(r[0].factorizations for r in ref)
+
+
+def test_tangents_on_the_fused_taichi_path_solve_with_the_refactorised_exact_hessian():
+    """On the Taichi CPU backend the step's elastic Hessian comes from the fused kernels, whose values sit in
+    the slots of the Newton loop's static pattern: the refactorisation at ``x`` of a step ended by the
+    simplified test assembles them with an assembler of its own (``HessianAssembler.use_pattern``). The
+    positions are bit for bit those of a rollout without tangents, every step's tangents solve with a
+    Cholesky factorisation, and they equal those of the recorded trajectory linearised again (its exact
+    Hessian assembled element by element, a general LU) to round-off."""
+    config = SolverConfig(backend="taichi-cpu", tol_velocity=1e-9, tol_force=5e-8)
+    sim = Simulation.from_scene(_scene(), solver_config=config)
+    infos = _recording_infos(sim)
+    held = []
+    traj_a, dX_a, dF_a = rollout_sensitivities(sim, _controls()[:4], PARAMS, contact_force=True,
+                                               on_step=lambda k, T: held.append(sim.solver.exact_factorization()))
+    assert sim.solver.backend == "taichi-cpu" and any(i.simplified_stops for i in infos)
+    assert all(h is not None for h in held) and sim.solver._general_solver is None
+    _, traj_b, dX_b, dF_b = relinearised(config, _controls()[:4])
+    np.testing.assert_array_equal(traj_a.x, traj_b.x)
+    assert_tangents_equal(((dX_a, dX_b), (dF_a, dF_b)))
