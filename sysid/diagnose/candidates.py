@@ -349,13 +349,17 @@ class PhysicsParameterCandidate:
         """
         if not factor > 1.0:
             raise ValueError(f"candidate {self.name}: grow factor must be > 1, got {factor!r}")
-        limit = 0.9 * PARAMETER_BOUNDS.get(self.parameter, math.inf)
-        new = min(self.probe_beta * factor, limit)
+        new = min(self.probe_beta * factor, self.largest_probe)
         if not new > self.probe_beta:
             return False
         self.probe_beta = new
         self.bound = min(4.0 * self.probe_beta, PARAMETER_BOUNDS.get(self.parameter, math.inf))
         return True
+
+    @property
+    def largest_probe(self) -> float:
+        """Largest probe :meth:`grow_probe` gives: 90 % of the parameter's bound (inf where it has none)."""
+        return 0.9 * PARAMETER_BOUNDS.get(self.parameter, math.inf)
 
     @property
     def key(self) -> str:

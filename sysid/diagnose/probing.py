@@ -10,12 +10,52 @@ batches would give. The host class provides ``model``, ``settings``, ``tested``,
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+import math
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from sysid.diagnose import candidates as cands
 from sysid.diagnose.residuals import whiten
+
+
+def rescale_factor(seen: Sequence[tuple[float, float]], target: float, max_growth: float,
+                   largest: float = math.inf) -> float:
+    """Factor on the last probe of a chain that brings its change towards ``target`` (1: keep it).
+
+    Args:
+        seen: ``(|beta|, change)`` of the chain's probes so far, the current one last (change: the
+            largest whitened RMS of the prediction change over the tested channels, noise units).
+        target: the change aimed at; a probe in ``[target / 4, 4 target]`` is kept.
+        max_growth: largest factor (up or down) of one rescale.
+        largest: largest ``|beta|`` a grow may give (the parameter's bound; inf: none).
+
+    Returns:
+        ``target / change`` clipped to ``[1 / max_growth, max_growth]`` (linear response), except: a
+        rescale that would reach or pass an earlier probe on the other side of the range lands inside
+        that bracket, on the power law through its two ends (the geometric mean where a change is 0);
+        a grow that ``largest`` caps short of ``target / 4`` on the linear response gives 1.
+    """
+    beta, m = seen[-1]
+    low, high = 0.25 * target, 4.0 * target
+    if low <= m <= high or not beta > 0.0:
+        return 1.0
+    factor = max_growth if m <= 0.0 else float(np.clip(target / m, 1.0 / max_growth, max_growth))
+    grow = m < low
+    if grow and factor * beta > largest and m * largest / beta < low:
+        return 1.0
+    if grow:
+        ends = [(b, c) for b, c in seen[:-1] if c > high and beta < b <= factor * beta]
+    else:
+        ends = [(b, c) for b, c in seen[:-1] if c < low and factor * beta <= b < beta]
+    if not ends:
+        return factor
+    b2, m2 = min(ends) if grow else max(ends)
+    if m > 0.0 and m2 > 0.0:
+        inside = beta * (target / m) ** (math.log(b2 / beta) / math.log(m2 / m))
+        if min(beta, b2) < inside < max(beta, b2):
+            return inside / beta
+    return math.sqrt(b2 / beta)
 
 
 class ProbeCalibration:
@@ -54,6 +94,17 @@ class ProbeCalibration:
         probe that diverges leaves the previous one in place and is not rescaled again (replays are
         deterministic: the second round would repeat the same rescale and the same divergence).
 
+        The chain's own replays bound the rescaling (:func:`rescale_factor`): a rescale stays inside
+        the bracket of an earlier probe on the other side of the range (a power law through the two
+        ends), and a probe is not grown where the parameter's bound (``largest_probe``) caps it short
+        of ``target / 4`` on the same linear response: that grow could not reach the range, and it
+        replays the most nonlinear probe there is. On the demo's recording anisotropic bending grew
+        from 0.3 (0.16 noise units) to 0.855, 0.9 of its bound, where the card buckled (292 units,
+        17 CPU s, a sixth of the diagnosis), and was then shrunk to 0.0059, where a linear response
+        gives 0.003 units; adhesion shrunk from 1.0e-3 (58 units) to 3.6e-5 (1.3e-3 units) was then
+        grown to 3.6e-2, 35 times past the probe known to overshoot (docs/benchmarks_log.md,
+        2026-11-27, session 52, 51fast).
+
         A replay chain (:mod:`sysid.diagnose.schedule`): ``rep`` is the probe's replay (None:
         diverged, left alone), the result the replay kept. Notes go to ``notes`` as
         ``((round, kind, index), text)`` for :meth:`_merge_notes`.
@@ -61,16 +112,18 @@ class ProbeCalibration:
         s = self.settings
         if not hasattr(c, "grow_probe"):
             return rep
+        seen: list[tuple[float, float]] = []
         for k in range(2):
             if rep is None:
                 return rep
             m = self._probe_change(ctx, rep[1])
+            seen.append((abs(c.probe_beta), m))
             old = (c.probe_beta, c.bound)
-            if m < 0.25 * s.probe_target:
-                factor = s.probe_max_growth if m <= 0.0 else min(s.probe_target / m, s.probe_max_growth)
-                changed = factor > 1.0 and c.grow_probe(factor)
-            elif m > 4.0 * s.probe_target:
-                c.shrink_probe(max(s.probe_target / m, 1.0 / s.probe_max_growth))
+            factor = rescale_factor(seen, s.probe_target, s.probe_max_growth, getattr(c, "largest_probe", math.inf))
+            if factor > 1.0:
+                changed = c.grow_probe(factor)
+            elif factor < 1.0:
+                c.shrink_probe(factor)
                 c.bound = old[1]  # the refit may still go as far as the first probe did
                 changed = True
             else:

@@ -452,3 +452,49 @@ def test_rollout_free_probes_are_the_library_probes_except_plasticity():
     assert {"stiction", "gel_viscoelasticity", "adhesion"} <= {c.name for c in library}
     assert cands.rollout_free_probes(d.model, {}, d.tested, ("stiction",)) == [
         c.probe(ctx) for c in library if c.name == "stiction"]
+
+
+def test_rescale_stays_inside_the_bracket_of_the_chains_own_probes():
+    from sysid.diagnose.probing import rescale_factor
+
+    # the linear response: target / change, within the growth limit; a probe in range is kept
+    assert rescale_factor([(1.0, 0.1)], 2.0, 1000.0) == pytest.approx(20.0)
+    assert rescale_factor([(1.0, 80.0)], 2.0, 1000.0) == pytest.approx(0.025)
+    assert rescale_factor([(1.0, 3.0)], 2.0, 1000.0) == 1.0
+    # adhesion on the demo's recording: 1.03e-3 overshot (57.6 units), 3.58e-5 undershot (1.31e-3 units);
+    # the grow lands inside that bracket, where the power law through its ends gives the target
+    seen = [(1.03e-3, 57.6), (3.58e-5, 1.31e-3)]
+    factor = rescale_factor(seen, 2.0, 1000.0)
+    new = 3.58e-5 * factor
+    assert 3.58e-5 < new < 1.03e-3
+    slope = math.log(57.6 / 1.31e-3) / math.log(1.03e-3 / 3.58e-5)
+    assert 1.31e-3 * (new / 3.58e-5) ** slope == pytest.approx(2.0)
+    # and a shrink does not pass an earlier probe that undershot
+    assert 0.3 < 0.855 * rescale_factor([(0.3, 0.3), (0.855, 292.0)], 2.0, 1000.0) < 0.855
+    # anisotropic bending: 0.16 units at 0.3, its bound caps a grow at 0.855, where the linear response
+    # gives 0.45 < target / 4: not grown; uncapped (or reaching the range at the cap) it is
+    assert rescale_factor([(0.3, 0.159)], 2.0, 1000.0, largest=0.855) == 1.0
+    assert rescale_factor([(0.3, 0.159)], 2.0, 1000.0) == pytest.approx(2.0 / 0.159)
+    assert rescale_factor([(0.3, 0.2)], 2.0, 1000.0, largest=0.855) > 1.0
+
+
+def test_a_probe_its_bound_keeps_out_of_range_is_not_grown_into_the_nonlinear_end():
+    """The chain replays nothing more for a grow the parameter's bound caps short of the range."""
+    model, _ = _wrench_model()
+    d = _bare(model)
+    base = np.zeros((40, 6))
+    ctx = SimpleNamespace(prediction={"wrench": base}, params={})
+    aniso = PhysicsParameterCandidate("anisotropic_bending", "candidate.anisotropic_bending", 0.3, False)
+    calls = []
+
+    def replay(sets):  # linear up to 0.5, then the card buckles: hundreds of noise units
+        calls.extend(p["candidate.anisotropic_bending"] for p in sets)
+        return [(None, {"wrench": base + (0.05 if b < 0.5 else 30.0) * b})
+                for b in (p["candidate.anisotropic_bending"] for p in sets)]
+
+    probe_out = {"anisotropic_bending": replay([aniso.probe(ctx)])[0]}
+    calls.clear()
+    d._replays = replay
+    d._calibrate_probes(ctx, [aniso], probe_out)
+    assert calls == [] and aniso.probe_beta == pytest.approx(0.3)
+    assert d._probe_change(ctx, probe_out["anisotropic_bending"][1]) == pytest.approx(0.15)
