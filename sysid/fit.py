@@ -67,6 +67,10 @@ STOP_ROBUST_SIGMA = 0.1
 """Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
 once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
 coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
+FIRST_STEP = 0.5
+"""Default first trust region of ``thinshell sysid`` (:func:`fit` ``first_step``), in search-coordinate units: a
+factor e^0.5 = 1.65 on a log parameter, more than the 30 % a data sheet may be off, where least_squares' own
+first region with the default bounds is a factor 13.8 (:func:`first_region_scale`)."""
 DEFAULT_NUISANCE = {"friction.sheet_table": 0.3, "gel.poisson_ratio": 0.03, "contact.stiffness": 0.5}
 """Default nuisance priors of ``thinshell sysid`` (:func:`fit` ``nuisance``; names the scene lacks or the fit
 fits are left out): parameters a cell's data sheet does not give and the default fit holds fixed. The
@@ -98,6 +102,10 @@ class _OutOfReplays(_OutOfTime):
 
 class _WithinNoise(Exception):
     """The Gauss-Newton step at an accepted point is below the stop fraction of 1-sigma (internal)."""
+
+
+class _AllHeld(Exception):
+    """Every fitted parameter is held at an accepted point: none is identified there (internal)."""
 
 
 _WORKER: dict[str, Any] = {}
@@ -371,6 +379,8 @@ class FitResult:
             (:func:`sysid.covariance.not_identified`); each has a line in ``warnings``.
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
+        held: the parameters :func:`fit` ``hold_unidentified`` held at their start at the last accepted point
+            (each has a line in ``warnings``).
     """
 
     names: tuple[str, ...]
@@ -410,6 +420,7 @@ class FitResult:
     sigma_robust: dict[str, float] | None = None
     not_identified: tuple[str, ...] = ()
     robust: RobustCovariance | None = None
+    held: tuple[str, ...] = ()
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -507,7 +518,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
-        nuisance: Mapping[str, float] | None = None) -> FitResult:
+        nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
+        first_step: float | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -596,6 +608,23 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             the HAC sigma 14-59 times the Gauss-Newton one): this rule ends that fit after the second
             of them with the same result. False:
             the scaled sigma only (``thinshell sysid``: True).
+        hold_unidentified: hold a parameter that the data do not identify at its start value: at every
+            accepted point (the start first) the parameters whose robust 2-sigma interval there reaches zero
+            (:func:`sysid.covariance.not_identified`, judged with the robust covariance of method ``robust``
+            from that point's Jacobian and residual, no replay) get no column in the Jacobian the trust region
+            sees, so ``least_squares`` takes no step along them, and the stops measure the step of the others.
+            A trust-region step along a direction the residual barely sees is set by the region's size, not
+            the data: with the default ``+-ln(1000)`` bounds the reflective method's Coleman-Li scaling
+            ``sqrt(distance to the bound)`` makes the first region ``sqrt(ln 1000) = 2.63`` wide in log units,
+            and on nominal_s101 the bending stiffness went x13.8 in the first step, from 0.0074 to 0.103
+            (session 51), where the fit then stopped. A held parameter is re-judged at every accepted point
+            and released once the data identify it; those held at the last one are :attr:`FitResult.held`,
+            each with a warning, and are reported at their start with their interval. False: every parameter
+            is stepped (``thinshell sysid``: True).
+        first_step: width of the local phase's first trust region in every search coordinate (log units for a
+            positive parameter; :func:`first_region_scale` sets ``least_squares``' ``x_scale`` for it). None: the
+            method's own (``x_scale = 1``: 2.63 log units, a factor 13.8, within the default bounds).
+            ``thinshell sysid``: :data:`FIRST_STEP`.
 
     Returns:
         the :class:`FitResult`.
@@ -672,8 +701,27 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust) and r is not None:
-                    step, sigma_u = gauss_newton_step(J, r)
+                held = np.zeros(u.size, dtype=bool)
+                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust
+                        or hold_unidentified) and r is not None:
+                    _, sigma_u = gauss_newton_step(J, r)
+                    sigma_rob = None
+                    if (stop_robust_sigma or stop_trial_robust or hold_unidentified) and robust is not None \
+                            and sigma_u is not None:
+                        try:
+                            rob = model_robust_covariance(model, J, r, robust, seed)
+                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
+                        except CalibrationError:
+                            sigma_rob = None
+                    if hold_unidentified and sigma_rob is not None:
+                        held = unidentified_coordinates(specs, u, sigma_rob)
+                        jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
+                        if held.all():
+                            raise _AllHeld()
+                    # the step of the parameters the data identify, the held ones staying where they are; the
+                    # stops measure it in the marginal sigma of the whole problem (the uncertainty reported)
+                    step = np.zeros(u.size)
+                    step[~held] = gauss_newton_step(J[:, ~held], r)[0]
                     cost = 0.5 * float(r @ r)
                     # the trial-step stop measures steps in the reported (residual-scaled) 1-sigma
                     chi2_red = 2.0 * cost / max(r.size - u.size, 1)
@@ -684,13 +732,6 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
                             raise _WithinNoise()
-                    sigma_rob = None
-                    if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
-                        try:
-                            rob = model_robust_covariance(model, J, r, robust, seed)
-                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
-                        except CalibrationError:
-                            sigma_rob = None
                     if stop_trial_robust and sigma_rob is not None:
                         # the trial-step stop measures steps in the robust 1-sigma where it is the larger
                         jac_at["sigma_trial"] = np.maximum(jac_at["sigma_trial"], sigma_rob)
@@ -705,12 +746,16 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if gain < stop_rms:
                             jac_at["rms_gain"] = gain
                             raise _WithinNoise()
+                if held.any():  # no column, no step: least_squares leaves a held coordinate where it is
+                    J = np.array(J, dtype=float)
+                    J[:, held] = 0.0
                 return J
 
             status, message, nfev = "failed", "", 0
             jac_at["in_local"] = True
             try:
-                res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf", x_scale=1.0,
+                res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf",
+                                    x_scale=first_region_scale(u_start, lb, ub, first_step),
                                     ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
                 status = "max_nfev" if res.status == 0 else "converged" if res.status > 0 else "failed"
                 message, nfev = str(res.message), int(res.nfev)
@@ -719,6 +764,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                                                     f"{problem.sim_runs} made); best point so far returned")
             except _OutOfTime:
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
+            except _AllHeld:
+                status = "converged"
+                message = ("no parameter is identified at the start (every robust 2-sigma interval reaches zero): "
+                           "all held at their start values")
+                nfev = sum(e.phase == "local" for e in problem.history)
             except _WithinNoise:
                 status = "converged"
                 if "rms_gain" in jac_at:
@@ -783,6 +833,10 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
             sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
+    held = tuple(jac_at.get("held", ()))
+    notes.extend(f"{n} was held at its start value {values[n]:.4g} by the fit: at the last accepted point its robust "
+                 "2-sigma interval reached zero, so no step was taken along it (a step there is set by the trust "
+                 "region's size, not by the data)" for n in held)
     unidentified = not_identified(specs, values, sigma_robust)
     notes.extend(not_identified_note(n, values[n], sigma_robust[n]) for n in unidentified)
     return FitResult(
@@ -795,6 +849,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
         sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov, not_identified=unidentified,
+        held=held,
     )
 
 
@@ -826,6 +881,41 @@ def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mappin
     finally:
         ext.close()
     return J[:, len(problem.specs):], ext.sim_runs
+
+
+def first_region_scale(u: np.ndarray, lb: np.ndarray, ub: np.ndarray, first_step: float | None) -> np.ndarray | float:
+    """``x_scale`` of ``scipy.optimize.least_squares(method="trf")`` that makes its first trust region at most
+    ``first_step`` wide in every search coordinate at ``u`` ``(p,)`` within bounds ``lb``, ``ub`` ``(p,)``.
+
+    The reflective method bounds a step by ``|step_i| <= Delta sqrt(v_i x_scale_i)``, ``Delta = 1`` at a start
+    ``u = 0``, ``v_i`` the Coleman-Li scaling: the distance to the bound the gradient points at (Branch,
+    Coleman & Li 1999, SIAM J. Sci. Comput. 21(1), sec. 2; SciPy's ``trf_bounds``), or ``|step_i| <= Delta
+    x_scale_i`` where that bound is infinite. With ``x_scale = 1`` and the default ``+-ln(1000)`` bounds of a log
+    parameter the first region is ``sqrt(ln 1000) = 2.63`` wide, a factor 13.8: on nominal_s101 the bending
+    stiffness' first step (session 51). Here ``x_scale_i = first_step^2 / D_i``, ``D_i`` the larger finite distance
+    to a bound (at least ``first_step``), and ``first_step`` where both bounds are infinite. The region then
+    grows or shrinks by the method's own rule (doubled after a step the linear model predicted well).
+    None or 0: ``x_scale = 1``.
+    """
+    if not first_step:
+        return 1.0
+    u = np.asarray(u, dtype=float)
+    dist = np.stack([u - lb, ub - u])
+    finite = np.isfinite(dist)
+    D = np.maximum(np.where(finite, dist, 0.0).max(axis=0), float(first_step))
+    return np.where(finite.any(axis=0), float(first_step) ** 2 / D, float(first_step))
+
+
+def unidentified_coordinates(specs: Sequence[ParameterSpec], u: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
+    """Which coordinates :func:`sysid.covariance.not_identified` judges not identified at ``u`` ``(p,)`` given their
+    1-sigma ``sigma_u`` ``(p,)`` in the search coordinates (a log parameter: ``sigma_u >= 0.5``, first order).
+
+    Returns:
+        ``(p,)`` bool, in ``specs`` order.
+    """
+    values = {s.name: s.to_value(float(ui)) for s, ui in zip(specs, np.asarray(u, dtype=float))}
+    out = not_identified(specs, values, _sigma_of(specs, values, np.diag(np.asarray(sigma_u, dtype=float) ** 2)))
+    return np.array([s.name in out for s in specs], dtype=bool)
 
 
 def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:
