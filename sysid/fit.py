@@ -893,7 +893,8 @@ def first_region_scale(u: np.ndarray, lb: np.ndarray, ub: np.ndarray, first_step
     x_scale_i`` where that bound is infinite. With ``x_scale = 1`` and the default ``+-ln(1000)`` bounds of a log
     parameter the first region is ``sqrt(ln 1000) = 2.63`` wide, a factor 13.8: on nominal_s101 the bending
     stiffness' first step (session 51). Here ``x_scale_i = first_step^2 / D_i``, ``D_i`` the larger finite distance
-    to a bound (at least ``first_step``), and ``first_step`` where both bounds are infinite. The region then
+    to a bound (at least ``first_step``), and ``first_step`` where both bounds are infinite (with one bound
+    infinite the region is ``first_step^2 / D_i`` wide where the gradient points at that one). The region then
     grows or shrinks by the method's own rule (doubled after a step the linear model predicted well).
     None or 0: ``x_scale = 1``.
     """
