@@ -611,7 +611,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         hold_unidentified: hold a parameter that the data do not identify at its start value: at every
             accepted point (the start first) the parameters whose robust 2-sigma interval there reaches zero
             (:func:`sysid.covariance.not_identified`, judged with the robust covariance of method ``robust``
-            from that point's Jacobian and residual, no replay) get no column in the Jacobian the trust region
+            from that point's Jacobian and residual, no replay), and those whose column is zero where ``J^T J``
+            is singular (:func:`unseen_columns`), get no column in the Jacobian the trust region
             sees, so ``least_squares`` takes no step along them, and the stops measure the step of the others.
             A trust-region step along a direction the residual barely sees is set by the region's size, not
             the data: with the default ``+-ln(1000)`` bounds the reflective method's Coleman-Li scaling
@@ -705,16 +706,24 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust
                         or hold_unidentified) and r is not None:
                     _, sigma_u = gauss_newton_step(J, r)
+                    seen = np.ones(u.size, dtype=bool)
+                    if hold_unidentified and sigma_u is None:  # J^T J singular: the columns the replay does not see
+                        seen = ~unseen_columns(J)
+                        _, sigma_seen = gauss_newton_step(J[:, seen], r) if seen.any() else (None, None)
+                        if sigma_seen is not None:  # an unseen coordinate's sigma is infinite
+                            sigma_u = np.full(u.size, np.inf)
+                            sigma_u[seen] = sigma_seen
                     sigma_rob = None
                     if (stop_robust_sigma or stop_trial_robust or hold_unidentified) and robust is not None \
                             and sigma_u is not None:
                         try:
-                            rob = model_robust_covariance(model, J, r, robust, seed)
-                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
+                            rob = model_robust_covariance(model, J[:, seen], r, robust, seed)
+                            sigma_rob = np.full(u.size, np.inf)
+                            sigma_rob[seen] = np.sqrt(np.diag(rob.covariance_u))
                         except CalibrationError:
                             sigma_rob = None
-                    if hold_unidentified and sigma_rob is not None:
-                        held = unidentified_coordinates(specs, u, sigma_rob)
+                    if hold_unidentified:
+                        held = ~seen if sigma_rob is None else ~seen | unidentified_coordinates(specs, u, sigma_rob)
                         jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
                         if held.all():
                             raise _AllHeld()
@@ -905,6 +914,13 @@ def first_region_scale(u: np.ndarray, lb: np.ndarray, ub: np.ndarray, first_step
     finite = np.isfinite(dist)
     D = np.maximum(np.where(finite, dist, 0.0).max(axis=0), float(first_step))
     return np.where(finite.any(axis=0), float(first_step) ** 2 / D, float(first_step))
+
+
+def unseen_columns(J: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
+    """``(p,)`` bool, True where column ``j`` of ``J`` ``(m, p)`` is zero to ``rcond`` of the largest column's squared
+    norm: a parameter the replay does not see at all (e.g. a friction on a recording that never slides)."""
+    col = np.einsum("ij,ij->j", J, J)
+    return col <= rcond * col.max() if col.size and col.max() > 0.0 else np.ones(col.size, dtype=bool)
 
 
 def unidentified_coordinates(specs: Sequence[ParameterSpec], u: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
