@@ -14,7 +14,10 @@ Local phase: ``scipy.optimize.least_squares`` (trust-region reflective, Branch, 
 with a pluggable Jacobian provider: ``"fd"`` (central finite differences over the parameters) or
 ``"sensitivity"`` (forward sensitivities of ``sim_core.sensitivity``). Optional global phase before it
 when the start may be poor: CMA-ES (Hansen 2016, the ``cma`` package) or a Latin-hypercube
-multi-start screening; the best point found starts the local phase.
+multi-start screening; the best point found starts the local phase. ``thinshell sysid`` gives the local phase
+a first trust region of :data:`FIRST_STEP` per coordinate (:func:`first_region_scale`) and holds a parameter
+that the data do not identify at its start (``hold_unidentified``): a step along a direction the residual
+barely sees is set by the trust region's size, not by the data.
 
 Uncertainty: Gauss-Newton covariance ``Cov(u) = (J^T W J)^-1 = (J_r^T J_r)^-1`` at the optimum
 (``J_r`` the Jacobian of the whitened residual); 1-sigma of a log parameter is ``theta sigma_u``
