@@ -614,7 +614,9 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         hold_unidentified: hold a parameter that the data do not identify at its start value: at every
             accepted point (the start first) the parameters whose robust 2-sigma interval there reaches zero
             (:func:`sysid.covariance.not_identified`, judged with the robust covariance of method ``robust``
-            from that point's Jacobian and residual, no replay), and those whose column is zero where ``J^T J``
+            from that point's Jacobian and the residual its Gauss-Newton step would leave, ``r + J delta``, no
+            replay: at a start far off the residual itself is mostly the parameters' own error and would inflate
+            the sandwich; at an optimum the two agree), and those whose column is zero where ``J^T J``
             is singular (:func:`unseen_columns`), get no column in the Jacobian the trust region
             sees, so ``least_squares`` takes no step along them, and the stops measure the step of the others.
             A trust-region step along a direction the residual barely sees is set by the region's size, not
@@ -717,16 +719,16 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                             sigma_u = np.full(u.size, np.inf)
                             sigma_u[seen] = sigma_seen
                     sigma_rob = None
-                    if (stop_robust_sigma or stop_trial_robust or hold_unidentified) and robust is not None \
-                            and sigma_u is not None:
-                        try:
-                            rob = model_robust_covariance(model, J[:, seen], r, robust, seed)
-                            sigma_rob = np.full(u.size, np.inf)
-                            sigma_rob[seen] = np.sqrt(np.diag(rob.covariance_u))
-                        except CalibrationError:
-                            sigma_rob = None
+                    if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
+                        sigma_rob = _robust_sigma(model, J, r, seen, robust, seed)
                     if hold_unidentified:
-                        held = ~seen if sigma_rob is None else ~seen | unidentified_coordinates(specs, u, sigma_rob)
+                        # judged on the residual the linearised fit would leave (r itself at an optimum): at a start
+                        # far off, r is mostly the parameters' own error, which would inflate the sandwich
+                        sigma_gate = None
+                        if robust is not None and sigma_u is not None:
+                            r_lin = r + J[:, seen] @ gauss_newton_step(J[:, seen], r)[0]
+                            sigma_gate = _robust_sigma(model, J, r_lin, seen, robust, seed)
+                        held = ~seen if sigma_gate is None else ~seen | unidentified_coordinates(specs, u, sigma_gate)
                         jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
                         if held.all():
                             raise _AllHeld()
@@ -917,6 +919,20 @@ def first_region_scale(u: np.ndarray, lb: np.ndarray, ub: np.ndarray, first_step
     finite = np.isfinite(dist)
     D = np.maximum(np.where(finite, dist, 0.0).max(axis=0), float(first_step))
     return np.where(finite.any(axis=0), float(first_step) ** 2 / D, float(first_step))
+
+
+def _robust_sigma(model: ObservationModel, J: np.ndarray, r: np.ndarray, seen: np.ndarray, method: str,
+                  seed: int) -> np.ndarray | None:
+    """Robust 1-sigma ``(p,)`` of the search coordinates from the Jacobian ``J`` ``(m, p)``'s ``seen`` columns and the
+    residual ``r`` ``(m,)`` (:func:`sysid.covariance.model_robust_covariance`; an unseen coordinate's is infinite), or
+    None where it cannot be computed."""
+    try:
+        rob = model_robust_covariance(model, J[:, seen], r, method, seed)
+    except CalibrationError:
+        return None
+    sigma = np.full(J.shape[1], np.inf)
+    sigma[seen] = np.sqrt(np.diag(rob.covariance_u))
+    return sigma
 
 
 def unseen_columns(J: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
