@@ -49,6 +49,7 @@ from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovar
                               not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
+from sysid.fit_region import first_region_scale, robust_sigma, sigma_of, unidentified_coordinates, unseen_columns
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 from sysid.replay_batch import simulate_batch
 from sim_core.parameter_coordinates import LOG_SPAN, ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
@@ -720,14 +721,14 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                             sigma_u[seen] = sigma_seen
                     sigma_rob = None
                     if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
-                        sigma_rob = _robust_sigma(model, J, r, seen, robust, seed)
+                        sigma_rob = robust_sigma(model, J, r, seen, robust, seed)
                     if hold_unidentified:
                         # judged on the residual the linearised fit would leave (r itself at an optimum): at a start
                         # far off, r is mostly the parameters' own error, which would inflate the sandwich
                         sigma_gate = None
                         if robust is not None and sigma_u is not None:
                             r_lin = r + J[:, seen] @ gauss_newton_step(J[:, seen], r)[0]
-                            sigma_gate = _robust_sigma(model, J, r_lin, seen, robust, seed)
+                            sigma_gate = robust_sigma(model, J, r_lin, seen, robust, seed)
                         held = ~seen if sigma_gate is None else ~seen | unidentified_coordinates(specs, u, sigma_gate)
                         jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
                         if held.all():
@@ -846,7 +847,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 ncov, A = nuisance_covariance(J, J_nuisance, prior)
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
-            sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
+            sigma_robust = sigma_of(specs, values, robust_cov.covariance_u)
     held = tuple(jac_at.get("held", ()))
     notes.extend(f"{n} was held at its start value {values[n]:.4g} by the fit: at the last accepted point its robust "
                  "2-sigma interval reached zero, so no step was taken along it (a step there is set by the trust "
@@ -895,69 +896,6 @@ def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mappin
     finally:
         ext.close()
     return J[:, len(problem.specs):], ext.sim_runs
-
-
-def first_region_scale(u: np.ndarray, lb: np.ndarray, ub: np.ndarray, first_step: float | None) -> np.ndarray | float:
-    """``x_scale`` of ``scipy.optimize.least_squares(method="trf")`` that makes its first trust region at most
-    ``first_step`` wide in every search coordinate at ``u`` ``(p,)`` within bounds ``lb``, ``ub`` ``(p,)``.
-
-    The reflective method bounds a step by ``|step_i| <= Delta sqrt(v_i x_scale_i)``, ``Delta = 1`` at a start
-    ``u = 0``, ``v_i`` the Coleman-Li scaling: the distance to the bound the gradient points at (Branch,
-    Coleman & Li 1999, SIAM J. Sci. Comput. 21(1), sec. 2; SciPy's ``trf_bounds``), or ``|step_i| <= Delta
-    x_scale_i`` where that bound is infinite. With ``x_scale = 1`` and the default ``+-ln(1000)`` bounds of a log
-    parameter the first region is ``sqrt(ln 1000) = 2.63`` wide, a factor 13.8: on nominal_s101 the bending
-    stiffness' first step (session 51). Here ``x_scale_i = first_step^2 / D_i``, ``D_i`` the larger finite distance
-    to a bound (at least ``first_step``), and ``first_step`` where both bounds are infinite (with one bound
-    infinite the region is ``first_step^2 / D_i`` wide where the gradient points at that one). The region then
-    grows or shrinks by the method's own rule (doubled after a step the linear model predicted well).
-    None or 0: ``x_scale = 1``.
-    """
-    if not first_step:
-        return 1.0
-    u = np.asarray(u, dtype=float)
-    dist = np.stack([u - lb, ub - u])
-    finite = np.isfinite(dist)
-    D = np.maximum(np.where(finite, dist, 0.0).max(axis=0), float(first_step))
-    return np.where(finite.any(axis=0), float(first_step) ** 2 / D, float(first_step))
-
-
-def _robust_sigma(model: ObservationModel, J: np.ndarray, r: np.ndarray, seen: np.ndarray, method: str,
-                  seed: int) -> np.ndarray | None:
-    """Robust 1-sigma ``(p,)`` of the search coordinates from the Jacobian ``J`` ``(m, p)``'s ``seen`` columns and the
-    residual ``r`` ``(m,)`` (:func:`sysid.covariance.model_robust_covariance`; an unseen coordinate's is infinite), or
-    None where it cannot be computed."""
-    try:
-        rob = model_robust_covariance(model, J[:, seen], r, method, seed)
-    except CalibrationError:
-        return None
-    sigma = np.full(J.shape[1], np.inf)
-    sigma[seen] = np.sqrt(np.diag(rob.covariance_u))
-    return sigma
-
-
-def unseen_columns(J: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
-    """``(p,)`` bool, True where column ``j`` of ``J`` ``(m, p)`` is zero to ``rcond`` of the largest column's squared
-    norm: a parameter the replay does not see at all (e.g. a friction on a recording that never slides)."""
-    col = np.einsum("ij,ij->j", J, J)
-    return col <= rcond * col.max() if col.size and col.max() > 0.0 else np.ones(col.size, dtype=bool)
-
-
-def unidentified_coordinates(specs: Sequence[ParameterSpec], u: np.ndarray, sigma_u: np.ndarray) -> np.ndarray:
-    """Which coordinates :func:`sysid.covariance.not_identified` judges not identified at ``u`` ``(p,)`` given their
-    1-sigma ``sigma_u`` ``(p,)`` in the search coordinates (a log parameter: ``sigma_u >= 0.5``, first order).
-
-    Returns:
-        ``(p,)`` bool, in ``specs`` order.
-    """
-    values = {s.name: s.to_value(float(ui)) for s, ui in zip(specs, np.asarray(u, dtype=float))}
-    out = not_identified(specs, values, _sigma_of(specs, values, np.diag(np.asarray(sigma_u, dtype=float) ** 2)))
-    return np.array([s.name in out for s in specs], dtype=bool)
-
-
-def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:
-    """1-sigma per parameter in its units from a covariance of the coordinates (first order for log ones)."""
-    su = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
-    return {s.name: float(abs(values[s.name]) * sd if s.log else s.scale * sd) for s, sd in zip(specs, su)}
 
 
 def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
