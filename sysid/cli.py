@@ -25,7 +25,7 @@ from typing import Sequence
 from sim_core.errors import ConfigError, ThinShellError
 from sysid.calibration import CALIBRATION_PARAMETERS, CALIBRATION_REPLAYS
 from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
-from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, GLOBAL_METHODS, JACOBIAN_KINDS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA,
                        STOP_TRIAL_SIGMA)
 from sysid.fit_recording import FitOptions, fit_recording
 from sim_core.batch.sizing import batch_size_arg
@@ -126,6 +126,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "kept where it follows the recorded card better than no tack (sysid.tack; fit.json "
                         "diagnostics.tack). Default: off (the bonds pull along the gel's normal only, and the "
                         "fold's residual they leave drives the materials off: docs/benchmarks_log.md, session 52)")
+    p.add_argument("--first-step", type=float, default=FIRST_STEP,
+                   help="width of the fit's first trust region in every parameter's search coordinate (log units for "
+                        "a positive parameter: 0.5 is a factor 1.65; default: %(default)s; 0: least_squares' own, a "
+                        "factor 13.8 within the default bounds)")
+    p.add_argument("--hold-unidentified", action=argparse.BooleanOptionalAction, default=True,
+                   help="hold a parameter whose robust 2-sigma interval reaches zero (at the start, or at any accepted "
+                        "point) at its start value: no step along a direction the data do not determine; it is "
+                        "reported NOT IDENTIFIED at its start with its interval (default: on; "
+                        "--no-hold-unidentified: every parameter is stepped)")
     p.add_argument("--fixed-gains", action="store_true",
                    help="hold the sensor gains of the calibration at the start through the fit (default: refit them, "
                         "within their prior and in closed form, to every replay, so that gains calibrated at an off "
@@ -255,7 +264,8 @@ def fit_options(args: argparse.Namespace) -> FitOptions:
                       calibration_max_time=args.calibration_time, calibration_max_replays=args.calibration_replays,
                       workers=args.workers, seed=args.seed, batched=args.batched, batch_size=args.batch_size,
                       robust=None if args.robust == "none" else args.robust, drive=args.drive,
-                      tack=args.tack)
+                      tack=args.tack, hold_unidentified=args.hold_unidentified,
+                      first_step=args.first_step or None)
 
 
 def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, options: FitOptions) -> int:
@@ -298,7 +308,8 @@ def _run(args: argparse.Namespace, argv: list[str], bag: Path, out: Path, option
         print(f"  {name}: {result.initial[name]:.6g} -> {result.values[name]:.6g}"
               + (f" +- {s:.3g} (Gauss-Newton)" if s is not None else "")
               + (f" +- {sr:.3g} ({method})" if sr is not None else "")
-              + (" NOT IDENTIFIED (robust 2-sigma interval reaches zero)" if name in result.not_identified else ""))
+              + (" NOT IDENTIFIED (robust 2-sigma interval reaches zero)" if name in result.not_identified else "")
+              + (" (held at its start)" if name in result.held else ""))
     for ch, before in result.rms_initial.items():
         print(f"  rms {ch}: {before['rms']:.4g} -> {result.rms_final[ch]['rms']:.4g} {before['unit']}")
     print(f"  status {result.status}, {result.iterations} iterations, {result.sim_runs} replays, "

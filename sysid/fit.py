@@ -14,7 +14,10 @@ Local phase: ``scipy.optimize.least_squares`` (trust-region reflective, Branch, 
 with a pluggable Jacobian provider: ``"fd"`` (central finite differences over the parameters) or
 ``"sensitivity"`` (forward sensitivities of ``sim_core.sensitivity``). Optional global phase before it
 when the start may be poor: CMA-ES (Hansen 2016, the ``cma`` package) or a Latin-hypercube
-multi-start screening; the best point found starts the local phase.
+multi-start screening; the best point found starts the local phase. ``thinshell sysid`` gives the local phase
+a first trust region of :data:`FIRST_STEP` per coordinate (:func:`first_region_scale`) and holds a parameter
+that the data do not identify at its start (``hold_unidentified``): a step along a direction the residual
+barely sees is set by the trust region's size, not by the data.
 
 Uncertainty: Gauss-Newton covariance ``Cov(u) = (J^T W J)^-1 = (J_r^T J_r)^-1`` at the optimum
 (``J_r`` the Jacobian of the whitened residual); 1-sigma of a log parameter is ``theta sigma_u``
@@ -46,6 +49,7 @@ from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovar
                               not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
+from sysid.fit_region import first_region_scale, robust_sigma, sigma_of, unidentified_coordinates, unseen_columns
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 from sysid.replay_batch import simulate_batch
 from sim_core.parameter_coordinates import LOG_SPAN, ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
@@ -67,6 +71,10 @@ STOP_ROBUST_SIGMA = 0.1
 """Default robust stop of ``thinshell sysid`` (:func:`fit` ``stop_robust_sigma``): the local phase ends
 once the Gauss-Newton step is below 10 % of the robust 1-sigma (:mod:`sysid.covariance`) in every
 coordinate: the result is then known to a tenth of the uncertainty the fit reports for it."""
+FIRST_STEP = 0.5
+"""Default first trust region of ``thinshell sysid`` (:func:`fit` ``first_step``), in search-coordinate units: a
+factor e^0.5 = 1.65 on a log parameter, more than the 30 % a data sheet may be off, where least_squares' own
+first region with the default bounds is a factor 13.8 (:func:`first_region_scale`)."""
 DEFAULT_NUISANCE = {"friction.sheet_table": 0.3, "gel.poisson_ratio": 0.03, "contact.stiffness": 0.5}
 """Default nuisance priors of ``thinshell sysid`` (:func:`fit` ``nuisance``; names the scene lacks or the fit
 fits are left out): parameters a cell's data sheet does not give and the default fit holds fixed. The
@@ -98,6 +106,10 @@ class _OutOfReplays(_OutOfTime):
 
 class _WithinNoise(Exception):
     """The Gauss-Newton step at an accepted point is below the stop fraction of 1-sigma (internal)."""
+
+
+class _AllHeld(Exception):
+    """Every fitted parameter is held at an accepted point: none is identified there (internal)."""
 
 
 _WORKER: dict[str, Any] = {}
@@ -371,6 +383,8 @@ class FitResult:
             (:func:`sysid.covariance.not_identified`); each has a line in ``warnings``.
         robust: the robust covariance of the coordinates (:class:`sysid.covariance.RobustCovariance`:
             method, ``(p, p)`` matrix, lag window), or None (``robust=None``, or no Jacobian).
+        held: the parameters :func:`fit` ``hold_unidentified`` held at their start at the last accepted point
+            (each has a line in ``warnings``).
     """
 
     names: tuple[str, ...]
@@ -410,6 +424,7 @@ class FitResult:
     sigma_robust: dict[str, float] | None = None
     not_identified: tuple[str, ...] = ()
     robust: RobustCovariance | None = None
+    held: tuple[str, ...] = ()
 
 
 def gauss_newton_covariance(J: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray | None, str]:
@@ -507,7 +522,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         max_replays: int | None = None, reweight_channels: bool = False, batched: bool = False,
         batch_size: int | str | None = None, robust: str | None = DEFAULT_ROBUST_METHOD,
         stop_robust_sigma: float | None = None, stop_trial_robust: bool = False,
-        nuisance: Mapping[str, float] | None = None) -> FitResult:
+        nuisance: Mapping[str, float] | None = None, hold_unidentified: bool = False,
+        first_step: float | None = None) -> FitResult:
     """Fit parameters ``params`` of ``model``'s scene to its recording.
 
     Args:
@@ -596,6 +612,26 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             the HAC sigma 14-59 times the Gauss-Newton one): this rule ends that fit after the second
             of them with the same result. False:
             the scaled sigma only (``thinshell sysid``: True).
+        hold_unidentified: hold a parameter that the data do not identify at its start value: at every
+            accepted point (the start first) the parameters whose robust 2-sigma interval there reaches zero
+            (:func:`sysid.covariance.not_identified`, judged with the robust covariance of method ``robust``
+            from that point's Jacobian and the residual its Gauss-Newton step would leave, ``r + J delta``, no
+            replay: at a start far off the residual itself is mostly the parameters' own error and would inflate
+            the sandwich; at an optimum the two agree), and those whose column is zero where ``J^T J``
+            is singular (:func:`unseen_columns`), get no column in the Jacobian the trust region
+            sees, so ``least_squares`` takes no step along them, and the stops measure the step of the others.
+            A trust-region step along a direction the residual barely sees is set by the region's size, not
+            the data: with the default ``+-ln(1000)`` bounds the reflective method's Coleman-Li scaling
+            ``sqrt(distance to the bound)`` makes the first region ``sqrt(ln 1000) = 2.63`` wide in log units,
+            and on nominal_s101 the bending stiffness went x13.8 in the first step, from 0.0074 to 0.103
+            (session 51), where the fit then stopped. A held parameter is re-judged at every accepted point
+            and released once the data identify it; those held at the last one are :attr:`FitResult.held`,
+            each with a warning, and are reported at their start with their interval. False: every parameter
+            is stepped (``thinshell sysid``: True).
+        first_step: width of the local phase's first trust region in every search coordinate (log units for a
+            positive parameter; :func:`first_region_scale` sets ``least_squares``' ``x_scale`` for it). None: the
+            method's own (``x_scale = 1``: 2.63 log units, a factor 13.8, within the default bounds).
+            ``thinshell sysid``: :data:`FIRST_STEP`.
 
     Returns:
         the :class:`FitResult`.
@@ -672,8 +708,35 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 J = provider(problem, u)
                 jac_at.update(u=np.array(u, dtype=float), J=J, count=jac_at.get("count", 0) + 1)
                 r = problem.residual(u, phase="local") if jac_at.get("in_local") else None
-                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust) and r is not None:
-                    step, sigma_u = gauss_newton_step(J, r)
+                held = np.zeros(u.size, dtype=bool)
+                if (stop_sigma or stop_trial_sigma or stop_rms or stop_robust_sigma or stop_trial_robust
+                        or hold_unidentified) and r is not None:
+                    _, sigma_u = gauss_newton_step(J, r)
+                    seen = np.ones(u.size, dtype=bool)
+                    if hold_unidentified and sigma_u is None:  # J^T J singular: the columns the replay does not see
+                        seen = ~unseen_columns(J)
+                        _, sigma_seen = gauss_newton_step(J[:, seen], r) if seen.any() else (None, None)
+                        if sigma_seen is not None:  # an unseen coordinate's sigma is infinite
+                            sigma_u = np.full(u.size, np.inf)
+                            sigma_u[seen] = sigma_seen
+                    sigma_rob = None
+                    if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
+                        sigma_rob = robust_sigma(model, J, r, seen, robust, seed)
+                    if hold_unidentified:
+                        # judged on the residual the linearised fit would leave (r itself at an optimum): at a start
+                        # far off, r is mostly the parameters' own error, which would inflate the sandwich
+                        sigma_gate = None
+                        if robust is not None and sigma_u is not None:
+                            r_lin = r + J[:, seen] @ gauss_newton_step(J[:, seen], r)[0]
+                            sigma_gate = robust_sigma(model, J, r_lin, seen, robust, seed)
+                        held = ~seen if sigma_gate is None else ~seen | unidentified_coordinates(specs, u, sigma_gate)
+                        jac_at["held"] = tuple(n for n, h in zip(names, held) if h)
+                        if held.all():
+                            raise _AllHeld()
+                    # the step of the parameters the data identify, the held ones staying where they are; the
+                    # stops measure it in the marginal sigma of the whole problem (the uncertainty reported)
+                    step = np.zeros(u.size)
+                    step[~held] = gauss_newton_step(J[:, ~held], r)[0]
                     cost = 0.5 * float(r @ r)
                     # the trial-step stop measures steps in the reported (residual-scaled) 1-sigma
                     chi2_red = 2.0 * cost / max(r.size - u.size, 1)
@@ -684,13 +747,6 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if inside:
                             jac_at["step_in_sigma"] = float(np.max(np.abs(step) / sigma_u))
                             raise _WithinNoise()
-                    sigma_rob = None
-                    if (stop_robust_sigma or stop_trial_robust) and robust is not None and sigma_u is not None:
-                        try:
-                            rob = model_robust_covariance(model, J, r, robust, seed)
-                            sigma_rob = np.sqrt(np.diag(rob.covariance_u))
-                        except CalibrationError:
-                            sigma_rob = None
                     if stop_trial_robust and sigma_rob is not None:
                         # the trial-step stop measures steps in the robust 1-sigma where it is the larger
                         jac_at["sigma_trial"] = np.maximum(jac_at["sigma_trial"], sigma_rob)
@@ -705,12 +761,16 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if gain < stop_rms:
                             jac_at["rms_gain"] = gain
                             raise _WithinNoise()
+                if held.any():  # no column, no step: least_squares leaves a held coordinate where it is
+                    J = np.array(J, dtype=float)
+                    J[:, held] = 0.0
                 return J
 
             status, message, nfev = "failed", "", 0
             jac_at["in_local"] = True
             try:
-                res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf", x_scale=1.0,
+                res = least_squares(fun, u_start, jac=jac, bounds=(lb, ub), method="trf",
+                                    x_scale=first_region_scale(u_start, lb, ub, first_step),
                                     ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
                 status = "max_nfev" if res.status == 0 else "converged" if res.status > 0 else "failed"
                 message, nfev = str(res.message), int(res.nfev)
@@ -719,6 +779,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                                                     f"{problem.sim_runs} made); best point so far returned")
             except _OutOfTime:
                 status, message = "time_budget", f"stopped after {max_time} s; best point so far returned"
+            except _AllHeld:
+                status = "converged"
+                message = ("no parameter is identified at the start (every robust 2-sigma interval reaches zero): "
+                           "all held at their start values")
+                nfev = sum(e.phase == "local" for e in problem.history)
             except _WithinNoise:
                 status = "converged"
                 if "rms_gain" in jac_at:
@@ -782,7 +847,11 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                 ncov, A = nuisance_covariance(J, J_nuisance, prior)
                 robust_cov = robust_cov.with_nuisance(ncov, {n: float(s) for n, s in nuisance.items()},
                                                       {n: A[:, k] for k, n in enumerate(nuisance)})
-            sigma_robust = _sigma_of(specs, values, robust_cov.covariance_u)
+            sigma_robust = sigma_of(specs, values, robust_cov.covariance_u)
+    held = tuple(jac_at.get("held", ()))
+    notes.extend(f"{n} was held at its start value {values[n]:.4g} by the fit: at the last accepted point its robust "
+                 "2-sigma interval reached zero, so no step was taken along it (a step there is set by the trust "
+                 "region's size, not by the data)" for n in held)
     unidentified = not_identified(specs, values, sigma_robust)
     notes.extend(not_identified_note(n, values[n], sigma_robust[n]) for n in unidentified)
     return FitResult(
@@ -795,6 +864,7 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
         jacobian=provider.name, global_phase=global_info, channels=model.channels,
         residual_count=m, step_count=model.step_count, dt=model.dt, warnings=notes, model=model,
         sigma_scale=channel_scale, sigma_robust=sigma_robust, robust=robust_cov, not_identified=unidentified,
+        held=held,
     )
 
 
@@ -826,12 +896,6 @@ def _nuisance_jacobian(problem: FitProblem, u_best: np.ndarray, nuisance: Mappin
     finally:
         ext.close()
     return J[:, len(problem.specs):], ext.sim_runs
-
-
-def _sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u: np.ndarray) -> dict[str, float]:
-    """1-sigma per parameter in its units from a covariance of the coordinates (first order for log ones)."""
-    su = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
-    return {s.name: float(abs(values[s.name]) * sd if s.log else s.scale * sd) for s, sd in zip(specs, su)}
 
 
 def _reweight_start(problem: FitProblem, u0: np.ndarray, r0: np.ndarray) -> tuple[dict[str, float], np.ndarray]:

@@ -27,7 +27,7 @@ from sysid.covariance import DEFAULT_ROBUST_METHOD, ROBUST_METHODS
 from sysid.drive_calibration import fit_drive
 from sysid.evidence import load_evidence
 from sysid.gain_profile import GainProfile
-from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
+from sysid.fit import (DEFAULT_NUISANCE, DEFAULT_PARAMETERS, FIRST_STEP, STOP_RMS, STOP_ROBUST_SIGMA, STOP_SIGMA, STOP_TRIAL_SIGMA, Evaluation,
                        FitResult, fit)
 from sysid.fitted_scene import fitted_scene_from_result, write_fitted_scene
 from sysid.observation import ObservationModel
@@ -102,6 +102,13 @@ class FitOptions:
             them far off (nominal_s109 from the scene: bending x110, gel modulus +18 %, friction +11 %, each
             NOT IDENTIFIED; weighing the channels by their gap sends the friction to 9.3; without the tack the fit
             stays at its start; docs/benchmarks_log.md, session 52).
+        hold_unidentified: hold a parameter whose robust 2-sigma interval reaches zero at its start value
+            (:func:`sysid.fit.fit` ``hold_unidentified``; True, the default): it is reported at its start, not
+            identified, with its interval, instead of where a trust-region step along a direction the data barely
+            see happened to land. False: every parameter is stepped.
+        first_step: width of the fit's first trust region per search coordinate (:func:`sysid.fit.fit`
+            ``first_step``; default :data:`sysid.fit.FIRST_STEP`, a factor 1.65 on a log parameter); None: the
+            method's own (a factor 13.8 within the default bounds).
     """
 
     params: tuple[str, ...] = DEFAULT_PARAMETERS
@@ -139,6 +146,8 @@ class FitOptions:
     drive: bool = True
     profile_gains: bool = True
     tack: bool = False
+    hold_unidentified: bool = True
+    first_step: float | None = FIRST_STEP
 
     def __post_init__(self) -> None:
         """Validate the values that the fit would otherwise take silently.
@@ -150,6 +159,8 @@ class FitOptions:
         """
         if not self.params:
             raise ConfigError("FitOptions: no parameters to fit")
+        if self.first_step is not None and not self.first_step > 0:
+            raise ConfigError(f"FitOptions: first_step must be > 0 (search-coordinate units), got {self.first_step}")
         for name in ("dt", "t_max", "max_time", "calibration_max_time"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -284,7 +295,8 @@ def fit_recording(bag: str | Path, out: str | Path, options: FitOptions = FitOpt
                  stop_sigma=options.stop_sigma, stop_trial_sigma=options.stop_trial_sigma,
                  stop_rms=options.stop_rms, warm_start=options.warm_start, batched=options.batched,
                  batch_size=options.batch_size, robust=options.robust, stop_robust_sigma=options.stop_robust_sigma,
-                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options))
+                 stop_trial_robust=options.stop_trial_robust, nuisance=nuisance_of(model, options),
+                 hold_unidentified=options.hold_unidentified, first_step=options.first_step)
     result.warnings[:0] = list(notes)
     if model.gain_profile is not None:  # the gains at the fitted values, as the fit's best replay took them
         found = model.gain_profile.calibration_of(result.prediction_final)

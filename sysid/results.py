@@ -9,7 +9,8 @@ Schema ``thinshell.sysid.fit`` version 1::
                               "space": "log"|"linear", "lower", "upper",
                               "identified": false where the robust 2-sigma interval of a positive parameter
                                             reaches zero (sysid.covariance.not_identified), else true; null
-                                            without a robust sigma or for a linear-coordinate parameter}},
+                                            without a robust sigma or for a linear-coordinate parameter,
+                              "held": true where the fit held it at its start (sysid.fit.fit hold_unidentified)}},
         "correlation": {"names": [...], "matrix": [[...]]} | null,
         "covariance_u": [[...]] | null,       # Gauss-Newton (J^T W J)^-1 in the search coordinates
         "robust": {"method": "hac"|"block_bootstrap"|"hac+nuisance"|..., "lag_bins", "lag_s", "bin_s", "bins",
@@ -120,6 +121,7 @@ def fit_document(result: Any, prov: Mapping[str, Any]) -> dict[str, Any]:
             "sigma_log": (result.sigma_log or {}).get(n), "space": "log" if spec.log else "linear",
             "identified": (None if not getattr(result, "sigma_robust", None) or not spec.log
                            else n not in getattr(result, "not_identified", ())),
+            "held": n in getattr(result, "held", ()),
             "lower": spec.lower, "upper": spec.upper,
         }
     corr = None

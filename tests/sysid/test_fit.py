@@ -14,12 +14,14 @@ from sysid.fit import (
     FiniteDifferenceJacobian,
     FitProblem,
     SensitivityJacobian,
+    first_region_scale,
     fit,
     gauss_newton_covariance,
     gauss_newton_step,
     make_jacobian,
     parameter_spec,
 )
+from sim_core.parameter_coordinates import LOG_SPAN
 from sysid.observation import ObservationModel, ObservationWarning
 from tests.sysid.simbag import DT, PRESS_ONLY, PRESS_SLIDE, TRUE_PARAMS, make_recording
 
@@ -195,6 +197,40 @@ def test_fused_taichi_replay_equals_the_numpy_replay(press_bag):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-9 * np.abs(a).max())
     with pytest.raises(CalibrationError, match="arch"):
         ObservationModel(load_evidence(press_bag), dt=DT, arch="gpu")
+
+
+@pytest.mark.parametrize("bounds", [(-LOG_SPAN, LOG_SPAN), (-np.inf, np.inf), ((-LOG_SPAN, -0.2), (np.inf, LOG_SPAN))])
+def test_first_trust_region_is_first_step_wide_where_the_reflective_scaling_made_it_a_factor_13_8(bounds):
+    """A linear least squares with a direction the data barely see (a column 1e-3 of the other's) and a Gauss-Newton
+    step along it of 50: least_squares' trust-region reflective method with ``x_scale = 1`` and the default log
+    bounds +-ln(1000) takes a first step of sqrt(ln 1000) = 2.63 along it (the factor 13.8 of nominal_s101's
+    bending stiffness, session 51); with :func:`first_region_scale` no coordinate moves more than ``first_step``
+    in the first step, whatever the bounds (finite, infinite, one of each)."""
+    from scipy.optimize import least_squares
+
+    A = np.array([[1.0, 0.0], [0.0, 1.0e-3], [0.5, 1.0e-3]])
+    b = np.array([0.3, 0.05, 0.2])
+    lb, ub = (np.broadcast_to(np.asarray(v, dtype=float), (2,)).copy() for v in bounds)
+    for first_step in (0.5, 0.2):
+        points = []
+
+        def residual(u):
+            points.append(np.array(u))
+            return A @ u - b
+
+        least_squares(residual, np.zeros(2), jac=lambda u: A, bounds=(lb, ub), method="trf", max_nfev=2,
+                      x_scale=first_region_scale(np.zeros(2), lb, ub, first_step))
+        step = points[1] - points[0]
+        assert np.all(np.abs(step) <= first_step * (1.0 + 1e-9)), (first_step, step)
+        if np.all(np.isfinite(lb) == np.isfinite(ub)):  # (one bound finite: the region may be narrower)
+            assert np.linalg.norm(step) > 0.5 * first_step  # the region, not the data, bounds the step
+    if np.isfinite(lb).all() and np.isfinite(ub).all():
+        points = []
+        least_squares(lambda u: points.append(np.array(u)) or A @ u - b, np.zeros(2), jac=lambda u: A,
+                      bounds=(lb, ub), method="trf", max_nfev=2, x_scale=1.0)
+        assert 0.95 * math.sqrt(LOG_SPAN) < np.linalg.norm(points[1]) <= math.sqrt(LOG_SPAN)
+        assert math.exp(points[1][1]) > 10.0
+    assert first_region_scale(np.zeros(2), lb, ub, None) == 1.0
 
 
 def test_gauss_newton_step_solves_linear_least_squares():
