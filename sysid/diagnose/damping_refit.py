@@ -30,7 +30,7 @@ held-out figures go from 1.320 -> 1.212 (the term's change filtered instead, the
 Training and held-out data as for the other timing effects: the normal force (else the mean marker
 depth) in the contact events' windows, ``alpha`` fitted on all events but one and evaluated on that
 one, with a gain and an offset per window before and after alike
-(:func:`sysid.diagnose.signature_engine.leave_one_event_out`).
+(:func:`sysid.diagnose.heldout.leave_one_event_out`).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from sim_core.errors import SimulationDivergedError
+from sysid.diagnose.heldout import leave_one_event_out
 
 GEL_DAMPING_PARAMETER = "candidate.gel_damping"
 """Simulator parameter of the gel's Kelvin-Voigt time constant, s."""
@@ -92,12 +93,11 @@ def refit_gel_damping(replay: Callable[[float], np.ndarray | None], t: np.ndarra
     Returns:
         dict with ``tau_s`` (None when the probe replay diverged), ``replayed_s`` (the time constants
         replayed), ``signal`` (the prediction at ``tau_s``, ``(n,)``), ``per_event``, ``rms``, ``heldout_rms_before`` / ``_after`` (as
-        :func:`sysid.diagnose.signature_engine.leave_one_event_out`) and ``notes``.
+        :func:`sysid.diagnose.heldout.leave_one_event_out`) and ``notes``.
 
     Raises:
         ValueError: ``probe_s`` not > 0 or ``max_replays < 1``.
     """
-    from sysid.diagnose.signature_engine import leave_one_event_out
 
     if not probe_s > 0.0 or max_replays < 1:
         raise ValueError(f"refit_gel_damping: need probe_s > 0 s and max_replays >= 1 (got {probe_s}, {max_replays})")
