@@ -49,7 +49,8 @@ from sysid.covariance import (DEFAULT_ROBUST_METHOD, ROBUST_METHODS, RobustCovar
                               not_identified, not_identified_note, nuisance_covariance)
 from sysid.jacobians import (JACOBIAN_KINDS, FiniteDifferenceJacobian, JacobianProvider,  # noqa: F401 (re-exported)
                              SensitivityJacobian, load_sensitivity, make_jacobian)
-from sysid.fit_region import first_region_scale, robust_sigma, sigma_of, unidentified_coordinates, unseen_columns
+from sysid.fit_region import (first_region_scale, held_jacobian, robust_sigma, sigma_of, unidentified_coordinates,
+                               unseen_columns)
 from sysid.observation import SENSOR_PARAMETERS, ObservationModel
 from sysid.replay_batch import simulate_batch
 from sim_core.parameter_coordinates import LOG_SPAN, ParameterSpec, bounded_spec  # noqa: F401 (re-exported)
@@ -761,9 +762,8 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
                         if gain < stop_rms:
                             jac_at["rms_gain"] = gain
                             raise _WithinNoise()
-                if held.any():  # no column, no step: least_squares leaves a held coordinate where it is
-                    J = np.array(J, dtype=float)
-                    J[:, held] = 0.0
+                if held.any():  # a column orthogonal to r and the rest: least_squares takes no step along it
+                    J = held_jacobian(J, r, held)
                 return J
 
             status, message, nfev = "failed", "", 0

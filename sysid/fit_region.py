@@ -83,3 +83,40 @@ def sigma_of(specs: Sequence[ParameterSpec], values: Mapping[str, float], cov_u:
     """1-sigma per parameter in its units from a covariance of the coordinates (first order for log ones)."""
     su = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
     return {s.name: float(abs(values[s.name]) * sd if s.log else s.scale * sd) for s, sd in zip(specs, su)}
+
+
+def held_jacobian(J: np.ndarray, r: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """The Jacobian ``(m, p)`` that ``least_squares(method="trf")`` is handed so that it takes no step along the
+    ``held`` ``(p,)`` coordinates, from the replay's Jacobian ``J`` ``(m, p)`` and residual ``r`` ``(m,)``.
+
+    A held column is replaced by one orthogonal to ``r`` and to every other column, as long as the longest column
+    (unit where every column is zero): its gradient ``J^T r`` is zero and it decouples from the others, so the
+    trust-region subproblem's solution has no component along it (to round-off), while ``J`` keeps full rank.
+    Zeroing the column instead makes ``J`` rank deficient, and SciPy's exact trust-region solver (``solve_lsq_
+    trust_region``, More & Sorensen) then returns a step on the region's boundary rather than the Gauss-Newton
+    step inside it: on nominal_s101 from the scene start the first step was 0.33 / 0.37 log units in the modulus
+    and friction where Gauss-Newton asked 0.027 / 0.047, and cost x5.8 (docs/benchmarks_log.md, session 52, 49fit2).
+
+    Raises:
+        CalibrationError: ``J`` has at least as many columns as rows, so no orthogonal column exists.
+    """
+    J = np.array(J, dtype=float)
+    held = np.asarray(held, dtype=bool)
+    if not held.any():
+        return J
+    m = J.shape[0]
+    if m <= J.shape[1]:
+        raise CalibrationError(f"cannot hold a parameter with {m} residuals for {J.shape[1]} parameters")
+    norms = np.sqrt(np.einsum("ij,ij->j", J, J))
+    length = float(norms.max()) if norms.max() > 0.0 else 1.0
+    basis = [v for v in (*J[:, ~held].T, np.asarray(r, dtype=float)) if np.any(v)]
+    Q = np.linalg.qr(np.stack(basis, axis=1))[0] if basis else np.zeros((m, 0))
+    rng = np.random.default_rng(0)  # a fixed direction: the same Jacobian gives the same column
+    for j in np.flatnonzero(held):
+        c = rng.standard_normal(m)
+        for _ in range(2):  # twice: Gram-Schmidt to round-off
+            c -= Q @ (Q.T @ c)
+        c /= np.linalg.norm(c)
+        Q = np.column_stack([Q, c])
+        J[:, j] = length * c
+    return J
