@@ -22,6 +22,7 @@ from sysid.fit import (
     parameter_spec,
 )
 from sim_core.parameter_coordinates import LOG_SPAN
+from sysid.fit_region import held_jacobian
 from sysid.observation import ObservationModel, ObservationWarning
 from tests.sysid.simbag import DT, PRESS_ONLY, PRESS_SLIDE, TRUE_PARAMS, make_recording
 
@@ -231,6 +232,75 @@ def test_first_trust_region_is_first_step_wide_where_the_reflective_scaling_made
         assert 0.95 * math.sqrt(LOG_SPAN) < np.linalg.norm(points[1]) <= math.sqrt(LOG_SPAN)
         assert math.exp(points[1][1]) > 10.0
     assert first_region_scale(np.zeros(2), lb, ub, None) == 1.0
+
+
+def test_held_column_leaves_the_gauss_newton_step_where_a_zero_column_sent_the_step_to_the_region_boundary():
+    """A held coordinate (the bending stiffness nominal_s101 does not identify) beside two the data see, the residual
+    curving along them (a quadratic term 3 |u|^2 times a data column): with the held column zeroed, J is rank
+    deficient and least_squares' exact trust-region solver steps to the first region's boundary (0.5 wide) whatever
+    the Gauss-Newton step (here 0.02-0.05), a trial that raises the cost and is rejected (on nominal_s101 from the
+    scene start: x5.8 the cost, one replay lost, session 52's 49fit2); with :func:`held_jacobian`'s column
+    (orthogonal to the residual and the others) the first trial is the Gauss-Newton step (within the
+    Coleman-Li scaling's damping), accepted, the fit takes
+    fewer evaluations, ends at the same minimum and the held coordinate stays at its start to round-off."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(200, 3)) * np.array([1.0, 30.0, 20.0])
+    b = A @ np.array([0.0, -0.03, 0.05]) + rng.normal(size=200)
+    lb, ub = np.full(3, -LOG_SPAN), np.full(3, LOG_SPAN)
+    held = np.array([True, False, False])
+
+    def residual(u):
+        return A @ u - b + 3.0 * (u[1] ** 2 + u[2] ** 2) * A[:, 1]
+
+    def jacobian(u):
+        J = A.copy()
+        J[:, 1:] += 6.0 * np.outer(A[:, 1], u[1:])
+        return J
+
+    runs = {}
+    for mode in ("zero", "held"):
+        points = []
+
+        def fun(u):
+            points.append(np.array(u))
+            return residual(u)
+
+        def jac(u):
+            J = jacobian(u)
+            if mode == "zero":
+                J[:, held] = 0.0
+                return J
+            return held_jacobian(J, residual(u), held)
+
+        res = least_squares(fun, np.zeros(3), jac=jac, bounds=(lb, ub), method="trf",
+                            x_scale=first_region_scale(np.zeros(3), lb, ub, 0.5))
+        runs[mode] = (res, points)
+    r0, J0 = residual(np.zeros(3)), jacobian(np.zeros(3))
+    gn = np.zeros(3)
+    gn[1:] = gauss_newton_step(J0[:, 1:], r0)[0]
+    assert np.abs(gn).max() < 0.1  # the data ask a short step
+    (res_zero, pts_zero), (res_held, pts_held) = runs["zero"], runs["held"]
+    cost0 = 0.5 * r0 @ r0
+    # zeroed: the first trial on the 0.5 region's boundary, far past Gauss-Newton, and worse than the start
+    assert np.abs(pts_zero[1]).max() > 0.4 > 5 * np.abs(gn).max()
+    assert 0.5 * np.sum(residual(pts_zero[1]) ** 2) > cost0
+    # held column: the first trial is the Gauss-Newton step (to the reflective scaling's damping), and it lowers the cost
+    np.testing.assert_allclose(pts_held[1], gn, rtol=0.05, atol=1e-12)
+    assert 0.5 * np.sum(residual(pts_held[1]) ** 2) < cost0
+    assert res_held.nfev < res_zero.nfev
+    np.testing.assert_allclose(res_held.x[1:], res_zero.x[1:], atol=1e-5)
+    assert res_held.cost == pytest.approx(res_zero.cost, rel=1e-8)
+    assert all(abs(p[0]) < 1e-12 for p in pts_held)
+    # the column is orthogonal to the residual and to the other columns, as long as the longest
+    Jh = held_jacobian(J0, r0, held)
+    assert np.abs(Jh[:, 0] @ np.column_stack([r0, J0[:, 1:]])).max() < 1e-9 * np.linalg.norm(Jh[:, 0]) * np.linalg.norm(r0)
+    assert np.linalg.norm(Jh[:, 0]) == pytest.approx(np.linalg.norm(J0, axis=0).max())
+    np.testing.assert_array_equal(Jh[:, 1:], J0[:, 1:])
+    np.testing.assert_array_equal(held_jacobian(J0, r0, np.zeros(3, dtype=bool)), J0)
+    with pytest.raises(CalibrationError, match="3 residuals for 3 parameters"):
+        held_jacobian(J0[:3], r0[:3], held)
 
 
 def test_gauss_newton_step_solves_linear_least_squares():
