@@ -84,8 +84,8 @@ def test_sysid_defaults_find_the_arm_and_recover_the_materials_from_starts_20_pe
     """Defaults, started 20 % off on all three materials (``scene.yaml`` rewritten): the drive is chosen by
     delta-BIC and its stiffness found within 5 %; the gel-sheet friction comes back within 5 %, the gel modulus
     within 8 % (0.945: the 0.05 % RMS stop ends the fit in a flat valley), and every truth lies inside the
-    robust 2-sigma interval. The bending stiffness, which the slide does not load, is held at its start and reported not identified. The drive is in fit.json (decision, k_s and
-    damping with sigma) and in the report."""
+    robust 2-sigma interval. The bending stiffness, which the slide does not load, is held at its start and
+    reported not identified. The drive is in fit.json (decision, k_s and damping with sigma) and in the report."""
     off = {name: TRUE_PARAMS[name] * f for name, f in zip(FITTED, (1.2, 0.8, 1.2))}
     bag = tmp_path / "bag"
     bag.mkdir()
