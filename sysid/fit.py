@@ -619,8 +619,10 @@ def fit(model: ObservationModel, params: Sequence[str] = DEFAULT_PARAMETERS, *,
             from that point's Jacobian and the residual its Gauss-Newton step would leave, ``r + J delta``, no
             replay: at a start far off the residual itself is mostly the parameters' own error and would inflate
             the sandwich; at an optimum the two agree), and those whose column is zero where ``J^T J``
-            is singular (:func:`unseen_columns`), get no column in the Jacobian the trust region
-            sees, so ``least_squares`` takes no step along them, and the stops measure the step of the others.
+            is singular (:func:`unseen_columns`), get a column orthogonal to the residual and the other
+            columns in the Jacobian the trust region sees (:func:`sysid.fit_region.held_jacobian`; a zero
+            column made that Jacobian rank deficient and sent every step to the region's boundary), so
+            ``least_squares`` takes no step along them, and the stops measure the step of the others.
             A trust-region step along a direction the residual barely sees is set by the region's size, not
             the data: with the default ``+-ln(1000)`` bounds the reflective method's Coleman-Li scaling
             ``sqrt(distance to the bound)`` makes the first region ``sqrt(ln 1000) = 2.63`` wide in log units,

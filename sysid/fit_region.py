@@ -5,7 +5,8 @@ SciPy's reflective ``least_squares`` (Branch, Coleman & Li 1999) with ``x_scale 
 bounds of a log parameter starts with a region 2.63 log units wide, and on nominal_s101 the bending stiffness'
 first step was x13.8 (session 51; docs/benchmarks_log.md, session 52, 49fit). :func:`first_region_scale` makes
 the first region a chosen width; :func:`unidentified_coordinates` and :func:`unseen_columns` say which
-coordinates the data do not determine at a point, which ``fit(hold_unidentified=True)`` then holds.
+coordinates the data do not determine at a point, which ``fit(hold_unidentified=True)`` then holds by the column
+:func:`held_jacobian` gives them.
 """
 
 from __future__ import annotations
