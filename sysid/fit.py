@@ -458,10 +458,9 @@ def _covariance_summary(specs: Sequence[ParameterSpec], values: Mapping[str, flo
         return None, None, None, None
     su = np.sqrt(np.diag(cov))
     corr = cov / np.outer(su, su)
-    sigma, sigma_log, scaled = {}, {}, {}
+    sigma = sigma_of(specs, values, cov)
+    sigma_log, scaled = {}, {}
     for s, sd in zip(specs, su):
-        v = values[s.name]
-        sigma[s.name] = float(abs(v) * sd if s.log else s.scale * sd)
         if s.log:
             sigma_log[s.name] = float(sd)
         scaled[s.name] = float(sigma[s.name] * math.sqrt(max(chi2_red, 0.0)))

@@ -40,7 +40,7 @@ import numpy as np
 
 from sim_core.candidates.hook import CandidateHook
 from sysid.diagnose.candidates import ADHESION_PROBE_WEIGHTS, adhesion_weight_scale
-from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING, face_gap, tack_with_peel
+from sysid.diagnose.peel import ADHESION_PARAMETER, RELEASE_TIME_SETTING, face_gap, points_under, tack_with_peel
 from sysid.evidence import resample_pose
 from sim_core.transforms import quat_to_matrix
 
@@ -102,8 +102,7 @@ def carried_rows(model, opening: float) -> np.ndarray:
     for k in range(t.size):
         R = quat_to_matrix(pose[k, 3:7]) @ quat_to_matrix(mount[3:7])
         face = pose[k, :3] + (R @ (local + mount[:3]).T).T
-        lo, hi = face[:, :2].min(axis=0), face[:, :2].max(axis=0)
-        under = np.all((sheet[k, :, :2] >= lo) & (sheet[k, :, :2] <= hi), axis=1)
+        under = points_under(sheet[k], face)
         if not under.any():
             continue
         lifted = float(face[:, 2].min() - rest_z[under].max()) > opening  # the gel off where the card lay

@@ -36,6 +36,12 @@ def gel_face_vertices(sim_model) -> np.ndarray:
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
+def points_under(sheet: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """Which sheet points ``(p, 3)`` m lie under a gel face ``(v, 3)`` m (inside its x-y bounding box): bool ``(p,)``."""
+    lo, hi = face[:, :2].min(axis=0), face[:, :2].max(axis=0)
+    return np.all((sheet[:, :2] >= lo) & (sheet[:, :2] <= hi), axis=1)
+
+
 def face_gap(sheet: np.ndarray, face: np.ndarray) -> float:
     """Vertical gap (m) between a gel face and the recorded sheet points under it.
 
@@ -46,8 +52,7 @@ def face_gap(sheet: np.ndarray, face: np.ndarray) -> float:
     Returns:
         ``min z(face) - max z(points under the face)``; ``inf`` when no point lies under it.
     """
-    lo, hi = face[:, :2].min(axis=0), face[:, :2].max(axis=0)
-    under = np.all((sheet[:, :2] >= lo) & (sheet[:, :2] <= hi), axis=1)
+    under = points_under(sheet, face)
     if not under.any():
         return float("inf")
     return float(face[:, 2].min() - sheet[under, 2].max())
