@@ -74,6 +74,7 @@ copy, its contacts inside): 58,926 entries, widest row 411, 0.45 MiB a copy in f
 import numpy as np
 
 from sim_core.ti_backend import require_backend, ti
+from sim_core.ti_kernels import transfer
 from sim_core.ti_kernels.pcg import BatchedPCG, _apply, _copy_in, _copy_out
 from sim_core.ti_kernels.precision import VALUES, stored
 
@@ -130,20 +131,34 @@ def _mark_outside(brow: _I32, bcol: _I32, free: _F64, nblocks: ti.i32, pos: _I32
                         flags[copies] = 1
 
 
+@ti.func
+def _place(urow: ti.template(), indices: ti.template(), pos: ti.template(), seg: ti.template(), off: ti.template(),
+           first: ti.template(), size, k):
+    """The envelope index of ``U``'s entry ``k`` (row ``urow[k]``, column ``indices[k]``) in its copy's envelope."""
+    r = urow[k]
+    i = ti.max(pos[r], pos[indices[k]])
+    j = ti.min(pos[r], pos[indices[k]])
+    return seg[r] * size + off[i] + j - first[i]
+
+
 @ti.kernel
-def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, brow: _I32, bcol: _I32, bval: VALUES,
-              free: _F64, nblocks: ti.i32, pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32,
-              padded: _I32, npadded: ti.i32, size: ti.i32):
+def _assemble(data: _F64, urow: _I32, indices: _I32, nnz: ti.i32, slots: _I32, diag: _F64, nslots: ti.i32,
+              fixed: _I32, nfixed: ti.i32, brow: _I32, bcol: _I32, bval: VALUES, free: _F64, nblocks: ti.i32,
+              pos: _I32, seg: _I32, off: _I32, first: _I32, env: VALUES, total: ti.i32, padded: _I32, npadded: ti.i32,
+              size: ti.i32):
     """The copies' envelopes of ``A``: zeroed, ``U``'s entries (row ``urow[k]``, column ``indices[k]``) at their
-    place, the vertex blocks' entries in the lower triangle of the order added (free DoFs only), 1 on the diagonal of
-    padded rows (``padded``: envelope indices)."""
+    place, then ``diag[s]`` added at ``U``'s entries ``slots[s]`` and 1 put at its entries ``fixed`` (the diagonal
+    of :meth:`BatchedPCG.factorize`, straight into the envelope), the vertex blocks' entries in the lower triangle of
+    the order added (free DoFs only), 1 on the diagonal of padded rows (``padded``: envelope indices)."""
     for k in range(total):
         env[k] = stored(0.0, env)
     for k in range(nnz):
-        r = urow[k]
-        i = ti.max(pos[r], pos[indices[k]])
-        j = ti.min(pos[r], pos[indices[k]])
-        env[seg[r] * size + off[i] + j - first[i]] = stored(data[k], env)
+        env[_place(urow, indices, pos, seg, off, first, size, k)] = stored(data[k], env)
+    for s in range(nslots):
+        at = _place(urow, indices, pos, seg, off, first, size, slots[s])
+        env[at] = stored(ti.cast(env[at], ti.f64) + diag[s], env)
+    for s in range(nfixed):
+        env[_place(urow, indices, pos, seg, off, first, size, fixed[s])] = stored(1.0, env)
     for t in range(nblocks):
         for a in ti.static(range(3)):
             for b in ti.static(range(3)):
@@ -660,6 +675,9 @@ class BatchedEnvelope(BatchedPCG):
         self._todo = np.ones(0, dtype=np.int32)
         self._nnz = 0
         self._checked = True
+        self._pending: tuple | None = None  # factorize's (indptr, indices, data, diagonal), for _operator
+        self._operator_made = False
+        self._source: tuple | None = None  # (U's values on the device, the diagonal's arrays or None): _eliminate's
 
     @property
     def schedule(self) -> str:
@@ -685,17 +703,36 @@ class BatchedEnvelope(BatchedPCG):
 
     def factorize(self, upper, blocks=None, diagonal: tuple | None = None, copies: "np.ndarray | None" = None,
                   keep_bands: bool = False) -> bool:
-        """:meth:`BatchedPCG.factorize` (the operator on the device), then each copy's envelope Cholesky factor of it
-        (of the copies in ``copies`` only, where given: the others' next solves give 0); ``keep_bands`` is ignored.
-        True; nothing is read back here: the next solve's one read gives :attr:`indefinite` (the copies whose matrix is
-        not positive definite) and whether the vertex blocks fell outside the envelope (then widened, this
-        factorisation and that solve done again)."""
-        super().factorize(upper, blocks, diagonal)
-        if isinstance(upper, tuple):
-            indptr_h, indices_h = upper[0], upper[1]
+        """Each copy's envelope Cholesky factor of ``A`` (:meth:`BatchedPCG.factorize`'s arguments and operator; of the
+        copies in ``copies`` only, where given: the others' next solves give 0); ``keep_bands`` is ignored. ``U``'s
+        values and ``diagonal`` go straight into the envelope on the device (``data`` a Taichi ndarray is read where it
+        is: it must stay unchanged until the next solve, which may gather it again after a widening); none of the CG's
+        set-up is made (its block-Jacobi preconditioner, its both-triangle operator: that one only for the refinements
+        of ``precision="mixed"`` and :meth:`matvec`, on their first use after this call). True; nothing is read back
+        here: the next solve's one read gives :attr:`indefinite` (the copies whose matrix is not positive definite) and
+        whether the vertex blocks fell outside the envelope (then widened, this factorisation and that solve done
+        again)."""
+        indptr_h, indices_h, data_h, n = self._checked_csr(upper, blocks)
+        self._pending = (indptr_h, indices_h, data_h, diagonal)  # the CG's operator, made on first use (_operator)
+        self._operator_made = False
+        nnz = int(indptr_h[-1])
+        seg = self._upload_segments()
+        self._blocks_on_device(blocks)
+        self._upload("indptr", indptr_h, ti.i32)
+        self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
+        if self.refinements:  # the refinements' float64 operator: its values with the diagonal, gathered from there
+            self._operator()
+            self._source = (self._arrays["data"], None)
         else:
-            indptr_h, indices_h = upper.indptr, upper.indices
-        seg = self._segments if self._segments is not None else np.zeros(self._n, dtype=np.int32)
+            if isinstance(data_h, np.ndarray):
+                data = self._array("env_data", max(nnz, 1))
+                if nnz:
+                    transfer.upload(data, data_h[:nnz])
+            else:
+                data = data_h
+            self._source = (data, None if diagonal is None else (
+                self._upload("diag_slots", diagonal[0], ti.i32), self._upload("diag", diagonal[1], ti.f64),
+                int(np.size(diagonal[0])), self._upload("fixed_slots", diagonal[2], ti.i32), int(np.size(diagonal[2]))))
         if self._layout is None or self._layout[0] is not indptr_h or self._layout[1] is not indices_h:
             self._new_layout(indptr_h, indices_h, seg)
         a = self._arrays
@@ -708,7 +745,7 @@ class BatchedEnvelope(BatchedPCG):
                 self._todo = np.ones(B, dtype=np.int32)
         else:
             self._todo = np.asarray(copies, dtype=np.int32)
-        self._nnz = int(np.asarray(indptr_h)[-1])
+        self._nnz = nnz
         self._eliminate()
         self._checked = False  # the "outside" flag is read with the next solve's (one wait for both)
         self.unconverged = np.zeros(B, dtype=bool)
@@ -719,7 +756,11 @@ class BatchedEnvelope(BatchedPCG):
         a = self._arrays
         B, m, size = self._copies, self._m, self.entries
         env = self._array("env", max(B * size, 1), self._env_dtype)
-        _assemble(a["data"], a["env_urow"], a["indices"], self._nnz, a["brow"], a["bcol"], a["bval"], a["free"],
+        data, diagonal = self._source
+        if diagonal is None:
+            none_i, none_f = self._array("env_none_i", 1, ti.i32), self._array("env_none_f", 1)
+            diagonal = (none_i, none_f, 0, none_i, 0)
+        _assemble(data, a["env_urow"], a["indices"], self._nnz, *diagonal, a["brow"], a["bcol"], a["bval"], a["free"],
                   self._nblocks, a["env_pos"], a["seg"], a["env_off"], a["env_first"], env, B * size,
                   a["env_padded"], self._npadded, size)
         todo = self._upload("env_todo", self._todo, ti.i32)
@@ -767,6 +808,16 @@ class BatchedEnvelope(BatchedPCG):
         self._npadded = int(diag.size)
         _copy_in(self._array("env_padded", max(diag.size, 1), ti.i32),
                  diag.astype(np.int32) if diag.size else np.zeros(1, np.int32))
+
+    def _operator(self) -> tuple:
+        """The CG's both-triangle operator of the last factorisation (:meth:`BatchedPCG._operator`), made at its first
+        use after :meth:`factorize` from the arguments kept there (for the refinements and :meth:`matvec`)."""
+        if not self._operator_made:
+            indptr_h, indices_h, data_h, diagonal = self._pending
+            self._full_operator(indptr_h, indices_h, self._csr_on_device(indptr_h, indices_h, data_h, diagonal),
+                                self._n)
+            self._operator_made = True
+        return super()._operator()
 
     def _solve_into(self, b, x) -> None:
         """``x = A^-1 b`` from the factors, refined in ``"mixed"``."""

@@ -574,6 +574,33 @@ class BatchedPCG:
             ValueError: ``n`` is not a multiple of 3, does not match the segments, or the blocks' free
                 mask is not of size ``n``.
         """
+        indptr_h, indices_h, data_h, n = self._checked_csr(upper, blocks)
+        keep_bands = keep_bands and self._banded
+        if self.bands is not None and not keep_bands:  # a selection's mask copied before the launches below
+            self.bands.select(copies)
+        data = self._csr_on_device(indptr_h, indices_h, data_h, diagonal)
+        seg = self._upload_segments()
+        self._copy_order(seg)
+        nvert = n // 3
+        blk = self._array("blk", max(3 * n, 1))
+        _diag_blocks_csr(self._arrays["indptr"], self._arrays["indices"], data, blk, nvert)
+        full = self._full_operator(indptr_h, indices_h, data, n)
+        brow, bcol, bval, free = self._blocks_on_device(blocks)
+        if self._nblocks:
+            _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
+        _invert_blocks(blk, self._array("inv", max(3 * n, 1), self._dtype), nvert)
+        if self._band_dofs is not None and not keep_bands:
+            if self.bands is None:
+                self.bands = BandBlocks(self._band_dofs, seg, dtype=self._dtype)
+            a = self._arrays
+            self._banded = bool(full[2]) and self.bands.assemble(
+                a["full_indptr"], a["full_indices"], data, (brow, bcol, bval, free, self._nblocks), full,
+                data_index=a["full_src"], copies=copies)
+        return True
+
+    def _checked_csr(self, upper, blocks: "VertexBlocks | None") -> tuple:
+        """``upper``'s CSR arrays ``(indptr_h, indices_h, data_h, n)``, checked against the segments and ``blocks``'
+        free mask (:meth:`factorize`'s ``ValueError``); counts the factorisation and sets the size and copies."""
         if isinstance(upper, tuple):
             indptr_h, indices_h, data_h = upper
         else:
@@ -585,15 +612,30 @@ class BatchedPCG:
         if blocks is not None and blocks.free.shape != (n,):
             raise ValueError(f"BatchedPCG: vertex blocks with a free mask of shape {blocks.free.shape}, expected ({n},)")
         self.factorizations += 1
-        keep_bands = keep_bands and self._banded
-        if self.bands is not None and not keep_bands:  # a selection's mask copied before the launches below
-            self.bands.select(copies)
         self._n = n
-        seg = self._segments if self._segments is not None else np.zeros(n, dtype=np.int32)
-        self._copies = int(seg.max()) + 1 if n else 1
+        self._copies = int(self._segments.max()) + 1 if self._segments is not None and n else 1
+        return indptr_h, indices_h, data_h, n
+
+    def _upload_segments(self) -> np.ndarray:
+        """Each DoF's copy (the segments, or all 0) on the device as ``seg`` (uploaded once); returns the host array."""
+        seg = self._segments if self._segments is not None else self._one_copy_segments()
+        self._upload("seg", seg, ti.i32)
+        return seg
+
+    def _one_copy_segments(self) -> np.ndarray:
+        """Without segments: ``n`` zeros, int32, the same host object while ``n`` stays (uploaded once)."""
+        kept = self._staging.get("seg")
+        if kept is None or kept.shape != (self._n,):
+            kept = self._staging["seg"] = np.zeros(self._n, dtype=np.int32)
+        return kept
+
+    def _csr_on_device(self, indptr_h: np.ndarray, indices_h: np.ndarray, data_h, diagonal: tuple | None):
+        """``U``'s CSR arrays on the device (``indptr``, ``indices`` uploaded only when other objects than at the
+        last call; ``data_h`` uploaded, or copied on the device when it is a Taichi ndarray) and ``diagonal``
+        (:meth:`factorize`) applied to its values; returns the values' device array ``data``."""
         nnz = int(indptr_h[-1])
-        indptr = self._upload("indptr", indptr_h, ti.i32)
-        indices = self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
+        self._upload("indptr", indptr_h, ti.i32)
+        self._upload("indices", indices_h if indices_h.size == nnz else indices_h[:nnz], ti.i32)
         data = self._array("data", max(nnz, 1))
         if nnz and isinstance(data_h, np.ndarray):
             transfer.upload(data, data_h[:nnz])
@@ -603,15 +645,20 @@ class BatchedPCG:
             slots, values, fixed = diagonal
             _add_diagonal(data, self._upload("diag_slots", slots, ti.i32), self._upload("diag", values, ti.f64),
                           int(np.size(slots)), self._upload("fixed_slots", fixed, ti.i32), int(np.size(fixed)))
-        self._upload("seg", seg, ti.i32)
-        self._copy_order(seg)
-        nvert = n // 3
-        blk = self._array("blk", max(3 * n, 1))
-        _diag_blocks_csr(indptr, indices, data, blk, nvert)
+        return data
+
+    def _full_operator(self, indptr_h: np.ndarray, indices_h: np.ndarray, data, n: int) -> tuple:
+        """The both-triangle operator's values ``full_data`` (in the stored precision) gathered from ``U``'s device
+        values ``data`` in the pattern of :meth:`_full_pattern`; returns that pattern's tuple."""
         full = self._full_pattern(indptr_h, indices_h, n)
         full_data = self._array("full_data", max(full[2], 1), self._dtype)
         if full[2]:
             _gather(data, self._arrays["full_src"], full_data, full[2])
+        return full
+
+    def _blocks_on_device(self, blocks: "VertexBlocks | None") -> tuple:
+        """The vertex blocks ``(brow, bcol, bval, free)`` on the device (element sets expanded there; ``free`` uploaded
+        once); sets their count."""
         self._nblocks = 0 if blocks is None else int(blocks.count)
         # the vertex blocks' arrays keep their capacity (the contact set's count changes every Newton iteration)
         brow = self._resident("brow", self._nblocks, ti.i32)
@@ -636,17 +683,7 @@ class BatchedPCG:
             self._staged("brow", [blocks.rows], ti.i32)
             self._staged("bcol", [blocks.cols], ti.i32)
             _copy_values(self._staged("bval_host", [blocks.values.reshape(-1)], ti.f64), bval, 9 * self._nblocks)
-        if self._nblocks:
-            _diag_blocks_add(brow, bcol, bval, free, blk, self._nblocks)
-        _invert_blocks(blk, self._array("inv", max(3 * n, 1), self._dtype), nvert)
-        if self._band_dofs is not None and not keep_bands:
-            if self.bands is None:
-                self.bands = BandBlocks(self._band_dofs, seg, dtype=self._dtype)
-            a = self._arrays
-            self._banded = bool(full[2]) and self.bands.assemble(
-                a["full_indptr"], a["full_indices"], data, (brow, bcol, bval, free, self._nblocks), full,
-                data_index=a["full_src"], copies=copies)
-        return True
+        return brow, bcol, bval, free
 
     def _copy_order(self, seg: np.ndarray) -> None:
         """The vertices grouped by copy on the device (``order``, ``start``: copy ``c``'s vertices are

@@ -195,3 +195,37 @@ def test_a_diverged_copy_is_isolated_and_copies_left_out_get_zero(ti_cpu, schedu
     assert not solver.indefinite.any()
     np.testing.assert_array_equal(x[m:2 * m], 0.0)
     np.testing.assert_allclose(x, np.where(segments == 1, 0.0, want), rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_values_on_the_device_go_straight_into_the_envelope_without_the_cgs_set_up(ti_cpu):
+    """``U``'s values handed over as a device array, with the inertia diagonal and the fixed DoFs' 1: the solve is
+    exact and none of the CG's set-up is made (no block-Jacobi inverse, no both-triangle operator); the operator is
+    made at :meth:`matvec`'s first use and equals ``A``."""
+    from sim_core.ti_backend import ti
+    from sim_core.ti_kernels.envelope_cholesky import BatchedEnvelope
+
+    blocks = [_grid_block(5, 4, seed, 0.5) for seed in (31, 32)]
+    A0 = sp.block_diag(blocks, format="csr")
+    n, m = A0.shape[0], blocks[0].shape[0]
+    upper = _upper(A0)
+    rng = np.random.default_rng(4)
+    diag_slots = upper.indptr[:-1].astype(np.int32)  # each row's first entry: its diagonal
+    diag_values = rng.uniform(1.0, 2.0, size=n)
+    fixed = diag_slots[[3, 4, 5, m + 9]]
+    rows = np.repeat(np.arange(n), np.diff(upper.indptr))
+    fixed_dof = np.isin(np.arange(n), upper.indices[fixed])
+    upper.data[(fixed_dof[rows] | fixed_dof[upper.indices]) & (rows != upper.indices)] = 0.0
+    U = upper.copy()
+    U.data[diag_slots] += diag_values
+    U.data[fixed] = 1.0
+    A = (U + U.T - sp.diags(U.diagonal())).tocsc()
+    data = ti.ndarray(ti.f64, (upper.nnz,))
+    data.from_numpy(upper.data)
+    solver = BatchedEnvelope(np.repeat(np.arange(2), m))
+    solver.factorize((upper.indptr, upper.indices, data), None, (diag_slots, diag_values, fixed))
+    b = rng.normal(size=n)
+    want = spla.spsolve(A, b)
+    np.testing.assert_allclose(solver.solve(b), want, rtol=0, atol=1e-10 * np.abs(want).max())
+    assert not {"inv", "blk", "full_data", "data"} & set(solver._arrays)
+    np.testing.assert_allclose(solver.matvec(want), A @ want, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    np.testing.assert_array_equal(data.to_numpy(), upper.data)  # the caller's values left as they were
