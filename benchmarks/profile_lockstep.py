@@ -416,11 +416,21 @@ def _phase_specs(backend: str) -> list:
               (FusedElastic, "projected_hessian_values_device", "Newton: the projected elastic Hessian (retries)",
                {_NEWTON}),
               (lockstep, "projected_subset_blocks", "Newton: the projected pair blocks (retries)", {_NEWTON})]
+    # the friction's set-up by part: the step's pair potentials (their sides at x^n apart) and the friction rows
+    friction, search = "set-up: ContactSet.friction", "set-up: friction: the pair potentials (ContactSet._search)"
+    specs += [(ContactSet, "_search", search, {friction}),
+              (ContactSet, "_pair_sides", "set-up: friction: the pairs' sides at x^n (ContactSet._pair_sides)",
+               {search}),
+              (ContactSet, "_pair_friction", "set-up: friction: the rows (ContactSet._pair_friction)", {friction})]
     if backend != "numpy":
-        from sim_core.ti_kernels import pcg
+        from sim_core.ti_kernels import envelope_cholesky, pcg
+        from sim_core.ti_kernels.block_projection import BlockRowsProjector
 
+        pairs = "Newton: the projected pair blocks (retries)"
         specs += [(pcg.BatchedPCG, "factorize", "Newton: BatchedPCG.factorize", {_NEWTON}),
-                  (pcg.BatchedPCG, "solve_on_device", "Newton: BatchedPCG.solve_on_device", {_NEWTON})]
+                  (envelope_cholesky.BatchedEnvelope, "factorize", "Newton: BatchedEnvelope.factorize", {_NEWTON}),
+                  (pcg.BatchedPCG, "solve_on_device", "Newton: BatchedPCG.solve_on_device", {_NEWTON}),
+                  (BlockRowsProjector, "project", "Newton: retries: the pair blocks' Jacobi projection", {pairs})]
     return specs
 
 
