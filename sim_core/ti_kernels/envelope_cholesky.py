@@ -4,9 +4,12 @@ copy a thread group (issue 52's design with a floor under the goal, docs/gpu_roo
 
 :class:`BatchedEnvelope` is a :class:`~sim_core.ti_kernels.pcg.BatchedPCG` whose solve is exact: the same
 ``factorize`` contract and operator ``A = U + U^T - diag(U) + sum_t F E_t F`` (the assembled upper triangle ``U``,
-the contact and friction vertex blocks ``E_t``, the free mask ``F``), kept on the device by the CG's own
-``factorize``; then, per copy, ``A_c`` gathered into its lower envelope and factorised, and each solve a forward and
-a back substitution. Every copy has the same number of DoFs; all copies share one layout.
+the contact and friction vertex blocks ``E_t``, the free mask ``F``); per copy, ``A_c`` gathered into its lower
+envelope straight from ``U``'s values where they are (a device array is read in place) with the inertia diagonal added
+there, and the vertex blocks as the CG keeps them (:meth:`BatchedPCG._blocks_on_device`), then factorised; each solve a
+forward and a back substitution. None of the CG's own set-up is made (its block-Jacobi preconditioner, its
+both-triangle operator: that one only where it is used, for the refinements of ``precision="mixed"`` and for
+:meth:`BatchedPCG.matvec`). Every copy has the same number of DoFs; all copies share one layout.
 
 Order and envelope. The vertices of every copy are ordered by the reverse Cuthill-McKee order (Cuthill & McKee 1969;
 George & Liu, Computer Solution of Large Sparse Positive Definite Systems, 1981, Sec. 4.3) of the union over copies
@@ -46,8 +49,10 @@ thread runs a copy's whole elimination (``lanes = 1``, no synchronisation). Thre
 
 On the H100 (B = 1024, one Forming Newton matrix, ``benchmarks/bench_envelope.py``, session 52) :meth:`factorize`
 takes 26-28 ms with ``"dots"`` at 256 threads a copy (group 4; ``"pairs"`` 36.5, 43.1 at 128), but its gather and
-elimination kernels alone 8.1 ms (``"panels"`` 6.4; B = 256: 3.6 / 2.7): the rest of the call is the operator's
-set-up it shares with the CG (docs/gpu_roofline.md). ``"dots"`` stays the default on CUDA: the lockstep's steady
+elimination kernels alone 8.1 ms (``"panels"`` 6.4; B = 256: 3.6 / 2.7). Without the CG's set-up (session 53) the
+call took the same at B = 256 (12.5 -> 12.4 ms, kernels 3.5-3.7 ms): what is left outside the kernels is not the
+preconditioner but the vertex blocks' upload and expansion, the outside check and the launches (not timed apart;
+docs/gpu_roofline.md). ``"dots"`` stays the default on CUDA: the lockstep's steady
 Forming rate at B = 1024 read 1,724 scene-steps/s with it against 1,573 with ``"panels"`` in the same call. A pivot that is not
 positive (or not finite) marks its copy :attr:`BatchedPCG.indefinite` (the matrix is not positive definite: exact,
 unlike the CG's ``p.Ap <= 0``); the elimination goes on with 1 in its place, and that copy's solution is not used.
