@@ -572,10 +572,11 @@ class ContactSet:
             vt_sides, keep, ee_sides = self._pair_sides(x_ref, memory, vt, ee)
             self._step_table = (memory, x_ref, vt, ee, (vt_sides, keep, ee_sides))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
+        ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
-        ee_rows, ee_pairs, ee_vertices = self._kept_edge_pairs(ee, keep, lists)
         pots = (self._vertex_triangle(vt, vt_sides, lists.vt_vertices),
-                self._edge_edge(ee_pairs, np.take(ee_sides, ee_rows), ee_vertices))
+                self._edge_edge(np.take(ee, ee_rows, axis=0), np.take(ee_sides, ee_rows),
+                                np.take(lists.ee_vertices, ee_rows, axis=0)))
         for pot in pots:
             pot.workspace = self.workspace
         if self.taichi:
@@ -587,20 +588,6 @@ class ContactSet:
             whole = vt_sides.base if vt_sides.base is not None and vt_sides.base is ee_sides.base else None
             PairBatch(*pots, layout=lists.batch_layout(ee_rows), sides=whole)
         return pots, ee_rows
-
-    def _kept_edge_pairs(self, ee: np.ndarray, keep: np.ndarray, lists: CandidateVertices) -> tuple:
-        """``(rows, pairs, vertices)`` of the edge-edge candidates ``ee`` ``(q, 2)`` that ``keep`` ``(q,)`` keeps: their
-        rows int64 ``(k,)``, pairs ``(k, 2)`` and vertices ``(k, 4)`` (``lists``'). The arrays of the last call are
-        returned as they are where the list and the kept rows are the same (a step whose candidate lists and
-        near-parallel filter at ``x^n`` equal the last step's: no pass over the kept pairs, and the step's potential
-        has the last one's vertex arrays, so that it inherits the last evaluation without comparing them)."""
-        kept = getattr(self, "_edge_pairs_kept", None)
-        if kept is not None and kept[0] is ee and kept[1].shape == keep.shape and np.array_equal(kept[1], keep):
-            return kept[2]
-        rows = np.flatnonzero(keep)
-        out = (rows, np.take(ee, rows, axis=0), np.take(lists.ee_vertices, rows, axis=0))
-        self._edge_pairs_kept = (ee, np.array(keep, dtype=bool, copy=True), out)
-        return out
 
     def _list_vertices(self, vt: np.ndarray, ee: np.ndarray) -> CandidateVertices:
         """The global vertices of candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)``, kept for the last lists

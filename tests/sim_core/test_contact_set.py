@@ -510,36 +510,3 @@ def test_a_step_starting_where_the_last_ended_reuses_its_geometry_with_the_same_
         np.testing.assert_array_equal(a.pairs, b.pairs)
         np.testing.assert_array_equal(a.sides, b.sides)
     assert np.any(pots[1].sides != 0) and len(pots[0].pairs) and len(pots[1].pairs)
-
-
-def test_a_step_with_the_last_steps_lists_and_kept_edge_pairs_takes_their_arrays_with_a_fresh_sets_values():
-    """The next step's edge-edge potential over the same candidate lists, whose near-parallel filter at its ``x^n``
-    keeps the same pairs, takes the last step's pair and vertex arrays as they are (no pass over the pairs, and its
-    evaluation inherited without comparing them) and has the pairs, vertices, sides and energy of a contact set that
-    builds them again; a step whose filter keeps other pairs builds its own."""
-    model, x_n = _forming_model_deformed(2)
-    x = x_n + np.random.default_rng(6).normal(scale=1e-7, size=x_n.shape)
-    cs, fresh = ContactSet(model), ContactSet(model)
-    memory = cs.begin_step(x_n, None)
-    first = cs.potentials(x_n, x_n, memory)
-    memory = cs.end_step(x, memory)
-    lists = cs._candidates
-    pots = cs.potentials(x, x, cs.begin_step(x, memory))
-    assert cs._candidates is lists and pots[1] is not first[1]
-    assert pots[1].vertices is first[1].vertices and np.shares_memory(pots[1].pairs, first[1].pairs)
-    fresh.begin_step(x, None)
-    fresh._candidates = lists
-    fresh_pots = fresh.potentials(x, x, fresh.begin_step(x, memory))
-    for a, b in zip(pots[:2], fresh_pots[:2]):
-        for name in ("pairs", "vertices", "sides"):
-            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
-        assert a.energy(x) == b.energy(x)
-    assert len(pots[1].pairs) and np.any(pots[1].sides != 0)
-    # another filter (the list's first kept pair dropped): its own arrays, those of the kept rows
-    _, _, ee = lists
-    keep = np.ones(len(ee), dtype=bool)
-    keep[0] = False
-    rows, pairs, vertices = cs._kept_edge_pairs(ee, keep, cs._list_vertices(*lists[1:]))
-    np.testing.assert_array_equal(rows, np.arange(1, len(ee)))
-    np.testing.assert_array_equal(pairs, ee[1:])
-    assert vertices is not pots[1].vertices and len(vertices) == len(ee) - 1
