@@ -735,7 +735,7 @@ class BatchedEnvelope(BatchedPCG):
                     transfer.upload(data, data_h[:nnz])
             else:
                 data = data_h
-            self._source = (data, None if diagonal is None else (
+            self._source = (data, None if diagonal is None or not nnz else (
                 self._upload("diag_slots", diagonal[0], ti.i32), self._upload("diag", diagonal[1], ti.f64),
                 int(np.size(diagonal[0])), self._upload("fixed_slots", diagonal[2], ti.i32), int(np.size(diagonal[2]))))
         if self._layout is None or self._layout[0] is not indptr_h or self._layout[1] is not indices_h:
