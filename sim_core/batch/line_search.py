@@ -19,10 +19,24 @@ from sim_core.energies.base import CopyEnergies, DeviceCopyEnergies, declares
 from sim_core.step_info import StepInfo
 
 
+def armijo_accepts(candidates: np.ndarray, energy: np.ndarray, e0: np.ndarray, step: np.ndarray, slope: np.ndarray,
+                   armijo_c: float) -> np.ndarray:
+    """The copies of ``candidates`` (bool ``(B,)``, those that passed the slope test) that pass their own Armijo
+    condition ``E_i(x + a_i d) - E_i(x) <= c a_i g_i.d_i + 1e-14 |E_i(x)|`` (``energy`` the trial's and ``e0`` the
+    start's energies, J; ``step`` the steps ``a_i``; ``slope`` ``g_i.d_i``; NaN fails), bool ``(B,)``: the host's test,
+    which :func:`sim_core.ti_kernels.backtrack._decide` makes on the device in the same operations."""
+    return candidates & (energy - e0 <= armijo_c * step * slope + 1e-14 * np.abs(e0))
+
+
 class CopyLineSearch:
     """The per-copy line search of :class:`~sim_core.batch.lockstep.LockstepSolver` (which provides ``config``,
     ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_copy_sums``, ``_trial_energy``, ``_energy`` and
     ``_stacked_gradient``)."""
+
+    device_backtrack: bool = True
+    """Where the vectors and every term's per-copy energy are on the device, decide each trial point's tests and
+    halvings there (:meth:`_line_search_on_device`); False: on the host from one read a trial point. The same
+    results bit for bit."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
                             contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
@@ -56,6 +70,8 @@ class CopyLineSearch:
             if e0 is None:
                 e0 = self._energy(step, x.host, contact_terms, x_search)
         per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
+        if per_copy and x.device is not None and self.device_backtrack:
+            return self._line_search_on_device(step, x, d, alpha, slope, open_, e0, info)
         e_new = e0  # per copy: the energy where each copy stands after the accepted steps
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -83,7 +99,7 @@ class CopyLineSearch:
             if per_copy and cand.any():  # each copy's Armijo test on its own energy
                 if e_try is None:
                     e_try = self._copy_energies(step, x_try.host, terms, xs, x_try.device)
-                ok = cand & (e_try - e0 <= cfg.armijo_c * a * slope + 1e-14 * np.abs(e0))
+                ok = armijo_accepts(cand, e_try, e0, a, slope, cfg.armijo_c)
                 e_new = np.where(ok, e_try, e_new)
                 accepted |= ok
                 taken[ok] = a[ok]
@@ -103,13 +119,57 @@ class CopyLineSearch:
             backtracks[pending] += 1
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
+        return self._line_search_end(step, x, d, last, taken, e_new, accepted, backtracks, info)
+
+    def _line_search_on_device(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
+                               e0: np.ndarray, info: StepInfo):
+        """:meth:`_line_search_copies` where the vectors and the copies' energies are on the device: each trial
+        point's slope and Armijo tests, acceptances, halvings and next step sizes decided there
+        (:class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`, the per-copy branch's :func:`armijo_accepts` bit for
+        bit); a trial point sends no step sizes and reads one array (the host terms' energies sent where not zero).
+        Same arguments (``e0`` the copies' energies at ``x``, J ``(B,)``) and results."""
+        cfg = self.config
+        vectors = self._vectors
+        search = vectors.backtrack
+        pending = open_ & (alpha > 0)
+        accepted = open_ & (alpha == 0)
+        trial = search.start(e0, slope, (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope), np.where(pending, alpha, 0.0),
+                             pending, accepted)
+        taken, e_new = np.zeros(len(alpha)), e0
+        backtracks = np.zeros(len(alpha), dtype=np.int64)
+        last = None  # (alphas, x, (terms, x_search, g, g_max)) of the last evaluated trial
+        for _ in range(cfg.max_backtracks):
+            if not pending.any():
+                break
+            x_try = vectors.trial_by(x, d, search.state)
+            terms, xs, g_try = self._stacked_gradient(step, x_try, info, x.host)  # a search covering the segment
+            launched = self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
+            if launched is None:
+                raise RuntimeError("CopyLineSearch: a trial point's contact terms cannot split their energy by copy "
+                                   "where the line search's start could")
+            host_energies, sums = launched
+            device_sums = vectors.launch_scalars(g_try, d, sums)
+            out = search.decide(vectors.scalars_out, device_sums is not None, host_energies, sums.host_values,
+                                cfg.armijo_c)
+            last = (trial, x_try, (terms, xs, g_try, out["largest"]))
+            pending, accepted, backtracks = out["pending"], out["accepted"] | accepted, out["backtracks"]
+            taken, e_new, trial = out["taken"], out["energy"], out["alpha"]
+            info.backtracks += out["halved"]
+        return self._line_search_end(step, x, d, last, taken, e_new, accepted, backtracks, info)
+
+    def _line_search_end(self, step, x: Iterate, d, last, taken: np.ndarray, e_new, accepted: np.ndarray,
+                         backtracks: np.ndarray, info: StepInfo):
+        """:meth:`_line_search_copies`' result from its ``last`` evaluated trial (or None) and the copies' accepted
+        steps ``taken`` ``(B,)``: that trial where its steps are ``taken``, else the point ``x + taken d`` and its
+        gradient; the energies ``e_new`` where the copies stand are kept for the next line search where per copy."""
+        vectors = self._vectors
         if last is not None and np.array_equal(last[0], taken):
             x_new, (terms, xs, g_new, g_max) = last[1], last[2]
         else:
             x_new = vectors.trial(x, d, taken)
             terms, xs, g_new = self._stacked_gradient(step, x_new, info, x.host)
             g_max = None
-        if per_copy:  # a copy's energy depends on its own positions only: x_new's, per copy, are those measured
+        if isinstance(e_new, np.ndarray):  # a copy's energy depends on its own positions only: x_new's, per copy
             self._trial_energy = (x_new.host, terms, e_new)
         return x_new, (x_new, g_new, g_max), terms, xs, accepted, backtracks
 
