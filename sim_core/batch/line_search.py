@@ -70,8 +70,7 @@ class CopyLineSearch:
             if e0 is None:
                 e0 = self._energy(step, x.host, contact_terms, x_search)
         per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
-        if per_copy and x.device is not None and self.device_backtrack:
-            return self._line_search_on_device(step, x, d, alpha, slope, open_, e0, info)
+        device = per_copy and x.device is not None and self.device_backtrack  # further trials decided there
         e_new = e0  # per copy: the energy where each copy stands after the accepted steps
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -80,7 +79,7 @@ class CopyLineSearch:
         backtracks = np.zeros(B, dtype=np.int64)
         bound = (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope)
         last = None  # (alphas, x, (terms, x_search, g)) of the last evaluated trial
-        for _ in range(cfg.max_backtracks):
+        for k in range(cfg.max_backtracks):
             if not pending.any():
                 break
             trial = np.where(pending, a, 0.0) + taken
@@ -119,28 +118,24 @@ class CopyLineSearch:
             backtracks[pending] += 1
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
+            if device and launched is not None and pending.any() and k + 1 < cfg.max_backtracks:
+                search = vectors.backtrack  # the state up in the upload that the next trial's steps would take
+                trial = search.start(e0, slope, bound, a, pending, accepted, taken, e_new, backtracks)
+                return self._backtrack_on_device(step, x, d, cfg.max_backtracks - k - 1, trial, last, info)
         return self._line_search_end(step, x, d, last, taken, e_new, accepted, backtracks, info)
 
-    def _line_search_on_device(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
-                               e0: np.ndarray, info: StepInfo):
-        """:meth:`_line_search_copies` where the vectors and the copies' energies are on the device: each trial
-        point's slope and Armijo tests, acceptances, halvings and next step sizes decided there
-        (:class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`, the per-copy branch's :func:`armijo_accepts` bit for
-        bit); a trial point sends no step sizes and reads one array (the host terms' energies sent where not zero).
-        Same arguments (``e0`` the copies' energies at ``x``, J ``(B,)``) and results."""
+    def _backtrack_on_device(self, step, x: Iterate, d, trials: int, trial: np.ndarray, last, info: StepInfo):
+        """:meth:`_line_search_copies`' further trial points (at most ``trials``, the first at the steps ``trial``
+        ``(B,)``) where the vectors and every term's per-copy energies are on the device and the state is in
+        :attr:`~sim_core.batch.device_iterates.DeviceIterates.backtrack`: each trial point's slope and Armijo tests,
+        acceptances, halvings and next step sizes decided there (:class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`,
+        the host branch's :func:`armijo_accepts` and halvings bit for bit), so that a trial point sends no step sizes
+        and reads one array back (the host terms' energies sent where one is not zero); ``last``: the last trial
+        evaluated on the host. Same results as :meth:`_line_search_copies`."""
         cfg = self.config
         vectors = self._vectors
         search = vectors.backtrack
-        pending = open_ & (alpha > 0)
-        accepted = open_ & (alpha == 0)
-        trial = search.start(e0, slope, (1.0 - 2.0 * cfg.armijo_c) * np.abs(slope), np.where(pending, alpha, 0.0),
-                             pending, accepted)
-        taken, e_new = np.zeros(len(alpha)), e0
-        backtracks = np.zeros(len(alpha), dtype=np.int64)
-        last = None  # (alphas, x, (terms, x_search, g, g_max)) of the last evaluated trial
-        for _ in range(cfg.max_backtracks):
-            if not pending.any():
-                break
+        for _ in range(trials):
             x_try = vectors.trial_by(x, d, search.state)
             terms, xs, g_try = self._stacked_gradient(step, x_try, info, x.host)  # a search covering the segment
             launched = self._launch_copy_energies(step, x_try.host, terms, xs, x_try.device)
@@ -152,10 +147,12 @@ class CopyLineSearch:
             out = search.decide(vectors.scalars_out, device_sums is not None, host_energies, sums.host_values,
                                 cfg.armijo_c)
             last = (trial, x_try, (terms, xs, g_try, out["largest"]))
-            pending, accepted, backtracks = out["pending"], out["accepted"] | accepted, out["backtracks"]
-            taken, e_new, trial = out["taken"], out["energy"], out["alpha"]
+            trial = out["alpha"]
             info.backtracks += out["halved"]
-        return self._line_search_end(step, x, d, last, taken, e_new, accepted, backtracks, info)
+            if not out["pending"].any():
+                break
+        return self._line_search_end(step, x, d, last, out["taken"], out["energy"], out["accepted"], out["backtracks"],
+                                     info)
 
     def _line_search_end(self, step, x: Iterate, d, last, taken: np.ndarray, e_new, accepted: np.ndarray,
                          backtracks: np.ndarray, info: StepInfo):

@@ -96,16 +96,17 @@ class DeviceBacktrack:
         self._host_values = np.zeros(self._host.shape[0])
 
     def start(self, e0: np.ndarray, slope: np.ndarray, bound: np.ndarray, step: np.ndarray, pending: np.ndarray,
-              accepted: np.ndarray) -> np.ndarray:
-        """A line search's start, in one upload: per copy (each ``(B,)``) its energy ``e0`` (J), slope ``g.d``, the
-        slope test's bound, first step ``step`` (0 where not ``pending``), pending and accepted flags (bool).
-        Returns the first trial's step sizes ``(B,)`` (a new array)."""
+              accepted: np.ndarray, taken: np.ndarray, energy: np.ndarray, backtracks: np.ndarray) -> np.ndarray:
+        """A line search's state, in one upload: per copy (each ``(B,)``) its energy ``e0`` at the start (J), slope
+        ``g.d``, the slope test's bound, the step ``step`` a pending copy tries next, pending and accepted flags
+        (bool), accepted steps ``taken``, ``energy`` where it stands (J) and halvings so far. Returns the next trial's
+        step sizes ``(B,)`` (a new array; :data:`ALPHA`)."""
         B = self.copies
         rows = self._host_state[: ROWS * B].reshape(ROWS, B)
         rows[:] = 0.0
-        rows[ALPHA] = np.where(pending, step, 0.0) + rows[TAKEN]
+        rows[ALPHA] = np.where(pending, step, 0.0) + taken
         rows[E0], rows[SLOPE], rows[BOUND], rows[STEP] = e0, slope, bound, step
-        rows[ENERGY] = e0
+        rows[TAKEN], rows[ENERGY], rows[BACKTRACKS] = taken, energy, backtracks
         rows[PENDING], rows[ACCEPTED] = pending, accepted
         transfer.upload(self.state, self._host_state)
         return rows[ALPHA].copy()

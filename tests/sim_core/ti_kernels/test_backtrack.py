@@ -63,7 +63,8 @@ def test_the_device_backtrack_decides_as_the_host_over_successive_trial_points(t
     pending, accepted = open_ & (alpha > 0), open_ & (alpha == 0)
     bound = (1.0 - 2.0 * C) * np.abs(slope)
     search = DeviceBacktrack(B)
-    trial = search.start(e0, slope, bound, np.where(pending, alpha, 0.0), pending, accepted)
+    trial = search.start(e0, slope, bound, np.where(pending, alpha, 0.0), pending, accepted, np.zeros(B), e0,
+                         np.zeros(B, dtype=np.int64))
     state = {"pending": pending, "accepted": accepted, "a": np.where(pending, alpha, 0.0), "taken": np.zeros(B),
              "energy": e0.copy(), "backtracks": np.zeros(B, dtype=np.int64), "e0": e0, "slope": slope,
              "bound": bound}
