@@ -33,10 +33,13 @@ class CopyLineSearch:
     ``scene``, ``contact``, ``_vectors``, ``_copy_of_vertex``, ``_copy_sums``, ``_trial_energy``, ``_energy`` and
     ``_stacked_gradient``)."""
 
-    device_backtrack: bool = True
-    """Where the vectors and every term's per-copy energy are on the device, decide each trial point's tests and
-    halvings there (:meth:`_line_search_on_device`); False: on the host from one read a trial point. The same
-    results bit for bit."""
+    device_backtrack: str = "auto"
+    """Where the line search's trial points after the first are decided when the vectors and every term's per-copy
+    energies are on the device: ``"always"`` there (:meth:`_backtrack_on_device`), ``"never"`` on the host (one read
+    of the slopes and energies a trial point, the next step sizes sent), ``"auto"`` there where the first trial
+    point's host terms had no energy (no contact pair in reach: then a trial point sends nothing; else each would
+    send the host terms' energies, one upload a trial point as the host's step sizes are, plus the state once). The
+    same results bit for bit."""
 
     def _line_search_copies(self, step, x: Iterate, d, alpha: np.ndarray, slope: np.ndarray, open_: np.ndarray,
                             contact_terms: list, x_search: np.ndarray | None, info: StepInfo):
@@ -70,7 +73,7 @@ class CopyLineSearch:
             if e0 is None:
                 e0 = self._energy(step, x.host, contact_terms, x_search)
         per_copy = isinstance(e0, np.ndarray)  # each copy's own energy (else one stacked sum: the Armijo groups)
-        device = per_copy and x.device is not None and self.device_backtrack  # further trials decided there
+        device = per_copy and x.device is not None and self.device_backtrack != "never"  # further trials there
         e_new = e0  # per copy: the energy where each copy stands after the accepted steps
         pending = open_ & (alpha > 0)
         accepted = open_ & (alpha == 0)
@@ -118,7 +121,9 @@ class CopyLineSearch:
             backtracks[pending] += 1
             info.backtracks += int(pending.sum())
             a[pending] *= 0.5
-            if device and launched is not None and pending.any() and k + 1 < cfg.max_backtracks:
+            if (device and launched is not None and pending.any() and k + 1 < cfg.max_backtracks
+                    and (self.device_backtrack == "always" or not (np.any(launched[0])
+                                                                   or np.any(launched[1].host_values)))):
                 search = vectors.backtrack  # the state up in the upload that the next trial's steps would take
                 trial = search.start(e0, slope, bound, a, pending, accepted, taken, e_new, backtracks)
                 return self._backtrack_on_device(step, x, d, cfg.max_backtracks - k - 1, trial, last, info)

@@ -75,8 +75,8 @@ def test_lockstep_batch_of_three_gives_the_states_of_three_separate_runs(model, 
 
 
 def test_the_backtrack_decided_on_the_device_takes_the_host_decisions(model, monkeypatch):
-    """The device-vector lockstep's line search with its tests and halvings on the device (the default) against the
-    same decided on the host from one read a trial point: every copy takes the same Newton iterations and backtracks,
+    """The device-vector lockstep's line search with its further trial points' tests and halvings decided on the
+    device against the same decided on the host from one read a trial point: every copy takes the same Newton iterations and backtracks,
     and the states agree to round-off (the CPU arch's parallel reductions differ run to run by ~1e-17 m)."""
     from sim_core.batch.line_search import CopyLineSearch
     from sim_core.ti_kernels.backtrack import DeviceBacktrack
@@ -86,7 +86,7 @@ def test_the_backtrack_decided_on_the_device_takes_the_host_decisions(model, mon
     monkeypatch.setattr(DeviceBacktrack, "decide", lambda self, *a: decided.append(1) or decide(self, *a))
     runs = {}
     for on_device in (True, False):
-        monkeypatch.setattr(CopyLineSearch, "device_backtrack", on_device)
+        monkeypatch.setattr(CopyLineSearch, "device_backtrack", "always" if on_device else "never")
         before = len(decided)
         runs[on_device] = _run(_lockstep_batch(model, LOCKSTEP_CG))
         assert (len(decided) > before) == on_device  # the trial points' decisions made where asked
