@@ -676,9 +676,12 @@ def _wrap_parts(backend: str) -> dict:
     if backend != "numpy":
         within += [(DeviceIterates, n) for n in ("gradient", "trial", "trial_by")]
         within += [(CopyVectors, "scalars")]
-        from sim_core.ti_kernels.backtrack import DeviceBacktrack
+        from importlib.util import find_spec
 
-        within += [(DeviceBacktrack, "decide"), (DeviceBacktrack, "start")]
+        if find_spec("sim_core.ti_kernels.backtrack") is not None:  # (a tree with the device backtrack)
+            from sim_core.ti_kernels.backtrack import DeviceBacktrack
+
+            within += [(DeviceBacktrack, "decide"), (DeviceBacktrack, "start")]
     for cls, name in within:
         if name in vars(cls):
             _time_within(timers, CopyLineSearch, "_line_search_copies", cls, name)
