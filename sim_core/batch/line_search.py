@@ -7,7 +7,10 @@ slope test's per-copy dot products are read back as ``(B,)`` arrays, with each t
 next Newton iteration's force test, where the trial is accepted) in the same read; on the device, where each copy has
 its own energy, the trial point's per-copy energies are launched before that read and come back in it too (one copy
 back a trial point for the slope and Armijo tests; the energies are then measured even where no copy passes the slope
-test, which changes no result).
+test, which changes no result). From a line search's second trial point on, the tests, acceptances and halvings can be
+decided on the device (:attr:`CopyLineSearch.device_backtrack`, :class:`~sim_core.ti_kernels.backtrack.DeviceBacktrack`:
+the next step sizes are never sent); it pays only where no host term adds energy (today the contact pairs' penalties
+are summed on the host from the pair batch's active list, so their energies would travel up instead of the steps).
 """
 
 from __future__ import annotations
