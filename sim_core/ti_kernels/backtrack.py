@@ -4,8 +4,9 @@ per-copy scalars are (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.launc
 no step sizes a trial point and reads one array back: the copies' flags, their backtracks, accepted steps and energies,
 the trial gradient's largest entry and the count of copies still backtracking.
 
-The decision is :func:`sim_core.batch.line_search.armijo_backtrack`'s (the host's, for the NumPy vectors), entry by
-entry in the same float64 operations and order, so the two agree bit for bit (IEEE comparisons, NaN failing every
+The decision is the host's (:func:`sim_core.batch.line_search.armijo_accepts` and the halvings of
+:meth:`~sim_core.batch.line_search.CopyLineSearch._line_search_copies`), entry by entry in the same float64 operations
+and order, so the two agree bit for bit (IEEE comparisons, NaN failing every
 test; ``fast_math`` is off, :func:`sim_core.ti_backend.init_backend`). Its state is one float64 array ``(ROWS B + 1,)``
 in device memory, row ``r`` of copy ``c`` at ``r B + c``, the last cell the count; row :data:`ALPHA` is also the
 step-size array the trial point's kernel reads (:meth:`~sim_core.ti_kernels.copy_vectors.CopyVectors.moved_by`).
