@@ -293,3 +293,46 @@ def test_the_contact_sets_one_launch_friction_equals_the_frames_of_its_potential
     expected_mu = [contact.model.friction_coefficient(names[bodies[a]], names[bodies[b]])
                    for a, b in zip(friction.vertices[:, 0], second)]
     np.testing.assert_array_equal(friction.mu, expected_mu)
+
+
+def test_a_search_within_a_step_measures_only_its_new_pairs_with_the_sides_of_a_fresh_contact_set(ti_cpu,
+                                                                                                monkeypatch):
+    """A second candidate search of a step (the sheet moved towards the table by more than the margin: pairs lost,
+    pairs new) takes the sides and kept edge pairs of the pairs its last lists held from there and measures only the
+    new ones (one geometry over them), with a side memory that remembers signed pairs: the pairs, sides and
+    energies of a contact set that measures every pair of the same lists, on the NumPy reference and on Taichi."""
+    from sim_core.contact_set import ContactSet
+
+    measured = []
+    new_pairs = ContactSet._new_pairs_geometry
+    monkeypatch.setattr(ContactSet, "_new_pairs_geometry",
+                        lambda self, x, lists, vt, ee: (measured.append((len(vt), len(ee), len(lists.vt),
+                                                                         len(lists.ee))),
+                                                        new_pairs(self, x, lists, vt, ee))[1])
+    for backend in ("numpy", "taichi-cpu"):
+        contact, x = _forming_contact(backend)
+        fresh = _forming_contact(backend)[0]
+        rng = np.random.default_rng(11)
+        x_n = x + 0.4 * contact.eps * rng.normal(size=x.shape)
+        memory = contact.end_step(x_n, contact.begin_step(x_n, None))  # signed pairs remembered
+        assert len(memory.vertex_triangle) and len(memory.edge_edge)
+        step_memory = contact.begin_step(x_n, memory)
+        contact.potentials(x_n, x_n, step_memory)
+        first = contact._candidates
+        sheet = contact.vertex_body == contact.body_names.index("sheet")
+        x_trial = x_n.copy()
+        x_trial[sheet, 2] -= 1.5 * contact.margin
+        measured.clear()
+        pots = contact.potentials(x_trial, x_n, step_memory)[:2]
+        assert contact._candidates is not first and len(measured) == 1
+        vt_new, ee_new, vt_all, ee_all = measured[0]
+        assert 0 < vt_new < vt_all and 0 < ee_new < ee_all  # pairs new and pairs kept, of both kinds
+        fresh_memory = fresh.begin_step(x_n, memory)
+        fresh._candidates = contact._candidates  # the same lists, every pair measured
+        fresh_pots = fresh.potentials(x_trial, x_n, fresh_memory)[:2]
+        assert len(measured) == 1
+        for a, b in zip(pots, fresh_pots):
+            np.testing.assert_array_equal(a.pairs, b.pairs)
+            np.testing.assert_array_equal(a.sides, b.sides)
+            assert np.any(a.sides != 0)
+            assert a.energy(x_trial) == b.energy(x_trial) and a.energy(x_trial) > 0.0
