@@ -615,8 +615,7 @@ def _wrap_parts(backend: str) -> dict:
     from sim_core.ti_kernels import hash_grid
 
     parts += [(ContactSet, n) for n in ("_candidate_pairs", "_search", "_pair_sides", "_pair_geometry",
-                                        "_list_vertices", "_pair_friction", "_end_geometry_of",
-                                        "_sides_within_step", "_new_pairs_geometry") if hasattr(ContactSet, n)]
+                                        "_list_vertices", "_pair_friction", "_end_geometry_of")]
     parts += [(hash_grid.HashGrid, "pairs"), (hash_grid, "sorted_pairs_and_keys"), (PairBatch, "__init__"),
               (PairBatch, "_launch"), (pair_lists.CandidateVertices, "__init__"),
               (pair_lists.CandidateVertices, "batch_indices"), (setup_kernel, "friction_frames"),

@@ -154,8 +154,7 @@ class ContactSet:
         """Start a step at ``x^n`` with the state's side memory (a fresh one when None)."""
         self.x_prev = np.asarray(x_n, dtype=float)
         self._cache = None
-        # (memory, x^n, vt pairs, ee pairs, (vt sides, ee keep, ee sides), the lists' keys) of the last search
-        self._step_table = None
+        self._step_table = None  # (memory, x^n, vt pairs, ee pairs, (vt sides, ee keep, ee sides)) of the last search
         self._released = _NO_RELEASES
         return memory.copy() if memory is not None else CollisionMemory()
 
@@ -558,78 +557,20 @@ class ContactSet:
         ee_sides = step_sides(keep & geo.ee_interior, ee, geo.ee_side, memory.edge_edge, ee_keys, block[len(vt):])
         return vt_sides, keep, ee_sides
 
-    def _sides_within_step(self, table: tuple, x_ref: np.ndarray, memory: CollisionMemory, vt: np.ndarray,
-                           ee: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """:meth:`_pair_sides` of new candidate lists ``vt`` ``(p, 2)`` and ``ee`` ``(q, 2)`` searched within the step
-        of ``table`` (the step's last lists and their sides, :meth:`_search`; the same ``x_ref`` and ``memory``).
-
-        Within a step a pair's side and keep depend only on the pair, ``x_ref`` (``x^n``) and the side memory, so
-        those of the pairs the last lists held are taken from there, and only the pairs new to the lists are measured
-        (:meth:`_new_pairs_geometry`: one launch over them, none when there are none) and looked up in the memory:
-        the values :meth:`_pair_sides` gives, in the same one array of both kinds' sides. A line search's trial
-        point that searches again (Forming: the step's first one, and the first backtrack where the list ahead does
-        not cover it) keeps most of the last list. None when a list's keys are not sorted and unique
-        (:meth:`~sim_core.energies.contact.pair_lists.CandidateVertices.keys`): :meth:`_pair_sides` then."""
-        lists = self._list_vertices(vt, ee)
-        keys, old_keys = lists.keys(), table[5]
-        if any(k is None for k in keys + old_keys):
-            return None
-        old_vt_sides, old_keep, old_ee_sides = table[4]
-        block = np.empty(len(vt) + len(ee))  # both kinds' sides in one array, as _pair_sides'
-        vt_sides, ee_sides = block[:len(vt)], block[len(vt):]
-        keep = np.zeros(len(ee), dtype=bool)
-        new = []
-        for new_keys, known, outputs in ((keys[0], old_keys[0], ((vt_sides, old_vt_sides),)),
-                                         (keys[1], old_keys[1], ((ee_sides, old_ee_sides), (keep, old_keep)))):
-            found = np.zeros(len(new_keys), dtype=bool)
-            if len(known) and len(new_keys):
-                rows = np.minimum(np.searchsorted(known, new_keys), len(known) - 1)
-                np.equal(known[rows], new_keys, out=found)
-                for out, old in outputs:
-                    np.take(old, rows, out=out)
-            new.append(np.flatnonzero(~found))
-        vt_new, ee_new = new
-        if len(vt_new) or len(ee_new):
-            geo = self._new_pairs_geometry(x_ref, lists, vt_new, ee_new)
-            vt_sides[vt_new] = step_sides(geo.vt_above, vt[vt_new], geo.vt_side, memory.vertex_triangle,
-                                          keys[0][vt_new])
-            keep[ee_new] = geo.ee_keep
-            ee_sides[ee_new] = step_sides(geo.ee_keep & geo.ee_interior, ee[ee_new], geo.ee_side, memory.edge_edge,
-                                          keys[1][ee_new])
-        return vt_sides, keep, ee_sides
-
-    def _new_pairs_geometry(self, x: np.ndarray, lists: CandidateVertices, vt_rows: np.ndarray,
-                            ee_rows: np.ndarray) -> ListGeometry:
-        """:meth:`_list_geometry` at ``x`` ``(n, 3)`` of the rows ``vt_rows`` ``(a,)`` and ``ee_rows`` ``(b,)`` of the
-        candidate lists ``lists`` alone (the same kernel or NumPy reference a pair, so the values of those rows of the
-        whole lists' geometry); on CUDA their indices are sent at every call (a device cache of their own, the lists'
-        kept copies untouched)."""
-        if not self.taichi:
-            return ListGeometry.of(self._pair_geometry(x, lists.vt_vertices[vt_rows], lists.ee_vertices[ee_rows]),
-                                   self.min_edge_sine)
-        # optional heavy dependency: Taichi, loaded on a Taichi backend only
-        from sim_core.energies.contact.setup_kernel import pair_codes
-
-        vt32, ee32 = lists.int32_vertices()
-        return pair_codes(x, np.ascontiguousarray(vt32[vt_rows]), np.ascontiguousarray(ee32[ee_rows]),
-                          self.min_edge_sine, {})
-
     def _search(self, x: np.ndarray, memory: CollisionMemory, candidates: tuple) -> tuple[tuple, np.ndarray]:
         """Potentials over ``candidates`` with the step's sides (:meth:`_pair_sides`, of every pair in one geometry
-        evaluation for both pair kinds; those of the step's last lists when these are the same arrays, and of the pairs
-        they held when a search within the step made new lists, :meth:`_sides_within_step`). Returns the
+        evaluation for both pair kinds; those of the step's last lists when these are the same arrays). Returns the
         two potentials and the rows of the edge-edge candidates the edge-edge potential kept, int64 ``(q,)`` (the
         vertex-triangle potential keeps every candidate, in order)."""
         x_ref = self.x_prev if self.x_prev is not None else x
         _, vt, ee = candidates
         table = getattr(self, "_step_table", None)
-        same_step = table is not None and table[0] is memory and table[1] is x_ref and self.x_prev is not None
-        if same_step and table[2] is vt and table[3] is ee:
+        if (table is not None and table[0] is memory and table[1] is x_ref and self.x_prev is not None
+                and table[2] is vt and table[3] is ee):
             vt_sides, keep, ee_sides = table[4]
         else:
-            sides = self._sides_within_step(table, x_ref, memory, vt, ee) if same_step else None
-            vt_sides, keep, ee_sides = self._pair_sides(x_ref, memory, vt, ee) if sides is None else sides
-            self._step_table = (memory, x_ref, vt, ee, (vt_sides, keep, ee_sides), self._list_vertices(vt, ee).keys())
+            vt_sides, keep, ee_sides = self._pair_sides(x_ref, memory, vt, ee)
+            self._step_table = (memory, x_ref, vt, ee, (vt_sides, keep, ee_sides))
         vt_sides, ee_sides = self._without_released(vt, vt_sides, 0), self._without_released(ee, ee_sides, 1)
         ee_rows = np.flatnonzero(keep)
         lists = self._list_vertices(vt, ee)
